@@ -1,0 +1,48 @@
+//! Mapping of core errors to the Python exception classes of `hybridmpm.errors`.
+//!
+//! The classes live in Python (so that `InvalidInputError` can subclass both
+//! `HybridMpmError` and `ValueError`); they are looked up on first use.
+
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+
+fn make(py: Python<'_>, class: &str, msg: String, extra: Option<Py<PyAny>>) -> PyErr {
+    let built = (|| -> PyResult<PyErr> {
+        let module = py.import("hybridmpm.errors")?;
+        let cls = module.getattr(class)?;
+        let obj = match extra {
+            Some(x) => cls.call1((msg.clone(), x))?,
+            None => cls.call1((msg.clone(),))?,
+        };
+        Ok(PyErr::from_value(obj))
+    })();
+    match built {
+        Ok(e) => e,
+        // The Python package is not importable (e.g. the bare extension is
+        // used): fall back to builtin classes with the same message.
+        Err(_) => {
+            if class == "SimulationError" {
+                PyRuntimeError::new_err(msg)
+            } else {
+                PyValueError::new_err(msg)
+            }
+        }
+    }
+}
+
+/// `InvalidInputError(msg, field)`: bad argument named `field`.
+pub fn invalid_input(py: Python<'_>, field: &str, msg: impl Into<String>) -> PyErr {
+    let field_obj = field.into_pyobject(py).map(|o| o.into_any().unbind()).ok();
+    make(py, "InvalidInputError", format!("{field}: {}", msg.into()), field_obj)
+}
+
+/// `SimulationError(msg, substep)`.
+pub fn simulation_error(py: Python<'_>, substep: Option<usize>, msg: impl Into<String>) -> PyErr {
+    let extra = substep.and_then(|s| s.into_pyobject(py).ok().map(|o| o.into_any().unbind()));
+    make(py, "SimulationError", msg.into(), extra)
+}
+
+/// `CheckpointError(msg)`.
+pub fn checkpoint_error(py: Python<'_>, msg: impl Into<String>) -> PyErr {
+    make(py, "CheckpointError", msg.into(), None)
+}

@@ -1,0 +1,14 @@
+//! The thin pyo3 binding: module `hybridmpm._core`.
+//!
+//! Borrows numpy arrays in, moves results out, releases the GIL around work,
+//! and maps each core error to a Python exception of `hybridmpm.errors`.
+
+use pyo3::prelude::*;
+
+mod errors;
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
