@@ -1,1 +1,24 @@
-//! MLS-MPM solver.
+//! MLS-MPM solver for water, Drucker–Prager sand and their mixture, with
+//! static signed-distance obstacles, in 2D and 3D from one source.
+//!
+//! Method: Hu et al. 2018 (MLS-MPM, APIC transfers, quadratic B-splines);
+//! sand: Klár et al. 2016 (Hencky strain, SVD return mapping) with the volume
+//! correction of Tampubolon et al. 2017. Sparse block grid: only blocks near
+//! particles are touched. Deterministic for any thread count.
+
+pub mod checkpoint;
+pub mod collider;
+pub mod dim;
+pub mod error;
+pub mod grid_mass;
+pub mod params;
+pub mod particles;
+pub mod solver;
+
+pub use collider::{Collider, Shape};
+pub use dim::{Dim, DimOps};
+pub use error::{MpmError, Result};
+pub use grid_mass::grid_mass;
+pub use params::{BoundaryCondition, SandParams, SolverParams, WallParams, WaterParams};
+pub use particles::{Material, Particle};
+pub use solver::{FrameStats, Solver};

@@ -1,0 +1,26 @@
+//! Error type of the MPM crate.
+
+use thiserror::Error;
+
+/// Errors of the MPM solver. Input errors name the offending field.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum MpmError {
+    /// A parameter or input array is malformed or out of range.
+    #[error("{field}: {msg}")]
+    InvalidInput { field: String, msg: String },
+    /// The state became non-finite during a substep; the solver state was
+    /// rolled back to the beginning of the frame.
+    #[error("non-finite state at substep {substep} of the frame (of {substeps}); state restored to the start of the frame")]
+    NonFinite { substep: usize, substeps: usize },
+    /// A checkpoint blob could not be decoded.
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+}
+
+impl MpmError {
+    pub fn invalid(field: impl Into<String>, msg: impl Into<String>) -> Self {
+        MpmError::InvalidInput { field: field.into(), msg: msg.into() }
+    }
+}
+
+pub type Result<T> = std::result::Result<T, MpmError>;

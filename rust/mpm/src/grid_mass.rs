@@ -1,0 +1,100 @@
+//! Grid mass: p2g of particle mass only, onto a given grid, normalised to sum 1.
+//!
+//! Building block of the accuracy metric (DESIGN.md, "Grid-mass error"; paper
+//! Sec. 3.1.1, `RMSE_m̃`): trajectories with different particle counts are
+//! compared through their normalised grid-mass fields on one reference grid.
+
+use crate::error::{MpmError, Result};
+
+/// Splat particle masses onto the node lattice `i·dx`, `i ∈ [0, n)^D`,
+/// `dx = 1/n`, with quadratic B-spline weights, and normalise to sum 1.
+///
+/// * `positions`: `[N][D]` in the unit domain [m].
+/// * `masses`: per-particle masses, or `None` for equal masses (1/N each).
+/// * `n`: nodes per dimension (e.g. 128 in 2D, 64 in 3D).
+///
+/// Returns `n^D` values in row-major order (first coordinate slowest).
+/// Stencil nodes outside `[0, n)` are clamped to the nearest edge node, so no
+/// mass is lost. Errors: non-finite positions or masses, negative masses, a
+/// zero total mass, `n < 3`.
+pub fn grid_mass<const D: usize>(positions: &[[f32; D]], masses: Option<&[f32]>, n: usize) -> Result<Vec<f32>> {
+    if n < 3 || n > 4096 {
+        return Err(MpmError::invalid("n_grid", format!("must be in [3, 4096], got {n}")));
+    }
+    if let Some(m) = masses {
+        if m.len() != positions.len() {
+            return Err(MpmError::invalid("masses", format!("length {} != particle count {}", m.len(), positions.len())));
+        }
+        if let Some(i) = m.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
+            return Err(MpmError::invalid("masses", format!("particle {i}: mass must be finite and >= 0, got {}", m[i])));
+        }
+    }
+    if let Some(i) = positions.iter().position(|p| !p.iter().all(|x| x.is_finite())) {
+        return Err(MpmError::invalid("positions", format!("particle {i} has a non-finite coordinate")));
+    }
+    let total = n.pow(D as u32);
+    let mut grid = vec![0.0f64; total];
+    let inv_dx = n as f32;
+    let k = 3usize.pow(D as u32);
+    for (i, p) in positions.iter().enumerate() {
+        let m = masses.map_or(1.0, |m| m[i] as f64);
+        let mut base = [0i64; D];
+        let mut w = [[0.0f64; 3]; D];
+        for d in 0..D {
+            let xg = p[d] * inv_dx;
+            let b = (xg - 0.5).floor();
+            let f = (xg - b) as f64;
+            base[d] = b as i64;
+            w[d] = [0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5)];
+        }
+        for s in 0..k {
+            let mut rem = s;
+            let mut weight = m;
+            let mut lin = 0usize;
+            for d in (0..D).rev() {
+                let o = rem % 3;
+                rem /= 3;
+                weight *= w[d][o];
+                let idx = (base[d] + o as i64).clamp(0, n as i64 - 1) as usize;
+                lin += idx * n.pow((D - 1 - d) as u32);
+            }
+            grid[lin] += weight;
+        }
+    }
+    let sum: f64 = grid.iter().sum();
+    if !(sum > 0.0) {
+        return Err(MpmError::invalid("masses", "total mass must be > 0"));
+    }
+    Ok(grid.into_iter().map(|x| (x / sum) as f32).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sums_to_one_and_centres_mass() {
+        let pts: Vec<[f32; 2]> = (0..100).map(|i| [0.3 + 0.001 * i as f32, 0.6]).collect();
+        let g = grid_mass(&pts, None, 64).unwrap();
+        let s: f32 = g.iter().sum();
+        assert!((s - 1.0).abs() < 1e-5);
+        // first moment equals the particles' centre of mass (B-splines reproduce linear functions)
+        let mut cx = 0.0f64;
+        let mut cy = 0.0f64;
+        for i in 0..64 {
+            for j in 0..64 {
+                cx += g[i * 64 + j] as f64 * i as f64 / 64.0;
+                cy += g[i * 64 + j] as f64 * j as f64 / 64.0;
+            }
+        }
+        let mx: f64 = pts.iter().map(|p| p[0] as f64).sum::<f64>() / 100.0;
+        assert!((cx - mx).abs() < 1e-5 && (cy - 0.6).abs() < 1e-5, "{cx} {cy}");
+    }
+
+    #[test]
+    fn rejects_bad_input() {
+        assert!(grid_mass::<2>(&[[f32::NAN, 0.5]], None, 16).is_err());
+        assert!(grid_mass::<2>(&[[0.5, 0.5]], Some(&[-1.0]), 16).is_err());
+        assert!(grid_mass::<2>(&[[0.5, 0.5]], None, 2).is_err());
+    }
+}

@@ -1,0 +1,123 @@
+//! Particle state (array of structs: MPM touches all fields of a particle together).
+
+use nalgebra::{SMatrix, SVector};
+
+use crate::error::{MpmError, Result};
+
+/// Material of a particle. The numeric codes are the public API (`material`
+/// arrays on the Python side).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum Material {
+    /// Weakly compressible water (carries `J`).
+    Water = 0,
+    /// Drucker–Prager sand (carries the elastic deformation gradient `F`).
+    Sand = 1,
+}
+
+impl Material {
+    pub fn from_code(code: i64) -> Option<Material> {
+        match code {
+            0 => Some(Material::Water),
+            1 => Some(Material::Sand),
+            _ => None,
+        }
+    }
+}
+
+/// One material point. Units: SI on the unit domain.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Particle<const D: usize> {
+    /// Position x [m].
+    pub x: SVector<f32, D>,
+    /// Velocity v [m/s].
+    pub v: SVector<f32, D>,
+    /// APIC affine velocity matrix C [1/s].
+    pub c: SMatrix<f32, D, D>,
+    /// Elastic deformation gradient F [-] (sand; identity for water).
+    pub f: SMatrix<f32, D, D>,
+    /// Volume ratio J = V/V0 [-] (water; 1 for sand).
+    pub j: f32,
+    /// Log-volume correction of Tampubolon et al. 2017 (sand) [-].
+    pub vc: f32,
+    /// Mass [kg] (per unit depth in 2D).
+    pub mass: f32,
+    /// Rest volume V0 [m^D].
+    pub volume: f32,
+    /// External acceleration added to gravity [m/s²].
+    pub ext: SVector<f32, D>,
+    pub material: Material,
+    /// Kirchhoff stress τ [Pa], derived from the state above (kept in sync by the solver).
+    pub(crate) tau: SMatrix<f32, D, D>,
+}
+
+impl<const D: usize> Particle<D> {
+    /// A particle at rest at `x` with the given material, mass and volume.
+    pub fn new(x: SVector<f32, D>, material: Material, mass: f32, volume: f32) -> Self {
+        Particle {
+            x,
+            v: SVector::zeros(),
+            c: SMatrix::zeros(),
+            f: SMatrix::identity(),
+            j: 1.0,
+            vc: 0.0,
+            mass,
+            volume,
+            ext: SVector::zeros(),
+            material,
+            tau: SMatrix::zeros(),
+        }
+    }
+
+    /// Kirchhoff stress of this particle (derived; read-only).
+    pub fn stress(&self) -> SMatrix<f32, D, D> {
+        self.tau
+    }
+
+    /// Checks that every field is finite and physical; `index` names the particle.
+    pub fn validate(&self, index: usize, lo: f32, hi: f32) -> Result<()> {
+        let fin = |field: &str, ok: bool| {
+            if ok { Ok(()) } else { Err(MpmError::invalid(field, format!("particle {index} has a non-finite value"))) }
+        };
+        fin("positions", self.x.iter().all(|a| a.is_finite()))?;
+        fin("velocities", self.v.iter().all(|a| a.is_finite()))?;
+        fin("affine", self.c.iter().all(|a| a.is_finite()))?;
+        fin("deformation_gradient", self.f.iter().all(|a| a.is_finite()))?;
+        fin("volume_ratio", self.j.is_finite())?;
+        fin("external_acceleration", self.ext.iter().all(|a| a.is_finite()))?;
+        fin("volume_correction", self.vc.is_finite())?;
+        if self.x.iter().any(|&a| a < lo || a > hi) {
+            return Err(MpmError::invalid(
+                "positions",
+                format!("particle {index} at {:?} is outside the simulation domain [{lo}, {hi}]^{D}", self.x.as_slice()),
+            ));
+        }
+        if !(self.mass.is_finite() && self.mass > 0.0) {
+            return Err(MpmError::invalid("masses", format!("particle {index}: mass must be finite and > 0, got {}", self.mass)));
+        }
+        if !(self.volume.is_finite() && self.volume > 0.0) {
+            return Err(MpmError::invalid("volumes", format!("particle {index}: volume must be finite and > 0, got {}", self.volume)));
+        }
+        if !(self.j > 0.0) {
+            return Err(MpmError::invalid("volume_ratio", format!("particle {index}: J must be > 0, got {}", self.j)));
+        }
+        if !(det(&self.f) > 0.0) {
+            return Err(MpmError::invalid("deformation_gradient", format!("particle {index}: det F must be > 0")));
+        }
+        Ok(())
+    }
+}
+
+/// Determinant of a 2×2 or 3×3 matrix.
+pub fn det<const D: usize>(m: &SMatrix<f32, D, D>) -> f32 {
+    match D {
+        1 => m[(0, 0)],
+        2 => m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(1, 0)],
+        3 => {
+            m[(0, 0)] * (m[(1, 1)] * m[(2, 2)] - m[(1, 2)] * m[(2, 1)])
+                - m[(0, 1)] * (m[(1, 0)] * m[(2, 2)] - m[(1, 2)] * m[(2, 0)])
+                + m[(0, 2)] * (m[(1, 0)] * m[(2, 1)] - m[(1, 1)] * m[(2, 0)])
+        }
+        _ => f32::NAN,
+    }
+}

@@ -1,0 +1,799 @@
+//! The MLS-MPM solver (Hu et al. 2018, APIC transfers, quadratic B-splines).
+//!
+//! One substep = `p2g` (per sparse block, into a private padded buffer: no
+//! atomics, no shared writes) → `grid_update` (per output block: gathers the
+//! overlapping padded buffers in a fixed order, adds gravity, applies walls and
+//! colliders) → `g2p` (per particle: new `v`, `C`, position, `J` or `F` with
+//! the Drucker–Prager return map, stress, and the particle's block key for
+//! the next substep).
+//!
+//! Grid work touches only blocks that contain particles and their `+1`
+//! neighbours (the B-spline stencil reaches 2 nodes ahead), so the cost follows
+//! the particle count, not the domain volume. Every reduction happens in a
+//! fixed order that does not depend on the thread count: results are bitwise
+//! identical for any number of threads.
+
+use nalgebra::{SMatrix, SVector};
+use rayon::prelude::*;
+
+use crate::collider::{apply_condition, Collider};
+use crate::dim::{Dim, DimOps};
+use crate::error::{MpmError, Result};
+use crate::params::{BoundaryCondition, SolverParams};
+use crate::particles::{Material, Particle};
+
+const EMPTY: u32 = u32::MAX;
+
+/// Statistics of one `step_frame` call.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameStats {
+    /// Substeps taken.
+    pub substeps: usize,
+    /// Substep size [s].
+    pub dt: f32,
+    /// Largest particle speed at the end of the frame [m/s].
+    pub max_speed: f32,
+    /// Sparse blocks holding particles during the last substep.
+    pub active_blocks: usize,
+}
+
+/// Scratch space of the sparse block grid, reused across substeps.
+struct SparseGrid {
+    log2_b: u32,
+    /// Blocks per dimension of the block lattice.
+    nb: usize,
+    /// Block lattice map: block coordinate → index in `src_blocks` (or EMPTY).
+    src_map: Vec<u32>,
+    /// Block lattice map: block coordinate → index in `out_blocks` (or EMPTY).
+    out_map: Vec<u32>,
+    src_blocks: Vec<u32>,
+    src_offsets: Vec<u32>,
+    sorted: Vec<u32>,
+    out_blocks: Vec<u32>,
+    /// Padded p2g buffers, one per source block: (B+2)^D nodes × (1 + D) floats.
+    local: Vec<f32>,
+    /// Grid velocities per output block: B^D nodes × D floats.
+    out_v: Vec<f32>,
+    /// Block key of each particle.
+    keys: Vec<u32>,
+    counts: Vec<u32>,
+}
+
+/// Precomputed stencil offsets.
+struct Stencil<const D: usize> {
+    /// Offset of each of the 3^D stencil nodes, per dimension.
+    o: Vec<[usize; D]>,
+    /// Linear node offset of each stencil node in a padded buffer.
+    pad_off: Vec<usize>,
+    /// Strides of the padded buffer (in nodes), per dimension.
+    pad_stride: [usize; D],
+    /// Strides inside an output block (in nodes), per dimension.
+    blk_stride: [usize; D],
+    /// Strides of the block lattice, per dimension.
+    lat_stride: [usize; D],
+}
+
+/// MLS-MPM solver for `D` = 2 or 3.
+pub struct Solver<const D: usize>
+where
+    Dim<D>: DimOps<D>,
+{
+    params: SolverParams<D>,
+    colliders: Vec<Collider<D>>,
+    particles: Vec<Particle<D>>,
+    time: f64,
+    frame: u64,
+    grid: SparseGrid,
+    stencil: Stencil<D>,
+    pool: rayon::ThreadPool,
+    pool_pid: u32,
+}
+
+fn build_pool(num_threads: usize) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(num_threads)
+        .build()
+        .map_err(|e| MpmError::invalid("num_threads", format!("cannot start the thread pool: {e}")))
+}
+
+/// Quadratic B-spline weights of a particle at grid coordinate `xg` (units of dx).
+#[inline(always)]
+fn bspline<const D: usize>(xg: &SVector<f32, D>) -> ([i64; D], SVector<f32, D>, [[f32; 3]; D]) {
+    let mut base = [0i64; D];
+    let mut fx = SVector::<f32, D>::zeros();
+    let mut w = [[0.0f32; 3]; D];
+    for d in 0..D {
+        let b = (xg[d] - 0.5).floor();
+        base[d] = b as i64;
+        let f = xg[d] - b;
+        fx[d] = f;
+        w[d] = [0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5)];
+    }
+    (base, fx, w)
+}
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// A solver with no particles. Errors name the bad parameter.
+    pub fn new(params: SolverParams<D>, colliders: Vec<Collider<D>>) -> Result<Self> {
+        assert!(D == 2 || D == 3);
+        params.validate()?;
+        for (i, c) in colliders.iter().enumerate() {
+            c.validate(&format!("colliders[{i}]"))?;
+        }
+        let log2_b = <Dim<D> as DimOps<D>>::LOG2_BLOCK;
+        let b = 1usize << log2_b;
+        // nodes 0..=n+1 may be touched; +1 block for the stencil's reach.
+        let nb = (params.n_grid + 2).div_ceil(b) + 1;
+        let lattice = nb.pow(D as u32);
+        let p = b + 2;
+        let mut pad_stride = [0usize; D];
+        let mut blk_stride = [0usize; D];
+        let mut lat_stride = [0usize; D];
+        for d in 0..D {
+            pad_stride[d] = p.pow((D - 1 - d) as u32);
+            blk_stride[d] = b.pow((D - 1 - d) as u32);
+            lat_stride[d] = nb.pow((D - 1 - d) as u32);
+        }
+        let k = 3usize.pow(D as u32);
+        let mut o = Vec::with_capacity(k);
+        let mut pad_off = Vec::with_capacity(k);
+        for i in 0..k {
+            let mut oi = [0usize; D];
+            let mut rem = i;
+            for d in (0..D).rev() {
+                oi[d] = rem % 3;
+                rem /= 3;
+            }
+            pad_off.push((0..D).map(|d| oi[d] * pad_stride[d]).sum());
+            o.push(oi);
+        }
+        let pool = build_pool(params.num_threads)?;
+        Ok(Solver {
+            params,
+            colliders,
+            particles: Vec::new(),
+            time: 0.0,
+            frame: 0,
+            grid: SparseGrid {
+                log2_b,
+                nb,
+                src_map: vec![EMPTY; lattice],
+                out_map: vec![EMPTY; lattice],
+                src_blocks: Vec::new(),
+                src_offsets: Vec::new(),
+                sorted: Vec::new(),
+                out_blocks: Vec::new(),
+                local: Vec::new(),
+                out_v: Vec::new(),
+                keys: Vec::new(),
+                counts: Vec::new(),
+            },
+            stencil: Stencil { o, pad_off, pad_stride, blk_stride, lat_stride },
+            pool,
+            pool_pid: std::process::id(),
+        })
+    }
+
+    pub fn params(&self) -> &SolverParams<D> {
+        &self.params
+    }
+
+    pub fn colliders(&self) -> &[Collider<D>] {
+        &self.colliders
+    }
+
+    pub fn particles(&self) -> &[Particle<D>] {
+        &self.particles
+    }
+
+    pub fn num_particles(&self) -> usize {
+        self.particles.len()
+    }
+
+    /// Simulated time [s].
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+
+    /// Frames advanced so far.
+    pub fn frame(&self) -> u64 {
+        self.frame
+    }
+
+    /// Lower and upper bound of valid particle coordinates: one cell inside the domain.
+    pub fn domain_bounds(&self) -> (f32, f32) {
+        let dx = self.params.dx();
+        (dx, 1.0 - dx)
+    }
+
+    /// Replace all particles (validated; derived stress recomputed).
+    pub fn set_particles(&mut self, mut particles: Vec<Particle<D>>) -> Result<()> {
+        let (lo, hi) = self.domain_bounds();
+        for (i, p) in particles.iter().enumerate() {
+            p.validate(i, lo, hi)?;
+        }
+        for p in particles.iter_mut() {
+            self.refresh_stress(p);
+        }
+        self.particles = particles;
+        Ok(())
+    }
+
+    /// Replace all particles keeping their stored stress (checkpoint restore).
+    pub(crate) fn set_particles_keep_stress(&mut self, particles: Vec<Particle<D>>) -> Result<()> {
+        let (lo, hi) = self.domain_bounds();
+        for (i, p) in particles.iter().enumerate() {
+            p.validate(i, lo, hi)?;
+            if !p.tau.iter().all(|a| a.is_finite()) {
+                return Err(MpmError::invalid("stress", format!("particle {i} has a non-finite stress")));
+            }
+        }
+        self.particles = particles;
+        Ok(())
+    }
+
+    /// Append particles (validated). Returns the new particle count.
+    pub fn add_particles(&mut self, new: Vec<Particle<D>>) -> Result<usize> {
+        let (lo, hi) = self.domain_bounds();
+        let n0 = self.particles.len();
+        for (i, p) in new.iter().enumerate() {
+            p.validate(n0 + i, lo, hi)?;
+        }
+        for mut p in new {
+            self.refresh_stress(&mut p);
+            self.particles.push(p);
+        }
+        Ok(self.particles.len())
+    }
+
+    /// Remove the particles whose `keep[i]` is false (order of the rest kept).
+    pub fn retain_particles(&mut self, keep: &[bool]) -> Result<usize> {
+        if keep.len() != self.particles.len() {
+            return Err(MpmError::invalid("mask", format!("length {} != particle count {}", keep.len(), self.particles.len())));
+        }
+        let mut it = keep.iter();
+        self.particles.retain(|_| *it.next().unwrap_or(&true));
+        Ok(self.particles.len())
+    }
+
+    /// Set simulated time and frame counter (used by checkpoint restore).
+    pub fn set_clock(&mut self, time: f64, frame: u64) {
+        self.time = time;
+        self.frame = frame;
+    }
+
+    fn refresh_stress(&self, p: &mut Particle<D>) {
+        p.tau = match p.material {
+            Material::Water => self.water_stress(p.j, &p.c),
+            Material::Sand => {
+                let svd = Dim::<D>::svd(&p.f);
+                let eps = svd.sigma.map(|s| s.max(1e-6).ln());
+                self.sand_stress(&svd.u, &eps)
+            }
+        };
+    }
+
+    #[inline(always)]
+    fn water_stress(&self, j: f32, c: &SMatrix<f32, D, D>) -> SMatrix<f32, D, D> {
+        let w = &self.params.water;
+        let mut tau = SMatrix::<f32, D, D>::identity() * (w.bulk_modulus * j * (j - 1.0));
+        if w.viscosity > 0.0 {
+            tau += (c + c.transpose()) * (w.viscosity * j);
+        }
+        tau
+    }
+
+    #[inline(always)]
+    fn sand_stress(&self, u: &SMatrix<f32, D, D>, eps: &SVector<f32, D>) -> SMatrix<f32, D, D> {
+        let (mu, la) = self.params.sand.lame();
+        let tr = eps.sum();
+        let diag = eps.map(|e| 2.0 * mu * e + la * tr);
+        u * SMatrix::<f32, D, D>::from_diagonal(&diag) * u.transpose()
+    }
+
+    /// Largest wave speed among the materials present [m/s].
+    fn wave_speed(&self) -> f32 {
+        let mut has = [false; 2];
+        for p in &self.particles {
+            has[p.material as usize] = true;
+            if has[0] && has[1] {
+                break;
+            }
+        }
+        let mut c = 0.0f32;
+        if has[0] {
+            c = c.max(self.params.water.wave_speed());
+        }
+        if has[1] {
+            c = c.max(self.params.sand.wave_speed());
+        }
+        c
+    }
+
+    /// Substep count the CFL condition asks for over a frame of `dt_frame` seconds.
+    pub fn substeps_for(&self, dt_frame: f32) -> usize {
+        if let Some(s) = self.params.substeps {
+            return s;
+        }
+        let vmax = self.pool.install(|| {
+            self.particles.par_iter().map(|p| p.v.norm()).reduce(|| 0.0f32, f32::max)
+        });
+        let dt_max = self.params.cfl * self.params.dx() / (self.wave_speed() + vmax).max(1e-6);
+        ((dt_frame / dt_max).ceil() as usize).max(1)
+    }
+
+    /// Advance one frame of `dt_frame` seconds (default 2.5e-3) in as many
+    /// substeps as the CFL condition requires (`cfl·dx / (c + |v|max)`), or
+    /// `params.substeps` if set.
+    ///
+    /// Errors: `InvalidInput` for a bad `dt_frame` or when more than
+    /// `max_substeps` would be needed; `NonFinite { substep }` when the state
+    /// becomes non-finite, in which case the state is restored to the start
+    /// of the frame.
+    pub fn step_frame(&mut self, dt_frame: f32) -> Result<FrameStats> {
+        if !(dt_frame.is_finite() && dt_frame > 0.0 && dt_frame <= 1.0) {
+            return Err(MpmError::invalid("dt_frame", format!("must be in (0, 1] s, got {dt_frame}")));
+        }
+        if self.pool_pid != std::process::id() {
+            // We are in a forked child: the parent's worker threads do not exist here.
+            self.pool = build_pool(self.params.num_threads)?;
+            self.pool_pid = std::process::id();
+        }
+        let n_sub = self.substeps_for(dt_frame);
+        if n_sub > self.params.max_substeps {
+            return Err(MpmError::invalid(
+                "dt_frame",
+                format!(
+                    "the CFL condition needs {n_sub} substeps for dt_frame = {dt_frame} s, more than max_substeps = {}",
+                    self.params.max_substeps
+                ),
+            ));
+        }
+        let dt = dt_frame / n_sub as f32;
+        if self.particles.is_empty() {
+            self.time += dt_frame as f64;
+            self.frame += 1;
+            return Ok(FrameStats { substeps: n_sub, dt, max_speed: 0.0, active_blocks: 0 });
+        }
+        let backup = self.particles.clone();
+        let pool = std::mem::replace(&mut self.pool, build_pool(1)?);
+        let result = pool.install(|| {
+            self.compute_keys();
+            let mut vmax = 0.0;
+            for s in 0..n_sub {
+                let (finite, v) = self.substep(dt);
+                vmax = v;
+                if !finite {
+                    return Err(MpmError::NonFinite { substep: s, substeps: n_sub });
+                }
+            }
+            Ok(vmax)
+        });
+        self.pool = pool;
+        match result {
+            Ok(vmax) => {
+                self.time += dt_frame as f64;
+                self.frame += 1;
+                Ok(FrameStats { substeps: n_sub, dt, max_speed: vmax, active_blocks: self.grid.src_blocks.len() })
+            }
+            Err(e) => {
+                self.particles = backup;
+                Err(e)
+            }
+        }
+    }
+
+    /// Block key of every particle (from its stencil base node).
+    fn compute_keys(&mut self) {
+        let inv_dx = self.params.n_grid as f32;
+        let log2_b = self.grid.log2_b;
+        let lat = self.stencil.lat_stride;
+        self.grid.keys.resize(self.particles.len(), 0);
+        self.particles.par_iter().zip(self.grid.keys.par_iter_mut()).for_each(|(p, k)| {
+            *k = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
+        });
+    }
+
+    /// Sort particles into blocks (stable counting sort) and list output blocks.
+    fn build_blocks(&mut self) {
+        let g = &mut self.grid;
+        for &b in &g.src_blocks {
+            g.src_map[b as usize] = EMPTY;
+        }
+        for &b in &g.out_blocks {
+            g.out_map[b as usize] = EMPTY;
+        }
+        g.src_blocks.clear();
+        g.out_blocks.clear();
+        g.counts.clear();
+        for &k in &g.keys {
+            let slot = &mut g.src_map[k as usize];
+            if *slot == EMPTY {
+                *slot = g.src_blocks.len() as u32;
+                g.src_blocks.push(k);
+                g.counts.push(0);
+            }
+            g.counts[*slot as usize] += 1;
+        }
+        g.src_offsets.clear();
+        g.src_offsets.push(0);
+        let mut acc = 0u32;
+        for &c in &g.counts {
+            acc += c;
+            g.src_offsets.push(acc);
+        }
+        // reuse counts as cursors
+        for (c, &o) in g.counts.iter_mut().zip(g.src_offsets.iter()) {
+            *c = o;
+        }
+        g.sorted.resize(g.keys.len(), 0);
+        for (i, &k) in g.keys.iter().enumerate() {
+            let s = g.src_map[k as usize] as usize;
+            g.sorted[g.counts[s] as usize] = i as u32;
+            g.counts[s] += 1;
+        }
+        // Output blocks: each source block and its +1 neighbours.
+        let lat = self.stencil.lat_stride;
+        let nb = g.nb;
+        for &b in &g.src_blocks {
+            let c = unflatten::<D>(b as usize, &lat);
+            for s in 0..(1usize << D) {
+                let mut lin = 0usize;
+                let mut ok = true;
+                for d in 0..D {
+                    let cd = c[d] + ((s >> d) & 1);
+                    if cd >= nb {
+                        ok = false;
+                    }
+                    lin += cd * lat[d];
+                }
+                if ok && g.out_map[lin] == EMPTY {
+                    g.out_map[lin] = g.out_blocks.len() as u32;
+                    g.out_blocks.push(lin as u32);
+                }
+            }
+        }
+    }
+
+    /// One substep of size `dt`. Returns (state finite, max speed).
+    fn substep(&mut self, dt: f32) -> (bool, f32) {
+        self.build_blocks();
+        self.p2g(dt);
+        self.grid_update(dt);
+        self.g2p(dt)
+    }
+
+    fn p2g(&mut self, dt: f32) {
+        let b = 1usize << self.grid.log2_b;
+        let pad_nodes = (b + 2).pow(D as u32);
+        let stride = pad_nodes * (D + 1);
+        let n_src = self.grid.src_blocks.len();
+        let dx = self.params.dx();
+        let inv_dx = 1.0 / dx;
+        let stress_scale = -dt * 4.0 * inv_dx * inv_dx;
+        let g = &mut self.grid;
+        g.local.resize(n_src * stride, 0.0);
+        let particles = &self.particles;
+        let st = &self.stencil;
+        let (src_blocks, src_offsets, sorted, lat, log2_b) =
+            (&g.src_blocks, &g.src_offsets, &g.sorted, st.lat_stride, g.log2_b);
+        g.local.par_chunks_mut(stride).enumerate().for_each(|(si, buf)| {
+            buf.fill(0.0);
+            let c = unflatten::<D>(src_blocks[si] as usize, &lat);
+            let lo = src_offsets[si] as usize;
+            let hi = src_offsets[si + 1] as usize;
+            for &pi in &sorted[lo..hi] {
+                let p = &particles[pi as usize];
+                let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
+                let mut base_idx = 0usize;
+                for d in 0..D {
+                    let loc = (base[d] - ((c[d] << log2_b) as i64)) as usize;
+                    base_idx += loc * st.pad_stride[d];
+                }
+                let affine = p.tau * (stress_scale * p.volume) + p.c * p.mass;
+                let mom = (p.v + p.ext * dt) * p.mass;
+                for (k, o) in st.o.iter().enumerate() {
+                    let mut weight = 1.0f32;
+                    let mut dpos = SVector::<f32, D>::zeros();
+                    for d in 0..D {
+                        weight *= w[d][o[d]];
+                        dpos[d] = (o[d] as f32 - fx[d]) * dx;
+                    }
+                    let val = (mom + affine * dpos) * weight;
+                    let node = (base_idx + st.pad_off[k]) * (D + 1);
+                    let slot = &mut buf[node..node + D + 1];
+                    slot[0] += weight * p.mass;
+                    for d in 0..D {
+                        slot[1 + d] += val[d];
+                    }
+                }
+            }
+        });
+    }
+
+    fn grid_update(&mut self, dt: f32) {
+        let b = 1usize << self.grid.log2_b;
+        let blk_nodes = b.pow(D as u32);
+        let p = b + 2;
+        let pad_nodes = p.pow(D as u32);
+        let src_stride = pad_nodes * (D + 1);
+        let n_out = self.grid.out_blocks.len();
+        let n = self.params.n_grid;
+        let dx = self.params.dx();
+        let gravity = SVector::<f32, D>::from_column_slice(&self.params.gravity);
+        let walls = self.params.walls.clone();
+        let colliders = &self.colliders;
+        let st = &self.stencil;
+        let g = &mut self.grid;
+        g.out_v.resize(n_out * blk_nodes * D, 0.0);
+        let (out_blocks, src_map, local, lat, log2_b) = (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
+        let wall_lo = walls.cells;
+        let wall_hi = n.saturating_sub(walls.cells);
+        g.out_v.par_chunks_mut(blk_nodes * D).enumerate().for_each(|(oi, out)| {
+            let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
+            let mut acc = [0.0f32; 64 * 4];
+            // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
+            for s in 0..(1usize << D) {
+                let mut lin = 0usize;
+                let mut ok = true;
+                for d in 0..D {
+                    let sd = (s >> d) & 1;
+                    if c[d] < sd {
+                        ok = false;
+                        break;
+                    }
+                    lin += (c[d] - sd) * lat[d];
+                }
+                if !ok {
+                    continue;
+                }
+                let sid = src_map[lin];
+                if sid == EMPTY {
+                    continue;
+                }
+                let src = &local[sid as usize * src_stride..(sid as usize + 1) * src_stride];
+                for l in 0..blk_nodes {
+                    let lc = unflatten_pow2::<D>(l, log2_b);
+                    let mut pidx = 0usize;
+                    let mut inside = true;
+                    for d in 0..D {
+                        let sd = (s >> d) & 1;
+                        let q = sd * b + lc[d];
+                        if q >= p {
+                            inside = false;
+                            break;
+                        }
+                        pidx += q * st.pad_stride[d];
+                    }
+                    if !inside {
+                        continue;
+                    }
+                    let a = &mut acc[l * (D + 1)..(l + 1) * (D + 1)];
+                    let sv = &src[pidx * (D + 1)..(pidx + 1) * (D + 1)];
+                    for k in 0..=D {
+                        a[k] += sv[k];
+                    }
+                }
+            }
+            // Block-level test: is any collider near this block?
+            let near: Vec<&Collider<D>> = if colliders.is_empty() {
+                Vec::new()
+            } else {
+                let mut centre = SVector::<f32, D>::zeros();
+                for d in 0..D {
+                    centre[d] = ((c[d] << log2_b) as f32 + 0.5 * (b as f32 - 1.0)) * dx;
+                }
+                let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt() + dx;
+                colliders.iter().filter(|col| col.shape.sdf(&centre) < half_diag).collect()
+            };
+            for l in 0..blk_nodes {
+                let a = &acc[l * (D + 1)..(l + 1) * (D + 1)];
+                let m = a[0];
+                let o = &mut out[l * D..(l + 1) * D];
+                if m <= 0.0 {
+                    o.fill(0.0);
+                    continue;
+                }
+                let mut v = SVector::<f32, D>::zeros();
+                for d in 0..D {
+                    v[d] = a[1 + d] / m;
+                }
+                v += gravity * dt;
+                let lc = unflatten_pow2::<D>(l, log2_b);
+                let mut gi = [0usize; D];
+                for d in 0..D {
+                    gi[d] = (c[d] << log2_b) + lc[d];
+                }
+                for col in &near {
+                    let mut xp = SVector::<f32, D>::zeros();
+                    for d in 0..D {
+                        xp[d] = gi[d] as f32 * dx;
+                    }
+                    if col.shape.sdf(&xp) < 0.0 {
+                        let nrm = col.shape.normal(&xp);
+                        apply_condition(&mut v, &nrm, col.condition, col.friction);
+                    }
+                }
+                for d in 0..D {
+                    if gi[d] < wall_lo {
+                        let mut nrm = SVector::<f32, D>::zeros();
+                        nrm[d] = 1.0;
+                        wall_condition(&mut v, &nrm, walls.condition, walls.friction);
+                    } else if gi[d] > wall_hi {
+                        let mut nrm = SVector::<f32, D>::zeros();
+                        nrm[d] = -1.0;
+                        wall_condition(&mut v, &nrm, walls.condition, walls.friction);
+                    }
+                }
+                o.copy_from_slice(v.as_slice());
+            }
+        });
+    }
+
+    fn g2p(&mut self, dt: f32) -> (bool, f32) {
+        let dx = self.params.dx();
+        let inv_dx = 1.0 / dx;
+        let (lo, hi) = self.domain_bounds();
+        let log2_b = self.grid.log2_b;
+        let bmask = (1usize << log2_b) - 1;
+        let blk_nodes = 1usize << (log2_b as usize * D);
+        let st = &self.stencil;
+        let lat = st.lat_stride;
+        let (out_map, out_v) = (&self.grid.out_map, &self.grid.out_v);
+        let sand = self.params.sand.clone();
+        let (mu, la) = sand.lame();
+        let alpha = Dim::<D>::drucker_prager_alpha(sand.friction_angle_deg.to_radians());
+        let tan_phi = sand.friction_angle_deg.to_radians().tan();
+        let tr_apex = if sand.cohesion > 0.0 { D as f32 * sand.cohesion / (tan_phi * (D as f32 * la + 2.0 * mu)) } else { 0.0 };
+        let water = self.params.water.clone();
+        let particles = &mut self.particles;
+        let keys = &mut self.grid.keys;
+        particles
+            .par_iter_mut()
+            .zip(keys.par_iter_mut())
+            .map(|(p, key)| {
+                let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
+                let mut new_v = SVector::<f32, D>::zeros();
+                let mut new_b = SMatrix::<f32, D, D>::zeros();
+                // per-dimension block / in-block coordinates of the 3 stencil nodes
+                let mut blk = [[0usize; 3]; D];
+                let mut loc = [[0usize; 3]; D];
+                for d in 0..D {
+                    for o in 0..3 {
+                        let gi = (base[d] + o as i64) as usize;
+                        blk[d][o] = gi >> log2_b;
+                        loc[d][o] = gi & bmask;
+                    }
+                }
+                for o in st.o.iter() {
+                    let mut weight = 1.0f32;
+                    let mut dpos = SVector::<f32, D>::zeros();
+                    let mut lin = 0usize;
+                    let mut off = 0usize;
+                    for d in 0..D {
+                        weight *= w[d][o[d]];
+                        dpos[d] = (o[d] as f32 - fx[d]) * dx;
+                        lin += blk[d][o[d]] * lat[d];
+                        off += loc[d][o[d]] * st.blk_stride[d];
+                    }
+                    let ob = out_map[lin] as usize;
+                    let at = (ob * blk_nodes + off) * D;
+                    let gv = SVector::<f32, D>::from_column_slice(&out_v[at..at + D]);
+                    new_v += gv * weight;
+                    new_b += gv * dpos.transpose() * weight;
+                }
+                let new_c = new_b * (4.0 * inv_dx * inv_dx);
+                p.v = new_v;
+                p.c = new_c;
+                p.x += new_v * dt;
+                for d in 0..D {
+                    p.x[d] = p.x[d].clamp(lo, hi);
+                }
+                match p.material {
+                    Material::Water => {
+                        p.j *= 1.0 + dt * new_c.trace();
+                        let mut tau = SMatrix::<f32, D, D>::identity() * (water.bulk_modulus * p.j * (p.j - 1.0));
+                        if water.viscosity > 0.0 {
+                            tau += (new_c + new_c.transpose()) * (water.viscosity * p.j);
+                        }
+                        p.tau = tau;
+                    }
+                    Material::Sand => {
+                        let f_trial = (SMatrix::<f32, D, D>::identity() + new_c * dt) * p.f;
+                        let svd = Dim::<D>::svd(&f_trial);
+                        let e0 = svd.sigma.map(|s| s.max(1e-6).ln());
+                        let e_new = drucker_prager_project::<D>(&e0, &mut p.vc, alpha, mu, la, tr_apex);
+                        p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
+                        let tr = e_new.sum();
+                        let diag = e_new.map(|e| 2.0 * mu * e + la * tr);
+                        p.tau = svd.u * SMatrix::<f32, D, D>::from_diagonal(&diag) * svd.u.transpose();
+                    }
+                }
+                *key = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
+                let finite = p.x.iter().chain(p.v.iter()).all(|a| a.is_finite())
+                    && p.tau.iter().all(|a| a.is_finite())
+                    && p.j.is_finite()
+                    && p.j > 0.0;
+                (finite, p.v.norm())
+            })
+            .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)))
+    }
+}
+
+/// Domain walls: the `Sticky` wall keeps only nothing, `Slip` removes the
+/// normal component, `Separate` removes the inward normal component and
+/// applies Coulomb friction.
+#[inline(always)]
+fn wall_condition<const D: usize>(v: &mut SVector<f32, D>, n: &SVector<f32, D>, c: BoundaryCondition, friction: f32) {
+    apply_condition(v, n, c, friction);
+}
+
+/// Drucker–Prager return mapping in Hencky strain (Klár et al. 2016, Sec. 7.3,
+/// with the volume correction of Tampubolon et al. 2017, Eq. 26–27).
+///
+/// `e0`: principal log strains of the trial elastic F; `vc`: accumulated log
+/// volume correction (updated); `alpha`: cone coefficient; `mu`, `la`: Lamé
+/// parameters; `tr_apex`: trace of the strain at the cone apex (cohesion).
+/// Returns the projected principal log strains.
+pub fn drucker_prager_project<const D: usize>(
+    e0: &SVector<f32, D>,
+    vc: &mut f32,
+    alpha: f32,
+    mu: f32,
+    la: f32,
+    tr_apex: f32,
+) -> SVector<f32, D> {
+    let dd = D as f32;
+    let shift = tr_apex / dd;
+    let e = e0.map(|x| x + *vc / dd - shift);
+    let tr = e.sum();
+    let ehat = e.map(|x| x - tr / dd);
+    let ehat_norm = ehat.norm();
+    let e_new = if tr >= 0.0 {
+        // expansion: project to the cone tip
+        SVector::<f32, D>::from_element(shift)
+    } else {
+        let dgamma = ehat_norm + (dd * la + 2.0 * mu) / (2.0 * mu) * tr * alpha;
+        if dgamma <= 0.0 {
+            // inside the cone: elastic, no volume correction applied
+            *e0
+        } else {
+            (e - ehat * (dgamma / ehat_norm)).map(|x| x + shift)
+        }
+    };
+    *vc += e0.sum() - e_new.sum();
+    e_new
+}
+
+#[inline(always)]
+fn block_key<const D: usize>(xg: &SVector<f32, D>, log2_b: u32, lat: &[usize; D]) -> u32 {
+    let mut lin = 0usize;
+    for d in 0..D {
+        let base = (xg[d] - 0.5).floor().max(0.0) as usize;
+        lin += (base >> log2_b) * lat[d];
+    }
+    lin as u32
+}
+
+#[inline(always)]
+fn unflatten<const D: usize>(mut lin: usize, strides: &[usize; D]) -> [usize; D] {
+    let mut c = [0usize; D];
+    for d in 0..D {
+        c[d] = lin / strides[d];
+        lin %= strides[d];
+    }
+    c
+}
+
+#[inline(always)]
+fn unflatten_pow2<const D: usize>(lin: usize, log2_b: u32) -> [usize; D] {
+    let mask = (1usize << log2_b) - 1;
+    let mut c = [0usize; D];
+    for d in 0..D {
+        c[d] = (lin >> (log2_b as usize * (D - 1 - d))) & mask;
+    }
+    c
+}
