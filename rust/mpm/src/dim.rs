@@ -32,6 +32,10 @@ pub trait DimOps<const D: usize> {
     /// (with the 3D constant a 2D run has a lower effective friction angle,
     /// e.g. 17.1° for φ = 19.8°).
     fn drucker_prager_alpha(phi: f32) -> f32;
+    /// Visit the 3^D nodes of a quadratic B-spline stencil: calls
+    /// `f(node_offset, weight, o − fx)` with `node_offset = Σ o_d·stride_d`
+    /// (fully unrolled nested loops).
+    fn stencil(w: &[[f32; 3]; D], fx: &SVector<f32, D>, stride: &[usize; D], f: impl FnMut(usize, f32, SVector<f32, D>));
 }
 
 impl DimOps<2> for Dim<2> {
@@ -43,6 +47,16 @@ impl DimOps<2> for Dim<2> {
 
     fn drucker_prager_alpha(phi: f32) -> f32 {
         phi.sin() / std::f32::consts::SQRT_2
+    }
+
+    #[inline(always)]
+    fn stencil(w: &[[f32; 3]; 2], fx: &SVector<f32, 2>, stride: &[usize; 2], mut f: impl FnMut(usize, f32, SVector<f32, 2>)) {
+        for i in 0..3 {
+            let di = i as f32 - fx[0];
+            for j in 0..3 {
+                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], SVector::<f32, 2>::new(di, j as f32 - fx[1]));
+            }
+        }
     }
 }
 
@@ -56,6 +70,24 @@ impl DimOps<3> for Dim<3> {
     fn drucker_prager_alpha(phi: f32) -> f32 {
         let s = phi.sin();
         (2.0f32 / 3.0).sqrt() * 2.0 * s / (3.0 - s)
+    }
+
+    #[inline(always)]
+    fn stencil(w: &[[f32; 3]; 3], fx: &SVector<f32, 3>, stride: &[usize; 3], mut f: impl FnMut(usize, f32, SVector<f32, 3>)) {
+        for i in 0..3 {
+            let di = i as f32 - fx[0];
+            for j in 0..3 {
+                let dj = j as f32 - fx[1];
+                let wij = w[0][i] * w[1][j];
+                for k in 0..3 {
+                    f(
+                        i * stride[0] + j * stride[1] + k * stride[2],
+                        wij * w[2][k],
+                        SVector::<f32, 3>::new(di, dj, k as f32 - fx[2]),
+                    );
+                }
+            }
+        }
     }
 }
 

@@ -50,21 +50,18 @@ struct SparseGrid {
     src_offsets: Vec<u32>,
     sorted: Vec<u32>,
     out_blocks: Vec<u32>,
-    /// Padded p2g buffers, one per source block: (B+2)^D nodes × (1 + D) floats.
-    local: Vec<f32>,
-    /// Grid velocities per output block: B^D nodes × D floats.
-    out_v: Vec<f32>,
+    /// Padded p2g buffers, one per source block: (B+2)^D nodes of [mass, momentum (D), pad].
+    local: Vec<[f32; 4]>,
+    /// Grid velocities per output block: B^D nodes.
+    out_v: Vec<[f32; 3]>,
     /// Block key of each particle.
     keys: Vec<u32>,
+    next_keys: Vec<u32>,
     counts: Vec<u32>,
 }
 
 /// Precomputed stencil offsets.
 struct Stencil<const D: usize> {
-    /// Offset of each of the 3^D stencil nodes, per dimension.
-    o: Vec<[usize; D]>,
-    /// Linear node offset of each stencil node in a padded buffer.
-    pad_off: Vec<usize>,
     /// Strides of the padded buffer (in nodes), per dimension.
     pad_stride: [usize; D],
     /// Strides inside an output block (in nodes), per dimension.
@@ -80,7 +77,14 @@ where
 {
     params: SolverParams<D>,
     colliders: Vec<Collider<D>>,
+    /// Particles in storage order: sorted by sparse block, then by id.
     particles: Vec<Particle<D>>,
+    /// `ids[slot]`: the public index of the particle stored at `slot`.
+    ids: Vec<u32>,
+    /// `slot_of[id]`: where particle `id` is stored.
+    slot_of: Vec<u32>,
+    /// Scratch for the next substep's storage (g2p writes here in block order).
+    next: Vec<Particle<D>>,
     time: f64,
     frame: u64,
     grid: SparseGrid,
@@ -103,7 +107,8 @@ fn bspline<const D: usize>(xg: &SVector<f32, D>) -> ([i64; D], SVector<f32, D>, 
     let mut fx = SVector::<f32, D>::zeros();
     let mut w = [[0.0f32; 3]; D];
     for d in 0..D {
-        let b = (xg[d] - 0.5).floor();
+        // xg ≥ 1 inside the domain, so truncation is floor
+        let b = ((xg[d] - 0.5) as i32) as f32;
         base[d] = b as i64;
         let f = xg[d] - b;
         fx[d] = f;
@@ -137,24 +142,14 @@ where
             blk_stride[d] = b.pow((D - 1 - d) as u32);
             lat_stride[d] = nb.pow((D - 1 - d) as u32);
         }
-        let k = 3usize.pow(D as u32);
-        let mut o = Vec::with_capacity(k);
-        let mut pad_off = Vec::with_capacity(k);
-        for i in 0..k {
-            let mut oi = [0usize; D];
-            let mut rem = i;
-            for d in (0..D).rev() {
-                oi[d] = rem % 3;
-                rem /= 3;
-            }
-            pad_off.push((0..D).map(|d| oi[d] * pad_stride[d]).sum());
-            o.push(oi);
-        }
         let pool = build_pool(params.num_threads)?;
         Ok(Solver {
             params,
             colliders,
             particles: Vec::new(),
+            ids: Vec::new(),
+            slot_of: Vec::new(),
+            next: Vec::new(),
             time: 0.0,
             frame: 0,
             grid: SparseGrid {
@@ -169,9 +164,10 @@ where
                 local: Vec::new(),
                 out_v: Vec::new(),
                 keys: Vec::new(),
+                next_keys: Vec::new(),
                 counts: Vec::new(),
             },
-            stencil: Stencil { o, pad_off, pad_stride, blk_stride, lat_stride },
+            stencil: Stencil { pad_stride, blk_stride, lat_stride },
             pool,
             pool_pid: std::process::id(),
         })
@@ -185,8 +181,22 @@ where
         &self.colliders
     }
 
-    pub fn particles(&self) -> &[Particle<D>] {
-        &self.particles
+    /// The particles in their public order (index = the order they were given in).
+    pub fn particles(&self) -> Vec<Particle<D>> {
+        self.slot_of.iter().map(|&s| self.particles[s as usize]).collect()
+    }
+
+    /// Visit the particles in their public order.
+    pub fn for_each_particle(&self, mut f: impl FnMut(usize, &Particle<D>)) {
+        for (i, &s) in self.slot_of.iter().enumerate() {
+            f(i, &self.particles[s as usize]);
+        }
+    }
+
+    fn reset_order(&mut self) {
+        let n = self.particles.len() as u32;
+        self.ids = (0..n).collect();
+        self.slot_of = (0..n).collect();
     }
 
     pub fn num_particles(&self) -> usize {
@@ -219,6 +229,7 @@ where
             self.refresh_stress(p);
         }
         self.particles = particles;
+        self.reset_order();
         Ok(())
     }
 
@@ -232,6 +243,7 @@ where
             }
         }
         self.particles = particles;
+        self.reset_order();
         Ok(())
     }
 
@@ -244,6 +256,8 @@ where
         }
         for mut p in new {
             self.refresh_stress(&mut p);
+            self.ids.push(self.particles.len() as u32);
+            self.slot_of.push(self.particles.len() as u32);
             self.particles.push(p);
         }
         Ok(self.particles.len())
@@ -254,8 +268,10 @@ where
         if keep.len() != self.particles.len() {
             return Err(MpmError::invalid("mask", format!("length {} != particle count {}", keep.len(), self.particles.len())));
         }
-        let mut it = keep.iter();
-        self.particles.retain(|_| *it.next().unwrap_or(&true));
+        let kept: Vec<Particle<D>> =
+            self.particles().into_iter().zip(keep.iter()).filter(|(_, k)| **k).map(|(p, _)| p).collect();
+        self.particles = kept;
+        self.reset_order();
         Ok(self.particles.len())
     }
 
@@ -358,7 +374,7 @@ where
             self.frame += 1;
             return Ok(FrameStats { substeps: n_sub, dt, max_speed: 0.0, active_blocks: 0 });
         }
-        let backup = self.particles.clone();
+        let backup = (self.particles.clone(), self.ids.clone(), self.slot_of.clone());
         let pool = std::mem::replace(&mut self.pool, build_pool(1)?);
         let result = pool.install(|| {
             self.compute_keys();
@@ -380,7 +396,7 @@ where
                 Ok(FrameStats { substeps: n_sub, dt, max_speed: vmax, active_blocks: self.grid.src_blocks.len() })
             }
             Err(e) => {
-                self.particles = backup;
+                (self.particles, self.ids, self.slot_of) = backup;
                 Err(e)
             }
         }
@@ -409,7 +425,10 @@ where
         g.src_blocks.clear();
         g.out_blocks.clear();
         g.counts.clear();
-        for &k in &g.keys {
+        // Visit particles in id order so that the order inside each block (and
+        // so every floating-point sum) depends only on the particle set.
+        for &slot_id in &self.slot_of {
+            let k = g.keys[slot_id as usize];
             let slot = &mut g.src_map[k as usize];
             if *slot == EMPTY {
                 *slot = g.src_blocks.len() as u32;
@@ -430,9 +449,10 @@ where
             *c = o;
         }
         g.sorted.resize(g.keys.len(), 0);
-        for (i, &k) in g.keys.iter().enumerate() {
+        for &slot_id in &self.slot_of {
+            let k = g.keys[slot_id as usize];
             let s = g.src_map[k as usize] as usize;
-            g.sorted[g.counts[s] as usize] = i as u32;
+            g.sorted[g.counts[s] as usize] = slot_id;
             g.counts[s] += 1;
         }
         // Output blocks: each source block and its +1 neighbours.
@@ -460,28 +480,37 @@ where
 
     /// One substep of size `dt`. Returns (state finite, max speed).
     fn substep(&mut self, dt: f32) -> (bool, f32) {
+        let prof = std::env::var_os("HMPM_PROFILE").is_some();
+        let t0 = std::time::Instant::now();
         self.build_blocks();
+        let t1 = std::time::Instant::now();
         self.p2g(dt);
+        let t2 = std::time::Instant::now();
         self.grid_update(dt);
-        self.g2p(dt)
+        let t3 = std::time::Instant::now();
+        let r = self.g2p(dt);
+        let t4 = std::time::Instant::now();
+        if prof {
+            eprintln!("blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {} nout {}", t1 - t0, t2 - t1, t3 - t2, t4 - t3, self.grid.src_blocks.len(), self.grid.out_blocks.len());
+        }
+        r
     }
 
     fn p2g(&mut self, dt: f32) {
         let b = 1usize << self.grid.log2_b;
         let pad_nodes = (b + 2).pow(D as u32);
-        let stride = pad_nodes * (D + 1);
         let n_src = self.grid.src_blocks.len();
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let stress_scale = -dt * 4.0 * inv_dx * inv_dx;
         let g = &mut self.grid;
-        g.local.resize(n_src * stride, 0.0);
+        g.local.resize(n_src * pad_nodes, [0.0; 4]);
         let particles = &self.particles;
         let st = &self.stencil;
         let (src_blocks, src_offsets, sorted, lat, log2_b) =
             (&g.src_blocks, &g.src_offsets, &g.sorted, st.lat_stride, g.log2_b);
-        g.local.par_chunks_mut(stride).enumerate().for_each(|(si, buf)| {
-            buf.fill(0.0);
+        g.local.par_chunks_mut(pad_nodes).enumerate().for_each(|(si, buf)| {
+            buf.fill([0.0; 4]);
             let c = unflatten::<D>(src_blocks[si] as usize, &lat);
             let lo = src_offsets[si] as usize;
             let hi = src_offsets[si + 1] as usize;
@@ -490,26 +519,21 @@ where
                 let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
                 let mut base_idx = 0usize;
                 for d in 0..D {
-                    let loc = (base[d] - ((c[d] << log2_b) as i64)) as usize;
-                    base_idx += loc * st.pad_stride[d];
+                    base_idx += (base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                 }
-                let affine = p.tau * (stress_scale * p.volume) + p.c * p.mass;
+                // affine·dpos with dpos = (o − fx)·dx
+                let affine = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
                 let mom = (p.v + p.ext * dt) * p.mass;
-                for (k, o) in st.o.iter().enumerate() {
-                    let mut weight = 1.0f32;
-                    let mut dpos = SVector::<f32, D>::zeros();
+                let mass = p.mass;
+                let nodes = &mut buf[base_idx..];
+                Dim::<D>::stencil(&w, &fx, &st.pad_stride, |off, weight, o| {
+                    let val = (mom + affine * o) * weight;
+                    let node = &mut nodes[off];
+                    node[0] += weight * mass;
                     for d in 0..D {
-                        weight *= w[d][o[d]];
-                        dpos[d] = (o[d] as f32 - fx[d]) * dx;
+                        node[1 + d] += val[d];
                     }
-                    let val = (mom + affine * dpos) * weight;
-                    let node = (base_idx + st.pad_off[k]) * (D + 1);
-                    let slot = &mut buf[node..node + D + 1];
-                    slot[0] += weight * p.mass;
-                    for d in 0..D {
-                        slot[1 + d] += val[d];
-                    }
-                }
+                });
             }
         });
     }
@@ -519,7 +543,6 @@ where
         let blk_nodes = b.pow(D as u32);
         let p = b + 2;
         let pad_nodes = p.pow(D as u32);
-        let src_stride = pad_nodes * (D + 1);
         let n_out = self.grid.out_blocks.len();
         let n = self.params.n_grid;
         let dx = self.params.dx();
@@ -528,13 +551,13 @@ where
         let colliders = &self.colliders;
         let st = &self.stencil;
         let g = &mut self.grid;
-        g.out_v.resize(n_out * blk_nodes * D, 0.0);
+        g.out_v.resize(n_out * blk_nodes, [0.0; 3]);
         let (out_blocks, src_map, local, lat, log2_b) = (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
         let wall_lo = walls.cells;
         let wall_hi = n.saturating_sub(walls.cells);
-        g.out_v.par_chunks_mut(blk_nodes * D).enumerate().for_each(|(oi, out)| {
+        g.out_v.par_chunks_mut(blk_nodes).enumerate().for_each(|(oi, out)| {
             let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
-            let mut acc = [0.0f32; 64 * 4];
+            let mut acc = [[0.0f32; 4]; 64];
             // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
             for s in 0..(1usize << D) {
                 let mut lin = 0usize;
@@ -554,7 +577,7 @@ where
                 if sid == EMPTY {
                     continue;
                 }
-                let src = &local[sid as usize * src_stride..(sid as usize + 1) * src_stride];
+                let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
                 for l in 0..blk_nodes {
                     let lc = unflatten_pow2::<D>(l, log2_b);
                     let mut pidx = 0usize;
@@ -571,9 +594,9 @@ where
                     if !inside {
                         continue;
                     }
-                    let a = &mut acc[l * (D + 1)..(l + 1) * (D + 1)];
-                    let sv = &src[pidx * (D + 1)..(pidx + 1) * (D + 1)];
-                    for k in 0..=D {
+                    let a = &mut acc[l];
+                    let sv = &src[pidx];
+                    for k in 0..4 {
                         a[k] += sv[k];
                     }
                 }
@@ -590,11 +613,11 @@ where
                 colliders.iter().filter(|col| col.shape.sdf(&centre) < half_diag).collect()
             };
             for l in 0..blk_nodes {
-                let a = &acc[l * (D + 1)..(l + 1) * (D + 1)];
+                let a = &acc[l];
                 let m = a[0];
-                let o = &mut out[l * D..(l + 1) * D];
+                let o = &mut out[l];
                 if m <= 0.0 {
-                    o.fill(0.0);
+                    *o = [0.0; 3];
                     continue;
                 }
                 let mut v = SVector::<f32, D>::zeros();
@@ -628,98 +651,140 @@ where
                         wall_condition(&mut v, &nrm, walls.condition, walls.friction);
                     }
                 }
-                o.copy_from_slice(v.as_slice());
+                o[..D].copy_from_slice(v.as_slice());
             }
         });
     }
 
+    /// g2p in block order: each source block gathers its padded velocity
+    /// patch once, its particles read it with fixed strides and are written
+    /// contiguously into the next storage (sorted by block, then id).
     fn g2p(&mut self, dt: f32) -> (bool, f32) {
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
         let log2_b = self.grid.log2_b;
-        let bmask = (1usize << log2_b) - 1;
+        let b = 1usize << log2_b;
+        let bmask = b - 1;
+        let pdim = b + 2;
+        let pad_nodes = pdim.pow(D as u32);
         let blk_nodes = 1usize << (log2_b as usize * D);
         let st = &self.stencil;
         let lat = st.lat_stride;
-        let (out_map, out_v) = (&self.grid.out_map, &self.grid.out_v);
         let sand = self.params.sand.clone();
         let (mu, la) = sand.lame();
         let alpha = Dim::<D>::drucker_prager_alpha(sand.friction_angle_deg.to_radians());
         let tan_phi = sand.friction_angle_deg.to_radians().tan();
         let tr_apex = if sand.cohesion > 0.0 { D as f32 * sand.cohesion / (tan_phi * (D as f32 * la + 2.0 * mu)) } else { 0.0 };
         let water = self.params.water.clone();
-        let particles = &mut self.particles;
-        let keys = &mut self.grid.keys;
-        particles
-            .par_iter_mut()
-            .zip(keys.par_iter_mut())
-            .map(|(p, key)| {
-                let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
-                let mut new_v = SVector::<f32, D>::zeros();
-                let mut new_b = SMatrix::<f32, D, D>::zeros();
-                // per-dimension block / in-block coordinates of the 3 stencil nodes
-                let mut blk = [[0usize; 3]; D];
-                let mut loc = [[0usize; 3]; D];
-                for d in 0..D {
-                    for o in 0..3 {
-                        let gi = (base[d] + o as i64) as usize;
-                        blk[d][o] = gi >> log2_b;
-                        loc[d][o] = gi & bmask;
-                    }
-                }
-                for o in st.o.iter() {
-                    let mut weight = 1.0f32;
-                    let mut dpos = SVector::<f32, D>::zeros();
+        let n = self.particles.len();
+        let g = &mut self.grid;
+        let (out_map, out_v, src_blocks, src_offsets, sorted) = (&g.out_map, &g.out_v, &g.src_blocks, &g.src_offsets, &g.sorted);
+        let particles = &self.particles;
+        self.next.resize(n, particles[0]);
+        g.next_keys.resize(n, 0);
+        // split the outputs into one contiguous slice per source block
+        let mut out_slices: Vec<(&mut [Particle<D>], &mut [u32])> = Vec::with_capacity(src_blocks.len());
+        let mut rest_p: &mut [Particle<D>] = &mut self.next[..];
+        let mut rest_k: &mut [u32] = &mut g.next_keys[..];
+        for si in 0..src_blocks.len() {
+            let len = (src_offsets[si + 1] - src_offsets[si]) as usize;
+            let (ap, bp) = rest_p.split_at_mut(len);
+            let (ak, bk) = rest_k.split_at_mut(len);
+            out_slices.push((ap, ak));
+            rest_p = bp;
+            rest_k = bk;
+        }
+        let result = out_slices
+            .into_par_iter()
+            .enumerate()
+            .map(|(si, (outp, outk))| {
+                let c = unflatten::<D>(src_blocks[si] as usize, &lat);
+                // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
+                let mut patch = [SVector::<f32, D>::zeros(); 216];
+                for q in 0..pad_nodes {
+                    let mut rem = q;
                     let mut lin = 0usize;
                     let mut off = 0usize;
+                    for d in (0..D).rev() {
+                        let qd = rem % pdim;
+                        rem /= pdim;
+                        let gi = (c[d] << log2_b) + qd;
+                        lin += (gi >> log2_b) * lat[d];
+                        off += (gi & bmask) * st.blk_stride[d];
+                    }
+                    let ob = out_map[lin];
+                    if ob != EMPTY {
+                        let gv = &out_v[ob as usize * blk_nodes + off];
+                        patch[q] = SVector::<f32, D>::from_column_slice(&gv[..D]);
+                    }
+                }
+                let lo_i = src_offsets[si] as usize;
+                let mut finite = true;
+                let mut vmax = 0.0f32;
+                for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
+                    let mut p = particles[sorted[lo_i + j] as usize];
+                    let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
+                    let mut base_idx = 0usize;
                     for d in 0..D {
-                        weight *= w[d][o[d]];
-                        dpos[d] = (o[d] as f32 - fx[d]) * dx;
-                        lin += blk[d][o[d]] * lat[d];
-                        off += loc[d][o[d]] * st.blk_stride[d];
+                        base_idx += (base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                     }
-                    let ob = out_map[lin] as usize;
-                    let at = (ob * blk_nodes + off) * D;
-                    let gv = SVector::<f32, D>::from_column_slice(&out_v[at..at + D]);
-                    new_v += gv * weight;
-                    new_b += gv * dpos.transpose() * weight;
-                }
-                let new_c = new_b * (4.0 * inv_dx * inv_dx);
-                p.v = new_v;
-                p.c = new_c;
-                p.x += new_v * dt;
-                for d in 0..D {
-                    p.x[d] = p.x[d].clamp(lo, hi);
-                }
-                match p.material {
-                    Material::Water => {
-                        p.j *= 1.0 + dt * new_c.trace();
-                        let mut tau = SMatrix::<f32, D, D>::identity() * (water.bulk_modulus * p.j * (p.j - 1.0));
-                        if water.viscosity > 0.0 {
-                            tau += (new_c + new_c.transpose()) * (water.viscosity * p.j);
+                    let mut new_v = SVector::<f32, D>::zeros();
+                    let mut new_b = SMatrix::<f32, D, D>::zeros();
+                    let nodes = &patch[base_idx..];
+                    Dim::<D>::stencil(&w, &fx, &st.pad_stride, |off, weight, o| {
+                        let gv = nodes[off] * weight;
+                        new_v += gv;
+                        new_b += gv * o.transpose();
+                    });
+                    // B uses dpos = (o − fx)·dx; C = 4/dx² · B
+                    let new_c = new_b * (4.0 * inv_dx);
+                    p.v = new_v;
+                    p.c = new_c;
+                    p.x += new_v * dt;
+                    for d in 0..D {
+                        p.x[d] = p.x[d].clamp(lo, hi);
+                    }
+                    match p.material {
+                        Material::Water => {
+                            p.j *= 1.0 + dt * new_c.trace();
+                            let mut tau = SMatrix::<f32, D, D>::identity() * (water.bulk_modulus * p.j * (p.j - 1.0));
+                            if water.viscosity > 0.0 {
+                                tau += (new_c + new_c.transpose()) * (water.viscosity * p.j);
+                            }
+                            p.tau = tau;
                         }
-                        p.tau = tau;
+                        Material::Sand => {
+                            let f_trial = (SMatrix::<f32, D, D>::identity() + new_c * dt) * p.f;
+                            let svd = Dim::<D>::svd(&f_trial);
+                            let e0 = svd.sigma.map(|s| s.max(1e-6).ln());
+                            let e_new = drucker_prager_project::<D>(&e0, &mut p.vc, alpha, mu, la, tr_apex);
+                            p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
+                            let tr = e_new.sum();
+                            let diag = e_new.map(|e| 2.0 * mu * e + la * tr);
+                            p.tau = svd.u * SMatrix::<f32, D, D>::from_diagonal(&diag) * svd.u.transpose();
+                        }
                     }
-                    Material::Sand => {
-                        let f_trial = (SMatrix::<f32, D, D>::identity() + new_c * dt) * p.f;
-                        let svd = Dim::<D>::svd(&f_trial);
-                        let e0 = svd.sigma.map(|s| s.max(1e-6).ln());
-                        let e_new = drucker_prager_project::<D>(&e0, &mut p.vc, alpha, mu, la, tr_apex);
-                        p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
-                        let tr = e_new.sum();
-                        let diag = e_new.map(|e| 2.0 * mu * e + la * tr);
-                        p.tau = svd.u * SMatrix::<f32, D, D>::from_diagonal(&diag) * svd.u.transpose();
-                    }
+                    *ko = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
+                    finite &= p.x.iter().chain(p.v.iter()).all(|a| a.is_finite())
+                        && p.tau.iter().all(|a| a.is_finite())
+                        && p.j.is_finite()
+                        && p.j > 0.0;
+                    vmax = vmax.max(p.v.norm());
+                    *po = p;
                 }
-                *key = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
-                let finite = p.x.iter().chain(p.v.iter()).all(|a| a.is_finite())
-                    && p.tau.iter().all(|a| a.is_finite())
-                    && p.j.is_finite()
-                    && p.j > 0.0;
-                (finite, p.v.norm())
+                (finite, vmax)
             })
-            .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)))
+            .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)));
+        // the next storage order is the sorted order
+        std::mem::swap(&mut self.particles, &mut self.next);
+        std::mem::swap(&mut g.keys, &mut g.next_keys);
+        let ids_old = std::mem::take(&mut self.ids);
+        self.ids = sorted.iter().map(|&s| ids_old[s as usize]).collect();
+        for (slot, &id) in self.ids.iter().enumerate() {
+            self.slot_of[id as usize] = slot as u32;
+        }
+        result
     }
 }
 
@@ -772,7 +837,7 @@ pub fn drucker_prager_project<const D: usize>(
 fn block_key<const D: usize>(xg: &SVector<f32, D>, log2_b: u32, lat: &[usize; D]) -> u32 {
     let mut lin = 0usize;
     for d in 0..D {
-        let base = (xg[d] - 0.5).floor().max(0.0) as usize;
+        let base = (xg[d] - 0.5).max(0.0) as usize;
         lin += (base >> log2_b) * lat[d];
     }
     lin as u32

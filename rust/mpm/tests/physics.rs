@@ -107,7 +107,7 @@ where
         let mass_before: f64 = ps.iter().map(|p| p.mass as f64).sum();
         // one substep: p2g, grid update (no gravity, no wall contact), g2p
         s.step_frame(1e-5).unwrap();
-        let after = momentum(s.particles());
+        let after = momentum(&s.particles());
         let mass_after: f64 = s.particles().iter().map(|p| p.mass as f64).sum();
         let scale: f64 = ps.iter().map(|p| (p.v.norm() * p.mass) as f64).sum();
         assert!((after - before).norm() < 1e-5 * scale, "{D}D momentum {before} -> {after}");

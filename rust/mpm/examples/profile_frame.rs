@@ -1,0 +1,59 @@
+//! Time frames of one benchmark scene (for profiling with perf):
+//! `cargo run --release -p hybridmpm-mpm --example profile_frame -- water2d 1 200`
+use hybridmpm_mpm::{Dim, DimOps, Material, Particle, Solver, SolverParams};
+use nalgebra::SVector;
+use std::time::Instant;
+
+fn lattice<const D: usize>(origin: [f32; D], side: usize, spacing: f32, mat: Material, rho: f32) -> Vec<Particle<D>> {
+    let vol = spacing.powi(D as i32);
+    (0..side.pow(D as u32))
+        .map(|mut i| {
+            let mut x = SVector::<f32, D>::zeros();
+            for d in (0..D).rev() {
+                x[d] = origin[d] + ((i % side) as f32 + 0.5) * spacing;
+                i /= side;
+            }
+            Particle::new(x, mat, rho * vol, vol)
+        })
+        .collect()
+}
+
+fn run<const D: usize>(n_grid: usize, origin: [f32; D], side: usize, mat: Material, substeps: usize, threads: usize, frames: usize)
+where
+    Dim<D>: DimOps<D>,
+{
+    let mut p = SolverParams::<D>::default();
+    p.n_grid = n_grid;
+    p.substeps = Some(substeps);
+    p.num_threads = threads;
+    let dx = p.dx();
+    let mut s = Solver::new(p, vec![]).unwrap();
+    s.set_particles(lattice(origin, side, dx / 2.0, mat, 1000.0)).unwrap();
+    for _ in 0..5 {
+        s.step_frame(2.5e-3).unwrap();
+    }
+    let mut times = Vec::new();
+    for _ in 0..frames {
+        let t = Instant::now();
+        s.step_frame(2.5e-3).unwrap();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    println!("median {:.3} ms/frame, {:.1} us/substep", times[times.len() / 2], times[times.len() / 2] * 1e3 / substeps as f64);
+}
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let scene = a.get(1).map(String::as_str).unwrap_or("water2d");
+    let threads: usize = a.get(2).and_then(|s| s.parse().ok()).unwrap_or(1);
+    let frames: usize = a.get(3).and_then(|s| s.parse().ok()).unwrap_or(100);
+    match scene {
+        "water2d" => run::<2>(128, [0.1, 0.1], 64, Material::Water, 16, threads, frames),
+        "sand2d" => run::<2>(128, [0.1, 0.1], 64, Material::Sand, 16, threads, frames),
+        "water3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Water, 8, threads, frames),
+        "water3d_128" => run::<3>(128, [0.3, 0.1, 0.3], 16, Material::Water, 16, threads, frames),
+        "water3d_32k" => run::<3>(64, [0.25, 0.1, 0.25], 32, Material::Water, 8, threads, frames),
+        "sand3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Sand, 8, threads, frames),
+        _ => eprintln!("unknown scene"),
+    }
+}
