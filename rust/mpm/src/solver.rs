@@ -247,6 +247,27 @@ where
         Ok(())
     }
 
+    /// Modify particles in place through `f(id, particle)` (public order),
+    /// then validate; `refresh_stress` recomputes τ (needed after changing
+    /// `F`, `J` or `C`). On error nothing changes.
+    pub fn modify_particles(&mut self, refresh_stress: bool, mut f: impl FnMut(usize, &mut Particle<D>)) -> Result<()> {
+        let mut ps = self.particles.clone();
+        for (id, &slot) in self.slot_of.iter().enumerate() {
+            f(id, &mut ps[slot as usize]);
+        }
+        let (lo, hi) = self.domain_bounds();
+        for (id, &slot) in self.slot_of.iter().enumerate() {
+            ps[slot as usize].validate(id, lo, hi)?;
+        }
+        if refresh_stress {
+            for p in ps.iter_mut() {
+                self.refresh_stress(p);
+            }
+        }
+        self.particles = ps;
+        Ok(())
+    }
+
     /// Append particles (validated). Returns the new particle count.
     pub fn add_particles(&mut self, new: Vec<Particle<D>>) -> Result<usize> {
         let (lo, hi) = self.domain_bounds();

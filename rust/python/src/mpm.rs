@@ -1,0 +1,614 @@
+//! `MpmSolver` and `grid_mass`: the MLS-MPM crate exposed to Python.
+
+use hybridmpm_mpm as core;
+use hybridmpm_mpm::{BoundaryCondition, Collider, Material, MpmError, Particle, Shape, Solver, SolverParams};
+use nalgebra::{SMatrix, SVector};
+use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyDict, PyList};
+
+use crate::errors::{checkpoint_error, invalid_input, simulation_error};
+
+/// Map a core error to its Python exception.
+pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
+    match e {
+        MpmError::InvalidInput { field, msg } => invalid_input(py, &field, msg),
+        MpmError::NonFinite { substep, .. } => simulation_error(py, Some(substep), e.to_string()),
+        MpmError::Checkpoint(m) => checkpoint_error(py, m),
+    }
+}
+
+/// Borrow a float32 array, checking dtype and shape; `shape` uses `None` for "any".
+pub fn f32_array<'py>(
+    obj: &Bound<'py, PyAny>,
+    field: &str,
+    shape: &[Option<usize>],
+) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
+    let py = obj.py();
+    let arr = match obj.cast::<PyArrayDyn<f32>>() {
+        Ok(a) => a.readonly(),
+        Err(_) => {
+            let dtype = obj.getattr("dtype").map(|d| d.to_string()).unwrap_or_else(|_| obj.get_type().to_string());
+            return Err(invalid_input(py, field, format!("expected a float32 numpy array, got {dtype}")));
+        }
+    };
+    let got = arr.shape().to_vec();
+    let ok = got.len() == shape.len() && got.iter().zip(shape).all(|(g, s)| s.is_none_or(|s| s == *g));
+    if !ok {
+        let want: Vec<String> = shape.iter().map(|s| s.map_or("*".to_string(), |v| v.to_string())).collect();
+        return Err(invalid_input(py, field, format!("expected shape [{}], got {:?}", want.join(", "), got)));
+    }
+    if arr.as_array().iter().any(|x| !x.is_finite()) {
+        return Err(invalid_input(py, field, "contains NaN or inf"));
+    }
+    Ok(arr)
+}
+
+// ---------------------------------------------------------------- params
+
+fn get_item<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py, PyAny>>> {
+    match d.get_item(key)? {
+        Some(v) if v.is_none() => Ok(None),
+        other => Ok(other),
+    }
+}
+
+fn get_f32(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: f32) -> PyResult<f32> {
+    match get_item(d, key)? {
+        None => Ok(default),
+        Some(v) => v.extract::<f64>().map(|x| x as f32).map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a number")),
+    }
+}
+
+fn get_usize(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: usize) -> PyResult<usize> {
+    match get_item(d, key)? {
+        None => Ok(default),
+        Some(v) => v
+            .extract::<usize>()
+            .map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a non-negative integer")),
+    }
+}
+
+fn get_vec<const D: usize>(d: &Bound<'_, PyDict>, field: &str, key: &str) -> PyResult<Option<SVector<f32, D>>> {
+    match get_item(d, key)? {
+        None => Ok(None),
+        Some(v) => {
+            let xs: Vec<f64> = v.extract().map_err(|_| invalid_input(d.py(), field, format!("expected a list of {D} numbers")))?;
+            if xs.len() != D {
+                return Err(invalid_input(d.py(), field, format!("expected {D} numbers, got {}", xs.len())));
+            }
+            Ok(Some(SVector::<f32, D>::from_iterator(xs.into_iter().map(|x| x as f32))))
+        }
+    }
+}
+
+fn sub_dict<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py, PyDict>>> {
+    match get_item(d, key)? {
+        None => Ok(None),
+        Some(v) => Ok(Some(v.cast_into::<PyDict>().map_err(|_| invalid_input(d.py(), key, "expected a dict"))?)),
+    }
+}
+
+const TOP_KEYS: &[&str] = &["dim", "n_grid", "gravity", "cfl", "substeps", "max_substeps", "num_threads", "water", "sand", "walls", "colliders"];
+
+fn check_keys(d: &Bound<'_, PyDict>, prefix: &str, allowed: &[&str]) -> PyResult<()> {
+    for k in d.keys() {
+        let k: String = k.extract().map_err(|_| invalid_input(d.py(), prefix, "keys must be strings"))?;
+        if !allowed.contains(&k.as_str()) {
+            return Err(invalid_input(d.py(), &format!("{prefix}{k}"), format!("unknown parameter (allowed: {})", allowed.join(", "))));
+        }
+    }
+    Ok(())
+}
+
+fn parse_params<const D: usize>(d: &Bound<'_, PyDict>) -> PyResult<(SolverParams<D>, Vec<Collider<D>>)> {
+    let py = d.py();
+    check_keys(d, "", TOP_KEYS)?;
+    let mut p = SolverParams::<D>::default();
+    p.n_grid = get_usize(d, "", "n_grid", p.n_grid)?;
+    if let Some(g) = get_vec::<D>(d, "gravity", "gravity")? {
+        p.gravity.copy_from_slice(g.as_slice());
+    }
+    p.cfl = get_f32(d, "", "cfl", p.cfl)?;
+    p.substeps = match get_item(d, "substeps")? {
+        None => None,
+        Some(v) => Some(v.extract::<usize>().map_err(|_| invalid_input(py, "substeps", "expected a positive integer or None"))?),
+    };
+    p.max_substeps = get_usize(d, "", "max_substeps", p.max_substeps)?;
+    p.num_threads = get_usize(d, "", "num_threads", p.num_threads)?;
+    if let Some(w) = sub_dict(d, "water")? {
+        check_keys(&w, "water.", &["density", "bulk_modulus", "viscosity"])?;
+        p.water.density = get_f32(&w, "water.", "density", p.water.density)?;
+        p.water.bulk_modulus = get_f32(&w, "water.", "bulk_modulus", p.water.bulk_modulus)?;
+        p.water.viscosity = get_f32(&w, "water.", "viscosity", p.water.viscosity)?;
+    }
+    if let Some(s) = sub_dict(d, "sand")? {
+        check_keys(&s, "sand.", &["density", "youngs_modulus", "poisson_ratio", "friction_angle_deg", "cohesion"])?;
+        p.sand.density = get_f32(&s, "sand.", "density", p.sand.density)?;
+        p.sand.youngs_modulus = get_f32(&s, "sand.", "youngs_modulus", p.sand.youngs_modulus)?;
+        p.sand.poisson_ratio = get_f32(&s, "sand.", "poisson_ratio", p.sand.poisson_ratio)?;
+        p.sand.friction_angle_deg = get_f32(&s, "sand.", "friction_angle_deg", p.sand.friction_angle_deg)?;
+        p.sand.cohesion = get_f32(&s, "sand.", "cohesion", p.sand.cohesion)?;
+    }
+    if let Some(w) = sub_dict(d, "walls")? {
+        check_keys(&w, "walls.", &["cells", "condition", "friction"])?;
+        p.walls.cells = get_usize(&w, "walls.", "cells", p.walls.cells)?;
+        if let Some(c) = get_item(&w, "condition")? {
+            let c: String = c.extract().map_err(|_| invalid_input(py, "walls.condition", "expected a string"))?;
+            p.walls.condition = BoundaryCondition::parse("walls.condition", &c).map_err(|e| to_py(py, e))?;
+        }
+        p.walls.friction = get_f32(&w, "walls.", "friction", p.walls.friction)?;
+    }
+    let mut colliders = Vec::new();
+    if let Some(list) = get_item(d, "colliders")? {
+        let list = list.cast_into::<PyList>().map_err(|_| invalid_input(py, "colliders", "expected a list of dicts"))?;
+        for (i, item) in list.iter().enumerate() {
+            let f = format!("colliders[{i}]");
+            let c = item.cast_into::<PyDict>().map_err(|_| invalid_input(py, &f, "expected a dict"))?;
+            colliders.push(parse_collider::<D>(&c, &f)?);
+        }
+    }
+    Ok((p, colliders))
+}
+
+fn parse_collider<const D: usize>(c: &Bound<'_, PyDict>, f: &str) -> PyResult<Collider<D>> {
+    let py = c.py();
+    let pre = format!("{f}.");
+    check_keys(c, &pre, &["shape", "center", "half_extents", "angle_deg", "rotation", "radius", "condition", "friction"])?;
+    let shape: String = get_item(c, "shape")?
+        .ok_or_else(|| invalid_input(py, &format!("{f}.shape"), "missing ('box' or 'sphere')"))?
+        .extract()
+        .map_err(|_| invalid_input(py, &format!("{f}.shape"), "expected a string"))?;
+    let center = get_vec::<D>(c, &format!("{f}.center"), "center")?.ok_or_else(|| invalid_input(py, &format!("{f}.center"), "missing"))?;
+    let shape = match shape.as_str() {
+        "box" => {
+            let half_extents = get_vec::<D>(c, &format!("{f}.half_extents"), "half_extents")?
+                .ok_or_else(|| invalid_input(py, &format!("{f}.half_extents"), "missing"))?;
+            let mut rotation = SMatrix::<f32, D, D>::identity();
+            if let Some(r) = get_item(c, "rotation")? {
+                let rows: Vec<Vec<f64>> =
+                    r.extract().map_err(|_| invalid_input(py, &format!("{f}.rotation"), format!("expected a {D}x{D} nested list")))?;
+                if rows.len() != D || rows.iter().any(|row| row.len() != D) {
+                    return Err(invalid_input(py, &format!("{f}.rotation"), format!("expected a {D}x{D} nested list")));
+                }
+                rotation = SMatrix::<f32, D, D>::from_fn(|i, j| rows[i][j] as f32);
+            } else if let Some(a) = get_item(c, "angle_deg")? {
+                if D != 2 {
+                    return Err(invalid_input(py, &format!("{f}.angle_deg"), "only in 2D; give 'rotation' in 3D"));
+                }
+                let a: f64 = a.extract().map_err(|_| invalid_input(py, &format!("{f}.angle_deg"), "expected a number"))?;
+                let (s, co) = (a.to_radians() as f32).sin_cos();
+                rotation[(0, 0)] = co;
+                rotation[(0, 1)] = -s;
+                rotation[(1, 0)] = s;
+                rotation[(1, 1)] = co;
+            }
+            Shape::Box { center, half_extents, rotation }
+        }
+        "sphere" | "circle" => Shape::Sphere { center, radius: get_f32(c, &pre, "radius", f32::NAN)? },
+        other => return Err(invalid_input(py, &format!("{f}.shape"), format!("must be 'box' or 'sphere', got '{other}'"))),
+    };
+    let condition = match get_item(c, "condition")? {
+        None => BoundaryCondition::Separate,
+        Some(v) => {
+            let s: String = v.extract().map_err(|_| invalid_input(py, &format!("{f}.condition"), "expected a string"))?;
+            BoundaryCondition::parse(&format!("{f}.condition"), &s).map_err(|e| to_py(py, e))?
+        }
+    };
+    Ok(Collider { shape, condition, friction: get_f32(c, &pre, "friction", 0.0)? })
+}
+
+// ---------------------------------------------------------------- solver
+
+enum Inner {
+    D2(Solver<2>),
+    D3(Solver<3>),
+}
+
+macro_rules! dispatch {
+    ($self:expr, $s:ident => $body:expr) => {
+        match &$self.inner {
+            Inner::D2($s) => $body,
+            Inner::D3($s) => $body,
+        }
+    };
+}
+
+macro_rules! dispatch_mut {
+    ($self:expr, $s:ident => $body:expr) => {
+        match &mut $self.inner {
+            Inner::D2($s) => $body,
+            Inner::D3($s) => $body,
+        }
+    };
+}
+
+/// MLS-MPM solver (Hu et al. 2018; APIC, quadratic B-splines) for water,
+/// Drucker–Prager sand (Klár et al. 2016) and their mixture, with static
+/// SDF colliders, in 2D or 3D on the unit domain.
+///
+/// Use the typed wrapper `hybridmpm.MpmSolver`; this class takes the
+/// parameters as one dict (see `hybridmpm.mpm.MpmParams.to_dict`).
+/// Raises `InvalidInputError` naming the bad parameter.
+#[pyclass(module = "hybridmpm._core")]
+pub struct MpmSolver {
+    inner: Inner,
+}
+
+fn field_dim(field: &str) -> usize {
+    match field {
+        "positions" | "velocities" | "external_acceleration" => 1,
+        "affine" | "deformation_gradient" | "stress" => 2,
+        _ => 0,
+    }
+}
+
+const FIELDS: &[&str] = &[
+    "positions",
+    "velocities",
+    "affine",
+    "deformation_gradient",
+    "volume_ratio",
+    "volume_correction",
+    "masses",
+    "volumes",
+    "material",
+    "external_acceleration",
+    "stress",
+];
+
+fn read_field<const D: usize>(p: &Particle<D>, field: &str, out: &mut Vec<f32>) {
+    match field {
+        "positions" => out.extend_from_slice(p.x.as_slice()),
+        "velocities" => out.extend_from_slice(p.v.as_slice()),
+        "external_acceleration" => out.extend_from_slice(p.ext.as_slice()),
+        "affine" | "deformation_gradient" | "stress" => {
+            let m = match field {
+                "affine" => p.c,
+                "deformation_gradient" => p.f,
+                _ => p.stress(),
+            };
+            for r in 0..D {
+                for c in 0..D {
+                    out.push(m[(r, c)]);
+                }
+            }
+        }
+        "volume_ratio" => out.push(p.j),
+        "volume_correction" => out.push(p.vc),
+        "masses" => out.push(p.mass),
+        "volumes" => out.push(p.volume),
+        _ => {}
+    }
+}
+
+fn write_field<const D: usize>(p: &mut Particle<D>, field: &str, v: &[f32]) {
+    match field {
+        "positions" => p.x.copy_from_slice(v),
+        "velocities" => p.v.copy_from_slice(v),
+        "external_acceleration" => p.ext.copy_from_slice(v),
+        "affine" | "deformation_gradient" => {
+            let m = SMatrix::<f32, D, D>::from_fn(|r, c| v[r * D + c]);
+            if field == "affine" { p.c = m } else { p.f = m }
+        }
+        "volume_ratio" => p.j = v[0],
+        "volume_correction" => p.vc = v[0],
+        "masses" => p.mass = v[0],
+        "volumes" => p.volume = v[0],
+        _ => {}
+    }
+}
+
+fn get_array<const D: usize>(py: Python<'_>, s: &Solver<D>, field: &str) -> PyResult<Py<PyAny>>
+where
+    core::Dim<D>: core::DimOps<D>,
+{
+    let n = s.num_particles();
+    if field == "material" {
+        let mut m = Vec::with_capacity(n);
+        s.for_each_particle(|_, p| m.push(p.material as i32));
+        return Ok(PyArray1::from_vec(py, m).into_any().unbind());
+    }
+    let mut out = Vec::with_capacity(n * D * D);
+    s.for_each_particle(|_, p| read_field(p, field, &mut out));
+    let arr = PyArray1::from_vec(py, out);
+    let shaped = match field_dim(field) {
+        0 => arr.reshape(vec![n])?,
+        1 => arr.reshape(vec![n, D])?,
+        _ => arr.reshape(vec![n, D, D])?,
+    };
+    Ok(shaped.into_any().unbind())
+}
+
+fn set_array<const D: usize>(py: Python<'_>, s: &mut Solver<D>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()>
+where
+    core::Dim<D>: core::DimOps<D>,
+{
+    let n = s.num_particles();
+    if field == "material" {
+        let codes = materials_from(value, n)?;
+        return s
+            .modify_particles(true, |i, p| p.material = codes[i])
+            .map_err(|e| to_py(py, e));
+    }
+    if field == "stress" {
+        return Err(invalid_input(py, "stress", "is derived from the state and read-only"));
+    }
+    let shape: Vec<Option<usize>> = match field_dim(field) {
+        0 => vec![Some(n)],
+        1 => vec![Some(n), Some(D)],
+        _ => vec![Some(n), Some(D), Some(D)],
+    };
+    let arr = f32_array(value, field, &shape)?;
+    let flat: Vec<f32> = arr.as_array().iter().copied().collect();
+    let per = flat.len() / n.max(1);
+    let refresh = matches!(field, "affine" | "deformation_gradient" | "volume_ratio");
+    s.modify_particles(refresh, |i, p| write_field(p, field, &flat[i * per..(i + 1) * per])).map_err(|e| to_py(py, e))
+}
+
+fn materials_from(value: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<Material>> {
+    let py = value.py();
+    let codes: Vec<i64> = if let Ok(x) = value.extract::<i64>() {
+        vec![x; n]
+    } else {
+        let np = py.import("numpy")?;
+        let arr = np.call_method1("asarray", (value,))?;
+        let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
+        if kind != "i" && kind != "u" {
+            return Err(invalid_input(py, "material", "expected an integer array (0 = water, 1 = sand)"));
+        }
+        let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
+        if shape != vec![n] {
+            return Err(invalid_input(py, "material", format!("expected shape [{n}], got {shape:?}")));
+        }
+        arr.call_method1("astype", ("int64",))?.call_method0("tolist")?.extract()?
+    };
+    codes
+        .iter()
+        .map(|&c| Material::from_code(c).ok_or_else(|| invalid_input(py, "material", format!("unknown material code {c} (0 = water, 1 = sand)"))))
+        .collect()
+}
+
+fn add_particles_impl<const D: usize>(
+    py: Python<'_>,
+    s: &mut Solver<D>,
+    positions: &Bound<'_, PyAny>,
+    material: &Bound<'_, PyAny>,
+    velocities: Option<&Bound<'_, PyAny>>,
+    masses: Option<&Bound<'_, PyAny>>,
+    volumes: Option<&Bound<'_, PyAny>>,
+) -> PyResult<usize>
+where
+    core::Dim<D>: core::DimOps<D>,
+{
+    let x = f32_array(positions, "positions", &[None, Some(D)])?;
+    let n = x.shape()[0];
+    let x = x.as_array();
+    let mats = materials_from(material, n)?;
+    let v = velocities.map(|v| f32_array(v, "velocities", &[Some(n), Some(D)])).transpose()?;
+    let m = masses.map(|v| f32_array(v, "masses", &[Some(n)])).transpose()?;
+    let vol = volumes.map(|v| f32_array(v, "volumes", &[Some(n)])).transpose()?;
+    let params = s.params();
+    // default: 2 particles per cell per dimension
+    let default_vol = (0.5 * params.dx()).powi(D as i32);
+    let mut ps = Vec::with_capacity(n);
+    for i in 0..n {
+        let xi = SVector::<f32, D>::from_fn(|d, _| x[[i, d]]);
+        let volume = vol.as_ref().map_or(default_vol, |a| a.as_array()[[i]]);
+        let rho = match mats[i] {
+            Material::Water => params.water.density,
+            Material::Sand => params.sand.density,
+        };
+        let mass = m.as_ref().map_or(rho * volume, |a| a.as_array()[[i]]);
+        let mut p = Particle::new(xi, mats[i], mass, volume);
+        if let Some(v) = &v {
+            let v = v.as_array();
+            p.v = SVector::<f32, D>::from_fn(|d, _| v[[i, d]]);
+        }
+        ps.push(p);
+    }
+    s.add_particles(ps).map_err(|e| to_py(py, e))
+}
+
+fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("substeps", st.substeps)?;
+    d.set_item("dt", st.dt)?;
+    d.set_item("max_speed", st.max_speed)?;
+    d.set_item("active_blocks", st.active_blocks)?;
+    Ok(d)
+}
+
+#[pymethods]
+impl MpmSolver {
+    #[new]
+    fn new(params: &Bound<'_, PyDict>) -> PyResult<Self> {
+        let py = params.py();
+        let dim = get_usize(params, "", "dim", 2)?;
+        let inner = match dim {
+            2 => {
+                let (p, c) = parse_params::<2>(params)?;
+                Inner::D2(Solver::new(p, c).map_err(|e| to_py(py, e))?)
+            }
+            3 => {
+                let (p, c) = parse_params::<3>(params)?;
+                Inner::D3(Solver::new(p, c).map_err(|e| to_py(py, e))?)
+            }
+            _ => return Err(invalid_input(py, "dim", format!("must be 2 or 3, got {dim}"))),
+        };
+        Ok(MpmSolver { inner })
+    }
+
+    /// Spatial dimension (2 or 3).
+    #[getter]
+    fn dim(&self) -> usize {
+        match self.inner {
+            Inner::D2(_) => 2,
+            Inner::D3(_) => 3,
+        }
+    }
+
+    /// Grid cells per dimension.
+    #[getter]
+    fn n_grid(&self) -> usize {
+        dispatch!(self, s => s.params().n_grid)
+    }
+
+    /// Grid spacing dx = 1/n_grid [m].
+    #[getter]
+    fn dx(&self) -> f32 {
+        dispatch!(self, s => s.params().dx())
+    }
+
+    #[getter]
+    fn num_particles(&self) -> usize {
+        dispatch!(self, s => s.num_particles())
+    }
+
+    /// Simulated time [s].
+    #[getter]
+    fn time(&self) -> f64 {
+        dispatch!(self, s => s.time())
+    }
+
+    /// Frames advanced so far.
+    #[getter]
+    fn frame(&self) -> u64 {
+        dispatch!(self, s => s.frame())
+    }
+
+    /// Valid particle coordinate range (lo, hi): one cell inside the unit domain.
+    #[getter]
+    fn domain_bounds(&self) -> (f32, f32) {
+        dispatch!(self, s => s.domain_bounds())
+    }
+
+    /// Append particles. `positions` float32 [N, D] in [dx, 1 - dx]; `material`
+    /// int code or int array [N] (0 = water, 1 = sand); optional `velocities`
+    /// float32 [N, D] [m/s], `masses` [N] [kg], `volumes` [N] [m^D] (default
+    /// volume (dx/2)^D, mass = density·volume). Returns the new count.
+    #[pyo3(signature = (positions, material, *, velocities=None, masses=None, volumes=None))]
+    fn add_particles(
+        &mut self,
+        py: Python<'_>,
+        positions: &Bound<'_, PyAny>,
+        material: &Bound<'_, PyAny>,
+        velocities: Option<&Bound<'_, PyAny>>,
+        masses: Option<&Bound<'_, PyAny>>,
+        volumes: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<usize> {
+        dispatch_mut!(self, s => add_particles_impl(py, s, positions, material, velocities, masses, volumes))
+    }
+
+    /// Remove the particles where `mask` (bool [N]) is True. Returns the new count.
+    fn remove_particles(&mut self, py: Python<'_>, mask: &Bound<'_, PyAny>) -> PyResult<usize> {
+        let n = self.num_particles();
+        let np = py.import("numpy")?;
+        let arr = np.call_method1("asarray", (mask,))?;
+        let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
+        let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
+        if kind != "b" || shape != vec![n] {
+            return Err(invalid_input(py, "mask", format!("expected a bool array of shape [{n}]")));
+        }
+        let remove: Vec<bool> = arr.call_method0("tolist")?.extract()?;
+        let keep: Vec<bool> = remove.iter().map(|r| !r).collect();
+        dispatch_mut!(self, s => s.retain_particles(&keep).map_err(|e| to_py(py, e)))
+    }
+
+    /// Copy of a per-particle array: positions/velocities/external_acceleration
+    /// float32 [N, D]; affine/deformation_gradient/stress float32 [N, D, D];
+    /// volume_ratio/volume_correction/masses/volumes float32 [N]; material int32 [N].
+    fn get(&self, py: Python<'_>, field: &str) -> PyResult<Py<PyAny>> {
+        if !FIELDS.contains(&field) {
+            return Err(invalid_input(py, "field", format!("unknown field '{field}' (one of {})", FIELDS.join(", "))));
+        }
+        dispatch!(self, s => get_array(py, s, field))
+    }
+
+    /// Overwrite a per-particle array (same shapes as `get`; `stress` is read-only).
+    /// Validated as a whole: on error nothing changes.
+    fn set(&mut self, py: Python<'_>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        if !FIELDS.contains(&field) {
+            return Err(invalid_input(py, "field", format!("unknown field '{field}' (one of {})", FIELDS.join(", "))));
+        }
+        dispatch_mut!(self, s => set_array(py, s, field, value))
+    }
+
+    /// Substeps the CFL condition asks for over a frame of `dt_frame` seconds.
+    #[pyo3(signature = (dt_frame=2.5e-3))]
+    fn substeps_for(&self, dt_frame: f32) -> usize {
+        dispatch!(self, s => s.substeps_for(dt_frame))
+    }
+
+    /// Advance one frame (default 2.5 ms). Returns {substeps, dt, max_speed,
+    /// active_blocks}. Raises `SimulationError` (with `.substep`) if the state
+    /// becomes non-finite: the state is then restored to the frame's start.
+    /// The GIL is released while stepping.
+    #[pyo3(signature = (dt_frame=2.5e-3))]
+    fn step_frame<'py>(&mut self, py: Python<'py>, dt_frame: f32) -> PyResult<Bound<'py, PyDict>> {
+        let r = match &mut self.inner {
+            Inner::D2(s) => py.detach(|| s.step_frame(dt_frame)),
+            Inner::D3(s) => py.detach(|| s.step_frame(dt_frame)),
+        };
+        stats_dict(py, r.map_err(|e| to_py(py, e))?)
+    }
+
+    /// Advance `frames` frames; returns the substep count of each, int64 [frames].
+    #[pyo3(signature = (frames, dt_frame=2.5e-3))]
+    fn step_frames<'py>(&mut self, py: Python<'py>, frames: usize, dt_frame: f32) -> PyResult<Bound<'py, PyArray1<i64>>> {
+        let r: Result<Vec<i64>, MpmError> = match &mut self.inner {
+            Inner::D2(s) => py.detach(|| (0..frames).map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64)).collect()),
+            Inner::D3(s) => py.detach(|| (0..frames).map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64)).collect()),
+        };
+        Ok(PyArray1::from_vec(py, r.map_err(|e| to_py(py, e))?))
+    }
+
+    /// Particle state and clock as bytes (parameters not included).
+    fn checkpoint<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        let blob = dispatch!(self, s => s.checkpoint());
+        PyBytes::new(py, &blob)
+    }
+
+    /// Restore a `checkpoint()` blob. Raises `CheckpointError`; on error nothing changes.
+    fn restore(&mut self, py: Python<'_>, blob: &[u8]) -> PyResult<()> {
+        dispatch_mut!(self, s => s.restore(blob).map_err(|e| to_py(py, e)))
+    }
+}
+
+/// Normalised grid mass (DESIGN.md "Grid-mass error"; paper Sec. 3.1.1):
+/// p2g of particle mass with quadratic B-splines onto the nodes `i·dx`,
+/// `i ∈ [0, n_grid)^D`, `dx = 1/n_grid`, divided by the total.
+///
+/// `positions`: float32 [N, D], D ∈ {2, 3}, in the unit domain;
+/// `masses`: float32 [N] or None (equal masses, 1/N each).
+/// Returns float32 [n_grid]*D summing to 1. Stencil nodes outside the grid
+/// are clamped to the edge. Raises `InvalidInputError` naming the field.
+#[pyfunction]
+#[pyo3(signature = (positions, n_grid, masses=None))]
+pub fn grid_mass(py: Python<'_>, positions: &Bound<'_, PyAny>, n_grid: usize, masses: Option<&Bound<'_, PyAny>>) -> PyResult<Py<PyAny>> {
+    let x = f32_array(positions, "positions", &[None, None])?;
+    let (n, d) = (x.shape()[0], x.shape()[1]);
+    let m = masses.map(|m| f32_array(m, "masses", &[Some(n)])).transpose()?;
+    let mv: Option<Vec<f32>> = m.map(|m| m.as_array().iter().copied().collect());
+    let flat: Vec<f32> = x.as_array().iter().copied().collect();
+    let res = match d {
+        2 => {
+            let pts: Vec<[f32; 2]> = flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+            py.detach(|| core::grid_mass::<2>(&pts, mv.as_deref(), n_grid))
+        }
+        3 => {
+            let pts: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            py.detach(|| core::grid_mass::<3>(&pts, mv.as_deref(), n_grid))
+        }
+        _ => return Err(invalid_input(py, "positions", format!("expected shape [N, 2] or [N, 3], got [N, {d}]"))),
+    };
+    let g = res.map_err(|e| to_py(py, e))?;
+    let arr = PyArray1::from_vec(py, g);
+    Ok(arr.reshape(vec![n_grid; d])?.into_any().unbind())
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<MpmSolver>()?;
+    m.add_function(wrap_pyfunction!(grid_mass, m)?)?;
+    Ok(())
+}
