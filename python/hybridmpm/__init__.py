@@ -1,8 +1,29 @@
-"""hybridmpm: real-time hybrid neural / MLS-MPM fluid simulation."""
+"""hybridmpm: real-time hybrid neural / MLS-MPM fluid simulation.
+
+The Rust core (``hybridmpm._core``) holds the MLS-MPM solver, the radius
+graph and the grid-mass metric; this package gives them a typed API.
+"""
 
 from hybridmpm import _core
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
 
-__version__ = _core.__version__
+__version__: str = _core.__version__
 
-__all__ = ["CheckpointError", "HybridMpmError", "InvalidInputError", "SimulationError", "__version__"]
+__all__ = [
+    "SAND",
+    "WATER",
+    "Box",
+    "CheckpointError",
+    "HybridMpmError",
+    "InvalidInputError",
+    "MpmParams",
+    "MpmSolver",
+    "SandParams",
+    "SimulationError",
+    "Sphere",
+    "WallParams",
+    "WaterParams",
+    "__version__",
+    "grid_mass",
+]

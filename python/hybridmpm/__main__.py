@@ -1,0 +1,5 @@
+import sys
+
+from hybridmpm.cli import main
+
+sys.exit(main())

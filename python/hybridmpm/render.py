@@ -1,0 +1,63 @@
+"""Render trajectories to an animated GIF (matplotlib frames, imageio writer)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+#: colours by GNS particle type
+_COLOURS = {5: "#1f77b4", 6: "#d2a25a", 3: "#444444"}
+
+
+def render_gif(
+    positions: np.ndarray,
+    particle_type: np.ndarray,
+    path: str | Path,
+    *,
+    dt_frame: float,
+    max_frames: int = 120,
+    fps: int = 24,
+    size_px: int = 360,
+    title: str = "",
+) -> Path:
+    """Write ``positions`` [T, N, D] as an animated GIF at ``path``.
+
+    2D: particles coloured by type; 3D: the x–y projection, shaded by depth z.
+    At most ``max_frames`` evenly spaced frames are drawn. Returns the path.
+    """
+    import imageio.v3 as iio
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    positions = np.asarray(positions)
+    if positions.ndim != 3 or positions.shape[2] not in (2, 3):
+        raise ValueError(f"positions: expected shape [T, N, 2|3], got {positions.shape}")
+    t_count, _, dim = positions.shape
+    idx = np.unique(np.linspace(0, t_count - 1, min(max_frames, t_count)).round().astype(int))
+    colours = np.array([_COLOURS.get(int(t), "#7f7f7f") for t in particle_type])
+    dpi = 100
+    fig, ax = plt.subplots(figsize=(size_px / dpi, size_px / dpi), dpi=dpi)
+    frames = []
+    for i in idx:
+        ax.clear()
+        p = positions[i]
+        if dim == 2:
+            ax.scatter(p[:, 0], p[:, 1], s=1.0, c=colours, linewidths=0)
+        else:
+            order = np.argsort(-p[:, 2])
+            ax.scatter(p[order, 0], p[order, 1], s=1.0, c=p[order, 2], cmap="Blues_r", vmin=0, vmax=1, linewidths=0)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"{title}  t = {i * dt_frame:.3f} s", fontsize=8)
+        fig.canvas.draw()
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+    plt.close(fig)
+    path = Path(path)
+    iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000 / fps, loop=0)
+    return path
