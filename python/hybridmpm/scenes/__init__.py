@@ -40,6 +40,8 @@ class Scene:
     dt_frame: float = DT_FRAME
     frames: int = 300
     info: dict[str, Any] = field(default_factory=dict)
+    #: initial volume ratio J [N] (water at hydrostatic rest), or None for J = 1
+    volume_ratio: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -60,6 +62,8 @@ class Scene:
             params = MpmParams.from_dict({**params.to_dict(), "num_threads": int(num_threads)})
         sim = MpmSolver(params)
         sim.add_particles(self.positions, self.material, velocities=self.velocities)
+        if self.volume_ratio is not None:
+            sim.volume_ratio = self.volume_ratio
         return sim
 
 
@@ -73,20 +77,41 @@ def lattice(lo: np.ndarray | list[float], hi: np.ndarray | list[float], spacing:
     return np.stack([g.ravel() for g in grid], axis=1).astype(np.float32)
 
 
+def wall_face(params: MpmParams) -> float:
+    """Where fluid rests against the lower domain walls [m]: ``(cells − 1)·dx``.
+
+    With a wall band of ``cells`` nodes whose velocity may not point outwards,
+    particles come to rest about one cell inside the band; blocks placed
+    against a wall start there so that they start at rest.
+    """
+    return (params.walls.cells - 1) / params.resolved_n_grid()
+
+
+def hydrostatic_volume_ratio(positions: np.ndarray, surface: float, params: MpmParams) -> np.ndarray:
+    """Volume ratio ``J = 1 − ρ·|g|·(surface − y)/K`` of water at hydrostatic rest
+    (Cauchy pressure ``K(1 − J) = ρ|g|·depth``), float32 [N]. ``surface`` is the
+    free-surface height [m]; ``y`` is the vertical (second) coordinate."""
+    g = abs(params.to_dict()["gravity"][1])
+    depth = np.clip(surface - positions[:, 1], 0.0, None)
+    return np.clip(1.0 - params.water.density * g * depth / params.water.bulk_modulus, 0.5, 1.0).astype(np.float32)
+
+
 def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = 24) -> Scene:
     """Martin & Moyce (1952) water column: base ``a``, height ``2a``, against the
-    left wall, released at t = 0 (``a = a_cells·dx``, at least 24 cells).
+    left wall, at hydrostatic rest, released at t = 0 (``a = a_cells·dx``, at
+    least 24 cells).
 
-    ``info`` holds ``a`` [m], ``x_wall`` and ``y_floor`` [m] (the inner faces of
-    the wall bands, the origin of the experiment's x and h). ``seed`` is unused
-    (the scene is deterministic) and accepted for a uniform signature.
+    ``info`` holds ``a`` [m], ``x_wall`` and ``y_floor`` [m] (the wall faces
+    the fluid rests against, see :func:`wall_face`: the origin of the
+    experiment's x and h). ``seed`` is unused (the scene is deterministic) and
+    accepted for a uniform signature.
     """
     del seed
     if a_cells < 24:
         raise InvalidInputError(f"a_cells: must be >= 24 grid cells, got {a_cells}", "a_cells")
     params = MpmParams(dim=2, n_grid=n_grid)
     dx = 1.0 / n_grid
-    wall = params.walls.cells * dx
+    wall = wall_face(params)
     a = a_cells * dx
     if wall + 4.2 * a > 1.0 - wall:
         raise InvalidInputError(f"a_cells: the surge would leave the domain; use a_cells <= {int((1 - 2 * params.walls.cells * dx) / 4.2 / dx)}", "a_cells")
@@ -100,6 +125,7 @@ def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = 24) -> Scene:
         velocities=np.zeros_like(pos),
         frames=300,
         info={"a": a, "x_wall": wall, "y_floor": wall, "spacing": dx / 2},
+        volume_ratio=hydrostatic_volume_ratio(pos, wall + 2 * a, params),
     )
 
 
@@ -153,4 +179,16 @@ def make_scene(name: str, seed: int = 0, **kwargs: Any) -> Scene:
     return SCENES[name](seed=seed, **kwargs)
 
 
-__all__ = ["GNS_KINEMATIC", "GNS_TYPE", "SCENES", "Scene", "dam_break2d", "lattice", "make_scene", "sand2d", "water3d"]
+__all__ = [
+    "GNS_KINEMATIC",
+    "GNS_TYPE",
+    "SCENES",
+    "Scene",
+    "dam_break2d",
+    "hydrostatic_volume_ratio",
+    "lattice",
+    "make_scene",
+    "sand2d",
+    "wall_face",
+    "water3d",
+]
