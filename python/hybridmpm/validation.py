@@ -125,3 +125,24 @@ __all__ = [
     "load_martin_moyce",
     "score_dam_break",
 ]
+
+
+def surface_slope_deg(positions: np.ndarray, y_floor: float, spacing: float, lo: float = 0.2, hi: float = 0.8) -> float:
+    """Mean slope angle [°] of a deposit's free surface (``positions`` [N, 2]).
+
+    The surface height ``h(x)`` is the top particle of each column of width
+    one particle spacing; the slope is a least-squares line through the
+    columns whose height lies between ``lo`` and ``hi`` of the maximum height
+    (the flank of the pile, away from its flat top and thin toe).
+    """
+    x = positions[:, 0]
+    y = positions[:, 1] + 0.5 * spacing - y_floor
+    bins = np.floor((x - x.min()) / spacing).astype(int)
+    h = np.full(bins.max() + 1, -np.inf)
+    np.maximum.at(h, bins, y)
+    xc = x.min() + (np.arange(len(h)) + 0.5) * spacing
+    ok = np.isfinite(h) & (h > lo * h.max()) & (h < hi * h.max())
+    if ok.sum() < 3:
+        return 0.0
+    slope = np.polyfit(xc[ok], h[ok], 1)[0]
+    return float(np.degrees(np.arctan(abs(slope))))
