@@ -33,9 +33,9 @@ pub trait DimOps<const D: usize> {
     /// e.g. 17.1° for φ = 19.8°).
     fn drucker_prager_alpha(phi: f32) -> f32;
     /// Visit the 3^D nodes of a quadratic B-spline stencil: calls
-    /// `f(node_offset, weight, o − fx)` with `node_offset = Σ o_d·stride_d`
-    /// (fully unrolled nested loops).
-    fn stencil(w: &[[f32; 3]; D], fx: &SVector<f32, D>, stride: &[usize; D], f: impl FnMut(usize, f32, SVector<f32, D>));
+    /// `f(node_offset, weight, o)` with the integer node offset `o ∈ {0,1,2}^D`
+    /// (as floats) and `node_offset = Σ o_d·stride_d` (fully unrolled loops).
+    fn stencil(w: &[[f32; 3]; D], stride: &[usize; D], f: impl FnMut(usize, f32, [f32; D]));
 }
 
 impl DimOps<2> for Dim<2> {
@@ -50,11 +50,10 @@ impl DimOps<2> for Dim<2> {
     }
 
     #[inline(always)]
-    fn stencil(w: &[[f32; 3]; 2], fx: &SVector<f32, 2>, stride: &[usize; 2], mut f: impl FnMut(usize, f32, SVector<f32, 2>)) {
+    fn stencil(w: &[[f32; 3]; 2], stride: &[usize; 2], mut f: impl FnMut(usize, f32, [f32; 2])) {
         for i in 0..3 {
-            let di = i as f32 - fx[0];
             for j in 0..3 {
-                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], SVector::<f32, 2>::new(di, j as f32 - fx[1]));
+                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], [i as f32, j as f32]);
             }
         }
     }
@@ -73,50 +72,52 @@ impl DimOps<3> for Dim<3> {
     }
 
     #[inline(always)]
-    fn stencil(w: &[[f32; 3]; 3], fx: &SVector<f32, 3>, stride: &[usize; 3], mut f: impl FnMut(usize, f32, SVector<f32, 3>)) {
+    fn stencil(w: &[[f32; 3]; 3], stride: &[usize; 3], mut f: impl FnMut(usize, f32, [f32; 3])) {
         for i in 0..3 {
-            let di = i as f32 - fx[0];
             for j in 0..3 {
-                let dj = j as f32 - fx[1];
                 let wij = w[0][i] * w[1][j];
                 for k in 0..3 {
-                    f(
-                        i * stride[0] + j * stride[1] + k * stride[2],
-                        wij * w[2][k],
-                        SVector::<f32, 3>::new(di, dj, k as f32 - fx[2]),
-                    );
+                    f(i * stride[0] + j * stride[1] + k * stride[2], wij * w[2][k], [i as f32, j as f32, k as f32]);
                 }
             }
         }
     }
 }
 
-/// Closed-form 2×2 SVD (polar angles of the symmetric / antisymmetric parts).
+/// Closed-form 2×2 SVD without trigonometry: polar decomposition
+/// `F = R·S` (R a rotation), then the symmetric eigenproblem of `S = V Σ Vᵀ`,
+/// so `U = R·V`.
 fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
     let (a, b, c, d) = (m[(0, 0)], m[(0, 1)], m[(1, 0)], m[(1, 1)]);
-    let e = 0.5 * (a + d);
-    let f = 0.5 * (a - d);
-    let g = 0.5 * (c + b);
-    let h = 0.5 * (c - b);
-    let q = (e * e + h * h).sqrt();
-    let r = (f * f + g * g).sqrt();
-    let s1 = q + r;
-    let mut s2 = q - r;
-    let a1 = g.atan2(f);
-    let a2 = h.atan2(e);
-    let theta = 0.5 * (a2 - a1);
-    let phi = 0.5 * (a2 + a1);
-    let (sp, cp) = phi.sin_cos();
-    let (st, ct) = theta.sin_cos();
-    let u = SMatrix::<f32, 2, 2>::new(cp, -sp, sp, cp);
-    // Vᵀ = R(θ) ⇒ V = R(θ)ᵀ
-    let mut v = SMatrix::<f32, 2, 2>::new(ct, st, -st, ct);
-    if s2 < 0.0 {
-        s2 = -s2;
-        v[(0, 1)] = -v[(0, 1)];
-        v[(1, 1)] = -v[(1, 1)];
+    let (x, y) = (a + d, c - b);
+    let r = (x * x + y * y).sqrt();
+    let (co, si) = if r > 1e-30 { (x / r, y / r) } else { (1.0, 0.0) };
+    let rot = SMatrix::<f32, 2, 2>::new(co, -si, si, co);
+    // S = Rᵀ F (symmetric up to rounding)
+    let s11 = co * a + si * c;
+    let s12 = 0.5 * ((co * b + si * d) + (-si * a + co * c));
+    let s22 = -si * b + co * d;
+    let mean = 0.5 * (s11 + s22);
+    let half = 0.5 * (s11 - s22);
+    let rad = (half * half + s12 * s12).sqrt();
+    let (l1, mut l2) = (mean + rad, mean - rad);
+    // eigenvector of l1: (cos t, sin t) with tan 2t = 2 s12 / (s11 − s22)
+    let (v1x, v1y) = if rad > 1e-30 {
+        // robust half-angle form: (half + rad, s12) or (s12, rad − half)
+        let (ex, ey) = if half >= 0.0 { (half + rad, s12) } else { (s12, rad - half) };
+        let n = (ex * ex + ey * ey).sqrt();
+        (ex / n, ey / n)
+    } else {
+        (1.0, 0.0)
+    };
+    let v = SMatrix::<f32, 2, 2>::new(v1x, -v1y, v1y, v1x);
+    if l2 < 0.0 {
+        // S = l1·v1v1ᵀ + |l2|·(−v2)v2ᵀ: flip U's second column
+        l2 = -l2;
+        let u = rot * SMatrix::<f32, 2, 2>::new(v1x, v1y, v1y, -v1x);
+        return Svd { u, sigma: SVector::<f32, 2>::new(l1, l2), v };
     }
-    Svd { u, sigma: SVector::<f32, 2>::new(s1, s2), v }
+    Svd { u: rot * v, sigma: SVector::<f32, 2>::new(l1, l2), v }
 }
 
 fn svd3(m: &SMatrix<f32, 3, 3>) -> Svd<3> {
@@ -234,6 +235,10 @@ mod tests {
             check(f3);
         }
         check(SMatrix::<f32, 2, 2>::identity());
+        check(SMatrix::<f32, 2, 2>::new(1.0, 0.0, 0.0, -1.0));
+        check(SMatrix::<f32, 2, 2>::new(0.3, 2.0, 1.0, 0.5));
+        check(SMatrix::<f32, 2, 2>::new(2.0, 0.0, 0.0, 2.0));
+        check(SMatrix::<f32, 2, 2>::new(0.0, 0.0, 0.0, 0.0));
         check(SMatrix::<f32, 3, 3>::identity());
         check(SMatrix::<f32, 3, 3>::from_diagonal(&SVector::<f32, 3>::new(1.0, 1.0, 0.9)));
     }

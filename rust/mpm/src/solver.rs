@@ -39,6 +39,7 @@ pub struct FrameStats {
 
 /// Scratch space of the sparse block grid, reused across substeps.
 struct SparseGrid {
+    /// (the cell cache is kept for up to 3 dimensions)
     log2_b: u32,
     /// Blocks per dimension of the block lattice.
     nb: usize,
@@ -54,9 +55,9 @@ struct SparseGrid {
     local: Vec<[f32; 4]>,
     /// Grid velocities per output block: B^D nodes.
     out_v: Vec<[f32; 3]>,
-    /// Block key of each particle.
-    keys: Vec<u32>,
-    next_keys: Vec<u32>,
+    /// Stencil base cell, fraction and block key of each particle (storage order).
+    keys: Vec<Cell>,
+    next_keys: Vec<Cell>,
     counts: Vec<u32>,
 }
 
@@ -68,6 +69,8 @@ struct Stencil<const D: usize> {
     blk_stride: [usize; D],
     /// Strides of the block lattice, per dimension.
     lat_stride: [usize; D],
+    /// Coordinates of each node of a padded (B+2)^D buffer.
+    pad_coords: Vec<[usize; D]>,
 }
 
 /// MLS-MPM solver for `D` = 2 or 3.
@@ -100,21 +103,43 @@ fn build_pool(num_threads: usize) -> Result<rayon::ThreadPool> {
         .map_err(|e| MpmError::invalid("num_threads", format!("cannot start the thread pool: {e}")))
 }
 
-/// Quadratic B-spline weights of a particle at grid coordinate `xg` (units of dx).
+/// Where a particle sits in the grid: the base node of its 3^D stencil,
+/// its offset from it (in cells, in [0.5, 1.5)) and its block's key.
+/// Computed once per substep (in g2p, for the next one).
+#[derive(Clone, Copy, Debug, Default)]
+struct Cell {
+    key: u32,
+    base: [u32; 3],
+    fx: [f32; 3],
+}
+
 #[inline(always)]
-fn bspline<const D: usize>(xg: &SVector<f32, D>) -> ([i64; D], SVector<f32, D>, [[f32; 3]; D]) {
-    let mut base = [0i64; D];
+fn cell_of<const D: usize>(x: &SVector<f32, D>, inv_dx: f32, log2_b: u32, lat: &[usize; D]) -> Cell {
+    let mut c = Cell::default();
+    let mut key = 0usize;
+    for d in 0..D {
+        let xg = x[d] * inv_dx;
+        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor
+        let b = (xg - 0.5) as u32;
+        c.base[d] = b;
+        c.fx[d] = xg - b as f32;
+        key += (b as usize >> log2_b) * lat[d];
+    }
+    c.key = key as u32;
+    c
+}
+
+/// Quadratic B-spline weights (Hu et al. 2018, Eq. 4 ff.) for offsets `fx`.
+#[inline(always)]
+fn weights<const D: usize>(cell: &Cell) -> (SVector<f32, D>, [[f32; 3]; D]) {
     let mut fx = SVector::<f32, D>::zeros();
     let mut w = [[0.0f32; 3]; D];
     for d in 0..D {
-        // xg ≥ 1 inside the domain, so truncation is floor
-        let b = ((xg[d] - 0.5) as i32) as f32;
-        base[d] = b as i64;
-        let f = xg[d] - b;
+        let f = cell.fx[d];
         fx[d] = f;
         w[d] = [0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5)];
     }
-    (base, fx, w)
+    (fx, w)
 }
 
 impl<const D: usize> Solver<D>
@@ -142,6 +167,18 @@ where
             blk_stride[d] = b.pow((D - 1 - d) as u32);
             lat_stride[d] = nb.pow((D - 1 - d) as u32);
         }
+        let pad_nodes = p.pow(D as u32);
+        let pad_coords = (0..pad_nodes)
+            .map(|q| {
+                let mut rem = q;
+                let mut c = [0usize; D];
+                for d in (0..D).rev() {
+                    c[d] = rem % p;
+                    rem /= p;
+                }
+                c
+            })
+            .collect();
         let pool = build_pool(params.num_threads)?;
         Ok(Solver {
             params,
@@ -167,7 +204,7 @@ where
                 next_keys: Vec::new(),
                 counts: Vec::new(),
             },
-            stencil: Stencil { pad_stride, blk_stride, lat_stride },
+            stencil: Stencil { pad_stride, blk_stride, lat_stride, pad_coords },
             pool,
             pool_pid: std::process::id(),
         })
@@ -428,9 +465,9 @@ where
         let inv_dx = self.params.n_grid as f32;
         let log2_b = self.grid.log2_b;
         let lat = self.stencil.lat_stride;
-        self.grid.keys.resize(self.particles.len(), 0);
+        self.grid.keys.resize(self.particles.len(), Cell::default());
         self.particles.par_iter().zip(self.grid.keys.par_iter_mut()).for_each(|(p, k)| {
-            *k = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
+            *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
         });
     }
 
@@ -449,7 +486,7 @@ where
         // Visit particles in id order so that the order inside each block (and
         // so every floating-point sum) depends only on the particle set.
         for &slot_id in &self.slot_of {
-            let k = g.keys[slot_id as usize];
+            let k = g.keys[slot_id as usize].key;
             let slot = &mut g.src_map[k as usize];
             if *slot == EMPTY {
                 *slot = g.src_blocks.len() as u32;
@@ -471,7 +508,7 @@ where
         }
         g.sorted.resize(g.keys.len(), 0);
         for &slot_id in &self.slot_of {
-            let k = g.keys[slot_id as usize];
+            let k = g.keys[slot_id as usize].key;
             let s = g.src_map[k as usize] as usize;
             g.sorted[g.counts[s] as usize] = slot_id;
             g.counts[s] += 1;
@@ -528,8 +565,8 @@ where
         g.local.resize(n_src * pad_nodes, [0.0; 4]);
         let particles = &self.particles;
         let st = &self.stencil;
-        let (src_blocks, src_offsets, sorted, lat, log2_b) =
-            (&g.src_blocks, &g.src_offsets, &g.sorted, st.lat_stride, g.log2_b);
+        let (src_blocks, src_offsets, sorted, lat, log2_b, cells) =
+            (&g.src_blocks, &g.src_offsets, &g.sorted, st.lat_stride, g.log2_b, &g.keys);
         g.local.par_chunks_mut(pad_nodes).enumerate().for_each(|(si, buf)| {
             buf.fill([0.0; 4]);
             let c = unflatten::<D>(src_blocks[si] as usize, &lat);
@@ -537,22 +574,36 @@ where
             let hi = src_offsets[si + 1] as usize;
             for &pi in &sorted[lo..hi] {
                 let p = &particles[pi as usize];
-                let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
+                let cell = &cells[pi as usize];
+                let (fx, w) = weights::<D>(cell);
                 let mut base_idx = 0usize;
                 for d in 0..D {
-                    base_idx += (base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
+                    base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                 }
-                // affine·dpos with dpos = (o − fx)·dx
-                let affine = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
+                // momentum + affine·dpos, dpos = (o − fx)·dx, split as q + A·o
+                // with A = affine·dx and q = mom − A·fx (o integer offsets)
+                let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
                 let mom = (p.v + p.ext * dt) * p.mass;
+                let q = mom - a_mat * fx;
+                let mut am = [[0.0f32; D]; D];
+                let mut qa = [0.0f32; D];
+                for r in 0..D {
+                    qa[r] = q[r];
+                    for c in 0..D {
+                        am[r][c] = a_mat[(r, c)];
+                    }
+                }
                 let mass = p.mass;
                 let nodes = &mut buf[base_idx..];
-                Dim::<D>::stencil(&w, &fx, &st.pad_stride, |off, weight, o| {
-                    let val = (mom + affine * o) * weight;
+                Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
                     let node = &mut nodes[off];
                     node[0] += weight * mass;
-                    for d in 0..D {
-                        node[1 + d] += val[d];
+                    for r in 0..D {
+                        let mut val = qa[r];
+                        for c in 0..D {
+                            val += am[r][c] * o[c];
+                        }
+                        node[1 + r] += weight * val;
                     }
                 });
             }
@@ -687,8 +738,6 @@ where
         let log2_b = self.grid.log2_b;
         let b = 1usize << log2_b;
         let bmask = b - 1;
-        let pdim = b + 2;
-        let pad_nodes = pdim.pow(D as u32);
         let blk_nodes = 1usize << (log2_b as usize * D);
         let st = &self.stencil;
         let lat = st.lat_stride;
@@ -703,11 +752,12 @@ where
         let (out_map, out_v, src_blocks, src_offsets, sorted) = (&g.out_map, &g.out_v, &g.src_blocks, &g.src_offsets, &g.sorted);
         let particles = &self.particles;
         self.next.resize(n, particles[0]);
-        g.next_keys.resize(n, 0);
+        g.next_keys.resize(n, Cell::default());
+        let cells = &g.keys;
         // split the outputs into one contiguous slice per source block
-        let mut out_slices: Vec<(&mut [Particle<D>], &mut [u32])> = Vec::with_capacity(src_blocks.len());
+        let mut out_slices: Vec<(&mut [Particle<D>], &mut [Cell])> = Vec::with_capacity(src_blocks.len());
         let mut rest_p: &mut [Particle<D>] = &mut self.next[..];
-        let mut rest_k: &mut [u32] = &mut g.next_keys[..];
+        let mut rest_k: &mut [Cell] = &mut g.next_keys[..];
         for si in 0..src_blocks.len() {
             let len = (src_offsets[si + 1] - src_offsets[si]) as usize;
             let (ap, bp) = rest_p.split_at_mut(len);
@@ -722,49 +772,55 @@ where
             .map(|(si, (outp, outk))| {
                 let c = unflatten::<D>(src_blocks[si] as usize, &lat);
                 // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
-                let mut patch = [SVector::<f32, D>::zeros(); 216];
-                for q in 0..pad_nodes {
-                    let mut rem = q;
+                let mut patch = [[0.0f32; D]; 216];
+                for (q, qc) in st.pad_coords.iter().enumerate() {
                     let mut lin = 0usize;
                     let mut off = 0usize;
-                    for d in (0..D).rev() {
-                        let qd = rem % pdim;
-                        rem /= pdim;
-                        let gi = (c[d] << log2_b) + qd;
+                    for d in 0..D {
+                        let gi = (c[d] << log2_b) + qc[d];
                         lin += (gi >> log2_b) * lat[d];
                         off += (gi & bmask) * st.blk_stride[d];
                     }
                     let ob = out_map[lin];
                     if ob != EMPTY {
                         let gv = &out_v[ob as usize * blk_nodes + off];
-                        patch[q] = SVector::<f32, D>::from_column_slice(&gv[..D]);
+                        patch[q].copy_from_slice(&gv[..D]);
                     }
                 }
                 let lo_i = src_offsets[si] as usize;
-                let mut finite = true;
-                let mut vmax = 0.0f32;
+                let mut nan_probe = 0.0f32;
+                let mut nonpositive_j = false;
+                let mut vmax2 = 0.0f32;
                 for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
-                    let mut p = particles[sorted[lo_i + j] as usize];
-                    let (base, fx, w) = bspline::<D>(&(p.x * inv_dx));
+                    let slot = sorted[lo_i + j] as usize;
+                    let mut p = particles[slot];
+                    let cell = &cells[slot];
+                    let (fx, w) = weights::<D>(cell);
                     let mut base_idx = 0usize;
                     for d in 0..D {
-                        base_idx += (base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
+                        base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                     }
-                    let mut new_v = SVector::<f32, D>::zeros();
-                    let mut new_b = SMatrix::<f32, D, D>::zeros();
+                    let mut acc_v = [0.0f32; D];
+                    let mut acc_b = [[0.0f32; D]; D];
                     let nodes = &patch[base_idx..];
-                    Dim::<D>::stencil(&w, &fx, &st.pad_stride, |off, weight, o| {
-                        let gv = nodes[off] * weight;
-                        new_v += gv;
-                        new_b += gv * o.transpose();
+                    Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
+                        let g = &nodes[off];
+                        for r in 0..D {
+                            let wg = weight * g[r];
+                            acc_v[r] += wg;
+                            for c in 0..D {
+                                acc_b[r][c] += wg * o[c];
+                            }
+                        }
                     });
-                    // B uses dpos = (o − fx)·dx; C = 4/dx² · B
-                    let new_c = new_b * (4.0 * inv_dx);
+                    // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
+                    let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
+                    let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| (acc_b[r][c] - acc_v[r] * fx[c]) * (4.0 * inv_dx));
                     p.v = new_v;
                     p.c = new_c;
                     p.x += new_v * dt;
                     for d in 0..D {
-                        p.x[d] = p.x[d].clamp(lo, hi);
+                        p.x[d] = p.x[d].max(lo).min(hi);
                     }
                     match p.material {
                         Material::Water => {
@@ -786,15 +842,15 @@ where
                             p.tau = svd.u * SMatrix::<f32, D, D>::from_diagonal(&diag) * svd.u.transpose();
                         }
                     }
-                    *ko = block_key::<D>(&(p.x * inv_dx), log2_b, &lat);
-                    finite &= p.x.iter().chain(p.v.iter()).all(|a| a.is_finite())
-                        && p.tau.iter().all(|a| a.is_finite())
-                        && p.j.is_finite()
-                        && p.j > 0.0;
-                    vmax = vmax.max(p.v.norm());
+                    *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
+                    // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
+                    nan_probe += p.v.sum() + p.tau.sum() + p.j;
+                    nonpositive_j |= p.j <= 0.0;
+                    vmax2 = vmax2.max(p.v.norm_squared());
                     *po = p;
                 }
-                (finite, vmax)
+                // positions are clamped (NaN maps to the bound), so test velocities and stress
+                (nan_probe.is_finite() && vmax2.is_finite() && !nonpositive_j, vmax2.sqrt())
             })
             .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)));
         // the next storage order is the sorted order
@@ -852,16 +908,6 @@ pub fn drucker_prager_project<const D: usize>(
     };
     *vc += e0.sum() - e_new.sum();
     e_new
-}
-
-#[inline(always)]
-fn block_key<const D: usize>(xg: &SVector<f32, D>, log2_b: u32, lat: &[usize; D]) -> u32 {
-    let mut lin = 0usize;
-    for d in 0..D {
-        let base = (xg[d] - 0.5).max(0.0) as usize;
-        lin += (base >> log2_b) * lat[d];
-    }
-    lin as u32
 }
 
 #[inline(always)]
