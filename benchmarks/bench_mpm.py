@@ -1,0 +1,162 @@
+"""MPM solver benchmark: wall time per frame and per substep for the standard
+scenes, scaling with particle count and threads, grid-size independence,
+memory per particle, and (optionally) Taichi's CPU backend in the same run.
+
+    python benchmarks/bench_mpm.py [--quick] [--taichi] [--out benchmarks/results]
+
+Scenes (particles on a lattice at spacing dx/2, zero velocity, released as a
+dam break; the same as benchmarks/taichi_peer.py):
+  water2d   4096 water, 128², origin (0.1, 0.1), 16 substeps per 2.5 ms frame
+  sand2d    4096 sand, same
+  water3d   4096 water, 64³, origin (0.3, 0.1, 0.3), 8 substeps
+  water3d_128  the same particles on 128³ (16 substeps: dx halves)
+  water3d_32k  32768 water, 64³, origin (0.25, 0.1, 0.25), 8 substeps
+  sand3d    4096 sand, 64³, 8 substeps
+Timing: 5 warm-up frames, then the median and p95 of per-frame wall times;
+start-up is excluded (as the paper's App. C does for Taichi).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hybridmpm.mpm import SAND, WATER, MpmParams, MpmSolver
+from hybridmpm.scenes import lattice
+
+SCENES = {
+    # name: (dim, n_grid, origin, side, material, substeps)
+    "water2d": (2, 128, (0.1, 0.1), 64, WATER, 16),
+    "sand2d": (2, 128, (0.1, 0.1), 64, SAND, 16),
+    "water3d": (3, 64, (0.3, 0.1, 0.3), 16, WATER, 8),
+    "water3d_128": (3, 128, (0.3, 0.1, 0.3), 16, WATER, 16),
+    "water3d_32k": (3, 64, (0.25, 0.1, 0.25), 32, WATER, 8),
+    "sand3d": (3, 64, (0.3, 0.1, 0.3), 16, SAND, 8),
+}
+
+
+def make(dim, n_grid, origin, side, material, substeps, threads):
+    sim = MpmSolver(MpmParams(dim=dim, n_grid=n_grid, substeps=substeps, num_threads=threads))
+    spacing = 0.5 / n_grid
+    if n_grid == 128 and dim == 3:
+        spacing = 0.5 / 64  # same particles as the 64³ scene
+    lo = np.array(origin)
+    x = lattice(lo, lo + side * spacing, spacing)
+    sim.add_particles(x, material, volumes=np.full(len(x), spacing**dim, np.float32))
+    return sim
+
+
+def time_frames(sim, frames, warmup=5):
+    for _ in range(warmup):
+        sim.step_frame()
+    t = np.empty(frames)
+    for i in range(frames):
+        t0 = time.perf_counter()
+        sim.step_frame()
+        t[i] = time.perf_counter() - t0
+    return float(np.median(t) * 1e3), float(np.percentile(t, 95) * 1e3)
+
+
+def rss_mb():
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def machine():
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "nproc": os.cpu_count(), "python": platform.python_version()}
+
+
+def git_commit():
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def run_taichi(scenes, threads, frames):
+    script = Path(__file__).with_name("taichi_peer.py")
+    out = Path("/tmp/taichi_peer_bench.json")
+    cmd = [sys.executable, str(script), "--scenes", ",".join(scenes), "--threads", ",".join(map(str, threads)),
+           "--variants", "serial,atomic", "--frames", str(frames), "--json", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        print("taichi peer failed:", r.stderr[-2000:], file=sys.stderr)
+        return []
+    return json.loads(out.read_text())
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer frames and cases")
+    ap.add_argument("--taichi", action="store_true", help="also time benchmarks/taichi_peer.py back to back")
+    ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--out", default="benchmarks/results")
+    args = ap.parse_args()
+    frames = 15 if args.quick else args.frames
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, spec in SCENES.items():
+        for threads in (1, 2):
+            sim = make(*spec, threads)
+            med, p95 = time_frames(sim, frames)
+            rows.append({"scene": name, "threads": threads, "particles": sim.num_particles, "substeps": spec[5],
+                         "ms_per_frame": med, "p95_ms_per_frame": p95, "us_per_substep": med * 1e3 / spec[5]})
+            print(f"{name:12s} t={threads} N={sim.num_particles:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep", flush=True)
+
+    scaling = []
+    sides2 = [32, 64, 128, 256] if not args.quick else [32, 64, 128]
+    for side in sides2:
+        for threads in (1, 2):
+            sim = make(2, 256, (0.2, 0.05), side, WATER, 32, threads)
+            med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
+            scaling.append({"dim": 2, "n_grid": 256, "particles": sim.num_particles, "threads": threads, "ms_per_frame": med,
+                            "us_per_substep": med * 1e3 / 32, "ns_per_particle_substep": med * 1e6 / 32 / sim.num_particles})
+            print(f"scaling 2D N={sim.num_particles:6d} t={threads}: {med * 1e3 / 32:8.1f} us/substep", flush=True)
+    for side in ([10, 16, 20, 32, 40] if not args.quick else [10, 16, 32]):
+        for threads in (1, 2):
+            sim = make(3, 64, (0.2, 0.05, 0.2), side, WATER, 8, threads)
+            med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
+            scaling.append({"dim": 3, "n_grid": 64, "particles": sim.num_particles, "threads": threads, "ms_per_frame": med,
+                            "us_per_substep": med * 1e3 / 8, "ns_per_particle_substep": med * 1e6 / 8 / sim.num_particles})
+            print(f"scaling 3D N={sim.num_particles:6d} t={threads}: {med * 1e3 / 8:8.1f} us/substep", flush=True)
+
+    # memory per particle: RSS growth for 1M 2D particles (state + scratch after a frame)
+    before = rss_mb()
+    big = make(2, 2048, (0.1, 0.1), 1000, WATER, 1, 0)
+    big.step_frame()
+    mem = {"particles": big.num_particles, "rss_mb": rss_mb() - before}
+    mem["bytes_per_particle"] = mem["rss_mb"] * 2**20 / big.num_particles
+    del big
+    print(f"memory: {mem['bytes_per_particle']:.0f} bytes per 2D particle (1M particles)")
+
+    taichi = run_taichi(["water2d", "sand2d", "water3d_4k", "water3d_32k"], [1, 2], frames) if args.taichi else []
+
+    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine(), "commit": git_commit(),
+              "command": " ".join(["python"] + sys.argv), "frames": frames, "rows": rows, "scaling": scaling, "memory": mem,
+              "taichi": taichi}
+    (out / "mpm.json").write_text(json.dumps(result, indent=2))
+    print(f"wrote {out / 'mpm.json'}")
+
+
+if __name__ == "__main__":
+    main()
