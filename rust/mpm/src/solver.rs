@@ -53,8 +53,8 @@ struct SparseGrid {
     out_blocks: Vec<u32>,
     /// Padded p2g buffers, one per source block: (B+2)^D nodes of [mass, momentum (D), pad].
     local: Vec<[f32; 4]>,
-    /// Grid velocities per output block: B^D nodes.
-    out_v: Vec<[f32; 3]>,
+    /// Grid velocities per output block: B^D nodes (padded to 4 lanes).
+    out_v: Vec<[f32; 4]>,
     /// Stencil base cell, fraction and block key of each particle (storage order).
     keys: Vec<Cell>,
     next_keys: Vec<Cell>,
@@ -92,14 +92,15 @@ where
     frame: u64,
     grid: SparseGrid,
     stencil: Stencil<D>,
-    pool: rayon::ThreadPool,
+    pool: std::sync::Arc<rayon::ThreadPool>,
     pool_pid: u32,
 }
 
-fn build_pool(num_threads: usize) -> Result<rayon::ThreadPool> {
+fn build_pool(num_threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
     rayon::ThreadPoolBuilder::new()
         .num_threads(num_threads)
         .build()
+        .map(std::sync::Arc::new)
         .map_err(|e| MpmError::invalid("num_threads", format!("cannot start the thread pool: {e}")))
 }
 
@@ -433,7 +434,7 @@ where
             return Ok(FrameStats { substeps: n_sub, dt, max_speed: 0.0, active_blocks: 0 });
         }
         let backup = (self.particles.clone(), self.ids.clone(), self.slot_of.clone());
-        let pool = std::mem::replace(&mut self.pool, build_pool(1)?);
+        let pool = self.pool.clone();
         let result = pool.install(|| {
             self.compute_keys();
             let mut vmax = 0.0;
@@ -446,7 +447,6 @@ where
             }
             Ok(vmax)
         });
-        self.pool = pool;
         match result {
             Ok(vmax) => {
                 self.time += dt_frame as f64;
@@ -580,31 +580,26 @@ where
                 for d in 0..D {
                     base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                 }
-                // momentum + affine·dpos, dpos = (o − fx)·dx, split as q + A·o
-                // with A = affine·dx and q = mom − A·fx (o integer offsets)
+                // [mass, momentum + affine·dpos] with dpos = (o − fx)·dx, written
+                // as base + Σ_c o_c·col_c (o integer offsets): 4-wide vector work
                 let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
                 let mom = (p.v + p.ext * dt) * p.mass;
                 let q = mom - a_mat * fx;
-                let mut am = [[0.0f32; D]; D];
-                let mut qa = [0.0f32; D];
+                let mut base4 = [p.mass, 0.0, 0.0, 0.0];
+                let mut cols = [[0.0f32; 4]; D];
                 for r in 0..D {
-                    qa[r] = q[r];
+                    base4[1 + r] = q[r];
                     for c in 0..D {
-                        am[r][c] = a_mat[(r, c)];
+                        cols[c][1 + r] = a_mat[(r, c)];
                     }
                 }
-                let mass = p.mass;
                 let nodes = &mut buf[base_idx..];
                 Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
-                    let node = &mut nodes[off];
-                    node[0] += weight * mass;
-                    for r in 0..D {
-                        let mut val = qa[r];
-                        for c in 0..D {
-                            val += am[r][c] * o[c];
-                        }
-                        node[1 + r] += weight * val;
+                    let mut contrib = base4;
+                    for c in 0..D {
+                        fma4(&mut contrib, o[c], &cols[c]);
                     }
+                    fma4(&mut nodes[off], weight, &contrib);
                 });
             }
         });
@@ -623,7 +618,7 @@ where
         let colliders = &self.colliders;
         let st = &self.stencil;
         let g = &mut self.grid;
-        g.out_v.resize(n_out * blk_nodes, [0.0; 3]);
+        g.out_v.resize(n_out * blk_nodes, [0.0; 4]);
         let (out_blocks, src_map, local, lat, log2_b) = (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
         let wall_lo = walls.cells;
         let wall_hi = n.saturating_sub(walls.cells);
@@ -689,7 +684,7 @@ where
                 let m = a[0];
                 let o = &mut out[l];
                 if m <= 0.0 {
-                    *o = [0.0; 3];
+                    *o = [0.0; 4];
                     continue;
                 }
                 let mut v = SVector::<f32, D>::zeros();
@@ -772,7 +767,7 @@ where
             .map(|(si, (outp, outk))| {
                 let c = unflatten::<D>(src_blocks[si] as usize, &lat);
                 // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
-                let mut patch = [[0.0f32; D]; 216];
+                let mut patch = [[0.0f32; 4]; 216];
                 for (q, qc) in st.pad_coords.iter().enumerate() {
                     let mut lin = 0usize;
                     let mut off = 0usize;
@@ -783,8 +778,7 @@ where
                     }
                     let ob = out_map[lin];
                     if ob != EMPTY {
-                        let gv = &out_v[ob as usize * blk_nodes + off];
-                        patch[q].copy_from_slice(&gv[..D]);
+                        patch[q] = out_v[ob as usize * blk_nodes + off];
                     }
                 }
                 let lo_i = src_offsets[si] as usize;
@@ -800,22 +794,22 @@ where
                     for d in 0..D {
                         base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
                     }
-                    let mut acc_v = [0.0f32; D];
-                    let mut acc_b = [[0.0f32; D]; D];
+                    let mut acc_v = [0.0f32; 4];
+                    let mut acc_b = [[0.0f32; 4]; D];
                     let nodes = &patch[base_idx..];
                     Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
-                        let g = &nodes[off];
-                        for r in 0..D {
-                            let wg = weight * g[r];
-                            acc_v[r] += wg;
-                            for c in 0..D {
-                                acc_b[r][c] += wg * o[c];
-                            }
+                        let mut wg = nodes[off];
+                        for k in 0..4 {
+                            wg[k] *= weight;
+                        }
+                        add4(&mut acc_v, &wg);
+                        for c in 0..D {
+                            fma4(&mut acc_b[c], o[c], &wg);
                         }
                     });
                     // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
                     let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
-                    let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| (acc_b[r][c] - acc_v[r] * fx[c]) * (4.0 * inv_dx));
+                    let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| (acc_b[c][r] - acc_v[r] * fx[c]) * (4.0 * inv_dx));
                     p.v = new_v;
                     p.c = new_c;
                     p.x += new_v * dt;
@@ -908,6 +902,21 @@ pub fn drucker_prager_project<const D: usize>(
     };
     *vc += e0.sum() - e_new.sum();
     e_new
+}
+
+/// `acc += s·v` on 4 lanes (compiles to one vector FMA/mul-add).
+#[inline(always)]
+fn fma4(acc: &mut [f32; 4], s: f32, v: &[f32; 4]) {
+    for k in 0..4 {
+        acc[k] += s * v[k];
+    }
+}
+
+#[inline(always)]
+fn add4(acc: &mut [f32; 4], v: &[f32; 4]) {
+    for k in 0..4 {
+        acc[k] += v[k];
+    }
 }
 
 #[inline(always)]
