@@ -478,6 +478,20 @@ def write_markdown(path: str, meta: dict, rows: list[dict]) -> None:
         "",
         markdown_table(rows),
         "",
+        "## How the Taichi side is built",
+        "",
+        "- `serial`: p2g particle loop under `ti.loop_config(serialize=True)` with plain "
+        "read-modify-write (the generated LLVM IR has no atomics); grid update and g2p parallel. "
+        "`atomic`: textbook parallel p2g with `+=` (float atomic adds, which x86 lowers to CAS loops).",
+        "- One kernel launch per substep (three top-level loops inside, run in order). Dense "
+        "(n+1)^D grid in SoA (momentum, mass, velocity); the grid clear is fused into the grid "
+        "update (only nodes that received mass are written and zeroed).",
+        "- Sand: the Kirchhoff stress τ = U(2μ ε + λ tr ε I)Uᵀ is computed right after the "
+        "Drucker–Prager return mapping in g2p, from the same SVD, and stored per particle; p2g "
+        "reads it (one SVD per particle per substep). ε = log max(Σ, 1e-6).",
+        "- The sanity column is the particle centroid's y before the run and after all "
+        "warm-up + timed frames (no NaN, all particles inside the domain).",
+        "",
     ]
     with open(path, "w") as f:
         f.write("\n".join(lines))
