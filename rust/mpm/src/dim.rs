@@ -36,6 +36,11 @@ pub trait DimOps<const D: usize> {
     /// `f(node_offset, weight, o)` with the integer node offset `o ∈ {0,1,2}^D`
     /// (as floats) and `node_offset = Σ o_d·stride_d` (fully unrolled loops).
     fn stencil(w: &[[f32; 3]; D], stride: &[usize; D], f: impl FnMut(usize, f32, [f32; D]));
+    /// Visit the 3^(D−1) rows of the stencil along the last dimension:
+    /// `f(row_offset, w_outer, o)` with the product of the other dimensions'
+    /// weights and their integer offsets (`o[D−1] = 0`). The 3 nodes of a row
+    /// are contiguous when the last stride is 1.
+    fn stencil_rows(w: &[[f32; 3]; D], stride: &[usize; D], f: impl FnMut(usize, f32, [f32; D]));
 }
 
 impl DimOps<2> for Dim<2> {
@@ -47,6 +52,13 @@ impl DimOps<2> for Dim<2> {
 
     fn drucker_prager_alpha(phi: f32) -> f32 {
         phi.sin() / std::f32::consts::SQRT_2
+    }
+
+    #[inline(always)]
+    fn stencil_rows(w: &[[f32; 3]; 2], stride: &[usize; 2], mut f: impl FnMut(usize, f32, [f32; 2])) {
+        for i in 0..3 {
+            f(i * stride[0], w[0][i], [i as f32, 0.0]);
+        }
     }
 
     #[inline(always)]
@@ -69,6 +81,15 @@ impl DimOps<3> for Dim<3> {
     fn drucker_prager_alpha(phi: f32) -> f32 {
         let s = phi.sin();
         (2.0f32 / 3.0).sqrt() * 2.0 * s / (3.0 - s)
+    }
+
+    #[inline(always)]
+    fn stencil_rows(w: &[[f32; 3]; 3], stride: &[usize; 3], mut f: impl FnMut(usize, f32, [f32; 3])) {
+        for i in 0..3 {
+            for j in 0..3 {
+                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], [i as f32, j as f32, 0.0]);
+            }
+        }
     }
 
     #[inline(always)]

@@ -594,12 +594,19 @@ where
                     }
                 }
                 let nodes = &mut buf[base_idx..];
-                Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
+                let w_last = w[D - 1];
+                let last = cols[D - 1];
+                Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
                     let mut contrib = base4;
-                    for c in 0..D {
+                    for c in 0..D - 1 {
                         fma4(&mut contrib, o[c], &cols[c]);
                     }
-                    fma4(&mut nodes[off], weight, &contrib);
+                    // the row's 3 nodes are contiguous (last stride 1)
+                    let row = &mut nodes[off..off + 3];
+                    for k in 0..3 {
+                        fma4(&mut row[k], w_outer * w_last[k], &contrib);
+                        add4(&mut contrib, &last);
+                    }
                 });
             }
         });
@@ -622,9 +629,9 @@ where
         let (out_blocks, src_map, local, lat, log2_b) = (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
         let wall_lo = walls.cells;
         let wall_hi = n.saturating_sub(walls.cells);
-        g.out_v.par_chunks_mut(blk_nodes).enumerate().for_each(|(oi, out)| {
+        g.out_v.par_chunks_mut(blk_nodes).enumerate().for_each_init(|| vec![[0.0f32; 4]; blk_nodes], |acc, (oi, out)| {
             let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
-            let mut acc = [[0.0f32; 4]; 64];
+            acc.fill([0.0; 4]);
             // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
             for s in 0..(1usize << D) {
                 let mut lin = 0usize;
@@ -764,10 +771,10 @@ where
         let result = out_slices
             .into_par_iter()
             .enumerate()
-            .map(|(si, (outp, outk))| {
+            .map_init(|| vec![[0.0f32; 4]; st.pad_coords.len()], |patch, (si, (outp, outk))| {
                 let c = unflatten::<D>(src_blocks[si] as usize, &lat);
                 // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
-                let mut patch = [[0.0f32; 4]; 216];
+                // (every node lies in an output block, so all are overwritten)
                 for (q, qc) in st.pad_coords.iter().enumerate() {
                     let mut lin = 0usize;
                     let mut off = 0usize;
@@ -797,15 +804,26 @@ where
                     let mut acc_v = [0.0f32; 4];
                     let mut acc_b = [[0.0f32; 4]; D];
                     let nodes = &patch[base_idx..];
-                    Dim::<D>::stencil(&w, &st.pad_stride, |off, weight, o| {
-                        let mut wg = nodes[off];
-                        for k in 0..4 {
-                            wg[k] *= weight;
+                    let w_last = w[D - 1];
+                    Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
+                        let row = &nodes[off..off + 3];
+                        // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
+                        let mut sum = [0.0f32; 4];
+                        let mut sum_k = [0.0f32; 4];
+                        for k in 0..3 {
+                            let wk = w_last[k];
+                            fma4(&mut sum, wk, &row[k]);
+                            fma4(&mut sum_k, wk * k as f32, &row[k]);
                         }
-                        add4(&mut acc_v, &wg);
-                        for c in 0..D {
-                            fma4(&mut acc_b[c], o[c], &wg);
+                        for l in 0..4 {
+                            sum[l] *= w_outer;
+                            sum_k[l] *= w_outer;
                         }
+                        add4(&mut acc_v, &sum);
+                        for c in 0..D - 1 {
+                            fma4(&mut acc_b[c], o[c], &sum);
+                        }
+                        add4(&mut acc_b[D - 1], &sum_k);
                     });
                     // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
                     let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
