@@ -46,6 +46,7 @@ pub trait DimOps<const D: usize> {
 impl DimOps<2> for Dim<2> {
     const LOG2_BLOCK: u32 = 3;
 
+    #[inline(always)]
     fn svd(f: &SMatrix<f32, 2, 2>) -> Svd<2> {
         svd2(f)
     }
@@ -108,11 +109,17 @@ impl DimOps<3> for Dim<3> {
 /// Closed-form 2×2 SVD without trigonometry: polar decomposition
 /// `F = R·S` (R a rotation), then the symmetric eigenproblem of `S = V Σ Vᵀ`,
 /// so `U = R·V`.
+#[inline(always)]
 fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
     let (a, b, c, d) = (m[(0, 0)], m[(0, 1)], m[(1, 0)], m[(1, 1)]);
     let (x, y) = (a + d, c - b);
-    let r = (x * x + y * y).sqrt();
-    let (co, si) = if r > 1e-30 { (x / r, y / r) } else { (1.0, 0.0) };
+    let r2 = x * x + y * y;
+    let (co, si) = if r2 > 1e-30 {
+        let inv = 1.0 / r2.sqrt();
+        (x * inv, y * inv)
+    } else {
+        (1.0, 0.0)
+    };
     let rot = SMatrix::<f32, 2, 2>::new(co, -si, si, co);
     // S = Rᵀ F (symmetric up to rounding)
     let s11 = co * a + si * c;
@@ -126,8 +133,8 @@ fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
     let (v1x, v1y) = if rad > 1e-30 {
         // robust half-angle form: (half + rad, s12) or (s12, rad − half)
         let (ex, ey) = if half >= 0.0 { (half + rad, s12) } else { (s12, rad - half) };
-        let n = (ex * ex + ey * ey).sqrt();
-        (ex / n, ey / n)
+        let inv = 1.0 / (ex * ex + ey * ey).sqrt();
+        (ex * inv, ey * inv)
     } else {
         (1.0, 0.0)
     };

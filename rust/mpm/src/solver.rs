@@ -848,7 +848,12 @@ where
                             let svd = Dim::<D>::svd(&f_trial);
                             let e0 = svd.sigma.map(|s| s.max(1e-6).ln());
                             let e_new = drucker_prager_project::<D>(&e0, &mut p.vc, alpha, mu, la, tr_apex);
-                            p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
+                            if e_new == e0 {
+                                // inside the cone: elastic, F is the trial F
+                                p.f = f_trial;
+                            } else {
+                                p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
+                            }
                             let tr = e_new.sum();
                             let diag = e_new.map(|e| 2.0 * mu * e + la * tr);
                             p.tau = svd.u * SMatrix::<f32, D, D>::from_diagonal(&diag) * svd.u.transpose();
