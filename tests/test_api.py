@@ -236,3 +236,25 @@ def test_colliders_keep_particles_out():
     assert not inside_ramp.any() and not inside_ball.any()
     # the water slid down the ramp (to the right, since the ramp descends to the right)
     assert x[:, 0].mean() > 0.5
+
+
+def _step_in_child(sim, q):
+    sim.step_frame()
+    q.put(float(sim.positions.sum()))
+
+
+def test_solver_works_in_a_forked_child():
+    """rayon and fork: a child forked after the pool started rebuilds it
+    (PyTorch DataLoader workers fork) instead of deadlocking."""
+    import multiprocessing as mp
+
+    sim = small(num_threads=2)
+    sim.step_frame()
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_step_in_child, args=(sim, q))
+    p.start()
+    p.join(timeout=30)
+    assert p.exitcode == 0, "child hung or crashed"
+    sim.step_frame()
+    assert q.get(timeout=5) == pytest.approx(float(sim.positions.sum()))
