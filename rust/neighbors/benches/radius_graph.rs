@@ -54,15 +54,28 @@ fn bench(c: &mut Criterion) {
     g.sample_size(20);
 
     let p2 = case_2d();
-    let params2 = GraphParams { radius: 0.015, ..Default::default() };
+    let params2 = GraphParams {
+        radius: 0.015,
+        ..Default::default()
+    };
     g.throughput(Throughput::Elements(p2.len() as u64));
-    g.bench_function("2d_4096", |b| b.iter(|| radius_graph(black_box(&p2), &params2).unwrap()));
+    g.bench_function("2d_4096", |b| {
+        b.iter(|| radius_graph(black_box(&p2), &params2).unwrap())
+    });
 
     let p3 = case_3d();
-    let params3 = GraphParams { radius: 2.5 * 0.5 / 64.0, ..Default::default() };
+    let params3 = GraphParams {
+        radius: 2.5 * 0.5 / 64.0,
+        ..Default::default()
+    };
     g.throughput(Throughput::Elements(p3.len() as u64));
-    g.bench_function("3d_32768", |b| b.iter(|| radius_graph(black_box(&p3), &params3).unwrap()));
-    let capped = GraphParams { max_neighbors: Some(32), ..params3 };
+    g.bench_function("3d_32768", |b| {
+        b.iter(|| radius_graph(black_box(&p3), &params3).unwrap())
+    });
+    let capped = GraphParams {
+        max_neighbors: Some(32),
+        ..params3
+    };
     g.bench_function("3d_32768_cap32", |b| {
         b.iter(|| radius_graph(black_box(&p3), &capped).unwrap())
     });

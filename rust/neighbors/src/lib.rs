@@ -122,15 +122,54 @@ impl GraphParams {
     }
 }
 
+/// Integer type of the edge index arrays of a [`Graph`]: `u32` (the default,
+/// compact), or `u64` / `i64` / `usize` (e.g. `i64` to hand the arrays to
+/// numpy as `int64` without a conversion pass). Indices always fit: inputs of
+/// more than `u32::MAX` particles are rejected.
+pub trait EdgeIndex: Copy + Send + Sync + Default + 'static {
+    /// Converts a particle index (`< 2^32`) losslessly.
+    fn from_u32(i: u32) -> Self;
+}
+
+impl EdgeIndex for u32 {
+    #[inline(always)]
+    fn from_u32(i: u32) -> Self {
+        i
+    }
+}
+
+impl EdgeIndex for u64 {
+    #[inline(always)]
+    fn from_u32(i: u32) -> Self {
+        i as u64
+    }
+}
+
+impl EdgeIndex for i64 {
+    #[inline(always)]
+    fn from_u32(i: u32) -> Self {
+        i as i64
+    }
+}
+
+impl EdgeIndex for usize {
+    #[inline(always)]
+    fn from_u32(i: u32) -> Self {
+        i as usize
+    }
+}
+
 /// Directed radius graph, edges grouped and sorted by receiver, then sender.
 ///
 /// All per-edge vectors have the same length `E` (the number of edges).
+/// `I` is the index type (see [`EdgeIndex`]; `u32` unless asked otherwise
+/// with [`radius_graph_as`]).
 #[derive(Debug, Clone, PartialEq, Default)]
-pub struct Graph<const D: usize> {
+pub struct Graph<const D: usize, I = u32> {
     /// Sender (source) particle index of each edge.
-    pub senders: Vec<u32>,
+    pub senders: Vec<I>,
     /// Receiver (destination) particle index of each edge, ascending.
-    pub receivers: Vec<u32>,
+    pub receivers: Vec<I>,
     /// `p[senders[e]] - p[receivers[e]]` in `f32` (the GNS edge feature
     /// `p_i - p_j` with `i` = sender, `j` = receiver), in position units.
     pub displacement: Vec<[f32; D]>,
@@ -142,7 +181,7 @@ pub struct Graph<const D: usize> {
     pub dropped: usize,
 }
 
-impl<const D: usize> Graph<D> {
+impl<const D: usize, I> Graph<D, I> {
     /// Number of edges `E`.
     pub fn num_edges(&self) -> usize {
         self.senders.len()
@@ -154,9 +193,9 @@ impl<const D: usize> Graph<D> {
     }
 }
 
-/// Receivers handled by one rayon task. Fixed, so the work split (and thus the
-/// output) does not depend on the thread count.
-const CHUNK: usize = 256;
+/// Receivers handled by one rayon task. Fixed, so the work split does not
+/// depend on the thread count (the output does not depend on it anyway).
+const CHUNK: usize = 512;
 
 /// Most cells per particle before the cell size is grown (outlier guard).
 const CELLS_PER_PARTICLE: f64 = 4.0;
@@ -180,12 +219,16 @@ fn dot<const D: usize>(d: &[f32; D]) -> f32 {
     s
 }
 
-/// Uniform grid over the bounding box of the data (cell size `>= radius`),
-/// particles counting-sorted into cells (CSR layout).
+/// Uniform grid over the bounding box of the data (cell size `h >= reach`),
+/// particles counting-sorted into cells (CSR layout). Cells are numbered with
+/// axis 0 fastest, so the cells of one row along axis 0 are contiguous.
 struct CellList<const D: usize> {
     lo: [f64; D],
     inv_h: f64,
     dims: [usize; D],
+    /// Squared search reach in cell units, with slack for the f64 rounding of
+    /// the cell coordinates (infinite for a single cell of infinite size).
+    reach2_cells: f64,
     /// `start[c]..start[c + 1]` is the slice of `sorted_*` in cell `c`.
     start: Vec<u32>,
     /// Positions in cell order (ascending original index within a cell).
@@ -195,8 +238,8 @@ struct CellList<const D: usize> {
 }
 
 impl<const D: usize> CellList<D> {
-    /// `reach`: every pair accepted by the `f32` criterion is at most `reach`
-    /// apart in exact arithmetic (may be infinite).
+    /// `reach` (> 0): every pair accepted by the `f32` criterion is at most
+    /// `reach` apart in exact arithmetic (may be infinite).
     fn build(pos: &[[f32; D]], reach: f64) -> Self {
         let n = pos.len();
         let mut lo = [f64::INFINITY; D];
@@ -207,8 +250,8 @@ impl<const D: usize> CellList<D> {
                 hi[k] = hi[k].max(p[k] as f64);
             }
         }
-        // Cell size h >= reach, grown while the grid would be too large (an
-        // outlier far away from the bulk of the particles).
+        // Cell size h >= reach, grown while the grid would have too many
+        // cells (an outlier far away from the bulk of the particles).
         let cap = CELLS_PER_PARTICLE * n as f64 + 16.0;
         let count = |h: f64| -> ([f64; D], f64) {
             let mut dims = [1.0f64; D];
@@ -230,11 +273,20 @@ impl<const D: usize> CellList<D> {
         for k in 0..D {
             dims[k] = dims_f[k] as usize;
         }
-        let inv_h = if h.is_finite() { 1.0 / h } else { 0.0 };
+        let (inv_h, reach2_cells) = if h.is_finite() {
+            // Cell coordinates u = (p - lo) / h carry an absolute f64 error of
+            // a few 1e-16 * u; 1e-12 * (max dim + 1) bounds it generously.
+            let max_dim = dims.iter().copied().max().unwrap_or(1) as f64;
+            let rc = reach / h + 1e-12 * (max_dim + 1.0);
+            (1.0 / h, rc * rc)
+        } else {
+            (0.0, f64::INFINITY)
+        };
         let mut cl = CellList {
             lo,
             inv_h,
             dims,
+            reach2_cells,
             start: Vec::new(),
             sorted_pos: Vec::new(),
             sorted_idx: Vec::new(),
@@ -242,7 +294,11 @@ impl<const D: usize> CellList<D> {
         let ncells = total as usize;
 
         // Counting sort by cell id (stable: ascending index within a cell).
-        let cell_of: Vec<u32> = pos.par_iter().map(|p| cl.cell_id(p) as u32).collect();
+        let cell_of: Vec<u32> = pos
+            .par_iter()
+            .with_min_len(4096)
+            .map(|p| cl.linear(&cl.coords(p).0) as u32)
+            .collect();
         let mut start = vec![0u32; ncells + 1];
         for &c in &cell_of {
             start[c as usize + 1] += 1;
@@ -265,15 +321,19 @@ impl<const D: usize> CellList<D> {
         cl
     }
 
+    /// Cell coordinates of `p` and its fractional position in the cell (in
+    /// cell units). The one function that maps positions to cells.
     #[inline(always)]
-    fn coords(&self, p: &[f32; D]) -> [usize; D] {
+    fn coords(&self, p: &[f32; D]) -> ([usize; D], [f64; D]) {
         let mut c = [0usize; D];
+        let mut t = [0.0f64; D];
         for k in 0..D {
-            let x = ((p[k] as f64 - self.lo[k]) * self.inv_h).floor();
-            // `as` saturates (NaN -> 0); clamp guards rounding at the top edge.
-            c[k] = (x as usize).min(self.dims[k] - 1);
+            let u = (p[k] as f64 - self.lo[k]) * self.inv_h;
+            // `as` saturates; the clamp guards rounding at the top edge.
+            c[k] = (u.floor() as usize).min(self.dims[k] - 1);
+            t[k] = u - c[k] as f64;
         }
-        c
+        (c, t)
     }
 
     #[inline(always)]
@@ -285,71 +345,111 @@ impl<const D: usize> CellList<D> {
         id
     }
 
-    #[inline(always)]
-    fn cell_id(&self, p: &[f32; D]) -> usize {
-        self.linear(&self.coords(p))
-    }
-
-    /// Calls `f(original_index, position)` for every particle in the 3^D cells
-    /// around `p`. Cells along axis 0 are contiguous in memory, so each row of
-    /// up to 3 cells is one slice.
-    #[inline(always)]
-    fn for_each_near(&self, p: &[f32; D], mut f: impl FnMut(u32, &[f32; D])) {
-        let c = self.coords(p);
-        let x_lo = c[0].saturating_sub(1);
-        let x_hi = (c[0] + 1).min(self.dims[0] - 1);
-        // Iterate the rows: offsets in {-1, 0, 1} along axes 1..D.
+    /// Slices of `sorted_*` (as index ranges) that may hold particles within
+    /// `reach` of `p`: the 3^D cells around `p`, minus those whose box is
+    /// farther than `reach` from `p`, one contiguous range per row of cells
+    /// along axis 0.
+    fn ranges(&self, p: &[f32; D], out: &mut Vec<(usize, usize)>) {
+        out.clear();
+        let (c, t) = self.coords(p);
+        // Squared gap from p to the neighbour cell at offset o-1 along k;
+        // None where that cell is outside the grid.
+        let gap2 = |k: usize, o: usize| -> Option<f64> {
+            match o {
+                0 => (c[k] > 0).then(|| t[k] * t[k]),
+                1 => Some(0.0),
+                _ => (c[k] + 1 < self.dims[k]).then(|| {
+                    let g = (1.0 - t[k]).max(0.0);
+                    g * g
+                }),
+            }
+        };
+        let r2 = self.reach2_cells;
         let nrows = 3usize.pow(D as u32 - 1);
         'rows: for r in 0..nrows {
             let mut rc = c;
             let mut code = r;
+            let mut s2 = 0.0f64;
             for k in 1..D {
                 let o = code % 3;
                 code /= 3;
-                let v = c[k] + o;
-                if v == 0 || v > self.dims[k] {
-                    continue 'rows;
+                match gap2(k, o) {
+                    Some(g) => s2 += g,
+                    None => continue 'rows,
                 }
-                rc[k] = v - 1;
+                rc[k] = c[k] + o - 1;
             }
-            rc[0] = x_lo;
+            if s2 > r2 {
+                continue;
+            }
+            let near = |o: usize| gap2(0, o).is_some_and(|g| s2 + g <= r2);
+            rc[0] = if near(0) { c[0] - 1 } else { c[0] };
             let a = self.start[self.linear(&rc)] as usize;
-            rc[0] = x_hi;
+            rc[0] = if near(2) { c[0] + 1 } else { c[0] };
             let b = self.start[self.linear(&rc) + 1] as usize;
-            for (q, j) in self.sorted_pos[a..b].iter().zip(&self.sorted_idx[a..b]) {
-                f(*j, q);
+            if a < b {
+                out.push((a, b));
             }
         }
     }
 }
 
-/// Edges of one chunk of receivers.
-struct ChunkOut<const D: usize> {
+/// Per-thread scratch buffers.
+#[derive(Default)]
+struct Scratch {
+    ranges: Vec<(usize, usize)>,
+    buf: Vec<u32>,
+    keyed: Vec<u64>,
+}
+
+/// Phase-1 result of one chunk of receivers: their sorted sender lists.
+struct Found {
     senders: Vec<u32>,
-    receivers: Vec<u32>,
-    displacement: Vec<[f32; D]>,
-    distance: Vec<f32>,
+    counts: Vec<u32>,
     dropped: usize,
 }
 
-/// Concatenates the parts in order, copying them in parallel.
-fn concat<T: Copy + Send + Sync>(parts: &[&[T]], zero: T) -> Vec<T> {
-    let total = parts.iter().map(|p| p.len()).sum();
-    let mut out = vec![zero; total];
-    let mut rest: &mut [T] = &mut out;
-    let mut dst = Vec::with_capacity(parts.len());
-    for p in parts {
-        let (head, tail) = rest.split_at_mut(p.len());
-        dst.push(head);
-        rest = tail;
+/// Phase-2 output slices of one chunk of receivers.
+struct OutChunk<'a, const D: usize, I> {
+    first: usize,
+    found: &'a Found,
+    s: &'a mut [I],
+    r: &'a mut [I],
+    dp: &'a mut [[f32; D]],
+    ds: &'a mut [f32],
+}
+
+impl<const D: usize, I: EdgeIndex> OutChunk<'_, D, I> {
+    fn fill(self, positions: &[[f32; D]]) {
+        let mut e = 0;
+        for (i, &cnt) in (self.first..).zip(&self.found.counts) {
+            let pi = &positions[i];
+            let iu = I::from_u32(i as u32);
+            let end = e + cnt as usize;
+            for (k, &j) in (e..end).zip(&self.found.senders[e..end]) {
+                let d = sub(&positions[j as usize], pi);
+                self.s[k] = I::from_u32(j);
+                self.r[k] = iu;
+                self.dp[k] = d;
+                self.ds[k] = dot(&d).sqrt();
+            }
+            e = end;
+        }
     }
-    dst.into_par_iter()
-        .zip(parts.par_iter())
-        .for_each(|(d, s)| d.copy_from_slice(s));
+}
+
+/// Splits `v` into consecutive pieces of the given lengths (sum <= len).
+fn split_by<'a, T>(mut v: &'a mut [T], lens: &[usize]) -> Vec<&'a mut [T]> {
+    let mut out = Vec::with_capacity(lens.len());
+    for &l in lens {
+        let (head, tail) = v.split_at_mut(l);
+        out.push(head);
+        v = tail;
+    }
     out
 }
 
-/// Radius graph of `positions` (GNS neighbour search).
+/// Radius graph of `positions` (GNS neighbour search), indices as `u32`.
 ///
 /// Returns every directed edge `(sender j, receiver i)` with
 /// `|p_j - p_i| <= params.radius`, evaluated in `f32` exactly as
@@ -357,20 +457,35 @@ fn concat<T: Copy + Send + Sync>(parts: &[&[T]], zero: T) -> Vec<T> {
 /// `params.self_edges`, grouped by receiver ascending and, within a receiver,
 /// by sender ascending. `displacement[e] = p[senders[e]] - p[receivers[e]]`
 /// and `distance[e] = |displacement[e]|`. With `max_neighbors = Some(k)` each
-/// receiver keeps its `k` nearest senders (ties: lower sender index), still
-/// listed by ascending sender; `dropped` counts the removed edges.
+/// receiver keeps its `k` nearest senders (by the reported `f32` distance,
+/// ties: lower sender index), still listed by ascending sender; `dropped`
+/// counts the removed edges.
 ///
-/// Works for particles anywhere (the cell grid spans the data's bounding box).
-/// An empty input gives an empty graph.
+/// Works for particles anywhere (the cell grid spans the data's bounding box
+/// and is coarsened if an outlier would make it too large). An empty input
+/// gives an empty graph.
 ///
 /// # Errors
 /// [`GraphError::InvalidInput`] for a non-finite position (`"positions"`),
 /// more than `u32::MAX` particles (`"positions"`), a non-finite or
-/// non-positive radius (`"radius"`), or `max_neighbors == Some(0)`.
+/// non-positive radius (`"radius"`), or `max_neighbors == Some(0)`
+/// (`"max_neighbors"`). Parameters are checked first.
 pub fn radius_graph<const D: usize>(
     positions: &[[f32; D]],
     params: &GraphParams,
 ) -> Result<Graph<D>, GraphError> {
+    radius_graph_as::<D, u32>(positions, params)
+}
+
+/// [`radius_graph`] with the index arrays in another integer type `I`
+/// (e.g. `i64`); the edges are identical.
+///
+/// # Errors
+/// As [`radius_graph`].
+pub fn radius_graph_as<const D: usize, I: EdgeIndex>(
+    positions: &[[f32; D]],
+    params: &GraphParams,
+) -> Result<Graph<D, I>, GraphError> {
     if D == 0 {
         return Err(GraphError::invalid("positions", "dimension must be >= 1"));
     }
@@ -398,7 +513,7 @@ pub fn radius_graph<const D: usize>(
     let rr = params.radius * params.radius;
     // Largest exact separation that can pass `dd <= rr` in f32: `d` and `dd`
     // carry a relative rounding error of a few 2^-24 (margin 1e-4), and
-    // underflow of `d[k]*d[k]` lets separations below ~4e-23 pass (1e-22).
+    // underflow of `d[k]*d[k]` lets separations below ~5e-23 pass (1e-22).
     let reach = if rr.is_finite() {
         (rr as f64).sqrt() * (1.0 + 1e-4) + 1e-22
     } else {
@@ -408,84 +523,99 @@ pub fn radius_graph<const D: usize>(
     let cap = params.max_neighbors;
     let self_edges = params.self_edges;
 
-    let run_chunk = |lo: usize, hi: usize| -> ChunkOut<D> {
-        let mut out = ChunkOut {
+    // Phase 1: per chunk of receivers, the sorted sender list of each.
+    let find = |scratch: &mut Scratch, lo: usize, hi: usize| -> Found {
+        let mut found = Found {
             senders: Vec::new(),
-            receivers: Vec::new(),
-            displacement: Vec::new(),
-            distance: Vec::new(),
+            counts: Vec::with_capacity(hi - lo),
             dropped: 0,
         };
-        let mut cand: Vec<u32> = Vec::new();
-        let mut keyed: Vec<u64> = Vec::new();
+        let Scratch { ranges, buf, keyed } = scratch;
         for i in lo..hi {
             let pi = &positions[i];
             let iu = i as u32;
-            cand.clear();
-            match cap {
-                None => {
-                    cells.for_each_near(pi, |j, pj| {
-                        if dot(&sub(pj, pi)) <= rr && (self_edges || j != iu) {
-                            cand.push(j);
-                        }
-                    });
+            cells.ranges(pi, ranges);
+            let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
+            if buf.len() < total {
+                buf.resize(total, 0);
+            }
+            // Branch-free compaction of the accepted candidates.
+            let mut len = 0usize;
+            for &(a, b) in ranges.iter() {
+                for (q, &j) in cells.sorted_pos[a..b].iter().zip(&cells.sorted_idx[a..b]) {
+                    let keep = (dot(&sub(q, pi)) <= rr) & (self_edges | (j != iu));
+                    buf[len] = j;
+                    len += keep as usize;
                 }
-                Some(k) => {
+            }
+            let kept = &mut buf[..len];
+            let kept = match cap {
+                Some(k) if len > k => {
+                    // Rank by (reported distance, index): the distance is
+                    // >= 0, so its bits order like its value.
                     keyed.clear();
-                    cells.for_each_near(pi, |j, pj| {
-                        let dd = dot(&sub(pj, pi));
-                        if dd <= rr && (self_edges || j != iu) {
-                            // Rank by (reported distance, index); the
-                            // distance is >= 0 so its bits order like it.
-                            let key = ((dd.sqrt().to_bits() as u64) << 32) | j as u64;
-                            keyed.push(key);
-                        }
-                    });
-                    if keyed.len() > k {
-                        keyed.select_nth_unstable(k - 1);
-                        out.dropped += keyed.len() - k;
-                        keyed.truncate(k);
+                    keyed.extend(kept.iter().map(|&j| {
+                        let dist = dot(&sub(&positions[j as usize], pi)).sqrt();
+                        ((dist.to_bits() as u64) << 32) | j as u64
+                    }));
+                    keyed.select_nth_unstable(k - 1);
+                    for (dst, &key) in kept.iter_mut().zip(&keyed[..k]) {
+                        *dst = key as u32;
                     }
-                    cand.extend(keyed.iter().map(|&key| key as u32));
+                    found.dropped += len - k;
+                    &mut kept[..k]
                 }
-            }
-            cand.sort_unstable();
-            for &j in &cand {
-                let d = sub(&positions[j as usize], pi);
-                out.senders.push(j);
-                out.receivers.push(iu);
-                out.displacement.push(d);
-                out.distance.push(dot(&d).sqrt());
-            }
+                _ => kept,
+            };
+            kept.sort_unstable();
+            found.senders.extend_from_slice(kept);
+            found.counts.push(kept.len() as u32);
         }
-        out
+        found
+    };
+    let nchunks = n.div_ceil(CHUNK);
+    let found: Vec<Found> = if nchunks == 1 {
+        vec![find(&mut Scratch::default(), 0, n)]
+    } else {
+        (0..nchunks)
+            .into_par_iter()
+            .map_init(Scratch::default, |s, c| {
+                find(s, c * CHUNK, ((c + 1) * CHUNK).min(n))
+            })
+            .collect()
     };
 
-    if n <= CHUNK {
-        let c = run_chunk(0, n);
-        return Ok(Graph {
-            senders: c.senders,
-            receivers: c.receivers,
-            displacement: c.displacement,
-            distance: c.distance,
-            dropped: c.dropped,
-        });
+    // Phase 2: write the edges straight into the final arrays, in parallel.
+    let lens: Vec<usize> = found.iter().map(|f| f.senders.len()).collect();
+    let e: usize = lens.iter().sum();
+    let mut g = Graph::<D, I> {
+        senders: vec![I::default(); e],
+        receivers: vec![I::default(); e],
+        displacement: vec![[0.0f32; D]; e],
+        distance: vec![0.0f32; e],
+        dropped: found.iter().map(|f| f.dropped).sum(),
+    };
+    let mut s = split_by(&mut g.senders, &lens).into_iter();
+    let mut r = split_by(&mut g.receivers, &lens).into_iter();
+    let mut dp = split_by(&mut g.displacement, &lens).into_iter();
+    let mut ds = split_by(&mut g.distance, &lens).into_iter();
+    let mut parts = Vec::with_capacity(nchunks);
+    for (c, f) in found.iter().enumerate() {
+        if let (Some(s), Some(r), Some(dp), Some(ds)) = (s.next(), r.next(), dp.next(), ds.next()) {
+            parts.push(OutChunk {
+                first: c * CHUNK,
+                found: f,
+                s,
+                r,
+                dp,
+                ds,
+            });
+        }
     }
-    let chunks: Vec<ChunkOut<D>> = (0..n.div_ceil(CHUNK))
-        .into_par_iter()
-        .map(|c| run_chunk(c * CHUNK, ((c + 1) * CHUNK).min(n)))
-        .collect();
-    let s: Vec<&[u32]> = chunks.iter().map(|c| c.senders.as_slice()).collect();
-    let r: Vec<&[u32]> = chunks.iter().map(|c| c.receivers.as_slice()).collect();
-    let dp: Vec<&[[f32; D]]> = chunks.iter().map(|c| c.displacement.as_slice()).collect();
-    let ds: Vec<&[f32]> = chunks.iter().map(|c| c.distance.as_slice()).collect();
-    let (senders, receivers) = rayon::join(|| concat(&s, 0), || concat(&r, 0));
-    let (displacement, distance) = rayon::join(|| concat(&dp, [0.0; D]), || concat(&ds, 0.0));
-    Ok(Graph {
-        senders,
-        receivers,
-        displacement,
-        distance,
-        dropped: chunks.iter().map(|c| c.dropped).sum(),
-    })
+    if nchunks == 1 {
+        parts.into_iter().for_each(|o| o.fill(positions));
+    } else {
+        parts.into_par_iter().for_each(|o| o.fill(positions));
+    }
+    Ok(g)
 }

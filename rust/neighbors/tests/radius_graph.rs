@@ -47,15 +47,21 @@ fn brute<const D: usize>(pos: &[[f32; D]], params: &GraphParams) -> Graph<D> {
 fn check<const D: usize>(pos: &[[f32; D]], params: &GraphParams) {
     let got = radius_graph(pos, params).expect("valid input");
     let want = brute(pos, params);
-    assert_eq!(got.num_edges(), want.num_edges(), "edge count, params {params:?}");
+    assert_eq!(
+        got.num_edges(),
+        want.num_edges(),
+        "edge count, params {params:?}"
+    );
     assert_eq!(got, want, "params {params:?}");
 }
 
-fn params_strategy(
-    radius: impl Strategy<Value = f32>,
-) -> impl Strategy<Value = GraphParams> {
+fn params_strategy(radius: impl Strategy<Value = f32>) -> impl Strategy<Value = GraphParams> {
     (radius, any::<bool>(), prop::option::of(1usize..12)).prop_map(
-        |(radius, self_edges, max_neighbors)| GraphParams { radius, self_edges, max_neighbors },
+        |(radius, self_edges, max_neighbors)| GraphParams {
+            radius,
+            self_edges,
+            max_neighbors,
+        },
     )
 }
 
@@ -71,7 +77,10 @@ fn float_cloud<const D: usize>() -> impl Strategy<Value = Vec<[f32; D]>> {
 
 /// Integer lattice points (many duplicates and exact distance ties).
 fn int_cloud<const D: usize>() -> impl Strategy<Value = Vec<[f32; D]>> {
-    prop::collection::vec(prop::array::uniform::<_, D>((-4i32..5).prop_map(|x| x as f32)), 0..300)
+    prop::collection::vec(
+        prop::array::uniform::<_, D>((-4i32..5).prop_map(|x| x as f32)),
+        0..300,
+    )
 }
 
 proptest! {
@@ -127,20 +136,34 @@ fn empty_input_is_empty_graph() {
     let g = radius_graph::<2>(&[], &GraphParams::default()).unwrap();
     assert!(g.is_empty());
     assert_eq!(g.dropped, 0);
-    let g = radius_graph::<3>(&[], &GraphParams { max_neighbors: Some(3), ..Default::default() })
-        .unwrap();
+    let g = radius_graph::<3>(
+        &[],
+        &GraphParams {
+            max_neighbors: Some(3),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert!(g.is_empty());
 }
 
 #[test]
 fn duplicates_are_all_connected() {
     let pos = vec![[0.25f32, -3.0, 7.0]; 50];
-    let p = GraphParams { radius: 1e-6, self_edges: true, max_neighbors: None };
+    let p = GraphParams {
+        radius: 1e-6,
+        self_edges: true,
+        max_neighbors: None,
+    };
     let g = radius_graph(&pos, &p).unwrap();
     assert_eq!(g.num_edges(), 50 * 50);
     assert!(g.distance.iter().all(|&d| d == 0.0));
     check(&pos, &p);
-    let p = GraphParams { self_edges: false, max_neighbors: Some(7), ..p };
+    let p = GraphParams {
+        self_edges: false,
+        max_neighbors: Some(7),
+        ..p
+    };
     let g = radius_graph(&pos, &p).unwrap();
     assert_eq!(g.num_edges(), 50 * 7);
     assert_eq!(g.dropped, 50 * (49 - 7));
@@ -159,7 +182,11 @@ fn single_far_outlier_keeps_graph_correct() {
         .collect();
     pos.push([1e7, -1e7]);
     for self_edges in [false, true] {
-        let p = GraphParams { radius: 0.015, self_edges, max_neighbors: None };
+        let p = GraphParams {
+            radius: 0.015,
+            self_edges,
+            max_neighbors: None,
+        };
         check(&pos, &p);
     }
 }
@@ -168,14 +195,37 @@ fn single_far_outlier_keeps_graph_correct() {
 fn extreme_magnitudes() {
     // Huge radius: r*r overflows to inf, every pair is connected.
     let pos = [[3e38f32, -3e38], [-3e38, 3e38], [0.0, 0.0], [1.0, 1.0]];
-    let p = GraphParams { radius: 1e30, self_edges: true, max_neighbors: None };
+    let p = GraphParams {
+        radius: 1e30,
+        self_edges: true,
+        max_neighbors: None,
+    };
     assert_eq!(radius_graph(&pos, &p).unwrap().num_edges(), 16);
     check(&pos, &p);
-    check(&pos, &GraphParams { max_neighbors: Some(2), ..p });
+    check(
+        &pos,
+        &GraphParams {
+            max_neighbors: Some(2),
+            ..p
+        },
+    );
     // Tiny radius and tiny separations (subnormal squares).
-    let pos = [[0.0f32, 0.0], [1e-30, 0.0], [3e-23, 1e-23], [1e-20, 0.0], [-1e-38, 1e-45]];
+    let pos = [
+        [0.0f32, 0.0],
+        [1e-30, 0.0],
+        [3e-23, 1e-23],
+        [1e-20, 0.0],
+        [-1e-38, 1e-45],
+    ];
     for r in [1e-44f32, 1e-30, 1e-22, 2e-20] {
-        check(&pos, &GraphParams { radius: r, self_edges: false, max_neighbors: None });
+        check(
+            &pos,
+            &GraphParams {
+                radius: r,
+                self_edges: false,
+                max_neighbors: None,
+            },
+        );
     }
 }
 
@@ -184,12 +234,28 @@ fn cap_reports_dropped_and_sorted_senders() {
     // 1D-like row of points at unit spacing, radius 2.5: interior receivers
     // have 5 neighbours (incl. self); cap 3 keeps self and the two adjacent.
     let pos: Vec<[f32; 2]> = (0..10).map(|i| [i as f32, 0.0]).collect();
-    let p = GraphParams { radius: 2.5, self_edges: true, max_neighbors: Some(3) };
+    let p = GraphParams {
+        radius: 2.5,
+        self_edges: true,
+        max_neighbors: Some(3),
+    };
     let g = radius_graph(&pos, &p).unwrap();
-    let of5: Vec<u32> =
-        g.senders.iter().zip(&g.receivers).filter(|(_, r)| **r == 5).map(|(s, _)| *s).collect();
+    let of5: Vec<u32> = g
+        .senders
+        .iter()
+        .zip(&g.receivers)
+        .filter(|(_, r)| **r == 5)
+        .map(|(s, _)| *s)
+        .collect();
     assert_eq!(of5, vec![4, 5, 6]);
-    let full = radius_graph(&pos, &GraphParams { max_neighbors: None, ..p }).unwrap();
+    let full = radius_graph(
+        &pos,
+        &GraphParams {
+            max_neighbors: None,
+            ..p
+        },
+    )
+    .unwrap();
     assert_eq!(g.num_edges() + g.dropped, full.num_edges());
     check(&pos, &p);
 }
@@ -199,10 +265,21 @@ fn receivers_sorted_then_senders() {
     let pos: Vec<[f32; 3]> = (0..2000u32)
         .map(|i| {
             let h = i.wrapping_mul(2654435761);
-            [(h % 97) as f32 * 0.01, (h % 89) as f32 * 0.01, (h % 83) as f32 * 0.01]
+            [
+                (h % 97) as f32 * 0.01,
+                (h % 89) as f32 * 0.01,
+                (h % 83) as f32 * 0.01,
+            ]
         })
         .collect();
-    let g = radius_graph(&pos, &GraphParams { radius: 0.05, ..Default::default() }).unwrap();
+    let g = radius_graph(
+        &pos,
+        &GraphParams {
+            radius: 0.05,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     for e in 1..g.num_edges() {
         let a = (g.receivers[e - 1], g.senders[e - 1]);
         let b = (g.receivers[e], g.senders[e]);
@@ -235,11 +312,25 @@ fn jittered_lattice(n_side: usize, spacing: f32) -> Vec<[f32; 3]> {
 #[test]
 fn one_and_two_threads_bitwise_equal() {
     let pos = jittered_lattice(24, 0.01);
-    let pool1 = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    let pool2 = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let pool1 = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let pool2 = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
     for p in [
-        GraphParams { radius: 0.025, self_edges: true, max_neighbors: None },
-        GraphParams { radius: 0.025, self_edges: false, max_neighbors: Some(20) },
+        GraphParams {
+            radius: 0.025,
+            self_edges: true,
+            max_neighbors: None,
+        },
+        GraphParams {
+            radius: 0.025,
+            self_edges: false,
+            max_neighbors: Some(20),
+        },
     ] {
         let a = pool1.install(|| radius_graph(&pos, &p)).unwrap();
         let b = pool2.install(|| radius_graph(&pos, &p)).unwrap();
@@ -248,7 +339,12 @@ fn one_and_two_threads_bitwise_equal() {
         assert_eq!(a.receivers, b.receivers);
         assert_eq!(a.dropped, b.dropped);
         let bits = |g: &Graph<3>| -> Vec<u32> {
-            g.displacement.iter().flatten().chain(&g.distance).map(|x| x.to_bits()).collect()
+            g.displacement
+                .iter()
+                .flatten()
+                .chain(&g.distance)
+                .map(|x| x.to_bits())
+                .collect()
         };
         assert_eq!(bits(&a), bits(&b));
     }
@@ -258,8 +354,22 @@ fn one_and_two_threads_bitwise_equal() {
 fn large_input_matches_brute_force() {
     // More than one rayon chunk of receivers.
     let pos = jittered_lattice(12, 0.01);
-    check(&pos, &GraphParams { radius: 0.021, self_edges: true, max_neighbors: None });
-    check(&pos, &GraphParams { radius: 0.021, self_edges: false, max_neighbors: Some(9) });
+    check(
+        &pos,
+        &GraphParams {
+            radius: 0.021,
+            self_edges: true,
+            max_neighbors: None,
+        },
+    );
+    check(
+        &pos,
+        &GraphParams {
+            radius: 0.021,
+            self_edges: false,
+            max_neighbors: Some(9),
+        },
+    );
 }
 
 #[test]
@@ -268,18 +378,36 @@ fn invalid_inputs_are_errors() {
     let field = |r: Result<Graph<2>, GraphError>| r.unwrap_err().field();
     let d = GraphParams::default();
     assert_eq!(field(radius_graph(&[[0.0, f32::NAN]], &d)), "positions");
-    assert_eq!(field(radius_graph(&[[0.0, 0.0], [f32::INFINITY, 0.0]], &d)), "positions");
-    assert_eq!(field(radius_graph(&[[f32::NEG_INFINITY, 0.0]], &d)), "positions");
-    for radius in [0.0f32, -0.0, -1.0, f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+    assert_eq!(
+        field(radius_graph(&[[0.0, 0.0], [f32::INFINITY, 0.0]], &d)),
+        "positions"
+    );
+    assert_eq!(
+        field(radius_graph(&[[f32::NEG_INFINITY, 0.0]], &d)),
+        "positions"
+    );
+    for radius in [
+        0.0f32,
+        -0.0,
+        -1.0,
+        f32::NAN,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+    ] {
         let p = GraphParams { radius, ..d };
         assert!(p.validate().is_err());
         assert_eq!(field(radius_graph(&ok, &p)), "radius", "radius {radius}");
         // Also with an empty input: parameters are validated first.
         assert!(radius_graph::<3>(&[], &p).is_err());
     }
-    let p = GraphParams { max_neighbors: Some(0), ..d };
+    let p = GraphParams {
+        max_neighbors: Some(0),
+        ..d
+    };
     assert_eq!(field(radius_graph(&ok, &p)), "max_neighbors");
-    let msg = radius_graph(&[[0.0, f32::NAN]], &d).unwrap_err().to_string();
+    let msg = radius_graph(&[[0.0, f32::NAN]], &d)
+        .unwrap_err()
+        .to_string();
     assert!(msg.starts_with("positions:"), "{msg}");
     assert!(d.validate().is_ok());
     assert_eq!(d.radius, 0.015);
