@@ -6,9 +6,11 @@
 use pyo3::prelude::*;
 
 mod errors;
+mod graph;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    graph::register(m)?;
     Ok(())
 }
