@@ -19,7 +19,10 @@ fn rows<const D: usize>(arr: &Bound<'_, PyArray2<f32>>) -> PyResult<Vec<[f32; D]
     let ro = arr
         .try_readonly()
         .map_err(|e| invalid_input(arr.py(), "positions", format!("cannot be read: {e}")))?;
-    if let Ok(flat) = ro.as_slice() {
+    // `as_slice` also accepts Fortran order: take the fast path only for C order.
+    if arr.is_c_contiguous()
+        && let Ok(flat) = ro.as_slice()
+    {
         return Ok(flat.as_chunks::<D>().0.to_vec());
     }
     let view = ro.as_array();
