@@ -200,6 +200,9 @@ const CHUNK: usize = 512;
 /// Most cells per particle before the cell size is grown (outlier guard).
 const CELLS_PER_PARTICLE: f64 = 4.0;
 
+/// Candidates tested per block of the vectorised distance test.
+const BLOCK: usize = 64;
+
 #[inline(always)]
 fn sub<const D: usize>(a: &[f32; D], b: &[f32; D]) -> [f32; D] {
     let mut d = [0.0f32; D];
@@ -231,9 +234,10 @@ struct CellList<const D: usize> {
     reach2_cells: f64,
     /// `start[c]..start[c + 1]` is the slice of `sorted_*` in cell `c`.
     start: Vec<u32>,
-    /// Positions in cell order (ascending original index within a cell).
-    sorted_pos: Vec<[f32; D]>,
-    /// Original index of each entry of `sorted_pos`.
+    /// Coordinate `k` of the particles in cell order (structure of arrays;
+    /// ascending original index within a cell).
+    sorted: [Vec<f32>; D],
+    /// Original index of each sorted particle.
     sorted_idx: Vec<u32>,
 }
 
@@ -288,7 +292,7 @@ impl<const D: usize> CellList<D> {
             dims,
             reach2_cells,
             start: Vec::new(),
-            sorted_pos: Vec::new(),
+            sorted: std::array::from_fn(|_| Vec::new()),
             sorted_idx: Vec::new(),
         };
         let ncells = total as usize;
@@ -307,16 +311,15 @@ impl<const D: usize> CellList<D> {
             start[c + 1] += start[c];
         }
         let mut fill = start.clone();
-        let mut sorted_pos = vec![[0.0f32; D]; n];
         let mut sorted_idx = vec![0u32; n];
         for (i, &c) in cell_of.iter().enumerate() {
             let s = fill[c as usize] as usize;
             fill[c as usize] += 1;
-            sorted_pos[s] = pos[i];
             sorted_idx[s] = i as u32;
         }
+        cl.sorted =
+            std::array::from_fn(|k| sorted_idx.iter().map(|&i| pos[i as usize][k]).collect());
         cl.start = start;
-        cl.sorted_pos = sorted_pos;
         cl.sorted_idx = sorted_idx;
         cl
     }
@@ -392,6 +395,73 @@ impl<const D: usize> CellList<D> {
             }
         }
     }
+
+    /// Writes to `out[len..]` the original index of every particle of
+    /// `sorted[a..b]` with `d·d <= rr` (`d = q - p`), except index `skip`, and
+    /// returns the new `len`. `out` must have room for `b - a` more entries.
+    ///
+    /// The distance test runs over blocks of [`BLOCK`] candidates into a byte
+    /// mask (vectorisable), then the set bytes are extracted 8 at a time.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn gather(
+        &self,
+        p: &[f32; D],
+        rr: f32,
+        a: usize,
+        b: usize,
+        skip: u32,
+        out: &mut [u32],
+        mut len: usize,
+        tmp: &mut Block,
+    ) -> usize {
+        let Block { dd, keep } = tmp;
+        let mut s = a;
+        while s < b {
+            let n = (b - s).min(BLOCK);
+            let idx = &self.sorted_idx[s..s + n];
+            {
+                let keep = &mut keep[..n];
+                let q0 = &self.sorted[0][s..s + n];
+                let dd = &mut dd[..n];
+                for (x, q) in dd.iter_mut().zip(q0) {
+                    let d = q - p[0];
+                    *x = d * d;
+                }
+                for (coord, &pk) in self.sorted[1..].iter().zip(&p[1..]) {
+                    for (x, q) in dd.iter_mut().zip(&coord[s..s + n]) {
+                        let d = q - pk;
+                        *x += d * d;
+                    }
+                }
+                for (m, x) in keep.iter_mut().zip(dd.iter()) {
+                    *m = (*x <= rr) as u8;
+                }
+            }
+            // Zero the tail so whole 8-byte groups can be read.
+            let padded = n.next_multiple_of(8);
+            keep[n..padded].fill(0);
+            let (groups, _) = keep[..padded].as_chunks::<8>();
+            for (g, bytes) in groups.iter().enumerate() {
+                let mut m = u64::from_le_bytes(*bytes);
+                while m != 0 {
+                    let t = g * 8 + (m.trailing_zeros() / 8) as usize;
+                    m &= m - 1;
+                    let j = idx[t];
+                    out[len] = j;
+                    len += (j != skip) as usize;
+                }
+            }
+            s += n;
+        }
+        len
+    }
+}
+
+/// Per-block temporaries of [`CellList::gather`].
+struct Block {
+    dd: [f32; BLOCK],
+    keep: [u8; BLOCK],
 }
 
 /// Per-thread scratch buffers.
@@ -400,6 +470,45 @@ struct Scratch {
     ranges: Vec<(usize, usize)>,
     buf: Vec<u32>,
     keyed: Vec<u64>,
+    bits: Vec<u64>,
+}
+
+/// Sorts distinct indices ascending. When they span a narrow range (indices
+/// that are spatially coherent, e.g. particles seeded on a lattice) a bitmap
+/// over the span is cheaper than a comparison sort; otherwise sort_unstable.
+fn sort_distinct(v: &mut [u32], bits: &mut Vec<u64>) {
+    let n = v.len();
+    if n < 8 {
+        v.sort_unstable();
+        return;
+    }
+    let (mut lo, mut hi) = (u32::MAX, 0u32);
+    for &x in v.iter() {
+        lo = lo.min(x);
+        hi = hi.max(x);
+    }
+    let words = ((hi - lo) as usize >> 6) + 1;
+    if words > 2 * n + 8 {
+        v.sort_unstable();
+        return;
+    }
+    bits.clear();
+    bits.resize(words, 0);
+    for &x in v.iter() {
+        let o = (x - lo) as usize;
+        bits[o >> 6] |= 1u64 << (o & 63);
+    }
+    let mut k = 0;
+    for (w, &word) in bits.iter().enumerate() {
+        let mut m = word;
+        let base = lo as usize + 64 * w;
+        while m != 0 {
+            v[k] = (base + m.trailing_zeros() as usize) as u32;
+            k += 1;
+            m &= m - 1;
+        }
+    }
+    debug_assert_eq!(k, n, "indices must be distinct");
 }
 
 /// Phase-1 result of one chunk of receivers: their sorted sender lists.
@@ -409,7 +518,18 @@ struct Found {
     dropped: usize,
 }
 
-/// Phase-2 output slices of one chunk of receivers.
+/// Splits `v` into consecutive pieces of the given lengths (sum <= len).
+fn split_by<'a, T>(mut v: &'a mut [T], lens: &[usize]) -> Vec<&'a mut [T]> {
+    let mut out = Vec::with_capacity(lens.len());
+    for &l in lens {
+        let (head, tail) = v.split_at_mut(l);
+        out.push(head);
+        v = tail;
+    }
+    out
+}
+
+/// Output slices of one chunk of receivers.
 struct OutChunk<'a, const D: usize, I> {
     first: usize,
     found: &'a Found,
@@ -438,15 +558,224 @@ impl<const D: usize, I: EdgeIndex> OutChunk<'_, D, I> {
     }
 }
 
-/// Splits `v` into consecutive pieces of the given lengths (sum <= len).
-fn split_by<'a, T>(mut v: &'a mut [T], lens: &[usize]) -> Vec<&'a mut [T]> {
-    let mut out = Vec::with_capacity(lens.len());
-    for &l in lens {
-        let (head, tail) = v.split_at_mut(l);
-        out.push(head);
-        v = tail;
+/// The neighbour lists of a radius graph, found but not yet written out as
+/// per-edge arrays: phase 1 of [`radius_graph`].
+///
+/// Lets a caller allocate the output arrays itself (e.g. as numpy arrays)
+/// once the number of edges is known, then fill them with
+/// [`Neighbors::write`]. [`Neighbors::into_graph`] does both in one step.
+pub struct Neighbors<'a, const D: usize> {
+    positions: &'a [[f32; D]],
+    found: Vec<Found>,
+    num_edges: usize,
+    dropped: usize,
+}
+
+impl<'a, const D: usize> Neighbors<'a, D> {
+    /// Finds the sorted neighbour list of every receiver (see
+    /// [`radius_graph`] for the criterion, order and cap).
+    ///
+    /// # Errors
+    /// As [`radius_graph`].
+    pub fn search(positions: &'a [[f32; D]], params: &GraphParams) -> Result<Self, GraphError> {
+        if D == 0 {
+            return Err(GraphError::invalid("positions", "dimension must be >= 1"));
+        }
+        params.validate()?;
+        let n = positions.len();
+        if n > u32::MAX as usize {
+            return Err(GraphError::invalid(
+                "positions",
+                format!("at most {} particles are supported, got {n}", u32::MAX),
+            ));
+        }
+        if let Some(i) = positions
+            .iter()
+            .position(|p| p.iter().any(|x| !x.is_finite()))
+        {
+            return Err(GraphError::invalid(
+                "positions",
+                format!("must be finite; positions[{i}] = {:?}", positions[i]),
+            ));
+        }
+        let mut out = Neighbors {
+            positions,
+            found: Vec::new(),
+            num_edges: 0,
+            dropped: 0,
+        };
+        if n == 0 {
+            return Ok(out);
+        }
+
+        let rr = params.radius * params.radius;
+        // Largest exact separation that can pass `dd <= rr` in f32: `d` and
+        // `dd` carry a relative rounding error of a few 2^-24 (margin 1e-4),
+        // and underflow of `d[k]*d[k]` lets separations below ~5e-23 pass
+        // (1e-22).
+        let reach = if rr.is_finite() {
+            (rr as f64).sqrt() * (1.0 + 1e-4) + 1e-22
+        } else {
+            f64::INFINITY
+        };
+        let cells = CellList::build(positions, reach);
+        let cap = params.max_neighbors;
+        let self_edges = params.self_edges;
+
+        let find = |scratch: &mut Scratch, lo: usize, hi: usize| -> Found {
+            let mut found = Found {
+                senders: Vec::new(),
+                counts: Vec::with_capacity(hi - lo),
+                dropped: 0,
+            };
+            let Scratch {
+                ranges,
+                buf,
+                keyed,
+                bits,
+            } = scratch;
+            let mut block = Block {
+                dd: [0.0; BLOCK],
+                keep: [0; BLOCK],
+            };
+            for i in lo..hi {
+                let pi = &positions[i];
+                // u32::MAX is no particle's index (n <= u32::MAX).
+                let skip = if self_edges { u32::MAX } else { i as u32 };
+                cells.ranges(pi, ranges);
+                let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
+                if buf.len() < total {
+                    buf.resize(total, 0);
+                }
+                let mut len = 0;
+                for &(a, b) in ranges.iter() {
+                    len = cells.gather(pi, rr, a, b, skip, buf, len, &mut block);
+                }
+                let kept = match cap {
+                    Some(k) if len > k => {
+                        // Rank by (reported distance, index): the distance
+                        // is >= 0, so its bits order like its value.
+                        keyed.clear();
+                        keyed.extend(buf[..len].iter().map(|&j| {
+                            let dist = dot(&sub(&positions[j as usize], pi)).sqrt();
+                            ((dist.to_bits() as u64) << 32) | j as u64
+                        }));
+                        keyed.select_nth_unstable(k - 1);
+                        for (dst, &key) in buf.iter_mut().zip(&keyed[..k]) {
+                            *dst = key as u32;
+                        }
+                        found.dropped += len - k;
+                        &mut buf[..k]
+                    }
+                    _ => &mut buf[..len],
+                };
+                sort_distinct(kept, bits);
+                found.senders.extend_from_slice(kept);
+                found.counts.push(kept.len() as u32);
+            }
+            found
+        };
+        let nchunks = n.div_ceil(CHUNK);
+        out.found = if nchunks == 1 {
+            vec![find(&mut Scratch::default(), 0, n)]
+        } else {
+            (0..nchunks)
+                .into_par_iter()
+                .map_init(Scratch::default, |s, c| {
+                    find(s, c * CHUNK, ((c + 1) * CHUNK).min(n))
+                })
+                .collect()
+        };
+        out.num_edges = out.found.iter().map(|f| f.senders.len()).sum();
+        out.dropped = out.found.iter().map(|f| f.dropped).sum();
+        Ok(out)
     }
-    out
+
+    /// Number of edges `E`.
+    pub fn num_edges(&self) -> usize {
+        self.num_edges
+    }
+
+    /// Number of edges removed by `max_neighbors`.
+    pub fn dropped(&self) -> usize {
+        self.dropped
+    }
+
+    /// Writes the edges (as in [`Graph`]) into caller-provided slices, in
+    /// parallel; every element is overwritten, so they may hold anything.
+    ///
+    /// # Errors
+    /// [`GraphError::InvalidInput`] (field `"output"`) if a slice's length is
+    /// not [`Neighbors::num_edges`].
+    pub fn write<I: EdgeIndex>(
+        &self,
+        senders: &mut [I],
+        receivers: &mut [I],
+        displacement: &mut [[f32; D]],
+        distance: &mut [f32],
+    ) -> Result<(), GraphError> {
+        let e = self.num_edges;
+        let lens = [
+            senders.len(),
+            receivers.len(),
+            displacement.len(),
+            distance.len(),
+        ];
+        if lens.iter().any(|&l| l != e) {
+            return Err(GraphError::invalid(
+                "output",
+                format!("slices must have length {e} (the number of edges), got {lens:?}"),
+            ));
+        }
+        let lens: Vec<usize> = self.found.iter().map(|f| f.senders.len()).collect();
+        let mut s = split_by(senders, &lens).into_iter();
+        let mut r = split_by(receivers, &lens).into_iter();
+        let mut dp = split_by(displacement, &lens).into_iter();
+        let mut ds = split_by(distance, &lens).into_iter();
+        let mut parts = Vec::with_capacity(self.found.len());
+        for (c, f) in self.found.iter().enumerate() {
+            if let (Some(s), Some(r), Some(dp), Some(ds)) =
+                (s.next(), r.next(), dp.next(), ds.next())
+            {
+                parts.push(OutChunk {
+                    first: c * CHUNK,
+                    found: f,
+                    s,
+                    r,
+                    dp,
+                    ds,
+                });
+            }
+        }
+        let positions = self.positions;
+        if parts.len() <= 1 {
+            parts.into_iter().for_each(|o| o.fill(positions));
+        } else {
+            parts.into_par_iter().for_each(|o| o.fill(positions));
+        }
+        Ok(())
+    }
+
+    /// Allocates the per-edge arrays and writes the edges into them.
+    pub fn into_graph<I: EdgeIndex>(self) -> Graph<D, I> {
+        let e = self.num_edges;
+        let mut g = Graph::<D, I> {
+            senders: vec![I::default(); e],
+            receivers: vec![I::default(); e],
+            displacement: vec![[0.0f32; D]; e],
+            distance: vec![0.0f32; e],
+            dropped: self.dropped,
+        };
+        // Lengths match by construction.
+        let written = self.write(
+            &mut g.senders,
+            &mut g.receivers,
+            &mut g.displacement,
+            &mut g.distance,
+        );
+        debug_assert!(written.is_ok());
+        g
+    }
 }
 
 /// Radius graph of `positions` (GNS neighbour search), indices as `u32`.
@@ -486,136 +815,39 @@ pub fn radius_graph_as<const D: usize, I: EdgeIndex>(
     positions: &[[f32; D]],
     params: &GraphParams,
 ) -> Result<Graph<D, I>, GraphError> {
-    if D == 0 {
-        return Err(GraphError::invalid("positions", "dimension must be >= 1"));
-    }
-    params.validate()?;
-    let n = positions.len();
-    if n > u32::MAX as usize {
-        return Err(GraphError::invalid(
-            "positions",
-            format!("at most {} particles are supported, got {n}", u32::MAX),
-        ));
-    }
-    if let Some(i) = positions
-        .iter()
-        .position(|p| p.iter().any(|x| !x.is_finite()))
-    {
-        return Err(GraphError::invalid(
-            "positions",
-            format!("must be finite; positions[{i}] = {:?}", positions[i]),
-        ));
-    }
-    if n == 0 {
-        return Ok(Graph::default());
-    }
+    Ok(Neighbors::search(positions, params)?.into_graph())
+}
 
-    let rr = params.radius * params.radius;
-    // Largest exact separation that can pass `dd <= rr` in f32: `d` and `dd`
-    // carry a relative rounding error of a few 2^-24 (margin 1e-4), and
-    // underflow of `d[k]*d[k]` lets separations below ~5e-23 pass (1e-22).
-    let reach = if rr.is_finite() {
-        (rr as f64).sqrt() * (1.0 + 1e-4) + 1e-22
-    } else {
-        f64::INFINITY
-    };
-    let cells = CellList::build(positions, reach);
-    let cap = params.max_neighbors;
-    let self_edges = params.self_edges;
+#[cfg(test)]
+mod tests {
+    use super::sort_distinct;
 
-    // Phase 1: per chunk of receivers, the sorted sender list of each.
-    let find = |scratch: &mut Scratch, lo: usize, hi: usize| -> Found {
-        let mut found = Found {
-            senders: Vec::new(),
-            counts: Vec::with_capacity(hi - lo),
-            dropped: 0,
+    #[test]
+    fn sort_distinct_both_paths() {
+        let mut bits = Vec::new();
+        let mut s = 1u64;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 33) as u32
         };
-        let Scratch { ranges, buf, keyed } = scratch;
-        for i in lo..hi {
-            let pi = &positions[i];
-            let iu = i as u32;
-            cells.ranges(pi, ranges);
-            let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
-            if buf.len() < total {
-                buf.resize(total, 0);
-            }
-            // Branch-free compaction of the accepted candidates.
-            let mut len = 0usize;
-            for &(a, b) in ranges.iter() {
-                for (q, &j) in cells.sorted_pos[a..b].iter().zip(&cells.sorted_idx[a..b]) {
-                    let keep = (dot(&sub(q, pi)) <= rr) & (self_edges | (j != iu));
-                    buf[len] = j;
-                    len += keep as usize;
+        for n in [0usize, 1, 7, 8, 9, 30, 64, 200] {
+            for span in [n as u32 + 1, 4 * n as u32 + 64, 1 << 20, u32::MAX] {
+                let mut set = std::collections::BTreeSet::new();
+                while set.len() < n {
+                    let base = u32::MAX - span.min(u32::MAX - 1);
+                    set.insert(base + next() % span.max(1));
                 }
-            }
-            let kept = &mut buf[..len];
-            let kept = match cap {
-                Some(k) if len > k => {
-                    // Rank by (reported distance, index): the distance is
-                    // >= 0, so its bits order like its value.
-                    keyed.clear();
-                    keyed.extend(kept.iter().map(|&j| {
-                        let dist = dot(&sub(&positions[j as usize], pi)).sqrt();
-                        ((dist.to_bits() as u64) << 32) | j as u64
-                    }));
-                    keyed.select_nth_unstable(k - 1);
-                    for (dst, &key) in kept.iter_mut().zip(&keyed[..k]) {
-                        *dst = key as u32;
-                    }
-                    found.dropped += len - k;
-                    &mut kept[..k]
+                let want: Vec<u32> = set.into_iter().collect();
+                let mut v = want.clone();
+                for i in (1..v.len()).rev() {
+                    let j = next() as usize % (i + 1);
+                    v.swap(i, j);
                 }
-                _ => kept,
-            };
-            kept.sort_unstable();
-            found.senders.extend_from_slice(kept);
-            found.counts.push(kept.len() as u32);
-        }
-        found
-    };
-    let nchunks = n.div_ceil(CHUNK);
-    let found: Vec<Found> = if nchunks == 1 {
-        vec![find(&mut Scratch::default(), 0, n)]
-    } else {
-        (0..nchunks)
-            .into_par_iter()
-            .map_init(Scratch::default, |s, c| {
-                find(s, c * CHUNK, ((c + 1) * CHUNK).min(n))
-            })
-            .collect()
-    };
-
-    // Phase 2: write the edges straight into the final arrays, in parallel.
-    let lens: Vec<usize> = found.iter().map(|f| f.senders.len()).collect();
-    let e: usize = lens.iter().sum();
-    let mut g = Graph::<D, I> {
-        senders: vec![I::default(); e],
-        receivers: vec![I::default(); e],
-        displacement: vec![[0.0f32; D]; e],
-        distance: vec![0.0f32; e],
-        dropped: found.iter().map(|f| f.dropped).sum(),
-    };
-    let mut s = split_by(&mut g.senders, &lens).into_iter();
-    let mut r = split_by(&mut g.receivers, &lens).into_iter();
-    let mut dp = split_by(&mut g.displacement, &lens).into_iter();
-    let mut ds = split_by(&mut g.distance, &lens).into_iter();
-    let mut parts = Vec::with_capacity(nchunks);
-    for (c, f) in found.iter().enumerate() {
-        if let (Some(s), Some(r), Some(dp), Some(ds)) = (s.next(), r.next(), dp.next(), ds.next()) {
-            parts.push(OutChunk {
-                first: c * CHUNK,
-                found: f,
-                s,
-                r,
-                dp,
-                ds,
-            });
+                sort_distinct(&mut v, &mut bits);
+                assert_eq!(v, want, "n {n} span {span}");
+            }
         }
     }
-    if nchunks == 1 {
-        parts.into_iter().for_each(|o| o.fill(positions));
-    } else {
-        parts.into_par_iter().for_each(|o| o.fill(positions));
-    }
-    Ok(g)
 }

@@ -1,6 +1,8 @@
 //! Radius graph against an O(N^2) brute force, plus edge cases.
 
-use hybridmpm_neighbors::{Graph, GraphError, GraphParams, radius_graph};
+use hybridmpm_neighbors::{
+    Graph, GraphError, GraphParams, Neighbors, radius_graph, radius_graph_as,
+};
 use proptest::prelude::*;
 
 /// O(N^2) reference with the documented criterion, order and cap rule.
@@ -413,4 +415,81 @@ fn invalid_inputs_are_errors() {
     assert_eq!(d.radius, 0.015);
     assert!(d.self_edges);
     assert_eq!(d.max_neighbors, None);
+}
+
+#[test]
+fn shuffled_order_matches_brute_force() {
+    // Indices spatially incoherent: the neighbour lists span a wide index
+    // range, so the comparison-sort path is used (lattice order uses the
+    // bitmap path); both must give the same graph.
+    let mut pos = jittered_lattice(14, 0.01);
+    let n = pos.len();
+    let mut s = 7u64;
+    for i in (1..n).rev() {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        pos.swap(i, (s >> 33) as usize % (i + 1));
+    }
+    for p in [
+        GraphParams {
+            radius: 0.025,
+            self_edges: true,
+            max_neighbors: None,
+        },
+        GraphParams {
+            radius: 0.025,
+            self_edges: false,
+            max_neighbors: Some(25),
+        },
+        GraphParams {
+            radius: 0.012,
+            self_edges: false,
+            max_neighbors: None,
+        },
+    ] {
+        check(&pos, &p);
+    }
+}
+
+#[test]
+fn write_into_caller_slices() {
+    let pos = jittered_lattice(10, 0.01);
+    let p = GraphParams {
+        radius: 0.02,
+        self_edges: false,
+        max_neighbors: Some(12),
+    };
+    let nb = Neighbors::search(&pos, &p).unwrap();
+    let e = nb.num_edges();
+    let want: Graph<3, i64> = radius_graph_as(&pos, &p).unwrap();
+    let want_s = want.senders.clone();
+    assert_eq!(nb.dropped(), want.dropped);
+    let mut s = vec![-7i64; e];
+    let mut r = vec![-7i64; e];
+    let mut dp = vec![[f32::NAN; 3]; e];
+    let mut ds = vec![f32::NAN; e];
+    nb.write(&mut s, &mut r, &mut dp, &mut ds).unwrap();
+    assert_eq!(
+        (s, r, dp, ds),
+        (
+            want.senders,
+            want.receivers,
+            want.displacement,
+            want.distance
+        )
+    );
+    let mut short = vec![0i64; e - 1];
+    let mut r = vec![0i64; e];
+    let mut dp = vec![[0.0; 3]; e];
+    let mut ds = vec![0.0; e];
+    let err = nb.write(&mut short, &mut r, &mut dp, &mut ds).unwrap_err();
+    assert_eq!(err.field(), "output");
+    let u: Graph<3> = radius_graph(&pos, &p).unwrap();
+    assert!(
+        u.senders
+            .iter()
+            .zip(&want_s)
+            .all(|(a, b)| *a as i64 == *b)
+    );
 }

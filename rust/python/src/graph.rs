@@ -1,6 +1,6 @@
 //! `hybridmpm._core.radius_graph`: binding of the `hybridmpm-neighbors` crate.
 
-use hybridmpm_neighbors::{Graph, GraphError, GraphParams, radius_graph_as};
+use hybridmpm_neighbors::{GraphError, GraphParams, Neighbors};
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyUntypedArray};
 use pyo3::prelude::*;
@@ -39,25 +39,49 @@ fn rows<const D: usize>(arr: &Bound<'_, PyArray2<f32>>) -> PyResult<Vec<[f32; D]
         .collect())
 }
 
+/// `numpy.empty(shape, dtype)`: numpy's allocator advises the kernel to back
+/// large arrays with huge pages, which makes writing the edge arrays (tens of
+/// MB) markedly cheaper than first-touching fresh 4 KiB pages.
+fn empty<'py>(
+    py: Python<'py>,
+    shape: impl IntoPyObject<'py>,
+    dtype: &str,
+) -> PyResult<Bound<'py, PyAny>> {
+    py.import("numpy")?.getattr("empty")?.call1((shape, dtype))
+}
+
 fn run<'py, const D: usize>(
     py: Python<'py>,
     arr: &Bound<'py, PyArray2<f32>>,
     params: GraphParams,
 ) -> PyResult<Edges<'py>> {
     let pos = rows::<D>(arr)?;
-    let result: Result<Graph<D, i64>, GraphError> =
-        py.detach(move || radius_graph_as::<D, i64>(&pos, &params));
-    let g = result.map_err(|e| match e {
+    let to_py = |e: GraphError| match e {
         GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
-    })?;
-    let e = g.senders.len();
-    let displacement = PyArray1::from_vec(py, g.displacement.into_flattened()).reshape([e, D])?;
-    Ok((
-        PyArray1::from_vec(py, g.senders),
-        PyArray1::from_vec(py, g.receivers),
-        displacement,
-        PyArray1::from_vec(py, g.distance),
-    ))
+    };
+    let nb = py
+        .detach(|| Neighbors::search(&pos, &params))
+        .map_err(to_py)?;
+    let e = nb.num_edges();
+    let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
+    let distance = empty(py, (e,), "float32")?.cast_into::<PyArray1<f32>>()?;
+    {
+        let mut s = senders.readwrite();
+        let mut r = receivers.readwrite();
+        let mut dp = displacement.readwrite();
+        let mut ds = distance.readwrite();
+        let (s, r, dp, ds) = (
+            s.as_slice_mut()?,
+            r.as_slice_mut()?,
+            dp.as_slice_mut()?,
+            ds.as_slice_mut()?,
+        );
+        let dp = dp.as_chunks_mut::<D>().0;
+        py.detach(|| nb.write(s, r, dp, ds)).map_err(to_py)?;
+    }
+    Ok((senders, receivers, displacement, distance))
 }
 
 /// Radius graph of a particle cloud (GNS neighbour search).
