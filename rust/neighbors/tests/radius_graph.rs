@@ -443,9 +443,14 @@ fn shuffled_order_matches_brute_force() {
             max_neighbors: Some(25),
         },
         GraphParams {
-            radius: 0.012,
+            radius: 0.015,
             self_edges: false,
             max_neighbors: None,
+        },
+        GraphParams {
+            radius: 0.015,
+            self_edges: true,
+            max_neighbors: Some(9),
         },
     ] {
         check(&pos, &p);
