@@ -331,9 +331,10 @@ impl<const D: usize> CellList<D> {
         let mut c = [0usize; D];
         let mut t = [0.0f64; D];
         for k in 0..D {
+            // u >= 0 (p >= lo, rounding is monotonic), so truncation is
+            // floor; `as` saturates and the clamp guards the top edge.
             let u = (p[k] as f64 - self.lo[k]) * self.inv_h;
-            // `as` saturates; the clamp guards rounding at the top edge.
-            c[k] = (u.floor() as usize).min(self.dims[k] - 1);
+            c[k] = (u as usize).min(self.dims[k] - 1);
             t[k] = u - c[k] as f64;
         }
         (c, t)
@@ -400,8 +401,8 @@ impl<const D: usize> CellList<D> {
     /// `sorted[a..b]` with `d·d <= rr` (`d = q - p`), except index `skip`, and
     /// returns the new `len`. `out` must have room for `b - a` more entries.
     ///
-    /// The distance test runs over blocks of [`BLOCK`] candidates into a byte
-    /// mask (vectorisable), then the set bytes are extracted 8 at a time.
+    /// The squared distances are computed over blocks of [`BLOCK`] candidates
+    /// (vectorisable), then compacted branch-free.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn gather(
@@ -415,13 +416,12 @@ impl<const D: usize> CellList<D> {
         mut len: usize,
         tmp: &mut Block,
     ) -> usize {
-        let Block { dd, keep } = tmp;
+        let dd = &mut tmp.dd;
         let mut s = a;
         while s < b {
             let n = (b - s).min(BLOCK);
             let idx = &self.sorted_idx[s..s + n];
             {
-                let keep = &mut keep[..n];
                 let q0 = &self.sorted[0][s..s + n];
                 let dd = &mut dd[..n];
                 for (x, q) in dd.iter_mut().zip(q0) {
@@ -434,22 +434,10 @@ impl<const D: usize> CellList<D> {
                         *x += d * d;
                     }
                 }
-                for (m, x) in keep.iter_mut().zip(dd.iter()) {
-                    *m = (*x <= rr) as u8;
-                }
-            }
-            // Zero the tail so whole 8-byte groups can be read.
-            let padded = n.next_multiple_of(8);
-            keep[n..padded].fill(0);
-            let (groups, _) = keep[..padded].as_chunks::<8>();
-            for (g, bytes) in groups.iter().enumerate() {
-                let mut m = u64::from_le_bytes(*bytes);
-                while m != 0 {
-                    let t = g * 8 + (m.trailing_zeros() / 8) as usize;
-                    m &= m - 1;
-                    let j = idx[t];
+                // Branch-free compaction (the accept pattern is unpredictable).
+                for (&j, &x) in idx.iter().zip(dd.iter()) {
                     out[len] = j;
-                    len += (j != skip) as usize;
+                    len += ((x <= rr) & (j != skip)) as usize;
                 }
             }
             s += n;
@@ -461,7 +449,6 @@ impl<const D: usize> CellList<D> {
 /// Per-block temporaries of [`CellList::gather`].
 struct Block {
     dd: [f32; BLOCK],
-    keep: [u8; BLOCK],
 }
 
 /// Per-thread scratch buffers.
@@ -634,10 +621,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 keyed,
                 bits,
             } = scratch;
-            let mut block = Block {
-                dd: [0.0; BLOCK],
-                keep: [0; BLOCK],
-            };
+            let mut block = Block { dd: [0.0; BLOCK] };
             for i in lo..hi {
                 let pi = &positions[i];
                 // u32::MAX is no particle's index (n <= u32::MAX).
