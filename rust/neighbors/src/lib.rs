@@ -4,7 +4,7 @@
 //!
 //! [`radius_graph`] connects every pair of particles closer than a radius and
 //! returns the directed edges (`senders[e] -> receivers[e]`) together with the
-//! relative displacement and distance of each edge, computed in the same pass.
+//! relative displacement and distance of each edge.
 //!
 //! # Edge criterion (exact, in `f32`)
 //!
@@ -12,20 +12,37 @@
 //! in exactly this order (no fused multiply-add),
 //!
 //! ```text
-//! d  = p_j - p_i                         (component-wise)
-//! dd = d[0]*d[0] + d[1]*d[1] (+ d[2]*d[2])   (summed left to right)
-//! dd <= r*r                              (r*r rounded to f32)
+//! d  = p_j - p_i                              (component-wise)
+//! dd = d[0]*d[0] + d[1]*d[1] (+ d[2]*d[2])    (summed left to right)
+//! dd <= r*r                                   (r*r rounded to f32)
 //! ```
 //!
 //! i.e. `|p_i - p_j| <= r` with `<=` like `scipy.spatial.cKDTree.query_ball_point`.
 //! Because `a - b == -(b - a)` exactly in IEEE arithmetic, the relation is
-//! symmetric: (j, i) is an edge iff (i, j) is.
+//! symmetric: (j, i) is an edge iff (i, j) is. `distance = sqrt(dd)` of the
+//! same `dd`.
 //!
-//! # Output order
+//! # Output order and types
 //!
 //! Edges are grouped by receiver, receivers in ascending index order, and
-//! within one receiver the senders are in ascending index order. Indices are
-//! `u32` (inputs of more than `u32::MAX` particles are rejected).
+//! within one receiver the senders are in ascending index order (also with a
+//! `max_neighbors` cap). Indices are `u32` by default ([`radius_graph`]) or
+//! any [`EdgeIndex`] type, e.g. `i64` ([`radius_graph_as`]); inputs of more
+//! than `u32::MAX` particles are rejected. The number of edges can grow as
+//! `N^2` when the radius covers the whole cloud.
+//!
+//! # Algorithm
+//!
+//! A uniform cell grid with cell size `>= r` spans the bounding box of the
+//! data (particles may be anywhere); if that grid would have more than about
+//! `4 N` cells (an outlier far away), the cell size is grown. Particles are
+//! counting-sorted into the cells (CSR). Each receiver scans the `3^D`
+//! surrounding cells (those farther than `r` from it are skipped; the cells of
+//! a row along axis 0 are contiguous), tests the candidates in vectorisable
+//! blocks and sorts the accepted senders. Phase 1 ([`Neighbors::search`])
+//! finds the sorted neighbour lists; phase 2 ([`Neighbors::write`]) writes
+//! the per-edge arrays in parallel, straight into caller-provided or freshly
+//! allocated memory.
 //!
 //! # Determinism
 //!
@@ -44,7 +61,8 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum GraphError {
     /// An argument is malformed or out of range; `field` names it
-    /// (`"positions"`, `"radius"` or `"max_neighbors"`).
+    /// (`"positions"`, `"radius"`, `"max_neighbors"`, or `"output"` for
+    /// [`Neighbors::write`]).
     #[error("{field}: {msg}")]
     InvalidInput {
         /// Name of the offending argument.
@@ -256,7 +274,8 @@ impl<const D: usize> CellList<D> {
         }
         // Cell size h >= reach, grown while the grid would have too many
         // cells (an outlier far away from the bulk of the particles).
-        let cap = CELLS_PER_PARTICLE * n as f64 + 16.0;
+        // (Cell ids are u32.)
+        let cap = (CELLS_PER_PARTICLE * n as f64 + 16.0).min(u32::MAX as f64 - 1.0);
         let count = |h: f64| -> ([f64; D], f64) {
             let mut dims = [1.0f64; D];
             let mut total = 1.0f64;
@@ -656,6 +675,12 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 sort_distinct(kept, bits);
                 found.senders.extend_from_slice(kept);
                 found.counts.push(kept.len() as u32);
+                if i == lo + 15 {
+                    // Size the chunk's list from its first receivers (saves
+                    // the reallocation copies; a wrong guess only costs them).
+                    let est = found.senders.len() / 16 * (hi - i - 1) * 9 / 8;
+                    found.senders.reserve(est);
+                }
             }
             found
         };

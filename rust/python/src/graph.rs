@@ -103,7 +103,10 @@ fn run<'py, const D: usize>(
 ///     Include the self-edge (i, i) of every particle (displacement 0).
 /// max_neighbors : int or None, default None
 ///     If given (>= 1), each receiver keeps only its ``max_neighbors`` nearest
-///     senders (ties: lower sender index; a self-edge counts, at distance 0).
+///     senders (ties: lower sender index; a self-edge counts, at distance 0),
+///     still listed by ascending sender. The removed edges are not returned:
+///     compare with ``np.bincount`` of an uncapped call's receivers to count
+///     them.
 ///
 /// Returns
 /// -------
@@ -119,8 +122,10 @@ fn run<'py, const D: usize>(
 /// The pair (j, i) is an edge iff, in float32, ``d = p[j] - p[i]`` satisfies
 /// ``d[0]*d[0] + d[1]*d[1] (+ d[2]*d[2]) <= R*R`` (i.e. distance <= R, like
 /// ``scipy.spatial.cKDTree.query_ball_point``), so the graph is symmetric.
-/// The output is identical for any number of threads (``RAYON_NUM_THREADS``);
-/// the GIL is released during the computation.
+/// Computed on the CPU with a cell list over the data's bounding box (cell
+/// size >= R; particles may be anywhere) in parallel over receivers; the
+/// output is bitwise identical for any number of threads
+/// (``RAYON_NUM_THREADS``). The GIL is released during the computation.
 ///
 /// Raises
 /// ------
