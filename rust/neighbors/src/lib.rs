@@ -417,20 +417,17 @@ impl<const D: usize> CellList<D> {
     }
 
     /// Writes to `out[len..]` the original index of every particle of
-    /// `sorted[a..b]` with `d·d <= rr` (`d = q - p`), except index `skip`, and
-    /// returns the new `len`. `out` must have room for `b - a` more entries.
+    /// `sorted[a..b]` with `d·d <= rr` (`d = q - p`) and returns the new
+    /// `len`. `out` must have room for `b - a` more entries.
     ///
     /// The squared distances are computed over blocks of [`BLOCK`] candidates
     /// (vectorisable), then compacted branch-free.
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
     fn gather(
         &self,
         p: &[f32; D],
         rr: f32,
-        a: usize,
-        b: usize,
-        skip: u32,
+        (a, b): (usize, usize),
         out: &mut [u32],
         mut len: usize,
         tmp: &mut Block,
@@ -441,22 +438,21 @@ impl<const D: usize> CellList<D> {
             let n = (b - s).min(BLOCK);
             let idx = &self.sorted_idx[s..s + n];
             {
-                let q0 = &self.sorted[0][s..s + n];
+                let cols: [&[f32]; D] = std::array::from_fn(|k| &self.sorted[k][s..s + n]);
                 let dd = &mut dd[..n];
-                for (x, q) in dd.iter_mut().zip(q0) {
-                    let d = q - p[0];
-                    *x = d * d;
-                }
-                for (coord, &pk) in self.sorted[1..].iter().zip(&p[1..]) {
-                    for (x, q) in dd.iter_mut().zip(&coord[s..s + n]) {
-                        let d = q - pk;
-                        *x += d * d;
+                for (t, x) in dd.iter_mut().enumerate() {
+                    let d = cols[0][t] - p[0];
+                    let mut acc = d * d;
+                    for k in 1..D {
+                        let d = cols[k][t] - p[k];
+                        acc += d * d;
                     }
+                    *x = acc;
                 }
                 // Branch-free compaction (the accept pattern is unpredictable).
                 for (&j, &x) in idx.iter().zip(dd.iter()) {
                     out[len] = j;
-                    len += ((x <= rr) & (j != skip)) as usize;
+                    len += (x <= rr) as usize;
                 }
             }
             s += n;
@@ -643,16 +639,21 @@ impl<'a, const D: usize> Neighbors<'a, D> {
             let mut block = Block { dd: [0.0; BLOCK] };
             for i in lo..hi {
                 let pi = &positions[i];
-                // u32::MAX is no particle's index (n <= u32::MAX).
-                let skip = if self_edges { u32::MAX } else { i as u32 };
                 cells.ranges(pi, ranges);
                 let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
                 if buf.len() < total {
                     buf.resize(total, 0);
                 }
                 let mut len = 0;
-                for &(a, b) in ranges.iter() {
-                    len = cells.gather(pi, rr, a, b, skip, buf, len, &mut block);
+                for &range in ranges.iter() {
+                    len = cells.gather(pi, rr, range, buf, len, &mut block);
+                }
+                if !self_edges {
+                    // The receiver always finds itself (d = 0); drop it.
+                    if let Some(pos) = buf[..len].iter().position(|&j| j == i as u32) {
+                        len -= 1;
+                        buf.swap(pos, len);
+                    }
                 }
                 let kept = match cap {
                     Some(k) if len > k => {

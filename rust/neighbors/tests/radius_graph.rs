@@ -491,10 +491,5 @@ fn write_into_caller_slices() {
     let err = nb.write(&mut short, &mut r, &mut dp, &mut ds).unwrap_err();
     assert_eq!(err.field(), "output");
     let u: Graph<3> = radius_graph(&pos, &p).unwrap();
-    assert!(
-        u.senders
-            .iter()
-            .zip(&want_s)
-            .all(|(a, b)| *a as i64 == *b)
-    );
+    assert!(u.senders.iter().zip(&want_s).all(|(a, b)| *a as i64 == *b));
 }
