@@ -543,19 +543,29 @@ struct OutChunk<'a, const D: usize, I> {
 
 impl<const D: usize, I: EdgeIndex> OutChunk<'_, D, I> {
     fn fill(self, positions: &[[f32; D]]) {
+        let senders = &self.found.senders;
+        for (j, dst) in senders.iter().zip(self.s.iter_mut()) {
+            *dst = I::from_u32(*j);
+        }
         let mut e = 0;
         for (i, &cnt) in (self.first..).zip(&self.found.counts) {
-            let pi = &positions[i];
-            let iu = I::from_u32(i as u32);
             let end = e + cnt as usize;
-            for (k, &j) in (e..end).zip(&self.found.senders[e..end]) {
+            self.r[e..end].fill(I::from_u32(i as u32));
+            let pi = &positions[i];
+            for ((&j, dp), ds) in senders[e..end]
+                .iter()
+                .zip(&mut self.dp[e..end])
+                .zip(&mut self.ds[e..end])
+            {
                 let d = sub(&positions[j as usize], pi);
-                self.s[k] = I::from_u32(j);
-                self.r[k] = iu;
-                self.dp[k] = d;
-                self.ds[k] = dot(&d).sqrt();
+                *dp = d;
+                *ds = dot(&d);
             }
             e = end;
+        }
+        // Squared distances -> distances, in one vectorisable pass.
+        for x in self.ds.iter_mut() {
+            *x = x.sqrt();
         }
     }
 }
