@@ -4,6 +4,7 @@ use hybridmpm_neighbors::{GraphError, GraphParams, Neighbors};
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyUntypedArray};
 use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
 
 use crate::errors::invalid_input;
 
@@ -47,7 +48,8 @@ fn empty<'py>(
     shape: impl IntoPyObject<'py>,
     dtype: &str,
 ) -> PyResult<Bound<'py, PyAny>> {
-    py.import("numpy")?.getattr("empty")?.call1((shape, dtype))
+    static EMPTY: PyOnceLock<Py<PyAny>> = PyOnceLock::new();
+    EMPTY.import(py, "numpy", "empty")?.call1((shape, dtype))
 }
 
 fn run<'py, const D: usize>(
