@@ -11,6 +11,7 @@ receiver then sender (int64), displacement p[sender] - p[receiver] (float32,
 Cases (as the criterion bench rust/neighbors/benches/radius_graph.rs):
   2D: 64x64 lattice, spacing 0.005, deterministic jitter, R = 0.015 (4096 particles)
   3D: 32^3 lattice, spacing 0.5/64, deterministic jitter, R = 2.5 spacing (32768)
+  3D shuffled: the 3D cloud in a random particle order
 
 Each thread count runs in its own subprocess (RAYON_NUM_THREADS=1, 2); inside
 it the two implementations are timed alternately (interleaved repeats) and the
@@ -88,7 +89,16 @@ def ours(pos: np.ndarray, r: float):
 
 def worker(reps_2d: int, reps_3d: int) -> dict:
     results = []
-    for name, (pos, r), reps in (("2D", case_2d(), reps_2d), ("3D", case_3d(), reps_3d)):
+    p3, r3 = case_3d()
+    # Same cloud with the particle order shuffled: neighbour indices are no
+    # longer spatially coherent (as after particles have mixed).
+    shuffled = (p3[np.random.default_rng(0).permutation(len(p3))], r3)
+    cases = (
+        ("2D", case_2d(), reps_2d),
+        ("3D", (p3, r3), reps_3d),
+        ("3D shuffled", shuffled, reps_3d),
+    )
+    for name, (pos, r), reps in cases:
         a = ours(pos, r)
         b = scipy_path(pos, r)
         same_edges = np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
@@ -211,7 +221,8 @@ single-threaded. Each thread count runs in its own process
 
 Cases (as `rust/neighbors/benches/radius_graph.rs`): 2D = 64x64 lattice,
 spacing 0.005, jitter +-0.1 spacing, R = 0.015; 3D = 32^3 lattice, spacing
-0.5/64, jitter +-0.1 spacing, R = 2.5 spacing.
+0.5/64, jitter +-0.1 spacing, R = 2.5 spacing; "3D shuffled" = the 3D cloud
+in a random particle order (indices no longer spatially coherent).
 
 {table}
 {chr(10).join(notes)}
