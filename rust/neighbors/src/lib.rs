@@ -247,15 +247,9 @@ struct CellList<const D: usize> {
     lo: [f64; D],
     inv_h: f64,
     dims: [usize; D],
-    /// Squared search reach in cell units, with slack for the f64 rounding of
-    /// the cell coordinates (infinite for a single cell of infinite size).
-    reach2_cells: f64,
-    /// `start[c]..start[c + 1]` is the slice of `sorted_*` in cell `c`.
+    /// `start[c]..start[c + 1]` is the slice of `sorted_idx` in cell `c`.
     start: Vec<u32>,
-    /// Coordinate `k` of the particles in cell order (structure of arrays;
-    /// ascending original index within a cell).
-    sorted: [Vec<f32>; D],
-    /// Original index of each sorted particle.
+    /// Original particle indices in cell order (ascending within a cell).
     sorted_idx: Vec<u32>,
 }
 
@@ -273,8 +267,8 @@ impl<const D: usize> CellList<D> {
             }
         }
         // Cell size h >= reach, grown while the grid would have too many
-        // cells (an outlier far away from the bulk of the particles).
-        // (Cell ids are u32.)
+        // cells (an outlier far away from the bulk of the particles). Cell
+        // ids are u32.
         let cap = (CELLS_PER_PARTICLE * n as f64 + 16.0).min(u32::MAX as f64 - 1.0);
         let count = |h: f64| -> ([f64; D], f64) {
             let mut dims = [1.0f64; D];
@@ -292,26 +286,14 @@ impl<const D: usize> CellList<D> {
             h *= grow;
             (dims_f, total) = count(h);
         }
-        let mut dims = [1usize; D];
-        for k in 0..D {
-            dims[k] = dims_f[k] as usize;
-        }
-        let (inv_h, reach2_cells) = if h.is_finite() {
-            // Cell coordinates u = (p - lo) / h carry an absolute f64 error of
-            // a few 1e-16 * u; 1e-12 * (max dim + 1) bounds it generously.
-            let max_dim = dims.iter().copied().max().unwrap_or(1) as f64;
-            let rc = reach / h + 1e-12 * (max_dim + 1.0);
-            (1.0 / h, rc * rc)
-        } else {
-            (0.0, f64::INFINITY)
-        };
         let mut cl = CellList {
             lo,
-            inv_h,
-            dims,
-            reach2_cells,
+            // Cell coordinates u = (p - lo) / h carry a relative f64 error of
+            // ~1e-16, far inside the 1e-4 margin of `reach`: two particles
+            // that pass the f32 test lie in the same or adjacent cells.
+            inv_h: if h.is_finite() { 1.0 / h } else { 0.0 },
+            dims: dims_f.map(|d| d as usize),
             start: Vec::new(),
-            sorted: std::array::from_fn(|_| Vec::new()),
             sorted_idx: Vec::new(),
         };
         let ncells = total as usize;
@@ -320,7 +302,7 @@ impl<const D: usize> CellList<D> {
         let cell_of: Vec<u32> = pos
             .par_iter()
             .with_min_len(4096)
-            .map(|p| cl.linear(&cl.coords(p).0) as u32)
+            .map(|p| cl.linear(&cl.coords(p)) as u32)
             .collect();
         let mut start = vec![0u32; ncells + 1];
         for &c in &cell_of {
@@ -336,27 +318,22 @@ impl<const D: usize> CellList<D> {
             fill[c as usize] += 1;
             sorted_idx[s] = i as u32;
         }
-        cl.sorted =
-            std::array::from_fn(|k| sorted_idx.iter().map(|&i| pos[i as usize][k]).collect());
         cl.start = start;
         cl.sorted_idx = sorted_idx;
         cl
     }
 
-    /// Cell coordinates of `p` and its fractional position in the cell (in
-    /// cell units). The one function that maps positions to cells.
+    /// Cell coordinates of `p`: the one function that maps positions to cells.
     #[inline(always)]
-    fn coords(&self, p: &[f32; D]) -> ([usize; D], [f64; D]) {
+    fn coords(&self, p: &[f32; D]) -> [usize; D] {
         let mut c = [0usize; D];
-        let mut t = [0.0f64; D];
         for k in 0..D {
             // u >= 0 (p >= lo, rounding is monotonic), so truncation is
             // floor; `as` saturates and the clamp guards the top edge.
             let u = (p[k] as f64 - self.lo[k]) * self.inv_h;
             c[k] = (u as usize).min(self.dims[k] - 1);
-            t[k] = u - c[k] as f64;
         }
-        (c, t)
+        c
     }
 
     #[inline(always)]
@@ -368,92 +345,99 @@ impl<const D: usize> CellList<D> {
         id
     }
 
-    /// Slices of `sorted_*` (as index ranges) that may hold particles within
-    /// `reach` of `p`: the 3^D cells around `p`, minus those whose box is
-    /// farther than `reach` from `p`, one contiguous range per row of cells
-    /// along axis 0.
-    fn ranges(&self, p: &[f32; D], out: &mut Vec<(usize, usize)>) {
+    fn unlinear(&self, mut id: usize) -> [usize; D] {
+        let mut c = [0usize; D];
+        for (ck, &dk) in c.iter_mut().zip(&self.dims) {
+            *ck = id % dk;
+            id /= dk;
+        }
+        c
+    }
+
+    /// Index ranges of `sorted_idx` covering the 3^D cells around cell `c`,
+    /// one contiguous range per row of cells along axis 0.
+    fn neighbourhood(&self, c: &[usize; D], out: &mut Vec<(usize, usize)>) {
         out.clear();
-        let (c, t) = self.coords(p);
-        // Squared gap from p to the neighbour cell at offset o-1 along k;
-        // None where that cell is outside the grid.
-        let gap2 = |k: usize, o: usize| -> Option<f64> {
-            match o {
-                0 => (c[k] > 0).then(|| t[k] * t[k]),
-                1 => Some(0.0),
-                _ => (c[k] + 1 < self.dims[k]).then(|| {
-                    let g = (1.0 - t[k]).max(0.0);
-                    g * g
-                }),
-            }
-        };
-        let r2 = self.reach2_cells;
         let nrows = 3usize.pow(D as u32 - 1);
         'rows: for r in 0..nrows {
-            let mut rc = c;
+            let mut rc = *c;
             let mut code = r;
-            let mut s2 = 0.0f64;
             for k in 1..D {
-                let o = code % 3;
+                let v = c[k] + code % 3; // neighbour coordinate + 1
                 code /= 3;
-                match gap2(k, o) {
-                    Some(g) => s2 += g,
-                    None => continue 'rows,
+                if v == 0 || v > self.dims[k] {
+                    continue 'rows;
                 }
-                rc[k] = c[k] + o - 1;
+                rc[k] = v - 1;
             }
-            if s2 > r2 {
-                continue;
-            }
-            let near = |o: usize| gap2(0, o).is_some_and(|g| s2 + g <= r2);
-            rc[0] = if near(0) { c[0] - 1 } else { c[0] };
+            rc[0] = c[0].saturating_sub(1);
             let a = self.start[self.linear(&rc)] as usize;
-            rc[0] = if near(2) { c[0] + 1 } else { c[0] };
+            rc[0] = (c[0] + 1).min(self.dims[0] - 1);
             let b = self.start[self.linear(&rc) + 1] as usize;
             if a < b {
                 out.push((a, b));
             }
         }
     }
+}
 
-    /// Writes to `out[len..]` the original index of every particle of
-    /// `sorted[a..b]` with `d·d <= rr` (`d = q - p`) and returns the new
-    /// `len`. `out` must have room for `b - a` more entries.
+/// The candidate senders shared by all receivers of one cell: the particles
+/// of its 3^D neighbourhood, in ascending index order, positions as SoA.
+struct Union<const D: usize> {
+    idx: Vec<u32>,
+    pos: [Vec<f32>; D],
+}
+
+impl<const D: usize> Union<D> {
+    fn build(
+        &mut self,
+        cells: &CellList<D>,
+        positions: &[[f32; D]],
+        c: &[usize; D],
+        ranges: &mut Vec<(usize, usize)>,
+        bits: &mut BitSorter,
+    ) {
+        cells.neighbourhood(c, ranges);
+        self.idx.clear();
+        for &(a, b) in ranges.iter() {
+            self.idx.extend_from_slice(&cells.sorted_idx[a..b]);
+        }
+        sort_distinct(&mut self.idx, bits);
+        for (k, col) in self.pos.iter_mut().enumerate() {
+            col.clear();
+            col.extend(self.idx.iter().map(|&j| positions[j as usize][k]));
+        }
+    }
+
+    /// Writes to `out[..len]` the candidates `j` with `d·d <= rr`
+    /// (`d = p_j - p`), in ascending order, and returns `len`. `out` must
+    /// hold at least `self.idx.len()` entries.
     ///
-    /// The squared distances are computed over blocks of [`BLOCK`] candidates
-    /// (vectorisable), then compacted branch-free.
+    /// The squared distances are computed over blocks of [`BLOCK`]
+    /// candidates (vectorisable), then compacted branch-free.
     #[inline(always)]
-    fn gather(
-        &self,
-        p: &[f32; D],
-        rr: f32,
-        (a, b): (usize, usize),
-        out: &mut [u32],
-        mut len: usize,
-        tmp: &mut Block,
-    ) -> usize {
-        let dd = &mut tmp.dd;
-        let mut s = a;
-        while s < b {
-            let n = (b - s).min(BLOCK);
-            let idx = &self.sorted_idx[s..s + n];
-            {
-                let cols: [&[f32]; D] = std::array::from_fn(|k| &self.sorted[k][s..s + n]);
-                let dd = &mut dd[..n];
-                for (t, x) in dd.iter_mut().enumerate() {
-                    let d = cols[0][t] - p[0];
-                    let mut acc = d * d;
-                    for k in 1..D {
-                        let d = cols[k][t] - p[k];
-                        acc += d * d;
-                    }
-                    *x = acc;
+    fn gather(&self, p: &[f32; D], rr: f32, out: &mut [u32], dd: &mut [f32; BLOCK]) -> usize {
+        let mut len = 0;
+        let total = self.idx.len();
+        let mut s = 0;
+        while s < total {
+            let n = (total - s).min(BLOCK);
+            let idx = &self.idx[s..s + n];
+            let cols: [&[f32]; D] = std::array::from_fn(|k| &self.pos[k][s..s + n]);
+            let dd = &mut dd[..n];
+            for (t, x) in dd.iter_mut().enumerate() {
+                let d = cols[0][t] - p[0];
+                let mut acc = d * d;
+                for k in 1..D {
+                    let d = cols[k][t] - p[k];
+                    acc += d * d;
                 }
-                // Branch-free compaction (the accept pattern is unpredictable).
-                for (&j, &x) in idx.iter().zip(dd.iter()) {
-                    out[len] = j;
-                    len += (x <= rr) as usize;
-                }
+                *x = acc;
+            }
+            // Branch-free compaction (the accept pattern is unpredictable).
+            for (&j, &x) in idx.iter().zip(dd.iter()) {
+                out[len] = j;
+                len += (x <= rr) as usize;
             }
             s += n;
         }
@@ -461,18 +445,30 @@ impl<const D: usize> CellList<D> {
     }
 }
 
-/// Per-block temporaries of [`CellList::gather`].
-struct Block {
-    dd: [f32; BLOCK],
-}
-
 /// Per-thread scratch buffers.
-#[derive(Default)]
-struct Scratch {
+struct Scratch<const D: usize> {
     ranges: Vec<(usize, usize)>,
+    union: Union<D>,
     buf: Vec<u32>,
     keyed: Vec<u64>,
     bits: BitSorter,
+    dd: [f32; BLOCK],
+}
+
+impl<const D: usize> Default for Scratch<D> {
+    fn default() -> Self {
+        Scratch {
+            ranges: Vec::new(),
+            union: Union {
+                idx: Vec::new(),
+                pos: std::array::from_fn(|_| Vec::new()),
+            },
+            buf: Vec::new(),
+            keyed: Vec::new(),
+            bits: BitSorter::default(),
+            dd: [0.0; BLOCK],
+        }
+    }
 }
 
 /// Words of the two-level bitmap of [`sort_distinct`] (spans below
@@ -568,11 +564,19 @@ fn sort_distinct(v: &mut [u32], bs: &mut BitSorter) {
     debug_assert_eq!(k, n, "indices must be distinct");
 }
 
-/// Phase-1 result of one chunk of receivers: their sorted sender lists.
+/// Phase-1 result of one chunk of receivers (a range of cell-order slots):
+/// their sorted sender lists, concatenated in slot order.
 struct Found {
     senders: Vec<u32>,
-    counts: Vec<u32>,
     dropped: usize,
+}
+
+/// Where the sender list of one receiver is: `found[chunk].senders[start..][..len]`.
+#[derive(Clone, Copy, Default)]
+struct Loc {
+    chunk: u32,
+    len: u32,
+    start: usize,
 }
 
 /// Splits `v` into consecutive pieces of the given lengths (sum <= len).
@@ -586,10 +590,9 @@ fn split_by<'a, T>(mut v: &'a mut [T], lens: &[usize]) -> Vec<&'a mut [T]> {
     out
 }
 
-/// Output slices of one chunk of receivers.
+/// Output slices of one chunk of receivers (in index order).
 struct OutChunk<'a, const D: usize, I> {
     first: usize,
-    found: &'a Found,
     s: &'a mut [I],
     r: &'a mut [I],
     dp: &'a mut [[f32; D]],
@@ -597,17 +600,17 @@ struct OutChunk<'a, const D: usize, I> {
 }
 
 impl<const D: usize, I: EdgeIndex> OutChunk<'_, D, I> {
-    fn fill(self, positions: &[[f32; D]]) {
-        let senders = &self.found.senders;
-        for (j, dst) in senders.iter().zip(self.s.iter_mut()) {
-            *dst = I::from_u32(*j);
-        }
+    fn fill(self, positions: &[[f32; D]], found: &[Found], loc: &[Loc]) {
         let mut e = 0;
-        for (i, &cnt) in (self.first..).zip(&self.found.counts) {
-            let end = e + cnt as usize;
+        for (i, l) in (self.first..).zip(loc) {
+            let end = e + l.len as usize;
+            let list = &found[l.chunk as usize].senders[l.start..l.start + l.len as usize];
+            for (dst, &j) in self.s[e..end].iter_mut().zip(list) {
+                *dst = I::from_u32(j);
+            }
             self.r[e..end].fill(I::from_u32(i as u32));
             let pi = &positions[i];
-            for ((&j, dp), ds) in senders[e..end]
+            for ((&j, dp), ds) in list
                 .iter()
                 .zip(&mut self.dp[e..end])
                 .zip(&mut self.ds[e..end])
@@ -634,6 +637,8 @@ impl<const D: usize, I: EdgeIndex> OutChunk<'_, D, I> {
 pub struct Neighbors<'a, const D: usize> {
     positions: &'a [[f32; D]],
     found: Vec<Found>,
+    /// Per receiver (original index): its sender list.
+    loc: Vec<Loc>,
     num_edges: usize,
     dropped: usize,
 }
@@ -641,6 +646,10 @@ pub struct Neighbors<'a, const D: usize> {
 impl<'a, const D: usize> Neighbors<'a, D> {
     /// Finds the sorted neighbour list of every receiver (see
     /// [`radius_graph`] for the criterion, order and cap).
+    ///
+    /// Receivers are processed cell by cell: the candidates of a cell (its
+    /// 3^D neighbourhood) are gathered and sorted by index once, so each
+    /// receiver's accepted senders come out already in ascending order.
     ///
     /// # Errors
     /// As [`radius_graph`].
@@ -668,6 +677,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         let mut out = Neighbors {
             positions,
             found: Vec::new(),
+            loc: Vec::new(),
             num_edges: 0,
             dropped: 0,
         };
@@ -689,41 +699,49 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         let cap = params.max_neighbors;
         let self_edges = params.self_edges;
 
-        let find = |scratch: &mut Scratch, lo: usize, hi: usize| -> Found {
+        // Chunk `c` handles the receivers in cell-order slots
+        // [c * CHUNK, (c + 1) * CHUNK); a cell cut by a chunk boundary builds
+        // its candidate union in both chunks.
+        let find = |scratch: &mut Scratch<D>, lo: usize, hi: usize| -> (Found, Vec<u32>) {
             let mut found = Found {
                 senders: Vec::new(),
-                counts: Vec::with_capacity(hi - lo),
                 dropped: 0,
             };
+            let mut lens = Vec::with_capacity(hi - lo);
             let Scratch {
                 ranges,
+                union,
                 buf,
                 keyed,
                 bits,
+                dd,
             } = scratch;
-            let mut block = Block { dd: [0.0; BLOCK] };
-            for i in lo..hi {
-                let pi = &positions[i];
-                cells.ranges(pi, ranges);
-                let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
-                if buf.len() < total {
-                    buf.resize(total, 0);
-                }
-                let mut len = 0;
-                for &range in ranges.iter() {
-                    len = cells.gather(pi, rr, range, buf, len, &mut block);
-                }
-                if !self_edges {
-                    // The receiver always finds itself (d = 0); drop it.
-                    if let Some(pos) = buf[..len].iter().position(|&j| j == i as u32) {
-                        len -= 1;
-                        buf.swap(pos, len);
+            // First cell with a slot >= lo.
+            let mut cell = cells.start.partition_point(|&s| (s as usize) <= lo) - 1;
+            let mut slot = lo;
+            while slot < hi {
+                let cell_end = (cells.start[cell + 1] as usize).min(hi);
+                if slot < cell_end {
+                    union.build(&cells, positions, &cells.unlinear(cell), ranges, bits);
+                    if buf.len() < union.idx.len() {
+                        buf.resize(union.idx.len(), 0);
                     }
                 }
-                let kept = match cap {
-                    Some(k) if len > k => {
-                        // Rank by (reported distance, index): the distance
-                        // is >= 0, so its bits order like its value.
+                for &iu in &cells.sorted_idx[slot..cell_end] {
+                    let pi = &positions[iu as usize];
+                    let mut len = union.gather(pi, rr, buf, dd);
+                    if !self_edges {
+                        // The receiver always finds itself (d = 0).
+                        if let Ok(pos) = buf[..len].binary_search(&iu) {
+                            buf.copy_within(pos + 1..len, pos);
+                            len -= 1;
+                        }
+                    }
+                    if let Some(k) = cap
+                        && len > k
+                    {
+                        // Keep the k nearest by (reported distance, index):
+                        // the distance is >= 0, so its bits order like it.
                         keyed.clear();
                         keyed.extend(buf[..len].iter().map(|&j| {
                             let dist = dot(&sub(&positions[j as usize], pi)).sqrt();
@@ -733,25 +751,20 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                         for (dst, &key) in buf.iter_mut().zip(&keyed[..k]) {
                             *dst = key as u32;
                         }
+                        buf[..k].sort_unstable();
                         found.dropped += len - k;
-                        &mut buf[..k]
+                        len = k;
                     }
-                    _ => &mut buf[..len],
-                };
-                sort_distinct(kept, bits);
-                found.senders.extend_from_slice(kept);
-                found.counts.push(kept.len() as u32);
-                if i == lo + 15 {
-                    // Size the chunk's list from its first receivers (saves
-                    // the reallocation copies; a wrong guess only costs them).
-                    let est = found.senders.len() / 16 * (hi - i - 1) * 9 / 8;
-                    found.senders.reserve(est);
+                    found.senders.extend_from_slice(&buf[..len]);
+                    lens.push(len as u32);
                 }
+                slot = cell_end;
+                cell += 1;
             }
-            found
+            (found, lens)
         };
         let nchunks = n.div_ceil(CHUNK);
-        out.found = if nchunks == 1 {
+        let results: Vec<(Found, Vec<u32>)> = if nchunks == 1 {
             vec![find(&mut Scratch::default(), 0, n)]
         } else {
             (0..nchunks)
@@ -761,8 +774,26 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 })
                 .collect()
         };
-        out.num_edges = out.found.iter().map(|f| f.senders.len()).sum();
-        out.dropped = out.found.iter().map(|f| f.dropped).sum();
+
+        // Where each receiver's list is, by original index.
+        let mut loc = vec![Loc::default(); n];
+        let mut slot = 0;
+        for (c, (found, lens)) in results.iter().enumerate() {
+            let mut start = 0;
+            for &len in lens {
+                loc[cells.sorted_idx[slot] as usize] = Loc {
+                    chunk: c as u32,
+                    len,
+                    start,
+                };
+                start += len as usize;
+                slot += 1;
+            }
+            out.dropped += found.dropped;
+            out.num_edges += found.senders.len();
+        }
+        out.found = results.into_iter().map(|(f, _)| f).collect();
+        out.loc = loc;
         Ok(out)
     }
 
@@ -802,31 +833,42 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 format!("slices must have length {e} (the number of edges), got {lens:?}"),
             ));
         }
-        let lens: Vec<usize> = self.found.iter().map(|f| f.senders.len()).collect();
+        // Receivers in index order, CHUNK at a time.
+        let lens: Vec<usize> = self
+            .loc
+            .chunks(CHUNK)
+            .map(|c| c.iter().map(|l| l.len as usize).sum())
+            .collect();
         let mut s = split_by(senders, &lens).into_iter();
         let mut r = split_by(receivers, &lens).into_iter();
         let mut dp = split_by(displacement, &lens).into_iter();
         let mut ds = split_by(distance, &lens).into_iter();
-        let mut parts = Vec::with_capacity(self.found.len());
-        for (c, f) in self.found.iter().enumerate() {
+        let mut parts = Vec::with_capacity(lens.len());
+        for c in 0..lens.len() {
             if let (Some(s), Some(r), Some(dp), Some(ds)) =
                 (s.next(), r.next(), dp.next(), ds.next())
             {
-                parts.push(OutChunk {
-                    first: c * CHUNK,
-                    found: f,
-                    s,
-                    r,
-                    dp,
-                    ds,
-                });
+                parts.push((
+                    OutChunk {
+                        first: c * CHUNK,
+                        s,
+                        r,
+                        dp,
+                        ds,
+                    },
+                    c,
+                ));
             }
         }
-        let positions = self.positions;
+        let (positions, found) = (self.positions, &self.found[..]);
+        let run = |(o, c): (OutChunk<'_, D, I>, usize)| {
+            let loc = &self.loc[c * CHUNK..((c + 1) * CHUNK).min(self.loc.len())];
+            o.fill(positions, found, loc);
+        };
         if parts.len() <= 1 {
-            parts.into_iter().for_each(|o| o.fill(positions));
+            parts.into_iter().for_each(run);
         } else {
-            parts.into_par_iter().for_each(|o| o.fill(positions));
+            parts.into_par_iter().for_each(run);
         }
         Ok(())
     }
