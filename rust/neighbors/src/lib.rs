@@ -36,13 +36,15 @@
 //! A uniform cell grid with cell size `>= r` spans the bounding box of the
 //! data (particles may be anywhere); if that grid would have more than about
 //! `4 N` cells (an outlier far away), the cell size is grown. Particles are
-//! counting-sorted into the cells (CSR). Each receiver scans the `3^D`
-//! surrounding cells (those farther than `r` from it are skipped; the cells of
-//! a row along axis 0 are contiguous), tests the candidates in vectorisable
-//! blocks and sorts the accepted senders. Phase 1 ([`Neighbors::search`])
-//! finds the sorted neighbour lists; phase 2 ([`Neighbors::write`]) writes
-//! the per-edge arrays in parallel, straight into caller-provided or freshly
-//! allocated memory.
+//! counting-sorted into the cells (CSR). Receivers are processed cell by
+//! cell: the candidates of a cell (the particles of its `3^D` neighbourhood;
+//! the cells of a row along axis 0 are contiguous) are gathered, sorted by
+//! index once (bitmap or comparison sort) and laid out as SoA, then each
+//! receiver of the cell tests them in vectorisable blocks and compacts the
+//! accepted ones, which come out in ascending sender order. Phase 1
+//! ([`Neighbors::search`]) finds these lists; phase 2
+//! ([`Neighbors::write`]) writes the per-edge arrays in receiver order, in
+//! parallel, straight into caller-provided or freshly allocated memory.
 //!
 //! # Determinism
 //!
@@ -757,6 +759,12 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                     }
                     found.senders.extend_from_slice(&buf[..len]);
                     lens.push(len as u32);
+                    if lens.len() == 16 {
+                        // Size the chunk's list from its first receivers
+                        // (saves reallocation copies; a bad guess costs them).
+                        let est = found.senders.len() / 16 * (hi - lo - 16) * 9 / 8;
+                        found.senders.reserve(est);
+                    }
                 }
                 slot = cell_end;
                 cell += 1;
