@@ -301,11 +301,13 @@ impl<const D: usize> CellList<D> {
         let ncells = total as usize;
 
         // Counting sort by cell id (stable: ascending index within a cell).
-        let cell_of: Vec<u32> = pos
-            .par_iter()
-            .with_min_len(4096)
-            .map(|p| cl.linear(&cl.coords(p)) as u32)
-            .collect();
+        let cell_id = |p: &[f32; D]| cl.linear(&cl.coords(p)) as u32;
+        // (Cheap per particle: not worth waking the pool for small inputs.)
+        let cell_of: Vec<u32> = if n < 1 << 16 {
+            pos.iter().map(cell_id).collect()
+        } else {
+            pos.par_iter().with_min_len(1 << 14).map(cell_id).collect()
+        };
         let mut start = vec![0u32; ncells + 1];
         for &c in &cell_of {
             start[c as usize + 1] += 1;
