@@ -493,3 +493,41 @@ fn write_into_caller_slices() {
     let u: Graph<3> = radius_graph(&pos, &p).unwrap();
     assert!(u.senders.iter().zip(&want_s).all(|(a, b)| *a as i64 == *b));
 }
+
+#[test]
+fn parallel_path_matches_brute_force() {
+    // Above the serial thresholds (8192 particles, 2^18 edges): chunks of
+    // receivers cut cells, the write phase runs in parallel.
+    let mut s = 3u32;
+    let mut pos: Vec<[f32; 2]> = (0..96 * 96)
+        .map(|i| {
+            let mut j = [0.0f32; 2];
+            for c in &mut j {
+                s = s.wrapping_mul(1664525).wrapping_add(1013904223);
+                *c = ((s >> 8) as f32 / (1u32 << 24) as f32 - 0.5) * 0.3;
+            }
+            [(i % 96) as f32 + j[0], (i / 96) as f32 + j[1]]
+        })
+        .collect();
+    // Shuffle half of the particles so both index-coherent and incoherent
+    // neighbourhoods occur.
+    for i in (1..pos.len() / 2).rev() {
+        s = s.wrapping_mul(1664525).wrapping_add(1013904223);
+        pos.swap(i, (s >> 8) as usize % (i + 1));
+    }
+    let full = GraphParams {
+        radius: 3.2,
+        self_edges: true,
+        max_neighbors: None,
+    };
+    assert!(radius_graph(&pos, &full).unwrap().num_edges() > 1 << 18);
+    check(&pos, &full);
+    check(
+        &pos,
+        &GraphParams {
+            radius: 3.2,
+            self_edges: false,
+            max_neighbors: Some(20),
+        },
+    );
+}
