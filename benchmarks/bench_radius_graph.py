@@ -18,7 +18,7 @@ it the two implementations are timed alternately (interleaved repeats) and the
 medians are compared.
 
 Usage:
-    python benchmarks/bench_radius_graph.py [--threads 1 2] [--reps-2d 41] [--reps-3d 15]
+    python benchmarks/bench_radius_graph.py [--threads 1 2] [--reps-2d 61] [--reps-3d 21]
         [--out benchmarks/results/radius_graph.md]
 """
 
@@ -147,8 +147,8 @@ def cpu_model() -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--reps-2d", type=int, default=41)
-    ap.add_argument("--reps-3d", type=int, default=15)
+    ap.add_argument("--reps-2d", type=int, default=61)
+    ap.add_argument("--reps-3d", type=int, default=21)
     ap.add_argument("--out", default=None, help="markdown file to write the table to")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
