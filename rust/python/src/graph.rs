@@ -3,6 +3,7 @@
 use hybridmpm_neighbors::{GraphError, GraphParams, Neighbors};
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyUntypedArray};
+use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 
@@ -70,10 +71,12 @@ fn run<'py, const D: usize>(
     let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
     let distance = empty(py, (e,), "float32")?.cast_into::<PyArray1<f32>>()?;
     {
-        let mut s = senders.readwrite();
-        let mut r = receivers.readwrite();
-        let mut dp = displacement.readwrite();
-        let mut ds = distance.readwrite();
+        // Fresh arrays: borrowing them cannot fail, but do not panic if it did.
+        let borrow = |e: numpy::BorrowError| PyRuntimeError::new_err(e.to_string());
+        let mut s = senders.try_readwrite().map_err(borrow)?;
+        let mut r = receivers.try_readwrite().map_err(borrow)?;
+        let mut dp = displacement.try_readwrite().map_err(borrow)?;
+        let mut ds = distance.try_readwrite().map_err(borrow)?;
         let (s, r, dp, ds) = (
             s.as_slice_mut()?,
             r.as_slice_mut()?,
