@@ -197,6 +197,13 @@ def main() -> None:
             nproc = int(subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip())
         except (OSError, ValueError):
             pass
+        try:
+            commit = subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                cwd=os.path.dirname(os.path.abspath(__file__)),
+            ).stdout.strip() or "unknown"
+        except OSError:
+            commit = "unknown"
         md = f"""# Radius graph: hybridmpm vs scipy cKDTree
 
 Produced by:
@@ -208,7 +215,7 @@ Produced by:
 - date: {datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
 - machine: `nproc` = {nproc}, CPU: {cpu_model()}
 - load average (1/5/15 min) before: {load_before[0]:.2f} / {load_before[1]:.2f} / {load_before[2]:.2f}, after: {load_after[0]:.2f} / {load_after[1]:.2f} / {load_after[2]:.2f}
-- Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}
+- Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, hybridmpm commit {commit}
 
 Both sides return the same arrays: int64 senders/receivers with self-edges,
 sorted by receiver then sender, float32 displacement `p[s] - p[r]` [E, D] and
@@ -218,6 +225,10 @@ edges (`np.concatenate`) + `np.lexsort` + numpy displacement / distance; it is
 single-threaded. Each thread count runs in its own process
 (`RAYON_NUM_THREADS`, `OPENBLAS_NUM_THREADS=1`); inside it the two are timed alternately
 ({args.reps_2d} repeats for 2D, {args.reps_3d} for 3D) and the medians compared.
+Timings include everything a caller pays: for hybridmpm the input copy and
+the allocation and first touch of the output arrays, for scipy the tree
+build. On a shared machine (see the load average) repeated runs vary; the
+"min" column compares the least disturbed repeats.
 
 Cases (as `rust/neighbors/benches/radius_graph.rs`): 2D = 64x64 lattice,
 spacing 0.005, jitter +-0.1 spacing, R = 0.015; 3D = 32^3 lattice, spacing
