@@ -6,11 +6,13 @@
 use pyo3::prelude::*;
 
 mod errors;
+mod graph;
 mod mpm;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     mpm::register(m)?;
+    graph::register(m)?;
     Ok(())
 }

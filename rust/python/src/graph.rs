@@ -1,0 +1,223 @@
+//! `hybridmpm._core.radius_graph`: binding of the `hybridmpm-neighbors` crate.
+
+use hybridmpm_neighbors::{GraphError, GraphParams, Neighbors};
+use numpy::prelude::*;
+use numpy::{PyArray1, PyArray2, PyUntypedArray};
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
+
+use crate::errors::invalid_input;
+
+type Edges<'py> = (
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray2<f32>>,
+    Bound<'py, PyArray1<f32>>,
+);
+
+/// Copies rows of a float32 [N, D] array (any strides) into `[f32; D]`.
+fn rows<const D: usize>(arr: &Bound<'_, PyArray2<f32>>) -> PyResult<Vec<[f32; D]>> {
+    let ro = arr
+        .try_readonly()
+        .map_err(|e| invalid_input(arr.py(), "positions", format!("cannot be read: {e}")))?;
+    // `as_slice` also accepts Fortran order: take the fast path only for C order.
+    if arr.is_c_contiguous()
+        && let Ok(flat) = ro.as_slice()
+    {
+        return Ok(flat.as_chunks::<D>().0.to_vec());
+    }
+    let view = ro.as_array();
+    Ok(view
+        .rows()
+        .into_iter()
+        .map(|row| {
+            let mut p = [0.0f32; D];
+            for (dst, src) in p.iter_mut().zip(row.iter()) {
+                *dst = *src;
+            }
+            p
+        })
+        .collect())
+}
+
+/// `numpy.empty(shape, dtype)`: numpy's allocator advises the kernel to back
+/// large arrays with huge pages, which makes writing the edge arrays (tens of
+/// MB) markedly cheaper than first-touching fresh 4 KiB pages.
+fn empty<'py>(
+    py: Python<'py>,
+    shape: impl IntoPyObject<'py>,
+    dtype: &str,
+) -> PyResult<Bound<'py, PyAny>> {
+    static EMPTY: PyOnceLock<Py<PyAny>> = PyOnceLock::new();
+    EMPTY.import(py, "numpy", "empty")?.call1((shape, dtype))
+}
+
+fn run<'py, const D: usize>(
+    py: Python<'py>,
+    arr: &Bound<'py, PyArray2<f32>>,
+    params: GraphParams,
+) -> PyResult<Edges<'py>> {
+    let pos = rows::<D>(arr)?;
+    let to_py = |e: GraphError| match e {
+        GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
+    };
+    let nb = py
+        .detach(|| Neighbors::search(&pos, &params))
+        .map_err(to_py)?;
+    let e = nb.num_edges();
+    let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
+    let distance = empty(py, (e,), "float32")?.cast_into::<PyArray1<f32>>()?;
+    {
+        // Fresh arrays: borrowing them cannot fail, but do not panic if it did.
+        let borrow = |e: numpy::BorrowError| PyRuntimeError::new_err(e.to_string());
+        let mut s = senders.try_readwrite().map_err(borrow)?;
+        let mut r = receivers.try_readwrite().map_err(borrow)?;
+        let mut dp = displacement.try_readwrite().map_err(borrow)?;
+        let mut ds = distance.try_readwrite().map_err(borrow)?;
+        let (s, r, dp, ds) = (
+            s.as_slice_mut()?,
+            r.as_slice_mut()?,
+            dp.as_slice_mut()?,
+            ds.as_slice_mut()?,
+        );
+        let dp = dp.as_chunks_mut::<D>().0;
+        py.detach(|| nb.write(s, r, dp, ds)).map_err(to_py)?;
+    }
+    Ok((senders, receivers, displacement, distance))
+}
+
+/// Radius graph of a particle cloud (GNS neighbour search).
+///
+/// Connects every pair of particles at most ``radius`` apart and returns the
+/// directed edges with their features, as used by Graph Network-based
+/// Simulators (Sanchez-Gonzalez et al., "Learning to Simulate Complex Physics
+/// with Graph Networks", ICML 2020, App. A: edges between particles within the
+/// connectivity radius R; edge feature = relative displacement and its norm).
+///
+/// Parameters
+/// ----------
+/// positions : numpy.ndarray, float32, shape (N, D), D in {2, 3}
+///     Particle positions (any length unit; any strides). N may be 0.
+/// radius : float, default 0.015
+///     Connectivity radius R (same unit as ``positions``), finite and > 0;
+///     rounded to float32.
+/// self_edges : bool, default True
+///     Include the self-edge (i, i) of every particle (displacement 0).
+/// max_neighbors : int or None, default None
+///     If given (>= 1), each receiver keeps only its ``max_neighbors`` nearest
+///     senders (ties: lower sender index; a self-edge counts, at distance 0),
+///     still listed by ascending sender. The removed edges are not returned:
+///     compare with ``np.bincount`` of an uncapped call's receivers to count
+///     them.
+///
+/// Returns
+/// -------
+/// senders : numpy.ndarray, int64, shape (E,)
+/// receivers : numpy.ndarray, int64, shape (E,)
+///     Edge e goes from particle ``senders[e]`` to ``receivers[e]``. Edges are
+///     sorted by receiver, then by sender (both ascending).
+/// displacement : numpy.ndarray, float32, shape (E, D)
+///     ``positions[senders] - positions[receivers]`` (position units).
+/// distance : numpy.ndarray, float32, shape (E,)
+///     Euclidean norm of ``displacement`` (position units).
+///
+/// The pair (j, i) is an edge iff, in float32, ``d = p[j] - p[i]`` satisfies
+/// ``d[0]*d[0] + d[1]*d[1] (+ d[2]*d[2]) <= R*R`` (i.e. distance <= R, like
+/// ``scipy.spatial.cKDTree.query_ball_point``), so the graph is symmetric.
+/// Computed on the CPU with a cell list over the data's bounding box (cell
+/// size >= R; particles may be anywhere) in parallel over receivers; the
+/// output is bitwise identical for any number of threads
+/// (``RAYON_NUM_THREADS``). The GIL is released during the computation.
+///
+/// Raises
+/// ------
+/// hybridmpm.errors.InvalidInputError (a ValueError)
+///     ``positions`` not a float32 array of shape (N, 2) or (N, 3), or with a
+///     NaN / inf entry (field ``"positions"``); ``radius`` not finite and > 0
+///     (``"radius"``); ``max_neighbors`` < 1 (``"max_neighbors"``).
+#[pyfunction]
+#[pyo3(signature = (positions, radius = 0.015, *, self_edges = true, max_neighbors = None))]
+fn radius_graph<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    radius: f64,
+    self_edges: bool,
+    max_neighbors: Option<i64>,
+) -> PyResult<Edges<'py>> {
+    let expect = "must be a numpy.ndarray of dtype float32 and shape (N, 2) or (N, 3)";
+    let Ok(untyped) = positions.cast::<PyUntypedArray>() else {
+        let ty = positions.get_type().name()?;
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got {ty}"),
+        ));
+    };
+    let dtype = untyped.dtype();
+    if !dtype.is_equiv_to(&numpy::dtype::<f32>(py)) {
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got dtype {dtype}"),
+        ));
+    }
+    let shape = untyped.shape();
+    if shape.len() != 2 || !(shape[1] == 2 || shape[1] == 3) {
+        let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+        let tuple = if dims.len() == 1 {
+            format!("({},)", dims[0])
+        } else {
+            format!("({})", dims.join(", "))
+        };
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got shape {tuple}"),
+        ));
+    }
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(invalid_input(
+            py,
+            "radius",
+            format!("must be finite and > 0, got {radius}"),
+        ));
+    }
+    let r32 = radius as f32;
+    if !(r32.is_finite() && r32 > 0.0) {
+        return Err(invalid_input(
+            py,
+            "radius",
+            format!("{radius} is not representable as a positive finite float32"),
+        ));
+    }
+    let max_neighbors = match max_neighbors {
+        None => None,
+        Some(k) if k >= 1 => Some(usize::try_from(k).unwrap_or(usize::MAX)),
+        Some(k) => {
+            return Err(invalid_input(
+                py,
+                "max_neighbors",
+                format!("must be >= 1 or None, got {k}"),
+            ));
+        }
+    };
+    let params = GraphParams {
+        radius: r32,
+        self_edges,
+        max_neighbors,
+    };
+    let arr = positions.cast::<PyArray2<f32>>()?;
+    if shape[1] == 2 {
+        run::<2>(py, arr, params)
+    } else {
+        run::<3>(py, arr, params)
+    }
+}
+
+/// Adds `radius_graph` to the module.
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(radius_graph, m)?)
+}
