@@ -264,3 +264,28 @@ def test_nan_message_names_index():
     pos[3, 2] = np.nan
     with pytest.raises(ValueError, match=r"positions.*\[3\]"):
         radius_graph(pos, 0.1)
+
+
+def _graph_in_child(x, q):
+    from hybridmpm.graph import radius_graph as rg
+
+    s, r, _, _ = rg(x, 0.02)
+    q.put(len(s))
+
+
+def test_radius_graph_in_a_forked_child():
+    """The parallel path (≥ 8192 particles) works in a child forked after the
+    parent used it (rayon's global pool would not survive the fork)."""
+    import multiprocessing as mp
+
+    from hybridmpm.graph import radius_graph as rg
+
+    x = np.random.default_rng(0).uniform(0, 1, (20000, 3)).astype(np.float32)
+    n_parent = len(rg(x, 0.02)[0])
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_graph_in_child, args=(x, q))
+    p.start()
+    p.join(timeout=60)
+    assert p.exitcode == 0, "child hung or crashed"
+    assert q.get(timeout=5) == n_parent

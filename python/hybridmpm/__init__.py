@@ -6,6 +6,7 @@ graph and the grid-mass metric; this package gives them a typed API.
 
 from hybridmpm import _core
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.graph import radius_graph
 from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
 
 __version__: str = _core.__version__
@@ -26,4 +27,5 @@ __all__ = [
     "WaterParams",
     "__version__",
     "grid_mass",
+    "radius_graph",
 ]

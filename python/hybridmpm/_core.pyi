@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "grid_mass"]
+__all__ = ["__version__", "MpmSolver", "grid_mass", "radius_graph"]
 
 __version__: str
 
@@ -47,3 +47,11 @@ class MpmSolver:
 def grid_mass(
     positions: npt.NDArray[np.float32], n_grid: int, masses: npt.NDArray[np.float32] | None = None
 ) -> npt.NDArray[np.float32]: ...
+
+def radius_graph(
+    positions: npt.NDArray[np.float32],
+    radius: float = 0.015,
+    *,
+    self_edges: bool = True,
+    max_neighbors: int | None = None,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...

@@ -63,7 +63,7 @@ fn run<'py, const D: usize>(
         GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
     };
     let nb = py
-        .detach(|| Neighbors::search(&pos, &params))
+        .detach(|| crate::pool::install(|| Neighbors::search(&pos, &params)))
         .map_err(to_py)?;
     let e = nb.num_edges();
     let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
@@ -84,7 +84,7 @@ fn run<'py, const D: usize>(
             ds.as_slice_mut()?,
         );
         let dp = dp.as_chunks_mut::<D>().0;
-        py.detach(|| nb.write(s, r, dp, ds)).map_err(to_py)?;
+        py.detach(|| crate::pool::install(|| nb.write(s, r, dp, ds))).map_err(to_py)?;
     }
     Ok((senders, receivers, displacement, distance))
 }

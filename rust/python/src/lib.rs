@@ -8,6 +8,7 @@ use pyo3::prelude::*;
 mod errors;
 mod graph;
 mod mpm;
+mod pool;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {

@@ -1,0 +1,31 @@
+//! A fork-safe thread pool for the module-level functions.
+//!
+//! rayon's global pool does not survive `fork` (PyTorch DataLoader workers
+//! and `multiprocessing` fork): a child would wait forever on threads that do
+//! not exist in it. Module functions therefore run in this pool, rebuilt when
+//! the process id changes. (Each `MpmSolver` has its own pool with the same guard.)
+
+use std::sync::{Arc, Mutex};
+
+static POOL: Mutex<Option<(u32, Arc<rayon::ThreadPool>)>> = Mutex::new(None);
+
+fn current() -> Option<Arc<rayon::ThreadPool>> {
+    let pid = std::process::id();
+    let mut guard = POOL.lock().unwrap_or_else(|e| e.into_inner());
+    match &*guard {
+        Some((p, pool)) if *p == pid => Some(pool.clone()),
+        _ => {
+            let pool = Arc::new(rayon::ThreadPoolBuilder::new().build().ok()?);
+            *guard = Some((pid, pool.clone()));
+            Some(pool)
+        }
+    }
+}
+
+/// Run `f` inside the process's pool (or on the calling thread if no pool can start).
+pub fn install<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    match current() {
+        Some(pool) => pool.install(f),
+        None => f(),
+    }
+}
