@@ -148,88 +148,113 @@ fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
     Svd { u: rot * v, sigma: SVector::<f32, 2>::new(l1, l2), v }
 }
 
+#[inline]
 fn svd3(m: &SMatrix<f32, 3, 3>) -> Svd<3> {
-    // Jacobi eigen-decomposition of the symmetric FᵀF in f64 gives V and σ²;
-    // U = F V Σ⁻¹, re-orthonormalised for tiny σ.
-    let md: SMatrix<f64, 3, 3> = m.cast::<f64>();
-    let ata = md.transpose() * md;
-    let (evals, v) = jacobi_eigen3(ata);
-    let mut sigma = SVector::<f64, 3>::zeros();
+    // Jacobi eigen-decomposition of the symmetric FᵀF gives V and σ²;
+    // U = F V Σ⁻¹, completed to an orthonormal basis where σ is tiny.
+    let f = [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]];
+    let mut a = [[0.0f32; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            a[i][j] = f[0][i] * f[0][j] + f[1][i] * f[1][j] + f[2][i] * f[2][j];
+        }
+    }
+    let (evals, v) = jacobi_eigen3(a);
+    let mut sigma = [0.0f32; 3];
     for i in 0..3 {
         sigma[i] = evals[i].max(0.0).sqrt();
     }
-    let mut u = md * v;
-    for i in 0..3 {
-        let n = u.column(i).norm();
-        if n > 1e-12 {
-            let col = u.column(i) / n;
-            u.set_column(i, &col);
+    // U columns: F v_i / σ_i
+    let mut u = [[0.0f32; 3]; 3]; // u[col][row]
+    for c in 0..3 {
+        for r in 0..3 {
+            u[c][r] = f[r][0] * v[0][c] + f[r][1] * v[1][c] + f[r][2] * v[2][c];
         }
     }
-    // Fix degenerate columns by completing an orthonormal basis.
-    let c0 = u.column(0).into_owned();
-    let c1 = u.column(1).into_owned();
-    if sigma[2] < 1e-9 * sigma[0].max(1e-30) || (u.column(2).norm() - 1.0).abs() > 1e-6 {
-        let c2 = c0.cross(&c1);
-        let n = c2.norm();
-        if n > 1e-12 {
-            u.set_column(2, &(c2 / n));
+    let norm = |x: &[f32; 3]| (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+    for c in 0..2 {
+        let n = norm(&u[c]);
+        if n > 1e-20 {
+            for r in 0..3 {
+                u[c][r] /= n;
+            }
         }
     }
-    Svd { u: u.cast::<f32>(), sigma: sigma.cast::<f32>(), v: v.cast::<f32>() }
+    // third column from the first two (right-handed); flip σ3 if F has det < 0
+    let cross = [
+        u[0][1] * u[1][2] - u[0][2] * u[1][1],
+        u[0][2] * u[1][0] - u[0][0] * u[1][2],
+        u[0][0] * u[1][1] - u[0][1] * u[1][0],
+    ];
+    let dot = cross[0] * u[2][0] + cross[1] * u[2][1] + cross[2] * u[2][2];
+    let cn = norm(&cross);
+    if cn > 1e-20 {
+        let sgn = if dot < 0.0 { -1.0 } else { 1.0 };
+        for r in 0..3 {
+            u[2][r] = sgn * cross[r] / cn;
+        }
+    }
+    let um = SMatrix::<f32, 3, 3>::from_fn(|r, c| u[c][r]);
+    let vm = SMatrix::<f32, 3, 3>::from_fn(|r, c| v[r][c]);
+    Svd { u: um, sigma: SVector::<f32, 3>::new(sigma[0], sigma[1], sigma[2]), v: vm }
 }
 
-/// Cyclic Jacobi eigen-decomposition of a symmetric 3×3 matrix; eigenvalues
-/// sorted in decreasing order, eigenvectors as the columns of the returned matrix.
-fn jacobi_eigen3(mut a: SMatrix<f64, 3, 3>) -> (SVector<f64, 3>, SMatrix<f64, 3, 3>) {
-    let mut v = SMatrix::<f64, 3, 3>::identity();
-    for _sweep in 0..12 {
-        let off = a[(0, 1)].powi(2) + a[(0, 2)].powi(2) + a[(1, 2)].powi(2);
-        let scale = a[(0, 0)].powi(2) + a[(1, 1)].powi(2) + a[(2, 2)].powi(2);
-        if off <= 1e-30 * scale.max(1e-300) {
+/// Cyclic Jacobi eigen-decomposition of a symmetric 3×3 matrix (f32): returns
+/// eigenvalues in decreasing order and eigenvectors as columns (`v[row][col]`).
+#[inline]
+fn jacobi_eigen3(mut a: [[f32; 3]; 3]) -> ([f32; 3], [[f32; 3]; 3]) {
+    let mut v = [[1.0f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    for _sweep in 0..8 {
+        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+        let diag = a[0][0] * a[0][0] + a[1][1] * a[1][1] + a[2][2] * a[2][2];
+        if off <= 1e-14 * diag || off == 0.0 {
             break;
         }
         for (p, q) in [(0usize, 1usize), (0, 2), (1, 2)] {
-            let apq = a[(p, q)];
-            if apq.abs() < 1e-300 {
+            let apq = a[p][q];
+            if apq == 0.0 {
                 continue;
             }
-            let theta = (a[(q, q)] - a[(p, p)]) / (2.0 * apq);
-            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let theta = (a[q][q] - a[p][p]) / (2.0 * apq);
+            let t = if theta.abs() > 1e18 { 0.5 / theta } else { theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt()) };
             let t = if theta == 0.0 { 1.0 } else { t };
             let c = 1.0 / (t * t + 1.0).sqrt();
             let s = t * c;
-            // A ← Jᵀ A J with the rotation J in the (p, q) plane.
             for k in 0..3 {
-                let akp = a[(k, p)];
-                let akq = a[(k, q)];
-                a[(k, p)] = c * akp - s * akq;
-                a[(k, q)] = s * akp + c * akq;
+                let (akp, akq) = (a[k][p], a[k][q]);
+                a[k][p] = c * akp - s * akq;
+                a[k][q] = s * akp + c * akq;
             }
             for k in 0..3 {
-                let apk = a[(p, k)];
-                let aqk = a[(q, k)];
-                a[(p, k)] = c * apk - s * aqk;
-                a[(q, k)] = s * apk + c * aqk;
+                let (apk, aqk) = (a[p][k], a[q][k]);
+                a[p][k] = c * apk - s * aqk;
+                a[q][k] = s * apk + c * aqk;
             }
             for k in 0..3 {
-                let vkp = v[(k, p)];
-                let vkq = v[(k, q)];
-                v[(k, p)] = c * vkp - s * vkq;
-                v[(k, q)] = s * vkp + c * vkq;
+                let (vkp, vkq) = (v[k][p], v[k][q]);
+                v[k][p] = c * vkp - s * vkq;
+                v[k][q] = s * vkp + c * vkq;
             }
         }
     }
+    let d = [a[0][0], a[1][1], a[2][2]];
     let mut idx = [0usize, 1, 2];
-    let d = [a[(0, 0)], a[(1, 1)], a[(2, 2)]];
-    idx.sort_by(|&i, &j| d[j].partial_cmp(&d[i]).unwrap_or(std::cmp::Ordering::Equal));
-    let mut evals = SVector::<f64, 3>::zeros();
-    let mut vs = SMatrix::<f64, 3, 3>::zeros();
-    for (k, &i) in idx.iter().enumerate() {
-        evals[k] = d[i];
-        vs.set_column(k, &v.column(i));
+    if d[idx[0]] < d[idx[1]] {
+        idx.swap(0, 1);
     }
-    (evals, vs)
+    if d[idx[1]] < d[idx[2]] {
+        idx.swap(1, 2);
+    }
+    if d[idx[0]] < d[idx[1]] {
+        idx.swap(0, 1);
+    }
+    let mut vs = [[0.0f32; 3]; 3];
+    for (k, &i) in idx.iter().enumerate() {
+        for r in 0..3 {
+            vs[r][k] = v[r][i];
+        }
+    }
+    ([d[idx[0]], d[idx[1]], d[idx[2]]], vs)
 }
 
 #[cfg(test)]
