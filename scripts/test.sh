@@ -8,4 +8,5 @@ python3 -m venv .venv
 python -m pip install --quiet --upgrade pip
 python -m pip install --quiet -e '.[test]'
 cargo test --release
+cargo clippy --release --workspace --all-targets -- -D warnings
 python -m pytest -q

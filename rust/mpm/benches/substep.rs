@@ -4,31 +4,13 @@
 //! Run: `cargo bench -p hybridmpm-mpm --bench substep`
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use hybridmpm_mpm::{Dim, DimOps, Material, Particle, Solver, SolverParams};
-use nalgebra::SVector;
-
-fn lattice<const D: usize>(origin: [f32; D], side: usize, spacing: f32, mat: Material, rho: f32) -> Vec<Particle<D>> {
-    let vol = spacing.powi(D as i32);
-    (0..side.pow(D as u32))
-        .map(|mut i| {
-            let mut x = SVector::<f32, D>::zeros();
-            for d in (0..D).rev() {
-                x[d] = origin[d] + ((i % side) as f32 + 0.5) * spacing;
-                i /= side;
-            }
-            Particle::new(x, mat, rho * vol, vol)
-        })
-        .collect()
-}
+use hybridmpm_mpm::{lattice, Dim, DimOps, Material, Solver, SolverParams};
 
 fn scene<const D: usize>(n_grid: usize, origin: [f32; D], side: usize, mat: Material, substeps: usize, threads: usize) -> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    let mut p = SolverParams::<D>::default();
-    p.n_grid = n_grid;
-    p.substeps = Some(substeps);
-    p.num_threads = threads;
+    let p = SolverParams::<D> { n_grid, substeps: Some(substeps), num_threads: threads, ..Default::default() };
     let dx = p.dx();
     let rho = p.water.density;
     let mut s = Solver::new(p, vec![]).unwrap();

@@ -18,7 +18,7 @@ use crate::error::{MpmError, Result};
 /// mass is lost. Errors: non-finite positions or masses, negative masses, a
 /// zero total mass, `n < 3`.
 pub fn grid_mass<const D: usize>(positions: &[[f32; D]], masses: Option<&[f32]>, n: usize) -> Result<Vec<f32>> {
-    if n < 3 || n > 4096 {
+    if !(3..=4096).contains(&n) {
         return Err(MpmError::invalid("n_grid", format!("must be in [3, 4096], got {n}")));
     }
     if let Some(m) = masses {

@@ -6,6 +6,10 @@
 //! correction of Tampubolon et al. 2017. Sparse block grid: only blocks near
 //! particles are touched. Deterministic for any thread count.
 
+// Numeric kernels index several small arrays with one loop variable (`for d
+// in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod checkpoint;
 pub mod collider;
 pub mod dim;
@@ -20,5 +24,5 @@ pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result};
 pub use grid_mass::grid_mass;
 pub use params::{BoundaryCondition, SandParams, SolverParams, WallParams, WaterParams};
-pub use particles::{Material, Particle};
+pub use particles::{lattice, Material, Particle};
 pub use solver::{FrameStats, Solver};

@@ -218,10 +218,10 @@ impl<const D: usize> SolverParams<D> {
         if self.cfl > 1.0 {
             return Err(MpmError::invalid("cfl", format!("must be in (0, 1], got {}", self.cfl)));
         }
-        if let Some(s) = self.substeps {
-            if s == 0 || s > self.max_substeps {
-                return Err(MpmError::invalid("substeps", format!("must be in [1, max_substeps={}], got {s}", self.max_substeps)));
-            }
+        if let Some(s) = self.substeps
+            && (s == 0 || s > self.max_substeps)
+        {
+            return Err(MpmError::invalid("substeps", format!("must be in [1, max_substeps={}], got {s}", self.max_substeps)));
         }
         if self.max_substeps == 0 {
             return Err(MpmError::invalid("max_substeps", "must be >= 1"));

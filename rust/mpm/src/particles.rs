@@ -121,3 +121,20 @@ pub fn det<const D: usize>(m: &SMatrix<f32, D, D>) -> f32 {
         _ => f32::NAN,
     }
 }
+
+/// Particles at rest on a cubic lattice: `side^D` points at
+/// `origin + (i + 1/2)·spacing`, each with volume `spacing^D` and mass
+/// `density·spacing^D` (used by benches, examples and tests).
+pub fn lattice<const D: usize>(origin: [f32; D], side: usize, spacing: f32, material: Material, density: f32) -> Vec<Particle<D>> {
+    let vol = spacing.powi(D as i32);
+    (0..side.pow(D as u32))
+        .map(|mut i| {
+            let mut x = SVector::<f32, D>::zeros();
+            for d in (0..D).rev() {
+                x[d] = origin[d] + ((i % side) as f32 + 0.5) * spacing;
+                i /= side;
+            }
+            Particle::new(x, material, density * vol, vol)
+        })
+        .collect()
+}

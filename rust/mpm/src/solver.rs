@@ -94,6 +94,8 @@ where
     stencil: Stencil<D>,
     pool: std::sync::Arc<rayon::ThreadPool>,
     pool_pid: u32,
+    /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
+    profile: bool,
 }
 
 fn build_pool(num_threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
@@ -208,6 +210,7 @@ where
             stencil: Stencil { pad_stride, blk_stride, lat_stride, pad_coords },
             pool,
             pool_pid: std::process::id(),
+            profile: std::env::var_os("HMPM_PROFILE").is_some(),
         })
     }
 
@@ -538,7 +541,7 @@ where
 
     /// One substep of size `dt`. Returns (state finite, max speed).
     fn substep(&mut self, dt: f32) -> (bool, f32) {
-        let prof = std::env::var_os("HMPM_PROFILE").is_some();
+        let prof = self.profile;
         let t0 = std::time::Instant::now();
         self.build_blocks();
         let t1 = std::time::Instant::now();

@@ -63,9 +63,7 @@ fn random_state<const D: usize>(seed: u64) -> (Solver<D>, Vec<Particle<D>>)
 where
     hybridmpm_mpm::Dim<D>: hybridmpm_mpm::DimOps<D>,
 {
-    let mut params = SolverParams::<D>::default();
-    params.gravity = [0.0; D];
-    params.substeps = Some(1);
+    let params = SolverParams::<D> { gravity: [0.0; D], substeps: Some(1), ..Default::default() };
     let mut seed = seed;
     let dx = params.dx();
     let n = if D == 2 { 2000 } else { 3000 };
