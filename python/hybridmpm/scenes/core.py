@@ -1,0 +1,134 @@
+"""The :class:`Scene` type and the seeding helpers every scene shares.
+
+Particles sit on a lattice at spacing ``dx/2`` (2 particles per cell per
+dimension), cell-centred, the usual MPM seeding. Obstacles are MPM colliders
+(:class:`~hybridmpm.mpm.Box`, :class:`~hybridmpm.mpm.Sphere`) and, for the
+network, static boundary particles of GNS type 3 sampled on their surface
+(as in the GNS WaterRamps dataset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import DT_FRAME, SAND, WATER, MpmParams, MpmSolver
+
+if TYPE_CHECKING:
+    from hybridmpm.scenes.spec import SceneSpec
+
+#: GNS particle-type codes (DeepMind learning_to_simulate): kinematic
+#: obstacles / boundary particles 3, water 5, sand 6.
+GNS_TYPE = {WATER: 5, SAND: 6}
+GNS_KINEMATIC = 3
+#: Default connectivity radius R [m] (DESIGN.md conventions).
+DEFAULT_CONNECTIVITY_RADIUS = 0.015
+
+
+@dataclass
+class Scene:
+    """A scene: parameters, initial particles and static boundary particles.
+
+    ``positions`` float32 [N, D] [m], ``material`` int32 [N] (0 water, 1 sand),
+    ``velocities`` float32 [N, D] [m/s]: the particles the MPM solver moves.
+    ``boundary_positions`` float32 [B, D] [m]: static obstacle particles (GNS
+    type 3) that only the network sees; MPM sees the colliders in ``params``.
+    ``masses`` [N] kg and ``volumes`` [N] m^D override the solver defaults
+    (density × (dx/2)^D) for downsampled scenes; ``volume_ratio`` [N] is the
+    initial J (water at hydrostatic rest), or None for J = 1. ``frames`` is
+    the default rollout length; ``info`` holds scene-specific facts;
+    ``spec`` is the declarative spec the scene was built from (if any).
+    """
+
+    name: str
+    params: MpmParams
+    positions: np.ndarray
+    material: np.ndarray
+    velocities: np.ndarray
+    dt_frame: float = DT_FRAME
+    frames: int = 300
+    info: dict[str, Any] = field(default_factory=dict)
+    volume_ratio: np.ndarray | None = None
+    boundary_positions: np.ndarray | None = None
+    masses: np.ndarray | None = None
+    volumes: np.ndarray | None = None
+    connectivity_radius: float = DEFAULT_CONNECTIVITY_RADIUS
+    spec: SceneSpec | None = None
+
+    @property
+    def dim(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def num_particles(self) -> int:
+        """Particles the solver moves (boundary particles not counted)."""
+        return int(self.positions.shape[0])
+
+    @property
+    def num_boundary(self) -> int:
+        return 0 if self.boundary_positions is None else int(self.boundary_positions.shape[0])
+
+    def particle_type(self) -> np.ndarray:
+        """GNS particle types int64 [N + B]: water 5, sand 6, then boundary 3."""
+        fluid = np.where(self.material == SAND, GNS_TYPE[SAND], GNS_TYPE[WATER]).astype(np.int64)
+        return np.concatenate([fluid, np.full(self.num_boundary, GNS_KINEMATIC, np.int64)])
+
+    def with_boundary(self, positions: np.ndarray) -> np.ndarray:
+        """Append the static boundary particles to solver positions: [..., N, D] → [..., N + B, D] float32."""
+        positions = np.asarray(positions, dtype=np.float32)
+        if self.num_boundary == 0:
+            return positions
+        assert self.boundary_positions is not None
+        b = np.broadcast_to(self.boundary_positions, positions.shape[:-2] + self.boundary_positions.shape)
+        return np.concatenate([positions, b], axis=-2)
+
+    def make_solver(self, num_threads: int | None = None) -> MpmSolver:
+        """A fresh :class:`MpmSolver` holding this scene's particles."""
+        params = self.params
+        if num_threads is not None:
+            params = MpmParams.from_dict({**params.to_dict(), "num_threads": int(num_threads)})
+        sim = MpmSolver(params)
+        sim.add_particles(self.positions, self.material, velocities=self.velocities, masses=self.masses, volumes=self.volumes)
+        if self.volume_ratio is not None:
+            sim.volume_ratio = self.volume_ratio
+        return sim
+
+
+def lattice(lo: np.ndarray | list[float], hi: np.ndarray | list[float], spacing: float) -> np.ndarray:
+    """Cell-centred lattice points filling the box ``[lo, hi]`` at ``spacing``: float32 [N, D]."""
+    lo_a = np.asarray(lo, dtype=np.float64)
+    hi_a = np.asarray(hi, dtype=np.float64)
+    counts = np.maximum(np.round((hi_a - lo_a) / spacing).astype(int), 1)
+    axes = [lo_a[d] + (np.arange(counts[d]) + 0.5) * spacing for d in range(len(lo_a))]
+    grid = np.meshgrid(*axes, indexing="ij")
+    return np.stack([g.ravel() for g in grid], axis=1).astype(np.float32)
+
+
+def wall_face(params: MpmParams) -> float:
+    """Where fluid rests against the lower domain walls [m]: ``(cells − 1)·dx``.
+
+    With a wall band of ``cells`` nodes whose velocity may not point outwards,
+    particles come to rest about one cell inside the band; blocks placed
+    against a wall start there so that they start at rest.
+    """
+    return (params.walls.cells - 1) / params.resolved_n_grid()
+
+
+def hydrostatic_volume_ratio(positions: np.ndarray, surface: float, params: MpmParams) -> np.ndarray:
+    """Volume ratio ``J = 1 − ρ·|g|·(surface − y)/K`` of water at hydrostatic rest
+    (Cauchy pressure ``K(1 − J) = ρ|g|·depth``), float32 [N]. ``surface`` is the
+    free-surface height [m]; ``y`` is the vertical (second) coordinate."""
+    g = abs(params.to_dict()["gravity"][1])
+    depth = np.clip(surface - positions[:, 1], 0.0, None)
+    return np.clip(1.0 - params.water.density * g * depth / params.water.bulk_modulus, 0.5, 1.0).astype(np.float32)
+
+
+def check_inside_domain(name: str, positions: np.ndarray, params: MpmParams) -> None:
+    """Raise :class:`InvalidInputError` naming ``name`` if any position lies outside the
+    region the solver accepts, ``[dx, 1 − dx]^D``."""
+    dx = 1.0 / params.resolved_n_grid()
+    if positions.size and (positions.min() < dx or positions.max() > 1.0 - dx):
+        raise InvalidInputError(f"{name}: particles must lie in [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}] on every axis", name)

@@ -1,0 +1,255 @@
+"""The paper's domains as seeded generators of random initial conditions.
+
+Each generator maps a seed to a :class:`~hybridmpm.scenes.spec.SceneSpec`
+in the spirit of GNS (Sanchez-Gonzalez et al. 2020): 1–3 blocks of random size
+and position with random initial velocities and, where the domain has them,
+obstacles (ramps) placed at random. Grids, particle budgets and rollout
+lengths follow the paper's Table "Datasets" (App. B): 128² in 2D and 64³ in
+3D, at most ~4k particles (3.3k with ramps), ``T`` frames of 2.5 ms:
+
+=============== ====== ===== =========================================
+domain          N_h    T     contents
+=============== ====== ===== =========================================
+water2d         4096   1000  1–3 water blocks
+sand2d          4096   320   1–3 sand blocks, rough floor (μ = tan φ)
+water_ramps2d   3300   600   1–3 water blocks above 1–3 ramps
+sand_ramps2d    3300   400   1–3 sand blocks above 1–3 rough ramps
+water_sand2d    4096   500   2–3 blocks, water and sand
+water3d         4096   800   1–3 water blocks
+sand3d          4096   350   1–3 sand blocks
+dam_break2d     —      300   Martin & Moyce (1952) column (deterministic)
+=============== ====== ===== =========================================
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from typing import Any, Callable
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import Box, MpmParams, SandParams, WallParams
+from hybridmpm.scenes.core import Scene, wall_face
+from hybridmpm.scenes.spec import Block, SceneSpec, collider_sdf
+
+#: Paper T (frames per trajectory) per domain, Table "Datasets".
+PAPER_FRAMES = {
+    "water2d": 1000,
+    "sand2d": 320,
+    "water_ramps2d": 600,
+    "sand_ramps2d": 400,
+    "water_sand2d": 500,
+    "water3d": 800,
+    "sand3d": 350,
+    "dam_break2d": 300,
+}
+
+#: Largest initial velocity component of a random block [m/s].
+MAX_SPEED = 1.0
+
+
+def _rng(name: str, seed: int) -> np.random.Generator:
+    """Per-domain stream: the same seed gives unrelated layouts in different domains."""
+    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
+
+
+def _params(dim: int, n_grid: int, rough: bool, friction_angle_deg: float = 30.0) -> MpmParams:
+    mu = math.tan(math.radians(friction_angle_deg)) if rough else 0.0
+    return MpmParams(dim=dim, n_grid=n_grid, sand=SandParams(friction_angle_deg=friction_angle_deg), walls=WallParams(friction=mu))
+
+
+def _random_blocks(
+    rng: np.random.Generator,
+    params: MpmParams,
+    materials: list[str],
+    size_cells: tuple[int, int],
+    max_particles: int,
+    ppc: int = 2,
+    y_min: float = 0.0,
+) -> list[Block]:
+    """Draw ``len(materials)`` non-overlapping blocks (1-cell gap) within the
+    particle budget; shrinks the draw on repeated failure. Deterministic in ``rng``."""
+    dim = params.dim
+    n = params.resolved_n_grid()
+    dx = 1.0 / n
+    margin = (params.walls.cells + 2) * dx
+    for attempt in range(400):
+        hi_cells = size_cells[1] if attempt < 200 else max(size_cells[0], size_cells[1] // 2)
+        blocks: list[Block] = []
+        boxes: list[tuple[np.ndarray, np.ndarray]] = []
+        total = 0
+        ok = True
+        for mat in materials:
+            size = rng.integers(size_cells[0], hi_cells + 1, size=dim) * dx
+            lo_min = np.full(dim, margin)
+            lo_min[1] = max(margin, y_min)
+            lo_max = 1.0 - margin - size
+            if np.any(lo_max <= lo_min):
+                ok = False
+                break
+            lo = np.round(rng.uniform(lo_min, lo_max) / dx) * dx  # cell-aligned corners
+            hi = lo + size
+            count = int(np.prod(np.round(size / dx).astype(int) * ppc))
+            if total + count > max_particles or any(np.all((lo < bhi + dx) & (hi > blo - dx)) for blo, bhi in boxes):
+                ok = False
+                break
+            total += count
+            boxes.append((lo, hi))
+            vel = rng.uniform(-MAX_SPEED, MAX_SPEED, size=dim)
+            blocks.append(Block(mat, [float(v) for v in lo], [float(v) for v in hi], [float(v) for v in vel]))
+        if ok:
+            return blocks
+    raise InvalidInputError("blocks: could not place the blocks within the particle budget", "blocks")
+
+
+def _random_ramps(rng: np.random.Generator, params: MpmParams, count: int, friction: float) -> list[Box]:
+    """1–3 thin rotated boxes (2 cells thick, 0.16–0.4 m long, 10–40° either way)
+    in the lower part of the domain, apart from each other by ≥ 4 cells."""
+    dx = 1.0 / params.resolved_n_grid()
+    ramps: list[Box] = []
+    for _ in range(400):
+        if len(ramps) == count:
+            break
+        half_len = rng.uniform(0.08, 0.2)
+        angle = float(rng.uniform(10.0, 40.0) * rng.choice([-1.0, 1.0]))
+        center = [float(rng.uniform(0.2, 0.8)), float(rng.uniform(0.12, 0.55))]
+        box = Box(center=center, half_extents=[float(half_len), 1.0 * dx], angle_deg=angle, friction=friction)
+        # keep the ramp inside the domain's free region and away from other ramps
+        ends = np.array(center) + half_len * np.array([[math.cos(math.radians(angle)), math.sin(math.radians(angle))]]) * np.array([[1.0], [-1.0]])
+        lim = (params.walls.cells + 2) * dx
+        if np.any(ends < lim) or np.any(ends > 1.0 - lim):
+            continue
+        probe = np.array(center) + np.linspace(-1.0, 1.0, 33)[:, None] * (ends[0] - np.array(center))
+        if any(collider_sdf(r, probe).min() < 4 * dx for r in ramps):
+            continue
+        ramps.append(box)
+    if len(ramps) < count:
+        raise InvalidInputError("obstacles: could not place the ramps", "obstacles")
+    return ramps
+
+
+def _spec(name: str, seed: int, params: MpmParams, blocks: list[Block], frames: int | None, **info: Any) -> SceneSpec:
+    return SceneSpec(name, params, blocks, frames=frames if frames is not None else PAPER_FRAMES[name], info={"seed": int(seed), **info})
+
+
+def water2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 4096) -> SceneSpec:
+    """1–3 water blocks (8–40 cells a side) with random velocities (|v_d| ≤ 1 m/s)."""
+    rng = _rng("water2d", seed)
+    params = _params(2, n_grid, rough=False)
+    k = int(rng.integers(1, 4))
+    return _spec("water2d", seed, params, _random_blocks(rng, params, ["water"] * k, (8, 40), max_particles), frames)
+
+
+def sand2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 4096, friction_angle_deg: float = 30.0) -> SceneSpec:
+    """1–3 sand blocks (8–40 cells) with random velocities on a rough floor
+    (Coulomb μ = tan φ: on a frictionless floor a sand pile spreads like a fluid)."""
+    rng = _rng("sand2d", seed)
+    params = _params(2, n_grid, rough=True, friction_angle_deg=friction_angle_deg)
+    k = int(rng.integers(1, 4))
+    return _spec("sand2d", seed, params, _random_blocks(rng, params, ["sand"] * k, (8, 40), max_particles), frames)
+
+
+def water_ramps2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 3300) -> SceneSpec:
+    """1–3 water blocks in the upper half falling onto 1–3 frictionless ramps."""
+    rng = _rng("water_ramps2d", seed)
+    params = _params(2, n_grid, rough=False)
+    params.colliders = list(_random_ramps(rng, params, int(rng.integers(1, 4)), friction=0.0))
+    k = int(rng.integers(1, 4))
+    blocks = _random_blocks(rng, params, ["water"] * k, (8, 36), max_particles, y_min=0.6)
+    return _spec("water_ramps2d", seed, params, blocks, frames)
+
+
+def sand_ramps2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 3300) -> SceneSpec:
+    """1–3 sand blocks in the upper half falling onto 1–3 rough ramps (μ = tan φ)."""
+    rng = _rng("sand_ramps2d", seed)
+    params = _params(2, n_grid, rough=True)
+    params.colliders = list(_random_ramps(rng, params, int(rng.integers(1, 4)), friction=params.walls.friction))
+    k = int(rng.integers(1, 4))
+    blocks = _random_blocks(rng, params, ["sand"] * k, (8, 36), max_particles, y_min=0.6)
+    return _spec("sand_ramps2d", seed, params, blocks, frames)
+
+
+def water_sand2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 4096) -> SceneSpec:
+    """2–3 blocks: one water, one sand, a third of either; rough floor."""
+    rng = _rng("water_sand2d", seed)
+    params = _params(2, n_grid, rough=True)
+    mats = ["water", "sand"] + ([str(rng.choice(["water", "sand"]))] if rng.integers(2, 4) == 3 else [])
+    return _spec("water_sand2d", seed, params, _random_blocks(rng, params, mats, (8, 32), max_particles), frames)
+
+
+def water3d(seed: int = 0, frames: int | None = None, n_grid: int = 64, max_particles: int = 4096) -> SceneSpec:
+    """1–3 water blocks (4–12 cells a side, 8 particles per cell) in a 64³ box."""
+    rng = _rng("water3d", seed)
+    params = _params(3, n_grid, rough=False)
+    k = int(rng.integers(1, 4))
+    return _spec("water3d", seed, params, _random_blocks(rng, params, ["water"] * k, (4, 12), max_particles), frames)
+
+
+def sand3d(seed: int = 0, frames: int | None = None, n_grid: int = 64, max_particles: int = 4096) -> SceneSpec:
+    """1–3 sand blocks (4–12 cells a side) in a 64³ box, rough floor."""
+    rng = _rng("sand3d", seed)
+    params = _params(3, n_grid, rough=True)
+    k = int(rng.integers(1, 4))
+    return _spec("sand3d", seed, params, _random_blocks(rng, params, ["sand"] * k, (4, 12), max_particles), frames)
+
+
+def dam_break2d_spec(seed: int = 0, frames: int | None = None, n_grid: int = 128, a_cells: int = 24) -> SceneSpec:
+    """Martin & Moyce (1952) water column: base ``a``, height ``2a``, against the
+    left wall, at hydrostatic rest, released at t = 0 (``a = a_cells·dx``, at
+    least 24 cells). ``seed`` is unused (the scene is deterministic).
+
+    ``info`` holds ``a`` [m], ``x_wall`` and ``y_floor`` [m] (the wall faces
+    the fluid rests against, see :func:`~hybridmpm.scenes.wall_face`: the
+    origin of the experiment's x and h) and the lattice ``spacing``.
+    """
+    if a_cells < 24:
+        raise InvalidInputError(f"a_cells: must be >= 24 grid cells, got {a_cells}", "a_cells")
+    params = MpmParams(dim=2, n_grid=n_grid)
+    dx = 1.0 / n_grid
+    wall = wall_face(params)
+    a = a_cells * dx
+    if wall + 4.2 * a > 1.0 - wall:
+        raise InvalidInputError(f"a_cells: the surge would leave the domain; use a_cells <= {int((1 - 2 * params.walls.cells * dx) / 4.2 / dx)}", "a_cells")
+    block = Block("water", [wall, wall], [wall + a, wall + 2 * a], hydrostatic=True)
+    return _spec("dam_break2d", seed, params, [block], frames, a=a, x_wall=wall, y_floor=wall, spacing=dx / 2)
+
+
+#: Registered domains: name → seeded spec generator ``f(seed, frames=None, **kw) -> SceneSpec``.
+DOMAINS: dict[str, Callable[..., SceneSpec]] = {
+    "water2d": water2d,
+    "sand2d": sand2d,
+    "water_ramps2d": water_ramps2d,
+    "sand_ramps2d": sand_ramps2d,
+    "water_sand2d": water_sand2d,
+    "water3d": water3d,
+    "sand3d": sand3d,
+    "dam_break2d": dam_break2d_spec,
+}
+
+
+def scene_spec(name: str, seed: int = 0, frames: int | None = None, **kwargs: Any) -> SceneSpec:
+    """The spec of a registered domain for ``seed``. Raises :class:`InvalidInputError`
+    for an unknown name (the message lists the available ones)."""
+    if name not in DOMAINS:
+        raise InvalidInputError(f"scene: unknown scene {name!r} (available: {', '.join(sorted(DOMAINS))})", "scene")
+    if frames is not None and (not isinstance(frames, int) or frames < 1):
+        raise InvalidInputError(f"frames: must be an integer >= 1, got {frames!r}", "frames")
+    return DOMAINS[name](seed=seed, frames=frames, **kwargs)
+
+
+def make_scene(name: str, seed: int = 0, frames: int | None = None, **kwargs: Any) -> Scene:
+    """Build a registered scene by name (see :data:`DOMAINS`), or load a scene
+    file if ``name`` ends in ``.toml`` or ``.json``. Raises :class:`InvalidInputError`."""
+    if name.endswith((".toml", ".json")):
+        spec = SceneSpec.load(name)
+        if frames is not None:
+            spec.frames = frames
+        return spec.build()
+    return scene_spec(name, seed=seed, frames=frames, **kwargs).build()
+
+
+def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = 24) -> Scene:
+    """The dam-break scene (see :func:`dam_break2d_spec`)."""
+    return dam_break2d_spec(seed=seed, n_grid=n_grid, a_cells=a_cells).build()

@@ -1,0 +1,381 @@
+"""Declarative scene specs: domain, grid, materials, particle blocks, obstacles.
+
+A :class:`SceneSpec` is the whole description of an initial condition and its
+solver settings, small enough to keep beside a dataset and to edit by hand.
+It loads from and saves to TOML or JSON (chosen by the file suffix)::
+
+    name = "two_blocks"
+    dim = 2
+    n_grid = 128
+    dt_frame = 0.0025
+    frames = 600
+
+    [walls]
+    cells = 3
+    condition = "separate"
+    friction = 0.0
+
+    [[blocks]]
+    material = "water"
+    lo = [0.1, 0.05]
+    hi = [0.3, 0.35]
+    velocity = [0.5, 0.0]
+
+    [[obstacles]]
+    shape = "box"
+    center = [0.6, 0.3]
+    half_extents = [0.15, 0.012]
+    angle_deg = -20.0
+
+:meth:`SceneSpec.build` turns it into a :class:`~hybridmpm.scenes.Scene`:
+each block is filled with a cell-centred lattice at spacing
+``dx / particles_per_cell``; a particle of a later block that falls inside an
+earlier block, or within half a cell of an obstacle, is dropped; obstacles
+become MPM colliders and, for the network, static boundary particles (GNS
+type 3) on a shell one spacing thick inside their surface (GNS WaterRamps
+represents its ramps the same way).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import DT_FRAME, SAND, WATER, Box, MpmParams, Sphere
+from hybridmpm.scenes.core import DEFAULT_CONNECTIVITY_RADIUS, Scene, hydrostatic_volume_ratio, lattice
+
+MATERIALS = {"water": WATER, "sand": SAND}
+_MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
+
+
+@dataclass
+class Block:
+    """A box of particles of one material.
+
+    ``lo``, ``hi``: opposite corners [m] (``lo < hi`` on every axis, inside the
+    domain); ``velocity`` [m/s] (default 0); ``hydrostatic``: start water at
+    hydrostatic rest below the block's top (only right for a block resting on
+    the floor; see :func:`~hybridmpm.scenes.hydrostatic_volume_ratio`).
+    """
+
+    material: str
+    lo: Sequence[float]
+    hi: Sequence[float]
+    velocity: Sequence[float] | None = None
+    hydrostatic: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"material": self.material, "lo": [float(v) for v in self.lo], "hi": [float(v) for v in self.hi]}
+        if self.velocity is not None:
+            d["velocity"] = [float(v) for v in self.velocity]
+        if self.hydrostatic:
+            d["hydrostatic"] = True
+        return d
+
+
+@dataclass
+class SceneSpec:
+    """Declarative scene: everything needed to rebuild an initial condition.
+
+    ``params`` holds the solver settings (dim, grid, gravity, materials, walls)
+    and the obstacles (``params.colliders``); ``blocks`` the particle blocks;
+    ``dt_frame`` [s] and ``frames`` the rollout; ``particles_per_cell`` the
+    lattice density per dimension (2: spacing dx/2); ``connectivity_radius``
+    R [m] of the network's radius graph; ``info`` free-form facts (the
+    generator's seed, ...), kept on save.
+    """
+
+    name: str
+    params: MpmParams
+    blocks: list[Block]
+    dt_frame: float = DT_FRAME
+    frames: int = 300
+    particles_per_cell: int = 2
+    connectivity_radius: float = DEFAULT_CONNECTIVITY_RADIUS
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return int(self.params.dim)
+
+    @property
+    def spacing(self) -> float:
+        """Lattice spacing of the blocks [m]: ``dx / particles_per_cell``."""
+        return 1.0 / (self.params.resolved_n_grid() * self.particles_per_cell)
+
+    # ------------------------------------------------------------------ dict / files
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON/TOML-serialisable dict (no ``None`` values)."""
+        p = self.params.to_dict()
+        d: dict[str, Any] = {
+            "name": self.name,
+            "dim": p["dim"],
+            "n_grid": p["n_grid"],
+            "dt_frame": float(self.dt_frame),
+            "frames": int(self.frames),
+            "particles_per_cell": int(self.particles_per_cell),
+            "connectivity_radius": float(self.connectivity_radius),
+            "gravity": p["gravity"],
+            "cfl": p["cfl"],
+            "max_substeps": p["max_substeps"],
+            "water": p["water"],
+            "sand": p["sand"],
+            "walls": p["walls"],
+            "blocks": [b.to_dict() for b in self.blocks],
+            "obstacles": p["colliders"],
+        }
+        if p["substeps"] is not None:
+            d["substeps"] = p["substeps"]
+        if self.info:
+            d["info"] = _plain(self.info)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SceneSpec:
+        """Inverse of :meth:`to_dict`; validates every field (errors name it,
+        e.g. ``blocks[1].hi``). Raises :class:`InvalidInputError`."""
+        if not isinstance(d, dict):
+            raise InvalidInputError("scene: expected a table/object at the top level", "scene")
+        allowed = {
+            "name", "dim", "n_grid", "dt_frame", "frames", "particles_per_cell", "connectivity_radius", "gravity",
+            "cfl", "max_substeps", "substeps", "water", "sand", "walls", "blocks", "obstacles", "info",
+        }  # fmt: skip
+        unknown = sorted(set(d) - allowed)
+        if unknown:
+            raise InvalidInputError(f"{unknown[0]}: unknown scene field (allowed: {', '.join(sorted(allowed))})", unknown[0])
+        dim = d.get("dim", 2)
+        if dim not in (2, 3):
+            raise InvalidInputError(f"dim: must be 2 or 3, got {dim!r}", "dim")
+        pd: dict[str, Any] = {"dim": dim}
+        for k in ("n_grid", "gravity", "cfl", "max_substeps", "substeps", "water", "sand", "walls"):
+            if k in d:
+                pd[k] = d[k]
+        pd["colliders"] = d.get("obstacles", [])
+        try:
+            params = MpmParams.from_dict(pd)
+            params.to_dict()
+        except TypeError as e:  # unknown keyword in a sub-table
+            raise InvalidInputError(f"scene parameters: {e}", "params") from e
+        except InvalidInputError as e:  # the solver calls obstacles "colliders"
+            f = (e.field or "").replace("colliders", "obstacles", 1)
+            raise InvalidInputError(str(e).replace("colliders", "obstacles", 1), f) from e
+        n_grid = params.resolved_n_grid()
+        if not isinstance(n_grid, int) or n_grid < 8:
+            raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
+        for i, c in enumerate(params.colliders):
+            _check_vec(f"obstacles[{i}].center", c.center, dim)
+            if isinstance(c, Box):
+                _check_vec(f"obstacles[{i}].half_extents", c.half_extents, dim, positive=True)
+            elif not (isinstance(c.radius, (int, float)) and math.isfinite(c.radius) and c.radius > 0):
+                raise InvalidInputError(f"obstacles[{i}].radius: must be a finite number > 0", f"obstacles[{i}].radius")
+        blocks_raw = d.get("blocks")
+        if not isinstance(blocks_raw, list) or not blocks_raw:
+            raise InvalidInputError("blocks: a scene needs at least one particle block", "blocks")
+        blocks = []
+        for i, b in enumerate(blocks_raw):
+            f = f"blocks[{i}]"
+            if not isinstance(b, dict):
+                raise InvalidInputError(f"{f}: expected a table/object", f)
+            extra = sorted(set(b) - {"material", "lo", "hi", "velocity", "hydrostatic"})
+            if extra:
+                raise InvalidInputError(f"{f}.{extra[0]}: unknown block field", f"{f}.{extra[0]}")
+            mat = b.get("material")
+            if mat not in MATERIALS:
+                raise InvalidInputError(f"{f}.material: must be one of {sorted(MATERIALS)}, got {mat!r}", f"{f}.material")
+            lo = _check_vec(f"{f}.lo", b.get("lo"), dim)
+            hi = _check_vec(f"{f}.hi", b.get("hi"), dim)
+            if np.any(hi <= lo):
+                raise InvalidInputError(f"{f}.hi: must exceed lo on every axis", f"{f}.hi")
+            dx = 1.0 / n_grid
+            if lo.min() < dx or hi.max() > 1.0 - dx:
+                raise InvalidInputError(f"{f}: must lie inside [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}]", f)
+            vel = b.get("velocity")
+            if vel is not None:
+                _check_vec(f"{f}.velocity", vel, dim)
+            blocks.append(Block(mat, list(lo), list(hi), None if vel is None else [float(v) for v in vel], bool(b.get("hydrostatic", False))))
+        dt_frame = d.get("dt_frame", DT_FRAME)
+        if not (isinstance(dt_frame, (int, float)) and math.isfinite(dt_frame) and dt_frame > 0):
+            raise InvalidInputError(f"dt_frame: must be a finite number > 0, got {dt_frame!r}", "dt_frame")
+        frames = d.get("frames", 300)
+        if not (isinstance(frames, int) and frames >= 1):
+            raise InvalidInputError(f"frames: must be an integer >= 1, got {frames!r}", "frames")
+        ppc = d.get("particles_per_cell", 2)
+        if not (isinstance(ppc, int) and 1 <= ppc <= 4):
+            raise InvalidInputError(f"particles_per_cell: must be an integer in [1, 4], got {ppc!r}", "particles_per_cell")
+        radius = d.get("connectivity_radius", DEFAULT_CONNECTIVITY_RADIUS)
+        if not (isinstance(radius, (int, float)) and math.isfinite(radius) and 0 < radius < 0.5):
+            raise InvalidInputError(f"connectivity_radius: must be in (0, 0.5) m, got {radius!r}", "connectivity_radius")
+        info = d.get("info", {})
+        if not isinstance(info, dict):
+            raise InvalidInputError("info: expected a table/object", "info")
+        return cls(str(d.get("name", "scene")), params, blocks, float(dt_frame), frames, ppc, float(radius), dict(info))
+
+    def save(self, path: str | Path) -> Path:
+        """Write as TOML (``.toml``) or JSON (any other suffix); returns the path."""
+        path = Path(path)
+        d = self.to_dict()
+        if path.suffix == ".toml":
+            import tomli_w
+
+            text = tomli_w.dumps(d)
+        else:
+            text = json.dumps(d, indent=2)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> SceneSpec:
+        """Read a TOML (``.toml``) or JSON file. Raises :class:`InvalidInputError`
+        for a missing, unparsable or invalid file (the message names the field)."""
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise InvalidInputError(f"scene file {path}: {e.strerror or e}", "scene") from e
+        try:
+            if path.suffix == ".toml":
+                try:
+                    import tomllib
+                except ModuleNotFoundError:  # Python 3.10
+                    import tomli as tomllib
+                d = tomllib.loads(text)
+            else:
+                d = json.loads(text)
+        except ValueError as e:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
+            raise InvalidInputError(f"scene file {path}: not valid {'TOML' if path.suffix == '.toml' else 'JSON'}: {e}", "scene") from e
+        return cls.from_dict(d)
+
+    # ------------------------------------------------------------------ building
+    def build(self) -> Scene:
+        """Seed the particles and sample the boundary particles: a :class:`Scene`.
+
+        Raises :class:`InvalidInputError` if no particle is left (every block
+        inside an obstacle or an earlier block).
+        """
+        dim = self.dim
+        s = self.spacing
+        dx = 1.0 / self.params.resolved_n_grid()
+        pos_l, mat_l, vel_l, j_l = [], [], [], []
+        placed: list[tuple[np.ndarray, np.ndarray]] = []
+        for b in self.blocks:
+            lo, hi = np.asarray(b.lo, np.float64), np.asarray(b.hi, np.float64)
+            p = lattice(lo, hi, s)
+            keep = np.ones(len(p), bool)
+            for plo, phi in placed:
+                keep &= ~np.all((p >= plo) & (p < phi), axis=1)
+            for c in self.params.colliders:
+                keep &= collider_sdf(c, p) >= 0.5 * dx
+            p = p[keep]
+            placed.append((lo, hi))
+            pos_l.append(p)
+            mat_l.append(np.full(len(p), MATERIALS[b.material], np.int32))
+            v = np.zeros(dim) if b.velocity is None else np.asarray(b.velocity, np.float64)
+            vel_l.append(np.tile(v.astype(np.float32), (len(p), 1)))
+            if b.hydrostatic and b.material == "water":
+                j_l.append(hydrostatic_volume_ratio(p, float(hi[1]), self.params))
+            else:
+                j_l.append(np.ones(len(p), np.float32))
+        positions = np.concatenate(pos_l).astype(np.float32)
+        if len(positions) == 0:
+            raise InvalidInputError("blocks: no particle left after removing overlaps with obstacles and earlier blocks", "blocks")
+        volume_ratio = np.concatenate(j_l)
+        boundary = boundary_particles(self.params.colliders, dim, s, dx)
+        return Scene(
+            name=self.name,
+            params=self.params,
+            positions=positions,
+            material=np.concatenate(mat_l),
+            velocities=np.concatenate(vel_l).reshape(-1, dim).astype(np.float32),
+            dt_frame=self.dt_frame,
+            frames=self.frames,
+            info=dict(self.info),
+            volume_ratio=None if np.all(volume_ratio == 1.0) else volume_ratio,
+            boundary_positions=boundary if len(boundary) else None,
+            connectivity_radius=self.connectivity_radius,
+            spec=self,
+        )
+
+
+def _plain(x: Any) -> Any:
+    """Make numpy scalars/arrays in ``info`` serialisable."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _check_vec(name: str, v: Any, dim: int, positive: bool = False) -> np.ndarray:
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InvalidInputError(f"{name}: expected {dim} numbers, got {v!r}", name) from e
+    if a.shape != (dim,) or not np.all(np.isfinite(a)):
+        raise InvalidInputError(f"{name}: expected {dim} finite numbers, got {v!r}", name)
+    if positive and np.any(a <= 0):
+        raise InvalidInputError(f"{name}: must be > 0 on every axis, got {v!r}", name)
+    return a
+
+
+def _rotation(c: Box, dim: int) -> np.ndarray:
+    if c.rotation is not None:
+        return np.asarray(c.rotation, np.float64)
+    r = np.eye(dim)
+    if c.angle_deg is not None and dim == 2:
+        a = math.radians(c.angle_deg)
+        r[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+    return r
+
+
+def collider_sdf(c: Box | Sphere, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] from ``points`` [N, D] to an obstacle (negative inside),
+    float64 [N]; the same shapes and rotation convention as the Rust colliders."""
+    p = np.asarray(points, np.float64)
+    center = np.asarray(c.center, np.float64)
+    if isinstance(c, Sphere):
+        return np.asarray(np.linalg.norm(p - center, axis=1) - float(c.radius))
+    local = (p - center) @ _rotation(c, p.shape[1])
+    q = np.abs(local) - np.asarray(c.half_extents, np.float64)
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
+
+
+def boundary_particles(colliders: Sequence[Box | Sphere], dim: int, spacing: float, dx: float) -> np.ndarray:
+    """Static boundary particles (GNS type 3) for the obstacles: float32 [B, D].
+
+    A lattice at ``spacing`` [m] in each obstacle's own frame, kept where it lies
+    within one spacing inside the surface (a shell one particle thick; a thin
+    ramp is filled). Points outside ``[dx, 1 − dx]^D`` are dropped (they are in
+    the walls, which the network sees through its wall-distance features).
+    """
+    out = [np.zeros((0, dim), np.float32)]
+    for c in colliders:
+        center = np.asarray(c.center, np.float64)
+        if isinstance(c, Sphere):
+            r = float(c.radius)
+            p = lattice(center - r, center + r, spacing).astype(np.float64)
+            d = np.linalg.norm(p - center, axis=1)
+            p = p[(d <= r) & (d > r - spacing)]
+        else:
+            h = np.asarray(c.half_extents, np.float64)
+            local = lattice(-h, h, spacing).astype(np.float64)
+            shell = np.any(np.abs(local) > h - spacing, axis=1)
+            p = center + local[shell] @ _rotation(c, dim).T
+        inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
+        out.append(p[inside].astype(np.float32))
+    return np.concatenate(out)
+
+
+__all__ = ["MATERIALS", "Block", "SceneSpec", "boundary_particles", "collider_sdf"]
