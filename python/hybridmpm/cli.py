@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from hybridmpm.errors import HybridMpmError
+from hybridmpm.trajectory import Trajectory
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -43,9 +44,14 @@ def _simulate(args: argparse.Namespace) -> int:
         substeps[f] = stats["substeps"]
         positions[f + 1] = sim.positions
     ptype = scene.particle_type()
-    tmp = out / "trajectory.tmp.npz"
-    np.savez_compressed(tmp, positions=positions, particle_type=ptype, material=scene.material, dt_frame=np.float64(scene.dt_frame))
-    tmp.replace(out / "trajectory.npz")
+    Trajectory(
+        positions=positions,
+        particle_type=ptype,
+        dt_frame=scene.dt_frame,
+        n_grid=sim.n_grid,
+        masses=sim.masses,
+        material=scene.material,
+    ).save(out / "trajectory.npz")
     summary = {
         "scene": scene.name,
         "solver": args.solver,
