@@ -2,6 +2,10 @@
 
 ``hybridmpm simulate [SCENE] --solver mpm --frames N --out DIR`` runs a scene
 and writes ``trajectory.npz``, ``summary.json`` and ``render.gif``.
+
+``hybridmpm evaluate PRED.npz REF.npz [--n-grid N] [--out metrics.json]``
+compares two trajectories (:func:`hybridmpm.metrics.evaluate`: grid-mass
+error, position MSE, kinetic energy) and writes the metrics as JSON.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from hybridmpm.errors import HybridMpmError
+from hybridmpm.trajectory import Trajectory
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -43,9 +48,14 @@ def _simulate(args: argparse.Namespace) -> int:
         substeps[f] = stats["substeps"]
         positions[f + 1] = sim.positions
     ptype = scene.particle_type()
-    tmp = out / "trajectory.tmp.npz"
-    np.savez_compressed(tmp, positions=positions, particle_type=ptype, material=scene.material, dt_frame=np.float64(scene.dt_frame))
-    tmp.replace(out / "trajectory.npz")
+    Trajectory(
+        positions=positions,
+        particle_type=ptype,
+        dt_frame=scene.dt_frame,
+        n_grid=sim.n_grid,
+        masses=sim.masses,
+        material=scene.material,
+    ).save(out / "trajectory.npz")
     summary = {
         "scene": scene.name,
         "solver": args.solver,
@@ -83,6 +93,34 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate(args: argparse.Namespace) -> int:
+    from hybridmpm.metrics import evaluate
+
+    pred = Trajectory.load(args.pred)
+    ref = Trajectory.load(args.ref)
+    result = evaluate(pred, ref, n_grid=args.n_grid)
+    result["pred"]["path"] = str(Path(args.pred))
+    result["ref"]["path"] = str(Path(args.ref))
+    out = Path(args.out) if args.out is not None else Path(args.pred).parent / "metrics.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(out)
+    if not args.quiet:
+        gme = result["grid_mass_error"]
+        lines = [
+            f"{result['frames_compared']} frames compared (pred every {pred.dt_frame * 1e3:g} ms, ref every {ref.dt_frame * 1e3:g} ms; "
+            f"{result['pred']['particles']} vs {result['ref']['particles']} fluid particles)",
+            f"grid-mass error (n_grid {result['n_grid']}): mean {gme['mean']:.4g}, last {gme['last']:.4g}",
+        ]
+        for key, label in (("position_mse_rollout", "rollout"), ("position_mse_one_step", "one-step")):
+            m = result[key]
+            lines.append(f"{label} position MSE: " + (f"mean {m['mean']:.4g} m², last {m['last']:.4g} m²" if m else f"n/a ({result[key + '_reason']})"))
+        lines.append(f"-> {out}")
+        print("\n".join(lines))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from hybridmpm.scenes import SCENES
 
@@ -98,6 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)
+    ev = sub.add_parser("evaluate", help="compare a predicted trajectory.npz with a reference one and write metrics.json")
+    ev.add_argument("pred", help="predicted trajectory (.npz, as written by simulate)")
+    ev.add_argument("ref", help="reference trajectory (.npz), e.g. full-resolution MPM from the same initial condition")
+    ev.add_argument("--n-grid", type=int, default=None, help="grid of the grid-mass error (default: the reference's, else 128 in 2D / 64 in 3D)")
+    ev.add_argument("--out", default=None, help="metrics JSON to write (default: metrics.json next to PRED)")
+    ev.add_argument("--quiet", action="store_true", help="no summary")
+    ev.set_defaults(func=_evaluate)
     return parser
 
 

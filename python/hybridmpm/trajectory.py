@@ -1,0 +1,263 @@
+"""A particle trajectory on disk: positions over time plus per-particle data.
+
+:class:`Trajectory` is what ``hybridmpm simulate`` writes (``trajectory.npz``)
+and what ``hybridmpm evaluate`` and :mod:`hybridmpm.metrics` read. The file is
+a plain ``.npz`` (no pickles) with these keys:
+
+==================  ==============  ======================================================
+key                 dtype / shape   meaning
+==================  ==============  ======================================================
+``positions``       float32 [T,N,D] particle positions [m], D ∈ {2, 3}, finite (required)
+``particle_type``   int64 [N]       GNS type codes: water 5, sand 6, kinematic/boundary
+                                    obstacle 3 (required)
+``dt_frame``        float64 []      seconds of simulated time between *stored* frames,
+                                    e.g. ``2.5e-3 · r_t`` (required, finite, > 0)
+``n_grid``          int64 []        cells per dimension of the scene's grid (optional)
+``masses``          float32 [N]     particle masses [kg] (optional, finite, >= 0)
+``material``        int32 [N]       solver material codes, 0 water, 1 sand (optional)
+anything else       any             kept in :attr:`Trajectory.extras`, saved as-is
+==================  ==============  ======================================================
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import zipfile
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+
+#: GNS particle-type code of kinematic (boundary / obstacle) particles
+#: (DeepMind learning_to_simulate ``KINEMATIC_PARTICLE_ID``; the same value as
+#: ``hybridmpm.scenes.GNS_KINEMATIC``).
+KINEMATIC = 3
+
+#: Keys with a meaning of their own; every other key of a file is an extra.
+RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material")
+_REQUIRED_KEYS = ("positions", "particle_type", "dt_frame")
+
+
+def _scalar(name: str, value: Any) -> Any:
+    arr = np.asarray(value)
+    if arr.size != 1 or arr.ndim > 1:
+        raise InvalidInputError(f"{name}: expected a scalar, got shape {list(arr.shape)}", name)
+    if arr.dtype.kind not in "fiu":
+        raise InvalidInputError(f"{name}: expected a real number, got dtype {arr.dtype}", name)
+    return arr.reshape(()).item()
+
+
+@dataclass
+class Trajectory:
+    """Positions over time of one rollout, with the per-particle data needed to
+    evaluate it.
+
+    Attributes
+    ----------
+    positions:
+        float32 [T, N, D] [m], D ∈ {2, 3}, finite. Other floating dtypes are
+        converted to float32.
+    particle_type:
+        int64 [N], GNS codes (water 5, sand 6, kinematic obstacle
+        :data:`KINEMATIC` = 3).
+    dt_frame:
+        Simulated time between stored frames [s], finite and > 0 (``2.5e-3``
+        for every MPM frame, ``2.5e-3 · r_t`` for a neural rollout).
+    n_grid:
+        Cells per dimension of the scene's grid (3 … 4096), or ``None``
+        (then consumers use 128 in 2D and 64 in 3D).
+    masses:
+        float32 [N] [kg], finite and >= 0, or ``None``.
+    material:
+        int32 [N] solver material codes, or ``None``.
+    extras:
+        Further named arrays (e.g. ``one_step_positions``), saved and loaded
+        as-is; names may not be one of :data:`RESERVED_KEYS`.
+
+    Construction validates and normalises every field and raises
+    :class:`~hybridmpm.errors.InvalidInputError` naming the bad field.
+    """
+
+    positions: np.ndarray
+    particle_type: np.ndarray
+    dt_frame: float
+    n_grid: int | None = None
+    masses: np.ndarray | None = None
+    material: np.ndarray | None = None
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        pos = np.asarray(self.positions)
+        if pos.dtype.kind != "f":
+            raise InvalidInputError(f"positions: expected a floating-point array, got dtype {pos.dtype}", "positions")
+        if pos.ndim != 3 or pos.shape[2] not in (2, 3):
+            raise InvalidInputError(f"positions: expected shape [T, N, D] with D in {{2, 3}}, got {list(pos.shape)}", "positions")
+        if pos.shape[0] < 1 or pos.shape[1] < 1:
+            raise InvalidInputError(f"positions: need at least one frame and one particle, got shape {list(pos.shape)}", "positions")
+        pos = np.ascontiguousarray(pos, dtype=np.float32)
+        if not np.isfinite(pos).all():
+            t, i = np.argwhere(~np.isfinite(pos).all(axis=2))[0]
+            raise InvalidInputError(f"positions: frame {t}, particle {i} has a non-finite coordinate", "positions")
+        self.positions = pos
+        n = pos.shape[1]
+
+        ptype = np.asarray(self.particle_type)
+        if ptype.dtype.kind not in "iu":
+            raise InvalidInputError(f"particle_type: expected an integer array, got dtype {ptype.dtype}", "particle_type")
+        if ptype.shape != (n,):
+            raise InvalidInputError(f"particle_type: expected shape [{n}] (one per particle), got {list(ptype.shape)}", "particle_type")
+        self.particle_type = ptype.astype(np.int64)
+
+        dt = _scalar("dt_frame", self.dt_frame)
+        if not (math.isfinite(dt) and dt > 0):
+            raise InvalidInputError(f"dt_frame: must be a finite number > 0 [s], got {dt!r}", "dt_frame")
+        self.dt_frame = float(dt)
+
+        if self.n_grid is not None:
+            g = _scalar("n_grid", self.n_grid)
+            if not (float(g).is_integer() and 3 <= g <= 4096):
+                raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {g!r}", "n_grid")
+            self.n_grid = int(g)
+
+        if self.masses is not None:
+            m = np.asarray(self.masses)
+            if m.dtype.kind not in "fiu" or m.shape != (n,):
+                raise InvalidInputError(f"masses: expected a real array of shape [{n}], got {m.dtype} {list(m.shape)}", "masses")
+            m = m.astype(np.float32)
+            if not (np.isfinite(m) & (m >= 0)).all():
+                raise InvalidInputError("masses: must be finite and >= 0 [kg]", "masses")
+            self.masses = m
+
+        if self.material is not None:
+            mat = np.asarray(self.material)
+            if mat.dtype.kind not in "iu" or mat.shape != (n,):
+                raise InvalidInputError(f"material: expected an integer array of shape [{n}], got {mat.dtype} {list(mat.shape)}", "material")
+            self.material = mat.astype(np.int32)
+
+        extras: dict[str, np.ndarray] = {}
+        for key, value in dict(self.extras).items():
+            if not isinstance(key, str) or not key or key in RESERVED_KEYS:
+                raise InvalidInputError(f"extras: key {key!r} must be a non-empty string other than {', '.join(RESERVED_KEYS)}", "extras")
+            arr = np.asarray(value)
+            if arr.dtype.kind == "O":
+                raise InvalidInputError(f"extras.{key}: object arrays cannot be saved without pickle", f"extras.{key}")
+            extras[key] = arr
+        self.extras = extras
+
+    # ------------------------------------------------------------------ info
+    @property
+    def num_frames(self) -> int:
+        """T."""
+        return int(self.positions.shape[0])
+
+    @property
+    def num_particles(self) -> int:
+        """N (all particles, kinematic ones included)."""
+        return int(self.positions.shape[1])
+
+    @property
+    def dim(self) -> int:
+        """D ∈ {2, 3}."""
+        return int(self.positions.shape[2])
+
+    @property
+    def times(self) -> np.ndarray:
+        """float64 [T]: the simulated time of every stored frame [s], ``t·dt_frame``."""
+        return np.arange(self.num_frames, dtype=np.float64) * self.dt_frame
+
+    def fluid_mask(self) -> np.ndarray:
+        """bool [N]: True for particles that are not kinematic (GNS type 3)."""
+        return np.asarray(self.particle_type != KINEMATIC)
+
+    # ------------------------------------------------------------------ io
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Every field as the named arrays stored in the file."""
+        out: dict[str, np.ndarray] = {
+            "positions": self.positions,
+            "particle_type": self.particle_type,
+            "dt_frame": np.float64(self.dt_frame),  # type: ignore[dict-item]
+        }
+        if self.n_grid is not None:
+            out["n_grid"] = np.int64(self.n_grid)  # type: ignore[assignment]
+        if self.masses is not None:
+            out["masses"] = self.masses
+        if self.material is not None:
+            out["material"] = self.material
+        out.update(self.extras)
+        return out
+
+    def save(self, path: str | os.PathLike[str], *, compressed: bool = True) -> Path:
+        """Write a ``.npz`` at ``path`` (exactly that name) atomically: a
+        temporary file beside it, then ``os.replace``, so an existing file is
+        either kept whole or replaced whole. Returns the path."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        writer = np.savez_compressed if compressed else np.savez
+        try:
+            with open(tmp, "wb") as f:
+                writer(f, allow_pickle=False, **self.to_arrays())
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Trajectory:
+        """Read and validate a trajectory ``.npz`` (no pickles).
+
+        Raises :class:`~hybridmpm.errors.InvalidInputError`: with field
+        ``"path"`` if the file is missing or not a readable ``.npz``; with the
+        key's name if a required key (``positions``, ``particle_type``,
+        ``dt_frame``) is missing or any array is malformed.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise InvalidInputError(f"path: no such file: {path}", "path")
+        try:
+            with open(path, "rb") as f:
+                magic = f.read(6)
+        except OSError as e:
+            raise InvalidInputError(f"path: cannot read {path} ({e})", "path") from e
+        if magic == b"\x93NUMPY":
+            raise InvalidInputError(f"path: {path} is a single .npy array, not an .npz archive", "path")
+        if magic[:2] != b"PK":
+            raise InvalidInputError(f"path: {path} is not an .npz archive (no zip signature)", "path")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise InvalidInputError(f"path: {path} is not a readable .npz file ({e})", "path") from e
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise InvalidInputError(f"path: {path} is a single .npy array, not an .npz archive", "path")
+        arrays: dict[str, np.ndarray] = {}
+        with data:
+            keys = list(data.files)
+            for key in keys:
+                try:
+                    arrays[key] = data[key]
+                except ValueError as e:  # object arrays need pickle
+                    raise InvalidInputError(f"{key}: cannot be read from {path} without pickle ({e})", key) from e
+                except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+                    raise InvalidInputError(f"path: {path}: entry {key!r} is corrupt ({e})", "path") from e
+        for key in _REQUIRED_KEYS:
+            if key not in arrays:
+                raise InvalidInputError(f"{key}: missing from {path} (it has: {', '.join(keys) or 'nothing'})", key)
+        return cls(
+            positions=arrays.pop("positions"),
+            particle_type=arrays.pop("particle_type"),
+            dt_frame=arrays.pop("dt_frame"),  # type: ignore[arg-type]
+            n_grid=arrays.pop("n_grid", None),  # type: ignore[arg-type]
+            masses=arrays.pop("masses", None),
+            material=arrays.pop("material", None),
+            extras=arrays,
+        )
+
+
+__all__ = ["KINEMATIC", "RESERVED_KEYS", "Trajectory"]
