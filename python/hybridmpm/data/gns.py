@@ -372,6 +372,8 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, source: str, key: s
             else:
                 count = math.prod(shape)
                 nbytes = count * dtype.itemsize
+                if nbytes > info.file_size:  # refuse before reading a header that promises more than the member holds
+                    raise InvalidInputError(f"{where}: truncated: header promises {nbytes} bytes, member holds {info.file_size}", key)
                 data = fp.read(nbytes)
                 if len(data) != nbytes:
                     raise InvalidInputError(f"{where}: truncated: header promises {nbytes} bytes, found {len(data)}", key)
