@@ -3,6 +3,11 @@
 ``hybridmpm simulate [SCENE] --solver mpm --frames N --out DIR`` runs a scene
 and writes ``trajectory.npz``, ``summary.json`` and ``render.gif``.
 
+``hybridmpm generate SCENE --trajectories M --out DIR`` writes a GNS-layout
+dataset of MPM rollouts (:func:`hybridmpm.data.generate.generate_dataset`);
+``hybridmpm inspect DIR`` checks and summarises a GNS dataset (ours or
+another tool's).
+
 ``hybridmpm evaluate PRED.npz REF.npz [--n-grid N] [--out metrics.json]``
 compares two trajectories (:func:`hybridmpm.metrics.evaluate`: grid-mass
 error, position MSE, kinetic energy) and writes the metrics as JSON.
@@ -34,6 +39,10 @@ def _simulate(args: argparse.Namespace) -> int:
     frames = args.frames if args.frames is not None else scene.frames
     if frames < 1:
         raise HybridMpmError("frames: must be >= 1")
+    if args.r_p != 1.0:
+        from hybridmpm.data.resolution import downsample_scene
+
+        scene = downsample_scene(scene, args.r_p, seed=args.seed).scene
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sim = scene.make_solver(num_threads=args.threads)
@@ -48,13 +57,14 @@ def _simulate(args: argparse.Namespace) -> int:
         substeps[f] = stats["substeps"]
         positions[f + 1] = sim.positions
     ptype = scene.particle_type()
+    masses = np.concatenate([sim.masses, np.zeros(scene.num_boundary, np.float32)])
     Trajectory(
-        positions=positions,
+        positions=scene.with_boundary(positions),
         particle_type=ptype,
         dt_frame=scene.dt_frame,
         n_grid=sim.n_grid,
-        masses=sim.masses,
-        material=scene.material,
+        masses=masses,
+        material=np.concatenate([scene.material, np.full(scene.num_boundary, -1, np.int32)]),
     ).save(out / "trajectory.npz")
     summary = {
         "scene": scene.name,
@@ -62,6 +72,8 @@ def _simulate(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "frames": frames,
         "particles": scene.num_particles,
+        "boundary_particles": scene.num_boundary,
+        "r_p": args.r_p,
         "dim": scene.dim,
         "n_grid": sim.n_grid,
         "dt_frame": scene.dt_frame,
@@ -121,21 +133,88 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _generate(args: argparse.Namespace) -> int:
+    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+
+    split = tuple(float(v) for v in args.split.split(","))
+    config = GenerateConfig(
+        scene=args.scene, trajectories=args.trajectories, frames=args.frames, seed=args.seed,
+        r_p=args.r_p, r_t=args.r_t, lowres=args.lowres, split=split,  # type: ignore[arg-type]
+    )  # fmt: skip
+    try:
+        report = generate_dataset(config, args.out, workers=args.workers, executor=args.executor, keep_parts=args.keep_parts, progress=not args.quiet)
+    except KeyboardInterrupt:
+        print(f"hybridmpm: interrupted; finished trajectories are kept in {args.out}/parts, rerun the same command to resume", file=sys.stderr)
+        return 130
+    if not args.quiet:
+        size = sum(report.sizes.values())
+        print(
+            f"{args.scene}: {args.trajectories} trajectories ({report.simulated} simulated now, {report.resumed} already done) "
+            f"in {report.wall_s:.1f} s with {args.workers} worker(s); {size / 1e6:.1f} MB on disk -> {args.out}/"
+        )
+    return 0
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from hybridmpm.data import GnsDataset
+
+    ds = GnsDataset(args.directory)
+    meta = ds.metadata
+    info: dict[str, object] = {"directory": str(args.directory), "dim": ds.dim, "splits": {}}
+    for name in ds.splits:
+        trajs = ds.split(name)
+        shapes = [t.positions.shape for t in trajs.values()]
+        types = sorted({int(v) for t in trajs.values() for v in np.unique(t.particle_type)})
+        info["splits"][name] = {  # type: ignore[index]
+            "trajectories": len(trajs),
+            "frames": sorted({s[0] for s in shapes}),
+            "particles": {"min": min(s[1] for s in shapes), "max": max(s[1] for s in shapes)} if shapes else None,
+            "particle_types": types,
+        }
+    info["metadata"] = meta
+    text = json.dumps(info, indent=2)
+    print(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from hybridmpm.scenes import SCENES
 
     parser = argparse.ArgumentParser(prog="hybridmpm", description="Real-time hybrid neural / MLS-MPM fluid simulation.")
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("simulate", help="run a scene and write trajectory.npz, summary.json and render.gif")
-    sim.add_argument("scene", nargs="?", default="dam_break2d", choices=sorted(SCENES), help="scene (default: dam_break2d)")
+    sim.add_argument(
+        "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
+    )
     sim.add_argument("--solver", default="mpm", choices=["mpm"], help="solver (the neural and hybrid solvers arrive with their issues)")
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
     sim.add_argument("--threads", type=int, default=0, help="solver threads (0 = all cores)")
+    sim.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)
+    gen = sub.add_parser("generate", help="generate a GNS-layout dataset (train/valid/test.npz, metadata.json) of MPM rollouts")
+    gen.add_argument("scene", choices=sorted(SCENES), help="domain")
+    gen.add_argument("--trajectories", type=int, required=True, help="number of trajectories M (>= 3; split 80/10/10 by default)")
+    gen.add_argument("--out", required=True, help="dataset directory (resumes if it holds an unfinished generation)")
+    gen.add_argument("--frames", type=int, default=None, help="frames T per trajectory (default: the paper's T for the domain)")
+    gen.add_argument("--workers", type=int, default=2, help="parallel worker processes (default 2)")
+    gen.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    gen.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1] (default 1; the paper's is 0.5714)")
+    gen.add_argument("--r-t", type=int, default=1, help="temporal downsampling: store every r_t-th frame (default 1; the paper's is 2)")
+    gen.add_argument("--lowres", default="simulate", choices=["simulate", "centroids"], help="how r_p < 1 data is made (default: simulate the clustered initial condition)")
+    gen.add_argument("--split", default="0.8,0.1,0.1", help="train,valid,test fractions (default 0.8,0.1,0.1)")
+    gen.add_argument("--executor", default="process", choices=["process", "ray"], help="process pool (default) or Ray (RAY_ADDRESS or a local instance)")
+    gen.add_argument("--keep-parts", action="store_true", help="keep the per-trajectory files in DIR/parts after assembling")
+    gen.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
+    gen.set_defaults(func=_generate)
+
+    ins = sub.add_parser("inspect", help="check a GNS-layout dataset directory and print its summary as JSON")
+    ins.add_argument("directory", help="dataset directory (metadata.json + train/valid/test.npz)")
+    ins.set_defaults(func=_inspect)
+
     ev = sub.add_parser("evaluate", help="compare a predicted trajectory.npz with a reference one and write metrics.json")
     ev.add_argument("pred", help="predicted trajectory (.npz, as written by simulate)")
     ev.add_argument("ref", help="reference trajectory (.npz), e.g. full-resolution MPM from the same initial condition")
