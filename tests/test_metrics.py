@@ -330,6 +330,7 @@ KEYS = {
     "pred",
     "ref",
     "grid_mass_error",
+    "grid_mass_error_mass_weighted",
     "position_mse_rollout",
     "position_mse_rollout_reason",
     "position_mse_one_step",
@@ -376,3 +377,21 @@ def test_cli_evaluate_bad_file_is_exit_2(two_runs, capsys):
     assert main(["evaluate", str(bad), str(two_runs / "b" / "trajectory.npz")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("hybridmpm: error: ") and str(bad) in err
+
+
+def test_mass_weighted_variant_sees_merged_particles_as_the_same_mass():
+    """Merging two coincident particles into one of twice the mass leaves the
+    mass distribution unchanged: the mass-weighted error is 0 while the 1/N
+    definition (DESIGN.md) sees one particle's worth of mass missing."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.3, 0.7, (3, 50, 2)).astype(np.float32)
+    x[:, 1] = x[:, 0]  # particles 0 and 1 coincide
+    ref = Trajectory(positions=x, particle_type=np.full(50, 5), dt_frame=2.5e-3, masses=np.ones(50, np.float32))
+    merged_m = np.ones(49, np.float32)
+    merged_m[0] = 2.0
+    pred = Trajectory(positions=x[:, 1:], particle_type=np.full(49, 5), dt_frame=2.5e-3, masses=merged_m)
+    res = evaluate(pred, ref)
+    assert res["grid_mass_error_mass_weighted"]["mean"] < 1e-6
+    assert res["grid_mass_error"]["mean"] > 1e-3
+    no_mass = Trajectory(positions=x[:, 1:], particle_type=np.full(49, 5), dt_frame=2.5e-3)
+    assert evaluate(no_mass, ref)["grid_mass_error_mass_weighted"] is None

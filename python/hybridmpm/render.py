@@ -56,7 +56,7 @@ def render_gif(
         ax.set_yticks([])
         ax.set_title(f"{title}  t = {i * dt_frame:.3f} s", fontsize=8)
         fig.canvas.draw()
-        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+        frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())  # type: ignore[attr-defined]
     plt.close(fig)
     path = Path(path)
     iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000 / fps, loop=0)

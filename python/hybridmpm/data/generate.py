@@ -234,8 +234,9 @@ EXECUTORS: dict[str, Callable[[list[tuple], int], Iterator[tuple[int, dict[str, 
 
 # --------------------------------------------------------------------------- files
 def _atomic_savez(path: Path, **arrays: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
     os.replace(tmp, path)
 
 
@@ -385,7 +386,7 @@ def generate_dataset(
         raise HybridMpmError(f"{len(report.failures)} trajectories failed ({lines}); the others are saved in {parts_dir}, rerun to retry")
     _assemble(config, out, parts_dir, splits)
     if not keep_parts:
-        for p in parts_dir.glob("*.npz"):
+        for p in [*parts_dir.glob("*.npz"), *parts_dir.glob("*.tmp")]:
             p.unlink()
         parts_dir.rmdir()
     report.sizes = {p.name: p.stat().st_size for p in sorted(out.glob("*.npz"))}

@@ -250,8 +250,11 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> di
     frame 0 included); kinematic particles (GNS type 3) are dropped from both.
 
     * ``grid_mass_error``: :func:`rollout_summary` of :func:`grid_mass_error`
-      with uniform particle weights (1/N) on the grid ``n_grid`` (argument, else
+      with uniform particle weights (1/N, DESIGN.md) on the grid ``n_grid`` (argument, else
       ``ref.n_grid``, else 128 in 2D / 64 in 3D).
+    * ``grid_mass_error_mass_weighted``: the same with each particle's own mass
+      (when both trajectories store positive ``masses``), else ``None``; it
+      differs from the 1/N definition for unequal masses (k-means clusters).
     * ``position_mse_rollout``: summary of :func:`position_mse` when both have
       the same number of fluid particles (particle ``i`` assumed to be the same
       particle in both), else ``None`` and ``position_mse_rollout_reason`` says
@@ -296,7 +299,14 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> di
         "pred": {"frames": pred.num_frames, "dt_frame": pred.dt_frame, "particles": n_pred, "kinematic_particles": int((~pm).sum())},
         "ref": {"frames": ref.num_frames, "dt_frame": ref.dt_frame, "particles": n_ref, "kinematic_particles": int((~rm).sum())},
         "grid_mass_error": rollout_summary(grid_mass_error(pp, rp, n)),
+        "grid_mass_error_mass_weighted": None,
     }
+    if pred.masses is not None and ref.masses is not None and np.all(pred.masses[pm] > 0) and np.all(ref.masses[rm] > 0):
+        # the same error with each particle splatting its own mass: differs from the
+        # 1/N definition when particles carry unequal masses (k-means clusters, r_p < 1)
+        result["grid_mass_error_mass_weighted"] = rollout_summary(
+            grid_mass_error(pp, rp, n, pred_weights=pred.masses[pm], ref_weights=ref.masses[rm])
+        )
 
     mismatch = f"fluid particle counts differ (pred {n_pred}, ref {n_ref}): no particle correspondence, use grid_mass_error"
     if n_pred == n_ref:

@@ -245,7 +245,7 @@ class SceneSpec:
                 try:
                     import tomllib
                 except ModuleNotFoundError:  # Python 3.10
-                    import tomli as tomllib
+                    import tomli as tomllib  # type: ignore[no-redef]
                 d = tomllib.loads(text)
             else:
                 d = json.loads(text)
