@@ -150,7 +150,7 @@ def _generate(args: argparse.Namespace) -> int:
         size = sum(report.sizes.values())
         print(
             f"{args.scene}: {args.trajectories} trajectories ({report.simulated} simulated now, {report.resumed} already done) "
-            f"in {report.wall_s:.1f} s with {args.workers} worker(s); {size / 1e6:.1f} MB on disk -> {args.out}/"
+            f"in {report.wall_s:.1f} s with {args.workers} worker(s) (assembly {report.assemble_s:.1f} s); {size / 1e6:.1f} MB on disk -> {args.out}/"
         )
     return 0
 

@@ -296,12 +296,14 @@ def _sha256(path: Path) -> str:
 @dataclass
 class GenerateReport:
     """What :func:`generate_dataset` did: trajectories simulated now / found done,
-    wall time [s], dataset size on disk [bytes] per file, failures (index → message)."""
+    wall time [s] in all and of the assembly into split files, dataset size on
+    disk [bytes] per file, failures (index → message)."""
 
     out: Path
     simulated: int = 0
     resumed: int = 0
     wall_s: float = 0.0
+    assemble_s: float = 0.0
     sizes: dict[str, int] = field(default_factory=dict)
     failures: dict[int, str] = field(default_factory=dict)
 
@@ -380,15 +382,19 @@ def generate_dataset(
             bar.update(1)
     finally:
         bar.close()
-    report.wall_s = time.perf_counter() - t_start
     if report.failures:
         lines = "; ".join(f"#{i}: {m}" for i, m in sorted(report.failures.items()))
         raise HybridMpmError(f"{len(report.failures)} trajectories failed ({lines}); the others are saved in {parts_dir}, rerun to retry")
+    t_assemble = time.perf_counter()
+    if progress:
+        print(f"assembling {', '.join(f'{s}.npz' for s in SPLITS)} and metadata.json ...", flush=True)
     _assemble(config, out, parts_dir, splits)
     if not keep_parts:
         for p in [*parts_dir.glob("*.npz"), *parts_dir.glob("*.tmp")]:
             p.unlink()
         parts_dir.rmdir()
+    report.assemble_s = time.perf_counter() - t_assemble
+    report.wall_s = time.perf_counter() - t_start
     report.sizes = {p.name: p.stat().st_size for p in sorted(out.glob("*.npz"))}
     return report
 

@@ -76,7 +76,7 @@ REQUIRED_METADATA: tuple[str, ...] = (
 GNS_DATA_KEY = "gns_data"
 
 _ZIP_DATE_TIME = (1980, 1, 1, 0, 0, 0)
-_ZIP_COMPRESS_LEVEL = 6
+_ZIP_COMPRESS_LEVEL = 1  # float32 positions: level 6 saves <1% more and is 1.5x slower
 _STATS_CHUNK_FRAMES = 256
 
 PathLike = Union[str, "os.PathLike[str]"]

@@ -151,24 +151,25 @@ def sand2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_part
     return _spec("sand2d", seed, params, _random_blocks(rng, params, ["sand"] * k, (8, 40), max_particles), frames)
 
 
-def water_ramps2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 3300) -> SceneSpec:
-    """1–3 water blocks in the upper half falling onto 1–3 frictionless ramps."""
-    rng = _rng("water_ramps2d", seed)
-    params = _params(2, n_grid, rough=False)
-    params.colliders = list(_random_ramps(rng, params, int(rng.integers(1, 4)), friction=0.0))
+def _ramps_scene(name: str, material: str, seed: int, frames: int | None, n_grid: int, max_particles: int) -> SceneSpec:
+    """1–3 blocks of ``material`` above y = 0.6 m falling onto 1–3 ramps
+    (frictionless for water, μ = tan φ for sand, like the floor)."""
+    rng = _rng(name, seed)
+    params = _params(2, n_grid, rough=material == "sand")
+    params.colliders = list(_random_ramps(rng, params, int(rng.integers(1, 4)), friction=params.walls.friction))
     k = int(rng.integers(1, 4))
-    blocks = _random_blocks(rng, params, ["water"] * k, (8, 36), max_particles, y_min=0.6)
-    return _spec("water_ramps2d", seed, params, blocks, frames)
+    blocks = _random_blocks(rng, params, [material] * k, (8, 36), max_particles, y_min=0.6)
+    return _spec(name, seed, params, blocks, frames)
+
+
+def water_ramps2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 3300) -> SceneSpec:
+    """1–3 water blocks in the upper part falling onto 1–3 frictionless ramps."""
+    return _ramps_scene("water_ramps2d", "water", seed, frames, n_grid, max_particles)
 
 
 def sand_ramps2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 3300) -> SceneSpec:
-    """1–3 sand blocks in the upper half falling onto 1–3 rough ramps (μ = tan φ)."""
-    rng = _rng("sand_ramps2d", seed)
-    params = _params(2, n_grid, rough=True)
-    params.colliders = list(_random_ramps(rng, params, int(rng.integers(1, 4)), friction=params.walls.friction))
-    k = int(rng.integers(1, 4))
-    blocks = _random_blocks(rng, params, ["sand"] * k, (8, 36), max_particles, y_min=0.6)
-    return _spec("sand_ramps2d", seed, params, blocks, frames)
+    """1–3 sand blocks in the upper part falling onto 1–3 rough ramps (μ = tan φ)."""
+    return _ramps_scene("sand_ramps2d", "sand", seed, frames, n_grid, max_particles)
 
 
 def water_sand2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 4096) -> SceneSpec:
