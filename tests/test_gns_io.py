@@ -201,7 +201,13 @@ def test_writes_are_byte_deterministic(tmp_path: Path) -> None:
     with zipfile.ZipFile(tmp_path / "a.npz") as zf:
         assert [i.filename for i in zf.infolist()] == [f"{k}.npy" for k in sorted(data)]
         assert {i.date_time for i in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_STORED}
+    write_split(tmp_path / "z1.npz", data, compress=True)
+    write_split(tmp_path / "z2.npz", data, compress=True)
+    assert _sha256(tmp_path / "z1.npz") == _sha256(tmp_path / "z2.npz")
+    with zipfile.ZipFile(tmp_path / "z1.npz") as zf:
         assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
+    assert read_split(tmp_path / "z1.npz").keys() == data.keys()
     positions, particle_type = data["simulation_trajectory_2"]
     changed = positions.copy()
     changed[1, 2, 0] = np.nextafter(changed[1, 2, 0], np.float32(2))

@@ -142,7 +142,7 @@ def _generate(args: argparse.Namespace) -> int:
         r_p=args.r_p, r_t=args.r_t, lowres=args.lowres, split=split,  # type: ignore[arg-type]
     )  # fmt: skip
     try:
-        report = generate_dataset(config, args.out, workers=args.workers, executor=args.executor, keep_parts=args.keep_parts, progress=not args.quiet)
+        report = generate_dataset(config, args.out, workers=args.workers, executor=args.executor, keep_parts=args.keep_parts, compress=args.compress, progress=not args.quiet)
     except KeyboardInterrupt:
         print(f"hybridmpm: interrupted; finished trajectories are kept in {args.out}/parts, rerun the same command to resume", file=sys.stderr)
         return 130
@@ -207,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--lowres", default="simulate", choices=["simulate", "centroids"], help="how r_p < 1 data is made (default: simulate the clustered initial condition)")
     gen.add_argument("--split", default="0.8,0.1,0.1", help="train,valid,test fractions (default 0.8,0.1,0.1)")
     gen.add_argument("--executor", default="process", choices=["process", "ray"], help="process pool (default) or Ray (RAY_ADDRESS or a local instance)")
+    gen.add_argument("--compress", action="store_true", help="deflate the split files (~13%% smaller for float32 positions, slower to write)")
     gen.add_argument("--keep-parts", action="store_true", help="keep the per-trajectory files in DIR/parts after assembling")
     gen.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     gen.set_defaults(func=_generate)

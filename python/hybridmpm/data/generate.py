@@ -315,9 +315,14 @@ def generate_dataset(
     workers: int = 2,
     executor: Executor = "process",
     keep_parts: bool = False,
+    compress: bool = False,
     progress: bool = True,
 ) -> GenerateReport:
     """Generate (or resume) a GNS-layout dataset in ``out`` (see the module docstring).
+
+    ``workers`` parallel trajectories; ``executor`` "process" (a local process
+    pool) or "ray"; ``keep_parts`` keeps ``out/parts/``; ``compress`` deflates
+    the split files (~13% smaller, slower); ``progress`` shows a progress bar.
 
     Raises :class:`InvalidInputError` if ``out`` holds a different generation
     (the message names the differing field) or an argument is out of range;
@@ -388,7 +393,7 @@ def generate_dataset(
     t_assemble = time.perf_counter()
     if progress:
         print(f"assembling {', '.join(f'{s}.npz' for s in SPLITS)} and metadata.json ...", flush=True)
-    _assemble(config, out, parts_dir, splits)
+    _assemble(config, out, parts_dir, splits, compress)
     if not keep_parts:
         for p in [*parts_dir.glob("*.npz"), *parts_dir.glob("*.tmp")]:
             p.unlink()
@@ -399,7 +404,7 @@ def generate_dataset(
     return report
 
 
-def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[str]) -> None:
+def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[str], compress: bool) -> None:
     from hybridmpm.data import gns
 
     parts = {i: parts_dir / f"{i:05d}.npz" for i in range(config.trajectories)}
@@ -426,7 +431,7 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
         }
     hashes = {}
     for s in SPLITS:
-        gns.write_split(out / f"{s}.npz", _LazySplit(by_split[s]))
+        gns.write_split(out / f"{s}.npz", _LazySplit(by_split[s]), compress=compress)
         hashes[s] = _sha256(out / f"{s}.npz")
     stats = gns.compute_statistics(_LazySplit(by_split["train"]).values(), exclude_types=(GNS_KINEMATIC,))
     wall = (spec0.params.walls.cells - 1) / n_grid
