@@ -9,7 +9,10 @@ paper's T frames:
   ``hybridmpm generate --r-p`` makes low-resolution data, and what the
   hybrid simulator's fallback runs);
 * the cluster centroids of the full-resolution rollout (the alternative
-  way to make low-resolution data, ``--lowres centroids``).
+  way to make low-resolution data, ``--lowres centroids``);
+* MPM at full resolution with the initial positions jittered by 1e-6 m
+  (Gaussian): how fast the flow itself forgets its initial condition (chaos),
+  the floor no method can go below.
 
 It reports the grid-mass error (DESIGN.md: p2g of 1/N per particle on the
 128² grid, normalised; mean over the rollout and last frame), the same error
@@ -49,8 +52,10 @@ def run_one(args: tuple[str, int, float, int | None]) -> dict:
     T = full.frames
     out: dict = {"scene": name, "seed": seed, "frames": T, "n_h": full.num_particles, "n_l": down.scene.num_particles}
     trajs = {}
-    for label, scene in (("full", full), ("low", down.scene)):
+    for label, scene in (("full", full), ("low", down.scene), ("jitter", full)):
         sim = scene.make_solver(num_threads=1)
+        if label == "jitter":
+            sim.positions = full.positions + np.random.default_rng(seed).normal(0.0, 1e-6, full.positions.shape).astype(np.float32)
         x = [sim.positions]
         t0 = time.perf_counter()
         for _ in range(T):
@@ -58,10 +63,10 @@ def run_one(args: tuple[str, int, float, int | None]) -> dict:
             x.append(sim.positions)
         out[f"ms_per_frame_{label}"] = (time.perf_counter() - t0) / T * 1e3
         trajs[label] = (np.stack(x), sim.masses.astype(np.float64))
-    (xf, mf), (xl, ml) = trajs["full"], trajs["low"]
+    (xf, mf), (xl, ml), (xj, _) = trajs["full"], trajs["low"], trajs["jitter"]
     xc = cluster_centroids(xf, down.labels, mf)
     n_grid = full.params.resolved_n_grid()
-    for label, x, m in (("mpm_rp", xl, ml), ("centroids", xc, ml)):
+    for label, x, m in (("mpm_rp", xl, ml), ("centroids", xc, ml), ("jitter", xj, mf)):
         e = grid_mass_error(x, xf, n_grid)
         ew = grid_mass_error(x, xf, n_grid, pred_weights=m, ref_weights=mf)
         out[label] = {"mean": float(e.mean()), "last": float(e[-1]), "frame0": float(e[0]), "mean_mass_weighted": float(ew.mean()), "last_mass_weighted": float(ew[-1])}
@@ -96,8 +101,8 @@ def main() -> None:
         "128² reference grid. Error = ‖m̃_pred − m̃_ref‖₂/‖m̃_ref‖₂ (DESIGN.md, 1/N per particle), mean over frames ± std over seeds;",
         "'mass-weighted' splats each particle's mass instead; 'frame 0' is the clustering alone.",
         "",
-        "| scene | T | N_h | N_l | MPM@r_p mean | MPM@r_p last | MPM@r_p mean (mass-weighted) | centroids mean | centroids last | frame 0 | full MPM ms/frame | MPM@r_p ms/frame |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | T | N_h | N_l | MPM@r_p mean | MPM@r_p last | MPM@r_p mean (mass-weighted) | centroids mean | centroids last | frame 0 | chaos: full MPM, 1 µm jitter, mean | last | full MPM ms/frame | MPM@r_p ms/frame |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in a.scenes.split(","):
         rs = [r for r in rows if r["scene"] == s]
@@ -109,7 +114,7 @@ def main() -> None:
         lines.append(
             f"| {s} | {rs[0]['frames']} | {np.mean([r['n_h'] for r in rs]):.0f} | {np.mean([r['n_l'] for r in rs]):.0f} | "
             f"{ms('mpm_rp', 'mean')} | {ms('mpm_rp', 'last')} | {ms('mpm_rp', 'mean_mass_weighted')} | {ms('centroids', 'mean')} | "
-            f"{ms('centroids', 'last')} | {ms('mpm_rp', 'frame0')} | {np.median([r['ms_per_frame_full'] for r in rs]):.2f} | "
+            f"{ms('centroids', 'last')} | {ms('mpm_rp', 'frame0')} | {ms('jitter', 'mean')} | {ms('jitter', 'last')} | {np.median([r['ms_per_frame_full'] for r in rs]):.2f} | "
             f"{np.median([r['ms_per_frame_low'] for r in rs]):.2f} |"
         )
     lines.append("")

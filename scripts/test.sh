@@ -9,4 +9,5 @@ python -m pip install --quiet --upgrade pip
 python -m pip install --quiet -e '.[test]'
 cargo test --release
 cargo clippy --release --workspace --all-targets -- -D warnings
+python -m mypy python/hybridmpm --ignore-missing-imports
 python -m pytest -q

@@ -160,3 +160,30 @@ def test_ray_executor_in_local_mode_matches_the_process_pool(tmp_path):
     generate_dataset(cfg, tmp_path / "ray", workers=2, executor="ray", progress=False)
     generate_dataset(cfg, tmp_path / "pool", workers=2, executor="process", progress=False)
     assert _digest(tmp_path / "ray") == _digest(tmp_path / "pool")
+
+
+def test_inspect_reads_a_dataset_written_by_another_tool(tmp_path, capsys):
+    """A GNS dataset made elsewhere (np.savez_compressed of object arrays, the
+    public metadata fields only) is read and summarised."""
+    rng = np.random.default_rng(0)
+    for split, n in (("train", 2), ("valid", 1), ("test", 1)):
+        items = {}
+        for i in range(n):
+            item = np.empty(2, dtype=object)
+            item[0] = rng.uniform(0.1, 0.9, (7, 30, 2)).astype(np.float32)
+            item[1] = np.r_[np.full(25, 5), np.full(5, 3)].astype(np.int64)
+            items[f"simulation_trajectory_{i}"] = item
+        np.savez_compressed(tmp_path / f"{split}.npz", **items)
+    meta = {
+        "bounds": [[0.1, 0.9], [0.1, 0.9]], "sequence_length": 6, "default_connectivity_radius": 0.015, "dim": 2, "dt": 0.0025,
+        "vel_mean": [0.0, 0.0], "vel_std": [1e-3, 1e-3], "acc_mean": [0.0, 0.0], "acc_std": [1e-4, 1e-4],
+    }  # fmt: skip
+    (tmp_path / "metadata.json").write_text(json.dumps(meta))
+    assert main(["inspect", str(tmp_path)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["splits"]["train"]["trajectories"] == 2 and info["splits"]["test"]["frames"] == [7]
+    assert info["splits"]["valid"]["particle_types"] == [3, 5] and info["metadata"]["dt"] == 0.0025
+    # a broken dataset is a clear error, not a traceback
+    (tmp_path / "metadata.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "dt"}))
+    assert main(["inspect", str(tmp_path)]) == 2
+    assert "dt" in capsys.readouterr().err
