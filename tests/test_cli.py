@@ -33,3 +33,22 @@ def test_simulate_writes_trajectory_summary_and_render(tmp_path):
 def test_unknown_scene_is_a_clear_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "hybridmpm", "simulate", "nope", "--out", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 2 and "nope" in r.stderr
+
+
+def test_simulate_a_scene_with_obstacles_writes_boundary_particles_and_renders(tmp_path):
+    from hybridmpm.scenes import make_scene
+
+    out = tmp_path / "ramps"
+    assert main(["simulate", "water_ramps2d", "--seed", "3", "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    scene = make_scene("water_ramps2d", seed=3)
+    traj = np.load(out / "trajectory.npz")
+    n, b = scene.num_particles, scene.num_boundary
+    assert b > 0 and traj["positions"].shape == (4, n + b, 2)
+    assert (traj["particle_type"][n:] == 3).all()
+    assert np.array_equal(traj["positions"][3, n:], scene.boundary_positions)  # static
+    assert (out / "render.gif").read_bytes()[:3] == b"GIF"
+    # a downsampled run: fewer solver particles, the same boundary treatment
+    low = tmp_path / "low"
+    assert main(["simulate", "water_ramps2d", "--seed", "3", "--frames", "2", "--r-p", "0.5", "--out", str(low), "--quiet", "--no-render"]) == 0
+    summary = json.loads((low / "summary.json").read_text())
+    assert summary["particles"] == round(0.5 * n) and summary["r_p"] == 0.5

@@ -94,7 +94,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if not args.no_render:
         from hybridmpm.render import render_gif
 
-        render_gif(positions, ptype, out / "render.gif", dt_frame=scene.dt_frame, title=f"{scene.name} ({args.solver})")
+        render_gif(scene.with_boundary(positions), ptype, out / "render.gif", dt_frame=scene.dt_frame, title=f"{scene.name} ({args.solver})")
     if not args.quiet:
         print(
             f"{scene.name}: {frames} frames, {scene.num_particles} particles, "
