@@ -39,6 +39,8 @@ def _simulate(args: argparse.Namespace) -> int:
     frames = args.frames if args.frames is not None else scene.frames
     if frames < 1:
         raise HybridMpmError("frames: must be >= 1")
+    if args.solver == "neural":
+        return _simulate_neural(args, scene, frames)
     if args.r_p != 1.0:
         from hybridmpm.data.resolution import downsample_scene
 
@@ -133,6 +135,65 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # type: ignore[no-untyped-def]
+    import hybridmpm
+    from hybridmpm.errors import InvalidInputError
+    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural.runtime import run_neural
+
+    if args.model is None:
+        raise InvalidInputError("model: no shipped model for this scene yet; pass --model PATH (from hybridmpm train)", "model")
+    model = NeuralModel(args.model, threads=max(args.threads, 1) if args.threads else 1)
+    res = run_neural(scene, model, frames, seed=args.seed, mpm_threads=args.threads, progress=not args.quiet)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    low = res["scene"]
+    Trajectory(
+        positions=res["positions"],
+        particle_type=res["particle_type"],
+        dt_frame=res["dt_stored"],
+        n_grid=low.params.resolved_n_grid(),
+        masses=np.concatenate([res["masses"], np.zeros(low.num_boundary, np.float32)]),
+        material=np.concatenate([res["material"], np.full(low.num_boundary, -1, np.int32)]),
+    ).save(out / "trajectory.npz")
+    per_frame = res["step_seconds"] / model.r_t
+    summary = {
+        "scene": scene.name, "solver": "neural", "model": str(args.model), "seed": args.seed, "frames": frames,
+        "particles": low.num_particles, "boundary_particles": low.num_boundary, "dim": low.dim, "r_p": model.r_p, "r_t": model.r_t,
+        "warmup_mpm_frames": res["warmup_frames"], "neural_steps": len(per_frame), "mean_edges": res["edges"],
+        "wall_ms_per_frame": {
+            "median": float(np.median(per_frame) * 1e3) if len(per_frame) else None,
+            "p95": float(np.percentile(per_frame, 95) * 1e3) if len(per_frame) else None,
+        },
+        "version": hybridmpm.__version__,
+    }  # fmt: skip
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if not args.no_render:
+        from hybridmpm.render import render_gif
+
+        render_gif(res["positions"], res["particle_type"], out / "render.gif", dt_frame=res["dt_stored"], title=f"{scene.name} (neural)")
+    if not args.quiet:
+        med = summary["wall_ms_per_frame"]["median"]
+        print(f"{scene.name}: {frames} frames, {low.num_particles} particles, neural median {med if med is None else round(med, 2)} ms/frame -> {out}/")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    try:
+        from hybridmpm.neural.train import TrainConfig, train
+    except ImportError as e:
+        raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
+    cfg = TrainConfig(
+        scene=args.scene, data=args.data, out=args.out, latent=args.latent, layers=args.layers, r_t=args.r_t, steps=args.steps,
+        batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors,
+        seed=args.seed, threads=args.threads,
+    )  # fmt: skip
+    summary = train(cfg, progress=not args.quiet)
+    if not args.quiet:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
 def _generate(args: argparse.Namespace) -> int:
     from hybridmpm.data.generate import GenerateConfig, generate_dataset
 
@@ -186,7 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
     )
-    sim.add_argument("--solver", default="mpm", choices=["mpm"], help="solver (the neural and hybrid solvers arrive with their issues)")
+    sim.add_argument("--solver", default="mpm", choices=["mpm", "neural"], help="solver (default mpm; the hybrid arrives with its issue)")
+    sim.add_argument("--model", default=None, help="ONNX model for --solver neural (from hybridmpm train)")
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
@@ -211,6 +273,24 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--keep-parts", action="store_true", help="keep the per-trajectory files in DIR/parts after assembling")
     gen.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     gen.set_defaults(func=_generate)
+
+    tr = sub.add_parser("train", help="train a GNS on a GNS-layout dataset and export model.onnx (needs the 'train' extra)")
+    tr.add_argument("scene", help="scene family the model is for (stored in the model)")
+    tr.add_argument("--data", required=True, help="dataset directory (hybridmpm generate, or any GNS dataset)")
+    tr.add_argument("--out", required=True, help="model directory: checkpoint.pt, log.csv, model.onnx (resumes if present)")
+    tr.add_argument("--latent", type=int, default=32, help="latent width (default 32; paper 128)")
+    tr.add_argument("--layers", type=int, default=3, help="message-passing layers L (default 3; paper 10)")
+    tr.add_argument("--r-t", type=int, default=2, help="frames per model step (default 2, the paper's)")
+    tr.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
+    tr.add_argument("--batch", type=int, default=2, help="windows per step (default 2)")
+    tr.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (decays x0.1 over the run)")
+    tr.add_argument("--noise-std", type=float, default=3e-4, help="random-walk noise on the last input velocity [m/step]")
+    tr.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
+    tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
+    tr.add_argument("--quiet", action="store_true")
+    tr.set_defaults(func=_train)
 
     ins = sub.add_parser("inspect", help="check a GNS-layout dataset directory and print its summary as JSON")
     ins.add_argument("directory", help="dataset directory (metadata.json + train/valid/test.npz)")

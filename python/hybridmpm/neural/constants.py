@@ -1,0 +1,10 @@
+"""Constants shared by the torch model, the exporter and the onnxruntime runtime (no torch import)."""
+
+#: Version of the feature construction inside exported models (bump on any change).
+FEATURE_VERSION = 1
+#: Particle-type vocabulary of the embedding (GNS: 9 types).
+NUM_TYPES = 9
+#: GNS type of kinematic (obstacle / boundary) particles: never moved, not in the loss.
+KINEMATIC = 3
+#: ONNX metadata property holding the model's JSON metadata.
+METADATA_KEY = "hybridmpm"

@@ -1,0 +1,318 @@
+"""Training the GNS (paper App. B "Training"; GNS, Sanchez-Gonzalez et al. 2020).
+
+``hybridmpm train SCENE --data DIR --out MODEL_DIR`` runs :func:`train`:
+
+* data: a GNS-layout dataset (``hybridmpm generate``, or any GNS dataset);
+  ``r_t`` (default: the paper's 2, counted in *frames*) sets the model step:
+  a dataset stored every ``r_t_data`` frames is subsampled by ``r_t / r_t_data``;
+  the model's spatial resolution is the data's (``r_p`` from its metadata);
+* samples: windows of ``T_in = 6`` positions and the next one from random
+  trajectories and times of the training split, a batch being several windows
+  joined into one disjoint graph (radius graph from the Rust crate);
+* noise: a random walk on the input velocities (std ``noise_std`` on the last
+  velocity), the target acceleration corrected so the model learns to undo it;
+* loss: **MSE of the normalised acceleration** over non-kinematic particles
+  (the GNS choice: it weighs both axes alike whatever their scales; it is
+  the paper's per-particle acceleration RMSE squared, up to the per-axis
+  normalisation constants);
+* Adam with exponential learning-rate decay ``lr = lr_final + (lr − lr_final)·0.1^(step/steps)``;
+* validation every ``val_every`` steps: one-step loss on fixed validation
+  windows (no noise) and a ``rollout_steps`` rollout on the first validation
+  trajectory (position MSE and grid-mass error of the last step);
+* ``checkpoint.pt`` at every validation (model, optimiser, step, RNG states):
+  rerunning the same command resumes; ``log.csv`` holds the losses;
+  ``model.onnx`` (the best validation rollout) is exported at the end.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
+from hybridmpm.neural.constants import KINEMATIC
+from hybridmpm.neural.model import GnsConfig, GnsModel
+
+
+@dataclass
+class TrainConfig:
+    """Settings of :func:`train` (see the module docstring). ``scene`` names the
+    scene family stored in the model; ``steps`` optimiser steps; ``batch``
+    windows per step; ``max_neighbors`` caps the radius graph per receiver."""
+
+    scene: str
+    data: str
+    out: str
+    latent: int = 32
+    layers: int = 3
+    r_t: int = 2
+    steps: int = 20000
+    batch: int = 2
+    lr: float = 1e-3
+    lr_final: float = 1e-5
+    noise_std: float = 3e-4
+    val_every: int = 500
+    val_windows: int = 16
+    rollout_steps: int = 20
+    max_neighbors: int | None = None
+    seed: int = 0
+    threads: int = 0
+
+    def validate(self) -> TrainConfig:
+        for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InvalidInputError(f"{name}: must be an integer >= 1, got {v!r}", name)
+        for name in ("lr", "lr_final"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InvalidInputError(f"{name}: must be a number > 0, got {v!r}", name)
+        if not (isinstance(self.noise_std, (int, float)) and math.isfinite(self.noise_std) and self.noise_std >= 0):
+            raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
+        return self
+
+
+class _Data:
+    """Trajectories of one split at the model step, in memory (float32)."""
+
+    def __init__(self, directory: Path, split: str, stride: int) -> None:
+        from hybridmpm.data import GnsDataset
+
+        ds = GnsDataset(directory)
+        self.meta = ds.metadata
+        self.trajs = [(t.positions[::stride].astype(np.float32), t.particle_type.astype(np.int64)) for _, t in sorted(ds.split(split).items())]
+        if not self.trajs:
+            raise InvalidInputError(f"data: split {split!r} of {directory} is empty", "data")
+        self.t_max = min(len(p) for p, _ in self.trajs)
+
+
+def _statistics(trajs: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, list[float]]:
+    """Per-dimension mean/std of velocities and accelerations at the model step (non-kinematic)."""
+    from hybridmpm.data import compute_statistics
+
+    return compute_statistics([(p, t) for p, t in trajs], exclude_types=(KINEMATIC,))
+
+
+def _window(
+    traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Input history [T_in, N, D], types [N], target acceleration [N, D] (noise-corrected)."""
+    pos, ptype = traj
+    hist = pos[t - t_in + 1 : t + 1].astype(np.float64)
+    nxt = pos[t + 1].astype(np.float64)
+    if noise_std > 0:
+        n, d = hist.shape[1], hist.shape[2]
+        steps = t_in - 1
+        vel_noise = np.cumsum(rng.normal(0.0, noise_std / math.sqrt(steps), (steps, n, d)), axis=0)
+        pos_noise = np.concatenate([np.zeros((1, n, d)), np.cumsum(vel_noise, axis=0)])
+        pos_noise[:, ptype == KINEMATIC] = 0.0
+        hist = hist + pos_noise
+        nxt = nxt + pos_noise[-1]
+    acc = nxt - 2 * hist[-1] + hist[-2]
+    return hist.astype(np.float32), ptype, acc.astype(np.float32)
+
+
+def _batch(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], radius: float, max_neighbors: int | None) -> tuple[torch.Tensor, ...]:
+    hs, ts, accs, ss, rs = [], [], [], [], []
+    offset = 0
+    for hist, ptype, acc in windows:
+        s, r, _, _ = radius_graph(hist[-1], radius, max_neighbors=max_neighbors)
+        hs.append(hist)
+        ts.append(ptype)
+        accs.append(acc)
+        ss.append(s + offset)
+        rs.append(r + offset)
+        offset += hist.shape[1]
+    return (
+        torch.from_numpy(np.concatenate(hs, axis=1)),
+        torch.from_numpy(np.concatenate(ts)),
+        torch.from_numpy(np.concatenate(ss)),
+        torch.from_numpy(np.concatenate(rs)),
+        torch.from_numpy(np.concatenate(accs)),
+    )
+
+
+def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    hist, ptype, s, r, acc = batch
+    pred = model.normalised_acceleration(hist, ptype, s, r)
+    target = (acc - model.acc_mean) / model.acc_std
+    mask = ptype != KINEMATIC
+    return ((pred - target)[mask] ** 2).mean()
+
+
+def _rollout(model: GnsModel, traj: tuple[np.ndarray, np.ndarray], steps: int, radius: float, max_neighbors: int | None) -> np.ndarray:
+    pos, ptype = traj
+    t_in = model.config.t_in
+    hist = torch.from_numpy(pos[:t_in].copy())
+    pt = torch.from_numpy(ptype)
+    out = []
+    with torch.no_grad():
+        for _ in range(steps):
+            s, r, _, _ = radius_graph(hist[-1].numpy(), radius, max_neighbors=max_neighbors)
+            _, nxt = model(hist, pt, torch.from_numpy(s), torch.from_numpy(r))
+            hist = torch.cat([hist[1:], nxt[None]])
+            out.append(nxt.numpy())
+    return np.stack(out)
+
+
+def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) a GNS; returns a summary dict (also ``out/summary.json``).
+
+    Raises :class:`InvalidInputError` for bad settings, a dataset that does not
+    fit (``r_t`` not a multiple of the data's), or an ``out`` directory holding
+    a run with different settings.
+    """
+    from tqdm import tqdm
+
+    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.neural.export import export_onnx
+
+    config.validate()
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    saved = out / "train_config.json"
+    cfg_json = asdict(config)
+    if saved.exists():
+        old = json.loads(saved.read_text())
+        for key, v in cfg_json.items():
+            if key not in ("steps", "threads") and old.get(key) != v:
+                raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key)!r}, not {v!r}; use another --out", key)
+    saved.write_text(json.dumps(cfg_json, indent=2))
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    from hybridmpm.data import read_metadata
+
+    meta = read_metadata(Path(config.data) / "metadata.json")
+    r_t_data = int(meta.get("r_t", 1))
+    if config.r_t % r_t_data:
+        raise InvalidInputError(f"r_t: {config.r_t} frames is not a multiple of the data's step ({r_t_data} frames)", "r_t")
+    stride = config.r_t // r_t_data
+    train_data = _Data(Path(config.data), "train", stride)
+    valid_data = _Data(Path(config.data), "valid", stride)
+    t_in = 6
+    if train_data.t_max < t_in + 1:
+        raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
+    stats = _statistics(train_data.trajs)
+    radius = float(meta["default_connectivity_radius"])
+    types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {KINEMATIC})
+    gcfg = GnsConfig(
+        dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],
+        vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
+        latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std,
+    )  # fmt: skip
+    torch.manual_seed(config.seed)
+    model = GnsModel(gcfg)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    rng = np.random.default_rng(config.seed)
+    step, best, elapsed = 0, math.inf, 0.0
+    ckpt = out / "checkpoint.pt"
+    if ckpt.exists():
+        state = torch.load(ckpt, weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        step, best, elapsed = state["step"], state["best"], state["elapsed"]
+        rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+    vrng = np.random.default_rng(12345)
+    val_windows = []
+    for _ in range(config.val_windows):
+        k = int(vrng.integers(len(valid_data.trajs)))
+        traj = valid_data.trajs[k]
+        t = int(vrng.integers(t_in - 1, len(traj[0]) - 1))
+        val_windows.append(_window(traj, t, t_in, 0.0, vrng))
+    val_traj = valid_data.trajs[0]
+    rollout_steps = min(config.rollout_steps, len(val_traj[0]) - t_in)
+    n_grid = int(meta.get("n_grid", 128 if gcfg.dim == 2 else 64))
+    log_path = out / "log.csv"
+    new_log = not log_path.exists()
+    log = open(log_path, "a", newline="")
+    writer = csv.writer(log)
+    if new_log:
+        writer.writerow(["step", "lr", "train_loss", "val_one_step", "val_rollout_mse", "val_rollout_grid_mass", "elapsed_s"])
+    running: list[float] = []
+
+    def validate(lr: float, train_loss: float) -> float:
+        model.eval()
+        with torch.no_grad():
+            v1 = float(np.mean([_loss(model, _batch([w], radius, config.max_neighbors)).item() for w in val_windows]))
+        roll = _rollout(model, val_traj, rollout_steps, radius, config.max_neighbors)
+        truth = val_traj[0][t_in : t_in + rollout_steps]
+        fluid = val_traj[1] != KINEMATIC
+        mse = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
+        gm = float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(mse) else math.inf
+        writer.writerow([step, f"{lr:.3e}", f"{train_loss:.5f}", f"{v1:.5f}", f"{mse:.4e}", f"{gm:.4f}", f"{time.perf_counter() - t0:.1f}"])
+        log.flush()
+        bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
+        return mse
+
+    bar = tqdm(total=config.steps, initial=step, desc=f"train {config.scene} L{config.layers}x{config.latent}", unit="step", disable=not progress)
+    t0 = time.perf_counter() - elapsed
+    try:
+        if step == 0:
+            validate(config.lr, math.nan)  # the untrained baseline
+        while step < config.steps:
+            lr = config.lr_final + (config.lr - config.lr_final) * 0.1 ** (step / config.steps)
+            for g in opt.param_groups:
+                g["lr"] = lr
+            windows = []
+            for _ in range(config.batch):
+                traj = train_data.trajs[int(rng.integers(len(train_data.trajs)))]
+                t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
+                windows.append(_window(traj, t, t_in, config.noise_std, rng))
+            model.train()
+            loss = _loss(model, _batch(windows, radius, config.max_neighbors))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            step += 1
+            running.append(loss.item())
+            bar.update(1)
+            if step % config.val_every == 0 or step == config.steps:
+                mse = validate(lr, float(np.mean(running)))
+                elapsed = time.perf_counter() - t0
+                running = []
+                if mse < best:
+                    best = mse
+                    torch.save(model.state_dict(), out / "best.pt")
+                state = {
+                    "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "best": best, "elapsed": elapsed,
+                    "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "gns_config": gcfg.to_dict(),
+                }  # fmt: skip
+                tmp = out / "checkpoint.pt.tmp"
+                torch.save(state, tmp)
+                os.replace(tmp, ckpt)
+    finally:
+        bar.close()
+        log.close()
+    if (out / "best.pt").exists():
+        model.load_state_dict(torch.load(out / "best.pt", weights_only=True))
+    data_meta = train_data.meta
+    sha = data_meta.get("sha256", {}).get("train") if isinstance(data_meta.get("sha256"), dict) else None
+    summary = {
+        "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
+        "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(elapsed, 1),
+        "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in model.parameters())),
+    }  # fmt: skip
+    export_onnx(
+        model,
+        out / "model.onnx",
+        {
+            **summary, "particle_types": types, "data_sha256": sha, "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
+            "n_grid": n_grid, "noise_std": config.noise_std, "rollout_steps": rollout_steps,
+        },  # fmt: skip
+    )
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+__all__ = ["TrainConfig", "train"]

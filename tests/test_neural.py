@@ -1,0 +1,227 @@
+"""The GNS: features against hand computation, symmetries, ONNX-vs-torch parity,
+a real learning check, the runtime's errors. (Needs the 'train' extra: torch,
+onnx, onnxscript; it is part of the 'test' extra.)"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hybridmpm import radius_graph
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.neural import NeuralModel, NeuralSimulator
+from hybridmpm.neural.export import export_onnx
+from hybridmpm.neural.model import GnsConfig, GnsModel
+
+logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+R = 0.015
+BOUNDS = [[0.02, 0.98], [0.02, 0.98]]
+
+
+def config(dim: int = 2, latent: int = 16, layers: int = 2) -> GnsConfig:
+    return GnsConfig(
+        dim=dim, radius=R, bounds=[[0.02, 0.98]] * dim, vel_mean=[1e-4] * dim, vel_std=[2e-3] * dim,
+        acc_mean=[-1e-5] * dim, acc_std=[2e-4] * dim, latent=latent, layers=layers, noise_std=3e-4,
+    )  # fmt: skip
+
+
+def random_state(n: int, dim: int = 2, seed: int = 0, lo: float = 0.3, hi: float = 0.5):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(lo, hi, (n, dim))
+    v = rng.normal(0, 2e-3, (5, n, dim))
+    hist = np.concatenate([x[None], x[None] + np.cumsum(v, axis=0)]).astype(np.float32)
+    ptype = rng.choice([5, 6], n).astype(np.int64)
+    return hist, ptype
+
+
+def run_torch(model, hist, ptype):
+    s, r, _, _ = radius_graph(hist[-1], R)
+    with torch.no_grad():
+        acc, nxt = model(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
+    return acc.numpy(), nxt.numpy()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    torch.manual_seed(0)
+    model = GnsModel(config(latent=16, layers=2)).eval()
+    # non-trivial decoder output scale so that parity is tested on real numbers
+    path = tmp_path_factory.mktemp("onnx") / "m.onnx"
+    export_onnx(model, path, {"scene": "water2d", "r_p": 0.5, "r_t": 2, "particle_types": [5, 6]})
+    return model, path
+
+
+def test_input_features_match_a_hand_computation():
+    torch.manual_seed(1)
+    model = GnsModel(config())
+    hist = np.zeros((6, 2, 2), np.float32)
+    hist[:, 0] = [[0.5 + 0.001 * k, 0.5 - 0.002 * k * k * 1e-1] for k in range(6)]
+    hist[:, 1] = [[0.025, 0.97] for _ in range(6)]  # near the lower x wall and the upper y wall
+    ptype = np.array([5, 3])
+    s, r = np.array([0, 1, 0, 1]), np.array([0, 0, 1, 1])
+    nodes, edges = model.input_features(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
+    nodes, edges = nodes.detach().numpy(), edges.detach().numpy()
+    std_eff = math.sqrt(2e-3**2 + 3e-4**2)
+    v = np.diff(hist.astype(np.float64), axis=0)  # [5, N, 2]
+    want_vel = ((v - 1e-4) / std_eff).transpose(1, 0, 2).reshape(2, -1)
+    assert np.allclose(nodes[:, :10], want_vel, atol=1e-4)
+    # walls: (x - lo)/R, (hi - x)/R clipped to [-1, 1]
+    assert np.allclose(nodes[1, 10:14], [(0.025 - 0.02) / R, 1.0, 1.0, (0.98 - 0.97) / R], atol=1e-5)
+    assert np.allclose(nodes[0, 10:14], 1.0)
+    emb = model.embed.weight.detach().numpy()
+    assert np.allclose(nodes[0, 14:], emb[5]) and np.allclose(nodes[1, 14:], emb[3])
+    d = (hist[-1, 1] - hist[-1, 0]) / R  # edge 0 -> 1 is (senders 0, receivers 1): p_s - p_r
+    assert np.allclose(edges[2, :2], -d, atol=1e-5) and np.isclose(edges[2, 2], np.linalg.norm(d), atol=1e-5)
+    assert np.allclose(edges[0], 0.0)  # self-edge
+
+
+def test_prediction_is_translation_invariant_and_order_equivariant():
+    torch.manual_seed(2)
+    model = GnsModel(config(latent=16, layers=2)).eval()
+    hist, ptype = random_state(300, seed=3)
+    acc, nxt = run_torch(model, hist, ptype)
+    shift = np.array([0.17, -0.11], np.float32)  # stays > R away from the walls
+    acc2, nxt2 = run_torch(model, hist + shift, ptype)
+    assert np.allclose(acc2, acc, atol=1e-7, rtol=1e-3)
+    assert np.allclose(nxt2 - shift, nxt, atol=2e-6)
+    perm = np.random.default_rng(4).permutation(300)
+    acc3, _ = run_torch(model, hist[:, perm], ptype[perm])
+    assert np.allclose(acc3, acc[perm], atol=1e-7, rtol=1e-4)
+    # a particle near a wall sees it: the prediction changes when the walls move
+    wall = hist - hist[-1].min(0) + 0.021
+    assert not np.allclose(run_torch(model, wall, ptype)[0], acc, atol=1e-7, rtol=1e-3)
+
+
+def test_every_block_updates_node_and_edge_latents():
+    """Guards against an edge update that leaves edge latents unchanged (a known
+    GNS bug): every block's edge and node MLP gets a gradient."""
+    torch.manual_seed(3)
+    model = GnsModel(config(latent=8, layers=3))
+    hist, ptype = random_state(80, seed=5)
+    s, r, _, _ = radius_graph(hist[-1], R)
+    out = model.normalised_acceleration(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
+    out.pow(2).sum().backward()
+    for k in range(3):
+        for block in (model.edge_blocks[k], model.node_blocks[k]):
+            assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in block.parameters())
+
+
+@pytest.mark.parametrize(("n", "seed"), [(1, 0), (37, 1), (600, 2), (2300, 3)])
+def test_onnx_matches_torch(exported, n, seed):
+    model, path = exported
+    nm = NeuralModel(path)
+    hist, ptype = random_state(n, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(n / 2300))
+    acc_t, nxt_t = run_torch(model, hist, ptype)
+    acc_o, nxt_o, (s, r) = nm.predict(hist, ptype)
+    if n > 1:  # many receivers appear many times: the scatter must add, not overwrite
+        assert np.bincount(r).max() > 5
+    assert np.allclose(acc_o, acc_t, rtol=1e-4, atol=1e-9)
+    assert np.allclose(nxt_o, nxt_t, rtol=0, atol=1e-6)
+
+
+def test_onnx_handles_no_edges(exported):
+    model, path = exported
+    sess = NeuralModel(path).session
+    hist, ptype = random_state(3, seed=9)
+    empty = np.zeros(0, np.int64)
+    acc, nxt = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": empty, "receivers": empty})
+    with torch.no_grad():
+        acc_t, _ = model(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(empty), torch.from_numpy(empty))
+    assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
+
+
+def test_kinematic_particles_do_not_move(exported):
+    _, path = exported
+    hist, ptype = random_state(200, seed=6)
+    ptype[:20] = 3
+    sim = NeuralSimulator(path, hist, ptype)
+    x = sim.rollout(3)
+    assert np.array_equal(x[-1, :20], hist[-1, :20]) and not np.array_equal(x[-1, 20:], hist[-1, 20:])
+
+
+def test_runtime_errors_name_the_field(exported, tmp_path):
+    _, path = exported
+    hist, ptype = random_state(10, seed=7)
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(tmp_path / "missing.onnx")
+    assert e.value.field == "model"
+    (tmp_path / "junk.onnx").write_bytes(b"not onnx")
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(tmp_path / "junk.onnx")
+    assert e.value.field == "model"
+    with pytest.raises(InvalidInputError) as e:
+        NeuralSimulator(path, hist[:5], ptype)
+    assert e.value.field == "history"
+    bad = hist.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(InvalidInputError) as e:
+        NeuralSimulator(path, bad, ptype)
+    assert e.value.field == "history"
+    with pytest.raises(InvalidInputError, match="3D"):
+        NeuralSimulator(path, np.zeros((6, 4, 3), np.float32) + 0.5, np.full(4, 5))
+    with pytest.raises(InvalidInputError, match="particle types"):
+        NeuralSimulator(path, hist, np.full(10, 7))
+    with pytest.raises(InvalidInputError, match="sand3d"):
+        NeuralSimulator(path, hist, ptype, scene="sand3d")
+
+
+def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0):
+    """Particles far apart, each moving under gravity and linear drag:
+    a = g·dt² − k·v (per step); learnable from the velocity history."""
+    from hybridmpm.data import compute_statistics, write_metadata, write_split
+
+    rng = np.random.default_rng(seed)
+    g = np.array([0.0, -2e-5])
+    splits = {"train": {}, "valid": {}, "test": {}}
+    names = ["train"] * (n_traj - 2) + ["valid", "test"]
+    for i, split in enumerate(names):
+        grid = np.stack(np.meshgrid(np.linspace(0.25, 0.75, 8), np.linspace(0.3, 0.8, 8)), -1).reshape(-1, 2)[:n]
+        x = np.empty((frames + 1, n, 2))
+        x[0] = grid
+        v = rng.normal(0, 3e-3, (n, 2))
+        for t in range(frames):
+            v = v + g - k * v
+            x[t + 1] = x[t] + v
+        splits[split][f"simulation_trajectory_{i:05d}"] = (x.astype(np.float32), np.full(n, 5, np.int64))
+    for split, trajs in splits.items():
+        write_split(directory / f"{split}.npz", trajs)
+    stats = compute_statistics(splits["train"])
+    write_metadata(
+        directory / "metadata.json",
+        {"bounds": [[0.02, 0.98]] * 2, "sequence_length": frames, "default_connectivity_radius": 0.02, "dim": 2, "dt": 2.5e-3, "r_t": 1, "n_grid": 128, **stats},
+    )
+
+
+def test_short_training_lowers_the_validation_loss(tmp_path):
+    from hybridmpm.neural.train import TrainConfig, train
+
+    data = tmp_path / "drag"
+    data.mkdir()
+    _drag_dataset(data)
+    cfg = TrainConfig(
+        scene="drag", data=str(data), out=str(tmp_path / "model"), latent=16, layers=1, r_t=1, steps=240, batch=2,
+        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=60, rollout_steps=10, threads=1,
+    )  # fmt: skip
+    summary = train(cfg, progress=False)
+    rows = list(csv.DictReader(open(tmp_path / "model" / "log.csv")))
+    first, last = float(rows[0]["val_one_step"]), float(rows[-1]["val_one_step"])
+    assert rows[0]["step"] == "0" and last < 0.3 * first, (first, last)
+    assert float(rows[-1]["val_rollout_mse"]) < float(rows[0]["val_rollout_mse"])
+    # the exported model carries its metadata and runs
+    nm = NeuralModel(tmp_path / "model" / "model.onnx")
+    assert nm.meta["scene"] == "drag" and nm.meta["latent"] == 16 and nm.meta["r_t"] == 1 and nm.meta["particle_types"] == [5]
+    assert summary["steps"] == 240
+    # resuming a finished run does no more steps and keeps the log
+    train(cfg, progress=False)
+    assert len(list(csv.DictReader(open(tmp_path / "model" / "log.csv")))) == len(rows)
+    # another setting in the same directory is refused
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**cfg.__dict__, "latent": 32}), progress=False)
+    assert e.value.field == "latent"
+    json.loads((tmp_path / "model" / "summary.json").read_text())
