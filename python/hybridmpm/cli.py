@@ -137,12 +137,13 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # type: ignore[no-untyped-def]
     import hybridmpm
-    from hybridmpm.errors import InvalidInputError
     from hybridmpm.neural import NeuralModel
     from hybridmpm.neural.runtime import run_neural
 
     if args.model is None:
-        raise InvalidInputError("model: no shipped model for this scene yet; pass --model PATH (from hybridmpm train)", "model")
+        from hybridmpm.models import shipped_model
+
+        args.model = str(shipped_model(scene.name))
     model = NeuralModel(args.model, threads=max(args.threads, 1) if args.threads else 1)
     res = run_neural(scene, model, frames, seed=args.seed, mpm_threads=args.threads, progress=not args.quiet)
     out = Path(args.out)
@@ -185,7 +186,7 @@ def _train(args: argparse.Namespace) -> int:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     cfg = TrainConfig(
         scene=args.scene, data=args.data, out=args.out, latent=args.latent, layers=args.layers, r_t=args.r_t, steps=args.steps,
-        batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors,
+        batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
         seed=args.seed, threads=args.threads,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
@@ -248,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
     )
     sim.add_argument("--solver", default="mpm", choices=["mpm", "neural"], help="solver (default mpm; the hybrid arrives with its issue)")
-    sim.add_argument("--model", default=None, help="ONNX model for --solver neural (from hybridmpm train)")
+    sim.add_argument("--model", default=None, help="ONNX model for --solver neural (default: the shipped model for the scene)")
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
@@ -287,6 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--noise-std", type=float, default=3e-4, help="random-walk noise on the last input velocity [m/step]")
     tr.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
     tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
+    tr.add_argument("--radius", type=float, default=None, help="connectivity radius R [m] (default: the dataset's)")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
     tr.add_argument("--quiet", action="store_true")

@@ -109,7 +109,10 @@ class NeuralSimulator:
     ``model`` a :class:`NeuralModel` or a path; ``history`` float [T_in, N, D]
     (oldest first, ``r_t`` frames apart, metres); ``particle_type`` int [N].
     :meth:`step` advances one model step (``r_t`` frames) and returns float32
-    positions [N, D]. Raises :class:`InvalidInputError` for shapes, NaN, or a
+    positions [N, D]. With ``clamp`` (default) predicted positions are clipped
+    to the model's domain ``bounds`` (the walls, which the network only sees
+    through its wall-distance features); ``last_clamped`` counts the
+    particles clipped in the last step (a sign of a failing model). Raises :class:`InvalidInputError` for shapes, NaN, or a
     model that does not fit.
     """
 
@@ -121,6 +124,7 @@ class NeuralSimulator:
         *,
         scene: str | None = None,
         max_neighbors: int | None = None,
+        clamp: bool = True,
     ) -> None:
         self.model = model if isinstance(model, NeuralModel) else NeuralModel(model)
         h = np.asarray(history, dtype=np.float32)
@@ -136,8 +140,12 @@ class NeuralSimulator:
         self.history = h.copy()
         self.particle_type = pt.astype(np.int64)
         self.max_neighbors = max_neighbors
+        self.clamp = clamp
+        b = np.asarray(self.model.meta["bounds"], np.float32)
+        self._lo, self._hi = b[:, 0], b[:, 1]
         self.steps = 0
         self.last_edges = 0
+        self.last_clamped = 0
 
     @property
     def positions(self) -> np.ndarray:
@@ -147,6 +155,11 @@ class NeuralSimulator:
     def step(self) -> np.ndarray:
         """Advance one model step (``r_t`` frames); returns float32 [N, D]."""
         _, nxt, (s, _) = self.model.predict(self.history, self.particle_type, self.max_neighbors)
+        if self.clamp:
+            out = (nxt < self._lo) | (nxt > self._hi)
+            self.last_clamped = int(out.any(axis=1).sum())
+            if self.last_clamped:
+                nxt = np.clip(nxt, self._lo, self._hi)
         self.history = np.concatenate([self.history[1:], nxt[None].astype(np.float32)])
         self.steps += 1
         self.last_edges = int(len(s))

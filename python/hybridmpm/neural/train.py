@@ -48,7 +48,8 @@ from hybridmpm.neural.model import GnsConfig, GnsModel
 class TrainConfig:
     """Settings of :func:`train` (see the module docstring). ``scene`` names the
     scene family stored in the model; ``steps`` optimiser steps; ``batch``
-    windows per step; ``max_neighbors`` caps the radius graph per receiver."""
+    windows per step; ``max_neighbors`` caps the radius graph per receiver;
+    ``radius`` the connectivity radius R [m] (default: the dataset's)."""
 
     scene: str
     data: str
@@ -65,6 +66,7 @@ class TrainConfig:
     val_windows: int = 16
     rollout_steps: int = 20
     max_neighbors: int | None = None
+    radius: float | None = None
     seed: int = 0
     threads: int = 0
 
@@ -77,6 +79,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InvalidInputError(f"{name}: must be a number > 0, got {v!r}", name)
+        if self.radius is not None and not (isinstance(self.radius, (int, float)) and math.isfinite(self.radius) and 0 < self.radius < 0.5):
+            raise InvalidInputError(f"radius: must be in (0, 0.5) m, got {self.radius!r}", "radius")
         if not (isinstance(self.noise_std, (int, float)) and math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
         return self
@@ -203,7 +207,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
     stats = _statistics(train_data.trajs)
-    radius = float(meta["default_connectivity_radius"])
+    radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
     types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {KINEMATIC})
     gcfg = GnsConfig(
         dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],

@@ -1,0 +1,219 @@
+"""Neural simulator: cost and accuracy of each trained model, against MPM in the same run.
+
+For every model directory (``hybridmpm train`` output: ``model.onnx``, and
+``checkpoint.pt``/``best.pt`` for the torch comparison):
+
+* **inference cost per step** on lattice blocks of ~2.3k and ~4k particles at
+  the model's particle spacing: graph build (Rust radius graph), onnxruntime
+  (1 thread) and torch eager (1 thread, no grad) in the same run, medians;
+* **accuracy on the test split** (the first ``--seeds`` test trajectories of
+  the dataset, rebuilt from ``scenes.json`` at full resolution): grid-mass
+  error (DESIGN.md) against full-resolution MPM over a ``--frames`` rollout
+  (mean and last) and one-step (each step predicted from the MPM-at-r_p
+  history, compared with full-resolution MPM ``r_t`` frames later); MPM at
+  ``r_p`` itself is reported as the floor;
+* **cost per frame** of the rollouts (neural step incl. graph build / ``r_t``)
+  against MPM at full resolution on the same initial conditions (2 threads
+  and 1 thread), measured in the same run.
+
+Writes ``OUT.md``, ``OUT.json`` and ``OUT.png`` (error against cost per frame).
+
+    python benchmarks/bench_neural.py --data data/water2d_rp --models runs/models/water2d/* --out benchmarks/results/neural_water2d
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _median_ms(fn, repeats: int) -> float:
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts) * 1e3)
+
+
+def timing(model_dir: Path, n: int, repeats: int) -> dict:
+    import torch
+
+    from hybridmpm import radius_graph
+    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural.model import GnsConfig, GnsModel
+    from hybridmpm.scenes import lattice
+
+    nm = NeuralModel(model_dir / "model.onnx", threads=1)
+    spacing = 0.5 / 128 / np.sqrt(nm.r_p) if nm.dim == 2 else 0.5 / 64 / np.cbrt(nm.r_p)
+    side = int(np.ceil(n ** (1 / nm.dim)))
+    x = lattice([0.2] * nm.dim, [0.2 + side * spacing] * nm.dim, spacing)[:n]
+    rng = np.random.default_rng(0)
+    hist = np.stack([x + k * rng.normal(0, 2e-4, x.shape).astype(np.float32) for k in range(nm.t_in)]).astype(np.float32)
+    ptype = np.full(len(x), 5, np.int64)
+    s, r, _, _ = radius_graph(hist[-1], nm.radius)
+    out = {"particles": len(x), "edges": int(len(s))}
+    out["graph_ms"] = _median_ms(lambda: radius_graph(hist[-1], nm.radius), repeats)
+    feeds = {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r}
+    out["onnx_ms"] = _median_ms(lambda: nm.session.run(None, feeds), repeats)
+    ckpt = model_dir / "checkpoint.pt"
+    if ckpt.exists():
+        state = torch.load(ckpt, weights_only=False)
+        model = GnsModel(GnsConfig.from_dict(state["gns_config"])).eval()
+        best = model_dir / "best.pt"
+        model.load_state_dict(torch.load(best, weights_only=True) if best.exists() else state["model"])
+        torch.set_num_threads(1)
+        args = (torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
+        with torch.no_grad():
+            out["torch_ms"] = _median_ms(lambda: model(*args), max(3, repeats // 4))
+        out["onnx_speedup_vs_torch"] = out["torch_ms"] / out["onnx_ms"]
+    out["step_ms"] = out["graph_ms"] + out["onnx_ms"]
+    out["graph_share"] = out["graph_ms"] / out["step_ms"]
+    return out
+
+
+def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split: str = "test") -> tuple[dict, dict]:
+    from hybridmpm.data.resolution import downsample_scene
+    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural.runtime import run_neural
+    from hybridmpm.scenes import SceneSpec
+
+    scenes = json.loads((data / "scenes.json").read_text())
+    test = sorted(k for k, v in scenes.items() if v["split"] == split)[:seeds]
+    per_model: dict[str, dict[str, list[float]]] = {d.name: {"rollout_mean": [], "rollout_last": [], "one_step": [], "ms_per_frame": []} for d in model_dirs}
+    ref_stats: dict[str, list[float]] = {"mpm_full_ms_2t": [], "mpm_full_ms_1t": [], "mpm_rp_ms_1t": [], "mpm_rp_mean": [], "mpm_rp_last": []}
+    models = {d.name: NeuralModel(d / "model.onnx", threads=1) for d in model_dirs}
+    for tid in test:
+        info = scenes[tid]
+        full = SceneSpec.from_dict(info["spec"]).build()
+        n_grid = full.params.resolved_n_grid()
+        ref = []
+        for threads, key in ((0, "mpm_full_ms_2t"), (1, "mpm_full_ms_1t")):
+            sim = full.make_solver(num_threads=threads)
+            xs = [sim.positions]
+            t0 = time.perf_counter()
+            for _ in range(frames):
+                sim.step_frame(full.dt_frame)
+                xs.append(sim.positions)
+            ref_stats[key].append((time.perf_counter() - t0) / frames * 1e3)
+            ref = xs
+        ref_a = np.stack(ref)
+        r_p = next(iter(models.values())).r_p
+        low = downsample_scene(full, r_p, seed=info["seed"]).scene
+        sim = low.make_solver(num_threads=1)
+        lx = [sim.positions]
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            sim.step_frame(low.dt_frame)
+            lx.append(sim.positions)
+        ref_stats["mpm_rp_ms_1t"].append((time.perf_counter() - t0) / frames * 1e3)
+        low_a = np.stack(lx)
+        e = grid_mass_error(low_a, ref_a, n_grid)
+        ref_stats["mpm_rp_mean"].append(float(e.mean()))
+        ref_stats["mpm_rp_last"].append(float(e[-1]))
+        for name, nm in models.items():
+            res = run_neural(full, nm, frames, seed=info["seed"], mpm_threads=1)
+            pos = res["positions"][:, : low.num_particles]
+            k = np.arange(len(pos)) * nm.r_t
+            keep = k <= frames
+            e = grid_mass_error(pos[keep], ref_a[k[keep]], n_grid)
+            m = per_model[name]
+            m["rollout_mean"].append(float(e.mean()))
+            m["rollout_last"].append(float(e[-1]))
+            m["ms_per_frame"].append(float(np.median(res["step_seconds"]) * 1e3 / nm.r_t))
+            # one-step: history from MPM at r_p, compared with full-resolution MPM r_t frames later
+            errs = []
+            pt = low.particle_type()
+            for t in range((nm.t_in - 1) * nm.r_t, frames - nm.r_t + 1, nm.r_t):
+                hist = low.with_boundary(low_a[t - (nm.t_in - 1) * nm.r_t : t + 1 : nm.r_t])
+                _, nxt, _ = nm.predict(hist, pt)
+                errs.append(float(grid_mass_error(nxt[: low.num_particles], ref_a[t + nm.r_t], n_grid)[0]))
+            m["one_step"].append(float(np.mean(errs)))
+    return per_model, ref_stats
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, type=Path)
+    ap.add_argument("--models", nargs="+", required=True, type=Path)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--split", default="test", choices=["valid", "test"], help="trajectories to score (valid: for choosing a model)")
+    ap.add_argument("--out", required=True, type=Path)
+    a = ap.parse_args()
+    dirs = [d for d in a.models if (d / "model.onnx").exists()]
+    per_model, ref = accuracy(dirs, a.data, a.seeds, a.frames, a.split)
+    rows = []
+    for d in dirs:
+        meta = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
+        t23, t4 = timing(d, 2300, a.repeats), timing(d, 4096, a.repeats)
+        m = per_model[d.name]
+        rows.append({"model": d.name, "meta": meta, "timing_2300": t23, "timing_4096": t4, **{k: float(np.mean(v)) for k, v in m.items()}})
+    refm = {k: float(np.mean(v)) for k, v in ref.items()}
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.with_suffix(".json").write_text(
+        json.dumps(
+            {"commit": commit, "machine": platform.machine(), "split": a.split, "seeds": a.seeds, "frames": a.frames, "data": str(a.data), "reference": refm, "models": rows},
+            indent=1,
+        )
+    )
+    lines = [
+        f"# Neural simulator on `{a.data.name}`: cost and accuracy against MPM",
+        "",
+        f"`python benchmarks/bench_neural.py --data {a.data} --models ... --seeds {a.seeds} --frames {a.frames} --split {a.split}` (commit {commit}).",
+        f"Accuracy: mean over the first {a.seeds} {a.split} trajectories, {a.frames}-frame rollouts, grid-mass error (DESIGN.md) against full-resolution MPM.",
+        "Timing: medians; onnxruntime and torch one thread each; graph = Rust radius graph.",
+        "",
+        "| model | params | train steps / s | rollout error mean | last | one-step error | neural ms/frame (rollouts) | step ms @2.3k: graph + onnx = total (torch) | @4k | onnx vs torch @2.3k |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        t, t4 = r["timing_2300"], r["timing_4096"]
+        torch_s = f"{t['torch_ms']:.1f}" if "torch_ms" in t else "—"
+        speed = f"{t['onnx_speedup_vs_torch']:.2f}×" if "onnx_speedup_vs_torch" in t else "—"
+        lines.append(
+            f"| {r['model']} | {r['meta'].get('parameters', '?')} | {r['meta'].get('steps', '?')} / {r['meta'].get('train_seconds', '?')} | "
+            f"{r['rollout_mean']:.3f} | {r['rollout_last']:.3f} | {r['one_step']:.3f} | {r['ms_per_frame']:.2f} | "
+            f"{t['graph_ms']:.2f} + {t['onnx_ms']:.2f} = {t['step_ms']:.2f} ({torch_s}), {t['edges']} edges | {t4['step_ms']:.2f} | {speed} |"
+        )
+    lines += [
+        "",
+        f"MPM on the same initial conditions: full resolution {refm['mpm_full_ms_2t']:.2f} ms/frame (2 threads), "
+        f"{refm['mpm_full_ms_1t']:.2f} (1 thread); at r_p {refm['mpm_rp_ms_1t']:.2f} (1 thread), grid-mass error "
+        f"{refm['mpm_rp_mean']:.3f} mean, {refm['mpm_rp_last']:.3f} last (the floor of any model at this r_p).",
+    ]
+    a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in rows:
+        ax.scatter(r["ms_per_frame"], r["rollout_mean"], s=30)
+        ax.annotate(r["model"], (r["ms_per_frame"], r["rollout_mean"]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+    ax.scatter(refm["mpm_full_ms_2t"], 0.0, marker="s", c="k")
+    ax.annotate("MPM full (2 threads)", (refm["mpm_full_ms_2t"], 0.0), fontsize=7, xytext=(4, 3), textcoords="offset points")
+    ax.scatter(refm["mpm_rp_ms_1t"], refm["mpm_rp_mean"], marker="D", c="grey")
+    ax.annotate("MPM r_p (1 thread)", (refm["mpm_rp_ms_1t"], refm["mpm_rp_mean"]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("cost per frame [ms] (neural: graph + onnxruntime step / r_t)")
+    ax.set_ylabel(f"grid-mass error, {a.frames}-frame rollout (mean)")
+    ax.set_title(a.data.name, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(a.out.with_suffix(".png"), dpi=120)
+
+
+if __name__ == "__main__":
+    main()

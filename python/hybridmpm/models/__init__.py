@@ -1,0 +1,36 @@
+"""Shipped neural-simulator models (small ONNX files with model cards).
+
+``index.json`` maps each scene to the model file that serves it (one model may
+serve several scenes); every model has a card ``<name>.md`` beside it (data,
+config, training time, one-step and rollout errors). Simulating with a shipped
+model needs only numpy and onnxruntime.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from pathlib import Path
+
+from hybridmpm.errors import InvalidInputError
+
+
+def shipped_models() -> dict[str, str]:
+    """Scene → model file name of the shipped models."""
+    text = resources.files("hybridmpm.models").joinpath("index.json").read_text()
+    return dict(json.loads(text))
+
+
+def shipped_model(scene: str) -> Path:
+    """Path of the shipped model for ``scene``. Raises :class:`InvalidInputError`
+    (field ``model``) if no shipped model serves it."""
+    index = shipped_models()
+    if scene not in index:
+        raise InvalidInputError(
+            f"model: no shipped model for scene {scene!r} (shipped: {', '.join(sorted(index)) or 'none'}); train one with hybridmpm train and pass --model",
+            "model",
+        )
+    return Path(str(resources.files("hybridmpm.models").joinpath(index[scene])))
+
+
+__all__ = ["shipped_model", "shipped_models"]
