@@ -225,3 +225,20 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
         train(TrainConfig(**{**cfg.__dict__, "latent": 32}), progress=False)
     assert e.value.field == "latent"
     json.loads((tmp_path / "model" / "summary.json").read_text())
+
+
+def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):
+    from hybridmpm.cli import main
+    from hybridmpm.trajectory import Trajectory
+
+    _, path = exported
+    out = tmp_path / "nn"
+    assert main(["simulate", "water2d", "--solver", "neural", "--model", str(path), "--frames", "14", "--out", str(out), "--quiet"]) == 0
+    traj = Trajectory.load(out / "trajectory.npz")
+    assert traj.num_frames == 1 + 14 // 2 and traj.dt_frame == pytest.approx(5e-3)  # one stored frame per model step (r_t = 2)
+    assert np.isfinite(traj.positions).all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["solver"] == "neural" and summary["r_t"] == 2 and summary["warmup_mpm_frames"] == 10 and summary["neural_steps"] == 2
+    assert summary["wall_ms_per_frame"]["median"] > 0 and (out / "render.gif").exists()
+    # the model was trained for water2d: another scene family is refused, naming the model
+    assert main(["simulate", "sand2d", "--solver", "neural", "--model", str(path), "--frames", "14", "--out", str(tmp_path / "x"), "--quiet"]) == 2
