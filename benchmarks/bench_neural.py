@@ -208,6 +208,11 @@ def main() -> None:
     ax.scatter(refm["mpm_rp_ms_1t"], refm["mpm_rp_mean"], marker="D", c="grey")
     ax.annotate("MPM r_p (1 thread)", (refm["mpm_rp_ms_1t"], refm["mpm_rp_mean"]), fontsize=7, xytext=(4, 3), textcoords="offset points")
     ax.set_xscale("log")
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_ylim(bottom=-0.05)
     ax.set_xlabel("cost per frame [ms] (neural: graph + onnxruntime step / r_t)")
     ax.set_ylabel(f"grid-mass error, {a.frames}-frame rollout (mean)")
     ax.set_title(a.data.name, fontsize=9)
