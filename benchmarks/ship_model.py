@@ -27,6 +27,7 @@ def main() -> None:
     ap.add_argument("--models-dir", required=True, type=Path)
     ap.add_argument("--serves", nargs="*", default=[], help="other scenes the model serves")
     ap.add_argument("--tolerance", type=float, default=0.10)
+    ap.add_argument("--note", default="", help="a sentence added to the card (e.g. how the candidates were chosen)")
     a = ap.parse_args()
     import onnx
 
@@ -56,7 +57,7 @@ def main() -> None:
         "",
         f"GNS (paper App. A) for `{a.scene}`" + (f", also serving {', '.join(f'`{s}`' for s in a.serves)}" if a.serves else "") + ".",
         f"Chosen by `benchmarks/ship_model.py`: the fewest parameters among the candidates whose validation rollout error is within "
-        f"{a.tolerance:.0%} of the best ({best:.3f}).",
+        f"{a.tolerance:.0%} of the best ({best:.3f}) among {len(rows)} candidate(s). {a.note}".rstrip(),
         "",
         "## Data",
         f"`hybridmpm generate {a.scene} --trajectories {sum(data_meta['trajectories'].values())} --r-p {data_meta['r_p']} --out {valid['data']}` "
