@@ -189,7 +189,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     if saved.exists():
         old = json.loads(saved.read_text())
         for key, v in cfg_json.items():
-            if key not in ("steps", "threads") and old.get(key) != v:
+            if key not in ("steps", "threads", "out") and old.get(key) != v:  # a moved run directory still resumes
                 raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key)!r}, not {v!r}; use another --out", key)
     saved.write_text(json.dumps(cfg_json, indent=2))
     if config.threads:
