@@ -144,7 +144,7 @@ def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # ty
         from hybridmpm.models import shipped_model
 
         args.model = str(shipped_model(scene.name))
-    model = NeuralModel(args.model, threads=max(args.threads, 1) if args.threads else 1)
+    model = NeuralModel(args.model, threads=args.threads or 1)
     res = run_neural(scene, model, frames, seed=args.seed, mpm_threads=args.threads, progress=not args.quiet)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -32,11 +32,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-
-#: GNS particle-type code of kinematic (boundary / obstacle) particles
-#: (DeepMind learning_to_simulate ``KINEMATIC_PARTICLE_ID``; the same value as
-#: ``hybridmpm.scenes.GNS_KINEMATIC``).
-KINEMATIC = 3
+from hybridmpm.particle_types import KINEMATIC
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
 RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material")

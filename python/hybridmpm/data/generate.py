@@ -35,7 +35,8 @@ from typing import Any, Callable, Iterator, Literal, Mapping
 import numpy as np
 
 from hybridmpm.errors import HybridMpmError, InvalidInputError
-from hybridmpm.scenes import DOMAINS, GNS_KINEMATIC, SceneSpec, scene_spec
+from hybridmpm.mpm import SAND, WATER
+from hybridmpm.scenes import DOMAINS, GNS_KINEMATIC, GNS_TYPE, SceneSpec, scene_spec
 
 SPLITS = ("train", "valid", "test")
 LowRes = Literal["simulate", "centroids"]
@@ -268,6 +269,20 @@ def _read_part(path: Path) -> dict[str, Any] | None:
         return None
 
 
+def _part_info(path: Path) -> dict[str, Any]:
+    """The small members of a finished part (npz members load lazily: the
+    positions are not read)."""
+    with np.load(path, allow_pickle=False) as z:
+        return {
+            "seed": int(z["seed"]),
+            "n_h": int(z["n_h"]),
+            "n_l": int(len(z["material"])),
+            "num_boundary": int((z["particle_type"] == GNS_KINEMATIC).sum()),
+            "substeps": int(z["substeps"]),
+            "spec": json.loads(str(z["spec"])),
+        }
+
+
 class _LazySplit(Mapping[str, tuple[np.ndarray, np.ndarray]]):
     """Trajectories of one split, read from the part files on access (low memory)."""
 
@@ -408,27 +423,15 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
     from hybridmpm.data import gns
 
     parts = {i: parts_dir / f"{i:05d}.npz" for i in range(config.trajectories)}
-    first = _read_part(parts[0])
-    assert first is not None
-    spec0 = SceneSpec.from_dict(first["spec"])
+    infos = [_part_info(parts[i]) for i in range(config.trajectories)]
+    spec0 = SceneSpec.from_dict(infos[0]["spec"])
     dim = spec0.dim
     n_grid = spec0.params.resolved_n_grid()
     by_split: dict[str, dict[str, Path]] = {s: {} for s in SPLITS}
     scenes: dict[str, Any] = {}
     for i, s in enumerate(splits):
         by_split[s][trajectory_id(i)] = parts[i]
-        d = _read_part(parts[i])
-        assert d is not None
-        scenes[trajectory_id(i)] = {
-            "index": i,
-            "split": s,
-            "seed": int(d["seed"]),
-            "n_h": int(d["n_h"]),
-            "n_l": int(len(d["material"])),
-            "num_boundary": int((d["particle_type"] == GNS_KINEMATIC).sum()),
-            "substeps": int(d["substeps"]),
-            "spec": d["spec"],
-        }
+        scenes[trajectory_id(i)] = {"index": i, "split": s, **infos[i]}
     hashes = {}
     for s in SPLITS:
         gns.write_split(out / f"{s}.npz", _LazySplit(by_split[s]), compress=compress)
@@ -453,7 +456,7 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
         "r_p": config.r_p,
         "r_t": config.r_t,
         "lowres": config.lowres,
-        "particle_types": {"boundary": GNS_KINEMATIC, "water": 5, "sand": 6},
+        "particle_types": {"boundary": GNS_KINEMATIC, "water": GNS_TYPE[WATER], "sand": GNS_TYPE[SAND]},
         "trajectories": {s: len(by_split[s]) for s in SPLITS},
         "seed": config.seed,
         "sha256": hashes,

@@ -47,13 +47,7 @@ import numpy as np
 from numpy.lib import format as npformat
 
 from hybridmpm.errors import InvalidInputError
-
-KINEMATIC = 3
-"""GNS particle type of kinematic (boundary / obstacle) particles."""
-WATER = 5
-"""GNS particle type of water particles."""
-SAND = 6
-"""GNS particle type of sand particles."""
+from hybridmpm.particle_types import KINEMATIC, SAND, WATER
 
 SPLITS: tuple[str, ...] = ("train", "valid", "test")
 """The split names of a GNS dataset directory, in canonical order."""

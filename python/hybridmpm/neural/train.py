@@ -100,13 +100,6 @@ class _Data:
         self.t_max = min(len(p) for p, _ in self.trajs)
 
 
-def _statistics(trajs: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, list[float]]:
-    """Per-dimension mean/std of velocities and accelerations at the model step (non-kinematic)."""
-    from hybridmpm.data import compute_statistics
-
-    return compute_statistics([(p, t) for p, t in trajs], exclude_types=(KINEMATIC,))
-
-
 def _window(
     traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -206,7 +199,9 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     t_in = 6
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
-    stats = _statistics(train_data.trajs)
+    from hybridmpm.data import compute_statistics
+
+    stats = compute_statistics(train_data.trajs, exclude_types=(KINEMATIC,))  # at the model step (strided data)
     radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
     types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {KINEMATIC})
     gcfg = GnsConfig(

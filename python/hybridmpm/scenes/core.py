@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm import particle_types
 from hybridmpm.mpm import DT_FRAME, SAND, WATER, MpmParams, MpmSolver
 
 if TYPE_CHECKING:
@@ -22,8 +22,8 @@ if TYPE_CHECKING:
 
 #: GNS particle-type codes (DeepMind learning_to_simulate): kinematic
 #: obstacles / boundary particles 3, water 5, sand 6.
-GNS_TYPE = {WATER: 5, SAND: 6}
-GNS_KINEMATIC = 3
+GNS_TYPE = {WATER: particle_types.WATER, SAND: particle_types.SAND}
+GNS_KINEMATIC = particle_types.KINEMATIC
 #: Default connectivity radius R [m] (DESIGN.md conventions).
 DEFAULT_CONNECTIVITY_RADIUS = 0.015
 
@@ -124,11 +124,3 @@ def hydrostatic_volume_ratio(positions: np.ndarray, surface: float, params: MpmP
     g = abs(params.to_dict()["gravity"][1])
     depth = np.clip(surface - positions[:, 1], 0.0, None)
     return np.clip(1.0 - params.water.density * g * depth / params.water.bulk_modulus, 0.5, 1.0).astype(np.float32)
-
-
-def check_inside_domain(name: str, positions: np.ndarray, params: MpmParams) -> None:
-    """Raise :class:`InvalidInputError` naming ``name`` if any position lies outside the
-    region the solver accepts, ``[dx, 1 − dx]^D``."""
-    dx = 1.0 / params.resolved_n_grid()
-    if positions.size and (positions.min() < dx or positions.max() > 1.0 - dx):
-        raise InvalidInputError(f"{name}: particles must lie in [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}] on every axis", name)
