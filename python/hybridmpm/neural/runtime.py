@@ -155,6 +155,14 @@ class NeuralSimulator:
     def step(self) -> np.ndarray:
         """Advance one model step (``r_t`` frames); returns float32 [N, D]."""
         _, nxt, (s, _) = self.model.predict(self.history, self.particle_type, self.max_neighbors)
+        self.last_edges = int(len(s))
+        return self.accept(nxt)
+
+    def accept(self, nxt: np.ndarray) -> np.ndarray:
+        """Append predicted positions ``nxt`` [N, D] to the history (clipped to
+        the domain if ``clamp``); returns them as float32 [N, D]. :meth:`step`
+        is ``model.predict`` then ``accept``; the hybrid simulator checks a
+        prediction for failure in between."""
         if self.clamp:
             out = (nxt < self._lo) | (nxt > self._hi)
             self.last_clamped = int(out.any(axis=1).sum())
@@ -162,7 +170,6 @@ class NeuralSimulator:
                 nxt = np.clip(nxt, self._lo, self._hi)
         self.history = np.concatenate([self.history[1:], nxt[None].astype(np.float32)])
         self.steps += 1
-        self.last_edges = int(len(s))
         return self.history[-1]
 
     def rollout(self, steps: int) -> np.ndarray:

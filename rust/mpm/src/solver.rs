@@ -35,6 +35,9 @@ pub struct FrameStats {
     pub max_speed: f32,
     /// Sparse blocks holding particles during the last substep.
     pub active_blocks: usize,
+    /// Times the frame was restarted with the substep halved (after a
+    /// non-finite state or a CFL violation).
+    pub retries: usize,
 }
 
 /// Scratch space of the sparse block grid, reused across substeps.
@@ -407,10 +410,16 @@ where
     /// substeps as the CFL condition requires (`cfl·dx / (c + |v|max)`), or
     /// `params.substeps` if set.
     ///
+    /// Stability: when a substep leaves a non-finite state or violates the
+    /// CFL condition (a particle would travel more than one cell `dx` in a
+    /// substep), the frame is rolled back to its start and retried with the
+    /// substep halved, up to `max_substeps` (`FrameStats::retries` counts the
+    /// restarts).
+    ///
     /// Errors: `InvalidInput` for a bad `dt_frame` or when more than
-    /// `max_substeps` would be needed; `NonFinite { substep }` when the state
-    /// becomes non-finite, in which case the state is restored to the start
-    /// of the frame.
+    /// `max_substeps` would be needed; `NonFinite` / `CflViolation` when even
+    /// `max_substeps` substeps fail, in which case the state is restored to
+    /// the start of the frame.
     pub fn step_frame(&mut self, dt_frame: f32) -> Result<FrameStats> {
         if !(dt_frame.is_finite() && dt_frame > 0.0 && dt_frame <= 1.0) {
             return Err(MpmError::invalid("dt_frame", format!("must be in (0, 1] s, got {dt_frame}")));
@@ -430,35 +439,51 @@ where
                 ),
             ));
         }
-        let dt = dt_frame / n_sub as f32;
         if self.particles.is_empty() {
             self.time += dt_frame as f64;
             self.frame += 1;
-            return Ok(FrameStats { substeps: n_sub, dt, max_speed: 0.0, active_blocks: 0 });
+            let dt = dt_frame / n_sub as f32;
+            return Ok(FrameStats { substeps: n_sub, dt, max_speed: 0.0, active_blocks: 0, retries: 0 });
         }
         let backup = (self.particles.clone(), self.ids.clone(), self.slot_of.clone());
         let pool = self.pool.clone();
-        let result = pool.install(|| {
-            self.compute_keys();
-            let mut vmax = 0.0;
-            for s in 0..n_sub {
-                let (finite, v) = self.substep(dt);
-                vmax = v;
-                if !finite {
-                    return Err(MpmError::NonFinite { substep: s, substeps: n_sub });
+        let max_travel = self.params.dx(); // a particle may not cross more than one cell per substep
+        let mut n_sub = n_sub;
+        let mut retries = 0;
+        loop {
+            let dt = dt_frame / n_sub as f32;
+            let result = pool.install(|| {
+                self.compute_keys();
+                let mut vmax = 0.0;
+                for s in 0..n_sub {
+                    let (finite, v) = self.substep(dt);
+                    vmax = v;
+                    if !finite {
+                        return Err(MpmError::NonFinite { substep: s, substeps: n_sub, retries });
+                    }
+                    if v * dt > max_travel {
+                        return Err(MpmError::CflViolation { substep: s, substeps: n_sub, max_speed: v, retries });
+                    }
                 }
-            }
-            Ok(vmax)
-        });
-        match result {
-            Ok(vmax) => {
-                self.time += dt_frame as f64;
-                self.frame += 1;
-                Ok(FrameStats { substeps: n_sub, dt, max_speed: vmax, active_blocks: self.grid.src_blocks.len() })
-            }
-            Err(e) => {
-                (self.particles, self.ids, self.slot_of) = backup;
-                Err(e)
+                Ok(vmax)
+            });
+            match result {
+                Ok(vmax) => {
+                    self.time += dt_frame as f64;
+                    self.frame += 1;
+                    let active_blocks = self.grid.src_blocks.len();
+                    return Ok(FrameStats { substeps: n_sub, dt, max_speed: vmax, active_blocks, retries });
+                }
+                Err(e) => {
+                    // Roll back to the frame's start; retry with the substep halved
+                    // while the substep budget allows it.
+                    (self.particles, self.ids, self.slot_of) = backup.clone();
+                    if 2 * n_sub > self.params.max_substeps {
+                        return Err(e);
+                    }
+                    n_sub *= 2;
+                    retries += 1;
+                }
             }
         }
     }

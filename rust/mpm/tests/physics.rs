@@ -234,3 +234,32 @@ fn sticky_collider_stops_particles() {
         assert!(p.x[1] > 0.3, "particle fell through: {}", p.x);
     }
 }
+
+#[test]
+fn cfl_violation_halves_the_substep_and_retries() {
+    // One fixed substep per frame and a strong uniform push: particles would
+    // cross several cells in that substep. The frame must restart with the
+    // substep halved until no particle travels more than dx per substep, and
+    // the result must still be a free block accelerated uniformly (internal
+    // forces cancel, so the mean velocity gains a·dt_frame exactly).
+    let mut params = SolverParams::<2>::default();
+    params.substeps = Some(1);
+    params.gravity = [0.0, 0.0];
+    let mut s = Solver::new(params.clone(), vec![]).unwrap();
+    let mut ps = block([0.45, 0.45], [8, 8], params.dx() / 2.0, Material::Water, &params);
+    let a = 1.0e4f32;
+    for p in ps.iter_mut() {
+        p.ext = SVector::<f32, 2>::new(a, 0.0);
+    }
+    s.set_particles(ps).unwrap();
+    let dt_frame = 2.5e-3f32;
+    let st = s.step_frame(dt_frame).unwrap();
+    assert!(st.retries >= 1, "{st:?}");
+    assert_eq!(st.substeps, 1 << st.retries);
+    assert!(st.max_speed * st.dt <= params.dx(), "{st:?}");
+    let n = s.particles().len() as f32;
+    let vx: f32 = s.particles().iter().map(|p| p.v[0]).sum::<f32>() / n;
+    let vy: f32 = s.particles().iter().map(|p| p.v[1]).sum::<f32>() / n;
+    assert!((vx - a * dt_frame).abs() < 1e-3 * a * dt_frame, "vx {vx} vs {}", a * dt_frame);
+    assert!(vy.abs() < 1e-3 * a * dt_frame, "vy {vy}");
+}

@@ -13,7 +13,9 @@ use crate::errors::{checkpoint_error, invalid_input, simulation_error};
 pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
     match e {
         MpmError::InvalidInput { field, msg } => invalid_input(py, &field, msg),
-        MpmError::NonFinite { substep, .. } => simulation_error(py, Some(substep), e.to_string()),
+        MpmError::NonFinite { substep, .. } | MpmError::CflViolation { substep, .. } => {
+            simulation_error(py, Some(substep), e.to_string())
+        }
         MpmError::Checkpoint(m) => checkpoint_error(py, m),
     }
 }
@@ -416,6 +418,7 @@ fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py,
     d.set_item("dt", st.dt)?;
     d.set_item("max_speed", st.max_speed)?;
     d.set_item("active_blocks", st.active_blocks)?;
+    d.set_item("retries", st.retries)?;
     Ok(d)
 }
 
@@ -541,8 +544,10 @@ impl MpmSolver {
     }
 
     /// Advance one frame (default 2.5 ms). Returns {substeps, dt, max_speed,
-    /// active_blocks}. Raises `SimulationError` (with `.substep`) if the state
-    /// becomes non-finite: the state is then restored to the frame's start.
+    /// active_blocks, retries}. A substep that leaves a non-finite state or
+    /// violates the CFL condition restarts the frame with the substep halved
+    /// (`retries` counts them). Raises `SimulationError` (with `.substep`) if
+    /// even `max_substeps` fail: the state is then restored to the frame's start.
     /// The GIL is released while stepping.
     #[pyo3(signature = (dt_frame=2.5e-3))]
     fn step_frame<'py>(&mut self, py: Python<'py>, dt_frame: f32) -> PyResult<Bound<'py, PyDict>> {

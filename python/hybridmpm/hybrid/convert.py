@@ -1,0 +1,178 @@
+"""State conversion between the neural simulator and MPM (issue 5; paper Sec. 3.1.2).
+
+neural → MPM (:func:`neural_to_mpm`): positions are the last positions of the
+history; velocities the last finite difference (exactly the velocity the
+network's semi-implicit Euler step produced); the APIC affine matrix ``C`` is
+zero or a least-squares fit of the neighbours' velocities (``affine="fit"``);
+water's volume ratio ``J`` is estimated from the local density so that the
+pressure matches the particles' spacing (:func:`estimate_volume_ratio`,
+clipped at :func:`hydrostatic_j_min`); sand's
+elastic deformation gradient is reset to ``F = I``.
+
+MPM → neural (:func:`mpm_history`): the neural simulator needs ``T_in``
+positions ``r_t`` frames apart: the hybrid keeps the last coarse positions of
+its trajectory, whichever solver made them, and the newest entry is the MPM
+solver's current positions (bit-exact).
+
+Particles keep their order and count both ways (none lost or duplicated).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
+from hybridmpm.mpm import WATER, MpmSolver, grid_mass
+
+
+def _bspline_weights(x: np.ndarray, n_grid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadratic B-spline stencil of each particle: base node int [N, D] and weights [N, D, 3]."""
+    fx = x * n_grid
+    base = np.floor(fx - 0.5).astype(np.int64)
+    f = fx - base
+    w = np.stack([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2], axis=-1)
+    return base, w
+
+
+def particle_density(positions: np.ndarray, masses: np.ndarray, n_grid: int) -> np.ndarray:
+    """Density at each particle [kg/m^D], float64 [N]: particle mass splatted to
+    the grid with quadratic B-splines (p2g), divided by the cell volume, and
+    gathered back with the same weights (g2p). ``positions`` [N, D] in the unit
+    domain, ``masses`` [N] kg."""
+    x = np.asarray(positions, np.float64)
+    m = np.asarray(masses, np.float64)
+    n, dim = x.shape
+    total = float(m.sum())
+    node_mass = np.asarray(grid_mass(x.astype(np.float32), n_grid, m.astype(np.float32)), np.float64) * total
+    rho_grid = node_mass * float(n_grid) ** dim  # / dx^D
+    base, w = _bspline_weights(x, n_grid)
+    rho = np.zeros(n)
+    offsets = np.stack(np.meshgrid(*([np.arange(3)] * dim), indexing="ij"), -1).reshape(-1, dim)
+    for off in offsets:
+        idx = np.clip(base + off, 0, n_grid - 1)
+        weight = np.prod(w[np.arange(n)[:, None], np.arange(dim)[None, :], off[None, :]], axis=1)
+        rho += weight * rho_grid[tuple(idx.T)]
+    return rho
+
+
+def estimate_volume_ratio(
+    positions: np.ndarray, masses: np.ndarray, volumes: np.ndarray, n_grid: int, j_min: float = 0.5
+) -> np.ndarray:
+    """Water's volume ratio from local density: ``J = ρ_rest / ρ`` with
+    ``ρ_rest = m/V₀`` per particle and ``ρ`` from :func:`particle_density`,
+    clipped to ``[j_min, 1]`` (no tension: free-surface particles, whose density
+    the kernel underestimates, get J = 1, zero pressure). float32 [N]."""
+    rho = particle_density(positions, masses, n_grid)
+    rest = np.asarray(masses, np.float64) / np.asarray(volumes, np.float64)
+    j = np.where(rho > 0, rest / np.maximum(rho, 1e-30), 1.0)
+    return np.clip(j, j_min, 1.0).astype(np.float32)
+
+
+def hydrostatic_j_min(solver: MpmSolver, factor: float = 2.0) -> float:
+    """Smallest J a converted water particle may get: ``1 − factor·ρ|g|L/K``
+    with L = 1 m the domain height, i.e. ``factor`` × the compression at the
+    bottom of a full-depth column. Tighter than any plausible flow, it keeps a
+    clump of network particles (e.g. pressed onto a wall by the position
+    clipping) from turning into an explosive pressure after the switch."""
+    p = solver.params
+    g = float(np.linalg.norm(p.to_dict()["gravity"]))
+    return float(max(0.5, 1.0 - factor * p.water.density * g * 1.0 / p.water.bulk_modulus))
+
+
+def fit_affine(positions: np.ndarray, velocities: np.ndarray, radius: float, reg: float = 1e-3) -> np.ndarray:
+    """Least-squares velocity gradient per particle from its neighbours within
+    ``radius`` [m]: ``C_i = (Σ_j Δv Δxᵀ)(Σ_j Δx Δxᵀ + reg·R²·I)⁻¹`` (the APIC
+    affine matrix of a locally linear velocity field). float32 [N, D, D], 1/s."""
+    x = np.asarray(positions, np.float32)
+    v = np.asarray(velocities, np.float64)
+    n, dim = x.shape
+    s, r, _, _ = radius_graph(x, float(radius), self_edges=False)
+    dx = (x[s] - x[r]).astype(np.float64)
+    dv = v[s] - v[r]
+    b = np.zeros((n, dim, dim))
+    a = np.zeros((n, dim, dim))
+    np.add.at(b, r, dv[:, :, None] * dx[:, None, :])
+    np.add.at(a, r, dx[:, :, None] * dx[:, None, :])
+    a += reg * radius * radius * np.eye(dim)
+    return np.einsum("nij,njk->nik", b, np.linalg.inv(a)).astype(np.float32)
+
+
+def velocities_from_history(history: np.ndarray, dt_step: float) -> np.ndarray:
+    """Last finite-difference velocity ``(p_t − p_{t−1})/Δt`` [m/s], float32 [N, D]."""
+    h = np.asarray(history)
+    return ((h[-1].astype(np.float64) - h[-2].astype(np.float64)) / dt_step).astype(np.float32)
+
+
+def neural_to_mpm(
+    solver: MpmSolver,
+    history: np.ndarray,
+    dt_step: float,
+    *,
+    affine: str = "fit",
+    affine_radius: float | None = None,
+    volume_ratio: str = "density",
+) -> dict[str, Any]:
+    """Write the neural state into ``solver`` (same particles, same order).
+
+    ``history`` float32 [T ≥ 2, N, D] fluid positions (no boundary particles),
+    one coarse step ``dt_step`` [s] apart; ``affine`` "fit" or "zero";
+    ``volume_ratio`` "density" (:func:`estimate_volume_ratio`) or "one".
+    Returns what was set (``positions``, ``velocities``, ``affine``,
+    ``volume_ratio``). Raises :class:`InvalidInputError` for a history whose
+    particle count is not the solver's or that is not finite.
+    """
+    h = np.asarray(history, np.float32)
+    if h.ndim != 3 or h.shape[0] < 2 or h.shape[1] != solver.num_particles or h.shape[2] != solver.dim:
+        raise InvalidInputError(
+            f"history: expected [T >= 2, {solver.num_particles}, {solver.dim}] fluid positions, got {list(h.shape)}", "history"
+        )
+    if not np.isfinite(h[-2:]).all():
+        raise InvalidInputError("history: the last two positions must be finite", "history")
+    if affine not in ("fit", "zero"):
+        raise InvalidInputError(f"affine: must be 'fit' or 'zero', got {affine!r}", "affine")
+    if volume_ratio not in ("density", "one"):
+        raise InvalidInputError(f"volume_ratio: must be 'density' or 'one', got {volume_ratio!r}", "volume_ratio")
+    x = h[-1].copy()
+    v = velocities_from_history(h, dt_step)
+    dim = solver.dim
+    n = x.shape[0]
+    if affine == "fit" and n > 1:
+        c = fit_affine(x, v, affine_radius if affine_radius is not None else 2.0 * solver.dx)
+    else:
+        c = np.zeros((n, dim, dim), np.float32)
+    material = solver.material
+    if volume_ratio == "density":
+        j = estimate_volume_ratio(x, solver.masses, solver.volumes, solver.n_grid, j_min=hydrostatic_j_min(solver))
+        j = np.where(material == WATER, j, 1.0).astype(np.float32)
+    else:
+        j = np.ones(n, np.float32)
+    solver.positions = x
+    solver.velocities = v
+    solver.affine = c
+    solver.deformation_gradient = np.broadcast_to(np.eye(dim, dtype=np.float32), (n, dim, dim)).copy()
+    solver.volume_ratio = j
+    return {"positions": x, "velocities": v, "affine": c, "volume_ratio": j}
+
+
+def mpm_history(solver: MpmSolver, kept: np.ndarray, t_in: int) -> np.ndarray:
+    """The neural simulator's input after MPM: the last ``t_in − 1`` kept coarse
+    positions followed by the solver's current positions, float32 [t_in, N, D]
+    (fluid particles only). ``kept`` float [K ≥ t_in − 1, N, D]."""
+    k = np.asarray(kept, np.float32)
+    if k.ndim != 3 or k.shape[0] < t_in - 1 or k.shape[1] != solver.num_particles:
+        raise InvalidInputError(f"kept: expected [>= {t_in - 1}, {solver.num_particles}, D] positions, got {list(k.shape)}", "kept")
+    return np.concatenate([k[len(k) - (t_in - 1) :], np.asarray(solver.positions, np.float32)[None]])
+
+
+__all__ = [
+    "estimate_volume_ratio",
+    "fit_affine",
+    "hydrostatic_j_min",
+    "mpm_history",
+    "neural_to_mpm",
+    "particle_density",
+    "velocities_from_history",
+]
