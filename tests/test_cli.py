@@ -39,7 +39,7 @@ def test_simulate_a_scene_with_obstacles_writes_boundary_particles_and_renders(t
     from hybridmpm.scenes import make_scene
 
     out = tmp_path / "ramps"
-    assert main(["simulate", "water_ramps2d", "--seed", "3", "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    assert main(["simulate", "water_ramps2d", "--seed", "3", "--solver", "mpm", "--frames", "3", "--out", str(out), "--quiet"]) == 0
     scene = make_scene("water_ramps2d", seed=3)
     traj = np.load(out / "trajectory.npz")
     n, b = scene.num_particles, scene.num_boundary
@@ -49,6 +49,6 @@ def test_simulate_a_scene_with_obstacles_writes_boundary_particles_and_renders(t
     assert (out / "render.gif").read_bytes()[:3] == b"GIF"
     # a downsampled run: fewer solver particles, the same boundary treatment
     low = tmp_path / "low"
-    assert main(["simulate", "water_ramps2d", "--seed", "3", "--frames", "2", "--r-p", "0.5", "--out", str(low), "--quiet", "--no-render"]) == 0
+    assert main(["simulate", "water_ramps2d", "--seed", "3", "--solver", "mpm", "--frames", "2", "--r-p", "0.5", "--out", str(low), "--quiet", "--no-render"]) == 0
     summary = json.loads((low / "summary.json").read_text())
     assert summary["particles"] == round(0.5 * n) and summary["r_p"] == 0.5

@@ -318,7 +318,7 @@ def test_evaluate_ignores_kinematic_particles_and_reports_one_step_mse():
 def two_runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
     for name in ("a", "b"):
-        assert main(["simulate", "dam_break2d", "--frames", "4", "--out", str(root / name), "--quiet", "--no-render"]) == 0
+        assert main(["simulate", "dam_break2d", "--solver", "mpm", "--frames", "4", "--out", str(root / name), "--quiet", "--no-render"]) == 0
     return root
 
 

@@ -39,8 +39,12 @@ def _simulate(args: argparse.Namespace) -> int:
     frames = args.frames if args.frames is not None else scene.frames
     if frames < 1:
         raise HybridMpmError("frames: must be >= 1")
+    if args.solver != "mpm" and args.r_p != 1.0:
+        raise HybridMpmError(f"r_p: --r-p applies to --solver mpm; the {args.solver} solver runs at its model's r_p")
     if args.solver == "neural":
         return _simulate_neural(args, scene, frames)
+    if args.solver == "hybrid":
+        return _simulate_hybrid(args, scene, frames)
     if args.r_p != 1.0:
         from hybridmpm.data.resolution import downsample_scene
 
@@ -97,6 +101,7 @@ def _simulate(args: argparse.Namespace) -> int:
         from hybridmpm.render import render_gif
 
         render_gif(scene.with_boundary(positions), ptype, out / "render.gif", dt_frame=scene.dt_frame, title=f"{scene.name} ({args.solver})")
+    _export(args, scene.with_boundary(positions), ptype, scene.dt_frame, out)
     if not args.quiet:
         print(
             f"{scene.name}: {frames} frames, {scene.num_particles} particles, "
@@ -173,9 +178,123 @@ def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # ty
         from hybridmpm.render import render_gif
 
         render_gif(res["positions"], res["particle_type"], out / "render.gif", dt_frame=res["dt_stored"], title=f"{scene.name} (neural)")
+    _export(args, res["positions"], res["particle_type"], res["dt_stored"], out)
     if not args.quiet:
         med = summary["wall_ms_per_frame"]["median"]
         print(f"{scene.name}: {frames} frames, {low.num_particles} particles, neural median {med if med is None else round(med, 2)} ms/frame -> {out}/")
+    return 0
+
+
+def _export(args: argparse.Namespace, positions: np.ndarray, ptype: np.ndarray, dt: float, out: Path, solver: np.ndarray | None = None) -> None:
+    if args.export:
+        from hybridmpm.export import export_points
+
+        export_points(positions, ptype, out / "export", fmt=args.export, dt=dt, solver=solver)
+
+
+def _simulate_hybrid(args: argparse.Namespace, scene, frames: int) -> int:  # type: ignore[no-untyped-def]
+    from tqdm import tqdm
+
+    import hybridmpm
+    from hybridmpm.hybrid import DWELL, NEURAL, HybridSimulator
+    from hybridmpm.hybrid.plot import plot_timeline
+
+    sim = HybridSimulator(
+        scene, args.model, r_c=args.r_c, dwell=args.dwell if args.dwell is not None else DWELL, seed=args.seed, mpm_threads=args.threads
+    )
+    steps = -(-frames // sim.r_t)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    recs = [sim.initial_frame()]
+    bar = tqdm(total=steps, desc=f"{scene.name} [hybrid r_c={sim.r_c:g}]", unit="step", disable=args.quiet)
+    for fr in sim.step(frames):
+        recs.append(fr)
+        bar.update()
+        bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}")
+    bar.close()
+    low = sim.scene
+    positions = np.stack([r.positions for r in recs])
+    tags = np.array([r.solver for r in recs])
+    solver_code = (tags == NEURAL).astype(np.int8)
+    score = np.array([r.score for r in recs])
+    seconds = np.array([r.seconds for r in recs[1:]])
+    per_frame = seconds / sim.r_t
+    ptype = sim.particle_type
+    summary: dict = {
+        "scene": scene.name, "solver": "hybrid", "model": str(sim.model.path), "seed": args.seed, "frames": steps * sim.r_t,
+        "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
+        "dim": low.dim, "r_p": sim.model.r_p, "r_t": sim.r_t, "r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell,
+        "wall_ms_per_frame": {"median": float(np.median(per_frame) * 1e3), "p95": float(np.percentile(per_frame, 95) * 1e3), "mean": float(per_frame.mean() * 1e3)},
+        "share_of_frames": {k: v / max(1, steps) for k, v in sim.stats.steps.items()},
+        "steps": dict(sim.stats.steps), "switches": sim.stats.switches, "fallbacks": dict(sim.stats.fallbacks),
+        "mpm_retries": sim.stats.mpm_retries,
+        "events": [{"step": r.step, "frame": r.frame, "event": r.event} for r in recs if r.event],
+        "version": hybridmpm.__version__,
+    }  # fmt: skip
+    err = None
+    if args.reference:
+        from hybridmpm.hybrid.stress import reference_rollout
+        from hybridmpm.metrics import grid_mass_error
+
+        t0 = time.perf_counter()
+        ref = reference_rollout(scene, steps * sim.r_t, sim.r_t, args.threads)
+        ref_ms = (time.perf_counter() - t0) / (steps * sim.r_t) * 1e3
+        err = grid_mass_error(positions[:, : sim.n_fluid], ref, low.params.resolved_n_grid())
+        summary["reference"] = {
+            "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
+            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
+        }  # fmt: skip
+    Trajectory(
+        positions=positions,
+        particle_type=ptype,
+        dt_frame=sim.dt_step,
+        n_grid=low.params.resolved_n_grid(),
+        masses=np.concatenate([sim.masses.astype(np.float32), np.zeros(low.num_boundary, np.float32)]),
+        material=np.concatenate([low.material, np.full(low.num_boundary, -1, np.int32)]),
+        extras={"solver": solver_code, "score": score, "step_seconds": np.concatenate([[0.0], seconds])},
+    ).save(out / "trajectory.npz")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    plot_timeline(out / "timeline.png", sim.dt_step, tags, score, sim.r_c, err, title=f"{scene.name} hybrid (r_c = {sim.r_c:g})")
+    if not args.no_render:
+        from hybridmpm.render import render_gif
+
+        render_gif(positions, ptype, out / "render.gif", dt_frame=sim.dt_step, title=f"{scene.name} (hybrid)", frame_solver=tags)
+    _export(args, positions, ptype, sim.dt_step, out, solver_code)
+    if not args.quiet:
+        share = summary["share_of_frames"]
+        line = (
+            f"{scene.name}: {summary['frames']} frames, {low.num_particles} particles (r_p {sim.model.r_p:g}), hybrid median "
+            f"{summary['wall_ms_per_frame']['median']:.2f} ms/frame (p95 {summary['wall_ms_per_frame']['p95']:.2f}), "
+            f"neural {100 * share.get(NEURAL, 0):.0f}% / MPM {100 * share.get('mpm', 0):.0f}% of frames, {sim.stats.switches} switches"
+        )
+        if err is not None:
+            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
+        print(line + f" -> {out}/")
+    return 0
+
+
+def _stress(args: argparse.Namespace) -> int:
+    from hybridmpm.hybrid.stress import CASES, METHODS, markdown_table, stress
+
+    cases = tuple(args.cases.split(",")) if args.cases else CASES
+    methods = tuple(args.methods.split(",")) if args.methods else METHODS
+    for c in cases:
+        if c not in CASES:
+            raise HybridMpmError(f"cases: unknown case {c!r} (choose from {', '.join(CASES)})")
+    for m in methods:
+        if m not in METHODS:
+            raise HybridMpmError(f"methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
+    if args.frames < 1:
+        raise HybridMpmError("frames: must be >= 1")
+    res = stress(args.scene, cases=cases, methods=methods, frames=args.frames, seed=args.seed, model=args.model, threads=args.threads, progress=not args.quiet)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = markdown_table(res)
+    cmd = "hybridmpm stress " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["stress"] else f"hybridmpm stress {args.scene}"
+    (out / f"stress_{args.scene}.md").write_text(f"Command: `{cmd}`\n\n" + table)
+    (out / f"stress_{args.scene}.json").write_text(json.dumps([r.row() for r in res], indent=2))
+    if not args.quiet:
+        print(table + f"-> {out}/stress_{args.scene}.md")
     return 0
 
 
@@ -248,8 +367,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
     )
-    sim.add_argument("--solver", default="mpm", choices=["mpm", "neural"], help="solver (default mpm; the hybrid arrives with its issue)")
-    sim.add_argument("--model", default=None, help="ONNX model for --solver neural (default: the shipped model for the scene)")
+    sim.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm", "neural"], help="solver (default hybrid: neural, MPM while s(t) < r_c)")
+    sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
+    sim.add_argument("--r-c", type=float, default=0.8, help="hybrid threshold r_c (default 0.8; 0 = neural only, > 1 = MPM only)")
+    sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
+    sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
+    sim.add_argument("--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)")
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
@@ -258,6 +381,18 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)
+    st = sub.add_parser("stress", help="neural-only, MPM-only and hybrid through failure cases over long rollouts; writes a table")
+    st.add_argument("scene", help="registered scene (its shipped model is used unless --model)")
+    st.add_argument("--frames", type=int, default=1000, help="frames per rollout (default 1000)")
+    st.add_argument("--cases", default=None, help="comma-separated subset of baseline,fast,obstacle,dense (default all)")
+    st.add_argument("--methods", default=None, help="comma-separated subset of neural,mpm,hybrid (default all)")
+    st.add_argument("--model", default=None, help="ONNX model (default: the shipped model for the scene)")
+    st.add_argument("--seed", type=int, default=0, help="seed of the scene's initial condition and clustering")
+    st.add_argument("--threads", type=int, default=1, help="MPM threads (default 1)")
+    st.add_argument("--out", default="runs/stress", help="directory of stress_SCENE.md / .json (default runs/stress)")
+    st.add_argument("--quiet", action="store_true")
+    st.set_defaults(func=_stress)
+
     gen = sub.add_parser("generate", help="generate a GNS-layout dataset (train/valid/test.npz, metadata.json) of MPM rollouts")
     gen.add_argument("scene", choices=sorted(SCENES), help="domain")
     gen.add_argument("--trajectories", type=int, required=True, help="number of trajectories M (>= 3; split 80/10/10 by default)")

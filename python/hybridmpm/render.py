@@ -8,6 +8,9 @@ import numpy as np
 
 #: colours by GNS particle type
 _COLOURS = {5: "#1f77b4", 6: "#d2a25a", 3: "#444444"}
+#: frame background / title colour by solver (hybrid renders)
+_SOLVER_BG = {"mpm": "#fde9d4", "neural": "#e6f0fb"}
+_SOLVER_FG = {"mpm": "#b35900", "neural": "#1f5fa8"}
 
 
 def render_gif(
@@ -20,11 +23,15 @@ def render_gif(
     fps: int = 24,
     size_px: int = 360,
     title: str = "",
+    frame_solver: np.ndarray | None = None,
 ) -> Path:
     """Write ``positions`` [T, N, D] as an animated GIF at ``path``.
 
     2D: particles coloured by type; 3D: the x–y projection, shaded by depth z.
-    At most ``max_frames`` evenly spaced frames are drawn. Returns the path.
+    At most ``max_frames`` evenly spaced frames are drawn. ``frame_solver``
+    [T] of "mpm" / "neural" tints each frame by the solver that produced it
+    (MPM: warm background, neural: cool) and names it in the title.
+    Returns the path.
     """
     import imageio.v3 as iio
     import matplotlib
@@ -44,6 +51,9 @@ def render_gif(
     for i in idx:
         ax.clear()
         p = positions[i]
+        tag = None if frame_solver is None else str(frame_solver[i])
+        if tag is not None:
+            ax.set_facecolor(_SOLVER_BG.get(tag, "white"))
         if dim == 2:
             ax.scatter(p[:, 0], p[:, 1], s=1.0, c=colours, linewidths=0)
         else:
@@ -54,7 +64,8 @@ def render_gif(
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-        ax.set_title(f"{title}  t = {i * dt_frame:.3f} s", fontsize=8)
+        label = f"{title}  t = {i * dt_frame:.3f} s" + (f"  [{tag}]" if tag else "")
+        ax.set_title(label, fontsize=8, color=_SOLVER_FG.get(tag or "", "black"))
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())  # type: ignore[attr-defined]
     plt.close(fig)
