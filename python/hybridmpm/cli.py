@@ -1,7 +1,12 @@
 """The ``hybridmpm`` command line.
 
-``hybridmpm simulate [SCENE] --solver mpm --frames N --out DIR`` runs a scene
-and writes ``trajectory.npz``, ``summary.json`` and ``render.gif``.
+``hybridmpm simulate [SCENE] [--solver hybrid|mpm|neural] --frames N --out DIR
+[--r-c 0.8] [--reference] [--export ply|vtu]`` runs a scene (default: the
+dam break, hybrid) and writes ``trajectory.npz``, ``summary.json`` and
+``render.gif`` (hybrid: also ``timeline.png``).
+
+``hybridmpm stress SCENE`` runs neural-only, MPM-only and hybrid through the
+failure cases of :mod:`hybridmpm.hybrid.stress` and writes a table.
 
 ``hybridmpm generate SCENE --trajectories M --out DIR`` writes a GNS-layout
 dataset of MPM rollouts (:func:`hybridmpm.data.generate.generate_dataset`);
