@@ -6,7 +6,7 @@ Cases (:data:`CASES`), each built from the scene's own spec for a seed:
 * ``baseline``: the scene as generated (in distribution);
 * ``fast``: every block's initial velocity doubled (twice the training range);
 * ``obstacle``: a round obstacle (never seen in training: the datasets hold
-  none, or box ramps) in the middle of the domain;
+  none, or box ramps) of radius 0.08 m on the floor in the middle;
 * ``dense``: 3 particles per cell and dimension instead of 2 (2.25× the
   particles in 2D, 3.4× in 3D, same mass): a particle density the network
   never saw.
@@ -48,7 +48,8 @@ def case_scene(name: str, case: str, seed: int = 0) -> Scene:
             if b.velocity is not None:
                 b.velocity = [2.0 * float(v) for v in b.velocity]
     elif case == "obstacle":
-        centre = [0.5, 0.3] + [0.5] * (spec.dim - 2)
+        # on the floor, where every flow ends up, so that it cannot be missed
+        centre = [0.5, 0.1] + [0.5] * (spec.dim - 2)
         spec.params.colliders = [*spec.params.colliders, Sphere(center=centre, radius=0.08)]
     elif case == "dense":
         spec.particles_per_cell = 3
