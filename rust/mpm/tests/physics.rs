@@ -242,9 +242,7 @@ fn cfl_violation_halves_the_substep_and_retries() {
     // substep halved until no particle travels more than dx per substep, and
     // the result must still be a free block accelerated uniformly (internal
     // forces cancel, so the mean velocity gains a·dt_frame exactly).
-    let mut params = SolverParams::<2>::default();
-    params.substeps = Some(1);
-    params.gravity = [0.0, 0.0];
+    let params = SolverParams::<2> { substeps: Some(1), gravity: [0.0, 0.0], ..Default::default() };
     let mut s = Solver::new(params.clone(), vec![]).unwrap();
     let mut ps = block([0.45, 0.45], [8, 8], params.dx() / 2.0, Material::Water, &params);
     let a = 1.0e4f32;
