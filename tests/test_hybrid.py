@@ -317,3 +317,13 @@ def test_stress_command_writes_its_table(tmp_path):
     assert rows[0]["mpm_share"] == 1.0
     assert "| water2d | dense |" in (tmp_path / "stress_water2d.md").read_text()
     assert main(["stress", "water2d", "--cases", "nope", "--out", str(tmp_path), "--quiet"]) == 2
+
+
+def test_reference_rollout_covers_whole_coarse_steps(water_model):
+    # 10 frames at r_t = 4: the hybrid runs 3 steps (12 frames); the reference must match them
+    from hybridmpm.hybrid.stress import reference_rollout
+
+    scene = make_scene("water2d", seed=4)
+    pos, failure, sim, _ = run_method(scene, "mpm", 10, water_model, mpm_threads=1)
+    ref = reference_rollout(scene, 10, sim.r_t, threads=1)
+    assert len(pos) == len(ref) == 4

@@ -79,10 +79,11 @@ class StressResult:
 
 
 def reference_rollout(scene: Scene, frames: int, stride: int, threads: int = 0) -> np.ndarray:
-    """Full-resolution MPM positions every ``stride`` frames, float32 [frames/stride + 1, N, D]."""
+    """Full-resolution MPM positions every ``stride`` frames, float32 [⌈frames/stride⌉ + 1, N, D]
+    (like the hybrid, it runs whole strides: ``⌈frames/stride⌉·stride`` frames)."""
     sim = scene.make_solver(num_threads=threads)
     out = [np.asarray(sim.positions, np.float32).copy()]
-    for f in range(1, frames + 1):
+    for f in range(1, -(-frames // stride) * stride + 1):
         sim.step_frame(scene.dt_frame)
         if f % stride == 0:
             out.append(np.asarray(sim.positions, np.float32).copy())
