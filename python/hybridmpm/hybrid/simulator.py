@@ -20,10 +20,14 @@ Control (``r_c`` threshold, ``δ`` window, ``dwell``):
 Failure handling (always on, whatever ``r_c``): a neural step that predicts a
 non-finite position, moves a particle more than ``escape_cells`` cells (default
 4) beyond the model's domain bounds (a working water2d model overshoots the
-walls by at most 2.7 cells before clipping: 3 seeds × 1000 frames), or raises the kinetic energy above ``ke_factor`` × the energy
-available at the start (kinetic + potential above the floor) is discarded and
-the step is redone by MPM from the last good state (``Frame.event`` says
-which). MPM itself halves its substep and retries a frame that goes
+walls by at most 2.7 cells before clipping: 3 seeds × 1000 frames), raises the
+kinetic energy above ``ke_factor`` × the energy available at the start
+(kinetic + potential above the floor), or packs the particles so that their
+mean number of neighbours within R exceeds ``degree_factor`` (2) × that of the
+initial condition (sand and water are nearly incompressible: a collapsing
+network shows there first, and its graph, hence its cost, grows with it) is
+discarded, and the step is redone by MPM from the last good state
+(``Frame.event`` says which). MPM itself halves its substep and retries a frame that goes
 non-finite or violates the CFL condition (Rust ``step_frame``).
 """
 
@@ -39,6 +43,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
 from hybridmpm.hybrid.convert import neural_to_mpm
 from hybridmpm.hybrid.safeguard import ACCEL_FLOOR, DELTA, R_C, complexity_score
 from hybridmpm.mpm import MpmSolver
@@ -63,7 +68,7 @@ class Frame:
     produced these positions); ``seconds`` wall time of the step (solver,
     conversion and safeguard); ``score`` s(t) after the step (nan while
     undefined); ``event`` None or what happened: "switch:mpm",
-    "switch:neural", "fallback:nan", "fallback:escaped", "fallback:energy";
+    "switch:neural", "fallback:nan", "fallback:escaped", "fallback:energy", "fallback:compressed";
     ``mpm_retries`` substep halvings MPM needed in this step.
     """
 
@@ -114,7 +119,7 @@ class HybridSimulator:
         APIC ``C`` after neural → MPM: "fit" (neighbour least squares) or "zero".
     accel_floor:
         [m/s²] particles calmer than this count as cos = 1 in s(t).
-    ke_factor, escape_cells:
+    ke_factor, escape_cells, degree_factor:
         Blow-up bounds of a neural step (see the module docstring).
     mpm_threads, nn_threads:
         Threads of the MPM solver (0 = all cores) and of onnxruntime.
@@ -136,6 +141,7 @@ class HybridSimulator:
         accel_floor: float = ACCEL_FLOOR,
         ke_factor: float = 2.0,
         escape_cells: float = 4.0,
+        degree_factor: float = 2.0,
         mpm_threads: int = 0,
         nn_threads: int = 1,
     ) -> None:
@@ -150,6 +156,7 @@ class HybridSimulator:
         _check("accel_floor", math.isfinite(accel_floor) and accel_floor >= 0, f"must be >= 0 [m/s²], got {accel_floor!r}")
         _check("ke_factor", math.isfinite(ke_factor) and ke_factor > 0, f"must be > 0, got {ke_factor!r}")
         _check("escape_cells", math.isfinite(escape_cells) and escape_cells >= 0, f"must be >= 0, got {escape_cells!r}")
+        _check("degree_factor", math.isfinite(degree_factor) and degree_factor > 1, f"must be > 1, got {degree_factor!r}")
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.scene_full = scene
@@ -163,6 +170,7 @@ class HybridSimulator:
         self.accel_floor = float(accel_floor)
         self.ke_factor = float(ke_factor)
         self.escape_cells = float(escape_cells)
+        self.degree_factor = float(degree_factor)
 
         self.scene = downsample_scene(scene, self.model.r_p, seed=seed).scene if self.model.r_p < 1.0 else scene
         self.particle_type = self.scene.particle_type()
@@ -193,6 +201,10 @@ class HybridSimulator:
         self.step_index = 0
         self.stats = HybridStats()
         self.last_score = float("nan")
+        # mean neighbours per particle of the initial condition (the fluid's rest spacing)
+        x0b = self.scene.with_boundary(np.asarray(self.scene.positions, np.float32))
+        self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
+        self._next_graph: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------ properties
     @property
@@ -230,6 +242,7 @@ class HybridSimulator:
         return None
 
     def _to_mpm(self) -> None:
+        self._next_graph = None
         hist = np.stack(list(self._buffer)[-2:])
         neural_to_mpm(self.solver, hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius)
         self._neural = None
@@ -237,6 +250,7 @@ class HybridSimulator:
     def _to_neural(self) -> None:
         hist = np.stack(list(self._buffer)[-self.t_in :])
         self._neural = NeuralSimulator(self.model, self.scene.with_boundary(hist), self.particle_type)
+        self._next_graph = None
 
     def advance(self) -> Frame:
         """One coarse step (``r_t`` frames); returns its :class:`Frame`.
@@ -250,8 +264,17 @@ class HybridSimulator:
         ran = self.solver_name
         if ran == NEURAL:
             assert self._neural is not None
-            _, nxt, _ = self.model.predict(self._neural.history, self._neural.particle_type, None)
+            _, nxt, _ = self.model.predict(self._neural.history, self._neural.particle_type, None, graph=self._next_graph)
+            self._next_graph = None
             failure = self._neural_failure(nxt)
+            if failure is None:
+                # the graph of the clipped prediction: checked for compression, then reused by the next predict
+                clipped = np.clip(nxt, self._neural._lo, self._neural._hi)
+                s_next, r_next, _, _ = radius_graph(clipped, self.model.radius)
+                if len(s_next) > self.degree_factor * self._degree0 * len(clipped):
+                    failure = "compressed"
+                else:
+                    self._next_graph = (s_next, r_next)
             if failure is None:
                 pos = self._neural.accept(nxt)[: self.n_fluid].copy()
             else:
@@ -350,6 +373,7 @@ class HybridSimulator:
             self.step_index = int(state["step_index"])
             nh = state["neural_history"]
             self._neural = None
+            self._next_graph = None
             if nh is not None:
                 self._neural = NeuralSimulator(self.model, np.asarray(nh, np.float32), self.particle_type)
             st = state["stats"]

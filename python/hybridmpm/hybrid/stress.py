@@ -12,7 +12,7 @@ Cases (:data:`CASES`), each built from the scene's own spec for a seed:
   never saw.
 
 Per case and method the suite records frames until failure and its mode
-(``nan``, ``escaped``, ``energy`` for the network; ``mpm`` for a frame MPM
+(``nan``, ``escaped``, ``energy``, ``compressed`` for the network; ``mpm`` for a frame MPM
 could not finish even with its smallest substep), and the grid-mass error
 (mean and last frame) against full-resolution MPM from the same initial
 condition over the frames simulated.

@@ -91,12 +91,20 @@ class NeuralModel:
             raise InvalidInputError(f"model: {self.path.name} was trained for {families}, not {scene!r}", "model")
 
     def predict(
-        self, history: np.ndarray, particle_type: np.ndarray, max_neighbors: int | None = None
+        self,
+        history: np.ndarray,
+        particle_type: np.ndarray,
+        max_neighbors: int | None = None,
+        graph: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """One step: ``history`` float32 [T_in, N, D] → ``(acceleration [N, D],
         next_position [N, D], (senders, receivers))``; the graph is built on
-        ``history[-1]`` with self-edges."""
-        s, r, _, _ = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
+        ``history[-1]`` with self-edges, unless ``graph`` (senders, receivers
+        int64 [E], built exactly so) is given."""
+        if graph is None:
+            s, r, _, _ = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
+        else:
+            s, r = graph
         acc, nxt = self.session.run(
             None, {"positions": history, "particle_type": particle_type, "senders": s, "receivers": r}
         )
