@@ -342,3 +342,19 @@ def test_reference_rollout_covers_whole_coarse_steps(water_model):
     pos, failure, sim, _ = run_method(scene, "mpm", 10, water_model, mpm_threads=1)
     ref = reference_rollout(scene, 10, sim.r_t, threads=1)
     assert len(pos) == len(ref) == 4
+
+
+def test_a_network_that_keeps_failing_waits_longer_each_time():
+    # a model that squeezes the fluid at every step fails again after each return;
+    # the MPM stretch before it gets the flow back doubles (dwell · 2^k)
+    scene = make_scene("water2d", seed=1002)
+    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="compressed"), r_c=0.0, dwell=5, mpm_threads=1)
+    frames = list(sim.step(1600))
+    fails = [f.step for f in frames if f.event == "fallback:compressed"]
+    backs = [f.step for f in frames if f.event == "switch:neural"]
+    assert len(fails) >= 3
+    waits = [next(b for b in backs if b > f) - f for f in fails if any(b > f for b in backs)]
+    assert len(waits) >= 2
+    for w0, w1 in zip(waits, waits[1:]):
+        assert w1 >= 2 * w0 - 1, waits  # the calm count restarts at the fallback step itself
+    assert frames[-1].positions.shape == frames[0].positions.shape and np.isfinite(frames[-1].positions).all()

@@ -27,7 +27,10 @@ mean number of neighbours within R exceeds ``degree_factor`` (2) × that of the
 initial condition (sand and water are nearly incompressible: a collapsing
 network shows there first, and its graph, hence its cost, grows with it) is
 discarded, and the step is redone by MPM from the last good state
-(``Frame.event`` says which). MPM itself halves its substep and retries a frame that goes
+(``Frame.event`` says which). The network then has to wait ``dwell·2^k``
+calm steps, ``k`` its failures since its last healthy stint of ``2·dwell``
+steps (backoff: a model that keeps collapsing is not handed the flow every
+few steps). MPM itself halves its substep and retries a frame that goes
 non-finite or violates the CFL condition (Rust ``step_frame``).
 """
 
@@ -53,6 +56,9 @@ from hybridmpm.scenes.core import Scene
 #: Default dwell (steps of s ≥ r_c on MPM before the network takes over again);
 #: see docs/hybrid.md for the measurement behind it.
 DWELL = 5
+#: After a failure fallback the dwell doubles per failure since the network's
+#: last healthy stint (2·dwell steps without failure), up to 2**MAX_BACKOFF.
+MAX_BACKOFF = 6
 #: Solver tags.
 MPM = "mpm"
 NEURAL = "neural"
@@ -197,6 +203,8 @@ class HybridSimulator:
         self._buffer.append(np.asarray(self.solver.positions, np.float32).copy())
         self.solver_name = MPM
         self._calm = 0
+        self._strikes = 0
+        self._neural_run = 0
         self._neural: NeuralSimulator | None = None
         self.step_index = 0
         self.stats = HybridStats()
@@ -277,8 +285,12 @@ class HybridSimulator:
                     self._next_graph = (s_next, r_next)
             if failure is None:
                 pos = self._neural.accept(nxt)[: self.n_fluid].copy()
+                self._neural_run += 1
+                if self._neural_run >= 2 * self.dwell:
+                    self._strikes = 0  # a healthy stint: forgive earlier failures
             else:
                 event = f"fallback:{failure}"
+                self._strikes += 1
                 self.stats.fallbacks[failure] = self.stats.fallbacks.get(failure, 0) + 1
                 self._to_mpm()
                 self.solver_name = MPM
@@ -306,11 +318,16 @@ class HybridSimulator:
         elif warm:
             ok = (not self.safeguard_on) or score >= self.r_c
             self._calm = self._calm + 1 if ok else 0
-            # after the warm-up a calm score hands over at once; after a fallback it must hold for `dwell` steps
-            need = 1 if self.stats.steps[NEURAL] == 0 and self.stats.switches == 0 else self.dwell
+            # after the warm-up a calm score hands over at once; after a switch it must hold for `dwell`
+            # steps, doubled for each failure of the network since its last healthy stint (backoff)
+            if self.stats.steps[NEURAL] == 0 and self.stats.switches == 0:
+                need = 1
+            else:
+                need = self.dwell * 2 ** min(self._strikes, MAX_BACKOFF)
             if self._calm >= need and len(self._buffer) >= self.t_in:
                 self._to_neural()
                 self.solver_name = NEURAL
+                self._neural_run = 0
                 if self.stats.steps[NEURAL] > 0 or self.stats.switches > 0:
                     self.stats.switches += 1
                     event = event or "switch:neural"
@@ -345,6 +362,8 @@ class HybridSimulator:
             "buffer": np.stack(list(self._buffer)).copy(),
             "solver_name": self.solver_name,
             "calm": self._calm,
+            "strikes": self._strikes,
+            "neural_run": self._neural_run,
             "step_index": self.step_index,
             "neural_history": None if self._neural is None else self._neural.history.copy(),
             "stats": {
@@ -370,6 +389,8 @@ class HybridSimulator:
             self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
             self.solver_name = str(state["solver_name"])
             self._calm = int(state["calm"])
+            self._strikes = int(state["strikes"])
+            self._neural_run = int(state["neural_run"])
             self.step_index = int(state["step_index"])
             nh = state["neural_history"]
             self._neural = None
@@ -383,4 +404,4 @@ class HybridSimulator:
             raise InvalidInputError(f"state: malformed hybrid state ({e})", "state") from e
 
 
-__all__ = ["DWELL", "MPM", "NEURAL", "Frame", "HybridSimulator", "HybridStats"]
+__all__ = ["DWELL", "MAX_BACKOFF", "MPM", "NEURAL", "Frame", "HybridSimulator", "HybridStats"]
