@@ -215,7 +215,7 @@ def _simulate_hybrid(args: argparse.Namespace, scene, frames: int) -> int:  # ty
     for fr in sim.step(frames):
         recs.append(fr)
         bar.update()
-        bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}")
+        bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}", refresh=False)
     bar.close()
     low = sim.scene
     positions = np.stack([r.positions for r in recs])
