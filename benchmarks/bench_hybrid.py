@@ -28,7 +28,6 @@ from hybridmpm.hybrid.stress import reference_rollout, run_method
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import NeuralModel
-from hybridmpm.neural.runtime import run_neural
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.registry import PAPER_FRAMES
 
@@ -49,42 +48,31 @@ def main(argv: list[str] | None = None) -> int:
         model = NeuralModel(shipped_model(name))
         frames = args.frames or PAPER_FRAMES.get(name, 300)
         acc: dict[str, dict[str, list[float]]] = {m: {"mean": [], "last": [], "ms": [], "mpm_share": [], "switches": [], "n": []} for m in METHODS}
+
+        def record(key: str, pos: np.ndarray, secs: float, mpm_share: float, switches: int, ref: np.ndarray, n_grid: int) -> None:
+            """Append one rollout's error (against ``ref``), ms/frame, MPM share and switches to ``acc[key]``."""
+            err = grid_mass_error(pos, ref[: len(pos)], n_grid) if key != "mpm_full" else np.zeros(1)
+            a = acc[key]
+            a["mean"].append(float(err.mean()))
+            a["last"].append(float(err[-1]))
+            a["ms"].append(secs / max(1, (len(pos) - 1) * model.r_t) * 1e3)
+            a["mpm_share"].append(mpm_share)
+            a["switches"].append(switches)
+            a["n"].append(pos.shape[1])
+
         for seed in args.seeds:
             scene = make_scene(name, seed=seed)
+            n_grid = scene.params.resolved_n_grid()
+
             t0 = time.perf_counter()
             ref = reference_rollout(scene, frames, model.r_t, args.threads)
-            acc["mpm_full"]["ms"].append((time.perf_counter() - t0) / (-(-frames // model.r_t) * model.r_t) * 1e3)
-            for k in ("mean", "last"):
-                acc["mpm_full"][k].append(0.0)
-            acc["mpm_full"]["mpm_share"].append(1.0)
-            acc["mpm_full"]["switches"].append(0)
-            acc["mpm_full"]["n"].append(scene.num_particles)
-            t0 = time.perf_counter()
-            nn = run_neural(scene, model, frames, seed=0, mpm_threads=args.threads)
-            nn_secs = time.perf_counter() - t0
-            nn_pos = nn["positions"][:, : nn["scene"].num_particles]
+            record("mpm_full", ref, time.perf_counter() - t0, 1.0, 0, ref, n_grid)
             for method, key in (("mpm", "mpm_rp"), ("neural", "neural"), ("hybrid", "hybrid")):
-                if method == "neural":  # the network alone over the whole rollout (no safeguard, no failure detection)
-                    err = grid_mass_error(nn_pos, ref[: len(nn_pos)], scene.params.resolved_n_grid())
-                    a = acc[key]
-                    a["mean"].append(float(err.mean()))
-                    a["last"].append(float(err[-1]))
-                    a["ms"].append(nn_secs / max(1, (len(nn_pos) - 1) * model.r_t) * 1e3)
-                    a["mpm_share"].append(nn["warmup_frames"] / max(1, (len(nn_pos) - 1) * model.r_t))
-                    a["switches"].append(0)
-                    a["n"].append(nn_pos.shape[1])
-                    continue
-                kw = {"r_c": args.r_c} if method == "hybrid" else {}
+                # "neural": the network alone over the whole rollout (no safeguard, no failure checks)
+                kw = {"r_c": args.r_c} if method == "hybrid" else {"detect_failures": False} if method == "neural" else {}
                 pos, failure, sim, secs = run_method(scene, method, frames, model, seed=0, mpm_threads=args.threads, **kw)
-                err = grid_mass_error(pos, ref[: len(pos)], scene.params.resolved_n_grid())
-                a = acc[key]
-                a["mean"].append(float(err.mean()))
-                a["last"].append(float(err[-1]))
-                a["ms"].append(secs / max(1, (len(pos) - 1) * sim.r_t) * 1e3)
                 st = sim.stats.steps
-                a["mpm_share"].append(st["mpm"] / max(1, st["mpm"] + st["neural"]))
-                a["switches"].append(sim.stats.switches)
-                a["n"].append(sim.n_fluid)
+                record(key, pos, secs, st["mpm"] / max(1, st["mpm"] + st["neural"]), sim.stats.switches, ref, n_grid)
                 if failure:
                     print(f"{name} seed {seed} {method}: failed ({failure})", file=sys.stderr)
             print(f"{name} seed {seed} done", file=sys.stderr)

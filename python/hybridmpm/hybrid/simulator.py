@@ -47,7 +47,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.hybrid.convert import neural_to_mpm
+from hybridmpm.hybrid.convert import mpm_history, neural_to_mpm
 from hybridmpm.hybrid.safeguard import ACCEL_FLOOR, DELTA, R_C, complexity_score
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.neural.runtime import NeuralModel, NeuralSimulator
@@ -121,12 +121,17 @@ class HybridSimulator:
         :data:`DWELL`).
     seed:
         Seed of the scene (if a name) and of the r_p clustering.
-    affine:
-        APIC ``C`` after neural → MPM: "fit" (neighbour least squares) or "zero".
+    affine, volume_ratio:
+        APIC ``C`` after neural → MPM: "fit" (neighbour least squares) or
+        "zero"; water's ``J``: "density" (from the local density) or "one".
     accel_floor:
         [m/s²] particles calmer than this count as cos = 1 in s(t).
     ke_factor, escape_cells, degree_factor:
         Blow-up bounds of a neural step (see the module docstring).
+    detect_failures:
+        False turns the blow-up checks off: with ``r_c ≤ 0`` the simulator is
+        then the network alone (:func:`~hybridmpm.neural.runtime.run_neural`,
+        bit for bit), for benchmarks.
     mpm_threads, nn_threads:
         Threads of the MPM solver (0 = all cores) and of onnxruntime.
 
@@ -144,10 +149,12 @@ class HybridSimulator:
         dwell: int = DWELL,
         seed: int = 0,
         affine: str = "fit",
+        volume_ratio: str = "density",
         accel_floor: float = ACCEL_FLOOR,
         ke_factor: float = 2.0,
         escape_cells: float = 4.0,
         degree_factor: float = 2.0,
+        detect_failures: bool = True,
         mpm_threads: int = 0,
         nn_threads: int = 1,
     ) -> None:
@@ -159,6 +166,7 @@ class HybridSimulator:
         _check("delta", isinstance(delta, int) and delta >= 1, f"must be an integer >= 1, got {delta!r}")
         _check("dwell", isinstance(dwell, int) and dwell >= 1, f"must be an integer >= 1, got {dwell!r}")
         _check("affine", affine in ("fit", "zero"), f"must be 'fit' or 'zero', got {affine!r}")
+        _check("volume_ratio", volume_ratio in ("density", "one"), f"must be 'density' or 'one', got {volume_ratio!r}")
         _check("accel_floor", math.isfinite(accel_floor) and accel_floor >= 0, f"must be >= 0 [m/s²], got {accel_floor!r}")
         _check("ke_factor", math.isfinite(ke_factor) and ke_factor > 0, f"must be > 0, got {ke_factor!r}")
         _check("escape_cells", math.isfinite(escape_cells) and escape_cells >= 0, f"must be >= 0, got {escape_cells!r}")
@@ -173,10 +181,12 @@ class HybridSimulator:
         self.delta = delta
         self.dwell = dwell
         self.affine = affine
+        self.volume_ratio = volume_ratio
         self.accel_floor = float(accel_floor)
         self.ke_factor = float(ke_factor)
         self.escape_cells = float(escape_cells)
         self.degree_factor = float(degree_factor)
+        self.detect_failures = bool(detect_failures)
 
         self.scene = downsample_scene(scene, self.model.r_p, seed=seed).scene if self.model.r_p < 1.0 else scene
         self.particle_type = self.scene.particle_type()
@@ -252,11 +262,12 @@ class HybridSimulator:
     def _to_mpm(self) -> None:
         self._next_graph = None
         hist = np.stack(list(self._buffer)[-2:])
-        neural_to_mpm(self.solver, hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius)
+        neural_to_mpm(self.solver, hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius, volume_ratio=self.volume_ratio)
         self._neural = None
 
     def _to_neural(self) -> None:
-        hist = np.stack(list(self._buffer)[-self.t_in :])
+        # called after an MPM step: the buffer's newest entry is the solver's state
+        hist = mpm_history(self.solver, np.stack(list(self._buffer)[-self.t_in : -1]), self.t_in)
         self._neural = NeuralSimulator(self.model, self.scene.with_boundary(hist), self.particle_type)
         self._next_graph = None
 
@@ -274,17 +285,17 @@ class HybridSimulator:
             assert self._neural is not None
             _, nxt, _ = self.model.predict(self._neural.history, self._neural.particle_type, None, graph=self._next_graph)
             self._next_graph = None
-            failure = self._neural_failure(nxt)
+            failure = self._neural_failure(nxt) if self.detect_failures else None
             if failure is None:
                 # the graph of the clipped prediction: checked for compression, then reused by the next predict
-                clipped = np.clip(nxt, self._neural._lo, self._neural._hi)
+                clipped = self._neural.clip(nxt)
                 s_next, r_next, _, _ = radius_graph(clipped, self.model.radius)
-                if len(s_next) > self.degree_factor * self._degree0 * len(clipped):
+                if self.detect_failures and len(s_next) > self.degree_factor * self._degree0 * len(clipped):
                     failure = "compressed"
                 else:
                     self._next_graph = (s_next, r_next)
             if failure is None:
-                pos = self._neural.accept(nxt)[: self.n_fluid].copy()
+                pos = self._neural.push(clipped)[: self.n_fluid].copy()
                 self._neural_run += 1
                 if self._neural_run >= 2 * self.dwell:
                     self._strikes = 0  # a healthy stint: forgive earlier failures

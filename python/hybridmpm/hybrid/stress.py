@@ -80,14 +80,16 @@ class StressResult:
 
 def reference_rollout(scene: Scene, frames: int, stride: int, threads: int = 0) -> np.ndarray:
     """Full-resolution MPM positions every ``stride`` frames, float32 [⌈frames/stride⌉ + 1, N, D]
-    (like the hybrid, it runs whole strides: ``⌈frames/stride⌉·stride`` frames)."""
-    sim = scene.make_solver(num_threads=threads)
-    out = [np.asarray(sim.positions, np.float32).copy()]
-    for f in range(1, -(-frames // stride) * stride + 1):
-        sim.step_frame(scene.dt_frame)
-        if f % stride == 0:
-            out.append(np.asarray(sim.positions, np.float32).copy())
-    return np.stack(out)
+    (like the hybrid, it runs whole strides: ``⌈frames/stride⌉·stride`` frames): the dataset
+    generator's rollout (:func:`~hybridmpm.data.generate.simulate_trajectory`) of the scene's spec.
+    Raises :class:`InvalidInputError` for a scene built without a spec."""
+    from hybridmpm.data.generate import simulate_trajectory
+
+    if scene.spec is None:
+        raise InvalidInputError("scene: the reference is rebuilt from the scene's spec; this scene has none", "scene")
+    total = -(-frames // stride) * stride
+    out = simulate_trajectory(scene.spec, int(scene.info.get("seed", 0)), total, r_t=stride, num_threads=threads)
+    return np.asarray(out["positions"][:, : scene.num_particles], np.float32)
 
 
 def run_method(scene: Scene, method: str, frames: int, model: Any = None, seed: int = 0, **kw: Any) -> tuple[np.ndarray, str | None, HybridSimulator, float]:

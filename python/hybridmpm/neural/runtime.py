@@ -167,16 +167,24 @@ class NeuralSimulator:
         return self.accept(nxt)
 
     def accept(self, nxt: np.ndarray) -> np.ndarray:
-        """Append predicted positions ``nxt`` [N, D] to the history (clipped to
-        the domain if ``clamp``); returns them as float32 [N, D]. :meth:`step`
-        is ``model.predict`` then ``accept``; the hybrid simulator checks a
-        prediction for failure in between."""
+        """Append predicted positions ``nxt`` [N, D] to the history, clipped
+        to the domain if ``clamp`` (:meth:`clip` then :meth:`push`); returns
+        them as float32 [N, D]. :meth:`step` is ``model.predict`` then ``accept``."""
+        return self.push(self.clip(nxt))
+
+    def clip(self, nxt: np.ndarray) -> np.ndarray:
+        """``nxt`` [N, D] clipped to the model's domain bounds if ``clamp``
+        (``last_clamped`` counts the particles clipped)."""
         if self.clamp:
             out = (nxt < self._lo) | (nxt > self._hi)
             self.last_clamped = int(out.any(axis=1).sum())
             if self.last_clamped:
                 nxt = np.clip(nxt, self._lo, self._hi)
-        self.history = np.concatenate([self.history[1:], nxt[None].astype(np.float32)])
+        return nxt
+
+    def push(self, positions: np.ndarray) -> np.ndarray:
+        """Append ``positions`` [N, D] to the history as they are; returns them as float32."""
+        self.history = np.concatenate([self.history[1:], positions[None].astype(np.float32)])
         self.steps += 1
         return self.history[-1]
 
