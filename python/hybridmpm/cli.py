@@ -34,6 +34,20 @@ from hybridmpm.errors import HybridMpmError
 from hybridmpm.trajectory import Trajectory
 
 
+def _save_trajectory(path: Path, scene, positions: np.ndarray, dt: float, masses: np.ndarray, extras: dict | None = None) -> None:  # type: ignore[no-untyped-def]
+    """``positions`` [T, N + B, D]: ``scene``'s particles, then its boundary particles
+    (mass 0, material -1), written as a :class:`Trajectory` file."""
+    Trajectory(
+        positions=positions,
+        particle_type=scene.particle_type(),
+        dt_frame=dt,
+        n_grid=scene.params.resolved_n_grid(),
+        masses=np.concatenate([np.asarray(masses, np.float32), np.zeros(scene.num_boundary, np.float32)]),
+        material=np.concatenate([np.asarray(scene.material, np.int32), np.full(scene.num_boundary, -1, np.int32)]),
+        extras=extras or {},
+    ).save(path)
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -68,15 +82,7 @@ def _simulate(args: argparse.Namespace) -> int:
         substeps[f] = stats["substeps"]
         positions[f + 1] = sim.positions
     ptype = scene.particle_type()
-    masses = np.concatenate([sim.masses, np.zeros(scene.num_boundary, np.float32)])
-    Trajectory(
-        positions=scene.with_boundary(positions),
-        particle_type=ptype,
-        dt_frame=scene.dt_frame,
-        n_grid=sim.n_grid,
-        masses=masses,
-        material=np.concatenate([scene.material, np.full(scene.num_boundary, -1, np.int32)]),
-    ).save(out / "trajectory.npz")
+    _save_trajectory(out / "trajectory.npz", scene, scene.with_boundary(positions), scene.dt_frame, sim.masses)
     summary = {
         "scene": scene.name,
         "solver": args.solver,
@@ -159,14 +165,7 @@ def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # ty
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     low = res["scene"]
-    Trajectory(
-        positions=res["positions"],
-        particle_type=res["particle_type"],
-        dt_frame=res["dt_stored"],
-        n_grid=low.params.resolved_n_grid(),
-        masses=np.concatenate([res["masses"], np.zeros(low.num_boundary, np.float32)]),
-        material=np.concatenate([res["material"], np.full(low.num_boundary, -1, np.int32)]),
-    ).save(out / "trajectory.npz")
+    _save_trajectory(out / "trajectory.npz", low, res["positions"], res["dt_stored"], res["masses"])
     per_frame = res["step_seconds"] / model.r_t
     summary = {
         "scene": scene.name, "solver": "neural", "model": str(args.model), "seed": args.seed, "frames": frames,
@@ -249,15 +248,8 @@ def _simulate_hybrid(args: argparse.Namespace, scene, frames: int) -> int:  # ty
             "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
             "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
         }  # fmt: skip
-    Trajectory(
-        positions=positions,
-        particle_type=ptype,
-        dt_frame=sim.dt_step,
-        n_grid=low.params.resolved_n_grid(),
-        masses=np.concatenate([sim.masses.astype(np.float32), np.zeros(low.num_boundary, np.float32)]),
-        material=np.concatenate([low.material, np.full(low.num_boundary, -1, np.int32)]),
-        extras={"solver": solver_code, "score": score, "step_seconds": np.concatenate([[0.0], seconds])},
-    ).save(out / "trajectory.npz")
+    extras = {"solver": solver_code, "score": score, "step_seconds": np.concatenate([[0.0], seconds])}
+    _save_trajectory(out / "trajectory.npz", low, positions, sim.dt_step, sim.masses, extras)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_timeline(out / "timeline.png", sim.dt_step, tags, score, sim.r_c, err, title=f"{scene.name} hybrid (r_c = {sim.r_c:g})")
     if not args.no_render:
