@@ -5,6 +5,12 @@
 dam break, hybrid) and writes ``trajectory.npz``, ``summary.json`` and
 ``render.gif`` (hybrid: also ``timeline.png``).
 
+``hybridmpm bench SCENE [--seeds K] [--frames T] [--out DIR] [--peer taichi]``
+runs every method from the same held-out initial conditions and writes
+error-against-latency charts and tables (:func:`hybridmpm.bench.bench`);
+``hybridmpm tune SCENE --error-budget E`` writes the fastest configuration
+within the budget, which ``simulate SCENE --solver auto`` then uses.
+
 ``hybridmpm stress SCENE`` runs neural-only, MPM-only and hybrid through the
 failure cases of :mod:`hybridmpm.hybrid.stress` and writes a table.
 
@@ -56,6 +62,8 @@ def _simulate(args: argparse.Namespace) -> int:
 
     scene = make_scene(args.scene, seed=args.seed)
     frames = args.frames if args.frames is not None else scene.frames
+    if args.solver == "auto":
+        _apply_tuned(args, scene.name)
     if frames < 1:
         raise HybridMpmError("frames: must be >= 1")
     if args.solver != "mpm" and args.r_p != 1.0:
@@ -119,6 +127,93 @@ def _simulate(args: argparse.Namespace) -> int:
             f"median {summary['wall_ms_per_frame']['median']:.2f} ms/frame "
             f"(p95 {summary['wall_ms_per_frame']['p95']:.2f}), "
             f"{summary['substeps_per_frame']['median']:.0f} substeps/frame -> {out}/"
+        )
+    return 0
+
+
+def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
+    """``--solver auto``: take solver, model, r_p and r_c from the configuration
+    ``hybridmpm tune`` wrote (``--tuned``, default tuned/SCENE.json)."""
+    from hybridmpm.bench import load_tuned
+
+    if args.model is not None or args.r_p != 1.0:
+        raise HybridMpmError("solver: --solver auto takes the model, r_p and r_c from the tuned configuration; drop --model/--r-p")
+    doc = load_tuned(scene, args.tuned)
+    cfg = doc["config"]
+    args.solver = cfg["kind"]
+    if cfg["kind"] == "mpm":
+        args.r_p = float(cfg["r_p"])
+    else:
+        args.model = cfg["model"]
+        if cfg["kind"] == "hybrid":
+            args.r_c = float(cfg["r_c"])
+    if not args.quiet:
+        m = doc["measured"]
+        print(
+            f"auto: {cfg['label']} (tuned for error <= {doc['error_budget']:g}: measured {m['error_mean']:.3f}, "
+            f"{m['ms_mean']:.2f} ms/frame on validation seeds)"
+        )
+
+
+def _bench_models(args: argparse.Namespace) -> dict:
+    from hybridmpm.bench import R_C_SWEEP
+
+    r_cs = R_C_SWEEP if args.r_c is None else tuple(float(x) for x in args.r_c.split(","))
+    return {
+        "frames": args.frames, "r_cs": r_cs, "model": args.model, "variants": not args.no_variants,
+        "extra_models": tuple(args.extra_model or ()), "warmup": args.warmup, "mpm_threads": args.threads, "nn_threads": args.nn_threads,
+    }  # fmt: skip
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from hybridmpm.bench import TEST_SEED0, bench
+
+    if args.seeds < 1:
+        raise HybridMpmError("seeds: must be >= 1")
+    seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
+    cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
+    res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_models(args))
+    if args.peer == "taichi":
+        _taichi_peer(args, Path(res["out"]), seeds[0])
+    if not args.quiet:
+        for r in res["rows"]:
+            print(f"{r['label']:<48} error {r['error_mean']:.3f}  {r['ms_mean']:7.2f} ms/frame{'  (Pareto)' if r['pareto'] else ''}")
+        print(f"Pareto front: {'; '.join(res['pareto'])}\n-> {res['out']}/report.md")
+    return 0
+
+
+def _taichi_peer(args: argparse.Namespace, out: Path, seed: int) -> None:
+    """``--peer taichi``: the same scene and seed in Taichi's CPU MLS-MPM, timed in this run."""
+    from hybridmpm.bench.peer import taichi_peer
+
+    res = taichi_peer(args.scene, seed, args.frames, args.warmup, threads=args.threads)
+    (out / "peer_taichi.json").write_text(json.dumps(res, indent=2))
+    with open(out / "report.md", "a") as f:
+        f.write(
+            "\n## Peer: Taichi CPU MLS-MPM (same scene, seed and run)\n\n"
+            f"Taichi {res['taichi']} ({res['arch']}, {res['threads']} threads): {res['particles']} particles, "
+            f"mean {res['ms_mean']:.2f} ms/frame (median {res['ms_median']:.2f}, p95 {res['ms_p95']:.2f}) against our MPM at full "
+            f"resolution {res['ours_ms_mean']:.2f} ms/frame in the same run: ratio {res['ms_mean'] / res['ours_ms_mean']:.2f}. "
+            "Taichi's MPM here is the textbook MLS-MPM (same grid, substeps, materials approximated: see hybridmpm.bench.peer).\n"
+        )
+    if not args.quiet:
+        print(f"peer taichi: {res['ms_mean']:.2f} ms/frame against ours {res['ours_ms_mean']:.2f}")
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from hybridmpm.bench import VALID_SEED0, tune
+
+    if args.seeds < 1:
+        raise HybridMpmError("seeds: must be >= 1")
+    seeds = [VALID_SEED0 + i for i in range(args.seeds)]
+    doc = tune(args.scene, args.error_budget, seeds=seeds, metric=args.metric, out=args.out, work=args.work, progress=not args.quiet, **_bench_models(args))
+    if not args.quiet:
+        c, m = doc["config"], doc["measured"]
+        print(
+            f"{args.scene}: {c['label']} — error {m['error_mean']:.3f} (mean) / {m['error_last']:.3f} (last) <= budget "
+            f"{args.error_budget:g} ({args.metric}), {m['ms_mean']:.2f} ms/frame -> {doc['path']}\n"
+            f"use it: hybridmpm simulate {args.scene} --solver auto"
+            + (f" --tuned {doc['path']}" if args.out else "")
         )
     return 0
 
@@ -364,7 +459,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
     )
-    sim.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm", "neural"], help="solver (default hybrid: neural, MPM while s(t) < r_c)")
+    sim.add_argument(
+        "--solver", default="hybrid", choices=["hybrid", "mpm", "neural", "auto"],
+        help="solver (default hybrid: neural, MPM while s(t) < r_c; auto: the configuration hybridmpm tune chose)",
+    )  # fmt: skip
+    sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
     sim.add_argument("--r-c", type=float, default=0.8, help="hybrid threshold r_c (default 0.8; 0 = neural only, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
@@ -389,6 +488,35 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--out", default="runs/stress", help="directory of stress_SCENE.md / .json (default runs/stress)")
     st.add_argument("--quiet", action="store_true")
     st.set_defaults(func=_stress)
+
+    def bench_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("scene", choices=sorted(SCENES), help="registered scene")
+        p.add_argument("--frames", type=int, default=None, help="frames per rollout (default: the paper's T of the scene)")
+        p.add_argument("--r-c", default=None, help="comma-separated hybrid thresholds (default 0,0.1,...,0.9)")
+        p.add_argument("--model", default=None, help="the hybrid's ONNX model (default: the shipped model of the scene)")
+        p.add_argument("--extra-model", action="append", help="another ONNX model to run alone (repeatable)")
+        p.add_argument("--no-variants", action="store_true", help="skip the shipped variant networks (full-resolution, spatial-/temporal-only)")
+        p.add_argument("--warmup", type=int, default=24, help="frames at the start not timed (default 24)")
+        p.add_argument("--threads", type=int, default=0, help="MPM threads (0 = all cores)")
+        p.add_argument("--nn-threads", type=int, default=1, help="onnxruntime threads (default 1)")
+        p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+    be = sub.add_parser("bench", help="error against latency for every method from the same held-out initial conditions; charts and report")
+    bench_args(be)
+    be.add_argument("--seeds", type=int, default=3, help="number of held-out seeds (default 3: 1000, 1001, 1002)")
+    be.add_argument("--first-seed", type=int, default=None, help="first seed (default 1000, the held-out test seeds)")
+    be.add_argument("--out", default=None, help="output directory (default runs/bench/SCENE; resumes finished cells)")
+    be.add_argument("--peer", default=None, choices=["taichi"], help="also time the scene in Taichi's CPU MLS-MPM (needs the 'bench' extra)")
+    be.set_defaults(func=_bench)
+
+    tu = sub.add_parser("tune", help="the fastest configuration (r_p, r_t, r_c, model) within an error budget, for --solver auto")
+    bench_args(tu)
+    tu.add_argument("--error-budget", type=float, required=True, help="largest allowed grid-mass error (see --metric)")
+    tu.add_argument("--metric", default="error_mean", choices=["error_mean", "error_last"], help="error over the rollout (mean, default) or at its last frame")
+    tu.add_argument("--seeds", type=int, default=2, help="number of validation seeds (default 2: 2000, 2001)")
+    tu.add_argument("--out", default=None, help="config file to write (default tuned/SCENE.json)")
+    tu.add_argument("--work", default=None, help="benchmark directory (default runs/tune/SCENE; resumes finished cells)")
+    tu.set_defaults(func=_tune)
 
     gen = sub.add_parser("generate", help="generate a GNS-layout dataset (train/valid/test.npz, metadata.json) of MPM rollouts")
     gen.add_argument("scene", choices=sorted(SCENES), help="domain")

@@ -33,4 +33,21 @@ def shipped_model(scene: str) -> Path:
     return Path(str(resources.files("hybridmpm.models").joinpath(index[scene])))
 
 
-__all__ = ["shipped_model", "shipped_models"]
+def variant_models(scene: str) -> list[dict]:
+    """The shipped variant networks of ``scene`` that ``hybridmpm bench``
+    compares with the shipped model (paper Fig. 5 a-c): each a dict with
+    ``name``, ``role`` ("full": r_p = r_t = 1; "spatial": r_p < 1, r_t = 1;
+    "temporal": r_p = 1, r_t > 1; "size": another network size) and ``path``.
+    Empty if none was trained for the scene (``variants/index.json``; cards in
+    ``variants/README.md``)."""
+    root = resources.files("hybridmpm.models").joinpath("variants")
+    index = root.joinpath("index.json")
+    if not index.is_file():
+        return []
+    out = []
+    for v in json.loads(index.read_text()).get(scene, []):
+        out.append({"name": v["name"], "role": v["role"], "path": Path(str(root.joinpath(v["file"])))})
+    return out
+
+
+__all__ = ["shipped_model", "shipped_models", "variant_models"]

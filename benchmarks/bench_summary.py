@@ -1,0 +1,67 @@
+"""One table over every scene benchmarked by ``hybridmpm bench`` (docs/benchmarks.md).
+
+    python benchmarks/bench_summary.py benchmarks/results/bench > benchmarks/results/bench/summary.md
+
+Reads ``DIR/*/results.csv``; per scene and method the means over seeds; the
+Pareto front recomputed from them (:func:`hybridmpm.bench.pareto_front`).
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from hybridmpm.bench import pareto_front
+
+
+def scene_rows(path: Path) -> list[dict]:
+    with open(path) as f:
+        cells = list(csv.DictReader(f))
+    by: dict[str, list[dict]] = defaultdict(list)
+    for c in cells:
+        by[c["method"]].append(c)
+    rows = []
+    for key, cs in by.items():
+        r = {"key": key, "label": cs[0]["label"], "kind": cs[0]["kind"], "role": cs[0]["role"], "seeds": len(cs), "frames": cs[0]["frames"]}
+        for k in ("error_mean", "error_last", "ms_mean", "particles", "mpm_share"):
+            r[k] = float(np.mean([float(c[k]) for c in cs]))
+        rows.append(r)
+    for i in pareto_front([(r["ms_mean"], r["error_mean"]) for r in rows]):
+        rows[i]["pareto"] = True
+    return rows
+
+
+def main(argv: list[str]) -> int:
+    root = Path(argv[0] if argv else "benchmarks/results/bench")
+    dirs = sorted(d for d in root.iterdir() if (d / "results.csv").is_file())
+    out = [
+        "| scene | seeds × frames | MPM full ms/frame | MPM r_p error / ms | neural (shipped) error / ms | neural r_p = r_t = 1 error / ms | hybrid r_c = 0.8 error / ms (MPM share) | Pareto front (fastest first) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for d in dirs:
+        rows = scene_rows(d / "results.csv")
+        k = {r["key"]: r for r in rows}
+
+        def cell(key: str) -> str:
+            r = k.get(key)
+            return "–" if r is None else f"{r['error_mean']:.3f} / {r['ms_mean']:.2f}"
+
+        full = next((r for r in rows if r["role"] == "full"), None)
+        hyb = k.get("hybrid_rc0.8")
+        hyb_cell = "–" if hyb is None else f"{cell('hybrid_rc0.8')} ({100 * hyb['mpm_share']:.0f}%)"
+        front = sorted((r for r in rows if r.get("pareto")), key=lambda r: r["ms_mean"])
+        out.append(
+            f"| {d.name} | {k['mpm_full']['seeds']} × {k['mpm_full']['frames']} | {k['mpm_full']['ms_mean']:.2f} | {cell('mpm_rp')} | {cell('neural')} | "
+            f"{'–' if full is None else cell(full['key'])} | "
+            f"{hyb_cell} | {'; '.join(r['label'] for r in front)} |"
+        )
+    print("\n".join(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,114 @@
+"""The methods ``hybridmpm bench`` compares (paper Fig. 5, Fig. 8, Table 2).
+
+A :class:`Method` is one configuration of a solver: MPM at full resolution
+(the reference), MPM at ``r_p``, a neural model alone, or the hybrid at a
+threshold ``r_c``. :func:`methods_for` lists those that exist for a scene:
+the neural variants (full resolution ``r_p = r_t = 1``, spatial-only,
+temporal-only) only where a model was trained for them
+(:func:`hybridmpm.models.variant_models`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from hybridmpm.errors import InvalidInputError
+
+#: Hybrid thresholds of the sweep (paper Table 2).
+R_C_SWEEP = tuple(round(0.1 * i, 1) for i in range(10))
+
+#: Method kinds.
+KINDS = ("mpm", "neural", "hybrid")
+
+#: Neural roles by resolution: (r_p == 1, r_t == 1) -> role.
+_ROLE = {(True, True): "full", (False, True): "spatial", (True, False): "temporal", (False, False): "lowres"}
+ROLE_LABEL = {
+    "full": "neural r_p = r_t = 1",
+    "spatial": "neural spatial-only",
+    "temporal": "neural temporal-only",
+    "lowres": "neural",
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """One benchmarked configuration.
+
+    ``key`` unique id (file names, CSV); ``kind`` "mpm", "neural" or
+    "hybrid"; ``model`` the ONNX file (neural and hybrid) or None; ``r_p``
+    spatial and ``r_t`` temporal downsampling; ``r_c`` the hybrid threshold
+    (None otherwise); ``role`` "reference", "mpm_rp", "full", "spatial",
+    "temporal", "lowres" (the shipped model), "size" (another network size)
+    or "hybrid"; ``params`` network parameters (0 for MPM).
+    """
+
+    key: str
+    kind: str
+    label: str
+    r_p: float = 1.0
+    r_t: int = 1
+    r_c: float | None = None
+    model: str | None = None
+    role: str = "reference"
+    params: int = 0
+
+    def config(self) -> dict[str, Any]:
+        """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
+        return asdict(self)
+
+
+def neural_role(r_p: float, r_t: int) -> str:
+    """"full", "spatial", "temporal" or "lowres" for a model's resolution."""
+    return _ROLE[(r_p >= 1.0, r_t == 1)]
+
+
+def _model_info(path: Path) -> tuple[float, int, int]:
+    from hybridmpm.neural import NeuralModel
+
+    m = NeuralModel(path)
+    params = int(m.meta.get("parameters", m.meta.get("params", 0)) or 0)
+    return m.r_p, m.r_t, params
+
+
+def methods_for(
+    scene: str,
+    *,
+    r_cs: tuple[float, ...] = R_C_SWEEP,
+    model: str | Path | None = None,
+    variants: bool = True,
+    extra_models: tuple[str | Path, ...] = (),
+) -> list[Method]:
+    """The methods of a benchmark of registered scene ``scene``.
+
+    ``model`` the hybrid's network (default: the shipped model of the scene);
+    its ``r_p`` is the resolution of "MPM at r_p". ``variants`` adds the
+    shipped variants of the scene (:func:`hybridmpm.models.variant_models`),
+    ``extra_models`` more ONNX files, each run alone. Raises
+    :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
+    """
+    from hybridmpm.models import shipped_model, variant_models
+
+    for r in r_cs:
+        if not (0.0 <= float(r) <= 1.0):
+            raise InvalidInputError(f"r_c: thresholds must lie in [0, 1], got {r!r}", "r_c")
+    main = Path(model) if model is not None else shipped_model(scene)
+    r_p, r_t, params = _model_info(main)
+    out = [
+        Method("mpm_full", "mpm", "MPM full resolution", 1.0, 1, role="reference"),
+        Method("mpm_rp", "mpm", f"MPM r_p = {r_p:.3g}", r_p, 1, role="mpm_rp"),
+    ]
+    models: list[tuple[str, Path, str]] = []
+    if variants:
+        models += [(v["name"], v["path"], v["role"]) for v in variant_models(scene)]
+    models += [(Path(p).stem, Path(p), "") for p in extra_models]
+    for name, path, role in models:
+        vr_p, vr_t, vparams = _model_info(path)
+        role = role or neural_role(vr_p, vr_t)
+        label = ROLE_LABEL.get(role, f"neural {name}") if role != "size" else f"neural {name}"
+        out.append(Method(f"neural_{name}", "neural", f"{label} ({name})", vr_p, vr_t, model=str(path), role=role, params=vparams))
+    out.append(Method("neural", "neural", f"neural r_p = {r_p:.3g}, r_t = {r_t} (shipped)", r_p, r_t, model=str(main), role="lowres", params=params))
+    for r in r_cs:
+        out.append(Method(f"hybrid_rc{float(r):.1f}", "hybrid", f"hybrid r_c = {float(r):.1f}", r_p, r_t, float(r), str(main), "hybrid", params))
+    return out

@@ -1,0 +1,232 @@
+"""Tables, charts and the report of a benchmark run (paper Fig. 5, Fig. 7,
+Table 2): ``results.csv``, ``threshold_sweep.csv``, ``pareto.png|svg``,
+``error_trajectory.png`` and ``report.md``."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from hybridmpm.bench.methods import Method
+
+#: Columns of ``results.csv`` (one row per method × seed).
+RESULT_COLUMNS = (
+    "scene", "method", "label", "kind", "role", "seed", "r_p", "r_t", "r_c", "params", "model", "particles", "frames",
+    "frames_done", "failure", "error_mean", "error_last", "ms_median", "ms_p95", "ms_mean", "mpm_share", "switches",
+    "substeps_per_frame", "mflop_per_frame", "warmup_frames", "mpm_threads", "nn_threads", "machine", "cores", "hybridmpm", "numpy", "onnxruntime", "python", "commit",
+)  # fmt: skip
+#: Columns of ``threshold_sweep.csv`` (one row per hybrid threshold, means over seeds).
+SWEEP_COLUMNS = ("r_c", "error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "seeds")
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the Pareto-optimal points when both coordinates are to be
+    minimised (latency, error): a point is on the front if no other point is
+    at least as good in both and strictly better in one. Points with a
+    non-finite coordinate are never on it. Returned in order of latency."""
+    pts = [(float(x), float(y)) for x, y in points]
+    front = []
+    for i, (x, y) in enumerate(pts):
+        if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        dominated = any(
+            (x2 <= x and y2 <= y and (x2 < x or y2 < y)) for j, (x2, y2) in enumerate(pts) if j != i and math.isfinite(x2) and math.isfinite(y2)
+        )
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: (pts[i][0], pts[i][1]))
+
+
+def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per method: the method's configuration and the means over its
+    seeds of errors, latencies, MPM share and switches, plus ``failures``
+    (seeds whose rollout broke off) and ``pareto`` (on the front or not)."""
+    rows = []
+    for m in methods:
+        cs = [c for c in cells if c["method"] == m.key]
+        if not cs:
+            continue
+        row: dict[str, Any] = {**m.config(), "seeds": len(cs), "particles": float(np.mean([c["particles"] for c in cs]))}
+        for k in ("error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "substeps_per_frame", "mflop_per_frame"):
+            row[k] = float(np.mean([c.get(k, float("nan")) for c in cs]))
+        row["failures"] = sum(1 for c in cs if c["failure"])
+        rows.append(row)
+    front = set(pareto_front([(r["ms_mean"], r["error_mean"]) for r in rows]))
+    for i, r in enumerate(rows):
+        r["pareto"] = i in front
+    return rows
+
+
+def write_results_csv(path: Path, scene: str, frames: int, settings: dict[str, Any], env: dict[str, Any], methods: list[Method], cells: list[dict[str, Any]]) -> None:
+    by_key = {m.key: m for m in methods}
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
+        w.writeheader()
+        for c in cells:
+            m = by_key[c["method"]]
+            row = {**m.config(), **{k: v for k, v in c.items() if k != "series"}, **env}
+            row.update(scene=scene, method=m.key, frames=frames, warmup_frames=settings["warmup"], mpm_threads=settings["mpm_threads"], nn_threads=settings["nn_threads"])
+            row["failure"] = c["failure"] or ""
+            row["r_c"] = "" if m.r_c is None else m.r_c
+            row["model"] = Path(m.model).name if m.model else ""
+            w.writerow({k: row.get(k, "") for k in RESULT_COLUMNS})
+
+
+def sweep_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The hybrid rows of :func:`aggregate` as ``threshold_sweep.csv`` rows, by r_c."""
+    hyb = sorted((r for r in rows if r["kind"] == "hybrid"), key=lambda r: r["r_c"])
+    return [{k: r[k] for k in SWEEP_COLUMNS} for r in hyb]
+
+
+def write_sweep_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=SWEEP_COLUMNS)
+        w.writeheader()
+        for r in sweep_rows(rows):
+            w.writerow(r)
+
+
+_STYLE = {
+    "reference": ("*", "black"),
+    "mpm_rp": ("s", "tab:gray"),
+    "lowres": ("^", "tab:red"),
+    "full": ("v", "tab:purple"),
+    "spatial": ("<", "tab:brown"),
+    "temporal": (">", "tab:pink"),
+    "size": ("D", "tab:olive"),
+}
+
+
+def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
+    """Error (y) against mean latency per frame (x, log): one marker per method,
+    the hybrid thresholds joined as a curve, the Pareto front highlighted."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.0), dpi=110)
+    front = [r for r in rows if r["pareto"]]
+    front.sort(key=lambda r: r["ms_mean"])
+    if front:
+        ax.plot([r["ms_mean"] for r in front], [r["error_mean"] for r in front], "-", color="gold", lw=7, alpha=0.45, zorder=1, label="Pareto front", drawstyle="steps-post")
+    hyb = sorted((r for r in rows if r["kind"] == "hybrid"), key=lambda r: r["r_c"])
+    if hyb:
+        ax.plot([r["ms_mean"] for r in hyb], [r["error_mean"] for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9")
+        for r in hyb:
+            ax.annotate(f"{r['r_c']:.1f}", (r["ms_mean"], r["error_mean"]), textcoords="offset points", xytext=(4, 3), fontsize=7, color="tab:blue")
+    for r in rows:
+        if r["kind"] == "hybrid":
+            continue
+        marker, color = _STYLE.get(r["role"], ("o", "tab:green"))
+        ax.plot(r["ms_mean"], r["error_mean"], marker, color=color, ms=10 if marker == "*" else 8, zorder=4, label=r["label"], ls="none")
+    for r in front:
+        ax.plot(r["ms_mean"], r["error_mean"], "o", mfc="none", mec="darkorange", ms=14, mew=1.5, zorder=5)
+    ax.set_xscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.tick_params(axis="x", which="minor", labelsize=7)
+    ax.set_xlabel("latency per frame [ms] (mean over frames after warm-up, mean over seeds)")
+    ax.set_ylabel("grid-mass error (mean over the rollout)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path_png)
+    fig.savefig(path_png.with_suffix(".svg"))
+    plt.close(fig)
+
+
+def plot_error_trajectory(path: Path, cells: dict[str, dict[str, Any]], labels: dict[str, str], dt_frame: float, title: str) -> None:
+    """Error over time for the given cells (one seed): neural, MPM at r_p and
+    hybrid; the frames the hybrid ran on MPM shaded (paper Fig. 7)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 3.8), dpi=110)
+    colors = {"neural": "tab:red", "mpm_rp": "tab:gray"}
+    for key, c in cells.items():
+        t = np.asarray(c["series"]["frame"]) * dt_frame
+        e = np.asarray(c["series"]["error"])
+        color = colors.get(key, "tab:blue")
+        ax.plot(t, e, "-", color=color, lw=1.4, label=f"{labels[key]}: mean {np.mean(e):.3f}, {c['ms_mean']:.2f} ms/frame")
+        if key.startswith("hybrid"):
+            neural = np.asarray(c["series"]["neural"], bool)
+            step = (t[1] - t[0]) if len(t) > 1 else dt_frame
+            first = True
+            start = None
+            for i, on_nn in enumerate(list(neural) + [True]):
+                if not on_nn and start is None:
+                    start = i
+                elif on_nn and start is not None:
+                    ax.axvspan(t[start] - step, t[i - 1], color="gold", alpha=0.25, lw=0, label="hybrid on MPM" if first else None)
+                    first = False
+                    start = None
+    ax.set_xlabel("simulated time [s]")
+    ax.set_ylabel("grid-mass error")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _fmt(x: float, nd: int = 3) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.{nd}f}"
+
+
+def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], seeds: Sequence[int], rows: list[dict[str, Any]], command: str, files: dict[str, str]) -> str:
+    """``report.md``: settings, machine, the method table, the Table-2-like
+    threshold sweep, the charts and the methods on the Pareto front."""
+    front = [r["label"] for r in sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_mean"])]
+    lines = [
+        f"# Benchmark: {scene}",
+        "",
+        f"Command: `{command}`  ",
+        f"Seeds (held-out initial conditions): {', '.join(map(str, seeds))}; {settings['frames']} frames per rollout; "
+        f"latency excludes the first {settings['warmup']} frames and start-up.  ",
+        f"Machine: {env['machine']}, {env['cores']} cores; MPM threads {settings['mpm_threads'] or 'all'}, onnxruntime threads {settings['nn_threads']}.  ",
+        f"Versions: hybridmpm {env['hybridmpm']} (commit {env['commit']}), numpy {env['numpy']}, onnxruntime {env['onnxruntime']}, Python {env['python']}.",
+        "",
+        "Error: grid-mass error against full-resolution MPM from the same initial condition (DESIGN.md), mean over the "
+        "rollout and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean.",
+        "",
+        "| method | r_p | r_t | r_c | particles | error mean | error last | ms/frame mean | median | p95 | MPM share | MPM substeps/frame | network MFLOP/frame | Pareto |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        err = "reference" if r["role"] == "reference" else _fmt(r["error_mean"])
+        fail = f" ({r['failures']} broke off)" if r["failures"] else ""
+        lines.append(
+            f"| {r['label']}{fail} | {r['r_p']:.3g} | {r['r_t']} | {'' if r['r_c'] is None else format(r['r_c'], '.1f')} | {r['particles']:.0f} | {err} | "
+            f"{'–' if r['role'] == 'reference' else _fmt(r['error_last'])} | {_fmt(r['ms_mean'], 2)} | {_fmt(r['ms_median'], 2)} | "
+            f"{_fmt(r['ms_p95'], 2)} | {100 * r['mpm_share']:.0f}% | {_fmt(r['substeps_per_frame'], 1) if r['kind'] == 'mpm' else ''} | "
+            f"{_fmt(r['mflop_per_frame'], 1) if r['kind'] != 'mpm' else ''} | {'**yes**' if r['pareto'] else ''} |"
+        )
+    sw = sweep_rows(rows)
+    if sw:
+        lines += [
+            "",
+            "## Hybrid threshold sweep (paper Table 2)",
+            "",
+            "| threshold r_c | " + " | ".join(f"{r['r_c']:.1f}" for r in sw) + " |",
+            "|---|" + "---|" * len(sw),
+            "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in sw) + " |",
+            "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in sw) + " |",
+            "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in sw) + " |",
+        ]
+    lines += ["", "## Charts", ""]
+    for name, cap in files.items():
+        lines.append(f"![{cap}]({name})")
+        lines.append("")
+    lines += ["## Pareto front", "", "On the front (fastest first): " + "; ".join(front) + ".", ""]
+    return "\n".join(lines)

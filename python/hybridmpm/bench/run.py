@@ -1,0 +1,300 @@
+"""Running the benchmark: every method × seed from the same held-out initial
+condition, per-frame latency and grid-mass error against full-resolution MPM.
+
+One *cell* is one method on one seed. Cells are written as JSON under
+``OUT/cells/`` as they finish; a rerun skips finished cells (resumable), and
+the full-resolution reference positions of each seed are cached in
+``OUT/cells/ref_seed<S>.npz``.
+
+Latency (paper App. C): wall time of each step (a step covers ``r_t``
+frames; MPM methods step one frame), divided by ``r_t``, for the frames after
+the first ``warmup`` frames (the network's MPM history frames and
+onnxruntime's first runs). Start-up (scene build, r_p clustering, model
+load) is never timed. Reported: median, p95 and mean over frames; the mean
+is the throughput a user sees and is what the charts plot.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from hybridmpm.bench.methods import Method
+from hybridmpm.errors import InvalidInputError, SimulationError
+
+#: Held-out seeds: trajectory seeds of generated datasets are 31-bit hashes
+#: (:func:`hybridmpm.data.generate.trajectory_seed`), so small integers never
+#: coincide with a training trajectory. Test seeds start at 1000, validation
+#: seeds (``hybridmpm tune``) at 2000.
+TEST_SEED0 = 1000
+VALID_SEED0 = 2000
+
+#: Frames at the start of every rollout that are not timed.
+WARMUP_FRAMES = 24
+
+
+@dataclass
+class BenchConfig:
+    """Settings of one benchmark run (stored in ``OUT/bench.json``; a resumed
+    run must match them).
+
+    ``scene`` registered scene; ``seeds`` initial conditions; ``frames``
+    frames per rollout; ``warmup`` untimed frames; ``mpm_threads`` MPM threads
+    (0 = all cores); ``nn_threads`` onnxruntime threads.
+    """
+
+    scene: str
+    seeds: tuple[int, ...]
+    frames: int
+    warmup: int = WARMUP_FRAMES
+    mpm_threads: int = 0
+    nn_threads: int = 1
+
+    def validate(self) -> BenchConfig:
+        if not self.seeds:
+            raise InvalidInputError("seeds: at least one seed", "seeds")
+        if not isinstance(self.frames, int) or self.frames < 2:
+            raise InvalidInputError(f"frames: must be an integer >= 2, got {self.frames!r}", "frames")
+        if not isinstance(self.warmup, int) or not (0 <= self.warmup < self.frames):
+            raise InvalidInputError(f"warmup: must be an integer in [0, frames), got {self.warmup!r}", "warmup")
+        for name in ("mpm_threads", "nn_threads"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 0:
+                raise InvalidInputError(f"{name}: must be an integer >= 0, got {v!r}", name)
+        return self
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"scene": self.scene, "frames": self.frames, "warmup": self.warmup, "mpm_threads": self.mpm_threads, "nn_threads": self.nn_threads}
+
+
+def git_commit() -> str:
+    """The repository's HEAD commit (``unknown`` outside a git checkout)."""
+    try:
+        here = Path(__file__).resolve().parent
+        out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def environment() -> dict[str, Any]:
+    """Machine and versions recorded with every result row."""
+    import numpy
+    import onnxruntime
+
+    import hybridmpm
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "machine": f"{platform.machine()} {cpu}",
+        "cores": os.cpu_count() or 0,
+        "hybridmpm": hybridmpm.__version__,
+        "numpy": numpy.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "python": platform.python_version(),
+        "commit": git_commit(),
+    }
+
+
+def _latency(per_frame: np.ndarray) -> dict[str, float]:
+    if len(per_frame) == 0:
+        return {"ms_median": float("nan"), "ms_p95": float("nan"), "ms_mean": float("nan")}
+    ms = np.asarray(per_frame) * 1e3
+    return {"ms_median": float(np.median(ms)), "ms_p95": float(np.percentile(ms, 95)), "ms_mean": float(ms.mean())}
+
+
+def run_mpm(scene: Any, frames: int, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain MPM rollout of ``scene``: positions every frame float32
+    [frames + 1, N, D], wall seconds per frame [frames] and substeps per
+    frame [frames]. Raises :class:`SimulationError` if MPM fails."""
+    sim = scene.make_solver(num_threads=threads)
+    pos = np.empty((frames + 1, scene.num_particles, scene.dim), np.float32)
+    pos[0] = sim.positions
+    wall = np.empty(frames)
+    subs = np.empty(frames, np.int64)
+    for f in range(frames):
+        t0 = time.perf_counter()
+        st = sim.step_frame(scene.dt_frame)
+        wall[f] = time.perf_counter() - t0
+        subs[f] = int(st["substeps"])
+        pos[f + 1] = sim.positions
+    return pos, wall, subs
+
+
+def reference(cfg: BenchConfig, seed: int, cells: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """Full-resolution MPM positions of ``seed`` every frame [frames + 1, N, D]
+    (cached in ``cells/ref_seed<S>.npz``) and, when it was run now, the
+    ``mpm_full`` cell's timing (None when read from the cache)."""
+    from hybridmpm.scenes import make_scene
+
+    path = cells / f"ref_seed{seed}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            if int(z["frames"]) == cfg.frames:
+                return np.asarray(z["positions"]), None
+    scene = make_scene(cfg.scene, seed=seed)
+    pos, wall, subs = run_mpm(scene, cfg.frames, cfg.mpm_threads)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, positions=pos, frames=np.int64(cfg.frames))
+    tmp.replace(path)
+    return pos, {"wall": wall, "substeps": subs, "particles": scene.num_particles}
+
+
+def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> dict[str, Any]:
+    """One method on one seed: the cell's record (errors per stored frame,
+    solver per stored frame, latency, MPM share, switches, failure)."""
+    from hybridmpm.bench.cost import gnn_flops
+    from hybridmpm.data.resolution import downsample_scene
+    from hybridmpm.hybrid import NEURAL, HybridSimulator
+    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.scenes import make_scene
+
+    scene = make_scene(cfg.scene, seed=seed)
+    n_grid = scene.params.resolved_n_grid()
+    failure = None
+    if method.kind == "mpm":
+        low = downsample_scene(scene, method.r_p, seed=seed).scene if method.r_p < 1.0 else scene
+        try:
+            pos, wall, subs = run_mpm(low, cfg.frames, cfg.mpm_threads)
+        except SimulationError as e:
+            raise SimulationError(f"{method.key} seed {seed}: {e}") from e
+        frames_of = np.arange(len(pos))
+        per_frame = wall[cfg.warmup :]
+        solver = np.zeros(len(pos), np.int8)
+        particles, switches, share = low.num_particles, 0, 1.0
+        substeps, mflop = float(subs.mean()), 0.0
+    else:
+        r_c = 0.0 if method.kind == "neural" else float(method.r_c or 0.0)
+        sim = HybridSimulator(
+            scene, method.model, r_c=r_c, seed=seed, detect_failures=method.kind != "neural", mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads
+        )
+        out = [np.asarray(sim.initial_frame().positions[: sim.n_fluid])]
+        tags, secs = [False], []  # the initial condition is MPM's
+        try:
+            for fr in sim.step(cfg.frames):
+                p = np.asarray(fr.positions[: sim.n_fluid])
+                if not np.isfinite(p).all():
+                    failure = "nan"
+                    break
+                out.append(p)
+                tags.append(fr.solver == NEURAL)
+                secs.append((fr.frame, fr.seconds))
+        except SimulationError:
+            failure = "mpm"
+        pos = np.stack(out)
+        frames_of = np.arange(len(pos)) * sim.r_t
+        per_frame = np.array([s / sim.r_t for f, s in secs if f > cfg.warmup])
+        per_frame = np.repeat(per_frame, sim.r_t)
+        solver = np.array(tags, np.int8)
+        particles, switches = sim.n_fluid, sim.stats.switches
+        steps = sim.stats.steps
+        share = steps["mpm"] / max(1, steps["mpm"] + steps[NEURAL])
+        # the network's arithmetic per frame on the initial graph (nodes: fluid and boundary particles)
+        meta = sim.model.meta
+        nodes = len(sim.particle_type)
+        flops = gnn_flops(int(meta["latent"]), int(meta["layers"]), sim.scene.dim, nodes, int(round(sim._degree0 * nodes)), sim.t_in)
+        substeps, mflop = float("nan"), flops / sim.r_t / 1e6
+    keep = frames_of <= cfg.frames
+    pos, frames_of, solver = pos[keep], frames_of[keep], solver[keep]
+    err = grid_mass_error(pos, ref[frames_of], n_grid)
+    return {
+        "method": method.key, "seed": int(seed), "particles": int(particles), "frames_done": int(frames_of[-1]),
+        "failure": failure, "error_mean": float(err.mean()), "error_last": float(err[-1]),
+        **_latency(per_frame), "mpm_share": float(share), "switches": int(switches),
+        "substeps_per_frame": substeps, "mflop_per_frame": mflop,
+        "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": solver.tolist()},
+    }  # fmt: skip
+
+
+def _reference_record(cfg: BenchConfig, seed: int, particles: int, wall: np.ndarray, subs: np.ndarray) -> dict[str, Any]:
+    """The ``mpm_full`` cell: the reference itself (error 0 by definition) and its timing."""
+    n = cfg.frames + 1
+    return {
+        "method": "mpm_full", "seed": int(seed), "particles": int(particles), "frames_done": cfg.frames, "failure": None,
+        "error_mean": 0.0, "error_last": 0.0, **_latency(wall[cfg.warmup :]), "mpm_share": 1.0, "switches": 0,
+        "substeps_per_frame": float(np.mean(subs)), "mflop_per_frame": 0.0,
+        "series": {"frame": list(range(n)), "error": [0.0] * n, "neural": [0] * n},
+    }  # fmt: skip
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj))
+    tmp.replace(path)
+
+
+def run_bench(
+    cfg: BenchConfig,
+    methods: list[Method],
+    out: str | Path,
+    progress: bool = True,
+    on_cell: Callable[[dict[str, Any]], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run (or resume) every method × seed; returns the cell records in
+    (method, seed) order. Writes ``out/bench.json`` and ``out/cells/*.json``.
+
+    Raises :class:`InvalidInputError` (field ``out``) if ``out`` holds a
+    benchmark made with other settings (frames, warm-up, threads, scene).
+    """
+    from tqdm import tqdm
+
+    cfg.validate()
+    out = Path(out)
+    cells = out / "cells"
+    cells.mkdir(parents=True, exist_ok=True)
+    meta_path = out / "bench.json"
+    if meta_path.is_file():
+        old = json.loads(meta_path.read_text()).get("settings", {})
+        if old and old != cfg.fingerprint():
+            diff = ", ".join(f"{k} {old.get(k)!r} → {v!r}" for k, v in cfg.fingerprint().items() if old.get(k) != v)
+            raise InvalidInputError(f"out: {out} holds a benchmark with other settings ({diff}); use another --out or delete it", "out")
+    env = environment()
+    _write_json(meta_path, {"settings": cfg.fingerprint(), "environment": env})
+    keys = [m.key for m in methods]
+    if len(set(keys)) != len(keys):
+        raise InvalidInputError("methods: duplicate method keys", "methods")
+    todo = [(m, s) for s in cfg.seeds for m in methods if not (cells / f"{m.key}_seed{s}.json").is_file()]
+    bar = tqdm(total=len(methods) * len(cfg.seeds), initial=len(methods) * len(cfg.seeds) - len(todo), desc=f"bench {cfg.scene}", unit="cell", disable=not progress)
+    refs: dict[int, np.ndarray] = {}
+    for m, s in todo:
+        bar.set_postfix_str(f"{m.key} seed {s}", refresh=True)
+        if s not in refs:
+            refs.clear()  # one seed's reference in memory at a time
+            refs[s], timing = reference(cfg, s, cells)
+            if timing is not None and not (cells / f"mpm_full_seed{s}.json").is_file():
+                _write_json(cells / f"mpm_full_seed{s}.json", _reference_record(cfg, s, timing["particles"], timing["wall"], timing["substeps"]))
+                if m.key == "mpm_full":
+                    bar.update()
+                    continue
+        path = cells / f"{m.key}_seed{s}.json"
+        if path.is_file():
+            continue
+        if m.key == "mpm_full":  # reference cached but its cell lost: time it again
+            from hybridmpm.scenes import make_scene
+
+            scene = make_scene(cfg.scene, seed=s)
+            _, wall, subs = run_mpm(scene, cfg.frames, cfg.mpm_threads)
+            rec = _reference_record(cfg, s, scene.num_particles, wall, subs)
+        else:
+            rec = run_cell(m, cfg, s, refs[s])
+        _write_json(path, rec)
+        if on_cell is not None:
+            on_cell(rec)
+        bar.update()
+    bar.close()
+    return [json.loads((cells / f"{m.key}_seed{s}.json").read_text()) for m in methods for s in cfg.seeds]

@@ -1,0 +1,95 @@
+"""``hybridmpm tune``: the cheapest configuration within an error budget
+("model no more than a scene needs", made automatic).
+
+Runs the benchmark on *validation* seeds (not the held-out test seeds that
+``hybridmpm bench`` reports on), then picks among every benchmarked
+configuration (MPM at full resolution or at ``r_p``, each neural model alone,
+the hybrid at every threshold ``r_c``) the one with the lowest mean latency
+per frame whose error stays within the budget. Full-resolution MPM is the
+reference (error 0), so some configuration always qualifies. The choice is
+written as a JSON config that ``hybridmpm simulate SCENE --solver auto``
+reads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+from hybridmpm.errors import InvalidInputError
+
+#: Default location of a tuned configuration, relative to the working directory.
+TUNED_DIR = Path("tuned")
+#: Keys of a configuration (the chosen method) in the tuned file.
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params")
+
+
+def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean") -> dict[str, Any]:
+    """The row with the lowest ``ms_mean`` among ``rows`` whose ``metric``
+    ("error_mean" or "error_last") is ≤ ``budget`` and whose rollouts never
+    broke off (ties: the lower error). Rows are :func:`~hybridmpm.bench.report.aggregate`
+    rows (any dicts with those keys). Raises :class:`InvalidInputError`
+    (``error_budget``) for a negative or non-finite budget or when no row
+    qualifies, (``metric``) for another metric."""
+    if metric not in ("error_mean", "error_last"):
+        raise InvalidInputError(f"metric: must be 'error_mean' or 'error_last', got {metric!r}", "metric")
+    if not (isinstance(budget, (int, float)) and math.isfinite(budget) and budget >= 0):
+        raise InvalidInputError(f"error_budget: must be a finite number >= 0, got {budget!r}", "error_budget")
+    ok = [r for r in rows if math.isfinite(r[metric]) and r[metric] <= budget and not r.get("failures") and math.isfinite(r["ms_mean"])]
+    if not ok:
+        best = min((r[metric] for r in rows if math.isfinite(r[metric])), default=float("nan"))
+        raise InvalidInputError(f"error_budget: no configuration has {metric} <= {budget:g} (the lowest is {best:.4g})", "error_budget")
+    return min(ok, key=lambda r: (r["ms_mean"], r[metric]))
+
+
+def tuned_path(scene: str, path: str | Path | None = None) -> Path:
+    """Where the tuned configuration of ``scene`` lives (``tuned/SCENE.json`` by default)."""
+    return Path(path) if path is not None else TUNED_DIR / f"{scene}.json"
+
+
+def write_tuned(path: Path, scene: str, budget: float, metric: str, chosen: dict[str, Any], rows: list[dict[str, Any]], seeds: list[int], settings: dict[str, Any]) -> dict[str, Any]:
+    """Write the tuned config (the chosen configuration, what it measured, and
+    every candidate) as JSON; returns it."""
+    doc = {
+        "scene": scene,
+        "error_budget": float(budget),
+        "metric": metric,
+        "config": {k: chosen.get(k) for k in CONFIG_KEYS},
+        "measured": {k: chosen[k] for k in ("error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share")},
+        "validation_seeds": list(seeds),
+        "settings": settings,
+        "candidates": [
+            {k: r.get(k) for k in ("key", "label", "error_mean", "error_last", "ms_mean", "failures")} for r in sorted(rows, key=lambda r: r["ms_mean"])
+        ],
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2))
+    tmp.replace(path)
+    return doc
+
+
+def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
+    """Read the tuned configuration of ``scene``. Raises
+    :class:`InvalidInputError` (field ``tuned``) if the file is missing,
+    malformed, or made for another scene."""
+    p = tuned_path(scene, path)
+    if not p.is_file():
+        raise InvalidInputError(f"tuned: no tuned configuration at {p}; run `hybridmpm tune {scene} --error-budget E` first", "tuned")
+    try:
+        doc = json.loads(p.read_text())
+        cfg = doc["config"]
+        kind = cfg["kind"]
+    except (ValueError, KeyError, TypeError) as e:
+        raise InvalidInputError(f"tuned: {p} is not a tuned configuration ({e})", "tuned") from e
+    if doc.get("scene") != scene:
+        raise InvalidInputError(f"tuned: {p} was tuned for {doc.get('scene')!r}, not {scene!r}", "tuned")
+    if kind not in ("mpm", "neural", "hybrid"):
+        raise InvalidInputError(f"tuned: {p} has unknown solver kind {kind!r}", "tuned")
+    if kind != "mpm" and not (cfg.get("model") and Path(cfg["model"]).is_file()):
+        raise InvalidInputError(f"tuned: the model {cfg.get('model')!r} of {p} does not exist", "tuned")
+    return dict(doc)

@@ -1,0 +1,273 @@
+"""Benchmarks and tuning (issue 6): the Pareto front on hand-made points, the
+cheapest configuration within a budget on a hand-made table, a tiny bench
+that must produce every file with the right columns (and whose reference and
+MPM-at-r_p errors are checked against the dataset generator's independent
+rollout), resuming, and ``simulate --solver auto``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridmpm.bench import VALID_SEED0, bench, choose, load_tuned, methods_for, pareto_front
+from hybridmpm.bench.report import RESULT_COLUMNS, SWEEP_COLUMNS
+from hybridmpm.bench.tune import write_tuned
+from hybridmpm.cli import main
+from hybridmpm.data.generate import simulate_trajectory, trajectory_seed
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.metrics import grid_mass_error
+
+# ------------------------------------------------------------------ Pareto front
+
+
+def test_pareto_front_on_hand_made_points():
+    pts = [
+        (1.0, 5.0),  # 0: fastest -> front
+        (2.0, 3.0),  # 1: front
+        (2.5, 3.0),  # 2: dominated by 1 (slower, same error)
+        (3.0, 4.0),  # 3: dominated by 1
+        (4.0, 1.0),  # 4: front
+        (10.0, 0.0),  # 5: exact -> front
+        (11.0, 0.0),  # 6: dominated by 5
+        (float("nan"), 0.1),  # 7: never on the front
+    ]
+    assert pareto_front(pts) == [0, 1, 4, 5]
+
+
+def test_pareto_front_ties_and_brute_force():
+    # identical points do not dominate each other: both stay
+    assert pareto_front([(1.0, 1.0), (1.0, 1.0), (2.0, 2.0)]) == [0, 1]
+    rng = np.random.default_rng(0)
+    pts = [tuple(p) for p in rng.uniform(0, 1, size=(40, 2))]
+    front = set(pareto_front(pts))
+    for i, (x, y) in enumerate(pts):  # brute force, the definition
+        dominated = any(x2 <= x and y2 <= y and (x2, y2) != (x, y) for x2, y2 in pts)
+        assert (i in front) == (not dominated)
+
+
+# ------------------------------------------------------------------ tune
+
+
+def _row(key: str, err: float, ms: float, **kw: object) -> dict:
+    r = {"key": key, "kind": "hybrid", "label": key, "r_p": 0.5714, "r_t": 4, "r_c": 0.8, "model": None, "role": "hybrid", "params": 7362}
+    r.update(error_mean=err, error_last=2 * err, ms_mean=ms, ms_median=ms, ms_p95=ms, mpm_share=0.5, failures=0)
+    r.update(kw)
+    return r
+
+
+def test_choose_returns_cheapest_within_budget():
+    rows = [
+        _row("mpm_full", 0.0, 4.0, kind="mpm"),
+        _row("mpm_rp", 0.3, 2.0, kind="mpm"),
+        _row("hybrid_rc0.8", 0.5, 1.5),
+        _row("neural", 0.9, 1.0, kind="neural"),
+        _row("broken", 0.1, 0.5, failures=1),  # cheapest and accurate, but a rollout broke off
+    ]
+    assert choose(rows, 1.0)["key"] == "neural"
+    assert choose(rows, 0.6)["key"] == "hybrid_rc0.8"
+    assert choose(rows, 0.3)["key"] == "mpm_rp"
+    assert choose(rows, 0.29)["key"] == "mpm_full"
+    assert choose(rows, 0.0)["key"] == "mpm_full"
+    assert choose(rows, 0.99, metric="error_last")["key"] == "mpm_rp"  # last = 2 x mean in _row: hybrid 1.0 > 0.99
+    with pytest.raises(InvalidInputError, match="error_budget"):
+        choose(rows, -0.1)
+    with pytest.raises(InvalidInputError, match="error_budget"):
+        choose(rows, float("nan"))
+    with pytest.raises(InvalidInputError, match="no configuration"):
+        choose([_row("neural", 0.9, 1.0)], 0.5)
+    with pytest.raises(InvalidInputError, match="metric"):
+        choose(rows, 1.0, metric="rmse")
+
+
+# ------------------------------------------------------------------ a tiny bench
+
+FRAMES = 32
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("bench") / "water2d"
+    res = bench("water2d", seeds=[1000], frames=FRAMES, out=out, r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
+    return {"out": out, "res": res}
+
+
+def test_bench_writes_every_file_with_the_right_columns(tiny: dict):
+    out: Path = tiny["out"]
+    for f in ("results.csv", "threshold_sweep.csv", "pareto.png", "pareto.svg", "error_trajectory.png", "report.md"):
+        assert (out / f).is_file() and (out / f).stat().st_size > 0, f
+    methods = methods_for("water2d", r_cs=(0.0, 0.8))
+    with open(out / "results.csv") as f:
+        rd = csv.DictReader(f)
+        assert tuple(rd.fieldnames or ()) == RESULT_COLUMNS
+        rows = list(rd)
+    assert [r["method"] for r in rows] == [m.key for m in methods]  # one row per method x seed
+    for r in rows:
+        assert r["scene"] == "water2d" and r["seed"] == "1000" and r["frames"] == str(FRAMES)
+        assert r["commit"] and r["onnxruntime"] and r["machine"] and r["mpm_threads"] == "1"
+        assert float(r["ms_median"]) > 0 and float(r["ms_p95"]) >= float(r["ms_median"])
+    with open(out / "threshold_sweep.csv") as f:
+        rd = csv.DictReader(f)
+        assert tuple(rd.fieldnames or ()) == SWEEP_COLUMNS
+        assert [float(r["r_c"]) for r in rd] == [0.0, 0.8]
+    report = (out / "report.md").read_text()
+    assert "![" in report and "pareto.png" in report and "## Pareto front" in report
+    assert "Table 2" in report
+
+
+def test_bench_errors_against_an_independent_reference(tiny: dict):
+    """The reference and MPM at r_p recomputed through the dataset generator
+    (another code path): the bench's errors must match."""
+    rows = {r["key"]: r for r in tiny["res"]["rows"]}
+    assert rows["mpm_full"]["error_mean"] == 0.0
+    ref = simulate_trajectory("water2d", 1000, FRAMES, num_threads=1)
+    n = int(ref["n_h"])
+    cached = np.load(tiny["out"] / "cells" / "ref_seed1000.npz")["positions"]
+    np.testing.assert_array_equal(cached, ref["positions"][:, :n])
+    low = simulate_trajectory("water2d", 1000, FRAMES, r_p=0.5714, num_threads=1)
+    nl = len(low["material"])
+    err = grid_mass_error(low["positions"][:, :nl], ref["positions"][:, :n], 128)
+    assert rows["mpm_rp"]["error_mean"] == pytest.approx(float(err.mean()), rel=1e-6)
+    assert rows["mpm_rp"]["error_last"] == pytest.approx(float(err[-1]), rel=1e-6)
+    assert 0.02 < rows["mpm_rp"]["error_mean"] < 0.6  # coarser MPM is close, not exact
+    # the exact reference is always on the front (nothing has lower error)
+    assert rows["mpm_full"]["pareto"]
+    # hybrid r_c = 0 is the network with the failure checks on: same rollout as the network alone unless it failed
+    if not rows["hybrid_rc0.0"]["switches"]:
+        assert rows["hybrid_rc0.0"]["error_mean"] == pytest.approx(rows["neural"]["error_mean"], rel=1e-6)
+
+
+def test_bench_resumes_without_rerunning_cells(tiny: dict, monkeypatch: pytest.MonkeyPatch):
+    import hybridmpm.bench.run as run
+
+    def boom(*a: object, **k: object) -> None:
+        raise AssertionError("a finished cell was rerun")
+
+    monkeypatch.setattr(run, "run_cell", boom)
+    monkeypatch.setattr(run, "run_mpm", boom)
+    res = bench("water2d", seeds=[1000], frames=FRAMES, out=tiny["out"], r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
+    assert [r["key"] for r in res["rows"]] == [r["key"] for r in tiny["res"]["rows"]]
+    with pytest.raises(InvalidInputError, match="out"):
+        bench("water2d", seeds=[1000], frames=FRAMES + 4, out=tiny["out"], r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
+
+
+def test_bench_rejects_bad_parameters(tmp_path: Path):
+    with pytest.raises(InvalidInputError, match="r_c"):
+        bench("water2d", seeds=[1000], frames=FRAMES, out=tmp_path, r_cs=(1.5,), progress=False)
+    with pytest.raises(InvalidInputError, match="frames"):
+        bench("water2d", seeds=[1000], frames=1, out=tmp_path, progress=False)
+    with pytest.raises(InvalidInputError, match="warmup"):
+        bench("water2d", seeds=[1000], frames=10, warmup=10, out=tmp_path, progress=False)
+    with pytest.raises(InvalidInputError, match="seeds"):
+        bench("water2d", seeds=[1000, 1000], frames=10, out=tmp_path, progress=False)
+
+
+def test_held_out_seeds_are_not_dataset_seeds():
+    seeds = {trajectory_seed(0, i) for i in range(2000)}
+    assert not seeds & set(range(1000, 1100)) and not seeds & set(range(VALID_SEED0, VALID_SEED0 + 100))
+
+
+# ------------------------------------------------------------------ tuned config and --solver auto
+
+
+def test_tuned_config_drives_simulate_auto(tiny: dict, tmp_path: Path):
+    rows = tiny["res"]["rows"]
+    chosen = choose(rows, 0.0)  # only the exact reference qualifies
+    assert chosen["key"] == "mpm_full"
+    # a budget above MPM at r_p's error picks something at least as fast
+    mid = choose(rows, next(r for r in rows if r["key"] == "mpm_rp")["error_mean"])
+    assert mid["ms_mean"] <= next(r for r in rows if r["key"] == "mpm_rp")["ms_mean"]
+    mpm_rp = next(r for r in rows if r["key"] == "mpm_rp")
+    path = tmp_path / "tuned.json"
+    write_tuned(path, "water2d", 1.0, "error_mean", mpm_rp, rows, [2000], {"frames": FRAMES})
+    doc = load_tuned("water2d", path)
+    assert doc["config"]["kind"] == "mpm" and doc["config"]["r_p"] == pytest.approx(0.5714)
+    out = tmp_path / "sim"
+    assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--seed", "1000", "--frames", "4", "--out", str(out), "--no-render", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["solver"] == "mpm" and summary["r_p"] == pytest.approx(0.5714)
+    assert summary["particles"] == rows[1]["particles"]  # MPM at r_p: the clustered particles
+    hyb = next(r for r in rows if r["key"] == "hybrid_rc0.8")
+    write_tuned(path, "water2d", 1.0, "error_mean", hyb, rows, [2000], {"frames": FRAMES})
+    assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--frames", "8", "--out", str(out), "--no-render", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["solver"] == "hybrid" and summary["r_c"] == pytest.approx(0.8) and summary["r_t"] == 4
+
+
+def test_load_tuned_errors(tmp_path: Path, capsys: pytest.CaptureFixture):
+    with pytest.raises(InvalidInputError, match="tuned"):
+        load_tuned("water2d", tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(InvalidInputError, match="tuned"):
+        load_tuned("water2d", bad)
+    bad.write_text(json.dumps({"scene": "sand2d", "config": {"kind": "mpm"}}))
+    with pytest.raises(InvalidInputError, match="sand2d"):
+        load_tuned("water2d", bad)
+    assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(tmp_path / "none.json"), "--frames", "2", "--quiet"]) == 2
+    assert "hybridmpm tune water2d" in capsys.readouterr().err
+
+
+def test_tune_cli_writes_the_cheapest_within_budget(tmp_path: Path):
+    """End to end on a tiny validation run: the written choice must be the
+    cheapest row of the work directory's own table within the budget."""
+    out = tmp_path / "tuned.json"
+    work = tmp_path / "work"
+    rc = main(["tune", "water2d", "--error-budget", "0.3", "--frames", "24", "--warmup", "4", "--seeds", "1", "--r-c", "0.8",
+               "--no-variants", "--threads", "1", "--out", str(out), "--work", str(work), "--quiet"])  # fmt: skip
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    with open(work / "results.csv") as f:
+        rows = [r for r in csv.DictReader(f)]
+    assert all(r["seed"] == str(VALID_SEED0) for r in rows)
+    ok = [r for r in rows if float(r["error_mean"]) <= 0.3 and not r["failure"]]
+    best = min(ok, key=lambda r: float(r["ms_mean"]))
+    assert doc["config"]["key"] == best["method"]
+    assert math.isclose(doc["measured"]["ms_mean"], float(best["ms_mean"]))
+    assert os.path.basename(str(doc["path"] if "path" in doc else out)) == "tuned.json"
+
+
+def test_taichi_peer_without_taichi_says_how_to_install(monkeypatch: pytest.MonkeyPatch):
+    import sys
+
+    from hybridmpm.bench.peer import taichi_peer
+    from hybridmpm.errors import HybridMpmError
+
+    monkeypatch.setitem(sys.modules, "taichi", None)  # import taichi -> ImportError
+    with pytest.raises(HybridMpmError, match=r"hybridmpm\[bench\]"):
+        taichi_peer("water2d", 1000, 10, 2)
+
+
+@pytest.mark.parametrize("latent,layers,dim", [(16, 2, 2), (32, 3, 3)])
+def test_gnn_flops_match_the_layers_torch_runs(latent: int, layers: int, dim: int):
+    """Brute force: count 2·in·out per row over every nn.Linear call of a forward pass."""
+    import torch  # the training extra, which the test setup installs
+    from hybridmpm.bench.cost import gnn_flops
+    from hybridmpm.neural.model import GnsConfig, GnsModel
+
+    n = 50
+    rng = np.random.default_rng(0)
+    cfg = GnsConfig(
+        dim=dim, latent=latent, layers=layers, radius=0.05, bounds=[[0.0, 1.0]] * dim, vel_mean=[0.0] * dim, vel_std=[1.0] * dim,
+        acc_mean=[0.0] * dim, acc_std=[1.0] * dim,
+    )  # fmt: skip
+    model = GnsModel(cfg)
+    pos = torch.tensor(rng.uniform(0.3, 0.7, size=(cfg.t_in, n, dim)), dtype=torch.float32)
+    s = torch.tensor(rng.integers(0, n, 317), dtype=torch.int64)
+    r = torch.tensor(rng.integers(0, n, 317), dtype=torch.int64)
+    counted = [0]
+
+    def hook(mod: torch.nn.Linear, inp: tuple, out: torch.Tensor) -> None:
+        counted[0] += 2 * mod.in_features * mod.out_features * int(np.prod(out.shape[:-1]))
+
+    for m in model.modules():
+        if isinstance(m, torch.nn.Linear):
+            m.register_forward_hook(hook)
+    with torch.no_grad():
+        model(pos, torch.full((n,), 5, dtype=torch.int64), s, r)
+    assert gnn_flops(latent, layers, dim, n, 317, t_in=cfg.t_in, embedding=cfg.embedding) == counted[0]
