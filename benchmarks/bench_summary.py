@@ -27,8 +27,8 @@ def scene_rows(path: Path) -> list[dict]:
     rows = []
     for key, cs in by.items():
         r = {"key": key, "label": cs[0]["label"], "kind": cs[0]["kind"], "role": cs[0]["role"], "seeds": len(cs), "frames": cs[0]["frames"]}
-        for k in ("error_mean", "error_last", "ms_mean", "particles", "mpm_share"):
-            r[k] = float(np.mean([float(c[k]) for c in cs]))
+        for k in ("error_mean", "error_last", "ms_mean", "particles", "mpm_share", "substeps_per_frame", "mflop_per_frame"):
+            r[k] = float(np.mean([float(c[k]) if c.get(k) not in (None, "") else float("nan") for c in cs]))
         rows.append(r)
     for i in pareto_front([(r["ms_mean"], r["error_mean"]) for r in rows]):
         rows[i]["pareto"] = True
@@ -58,6 +58,23 @@ def main(argv: list[str]) -> int:
             f"| {d.name} | {k['mpm_full']['seeds']} × {k['mpm_full']['frames']} | {k['mpm_full']['ms_mean']:.2f} | {cell('mpm_rp')} | {cell('neural')} | "
             f"{'–' if full is None else cell(full['key'])} | "
             f"{hyb_cell} | {'; '.join(r['label'] for r in front)} |"
+        )
+    out += [
+        "",
+        "Cost per frame: MPM's measured work (particles × substeps) against the network's arithmetic (dense-layer FLOPs "
+        "of one step on the initial graph / r_t, `hybridmpm.bench.cost.gnn_flops`), each with its measured time.",
+        "",
+        "| scene | MPM full: particles × substeps/frame | ms/frame | ns per particle-substep | MPM r_p: ms/frame | network (shipped): particles, MFLOP/frame | ms/frame | GFLOP/s achieved | network time / MPM full time |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for d in dirs:
+        k = {r["key"]: r for r in scene_rows(d / "results.csv")}
+        f, lo, nn = k["mpm_full"], k["mpm_rp"], k["neural"]
+        ns = f["ms_mean"] * 1e6 / (f["particles"] * f["substeps_per_frame"])
+        out.append(
+            f"| {d.name} | {f['particles']:.0f} × {f['substeps_per_frame']:.1f} | {f['ms_mean']:.2f} | {ns:.0f} | {lo['ms_mean']:.2f} | "
+            f"{nn['particles']:.0f}, {nn['mflop_per_frame']:.1f} | {nn['ms_mean']:.2f} | {nn['mflop_per_frame'] / nn['ms_mean']:.1f} | "
+            f"{nn['ms_mean'] / f['ms_mean']:.2f} |"
         )
     print("\n".join(out))
     return 0

@@ -48,9 +48,11 @@ def main() -> None:
         "(the shipped 2D models have 20000): they are the equal-budget comparison, not tuned to their best. "
         "The connectivity radius scales with the particle spacing (R = 0.0103 m at r_p = 0.5714, 0.0078 m at r_p = 1), "
         "so every variant sees about the same number of neighbours. Made by `benchmarks/train_variants.sh` and "
-        "`benchmarks/train_models.sh`; shipped by `benchmarks/ship_variants.py`.",
+        "`benchmarks/train_models.sh`; shipped by `benchmarks/ship_variants.py`. The validation MSE is over 20 model "
+        "steps (r_t frames each), so it does not compare across r_t; their errors against full-resolution MPM are in "
+        "docs/benchmarks.md.",
         "",
-        "| scene | name | role | r_p | r_t | latent × L | R [m] | parameters | steps | train time [s] | validation rollout MSE | data |",
+        "| scene | name | role | r_p | r_t | latent × L | R [m] | parameters | steps | train time [s] | best validation rollout MSE [m², 20 model steps] | data |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for scene, name, role, d in _candidates():

@@ -271,3 +271,46 @@ def test_gnn_flops_match_the_layers_torch_runs(latent: int, layers: int, dim: in
     with torch.no_grad():
         model(pos, torch.full((n,), 5, dtype=torch.int64), s, r)
     assert gnn_flops(latent, layers, dim, n, 317, t_in=cfg.t_in, embedding=cfg.embedding) == counted[0]
+
+
+def test_shipped_variants_are_what_their_roles_say():
+    """Every variant in variants/index.json loads, fits its scene, has the
+    resolution its role names (full: r_p = r_t = 1; spatial: r_p < 1, r_t = 1;
+    temporal: r_p = 1, r_t > 1) and a row in the variants card."""
+    from importlib import resources
+
+    from hybridmpm.bench.methods import neural_role
+    from hybridmpm.models import shipped_models, variant_models
+    from hybridmpm.neural import NeuralModel
+    from hybridmpm.scenes import make_scene
+
+    card = resources.files("hybridmpm.models").joinpath("variants", "README.md").read_text()
+    seen = 0
+    for scene in shipped_models():
+        for v in variant_models(scene):
+            m = NeuralModel(v["path"])
+            sc = make_scene(scene, seed=1000)
+            m.check_fits(sc.dim, sc.particle_type(), scene)
+            if v["role"] != "size":
+                assert neural_role(m.r_p, m.r_t) == v["role"], v["name"]
+            assert f"| {scene} | {v['name']} |" in card
+            seen += 1
+    assert seen >= 5  # a full-resolution network for every 2D domain
+    assert {v["role"] for v in variant_models("water2d")} >= {"full", "spatial", "temporal"}
+
+
+def test_a_broken_off_rollout_is_never_on_the_front():
+    from hybridmpm.bench.methods import Method
+    from hybridmpm.bench.report import aggregate
+
+    ms = [Method("mpm_full", "mpm", "ref"), Method("neural_x", "neural", "x", role="full"), Method("neural", "neural", "n", role="lowres")]
+
+    def cell(key: str, err: float, ms_: float, failure: str | None = None) -> dict:
+        return {"method": key, "seed": 1, "particles": 10, "frames_done": 5 if failure else 10, "failure": failure,
+                "error_mean": err, "error_last": err, "ms_mean": ms_, "ms_median": ms_, "ms_p95": ms_, "mpm_share": 0.0, "switches": 0}  # fmt: skip
+
+    # neural_x is fastest and accurate over the frames it did, but it collapsed
+    rows = aggregate(ms, [cell("mpm_full", 0.0, 5.0), cell("neural_x", 0.1, 0.5, "collapsed"), cell("neural", 0.5, 1.0)])
+    front = {r["key"] for r in rows if r["pareto"]}
+    assert front == {"mpm_full", "neural"}
+    assert next(r for r in rows if r["key"] == "neural_x")["failures"] == 1

@@ -106,8 +106,8 @@ def methods_for(
     for name, path, role in models:
         vr_p, vr_t, vparams = _model_info(path)
         role = role or neural_role(vr_p, vr_t)
-        label = ROLE_LABEL.get(role, f"neural {name}") if role != "size" else f"neural {name}"
-        out.append(Method(f"neural_{name}", "neural", f"{label} ({name})", vr_p, vr_t, model=str(path), role=role, params=vparams))
+        label = f"{ROLE_LABEL[role]} ({name})" if role in ROLE_LABEL else f"neural {name}"
+        out.append(Method(f"neural_{name}", "neural", label, vr_p, vr_t, model=str(path), role=role, params=vparams))
     out.append(Method("neural", "neural", f"neural r_p = {r_p:.3g}, r_t = {r_t} (shipped)", r_p, r_t, model=str(main), role="lowres", params=params))
     for r in r_cs:
         out.append(Method(f"hybrid_rc{float(r):.1f}", "hybrid", f"hybrid r_c = {float(r):.1f}", r_p, r_t, float(r), str(main), "hybrid", params))

@@ -44,7 +44,9 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
 def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per method: the method's configuration and the means over its
     seeds of errors, latencies, MPM share and switches, plus ``failures``
-    (seeds whose rollout broke off) and ``pareto`` (on the front or not)."""
+    (seeds whose rollout broke off; their errors are over the frames done),
+    ``frames_done`` (mean) and ``pareto`` (on the front or not; never for a
+    method with a broken-off rollout)."""
     rows = []
     for m in methods:
         cs = [c for c in cells if c["method"] == m.key]
@@ -54,8 +56,10 @@ def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[s
         for k in ("error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "substeps_per_frame", "mflop_per_frame"):
             row[k] = float(np.mean([c.get(k, float("nan")) for c in cs]))
         row["failures"] = sum(1 for c in cs if c["failure"])
+        row["frames_done"] = float(np.mean([c["frames_done"] for c in cs]))
         rows.append(row)
-    front = set(pareto_front([(r["ms_mean"], r["error_mean"]) for r in rows]))
+    # a rollout that broke off has no error over the whole rollout: it cannot be on the front
+    front = set(pareto_front([(r["ms_mean"], r["error_mean"] if not r["failures"] else math.inf) for r in rows]))
     for i, r in enumerate(rows):
         r["pareto"] = i in front
     return rows
@@ -109,7 +113,7 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 5.0), dpi=110)
+    fig, ax = plt.subplots(figsize=(11.0, 5.0), dpi=110)
     front = [r for r in rows if r["pareto"]]
     front.sort(key=lambda r: r["ms_mean"])
     if front:
@@ -123,7 +127,12 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
         if r["kind"] == "hybrid":
             continue
         marker, color = _STYLE.get(r["role"], ("o", "tab:green"))
-        ax.plot(r["ms_mean"], r["error_mean"], marker, color=color, ms=10 if marker == "*" else 8, zorder=4, label=r["label"], ls="none")
+        broke = r["failures"] > 0
+        label = r["label"] + (f" — broke off ({r['failures']}/{r['seeds']} seeds, ~{r['frames_done']:.0f} frames)" if broke else "")
+        ax.plot(
+            r["ms_mean"], r["error_mean"], marker, color=color, mfc="none" if broke else color, mew=1.5,
+            ms=10 if marker == "*" else 8, zorder=4, label=label, ls="none",
+        )  # fmt: skip
     for r in front:
         ax.plot(r["ms_mean"], r["error_mean"], "o", mfc="none", mec="darkorange", ms=14, mew=1.5, zorder=5)
     ax.set_xscale("log")
@@ -136,7 +145,7 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     ax.set_ylabel("grid-mass error (mean over the rollout)")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     fig.savefig(path_png)
     fig.savefig(path_png.with_suffix(".svg"))
@@ -198,14 +207,17 @@ def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], s
         f"Versions: hybridmpm {env['hybridmpm']} (commit {env['commit']}), numpy {env['numpy']}, onnxruntime {env['onnxruntime']}, Python {env['python']}.",
         "",
         "Error: grid-mass error against full-resolution MPM from the same initial condition (DESIGN.md), mean over the "
-        "rollout and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean.",
+        "rollout and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean. "
+        "A network run alone breaks off when its graph collapses (more than 8× the initial neighbours per particle): "
+        "such a method is drawn hollow and is not eligible for the Pareto front. Network MFLOP/frame: dense layers on "
+        "the initial graph / r_t (a collapsing graph costs more).",
         "",
         "| method | r_p | r_t | r_c | particles | error mean | error last | ms/frame mean | median | p95 | MPM share | MPM substeps/frame | network MFLOP/frame | Pareto |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         err = "reference" if r["role"] == "reference" else _fmt(r["error_mean"])
-        fail = f" ({r['failures']} broke off)" if r["failures"] else ""
+        fail = f" (broke off in {r['failures']}/{r['seeds']} seeds: error over ~{r['frames_done']:.0f} frames)" if r["failures"] else ""
         lines.append(
             f"| {r['label']}{fail} | {r['r_p']:.3g} | {r['r_t']} | {'' if r['r_c'] is None else format(r['r_c'], '.1f')} | {r['particles']:.0f} | {err} | "
             f"{'–' if r['role'] == 'reference' else _fmt(r['error_last'])} | {_fmt(r['ms_mean'], 2)} | {_fmt(r['ms_median'], 2)} | "

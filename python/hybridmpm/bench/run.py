@@ -40,6 +40,13 @@ VALID_SEED0 = 2000
 #: Frames at the start of every rollout that are not timed.
 WARMUP_FRAMES = 24
 
+#: A network run alone breaks off ("collapsed") once its graph holds this many
+#: times the neighbours per particle of the initial condition: particles have
+#: piled up, the rollout is physically meaningless, and every step costs
+#: ~this factor more (a collapsed full-resolution water2d rollout ran for
+#: over 10 minutes). The hybrid falls back to MPM at 2× (``degree_factor``).
+COLLAPSE_FACTOR = 8.0
+
 
 @dataclass
 class BenchConfig:
@@ -76,11 +83,16 @@ class BenchConfig:
 
 
 def git_commit() -> str:
-    """The repository's HEAD commit (``unknown`` outside a git checkout)."""
+    """The repository's HEAD commit, with ``-dirty`` if tracked files differ
+    from it (``unknown`` outside a git checkout)."""
     try:
         here = Path(__file__).resolve().parent
         out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or "unknown"
+        head = out.stdout.strip()
+        if not head:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True, text=True, timeout=10)
+        return head + ("-dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
@@ -194,6 +206,9 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> di
                 out.append(p)
                 tags.append(fr.solver == NEURAL)
                 secs.append((fr.frame, fr.seconds))
+                if method.kind == "neural" and sim.mean_degree > COLLAPSE_FACTOR * sim.initial_degree:
+                    failure = "collapsed"
+                    break
         except SimulationError:
             failure = "mpm"
         pos = np.stack(out)

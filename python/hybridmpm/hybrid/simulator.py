@@ -231,6 +231,19 @@ class HybridSimulator:
         return self.scene.with_boundary(self._buffer[-1])
 
     @property
+    def mean_degree(self) -> float:
+        """Mean neighbours per particle (self-edge included) of the network's
+        graph for its next step; nan when the next step is MPM's."""
+        if self._next_graph is None:
+            return float("nan")
+        return len(self._next_graph[0]) / max(1, len(self.particle_type))
+
+    @property
+    def initial_degree(self) -> float:
+        """Mean neighbours per particle of the initial condition (the fluid at rest spacing)."""
+        return float(self._degree0)
+
+    @property
     def safeguard_on(self) -> bool:
         return self.r_c > 0.0
 
