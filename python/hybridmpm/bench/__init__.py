@@ -73,7 +73,8 @@ def bench(
     cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads).validate()
     methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models)
     out = Path(out) if out is not None else Path("runs/bench") / scene
-    cells = run_bench(cfg, methods, out, progress=progress)
+    stride = max(m.r_t for m in methods)
+    cells = [report.on_common_frames(c, stride) for c in run_bench(cfg, methods, out, progress=progress)]
     env = json.loads((out / "bench.json").read_text())["environment"]
     settings = cfg.fingerprint()
     rows = aggregate(methods, cells)

@@ -41,6 +41,20 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return sorted(front, key=lambda i: (pts[i][0], pts[i][1]))
 
 
+def on_common_frames(cell: dict[str, Any], stride: int) -> dict[str, Any]:
+    """``cell`` with ``error_mean`` recomputed over the frames that are
+    multiples of ``stride`` (the largest ``r_t`` among the methods compared):
+    every method is averaged over the same instants, whatever its own stride
+    (a per-frame MPM mean and a every-4th-frame network mean would otherwise
+    differ by sampling alone). ``error_last`` is unchanged."""
+    f = np.asarray(cell["series"]["frame"])
+    e = np.asarray(cell["series"]["error"], np.float64)
+    keep = f % int(stride) == 0
+    out = dict(cell)
+    out["error_mean"] = float(e[keep].mean()) if keep.any() else float(e.mean())
+    return out
+
+
 def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per method: the method's configuration and the means over its
     seeds of errors, latencies, MPM share and switches, plus ``failures``
@@ -207,7 +221,7 @@ def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], s
         f"Versions: hybridmpm {env['hybridmpm']} (commit {env['commit']}), numpy {env['numpy']}, onnxruntime {env['onnxruntime']}, Python {env['python']}.",
         "",
         "Error: grid-mass error against full-resolution MPM from the same initial condition (DESIGN.md), mean over the "
-        "rollout and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean. "
+        "rollout (at the frames every method produces: multiples of the largest r_t) and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean. "
         "A network run alone breaks off when its graph collapses (more than 8× the initial neighbours per particle): "
         "such a method is drawn hollow and is not eligible for the Pareto front. Network MFLOP/frame: dense layers on "
         "the initial graph / r_t (a collapsing graph costs more).",
