@@ -78,15 +78,9 @@ def rss_mb():
 
 
 def machine():
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "nproc": os.cpu_count(), "python": platform.python_version()}
+    from hybridmpm.bench.taichi_peer import cpu_model
+
+    return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version()}
 
 
 def git_commit():

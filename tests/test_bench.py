@@ -326,3 +326,14 @@ def test_errors_are_averaged_over_the_same_frames():
     assert on_common_frames(strided, 4)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames(every, 1)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames({"series": {"frame": [0, 1, 2, 3, 4, 5], "error": [1, 9, 9, 9, 3, 9]}}, 4)["error_mean"] == pytest.approx(2.0)
+
+
+def test_bench_cli_checks_the_peer_before_running(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "taichi" else real(name, *a))
+    out = tmp_path / "b"
+    assert main(["bench", "water2d", "--seeds", "1", "--frames", "30", "--peer", "taichi", "--out", str(out), "--quiet"]) == 2
+    assert "hybridmpm[bench]" in capsys.readouterr().err
+    assert not out.exists()  # nothing ran

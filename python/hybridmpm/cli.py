@@ -170,6 +170,11 @@ def _bench(args: argparse.Namespace) -> int:
 
     if args.seeds < 1:
         raise HybridMpmError("seeds: must be >= 1")
+    if args.peer == "taichi":
+        import importlib.util
+
+        if importlib.util.find_spec("taichi") is None:  # say so before the long run, not after it
+            raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'")
     seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
     cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
     res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_models(args))

@@ -104,16 +104,10 @@ def environment() -> dict[str, Any]:
 
     import hybridmpm
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from hybridmpm.bench.taichi_peer import cpu_model  # standalone helper (no taichi import)
+
     return {
-        "machine": f"{platform.machine()} {cpu}",
+        "machine": f"{platform.machine()} {cpu_model()}",
         "cores": os.cpu_count() or 0,
         "hybridmpm": hybridmpm.__version__,
         "numpy": numpy.__version__,
