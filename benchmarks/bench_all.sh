@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The charts and tables of docs/benchmarks.md (issue 6): `hybridmpm bench` on
-# every 2D scene and on water3d, 3 held-out seeds (1000-1002), the paper's T
+# every 2D scene, water3d and sand3d, 3 held-out seeds (1000-1002), the paper's T
 # frames, MPM on all cores, onnxruntime on one thread; Taichi as the MPM peer
 # (needs `pip install -e '.[bench]'`; PEER= to skip). Resumable (finished
 # cells are kept in benchmarks/results/bench/SCENE/cells, not in git).
@@ -11,7 +11,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 peer=${PEER---peer taichi}
 scenes=("$@")
-[ ${#scenes[@]} -gt 0 ] || scenes=(water2d sand2d water_ramps2d sand_ramps2d water_sand2d dam_break2d water3d)
+[ ${#scenes[@]} -gt 0 ] || scenes=(water2d sand2d water_ramps2d sand_ramps2d water_sand2d dam_break2d water3d sand3d)
 for s in "${scenes[@]}"; do
   seeds=3
   [ "$s" = dam_break2d ] && seeds=1  # deterministic: every seed is the same column

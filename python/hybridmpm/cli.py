@@ -55,9 +55,8 @@ def _save_trajectory(path: Path, scene, positions: np.ndarray, dt: float, masses
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     import hybridmpm
+    from hybridmpm.bench.run import run_mpm
     from hybridmpm.scenes import make_scene
 
     scene = make_scene(args.scene, seed=args.seed)
@@ -78,17 +77,8 @@ def _simulate(args: argparse.Namespace) -> int:
         scene = downsample_scene(scene, args.r_p, seed=args.seed).scene
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sim = scene.make_solver(num_threads=args.threads)
-    positions = np.empty((frames + 1, scene.num_particles, scene.dim), dtype=np.float32)
-    positions[0] = sim.positions
-    wall = np.empty(frames)
-    substeps = np.empty(frames, dtype=np.int64)
-    for f in tqdm(range(frames), desc=f"{scene.name} [{args.solver}]", unit="frame", disable=args.quiet):
-        t0 = time.perf_counter()
-        stats = sim.step_frame(scene.dt_frame)
-        wall[f] = time.perf_counter() - t0
-        substeps[f] = stats["substeps"]
-        positions[f + 1] = sim.positions
+    positions, wall, substeps = run_mpm(scene, frames, args.threads, progress=None if args.quiet else f"{scene.name} [{args.solver}]")
+    sim = scene.make_solver(num_threads=1)  # the masses and grid the rollout used (resolved by the solver)
     ptype = scene.particle_type()
     _save_trajectory(out / "trajectory.npz", scene, scene.with_boundary(positions), scene.dt_frame, sim.masses)
     summary = {
@@ -155,7 +145,7 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
         )
 
 
-def _bench_models(args: argparse.Namespace) -> dict:
+def _bench_kwargs(args: argparse.Namespace) -> dict:
     from hybridmpm.bench import R_C_SWEEP
 
     r_cs = R_C_SWEEP if args.r_c is None else tuple(float(x) for x in args.r_c.split(","))
@@ -177,7 +167,7 @@ def _bench(args: argparse.Namespace) -> int:
             raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'")
     seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
     cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
-    res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_models(args))
+    res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
     if args.peer == "taichi":
         _taichi_peer(args, Path(res["out"]), seeds[0])
     if not args.quiet:
@@ -211,7 +201,7 @@ def _tune(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise HybridMpmError("seeds: must be >= 1")
     seeds = [VALID_SEED0 + i for i in range(args.seeds)]
-    doc = tune(args.scene, args.error_budget, seeds=seeds, metric=args.metric, out=args.out, work=args.work, progress=not args.quiet, **_bench_models(args))
+    doc = tune(args.scene, args.error_budget, seeds=seeds, metric=args.metric, out=args.out, work=args.work, progress=not args.quiet, **_bench_kwargs(args))
     if not args.quiet:
         c, m = doc["config"], doc["measured"]
         print(

@@ -80,8 +80,8 @@ def bench(
     rows = aggregate(methods, cells)
     report.write_results_csv(out / "results.csv", scene, frames, settings, env, methods, cells)
     report.write_sweep_csv(out / "threshold_sweep.csv", rows)
-    dim = make_scene(scene, seed=seeds[0]).dim
-    title = f"{scene} ({dim}D): {len(seeds)} held-out seed(s) × {frames} frames"
+    first = make_scene(scene, seed=seeds[0])
+    title = f"{scene} ({first.dim}D): {len(seeds)} held-out seed(s) × {frames} frames"
     report.plot_pareto(out / "pareto.png", rows, title)
     files = {"pareto.png": "error against latency, every method"}
     # error over time, first seed: the shipped neural model, MPM at r_p and the hybrid nearest trajectory_r_c
@@ -91,8 +91,9 @@ def bench(
         traj_keys.append(min(hyb, key=lambda m: abs(float(m.r_c or 0) - trajectory_r_c)).key)
     by = {c["method"]: c for c in cells if c["seed"] == seeds[0]}
     labels = {m.key: m.label for m in methods}
-    dt = make_scene(scene, seed=seeds[0]).dt_frame
-    report.plot_error_trajectory(out / "error_trajectory.png", {k: by[k] for k in traj_keys if k in by}, labels, dt, f"{scene}: error over time, seed {seeds[0]}")
+    report.plot_error_trajectory(
+        out / "error_trajectory.png", {k: by[k] for k in traj_keys if k in by}, labels, first.dt_frame, f"{scene}: error over time, seed {seeds[0]}"
+    )
     files["error_trajectory.png"] = "error over time; frames the hybrid ran on MPM shaded"
     cmd = command or f"hybridmpm bench {scene}"
     (out / "report.md").write_text(report.report_markdown(scene, settings, env, seeds, rows, cmd, files))

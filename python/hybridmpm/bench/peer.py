@@ -17,7 +17,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -42,16 +41,12 @@ def taichi_peer(scene_name: str, seed: int, frames: int | None, warmup: int, thr
     scene = make_scene(scene_name, seed=seed)
     n = min(int(timed_frames), int(frames or scene.frames))
     threads = threads or os.cpu_count() or 1
-    sim = scene.make_solver(num_threads=threads)
-    wall, subs = [], []
-    for f in range(warmup + n):
-        t0 = time.perf_counter()
-        st = sim.step_frame(scene.dt_frame)
-        if f >= warmup:
-            wall.append(time.perf_counter() - t0)
-            subs.append(int(st["substeps"]))
-    substeps = max(1, int(round(float(np.mean(subs)))))
     from hybridmpm.bench import taichi_peer as tp
+    from hybridmpm.bench.run import run_mpm
+
+    _, wall_all, subs_all = run_mpm(scene, warmup + n, threads)
+    wall, subs = wall_all[warmup:], subs_all[warmup:]
+    substeps = max(1, int(round(float(np.mean(subs)))))
 
     with tempfile.TemporaryDirectory() as tmp:
         npz = Path(tmp) / f"{scene_name}_seed{seed}.npz"

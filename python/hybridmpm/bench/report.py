@@ -12,6 +12,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from hybridmpm.bench.methods import Method
+from hybridmpm.hybrid.plot import mpm_spans
 
 #: Columns of ``results.csv`` (one row per method × seed).
 RESULT_COLUMNS = (
@@ -182,17 +183,10 @@ def plot_error_trajectory(path: Path, cells: dict[str, dict[str, Any]], labels: 
         color = colors.get(key, "tab:blue")
         ax.plot(t, e, "-", color=color, lw=1.4, label=f"{labels[key]}: mean {np.mean(e):.3f}, {c['ms_mean']:.2f} ms/frame")
         if key.startswith("hybrid"):
-            neural = np.asarray(c["series"]["neural"], bool)
+            tags = np.where(np.asarray(c["series"]["neural"], bool), "neural", "mpm")
             step = (t[1] - t[0]) if len(t) > 1 else dt_frame
-            first = True
-            start = None
-            for i, on_nn in enumerate(list(neural) + [True]):
-                if not on_nn and start is None:
-                    start = i
-                elif on_nn and start is not None:
-                    ax.axvspan(t[start] - step, t[i - 1], color="gold", alpha=0.25, lw=0, label="hybrid on MPM" if first else None)
-                    first = False
-                    start = None
+            for i, (a, b) in enumerate(mpm_spans(tags)):  # a step's positions cover the step before them
+                ax.axvspan(t[a] - step, t[b - 1], color="gold", alpha=0.25, lw=0, label="hybrid on MPM" if i == 0 else None)
     ax.set_xlabel("simulated time [s]")
     ax.set_ylabel("grid-mass error")
     ax.set_title(title, fontsize=10)

@@ -23,7 +23,7 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -124,16 +124,19 @@ def _latency(per_frame: np.ndarray) -> dict[str, float]:
     return {"ms_median": float(np.median(ms)), "ms_p95": float(np.percentile(ms, 95)), "ms_mean": float(ms.mean())}
 
 
-def run_mpm(scene: Any, frames: int, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_mpm(scene: Any, frames: int, threads: int, progress: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Plain MPM rollout of ``scene``: positions every frame float32
     [frames + 1, N, D], wall seconds per frame [frames] and substeps per
-    frame [frames]. Raises :class:`SimulationError` if MPM fails."""
+    frame [frames]; ``progress`` the description of a progress bar (None:
+    no bar). Raises :class:`SimulationError` if MPM fails."""
+    from tqdm import tqdm
+
     sim = scene.make_solver(num_threads=threads)
     pos = np.empty((frames + 1, scene.num_particles, scene.dim), np.float32)
     pos[0] = sim.positions
     wall = np.empty(frames)
     subs = np.empty(frames, np.int64)
-    for f in range(frames):
+    for f in tqdm(range(frames), desc=progress, unit="frame", disable=progress is None):
         t0 = time.perf_counter()
         st = sim.step_frame(scene.dt_frame)
         wall[f] = time.perf_counter() - t0
@@ -142,23 +145,24 @@ def run_mpm(scene: Any, frames: int, threads: int) -> tuple[np.ndarray, np.ndarr
     return pos, wall, subs
 
 
-def reference(cfg: BenchConfig, seed: int, cells: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
-    """Full-resolution MPM positions of ``seed`` every frame [frames + 1, N, D]
-    (cached in ``cells/ref_seed<S>.npz``) and, when it was run now, the
-    ``mpm_full`` cell's timing (None when read from the cache)."""
+def reference(cfg: BenchConfig, seed: int, cells: Path) -> np.ndarray:
+    """Full-resolution MPM positions of ``seed`` every frame [frames + 1, N, D],
+    cached in ``cells/ref_seed<S>.npz`` together with the ``mpm_full`` cell
+    (its timing); both are (re)made when either is missing."""
     from hybridmpm.scenes import make_scene
 
-    path = cells / f"ref_seed{seed}.npz"
-    if path.is_file():
+    path, cell = cells / f"ref_seed{seed}.npz", cells / f"mpm_full_seed{seed}.json"
+    if path.is_file() and cell.is_file():
         with np.load(path) as z:
             if int(z["frames"]) == cfg.frames:
-                return np.asarray(z["positions"]), None
+                return np.asarray(z["positions"])
     scene = make_scene(cfg.scene, seed=seed)
     pos, wall, subs = run_mpm(scene, cfg.frames, cfg.mpm_threads)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, positions=pos, frames=np.int64(cfg.frames))
     tmp.replace(path)
-    return pos, {"wall": wall, "substeps": subs, "particles": scene.num_particles}
+    _write_json(cell, _reference_record(cfg, seed, scene.num_particles, wall, subs))
+    return pos
 
 
 def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> dict[str, Any]:
@@ -252,7 +256,6 @@ def run_bench(
     methods: list[Method],
     out: str | Path,
     progress: bool = True,
-    on_cell: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run (or resume) every method × seed; returns the cell records in
     (method, seed) order. Writes ``out/bench.json`` and ``out/cells/*.json``.
@@ -283,27 +286,10 @@ def run_bench(
     for m, s in todo:
         bar.set_postfix_str(f"{m.key} seed {s}", refresh=True)
         if s not in refs:
-            refs.clear()  # one seed's reference in memory at a time
-            refs[s], timing = reference(cfg, s, cells)
-            if timing is not None and not (cells / f"mpm_full_seed{s}.json").is_file():
-                _write_json(cells / f"mpm_full_seed{s}.json", _reference_record(cfg, s, timing["particles"], timing["wall"], timing["substeps"]))
-                if m.key == "mpm_full":
-                    bar.update()
-                    continue
+            refs = {s: reference(cfg, s, cells)}  # one seed's reference in memory at a time; writes the mpm_full cell
         path = cells / f"{m.key}_seed{s}.json"
-        if path.is_file():
-            continue
-        if m.key == "mpm_full":  # reference cached but its cell lost: time it again
-            from hybridmpm.scenes import make_scene
-
-            scene = make_scene(cfg.scene, seed=s)
-            _, wall, subs = run_mpm(scene, cfg.frames, cfg.mpm_threads)
-            rec = _reference_record(cfg, s, scene.num_particles, wall, subs)
-        else:
-            rec = run_cell(m, cfg, s, refs[s])
-        _write_json(path, rec)
-        if on_cell is not None:
-            on_cell(rec)
+        if not path.is_file():
+            _write_json(path, run_cell(m, cfg, s, refs[s]))
         bar.update()
     bar.close()
     return [json.loads((cells / f"{m.key}_seed{s}.json").read_text()) for m in methods for s in cfg.seeds]

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _mpm_spans(tags: np.ndarray) -> list[tuple[int, int]]:
+def mpm_spans(tags: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of consecutive ``"mpm"`` entries of ``tags`` as half-open index ranges ``(start, stop)``."""
     spans, start = [], None
     for i, t in enumerate(list(tags) + ["end"]):
         if t == "mpm" and start is None:
@@ -41,7 +42,7 @@ def plot_timeline(
     fig, axes = plt.subplots(rows, 1, figsize=(7, 2.3 * rows + 0.4), sharex=True, squeeze=False)
     axs = axes[:, 0]
     for ax in axs:
-        for a, b in _mpm_spans(np.asarray(tags)):
+        for a, b in mpm_spans(np.asarray(tags)):
             ax.axvspan(t[a] - 0.5 * dt_step, t[min(b, len(t) - 1)] - 0.5 * dt_step if b < len(t) else t[-1], color="#f4a259", alpha=0.25, lw=0)
     if error is not None:
         axs[0].plot(t, error, color="#1f5fa8", lw=1.2, label="hybrid")
@@ -63,4 +64,4 @@ def plot_timeline(
     return path
 
 
-__all__ = ["plot_timeline"]
+__all__ = ["mpm_spans", "plot_timeline"]
