@@ -167,9 +167,9 @@ def _bench(args: argparse.Namespace) -> int:
             raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'")
     seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
     cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
+    if args.peer == "taichi":  # first, so that bench() writes its line into report.md
+        _taichi_peer(args, Path(args.out) if args.out else Path("runs/bench") / args.scene, seeds[0])
     res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
-    if args.peer == "taichi":
-        _taichi_peer(args, Path(res["out"]), seeds[0])
     if not args.quiet:
         for r in res["rows"]:
             print(f"{r['label']:<48} error {r['error_mean']:.3f}  {r['ms_mean']:7.2f} ms/frame{'  (Pareto)' if r['pareto'] else ''}")
@@ -178,19 +178,12 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _taichi_peer(args: argparse.Namespace, out: Path, seed: int) -> None:
-    """``--peer taichi``: the same scene and seed in Taichi's CPU MLS-MPM, timed in this run."""
+    """``--peer taichi``: the same scene and seed in Taichi's CPU MLS-MPM, timed in this run (``out/peer_taichi.json``)."""
     from hybridmpm.bench.peer import taichi_peer
 
     res = taichi_peer(args.scene, seed, args.frames, args.warmup, threads=args.threads)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "peer_taichi.json").write_text(json.dumps(res, indent=2))
-    with open(out / "report.md", "a") as f:
-        f.write(
-            "\n## Peer: Taichi CPU MLS-MPM (same scene, seed and run)\n\n"
-            f"Taichi {res['taichi']} ({res['arch']}, {res['threads']} threads): {res['particles']} particles, "
-            f"mean {res['ms_mean']:.2f} ms/frame (median {res['ms_median']:.2f}, p95 {res['ms_p95']:.2f}) against our MPM at full "
-            f"resolution {res['ours_ms_mean']:.2f} ms/frame in the same run: ratio {res['ms_mean'] / res['ours_ms_mean']:.2f}. "
-            "Taichi's MPM here is the textbook MLS-MPM (same grid, substeps, materials approximated: see hybridmpm.bench.peer).\n"
-        )
     if not args.quiet:
         print(f"peer taichi: {res['ms_mean']:.2f} ms/frame against ours {res['ours_ms_mean']:.2f}")
 

@@ -96,7 +96,10 @@ def bench(
     )
     files["error_trajectory.png"] = "error over time; frames the hybrid ran on MPM shaded"
     cmd = command or f"hybridmpm bench {scene}"
-    (out / "report.md").write_text(report.report_markdown(scene, settings, env, seeds, rows, cmd, files))
+    text = report.report_markdown(scene, settings, env, seeds, rows, cmd, files)
+    if (out / "peer_taichi.json").is_file():  # written by `hybridmpm bench --peer taichi`
+        text += report.peer_markdown(json.loads((out / "peer_taichi.json").read_text()))
+    (out / "report.md").write_text(text)
     return {
         "rows": rows,
         "cells": cells,

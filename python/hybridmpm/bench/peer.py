@@ -34,10 +34,14 @@ def taichi_peer(scene_name: str, seed: int, frames: int | None, warmup: int, thr
     run fails."""
     from hybridmpm.scenes import make_scene
 
+    import importlib.util
+
     try:
-        import taichi  # noqa: F401
-    except ImportError as e:
-        raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'") from e
+        found = importlib.util.find_spec("taichi") is not None
+    except ValueError:  # a module set to None in sys.modules
+        found = False
+    if not found:
+        raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'")
     scene = make_scene(scene_name, seed=seed)
     n = min(int(timed_frames), int(frames or scene.frames))
     threads = threads or os.cpu_count() or 1

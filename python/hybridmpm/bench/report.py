@@ -250,3 +250,14 @@ def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], s
         lines.append("")
     lines += ["## Pareto front", "", "On the front (fastest first): " + "; ".join(front) + ".", ""]
     return "\n".join(lines)
+
+
+def peer_markdown(res: dict[str, Any]) -> str:
+    """The report's section on the Taichi peer (``peer_taichi.json``, :func:`hybridmpm.bench.peer.taichi_peer`)."""
+    return (
+        "\n## Peer: Taichi CPU MLS-MPM (same scene, seed and run)\n\n"
+        f"Taichi {res['taichi']} ({res['arch']}, {res['threads']} threads): {res['particles']} particles, "
+        f"mean {res['ms_mean']:.2f} ms/frame (median {res['ms_median']:.2f}, p95 {res['ms_p95']:.2f}) against our MPM at full "
+        f"resolution {res['ours_ms_mean']:.2f} ms/frame in the same run: ratio {res['ms_mean'] / res['ours_ms_mean']:.2f}. "
+        "Taichi's MPM here is the textbook MLS-MPM (same grid, substeps, materials approximated: see hybridmpm.bench.peer).\n"
+    )
