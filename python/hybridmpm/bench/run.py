@@ -83,15 +83,16 @@ class BenchConfig:
 
 
 def git_commit() -> str:
-    """The repository's HEAD commit, with ``-dirty`` if tracked files differ
-    from it (``unknown`` outside a git checkout)."""
+    """The repository's HEAD commit, with ``-dirty`` if the code (tracked files
+    under ``python/`` or ``rust/``) differs from it; recorded results being
+    rewritten do not count (``unknown`` outside a git checkout)."""
     try:
         here = Path(__file__).resolve().parent
         out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
         head = out.stdout.strip()
         if not head:
             return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":/python", ":/rust"], cwd=here, capture_output=True, text=True, timeout=10)
         return head + ("-dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
