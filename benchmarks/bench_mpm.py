@@ -25,13 +25,14 @@ import os
 import platform
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.mpm import SAND, WATER, MpmParams, MpmSolver
-from hybridmpm.scenes import lattice
+from hybridmpm.bench.env import cpu_model, git_commit
+from hybridmpm.mpm import SAND, WATER, MpmParams
+from hybridmpm.scenes import Scene, lattice
+from hybridmpm.sim import MpmSimulator, rollout
 
 SCENES = {
     # name: (dim, n_grid, origin, side, material, substeps, spacing in units of 1/64 or 1/128 -> see make)
@@ -51,22 +52,17 @@ def make(dim, n_grid, origin, side, material, substeps, threads):
     water3d_128 has the same particle count and substeps as water3d on a grid
     of 8x the cells: the same occupied cells in a larger domain, so equal cost
     means the cost does not follow the domain volume."""
-    sim = MpmSolver(MpmParams(dim=dim, n_grid=n_grid, substeps=substeps, num_threads=threads))
     spacing = 0.5 / n_grid
     lo = np.array(origin)
     x = lattice(lo, lo + side * spacing, spacing)
-    sim.add_particles(x, material, volumes=np.full(len(x), spacing**dim, np.float32))
-    return sim
+    params = MpmParams(dim=dim, n_grid=n_grid, substeps=substeps)
+    scene = Scene(f"bench{dim}d", params, x, np.full(len(x), material, np.int32), np.zeros_like(x), volumes=np.full(len(x), spacing**dim, np.float32))
+    return MpmSimulator(scene, threads=threads)
 
 
 def time_frames(sim, frames, warmup=5):
-    for _ in range(warmup):
-        sim.step_frame()
-    t = np.empty(frames)
-    for i in range(frames):
-        t0 = time.perf_counter()
-        sim.step_frame()
-        t[i] = time.perf_counter() - t0
+    """Median and p95 wall ms per frame over ``frames`` frames after ``warmup``."""
+    t = rollout(sim, warmup + frames).frame_seconds(after=sim.frame.frame + warmup)
     return float(np.median(t) * 1e3), float(np.percentile(t, 95) * 1e3)
 
 
@@ -78,16 +74,7 @@ def rss_mb():
 
 
 def machine():
-    from hybridmpm.bench.taichi_peer import cpu_model
-
     return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version()}
-
-
-def git_commit():
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 PEER_SCENES = {"water2d": "water2d", "sand2d": "sand2d", "water3d": "water3d_4k", "water3d_32k": "water3d_32k"}
@@ -180,9 +167,9 @@ def main():
         for threads in (1, 2):
             sim = make(*spec, threads)
             med, p95 = time_frames(sim, frames)
-            rows.append({"scene": name, "threads": threads, "particles": sim.num_particles, "substeps": spec[5],
+            rows.append({"scene": name, "threads": threads, "particles": sim.particles.num_fluid, "substeps": spec[5],
                          "ms_per_frame": med, "p95_ms_per_frame": p95, "us_per_substep": med * 1e3 / spec[5]})
-            print(f"{name:12s} t={threads} N={sim.num_particles:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep", flush=True)
+            print(f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep", flush=True)
 
     scaling = []
     sides2 = [32, 64, 128, 256] if not args.quick else [32, 64, 128]
@@ -190,23 +177,23 @@ def main():
         for threads in (1, 2):
             sim = make(2, 256, (0.2, 0.05), side, WATER, 32, threads)
             med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append({"dim": 2, "n_grid": 256, "particles": sim.num_particles, "threads": threads, "ms_per_frame": med,
-                            "us_per_substep": med * 1e3 / 32, "ns_per_particle_substep": med * 1e6 / 32 / sim.num_particles})
-            print(f"scaling 2D N={sim.num_particles:6d} t={threads}: {med * 1e3 / 32:8.1f} us/substep", flush=True)
+            scaling.append({"dim": 2, "n_grid": 256, "particles": sim.particles.num_fluid, "threads": threads, "ms_per_frame": med,
+                            "us_per_substep": med * 1e3 / 32, "ns_per_particle_substep": med * 1e6 / 32 / sim.particles.num_fluid})
+            print(f"scaling 2D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 32:8.1f} us/substep", flush=True)
     for side in ([10, 16, 20, 32, 40] if not args.quick else [10, 16, 32]):
         for threads in (1, 2):
             sim = make(3, 64, (0.2, 0.05, 0.2), side, WATER, 8, threads)
             med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append({"dim": 3, "n_grid": 64, "particles": sim.num_particles, "threads": threads, "ms_per_frame": med,
-                            "us_per_substep": med * 1e3 / 8, "ns_per_particle_substep": med * 1e6 / 8 / sim.num_particles})
-            print(f"scaling 3D N={sim.num_particles:6d} t={threads}: {med * 1e3 / 8:8.1f} us/substep", flush=True)
+            scaling.append({"dim": 3, "n_grid": 64, "particles": sim.particles.num_fluid, "threads": threads, "ms_per_frame": med,
+                            "us_per_substep": med * 1e3 / 8, "ns_per_particle_substep": med * 1e6 / 8 / sim.particles.num_fluid})
+            print(f"scaling 3D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 8:8.1f} us/substep", flush=True)
 
     # memory per particle: RSS growth for 1M 2D particles (state + scratch after a frame)
     before = rss_mb()
     big = make(2, 2048, (0.1, 0.1), 1000, WATER, 1, 0)
-    big.step_frame()
-    mem = {"particles": big.num_particles, "rss_mb": rss_mb() - before}
-    mem["bytes_per_particle"] = mem["rss_mb"] * 2**20 / big.num_particles
+    big.advance()
+    mem = {"particles": big.particles.num_fluid, "rss_mb": rss_mb() - before}
+    mem["bytes_per_particle"] = mem["rss_mb"] * 2**20 / big.particles.num_fluid
     del big
     print(f"memory: {mem['bytes_per_particle']:.0f} bytes per 2D particle (1M particles)")
 

@@ -80,11 +80,10 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
 
 
 def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split: str = "test") -> tuple[dict, dict]:
-    from hybridmpm.data.resolution import downsample_scene
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.neural import NeuralModel
-    from hybridmpm.neural.runtime import run_neural
     from hybridmpm.scenes import SceneSpec
+    from hybridmpm.sim import MpmSimulator, NeuralSimulator, rollout
 
     scenes = json.loads((data / "scenes.json").read_text())
     test = sorted(k for k, v in scenes.items() if v["split"] == split)[:seeds]
@@ -97,43 +96,34 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
         n_grid = full.params.resolved_n_grid()
         ref = []
         for threads, key in ((0, "mpm_full_ms_2t"), (1, "mpm_full_ms_1t")):
-            sim = full.make_solver(num_threads=threads)
-            xs = [sim.positions]
-            t0 = time.perf_counter()
-            for _ in range(frames):
-                sim.step_frame(full.dt_frame)
-                xs.append(sim.positions)
-            ref_stats[key].append((time.perf_counter() - t0) / frames * 1e3)
-            ref = xs
-        ref_a = np.stack(ref)
+            ro = rollout(MpmSimulator(full, threads=threads), frames)
+            ref_stats[key].append(float(ro.seconds.sum()) / frames * 1e3)
+        ref_a = ro.fluid_positions
         r_p = next(iter(models.values())).r_p
-        low = downsample_scene(full, r_p, seed=info["seed"]).scene
-        sim = low.make_solver(num_threads=1)
-        lx = [sim.positions]
-        t0 = time.perf_counter()
-        for _ in range(frames):
-            sim.step_frame(low.dt_frame)
-            lx.append(sim.positions)
-        ref_stats["mpm_rp_ms_1t"].append((time.perf_counter() - t0) / frames * 1e3)
-        low_a = np.stack(lx)
+        mpm_rp = MpmSimulator(full, r_p=r_p, seed=info["seed"], threads=1)
+        low = mpm_rp.scene
+        ro = rollout(mpm_rp, frames)
+        ref_stats["mpm_rp_ms_1t"].append(float(ro.seconds.sum()) / frames * 1e3)
+        low_a = ro.fluid_positions
         e = grid_mass_error(low_a, ref_a, n_grid)
         ref_stats["mpm_rp_mean"].append(float(e.mean()))
         ref_stats["mpm_rp_last"].append(float(e[-1]))
         for name, nm in models.items():
-            res = run_neural(full, nm, frames, seed=info["seed"], mpm_threads=1)
-            pos = res["positions"][:, : low.num_particles]
-            k = np.arange(len(pos)) * nm.r_t
+            res = rollout(NeuralSimulator(full, nm, seed=info["seed"], detect_failures=False, mpm_threads=1), frames)
+            pos = res.fluid_positions
+            k = res.frame_index
             keep = k <= frames
             e = grid_mass_error(pos[keep], ref_a[k[keep]], n_grid)
             m = per_model[name]
             m["rollout_mean"].append(float(e.mean()))
             m["rollout_last"].append(float(e[-1]))
-            m["ms_per_frame"].append(float(np.median(res["step_seconds"]) * 1e3 / nm.r_t))
+            net = res.solver == "neural"
+            m["ms_per_frame"].append(float(np.median(res.seconds[net]) * 1e3 / nm.r_t))
             # one-step: history from MPM at r_p, compared with full-resolution MPM r_t frames later
             errs = []
             pt = low.particle_type()
             for t in range((nm.t_in - 1) * nm.r_t, frames - nm.r_t + 1, nm.r_t):
-                hist = low.with_boundary(low_a[t - (nm.t_in - 1) * nm.r_t : t + 1 : nm.r_t])
+                hist = mpm_rp.particles.pad(low_a[t - (nm.t_in - 1) * nm.r_t : t + 1 : nm.r_t])
                 _, nxt, _ = nm.predict(hist, pt)
                 errs.append(float(grid_mass_error(nxt[: low.num_particles], ref_a[t + nm.r_t], n_grid)[0]))
             m["one_step"].append(float(np.mean(errs)))

@@ -40,10 +40,13 @@ SCENES = ["water2d", "sand2d", "water_ramps2d", "sand_ramps2d", "water_sand2d"]
 
 
 def run_one(args: tuple[str, int, float, int | None]) -> dict:
+    from dataclasses import replace
+
     from hybridmpm.data.generate import trajectory_seed
-    from hybridmpm.data.resolution import cluster_centroids, downsample_scene
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.scenes import make_scene
+    from hybridmpm.scenes.resolution import cluster_centroids, downsample_scene
+    from hybridmpm.sim import MpmSimulator, rollout
 
     name, k, r_p, frames = args
     seed = trajectory_seed(0, 10_000 + k)
@@ -52,17 +55,13 @@ def run_one(args: tuple[str, int, float, int | None]) -> dict:
     T = full.frames
     out: dict = {"scene": name, "seed": seed, "frames": T, "n_h": full.num_particles, "n_l": down.scene.num_particles}
     trajs = {}
-    for label, scene in (("full", full), ("low", down.scene), ("jitter", full)):
-        sim = scene.make_solver(num_threads=1)
-        if label == "jitter":
-            sim.positions = full.positions + np.random.default_rng(seed).normal(0.0, 1e-6, full.positions.shape).astype(np.float32)
-        x = [sim.positions]
+    jittered = replace(full, positions=full.positions + np.random.default_rng(seed).normal(0.0, 1e-6, full.positions.shape).astype(np.float32))
+    for label, scene in (("full", full), ("low", down.scene), ("jitter", jittered)):
+        sim = MpmSimulator(scene, threads=1)
         t0 = time.perf_counter()
-        for _ in range(T):
-            sim.step_frame(scene.dt_frame)
-            x.append(sim.positions)
+        ro = rollout(sim, T)
         out[f"ms_per_frame_{label}"] = (time.perf_counter() - t0) / T * 1e3
-        trajs[label] = (np.stack(x), sim.masses.astype(np.float64))
+        trajs[label] = (ro.fluid_positions, sim.particles.masses.astype(np.float64))
     (xf, mf), (xl, ml), (xj, _) = trajs["full"], trajs["low"], trajs["jitter"]
     xc = cluster_centroids(xf, down.labels, mf)
     n_grid = full.params.resolved_n_grid()

@@ -20,8 +20,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from hybridmpm import grid_mass
-from hybridmpm.data.resolution import PAPER_R_P, downsample_scene
+from hybridmpm.scenes.resolution import PAPER_R_P, downsample_scene
 from hybridmpm.scenes import DOMAINS, make_scene
+from hybridmpm.sim import MpmSimulator, rollout
 
 OUT = Path(__file__).with_name("img")
 COLOURS = {5: "#2b7bba", 6: "#d8a641", 3: "#444444"}
@@ -45,13 +46,11 @@ def domains() -> None:
     fig, axes = plt.subplots(2, len(names), figsize=(2.0 * len(names), 4.2))
     for j, name in enumerate(names):
         scene = make_scene(name, seed=1)
-        sim = scene.make_solver()
         pt = scene.particle_type()
-        _scatter(axes[0, j], scene.with_boundary(sim.positions), pt, f"{name}\nN={scene.num_particles}, t=0")
         steps = scene.frames // 3
-        for _ in range(steps):
-            sim.step_frame()
-        _scatter(axes[1, j], scene.with_boundary(sim.positions), pt, f"t = {steps * scene.dt_frame:.2f} s")
+        ro = rollout(MpmSimulator(scene), steps)
+        _scatter(axes[0, j], ro.positions[0], pt, f"{name}\nN={scene.num_particles}, t=0")
+        _scatter(axes[1, j], ro.positions[-1], pt, f"t = {steps * scene.dt_frame:.2f} s")
     fig.tight_layout()
     fig.savefig(OUT / "domains.png", dpi=110)
     plt.close(fig)

@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from hybridmpm.scenes import dam_break2d
+from hybridmpm.sim import MpmSimulator, rollout
 from hybridmpm.validation import G, dam_break_front_height, load_martin_moyce, score_dam_break
 
 OUT = Path(__file__).with_name("img")
@@ -26,13 +27,8 @@ OUT = Path(__file__).with_name("img")
 def main() -> None:
     OUT.mkdir(exist_ok=True)
     scene = dam_break2d()
-    sim = scene.make_solver()
     frames = 300
-    pos = np.empty((frames + 1, scene.num_particles, 2), np.float32)
-    pos[0] = sim.positions
-    for f in range(frames):
-        sim.step_frame()
-        pos[f + 1] = sim.positions
+    pos = rollout(MpmSimulator(scene), frames).fluid_positions
     times = np.arange(frames + 1) * scene.dt_frame
 
     snaps = [0, 40, 80, 130, 200, 300]

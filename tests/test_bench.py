@@ -22,6 +22,7 @@ from hybridmpm.cli import main
 from hybridmpm.data.generate import simulate_trajectory, trajectory_seed
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
+from hybridmpm.scenes import make_scene
 
 # ------------------------------------------------------------------ Pareto front
 
@@ -121,12 +122,17 @@ def test_bench_writes_every_file_with_the_right_columns(tiny: dict):
 
 
 def test_bench_errors_against_an_independent_reference(tiny: dict):
-    """The reference and MPM at r_p recomputed through the dataset generator
-    (another code path): the bench's errors must match."""
+    """The reference stepped by hand on the solver, and MPM at r_p through the
+    dataset generator (other code paths): the bench's errors must match."""
     rows = {r["key"]: r for r in tiny["res"]["rows"]}
     assert rows["mpm_full"]["error_mean"] == 0.0
-    ref = simulate_trajectory("water2d", 1000, FRAMES, num_threads=1)
-    n = int(ref["n_h"])
+    solver = make_scene("water2d", seed=1000).make_solver(num_threads=1)
+    ref_pos = [solver.positions]
+    for _ in range(FRAMES):
+        solver.step_frame()
+        ref_pos.append(solver.positions)
+    ref = {"positions": np.stack(ref_pos)}
+    n = solver.num_particles
     cached = np.load(tiny["out"] / "cells" / "ref_seed1000.npz")["positions"]
     np.testing.assert_array_equal(cached, ref["positions"][:, :n])
     low = simulate_trajectory("water2d", 1000, FRAMES, r_p=0.5714, num_threads=1)
@@ -150,7 +156,7 @@ def test_bench_resumes_without_rerunning_cells(tiny: dict, monkeypatch: pytest.M
         raise AssertionError("a finished cell was rerun")
 
     monkeypatch.setattr(run, "run_cell", boom)
-    monkeypatch.setattr(run, "run_mpm", boom)
+    monkeypatch.setattr(run, "reference", boom)
     res = bench("water2d", seeds=[1000], frames=FRAMES, out=tiny["out"], r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
     assert [r["key"] for r in res["rows"]] == [r["key"] for r in tiny["res"]["rows"]]
     with pytest.raises(InvalidInputError, match="out"):
@@ -234,14 +240,21 @@ def test_tune_cli_writes_the_cheapest_within_budget(tmp_path: Path):
 
 
 def test_taichi_peer_without_taichi_says_how_to_install(monkeypatch: pytest.MonkeyPatch):
+    """The Taichi peer is a benchmark script (benchmarks/taichi_peer.py), not part of the package."""
+    import importlib.util
     import sys
 
-    from hybridmpm.bench.peer import taichi_peer
     from hybridmpm.errors import HybridMpmError
 
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "taichi_peer.py"
+    spec = importlib.util.spec_from_file_location("taichi_peer_script", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
     monkeypatch.setitem(sys.modules, "taichi", None)  # import taichi -> ImportError
     with pytest.raises(HybridMpmError, match=r"hybridmpm\[bench\]"):
-        taichi_peer("water2d", 1000, 10, 2)
+        mod.bench_peer("water2d", 1000, 10, 2)
+    assert importlib.util.find_spec("hybridmpm.bench.taichi_peer") is None  # out of the wheel
 
 
 @pytest.mark.parametrize("latent,layers,dim", [(16, 2, 2), (32, 3, 3)])
@@ -326,14 +339,3 @@ def test_errors_are_averaged_over_the_same_frames():
     assert on_common_frames(strided, 4)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames(every, 1)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames({"series": {"frame": [0, 1, 2, 3, 4, 5], "error": [1, 9, 9, 9, 3, 9]}}, 4)["error_mean"] == pytest.approx(2.0)
-
-
-def test_bench_cli_checks_the_peer_before_running(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture):
-    import importlib.util
-
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "taichi" else real(name, *a))
-    out = tmp_path / "b"
-    assert main(["bench", "water2d", "--seeds", "1", "--frames", "30", "--peer", "taichi", "--out", str(out), "--quiet"]) == 2
-    assert "hybridmpm[bench]" in capsys.readouterr().err
-    assert not out.exists()  # nothing ran

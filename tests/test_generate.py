@@ -18,7 +18,7 @@ import pytest
 from hybridmpm.cli import main
 from hybridmpm.data import GnsDataset, read_split
 from hybridmpm.data.generate import GenerateConfig, generate_dataset, simulate_trajectory, trajectory_seed
-from hybridmpm.data.resolution import PAPER_R_P
+from hybridmpm.scenes.resolution import PAPER_R_P
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import DOMAINS, make_scene, scene_spec
 

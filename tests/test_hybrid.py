@@ -1,7 +1,7 @@
-"""The hybrid simulator (issue 5): the safeguard score against hand
-computation, the limits r_c = 0 (neural) and r_c > 1 (MPM) bit for bit, state
-conversion, failure recovery, checkpoint, and the paper's accuracy claim on
-water2d seeds (hybrid beats neural-only)."""
+"""The hybrid simulator: the safeguard score against hand computation, the
+limits r_c = 0 (neural) and r_c > 1 (MPM) bit for bit, state conversion,
+failure recovery, checkpoint, and the paper's accuracy claim on water2d seeds
+(hybrid beats neural-only)."""
 
 from __future__ import annotations
 
@@ -9,16 +9,28 @@ import numpy as np
 import pytest
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.hybrid import HybridSimulator, complexity_score, estimate_volume_ratio, fit_affine, mpm_history, neural_to_mpm
-from hybridmpm.hybrid.stress import case_scene, run_method
+from hybridmpm.bench.stress import case_scene, run_method
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
 from hybridmpm.mpm import MpmParams, MpmSolver
 from hybridmpm.neural import NeuralModel
-from hybridmpm.neural.runtime import run_neural
 from hybridmpm.scenes import make_scene
+from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, NeuralSimulator, complexity_score, reference, rollout
+from hybridmpm.sim.convert import estimate_volume_ratio, fit_affine, mpm_history, neural_to_mpm
 
 DT = 0.01
+
+
+def frames_of(sim, frames: int) -> list[Frame]:
+    """The frames a rollout of ``frames`` frames makes (initial condition excluded)."""
+    recs: list[Frame] = []
+    rollout(sim, frames, on_frame=recs.append)
+    return recs
+
+
+def network_alone(scene, model, frames: int) -> np.ndarray:
+    """The network alone after its MPM warm-up, no failure checks: positions [K + 1, N + B, D]."""
+    return rollout(NeuralSimulator(scene, model, detect_failures=False, mpm_threads=1), frames).positions
 
 
 @pytest.fixture(scope="module")
@@ -74,9 +86,8 @@ def test_rc_zero_is_the_neural_simulator_bit_for_bit(water_model, seed, frames, 
     # failure checks off the hybrid must still be exactly the network alone
     scene = make_scene("water2d", seed=seed)
     sim = HybridSimulator(scene, water_model, r_c=0.0, mpm_threads=1, detect_failures=detect)
-    frames_ = list(sim.step(frames))
-    got = np.stack([sim.initial_frame().positions] + [f.positions for f in frames_])
-    want = run_neural(scene, water_model, frames, seed=0, mpm_threads=1)["positions"]
+    got = rollout(sim, frames).positions
+    want = network_alone(scene, water_model, frames)
     assert np.array_equal(got, want)
     assert sim.stats.steps["mpm"] == water_model.t_in - 1
 
@@ -84,13 +95,14 @@ def test_rc_zero_is_the_neural_simulator_bit_for_bit(water_model, seed, frames, 
 def test_rc_above_one_is_mpm_at_the_same_resolution_bit_for_bit(water_model):
     scene = make_scene("water2d", seed=1001)
     sim = HybridSimulator(scene, water_model, r_c=1.01, mpm_threads=1)
-    frames = list(sim.step(120))
+    frames = frames_of(sim, 120)
     assert {f.solver for f in frames} == {"mpm"}
-    mpm = sim.scene.make_solver(num_threads=1)
+    mpm = sim.scene.make_solver(num_threads=1)  # the solver itself, stepped by hand
     for f in frames:
         for _ in range(sim.r_t):
             mpm.step_frame(sim.dt_frame)
         assert np.array_equal(f.positions[: sim.n_fluid], mpm.positions)
+    assert np.array_equal(rollout(MpmSimulator(scene, r_p=water_model.r_p, r_t=4, threads=1), 120).positions[1:], np.stack([f.positions for f in frames]))
 
 
 # --------------------------------------------------------------- conversion
@@ -101,7 +113,7 @@ def test_round_trip_neural_mpm_neural_keeps_positions_and_velocities():
     hist = np.asarray(scene.positions, np.float32)[None] + np.cumsum(rng.normal(0, 1e-3, (6, scene.num_particles, 2)), 0).astype(np.float32)
     set_ = neural_to_mpm(solver, hist, DT)
     assert solver.num_particles == scene.num_particles
-    back = mpm_history(solver, hist[:-1], 6)
+    back = mpm_history(solver.positions, hist[:-1], 6)
     assert np.array_equal(back, hist)  # positions exact, order kept, none lost or duplicated
     v_back = (back[-1].astype(np.float64) - back[-2]) / DT
     np.testing.assert_allclose(solver.velocities, v_back, rtol=1e-5, atol=1e-6)
@@ -185,10 +197,10 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
 
     scene = make_scene("water2d", seed=1002)
     clean = HybridSimulator(scene, NeuralModel(shipped_model("water2d")), r_c=0.0, mpm_threads=1)
-    ref = list(clean.step(200))
+    ref = frames_of(clean, 200)
     at = 10
     sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=at, how=how), r_c=0.0, mpm_threads=1)
-    frames = list(sim.step(200))
+    frames = frames_of(sim, 200)
     first_bad = sim.t_in - 1 + at - 1  # index in `frames` of the first sabotaged neural step
     k = next(i for i, f in enumerate(frames) if f.event)
     assert frames[k].event == f"fallback:{how}" and frames[k].solver == "mpm"
@@ -197,7 +209,7 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
     for a, b in zip(frames[:first_bad], ref[:first_bad]):
         assert np.array_equal(a.positions, b.positions)
     assert len(frames) == len(ref)
-    lo, hi = sim.solver.domain_bounds
+    lo, hi = sim.mpm.solver.domain_bounds
     last = frames[-1].positions
     assert np.isfinite(last).all() and (last >= lo - 1e-6).all() and (last <= hi + 1e-6).all()
     if how == "compressed":  # the last state kept is still within the bound, the rejected one was not
@@ -206,10 +218,10 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
 
         kept = frames[k - 1].positions  # water2d: no boundary particles, all fluid
         squeezed = kept.mean(0) + 0.95 * (kept - kept.mean(0))
-        assert degree(kept) <= 2.0 * sim._degree0 < degree(squeezed)
+        assert degree(kept) <= 2.0 * sim.initial_degree < degree(squeezed)
     else:  # the step redone by MPM moves particles like the network did before (no jump)
         jump = np.abs(frames[k].positions - frames[k - 1].positions).max()
-        assert jump < 4 * sim.solver.dx
+        assert jump < 4 * sim.mpm.solver.dx
 
 
 def test_mpm_halves_its_substep_on_trouble():
@@ -229,11 +241,12 @@ def test_mpm_halves_its_substep_on_trouble():
 @pytest.mark.parametrize("case", ["fast", "obstacle", "dense"])
 def test_out_of_distribution_scenes_end_finite_and_inside(case, water_model):
     scene = case_scene("water2d", case, seed=7)
-    pos, failure, sim, _ = run_method(scene, "hybrid", 240, water_model, mpm_threads=1)
-    assert failure is None
-    lo, hi = sim.solver.domain_bounds
+    ro, _ = run_method(scene, "hybrid", 240, water_model, threads=1)
+    assert ro.failure is None
+    lo, hi = scene.make_solver(num_threads=1).domain_bounds
+    pos = ro.positions
     assert np.isfinite(pos).all() and (pos >= lo - 1e-6).all() and (pos <= hi + 1e-6).all()
-    assert len(pos) == 240 // sim.r_t + 1
+    assert len(pos) == 240 // ro.r_t + 1
 
 
 def test_stress_cases_change_what_they_say():
@@ -252,12 +265,13 @@ def test_stress_cases_change_what_they_say():
 def test_state_restore_continues_identically(water_model):
     scene = make_scene("water2d", seed=1003)
     sim = HybridSimulator(scene, water_model, r_c=0.8, mpm_threads=1)
-    list(sim.step(200))
+    rollout(sim, 200)
     st = sim.state()
-    a = [f.positions for f in sim.step(400)]
+    a = rollout(sim, 200)
     sim.restore(st)
-    b = [f.positions for f in sim.step(400)]
-    assert len(a) == len(b) == 50 and all(np.array_equal(x, y) for x, y in zip(a, b))
+    b = rollout(sim, 200)
+    assert len(a.positions) == len(b.positions) == 51 and np.array_equal(a.positions, b.positions)
+    assert np.array_equal(a.solver, b.solver) and a.events == b.events
     with pytest.raises(InvalidInputError, match="state"):
         sim.restore({**st, "n_fluid": 1})
 
@@ -274,18 +288,16 @@ def test_bad_parameters_name_the_field(water_model):
 # ------------------------------------------------- the paper's main claim
 def test_hybrid_beats_neural_only_on_water2d_test_seeds(water_model):
     # paper Table 3 / Fig. 7: the MPM fallback lowers the rollout error. Neural-only is the
-    # network alone (run_neural: no safeguard, no failure detection), as in the paper.
-    from hybridmpm.hybrid.stress import reference_rollout
-
+    # network alone (no safeguard, no failure detection), as in the paper.
     frames = 400
     for seed in (1000, 1001):
         scene = make_scene("water2d", seed=seed)
-        nn = run_neural(scene, water_model, frames, seed=0, mpm_threads=1)
-        pos, failure, sim, _ = run_method(scene, "hybrid", frames, water_model, mpm_threads=1)
-        assert failure is None
-        ref = reference_rollout(scene, frames, sim.r_t, threads=1)
-        e_nn = grid_mass_error(nn["positions"], ref, 128).mean()
-        e_hy = grid_mass_error(pos, ref, 128).mean()
+        nn = network_alone(scene, water_model, frames)
+        ro, _ = run_method(scene, "hybrid", frames, water_model, threads=1)
+        assert ro.failure is None
+        ref = reference(scene, frames, stride=ro.r_t, threads=1).fluid_positions
+        e_nn = grid_mass_error(nn, ref, 128).mean()
+        e_hy = grid_mass_error(ro.positions, ref, 128).mean()
         assert e_hy < e_nn, (seed, e_hy, e_nn)
 
 
@@ -310,9 +322,7 @@ def test_simulate_defaults_to_the_hybrid_dam_break_and_writes_every_output(tmp_p
     assert sum(s["share_of_frames"].values()) == pytest.approx(1.0)
     # the reported error is the grid-mass error of the written trajectory against full-resolution MPM
     scene = make_scene("dam_break2d")
-    from hybridmpm.hybrid.stress import reference_rollout
-
-    ref = reference_rollout(scene, 60, 4, threads=1)
+    ref = reference(scene, 60, stride=4, threads=1).fluid_positions
     err = grid_mass_error(tr.positions, ref, 128)
     assert s["reference"]["grid_mass_error"]["mean"] == pytest.approx(err.mean(), rel=1e-6)
     # the PLY sequence holds the trajectory (read back by meshio)
@@ -339,12 +349,10 @@ def test_stress_command_writes_its_table(tmp_path):
 
 def test_reference_rollout_covers_whole_coarse_steps(water_model):
     # 10 frames at r_t = 4: the hybrid runs 3 steps (12 frames); the reference must match them
-    from hybridmpm.hybrid.stress import reference_rollout
-
     scene = make_scene("water2d", seed=4)
-    pos, failure, sim, _ = run_method(scene, "mpm", 10, water_model, mpm_threads=1)
-    ref = reference_rollout(scene, 10, sim.r_t, threads=1)
-    assert len(pos) == len(ref) == 4
+    ro, _ = run_method(scene, "mpm", 10, water_model, threads=1)
+    ref = reference(scene, 10, stride=ro.r_t, threads=1)
+    assert len(ro.positions) == len(ref.positions) == 4
 
 
 def test_a_network_that_keeps_failing_waits_longer_each_time():
@@ -352,7 +360,7 @@ def test_a_network_that_keeps_failing_waits_longer_each_time():
     # the MPM stretch before it gets the flow back doubles (dwell · 2^k)
     scene = make_scene("water2d", seed=1002)
     sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="compressed"), r_c=0.0, dwell=5, mpm_threads=1)
-    frames = list(sim.step(1600))
+    frames = frames_of(sim, 1600)
     fails = [f.step for f in frames if f.event == "fallback:compressed"]
     backs = [f.step for f in frames if f.event == "switch:neural"]
     assert len(fails) >= 3

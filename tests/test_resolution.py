@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hybridmpm.data.resolution import (
+from hybridmpm.scenes.resolution import (
     PAPER_R_P,
     cluster_centroids,
     cluster_particles,

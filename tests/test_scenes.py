@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.scenes import (
     DOMAINS,
-    GNS_KINEMATIC,
     PAPER_FRAMES,
     SceneSpec,
     collider_sdf,

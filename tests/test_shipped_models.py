@@ -9,8 +9,8 @@ import pytest
 
 from hybridmpm.models import shipped_model, shipped_models
 from hybridmpm.neural import NeuralModel
-from hybridmpm.neural.runtime import run_neural
 from hybridmpm.scenes import make_scene
+from hybridmpm.sim import NeuralSimulator, rollout
 
 INDEX = shipped_models()
 HELD_OUT_SEED = 987_654_321  # trajectory seeds come from SeedSequence([S, i]); this one is not among them
@@ -31,8 +31,7 @@ def test_shipped_model_loads_fits_and_rolls_out(scene):
     assert scene in nm.meta["scenes"]
     s = make_scene(scene, seed=HELD_OUT_SEED)
     assert nm.dim == s.dim
-    res = run_neural(s, nm, 100, seed=HELD_OUT_SEED, mpm_threads=1)
-    x = res["positions"]
+    x = rollout(NeuralSimulator(s, nm, seed=HELD_OUT_SEED, detect_failures=False, mpm_threads=1), 100).positions
     assert len(x) == 1 + 100 // nm.r_t
     assert np.isfinite(x).all()
     assert x.min() >= 0.0 and x.max() <= 1.0

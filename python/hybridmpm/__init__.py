@@ -1,36 +1,74 @@
 """hybridmpm: real-time hybrid neural / MLS-MPM fluid simulation.
 
-The Rust core (``hybridmpm._core``) holds the MLS-MPM solver, the radius
-graph and the grid-mass metric; this package gives them a typed API.
-Subpackages: :mod:`hybridmpm.scenes` (scene specs and the paper's domains),
-:mod:`hybridmpm.data` (GNS-layout datasets, ``r_p``/``r_t`` downsampling,
-generation), :mod:`hybridmpm.metrics` (grid-mass error and friends).
+The main path (DESIGN.md "Data flow")::
+
+    scene (make_scene) ─► simulator (MpmSimulator | NeuralSimulator | HybridSimulator)
+        ─► rollout ─► Rollout (a Trajectory) ─► grid_mass_error against reference()
+
+>>> import hybridmpm as hm
+>>> sim = hm.HybridSimulator(hm.make_scene("dam_break2d"))   # shipped model, r_c = 0.8
+>>> ro = hm.rollout(sim, 300)                                # positions [K + 1, N, 2], solver per step
+>>> err = hm.grid_mass_error(ro.fluid_positions, hm.reference(sim.scene_full, 300, stride=sim.r_t).fluid_positions, 128)
+
+Subpackages: :mod:`hybridmpm.sim` (the simulator interface), :mod:`hybridmpm.scenes`
+(scene specs, the paper's domains, ``r_p`` clustering), :mod:`hybridmpm.neural`
+(the GNS: features, model, training, ONNX runtime), :mod:`hybridmpm.data`
+(GNS-layout datasets), :mod:`hybridmpm.metrics`, :mod:`hybridmpm.bench`
+(benchmarks, stress suite, tune), :mod:`hybridmpm.render`; the codes and
+defaults are in :mod:`hybridmpm.conventions`. The Rust core
+(``hybridmpm._core``) holds the MLS-MPM solver, the radius graph and the
+grid-mass metric.
 """
 
 from hybridmpm import _core
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.graph import radius_graph
+from hybridmpm.metrics import grid_mass_error
 from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
+from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.scenes import ParticleSet, Scene, SceneSpec, make_scene
+from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, make_simulator, reference, rollout
 from hybridmpm.trajectory import Trajectory
 
 __version__: str = _core.__version__
 
 __all__ = [
+    "GNS_KINEMATIC",
+    "GNS_SAND",
+    "GNS_WATER",
+    "MATERIAL_SAND",
+    "MATERIAL_WATER",
     "SAND",
     "WATER",
     "Box",
     "CheckpointError",
+    "Frame",
     "HybridMpmError",
+    "HybridSimulator",
     "InvalidInputError",
     "MpmParams",
+    "MpmSimulator",
     "MpmSolver",
+    "NeuralModel",
+    "NeuralSimulator",
+    "ParticleSet",
+    "Rollout",
     "SandParams",
+    "Scene",
+    "SceneSpec",
     "SimulationError",
+    "Simulator",
     "Sphere",
     "Trajectory",
     "WallParams",
     "WaterParams",
     "__version__",
     "grid_mass",
+    "grid_mass_error",
+    "make_scene",
+    "make_simulator",
     "radius_graph",
+    "reference",
+    "rollout",
 ]

@@ -5,14 +5,14 @@
 dam break, hybrid) and writes ``trajectory.npz``, ``summary.json`` and
 ``render.gif`` (hybrid: also ``timeline.png``).
 
-``hybridmpm bench SCENE [--seeds K] [--frames T] [--out DIR] [--peer taichi]``
+``hybridmpm bench SCENE [--seeds K] [--frames T] [--out DIR]``
 runs every method from the same held-out initial conditions and writes
 error-against-latency charts and tables (:func:`hybridmpm.bench.bench`);
 ``hybridmpm tune SCENE --error-budget E`` writes the fastest configuration
 within the budget, which ``simulate SCENE --solver auto`` then uses.
 
 ``hybridmpm stress SCENE`` runs neural-only, MPM-only and hybrid through the
-failure cases of :mod:`hybridmpm.hybrid.stress` and writes a table.
+failure cases of :mod:`hybridmpm.bench.stress` and writes a table.
 
 ``hybridmpm generate SCENE --trajectories M --out DIR`` writes a GNS-layout
 dataset of MPM rollouts (:func:`hybridmpm.data.generate.generate_dataset`);
@@ -36,28 +36,27 @@ from typing import Sequence
 
 import numpy as np
 
+from hybridmpm.conventions import R_C
 from hybridmpm.errors import HybridMpmError
 from hybridmpm.trajectory import Trajectory
 
 
-def _save_trajectory(path: Path, scene, positions: np.ndarray, dt: float, masses: np.ndarray, extras: dict | None = None) -> None:  # type: ignore[no-untyped-def]
-    """``positions`` [T, N + B, D]: ``scene``'s particles, then its boundary particles
-    (mass 0, material -1), written as a :class:`Trajectory` file."""
-    Trajectory(
-        positions=positions,
-        particle_type=scene.particle_type(),
-        dt_frame=dt,
-        n_grid=scene.params.resolved_n_grid(),
-        masses=np.concatenate([np.asarray(masses, np.float32), np.zeros(scene.num_boundary, np.float32)]),
-        material=np.concatenate([np.asarray(scene.material, np.int32), np.full(scene.num_boundary, -1, np.int32)]),
-        extras=extras or {},
-    ).save(path)
+def _ms(seconds: np.ndarray) -> dict[str, float | None]:
+    """Per-frame wall time [s] → median/p95/mean in ms (None for no frames)."""
+    if len(seconds) == 0:
+        return {"median": None, "p95": None, "mean": None}
+    ms = np.asarray(seconds) * 1e3
+    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "mean": float(ms.mean())}
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    """``hybridmpm simulate``: one simulator (:func:`hybridmpm.sim.make_simulator`),
+    one :func:`~hybridmpm.sim.rollout`, then the files."""
     import hybridmpm
-    from hybridmpm.bench.run import run_mpm
+    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.render import export_points, plot_timeline, render_gif
     from hybridmpm.scenes import make_scene
+    from hybridmpm.sim import NEURAL, make_simulator, reference, rollout
 
     scene = make_scene(args.scene, seed=args.seed)
     frames = args.frames if args.frames is not None else scene.frames
@@ -65,78 +64,85 @@ def _simulate(args: argparse.Namespace) -> int:
         _apply_tuned(args, scene.name)
     if frames < 1:
         raise HybridMpmError("frames: must be >= 1")
-    if args.solver != "mpm" and args.r_p != 1.0:
-        raise HybridMpmError(f"r_p: --r-p applies to --solver mpm; the {args.solver} solver runs at its model's r_p")
-    if args.solver == "neural":
-        return _simulate_neural(args, scene, frames)
-    if args.solver == "hybrid":
-        return _simulate_hybrid(args, scene, frames)
-    if args.r_p != 1.0:
-        from hybridmpm.data.resolution import downsample_scene
-
-        scene = downsample_scene(scene, args.r_p, seed=args.seed).scene
+    sim = make_simulator(
+        scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, seed=args.seed, threads=args.threads,
+        nn_threads=max(1, args.threads) if args.solver == "neural" else 1,
+    )  # fmt: skip
+    label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
+    ro = rollout(sim, frames, progress=None if args.quiet else label)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    positions, wall, substeps = run_mpm(scene, frames, args.threads, progress=None if args.quiet else f"{scene.name} [{args.solver}]")
-    sim = scene.make_solver(num_threads=1)  # the masses and grid the rollout used (resolved by the solver)
-    ptype = scene.particle_type()
-    _save_trajectory(out / "trajectory.npz", scene, scene.with_boundary(positions), scene.dt_frame, sim.masses)
-    summary = {
-        "scene": scene.name,
-        "solver": args.solver,
-        "seed": args.seed,
-        "frames": frames,
-        "particles": scene.num_particles,
-        "boundary_particles": scene.num_boundary,
-        "r_p": args.r_p,
-        "dim": scene.dim,
-        "n_grid": sim.n_grid,
-        "dt_frame": scene.dt_frame,
-        "substeps_total": int(substeps.sum()),
-        "substeps_per_frame": {"min": int(substeps.min()), "median": float(np.median(substeps)), "max": int(substeps.max())},
-        "wall_ms_per_frame": {
-            "median": float(np.median(wall) * 1e3),
-            "p95": float(np.percentile(wall, 95) * 1e3),
-            "mean": float(wall.mean() * 1e3),
-        },
-        "realtime_factor": float(scene.dt_frame / np.median(wall)),
-        "threads": args.threads,
-        "version": hybridmpm.__version__,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-    }
+    low = sim.scene
+    per_frame = ro.frame_seconds()
+    steps = ro.stats["steps"]
+    total = max(1, steps["mpm"] + steps[NEURAL])
+    summary: dict = {
+        "scene": scene.name, "solver": args.solver, "seed": args.seed, "frames": ro.frames_done, "frames_asked": frames,
+        "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
+        "dim": low.dim, "n_grid": low.params.resolved_n_grid(), "dt_frame": low.dt_frame, "r_p": float(low.info.get("r_p", 1.0)), "r_t": sim.r_t,
+        "wall_ms_per_frame": _ms(per_frame), "share_of_frames": {k: v / total for k, v in steps.items()}, **ro.stats,
+        "failure": ro.failure, "events": [{"step": k, "frame": k * sim.r_t, "event": e} for k, e in ro.events],
+        "threads": args.threads, "version": hybridmpm.__version__, "python": platform.python_version(), "machine": platform.machine(),
+    }  # fmt: skip
+    if ro.failure:
+        summary["failure_detail"] = ro.failure_detail
+    if args.solver == "mpm":
+        subs = ro.substeps[1:]
+        summary["substeps_total"] = int(subs.sum())
+        summary["substeps_per_frame"] = {"min": int(subs.min()), "median": float(np.median(subs)), "max": int(subs.max())} if len(subs) else None
+        summary["realtime_factor"] = float(low.dt_frame / np.median(per_frame)) if len(per_frame) else None
+    else:
+        model = sim.model  # type: ignore[attr-defined]
+        summary["model"] = str(model.path)
+        summary["warmup_mpm_frames"] = (model.t_in - 1) * model.r_t
+        summary["neural_steps"] = steps[NEURAL]
+    if args.solver == "hybrid":
+        summary.update({"r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell})  # type: ignore[attr-defined]
+    err = None
+    if args.reference:
+        t0 = time.perf_counter()
+        ref = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads).fluid_positions
+        ref_ms = (time.perf_counter() - t0) / max(1, ro.frames_done) * 1e3
+        err = grid_mass_error(ro.fluid_positions, ref[: len(ro.positions)], low.params.resolved_n_grid())
+        summary["reference"] = {
+            "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
+            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
+        }  # fmt: skip
+    ro.save(out / "trajectory.npz")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    title = f"{scene.name} ({args.solver}" + (f", r_c = {args.r_c:g})" if args.solver == "hybrid" else ")")
+    if args.solver == "hybrid":
+        plot_timeline(out / "timeline.png", ro.dt_frame, ro.solver, ro.score, args.r_c, err, title=title)
     if not args.no_render:
-        from hybridmpm.render import render_gif
-
-        render_gif(scene.with_boundary(positions), ptype, out / "render.gif", dt_frame=scene.dt_frame, title=f"{scene.name} ({args.solver})")
-    _export(args, scene.with_boundary(positions), ptype, scene.dt_frame, out)
+        render_gif(ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None)
+    if args.export:
+        export_points(ro.positions, ro.particle_type, out / "export", fmt=args.export, dt=ro.dt_frame, solver=ro.extras["solver"])
     if not args.quiet:
-        print(
-            f"{scene.name}: {frames} frames, {scene.num_particles} particles, "
-            f"median {summary['wall_ms_per_frame']['median']:.2f} ms/frame "
-            f"(p95 {summary['wall_ms_per_frame']['p95']:.2f}), "
-            f"{summary['substeps_per_frame']['median']:.0f} substeps/frame -> {out}/"
-        )
+        ms = summary["wall_ms_per_frame"]
+        line = f"{scene.name}: {ro.frames_done} frames, {low.num_particles} particles"
+        line += f" (r_p {summary['r_p']:g})" if summary["r_p"] < 1 else ""
+        line += f", {args.solver} median {ms['median']:.2f} ms/frame (p95 {ms['p95']:.2f})" if ms["median"] is not None else ""
+        if args.solver == "hybrid":
+            line += f", neural {100 * ro.share(NEURAL):.0f}% of steps, {ro.stats['switches']} switches"
+        if err is not None:
+            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
+        if ro.failure:
+            line += f"; broke off: {ro.failure} ({ro.failure_detail})"
+        print(line + f" -> {out}/")
     return 0
 
 
 def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
     """``--solver auto``: take solver, model, r_p and r_c from the configuration
     ``hybridmpm tune`` wrote (``--tuned``, default tuned/SCENE.json)."""
-    from hybridmpm.bench import load_tuned
+    from hybridmpm.sim import load_tuned, tuned_settings
 
     if args.model is not None or args.r_p != 1.0:
         raise HybridMpmError("solver: --solver auto takes the model, r_p and r_c from the tuned configuration; drop --model/--r-p")
     doc = load_tuned(scene, args.tuned)
+    for key, value in tuned_settings(doc).items():
+        setattr(args, key, value)
     cfg = doc["config"]
-    args.solver = cfg["kind"]
-    if cfg["kind"] == "mpm":
-        args.r_p = float(cfg["r_p"])
-    else:
-        args.model = cfg["model"]
-        if cfg["kind"] == "hybrid":
-            args.r_c = float(cfg["r_c"])
     if not args.quiet:
         m = doc["measured"]
         print(
@@ -160,32 +166,14 @@ def _bench(args: argparse.Namespace) -> int:
 
     if args.seeds < 1:
         raise HybridMpmError("seeds: must be >= 1")
-    if args.peer == "taichi":
-        import importlib.util
-
-        if importlib.util.find_spec("taichi") is None:  # say so before the long run, not after it
-            raise HybridMpmError("peer: Taichi is not installed; pip install 'hybridmpm[bench]'")
     seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
     cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
-    if args.peer == "taichi":  # first, so that bench() writes its line into report.md
-        _taichi_peer(args, Path(args.out) if args.out else Path("runs/bench") / args.scene, seeds[0])
     res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
     if not args.quiet:
         for r in res["rows"]:
             print(f"{r['label']:<48} error {r['error_mean']:.3f}  {r['ms_mean']:7.2f} ms/frame{'  (Pareto)' if r['pareto'] else ''}")
         print(f"Pareto front: {'; '.join(res['pareto'])}\n-> {res['out']}/report.md")
     return 0
-
-
-def _taichi_peer(args: argparse.Namespace, out: Path, seed: int) -> None:
-    """``--peer taichi``: the same scene and seed in Taichi's CPU MLS-MPM, timed in this run (``out/peer_taichi.json``)."""
-    from hybridmpm.bench.peer import taichi_peer
-
-    res = taichi_peer(args.scene, seed, args.frames, args.warmup, threads=args.threads)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "peer_taichi.json").write_text(json.dumps(res, indent=2))
-    if not args.quiet:
-        print(f"peer taichi: {res['ms_mean']:.2f} ms/frame against ours {res['ours_ms_mean']:.2f}")
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -234,127 +222,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simulate_neural(args: argparse.Namespace, scene, frames: int) -> int:  # type: ignore[no-untyped-def]
-    import hybridmpm
-    from hybridmpm.neural import NeuralModel
-    from hybridmpm.neural.runtime import run_neural
-
-    if args.model is None:
-        from hybridmpm.models import shipped_model
-
-        args.model = str(shipped_model(scene.name))
-    model = NeuralModel(args.model, threads=args.threads or 1)
-    res = run_neural(scene, model, frames, seed=args.seed, mpm_threads=args.threads, progress=not args.quiet)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    low = res["scene"]
-    _save_trajectory(out / "trajectory.npz", low, res["positions"], res["dt_stored"], res["masses"])
-    per_frame = res["step_seconds"] / model.r_t
-    summary = {
-        "scene": scene.name, "solver": "neural", "model": str(args.model), "seed": args.seed, "frames": frames,
-        "particles": low.num_particles, "boundary_particles": low.num_boundary, "dim": low.dim, "r_p": model.r_p, "r_t": model.r_t,
-        "warmup_mpm_frames": res["warmup_frames"], "neural_steps": len(per_frame), "mean_edges": res["edges"],
-        "wall_ms_per_frame": {
-            "median": float(np.median(per_frame) * 1e3) if len(per_frame) else None,
-            "p95": float(np.percentile(per_frame, 95) * 1e3) if len(per_frame) else None,
-        },
-        "version": hybridmpm.__version__,
-    }  # fmt: skip
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    if not args.no_render:
-        from hybridmpm.render import render_gif
-
-        render_gif(res["positions"], res["particle_type"], out / "render.gif", dt_frame=res["dt_stored"], title=f"{scene.name} (neural)")
-    _export(args, res["positions"], res["particle_type"], res["dt_stored"], out)
-    if not args.quiet:
-        med = summary["wall_ms_per_frame"]["median"]
-        print(f"{scene.name}: {frames} frames, {low.num_particles} particles, neural median {med if med is None else round(med, 2)} ms/frame -> {out}/")
-    return 0
-
-
-def _export(args: argparse.Namespace, positions: np.ndarray, ptype: np.ndarray, dt: float, out: Path, solver: np.ndarray | None = None) -> None:
-    if args.export:
-        from hybridmpm.export import export_points
-
-        export_points(positions, ptype, out / "export", fmt=args.export, dt=dt, solver=solver)
-
-
-def _simulate_hybrid(args: argparse.Namespace, scene, frames: int) -> int:  # type: ignore[no-untyped-def]
-    from tqdm import tqdm
-
-    import hybridmpm
-    from hybridmpm.hybrid import DWELL, NEURAL, HybridSimulator
-    from hybridmpm.hybrid.plot import plot_timeline
-
-    sim = HybridSimulator(
-        scene, args.model, r_c=args.r_c, dwell=args.dwell if args.dwell is not None else DWELL, seed=args.seed, mpm_threads=args.threads
-    )
-    steps = -(-frames // sim.r_t)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    recs = [sim.initial_frame()]
-    bar = tqdm(total=steps, desc=f"{scene.name} [hybrid r_c={sim.r_c:g}]", unit="step", disable=args.quiet)
-    for fr in sim.step(frames):
-        recs.append(fr)
-        bar.update()
-        bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}", refresh=False)
-    bar.close()
-    low = sim.scene
-    positions = np.stack([r.positions for r in recs])
-    tags = np.array([r.solver for r in recs])
-    solver_code = (tags == NEURAL).astype(np.int8)
-    score = np.array([r.score for r in recs])
-    seconds = np.array([r.seconds for r in recs[1:]])
-    per_frame = seconds / sim.r_t
-    ptype = sim.particle_type
-    summary: dict = {
-        "scene": scene.name, "solver": "hybrid", "model": str(sim.model.path), "seed": args.seed, "frames": steps * sim.r_t,
-        "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
-        "dim": low.dim, "r_p": sim.model.r_p, "r_t": sim.r_t, "r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell,
-        "wall_ms_per_frame": {"median": float(np.median(per_frame) * 1e3), "p95": float(np.percentile(per_frame, 95) * 1e3), "mean": float(per_frame.mean() * 1e3)},
-        "share_of_frames": {k: v / max(1, steps) for k, v in sim.stats.steps.items()},
-        "steps": dict(sim.stats.steps), "switches": sim.stats.switches, "fallbacks": dict(sim.stats.fallbacks),
-        "mpm_retries": sim.stats.mpm_retries,
-        "events": [{"step": r.step, "frame": r.frame, "event": r.event} for r in recs if r.event],
-        "version": hybridmpm.__version__,
-    }  # fmt: skip
-    err = None
-    if args.reference:
-        from hybridmpm.hybrid.stress import reference_rollout
-        from hybridmpm.metrics import grid_mass_error
-
-        t0 = time.perf_counter()
-        ref = reference_rollout(scene, steps * sim.r_t, sim.r_t, args.threads)
-        ref_ms = (time.perf_counter() - t0) / (steps * sim.r_t) * 1e3
-        err = grid_mass_error(positions[:, : sim.n_fluid], ref, low.params.resolved_n_grid())
-        summary["reference"] = {
-            "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
-            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
-        }  # fmt: skip
-    extras = {"solver": solver_code, "score": score, "step_seconds": np.concatenate([[0.0], seconds])}
-    _save_trajectory(out / "trajectory.npz", low, positions, sim.dt_step, sim.masses, extras)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    plot_timeline(out / "timeline.png", sim.dt_step, tags, score, sim.r_c, err, title=f"{scene.name} hybrid (r_c = {sim.r_c:g})")
-    if not args.no_render:
-        from hybridmpm.render import render_gif
-
-        render_gif(positions, ptype, out / "render.gif", dt_frame=sim.dt_step, title=f"{scene.name} (hybrid)", frame_solver=tags)
-    _export(args, positions, ptype, sim.dt_step, out, solver_code)
-    if not args.quiet:
-        share = summary["share_of_frames"]
-        line = (
-            f"{scene.name}: {summary['frames']} frames, {low.num_particles} particles (r_p {sim.model.r_p:g}), hybrid median "
-            f"{summary['wall_ms_per_frame']['median']:.2f} ms/frame (p95 {summary['wall_ms_per_frame']['p95']:.2f}), "
-            f"neural {100 * share.get(NEURAL, 0):.0f}% / MPM {100 * share.get('mpm', 0):.0f}% of frames, {sim.stats.switches} switches"
-        )
-        if err is not None:
-            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
-        print(line + f" -> {out}/")
-    return 0
-
-
 def _stress(args: argparse.Namespace) -> int:
-    from hybridmpm.hybrid.stress import CASES, METHODS, markdown_table, stress
+    from hybridmpm.bench.stress import CASES, METHODS, markdown_table, stress
 
     cases = tuple(args.cases.split(",")) if args.cases else CASES
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
@@ -453,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
-    sim.add_argument("--r-c", type=float, default=0.8, help="hybrid threshold r_c (default 0.8; 0 = neural only, > 1 = MPM only)")
+    sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
     sim.add_argument("--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)")
@@ -494,7 +363,6 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--seeds", type=int, default=3, help="number of held-out seeds (default 3: 1000, 1001, 1002)")
     be.add_argument("--first-seed", type=int, default=None, help="first seed (default 1000, the held-out test seeds)")
     be.add_argument("--out", default=None, help="output directory (default runs/bench/SCENE; resumes finished cells)")
-    be.add_argument("--peer", default=None, choices=["taichi"], help="also time the scene in Taichi's CPU MLS-MPM (needs the 'bench' extra)")
     be.set_defaults(func=_bench)
 
     tu = sub.add_parser("tune", help="the fastest configuration (r_p, r_t, r_c, model) within an error budget, for --solver auto")

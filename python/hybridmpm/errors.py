@@ -7,6 +7,10 @@ binding (``rust/python/src/errors.rs``); input errors also subclass
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
+
 
 class HybridMpmError(Exception):
     """Base class of every hybridmpm error."""
@@ -48,4 +52,14 @@ class CheckpointError(HybridMpmError, ValueError):
     """A checkpoint blob is malformed, truncated or from an incompatible version."""
 
 
-__all__ = ["HybridMpmError", "InvalidInputError", "SimulationError", "CheckpointError"]
+def as_f32(name: str, value: Any) -> np.ndarray:
+    """``value`` as a contiguous float32 array if it is a real floating array
+    (lossless enough for positions); anything else raises
+    :class:`InvalidInputError` naming ``name``."""
+    arr = np.asarray(value)
+    if arr.dtype.kind != "f":
+        raise InvalidInputError(f"{name}: expected a floating-point array, got dtype {arr.dtype}", name)
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+__all__ = ["CheckpointError", "HybridMpmError", "InvalidInputError", "SimulationError", "as_f32"]

@@ -5,13 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from hybridmpm import _core
-from hybridmpm.mpm import _as_f32
-
-DEFAULT_RADIUS = 0.015
+from hybridmpm.conventions import CONNECTIVITY_RADIUS
+from hybridmpm.errors import as_f32
 
 
 def radius_graph(
-    positions: np.ndarray, radius: float = DEFAULT_RADIUS, *, self_edges: bool = True, max_neighbors: int | None = None
+    positions: np.ndarray, radius: float = CONNECTIVITY_RADIUS, *, self_edges: bool = True, max_neighbors: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """All particle pairs within the connectivity radius ``R`` (cell list, Rust).
 
@@ -23,7 +22,7 @@ def radius_graph(
     ``max_neighbors`` keeps each receiver's nearest senders (ties to the lower
     index). Raises :class:`~hybridmpm.errors.InvalidInputError` naming the field.
     """
-    return _core.radius_graph(_as_f32("positions", positions), float(radius), self_edges=self_edges, max_neighbors=max_neighbors)
+    return _core.radius_graph(as_f32("positions", positions), float(radius), self_edges=self_edges, max_neighbors=max_neighbors)
 
 
-__all__ = ["DEFAULT_RADIUS", "radius_graph"]
+__all__ = ["radius_graph"]

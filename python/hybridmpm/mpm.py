@@ -15,7 +15,10 @@ Example
 >>> x = np.random.default_rng(0).uniform(0.3, 0.5, (500, 2)).astype(np.float32)
 >>> sim.add_particles(x, WATER)
 500
->>> stats = sim.step_frame()   # one 2.5 ms frame
+
+Frames are advanced by the simulators of :mod:`hybridmpm.sim`
+(:class:`~hybridmpm.sim.MpmSimulator` wraps this solver; ``rollout`` is the
+one frame loop), which call :meth:`MpmSolver.step_frame`.
 """
 
 from __future__ import annotations
@@ -29,14 +32,13 @@ from typing import Any, Literal, Sequence
 import numpy as np
 
 from hybridmpm import _core
-from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.errors import CheckpointError, InvalidInputError, as_f32 as _as_f32
 
-#: Material codes of the solver.
-WATER = 0
-SAND = 1
-
-#: Default frame length [s] (DESIGN.md: a frame is 2.5 ms of simulated time).
-DT_FRAME = 2.5e-3
+#: Solver material codes, short names for :data:`~hybridmpm.conventions.MATERIAL_WATER`
+#: and :data:`~hybridmpm.conventions.MATERIAL_SAND` (not the GNS particle types).
+WATER = MATERIAL_WATER
+SAND = MATERIAL_SAND
 
 Condition = Literal["sticky", "slip", "separate"]
 
@@ -142,7 +144,7 @@ class MpmParams:
     colliders: list[Box | Sphere] = field(default_factory=list)
 
     def resolved_n_grid(self) -> int:
-        return int(self.n_grid) if self.n_grid is not None else (128 if self.dim == 2 else 64)
+        return int(self.n_grid) if self.n_grid is not None else DEFAULT_N_GRID.get(self.dim, DEFAULT_N_GRID[2])
 
     def to_dict(self) -> dict[str, Any]:
         """The plain dict the Rust binding takes (JSON-serialisable)."""
@@ -184,15 +186,6 @@ class MpmParams:
             colliders=cols,
             **d,
         )
-
-
-def _as_f32(name: str, value: Any) -> np.ndarray:
-    """Convert real floating arrays to float32 (lossless enough for positions);
-    reject anything else with an error naming the field."""
-    arr = np.asarray(value)
-    if arr.dtype.kind != "f":
-        raise InvalidInputError(f"{name}: expected a floating-point array, got dtype {arr.dtype}", name)
-    return np.ascontiguousarray(arr, dtype=np.float32)
 
 
 _MAGIC = b"HMPMPY01"
@@ -293,10 +286,6 @@ class MpmSolver:
         if not (isinstance(dt_frame, (int, float)) and math.isfinite(dt_frame) and dt_frame > 0):
             raise InvalidInputError(f"dt_frame: must be a finite number > 0, got {dt_frame!r}", "dt_frame")
         return self._core.step_frame(float(dt_frame))  # type: ignore[no-any-return]
-
-    def step_frames(self, frames: int, dt_frame: float = DT_FRAME) -> np.ndarray:
-        """Advance ``frames`` frames in one call; returns substeps per frame (int64 [frames])."""
-        return self._core.step_frames(int(frames), float(dt_frame))  # type: ignore[no-any-return]
 
     def substeps_for(self, dt_frame: float = DT_FRAME) -> int:
         return int(self._core.substeps_for(float(dt_frame)))

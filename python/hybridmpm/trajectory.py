@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.particle_types import KINEMATIC
+from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
 RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material")

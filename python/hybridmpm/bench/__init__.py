@@ -1,4 +1,4 @@
-"""Benchmarks: error against latency for every method (issue 6; paper Fig. 5,
+"""Benchmarks: error against latency for every method (paper Fig. 5,
 Fig. 7, Fig. 8, Table 2), and the cheapest configuration within an error
 budget.
 
@@ -22,6 +22,7 @@ from hybridmpm.bench.methods import R_C_SWEEP, Method, methods_for
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
 from hybridmpm.bench.tune import choose, load_tuned, tuned_path, write_tuned
+from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
 
 
@@ -45,7 +46,7 @@ def bench(
     warmup: int = WARMUP_FRAMES,
     mpm_threads: int = 0,
     nn_threads: int = 1,
-    trajectory_r_c: float = 0.8,
+    trajectory_r_c: float = R_C,
     command: str | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -97,7 +98,7 @@ def bench(
     files["error_trajectory.png"] = "error over time; frames the hybrid ran on MPM shaded"
     cmd = command or f"hybridmpm bench {scene}"
     text = report.report_markdown(scene, settings, env, seeds, rows, cmd, files)
-    if (out / "peer_taichi.json").is_file():  # written by `hybridmpm bench --peer taichi`
+    if (out / "peer_taichi.json").is_file():  # written by `python benchmarks/taichi_peer.py --bench-scene SCENE`
         text += report.peer_markdown(json.loads((out / "peer_taichi.json").read_text()))
     (out / "report.md").write_text(text)
     return {

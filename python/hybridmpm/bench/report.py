@@ -12,7 +12,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from hybridmpm.bench.methods import Method
-from hybridmpm.hybrid.plot import mpm_spans
+from hybridmpm.render.timeline import mpm_spans
 
 #: Columns of ``results.csv`` (one row per method × seed).
 RESULT_COLUMNS = (
@@ -253,11 +253,11 @@ def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], s
 
 
 def peer_markdown(res: dict[str, Any]) -> str:
-    """The report's section on the Taichi peer (``peer_taichi.json``, :func:`hybridmpm.bench.peer.taichi_peer`)."""
+    """The report's section on the Taichi peer (``peer_taichi.json``, ``benchmarks/taichi_peer.py --bench-scene``)."""
     return (
         "\n## Peer: Taichi CPU MLS-MPM (same scene, seed and run)\n\n"
         f"Taichi {res['taichi']} ({res['arch']}, {res['threads']} threads): {res['particles']} particles, "
         f"mean {res['ms_mean']:.2f} ms/frame (median {res['ms_median']:.2f}, p95 {res['ms_p95']:.2f}) against our MPM at full "
         f"resolution {res['ours_ms_mean']:.2f} ms/frame in the same run: ratio {res['ms_mean'] / res['ours_ms_mean']:.2f}. "
-        "Taichi's MPM here is the textbook MLS-MPM (same grid, substeps, materials approximated: see hybridmpm.bench.peer).\n"
+        "Taichi's MPM here is the textbook MLS-MPM (same grid, substeps, materials approximated: see benchmarks/taichi_peer.py).\n"
     )

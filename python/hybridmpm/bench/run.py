@@ -17,18 +17,19 @@ is the throughput a user sees and is what the charts plot.
 from __future__ import annotations
 
 import json
-import os
-import platform
-import subprocess
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hybridmpm.bench.cost import gnn_flops
+from hybridmpm.bench.env import environment
 from hybridmpm.bench.methods import Method
 from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.metrics import grid_mass_error
+from hybridmpm.scenes import make_scene
+from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 #: Held-out seeds: trajectory seeds of generated datasets are 31-bit hashes
 #: (:func:`hybridmpm.data.generate.trajectory_seed`), so small integers never
@@ -82,42 +83,6 @@ class BenchConfig:
         return {"scene": self.scene, "frames": self.frames, "warmup": self.warmup, "mpm_threads": self.mpm_threads, "nn_threads": self.nn_threads}
 
 
-def git_commit() -> str:
-    """The repository's HEAD commit, with ``-dirty`` if the code (tracked files
-    under ``python/`` or ``rust/``) differs from it; recorded results being
-    rewritten do not count (``unknown`` outside a git checkout)."""
-    try:
-        here = Path(__file__).resolve().parent
-        out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
-        head = out.stdout.strip()
-        if not head:
-            return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":/python", ":/rust"], cwd=here, capture_output=True, text=True, timeout=10)
-        return head + ("-dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def environment() -> dict[str, Any]:
-    """Machine and versions recorded with every result row."""
-    import numpy
-    import onnxruntime
-
-    import hybridmpm
-
-    from hybridmpm.bench.taichi_peer import cpu_model  # standalone helper (no taichi import)
-
-    return {
-        "machine": f"{platform.machine()} {cpu_model()}",
-        "cores": os.cpu_count() or 0,
-        "hybridmpm": hybridmpm.__version__,
-        "numpy": numpy.__version__,
-        "onnxruntime": onnxruntime.__version__,
-        "python": platform.python_version(),
-        "commit": git_commit(),
-    }
-
-
 def _latency(per_frame: np.ndarray) -> dict[str, float]:
     if len(per_frame) == 0:
         return {"ms_median": float("nan"), "ms_p95": float("nan"), "ms_mean": float("nan")}
@@ -125,123 +90,79 @@ def _latency(per_frame: np.ndarray) -> dict[str, float]:
     return {"ms_median": float(np.median(ms)), "ms_p95": float(np.percentile(ms, 95)), "ms_mean": float(ms.mean())}
 
 
-def run_mpm(scene: Any, frames: int, threads: int, progress: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Plain MPM rollout of ``scene``: positions every frame float32
-    [frames + 1, N, D], wall seconds per frame [frames] and substeps per
-    frame [frames]; ``progress`` the description of a progress bar (None:
-    no bar). Raises :class:`SimulationError` if MPM fails."""
-    from tqdm import tqdm
-
-    sim = scene.make_solver(num_threads=threads)
-    pos = np.empty((frames + 1, scene.num_particles, scene.dim), np.float32)
-    pos[0] = sim.positions
-    wall = np.empty(frames)
-    subs = np.empty(frames, np.int64)
-    for f in tqdm(range(frames), desc=progress, unit="frame", disable=progress is None):
-        t0 = time.perf_counter()
-        st = sim.step_frame(scene.dt_frame)
-        wall[f] = time.perf_counter() - t0
-        subs[f] = int(st["substeps"])
-        pos[f + 1] = sim.positions
-    return pos, wall, subs
-
-
-def reference(cfg: BenchConfig, seed: int, cells: Path) -> np.ndarray:
+def reference_cell(cfg: BenchConfig, seed: int, cells: Path) -> np.ndarray:
     """Full-resolution MPM positions of ``seed`` every frame [frames + 1, N, D],
     cached in ``cells/ref_seed<S>.npz`` together with the ``mpm_full`` cell
     (its timing); both are (re)made when either is missing."""
-    from hybridmpm.scenes import make_scene
-
     path, cell = cells / f"ref_seed{seed}.npz", cells / f"mpm_full_seed{seed}.json"
     if path.is_file() and cell.is_file():
         with np.load(path) as z:
             if int(z["frames"]) == cfg.frames:
                 return np.asarray(z["positions"])
     scene = make_scene(cfg.scene, seed=seed)
-    pos, wall, subs = run_mpm(scene, cfg.frames, cfg.mpm_threads)
+    ro = reference(scene, cfg.frames, threads=cfg.mpm_threads)
+    pos = ro.fluid_positions
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, positions=pos, frames=np.int64(cfg.frames))
     tmp.replace(path)
-    _write_json(cell, _reference_record(cfg, seed, scene.num_particles, wall, subs))
+    _write_json(cell, _reference_record(cfg, seed, scene.num_particles, ro))
     return pos
+
+
+def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) -> Simulator:
+    """The simulator of a benchmarked method (the network alone without the
+    hybrid's failure checks: it breaks off at :data:`COLLAPSE_FACTOR` instead)."""
+    if method.kind == "mpm":
+        return MpmSimulator(scene, r_p=method.r_p, seed=seed, threads=cfg.mpm_threads)
+    if method.kind == "neural":
+        return NeuralSimulator(scene, method.model, seed=seed, detect_failures=False, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads)
+    return HybridSimulator(scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads)
+
+
+def collapsed(frame: Any, sim: Any) -> str | None:
+    """Stop rule of a network run alone: "collapsed" once its graph holds
+    :data:`COLLAPSE_FACTOR` × the initial neighbours per particle."""
+    return "collapsed" if sim.mean_degree > COLLAPSE_FACTOR * sim.initial_degree else None
 
 
 def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> dict[str, Any]:
     """One method on one seed: the cell's record (errors per stored frame,
-    solver per stored frame, latency, MPM share, switches, failure)."""
-    from hybridmpm.bench.cost import gnn_flops
-    from hybridmpm.data.resolution import downsample_scene
-    from hybridmpm.hybrid import NEURAL, HybridSimulator
-    from hybridmpm.metrics import grid_mass_error
-    from hybridmpm.scenes import make_scene
-
+    solver per stored frame, latency, MPM share, switches, failure).
+    Raises :class:`SimulationError` if an MPM method fails."""
     scene = make_scene(cfg.scene, seed=seed)
-    n_grid = scene.params.resolved_n_grid()
-    failure = None
+    sim = method_simulator(method, scene, seed, cfg)
+    ro = rollout(sim, cfg.frames, stop=collapsed if method.kind == "neural" else None)
+    if method.kind == "mpm" and ro.failure is not None:
+        raise SimulationError(f"{method.key} seed {seed}: {ro.failure_detail or ro.failure}")
+    steps = ro.stats["steps"]
     if method.kind == "mpm":
-        low = downsample_scene(scene, method.r_p, seed=seed).scene if method.r_p < 1.0 else scene
-        try:
-            pos, wall, subs = run_mpm(low, cfg.frames, cfg.mpm_threads)
-        except SimulationError as e:
-            raise SimulationError(f"{method.key} seed {seed}: {e}") from e
-        frames_of = np.arange(len(pos))
-        per_frame = wall[cfg.warmup :]
-        solver = np.zeros(len(pos), np.int8)
-        particles, switches, share = low.num_particles, 0, 1.0
-        substeps, mflop = float(subs.mean()), 0.0
+        substeps, mflop = float(ro.substeps[1:].mean()), 0.0
     else:
-        r_c = 0.0 if method.kind == "neural" else float(method.r_c or 0.0)
-        sim = HybridSimulator(
-            scene, method.model, r_c=r_c, seed=seed, detect_failures=method.kind != "neural", mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads
-        )
-        out = [np.asarray(sim.initial_frame().positions[: sim.n_fluid])]
-        tags, secs = [False], []  # the initial condition is MPM's
-        try:
-            for fr in sim.step(cfg.frames):
-                p = np.asarray(fr.positions[: sim.n_fluid])
-                if not np.isfinite(p).all():
-                    failure = "nan"
-                    break
-                out.append(p)
-                tags.append(fr.solver == NEURAL)
-                secs.append((fr.frame, fr.seconds))
-                if method.kind == "neural" and sim.mean_degree > COLLAPSE_FACTOR * sim.initial_degree:
-                    failure = "collapsed"
-                    break
-        except SimulationError:
-            failure = "mpm"
-        pos = np.stack(out)
-        frames_of = np.arange(len(pos)) * sim.r_t
-        per_frame = np.array([s / sim.r_t for f, s in secs if f > cfg.warmup])
-        per_frame = np.repeat(per_frame, sim.r_t)
-        solver = np.array(tags, np.int8)
-        particles, switches = sim.n_fluid, sim.stats.switches
-        steps = sim.stats.steps
-        share = steps["mpm"] / max(1, steps["mpm"] + steps[NEURAL])
         # the network's arithmetic per frame on the initial graph (nodes: fluid and boundary particles)
-        meta = sim.model.meta
-        nodes = len(sim.particle_type)
-        flops = gnn_flops(int(meta["latent"]), int(meta["layers"]), sim.scene.dim, nodes, int(round(sim._degree0 * nodes)), sim.t_in)
+        meta = sim.model.meta  # type: ignore[attr-defined]
+        nodes = sim.particles.num_total
+        flops = gnn_flops(int(meta["latent"]), int(meta["layers"]), sim.scene.dim, nodes, int(round(sim.initial_degree * nodes)), sim.t_in)  # type: ignore[attr-defined]
         substeps, mflop = float("nan"), flops / sim.r_t / 1e6
+    frames_of = ro.frame_index
     keep = frames_of <= cfg.frames
-    pos, frames_of, solver = pos[keep], frames_of[keep], solver[keep]
-    err = grid_mass_error(pos, ref[frames_of], n_grid)
+    pos, frames_of, neural = ro.fluid_positions[keep], frames_of[keep], (ro.solver[keep] == NEURAL).astype(np.int8)
+    err = grid_mass_error(pos, ref[frames_of], scene.params.resolved_n_grid())
     return {
-        "method": method.key, "seed": int(seed), "particles": int(particles), "frames_done": int(frames_of[-1]),
-        "failure": failure, "error_mean": float(err.mean()), "error_last": float(err[-1]),
-        **_latency(per_frame), "mpm_share": float(share), "switches": int(switches),
-        "substeps_per_frame": substeps, "mflop_per_frame": mflop,
-        "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": solver.tolist()},
+        "method": method.key, "seed": int(seed), "particles": int(ro.num_fluid), "frames_done": int(frames_of[-1]),
+        "failure": ro.failure, "error_mean": float(err.mean()), "error_last": float(err[-1]),
+        **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": steps["mpm"] / max(1, steps["mpm"] + steps[NEURAL]),
+        "switches": int(ro.stats["switches"]), "substeps_per_frame": substeps, "mflop_per_frame": mflop,
+        "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": neural.tolist()},
     }  # fmt: skip
 
 
-def _reference_record(cfg: BenchConfig, seed: int, particles: int, wall: np.ndarray, subs: np.ndarray) -> dict[str, Any]:
+def _reference_record(cfg: BenchConfig, seed: int, particles: int, ro: Rollout) -> dict[str, Any]:
     """The ``mpm_full`` cell: the reference itself (error 0 by definition) and its timing."""
     n = cfg.frames + 1
     return {
         "method": "mpm_full", "seed": int(seed), "particles": int(particles), "frames_done": cfg.frames, "failure": None,
-        "error_mean": 0.0, "error_last": 0.0, **_latency(wall[cfg.warmup :]), "mpm_share": 1.0, "switches": 0,
-        "substeps_per_frame": float(np.mean(subs)), "mflop_per_frame": 0.0,
+        "error_mean": 0.0, "error_last": 0.0, **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": 1.0, "switches": 0,
+        "substeps_per_frame": float(np.mean(ro.substeps[1:])), "mflop_per_frame": 0.0,
         "series": {"frame": list(range(n)), "error": [0.0] * n, "neural": [0] * n},
     }  # fmt: skip
 
@@ -287,7 +208,7 @@ def run_bench(
     for m, s in todo:
         bar.set_postfix_str(f"{m.key} seed {s}", refresh=True)
         if s not in refs:
-            refs = {s: reference(cfg, s, cells)}  # one seed's reference in memory at a time; writes the mpm_full cell
+            refs = {s: reference_cell(cfg, s, cells)}  # one seed's reference in memory at a time; writes the mpm_full cell
         path = cells / f"{m.key}_seed{s}.json"
         if not path.is_file():
             _write_json(path, run_cell(m, cfg, s, refs[s]))

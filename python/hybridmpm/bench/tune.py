@@ -20,11 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.sim.config import CONFIG_KEYS, load_tuned, tuned_path
 
-#: Default location of a tuned configuration, relative to the working directory.
-TUNED_DIR = Path("tuned")
-#: Keys of a configuration (the chosen method) in the tuned file.
-CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params")
 
 
 def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean") -> dict[str, Any]:
@@ -43,11 +40,6 @@ def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean"
         best = min((r[metric] for r in rows if math.isfinite(r[metric])), default=float("nan"))
         raise InvalidInputError(f"error_budget: no configuration has {metric} <= {budget:g} (the lowest is {best:.4g})", "error_budget")
     return min(ok, key=lambda r: (r["ms_mean"], r[metric]))
-
-
-def tuned_path(scene: str, path: str | Path | None = None) -> Path:
-    """Where the tuned configuration of ``scene`` lives (``tuned/SCENE.json`` by default)."""
-    return Path(path) if path is not None else TUNED_DIR / f"{scene}.json"
 
 
 def write_tuned(path: Path, scene: str, budget: float, metric: str, chosen: dict[str, Any], rows: list[dict[str, Any]], seeds: list[int], settings: dict[str, Any]) -> dict[str, Any]:
@@ -73,23 +65,3 @@ def write_tuned(path: Path, scene: str, budget: float, metric: str, chosen: dict
     return doc
 
 
-def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
-    """Read the tuned configuration of ``scene``. Raises
-    :class:`InvalidInputError` (field ``tuned``) if the file is missing,
-    malformed, or made for another scene."""
-    p = tuned_path(scene, path)
-    if not p.is_file():
-        raise InvalidInputError(f"tuned: no tuned configuration at {p}; run `hybridmpm tune {scene} --error-budget E` first", "tuned")
-    try:
-        doc = json.loads(p.read_text())
-        cfg = doc["config"]
-        kind = cfg["kind"]
-    except (ValueError, KeyError, TypeError) as e:
-        raise InvalidInputError(f"tuned: {p} is not a tuned configuration ({e})", "tuned") from e
-    if doc.get("scene") != scene:
-        raise InvalidInputError(f"tuned: {p} was tuned for {doc.get('scene')!r}, not {scene!r}", "tuned")
-    if kind not in ("mpm", "neural", "hybrid"):
-        raise InvalidInputError(f"tuned: {p} has unknown solver kind {kind!r}", "tuned")
-    if kind != "mpm" and not (cfg.get("model") and Path(cfg["model"]).is_file()):
-        raise InvalidInputError(f"tuned: the model {cfg.get('model')!r} of {p} does not exist", "tuned")
-    return dict(doc)

@@ -3,7 +3,7 @@
 ``hybridmpm generate SCENE --trajectories M --out DIR`` runs :func:`generate_dataset`:
 trajectory ``i`` starts from the scene's random initial condition for the seed
 ``trajectory_seed(S, i)``, optionally downsampled to ``r_p`` (k-means, see
-:mod:`hybridmpm.data.resolution`) and stored every ``r_t`` frames. Trajectories
+:mod:`hybridmpm.scenes.resolution`) and stored every ``r_t`` frames. Trajectories
 run in parallel worker processes (or on a Ray cluster, ``executor="ray"``);
 each finished one is written atomically to ``DIR/parts/`` so an interrupted run
 resumes without redoing finished work, and the result is byte-identical to an
@@ -34,11 +34,11 @@ from typing import Any, Callable, Iterator, Literal, Mapping
 
 import numpy as np
 
-from hybridmpm.errors import HybridMpmError, InvalidInputError
-from hybridmpm.mpm import SAND, WATER
-from hybridmpm.scenes import DOMAINS, GNS_KINEMATIC, GNS_TYPE, SceneSpec, scene_spec
-
-SPLITS = ("train", "valid", "test")
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, SPLITS
+from hybridmpm.errors import HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.scenes import DOMAINS, SceneSpec, scene_spec
+from hybridmpm.scenes.resolution import check_r_p, check_r_t, cluster_centroids, downsample_scene
+from hybridmpm.sim import MpmSimulator, rollout
 LowRes = Literal["simulate", "centroids"]
 Executor = Literal["process", "ray"]
 
@@ -74,8 +74,6 @@ class GenerateConfig:
     split: tuple[float, float, float] = (0.8, 0.1, 0.1)
 
     def validate(self) -> GenerateConfig:
-        from hybridmpm.data.resolution import check_r_p, check_r_t
-
         if self.scene not in DOMAINS:
             raise InvalidInputError(f"scene: unknown scene {self.scene!r} (available: {', '.join(sorted(DOMAINS))})", "scene")
         if not isinstance(self.trajectories, int) or self.trajectories < 3:
@@ -131,11 +129,10 @@ def simulate_trajectory(
     particles, then static boundary particles), ``particle_type`` int64
     [N_l + B], ``material`` int32 [N_l], ``masses`` float32 [N_l] (kg),
     ``spec`` (the scene spec as a dict), ``seed``, ``n_h`` (particles before
-    downsampling), ``substeps`` (total MPM substeps), ``wall_s``.
+    downsampling), ``substeps`` (total MPM substeps over the ``(T//r_t)·r_t``
+    frames run), ``wall_s``.
     Raises :class:`~hybridmpm.errors.SimulationError` if MPM fails.
     """
-    from hybridmpm.data.resolution import cluster_centroids, downsample_scene
-
     t0 = time.perf_counter()
     spec = scene_spec(scene, seed=seed, frames=frames) if isinstance(scene, str) else scene
     full = spec.build()
@@ -144,15 +141,13 @@ def simulate_trajectory(
         run_scene, labels = full, down.labels
     else:
         run_scene, labels = down.scene, None
-    sim = run_scene.make_solver(num_threads=num_threads)
-    stored = [sim.positions]
-    substeps = 0
-    for f in range(1, frames + 1):
-        substeps += int(sim.step_frame(run_scene.dt_frame)["substeps"])
-        if f % r_t == 0:
-            stored.append(sim.positions)
-    traj = np.stack(stored)
-    masses = np.asarray(sim.masses, np.float32)
+    sim = MpmSimulator(run_scene, r_t=r_t, threads=num_threads)
+    ro = rollout(sim, (frames // r_t) * r_t)
+    if ro.failure is not None:
+        raise SimulationError(f"MPM failed after {ro.frames_done} frames: {ro.failure_detail or ro.failure}")
+    traj = ro.fluid_positions
+    substeps = int(ro.substeps.sum())
+    masses = np.asarray(sim.particles.masses, np.float32)
     if labels is not None:  # follow the clusters of the full-resolution rollout
         traj = cluster_centroids(traj, labels, masses)
         masses = np.asarray(down.scene.masses, np.float32)
@@ -173,8 +168,6 @@ def simulate_trajectory(
 def _task(args: tuple[str, int, int, int, float, int, str, int]) -> tuple[int, dict[str, Any]]:
     """One trajectory; an MPM failure is returned as ``{"error": message}`` so
     that it does not stop the other trajectories."""
-    from hybridmpm.errors import SimulationError
-
     scene, index, seed, frames, r_p, r_t, lowres, threads = args
     try:
         return index, simulate_trajectory(scene, seed, frames, r_p, r_t, lowres, num_threads=threads)  # type: ignore[arg-type]
@@ -456,7 +449,7 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
         "r_p": config.r_p,
         "r_t": config.r_t,
         "lowres": config.lowres,
-        "particle_types": {"boundary": GNS_KINEMATIC, "water": GNS_TYPE[WATER], "sand": GNS_TYPE[SAND]},
+        "particle_types": {"boundary": GNS_KINEMATIC, "water": GNS_WATER, "sand": GNS_SAND},
         "trajectories": {s: len(by_split[s]) for s in SPLITS},
         "seed": config.seed,
         "sha256": hashes,

@@ -11,8 +11,8 @@ dataset is a directory holding
   ``(positions, particle_type)`` or ``(positions, particle_type,
   material_properties)`` with positions float32 ``[T, N, D]`` (``T =
   sequence_length + 1`` stored frames) and particle_type int64 ``[N]`` (GNS
-  codes: :data:`KINEMATIC` 3 for boundary/obstacle particles, :data:`WATER` 5,
-  :data:`SAND` 6). geoelements also reads a variant with a single member
+  codes: :data:`KINEMATIC` 3 for boundary/obstacle particles, :data:`GNS_WATER` 5,
+  :data:`GNS_SAND` 6). geoelements also reads a variant with a single member
   ``gns_data``, an object array of such tuples.
 * ``metadata.json``: ``bounds`` ``[[lo, hi]] * D``, ``sequence_length``,
   ``default_connectivity_radius``, ``dim``, ``dt`` (seconds between stored
@@ -47,9 +47,9 @@ import numpy as np
 from numpy.lib import format as npformat
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.particle_types import KINEMATIC, SAND, WATER
+from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
+from hybridmpm.conventions import GNS_SAND, GNS_WATER, SPLITS
 
-SPLITS: tuple[str, ...] = ("train", "valid", "test")
 """The split names of a GNS dataset directory, in canonical order."""
 
 METADATA_FILE = "metadata.json"
@@ -86,7 +86,7 @@ class GnsTrajectory(NamedTuple):
         stored frames (simulation units, the unit domain here).
     particle_type:
         int64 ``[N]``: GNS particle type per particle (:data:`KINEMATIC`,
-        :data:`WATER`, :data:`SAND`, ...).
+        :data:`GNS_WATER`, :data:`GNS_SAND`, ...).
     material_properties:
         The optional third element of the stored tuple (geoelements' material
         feature, any numeric array) or ``None``. Kept as read.
@@ -782,9 +782,9 @@ __all__ = [
     "KINEMATIC",
     "METADATA_FILE",
     "REQUIRED_METADATA",
-    "SAND",
+    "GNS_SAND",
     "SPLITS",
-    "WATER",
+    "GNS_WATER",
     "GnsDataset",
     "GnsTrajectory",
     "SplitNotFoundError",

@@ -1,6 +1,6 @@
 """Constants shared by the torch model, the exporter and the onnxruntime runtime (no torch import)."""
 
-from hybridmpm.particle_types import KINEMATIC
+from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
 
 #: Version of the feature construction inside exported models (bump on any change).
 FEATURE_VERSION = 1

@@ -1,17 +1,14 @@
-"""The neural simulator at run time: numpy + onnxruntime (no torch).
+"""The network at run time: numpy + onnxruntime (no torch).
 
 :class:`NeuralModel` wraps an exported GNS (see :mod:`hybridmpm.neural.export`)
-and its metadata; :class:`NeuralSimulator` keeps the position history, builds
-the radius graph with the Rust cell list each step, runs onnxruntime and
-returns the next positions (paper Sec. 2.2, App. A). One neural step advances
-``r_t`` frames of ``dt_frame``.
+and its metadata, and predicts one model step (``r_t`` frames) from a position
+history (paper Sec. 2.2, App. A). The simulator that rolls it out is
+:class:`hybridmpm.sim.NeuralSimulator`.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +16,8 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, METADATA_KEY
+from hybridmpm.conventions import GNS_KINEMATIC, T_IN
+from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
 
 
 class NeuralModel:
@@ -75,14 +73,14 @@ class NeuralModel:
 
     @property
     def t_in(self) -> int:
-        return int(self.meta.get("t_in", 6))
+        return int(self.meta.get("t_in", T_IN))
 
     def check_fits(self, dim: int, particle_type: np.ndarray, scene: str | None = None) -> None:
         """Raise :class:`InvalidInputError` (field ``model``) if the model cannot
         simulate particles of this dimension and these types (or this scene family)."""
         if dim != self.dim:
             raise InvalidInputError(f"model: {self.path.name} is a {self.dim}D model, the scene is {dim}D", "model")
-        known = set(int(t) for t in self.meta.get("particle_types", [])) | {KINEMATIC}
+        known = set(int(t) for t in self.meta.get("particle_types", [])) | {GNS_KINEMATIC}
         unknown = sorted(set(int(t) for t in np.unique(particle_type)) - known)
         if unknown:
             raise InvalidInputError(f"model: {self.path.name} was trained on particle types {sorted(known)}, not {unknown}", "model")
@@ -111,154 +109,4 @@ class NeuralModel:
         return acc, nxt, (s, r)
 
 
-class NeuralSimulator:
-    """Roll out a GNS model from a position history.
-
-    ``model`` a :class:`NeuralModel` or a path; ``history`` float [T_in, N, D]
-    (oldest first, ``r_t`` frames apart, metres); ``particle_type`` int [N].
-    :meth:`step` advances one model step (``r_t`` frames) and returns float32
-    positions [N, D]. With ``clamp`` (default) predicted positions are clipped
-    to the model's domain ``bounds`` (the walls, which the network only sees
-    through its wall-distance features); ``last_clamped`` counts the
-    particles clipped in the last step (a sign of a failing model). Raises :class:`InvalidInputError` for shapes, NaN, or a
-    model that does not fit.
-    """
-
-    def __init__(
-        self,
-        model: NeuralModel | str | Path,
-        history: np.ndarray,
-        particle_type: np.ndarray,
-        *,
-        scene: str | None = None,
-        max_neighbors: int | None = None,
-        clamp: bool = True,
-    ) -> None:
-        self.model = model if isinstance(model, NeuralModel) else NeuralModel(model)
-        h = np.asarray(history, dtype=np.float32)
-        t_in = self.model.t_in
-        if h.ndim != 3 or h.shape[0] != t_in or h.shape[2] not in (2, 3):
-            raise InvalidInputError(f"history: expected shape [{t_in}, N, D], got {h.shape}", "history")
-        if not np.all(np.isfinite(h)):
-            raise InvalidInputError("history: contains NaN or inf", "history")
-        pt = np.asarray(particle_type)
-        if pt.shape != (h.shape[1],) or not np.issubdtype(pt.dtype, np.integer):
-            raise InvalidInputError(f"particle_type: expected {h.shape[1]} integers, got shape {pt.shape}", "particle_type")
-        self.model.check_fits(h.shape[2], pt, scene)
-        self.history = h.copy()
-        self.particle_type = pt.astype(np.int64)
-        self.max_neighbors = max_neighbors
-        self.clamp = clamp
-        b = np.asarray(self.model.meta["bounds"], np.float32)
-        self._lo, self._hi = b[:, 0], b[:, 1]
-        self.steps = 0
-        self.last_edges = 0
-        self.last_clamped = 0
-
-    @property
-    def positions(self) -> np.ndarray:
-        """Current positions, float32 [N, D]."""
-        return self.history[-1]
-
-    def step(self) -> np.ndarray:
-        """Advance one model step (``r_t`` frames); returns float32 [N, D]."""
-        _, nxt, (s, _) = self.model.predict(self.history, self.particle_type, self.max_neighbors)
-        self.last_edges = int(len(s))
-        return self.accept(nxt)
-
-    def accept(self, nxt: np.ndarray) -> np.ndarray:
-        """Append predicted positions ``nxt`` [N, D] to the history, clipped
-        to the domain if ``clamp`` (:meth:`clip` then :meth:`push`); returns
-        them as float32 [N, D]. :meth:`step` is ``model.predict`` then ``accept``."""
-        return self.push(self.clip(nxt))
-
-    def clip(self, nxt: np.ndarray) -> np.ndarray:
-        """``nxt`` [N, D] clipped to the model's domain bounds if ``clamp``
-        (``last_clamped`` counts the particles clipped)."""
-        if self.clamp:
-            out = (nxt < self._lo) | (nxt > self._hi)
-            self.last_clamped = int(out.any(axis=1).sum())
-            if self.last_clamped:
-                nxt = np.clip(nxt, self._lo, self._hi)
-        return nxt
-
-    def push(self, positions: np.ndarray) -> np.ndarray:
-        """Append ``positions`` [N, D] to the history as they are; returns them as float32."""
-        self.history = np.concatenate([self.history[1:], positions[None].astype(np.float32)])
-        self.steps += 1
-        return self.history[-1]
-
-    def rollout(self, steps: int) -> np.ndarray:
-        """``steps`` steps; returns float32 [steps + 1, N, D] starting with the current positions."""
-        out = [self.positions.copy()]
-        for _ in range(int(steps)):
-            out.append(self.step().copy())
-        return np.stack(out)
-
-
-def warmup_frames(model: NeuralModel) -> int:
-    """MPM frames needed before the first neural step: ``(T_in − 1)·r_t``."""
-    return (model.t_in - 1) * model.r_t
-
-
-
-
-def run_neural(
-    scene: Any,
-    model: NeuralModel,
-    frames: int,
-    *,
-    seed: int = 0,
-    mpm_threads: int = 0,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Roll out ``model`` from a scene's initial condition (``hybridmpm simulate --solver neural``).
-
-    The scene is downsampled to the model's ``r_p`` (k-means seeded by ``seed``),
-    MPM runs the first ``(T_in − 1)·r_t`` frames to fill the position history,
-    then the network advances ``r_t`` frames a step up to ``frames``. Returns
-    ``positions`` float32 [K + 1, N + B, D] every ``r_t`` frames (boundary
-    particles appended), ``particle_type`` [N + B], ``masses`` [N], ``scene``
-    (the low-resolution scene), ``dt_stored`` [s], ``step_seconds`` float64
-    [steps] (graph build + inference per neural step), ``warmup_frames``,
-    ``edges`` (mean edges per step). Raises :class:`InvalidInputError` if the
-    model does not fit the scene.
-    """
-    from tqdm import tqdm
-
-    from hybridmpm.data.resolution import downsample_scene
-
-    low = downsample_scene(scene, model.r_p, seed=seed).scene if model.r_p < 1.0 else scene
-    ptype = low.particle_type()
-    model.check_fits(low.dim, ptype, getattr(scene, "name", None))
-    r_t = model.r_t
-    sim = low.make_solver(num_threads=mpm_threads)
-    hist = [low.with_boundary(sim.positions)]
-    for f in range(1, warmup_frames(model) + 1):
-        sim.step_frame(low.dt_frame)
-        if f % r_t == 0:
-            hist.append(low.with_boundary(sim.positions))
-    neural = NeuralSimulator(model, np.stack(hist), ptype, scene=getattr(scene, "name", None))
-    steps = max(0, math.ceil((frames - warmup_frames(model)) / r_t))
-    out = list(hist)
-    times = np.empty(steps)
-    edges = 0
-    for k in tqdm(range(steps), desc=f"{getattr(scene, 'name', 'scene')} [neural]", unit="step", disable=not progress):
-        t0 = time.perf_counter()
-        out.append(neural.step().copy())
-        times[k] = time.perf_counter() - t0
-        edges += neural.last_edges
-    return {
-        "positions": np.stack(out),
-        "particle_type": ptype,
-        "masses": np.asarray(sim.masses, np.float32),
-        "material": np.asarray(low.material, np.int32),
-        "scene": low,
-        "dt_stored": low.dt_frame * r_t,
-        "step_seconds": times,
-        "warmup_frames": warmup_frames(model),
-        "edges": edges / max(steps, 1),
-    }
-
-
-__all__ = ["NeuralModel", "NeuralSimulator", "run_neural", "warmup_frames"]
+__all__ = ["NeuralModel"]

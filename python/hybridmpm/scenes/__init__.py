@@ -3,6 +3,10 @@
 - :class:`Scene` — parameters + initial particles (+ static boundary particles).
 - :class:`SceneSpec` — the declarative, TOML/JSON-serialisable description a
   scene is built from (:mod:`hybridmpm.scenes.spec`).
+- :class:`ParticleSet` — which particles are fluid, which boundary (one place
+  pads and slices).
+- :func:`downsample_scene` / :func:`at_resolution` — ``r_p`` clustering
+  (paper Sec. 3.1.1, :mod:`hybridmpm.scenes.resolution`).
 - :data:`DOMAINS` — seeded generators for ``water2d``, ``sand2d``,
   ``water_ramps2d``, ``sand_ramps2d``, ``water_sand2d``, ``water3d``,
   ``sand3d`` and ``dam_break2d`` (:mod:`hybridmpm.scenes.registry`).
@@ -12,15 +16,8 @@
 >>> sim = scene.make_solver()
 """
 
-from hybridmpm.scenes.core import (
-    DEFAULT_CONNECTIVITY_RADIUS,
-    GNS_KINEMATIC,
-    GNS_TYPE,
-    Scene,
-    hydrostatic_volume_ratio,
-    lattice,
-    wall_face,
-)
+from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_face
+from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 from hybridmpm.scenes.registry import (
     DOMAINS,
     PAPER_FRAMES,
@@ -36,29 +33,33 @@ from hybridmpm.scenes.registry import (
     water_ramps2d,
     water_sand2d,
 )
+from hybridmpm.scenes.resolution import PAPER_R_P, PAPER_R_T, at_resolution, downsample_scene
 from hybridmpm.scenes.spec import MATERIALS, Block, SceneSpec, boundary_particles, collider_sdf
 
 #: Scene names accepted by :func:`make_scene` (alias of :data:`DOMAINS`).
 SCENES = DOMAINS
 
 __all__ = [
-    "DEFAULT_CONNECTIVITY_RADIUS",
     "DOMAINS",
-    "GNS_KINEMATIC",
-    "GNS_TYPE",
     "MATERIALS",
     "PAPER_FRAMES",
+    "PAPER_R_P",
+    "PAPER_R_T",
     "SCENES",
     "Block",
+    "ParticleSet",
     "Scene",
     "SceneSpec",
+    "at_resolution",
     "boundary_particles",
     "collider_sdf",
     "dam_break2d",
     "dam_break2d_spec",
+    "downsample_scene",
     "hydrostatic_volume_ratio",
     "lattice",
     "make_scene",
+    "pad_boundary",
     "sand2d",
     "sand3d",
     "sand_ramps2d",

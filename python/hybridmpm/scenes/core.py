@@ -14,18 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridmpm import particle_types
-from hybridmpm.mpm import DT_FRAME, SAND, WATER, MpmParams, MpmSolver
+from hybridmpm.conventions import CONNECTIVITY_RADIUS, DT_FRAME, GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.mpm import MpmParams, MpmSolver
+from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 
 if TYPE_CHECKING:
     from hybridmpm.scenes.spec import SceneSpec
-
-#: GNS particle-type codes (DeepMind learning_to_simulate): kinematic
-#: obstacles / boundary particles 3, water 5, sand 6.
-GNS_TYPE = {WATER: particle_types.WATER, SAND: particle_types.SAND}
-GNS_KINEMATIC = particle_types.KINEMATIC
-#: Default connectivity radius R [m] (DESIGN.md conventions).
-DEFAULT_CONNECTIVITY_RADIUS = 0.015
 
 
 @dataclass
@@ -55,7 +49,7 @@ class Scene:
     boundary_positions: np.ndarray | None = None
     masses: np.ndarray | None = None
     volumes: np.ndarray | None = None
-    connectivity_radius: float = DEFAULT_CONNECTIVITY_RADIUS
+    connectivity_radius: float = CONNECTIVITY_RADIUS
     spec: SceneSpec | None = None
 
     @property
@@ -73,17 +67,29 @@ class Scene:
 
     def particle_type(self) -> np.ndarray:
         """GNS particle types int64 [N + B]: water 5, sand 6, then boundary 3."""
-        fluid = np.where(self.material == SAND, GNS_TYPE[SAND], GNS_TYPE[WATER]).astype(np.int64)
+        fluid = np.where(
+            self.material == MATERIAL_SAND, GNS_TYPE_OF_MATERIAL[MATERIAL_SAND], GNS_TYPE_OF_MATERIAL[MATERIAL_WATER]
+        ).astype(np.int64)
         return np.concatenate([fluid, np.full(self.num_boundary, GNS_KINEMATIC, np.int64)])
 
     def with_boundary(self, positions: np.ndarray) -> np.ndarray:
         """Append the static boundary particles to solver positions: [..., N, D] → [..., N + B, D] float32."""
-        positions = np.asarray(positions, dtype=np.float32)
-        if self.num_boundary == 0:
-            return positions
-        assert self.boundary_positions is not None
-        b = np.broadcast_to(self.boundary_positions, positions.shape[:-2] + self.boundary_positions.shape)
-        return np.concatenate([positions, b], axis=-2)
+        return pad_boundary(positions, self.boundary_positions)
+
+    def particles(self, masses: np.ndarray | None = None) -> ParticleSet:
+        """The scene's :class:`ParticleSet` (fluid, then boundary). ``masses``
+        float [N] [kg]: the solver's resolved masses (default: resolved by a
+        throwaway solver, exactly as :meth:`make_solver` would)."""
+        if masses is None:
+            masses = self.make_solver(num_threads=1).masses
+        boundary = self.boundary_positions if self.boundary_positions is not None else np.zeros((0, self.dim), np.float32)
+        return ParticleSet(
+            self.num_particles,
+            np.asarray(boundary, np.float32),
+            self.particle_type(),
+            np.asarray(self.material, np.int32),
+            np.asarray(masses, np.float32),
+        )
 
     def make_solver(self, num_threads: int | None = None) -> MpmSolver:
         """A fresh :class:`MpmSolver` holding this scene's particles."""

@@ -48,7 +48,8 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import DT_FRAME, SAND, WATER, Box, MpmParams, Sphere
-from hybridmpm.scenes.core import DEFAULT_CONNECTIVITY_RADIUS, Scene, hydrostatic_volume_ratio, lattice
+from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
+from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice
 
 MATERIALS = {"water": WATER, "sand": SAND}
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}

@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
+
 #: colours by GNS particle type
-_COLOURS = {5: "#1f77b4", 6: "#d2a25a", 3: "#444444"}
+_COLOURS = {GNS_WATER: "#1f77b4", GNS_SAND: "#d2a25a", GNS_KINEMATIC: "#444444"}
 #: frame background / title colour by solver (hybrid renders)
 _SOLVER_BG = {"mpm": "#fde9d4", "neural": "#e6f0fb"}
 _SOLVER_FG = {"mpm": "#b35900", "neural": "#1f5fa8"}

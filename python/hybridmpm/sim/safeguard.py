@@ -21,12 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hybridmpm.conventions import DELTA, R_C
 from hybridmpm.errors import InvalidInputError
-
-#: Default window δ (DESIGN.md, paper Sec. 3.1.2).
-DELTA = 10
-#: Default threshold r_c (paper Table 2, Fig. 6d).
-R_C = 0.8
 #: Default acceleration floor [m/s²] below which a particle counts as calm
 #: (a tenth of gravity; see docs/hybrid.md for the measurement).
 ACCEL_FLOOR = 1.0

@@ -1,4 +1,4 @@
-"""State conversion between the neural simulator and MPM (issue 5; paper Sec. 3.1.2).
+"""State conversion between the neural simulator and MPM (paper Sec. 3.1.2).
 
 neural → MPM (:func:`neural_to_mpm`): positions are the last positions of the
 history; velocities the last finite difference (exactly the velocity the
@@ -28,8 +28,10 @@ from hybridmpm.graph import radius_graph
 from hybridmpm.mpm import WATER, MpmSolver, grid_mass
 
 
-def _bspline_weights(x: np.ndarray, n_grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """Quadratic B-spline stencil of each particle: base node int [N, D] and weights [N, D, 3]."""
+def bspline_weights(x: np.ndarray, n_grid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadratic B-spline stencil of each particle (MLS-MPM's kernel, Hu et al.
+    2018; the Python twin of the Rust ``kernel``): ``x`` [N, D] in the unit
+    domain → base node int64 [N, D] and weights float64 [N, D, 3]."""
     fx = x * n_grid
     base = np.floor(fx - 0.5).astype(np.int64)
     f = fx - base
@@ -48,7 +50,7 @@ def particle_density(positions: np.ndarray, masses: np.ndarray, n_grid: int) -> 
     total = float(m.sum())
     node_mass = np.asarray(grid_mass(x.astype(np.float32), n_grid, m.astype(np.float32)), np.float64) * total
     rho_grid = node_mass * float(n_grid) ** dim  # / dx^D
-    base, w = _bspline_weights(x, n_grid)
+    base, w = bspline_weights(x, n_grid)
     rho = np.zeros(n)
     offsets = np.stack(np.meshgrid(*([np.arange(3)] * dim), indexing="ij"), -1).reshape(-1, dim)
     for off in offsets:
@@ -157,17 +159,20 @@ def neural_to_mpm(
     return {"positions": x, "velocities": v, "affine": c, "volume_ratio": j}
 
 
-def mpm_history(solver: MpmSolver, kept: np.ndarray, t_in: int) -> np.ndarray:
+def mpm_history(current: np.ndarray, kept: np.ndarray, t_in: int) -> np.ndarray:
     """The neural simulator's input after MPM: the last ``t_in − 1`` kept coarse
-    positions followed by the solver's current positions, float32 [t_in, N, D]
-    (fluid particles only). ``kept`` float [K ≥ t_in − 1, N, D]."""
+    positions followed by the MPM solver's ``current`` positions float [N, D],
+    float32 [t_in, N, D] (fluid particles only). ``kept`` float [K ≥ t_in − 1, N, D].
+    Raises :class:`InvalidInputError` (field ``kept``) for other shapes."""
+    cur = np.asarray(current, np.float32)
     k = np.asarray(kept, np.float32)
-    if k.ndim != 3 or k.shape[0] < t_in - 1 or k.shape[1] != solver.num_particles:
-        raise InvalidInputError(f"kept: expected [>= {t_in - 1}, {solver.num_particles}, D] positions, got {list(k.shape)}", "kept")
-    return np.concatenate([k[len(k) - (t_in - 1) :], np.asarray(solver.positions, np.float32)[None]])
+    if k.ndim != 3 or k.shape[0] < t_in - 1 or k.shape[1:] != cur.shape:
+        raise InvalidInputError(f"kept: expected [>= {t_in - 1}, {cur.shape[0]}, {cur.shape[-1]}] positions, got {list(k.shape)}", "kept")
+    return np.concatenate([k[len(k) - (t_in - 1) :], cur[None]])
 
 
 __all__ = [
+    "bspline_weights",
     "estimate_volume_ratio",
     "fit_affine",
     "hydrostatic_j_min",

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.scenes import Scene
+from hybridmpm.scenes.core import Scene
 
 #: The paper's choice (Sec. 3.1.1, from its Fig. 5 ablation).
 PAPER_R_P = 1 / 1.75
@@ -183,6 +183,17 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0) -> Downsampled:
     return Downsampled(low, labels, b_labels)
 
 
+def at_resolution(scene: Scene, r_p: float, seed: int = 0) -> Scene:
+    """``scene`` at particle resolution ``r_p``: the scene itself for ``r_p = 1``
+    or when it already is at ``r_p`` (a scene made by :func:`downsample_scene`
+    records its ``r_p`` in ``info``), else :func:`downsample_scene` seeded by
+    ``seed``. Raises :class:`InvalidInputError` for a bad ``r_p``."""
+    r_p = check_r_p(r_p)
+    if r_p == 1.0 or scene.info.get("r_p") == r_p:
+        return scene
+    return downsample_scene(scene, r_p, seed=seed).scene
+
+
 def temporal_downsample(positions: np.ndarray, r_t: int) -> np.ndarray:
     """Keep every ``r_t``-th frame: [T, N, D] → [ceil(T / r_t), N, D] (frame 0 kept)."""
     return np.asarray(positions)[:: check_r_t(r_t)]
@@ -192,6 +203,7 @@ __all__ = [
     "PAPER_R_P",
     "PAPER_R_T",
     "Downsampled",
+    "at_resolution",
     "check_r_p",
     "check_r_t",
     "cluster_centroids",

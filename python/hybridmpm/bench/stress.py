@@ -1,4 +1,4 @@
-"""Stress suite (issue 5): neural-only, MPM-only and hybrid through the cases
+"""Stress suite: neural-only, MPM-only and hybrid through the cases
 where methods fail, over long rollouts (``hybridmpm stress SCENE``).
 
 Cases (:data:`CASES`), each built from the scene's own spec for a seed:
@@ -27,10 +27,15 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError, SimulationError
-from hybridmpm.hybrid.simulator import NEURAL, HybridSimulator
+from hybridmpm.conventions import R_C
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.metrics import grid_mass_error
+from hybridmpm.models import shipped_model
 from hybridmpm.mpm import Sphere
+from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.scenes import scene_spec
 from hybridmpm.scenes.core import Scene
+from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 CASES = ("baseline", "fast", "obstacle", "dense")
 METHODS = ("neural", "mpm", "hybrid")
@@ -38,8 +43,6 @@ METHODS = ("neural", "mpm", "hybrid")
 
 def case_scene(name: str, case: str, seed: int = 0) -> Scene:
     """The scene ``name`` (registered domain) for ``seed`` under stress ``case``."""
-    from hybridmpm.scenes import scene_spec
-
     if case not in CASES:
         raise InvalidInputError(f"case: must be one of {', '.join(CASES)}, got {case!r}", "case")
     spec = copy.deepcopy(scene_spec(name, seed=seed))
@@ -78,46 +81,27 @@ class StressResult:
         return dict(self.__dict__)
 
 
-def reference_rollout(scene: Scene, frames: int, stride: int, threads: int = 0) -> np.ndarray:
-    """Full-resolution MPM positions every ``stride`` frames, float32 [⌈frames/stride⌉ + 1, N, D]
-    (like the hybrid, it runs whole strides: ``⌈frames/stride⌉·stride`` frames): the dataset
-    generator's rollout (:func:`~hybridmpm.data.generate.simulate_trajectory`) of the scene's spec.
-    Raises :class:`InvalidInputError` for a scene built without a spec."""
-    from hybridmpm.data.generate import simulate_trajectory
+def method_simulator(scene: Scene, method: str, model: NeuralModel, seed: int = 0, threads: int = 1, r_c: float = R_C, **kw: Any) -> Simulator:
+    """The simulator of a stress ``method``: "neural" the network alone (its
+    first rejected step ends the rollout), "mpm" MPM alone at the model's
+    ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it)."""
+    if method == "neural":
+        return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads)
+    if method == "mpm":
+        return MpmSimulator(scene, r_p=model.r_p, r_t=model.r_t, seed=seed, threads=threads)
+    if method == "hybrid":
+        return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **kw)
+    raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
 
-    if scene.spec is None:
-        raise InvalidInputError("scene: the reference is rebuilt from the scene's spec; this scene has none", "scene")
-    total = -(-frames // stride) * stride
-    out = simulate_trajectory(scene.spec, int(scene.info.get("seed", 0)), total, r_t=stride, num_threads=threads)
-    return np.asarray(out["positions"][:, : scene.num_particles], np.float32)
 
-
-def run_method(scene: Scene, method: str, frames: int, model: Any = None, seed: int = 0, **kw: Any) -> tuple[np.ndarray, str | None, HybridSimulator, float]:
-    """Roll out ``method`` ("neural", "mpm", "hybrid") for ``frames`` frames.
-
-    Neural-only is the hybrid with the complexity trigger off whose first
-    failure ends the rollout (no fallback); MPM-only is the hybrid with
-    ``r_c = 2`` (never met). Returns (fluid positions every coarse step
-    [K + 1, N, D], failure mode or None, the simulator, wall seconds).
-    """
-    r_c = {"neural": 0.0, "mpm": 2.0, "hybrid": kw.pop("r_c", 0.8)}[method]
-    sim = HybridSimulator(scene, model, r_c=r_c, seed=seed, **kw)
-    out = [np.asarray(sim.initial_frame().positions[: sim.n_fluid])]
-    failure = None
+def run_method(scene: Scene, method: str, frames: int, model: NeuralModel, seed: int = 0, **kw: Any) -> tuple[Rollout, float]:
+    """Roll out ``method`` ("neural", "mpm", "hybrid") for ``frames`` frames;
+    returns the :class:`~hybridmpm.sim.Rollout` (``failure`` says why it broke
+    off, if it did) and the wall seconds."""
+    sim = method_simulator(scene, method, model, seed, **kw)
     t0 = time.perf_counter()
-    try:
-        for fr in sim.step(frames):
-            if method == "neural" and fr.event and fr.event.startswith("fallback:"):
-                failure = fr.event.split(":", 1)[1]
-                break
-            p = fr.positions[: sim.n_fluid]
-            if not np.isfinite(p).all():
-                failure = "nan"
-                break
-            out.append(np.asarray(p))
-    except SimulationError:
-        failure = "mpm"
-    return np.stack(out), failure, sim, time.perf_counter() - t0
+    ro = rollout(sim, frames)
+    return ro, time.perf_counter() - t0
 
 
 def stress(
@@ -134,28 +118,24 @@ def stress(
     """Run the stress suite on registered scene ``name``; one :class:`StressResult` per case × method."""
     from tqdm import tqdm
 
-    from hybridmpm.metrics import grid_mass_error
-    from hybridmpm.neural.runtime import NeuralModel
-    from hybridmpm.models import shipped_model
-
     nm = model if isinstance(model, NeuralModel) else NeuralModel(model or shipped_model(name))
     results = []
     bar = tqdm(total=len(cases) * (len(methods) + 1), desc=f"stress {name}", disable=not progress)
     for case in cases:
         scene = case_scene(name, case, seed)
-        ref = reference_rollout(scene, frames, nm.r_t, threads)
+        ref = reference(scene, frames, stride=nm.r_t, threads=threads).fluid_positions
         bar.update()
         for method in methods:
-            pos, failure, sim, secs = run_method(scene, method, frames, nm, seed=seed, mpm_threads=threads)
-            k = len(pos)
-            err = grid_mass_error(pos, ref[:k], scene.params.resolved_n_grid(), ref_weights=None) if k else np.array([np.nan])
-            steps = sim.stats.steps
+            ro, secs = run_method(scene, method, frames, nm, seed=seed, threads=threads)
+            k = len(ro.positions)
+            err = grid_mass_error(ro.fluid_positions, ref[:k], scene.params.resolved_n_grid(), ref_weights=None)
+            steps = ro.stats["steps"]
             total = max(1, steps["mpm"] + steps[NEURAL])
             results.append(
                 StressResult(
-                    name, case, method, sim.n_fluid, frames, (k - 1) * sim.r_t, failure,
-                    float(np.mean(err)), float(err[-1]), 1e3 * secs / max(1, (k - 1) * sim.r_t),
-                    steps["mpm"] / total, sim.stats.switches, dict(sim.stats.fallbacks),
+                    name, case, method, ro.num_fluid, frames, ro.frames_done, ro.failure,
+                    float(np.mean(err)), float(err[-1]), 1e3 * secs / max(1, ro.frames_done),
+                    steps["mpm"] / total, int(ro.stats["switches"]), dict(ro.stats["fallbacks"]),
                 )
             )  # fmt: skip
             bar.update()
@@ -179,4 +159,4 @@ def markdown_table(results: list[StressResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["CASES", "METHODS", "StressResult", "case_scene", "markdown_table", "reference_rollout", "run_method", "stress"]
+__all__ = ["CASES", "METHODS", "StressResult", "case_scene", "markdown_table", "method_simulator", "run_method", "stress"]

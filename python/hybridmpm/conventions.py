@@ -1,0 +1,74 @@
+"""Codes and defaults of hybridmpm, defined once (DESIGN.md "Conventions").
+
+Every other module imports these names; none restates the numbers.
+
+Two code tables exist and they are *different*:
+
+* **solver material codes** (:data:`MATERIAL_WATER` 0, :data:`MATERIAL_SAND` 1):
+  what the Rust MPM solver stores per particle (``MpmSolver.material``);
+* **GNS particle-type codes** (:data:`GNS_KINEMATIC` 3, :data:`GNS_WATER` 5,
+  :data:`GNS_SAND` 6; DeepMind ``learning_to_simulate``): what datasets,
+  trajectories and the network see (``particle_type``). Boundary / obstacle
+  particles exist only here.
+
+:data:`GNS_TYPE_OF_MATERIAL` maps the first table onto the second.
+"""
+
+from __future__ import annotations
+
+# ----------------------------------------------------------------- codes
+#: Solver material code of weakly compressible water.
+MATERIAL_WATER = 0
+#: Solver material code of Drucker–Prager sand.
+MATERIAL_SAND = 1
+#: Solver material codes by name (scene files say ``material = "water"``).
+MATERIALS = {"water": MATERIAL_WATER, "sand": MATERIAL_SAND}
+
+#: GNS particle type of kinematic (static boundary / obstacle) particles.
+GNS_KINEMATIC = 3
+#: GNS particle type of water.
+GNS_WATER = 5
+#: GNS particle type of sand.
+GNS_SAND = 6
+#: GNS particle type of each solver material.
+GNS_TYPE_OF_MATERIAL = {MATERIAL_WATER: GNS_WATER, MATERIAL_SAND: GNS_SAND}
+
+# ----------------------------------------------------------------- units and resolutions
+#: One frame of simulated time [s] (made of CFL substeps in MPM).
+DT_FRAME = 2.5e-3
+#: Default grid cells per dimension, by dimension (128² in 2D, 64³ in 3D).
+DEFAULT_N_GRID = {2: 128, 3: 64}
+#: Default connectivity radius R [m] of the network's radius graph (2D scenes).
+CONNECTIVITY_RADIUS = 0.015
+
+# ----------------------------------------------------------------- the method's symbols (paper)
+#: Positions the network reads per step (the current one and T_in − 1 before it).
+T_IN = 6
+#: Frames a control episode covers (paper Sec. 3.2).
+T_CTR = 100
+#: Safeguard threshold r_c: MPM while s(t) < r_c (paper Table 2, Fig. 6d).
+R_C = 0.8
+#: Safeguard window δ in coarse steps (paper Sec. 3.1.2).
+DELTA = 10
+
+# ----------------------------------------------------------------- datasets
+#: Splits of a GNS-layout dataset, in order.
+SPLITS: tuple[str, ...] = ("train", "valid", "test")
+
+__all__ = [
+    "CONNECTIVITY_RADIUS",
+    "DEFAULT_N_GRID",
+    "DELTA",
+    "DT_FRAME",
+    "GNS_KINEMATIC",
+    "GNS_SAND",
+    "GNS_TYPE_OF_MATERIAL",
+    "GNS_WATER",
+    "MATERIALS",
+    "MATERIAL_SAND",
+    "MATERIAL_WATER",
+    "R_C",
+    "SPLITS",
+    "T_CTR",
+    "T_IN",
+]

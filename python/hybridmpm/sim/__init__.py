@@ -1,0 +1,49 @@
+"""The simulator interface (DESIGN.md "Data flow"): one protocol, three simulators, one rollout.
+
+* :class:`MpmSimulator` — the Rust MLS-MPM solver (at ``r_p``, ``r_t`` frames a step);
+* :class:`NeuralSimulator` — the GNS network alone, after an MPM warm-up
+  (paper Sec. 2.2, 3.1.1);
+* :class:`HybridSimulator` — the network by default, MPM while the safeguard
+  ``s(t) < r_c`` or a forcing is set (paper Sec. 3.1.2, 3.2);
+* :func:`rollout` — the one frame loop; :func:`reference` — full-resolution
+  MPM, the reference of every error.
+
+>>> from hybridmpm.sim import HybridSimulator, rollout
+>>> sim = HybridSimulator("dam_break2d")           # shipped model, r_c = 0.8
+>>> ro = rollout(sim, 300)                          # ro.positions [K + 1, N + B, D], ro.solver
+>>> sim.forcing = accelerations                     # [N, D] m/s²: MPM applies it
+>>> fr = sim.advance()                              # one more coarse step
+"""
+
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, Simulator
+from hybridmpm.sim.config import SOLVERS, load_tuned, make_simulator, tuned_settings
+from hybridmpm.sim.hybrid import DWELL, HybridSimulator
+from hybridmpm.sim.mpm import MpmSimulator
+from hybridmpm.sim.neural import NeuralSimulator, Proposal, warmup_frames
+from hybridmpm.sim.rollout import Rollout, reference, rollout
+from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
+
+__all__ = [
+    "ACCEL_FLOOR",
+    "DWELL",
+    "MPM",
+    "NEURAL",
+    "SOLVERS",
+    "Forcing",
+    "Frame",
+    "HybridSimulator",
+    "MpmSimulator",
+    "NetworkFailure",
+    "NeuralSimulator",
+    "Proposal",
+    "Rollout",
+    "SimStats",
+    "Simulator",
+    "complexity_score",
+    "load_tuned",
+    "make_simulator",
+    "reference",
+    "rollout",
+    "tuned_settings",
+    "warmup_frames",
+]

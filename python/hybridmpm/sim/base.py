@@ -1,0 +1,167 @@
+"""The simulator interface every solver shares (DESIGN.md "Data flow").
+
+A simulator advances one *coarse step* at a time — ``r_t`` frames of
+``dt_frame`` seconds (MPM: ``r_t = 1`` unless asked otherwise; the network:
+its model's ``r_t``) — and returns a :class:`Frame`. :func:`~hybridmpm.sim.rollout`
+drives any of them; the CLI, the benchmarks, dataset generation, the
+controller and the service all go through it.
+
+``forcing`` is the controller's hook (paper Sec. 3.2): a per-particle external
+acceleration [m/s²] that MPM adds to gravity, given as an array ``[N, D]``
+(fluid particles), as a callable of the frame index returning such an array
+(or None for "no forcing in this frame"), or None. The network cannot apply a
+forcing: the hybrid runs MPM while one is set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, Union, runtime_checkable
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.particles import ParticleSet
+
+#: Solver tags of a :class:`Frame`.
+MPM = "mpm"
+NEURAL = "neural"
+
+#: A forcing: fluid accelerations [N, D] m/s², a function of the frame index, or None.
+Forcing = Union[np.ndarray, Callable[[int], Union[np.ndarray, None]], None]
+
+
+@dataclass
+class Frame:
+    """One coarse step of a simulator.
+
+    ``step`` coarse step index (0 = initial condition); ``frame`` frame number
+    (``step·r_t``); ``time`` [s]; ``positions`` float32 [N + B, D] [m] (fluid,
+    then static boundary particles; see :class:`~hybridmpm.scenes.ParticleSet`);
+    ``solver`` "mpm" or "neural" (the one that produced these positions);
+    ``seconds`` wall time of the step; ``score`` the safeguard ``s(t)`` after
+    the step (nan where not computed); ``event`` None or what happened
+    ("switch:mpm", "switch:neural", "fallback:<mode>"); ``mpm_retries`` substep
+    halvings MPM needed; ``substeps`` MPM substeps taken (0 for a network step);
+    ``controlled`` whether a forcing was applied during the step.
+    """
+
+    step: int
+    frame: int
+    time: float
+    positions: np.ndarray
+    solver: str
+    seconds: float = 0.0
+    score: float = float("nan")
+    event: str | None = None
+    mpm_retries: int = 0
+    substeps: int = 0
+    controlled: bool = False
+
+
+@dataclass
+class SimStats:
+    """Counters of a run: coarse ``steps`` per solver, solver ``switches``,
+    network ``fallbacks`` per failure mode, MPM substep halvings ``mpm_retries``."""
+
+    steps: dict[str, int] = field(default_factory=lambda: {MPM: 0, NEURAL: 0})
+    switches: int = 0
+    fallbacks: dict[str, int] = field(default_factory=dict)
+    mpm_retries: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"steps": dict(self.steps), "switches": self.switches, "fallbacks": dict(self.fallbacks), "mpm_retries": self.mpm_retries}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SimStats:
+        return cls({str(k): int(v) for k, v in dict(d["steps"]).items()}, int(d["switches"]), {str(k): int(v) for k, v in dict(d["fallbacks"]).items()}, int(d["mpm_retries"]))
+
+
+class NetworkFailure(SimulationError):
+    """A network step was rejected by the failure checks (``mode``: "nan",
+    "escaped", "energy" or "compressed"); the simulator's state is that
+    before the step."""
+
+    def __init__(self, mode: str, step: int) -> None:
+        super().__init__(f"network step {step} rejected: {mode}")
+        self.mode = mode
+
+
+@runtime_checkable
+class Simulator(Protocol):
+    """What :class:`MpmSimulator`, :class:`NeuralSimulator` and
+    :class:`HybridSimulator` share.
+
+    ``scene`` the scene as simulated (at the simulator's ``r_p``);
+    ``particles`` its :class:`ParticleSet`; ``r_t`` frames per coarse step;
+    ``dt_frame`` [s]; ``step_index`` coarse steps taken; ``frame`` the
+    current :class:`Frame` (the initial condition before the first step);
+    ``stats`` the run's :class:`SimStats`; ``forcing`` see the module doc.
+    """
+
+    kind: str
+    scene: Scene
+    particles: ParticleSet
+    r_t: int
+    dt_frame: float
+    step_index: int
+    stats: SimStats
+
+    @property
+    def positions(self) -> np.ndarray: ...
+
+    @property
+    def frame(self) -> Frame: ...
+
+    @property
+    def forcing(self) -> Forcing: ...
+
+    @forcing.setter
+    def forcing(self, value: Forcing) -> None: ...
+
+    def advance(self) -> Frame: ...
+
+    def state(self) -> dict[str, Any]: ...
+
+    def restore(self, state: dict[str, Any]) -> None: ...
+
+
+def check_forcing(value: Forcing, n: int, dim: int) -> Forcing:
+    """Validate a forcing for ``n`` fluid particles in ``dim`` dimensions: an
+    array becomes float32 [n, dim] (finite); a callable is kept (its results
+    are checked by :func:`resolve_forcing` when used). Raises
+    :class:`InvalidInputError` (field ``forcing``)."""
+    if value is None or callable(value):
+        return value
+    a = np.asarray(value)
+    if a.dtype.kind not in "fiu" or a.shape != (n, dim):
+        raise InvalidInputError(f"forcing: expected a float array [{n}, {dim}] of accelerations [m/s²], got {a.dtype} {list(a.shape)}", "forcing")
+    a = np.ascontiguousarray(a, np.float32)
+    if not np.isfinite(a).all():
+        raise InvalidInputError("forcing: contains NaN or inf", "forcing")
+    return a
+
+
+def resolve_forcing(value: Forcing, frame: int, n: int, dim: int) -> np.ndarray | None:
+    """The forcing to apply to frame ``frame``: float32 [n, dim] or None."""
+    if value is None:
+        return None
+    if callable(value):
+        out = value(int(frame))
+        if out is None:
+            return None
+        checked = check_forcing(np.asarray(out), n, dim)
+        assert isinstance(checked, np.ndarray)
+        return checked
+    return value
+
+
+def check_int(name: str, value: Any, lo: int) -> int:
+    """``value`` as an int ≥ ``lo``, or :class:`InvalidInputError` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < lo:
+        raise InvalidInputError(f"{name}: must be an integer >= {lo}, got {value!r}", name)
+    return int(value)
+
+
+__all__ = ["MPM", "NEURAL", "Forcing", "Frame", "NetworkFailure", "SimStats", "Simulator", "check_forcing", "check_int", "resolve_forcing"]

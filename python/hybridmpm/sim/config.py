@@ -1,0 +1,96 @@
+"""Simulator configurations: :func:`make_simulator` builds any of the three
+simulators from plain settings (what the CLI and the service take), and
+:func:`load_tuned` reads the configuration ``hybridmpm tune`` chose
+(``hybridmpm simulate SCENE --solver auto``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from hybridmpm.conventions import R_C
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes.core import Scene
+from hybridmpm.sim.base import Simulator
+from hybridmpm.sim.hybrid import DWELL, HybridSimulator
+from hybridmpm.sim.mpm import MpmSimulator
+from hybridmpm.sim.neural import NeuralSimulator
+
+#: Solver kinds :func:`make_simulator` builds.
+SOLVERS = ("hybrid", "mpm", "neural")
+#: Default location of a tuned configuration, relative to the working directory.
+TUNED_DIR = Path("tuned")
+#: Keys of a configuration (the chosen method) in the tuned file.
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params")
+
+
+def make_simulator(
+    scene: Scene | str,
+    solver: str = "hybrid",
+    *,
+    model: Any = None,
+    r_c: float = R_C,
+    r_p: float = 1.0,
+    dwell: int | None = None,
+    seed: int = 0,
+    threads: int = 0,
+    nn_threads: int = 1,
+) -> Simulator:
+    """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``),
+    "mpm" (at ``r_p``) or "neural" (the model alone after its MPM warm-up).
+    ``model`` an ONNX path, a :class:`~hybridmpm.neural.NeuralModel` or None
+    (the scene's shipped model); ``threads`` MPM threads (0 = all cores).
+    Raises :class:`InvalidInputError` naming the bad setting (``solver``,
+    ``r_p`` for a network solver: it runs at its model's ``r_p``)."""
+    if solver not in SOLVERS:
+        raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
+    if solver != "mpm" and r_p != 1.0:
+        raise InvalidInputError(f"r_p: applies to the mpm solver; the {solver} solver runs at its model's r_p", "r_p")
+    if solver == "mpm":
+        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads)
+    if solver == "neural":
+        return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads)
+    return HybridSimulator(scene, model, r_c=r_c, dwell=DWELL if dwell is None else dwell, seed=seed, mpm_threads=threads, nn_threads=nn_threads)
+
+
+def tuned_path(scene: str, path: str | Path | None = None) -> Path:
+    """Where the tuned configuration of ``scene`` lives (``tuned/SCENE.json`` by default)."""
+    return Path(path) if path is not None else TUNED_DIR / f"{scene}.json"
+
+
+def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
+    """Read the tuned configuration of ``scene``. Raises
+    :class:`InvalidInputError` (field ``tuned``) if the file is missing,
+    malformed, or made for another scene."""
+    p = tuned_path(scene, path)
+    if not p.is_file():
+        raise InvalidInputError(f"tuned: no tuned configuration at {p}; run `hybridmpm tune {scene} --error-budget E` first", "tuned")
+    try:
+        doc = json.loads(p.read_text())
+        cfg = doc["config"]
+        kind = cfg["kind"]
+    except (ValueError, KeyError, TypeError) as e:
+        raise InvalidInputError(f"tuned: {p} is not a tuned configuration ({e})", "tuned") from e
+    if doc.get("scene") != scene:
+        raise InvalidInputError(f"tuned: {p} was tuned for {doc.get('scene')!r}, not {scene!r}", "tuned")
+    if kind not in ("mpm", "neural", "hybrid"):
+        raise InvalidInputError(f"tuned: {p} has unknown solver kind {kind!r}", "tuned")
+    if kind != "mpm" and not (cfg.get("model") and Path(cfg["model"]).is_file()):
+        raise InvalidInputError(f"tuned: the model {cfg.get('model')!r} of {p} does not exist", "tuned")
+    return dict(doc)
+
+
+def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
+    """The :func:`make_simulator` keyword arguments of a tuned configuration
+    (``solver``, and ``r_p`` or ``model`` and ``r_c``)."""
+    cfg = doc["config"]
+    if cfg["kind"] == "mpm":
+        return {"solver": "mpm", "r_p": float(cfg["r_p"])}
+    out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
+    if cfg["kind"] == "hybrid":
+        out["r_c"] = float(cfg["r_c"])
+    return out
+
+
+__all__ = ["CONFIG_KEYS", "SOLVERS", "TUNED_DIR", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]

@@ -1,0 +1,376 @@
+"""The hybrid simulator: neural physics by default, MPM when the flow gets complex.
+
+Paper Sec. 3.1.2, Eq. 1, Table 2; DESIGN.md "Safeguard". One *step* is one
+coarse step of the neural model: ``r_t`` frames of ``dt_frame`` seconds, at the
+model's particle resolution ``r_p`` (the scene is clustered once; MPM and the
+network move the same particles).
+
+Control (``r_c`` threshold, ``δ`` window, ``dwell``):
+
+* the first ``T_in − 1`` steps are MPM (they fill the network's history);
+* on the neural solver, a step whose score ``s(t) < r_c`` hands the next
+  step to MPM (neural → MPM conversion, :mod:`hybridmpm.hybrid.convert`);
+* on MPM, the score keeps being computed on the MPM trajectory; after
+  ``dwell`` consecutive steps with ``s(t) ≥ r_c`` the network takes over
+  again from the last ``T_in`` positions;
+* ``r_c ≤ 0`` switches the complexity trigger off (neural only, as the
+  paper's Table 2 reads r_c = 0; the mean cosine can dip below 0 in a splash);
+  ``r_c > 1`` can never be met: MPM only.
+
+Failure handling (always on, whatever ``r_c``): a neural step that predicts a
+non-finite position, moves a particle more than ``escape_cells`` cells (default
+4) beyond the model's domain bounds (a working water2d model overshoots the
+walls by at most 2.7 cells before clipping: 3 seeds × 1000 frames), raises the
+kinetic energy above ``ke_factor`` × the energy available at the start
+(kinetic + potential above the floor), or packs the particles so that their
+mean number of neighbours within R exceeds ``degree_factor`` (2) × that of the
+initial condition (sand and water are nearly incompressible: a collapsing
+network shows there first, and its graph, hence its cost, grows with it) is
+discarded (:class:`~hybridmpm.sim.neural.NeuralSimulator`'s failure checks),
+and the step is redone by MPM from the last good state (``Frame.event`` says
+which). The network then has to wait ``dwell·2^k``
+calm steps, ``k`` its failures since its last healthy stint of ``2·dwell``
+steps (backoff: a model that keeps collapsing is not handed the flow every
+few steps). MPM itself halves its substep and retries a frame that goes
+non-finite or violates the CFL condition (Rust ``step_frame``).
+
+Control (paper Sec. 3.2): while a ``forcing`` is set the hybrid runs MPM,
+which applies it (a network step in progress hands over first, event
+"switch:mpm"); once it is cleared the usual ``dwell`` rule hands the flow
+back to the network.
+
+The hybrid composes an :class:`~hybridmpm.sim.mpm.MpmSimulator` and a
+:class:`~hybridmpm.sim.neural.NeuralSimulator` on the same particles (the
+scene clustered once to the model's ``r_p``) through their public methods.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.conventions import DELTA, R_C
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.resolution import at_resolution
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing
+from hybridmpm.sim.convert import mpm_history
+from hybridmpm.sim.mpm import MpmSimulator
+from hybridmpm.sim.neural import NeuralSimulator, load_model
+from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
+
+#: Default dwell (steps of s ≥ r_c on MPM before the network takes over again);
+#: see docs/hybrid.md for the measurement behind it.
+DWELL = 5
+#: After a failure fallback the dwell doubles per failure since the network's
+#: last healthy stint (2·dwell steps without failure), up to 2**MAX_BACKOFF.
+MAX_BACKOFF = 6
+_STATE_VERSION = 2
+
+
+def _check(name: str, ok: bool, msg: str) -> None:
+    if not ok:
+        raise InvalidInputError(f"{name}: {msg}", name)
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+class HybridSimulator:
+    """Neural physics with an MPM fallback (paper Sec. 3.1.2).
+
+    Parameters
+    ----------
+    scene:
+        A :class:`~hybridmpm.scenes.Scene` at full resolution (or a registered
+        scene name / scene file, built with ``seed``).
+    model:
+        :class:`~hybridmpm.neural.NeuralModel`, ``.onnx`` path, or None for the
+        shipped model of the scene.
+    r_c, delta, dwell:
+        Safeguard threshold (default 0.8), window δ in steps (10), and steps
+        of ``s ≥ r_c`` on MPM before returning to the network (default
+        :data:`DWELL`).
+    seed:
+        Seed of the scene (if a name) and of the r_p clustering.
+    affine, volume_ratio:
+        APIC ``C`` after neural → MPM: "fit" (neighbour least squares) or
+        "zero"; water's ``J``: "density" (from the local density) or "one".
+    accel_floor:
+        [m/s²] particles calmer than this count as cos = 1 in s(t).
+    ke_factor, escape_cells, degree_factor, detect_failures:
+        The network's failure checks (:class:`~hybridmpm.sim.neural.NeuralSimulator`).
+    mpm_threads, nn_threads:
+        Threads of the MPM solver (0 = all cores) and of onnxruntime.
+
+    ``mpm`` and ``neural`` are the two composed simulators. Raises
+    :class:`InvalidInputError` naming the parameter for out-of-range values
+    or a model that does not fit the scene.
+    """
+
+    kind = "hybrid"
+
+    def __init__(
+        self,
+        scene: Scene | str,
+        model: NeuralModel | str | Path | None = None,
+        *,
+        r_c: float = R_C,
+        delta: int = DELTA,
+        dwell: int = DWELL,
+        seed: int = 0,
+        affine: str = "fit",
+        volume_ratio: str = "density",
+        accel_floor: float = ACCEL_FLOOR,
+        ke_factor: float = 2.0,
+        escape_cells: float = 4.0,
+        degree_factor: float = 2.0,
+        detect_failures: bool = True,
+        mpm_threads: int = 0,
+        nn_threads: int = 1,
+    ) -> None:
+        from hybridmpm.scenes import make_scene
+
+        _check("r_c", _finite(r_c), f"must be a finite number, got {r_c!r}")
+        _check("delta", isinstance(delta, int) and not isinstance(delta, bool) and delta >= 1, f"must be an integer >= 1, got {delta!r}")
+        _check("dwell", isinstance(dwell, int) and not isinstance(dwell, bool) and dwell >= 1, f"must be an integer >= 1, got {dwell!r}")
+        _check("affine", affine in ("fit", "zero"), f"must be 'fit' or 'zero', got {affine!r}")
+        _check("volume_ratio", volume_ratio in ("density", "one"), f"must be 'density' or 'one', got {volume_ratio!r}")
+        _check("accel_floor", _finite(accel_floor) and accel_floor >= 0, f"must be >= 0 [m/s²], got {accel_floor!r}")
+        if isinstance(scene, str):
+            scene = make_scene(scene, seed=seed)
+        self.scene_full = scene
+        self.model = load_model(model, scene.name, nn_threads)
+        self.r_c = float(r_c)
+        self.delta = delta
+        self.dwell = dwell
+        self.affine = affine
+        self.volume_ratio = volume_ratio
+        self.accel_floor = float(accel_floor)
+        self.scene = at_resolution(scene, self.model.r_p, seed)
+        self.neural = NeuralSimulator(
+            self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
+            degree_factor=degree_factor, warmup=False, mpm_threads=mpm_threads,
+        )  # fmt: skip
+        self.mpm = MpmSimulator(self.scene, r_t=self.model.r_t, threads=mpm_threads)
+        self.particles = self.mpm.particles
+        self.r_t = self.model.r_t
+        self.t_in = self.model.t_in
+        self.dt_frame = float(self.scene.dt_frame)
+        self.dt_step = self.dt_frame * self.r_t
+        self._buffer: deque[np.ndarray] = deque(maxlen=max(2 * delta + 2, self.t_in))
+        self._buffer.append(self.mpm.fluid_positions)
+        self.solver_name = MPM
+        self._calm = 0
+        self._strikes = 0
+        self._neural_run = 0
+        self.step_index = 0
+        self.stats = SimStats()
+        self.last_score = float("nan")
+        self._frame = self.mpm.frame
+
+    # ------------------------------------------------------------ properties
+    @property
+    def n_fluid(self) -> int:
+        return self.particles.num_fluid
+
+    @property
+    def particle_type(self) -> np.ndarray:
+        """GNS particle types int64 [N + B]."""
+        return self.particles.particle_type
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Current positions with boundary particles, float32 [N + B, D]."""
+        return self.particles.pad(self._buffer[-1])
+
+    @property
+    def frame(self) -> Frame:
+        """The last :class:`Frame` (the initial condition before the first step)."""
+        return self._frame
+
+    @property
+    def mean_degree(self) -> float:
+        """Mean neighbours per particle of the network's graph for its next step; nan when the next step is MPM's."""
+        return self.neural.mean_degree if self.solver_name == NEURAL else float("nan")
+
+    @property
+    def initial_degree(self) -> float:
+        """Mean neighbours per particle of the initial condition (the fluid at rest spacing)."""
+        return self.neural.initial_degree
+
+    @property
+    def safeguard_on(self) -> bool:
+        return self.r_c > 0.0
+
+    @property
+    def forcing(self) -> Forcing:
+        """External acceleration of the fluid particles (see :mod:`hybridmpm.sim.base`);
+        while set, the hybrid runs MPM."""
+        return self.mpm.forcing
+
+    @forcing.setter
+    def forcing(self, value: Forcing) -> None:
+        self.mpm.forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
+
+    # ------------------------------------------------------------ stepping
+    def _to_mpm(self) -> None:
+        hist = np.stack(list(self._buffer)[-2:])
+        self.mpm.load_history(hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius, volume_ratio=self.volume_ratio)
+
+    def _to_neural(self) -> None:
+        # called after an MPM step: the buffer's newest entry is the solver's state
+        self.neural.set_history(mpm_history(self.mpm.fluid_positions, np.stack(list(self._buffer)[-self.t_in : -1]), self.t_in))
+
+    def _fall_back(self) -> None:
+        self._to_mpm()
+        self.solver_name = MPM
+        self._calm = 0
+        self.stats.switches += 1
+
+    def advance(self) -> Frame:
+        """One coarse step (``r_t`` frames); returns its :class:`Frame`.
+
+        Raises :class:`~hybridmpm.errors.SimulationError` if MPM fails even
+        with ``max_substeps`` (the simulator state is then that before the step).
+        """
+        t0 = time.perf_counter()
+        event: str | None = None
+        retries = substeps = 0
+        controlled = False
+        forced = self.mpm.forcing is not None
+        if self.solver_name == NEURAL and forced:
+            self._fall_back()
+            event = "switch:mpm"
+        ran = self.solver_name
+        if ran == NEURAL:
+            proposal = self.neural.propose()
+            if proposal.failure is None:
+                pos = self.particles.fluid(self.neural.commit(proposal)).copy()
+                self._neural_run += 1
+                if self._neural_run >= 2 * self.dwell:
+                    self._strikes = 0  # a healthy stint: forgive earlier failures
+            else:
+                event = f"fallback:{proposal.failure}"
+                self._strikes += 1
+                self.stats.fallbacks[proposal.failure] = self.stats.fallbacks.get(proposal.failure, 0) + 1
+                self._fall_back()
+                ran = MPM
+        if ran == MPM:
+            self.mpm.step_index = self.step_index  # the forcing's frame clock is the hybrid's
+            fr = self.mpm.advance()
+            pos = self.particles.fluid(fr.positions).copy()
+            retries, substeps, controlled = fr.mpm_retries, fr.substeps, fr.controlled
+        self._buffer.append(pos)
+        self.step_index += 1
+        self.stats.steps[ran] += 1
+        self.stats.mpm_retries += retries
+
+        # safeguard on the trajectory, whichever solver made it
+        score = complexity_score(np.stack(self._buffer), self.dt_step, self.delta, self.accel_floor) if self.safeguard_on else float("nan")
+        self.last_score = score
+        warm = self.step_index >= self.t_in - 1
+        if self.solver_name == NEURAL:
+            if self.safeguard_on and not (score >= self.r_c):
+                self._fall_back()
+                event = event or "switch:mpm"
+        elif warm and not forced:
+            ok = (not self.safeguard_on) or score >= self.r_c
+            self._calm = self._calm + 1 if ok else 0
+            # after the warm-up a calm score hands over at once; after a switch it must hold for `dwell`
+            # steps, doubled for each failure of the network since its last healthy stint (backoff)
+            if self.stats.steps[NEURAL] == 0 and self.stats.switches == 0:
+                need = 1
+            else:
+                need = self.dwell * 2 ** min(self._strikes, MAX_BACKOFF)
+            if self._calm >= need and len(self._buffer) >= self.t_in:
+                self._to_neural()
+                self.solver_name = NEURAL
+                self._neural_run = 0
+                if self.stats.steps[NEURAL] > 0 or self.stats.switches > 0:
+                    self.stats.switches += 1
+                    event = event or "switch:neural"
+        self._frame = Frame(
+            self.step_index,
+            self.step_index * self.r_t,
+            self.step_index * self.dt_step,
+            self.particles.pad(pos),
+            ran,
+            time.perf_counter() - t0,
+            score,
+            event,
+            retries,
+            substeps,
+            controlled,
+        )
+        return self._frame
+
+    # ------------------------------------------------------------ checkpoint
+    def state(self) -> dict[str, Any]:
+        """The whole hybrid state (picklable dict): both simulators' states,
+        the position buffer, the solver in charge, counters."""
+        return {
+            "kind": self.kind,
+            "version": _STATE_VERSION,
+            "mpm": self.mpm.state(),
+            "neural": self.neural.state(),
+            "buffer": np.stack(list(self._buffer)).copy(),
+            "solver_name": self.solver_name,
+            "frame_solver": self._frame.solver,
+            "calm": self._calm,
+            "strikes": self._strikes,
+            "neural_run": self._neural_run,
+            "step_index": self.step_index,
+            "stats": self.stats.to_dict(),
+            "last_score": self.last_score,
+            "n_fluid": self.n_fluid,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state` of this simulator (same scene and model).
+        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
+        malformed state; the simulator is then unchanged."""
+        try:
+            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or int(state["n_fluid"]) != self.n_fluid:
+                raise InvalidInputError("state: not a state of this hybrid simulator (kind, version or particle count differ)", "state")
+            buf = np.asarray(state["buffer"], np.float32)
+            if buf.ndim != 3 or buf.shape[1:] != (self.n_fluid, self.particles.dim) or not (1 <= buf.shape[0] <= self._buffer.maxlen):  # type: ignore[operator]
+                raise InvalidInputError(f"state: buffer has shape {list(buf.shape)}, expected [T, {self.n_fluid}, {self.particles.dim}]", "state")
+            solver_name = str(state["solver_name"])
+            frame_solver = str(state["frame_solver"])
+            if solver_name not in (MPM, NEURAL) or frame_solver not in (MPM, NEURAL):
+                raise InvalidInputError(f"state: unknown solver {solver_name!r}", "state")
+            counters = {k: int(state[k]) for k in ("calm", "strikes", "neural_run", "step_index")}
+            if min(counters.values()) < 0:
+                raise InvalidInputError("state: negative counter", "state")
+            stats = SimStats.from_dict(state["stats"])
+            last_score = float(state["last_score"])
+            mpm_before, neural_before = self.mpm.state(), self.neural.state()
+            self.mpm.restore(state["mpm"])
+            try:
+                self.neural.restore(state["neural"])
+            except InvalidInputError:
+                self.mpm.restore(mpm_before)
+                self.neural.restore(neural_before)
+                raise
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            if isinstance(e, InvalidInputError):
+                raise
+            raise InvalidInputError(f"state: malformed hybrid state ({e})", "state") from e
+        self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
+        self.solver_name = solver_name
+        self._calm, self._strikes = counters["calm"], counters["strikes"]
+        self._neural_run, self.step_index = counters["neural_run"], counters["step_index"]
+        self.stats = stats
+        self.last_score = last_score
+        self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=last_score)
+
+
+__all__ = ["DWELL", "MAX_BACKOFF", "HybridSimulator"]

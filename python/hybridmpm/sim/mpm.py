@@ -1,0 +1,182 @@
+"""MPM alone behind the simulator interface (the Rust MLS-MPM solver).
+
+One coarse step is ``r_t`` frames (default 1); each frame is as many CFL
+substeps as the solver needs (it halves the substep and retries a frame that
+goes non-finite). A ``forcing`` is written into the solver's per-particle
+external acceleration before each frame (paper Sec. 3.2: the controller's
+accelerations are applied by MPM).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmSolver
+from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.resolution import at_resolution, check_r_t
+from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, resolve_forcing
+from hybridmpm.sim.convert import neural_to_mpm
+
+_STATE_VERSION = 1
+
+
+class MpmSimulator:
+    """MLS-MPM on a scene, one coarse step (``r_t`` frames) per :meth:`advance`.
+
+    Parameters
+    ----------
+    scene:
+        A :class:`~hybridmpm.scenes.Scene` (or a registered scene name / scene
+        file, built with ``seed``).
+    r_p:
+        Spatial downsampling in (0, 1]: the scene is clustered to ``r_p·N``
+        particles (k-means seeded by ``seed``, paper Sec. 3.1.1) first.
+    r_t:
+        Frames per coarse step (≥ 1).
+    threads:
+        Solver threads (0 = all cores).
+
+    ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
+    :class:`InvalidInputError` naming the bad parameter.
+    """
+
+    kind = MPM
+
+    def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0) -> None:
+        from hybridmpm.scenes import make_scene
+
+        if isinstance(scene, str):
+            scene = make_scene(scene, seed=seed)
+        self.r_t = check_r_t(r_t)
+        threads = check_int("threads", threads, 0)
+        self.scene_full = scene
+        self.scene = at_resolution(scene, r_p, seed)
+        self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
+        self.particles = self.scene.particles(self.solver.masses)
+        self.dt_frame = float(self.scene.dt_frame)
+        self.dt_step = self.dt_frame * self.r_t
+        self.step_index = 0
+        self.stats = SimStats()
+        self._forcing: Forcing = None
+        self._applied = False
+        self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM)
+
+    # ------------------------------------------------------------ state
+    @property
+    def fluid_positions(self) -> np.ndarray:
+        """The solver's particle positions, float32 [N, D] (a copy)."""
+        return np.asarray(self.solver.positions, np.float32).copy()
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Current positions with boundary particles, float32 [N + B, D]."""
+        return self.particles.pad(self.fluid_positions)
+
+    @property
+    def frame(self) -> Frame:
+        """The last :class:`Frame` (the initial condition before the first step)."""
+        return self._frame
+
+    @property
+    def forcing(self) -> Forcing:
+        """External acceleration [m/s²] of the fluid particles: float32 [N, D],
+        a callable ``frame -> [N, D] | None``, or None (see :mod:`hybridmpm.sim.base`)."""
+        return self._forcing
+
+    @forcing.setter
+    def forcing(self, value: Forcing) -> None:
+        self._forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
+        if self._forcing is None and self._applied:
+            self._clear_forcing()
+
+    def _clear_forcing(self) -> None:
+        self.solver.external_acceleration = np.zeros((self.particles.num_fluid, self.particles.dim), np.float32)
+        self._applied = False
+
+    # ------------------------------------------------------------ stepping
+    def advance(self) -> Frame:
+        """Advance ``r_t`` frames; returns their :class:`Frame`. Raises
+        :class:`~hybridmpm.errors.SimulationError` if a frame cannot be
+        finished even with the smallest substep (the state is then that of
+        the failing frame's start)."""
+        t0 = time.perf_counter()
+        retries = substeps = 0
+        controlled = False
+        n, d = self.particles.num_fluid, self.particles.dim
+        for k in range(self.r_t):
+            if self._forcing is not None:
+                acc = resolve_forcing(self._forcing, self.step_index * self.r_t + k, n, d)
+                if acc is not None:
+                    self.solver.external_acceleration = acc
+                    self._applied = controlled = True
+                elif self._applied:
+                    self._clear_forcing()
+            st = self.solver.step_frame(self.dt_frame)
+            retries += int(st.get("retries", 0))
+            substeps += int(st["substeps"])
+        pos = self.fluid_positions
+        self.step_index += 1
+        self.stats.steps[MPM] += 1
+        self.stats.mpm_retries += retries
+        self._frame = Frame(
+            self.step_index,
+            self.step_index * self.r_t,
+            self.step_index * self.dt_step,
+            self.particles.pad(pos),
+            MPM,
+            time.perf_counter() - t0,
+            mpm_retries=retries,
+            substeps=substeps,
+            controlled=controlled,
+        )
+        return self._frame
+
+    def load_history(self, history: np.ndarray, dt_step: float, **conversion: Any) -> dict[str, Any]:
+        """Take over from the network: write the state of a fluid position
+        history float32 [T ≥ 2, N, D] (one ``dt_step`` apart) into the solver
+        (:func:`~hybridmpm.sim.convert.neural_to_mpm`, keyword arguments
+        ``affine``, ``affine_radius``, ``volume_ratio``); returns what was set."""
+        return neural_to_mpm(self.solver, history, dt_step, **conversion)
+
+    # ------------------------------------------------------------ checkpoint
+    def state(self) -> dict[str, Any]:
+        """The whole state (picklable dict): solver checkpoint, step counter,
+        stats and an array forcing (a callable forcing is not saved)."""
+        return {
+            "kind": self.kind,
+            "version": _STATE_VERSION,
+            "solver": self.solver.checkpoint(),
+            "step_index": self.step_index,
+            "stats": self.stats.to_dict(),
+            "forcing": self._forcing.copy() if isinstance(self._forcing, np.ndarray) else None,
+            "applied": self._applied,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state` of a simulator of the same scene.
+        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
+        malformed state; this simulator is then unchanged."""
+        try:
+            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
+                raise InvalidInputError("state: not a state of an MpmSimulator of this version", "state")
+            step = check_int("state.step_index", state["step_index"], 0)
+            stats = SimStats.from_dict(state["stats"])
+            forcing = check_forcing(state["forcing"], self.particles.num_fluid, self.particles.dim)
+            blob = state["solver"]
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            if isinstance(e, InvalidInputError):
+                raise
+            raise InvalidInputError(f"state: malformed MpmSimulator state ({e})", "state") from e
+        self.solver.restore(blob)
+        self.step_index = step
+        self.stats = stats
+        self._forcing = forcing
+        self._applied = bool(state.get("applied", False))
+        self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM)
+
+
+__all__ = ["MpmSimulator"]

@@ -1,0 +1,381 @@
+"""The network alone behind the simulator interface (paper Sec. 2.2, 3.1.1, App. A).
+
+The scene is clustered to the model's ``r_p``; MPM runs the first ``T_in − 1``
+coarse steps to fill the network's position history (warm-up); from then on
+each :meth:`NeuralSimulator.advance` is one network step of ``r_t`` frames:
+radius graph (Rust cell list) + onnxruntime, predicted positions clipped to
+the model's domain bounds.
+
+Failure checks (``detect_failures``, on by default): a step that predicts a
+non-finite position ("nan"), moves a particle more than ``escape_cells``
+cells beyond the model's bounds ("escaped"), raises the kinetic energy above
+``ke_factor`` × the energy available at the start (kinetic + potential above
+the floor; "energy"), or packs the particles so that their mean number of
+neighbours within R exceeds ``degree_factor`` × that of the initial
+condition ("compressed": sand and water are nearly incompressible, and the
+graph — hence the cost — grows with the packing) is rejected:
+:meth:`~NeuralSimulator.advance` raises :class:`~hybridmpm.sim.base.NetworkFailure`
+and leaves the state unchanged; the hybrid uses :meth:`propose` /
+:meth:`commit` to fall back to MPM instead.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
+from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.resolution import at_resolution
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int
+from hybridmpm.sim.mpm import MpmSimulator
+
+_STATE_VERSION = 1
+
+
+def load_model(model: NeuralModel | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel:
+    """``model`` as a :class:`NeuralModel`: itself, loaded from an ``.onnx``
+    path, or (None) the shipped model of ``scene_name``. Raises
+    :class:`InvalidInputError` (field ``model``)."""
+    if isinstance(model, NeuralModel):
+        return model
+    if model is None:
+        from hybridmpm.models import shipped_model
+
+        if scene_name is None:
+            raise InvalidInputError("model: no model given and the scene has no name to find a shipped one", "model")
+        model = shipped_model(scene_name)
+    return NeuralModel(model, threads=threads)
+
+
+@dataclass
+class Proposal:
+    """A network step not yet taken (:meth:`NeuralSimulator.propose`).
+
+    ``acceleration`` and ``predicted`` float32 [N + B, D] (raw network output);
+    ``positions`` the prediction clipped to the domain (None if rejected
+    before clipping); ``graph`` (senders, receivers) of ``positions``, reused
+    by the next step; ``failure`` None or the failure mode.
+    """
+
+    acceleration: np.ndarray
+    predicted: np.ndarray
+    positions: np.ndarray | None
+    graph: tuple[np.ndarray, np.ndarray] | None
+    failure: str | None
+
+
+class NeuralSimulator:
+    """The GNS network alone (after an MPM warm-up), one model step per :meth:`advance`.
+
+    Parameters
+    ----------
+    scene:
+        A full-resolution :class:`~hybridmpm.scenes.Scene` (or a registered
+        name / scene file built with ``seed``), or one already at the model's
+        ``r_p``; clustered to the model's ``r_p`` with ``seed``.
+    model:
+        :class:`~hybridmpm.neural.NeuralModel`, ``.onnx`` path, or None for the
+        shipped model of the scene.
+    detect_failures, ke_factor, escape_cells, degree_factor:
+        The failure checks (module doc). Off: every prediction is taken.
+    clamp:
+        Clip predicted positions to the model's domain bounds (the walls,
+        which the network sees only through its wall-distance features).
+    warmup:
+        Run MPM for the first ``T_in − 1`` steps (default). False: the
+        history must be given with :meth:`set_history` before :meth:`advance`
+        (the hybrid does so).
+    max_neighbors, mpm_threads, nn_threads:
+        Neighbour cap of the radius graph; MPM threads of the warm-up (0 = all
+        cores); onnxruntime threads when ``model`` is a path.
+
+    Raises :class:`InvalidInputError` naming the parameter, or (``model``)
+    for a model that does not fit the scene.
+    """
+
+    kind = NEURAL
+
+    def __init__(
+        self,
+        scene: Scene | str,
+        model: NeuralModel | str | Path | None = None,
+        *,
+        seed: int = 0,
+        detect_failures: bool = True,
+        ke_factor: float = 2.0,
+        escape_cells: float = 4.0,
+        degree_factor: float = 2.0,
+        clamp: bool = True,
+        warmup: bool = True,
+        max_neighbors: int | None = None,
+        mpm_threads: int = 0,
+        nn_threads: int = 1,
+    ) -> None:
+        import math
+
+        from hybridmpm.scenes import make_scene
+
+        for name, v, lo, closed in (("ke_factor", ke_factor, 0.0, False), ("escape_cells", escape_cells, 0.0, True), ("degree_factor", degree_factor, 1.0, False)):
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v >= lo if closed else v > lo)
+            if not ok:
+                raise InvalidInputError(f"{name}: must be a finite number {'>=' if closed else '>'} {lo:g}, got {v!r}", name)
+        if max_neighbors is not None:
+            check_int("max_neighbors", max_neighbors, 1)
+        if isinstance(scene, str):
+            scene = make_scene(scene, seed=seed)
+        self.model = load_model(model, scene.name, nn_threads)
+        self.scene_full = scene
+        self.scene = at_resolution(scene, self.model.r_p, seed)
+        self.model.check_fits(self.scene.dim, self.scene.particle_type(), scene.name)
+        self.detect_failures = bool(detect_failures)
+        self.ke_factor = float(ke_factor)
+        self.escape_cells = float(escape_cells)
+        self.degree_factor = float(degree_factor)
+        self.clamp = bool(clamp)
+        self.max_neighbors = max_neighbors
+        self.r_t = self.model.r_t
+        self.t_in = self.model.t_in
+        self.dt_frame = float(self.scene.dt_frame)
+        self.dt_step = self.dt_frame * self.r_t
+        # MPM: the warm-up, and the facts the failure checks need (masses, grid, walls)
+        self._mpm_threads = mpm_threads
+        mpm = MpmSimulator(self.scene, r_t=self.r_t, threads=mpm_threads)
+        self.particles = mpm.particles
+        self._warmup: MpmSimulator | None = mpm if warmup else None
+        self._warm: list[np.ndarray] = [mpm.fluid_positions] if warmup else []
+        self._dx = float(mpm.solver.dx)
+        masses = np.asarray(mpm.solver.masses, np.float64)
+        lo = mpm.solver.domain_bounds[0]
+        g = np.asarray(self.scene.params.to_dict()["gravity"], np.float64)
+        x0 = np.asarray(self.scene.positions, np.float64)
+        v0 = np.asarray(self.scene.velocities, np.float64)
+        self._masses = masses
+        #: Energy available at the start [J]: kinetic + potential above the floor.
+        self.energy_budget = float(0.5 * (masses * (v0**2).sum(1)).sum() + (masses * ((x0 - lo) @ -g).clip(min=0)).sum())
+        b = np.asarray(self.model.meta["bounds"], np.float32)
+        self._lo, self._hi = b[:, 0], b[:, 1]
+        x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
+        self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
+        self._history: np.ndarray | None = None
+        self._next_graph: tuple[np.ndarray, np.ndarray] | None = None
+        self.step_index = 0
+        self.stats = SimStats()
+        self.last_edges = 0
+        self.last_clamped = 0
+        self._frame = Frame(0, 0, 0.0, self.particles.pad(np.asarray(self.scene.positions, np.float32)), MPM)
+
+    # ------------------------------------------------------------ properties
+    @property
+    def positions(self) -> np.ndarray:
+        """Current positions with boundary particles, float32 [N + B, D]."""
+        return self._frame.positions
+
+    @property
+    def frame(self) -> Frame:
+        return self._frame
+
+    @property
+    def history(self) -> np.ndarray | None:
+        """The network's input, float32 [T_in, N + B, D] (a copy), or None during the warm-up."""
+        return None if self._history is None else self._history.copy()
+
+    @property
+    def warming_up(self) -> bool:
+        return self._history is None
+
+    @property
+    def initial_degree(self) -> float:
+        """Mean neighbours per particle within R of the initial condition (self-edge included)."""
+        return float(self._degree0)
+
+    @property
+    def mean_degree(self) -> float:
+        """Mean neighbours per particle of the graph of the next network step (nan if not built yet)."""
+        if self._next_graph is None:
+            return float("nan")
+        return len(self._next_graph[0]) / max(1, self.particles.num_total)
+
+    @property
+    def forcing(self) -> Forcing:
+        """Always None: the network cannot apply a forcing."""
+        return None
+
+    @forcing.setter
+    def forcing(self, value: Forcing) -> None:
+        if value is not None:
+            raise InvalidInputError(
+                "forcing: the network alone cannot apply a forcing (control runs on MPM, paper Sec. 3.2); use HybridSimulator or MpmSimulator",
+                "forcing",
+            )
+
+    # ------------------------------------------------------------ network steps
+    def set_history(self, fluid_history: np.ndarray) -> None:
+        """Start the network from fluid positions float [T_in, N, D] (oldest
+        first, one coarse step apart). Raises :class:`InvalidInputError`
+        (field ``history``) for another shape or non-finite values."""
+        h = np.asarray(fluid_history, np.float32)
+        n, d = self.particles.num_fluid, self.particles.dim
+        if h.shape != (self.t_in, n, d):
+            raise InvalidInputError(f"history: expected shape [{self.t_in}, {n}, {d}], got {list(h.shape)}", "history")
+        if not np.isfinite(h).all():
+            raise InvalidInputError("history: contains NaN or inf", "history")
+        self._history = self.particles.pad(h)
+        self._next_graph = None
+        self._warmup = None
+        self._warm = []
+
+    def _failure(self, nxt: np.ndarray) -> str | None:
+        assert self._history is not None
+        n = self.particles.num_fluid
+        fluid = nxt[:n]
+        if not np.isfinite(fluid).all():
+            return "nan"
+        margin = self.escape_cells * self._dx
+        if (fluid < self._lo - margin).any() or (fluid > self._hi + margin).any():
+            return "escaped"
+        v = (fluid.astype(np.float64) - self._history[-1, :n]) / self.dt_step
+        ke = 0.5 * float((self._masses * (v**2).sum(1)).sum())
+        if ke > self.ke_factor * self.energy_budget:
+            return "energy"
+        return None
+
+    def _clip(self, nxt: np.ndarray) -> np.ndarray:
+        if self.clamp:
+            out = (nxt < self._lo) | (nxt > self._hi)
+            self.last_clamped = int(out.any(axis=1).sum())
+            if self.last_clamped:
+                nxt = np.clip(nxt, self._lo, self._hi)
+        return nxt
+
+    def propose(self) -> Proposal:
+        """Predict the next network step without taking it (failure checks
+        included when ``detect_failures``). Raises :class:`InvalidInputError`
+        (field ``history``) during the warm-up."""
+        if self._history is None:
+            raise InvalidInputError("history: the network has no position history yet (warm-up not finished; see set_history)", "history")
+        acc, nxt, (s, _) = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
+        self.last_edges = int(len(s))
+        self._next_graph = None
+        failure = self._failure(nxt) if self.detect_failures else None
+        clipped: np.ndarray | None = None
+        graph: tuple[np.ndarray, np.ndarray] | None = None
+        if failure is None:
+            clipped = self._clip(nxt)
+            s_next, r_next, _, _ = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
+            if self.detect_failures and len(s_next) > self.degree_factor * self._degree0 * len(clipped):
+                failure = "compressed"
+            else:
+                graph = (s_next, r_next)
+        return Proposal(acc, nxt, clipped, graph, failure)
+
+    def commit(self, proposal: Proposal) -> np.ndarray:
+        """Take a proposed step (one without failure): append its positions to
+        the history; returns them, float32 [N + B, D]. Raises
+        :class:`InvalidInputError` (field ``proposal``) for a rejected one."""
+        if proposal.failure is not None or proposal.positions is None or self._history is None:
+            raise InvalidInputError(f"proposal: a rejected step ({proposal.failure}) cannot be committed", "proposal")
+        self._history = np.concatenate([self._history[1:], proposal.positions[None].astype(np.float32)])
+        self._next_graph = proposal.graph
+        self.step_index += 1
+        self.stats.steps[NEURAL] += 1
+        return self._history[-1]
+
+    def advance(self) -> Frame:
+        """One coarse step: MPM during the warm-up, then the network. Raises
+        :class:`~hybridmpm.sim.base.NetworkFailure` for a rejected network
+        step (state unchanged), :class:`~hybridmpm.errors.SimulationError`
+        if the warm-up MPM fails."""
+        if self._history is None:
+            return self._advance_warmup()
+        t0 = time.perf_counter()
+        p = self.propose()
+        if p.failure is not None:
+            self.stats.fallbacks[p.failure] = self.stats.fallbacks.get(p.failure, 0) + 1
+            raise NetworkFailure(p.failure, self.step_index + 1)
+        pos = self.commit(p).copy()
+        self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, pos, NEURAL, time.perf_counter() - t0)
+        return self._frame
+
+    def _advance_warmup(self) -> Frame:
+        if self._warmup is None:
+            raise InvalidInputError("history: warmup=False and no history was set (see set_history)", "history")
+        fr = self._warmup.advance()
+        self._warm.append(self.particles.fluid(fr.positions).copy())
+        self.step_index = self._warmup.step_index
+        self.stats.steps[MPM] += 1
+        self.stats.mpm_retries += fr.mpm_retries
+        self._frame = fr
+        if len(self._warm) == self.t_in:
+            self.set_history(np.stack(self._warm))
+        return fr
+
+    # ------------------------------------------------------------ checkpoint
+    def state(self) -> dict[str, Any]:
+        """The whole state (picklable dict): history (or the warm-up's MPM
+        state and positions), step counter, stats."""
+        return {
+            "kind": self.kind,
+            "version": _STATE_VERSION,
+            "history": None if self._history is None else self._history.copy(),
+            "warmup": None if self._warmup is None else self._warmup.state(),
+            "warm": [w.copy() for w in self._warm],
+            "step_index": self.step_index,
+            "stats": self.stats.to_dict(),
+            "frame_positions": self._frame.positions.copy(),
+            "frame_solver": self._frame.solver,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state` of a simulator of the same scene and model.
+        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
+        malformed state; this simulator is then unchanged."""
+        try:
+            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
+                raise InvalidInputError("state: not a state of a NeuralSimulator of this version", "state")
+            step = check_int("state.step_index", state["step_index"], 0)
+            stats = SimStats.from_dict(state["stats"])
+            hist = state["history"]
+            n_all, d = self.particles.num_total, self.particles.dim
+            if hist is not None:
+                hist = np.asarray(hist, np.float32)
+                if hist.shape != (self.t_in, n_all, d) or not np.isfinite(hist).all():
+                    raise InvalidInputError(f"state: history must be finite [{self.t_in}, {n_all}, {d}], got {list(hist.shape)}", "state")
+            warm = [np.asarray(w, np.float32) for w in state["warm"]]
+            if any(w.shape != (self.particles.num_fluid, d) for w in warm) or len(warm) > self.t_in:
+                raise InvalidInputError("state: malformed warm-up positions", "state")
+            fpos = np.asarray(state["frame_positions"], np.float32)
+            if fpos.shape != (n_all, d):
+                raise InvalidInputError("state: malformed frame positions", "state")
+            solver = str(state["frame_solver"])
+            warmup_state = state["warmup"]
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            if isinstance(e, InvalidInputError):
+                raise
+            raise InvalidInputError(f"state: malformed NeuralSimulator state ({e})", "state") from e
+        if warmup_state is not None:
+            mpm = MpmSimulator(self.scene, r_t=self.r_t, threads=self._mpm_threads)
+            mpm.restore(warmup_state)
+            self._warmup = mpm
+        else:
+            self._warmup = None
+        self._history = hist
+        self._warm = warm
+        self._next_graph = None
+        self.step_index = step
+        self.stats = stats
+        self._frame = Frame(step, step * self.r_t, step * self.dt_step, fpos, solver)
+
+
+def warmup_frames(model: NeuralModel) -> int:
+    """MPM frames needed before the first network step: ``(T_in − 1)·r_t``."""
+    return (model.t_in - 1) * model.r_t
+
+
+__all__ = ["NeuralSimulator", "Proposal", "load_model", "warmup_frames"]

@@ -1,0 +1,199 @@
+"""One rollout loop for every simulator, and the reference it is measured against.
+
+:func:`rollout` advances any :class:`~hybridmpm.sim.base.Simulator` for a
+number of frames and returns a :class:`Rollout` — a
+:class:`~hybridmpm.trajectory.Trajectory` (positions every coarse step, fluid
+then boundary particles) that also carries what each step was: its frame
+number, the solver that made it, its wall time, the safeguard score, MPM
+substeps, events, and why the rollout broke off, if it did.
+:func:`reference` is full-resolution MPM from the same initial condition
+(DESIGN.md "Grid-mass error": the reference of every error).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.scenes.core import Scene
+from hybridmpm.sim.base import NEURAL, Frame, NetworkFailure, Simulator, check_int
+from hybridmpm.trajectory import Trajectory
+
+#: ``stop(frame, sim)`` → None to go on, or the reason to break off.
+StopRule = Callable[[Frame, Any], "str | None"]
+
+
+@dataclass
+class Rollout(Trajectory):
+    """A :class:`~hybridmpm.trajectory.Trajectory` made by :func:`rollout`.
+
+    Besides the trajectory's fields (``positions`` float32 [K + 1, N + B, D],
+    one entry per coarse step, the first the state the rollout started from;
+    ``dt_frame`` the time between entries = ``r_t·dt_frame``), per entry:
+    ``frame_index`` int64 [K + 1]; ``solver`` str [K + 1] ("mpm"/"neural");
+    ``seconds`` float64 [K + 1] wall time of the step (0 for the first);
+    ``score`` float64 [K + 1] safeguard s(t) (nan where not computed);
+    ``substeps`` int64 [K + 1]; ``controlled`` bool [K + 1]. And ``events``
+    [(step, event)], ``failure`` (None, "nan", "mpm", a network failure mode
+    or a stop rule's reason) and ``failure_detail`` (the error's message),
+    ``stats`` (the simulator's counters),
+    ``num_fluid`` N, ``r_t``. Saving keeps ``solver`` (int8, 1 = neural),
+    ``score``, ``step_seconds``, ``frame_index`` and ``substeps`` as extras.
+    """
+
+    frame_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    solver: np.ndarray = field(default_factory=lambda: np.zeros(0, "<U6"))
+    seconds: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    score: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    substeps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    controlled: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    events: list[tuple[int, str]] = field(default_factory=list)
+    failure: str | None = None
+    failure_detail: str | None = None
+    stats: dict[str, Any] = field(default_factory=dict)
+    num_fluid: int = 0
+    r_t: int = 1
+
+    @property
+    def fluid_positions(self) -> np.ndarray:
+        """float32 [K + 1, N, D]: the fluid particles only (a view)."""
+        return self.positions[:, : self.num_fluid]
+
+    @property
+    def frames_done(self) -> int:
+        """Frames simulated since the first entry."""
+        return int(self.frame_index[-1] - self.frame_index[0])
+
+    def frame_seconds(self, after: int = 0) -> np.ndarray:
+        """Wall seconds per *frame* of the steps that end after frame ``after``
+        (each step's time divided by ``r_t``, repeated ``r_t`` times): the
+        per-frame latency with the first ``after`` frames left out."""
+        keep = self.frame_index[1:] > after
+        return np.repeat(self.seconds[1:][keep] / self.r_t, self.r_t)
+
+    def share(self, solver: str = NEURAL) -> float:
+        """Fraction of the steps made by ``solver``."""
+        return float(np.mean(self.solver[1:] == solver)) if len(self.solver) > 1 else 0.0
+
+
+def rollout(
+    sim: Simulator,
+    frames: int,
+    *,
+    progress: str | None = None,
+    stop: StopRule | None = None,
+    on_frame: Callable[[Frame], None] | None = None,
+) -> Rollout:
+    """Advance ``sim`` by ``frames`` frames (whole coarse steps:
+    ``⌈frames / r_t⌉`` of them) and return the :class:`Rollout`, starting
+    with the simulator's current frame.
+
+    The rollout breaks off, keeping everything before, when a network step is
+    rejected (:class:`~hybridmpm.sim.base.NetworkFailure`: ``failure`` is its
+    mode), MPM cannot finish a frame ("mpm"), a step yields a non-finite fluid
+    position ("nan"; that step is not kept), or ``stop(frame, sim)`` returns a
+    reason (that step is kept). ``progress`` the description of a tqdm bar
+    (None: no bar); ``on_frame`` is called with every kept frame. Raises
+    :class:`InvalidInputError` (field ``frames``) for a negative count.
+    """
+    from tqdm import tqdm
+
+    frames = check_int("frames", frames, 0)
+    start = sim.frame
+    target = start.frame + frames
+    recs: list[Frame] = [start]
+    failure: str | None = None
+    detail: str | None = None
+    bar = tqdm(total=math.ceil(frames / sim.r_t), desc=progress, unit="step", disable=progress is None)
+    try:
+        while sim.frame.frame < target:
+            try:
+                fr = sim.advance()
+            except NetworkFailure as e:
+                failure, detail = e.mode, str(e)
+                break
+            except SimulationError as e:
+                failure, detail = "mpm", str(e)
+                break
+            if not np.isfinite(sim.particles.fluid(fr.positions)).all():
+                failure = "nan"
+                break
+            recs.append(fr)
+            bar.update()
+            if fr.solver == NEURAL or not math.isnan(fr.score):
+                bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}", refresh=False)
+            if on_frame is not None:
+                on_frame(fr)
+            if stop is not None:
+                reason = stop(fr, sim)
+                if reason:
+                    failure = str(reason)
+                    break
+    finally:
+        bar.close()
+    return _collect(sim, recs, failure, detail)
+
+
+def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str | None) -> Rollout:
+    p = sim.particles
+    solver = np.array([r.solver for r in recs])
+    seconds = np.array([0.0] + [r.seconds for r in recs[1:]])
+    score = np.array([r.score for r in recs], np.float64)
+    substeps = np.array([r.substeps for r in recs], np.int64)
+    frame_index = np.array([r.frame for r in recs], np.int64)
+    extras = {
+        "solver": (solver == NEURAL).astype(np.int8),
+        "score": score,
+        "step_seconds": seconds,
+        "frame_index": frame_index,
+        "substeps": substeps,
+    }
+    return Rollout(
+        positions=np.stack([r.positions for r in recs]),
+        particle_type=p.particle_type,
+        dt_frame=sim.dt_frame * sim.r_t,
+        n_grid=sim.scene.params.resolved_n_grid(),
+        masses=p.full_masses(),
+        material=p.full_material(),
+        extras=extras,
+        frame_index=frame_index,
+        solver=solver,
+        seconds=seconds,
+        score=score,
+        substeps=substeps,
+        controlled=np.array([r.controlled for r in recs], bool),
+        events=[(r.step, r.event) for r in recs if r.event],
+        failure=failure,
+        failure_detail=detail,
+        stats=sim.stats.to_dict(),
+        num_fluid=p.num_fluid,
+        r_t=sim.r_t,
+    )
+
+
+def reference(scene: Scene, frames: int, *, stride: int = 1, threads: int = 0, progress: str | None = None) -> Rollout:
+    """Full-resolution MPM from ``scene``'s initial condition, every ``stride``
+    frames for ``⌈frames/stride⌉·stride`` frames (whole strides, like the
+    network's coarse steps): the reference of the grid-mass error. A scene
+    clustered to ``r_p < 1`` is rebuilt from its spec. Raises
+    :class:`InvalidInputError` (field ``scene``) if such a scene has no spec,
+    :class:`~hybridmpm.errors.SimulationError` if MPM fails."""
+    from hybridmpm.sim.mpm import MpmSimulator
+
+    if scene.info.get("r_p", 1.0) < 1.0:
+        if scene.spec is None:
+            raise InvalidInputError("scene: the reference runs at full resolution; this clustered scene has no spec to rebuild it from", "scene")
+        name = scene.name
+        scene = scene.spec.build()
+        scene.name = name
+    ro = rollout(MpmSimulator(scene, r_t=stride, threads=threads), frames, progress=progress)
+    if ro.failure is not None:
+        raise SimulationError(f"reference: full-resolution MPM failed after {ro.frames_done} frames: {ro.failure_detail or ro.failure}")
+    return ro
+
+
+__all__ = ["Rollout", "StopRule", "reference", "rollout"]

@@ -1,0 +1,65 @@
+"""The simulator interface changed no physics: trajectories are byte-identical
+to those of main at 202ef89, the last commit before :mod:`hybridmpm.sim`.
+
+``golden/golden_202ef89.json`` holds SHA-256 digests of float32 positions
+recorded by ``golden/make_golden_202ef89.py`` running the 202ef89 code itself
+(its own frame loops: ``Scene.make_solver().step_frame``, ``run_neural``,
+``HybridSimulator.step``); here the same runs go through :func:`hybridmpm.sim.rollout`.
+MPM: every registered scene, 2 seeds, 50 frames. Network alone and hybrid:
+water2d and the dam break, 2 seeds, 120 frames (the hybrid switches to the
+network and back in them). The digests are of this machine class's float
+arithmetic (x86-64, the Rust build's SIMD and onnxruntime's CPU kernels); on
+another CPU the MPM digests hold (no FMA contraction, deterministic across
+thread counts) but onnxruntime may pick other kernels.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridmpm.scenes import make_scene
+from hybridmpm.sim import HybridSimulator, MpmSimulator, NeuralSimulator, rollout
+
+GOLDEN = json.loads((Path(__file__).parent / "golden" / "golden_202ef89.json").read_text())
+
+
+def digest(x: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(x, np.float32).tobytes()).hexdigest()
+
+
+def check(rec: dict, positions: np.ndarray) -> None:
+    assert list(positions.shape) == rec["shape"]
+    if digest(positions) != rec["sha256"]:
+        # say how far off it is before failing: the sum of all coordinates
+        pytest.fail(f"trajectory differs from 202ef89: coordinate sum {positions.astype(np.float64).sum()!r} vs {rec['sum']!r}")
+
+
+@pytest.mark.parametrize("key", sorted(GOLDEN["mpm"]))
+def test_mpm_trajectories_identical_to_202ef89(key: str):
+    name, seed = key.split("/")
+    ro = rollout(MpmSimulator(make_scene(name, seed=int(seed)), threads=0), 50)
+    check(GOLDEN["mpm"][key], ro.fluid_positions)
+
+
+@pytest.mark.parametrize("key", sorted(GOLDEN["neural"]))
+def test_network_alone_identical_to_202ef89(key: str):
+    name, seed = key.split("/")
+    sim = NeuralSimulator(make_scene(name, seed=int(seed)), seed=int(seed), detect_failures=False)
+    ro = rollout(sim, 120)
+    assert ro.failure is None
+    check(GOLDEN["neural"][key], ro.positions)
+
+
+@pytest.mark.parametrize("key", sorted(GOLDEN["hybrid"]))
+def test_hybrid_identical_to_202ef89(key: str):
+    name, seed = key.split("/")
+    rec = GOLDEN["hybrid"][key]
+    ro = rollout(HybridSimulator(make_scene(name, seed=int(seed)), seed=int(seed)), 120)
+    assert "".join("n" if s == "neural" else "m" for s in ro.solver) == rec["solver"]
+    assert [[s, e] for s, e in ro.events] == rec["events"]
+    check(rec, ro.positions)
