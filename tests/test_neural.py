@@ -15,7 +15,7 @@ import torch
 
 from hybridmpm import radius_graph
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural import NeuralModel, NeuralSimulator
+from hybridmpm.neural import NeuralModel
 from hybridmpm.neural.export import export_onnx
 from hybridmpm.neural.model import GnsConfig, GnsModel
 
@@ -74,7 +74,7 @@ def test_input_features_match_a_hand_computation():
     # walls: (x - lo)/R, (hi - x)/R clipped to [-1, 1]
     assert np.allclose(nodes[1, 10:14], [(0.025 - 0.02) / R, 1.0, 1.0, (0.98 - 0.97) / R], atol=1e-5)
     assert np.allclose(nodes[0, 10:14], 1.0)
-    emb = model.embed.weight.detach().numpy()
+    emb = model.features.embed.weight.detach().numpy()
     assert np.allclose(nodes[0, 14:], emb[5]) and np.allclose(nodes[1, 14:], emb[3])
     d = (hist[-1, 1] - hist[-1, 0]) / R  # edge 0 -> 1 is (senders 0, receivers 1): p_s - p_r
     assert np.allclose(edges[2, :2], -d, atol=1e-5) and np.isclose(edges[2, 2], np.linalg.norm(d), atol=1e-5)
@@ -108,7 +108,7 @@ def test_every_block_updates_node_and_edge_latents():
     out = model.normalised_acceleration(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
     out.pow(2).sum().backward()
     for k in range(3):
-        for block in (model.edge_blocks[k], model.node_blocks[k]):
+        for block in (model.gnn.edge_blocks[k], model.gnn.node_blocks[k]):
             assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in block.parameters())
 
 
@@ -123,6 +123,26 @@ def test_onnx_matches_torch(exported, n, seed):
         assert np.bincount(r).max() > 5
     assert np.allclose(acc_o, acc_t, rtol=1e-4, atol=1e-9)
     assert np.allclose(nxt_o, nxt_t, rtol=0, atol=1e-6)
+
+
+def test_onnx_interface_is_what_the_runtime_feeds(exported):
+    """Names, dtypes and shapes of the graph's inputs and outputs and its
+    metadata: what neural/runtime.py feeds and reads (and what the shipped
+    models have)."""
+    from hybridmpm.neural.constants import FEATURE_VERSION
+
+    model, path = exported
+    nm = NeuralModel(path)
+    ins = [(i.name, i.shape, i.type) for i in nm.session.get_inputs()]
+    outs = [(o.name, o.shape, o.type) for o in nm.session.get_outputs()]
+    assert ins == [
+        ("positions", [6, "N", 2], "tensor(float)"), ("particle_type", ["N"], "tensor(int64)"),
+        ("senders", ["E"], "tensor(int64)"), ("receivers", ["E"], "tensor(int64)"),
+    ]  # fmt: skip
+    assert outs == [("acceleration", ["N", 2], "tensor(float)"), ("next_position", ["N", 2], "tensor(float)")]
+    assert nm.meta["feature_version"] == FEATURE_VERSION == 1
+    assert nm.meta["parameters"] == sum(p.numel() for p in model.parameters())
+    assert (nm.meta["dim"], nm.meta["t_in"], nm.meta["latent"], nm.meta["layers"], nm.meta["radius"]) == (2, 6, 16, 2, R)
 
 
 def test_onnx_handles_no_edges(exported):
@@ -140,8 +160,11 @@ def test_kinematic_particles_do_not_move(exported):
     _, path = exported
     hist, ptype = random_state(200, seed=6)
     ptype[:20] = 3
-    sim = NeuralSimulator(path, hist, ptype)
-    x = sim.rollout(3)
+    nm = NeuralModel(path)
+    x = hist
+    for _ in range(3):
+        _, nxt, _ = nm.predict(x, ptype)
+        x = np.concatenate([x[1:], nxt[None]])
     assert np.array_equal(x[-1, :20], hist[-1, :20]) and not np.array_equal(x[-1, 20:], hist[-1, 20:])
 
 
@@ -155,20 +178,14 @@ def test_runtime_errors_name_the_field(exported, tmp_path):
     with pytest.raises(InvalidInputError) as e:
         NeuralModel(tmp_path / "junk.onnx")
     assert e.value.field == "model"
-    with pytest.raises(InvalidInputError) as e:
-        NeuralSimulator(path, hist[:5], ptype)
-    assert e.value.field == "history"
-    bad = hist.copy()
-    bad[0, 0, 0] = np.nan
-    with pytest.raises(InvalidInputError) as e:
-        NeuralSimulator(path, bad, ptype)
-    assert e.value.field == "history"
-    with pytest.raises(InvalidInputError, match="3D"):
-        NeuralSimulator(path, np.zeros((6, 4, 3), np.float32) + 0.5, np.full(4, 5))
+    nm = NeuralModel(path)  # the history checks are the simulator's: tests/test_sim.py
+    with pytest.raises(InvalidInputError, match="3D") as e:
+        nm.check_fits(3, np.full(4, 5))
+    assert e.value.field == "model"
     with pytest.raises(InvalidInputError, match="particle types"):
-        NeuralSimulator(path, hist, np.full(10, 7))
+        nm.check_fits(2, np.full(10, 7))
     with pytest.raises(InvalidInputError, match="sand3d"):
-        NeuralSimulator(path, hist, ptype, scene="sand3d")
+        nm.check_fits(2, ptype, "sand3d")
 
 
 def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0):

@@ -1,9 +1,15 @@
 """Export a trained :class:`~hybridmpm.neural.model.GnsModel` to ONNX (needs torch, onnx, onnxscript).
 
-The graph holds the whole step: feature construction, normalisation, the
-network, denormalisation and the Euler update; particle and edge counts are
-dynamic. The aggregation is written as ``index_add`` and exported by the
-dynamo exporter (opset 18) as ``ScatterND`` with ``reduction="add"``: a real
+The graph holds the whole step of :meth:`GnsModel.forward`: feature
+construction and normalisation (:mod:`hybridmpm.neural.features`), the
+encoder–processor–decoder (:class:`~hybridmpm.neural.model.EncodeProcessDecode`),
+denormalisation and the Euler update; particle and edge counts are dynamic.
+Inputs ``positions`` float32 [t_in, N, D], ``particle_type`` int64 [N],
+``senders``, ``receivers`` int64 [E]; outputs ``acceleration`` float32 [N, D]
+(m/step²) and ``next_position`` float32 [N, D] (m).
+
+The aggregation is written as ``index_add`` and exported by the dynamo
+exporter (opset 18) as ``ScatterND`` with ``reduction="add"``: a real
 scatter-add, not the dense adjacency product the paper timed (App. C). (The
 legacy exporter turns ``index_add`` into a ``ScatterElements`` without
 reduction, which silently drops duplicate receivers; the tests check parity on
@@ -34,7 +40,13 @@ OUTPUT_NAMES = ["acceleration", "next_position"]
 
 def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> Path:
     """Write ``model`` to ``path`` (atomically) with ``metadata`` merged over the
-    architecture facts. Returns the path."""
+    architecture facts (``feature_version``, ``dim``, ``radius``, ``t_in``,
+    ``bounds``, ``latent``, ``layers``, ``parameters``). Returns the path.
+
+    Input and output names are :data:`INPUT_NAMES` and :data:`OUTPUT_NAMES`
+    (what :class:`~hybridmpm.neural.runtime.NeuralModel` feeds and reads).
+    Needs torch, onnx and onnxscript (the 'train' extra); an I/O failure
+    raises ``OSError`` and leaves any existing file at ``path`` untouched."""
     import onnx
     import torch
 

@@ -1,39 +1,49 @@
-"""The GNS encoder–processor–decoder in PyTorch (paper App. A; Sanchez-Gonzalez et al. 2020).
+"""The GNS in PyTorch: a reusable encoder–processor–decoder and the simulator
+that wraps it (paper App. A; Sanchez-Gonzalez et al. 2020, "Learning to
+Simulate Complex Physics with Graph Networks").
 
-Everything between raw positions and the next positions lives in
-:class:`GnsModel.forward`, so that the exported ONNX graph holds the feature
-construction and the (de)normalisation too (DESIGN.md):
+* :class:`EncodeProcessDecode` — the graph network alone, on arbitrary node
+  and edge inputs: encoder MLPs to ``latent``; a processor of ``L`` blocks,
+  each with its own (non-shared) edge and node MLP and residuals on both; a
+  decoder MLP. The simulator below uses it on GNS features; the diffusion
+  controller reuses it (other input/output sizes, latents returned, an
+  optionally zero-initialised output).
+* :class:`GnsModel` — the simulator step ``(positions history, types, graph)
+  → (acceleration, next position)``: :class:`~hybridmpm.neural.features.GnsFeatures`
+  (velocity history, wall distances, type embedding, edge displacements,
+  normalisation), then :class:`EncodeProcessDecode`, then denormalisation and
+  semi-implicit Euler. All of it runs in ``forward`` so that the exported
+  ONNX graph holds the feature construction too (DESIGN.md).
 
-* node input: the last ``T_in − 1 = 5`` velocities (finite differences of
-  ``T_in = 6`` positions, one step apart), normalised with the dataset
-  statistics; the distances to the domain walls (``bounds``) divided by ``R``
-  and clipped to [−1, 1]; a 16-d embedding of the particle type (9 types);
-* edge input over the radius graph (senders → receivers, self-edges
-  included): ``(p_s − p_r)/R`` and its norm;
-* encoder: node and edge MLPs to ``latent``; processor: ``L`` blocks, each with
-  its own edge and node MLP and residuals; the edge MLP's first layer is
-  factored into per-node projections gathered per edge
-  (``W·[e; h_r; h_s] = W_e e + (W_r h)[r] + (W_s h)[s]``, the same function,
-  cheaper); aggregation is a sum over receivers written as ``index_add``
-  (exported as ONNX ``ScatterND`` with ``reduction="add"``);
-* decoder: MLP without LayerNorm to the normalised acceleration;
-  semi-implicit Euler with ``dt = 1`` step: ``v' = v + a``, ``p' = p + v'``;
-  kinematic (type 3) particles stay where they are.
+Processor details: the edge MLP's first layer is factored into per-node
+projections gathered per edge (``W·[e; h_r; h_s] = W_e e + (W_r h)[r] +
+(W_s h)[s]``, the same function, cheaper); aggregation is a sum over
+receivers written as ``index_add`` (exported as ONNX ``ScatterND`` with
+``reduction="add"``). MLPs have 2 hidden layers of width ``latent`` with
+ReLU, and LayerNorm on the output except the decoder's, as in GNS.
 
-MLPs have 2 hidden layers of width ``latent`` with ReLU, and LayerNorm on the
-output (except the decoder), as in GNS.
+State-dict layout: :class:`GnsModel` holds ``features`` (buffers
+``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``, ``lower``, ``upper``
+and ``embed``) and ``gnn`` (``node_encoder``, ``edge_encoder``,
+``edge_blocks``, ``node_blocks``, ``decoder``). Checkpoints written before the
+split (FEATURE_VERSION 1, flat keys such as ``embed.weight`` or
+``node_encoder.0.weight``) load unchanged: :func:`remap_legacy_state_dict`
+is applied by ``load_state_dict``. Parameter order is unchanged, so saved
+optimiser states (indexed by position) resume too.
 """
 
 from __future__ import annotations
 
-import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal, overload
 
 import torch
 from torch import nn
 
+from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
+from hybridmpm.neural.features import GnsFeatures
 
 
 @dataclass
@@ -71,7 +81,10 @@ class GnsConfig:
 
 
 def mlp(inp: int, width: int, out: int, layer_norm: bool = True) -> nn.Sequential:
-    """Two hidden layers of ``width`` with ReLU, then ``out``; LayerNorm on the output if asked."""
+    """Two hidden layers of ``width`` with ReLU, then ``out``; LayerNorm on the output if asked.
+
+    Maps float32 [..., inp] to [..., out]; indices 0, 2, 4 are the Linear
+    layers, 5 the LayerNorm (present only with ``layer_norm``)."""
     mods: list[nn.Module] = [nn.Linear(inp, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, out)]
     if layer_norm:
         mods.append(nn.LayerNorm(out))
@@ -93,42 +106,165 @@ class _EdgeBlock(nn.Module):
         return self.rest(first)
 
 
+def _positive_int(name: str, v: int, minimum: int = 1) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or v < minimum:
+        raise InvalidInputError(f"{name}: must be an integer >= {minimum}, got {v!r}", name)
+
+
+class EncodeProcessDecode(nn.Module):
+    """The GNS graph network on arbitrary inputs (Sanchez-Gonzalez et al. 2020,
+    Sec. 2; paper App. A: encoder, processor of ``L`` blocks, decoder).
+
+    ``node_in``, ``edge_in``: widths of the node and edge inputs; ``node_out``
+    width of the per-node output; ``latent`` width of every latent and hidden
+    layer (paper: 128; GNS: 128); ``layers`` L message-passing blocks (paper:
+    10; 0 gives an encoder–decoder that ignores the edges).
+    ``zero_init_output``: zero the decoder's last layer so the output is
+    exactly 0 at initialisation whatever the input (ControlNet-style heads
+    that start as a no-op); gradients still reach every parameter after the
+    first update of that layer.
+
+    Stages (each callable on its own):
+
+    * :meth:`encode` ``(nodes [N, node_in], edges [E, edge_in]) → (h [N,
+      latent], e [E, latent])``;
+    * :meth:`process` ``(h, e, senders, receivers) → (h, e)`` on *any*
+      latents of width ``latent`` (``L`` blocks: ``e += φ_e(e, h_r, h_s)``,
+      ``h += φ_v(h, Σ_{edges into i} e)``);
+    * :meth:`decode` ``h → [N, node_out]`` (MLP without LayerNorm).
+
+    ``forward(nodes, edges, senders, receivers, return_latents=False)`` runs
+    the three; with ``return_latents=True`` it returns ``(out, h, e)`` (the
+    processed latents). Dtype float32 throughout; ``senders``/``receivers``
+    int64 [E] index rows of the node tensors (an edge sends from its sender to
+    its receiver; receivers without edges aggregate 0).
+
+    Raises :class:`~hybridmpm.errors.InvalidInputError` for sizes < 1 or
+    ``layers`` < 0; inputs of the wrong width raise torch's ``RuntimeError``.
+    """
+
+    def __init__(self, node_in: int, edge_in: int, node_out: int, latent: int = 128, layers: int = 10, zero_init_output: bool = False) -> None:
+        super().__init__()
+        for name, v in (("node_in", node_in), ("edge_in", edge_in), ("node_out", node_out), ("latent", latent)):
+            _positive_int(name, v)
+        _positive_int("layers", layers, minimum=0)
+        self.node_in, self.edge_in, self.node_out, self.latent, self.layers = node_in, edge_in, node_out, latent, layers
+        self.node_encoder = mlp(node_in, latent, latent)
+        self.edge_encoder = mlp(edge_in, latent, latent)
+        self.edge_blocks = nn.ModuleList([_EdgeBlock(latent) for _ in range(layers)])
+        self.node_blocks = nn.ModuleList([mlp(2 * latent, latent, latent) for _ in range(layers)])
+        self.decoder = mlp(latent, latent, node_out, layer_norm=False)
+        if zero_init_output:
+            last = self.decoder[-1]
+            assert isinstance(last, nn.Linear)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+
+    def encode(self, nodes: torch.Tensor, edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node latents [N, latent] and edge latents [E, latent] from inputs [N, node_in], [E, edge_in]."""
+        return self.node_encoder(nodes), self.edge_encoder(edges)
+
+    def process(self, h: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``L`` message-passing blocks with residuals on latents ``h`` [N, latent], ``e`` [E, latent]; returns the updated ``(h, e)``."""
+        for edge_block, node_block in zip(self.edge_blocks, self.node_blocks):
+            e = e + edge_block(e, h, senders, receivers)
+            agg = torch.zeros_like(h).index_add(0, receivers, e)
+            h = h + node_block(torch.cat([h, agg], dim=1))
+        return h, e
+
+    def decode(self, h: torch.Tensor) -> torch.Tensor:
+        """Per-node output [N, node_out] from latents [N, latent]."""
+        out: torch.Tensor = self.decoder(h)
+        return out
+
+    @overload
+    def forward(
+        self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor, return_latents: Literal[False] = ...
+    ) -> torch.Tensor: ...
+
+    @overload
+    def forward(
+        self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor, return_latents: Literal[True]
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+    def forward(
+        self, nodes: torch.Tensor, edges: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor, return_latents: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``decode(process(encode(nodes, edges), senders, receivers))``: [N, node_out];
+        with ``return_latents`` also the processed latents ``h`` [N, latent], ``e`` [E, latent]."""
+        h, e = self.encode(nodes, edges)
+        h, e = self.process(h, e, senders, receivers)
+        out = self.decode(h)
+        return (out, h, e) if return_latents else out
+
+
+#: Pre-split (flat) state-dict names → their place in the composed :class:`GnsModel`.
+LEGACY_PREFIXES: dict[str, str] = {
+    **{name: f"features.{name}" for name in ("vel_mean", "vel_std", "acc_mean", "acc_std", "lower", "upper", "embed")},
+    **{name: f"gnn.{name}" for name in ("node_encoder", "edge_encoder", "edge_blocks", "node_blocks", "decoder")},
+}
+
+
+def remap_legacy_state_dict(state_dict: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A copy of ``state_dict`` with pre-split :class:`GnsModel` keys renamed
+    (``embed.weight`` → ``features.embed.weight``, ``vel_std`` →
+    ``features.vel_std``, ``node_encoder.0.weight`` →
+    ``gnn.node_encoder.0.weight``, ... see :data:`LEGACY_PREFIXES`); keys
+    already in the new layout, and keys outside ``prefix``, are kept as they
+    are. Values are not copied. Order is kept."""
+    out: dict[str, Any] = {}
+    for key, value in state_dict.items():
+        new = key
+        if key.startswith(prefix):
+            local = key[len(prefix) :]
+            head, _, _ = local.partition(".")
+            if head in LEGACY_PREFIXES:
+                new = prefix + LEGACY_PREFIXES[head] + local[len(head) :]
+        out[new] = value
+    return out
+
+
+def _legacy_pre_hook(module: nn.Module, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+    remapped = remap_legacy_state_dict(state_dict, prefix)
+    if list(remapped) != list(state_dict):
+        state_dict.clear()
+        state_dict.update(remapped)
+
+
 class GnsModel(nn.Module):
-    """GNS simulator: ``forward(positions, particle_type, senders, receivers)``.
+    """GNS simulator step: ``forward(positions, particle_type, senders, receivers)``
+    (paper App. A; Sanchez-Gonzalez et al. 2020).
 
     Inputs: ``positions`` float32 [T_in, N, D] (oldest first, one model step
     apart, metres), ``particle_type`` int64 [N] (GNS codes 0–8), ``senders``,
     ``receivers`` int64 [E] (the radius graph on ``positions[-1]``, self-edges
     included). Returns ``(acceleration [N, D] in m/step², next_position
-    [N, D])``. Use :meth:`normalised_acceleration` for the training loss.
-    """
+    [N, D] in m)``, kinematic (type 3) particles kept in place. Use
+    :meth:`normalised_acceleration` for the training loss.
 
-    vel_mean: torch.Tensor
-    vel_std: torch.Tensor
-    acc_mean: torch.Tensor
-    acc_std: torch.Tensor
-    lower: torch.Tensor
-    upper: torch.Tensor
+    Composition: ``features`` (:class:`~hybridmpm.neural.features.GnsFeatures`)
+    → ``gnn`` (:class:`EncodeProcessDecode`, ``node_in = features.node_size``,
+    ``edge_in = D + 1``, ``node_out = D``) → ``features.integrate``.
+    Old flat checkpoints load through :func:`remap_legacy_state_dict`.
+
+    Raises :class:`~hybridmpm.errors.InvalidInputError` for an inconsistent
+    ``config`` (see :class:`~hybridmpm.neural.features.GnsFeatures` and
+    :class:`EncodeProcessDecode`) and, in ``forward``, for ``positions`` not
+    [t_in, N, dim].
+    """
 
     def __init__(self, config: GnsConfig) -> None:
         super().__init__()
         self.config = config
-        d, lat = config.dim, config.latent
-        self.register_buffer("vel_mean", torch.tensor(config.vel_mean, dtype=torch.float32))
-        self.register_buffer("vel_std", torch.tensor([math.sqrt(s * s + config.noise_std**2) for s in config.vel_std], dtype=torch.float32))
-        self.register_buffer("acc_mean", torch.tensor(config.acc_mean, dtype=torch.float32))
-        self.register_buffer("acc_std", torch.tensor([math.sqrt(s * s + config.noise_std**2) for s in config.acc_std], dtype=torch.float32))
-        b = torch.tensor(config.bounds, dtype=torch.float32)
-        self.register_buffer("lower", b[:, 0])
-        self.register_buffer("upper", b[:, 1])
-        self.inv_radius = 1.0 / config.radius
-        self.embed = nn.Embedding(NUM_TYPES, config.embedding)
-        node_in = (config.t_in - 1) * d + 2 * d + config.embedding
-        self.node_encoder = mlp(node_in, lat, lat)
-        self.edge_encoder = mlp(d + 1, lat, lat)
-        self.edge_blocks = nn.ModuleList([_EdgeBlock(lat) for _ in range(config.layers)])
-        self.node_blocks = nn.ModuleList([mlp(2 * lat, lat, lat) for _ in range(config.layers)])
-        self.decoder = mlp(lat, lat, d, layer_norm=False)
+        # registration order (features first: embed, then the network) keeps the
+        # pre-split parameter order, so saved optimiser states still line up
+        self.features = GnsFeatures(
+            dim=config.dim, radius=config.radius, bounds=config.bounds, vel_mean=config.vel_mean, vel_std=config.vel_std,
+            acc_mean=config.acc_mean, acc_std=config.acc_std, noise_std=config.noise_std, t_in=config.t_in,
+            embedding=config.embedding, num_types=NUM_TYPES,
+        )  # fmt: skip
+        self.gnn = EncodeProcessDecode(self.features.node_size, self.features.edge_size, config.dim, latent=config.latent, layers=config.layers)
+        self.register_load_state_dict_pre_hook(_legacy_pre_hook)
 
     def input_features(
         self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
@@ -136,39 +272,28 @@ class GnsModel(nn.Module):
         """The encoder inputs: node features [N, 5·D + 2·D + 16] (normalised
         velocities oldest first, each ``(v − vel_mean)/vel_std_eff``; the lower
         then upper wall distances ``/R`` clipped to [−1, 1]; the type
-        embedding) and edge features [E, D + 1] (``(p_s − p_r)/R`` and its norm)."""
-        last = positions[-1]
-        vel = (positions[1:] - positions[:-1] - self.vel_mean) / self.vel_std  # [T_in-1, N, D]
-        n = last.shape[0]
-        vel_feat = vel.permute(1, 0, 2).reshape(n, -1)
-        walls = torch.cat([(last - self.lower) * self.inv_radius, (self.upper - last) * self.inv_radius], dim=1).clamp(-1.0, 1.0)
-        nodes = torch.cat([vel_feat, walls, self.embed(particle_type)], dim=1)
-        disp = (last[senders] - last[receivers]) * self.inv_radius
-        edges = torch.cat([disp, torch.linalg.vector_norm(disp, dim=1, keepdim=True)], dim=1)
+        embedding) and edge features [E, D + 1] (``(p_s − p_r)/R`` and its norm).
+        Same as ``self.features(...)``."""
+        nodes, edges = self.features(positions, particle_type, senders, receivers)
         return nodes, edges
 
     def normalised_acceleration(
         self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
     ) -> torch.Tensor:
-        """The network's output: normalised acceleration [N, D]."""
-        nodes, edges = self.input_features(positions, particle_type, senders, receivers)
-        h = self.node_encoder(nodes)
-        e = self.edge_encoder(edges)
-        for edge_block, node_block in zip(self.edge_blocks, self.node_blocks):
-            e = e + edge_block(e, h, senders, receivers)
-            agg = torch.zeros_like(h).index_add(0, receivers, e)
-            h = h + node_block(torch.cat([h, agg], dim=1))
-        out: torch.Tensor = self.decoder(h)
+        """The network's output: normalised acceleration float32 [N, D]
+        (``(a − acc_mean)/acc_std_eff``; compare with
+        ``features.normalise_acceleration(target)``)."""
+        nodes, edges = self.features(positions, particle_type, senders, receivers)
+        out: torch.Tensor = self.gnn(nodes, edges, senders, receivers)
         return out
 
     def forward(
         self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        acc = self.normalised_acceleration(positions, particle_type, senders, receivers) * self.acc_std + self.acc_mean
-        last = positions[-1]
-        nxt = last + (last - positions[-2]) + acc
-        kin = (particle_type == KINEMATIC).unsqueeze(1)
-        return acc, torch.where(kin, last, nxt)
+        return self.features.integrate(positions, particle_type, self.normalised_acceleration(positions, particle_type, senders, receivers))
 
 
-__all__ = ["FEATURE_VERSION", "KINEMATIC", "NUM_TYPES", "GnsConfig", "GnsModel", "mlp"]
+__all__ = [
+    "FEATURE_VERSION", "KINEMATIC", "LEGACY_PREFIXES", "NUM_TYPES", "EncodeProcessDecode", "GnsConfig", "GnsModel", "mlp",
+    "remap_legacy_state_dict",
+]  # fmt: skip

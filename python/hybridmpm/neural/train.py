@@ -22,6 +22,16 @@
 * ``checkpoint.pt`` at every validation (model, optimiser, step, RNG states):
   rerunning the same command resumes; ``log.csv`` holds the losses;
   ``model.onnx`` (the best validation rollout) is exported at the end.
+
+``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
+:class:`~hybridmpm.neural.model.GnsModel` state_dict), ``optimizer`` (Adam's,
+indexed by parameter order), ``step``, ``best`` (best rollout MSE),
+``elapsed`` [s], ``rng`` (numpy bit-generator state), ``torch_rng`` and
+``gns_config`` (:meth:`GnsConfig.to_dict`); ``best.pt`` is the best model's
+state_dict. Checkpoints written before the features / encoder–processor–decoder
+split (flat keys such as ``embed.weight``) resume unchanged: ``load_state_dict``
+remaps them (:func:`~hybridmpm.neural.model.remap_legacy_state_dict`) and the
+parameter order, hence the optimiser state, is the same.
 """
 
 from __future__ import annotations
@@ -142,7 +152,7 @@ def _batch(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], radius: flo
 def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
     hist, ptype, s, r, acc = batch
     pred = model.normalised_acceleration(hist, ptype, s, r)
-    target = (acc - model.acc_mean) / model.acc_std
+    target = model.features.normalise_acceleration(acc)
     mask = ptype != KINEMATIC
     return ((pred - target)[mask] ** 2).mean()
 
