@@ -94,7 +94,6 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
         info = scenes[tid]
         full = SceneSpec.from_dict(info["spec"]).build()
         n_grid = full.params.resolved_n_grid()
-        ref = []
         for threads, key in ((0, "mpm_full_ms_2t"), (1, "mpm_full_ms_1t")):
             ro = rollout(MpmSimulator(full, threads=threads), frames)
             ref_stats[key].append(float(ro.seconds.sum()) / frames * 1e3)

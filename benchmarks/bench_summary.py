@@ -46,7 +46,7 @@ def main(argv: list[str]) -> int:
         rows = scene_rows(d / "results.csv")
         k = {r["key"]: r for r in rows}
 
-        def cell(key: str) -> str:
+        def cell(key: str, k: dict = k) -> str:
             r = k.get(key)
             return "–" if r is None else f"{r['error_mean']:.3f} / {r['ms_mean']:.2f}"
 

@@ -21,9 +21,10 @@ from typing import Any
 from hybridmpm.bench.methods import R_C_SWEEP, Method, methods_for
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
-from hybridmpm.bench.tune import choose, load_tuned, tuned_path, write_tuned
+from hybridmpm.bench.tune import choose, write_tuned
 from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.sim.config import load_tuned, tuned_path
 
 
 def default_frames(scene: str) -> int:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.sim.config import CONFIG_KEYS, load_tuned, tuned_path
+from hybridmpm.sim.config import CONFIG_KEYS
 
 
 

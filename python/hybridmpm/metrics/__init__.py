@@ -34,8 +34,6 @@ from hybridmpm.mpm import grid_mass
 from hybridmpm.conventions import DEFAULT_N_GRID
 from hybridmpm.trajectory import KINEMATIC, Trajectory
 
-#: Default grid of each dimension (DESIGN.md "Conventions": 128² in 2D, 64³ in 3D).
-
 #: Relative tolerance on "the ratio of the frame intervals is an integer".
 _RATIO_RTOL = 1e-5
 

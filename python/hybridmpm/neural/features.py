@@ -35,6 +35,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import KINEMATIC, NUM_TYPES
 
@@ -149,7 +150,7 @@ class GnsFeatures(nn.Module):
         acc_mean: Sequence[float],
         acc_std: Sequence[float],
         noise_std: float = 3e-4,
-        t_in: int = 6,
+        t_in: int = T_IN,
         embedding: int = 16,
         num_types: int = NUM_TYPES,
     ) -> None:

@@ -41,6 +41,7 @@ from typing import Any, Literal, overload
 import torch
 from torch import nn
 
+from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
 from hybridmpm.neural.features import GnsFeatures
@@ -67,7 +68,7 @@ class GnsConfig:
     acc_std: list[float]
     latent: int = 32
     layers: int = 3
-    t_in: int = 6
+    t_in: int = T_IN
     embedding: int = 16
     noise_std: float = 3e-4
     extra: dict[str, Any] = field(default_factory=dict)

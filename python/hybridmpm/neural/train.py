@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from hybridmpm.conventions import DEFAULT_N_GRID, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.neural.constants import KINEMATIC
@@ -206,7 +207,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     stride = config.r_t // r_t_data
     train_data = _Data(Path(config.data), "train", stride)
     valid_data = _Data(Path(config.data), "valid", stride)
-    t_in = 6
+    t_in = T_IN
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
     from hybridmpm.data import compute_statistics
@@ -241,7 +242,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         val_windows.append(_window(traj, t, t_in, 0.0, vrng))
     val_traj = valid_data.trajs[0]
     rollout_steps = min(config.rollout_steps, len(val_traj[0]) - t_in)
-    n_grid = int(meta.get("n_grid", 128 if gcfg.dim == 2 else 64))
+    n_grid = int(meta.get("n_grid", DEFAULT_N_GRID[gcfg.dim]))
     log_path = out / "log.csv"
     new_log = not log_path.exists()
     log = open(log_path, "a", newline="")
