@@ -84,8 +84,7 @@ def run_taichi_one(scene, threads, frames):
     """One Taichi (serial-p2g variant) run in a subprocess; returns its row."""
     script = Path(__file__).with_name("taichi_peer.py")
     out = Path(f"/tmp/taichi_peer_{os.getpid()}.json")
-    cmd = [sys.executable, str(script), "--scenes", scene, "--threads", str(threads), "--variants", "serial",
-           "--frames", str(frames), "--json", str(out)]
+    cmd = [sys.executable, str(script), "--scenes", scene, "--threads", str(threads), "--variants", "serial", "--frames", str(frames), "--json", str(out)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0 or not out.exists():
         print("taichi peer failed:", r.stderr[-2000:], file=sys.stderr)
@@ -115,8 +114,11 @@ def peer_comparison(frames, repeats):
             if best_peer:
                 entry.update(taichi_ms=best_peer[0], taichi_p95_ms=best_peer[1], speedup=best_peer[0] / best_ours[0])
             table.append(entry)
-            print(f"peer {ours_name:12s} t={threads}: ours {best_ours[0]:.2f} ms, taichi {entry.get('taichi_ms', float('nan')):.2f} ms,"
-                  f" ratio {entry.get('speedup', float('nan')):.2f}x", flush=True)
+            print(
+                f"peer {ours_name:12s} t={threads}: ours {best_ours[0]:.2f} ms, taichi {entry.get('taichi_ms', float('nan')):.2f} ms,"
+                f" ratio {entry.get('speedup', float('nan')):.2f}x",
+                flush=True,
+            )
     return table
 
 
@@ -136,18 +138,37 @@ def markdown(r):
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for x in r["rows"]:
-        lines.append(f"| {x['scene']} | {x['threads']} | {x['particles']} | {x['substeps']} | {x['ms_per_frame']:.2f} | {x['p95_ms_per_frame']:.2f} | {x['us_per_substep']:.0f} |")
+        lines.append(
+            f"| {x['scene']} | {x['threads']} | {x['particles']} | {x['substeps']} | {x['ms_per_frame']:.2f} | {x['p95_ms_per_frame']:.2f} | {x['us_per_substep']:.0f} |"
+        )
     if r["taichi"]:
-        lines += ["", "## Against Taichi's strongest CPU variant (serial p2g), alternated back to back", "",
-                  "| scene | threads | substeps | hybridmpm ms/frame | Taichi ms/frame | Taichi / hybridmpm |", "|---|---:|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "## Against Taichi's strongest CPU variant (serial p2g), alternated back to back",
+            "",
+            "| scene | threads | substeps | hybridmpm ms/frame | Taichi ms/frame | Taichi / hybridmpm |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
         for x in r["taichi"]:
-            lines.append(f"| {x['scene']} | {x['threads']} | {x['substeps']} | {x['ours_ms']:.2f} | {x.get('taichi_ms', float('nan')):.2f} | {x.get('speedup', float('nan')):.2f} |")
-    lines += ["", "## Scaling with particle count and threads (water)", "",
-              "| dim | grid | particles | threads | ms/frame | µs/substep | ns per particle-substep |", "|---:|---:|---:|---:|---:|---:|---:|"]
+            lines.append(
+                f"| {x['scene']} | {x['threads']} | {x['substeps']} | {x['ours_ms']:.2f} | {x.get('taichi_ms', float('nan')):.2f} | {x.get('speedup', float('nan')):.2f} |"
+            )
+    lines += [
+        "",
+        "## Scaling with particle count and threads (water)",
+        "",
+        "| dim | grid | particles | threads | ms/frame | µs/substep | ns per particle-substep |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for x in r["scaling"]:
-        lines.append(f"| {x['dim']} | {x['n_grid']} | {x['particles']} | {x['threads']} | {x['ms_per_frame']:.2f} | {x['us_per_substep']:.0f} | {x['ns_per_particle_substep']:.0f} |")
+        lines.append(
+            f"| {x['dim']} | {x['n_grid']} | {x['particles']} | {x['threads']} | {x['ms_per_frame']:.2f} | {x['us_per_substep']:.0f} | {x['ns_per_particle_substep']:.0f} |"
+        )
     mem = r["memory"]
-    lines += ["", f"Memory: {mem['bytes_per_particle']:.0f} bytes per 2D particle (RSS growth for {mem['particles']} particles after one frame: state, the g2p double buffer, the sort and the grid blocks)."]
+    lines += [
+        "",
+        f"Memory: {mem['bytes_per_particle']:.0f} bytes per 2D particle (RSS growth for {mem['particles']} particles after one frame: state, the g2p double buffer, the sort and the grid blocks).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -167,9 +188,21 @@ def main():
         for threads in (1, 2):
             sim = make(*spec, threads)
             med, p95 = time_frames(sim, frames)
-            rows.append({"scene": name, "threads": threads, "particles": sim.particles.num_fluid, "substeps": spec[5],
-                         "ms_per_frame": med, "p95_ms_per_frame": p95, "us_per_substep": med * 1e3 / spec[5]})
-            print(f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep", flush=True)
+            rows.append(
+                {
+                    "scene": name,
+                    "threads": threads,
+                    "particles": sim.particles.num_fluid,
+                    "substeps": spec[5],
+                    "ms_per_frame": med,
+                    "p95_ms_per_frame": p95,
+                    "us_per_substep": med * 1e3 / spec[5],
+                }
+            )
+            print(
+                f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep",
+                flush=True,
+            )
 
     scaling = []
     sides2 = [32, 64, 128, 256] if not args.quick else [32, 64, 128]
@@ -177,15 +210,33 @@ def main():
         for threads in (1, 2):
             sim = make(2, 256, (0.2, 0.05), side, WATER, 32, threads)
             med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append({"dim": 2, "n_grid": 256, "particles": sim.particles.num_fluid, "threads": threads, "ms_per_frame": med,
-                            "us_per_substep": med * 1e3 / 32, "ns_per_particle_substep": med * 1e6 / 32 / sim.particles.num_fluid})
+            scaling.append(
+                {
+                    "dim": 2,
+                    "n_grid": 256,
+                    "particles": sim.particles.num_fluid,
+                    "threads": threads,
+                    "ms_per_frame": med,
+                    "us_per_substep": med * 1e3 / 32,
+                    "ns_per_particle_substep": med * 1e6 / 32 / sim.particles.num_fluid,
+                }
+            )
             print(f"scaling 2D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 32:8.1f} us/substep", flush=True)
-    for side in ([10, 16, 20, 32, 40] if not args.quick else [10, 16, 32]):
+    for side in [10, 16, 20, 32, 40] if not args.quick else [10, 16, 32]:
         for threads in (1, 2):
             sim = make(3, 64, (0.2, 0.05, 0.2), side, WATER, 8, threads)
             med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append({"dim": 3, "n_grid": 64, "particles": sim.particles.num_fluid, "threads": threads, "ms_per_frame": med,
-                            "us_per_substep": med * 1e3 / 8, "ns_per_particle_substep": med * 1e6 / 8 / sim.particles.num_fluid})
+            scaling.append(
+                {
+                    "dim": 3,
+                    "n_grid": 64,
+                    "particles": sim.particles.num_fluid,
+                    "threads": threads,
+                    "ms_per_frame": med,
+                    "us_per_substep": med * 1e3 / 8,
+                    "ns_per_particle_substep": med * 1e6 / 8 / sim.particles.num_fluid,
+                }
+            )
             print(f"scaling 3D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 8:8.1f} us/substep", flush=True)
 
     # memory per particle: RSS growth for 1M 2D particles (state + scratch after a frame)
@@ -199,9 +250,17 @@ def main():
 
     taichi = peer_comparison(frames, args.repeats) if args.taichi else []
 
-    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine(), "commit": git_commit(),
-              "command": " ".join(["python"] + sys.argv), "frames": frames, "rows": rows, "scaling": scaling, "memory": mem,
-              "taichi": taichi}
+    result = {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": machine(),
+        "commit": git_commit(),
+        "command": " ".join(["python"] + sys.argv),
+        "frames": frames,
+        "rows": rows,
+        "scaling": scaling,
+        "memory": mem,
+        "taichi": taichi,
+    }
     (out / "mpm.json").write_text(json.dumps(result, indent=2))
     (out / "mpm.md").write_text(markdown(result))
     print(f"wrote {out / 'mpm.json'} and {out / 'mpm.md'}")

@@ -152,7 +152,16 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(
         json.dumps(
-            {"commit": commit, "machine": platform.machine(), "split": a.split, "seeds": a.seeds, "frames": a.frames, "data": str(a.data), "reference": refm, "models": rows},
+            {
+                "commit": commit,
+                "machine": platform.machine(),
+                "split": a.split,
+                "seeds": a.seeds,
+                "frames": a.frames,
+                "data": str(a.data),
+                "reference": refm,
+                "models": rows,
+            },
             indent=1,
         )
     )

@@ -198,10 +198,15 @@ def main() -> None:
         except (OSError, ValueError):
             pass
         try:
-            commit = subprocess.run(
-                ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                cwd=os.path.dirname(os.path.abspath(__file__)),
-            ).stdout.strip() or "unknown"
+            commit = (
+                subprocess.run(
+                    ["git", "rev-parse", "--short", "HEAD"],
+                    capture_output=True,
+                    text=True,
+                    cwd=os.path.dirname(os.path.abspath(__file__)),
+                ).stdout.strip()
+                or "unknown"
+            )
         except OSError:
             commit = "unknown"
         md = f"""# Radius graph: hybridmpm vs scipy cKDTree

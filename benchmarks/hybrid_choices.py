@@ -77,7 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         row = {"variant": name, "error_mean": float(np.mean(errs)), "error_last": float(np.mean(lasts)), "ms_per_frame": float(np.median(ms)),
                "mpm_share": float(np.mean(share)), "switches": float(np.mean(sw)), "per_seed_error": [float(x) for x in errs]}  # fmt: skip
         rows.append(row)
-        print(f"{name}: {row['error_mean']:.3f} / {row['error_last']:.3f}, {row['ms_per_frame']:.2f} ms/frame, MPM {100 * row['mpm_share']:.0f}%, {row['switches']:.1f} switches", file=sys.stderr)
+        print(
+            f"{name}: {row['error_mean']:.3f} / {row['error_last']:.3f}, {row['ms_per_frame']:.2f} ms/frame, MPM {100 * row['mpm_share']:.0f}%, {row['switches']:.1f} switches",
+            file=sys.stderr,
+        )
     cmd = "python benchmarks/hybrid_choices.py " + " ".join(sys.argv[1:] if argv is None else argv)
     lines = [
         f"Command: `{cmd}`",

@@ -68,7 +68,13 @@ def run_one(args: tuple[str, int, float, int | None]) -> dict:
     for label, x, m in (("mpm_rp", xl, ml), ("centroids", xc, ml), ("jitter", xj, mf)):
         e = grid_mass_error(x, xf, n_grid)
         ew = grid_mass_error(x, xf, n_grid, pred_weights=m, ref_weights=mf)
-        out[label] = {"mean": float(e.mean()), "last": float(e[-1]), "frame0": float(e[0]), "mean_mass_weighted": float(ew.mean()), "last_mass_weighted": float(ew[-1])}
+        out[label] = {
+            "mean": float(e.mean()),
+            "last": float(e[-1]),
+            "frame0": float(e[0]),
+            "mean_mass_weighted": float(ew.mean()),
+            "last_mass_weighted": float(ew[-1]),
+        }
     return out
 
 

@@ -422,10 +422,7 @@ def run_worker(cfg: dict) -> dict:
 # --------------------------------------------------------------------------- #
 def markdown_table(rows: list[dict]) -> str:
     multi = any(len(r.get("repeat_medians_ms", [])) > 1 for r in rows)
-    head = (
-        "| scene | variant | threads | particles | substeps | median ms/frame | p95 ms/frame "
-        "| min ms/frame | µs/substep (median) | load avg |"
-    )
+    head = "| scene | variant | threads | particles | substeps | median ms/frame | p95 ms/frame | min ms/frame | µs/substep (median) | load avg |"
     rule = "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
     if multi:
         head += " medians of all passes |"
@@ -433,11 +430,7 @@ def markdown_table(rows: list[dict]) -> str:
     out = [head + " sanity: centroid y start → end |", rule + "---|"]
     for r in rows:
         if "error" in r:
-            out.append(
-                f"| {r['scene']} | {r['variant']} | {r['threads']} | | | ERROR | | | | |"
-                + (" |" if multi else "")
-                + f" {r['error'][:80]} |"
-            )
+            out.append(f"| {r['scene']} | {r['variant']} | {r['threads']} | | | ERROR | | | | |" + (" |" if multi else "") + f" {r['error'][:80]} |")
             continue
         ok = "ok" if r["sane"] else "FAILED"
         line = (
@@ -480,8 +473,7 @@ def write_markdown(path: str, meta: dict, rows: list[dict]) -> None:
         "- Sand: the Kirchhoff stress τ = U(2μ ε + λ tr ε I)Uᵀ is computed right after the "
         "Drucker–Prager return mapping in g2p, from the same SVD, and stored per particle; p2g "
         "reads it (one SVD per particle per substep). ε = log max(Σ, 1e-6).",
-        "- The sanity column is the particle centroid's y before the run and after all "
-        "warm-up + timed frames (no NaN, all particles inside the domain).",
+        "- The sanity column is the particle centroid's y before the run and after all warm-up + timed frames (no NaN, all particles inside the domain).",
         "",
     ]
     with open(path, "w") as f:
@@ -521,9 +513,30 @@ def bench_peer(scene_name: str, seed: int, frames: int | None, warmup: int, thre
 
     with tempfile.TemporaryDirectory() as tmp:
         npz = Path(tmp) / f"{scene_name}_seed{seed}.npz"
-        np.savez(npz, positions=np.asarray(scene.positions, np.float32), material=np.asarray(scene.material, np.int32), n_grid=scene.params.resolved_n_grid(), substeps=substeps)
+        np.savez(
+            npz,
+            positions=np.asarray(scene.positions, np.float32),
+            material=np.asarray(scene.material, np.int32),
+            n_grid=scene.params.resolved_n_grid(),
+            substeps=substeps,
+        )
         out = Path(tmp) / "taichi.json"
-        cmd = [sys.executable, os.path.abspath(__file__), "--positions", str(npz), "--variants", "serial", "--threads", str(threads), "--frames", str(n), "--warmup", str(max(1, warmup)), "--json", str(out)]
+        cmd = [
+            sys.executable,
+            os.path.abspath(__file__),
+            "--positions",
+            str(npz),
+            "--variants",
+            "serial",
+            "--threads",
+            str(threads),
+            "--frames",
+            str(n),
+            "--warmup",
+            str(max(1, warmup)),
+            "--json",
+            str(out),
+        ]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
         if not out.is_file():
             raise HybridMpmError(f"peer: the Taichi run failed: {(proc.stderr or proc.stdout).strip()[-500:]}")
@@ -552,19 +565,21 @@ def main(argv=None) -> int:
         "--launch",
         choices=["substep", "stage"],
         default="substep",
-        help="kernel launches: substep = one launch per substep holding the three "
-        "stages as separate top-level loops (default); stage = one launch per stage",
+        help="kernel launches: substep = one launch per substep holding the three stages as separate top-level loops (default); stage = one launch per stage",
     )
     ap.add_argument(
         "--repeats",
         type=int,
         default=1,
-        help="run every combination this many times (whole matrix per pass) and report, "
-        "per row, the pass with the lowest median (default 1)",
+        help="run every combination this many times (whole matrix per pass) and report, per row, the pass with the lowest median (default 1)",
     )
     ap.add_argument("--md", default=None, help="write a markdown report (table + machine info) here")
     ap.add_argument("--timeout", type=float, default=600.0, help="per-subprocess timeout, s")
-    ap.add_argument("--bench-scene", default=None, help="registered scene: time it against hybridmpm's MPM and write BENCH_OUT/peer_taichi.json (the line `hybridmpm bench` puts in report.md)")
+    ap.add_argument(
+        "--bench-scene",
+        default=None,
+        help="registered scene: time it against hybridmpm's MPM and write BENCH_OUT/peer_taichi.json (the line `hybridmpm bench` puts in report.md)",
+    )
     ap.add_argument("--bench-out", default=None, help="with --bench-scene: the bench directory (default runs/bench/SCENE)")
     ap.add_argument("--seed", type=int, default=1000, help="with --bench-scene: the scene's seed (default 1000, the first held-out seed)")
     ap.add_argument("--_worker", default=None, help=argparse.SUPPRESS)
@@ -606,7 +621,7 @@ def main(argv=None) -> int:
             lines = [l for l in proc.stdout.splitlines() if l.startswith(WORKER_TAG)]
             if proc.returncode != 0 or not lines:
                 raise RuntimeError((proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["no output"])
-            r = json.loads(lines[-1][len(WORKER_TAG):])
+            r = json.loads(lines[-1][len(WORKER_TAG) :])
             r["loadavg_1min"] = load
             print(
                 f"#   median {r['median_ms']:.2f} ms/frame, p95 {r['p95_ms']:.2f}, min {r['min_ms']:.2f}, "

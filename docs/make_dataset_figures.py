@@ -17,11 +17,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-import numpy as np
 
 from hybridmpm import grid_mass
-from hybridmpm.scenes.resolution import PAPER_R_P, downsample_scene
 from hybridmpm.scenes import DOMAINS, make_scene
+from hybridmpm.scenes.resolution import PAPER_R_P, downsample_scene
 from hybridmpm.sim import MpmSimulator, rollout
 
 OUT = Path(__file__).with_name("img")

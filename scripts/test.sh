@@ -1,12 +1,17 @@
 #!/usr/bin/env bash
-# Set up from a clean clone and run every test: the Rust crates (cargo test)
-# and the Python package (pytest). Used by .ci/run and named in the README.
+# Set up from a clean clone and run every check: lint and format (ruff,
+# cargo fmt), the Rust crates (cargo test, clippy), types (mypy) and the
+# Python package (pytest). Used by .ci/run and named in the README.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
 . .venv/bin/activate
 python -m pip install --quiet --upgrade pip
 python -m pip install --quiet -e '.[test]'
+# lint and format first: they take seconds
+python -m ruff check python tests benchmarks docs
+python -m ruff format --check python tests benchmarks docs
+cargo fmt --all --check
 cargo test --release
 cargo clippy --release --workspace --all-targets -- -D warnings
 python -m mypy python/hybridmpm --ignore-missing-imports

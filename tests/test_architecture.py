@@ -26,7 +26,9 @@ def test_frames_are_advanced_only_inside_hybridmpm_sim():
 
 def test_codes_and_defaults_are_defined_once():
     # the numbers of hybridmpm.conventions are not restated as module constants elsewhere
-    pattern = re.compile(r"^(WATER|SAND|KINEMATIC|GNS_(?:KINEMATIC|WATER|SAND|TYPE\w*)|MATERIAL_\w+|CONNECTIVITY_RADIUS|T_IN|T_CTR|R_C|DELTA|SPLITS|DT_FRAME|DEFAULT_RADIUS|DEFAULT_CONNECTIVITY_RADIUS|DEFAULT_N_GRID)\s*(:[^=]*)?=\s*[\d(\[{\"']")
+    pattern = re.compile(
+        r"^(WATER|SAND|KINEMATIC|GNS_(?:KINEMATIC|WATER|SAND|TYPE\w*)|MATERIAL_\w+|CONNECTIVITY_RADIUS|T_IN|T_CTR|R_C|DELTA|SPLITS|DT_FRAME|DEFAULT_RADIUS|DEFAULT_CONNECTIVITY_RADIUS|DEFAULT_N_GRID)\s*(:[^=]*)?=\s*[\d(\[{\"']"
+    )
     offenders = []
     for p in _sources("python"):
         if p.name == "conventions.py":

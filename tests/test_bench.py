@@ -195,7 +195,10 @@ def test_tuned_config_drives_simulate_auto(tiny: dict, tmp_path: Path):
     doc = load_tuned("water2d", path)
     assert doc["config"]["kind"] == "mpm" and doc["config"]["r_p"] == pytest.approx(0.5714)
     out = tmp_path / "sim"
-    assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--seed", "1000", "--frames", "4", "--out", str(out), "--no-render", "--quiet"]) == 0
+    assert (
+        main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--seed", "1000", "--frames", "4", "--out", str(out), "--no-render", "--quiet"])
+        == 0
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["solver"] == "mpm" and summary["r_p"] == pytest.approx(0.5714)
     assert summary["particles"] == rows[1]["particles"]  # MPM at r_p: the clustered particles
@@ -261,6 +264,7 @@ def test_taichi_peer_without_taichi_says_how_to_install(monkeypatch: pytest.Monk
 def test_gnn_flops_match_the_layers_torch_runs(latent: int, layers: int, dim: int):
     """Brute force: count 2·in·out per row over every nn.Linear call of a forward pass."""
     import torch  # the training extra, which the test setup installs
+
     from hybridmpm.bench.cost import gnn_flops
     from hybridmpm.neural.model import GnsConfig, GnsModel
 

@@ -49,6 +49,8 @@ def test_simulate_a_scene_with_obstacles_writes_boundary_particles_and_renders(t
     assert (out / "render.gif").read_bytes()[:3] == b"GIF"
     # a downsampled run: fewer solver particles, the same boundary treatment
     low = tmp_path / "low"
-    assert main(["simulate", "water_ramps2d", "--seed", "3", "--solver", "mpm", "--frames", "2", "--r-p", "0.5", "--out", str(low), "--quiet", "--no-render"]) == 0
+    assert (
+        main(["simulate", "water_ramps2d", "--seed", "3", "--solver", "mpm", "--frames", "2", "--r-p", "0.5", "--out", str(low), "--quiet", "--no-render"]) == 0
+    )
     summary = json.loads((low / "summary.json").read_text())
     assert summary["particles"] == round(0.5 * n) and summary["r_p"] == 0.5

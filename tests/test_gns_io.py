@@ -25,12 +25,12 @@ from hybridmpm.data import (
     GnsTrajectory,
     SplitNotFoundError,
     compute_statistics,
+    gns,
     read_metadata,
     read_split,
     write_metadata,
     write_split,
 )
-from hybridmpm.data import gns
 from hybridmpm.errors import InvalidInputError
 
 

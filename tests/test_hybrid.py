@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hybridmpm.errors import InvalidInputError
 from hybridmpm.bench.stress import case_scene, run_method
+from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
 from hybridmpm.mpm import MpmParams, MpmSolver
@@ -213,6 +213,7 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
     last = frames[-1].positions
     assert np.isfinite(last).all() and (last >= lo - 1e-6).all() and (last <= hi + 1e-6).all()
     if how == "compressed":  # the last state kept is still within the bound, the rejected one was not
+
         def degree(x):
             return len(radius_graph(x, sim.model.radius)[0]) / len(x)
 

@@ -177,7 +177,11 @@ def test_kinetic_energy_of_free_fall_is_exact_at_midpoints():
     assert np.allclose(kinetic_energy(pos, DT, m), expected @ m, rtol=1e-9, atol=0)
     # float32 positions (what trajectories store): finite differences lose ~1e-5 m/s
     assert np.allclose(kinetic_energy(pos.astype(np.float32), DT), expected.mean(axis=1), rtol=1e-3)
-    for bad, field in [(lambda: kinetic_energy(pos[:1], DT), "positions"), (lambda: kinetic_energy(pos, 0.0), "dt"), (lambda: kinetic_energy(pos, DT, m[:3]), "masses")]:
+    for bad, field in [
+        (lambda: kinetic_energy(pos[:1], DT), "positions"),
+        (lambda: kinetic_energy(pos, 0.0), "dt"),
+        (lambda: kinetic_energy(pos, DT, m[:3]), "masses"),
+    ]:
         with pytest.raises(InvalidInputError) as e:
             bad()
         assert e.value.field == field

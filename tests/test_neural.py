@@ -211,7 +211,16 @@ def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0):
     stats = compute_statistics(splits["train"])
     write_metadata(
         directory / "metadata.json",
-        {"bounds": [[0.02, 0.98]] * 2, "sequence_length": frames, "default_connectivity_radius": 0.02, "dim": 2, "dt": 2.5e-3, "r_t": 1, "n_grid": 128, **stats},
+        {
+            "bounds": [[0.02, 0.98]] * 2,
+            "sequence_length": frames,
+            "default_connectivity_radius": 0.02,
+            "dim": 2,
+            "dt": 2.5e-3,
+            "r_t": 1,
+            "n_grid": 128,
+            **stats,
+        },
     )
 
 

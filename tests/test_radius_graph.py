@@ -218,9 +218,7 @@ def test_thread_count_does_not_change_output(tmp_path):
     outs = []
     for t in ("1", "2"):
         env = dict(os.environ, RAYON_NUM_THREADS=t)
-        res = subprocess.run(
-            [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
-        )
+        res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
         outs.append(res.stdout.split())
     assert int(outs[0][1]) > 20000
     assert outs[0] == outs[1]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.resolution import (
     PAPER_R_P,
     cluster_centroids,
@@ -13,8 +15,6 @@ from hybridmpm.scenes.resolution import (
     downsample_scene,
     temporal_downsample,
 )
-from hybridmpm.errors import InvalidInputError
-from hybridmpm.scenes import make_scene
 
 
 @pytest.mark.parametrize(("name", "seed"), [("water_sand2d", 1), ("water3d", 2), ("sand_ramps2d", 3)])

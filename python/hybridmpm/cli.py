@@ -31,8 +31,8 @@ import json
 import platform
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -114,7 +114,9 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.solver == "hybrid":
         plot_timeline(out / "timeline.png", ro.dt_frame, ro.solver, ro.score, args.r_c, err, title=title)
     if not args.no_render:
-        render_gif(ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None)
+        render_gif(
+            ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None
+        )
     if args.export:
         export_points(ro.positions, ro.particle_type, out / "export", fmt=args.export, dt=ro.dt_frame, solver=ro.extras["solver"])
     if not args.quiet:
@@ -188,8 +190,7 @@ def _tune(args: argparse.Namespace) -> int:
         print(
             f"{args.scene}: {c['label']} — error {m['error_mean']:.3f} (mean) / {m['error_last']:.3f} (last) <= budget "
             f"{args.error_budget:g} ({args.metric}), {m['ms_mean']:.2f} ms/frame -> {doc['path']}\n"
-            f"use it: hybridmpm simulate {args.scene} --solver auto"
-            + (f" --tuned {doc['path']}" if args.out else "")
+            f"use it: hybridmpm simulate {args.scene} --solver auto" + (f" --tuned {doc['path']}" if args.out else "")
         )
     return 0
 
@@ -272,7 +273,9 @@ def _generate(args: argparse.Namespace) -> int:
         r_p=args.r_p, r_t=args.r_t, lowres=args.lowres, split=split,  # type: ignore[arg-type]
     )  # fmt: skip
     try:
-        report = generate_dataset(config, args.out, workers=args.workers, executor=args.executor, keep_parts=args.keep_parts, compress=args.compress, progress=not args.quiet)
+        report = generate_dataset(
+            config, args.out, workers=args.workers, executor=args.executor, keep_parts=args.keep_parts, compress=args.compress, progress=not args.quiet
+        )
     except KeyboardInterrupt:
         print(f"hybridmpm: interrupted; finished trajectories are kept in {args.out}/parts, rerun the same command to resume", file=sys.stderr)
         return 130
@@ -325,7 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
-    sim.add_argument("--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)")
+    sim.add_argument(
+        "--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)"
+    )
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
@@ -383,7 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     gen.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1] (default 1; the paper's is 0.5714)")
     gen.add_argument("--r-t", type=int, default=1, help="temporal downsampling: store every r_t-th frame (default 1; the paper's is 2)")
-    gen.add_argument("--lowres", default="simulate", choices=["simulate", "centroids"], help="how r_p < 1 data is made (default: simulate the clustered initial condition)")
+    gen.add_argument(
+        "--lowres", default="simulate", choices=["simulate", "centroids"], help="how r_p < 1 data is made (default: simulate the clustered initial condition)"
+    )
     gen.add_argument("--split", default="0.8,0.1,0.1", help="train,valid,test fractions (default 0.8,0.1,0.1)")
     gen.add_argument("--executor", default="process", choices=["process", "ray"], help="process pool (default) or Ray (RAY_ADDRESS or a local instance)")
     gen.add_argument("--compress", action="store_true", help="deflate the split files (~13%% smaller for float32 positions, slower to write)")

@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
 from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
+from hybridmpm.errors import InvalidInputError
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
 RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material")

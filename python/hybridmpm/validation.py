@@ -38,9 +38,7 @@ def load_martin_moyce() -> Experiment:
     rows = rows[1:]  # header
     f = [(float(t), float(v)) for k, t, v in rows if k == "front"]
     h = [(float(t), float(v)) for k, t, v in rows if k == "height"]
-    return Experiment(
-        np.array([t for t, _ in f]), np.array([v for _, v in f]), np.array([t for t, _ in h]), np.array([v for _, v in h])
-    )
+    return Experiment(np.array([t for t, _ in f]), np.array([v for _, v in f]), np.array([t for t, _ in h]), np.array([v for _, v in h]))
 
 
 def dam_break_front_height(positions: np.ndarray, a: float, x_wall: float, y_floor: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:

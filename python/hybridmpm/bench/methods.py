@@ -60,7 +60,7 @@ class Method:
 
 
 def neural_role(r_p: float, r_t: int) -> str:
-    """"full", "spatial", "temporal" or "lowres" for a model's resolution."""
+    """ "full", "spatial", "temporal" or "lowres" for a model's resolution."""
     return _ROLE[(r_p >= 1.0, r_t == 1)]
 
 

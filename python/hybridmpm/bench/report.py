@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,9 +35,7 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     for i, (x, y) in enumerate(pts):
         if not (math.isfinite(x) and math.isfinite(y)):
             continue
-        dominated = any(
-            (x2 <= x and y2 <= y and (x2 < x or y2 < y)) for j, (x2, y2) in enumerate(pts) if j != i and math.isfinite(x2) and math.isfinite(y2)
-        )
+        dominated = any((x2 <= x and y2 <= y and (x2 < x or y2 < y)) for j, (x2, y2) in enumerate(pts) if j != i and math.isfinite(x2) and math.isfinite(y2))
         if not dominated:
             front.append(i)
     return sorted(front, key=lambda i: (pts[i][0], pts[i][1]))
@@ -80,7 +79,9 @@ def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[s
     return rows
 
 
-def write_results_csv(path: Path, scene: str, frames: int, settings: dict[str, Any], env: dict[str, Any], methods: list[Method], cells: list[dict[str, Any]]) -> None:
+def write_results_csv(
+    path: Path, scene: str, frames: int, settings: dict[str, Any], env: dict[str, Any], methods: list[Method], cells: list[dict[str, Any]]
+) -> None:
     by_key = {m.key: m for m in methods}
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=RESULT_COLUMNS)
@@ -88,7 +89,14 @@ def write_results_csv(path: Path, scene: str, frames: int, settings: dict[str, A
         for c in cells:
             m = by_key[c["method"]]
             row = {**m.config(), **{k: v for k, v in c.items() if k != "series"}, **env}
-            row.update(scene=scene, method=m.key, frames=frames, warmup_frames=settings["warmup"], mpm_threads=settings["mpm_threads"], nn_threads=settings["nn_threads"])
+            row.update(
+                scene=scene,
+                method=m.key,
+                frames=frames,
+                warmup_frames=settings["warmup"],
+                mpm_threads=settings["mpm_threads"],
+                nn_threads=settings["nn_threads"],
+            )
             row["failure"] = c["failure"] or ""
             row["r_c"] = "" if m.r_c is None else m.r_c
             row["model"] = Path(m.model).name if m.model else ""
@@ -132,7 +140,17 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     front = [r for r in rows if r["pareto"]]
     front.sort(key=lambda r: r["ms_mean"])
     if front:
-        ax.plot([r["ms_mean"] for r in front], [r["error_mean"] for r in front], "-", color="gold", lw=7, alpha=0.45, zorder=1, label="Pareto front", drawstyle="steps-post")
+        ax.plot(
+            [r["ms_mean"] for r in front],
+            [r["error_mean"] for r in front],
+            "-",
+            color="gold",
+            lw=7,
+            alpha=0.45,
+            zorder=1,
+            label="Pareto front",
+            drawstyle="steps-post",
+        )
     hyb = sorted((r for r in rows if r["kind"] == "hybrid"), key=lambda r: r["r_c"])
     if hyb:
         ax.plot([r["ms_mean"] for r in hyb], [r["error_mean"] for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9")
@@ -201,7 +219,9 @@ def _fmt(x: float, nd: int = 3) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{x:.{nd}f}"
 
 
-def report_markdown(scene: str, settings: dict[str, Any], env: dict[str, Any], seeds: Sequence[int], rows: list[dict[str, Any]], command: str, files: dict[str, str]) -> str:
+def report_markdown(
+    scene: str, settings: dict[str, Any], env: dict[str, Any], seeds: Sequence[int], rows: list[dict[str, Any]], command: str, files: dict[str, str]
+) -> str:
     """``report.md``: settings, machine, the method table, the Table-2-like
     threshold sweep, the charts and the methods on the Pareto front."""
     front = [r["label"] for r in sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_mean"])]

@@ -203,7 +203,9 @@ def run_bench(
     if len(set(keys)) != len(keys):
         raise InvalidInputError("methods: duplicate method keys", "methods")
     todo = [(m, s) for s in cfg.seeds for m in methods if not (cells / f"{m.key}_seed{s}.json").is_file()]
-    bar = tqdm(total=len(methods) * len(cfg.seeds), initial=len(methods) * len(cfg.seeds) - len(todo), desc=f"bench {cfg.scene}", unit="cell", disable=not progress)
+    bar = tqdm(
+        total=len(methods) * len(cfg.seeds), initial=len(methods) * len(cfg.seeds) - len(todo), desc=f"bench {cfg.scene}", unit="cell", disable=not progress
+    )
     refs: dict[int, np.ndarray] = {}
     for m, s in todo:
         bar.set_postfix_str(f"{m.key} seed {s}", refresh=True)

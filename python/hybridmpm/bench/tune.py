@@ -23,7 +23,6 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.sim.config import CONFIG_KEYS
 
 
-
 def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean") -> dict[str, Any]:
     """The row with the lowest ``ms_mean`` among ``rows`` whose ``metric``
     ("error_mean" or "error_last") is ≤ ``budget`` and whose rollouts never
@@ -42,7 +41,9 @@ def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean"
     return min(ok, key=lambda r: (r["ms_mean"], r[metric]))
 
 
-def write_tuned(path: Path, scene: str, budget: float, metric: str, chosen: dict[str, Any], rows: list[dict[str, Any]], seeds: list[int], settings: dict[str, Any]) -> dict[str, Any]:
+def write_tuned(
+    path: Path, scene: str, budget: float, metric: str, chosen: dict[str, Any], rows: list[dict[str, Any]], seeds: list[int], settings: dict[str, Any]
+) -> dict[str, Any]:
     """Write the tuned config (the chosen configuration, what it measured, and
     every candidate) as JSON; returns it."""
     doc = {
@@ -63,5 +64,3 @@ def write_tuned(path: Path, scene: str, budget: float, metric: str, chosen: dict
     tmp.write_text(json.dumps(doc, indent=2))
     tmp.replace(path)
     return doc
-
-

@@ -7,12 +7,12 @@
 """
 
 from hybridmpm.data.gns import (
+    GNS_SAND,
+    GNS_WATER,
     KINEMATIC,
     METADATA_FILE,
     REQUIRED_METADATA,
-    GNS_SAND,
     SPLITS,
-    GNS_WATER,
     GnsDataset,
     GnsTrajectory,
     SplitNotFoundError,

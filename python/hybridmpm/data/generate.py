@@ -26,11 +26,12 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 
@@ -39,6 +40,7 @@ from hybridmpm.errors import HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.scenes import DOMAINS, SceneSpec, scene_spec
 from hybridmpm.scenes.resolution import check_r_p, check_r_t, cluster_centroids, downsample_scene
 from hybridmpm.sim import MpmSimulator, rollout
+
 LowRes = Literal["simulate", "centroids"]
 Executor = Literal["process", "ray"]
 

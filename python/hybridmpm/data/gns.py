@@ -46,9 +46,9 @@ from typing import IO, Any, NamedTuple, Union
 import numpy as np
 from numpy.lib import format as npformat
 
-from hybridmpm.errors import InvalidInputError
 from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
 from hybridmpm.conventions import GNS_SAND, GNS_WATER, SPLITS
+from hybridmpm.errors import InvalidInputError
 
 """The split names of a GNS dataset directory, in canonical order."""
 
@@ -121,15 +121,11 @@ def _check_trajectory(tid: str, value: Any, *, source: str | None, lenient: bool
         elems = list(value)
     else:
         kind = f"{type(value).__name__}" + (f" of dtype {value.dtype}, shape {value.shape}" if isinstance(value, np.ndarray) else "")
-        raise InvalidInputError(
-            f"{where}: expected a (positions, particle_type[, material_properties]) tuple, got {kind}", tid
-        )
+        raise InvalidInputError(f"{where}: expected a (positions, particle_type[, material_properties]) tuple, got {kind}", tid)
     if len(elems) == 3 and elems[2] is None:
         elems = elems[:2]
     if len(elems) not in (2, 3):
-        raise InvalidInputError(
-            f"{where}: expected 2 or 3 elements (positions, particle_type[, material_properties]), got {len(elems)}", tid
-        )
+        raise InvalidInputError(f"{where}: expected 2 or 3 elements (positions, particle_type[, material_properties]), got {len(elems)}", tid)
 
     field = f"{tid}.positions"
     try:
@@ -552,8 +548,7 @@ def compute_statistics(
             acc.add(np.diff(d1, axis=0)[:_STATS_CHUNK_FRAMES])
     if vel is None or acc is None or acc.count == 0:
         raise InvalidInputError(
-            "statistics need at least one trajectory with 3 or more frames and one particle whose type is not excluded "
-            f"(excluded types: {excluded.tolist()})",
+            f"statistics need at least one trajectory with 3 or more frames and one particle whose type is not excluded (excluded types: {excluded.tolist()})",
             "trajectories",
         )
     return {
@@ -625,10 +620,7 @@ def validate_metadata(meta: Mapping[str, Any], *, source: str | None = None) -> 
     if (
         not isinstance(bounds, (list, tuple))
         or len(bounds) != dim
-        or not all(
-            isinstance(b, (list, tuple)) and len(b) == 2 and all(_is_real(x) and math.isfinite(x) for x in b) and b[0] < b[1]
-            for b in bounds
-        )
+        or not all(isinstance(b, (list, tuple)) and len(b) == 2 and all(_is_real(x) and math.isfinite(x) for x in b) and b[0] < b[1] for b in bounds)
     ):
         raise bad("bounds", f"dim = {dim} pairs [lo, hi] of finite numbers with lo < hi")
     for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):

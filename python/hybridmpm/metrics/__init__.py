@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import DEFAULT_N_GRID
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import grid_mass
-from hybridmpm.conventions import DEFAULT_N_GRID
 from hybridmpm.trajectory import KINEMATIC, Trajectory
 
 #: Relative tolerance on "the ratio of the frame intervals is an integer".
@@ -158,9 +158,7 @@ def position_mse(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
     p = _frames("pred", pred)
     r = _frames("ref", ref)
     if p.shape != r.shape:
-        raise InvalidInputError(
-            f"ref: shape {list(r.shape)} differs from pred's {list(p.shape)}; position MSE needs the same frames and particles", "ref"
-        )
+        raise InvalidInputError(f"ref: shape {list(r.shape)} differs from pred's {list(p.shape)}; position MSE needs the same frames and particles", "ref")
     diff = p.astype(np.float64) - r.astype(np.float64)
     return np.asarray(np.mean(diff * diff, axis=(1, 2)), dtype=np.float64)
 
@@ -302,9 +300,7 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> di
     if pred.masses is not None and ref.masses is not None and np.all(pred.masses[pm] > 0) and np.all(ref.masses[rm] > 0):
         # the same error with each particle splatting its own mass: differs from the
         # 1/N definition when particles carry unequal masses (k-means clusters, r_p < 1)
-        result["grid_mass_error_mass_weighted"] = rollout_summary(
-            grid_mass_error(pp, rp, n, pred_weights=pred.masses[pm], ref_weights=ref.masses[rm])
-        )
+        result["grid_mass_error_mass_weighted"] = rollout_summary(grid_mass_error(pp, rp, n, pred_weights=pred.masses[pm], ref_weights=ref.masses[rm]))
 
     mismatch = f"fluid particle counts differ (pred {n_pred}, ref {n_ref}): no particle correspondence, use grid_mass_error"
     if n_pred == n_ref:

@@ -278,9 +278,7 @@ class GnsModel(nn.Module):
         nodes, edges = self.features(positions, particle_type, senders, receivers)
         return nodes, edges
 
-    def normalised_acceleration(
-        self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
-    ) -> torch.Tensor:
+    def normalised_acceleration(self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> torch.Tensor:
         """The network's output: normalised acceleration float32 [N, D]
         (``(a − acc_mean)/acc_std_eff``; compare with
         ``features.normalise_acceleration(target)``)."""

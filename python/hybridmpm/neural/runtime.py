@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
 
 
@@ -103,9 +103,7 @@ class NeuralModel:
             s, r, _, _ = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
         else:
             s, r = graph
-        acc, nxt = self.session.run(
-            None, {"positions": history, "particle_type": particle_type, "senders": s, "receivers": r}
-        )
+        acc, nxt = self.session.run(None, {"positions": history, "particle_type": particle_type, "senders": s, "receivers": r})
         return acc, nxt, (s, r)
 
 

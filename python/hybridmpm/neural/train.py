@@ -111,9 +111,7 @@ class _Data:
         self.t_max = min(len(p) for p, _ in self.trajs)
 
 
-def _window(
-    traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _window(traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Input history [T_in, N, D], types [N], target acceleration [N, D] (noise-corrected)."""
     pos, ptype = traj
     hist = pos[t - t_in + 1 : t + 1].astype(np.float64)
@@ -317,8 +315,13 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         model,
         out / "model.onnx",
         {
-            **summary, "particle_types": types, "data_sha256": sha, "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
-            "n_grid": n_grid, "noise_std": config.noise_std, "rollout_steps": rollout_steps,
+            **summary,
+            "particle_types": types,
+            "data_sha256": sha,
+            "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
+            "n_grid": n_grid,
+            "noise_std": config.noise_std,
+            "rollout_steps": rollout_steps,
         },  # fmt: skip
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

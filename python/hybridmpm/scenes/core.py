@@ -67,9 +67,7 @@ class Scene:
 
     def particle_type(self) -> np.ndarray:
         """GNS particle types int64 [N + B]: water 5, sand 6, then boundary 3."""
-        fluid = np.where(
-            self.material == MATERIAL_SAND, GNS_TYPE_OF_MATERIAL[MATERIAL_SAND], GNS_TYPE_OF_MATERIAL[MATERIAL_WATER]
-        ).astype(np.int64)
+        fluid = np.where(self.material == MATERIAL_SAND, GNS_TYPE_OF_MATERIAL[MATERIAL_SAND], GNS_TYPE_OF_MATERIAL[MATERIAL_WATER]).astype(np.int64)
         return np.concatenate([fluid, np.full(self.num_boundary, GNS_KINEMATIC, np.int64)])
 
     def with_boundary(self, positions: np.ndarray) -> np.ndarray:

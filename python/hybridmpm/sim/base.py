@@ -15,8 +15,9 @@ forcing: the hybrid runs MPM while one is set.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, Union, runtime_checkable
+from typing import Any, Protocol, Union, runtime_checkable
 
 import numpy as np
 
@@ -75,7 +76,12 @@ class SimStats:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SimStats:
-        return cls({str(k): int(v) for k, v in dict(d["steps"]).items()}, int(d["switches"]), {str(k): int(v) for k, v in dict(d["fallbacks"]).items()}, int(d["mpm_retries"]))
+        return cls(
+            {str(k): int(v) for k, v in dict(d["steps"]).items()},
+            int(d["switches"]),
+            {str(k): int(v) for k, v in dict(d["fallbacks"]).items()},
+            int(d["mpm_retries"]),
+        )
 
 
 class NetworkFailure(SimulationError):

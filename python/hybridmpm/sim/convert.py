@@ -60,9 +60,7 @@ def particle_density(positions: np.ndarray, masses: np.ndarray, n_grid: int) -> 
     return rho
 
 
-def estimate_volume_ratio(
-    positions: np.ndarray, masses: np.ndarray, volumes: np.ndarray, n_grid: int, j_min: float = 0.5
-) -> np.ndarray:
+def estimate_volume_ratio(positions: np.ndarray, masses: np.ndarray, volumes: np.ndarray, n_grid: int, j_min: float = 0.5) -> np.ndarray:
     """Water's volume ratio from local density: ``J = ρ_rest / ρ`` with
     ``ρ_rest = m/V₀`` per particle and ``ρ`` from :func:`particle_density`,
     clipped to ``[j_min, 1]`` (no tension: free-surface particles, whose density
@@ -128,9 +126,7 @@ def neural_to_mpm(
     """
     h = np.asarray(history, np.float32)
     if h.ndim != 3 or h.shape[0] < 2 or h.shape[1] != solver.num_particles or h.shape[2] != solver.dim:
-        raise InvalidInputError(
-            f"history: expected [T >= 2, {solver.num_particles}, {solver.dim}] fluid positions, got {list(h.shape)}", "history"
-        )
+        raise InvalidInputError(f"history: expected [T >= 2, {solver.num_particles}, {solver.dim}] fluid positions, got {list(h.shape)}", "history")
     if not np.isfinite(h[-2:]).all():
         raise InvalidInputError("history: the last two positions must be finite", "history")
     if affine not in ("fit", "zero"):

@@ -122,7 +122,11 @@ class NeuralSimulator:
 
         from hybridmpm.scenes import make_scene
 
-        for name, v, lo, closed in (("ke_factor", ke_factor, 0.0, False), ("escape_cells", escape_cells, 0.0, True), ("degree_factor", degree_factor, 1.0, False)):
+        for name, v, lo, closed in (
+            ("ke_factor", ke_factor, 0.0, False),
+            ("escape_cells", escape_cells, 0.0, True),
+            ("degree_factor", degree_factor, 1.0, False),
+        ):
             ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v >= lo if closed else v > lo)
             if not ok:
                 raise InvalidInputError(f"{name}: must be a finite number {'>=' if closed else '>'} {lo:g}, got {v!r}", name)

@@ -13,8 +13,9 @@ substeps, events, and why the rollout broke off, if it did.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

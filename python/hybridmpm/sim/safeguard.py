@@ -23,6 +23,7 @@ import numpy as np
 
 from hybridmpm.conventions import DELTA, R_C
 from hybridmpm.errors import InvalidInputError
+
 #: Default acceleration floor [m/s²] below which a particle counts as calm
 #: (a tenth of gravity; see docs/hybrid.md for the measurement).
 ACCEL_FLOOR = 1.0
