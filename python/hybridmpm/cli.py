@@ -28,17 +28,66 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import platform
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hybridmpm.conventions import R_C
-from hybridmpm.errors import HybridMpmError
+from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.trajectory import Trajectory
+
+
+def _seed(text: str) -> int:
+    """argparse type of a seed: an integer in [0, 2^63)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 0 <= v < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2^63), got {v}")
+    return v
+
+
+def _out_dir(path: str | Path, field: str = "out") -> Path:
+    """Create output directory ``path`` (parents too) and check that it can be
+    written, before any work: raises :class:`InvalidInputError` naming
+    ``field`` otherwise."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise InvalidInputError(f"{field}: {out} exists and is not a directory", field)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".hybridmpm-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise InvalidInputError(f"{field}: cannot write to {out} ({e.strerror or e})", field) from e
+    return out
+
+
+def _json_safe(obj: Any) -> Any:
+    """``obj`` with non-finite floats as None (JSON has no NaN or Infinity)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    """Write strict JSON atomically (a temporary file beside it, then a rename)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_json_safe(obj), indent=2, allow_nan=False))
+    tmp.replace(path)
 
 
 def _ms(seconds: np.ndarray) -> dict[str, float | None]:
@@ -63,15 +112,14 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.solver == "auto":
         _apply_tuned(args, scene.name)
     if frames < 1:
-        raise HybridMpmError("frames: must be >= 1")
+        raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
+    out = _out_dir(args.out)
     sim = make_simulator(
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     low = sim.scene
     per_frame = ro.frame_seconds()
     steps = ro.stats["steps"]
@@ -109,7 +157,7 @@ def _simulate(args: argparse.Namespace) -> int:
             "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
         }  # fmt: skip
     ro.save(out / "trajectory.npz")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    _write_json(out / "summary.json", summary)
     title = f"{scene.name} ({args.solver}" + (f", r_c = {args.r_c:g})" if args.solver == "hybrid" else ")")
     if args.solver == "hybrid":
         plot_timeline(out / "timeline.png", ro.dt_frame, ro.solver, ro.score, args.r_c, err, title=title)
@@ -236,9 +284,8 @@ def _stress(args: argparse.Namespace) -> int:
             raise HybridMpmError(f"methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
     if args.frames < 1:
         raise HybridMpmError("frames: must be >= 1")
+    out = _out_dir(args.out)
     res = stress(args.scene, cases=cases, methods=methods, frames=args.frames, seed=args.seed, model=args.model, threads=args.threads, progress=not args.quiet)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     table = markdown_table(res)
     cmd = "hybridmpm stress " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["stress"] else f"hybridmpm stress {args.scene}"
     (out / f"stress_{args.scene}.md").write_text(f"Command: `{cmd}`\n\n" + table)
@@ -267,7 +314,10 @@ def _train(args: argparse.Namespace) -> int:
 def _generate(args: argparse.Namespace) -> int:
     from hybridmpm.data.generate import GenerateConfig, generate_dataset
 
-    split = tuple(float(v) for v in args.split.split(","))
+    try:
+        split = tuple(float(v) for v in args.split.split(","))
+    except ValueError:
+        raise InvalidInputError(f"split: three comma-separated fractions, e.g. 0.8,0.1,0.1; got {args.split!r}", "split") from None
     config = GenerateConfig(
         scene=args.scene, trajectories=args.trajectories, frames=args.frames, seed=args.seed,
         r_p=args.r_p, r_t=args.r_t, lowres=args.lowres, split=split,  # type: ignore[arg-type]
@@ -333,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
-    sim.add_argument("--seed", type=int, default=0, help="seed of the scene's random initial condition")
+    sim.add_argument("--seed", type=_seed, default=0, help="seed of the scene's random initial condition")
     sim.add_argument("--threads", type=int, default=0, help="solver threads (0 = all cores)")
     sim.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
@@ -345,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--cases", default=None, help="comma-separated subset of baseline,fast,obstacle,dense (default all)")
     st.add_argument("--methods", default=None, help="comma-separated subset of neural,mpm,hybrid (default all)")
     st.add_argument("--model", default=None, help="ONNX model (default: the shipped model for the scene)")
-    st.add_argument("--seed", type=int, default=0, help="seed of the scene's initial condition and clustering")
+    st.add_argument("--seed", type=_seed, default=0, help="seed of the scene's initial condition and clustering")
     st.add_argument("--threads", type=int, default=1, help="MPM threads (default 1)")
     st.add_argument("--out", default="runs/stress", help="directory of stress_SCENE.md / .json (default runs/stress)")
     st.add_argument("--quiet", action="store_true")
@@ -385,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--out", required=True, help="dataset directory (resumes if it holds an unfinished generation)")
     gen.add_argument("--frames", type=int, default=None, help="frames T per trajectory (default: the paper's T for the domain)")
     gen.add_argument("--workers", type=int, default=2, help="parallel worker processes (default 2)")
-    gen.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    gen.add_argument("--seed", type=_seed, default=0, help="dataset seed (default 0)")
     gen.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1] (default 1; the paper's is 0.5714)")
     gen.add_argument("--r-t", type=int, default=1, help="temporal downsampling: store every r_t-th frame (default 1; the paper's is 2)")
     gen.add_argument(
@@ -412,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
     tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
     tr.add_argument("--radius", type=float, default=None, help="connectivity radius R [m] (default: the dataset's)")
-    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seed", type=_seed, default=0)
     tr.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_train)
@@ -428,17 +478,28 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", default=None, help="metrics JSON to write (default: metrics.json next to PRED)")
     ev.add_argument("--quiet", action="store_true", help="no summary")
     ev.set_defaults(func=_evaluate)
+    for p in sub.choices.values():
+        p.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run a command; every :class:`HybridMpmError` (bad input, failed
+    simulation) ends as one line on stderr with exit status 2, an OS error
+    (missing or unwritable file) with status 1, Ctrl-C with 130. ``--debug``
+    shows the traceback instead."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except HybridMpmError as e:
+    except (HybridMpmError, OSError, KeyboardInterrupt) as e:
+        if getattr(args, "debug", False):
+            raise
+        if isinstance(e, KeyboardInterrupt):
+            print("hybridmpm: interrupted", file=sys.stderr)
+            return 130
         print(f"hybridmpm: error: {e}", file=sys.stderr)
-        return 2
+        return 2 if isinstance(e, HybridMpmError) else 1
 
 
 if __name__ == "__main__":

@@ -80,6 +80,8 @@ class GenerateConfig:
             raise InvalidInputError(f"scene: unknown scene {self.scene!r} (available: {', '.join(sorted(DOMAINS))})", "scene")
         if not isinstance(self.trajectories, int) or self.trajectories < 3:
             raise InvalidInputError(f"trajectories: need at least 3 (one per split), got {self.trajectories!r}", "trajectories")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or not 0 <= int(self.seed) < 2**63:
+            raise InvalidInputError(f"seed: must be an integer in [0, 2^63), got {self.seed!r}", "seed")
         if self.frames is not None and (not isinstance(self.frames, int) or self.frames < 1):
             raise InvalidInputError(f"frames: must be an integer >= 1, got {self.frames!r}", "frames")
         check_r_p(self.r_p)

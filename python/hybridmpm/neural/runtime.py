@@ -9,6 +9,7 @@ history (paper Sec. 2.2, App. A). The simulator that rolls it out is
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,49 @@ from hybridmpm.graph import radius_graph
 from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
 
 
+def _check_meta(meta: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The metadata keys the runtime uses, checked (``model.<key>`` names the
+    bad one); returns ``meta`` with the defaults of old exports filled in."""
+
+    def bad(key: str, what: str) -> InvalidInputError:
+        return InvalidInputError(f"model.{key}: {path.name} has {key} = {meta.get(key)!r}, expected {what}", f"model.{key}")
+
+    def number(key: str) -> float:
+        v = meta.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise bad(key, "a finite number")
+        return float(v)
+
+    def integer(key: str, lo: int) -> int:
+        v = meta.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise bad(key, f"an integer >= {lo}")
+        return v
+
+    meta.setdefault("r_t", 1)
+    meta.setdefault("r_p", 1.0)
+    meta.setdefault("t_in", T_IN)
+    if meta.get("dim") not in (2, 3) or isinstance(meta.get("dim"), bool):
+        raise bad("dim", "2 or 3")
+    if not number("radius") > 0:
+        raise bad("radius", "> 0 [m]")
+    if not 0 < number("r_p") <= 1:
+        raise bad("r_p", "a number in (0, 1]")
+    integer("r_t", 1)
+    integer("t_in", 3)
+    b = meta.get("bounds")
+    try:
+        arr = np.asarray(b, np.float64)
+    except (TypeError, ValueError):
+        raise bad("bounds", f"[[lo, hi]] * {meta['dim']}") from None
+    if arr.shape != (meta["dim"], 2) or not np.isfinite(arr).all() or not (arr[:, 0] < arr[:, 1]).all():
+        raise bad("bounds", f"[[lo, hi]] * {meta['dim']} with lo < hi")
+    types = meta.get("particle_types", [])
+    if not isinstance(types, list) or not all(isinstance(t, int) and not isinstance(t, bool) for t in types):
+        raise bad("particle_types", "a list of integers")
+    return meta
+
+
 class NeuralModel:
     """An exported GNS model loaded into onnxruntime.
 
@@ -29,7 +73,8 @@ class NeuralModel:
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
-    foreign file or an incompatible feature version.
+    foreign file or an incompatible feature version, (``model.<key>``) for
+    metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]).
     """
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
@@ -49,11 +94,15 @@ class NeuralModel:
         raw = self.session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
         if raw is None:
             raise InvalidInputError(f"model: {self.path} has no '{METADATA_KEY}' metadata (not exported by hybridmpm)", "model")
-        self.meta: dict[str, Any] = json.loads(raw)
-        if self.meta.get("feature_version") != FEATURE_VERSION:
-            raise InvalidInputError(
-                f"model: feature version {self.meta.get('feature_version')} of {self.path} is not {FEATURE_VERSION} (this hybridmpm)", "model"
-            )
+        try:
+            meta = json.loads(raw)
+        except ValueError as e:
+            raise InvalidInputError(f"model: the '{METADATA_KEY}' metadata of {self.path} is not JSON ({e})", "model") from e
+        if not isinstance(meta, dict):
+            raise InvalidInputError(f"model: the '{METADATA_KEY}' metadata of {self.path} is not a JSON object", "model")
+        if meta.get("feature_version") != FEATURE_VERSION:
+            raise InvalidInputError(f"model: feature version {meta.get('feature_version')} of {self.path} is not {FEATURE_VERSION} (this hybridmpm)", "model")
+        self.meta: dict[str, Any] = _check_meta(meta, self.path)
 
     @property
     def dim(self) -> int:
@@ -65,15 +114,15 @@ class NeuralModel:
 
     @property
     def r_t(self) -> int:
-        return int(self.meta.get("r_t", 1))
+        return int(self.meta["r_t"])
 
     @property
     def r_p(self) -> float:
-        return float(self.meta.get("r_p", 1.0))
+        return float(self.meta["r_p"])
 
     @property
     def t_in(self) -> int:
-        return int(self.meta.get("t_in", T_IN))
+        return int(self.meta["t_in"])
 
     def check_fits(self, dim: int, particle_type: np.ndarray, scene: str | None = None) -> None:
         """Raise :class:`InvalidInputError` (field ``model``) if the model cannot

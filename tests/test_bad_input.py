@@ -1,0 +1,115 @@
+"""Bad input ends in a clear error naming the field, with nothing lost."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.models import shipped_model
+from hybridmpm.neural import METADATA_KEY, NeuralModel
+
+
+def _with_metadata(tmp: Path, edit) -> Path:  # type: ignore[no-untyped-def]
+    import onnx
+
+    m = onnx.load(str(shipped_model("water2d")))
+    prop = next(p for p in m.metadata_props if p.key == METADATA_KEY)
+    prop.value = edit(prop.value)
+    out = tmp / "edited.onnx"
+    onnx.save(m, str(out))
+    return out
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("r_p", float("nan")),
+        ("r_p", 1.5),
+        ("r_t", 0),
+        ("r_t", 2.5),
+        ("radius", -1.0),
+        ("dim", 4),
+        ("bounds", [[0, 1]]),
+        ("t_in", "6"),
+        ("particle_types", "water"),
+    ],
+)
+def test_model_metadata_out_of_range_names_the_key(tmp_path, key, value):
+    def edit(raw: str) -> str:
+        meta = json.loads(raw)
+        meta[key] = value
+        return json.dumps(meta)
+
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(_with_metadata(tmp_path, edit))
+    assert e.value.field == f"model.{key}"
+
+
+@pytest.mark.parametrize("raw", ["{not json", "[1, 2]"])
+def test_malformed_model_metadata_is_refused(tmp_path, raw):
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(_with_metadata(tmp_path, lambda _: raw))
+    assert e.value.field == "model"
+
+
+def test_a_missing_key_of_an_old_export_gets_its_default(tmp_path):
+    def edit(raw: str) -> str:
+        meta = json.loads(raw)
+        del meta["t_in"]
+        return json.dumps(meta)
+
+    m = NeuralModel(_with_metadata(tmp_path, edit))
+    assert m.t_in == 6 and np.isfinite(m.r_p)
+
+
+# ----------------------------------------------------------------------- CLI
+def _cli(*argv: str) -> tuple[int, str]:
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "hybridmpm", *argv], capture_output=True, text=True, timeout=300)
+    return r.returncode, r.stderr
+
+
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["simulate", "--seed", "-1"], "--seed"),
+        (["generate", "water2d", "--trajectories", "3", "--split", "a,b", "--out", "{tmp}/g"], "split"),
+        (["inspect", "{tmp}/missing"], "no such dataset directory"),
+        (["inspect", "{tmp}"], "metadata.json"),
+        (["simulate", "--frames", "4", "--out", "{tmp}/file"], "out: "),
+        (["simulate", "--frames", "4", "--out", "/proc/hybridmpm-nope"], "out: cannot write"),
+        (["simulate", "nope", "--out", "{tmp}/o"], "nope"),
+    ],
+)
+def test_the_cli_says_what_is_wrong_in_one_line(tmp_path, argv, says):
+    (tmp_path / "file").write_text("not a directory")
+    rc, err = _cli(*[a.replace("{tmp}", str(tmp_path)) for a in argv])
+    assert rc != 0 and "Traceback" not in err
+    assert says in err.strip().splitlines()[-1]  # one line says it (argparse prints its usage before)
+
+
+def test_generate_with_a_bad_seed_writes_nothing(tmp_path):
+    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+
+    with pytest.raises(InvalidInputError) as e:
+        generate_dataset(GenerateConfig("water2d", 3, frames=4, seed=-1), tmp_path / "g", progress=False)
+    assert e.value.field == "seed" and not (tmp_path / "g").exists()
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    rc, err = _cli("simulate", "nope", "--out", str(tmp_path), "--debug")
+    assert rc != 0 and "Traceback" in err
+
+
+def test_summary_json_is_strict_json(tmp_path):
+    from hybridmpm.cli import main
+
+    assert main(["simulate", "water2d", "--frames", "8", "--out", str(tmp_path), "--quiet", "--no-render", "--threads", "1"]) == 0
+    text = (tmp_path / "summary.json").read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
