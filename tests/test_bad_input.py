@@ -113,3 +113,33 @@ def test_summary_json_is_strict_json(tmp_path):
     assert main(["simulate", "water2d", "--frames", "8", "--out", str(tmp_path), "--quiet", "--no-render", "--threads", "1"]) == 0
     text = (tmp_path / "summary.json").read_text()
     json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+
+
+def test_inspect_checks_a_dataset_against_its_metadata(tmp_path, capsys):
+    from hybridmpm.cli import main
+    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+
+    d = tmp_path / "ds"
+    generate_dataset(GenerateConfig("water2d", 3, frames=6), d, workers=1, progress=False)
+    assert main(["inspect", str(d)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["problems"] == [] and all(v["sha256_checked"] for v in info["splits"].values())
+    meta_path = d / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+
+    def broken(**change):  # type: ignore[no-untyped-def]
+        meta_path.write_text(json.dumps({**meta, **change}))
+        rc = main(["inspect", str(d)])
+        out = capsys.readouterr()
+        return rc, json.loads(out.out)["problems"], out.err
+
+    rc, problems, err = broken(sequence_length=5)
+    assert rc == 1 and any("sequence_length 5" in p for p in problems) and "problem" in err
+    rc, problems, _ = broken(sha256={**meta["sha256"], "valid": "0" * 64})
+    assert rc == 1 and any(p.startswith("valid.npz: sha256") for p in problems)
+    rc, problems, _ = broken(bounds=[[0.4, 0.6], [0.4, 0.6]])
+    assert rc == 1 and any("outside bounds" in p for p in problems)
+    meta_path.write_text(json.dumps(meta))
+    (d / "test.npz").unlink()
+    rc, problems, _ = broken()
+    assert rc == 1 and any("'test' is missing" in p for p in problems)

@@ -339,25 +339,16 @@ def _generate(args: argparse.Namespace) -> int:
 
 
 def _inspect(args: argparse.Namespace) -> int:
+    """``hybridmpm inspect DIR``: the dataset's summary as JSON; exit status 1
+    if it does not match its own metadata (:func:`hybridmpm.data.gns.check_dataset`)."""
     from hybridmpm.data import GnsDataset
+    from hybridmpm.data.gns import check_dataset
 
-    ds = GnsDataset(args.directory)
-    meta = ds.metadata
-    info: dict[str, object] = {"directory": str(args.directory), "dim": ds.dim, "splits": {}}
-    for name in ds.splits:
-        trajs = ds.split(name)
-        shapes = [t.positions.shape for t in trajs.values()]
-        types = sorted({int(v) for t in trajs.values() for v in np.unique(t.particle_type)})
-        info["splits"][name] = {  # type: ignore[index]
-            "trajectories": len(trajs),
-            "frames": sorted({s[0] for s in shapes}),
-            "particles": {"min": min(s[1] for s in shapes), "max": max(s[1] for s in shapes)} if shapes else None,
-            "particle_types": types,
-        }
-    info["metadata"] = meta
-    text = json.dumps(info, indent=2)
-    print(text)
-    return 0
+    info = check_dataset(GnsDataset(args.directory))
+    print(json.dumps(_json_safe(info), indent=2))
+    for p in info["problems"]:
+        print(f"hybridmpm: problem: {p}", file=sys.stderr)
+    return 1 if info["problems"] else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

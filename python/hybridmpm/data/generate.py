@@ -21,7 +21,6 @@ full-resolution rollout (see docs/datasets.md for the comparison).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -297,14 +296,6 @@ class _LazySplit(Mapping[str, tuple[np.ndarray, np.ndarray]]):
         return len(self._parts)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 @dataclass
 class GenerateReport:
     """What :func:`generate_dataset` did: trajectories simulated now / found done,
@@ -432,7 +423,7 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
     hashes = {}
     for s in SPLITS:
         gns.write_split(out / f"{s}.npz", _LazySplit(by_split[s]), compress=compress)
-        hashes[s] = _sha256(out / f"{s}.npz")
+        hashes[s] = gns.file_sha256(out / f"{s}.npz")
     stats = gns.compute_statistics(_LazySplit(by_split["train"]).values(), exclude_types=(GNS_KINEMATIC,))
     wall = (spec0.params.walls.cells - 1) / n_grid
     frames = config.resolved_frames()

@@ -30,6 +30,7 @@ tools can be read without trusting them.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -770,6 +771,81 @@ class GnsDataset(Mapping[str, dict[str, GnsTrajectory]]):
         return f"GnsDataset({self.directory!r}, dim={self.dim}, splits={list(self.splits)})"
 
 
+def file_sha256(path: PathLike) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def check_dataset(ds: GnsDataset) -> dict[str, Any]:
+    """Check a GNS dataset against its own metadata; returns a summary with
+    ``problems`` (a list of sentences, empty when all holds).
+
+    Checked: every split present (a missing one is a problem for our datasets,
+    whose metadata record ``trajectories`` per split, and a note otherwise);
+    each split file's SHA-256 against ``metadata["sha256"]`` when recorded;
+    every trajectory has ``sequence_length + 1`` frames (GNS layout), the
+    metadata's dimension and finite positions; positions outside
+    ``bounds`` are counted (particles may rest up to a cell outside them; more
+    than 10 % of the domain's extent is a problem).
+    """
+    meta = ds.metadata
+    problems: list[str] = []
+    notes: list[str] = []
+    recorded = meta.get("sha256") if isinstance(meta.get("sha256"), dict) else {}
+    expected_splits = meta.get("trajectories") if isinstance(meta.get("trajectories"), dict) else None
+    bounds = np.asarray(meta["bounds"], np.float64)
+    extent = bounds[:, 1] - bounds[:, 0]
+    seq = int(meta["sequence_length"])
+    info: dict[str, Any] = {"directory": ds.directory, "dim": ds.dim, "splits": {}, "metadata": meta}
+    for name in SPLITS:
+        if name not in ds.splits:
+            (problems if expected_splits is not None and name in expected_splits else notes).append(f"split {name!r} is missing ({ds.path(name)})")
+            continue
+        if name in recorded:
+            actual = file_sha256(ds.path(name))
+            if actual != recorded[name]:
+                problems.append(f"{name}.npz: sha256 {actual[:16]}… differs from the recorded {str(recorded[name])[:16]}… (modified or truncated)")
+        trajs = ds.split(name)
+        shapes = [t.positions.shape for t in trajs.values()]
+        types = sorted({int(v) for t in trajs.values() for v in np.unique(t.particle_type)})
+        outside, worst = 0, 0.0
+        for key, t in trajs.items():
+            x = np.asarray(t.positions)
+            if x.shape[0] != seq + 1:
+                problems.append(f"{name}/{key}: {x.shape[0]} frames, the metadata's sequence_length {seq} means {seq + 1}")
+            if x.shape[-1] != ds.dim:
+                problems.append(f"{name}/{key}: dimension {x.shape[-1]}, the metadata says {ds.dim}")
+                continue
+            if not np.isfinite(x).all():
+                problems.append(f"{name}/{key}: non-finite positions")
+                continue
+            below = (bounds[:, 0] - x).max(axis=(0, 1))
+            above = (x - bounds[:, 1]).max(axis=(0, 1))
+            excess = float(np.max(np.maximum(below, above) / extent))
+            if excess > 0:
+                outside += 1
+                worst = max(worst, excess)
+        if worst > 0.1:
+            problems.append(f"{name}: positions lie up to {100 * worst:.0f}% of the domain outside bounds")
+        if expected_splits is not None and name in expected_splits and int(expected_splits[name]) != len(trajs):
+            problems.append(f"{name}: {len(trajs)} trajectories, the metadata records {expected_splits[name]}")
+        info["splits"][name] = {
+            "trajectories": len(trajs),
+            "frames": sorted({s[0] for s in shapes}),
+            "particles": {"min": min(s[1] for s in shapes), "max": max(s[1] for s in shapes)} if shapes else None,
+            "particle_types": types,
+            "trajectories_outside_bounds": outside,
+            "sha256_checked": name in recorded,
+        }
+    info["problems"] = problems
+    info["notes"] = notes
+    return info
+
+
 __all__ = [
     "KINEMATIC",
     "METADATA_FILE",
@@ -780,7 +856,9 @@ __all__ = [
     "GnsDataset",
     "GnsTrajectory",
     "SplitNotFoundError",
+    "check_dataset",
     "compute_statistics",
+    "file_sha256",
     "read_metadata",
     "read_split",
     "validate_metadata",
