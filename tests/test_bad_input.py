@@ -143,3 +143,36 @@ def test_inspect_checks_a_dataset_against_its_metadata(tmp_path, capsys):
     (d / "test.npz").unlink()
     rc, problems, _ = broken()
     assert rc == 1 and any("'test' is missing" in p for p in problems)
+
+
+# ------------------------------------------------------------ atomic restore
+def _malformed(st: dict) -> list[tuple[str, dict]]:
+    neural = st["neural"]
+    bad_hist = None if neural["history"] is None else neural["history"][:, :-1]
+    return [
+        ("solver banana", {**st, "solver_name": "banana"}),
+        ("buffer shape", {**st, "buffer": st["buffer"][:, :-1]}),
+        ("buffer NaN-free but 4D", {**st, "buffer": st["buffer"][None]}),
+        ("negative counter", {**st, "calm": -1}),
+        ("neural history shape", {**st, "neural": {**neural, "history": bad_hist if bad_hist is not None else np.zeros((2, 2, 2))}}),
+        ("mpm blob", {**st, "mpm": {**st["mpm"], "solver": b"garbage"}}),
+        ("stats", {**st, "stats": {"steps": "x"}}),
+        ("missing key", {k: v for k, v in st.items() if k != "last_score"}),
+    ]
+
+
+def test_a_malformed_hybrid_state_changes_nothing():
+    from hybridmpm.scenes import make_scene
+    from hybridmpm.sim import HybridSimulator, rollout
+
+    sim = HybridSimulator(make_scene("water2d", seed=1000), mpm_threads=1)
+    rollout(sim, 60)  # on the network by now
+    good = sim.state()
+    for name, bad in _malformed(good):
+        with pytest.raises(InvalidInputError) as e:
+            sim.restore(bad)
+        assert e.value.field == "state", name
+    a = rollout(sim, 40)  # continues exactly as from the untouched state
+    sim.restore(good)
+    b = rollout(sim, 40)
+    assert np.array_equal(a.positions, b.positions) and np.array_equal(a.solver, b.solver)
