@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference_mpm88 import mpm88_substeps
 
 from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, WallParams
 from hybridmpm.scenes import hydrostatic_volume_ratio, lattice, wall_face
-from reference_mpm88 import mpm88_substeps
 
 G = 9.8
 

@@ -8,16 +8,20 @@ import json
 import numpy as np
 import pytest
 
-from hybridmpm.errors import InvalidInputError
 from hybridmpm.conventions import GNS_KINEMATIC
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import (
     DOMAINS,
     PAPER_FRAMES,
     SceneSpec,
     collider_sdf,
+    lattice,
     make_scene,
     scene_spec,
+    wall_face,
 )
+from hybridmpm.scenes.spec import MAX_OBSTACLE_DROP_FRACTION
 
 BUDGET = {"water_ramps2d": 3300, "sand_ramps2d": 3300, "dam_break2d": 4608}
 
@@ -156,7 +160,7 @@ def test_bad_files_and_names(tmp_path):
     inside["obstacles"] = [{"shape": "box", "center": [0.5, 0.5], "half_extents": [0.49, 0.49]}]
     with pytest.raises(InvalidInputError) as e:
         SceneSpec.from_dict(inside).build()
-    assert e.value.field == "blocks"
+    assert e.value.field == "blocks[0]"
 
 
 def test_water_lands_on_the_ramp_that_boundary_particles_describe():
@@ -185,3 +189,120 @@ def test_water_lands_on_the_ramp_that_boundary_particles_describe():
     assert closest < 1.5 * dx  # it did reach the ramp
     # and the boundary particles sit on that same ramp
     assert np.abs(collider_sdf(ramp, scene.boundary_positions)).max() <= spec.spacing
+
+
+def box_on_floor_spec(blocks, n_grid=64, **extra):
+    """A 0.25 × 0.125 m box obstacle standing on the floor (its bottom on the
+    wall face) at x ∈ [0.375, 0.625], and the given blocks."""
+    face = wall_face(MpmParams(n_grid=n_grid))
+    box = {"shape": "box", "center": [0.5, face + 0.0625], "half_extents": [0.125, 0.0625]}
+    return SceneSpec.from_dict({"name": "box", "dim": 2, "n_grid": n_grid, "blocks": blocks, "obstacles": [box], **extra}), face
+
+
+def test_blocks_touching_a_floor_obstacle_keep_every_row():
+    """Regression: particles within half a cell of an obstacle used to be
+    dropped, so a block resting on a box standing on the floor silently lost
+    its bottom row, and a block against the box's side its nearest column.
+    Only particles inside the obstacle are dropped now; MPM then holds the
+    touching rows where they are."""
+    face = wall_face(MpmParams(n_grid=64))
+    top = face + 0.125
+    blocks = [
+        {"material": "sand", "lo": [0.4375, top], "hi": [0.5625, top + 0.125]},  # resting on the box
+        {"material": "water", "lo": [0.25, face], "hi": [0.375, face + 0.125]},  # against its left side
+        {"material": "sand", "lo": [0.625, face], "hi": [0.75, face + 0.0625]},  # against its right side
+    ]
+    spec, _ = box_on_floor_spec(blocks)
+    scene = spec.build()
+    s = spec.spacing  # 1/128: 16 particles per 0.125 m
+    assert scene.num_particles == 16 * 16 + 16 * 16 + 16 * 8
+    assert "dropped_particles" not in scene.info
+    x = scene.positions
+    box = spec.params.colliders[0]
+    # the nearest particles sit half a lattice spacing from the box's faces
+    assert abs(collider_sdf(box, x).min() - s / 2) < 1e-6
+    assert np.isclose(x[:256, 1].min(), top + s / 2) and np.isclose(x[256:512, 0].max(), 0.375 - s / 2)
+    assert np.isclose(x[512:, 0].min(), 0.625 + s / 2)
+    sim = scene.make_solver()
+    for _ in range(40):
+        sim.step_frame()
+    dx = 1 / 64
+    assert collider_sdf(box, sim.positions).min() > -dx  # none pushed into the box
+    bottom = np.isclose(x[:, 1], top + s / 2) & (np.abs(x[:, 0] - 0.5) < 0.03)
+    # the bottom row stays on the box: it settles by less than a cell (grid
+    # colliders let particles sink ~0.5 dx; the cohesionless block spreads sideways)
+    assert bottom.sum() >= 6 and np.abs(sim.positions[bottom, 1] - x[bottom, 1]).max() < dx
+
+
+def test_particles_inside_an_obstacle_are_dropped_and_counted():
+    """A block cut by the box loses exactly its lattice points inside the box
+    (counted independently with the box's coordinates), reported in
+    ``scene.info``; a later block overlapping an earlier one is counted apart."""
+    face = wall_face(MpmParams(n_grid=64))
+    blocks = [
+        {"material": "water", "lo": [0.5, face + 0.0625], "hi": [0.75, face + 0.1875]},  # a quarter in the box
+        {"material": "water", "lo": [0.6875, face + 0.15], "hi": [0.8125, face + 0.25]},  # overlaps block 0
+    ]
+    spec, _ = box_on_floor_spec(blocks)
+    scene = spec.build()
+    lat0 = lattice(blocks[0]["lo"], blocks[0]["hi"], spec.spacing)
+    inside = (lat0[:, 0] < 0.625) & (lat0[:, 1] < face + 0.125)
+    lat1 = lattice(blocks[1]["lo"], blocks[1]["hi"], spec.spacing)
+    overlap = np.all((lat1 >= blocks[0]["lo"]) & (lat1 < blocks[0]["hi"]), axis=1)
+    assert inside.sum() == len(lat0) // 4 and 0 < overlap.sum() < len(lat1)
+    assert scene.info["dropped_particles"] == [
+        {"block": 0, "lattice": len(lat0), "earlier_blocks": 0, "obstacles": int(inside.sum())},
+        {"block": 1, "lattice": len(lat1), "earlier_blocks": int(overlap.sum()), "obstacles": 0},
+    ]
+    assert scene.num_particles == len(lat0) - inside.sum() + len(lat1) - overlap.sum()
+    assert collider_sdf(spec.params.colliders[0], scene.positions).min() >= 0
+    assert "dropped_particles" not in spec.info  # the spec is untouched
+
+
+def test_obstacle_clearance_drops_the_near_rows_and_round_trips(tmp_path):
+    """``obstacle_clearance_cells`` (the registered ramp domains use 0.5, their
+    historical rule) also drops particles that close to the surface: the block
+    resting on the box loses its bottom row (16 particles), and says so."""
+    face = wall_face(MpmParams(n_grid=64))
+    blocks = [{"material": "sand", "lo": [0.4375, face + 0.125], "hi": [0.5625, face + 0.25]}]
+    spec, _ = box_on_floor_spec(blocks, obstacle_clearance_cells=0.5)
+    scene = spec.build()
+    assert scene.info["dropped_particles"] == [{"block": 0, "lattice": 16 * 16, "earlier_blocks": 0, "obstacles": 16}]
+    assert spec.to_dict()["obstacle_clearance_cells"] == 0.5
+    back = SceneSpec.load(spec.save(tmp_path / "s.toml"))
+    assert back.obstacle_clearance_cells == 0.5 and np.array_equal(back.build().positions, scene.positions)
+    # the default writes nothing new
+    assert "obstacle_clearance_cells" not in box_on_floor_spec(blocks)[0].to_dict()
+    for name in ("water_ramps2d", "sand_ramps2d"):
+        assert scene_spec(name, 0).obstacle_clearance_cells == 0.5
+    ramps = make_scene("sand_ramps2d", 3)  # a seed whose first block reaches into a ramp
+    assert ramps.info["dropped_particles"][0]["obstacles"] > 0
+    dx = 1 / 128
+    for c in ramps.params.colliders:
+        assert collider_sdf(c, ramps.positions).min() >= 0.5 * dx - 1e-6
+
+
+@pytest.mark.parametrize(
+    ("block", "field"),
+    [
+        ({"material": "water", "lo": [0.4, 0.05], "hi": [0.6, 0.2]}, "blocks[1]"),  # 70% inside the box
+        ({"material": "water", "lo": [0.42, 0.04], "hi": [0.5, 0.1]}, "blocks[1]"),  # entirely inside the box
+        ({"material": "water", "lo": [0.12, 0.12], "hi": [0.18, 0.18]}, "blocks[1]"),  # entirely inside block 0
+    ],
+)
+def test_a_block_lost_to_obstacles_or_earlier_blocks_is_an_error_naming_it(block, field):
+    blocks = [{"material": "water", "lo": [0.1, 0.1], "hi": [0.2, 0.2]}, block]
+    spec, _ = box_on_floor_spec(blocks)
+    with pytest.raises(InvalidInputError) as e:
+        spec.build()
+    assert e.value.field == field and str(e.value).startswith(field + ":"), str(e.value)
+    assert f"{MAX_OBSTACLE_DROP_FRACTION:.0%}" in str(e.value)
+
+
+def test_bad_obstacle_clearance_names_the_field():
+    spec, _ = box_on_floor_spec([{"material": "water", "lo": [0.1, 0.1], "hi": [0.2, 0.2]}])
+    for bad in (-0.5, float("nan"), 10.0, "half"):
+        d = {**spec.to_dict(), "obstacle_clearance_cells": bad}
+        with pytest.raises(InvalidInputError) as e:
+            SceneSpec.from_dict(d)
+        assert e.value.field == "obstacle_clearance_cells"

@@ -26,14 +26,16 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
 from hybridmpm import _core
 from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_SAND, MATERIAL_WATER
-from hybridmpm.errors import CheckpointError, InvalidInputError, as_f32 as _as_f32
+from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.errors import as_f32 as _as_f32
 
 #: Solver material codes, short names for :data:`~hybridmpm.conventions.MATERIAL_WATER`
 #: and :data:`~hybridmpm.conventions.MATERIAL_SAND` (not the GNS particle types).
@@ -66,14 +68,131 @@ class SandParams:
     cohesion: float = 0.0
 
 
+#: Wall faces by axis and side: ``x-`` is x = 0, ``x+`` x = 1, ``y-`` the floor
+#: (y is up), ``y+`` the ceiling, ``z-`` / ``z+`` (3D only).
+WALL_FACES = ("x-", "x+", "y-", "y+", "z-", "z+")
+_CONDITIONS = ("sticky", "slip", "separate")
+
+
+@dataclass
+class WallFace:
+    """Override for one wall face: its boundary ``condition`` and/or Coulomb
+    ``friction`` μ; a field left ``None`` keeps the all-walls value."""
+
+    condition: Condition | None = None
+    friction: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {}
+        if self.condition is not None:
+            d["condition"] = self.condition
+        if self.friction is not None:
+            d["friction"] = float(self.friction)
+        return d
+
+
 @dataclass
 class WallParams:
-    """Domain walls: a band of ``cells`` grid cells on every side, with a
-    boundary ``condition`` and Coulomb ``friction`` μ (used by ``separate``)."""
+    """Domain walls: a band of ``cells`` grid cells inside every face of the
+    unit domain, with a boundary ``condition`` (``"sticky"``: no slip,
+    ``"slip"``: no normal motion, ``"separate"``: may leave the wall, with
+    Coulomb friction) and friction μ (used by ``separate``), for all faces.
+
+    ``faces`` overrides them per face: ``{"y-": WallFace(friction=0.6)}``
+    (a dict ``{"friction": 0.6}`` works too). Face names are
+    :data:`WALL_FACES`; ``y-`` is the floor (y is up), ``z-``/``z+`` exist
+    in 3D only. A rough floor with slipping side walls, the usual
+    granular-collapse setup::
+
+        WallParams(condition="slip", faces={"y-": WallFace("separate", 0.6)})
+    """
 
     cells: int = 3
     condition: Condition = "separate"
     friction: float = 0.0
+    faces: dict[str, WallFace] = field(default_factory=dict)
+
+    def face(self, name: str) -> tuple[str, float]:
+        """The ``(condition, friction)`` in force on face ``name``."""
+        f = _wall_face(f"walls.faces.{name}", self.faces.get(name, WallFace()))
+        return (f.condition or self.condition, float(self.friction if f.friction is None else f.friction))
+
+    def validate(self, dim: int | None = None) -> None:
+        """Check every field; raises :class:`InvalidInputError` naming it
+        (e.g. ``walls.faces.y-.friction``). ``dim`` also rejects z faces in 2D."""
+        if isinstance(self.cells, bool) or not isinstance(self.cells, (int, np.integer)) or self.cells < 2:
+            raise InvalidInputError(f"walls.cells: must be an integer >= 2, got {self.cells!r}", "walls.cells")
+        _check_condition("walls.condition", self.condition)
+        _check_friction("walls.friction", self.friction)
+        if not isinstance(self.faces, dict):
+            raise InvalidInputError("walls.faces: expected a mapping of face name to {condition, friction}", "walls.faces")
+        names = WALL_FACES[: 2 * dim] if dim in (2, 3) else WALL_FACES
+        for name, face in self.faces.items():
+            if name not in names:
+                where = f" in {dim}D" if dim in (2, 3) else ""
+                raise InvalidInputError(
+                    f"walls.faces.{name}: unknown wall face{where} (allowed: {', '.join(names)}; y- is the floor)",
+                    f"walls.faces.{name}",
+                )
+            _wall_face(f"walls.faces.{name}", face)
+
+    def to_dict(self, dim: int | None = None) -> dict[str, Any]:
+        """Plain dict (validated): ``faces`` only when some face is overridden,
+        in the order of :data:`WALL_FACES`."""
+        self.validate(dim)
+        d: dict[str, Any] = {"cells": int(self.cells), "condition": self.condition, "friction": float(self.friction)}
+        if self.faces:
+            d["faces"] = {n: _wall_face(f"walls.faces.{n}", self.faces[n]).to_dict() for n in WALL_FACES if n in self.faces}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], dim: int | None = None) -> WallParams:
+        """Inverse of :meth:`to_dict`; validates (errors name the field)."""
+        if not isinstance(d, dict):
+            raise InvalidInputError("walls: expected a table/object", "walls")
+        unknown = sorted(set(d) - {"cells", "condition", "friction", "faces"})
+        if unknown:
+            raise InvalidInputError(f"walls.{unknown[0]}: unknown wall parameter (allowed: cells, condition, friction, faces)", f"walls.{unknown[0]}")
+        faces_raw = d.get("faces") or {}
+        if not isinstance(faces_raw, dict):
+            raise InvalidInputError("walls.faces: expected a mapping of face name to {condition, friction}", "walls.faces")
+        default = cls()
+        walls = cls(
+            cells=d.get("cells", default.cells),
+            condition=d.get("condition", default.condition),
+            friction=d.get("friction", default.friction),
+            faces={str(k): _wall_face(f"walls.faces.{k}", v) for k, v in faces_raw.items()},
+        )
+        walls.validate(dim)
+        return walls
+
+
+def _check_condition(name: str, c: Any) -> None:
+    if c not in _CONDITIONS:
+        raise InvalidInputError(f"{name}: must be one of 'sticky', 'slip', 'separate', got {c!r}", name)
+
+
+def _check_friction(name: str, mu: Any) -> None:
+    if isinstance(mu, bool) or not isinstance(mu, (int, float, np.integer, np.floating)) or not math.isfinite(mu):
+        raise InvalidInputError(f"{name}: must be a finite number, got {mu!r}", name)
+    if mu < 0:
+        raise InvalidInputError(f"{name}: must be >= 0, got {mu!r}", name)
+
+
+def _wall_face(name: str, v: Any) -> WallFace:
+    """A validated :class:`WallFace` from a ``WallFace`` or a dict."""
+    if isinstance(v, dict):
+        extra = sorted(set(v) - {"condition", "friction"})
+        if extra:
+            raise InvalidInputError(f"{name}.{extra[0]}: unknown wall-face parameter (allowed: condition, friction)", f"{name}.{extra[0]}")
+        v = WallFace(condition=v.get("condition"), friction=v.get("friction"))
+    if not isinstance(v, WallFace):
+        raise InvalidInputError(f"{name}: expected a table/object with 'condition' and/or 'friction', got {v!r}", name)
+    if v.condition is not None:
+        _check_condition(f"{name}.condition", v.condition)
+    if v.friction is not None:
+        _check_friction(f"{name}.friction", v.friction)
+    return v
 
 
 @dataclass
@@ -161,7 +280,7 @@ class MpmParams:
             "num_threads": int(self.num_threads),
             "water": asdict(self.water),
             "sand": asdict(self.sand),
-            "walls": asdict(self.walls),
+            "walls": self.walls.to_dict(self.dim),
             "colliders": [c.to_dict() for c in self.colliders],
         }
 
@@ -182,7 +301,7 @@ class MpmParams:
         return cls(
             water=WaterParams(**d.pop("water", {})),
             sand=SandParams(**d.pop("sand", {})),
-            walls=WallParams(**d.pop("walls", {})),
+            walls=WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2)),
             colliders=cols,
             **d,
         )
@@ -379,6 +498,8 @@ __all__ = [
     "MpmSolver",
     "SandParams",
     "Sphere",
+    "WALL_FACES",
+    "WallFace",
     "WallParams",
     "WaterParams",
     "grid_mass",

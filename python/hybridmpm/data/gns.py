@@ -795,8 +795,10 @@ def check_dataset(ds: GnsDataset) -> dict[str, Any]:
     meta = ds.metadata
     problems: list[str] = []
     notes: list[str] = []
-    recorded = meta.get("sha256") if isinstance(meta.get("sha256"), dict) else {}
-    expected_splits = meta.get("trajectories") if isinstance(meta.get("trajectories"), dict) else None
+    sha = meta.get("sha256")
+    recorded: dict[str, Any] = sha if isinstance(sha, dict) else {}
+    counts = meta.get("trajectories")
+    expected_splits: dict[str, Any] | None = counts if isinstance(counts, dict) else None
     bounds = np.asarray(meta["bounds"], np.float64)
     extent = bounds[:, 1] - bounds[:, 0]
     seq = int(meta["sequence_length"])

@@ -15,6 +15,9 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     condition = "separate"
     friction = 0.0
 
+    [walls.faces.y-]        # optional per-face overrides; y- is the floor
+    friction = 0.5
+
     [[blocks]]
     material = "water"
     lo = [0.1, 0.05]
@@ -30,29 +33,46 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
 :meth:`SceneSpec.build` turns it into a :class:`~hybridmpm.scenes.Scene`:
 each block is filled with a cell-centred lattice at spacing
 ``dx / particles_per_cell``; a particle of a later block that falls inside an
-earlier block, or within half a cell of an obstacle, is dropped; obstacles
-become MPM colliders and, for the network, static boundary particles (GNS
-type 3) on a shell one spacing thick inside their surface (GNS WaterRamps
-represents its ramps the same way).
+earlier block is dropped (overlapping blocks form their union), and so is a
+particle inside an obstacle (``sdf < 0``; or within ``obstacle_clearance_cells``
+grid cells of its surface when that is set), so a block resting on or
+touching an obstacle keeps all its particles. Dropped particles are counted
+per block in ``scene.info["dropped_particles"]``; a block that loses all its
+particles, or more than :data:`MAX_OBSTACLE_DROP_FRACTION` of them to
+obstacles, is an error. Obstacles become MPM colliders and, for the network,
+static boundary particles (GNS type 3) on a shell one spacing thick inside
+their surface (GNS WaterRamps represents its ramps the same way).
+
+Walls (``[walls]``) take one ``condition`` (``sticky``, ``slip``,
+``separate``) and Coulomb ``friction`` for every face, and optional per-face
+overrides in ``[walls.faces.<face>]`` with faces ``x-``, ``x+``, ``y-`` (the
+floor; y is up), ``y+``, ``z-``, ``z+`` (3D only); TOML needs quotes around
+names with ``+`` (``[walls.faces."x+"]``). See :class:`~hybridmpm.mpm.WallParams`.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import DT_FRAME, SAND, WATER, Box, MpmParams, Sphere
-from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
 from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice
 
 MATERIALS = {"water": WATER, "sand": SAND}
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
+
+#: A block may lose at most this fraction of its lattice particles to
+#: obstacles; more (or all of its particles, for any reason) is an error
+#: naming the block, since such a block was almost certainly misplaced.
+MAX_OBSTACLE_DROP_FRACTION = 0.5
 
 
 @dataclass
@@ -89,7 +109,10 @@ class SceneSpec:
     ``dt_frame`` [s] and ``frames`` the rollout; ``particles_per_cell`` the
     lattice density per dimension (2: spacing dx/2); ``connectivity_radius``
     R [m] of the network's radius graph; ``info`` free-form facts (the
-    generator's seed, ...), kept on save.
+    generator's seed, ...), kept on save; ``obstacle_clearance_cells``: a
+    particle closer than this many grid cells to an obstacle's surface is
+    dropped too (default 0: only particles inside, ``sdf < 0``; the registered
+    ramp domains keep their historical 0.5).
     """
 
     name: str
@@ -100,6 +123,7 @@ class SceneSpec:
     particles_per_cell: int = 2
     connectivity_radius: float = DEFAULT_CONNECTIVITY_RADIUS
     info: dict[str, Any] = field(default_factory=dict)
+    obstacle_clearance_cells: float = 0.0
 
     @property
     def dim(self) -> int:
@@ -133,6 +157,8 @@ class SceneSpec:
         }
         if p["substeps"] is not None:
             d["substeps"] = p["substeps"]
+        if self.obstacle_clearance_cells:
+            d["obstacle_clearance_cells"] = float(self.obstacle_clearance_cells)
         if self.info:
             d["info"] = _plain(self.info)
         return d
@@ -146,6 +172,7 @@ class SceneSpec:
         allowed = {
             "name", "dim", "n_grid", "dt_frame", "frames", "particles_per_cell", "connectivity_radius", "gravity",
             "cfl", "max_substeps", "substeps", "water", "sand", "walls", "blocks", "obstacles", "info",
+            "obstacle_clearance_cells",
         }  # fmt: skip
         unknown = sorted(set(d) - allowed)
         if unknown:
@@ -215,7 +242,20 @@ class SceneSpec:
         info = d.get("info", {})
         if not isinstance(info, dict):
             raise InvalidInputError("info: expected a table/object", "info")
-        return cls(str(d.get("name", "scene")), params, blocks, float(dt_frame), frames, ppc, float(radius), dict(info))
+        clearance = d.get("obstacle_clearance_cells", 0.0)
+        if isinstance(clearance, bool) or not (isinstance(clearance, (int, float)) and math.isfinite(clearance) and 0 <= clearance <= 4):
+            raise InvalidInputError(f"obstacle_clearance_cells: must be a number in [0, 4] grid cells, got {clearance!r}", "obstacle_clearance_cells")
+        return cls(
+            str(d.get("name", "scene")),
+            params,
+            blocks,
+            dt_frame=float(dt_frame),
+            frames=frames,
+            particles_per_cell=ppc,
+            connectivity_radius=float(radius),
+            info=dict(info),
+            obstacle_clearance_cells=float(clearance),
+        )
 
     def save(self, path: str | Path) -> Path:
         """Write as TOML (``.toml``) or JSON (any other suffix); returns the path."""
@@ -258,22 +298,43 @@ class SceneSpec:
     def build(self) -> Scene:
         """Seed the particles and sample the boundary particles: a :class:`Scene`.
 
-        Raises :class:`InvalidInputError` if no particle is left (every block
-        inside an obstacle or an earlier block).
+        A lattice particle is dropped if it lies inside an earlier block or
+        inside an obstacle (``sdf < obstacle_clearance_cells·dx``; ``sdf < 0``
+        by default). ``scene.info["dropped_particles"]`` then lists, per
+        affected block, ``{"block": i, "lattice": n, "earlier_blocks": k,
+        "obstacles": m}`` (absent when nothing was dropped).
+
+        Raises :class:`InvalidInputError` naming the block (``blocks[i]``) if
+        a block loses all its particles, or more than
+        :data:`MAX_OBSTACLE_DROP_FRACTION` of them to obstacles.
         """
         dim = self.dim
         s = self.spacing
         dx = 1.0 / self.params.resolved_n_grid()
+        clearance = self.obstacle_clearance_cells * dx
         pos_l, mat_l, vel_l, j_l = [], [], [], []
+        dropped: list[dict[str, int]] = []
         placed: list[tuple[np.ndarray, np.ndarray]] = []
-        for b in self.blocks:
+        for i, b in enumerate(self.blocks):
             lo, hi = np.asarray(b.lo, np.float64), np.asarray(b.hi, np.float64)
             p = lattice(lo, hi, s)
             keep = np.ones(len(p), bool)
             for plo, phi in placed:
                 keep &= ~np.all((p >= plo) & (p < phi), axis=1)
+            n_overlap = int(len(p) - keep.sum())
             for c in self.params.colliders:
-                keep &= collider_sdf(c, p) >= 0.5 * dx
+                keep &= collider_sdf(c, p) >= clearance
+            n_obstacle = int(len(p) - keep.sum()) - n_overlap
+            if n_overlap or n_obstacle:
+                dropped.append({"block": i, "lattice": len(p), "earlier_blocks": n_overlap, "obstacles": n_obstacle})
+            if n_obstacle > MAX_OBSTACLE_DROP_FRACTION * len(p) or not keep.any():
+                where = f"blocks[{i}]"
+                raise InvalidInputError(
+                    f"{where}: {len(p) - int(keep.sum())} of its {len(p)} lattice particles would be dropped "
+                    f"({n_obstacle} inside obstacles, {n_overlap} inside earlier blocks); a block may lose at most "
+                    f"{MAX_OBSTACLE_DROP_FRACTION:.0%} to obstacles and must keep at least one particle: move or shrink it",
+                    where,
+                )
             p = p[keep]
             placed.append((lo, hi))
             pos_l.append(p)
@@ -297,7 +358,7 @@ class SceneSpec:
             velocities=np.concatenate(vel_l).reshape(-1, dim).astype(np.float32),
             dt_frame=self.dt_frame,
             frames=self.frames,
-            info=dict(self.info),
+            info={**self.info, "dropped_particles": dropped} if dropped else dict(self.info),
             volume_ratio=None if np.all(volume_ratio == 1.0) else volume_ratio,
             boundary_positions=boundary if len(boundary) else None,
             connectivity_radius=self.connectivity_radius,
@@ -379,4 +440,4 @@ def boundary_particles(colliders: Sequence[Box | Sphere], dim: int, spacing: flo
     return np.concatenate(out)
 
 
-__all__ = ["MATERIALS", "Block", "SceneSpec", "boundary_particles", "collider_sdf"]
+__all__ = ["MATERIALS", "MAX_OBSTACLE_DROP_FRACTION", "Block", "SceneSpec", "boundary_particles", "collider_sdf"]

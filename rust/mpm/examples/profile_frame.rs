@@ -1,16 +1,29 @@
 //! Time frames of one benchmark scene (for profiling with perf):
 //! `cargo run --release -p hybridmpm-mpm --example profile_frame -- water2d 1 200`
-use hybridmpm_mpm::{lattice, Dim, DimOps, Material, Solver, SolverParams};
+use hybridmpm_mpm::{Dim, DimOps, Material, Solver, SolverParams, lattice};
 use std::time::Instant;
 
-fn run<const D: usize>(n_grid: usize, origin: [f32; D], side: usize, mat: Material, substeps: usize, threads: usize, frames: usize)
-where
+fn run<const D: usize>(
+    n_grid: usize,
+    origin: [f32; D],
+    side: usize,
+    mat: Material,
+    substeps: usize,
+    threads: usize,
+    frames: usize,
+) where
     Dim<D>: DimOps<D>,
 {
-    let p = SolverParams::<D> { n_grid, substeps: Some(substeps), num_threads: threads, ..Default::default() };
+    let p = SolverParams::<D> {
+        n_grid,
+        substeps: Some(substeps),
+        num_threads: threads,
+        ..Default::default()
+    };
     let dx = p.dx();
     let mut s = Solver::new(p, vec![]).unwrap();
-    s.set_particles(lattice(origin, side, dx / 2.0, mat, 1000.0)).unwrap();
+    s.set_particles(lattice(origin, side, dx / 2.0, mat, 1000.0))
+        .unwrap();
     for _ in 0..5 {
         s.step_frame(2.5e-3).unwrap();
     }
@@ -21,7 +34,11 @@ where
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     times.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    println!("median {:.3} ms/frame, {:.1} us/substep", times[times.len() / 2], times[times.len() / 2] * 1e3 / substeps as f64);
+    println!(
+        "median {:.3} ms/frame, {:.1} us/substep",
+        times[times.len() / 2],
+        times[times.len() / 2] * 1e3 / substeps as f64
+    );
 }
 
 fn main() {
@@ -33,8 +50,24 @@ fn main() {
         "water2d" => run::<2>(128, [0.1, 0.1], 64, Material::Water, 16, threads, frames),
         "sand2d" => run::<2>(128, [0.1, 0.1], 64, Material::Sand, 16, threads, frames),
         "water3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Water, 8, threads, frames),
-        "water3d_128" => run::<3>(128, [0.3, 0.1, 0.3], 16, Material::Water, 16, threads, frames),
-        "water3d_32k" => run::<3>(64, [0.25, 0.1, 0.25], 32, Material::Water, 8, threads, frames),
+        "water3d_128" => run::<3>(
+            128,
+            [0.3, 0.1, 0.3],
+            16,
+            Material::Water,
+            16,
+            threads,
+            frames,
+        ),
+        "water3d_32k" => run::<3>(
+            64,
+            [0.25, 0.1, 0.25],
+            32,
+            Material::Water,
+            8,
+            threads,
+            frames,
+        ),
         "sand3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Sand, 8, threads, frames),
         _ => eprintln!("unknown scene"),
     }

@@ -29,7 +29,10 @@ struct Reader<'a> {
 impl Reader<'_> {
     fn take(&mut self, n: usize) -> Result<&[u8]> {
         if self.pos + n > self.buf.len() {
-            return Err(MpmError::Checkpoint(format!("truncated at byte {} (need {n} more)", self.pos)));
+            return Err(MpmError::Checkpoint(format!(
+                "truncated at byte {} (need {n} more)",
+                self.pos
+            )));
         }
         let s = &self.buf[self.pos..self.pos + n];
         self.pos += n;
@@ -87,16 +90,23 @@ where
     pub fn restore(&mut self, blob: &[u8]) -> Result<()> {
         let mut r = Reader { buf: blob, pos: 0 };
         if r.take(8)? != MAGIC {
-            return Err(MpmError::Checkpoint("not a hybridmpm MPM checkpoint (bad magic)".into()));
+            return Err(MpmError::Checkpoint(
+                "not a hybridmpm MPM checkpoint (bad magic)".into(),
+            ));
         }
         let d = u32::from_le_bytes(r.take(4)?.try_into().unwrap()) as usize;
         if d != D {
-            return Err(MpmError::Checkpoint(format!("checkpoint is {d}D, solver is {D}D")));
+            return Err(MpmError::Checkpoint(format!(
+                "checkpoint is {d}D, solver is {D}D"
+            )));
         }
         let n = r.u64()? as usize;
         let per = 4 * (3 * D + 3 * D * D + 4) + 1;
         if n.checked_mul(per).is_none_or(|b| b > blob.len()) {
-            return Err(MpmError::Checkpoint(format!("declares {n} particles but holds {} bytes", blob.len())));
+            return Err(MpmError::Checkpoint(format!(
+                "declares {n} particles but holds {} bytes",
+                blob.len()
+            )));
         }
         let time = f64::from_le_bytes(r.take(8)?.try_into().unwrap());
         let frame = r.u64()?;
@@ -123,12 +133,16 @@ where
             ps.push(p);
         }
         if r.pos != blob.len() {
-            return Err(MpmError::Checkpoint(format!("{} trailing bytes", blob.len() - r.pos)));
+            return Err(MpmError::Checkpoint(format!(
+                "{} trailing bytes",
+                blob.len() - r.pos
+            )));
         }
         if !time.is_finite() {
             return Err(MpmError::Checkpoint("non-finite time".into()));
         }
-        self.set_particles_keep_stress(ps).map_err(|e| MpmError::Checkpoint(e.to_string()))?;
+        self.set_particles_keep_stress(ps)
+            .map_err(|e| MpmError::Checkpoint(e.to_string()))?;
         self.set_clock(time, frame);
         Ok(())
     }

@@ -14,9 +14,16 @@ use crate::params::BoundaryCondition;
 pub enum Shape<const D: usize> {
     /// Box with centre, half extents and a rotation (columns = local axes in
     /// world coordinates; a rotated box makes a ramp).
-    Box { center: SVector<f32, D>, half_extents: SVector<f32, D>, rotation: SMatrix<f32, D, D> },
+    Box {
+        center: SVector<f32, D>,
+        half_extents: SVector<f32, D>,
+        rotation: SMatrix<f32, D, D>,
+    },
     /// Sphere (circle in 2D).
-    Sphere { center: SVector<f32, D>, radius: f32 },
+    Sphere {
+        center: SVector<f32, D>,
+        radius: f32,
+    },
 }
 
 /// A static collider: shape + boundary condition + Coulomb friction.
@@ -31,7 +38,11 @@ impl<const D: usize> Shape<D> {
     /// Signed distance [m] (negative inside).
     pub fn sdf(&self, p: &SVector<f32, D>) -> f32 {
         match self {
-            Shape::Box { center, half_extents, rotation } => {
+            Shape::Box {
+                center,
+                half_extents,
+                rotation,
+            } => {
                 let local = rotation.transpose() * (p - center);
                 let q = local.abs() - half_extents;
                 let outside = q.map(|x| x.max(0.0)).norm();
@@ -45,7 +56,11 @@ impl<const D: usize> Shape<D> {
     /// Outward unit normal at `p` (gradient of the SDF).
     pub fn normal(&self, p: &SVector<f32, D>) -> SVector<f32, D> {
         match self {
-            Shape::Box { center, half_extents, rotation } => {
+            Shape::Box {
+                center,
+                half_extents,
+                rotation,
+            } => {
                 let local = rotation.transpose() * (p - center);
                 let q = local.abs() - half_extents;
                 let mut n = SVector::<f32, D>::zeros();
@@ -95,15 +110,24 @@ impl<const D: usize> Collider<D> {
     pub fn validate(&self, field: &str) -> Result<()> {
         let bad = |f: &str, m: String| Err(MpmError::invalid(format!("{field}.{f}"), m));
         match &self.shape {
-            Shape::Box { center, half_extents, rotation } => {
+            Shape::Box {
+                center,
+                half_extents,
+                rotation,
+            } => {
                 if !center.iter().all(|x| x.is_finite()) {
                     return bad("center", "must be finite".into());
                 }
                 if !half_extents.iter().all(|x| x.is_finite() && *x > 0.0) {
-                    return bad("half_extents", format!("must be finite and > 0, got {:?}", half_extents.as_slice()));
+                    return bad(
+                        "half_extents",
+                        format!("must be finite and > 0, got {:?}", half_extents.as_slice()),
+                    );
                 }
                 let i = SMatrix::<f32, D, D>::identity();
-                if !rotation.iter().all(|x| x.is_finite()) || (rotation.transpose() * rotation - i).norm() > 1e-3 {
+                if !rotation.iter().all(|x| x.is_finite())
+                    || (rotation.transpose() * rotation - i).norm() > 1e-3
+                {
                     return bad("rotation", "must be a finite orthonormal matrix".into());
                 }
             }
@@ -117,7 +141,10 @@ impl<const D: usize> Collider<D> {
             }
         }
         if !(self.friction.is_finite() && self.friction >= 0.0) {
-            return bad("friction", format!("must be finite and >= 0, got {}", self.friction));
+            return bad(
+                "friction",
+                format!("must be finite and >= 0, got {}", self.friction),
+            );
         }
         Ok(())
     }

@@ -56,7 +56,11 @@ impl DimOps<2> for Dim<2> {
     }
 
     #[inline(always)]
-    fn stencil_rows(w: &[[f32; 3]; 2], stride: &[usize; 2], mut f: impl FnMut(usize, f32, [f32; 2])) {
+    fn stencil_rows(
+        w: &[[f32; 3]; 2],
+        stride: &[usize; 2],
+        mut f: impl FnMut(usize, f32, [f32; 2]),
+    ) {
         for i in 0..3 {
             f(i * stride[0], w[0][i], [i as f32, 0.0]);
         }
@@ -66,7 +70,11 @@ impl DimOps<2> for Dim<2> {
     fn stencil(w: &[[f32; 3]; 2], stride: &[usize; 2], mut f: impl FnMut(usize, f32, [f32; 2])) {
         for i in 0..3 {
             for j in 0..3 {
-                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], [i as f32, j as f32]);
+                f(
+                    i * stride[0] + j * stride[1],
+                    w[0][i] * w[1][j],
+                    [i as f32, j as f32],
+                );
             }
         }
     }
@@ -85,10 +93,18 @@ impl DimOps<3> for Dim<3> {
     }
 
     #[inline(always)]
-    fn stencil_rows(w: &[[f32; 3]; 3], stride: &[usize; 3], mut f: impl FnMut(usize, f32, [f32; 3])) {
+    fn stencil_rows(
+        w: &[[f32; 3]; 3],
+        stride: &[usize; 3],
+        mut f: impl FnMut(usize, f32, [f32; 3]),
+    ) {
         for i in 0..3 {
             for j in 0..3 {
-                f(i * stride[0] + j * stride[1], w[0][i] * w[1][j], [i as f32, j as f32, 0.0]);
+                f(
+                    i * stride[0] + j * stride[1],
+                    w[0][i] * w[1][j],
+                    [i as f32, j as f32, 0.0],
+                );
             }
         }
     }
@@ -99,7 +115,11 @@ impl DimOps<3> for Dim<3> {
             for j in 0..3 {
                 let wij = w[0][i] * w[1][j];
                 for k in 0..3 {
-                    f(i * stride[0] + j * stride[1] + k * stride[2], wij * w[2][k], [i as f32, j as f32, k as f32]);
+                    f(
+                        i * stride[0] + j * stride[1] + k * stride[2],
+                        wij * w[2][k],
+                        [i as f32, j as f32, k as f32],
+                    );
                 }
             }
         }
@@ -132,7 +152,11 @@ fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
     // eigenvector of l1: (cos t, sin t) with tan 2t = 2 s12 / (s11 − s22)
     let (v1x, v1y) = if rad > 1e-30 {
         // robust half-angle form: (half + rad, s12) or (s12, rad − half)
-        let (ex, ey) = if half >= 0.0 { (half + rad, s12) } else { (s12, rad - half) };
+        let (ex, ey) = if half >= 0.0 {
+            (half + rad, s12)
+        } else {
+            (s12, rad - half)
+        };
         let inv = 1.0 / (ex * ex + ey * ey).sqrt();
         (ex * inv, ey * inv)
     } else {
@@ -143,16 +167,28 @@ fn svd2(m: &SMatrix<f32, 2, 2>) -> Svd<2> {
         // S = l1·v1v1ᵀ + |l2|·(−v2)v2ᵀ: flip U's second column
         l2 = -l2;
         let u = rot * SMatrix::<f32, 2, 2>::new(v1x, v1y, v1y, -v1x);
-        return Svd { u, sigma: SVector::<f32, 2>::new(l1, l2), v };
+        return Svd {
+            u,
+            sigma: SVector::<f32, 2>::new(l1, l2),
+            v,
+        };
     }
-    Svd { u: rot * v, sigma: SVector::<f32, 2>::new(l1, l2), v }
+    Svd {
+        u: rot * v,
+        sigma: SVector::<f32, 2>::new(l1, l2),
+        v,
+    }
 }
 
 #[inline]
 fn svd3(m: &SMatrix<f32, 3, 3>) -> Svd<3> {
     // Jacobi eigen-decomposition of the symmetric FᵀF gives V and σ²;
     // U = F V Σ⁻¹, completed to an orthonormal basis where σ is tiny.
-    let f = [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]];
+    let f = [
+        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+    ];
     let mut a = [[0.0f32; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
@@ -196,7 +232,11 @@ fn svd3(m: &SMatrix<f32, 3, 3>) -> Svd<3> {
     }
     let um = SMatrix::<f32, 3, 3>::from_fn(|r, c| u[c][r]);
     let vm = SMatrix::<f32, 3, 3>::from_fn(|r, c| v[r][c]);
-    Svd { u: um, sigma: SVector::<f32, 3>::new(sigma[0], sigma[1], sigma[2]), v: vm }
+    Svd {
+        u: um,
+        sigma: SVector::<f32, 3>::new(sigma[0], sigma[1], sigma[2]),
+        v: vm,
+    }
 }
 
 /// Cyclic Jacobi eigen-decomposition of a symmetric 3×3 matrix (f32): returns
@@ -216,7 +256,11 @@ fn jacobi_eigen3(mut a: [[f32; 3]; 3]) -> ([f32; 3], [[f32; 3]; 3]) {
                 continue;
             }
             let theta = (a[q][q] - a[p][p]) / (2.0 * apq);
-            let t = if theta.abs() > 1e18 { 0.5 / theta } else { theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt()) };
+            let t = if theta.abs() > 1e18 {
+                0.5 / theta
+            } else {
+                theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt())
+            };
             let t = if theta == 0.0 { 1.0 } else { t };
             let c = 1.0 / (t * t + 1.0).sqrt();
             let s = t * c;
@@ -267,7 +311,10 @@ mod tests {
     {
         let s = Dim::<D>::svd(&f);
         let rec = s.u * SMatrix::<f32, D, D>::from_diagonal(&s.sigma) * s.v.transpose();
-        assert!((rec - f).norm() < 1e-4 * (1.0 + f.norm()), "reconstruction {rec} vs {f}");
+        assert!(
+            (rec - f).norm() < 1e-4 * (1.0 + f.norm()),
+            "reconstruction {rec} vs {f}"
+        );
         let i = SMatrix::<f32, D, D>::identity();
         assert!((s.u.transpose() * s.u - i).norm() < 1e-4);
         assert!((s.v.transpose() * s.v - i).norm() < 1e-4);
@@ -278,7 +325,9 @@ mod tests {
     fn svd_reconstructs() {
         let mut seed = 12345u64;
         let mut rnd = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((seed >> 33) as f32 / (1u64 << 31) as f32) - 0.5
         };
         for _ in 0..500 {
@@ -293,6 +342,8 @@ mod tests {
         check(SMatrix::<f32, 2, 2>::new(2.0, 0.0, 0.0, 2.0));
         check(SMatrix::<f32, 2, 2>::new(0.0, 0.0, 0.0, 0.0));
         check(SMatrix::<f32, 3, 3>::identity());
-        check(SMatrix::<f32, 3, 3>::from_diagonal(&SVector::<f32, 3>::new(1.0, 1.0, 0.9)));
+        check(SMatrix::<f32, 3, 3>::from_diagonal(
+            &SVector::<f32, 3>::new(1.0, 1.0, 0.9),
+        ));
     }
 }

@@ -10,13 +10,26 @@ pub enum MpmError {
     InvalidInput { field: String, msg: String },
     /// The state became non-finite during a substep; the solver state was
     /// rolled back to the beginning of the frame.
-    #[error("non-finite state at substep {substep} of the frame (of {substeps}, after {retries} retries with the substep halved); state restored to the start of the frame")]
-    NonFinite { substep: usize, substeps: usize, retries: usize },
+    #[error(
+        "non-finite state at substep {substep} of the frame (of {substeps}, after {retries} retries with the substep halved); state restored to the start of the frame"
+    )]
+    NonFinite {
+        substep: usize,
+        substeps: usize,
+        retries: usize,
+    },
     /// A particle travelled more than one grid cell in a substep (speed
     /// `max_speed` m/s) even with the substep halved `retries` times; the
     /// solver state was rolled back to the beginning of the frame.
-    #[error("CFL violation at substep {substep} of the frame (of {substeps}, after {retries} retries with the substep halved): max speed {max_speed} m/s moves particles more than one cell per substep; state restored to the start of the frame")]
-    CflViolation { substep: usize, substeps: usize, max_speed: f32, retries: usize },
+    #[error(
+        "CFL violation at substep {substep} of the frame (of {substeps}, after {retries} retries with the substep halved): max speed {max_speed} m/s moves particles more than one cell per substep; state restored to the start of the frame"
+    )]
+    CflViolation {
+        substep: usize,
+        substeps: usize,
+        max_speed: f32,
+        retries: usize,
+    },
     /// A checkpoint blob could not be decoded.
     #[error("checkpoint: {0}")]
     Checkpoint(String),
@@ -24,7 +37,10 @@ pub enum MpmError {
 
 impl MpmError {
     pub fn invalid(field: impl Into<String>, msg: impl Into<String>) -> Self {
-        MpmError::InvalidInput { field: field.into(), msg: msg.into() }
+        MpmError::InvalidInput {
+            field: field.into(),
+            msg: msg.into(),
+        }
     }
 }
 

@@ -5,6 +5,7 @@
 //! compared through their normalised grid-mass fields on one reference grid.
 
 use crate::error::{MpmError, Result};
+use crate::kernel::quadratic_weights;
 
 /// Splat particle masses onto the node lattice `i·dx`, `i ∈ [0, n)^D`,
 /// `dx = 1/n`, with quadratic B-spline weights, and normalise to sum 1.
@@ -17,20 +18,39 @@ use crate::error::{MpmError, Result};
 /// Stencil nodes outside `[0, n)` are clamped to the nearest edge node, so no
 /// mass is lost. Errors: non-finite positions or masses, negative masses, a
 /// zero total mass, `n < 3`.
-pub fn grid_mass<const D: usize>(positions: &[[f32; D]], masses: Option<&[f32]>, n: usize) -> Result<Vec<f32>> {
+pub fn grid_mass<const D: usize>(
+    positions: &[[f32; D]],
+    masses: Option<&[f32]>,
+    n: usize,
+) -> Result<Vec<f32>> {
     if !(3..=4096).contains(&n) {
-        return Err(MpmError::invalid("n_grid", format!("must be in [3, 4096], got {n}")));
+        return Err(MpmError::invalid(
+            "n_grid",
+            format!("must be in [3, 4096], got {n}"),
+        ));
     }
     if let Some(m) = masses {
         if m.len() != positions.len() {
-            return Err(MpmError::invalid("masses", format!("length {} != particle count {}", m.len(), positions.len())));
+            return Err(MpmError::invalid(
+                "masses",
+                format!("length {} != particle count {}", m.len(), positions.len()),
+            ));
         }
         if let Some(i) = m.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
-            return Err(MpmError::invalid("masses", format!("particle {i}: mass must be finite and >= 0, got {}", m[i])));
+            return Err(MpmError::invalid(
+                "masses",
+                format!("particle {i}: mass must be finite and >= 0, got {}", m[i]),
+            ));
         }
     }
-    if let Some(i) = positions.iter().position(|p| !p.iter().all(|x| x.is_finite())) {
-        return Err(MpmError::invalid("positions", format!("particle {i} has a non-finite coordinate")));
+    if let Some(i) = positions
+        .iter()
+        .position(|p| !p.iter().all(|x| x.is_finite()))
+    {
+        return Err(MpmError::invalid(
+            "positions",
+            format!("particle {i} has a non-finite coordinate"),
+        ));
     }
     let total = n.pow(D as u32);
     let mut grid = vec![0.0f64; total];
@@ -45,7 +65,7 @@ pub fn grid_mass<const D: usize>(positions: &[[f32; D]], masses: Option<&[f32]>,
             let b = (xg - 0.5).floor();
             let f = (xg - b) as f64;
             base[d] = b as i64;
-            w[d] = [0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5)];
+            w[d] = quadratic_weights(f);
         }
         for s in 0..k {
             let mut rem = s;
@@ -88,7 +108,10 @@ mod tests {
             }
         }
         let mx: f64 = pts.iter().map(|p| p[0] as f64).sum::<f64>() / 100.0;
-        assert!((cx - mx).abs() < 1e-5 && (cy - 0.6).abs() < 1e-5, "{cx} {cy}");
+        assert!(
+            (cx - mx).abs() < 1e-5 && (cy - 0.6).abs() < 1e-5,
+            "{cx} {cy}"
+        );
     }
 
     #[test]

@@ -5,6 +5,11 @@
 //! sand: Klár et al. 2016 (Hencky strain, SVD return mapping) with the volume
 //! correction of Tampubolon et al. 2017. Sparse block grid: only blocks near
 //! particles are touched. Deterministic for any thread count.
+//!
+//! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`),
+//! `material` (water, sand), `collider` and `params` (boundaries and
+//! parameters), `solver` (one file per substep stage: grid, p2g,
+//! grid_update, g2p, and the CFL frame loop), `checkpoint`.
 
 // Numeric kernels index several small arrays with one loop variable (`for d
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
@@ -15,6 +20,8 @@ pub mod collider;
 pub mod dim;
 pub mod error;
 pub mod grid_mass;
+mod kernel;
+mod material;
 pub mod params;
 pub mod particles;
 pub mod solver;
@@ -23,6 +30,6 @@ pub use collider::{Collider, Shape};
 pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result};
 pub use grid_mass::grid_mass;
-pub use params::{BoundaryCondition, SandParams, SolverParams, WallParams, WaterParams};
-pub use particles::{lattice, Material, Particle};
+pub use params::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
+pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};

@@ -4,12 +4,20 @@
 use crate::error::{MpmError, Result};
 
 fn finite(field: &str, x: f32) -> Result<()> {
-    if x.is_finite() { Ok(()) } else { Err(MpmError::invalid(field, format!("must be finite, got {x}"))) }
+    if x.is_finite() {
+        Ok(())
+    } else {
+        Err(MpmError::invalid(field, format!("must be finite, got {x}")))
+    }
 }
 
 fn positive(field: &str, x: f32) -> Result<()> {
     finite(field, x)?;
-    if x > 0.0 { Ok(()) } else { Err(MpmError::invalid(field, format!("must be > 0, got {x}"))) }
+    if x > 0.0 {
+        Ok(())
+    } else {
+        Err(MpmError::invalid(field, format!("must be > 0, got {x}")))
+    }
 }
 
 /// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
@@ -27,7 +35,11 @@ pub struct WaterParams {
 impl Default for WaterParams {
     fn default() -> Self {
         // K/ρ = 400 m²/s²: sound speed 20 m/s, the usual weakly compressible choice.
-        WaterParams { density: 1000.0, bulk_modulus: 4.0e5, viscosity: 0.0 }
+        WaterParams {
+            density: 1000.0,
+            bulk_modulus: 4.0e5,
+            viscosity: 0.0,
+        }
     }
 }
 
@@ -37,7 +49,10 @@ impl WaterParams {
         positive("water.bulk_modulus", self.bulk_modulus)?;
         finite("water.viscosity", self.viscosity)?;
         if self.viscosity < 0.0 {
-            return Err(MpmError::invalid("water.viscosity", format!("must be >= 0, got {}", self.viscosity)));
+            return Err(MpmError::invalid(
+                "water.viscosity",
+                format!("must be >= 0, got {}", self.viscosity),
+            ));
         }
         Ok(())
     }
@@ -66,7 +81,13 @@ pub struct SandParams {
 
 impl Default for SandParams {
     fn default() -> Self {
-        SandParams { density: 1000.0, youngs_modulus: 3.5e5, poisson_ratio: 0.3, friction_angle_deg: 30.0, cohesion: 0.0 }
+        SandParams {
+            density: 1000.0,
+            youngs_modulus: 3.5e5,
+            poisson_ratio: 0.3,
+            friction_angle_deg: 30.0,
+            cohesion: 0.0,
+        }
     }
 }
 
@@ -76,21 +97,33 @@ impl SandParams {
         positive("sand.youngs_modulus", self.youngs_modulus)?;
         finite("sand.poisson_ratio", self.poisson_ratio)?;
         if !(self.poisson_ratio > -1.0 && self.poisson_ratio < 0.5) {
-            return Err(MpmError::invalid("sand.poisson_ratio", format!("must be in (-1, 0.5), got {}", self.poisson_ratio)));
+            return Err(MpmError::invalid(
+                "sand.poisson_ratio",
+                format!("must be in (-1, 0.5), got {}", self.poisson_ratio),
+            ));
         }
         finite("sand.friction_angle_deg", self.friction_angle_deg)?;
         if !(0.0..=80.0).contains(&self.friction_angle_deg) {
             return Err(MpmError::invalid(
                 "sand.friction_angle_deg",
-                format!("must be in [0, 80] degrees, got {}", self.friction_angle_deg),
+                format!(
+                    "must be in [0, 80] degrees, got {}",
+                    self.friction_angle_deg
+                ),
             ));
         }
         finite("sand.cohesion", self.cohesion)?;
         if self.cohesion < 0.0 {
-            return Err(MpmError::invalid("sand.cohesion", format!("must be >= 0, got {}", self.cohesion)));
+            return Err(MpmError::invalid(
+                "sand.cohesion",
+                format!("must be >= 0, got {}", self.cohesion),
+            ));
         }
         if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
-            return Err(MpmError::invalid("sand.cohesion", "cohesion needs a friction angle > 0"));
+            return Err(MpmError::invalid(
+                "sand.cohesion",
+                "cohesion needs a friction angle > 0",
+            ));
         }
         Ok(())
     }
@@ -98,7 +131,10 @@ impl SandParams {
     /// Lamé parameters (μ, λ) [Pa].
     pub fn lame(&self) -> (f32, f32) {
         let (e, nu) = (self.youngs_modulus, self.poisson_ratio);
-        (e / (2.0 * (1.0 + nu)), e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)))
+        (
+            e / (2.0 * (1.0 + nu)),
+            e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+        )
     }
 
     /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
@@ -126,7 +162,10 @@ impl BoundaryCondition {
             "sticky" => Ok(Self::Sticky),
             "slip" => Ok(Self::Slip),
             "separate" => Ok(Self::Separate),
-            other => Err(MpmError::invalid(field, format!("must be one of 'sticky', 'slip', 'separate', got '{other}'"))),
+            other => Err(MpmError::invalid(
+                field,
+                format!("must be one of 'sticky', 'slip', 'separate', got '{other}'"),
+            )),
         }
     }
 
@@ -139,33 +178,98 @@ impl BoundaryCondition {
     }
 }
 
-/// The walls of the unit domain `[0, 1]^D`.
+/// Boundary condition and Coulomb friction of one face of the domain walls.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WallFace {
+    pub condition: BoundaryCondition,
+    /// Coulomb friction coefficient μ (≥ 0; used with `Separate`).
+    pub friction: f32,
+}
+
+/// The walls of the unit domain `[0, 1]^D`: a band of `cells` grid cells
+/// inside each face, whose grid nodes get the face's boundary condition
+/// with the face's inward normal.
+///
+/// `condition` and `friction` apply to every face; `faces` overrides them
+/// face by face. Faces are named by axis and side: `x-` (x = 0), `x+`
+/// (x = 1), `y-` (the floor: y is up, gravity points to −y), `y+` (the
+/// ceiling), `z-`, `z+` (3D only). A rough floor with slipping side walls,
+/// the usual granular-collapse setup, is `condition = Separate`,
+/// `friction = 0` and `faces[1][0] = Some(WallFace { condition: Separate,
+/// friction: μ })`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WallParams {
-    /// Thickness of the wall band in grid cells (≥ 2).
+    /// Thickness of the wall band in grid cells, in [2, n_grid/4).
     pub cells: usize,
+    /// Condition of every face without an override.
     pub condition: BoundaryCondition,
-    /// Coulomb friction coefficient μ of the walls (used with `Separate`).
+    /// Coulomb friction coefficient μ of every face without an override
+    /// (used with `Separate`).
     pub friction: f32,
+    /// Per-face overrides `faces[axis][side]` (side 0: the lower face `x-`,
+    /// `y-`, `z-`; side 1: the upper face); `None` uses `condition` and
+    /// `friction`. The z row must stay `None` in 2D.
+    pub faces: [[Option<WallFace>; 2]; 3],
 }
 
 impl Default for WallParams {
     fn default() -> Self {
-        WallParams { cells: 3, condition: BoundaryCondition::Separate, friction: 0.0 }
+        WallParams {
+            cells: 3,
+            condition: BoundaryCondition::Separate,
+            friction: 0.0,
+            faces: [[None; 2]; 3],
+        }
     }
 }
 
 impl WallParams {
+    /// Face names by `[axis][side]`.
+    pub const FACE_NAMES: [[&'static str; 2]; 3] = [["x-", "x+"], ["y-", "y+"], ["z-", "z+"]];
+
+    /// `(axis, side)` of a face name (`"x-"`, ..., `"z+"`), or `None`.
+    pub fn face_index(name: &str) -> Option<(usize, usize)> {
+        (0..3)
+            .flat_map(|a| (0..2).map(move |s| (a, s)))
+            .find(|&(a, s)| Self::FACE_NAMES[a][s] == name)
+    }
+
+    /// The condition and friction in force on face `(axis, side)`.
+    pub fn face(&self, axis: usize, side: usize) -> WallFace {
+        self.faces[axis][side].unwrap_or(WallFace {
+            condition: self.condition,
+            friction: self.friction,
+        })
+    }
+
+    /// Checks the band thickness and every friction coefficient (errors
+    /// name the field, e.g. `walls.faces.y-.friction`).
     pub fn validate(&self, n_grid: usize) -> Result<()> {
         if self.cells < 2 || 4 * self.cells >= n_grid {
-            return Err(MpmError::invalid("walls.cells", format!("must be in [2, n_grid/4), got {}", self.cells)));
+            return Err(MpmError::invalid(
+                "walls.cells",
+                format!("must be in [2, n_grid/4), got {}", self.cells),
+            ));
         }
-        finite("walls.friction", self.friction)?;
-        if self.friction < 0.0 {
-            return Err(MpmError::invalid("walls.friction", format!("must be >= 0, got {}", self.friction)));
+        non_negative("walls.friction", self.friction)?;
+        for (axis, row) in self.faces.iter().enumerate() {
+            for (side, face) in row.iter().enumerate() {
+                if let Some(f) = face {
+                    let name = Self::FACE_NAMES[axis][side];
+                    non_negative(&format!("walls.faces.{name}.friction"), f.friction)?;
+                }
+            }
         }
         Ok(())
     }
+}
+
+fn non_negative(field: &str, x: f32) -> Result<()> {
+    finite(field, x)?;
+    if x < 0.0 {
+        return Err(MpmError::invalid(field, format!("must be >= 0, got {x}")));
+    }
+    Ok(())
 }
 
 /// Solver-wide parameters.
@@ -209,29 +313,54 @@ impl<const D: usize> Default for SolverParams<D> {
 impl<const D: usize> SolverParams<D> {
     pub fn validate(&self) -> Result<()> {
         if !(16..=4096).contains(&self.n_grid) {
-            return Err(MpmError::invalid("n_grid", format!("must be in [16, 4096], got {}", self.n_grid)));
+            return Err(MpmError::invalid(
+                "n_grid",
+                format!("must be in [16, 4096], got {}", self.n_grid),
+            ));
         }
         for (i, &g) in self.gravity.iter().enumerate() {
             finite(&format!("gravity[{i}]"), g)?;
         }
         positive("cfl", self.cfl)?;
         if self.cfl > 1.0 {
-            return Err(MpmError::invalid("cfl", format!("must be in (0, 1], got {}", self.cfl)));
+            return Err(MpmError::invalid(
+                "cfl",
+                format!("must be in (0, 1], got {}", self.cfl),
+            ));
         }
         if let Some(s) = self.substeps
             && (s == 0 || s > self.max_substeps)
         {
-            return Err(MpmError::invalid("substeps", format!("must be in [1, max_substeps={}], got {s}", self.max_substeps)));
+            return Err(MpmError::invalid(
+                "substeps",
+                format!(
+                    "must be in [1, max_substeps={}], got {s}",
+                    self.max_substeps
+                ),
+            ));
         }
         if self.max_substeps == 0 {
             return Err(MpmError::invalid("max_substeps", "must be >= 1"));
         }
         if self.num_threads > 1024 {
-            return Err(MpmError::invalid("num_threads", format!("must be in [0, 1024], got {}", self.num_threads)));
+            return Err(MpmError::invalid(
+                "num_threads",
+                format!("must be in [0, 1024], got {}", self.num_threads),
+            ));
         }
         self.water.validate()?;
         self.sand.validate()?;
         self.walls.validate(self.n_grid)?;
+        for axis in D..3 {
+            for side in 0..2 {
+                if self.walls.faces[axis][side].is_some() {
+                    return Err(MpmError::invalid(
+                        format!("walls.faces.{}", WallParams::FACE_NAMES[axis][side]),
+                        format!("a {D}D domain has no such wall (faces: x-, x+, y-, y+)"),
+                    ));
+                }
+            }
+        }
         Ok(())
     }
 

@@ -77,32 +77,63 @@ impl<const D: usize> Particle<D> {
     /// Checks that every field is finite and physical; `index` names the particle.
     pub fn validate(&self, index: usize, lo: f32, hi: f32) -> Result<()> {
         let fin = |field: &str, ok: bool| {
-            if ok { Ok(()) } else { Err(MpmError::invalid(field, format!("particle {index} has a non-finite value"))) }
+            if ok {
+                Ok(())
+            } else {
+                Err(MpmError::invalid(
+                    field,
+                    format!("particle {index} has a non-finite value"),
+                ))
+            }
         };
         fin("positions", self.x.iter().all(|a| a.is_finite()))?;
         fin("velocities", self.v.iter().all(|a| a.is_finite()))?;
         fin("affine", self.c.iter().all(|a| a.is_finite()))?;
         fin("deformation_gradient", self.f.iter().all(|a| a.is_finite()))?;
         fin("volume_ratio", self.j.is_finite())?;
-        fin("external_acceleration", self.ext.iter().all(|a| a.is_finite()))?;
+        fin(
+            "external_acceleration",
+            self.ext.iter().all(|a| a.is_finite()),
+        )?;
         fin("volume_correction", self.vc.is_finite())?;
         if self.x.iter().any(|&a| a < lo || a > hi) {
             return Err(MpmError::invalid(
                 "positions",
-                format!("particle {index} at {:?} is outside the simulation domain [{lo}, {hi}]^{D}", self.x.as_slice()),
+                format!(
+                    "particle {index} at {:?} is outside the simulation domain [{lo}, {hi}]^{D}",
+                    self.x.as_slice()
+                ),
             ));
         }
         if !(self.mass.is_finite() && self.mass > 0.0) {
-            return Err(MpmError::invalid("masses", format!("particle {index}: mass must be finite and > 0, got {}", self.mass)));
+            return Err(MpmError::invalid(
+                "masses",
+                format!(
+                    "particle {index}: mass must be finite and > 0, got {}",
+                    self.mass
+                ),
+            ));
         }
         if !(self.volume.is_finite() && self.volume > 0.0) {
-            return Err(MpmError::invalid("volumes", format!("particle {index}: volume must be finite and > 0, got {}", self.volume)));
+            return Err(MpmError::invalid(
+                "volumes",
+                format!(
+                    "particle {index}: volume must be finite and > 0, got {}",
+                    self.volume
+                ),
+            ));
         }
         if !(self.j > 0.0) {
-            return Err(MpmError::invalid("volume_ratio", format!("particle {index}: J must be > 0, got {}", self.j)));
+            return Err(MpmError::invalid(
+                "volume_ratio",
+                format!("particle {index}: J must be > 0, got {}", self.j),
+            ));
         }
         if !(det(&self.f) > 0.0) {
-            return Err(MpmError::invalid("deformation_gradient", format!("particle {index}: det F must be > 0")));
+            return Err(MpmError::invalid(
+                "deformation_gradient",
+                format!("particle {index}: det F must be > 0"),
+            ));
         }
         Ok(())
     }
@@ -125,7 +156,13 @@ pub fn det<const D: usize>(m: &SMatrix<f32, D, D>) -> f32 {
 /// Particles at rest on a cubic lattice: `side^D` points at
 /// `origin + (i + 1/2)·spacing`, each with volume `spacing^D` and mass
 /// `density·spacing^D` (used by benches, examples and tests).
-pub fn lattice<const D: usize>(origin: [f32; D], side: usize, spacing: f32, material: Material, density: f32) -> Vec<Particle<D>> {
+pub fn lattice<const D: usize>(
+    origin: [f32; D],
+    side: usize,
+    spacing: f32,
+    material: Material,
+    density: f32,
+) -> Vec<Particle<D>> {
     let vol = spacing.powi(D as i32);
     (0..side.pow(D as u32))
         .map(|mut i| {

@@ -4,13 +4,25 @@ use hybridmpm_mpm::{BoundaryCondition, Material, Particle, Solver, SolverParams}
 use nalgebra::{SMatrix, SVector};
 
 fn lcg(seed: &mut u64) -> f32 {
-    *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    *seed = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     (*seed >> 40) as f32 / (1u64 << 24) as f32
 }
 
-fn block<const D: usize>(lo: [f32; D], counts: [usize; D], spacing: f32, mat: Material, p: &SolverParams<D>) -> Vec<Particle<D>> {
+fn block<const D: usize>(
+    lo: [f32; D],
+    counts: [usize; D],
+    spacing: f32,
+    mat: Material,
+    p: &SolverParams<D>,
+) -> Vec<Particle<D>> {
     let vol = spacing.powi(D as i32);
-    let rho = if mat == Material::Water { p.water.density } else { p.sand.density };
+    let rho = if mat == Material::Water {
+        p.water.density
+    } else {
+        p.sand.density
+    };
     let total: usize = counts.iter().product();
     (0..total)
         .map(|mut i| {
@@ -63,7 +75,11 @@ fn random_state<const D: usize>(seed: u64) -> (Solver<D>, Vec<Particle<D>>)
 where
     hybridmpm_mpm::Dim<D>: hybridmpm_mpm::DimOps<D>,
 {
-    let params = SolverParams::<D> { gravity: [0.0; D], substeps: Some(1), ..Default::default() };
+    let params = SolverParams::<D> {
+        gravity: [0.0; D],
+        substeps: Some(1),
+        ..Default::default()
+    };
     let mut seed = seed;
     let dx = params.dx();
     let n = if D == 2 { 2000 } else { 3000 };
@@ -73,13 +89,17 @@ where
         for d in 0..D {
             x[d] = 0.3 + 0.4 * lcg(&mut seed);
         }
-        let mat = if i % 3 == 0 { Material::Sand } else { Material::Water };
+        let mat = if i % 3 == 0 {
+            Material::Sand
+        } else {
+            Material::Water
+        };
         let vol = (dx / 2.0).powi(D as i32);
         let mut p = Particle::new(x, mat, 1000.0 * vol * (0.5 + lcg(&mut seed)), vol);
         for d in 0..D {
             p.v[d] = lcg(&mut seed) - 0.5;
         }
-        p.c = SMatrix::<f32, D, D>::from_fn(|_, _| 0.0) ;
+        p.c = SMatrix::<f32, D, D>::from_fn(|_, _| 0.0);
         for k in 0..D * D {
             p.c[k] = 2.0 * (lcg(&mut seed) - 0.5);
         }
@@ -108,7 +128,10 @@ where
         let after = momentum(&s.particles());
         let mass_after: f64 = s.particles().iter().map(|p| p.mass as f64).sum();
         let scale: f64 = ps.iter().map(|p| (p.v.norm() * p.mass) as f64).sum();
-        assert!((after - before).norm() < 1e-5 * scale, "{D}D momentum {before} -> {after}");
+        assert!(
+            (after - before).norm() < 1e-5 * scale,
+            "{D}D momentum {before} -> {after}"
+        );
         assert_eq!(mass_before, mass_after);
     }
 }
@@ -164,12 +187,21 @@ fn checkpoint_round_trip_continues_identically() {
 fn nonfinite_state_is_reported_and_rolled_back() {
     let params = SolverParams::<2>::default();
     let mut s = Solver::new(params.clone(), vec![]).unwrap();
-    let mut ps = block([0.4, 0.4], [8, 8], params.dx() / 2.0, Material::Water, &params);
+    let mut ps = block(
+        [0.4, 0.4],
+        [8, 8],
+        params.dx() / 2.0,
+        Material::Water,
+        &params,
+    );
     ps[5].ext = SVector::<f32, 2>::new(f32::MAX, 0.0);
     s.set_particles(ps.clone()).unwrap();
     let before = s.checkpoint();
     let err = s.step_frame(2.5e-3).unwrap_err();
-    assert!(matches!(err, hybridmpm_mpm::MpmError::NonFinite { substep: 0, .. }), "{err:?}");
+    assert!(
+        matches!(err, hybridmpm_mpm::MpmError::NonFinite { substep: 0, .. }),
+        "{err:?}"
+    );
     assert_eq!(before, s.checkpoint());
 }
 
@@ -181,12 +213,24 @@ fn invalid_parameters_name_the_field() {
     assert!(e.to_string().starts_with("water.bulk_modulus"), "{e}");
     let mut p = SolverParams::<3>::default();
     p.sand.friction_angle_deg = 95.0;
-    assert!(Solver::new(p, vec![]).err().unwrap().to_string().starts_with("sand.friction_angle_deg"));
+    assert!(
+        Solver::new(p, vec![])
+            .err()
+            .unwrap()
+            .to_string()
+            .starts_with("sand.friction_angle_deg")
+    );
     let p = SolverParams::<2>::default();
     let mut s = Solver::new(p.clone(), vec![]).unwrap();
     let mut ps = block([0.4, 0.4], [2, 2], p.dx() / 2.0, Material::Water, &p);
     ps[1].x[0] = 1.5;
-    assert!(s.set_particles(ps).err().unwrap().to_string().starts_with("positions"));
+    assert!(
+        s.set_particles(ps)
+            .err()
+            .unwrap()
+            .to_string()
+            .starts_with("positions")
+    );
 }
 
 #[test]
@@ -200,12 +244,17 @@ fn drucker_prager_limit_stress_ratio_is_sin_phi_in_2d() {
         // strongly sheared, compressed trial strain: must be projected onto the cone
         let e0 = SVector::<f32, 2>::new(0.03, -0.09);
         let mut vc = 0.0;
-        let e = hybridmpm_mpm::solver::drucker_prager_project::<2>(&e0, &mut vc, alpha, mu, la, 0.0);
+        let e =
+            hybridmpm_mpm::solver::drucker_prager_project::<2>(&e0, &mut vc, alpha, mu, la, 0.0);
         let tr = e.sum();
         let s1 = 2.0 * mu * e[0] + la * tr;
         let s2 = 2.0 * mu * e[1] + la * tr;
         let ratio = (s1 - s2).abs() / (s1 + s2).abs();
-        assert!((ratio - phi.sin()).abs() < 1e-3, "phi {phi_deg}: ratio {ratio} vs sin φ {}", phi.sin());
+        assert!(
+            (ratio - phi.sin()).abs() < 1e-3,
+            "phi {phi_deg}: ratio {ratio} vs sin φ {}",
+            phi.sin()
+        );
     }
 }
 
@@ -223,14 +272,24 @@ fn sticky_collider_stops_particles() {
         friction: 0.0,
     };
     let mut s = Solver::new(params.clone(), vec![col.clone()]).unwrap();
-    let ps = block([0.45, 0.4], [8, 8], params.dx() / 2.0, Material::Water, &params);
+    let ps = block(
+        [0.45, 0.4],
+        [8, 8],
+        params.dx() / 2.0,
+        Material::Water,
+        &params,
+    );
     s.set_particles(ps).unwrap();
     for _ in 0..200 {
         s.step_frame(2.5e-3).unwrap();
     }
     // water rests on the plate: nothing inside it or below it
     for p in s.particles() {
-        assert!(col.shape.sdf(&p.x) > -0.5 * params.dx(), "particle inside the collider at {}", p.x);
+        assert!(
+            col.shape.sdf(&p.x) > -0.5 * params.dx(),
+            "particle inside the collider at {}",
+            p.x
+        );
         assert!(p.x[1] > 0.3, "particle fell through: {}", p.x);
     }
 }
@@ -242,9 +301,19 @@ fn cfl_violation_halves_the_substep_and_retries() {
     // substep halved until no particle travels more than dx per substep, and
     // the result must still be a free block accelerated uniformly (internal
     // forces cancel, so the mean velocity gains a·dt_frame exactly).
-    let params = SolverParams::<2> { substeps: Some(1), gravity: [0.0, 0.0], ..Default::default() };
+    let params = SolverParams::<2> {
+        substeps: Some(1),
+        gravity: [0.0, 0.0],
+        ..Default::default()
+    };
     let mut s = Solver::new(params.clone(), vec![]).unwrap();
-    let mut ps = block([0.45, 0.45], [8, 8], params.dx() / 2.0, Material::Water, &params);
+    let mut ps = block(
+        [0.45, 0.45],
+        [8, 8],
+        params.dx() / 2.0,
+        Material::Water,
+        &params,
+    );
     let a = 1.0e4f32;
     for p in ps.iter_mut() {
         p.ext = SVector::<f32, 2>::new(a, 0.0);
@@ -258,6 +327,91 @@ fn cfl_violation_halves_the_substep_and_retries() {
     let n = s.particles().len() as f32;
     let vx: f32 = s.particles().iter().map(|p| p.v[0]).sum::<f32>() / n;
     let vy: f32 = s.particles().iter().map(|p| p.v[1]).sum::<f32>() / n;
-    assert!((vx - a * dt_frame).abs() < 1e-3 * a * dt_frame, "vx {vx} vs {}", a * dt_frame);
+    assert!(
+        (vx - a * dt_frame).abs() < 1e-3 * a * dt_frame,
+        "vx {vx} vs {}",
+        a * dt_frame
+    );
     assert!(vy.abs() < 1e-3 * a * dt_frame, "vy {vy}");
+}
+
+#[test]
+fn wall_face_overrides_name_the_bad_field() {
+    use hybridmpm_mpm::{WallFace, WallParams};
+    let face = |friction| {
+        Some(WallFace {
+            condition: BoundaryCondition::Separate,
+            friction,
+        })
+    };
+    let mut p = SolverParams::<2>::default();
+    let (axis, side) = WallParams::face_index("y-").unwrap();
+    assert_eq!((axis, side), (1, 0));
+    p.walls.faces[axis][side] = face(-0.5);
+    let e = Solver::new(p.clone(), vec![]).err().unwrap().to_string();
+    assert!(
+        e.starts_with("walls.faces.y-.friction: must be >= 0"),
+        "{e}"
+    );
+    p.walls.faces[1][0] = face(0.5);
+    assert!(Solver::new(p.clone(), vec![]).is_ok());
+    // no z walls in 2D; in 3D they are fine
+    p.walls.faces[2][1] = face(0.5);
+    let e = Solver::new(p, vec![]).err().unwrap().to_string();
+    assert!(e.starts_with("walls.faces.z+"), "{e}");
+    let mut p3 = SolverParams::<3>::default();
+    p3.walls.faces[2][1] = face(0.5);
+    assert!(Solver::new(p3, vec![]).is_ok());
+    assert_eq!(WallParams::face_index("floor"), None);
+}
+
+#[test]
+fn rough_floor_with_slip_walls_decelerates_a_sliding_block_at_mu_g() {
+    // The inclined-plane problem with gravity tilted instead of the floor: a
+    // cohesive sand block (it slides as one body) on the floor y-, pushed
+    // along it by g_t and pressed onto it by g_n, accelerates at
+    // g_t − μ·g_n. Only the floor is rough; the slip side walls do not touch it.
+    use hybridmpm_mpm::WallFace;
+    let (g_t, g_n) = (4.0f32, 9.8f32);
+    for mu in [0.0f32, 0.2, 0.3] {
+        let mut params = SolverParams::<2> {
+            n_grid: 64,
+            gravity: [g_t, -g_n],
+            ..Default::default()
+        };
+        params.sand.cohesion = 500.0;
+        params.walls.condition = BoundaryCondition::Slip;
+        params.walls.faces[1][0] = Some(WallFace {
+            condition: BoundaryCondition::Separate,
+            friction: mu,
+        });
+        let dx = params.dx();
+        let face = (params.walls.cells - 1) as f32 * dx;
+        let mut s = Solver::new(params.clone(), vec![]).unwrap();
+        s.set_particles(block(
+            [0.2, face],
+            [20, 8],
+            dx / 2.0,
+            Material::Sand,
+            &params,
+        ))
+        .unwrap();
+        let mean_vx = |s: &Solver<2>| {
+            let ps = s.particles();
+            ps.iter().map(|p| p.v[0]).sum::<f32>() / ps.len() as f32
+        };
+        for _ in 0..10 {
+            s.step_frame(2.5e-3).unwrap();
+        }
+        let (t0, v0) = (s.time() as f32, mean_vx(&s));
+        for _ in 0..80 {
+            s.step_frame(2.5e-3).unwrap();
+        }
+        let a = (mean_vx(&s) - v0) / (s.time() as f32 - t0);
+        let expect = g_t - mu * g_n;
+        assert!(
+            (a - expect).abs() < 0.05 * g_t,
+            "mu {mu}: a {a} vs {expect}"
+        );
+    }
 }

@@ -87,9 +87,21 @@ fn int_cloud<const D: usize>() -> impl Strategy<Value = Vec<[f32; D]>> {
 
 /// Brute-force check with the radius a fraction `frac` of the cloud's x extent.
 fn check_fraction<const D: usize>(pos: &[[f32; D]], frac: f32, p: GraphParams) {
-    let (lo, hi) = pos.iter().fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
-    let extent = if pos.is_empty() { 1.0 } else { (hi - lo).max(1e-3) };
-    check(pos, &GraphParams { radius: frac * extent, ..p });
+    let (lo, hi) = pos
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(a, b), q| (a.min(q[0]), b.max(q[0])));
+    let extent = if pos.is_empty() {
+        1.0
+    } else {
+        (hi - lo).max(1e-3)
+    };
+    check(
+        pos,
+        &GraphParams {
+            radius: frac * extent,
+            ..p
+        },
+    );
 }
 
 proptest! {

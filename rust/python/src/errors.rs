@@ -33,7 +33,12 @@ fn make(py: Python<'_>, class: &str, msg: String, extra: Option<Py<PyAny>>) -> P
 /// `InvalidInputError(msg, field)`: bad argument named `field`.
 pub fn invalid_input(py: Python<'_>, field: &str, msg: impl Into<String>) -> PyErr {
     let field_obj = field.into_pyobject(py).map(|o| o.into_any().unbind()).ok();
-    make(py, "InvalidInputError", format!("{field}: {}", msg.into()), field_obj)
+    make(
+        py,
+        "InvalidInputError",
+        format!("{field}: {}", msg.into()),
+        field_obj,
+    )
 }
 
 /// `SimulationError(msg, substep)`.

@@ -84,7 +84,8 @@ fn run<'py, const D: usize>(
             ds.as_slice_mut()?,
         );
         let dp = dp.as_chunks_mut::<D>().0;
-        py.detach(|| crate::pool::install(|| nb.write(s, r, dp, ds))).map_err(to_py)?;
+        py.detach(|| crate::pool::install(|| nb.write(s, r, dp, ds)))
+            .map_err(to_py)?;
     }
     Ok((senders, receivers, displacement, distance))
 }

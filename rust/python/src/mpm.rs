@@ -1,7 +1,10 @@
 //! `MpmSolver` and `grid_mass`: the MLS-MPM crate exposed to Python.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{BoundaryCondition, Collider, Material, MpmError, Particle, Shape, Solver, SolverParams};
+use hybridmpm_mpm::{
+    BoundaryCondition, Collider, Material, MpmError, Particle, Shape, Solver, SolverParams,
+    WallFace, WallParams,
+};
 use nalgebra::{SMatrix, SVector};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -30,15 +33,33 @@ pub fn f32_array<'py>(
     let arr = match obj.cast::<PyArrayDyn<f32>>() {
         Ok(a) => a.readonly(),
         Err(_) => {
-            let dtype = obj.getattr("dtype").map(|d| d.to_string()).unwrap_or_else(|_| obj.get_type().to_string());
-            return Err(invalid_input(py, field, format!("expected a float32 numpy array, got {dtype}")));
+            let dtype = obj
+                .getattr("dtype")
+                .map(|d| d.to_string())
+                .unwrap_or_else(|_| obj.get_type().to_string());
+            return Err(invalid_input(
+                py,
+                field,
+                format!("expected a float32 numpy array, got {dtype}"),
+            ));
         }
     };
     let got = arr.shape().to_vec();
-    let ok = got.len() == shape.len() && got.iter().zip(shape).all(|(g, s)| s.is_none_or(|s| s == *g));
+    let ok = got.len() == shape.len()
+        && got
+            .iter()
+            .zip(shape)
+            .all(|(g, s)| s.is_none_or(|s| s == *g));
     if !ok {
-        let want: Vec<String> = shape.iter().map(|s| s.map_or("*".to_string(), |v| v.to_string())).collect();
-        return Err(invalid_input(py, field, format!("expected shape [{}], got {:?}", want.join(", "), got)));
+        let want: Vec<String> = shape
+            .iter()
+            .map(|s| s.map_or("*".to_string(), |v| v.to_string()))
+            .collect();
+        return Err(invalid_input(
+            py,
+            field,
+            format!("expected shape [{}], got {:?}", want.join(", "), got),
+        ));
     }
     if arr.as_array().iter().any(|x| !x.is_finite()) {
         return Err(invalid_input(py, field, "contains NaN or inf"));
@@ -58,28 +79,47 @@ fn get_item<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py
 fn get_f32(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: f32) -> PyResult<f32> {
     match get_item(d, key)? {
         None => Ok(default),
-        Some(v) => v.extract::<f64>().map(|x| x as f32).map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a number")),
+        Some(v) => v
+            .extract::<f64>()
+            .map(|x| x as f32)
+            .map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a number")),
     }
 }
 
 fn get_usize(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: usize) -> PyResult<usize> {
     match get_item(d, key)? {
         None => Ok(default),
-        Some(v) => v
-            .extract::<usize>()
-            .map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a non-negative integer")),
+        Some(v) => v.extract::<usize>().map_err(|_| {
+            invalid_input(
+                d.py(),
+                &format!("{prefix}{key}"),
+                "expected a non-negative integer",
+            )
+        }),
     }
 }
 
-fn get_vec<const D: usize>(d: &Bound<'_, PyDict>, field: &str, key: &str) -> PyResult<Option<SVector<f32, D>>> {
+fn get_vec<const D: usize>(
+    d: &Bound<'_, PyDict>,
+    field: &str,
+    key: &str,
+) -> PyResult<Option<SVector<f32, D>>> {
     match get_item(d, key)? {
         None => Ok(None),
         Some(v) => {
-            let xs: Vec<f64> = v.extract().map_err(|_| invalid_input(d.py(), field, format!("expected a list of {D} numbers")))?;
+            let xs: Vec<f64> = v.extract().map_err(|_| {
+                invalid_input(d.py(), field, format!("expected a list of {D} numbers"))
+            })?;
             if xs.len() != D {
-                return Err(invalid_input(d.py(), field, format!("expected {D} numbers, got {}", xs.len())));
+                return Err(invalid_input(
+                    d.py(),
+                    field,
+                    format!("expected {D} numbers, got {}", xs.len()),
+                ));
             }
-            Ok(Some(SVector::<f32, D>::from_iterator(xs.into_iter().map(|x| x as f32))))
+            Ok(Some(SVector::<f32, D>::from_iterator(
+                xs.into_iter().map(|x| x as f32),
+            )))
         }
     }
 }
@@ -87,23 +127,47 @@ fn get_vec<const D: usize>(d: &Bound<'_, PyDict>, field: &str, key: &str) -> PyR
 fn sub_dict<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py, PyDict>>> {
     match get_item(d, key)? {
         None => Ok(None),
-        Some(v) => Ok(Some(v.cast_into::<PyDict>().map_err(|_| invalid_input(d.py(), key, "expected a dict"))?)),
+        Some(v) => {
+            Ok(Some(v.cast_into::<PyDict>().map_err(|_| {
+                invalid_input(d.py(), key, "expected a dict")
+            })?))
+        }
     }
 }
 
-const TOP_KEYS: &[&str] = &["dim", "n_grid", "gravity", "cfl", "substeps", "max_substeps", "num_threads", "water", "sand", "walls", "colliders"];
+const TOP_KEYS: &[&str] = &[
+    "dim",
+    "n_grid",
+    "gravity",
+    "cfl",
+    "substeps",
+    "max_substeps",
+    "num_threads",
+    "water",
+    "sand",
+    "walls",
+    "colliders",
+];
 
 fn check_keys(d: &Bound<'_, PyDict>, prefix: &str, allowed: &[&str]) -> PyResult<()> {
     for k in d.keys() {
-        let k: String = k.extract().map_err(|_| invalid_input(d.py(), prefix, "keys must be strings"))?;
+        let k: String = k
+            .extract()
+            .map_err(|_| invalid_input(d.py(), prefix, "keys must be strings"))?;
         if !allowed.contains(&k.as_str()) {
-            return Err(invalid_input(d.py(), &format!("{prefix}{k}"), format!("unknown parameter (allowed: {})", allowed.join(", "))));
+            return Err(invalid_input(
+                d.py(),
+                &format!("{prefix}{k}"),
+                format!("unknown parameter (allowed: {})", allowed.join(", ")),
+            ));
         }
     }
     Ok(())
 }
 
-fn parse_params<const D: usize>(d: &Bound<'_, PyDict>) -> PyResult<(SolverParams<D>, Vec<Collider<D>>)> {
+fn parse_params<const D: usize>(
+    d: &Bound<'_, PyDict>,
+) -> PyResult<(SolverParams<D>, Vec<Collider<D>>)> {
     let py = d.py();
     check_keys(d, "", TOP_KEYS)?;
     let mut p = SolverParams::<D>::default();
@@ -112,10 +176,13 @@ fn parse_params<const D: usize>(d: &Bound<'_, PyDict>) -> PyResult<(SolverParams
         p.gravity.copy_from_slice(g.as_slice());
     }
     p.cfl = get_f32(d, "", "cfl", p.cfl)?;
-    p.substeps = match get_item(d, "substeps")? {
-        None => None,
-        Some(v) => Some(v.extract::<usize>().map_err(|_| invalid_input(py, "substeps", "expected a positive integer or None"))?),
-    };
+    p.substeps =
+        match get_item(d, "substeps")? {
+            None => None,
+            Some(v) => Some(v.extract::<usize>().map_err(|_| {
+                invalid_input(py, "substeps", "expected a positive integer or None")
+            })?),
+        };
     p.max_substeps = get_usize(d, "", "max_substeps", p.max_substeps)?;
     p.num_threads = get_usize(d, "", "num_threads", p.num_threads)?;
     if let Some(w) = sub_dict(d, "water")? {
@@ -125,79 +192,214 @@ fn parse_params<const D: usize>(d: &Bound<'_, PyDict>) -> PyResult<(SolverParams
         p.water.viscosity = get_f32(&w, "water.", "viscosity", p.water.viscosity)?;
     }
     if let Some(s) = sub_dict(d, "sand")? {
-        check_keys(&s, "sand.", &["density", "youngs_modulus", "poisson_ratio", "friction_angle_deg", "cohesion"])?;
+        check_keys(
+            &s,
+            "sand.",
+            &[
+                "density",
+                "youngs_modulus",
+                "poisson_ratio",
+                "friction_angle_deg",
+                "cohesion",
+            ],
+        )?;
         p.sand.density = get_f32(&s, "sand.", "density", p.sand.density)?;
         p.sand.youngs_modulus = get_f32(&s, "sand.", "youngs_modulus", p.sand.youngs_modulus)?;
         p.sand.poisson_ratio = get_f32(&s, "sand.", "poisson_ratio", p.sand.poisson_ratio)?;
-        p.sand.friction_angle_deg = get_f32(&s, "sand.", "friction_angle_deg", p.sand.friction_angle_deg)?;
+        p.sand.friction_angle_deg =
+            get_f32(&s, "sand.", "friction_angle_deg", p.sand.friction_angle_deg)?;
         p.sand.cohesion = get_f32(&s, "sand.", "cohesion", p.sand.cohesion)?;
     }
     if let Some(w) = sub_dict(d, "walls")? {
-        check_keys(&w, "walls.", &["cells", "condition", "friction"])?;
-        p.walls.cells = get_usize(&w, "walls.", "cells", p.walls.cells)?;
-        if let Some(c) = get_item(&w, "condition")? {
-            let c: String = c.extract().map_err(|_| invalid_input(py, "walls.condition", "expected a string"))?;
-            p.walls.condition = BoundaryCondition::parse("walls.condition", &c).map_err(|e| to_py(py, e))?;
-        }
-        p.walls.friction = get_f32(&w, "walls.", "friction", p.walls.friction)?;
+        parse_walls::<D>(&w, &mut p.walls)?;
     }
     let mut colliders = Vec::new();
     if let Some(list) = get_item(d, "colliders")? {
-        let list = list.cast_into::<PyList>().map_err(|_| invalid_input(py, "colliders", "expected a list of dicts"))?;
+        let list = list
+            .cast_into::<PyList>()
+            .map_err(|_| invalid_input(py, "colliders", "expected a list of dicts"))?;
         for (i, item) in list.iter().enumerate() {
             let f = format!("colliders[{i}]");
-            let c = item.cast_into::<PyDict>().map_err(|_| invalid_input(py, &f, "expected a dict"))?;
+            let c = item
+                .cast_into::<PyDict>()
+                .map_err(|_| invalid_input(py, &f, "expected a dict"))?;
             colliders.push(parse_collider::<D>(&c, &f)?);
         }
     }
     Ok((p, colliders))
 }
 
+fn get_condition(
+    d: &Bound<'_, PyDict>,
+    field: &str,
+    key: &str,
+) -> PyResult<Option<BoundaryCondition>> {
+    let py = d.py();
+    match get_item(d, key)? {
+        None => Ok(None),
+        Some(v) => {
+            let s: String = v
+                .extract()
+                .map_err(|_| invalid_input(py, field, "expected a string"))?;
+            BoundaryCondition::parse(field, &s)
+                .map(Some)
+                .map_err(|e| to_py(py, e))
+        }
+    }
+}
+
+/// `walls`: `cells`, `condition`, `friction` for every face, and optional
+/// per-face overrides `faces = {"y-": {"condition": ..., "friction": ...}}`
+/// (a face's missing key falls back to the all-walls value).
+fn parse_walls<const D: usize>(w: &Bound<'_, PyDict>, walls: &mut WallParams) -> PyResult<()> {
+    let py = w.py();
+    check_keys(w, "walls.", &["cells", "condition", "friction", "faces"])?;
+    walls.cells = get_usize(w, "walls.", "cells", walls.cells)?;
+    if let Some(c) = get_condition(w, "walls.condition", "condition")? {
+        walls.condition = c;
+    }
+    walls.friction = get_f32(w, "walls.", "friction", walls.friction)?;
+    let Some(faces) = get_item(w, "faces")? else {
+        return Ok(());
+    };
+    let faces = faces.cast_into::<PyDict>().map_err(|_| {
+        invalid_input(
+            py,
+            "walls.faces",
+            "expected a dict: face name -> {condition, friction}",
+        )
+    })?;
+    let allowed: Vec<&str> = WallParams::FACE_NAMES[..D]
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
+    for (k, v) in faces.iter() {
+        let name: String = k
+            .extract()
+            .map_err(|_| invalid_input(py, "walls.faces", "face names must be strings"))?;
+        let f = format!("walls.faces.{name}");
+        let (axis, side) = WallParams::face_index(&name)
+            .filter(|&(a, _)| a < D)
+            .ok_or_else(|| {
+                invalid_input(
+                    py,
+                    &f,
+                    format!(
+                        "unknown wall face in {D}D (allowed: {}; y- is the floor)",
+                        allowed.join(", ")
+                    ),
+                )
+            })?;
+        let fd = v.cast_into::<PyDict>().map_err(|_| {
+            invalid_input(py, &f, "expected a dict with 'condition' and/or 'friction'")
+        })?;
+        let pre = format!("{f}.");
+        check_keys(&fd, &pre, &["condition", "friction"])?;
+        let condition =
+            get_condition(&fd, &format!("{f}.condition"), "condition")?.unwrap_or(walls.condition);
+        let friction = get_f32(&fd, &pre, "friction", walls.friction)?;
+        walls.faces[axis][side] = Some(WallFace {
+            condition,
+            friction,
+        });
+    }
+    Ok(())
+}
+
 fn parse_collider<const D: usize>(c: &Bound<'_, PyDict>, f: &str) -> PyResult<Collider<D>> {
     let py = c.py();
     let pre = format!("{f}.");
-    check_keys(c, &pre, &["shape", "center", "half_extents", "angle_deg", "rotation", "radius", "condition", "friction"])?;
+    check_keys(
+        c,
+        &pre,
+        &[
+            "shape",
+            "center",
+            "half_extents",
+            "angle_deg",
+            "rotation",
+            "radius",
+            "condition",
+            "friction",
+        ],
+    )?;
     let shape: String = get_item(c, "shape")?
         .ok_or_else(|| invalid_input(py, &format!("{f}.shape"), "missing ('box' or 'sphere')"))?
         .extract()
         .map_err(|_| invalid_input(py, &format!("{f}.shape"), "expected a string"))?;
-    let center = get_vec::<D>(c, &format!("{f}.center"), "center")?.ok_or_else(|| invalid_input(py, &format!("{f}.center"), "missing"))?;
+    let center = get_vec::<D>(c, &format!("{f}.center"), "center")?
+        .ok_or_else(|| invalid_input(py, &format!("{f}.center"), "missing"))?;
     let shape = match shape.as_str() {
         "box" => {
             let half_extents = get_vec::<D>(c, &format!("{f}.half_extents"), "half_extents")?
                 .ok_or_else(|| invalid_input(py, &format!("{f}.half_extents"), "missing"))?;
             let mut rotation = SMatrix::<f32, D, D>::identity();
             if let Some(r) = get_item(c, "rotation")? {
-                let rows: Vec<Vec<f64>> =
-                    r.extract().map_err(|_| invalid_input(py, &format!("{f}.rotation"), format!("expected a {D}x{D} nested list")))?;
+                let rows: Vec<Vec<f64>> = r.extract().map_err(|_| {
+                    invalid_input(
+                        py,
+                        &format!("{f}.rotation"),
+                        format!("expected a {D}x{D} nested list"),
+                    )
+                })?;
                 if rows.len() != D || rows.iter().any(|row| row.len() != D) {
-                    return Err(invalid_input(py, &format!("{f}.rotation"), format!("expected a {D}x{D} nested list")));
+                    return Err(invalid_input(
+                        py,
+                        &format!("{f}.rotation"),
+                        format!("expected a {D}x{D} nested list"),
+                    ));
                 }
                 rotation = SMatrix::<f32, D, D>::from_fn(|i, j| rows[i][j] as f32);
             } else if let Some(a) = get_item(c, "angle_deg")? {
                 if D != 2 {
-                    return Err(invalid_input(py, &format!("{f}.angle_deg"), "only in 2D; give 'rotation' in 3D"));
+                    return Err(invalid_input(
+                        py,
+                        &format!("{f}.angle_deg"),
+                        "only in 2D; give 'rotation' in 3D",
+                    ));
                 }
-                let a: f64 = a.extract().map_err(|_| invalid_input(py, &format!("{f}.angle_deg"), "expected a number"))?;
+                let a: f64 = a.extract().map_err(|_| {
+                    invalid_input(py, &format!("{f}.angle_deg"), "expected a number")
+                })?;
                 let (s, co) = (a.to_radians() as f32).sin_cos();
                 rotation[(0, 0)] = co;
                 rotation[(0, 1)] = -s;
                 rotation[(1, 0)] = s;
                 rotation[(1, 1)] = co;
             }
-            Shape::Box { center, half_extents, rotation }
+            Shape::Box {
+                center,
+                half_extents,
+                rotation,
+            }
         }
-        "sphere" | "circle" => Shape::Sphere { center, radius: get_f32(c, &pre, "radius", f32::NAN)? },
-        other => return Err(invalid_input(py, &format!("{f}.shape"), format!("must be 'box' or 'sphere', got '{other}'"))),
+        "sphere" | "circle" => Shape::Sphere {
+            center,
+            radius: get_f32(c, &pre, "radius", f32::NAN)?,
+        },
+        other => {
+            return Err(invalid_input(
+                py,
+                &format!("{f}.shape"),
+                format!("must be 'box' or 'sphere', got '{other}'"),
+            ));
+        }
     };
     let condition = match get_item(c, "condition")? {
         None => BoundaryCondition::Separate,
         Some(v) => {
-            let s: String = v.extract().map_err(|_| invalid_input(py, &format!("{f}.condition"), "expected a string"))?;
+            let s: String = v
+                .extract()
+                .map_err(|_| invalid_input(py, &format!("{f}.condition"), "expected a string"))?;
             BoundaryCondition::parse(&format!("{f}.condition"), &s).map_err(|e| to_py(py, e))?
         }
     };
-    Ok(Collider { shape, condition, friction: get_f32(c, &pre, "friction", 0.0)? })
+    Ok(Collider {
+        shape,
+        condition,
+        friction: get_f32(c, &pre, "friction", 0.0)?,
+    })
 }
 
 // ---------------------------------------------------------------- solver
@@ -322,7 +524,12 @@ where
     Ok(shaped.into_any().unbind())
 }
 
-fn set_array<const D: usize>(py: Python<'_>, s: &mut Solver<D>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()>
+fn set_array<const D: usize>(
+    py: Python<'_>,
+    s: &mut Solver<D>,
+    field: &str,
+    value: &Bound<'_, PyAny>,
+) -> PyResult<()>
 where
     core::Dim<D>: core::DimOps<D>,
 {
@@ -334,7 +541,11 @@ where
             .map_err(|e| to_py(py, e));
     }
     if field == "stress" {
-        return Err(invalid_input(py, "stress", "is derived from the state and read-only"));
+        return Err(invalid_input(
+            py,
+            "stress",
+            "is derived from the state and read-only",
+        ));
     }
     let shape: Vec<Option<usize>> = match field_dim(field) {
         0 => vec![Some(n)],
@@ -345,7 +556,10 @@ where
     let flat: Vec<f32> = arr.as_array().iter().copied().collect();
     let per = flat.len() / n.max(1);
     let refresh = matches!(field, "affine" | "deformation_gradient" | "volume_ratio");
-    s.modify_particles(refresh, |i, p| write_field(p, field, &flat[i * per..(i + 1) * per])).map_err(|e| to_py(py, e))
+    s.modify_particles(refresh, |i, p| {
+        write_field(p, field, &flat[i * per..(i + 1) * per])
+    })
+    .map_err(|e| to_py(py, e))
 }
 
 fn materials_from(value: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<Material>> {
@@ -357,17 +571,35 @@ fn materials_from(value: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<Material>>
         let arr = np.call_method1("asarray", (value,))?;
         let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
         if kind != "i" && kind != "u" {
-            return Err(invalid_input(py, "material", "expected an integer array (0 = water, 1 = sand)"));
+            return Err(invalid_input(
+                py,
+                "material",
+                "expected an integer array (0 = water, 1 = sand)",
+            ));
         }
         let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
         if shape != vec![n] {
-            return Err(invalid_input(py, "material", format!("expected shape [{n}], got {shape:?}")));
+            return Err(invalid_input(
+                py,
+                "material",
+                format!("expected shape [{n}], got {shape:?}"),
+            ));
         }
-        arr.call_method1("astype", ("int64",))?.call_method0("tolist")?.extract()?
+        arr.call_method1("astype", ("int64",))?
+            .call_method0("tolist")?
+            .extract()?
     };
     codes
         .iter()
-        .map(|&c| Material::from_code(c).ok_or_else(|| invalid_input(py, "material", format!("unknown material code {c} (0 = water, 1 = sand)"))))
+        .map(|&c| {
+            Material::from_code(c).ok_or_else(|| {
+                invalid_input(
+                    py,
+                    "material",
+                    format!("unknown material code {c} (0 = water, 1 = sand)"),
+                )
+            })
+        })
         .collect()
 }
 
@@ -387,9 +619,15 @@ where
     let n = x.shape()[0];
     let x = x.as_array();
     let mats = materials_from(material, n)?;
-    let v = velocities.map(|v| f32_array(v, "velocities", &[Some(n), Some(D)])).transpose()?;
-    let m = masses.map(|v| f32_array(v, "masses", &[Some(n)])).transpose()?;
-    let vol = volumes.map(|v| f32_array(v, "volumes", &[Some(n)])).transpose()?;
+    let v = velocities
+        .map(|v| f32_array(v, "velocities", &[Some(n), Some(D)]))
+        .transpose()?;
+    let m = masses
+        .map(|v| f32_array(v, "masses", &[Some(n)]))
+        .transpose()?;
+    let vol = volumes
+        .map(|v| f32_array(v, "volumes", &[Some(n)]))
+        .transpose()?;
     let params = s.params();
     // default: 2 particles per cell per dimension
     let default_vol = (0.5 * params.dx()).powi(D as i32);
@@ -437,7 +675,13 @@ impl MpmSolver {
                 let (p, c) = parse_params::<3>(params)?;
                 Inner::D3(Solver::new(p, c).map_err(|e| to_py(py, e))?)
             }
-            _ => return Err(invalid_input(py, "dim", format!("must be 2 or 3, got {dim}"))),
+            _ => {
+                return Err(invalid_input(
+                    py,
+                    "dim",
+                    format!("must be 2 or 3, got {dim}"),
+                ));
+            }
         };
         Ok(MpmSolver { inner })
     }
@@ -511,7 +755,11 @@ impl MpmSolver {
         let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
         let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
         if kind != "b" || shape != vec![n] {
-            return Err(invalid_input(py, "mask", format!("expected a bool array of shape [{n}]")));
+            return Err(invalid_input(
+                py,
+                "mask",
+                format!("expected a bool array of shape [{n}]"),
+            ));
         }
         let remove: Vec<bool> = arr.call_method0("tolist")?.extract()?;
         let keep: Vec<bool> = remove.iter().map(|r| !r).collect();
@@ -523,7 +771,11 @@ impl MpmSolver {
     /// volume_ratio/volume_correction/masses/volumes float32 [N]; material int32 [N].
     fn get(&self, py: Python<'_>, field: &str) -> PyResult<Py<PyAny>> {
         if !FIELDS.contains(&field) {
-            return Err(invalid_input(py, "field", format!("unknown field '{field}' (one of {})", FIELDS.join(", "))));
+            return Err(invalid_input(
+                py,
+                "field",
+                format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
+            ));
         }
         dispatch!(self, s => get_array(py, s, field))
     }
@@ -532,7 +784,11 @@ impl MpmSolver {
     /// Validated as a whole: on error nothing changes.
     fn set(&mut self, py: Python<'_>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
         if !FIELDS.contains(&field) {
-            return Err(invalid_input(py, "field", format!("unknown field '{field}' (one of {})", FIELDS.join(", "))));
+            return Err(invalid_input(
+                py,
+                "field",
+                format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
+            ));
         }
         dispatch_mut!(self, s => set_array(py, s, field, value))
     }
@@ -560,10 +816,23 @@ impl MpmSolver {
 
     /// Advance `frames` frames; returns the substep count of each, int64 [frames].
     #[pyo3(signature = (frames, dt_frame=2.5e-3))]
-    fn step_frames<'py>(&mut self, py: Python<'py>, frames: usize, dt_frame: f32) -> PyResult<Bound<'py, PyArray1<i64>>> {
+    fn step_frames<'py>(
+        &mut self,
+        py: Python<'py>,
+        frames: usize,
+        dt_frame: f32,
+    ) -> PyResult<Bound<'py, PyArray1<i64>>> {
         let r: Result<Vec<i64>, MpmError> = match &mut self.inner {
-            Inner::D2(s) => py.detach(|| (0..frames).map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64)).collect()),
-            Inner::D3(s) => py.detach(|| (0..frames).map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64)).collect()),
+            Inner::D2(s) => py.detach(|| {
+                (0..frames)
+                    .map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64))
+                    .collect()
+            }),
+            Inner::D3(s) => py.detach(|| {
+                (0..frames)
+                    .map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64))
+                    .collect()
+            }),
         };
         Ok(PyArray1::from_vec(py, r.map_err(|e| to_py(py, e))?))
     }
@@ -590,10 +859,17 @@ impl MpmSolver {
 /// are clamped to the edge. Raises `InvalidInputError` naming the field.
 #[pyfunction]
 #[pyo3(signature = (positions, n_grid, masses=None))]
-pub fn grid_mass(py: Python<'_>, positions: &Bound<'_, PyAny>, n_grid: usize, masses: Option<&Bound<'_, PyAny>>) -> PyResult<Py<PyAny>> {
+pub fn grid_mass(
+    py: Python<'_>,
+    positions: &Bound<'_, PyAny>,
+    n_grid: usize,
+    masses: Option<&Bound<'_, PyAny>>,
+) -> PyResult<Py<PyAny>> {
     let x = f32_array(positions, "positions", &[None, None])?;
     let (n, d) = (x.shape()[0], x.shape()[1]);
-    let m = masses.map(|m| f32_array(m, "masses", &[Some(n)])).transpose()?;
+    let m = masses
+        .map(|m| f32_array(m, "masses", &[Some(n)]))
+        .transpose()?;
     let mv: Option<Vec<f32>> = m.map(|m| m.as_array().iter().copied().collect());
     let flat: Vec<f32> = x.as_array().iter().copied().collect();
     let res = match d {
@@ -605,7 +881,13 @@ pub fn grid_mass(py: Python<'_>, positions: &Bound<'_, PyAny>, n_grid: usize, ma
             let pts: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
             py.detach(|| core::grid_mass::<3>(&pts, mv.as_deref(), n_grid))
         }
-        _ => return Err(invalid_input(py, "positions", format!("expected shape [N, 2] or [N, 3], got [N, {d}]"))),
+        _ => {
+            return Err(invalid_input(
+                py,
+                "positions",
+                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
+            ));
+        }
     };
     let g = res.map_err(|e| to_py(py, e))?;
     let arr = PyArray1::from_vec(py, g);

@@ -1,0 +1,113 @@
+//! The interpolation kernel: quadratic B-splines on the node lattice `i·dx`
+//! (Hu et al. 2018, MLS-MPM; Jiang et al. 2015, APIC).
+//!
+//! A particle at `x` touches the 3 nodes `base, base + 1, base + 2` per
+//! dimension, with `base = ⌊x/dx − 1/2⌋` and the offset `f = x/dx − base`
+//! in `[0.5, 1.5)`; the weights of those nodes are
+//!
+//! ```text
+//! w0 = ½ (3/2 − f)²,   w1 = 3/4 − (f − 1)²,   w2 = ½ (f − 1/2)²
+//! ```
+//!
+//! They sum to 1 and reproduce linear functions, which is what makes the
+//! APIC/MLS transfers conserve linear and angular momentum. This module is
+//! the one place the weights are written: the solver (f32) and the grid-mass
+//! metric (f64) both call [`quadratic_weights`].
+
+use std::ops::{Add, Mul, Sub};
+
+use nalgebra::SVector;
+
+/// Quadratic B-spline weights of the 3 stencil nodes for the offset `f ∈ [0.5, 1.5)`
+/// (in cells, from the stencil's base node). Generic over `f32` / `f64`; the
+/// constants are exact in both, so each precision evaluates the same expression.
+#[inline(always)]
+pub fn quadratic_weights<T>(f: T) -> [T; 3]
+where
+    T: Copy + From<f32> + Add<Output = T> + Sub<Output = T> + Mul<Output = T>,
+{
+    let (half, three_halves, three_quarters, one) =
+        (T::from(0.5), T::from(1.5), T::from(0.75), T::from(1.0));
+    [
+        half * (three_halves - f) * (three_halves - f),
+        three_quarters - (f - one) * (f - one),
+        half * (f - half) * (f - half),
+    ]
+}
+
+/// Where a particle sits in the grid: the base node of its 3^D stencil,
+/// its offset from it (in cells, in [0.5, 1.5)) and its block's key.
+/// Computed once per substep (in g2p, for the next one).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Cell {
+    pub(crate) key: u32,
+    pub(crate) base: [u32; 3],
+    pub(crate) fx: [f32; 3],
+}
+
+/// The [`Cell`] of position `x`: `inv_dx = 1/dx`, blocks of `2^log2_b` cells,
+/// `lat` the strides of the block lattice.
+#[inline(always)]
+pub(crate) fn cell_of<const D: usize>(
+    x: &SVector<f32, D>,
+    inv_dx: f32,
+    log2_b: u32,
+    lat: &[usize; D],
+) -> Cell {
+    let mut c = Cell::default();
+    let mut key = 0usize;
+    for d in 0..D {
+        let xg = x[d] * inv_dx;
+        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor
+        let b = (xg - 0.5) as u32;
+        c.base[d] = b;
+        c.fx[d] = xg - b as f32;
+        key += (b as usize >> log2_b) * lat[d];
+    }
+    c.key = key as u32;
+    c
+}
+
+/// The offsets `fx` of a [`Cell`] and the quadratic B-spline weights of its
+/// stencil, per dimension.
+#[inline(always)]
+pub(crate) fn weights<const D: usize>(cell: &Cell) -> (SVector<f32, D>, [[f32; 3]; D]) {
+    let mut fx = SVector::<f32, D>::zeros();
+    let mut w = [[0.0f32; 3]; D];
+    for d in 0..D {
+        let f = cell.fx[d];
+        fx[d] = f;
+        w[d] = quadratic_weights(f);
+    }
+    (fx, w)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weights_partition_unity_and_reproduce_linear_functions() {
+        for i in 0..=100 {
+            let f = 0.5 + i as f64 / 100.0 * (1.0 - 1e-9);
+            let w = quadratic_weights(f);
+            assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            // Σ w_k (k − f) = 0: the weighted node positions reproduce x
+            let first: f64 = (0..3).map(|k| w[k] * (k as f64 - f)).sum();
+            assert!(first.abs() < 1e-12, "{f}: {first}");
+            assert!(w.iter().all(|&x| x >= 0.0));
+        }
+    }
+
+    #[test]
+    fn f32_and_f64_evaluate_the_same_expression() {
+        for i in 0..=64 {
+            let f = 0.5f32 + i as f32 / 64.0 * 0.999;
+            let w32 = quadratic_weights(f);
+            let w64 = quadratic_weights(f as f64);
+            for k in 0..3 {
+                assert!((w32[k] as f64 - w64[k]).abs() < 1e-6);
+            }
+        }
+    }
+}

@@ -1,0 +1,164 @@
+//! Substep size and the frame loop: the CFL condition, rollback and retry.
+//!
+//! A frame of `dt_frame` seconds is cut into `n` equal substeps with
+//! `Δt = dt_frame / n ≤ cfl·Δx / (c + |v|max)`, `c` the largest wave speed
+//! of the materials present (water: `sqrt(K/ρ)`; sand: the P-wave speed
+//! `sqrt((λ + 2μ)/ρ)`) — the explicit-integration stability limit. If a
+//! substep still produces a non-finite state or moves a particle more than
+//! one cell, the frame is rolled back to its start and retried with the
+//! substep halved, as long as `max_substeps` allows.
+
+use rayon::prelude::*;
+
+use super::{FrameStats, Solver, build_pool};
+use crate::dim::{Dim, DimOps};
+use crate::error::{MpmError, Result};
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// Largest wave speed among the materials present [m/s].
+    fn wave_speed(&self) -> f32 {
+        let mut has = [false; 2];
+        for p in &self.particles {
+            has[p.material as usize] = true;
+            if has[0] && has[1] {
+                break;
+            }
+        }
+        let mut c = 0.0f32;
+        if has[0] {
+            c = c.max(self.params.water.wave_speed());
+        }
+        if has[1] {
+            c = c.max(self.params.sand.wave_speed());
+        }
+        c
+    }
+
+    /// Substep count the CFL condition asks for over a frame of `dt_frame` seconds.
+    pub fn substeps_for(&self, dt_frame: f32) -> usize {
+        if let Some(s) = self.params.substeps {
+            return s;
+        }
+        let vmax = self.pool.install(|| {
+            self.particles
+                .par_iter()
+                .map(|p| p.v.norm())
+                .reduce(|| 0.0f32, f32::max)
+        });
+        let dt_max = self.params.cfl * self.params.dx() / (self.wave_speed() + vmax).max(1e-6);
+        ((dt_frame / dt_max).ceil() as usize).max(1)
+    }
+
+    /// Advance one frame of `dt_frame` seconds (default 2.5e-3) in as many
+    /// substeps as the CFL condition requires (`cfl·dx / (c + |v|max)`), or
+    /// `params.substeps` if set.
+    ///
+    /// Stability: when a substep leaves a non-finite state or violates the
+    /// CFL condition (a particle would travel more than one cell `dx` in a
+    /// substep), the frame is rolled back to its start and retried with the
+    /// substep halved, up to `max_substeps` (`FrameStats::retries` counts the
+    /// restarts).
+    ///
+    /// Errors: `InvalidInput` for a bad `dt_frame` or when more than
+    /// `max_substeps` would be needed; `NonFinite` / `CflViolation` when even
+    /// `max_substeps` substeps fail, in which case the state is restored to
+    /// the start of the frame.
+    pub fn step_frame(&mut self, dt_frame: f32) -> Result<FrameStats> {
+        if !(dt_frame.is_finite() && dt_frame > 0.0 && dt_frame <= 1.0) {
+            return Err(MpmError::invalid(
+                "dt_frame",
+                format!("must be in (0, 1] s, got {dt_frame}"),
+            ));
+        }
+        if self.pool_pid != std::process::id() {
+            // We are in a forked child: the parent's worker threads do not exist here.
+            self.pool = build_pool(self.params.num_threads)?;
+            self.pool_pid = std::process::id();
+        }
+        let n_sub = self.substeps_for(dt_frame);
+        if n_sub > self.params.max_substeps {
+            return Err(MpmError::invalid(
+                "dt_frame",
+                format!(
+                    "the CFL condition needs {n_sub} substeps for dt_frame = {dt_frame} s, more than max_substeps = {}",
+                    self.params.max_substeps
+                ),
+            ));
+        }
+        if self.particles.is_empty() {
+            self.time += dt_frame as f64;
+            self.frame += 1;
+            let dt = dt_frame / n_sub as f32;
+            return Ok(FrameStats {
+                substeps: n_sub,
+                dt,
+                max_speed: 0.0,
+                active_blocks: 0,
+                retries: 0,
+            });
+        }
+        let backup = (
+            self.particles.clone(),
+            self.ids.clone(),
+            self.slot_of.clone(),
+        );
+        let pool = self.pool.clone();
+        let max_travel = self.params.dx(); // a particle may not cross more than one cell per substep
+        let mut n_sub = n_sub;
+        let mut retries = 0;
+        loop {
+            let dt = dt_frame / n_sub as f32;
+            let result = pool.install(|| {
+                self.compute_keys();
+                let mut vmax = 0.0;
+                for s in 0..n_sub {
+                    let (finite, v) = self.substep(dt);
+                    vmax = v;
+                    if !finite {
+                        return Err(MpmError::NonFinite {
+                            substep: s,
+                            substeps: n_sub,
+                            retries,
+                        });
+                    }
+                    if v * dt > max_travel {
+                        return Err(MpmError::CflViolation {
+                            substep: s,
+                            substeps: n_sub,
+                            max_speed: v,
+                            retries,
+                        });
+                    }
+                }
+                Ok(vmax)
+            });
+            match result {
+                Ok(vmax) => {
+                    self.time += dt_frame as f64;
+                    self.frame += 1;
+                    let active_blocks = self.grid.src_blocks.len();
+                    return Ok(FrameStats {
+                        substeps: n_sub,
+                        dt,
+                        max_speed: vmax,
+                        active_blocks,
+                        retries,
+                    });
+                }
+                Err(e) => {
+                    // Roll back to the frame's start; retry with the substep halved
+                    // while the substep budget allows it.
+                    (self.particles, self.ids, self.slot_of) = backup.clone();
+                    if 2 * n_sub > self.params.max_substeps {
+                        return Err(e);
+                    }
+                    n_sub *= 2;
+                    retries += 1;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,181 @@
+//! Stage 3 of a substep: grid-to-particle transfer (g2p) and the particle update.
+//!
+//! Per particle, from the updated grid velocities `v_i` of its stencil
+//! (Hu et al. 2018, MLS-MPM with APIC transfers, Jiang et al. 2015):
+//!
+//! ```text
+//! v_p = Σ_i w_ip v_i,     C_p = (4 / Δx²) Σ_i w_ip v_i (x_i − x_p)ᵀ,
+//! x_p ← x_p + Δt·v_p      (clamped to the domain [dx, 1 − dx]^D)
+//! ```
+//!
+//! then the material update with the new velocity gradient `C_p`
+//! ([`crate::material`]: `J` for water, `F` and the Drucker–Prager return
+//! mapping for sand) and the new Kirchhoff stress for the next p2g.
+//!
+//! Blocks are processed in parallel: each source block gathers its padded
+//! velocity patch once, its particles read it with fixed strides and are
+//! written contiguously into the next storage (sorted by block, then id),
+//! together with their [`Cell`] for the next substep. The per-block results
+//! (finiteness probe, max speed) are combined with `&&` and `max`, which are
+//! exact in any order.
+
+use nalgebra::{SMatrix, SVector};
+use rayon::prelude::*;
+
+use super::Solver;
+use super::grid::{EMPTY, add4, fma4, unflatten};
+use crate::dim::{Dim, DimOps};
+use crate::kernel::{Cell, cell_of, weights};
+use crate::material::sand::{self, SandModel};
+use crate::material::water;
+use crate::particles::{Material, Particle};
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// g2p in block order: each source block gathers its padded velocity
+    /// patch once, its particles read it with fixed strides and are written
+    /// contiguously into the next storage (sorted by block, then id).
+    pub(super) fn g2p(&mut self, dt: f32) -> (bool, f32) {
+        let dx = self.params.dx();
+        let inv_dx = 1.0 / dx;
+        let (lo, hi) = self.domain_bounds();
+        let log2_b = self.grid.log2_b;
+        let b = 1usize << log2_b;
+        let bmask = b - 1;
+        let blk_nodes = 1usize << (log2_b as usize * D);
+        let st = &self.stencil;
+        let lat = st.lat_stride;
+        let sand = SandModel::new::<D>(&self.params.sand);
+        let water = self.params.water.clone();
+        let n = self.particles.len();
+        let g = &mut self.grid;
+        let (out_map, out_v, src_blocks, src_offsets, sorted) = (
+            &g.out_map,
+            &g.out_v,
+            &g.src_blocks,
+            &g.src_offsets,
+            &g.sorted,
+        );
+        let particles = &self.particles;
+        self.next.resize(n, particles[0]);
+        g.next_keys.resize(n, Cell::default());
+        let cells = &g.keys;
+        // split the outputs into one contiguous slice per source block
+        let mut out_slices: Vec<(&mut [Particle<D>], &mut [Cell])> =
+            Vec::with_capacity(src_blocks.len());
+        let mut rest_p: &mut [Particle<D>] = &mut self.next[..];
+        let mut rest_k: &mut [Cell] = &mut g.next_keys[..];
+        for si in 0..src_blocks.len() {
+            let len = (src_offsets[si + 1] - src_offsets[si]) as usize;
+            let (ap, bp) = rest_p.split_at_mut(len);
+            let (ak, bk) = rest_k.split_at_mut(len);
+            out_slices.push((ap, ak));
+            rest_p = bp;
+            rest_k = bk;
+        }
+        let result = out_slices
+            .into_par_iter()
+            .enumerate()
+            .map_init(
+                || vec![[0.0f32; 4]; st.pad_coords.len()],
+                |patch, (si, (outp, outk))| {
+                    let c = unflatten::<D>(src_blocks[si] as usize, &lat);
+                    // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
+                    // (every node lies in an output block, so all are overwritten)
+                    for (q, qc) in st.pad_coords.iter().enumerate() {
+                        let mut lin = 0usize;
+                        let mut off = 0usize;
+                        for d in 0..D {
+                            let gi = (c[d] << log2_b) + qc[d];
+                            lin += (gi >> log2_b) * lat[d];
+                            off += (gi & bmask) * st.blk_stride[d];
+                        }
+                        let ob = out_map[lin];
+                        if ob != EMPTY {
+                            patch[q] = out_v[ob as usize * blk_nodes + off];
+                        }
+                    }
+                    let lo_i = src_offsets[si] as usize;
+                    let mut nan_probe = 0.0f32;
+                    let mut nonpositive_j = false;
+                    let mut vmax2 = 0.0f32;
+                    for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
+                        let slot = sorted[lo_i + j] as usize;
+                        let mut p = particles[slot];
+                        let cell = &cells[slot];
+                        let (fx, w) = weights::<D>(cell);
+                        let mut base_idx = 0usize;
+                        for d in 0..D {
+                            base_idx +=
+                                (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
+                        }
+                        let mut acc_v = [0.0f32; 4];
+                        let mut acc_b = [[0.0f32; 4]; D];
+                        let nodes = &patch[base_idx..];
+                        let w_last = w[D - 1];
+                        Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
+                            let row = &nodes[off..off + 3];
+                            // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
+                            let mut sum = [0.0f32; 4];
+                            let mut sum_k = [0.0f32; 4];
+                            for k in 0..3 {
+                                let wk = w_last[k];
+                                fma4(&mut sum, wk, &row[k]);
+                                fma4(&mut sum_k, wk * k as f32, &row[k]);
+                            }
+                            for l in 0..4 {
+                                sum[l] *= w_outer;
+                                sum_k[l] *= w_outer;
+                            }
+                            add4(&mut acc_v, &sum);
+                            for c in 0..D - 1 {
+                                fma4(&mut acc_b[c], o[c], &sum);
+                            }
+                            add4(&mut acc_b[D - 1], &sum_k);
+                        });
+                        // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
+                        let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
+                        let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| {
+                            (acc_b[c][r] - acc_v[r] * fx[c]) * (4.0 * inv_dx)
+                        });
+                        p.v = new_v;
+                        p.c = new_c;
+                        p.x += new_v * dt;
+                        for d in 0..D {
+                            p.x[d] = p.x[d].max(lo).min(hi);
+                        }
+                        p.tau = match p.material {
+                            Material::Water => {
+                                water::advance_volume_ratio(&mut p.j, dt, &new_c);
+                                water::kirchhoff_stress(&water, p.j, &new_c)
+                            }
+                            Material::Sand => sand::advance(&mut p.f, &mut p.vc, &new_c, dt, &sand),
+                        };
+                        *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
+                        // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
+                        nan_probe += p.v.sum() + p.tau.sum() + p.j;
+                        nonpositive_j |= p.j <= 0.0;
+                        vmax2 = vmax2.max(p.v.norm_squared());
+                        *po = p;
+                    }
+                    // positions are clamped (NaN maps to the bound), so test velocities and stress
+                    (
+                        nan_probe.is_finite() && vmax2.is_finite() && !nonpositive_j,
+                        vmax2.sqrt(),
+                    )
+                },
+            )
+            .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)));
+        // the next storage order is the sorted order
+        std::mem::swap(&mut self.particles, &mut self.next);
+        std::mem::swap(&mut g.keys, &mut g.next_keys);
+        let ids_old = std::mem::take(&mut self.ids);
+        self.ids = sorted.iter().map(|&s| ids_old[s as usize]).collect();
+        for (slot, &id) in self.ids.iter().enumerate() {
+            self.slot_of[id as usize] = slot as u32;
+        }
+        result
+    }
+}

@@ -1,0 +1,163 @@
+//! Stage 2 of a substep: the grid update.
+//!
+//! Per output block, in parallel: gather the overlapping padded p2g buffers
+//! of the `2^D` source blocks that reach it, in a fixed order (so sums do not
+//! depend on the thread count); turn momentum into velocity,
+//! `v_i = (mv)_i / m_i + Δt·g` (explicit symplectic Euler, Hu et al. 2018);
+//! then enforce the boundaries on nodes inside them:
+//!
+//! - static colliders: nodes with `sdf < 0` get the collider's condition
+//!   with its outward normal (only colliders near the block are tested);
+//! - domain walls: nodes within `walls.cells` of a face of the unit domain
+//!   get that face's condition and friction (`WallParams::face`: the
+//!   per-face override or the all-walls default) with the face's inward
+//!   normal; a corner node gets the faces' conditions one axis after the
+//!   other (x, then y, then z).
+//!
+//! Conditions (see [`crate::collider::apply_condition`]): `Sticky` zeroes
+//! the velocity, `Slip` removes its normal component, `Separate` removes
+//! only an inward normal component and applies Coulomb friction.
+
+use nalgebra::SVector;
+use rayon::prelude::*;
+
+use super::Solver;
+use super::grid::{EMPTY, unflatten, unflatten_pow2};
+use crate::collider::{Collider, apply_condition};
+use crate::dim::{Dim, DimOps};
+use crate::params::WallFace;
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    pub(super) fn grid_update(&mut self, dt: f32) {
+        let b = 1usize << self.grid.log2_b;
+        let blk_nodes = b.pow(D as u32);
+        let p = b + 2;
+        let pad_nodes = p.pow(D as u32);
+        let n_out = self.grid.out_blocks.len();
+        let n = self.params.n_grid;
+        let dx = self.params.dx();
+        let gravity = SVector::<f32, D>::from_column_slice(&self.params.gravity);
+        let walls = &self.params.walls;
+        // condition and friction of each wall face, [axis][side] (side 0: the lower face)
+        let faces: [[WallFace; 2]; D] =
+            std::array::from_fn(|d| [walls.face(d, 0), walls.face(d, 1)]);
+        let colliders = &self.colliders;
+        let st = &self.stencil;
+        let g = &mut self.grid;
+        g.out_v.resize(n_out * blk_nodes, [0.0; 4]);
+        let (out_blocks, src_map, local, lat, log2_b) =
+            (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
+        let wall_lo = walls.cells;
+        let wall_hi = n.saturating_sub(walls.cells);
+        g.out_v.par_chunks_mut(blk_nodes).enumerate().for_each_init(
+            || vec![[0.0f32; 4]; blk_nodes],
+            |acc, (oi, out)| {
+                let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
+                acc.fill([0.0; 4]);
+                // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
+                for s in 0..(1usize << D) {
+                    let mut lin = 0usize;
+                    let mut ok = true;
+                    for d in 0..D {
+                        let sd = (s >> d) & 1;
+                        if c[d] < sd {
+                            ok = false;
+                            break;
+                        }
+                        lin += (c[d] - sd) * lat[d];
+                    }
+                    if !ok {
+                        continue;
+                    }
+                    let sid = src_map[lin];
+                    if sid == EMPTY {
+                        continue;
+                    }
+                    let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
+                    for l in 0..blk_nodes {
+                        let lc = unflatten_pow2::<D>(l, log2_b);
+                        let mut pidx = 0usize;
+                        let mut inside = true;
+                        for d in 0..D {
+                            let sd = (s >> d) & 1;
+                            let q = sd * b + lc[d];
+                            if q >= p {
+                                inside = false;
+                                break;
+                            }
+                            pidx += q * st.pad_stride[d];
+                        }
+                        if !inside {
+                            continue;
+                        }
+                        let a = &mut acc[l];
+                        let sv = &src[pidx];
+                        for k in 0..4 {
+                            a[k] += sv[k];
+                        }
+                    }
+                }
+                // Block-level test: is any collider near this block?
+                let near: Vec<&Collider<D>> = if colliders.is_empty() {
+                    Vec::new()
+                } else {
+                    let mut centre = SVector::<f32, D>::zeros();
+                    for d in 0..D {
+                        centre[d] = ((c[d] << log2_b) as f32 + 0.5 * (b as f32 - 1.0)) * dx;
+                    }
+                    let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt() + dx;
+                    colliders
+                        .iter()
+                        .filter(|col| col.shape.sdf(&centre) < half_diag)
+                        .collect()
+                };
+                for l in 0..blk_nodes {
+                    let a = &acc[l];
+                    let m = a[0];
+                    let o = &mut out[l];
+                    if m <= 0.0 {
+                        *o = [0.0; 4];
+                        continue;
+                    }
+                    let mut v = SVector::<f32, D>::zeros();
+                    for d in 0..D {
+                        v[d] = a[1 + d] / m;
+                    }
+                    v += gravity * dt;
+                    let lc = unflatten_pow2::<D>(l, log2_b);
+                    let mut gi = [0usize; D];
+                    for d in 0..D {
+                        gi[d] = (c[d] << log2_b) + lc[d];
+                    }
+                    for col in &near {
+                        let mut xp = SVector::<f32, D>::zeros();
+                        for d in 0..D {
+                            xp[d] = gi[d] as f32 * dx;
+                        }
+                        if col.shape.sdf(&xp) < 0.0 {
+                            let nrm = col.shape.normal(&xp);
+                            apply_condition(&mut v, &nrm, col.condition, col.friction);
+                        }
+                    }
+                    for d in 0..D {
+                        if gi[d] < wall_lo {
+                            let mut nrm = SVector::<f32, D>::zeros();
+                            nrm[d] = 1.0;
+                            let f = &faces[d][0];
+                            apply_condition(&mut v, &nrm, f.condition, f.friction);
+                        } else if gi[d] > wall_hi {
+                            let mut nrm = SVector::<f32, D>::zeros();
+                            nrm[d] = -1.0;
+                            let f = &faces[d][1];
+                            apply_condition(&mut v, &nrm, f.condition, f.friction);
+                        }
+                    }
+                    o[..D].copy_from_slice(v.as_slice());
+                }
+            },
+        );
+    }
+}

@@ -1,0 +1,308 @@
+//! The MLS-MPM solver (Hu et al. 2018, "A moving least squares material
+//! point method with displacement discontinuity and two-way rigid body
+//! coupling"; APIC transfers, Jiang et al. 2015; quadratic B-splines).
+//!
+//! One substep, one file per stage:
+//!
+//! 1. `grid.rs`: sort the particles into sparse blocks;
+//! 2. `p2g.rs`: per sparse block, into a private padded buffer (no atomics,
+//!    no shared writes);
+//! 3. `grid_update.rs`: per output block, gather the overlapping padded
+//!    buffers in a fixed order, add gravity, apply walls and colliders;
+//! 4. `g2p.rs`: per particle, new `v`, `C`, position, the material update
+//!    (`material/water.rs`, `material/sand.rs`) and the stress, and the
+//!    particle's block key for the next substep.
+//!
+//! `cfl.rs` chooses the substep size and drives the frame, with rollback
+//! and retry. The B-spline weights live in `kernel.rs`.
+//!
+//! Grid work touches only blocks that contain particles and their `+1`
+//! neighbours (the B-spline stencil reaches 2 nodes ahead), so the cost follows
+//! the particle count, not the domain volume. Every reduction happens in a
+//! fixed order that does not depend on the thread count: results are bitwise
+//! identical for any number of threads.
+
+mod cfl;
+mod g2p;
+mod grid;
+mod grid_update;
+mod p2g;
+
+pub use crate::material::sand::drucker_prager_project;
+
+use crate::collider::Collider;
+use crate::dim::{Dim, DimOps};
+use crate::error::{MpmError, Result};
+use crate::material::{sand, water};
+use crate::params::SolverParams;
+use crate::particles::{Material, Particle};
+use grid::{SparseGrid, Stencil};
+
+/// Statistics of one `step_frame` call.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameStats {
+    /// Substeps taken.
+    pub substeps: usize,
+    /// Substep size [s].
+    pub dt: f32,
+    /// Largest particle speed at the end of the frame [m/s].
+    pub max_speed: f32,
+    /// Sparse blocks holding particles during the last substep.
+    pub active_blocks: usize,
+    /// Times the frame was restarted with the substep halved (after a
+    /// non-finite state or a CFL violation).
+    pub retries: usize,
+}
+
+/// MLS-MPM solver for `D` = 2 or 3.
+pub struct Solver<const D: usize>
+where
+    Dim<D>: DimOps<D>,
+{
+    params: SolverParams<D>,
+    colliders: Vec<Collider<D>>,
+    /// Particles in storage order: sorted by sparse block, then by id.
+    particles: Vec<Particle<D>>,
+    /// `ids[slot]`: the public index of the particle stored at `slot`.
+    ids: Vec<u32>,
+    /// `slot_of[id]`: where particle `id` is stored.
+    slot_of: Vec<u32>,
+    /// Scratch for the next substep's storage (g2p writes here in block order).
+    next: Vec<Particle<D>>,
+    time: f64,
+    frame: u64,
+    grid: SparseGrid,
+    stencil: Stencil<D>,
+    pool: std::sync::Arc<rayon::ThreadPool>,
+    pool_pid: u32,
+    /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
+    profile: bool,
+}
+
+/// The solver's own rayon pool (`num_threads = 0`: all cores).
+fn build_pool(num_threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(num_threads)
+        .build()
+        .map(std::sync::Arc::new)
+        .map_err(|e| MpmError::invalid("num_threads", format!("cannot start the thread pool: {e}")))
+}
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// A solver with no particles. Errors name the bad parameter.
+    pub fn new(params: SolverParams<D>, colliders: Vec<Collider<D>>) -> Result<Self> {
+        assert!(D == 2 || D == 3);
+        params.validate()?;
+        for (i, c) in colliders.iter().enumerate() {
+            c.validate(&format!("colliders[{i}]"))?;
+        }
+        let (grid, stencil) = grid::new_grid::<D>(params.n_grid);
+        let pool = build_pool(params.num_threads)?;
+        Ok(Solver {
+            params,
+            colliders,
+            particles: Vec::new(),
+            ids: Vec::new(),
+            slot_of: Vec::new(),
+            next: Vec::new(),
+            time: 0.0,
+            frame: 0,
+            grid,
+            stencil,
+            pool,
+            pool_pid: std::process::id(),
+            profile: std::env::var_os("HMPM_PROFILE").is_some(),
+        })
+    }
+
+    pub fn params(&self) -> &SolverParams<D> {
+        &self.params
+    }
+
+    pub fn colliders(&self) -> &[Collider<D>] {
+        &self.colliders
+    }
+
+    /// The particles in their public order (index = the order they were given in).
+    pub fn particles(&self) -> Vec<Particle<D>> {
+        self.slot_of
+            .iter()
+            .map(|&s| self.particles[s as usize])
+            .collect()
+    }
+
+    /// Visit the particles in their public order.
+    pub fn for_each_particle(&self, mut f: impl FnMut(usize, &Particle<D>)) {
+        for (i, &s) in self.slot_of.iter().enumerate() {
+            f(i, &self.particles[s as usize]);
+        }
+    }
+
+    fn reset_order(&mut self) {
+        let n = self.particles.len() as u32;
+        self.ids = (0..n).collect();
+        self.slot_of = (0..n).collect();
+    }
+
+    pub fn num_particles(&self) -> usize {
+        self.particles.len()
+    }
+
+    /// Simulated time [s].
+    pub fn time(&self) -> f64 {
+        self.time
+    }
+
+    /// Frames advanced so far.
+    pub fn frame(&self) -> u64 {
+        self.frame
+    }
+
+    /// Lower and upper bound of valid particle coordinates: one cell inside the domain.
+    pub fn domain_bounds(&self) -> (f32, f32) {
+        let dx = self.params.dx();
+        (dx, 1.0 - dx)
+    }
+
+    /// Replace all particles (validated; derived stress recomputed).
+    pub fn set_particles(&mut self, mut particles: Vec<Particle<D>>) -> Result<()> {
+        let (lo, hi) = self.domain_bounds();
+        for (i, p) in particles.iter().enumerate() {
+            p.validate(i, lo, hi)?;
+        }
+        for p in particles.iter_mut() {
+            self.refresh_stress(p);
+        }
+        self.particles = particles;
+        self.reset_order();
+        Ok(())
+    }
+
+    /// Replace all particles keeping their stored stress (checkpoint restore).
+    pub(crate) fn set_particles_keep_stress(&mut self, particles: Vec<Particle<D>>) -> Result<()> {
+        let (lo, hi) = self.domain_bounds();
+        for (i, p) in particles.iter().enumerate() {
+            p.validate(i, lo, hi)?;
+            if !p.tau.iter().all(|a| a.is_finite()) {
+                return Err(MpmError::invalid(
+                    "stress",
+                    format!("particle {i} has a non-finite stress"),
+                ));
+            }
+        }
+        self.particles = particles;
+        self.reset_order();
+        Ok(())
+    }
+
+    /// Modify particles in place through `f(id, particle)` (public order),
+    /// then validate; `refresh_stress` recomputes τ (needed after changing
+    /// `F`, `J` or `C`). On error nothing changes.
+    pub fn modify_particles(
+        &mut self,
+        refresh_stress: bool,
+        mut f: impl FnMut(usize, &mut Particle<D>),
+    ) -> Result<()> {
+        let mut ps = self.particles.clone();
+        for (id, &slot) in self.slot_of.iter().enumerate() {
+            f(id, &mut ps[slot as usize]);
+        }
+        let (lo, hi) = self.domain_bounds();
+        for (id, &slot) in self.slot_of.iter().enumerate() {
+            ps[slot as usize].validate(id, lo, hi)?;
+        }
+        if refresh_stress {
+            for p in ps.iter_mut() {
+                self.refresh_stress(p);
+            }
+        }
+        self.particles = ps;
+        Ok(())
+    }
+
+    /// Append particles (validated). Returns the new particle count.
+    pub fn add_particles(&mut self, new: Vec<Particle<D>>) -> Result<usize> {
+        let (lo, hi) = self.domain_bounds();
+        let n0 = self.particles.len();
+        for (i, p) in new.iter().enumerate() {
+            p.validate(n0 + i, lo, hi)?;
+        }
+        for mut p in new {
+            self.refresh_stress(&mut p);
+            self.ids.push(self.particles.len() as u32);
+            self.slot_of.push(self.particles.len() as u32);
+            self.particles.push(p);
+        }
+        Ok(self.particles.len())
+    }
+
+    /// Remove the particles whose `keep[i]` is false (order of the rest kept).
+    pub fn retain_particles(&mut self, keep: &[bool]) -> Result<usize> {
+        if keep.len() != self.particles.len() {
+            return Err(MpmError::invalid(
+                "mask",
+                format!(
+                    "length {} != particle count {}",
+                    keep.len(),
+                    self.particles.len()
+                ),
+            ));
+        }
+        let kept: Vec<Particle<D>> = self
+            .particles()
+            .into_iter()
+            .zip(keep.iter())
+            .filter(|(_, k)| **k)
+            .map(|(p, _)| p)
+            .collect();
+        self.particles = kept;
+        self.reset_order();
+        Ok(self.particles.len())
+    }
+
+    /// Set simulated time and frame counter (used by checkpoint restore).
+    pub fn set_clock(&mut self, time: f64, frame: u64) {
+        self.time = time;
+        self.frame = frame;
+    }
+
+    /// Recompute the derived stress τ from the particle's state.
+    fn refresh_stress(&self, p: &mut Particle<D>) {
+        p.tau = match p.material {
+            Material::Water => water::kirchhoff_stress(&self.params.water, p.j, &p.c),
+            Material::Sand => {
+                let (mu, la) = self.params.sand.lame();
+                sand::stress_of(&p.f, mu, la)
+            }
+        };
+    }
+
+    /// One substep of size `dt`. Returns (state finite, max speed).
+    fn substep(&mut self, dt: f32) -> (bool, f32) {
+        let prof = self.profile;
+        let t0 = std::time::Instant::now();
+        self.build_blocks();
+        let t1 = std::time::Instant::now();
+        self.p2g(dt);
+        let t2 = std::time::Instant::now();
+        self.grid_update(dt);
+        let t3 = std::time::Instant::now();
+        let r = self.g2p(dt);
+        let t4 = std::time::Instant::now();
+        if prof {
+            eprintln!(
+                "blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {} nout {}",
+                t1 - t0,
+                t2 - t1,
+                t3 - t2,
+                t4 - t3,
+                self.grid.src_blocks.len(),
+                self.grid.out_blocks.len()
+            );
+        }
+        r
+    }
+}

@@ -1,0 +1,100 @@
+//! Stage 1 of a substep: particle-to-grid transfer (p2g).
+//!
+//! MLS-MPM's fused transfer (Hu et al. 2018, the "88-line" form of the
+//! MLS-MPM update): each particle scatters mass and momentum to its 3^D
+//! stencil nodes `i` with the quadratic B-spline weights `w_ip` (see
+//! [`crate::kernel`]),
+//!
+//! ```text
+//! m_i   += w_ip · m_p
+//! (mv)_i += w_ip · [ m_p (v_p + Δt·a_ext) + A_p (x_i − x_p) ],
+//! A_p    = m_p C_p − (4 Δt / Δx²) V_p τ_p
+//! ```
+//!
+//! the APIC affine momentum `m_p C_p` (Jiang et al. 2015) and the stress
+//! force of the MLS gradient approximation combined into one matrix `A_p`
+//! (τ: Kirchhoff stress from [`crate::material`]; `V_p`: rest volume;
+//! `a_ext`: the particle's external acceleration).
+//!
+//! Parallel and deterministic without atomics: each source block writes into
+//! its own padded `(B+2)^D` buffer (the stencil reaches 2 nodes past the
+//! block), its particles in a fixed order; `grid_update` sums the buffers.
+
+use rayon::prelude::*;
+
+use super::Solver;
+use super::grid::{add4, fma4, unflatten};
+use crate::dim::{Dim, DimOps};
+use crate::kernel::weights;
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    pub(super) fn p2g(&mut self, dt: f32) {
+        let b = 1usize << self.grid.log2_b;
+        let pad_nodes = (b + 2).pow(D as u32);
+        let n_src = self.grid.src_blocks.len();
+        let dx = self.params.dx();
+        let inv_dx = 1.0 / dx;
+        let stress_scale = -dt * 4.0 * inv_dx * inv_dx;
+        let g = &mut self.grid;
+        g.local.resize(n_src * pad_nodes, [0.0; 4]);
+        let particles = &self.particles;
+        let st = &self.stencil;
+        let (src_blocks, src_offsets, sorted, lat, log2_b, cells) = (
+            &g.src_blocks,
+            &g.src_offsets,
+            &g.sorted,
+            st.lat_stride,
+            g.log2_b,
+            &g.keys,
+        );
+        g.local
+            .par_chunks_mut(pad_nodes)
+            .enumerate()
+            .for_each(|(si, buf)| {
+                buf.fill([0.0; 4]);
+                let c = unflatten::<D>(src_blocks[si] as usize, &lat);
+                let lo = src_offsets[si] as usize;
+                let hi = src_offsets[si + 1] as usize;
+                for &pi in &sorted[lo..hi] {
+                    let p = &particles[pi as usize];
+                    let cell = &cells[pi as usize];
+                    let (fx, w) = weights::<D>(cell);
+                    let mut base_idx = 0usize;
+                    for d in 0..D {
+                        base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
+                    }
+                    // [mass, momentum + affine·dpos] with dpos = (o − fx)·dx, written
+                    // as base + Σ_c o_c·col_c (o integer offsets): 4-wide vector work
+                    let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
+                    let mom = (p.v + p.ext * dt) * p.mass;
+                    let q = mom - a_mat * fx;
+                    let mut base4 = [p.mass, 0.0, 0.0, 0.0];
+                    let mut cols = [[0.0f32; 4]; D];
+                    for r in 0..D {
+                        base4[1 + r] = q[r];
+                        for c in 0..D {
+                            cols[c][1 + r] = a_mat[(r, c)];
+                        }
+                    }
+                    let nodes = &mut buf[base_idx..];
+                    let w_last = w[D - 1];
+                    let last = cols[D - 1];
+                    Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
+                        let mut contrib = base4;
+                        for c in 0..D - 1 {
+                            fma4(&mut contrib, o[c], &cols[c]);
+                        }
+                        // the row's 3 nodes are contiguous (last stride 1)
+                        let row = &mut nodes[off..off + 3];
+                        for k in 0..3 {
+                            fma4(&mut row[k], w_outer * w_last[k], &contrib);
+                            add4(&mut contrib, &last);
+                        }
+                    });
+                }
+            });
+    }
+}
