@@ -176,3 +176,73 @@ def test_a_malformed_hybrid_state_changes_nothing():
     sim.restore(good)
     b = rollout(sim, 40)
     assert np.array_equal(a.positions, b.positions) and np.array_equal(a.solver, b.solver)
+
+
+# ------------------------------------------------------------- memory budget
+@pytest.fixture
+def small_budget():
+    from hybridmpm.limits import set_memory_budget
+
+    set_memory_budget("64M")
+    yield 64 * 2**20
+    set_memory_budget(None)
+
+
+def test_sizes_parse_and_the_environment_sets_the_budget(monkeypatch):
+    from hybridmpm.limits import ENV_VAR, memory_budget, parse_size, physical_memory
+
+    assert parse_size("8G") == 8 * 2**30 and parse_size("512M") == 512 * 2**20 and parse_size("1.5k") == 1536 and parse_size(100) == 100
+    for bad in ("lots", "-1G", "0", ""):
+        with pytest.raises(InvalidInputError):
+            parse_size(bad)
+    monkeypatch.setenv(ENV_VAR, "3G")
+    assert memory_budget() == 3 * 2**30
+    monkeypatch.delenv(ENV_VAR)
+    assert memory_budget() == physical_memory() // 2
+
+
+def test_a_scene_too_large_for_the_budget_is_refused_before_it_is_built(tmp_path, small_budget):
+    import resource
+
+    from hybridmpm.scenes import SceneSpec
+
+    spec = tmp_path / "big.toml"
+    spec.write_text('name = "big"\ndim = 2\nn_grid = 4096\n[[blocks]]\nlo = [0.1, 0.1]\nhi = [0.5, 0.5]\nmaterial = "water"\n')
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InvalidInputError) as e:
+        SceneSpec.load(spec).build()
+    assert e.value.field == "blocks[0]" and "particles" in str(e.value) and "memory budget" in str(e.value)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 * 1024  # kB: nothing large was allocated
+
+
+def test_a_binary_or_huge_scene_file_is_refused(tmp_path):
+    from hybridmpm.scenes import SceneSpec
+
+    (tmp_path / "bin.toml").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(InvalidInputError, match="not a text file") as e:
+        SceneSpec.load(tmp_path / "bin.toml")
+    assert e.value.field == "scene"
+    with open(tmp_path / "huge.json", "wb") as f:
+        f.truncate(64 * 2**20)  # sparse: no disk used
+    with pytest.raises(InvalidInputError, match="bytes") as e:
+        SceneSpec.load(tmp_path / "huge.json")
+    assert e.value.field == "scene"
+
+
+def test_a_rollout_beyond_the_budget_is_refused_before_any_step(small_budget):
+    from hybridmpm.scenes import make_scene
+    from hybridmpm.sim import MpmSimulator, rollout
+
+    sim = MpmSimulator(make_scene("water2d", seed=1), threads=1)
+    with pytest.raises(InvalidInputError) as e:
+        rollout(sim, 10**7)
+    assert e.value.field == "frames" and sim.step_index == 0
+    assert rollout(sim, 4).frames_done == 4  # a small one still runs
+
+
+def test_generate_beyond_the_budget_writes_nothing(tmp_path, small_budget):
+    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+
+    with pytest.raises(InvalidInputError) as e:
+        generate_dataset(GenerateConfig("water2d", 3, frames=10**7), tmp_path / "g", progress=False)
+    assert e.value.field == "frames" and not (tmp_path / "g").exists()

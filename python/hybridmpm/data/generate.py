@@ -36,6 +36,7 @@ import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, SPLITS
 from hybridmpm.errors import HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.limits import check_allocation
 from hybridmpm.scenes import DOMAINS, SceneSpec, scene_spec
 from hybridmpm.scenes.resolution import check_r_p, check_r_t, cluster_centroids, downsample_scene
 from hybridmpm.sim import MpmSimulator, rollout
@@ -88,6 +89,10 @@ class GenerateConfig:
         frames = self.resolved_frames()
         if frames // self.r_t < 2:
             raise InvalidInputError(f"frames: need at least 2·r_t = {2 * self.r_t} frames to store 3 positions, got {frames}", "frames")
+        # one trajectory in memory (the rollout and its stored copy), sized on the domain's first scene
+        scene = scene_spec(self.scene, seed=0).build()
+        n = scene.num_particles + scene.num_boundary
+        check_allocation("frames", 3.0 * (frames // self.r_t + 1) * n * scene.dim * 4, f"a trajectory of {frames} frames of about {n} particles")
         if self.lowres not in ("simulate", "centroids"):
             raise InvalidInputError(f"lowres: must be 'simulate' or 'centroids', got {self.lowres!r}", "lowres")
         s = tuple(float(v) for v in self.split)

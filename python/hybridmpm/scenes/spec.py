@@ -62,17 +62,25 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
+from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.mpm import DT_FRAME, SAND, WATER, Box, MpmParams, Sphere
+from hybridmpm.limits import check_allocation
+from hybridmpm.mpm import DT_FRAME, Box, MpmParams, Sphere
 from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice
 
-MATERIALS = {"water": WATER, "sand": SAND}
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 
 #: A block may lose at most this fraction of its lattice particles to
 #: obstacles; more (or all of its particles, for any reason) is an error
 #: naming the block, since such a block was almost certainly misplaced.
 MAX_OBSTACLE_DROP_FRACTION = 0.5
+#: Largest scene file read [bytes] (a scene is a few kB of TOML/JSON).
+MAX_SCENE_FILE_BYTES = 16 * 2**20
+#: Memory a particle costs while a scene is built and simulated [bytes], an
+#: upper bound of the lattice and selection arrays (float64 temporaries), the
+#: Scene's arrays and the solver's particle state (~40 floats in 3D); a
+#: rollout's stored positions are budgeted separately.
+BYTES_PER_PARTICLE = 512
 
 
 @dataclass
@@ -278,9 +286,14 @@ class SceneSpec:
         for a missing, unparsable or invalid file (the message names the field)."""
         path = Path(path)
         try:
-            text = path.read_text()
+            size = path.stat().st_size
+            if size > MAX_SCENE_FILE_BYTES:
+                raise InvalidInputError(f"scene file {path}: {size} bytes, more than a scene file needs (at most {MAX_SCENE_FILE_BYTES})", "scene")
+            text = path.read_text(encoding="utf-8")
         except OSError as e:
             raise InvalidInputError(f"scene file {path}: {e.strerror or e}", "scene") from e
+        except UnicodeDecodeError as e:
+            raise InvalidInputError(f"scene file {path}: not a text file (not UTF-8 at byte {e.start})", "scene") from e
         try:
             if path.suffix == ".toml":
                 try:
@@ -315,6 +328,10 @@ class SceneSpec:
         pos_l, mat_l, vel_l, j_l = [], [], [], []
         dropped: list[dict[str, int]] = []
         placed: list[tuple[np.ndarray, np.ndarray]] = []
+        counts = [int(np.prod(np.maximum(np.round((np.asarray(b.hi, np.float64) - np.asarray(b.lo, np.float64)) / s), 1))) for b in self.blocks]
+        for i, n in enumerate(counts):
+            check_allocation(f"blocks[{i}]", n * BYTES_PER_PARTICLE, f"{n} particles (lattice spacing {s:.3g} m = dx/{self.particles_per_cell})")
+        check_allocation("blocks", sum(counts) * BYTES_PER_PARTICLE, f"{sum(counts)} particles in all")
         for i, b in enumerate(self.blocks):
             lo, hi = np.asarray(b.lo, np.float64), np.asarray(b.hi, np.float64)
             p = lattice(lo, hi, s)
@@ -423,7 +440,10 @@ def boundary_particles(colliders: Sequence[Box | Sphere], dim: int, spacing: flo
     the walls, which the network sees through its wall-distance features).
     """
     out = [np.zeros((0, dim), np.float32)]
-    for c in colliders:
+    for i, c in enumerate(colliders):
+        extent = 2.0 * np.full(dim, float(c.radius)) if isinstance(c, Sphere) else 2.0 * np.abs(np.asarray(c.half_extents, np.float64))
+        n = float(np.prod(np.maximum(np.round(extent / spacing), 1)))
+        check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
         center = np.asarray(c.center, np.float64)
         if isinstance(c, Sphere):
             r = float(c.radius)

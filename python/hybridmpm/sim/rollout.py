@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.limits import check_allocation
 from hybridmpm.scenes.core import Scene
 from hybridmpm.sim.base import NEURAL, Frame, NetworkFailure, Simulator, check_int
 from hybridmpm.trajectory import Trajectory
@@ -104,12 +105,16 @@ def rollout(
     from tqdm import tqdm
 
     frames = check_int("frames", frames, 0)
+    steps = math.ceil(frames / sim.r_t)
+    p = sim.particles
+    # each kept frame's positions, once in its Frame and once in the stacked array
+    check_allocation("frames", 2.0 * (steps + 1) * p.num_total * p.dim * 4, f"keeping {steps + 1} frames of {p.num_total} particles")
     start = sim.frame
     target = start.frame + frames
     recs: list[Frame] = [start]
     failure: str | None = None
     detail: str | None = None
-    bar = tqdm(total=math.ceil(frames / sim.r_t), desc=progress, unit="step", disable=progress is None)
+    bar = tqdm(total=steps, desc=progress, unit="step", disable=progress is None)
     try:
         while sim.frame.frame < target:
             try:

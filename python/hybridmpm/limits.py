@@ -1,0 +1,88 @@
+"""Memory budget: every allocation that scales with an input is estimated
+first and refused beyond it, with an error naming the input and the size it
+would need (docs/limits.md).
+
+The budget defaults to half of the machine's physical memory; set
+``HYBRIDMPM_MEMORY_BUDGET`` (bytes, or with a suffix: ``512M``, ``8G``) or
+call :func:`set_memory_budget` to change it. It bounds one allocation (one
+array, one grid, one edge list), not the process: a service running several
+sessions should set it to its per-session share.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+from hybridmpm.errors import InvalidInputError
+
+#: Environment variable overriding the default budget.
+ENV_VAR = "HYBRIDMPM_MEMORY_BUDGET"
+#: Fraction of physical memory the default budget allows.
+DEFAULT_FRACTION = 0.5
+
+_override: int | None = None
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def parse_size(text: str | int, field: str = ENV_VAR) -> int:
+    """``"8G"``, ``"512M"``, ``"1.5G"``, ``"1000000"`` or an int → bytes (> 0).
+    Raises :class:`InvalidInputError` naming ``field``."""
+    if isinstance(text, int) and not isinstance(text, bool):
+        value = float(text)
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*([KMGT]?)(?:i?B)?\s*", str(text), re.IGNORECASE)
+        if not m:
+            raise InvalidInputError(f"{field}: expected a size in bytes such as 8G or 512M, got {text!r}", field)
+        value = float(m.group(1)) * _UNITS[m.group(2).upper()]
+    if not value >= 1:
+        raise InvalidInputError(f"{field}: must be at least 1 byte, got {text!r}", field)
+    return int(value)
+
+
+def physical_memory() -> int:
+    """Physical memory of the machine [bytes] (16 GiB if it cannot be read)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 16 * 2**30
+
+
+def memory_budget() -> int:
+    """The budget of one allocation [bytes]: :func:`set_memory_budget`'s value,
+    else ``HYBRIDMPM_MEMORY_BUDGET``, else half the physical memory."""
+    if _override is not None:
+        return _override
+    env = os.environ.get(ENV_VAR)
+    if env:
+        return parse_size(env)
+    return int(DEFAULT_FRACTION * physical_memory())
+
+
+def set_memory_budget(size: str | int | None) -> None:
+    """Set the budget for this process (None: back to the default)."""
+    global _override
+    _override = None if size is None else parse_size(size, "memory_budget")
+
+
+def human(nbytes: float) -> str:
+    """``nbytes`` as a short human-readable size (``3.2 GiB``)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(nbytes) < 1024 or unit == "PiB":
+            return f"{nbytes:.0f} {unit}" if unit == "B" else f"{nbytes:.1f} {unit}"
+        nbytes /= 1024
+    return f"{nbytes:.1f} PiB"  # pragma: no cover
+
+
+def check_allocation(field: str, nbytes: float, what: str) -> None:
+    """Refuse an allocation of ``nbytes`` for ``what`` beyond the budget:
+    :class:`InvalidInputError` naming ``field`` and the size needed."""
+    budget = memory_budget()
+    if not nbytes <= budget:
+        raise InvalidInputError(
+            f"{field}: {what} would need {human(nbytes)}, over the memory budget of {human(budget)} (set {ENV_VAR} to change it)",
+            field,
+        )
+
+
+__all__ = ["DEFAULT_FRACTION", "ENV_VAR", "check_allocation", "human", "memory_budget", "parse_size", "physical_memory", "set_memory_budget"]
