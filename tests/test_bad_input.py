@@ -246,3 +246,14 @@ def test_generate_beyond_the_budget_writes_nothing(tmp_path, small_budget):
     with pytest.raises(InvalidInputError) as e:
         generate_dataset(GenerateConfig("water2d", 3, frames=10**7), tmp_path / "g", progress=False)
     assert e.value.field == "frames" and not (tmp_path / "g").exists()
+
+
+def test_a_grid_mass_grid_beyond_the_budget_is_refused_by_dimension(small_budget):
+    from hybridmpm.metrics import grid_mass_error
+
+    x2 = np.random.default_rng(0).random((1, 50, 2)).astype(np.float32)
+    x3 = np.random.default_rng(0).random((1, 50, 3)).astype(np.float32)
+    assert grid_mass_error(x2, x2, 1024)[0] == 0.0  # 1024² fits in 64 MiB
+    with pytest.raises(InvalidInputError) as e:
+        grid_mass_error(x3, x3, 1024)  # 1024³ does not
+    assert e.value.field == "n_grid" and "memory budget" in str(e.value)

@@ -31,6 +31,7 @@ import numpy as np
 
 from hybridmpm.conventions import DEFAULT_N_GRID
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import grid_mass
 from hybridmpm.trajectory import KINEMATIC, Trajectory
 
@@ -118,7 +119,8 @@ def grid_mass_error(
         frames [N, D]): the particle counts may differ, T and D must match.
         Drop kinematic particles first (:func:`fluid_mask`).
     n_grid:
-        Cells per dimension of the reference grid, 3 … 4096.
+        Cells per dimension of the reference grid, 3 … 4096, and its grid
+        within the memory budget (:mod:`hybridmpm.limits`).
     pred_weights, ref_weights:
         Optional particle masses [N] (any unit, only ratios matter); by
         default every particle weighs ``1/N`` as DESIGN.md specifies.
@@ -135,6 +137,8 @@ def grid_mass_error(
     if p.shape[0] != r.shape[0]:
         raise InvalidInputError(f"ref: has {r.shape[0]} frames but pred has {p.shape[0]}; align them first (align_frames)", "ref")
     n = _n_grid(n_grid)
+    # two float32 grids from Rust, their float64 copies and the difference: 28 bytes per node
+    check_allocation("n_grid", 28.0 * (n + 1) ** p.shape[2], f"a {n}^{p.shape[2]} grid-mass grid")
     pw = _weights("pred_weights", pred_weights, p.shape[1])
     rw = _weights("ref_weights", ref_weights, r.shape[1])
     out = np.empty(p.shape[0], dtype=np.float64)
