@@ -196,11 +196,11 @@ class SceneSpec:
         try:
             params = MpmParams.from_dict(pd)
             params.to_dict()
-        except TypeError as e:  # unknown keyword in a sub-table
-            raise InvalidInputError(f"scene parameters: {e}", "params") from e
         except InvalidInputError as e:  # the solver calls obstacles "colliders"
             f = (e.field or "").replace("colliders", "obstacles", 1)
             raise InvalidInputError(str(e).replace("colliders", "obstacles", 1), f) from e
+        except (TypeError, ValueError, AttributeError) as e:  # an unknown keyword or a value of the wrong type in a sub-table
+            raise InvalidInputError(f"scene parameters: {e} (in {_guess_field(pd)})", _guess_field(pd)) from e
         n_grid = params.resolved_n_grid()
         if not isinstance(n_grid, int) or n_grid < 8:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
@@ -381,6 +381,38 @@ class SceneSpec:
             connectivity_radius=self.connectivity_radius,
             spec=self,
         )
+
+
+def _guess_field(pd: dict[str, Any]) -> str:
+    """The first solver-parameter entry of a scene that is not a plain value of
+    its expected kind (for an error that a bare ``float()`` raised)."""
+    for k, v in pd.items():
+        if k in ("water", "sand", "walls") and not isinstance(v, dict):
+            return k
+        if k == "colliders":
+            if not isinstance(v, list):
+                return "obstacles"
+            for i, c in enumerate(v):
+                if not isinstance(c, dict):
+                    return f"obstacles[{i}]"
+                for key, val in c.items():
+                    if key in ("center", "half_extents", "rotation") and not (isinstance(val, list) and all(_is_number(x) for x in val)):
+                        return f"obstacles[{i}].{key}"
+                    if key in ("radius", "angle_deg", "friction") and not _is_number(val):
+                        return f"obstacles[{i}].{key}"
+        if k == "gravity" and not (isinstance(v, list) and all(_is_number(x) for x in v)):
+            return k
+        if k in ("cfl", "n_grid", "max_substeps", "substeps") and v is not None and not _is_number(v):
+            return k
+        if isinstance(v, dict):
+            for key, val in v.items():
+                if key != "condition" and key != "faces" and not _is_number(val):
+                    return f"{k}.{key}"
+    return "params"
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _plain(x: Any) -> Any:
