@@ -257,3 +257,21 @@ def test_a_grid_mass_grid_beyond_the_budget_is_refused_by_dimension(small_budget
     with pytest.raises(InvalidInputError) as e:
         grid_mass_error(x3, x3, 1024)  # 1024³ does not
     assert e.value.field == "n_grid" and "memory budget" in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "obstacle, field",
+    [
+        ({"shape": "box", "center": [0.6, 0.3], "half_extents": [0.1, 0.02], "angle_deg": float("nan")}, "obstacles[0].angle_deg"),
+        ({"shape": "box", "center": [0.6, 0.3], "half_extents": [0.1, 0.02], "rotation": [[1, 0], [0, 2]]}, "obstacles[0].rotation"),
+        ({"shape": "sphere", "center": [0.6, 0.3], "radius": float("inf")}, "obstacles[0].radius"),
+        ({"shape": "box", "center": [0.6, "x"], "half_extents": [0.1, 0.02]}, "obstacles[0].center"),
+    ],
+)
+def test_a_bad_obstacle_names_its_field(obstacle, field):
+    from hybridmpm.scenes import SceneSpec
+
+    base = {"name": "t", "dim": 2, "blocks": [{"lo": [0.1, 0.1], "hi": [0.3, 0.3], "material": "water"}]}
+    with pytest.raises(InvalidInputError) as e:
+        SceneSpec.from_dict({**base, "obstacles": [obstacle]}).build()
+    assert e.value.field == field

@@ -208,6 +208,12 @@ class SceneSpec:
             _check_vec(f"obstacles[{i}].center", c.center, dim)
             if isinstance(c, Box):
                 _check_vec(f"obstacles[{i}].half_extents", c.half_extents, dim, positive=True)
+                if c.angle_deg is not None and not (_is_number(c.angle_deg) and math.isfinite(c.angle_deg)):
+                    raise InvalidInputError(f"obstacles[{i}].angle_deg: must be a finite number [°], got {c.angle_deg!r}", f"obstacles[{i}].angle_deg")
+                if c.rotation is not None:
+                    rot = np.asarray(c.rotation, np.float64)
+                    if rot.shape != (dim, dim) or not np.isfinite(rot).all() or not np.allclose(rot @ rot.T, np.eye(dim), atol=1e-5):
+                        raise InvalidInputError(f"obstacles[{i}].rotation: must be a finite orthonormal {dim}×{dim} matrix", f"obstacles[{i}].rotation")
             elif not (isinstance(c.radius, (int, float)) and math.isfinite(c.radius) and c.radius > 0):
                 raise InvalidInputError(f"obstacles[{i}].radius: must be a finite number > 0", f"obstacles[{i}].radius")
         blocks_raw = d.get("blocks")
