@@ -258,3 +258,49 @@ def test_neural_history_errors_name_the_field(water_model):
     with pytest.raises(InvalidInputError) as e:
         sim.set_history(bad)
     assert e.value.field == "history"
+
+
+# ------------------------------------------------------------------ threads
+def test_a_simulator_shared_by_two_threads_steps_and_reads_consistently(water_model):
+    import threading
+    import time
+
+    scene = make_scene("water2d", seed=1002)
+    want = rollout(HybridSimulator(scene, water_model, mpm_threads=1), 120).positions  # the same run, alone
+    sim = HybridSimulator(scene, water_model, mpm_threads=1)
+    errors: list[BaseException] = []
+    seen: list[Frame] = []
+    done = threading.Event()
+
+    def stepper() -> None:
+        try:
+            for _ in range(30):
+                sim.advance()
+                time.sleep(0.002)  # a paced loop (a real-time session): the lock is not fair, a tight loop would starve the reader
+        except BaseException as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+        finally:
+            done.set()
+
+    def reader() -> None:
+        try:
+            k = 0
+            while not done.is_set():
+                seen.append(sim.frame)  # never waits
+                if k % 5 == 0:
+                    sim.state()  # waits for the step in progress, then a whole-state snapshot
+                k += 1
+                time.sleep(0.0005)
+        except BaseException as e:  # noqa: BLE001
+            errors.append(e)
+
+    threads = [threading.Thread(target=stepper), threading.Thread(target=reader)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=300)
+    assert not errors, errors
+    assert len({fr.step for fr in seen}) > 5
+    for fr in seen:  # every frame read is one the run alone produced at that step
+        assert np.array_equal(fr.positions, want[fr.step])
+    assert np.array_equal(sim.positions, want[-1])

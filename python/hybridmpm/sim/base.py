@@ -11,13 +11,21 @@ acceleration [m/s²] that MPM adds to gravity, given as an array ``[N, D]``
 (fluid particles), as a callable of the frame index returning such an array
 (or None for "no forcing in this frame"), or None. The network cannot apply a
 forcing: the hybrid runs MPM while one is set.
+
+Threads: a simulator may be shared between threads. Its mutating calls
+(``advance``, ``state``, ``restore``, setting ``forcing``) are serialised by
+a per-simulator lock: a second caller waits for the call in progress. Reading
+``frame`` never waits: it is the last completed :class:`Frame`, a snapshot
+whose arrays no later step changes.
 """
 
 from __future__ import annotations
 
+import functools
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol, Union, runtime_checkable
+from typing import Any, Protocol, TypeVar, Union, cast, runtime_checkable
 
 import numpy as np
 
@@ -133,6 +141,25 @@ class Simulator(Protocol):
     def restore(self, state: dict[str, Any]) -> None: ...
 
 
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def serialised(method: _F) -> _F:
+    """Run ``method`` under the instance's re-entrant ``_lock`` (see the module doc)."""
+
+    @functools.wraps(method)
+    def wrapper(self: Any, *args: Any, **kwargs: Any) -> Any:
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return cast(_F, wrapper)
+
+
+def new_lock() -> threading.RLock:
+    """The lock :func:`serialised` methods take (one per simulator)."""
+    return threading.RLock()
+
+
 def check_forcing(value: Forcing, n: int, dim: int) -> Forcing:
     """Validate a forcing for ``n`` fluid particles in ``dim`` dimensions: an
     array becomes float32 [n, dim] (finite); a callable is kept (its results
@@ -170,4 +197,17 @@ def check_int(name: str, value: Any, lo: int) -> int:
     return int(value)
 
 
-__all__ = ["MPM", "NEURAL", "Forcing", "Frame", "NetworkFailure", "SimStats", "Simulator", "check_forcing", "check_int", "resolve_forcing"]
+__all__ = [
+    "MPM",
+    "NEURAL",
+    "Forcing",
+    "Frame",
+    "NetworkFailure",
+    "SimStats",
+    "Simulator",
+    "check_forcing",
+    "check_int",
+    "new_lock",
+    "resolve_forcing",
+    "serialised",
+]

@@ -59,7 +59,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, new_lock, serialised
 from hybridmpm.sim.convert import mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, load_model
@@ -138,6 +138,7 @@ class HybridSimulator:
     ) -> None:
         from hybridmpm.scenes import make_scene
 
+        self._lock = new_lock()
         _check("r_c", _finite(r_c), f"must be a finite number, got {r_c!r}")
         _check("delta", isinstance(delta, int) and not isinstance(delta, bool) and delta >= 1, f"must be an integer >= 1, got {delta!r}")
         _check("dwell", isinstance(dwell, int) and not isinstance(dwell, bool) and dwell >= 1, f"must be an integer >= 1, got {dwell!r}")
@@ -217,6 +218,7 @@ class HybridSimulator:
         return self.mpm.forcing
 
     @forcing.setter
+    @serialised
     def forcing(self, value: Forcing) -> None:
         self.mpm.forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
 
@@ -235,6 +237,7 @@ class HybridSimulator:
         self._calm = 0
         self.stats.switches += 1
 
+    @serialised
     def advance(self) -> Frame:
         """One coarse step (``r_t`` frames); returns its :class:`Frame`.
 
@@ -313,6 +316,7 @@ class HybridSimulator:
         return self._frame
 
     # ------------------------------------------------------------ checkpoint
+    @serialised
     def state(self) -> dict[str, Any]:
         """The whole hybrid state (picklable dict): both simulators' states,
         the position buffer, the solver in charge, counters."""
@@ -333,6 +337,7 @@ class HybridSimulator:
             "n_fluid": self.n_fluid,
         }
 
+    @serialised
     def restore(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state` of this simulator (same scene and model).
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or

@@ -18,7 +18,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t
-from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, resolve_forcing
+from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, resolve_forcing, serialised
 from hybridmpm.sim.convert import neural_to_mpm
 
 _STATE_VERSION = 1
@@ -49,6 +49,7 @@ class MpmSimulator:
     def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0) -> None:
         from hybridmpm.scenes import make_scene
 
+        self._lock = new_lock()
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.r_t = check_r_t(r_t)
@@ -88,6 +89,7 @@ class MpmSimulator:
         return self._forcing
 
     @forcing.setter
+    @serialised
     def forcing(self, value: Forcing) -> None:
         self._forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
         if self._forcing is None and self._applied:
@@ -98,6 +100,7 @@ class MpmSimulator:
         self._applied = False
 
     # ------------------------------------------------------------ stepping
+    @serialised
     def advance(self) -> Frame:
         """Advance ``r_t`` frames; returns their :class:`Frame`. Raises
         :class:`~hybridmpm.errors.SimulationError` if a frame cannot be
@@ -135,6 +138,7 @@ class MpmSimulator:
         )
         return self._frame
 
+    @serialised
     def load_history(self, history: np.ndarray, dt_step: float, **conversion: Any) -> dict[str, Any]:
         """Take over from the network: write the state of a fluid position
         history float32 [T ≥ 2, N, D] (one ``dt_step`` apart) into the solver
@@ -143,6 +147,7 @@ class MpmSimulator:
         return neural_to_mpm(self.solver, history, dt_step, **conversion)
 
     # ------------------------------------------------------------ checkpoint
+    @serialised
     def state(self) -> dict[str, Any]:
         """The whole state (picklable dict): solver checkpoint, step counter,
         stats and an array forcing (a callable forcing is not saved)."""
@@ -156,6 +161,7 @@ class MpmSimulator:
             "applied": self._applied,
         }
 
+    @serialised
     def restore(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state` of a simulator of the same scene.
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or

@@ -33,7 +33,7 @@ from hybridmpm.graph import radius_graph
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int, new_lock, serialised
 from hybridmpm.sim.mpm import MpmSimulator
 
 _STATE_VERSION = 1
@@ -122,6 +122,7 @@ class NeuralSimulator:
 
         from hybridmpm.scenes import make_scene
 
+        self._lock = new_lock()
         for name, v, lo, closed in (
             ("ke_factor", ke_factor, 0.0, False),
             ("escape_cells", escape_cells, 0.0, True),
@@ -212,6 +213,7 @@ class NeuralSimulator:
         return None
 
     @forcing.setter
+    @serialised
     def forcing(self, value: Forcing) -> None:
         if value is not None:
             raise InvalidInputError(
@@ -220,6 +222,7 @@ class NeuralSimulator:
             )
 
     # ------------------------------------------------------------ network steps
+    @serialised
     def set_history(self, fluid_history: np.ndarray) -> None:
         """Start the network from fluid positions float [T_in, N, D] (oldest
         first, one coarse step apart). Raises :class:`InvalidInputError`
@@ -258,6 +261,7 @@ class NeuralSimulator:
                 nxt = np.clip(nxt, self._lo, self._hi)
         return nxt
 
+    @serialised
     def propose(self) -> Proposal:
         """Predict the next network step without taking it (failure checks
         included when ``detect_failures``). Raises :class:`InvalidInputError`
@@ -279,6 +283,7 @@ class NeuralSimulator:
                 graph = (s_next, r_next)
         return Proposal(acc, nxt, clipped, graph, failure)
 
+    @serialised
     def commit(self, proposal: Proposal) -> np.ndarray:
         """Take a proposed step (one without failure): append its positions to
         the history; returns them, float32 [N + B, D]. Raises
@@ -291,6 +296,7 @@ class NeuralSimulator:
         self.stats.steps[NEURAL] += 1
         return self._history[-1]
 
+    @serialised
     def advance(self) -> Frame:
         """One coarse step: MPM during the warm-up, then the network. Raises
         :class:`~hybridmpm.sim.base.NetworkFailure` for a rejected network
@@ -321,6 +327,7 @@ class NeuralSimulator:
         return fr
 
     # ------------------------------------------------------------ checkpoint
+    @serialised
     def state(self) -> dict[str, Any]:
         """The whole state (picklable dict): history (or the warm-up's MPM
         state and positions), step counter, stats."""
@@ -336,6 +343,7 @@ class NeuralSimulator:
             "frame_solver": self._frame.solver,
         }
 
+    @serialised
     def restore(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state` of a simulator of the same scene and model.
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or
