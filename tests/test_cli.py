@@ -54,3 +54,38 @@ def test_simulate_a_scene_with_obstacles_writes_boundary_particles_and_renders(t
     )
     summary = json.loads((low / "summary.json").read_text())
     assert summary["particles"] == round(0.5 * n) and summary["r_p"] == 0.5
+
+
+def test_control_command_writes_its_outputs(tmp_path):
+    sketch = tmp_path / "arrow.json"
+    sketch.write_text(json.dumps({"kind": "arrow", "points": [[0.3, 0.2], [0.5, 0.3]]}))
+    out = tmp_path / "ctl"
+    assert (
+        main(
+            [
+                "control",
+                "water2d",
+                "--sketch",
+                str(sketch),
+                "--method",
+                "constant",
+                "--frames",
+                "20",
+                "--from-frame",
+                "8",
+                "--out",
+                str(out),
+                "--quiet",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"] == 20 and s["method"] == "constant" and s["cosine"] > 0.5
+    assert (out / "render.gif").read_bytes()[:3] == b"GIF" and (out / "sketch.png").read_bytes()[:4] == b"\x89PNG"
+    traj = np.load(out / "trajectory.npz")
+    assert traj["positions"].shape[0] == 6  # 20 frames at the hybrid's r_t = 4, plus the start
+    (tmp_path / "bad.json").write_text('{"kind": "spiral", "points": [[0, 0], [1, 1]]}')
+    assert main(["control", "water2d", "--sketch", str(tmp_path / "bad.json"), "--out", str(out), "--quiet"]) == 2

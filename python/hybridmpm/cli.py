@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import R_C
+from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.trajectory import Trajectory
 
@@ -271,6 +271,51 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _control(args: argparse.Namespace) -> int:
+    """``hybridmpm control``: a sketch applied to a scene's fluid (:func:`hybridmpm.control.control_episode`)."""
+    from PIL import Image
+
+    from hybridmpm.control import Controller, Sketch, control_episode, render_sketch
+    from hybridmpm.render import render_gif
+    from hybridmpm.scenes import make_scene
+    from hybridmpm.sim import make_simulator, rollout
+
+    try:
+        text = Path(args.sketch).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise InvalidInputError(f"sketch: {args.sketch} is not a JSON text file", "sketch") from e
+    sketch = Sketch.from_json(text)
+    controller = Controller(args.method, frames=args.frames)
+    if args.from_frame < 0:
+        raise InvalidInputError(f"from_frame: must be >= 0, got {args.from_frame}", "from_frame")
+    out = _out_dir(args.out)
+    scene = make_scene(args.scene, seed=args.seed)
+    sim = make_simulator(scene, args.solver, seed=args.seed, threads=args.threads)
+    rollout(sim, args.from_frame, progress=None if args.quiet else f"{scene.name} [{args.solver}] to frame {args.from_frame}")
+    ep = control_episode(sim, sketch, controller, progress=None if args.quiet else f"{scene.name} [control: {args.method}]")
+    ro = ep.rollout
+    ro.save(out / "trajectory.npz")
+    summary = {
+        "scene": scene.name, "seed": args.seed, "solver": args.solver, "method": args.method, "from_frame": args.from_frame,
+        "frames": ro.frames_done, "particles": sim.particles.num_fluid, "sketch": sketch.to_json(), **ep.metrics,
+    }  # fmt: skip
+    _write_json(out / "summary.json", summary)
+    Image.fromarray(render_sketch(sketch, size=256)).save(out / "sketch.png")
+    if not args.no_render:
+        line = np.concatenate([sketch.points, sketch.points[:1]]) if sketch.kind == "oval" else sketch.points
+        render_gif(ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=f"{scene.name} ({args.method})", overlay=[line])
+    if not args.quiet:
+        m = ep.metrics
+        adherence = (
+            f"cosine {m['cosine']:.2f}, length ratio {m['length_ratio']:.2f}" if sketch.kind == "arrow" else f"inside {m['inside']:.0%}, IoU {m['iou']:.2f}"
+        )
+        print(
+            f"{scene.name}: {args.method} control over {ro.frames_done} frames from frame {args.from_frame}: {adherence}; "
+            f"effort mean {m['effort_mean_g']:.1f} g; plan {m['plan_ms']:.1f} ms, episode {m['episode_ms']:.0f} ms -> {out}/"
+        )
+    return 0
+
+
 def _stress(args: argparse.Namespace) -> int:
     from hybridmpm.bench.stress import CASES, METHODS, markdown_table, stress
 
@@ -380,6 +425,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)
+    co = sub.add_parser("control", help="apply a sketch (arrow or oval, JSON) to a scene's fluid; writes trajectory.npz, summary.json, render.gif, sketch.png")
+    co.add_argument("scene", nargs="?", default="water2d", help="a scene or scene file (default water2d)")
+    co.add_argument("--sketch", required=True, help='sketch JSON: {"kind": "arrow"|"oval", "points": [[x, y], ...]} in domain coordinates, y up')
+    co.add_argument("--method", default="constant", choices=["none", "constant", "pd"], help="controller (default constant; diffusion to come)")
+    co.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm"], help="simulator (control always runs on its MPM; default hybrid)")
+    co.add_argument("--from-frame", type=int, default=40, help="frames simulated before the sketch applies (default 40)")
+    co.add_argument("--frames", type=int, default=T_CTR, help=f"control horizon T_ctr in frames (default {T_CTR})")
+    co.add_argument("--seed", type=_seed, default=0, help="seed of the scene's initial condition")
+    co.add_argument("--threads", type=int, default=0, help="MPM threads (0 = all cores)")
+    co.add_argument("--out", default="runs/control", help="output directory (default runs/control)")
+    co.add_argument("--no-render", action="store_true", help="skip render.gif")
+    co.add_argument("--quiet", action="store_true")
+    co.set_defaults(func=_control)
     st = sub.add_parser("stress", help="neural-only, MPM-only and hybrid through failure cases over long rollouts; writes a table")
     st.add_argument("scene", help="registered scene (its shipped model is used unless --model)")
     st.add_argument("--frames", type=int, default=1000, help="frames per rollout (default 1000)")

@@ -26,6 +26,7 @@ def render_gif(
     size_px: int = 360,
     title: str = "",
     frame_solver: np.ndarray | None = None,
+    overlay: list[np.ndarray] | None = None,
 ) -> Path:
     """Write ``positions`` [T, N, D] as an animated GIF at ``path``.
 
@@ -33,7 +34,8 @@ def render_gif(
     At most ``max_frames`` evenly spaced frames are drawn. ``frame_solver``
     [T] of "mpm" / "neural" tints each frame by the solver that produced it
     (MPM: warm background, neural: cool) and names it in the title.
-    Returns the path.
+    ``overlay`` polylines [P, 2] (domain coordinates, e.g. a sketch) are drawn
+    over every frame. Returns the path.
     """
     import imageio.v3 as iio
     import matplotlib
@@ -61,6 +63,8 @@ def render_gif(
         else:
             order = np.argsort(-p[:, 2])
             ax.scatter(p[order, 0], p[order, 1], s=1.0, c=p[order, 2], cmap="Blues_r", vmin=0, vmax=1, linewidths=0)
+        for line in overlay or []:
+            ax.plot(line[:, 0], line[:, 1], color="#d62728", lw=1.5, alpha=0.8)
         ax.set_xlim(0, 1)
         ax.set_ylim(0, 1)
         ax.set_aspect("equal")

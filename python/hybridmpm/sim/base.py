@@ -111,7 +111,9 @@ class Simulator(Protocol):
     ``particles`` its :class:`ParticleSet`; ``r_t`` frames per coarse step;
     ``dt_frame`` [s]; ``step_index`` coarse steps taken; ``frame`` the
     current :class:`Frame` (the initial condition before the first step);
-    ``stats`` the run's :class:`SimStats`; ``forcing`` see the module doc.
+    ``stats`` the run's :class:`SimStats`; ``forcing`` see the module doc;
+    ``positions`` float32 [N + B, D] and ``velocities`` (fluid) float32 [N, D]
+    of the current state.
     """
 
     kind: str
@@ -124,6 +126,9 @@ class Simulator(Protocol):
 
     @property
     def positions(self) -> np.ndarray: ...
+
+    @property
+    def velocities(self) -> np.ndarray: ...
 
     @property
     def frame(self) -> Frame: ...

@@ -198,6 +198,14 @@ class HybridSimulator:
         return self._frame
 
     @property
+    def velocities(self) -> np.ndarray:
+        """Current fluid velocities [m/s], float32 [N, D]: MPM's when MPM made
+        the last step, else the network's last finite difference."""
+        if self._frame.solver == NEURAL:
+            return self.neural.velocities
+        return self.mpm.velocities
+
+    @property
     def mean_degree(self) -> float:
         """Mean neighbours per particle of the network's graph for its next step; nan when the next step is MPM's."""
         return self.neural.mean_degree if self.solver_name == NEURAL else float("nan")

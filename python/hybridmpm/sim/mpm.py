@@ -78,6 +78,11 @@ class MpmSimulator:
         return self.particles.pad(self.fluid_positions)
 
     @property
+    def velocities(self) -> np.ndarray:
+        """Current fluid velocities [m/s], float32 [N, D] (the solver's)."""
+        return np.asarray(self.solver.velocities, np.float32).copy()
+
+    @property
     def frame(self) -> Frame:
         """The last :class:`Frame` (the initial condition before the first step)."""
         return self._frame

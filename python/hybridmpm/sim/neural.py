@@ -187,6 +187,16 @@ class NeuralSimulator:
         return self._frame
 
     @property
+    def velocities(self) -> np.ndarray:
+        """Current fluid velocities [m/s], float32 [N, D]: the last step's
+        finite difference (the warm-up MPM's velocities before the network runs)."""
+        if self._history is None:
+            assert self._warmup is not None
+            return self._warmup.velocities
+        n = self.particles.num_fluid
+        return ((self._history[-1, :n].astype(np.float64) - self._history[-2, :n]) / self.dt_step).astype(np.float32)
+
+    @property
     def history(self) -> np.ndarray | None:
         """The network's input, float32 [T_in, N + B, D] (a copy), or None during the warm-up."""
         return None if self._history is None else self._history.copy()

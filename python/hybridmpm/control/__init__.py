@@ -1,0 +1,42 @@
+"""Sketch control (paper Sec. 3.2, App. B–D): a user's arrow or oval and the
+current fluid state → external accelerations that MPM applies over the next
+``T_ctr`` frames.
+
+* :mod:`~hybridmpm.control.sketch` — the sketch format and the one rasteriser;
+* :mod:`~hybridmpm.control.reverse` — control targets by reverse simulation
+  (the paper's kinematic formula and a tracking variant solved through MPM),
+  smoothing;
+* :mod:`~hybridmpm.control.controller` — :class:`Controller` (none, constant
+  force, PD attraction, oracle replay; the diffusion model to come) making
+  :class:`Plan` s, which are simulator forcings;
+* :mod:`~hybridmpm.control.episode` — one controlled episode with its metrics.
+
+>>> from hybridmpm.control import Controller, Sketch
+>>> plan = Controller("constant").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
+>>> sim.forcing = plan      # MPM applies it for the next T_ctr frames
+"""
+
+from hybridmpm.control.controller import METHODS, Controller, Plan, pd_targets
+from hybridmpm.control.episode import Episode, control_episode
+from hybridmpm.control.metrics import control_metrics
+from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
+from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_trajectory
+
+__all__ = [
+    "A_MAX",
+    "KINDS",
+    "METHODS",
+    "Controller",
+    "Episode",
+    "Plan",
+    "Sketch",
+    "clip_norm",
+    "control_episode",
+    "control_metrics",
+    "pd_targets",
+    "render_sketch",
+    "reverse_kinematic",
+    "reverse_tracking",
+    "sketch_from_trajectory",
+    "smooth",
+]

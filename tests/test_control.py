@@ -1,0 +1,255 @@
+"""Sketch control: reverse-simulation identities, sketches and their
+rasteriser, the baselines against kinematics, metrics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hybridmpm.control import (
+    A_MAX,
+    Controller,
+    Sketch,
+    control_episode,
+    render_sketch,
+    reverse_kinematic,
+    reverse_tracking,
+    sketch_from_trajectory,
+    smooth,
+)
+from hybridmpm.control.metrics import arrow_adherence, oval_adherence
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmParams
+from hybridmpm.scenes import Scene, lattice, make_scene
+from hybridmpm.sim import MpmSimulator, rollout
+
+G = np.array([0.0, -9.8])
+DT = 2.5e-3
+
+
+# ---------------------------------------------------------------- reverse simulation
+def test_the_kinematic_reverse_field_replays_the_forward_run_backwards_exactly():
+    rng = np.random.default_rng(0)
+    forward = 0.5 + np.cumsum(rng.normal(0, 1e-3, (30, 7, 2)), axis=0)  # X_1 … X_T
+    v_end = (forward[-1] - forward[-2]) / DT
+    a = reverse_kinematic(forward, v_end, DT, G, a_max=None).astype(np.float64)
+    assert a.shape == (29, 7, 2)
+    # symplectic Euler, as MPM's g2p: v <- v + (a + g) dt, p <- p + v dt, from X_T with the velocity negated
+    p, v = forward[-1].copy(), -v_end
+    visited = [p.copy()]
+    for k in range(len(a)):
+        v = v + (a[k] + G) * DT
+        p = p + v * DT
+        visited.append(p.copy())
+    np.testing.assert_allclose(np.array(visited), forward[::-1], atol=1e-9)  # y_k = X_{T-k}: ends on X_1
+
+
+def test_a_reversed_free_fall_needs_no_control_after_its_first_frame():
+    # forward: falling from rest. Reversed, the fluid rises and decelerates under gravity alone; the
+    # second difference of a parabola is exact, so only the first frame (where the velocity is
+    # handed over, not differenced) and float round-off need control
+    t = np.arange(20)[:, None, None] * DT
+    fall = np.array([[0.5, 0.8]]) + 0.5 * G * t**2
+    v_end = (fall[-1] - fall[-2]) / DT
+    a = reverse_kinematic(fall, v_end, DT, G, a_max=None)
+    assert np.abs(a[1:]).max() < 1e-3
+    assert np.abs(reverse_kinematic(fall, v_end, DT, G, a_max=1.0)).max() <= 1.0 + 1e-6
+
+
+def test_smoothing_follows_the_paper_and_lambda_zero_is_the_identity():
+    rng = np.random.default_rng(1)
+    a = rng.normal(0, 10, (5, 4, 2)).astype(np.float32)
+    assert np.array_equal(smooth(a, lam=0.0), a)
+    s = smooth(a, lam=0.1, beta=2.0)
+    assert np.array_equal(s[-1], a[-1])  # the last frame has no successor
+    u, w = a[1].astype(np.float64), a[2].astype(np.float64)
+    cos = (u * w).sum(-1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(w, axis=-1)
+    np.testing.assert_allclose(s[1], u - 0.1 * np.exp(-2.0 * cos)[:, None] * (u - w), rtol=1e-5)
+    assert np.linalg.norm(np.diff(s, axis=0)) < np.linalg.norm(np.diff(a, axis=0))  # smoother
+
+
+def _moving_state(seed: int = 3, frames: int = 30) -> tuple[MpmSimulator, np.ndarray, np.ndarray]:
+    """A clustered water2d state in flow, then a forward run X_1..X_T and the velocity at X_T."""
+    sim = MpmSimulator(make_scene("water2d", seed=seed), r_p=0.3, seed=seed, threads=1)
+    rollout(sim, 40)
+    start = sim.state()
+    forward = rollout(sim, frames - 1).fluid_positions.astype(np.float64)
+    v_end = sim.velocities
+    sim.restore(start)
+    return sim, forward, v_end
+
+
+def test_tracking_lands_the_replay_much_closer_to_x1_than_the_kinematic_field():
+    sim, forward, v_end = _moving_state()
+    scene_g = np.array([0.0, -9.8])
+
+    def reversed_start() -> MpmSimulator:
+        s = MpmSimulator(sim.scene, threads=1)
+        s.solver.positions = forward[-1].astype(np.float32)
+        s.solver.velocities = (-v_end).astype(np.float32)
+        return s
+
+    kin = reverse_kinematic(forward, v_end, DT, scene_g)
+    replay = reversed_start()
+    replay.forcing = lambda f: kin[f] if f < len(kin) else None
+    end_kin = replay.particles.fluid(rollout(replay, len(kin)).positions[-1])
+    tracked = reverse_tracking(reversed_start(), forward)
+    replay = reversed_start()
+    replay.forcing = lambda f: tracked[f] if f < len(tracked) else None
+    end_trk = replay.particles.fluid(rollout(replay, len(tracked)).positions[-1])
+    miss_kin = np.abs(end_kin - forward[0]).mean()
+    miss_trk = np.abs(end_trk - forward[0]).mean()
+    assert miss_trk < 0.2 * miss_kin, (miss_trk, miss_kin)
+    assert np.linalg.norm(tracked, axis=-1).max() <= A_MAX * (1 + 1e-6)
+
+
+# ----------------------------------------------------------------------- sketches
+def _ink_axis(img: np.ndarray, channel: int) -> tuple[np.ndarray, float]:
+    rows, cols = np.nonzero(img[:, :, channel] > 64)
+    pts = np.stack([cols + 0.5, img.shape[0] - (rows + 0.5)], -1).astype(np.float64)  # back to y up
+    c = pts.mean(0)
+    vals, vecs = np.linalg.eigh(np.cov((pts - c).T))
+    return c / img.shape[0], math.degrees(math.atan2(vecs[1, -1], vecs[0, -1]))
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 90.0, 145.0, 260.0])
+def test_a_rendered_arrow_points_where_it_was_drawn_with_y_up(angle):
+    c = np.array([0.5, 0.5])
+    d = 0.3 * np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
+    img = render_sketch(Sketch.arrow(c - d, c + d), size=128)
+    centre, axis = _ink_axis(img, 0)
+    diff = (axis - angle) % 180.0
+    assert min(diff, 180.0 - diff) < 3.0
+    head, _ = _ink_axis(img, 1)  # the head sits at the tip, not the tail
+    assert np.linalg.norm(head - (c + d)) < np.linalg.norm(head - (c - d))
+
+
+def test_a_rendered_oval_keeps_its_centre_and_radii():
+    sk = Sketch.oval([0.4, 0.6], [0.2, 0.1], angle=0.5)
+    c, r, ang = sk.ellipse()
+    np.testing.assert_allclose(c, [0.4, 0.6], atol=1e-3)
+    np.testing.assert_allclose(r, [0.2, 0.1], rtol=0.02)
+    assert abs(math.sin(ang - 0.5)) < 0.02
+    img = render_sketch(sk, size=128)
+    centre, axis = _ink_axis(img, 2)
+    np.testing.assert_allclose(centre, [0.4, 0.6], atol=0.01)
+    assert abs(math.sin(math.radians(axis) - 0.5)) < 0.05
+    assert not render_sketch(None).any()  # the blank sketch
+    # drawn by hand: sampled unevenly (slow on one side), wobbly, not quite closed
+    rng = np.random.default_rng(3)
+    th = np.sort(rng.uniform(0, 1.9 * np.pi, 80) ** 1.3 / (1.9 * np.pi) ** 0.3)
+    pts = np.stack([0.4 + 0.2 * np.cos(th), 0.6 + 0.1 * np.sin(th)], -1) + rng.normal(0, 0.003, (80, 2))
+    c, r, _ = Sketch("oval", pts).ellipse()
+    np.testing.assert_allclose(c, [0.4, 0.6], atol=0.01)
+    np.testing.assert_allclose(r, [0.2, 0.1], rtol=0.06)
+
+
+def test_sketch_json_round_trips_and_bad_fields_are_named():
+    sk = Sketch.from_json({"kind": "arrow", "points": [[0.1, 0.2], [0.5, 0.7]], "t": [0.0, 0.3], "width": [0.01, 0.02]})
+    assert Sketch.from_json(sk.to_json()).to_json() == sk.to_json()
+    for bad, field in [
+        ({"kind": "spiral", "points": [[0, 0], [1, 1]]}, "kind"),
+        ({"kind": "arrow", "points": [[0, 0]]}, "points"),
+        ({"kind": "arrow", "points": [[0, 0], [float("nan"), 1]]}, "points"),
+        ({"kind": "arrow", "points": [[0, 0], [9, 1]]}, "points"),
+        ({"kind": "arrow", "points": [[0.5, 0.5], [0.5, 0.5]]}, "points"),
+        ({"kind": "arrow", "points": [[0, 0], [1, 1]], "t": [1, 0]}, "t"),
+        ({"kind": "arrow", "points": [[0, 0], [1, 1]], "width": [0.01]}, "width"),
+        ({"kind": "arrow", "points": [[0, 0], [1, 1]], "colour": "red"}, "colour"),
+        ({"points": [[0, 0], [1, 1]]}, "kind"),
+        ("{nope", "sketch"),
+    ]:
+        with pytest.raises(InvalidInputError) as e:
+            Sketch.from_json(bad)
+        assert e.value.field == field, bad
+
+
+def test_training_sketches_follow_the_centroids_and_principal_axes():
+    rng = np.random.default_rng(2)
+    start = rng.normal([0.3, 0.3], 0.02, (4000, 2))
+    end = rng.normal([0.6, 0.5], [0.08, 0.02], (4000, 2))
+    arrow = sketch_from_trajectory(start, end, "arrow")
+    np.testing.assert_allclose(arrow.start, start.mean(0)) and np.testing.assert_allclose(arrow.end, end.mean(0))
+    oval = sketch_from_trajectory(start, end, "oval")
+    c, r, ang = oval.ellipse()
+    np.testing.assert_allclose(c, [0.6, 0.5], atol=5e-3)
+    np.testing.assert_allclose(r, [0.16, 0.04], rtol=0.05)  # ±2σ
+    assert abs(math.sin(ang)) < 0.05
+    # 3D: depth drawn as width, nearer (larger z) wider; constant when z does not change
+    s3 = np.c_[start, np.full(len(start), 0.5)]
+    e3 = np.c_[end, np.full(len(end), 0.7)]
+    w = sketch_from_trajectory(s3, e3, "arrow").width
+    assert w is not None and w[1] > w[0]
+    w = sketch_from_trajectory(s3, np.c_[end, np.full(len(end), 0.5)], "arrow").width
+    assert w is not None and w[0] == w[1]
+
+
+# ---------------------------------------------------------------------- baselines
+def _blob() -> Scene:
+    p = MpmParams(dim=2)
+    x = lattice([0.4, 0.5], [0.5, 0.6], 0.5 / 128)
+    return Scene("blob", p, x, np.zeros(len(x), np.int32), np.zeros_like(x))
+
+
+def test_the_constant_force_lands_a_free_clouds_centroid_on_the_arrow_tip():
+    sim = MpmSimulator(_blob(), threads=1)
+    c0 = sim.particles.fluid(sim.positions).mean(0)
+    sk = Sketch.arrow(c0, c0 + np.array([0.15, 0.1]))
+    ep = control_episode(sim, sk, Controller("constant", frames=60))
+    end = sim.particles.fluid(sim.positions).mean(0)
+    np.testing.assert_allclose(end, sk.end, atol=2e-3)  # free cloud, no wall touched: kinematics
+    assert ep.metrics["cosine"] > 0.999 and abs(ep.metrics["length_ratio"] - 1) < 0.02
+    assert ep.metrics["smoothness"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("method", ["constant", "pd"])
+def test_a_flipped_arrow_flips_the_motion_and_no_sketch_no_effort(method):
+    def run(vec):  # type: ignore[no-untyped-def]
+        sim = MpmSimulator(_blob(), threads=1)
+        c = sim.particles.fluid(sim.positions).mean(0)
+        return control_episode(sim, Sketch.arrow(c, c + vec), Controller(method, frames=40))
+
+    a = run(np.array([0.1, 0.05]))
+    b = run(np.array([-0.1, -0.05]))
+    assert a.metrics["cosine"] > 0.9 and b.metrics["cosine"] > 0.9
+    sim = MpmSimulator(_blob(), threads=1)
+    none = control_episode(sim, None, Controller("none", frames=40))
+    assert none.metrics["effort_mean_g"] == 0.0
+    with pytest.raises(InvalidInputError) as e:
+        Controller(method).plan(sim, None)
+    assert e.value.field == "sketch"
+
+
+def test_pd_fills_a_drawn_oval():
+    sim = MpmSimulator(_blob(), threads=1)
+    sk = Sketch.oval([0.6, 0.4], [0.12, 0.05], angle=0.3)
+    ep = control_episode(sim, sk, Controller("pd"))
+    assert ep.metrics["inside"] > 0.8
+    end = sim.particles.fluid(sim.positions)
+    assert oval_adherence(end, sk)["inside"] == ep.metrics["inside"]
+    assert np.isfinite(end).all()
+
+
+def test_the_same_state_and_sketch_give_a_bitwise_equal_episode():
+    runs = []
+    for _ in range(2):
+        sim = MpmSimulator(make_scene("water2d", seed=7), threads=1)
+        rollout(sim, 20)
+        runs.append(control_episode(sim, Sketch.oval([0.5, 0.3], [0.1, 0.1]), Controller("pd", frames=30)).rollout.positions)
+    assert np.array_equal(runs[0], runs[1])
+
+
+def test_controllers_refuse_bad_settings():
+    for kw, field in [({"method": "magic"}, "method"), ({"method": "diffusion"}, "method"), ({"frames": 0}, "frames"), ({"method": "oracle"}, "oracle")]:
+        with pytest.raises(InvalidInputError) as e:
+            Controller(**kw)
+        assert e.value.field == field
+
+
+def test_arrow_adherence_by_hand():
+    start = np.zeros((3, 2))
+    end = start + np.array([0.0, 0.2])
+    m = arrow_adherence(start, end, Sketch.arrow([0.1, 0.1], [0.1, 0.5]))
+    assert m["cosine"] == pytest.approx(1.0) and m["length_ratio"] == pytest.approx(0.5)
