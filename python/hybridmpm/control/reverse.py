@@ -92,7 +92,7 @@ def smooth(a: np.ndarray, lam: float = SMOOTH_LAMBDA, beta: float = SMOOTH_BETA)
     return out.astype(np.float32)
 
 
-def reverse_tracking(sim: Any, forward: np.ndarray, a_max: float = A_MAX, iterations: int = 2) -> np.ndarray:
+def reverse_tracking(sim: Any, forward: np.ndarray, a_max: float = A_MAX, iterations: int = 2, lam: float = 0.0, beta: float = SMOOTH_BETA) -> np.ndarray:
     """Control accelerations solved through MPM, frame by frame.
 
     ``sim`` an :class:`~hybridmpm.sim.MpmSimulator` (``r_t = 1``) holding the
@@ -102,9 +102,13 @@ def reverse_tracking(sim: Any, forward: np.ndarray, a_max: float = A_MAX, iterat
     (first: no control), and the guess is corrected by the miss
     ``(y_{k+1} − p̂)/(c·Δt²)`` with ``c = (n + 1)/(2n)`` for ``n`` substeps
     (the displacement a constant acceleration causes under symplectic Euler),
-    ``iterations`` times; then the frame is run for real. The simulator ends
-    at the controlled state after ``T − 1`` frames. Returns float32 [T − 1, N, D]
-    clipped at ``a_max``."""
+    ``iterations`` times; then the frame is run for real. With ``lam`` > 0 the
+    solved acceleration is pulled towards the previous frame's as App. D
+    smooths (``a − λ·exp(−β cos(a, a_prev))·(a − a_prev)``) *before* it is
+    applied, so that the following frames correct what smoothing costs (the
+    field is smooth and its replay still lands; smoothing a tracking field
+    afterwards does not land). The simulator ends at the controlled state
+    after ``T − 1`` frames. Returns float32 [T − 1, N, D] clipped at ``a_max``."""
     x = _check_trajectory(forward, "forward")
     y = x[::-1]
     n, d = sim.particles.num_fluid, sim.particles.dim
@@ -122,6 +126,8 @@ def reverse_tracking(sim: Any, forward: np.ndarray, a_max: float = A_MAX, iterat
             sim.restore(saved)
             c = (fr.substeps + 1) / (2.0 * max(fr.substeps, 1))
             guess = clip_norm(guess + (y[k + 1] - landed) / (c * dt * dt), a_max)
+        if lam > 0 and k > 0:
+            guess = smooth(np.stack([guess, out[k - 1]]), lam, beta)[0]
         sim.forcing = guess
         sim.advance()
         out[k] = guess

@@ -1,0 +1,116 @@
+#!/usr/bin/env python3
+"""Control baselines on held-out reverse-simulation cases (issue 14; paper Table 4).
+
+    python benchmarks/bench_control.py --scenes water2d,sand2d --cases 50 --out benchmarks/results/control
+
+Per scene, ``--cases`` cases (seeds 5000+, arrows and ovals alternating;
+:func:`hybridmpm.control.data.make_case`): the fluid at the controlled start
+(``X_T`` reversed) and the sketch made from the reverse run; every method
+runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
+
+* ``none`` — no control; ``constant`` — the paper's baseline; ``pd`` — PD
+  attraction; ``oracle`` — the tracking field replayed (the floor a learned
+  controller could reach); ``smoothed`` — the same field smoothed afterwards
+  as the paper's App. D does; ``kinematic`` — the paper's reverse formula
+  replayed (how far the untracked data would land).
+
+Metrics (DESIGN.md): final-shape grid-mass error against ``X_1`` and the
+paper's RMSE_m̃, arrow adherence (cosine, length ratio) or oval adherence
+(fraction inside, IoU), effort (‖a‖/g), smoothness, plan latency (sketch →
+field) and whole-episode latency. Writes ``OUT.json`` (every case) and
+``OUT.md`` (means per scene and method, and the share of cases each method
+beats the constant force on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from hybridmpm.bench.env import environment
+from hybridmpm.control import Controller, control_episode
+from hybridmpm.control.data import make_case
+
+METHODS = ("none", "constant", "pd", "oracle", "smoothed", "kinematic")
+
+
+def run_case(scene: str, seed: int, kind: str) -> dict:
+    t0 = time.perf_counter()
+    case = make_case(scene, seed, kind)
+    rows = {"scene": scene, "seed": seed, "kind": kind, "preroll": case.preroll, "make_s": time.perf_counter() - t0, "methods": {}}
+    frames = len(case.tracking)
+    for m in METHODS:
+        sim = case.simulator()
+        if m == "oracle":
+            ctl = Controller("oracle", frames=frames, oracle=case.target_field)
+        elif m == "kinematic":
+            ctl = Controller("oracle", frames=frames, oracle=case.kinematic)
+        elif m == "smoothed":
+            ctl = Controller("oracle", frames=frames, oracle=case.smoothed_field)
+        else:
+            ctl = Controller(m, frames=frames)
+        ep = control_episode(sim, case.sketch, ctl, target=case.target)
+        rows["methods"][m] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in ep.metrics.items()}
+    return rows
+
+
+def summarise(cases: list[dict]) -> str:
+    lines = []
+    for scene in sorted({c["scene"] for c in cases}):
+        cs = [c for c in cases if c["scene"] == scene]
+        lines += [
+            f"### {scene} ({len(cs)} cases: {sum(c['kind'] == 'arrow' for c in cs)} arrows, {sum(c['kind'] == 'oval' for c in cs)} ovals)",
+            "",
+            "| method | grid-mass error at T_ctr | RMSE_m̃ | arrow cosine | arrow length ratio | oval inside | oval IoU | effort mean / max (g) | smoothness | plan ms p50 / p95 | episode ms p50 | better than constant |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for m in METHODS:
+
+            def col(key: str, kind: str | None = None) -> np.ndarray:
+                vals = [c["methods"][m].get(key) for c in cs if kind is None or c["kind"] == kind]
+                return np.array([v for v in vals if v is not None], np.float64)
+
+            err = col("grid_mass_error")
+            base = np.array([c["methods"]["constant"]["grid_mass_error"] for c in cs])
+            better = float(np.mean(err < base)) if m != "constant" else float("nan")
+            plan = col("plan_ms")
+            lines.append(
+                f"| {m} | {err.mean():.3f} | {col('rmse_m').mean():.2e} | {col('cosine', 'arrow').mean():.2f} | {col('length_ratio', 'arrow').mean():.2f} "
+                f"| {col('inside', 'oval').mean():.2f} | {col('iou', 'oval').mean():.2f} | {col('effort_mean_g').mean():.1f} / {col('effort_max_g').max():.1f} "
+                f"| {np.nanmean(col('smoothness')) if len(col('smoothness')) else float('nan'):.2f} | {np.percentile(plan, 50):.2f} / {np.percentile(plan, 95):.2f} "
+                f"| {np.median(col('episode_ms')):.0f} | {'–' if m == 'constant' else f'{100 * better:.0f}%'} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="water2d,sand2d")
+    ap.add_argument("--cases", type=int, default=50)
+    ap.add_argument("--first-seed", type=int, default=5000)
+    ap.add_argument("--out", default="benchmarks/results/control")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = json.loads(out.with_suffix(".json").read_text())["cases"] if out.with_suffix(".json").is_file() else []
+    have = {(c["scene"], c["seed"]) for c in done}
+    todo = [(s, args.first_seed + i, "arrow" if i % 2 == 0 else "oval") for s in args.scenes.split(",") for i in range(args.cases)]
+    for scene, seed, kind in tqdm([t for t in todo if (t[0], t[1]) not in have], desc="control cases"):
+        done.append(run_case(scene, seed, kind))
+        out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "cases": done}))  # resumable
+    cmd = "python benchmarks/bench_control.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    text = f"Command: `{cmd}`\n\n" + summarise([c for c in done if (c["scene"], c["seed"], c["kind"]) in set(todo)])
+    out.with_suffix(".md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
