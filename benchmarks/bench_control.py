@@ -72,7 +72,7 @@ def summarise(cases: list[dict]) -> str:
         ]
         for m in METHODS:
 
-            def col(key: str, kind: str | None = None) -> np.ndarray:
+            def col(key: str, kind: str | None = None, m: str = m, cs: list = cs) -> np.ndarray:
                 vals = [c["methods"][m].get(key) for c in cs if kind is None or c["kind"] == kind]
                 return np.array([v for v in vals if v is not None], np.float64)
 
