@@ -396,6 +396,22 @@ def _inspect(args: argparse.Namespace) -> int:
     return 1 if info["problems"] else 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    """``hybridmpm serve``: the HTTP service and its page (one process: sessions live in memory)."""
+    try:
+        import uvicorn
+
+        from hybridmpm.service import ServiceConfig, create_app
+    except ImportError as e:
+        raise InvalidInputError(f"serve: needs the service extra (pip install 'hybridmpm[service]'): {e}", "serve") from None
+    cfg = ServiceConfig.from_env(max_sessions=args.max_sessions, idle_ttl_s=args.ttl)
+    print(
+        f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, idle TTL {cfg.idle_ttl_s:g} s)", file=sys.stderr, flush=True
+    )
+    uvicorn.run(create_app(cfg), host=args.host, port=args.port, workers=1, log_level=args.log_level, ws_max_size=1 << 16)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from hybridmpm.scenes import SCENES
 
@@ -527,6 +543,14 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", default=None, help="metrics JSON to write (default: metrics.json next to PRED)")
     ev.add_argument("--quiet", action="store_true", help="no summary")
     ev.set_defaults(func=_evaluate)
+
+    sv = sub.add_parser("serve", help="the HTTP service and its web page (needs the 'service' extra; one process, sessions in memory)")
+    sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    sv.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    sv.add_argument("--max-sessions", type=int, default=None, help="sessions held at once; more get 503 (default 100, env HMPM_MAX_SESSIONS)")
+    sv.add_argument("--ttl", type=float, default=None, help="idle seconds before a session is removed (default 600, env HMPM_IDLE_TTL_S)")
+    sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
+    sv.set_defaults(func=_serve)
     for p in sub.choices.values():
         p.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     return parser

@@ -1,0 +1,604 @@
+"""The FastAPI application: routes under ``/v1``, the frame stream, the page at ``/``.
+
+Errors: every bad field answers 422 in FastAPI's format
+(``{"detail": [{"loc": ["body", FIELD], "msg": ..., "type": ...}]}``), a
+body over its cap 413, an unknown session 404, a full server 503 with
+``Retry-After``, a second control on a session 409, too many controls at
+once 429; an unexpected error is logged and answers a plain 500 (the tests
+fuzz the API to keep that from happening).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import io
+import json
+import logging
+import secrets
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+
+from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.frames import encode_frame
+from hybridmpm.service.schemas import (
+    ControlRequest,
+    ControlResponse,
+    CreateSession,
+    Health,
+    SceneInfo,
+    SessionInfo,
+    StepRequest,
+    StepResponse,
+    clean,
+)
+from hybridmpm.service.sessions import KEEP_CONTROLS, Control, Session, SessionCapError, SessionManager, Viewer, close_ws
+
+log = logging.getLogger("hybridmpm.service")
+STATIC = Path(__file__).parent / "static"
+OCTET = "application/octet-stream"
+NPZ = "application/x-npz"
+CSP = "default-src 'self'; img-src 'self' data:; connect-src 'self'; style-src 'self'; script-src 'self'; object-src 'none'; base-uri 'none'"
+
+Scope = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
+
+
+class FieldError(Exception):
+    """A 422 naming the field at ``loc`` (FastAPI's error format)."""
+
+    def __init__(self, loc: tuple[str, ...], msg: str, status: int = 422, typ: str = "value_error") -> None:
+        super().__init__(msg)
+        self.loc, self.msg, self.status, self.typ = loc, msg, status, typ
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(detail)
+        self.status, self.detail, self.headers = status, detail, headers
+
+
+def _field_error(e: InvalidInputError | CheckpointError, prefix: tuple[str, ...] = ("body",), default: str = "body") -> FieldError:
+    name = getattr(e, "field", None) or default
+    return FieldError((*prefix, str(name)), str(e))
+
+
+async def _send_json(send: Send, status: int, body: dict[str, Any], headers: list[tuple[bytes, bytes]] = ()) -> None:  # type: ignore[assignment]
+    data = json.dumps(body).encode()
+    hdrs = [(b"content-type", b"application/json"), (b"content-length", str(len(data)).encode()), *headers]
+    await send({"type": "http.response.start", "status": status, "headers": hdrs})
+    await send({"type": "http.response.body", "body": data})
+
+
+class BodyLimit:
+    """Pure-ASGI request body cap (413), counting the bytes actually received
+    (chunked bodies without ``Content-Length`` included): checkpoints up to
+    ``max_checkpoint_bytes``, everything else ``max_json_bytes``. Also answers
+    415 for an image upload to ``/controls`` (PNG sketches are not accepted)."""
+
+    def __init__(self, app: Callable[[Scope, Receive, Send], Awaitable[None]], config: ServiceConfig) -> None:
+        self.app, self.config = app, config
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        path, method = scope["path"], scope["method"]
+        limit = self.config.max_checkpoint_bytes if method == "PUT" and path.endswith("/checkpoint") else self.config.max_json_bytes
+        headers = {k.lower(): v for k, v in scope.get("headers", [])}
+        ctype = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+        if method == "POST" and path.endswith("/controls") and (ctype.startswith(b"image/") or ctype == b"multipart/form-data"):
+            msg = "sketch: image uploads are not accepted yet (they need the diffusion controller, which does not ship); send the sketch as a JSON polyline"
+            await _send_json(send, 415, {"detail": [{"loc": ["body", "sketch"], "msg": msg, "type": "unsupported_media_type"}]})
+            return
+        too_big = {"detail": [{"loc": ["body"], "msg": f"request body larger than {limit} bytes", "type": "too_large"}]}
+        cl = headers.get(b"content-length")
+        if cl is not None:
+            try:
+                n = int(cl)
+            except ValueError:
+                n = -1
+            if n > limit:
+                await _send_json(send, 413, too_big)
+                return
+        chunks: list[bytes] = []
+        size = 0
+        more = True
+        while more:
+            msg_ = await receive()
+            if msg_["type"] == "http.disconnect":
+                return
+            body = msg_.get("body", b"")
+            size += len(body)
+            if size > limit:
+                await _send_json(send, 413, too_big)
+                return
+            chunks.append(body)
+            more = bool(msg_.get("more_body", False))
+        data = b"".join(chunks)
+        replayed = False
+
+        async def replay() -> MutableMapping[str, Any]:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": data, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+def _scene_list() -> list[dict[str, Any]]:
+    from hybridmpm.models import shipped_models
+    from hybridmpm.scenes import DOMAINS
+
+    ships = shipped_models()
+    out = []
+    for name, gen in sorted(DOMAINS.items()):
+        spec = gen(seed=0)
+        doc = (gen.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+        has = name in ships
+        out.append(
+            {
+                "name": name,
+                "dim": int(spec.params.dim),
+                "frames": int(spec.frames),
+                "seeded": name != "dam_break2d",
+                "doc": " ".join(doc.split()),
+                "solvers": ["hybrid", "mpm", "neural"] if has else ["mpm"],
+                "model": has,
+            }
+        )
+    return out
+
+
+def _png(img: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _origin_ok(ws: WebSocket, config: ServiceConfig) -> bool:
+    """Same origin as the page (``Origin``'s host:port equals ``Host``), or
+    listed in ``allowed_origins``; no ``Origin`` (not a browser) is allowed."""
+    origin = ws.headers.get("origin")
+    if origin is None:
+        return True
+    if origin in config.allowed_origins:
+        return True
+    try:
+        parts = urlsplit(origin)
+    except ValueError:
+        return False
+    host = ws.headers.get("host", "")
+    return parts.scheme in ("http", "https") and bool(parts.netloc) and parts.netloc.lower() == host.lower()
+
+
+def create_app(config: ServiceConfig | None = None) -> FastAPI:
+    """The ASGI application (``uvicorn --factory hybridmpm.service:create_app``
+    reads :meth:`ServiceConfig.from_env`)."""
+    cfg = config if config is not None else ServiceConfig.from_env()
+    manager = SessionManager(cfg)
+    scenes_cache: list[dict[str, Any]] = []
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        manager.start()
+        try:
+            yield
+        finally:
+            await manager.stop()
+
+    from hybridmpm import __version__
+
+    app = FastAPI(
+        title="hybridmpm service",
+        version=__version__,
+        description="Sessions of the hybrid neural/MLS-MPM simulator: step, stream, control by sketch. In-memory sessions: run one process.",
+        lifespan=lifespan,
+    )
+    app.state.manager = manager
+    app.state.config = cfg
+    app.add_middleware(BodyLimit, config=cfg)  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------ errors
+    @app.exception_handler(RequestValidationError)
+    async def on_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail = [{"loc": [str(x) for x in e.get("loc", ())], "msg": str(e.get("msg", "")), "type": str(e.get("type", "value_error"))} for e in exc.errors()]
+        return JSONResponse({"detail": detail}, status_code=422)
+
+    @app.exception_handler(FieldError)
+    async def on_field(request: Request, exc: FieldError) -> JSONResponse:
+        return JSONResponse({"detail": [{"loc": list(exc.loc), "msg": exc.msg, "type": exc.typ}]}, status_code=exc.status)
+
+    @app.exception_handler(InvalidInputError)
+    async def on_invalid(request: Request, exc: InvalidInputError) -> JSONResponse:
+        return await on_field(request, _field_error(exc))
+
+    @app.exception_handler(ApiError)
+    async def on_api(request: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(Exception)
+    async def on_unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.error("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+        return JSONResponse({"detail": "internal error (logged)"}, status_code=500)
+
+    def session_or_404(sid: str) -> Session:
+        s = manager.get(sid)
+        if s is None:
+            raise ApiError(404, "no such session (unknown, deleted or expired)")
+        return s
+
+    # ------------------------------------------------------------ page
+    @app.get("/", include_in_schema=False)
+    async def page() -> FileResponse:
+        return FileResponse(STATIC / "index.html", headers={"Content-Security-Policy": CSP, "Cache-Control": "no-cache"})
+
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/healthz", response_model=Health)
+    async def healthz() -> dict[str, Any]:
+        return {"status": "ok", "sessions": len(manager.sessions), "max_sessions": cfg.max_sessions, "version": __version__}
+
+    @app.get("/v1/scenes", response_model=list[SceneInfo])
+    async def scenes() -> list[dict[str, Any]]:
+        if not scenes_cache:
+            scenes_cache.extend(await manager.compute(_scene_list))
+        return scenes_cache
+
+    # ------------------------------------------------------------ sessions
+    @app.post("/v1/sessions", status_code=201, response_model=SessionInfo, responses={503: {"description": "session cap reached (Retry-After)"}})
+    async def create_session(body: CreateSession) -> dict[str, Any]:
+        scene = body.scene.value if hasattr(body.scene, "value") else str(body.scene)
+        try:
+            s = await manager.create(scene, body.seed, body.solver, body.r_c)
+        except SessionCapError:
+            raise ApiError(503, f"the server holds its maximum of {cfg.max_sessions} sessions; retry later", {"Retry-After": "30"}) from None
+        return s.info()
+
+    @app.get("/v1/sessions/{sid}", response_model=SessionInfo, responses={404: {"description": "no such session"}})
+    async def get_session(sid: str) -> dict[str, Any]:
+        return session_or_404(sid).info()
+
+    @app.delete("/v1/sessions/{sid}", status_code=204, responses={404: {"description": "no such session"}})
+    async def delete_session(sid: str) -> Response:
+        if not await manager.close(sid, 1000, "deleted"):
+            raise ApiError(404, "no such session (unknown, deleted or expired)")
+        return Response(status_code=204)
+
+    @app.post(
+        "/v1/sessions/{sid}/step",
+        response_model=StepResponse,
+        responses={
+            200: {
+                "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}},
+                "description": "JSON, or float32 [K, N, D] with Accept: application/octet-stream (X-Shape, X-Solvers, X-Seconds headers)",
+            },
+            404: {"description": "no such session"},
+        },
+    )
+    async def step(sid: str, body: StepRequest, request: Request) -> Any:
+        from hybridmpm.sim import rollout
+
+        s = session_or_404(sid)
+        if body.frames > cfg.max_frames:
+            raise FieldError(("body", "frames"), f"frames: at most {cfg.max_frames} per request")
+        t0 = time.perf_counter()
+        async with s.lock:
+            if s.closed:
+                raise ApiError(404, "no such session (unknown, deleted or expired)")
+            ro = await manager.compute(rollout, s.sim, body.frames)
+        latency = (time.perf_counter() - t0) * 1e3
+        s.touch()
+        pos = np.asarray(ro.positions[1:], np.float32)
+        solvers = [str(x) for x in list(ro.solver)[1:]]
+        seconds = [float(x) for x in np.asarray(ro.seconds)[1:]]
+        frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
+        if len(pos):
+            s.publish(s.sim.frame)
+        if OCTET in request.headers.get("accept", ""):
+            headers = {
+                "X-Shape": ",".join(str(x) for x in pos.shape),
+                "X-Solvers": ",".join(solvers),
+                "X-Seconds": ",".join(f"{x:.6g}" for x in seconds),
+                "X-Frames": ",".join(str(x) for x in frames_),
+                "X-Latency-Ms": f"{latency:.3f}",
+            }
+            if ro.failure:
+                headers["X-Failure"] = str(ro.failure)
+            return Response(np.ascontiguousarray(pos, "<f4").tobytes(), media_type=OCTET, headers=headers)
+        r_t, dt = int(s.sim.r_t), float(s.sim.dt_frame)
+        out = []
+        for k in range(len(pos)):
+            fr = frames_[k]
+            out.append(
+                {
+                    "step": fr // r_t,
+                    "frame": fr,
+                    "time": fr * dt,
+                    "solver": solvers[k],
+                    "seconds": seconds[k],
+                    "controlled": False,
+                    "positions": pos[k].tolist(),
+                }
+            )
+        return {"frames": out, "failure": ro.failure, "latency_ms": latency}
+
+    # ------------------------------------------------------------ controls
+    @app.post(
+        "/v1/sessions/{sid}/controls",
+        response_model=ControlResponse,
+        responses={
+            404: {"description": "no such session"},
+            409: {"description": "a control is already running on this session"},
+            415: {"description": "image sketch (not accepted yet)"},
+            429: {"description": "too many controls running (Retry-After)"},
+        },
+    )
+    async def control(sid: str, body: ControlRequest) -> dict[str, Any]:
+        from hybridmpm.control import Controller, Sketch, render_sketch
+
+        t_req = time.perf_counter()
+        s = session_or_404(sid)
+        sketch = None
+        if body.sketch is not None:
+            try:
+                sketch = Sketch.from_json(body.sketch.model_dump(exclude_none=True))
+            except InvalidInputError as e:
+                raise _field_error(e, ("body", "sketch"), "points") from None
+            n_grid = int(s.sim.scene.params.resolved_n_grid())
+            if float(np.linalg.norm(sketch.points.max(0) - sketch.points.min(0))) < 2.0 / n_grid:
+                raise FieldError(("body", "sketch", "points"), f"points: the stroke must span at least 2 grid cells ({2.0 / n_grid:.4g} m)")
+        if body.frames > cfg.max_control_frames:
+            raise FieldError(("body", "frames"), f"frames: at most {cfg.max_control_frames}")
+        try:
+            controller = Controller(body.method, frames=body.frames)
+        except InvalidInputError as e:
+            raise _field_error(e, default="method") from None
+        if sketch is None and body.method != "none":
+            raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")
+        if s.controlling:
+            raise ApiError(409, "a control is already running on this session")
+        if manager.controls_running >= cfg.max_controls:
+            raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})
+        s.controlling = True
+        manager.controls_running += 1
+        cid = secrets.token_urlsafe(9)
+        loop = asyncio.get_running_loop()
+        first: list[float] = []
+        try:
+            s.broadcast({"type": "control", "status": "running", "id": cid, "method": body.method})
+            async with s.lock:
+                if s.closed:
+                    raise ApiError(404, "no such session (unknown, deleted or expired)")
+
+                def run() -> tuple[Any, Any, dict[str, Any]]:
+                    from hybridmpm.control import control_metrics
+                    from hybridmpm.sim import rollout
+
+                    plan = controller.plan(s.sim, sketch)
+                    k0 = int(s.sim.frame.frame)
+
+                    def on_frame(fr: Any) -> None:
+                        if not first:
+                            first.append(time.perf_counter())
+                        loop.call_soon_threadsafe(s.publish, fr, int(fr.frame) - k0)
+
+                    s.sim.forcing = plan
+                    try:
+                        ro = rollout(s.sim, controller.frames, on_frame=on_frame)
+                    finally:
+                        s.sim.forcing = None
+                    fluid = ro.fluid_positions
+                    m = control_metrics(fluid[0], fluid[-1], sketch, plan.applied, None, s.sim.scene.params.resolved_n_grid())
+                    m.update(
+                        {
+                            "plan_ms": plan.seconds * 1e3,
+                            "episode_ms": float(np.asarray(ro.seconds).sum()) * 1e3,
+                            "frames": ro.frames_done,
+                            "failure": ro.failure,
+                        }
+                    )
+                    c0, c1 = fluid[0].mean(0), fluid[-1].mean(0)
+                    m["centroid_start"] = c0.tolist()
+                    m["centroid_end"] = c1.tolist()
+                    m["centroid_displacement"] = (c1 - c0).tolist()
+                    return ro, plan, m
+
+                ro, plan, metrics = await manager.compute(run)
+            png = await manager.compute(lambda: _png(render_sketch(sketch))) if sketch is not None else None
+            pos = np.asarray(ro.positions, np.float32)
+            t_end = time.perf_counter()
+            resp = {
+                "id": cid,
+                "method": body.method,
+                "frames": int(controller.frames),
+                "shape": list(pos.shape),
+                "start_frame": int(np.asarray(ro.frame_index)[0]),
+                "end_frame": int(s.sim.frame.frame),
+                "metrics": clean(metrics),
+                "sketch": clean(sketch.to_json()) if sketch is not None else None,
+                "sketch_png": png,
+                "first_frame_ms": ((first[0] if first else t_end) - t_req) * 1e3,
+                "total_ms": (t_end - t_req) * 1e3,
+                "trajectory": f"/v1/sessions/{sid}/controls/{cid}/trajectory",
+            }
+            s.controls[cid] = Control(cid, body.method, pos, [str(x) for x in ro.solver], resp)
+            while len(s.controls) > KEEP_CONTROLS:
+                s.controls.popitem(last=False)
+            s.broadcast({"type": "control", "status": "done", "id": cid, "metrics": resp["metrics"]})
+            s.touch()
+            return resp
+        finally:
+            s.controlling = False
+            manager.controls_running -= 1
+
+    @app.get("/v1/sessions/{sid}/controls/{cid}", response_model=ControlResponse, responses={404: {"description": "no such session or control"}})
+    async def get_control(sid: str, cid: str) -> dict[str, Any]:
+        c = session_or_404(sid).controls.get(cid)
+        if c is None:
+            raise ApiError(404, "no such control (the last 8 are kept)")
+        return c.response
+
+    @app.get(
+        "/v1/sessions/{sid}/controls/{cid}/trajectory",
+        responses={
+            200: {
+                "content": {NPZ: {}, OCTET: {}},
+                "description": "npz (positions [T+1, N, D], solver, particle_type), or float32 with Accept: application/octet-stream",
+            },
+            404: {"description": "no such session or control"},
+        },
+    )
+    async def get_trajectory(sid: str, cid: str, request: Request) -> Response:
+        s = session_or_404(sid)
+        c = s.controls.get(cid)
+        if c is None:
+            raise ApiError(404, "no such control (the last 8 are kept)")
+        if OCTET in request.headers.get("accept", ""):
+            return Response(
+                np.ascontiguousarray(c.positions, "<f4").tobytes(), media_type=OCTET, headers={"X-Shape": ",".join(str(x) for x in c.positions.shape)}
+            )
+        buf = io.BytesIO()
+        np.savez(buf, positions=c.positions, solver=np.array(c.solver), particle_type=np.asarray(s.sim.particles.particle_type))
+        return Response(buf.getvalue(), media_type=NPZ, headers={"Content-Disposition": f'attachment; filename="control-{cid}.npz"'})
+
+    # ------------------------------------------------------------ checkpoints
+    def _meta(s: Session) -> dict[str, Any]:
+        return {"scene": s.scene, "seed": s.seed, "solver": s.solver_kind, "r_c": s.r_c}
+
+    @app.get(
+        "/v1/sessions/{sid}/checkpoint",
+        responses={
+            200: {"content": {NPZ: {}}, "description": "the whole simulator state (npz of arrays + JSON, no pickle)"},
+            404: {"description": "no such session"},
+        },
+    )
+    async def get_checkpoint(sid: str) -> Response:
+        s = session_or_404(sid)
+        async with s.lock:
+            state = await manager.compute(s.sim.state)
+        data = await manager.compute(ckpt.dumps, state, _meta(s))
+        return Response(data, media_type=NPZ, headers={"Content-Disposition": 'attachment; filename="checkpoint.npz"'})
+
+    @app.put(
+        "/v1/sessions/{sid}/checkpoint",
+        status_code=200,
+        response_model=SessionInfo,
+        openapi_extra={"requestBody": {"required": True, "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}}}},
+        responses={404: {"description": "no such session"}, 413: {"description": "checkpoint too large"}},
+    )
+    async def put_checkpoint(sid: str, request: Request) -> dict[str, Any]:
+        s = session_or_404(sid)
+        data = await request.body()
+        state, meta = await manager.compute(ckpt.loads, data, cfg.max_checkpoint_bytes)
+        if meta != _meta(s):
+            raise FieldError(("body", "checkpoint"), f"checkpoint: written for {clean(meta)!r}, this session is {_meta(s)!r}")
+        async with s.lock:
+            try:
+                await manager.compute(s.sim.restore, state)
+            except (InvalidInputError, CheckpointError) as e:
+                raise FieldError(("body", "checkpoint"), f"checkpoint: {e}") from None
+            except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
+                raise FieldError(("body", "checkpoint"), f"checkpoint: malformed state ({type(e).__name__}: {e})") from None
+        s.publish(s.sim.frame)
+        return s.info()
+
+    # ------------------------------------------------------------ stream
+    async def sender(v: Viewer, s: Session) -> None:
+        gap = 1.0 / cfg.max_fps
+        last = 0.0
+        try:
+            while not v.closed:
+                await v.wake.wait()
+                v.wake.clear()
+                while v.events and not v.closed:
+                    await asyncio.wait_for(v.ws.send_text(json.dumps(clean(v.events.popleft()))), cfg.send_timeout_s)
+                if v.frame is not None and not v.closed:
+                    wait = last + gap - time.monotonic()
+                    if wait > 0:
+                        await asyncio.sleep(wait)  # frames arriving meanwhile overwrite the slot
+                    data, v.frame = v.frame, None
+                    if data is not None:
+                        await asyncio.wait_for(v.ws.send_bytes(data), cfg.send_timeout_s)
+                        v.sent += 1
+                        last = time.monotonic()
+        except asyncio.TimeoutError:
+            log.info("stream of session %s…: send timed out; closing", s.id[:6])
+            s.viewers.discard(v)
+            await close_ws(v, 1011, "send timeout")
+        except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError):
+            pass
+        finally:
+            v.closed = True
+            s.viewers.discard(v)
+
+    @app.websocket("/v1/sessions/{sid}/stream")
+    async def stream(ws: WebSocket, sid: str) -> None:
+        if not _origin_ok(ws, cfg):
+            await ws.close(code=1008, reason="origin not allowed")
+            return
+        s = manager.get(sid)
+        if s is None:
+            await ws.close(code=4004, reason="no such session")
+            return
+        await ws.accept()
+        v = Viewer(ws)
+        s.viewers.add(v)
+        v.event(s.meta())
+        fr = s.sim.frame
+        v.offer(encode_frame(fr.positions, fr.frame, fr.time, fr.solver, fr.controlled))
+        task = asyncio.get_running_loop().create_task(sender(v, s))
+        try:
+            while not v.closed and not s.closed:
+                raw = await ws.receive_text()
+                s.touch()
+                try:
+                    msg = json.loads(raw)
+                    kind = msg.get("type") if isinstance(msg, dict) else None
+                except ValueError:
+                    kind = None
+                if kind == "play":
+                    s.playing = True
+                    manager.ensure_playing(s)
+                elif kind == "pause":
+                    s.playing = False
+                elif kind == "reset":
+                    async with s.lock:
+                        await manager.compute(s.sim.restore, s.initial)
+                    s.publish(s.sim.frame)
+                    s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame)})
+                elif kind == "ping":
+                    v.event({"type": "pong", "t": msg.get("t") if isinstance(msg, dict) else None})
+                else:
+                    v.event({"type": "error", "message": 'unknown message; send {"type": "play" | "pause" | "reset" | "ping"}'})
+        except (WebSocketDisconnect, RuntimeError, KeyError):
+            pass
+        finally:
+            v.closed = True
+            v.wake.set()
+            s.viewers.discard(v)
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
+    return app
+
+
+__all__ = ["ApiError", "BodyLimit", "FieldError", "create_app"]

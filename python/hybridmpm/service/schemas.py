@@ -1,0 +1,131 @@
+"""Request and response bodies of the API (pydantic; they make the OpenAPI schema at ``/docs``)."""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from hybridmpm.conventions import R_C, T_CTR
+from hybridmpm.scenes import DOMAINS
+
+#: Most points of a sketch stroke accepted over HTTP (the page simplifies to ≤ 512).
+MAX_SKETCH_POINTS = 2048
+#: Largest seed.
+MAX_SEED = 2**31 - 1
+
+SceneName = Enum("SceneName", {name: name for name in sorted(DOMAINS)}, type=str)  # type: ignore[misc]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class SceneInfo(BaseModel):
+    name: str
+    dim: int
+    frames: int = Field(description="the scene's default rollout length [frames]")
+    seeded: bool = Field(description="whether the seed changes the initial condition")
+    doc: str
+    solvers: list[str]
+    model: bool = Field(description="whether a trained network ships for the scene (hybrid and neural solvers)")
+
+
+class CreateSession(Strict):
+    scene: SceneName = Field(description="a registered scene name (GET /v1/scenes); never a path")  # type: ignore[valid-type]
+    seed: int = Field(0, ge=0, le=MAX_SEED)
+    solver: Literal["hybrid", "mpm", "neural"] = "hybrid"
+    r_c: float = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
+
+
+class SessionInfo(BaseModel):
+    id: str = Field(description="unguessable session id (128 bits, URL-safe)")
+    scene: str
+    seed: int
+    solver: str
+    r_c: float
+    dim: int
+    num_fluid: int
+    num_particles: int = Field(description="fluid + static boundary particles (the rows of every positions array)")
+    particle_type: list[int] = Field(description="GNS type per particle: 5 water, 6 sand, 3 boundary")
+    bounds: list[list[float]] = Field(description="[[lo...], [hi...]] of the domain [m]")
+    dt_frame: float
+    r_t: int = Field(description="frames per coarse step of the solver")
+    frame: int
+    viewers: int = Field(0, description="WebSocket clients watching the session")
+    stream: str = Field(description="WebSocket path of the frame stream")
+
+
+class StepRequest(Strict):
+    frames: int = Field(1, ge=1, le=100, description="frames to advance (whole coarse steps: ceil(frames / r_t))")
+
+
+class StepFrame(BaseModel):
+    step: int
+    frame: int
+    time: float
+    solver: str
+    seconds: float = Field(description="wall time of the step [s]")
+    controlled: bool
+    positions: list[list[float]]
+
+
+class StepResponse(BaseModel):
+    frames: list[StepFrame]
+    failure: str | None = None
+    latency_ms: float = Field(description="wall time of the whole request's simulation [ms]")
+
+
+class SketchIn(Strict):
+    kind: Literal["arrow", "oval"]
+    points: list[tuple[float, float]] = Field(min_length=2, max_length=MAX_SKETCH_POINTS, description="[[x, y], ...] domain coordinates, y up")
+    t: list[float] | None = Field(None, max_length=MAX_SKETCH_POINTS)
+    width: list[float] | None = Field(None, max_length=MAX_SKETCH_POINTS)
+
+
+class ControlRequest(Strict):
+    sketch: SketchIn | None = None
+    method: Literal["constant", "pd", "none", "diffusion"] = "constant"
+    frames: int = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
+
+
+class ControlResponse(BaseModel):
+    id: str
+    method: str
+    frames: int
+    shape: list[int] = Field(description="[T_ctr + 1, N + B, D] of the trajectory")
+    start_frame: int
+    end_frame: int
+    metrics: dict[str, Any]
+    sketch: dict[str, Any] | None
+    sketch_png: str | None = Field(description="the rendered sketch the controller saw (PNG, base64)")
+    first_frame_ms: float = Field(description="request received → first controlled frame [ms]")
+    total_ms: float
+    trajectory: str = Field(description="path of the trajectory (npz, or float32 with Accept: application/octet-stream)")
+
+
+class Health(BaseModel):
+    status: str
+    sessions: int
+    max_sessions: int
+    version: str
+
+
+def clean(obj: Any) -> Any:
+    """``obj`` with non-finite floats as None and numpy scalars as Python (strict JSON)."""
+    import math
+
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return clean(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
