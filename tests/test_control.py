@@ -253,3 +253,41 @@ def test_arrow_adherence_by_hand():
     end = start + np.array([0.0, 0.2])
     m = arrow_adherence(start, end, Sketch.arrow([0.1, 0.1], [0.1, 0.5]))
     assert m["cosine"] == pytest.approx(1.0) and m["length_ratio"] == pytest.approx(0.5)
+
+
+# ------------------------------------------------------------------ PNG sketches
+def _png(img: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("angle", [0.0, 40.0, 100.0, 200.0, 300.0])
+def test_an_arrow_drawn_in_a_png_reads_back(angle):
+    from hybridmpm.control import sketch_from_png
+
+    c = np.array([0.5, 0.5])
+    d = 0.25 * np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
+    img = 255 - render_sketch(Sketch.arrow(c - d, c + d), size=256).max(-1)  # dark ink on white, as a canvas export
+    sk = sketch_from_png(_png(img))
+    assert sk.kind == "arrow"
+    got = math.degrees(math.atan2(sk.vector[1], sk.vector[0]))
+    assert abs((got - angle + 180) % 360 - 180) < 3.0  # the direction, not just the axis: y up kept
+    np.testing.assert_allclose(sk.end, c + d, atol=0.03)
+
+
+def test_an_oval_drawn_in_a_png_reads_back_and_bad_pngs_are_refused():
+    from hybridmpm.control import sketch_from_png
+
+    sk = sketch_from_png(_png(render_sketch(Sketch.oval([0.4, 0.6], [0.2, 0.1], 0.5), size=256)))
+    c, r, ang = sk.ellipse()
+    assert sk.kind == "oval" and abs(math.sin(ang - 0.5)) < 0.05
+    np.testing.assert_allclose(c, [0.4, 0.6], atol=0.01) and np.testing.assert_allclose(r, [0.2, 0.1], rtol=0.05)
+    for bad in (b"GIF89a...", _png(np.zeros((64, 64), np.uint8)), _png(np.zeros((4096, 4096), np.uint8))):
+        with pytest.raises(InvalidInputError) as e:
+            sketch_from_png(bad)
+        assert e.value.field == "sketch"

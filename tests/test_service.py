@@ -213,9 +213,28 @@ def test_control_nan_points_and_limits(client):
     png = io.BytesIO()
     Image.new("RGB", (64, 64)).save(png, format="PNG")
     r = client.post(url, content=png.getvalue(), headers={"Content-Type": "image/png"})
-    assert r.status_code == 415 and "JSON" in r.json()["detail"][0]["msg"]
+    assert r.status_code == 415 and "sketch_png" in r.json()["detail"][0]["msg"]
     r = client.post(url, files={"file": ("s.png", png.getvalue(), "image/png")})
     assert r.status_code == 415
+    # a PNG travels base64-encoded in the JSON body; a blank or broken one names sketch_png
+    for bad in (base64.b64encode(png.getvalue()).decode(), "not base64!", base64.b64encode(b"GIF89a").decode()):
+        r = client.post(url, json={"sketch_png": bad, "frames": 4})
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "sketch_png"], r.text
+
+
+def test_control_with_a_png_sketch_moves_the_fluid_where_it_points(client):
+    from hybridmpm.control import Sketch, render_sketch
+
+    s = new(client)
+    x0 = np.asarray(client.post(f"/v1/sessions/{s['id']}/step", json={"frames": 1}).json()["frames"][-1]["positions"], np.float64)
+    c = x0[: s["num_fluid"]].mean(0)
+    img = 255 - render_sketch(Sketch.arrow(c, c + np.array([0.2, 0.0])), size=256).max(-1)  # dark ink on white: a canvas export
+    png = io.BytesIO()
+    Image.fromarray(img).save(png, format="PNG")
+    r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch_png": base64.b64encode(png.getvalue()).decode(), "method": "constant", "frames": 40})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["sketch"]["kind"] == "arrow" and body["metrics"]["cosine"] > 0.9
 
 
 def test_control_conflict_409_and_unknown(client):

@@ -20,7 +20,7 @@ from hybridmpm.control.controller import METHODS, Controller, Plan, pd_targets
 from hybridmpm.control.episode import Episode, control_episode
 from hybridmpm.control.metrics import control_metrics
 from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
-from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_trajectory
+from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_image, sketch_from_png, sketch_from_trajectory
 
 __all__ = [
     "A_MAX",
@@ -37,6 +37,8 @@ __all__ = [
     "render_sketch",
     "reverse_kinematic",
     "reverse_tracking",
+    "sketch_from_image",
+    "sketch_from_png",
     "sketch_from_trajectory",
     "smooth",
 ]

@@ -172,6 +172,79 @@ class Sketch:
         return cls("oval", c + local @ rot.T)
 
 
+#: Largest sketch image accepted [pixels] (a 2048² canvas).
+MAX_IMAGE_PIXELS = 2048 * 2048
+
+
+def sketch_from_png(data: bytes) -> Sketch:
+    """A sketch from a PNG of the drawing (any size up to :data:`MAX_IMAGE_PIXELS`,
+    the image spanning the domain ``[0, 1]²`` with y up, ink darker or
+    lighter than the background): :func:`sketch_from_image` of its pixels.
+    Raises :class:`InvalidInputError` (field ``sketch``) for a file that is not
+    a PNG, too large, or holds no readable stroke."""
+    import io
+
+    from PIL import Image
+
+    if not isinstance(data, (bytes, bytearray)) or data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise InvalidInputError("sketch: not a PNG image", "sketch")
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            if im.width * im.height > MAX_IMAGE_PIXELS:
+                raise InvalidInputError(f"sketch: {im.width}×{im.height} pixels, more than {MAX_IMAGE_PIXELS}", "sketch")
+            img = np.asarray(im.convert("RGB"))
+    except InvalidInputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - Pillow raises many types for broken files
+        raise InvalidInputError(f"sketch: unreadable PNG ({e})", "sketch") from e
+    return sketch_from_image(img)
+
+
+def sketch_from_image(img: np.ndarray) -> Sketch:
+    """Read an arrow or an oval back from a picture of it.
+
+    ``img`` uint8 [H, W] (grey) or [H, W, 3] spanning ``[0, 1]²`` with y up
+    (row 0 is y = 1). The ink is what differs from the background (the median
+    tone or colour) by more than 64 levels. An oval leaves its centre empty and its ink ring fits an ellipse
+    (least squares); otherwise it is an arrow along the ink's principal axis,
+    pointing to the end whose ink is wider (the head). Raises
+    :class:`InvalidInputError` (field ``sketch``) when too little ink is found."""
+    a = np.asarray(img, np.float64)
+    if a.ndim == 3:  # colour: the distance of each pixel's colour from the background's (the median colour)
+        a = np.linalg.norm(a[..., :3] - np.median(a[..., :3].reshape(-1, 3), axis=0), axis=-1)
+    elif a.ndim == 2:
+        a = np.abs(a - float(np.median(a)))
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise InvalidInputError(f"sketch: expected an image of at least 8×8 pixels, got {list(np.shape(img))}", "sketch")
+    h, w = a.shape
+    ink = a > 64
+    if ink.sum() < 8 or ink.mean() > 0.5:
+        raise InvalidInputError("sketch: no stroke found in the image", "sketch")
+    rows, cols = np.nonzero(ink)
+    pts = np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], -1)
+    c = pts.mean(0)
+    d = pts - c
+    vals, vecs = np.linalg.eigh(d.T @ d / len(d))
+    major, minor = vecs[:, 1], vecs[:, 0]
+    u = d @ major
+    v = d @ minor
+    extent = float(u.max() - u.min())
+    width = float(v.max() - v.min())
+    # an oval: a closed ring leaves its middle empty
+    near = np.linalg.norm(d, axis=1) < 0.25 * min(extent, max(width, 1e-9))
+    if width > 0.25 * extent and near.mean() < 0.02:
+        fit = _fit_ellipse((pts - c) / max(extent, 1e-9))
+        if fit is not None:
+            ec, er, ang = fit
+            return Sketch.oval(c + ec * max(extent, 1e-9), er * max(extent, 1e-9), ang)
+    lo, hi = u.min(), u.max()
+    band = 0.2 * (hi - lo)
+    spread_lo = float(np.ptp(v[u < lo + band])) if (u < lo + band).any() else 0.0
+    spread_hi = float(np.ptp(v[u > hi - band])) if (u > hi - band).any() else 0.0
+    tail, head = (c + lo * major, c + hi * major) if spread_hi >= spread_lo else (c + hi * major, c + lo * major)
+    return Sketch.arrow(tail, head)
+
+
 def _fit_ellipse(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Centre, radii (largest first) and angle of the least-squares ellipse
     through points ``q`` [P, 2], or None if the best conic is no ellipse."""
@@ -284,4 +357,15 @@ def render_sketch(sketch: Sketch | None, size: int = IMAGE_SIZE, supersample: in
     return img.astype(np.uint8)
 
 
-__all__ = ["IMAGE_SIZE", "KINDS", "MAX_POINTS", "WIDTH", "Sketch", "render_sketch", "sketch_from_trajectory"]
+__all__ = [
+    "IMAGE_SIZE",
+    "KINDS",
+    "MAX_IMAGE_PIXELS",
+    "MAX_POINTS",
+    "WIDTH",
+    "Sketch",
+    "render_sketch",
+    "sketch_from_image",
+    "sketch_from_png",
+    "sketch_from_trajectory",
+]

@@ -87,7 +87,8 @@ class BodyLimit:
     """Pure-ASGI request body cap (413), counting the bytes actually received
     (chunked bodies without ``Content-Length`` included): checkpoints up to
     ``max_checkpoint_bytes``, everything else ``max_json_bytes``. Also answers
-    415 for an image upload to ``/controls`` (PNG sketches are not accepted)."""
+    415 for a raw image upload to ``/controls`` (a PNG sketch travels
+    base64-encoded in the JSON body, ``sketch_png``)."""
 
     def __init__(self, app: Callable[[Scope, Receive, Send], Awaitable[None]], config: ServiceConfig) -> None:
         self.app, self.config = app, config
@@ -101,7 +102,7 @@ class BodyLimit:
         headers = {k.lower(): v for k, v in scope.get("headers", [])}
         ctype = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
         if method == "POST" and path.endswith("/controls") and (ctype.startswith(b"image/") or ctype == b"multipart/form-data"):
-            msg = "sketch: image uploads are not accepted yet (they need the diffusion controller, which does not ship); send the sketch as a JSON polyline"
+            msg = "sketch: send the sketch as JSON: a polyline in `sketch`, or a PNG base64-encoded in `sketch_png`"
             await _send_json(send, 415, {"detail": [{"loc": ["body", "sketch"], "msg": msg, "type": "unsupported_media_type"}]})
             return
         too_big = {"detail": [{"loc": ["body"], "msg": f"request body larger than {limit} bytes", "type": "too_large"}]}
@@ -357,6 +358,22 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         t_req = time.perf_counter()
         s = session_or_404(sid)
         sketch = None
+        if body.sketch is not None and body.sketch_png is not None:
+            raise FieldError(("body", "sketch_png"), "sketch_png: give the sketch either as `sketch` or as `sketch_png`, not both")
+        if body.sketch_png is not None:
+            import base64
+            import binascii
+
+            from hybridmpm.control import sketch_from_png
+
+            try:
+                data = base64.b64decode(body.sketch_png, validate=True)
+            except (binascii.Error, ValueError):
+                raise FieldError(("body", "sketch_png"), "sketch_png: not base64") from None
+            try:
+                sketch = await manager.compute(lambda: sketch_from_png(data))
+            except InvalidInputError as e:
+                raise FieldError(("body", "sketch_png"), str(e).replace("sketch:", "sketch_png:", 1)) from None
         if body.sketch is not None:
             try:
                 sketch = Sketch.from_json(body.sketch.model_dump(exclude_none=True))

@@ -86,6 +86,9 @@ class SketchIn(Strict):
 
 class ControlRequest(Strict):
     sketch: SketchIn | None = None
+    sketch_png: str | None = Field(
+        None, max_length=60_000, description="the sketch as a PNG image (base64), the domain [0, 1]² filling it with y up; instead of `sketch`"
+    )
     method: Literal["constant", "pd", "none", "diffusion"] = "constant"
     frames: int = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
 
