@@ -214,7 +214,7 @@ async function applySketch() {
   try {
     const res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
     hook.controls.push(res);
-    if (res.sketch_png) $("sketchpng").src = `data:image/png;base64,${res.sketch_png}`;
+    if (res.sketch_png) { $("sketchpng").src = `data:image/png;base64,${res.sketch_png}`; $("sketchpng").hidden = false; }
     const d = res.metrics.centroid_displacement || [];
     setStatus(`done: ${res.frames} controlled frames, centroid moved (${d.map((x) => x.toFixed(3)).join(", ")}) m; first frame after ${res.first_frame_ms.toFixed(0)} ms`);
     stroke = []; redrawInk();
