@@ -211,11 +211,19 @@ def test_substeps_follow_the_cfl_condition():
     assert sim.step_frame()["substeps"] == expect
     fixed = small(substeps=7)
     assert fixed.step_frame()["substeps"] == 7
-    with pytest.raises(InvalidInputError) as e:
-        small(max_substeps=5).step_frame()
-    assert e.value.field == "dt_frame"
-    with pytest.raises(InvalidInputError):
-        sim.step_frame(-1.0)
+    # more substeps than max_substeps: a SimulationError naming the speed, state unchanged
+    capped = small(max_substeps=5)
+    before = capped.checkpoint()
+    with pytest.raises(SimulationError, match=r"particles moving at up to 0 m/s \(wave speed 20 m/s\) need 16 substeps.*max_substeps = 5") as s:
+        capped.step_frame()
+    assert s.value.substep is None
+    assert capped.checkpoint() == before
+    for bad in (-1.0, 0.0, 2.0, float("nan"), True, "0.1"):
+        with pytest.raises(InvalidInputError) as e:
+            sim.step_frame(bad)  # type: ignore[arg-type]
+        assert e.value.field == "dt_frame"
+        with pytest.raises(InvalidInputError):
+            sim.substeps_for(bad)  # type: ignore[arg-type]
 
 
 def test_colliders_keep_particles_out():

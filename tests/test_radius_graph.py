@@ -247,6 +247,10 @@ GOOD = np.zeros((4, 2), np.float32)
         ((GOOD, 1e-60), {}, "radius"),
         ((GOOD,), {"max_neighbors": 0}, "max_neighbors"),
         ((GOOD,), {"max_neighbors": -3}, "max_neighbors"),
+        ((GOOD,), {"max_edges": -1}, "max_edges"),
+        ((GOOD,), {"max_edges": True}, "max_edges"),
+        ((GOOD,), {"max_edges": 2.5}, "max_edges"),
+        ((GOOD, 1.0), {"max_edges": 15}, "radius"),  # 4 coincident points: 16 edges
     ],
 )
 def test_invalid_input(args, kwargs, field):

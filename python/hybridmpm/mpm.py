@@ -263,19 +263,71 @@ class MpmParams:
     colliders: list[Box | Sphere] = field(default_factory=list)
 
     def resolved_n_grid(self) -> int:
+        self._check_int("n_grid", self.n_grid, optional=True)
         return int(self.n_grid) if self.n_grid is not None else DEFAULT_N_GRID.get(self.dim, DEFAULT_N_GRID[2])
 
+    @staticmethod
+    def _check_int(name: str, v: Any, *, optional: bool = False) -> None:
+        """An integer (``int`` or numpy integer; not a bool, a float such as
+        ``64.5`` or ``64.0``, or a string such as ``"64"``), else
+        :class:`InvalidInputError` naming ``name``."""
+        if v is None and optional:
+            return
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            what = "an integer or None" if optional else "an integer"
+            raise InvalidInputError(f"{name}: must be {what}, got {v!r}", name)
+
+    @staticmethod
+    def _check_number(name: str, v: Any) -> None:
+        """A real number (not a bool or a string); the range is the solver's to check."""
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise InvalidInputError(f"{name}: must be a number, got {v!r}", name)
+
+    def validate(self) -> None:
+        """Check the type of every field: integer parameters (``dim``,
+        ``n_grid``, ``substeps``, ``max_substeps``, ``num_threads``,
+        ``walls.cells``) must be integers — ``64.5``, ``64.0``, ``"64"`` and
+        ``True`` are refused, not coerced — and real parameters numbers.
+        Raises :class:`InvalidInputError` naming the field. Ranges (``n_grid``
+        in [16, 4096], ``cfl`` in (0, 1], ...) are checked by the solver,
+        which names the field too."""
+        if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim not in (2, 3):
+            raise InvalidInputError(f"dim: must be 2 or 3, got {self.dim!r}", "dim")
+        self._check_int("n_grid", self.n_grid, optional=True)
+        self._check_int("substeps", self.substeps, optional=True)
+        self._check_int("max_substeps", self.max_substeps)
+        self._check_int("num_threads", self.num_threads)
+        self._check_number("cfl", self.cfl)
+        if self.gravity is not None:
+            if isinstance(self.gravity, (str, bytes, dict)) or not isinstance(self.gravity, (Sequence, np.ndarray)) or len(self.gravity) != self.dim:
+                raise InvalidInputError(f"gravity: must be a list of {self.dim} numbers, got {self.gravity!r}", "gravity")
+            for i, g in enumerate(self.gravity):
+                self._check_number(f"gravity[{i}]", g)
+        for name, group, cls in (("water", self.water, WaterParams), ("sand", self.sand, SandParams)):
+            if not isinstance(group, cls):
+                raise InvalidInputError(f"{name}: must be a {cls.__name__}, got {group!r}", name)
+            for key, value in asdict(group).items():
+                self._check_number(f"{name}.{key}", value)
+        if not isinstance(self.walls, WallParams):
+            raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
+        self.walls.validate(self.dim)
+        if not isinstance(self.colliders, (list, tuple)):
+            raise InvalidInputError(f"colliders: must be a list of Box / Sphere, got {self.colliders!r}", "colliders")
+        for i, c in enumerate(self.colliders):
+            if not isinstance(c, (Box, Sphere)):
+                raise InvalidInputError(f"colliders[{i}]: must be a Box or a Sphere, got {c!r}", f"colliders[{i}]")
+
     def to_dict(self) -> dict[str, Any]:
-        """The plain dict the Rust binding takes (JSON-serialisable)."""
-        if self.dim not in (2, 3):
-            raise InvalidInputError(f"dim: must be 2 or 3, got {self.dim}", "dim")
+        """The plain dict the Rust binding takes (JSON-serialisable); validated
+        first (:meth:`validate`)."""
+        self.validate()
         gravity = list(self.gravity) if self.gravity is not None else ([0.0, -9.8] if self.dim == 2 else [0.0, -9.8, 0.0])
         return {
-            "dim": self.dim,
+            "dim": int(self.dim),
             "n_grid": self.resolved_n_grid(),
             "gravity": [float(g) for g in gravity],
             "cfl": float(self.cfl),
-            "substeps": self.substeps,
+            "substeps": None if self.substeps is None else int(self.substeps),
             "max_substeps": int(self.max_substeps),
             "num_threads": int(self.num_threads),
             "water": asdict(self.water),
@@ -286,25 +338,45 @@ class MpmParams:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MpmParams:
-        """Inverse of :meth:`to_dict`."""
+        """Inverse of :meth:`to_dict`; validates (errors name the field)."""
+        if not isinstance(d, dict):
+            raise InvalidInputError(f"params: expected a dict, got {d!r}", "params")
         d = dict(d)
+
+        def build(name: str, factory: Any, kwargs: Any) -> Any:
+            if not isinstance(kwargs, dict):
+                raise InvalidInputError(f"{name}: expected a dict, got {kwargs!r}", name)
+            allowed = set(factory.__dataclass_fields__)
+            unknown = sorted(set(kwargs) - allowed, key=str)
+            if unknown:
+                raise InvalidInputError(f"{name}.{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(allowed))})", f"{name}.{unknown[0]}")
+            return factory(**kwargs)
+
+        raw_cols = d.pop("colliders", []) or []
+        if not isinstance(raw_cols, (list, tuple)):
+            raise InvalidInputError(f"colliders: expected a list, got {raw_cols!r}", "colliders")
         cols: list[Box | Sphere] = []
-        for i, c in enumerate(d.pop("colliders", []) or []):
+        for i, c in enumerate(raw_cols):
+            if not isinstance(c, dict):
+                raise InvalidInputError(f"colliders[{i}]: expected a dict, got {c!r}", f"colliders[{i}]")
             c = dict(c)
             shape = c.pop("shape", None)
             if shape == "box":
-                cols.append(Box(**c))
+                cols.append(build(f"colliders[{i}]", Box, c))
             elif shape in ("sphere", "circle"):
-                cols.append(Sphere(**c))
+                cols.append(build(f"colliders[{i}]", Sphere, c))
             else:
                 raise InvalidInputError(f"colliders[{i}].shape: must be 'box' or 'sphere', got {shape!r}", f"colliders[{i}].shape")
-        return cls(
-            water=WaterParams(**d.pop("water", {})),
-            sand=SandParams(**d.pop("sand", {})),
-            walls=WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2)),
-            colliders=cols,
-            **d,
-        )
+        water = build("water", WaterParams, d.pop("water", {}))
+        sand = build("sand", SandParams, d.pop("sand", {}))
+        walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))
+        top = set(cls.__dataclass_fields__) - {"water", "sand", "walls", "colliders"}
+        unknown = sorted(set(d) - top, key=str)
+        if unknown:
+            raise InvalidInputError(f"{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(top))})", str(unknown[0]))
+        params = cls(water=water, sand=sand, walls=walls, colliders=cols, **d)
+        params.validate()
+        return params
 
 
 _MAGIC = b"HMPMPY01"
@@ -326,11 +398,45 @@ class MpmSolver:
     the whole array (finite, inside the domain, physical) and raises
     :class:`~hybridmpm.errors.InvalidInputError` naming the field; nothing
     changes on error.
+
+    Memory: ``memory_budget`` (bytes; default
+    :func:`hybridmpm.limits.memory_budget` at construction) bounds what the
+    inputs make the solver allocate. The block index of the grid
+    (``8 · ⌈(n_grid + 2)/B + 1⌉^D`` bytes, B = 8 in 2D, 4 in 3D: 8.1 GiB for
+    3D ``n_grid = 4096``) is refused at construction with
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid``, and
+    particles beyond ``memory_budget / bytes_per_particle`` (537 B in 2D,
+    918 B in 3D) by :meth:`add_particles` naming ``positions``; both say the
+    size they would need. Colliders thinner than 2 cells (boxes) or of radius
+    below 1.5 cells (spheres) are refused (``colliders[i].half_extents`` /
+    ``colliders[i].radius``): particles would fall through them.
+
+    Threads: one solver may be used from several threads. Every call holds
+    the solver's lock for its duration (taken with the GIL released), so
+    calls are serialised: a thread reading ``positions`` while another is in
+    :meth:`step_frame` waits for that frame to finish and then sees the state
+    at a frame boundary, never a frame in progress; nothing raises because
+    another thread is using the solver. The lock is not fair, and a reader
+    waits at most one frame per call.
     """
 
-    def __init__(self, params: MpmParams | None = None) -> None:
+    def __init__(self, params: MpmParams | None = None, *, memory_budget: int | None = None) -> None:
+        from hybridmpm.limits import memory_budget as default_budget
+
         self.params = params if params is not None else MpmParams()
-        self._core = _core.MpmSolver(self.params.to_dict())
+        budget = default_budget() if memory_budget is None else memory_budget
+        self._core = _core.MpmSolver(self.params.to_dict(), memory_budget=budget)
+
+    @property
+    def memory_budget(self) -> int:
+        """The memory budget of this solver [bytes] (fixed at construction)."""
+        budget = self._core.memory_budget
+        return int(budget) if budget is not None else 2**63 - 1
+
+    @property
+    def bytes_per_particle(self) -> int:
+        """Estimated bytes the solver allocates per particle (the budget's unit for ``positions``)."""
+        return int(self._core.bytes_per_particle)
 
     # ------------------------------------------------------------- particles
     def add_particles(
@@ -347,8 +453,23 @@ class MpmSolver:
         ``positions`` [N, D] in ``[dx, 1 − dx]`` [m]; ``material`` a code or
         int array [N]; ``velocities`` [N, D] [m/s]; ``masses`` [N] [kg];
         ``volumes`` [N] [m^D] (default ``(dx/2)^D``, 2 particles per cell per
-        dimension; mass defaults to density × volume).
+        dimension; mass defaults to density × volume). Refused with
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``positions``
+        when the particles would need more than the memory budget (checked
+        before any conversion or copy).
         """
+        shape = np.shape(positions)
+        if len(shape) == 2:
+            from hybridmpm.limits import human
+
+            n = self.num_particles + int(shape[0])
+            nbytes = n * self.bytes_per_particle
+            if nbytes > self.memory_budget:
+                raise InvalidInputError(
+                    f"positions: {n} particles ({self.bytes_per_particle} bytes each) would need {human(nbytes)} ({nbytes} bytes), "
+                    f"over the memory budget of {human(self.memory_budget)} (set HYBRIDMPM_MEMORY_BUDGET or call hybridmpm.limits.set_memory_budget to change it)",
+                    "positions",
+                )
         return int(
             self._core.add_particles(
                 _as_f32("positions", positions),
@@ -395,19 +516,37 @@ class MpmSolver:
         self._core.set("material", np.asarray(value))
 
     # ------------------------------------------------------------- stepping
+    @staticmethod
+    def _check_dt_frame(dt_frame: Any) -> float:
+        if isinstance(dt_frame, bool) or not isinstance(dt_frame, (int, float, np.integer, np.floating)) or not (math.isfinite(dt_frame) and 0 < dt_frame <= 1):
+            raise InvalidInputError(f"dt_frame: must be a number in (0, 1] s, got {dt_frame!r}", "dt_frame")
+        return float(dt_frame)
+
     def step_frame(self, dt_frame: float = DT_FRAME) -> dict[str, float]:
         """Advance one frame by as many substeps as the CFL condition needs.
 
-        Returns ``{"substeps", "dt", "max_speed", "active_blocks"}``. Raises
-        :class:`~hybridmpm.errors.SimulationError` (with ``.substep``) if the
-        state becomes non-finite; the state is then that of the frame's start.
+        Returns ``{"substeps", "dt", "max_speed", "active_blocks", "retries"}``.
+        A substep that leaves a state the solver would not accept (non-finite,
+        a water particle's ``J ≤ 0``, a sand particle's ``det F ≤ 0``) or breaks
+        the CFL condition restarts the frame with the substep halved; if even
+        ``max_substeps`` substeps fail, raises
+        :class:`~hybridmpm.errors.SimulationError` (with ``.substep``). A frame
+        that would need more than ``max_substeps`` substeps (particles too
+        fast, e.g. velocities of 1e30 m/s) raises ``SimulationError`` naming
+        the speed. In both cases the state is that of the frame's start; a
+        frame that returns leaves a state :meth:`restore` accepts.
         """
-        if not (isinstance(dt_frame, (int, float)) and math.isfinite(dt_frame) and dt_frame > 0):
-            raise InvalidInputError(f"dt_frame: must be a finite number > 0, got {dt_frame!r}", "dt_frame")
-        return self._core.step_frame(float(dt_frame))  # type: ignore[no-any-return]
+        return self._core.step_frame(self._check_dt_frame(dt_frame))  # type: ignore[no-any-return]
 
     def substeps_for(self, dt_frame: float = DT_FRAME) -> int:
-        return int(self._core.substeps_for(float(dt_frame)))
+        """Substeps the next :meth:`step_frame` would take: ``ceil(dt_frame /
+        dt_max)``, ``dt_max = cfl·dx / (c + |v|max)``, or the fixed
+        ``substeps``. Never capped or saturated: raises
+        :class:`~hybridmpm.errors.SimulationError` (naming the particles'
+        speed) when more than ``max_substeps`` would be needed, as
+        :meth:`step_frame` would, and :class:`InvalidInputError` naming
+        ``dt_frame`` unless it is in (0, 1] s."""
+        return int(self._core.substeps_for(self._check_dt_frame(dt_frame)))
 
     # ------------------------------------------------------------- info
     @property
@@ -483,9 +622,20 @@ def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = No
     quadratic B-spline weights onto nodes ``i/n_grid``, ``i ∈ [0, n_grid)^D``,
     normalised to sum 1. ``positions`` [N, D] float, D ∈ {2, 3}.
     Returns float32 of shape ``[n_grid] * D``.
+
+    ``n_grid`` must be an integer in [3, 4096] (``64.5``, ``"64"`` and
+    ``True`` are refused) whose grid, 12 bytes per node (``12 · n_grid^D``:
+    192 MiB for 2D 4096, 12 GiB for 3D 1024), fits the memory budget
+    (:func:`hybridmpm.limits.memory_budget`); otherwise
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid`` and the
+    size it would need, before anything is allocated.
     """
+    from hybridmpm.limits import memory_budget
+
+    if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)):
+        raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")
     return _core.grid_mass(  # type: ignore[no-any-return]
-        _as_f32("positions", positions), int(n_grid), None if masses is None else _as_f32("masses", masses)
+        _as_f32("positions", positions), int(n_grid), None if masses is None else _as_f32("masses", masses), memory_budget=memory_budget()
     )
 
 

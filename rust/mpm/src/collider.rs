@@ -1,8 +1,19 @@
 //! Static rigid colliders given as signed-distance shapes.
 //!
 //! A grid node whose position has `sdf < 0` lies inside the collider and its
-//! velocity is constrained by the collider's [`BoundaryCondition`]. Colliders
-//! must be at least 2 grid cells thick or particles tunnel through.
+//! velocity is constrained by the collider's [`BoundaryCondition`].
+//!
+//! A collider holds only if enough grid nodes fall inside it: a node in the
+//! lower half of a plate gets the bottom face's normal and lets fluid from
+//! above through. Measured (2D water and sand dropped on a plate spanning
+//! the domain, 200 frames, plate offsets of 0.05-cell steps against the
+//! nodes): plates of 1, 1.5, 1.75 and 1.9 cells let up to 494 of 494
+//! particles through, 2 cells and more none; circles of radius up to 1.45
+//! cells let particles through their centre, 1.5 cells and more none.
+//! [`Collider::validate_resolution`] therefore refuses boxes thinner than
+//! [`MIN_BOX_THICKNESS_CELLS`] and spheres of radius below
+//! [`MIN_SPHERE_RADIUS_CELLS`]. (A box of exactly 2 cells rotated by 5-10°
+//! still let up to 14 of 806 particles through in the same test; 3 cells held.)
 
 use nalgebra::{SMatrix, SVector};
 
@@ -145,6 +156,50 @@ impl<const D: usize> Collider<D> {
                 "friction",
                 format!("must be finite and >= 0, got {}", self.friction),
             );
+        }
+        Ok(())
+    }
+}
+
+/// Thinnest box (in grid cells, along each of its local axes) that holds.
+pub const MIN_BOX_THICKNESS_CELLS: f32 = 2.0;
+/// Smallest sphere radius (in grid cells) that holds.
+pub const MIN_SPHERE_RADIUS_CELLS: f32 = 1.5;
+
+impl<const D: usize> Collider<D> {
+    /// Refuses a collider too thin for a grid of spacing `dx` (particles
+    /// would fall through it; see the module docs for the measurement):
+    /// a box with a side below [`MIN_BOX_THICKNESS_CELLS`] cells (field
+    /// `{field}.half_extents`), a sphere of radius below
+    /// [`MIN_SPHERE_RADIUS_CELLS`] cells (`{field}.radius`).
+    pub fn validate_resolution(&self, field: &str, dx: f32) -> Result<()> {
+        match &self.shape {
+            Shape::Box { half_extents, .. } => {
+                let min_thickness = MIN_BOX_THICKNESS_CELLS * dx;
+                if let Some(axis) = (0..D).find(|&d| 2.0 * half_extents[d] < min_thickness) {
+                    let t = 2.0 * half_extents[axis];
+                    return Err(MpmError::invalid(
+                        format!("{field}.half_extents"),
+                        format!(
+                            "thinner than {MIN_BOX_THICKNESS_CELLS} grid cells along its axis {axis}: thickness {t} m = {:.3} cells (dx = {dx} m); particles would fall through it. Make it at least {min_thickness} m thick (half extent >= {}) or use a finer grid",
+                            t / dx,
+                            0.5 * min_thickness
+                        ),
+                    ));
+                }
+            }
+            Shape::Sphere { radius, .. } => {
+                let min_radius = MIN_SPHERE_RADIUS_CELLS * dx;
+                if *radius < min_radius {
+                    return Err(MpmError::invalid(
+                        format!("{field}.radius"),
+                        format!(
+                            "smaller than {MIN_SPHERE_RADIUS_CELLS} grid cells: radius {radius} m = {:.3} cells (dx = {dx} m); particles would pass through it. Make it at least {min_radius} m or use a finer grid",
+                            radius / dx
+                        ),
+                    ));
+                }
+            }
         }
         Ok(())
     }

@@ -4,8 +4,25 @@
 //! Sec. 3.1.1, `RMSE_m̃`): trajectories with different particle counts are
 //! compared through their normalised grid-mass fields on one reference grid.
 
-use crate::error::{MpmError, Result};
+use crate::error::{MpmError, Result, check_budget, human_bytes};
 use crate::kernel::quadratic_weights;
+
+/// Bytes [`grid_mass`] allocates for `n` nodes per dimension in `D`
+/// dimensions: an f64 accumulation grid and the f32 result, 12 bytes per
+/// node (`None`: beyond `u128`). 2D `n = 4096` needs 192 MiB, 3D `n = 1024`
+/// 12 GiB.
+pub fn grid_mass_bytes(n: usize, d: usize) -> Option<u128> {
+    (n as u128).checked_pow(d as u32)?.checked_mul(12)
+}
+
+/// [`grid_mass`] with no memory budget.
+pub fn grid_mass<const D: usize>(
+    positions: &[[f32; D]],
+    masses: Option<&[f32]>,
+    n: usize,
+) -> Result<Vec<f32>> {
+    grid_mass_with_budget(positions, masses, n, None)
+}
 
 /// Splat particle masses onto the node lattice `i·dx`, `i ∈ [0, n)^D`,
 /// `dx = 1/n`, with quadratic B-spline weights, and normalise to sum 1.
@@ -17,11 +34,14 @@ use crate::kernel::quadratic_weights;
 /// Returns `n^D` values in row-major order (first coordinate slowest).
 /// Stencil nodes outside `[0, n)` are clamped to the nearest edge node, so no
 /// mass is lost. Errors: non-finite positions or masses, negative masses, a
-/// zero total mass, `n < 3`.
-pub fn grid_mass<const D: usize>(
+/// zero total mass, `n` outside [3, 4096], and (field `n_grid`, before
+/// anything is allocated) a grid of more than `memory_budget` bytes
+/// ([`grid_mass_bytes`]; `None`: no budget).
+pub fn grid_mass_with_budget<const D: usize>(
     positions: &[[f32; D]],
     masses: Option<&[f32]>,
     n: usize,
+    memory_budget: Option<u64>,
 ) -> Result<Vec<f32>> {
     if !(3..=4096).contains(&n) {
         return Err(MpmError::invalid(
@@ -29,6 +49,12 @@ pub fn grid_mass<const D: usize>(
             format!("must be in [3, 4096], got {n}"),
         ));
     }
+    check_budget(
+        "n_grid",
+        &format!("a {D}D grid-mass grid of {n}^{D} nodes"),
+        grid_mass_bytes(n, D),
+        memory_budget,
+    )?;
     if let Some(m) = masses {
         if m.len() != positions.len() {
             return Err(MpmError::invalid(
@@ -53,7 +79,18 @@ pub fn grid_mass<const D: usize>(
         ));
     }
     let total = n.pow(D as u32);
-    let mut grid = vec![0.0f64; total];
+    let oom = || {
+        MpmError::invalid(
+            "n_grid",
+            format!(
+                "cannot allocate a grid of {n}^{D} nodes ({}): out of memory",
+                human_bytes(total as f64 * 12.0)
+            ),
+        )
+    };
+    let mut grid: Vec<f64> = Vec::new();
+    grid.try_reserve_exact(total).map_err(|_| oom())?;
+    grid.resize(total, 0.0);
     let inv_dx = n as f32;
     let k = 3usize.pow(D as u32);
     for (i, p) in positions.iter().enumerate() {
@@ -85,7 +122,10 @@ pub fn grid_mass<const D: usize>(
     if !(sum > 0.0) {
         return Err(MpmError::invalid("masses", "total mass must be > 0"));
     }
-    Ok(grid.into_iter().map(|x| (x / sum) as f32).collect())
+    let mut out: Vec<f32> = Vec::new();
+    out.try_reserve_exact(total).map_err(|_| oom())?;
+    out.extend(grid.into_iter().map(|x| (x / sum) as f32));
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -119,5 +159,26 @@ mod tests {
         assert!(grid_mass::<2>(&[[f32::NAN, 0.5]], None, 16).is_err());
         assert!(grid_mass::<2>(&[[0.5, 0.5]], Some(&[-1.0]), 16).is_err());
         assert!(grid_mass::<2>(&[[0.5, 0.5]], None, 2).is_err());
+    }
+
+    #[test]
+    fn refuses_a_grid_beyond_the_budget_before_allocating() {
+        // 3D n = 4096 would need 768 GiB: refused, naming n_grid and the size
+        let e = grid_mass_with_budget::<3>(&[[0.5; 3]], None, 4096, Some(1 << 30)).unwrap_err();
+        assert_eq!(e.field(), Some("n_grid"));
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with("n_grid: ") && msg.contains("768.0 GiB"),
+            "{msg}"
+        );
+        assert!(msg.contains("824633720832 bytes"), "{msg}");
+        // the same grid fits a larger budget and gives the same bits as no budget
+        let pts = [[0.3f32, 0.6], [0.5, 0.51]];
+        let b = grid_mass_bytes(64, 2).unwrap() as u64;
+        assert_eq!(
+            grid_mass_with_budget(&pts, None, 64, Some(b)).unwrap(),
+            grid_mass(&pts, None, 64).unwrap()
+        );
+        assert!(grid_mass_with_budget(&pts, None, 64, Some(b - 1)).is_err());
     }
 }

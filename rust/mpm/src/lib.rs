@@ -28,8 +28,8 @@ pub mod solver;
 
 pub use collider::{Collider, Shape};
 pub use dim::{Dim, DimOps};
-pub use error::{MpmError, Result};
-pub use grid_mass::grid_mass;
+pub use error::{MpmError, Result, human_bytes};
+pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use params::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};

@@ -272,6 +272,9 @@ fn non_negative(field: &str, x: f32) -> Result<()> {
     Ok(())
 }
 
+/// Largest `max_substeps`: a million substeps make a frame of minutes.
+pub const MAX_SUBSTEPS: usize = 1_000_000;
+
 /// Solver-wide parameters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SolverParams<const D: usize> {
@@ -283,7 +286,8 @@ pub struct SolverParams<const D: usize> {
     pub cfl: f32,
     /// Fixed substep count per frame (overrides the CFL choice), or `None`.
     pub substeps: Option<usize>,
-    /// Upper bound on substeps per frame; more needed is an error.
+    /// Upper bound on substeps per frame, in [1, 10^6] ([`MAX_SUBSTEPS`]);
+    /// a frame that needs more is an error.
     pub max_substeps: usize,
     /// Worker threads (0 = all cores).
     pub num_threads: usize,
@@ -328,6 +332,12 @@ impl<const D: usize> SolverParams<D> {
                 format!("must be in (0, 1], got {}", self.cfl),
             ));
         }
+        if !(1..=MAX_SUBSTEPS).contains(&self.max_substeps) {
+            return Err(MpmError::invalid(
+                "max_substeps",
+                format!("must be in [1, {MAX_SUBSTEPS}], got {}", self.max_substeps),
+            ));
+        }
         if let Some(s) = self.substeps
             && (s == 0 || s > self.max_substeps)
         {
@@ -338,9 +348,6 @@ impl<const D: usize> SolverParams<D> {
                     self.max_substeps
                 ),
             ));
-        }
-        if self.max_substeps == 0 {
-            return Err(MpmError::invalid("max_substeps", "must be >= 1"));
         }
         if self.num_threads > 1024 {
             return Err(MpmError::invalid(

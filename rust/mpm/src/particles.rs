@@ -74,7 +74,9 @@ impl<const D: usize> Particle<D> {
         self.tau
     }
 
-    /// Checks that every field is finite and physical; `index` names the particle.
+    /// Checks that every field is finite and physical; `index` names the
+    /// particle. The volume is checked before the mass (a default mass is
+    /// density × volume, so a bad volume is named as such).
     pub fn validate(&self, index: usize, lo: f32, hi: f32) -> Result<()> {
         let fin = |field: &str, ok: bool| {
             if ok {
@@ -105,21 +107,21 @@ impl<const D: usize> Particle<D> {
                 ),
             ));
         }
-        if !(self.mass.is_finite() && self.mass > 0.0) {
-            return Err(MpmError::invalid(
-                "masses",
-                format!(
-                    "particle {index}: mass must be finite and > 0, got {}",
-                    self.mass
-                ),
-            ));
-        }
         if !(self.volume.is_finite() && self.volume > 0.0) {
             return Err(MpmError::invalid(
                 "volumes",
                 format!(
                     "particle {index}: volume must be finite and > 0, got {}",
                     self.volume
+                ),
+            ));
+        }
+        if !(self.mass.is_finite() && self.mass > 0.0) {
+            return Err(MpmError::invalid(
+                "masses",
+                format!(
+                    "particle {index}: mass must be finite and > 0, got {}",
+                    self.mass
                 ),
             ));
         }

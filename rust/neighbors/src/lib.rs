@@ -29,7 +29,19 @@
 //! `max_neighbors` cap). Indices are `u32` by default ([`radius_graph`]) or
 //! any [`EdgeIndex`] type, e.g. `i64` ([`radius_graph_as`]); inputs of more
 //! than `u32::MAX` particles are rejected. The number of edges can grow as
-//! `N^2` when the radius covers the whole cloud.
+//! `N^2` when the radius covers the whole cloud: [`GraphParams::max_edges`]
+//! bounds it (see "Edge budget").
+//!
+//! # Edge budget
+//!
+//! With `max_edges = Some(m)`, a graph of more than `m` edges is refused with
+//! [`GraphError::InvalidInput`] naming `"radius"`, before the per-edge arrays
+//! exist and without holding more than about `m` sender indices: first an
+//! upper bound from the cell list (each receiver's candidates, capped by
+//! `max_neighbors`); if it exceeds `m`, the search counts edges as it goes and
+//! stops as soon as the count passes `m`. The decision is exact (refused iff
+//! the graph has more than `m` edges) and does not depend on the thread count;
+//! below the bound the search is the usual one.
 //!
 //! # Algorithm
 //!
@@ -60,6 +72,8 @@
 //! The crate is safe Rust only and knows nothing of Python.
 
 #![forbid(unsafe_code)]
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 use thiserror::Error;
@@ -110,6 +124,11 @@ pub struct GraphParams {
     /// at distance 0). The number of removed edges is reported in
     /// [`Graph::dropped`]. Default `None` (no cap).
     pub max_neighbors: Option<usize>,
+    /// Optional edge budget: a graph of more than this many edges (after
+    /// `max_neighbors`) is refused with an error naming `"radius"` before its
+    /// edges are stored (see the crate docs, "Edge budget"). Default `None`
+    /// (no budget).
+    pub max_edges: Option<usize>,
 }
 
 impl Default for GraphParams {
@@ -118,6 +137,7 @@ impl Default for GraphParams {
             radius: 0.015,
             self_edges: true,
             max_neighbors: None,
+            max_edges: None,
         }
     }
 }
@@ -337,6 +357,30 @@ impl<const D: usize> CellList<D> {
         cl.start = start;
         cl.sorted_idx = sorted_idx;
         cl
+    }
+
+    /// Upper bound on the number of edges: every receiver's candidates (the
+    /// particles of its cell's 3^D neighbourhood, less itself without
+    /// self-edges), at most `cap` each. Saturates at `u64::MAX`.
+    fn edge_bound(&self, cap: Option<usize>, self_edges: bool) -> u64 {
+        let mut ranges = Vec::new();
+        let mut total = 0u64;
+        for cell in 0..self.start.len() - 1 {
+            let count = (self.start[cell + 1] - self.start[cell]) as u64;
+            if count == 0 {
+                continue;
+            }
+            self.neighbourhood(&self.unlinear(cell), &mut ranges);
+            let mut cand: u64 = ranges.iter().map(|&(a, b)| (b - a) as u64).sum();
+            if !self_edges {
+                cand -= 1;
+            }
+            if let Some(k) = cap {
+                cand = cand.min(k as u64);
+            }
+            total = total.saturating_add(count.saturating_mul(cand));
+        }
+        total
     }
 
     /// Cell coordinates of `p`: the one function that maps positions to cells.
@@ -757,6 +801,16 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         let cells = CellList::build(positions, reach);
         let cap = params.max_neighbors;
         let self_edges = params.self_edges;
+        // Edge budget: count as we go only if the cell-list bound exceeds it
+        // (not even the bound is needed when N · min(N, cap) fits).
+        let per_receiver = cap.map_or(n, |k| k.min(n)) as u128;
+        let bound = match params.max_edges {
+            Some(m) if (n as u128) * per_receiver > m as u128 => cells.edge_bound(cap, self_edges),
+            _ => 0,
+        };
+        let limit = params.max_edges.filter(|&m| bound > m as u64);
+        let counted = AtomicUsize::new(0);
+        let over = AtomicBool::new(false);
 
         // Chunk `c` handles the receivers in cell-order slots
         // [c * CHUNK, (c + 1) * CHUNK); a cell cut by a chunk boundary builds
@@ -778,7 +832,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
             // First cell with a slot >= lo.
             let mut cell = cells.start.partition_point(|&s| (s as usize) <= lo) - 1;
             let mut slot = lo;
-            while slot < hi {
+            'cells: while slot < hi {
                 let cell_end = (cells.start[cell + 1] as usize).min(hi);
                 if slot < cell_end {
                     union.build(&cells, positions, &cells.unlinear(cell), ranges, bits);
@@ -814,12 +868,32 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                         found.dropped += len - k;
                         len = k;
                     }
+                    if let Some(m) = limit {
+                        // Count the edges; stop once the graph is over budget
+                        // (before storing them).
+                        if counted
+                            .fetch_add(len, Ordering::Relaxed)
+                            .saturating_add(len)
+                            > m
+                            || over.load(Ordering::Relaxed)
+                        {
+                            over.store(true, Ordering::Relaxed);
+                            break 'cells;
+                        }
+                    }
                     found.senders.extend_from_slice(&buf[..len]);
                     lens.push(len as u32);
                     if lens.len() == 16 {
                         // Size the chunk's list from its first receivers
-                        // (saves reallocation copies; a bad guess costs them).
-                        let est = found.senders.len() / 16 * (hi - lo - 16) * 9 / 8;
+                        // (saves reallocation copies; a bad guess costs them),
+                        // never beyond the edge budget.
+                        let mut est = (found.senders.len() / 16)
+                            .saturating_mul(hi - lo - 16)
+                            .saturating_mul(9)
+                            / 8;
+                        if let Some(m) = limit {
+                            est = est.min(m.saturating_sub(counted.load(Ordering::Relaxed)));
+                        }
                         found.senders.reserve(est);
                     }
                 }
@@ -839,6 +913,18 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 })
                 .collect()
         };
+
+        if over.load(Ordering::Relaxed) {
+            let m = limit.unwrap_or(0);
+            pool::give(results.into_iter().map(|(f, _)| f.senders));
+            return Err(GraphError::invalid(
+                "radius",
+                format!(
+                    "radius {} gives more than max_edges = {m} edges ({} particles; the cell list bounds the graph at {bound} edges); use a smaller radius, set max_neighbors, or raise max_edges",
+                    params.radius, n
+                ),
+            ));
+        }
 
         // Where each receiver's list is, by original index.
         let mut loc = vec![Loc::default(); n];

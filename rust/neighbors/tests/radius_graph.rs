@@ -63,6 +63,7 @@ fn params_strategy(radius: impl Strategy<Value = f32>) -> impl Strategy<Value = 
             radius,
             self_edges,
             max_neighbors,
+            max_edges: None,
         },
     )
 }
@@ -171,6 +172,7 @@ fn duplicates_are_all_connected() {
         radius: 1e-6,
         self_edges: true,
         max_neighbors: None,
+        max_edges: None,
     };
     let g = radius_graph(&pos, &p).unwrap();
     assert_eq!(g.num_edges(), 50 * 50);
@@ -203,6 +205,7 @@ fn single_far_outlier_keeps_graph_correct() {
             radius: 0.015,
             self_edges,
             max_neighbors: None,
+            max_edges: None,
         };
         check(&pos, &p);
     }
@@ -216,6 +219,7 @@ fn extreme_magnitudes() {
         radius: 1e30,
         self_edges: true,
         max_neighbors: None,
+        max_edges: None,
     };
     assert_eq!(radius_graph(&pos, &p).unwrap().num_edges(), 16);
     check(&pos, &p);
@@ -241,6 +245,7 @@ fn extreme_magnitudes() {
                 radius: r,
                 self_edges: false,
                 max_neighbors: None,
+                max_edges: None,
             },
         );
     }
@@ -255,6 +260,7 @@ fn cap_reports_dropped_and_sorted_senders() {
         radius: 2.5,
         self_edges: true,
         max_neighbors: Some(3),
+        max_edges: None,
     };
     let g = radius_graph(&pos, &p).unwrap();
     let of5: Vec<u32> = g
@@ -342,11 +348,13 @@ fn one_and_two_threads_bitwise_equal() {
             radius: 0.025,
             self_edges: true,
             max_neighbors: None,
+            max_edges: None,
         },
         GraphParams {
             radius: 0.025,
             self_edges: false,
             max_neighbors: Some(20),
+            max_edges: None,
         },
     ] {
         let a = pool1.install(|| radius_graph(&pos, &p)).unwrap();
@@ -377,6 +385,7 @@ fn large_input_matches_brute_force() {
             radius: 0.021,
             self_edges: true,
             max_neighbors: None,
+            max_edges: None,
         },
     );
     check(
@@ -385,6 +394,7 @@ fn large_input_matches_brute_force() {
             radius: 0.021,
             self_edges: false,
             max_neighbors: Some(9),
+            max_edges: None,
         },
     );
 }
@@ -451,21 +461,25 @@ fn shuffled_order_matches_brute_force() {
             radius: 0.025,
             self_edges: true,
             max_neighbors: None,
+            max_edges: None,
         },
         GraphParams {
             radius: 0.025,
             self_edges: false,
             max_neighbors: Some(25),
+            max_edges: None,
         },
         GraphParams {
             radius: 0.015,
             self_edges: false,
             max_neighbors: None,
+            max_edges: None,
         },
         GraphParams {
             radius: 0.015,
             self_edges: true,
             max_neighbors: Some(9),
+            max_edges: None,
         },
     ] {
         check(&pos, &p);
@@ -479,6 +493,7 @@ fn write_into_caller_slices() {
         radius: 0.02,
         self_edges: false,
         max_neighbors: Some(12),
+        max_edges: None,
     };
     let nb = Neighbors::search(&pos, &p).unwrap();
     let e = nb.num_edges();
@@ -534,6 +549,7 @@ fn parallel_path_matches_brute_force() {
         radius: 3.2,
         self_edges: true,
         max_neighbors: None,
+        max_edges: None,
     };
     assert!(radius_graph(&pos, &full).unwrap().num_edges() > 1 << 18);
     check(&pos, &full);
@@ -543,6 +559,80 @@ fn parallel_path_matches_brute_force() {
             radius: 3.2,
             self_edges: false,
             max_neighbors: Some(20),
+            max_edges: None,
         },
     );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    /// The edge budget: a graph is refused (field "radius") iff it has more
+    /// than `max_edges` edges, and is otherwise the graph without a budget.
+    #[test]
+    fn edge_budget_refuses_exactly_above_max_edges(
+        pos in float_cloud::<2>(),
+        frac in 0.001f32..0.7,
+        p in params_strategy(Just(1.0f32)),
+        slack in -3i64..3,
+    ) {
+        let extent = pos.iter().flatten().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-3);
+        let p = GraphParams { radius: frac * extent, ..p };
+        let full = radius_graph(&pos, &p).unwrap();
+        let e = full.num_edges() as i64;
+        let m = (e + slack).max(0) as usize;
+        let got = radius_graph(&pos, &GraphParams { max_edges: Some(m), ..p });
+        if full.num_edges() <= m {
+            prop_assert_eq!(got.unwrap(), full);
+        } else {
+            let err = got.unwrap_err();
+            prop_assert_eq!(err.field(), "radius");
+            prop_assert!(err.to_string().contains(&format!("more than max_edges = {m} edges")), "{}", err);
+        }
+    }
+}
+
+#[test]
+fn edge_budget_stops_a_huge_graph_early_on_any_thread_count() {
+    // 12 000 points with radius 10 would give 1.44e8 edges (576 MB of sender
+    // lists, 4 GB of edge arrays): refused after counting about a million.
+    // (Kept below 1 GB should the budget ever be ignored; 30 000 points, the
+    // case that aborted the process, is the Python test's, under a ulimit.)
+    let mut s = 7u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let pos: Vec<[f32; 2]> = (0..12_000).map(|_| [next(), next()]).collect();
+    let p = GraphParams {
+        radius: 10.0,
+        max_edges: Some(1_000_000),
+        ..Default::default()
+    };
+    for threads in [1, 2] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        let err = match pool.install(|| Neighbors::search(&pos, &p)) {
+            Err(e) => e,
+            Ok(_) => panic!("a graph of 1.44e8 edges was accepted with max_edges = 1e6"),
+        };
+        assert_eq!(err.field(), "radius");
+        let msg = err.to_string();
+        assert!(msg.contains("more than max_edges = 1000000 edges"), "{msg}");
+        // every point is a candidate of every other: the bound is N^2
+        assert!(msg.contains("144000000 edges"), "{msg}");
+        assert!(t0.elapsed().as_secs_f64() < 5.0, "{:?}", t0.elapsed());
+    }
+    // max_edges = 0 refuses any edge, and an empty cloud is always fine
+    let p0 = GraphParams {
+        max_edges: Some(0),
+        ..Default::default()
+    };
+    assert!(radius_graph(&pos[..1], &p0).is_err());
+    assert_eq!(radius_graph::<2>(&[], &p0).unwrap().num_edges(), 0);
 }

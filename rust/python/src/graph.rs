@@ -113,6 +113,12 @@ fn run<'py, const D: usize>(
 ///     still listed by ascending sender. The removed edges are not returned:
 ///     compare with ``np.bincount`` of an uncapped call's receivers to count
 ///     them.
+/// max_edges : int or None, default None
+///     Edge budget (>= 0): a graph of more than ``max_edges`` edges (after
+///     ``max_neighbors``) is refused with ``InvalidInputError`` naming
+///     ``radius``, before its arrays are allocated (the search counts edges
+///     and stops once over). None: no budget (``hybridmpm.graph.radius_graph``
+///     derives one from the memory budget).
 ///
 /// Returns
 /// -------
@@ -138,15 +144,18 @@ fn run<'py, const D: usize>(
 /// hybridmpm.errors.InvalidInputError (a ValueError)
 ///     ``positions`` not a float32 array of shape (N, 2) or (N, 3), or with a
 ///     NaN / inf entry (field ``"positions"``); ``radius`` not finite and > 0
-///     (``"radius"``); ``max_neighbors`` < 1 (``"max_neighbors"``).
+///     (``"radius"``); ``max_neighbors`` < 1 (``"max_neighbors"``);
+///     ``max_edges`` < 0 (``"max_edges"``); more than ``max_edges`` edges
+///     (``"radius"``, with the count).
 #[pyfunction]
-#[pyo3(signature = (positions, radius = 0.015, *, self_edges = true, max_neighbors = None))]
+#[pyo3(signature = (positions, radius = 0.015, *, self_edges = true, max_neighbors = None, max_edges = None))]
 fn radius_graph<'py>(
     py: Python<'py>,
     positions: &Bound<'py, PyAny>,
     radius: f64,
     self_edges: bool,
     max_neighbors: Option<i64>,
+    max_edges: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Edges<'py>> {
     let expect = "must be a numpy.ndarray of dtype float32 and shape (N, 2) or (N, 3)";
     let Ok(untyped) = positions.cast::<PyUntypedArray>() else {
@@ -205,10 +214,19 @@ fn radius_graph<'py>(
             ));
         }
     };
+    let max_edges = match max_edges {
+        Some(m) if !m.is_none() => Some(crate::mpm::extract_count(
+            m,
+            "max_edges",
+            "an integer >= 0 or None",
+        )?),
+        _ => None,
+    };
     let params = GraphParams {
         radius: r32,
         self_edges,
         max_neighbors,
+        max_edges,
     };
     let arr = positions.cast::<PyArray2<f32>>()?;
     if shape[1] == 2 {

@@ -8,18 +8,71 @@ use hybridmpm_mpm::{
 use nalgebra::{SMatrix, SVector};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::{PyBytes, PyDict, PyList};
+use pyo3::types::{PyBool, PyBytes, PyDict, PyInt, PyList};
+use std::sync::Mutex;
 
 use crate::errors::{checkpoint_error, invalid_input, simulation_error};
+
+/// How to change the memory budget, appended to budget errors.
+pub const BUDGET_HINT: &str =
+    "set HYBRIDMPM_MEMORY_BUDGET or call hybridmpm.limits.set_memory_budget to change it";
 
 /// Map a core error to its Python exception.
 pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
     match e {
         MpmError::InvalidInput { field, msg } => invalid_input(py, &field, msg),
-        MpmError::NonFinite { substep, .. } | MpmError::CflViolation { substep, .. } => {
+        MpmError::OverBudget { ref field, .. } => {
+            let full = e.to_string();
+            let msg = full.strip_prefix(&format!("{field}: ")).unwrap_or(&full);
+            invalid_input(py, field, format!("{msg} ({BUDGET_HINT})"))
+        }
+        MpmError::NonFinite { substep, .. }
+        | MpmError::Inverted { substep, .. }
+        | MpmError::CflViolation { substep, .. } => {
             simulation_error(py, Some(substep), e.to_string())
         }
+        MpmError::TooManySubsteps { .. } => simulation_error(py, None, e.to_string()),
         MpmError::Checkpoint(m) => checkpoint_error(py, m),
+    }
+}
+
+/// `repr(obj)` for an error message (`"?"` if it fails).
+pub fn repr(obj: &Bound<'_, PyAny>) -> String {
+    obj.repr()
+        .map(|r| r.to_string())
+        .unwrap_or_else(|_| "?".into())
+}
+
+/// A non-negative integer (Python `int` or numpy integer; not a bool, a
+/// float or a string), else `InvalidInputError` naming `field`.
+pub fn extract_count(v: &Bound<'_, PyAny>, field: &str, what: &str) -> PyResult<usize> {
+    let bad = || invalid_input(v.py(), field, format!("expected {what}, got {}", repr(v)));
+    if v.is_instance_of::<PyBool>() {
+        return Err(bad());
+    }
+    v.extract::<usize>().map_err(|_| bad())
+}
+
+/// An optional memory budget in bytes (`None`: unlimited), an integer >= 1.
+pub fn extract_budget(v: Option<&Bound<'_, PyAny>>) -> PyResult<Option<u64>> {
+    match v {
+        None => Ok(None),
+        Some(v) if v.is_none() => Ok(None),
+        Some(v) => {
+            let b = extract_count(
+                v,
+                "memory_budget",
+                "an integer number of bytes >= 1 or None",
+            )?;
+            if b == 0 {
+                return Err(invalid_input(
+                    v.py(),
+                    "memory_budget",
+                    "must be >= 1 byte, got 0",
+                ));
+            }
+            Ok(Some(b as u64))
+        }
     }
 }
 
@@ -31,7 +84,9 @@ pub fn f32_array<'py>(
 ) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
     let py = obj.py();
     let arr = match obj.cast::<PyArrayDyn<f32>>() {
-        Ok(a) => a.readonly(),
+        Ok(a) => a
+            .try_readonly()
+            .map_err(|e| invalid_input(py, field, format!("cannot be read: {e}")))?,
         Err(_) => {
             let dtype = obj
                 .getattr("dtype")
@@ -79,23 +134,26 @@ fn get_item<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py
 fn get_f32(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: f32) -> PyResult<f32> {
     match get_item(d, key)? {
         None => Ok(default),
-        Some(v) => v
-            .extract::<f64>()
-            .map(|x| x as f32)
-            .map_err(|_| invalid_input(d.py(), &format!("{prefix}{key}"), "expected a number")),
+        Some(v) => {
+            let bad = || {
+                invalid_input(
+                    d.py(),
+                    &format!("{prefix}{key}"),
+                    format!("expected a number, got {}", repr(&v)),
+                )
+            };
+            if v.is_instance_of::<PyBool>() {
+                return Err(bad());
+            }
+            v.extract::<f64>().map(|x| x as f32).map_err(|_| bad())
+        }
     }
 }
 
 fn get_usize(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: usize) -> PyResult<usize> {
     match get_item(d, key)? {
         None => Ok(default),
-        Some(v) => v.extract::<usize>().map_err(|_| {
-            invalid_input(
-                d.py(),
-                &format!("{prefix}{key}"),
-                "expected a non-negative integer",
-            )
-        }),
+        Some(v) => extract_count(&v, &format!("{prefix}{key}"), "a non-negative integer"),
     }
 }
 
@@ -176,13 +234,10 @@ fn parse_params<const D: usize>(
         p.gravity.copy_from_slice(g.as_slice());
     }
     p.cfl = get_f32(d, "", "cfl", p.cfl)?;
-    p.substeps =
-        match get_item(d, "substeps")? {
-            None => None,
-            Some(v) => Some(v.extract::<usize>().map_err(|_| {
-                invalid_input(py, "substeps", "expected a positive integer or None")
-            })?),
-        };
+    p.substeps = match get_item(d, "substeps")? {
+        None => None,
+        Some(v) => Some(extract_count(&v, "substeps", "a positive integer or None")?),
+    };
     p.max_substeps = get_usize(d, "", "max_substeps", p.max_substeps)?;
     p.num_threads = get_usize(d, "", "num_threads", p.num_threads)?;
     if let Some(w) = sub_dict(d, "water")? {
@@ -410,17 +465,8 @@ enum Inner {
 }
 
 macro_rules! dispatch {
-    ($self:expr, $s:ident => $body:expr) => {
-        match &$self.inner {
-            Inner::D2($s) => $body,
-            Inner::D3($s) => $body,
-        }
-    };
-}
-
-macro_rules! dispatch_mut {
-    ($self:expr, $s:ident => $body:expr) => {
-        match &mut $self.inner {
+    ($inner:expr, $s:ident => $body:expr) => {
+        match $inner {
             Inner::D2($s) => $body,
             Inner::D3($s) => $body,
         }
@@ -432,11 +478,39 @@ macro_rules! dispatch_mut {
 /// SDF colliders, in 2D or 3D on the unit domain.
 ///
 /// Use the typed wrapper `hybridmpm.MpmSolver`; this class takes the
-/// parameters as one dict (see `hybridmpm.mpm.MpmParams.to_dict`).
-/// Raises `InvalidInputError` naming the bad parameter.
-#[pyclass(module = "hybridmpm._core")]
+/// parameters as one dict (see `hybridmpm.mpm.MpmParams.to_dict`) and an
+/// optional `memory_budget` in bytes (refuses a grid or particle count that
+/// would need more; None: no budget). Raises `InvalidInputError` naming the
+/// bad parameter.
+///
+/// Thread safety: the solver sits behind a lock. Every call waits (with the
+/// GIL released) for the call in progress on another thread, so calls are
+/// serialised and a reader sees the state at a frame boundary, never a
+/// frame in progress.
+#[pyclass(module = "hybridmpm._core", frozen)]
 pub struct MpmSolver {
-    inner: Inner,
+    inner: Mutex<Inner>,
+    dim: usize,
+    n_grid: usize,
+    dx: f32,
+    bounds: (f32, f32),
+    bytes_per_particle: usize,
+}
+
+impl MpmSolver {
+    /// Runs `f` on the solver with the GIL released, once the lock is free:
+    /// the lock is taken only here and `f` never calls into Python, so no
+    /// thread ever waits for the lock while holding the GIL or the other way
+    /// round (no deadlock), and a call on one thread never fails because
+    /// another is using the solver.
+    fn with<R: Send>(&self, py: Python<'_>, f: impl FnOnce(&mut Inner) -> R + Send) -> R {
+        py.detach(|| {
+            // A panic cannot happen while the lock is held (no code path
+            // panics); if one did, the state is still a validated one.
+            let mut guard = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+            f(&mut guard)
+        })
+    }
 }
 
 fn field_dim(field: &str) -> usize {
@@ -503,7 +577,13 @@ fn write_field<const D: usize>(p: &mut Particle<D>, field: &str, v: &[f32]) {
     }
 }
 
-fn get_array<const D: usize>(py: Python<'_>, s: &Solver<D>, field: &str) -> PyResult<Py<PyAny>>
+/// A copy of one per-particle field (public order): floats, or the material codes.
+enum Column {
+    F32(Vec<f32>),
+    I32(Vec<i32>),
+}
+
+fn read_column<const D: usize>(s: &Solver<D>, field: &str) -> (usize, Column)
 where
     core::Dim<D>: core::DimOps<D>,
 {
@@ -511,143 +591,167 @@ where
     if field == "material" {
         let mut m = Vec::with_capacity(n);
         s.for_each_particle(|_, p| m.push(p.material as i32));
-        return Ok(PyArray1::from_vec(py, m).into_any().unbind());
+        return (n, Column::I32(m));
     }
-    let mut out = Vec::with_capacity(n * D * D);
+    let mut out = Vec::with_capacity(n * D.pow(field_dim(field) as u32));
     s.for_each_particle(|_, p| read_field(p, field, &mut out));
-    let arr = PyArray1::from_vec(py, out);
-    let shaped = match field_dim(field) {
-        0 => arr.reshape(vec![n])?,
-        1 => arr.reshape(vec![n, D])?,
-        _ => arr.reshape(vec![n, D, D])?,
-    };
-    Ok(shaped.into_any().unbind())
+    (n, Column::F32(out))
 }
 
-fn set_array<const D: usize>(
-    py: Python<'_>,
-    s: &mut Solver<D>,
-    field: &str,
-    value: &Bound<'_, PyAny>,
-) -> PyResult<()>
+fn write_column<const D: usize>(s: &mut Solver<D>, field: &str, flat: &[f32]) -> core::Result<()>
 where
     core::Dim<D>: core::DimOps<D>,
 {
     let n = s.num_particles();
-    if field == "material" {
-        let codes = materials_from(value, n)?;
-        return s
-            .modify_particles(true, |i, p| p.material = codes[i])
-            .map_err(|e| to_py(py, e));
-    }
-    if field == "stress" {
-        return Err(invalid_input(
-            py,
-            "stress",
-            "is derived from the state and read-only",
+    let per = D.pow(field_dim(field) as u32);
+    if flat.len() != n * per {
+        return Err(MpmError::invalid(
+            field,
+            format!("the particle count changed to {n} while the call waited for another thread"),
         ));
     }
-    let shape: Vec<Option<usize>> = match field_dim(field) {
-        0 => vec![Some(n)],
-        1 => vec![Some(n), Some(D)],
-        _ => vec![Some(n), Some(D), Some(D)],
-    };
-    let arr = f32_array(value, field, &shape)?;
-    let flat: Vec<f32> = arr.as_array().iter().copied().collect();
-    let per = flat.len() / n.max(1);
     let refresh = matches!(field, "affine" | "deformation_gradient" | "volume_ratio");
     s.modify_particles(refresh, |i, p| {
         write_field(p, field, &flat[i * per..(i + 1) * per])
     })
-    .map_err(|e| to_py(py, e))
 }
 
-fn materials_from(value: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<Material>> {
+/// Material codes: one for every particle, or one per particle.
+enum Codes {
+    All(Material),
+    Each(Vec<Material>),
+}
+
+impl Codes {
+    fn expand(&self, n: usize) -> core::Result<Vec<Material>> {
+        match self {
+            Codes::All(m) => Ok(vec![*m; n]),
+            Codes::Each(v) if v.len() == n => Ok(v.clone()),
+            Codes::Each(v) => Err(MpmError::invalid(
+                "material",
+                format!("expected shape [{n}], got [{}]", v.len()),
+            )),
+        }
+    }
+}
+
+fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
+    invalid_input(
+        py,
+        "material",
+        format!("unknown material code {code} (0 = water, 1 = sand)"),
+    )
+}
+
+/// Material codes from an int, a numpy integer or an integer array; an
+/// unknown code is reported as given (`2**64 - 1`, not its int64 wrap).
+fn material_codes(value: &Bound<'_, PyAny>) -> PyResult<Codes> {
     let py = value.py();
-    let codes: Vec<i64> = if let Ok(x) = value.extract::<i64>() {
-        vec![x; n]
-    } else {
-        let np = py.import("numpy")?;
-        let arr = np.call_method1("asarray", (value,))?;
-        let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
-        if kind != "i" && kind != "u" {
-            return Err(invalid_input(
-                py,
-                "material",
-                "expected an integer array (0 = water, 1 = sand)",
-            ));
+    let expect = "expected an integer code or an integer array (0 = water, 1 = sand)";
+    if value.is_instance_of::<PyBool>() {
+        return Err(invalid_input(
+            py,
+            "material",
+            format!("{expect}, got {}", repr(value)),
+        ));
+    }
+    if value.is_instance_of::<PyInt>() {
+        return match value.extract::<i64>().ok().and_then(Material::from_code) {
+            Some(m) => Ok(Codes::All(m)),
+            None => Err(unknown_code(py, &value.str()?.to_string())),
+        };
+    }
+    let np = py.import("numpy")?;
+    let arr = np.call_method1("asarray", (value,))?;
+    let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
+    if kind != "i" && kind != "u" {
+        return Err(invalid_input(
+            py,
+            "material",
+            format!("{expect}, got dtype {}", arr.getattr("dtype")?.str()?),
+        ));
+    }
+    let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
+    if shape.len() > 1 {
+        return Err(invalid_input(
+            py,
+            "material",
+            format!("expected shape [N], got {shape:?}"),
+        ));
+    }
+    let size: usize = arr.getattr("size")?.extract()?;
+    if size > 0 {
+        // every code must fit an int64 before the conversion (uint64 would wrap)
+        for ext in ["min", "max"] {
+            let v = arr.call_method0(ext)?.call_method0("item")?;
+            if v.extract::<i64>()
+                .ok()
+                .and_then(Material::from_code)
+                .is_none()
+            {
+                return Err(unknown_code(py, &v.str()?.to_string()));
+            }
         }
-        let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
-        if shape != vec![n] {
-            return Err(invalid_input(
-                py,
-                "material",
-                format!("expected shape [{n}], got {shape:?}"),
-            ));
-        }
-        arr.call_method1("astype", ("int64",))?
-            .call_method0("tolist")?
-            .extract()?
-    };
-    codes
+    }
+    let as64 = arr
+        .call_method1("astype", ("int64",))?
+        .call_method0("ravel")?;
+    let codes: Vec<i64> = as64.call_method0("tolist")?.extract()?;
+    let mats = codes
         .iter()
-        .map(|&c| {
-            Material::from_code(c).ok_or_else(|| {
-                invalid_input(
-                    py,
-                    "material",
-                    format!("unknown material code {c} (0 = water, 1 = sand)"),
-                )
-            })
-        })
-        .collect()
+        .map(|&c| Material::from_code(c).ok_or_else(|| unknown_code(py, &c.to_string())))
+        .collect::<PyResult<Vec<Material>>>()?;
+    if shape.is_empty() {
+        return Ok(Codes::All(mats[0]));
+    }
+    Ok(Codes::Each(mats))
 }
 
-fn add_particles_impl<const D: usize>(
-    py: Python<'_>,
-    s: &mut Solver<D>,
-    positions: &Bound<'_, PyAny>,
-    material: &Bound<'_, PyAny>,
-    velocities: Option<&Bound<'_, PyAny>>,
-    masses: Option<&Bound<'_, PyAny>>,
-    volumes: Option<&Bound<'_, PyAny>>,
-) -> PyResult<usize>
+/// Copy of a validated float32 array (dtype, shape, finite) as a flat Vec.
+fn f32_vec(obj: &Bound<'_, PyAny>, field: &str, shape: &[Option<usize>]) -> PyResult<Vec<f32>> {
+    let arr = f32_array(obj, field, shape)?;
+    Ok(match arr.as_slice() {
+        Ok(flat) => flat.to_vec(),
+        Err(_) => arr.as_array().iter().copied().collect(),
+    })
+}
+
+/// New particles, read from Python before the solver's lock is taken.
+struct NewParticles {
+    n: usize,
+    x: Vec<f32>,
+    mats: Codes,
+    v: Option<Vec<f32>>,
+    m: Option<Vec<f32>>,
+    vol: Option<Vec<f32>>,
+}
+
+fn add_particles_impl<const D: usize>(s: &mut Solver<D>, new: &NewParticles) -> core::Result<usize>
 where
     core::Dim<D>: core::DimOps<D>,
 {
-    let x = f32_array(positions, "positions", &[None, Some(D)])?;
-    let n = x.shape()[0];
-    let x = x.as_array();
-    let mats = materials_from(material, n)?;
-    let v = velocities
-        .map(|v| f32_array(v, "velocities", &[Some(n), Some(D)]))
-        .transpose()?;
-    let m = masses
-        .map(|v| f32_array(v, "masses", &[Some(n)]))
-        .transpose()?;
-    let vol = volumes
-        .map(|v| f32_array(v, "volumes", &[Some(n)]))
-        .transpose()?;
+    let n = new.n;
+    s.check_particle_budget(s.num_particles().saturating_add(n))?;
+    let mats = new.mats.expand(n)?;
     let params = s.params();
     // default: 2 particles per cell per dimension
     let default_vol = (0.5 * params.dx()).powi(D as i32);
     let mut ps = Vec::with_capacity(n);
     for i in 0..n {
-        let xi = SVector::<f32, D>::from_fn(|d, _| x[[i, d]]);
-        let volume = vol.as_ref().map_or(default_vol, |a| a.as_array()[[i]]);
+        let xi = SVector::<f32, D>::from_column_slice(&new.x[i * D..(i + 1) * D]);
+        let volume = new.vol.as_ref().map_or(default_vol, |a| a[i]);
         let rho = match mats[i] {
             Material::Water => params.water.density,
             Material::Sand => params.sand.density,
         };
-        let mass = m.as_ref().map_or(rho * volume, |a| a.as_array()[[i]]);
+        let mass = new.m.as_ref().map_or(rho * volume, |a| a[i]);
         let mut p = Particle::new(xi, mats[i], mass, volume);
-        if let Some(v) = &v {
-            let v = v.as_array();
-            p.v = SVector::<f32, D>::from_fn(|d, _| v[[i, d]]);
+        if let Some(v) = &new.v {
+            p.v = SVector::<f32, D>::from_column_slice(&v[i * D..(i + 1) * D]);
         }
         ps.push(p);
     }
-    s.add_particles(ps).map_err(|e| to_py(py, e))
+    s.add_particles(ps)
 }
 
 fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py, PyDict>> {
@@ -663,17 +767,20 @@ fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py,
 #[pymethods]
 impl MpmSolver {
     #[new]
-    fn new(params: &Bound<'_, PyDict>) -> PyResult<Self> {
+    #[pyo3(signature = (params, memory_budget=None))]
+    fn new(params: &Bound<'_, PyDict>, memory_budget: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
         let py = params.py();
+        let budget = extract_budget(memory_budget)?;
         let dim = get_usize(params, "", "dim", 2)?;
+        // parse with the GIL, build (allocations, the thread pool) without it
         let inner = match dim {
             2 => {
                 let (p, c) = parse_params::<2>(params)?;
-                Inner::D2(Solver::new(p, c).map_err(|e| to_py(py, e))?)
+                py.detach(|| Solver::with_memory_budget(p, c, budget).map(Inner::D2))
             }
             3 => {
                 let (p, c) = parse_params::<3>(params)?;
-                Inner::D3(Solver::new(p, c).map_err(|e| to_py(py, e))?)
+                py.detach(|| Solver::with_memory_budget(p, c, budget).map(Inner::D3))
             }
             _ => {
                 return Err(invalid_input(
@@ -682,61 +789,86 @@ impl MpmSolver {
                     format!("must be 2 or 3, got {dim}"),
                 ));
             }
+        }
+        .map_err(|e| to_py(py, e))?;
+        let (n_grid, dx, bounds) =
+            dispatch!(&inner, s => (s.params().n_grid, s.params().dx(), s.domain_bounds()));
+        let bytes_per_particle = match dim {
+            2 => Solver::<2>::bytes_per_particle(),
+            _ => Solver::<3>::bytes_per_particle(),
         };
-        Ok(MpmSolver { inner })
+        Ok(MpmSolver {
+            inner: Mutex::new(inner),
+            dim,
+            n_grid,
+            dx,
+            bounds,
+            bytes_per_particle,
+        })
     }
 
     /// Spatial dimension (2 or 3).
     #[getter]
     fn dim(&self) -> usize {
-        match self.inner {
-            Inner::D2(_) => 2,
-            Inner::D3(_) => 3,
-        }
+        self.dim
     }
 
     /// Grid cells per dimension.
     #[getter]
     fn n_grid(&self) -> usize {
-        dispatch!(self, s => s.params().n_grid)
+        self.n_grid
     }
 
     /// Grid spacing dx = 1/n_grid [m].
     #[getter]
     fn dx(&self) -> f32 {
-        dispatch!(self, s => s.params().dx())
+        self.dx
+    }
+
+    /// Estimated bytes the solver allocates per particle (the unit of the
+    /// `positions` budget check).
+    #[getter]
+    fn bytes_per_particle(&self) -> usize {
+        self.bytes_per_particle
+    }
+
+    /// The memory budget in bytes (None: unlimited).
+    #[getter]
+    fn memory_budget(&self, py: Python<'_>) -> Option<u64> {
+        self.with(py, |inner| dispatch!(inner, s => s.memory_budget()))
     }
 
     #[getter]
-    fn num_particles(&self) -> usize {
-        dispatch!(self, s => s.num_particles())
+    fn num_particles(&self, py: Python<'_>) -> usize {
+        self.with(py, |inner| dispatch!(inner, s => s.num_particles()))
     }
 
     /// Simulated time [s].
     #[getter]
-    fn time(&self) -> f64 {
-        dispatch!(self, s => s.time())
+    fn time(&self, py: Python<'_>) -> f64 {
+        self.with(py, |inner| dispatch!(inner, s => s.time()))
     }
 
     /// Frames advanced so far.
     #[getter]
-    fn frame(&self) -> u64 {
-        dispatch!(self, s => s.frame())
+    fn frame(&self, py: Python<'_>) -> u64 {
+        self.with(py, |inner| dispatch!(inner, s => s.frame()))
     }
 
     /// Valid particle coordinate range (lo, hi): one cell inside the unit domain.
     #[getter]
     fn domain_bounds(&self) -> (f32, f32) {
-        dispatch!(self, s => s.domain_bounds())
+        self.bounds
     }
 
     /// Append particles. `positions` float32 [N, D] in [dx, 1 - dx]; `material`
     /// int code or int array [N] (0 = water, 1 = sand); optional `velocities`
     /// float32 [N, D] [m/s], `masses` [N] [kg], `volumes` [N] [m^D] (default
     /// volume (dx/2)^D, mass = density·volume). Returns the new count.
+    /// Refused (field `positions`) beyond the memory budget.
     #[pyo3(signature = (positions, material, *, velocities=None, masses=None, volumes=None))]
     fn add_particles(
-        &mut self,
+        &self,
         py: Python<'_>,
         positions: &Bound<'_, PyAny>,
         material: &Bound<'_, PyAny>,
@@ -744,26 +876,60 @@ impl MpmSolver {
         masses: Option<&Bound<'_, PyAny>>,
         volumes: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<usize> {
-        dispatch_mut!(self, s => add_particles_impl(py, s, positions, material, velocities, masses, volumes))
+        let d = self.dim;
+        let x = f32_array(positions, "positions", &[None, Some(d)])?;
+        let n = x.shape()[0];
+        // refuse a huge array before copying it (the total is checked under the lock)
+        let per = self.bytes_per_particle;
+        let budget = self.memory_budget(py);
+        core::error::check_budget(
+            "positions",
+            &format!("{n} particles ({per} bytes each)"),
+            (n as u128).checked_mul(per as u128),
+            budget,
+        )
+        .map_err(|e| to_py(py, e))?;
+        drop(x);
+        let new = NewParticles {
+            n,
+            x: f32_vec(positions, "positions", &[Some(n), Some(d)])?,
+            mats: material_codes(material)?,
+            v: velocities
+                .map(|v| f32_vec(v, "velocities", &[Some(n), Some(d)]))
+                .transpose()?,
+            m: masses
+                .map(|v| f32_vec(v, "masses", &[Some(n)]))
+                .transpose()?,
+            vol: volumes
+                .map(|v| f32_vec(v, "volumes", &[Some(n)]))
+                .transpose()?,
+        };
+        self.with(
+            py,
+            |inner| dispatch!(inner, s => add_particles_impl(s, &new)),
+        )
+        .map_err(|e| to_py(py, e))
     }
 
     /// Remove the particles where `mask` (bool [N]) is True. Returns the new count.
-    fn remove_particles(&mut self, py: Python<'_>, mask: &Bound<'_, PyAny>) -> PyResult<usize> {
-        let n = self.num_particles();
+    fn remove_particles(&self, py: Python<'_>, mask: &Bound<'_, PyAny>) -> PyResult<usize> {
         let np = py.import("numpy")?;
         let arr = np.call_method1("asarray", (mask,))?;
         let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
         let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
-        if kind != "b" || shape != vec![n] {
+        if kind != "b" || shape.len() != 1 {
             return Err(invalid_input(
                 py,
                 "mask",
-                format!("expected a bool array of shape [{n}]"),
+                format!(
+                    "expected a bool array of shape [N], got dtype kind '{kind}' and shape {shape:?}"
+                ),
             ));
         }
         let remove: Vec<bool> = arr.call_method0("tolist")?.extract()?;
         let keep: Vec<bool> = remove.iter().map(|r| !r).collect();
-        dispatch_mut!(self, s => s.retain_particles(&keep).map_err(|e| to_py(py, e)))
+        self.with(py, |inner| dispatch!(inner, s => s.retain_particles(&keep)))
+            .map_err(|e| to_py(py, e))
     }
 
     /// Copy of a per-particle array: positions/velocities/external_acceleration
@@ -777,12 +943,28 @@ impl MpmSolver {
                 format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
             ));
         }
-        dispatch!(self, s => get_array(py, s, field))
+        let (n, col) = self.with(py, |inner| dispatch!(inner, s => read_column(s, field)));
+        let d = self.dim;
+        let shape = match field_dim(field) {
+            0 => vec![n],
+            1 => vec![n, d],
+            _ => vec![n, d, d],
+        };
+        Ok(match col {
+            Column::I32(v) => PyArray1::from_vec(py, v)
+                .reshape(shape)?
+                .into_any()
+                .unbind(),
+            Column::F32(v) => PyArray1::from_vec(py, v)
+                .reshape(shape)?
+                .into_any()
+                .unbind(),
+        })
     }
 
     /// Overwrite a per-particle array (same shapes as `get`; `stress` is read-only).
     /// Validated as a whole: on error nothing changes.
-    fn set(&mut self, py: Python<'_>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn set(&self, py: Python<'_>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
         if !FIELDS.contains(&field) {
             return Err(invalid_input(
                 py,
@@ -790,62 +972,73 @@ impl MpmSolver {
                 format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
             ));
         }
-        dispatch_mut!(self, s => set_array(py, s, field, value))
+        if field == "stress" {
+            return Err(invalid_input(
+                py,
+                "stress",
+                "is derived from the state and read-only",
+            ));
+        }
+        if field == "material" {
+            let codes = material_codes(value)?;
+            return self
+                .with(py, |inner| {
+                    dispatch!(inner, s => {
+                        let mats = codes.expand(s.num_particles())?;
+                        s.modify_particles(true, |i, p| p.material = mats[i])
+                    })
+                })
+                .map_err(|e| to_py(py, e));
+        }
+        let n = self.num_particles(py);
+        let d = self.dim;
+        let shape: Vec<Option<usize>> = match field_dim(field) {
+            0 => vec![Some(n)],
+            1 => vec![Some(n), Some(d)],
+            _ => vec![Some(n), Some(d), Some(d)],
+        };
+        let flat = f32_vec(value, field, &shape)?;
+        self.with(
+            py,
+            |inner| dispatch!(inner, s => write_column(s, field, &flat)),
+        )
+        .map_err(|e| to_py(py, e))
     }
 
-    /// Substeps the CFL condition asks for over a frame of `dt_frame` seconds.
+    /// Substeps the CFL condition asks for over a frame of `dt_frame` seconds
+    /// (in (0, 1]): `ceil(dt_frame / dt_max)`, or the fixed `substeps`.
+    /// Raises `SimulationError` (naming the particles' speed) if more than
+    /// `max_substeps` would be needed, as `step_frame` would.
     #[pyo3(signature = (dt_frame=2.5e-3))]
-    fn substeps_for(&self, dt_frame: f32) -> usize {
-        dispatch!(self, s => s.substeps_for(dt_frame))
+    fn substeps_for(&self, py: Python<'_>, dt_frame: f32) -> PyResult<usize> {
+        self.with(py, |inner| dispatch!(inner, s => s.substeps_for(dt_frame)))
+            .map_err(|e| to_py(py, e))
     }
 
     /// Advance one frame (default 2.5 ms). Returns {substeps, dt, max_speed,
-    /// active_blocks, retries}. A substep that leaves a non-finite state or
-    /// violates the CFL condition restarts the frame with the substep halved
-    /// (`retries` counts them). Raises `SimulationError` (with `.substep`) if
-    /// even `max_substeps` fail: the state is then restored to the frame's start.
-    /// The GIL is released while stepping.
+    /// active_blocks, retries}. A substep that leaves a non-finite state,
+    /// inverts a sand particle (det F <= 0) or violates the CFL condition
+    /// restarts the frame with the substep halved (`retries` counts them).
+    /// Raises `SimulationError` (with `.substep`) if even `max_substeps`
+    /// fail, and (naming the particles' speed) if the CFL condition asks for
+    /// more than `max_substeps`: the state is then that of the frame's start.
+    /// The GIL is released while stepping; other threads' calls wait.
     #[pyo3(signature = (dt_frame=2.5e-3))]
-    fn step_frame<'py>(&mut self, py: Python<'py>, dt_frame: f32) -> PyResult<Bound<'py, PyDict>> {
-        let r = match &mut self.inner {
-            Inner::D2(s) => py.detach(|| s.step_frame(dt_frame)),
-            Inner::D3(s) => py.detach(|| s.step_frame(dt_frame)),
-        };
+    fn step_frame<'py>(&self, py: Python<'py>, dt_frame: f32) -> PyResult<Bound<'py, PyDict>> {
+        let r = self.with(py, |inner| dispatch!(inner, s => s.step_frame(dt_frame)));
         stats_dict(py, r.map_err(|e| to_py(py, e))?)
-    }
-
-    /// Advance `frames` frames; returns the substep count of each, int64 [frames].
-    #[pyo3(signature = (frames, dt_frame=2.5e-3))]
-    fn step_frames<'py>(
-        &mut self,
-        py: Python<'py>,
-        frames: usize,
-        dt_frame: f32,
-    ) -> PyResult<Bound<'py, PyArray1<i64>>> {
-        let r: Result<Vec<i64>, MpmError> = match &mut self.inner {
-            Inner::D2(s) => py.detach(|| {
-                (0..frames)
-                    .map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64))
-                    .collect()
-            }),
-            Inner::D3(s) => py.detach(|| {
-                (0..frames)
-                    .map(|_| s.step_frame(dt_frame).map(|st| st.substeps as i64))
-                    .collect()
-            }),
-        };
-        Ok(PyArray1::from_vec(py, r.map_err(|e| to_py(py, e))?))
     }
 
     /// Particle state and clock as bytes (parameters not included).
     fn checkpoint<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
-        let blob = dispatch!(self, s => s.checkpoint());
+        let blob = self.with(py, |inner| dispatch!(inner, s => s.checkpoint()));
         PyBytes::new(py, &blob)
     }
 
     /// Restore a `checkpoint()` blob. Raises `CheckpointError`; on error nothing changes.
-    fn restore(&mut self, py: Python<'_>, blob: &[u8]) -> PyResult<()> {
-        dispatch_mut!(self, s => s.restore(blob).map_err(|e| to_py(py, e)))
+    fn restore(&self, py: Python<'_>, blob: &[u8]) -> PyResult<()> {
+        self.with(py, |inner| dispatch!(inner, s => s.restore(blob)))
+            .map_err(|e| to_py(py, e))
     }
 }
 
@@ -854,40 +1047,58 @@ impl MpmSolver {
 /// `i ∈ [0, n_grid)^D`, `dx = 1/n_grid`, divided by the total.
 ///
 /// `positions`: float32 [N, D], D ∈ {2, 3}, in the unit domain;
-/// `masses`: float32 [N] or None (equal masses, 1/N each).
+/// `n_grid`: an integer in [3, 4096]; `masses`: float32 [N] or None (equal
+/// masses, 1/N each); `memory_budget`: bytes or None (no budget): a grid of
+/// more than that (12 bytes per node: an f64 accumulator and the f32
+/// result) is refused before anything is allocated, naming `n_grid`.
 /// Returns float32 [n_grid]*D summing to 1. Stencil nodes outside the grid
 /// are clamped to the edge. Raises `InvalidInputError` naming the field.
 #[pyfunction]
-#[pyo3(signature = (positions, n_grid, masses=None))]
+#[pyo3(signature = (positions, n_grid, masses=None, *, memory_budget=None))]
 pub fn grid_mass(
     py: Python<'_>,
     positions: &Bound<'_, PyAny>,
-    n_grid: usize,
+    n_grid: &Bound<'_, PyAny>,
     masses: Option<&Bound<'_, PyAny>>,
+    memory_budget: Option<&Bound<'_, PyAny>>,
 ) -> PyResult<Py<PyAny>> {
+    let n_grid = extract_count(n_grid, "n_grid", "an integer in [3, 4096]")?;
+    let budget = extract_budget(memory_budget)?;
     let x = f32_array(positions, "positions", &[None, None])?;
     let (n, d) = (x.shape()[0], x.shape()[1]);
+    if d != 2 && d != 3 {
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
+        ));
+    }
+    // refuse the grid before copying anything
+    if !(3..=4096).contains(&n_grid) {
+        return Err(invalid_input(
+            py,
+            "n_grid",
+            format!("must be in [3, 4096], got {n_grid}"),
+        ));
+    }
+    core::error::check_budget(
+        "n_grid",
+        &format!("a {d}D grid-mass grid of {n_grid}^{d} nodes"),
+        core::grid_mass_bytes(n_grid, d),
+        budget,
+    )
+    .map_err(|e| to_py(py, e))?;
     let m = masses
         .map(|m| f32_array(m, "masses", &[Some(n)]))
         .transpose()?;
     let mv: Option<Vec<f32>> = m.map(|m| m.as_array().iter().copied().collect());
     let flat: Vec<f32> = x.as_array().iter().copied().collect();
-    let res = match d {
-        2 => {
-            let pts: Vec<[f32; 2]> = flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-            py.detach(|| core::grid_mass::<2>(&pts, mv.as_deref(), n_grid))
-        }
-        3 => {
-            let pts: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-            py.detach(|| core::grid_mass::<3>(&pts, mv.as_deref(), n_grid))
-        }
-        _ => {
-            return Err(invalid_input(
-                py,
-                "positions",
-                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
-            ));
-        }
+    let res = if d == 2 {
+        let pts: Vec<[f32; 2]> = flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
+        py.detach(|| core::grid_mass_with_budget::<2>(&pts, mv.as_deref(), n_grid, budget))
+    } else {
+        let pts: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        py.detach(|| core::grid_mass_with_budget::<3>(&pts, mv.as_deref(), n_grid, budget))
     };
     let g = res.map_err(|e| to_py(py, e))?;
     let arr = PyArray1::from_vec(py, g);

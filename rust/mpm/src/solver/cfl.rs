@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::{FrameStats, Solver, build_pool};
+use super::{FrameStats, Health, Solver, build_pool};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 
@@ -37,57 +37,87 @@ where
         c
     }
 
-    /// Substep count the CFL condition asks for over a frame of `dt_frame` seconds.
-    pub fn substeps_for(&self, dt_frame: f32) -> usize {
+    /// Substep count the CFL condition asks for over a frame of `dt_frame`
+    /// seconds: `ceil(dt_frame / dt_max)` (at least 1) with
+    /// `dt_max = cfl·dx / (c + |v|max)`, or `params.substeps` if set.
+    ///
+    /// Errors: `InvalidInput` (field `dt_frame`) unless `dt_frame` is in
+    /// (0, 1] s; [`MpmError::TooManySubsteps`] (naming the particles' max
+    /// speed) when more than `max_substeps` would be needed: the count is
+    /// never saturated or capped, a frame that cannot be stepped is an error
+    /// here as in [`Solver::step_frame`].
+    pub fn substeps_for(&self, dt_frame: f32) -> Result<usize> {
+        check_dt_frame(dt_frame)?;
         if let Some(s) = self.params.substeps {
-            return s;
+            return Ok(s);
         }
-        let vmax = self.pool.install(|| {
-            self.particles
-                .par_iter()
-                .map(|p| p.v.norm())
-                .reduce(|| 0.0f32, f32::max)
-        });
-        let dt_max = self.params.cfl * self.params.dx() / (self.wave_speed() + vmax).max(1e-6);
-        ((dt_frame / dt_max).ceil() as usize).max(1)
+        let speed = |p: &crate::particles::Particle<D>| p.v.norm();
+        let vmax = if self.pool_pid == std::process::id() {
+            self.pool.install(|| {
+                self.particles
+                    .par_iter()
+                    .map(speed)
+                    .reduce(|| 0.0f32, f32::max)
+            })
+        } else {
+            // a forked child: the pool's threads do not exist here (max is exact in any order)
+            self.particles.iter().map(speed).fold(0.0f32, f32::max)
+        };
+        let c = self.wave_speed();
+        let dt_max = self.params.cfl * self.params.dx() / (c + vmax).max(1e-6);
+        let needed = (dt_frame / dt_max).ceil();
+        // `needed` may be inf (dt_max = 0) or far beyond usize: compare before converting
+        if !(needed as f64 <= self.params.max_substeps as f64) {
+            // the same in f64, where speeds up to f32::MAX do not overflow
+            let vmax64 = self
+                .particles
+                .iter()
+                .map(|p| {
+                    p.v.iter()
+                        .map(|&x| (x as f64) * (x as f64))
+                        .sum::<f64>()
+                        .sqrt()
+                })
+                .fold(0.0f64, f64::max);
+            let dt_max64 =
+                self.params.cfl as f64 * self.params.dx() as f64 / (c as f64 + vmax64).max(1e-6);
+            return Err(MpmError::TooManySubsteps {
+                needed: (dt_frame as f64 / dt_max64).ceil(),
+                max_substeps: self.params.max_substeps,
+                max_speed: vmax64,
+                wave_speed: c,
+                dt_max: dt_max64,
+                dt_frame,
+            });
+        }
+        Ok((needed as usize).max(1))
     }
 
     /// Advance one frame of `dt_frame` seconds (default 2.5e-3) in as many
     /// substeps as the CFL condition requires (`cfl·dx / (c + |v|max)`), or
     /// `params.substeps` if set.
     ///
-    /// Stability: when a substep leaves a non-finite state or violates the
-    /// CFL condition (a particle would travel more than one cell `dx` in a
-    /// substep), the frame is rolled back to its start and retried with the
-    /// substep halved, up to `max_substeps` (`FrameStats::retries` counts the
-    /// restarts).
+    /// Stability: when a substep leaves a non-finite state, inverts a sand
+    /// particle (`det F ≤ 0`) or violates the CFL condition (a particle would
+    /// travel more than one cell `dx` in a substep), the frame is rolled back
+    /// to its start and retried with the substep halved, up to
+    /// `max_substeps` (`FrameStats::retries` counts the restarts). A frame
+    /// that returns leaves a state that [`Solver::checkpoint`] /
+    /// [`Solver::restore`] accept.
     ///
-    /// Errors: `InvalidInput` for a bad `dt_frame` or when more than
-    /// `max_substeps` would be needed; `NonFinite` / `CflViolation` when even
-    /// `max_substeps` substeps fail, in which case the state is restored to
-    /// the start of the frame.
+    /// Errors: `InvalidInput` for a bad `dt_frame`; `TooManySubsteps` when
+    /// more than `max_substeps` would be needed (state unchanged);
+    /// `NonFinite` / `Inverted` / `CflViolation` when even `max_substeps`
+    /// substeps fail, in which case the state is restored to the start of
+    /// the frame.
     pub fn step_frame(&mut self, dt_frame: f32) -> Result<FrameStats> {
-        if !(dt_frame.is_finite() && dt_frame > 0.0 && dt_frame <= 1.0) {
-            return Err(MpmError::invalid(
-                "dt_frame",
-                format!("must be in (0, 1] s, got {dt_frame}"),
-            ));
-        }
+        check_dt_frame(dt_frame)?;
         if self.pool_pid != std::process::id() {
             // We are in a forked child: the parent's worker threads do not exist here.
             self.pool = build_pool(self.params.num_threads)?;
             self.pool_pid = std::process::id();
         }
-        let n_sub = self.substeps_for(dt_frame);
-        if n_sub > self.params.max_substeps {
-            return Err(MpmError::invalid(
-                "dt_frame",
-                format!(
-                    "the CFL condition needs {n_sub} substeps for dt_frame = {dt_frame} s, more than max_substeps = {}",
-                    self.params.max_substeps
-                ),
-            ));
-        }
+        let n_sub = self.substeps_for(dt_frame)?;
         if self.particles.is_empty() {
             self.time += dt_frame as f64;
             self.frame += 1;
@@ -115,14 +145,24 @@ where
                 self.compute_keys();
                 let mut vmax = 0.0;
                 for s in 0..n_sub {
-                    let (finite, v) = self.substep(dt);
+                    let (health, v) = self.substep(dt);
                     vmax = v;
-                    if !finite {
-                        return Err(MpmError::NonFinite {
-                            substep: s,
-                            substeps: n_sub,
-                            retries,
-                        });
+                    match health {
+                        Health::Ok => {}
+                        Health::NonFinite => {
+                            return Err(MpmError::NonFinite {
+                                substep: s,
+                                substeps: n_sub,
+                                retries,
+                            });
+                        }
+                        Health::Inverted => {
+                            return Err(MpmError::Inverted {
+                                substep: s,
+                                substeps: n_sub,
+                                retries,
+                            });
+                        }
                     }
                     if v * dt > max_travel {
                         return Err(MpmError::CflViolation {
@@ -160,5 +200,17 @@ where
                 }
             }
         }
+    }
+}
+
+/// `dt_frame` must be in (0, 1] s.
+fn check_dt_frame(dt_frame: f32) -> Result<()> {
+    if dt_frame.is_finite() && dt_frame > 0.0 && dt_frame <= 1.0 {
+        Ok(())
+    } else {
+        Err(MpmError::invalid(
+            "dt_frame",
+            format!("must be in (0, 1] s, got {dt_frame}"),
+        ))
     }
 }

@@ -16,19 +16,24 @@
 //! velocity patch once, its particles read it with fixed strides and are
 //! written contiguously into the next storage (sorted by block, then id),
 //! together with their [`Cell`] for the next substep. The per-block results
-//! (finiteness probe, max speed) are combined with `&&` and `max`, which are
+//! (the state's [`Health`], max speed) are combined with `max`, which is
 //! exact in any order.
+//!
+//! Health: every particle must leave g2p in a state that `Particle::validate`
+//! (and so checkpoint restore) accepts: finite `v`, `C`, `F`, `J`, `vc` and
+//! stress, `J > 0` for water and `det F > 0` for sand (positions are clamped
+//! to the domain). Otherwise the frame is rolled back and retried.
 
 use nalgebra::{SMatrix, SVector};
 use rayon::prelude::*;
 
-use super::Solver;
 use super::grid::{EMPTY, add4, fma4, unflatten};
+use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
 use crate::material::sand::{self, SandModel};
 use crate::material::water;
-use crate::particles::{Material, Particle};
+use crate::particles::{Material, Particle, det};
 
 impl<const D: usize> Solver<D>
 where
@@ -37,7 +42,7 @@ where
     /// g2p in block order: each source block gathers its padded velocity
     /// patch once, its particles read it with fixed strides and are written
     /// contiguously into the next storage (sorted by block, then id).
-    pub(super) fn g2p(&mut self, dt: f32) -> (bool, f32) {
+    pub(super) fn g2p(&mut self, dt: f32) -> (Health, f32) {
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
@@ -94,12 +99,14 @@ where
                         }
                         let ob = out_map[lin];
                         if ob != EMPTY {
-                            patch[q] = out_v[ob as usize * blk_nodes + off];
+                            patch[q] = out_v[(ob - 1) as usize * blk_nodes + off];
                         }
                     }
                     let lo_i = src_offsets[si] as usize;
                     let mut nan_probe = 0.0f32;
                     let mut nonpositive_j = false;
+                    let mut finite_rest = true;
+                    let mut inverted = false;
                     let mut vmax2 = 0.0f32;
                     for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
                         let slot = sorted[lo_i + j] as usize;
@@ -151,8 +158,15 @@ where
                                 water::advance_volume_ratio(&mut p.j, dt, &new_c);
                                 water::kirchhoff_stress(&water, p.j, &new_c)
                             }
-                            Material::Sand => sand::advance(&mut p.f, &mut p.vc, &new_c, dt, &sand),
+                            Material::Sand => {
+                                let tau = sand::advance(&mut p.f, &mut p.vc, &new_c, dt, &sand);
+                                finite_rest &=
+                                    p.f.iter().all(|x| x.is_finite()) && p.vc.is_finite();
+                                inverted |= !(det(&p.f) > 0.0);
+                                tau
+                            }
                         };
+                        finite_rest &= new_c.iter().all(|x| x.is_finite());
                         *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
                         // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
                         nan_probe += p.v.sum() + p.tau.sum() + p.j;
@@ -160,14 +174,20 @@ where
                         vmax2 = vmax2.max(p.v.norm_squared());
                         *po = p;
                     }
-                    // positions are clamped (NaN maps to the bound), so test velocities and stress
-                    (
-                        nan_probe.is_finite() && vmax2.is_finite() && !nonpositive_j,
-                        vmax2.sqrt(),
-                    )
+                    // positions are clamped (NaN maps to the bound), so test the rest
+                    let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite_rest)
+                        || nonpositive_j
+                    {
+                        Health::NonFinite
+                    } else if inverted {
+                        Health::Inverted
+                    } else {
+                        Health::Ok
+                    };
+                    (health, vmax2.sqrt())
                 },
             )
-            .reduce(|| (true, 0.0f32), |a, b| (a.0 && b.0, a.1.max(b.1)));
+            .reduce(|| (Health::Ok, 0.0f32), |a, b| (a.0.max(b.0), a.1.max(b.1)));
         // the next storage order is the sorted order
         std::mem::swap(&mut self.particles, &mut self.next);
         std::mem::swap(&mut g.keys, &mut g.next_keys);

@@ -14,10 +14,14 @@ use rayon::prelude::*;
 
 use super::Solver;
 use crate::dim::{Dim, DimOps};
+use crate::error::{MpmError, Result, human_bytes};
 use crate::kernel::{Cell, cell_of};
+use crate::particles::Particle;
 
-/// Marks an unused entry of the block lattice maps.
-pub(super) const EMPTY: u32 = u32::MAX;
+/// Marks an unused entry of the block lattice maps, which store `index + 1`
+/// otherwise: zero, so that the maps are allocated zeroed (`calloc`) and a
+/// large grid's pages are only touched where particles are.
+pub(super) const EMPTY: u32 = 0;
 
 /// Scratch space of the sparse block grid, reused across substeps.
 pub(super) struct SparseGrid {
@@ -25,9 +29,9 @@ pub(super) struct SparseGrid {
     pub(super) log2_b: u32,
     /// Blocks per dimension of the block lattice.
     pub(super) nb: usize,
-    /// Block lattice map: block coordinate → index in `src_blocks` (or EMPTY).
+    /// Block lattice map: block coordinate → 1 + index in `src_blocks` (or EMPTY).
     pub(super) src_map: Vec<u32>,
-    /// Block lattice map: block coordinate → index in `out_blocks` (or EMPTY).
+    /// Block lattice map: block coordinate → 1 + index in `out_blocks` (or EMPTY).
     pub(super) out_map: Vec<u32>,
     pub(super) src_blocks: Vec<u32>,
     pub(super) src_offsets: Vec<u32>,
@@ -55,16 +59,81 @@ pub(super) struct Stencil<const D: usize> {
     pub(super) pad_coords: Vec<[usize; D]>,
 }
 
-/// The empty sparse grid and the stencil offsets for `n_grid` cells per dimension.
-pub(super) fn new_grid<const D: usize>(n_grid: usize) -> (SparseGrid, Stencil<D>)
+/// Blocks per dimension of the block lattice for `n_grid` cells per dimension.
+fn blocks_per_side<const D: usize>(n_grid: usize) -> usize
+where
+    Dim<D>: DimOps<D>,
+{
+    let b = 1usize << <Dim<D> as DimOps<D>>::LOG2_BLOCK;
+    // nodes 0..=n+1 may be touched; +1 block for the stencil's reach.
+    n_grid.saturating_add(2).div_ceil(b).saturating_add(1)
+}
+
+/// Bytes of the two block-lattice maps (`src_map`, `out_map`: one `u32` per
+/// block each) for `n_grid` cells per dimension; `None` beyond `u128`.
+pub(super) fn lattice_bytes<const D: usize>(n_grid: usize) -> Option<u128>
+where
+    Dim<D>: DimOps<D>,
+{
+    let nb = blocks_per_side::<D>(n_grid) as u128;
+    nb.checked_pow(D as u32)?.checked_mul(2 * 4)
+}
+
+/// Estimated bytes per particle (see [`Solver::bytes_per_particle`]).
+pub(super) fn bytes_per_particle<const D: usize>() -> usize
+where
+    Dim<D>: DimOps<D>,
+{
+    let b = 1usize << <Dim<D> as DimOps<D>>::LOG2_BLOCK;
+    let node = std::mem::size_of::<[f32; 4]>();
+    // per source block: its padded p2g buffer and up to 2^D output blocks of
+    // velocities; at one particle per cell a block holds b^D particles
+    let per_block = (b + 2).pow(D as u32) * node + (1 << D) * b.pow(D as u32) * node;
+    let per_cell = per_block.div_ceil(b.pow(D as u32));
+    // state, g2p double buffer, frame rollback copy, one copy to read/write a field
+    4 * std::mem::size_of::<Particle<D>>()
+        // keys and next keys
+        + 2 * std::mem::size_of::<Cell>()
+        // ids, slot_of, sorted, and the rollback copies of ids and slot_of
+        + 5 * std::mem::size_of::<u32>()
+        + per_cell
+}
+
+/// The empty sparse grid and the stencil offsets for `n_grid` cells per
+/// dimension. Errors (field `n_grid`) if the block lattice cannot be allocated.
+pub(super) fn new_grid<const D: usize>(n_grid: usize) -> Result<(SparseGrid, Stencil<D>)>
 where
     Dim<D>: DimOps<D>,
 {
     let log2_b = <Dim<D> as DimOps<D>>::LOG2_BLOCK;
     let b = 1usize << log2_b;
-    // nodes 0..=n+1 may be touched; +1 block for the stencil's reach.
-    let nb = (n_grid + 2).div_ceil(b) + 1;
-    let lattice = nb.pow(D as u32);
+    let nb = blocks_per_side::<D>(n_grid);
+    let lattice = nb
+        .checked_pow(D as u32)
+        .filter(|&l| l < u32::MAX as usize)
+        .ok_or_else(|| {
+            MpmError::invalid(
+                "n_grid",
+                format!("{n_grid} cells per side is too large a grid"),
+            )
+        })?;
+    let map = || -> Result<Vec<u32>> {
+        // Zeroed memory (EMPTY = 0) without touching it: the allocator hands
+        // out untouched zero pages (calloc); `try_reserve` turns a failed
+        // allocation into an error instead of an abort.
+        let mut v: Vec<u32> = Vec::new();
+        v.try_reserve_exact(lattice).map_err(|_| {
+            MpmError::invalid(
+                "n_grid",
+                format!(
+                    "cannot allocate the block index of n_grid = {n_grid} ({}): out of memory",
+                    human_bytes(lattice as f64 * 4.0)
+                ),
+            )
+        })?;
+        drop(v);
+        Ok(vec![EMPTY; lattice])
+    };
     let p = b + 2;
     let mut pad_stride = [0usize; D];
     let mut blk_stride = [0usize; D];
@@ -89,8 +158,8 @@ where
     let grid = SparseGrid {
         log2_b,
         nb,
-        src_map: vec![EMPTY; lattice],
-        out_map: vec![EMPTY; lattice],
+        src_map: map()?,
+        out_map: map()?,
         src_blocks: Vec::new(),
         src_offsets: Vec::new(),
         sorted: Vec::new(),
@@ -101,7 +170,7 @@ where
         next_keys: Vec::new(),
         counts: Vec::new(),
     };
-    (
+    Ok((
         grid,
         Stencil {
             pad_stride,
@@ -109,7 +178,7 @@ where
             lat_stride,
             pad_coords,
         },
-    )
+    ))
 }
 
 impl<const D: usize> Solver<D>
@@ -148,11 +217,11 @@ where
             let k = g.keys[slot_id as usize].key;
             let slot = &mut g.src_map[k as usize];
             if *slot == EMPTY {
-                *slot = g.src_blocks.len() as u32;
                 g.src_blocks.push(k);
+                *slot = g.src_blocks.len() as u32;
                 g.counts.push(0);
             }
-            g.counts[*slot as usize] += 1;
+            g.counts[*slot as usize - 1] += 1;
         }
         g.src_offsets.clear();
         g.src_offsets.push(0);
@@ -168,7 +237,7 @@ where
         g.sorted.resize(g.keys.len(), 0);
         for &slot_id in &self.slot_of {
             let k = g.keys[slot_id as usize].key;
-            let s = g.src_map[k as usize] as usize;
+            let s = g.src_map[k as usize] as usize - 1;
             g.sorted[g.counts[s] as usize] = slot_id;
             g.counts[s] += 1;
         }
@@ -188,8 +257,8 @@ where
                     lin += cd * lat[d];
                 }
                 if ok && g.out_map[lin] == EMPTY {
-                    g.out_map[lin] = g.out_blocks.len() as u32;
                     g.out_blocks.push(lin as u32);
+                    g.out_map[lin] = g.out_blocks.len() as u32;
                 }
             }
         }

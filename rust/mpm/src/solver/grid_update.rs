@@ -72,10 +72,10 @@ where
                     if !ok {
                         continue;
                     }
-                    let sid = src_map[lin];
-                    if sid == EMPTY {
+                    if src_map[lin] == EMPTY {
                         continue;
                     }
+                    let sid = src_map[lin] - 1;
                     let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
                     for l in 0..blk_nodes {
                         let lc = unflatten_pow2::<D>(l, log2_b);

@@ -32,7 +32,7 @@ pub use crate::material::sand::drucker_prager_project;
 
 use crate::collider::Collider;
 use crate::dim::{Dim, DimOps};
-use crate::error::{MpmError, Result};
+use crate::error::{MpmError, Result, check_budget};
 use crate::material::{sand, water};
 use crate::params::SolverParams;
 use crate::particles::{Material, Particle};
@@ -52,6 +52,18 @@ pub struct FrameStats {
     /// Times the frame was restarted with the substep halved (after a
     /// non-finite state or a CFL violation).
     pub retries: usize,
+}
+
+/// What a substep left behind (checked in g2p, particle by particle).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) enum Health {
+    /// Every particle is finite and physical (what `Particle::validate` and
+    /// so `restore` accept).
+    Ok,
+    /// A sand particle's `det F ≤ 0`.
+    Inverted,
+    /// A non-finite value, or a water particle's `J ≤ 0`.
+    NonFinite,
 }
 
 /// MLS-MPM solver for `D` = 2 or 3.
@@ -77,6 +89,9 @@ where
     pool_pid: u32,
     /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
     profile: bool,
+    /// Memory budget [bytes] for what the inputs make the solver allocate
+    /// (`None`: unlimited); see [`Solver::with_memory_budget`].
+    memory_budget: Option<u64>,
 }
 
 /// The solver's own rayon pool (`num_threads = 0`: all cores).
@@ -92,14 +107,46 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// A solver with no particles. Errors name the bad parameter.
+    /// A solver with no particles and no memory budget. Errors name the bad
+    /// parameter.
     pub fn new(params: SolverParams<D>, colliders: Vec<Collider<D>>) -> Result<Self> {
-        assert!(D == 2 || D == 3);
+        Self::with_memory_budget(params, colliders, None)
+    }
+
+    /// A solver with no particles whose allocations that scale with an input
+    /// are estimated first and refused beyond `memory_budget` bytes
+    /// ([`MpmError::OverBudget`]; `None`: no budget): the block lattice,
+    /// [`Solver::grid_bytes`] (field `n_grid`, checked here), and the
+    /// particles, [`Solver::bytes_per_particle`] each (field `positions`,
+    /// checked when particles are added or restored).
+    ///
+    /// Errors name the bad parameter: `colliders[i].half_extents` /
+    /// `colliders[i].radius` also for a collider too thin for the grid
+    /// ([`Collider::validate_resolution`]).
+    pub fn with_memory_budget(
+        params: SolverParams<D>,
+        colliders: Vec<Collider<D>>,
+        memory_budget: Option<u64>,
+    ) -> Result<Self> {
+        if !(D == 2 || D == 3) {
+            return Err(MpmError::invalid("dim", format!("must be 2 or 3, got {D}")));
+        }
         params.validate()?;
         for (i, c) in colliders.iter().enumerate() {
-            c.validate(&format!("colliders[{i}]"))?;
+            let field = format!("colliders[{i}]");
+            c.validate(&field)?;
+            c.validate_resolution(&field, params.dx())?;
         }
-        let (grid, stencil) = grid::new_grid::<D>(params.n_grid);
+        check_budget(
+            "n_grid",
+            &format!(
+                "the block index of a {D}D grid of n_grid = {} cells per side",
+                params.n_grid
+            ),
+            Self::grid_bytes(params.n_grid),
+            memory_budget,
+        )?;
+        let (grid, stencil) = grid::new_grid::<D>(params.n_grid)?;
         let pool = build_pool(params.num_threads)?;
         Ok(Solver {
             params,
@@ -115,7 +162,45 @@ where
             pool,
             pool_pid: std::process::id(),
             profile: std::env::var_os("HMPM_PROFILE").is_some(),
+            memory_budget,
         })
+    }
+
+    /// Bytes the solver allocates for a grid of `n_grid` cells per side
+    /// whatever the particles: the two block-lattice index maps, 8 bytes per
+    /// block of `B^D` nodes (`None`: beyond `u128`). 3D `n_grid = 4096`
+    /// needs 8.1 GiB.
+    pub fn grid_bytes(n_grid: usize) -> Option<u128> {
+        grid::lattice_bytes::<D>(n_grid)
+    }
+
+    /// Bytes per particle the solver allocates (estimate): the state, the
+    /// g2p double buffer, the frame's rollback copy and one copy for reading
+    /// or writing a field (4 × the particle struct), the block keys and
+    /// index arrays, and the sparse-grid buffers at one particle per cell.
+    /// 2D: 537 bytes, 3D: 918 bytes.
+    pub fn bytes_per_particle() -> usize {
+        grid::bytes_per_particle::<D>()
+    }
+
+    /// The memory budget [bytes] (`None`: unlimited).
+    pub fn memory_budget(&self) -> Option<u64> {
+        self.memory_budget
+    }
+
+    /// Sets the memory budget for later calls (`None`: unlimited).
+    pub fn set_memory_budget(&mut self, memory_budget: Option<u64>) {
+        self.memory_budget = memory_budget;
+    }
+
+    /// Refuses `n` particles beyond the memory budget (field `positions`).
+    pub fn check_particle_budget(&self, n: usize) -> Result<()> {
+        check_budget(
+            "positions",
+            &format!("{n} particles ({} bytes each)", Self::bytes_per_particle()),
+            (n as u128).checked_mul(Self::bytes_per_particle() as u128),
+            self.memory_budget,
+        )
     }
 
     pub fn params(&self) -> &SolverParams<D> {
@@ -169,6 +254,7 @@ where
 
     /// Replace all particles (validated; derived stress recomputed).
     pub fn set_particles(&mut self, mut particles: Vec<Particle<D>>) -> Result<()> {
+        self.check_particle_budget(particles.len())?;
         let (lo, hi) = self.domain_bounds();
         for (i, p) in particles.iter().enumerate() {
             p.validate(i, lo, hi)?;
@@ -183,6 +269,7 @@ where
 
     /// Replace all particles keeping their stored stress (checkpoint restore).
     pub(crate) fn set_particles_keep_stress(&mut self, particles: Vec<Particle<D>>) -> Result<()> {
+        self.check_particle_budget(particles.len())?;
         let (lo, hi) = self.domain_bounds();
         for (i, p) in particles.iter().enumerate() {
             p.validate(i, lo, hi)?;
@@ -227,6 +314,13 @@ where
     pub fn add_particles(&mut self, new: Vec<Particle<D>>) -> Result<usize> {
         let (lo, hi) = self.domain_bounds();
         let n0 = self.particles.len();
+        self.check_particle_budget(n0.saturating_add(new.len()))?;
+        if n0.saturating_add(new.len()) > u32::MAX as usize {
+            return Err(MpmError::invalid(
+                "positions",
+                format!("at most {} particles are supported", u32::MAX),
+            ));
+        }
         for (i, p) in new.iter().enumerate() {
             p.validate(n0 + i, lo, hi)?;
         }
@@ -280,8 +374,8 @@ where
         };
     }
 
-    /// One substep of size `dt`. Returns (state finite, max speed).
-    fn substep(&mut self, dt: f32) -> (bool, f32) {
+    /// One substep of size `dt`. Returns (state health, max speed).
+    fn substep(&mut self, dt: f32) -> (Health, f32) {
         let prof = self.profile;
         let t0 = std::time::Instant::now();
         self.build_blocks();
