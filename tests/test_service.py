@@ -235,6 +235,16 @@ def test_control_with_a_png_sketch_moves_the_fluid_where_it_points(client):
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["sketch"]["kind"] == "arrow" and body["metrics"]["cosine"] > 0.9
+    # the same PNG as the raw body of .../controls/png
+    url = f"/v1/sessions/{s['id']}/controls/png"
+    r = client.post(url + "?method=pd&frames=20", content=png.getvalue(), headers={"Content-Type": "image/png"})
+    assert r.status_code == 200, r.text
+    assert r.json()["sketch"]["kind"] == "arrow" and r.json()["metrics"]["cosine"] > 0.9 and r.json()["frames"] == 20
+    assert client.post(url, content=png.getvalue(), headers={"Content-Type": "application/octet-stream"}).status_code == 415
+    r = client.post(url, content=b"\x89PNG\r\n\x1a\nbroken", headers={"Content-Type": "image/png"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", "sketch_png"]
+    r = client.post(url + "?method=magic", content=png.getvalue(), headers={"Content-Type": "image/png"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "method"]
 
 
 def test_control_conflict_409_and_unknown(client):

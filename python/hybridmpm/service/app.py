@@ -29,6 +29,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 
+from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
@@ -102,7 +103,7 @@ class BodyLimit:
         headers = {k.lower(): v for k, v in scope.get("headers", [])}
         ctype = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
         if method == "POST" and path.endswith("/controls") and (ctype.startswith(b"image/") or ctype == b"multipart/form-data"):
-            msg = "sketch: send the sketch as JSON: a polyline in `sketch`, or a PNG base64-encoded in `sketch_png`"
+            msg = "sketch: send the sketch as JSON (a polyline in `sketch`, or a PNG base64-encoded in `sketch_png`), or the PNG itself to .../controls/png"
             await _send_json(send, 415, {"detail": [{"loc": ["body", "sketch"], "msg": msg, "type": "unsupported_media_type"}]})
             return
         too_big = {"detail": [{"loc": ["body"], "msg": f"request body larger than {limit} bytes", "type": "too_large"}]}
@@ -348,7 +349,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         responses={
             404: {"description": "no such session"},
             409: {"description": "a control is already running on this session"},
-            415: {"description": "image sketch (not accepted yet)"},
+            415: {"description": "a raw image body (use sketch_png, or POST .../controls/png)"},
             429: {"description": "too many controls running (Retry-After)"},
         },
     )
@@ -465,6 +466,36 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         finally:
             s.controlling = False
             manager.controls_running -= 1
+
+    @app.post(
+        "/v1/sessions/{sid}/controls/png",
+        response_model=ControlResponse,
+        openapi_extra={"requestBody": {"required": True, "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}}},
+        responses={
+            404: {"description": "no such session"},
+            409: {"description": "a control is already running on this session"},
+            413: {"description": "image larger than the body cap"},
+            415: {"description": "not image/png"},
+            422: {"description": "no readable sketch in the image, or a bad query parameter"},
+        },
+    )
+    async def control_png(sid: str, request: Request, method: str = "constant", frames: int = T_CTR) -> dict[str, Any]:
+        """The controls route with the sketch as a raw PNG body (``Content-Type:
+        image/png``; the image spans the domain, y up); ``method`` and
+        ``frames`` as query parameters."""
+        from pydantic import ValidationError
+
+        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype != "image/png":
+            raise ApiError(415, "send the sketch image with Content-Type: image/png")
+        data = await request.body()
+        try:
+            body = ControlRequest(sketch_png=base64.b64encode(data).decode(), method=method, frames=frames)  # type: ignore[arg-type]
+        except ValidationError as e:
+            err = e.errors()[0]
+            loc = ("query", str(err["loc"][0])) if err["loc"] and err["loc"][0] in ("method", "frames") else ("body",)
+            raise FieldError(loc, f"{'.'.join(str(x) for x in err['loc'])}: {err['msg']}") from None
+        return await control(sid, body)
 
     @app.get("/v1/sessions/{sid}/controls/{cid}", response_model=ControlResponse, responses={404: {"description": "no such session or control"}})
     async def get_control(sid: str, cid: str) -> dict[str, Any]:
