@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
@@ -41,6 +40,7 @@ import numpy as np
 
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
+from hybridmpm.jsonutil import json_safe
 from hybridmpm.trajectory import Trajectory
 
 
@@ -72,21 +72,10 @@ def _out_dir(path: str | Path, field: str = "out") -> Path:
     return out
 
 
-def _json_safe(obj: Any) -> Any:
-    """``obj`` with non-finite floats as None (JSON has no NaN or Infinity)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    return obj
-
-
 def _write_json(path: Path, obj: Any) -> None:
     """Write strict JSON atomically (a temporary file beside it, then a rename)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(obj), indent=2, allow_nan=False))
+    tmp.write_text(json.dumps(json_safe(obj), indent=2, allow_nan=False))
     tmp.replace(path)
 
 
@@ -390,7 +379,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from hybridmpm.data.gns import check_dataset
 
     info = check_dataset(GnsDataset(args.directory))
-    print(json.dumps(_json_safe(info), indent=2))
+    print(json.dumps(json_safe(info), indent=2))
     for p in info["problems"]:
         print(f"hybridmpm: problem: {p}", file=sys.stderr)
     return 1 if info["problems"] else 0

@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from hybridmpm.conventions import R_C, T_CTR
+from hybridmpm.jsonutil import json_safe
 from hybridmpm.scenes import DOMAINS
 
 #: Most points of a sketch stroke accepted over HTTP (the page simplifies to ≤ 512).
@@ -116,19 +117,5 @@ class Health(BaseModel):
 
 
 def clean(obj: Any) -> Any:
-    """``obj`` with non-finite floats as None and numpy scalars as Python (strict JSON)."""
-    import math
-
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {str(k): clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return clean(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    """``obj`` as strict JSON values (:func:`hybridmpm.jsonutil.json_safe`)."""
+    return json_safe(obj)

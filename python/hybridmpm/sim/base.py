@@ -21,9 +21,10 @@ whose arrays no later step changes.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar, Union, cast, runtime_checkable
 
@@ -160,6 +161,18 @@ def serialised(method: _F) -> _F:
     return cast(_F, wrapper)
 
 
+@contextlib.contextmanager
+def reading_state(kind: str) -> Iterator[None]:
+    """Turn what reading a malformed ``state()`` dict raises (a missing key, a
+    value of the wrong type) into :class:`InvalidInputError` (field ``state``)."""
+    try:
+        yield
+    except InvalidInputError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise InvalidInputError(f"state: malformed {kind} state ({e})", "state") from e
+
+
 def new_lock() -> threading.RLock:
     """The lock :func:`serialised` methods take (one per simulator)."""
     return threading.RLock()
@@ -213,6 +226,7 @@ __all__ = [
     "check_forcing",
     "check_int",
     "new_lock",
+    "reading_state",
     "resolve_forcing",
     "serialised",
 ]

@@ -59,7 +59,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, new_lock, serialised
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, new_lock, reading_state, serialised
 from hybridmpm.sim.convert import mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, load_model
@@ -350,7 +350,7 @@ class HybridSimulator:
         """Restore a :meth:`state` of this simulator (same scene and model).
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or
         malformed state; the simulator is then unchanged."""
-        try:
+        with reading_state("hybrid"):
             if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or int(state["n_fluid"]) != self.n_fluid:
                 raise InvalidInputError("state: not a state of this hybrid simulator (kind, version or particle count differ)", "state")
             buf = np.asarray(state["buffer"], np.float32)
@@ -373,10 +373,6 @@ class HybridSimulator:
                 self.mpm.restore(mpm_before)
                 self.neural.restore(neural_before)
                 raise
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
-            if isinstance(e, InvalidInputError):
-                raise
-            raise InvalidInputError(f"state: malformed hybrid state ({e})", "state") from e
         self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
         self.solver_name = solver_name
         self._calm, self._strikes = counters["calm"], counters["strikes"]

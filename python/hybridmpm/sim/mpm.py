@@ -18,7 +18,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t
-from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, resolve_forcing, serialised
+from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, reading_state, resolve_forcing, serialised
 from hybridmpm.sim.convert import neural_to_mpm
 
 _STATE_VERSION = 1
@@ -171,17 +171,13 @@ class MpmSimulator:
         """Restore a :meth:`state` of a simulator of the same scene.
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or
         malformed state; this simulator is then unchanged."""
-        try:
+        with reading_state("MpmSimulator"):
             if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
                 raise InvalidInputError("state: not a state of an MpmSimulator of this version", "state")
             step = check_int("state.step_index", state["step_index"], 0)
             stats = SimStats.from_dict(state["stats"])
             forcing = check_forcing(state["forcing"], self.particles.num_fluid, self.particles.dim)
             blob = state["solver"]
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
-            if isinstance(e, InvalidInputError):
-                raise
-            raise InvalidInputError(f"state: malformed MpmSimulator state ({e})", "state") from e
         self.solver.restore(blob)
         self.step_index = step
         self.stats = stats

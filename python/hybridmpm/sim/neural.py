@@ -33,7 +33,7 @@ from hybridmpm.graph import radius_graph
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int, new_lock, serialised
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int, new_lock, reading_state, serialised
 from hybridmpm.sim.mpm import MpmSimulator
 
 _STATE_VERSION = 1
@@ -358,7 +358,7 @@ class NeuralSimulator:
         """Restore a :meth:`state` of a simulator of the same scene and model.
         Raises :class:`InvalidInputError` (field ``state``) for a foreign or
         malformed state; this simulator is then unchanged."""
-        try:
+        with reading_state("NeuralSimulator"):
             if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
                 raise InvalidInputError("state: not a state of a NeuralSimulator of this version", "state")
             step = check_int("state.step_index", state["step_index"], 0)
@@ -377,10 +377,6 @@ class NeuralSimulator:
                 raise InvalidInputError("state: malformed frame positions", "state")
             solver = str(state["frame_solver"])
             warmup_state = state["warmup"]
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
-            if isinstance(e, InvalidInputError):
-                raise
-            raise InvalidInputError(f"state: malformed NeuralSimulator state ({e})", "state") from e
         if warmup_state is not None:
             mpm = MpmSimulator(self.scene, r_t=self.r_t, threads=self._mpm_threads)
             mpm.restore(warmup_state)
