@@ -9,8 +9,11 @@ Per scene, ``--cases`` cases (seeds 5000+, arrows and ovals alternating;
 runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
 
 * ``none`` — no control; ``constant`` — the paper's baseline; ``pd`` — PD
-  attraction; ``oracle`` — the tracking field replayed (the floor a learned
-  controller could reach); ``smoothed`` — the same field smoothed afterwards
+  attraction; ``diffusion`` — the Fluid ControlNet (shipped models, or
+  ``--model-root DIR/SCENE``; noise seed = the case's seed);
+  ``oracle_path`` — the true reverse path tracked by the diffusion
+  controller's tracking law (the floor of that design); ``oracle`` — the
+  tracking field replayed open loop; ``smoothed`` — the same field smoothed afterwards
   as the paper's App. D does; ``kinematic`` — the paper's reverse formula
   replayed (how far the untracked data would land).
 
@@ -37,10 +40,10 @@ from hybridmpm.bench.env import environment
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.data import make_case
 
-METHODS = ("none", "constant", "pd", "oracle", "smoothed", "kinematic")
+METHODS = ("none", "constant", "pd", "diffusion", "oracle_path", "oracle", "smoothed", "kinematic")
 
 
-def run_case(scene: str, seed: int, kind: str) -> dict:
+def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) -> dict:
     t0 = time.perf_counter()
     case = make_case(scene, seed, kind)
     rows = {"scene": scene, "seed": seed, "kind": kind, "preroll": case.preroll, "make_s": time.perf_counter() - t0, "methods": {}}
@@ -53,6 +56,11 @@ def run_case(scene: str, seed: int, kind: str) -> dict:
             ctl = Controller("oracle", frames=frames, oracle=case.kinematic)
         elif m == "smoothed":
             ctl = Controller("oracle", frames=frames, oracle=case.smoothed_field)
+        elif m == "oracle_path":
+            ctl = Controller("oracle", frames=frames, oracle_path=case.path)
+        elif m == "diffusion":
+            model = None if model_root is None else Path(model_root) / scene
+            ctl = Controller.for_scene(scene, "diffusion", frames=frames, model=model, seed=seed)
         else:
             ctl = Controller(m, frames=frames)
         ep = control_episode(sim, case.sketch, ctl, target=case.target)
@@ -67,8 +75,8 @@ def summarise(cases: list[dict]) -> str:
         lines += [
             f"### {scene} ({len(cs)} cases: {sum(c['kind'] == 'arrow' for c in cs)} arrows, {sum(c['kind'] == 'oval' for c in cs)} ovals)",
             "",
-            "| method | grid-mass error at T_ctr | RMSE_m̃ | arrow cosine | arrow length ratio | oval inside | oval IoU | effort mean / max (g) | smoothness | plan ms p50 / p95 | episode ms p50 | better than constant |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| method | grid-mass error at T_ctr | RMSE_m̃ | arrow cosine | arrow length ratio | oval inside | oval IoU | effort mean / max (g) | smoothness | plan ms p50 / p95 | episode ms p50 | better than constant | better than PD |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for m in METHODS:
 
@@ -79,12 +87,14 @@ def summarise(cases: list[dict]) -> str:
             err = col("grid_mass_error")
             base = np.array([c["methods"]["constant"]["grid_mass_error"] for c in cs])
             better = float(np.mean(err < base)) if m != "constant" else float("nan")
+            pd_err = np.array([c["methods"]["pd"]["grid_mass_error"] for c in cs])
+            better_pd = float(np.mean(err < pd_err))
             plan = col("plan_ms")
             lines.append(
                 f"| {m} | {err.mean():.3f} | {col('rmse_m').mean():.2e} | {col('cosine', 'arrow').mean():.2f} | {col('length_ratio', 'arrow').mean():.2f} "
                 f"| {col('inside', 'oval').mean():.2f} | {col('iou', 'oval').mean():.2f} | {col('effort_mean_g').mean():.1f} / {col('effort_max_g').max():.1f} "
                 f"| {np.nanmean(col('smoothness')) if len(col('smoothness')) else float('nan'):.2f} | {np.percentile(plan, 50):.2f} / {np.percentile(plan, 95):.2f} "
-                f"| {np.median(col('episode_ms')):.0f} | {'–' if m == 'constant' else f'{100 * better:.0f}%'} |"
+                f"| {np.median(col('episode_ms')):.0f} | {'–' if m == 'constant' else f'{100 * better:.0f}%'} | {'–' if m == 'pd' else f'{100 * better_pd:.0f}%'} |"
             )
         lines.append("")
     return "\n".join(lines)
@@ -96,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", type=int, default=50)
     ap.add_argument("--first-seed", type=int, default=5000)
     ap.add_argument("--out", default="benchmarks/results/control")
+    ap.add_argument("--model-root", default=None, help="diffusion controllers as ROOT/SCENE (default: the shipped ones)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -103,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     have = {(c["scene"], c["seed"]) for c in done}
     todo = [(s, args.first_seed + i, "arrow" if i % 2 == 0 else "oval") for s in args.scenes.split(",") for i in range(args.cases)]
     for scene, seed, kind in tqdm([t for t in todo if (t[0], t[1]) not in have], desc="control cases"):
-        done.append(run_case(scene, seed, kind))
+        done.append(run_case(scene, seed, kind, args.model_root))
         out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "cases": done}))  # resumable
     cmd = "python benchmarks/bench_control.py " + " ".join(sys.argv[1:] if argv is None else argv)
     text = f"Command: `{cmd}`\n\n" + summarise([c for c in done if (c["scene"], c["seed"], c["kind"]) in set(todo)])

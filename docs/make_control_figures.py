@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Figures of docs/control.md: reverse-simulation cases (a held-out arrow and
-oval per scene), the sketch, and where each controller takes the fluid.
+oval per scene), the sketch, and where each controller takes the fluid
+(the diffusion controller: the shipped model of the scene).
 
     python docs/make_control_figures.py      # -> docs/img/control_SCENE.png
 """
@@ -19,13 +20,28 @@ from hybridmpm.control import Controller, control_episode  # noqa: E402
 from hybridmpm.control.data import make_case  # noqa: E402
 
 OUT = Path(__file__).with_name("img")
-METHODS = (("none", "no control"), ("constant", "constant force"), ("pd", "PD attraction"), ("oracle", "tracking field (oracle)"))
+METHODS = (
+    ("none", "no control"),
+    ("constant", "constant force"),
+    ("pd", "PD attraction"),
+    ("diffusion", "diffusion (ours)"),
+    ("oracle_path", "true path tracked (oracle)"),
+)
+
+
+def controller(method: str, case, scene: str) -> Controller:  # type: ignore[no-untyped-def]
+    frames = len(case.path) - 1
+    if method == "oracle_path":
+        return Controller("oracle", frames=frames, oracle_path=case.path)
+    if method == "diffusion":
+        return Controller.for_scene(scene, "diffusion", frames=frames, seed=case.seed)
+    return Controller(method, frames=frames)
 
 
 def figure(scene: str, seeds: tuple[int, int]) -> Path:
     fig, axes = plt.subplots(2, 1 + len(METHODS), figsize=(2.3 * (1 + len(METHODS)), 4.8))
     for row, (seed, kind) in enumerate(zip(seeds, ("arrow", "oval"))):
-        case = make_case(scene, seed, kind)
+        case = make_case(scene, seed, kind, tracking=False)
         sk = case.sketch
         line = np.concatenate([sk.points, sk.points[:1]]) if kind == "oval" else sk.points
         start = case.simulator().particles.fluid(case.simulator().positions)
@@ -36,8 +52,7 @@ def figure(scene: str, seeds: tuple[int, int]) -> Path:
         ax.set_title(f"{kind}: start (blue),\ntarget X_1 (grey)", fontsize=8)
         for col, (m, label) in enumerate(METHODS, start=1):
             sim = case.simulator()
-            ctl = Controller("oracle", frames=len(case.tracking), oracle=case.target_field) if m == "oracle" else Controller(m, frames=len(case.tracking))
-            ep = control_episode(sim, sk, ctl, target=case.target)
+            ep = control_episode(sim, sk, controller(m, case, scene), target=case.target)
             end = sim.particles.fluid(sim.positions)
             ax = axes[row, col]
             ax.scatter(case.target[:, 0], case.target[:, 1], s=0.4, c="#dddddd", linewidths=0)
@@ -50,7 +65,8 @@ def figure(scene: str, seeds: tuple[int, int]) -> Path:
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(f"{scene}: sketch control after T_ctr = 100 frames (grid-mass error against X_1)", fontsize=9)
+    view = " (3D, seen along −z)" if case.target.shape[1] == 3 else ""
+    fig.suptitle(f"{scene}{view}: sketch control after T_ctr = 100 frames (grid-mass error against X_1)", fontsize=9)
     fig.tight_layout()
     OUT.mkdir(exist_ok=True)
     path = OUT / f"control_{scene}.png"
@@ -60,5 +76,5 @@ def figure(scene: str, seeds: tuple[int, int]) -> Path:
 
 
 if __name__ == "__main__":
-    for scene in ("water2d", "sand2d"):
+    for scene in ("water2d", "sand2d", "water3d", "sand3d"):
         print(figure(scene, (5000, 5001)))

@@ -242,7 +242,15 @@ def test_the_same_state_and_sketch_give_a_bitwise_equal_episode():
 
 
 def test_controllers_refuse_bad_settings():
-    for kw, field in [({"method": "magic"}, "method"), ({"method": "diffusion"}, "method"), ({"frames": 0}, "frames"), ({"method": "oracle"}, "oracle")]:
+    for kw, field in [
+        ({"method": "magic"}, "method"),
+        ({"method": "diffusion"}, "model"),
+        ({"frames": 0}, "frames"),
+        ({"method": "oracle"}, "oracle"),
+        ({"steps": 0}, "steps"),
+        ({"guidance": -1}, "guidance"),
+        ({"seed": -1}, "seed"),
+    ]:
         with pytest.raises(InvalidInputError) as e:
             Controller(**kw)
         assert e.value.field == field
@@ -291,3 +299,30 @@ def test_an_oval_drawn_in_a_png_reads_back_and_bad_pngs_are_refused():
         with pytest.raises(InvalidInputError) as e:
             sketch_from_png(bad)
         assert e.value.field == "sketch"
+
+
+def test_tracking_the_uncontrolled_motion_costs_no_effort():
+    """The tracking law has no gravity feed-forward: a plan that is the fluid's
+    own free motion (a falling blob, no wall touched) needs ~0 acceleration,
+    and the tracked run reproduces it."""
+    sim = MpmSimulator(_blob(), threads=1)
+    start = sim.state()
+    free = rollout(sim, 40).fluid_positions
+    sim.restore(start)
+    ep = control_episode(sim, None, Controller("oracle", frames=40, oracle_path=free))
+    assert ep.metrics["effort_mean_g"] < 0.05  # what remains: a frame's mean velocity against the velocity at its start under gravity
+    np.testing.assert_allclose(ep.rollout.fluid_positions[-1], free[-1], atol=1e-4)
+
+
+def test_tracking_a_displaced_path_moves_the_fluid_onto_it():
+    """A plan that is the free motion shifted by a growing offset: the tracked
+    fluid ends near the shifted end (critically damped, settling within the horizon)."""
+    sim = MpmSimulator(_blob(), threads=1)
+    start = sim.state()
+    free = rollout(sim, 60).fluid_positions.astype(np.float64)
+    ramp = np.linspace(0.0, 1.0, len(free))[:, None, None] * np.array([0.08, 0.04])
+    sim.restore(start)
+    control_episode(sim, None, Controller("oracle", frames=60, oracle_path=free + ramp))
+    end = sim.particles.fluid(sim.positions).mean(0)
+    target = (free[-1] + ramp[-1]).mean(0)
+    assert np.linalg.norm(end - target) < 0.05 * np.linalg.norm(ramp[-1])  # within 5 % of the 9 cm shift

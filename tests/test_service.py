@@ -367,3 +367,22 @@ def test_checkpoint_format_has_no_pickle():
     assert meta == {"k": 1} and out["b"] == b"\x00\x01" and np.array_equal(out["a"], state["a"]) and out["c"][1:3] == [None, 1.5]
     with pytest.raises(ValueError):
         ckpt.loads(ckpt.dumps({"a": np.zeros(1000)}, {}), 100)  # decompressed size cap
+
+
+def test_control_diffusion_follows_an_arrow_and_a_scene_without_a_model_is_named(client):
+    """The shipped water2d diffusion controller through the HTTP API: the
+    fluid's centroid moves along a rightward arrow (relative to the same
+    session state left uncontrolled, so gravity and the slosh cancel)."""
+    arrow = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.3]]}
+    moved = []
+    for method in ("none", "diffusion"):
+        s = new(client, scene="water2d", seed=3)
+        client.post(f"/v1/sessions/{s['id']}/step", json={"frames": 40})
+        r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": arrow, "method": method})
+        assert r.status_code == 200, r.text
+        moved.append(np.array(r.json()["metrics"]["centroid_displacement"]))
+    shift = moved[1] - moved[0]
+    assert shift[0] > 0.05 and shift[0] > abs(shift[1]), shift
+    s = new(client)  # dam_break2d: no controller ships for it
+    r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": arrow, "method": "diffusion"})
+    assert r.status_code == 422 and "dam_break2d" in r.text

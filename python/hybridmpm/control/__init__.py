@@ -7,16 +7,22 @@ current fluid state → external accelerations that MPM applies over the next
   (the paper's kinematic formula and a tracking variant solved through MPM),
   smoothing;
 * :mod:`~hybridmpm.control.controller` — :class:`Controller` (none, constant
-  force, PD attraction, oracle replay; the diffusion model to come) making
+  force, PD attraction, oracle replay, the diffusion model) making
   :class:`Plan` s, which are simulator forcings;
+* :mod:`~hybridmpm.control.diffusion` — the Fluid ControlNet's numpy half:
+  temporal basis, schedule, DDIM, the onnxruntime sampler
+  (:class:`ControlModel`); :mod:`~hybridmpm.control.model` and
+  :mod:`~hybridmpm.control.train` its torch half (the ``train`` extra);
+* :mod:`~hybridmpm.control.dataset` — control cases on disk (``generate-control``);
 * :mod:`~hybridmpm.control.episode` — one controlled episode with its metrics.
 
 >>> from hybridmpm.control import Controller, Sketch
->>> plan = Controller("constant").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
+>>> plan = Controller.for_scene("water2d", "diffusion").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
 >>> sim.forcing = plan      # MPM applies it for the next T_ctr frames
 """
 
-from hybridmpm.control.controller import METHODS, Controller, Plan, pd_targets
+from hybridmpm.control.controller import METHODS, Controller, Plan, pd_targets, track_path
+from hybridmpm.control.diffusion import ControlModel
 from hybridmpm.control.episode import Episode, control_episode
 from hybridmpm.control.metrics import control_metrics
 from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
@@ -26,6 +32,7 @@ __all__ = [
     "A_MAX",
     "KINDS",
     "METHODS",
+    "ControlModel",
     "Controller",
     "Episode",
     "Plan",
@@ -41,4 +48,5 @@ __all__ = [
     "sketch_from_png",
     "sketch_from_trajectory",
     "smooth",
+    "track_path",
 ]

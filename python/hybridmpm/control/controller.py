@@ -17,8 +17,12 @@ a place (its centre and shape);
   own target point (``y_i = p_i(0) +`` the arrow; for an oval, the cloud's
   ±2σ ellipse mapped affinely onto the drawn one), ``a_i = k_p (y_i − p_i)
   − k_d v_i − g``, critically damped (ω = 2π/τ);
-* ``"oracle"`` — a given field replayed (the floor, when the true field is known);
-* ``"diffusion"`` — the Fluid ControlNet (not shipped yet: refused with a clear error).
+* ``"oracle"`` — a given field replayed open loop (``oracle=``), or a given
+  path tracked (``oracle_path=``): the floors, when the truth is known;
+* ``"diffusion"`` — the Fluid ControlNet (:mod:`hybridmpm.control.diffusion`):
+  a sampled plan of the fluid's motion over the horizon (every particle's
+  path, from the sketch and the state), tracked by the same law as
+  ``oracle_path`` (:func:`track_path`).
 
 Every acceleration is clipped at :data:`~hybridmpm.control.reverse.A_MAX`.
 
@@ -32,10 +36,12 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hybridmpm.control.diffusion import SAMPLE_STEPS, ControlModel
 from hybridmpm.control.reverse import A_MAX, clip_norm
 from hybridmpm.control.sketch import Sketch
 from hybridmpm.conventions import T_CTR
@@ -43,6 +49,59 @@ from hybridmpm.errors import InvalidInputError
 
 #: Control methods.
 METHODS = ("none", "constant", "pd", "oracle", "diffusion")
+#: Settling time of the path tracker as a fraction of the horizon (``docs/control.md``: tracking the true path with 0.25 lands as close as 0.1 with a quarter of the effort).
+TRACK_SETTLE = 0.25
+
+
+def shipped_control_model(scene: str) -> Path:
+    """Directory of the shipped controller of ``scene``. Raises
+    :class:`InvalidInputError` (field ``scene``) when none ships."""
+    path = Path(__file__).resolve().parent.parent / "models" / "control" / scene
+    if not (path / "control.json").exists():
+        have = sorted(p.name for p in path.parent.glob("*") if (p / "control.json").exists()) if path.parent.exists() else []
+        raise InvalidInputError(f"scene: no diffusion controller ships for {scene!r} (shipped: {', '.join(have) or 'none'})", "scene")
+    return path
+
+
+_MODELS: dict[Path, ControlModel] = {}
+
+
+def _cached_model(path: Path) -> ControlModel:
+    """One onnxruntime model per shipped directory per process (sessions are thread-safe to run)."""
+    if path not in _MODELS:
+        _MODELS[path] = ControlModel(path)
+    return _MODELS[path]
+
+
+def track_path(src: Any, path: np.ndarray, omega: float, gravity: np.ndarray | None = None) -> Callable[[int], np.ndarray]:
+    """The tracking law shared by PD and the planned methods: at control frame
+    ``k`` the acceleration [m/s²] ``ω²(y_k − x) + 2ω(ẏ_k − v) − g_ff``, with
+    ``y`` = ``path`` float [F, N, D] (``y_0`` the start; held at its last
+    frame after the end), ``ẏ_k`` its central difference (one-sided at the
+    ends, 0 after the end), ``x``, ``v`` the state of ``src`` (a simulator)
+    read at that frame; ``gravity`` the feed-forward ``g_ff`` (None: 0 — a
+    plan already includes gravity's effect, so following the uncontrolled
+    motion costs no effort: the central difference matches MPM's velocity to
+    ``g·Δt/(2·substeps)`` on a ballistic path). Critically damped: settles in
+    about ``2π/ω``."""
+    y = np.asarray(path, np.float64)
+    dt = src.dt_frame
+    if len(y) > 2:
+        vel = np.concatenate([(y[1:2] - y[:1]) / dt, (y[2:] - y[:-2]) / (2 * dt), (y[-1:] - y[-2:-1]) / dt])
+    else:
+        vel = np.zeros_like(y)
+    g = np.zeros(y.shape[-1]) if gravity is None else np.asarray(gravity, np.float64)
+    p = src.particles
+    kp, kd = omega * omega, 2.0 * omega
+
+    def feedback(k: int) -> np.ndarray:
+        xk = p.fluid(src.positions).astype(np.float64)
+        vk = np.asarray(src.velocities, np.float64)
+        target = y[min(k, len(y) - 1)]
+        v_plan = vel[k] if k < len(y) - 1 else 0.0
+        return (kp * (target - xk) + kd * (v_plan - vk) - g).astype(np.float32)
+
+    return feedback
 
 
 @dataclass
@@ -52,7 +111,8 @@ class Plan:
     None outside the horizon). Open loop (``accelerations`` [frames, N, D]) or
     closed loop (``feedback(k)`` computed from the state at control frame
     ``k``). ``applied`` keeps every field handed out (effort and smoothness
-    metrics); ``seconds`` the time the plan took to make (sketch → field)."""
+    metrics); ``seconds`` the time the plan took to make (sketch → field);
+    ``path`` float64 [F, N, D] the planned motion of a planned method."""
 
     method: str
     start_frame: int
@@ -63,6 +123,7 @@ class Plan:
     seconds: float = 0.0
     sketch: Sketch | None = None
     applied: list[np.ndarray] = field(default_factory=list)
+    path: np.ndarray | None = None
 
     def __call__(self, frame: int) -> np.ndarray | None:
         k = int(frame) - self.start_frame
@@ -79,30 +140,61 @@ class Controller:
 
     ``frames`` the horizon ``T_ctr`` (default 100 frames of 2.5 ms);
     ``settle`` the PD time scale as a fraction of the horizon (1: critically damped with ω = 2π/τ, within 1.3 % of the targets at the end);
-    ``oracle`` the field [frames, N, D] of the ``"oracle"`` method. Raises
-    :class:`InvalidInputError` (``method``) for an unknown method or one with
-    no model."""
+    ``oracle`` the field [frames, N, D] of the ``"oracle"`` method, or
+    ``oracle_path`` the path [F, N, D] it tracks instead; ``model`` the
+    diffusion controller (a :class:`~hybridmpm.control.diffusion.ControlModel`
+    or its directory; :meth:`for_scene` finds the shipped one), sampled with
+    ``steps`` DDIM steps, guidance scale ``guidance`` and noise ``seed``.
+    Raises :class:`InvalidInputError` naming the argument (``method`` for an
+    unknown method, ``model`` for a diffusion controller without one)."""
 
-    def __init__(self, method: str = "constant", *, frames: int = T_CTR, settle: float = 1.0, oracle: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        method: str = "constant",
+        *,
+        frames: int = T_CTR,
+        settle: float = 1.0,
+        oracle: np.ndarray | None = None,
+        oracle_path: np.ndarray | None = None,
+        model: ControlModel | str | Path | None = None,
+        steps: int = SAMPLE_STEPS,
+        guidance: float = 1.0,
+        seed: int = 0,
+    ) -> None:
         if method not in METHODS:
             raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
-        if method == "diffusion":
-            raise InvalidInputError("method: no trained diffusion controller ships yet; use constant or pd", "method")
+        if method == "diffusion" and model is None:
+            raise InvalidInputError(
+                "model: the diffusion method needs a trained model (Controller.for_scene(scene, 'diffusion') finds the shipped one)", "model"
+            )
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 100:
+            raise InvalidInputError(f"steps: must be an integer in [1, 100], got {steps!r}", "steps")
+        if isinstance(guidance, bool) or not isinstance(guidance, (int, float)) or not 0.0 <= guidance <= 5.0:
+            raise InvalidInputError(f"guidance: must be a number in [0, 5], got {guidance!r}", "guidance")
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+            raise InvalidInputError(f"seed: must be an integer >= 0, got {seed!r}", "seed")
         if isinstance(frames, bool) or not isinstance(frames, int) or not 1 <= frames <= 10 * T_CTR:
             raise InvalidInputError(f"frames: must be an integer in [1, {10 * T_CTR}], got {frames!r}", "frames")
         if not (isinstance(settle, (int, float)) and 0.05 <= settle <= 1.0):
             raise InvalidInputError(f"settle: must be in [0.05, 1], got {settle!r}", "settle")
-        if method == "oracle" and oracle is None:
-            raise InvalidInputError("oracle: the oracle method replays a given field", "oracle")
+        if method == "oracle" and oracle is None and oracle_path is None:
+            raise InvalidInputError("oracle: the oracle method replays a given field (oracle=) or tracks a given path (oracle_path=)", "oracle")
         self.method = method
         self.frames = frames
         self.settle = float(settle)
         self.oracle = None if oracle is None else np.asarray(oracle, np.float32)
+        self.oracle_path = None if oracle_path is None else np.asarray(oracle_path, np.float64)
+        self.model = ControlModel(model) if isinstance(model, (str, Path)) else model
+        self.steps, self.guidance, self.seed = steps, float(guidance), seed
 
     @classmethod
     def for_scene(cls, scene: str, method: str = "constant", **kw: Any) -> Controller:
-        """The controller of a registered scene (the diffusion model, once
-        trained, is per scene; the baselines are the same for all)."""
+        """The controller of a registered scene: for ``"diffusion"`` the
+        shipped model of ``scene`` (:func:`shipped_control_model`; raises
+        :class:`InvalidInputError` naming ``scene`` when none ships); the
+        baselines are the same for all scenes."""
+        if method == "diffusion" and kw.get("model") is None:
+            kw["model"] = _cached_model(shipped_control_model(scene))
         return cls(method, **kw)
 
     def plan(self, sim: Any, sketch: Sketch | None) -> Plan:
@@ -116,11 +208,29 @@ class Controller:
         start = int(sim.frame.frame)
         if self.method == "none":
             return Plan("none", start, self.frames, n, seconds=time.perf_counter() - t0, sketch=sketch)
+        if self.method == "oracle" and self.oracle_path is not None:
+            if self.oracle_path.shape[1:] != (n, d):
+                raise InvalidInputError(f"oracle_path: expected [F, {n}, {d}], got {list(self.oracle_path.shape)}", "oracle_path")
+            src = getattr(sim, "mpm", sim)
+            fb = track_path(src, self.oracle_path, self._track_omega(sim))
+            return Plan("oracle", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
         if self.method == "oracle":
             assert self.oracle is not None
             if self.oracle.shape[1:] != (n, d) or len(self.oracle) < self.frames:
                 raise InvalidInputError(f"oracle: expected [>= {self.frames}, {n}, {d}], got {list(self.oracle.shape)}", "oracle")
             return Plan("oracle", start, self.frames, n, accelerations=self.oracle[: self.frames], seconds=time.perf_counter() - t0, sketch=sketch)
+        if self.method == "diffusion":
+            assert self.model is not None
+            if self.model.dim != d:
+                raise InvalidInputError(f"model: a {self.model.dim}D controller cannot drive a {d}D scene", "model")
+            src = getattr(sim, "mpm", sim)
+            res = self.model.sample(
+                p.fluid(sim.positions), sim.velocities, p.particle_type[:n], sketch, seed=self.seed, steps=self.steps, guidance=self.guidance
+            )
+            fb = track_path(src, res.path, self._track_omega(sim))
+            plan = Plan("diffusion", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
+            plan.path = res.path
+            return plan
         if sketch is None:
             raise InvalidInputError(f"sketch: the {self.method} method needs a sketch", "sketch")
         x = p.fluid(sim.positions).astype(np.float64)
@@ -139,16 +249,13 @@ class Controller:
         # PD attraction to per-particle targets
         y = pd_targets(x, sketch)
         omega = 2.0 * math.pi / (self.settle * tau)
-        kp, kd = omega * omega, 2.0 * omega
 
         src = getattr(sim, "mpm", sim)  # the hybrid applies control on its MPM, which has the state frame by frame
-
-        def feedback(k: int) -> np.ndarray:
-            xk = p.fluid(src.positions).astype(np.float64)
-            vk = np.asarray(src.velocities, np.float64)
-            return (kp * (y - xk) - kd * vk - g).astype(np.float32)
-
+        feedback = track_path(src, y[None], omega, gravity=g)
         return Plan("pd", start, self.frames, n, feedback=feedback, seconds=time.perf_counter() - t0, sketch=sketch)
+
+    def _track_omega(self, sim: Any) -> float:
+        return 2.0 * math.pi / (TRACK_SETTLE * self.frames * sim.dt_frame)
 
 
 def pd_targets(x: np.ndarray, sketch: Sketch) -> np.ndarray:
@@ -172,4 +279,4 @@ def pd_targets(x: np.ndarray, sketch: Sketch) -> np.ndarray:
     return y
 
 
-__all__ = ["METHODS", "Controller", "Plan", "pd_targets"]
+__all__ = ["METHODS", "TRACK_SETTLE", "Controller", "Plan", "pd_targets", "shipped_control_model", "track_path"]

@@ -36,7 +36,11 @@ class ControlCase:
     state (an :class:`~hybridmpm.sim.MpmSimulator` state); ``target`` float32
     [N, D] the positions it should end on (``X_1``); ``sketch``; the fields
     ``kinematic`` and ``tracking`` float32 [T − 1, N, D] (controlled frame
-    ``k`` → ``k + 1``); ``r_p``, ``preroll``."""
+    ``k`` → ``k + 1``); ``path`` float32 [T, N, D] the positions the
+    controlled run should pass through, ``y_k = X_{T−k}`` (``path[0]`` the
+    start, ``path[-1]`` the target); ``free_path`` float32 [T, N, D] the
+    uncontrolled motion from the same start (what a blank sketch should
+    leave alone); ``r_p``, ``preroll``."""
 
     scene: str
     seed: int
@@ -48,6 +52,8 @@ class ControlCase:
     sketch: Sketch
     kinematic: np.ndarray
     tracking: np.ndarray
+    path: np.ndarray | None = None
+    free_path: np.ndarray | None = None
 
     @property
     def target_field(self) -> np.ndarray:
@@ -72,10 +78,20 @@ class ControlCase:
 
 
 def make_case(
-    scene: str, seed: int, kind: str = "arrow", *, frames: int = T_CTR, preroll: int | None = None, r_p: float = CONTROL_R_P, threads: int = 1
+    scene: str,
+    seed: int,
+    kind: str = "arrow",
+    *,
+    frames: int = T_CTR,
+    preroll: int | None = None,
+    r_p: float = CONTROL_R_P,
+    threads: int = 1,
+    tracking: bool = True,
 ) -> ControlCase:
     """Build the case of registered ``scene`` and ``seed`` (``kind`` "arrow"
-    or "oval"; ``preroll`` default drawn from [20, 80] by the seed). Raises
+    or "oval"; ``preroll`` default drawn from [20, 80] by the seed; ``tracking`` False
+    skips the tracking field — two thirds of the cost — and leaves it empty
+    [0, N, D], for training data that needs only the path). Raises
     :class:`InvalidInputError` naming a bad argument."""
     if kind not in ("arrow", "oval"):
         raise InvalidInputError(f"kind: must be 'arrow' or 'oval', got {kind!r}", "kind")
@@ -89,11 +105,27 @@ def make_case(
     sim.solver.velocities = -v_end
     sim.solver.affine = -np.asarray(sim.solver.affine)
     start = sim.state()
+    free = MpmSimulator(make_scene(scene, seed=seed), r_p=r_p, seed=seed, threads=threads)
+    free.restore(start)
+    free_path = rollout(free, frames - 1).fluid_positions.astype(np.float32)  # the start, then T − 1 frames
     g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64)
     kinematic = reverse_kinematic(forward, v_end, sim.dt_frame, g)
-    tracking = reverse_tracking(sim, forward)
+    tracking_field = reverse_tracking(sim, forward) if tracking else np.zeros((0, *forward.shape[1:]), np.float32)
     sketch = sketch_from_trajectory(forward[-1], forward[0], kind)
-    return ControlCase(scene, int(seed), kind, float(r_p), pre, start, forward[0].astype(np.float32), sketch, kinematic, tracking)
+    return ControlCase(
+        scene,
+        int(seed),
+        kind,
+        float(r_p),
+        pre,
+        start,
+        forward[0].astype(np.float32),
+        sketch,
+        kinematic,
+        tracking_field,
+        forward[::-1].astype(np.float32),
+        free_path,
+    )
 
 
 __all__ = ["CONTROL_R_P", "ControlCase", "make_case"]

@@ -386,8 +386,10 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         if body.frames > cfg.max_control_frames:
             raise FieldError(("body", "frames"), f"frames: at most {cfg.max_control_frames}")
         try:
-            controller = Controller(body.method, frames=body.frames)
+            controller = Controller.for_scene(s.sim.scene.name, body.method, frames=body.frames)
         except InvalidInputError as e:
+            if e.field == "scene":  # no diffusion controller ships for this session's scene
+                raise FieldError(("body", "method"), f"method: {e}".replace("scene: ", "", 1)) from None
             raise _field_error(e, default="method") from None
         if sketch is None and body.method != "none":
             raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")

@@ -1,0 +1,325 @@
+"""The numpy half of the Fluid ControlNet: the temporal basis of the control
+field, the diffusion schedule, the closed-form DDIM update, and the
+onnxruntime sampler that turns a sketch and the fluid state into a field
+(paper Sec. 3.2, App. B; design D of ``shared/notes/control-facts.md``).
+
+Serving needs numpy and onnxruntime only; the torch model that is trained
+and exported lives in :mod:`hybridmpm.control.model`.
+
+The sample (what is diffused) is, per particle, the coefficients of its
+planned displacement over the horizon on a temporal basis:
+``y_i(k) − x_i = Σ_j c_ij B_j(k)`` for the ``T_ctr`` frames, ``B`` clamped
+cubic B-splines on uniform knots that vanish at frame 0 (:func:`path_basis`),
+``K_b`` of them, so a particle's whole-horizon plan is ``K_b·D`` numbers,
+normalised per (basis, dimension) by the training set's mean and std. The
+controller turns the plan into accelerations frame by frame with a tracking
+law (:func:`hybridmpm.control.controller.track_path`); ``docs/control.md``
+explains why the plan, not the acceleration field, is what is diffused.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+
+#: Diffusion steps of training (the schedule's length).
+DIFFUSION_STEPS = 100
+#: DDIM steps at sampling time (trailing spacing).
+SAMPLE_STEPS = 10
+
+
+# --------------------------------------------------------------------- basis
+def temporal_basis(frames: int, k: int) -> np.ndarray:
+    """Clamped cubic B-spline basis on uniform knots: float64 [frames, k]
+    (``k ≥ 4``), rows sum to 1; frame ``f`` sits at ``u = f/(frames − 1)``
+    in [0, 1]. Cox–de Boor recursion (de Boor 1978); ``tests/test_control_diffusion.py``
+    checks it against scipy's ``BSpline.design_matrix``."""
+    if not 4 <= k <= frames:
+        raise InvalidInputError(f"k: basis size must be in [4, {frames}], got {k!r}", "k")
+    degree = 3
+    inner = np.linspace(0.0, 1.0, k - degree + 1)
+    knots = np.concatenate([np.zeros(degree), inner, np.ones(degree)])
+    u = np.linspace(0.0, 1.0, frames)
+    # degree 0: indicator of [t_i, t_{i+1}), the last non-empty span closed at 1
+    b = np.zeros((frames, len(knots) - 1))
+    for i in range(len(knots) - 1):
+        if knots[i + 1] > knots[i]:
+            b[:, i] = (u >= knots[i]) & (u < knots[i + 1])
+    last = np.nonzero(knots[1:] > knots[:-1])[0][-1]
+    b[u >= 1.0, last] = 1.0
+    for p in range(1, degree + 1):
+        nb = np.zeros((frames, len(knots) - 1 - p))
+        for i in range(len(knots) - 1 - p):
+            d1, d2 = knots[i + p] - knots[i], knots[i + p + 1] - knots[i + 1]
+            left = (u - knots[i]) / d1 * b[:, i] if d1 > 0 else 0.0
+            right = (knots[i + p + 1] - u) / d2 * b[:, i + 1] if d2 > 0 else 0.0
+            nb[:, i] = left + right
+        b = nb
+    return b
+
+
+def path_basis(frames: int, k: int) -> np.ndarray:
+    """The basis of a planned displacement: the clamped cubic B-spline basis
+    of ``k + 1`` functions (:func:`temporal_basis`) without its first, so
+    every combination is 0 at frame 0 (a plan starts where the fluid is).
+    float64 [frames, k], ``k ≥ 3``."""
+    return temporal_basis(frames, k + 1)[:, 1:]
+
+
+def project(field: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of ``field`` float [F, N, D] on ``basis``
+    [F, K]: float32 [N, K, D]."""
+    f = np.asarray(field, np.float64)
+    coef, *_ = np.linalg.lstsq(basis, f.reshape(len(f), -1), rcond=None)
+    return coef.reshape(basis.shape[1], f.shape[1], f.shape[2]).transpose(1, 0, 2).astype(np.float32)
+
+
+def expand(coefficients: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """The field of ``coefficients`` [N, K, D] on ``basis`` [F, K]: float32 [F, N, D]."""
+    c = np.asarray(coefficients, np.float64)
+    return np.einsum("fk,nkd->fnd", basis, c).astype(np.float32)
+
+
+# --------------------------------------------------------------------- schedule and DDIM
+def cosine_alpha_bar(steps: int = DIFFUSION_STEPS, max_beta: float = 0.999) -> np.ndarray:
+    """``ᾱ_t`` for t = 0 … steps − 1 of the cosine schedule (Nichol & Dhariwal
+    2021, Eq. 17; diffusers' ``squaredcos_cap_v2``: ``β_t = min(1 −
+    f((t+1)/T)/f(t/T), max_beta)``, ``f(s) = cos²((s + 0.008)/1.008·π/2)``,
+    ``ᾱ_t = Π_{i≤t}(1 − β_i)``). float64 [steps]."""
+
+    def f(s: float) -> float:
+        return math.cos((s + 0.008) / 1.008 * math.pi / 2) ** 2
+
+    betas = np.array([min(1 - f((i + 1) / steps) / f(i / steps), max_beta) for i in range(steps)])
+    return np.cumprod(1.0 - betas)
+
+
+def trailing_timesteps(steps: int = SAMPLE_STEPS, train_steps: int = DIFFUSION_STEPS) -> np.ndarray:
+    """DDIM sampling timesteps with trailing spacing (Lin et al. 2024, Table 2;
+    the first step is ``train_steps − 1``, pure noise): int64 [steps], decreasing."""
+    if not 1 <= steps <= train_steps:
+        raise InvalidInputError(f"steps: must be in [1, {train_steps}], got {steps!r}", "steps")
+    ratio = train_steps / steps
+    return (np.round(np.arange(train_steps, 0, -ratio)) - 1).astype(np.int64)
+
+
+def add_noise(x0: np.ndarray, noise: np.ndarray, alpha_bar_t: float) -> np.ndarray:
+    """The forward process ``x_t = √ᾱ_t·x0 + √(1 − ᾱ_t)·ε`` (DDPM, Ho et al. 2020, Eq. 4)."""
+    return math.sqrt(alpha_bar_t) * x0 + math.sqrt(1.0 - alpha_bar_t) * noise
+
+
+def ddim_step(x_t: np.ndarray, x0: np.ndarray, alpha_bar_t: float, alpha_bar_prev: float) -> np.ndarray:
+    """One deterministic DDIM update (η = 0; Song et al. 2021, Eq. 12) from a
+    predicted ``x0``: ``ε̂ = (x_t − √ᾱ_t·x0)/√(1 − ᾱ_t)``,
+    ``x_prev = √ᾱ_prev·x0 + √(1 − ᾱ_prev)·ε̂``. No clipping of ``x0``."""
+    eps = (x_t - math.sqrt(alpha_bar_t) * x0) / math.sqrt(1.0 - alpha_bar_t)
+    return math.sqrt(alpha_bar_prev) * x0 + math.sqrt(1.0 - alpha_bar_prev) * eps
+
+
+def bilinear_sample(feature_map: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Sample ``feature_map`` float [C, H, W] (row 0 = top = y 1, the image of
+    :func:`~hybridmpm.control.sketch.render_sketch`) at domain points ``xy``
+    [N, 2] (y up) bilinearly, pixel centres at ``(j + ½)/W``, zero outside
+    (torch ``grid_sample(align_corners=False, padding_mode="zeros")``).
+    Returns float32 [N, C]."""
+    c, h, w = feature_map.shape
+    fx = np.asarray(xy[:, 0], np.float64) * w - 0.5
+    fy = (1.0 - np.asarray(xy[:, 1], np.float64)) * h - 0.5
+    x0, y0 = np.floor(fx).astype(np.int64), np.floor(fy).astype(np.int64)
+    out = np.zeros((len(xy), c), np.float64)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            xi, yi = x0 + dx, y0 + dy
+            wgt = (1.0 - np.abs(fx - xi)) * (1.0 - np.abs(fy - yi))
+            ok = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+            vals = np.zeros((len(xy), c))
+            vals[ok] = feature_map[:, yi[ok], xi[ok]].T
+            out += wgt[:, None] * vals
+    return out.astype(np.float32)
+
+
+# --------------------------------------------------------------------- sketch conditioning (training and serving)
+#: Length scale [m] of the sketch geometry features.
+GEOMETRY_SCALE = 0.3
+
+
+def sketch_geometry(sketch: Any, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sketch's geometry as the model reads it, besides its image:
+    ``(global float32 [11], offset float32 [N, D])``.
+
+    ``global``: has-sketch, is-arrow, is-oval, the arrow vector, the oval's
+    centre relative to the fluid's centroid, its radii (all / 0.3 m), and
+    ``cos 2θ``, ``sin 2θ`` of its axis (x–y); ``offset``: per particle the
+    displacement to its target point under the sketch's geometric mapping
+    (:func:`~hybridmpm.control.controller.pd_targets`: the arrow, or the
+    cloud's ±2σ ellipse mapped onto the oval), 0 in z, / 0.3 m. A blank sketch
+    (None) gives zeros. ``positions`` float [N, D] m (the fluid)."""
+    from hybridmpm.control.controller import pd_targets
+
+    x = np.asarray(positions, np.float64)
+    g = np.zeros(11, np.float32)
+    if sketch is None:
+        return g, np.zeros_like(x, dtype=np.float32)
+    g[0] = 1.0
+    if sketch.kind == "arrow":
+        g[1] = 1.0
+        g[3:5] = sketch.vector / GEOMETRY_SCALE
+    else:
+        c, r, ang = sketch.ellipse()
+        g[2] = 1.0
+        g[5:7] = (c - x[:, :2].mean(0)) / GEOMETRY_SCALE
+        g[7:9] = r / GEOMETRY_SCALE
+        g[9:11] = math.cos(2 * ang), math.sin(2 * ang)
+    off = (pd_targets(x, sketch) - x) / GEOMETRY_SCALE
+    return g, off.astype(np.float32)
+
+
+def mirror_x(positions: np.ndarray, lower: float, upper: float) -> np.ndarray:
+    """Positions [..., D] mirrored in x about the domain's centre (training augmentation)."""
+    out = np.array(positions, copy=True)
+    out[..., 0] = lower + upper - out[..., 0]
+    return out
+
+
+# --------------------------------------------------------------------- onnxruntime sampler
+#: File names of an exported controller (a directory).
+GRAPHS = ("sketch_encoder", "state_encoder", "denoiser_head")
+META_FILE = "control.json"
+
+
+@dataclass
+class SampleResult:
+    """A sampled plan: ``path`` float64 [F, N, D] the positions the fluid
+    should pass through (``path[0]`` = now); ``seconds`` sketch → path."""
+
+    path: np.ndarray
+    seconds: float
+
+
+class ControlModel:
+    """An exported Fluid ControlNet run by onnxruntime (no torch).
+
+    ``path`` a directory with :data:`GRAPHS` ``.onnx`` files and
+    ``control.json`` (:func:`hybridmpm.control.train.export_control`);
+    ``threads`` onnxruntime intra-op threads (1: the latency target's).
+    Raises :class:`InvalidInputError` (field ``model``) for a missing or
+    malformed model."""
+
+    def __init__(self, path: str | Path, threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        try:
+            self.meta: dict[str, Any] = json.loads((self.path / META_FILE).read_text())
+            cfg = self.meta["config"]
+            self.dim = int(cfg["dim"])
+            self.k_basis = int(cfg["k_basis"])
+            self.frames = int(cfg["frames"])
+            self.radius = float(cfg["radius"])
+            self.coef_mean = np.asarray(cfg["coef_mean"], np.float64)
+            self.coef_std = np.asarray(cfg["coef_std"], np.float64)
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = max(1, int(threads))
+            opts.inter_op_num_threads = 1
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            self.sessions = {g: ort.InferenceSession(str(self.path / f"{g}.onnx"), opts, providers=["CPUExecutionProvider"]) for g in GRAPHS}
+        except (OSError, KeyError, ValueError, TypeError) as e:
+            raise InvalidInputError(f"model: {self.path} is not an exported control model ({e})", "model") from e
+        except Exception as e:  # onnxruntime's own load errors
+            raise InvalidInputError(f"model: {self.path} could not be loaded by onnxruntime ({e})", "model") from e
+        if self.coef_mean.shape != (self.k_basis * self.dim,) or self.coef_std.shape != self.coef_mean.shape or (self.coef_std <= 0).any():
+            raise InvalidInputError(f"model: {self.path} has malformed normalisation statistics", "model")
+        self.basis = path_basis(self.frames, self.k_basis)
+        self.alpha_bar = cosine_alpha_bar(int(self.meta.get("diffusion_steps", DIFFUSION_STEPS)))
+
+    def _encode_sketch(self, sketch: Any) -> tuple[np.ndarray, np.ndarray]:
+        from hybridmpm.control.sketch import render_sketch
+
+        img = render_sketch(sketch).astype(np.float32).transpose(2, 0, 1)[None] / 255.0
+        glob, local_map = self.sessions["sketch_encoder"].run(None, {"image": img})
+        return glob, local_map[0]
+
+    def sample(
+        self,
+        positions: np.ndarray,
+        velocities: np.ndarray,
+        particle_type: np.ndarray,
+        sketch: Any,
+        *,
+        seed: int = 0,
+        steps: int = SAMPLE_STEPS,
+        guidance: float = 1.0,
+    ) -> SampleResult:
+        """Sample a plan for the fluid ``positions`` [N, D] m, ``velocities``
+        [N, D] m/s, ``particle_type`` int [N] (GNS codes) and ``sketch`` (None:
+        blank). DDIM with ``steps`` trailing steps from seeded Gaussian noise
+        (``seed``: same inputs and seed → the same bits); ``guidance`` the
+        classifier-free guidance scale ``s`` in
+        ``x̂0 = x̂0_blank + s·(x̂0_sketch − x̂0_blank)`` (1: no blank pass).
+        Raises :class:`InvalidInputError` naming a bad argument."""
+        from hybridmpm.errors import as_f32
+        from hybridmpm.graph import radius_graph
+
+        t0 = time.perf_counter()
+        x = as_f32("positions", positions)
+        v = as_f32("velocities", velocities)
+        if x.ndim != 2 or x.shape[1] != self.dim or v.shape != x.shape:
+            raise InvalidInputError(
+                f"positions: expected [N, {self.dim}] with velocities of the same shape, got {list(x.shape)} and {list(v.shape)}", "positions"
+            )
+        if not (isinstance(guidance, (int, float)) and 0.0 <= guidance <= 5.0):
+            raise InvalidInputError(f"guidance: must be in [0, 5], got {guidance!r}", "guidance")
+        ptype = np.asarray(particle_type, np.int64)
+        ts = trailing_timesteps(steps, len(self.alpha_bar))
+        s, r, _, _ = radius_graph(x, self.radius)
+        h, edges = self.sessions["state_encoder"].run(None, {"positions": x, "velocities": v, "particle_type": ptype, "senders": s, "receivers": r})
+        branches = [sketch] if guidance == 1.0 else [sketch, None]
+        conds = []
+        for sk in branches:
+            glob, local_map = self._encode_sketch(sk)
+            geo, off = sketch_geometry(sk, x)
+            conds.append((np.concatenate([glob, geo[None]], 1).astype(np.float32), bilinear_sample(local_map, x[:, :2]), off))
+        rng = np.random.default_rng(int(seed))
+        xt = rng.standard_normal((len(x), self.k_basis * self.dim)).astype(np.float32)
+        head = self.sessions["denoiser_head"]
+        for i, t in enumerate(ts):
+            preds = []
+            for cond, local, off in conds:
+                feed = {"x_t": xt, "h": h, "local": local, "offset": off, "edges": edges, "senders": s, "receivers": r}
+                feed.update({"t": np.array([t / len(self.alpha_bar)], np.float32), "cond": cond})
+                preds.append(head.run(None, feed)[0].astype(np.float64))
+            x0 = preds[0] if len(preds) == 1 else preds[1] + guidance * (preds[0] - preds[1])
+            prev = self.alpha_bar[ts[i + 1]] if i + 1 < len(ts) else 1.0
+            xt = ddim_step(xt.astype(np.float64), x0, float(self.alpha_bar[t]), float(prev)).astype(np.float32)
+        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean).reshape(len(x), self.k_basis, self.dim)
+        path = x.astype(np.float64)[None] + expand(coef, self.basis).astype(np.float64)
+        return SampleResult(path, time.perf_counter() - t0)
+
+
+__all__ = [
+    "DIFFUSION_STEPS",
+    "GRAPHS",
+    "META_FILE",
+    "SAMPLE_STEPS",
+    "ControlModel",
+    "SampleResult",
+    "add_noise",
+    "bilinear_sample",
+    "cosine_alpha_bar",
+    "ddim_step",
+    "expand",
+    "mirror_x",
+    "path_basis",
+    "project",
+    "sketch_geometry",
+    "temporal_basis",
+    "trailing_timesteps",
+]
