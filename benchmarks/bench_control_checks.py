@@ -8,7 +8,7 @@ Per scene, on held-out cases (seeds 5000+, as bench_control.py):
 * **latency** — sketch → field (the plan: state encoding, sketch encoding,
   10 DDIM steps; one onnxruntime thread) p50/p95 over ``--repeats`` plans on
   each of 5 start states, and the whole controlled episode (plan + T_ctr
-  MPM frames, 2 threads), median;
+  MPM frames, one MPM thread), median;
 * **flipped arrow** — each arrow case is also run with the arrow reversed:
   the cosine between the fluid's centroid displacement and the *original*
   arrow (target ≤ −0.5), raw and relative to the uncontrolled run;
@@ -69,12 +69,12 @@ def check_scene(scene: str, args: argparse.Namespace) -> dict:
     # latency
     plans, episodes = [], []
     for case in cases[:5]:
-        sim = case.simulator(threads=1)
+        sim = case.simulator()
         c = ctl()
         c.plan(sim, case.sketch)  # warm-up
         for _ in range(args.repeats):
             plans.append(c.plan(sim, case.sketch).seconds * 1e3)
-        sim = case.simulator(threads=2)
+        sim = case.simulator()
         t0 = time.perf_counter()
         control_episode(sim, case.sketch, ctl(frames=frames))
         episodes.append((time.perf_counter() - t0) * 1e3)

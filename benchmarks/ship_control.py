@@ -65,7 +65,10 @@ def main() -> None:
         "| step | train loss | validation loss (EMA, t ∈ {10, 40, 70, 95}) | minutes |",
         "|---|---|---|---|",
     ]
-    for row in log[:: max(1, len(log) // 8)] + ([log[-1]] if len(log) % max(1, len(log) // 8) != 1 else []):
+    rows = log[:: max(1, len(log) // 8)]
+    if rows[-1] is not log[-1]:
+        rows.append(log[-1])
+    for row in rows:
         loss = "–" if row.get("loss") is None else f"{row['loss']:.3f}"
         lines.append(f"| {row['step']} | {loss} | {row['valid']:.3f} | {row['seconds'] / 60:.1f} |")
     if a.bench and a.bench.exists():

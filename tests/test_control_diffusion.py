@@ -57,6 +57,16 @@ def test_path_basis_starts_at_zero_and_projection_is_exact_in_span() -> None:
     assert np.abs(fit - path).max() < 1e-3 * np.abs(path).max()
 
 
+def test_the_sketch_prior_is_a_smoothstep_to_each_target_held_exactly_by_the_basis() -> None:
+    from hybridmpm.control.diffusion import prior_coefficients, smoothstep
+
+    b = path_basis(100, 8)
+    off = np.random.default_rng(5).normal(size=(20, 2)) * 0.1
+    plan = expand(prior_coefficients(off, b).reshape(20, 8, 2), b)
+    np.testing.assert_allclose(plan, smoothstep(100)[:, None, None] * off[None], atol=1e-9)
+    np.testing.assert_allclose(plan[-1], off, atol=1e-12)
+
+
 def test_basis_rejects_bad_size() -> None:
     with pytest.raises(InvalidInputError, match="k"):
         temporal_basis(10, 3)
@@ -190,6 +200,11 @@ def test_exported_model_controls_a_rollout_deterministically(smoke_model: dict) 
         runs.append((ep.plan.path, fluid))
     assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])  # same seed: same bits
     assert not np.array_equal(runs[0][0], runs[2][0])  # another seed: another sample
+    # classifier-free guidance (a blank pass per step) gives a finite plan that starts where the fluid is
+    sim = case.simulator()
+    plan = Controller("diffusion", model=model, guidance=2.0).plan(sim, case.sketch)
+    assert plan.path is not None and np.isfinite(plan.path).all()
+    np.testing.assert_allclose(plan.path[0], sim.particles.fluid(sim.positions), atol=1e-6)
 
 
 def test_diffusion_needs_a_model() -> None:

@@ -371,8 +371,9 @@ def test_checkpoint_format_has_no_pickle():
 
 def test_control_diffusion_follows_an_arrow_and_a_scene_without_a_model_is_named(client):
     """The shipped water2d diffusion controller through the HTTP API: the
-    fluid's centroid moves along a rightward arrow (relative to the same
-    session state left uncontrolled, so gravity and the slosh cancel)."""
+    fluid's centroid moves right along the arrow by more than half its length
+    beyond where the same state, left uncontrolled, goes (a falling block:
+    the controller also holds it up, partly)."""
     arrow = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.3]]}
     moved = []
     for method in ("none", "diffusion"):
@@ -381,8 +382,7 @@ def test_control_diffusion_follows_an_arrow_and_a_scene_without_a_model_is_named
         r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": arrow, "method": method})
         assert r.status_code == 200, r.text
         moved.append(np.array(r.json()["metrics"]["centroid_displacement"]))
-    shift = moved[1] - moved[0]
-    assert shift[0] > 0.05 and shift[0] > abs(shift[1]), shift
+    assert moved[1][0] - moved[0][0] > 0.5 * 0.3, moved  # rightwards by more than half the arrow, beyond what the fluid does anyway
     s = new(client)  # dam_break2d: no controller ships for it
     r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": arrow, "method": "diffusion"})
     assert r.status_code == 422 and "dam_break2d" in r.text

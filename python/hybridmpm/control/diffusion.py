@@ -182,6 +182,24 @@ def sketch_geometry(sketch: Any, positions: np.ndarray) -> tuple[np.ndarray, np.
     return g, off.astype(np.float32)
 
 
+def smoothstep(frames: int) -> np.ndarray:
+    """``3s² − 2s³`` at ``s = f/(frames − 1)``: float64 [frames], 0 → 1 with zero slope at both ends."""
+    u = np.linspace(0.0, 1.0, frames)
+    return 3 * u**2 - 2 * u**3
+
+
+def prior_coefficients(offset: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """The sketch's geometric plan on ``basis`` [F, K]: every particle moved to
+    its target point (``offset`` [N, D] in metres, see :func:`sketch_geometry`)
+    along a smoothstep — float64 [N, K·D]. A cubic in time, so the B-spline
+    basis holds it exactly. The diffusion sample is the plan minus this prior
+    (``control.json`` ``"prior": "sketch_ramp"``): an untrained model plans the
+    geometric mapping, and training learns how the fluid departs from it."""
+    off = np.asarray(offset, np.float64)
+    ramp = smoothstep(len(basis))[:, None, None] * off[None]
+    return project(ramp, basis).astype(np.float64).reshape(len(off), -1)
+
+
 def mirror_x(positions: np.ndarray, lower: float, upper: float) -> np.ndarray:
     """Positions [..., D] mirrored in x about the domain's centre (training augmentation)."""
     out = np.array(positions, copy=True)
@@ -282,24 +300,29 @@ class ControlModel:
         s, r, _, _ = radius_graph(x, self.radius)
         h, edges = self.sessions["state_encoder"].run(None, {"positions": x, "velocities": v, "particle_type": ptype, "senders": s, "receivers": r})
         branches = [sketch] if guidance == 1.0 else [sketch, None]
-        conds = []
+        use_prior = self.meta.get("prior", "none") == "sketch_ramp"
+        conds, priors = [], []
         for sk in branches:
             glob, local_map = self._encode_sketch(sk)
             geo, off = sketch_geometry(sk, x)
             conds.append((np.concatenate([glob, geo[None]], 1).astype(np.float32), bilinear_sample(local_map, x[:, :2]), off))
+            priors.append(prior_coefficients(off * GEOMETRY_SCALE, self.basis) if use_prior else np.zeros((len(x), self.k_basis * self.dim)))
         rng = np.random.default_rng(int(seed))
         xt = rng.standard_normal((len(x), self.k_basis * self.dim)).astype(np.float32)
         head = self.sessions["denoiser_head"]
         for i, t in enumerate(ts):
-            preds = []
-            for cond, local, off in conds:
-                feed = {"x_t": xt, "h": h, "local": local, "offset": off, "edges": edges, "senders": s, "receivers": r}
+            ab = float(self.alpha_bar[t])
+            absolute = []  # each branch's x̂0 as plan coefficients [m]; a branch's sample is relative to its own prior
+            for (cond, local, off), prior in zip(conds, priors):
+                shift = (math.sqrt(ab) * (priors[0] - prior) / self.coef_std).astype(np.float32)
+                feed = {"x_t": xt + shift, "h": h, "local": local, "offset": off, "edges": edges, "senders": s, "receivers": r}
                 feed.update({"t": np.array([t / len(self.alpha_bar)], np.float32), "cond": cond})
-                preds.append(head.run(None, feed)[0].astype(np.float64))
-            x0 = preds[0] if len(preds) == 1 else preds[1] + guidance * (preds[0] - preds[1])
+                absolute.append(head.run(None, feed)[0].astype(np.float64) * self.coef_std + self.coef_mean + prior)
+            plan = absolute[0] if len(absolute) == 1 else absolute[1] + guidance * (absolute[0] - absolute[1])
+            x0 = (plan - priors[0] - self.coef_mean) / self.coef_std
             prev = self.alpha_bar[ts[i + 1]] if i + 1 < len(ts) else 1.0
-            xt = ddim_step(xt.astype(np.float64), x0, float(self.alpha_bar[t]), float(prev)).astype(np.float32)
-        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean).reshape(len(x), self.k_basis, self.dim)
+            xt = ddim_step(xt.astype(np.float64), x0, ab, float(prev)).astype(np.float32)
+        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean + priors[0]).reshape(len(x), self.k_basis, self.dim)
         path = x.astype(np.float64)[None] + expand(coef, self.basis).astype(np.float64)
         return SampleResult(path, time.perf_counter() - t0)
 
@@ -318,7 +341,9 @@ __all__ = [
     "expand",
     "mirror_x",
     "path_basis",
+    "prior_coefficients",
     "project",
+    "smoothstep",
     "sketch_geometry",
     "temporal_basis",
     "trailing_timesteps",

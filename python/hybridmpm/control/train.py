@@ -35,11 +35,13 @@ import numpy as np
 from hybridmpm.control.dataset import iter_cases, load_case
 from hybridmpm.control.diffusion import (
     DIFFUSION_STEPS,
+    GEOMETRY_SCALE,
     GRAPHS,
     META_FILE,
     cosine_alpha_bar,
     mirror_x,
     path_basis,
+    prior_coefficients,
     project,
     sketch_geometry,
 )
@@ -67,7 +69,7 @@ class _Pair:
     image: np.ndarray  # [1, 3, 64, 64] float32
     geometry: np.ndarray  # [11]
     offset: np.ndarray  # [N, D]
-    coef: np.ndarray  # [N, K·D] raw (not normalised)
+    coef: np.ndarray  # [N, K·D] raw (not normalised), minus the sketch prior
     free: np.ndarray  # [N, K·D] raw, the blank-sketch target
 
 
@@ -105,7 +107,7 @@ def load_pairs(paths: list[Path], k_basis: int, bounds: list[list[float]], mirro
                 v[:, 0] = -v[:, 0]
             s, r, _, _ = radius_graph(x, radius)
             geo, off = sketch_geometry(sk, x)
-            coef = project(path - path[0], basis).reshape(len(x), -1)
+            coef = (project(path - path[0], basis).reshape(len(x), -1) - prior_coefficients(off * GEOMETRY_SCALE, basis)).astype(np.float32)
             fcoef = project(free - free[0], basis).reshape(len(x), -1)
             img = render_sketch(sk).astype(np.float32).transpose(2, 0, 1)[None] / 255.0
             pairs.append(_Pair(x.astype(np.float32), v.astype(np.float32), rec.particle_type, s, r, img, geo, off, coef, fcoef))
@@ -135,7 +137,7 @@ def train_control(
     ``data_root`` into ``out`` (``ckpt.pt``, ``log.jsonl``; module doc) for
     ``steps`` optimiser steps (or until ``time_limit`` seconds), then export
     it (:func:`export_control`) to ``out/model``. Returns a summary
-    (steps, seconds, first and last losses). Raises :class:`InvalidInputError`
+    (steps, seconds, mean loss of this call's first and last 10 steps). Raises :class:`InvalidInputError`
     naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
     import torch
     from tqdm import tqdm
@@ -251,7 +253,6 @@ def train_control(
     saved_at = step
     bar = tqdm(total=steps, initial=min(step, steps), desc=f"train-control {scene}", unit="step", disable=not progress)
     t_start = time.perf_counter()
-    first_loss: float | None = None
     recent: list[float] = []
     model.train()
     while step < steps:
@@ -273,7 +274,6 @@ def train_control(
                 pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
         step += 1
         lv = float(loss.detach())
-        first_loss = lv if first_loss is None else first_loss
         recent.append(lv)
         bar.update(1)
         if step % 50 == 0:
@@ -287,7 +287,9 @@ def train_control(
     log.close()
     seconds = spent + time.perf_counter() - t_start
     export_control(ema, out / "model", {"scene": scene, "steps": step, "train_seconds": seconds, "cases": cfg.extra.get("cases")})
-    return {"steps": step, "seconds": seconds, "first_loss": first_loss, "last_loss": float(np.mean(recent[-50:])) if recent else None}
+    first = float(np.mean(recent[:10])) if recent else None  # this call's first and last 10 steps
+    last = float(np.mean(recent[-10:])) if recent else None
+    return {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last}
 
 
 def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
@@ -360,6 +362,7 @@ def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
         "diffusion_steps": DIFFUSION_STEPS,
         "schedule": "squaredcos_cap_v2",
         "prediction": "sample",
+        "prior": "sketch_ramp",
         "parameters": int(sum(p.numel() for p in model.parameters())),
         **info,
     }

@@ -1,0 +1,77 @@
+#!/usr/bin/env python3
+"""Latency of the diffusion controller on a quiet machine (issue 14, A7):
+
+    python benchmarks/control_latency.py --scenes water2d,sand2d --out benchmarks/results/control_latency
+
+Per scene, 5 held-out start states (seeds 5000+): sketch → field (the plan:
+graph, state encoder, sketch encoder, 10 DDIM steps of the head; one
+onnxruntime thread) ``--repeats`` times each after a warm-up, p50/p95; and
+the whole controlled episode (plan + 99 MPM frames, the case's one MPM
+thread), median. Check the load first (``uptime``): nothing else running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hybridmpm.bench.env import environment
+from hybridmpm.control import Controller, control_episode
+from hybridmpm.control.data import make_case
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="water2d,sand2d")
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--out", default="benchmarks/results/control_latency")
+    args = ap.parse_args(argv)
+    rows = []
+    for scene in args.scenes.split(","):
+        plans: list[float] = []
+        eps: list[float] = []
+        sizes = []
+        for i in range(5):
+            case = make_case(scene, 5000 + i, "arrow" if i % 2 == 0 else "oval", tracking=False)
+            sizes.append(int(case.target.shape[0]))
+            ctl = Controller.for_scene(scene, "diffusion", frames=len(case.path) - 1, seed=i)
+            sim = case.simulator()
+            ctl.plan(sim, case.sketch)
+            for _ in range(args.repeats):
+                plans.append(ctl.plan(sim, case.sketch).seconds * 1e3)
+            sim = case.simulator()
+            t0 = time.perf_counter()
+            control_episode(sim, case.sketch, ctl)
+            eps.append((time.perf_counter() - t0) * 1e3)
+        rows.append(
+            {"scene": scene, "particles": sizes, "plan_ms_p50": float(np.percentile(plans, 50)), "plan_ms_p95": float(np.percentile(plans, 95)),
+             "episode_ms": float(np.median(eps))}
+        )  # fmt: skip
+    out = Path(args.out)
+    out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "load": os.getloadavg(), "scenes": rows}, indent=1))
+    lines = [
+        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {os.getloadavg()[0]:.2f})",
+        "",
+    ]
+    lines += [
+        "| scene | particles | sketch → field ms p50 / p95 (1 ORT thread) | episode ms, plan + 99 MPM frames on one thread (median) |",
+        "|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['scene']} | {min(r['particles'])}–{max(r['particles'])} | {r['plan_ms_p50']:.0f} / {r['plan_ms_p95']:.0f} | {r['episode_ms']:.0f} |"
+        )
+    text = "\n".join(lines) + "\n"
+    out.with_suffix(".md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
