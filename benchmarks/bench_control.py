@@ -12,7 +12,10 @@ runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
   attraction; ``diffusion`` — the Fluid ControlNet (shipped models, or
   ``--model-root DIR/SCENE``; noise seed = the case's seed);
   ``oracle_path`` — the true reverse path tracked by the diffusion
-  controller's tracking law (the floor of that design); ``oracle`` — the
+  controller's tracking law (the floor of that design); ``prior`` — what the
+  free-sketch models plan relative to, alone (the coarse free rollout bent
+  onto the sketch, :mod:`hybridmpm.control.prior`), tracked the same way:
+  what the network adds is the gap between this row and ``diffusion``; ``oracle`` — the
   tracking field replayed open loop; ``smoothed`` — the same field smoothed afterwards
   as the paper's App. D does; ``kinematic`` — the paper's reverse formula
   replayed (how far the untracked data would land).
@@ -39,8 +42,9 @@ from tqdm import tqdm
 from hybridmpm.bench.env import environment
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.data import make_case
+from hybridmpm.control.prior import free_motion_of, prior_path
 
-METHODS = ("none", "constant", "pd", "diffusion", "oracle_path", "oracle", "smoothed", "kinematic")
+METHODS = ("none", "constant", "pd", "diffusion", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
 
 
 def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) -> dict:
@@ -58,6 +62,8 @@ def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) ->
             ctl = Controller("oracle", frames=frames, oracle=case.smoothed_field)
         elif m == "oracle_path":
             ctl = Controller("oracle", frames=frames, oracle_path=case.path)
+        elif m == "prior":  # the diffusion model's prior alone: the coarse free motion bent onto the sketch, tracked
+            ctl = Controller("oracle", frames=frames, oracle_path=prior_path(free_motion_of(sim, frames), sim.particles.fluid(sim.positions), case.sketch))
         elif m == "diffusion":
             model = None if model_root is None else Path(model_root) / scene
             ctl = Controller.for_scene(scene, "diffusion", frames=frames, model=model, seed=seed)

@@ -6,14 +6,17 @@
 Per scene, on held-out cases (seeds 5000+, as bench_control.py):
 
 * **latency** — sketch → field (the plan: state encoding, sketch encoding,
-  10 DDIM steps; one onnxruntime thread) p50/p95 over ``--repeats`` plans on
+  the DDIM steps, one onnxruntime thread; the free-motion prior's MPM
+  rollout on a second thread) p50/p95 over ``--repeats`` plans on
   each of 5 start states, and the whole controlled episode (plan + T_ctr
   MPM frames, one MPM thread), median;
 * **flipped arrow** — each arrow case is also run with the arrow reversed:
   the cosine between the fluid's centroid displacement and the *original*
   arrow (target ≤ −0.5), raw and relative to the uncontrolled run;
 * **blank sketch** — mean ‖a‖ with no sketch over mean ‖a‖ with the drawn
-  one (target ≤ 0.2);
+  one (target ≤ 0.2). With no sketch the controller applies no force by
+  design, so this is 0; the model's own unconditional plan (classifier-free
+  guidance's blank branch), tracked, is reported beside it;
 * **random sketches** — ``--random`` sketches of every direction and size,
   strokes off the domain included: no NaN, every particle in the domain,
   ‖a‖ ≤ a_max, CFL substeps ≤ 2× the uncontrolled run's;
@@ -37,6 +40,7 @@ from tqdm import tqdm
 from hybridmpm.bench.env import environment
 from hybridmpm.control import A_MAX, Controller, Sketch, control_episode
 from hybridmpm.control.data import make_case
+from hybridmpm.control.prior import free_motion_of
 
 
 def _centroid_shift(ep) -> np.ndarray:  # type: ignore[no-untyped-def]
@@ -58,6 +62,15 @@ def random_sketch(rng: np.random.Generator) -> Sketch:
         return Sketch.arrow(start, end)
     radii = np.sort(10 ** rng.uniform(-2.3, 0.0, 2))[::-1]
     return Sketch.oval(rng.uniform(-0.2, 1.2, 2), np.maximum(radii, 0.005), float(rng.uniform(0, np.pi)))
+
+
+def _unconditional_path(case: object, controller: Controller, frames: int) -> np.ndarray:
+    """The model's own blank-sketch plan (classifier-free guidance's unconditional branch), float64 [F, N, D]."""
+    sim = case.simulator()  # type: ignore[attr-defined]
+    p, model = sim.particles, controller.model
+    x, v, pt = p.fluid(sim.positions), sim.velocities, p.particle_type[: p.num_fluid]
+    free = free_motion_of(sim, model.frames - 1) if model.needs_free else None
+    return model.sample(x, v, pt, None, seed=controller.seed, steps=controller.steps, free=free).path[: frames + 1]
 
 
 def check_scene(scene: str, args: argparse.Namespace) -> dict:
@@ -82,13 +95,15 @@ def check_scene(scene: str, args: argparse.Namespace) -> dict:
     out["episode_ms_median"] = float(np.median(episodes))
     out["particles"] = [int(c.target.shape[0]) for c in cases[:5]]
     # flipped arrows, blank sketches, determinism
-    flips, flips_rel, blank_ratio, spread = [], [], [], []
+    flips, flips_rel, blank_ratio, uncond_ratio, spread = [], [], [], [], []
     deterministic = True
     for i, case in enumerate(tqdm(cases, desc=f"{scene} checks")):
         drawn = control_episode(case.simulator(), case.sketch, ctl(seed=i, frames=frames))
         blank = control_episode(case.simulator(), None, ctl(seed=i, frames=frames))
         e_drawn, e_blank = drawn.metrics["effort_mean_g"], blank.metrics["effort_mean_g"]
         blank_ratio.append(e_blank / max(e_drawn, 1e-9))
+        uncond = control_episode(case.simulator(), None, Controller("oracle", frames=frames, oracle_path=_unconditional_path(case, ctl(seed=i), frames)))
+        uncond_ratio.append(uncond.metrics["effort_mean_g"] / max(e_drawn, 1e-9))
         if case.kind == "arrow":
             sk = case.sketch
             flipped = Sketch.arrow(sk.start, sk.start - sk.vector)
@@ -103,6 +118,7 @@ def check_scene(scene: str, args: argparse.Namespace) -> dict:
     out.update(
         flip_cos_mean=float(np.mean(flips)), flip_cos_max=float(np.max(flips)), flip_cos_rel_mean=float(np.mean(flips_rel)), flips=len(flips),
         blank_effort_ratio_mean=float(np.mean(blank_ratio)), blank_effort_ratio_max=float(np.max(blank_ratio)),
+        unconditional_effort_ratio_mean=float(np.mean(uncond_ratio)), unconditional_effort_ratio_max=float(np.max(uncond_ratio)),
         deterministic=deterministic, seed_spread_m=float(np.mean(spread)),
     )  # fmt: skip
     # random sketches
@@ -141,14 +157,15 @@ def main(argv: list[str] | None = None) -> int:
     out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "scenes": rows}, indent=1))
     lines = [f"Command: `python benchmarks/bench_control_checks.py {' '.join(sys.argv[1:] if argv is None else argv)}`", ""]
     lines += [
-        "| scene | particles | plan ms p50 / p95 (1 ORT thread) | episode ms (median) | flipped arrow cos (mean / worst; vs no control) | blank / drawn effort (mean / worst) | random sketches bad | max ‖a‖/g | max substeps / uncontrolled | bitwise deterministic | seed spread (m) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | particles | plan ms p50 / p95 (1 ORT thread) | episode ms (median) | flipped arrow cos (mean / worst; vs no control) | blank / drawn effort (mean / worst) | the model's unconditional plan tracked / drawn effort (mean / worst) | random sketches bad | max ‖a‖/g | max substeps / uncontrolled | bitwise deterministic | seed spread (m) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {min(r['particles'])}–{max(r['particles'])} | {r['plan_ms_p50']:.0f} / {r['plan_ms_p95']:.0f} | {r['episode_ms_median']:.0f} "
             f"| {r['flip_cos_mean']:.2f} / {r['flip_cos_max']:.2f}; {r['flip_cos_rel_mean']:.2f} ({r['flips']} arrows) "
-            f"| {r['blank_effort_ratio_mean']:.2f} / {r['blank_effort_ratio_max']:.2f} | {r['random_bad']} of {r['random']} | {r['random_max_a_g']:.1f} "
+            f"| {r['blank_effort_ratio_mean']:.2f} / {r['blank_effort_ratio_max']:.2f} "
+            f"| {r['unconditional_effort_ratio_mean']:.2f} / {r['unconditional_effort_ratio_max']:.2f} | {r['random_bad']} of {r['random']} | {r['random_max_a_g']:.1f} "
             f"| {r['random_max_substeps_ratio']:.2f} | {'yes' if r['deterministic'] else 'NO'} | {r['seed_spread_m']:.2e} |"
         )
     text = "\n".join(lines) + "\n"

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.control.diffusion import SAMPLE_STEPS
+
 DEST = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models" / "control"
 
 
@@ -56,7 +58,13 @@ def main() -> None:
         f"state encoder: GNS latent {cfg['latent_state']} × {cfg['layers_state']} layers, R = {cfg['radius']} m; sketch encoder: hint block",
         f"(8 convolutions, 3 downsamplings) → 44-d + 8-channel local map; denoising head latent {cfg['latent_head']} × 1 layer, adaLN-Zero;",
         f"sample: {cfg['k_basis']} path B-spline coefficients × {cfg['dim']} dimensions per particle; cosine schedule, T = {meta['diffusion_steps']},",
-        f"x0 prediction, DDIM 10 trailing steps at serving time. {meta['parameters']} parameters, {size / 1e6:.2f} MB on disk.",
+        f"x0 prediction, DDIM {SAMPLE_STEPS} trailing steps at serving time. {meta['parameters']} parameters, {size / 1e6:.2f} MB on disk.",
+        f"Prior: `{meta.get('prior', 'none')}` — "
+        + (
+            "the plan is sampled relative to the coarse free-motion rollout bent onto the sketch (`hybridmpm.control.prior`)."
+            if meta.get("prior") == "free_sketch"
+            else "the plan is sampled relative to every particle moved to its sketch target along a smoothstep."
+        ),
         "",
         "## Training",
         f"{meta['steps']} steps in {meta['train_seconds'] / 60:.0f} min on one CPU thread (2-core machine, other jobs running): `{train_cmd}`.",

@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 
 from hybridmpm.control import Controller, control_episode  # noqa: E402
 from hybridmpm.control.data import make_case  # noqa: E402
+from hybridmpm.control.prior import free_motion_of, prior_path  # noqa: E402
 
 OUT = Path(__file__).with_name("img")
 METHODS = (
@@ -25,6 +26,7 @@ METHODS = (
     ("constant", "constant force"),
     ("pd", "PD attraction"),
     ("diffusion", "diffusion (ours)"),
+    ("prior", "its prior alone (no network)"),
     ("oracle_path", "true path tracked (oracle)"),
 )
 
@@ -35,6 +37,9 @@ def controller(method: str, case, scene: str) -> Controller:  # type: ignore[no-
         return Controller("oracle", frames=frames, oracle_path=case.path)
     if method == "diffusion":
         return Controller.for_scene(scene, "diffusion", frames=frames, seed=case.seed)
+    if method == "prior":  # the coarse free motion bent onto the sketch, tracked (hybridmpm.control.prior)
+        sim = case.simulator()
+        return Controller("oracle", frames=frames, oracle_path=prior_path(free_motion_of(sim, frames), sim.particles.fluid(sim.positions), case.sketch))
     return Controller(method, frames=frames)
 
 

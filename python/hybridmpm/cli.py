@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.control.diffusion import SAMPLE_STEPS
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.jsonutil import json_safe
@@ -340,6 +341,7 @@ def _train_control(args: argparse.Namespace) -> int:
     summary = train_control(
         args.scene, args.data, out, steps=args.steps, lr=args.lr, k_basis=args.k_basis, max_cases=args.max_cases,
         checkpoint_every=args.checkpoint_every, seed=args.seed, threads=args.threads, time_limit=args.time_limit, progress=not args.quiet,
+        prior=args.prior, init_from=args.init_from,
     )  # fmt: skip
     if not args.quiet:
         print(json.dumps(summary, indent=2) + f"\n-> {out}/model")
@@ -478,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     co.add_argument("--method", default="diffusion", choices=["none", "constant", "pd", "diffusion"], help="controller (default diffusion: the shipped model)")
     co.add_argument("--model", default=None, help="diffusion controller directory (default: the scene's shipped one)")
-    co.add_argument("--steps", type=int, default=10, help="DDIM steps of the diffusion controller (default 10)")
+    co.add_argument("--steps", type=int, default=SAMPLE_STEPS, help=f"DDIM steps of the diffusion controller (default {SAMPLE_STEPS})")
     co.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: no blank pass)")
     co.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm"], help="simulator (control always runs on its MPM; default hybrid)")
     co.add_argument("--from-frame", type=int, default=40, help="frames simulated before the sketch applies (default 40)")
@@ -508,6 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
     tc.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints and validation (default 500)")
     tc.add_argument("--time-limit", type=float, default=None, help="stop (and export) after this many seconds; rerun to resume")
     tc.add_argument("--seed", type=int, default=0)
+    tc.add_argument("--init-from", default=None, help="warm start from another run's ckpt.pt (same sizes; a new run only)")
+    tc.add_argument("--prior", default="free_sketch", choices=["free_sketch", "sketch_ramp"], help="what plans are relative to (default free_sketch)")
     tc.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     tc.add_argument("--quiet", action="store_true")
     tc.set_defaults(func=_train_control)

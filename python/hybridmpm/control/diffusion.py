@@ -32,8 +32,8 @@ from hybridmpm.errors import InvalidInputError
 
 #: Diffusion steps of training (the schedule's length).
 DIFFUSION_STEPS = 100
-#: DDIM steps at sampling time (trailing spacing).
-SAMPLE_STEPS = 10
+#: DDIM steps at sampling time (trailing spacing; ``docs/control.md``: on validation seeds 4 land as close as 10 at half the time).
+SAMPLE_STEPS = 4
 
 
 # --------------------------------------------------------------------- basis
@@ -258,6 +258,11 @@ class ControlModel:
         self.basis = path_basis(self.frames, self.k_basis)
         self.alpha_bar = cosine_alpha_bar(int(self.meta.get("diffusion_steps", DIFFUSION_STEPS)))
 
+    @property
+    def needs_free(self) -> bool:
+        """Whether :meth:`sample` needs the free-motion prior (``free``)."""
+        return bool(self.meta.get("prior") == "free_sketch")
+
     def _encode_sketch(self, sketch: Any) -> tuple[np.ndarray, np.ndarray]:
         from hybridmpm.control.sketch import render_sketch
 
@@ -275,6 +280,7 @@ class ControlModel:
         seed: int = 0,
         steps: int = SAMPLE_STEPS,
         guidance: float = 1.0,
+        free: Any = None,
     ) -> SampleResult:
         """Sample a plan for the fluid ``positions`` [N, D] m, ``velocities``
         [N, D] m/s, ``particle_type`` int [N] (GNS codes) and ``sketch`` (None:
@@ -282,7 +288,11 @@ class ControlModel:
         (``seed``: same inputs and seed → the same bits); ``guidance`` the
         classifier-free guidance scale ``s`` in
         ``x̂0 = x̂0_blank + s·(x̂0_sketch − x̂0_blank)`` (1: no blank pass).
-        Raises :class:`InvalidInputError` naming a bad argument."""
+        ``free`` float [F, N, D] (or a ``concurrent.futures.Future`` of it,
+        waited for only when needed): the free-motion prior
+        (:func:`~hybridmpm.control.prior.free_motion`), needed by a model whose
+        ``prior`` is :data:`~hybridmpm.control.prior.PRIOR_FREE_SKETCH`
+        (:attr:`needs_free`). Raises :class:`InvalidInputError` naming a bad argument."""
         from hybridmpm.errors import as_f32
         from hybridmpm.graph import radius_graph
 
@@ -300,29 +310,49 @@ class ControlModel:
         s, r, _, _ = radius_graph(x, self.radius)
         h, edges = self.sessions["state_encoder"].run(None, {"positions": x, "velocities": v, "particle_type": ptype, "senders": s, "receivers": r})
         branches = [sketch] if guidance == 1.0 else [sketch, None]
-        use_prior = self.meta.get("prior", "none") == "sketch_ramp"
-        conds, priors = [], []
+        prior_kind = self.meta.get("prior", "none")
+        x64 = x.astype(np.float64)
+        if self.needs_free and free is None:
+            raise InvalidInputError("free: this model plans relative to the free motion (control.json prior 'free_sketch'); pass free=", "free")
+        conds = []
         for sk in branches:
             glob, local_map = self._encode_sketch(sk)
             geo, off = sketch_geometry(sk, x)
             conds.append((np.concatenate([glob, geo[None]], 1).astype(np.float32), bilinear_sample(local_map, x[:, :2]), off))
-            priors.append(prior_coefficients(off * GEOMETRY_SCALE, self.basis) if use_prior else np.zeros((len(x), self.k_basis * self.dim)))
+
+        def branch_priors() -> list[np.ndarray]:
+            if self.needs_free:
+                from hybridmpm.control.prior import prior_path
+
+                fm = free.result() if hasattr(free, "result") else free  # an array, or a Future computed meanwhile
+                if np.shape(fm) != (self.frames, len(x), self.dim) or not np.isfinite(fm).all():
+                    raise InvalidInputError(f"free: expected finite [{self.frames}, {len(x)}, {self.dim}], got {list(np.shape(fm))}", "free")
+                return [project(prior_path(fm, x64, sk) - x64[None], self.basis).reshape(len(x), -1) for sk in branches]
+            if prior_kind == "sketch_ramp":
+                return [prior_coefficients(c[2] * GEOMETRY_SCALE, self.basis) for c in conds]
+            return [np.zeros((len(x), self.k_basis * self.dim)) for _ in branches]
+
+        # The loop runs relative to the first branch's prior, which one branch never needs inside it: with
+        # guidance 1 the prior (and the free-motion rollout behind it) is only waited for at the end.
+        priors = branch_priors() if len(branches) > 1 else None
         rng = np.random.default_rng(int(seed))
         xt = rng.standard_normal((len(x), self.k_basis * self.dim)).astype(np.float32)
         head = self.sessions["denoiser_head"]
         for i, t in enumerate(ts):
             ab = float(self.alpha_bar[t])
-            absolute = []  # each branch's x̂0 as plan coefficients [m]; a branch's sample is relative to its own prior
-            for (cond, local, off), prior in zip(conds, priors):
-                shift = (math.sqrt(ab) * (priors[0] - prior) / self.coef_std).astype(np.float32)
+            relative = []  # each branch's x̂0 as plan coefficients [m] relative to the first branch's prior
+            for b, (cond, local, off) in enumerate(conds):
+                delta = 0.0 if b == 0 or priors is None else priors[0] - priors[b]
+                shift = (math.sqrt(ab) * np.asarray(delta) / self.coef_std).astype(np.float32)
                 feed = {"x_t": xt + shift, "h": h, "local": local, "offset": off, "edges": edges, "senders": s, "receivers": r}
                 feed.update({"t": np.array([t / len(self.alpha_bar)], np.float32), "cond": cond})
-                absolute.append(head.run(None, feed)[0].astype(np.float64) * self.coef_std + self.coef_mean + prior)
-            plan = absolute[0] if len(absolute) == 1 else absolute[1] + guidance * (absolute[0] - absolute[1])
-            x0 = (plan - priors[0] - self.coef_mean) / self.coef_std
+                relative.append(head.run(None, feed)[0].astype(np.float64) * self.coef_std + self.coef_mean - delta)
+            plan = relative[0] if len(relative) == 1 else relative[1] + guidance * (relative[0] - relative[1])
+            x0 = (plan - self.coef_mean) / self.coef_std
             prev = self.alpha_bar[ts[i + 1]] if i + 1 < len(ts) else 1.0
             xt = ddim_step(xt.astype(np.float64), x0, ab, float(prev)).astype(np.float32)
-        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean + priors[0]).reshape(len(x), self.k_basis, self.dim)
+        first_prior = (priors if priors is not None else branch_priors())[0]
+        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean + first_prior).reshape(len(x), self.k_basis, self.dim)
         path = x.astype(np.float64)[None] + expand(coef, self.basis).astype(np.float64)
         return SampleResult(path, time.perf_counter() - t0)
 

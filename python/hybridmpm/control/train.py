@@ -45,6 +45,7 @@ from hybridmpm.control.diffusion import (
     project,
     sketch_geometry,
 )
+from hybridmpm.control.prior import PRIOR_FREE_SKETCH, PRIOR_SKETCH_RAMP
 from hybridmpm.control.sketch import Sketch, render_sketch
 from hybridmpm.conventions import CONNECTIVITY_RADIUS
 from hybridmpm.errors import InvalidInputError
@@ -89,26 +90,56 @@ def scene_bounds(scene: str) -> list[list[float]]:
     return [[float(lo), float(hi)] for _ in range(sim.particles.dim)]
 
 
-def load_pairs(paths: list[Path], k_basis: int, bounds: list[list[float]], mirror: bool = True, radius: float = CONNECTIVITY_RADIUS) -> list[_Pair]:
-    """Training pairs from case files (module doc), with their radius graphs."""
-    from hybridmpm.graph import radius_graph
+def load_pairs(
+    paths: list[Path],
+    k_basis: int,
+    bounds: list[list[float]],
+    mirror: bool = True,
+    radius: float = CONNECTIVITY_RADIUS,
+    prior: str = PRIOR_FREE_SKETCH,
+    progress: bool = False,
+) -> list[_Pair]:
+    """Training pairs from case files (module doc), with their radius graphs;
+    the targets are taken relative to ``prior`` (:mod:`hybridmpm.control.prior`:
+    the coarse free rollout of each case is computed here, the same function
+    the sampler calls)."""
+    from tqdm import tqdm
 
+    from hybridmpm.control.prior import free_motion, material_of, prior_path
+    from hybridmpm.graph import radius_graph
+    from hybridmpm.scenes import make_scene
+
+    if prior not in (PRIOR_SKETCH_RAMP, PRIOR_FREE_SKETCH):
+        raise InvalidInputError(f"prior: must be {PRIOR_SKETCH_RAMP!r} or {PRIOR_FREE_SKETCH!r}, got {prior!r}", "prior")
     lo, hi = bounds[0]
     pairs = []
-    for p in paths:
+    for p in tqdm(paths, desc="control pairs", unit="case", disable=not progress):
         rec = load_case(p)
         basis = path_basis(len(rec.path), k_basis)
+        coarse = None
+        if prior == PRIOR_FREE_SKETCH:
+            params = make_scene(str(rec.info["scene"]), seed=int(rec.info["seed"])).params
+            frames = len(rec.path) - 1
+            coarse = free_motion(rec.positions, rec.velocities, material_of(rec.particle_type), params, frames, dt_frame=float(rec.info["dt_frame"]))
         variants = [False, True] if mirror else [False]
         for flip in variants:
-            x, v, path, free, sk = rec.positions, rec.velocities, rec.path, rec.free_path, rec.sketch
+            x, v, path, free, sk, cfree = rec.positions, rec.velocities, rec.path, rec.free_path, rec.sketch, coarse
             if flip:
                 x, path, free, sk = mirror_x(x, lo, hi), mirror_x(path, lo, hi), mirror_x(free, lo, hi), _mirror_sketch(sk, lo, hi)
+                cfree = None if coarse is None else mirror_x(coarse, lo, hi)
                 v = np.array(v, copy=True)
                 v[:, 0] = -v[:, 0]
             s, r, _, _ = radius_graph(x, radius)
             geo, off = sketch_geometry(sk, x)
-            coef = (project(path - path[0], basis).reshape(len(x), -1) - prior_coefficients(off * GEOMETRY_SCALE, basis)).astype(np.float32)
-            fcoef = project(free - free[0], basis).reshape(len(x), -1)
+            x64 = np.asarray(x, np.float64)
+            if cfree is None:
+                prior_sk = prior_coefficients(off * GEOMETRY_SCALE, basis)
+                prior_blank: Any = 0.0
+            else:
+                prior_sk = project(prior_path(cfree, x64, sk) - x64[None], basis).reshape(len(x), -1)
+                prior_blank = project(cfree - x64[None], basis).reshape(len(x), -1)
+            coef = (project(path - path[0], basis).reshape(len(x), -1) - prior_sk).astype(np.float32)
+            fcoef = project(free - free[0], basis).reshape(len(x), -1) - prior_blank
             img = render_sketch(sk).astype(np.float32).transpose(2, 0, 1)[None] / 255.0
             pairs.append(_Pair(x.astype(np.float32), v.astype(np.float32), rec.particle_type, s, r, img, geo, off, coef, fcoef))
     return pairs
@@ -132,12 +163,16 @@ def train_control(
     threads: int = 1,
     time_limit: float | None = None,
     progress: bool = True,
+    prior: str = PRIOR_FREE_SKETCH,
+    init_from: str | Path | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) the controller of ``scene`` on the cases under
     ``data_root`` into ``out`` (``ckpt.pt``, ``log.jsonl``; module doc) for
     ``steps`` optimiser steps (or until ``time_limit`` seconds), then export
     it (:func:`export_control`) to ``out/model``. Returns a summary
-    (steps, seconds, mean loss of this call's first and last 10 steps). Raises :class:`InvalidInputError`
+    (steps, seconds, mean loss of this call's first and last 10 steps, and
+    ``fit_first`` / ``fit_last``: the loss on up to 8 training pairs at fixed
+    noise levels and draws, before this call and of the exported EMA). Raises :class:`InvalidInputError`
     naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
     import torch
     from tqdm import tqdm
@@ -158,8 +193,12 @@ def train_control(
     out.mkdir(parents=True, exist_ok=True)
     n_valid = max(1, int(round(valid_fraction * len(paths))))
     bounds = scene_bounds(scene)
-    train_pairs = load_pairs(paths[n_valid:], k_basis, bounds)
-    valid_pairs = load_pairs(paths[:n_valid], k_basis, bounds, mirror=False)
+    if (out / "ckpt.pt").exists():  # a resumed run keeps the prior it started with
+        import torch as _torch
+
+        prior = str(_torch.load(out / "ckpt.pt", map_location="cpu", weights_only=False)["config"].get("extra", {}).get("prior", PRIOR_SKETCH_RAMP))
+    train_pairs = load_pairs(paths[n_valid:], k_basis, bounds, prior=prior, progress=progress)
+    valid_pairs = load_pairs(paths[:n_valid], k_basis, bounds, mirror=False, prior=prior)
     coef_all = np.concatenate([p.coef for p in train_pairs] + [p.free for p in train_pairs])
     mean, std = coef_all.mean(0), np.maximum(coef_all.std(0), 1e-6)
     vel_scale = float(np.concatenate([p.velocities for p in train_pairs]).std()) or 1.0
@@ -175,13 +214,20 @@ def train_control(
         coef_std=std.tolist(),
         latent_state=latent_state,
         latent_head=latent_head,
-        extra={"scene": scene, "cases": len(paths) - n_valid, "valid_cases": n_valid},
+        extra={"scene": scene, "cases": len(paths) - n_valid, "valid_cases": n_valid, "prior": prior},
     )
     ckpt_path = out / "ckpt.pt"
     model = FluidControlNet(cfg)
     ema = copy.deepcopy(model)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     step, rng_state, spent = 0, None, 0.0
+    if init_from is not None and not ckpt_path.exists():  # warm start: the weights of another run (same sizes), fresh optimiser
+        try:
+            init = torch.load(Path(init_from), map_location="cpu", weights_only=False)["ema"]
+            model.load_state_dict(init)
+            ema.load_state_dict(init)
+        except (OSError, KeyError, RuntimeError) as e:
+            raise InvalidInputError(f"init_from: {init_from} is not a checkpoint of a control model of the same sizes ({e})", "init_from") from e
     if ckpt_path.exists():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         cfg = ControlNetConfig.from_dict(ck["config"])
@@ -233,11 +279,15 @@ def train_control(
             total = total + torch.mean((pred - target) ** 2)
         return total / len(ts)
 
-    def validate() -> float:
+    def validate(net: FluidControlNet | None = None, pairs: list[_Pair] | None = None) -> float:
+        """The loss at fixed noise levels and draws (no sampling noise between calls): ``net`` (default the EMA) on ``pairs`` (default validation)."""
         gen = torch.Generator().manual_seed(1234)
         with torch.no_grad():
-            vals = [float(loss_of(ema, p, False, [10, 40, 70, 95], gen)) for p in valid_pairs]
+            vals = [float(loss_of(net or ema, p, False, [10, 40, 70, 95], gen)) for p in (valid_pairs if pairs is None else pairs)]
         return float(np.mean(vals))
+
+    fit_pairs = train_pairs[:: max(1, len(train_pairs) // 8)][:8]
+    fit_first = validate(model, fit_pairs)
 
     def save() -> None:
         val = validate()
@@ -289,7 +339,9 @@ def train_control(
     export_control(ema, out / "model", {"scene": scene, "steps": step, "train_seconds": seconds, "cases": cfg.extra.get("cases")})
     first = float(np.mean(recent[:10])) if recent else None  # this call's first and last 10 steps
     last = float(np.mean(recent[-10:])) if recent else None
-    return {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last}
+    # the loss on up to 8 training pairs at fixed noise: the model this call started from, then the EMA it exports
+    fit_last = validate(ema, fit_pairs)
+    return {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last, "fit_first": fit_first, "fit_last": fit_last}
 
 
 def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
@@ -362,7 +414,7 @@ def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
         "diffusion_steps": DIFFUSION_STEPS,
         "schedule": "squaredcos_cap_v2",
         "prediction": "sample",
-        "prior": "sketch_ramp",
+        "prior": str(cfg.extra.get("prior", PRIOR_SKETCH_RAMP)),
         "parameters": int(sum(p.numel() for p in model.parameters())),
         **info,
     }
