@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--out", default="benchmarks/results/control_latency")
     args = ap.parse_args(argv)
+    load_before = os.getloadavg()[0]
     rows = []
     for scene in args.scenes.split(","):
         plans: list[float] = []
@@ -70,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "load": os.getloadavg(), "scenes": rows}, indent=1))
     lines = [
-        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {os.getloadavg()[0]:.2f})",
+        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {load_before:.2f})",
         "",
     ]
     lines += [

@@ -326,3 +326,23 @@ def test_tracking_a_displaced_path_moves_the_fluid_onto_it():
     end = sim.particles.fluid(sim.positions).mean(0)
     target = (free[-1] + ramp[-1]).mean(0)
     assert np.linalg.norm(end - target) < 0.05 * np.linalg.norm(ramp[-1])  # within 5 % of the 9 cm shift
+
+
+def test_a_plan_runs_blas_on_one_thread_and_restores_it_after():
+    """While a diffusion plan runs, OpenBLAS's workers must not compete with the
+    two threads the plan already uses; the process's setting comes back after,
+    also when the plan raises (threadpoolctl's own report, not ours)."""
+    from threadpoolctl import threadpool_info
+
+    from hybridmpm.control.controller import single_thread_blas
+
+    def blas_threads() -> list[int]:
+        return [int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "numpy is linked against a BLAS threadpoolctl can see"
+    with pytest.raises(RuntimeError):
+        with single_thread_blas():
+            assert blas_threads() == [1] * len(before)
+            raise RuntimeError("a failing plan")
+    assert blas_threads() == before

@@ -248,6 +248,34 @@ def test_the_free_motion_prior_is_required_and_may_come_from_another_thread(smok
     assert np.isfinite(c).all() and not np.array_equal(a, c)
 
 
+def test_a_free_sketch_plan_ends_on_the_sketch(smoke_model: dict) -> None:
+    """The served plan (free-sketch model) keeps the sketch's end constraint
+    whatever the network samples: an arrow's tip is where the centroid ends;
+    an oval is the end cloud's ±2σ ellipse (centre, radii, axis), checked here
+    on the end's own second moments, not through the mapping that imposes them."""
+    from hybridmpm.control.data import make_case
+    from hybridmpm.control.prior import free_motion_of
+
+    model = ControlModel(smoke_model["root"] / "free" / "model")
+    for seed, kind in ((5004, "arrow"), (5005, "oval")):
+        case = make_case("water2d", seed, kind, tracking=False)
+        sim = case.simulator()
+        p = sim.particles
+        x = p.fluid(sim.positions).astype(np.float64)
+        path = model.sample(x, sim.velocities, p.particle_type[: p.num_fluid], case.sketch, seed=1, free=free_motion_of(sim, model.frames - 1)).path
+        np.testing.assert_allclose(path[0], x, atol=1e-6)
+        end = path[-1, :, :2]
+        if kind == "arrow":
+            np.testing.assert_allclose(end.mean(0), x[:, :2].mean(0) + case.sketch.vector, atol=1e-9)
+        else:
+            centre, radii, angle = case.sketch.ellipse()
+            vals, vecs = np.linalg.eigh(np.cov(end.T))
+            np.testing.assert_allclose(end.mean(0), centre, atol=1e-9)
+            np.testing.assert_allclose(2.0 * np.sqrt(vals[::-1]), radii, rtol=1e-6)
+            axis = vecs[:, -1]
+            assert abs(abs(axis @ [math.cos(angle), math.sin(angle)]) - 1.0) < 1e-6
+
+
 def test_diffusion_needs_a_model() -> None:
     with pytest.raises(InvalidInputError, match="model"):
         Controller("diffusion")

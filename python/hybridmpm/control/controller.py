@@ -32,9 +32,10 @@ Every acceleration is clipped at :data:`~hybridmpm.control.reverse.A_MAX`.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +75,25 @@ def _cached_model(path: Path) -> ControlModel:
     if path not in _MODELS:
         _MODELS[path] = ControlModel(path)
     return _MODELS[path]
+
+
+_BLAS: Any = None
+
+
+@contextlib.contextmanager
+def single_thread_blas() -> Iterator[None]:
+    """BLAS (numpy's OpenBLAS) on one thread for the duration: a plan already
+    keeps both cores busy (onnxruntime on this thread, the prior's MPM on a
+    second), and OpenBLAS's spinning workers stole them — a plan took 128 ms
+    instead of 89 ms on a quiet 2-core machine (``docs/control.md``). Process-wide
+    while it lasts (BLAS has no per-thread setting); threadpoolctl restores it."""
+    global _BLAS
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS is None:
+        _BLAS = ThreadpoolController()
+    with _BLAS.limit(limits=1, user_api="blas"):
+        yield
 
 
 def track_path(src: Any, path: np.ndarray, omega: float, gravity: np.ndarray | None = None) -> Callable[[int], np.ndarray]:
@@ -234,7 +254,7 @@ class Controller:
             x, v = p.fluid(sim.positions), sim.velocities
             if self.model.needs_free:
                 # the free-motion rollout (MPM, GIL released) runs on a second thread while the network denoises
-                with ThreadPoolExecutor(1) as pool:
+                with single_thread_blas(), ThreadPoolExecutor(1) as pool:
                     free = pool.submit(free_motion_of, sim, self.model.frames - 1)
                     res = self.model.sample(x, v, p.particle_type[:n], sketch, seed=self.seed, steps=self.steps, guidance=self.guidance, free=free)
             else:
