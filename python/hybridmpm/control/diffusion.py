@@ -263,10 +263,6 @@ class ControlModel:
             raise InvalidInputError(f"model: {self.path} could not be loaded by onnxruntime ({e})", "model") from e
         if self.coef_mean.shape != (self.k_basis * self.dim,) or self.coef_std.shape != self.coef_mean.shape or (self.coef_std <= 0).any():
             raise InvalidInputError(f"model: {self.path} has malformed normalisation statistics", "model")
-        #: The factor on the sampled correction to the prior (``control.json`` ``correction_scale``, default 1).
-        self.correction_scale = float(self.meta.get("correction_scale", 1.0))
-        if not 0.0 <= self.correction_scale <= 1.0:
-            raise InvalidInputError(f"model: {self.path} has correction_scale {self.correction_scale} outside [0, 1]", "model")
         self.basis = path_basis(self.frames, self.k_basis)
         self.alpha_bar = cosine_alpha_bar(int(self.meta.get("diffusion_steps", DIFFUSION_STEPS)))
 
@@ -364,8 +360,7 @@ class ControlModel:
             prev = self.alpha_bar[ts[i + 1]] if i + 1 < len(ts) else 1.0
             xt = ddim_step(xt.astype(np.float64), x0, ab, float(prev)).astype(np.float32)
         first_prior = (priors if priors is not None else branch_priors())[0]
-        correction = xt.astype(np.float64) * self.coef_std + self.coef_mean  # the sampled plan relative to its prior
-        coef = (self.correction_scale * correction + first_prior).reshape(len(x), self.k_basis, self.dim)
+        coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean + first_prior).reshape(len(x), self.k_basis, self.dim)
         path = x.astype(np.float64)[None] + expand(coef, self.basis).astype(np.float64)
         if self.needs_free and PROJECT_ONTO_SKETCH and sketch is not None:
             from hybridmpm.control.prior import prior_path
