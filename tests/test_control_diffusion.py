@@ -283,3 +283,26 @@ def test_diffusion_needs_a_model() -> None:
         Controller.for_scene("no_such_scene", "diffusion")
     with pytest.raises(InvalidInputError, match="model"):
         ControlModel("/nonexistent/dir")
+
+
+def test_a_model_names_its_own_step_count(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``control.json``'s ``sample_steps`` is the default a controller samples
+    with (the shipped 3D models keep 4, the 2D ones use SAMPLE_STEPS); an
+    explicit ``steps`` wins; a malformed value is refused naming ``model``."""
+    import shutil
+
+    from hybridmpm.control.controller import shipped_control_model
+    from hybridmpm.control.diffusion import SAMPLE_STEPS
+
+    src = shipped_control_model("water2d")
+    assert Controller.for_scene("water2d", "diffusion").steps == json.loads((src / "control.json").read_text()).get("sample_steps", SAMPLE_STEPS)
+    for bad, good in ((0, 7), ("4", 7)):
+        dst = tmp_path / f"m{bad}"
+        shutil.copytree(src, dst)
+        meta = json.loads((dst / "control.json").read_text())
+        (dst / "control.json").write_text(json.dumps({**meta, "sample_steps": good}))
+        assert Controller("diffusion", model=dst).steps == good
+        assert Controller("diffusion", model=dst, steps=2).steps == 2
+        (dst / "control.json").write_text(json.dumps({**meta, "sample_steps": bad}))
+        with pytest.raises(InvalidInputError, match="model"):
+            ControlModel(dst)

@@ -480,7 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     co.add_argument("--method", default="diffusion", choices=["none", "constant", "pd", "diffusion"], help="controller (default diffusion: the shipped model)")
     co.add_argument("--model", default=None, help="diffusion controller directory (default: the scene's shipped one)")
-    co.add_argument("--steps", type=int, default=SAMPLE_STEPS, help=f"DDIM steps of the diffusion controller (default {SAMPLE_STEPS})")
+    co.add_argument(
+        "--steps", type=int, default=None, help=f"DDIM steps of the diffusion controller (default: the model's control.json sample_steps, else {SAMPLE_STEPS})"
+    )
     co.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: no blank pass)")
     co.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm"], help="simulator (control always runs on its MPM; default hybrid)")
     co.add_argument("--from-frame", type=int, default=40, help="frames simulated before the sketch applies (default 40)")

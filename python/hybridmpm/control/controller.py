@@ -167,7 +167,8 @@ class Controller:
     ``oracle_path`` the path [F, N, D] it tracks instead; ``model`` the
     diffusion controller (a :class:`~hybridmpm.control.diffusion.ControlModel`
     or its directory; :meth:`for_scene` finds the shipped one), sampled with
-    ``steps`` DDIM steps, guidance scale ``guidance`` and noise ``seed``.
+    ``steps`` DDIM steps (None: the model's own, ``ControlModel.sample_steps``),
+    guidance scale ``guidance`` and noise ``seed``.
     Raises :class:`InvalidInputError` naming the argument (``method`` for an
     unknown method, ``model`` for a diffusion controller without one)."""
 
@@ -180,7 +181,7 @@ class Controller:
         oracle: np.ndarray | None = None,
         oracle_path: np.ndarray | None = None,
         model: ControlModel | str | Path | None = None,
-        steps: int = SAMPLE_STEPS,
+        steps: int | None = None,
         guidance: float = 1.0,
         seed: int = 0,
     ) -> None:
@@ -190,7 +191,7 @@ class Controller:
             raise InvalidInputError(
                 "model: the diffusion method needs a trained model (Controller.for_scene(scene, 'diffusion') finds the shipped one)", "model"
             )
-        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 100:
+        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 100):
             raise InvalidInputError(f"steps: must be an integer in [1, 100], got {steps!r}", "steps")
         if isinstance(guidance, bool) or not isinstance(guidance, (int, float)) or not 0.0 <= guidance <= 5.0:
             raise InvalidInputError(f"guidance: must be a number in [0, 5], got {guidance!r}", "guidance")
@@ -208,7 +209,9 @@ class Controller:
         self.oracle = None if oracle is None else np.asarray(oracle, np.float32)
         self.oracle_path = None if oracle_path is None else np.asarray(oracle_path, np.float64)
         self.model = ControlModel(model) if isinstance(model, (str, Path)) else model
-        self.steps, self.guidance, self.seed = steps, float(guidance), seed
+        own = self.model.sample_steps if self.model is not None else SAMPLE_STEPS
+        self.steps: int = own if steps is None else steps
+        self.guidance, self.seed = float(guidance), seed
 
     @classmethod
     def for_scene(cls, scene: str, method: str = "constant", **kw: Any) -> Controller:

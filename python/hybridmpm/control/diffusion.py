@@ -263,6 +263,10 @@ class ControlModel:
             raise InvalidInputError(f"model: {self.path} could not be loaded by onnxruntime ({e})", "model") from e
         if self.coef_mean.shape != (self.k_basis * self.dim,) or self.coef_std.shape != self.coef_mean.shape or (self.coef_std <= 0).any():
             raise InvalidInputError(f"model: {self.path} has malformed normalisation statistics", "model")
+        #: DDIM steps when the caller names none: ``control.json``'s ``sample_steps``, else :data:`SAMPLE_STEPS`.
+        self.sample_steps = self.meta.get("sample_steps", SAMPLE_STEPS)
+        if isinstance(self.sample_steps, bool) or not isinstance(self.sample_steps, int) or not 1 <= self.sample_steps <= 100:
+            raise InvalidInputError(f"model: {self.path} has sample_steps {self.sample_steps!r}, not an integer in [1, 100]", "model")
         self.basis = path_basis(self.frames, self.k_basis)
         self.alpha_bar = cosine_alpha_bar(int(self.meta.get("diffusion_steps", DIFFUSION_STEPS)))
 
@@ -286,13 +290,13 @@ class ControlModel:
         sketch: Any,
         *,
         seed: int = 0,
-        steps: int = SAMPLE_STEPS,
+        steps: int | None = None,
         guidance: float = 1.0,
         free: Any = None,
     ) -> SampleResult:
         """Sample a plan for the fluid ``positions`` [N, D] m, ``velocities``
         [N, D] m/s, ``particle_type`` int [N] (GNS codes) and ``sketch`` (None:
-        blank). DDIM with ``steps`` trailing steps from seeded Gaussian noise
+        blank). DDIM with ``steps`` trailing steps (None: :attr:`sample_steps`) from seeded Gaussian noise
         (``seed``: same inputs and seed → the same bits); ``guidance`` the
         classifier-free guidance scale ``s`` in
         ``x̂0 = x̂0_blank + s·(x̂0_sketch − x̂0_blank)`` (1: no blank pass).
@@ -314,7 +318,7 @@ class ControlModel:
         if not (isinstance(guidance, (int, float)) and 0.0 <= guidance <= 5.0):
             raise InvalidInputError(f"guidance: must be in [0, 5], got {guidance!r}", "guidance")
         ptype = np.asarray(particle_type, np.int64)
-        ts = trailing_timesteps(steps, len(self.alpha_bar))
+        ts = trailing_timesteps(self.sample_steps if steps is None else steps, len(self.alpha_bar))
         s, r, _, _ = radius_graph(x, self.radius)
         h, edges = self.sessions["state_encoder"].run(None, {"positions": x, "velocities": v, "particle_type": ptype, "senders": s, "receivers": r})
         branches = [sketch] if guidance == 1.0 else [sketch, None]
