@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.env import cpu_times, environment, steal_fraction
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.data import make_case
 from hybridmpm.control.prior import free_motion_of
@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="benchmarks/results/control_latency")
     args = ap.parse_args(argv)
     load_before = os.getloadavg()[0]
+    ticks = cpu_times()
     rows = []
     for scene in args.scenes.split(","):
         plans: list[float] = []
@@ -68,10 +69,11 @@ def main(argv: list[str] | None = None) -> int:
             {"scene": scene, "particles": sizes, "plan_ms_p50": float(np.percentile(plans, 50)), "plan_ms_p95": float(np.percentile(plans, 95)),
              "prior_ms_p50": float(np.median(priors)), "sampler_ms_p50": float(np.median(samplers)), "episode_ms": float(np.median(eps))}
         )  # fmt: skip
+    steal = steal_fraction(ticks, cpu_times())
     out = Path(args.out)
-    out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "load": os.getloadavg(), "scenes": rows}, indent=1))
+    out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "load": os.getloadavg(), "steal": steal, "scenes": rows}, indent=1))
     lines = [
-        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {load_before:.2f})",
+        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {load_before:.2f}; CPU time stolen by the hypervisor during the run: {'unknown' if steal is None else f'{100 * steal:.0f} %'})",
         "",
     ]
     lines += [

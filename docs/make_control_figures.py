@@ -3,7 +3,7 @@
 oval per scene), the sketch, and where each controller takes the fluid
 (the diffusion controller: the shipped model of the scene).
 
-    python docs/make_control_figures.py      # -> docs/img/control_SCENE.png
+    python docs/make_control_figures.py [SCENE,SCENE...]     # -> docs/img/control_SCENE.png (default: the four scenes)
 """
 
 from __future__ import annotations
@@ -81,5 +81,7 @@ def figure(scene: str, seeds: tuple[int, int]) -> Path:
 
 
 if __name__ == "__main__":
-    for scene in ("water2d", "sand2d", "water3d", "sand3d"):
+    import sys
+
+    for scene in sys.argv[1].split(",") if len(sys.argv) > 1 else ("water2d", "sand2d", "water3d", "sand3d"):
         print(figure(scene, (5000, 5001)))

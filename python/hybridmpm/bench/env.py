@@ -62,4 +62,26 @@ def environment() -> dict[str, Any]:
     }
 
 
-__all__ = ["cpu_model", "environment", "git_commit"]
+def cpu_times() -> tuple[int, int] | None:
+    """``(steal, total)`` jiffies of all CPUs since boot from ``/proc/stat``
+    (Linux; None elsewhere). Steal is time the hypervisor gave this virtual
+    machine's CPUs to someone else: a timing taken while it grows is not quiet."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu" or len(fields) < 9:
+        return None
+    values = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    return values[7], sum(values)
+
+
+def steal_fraction(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    """Share of CPU time stolen between two :func:`cpu_times` readings (None if unknown)."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return (after[0] - before[0]) / (after[1] - before[1])
+
+
+__all__ = ["cpu_model", "cpu_times", "environment", "git_commit", "steal_fraction"]
