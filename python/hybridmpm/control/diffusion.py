@@ -36,11 +36,6 @@ DIFFUSION_STEPS = 100
 #: mean plan, not a draw — and on validation seeds 4000–4015 (``docs/control.md``) it tracks as well as 4 steps on
 #: water2d (1.005 both) and better on sand2d (1.026 against 1.048), at a quarter of the head's time.
 SAMPLE_STEPS = 1
-#: Bend the sampled plan onto the sketch the way the prior bends the free motion (:func:`~hybridmpm.control.prior.prior_path`):
-#: an arrow fixes where the centroid ends, an oval the end cloud's ±2σ ellipse (paper App. C draws ovals from the end's
-#: principal axes). The network's x̂0 is a mean over what it cannot tell apart, which shrinks the cloud — on validation seed
-#: 4007 (sand2d, an oval) it ended 17.5 cm long where the oval and the truth say 34.2 (``docs/control.md``).
-PROJECT_ONTO_SKETCH = True
 
 
 # --------------------------------------------------------------------- basis
@@ -332,10 +327,10 @@ class ControlModel:
             geo, off = sketch_geometry(sk, x)
             conds.append((np.concatenate([glob, geo[None]], 1).astype(np.float32), bilinear_sample(local_map, x[:, :2]), off))
 
+        from hybridmpm.control.prior import prior_path  # (prior imports this module)
+
         def branch_priors() -> list[np.ndarray]:
             if self.needs_free:
-                from hybridmpm.control.prior import prior_path
-
                 fm = free.result() if hasattr(free, "result") else free  # an array, or a Future computed meanwhile
                 if np.shape(fm) != (self.frames, len(x), self.dim) or not np.isfinite(fm).all():
                     raise InvalidInputError(f"free: expected finite [{self.frames}, {len(x)}, {self.dim}], got {list(np.shape(fm))}", "free")
@@ -366,10 +361,12 @@ class ControlModel:
         first_prior = (priors if priors is not None else branch_priors())[0]
         coef = (xt.astype(np.float64) * self.coef_std + self.coef_mean + first_prior).reshape(len(x), self.k_basis, self.dim)
         path = x.astype(np.float64)[None] + expand(coef, self.basis).astype(np.float64)
-        if self.needs_free and PROJECT_ONTO_SKETCH and sketch is not None:
-            from hybridmpm.control.prior import prior_path
-
-            path = prior_path(path, x64, sketch)  # the sketch's end constraint on the sampled plan, as on the free motion
+        if self.needs_free:
+            # The sketch's end constraint, bent onto the plan as the prior bends the free motion (an arrow: where the
+            # centroid ends; an oval: the end cloud's ±2σ ellipse, paper App. C). The network's x̂0 is a mean over what it
+            # cannot tell apart, which shrinks the cloud: on validation seed 4007 (sand2d, an oval) it ended 17.5 cm long
+            # where the oval and the truth say 34.2 (docs/control.md). No sketch: prior_path leaves the plan as it is.
+            path = prior_path(path, x64, sketch)
         return SampleResult(path, time.perf_counter() - t0)
 
 
