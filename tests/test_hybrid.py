@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from hybridmpm.bench.stress import case_scene, run_method
+from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
@@ -16,7 +17,7 @@ from hybridmpm.mpm import MpmParams, MpmSolver
 from hybridmpm.neural import NeuralModel
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, NeuralSimulator, complexity_score, reference, rollout
-from hybridmpm.sim.convert import estimate_volume_ratio, fit_affine, mpm_history, neural_to_mpm
+from hybridmpm.sim.convert import estimate_volume_ratio, fit_affine, mpm_history, neural_to_mpm, velocities_from_history
 
 DT = 0.01
 
@@ -122,6 +123,27 @@ def test_round_trip_neural_mpm_neural_keeps_positions_and_velocities():
     assert sand.any() and np.allclose(solver.deformation_gradient[sand], np.eye(2))
 
 
+def test_second_order_velocity_is_exact_under_constant_acceleration():
+    # p(t) = p0 + v0 t + a t²/2 sampled one step apart: the second-order difference gives v(t)
+    # exactly, the last difference the mean velocity over the step, v(t) − a·Δt/2
+    rng = np.random.default_rng(1)
+    p0, v0, a = rng.uniform(0.3, 0.7, (50, 2)), rng.normal(0, 0.5, (50, 2)), rng.normal(0, 9.8, (50, 2))
+    t = DT * np.arange(4)[:, None, None]
+    hist = p0 + v0 * t + 0.5 * a * t**2
+    v_end = v0 + a * t[-1]
+    np.testing.assert_allclose(velocities_from_history(hist, DT, "second"), v_end, atol=1e-4)
+    np.testing.assert_allclose(velocities_from_history(hist, DT), v_end - 0.5 * a * DT, atol=1e-4)
+    np.testing.assert_allclose(velocities_from_history(hist[-2:], DT, "second"), v_end - 0.5 * a * DT, atol=1e-4)  # two positions: last
+    solver = make_scene("water2d", seed=0).make_solver(num_threads=1)
+    with pytest.raises(InvalidInputError, match="velocity"):
+        neural_to_mpm(solver, np.stack([solver.positions] * 3), DT, velocity="central")
+    bad = np.stack([solver.positions] * 3)
+    bad[0, 0, 0] = np.nan  # the third-last position is read by the second-order estimate
+    with pytest.raises(InvalidInputError, match="history"):
+        neural_to_mpm(solver, bad, DT, velocity="second")
+    neural_to_mpm(solver, bad, DT)  # ... and not by the last difference
+
+
 def test_affine_fit_recovers_a_linear_velocity_field():
     scene = make_scene("water2d", seed=0)
     x = np.asarray(scene.positions, np.float32)
@@ -188,7 +210,15 @@ class _Sabotaged(NeuralModel):
             elif self.how == "compressed":  # 5% closer to the centroid each step: slow, but the density climbs
                 c = history[-1][fluid].mean(axis=0)
                 nxt[fluid] = c + 0.95 * (history[-1][fluid] - c)
+        if self.calls >= self.at:
+            if self.how == "lifted":  # every fluid particle SHIFT_G·g·dt² higher than the network says
+                nxt = nxt.copy()
+                nxt[fluid, 1] += SHIFT_G * G * DT**2
         return acc, nxt, g
+
+
+#: The "lifted" sabotage's extra upward acceleration [g] (water2d's model step is DT = 10 ms).
+SHIFT_G = 5.0
 
 
 @pytest.mark.parametrize("how", ["nan", "escaped", "energy", "compressed"])
@@ -279,7 +309,13 @@ def test_state_restore_continues_identically(water_model):
 
 def test_bad_parameters_name_the_field(water_model):
     scene = make_scene("water2d", seed=0)
-    for kw, field in [({"r_c": float("nan")}, "r_c"), ({"delta": 0}, "delta"), ({"dwell": 0}, "dwell"), ({"affine": "x"}, "affine")]:
+    for kw, field in [
+        ({"r_c": float("nan")}, "r_c"),
+        ({"delta": 0}, "delta"),
+        ({"dwell": 0}, "dwell"),
+        ({"affine": "x"}, "affine"),
+        ({"velocity": "x"}, "velocity"),
+    ]:
         with pytest.raises(InvalidInputError, match=field):
             HybridSimulator(scene, water_model, **kw)
     with pytest.raises(InvalidInputError, match="model"):
@@ -339,11 +375,14 @@ def test_stress_command_writes_its_table(tmp_path):
 
     from hybridmpm.cli import main
 
-    assert main(["stress", "water2d", "--frames", "40", "--cases", "baseline,dense", "--methods", "mpm,hybrid", "--out", str(tmp_path), "--quiet"]) == 0
+    methods = "mpm,hybrid,hybrid_noaudit"
+    assert main(["stress", "water2d", "--frames", "40", "--cases", "baseline,dense", "--methods", methods, "--out", str(tmp_path), "--quiet"]) == 0
     rows = json.loads((tmp_path / "stress_water2d.json").read_text())
-    assert [(r["case"], r["method"]) for r in rows] == [("baseline", "mpm"), ("baseline", "hybrid"), ("dense", "mpm"), ("dense", "hybrid")]
+    assert [(r["case"], r["method"]) for r in rows] == [(c, m) for c in ("baseline", "dense") for m in methods.split(",")]
     assert all(r["failure"] is None and r["frames_done"] == 40 and np.isfinite(r["error_mean"]) for r in rows)
     assert rows[0]["mpm_share"] == 1.0
+    # the audit's time is counted only where it runs: the hybrid's network steps (after the 5-step warm-up)
+    assert rows[1]["audit_ms_per_frame"] > 0 and rows[0]["audit_ms_per_frame"] == rows[2]["audit_ms_per_frame"] == 0
     assert "| water2d | dense |" in (tmp_path / "stress_water2d.md").read_text()
     assert main(["stress", "water2d", "--cases", "nope", "--out", str(tmp_path), "--quiet"]) == 2
 
@@ -370,3 +409,82 @@ def test_a_network_that_keeps_failing_waits_longer_each_time():
     for w0, w1 in zip(waits, waits[1:]):
         assert w1 >= 2 * w0 - 1, waits  # the calm count restarts at the fallback step itself
     assert frames[-1].positions.shape == frames[0].positions.shape and np.isfinite(frames[-1].positions).all()
+
+
+# ------------------------------------------------------------ the MPM audit
+def test_the_audit_measures_the_network_against_mpm_by_the_triangle_inequality():
+    # Lifting every fluid particle by 5 g·dt² moves the network's prediction by exactly 5 g in
+    # audit units, so (audit is an RMS, a norm) |audit_lifted − 5 g| ≤ audit_clean on the same
+    # step from the same state. Audit tolerance out of reach: nothing falls back.
+    scene = make_scene("water2d", seed=1003)
+    kw = dict(r_c=0.01, audit_every=1, audit_tol=1e6, mpm_threads=1)
+    clean = frames_of(HybridSimulator(scene, NeuralModel(shipped_model("water2d")), **kw), 80)
+    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="lifted"), **kw)
+    lifted = frames_of(sim, 80)
+    first = next(i for i, f in enumerate(lifted) if f.solver == "neural")
+    assert clean[first].solver == "neural" and np.isfinite(clean[first].audit)
+    assert clean[first].audit < 2.0  # the shipped model is not far off on its first step
+    assert abs(lifted[first].audit - SHIFT_G) <= clean[first].audit + 1e-6
+    assert np.array_equal(lifted[first].positions[:, 0], clean[first].positions[:, 0])  # x untouched
+    assert sim.stats.audits >= 1 and sim.stats.audit_seconds > 0 and "audit" not in sim.stats.fallbacks
+
+
+def test_the_score_cannot_see_a_wrong_magnitude():
+    # s(t) is a cosine: a network whose accelerations point the right way but are half as
+    # strong (a column that falls too slowly) scores a perfect 1. This is what the audit is for.
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(1, 50, 2)) * 1e-3 + np.array([0.0, -9.8 * DT**2])
+    acc = np.concatenate([np.repeat(a, 10, axis=0), 0.5 * np.repeat(a, 10, axis=0)])
+    assert complexity_score(_trajectory(acc), DT) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_the_audit_catches_a_wrong_network_on_its_first_step():
+    # The network lifted by 5 g trips no failure detector. Without the audit its first step is
+    # taken; with it MPM takes that step instead, and every later stint is caught the same way.
+    scene = make_scene("water2d", seed=1002)
+    model = shipped_model("water2d")
+    blind = HybridSimulator(scene, _Sabotaged(model, at=1, how="lifted"), audit_every=0, mpm_threads=1)
+    fb = frames_of(blind, 160)
+    first = next(i for i, f in enumerate(fb) if f.solver == "neural")
+    assert all(np.isnan(f.audit) for f in fb) and not any(f.event and f.event.startswith("fallback") for f in fb)
+    sim = HybridSimulator(scene, _Sabotaged(model, at=1, how="lifted"), audit_every=4, audit_tol=1.5, mpm_threads=1)
+    frames = frames_of(sim, 160)
+    k = next(i for i, f in enumerate(frames) if f.event)
+    assert k == first and frames[k].event == "fallback:audit" and frames[k].solver == "mpm"
+    assert frames[k].audit > 1.5
+    # the step kept is MPM's own from the state before it (no jump), and the network never got a step
+    assert np.abs(frames[k].positions - frames[k - 1].positions).max() < 4 * sim.mpm.solver.dx
+    assert all(f.solver == "mpm" for f in frames)
+    assert sim.stats.fallbacks["audit"] == sim.stats.audits >= 1
+
+
+def test_no_audit_when_the_safeguard_is_off_or_audit_every_is_zero(water_model):
+    scene = make_scene("water2d", seed=1000)
+    for kw in ({"r_c": 0.0}, {"audit_every": 0}):
+        sim = HybridSimulator(scene, water_model, mpm_threads=1, **kw)
+        assert all(np.isnan(f.audit) for f in frames_of(sim, 80)) and sim.stats.audits == 0
+    sim = HybridSimulator(scene, water_model, mpm_threads=1, audit_every=2, audit_tol=1e6)
+    frames = frames_of(sim, 120)
+    neural = [f for f in frames if f.solver == "neural"]
+    audited = [f for f in neural if np.isfinite(f.audit)]
+    assert len(neural) >= 4 and sim.stats.audits == len(audited) == (len(neural) + 1) // 2
+
+
+def test_bad_audit_parameters_name_the_field(water_model):
+    scene = make_scene("water2d", seed=0)
+    for kw, field in [({"audit_every": -1}, "audit_every"), ({"audit_every": 1.5}, "audit_every"), ({"audit_every": True}, "audit_every"),
+                      ({"audit_tol": 0.0}, "audit_tol"), ({"audit_tol": float("nan")}, "audit_tol"), ({"audit_tol": "1"}, "audit_tol")]:  # fmt: skip
+        with pytest.raises(InvalidInputError, match=field):
+            HybridSimulator(scene, water_model, **kw)
+
+
+def test_simulate_takes_the_audit_settings_and_reports_them(tmp_path):
+    import json
+
+    from hybridmpm.cli import main
+
+    assert main(["simulate", "water2d", "--seed", "1000", "--frames", "60", "--audit-every", "1", "--audit-tol", "1e6", "--out", str(tmp_path), "--quiet"]) == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["audit_every"], s["audit_tol"]) == (1, 1e6)
+    assert s["audits"] == s["neural_steps"] > 0 and s["audit_seconds"] > 0 and "audit" not in s["fallbacks"]
+    assert main(["simulate", "water2d", "--frames", "8", "--audit-every", "-1", "--out", str(tmp_path / "bad"), "--quiet"]) == 2

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.control.diffusion import SAMPLE_STEPS
-from hybridmpm.conventions import R_C, T_CTR
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, R_C, T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.trajectory import Trajectory
@@ -105,7 +105,8 @@ def _simulate(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
     out = _out_dir(args.out)
     sim = make_simulator(
-        scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, seed=args.seed, threads=args.threads,
+        scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
+        seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
@@ -135,7 +136,7 @@ def _simulate(args: argparse.Namespace) -> int:
         summary["warmup_mpm_frames"] = (model.t_in - 1) * model.r_t
         summary["neural_steps"] = steps[NEURAL]
     if args.solver == "hybrid":
-        summary.update({"r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell})  # type: ignore[attr-defined]
+        summary.update({"r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every, "audit_tol": sim.audit_tol})  # type: ignore[attr-defined]
     err = None
     if args.reference:
         t0 = time.perf_counter()
@@ -461,6 +462,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
     sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
+    sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")
+    sim.add_argument("--audit-tol", type=float, default=None, help=f"hybrid: MPM audit tolerance in g (default {AUDIT_TOL:g})")
     sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
     sim.add_argument(
         "--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)"

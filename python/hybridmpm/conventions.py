@@ -40,6 +40,9 @@ DT_FRAME = 2.5e-3
 DEFAULT_N_GRID = {2: 128, 3: 64}
 #: Default connectivity radius R [m] of the network's radius graph (2D scenes).
 CONNECTIVITY_RADIUS = 0.015
+#: Standard gravity [m/s²], the unit ``g`` in which accelerations are reported
+#: (control effort, the hybrid's MPM audit).
+G = 9.8
 
 # ----------------------------------------------------------------- the method's symbols (paper)
 #: Positions the network reads per step (the current one and T_in − 1 before it).
@@ -50,16 +53,25 @@ T_CTR = 100
 R_C = 0.8
 #: Safeguard window δ in coarse steps (paper Sec. 3.1.2).
 DELTA = 10
+#: Network steps per MPM audit of the hybrid (not in the paper; docs/hybrid.md
+#: "The MPM audit": one MPM step at r_p per audit).
+AUDIT_EVERY = 4
+#: MPM audit tolerance [g]: RMS one-step acceleration difference between the
+#: network and MPM from the same state above which MPM takes over.
+AUDIT_TOL = 1.0
 
 # ----------------------------------------------------------------- datasets
 #: Splits of a GNS-layout dataset, in order.
 SPLITS: tuple[str, ...] = ("train", "valid", "test")
 
 __all__ = [
+    "AUDIT_EVERY",
+    "AUDIT_TOL",
     "CONNECTIVITY_RADIUS",
     "DEFAULT_N_GRID",
     "DELTA",
     "DT_FRAME",
+    "G",
     "GNS_KINEMATIC",
     "GNS_SAND",
     "GNS_TYPE_OF_MATERIAL",

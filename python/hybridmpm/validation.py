@@ -17,7 +17,7 @@ from importlib import resources
 
 import numpy as np
 
-G = 9.8
+from hybridmpm.conventions import G
 
 
 @dataclass

@@ -1,5 +1,6 @@
-"""Stress suite: neural-only, MPM-only and hybrid through the cases
-where methods fail, over long rollouts (``hybridmpm stress SCENE``).
+"""Stress suite: neural-only, MPM-only and hybrid (with and without its MPM
+audit) through the cases where methods fail, over long rollouts
+(``hybridmpm stress SCENE``).
 
 Cases (:data:`CASES`), each built from the scene's own spec for a seed:
 
@@ -15,7 +16,8 @@ Per case and method the suite records frames until failure and its mode
 (``nan``, ``escaped``, ``energy``, ``compressed`` for the network; ``mpm`` for a frame MPM
 could not finish even with its smallest substep), and the grid-mass error
 (mean and last frame) against full-resolution MPM from the same initial
-condition over the frames simulated.
+condition over the frames simulated; for the hybrid also what its MPM audit
+caught (``fallbacks`` "audit") and what the audit cost per frame.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from hybridmpm.scenes.core import Scene
 from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 CASES = ("baseline", "fast", "obstacle", "dense")
-METHODS = ("neural", "mpm", "hybrid")
+METHODS = ("neural", "mpm", "hybrid", "hybrid_noaudit")
 
 
 def case_scene(name: str, case: str, seed: int = 0) -> Scene:
@@ -76,6 +78,7 @@ class StressResult:
     mpm_share: float
     switches: int
     fallbacks: dict[str, int]
+    audit_ms_per_frame: float = 0.0
 
     def row(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -84,13 +87,16 @@ class StressResult:
 def method_simulator(scene: Scene, method: str, model: NeuralModel, seed: int = 0, threads: int = 1, r_c: float = R_C, **kw: Any) -> Simulator:
     """The simulator of a stress ``method``: "neural" the network alone (its
     first rejected step ends the rollout), "mpm" MPM alone at the model's
-    ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it)."""
+    ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it),
+    "hybrid_noaudit" the same without its MPM audit (``audit_every = 0``)."""
     if method == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads)
     if method == "mpm":
         return MpmSimulator(scene, r_p=model.r_p, r_t=model.r_t, seed=seed, threads=threads)
     if method == "hybrid":
         return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **kw)
+    if method == "hybrid_noaudit":
+        return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "audit_every": 0})
     raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
 
 
@@ -136,6 +142,7 @@ def stress(
                     name, case, method, ro.num_fluid, frames, ro.frames_done, ro.failure,
                     float(np.mean(err)), float(err[-1]), 1e3 * secs / max(1, ro.frames_done),
                     steps["mpm"] / total, int(ro.stats["switches"]), dict(ro.stats["fallbacks"]),
+                    1e3 * float(ro.stats.get("audit_seconds", 0.0)) / max(1, ro.frames_done),
                 )
             )  # fmt: skip
             bar.update()
@@ -146,15 +153,15 @@ def stress(
 def markdown_table(results: list[StressResult]) -> str:
     """The stress results as a markdown table."""
     lines = [
-        "| scene | case | N_l | method | frames until failure | failure | grid-mass error mean | last | ms/frame | MPM share | switches | fallbacks |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | case | N_l | method | frames until failure | failure | grid-mass error mean | last | ms/frame | of which audit | MPM share | switches | fallbacks |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         until = f"{r.frames_done}" if r.failure else f"≥ {r.frames} (none)"
         fb = ", ".join(f"{k} {v}" for k, v in sorted(r.fallbacks.items())) or "–"
         lines.append(
             f"| {r.scene} | {r.case} | {r.particles} | {r.method} | {until} | {r.failure or '–'} | {r.error_mean:.3f} | {r.error_last:.3f} "
-            f"| {r.ms_per_frame:.2f} | {100 * r.mpm_share:.0f}% | {r.switches} | {fb} |"
+            f"| {r.ms_per_frame:.2f} | {r.audit_ms_per_frame:.2f} | {100 * r.mpm_share:.0f}% | {r.switches} | {fb} |"
         )
     return "\n".join(lines) + "\n"
 

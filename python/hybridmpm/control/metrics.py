@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.control.sketch import Sketch
+from hybridmpm.conventions import G
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.mpm import grid_mass
-
-G = 9.8
 
 
 def shape_errors(end: np.ndarray, target: np.ndarray, n_grid: int) -> dict[str, float]:

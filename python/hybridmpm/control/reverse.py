@@ -26,11 +26,12 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
 
 #: Largest control acceleration [m/s²] (50 g): bounds the CFL substeps a
 #: controlled frame can need (one grid cell per frame is ≈ 127 g at 128²).
-A_MAX = 50 * 9.8
+A_MAX = 50 * G
 #: Smoothing of the targets (paper App. D): λ and β.
 SMOOTH_LAMBDA = 0.1
 SMOOTH_BETA = 2.0

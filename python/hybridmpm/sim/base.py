@@ -54,7 +54,9 @@ class Frame:
     the step (nan where not computed); ``event`` None or what happened
     ("switch:mpm", "switch:neural", "fallback:<mode>"); ``mpm_retries`` substep
     halvings MPM needed; ``substeps`` MPM substeps taken (0 for a network step);
-    ``controlled`` whether a forcing was applied during the step.
+    ``controlled`` whether a forcing was applied during the step; ``audit``
+    the MPM audit's discrepancy of a network step in units of g (see
+    :class:`~hybridmpm.sim.hybrid.HybridSimulator`; nan where none ran).
     """
 
     step: int
@@ -68,20 +70,32 @@ class Frame:
     mpm_retries: int = 0
     substeps: int = 0
     controlled: bool = False
+    audit: float = float("nan")
 
 
 @dataclass
 class SimStats:
     """Counters of a run: coarse ``steps`` per solver, solver ``switches``,
-    network ``fallbacks`` per failure mode, MPM substep halvings ``mpm_retries``."""
+    network ``fallbacks`` per failure mode, MPM substep halvings
+    ``mpm_retries``, MPM ``audits`` of network steps run and the wall
+    ``audit_seconds`` they took."""
 
     steps: dict[str, int] = field(default_factory=lambda: {MPM: 0, NEURAL: 0})
     switches: int = 0
     fallbacks: dict[str, int] = field(default_factory=dict)
     mpm_retries: int = 0
+    audits: int = 0
+    audit_seconds: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"steps": dict(self.steps), "switches": self.switches, "fallbacks": dict(self.fallbacks), "mpm_retries": self.mpm_retries}
+        return {
+            "steps": dict(self.steps),
+            "switches": self.switches,
+            "fallbacks": dict(self.fallbacks),
+            "mpm_retries": self.mpm_retries,
+            "audits": self.audits,
+            "audit_seconds": self.audit_seconds,
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SimStats:
@@ -90,6 +104,8 @@ class SimStats:
             int(d["switches"]),
             {str(k): int(v) for k, v in dict(d["fallbacks"]).items()},
             int(d["mpm_retries"]),
+            int(d.get("audits", 0)),  # states saved before the audit existed have none
+            float(d.get("audit_seconds", 0.0)),
         )
 
 

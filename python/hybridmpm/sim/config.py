@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from hybridmpm.conventions import R_C
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, R_C
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes.core import Scene
 from hybridmpm.sim.base import Simulator
@@ -33,11 +33,14 @@ def make_simulator(
     r_c: float = R_C,
     r_p: float = 1.0,
     dwell: int | None = None,
+    audit_every: int | None = None,
+    audit_tol: float | None = None,
     seed: int = 0,
     threads: int = 0,
     nn_threads: int = 1,
 ) -> Simulator:
-    """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``),
+    """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
+    the MPM audit's ``audit_every`` and ``audit_tol``; None: the defaults),
     "mpm" (at ``r_p``) or "neural" (the model alone after its MPM warm-up).
     ``model`` an ONNX path, a :class:`~hybridmpm.neural.NeuralModel` or None
     (the scene's shipped model); ``threads`` MPM threads (0 = all cores).
@@ -51,7 +54,17 @@ def make_simulator(
         return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads)
     if solver == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads)
-    return HybridSimulator(scene, model, r_c=r_c, dwell=DWELL if dwell is None else dwell, seed=seed, mpm_threads=threads, nn_threads=nn_threads)
+    return HybridSimulator(
+        scene,
+        model,
+        r_c=r_c,
+        dwell=DWELL if dwell is None else dwell,
+        audit_every=AUDIT_EVERY if audit_every is None else audit_every,
+        audit_tol=AUDIT_TOL if audit_tol is None else audit_tol,
+        seed=seed,
+        mpm_threads=threads,
+        nn_threads=nn_threads,
+    )
 
 
 def tuned_path(scene: str, path: str | Path | None = None) -> Path:

@@ -2,7 +2,11 @@
 
 neural → MPM (:func:`neural_to_mpm`): positions are the last positions of the
 history; velocities the last finite difference (exactly the velocity the
-network's semi-implicit Euler step produced); the APIC affine matrix ``C`` is
+network's semi-implicit Euler step produced; the mean velocity over the last
+step, which lags the motion by ``a·Δt/2``), or with ``velocity="second"`` the
+second-order backward difference ``(3p_t − 4p_{t−1} + p_{t−2})/(2Δt)``, the
+velocity *at* ``t`` for constant acceleration (measured against each other in
+docs/hybrid.md: no difference that survives the seed noise); the APIC affine matrix ``C`` is
 zero or a least-squares fit of the neighbours' velocities (``affine="fit"``);
 water's volume ratio ``J`` is estimated from the local density so that the
 pressure matches the particles' spacing (:func:`estimate_volume_ratio`,
@@ -100,10 +104,24 @@ def fit_affine(positions: np.ndarray, velocities: np.ndarray, radius: float, reg
     return np.einsum("nij,njk->nik", b, np.linalg.inv(a)).astype(np.float32)
 
 
-def velocities_from_history(history: np.ndarray, dt_step: float) -> np.ndarray:
-    """Last finite-difference velocity ``(p_t − p_{t−1})/Δt`` [m/s], float32 [N, D]."""
+#: Velocity estimates of :func:`velocities_from_history`.
+VELOCITY_ESTIMATES = ("last", "second")
+
+
+def velocities_from_history(history: np.ndarray, dt_step: float, velocity: str = "last") -> np.ndarray:
+    """Velocity at the last position of ``history`` [T ≥ 2, N, D] (one
+    ``dt_step`` [s] apart), [m/s] float32 [N, D]: ``"last"`` the last finite
+    difference ``(p_t − p_{t−1})/Δt`` (the mean velocity over the last step),
+    ``"second"`` the second-order backward difference
+    ``(3p_t − 4p_{t−1} + p_{t−2})/(2Δt)`` (exact for constant acceleration;
+    needs T ≥ 3, else falls back to the last difference)."""
     h = np.asarray(history)
-    return ((h[-1].astype(np.float64) - h[-2].astype(np.float64)) / dt_step).astype(np.float32)
+    last = h[-1].astype(np.float64)
+    if velocity == "second" and h.shape[0] >= 3:
+        v = (3.0 * last - 4.0 * h[-2].astype(np.float64) + h[-3].astype(np.float64)) / (2.0 * dt_step)
+    else:
+        v = (last - h[-2].astype(np.float64)) / dt_step
+    return v.astype(np.float32)
 
 
 def neural_to_mpm(
@@ -114,12 +132,15 @@ def neural_to_mpm(
     affine: str = "fit",
     affine_radius: float | None = None,
     volume_ratio: str = "density",
+    velocity: str = "last",
 ) -> dict[str, Any]:
     """Write the neural state into ``solver`` (same particles, same order).
 
     ``history`` float32 [T ≥ 2, N, D] fluid positions (no boundary particles),
     one coarse step ``dt_step`` [s] apart; ``affine`` "fit" or "zero";
-    ``volume_ratio`` "density" (:func:`estimate_volume_ratio`) or "one".
+    ``volume_ratio`` "density" (:func:`estimate_volume_ratio`) or "one";
+    ``velocity`` "last" or "second" (:func:`velocities_from_history`; the
+    last two, resp. three, positions are read).
     Returns what was set (``positions``, ``velocities``, ``affine``,
     ``volume_ratio``). Raises :class:`InvalidInputError` for a history whose
     particle count is not the solver's or that is not finite.
@@ -127,14 +148,17 @@ def neural_to_mpm(
     h = np.asarray(history, np.float32)
     if h.ndim != 3 or h.shape[0] < 2 or h.shape[1] != solver.num_particles or h.shape[2] != solver.dim:
         raise InvalidInputError(f"history: expected [T >= 2, {solver.num_particles}, {solver.dim}] fluid positions, got {list(h.shape)}", "history")
-    if not np.isfinite(h[-2:]).all():
-        raise InvalidInputError("history: the last two positions must be finite", "history")
+    if velocity not in VELOCITY_ESTIMATES:
+        raise InvalidInputError(f"velocity: must be one of {', '.join(map(repr, VELOCITY_ESTIMATES))}, got {velocity!r}", "velocity")
+    used = 3 if velocity == "second" and h.shape[0] >= 3 else 2
+    if not np.isfinite(h[-used:]).all():
+        raise InvalidInputError(f"history: the last {min(used, h.shape[0])} positions must be finite", "history")
     if affine not in ("fit", "zero"):
         raise InvalidInputError(f"affine: must be 'fit' or 'zero', got {affine!r}", "affine")
     if volume_ratio not in ("density", "one"):
         raise InvalidInputError(f"volume_ratio: must be 'density' or 'one', got {volume_ratio!r}", "volume_ratio")
     x = h[-1].copy()
-    v = velocities_from_history(h, dt_step)
+    v = velocities_from_history(h, dt_step, velocity)
     dim = solver.dim
     n = x.shape[0]
     if affine == "fit" and n > 1:

@@ -34,6 +34,20 @@ steps (backoff: a model that keeps collapsing is not handed the flow every
 few steps). MPM itself halves its substep and retries a frame that goes
 non-finite or violates the CFL condition (Rust ``step_frame``).
 
+MPM audit (``audit_every``, ``audit_tol``; not in the paper): ``s(t)``
+measures only the trajectory's self-consistency, so a network that is smooth
+but wrong (a column that stands where MPM lets it fall) passes it. Every
+``audit_every``-th step of a network stint (its first step included) is also
+taken by MPM from the same converted state (the neural → MPM conversion a
+fallback uses), and the two predictions are compared: the RMS over fluid
+particles of the position difference divided by ``dt_step²``, in units of
+``g`` (:data:`~hybridmpm.conventions.G`), is the step's *audit* error
+(``Frame.audit``). Above ``audit_tol`` the network's step is discarded, MPM's
+is kept (nothing is recomputed), and the hybrid falls back (event
+"fallback:audit", counted with the failures for the backoff). Cost: one MPM
+step at ``r_p`` per ``audit_every`` network steps (``stats.audit_seconds``);
+``audit_every = 0`` switches it off, and so does ``r_c ≤ 0`` (neural only).
+
 Control (paper Sec. 3.2): while a ``forcing`` is set the hybrid runs MPM,
 which applies it (a network step in progress hands over first, event
 "switch:mpm"); once it is cleared the usual ``dwell`` rule hands the flow
@@ -54,13 +68,13 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import DELTA, R_C
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, DELTA, R_C, G
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, new_lock, reading_state, serialised
-from hybridmpm.sim.convert import mpm_history
+from hybridmpm.sim.convert import VELOCITY_ESTIMATES, mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, load_model
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
@@ -103,8 +117,16 @@ class HybridSimulator:
     affine, volume_ratio:
         APIC ``C`` after neural → MPM: "fit" (neighbour least squares) or
         "zero"; water's ``J``: "density" (from the local density) or "one".
+    velocity:
+        MPM's velocities after neural → MPM: "last" (the last finite
+        difference, default) or "second" (second-order backward difference);
+        :func:`~hybridmpm.sim.convert.velocities_from_history`.
     accel_floor:
         [m/s²] particles calmer than this count as cos = 1 in s(t).
+    audit_every, audit_tol:
+        MPM audit of the network (module doc): network steps per audit
+        (default :data:`AUDIT_EVERY`; 0 = off) and tolerance [g] (default
+        :data:`AUDIT_TOL`).
     ke_factor, escape_cells, degree_factor, detect_failures:
         The network's failure checks (:class:`~hybridmpm.sim.neural.NeuralSimulator`).
     mpm_threads, nn_threads:
@@ -128,7 +150,10 @@ class HybridSimulator:
         seed: int = 0,
         affine: str = "fit",
         volume_ratio: str = "density",
+        velocity: str = "last",
         accel_floor: float = ACCEL_FLOOR,
+        audit_every: int = AUDIT_EVERY,
+        audit_tol: float = AUDIT_TOL,
         ke_factor: float = 2.0,
         escape_cells: float = 4.0,
         degree_factor: float = 2.0,
@@ -144,7 +169,14 @@ class HybridSimulator:
         _check("dwell", isinstance(dwell, int) and not isinstance(dwell, bool) and dwell >= 1, f"must be an integer >= 1, got {dwell!r}")
         _check("affine", affine in ("fit", "zero"), f"must be 'fit' or 'zero', got {affine!r}")
         _check("volume_ratio", volume_ratio in ("density", "one"), f"must be 'density' or 'one', got {volume_ratio!r}")
+        _check("velocity", velocity in VELOCITY_ESTIMATES, f"must be one of {', '.join(map(repr, VELOCITY_ESTIMATES))}, got {velocity!r}")
         _check("accel_floor", _finite(accel_floor) and accel_floor >= 0, f"must be >= 0 [m/s²], got {accel_floor!r}")
+        _check(
+            "audit_every",
+            isinstance(audit_every, int) and not isinstance(audit_every, bool) and audit_every >= 0,
+            f"must be an integer >= 0 (0 = no audit), got {audit_every!r}",
+        )
+        _check("audit_tol", _finite(audit_tol) and audit_tol > 0, f"must be > 0 [g], got {audit_tol!r}")
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.scene_full = scene
@@ -154,7 +186,10 @@ class HybridSimulator:
         self.dwell = dwell
         self.affine = affine
         self.volume_ratio = volume_ratio
+        self.velocity = velocity
         self.accel_floor = float(accel_floor)
+        self.audit_every = audit_every
+        self.audit_tol = float(audit_tol)
         self.scene = at_resolution(scene, self.model.r_p, seed)
         self.neural = NeuralSimulator(
             self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
@@ -232,18 +267,38 @@ class HybridSimulator:
 
     # ------------------------------------------------------------ stepping
     def _to_mpm(self) -> None:
-        hist = np.stack(list(self._buffer)[-2:])
-        self.mpm.load_history(hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius, volume_ratio=self.volume_ratio)
+        hist = np.stack(list(self._buffer)[-3:])
+        self.mpm.load_history(hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius, volume_ratio=self.volume_ratio, velocity=self.velocity)
 
     def _to_neural(self) -> None:
         # called after an MPM step: the buffer's newest entry is the solver's state
         self.neural.set_history(mpm_history(self.mpm.fluid_positions, np.stack(list(self._buffer)[-self.t_in : -1]), self.t_in))
 
-    def _fall_back(self) -> None:
-        self._to_mpm()
+    def _fall_back(self, convert: bool = True) -> None:
+        if convert:
+            self._to_mpm()
         self.solver_name = MPM
         self._calm = 0
         self.stats.switches += 1
+
+    def _audit_due(self) -> bool:
+        # the audit belongs to the safeguard: r_c <= 0 (neural only, paper Table 2) switches it off too
+        return self.safeguard_on and self.audit_every > 0 and self._neural_run % self.audit_every == 0
+
+    def _audit(self, proposed: np.ndarray) -> tuple[float, Frame]:
+        """MPM's step from the state the network started from (converted as a
+        fallback would), compared with the network's ``proposed`` fluid
+        positions float32 [N, D]: returns the audit error [g] (module doc) and
+        MPM's :class:`Frame`. Leaves ``self.mpm`` at the end of MPM's step."""
+        t0 = time.perf_counter()
+        self._to_mpm()
+        self.mpm.step_index = self.step_index
+        fr = self.mpm.advance()
+        diff = proposed.astype(np.float64) - self.particles.fluid(fr.positions)
+        rms = float(np.sqrt(np.mean(np.sum(diff * diff, axis=1)))) if len(diff) else 0.0
+        self.stats.audits += 1
+        self.stats.audit_seconds += time.perf_counter() - t0
+        return rms / (self.dt_step * self.dt_step) / G, fr
 
     @serialised
     def advance(self) -> Frame:
@@ -261,22 +316,33 @@ class HybridSimulator:
             self._fall_back()
             event = "switch:mpm"
         ran = self.solver_name
+        audit = float("nan")
+        audited: Frame | None = None
         if ran == NEURAL:
             proposal = self.neural.propose()
-            if proposal.failure is None:
+            failure = proposal.failure
+            if failure is None and self._audit_due():
+                assert proposal.positions is not None
+                audit, audited = self._audit(self.particles.fluid(proposal.positions))
+                if not (audit <= self.audit_tol):
+                    failure = "audit"
+            if failure is None:
                 pos = self.particles.fluid(self.neural.commit(proposal)).copy()
                 self._neural_run += 1
                 if self._neural_run >= 2 * self.dwell:
                     self._strikes = 0  # a healthy stint: forgive earlier failures
             else:
-                event = f"fallback:{proposal.failure}"
+                event = f"fallback:{failure}"
                 self._strikes += 1
-                self.stats.fallbacks[proposal.failure] = self.stats.fallbacks.get(proposal.failure, 0) + 1
-                self._fall_back()
+                self.stats.fallbacks[failure] = self.stats.fallbacks.get(failure, 0) + 1
+                # after a failed audit MPM has already taken this step from the converted state
+                self._fall_back(convert=audited is None)
                 ran = MPM
         if ran == MPM:
-            self.mpm.step_index = self.step_index  # the forcing's frame clock is the hybrid's
-            fr = self.mpm.advance()
+            if audited is None:
+                self.mpm.step_index = self.step_index  # the forcing's frame clock is the hybrid's
+                audited = self.mpm.advance()
+            fr = audited
             pos = self.particles.fluid(fr.positions).copy()
             retries, substeps, controlled = fr.mpm_retries, fr.substeps, fr.controlled
         self._buffer.append(pos)
@@ -320,6 +386,7 @@ class HybridSimulator:
             retries,
             substeps,
             controlled,
+            audit,
         )
         return self._frame
 

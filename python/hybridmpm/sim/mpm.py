@@ -148,7 +148,7 @@ class MpmSimulator:
         """Take over from the network: write the state of a fluid position
         history float32 [T ≥ 2, N, D] (one ``dt_step`` apart) into the solver
         (:func:`~hybridmpm.sim.convert.neural_to_mpm`, keyword arguments
-        ``affine``, ``affine_radius``, ``volume_ratio``); returns what was set."""
+        ``affine``, ``affine_radius``, ``volume_ratio``, ``velocity``); returns what was set."""
         return neural_to_mpm(self.solver, history, dt_step, **conversion)
 
     # ------------------------------------------------------------ checkpoint
