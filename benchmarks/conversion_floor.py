@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             v = np.asarray(vals)
             rows.append({"scene": scene, "variant": label, "samples": len(v), "median_g": float(np.median(v)), "p90_g": float(np.percentile(v, 90))})
             print(f"{scene:14s} {label:38s} median {np.median(v):.2f} g, p90 {np.percentile(v, 90):.2f} g ({len(v)} samples)", file=sys.stderr)
-    cmd = "python benchmarks/conversion_floor.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    cmd = "python benchmarks/conversion_floor.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
         f"Command: `{cmd}`",
         "",

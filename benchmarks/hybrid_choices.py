@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -98,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{name}: {row['error_mean']:.3f} / {row['error_last']:.3f}, {row['ms_per_frame']:.2f} ms/frame, MPM {100 * row['mpm_share']:.0f}%, {row['switches']:.1f} switches, {row['audit_fallbacks']:.1f} audit fallbacks",
             file=sys.stderr,
         )
-    cmd = "python benchmarks/hybrid_choices.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    cmd = "python benchmarks/hybrid_choices.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
         f"Command: `{cmd}`",
         "",
