@@ -80,7 +80,10 @@ def test_page_end_to_end(server, browser, tmp_path):
     assert img.std() > 5, "blank canvas"
     print(f"screenshot kept at {shot}")
     hook = page.evaluate("window.__hmpm")
-    assert hook["lastDrawMs"] < 50 and hook["session"]["scene"] == "dam_break2d"
+    # drawing keeps up with the stream: the median over the last (up to 100) frames, not one frame,
+    # which a loaded 2-core runner can push past 50 ms (CI once saw 50.7 ms)
+    assert len(hook["drawMs"]) >= 30 and np.median(hook["drawMs"]) < 50
+    assert hook["session"]["scene"] == "dam_break2d"
 
     # pause and reset: each sketch acts on the column at rest (the free dam break would reach the far wall)
     page.click("#play")

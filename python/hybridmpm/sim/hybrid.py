@@ -39,7 +39,8 @@ measures only the trajectory's self-consistency, so a network that is smooth
 but wrong (a column that stands where MPM lets it fall) passes it. Every
 ``audit_every``-th step of a network stint (its first step included) is also
 taken by MPM from the same converted state (the neural → MPM conversion a
-fallback uses), and the two predictions are compared: the RMS over fluid
+fallback uses; none at a stint's first step, where the MPM solver still
+holds the state), and the two predictions are compared: the RMS over fluid
 particles of the position difference divided by ``dt_step²``, in units of
 ``g`` (:data:`~hybridmpm.conventions.G`), is the step's *audit* error
 (``Frame.audit``). Above ``audit_tol`` the network's step is discarded, MPM's
@@ -281,17 +282,25 @@ class HybridSimulator:
         self._calm = 0
         self.stats.switches += 1
 
+    def _mpm_holds_state(self) -> bool:
+        """Whether the MPM solver holds the current state itself (the last
+        step was MPM's, e.g. at a stint's first network step): then a fallback
+        or an audit needs no neural → MPM conversion and loses nothing."""
+        return self._frame.solver == MPM
+
     def _audit_due(self) -> bool:
         # the audit belongs to the safeguard: r_c <= 0 (neural only, paper Table 2) switches it off too
         return self.safeguard_on and self.audit_every > 0 and self._neural_run % self.audit_every == 0
 
     def _audit(self, proposed: np.ndarray) -> tuple[float, Frame]:
         """MPM's step from the state the network started from (converted as a
-        fallback would), compared with the network's ``proposed`` fluid
-        positions float32 [N, D]: returns the audit error [g] (module doc) and
-        MPM's :class:`Frame`. Leaves ``self.mpm`` at the end of MPM's step."""
+        fallback would, unless MPM holds it already), compared with the
+        network's ``proposed`` fluid positions float32 [N, D]: returns the
+        audit error [g] (module doc) and MPM's :class:`Frame`. Leaves
+        ``self.mpm`` at the end of MPM's step."""
         t0 = time.perf_counter()
-        self._to_mpm()
+        if not self._mpm_holds_state():
+            self._to_mpm()
         self.mpm.step_index = self.step_index
         fr = self.mpm.advance()
         diff = proposed.astype(np.float64) - self.particles.fluid(fr.positions)
@@ -313,7 +322,7 @@ class HybridSimulator:
         controlled = False
         forced = self.mpm.forcing is not None
         if self.solver_name == NEURAL and forced:
-            self._fall_back()
+            self._fall_back(convert=not self._mpm_holds_state())
             event = "switch:mpm"
         ran = self.solver_name
         audit = float("nan")
@@ -335,8 +344,8 @@ class HybridSimulator:
                 event = f"fallback:{failure}"
                 self._strikes += 1
                 self.stats.fallbacks[failure] = self.stats.fallbacks.get(failure, 0) + 1
-                # after a failed audit MPM has already taken this step from the converted state
-                self._fall_back(convert=audited is None)
+                # after a failed audit MPM has already taken this step
+                self._fall_back(convert=audited is None and not self._mpm_holds_state())
                 ran = MPM
         if ran == MPM:
             if audited is None:
