@@ -245,8 +245,9 @@ def test_onnx_export_of_legacy_and_new_models_agree(tmp_path):
     assert [(o.shape, o.type) for o in s_new.get_outputs()] == [(o.shape, o.type) for o in s_old.get_outputs()]
     assert s_new.get_modelmeta().custom_metadata_map == s_old.get_modelmeta().custom_metadata_map
     for n, seed in [(1, 0), (700, 1)]:
-        hist, ptype, s, r = (a.numpy() for a in inputs(n, 2, seed))
-        feeds = {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r}
+        hist, ptype, _, _ = (a.numpy() for a in inputs(n, 2, seed))
+        s, r, disp, dist = radius_graph(hist[-1], R)
+        feeds = {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist}
         for a, b in zip(s_old.run(None, feeds), s_new.run(None, feeds)):
             assert np.array_equal(a, b)
 

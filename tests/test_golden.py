@@ -11,6 +11,13 @@ network and back in them). The digests are of this machine class's float
 arithmetic (x86-64, the Rust build's SIMD and onnxruntime's CPU kernels); on
 another CPU the MPM digests hold (no FMA contraction, deterministic across
 thread counts) but onnxruntime may pick other kernels.
+
+The network runs use the graphs 202ef89 shipped (``golden/models/*_202ef89.onnx``,
+exported by torch's exporter: four inputs, the runtime's legacy path). The
+shipped graphs have since been rewritten as compiled inference graphs of the
+same weights (issue 17, :mod:`hybridmpm.neural.compile`): same function, other
+float32 rounding, so their rollouts are checked against the 202ef89 graphs'
+within a tolerance (the hybrid's switching and events identical) instead.
 """
 
 from __future__ import annotations
@@ -46,13 +53,25 @@ def test_mpm_trajectories_identical_to_202ef89(key: str):
     check(GOLDEN["mpm"][key], ro.fluid_positions)
 
 
+MODELS_202EF89 = Path(__file__).parent / "golden" / "models"
+#: How far a compiled-graph rollout may drift from the 202ef89 graph's in 120
+#: frames [m]: float32 rounding differences (~6e-8 m a step) amplified by the
+#: flow; measured up to 4.6e-4 m; a quarter of a grid cell (dx = 1/128 m).
+DRIFT_TOL = 2e-3
+
+
 @pytest.mark.parametrize("key", sorted(GOLDEN["neural"]))
 def test_network_alone_identical_to_202ef89(key: str):
     name, seed = key.split("/")
-    sim = NeuralSimulator(make_scene(name, seed=int(seed)), seed=int(seed), detect_failures=False)
-    ro = rollout(sim, 120)
-    assert ro.failure is None
-    check(GOLDEN["neural"][key], ro.positions)
+    runs = {}
+    for tag, model in (("202ef89", MODELS_202EF89 / f"{name}_202ef89.onnx"), ("compiled", None)):
+        sim = NeuralSimulator(make_scene(name, seed=int(seed)), model, seed=int(seed), detect_failures=False)
+        ro = rollout(sim, 120)
+        assert ro.failure is None
+        runs[tag] = ro.positions
+    check(GOLDEN["neural"][key], runs["202ef89"])
+    drift = np.abs(runs["compiled"] - runs["202ef89"]).max(axis=(1, 2))
+    assert drift.max() <= DRIFT_TOL and drift[1] <= 1e-6, drift  # the first network steps agree to float32 rounding
 
 
 @pytest.mark.parametrize("key", sorted(GOLDEN["hybrid"]))
@@ -60,7 +79,11 @@ def test_hybrid_identical_to_202ef89(key: str):
     # with what 202ef89 had: no MPM audit (issue 16 made one every AUDIT_EVERY network steps the default)
     name, seed = key.split("/")
     rec = GOLDEN["hybrid"][key]
-    ro = rollout(HybridSimulator(make_scene(name, seed=int(seed)), seed=int(seed), audit_every=0), 120)
-    assert "".join("n" if s == "neural" else "m" for s in ro.solver) == rec["solver"]
-    assert [[s, e] for s, e in ro.events] == rec["events"]
-    check(rec, ro.positions)
+    runs = {}
+    for tag, model in (("202ef89", MODELS_202EF89 / f"{name}_202ef89.onnx"), ("compiled", None)):
+        ro = rollout(HybridSimulator(make_scene(name, seed=int(seed)), model, seed=int(seed), audit_every=0), 120)
+        assert "".join("n" if s == "neural" else "m" for s in ro.solver) == rec["solver"]
+        assert [[s, e] for s, e in ro.events] == rec["events"]
+        runs[tag] = ro.positions
+    check(rec, runs["202ef89"])
+    assert np.abs(runs["compiled"] - runs["202ef89"]).max() <= DRIFT_TOL

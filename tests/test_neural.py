@@ -1,6 +1,7 @@
-"""The GNS: features against hand computation, symmetries, ONNX-vs-torch parity,
-a real learning check, the runtime's errors. (Needs the 'train' extra: torch,
-onnx, onnxscript; it is part of the 'test' extra.)"""
+"""The GNS: features against hand computation, symmetries, ONNX-vs-torch parity
+(the compiled inference graph, and graphs of torch's exporter), a real
+learning check, the runtime's errors. (Needs the 'train' extra: torch, onnx,
+onnxscript; it is part of the 'test' extra.)"""
 
 from __future__ import annotations
 
@@ -47,11 +48,26 @@ def run_torch(model, hist, ptype):
     return acc.numpy(), nxt.numpy()
 
 
+def perturbed(model: GnsModel, seed: int = 0) -> GnsModel:
+    """Every parameter and statistic moved off its default (LayerNorm gains and
+    biases, the embedding, the normalisation stats), so that a weight folded
+    into the wrong place in the compiled graph shows."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=g))
+        f = model.features
+        f.vel_mean.add_(1e-4 * torch.randn(f.vel_mean.shape, generator=g))
+        f.acc_mean.add_(1e-5 * torch.randn(f.acc_mean.shape, generator=g))
+        f.vel_std.mul_(1 + 0.3 * torch.rand(f.vel_std.shape, generator=g))
+        f.acc_std.mul_(1 + 0.3 * torch.rand(f.acc_std.shape, generator=g))
+    return model.eval()
+
+
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     torch.manual_seed(0)
-    model = GnsModel(config(latent=16, layers=2)).eval()
-    # non-trivial decoder output scale so that parity is tested on real numbers
+    model = perturbed(GnsModel(config(latent=16, layers=2)).eval())
     path = tmp_path_factory.mktemp("onnx") / "m.onnx"
     export_onnx(model, path, {"scene": "water2d", "r_p": 0.5, "r_t": 2, "particle_types": [5, 6]})
     return model, path
@@ -118,7 +134,7 @@ def test_onnx_matches_torch(exported, n, seed):
     nm = NeuralModel(path)
     hist, ptype = random_state(n, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(n / 2300))
     acc_t, nxt_t = run_torch(model, hist, ptype)
-    acc_o, nxt_o, (s, r) = nm.predict(hist, ptype)
+    acc_o, nxt_o, (s, r, _, _) = nm.predict(hist, ptype)
     if n > 1:  # many receivers appear many times: the scatter must add, not overwrite
         assert np.bincount(r).max() > 5
     assert np.allclose(acc_o, acc_t, rtol=1e-4, atol=1e-9)
@@ -129,6 +145,7 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
     """Names, dtypes and shapes of the graph's inputs and outputs and its
     metadata: what neural/runtime.py feeds and reads (and what the shipped
     models have)."""
+    from hybridmpm.neural.compile import GRAPH_LAYOUT
     from hybridmpm.neural.constants import FEATURE_VERSION
 
     model, path = exported
@@ -138,7 +155,9 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
     assert ins == [
         ("positions", [6, "N", 2], "tensor(float)"), ("particle_type", ["N"], "tensor(int64)"),
         ("senders", ["E"], "tensor(int64)"), ("receivers", ["E"], "tensor(int64)"),
+        ("displacement", ["E", 2], "tensor(float)"), ("distance", ["E"], "tensor(float)"),
     ]  # fmt: skip
+    assert nm.meta["graph"] == GRAPH_LAYOUT
     assert outs == [("acceleration", ["N", 2], "tensor(float)"), ("next_position", ["N", 2], "tensor(float)")]
     assert nm.meta["feature_version"] == FEATURE_VERSION == 1
     assert nm.meta["parameters"] == sum(p.numel() for p in model.parameters())
@@ -150,10 +169,88 @@ def test_onnx_handles_no_edges(exported):
     sess = NeuralModel(path).session
     hist, ptype = random_state(3, seed=9)
     empty = np.zeros(0, np.int64)
-    acc, nxt = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": empty, "receivers": empty})
+    feeds = {"positions": hist, "particle_type": ptype, "senders": empty, "receivers": empty}
+    acc, nxt = sess.run(None, {**feeds, "displacement": np.zeros((0, 2), np.float32), "distance": np.zeros(0, np.float32)})
     with torch.no_grad():
         acc_t, _ = model(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(empty), torch.from_numpy(empty))
     assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
+
+
+@pytest.mark.parametrize(("dim", "latent", "layers", "seed"), [(2, 16, 0, 0), (2, 8, 1, 1), (3, 16, 2, 2), (2, 12, 3, 3)])
+def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, seed):
+    """The compiled inference graph (folded normalisations and LayerNorms,
+    carried biases, edge geometry as inputs) computes GnsModel.forward, on a
+    perturbed model with kinematic particles, across dims and depths."""
+    from hybridmpm.neural.compile import inference_graph
+
+    model = perturbed(GnsModel(config(dim, latent, layers)), seed)
+    hist, ptype = random_state(900, dim=dim, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(900 / 2300) ** (2 / dim))
+    ptype[::7] = 3
+    hist[:, :5] = hist[:, :5] * 0.05 + 0.02  # a few particles against the lower walls (clipped wall features)
+    acc_t, nxt_t = run_torch(model, hist, ptype)
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
+    s, r, disp, dist = radius_graph(hist[-1], R)
+    acc, nxt = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist})
+    scale = np.abs(acc_t).max()
+    assert scale > 1e-5 and np.abs(acc - acc_t).max() <= 1e-4 * scale
+    assert np.abs(nxt - nxt_t).max() <= 1e-6
+    assert np.array_equal(nxt[ptype == 3], hist[-1, ptype == 3])
+
+
+def test_compiled_graph_applies_a_vanishing_layer_norm_gain(tmp_path):
+    """A LayerNorm gain with an entry below MIN_GAIN (here exactly 0) cannot be
+    folded through 1/g²: the graph applies it after the division, same function."""
+    from hybridmpm.neural.compile import MIN_GAIN, inference_graph
+
+    model = perturbed(GnsModel(config(2, 8, 1)), 5)
+    with torch.no_grad():
+        model.gnn.edge_blocks[0].rest[4].weight[3] = 0.0
+        model.gnn.node_encoder[5].weight[0] = MIN_GAIN / 10
+    hist, ptype = random_state(300, seed=5)
+    acc_t, _ = run_torch(model, hist, ptype)
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
+    s, r, disp, dist = radius_graph(hist[-1], R)
+    acc, _ = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist})
+    assert np.abs(acc - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
+
+
+def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
+    """A model exported by torch's ONNX exporter before the compiled layout (four
+    inputs): the runtime feeds it what it asks for, and upgrade_onnx rewrites it
+    as the compiled graph of the same weights (same outputs, metadata kept)."""
+    import json
+
+    from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
+    from hybridmpm.neural.export import upgrade_onnx
+
+    model = perturbed(GnsModel(config(2, 8, 2)), 7)
+    hist, ptype = random_state(400, seed=7)
+    s, r, _, _ = radius_graph(hist[-1], R)
+    args = tuple(torch.from_numpy(a) for a in (hist, ptype, s, r))
+    n, e = torch.export.Dim("N"), torch.export.Dim("E")
+    dyn = {"positions": {1: n}, "particle_type": {0: n}, "senders": {0: e}, "receivers": {0: e}}
+    prog = torch.onnx.export(model, args, dynamo=True, opset_version=18, input_names=["positions", "particle_type", "senders", "receivers"],
+                             output_names=["acceleration", "next_position"], dynamic_shapes=dyn, verbose=False)  # fmt: skip
+    proto = prog.model_proto
+    entry = proto.metadata_props.add()
+    meta = {"feature_version": FEATURE_VERSION, "dim": 2, "radius": R, "t_in": 6, "bounds": BOUNDS, "latent": 8, "layers": 2, "scene": "water2d", "r_t": 2}
+    entry.key, entry.value = METADATA_KEY, json.dumps(meta)
+    old = tmp_path / "old.onnx"
+    old.write_bytes(proto.SerializeToString())
+    acc_t, nxt_t = run_torch(model, hist, ptype)
+    legacy = NeuralModel(old)
+    assert legacy.input_names == ["positions", "particle_type", "senders", "receivers"]
+    acc_l, _, _ = legacy.predict(hist, ptype)
+    assert np.abs(acc_l - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
+    assert upgrade_onnx(old, tmp_path / "new.onnx") and not upgrade_onnx(tmp_path / "new.onnx")
+    new = NeuralModel(tmp_path / "new.onnx")
+    acc_n, nxt_n, _ = new.predict(hist, ptype)
+    assert np.abs(acc_n - acc_t).max() <= 1e-4 * np.abs(acc_t).max() and np.abs(nxt_n - nxt_t).max() <= 1e-6
+    assert {k: v for k, v in new.meta.items() if k != "graph"} == {**legacy.meta, "parameters": new.meta["parameters"]}
 
 
 def test_kinematic_particles_do_not_move(exported):

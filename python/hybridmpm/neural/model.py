@@ -81,6 +81,10 @@ class GnsConfig:
         return cls(**d)
 
 
+#: LayerNorm epsilon of every MLP (torch's default; the compiled inference graph reads it here).
+LN_EPS = 1e-5
+
+
 def mlp(inp: int, width: int, out: int, layer_norm: bool = True) -> nn.Sequential:
     """Two hidden layers of ``width`` with ReLU, then ``out``; LayerNorm on the output if asked.
 
@@ -88,7 +92,7 @@ def mlp(inp: int, width: int, out: int, layer_norm: bool = True) -> nn.Sequentia
     layers, 5 the LayerNorm (present only with ``layer_norm``)."""
     mods: list[nn.Module] = [nn.Linear(inp, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), nn.Linear(width, out)]
     if layer_norm:
-        mods.append(nn.LayerNorm(out))
+        mods.append(nn.LayerNorm(out, eps=LN_EPS))
     return nn.Sequential(*mods)
 
 
@@ -100,7 +104,7 @@ class _EdgeBlock(nn.Module):
         self.w_e = nn.Linear(latent, latent)
         self.w_r = nn.Linear(latent, latent, bias=False)
         self.w_s = nn.Linear(latent, latent, bias=False)
-        self.rest = nn.Sequential(nn.ReLU(), nn.Linear(latent, latent), nn.ReLU(), nn.Linear(latent, latent), nn.LayerNorm(latent))
+        self.rest = nn.Sequential(nn.ReLU(), nn.Linear(latent, latent), nn.ReLU(), nn.Linear(latent, latent), nn.LayerNorm(latent, eps=LN_EPS))
 
     def forward(self, e: torch.Tensor, h: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> torch.Tensor:
         first = self.w_e(e) + self.w_r(h)[receivers] + self.w_s(h)[senders]
@@ -293,6 +297,6 @@ class GnsModel(nn.Module):
 
 
 __all__ = [
-    "FEATURE_VERSION", "KINEMATIC", "LEGACY_PREFIXES", "NUM_TYPES", "EncodeProcessDecode", "GnsConfig", "GnsModel", "mlp",
+    "FEATURE_VERSION", "KINEMATIC", "LEGACY_PREFIXES", "LN_EPS", "NUM_TYPES", "EncodeProcessDecode", "GnsConfig", "GnsModel", "mlp",
     "remap_legacy_state_dict",
 ]  # fmt: skip

@@ -106,6 +106,12 @@ class NeuralModel:
         if meta.get("feature_version") != FEATURE_VERSION:
             raise InvalidInputError(f"model: feature version {meta.get('feature_version')} of {self.path} is not {FEATURE_VERSION} (this hybridmpm)", "model")
         self.meta: dict[str, Any] = _check_meta(meta, self.path)
+        #: The graph's input names: compiled graphs also take the edge geometry
+        #: (``displacement``, ``distance``); graphs of earlier exports only the first four.
+        self.input_names: list[str] = [i.name for i in self.session.get_inputs()]
+        unknown = sorted(set(self.input_names) - set(_FEEDS))
+        if unknown:
+            raise InvalidInputError(f"model: {self.path.name} asks for inputs {unknown}, not among {list(_FEEDS)}", "model")
 
     @property
     def dim(self) -> int:
@@ -145,18 +151,25 @@ class NeuralModel:
         history: np.ndarray,
         particle_type: np.ndarray,
         max_neighbors: int | None = None,
-        graph: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        graph: Graph | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, Graph]:
         """One step: ``history`` float32 [T_in, N, D] → ``(acceleration [N, D],
-        next_position [N, D], (senders, receivers))``; the graph is built on
-        ``history[-1]`` with self-edges, unless ``graph`` (senders, receivers
-        int64 [E], built exactly so) is given."""
+        next_position [N, D], graph)``; ``graph`` is the radius graph of
+        ``history[-1]`` with self-edges as :func:`hybridmpm.graph.radius_graph`
+        returns it (``senders``, ``receivers`` int64 [E], ``displacement``
+        float32 [E, D], ``distance`` float32 [E]), built here unless given
+        (built exactly so: the compiled graph reads the edge geometry from it)."""
         if graph is None:
-            s, r, _, _ = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
-        else:
-            s, r = graph
-        acc, nxt = self.session.run(None, {"positions": history, "particle_type": particle_type, "senders": s, "receivers": r})
-        return acc, nxt, (s, r)
+            graph = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
+        values = dict(zip(_FEEDS, (history, particle_type, *graph)))
+        acc, nxt = self.session.run(None, {name: values[name] for name in self.input_names})
+        return acc, nxt, graph
 
 
-__all__ = ["NeuralModel"]
+#: The feeds a GNS graph may ask for, in the order of :func:`hybridmpm.neural.compile.INPUT_NAMES`.
+_FEEDS = ("positions", "particle_type", "senders", "receivers", "displacement", "distance")
+#: A radius graph as :func:`hybridmpm.graph.radius_graph` returns it: senders, receivers, displacement, distance.
+Graph = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+__all__ = ["Graph", "NeuralModel"]

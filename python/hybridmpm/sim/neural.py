@@ -30,7 +30,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.neural.runtime import Graph, NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int, new_lock, reading_state, serialised
@@ -60,14 +60,15 @@ class Proposal:
 
     ``acceleration`` and ``predicted`` float32 [N + B, D] (raw network output);
     ``positions`` the prediction clipped to the domain (None if rejected
-    before clipping); ``graph`` (senders, receivers) of ``positions``, reused
-    by the next step; ``failure`` None or the failure mode.
+    before clipping); ``graph`` the radius graph of ``positions`` (senders,
+    receivers, displacement, distance; :data:`hybridmpm.neural.runtime.Graph`),
+    reused by the next step; ``failure`` None or the failure mode.
     """
 
     acceleration: np.ndarray
     predicted: np.ndarray
     positions: np.ndarray | None
-    graph: tuple[np.ndarray, np.ndarray] | None
+    graph: Graph | None
     failure: str | None
 
 
@@ -169,7 +170,7 @@ class NeuralSimulator:
         x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
         self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
         self._history: np.ndarray | None = None
-        self._next_graph: tuple[np.ndarray, np.ndarray] | None = None
+        self._next_graph: Graph | None = None
         self.step_index = 0
         self.stats = SimStats()
         self.last_edges = 0
@@ -278,19 +279,19 @@ class NeuralSimulator:
         (field ``history``) during the warm-up."""
         if self._history is None:
             raise InvalidInputError("history: the network has no position history yet (warm-up not finished; see set_history)", "history")
-        acc, nxt, (s, _) = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
-        self.last_edges = int(len(s))
+        acc, nxt, used = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
+        self.last_edges = int(len(used[0]))
         self._next_graph = None
         failure = self._failure(nxt) if self.detect_failures else None
         clipped: np.ndarray | None = None
-        graph: tuple[np.ndarray, np.ndarray] | None = None
+        graph: Graph | None = None
         if failure is None:
             clipped = self._clip(nxt)
-            s_next, r_next, _, _ = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
-            if self.detect_failures and len(s_next) > self.degree_factor * self._degree0 * len(clipped):
+            built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
+            if self.detect_failures and len(built[0]) > self.degree_factor * self._degree0 * len(clipped):
                 failure = "compressed"
             else:
-                graph = (s_next, r_next)
+                graph = built
         return Proposal(acc, nxt, clipped, graph, failure)
 
     @serialised

@@ -1,0 +1,383 @@
+"""Where a network step's time goes, per scene, and what it achieves (issue 17).
+
+For every shipped model (``hybridmpm.models``) on a state of its own scene
+(a rollout of the network alone from the seed, after the MPM warm-up):
+
+* **breakdown** of one network step (median over repeats, one onnxruntime
+  thread): the radius graph (Rust cell list, with the edge geometry), each
+  stage of the ONNX graph (onnxruntime's profiler; node-name prefixes
+  ``hybridmpm.neural.compile.STAGES``; graphs of torch's exporter, given with
+  ``--baseline``, are grouped by operator type instead), the checks,
+  clamping and history update of :class:`~hybridmpm.sim.NeuralSimulator`,
+  and the rest of ``advance()`` (Python overhead);
+* **cost per frame**: the network alone (``advance()`` / ``r_t``) against
+  MPM at ``r_p`` (``MpmSimulator`` at the model's ``r_p``, ``--mpm-threads``),
+  same run, interleaved, as a ratio;
+* **GFLOP/s** on a block of ``--particles`` (≥ 2 000) particles at the
+  model's spacing: dense-layer FLOPs (``hybridmpm.bench.cost.gnn_flops``)
+  over the onnxruntime time, 1 and 2 threads.
+
+``--ops`` adds onnxruntime's per-operator cost at the model width (ns per
+row of ``latent`` floats, ``E`` rows): what bounds a 16-wide network here.
+``--baseline DIR`` times the ``.onnx`` files of DIR in the same run,
+interleaved with the shipped ones ("before and after"); ``--baseline-rev REV``
+takes them from a git revision (94de7d8: the graphs of torch's exporter).
+
+    python benchmarks/bench_inference.py --baseline-rev 94de7d8 --ops --out benchmarks/results/inference
+
+Check the load first (``uptime``); every figure that is compared is a ratio
+within this run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.bench.cost import gnn_flops
+from hybridmpm.bench.env import environment
+from hybridmpm.graph import radius_graph
+from hybridmpm.models import shipped_model
+from hybridmpm.neural import NeuralModel
+from hybridmpm.neural.compile import STAGES
+from hybridmpm.scenes import lattice
+from hybridmpm.sim import MpmSimulator, NeuralSimulator
+
+SCENES = ("water2d", "dam_break2d", "sand2d", "sand_ramps2d", "water_ramps2d", "water_sand2d", "water3d", "sand3d")
+
+
+def _session(path: Path, threads: int, profile: bool = False) -> Any:
+    import onnxruntime as ort
+
+    o = ort.SessionOptions()
+    o.intra_op_num_threads = threads
+    o.inter_op_num_threads = 1
+    o.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    if profile:
+        o.enable_profiling = True
+        o.profile_file_prefix = os.path.join(tempfile.gettempdir(), "hmpm_ort_profile")
+    return ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
+
+
+def _feeds(sess: Any, history: np.ndarray, ptype: np.ndarray, graph: tuple) -> dict[str, np.ndarray]:
+    values = dict(zip(("positions", "particle_type", "senders", "receivers", "displacement", "distance"), (history, ptype, *graph)))
+    return {i.name: values[i.name] for i in sess.get_inputs()}
+
+
+def _interleaved(fns: dict[str, Any], repeats: int) -> dict[str, float]:
+    """Median ms of each callable, run in turn (so that a noisy minute hits all)."""
+    ts: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
+
+
+def _profile(path: Path, feeds_of: Any, repeats: int) -> dict[str, float]:
+    """Mean µs per run by stage (compiled graphs) or by operator (others), from onnxruntime's profiler."""
+    sess = _session(path, 1, profile=True)
+    feeds = feeds_of(sess)
+    for _ in range(repeats):
+        sess.run(None, feeds)
+    prof = sess.end_profiling()
+    groups: dict[str, float] = collections.defaultdict(float)
+    with open(prof) as fh:
+        events = json.load(fh)
+    os.remove(prof)
+    for ev in events:
+        if ev.get("cat") != "Node" or not ev.get("name", "").endswith("_kernel_time"):
+            continue
+        name = ev["name"][: -len("_kernel_time")].removeprefix("fused ").strip()
+        stage = name.split("/")[0]
+        groups[stage if stage in STAGES else f"op:{ev['args']['op_name']}"] += ev["dur"]
+    return {k: v / repeats for k, v in sorted(groups.items(), key=lambda kv: -kv[1])}
+
+
+def scene_state(scene: str, seed: int, steps: int) -> NeuralSimulator:
+    """The network alone on ``scene`` after its warm-up and ``steps`` network steps (failure checks on)."""
+    sim = NeuralSimulator(scene, shipped_model(scene), seed=seed, mpm_threads=1)
+    while sim.warming_up:
+        sim.advance()
+    for _ in range(steps):
+        sim.advance()
+    return sim
+
+
+def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int, baseline: Path | None) -> dict[str, Any]:
+    sim = scene_state(scene, seed, steps)
+    model = sim.model
+    hist, ptype = sim.history, sim.particles.particle_type
+    assert hist is not None
+    graph = radius_graph(hist[-1], model.radius)
+    n, e = hist.shape[1], len(graph[0])
+    paths = {"shipped": model.path}
+    if baseline is not None and (baseline / model.path.name).is_file():
+        paths["baseline"] = baseline / model.path.name
+    sessions = {k: _session(p, 1) for k, p in paths.items()}
+    feeds = {k: _feeds(s, hist, ptype, graph) for k, s in sessions.items()}
+    proposal = sim.propose()
+
+    def checks() -> None:
+        sim._failure(proposal.predicted)
+        sim._clip(proposal.predicted)
+        np.concatenate([hist[1:], proposal.predicted[None]])
+
+    # the full step on copies of the simulator state: restore before each advance
+    state = sim.state()
+
+    def step() -> None:
+        sim.restore(state)
+        sim.advance()
+
+    restore_ms = _interleaved({"restore": lambda: sim.restore(state)}, repeats)["restore"]
+    mpm = MpmSimulator(sim.scene, r_t=1, threads=mpm_threads)
+    for _ in range(5):
+        mpm.advance()
+    fns = {
+        "radius_graph": lambda: radius_graph(hist[-1], model.radius),
+        **{f"onnx_{k}": (lambda s=s, f=f: s.run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
+        "checks_clamp_history": checks,
+        "advance": step,
+        "mpm_rp_frame": mpm.advance,
+    }
+    ms = _interleaved(fns, repeats)
+    ms["advance"] -= restore_ms
+    # advance() builds the graph of its prediction (for the next step): one radius graph per step
+    python_ms = ms["advance"] - ms["radius_graph"] - ms["onnx_shipped"] - ms["checks_clamp_history"]
+    lat, layers = int(model.meta["latent"]), int(model.meta["layers"])
+    flops = gnn_flops(lat, layers, model.dim, n, e, t_in=model.t_in)
+    out: dict[str, Any] = {
+        "scene": scene, "particles": n, "edges": e, "latent": lat, "layers": layers, "r_t": model.r_t, "r_p": model.r_p,
+        "ms": ms, "python_overhead_ms": python_ms, "mflop_step": flops / 1e6,
+        "gflops_onnx": flops / ms["onnx_shipped"] / 1e6,
+        "network_ms_per_frame": ms["advance"] / model.r_t, "mpm_rp_ms_per_frame": ms["mpm_rp_frame"],
+        "ratio_network_to_mpm_rp": ms["advance"] / model.r_t / ms["mpm_rp_frame"],
+        "stages_us": _profile(paths["shipped"], lambda s: _feeds(s, hist, ptype, graph), repeats),
+    }  # fmt: skip
+    if "baseline" in paths:
+        out["baseline_stages_us"] = _profile(paths["baseline"], lambda s: _feeds(s, hist, ptype, graph), repeats)
+        out["speedup_onnx"] = ms["onnx_baseline"] / ms["onnx_shipped"]
+    return out
+
+
+def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None) -> dict[str, Any]:
+    """GFLOP/s of the shipped model on a jittered lattice block of ``particles`` particles at its spacing, 1 and 2 threads."""
+    model = NeuralModel(shipped_model(scene))
+    sim = NeuralSimulator(scene, model, seed=0, mpm_threads=1, warmup=False)
+    spacing = sim._dx / 2 / model.r_p ** (1 / model.dim)  # the scenes seed 2^D particles per cell at full resolution
+    side = int(np.ceil(particles ** (1 / model.dim)))
+    lo = np.asarray(model.meta["bounds"], np.float64)[:, 0] + 0.1
+    x = lattice(list(lo), list(lo + side * spacing), spacing)[:particles].astype(np.float32)
+    rng = np.random.default_rng(0)
+    hist = np.stack([x + rng.normal(0, 0.05 * spacing, x.shape).astype(np.float32) for _ in range(model.t_in)])
+    ptype = np.full(len(x), int(model.meta["particle_types"][0]), np.int64)
+    graph = radius_graph(hist[-1], model.radius)
+    flops = gnn_flops(int(model.meta["latent"]), int(model.meta["layers"]), model.dim, len(x), len(graph[0]), t_in=model.t_in)
+    paths = {"shipped": model.path}
+    if baseline is not None and (baseline / model.path.name).is_file():
+        paths["baseline"] = baseline / model.path.name
+    fns = {}
+    for k, p in paths.items():
+        for t in (1, 2):
+            s = _session(p, t)
+            f = _feeds(s, hist, ptype, graph)
+            fns[f"{k}_{t}t"] = lambda s=s, f=f: s.run(None, f)
+    ms = _interleaved(fns, repeats)
+    return {
+        "scene": scene, "particles": len(x), "edges": len(graph[0]), "mean_degree": len(graph[0]) / len(x), "mflop_step": flops / 1e6,
+        "ms": ms, "gflops": {k: flops / v / 1e6 for k, v in ms.items()},
+    }  # fmt: skip
+
+
+def op_costs(latent: int, rows: int, repeats: int) -> dict[str, float]:
+    """ns per row of ``latent`` floats of single onnxruntime operators (one thread), chained 6 deep to amortise the run overhead."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(0)
+    w = numpy_helper.from_array(rng.normal(size=(latent, latent)).astype(np.float32), "W")
+    b = numpy_helper.from_array(rng.normal(size=latent).astype(np.float32), "b")
+    g = numpy_helper.from_array(np.ones(latent, np.float32), "g")
+    idx = numpy_helper.from_array(rng.integers(0, rows // 10, rows).astype(np.int64), "idx")
+    idx2 = numpy_helper.from_array(np.sort(rng.integers(0, rows // 10, rows)).astype(np.int64)[:, None], "idx2")
+    eps = numpy_helper.from_array(np.array(1e-5, np.float32), "eps")
+    kvar = numpy_helper.from_array(np.full((latent, latent), 1.0 / latent, np.float32), "K")
+
+    def one(kind: str, x: str, i: int) -> tuple[list[Any], str]:
+        o = f"o{i}"
+        mk = helper.make_node
+        if kind == "MatMul":
+            return [mk("MatMul", [x, "W"], [o])], o
+        if kind == "Gemm (bias)":
+            return [mk("Gemm", [x, "W", "b"], [o])], o
+        if kind == "Gemm+Relu":
+            return [mk("Gemm", [x, "W", "b"], [f"t{i}"]), mk("Relu", [f"t{i}"], [o])], o
+        if kind == "Relu":
+            return [mk("Relu", [x], [o])], o
+        if kind == "Add":
+            return [mk("Add", [x, "x"], [o])], o
+        if kind == "Add bias [L]":
+            return [mk("Add", [x, "b"], [o])], o
+        if kind == "Gather rows":
+            return [mk("Gather", [x, "idx"], [f"t{i}"], axis=0), mk("Slice", [f"t{i}", "z0", "nrow", "z0"], [o])], o
+        if kind == "ScatterND add":
+            return [mk("ScatterND", [x, "idx2", x], [o], reduction="add")], o
+        if kind == "LayerNormalization":
+            return [mk("LayerNormalization", [x, "g", "b"], [o], axis=-1, epsilon=1e-5)], o
+        if kind == "LayerNorm folded (5 ops)":
+            return [
+                mk("Mul", [x, x], [f"q{i}"]), mk("MatMul", [f"q{i}", "K"], [f"v{i}"]), mk("Add", [f"v{i}", "eps"], [f"e{i}"]),
+                mk("Sqrt", [f"e{i}"], [f"s{i}"]), mk("Div", [x, f"s{i}"], [o]),
+            ], o  # fmt: skip
+        raise ValueError(kind)
+
+    kinds = [
+        "MatMul",
+        "Gemm (bias)",
+        "Gemm+Relu",
+        "Relu",
+        "Add",
+        "Add bias [L]",
+        "Gather rows",
+        "ScatterND add",
+        "LayerNormalization",
+        "LayerNorm folded (5 ops)",
+    ]
+    x = rng.normal(size=(rows, latent)).astype(np.float32)
+    depth = 6
+    sessions = {}
+    for kind in kinds:
+        nodes, cur = [], "x"
+        for i in range(depth):
+            ns, cur = one(kind, cur, i)
+            nodes += ns
+        nodes.append(helper.make_node("Identity", [cur], ["y"]))
+        consts = [
+            w,
+            b,
+            g,
+            idx,
+            idx2,
+            eps,
+            kvar,
+            numpy_helper.from_array(np.array([0], np.int64), "z0"),
+            numpy_helper.from_array(np.array([rows], np.int64), "nrow"),
+        ]
+        used = {i for nd in nodes for i in nd.input}
+        graph = helper.make_graph(
+            nodes, kind, [helper.make_tensor_value_info("x", TensorProto.FLOAT, [rows, latent])],
+            [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], initializer=[c for c in consts if c.name in used],
+        )  # fmt: skip
+        proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+        proto.ir_version = 9
+        o = ort.SessionOptions()
+        o.intra_op_num_threads = 1
+        sessions[kind] = ort.InferenceSession(proto.SerializeToString(), o, providers=["CPUExecutionProvider"])
+    ms = _interleaved({k: (lambda s=s: s.run(None, {"x": x})) for k, s in sessions.items()}, repeats)
+    ns_row = {k: v * 1e6 / depth / rows for k, v in ms.items()}
+    ns_row["GFLOP/s of MatMul"] = 2 * latent * latent / ns_row["MatMul"]
+    return ns_row
+
+
+def _md(res: dict[str, Any]) -> str:
+    lines = ["# Network inference: breakdown, cost per frame, GFLOP/s (issue 17)", "", f"`{res['command']}`", ""]
+    lines += [
+        f"Load before: {res['env'].get('loadavg_before', 'n/a')}. One onnxruntime thread unless stated; MPM at r_p with {res['mpm_threads'] or 'all'} threads.",
+        "",
+    ]
+    lines += ["## Cost per frame (network alone, after warm-up, failure checks on) against MPM at r_p, same run", ""]
+    lines += [
+        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | Python rest ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | GFLOP/s (ONNX) |"
+        + (" ONNX speedup vs baseline |" if res["baseline"] else "")
+    ]
+    lines += ["|---" * (12 + bool(res["baseline"])) + "|"]
+    for r in res["scenes"]:
+        m = r["ms"]
+        row = (
+            f"| {r['scene']} | {r['particles']} | {r['edges']} | {m['radius_graph']:.2f} | {m['onnx_shipped']:.2f} | {m['checks_clamp_history']:.2f} | "
+            f"{r['python_overhead_ms']:.2f} | {m['advance']:.2f} | {r['network_ms_per_frame']:.2f} | {r['mpm_rp_ms_per_frame']:.2f} | "
+            f"{r['ratio_network_to_mpm_rp']:.2f} | {r['gflops_onnx']:.1f} |"
+        )
+        if res["baseline"]:
+            row += f" {r.get('speedup_onnx', float('nan')):.2f} |"
+        lines.append(row)
+    lines += ["", "## ONNX time by stage (µs per step, onnxruntime profiler; baseline graphs by operator)", ""]
+    for r in res["scenes"]:
+        st = ", ".join(f"{k} {v:.0f}" for k, v in r["stages_us"].items())
+        lines.append(f"- **{r['scene']}**: {st}")
+        if "baseline_stages_us" in r:
+            lines.append(f"  - baseline: {', '.join(f'{k} {v:.0f}' for k, v in list(r['baseline_stages_us'].items())[:10])}")
+    lines += ["", "## GFLOP/s on a block of particles (dense-layer FLOPs, `gnn_flops`)", ""]
+    keys = sorted({k for b in res["blocks"] for k in b["gflops"]})
+    lines += ["| scene | particles | edges | MFLOP/step | " + " | ".join(f"{k} ms" for k in keys) + " | " + " | ".join(f"{k} GFLOP/s" for k in keys) + " |"]
+    lines += ["|---" * (4 + 2 * len(keys)) + "|"]
+    for b in res["blocks"]:
+        lines.append(
+            f"| {b['scene']} | {b['particles']} | {b['edges']} | {b['mflop_step']:.1f} | " + " | ".join(f"{b['ms'][k]:.2f}" for k in keys) + " | "
+            + " | ".join(f"{b['gflops'][k]:.1f}" for k in keys) + " |"
+        )  # fmt: skip
+    if res.get("ops"):
+        lines += ["", f"## onnxruntime operator cost at width {res['ops']['latent']} ({res['ops']['rows']} rows, ns per row, one thread)", ""]
+        lines += ["| operator | ns/row |", "|---|---|"] + [f"| {k} | {v:.1f} |" for k, v in res["ops"]["ns_per_row"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    import shlex
+    import sys
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--steps", type=int, default=3, help="network steps before the measured state")
+    ap.add_argument("--repeats", type=int, default=40)
+    ap.add_argument("--particles", type=int, default=2400, help="block size of the GFLOP/s measurement (>= 2000)")
+    ap.add_argument("--mpm-threads", type=int, default=0, help="MPM at r_p threads (0: all, as hybridmpm bench)")
+    ap.add_argument("--baseline", type=Path, default=None, help="a directory of .onnx files named as the shipped ones, timed in the same run")
+    ap.add_argument("--baseline-rev", default=None, help="or a git revision: its shipped graphs (git show REV:python/hybridmpm/models/NAME.onnx)")
+    ap.add_argument("--ops", action="store_true", help="also time single onnxruntime operators at the model width")
+    ap.add_argument("--out", type=Path, required=True, help="writes OUT.json and OUT.md")
+    args = ap.parse_args()
+    if args.baseline_rev is not None:
+        import subprocess
+
+        args.baseline = Path(tempfile.mkdtemp(prefix=f"hmpm_graphs_{args.baseline_rev}_"))
+        for scene in args.scenes:
+            name = shipped_model(scene).name
+            blob = subprocess.run(["git", "show", f"{args.baseline_rev}:python/hybridmpm/models/{name}"], capture_output=True, check=True).stdout
+            (args.baseline / name).write_bytes(blob)
+    env = {"loadavg_before": os.getloadavg()[0], **environment()}
+    res: dict[str, Any] = {
+        "command": shlex.join(["python", "benchmarks/bench_inference.py", *sys.argv[1:]]), "env": env, "mpm_threads": args.mpm_threads,
+        "baseline": args.baseline_rev or (str(args.baseline) if args.baseline else None), "scenes": [], "blocks": [],
+    }  # fmt: skip
+    for scene in args.scenes:
+        r = breakdown(scene, args.seed, args.steps, args.repeats, args.mpm_threads, args.baseline)
+        res["scenes"].append(r)
+        print(f"{scene}: step {r['ms']['advance']:.2f} ms, {r['network_ms_per_frame']:.2f} ms/frame vs MPM r_p {r['mpm_rp_ms_per_frame']:.2f} "
+              f"(ratio {r['ratio_network_to_mpm_rp']:.2f}), {r['gflops_onnx']:.1f} GFLOP/s", flush=True)  # fmt: skip
+        b = block_gflops(scene, args.particles, max(10, args.repeats // 2), args.baseline)
+        res["blocks"].append(b)
+        print(f"  block of {b['particles']}: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in b["gflops"].items()), flush=True)
+    if args.ops:
+        lat = int(NeuralModel(shipped_model(args.scenes[0])).meta["latent"])
+        res["ops"] = {"latent": lat, "rows": 20000, "ns_per_row": op_costs(lat, 20000, args.repeats)}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=float))
+    args.out.with_suffix(".md").write_text(_md(res))
+    print(_md(res))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,25 @@
+"""Rewrite shipped (or any) GNS .onnx files exported by torch's exporter as the
+compiled inference graph of the same weights (issue 17; see
+``hybridmpm.neural.compile``). Files already compiled are left alone.
+
+    python benchmarks/upgrade_models.py python/hybridmpm/models/*.onnx python/hybridmpm/models/variants/*/*.onnx
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from hybridmpm.neural.export import upgrade_onnx
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("files", nargs="+", type=Path)
+    args = ap.parse_args()
+    for f in args.files:
+        print(f"{f}: {'rewritten' if upgrade_onnx(f) else 'already compiled'}")
+
+
+if __name__ == "__main__":
+    main()
