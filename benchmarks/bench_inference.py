@@ -60,7 +60,8 @@ def _session(path: Path, threads: int, profile: bool = False) -> Any:
     o = ort.SessionOptions()
     o.intra_op_num_threads = threads
     o.inter_op_num_threads = 1
-    o.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # as NeuralModel: more than one thread spins (they pay only so)
+    o.add_session_config_entry("session.intra_op.allow_spinning", "1" if threads > 1 else "0")
     o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     if profile:
         o.enable_profiling = True
@@ -73,14 +74,22 @@ def _feeds(sess: Any, history: np.ndarray, ptype: np.ndarray, graph: tuple) -> d
     return {i.name: values[i.name] for i in sess.get_inputs()}
 
 
-def _interleaved(fns: dict[str, Any], repeats: int) -> dict[str, float]:
-    """Median ms of each callable, run in turn (so that a noisy minute hits all)."""
+#: Pause after a run of spinning onnxruntime threads, so that their busy-wait
+#: (tens of ms) does not land on the next timed callable [s].
+SETTLE_S = 0.15
+
+
+def _interleaved(fns: dict[str, Any], repeats: int, spinning: tuple[str, ...] = ()) -> dict[str, float]:
+    """Median ms of each callable, run in turn (so that a noisy minute hits all);
+    the callables named in ``spinning`` are followed by a :data:`SETTLE_S` pause."""
     ts: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
         for k, fn in fns.items():
             t0 = time.perf_counter()
             fn()
             ts[k].append(time.perf_counter() - t0)
+            if k in spinning:
+                time.sleep(SETTLE_S)
     return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
 
 
@@ -133,14 +142,22 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         sim._clip(proposal.predicted)
         np.concatenate([hist[1:], proposal.predicted[None]])
 
-    # the full step on copies of the simulator state: restore before each advance
+    # the full step from the same state each time: restore it (and the graph the
+    # previous step built, which restore drops) before each advance
     state = sim.state()
+    models = {1: model, 2: NeuralModel(model.path, threads=2)}
 
-    def step() -> None:
+    def restore() -> None:
         sim.restore(state)
-        sim.advance()
+        sim._next_graph = graph
 
-    restore_ms = _interleaved({"restore": lambda: sim.restore(state)}, repeats)["restore"]
+    def step(threads: int) -> None:
+        sim.model = models[threads]
+        restore()
+        sim.advance()
+        sim.model = model
+
+    restore_ms = _interleaved({"restore": restore}, repeats)["restore"]
     mpm = MpmSimulator(sim.scene, r_t=1, threads=mpm_threads)
     for _ in range(5):
         mpm.advance()
@@ -148,11 +165,13 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "radius_graph": lambda: radius_graph(hist[-1], model.radius),
         **{f"onnx_{k}": (lambda s=s, f=f: s.run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
         "checks_clamp_history": checks,
-        "advance": step,
+        "advance": lambda: step(1),
         "mpm_rp_frame": mpm.advance,
+        "advance_2t": lambda: step(2),
     }
-    ms = _interleaved(fns, repeats)
+    ms = _interleaved(fns, repeats, spinning=("advance_2t",))
     ms["advance"] -= restore_ms
+    ms["advance_2t"] -= restore_ms
     # advance() builds the graph of its prediction (for the next step): one radius graph per step
     python_ms = ms["advance"] - ms["radius_graph"] - ms["onnx_shipped"] - ms["checks_clamp_history"]
     lat, layers = int(model.meta["latent"]), int(model.meta["layers"])
@@ -163,6 +182,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "gflops_onnx": flops / ms["onnx_shipped"] / 1e6,
         "network_ms_per_frame": ms["advance"] / model.r_t, "mpm_rp_ms_per_frame": ms["mpm_rp_frame"],
         "ratio_network_to_mpm_rp": ms["advance"] / model.r_t / ms["mpm_rp_frame"],
+        "network_2t_ms_per_frame": ms["advance_2t"] / model.r_t, "ratio_network_2t_to_mpm_rp": ms["advance_2t"] / model.r_t / ms["mpm_rp_frame"],
         "stages_us": _profile(paths["shipped"], lambda s: _feeds(s, hist, ptype, graph), repeats),
     }  # fmt: skip
     if "baseline" in paths:
@@ -193,7 +213,7 @@ def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None
             s = _session(p, t)
             f = _feeds(s, hist, ptype, graph)
             fns[f"{k}_{t}t"] = lambda s=s, f=f: s.run(None, f)
-    ms = _interleaved(fns, repeats)
+    ms = _interleaved(fns, repeats, spinning=tuple(k for k in fns if k.endswith("_2t")))
     return {
         "scene": scene, "particles": len(x), "edges": len(graph[0]), "mean_degree": len(graph[0]) / len(x), "mflop_step": flops / 1e6,
         "ms": ms, "gflops": {k: flops / v / 1e6 for k, v in ms.items()},
@@ -298,16 +318,16 @@ def _md(res: dict[str, Any]) -> str:
     ]
     lines += ["## Cost per frame (network alone, after warm-up, failure checks on) against MPM at r_p, same run", ""]
     lines += [
-        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | Python rest ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | GFLOP/s (ONNX) |"
+        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | Python rest ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | network 2 threads ms/frame | ratio 2 threads | GFLOP/s (ONNX) |"
         + (" ONNX speedup vs baseline |" if res["baseline"] else "")
     ]
-    lines += ["|---" * (12 + bool(res["baseline"])) + "|"]
+    lines += ["|---" * (14 + bool(res["baseline"])) + "|"]
     for r in res["scenes"]:
         m = r["ms"]
         row = (
             f"| {r['scene']} | {r['particles']} | {r['edges']} | {m['radius_graph']:.2f} | {m['onnx_shipped']:.2f} | {m['checks_clamp_history']:.2f} | "
             f"{r['python_overhead_ms']:.2f} | {m['advance']:.2f} | {r['network_ms_per_frame']:.2f} | {r['mpm_rp_ms_per_frame']:.2f} | "
-            f"{r['ratio_network_to_mpm_rp']:.2f} | {r['gflops_onnx']:.1f} |"
+            f"{r['ratio_network_to_mpm_rp']:.2f} | {r['network_2t_ms_per_frame']:.2f} | {r['ratio_network_2t_to_mpm_rp']:.2f} | {r['gflops_onnx']:.1f} |"
         )
         if res["baseline"]:
             row += f" {r.get('speedup_onnx', float('nan')):.2f} |"
@@ -366,7 +386,7 @@ def main() -> None:
         r = breakdown(scene, args.seed, args.steps, args.repeats, args.mpm_threads, args.baseline)
         res["scenes"].append(r)
         print(f"{scene}: step {r['ms']['advance']:.2f} ms, {r['network_ms_per_frame']:.2f} ms/frame vs MPM r_p {r['mpm_rp_ms_per_frame']:.2f} "
-              f"(ratio {r['ratio_network_to_mpm_rp']:.2f}), {r['gflops_onnx']:.1f} GFLOP/s", flush=True)  # fmt: skip
+              f"(ratio {r['ratio_network_to_mpm_rp']:.2f}; 2 threads {r['ratio_network_2t_to_mpm_rp']:.2f}), {r['gflops_onnx']:.1f} GFLOP/s", flush=True)  # fmt: skip
         b = block_gflops(scene, args.particles, max(10, args.repeats // 2), args.baseline)
         res["blocks"].append(b)
         print(f"  block of {b['particles']}: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in b["gflops"].items()), flush=True)

@@ -365,3 +365,25 @@ def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):
     assert summary["wall_ms_per_frame"]["median"] > 0 and (out / "render.gif").exists()
     # the model was trained for water2d: another scene family is refused, naming the model
     assert main(["simulate", "sand2d", "--solver", "neural", "--model", str(path), "--frames", "14", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+
+
+def test_threads_and_spinning(exported):
+    """Two onnxruntime threads spin by default (they pay only so), one does
+    not; the prediction is the same function either way; bad thread counts are
+    refused naming the field (``threads`` here, ``nn_threads`` on a simulator)."""
+    from hybridmpm.sim import NeuralSimulator
+
+    _, path = exported
+    one, two = NeuralModel(path), NeuralModel(path, threads=2)
+    assert (one.spinning, two.spinning, NeuralModel(path, threads=2, spinning=False).spinning) == (False, True, False)
+    hist, ptype = random_state(1500, seed=8, lo=0.3, hi=0.6)
+    a1, x1, _ = one.predict(hist, ptype)
+    a2, x2, _ = two.predict(hist, ptype)
+    assert np.abs(a2 - a1).max() <= 1e-5 * np.abs(a1).max() and np.abs(x2 - x1).max() <= 1e-6
+    for bad in (-1, 257, True, 1.5):
+        with pytest.raises(InvalidInputError) as e:
+            NeuralModel(path, threads=bad)
+        assert e.value.field == "threads"
+        with pytest.raises(InvalidInputError) as e:
+            NeuralSimulator("water2d", nn_threads=bad)
+        assert e.value.field == "nn_threads"

@@ -68,8 +68,14 @@ class NeuralModel:
     """An exported GNS model loaded into onnxruntime.
 
     ``path`` an ``.onnx`` file written by :func:`~hybridmpm.neural.export.export_onnx`;
-    ``threads`` onnxruntime intra-op threads (1 is as fast as 2 for small nets
-    and leaves a core to MPM). ``meta`` holds the model's metadata: ``scene``,
+    ``threads`` onnxruntime intra-op threads (1 leaves a core to MPM; 0
+    onnxruntime's default, one per core); ``spinning`` whether the worker
+    threads busy-wait for work (default: with more than one thread). Two threads pay only with spinning: on graphs of ≥ 2 000
+    particles the step is 1.3–1.45× faster than on one thread, without
+    spinning no faster (``benchmarks/results/inference.md``); the price is a
+    worker that keeps spinning for tens of ms after each step, which slows an
+    MPM step run right after by up to ~20%. So: two threads for the network
+    alone (MPM idle), one in the hybrid and the service (the default). ``meta`` holds the model's metadata: ``scene``,
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
@@ -77,17 +83,22 @@ class NeuralModel:
     metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]).
     """
 
-    def __init__(self, path: str | Path, threads: int = 1) -> None:
+    def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None) -> None:
         import onnxruntime as ort
 
+        if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
+            raise InvalidInputError(f"threads: must be an integer in [0, 256] (0: onnxruntime's default, one per core), got {threads!r}", "threads")
+        self.threads = threads
+        #: Whether onnxruntime's worker threads busy-wait (see the class doc).
+        self.spinning = bool(threads != 1 if spinning is None else spinning)
         self.path = Path(path)
         if not self.path.is_file():
             raise InvalidInputError(f"model: no such file {self.path}", "model")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
-        # no busy-waiting worker threads: a served model idles at 0% CPU between steps
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # by default no busy-waiting worker threads: a served model idles at 0% CPU between steps
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.spinning else "0")
         opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         try:

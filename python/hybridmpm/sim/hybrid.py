@@ -74,7 +74,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, new_lock, reading_state, serialised
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, reading_state, serialised
 from hybridmpm.sim.convert import VELOCITY_ESTIMATES, mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, load_model
@@ -181,7 +181,7 @@ class HybridSimulator:
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.scene_full = scene
-        self.model = load_model(model, scene.name, nn_threads)
+        self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.r_c = float(r_c)
         self.delta = delta
         self.dwell = dwell

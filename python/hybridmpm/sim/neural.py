@@ -42,7 +42,11 @@ _STATE_VERSION = 1
 def load_model(model: NeuralModel | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel:
     """``model`` as a :class:`NeuralModel`: itself, loaded from an ``.onnx``
     path, or (None) the shipped model of ``scene_name``. Raises
-    :class:`InvalidInputError` (field ``model``)."""
+    :class:`InvalidInputError` (field ``model``; ``nn_threads`` for
+    ``threads`` outside [0, 256]). ``threads`` onnxruntime threads (0: one per
+    core; more than one also spins them, see :class:`NeuralModel`)."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
+        raise InvalidInputError(f"nn_threads: must be an integer in [0, 256], got {threads!r}", "nn_threads")
     if isinstance(model, NeuralModel):
         return model
     if model is None:
@@ -136,7 +140,7 @@ class NeuralSimulator:
             check_int("max_neighbors", max_neighbors, 1)
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
-        self.model = load_model(model, scene.name, nn_threads)
+        self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.scene_full = scene
         self.scene = at_resolution(scene, self.model.r_p, seed)
         self.model.check_fits(self.scene.dim, self.scene.particle_type(), scene.name)
