@@ -6,8 +6,8 @@ kernels (issue 17; paper App. A; GNS, Sanchez-Gonzalez et al. 2020).
 same function as ``GnsModel.forward`` (float32 rounding aside; the tests check
 it against torch) with fewer and cheaper passes over the ``E × latent`` edge
 arrays. On this class of machine every operator over an edge array costs
-10–20 ns per edge whatever it computes, and onnxruntime's
-``LayerNormalization`` about 75 ns per row of 16 (``benchmarks/bench_inference.py
+8–22 ns per edge whatever it computes, and onnxruntime's
+``LayerNormalization`` 53–74 ns per row of 16 (``benchmarks/bench_inference.py
 --ops``), so the graph is shaped by counting passes, not FLOPs:
 
 * **Edge geometry from the radius-graph pass.** The Rust cell list already
@@ -32,7 +32,7 @@ arrays. On this class of machine every operator over an edge array costs
   updates so far), and every Linear that reads it folds ``c W`` into its
   bias; a sum over ``k`` edges of such latents carries ``k·c``, added through
   the receiver degree as one more input column of the node MLP. No broadcast
-  bias add (about 37 ns per row here) is left on an edge array.
+  bias add (25–37 ns per row here) is left on an edge array.
 * **Gather, not GatherND**, for the per-edge node projections of the
   factored first edge layer (``(W_r h)[r] + (W_s h)[s]``); the aggregation is a
   ``ScatterND`` with ``reduction="add"`` over receivers.
