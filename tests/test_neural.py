@@ -176,23 +176,36 @@ def test_onnx_handles_no_edges(exported):
     assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
 
 
-@pytest.mark.parametrize(("dim", "latent", "layers", "seed"), [(2, 16, 0, 0), (2, 8, 1, 1), (3, 16, 2, 2), (2, 12, 3, 3)])
-def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, seed):
+@pytest.mark.parametrize(
+    ("dim", "latent", "layers", "t_in", "embedding", "seed"), [(2, 16, 0, 6, 16, 0), (2, 8, 1, 6, 16, 1), (3, 16, 2, 6, 16, 2), (2, 12, 3, 4, 8, 3)]
+)
+def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embedding, seed):
     """The compiled inference graph (folded normalisations and LayerNorms,
     carried biases, edge geometry as inputs) computes GnsModel.forward, on a
-    perturbed model with kinematic particles, across dims and depths."""
+    perturbed model with every particle type, particles within R of both
+    walls (unclipped wall features) and kinematic ones, across dims, depths,
+    history lengths and embedding widths."""
+    from dataclasses import replace
+
     from hybridmpm.neural.compile import inference_graph
 
-    model = perturbed(GnsModel(config(dim, latent, layers)), seed)
-    hist, ptype = random_state(900, dim=dim, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(900 / 2300) ** (2 / dim))
+    model = perturbed(GnsModel(replace(config(dim, latent, layers), t_in=t_in, embedding=embedding)), seed)
+    hist, _ = random_state(900, dim=dim, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(900 / 2300) ** (2 / dim))
+    hist = np.ascontiguousarray(hist[-t_in:])
+    rng = np.random.default_rng(seed)
+    ptype = rng.integers(0, 9, len(hist[0])).astype(np.int64)
     ptype[::7] = 3
-    hist[:, :5] = hist[:, :5] * 0.05 + 0.02  # a few particles against the lower walls (clipped wall features)
+    near = rng.uniform(0.1 * R, 0.9 * R, (20, dim)).astype(np.float32)  # within R of a wall: features in (0, 1)
+    hist[:, :10] = 0.02 + near[:10]
+    hist[:, 10:20] = 0.98 - near[10:]
     acc_t, nxt_t = run_torch(model, hist, ptype)
     import onnxruntime as ort
 
     sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
     s, r, disp, dist = radius_graph(hist[-1], R)
     acc, nxt = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist})
+    walls = model.features(*(torch.from_numpy(a) for a in (hist, ptype, s, r)))[0][:, (t_in - 1) * dim : (t_in + 1) * dim]
+    assert 0.05 < float(walls[:20].abs().min()) and float(walls[:20].min()) < 0.95  # the unclipped range is exercised
     scale = np.abs(acc_t).max()
     assert scale > 1e-5 and np.abs(acc - acc_t).max() <= 1e-4 * scale
     assert np.abs(nxt - nxt_t).max() <= 1e-6
@@ -387,3 +400,22 @@ def test_threads_and_spinning(exported):
         with pytest.raises(InvalidInputError) as e:
             NeuralSimulator("water2d", nn_threads=bad)
         assert e.value.field == "nn_threads"
+
+
+def test_predict_refuses_foreign_types_and_graphs(exported):
+    """A negative type code would be wrapped by onnxruntime's Gather (torch
+    raises): refused naming particle_type; a graph that is not the four arrays
+    of radius_graph (the pre-compiled (senders, receivers) pair) naming graph."""
+    _, path = exported
+    nm = NeuralModel(path)
+    hist, ptype = random_state(50, seed=10)
+    for bad in (-1, 9):
+        p = ptype.copy()
+        p[7] = bad
+        with pytest.raises(InvalidInputError) as e:
+            nm.predict(hist, p)
+        assert e.value.field == "particle_type"
+    s, r, _, _ = radius_graph(hist[-1], R)
+    with pytest.raises(InvalidInputError) as e:
+        nm.predict(hist, ptype, graph=(s, r))  # type: ignore[arg-type]
+    assert e.value.field == "graph"

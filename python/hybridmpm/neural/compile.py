@@ -317,7 +317,8 @@ def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, An
     without the ``graph`` metadata key, before :data:`GRAPH_LAYOUT`): the
     initializers named as the pre-split state dict (``node_encoder.0.weight``,
     ``vel_std``, ...), remapped to :class:`~hybridmpm.neural.model.GnsModel`
-    keys. Raises ``ValueError`` for a compiled graph (its weights are folded)."""
+    keys. Raises ``ValueError`` for a compiled graph (its weights are folded),
+    ``KeyError`` for a file without the ``hybridmpm`` metadata."""
     import json
 
     import onnx

@@ -36,8 +36,9 @@ from hybridmpm.neural.model import GnsModel
 
 def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> Path:
     """Write ``model`` to ``path`` (atomically) with ``metadata`` merged over the
-    architecture facts (``feature_version``, ``graph``, ``dim``, ``radius``,
-    ``t_in``, ``bounds``, ``latent``, ``layers``, ``parameters``). Returns the path.
+    architecture facts (``feature_version``, ``dim``, ``radius``, ``t_in``,
+    ``bounds``, ``latent``, ``layers``, ``parameters``); ``graph`` is always
+    :data:`~hybridmpm.neural.compile.GRAPH_LAYOUT` (what the file holds). Returns the path.
 
     Input and output names are :data:`INPUT_NAMES` and :data:`OUTPUT_NAMES`
     (what :class:`~hybridmpm.neural.runtime.NeuralModel` feeds and reads).

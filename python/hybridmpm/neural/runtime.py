@@ -18,7 +18,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
+from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY, NUM_TYPES
 
 
 def _check_meta(meta: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -70,7 +70,7 @@ class NeuralModel:
     ``path`` an ``.onnx`` file written by :func:`~hybridmpm.neural.export.export_onnx`;
     ``threads`` onnxruntime intra-op threads (1 leaves a core to MPM; 0
     onnxruntime's default, one per core); ``spinning`` whether the worker
-    threads busy-wait for work (default: with more than one thread). Two threads pay only with spinning: on graphs of ≥ 2 000
+    threads busy-wait for work (default: for any count but 1, 0 included). Two threads pay only with spinning: on graphs of ≥ 2 000
     particles the step is 1.3–1.45× faster than on one thread, without
     spinning no faster (``benchmarks/results/inference.md``); the price is a
     worker that keeps spinning for tens of ms after each step, which slows an
@@ -80,7 +80,8 @@ class NeuralModel:
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
     foreign file or an incompatible feature version, (``model.<key>``) for
-    metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]).
+    metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]), (``threads``)
+    for a thread count that is not an integer in [0, 256].
     """
 
     def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None) -> None:
@@ -169,9 +170,18 @@ class NeuralModel:
         ``history[-1]`` with self-edges as :func:`hybridmpm.graph.radius_graph`
         returns it (``senders``, ``receivers`` int64 [E], ``displacement``
         float32 [E, D], ``distance`` float32 [E]), built here unless given
-        (built exactly so: the compiled graph reads the edge geometry from it)."""
+        (built exactly so: the compiled graph reads the edge geometry from it).
+        Raises :class:`InvalidInputError` naming ``particle_type`` for codes
+        outside ``[0, NUM_TYPES)`` (onnxruntime's Gather would wrap a negative
+        one) and ``graph`` for a tuple that is not those four arrays."""
+        if particle_type.size and not (0 <= int(particle_type.min()) and int(particle_type.max()) < NUM_TYPES):
+            raise InvalidInputError(
+                f"particle_type: codes must lie in [0, {NUM_TYPES}), got {int(particle_type.min())}..{int(particle_type.max())}", "particle_type"
+            )
         if graph is None:
             graph = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
+        elif len(graph) != 4:
+            raise InvalidInputError(f"graph: expected (senders, receivers, displacement, distance) as radius_graph returns, got {len(graph)} arrays", "graph")
         values = dict(zip(_FEEDS, (history, particle_type, *graph)))
         acc, nxt = self.session.run(None, {name: values[name] for name in self.input_names})
         return acc, nxt, graph
