@@ -56,26 +56,6 @@ from hybridmpm.sim import MpmSimulator, NeuralSimulator
 SCENES = ("water2d", "dam_break2d", "sand2d", "sand_ramps2d", "water_ramps2d", "water_sand2d", "water3d", "sand3d")
 
 
-def _session(path: Path, threads: int, profile: bool = False) -> Any:
-    import onnxruntime as ort
-
-    o = ort.SessionOptions()
-    o.intra_op_num_threads = threads
-    o.inter_op_num_threads = 1
-    # as NeuralModel: more than one thread spins (they pay only so)
-    o.add_session_config_entry("session.intra_op.allow_spinning", "1" if threads > 1 else "0")
-    o.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    if profile:
-        o.enable_profiling = True
-        o.profile_file_prefix = os.path.join(tempfile.gettempdir(), "hmpm_ort_profile")
-    return ort.InferenceSession(str(path), o, providers=["CPUExecutionProvider"])
-
-
-def _feeds(sess: Any, history: np.ndarray, ptype: np.ndarray, graph: tuple) -> dict[str, np.ndarray]:
-    values = dict(zip(("positions", "particle_type", "senders", "receivers", "displacement", "distance"), (history, ptype, *graph)))
-    return {i.name: values[i.name] for i in sess.get_inputs()}
-
-
 #: Pause after a run of spinning onnxruntime threads, so that their busy-wait
 #: (tens of ms) does not land on the next timed callable [s].
 SETTLE_S = 0.15
@@ -95,13 +75,13 @@ def _interleaved(fns: dict[str, Any], repeats: int, spinning: tuple[str, ...] = 
     return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
 
 
-def _profile(path: Path, feeds_of: Any, repeats: int) -> dict[str, float]:
+def _profile(path: Path, history: np.ndarray, ptype: np.ndarray, graph: tuple, repeats: int) -> dict[str, float]:
     """Mean µs per run by stage (compiled graphs) or by operator (others), from onnxruntime's profiler."""
-    sess = _session(path, 1, profile=True)
-    feeds = feeds_of(sess)
+    nm = NeuralModel(path, profile=True)
+    feeds = nm.feeds(history, ptype, graph)
     for _ in range(repeats):
-        sess.run(None, feeds)
-    prof = sess.end_profiling()
+        nm.session.run(None, feeds)
+    prof = nm.session.end_profiling()
     groups: dict[str, float] = collections.defaultdict(float)
     with open(prof) as fh:
         events = json.load(fh)
@@ -135,8 +115,8 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     paths = {"shipped": model.path}
     if baseline is not None and (baseline / model.path.name).is_file():
         paths["baseline"] = baseline / model.path.name
-    sessions = {k: _session(p, 1) for k, p in paths.items()}
-    feeds = {k: _feeds(s, hist, ptype, graph) for k, s in sessions.items()}
+    sessions = {k: NeuralModel(p) for k, p in paths.items()}
+    feeds = {k: s.feeds(hist, ptype, graph) for k, s in sessions.items()}
     proposal = sim.propose()
 
     def checks() -> None:
@@ -189,7 +169,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         mpm.advance()
     fns = {
         "radius_graph": lambda: radius_graph(hist[-1], model.radius),
-        **{f"onnx_{k}": (lambda s=s, f=f: s.run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
+        **{f"onnx_{k}": (lambda s=s, f=f: s.session.run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
         "checks_clamp_history": checks,
         "advance": lambda: step(1),
         "simulator_own": stubbed_step,
@@ -211,10 +191,10 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "network_ms_per_frame": ms["advance"] / model.r_t, "mpm_rp_ms_per_frame": ms["mpm_rp_frame"],
         "ratio_network_to_mpm_rp": ms["advance"] / model.r_t / ms["mpm_rp_frame"],
         "network_2t_ms_per_frame": ms["advance_2t"] / model.r_t, "ratio_network_2t_to_mpm_rp": ms["advance_2t"] / model.r_t / ms["mpm_rp_frame"],
-        "stages_us": _profile(paths["shipped"], lambda s: _feeds(s, hist, ptype, graph), repeats),
+        "stages_us": _profile(paths["shipped"], hist, ptype, graph, repeats),
     }  # fmt: skip
     if "baseline" in paths:
-        out["baseline_stages_us"] = _profile(paths["baseline"], lambda s: _feeds(s, hist, ptype, graph), repeats)
+        out["baseline_stages_us"] = _profile(paths["baseline"], hist, ptype, graph, repeats)
         out["speedup_onnx"] = ms["onnx_baseline"] / ms["onnx_shipped"]
     return out
 
@@ -238,9 +218,9 @@ def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None
     fns = {}
     for k, p in paths.items():
         for t in (1, 2):
-            s = _session(p, t)
-            f = _feeds(s, hist, ptype, graph)
-            fns[f"{k}_{t}t"] = lambda s=s, f=f: s.run(None, f)
+            nm = NeuralModel(p, threads=t)  # 2 threads spin (NeuralModel's default)
+            f = nm.feeds(hist, ptype, graph)
+            fns[f"{k}_{t}t"] = lambda s=nm.session, f=f: s.run(None, f)
     ms = _interleaved(fns, repeats, spinning=tuple(k for k in fns if k.endswith("_2t")))
     return {
         "scene": scene, "particles": len(x), "edges": len(graph[0]), "mean_degree": len(graph[0]) / len(x), "mflop_step": flops / 1e6,

@@ -61,8 +61,7 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
     s, r, disp, dist = radius_graph(hist[-1], nm.radius)
     out = {"particles": len(x), "edges": int(len(s))}
     out["graph_ms"] = _median_ms(lambda: radius_graph(hist[-1], nm.radius), repeats)
-    values = {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist}
-    feeds = {name: values[name] for name in nm.input_names}  # compiled graphs also take the edge geometry
+    feeds = nm.feeds(hist, ptype, (s, r, disp, dist))  # compiled graphs also take the edge geometry
     out["onnx_ms"] = _median_ms(lambda: nm.session.run(None, feeds), repeats)
     ckpt = model_dir / "checkpoint.pt"
     if ckpt.exists():

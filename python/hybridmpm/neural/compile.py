@@ -53,12 +53,8 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.neural.constants import KINEMATIC
+from hybridmpm.neural.constants import INPUT_NAMES, KINEMATIC, OUTPUT_NAMES
 
-#: Graph inputs, in order.
-INPUT_NAMES = ["positions", "particle_type", "senders", "receivers", "displacement", "distance"]
-#: Graph outputs, in order.
-OUTPUT_NAMES = ["acceleration", "next_position"]
 #: ONNX opset of the graph.
 OPSET = 18
 #: Marker stored in the model metadata (``graph``): graphs of this layout take edge geometry as inputs.

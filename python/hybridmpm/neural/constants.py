@@ -8,5 +8,9 @@ FEATURE_VERSION = 1
 NUM_TYPES = 9
 #: ONNX metadata property holding the model's JSON metadata.
 METADATA_KEY = "hybridmpm"
+#: Inputs of the GNS inference graph, in order (graphs of torch's exporter take the first four).
+INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displacement", "distance")
+#: Outputs of the GNS inference graph, in order.
+OUTPUT_NAMES = ("acceleration", "next_position")
 
-__all__ = ["FEATURE_VERSION", "KINEMATIC", "METADATA_KEY", "NUM_TYPES"]
+__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "KINEMATIC", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES"]

@@ -18,7 +18,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY, NUM_TYPES
+from hybridmpm.neural.constants import FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
 
 
 def _check_meta(meta: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -81,10 +81,11 @@ class NeuralModel:
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
     foreign file or an incompatible feature version, (``model.<key>``) for
     metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]), (``threads``)
-    for a thread count that is not an integer in [0, 256].
+    for a thread count that is not an integer in [0, 256]. ``profile``
+    switches onnxruntime's profiler on (for benchmarks).
     """
 
-    def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None) -> None:
+    def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None, profile: bool = False) -> None:
         import onnxruntime as ort
 
         if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
@@ -102,6 +103,11 @@ class NeuralModel:
         opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.spinning else "0")
         opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        if profile:  # onnxruntime's per-node profiler (benchmarks/bench_inference.py); session.end_profiling() returns the file
+            import tempfile
+
+            opts.enable_profiling = True
+            opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "hybridmpm_ort_profile")
         try:
             self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
         except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
@@ -121,9 +127,9 @@ class NeuralModel:
         #: The graph's input names: compiled graphs also take the edge geometry
         #: (``displacement``, ``distance``); graphs of earlier exports only the first four.
         self.input_names: list[str] = [i.name for i in self.session.get_inputs()]
-        unknown = sorted(set(self.input_names) - set(_FEEDS))
+        unknown = sorted(set(self.input_names) - set(INPUT_NAMES))
         if unknown:
-            raise InvalidInputError(f"model: {self.path.name} asks for inputs {unknown}, not among {list(_FEEDS)}", "model")
+            raise InvalidInputError(f"model: {self.path.name} asks for inputs {unknown}, not among {list(INPUT_NAMES)}", "model")
 
     @property
     def dim(self) -> int:
@@ -182,13 +188,16 @@ class NeuralModel:
             graph = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
         elif len(graph) != 4:
             raise InvalidInputError(f"graph: expected (senders, receivers, displacement, distance) as radius_graph returns, got {len(graph)} arrays", "graph")
-        values = dict(zip(_FEEDS, (history, particle_type, *graph)))
-        acc, nxt = self.session.run(None, {name: values[name] for name in self.input_names})
+        acc, nxt = self.session.run(None, self.feeds(history, particle_type, graph))
         return acc, nxt, graph
 
+    def feeds(self, history: np.ndarray, particle_type: np.ndarray, graph: Graph) -> dict[str, np.ndarray]:
+        """The inputs this graph asks for (:attr:`input_names`), from a history,
+        the types and a radius graph as :meth:`predict` takes them (no checks)."""
+        values = dict(zip(INPUT_NAMES, (history, particle_type, *graph)))
+        return {name: values[name] for name in self.input_names}
 
-#: The feeds a GNS graph may ask for, in the order of :func:`hybridmpm.neural.compile.INPUT_NAMES`.
-_FEEDS = ("positions", "particle_type", "senders", "receivers", "displacement", "distance")
+
 #: A radius graph as :func:`hybridmpm.graph.radius_graph` returns it: senders, receivers, displacement, distance.
 Graph = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
