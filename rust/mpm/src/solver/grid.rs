@@ -57,6 +57,11 @@ pub(super) struct Stencil<const D: usize> {
     pub(super) lat_stride: [usize; D],
     /// Coordinates of each node of a padded (B+2)^D buffer.
     pub(super) pad_coords: Vec<[usize; D]>,
+    /// What an output block gathers from the padded buffer of its source
+    /// block `c − s` (`s ∈ {0,1}^D`, bit `d` of the index): runs of nodes
+    /// contiguous along the last dimension in both, as
+    /// `(first node in the output block, first node in the padded buffer, length)`.
+    pub(super) gather_runs: Vec<Vec<(u16, u16, u16)>>,
 }
 
 /// Blocks per dimension of the block lattice for `n_grid` cells per dimension.
@@ -155,6 +160,9 @@ where
             c
         })
         .collect();
+    let gather_runs = (0..(1usize << D))
+        .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
+        .collect();
     let grid = SparseGrid {
         log2_b,
         nb,
@@ -177,8 +185,38 @@ where
             blk_stride,
             lat_stride,
             pad_coords,
+            gather_runs,
         },
     ))
+}
+
+/// The runs an output block gathers from the padded buffer of source block
+/// `c − s`: output node `l` (block coordinates `lc`) reads padded node
+/// `q = s·B + lc` where every `q_d < B + 2`, i.e. all `B` nodes along an
+/// axis with `s_d = 0` and the first 2 along one with `s_d = 1`.
+fn gather_runs_for<const D: usize>(
+    s: usize,
+    b: usize,
+    pad_stride: &[usize; D],
+    blk_stride: &[usize; D],
+) -> Vec<(u16, u16, u16)> {
+    let extent = |d: usize| if (s >> d) & 1 == 1 { 2 } else { b };
+    // rows: every combination of the first D − 1 block coordinates
+    let rows: usize = (0..D - 1).map(extent).product();
+    let mut runs = Vec::with_capacity(rows);
+    for r in 0..rows {
+        let mut rem = r;
+        let (mut l, mut q) = (0usize, 0usize);
+        for d in (0..D - 1).rev() {
+            let lc = rem % extent(d);
+            rem /= extent(d);
+            l += lc * blk_stride[d];
+            q += (((s >> d) & 1) * b + lc) * pad_stride[d];
+        }
+        q += ((s >> (D - 1)) & 1) * b * pad_stride[D - 1];
+        runs.push((l as u16, q as u16, extent(D - 1) as u16));
+    }
+    runs
 }
 
 impl<const D: usize> Solver<D>
@@ -300,4 +338,44 @@ pub(super) fn unflatten_pow2<const D: usize>(lin: usize, log2_b: u32) -> [usize;
         c[d] = (lin >> (log2_b as usize * (D - 1 - d))) & mask;
     }
     c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The gather runs list exactly the (output node, padded node) pairs of
+    /// the per-node rule `q = s·B + lc`, inside iff every `q_d < B + 2`.
+    fn runs_match_the_node_rule<const D: usize>()
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let (_, st) = new_grid::<D>(64).unwrap();
+        let log2_b = <Dim<D> as DimOps<D>>::LOG2_BLOCK;
+        let b = 1usize << log2_b;
+        for s in 0..(1usize << D) {
+            let mut want = Vec::new();
+            for l in 0..b.pow(D as u32) {
+                let lc = unflatten_pow2::<D>(l, log2_b);
+                let q: Vec<usize> = (0..D).map(|d| ((s >> d) & 1) * b + lc[d]).collect();
+                if q.iter().all(|&x| x < b + 2) {
+                    want.push((l, (0..D).map(|d| q[d] * st.pad_stride[d]).sum::<usize>()));
+                }
+            }
+            let mut got = Vec::new();
+            for &(l, q, len) in &st.gather_runs[s] {
+                for k in 0..len as usize {
+                    got.push((l as usize + k, q as usize + k));
+                }
+            }
+            got.sort();
+            assert_eq!(got, want, "D = {D}, s = {s}");
+        }
+    }
+
+    #[test]
+    fn gather_runs_match_the_node_rule() {
+        runs_match_the_node_rule::<2>();
+        runs_match_the_node_rule::<3>();
+    }
 }

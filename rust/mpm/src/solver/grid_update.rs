@@ -22,7 +22,7 @@ use nalgebra::SVector;
 use rayon::prelude::*;
 
 use super::Solver;
-use super::grid::{EMPTY, unflatten, unflatten_pow2};
+use super::grid::{EMPTY, add4, unflatten, unflatten_pow2};
 use crate::collider::{Collider, apply_condition};
 use crate::dim::{Dim, DimOps};
 use crate::params::WallFace;
@@ -77,26 +77,10 @@ where
                     }
                     let sid = src_map[lin] - 1;
                     let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
-                    for l in 0..blk_nodes {
-                        let lc = unflatten_pow2::<D>(l, log2_b);
-                        let mut pidx = 0usize;
-                        let mut inside = true;
-                        for d in 0..D {
-                            let sd = (s >> d) & 1;
-                            let q = sd * b + lc[d];
-                            if q >= p {
-                                inside = false;
-                                break;
-                            }
-                            pidx += q * st.pad_stride[d];
-                        }
-                        if !inside {
-                            continue;
-                        }
-                        let a = &mut acc[l];
-                        let sv = &src[pidx];
-                        for k in 0..4 {
-                            a[k] += sv[k];
+                    for &(l, q, len) in &st.gather_runs[s] {
+                        let (l, q, len) = (l as usize, q as usize, len as usize);
+                        for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
+                            add4(a, sv);
                         }
                     }
                 }
