@@ -58,8 +58,10 @@ pub(crate) fn cell_of<const D: usize>(
     let mut key = 0usize;
     for d in 0..D {
         let xg = x[d] * inv_dx;
-        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor
-        let b = (xg - 0.5) as u32;
+        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor (and
+        // the signed conversion, one instruction cheaper per step of range
+        // checking than `as u32`, gives the same value)
+        let b = (xg - 0.5) as i32 as u32;
         c.base[d] = b;
         c.fx[d] = xg - b as f32;
         key += (b as usize >> log2_b) * lat[d];

@@ -27,7 +27,7 @@
 use nalgebra::{SMatrix, SVector};
 use rayon::prelude::*;
 
-use super::grid::{EMPTY, add4, fma4, unflatten};
+use super::grid::{EMPTY, add4, fma4, fma4_nonzero, unflatten};
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
@@ -127,7 +127,10 @@ where
                             // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
                             let mut sum = [0.0f32; 4];
                             let mut sum_k = [0.0f32; 4];
-                            for k in 0..3 {
+                            // (the k = 0 term of sum_k is a zero: left out, which
+                            // changes no bit of a finite sum, see `fma4_nonzero`)
+                            fma4(&mut sum, w_last[0], &row[0]);
+                            for k in 1..3 {
                                 let wk = w_last[k];
                                 fma4(&mut sum, wk, &row[k]);
                                 fma4(&mut sum_k, wk * k as f32, &row[k]);
@@ -138,7 +141,7 @@ where
                             }
                             add4(&mut acc_v, &sum);
                             for c in 0..D - 1 {
-                                fma4(&mut acc_b[c], o[c], &sum);
+                                fma4_nonzero(&mut acc_b[c], o[c], &sum);
                             }
                             add4(&mut acc_b[D - 1], &sum_k);
                         });
@@ -166,10 +169,9 @@ where
                                 tau
                             }
                         };
-                        finite_rest &= new_c.iter().all(|x| x.is_finite());
                         *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
                         // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
-                        nan_probe += p.v.sum() + p.tau.sum() + p.j;
+                        nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
                         nonpositive_j |= p.j <= 0.0;
                         vmax2 = vmax2.max(p.v.norm_squared());
                         *po = p;

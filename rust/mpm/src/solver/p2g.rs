@@ -23,7 +23,7 @@
 use rayon::prelude::*;
 
 use super::Solver;
-use super::grid::{add4, fma4, unflatten};
+use super::grid::{add4, fma4, fma4_nonzero, unflatten};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::weights;
 
@@ -85,7 +85,7 @@ where
                     Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
                         let mut contrib = base4;
                         for c in 0..D - 1 {
-                            fma4(&mut contrib, o[c], &cols[c]);
+                            fma4_nonzero(&mut contrib, o[c], &cols[c]);
                         }
                         // the row's 3 nodes are contiguous (last stride 1)
                         let row = &mut nodes[off..off + 3];
