@@ -35,38 +35,44 @@ where
     ]
 }
 
-/// Where a particle sits in the grid: the base node of its 3^D stencil,
-/// its offset from it (in cells, in [0.5, 1.5)) and its block's key.
-/// Computed once per substep (in g2p, for the next one).
+/// Where a particle sits in the grid: its block's key, the index of its
+/// 3^D stencil's base node in the block's padded `(B+2)^D` buffer, and its
+/// offset from that node (in cells, in [0.5, 1.5)). Computed once per
+/// substep (in g2p, for the next one).
 #[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct Cell {
     pub(crate) key: u32,
-    pub(crate) base: [u32; 3],
+    pub(crate) pad_off: u32,
     pub(crate) fx: [f32; 3],
 }
 
 /// The [`Cell`] of position `x`: `inv_dx = 1/dx`, blocks of `2^log2_b` cells,
-/// `lat` the strides of the block lattice.
+/// `lat` the strides of the block lattice, `pad` those of a padded buffer.
 #[inline(always)]
 pub(crate) fn cell_of<const D: usize>(
     x: &SVector<f32, D>,
     inv_dx: f32,
     log2_b: u32,
     lat: &[usize; D],
+    pad: &[usize; D],
 ) -> Cell {
     let mut c = Cell::default();
     let mut key = 0usize;
+    let mut pad_off = 0usize;
+    let mask = (1usize << log2_b) - 1;
     for d in 0..D {
         let xg = x[d] * inv_dx;
         // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor (and
         // the signed conversion, one instruction cheaper per step of range
         // checking than `as u32`, gives the same value)
         let b = (xg - 0.5) as i32 as u32;
-        c.base[d] = b;
         c.fx[d] = xg - b as f32;
         key += (b as usize >> log2_b) * lat[d];
+        // the base node's place in its own block's padded buffer
+        pad_off += (b as usize & mask) * pad[d];
     }
     c.key = key as u32;
+    c.pad_off = pad_off as u32;
     c
 }
 

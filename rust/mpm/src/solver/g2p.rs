@@ -47,8 +47,6 @@ where
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
         let log2_b = self.grid.log2_b;
-        let b = 1usize << log2_b;
-        let bmask = b - 1;
         let blk_nodes = 1usize << (log2_b as usize * D);
         let st = &self.stencil;
         let lat = st.lat_stride;
@@ -87,19 +85,23 @@ where
                 || vec![[0.0f32; 4]; st.pad_coords.len()],
                 |patch, (si, (outp, outk))| {
                     let c = unflatten::<D>(src_blocks[si] as usize, &lat);
-                    // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D
-                    // (every node lies in an output block, so all are overwritten)
-                    for (q, qc) in st.pad_coords.iter().enumerate() {
+                    // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D,
+                    // copied by runs from the 2^D output blocks c + s it overlaps (the
+                    // same node pairs the grid update gathers; every node lies in an
+                    // output block, so all are overwritten)
+                    for (s, runs) in st.gather_runs.iter().enumerate() {
                         let mut lin = 0usize;
-                        let mut off = 0usize;
                         for d in 0..D {
-                            let gi = (c[d] << log2_b) + qc[d];
-                            lin += (gi >> log2_b) * lat[d];
-                            off += (gi & bmask) * st.blk_stride[d];
+                            lin += (c[d] + ((s >> d) & 1)) * lat[d];
                         }
-                        let ob = out_map[lin];
-                        if ob != EMPTY {
-                            patch[q] = out_v[(ob - 1) as usize * blk_nodes + off];
+                        let ob = out_map.get(lin).copied().unwrap_or(EMPTY);
+                        if ob == EMPTY {
+                            continue;
+                        }
+                        let blk = &out_v[(ob - 1) as usize * blk_nodes..ob as usize * blk_nodes];
+                        for &(l, q, len) in runs {
+                            let (l, q, len) = (l as usize, q as usize, len as usize);
+                            patch[q..q + len].copy_from_slice(&blk[l..l + len]);
                         }
                     }
                     let lo_i = src_offsets[si] as usize;
@@ -113,11 +115,7 @@ where
                         let mut p = particles[slot];
                         let cell = &cells[slot];
                         let (fx, w) = weights::<D>(cell);
-                        let mut base_idx = 0usize;
-                        for d in 0..D {
-                            base_idx +=
-                                (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
-                        }
+                        let base_idx = cell.pad_off as usize;
                         let mut acc_v = [0.0f32; 4];
                         let mut acc_b = [[0.0f32; 4]; D];
                         let nodes = &patch[base_idx..];
@@ -169,7 +167,7 @@ where
                                 tau
                             }
                         };
-                        *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
+                        *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
                         // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
                         nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
                         nonpositive_j |= p.j <= 0.0;

@@ -53,8 +53,6 @@ pub(super) struct SparseGrid {
 pub(super) struct Stencil<const D: usize> {
     /// Strides of the padded buffer (in nodes), per dimension.
     pub(super) pad_stride: [usize; D],
-    /// Strides inside an output block (in nodes), per dimension.
-    pub(super) blk_stride: [usize; D],
     /// Strides of the block lattice, per dimension.
     pub(super) lat_stride: [usize; D],
     /// Coordinates of each node of a padded (B+2)^D buffer.
@@ -185,7 +183,6 @@ where
         grid,
         Stencil {
             pad_stride,
-            blk_stride,
             lat_stride,
             pad_coords,
             gather_runs,
@@ -231,12 +228,13 @@ where
         let inv_dx = self.params.n_grid as f32;
         let log2_b = self.grid.log2_b;
         let lat = self.stencil.lat_stride;
+        let pad = self.stencil.pad_stride;
         self.grid.keys.resize(self.particles.len(), Cell::default());
         self.particles
             .par_iter()
             .zip(self.grid.keys.par_iter_mut())
             .for_each(|(p, k)| {
-                *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat);
+                *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
             });
     }
 

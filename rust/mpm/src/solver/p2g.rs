@@ -23,7 +23,7 @@
 use rayon::prelude::*;
 
 use super::Solver;
-use super::grid::{add4, fma4, fma4_nonzero, unflatten};
+use super::grid::{add4, fma4, fma4_nonzero};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::weights;
 
@@ -42,30 +42,19 @@ where
         g.local.resize(n_src * pad_nodes, [0.0; 4]);
         let particles = &self.particles;
         let st = &self.stencil;
-        let (src_blocks, src_offsets, sorted, lat, log2_b, cells) = (
-            &g.src_blocks,
-            &g.src_offsets,
-            &g.sorted,
-            st.lat_stride,
-            g.log2_b,
-            &g.keys,
-        );
+        let (src_offsets, sorted, cells) = (&g.src_offsets, &g.sorted, &g.keys);
         g.local
             .par_chunks_mut(pad_nodes)
             .enumerate()
             .for_each(|(si, buf)| {
                 buf.fill([0.0; 4]);
-                let c = unflatten::<D>(src_blocks[si] as usize, &lat);
                 let lo = src_offsets[si] as usize;
                 let hi = src_offsets[si + 1] as usize;
                 for &pi in &sorted[lo..hi] {
                     let p = &particles[pi as usize];
                     let cell = &cells[pi as usize];
                     let (fx, w) = weights::<D>(cell);
-                    let mut base_idx = 0usize;
-                    for d in 0..D {
-                        base_idx += (cell.base[d] as usize - (c[d] << log2_b)) * st.pad_stride[d];
-                    }
+                    let base_idx = cell.pad_off as usize;
                     // [mass, momentum + affine·dpos] with dpos = (o − fx)·dx, written
                     // as base + Σ_c o_c·col_c (o integer offsets): 4-wide vector work
                     let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
