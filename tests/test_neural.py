@@ -17,6 +17,7 @@ import torch
 from hybridmpm import radius_graph
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural import NeuralModel
+from hybridmpm.neural.constants import KINEMATIC
 from hybridmpm.neural.export import export_onnx
 from hybridmpm.neural.model import GnsConfig, GnsModel
 
@@ -361,6 +362,89 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
         train(TrainConfig(**{**cfg.__dict__, "latent": 32}), progress=False)
     assert e.value.field == "latent"
     json.loads((tmp_path / "model" / "summary.json").read_text())
+
+
+class _Oracle(torch.nn.Module):
+    """Stands in for a GnsModel in a pushforward window: predicts the true
+    position at ``t`` plus a fixed error ``err`` (positions [N, D])."""
+
+    def __init__(self, truth: np.ndarray, err: np.ndarray) -> None:
+        super().__init__()
+        self.next = torch.from_numpy((truth + err).astype(np.float32))
+
+    def forward(self, hist, ptype, s, r):
+        return None, self.next
+
+
+def test_pushforward_window_targets_the_true_next_position():
+    """Pushforward (Brandstetter et al. 2022): with a perfect one-step
+    prediction the window is the plain window; with a prediction off by
+    ``err`` the target acceleration still lands on the true position
+    ``t + 1`` (x_next = 2·x_t − x_{t−1} + a), i.e. it is the plain target
+    minus 2·err, and kinematic particles keep their true positions."""
+    from hybridmpm.neural.train import _pushforward_window, _window
+
+    rng = np.random.default_rng(0)
+    n, frames, t, t_in = 12, 14, 9, 6
+    x = np.cumsum(rng.normal(0, 1e-3, (frames, n, 2)), axis=0) + 0.5
+    ptype = np.full(n, 5, np.int64)
+    ptype[:2] = KINEMATIC
+    traj = (x.astype(np.float32), ptype)
+    hist, pt, acc = _window(traj, t, t_in, 0.0, rng)
+    zero = np.zeros((n, 2))
+    h0, p0, a0 = _pushforward_window(_Oracle(traj[0][t], zero), traj, t, t_in, 0.0, rng, 0.05, None)
+    np.testing.assert_array_equal(h0, hist)
+    np.testing.assert_array_equal(p0, pt)
+    np.testing.assert_allclose(a0, acc, atol=1e-9)
+    err = rng.normal(0, 5e-4, (n, 2))
+    h1, _, a1 = _pushforward_window(_Oracle(traj[0][t], err), traj, t, t_in, 0.0, rng, 0.05, None)
+    err[ptype == KINEMATIC] = 0.0
+    np.testing.assert_allclose(h1[-1], traj[0][t] + err, atol=1e-7)
+    np.testing.assert_array_equal(h1[:-1], hist[:-1])
+    np.testing.assert_allclose(a1, acc - 2 * err, atol=1e-6)
+    landed = 2 * h1[-1].astype(np.float64) - h1[-2] + a1
+    np.testing.assert_allclose(landed, traj[0][t + 1], atol=1e-6)
+    # with input noise the target keeps the plain window's convention: it
+    # corrects velocity noise, not the last input position's offset
+    h2, _, a2 = _pushforward_window(_Oracle(traj[0][t], zero), traj, t, t_in, 1e-3, np.random.default_rng(5), 0.05, None)
+    offset = h2[-2].astype(np.float64) - traj[0][t - 1]
+    assert np.abs(offset[ptype != KINEMATIC]).max() > 1e-5
+    np.testing.assert_allclose(2 * h2[-1].astype(np.float64) - h2[-2] + a2, traj[0][t + 1] + offset, atol=1e-6)
+
+
+def test_pushforward_training_runs_resumes_and_old_runs_still_resume(tmp_path):
+    """A run with pushforward trains (its validation loss falls) and is
+    recorded in the model; a run directory written before the pushforward
+    settings existed resumes with their defaults; bad values name the field."""
+    from hybridmpm.neural.train import TrainConfig, train
+
+    data = tmp_path / "drag"
+    data.mkdir()
+    _drag_dataset(data, n_traj=4, frames=20, n=30)
+    cfg = TrainConfig(
+        scene="drag", data=str(data), out=str(tmp_path / "pf"), latent=8, layers=1, r_t=1, steps=120, batch=2,
+        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=40, val_windows=4, rollout_steps=5, threads=1,
+        pushforward=0.5, pushforward_after=0.25,
+    )  # fmt: skip
+    train(cfg, progress=False)
+    rows = list(csv.DictReader(open(tmp_path / "pf" / "log.csv")))
+    assert float(rows[-1]["val_one_step"]) < 0.5 * float(rows[0]["val_one_step"])
+    assert NeuralModel(tmp_path / "pf" / "model.onnx").meta["pushforward"] == 0.5
+    # an older run's settings file lacks the two keys: it resumes (no more steps to do)
+    old = tmp_path / "old"
+    plain = TrainConfig(**{**cfg.__dict__, "out": str(old), "steps": 2, "val_every": 2, "pushforward": 0.0, "pushforward_after": 0.2})
+    train(plain, progress=False)
+    saved = json.loads((old / "train_config.json").read_text())
+    del saved["pushforward"], saved["pushforward_after"]
+    (old / "train_config.json").write_text(json.dumps(saved))
+    assert train(plain, progress=False)["steps"] == 2
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**plain.__dict__, "pushforward": 0.3}), progress=False)
+    assert e.value.field == "pushforward"
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(InvalidInputError) as e:
+            TrainConfig(**{**cfg.__dict__, "pushforward_after": bad}).validate()
+        assert e.value.field == "pushforward_after"
 
 
 def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):

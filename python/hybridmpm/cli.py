@@ -381,7 +381,7 @@ def _train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         scene=args.scene, data=args.data, out=args.out, latent=args.latent, layers=args.layers, r_t=args.r_t, steps=args.steps,
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
-        seed=args.seed, threads=args.threads,
+        seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
     if not args.quiet:
@@ -591,6 +591,13 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (decays x0.1 over the run)")
     tr.add_argument("--noise-std", type=float, default=3e-4, help="random-walk noise on the last input velocity [m/step]")
     tr.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
+    tr.add_argument(
+        "--pushforward",
+        type=float,
+        default=0.0,
+        help="probability that a window's last input is the model's own prediction (pushforward training; default 0: off)",
+    )
+    tr.add_argument("--pushforward-after", type=float, default=0.2, help="fraction of the steps before pushforward starts (default 0.2)")
     tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
     tr.add_argument("--radius", type=float, default=None, help="connectivity radius R [m] (default: the dataset's)")
     tr.add_argument("--seed", type=_seed, default=0)

@@ -11,6 +11,13 @@
   joined into one disjoint graph (radius graph from the Rust crate);
 * noise: a random walk on the input velocities (std ``noise_std`` on the last
   velocity), the target acceleration corrected so the model learns to undo it;
+* pushforward (Brandstetter et al. 2022, "Message passing neural PDE
+  solvers", Sec. 2.3; off by default): after the first ``pushforward_after``
+  of the steps, each window is with probability ``pushforward`` one whose
+  last input position is the model's own prediction (one step without
+  gradient from the window before), and whose target acceleration takes that
+  predicted state to the true next position — the model learns to correct
+  the drift of its own rollouts, not only input noise;
 * loss: **MSE of the normalised acceleration** over non-kinematic particles
   (the GNS choice: it weighs both axes alike whatever their scales; it is
   the paper's per-particle acceleration RMSE squared, up to the per-axis
@@ -80,6 +87,8 @@ class TrainConfig:
     radius: float | None = None
     seed: int = 0
     threads: int = 0
+    pushforward: float = 0.0
+    pushforward_after: float = 0.2
 
     def validate(self) -> TrainConfig:
         for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps"):
@@ -94,6 +103,10 @@ class TrainConfig:
             raise InvalidInputError(f"radius: must be in (0, 0.5) m, got {self.radius!r}", "radius")
         if not (isinstance(self.noise_std, (int, float)) and math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
+        for name in ("pushforward", "pushforward_after"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
+                raise InvalidInputError(f"{name}: must be a number in [0, 1], got {v!r}", name)
         return self
 
 
@@ -125,6 +138,37 @@ def _window(traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: f
         hist = hist + pos_noise
         nxt = nxt + pos_noise[-1]
     acc = nxt - 2 * hist[-1] + hist[-2]
+    return hist.astype(np.float32), ptype, acc.astype(np.float32)
+
+
+def _pushforward_window(
+    model: torch.nn.Module,
+    traj: tuple[np.ndarray, np.ndarray],
+    t: int,
+    t_in: int,
+    noise_std: float,
+    rng: np.random.Generator,
+    radius: float,
+    max_neighbors: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pushforward window at step ``t`` (``t >= t_in``): the inputs end at
+    ``t − 1`` (noised as :func:`_window`'s), the model predicts position
+    ``t`` from them without gradient, and that prediction replaces the true
+    position ``t`` as the last input. The target is the acceleration from the
+    predicted state to the true position ``t + 1`` (shifted by the last input
+    position's noise, as in :func:`_window`). Kinematic particles keep their
+    true positions. Same shapes as :func:`_window`."""
+    pos, ptype = traj
+    hist0, _, _ = _window(traj, t - 1, t_in, noise_std, rng)
+    s, r, _, _ = radius_graph(hist0[-1], radius, max_neighbors=max_neighbors)
+    with torch.no_grad():
+        _, pred_t = model(torch.from_numpy(hist0), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
+    pred = pred_t.numpy().astype(np.float64)
+    kin = ptype == KINEMATIC
+    pred[kin] = pos[t][kin]
+    hist = np.concatenate([hist0[1:].astype(np.float64), pred[None]])
+    offset = hist[-2] - pos[t - 1]  # the last true input position's noise
+    acc = (pos[t + 1] + offset) - 2 * hist[-1] + hist[-2]
     return hist.astype(np.float32), ptype, acc.astype(np.float32)
 
 
@@ -190,8 +234,10 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     cfg_json = asdict(config)
     if saved.exists():
         old = json.loads(saved.read_text())
+        defaults = asdict(TrainConfig(scene="", data="", out=""))
         for key, v in cfg_json.items():
-            if key not in ("steps", "threads", "out") and old.get(key) != v:  # a moved run directory still resumes
+            # a moved run directory still resumes; a setting added since the run was made has its default
+            if key not in ("steps", "threads", "out") and old.get(key, defaults[key]) != v:
                 raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key)!r}, not {v!r}; use another --out", key)
     saved.write_text(json.dumps(cfg_json, indent=2))
     if config.threads:
@@ -273,10 +319,16 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             for g in opt.param_groups:
                 g["lr"] = lr
             windows = []
+            pushing = config.pushforward > 0 and step >= config.pushforward_after * config.steps
             for _ in range(config.batch):
                 traj = train_data.trajs[int(rng.integers(len(train_data.trajs)))]
-                t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
-                windows.append(_window(traj, t, t_in, config.noise_std, rng))
+                if pushing and rng.random() < config.pushforward:
+                    model.eval()
+                    t = int(rng.integers(t_in, len(traj[0]) - 1))
+                    windows.append(_pushforward_window(model, traj, t, t_in, config.noise_std, rng, radius, config.max_neighbors))
+                else:
+                    t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
+                    windows.append(_window(traj, t, t_in, config.noise_std, rng))
             model.train()
             loss = _loss(model, _batch(windows, radius, config.max_neighbors))
             opt.zero_grad()
@@ -321,6 +373,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
             "n_grid": n_grid,
             "noise_std": config.noise_std,
+            "pushforward": config.pushforward,
             "rollout_steps": rollout_steps,
         },  # fmt: skip
     )
