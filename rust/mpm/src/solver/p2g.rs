@@ -68,6 +68,10 @@ where
                             cols[c][1 + r] = a_mat[(r, c)];
                         }
                     }
+                    // Opaque to the optimiser: it would otherwise track the lanes
+                    // known to be zero and split the 4-wide updates below into
+                    // shuffles and scalar operations (same results, more instructions).
+                    let (base4, cols) = std::hint::black_box((base4, cols));
                     let nodes = &mut buf[base_idx..];
                     let w_last = w[D - 1];
                     let last = cols[D - 1];
