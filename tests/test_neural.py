@@ -354,6 +354,17 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
     nm = NeuralModel(tmp_path / "model" / "model.onnx")
     assert nm.meta["scene"] == "drag" and nm.meta["latent"] == 16 and nm.meta["r_t"] == 1 and nm.meta["particle_types"] == [5]
     assert summary["steps"] == 240
+    # every validated step was exported; the shipped model.onnx is the snapshot of the best rollout
+    snaps = sorted((tmp_path / "model" / "snapshots").glob("step_*/model.onnx"))
+    assert [p.parent.name for p in snaps] == [f"step_{s:07d}" for s in (60, 120, 180, 240)]
+    best_step = min(rows[1:], key=lambda r: float(r["val_rollout_mse"]))["step"]
+    x = np.random.default_rng(1).uniform(0.3, 0.7, (60, 2)).astype(np.float32)
+    hist = np.stack([x + 1e-3 * k for k in range(nm.t_in)]).astype(np.float32)
+    pt = np.full(60, 5, np.int64)
+    best_snap = NeuralModel(tmp_path / "model" / "snapshots" / f"step_{int(best_step):07d}" / "model.onnx")
+    np.testing.assert_array_equal(nm.predict(hist, pt)[0], best_snap.predict(hist, pt)[0])
+    others = [NeuralModel(p) for p in snaps if p.parent.name != f"step_{int(best_step):07d}"]
+    assert all(not np.array_equal(nm.predict(hist, pt)[0], o.predict(hist, pt)[0]) for o in others)
     # resuming a finished run does no more steps and keeps the log
     train(cfg, progress=False)
     assert len(list(csv.DictReader(open(tmp_path / "model" / "log.csv")))) == len(rows)

@@ -28,7 +28,13 @@
   trajectory (position MSE and grid-mass error of the last step);
 * ``checkpoint.pt`` at every validation (model, optimiser, step, RNG states):
   rerunning the same command resumes; ``log.csv`` holds the losses;
-  ``model.onnx`` (the best validation rollout) is exported at the end.
+  ``model.onnx`` (the best validation rollout) is exported at the end;
+* with ``snapshots`` (default) every validation also exports the model of
+  that step as ``snapshots/step_NNNNNNN/model.onnx`` (a few tens of kB), so a
+  checkpoint can be chosen afterwards on the benchmark's own rollout error
+  (``benchmarks/bench_neural.py --split valid --models OUT/snapshots/*``,
+  then ``benchmarks/ship_model.py``) rather than on the one 20-step
+  validation rollout the run itself scores.
 
 ``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
 :class:`~hybridmpm.neural.model.GnsModel` state_dict), ``optimizer`` (Adam's,
@@ -89,6 +95,7 @@ class TrainConfig:
     threads: int = 0
     pushforward: float = 0.0
     pushforward_after: float = 0.2
+    snapshots: bool = True
 
     def validate(self) -> TrainConfig:
         for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps"):
@@ -103,6 +110,8 @@ class TrainConfig:
             raise InvalidInputError(f"radius: must be in (0, 0.5) m, got {self.radius!r}", "radius")
         if not (isinstance(self.noise_std, (int, float)) and math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
+        if not isinstance(self.snapshots, bool):
+            raise InvalidInputError(f"snapshots: must be true or false, got {self.snapshots!r}", "snapshots")
         for name in ("pushforward", "pushforward_after"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
@@ -237,7 +246,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         defaults = asdict(TrainConfig(scene="", data="", out=""))
         for key, v in cfg_json.items():
             # a moved run directory still resumes; a setting added since the run was made has its default
-            if key not in ("steps", "threads", "out") and old.get(key, defaults[key]) != v:
+            if key not in ("steps", "threads", "out", "snapshots") and old.get(key, defaults[key]) != v:
                 raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key)!r}, not {v!r}; use another --out", key)
     saved.write_text(json.dumps(cfg_json, indent=2))
     if config.threads:
@@ -309,6 +318,33 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
         return mse
 
+    data_meta = train_data.meta
+    sha = data_meta.get("sha256", {}).get("train") if isinstance(data_meta.get("sha256"), dict) else None
+
+    def export_to(path: Path, seconds: float) -> dict[str, Any]:
+        """Export the model's current weights to ``path`` with the run's metadata; returns the summary part."""
+        summary = {
+            "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
+            "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
+            "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in model.parameters())),
+        }  # fmt: skip
+        path.parent.mkdir(parents=True, exist_ok=True)
+        export_onnx(
+            model,
+            path,
+            {
+                **summary,
+                "particle_types": types,
+                "data_sha256": sha,
+                "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
+                "n_grid": n_grid,
+                "noise_std": config.noise_std,
+                "pushforward": config.pushforward,
+                "rollout_steps": rollout_steps,
+            },  # fmt: skip
+        )
+        return summary
+
     bar = tqdm(total=config.steps, initial=step, desc=f"train {config.scene} L{config.layers}x{config.latent}", unit="step", disable=not progress)
     t0 = time.perf_counter() - elapsed
     try:
@@ -351,32 +387,14 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 tmp = out / "checkpoint.pt.tmp"
                 torch.save(state, tmp)
                 os.replace(tmp, ckpt)
+                if config.snapshots:
+                    export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed)
     finally:
         bar.close()
         log.close()
     if (out / "best.pt").exists():
         model.load_state_dict(torch.load(out / "best.pt", weights_only=True))
-    data_meta = train_data.meta
-    sha = data_meta.get("sha256", {}).get("train") if isinstance(data_meta.get("sha256"), dict) else None
-    summary = {
-        "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
-        "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(elapsed, 1),
-        "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in model.parameters())),
-    }  # fmt: skip
-    export_onnx(
-        model,
-        out / "model.onnx",
-        {
-            **summary,
-            "particle_types": types,
-            "data_sha256": sha,
-            "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
-            "n_grid": n_grid,
-            "noise_std": config.noise_std,
-            "pushforward": config.pushforward,
-            "rollout_steps": rollout_steps,
-        },  # fmt: skip
-    )
+    summary = export_to(out / "model.onnx", elapsed)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
