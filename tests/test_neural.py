@@ -363,6 +363,8 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
     pt = np.full(60, 5, np.int64)
     best_snap = NeuralModel(tmp_path / "model" / "snapshots" / f"step_{int(best_step):07d}" / "model.onnx")
     np.testing.assert_array_equal(nm.predict(hist, pt)[0], best_snap.predict(hist, pt)[0])
+    best_row = next(r for r in rows if r["step"] == best_step)
+    assert best_snap.meta["val_rollout_mse"] == pytest.approx(float(best_row["val_rollout_mse"]), rel=1e-3)
     others = [NeuralModel(p) for p in snaps if p.parent.name != f"step_{int(best_step):07d}"]
     assert all(not np.array_equal(nm.predict(hist, pt)[0], o.predict(hist, pt)[0]) for o in others)
     # resuming a finished run does no more steps and keeps the log
@@ -382,8 +384,10 @@ class _Oracle(torch.nn.Module):
     def __init__(self, truth: np.ndarray, err: np.ndarray) -> None:
         super().__init__()
         self.next = torch.from_numpy((truth + err).astype(np.float32))
+        self.seen: np.ndarray | None = None
 
     def forward(self, hist, ptype, s, r):
+        self.seen = hist.numpy().copy()  # the window it was asked to step
         return None, self.next
 
 
@@ -403,7 +407,10 @@ def test_pushforward_window_targets_the_true_next_position():
     traj = (x.astype(np.float32), ptype)
     hist, pt, acc = _window(traj, t, t_in, 0.0, rng)
     zero = np.zeros((n, 2))
-    h0, p0, a0 = _pushforward_window(_Oracle(traj[0][t], zero), traj, t, t_in, 0.0, rng, 0.05, None)
+    oracle = _Oracle(traj[0][t], zero)
+    h0, p0, a0 = _pushforward_window(oracle, traj, t, t_in, 0.0, rng, 0.05, None)
+    # the model was asked to step the window ending at t − 1
+    np.testing.assert_array_equal(oracle.seen, traj[0][t - t_in : t])
     np.testing.assert_array_equal(h0, hist)
     np.testing.assert_array_equal(p0, pt)
     np.testing.assert_allclose(a0, acc, atol=1e-9)
@@ -417,7 +424,10 @@ def test_pushforward_window_targets_the_true_next_position():
     np.testing.assert_allclose(landed, traj[0][t + 1], atol=1e-6)
     # with input noise the target keeps the plain window's convention: it
     # corrects velocity noise, not the last input position's offset
-    h2, _, a2 = _pushforward_window(_Oracle(traj[0][t], zero), traj, t, t_in, 1e-3, np.random.default_rng(5), 0.05, None)
+    oracle = _Oracle(traj[0][t], zero)
+    h2, _, a2 = _pushforward_window(oracle, traj, t, t_in, 1e-3, np.random.default_rng(5), 0.05, None)
+    assert oracle.seen is not None
+    np.testing.assert_array_equal(oracle.seen[1:], h2[:-1])  # the same noisy inputs, shifted by one
     offset = h2[-2].astype(np.float64) - traj[0][t - 1]
     assert np.abs(offset[ptype != KINEMATIC]).max() > 1e-5
     np.testing.assert_allclose(2 * h2[-1].astype(np.float64) - h2[-2] + a2, traj[0][t + 1] + offset, atol=1e-6)
@@ -456,6 +466,13 @@ def test_pushforward_training_runs_resumes_and_old_runs_still_resume(tmp_path):
         with pytest.raises(InvalidInputError) as e:
             TrainConfig(**{**cfg.__dict__, "pushforward_after": bad}).validate()
         assert e.value.field == "pushforward_after"
+    # trajectories one step too short for a pushforward window are refused up front
+    short = tmp_path / "short"
+    short.mkdir()
+    _drag_dataset(short, n_traj=4, frames=6, n=30)
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**cfg.__dict__, "data": str(short), "out": str(tmp_path / "short_run")}), progress=False)
+    assert e.value.field == "pushforward"
 
 
 def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):

@@ -13,7 +13,8 @@
   velocity), the target acceleration corrected so the model learns to undo it;
 * pushforward (Brandstetter et al. 2022, "Message passing neural PDE
   solvers", Sec. 2.3; off by default): after the first ``pushforward_after``
-  of the steps, each window is with probability ``pushforward`` one whose
+  of the steps (of this command's ``steps``: resuming with another ``steps``
+  moves the start), each window is with probability ``pushforward`` one whose
   last input position is the model's own prediction (one step without
   gradient from the window before), and whose target acceleration takes that
   predicted state to the true next position — the model learns to correct
@@ -30,7 +31,8 @@
   rerunning the same command resumes; ``log.csv`` holds the losses;
   ``model.onnx`` (the best validation rollout) is exported at the end;
 * with ``snapshots`` (default) every validation also exports the model of
-  that step as ``snapshots/step_NNNNNNN/model.onnx`` (a few tens of kB), so a
+  that step as ``snapshots/step_NNNNNNN/model.onnx`` (a few tens of kB; its
+  metadata's ``val_rollout_mse`` is that step's own score), so a
   checkpoint can be chosen afterwards on the benchmark's own rollout error
   (``benchmarks/bench_neural.py --split valid --models OUT/snapshots/*``,
   then ``benchmarks/ship_model.py``) rather than on the one 20-step
@@ -247,7 +249,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         for key, v in cfg_json.items():
             # a moved run directory still resumes; a setting added since the run was made has its default
             if key not in ("steps", "threads", "out", "snapshots") and old.get(key, defaults[key]) != v:
-                raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key)!r}, not {v!r}; use another --out", key)
+                raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key, defaults[key])!r}, not {v!r}; use another --out", key)
     saved.write_text(json.dumps(cfg_json, indent=2))
     if config.threads:
         torch.set_num_threads(config.threads)
@@ -263,6 +265,10 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     t_in = T_IN
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
+    if config.pushforward > 0 and train_data.t_max < t_in + 2:
+        raise InvalidInputError(
+            f"pushforward: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward"
+        )
     from hybridmpm.data import compute_statistics
 
     stats = compute_statistics(train_data.trajs, exclude_types=(KINEMATIC,))  # at the model step (strided data)
@@ -321,8 +327,8 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     data_meta = train_data.meta
     sha = data_meta.get("sha256", {}).get("train") if isinstance(data_meta.get("sha256"), dict) else None
 
-    def export_to(path: Path, seconds: float) -> dict[str, Any]:
-        """Export the model's current weights to ``path`` with the run's metadata; returns the summary part."""
+    def export_to(path: Path, seconds: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Export the model's current weights to ``path`` with the run's metadata (and ``extra``); returns the summary part."""
         summary = {
             "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
             "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
@@ -341,6 +347,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 "noise_std": config.noise_std,
                 "pushforward": config.pushforward,
                 "rollout_steps": rollout_steps,
+                **(extra or {}),
             },  # fmt: skip
         )
         return summary
@@ -384,11 +391,11 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                     "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "best": best, "elapsed": elapsed,
                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "gns_config": gcfg.to_dict(),
                 }  # fmt: skip
+                if config.snapshots:  # before the checkpoint, so a resumed run never lacks a validated step's snapshot
+                    export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed, {"val_rollout_mse": mse})
                 tmp = out / "checkpoint.pt.tmp"
                 torch.save(state, tmp)
                 os.replace(tmp, ckpt)
-                if config.snapshots:
-                    export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed)
     finally:
         bar.close()
         log.close()

@@ -99,8 +99,9 @@ where
     4 * std::mem::size_of::<Particle<D>>()
         // keys and next keys
         + 2 * std::mem::size_of::<Cell>()
-        // ids, slot_of, sorted, and the rollback copies of ids and slot_of
-        + 5 * std::mem::size_of::<u32>()
+        // ids, slot_of, sorted, the block sort's keys by id, and the rollback
+        // copies of ids and slot_of
+        + 6 * std::mem::size_of::<u32>()
         + per_cell
 }
 
@@ -320,7 +321,9 @@ pub(super) fn fma4(acc: &mut [f32; 4], s: f32, v: &[f32; 4]) {
 /// ends up added to a node or particle sum that starts at `+0.0`, where a
 /// zero's sign is lost (`+0 + −0 = +0`): no result changes by a bit (the
 /// golden hashes check this). A non-finite `v` still reaches the result
-/// through the other terms, which use the same values with nonzero weights.
+/// through other terms: in p2g a non-finite affine column makes the
+/// particle's base vector non-finite in the same lane; in g2p a non-finite
+/// node reaches the velocity sum, and so the substep's NaN probe.
 #[inline(always)]
 pub(super) fn fma4_nonzero(acc: &mut [f32; 4], s: f32, v: &[f32; 4]) {
     if s != 0.0 {
