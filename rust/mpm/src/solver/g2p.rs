@@ -82,7 +82,7 @@ where
             .into_par_iter()
             .enumerate()
             .map_init(
-                || vec![[0.0f32; 4]; st.pad_coords.len()],
+                || vec![[0.0f32; 4]; st.pad_nodes],
                 |patch, (si, (outp, outk))| {
                     let c = unflatten::<D>(src_blocks[si] as usize, &lat);
                     // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D,

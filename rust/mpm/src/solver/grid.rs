@@ -55,8 +55,8 @@ pub(super) struct Stencil<const D: usize> {
     pub(super) pad_stride: [usize; D],
     /// Strides of the block lattice, per dimension.
     pub(super) lat_stride: [usize; D],
-    /// Coordinates of each node of a padded (B+2)^D buffer.
-    pub(super) pad_coords: Vec<[usize; D]>,
+    /// Nodes of a padded (B+2)^D buffer.
+    pub(super) pad_nodes: usize,
     /// What an output block gathers from the padded buffer of its source
     /// block `c − s` (`s ∈ {0,1}^D`, bit `d` of the index): runs of nodes
     /// contiguous along the last dimension in both, as
@@ -150,17 +150,6 @@ where
         lat_stride[d] = nb.pow((D - 1 - d) as u32);
     }
     let pad_nodes = p.pow(D as u32);
-    let pad_coords = (0..pad_nodes)
-        .map(|q| {
-            let mut rem = q;
-            let mut c = [0usize; D];
-            for d in (0..D).rev() {
-                c[d] = rem % p;
-                rem /= p;
-            }
-            c
-        })
-        .collect();
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();
@@ -185,7 +174,7 @@ where
         Stencil {
             pad_stride,
             lat_stride,
-            pad_coords,
+            pad_nodes,
             gather_runs,
         },
     ))
