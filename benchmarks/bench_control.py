@@ -10,7 +10,10 @@ runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
 
 * ``none`` — no control; ``constant`` — the paper's baseline; ``pd`` — PD
   attraction; ``diffusion`` — the Fluid ControlNet (shipped models, or
-  ``--model-root DIR/SCENE``; noise seed = the case's seed);
+  ``--model-root DIR/SCENE``; noise seed = the case's seed), which plans a
+  fluid in free flight without its network
+  (:func:`hybridmpm.control.prior.in_free_flight`); ``diffusion_net`` — the
+  same with its network on every case;
   ``oracle_path`` — the true reverse path tracked by the diffusion
   controller's tracking law (the floor of that design); ``prior`` — what the
   free-sketch models plan relative to, alone (the coarse free rollout bent
@@ -44,7 +47,7 @@ from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.data import make_case
 from hybridmpm.control.prior import free_motion_of, prior_path
 
-METHODS = ("none", "constant", "pd", "diffusion", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
+METHODS = ("none", "constant", "pd", "diffusion", "diffusion_net", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
 
 
 def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) -> dict:
@@ -64,13 +67,14 @@ def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) ->
             ctl = Controller("oracle", frames=frames, oracle_path=case.path)
         elif m == "prior":  # the diffusion model's prior alone: the coarse free motion bent onto the sketch, tracked
             ctl = Controller("oracle", frames=frames, oracle_path=prior_path(free_motion_of(sim, frames), sim.particles.fluid(sim.positions), case.sketch))
-        elif m == "diffusion":
+        elif m in ("diffusion", "diffusion_net"):  # diffusion_net: the network even where the fluid is in free flight
             model = None if model_root is None else Path(model_root) / scene
-            ctl = Controller.for_scene(scene, "diffusion", frames=frames, model=model, seed=seed)
+            ctl = Controller.for_scene(scene, "diffusion", frames=frames, model=model, seed=seed, free_flight=m == "diffusion")
         else:
             ctl = Controller(m, frames=frames)
         ep = control_episode(sim, case.sketch, ctl, target=case.target)
         rows["methods"][m] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in ep.metrics.items()}
+        rows["methods"][m]["network"] = bool(ep.plan.network)
     return rows
 
 
@@ -102,7 +106,8 @@ def summarise(cases: list[dict]) -> str:
                 f"| {np.nanmean(col('smoothness')) if len(col('smoothness')) else float('nan'):.2f} | {np.percentile(plan, 50):.2f} / {np.percentile(plan, 95):.2f} "
                 f"| {np.median(col('episode_ms')):.0f} | {'–' if m == 'constant' else f'{100 * better:.0f}%'} | {'–' if m == 'pd' else f'{100 * better_pd:.0f}%'} |"
             )
-        lines.append("")
+        ff = [c for c in cs if "network" in c["methods"]["diffusion"] and not c["methods"]["diffusion"]["network"]]
+        lines += ["", f"In free flight (the diffusion controller planned without its network): {len(ff)} of {len(cs)} cases.", ""]
     return "\n".join(lines)
 
 

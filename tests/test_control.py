@@ -13,6 +13,7 @@ from hybridmpm.control import (
     Controller,
     Sketch,
     control_episode,
+    pd_targets,
     render_sketch,
     reverse_kinematic,
     reverse_tracking,
@@ -230,6 +231,25 @@ def test_pd_fills_a_drawn_oval():
     end = sim.particles.fluid(sim.positions)
     assert oval_adherence(end, sk)["inside"] == ep.metrics["inside"]
     assert np.isfinite(end).all()
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_an_oval_target_turns_the_cloud_and_never_mirrors_it(seed):
+    """pd_targets on an asymmetric cloud (an L of two bars, long axis at a random angle): its own ±2σ oval
+    (sketch_from_trajectory) leaves every particle where it is, and the same oval turned by θ (|θ| < 90°)
+    turns the cloud rigidly by θ about its centroid — a rotation with det +1, not a reflection."""
+    rng = np.random.default_rng(seed)
+    bar = np.stack(np.meshgrid(np.linspace(0, 0.2, 21), np.linspace(0, 0.03, 4), indexing="ij"), -1).reshape(-1, 2)
+    leg = np.stack(np.meshgrid(np.linspace(0, 0.03, 4), np.linspace(0.03, 0.08, 6), indexing="ij"), -1).reshape(-1, 2)
+    phi = rng.uniform(-math.pi, math.pi)
+    rot = lambda a: np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])  # noqa: E731
+    x = np.concatenate([bar, leg]) @ rot(phi).T + rng.uniform(0.35, 0.65, 2)
+    own = sketch_from_trajectory(x, x, "oval")
+    np.testing.assert_allclose(pd_targets(x, own), x, atol=1e-9)
+    theta = rng.uniform(-1.4, 1.4)
+    c, radii, angle = own.ellipse()
+    y = pd_targets(x, Sketch.oval(c, radii, angle + theta))
+    np.testing.assert_allclose(y - c, (x - c) @ rot(theta).T, atol=1e-9)
 
 
 def test_the_same_state_and_sketch_give_a_bitwise_equal_episode():

@@ -27,7 +27,9 @@ from hybridmpm.control.diffusion import (
     temporal_basis,
     trailing_timesteps,
 )
+from hybridmpm.conventions import DT_FRAME
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes import make_scene
 
 
 # ----------------------------------------------------------------- basis
@@ -274,6 +276,38 @@ def test_a_free_sketch_plan_ends_on_the_sketch(smoke_model: dict) -> None:
             np.testing.assert_allclose(2.0 * np.sqrt(vals[::-1]), radii, rtol=1e-6)
             axis = vecs[:, -1]
             assert abs(abs(axis @ [math.cos(angle), math.sin(angle)]) - 1.0) < 1e-6
+
+
+def test_a_fluid_in_free_flight_is_planned_on_its_parabola_without_the_network(smoke_model: dict) -> None:
+    """A blob thrown upward in mid-air meets no wall in the horizon: its free motion stays on the parabola, so the
+    diffusion controller plans the parabola bent onto the sketch (no network), and tracking it with the arrow the
+    parabola draws costs next to nothing and lands on the parabola's end; with the rule off the network plans."""
+    from hybridmpm.control.prior import ballistic_path
+    from hybridmpm.mpm import MpmParams
+    from hybridmpm.scenes import Scene
+    from hybridmpm.sim import MpmSimulator
+
+    params = make_scene("water2d", seed=0).params
+    from hybridmpm.scenes import lattice
+
+    x = lattice([0.46, 0.31], [0.54, 0.39], 0.5 / params.resolved_n_grid())  # 2 particles per cell a side, at rest density
+    v = np.tile(np.float32([0.3, 2.0]), (len(x), 1))
+    d = params.to_dict()
+    scene = Scene("thrown blob", MpmParams.from_dict(d), x, np.zeros(len(x), np.int32), v, dt_frame=DT_FRAME, frames=100)
+    sim = MpmSimulator(scene, threads=1)
+    model = ControlModel(smoke_model["root"] / "free" / "model")
+    g = np.asarray(d["gravity"], np.float64)
+    parabola = ballistic_path(x, v, g, model.frames - 1, DT_FRAME)
+    arrow = Sketch.arrow(x.mean(0), parabola[-1].mean(0))
+    plan = Controller("diffusion", model=model, frames=model.frames - 1).plan(sim, arrow)
+    assert plan.network is False
+    np.testing.assert_allclose(plan.path, parabola, atol=1e-5)  # the arrow is the parabola's own (float32 state): bent by nothing
+    ep = control_episode(MpmSimulator(scene, threads=1), arrow, Controller("diffusion", model=model, frames=model.frames - 1))
+    end = ep.rollout.fluid_positions[-1]
+    assert ep.metrics["effort_mean_g"] < 0.05 and ep.metrics["effort_max_g"] < 0.25  # a drawn sketch costs g's
+    assert np.sqrt(((end - parabola[-1]) ** 2).sum(-1)).max() < 2e-3
+    again = Controller("diffusion", model=model, frames=model.frames - 1, free_flight=False).plan(MpmSimulator(scene, threads=1), arrow)
+    assert again.network is True and not np.allclose(again.path, parabola, atol=1e-4)
 
 
 def test_diffusion_needs_a_model() -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from hybridmpm.control import Sketch
 from hybridmpm.control.controller import pd_targets
-from hybridmpm.control.prior import free_motion, material_of, prior_path
+from hybridmpm.control.prior import BALLISTIC_TOL, ballistic_path, free_motion, in_free_flight, material_of, prior_path
 from hybridmpm.conventions import DT_FRAME, GNS_SAND, GNS_WATER, MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import make_scene
@@ -35,6 +35,8 @@ def test_a_cloud_in_free_flight_follows_the_ballistic_path(material: int) -> Non
     t = np.arange(frames + 1)[:, None, None] * DT_FRAME
     ballistic = x[None].astype(np.float64) + v[None] * t + 0.5 * g * t * t
     assert np.abs(path - ballistic).max() < 2e-4  # 1.2 cm of fall in 50 ms: 1.6 % at most
+    np.testing.assert_allclose(ballistic_path(x, v, g, frames, DT_FRAME), ballistic, atol=1e-12)
+    assert in_free_flight(path, x, v, g, DT_FRAME)
 
 
 def test_the_walls_hold_a_cloud_thrown_at_the_floor() -> None:
@@ -49,6 +51,22 @@ def test_the_walls_hold_a_cloud_thrown_at_the_floor() -> None:
     assert lo <= path.min() and path.max() <= hi  # every particle inside the walls at every frame
     # ballistic, the centroid would end 0.8 m below where it started (under the floor); the floor stops it
     assert path[-1, :, 1].mean() > lo and path[:, :, 1].mean(1).min() > lo
+    g = np.asarray(params.to_dict()["gravity"], np.float64)
+    assert not in_free_flight(path, x, v, g, DT_FRAME)  # the floor acted: no free flight
+    assert in_free_flight(path[:4], x, v, g, DT_FRAME)  # (the first 7.5 ms, before it lands, are)
+
+
+def test_free_flight_is_judged_by_the_largest_deviation_from_the_parabola() -> None:
+    x = _cloud(seed=2).astype(np.float64)
+    v = np.tile([0.2, 1.0], (len(x), 1))
+    g = np.array([0.0, -9.81])
+    path = ballistic_path(x, v, g, 30, DT_FRAME)
+    assert in_free_flight(path, x, v, g, DT_FRAME)
+    path[17, 123, 0] += 1.2 * BALLISTIC_TOL  # one particle, one frame, pushed off its parabola
+    assert not in_free_flight(path, x, v, g, DT_FRAME)
+    assert in_free_flight(path, x, v, g, DT_FRAME, tol=2 * BALLISTIC_TOL)
+    with pytest.raises(InvalidInputError, match="free"):
+        in_free_flight(path[:, :10], x, v, g, DT_FRAME)
 
 
 def test_free_motion_is_deterministic_and_checks_its_input() -> None:

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.control.diffusion import SAMPLE_STEPS, ControlModel
-from hybridmpm.control.prior import free_motion_of
+from hybridmpm.control.prior import ballistic_path, free_motion_of, in_free_flight, prior_path
 from hybridmpm.control.reverse import A_MAX, clip_norm
 from hybridmpm.control.sketch import Sketch
 from hybridmpm.conventions import T_CTR
@@ -135,7 +135,9 @@ class Plan:
     closed loop (``feedback(k)`` computed from the state at control frame
     ``k``). ``applied`` keeps every field handed out (effort and smoothness
     metrics); ``seconds`` the time the plan took to make (sketch → field);
-    ``path`` float64 [F, N, D] the planned motion of a planned method."""
+    ``path`` float64 [F, N, D] the planned motion of a planned method;
+    ``network`` whether a network made it (False for a diffusion plan of a
+    fluid in free flight, :func:`~hybridmpm.control.prior.in_free_flight`)."""
 
     method: str
     start_frame: int
@@ -147,6 +149,7 @@ class Plan:
     sketch: Sketch | None = None
     applied: list[np.ndarray] = field(default_factory=list)
     path: np.ndarray | None = None
+    network: bool = False
 
     def __call__(self, frame: int) -> np.ndarray | None:
         k = int(frame) - self.start_frame
@@ -168,7 +171,10 @@ class Controller:
     diffusion controller (a :class:`~hybridmpm.control.diffusion.ControlModel`
     or its directory; :meth:`for_scene` finds the shipped one), sampled with
     ``steps`` DDIM steps (None: the model's own, ``ControlModel.sample_steps``),
-    guidance scale ``guidance`` and noise ``seed``.
+    guidance scale ``guidance`` and noise ``seed``; ``free_flight`` (default
+    True) plans a fluid in free flight without the network (the parabola bent
+    onto the sketch, :func:`~hybridmpm.control.prior.in_free_flight`; False
+    always samples, for comparison).
     Raises :class:`InvalidInputError` naming the argument (``method`` for an
     unknown method, ``model`` for a diffusion controller without one)."""
 
@@ -184,6 +190,7 @@ class Controller:
         steps: int | None = None,
         guidance: float = 1.0,
         seed: int = 0,
+        free_flight: bool = True,
     ) -> None:
         if method not in METHODS:
             raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
@@ -212,6 +219,7 @@ class Controller:
         own = self.model.sample_steps if self.model is not None else SAMPLE_STEPS
         self.steps: int = own if steps is None else steps
         self.guidance, self.seed = float(guidance), seed
+        self.free_flight = bool(free_flight)
 
     @classmethod
     def for_scene(cls, scene: str, method: str = "constant", **kw: Any) -> Controller:
@@ -255,16 +263,25 @@ class Controller:
                 raise InvalidInputError(f"model: a {self.model.dim}D controller cannot drive a {d}D scene", "model")
             src = getattr(sim, "mpm", sim)
             x, v = p.fluid(sim.positions), sim.velocities
+            network = True
             if self.model.needs_free:
                 # the free-motion rollout (MPM, GIL released) runs on a second thread while the network denoises
                 with single_thread_blas(), ThreadPoolExecutor(1) as pool:
                     free = pool.submit(free_motion_of, sim, self.model.frames - 1)
                     res = self.model.sample(x, v, p.particle_type[:n], sketch, seed=self.seed, steps=self.steps, guidance=self.guidance, free=free)
+                    fm = free.result()
+                # Free flight (no wall, pressure or friction acts over the horizon): the reverse path is the parabola,
+                # exactly, and the network's correction could only add error; plan the parabola bent onto the sketch.
+                g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64)
+                if self.free_flight and in_free_flight(fm, x, v, g, sim.dt_frame):
+                    res.path = prior_path(ballistic_path(x, v, g, self.model.frames - 1, sim.dt_frame), np.asarray(x, np.float64), sketch)
+                    network = False
             else:
                 res = self.model.sample(x, v, p.particle_type[:n], sketch, seed=self.seed, steps=self.steps, guidance=self.guidance)
             fb = track_path(src, res.path, self._track_omega(sim))
             plan = Plan("diffusion", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
             plan.path = res.path
+            plan.network = network
             return plan
         if sketch is None:
             raise InvalidInputError(f"sketch: the {self.method} method needs a sketch", "sketch")
@@ -296,7 +313,10 @@ class Controller:
 def pd_targets(x: np.ndarray, sketch: Sketch) -> np.ndarray:
     """Per-particle targets of the PD controller, float64 [N, D]: arrow — each
     particle moved by the arrow (x–y); oval — the cloud's ±2σ ellipse (x–y
-    principal axes) mapped affinely onto the drawn ellipse. Depth (3D z) is kept."""
+    principal axes) mapped affinely onto the drawn ellipse by a stretch along
+    the axes and the smaller of the two rotations that align the major axes
+    (an ellipse is the same turned by 180°), never a reflection: a cloud
+    mapped onto its own ±2σ oval stays where it is. Depth (3D z) is kept."""
     y = np.array(x, np.float64)
     if sketch.kind == "arrow":
         y[:, :2] += sketch.vector
@@ -306,9 +326,12 @@ def pd_targets(x: np.ndarray, sketch: Sketch) -> np.ndarray:
     vals, vecs = np.linalg.eigh(np.cov((xy - c0).T) if len(xy) > 1 else np.eye(2) * 1e-8)
     order = np.argsort(vals)[::-1]
     r0 = 2.0 * np.sqrt(np.maximum(vals[order], 1e-10))
-    r0_axes = vecs[:, order]
     c1, r1, angle = sketch.ellipse()
     r1_axes = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    # eigh's axes have arbitrary signs: take the major axis on the drawn one's side and the minor axis a quarter turn
+    # from it, as r1_axes is built, so that the map is a rotation (det +1), never a mirror image of the cloud
+    major = vecs[:, order[0]] * (1.0 if vecs[:, order[0]] @ r1_axes[:, 0] >= 0.0 else -1.0)
+    r0_axes = np.array([[major[0], -major[1]], [major[1], major[0]]])
     local = (xy - c0) @ r0_axes / r0  # unit-ellipse coordinates along the cloud's axes
     y[:, :2] = c1 + (local * r1) @ r1_axes.T
     return y
