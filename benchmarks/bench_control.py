@@ -74,7 +74,6 @@ def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) ->
             ctl = Controller(m, frames=frames)
         ep = control_episode(sim, case.sketch, ctl, target=case.target)
         rows["methods"][m] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in ep.metrics.items()}
-        rows["methods"][m]["network"] = bool(ep.plan.network)
     return rows
 
 

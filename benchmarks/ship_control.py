@@ -90,6 +90,15 @@ def main() -> None:
                 f"Final-shape grid-mass error against X_1: diffusion {err['diffusion']:.3f}; constant force {err['constant']:.3f}; PD {err['pd']:.3f};",
                 f"no control {err['none']:.3f}. Better than the constant force on {100 * better:.0f}% of the cases.",
             ]
+            extra = {m: np.mean([c["methods"][m]["grid_mass_error"] for c in cases]) for m in ("diffusion_net", "prior") if m in cases[0]["methods"]}
+            if extra:
+                free = sum(not c["methods"]["diffusion"].get("network", True) for c in cases)
+                lines.append(
+                    f"In free flight, planned without the network: {free} of {len(cases)} cases"
+                    + (f"; with the network on every case: {extra['diffusion_net']:.3f}" if "diffusion_net" in extra else "")
+                    + (f"; its prior alone (no network): {extra['prior']:.3f}" if "prior" in extra else "")
+                    + "."
+                )
     if a.note:
         lines += ["", a.note]
     (DEST / f"{a.scene}.md").write_text("\n".join(lines) + "\n")

@@ -304,6 +304,7 @@ def test_a_fluid_in_free_flight_is_planned_on_its_parabola_without_the_network(s
     np.testing.assert_allclose(plan.path, parabola, atol=1e-5)  # the arrow is the parabola's own (float32 state): bent by nothing
     ep = control_episode(MpmSimulator(scene, threads=1), arrow, Controller("diffusion", model=model, frames=model.frames - 1))
     end = ep.rollout.fluid_positions[-1]
+    assert ep.metrics["network"] is False  # (reported with the episode's metrics: CLI summary, service, benchmark)
     assert ep.metrics["effort_mean_g"] < 0.05 and ep.metrics["effort_max_g"] < 0.25  # a drawn sketch costs g's
     assert np.sqrt(((end - parabola[-1]) ** 2).sum(-1)).max() < 2e-3
     again = Controller("diffusion", model=model, frames=model.frames - 1, free_flight=False).plan(MpmSimulator(scene, threads=1), arrow)

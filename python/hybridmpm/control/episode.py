@@ -39,6 +39,7 @@ def control_episode(sim: Simulator, sketch: Sketch | None, controller: Controlle
     fluid = ro.fluid_positions
     metrics = control_metrics(fluid[0], fluid[-1], sketch, plan.applied, target, sim.scene.params.resolved_n_grid())
     metrics.update({"plan_ms": plan.seconds * 1e3, "episode_ms": float(ro.seconds.sum()) * 1e3, "frames": ro.frames_done, "failure": ro.failure})
+    metrics["network"] = plan.network  # whether a network made the plan (not in free flight, Controller.plan)
     return Episode(ro, plan, metrics)
 
 

@@ -433,6 +433,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                             "episode_ms": float(np.asarray(ro.seconds).sum()) * 1e3,
                             "frames": ro.frames_done,
                             "failure": ro.failure,
+                            "network": plan.network,
                         }
                     )
                     c0, c1 = fluid[0].mean(0), fluid[-1].mean(0)
