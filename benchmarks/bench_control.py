@@ -50,12 +50,12 @@ from hybridmpm.control.prior import free_motion_of, prior_path
 METHODS = ("none", "constant", "pd", "diffusion", "diffusion_net", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
 
 
-def run_case(scene: str, seed: int, kind: str, model_root: str | None = None) -> dict:
+def run_case(scene: str, seed: int, kind: str, model_root: str | None = None, methods: tuple[str, ...] = METHODS) -> dict:
     t0 = time.perf_counter()
-    case = make_case(scene, seed, kind)
+    case = make_case(scene, seed, kind, tracking=bool({"oracle", "smoothed"} & set(methods)))  # the tracking field: 2/3 of the cost
     rows = {"scene": scene, "seed": seed, "kind": kind, "preroll": case.preroll, "make_s": time.perf_counter() - t0, "methods": {}}
-    frames = len(case.tracking)
-    for m in METHODS:
+    frames = len(case.path) - 1
+    for m in methods:
         sim = case.simulator()
         if m == "oracle":
             ctl = Controller("oracle", frames=frames, oracle=case.target_field)
@@ -87,7 +87,7 @@ def summarise(cases: list[dict]) -> str:
             "| method | grid-mass error at T_ctr | RMSE_m̃ | arrow cosine | arrow length ratio | oval inside | oval IoU | effort mean / max (g) | smoothness | plan ms p50 / p95 | episode ms p50 | better than constant | better than PD |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
-        for m in METHODS:
+        for m in [m for m in METHODS if m in cs[0]["methods"]]:
 
             def col(key: str, kind: str | None = None, m: str = m, cs: list = cs) -> np.ndarray:
                 vals = [c["methods"][m].get(key) for c in cs if kind is None or c["kind"] == kind]
@@ -105,7 +105,7 @@ def summarise(cases: list[dict]) -> str:
                 f"| {np.nanmean(col('smoothness')) if len(col('smoothness')) else float('nan'):.2f} | {np.percentile(plan, 50):.2f} / {np.percentile(plan, 95):.2f} "
                 f"| {np.median(col('episode_ms')):.0f} | {'–' if m == 'constant' else f'{100 * better:.0f}%'} | {'–' if m == 'pd' else f'{100 * better_pd:.0f}%'} |"
             )
-        ff = [c for c in cs if "network" in c["methods"]["diffusion"] and not c["methods"]["diffusion"]["network"]]
+        ff = [c for c in cs if "network" in c["methods"].get("diffusion", {}) and not c["methods"]["diffusion"]["network"]]
         lines += ["", f"In free flight (the diffusion controller planned without its network): {len(ff)} of {len(cs)} cases.", ""]
     return "\n".join(lines)
 
@@ -117,14 +117,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-seed", type=int, default=5000)
     ap.add_argument("--out", default="benchmarks/results/control")
     ap.add_argument("--model-root", default=None, help="diffusion controllers as ROOT/SCENE (default: the shipped ones)")
+    ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {', '.join(METHODS)} (constant and pd are always run)")
     args = ap.parse_args(argv)
+    methods = tuple(m for m in METHODS if m in set(args.methods.split(",")) | {"constant", "pd"})
+    unknown = set(args.methods.split(",")) - set(METHODS)
+    if unknown:
+        ap.error(f"--methods: unknown {', '.join(sorted(unknown))}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = json.loads(out.with_suffix(".json").read_text())["cases"] if out.with_suffix(".json").is_file() else []
     have = {(c["scene"], c["seed"]) for c in done}
     todo = [(s, args.first_seed + i, "arrow" if i % 2 == 0 else "oval") for s in args.scenes.split(",") for i in range(args.cases)]
     for scene, seed, kind in tqdm([t for t in todo if (t[0], t[1]) not in have], desc="control cases"):
-        done.append(run_case(scene, seed, kind, args.model_root))
+        done.append(run_case(scene, seed, kind, args.model_root, methods))
         out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "cases": done}))  # resumable
     cmd = "python benchmarks/bench_control.py " + " ".join(sys.argv[1:] if argv is None else argv)
     text = f"Command: `{cmd}`\n\n" + summarise([c for c in done if (c["scene"], c["seed"], c["kind"]) in set(todo)])
