@@ -30,6 +30,9 @@ def main() -> None:
     ap.add_argument("--train-cmd", default=None, help="the training command (default: inferred)")
     ap.add_argument("--bench", type=Path, default=None, help="bench_control.py results (JSON) to quote")
     ap.add_argument("--note", default="")
+    ap.add_argument(
+        "--sample-steps", type=int, default=None, help="DDIM steps the shipped model samples with (control.json sample_steps; default SAMPLE_STEPS)"
+    )
     a = ap.parse_args()
     model = a.run / "model"
     meta = json.loads((model / "control.json").read_text())
@@ -41,6 +44,10 @@ def main() -> None:
     dest.mkdir(parents=True)
     for f in sorted(model.iterdir()):
         shutil.copy2(f, dest / f.name)
+    if a.sample_steps is not None:
+        meta["sample_steps"] = int(a.sample_steps)
+        (dest / "control.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
+    steps = int(meta.get("sample_steps", SAMPLE_STEPS))
     size = sum(f.stat().st_size for f in dest.iterdir())
     train_cmd = a.train_cmd or f"hybridmpm train-control {a.scene} --steps {meta['steps']}"
     lines = [
@@ -58,7 +65,7 @@ def main() -> None:
         f"state encoder: GNS latent {cfg['latent_state']} × {cfg['layers_state']} layers, R = {cfg['radius']} m; sketch encoder: hint block",
         f"(8 convolutions, 3 downsamplings) → 44-d + 8-channel local map; denoising head latent {cfg['latent_head']} × 1 layer, adaLN-Zero;",
         f"sample: {cfg['k_basis']} path B-spline coefficients × {cfg['dim']} dimensions per particle; cosine schedule, T = {meta['diffusion_steps']},",
-        f"x0 prediction, DDIM {SAMPLE_STEPS} trailing steps at serving time. {meta['parameters']} parameters, {size / 1e6:.2f} MB on disk.",
+        f"x0 prediction, DDIM with {steps} trailing step{'s' if steps > 1 else ''} at serving time. {meta['parameters']} parameters, {size / 1e6:.2f} MB on disk.",
         f"Prior: `{meta.get('prior', 'none')}` — "
         + (
             "the plan is sampled relative to the coarse free-motion rollout bent onto the sketch (`hybridmpm.control.prior`)."
