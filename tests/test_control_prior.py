@@ -67,6 +67,7 @@ def test_free_flight_is_judged_by_the_largest_deviation_from_the_parabola() -> N
     assert in_free_flight(path, x, v, g, DT_FRAME, tol=2 * BALLISTIC_TOL)
     with pytest.raises(InvalidInputError, match="free"):
         in_free_flight(path[:, :10], x, v, g, DT_FRAME)
+    assert not in_free_flight(np.zeros((30, 0, 2)), x[:0], v[:0], g, DT_FRAME)  # no fluid: nothing in flight
 
 
 def test_free_motion_is_deterministic_and_checks_its_input() -> None:

@@ -172,6 +172,8 @@ def in_free_flight(free: np.ndarray, positions: np.ndarray, velocities: np.ndarr
     bal = ballistic_path(positions, velocities, gravity, len(fm) - 1, dt_frame)
     if bal.shape != fm.shape:
         raise InvalidInputError(f"free: expected {list(bal.shape)}, got {list(fm.shape)}", "free")
+    if fm.size == 0:  # no fluid: nothing in flight
+        return False
     dev = float(np.sqrt(((fm - bal) ** 2).sum(-1)).max())
     return dev < (BALLISTIC_TOL if tol is None else float(tol))
 
