@@ -272,8 +272,10 @@ class Controller:
                     fm = free.result()
                 # Free flight (no wall, pressure or friction acts over the horizon): the reverse path is the parabola,
                 # exactly, and the network's correction could only add error; plan the parabola bent onto the sketch.
-                g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64)
-                if self.free_flight and in_free_flight(fm, x, v, g, sim.dt_frame):
+                # The network's plan, made meanwhile, is dropped: waiting for the rollout before sampling would add the
+                # rollout's time to every plan to save it on the few in free flight.
+                g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64) if self.free_flight else None
+                if g is not None and in_free_flight(fm, x, v, g, sim.dt_frame):
                     res.path = prior_path(ballistic_path(x, v, g, self.model.frames - 1, sim.dt_frame), np.asarray(x, np.float64), sketch)
                     network = False
             else:
