@@ -23,7 +23,7 @@ from hybridmpm.scenes import (
 )
 from hybridmpm.scenes.spec import MAX_OBSTACLE_DROP_FRACTION
 
-BUDGET = {"water_ramps2d": 3300, "sand_ramps2d": 3300, "dam_break2d": 4608}
+BUDGET = {"water_ramps2d": 3300, "sand_ramps2d": 3300, "dam_break2d": 4608, "water_columns2d": 4608}
 
 
 @pytest.mark.parametrize("name", sorted(DOMAINS))
@@ -70,6 +70,32 @@ def test_domain_contents():
     counts = [len(scene_spec("water2d", s).blocks) for s in range(12)]
     assert set(counts) <= {1, 2, 3} and len(set(counts)) > 1
     assert scene_spec("water2d", 0, frames=7).frames == 7
+
+
+def test_water_columns_stand_at_rest_on_the_floor_and_hold_the_dam_break_out():
+    from hybridmpm.scenes.registry import DAM_BREAK_A_CELLS, DAM_BREAK_HOLDOUT_CELLS
+
+    params = MpmParams(dim=2, n_grid=128)
+    dx, wall = 1.0 / 128, wall_face(params)
+    sides, counts, near = set(), set(), 0
+    for seed in range(300):
+        blocks = scene_spec("water_columns2d", seed).blocks
+        counts.add(len(blocks))
+        spans = sorted((b.lo[0], b.hi[0]) for b in blocks)
+        assert all(hi0 + 4 * dx <= lo1 + 1e-12 for (_, hi0), (lo1, _) in zip(spans, spans[1:]))  # 4+ cells apart
+        for b in blocks:
+            assert b.material == "water" and b.hydrostatic and b.velocity is None
+            assert b.lo[1] == pytest.approx(wall)  # on the floor, where water rests
+            a, h = round((b.hi[0] - b.lo[0]) / dx), round((b.hi[1] - b.lo[1]) / dx)
+            assert 8 <= a <= 36 and 0.75 * a - 1 <= h <= 3 * a
+            # held out: no column near the dam break's a x 2a (a base within the tolerance comes
+            # up in about one column in four, so 300 seeds would show one if the rule were gone)
+            assert not (abs(a - DAM_BREAK_A_CELLS) <= DAM_BREAK_HOLDOUT_CELLS and abs(h - 2 * DAM_BREAK_A_CELLS) <= 2 * DAM_BREAK_HOLDOUT_CELLS)
+            near += abs(a - DAM_BREAK_A_CELLS) <= DAM_BREAK_HOLDOUT_CELLS
+        against = [s for s in ("left", "right") if any(abs(b.lo[0] - wall) < 1e-12 if s == "left" else abs(b.hi[0] - (1 - wall)) < 1e-12 for b in blocks)]
+        assert against  # the first column stands against a wall
+        sides.update(against)
+    assert counts == {1, 2} and sides == {"left", "right"} and near > 0
 
 
 @pytest.mark.parametrize("suffix", [".toml", ".json"])

@@ -15,6 +15,7 @@ sand2d          4096   320   1–3 sand blocks, rough floor (μ = tan φ)
 water_ramps2d   3300   600   1–3 water blocks above 1–3 ramps
 sand_ramps2d    3300   400   1–3 sand blocks above 1–3 rough ramps
 water_sand2d    4096   500   2–3 blocks, water and sand
+water_columns2d 4608   400   1–2 water columns at rest, released (ours, not the paper's)
 water3d         4096   800   1–3 water blocks
 sand3d          4096   350   1–3 sand blocks
 dam_break2d     —      300   Martin & Moyce (1952) column (deterministic)
@@ -45,7 +46,15 @@ PAPER_FRAMES = {
     "water3d": 800,
     "sand3d": 350,
     "dam_break2d": 300,
+    # not in the paper: training data for column collapses (issue 16), about 1 s
+    "water_columns2d": 400,
 }
+
+#: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
+DAM_BREAK_A_CELLS = 24
+#: Columns of ``water_columns2d`` within this many cells of the dam break's base
+#: and twice that of its height are redrawn: the dam break stays a held-out scene.
+DAM_BREAK_HOLDOUT_CELLS = 3
 
 #: Largest initial velocity component of a random block [m/s].
 MAX_SPEED = 1.0
@@ -194,6 +203,57 @@ def water_sand2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, ma
     return _spec("water_sand2d", seed, params, _random_blocks(rng, params, mats, (8, 32), max_particles), frames)
 
 
+def water_columns2d(seed: int = 0, frames: int | None = None, n_grid: int = 128, max_particles: int = 4608) -> SceneSpec:
+    """1–2 water columns at hydrostatic rest on the floor, released at t = 0:
+    column collapses of random base (8–36 cells) and height (0.75–3 × the base,
+    at most 96 cells), the first against the left or the right wall, a second
+    (half the seeds) against the other wall or standing free, 4+ cells apart.
+
+    Not one of the paper's domains: training data for the pressure-driven
+    collapse of a column at rest, which the thrown blocks of ``water2d`` rarely
+    show (issue 16). The dam break stays held out: a column whose base is within
+    :data:`DAM_BREAK_HOLDOUT_CELLS` cells of :data:`DAM_BREAK_A_CELLS` and whose
+    height is within twice that of ``2a`` is redrawn, whatever its wall.
+    """
+    rng = _rng("water_columns2d", seed)
+    params = _params(2, n_grid, rough=False)
+    n = params.resolved_n_grid()
+    dx = 1.0 / n
+    wall = wall_face(params)
+    top = 1.0 - wall
+    k = int(rng.integers(1, 3))
+    a0, h0, tol = DAM_BREAK_A_CELLS, 2 * DAM_BREAK_A_CELLS, DAM_BREAK_HOLDOUT_CELLS
+    for _ in range(400):
+        sizes = []
+        for _ in range(k):
+            a = int(rng.integers(8, 37))
+            h = int(rng.integers(max(8, (3 * a) // 4), min(3 * a, 96) + 1))
+            sizes.append((a, h))
+        if any(abs(a - a0) <= tol and abs(h - h0) <= 2 * tol for a, h in sizes):
+            continue
+        if sum(a * h * 4 for a, h in sizes) > max_particles:
+            continue
+        left = bool(rng.integers(0, 2))
+        a, h = sizes[0]
+        spans = [(wall, wall + a * dx) if left else (top - a * dx, top)]
+        if k == 2:
+            a2 = sizes[1][0] * dx
+            if rng.integers(0, 2):  # against the other wall
+                spans.append((top - a2, top) if left else (wall, wall + a2))
+            else:  # free-standing, cell-aligned, 4+ cells from the first column and the walls
+                lo_min, lo_max = (spans[0][1] + 4 * dx, top - 4 * dx - a2) if left else (wall + 4 * dx, spans[0][0] - 4 * dx - a2)
+                if lo_max < lo_min:
+                    continue
+                x0 = wall + round((rng.uniform(lo_min, lo_max) - wall) / dx) * dx
+                spans.append((x0, x0 + a2))
+            (l0, h0_), (l1, h1_) = sorted(spans)
+            if l1 < h0_ + 4 * dx:
+                continue
+        blocks = [Block("water", [float(lo), wall], [float(hi), wall + hc * dx], hydrostatic=True) for (lo, hi), (_, hc) in zip(spans, sizes)]
+        return _spec("water_columns2d", seed, params, blocks, frames)
+    raise InvalidInputError("blocks: could not place the columns within the particle budget", "blocks")
+
+
 def water3d(seed: int = 0, frames: int | None = None, n_grid: int = 64, max_particles: int = 4096) -> SceneSpec:
     """1–3 water blocks (4–12 cells a side, 8 particles per cell) in a 64³ box."""
     rng = _rng("water3d", seed)
@@ -210,7 +270,7 @@ def sand3d(seed: int = 0, frames: int | None = None, n_grid: int = 64, max_parti
     return _spec("sand3d", seed, params, _random_blocks(rng, params, ["sand"] * k, (4, 12), max_particles), frames)
 
 
-def dam_break2d_spec(seed: int = 0, frames: int | None = None, n_grid: int = 128, a_cells: int = 24) -> SceneSpec:
+def dam_break2d_spec(seed: int = 0, frames: int | None = None, n_grid: int = 128, a_cells: int = DAM_BREAK_A_CELLS) -> SceneSpec:
     """Martin & Moyce (1952) water column: base ``a``, height ``2a``, against the
     left wall, at hydrostatic rest, released at t = 0 (``a = a_cells·dx``, at
     least 24 cells). ``seed`` is unused (the scene is deterministic).
@@ -238,6 +298,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "water_ramps2d": water_ramps2d,
     "sand_ramps2d": sand_ramps2d,
     "water_sand2d": water_sand2d,
+    "water_columns2d": water_columns2d,
     "water3d": water3d,
     "sand3d": sand3d,
     "dam_break2d": dam_break2d_spec,
@@ -265,6 +326,6 @@ def make_scene(name: str, seed: int = 0, frames: int | None = None, **kwargs: An
     return scene_spec(name, seed=seed, frames=frames, **kwargs).build()
 
 
-def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = 24) -> Scene:
+def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = DAM_BREAK_A_CELLS) -> Scene:
     """The dam-break scene (see :func:`dam_break2d_spec`)."""
     return dam_break2d_spec(seed=seed, n_grid=n_grid, a_cells=a_cells).build()
