@@ -531,3 +531,44 @@ def test_predict_refuses_foreign_types_and_graphs(exported):
     with pytest.raises(InvalidInputError) as e:
         nm.predict(hist, ptype, graph=(s, r))  # type: ignore[arg-type]
     assert e.value.field == "graph"
+
+
+def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path):
+    """``data`` as a list pools the datasets split by split: the model's
+    normalisation statistics are those of the union of the training splits
+    (computed here independently), one directory in a list is stored as the
+    plain path (older runs resume), and datasets that disagree on the frame
+    time are refused naming ``data``."""
+    from hybridmpm.data import GnsDataset, compute_statistics
+    from hybridmpm.neural.train import TrainConfig, train
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    _drag_dataset(a, n_traj=4, frames=16, n=30, k=0.2, seed=0)
+    _drag_dataset(b, n_traj=4, frames=16, n=30, k=0.05, seed=1)  # slower drag: other velocity statistics
+    cfg = TrainConfig(
+        scene="drag", data=[str(a), str(b)], out=str(tmp_path / "pool"), latent=8, layers=1, r_t=1, steps=4, batch=2,
+        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=2, val_windows=2, rollout_steps=3, threads=1,
+    )  # fmt: skip
+    train(cfg, progress=False)
+    union = [(t.positions, t.particle_type) for d in (a, b) for _, t in sorted(GnsDataset(d).split("train").items())]
+    only_a = [(t.positions, t.particle_type) for _, t in sorted(GnsDataset(a).split("train").items())]
+    want, alone = compute_statistics(union, exclude_types=(KINEMATIC,)), compute_statistics(only_a, exclude_types=(KINEMATIC,))
+    gns = torch.load(tmp_path / "pool" / "checkpoint.pt", weights_only=False)["gns_config"]  # the ONNX graph folds them in
+    for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
+        np.testing.assert_allclose(gns[key], want[key], rtol=1e-5, atol=1e-12)
+    assert not np.allclose(want["vel_std"], alone["vel_std"], rtol=1e-2)  # the pooled set is not the first one alone
+    assert json.loads((tmp_path / "pool" / "train_config.json").read_text())["data"] == [str(a), str(b)]
+    one = TrainConfig(**{**cfg.__dict__, "data": [str(a)], "out": str(tmp_path / "one")}).validate()
+    assert one.data == str(a)
+    meta_b = json.loads((b / "metadata.json").read_text())
+    meta_b["dt"] = 5e-3
+    (b / "metadata.json").write_text(json.dumps(meta_b))
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**cfg.__dict__, "out": str(tmp_path / "bad")}), progress=False)
+    assert e.value.field == "data" and "dt" in str(e.value)
+    for bad in ([], [3], None):
+        with pytest.raises(InvalidInputError) as e:
+            TrainConfig(**{**cfg.__dict__, "data": bad}).validate()
+        assert e.value.field == "data"

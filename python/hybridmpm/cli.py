@@ -582,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tr = sub.add_parser("train", help="train a GNS on a GNS-layout dataset and export model.onnx (needs the 'train' extra)")
     tr.add_argument("scene", help="scene family the model is for (stored in the model)")
-    tr.add_argument("--data", required=True, help="dataset directory (hybridmpm generate, or any GNS dataset)")
+    tr.add_argument("--data", required=True, nargs="+", help="dataset directory (hybridmpm generate, or any GNS dataset); several are pooled split by split")
     tr.add_argument("--out", required=True, help="model directory: checkpoint.pt, log.csv, model.onnx (resumes if present)")
     tr.add_argument("--latent", type=int, default=32, help="latent width (default 32; paper 128)")
     tr.add_argument("--layers", type=int, default=3, help="message-passing layers L (default 3; paper 10)")

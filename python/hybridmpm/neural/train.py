@@ -2,7 +2,11 @@
 
 ``hybridmpm train SCENE --data DIR --out MODEL_DIR`` runs :func:`train`:
 
-* data: a GNS-layout dataset (``hybridmpm generate``, or any GNS dataset);
+* data: a GNS-layout dataset (``hybridmpm generate``, or any GNS dataset),
+  or several (``--data A B``: their trajectories pooled split by split, e.g.
+  ``water2d`` with ``water_columns2d``; they must agree on dimension, box,
+  frame time, ``r_p`` and ``r_t``, and the first one's connectivity radius is
+  the default);
   ``r_t`` (default: the paper's 2, counted in *frames*) sets the model step:
   a dataset stored every ``r_t_data`` frames is subsampled by ``r_t / r_t_data``;
   the model's spatial resolution is the data's (``r_p`` from its metadata);
@@ -78,7 +82,7 @@ class TrainConfig:
     ``radius`` the connectivity radius R [m] (default: the dataset's)."""
 
     scene: str
-    data: str
+    data: str | list[str]
     out: str
     latent: int = 32
     layers: int = 3
@@ -99,7 +103,15 @@ class TrainConfig:
     pushforward_after: float = 0.2
     snapshots: bool = True
 
+    def data_dirs(self) -> list[Path]:
+        """The dataset directories (``data`` is one path or a list of them)."""
+        return [Path(d) for d in ([self.data] if isinstance(self.data, (str, os.PathLike)) else self.data)]
+
     def validate(self) -> TrainConfig:
+        if not isinstance(self.data, (str, os.PathLike)):
+            if not (isinstance(self.data, (list, tuple)) and self.data and all(isinstance(d, (str, os.PathLike)) for d in self.data)):
+                raise InvalidInputError(f"data: must be a dataset directory or a non-empty list of them, got {self.data!r}", "data")
+            self.data = str(self.data[0]) if len(self.data) == 1 else [str(d) for d in self.data]  # one directory is stored as before
         for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
@@ -121,17 +133,38 @@ class TrainConfig:
         return self
 
 
-class _Data:
-    """Trajectories of one split at the model step, in memory (float32)."""
+#: Metadata entries that pooled datasets must share.
+_POOLED_KEYS = ("dim", "bounds", "dt", "r_p", "r_t")
 
-    def __init__(self, directory: Path, split: str, stride: int) -> None:
+
+def _pooled_metadata(dirs: list[Path]) -> list[dict[str, Any]]:
+    """The datasets' metadata, after checking that every one agrees with the first
+    on :data:`_POOLED_KEYS` (raises :class:`InvalidInputError` naming ``data``)."""
+    from hybridmpm.data import read_metadata
+
+    metas = [read_metadata(d / "metadata.json") for d in dirs]
+    for d, m in zip(dirs[1:], metas[1:]):
+        for key in _POOLED_KEYS:
+            a, b = metas[0].get(key), m.get(key)
+            if a != b and not (isinstance(a, (int, float)) and isinstance(b, (int, float)) and math.isclose(a, b, rel_tol=1e-9)):
+                raise InvalidInputError(f"data: {d} has {key} = {b!r}, {dirs[0]} has {a!r}; pooled datasets must agree on {', '.join(_POOLED_KEYS)}", "data")
+    return metas
+
+
+class _Data:
+    """Trajectories of one split at the model step, pooled over the datasets in
+    order, in memory (float32)."""
+
+    def __init__(self, directories: list[Path], split: str, stride: int) -> None:
         from hybridmpm.data import GnsDataset
 
-        ds = GnsDataset(directory)
-        self.meta = ds.metadata
-        self.trajs = [(t.positions[::stride].astype(np.float32), t.particle_type.astype(np.int64)) for _, t in sorted(ds.split(split).items())]
-        if not self.trajs:
-            raise InvalidInputError(f"data: split {split!r} of {directory} is empty", "data")
+        self.trajs = []
+        for directory in directories:
+            ds = GnsDataset(directory)
+            trajs = [(t.positions[::stride].astype(np.float32), t.particle_type.astype(np.int64)) for _, t in sorted(ds.split(split).items())]
+            if not trajs:
+                raise InvalidInputError(f"data: split {split!r} of {directory} is empty", "data")
+            self.trajs += trajs
         self.t_max = min(len(p) for p, _ in self.trajs)
 
 
@@ -253,15 +286,15 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     saved.write_text(json.dumps(cfg_json, indent=2))
     if config.threads:
         torch.set_num_threads(config.threads)
-    from hybridmpm.data import read_metadata
-
-    meta = read_metadata(Path(config.data) / "metadata.json")
+    dirs = config.data_dirs()
+    metas = _pooled_metadata(dirs)
+    meta = metas[0]
     r_t_data = int(meta.get("r_t", 1))
     if config.r_t % r_t_data:
         raise InvalidInputError(f"r_t: {config.r_t} frames is not a multiple of the data's step ({r_t_data} frames)", "r_t")
     stride = config.r_t // r_t_data
-    train_data = _Data(Path(config.data), "train", stride)
-    valid_data = _Data(Path(config.data), "valid", stride)
+    train_data = _Data(dirs, "train", stride)
+    valid_data = _Data(dirs, "valid", stride)
     t_in = T_IN
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
@@ -324,8 +357,9 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
         return mse
 
-    data_meta = train_data.meta
-    sha = data_meta.get("sha256", {}).get("train") if isinstance(data_meta.get("sha256"), dict) else None
+    data_meta = meta
+    shas = [m["sha256"].get("train") if isinstance(m.get("sha256"), dict) else None for m in metas]
+    sha = shas[0] if len(shas) == 1 else shas  # a list for pooled datasets, in order
 
     def export_to(path: Path, seconds: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """Export the model's current weights to ``path`` with the run's metadata (and ``extra``); returns the summary part."""
