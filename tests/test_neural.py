@@ -572,3 +572,40 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
         with pytest.raises(InvalidInputError) as e:
             TrainConfig(**{**cfg.__dict__, "data": bad}).validate()
         assert e.value.field == "data"
+
+
+def test_ema_averages_the_trained_weights_without_changing_training(tmp_path):
+    """With ``ema`` = β the trained weights follow exactly the plain run's
+    path (the average draws no random numbers), the checkpoint's average is
+    ``β·w₁ + (1 − β)·w₂`` after two steps (torch's AveragedModel starts from
+    the first step's weights), and ``best.pt`` holds an averaged model, not
+    the trained one."""
+    from hybridmpm.neural.train import TrainConfig, train
+
+    data = tmp_path / "drag"
+    data.mkdir()
+    _drag_dataset(data, n_traj=4, frames=16, n=30)
+    base = dict(
+        scene="drag", data=str(data), latent=8, layers=1, r_t=1, batch=2, lr=3e-2, lr_final=3e-3,
+        noise_std=1e-5, val_every=1, val_windows=2, rollout_steps=3, threads=1,
+    )  # fmt: skip
+    beta = 0.75
+    train(TrainConfig(**base, out=str(tmp_path / "one"), steps=1), progress=False)
+    train(TrainConfig(**base, out=str(tmp_path / "two"), steps=2), progress=False)
+    train(TrainConfig(**base, out=str(tmp_path / "ema"), steps=2, ema=beta), progress=False)
+    w1 = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=False)["model"]
+    w2 = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=False)["model"]
+    state = torch.load(tmp_path / "ema" / "checkpoint.pt", weights_only=False)
+    avg = {k[len("module.") :]: v for k, v in state["ema"].items() if k.startswith("module.")}
+    moved = 0
+    for k, v in w2.items():
+        torch.testing.assert_close(state["model"][k], v, rtol=0, atol=0)  # training unchanged
+        if v.is_floating_point() and k in dict(GnsModel(GnsConfig(**state["gns_config"])).named_parameters()):
+            torch.testing.assert_close(avg[k], beta * w1[k] + (1 - beta) * v, rtol=1e-6, atol=1e-7)
+            moved += int(not torch.equal(w1[k], v))
+    assert moved > 0  # the two steps did change the weights
+    best = torch.load(tmp_path / "ema" / "best.pt", weights_only=True)
+    assert any(not torch.equal(best[k], w2[k]) for k in w2 if w2[k].is_floating_point())
+    with pytest.raises(InvalidInputError) as e:
+        TrainConfig(**base, out=str(tmp_path / "bad"), ema=1.0).validate()
+    assert e.value.field == "ema"

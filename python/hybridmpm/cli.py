@@ -381,7 +381,7 @@ def _train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         scene=args.scene, data=args.data, out=args.out, latent=args.latent, layers=args.layers, r_t=args.r_t, steps=args.steps,
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
-        seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after,
+        seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after, ema=args.ema,
         snapshots=not args.no_snapshots,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
@@ -599,6 +599,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="probability that a window's last input is the model's own prediction (pushforward training; default 0: off)",
     )
     tr.add_argument("--pushforward-after", type=float, default=0.2, help="fraction of the steps before pushforward starts (default 0.2)")
+    tr.add_argument(
+        "--ema",
+        type=float,
+        default=0.0,
+        help="validate, snapshot and export the exponential moving average of the weights with this decay (e.g. 0.999; default 0: off)",
+    )
     tr.add_argument("--no-snapshots", action="store_true", help="do not export each validated step's model under OUT/snapshots/")
     tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
     tr.add_argument("--radius", type=float, default=None, help="connectivity radius R [m] (default: the dataset's)")

@@ -23,6 +23,10 @@
   gradient from the window before), and whose target acceleration takes that
   predicted state to the true next position — the model learns to correct
   the drift of its own rollouts, not only input noise;
+* ema (off by default): with ``ema`` = β > 0 the weights that are validated,
+  snapshotted and exported are the exponential moving average of the trained
+  ones (``w̄ ← β·w̄ + (1 − β)·w`` after every step; torch's ``AveragedModel``),
+  which smooths the step-to-step scatter of a small-batch run's rollouts;
 * loss: **MSE of the normalised acceleration** over non-kinematic particles
   (the GNS choice: it weighs both axes alike whatever their scales; it is
   the paper's per-particle acceleration RMSE squared, up to the per-axis
@@ -45,9 +49,10 @@
 ``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
 :class:`~hybridmpm.neural.model.GnsModel` state_dict), ``optimizer`` (Adam's,
 indexed by parameter order), ``step``, ``best`` (best rollout MSE),
-``elapsed`` [s], ``rng`` (numpy bit-generator state), ``torch_rng`` and
-``gns_config`` (:meth:`GnsConfig.to_dict`); ``best.pt`` is the best model's
-state_dict. Checkpoints written before the features / encoder–processor–decoder
+``elapsed`` [s], ``rng`` (numpy bit-generator state), ``torch_rng``,
+``gns_config`` (:meth:`GnsConfig.to_dict`) and, with ``ema``, ``ema`` (the
+``AveragedModel``'s state_dict); ``best.pt`` is the best validated model's
+state_dict (the EMA's with ``ema``). Checkpoints written before the features / encoder–processor–decoder
 split (flat keys such as ``embed.weight``) resume unchanged: ``load_state_dict``
 remaps them (:func:`~hybridmpm.neural.model.remap_legacy_state_dict`) and the
 parameter order, hence the optimiser state, is the same.
@@ -66,6 +71,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.optim import swa_utils
 
 from hybridmpm.conventions import DEFAULT_N_GRID, T_IN
 from hybridmpm.errors import InvalidInputError
@@ -102,6 +108,7 @@ class TrainConfig:
     pushforward: float = 0.0
     pushforward_after: float = 0.2
     snapshots: bool = True
+    ema: float = 0.0
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
@@ -126,6 +133,8 @@ class TrainConfig:
             raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
         if not isinstance(self.snapshots, bool):
             raise InvalidInputError(f"snapshots: must be true or false, got {self.snapshots!r}", "snapshots")
+        if not (isinstance(self.ema, (int, float)) and math.isfinite(self.ema) and 0 <= self.ema < 1):
+            raise InvalidInputError(f"ema: must be a number in [0, 1), got {self.ema!r}", "ema")
         for name in ("pushforward", "pushforward_after"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
@@ -315,6 +324,10 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     torch.manual_seed(config.seed)
     model = GnsModel(gcfg)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    # the weights that are validated, snapshotted and exported: the EMA of the
+    # trained ones when ``ema`` > 0 (torch's AveragedModel), else the trained ones
+    ema = swa_utils.AveragedModel(model, multi_avg_fn=swa_utils.get_ema_multi_avg_fn(config.ema)) if config.ema > 0 else None
+    net: GnsModel = ema.module if ema is not None else model  # type: ignore[assignment]
     rng = np.random.default_rng(config.seed)
     step, best, elapsed = 0, math.inf, 0.0
     ckpt = out / "checkpoint.pt"
@@ -322,6 +335,8 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         state = torch.load(ckpt, weights_only=False)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        if ema is not None:
+            ema.load_state_dict(state["ema"])
         step, best, elapsed = state["step"], state["best"], state["elapsed"]
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
@@ -344,10 +359,10 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     running: list[float] = []
 
     def validate(lr: float, train_loss: float) -> float:
-        model.eval()
+        net.eval()
         with torch.no_grad():
-            v1 = float(np.mean([_loss(model, _batch([w], radius, config.max_neighbors)).item() for w in val_windows]))
-        roll = _rollout(model, val_traj, rollout_steps, radius, config.max_neighbors)
+            v1 = float(np.mean([_loss(net, _batch([w], radius, config.max_neighbors)).item() for w in val_windows]))
+        roll = _rollout(net, val_traj, rollout_steps, radius, config.max_neighbors)
         truth = val_traj[0][t_in : t_in + rollout_steps]
         fluid = val_traj[1] != KINEMATIC
         mse = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
@@ -366,11 +381,11 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         summary = {
             "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
             "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
-            "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in model.parameters())),
+            "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in net.parameters())),
         }  # fmt: skip
         path.parent.mkdir(parents=True, exist_ok=True)
         export_onnx(
-            model,
+            net,
             path,
             {
                 **summary,
@@ -411,6 +426,8 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             opt.zero_grad()
             loss.backward()
             opt.step()
+            if ema is not None:
+                ema.update_parameters(model)
             step += 1
             running.append(loss.item())
             bar.update(1)
@@ -420,11 +437,13 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 running = []
                 if mse < best:
                     best = mse
-                    torch.save(model.state_dict(), out / "best.pt")
+                    torch.save(net.state_dict(), out / "best.pt")
                 state = {
                     "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "best": best, "elapsed": elapsed,
                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "gns_config": gcfg.to_dict(),
                 }  # fmt: skip
+                if ema is not None:
+                    state["ema"] = ema.state_dict()
                 if config.snapshots:  # before the checkpoint, so a resumed run never lacks a validated step's snapshot
                     export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed, {"val_rollout_mse": mse})
                 tmp = out / "checkpoint.pt.tmp"
@@ -434,7 +453,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         bar.close()
         log.close()
     if (out / "best.pt").exists():
-        model.load_state_dict(torch.load(out / "best.pt", weights_only=True))
+        net.load_state_dict(torch.load(out / "best.pt", weights_only=True))
     summary = export_to(out / "model.onnx", elapsed)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
