@@ -104,5 +104,15 @@ def test_page_end_to_end(server, browser, tmp_path):
     assert sketch["points"][-1][1] > sketch["points"][0][1]
     assert d[1] >= 0.5 * 0.2
     page.wait_for_function("window.__hmpm.framesRendered > 0", timeout=5_000)
+
+    # a scene without a shipped model offers MPM only: choosing it (solver hybrid) falls back to mpm and streams
+    page.select_option("#solver", "hybrid")
+    page.select_option("#scene", "water_columns2d")
+    page.wait_for_function("window.__hmpm.session && window.__hmpm.session.scene === 'water_columns2d'", timeout=20_000)
+    assert page.eval_on_selector("#solver", "s => s.value") == "mpm"
+    assert page.eval_on_selector("#solver", "s => [...s.options].filter(o => o.disabled).map(o => o.value).sort()") == ["hybrid", "neural"]
+    assert page.evaluate("window.__hmpm.session.solver") == "mpm"
+    page.select_option("#scene", "water2d")  # a scene with a model offers every solver again
+    assert page.eval_on_selector("#solver", "s => [...s.options].filter(o => o.disabled).length") == 0
     assert errors == [], errors
     page.close()

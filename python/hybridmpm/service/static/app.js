@@ -67,18 +67,30 @@ async function api(method, path, body) {
   return data;
 }
 
+// the solvers each scene offers (a scene without a shipped model: MPM only)
+const sceneSolvers = {};
 async function loadScenes() {
   const scenes = await api("GET", "/v1/scenes");
   const sel = $("scene");
   for (const s of scenes) {
     const o = document.createElement("option");
-    o.value = s.name; o.textContent = `${s.name} (${s.dim}D)`;
+    o.value = s.name; o.textContent = `${s.name} (${s.dim}D)${s.model ? "" : ", MPM only"}`;
     sel.appendChild(o);
+    sceneSolvers[s.name] = s.solvers;
   }
   sel.value = params.get("scene") || "water2d";
   $("seed").value = params.get("seed") || "0";
   $("solver").value = params.get("solver") || "hybrid";
   if (params.get("method")) $("method").value = params.get("method");
+  syncSolvers();
+}
+
+// offer only the scene's solvers; a solver it lacks falls back to its first (MPM)
+function syncSolvers() {
+  const allowed = sceneSolvers[$("scene").value] || [];
+  const sel = $("solver");
+  for (const o of sel.options) o.disabled = allowed.length > 0 && !allowed.includes(o.value);
+  if (allowed.length > 0 && !allowed.includes(sel.value)) sel.value = allowed[0];
 }
 
 async function newSession() {
@@ -228,7 +240,7 @@ async function applySketch() {
 $("apply").addEventListener("click", applySketch);
 $("clear").addEventListener("click", () => { stroke = []; redrawInk(); });
 $("new").addEventListener("click", newSession);
-$("scene").addEventListener("change", newSession);
+$("scene").addEventListener("change", () => { syncSolvers(); newSession(); });
 $("play").addEventListener("click", () => {
   playing = !playing;
   $("play").textContent = playing ? "pause" : "play";
