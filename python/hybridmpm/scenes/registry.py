@@ -234,8 +234,8 @@ def water_columns2d(seed: int = 0, frames: int | None = None, n_grid: int = 128,
         if sum(a * h * 4 for a, h in sizes) > max_particles:
             continue
         left = bool(rng.integers(0, 2))
-        a, h = sizes[0]
-        spans = [(wall, wall + a * dx) if left else (top - a * dx, top)]
+        a1 = sizes[0][0] * dx
+        spans = [(wall, wall + a1) if left else (top - a1, top)]
         if k == 2:
             a2 = sizes[1][0] * dx
             if rng.integers(0, 2):  # against the other wall
@@ -246,8 +246,8 @@ def water_columns2d(seed: int = 0, frames: int | None = None, n_grid: int = 128,
                     continue
                 x0 = wall + round((rng.uniform(lo_min, lo_max) - wall) / dx) * dx
                 spans.append((x0, x0 + a2))
-            (l0, h0_), (l1, h1_) = sorted(spans)
-            if l1 < h0_ + 4 * dx:
+            (_, first_hi), (second_lo, _) = sorted(spans)
+            if second_lo < first_hi + 4 * dx:
                 continue
         blocks = [Block("water", [float(lo), wall], [float(hi), wall + hc * dx], hydrostatic=True) for (lo, hi), (_, hc) in zip(spans, sizes)]
         return _spec("water_columns2d", seed, params, blocks, frames)
