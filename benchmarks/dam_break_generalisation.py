@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -96,8 +97,8 @@ def main() -> None:
     lines = [
         "# Dam break: the network alone against Martin & Moyce (1952)",
         "",
-        f"`python benchmarks/dam_break_generalisation.py --models {' '.join(map(str, a.models))}"
-        + (f" --names {' '.join(names)}" if a.names else "")
+        f"`python benchmarks/dam_break_generalisation.py --models {shlex.join(map(str, a.models))}"
+        + (f" --names {shlex.join(names)}" if a.names else "")
         + f" --out {a.out}` (commit {result['commit']}).",
         f"Network alone after its MPM warm-up, {FRAMES} frames; grid-mass error against full-resolution MPM over the first {ERROR_FRAMES} frames.",
         "",
