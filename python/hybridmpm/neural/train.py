@@ -372,7 +372,6 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
         return mse
 
-    data_meta = meta
     shas = [m["sha256"].get("train") if isinstance(m.get("sha256"), dict) else None for m in metas]
     sha = shas[0] if len(shas) == 1 else shas  # a list for pooled datasets, in order
 
@@ -380,7 +379,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         """Export the model's current weights to ``path`` with the run's metadata (and ``extra``); returns the summary part."""
         summary = {
             "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
-            "r_p": float(data_meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
+            "r_p": float(meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
             "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in net.parameters())),
         }  # fmt: skip
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -391,7 +390,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 **summary,
                 "particle_types": types,
                 "data_sha256": sha,
-                "dt_frame": float(data_meta.get("dt_frame", 2.5e-3)),
+                "dt_frame": float(meta.get("dt_frame", 2.5e-3)),
                 "n_grid": n_grid,
                 "noise_std": config.noise_std,
                 "pushforward": config.pushforward,
