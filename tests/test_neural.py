@@ -299,7 +299,7 @@ def test_runtime_errors_name_the_field(exported, tmp_path):
         nm.check_fits(2, ptype, "sand3d")
 
 
-def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0):
+def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0, scene=None):
     """Particles far apart, each moving under gravity and linear drag:
     a = g·dt² − k·v (per step); learnable from the velocity history."""
     from hybridmpm.data import compute_statistics, write_metadata, write_split
@@ -330,6 +330,7 @@ def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0):
             "dt": 2.5e-3,
             "r_t": 1,
             "n_grid": 128,
+            **({"scene": scene} if scene else {}),
             **stats,
         },
     )
@@ -545,8 +546,8 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir()
     b.mkdir()
-    _drag_dataset(a, n_traj=4, frames=16, n=30, k=0.2, seed=0)
-    _drag_dataset(b, n_traj=4, frames=16, n=30, k=0.05, seed=1)  # slower drag: other velocity statistics
+    _drag_dataset(a, n_traj=4, frames=16, n=30, k=0.2, seed=0, scene="drag")
+    _drag_dataset(b, n_traj=4, frames=16, n=30, k=0.05, seed=1, scene="slow_drag")  # slower drag: other velocity statistics
     cfg = TrainConfig(
         scene="drag", data=[str(a), str(b)], out=str(tmp_path / "pool"), latent=8, layers=1, r_t=1, steps=4, batch=2,
         lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=2, val_windows=2, rollout_steps=3, threads=1,
@@ -560,6 +561,26 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
         np.testing.assert_allclose(gns[key], want[key], rtol=1e-5, atol=1e-12)
     assert not np.allclose(want["vel_std"], alone["vel_std"], rtol=1e-2)  # the pooled set is not the first one alone
     assert json.loads((tmp_path / "pool" / "train_config.json").read_text())["data"] == [str(a), str(b)]
+    # the model serves the scene families of every pooled dataset, each once
+    snap = NeuralModel(tmp_path / "pool" / "snapshots" / "step_0000004" / "model.onnx")
+    assert snap.meta["scenes"] == ["drag", "slow_drag"]
+    ptype = np.full(30, 5, np.int64)
+    snap.check_fits(2, ptype, "slow_drag")
+    with pytest.raises(InvalidInputError):
+        snap.check_fits(2, ptype, "water2d")
+    # the validation rollout is that of each dataset's first validation
+    # trajectory, averaged: recomputed here through onnxruntime from the
+    # step's exported snapshot (the training scored the same weights in torch)
+    mses = []
+    for d in (a, b):
+        pos = next(iter(sorted(GnsDataset(d).split("valid").items())))[1].positions
+        hist = pos[:6].copy()
+        for k in range(3):
+            _, nxt, _ = snap.predict(hist, ptype)
+            hist = np.concatenate([hist[1:], nxt[None]])
+            mses.append(((nxt - pos[6 + k]) ** 2).mean() / 3 / 2)  # mean over 3 steps, then over 2 datasets
+    logged = [r for r in csv.DictReader(open(tmp_path / "pool" / "log.csv")) if r["step"] == "4"][-1]
+    assert float(logged["val_rollout_mse"]) == pytest.approx(sum(mses), rel=1e-3)
     one = TrainConfig(**{**cfg.__dict__, "data": [str(a)], "out": str(tmp_path / "one")}).validate()
     assert one.data == str(a)
     meta_b = json.loads((b / "metadata.json").read_text())

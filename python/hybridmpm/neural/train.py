@@ -34,7 +34,9 @@
 * Adam with exponential learning-rate decay ``lr = lr_final + (lr − lr_final)·0.1^(step/steps)``;
 * validation every ``val_every`` steps: one-step loss on fixed validation
   windows (no noise) and a ``rollout_steps`` rollout on the first validation
-  trajectory (position MSE and grid-mass error of the last step);
+  trajectory of each dataset (position MSE and grid-mass error of the last
+  step; with pooled datasets, their means, so that every pooled domain counts
+  in the choice of ``model.onnx``);
 * ``checkpoint.pt`` at every validation (model, optimiser, step, RNG states):
   rerunning the same command resumes; ``log.csv`` holds the losses;
   ``model.onnx`` (the best validation rollout) is exported at the end;
@@ -167,12 +169,15 @@ class _Data:
     def __init__(self, directories: list[Path], split: str, stride: int) -> None:
         from hybridmpm.data import GnsDataset
 
-        self.trajs = []
+        self.trajs: list[tuple[np.ndarray, np.ndarray]] = []
+        #: index in ``trajs`` of each dataset's first trajectory
+        self.first: list[int] = []
         for directory in directories:
             ds = GnsDataset(directory)
             trajs = [(t.positions[::stride].astype(np.float32), t.particle_type.astype(np.int64)) for _, t in sorted(ds.split(split).items())]
             if not trajs:
                 raise InvalidInputError(f"data: split {split!r} of {directory} is empty", "data")
+            self.first.append(len(self.trajs))
             self.trajs += trajs
         self.t_max = min(len(p) for p, _ in self.trajs)
 
@@ -347,8 +352,8 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         traj = valid_data.trajs[k]
         t = int(vrng.integers(t_in - 1, len(traj[0]) - 1))
         val_windows.append(_window(traj, t, t_in, 0.0, vrng))
-    val_traj = valid_data.trajs[0]
-    rollout_steps = min(config.rollout_steps, len(val_traj[0]) - t_in)
+    val_trajs = [valid_data.trajs[i] for i in valid_data.first]  # one per pooled dataset
+    rollout_steps = min(config.rollout_steps, min(len(v[0]) for v in val_trajs) - t_in)
     n_grid = int(meta.get("n_grid", DEFAULT_N_GRID[gcfg.dim]))
     log_path = out / "log.csv"
     new_log = not log_path.exists()
@@ -362,16 +367,22 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         net.eval()
         with torch.no_grad():
             v1 = float(np.mean([_loss(net, _batch([w], radius, config.max_neighbors)).item() for w in val_windows]))
-        roll = _rollout(net, val_traj, rollout_steps, radius, config.max_neighbors)
-        truth = val_traj[0][t_in : t_in + rollout_steps]
-        fluid = val_traj[1] != KINEMATIC
-        mse = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
-        gm = float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(mse) else math.inf
+        mses, gms = [], []
+        for val_traj in val_trajs:
+            roll = _rollout(net, val_traj, rollout_steps, radius, config.max_neighbors)
+            truth = val_traj[0][t_in : t_in + rollout_steps]
+            fluid = val_traj[1] != KINEMATIC
+            m = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
+            mses.append(m)
+            gms.append(float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(m) else math.inf)
+        mse, gm = float(np.mean(mses)), float(np.mean(gms))
         writer.writerow([step, f"{lr:.3e}", f"{train_loss:.5f}", f"{v1:.5f}", f"{mse:.4e}", f"{gm:.4f}", f"{time.perf_counter() - t0:.1f}"])
         log.flush()
         bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
         return mse
 
+    # the scene families the model may serve: the one named, then those of the pooled datasets
+    scenes = list(dict.fromkeys([config.scene, *(str(m["scene"]) for m in metas if m.get("scene"))]))
     shas = [m["sha256"].get("train") if isinstance(m.get("sha256"), dict) else None for m in metas]
     sha = shas[0] if len(shas) == 1 else shas  # a list for pooled datasets, in order
 
@@ -389,6 +400,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             {
                 **summary,
                 "particle_types": types,
+                "scenes": scenes,
                 "data_sha256": sha,
                 "dt_frame": float(meta.get("dt_frame", 2.5e-3)),
                 "n_grid": n_grid,
