@@ -88,7 +88,7 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
     scenes = json.loads((data / "scenes.json").read_text())
     test = sorted(k for k, v in scenes.items() if v["split"] == split)[:seeds]
     per_model: dict[str, dict[str, list[float]]] = {d.name: {"rollout_mean": [], "rollout_last": [], "one_step": [], "ms_per_frame": []} for d in model_dirs}
-    ref_stats: dict[str, list[float]] = {"mpm_full_ms_2t": [], "mpm_full_ms_1t": [], "mpm_rp_ms_1t": [], "mpm_rp_mean": [], "mpm_rp_last": []}
+    ref_stats: dict[str, list[float]] = {"mpm_full_ms_2t": [], "mpm_full_ms_1t": [], "mpm_rp_ms_1t": [], "mpm_rp_mean": [], "mpm_rp_last": [], "still_mean": []}
     models = {d.name: NeuralModel(d / "model.onnx", threads=1) for d in model_dirs}
     for tid in test:
         info = scenes[tid]
@@ -107,6 +107,12 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
         e = grid_mass_error(low_a, ref_a, n_grid)
         ref_stats["mpm_rp_mean"].append(float(e.mean()))
         ref_stats["mpm_rp_last"].append(float(e[-1]))
+        # the trivial model: MPM at r_p's particles held still after the networks' warm-up
+        nm0 = next(iter(models.values()))
+        warm = (nm0.t_in - 1) * nm0.r_t
+        still = low_a.copy()
+        still[warm + 1 :] = low_a[warm]
+        ref_stats["still_mean"].append(float(grid_mass_error(still, ref_a, n_grid).mean()))
         for name, nm in models.items():
             res = rollout(NeuralSimulator(full, nm, seed=info["seed"], detect_failures=False, mpm_threads=1), frames)
             pos = res.fluid_positions
@@ -188,7 +194,8 @@ def main() -> None:
         "",
         f"MPM on the same initial conditions: full resolution {refm['mpm_full_ms_2t']:.2f} ms/frame (2 threads), "
         f"{refm['mpm_full_ms_1t']:.2f} (1 thread); at r_p {refm['mpm_rp_ms_1t']:.2f} (1 thread), grid-mass error "
-        f"{refm['mpm_rp_mean']:.3f} mean, {refm['mpm_rp_last']:.3f} last (the floor of any model at this r_p).",
+        f"{refm['mpm_rp_mean']:.3f} mean, {refm['mpm_rp_last']:.3f} last (the floor of any model at this r_p); "
+        f"its particles held still after the warm-up (the trivial model): {refm['still_mean']:.3f} mean.",
     ]
     a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -9,6 +9,8 @@ Each is scored by
 
 * the grid-mass error (DESIGN.md) against full-resolution MPM, mean over the
   first 100 frames and at frame 100 (the model cards' figure);
+* the same for the particles held still after the warm-up (the trivial
+  model: a network must beat it to have learnt anything);
 * the surge front ``Z(T)`` and column height ``H(T)`` against the published
   table with its tolerances (:func:`hybridmpm.validation.score_dam_break`:
   shifted RMS ≤ 0.12, unshifted ratio 0.90–1.32, height ratio 0.85–1.25);
@@ -49,16 +51,21 @@ ERROR_FRAMES = 100
 
 def score(ro: Rollout, scene, ref: np.ndarray, r_p: float) -> dict:
     """Grid-mass error and the Martin & Moyce score of a rollout of the dam break."""
+    return score_positions(ro.fluid_positions, ro.frame_index, ro.failure, scene, ref, r_p)
+
+
+def score_positions(positions: np.ndarray, frame_index: np.ndarray, failure: str | None, scene, ref: np.ndarray, r_p: float) -> dict:
+    """:func:`score` of fluid positions [F, N, D] at frames ``frame_index``."""
     info = scene.spec.info
-    keep = ro.frame_index <= FRAMES
-    pos, frames = ro.fluid_positions[keep], ro.frame_index[keep]
+    keep = frame_index <= FRAMES
+    pos, frames = positions[keep], frame_index[keep]
     err = grid_mass_error(pos, ref[frames], scene.params.resolved_n_grid())
     first = frames <= ERROR_FRAMES
     spacing = info["spacing"] / np.sqrt(r_p)
     z, h = dam_break_front_height(pos, info["a"], info["x_wall"], info["y_floor"], spacing)
     s = score_dam_break(frames * scene.spec.dt_frame, z, h, info["a"])
     return {
-        "frames_done": int(frames[-1]), "failure": ro.failure,
+        "frames_done": int(frames[-1]), "failure": failure,
         "error_mean": float(err[first].mean()), "error_last": float(err[first][-1]),
         "mm_passes": bool(s.passes()), "front_rms_shifted": s.rms_front_shifted, "front_ratio": [s.ratio_min, s.ratio_max],
         "height_ratio": [s.height_ratio_min, s.height_ratio_max],
@@ -92,6 +99,13 @@ def main() -> None:
     for r_p in sorted({float(m.meta["r_p"]) for m in models}):
         ro = rollout(MpmSimulator(scene, r_p=r_p, threads=a.threads), FRAMES, progress=f"MPM r_p {r_p:.4f}")
         result["runs"][f"MPM at r_p = {r_p:.4f}"] = {"kind": "mpm", "r_p": r_p, **score(ro, scene, ref, r_p)}
+        # the trivial model: the particles held still after the networks' MPM warm-up
+        warm = max((int(m.meta["t_in"]) - 1) * int(m.meta["r_t"]) for m in models if float(m.meta["r_p"]) == r_p)
+        still = ro.fluid_positions.copy()
+        still[ro.frame_index > warm] = ro.fluid_positions[ro.frame_index == warm][0]
+        result["runs"][f"held still after frame {warm} (r_p = {r_p:.4f})"] = {
+            "kind": "still", "r_p": r_p, **score_positions(still, ro.frame_index, None, scene, ref, r_p),
+        }  # fmt: skip
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
     lines = [
@@ -125,7 +139,7 @@ def main() -> None:
     ax[1].plot(exp.height_T, exp.height_H, "ko", label="Martin & Moyce (1952)")
     for name, r in result["runs"].items():
         t = np.asarray(r["series"]["t"])
-        style = "--" if r["kind"] == "mpm" else "-"
+        style = {"mpm": "--", "still": ":"}.get(r["kind"], "-")
         ax[0].plot(t * np.sqrt(2 * G / aa), r["series"]["Z"], style, label=name)
         ax[1].plot(t * np.sqrt(G / aa), r["series"]["H"], style, label=name)
     ax[0].set(xlabel="T = t·sqrt(2g/a)", ylabel="surge front Z = x/a", xlim=(0, 3.5))

@@ -28,6 +28,7 @@ def main() -> None:
     ap.add_argument("--serves", nargs="*", default=[], help="other scenes the model serves")
     ap.add_argument("--tolerance", type=float, default=0.10)
     ap.add_argument("--note", default="", help="a sentence added to the card (e.g. how the candidates were chosen)")
+    ap.add_argument("--how", default=None, help="how the run was made, for the card's training line (default: the sweep or train_long.sh)")
     a = ap.parse_args()
     import onnx
 
@@ -52,7 +53,9 @@ def main() -> None:
     t = test[chosen["model"]]
     data_meta = json.loads((Path(valid["data"]) / "metadata.json").read_text())
     train_cfg = json.loads((a.models_dir / chosen["model"] / "train_config.json").read_text())
-    if meta["steps"] <= 4000:
+    if a.how is not None:
+        how_trained = a.how
+    elif meta["steps"] <= 4000:
         how_trained = "(`benchmarks/train_models.sh`: the candidates at an equal budget of 4000 steps)."
     else:
         how_trained = (
@@ -67,7 +70,7 @@ def main() -> None:
         f"{a.tolerance:.0%} of the best ({best:.3f}) among {len(rows)} candidate(s). {a.note}".rstrip(),
         "",
         "## Data",
-        f"`hybridmpm generate {a.scene} --trajectories {sum(data_meta['trajectories'].values())} --r-p {data_meta['r_p']} --out {valid['data']}` "
+        f"`hybridmpm generate {data_meta.get('scene', a.scene)} --trajectories {sum(data_meta['trajectories'].values())} --r-p {data_meta['r_p']} --out {valid['data']}` "
         f"({data_meta['trajectories']['train']} training trajectories of {data_meta['frames']} frames, MPM at r_p = {data_meta['r_p']:.4f}); "
         f"train.npz sha256 `{data_meta['sha256']['train'][:16]}…`.",
         "",
@@ -78,8 +81,13 @@ def main() -> None:
         "",
         "## Training",
         f"{meta['steps']} steps in {meta['train_seconds']:.0f} s on one CPU thread (2-core machine): "
-        f"`hybridmpm train {a.scene} --data {valid['data']} --latent {meta['latent']} --layers {meta['layers']} --r-t {meta['r_t']} "
-        f"--radius {meta['radius']} --steps {meta['steps']} --threads 1` {how_trained}",
+        + (f"the step-{meta['steps']} snapshot of " if meta["steps"] != train_cfg.get("steps", meta["steps"]) else "")
+        + f"`hybridmpm train {train_cfg.get('scene', a.scene)} --data {' '.join(data) if isinstance(data := train_cfg.get('data', valid['data']), list) else data} "
+        f"--latent {meta['latent']} --layers {meta['layers']} --r-t {meta['r_t']} --radius {meta['radius']} --steps {train_cfg.get('steps', meta['steps'])}"
+        + (f" --noise-std {train_cfg['noise_std']}" if train_cfg.get("noise_std", 3e-4) != 3e-4 else "")
+        + (f" --ema {train_cfg['ema']}" if train_cfg.get("ema") else "")
+        + (f" --seed {train_cfg['seed']}" if train_cfg.get("seed") else "")
+        + f" --threads 1` {how_trained}",
         "",
         "## Errors (grid-mass error against full-resolution MPM, DESIGN.md)",
         f"- test split ({test_all['seeds']} trajectories), {test_all['frames']}-frame rollout: mean {t['rollout_mean']:.3f}, last frame {t['rollout_last']:.3f}",

@@ -80,7 +80,7 @@ def main() -> None:
                     "one_step": float(np.mean(m["one_step"])),
                 }
             )
-        result["runs"][str(run)] = {"mpm_rp_mean": floor, "snapshots": rows}
+        result["runs"][str(run)] = {"mpm_rp_mean": floor, "still_mean": float(np.mean(ref["still_mean"])), "snapshots": rows}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
     lines = [
@@ -97,7 +97,8 @@ def main() -> None:
             "",
             f"## `{run}`",
             "",
-            f"MPM at r_p on the same trajectories: {r['mpm_rp_mean']:.3f}. Best snapshot: step {best['step']}, "
+            f"MPM at r_p on the same trajectories: {r['mpm_rp_mean']:.3f}; its particles held still after the warm-up "
+            f"(the trivial model): {r['still_mean']:.3f}. Best snapshot: step {best['step']}, "
             f"{best['rollout_mean']:.3f} ({best['rollout_mean'] / r['mpm_rp_mean']:.2f}× MPM at r_p).",
             "",
             "| step | wall h | val one-step loss | rollout error mean | last | one-step error |",
