@@ -94,6 +94,11 @@ def main() -> None:
         f"- test split, one-step (from MPM-at-r_p history): {t['one_step']:.3f}",
         f"- validation rollout (selection): {chosen['rollout_mean']:.3f}",
         f"- floor: MPM at r_p on the same test seeds: {test_all['reference']['mpm_rp_mean']:.3f}",
+        *(
+            [f"- the trivial model (MPM at r_p's particles held still after the warm-up) on the same test seeds: {test_all['reference']['still_mean']:.3f}"]
+            if "still_mean" in test_all["reference"]
+            else []
+        ),
         "",
         "## Cost",
         f"{t['ms_per_frame']:.2f} ms per frame in the test rollouts (graph + onnxruntime, one thread, / r_t); "

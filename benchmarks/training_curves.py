@@ -131,6 +131,9 @@ def main() -> None:
         if floor is not None:
             ax[k].axhline(floor, color="k", ls="--", lw=1, label="MPM at r_p")
             ax[k].axhline(1.5 * floor, color="k", ls=":", lw=1, label="1.5× MPM at r_p")
+        still = [r["still_mean"] for r in result["runs"].values() if "still_mean" in r]
+        if still:
+            ax[k].axhline(float(np.mean(still)), color="grey", ls="-.", lw=1, label="particles held still")
         ax[k].set_ylabel("rollout grid-mass error (mean)")
     ax[0].set_xlabel("training step")
     ax[1].set_xlabel("wall time [h, one CPU thread]")
