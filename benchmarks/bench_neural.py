@@ -80,10 +80,11 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
 
 
 def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split: str = "test") -> tuple[dict, dict]:
+    from hybridmpm.bench.run import held_still
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.neural import NeuralModel
     from hybridmpm.scenes import SceneSpec
-    from hybridmpm.sim import MpmSimulator, NeuralSimulator, rollout
+    from hybridmpm.sim import MpmSimulator, NeuralSimulator, rollout, warmup_frames
 
     scenes = json.loads((data / "scenes.json").read_text())
     test = sorted(k for k, v in scenes.items() if v["split"] == split)[:seeds]
@@ -108,10 +109,7 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
         ref_stats["mpm_rp_mean"].append(float(e.mean()))
         ref_stats["mpm_rp_last"].append(float(e[-1]))
         # the trivial model: MPM at r_p's particles held still after the networks' warm-up
-        nm0 = next(iter(models.values()))
-        warm = (nm0.t_in - 1) * nm0.r_t
-        still = low_a.copy()
-        still[warm + 1 :] = low_a[warm]
+        still = held_still(low_a, np.arange(len(low_a)), warmup_frames(next(iter(models.values()))))
         ref_stats["still_mean"].append(float(grid_mass_error(still, ref_a, n_grid).mean()))
         for name, nm in models.items():
             res = rollout(NeuralSimulator(full, nm, seed=info["seed"], detect_failures=False, mpm_threads=1), frames)

@@ -34,12 +34,12 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.bench.env import git_commit
-from hybridmpm.bench.run import collapsed
+from hybridmpm.bench.run import collapsed, held_still
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural import NeuralModel
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim.mpm import MpmSimulator
-from hybridmpm.sim.neural import NeuralSimulator
+from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
 from hybridmpm.sim.rollout import Rollout, reference, rollout
 from hybridmpm.validation import dam_break_front_height, load_martin_moyce, score_dam_break
 
@@ -100,9 +100,8 @@ def main() -> None:
         ro = rollout(MpmSimulator(scene, r_p=r_p, threads=a.threads), FRAMES, progress=f"MPM r_p {r_p:.4f}")
         result["runs"][f"MPM at r_p = {r_p:.4f}"] = {"kind": "mpm", "r_p": r_p, **score(ro, scene, ref, r_p)}
         # the trivial model: the particles held still after the networks' MPM warm-up
-        warm = max((int(m.meta["t_in"]) - 1) * int(m.meta["r_t"]) for m in models if float(m.meta["r_p"]) == r_p)
-        still = ro.fluid_positions.copy()
-        still[ro.frame_index > warm] = ro.fluid_positions[ro.frame_index == warm][0]
+        warm = max(warmup_frames(m) for m in models if float(m.meta["r_p"]) == r_p)
+        still = held_still(ro.fluid_positions, ro.frame_index, warm)
         result["runs"][f"held still after frame {warm} (r_p = {r_p:.4f})"] = {
             "kind": "still", "r_p": r_p, **score_positions(still, ro.frame_index, None, scene, ref, r_p),
         }  # fmt: skip

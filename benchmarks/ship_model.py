@@ -32,6 +32,8 @@ def main() -> None:
     a = ap.parse_args()
     import onnx
 
+    from hybridmpm.neural.train import TrainConfig
+
     valid = json.loads(a.valid.read_text())
     test_all = json.loads(a.test.read_text())
     test = {r["model"]: r for r in test_all["models"]}
@@ -62,6 +64,19 @@ def main() -> None:
             "(`benchmarks/train_long.sh`: the configuration chosen in the 4000-step sweep of `benchmarks/train_models.sh`, resumed; "
             "the learning rate decays over the full step count, so the resumed run restarts from a higher rate)."
         )
+    # the run's own command (train_config.json), its options that differ from the defaults included
+    data = train_cfg.get("data", valid["data"])
+    run_steps = train_cfg.get("steps", meta["steps"])
+    train_command = " ".join(
+        [
+            f"hybridmpm train {train_cfg.get('scene', a.scene)} --data {' '.join(data) if isinstance(data, list) else data}",
+            f"--latent {meta['latent']} --layers {meta['layers']} --r-t {meta['r_t']} --radius {meta['radius']} --steps {run_steps}",
+            *([f"--noise-std {train_cfg['noise_std']}"] if train_cfg.get("noise_std", TrainConfig.noise_std) != TrainConfig.noise_std else []),
+            *([f"--ema {train_cfg['ema']}"] if train_cfg.get("ema") else []),
+            *([f"--seed {train_cfg['seed']}"] if train_cfg.get("seed") else []),
+            "--threads 1",
+        ]
+    )
     lines = [
         f"# Model card: `{a.scene}.onnx` ({chosen['model']})",
         "",
@@ -81,13 +96,8 @@ def main() -> None:
         "",
         "## Training",
         f"{meta['steps']} steps in {meta['train_seconds']:.0f} s on one CPU thread (2-core machine): "
-        + (f"the step-{meta['steps']} snapshot of " if meta["steps"] != train_cfg.get("steps", meta["steps"]) else "")
-        + f"`hybridmpm train {train_cfg.get('scene', a.scene)} --data {' '.join(data) if isinstance(data := train_cfg.get('data', valid['data']), list) else data} "
-        f"--latent {meta['latent']} --layers {meta['layers']} --r-t {meta['r_t']} --radius {meta['radius']} --steps {train_cfg.get('steps', meta['steps'])}"
-        + (f" --noise-std {train_cfg['noise_std']}" if train_cfg.get("noise_std", 3e-4) != 3e-4 else "")
-        + (f" --ema {train_cfg['ema']}" if train_cfg.get("ema") else "")
-        + (f" --seed {train_cfg['seed']}" if train_cfg.get("seed") else "")
-        + f" --threads 1` {how_trained}",
+        + (f"the step-{meta['steps']} snapshot of " if meta["steps"] != run_steps else "")
+        + f"`{train_command}` {how_trained}",
         "",
         "## Errors (grid-mass error against full-resolution MPM, DESIGN.md)",
         f"- test split ({test_all['seeds']} trajectories), {test_all['frames']}-frame rollout: mean {t['rollout_mean']:.3f}, last frame {t['rollout_last']:.3f}",

@@ -343,3 +343,19 @@ def test_errors_are_averaged_over_the_same_frames():
     assert on_common_frames(strided, 4)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames(every, 1)["error_mean"] == pytest.approx(4.0)
     assert on_common_frames({"series": {"frame": [0, 1, 2, 3, 4, 5], "error": [1, 9, 9, 9, 3, 9]}}, 4)["error_mean"] == pytest.approx(2.0)
+
+
+def test_held_still_freezes_every_frame_after_the_warmup():
+    """The trivial model of the benchmarks: frames up to the warm-up as given,
+    every later frame equal to the warm-up's (also with a strided frame index,
+    as a network rollout records), the input untouched."""
+    from hybridmpm.bench.run import held_still
+
+    rng = np.random.default_rng(0)
+    pos = rng.random((7, 5, 2))
+    frames = np.array([0, 4, 8, 12, 16, 20, 24])
+    before = pos.copy()
+    still = held_still(pos, frames, 8)
+    np.testing.assert_array_equal(pos, before)
+    for i, f in enumerate(frames):
+        np.testing.assert_array_equal(still[i], pos[i] if f <= 8 else pos[2])

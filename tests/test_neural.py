@@ -579,7 +579,7 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
             _, nxt, _ = snap.predict(hist, ptype)
             hist = np.concatenate([hist[1:], nxt[None]])
             mses.append(((nxt - pos[6 + k]) ** 2).mean() / 3 / 2)  # mean over 3 steps, then over 2 datasets
-    logged = [r for r in csv.DictReader(open(tmp_path / "pool" / "log.csv")) if r["step"] == "4"][-1]
+    logged = [r for r in csv.DictReader((tmp_path / "pool" / "log.csv").read_text().splitlines()) if r["step"] == "4"][-1]
     assert float(logged["val_rollout_mse"]) == pytest.approx(sum(mses), rel=1e-3)
     one = TrainConfig(**{**cfg.__dict__, "data": [str(a)], "out": str(tmp_path / "one")}).validate()
     assert one.data == str(a)

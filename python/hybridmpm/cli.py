@@ -95,7 +95,7 @@ def _simulate(args: argparse.Namespace) -> int:
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.render import export_points, plot_timeline, render_gif
     from hybridmpm.scenes import make_scene
-    from hybridmpm.sim import NEURAL, make_simulator, reference, rollout
+    from hybridmpm.sim import NEURAL, make_simulator, reference, rollout, warmup_frames
 
     scene = make_scene(args.scene, seed=args.seed)
     frames = args.frames if args.frames is not None else scene.frames
@@ -133,7 +133,7 @@ def _simulate(args: argparse.Namespace) -> int:
     else:
         model = sim.model  # type: ignore[attr-defined]
         summary["model"] = str(model.path)
-        summary["warmup_mpm_frames"] = (model.t_in - 1) * model.r_t
+        summary["warmup_mpm_frames"] = warmup_frames(model)
         summary["neural_steps"] = steps[NEURAL]
     if args.solver == "hybrid":
         summary.update({"r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every, "audit_tol": sim.audit_tol})  # type: ignore[attr-defined]

@@ -125,6 +125,17 @@ def collapsed(frame: Any, sim: Any) -> str | None:
     return "collapsed" if sim.mean_degree > COLLAPSE_FACTOR * sim.initial_degree else None
 
 
+def held_still(positions: np.ndarray, frame_index: np.ndarray, warmup: int) -> np.ndarray:
+    """The trivial model every network must beat: ``positions`` [F, N, D]
+    (frames ``frame_index`` [F], which must include ``warmup``) with every
+    frame after ``warmup`` replaced by the positions at ``warmup`` (the
+    particles held still after the network's MPM warm-up, see
+    :func:`hybridmpm.sim.warmup_frames`). Returns a new array."""
+    still = positions.copy()
+    still[frame_index > warmup] = positions[frame_index == warmup][0]
+    return still
+
+
 def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> dict[str, Any]:
     """One method on one seed: the cell's record (errors per stored frame,
     solver per stored frame, latency, MPM share, switches, failure).
