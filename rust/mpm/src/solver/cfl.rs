@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::{FrameStats, Health, Solver, build_pool};
+use super::{FrameStats, Solver, build_pool};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 
@@ -135,46 +135,12 @@ where
             self.ids.clone(),
             self.slot_of.clone(),
         );
-        let pool = self.pool.clone();
         let max_travel = self.params.dx(); // a particle may not cross more than one cell per substep
         let mut n_sub = n_sub;
         let mut retries = 0;
         loop {
             let dt = dt_frame / n_sub as f32;
-            let result = pool.install(|| {
-                self.compute_keys();
-                let mut vmax = 0.0;
-                for s in 0..n_sub {
-                    let (health, v) = self.substep(dt);
-                    vmax = v;
-                    match health {
-                        Health::Ok => {}
-                        Health::NonFinite => {
-                            return Err(MpmError::NonFinite {
-                                substep: s,
-                                substeps: n_sub,
-                                retries,
-                            });
-                        }
-                        Health::Inverted => {
-                            return Err(MpmError::Inverted {
-                                substep: s,
-                                substeps: n_sub,
-                                retries,
-                            });
-                        }
-                    }
-                    if v * dt > max_travel {
-                        return Err(MpmError::CflViolation {
-                            substep: s,
-                            substeps: n_sub,
-                            max_speed: v,
-                            retries,
-                        });
-                    }
-                }
-                Ok(vmax)
-            });
+            let result = self.run_substeps(n_sub, dt, max_travel, retries);
             match result {
                 Ok(vmax) => {
                     self.time += dt_frame as f64;

@@ -25,7 +25,6 @@
 //! to the domain). Otherwise the frame is rolled back and retried.
 
 use nalgebra::{SMatrix, SVector};
-use rayon::prelude::*;
 
 use super::grid::{EMPTY, add4, fma4, fma4_nonzero, unflatten};
 use super::{Health, Solver};
@@ -39,10 +38,21 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// g2p in block order: each source block gathers its padded velocity
-    /// patch once, its particles read it with fixed strides and are written
-    /// contiguously into the next storage (sorted by block, then id).
-    pub(super) fn g2p(&mut self, dt: f32) -> (Health, f32) {
+    /// g2p of source block `si`: gathers its padded velocity patch once
+    /// (`patch`: scratch of `(B+2)^D` nodes), updates its particles and
+    /// writes them, and their [`Cell`] for the next substep, to `outp` /
+    /// `outk` (the block's contiguous range of the next storage order:
+    /// sorted by block, then id). Returns the block's health and largest
+    /// speed squared.
+    pub(super) fn g2p_block(
+        &self,
+        si: usize,
+        patch: &mut [[f32; 4]],
+        outp: &mut [Particle<D>],
+        outk: &mut [Cell],
+        dt: f32,
+        sand: &SandModel,
+    ) -> (Health, f32) {
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
@@ -50,10 +60,8 @@ where
         let blk_nodes = 1usize << (log2_b as usize * D);
         let st = &self.stencil;
         let lat = st.lat_stride;
-        let sand = SandModel::new::<D>(&self.params.sand);
-        let water = self.params.water.clone();
-        let n = self.particles.len();
-        let g = &mut self.grid;
+        let water = &self.params.water;
+        let g = &self.grid;
         let (out_map, out_v, src_blocks, src_offsets, sorted) = (
             &g.out_map,
             &g.out_v,
@@ -62,140 +70,118 @@ where
             &g.sorted,
         );
         let particles = &self.particles;
-        self.next.resize(n, particles[0]);
-        g.next_keys.resize(n, Cell::default());
         let cells = &g.keys;
-        // split the outputs into one contiguous slice per source block
-        let mut out_slices: Vec<(&mut [Particle<D>], &mut [Cell])> =
-            Vec::with_capacity(src_blocks.len());
-        let mut rest_p: &mut [Particle<D>] = &mut self.next[..];
-        let mut rest_k: &mut [Cell] = &mut g.next_keys[..];
-        for si in 0..src_blocks.len() {
-            let len = (src_offsets[si + 1] - src_offsets[si]) as usize;
-            let (ap, bp) = rest_p.split_at_mut(len);
-            let (ak, bk) = rest_k.split_at_mut(len);
-            out_slices.push((ap, ak));
-            rest_p = bp;
-            rest_k = bk;
+        let c = unflatten::<D>(src_blocks[si] as usize, &lat);
+        // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D,
+        // copied by runs from the 2^D output blocks c + s it overlaps (the
+        // same node pairs the grid update gathers; every node lies in an
+        // output block, so all are overwritten)
+        for (s, runs) in st.gather_runs.iter().enumerate() {
+            let mut lin = 0usize;
+            for d in 0..D {
+                lin += (c[d] + ((s >> d) & 1)) * lat[d];
+            }
+            let ob = out_map.get(lin).copied().unwrap_or(EMPTY);
+            if ob == EMPTY {
+                continue;
+            }
+            let blk = &out_v[(ob - 1) as usize * blk_nodes..ob as usize * blk_nodes];
+            for &(l, q, len) in runs {
+                let (l, q, len) = (l as usize, q as usize, len as usize);
+                patch[q..q + len].copy_from_slice(&blk[l..l + len]);
+            }
         }
-        let result = out_slices
-            .into_par_iter()
-            .enumerate()
-            .map_init(
-                || vec![[0.0f32; 4]; st.pad_nodes],
-                |patch, (si, (outp, outk))| {
-                    let c = unflatten::<D>(src_blocks[si] as usize, &lat);
-                    // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D,
-                    // copied by runs from the 2^D output blocks c + s it overlaps (the
-                    // same node pairs the grid update gathers; every node lies in an
-                    // output block, so all are overwritten)
-                    for (s, runs) in st.gather_runs.iter().enumerate() {
-                        let mut lin = 0usize;
-                        for d in 0..D {
-                            lin += (c[d] + ((s >> d) & 1)) * lat[d];
-                        }
-                        let ob = out_map.get(lin).copied().unwrap_or(EMPTY);
-                        if ob == EMPTY {
-                            continue;
-                        }
-                        let blk = &out_v[(ob - 1) as usize * blk_nodes..ob as usize * blk_nodes];
-                        for &(l, q, len) in runs {
-                            let (l, q, len) = (l as usize, q as usize, len as usize);
-                            patch[q..q + len].copy_from_slice(&blk[l..l + len]);
-                        }
-                    }
-                    let lo_i = src_offsets[si] as usize;
-                    let mut nan_probe = 0.0f32;
-                    let mut nonpositive_j = false;
-                    let mut finite_rest = true;
-                    let mut inverted = false;
-                    let mut vmax2 = 0.0f32;
-                    for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
-                        let slot = sorted[lo_i + j] as usize;
-                        let mut p = particles[slot];
-                        let cell = &cells[slot];
-                        let (fx, w) = weights::<D>(cell);
-                        let base_idx = cell.pad_off as usize;
-                        let mut acc_v = [0.0f32; 4];
-                        let mut acc_b = [[0.0f32; 4]; D];
-                        let nodes = &patch[base_idx..];
-                        let w_last = w[D - 1];
-                        Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
-                            let row = &nodes[off..off + 3];
-                            // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
-                            let mut sum = [0.0f32; 4];
-                            let mut sum_k = [0.0f32; 4];
-                            // (the k = 0 term of sum_k is a zero: left out, which
-                            // changes no bit of a finite sum, see `fma4_nonzero`)
-                            fma4(&mut sum, w_last[0], &row[0]);
-                            for k in 1..3 {
-                                let wk = w_last[k];
-                                fma4(&mut sum, wk, &row[k]);
-                                fma4(&mut sum_k, wk * k as f32, &row[k]);
-                            }
-                            for l in 0..4 {
-                                sum[l] *= w_outer;
-                                sum_k[l] *= w_outer;
-                            }
-                            add4(&mut acc_v, &sum);
-                            for c in 0..D - 1 {
-                                fma4_nonzero(&mut acc_b[c], o[c], &sum);
-                            }
-                            add4(&mut acc_b[D - 1], &sum_k);
-                        });
-                        // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
-                        let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
-                        let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| {
-                            (acc_b[c][r] - acc_v[r] * fx[c]) * (4.0 * inv_dx)
-                        });
-                        p.v = new_v;
-                        p.c = new_c;
-                        p.x += new_v * dt;
-                        for d in 0..D {
-                            p.x[d] = p.x[d].max(lo).min(hi);
-                        }
-                        p.tau = match p.material {
-                            Material::Water => {
-                                water::advance_volume_ratio(&mut p.j, dt, &new_c);
-                                water::kirchhoff_stress(&water, p.j, &new_c)
-                            }
-                            Material::Sand => {
-                                let tau = sand::advance(&mut p.f, &mut p.vc, &new_c, dt, &sand);
-                                finite_rest &=
-                                    p.f.iter().all(|x| x.is_finite()) && p.vc.is_finite();
-                                inverted |= !(det(&p.f) > 0.0);
-                                tau
-                            }
-                        };
-                        *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
-                        // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
-                        nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
-                        nonpositive_j |= p.j <= 0.0;
-                        vmax2 = vmax2.max(p.v.norm_squared());
-                        *po = p;
-                    }
-                    // positions are clamped (NaN maps to the bound), so test the rest
-                    let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite_rest)
-                        || nonpositive_j
-                    {
-                        Health::NonFinite
-                    } else if inverted {
-                        Health::Inverted
-                    } else {
-                        Health::Ok
-                    };
-                    (health, vmax2.sqrt())
-                },
-            )
-            .reduce(|| (Health::Ok, 0.0f32), |a, b| (a.0.max(b.0), a.1.max(b.1)));
-        // the next storage order is the sorted order
+        let lo_i = src_offsets[si] as usize;
+        let mut nan_probe = 0.0f32;
+        let mut nonpositive_j = false;
+        let mut finite_rest = true;
+        let mut inverted = false;
+        let mut vmax2 = 0.0f32;
+        for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
+            let slot = sorted[lo_i + j] as usize;
+            let mut p = particles[slot];
+            let cell = &cells[slot];
+            let (fx, w) = weights::<D>(cell);
+            let base_idx = cell.pad_off as usize;
+            let mut acc_v = [0.0f32; 4];
+            let mut acc_b = [[0.0f32; 4]; D];
+            let nodes = &patch[base_idx..];
+            let w_last = w[D - 1];
+            Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
+                let row = &nodes[off..off + 3];
+                // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
+                let mut sum = [0.0f32; 4];
+                let mut sum_k = [0.0f32; 4];
+                // (the k = 0 term of sum_k is a zero: left out, which
+                // changes no bit of a finite sum, see `fma4_nonzero`)
+                fma4(&mut sum, w_last[0], &row[0]);
+                for k in 1..3 {
+                    let wk = w_last[k];
+                    fma4(&mut sum, wk, &row[k]);
+                    fma4(&mut sum_k, wk * k as f32, &row[k]);
+                }
+                for l in 0..4 {
+                    sum[l] *= w_outer;
+                    sum_k[l] *= w_outer;
+                }
+                add4(&mut acc_v, &sum);
+                for c in 0..D - 1 {
+                    fma4_nonzero(&mut acc_b[c], o[c], &sum);
+                }
+                add4(&mut acc_b[D - 1], &sum_k);
+            });
+            // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
+            let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
+            let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| {
+                (acc_b[c][r] - acc_v[r] * fx[c]) * (4.0 * inv_dx)
+            });
+            p.v = new_v;
+            p.c = new_c;
+            p.x += new_v * dt;
+            for d in 0..D {
+                p.x[d] = p.x[d].max(lo).min(hi);
+            }
+            p.tau = match p.material {
+                Material::Water => {
+                    water::advance_volume_ratio(&mut p.j, dt, &new_c);
+                    water::kirchhoff_stress(water, p.j, &new_c)
+                }
+                Material::Sand => {
+                    let tau = sand::advance(&mut p.f, &mut p.vc, &new_c, dt, sand);
+                    finite_rest &= p.f.iter().all(|x| x.is_finite()) && p.vc.is_finite();
+                    inverted |= !(det(&p.f) > 0.0);
+                    tau
+                }
+            };
+            *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
+            // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
+            nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
+            nonpositive_j |= p.j <= 0.0;
+            vmax2 = vmax2.max(p.v.norm_squared());
+            *po = p;
+        }
+        // positions are clamped (NaN maps to the bound), so test the rest
+        let health =
+            if !(nan_probe.is_finite() && vmax2.is_finite() && finite_rest) || nonpositive_j {
+                Health::NonFinite
+            } else if inverted {
+                Health::Inverted
+            } else {
+                Health::Ok
+            };
+        (health, vmax2)
+    }
+
+    /// After every block's g2p: the next storage order becomes the current
+    /// one (particles, their cells, and the id ↔ slot maps).
+    pub(super) fn g2p_finish(&mut self) {
+        let g = &mut self.grid;
         std::mem::swap(&mut self.particles, &mut self.next);
         std::mem::swap(&mut g.keys, &mut g.next_keys);
         let ids_old = std::mem::take(&mut self.ids);
-        self.ids = sorted.iter().map(|&s| ids_old[s as usize]).collect();
+        self.ids = g.sorted.iter().map(|&s| ids_old[s as usize]).collect();
         for (slot, &id) in self.ids.iter().enumerate() {
             self.slot_of[id as usize] = slot as u32;
         }
-        result
     }
 }

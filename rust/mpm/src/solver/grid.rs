@@ -10,18 +10,22 @@
 //! block — and with it every floating-point sum — depends only on the
 //! particle set, never on the thread count.
 
-use rayon::prelude::*;
+use std::sync::atomic::Ordering;
 
 use super::Solver;
+use super::team::RawSlice;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, human_bytes};
-use crate::kernel::{Cell, cell_of};
+use crate::kernel::Cell;
 use crate::particles::Particle;
 
 /// Marks an unused entry of the block lattice maps, which store `index + 1`
 /// otherwise: zero, so that the maps are allocated zeroed (`calloc`) and a
 /// large grid's pages are only touched where particles are.
 pub(super) const EMPTY: u32 = 0;
+
+/// A `src_map` entry while the block sort marks blocks (before they are numbered).
+const MARKED: u32 = u32::MAX;
 
 /// Scratch space of the sparse block grid, reused across substeps.
 pub(super) struct SparseGrid {
@@ -213,23 +217,16 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// Block key of every particle (from its stencil base node).
-    pub(super) fn compute_keys(&mut self) {
-        let inv_dx = self.params.n_grid as f32;
-        let log2_b = self.grid.log2_b;
-        let lat = self.stencil.lat_stride;
-        let pad = self.stencil.pad_stride;
-        self.grid.keys.resize(self.particles.len(), Cell::default());
-        self.particles
-            .par_iter()
-            .zip(self.grid.keys.par_iter_mut())
-            .for_each(|(p, k)| {
-                *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
-            });
-    }
+    // The block sort, a stable counting sort of the ids by block in four
+    // stages that the frame loop (`frame.rs`) runs between barriers: the ids
+    // are cut into `n_chunks` contiguous ranges, each handled by one thread.
+    // Inside a block the particles end up in id order whatever the chunking,
+    // and blocks are numbered in key order, so the result (and every sum
+    // that follows) is the same for any number of threads.
 
-    /// Sort particles into blocks (stable counting sort) and list output blocks.
-    pub(super) fn build_blocks(&mut self) {
+    /// Sort stage 1 (thread 0): forget the previous substep's blocks and
+    /// size the scratch.
+    pub(super) fn sort_begin(&mut self) {
         let g = &mut self.grid;
         for &b in &g.src_blocks {
             g.src_map[b as usize] = EMPTY;
@@ -239,40 +236,138 @@ where
         }
         g.src_blocks.clear();
         g.out_blocks.clear();
-        g.counts.clear();
-        // Visit particles in id order so that the order inside each block (and
-        // so every floating-point sum) depends only on the particle set.
-        // the block keys in id order, read once from storage order
-        g.key_by_id.clear();
-        g.key_by_id
-            .extend(self.slot_of.iter().map(|&slot| g.keys[slot as usize].key));
-        for &k in &g.key_by_id {
-            let slot = &mut g.src_map[k as usize];
-            if *slot == EMPTY {
-                g.src_blocks.push(k);
-                *slot = g.src_blocks.len() as u32;
-                g.counts.push(0);
+        let n = self.particles.len();
+        g.key_by_id.resize(n, 0);
+        g.sorted.resize(n, 0);
+    }
+
+    /// The ids of chunk `c` of `n_chunks`.
+    fn chunk_ids(&self, c: usize, n_chunks: usize) -> std::ops::Range<usize> {
+        let n = self.particles.len();
+        c * n / n_chunks..(c + 1) * n / n_chunks
+    }
+
+    /// Sort stage 2 (parallel, chunk `c`): the block key of each id, into
+    /// `key_by_id` (this chunk's range), and mark the blocks this chunk
+    /// sees first in `src_map` (atomically: chunks mark concurrently),
+    /// appending their keys to `touched`.
+    ///
+    /// # Safety
+    /// `key_by_id` and `src_map` view `grid.key_by_id` and `grid.src_map`;
+    /// during this stage nothing else may access `src_map` or this chunk's
+    /// range of `key_by_id`.
+    pub(super) unsafe fn sort_mark(
+        &self,
+        c: usize,
+        n_chunks: usize,
+        key_by_id: RawSlice<u32>,
+        src_map: RawSlice<u32>,
+        touched: &mut Vec<u32>,
+    ) {
+        let ids = self.chunk_ids(c, n_chunks);
+        // SAFETY: this chunk's range is ours alone (caller)
+        let out = unsafe { key_by_id.chunk_mut(ids.start, ids.len()) };
+        // SAFETY: every access to `src_map` in this stage is atomic (caller)
+        let map = unsafe { src_map.as_atomic() };
+        let keys = &self.grid.keys;
+        for (k, &slot) in out.iter_mut().zip(&self.slot_of[ids]) {
+            let key = keys[slot as usize].key;
+            *k = key;
+            let m = &map[key as usize];
+            if m.load(Ordering::Relaxed) == EMPTY
+                && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
+                    .is_ok()
+            {
+                touched.push(key);
             }
-            g.counts[*slot as usize - 1] += 1;
         }
+    }
+
+    /// Sort stage 3 (thread 0): number the marked blocks in key order
+    /// (`touched`: every chunk's marked keys, emptied) and zero the
+    /// per-chunk counts.
+    pub(super) fn sort_number(&mut self, touched: &mut Vec<u32>, n_chunks: usize) {
+        let g = &mut self.grid;
+        touched.sort_unstable();
+        for (i, &k) in touched.iter().enumerate() {
+            g.src_map[k as usize] = i as u32 + 1;
+        }
+        g.src_blocks.clear();
+        g.src_blocks.append(touched);
+        g.counts.clear();
+        g.counts.resize(n_chunks * g.src_blocks.len(), 0);
+    }
+
+    /// Sort stage 4 (parallel, chunk `c`): how many of the chunk's ids each
+    /// block holds, into row `c` of `counts` (`n_chunks × blocks`).
+    ///
+    /// # Safety
+    /// `counts` views `grid.counts`; nothing else may access its row `c`.
+    pub(super) unsafe fn sort_count(&self, c: usize, n_chunks: usize, counts: RawSlice<u32>) {
+        let n_src = self.grid.src_blocks.len();
+        // SAFETY: row c is ours alone (caller)
+        let row = unsafe { counts.chunk_mut(c * n_src, n_src) };
+        let map = &self.grid.src_map;
+        for &k in &self.grid.key_by_id[self.chunk_ids(c, n_chunks)] {
+            row[map[k as usize] as usize - 1] += 1;
+        }
+    }
+
+    /// Sort stage 5 (parallel, chunk `c`): write the chunk's slots to their
+    /// places in `sorted`: block by block, and inside a block after the ids
+    /// of the chunks before this one (`cursor`: scratch).
+    ///
+    /// # Safety
+    /// `sorted` views `grid.sorted`; the places this chunk writes are its
+    /// alone (they are, by construction), and nothing reads `sorted` meanwhile.
+    pub(super) unsafe fn sort_scatter(
+        &self,
+        c: usize,
+        n_chunks: usize,
+        sorted: RawSlice<u32>,
+        cursor: &mut Vec<u32>,
+    ) {
+        let g = &self.grid;
+        let n_src = g.src_blocks.len();
+        cursor.clear();
+        cursor.resize(n_src, 0);
+        let mut start = 0u32;
+        for (b, cur) in cursor.iter_mut().enumerate() {
+            let mut before = 0u32;
+            let mut total = 0u32;
+            for cc in 0..n_chunks {
+                let k = g.counts[cc * n_src + b];
+                if cc < c {
+                    before += k;
+                }
+                total += k;
+            }
+            *cur = start + before;
+            start += total;
+        }
+        let ids = self.chunk_ids(c, n_chunks);
+        for (&k, &slot) in g.key_by_id[ids.clone()].iter().zip(&self.slot_of[ids]) {
+            let b = g.src_map[k as usize] as usize - 1;
+            // SAFETY: place `cursor[b]` belongs to this chunk (see above)
+            unsafe { sorted.write(cursor[b] as usize, slot) };
+            cursor[b] += 1;
+        }
+    }
+
+    /// Sort stage 6 (thread 0): the blocks' offsets in the sorted order, and
+    /// the output blocks (each source block and its `+1` neighbours).
+    pub(super) fn sort_end(&mut self, n_chunks: usize) {
+        let g = &mut self.grid;
+        let n_src = g.src_blocks.len();
         g.src_offsets.clear();
         g.src_offsets.push(0);
         let mut acc = 0u32;
-        for &c in &g.counts {
-            acc += c;
+        for b in 0..n_src {
+            for c in 0..n_chunks {
+                acc += g.counts[c * n_src + b];
+            }
             g.src_offsets.push(acc);
         }
-        // reuse counts as cursors
-        for (c, &o) in g.counts.iter_mut().zip(g.src_offsets.iter()) {
-            *c = o;
-        }
-        g.sorted.resize(g.keys.len(), 0);
-        for (&slot_id, &k) in self.slot_of.iter().zip(&g.key_by_id) {
-            let s = g.src_map[k as usize] as usize - 1;
-            g.sorted[g.counts[s] as usize] = slot_id;
-            g.counts[s] += 1;
-        }
-        // Output blocks: each source block and its +1 neighbours.
         let lat = self.stencil.lat_stride;
         let nb = g.nb;
         for &b in &g.src_blocks {

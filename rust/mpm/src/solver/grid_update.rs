@@ -19,7 +19,6 @@
 //! only an inward normal component and applies Coulomb friction.
 
 use nalgebra::SVector;
-use rayon::prelude::*;
 
 use super::Solver;
 use super::grid::{EMPTY, add4, unflatten, unflatten_pow2};
@@ -31,12 +30,19 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    pub(super) fn grid_update(&mut self, dt: f32) {
+    /// Grid update of output block `oi` into `out` (`B^D` nodes of
+    /// `[v, 0]`, overwritten); `acc` is scratch of `B^D` nodes.
+    pub(super) fn grid_update_block(
+        &self,
+        oi: usize,
+        out: &mut [[f32; 4]],
+        acc: &mut [[f32; 4]],
+        dt: f32,
+    ) {
         let b = 1usize << self.grid.log2_b;
         let blk_nodes = b.pow(D as u32);
         let p = b + 2;
         let pad_nodes = p.pow(D as u32);
-        let n_out = self.grid.out_blocks.len();
         let n = self.params.n_grid;
         let dx = self.params.dx();
         let gravity = SVector::<f32, D>::from_column_slice(&self.params.gravity);
@@ -46,102 +52,96 @@ where
             std::array::from_fn(|d| [walls.face(d, 0), walls.face(d, 1)]);
         let colliders = &self.colliders;
         let st = &self.stencil;
-        let g = &mut self.grid;
-        g.out_v.resize(n_out * blk_nodes, [0.0; 4]);
+        let g = &self.grid;
         let (out_blocks, src_map, local, lat, log2_b) =
             (&g.out_blocks, &g.src_map, &g.local, st.lat_stride, g.log2_b);
         let wall_lo = walls.cells;
         let wall_hi = n.saturating_sub(walls.cells);
-        g.out_v.par_chunks_mut(blk_nodes).enumerate().for_each_init(
-            || vec![[0.0f32; 4]; blk_nodes],
-            |acc, (oi, out)| {
-                let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
-                acc.fill([0.0; 4]);
-                // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
-                for s in 0..(1usize << D) {
-                    let mut lin = 0usize;
-                    let mut ok = true;
-                    for d in 0..D {
-                        let sd = (s >> d) & 1;
-                        if c[d] < sd {
-                            ok = false;
-                            break;
-                        }
-                        lin += (c[d] - sd) * lat[d];
-                    }
-                    if !ok {
-                        continue;
-                    }
-                    if src_map[lin] == EMPTY {
-                        continue;
-                    }
-                    let sid = src_map[lin] - 1;
-                    let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
-                    for &(l, q, len) in &st.gather_runs[s] {
-                        let (l, q, len) = (l as usize, q as usize, len as usize);
-                        for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
-                            add4(a, sv);
-                        }
-                    }
+        let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
+        acc.fill([0.0; 4]);
+        // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
+        for s in 0..(1usize << D) {
+            let mut lin = 0usize;
+            let mut ok = true;
+            for d in 0..D {
+                let sd = (s >> d) & 1;
+                if c[d] < sd {
+                    ok = false;
+                    break;
                 }
-                // Block-level test: is any collider near this block?
-                let near: Vec<&Collider<D>> = if colliders.is_empty() {
-                    Vec::new()
-                } else {
-                    let mut centre = SVector::<f32, D>::zeros();
-                    for d in 0..D {
-                        centre[d] = ((c[d] << log2_b) as f32 + 0.5 * (b as f32 - 1.0)) * dx;
-                    }
-                    let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt() + dx;
-                    colliders
-                        .iter()
-                        .filter(|col| col.shape.sdf(&centre) < half_diag)
-                        .collect()
-                };
-                for l in 0..blk_nodes {
-                    let a = &acc[l];
-                    let m = a[0];
-                    let o = &mut out[l];
-                    if m <= 0.0 {
-                        *o = [0.0; 4];
-                        continue;
-                    }
-                    let mut v = SVector::<f32, D>::zeros();
-                    for d in 0..D {
-                        v[d] = a[1 + d] / m;
-                    }
-                    v += gravity * dt;
-                    let lc = unflatten_pow2::<D>(l, log2_b);
-                    let mut gi = [0usize; D];
-                    for d in 0..D {
-                        gi[d] = (c[d] << log2_b) + lc[d];
-                    }
-                    for col in &near {
-                        let mut xp = SVector::<f32, D>::zeros();
-                        for d in 0..D {
-                            xp[d] = gi[d] as f32 * dx;
-                        }
-                        if col.shape.sdf(&xp) < 0.0 {
-                            let nrm = col.shape.normal(&xp);
-                            apply_condition(&mut v, &nrm, col.condition, col.friction);
-                        }
-                    }
-                    for d in 0..D {
-                        if gi[d] < wall_lo {
-                            let mut nrm = SVector::<f32, D>::zeros();
-                            nrm[d] = 1.0;
-                            let f = &faces[d][0];
-                            apply_condition(&mut v, &nrm, f.condition, f.friction);
-                        } else if gi[d] > wall_hi {
-                            let mut nrm = SVector::<f32, D>::zeros();
-                            nrm[d] = -1.0;
-                            let f = &faces[d][1];
-                            apply_condition(&mut v, &nrm, f.condition, f.friction);
-                        }
-                    }
-                    o[..D].copy_from_slice(v.as_slice());
+                lin += (c[d] - sd) * lat[d];
+            }
+            if !ok {
+                continue;
+            }
+            if src_map[lin] == EMPTY {
+                continue;
+            }
+            let sid = src_map[lin] - 1;
+            let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
+            for &(l, q, len) in &st.gather_runs[s] {
+                let (l, q, len) = (l as usize, q as usize, len as usize);
+                for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
+                    add4(a, sv);
                 }
-            },
-        );
+            }
+        }
+        // Block-level test: is any collider near this block?
+        let near: Vec<&Collider<D>> = if colliders.is_empty() {
+            Vec::new()
+        } else {
+            let mut centre = SVector::<f32, D>::zeros();
+            for d in 0..D {
+                centre[d] = ((c[d] << log2_b) as f32 + 0.5 * (b as f32 - 1.0)) * dx;
+            }
+            let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt() + dx;
+            colliders
+                .iter()
+                .filter(|col| col.shape.sdf(&centre) < half_diag)
+                .collect()
+        };
+        for l in 0..blk_nodes {
+            let a = &acc[l];
+            let m = a[0];
+            let o = &mut out[l];
+            if m <= 0.0 {
+                *o = [0.0; 4];
+                continue;
+            }
+            let mut v = SVector::<f32, D>::zeros();
+            for d in 0..D {
+                v[d] = a[1 + d] / m;
+            }
+            v += gravity * dt;
+            let lc = unflatten_pow2::<D>(l, log2_b);
+            let mut gi = [0usize; D];
+            for d in 0..D {
+                gi[d] = (c[d] << log2_b) + lc[d];
+            }
+            for col in &near {
+                let mut xp = SVector::<f32, D>::zeros();
+                for d in 0..D {
+                    xp[d] = gi[d] as f32 * dx;
+                }
+                if col.shape.sdf(&xp) < 0.0 {
+                    let nrm = col.shape.normal(&xp);
+                    apply_condition(&mut v, &nrm, col.condition, col.friction);
+                }
+            }
+            for d in 0..D {
+                if gi[d] < wall_lo {
+                    let mut nrm = SVector::<f32, D>::zeros();
+                    nrm[d] = 1.0;
+                    let f = &faces[d][0];
+                    apply_condition(&mut v, &nrm, f.condition, f.friction);
+                } else if gi[d] > wall_hi {
+                    let mut nrm = SVector::<f32, D>::zeros();
+                    nrm[d] = -1.0;
+                    let f = &faces[d][1];
+                    apply_condition(&mut v, &nrm, f.condition, f.friction);
+                }
+            }
+            o[..D].copy_from_slice(v.as_slice());
+        }
     }
 }

@@ -4,7 +4,8 @@
 //!
 //! One substep, one file per stage:
 //!
-//! 1. `grid.rs`: sort the particles into sparse blocks;
+//! 1. `grid.rs`: sort the particles into sparse blocks (a stable counting
+//!    sort in chunks of ids);
 //! 2. `p2g.rs`: per sparse block, into a private padded buffer (no atomics,
 //!    no shared writes);
 //! 3. `grid_update.rs`: per output block, gather the overlapping padded
@@ -12,6 +13,11 @@
 //! 4. `g2p.rs`: per particle, new `v`, `C`, position, the material update
 //!    (`material/water.rs`, `material/sand.rs`) and the stress, and the
 //!    particle's block key for the next substep.
+//!
+//! `frame.rs` runs a frame's substeps on a persistent team of threads
+//! (`team.rs`: one entry into the pool per frame, a barrier between stages,
+//! blocks claimed from atomic counters), or on the calling thread alone when
+//! that is faster (a busy machine).
 //!
 //! `cfl.rs` chooses the substep size and drives the frame, with rollback
 //! and retry. The B-spline weights live in `kernel.rs`.
@@ -23,10 +29,12 @@
 //! identical for any number of threads.
 
 mod cfl;
+mod frame;
 mod g2p;
 mod grid;
 mod grid_update;
 mod p2g;
+mod team;
 
 pub use crate::material::sand::drucker_prager_project;
 
@@ -87,6 +95,8 @@ where
     stencil: Stencil<D>,
     pool: std::sync::Arc<rayon::ThreadPool>,
     pool_pid: u32,
+    /// Whether frames run on the team or the calling thread alone (`frame.rs`).
+    mode: frame::ModeChoice,
     /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
     profile: bool,
     /// Memory budget [bytes] for what the inputs make the solver allocate
@@ -161,6 +171,7 @@ where
             stencil,
             pool,
             pool_pid: std::process::id(),
+            mode: Default::default(),
             profile: std::env::var_os("HMPM_PROFILE").is_some(),
             memory_budget,
         })
@@ -372,31 +383,5 @@ where
                 sand::stress_of(&p.f, mu, la)
             }
         };
-    }
-
-    /// One substep of size `dt`. Returns (state health, max speed).
-    fn substep(&mut self, dt: f32) -> (Health, f32) {
-        let prof = self.profile;
-        let t0 = std::time::Instant::now();
-        self.build_blocks();
-        let t1 = std::time::Instant::now();
-        self.p2g(dt);
-        let t2 = std::time::Instant::now();
-        self.grid_update(dt);
-        let t3 = std::time::Instant::now();
-        let r = self.g2p(dt);
-        let t4 = std::time::Instant::now();
-        if prof {
-            eprintln!(
-                "blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {} nout {}",
-                t1 - t0,
-                t2 - t1,
-                t3 - t2,
-                t4 - t3,
-                self.grid.src_blocks.len(),
-                self.grid.out_blocks.len()
-            );
-        }
-        r
     }
 }

@@ -19,8 +19,7 @@
 //! Parallel and deterministic without atomics: each source block writes into
 //! its own padded `(B+2)^D` buffer (the stencil reaches 2 nodes past the
 //! block), its particles in a fixed order; `grid_update` sums the buffers.
-
-use rayon::prelude::*;
+//! The frame loop (`frame.rs`) hands the blocks to the team's threads.
 
 use super::Solver;
 use super::grid::{add4, fma4, fma4_nonzero};
@@ -31,63 +30,56 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    pub(super) fn p2g(&mut self, dt: f32) {
-        let b = 1usize << self.grid.log2_b;
-        let pad_nodes = (b + 2).pow(D as u32);
-        let n_src = self.grid.src_blocks.len();
+    /// p2g of source block `si` into its padded buffer `buf` (`(B+2)^D`
+    /// nodes of `[mass, momentum]`, overwritten).
+    pub(super) fn p2g_block(&self, si: usize, buf: &mut [[f32; 4]], dt: f32) {
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let stress_scale = -dt * 4.0 * inv_dx * inv_dx;
-        let g = &mut self.grid;
-        g.local.resize(n_src * pad_nodes, [0.0; 4]);
+        let g = &self.grid;
         let particles = &self.particles;
         let st = &self.stencil;
         let (src_offsets, sorted, cells) = (&g.src_offsets, &g.sorted, &g.keys);
-        g.local
-            .par_chunks_mut(pad_nodes)
-            .enumerate()
-            .for_each(|(si, buf)| {
-                buf.fill([0.0; 4]);
-                let lo = src_offsets[si] as usize;
-                let hi = src_offsets[si + 1] as usize;
-                for &pi in &sorted[lo..hi] {
-                    let p = &particles[pi as usize];
-                    let cell = &cells[pi as usize];
-                    let (fx, w) = weights::<D>(cell);
-                    let base_idx = cell.pad_off as usize;
-                    // [mass, momentum + affine·dpos] with dpos = (o − fx)·dx, written
-                    // as base + Σ_c o_c·col_c (o integer offsets): 4-wide vector work
-                    let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
-                    let mom = (p.v + p.ext * dt) * p.mass;
-                    let q = mom - a_mat * fx;
-                    let mut base4 = [p.mass, 0.0, 0.0, 0.0];
-                    let mut cols = [[0.0f32; 4]; D];
-                    for r in 0..D {
-                        base4[1 + r] = q[r];
-                        for c in 0..D {
-                            cols[c][1 + r] = a_mat[(r, c)];
-                        }
-                    }
-                    // Opaque to the optimiser: it would otherwise track the lanes
-                    // known to be zero and split the 4-wide updates below into
-                    // shuffles and scalar operations (same results, more instructions).
-                    let (base4, cols) = std::hint::black_box((base4, cols));
-                    let nodes = &mut buf[base_idx..];
-                    let w_last = w[D - 1];
-                    let last = cols[D - 1];
-                    Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
-                        let mut contrib = base4;
-                        for c in 0..D - 1 {
-                            fma4_nonzero(&mut contrib, o[c], &cols[c]);
-                        }
-                        // the row's 3 nodes are contiguous (last stride 1)
-                        let row = &mut nodes[off..off + 3];
-                        for k in 0..3 {
-                            fma4(&mut row[k], w_outer * w_last[k], &contrib);
-                            add4(&mut contrib, &last);
-                        }
-                    });
+        buf.fill([0.0; 4]);
+        let lo = src_offsets[si] as usize;
+        let hi = src_offsets[si + 1] as usize;
+        for &pi in &sorted[lo..hi] {
+            let p = &particles[pi as usize];
+            let cell = &cells[pi as usize];
+            let (fx, w) = weights::<D>(cell);
+            let base_idx = cell.pad_off as usize;
+            // [mass, momentum + affine·dpos] with dpos = (o − fx)·dx, written
+            // as base + Σ_c o_c·col_c (o integer offsets): 4-wide vector work
+            let a_mat = (p.tau * (stress_scale * p.volume) + p.c * p.mass) * dx;
+            let mom = (p.v + p.ext * dt) * p.mass;
+            let q = mom - a_mat * fx;
+            let mut base4 = [p.mass, 0.0, 0.0, 0.0];
+            let mut cols = [[0.0f32; 4]; D];
+            for r in 0..D {
+                base4[1 + r] = q[r];
+                for c in 0..D {
+                    cols[c][1 + r] = a_mat[(r, c)];
+                }
+            }
+            // Opaque to the optimiser: it would otherwise track the lanes
+            // known to be zero and split the 4-wide updates below into
+            // shuffles and scalar operations (same results, more instructions).
+            let (base4, cols) = std::hint::black_box((base4, cols));
+            let nodes = &mut buf[base_idx..];
+            let w_last = w[D - 1];
+            let last = cols[D - 1];
+            Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
+                let mut contrib = base4;
+                for c in 0..D - 1 {
+                    fma4_nonzero(&mut contrib, o[c], &cols[c]);
+                }
+                // the row's 3 nodes are contiguous (last stride 1)
+                let row = &mut nodes[off..off + 3];
+                for k in 0..3 {
+                    fma4(&mut row[k], w_outer * w_last[k], &contrib);
+                    add4(&mut contrib, &last);
                 }
             });
+        }
     }
 }

@@ -1,0 +1,518 @@
+//! The substeps of one frame attempt, run by a persistent team of threads
+//! ([`super::team`]): the one frame loop of the engine.
+//!
+//! Per substep, with one barrier between stages:
+//!
+//! 1. thread 0, serial: finish the previous substep's g2p (the new storage
+//!    order), check its health and speed, sort the particles into blocks
+//!    (`grid.rs`) and size the buffers;
+//! 2. p2g per source block (`p2g.rs`);
+//! 3. grid update per output block (`grid_update.rs`);
+//! 4. g2p per source block (`g2p.rs`), each block reporting its health and
+//!    largest speed.
+//!
+//! Stages 2–4 are parallel: the team's threads claim blocks from an atomic
+//! counter, and each block writes only its own output, so results are
+//! bitwise the same for any number of threads.
+
+use std::sync::Mutex;
+
+use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team};
+use super::{Health, Solver};
+use crate::dim::{Dim, DimOps};
+use crate::error::{MpmError, Result};
+use crate::kernel::{Cell, cell_of};
+use crate::material::sand::SandModel;
+use crate::particles::Particle;
+
+/// What thread 0 publishes for a substep's parallel stages: the sizes of the
+/// block lists and the buffers the stages write, chunk by chunk.
+struct Stage<const D: usize> {
+    key_by_id: RawSlice<u32>,
+    src_map: RawSlice<u32>,
+    counts: RawSlice<u32>,
+    sorted: RawSlice<u32>,
+    n_src: usize,
+    n_out: usize,
+    local: RawSlice<[f32; 4]>,
+    out_v: RawSlice<[f32; 4]>,
+    next: RawSlice<Particle<D>>,
+    /// The cells this substep writes: `grid.next_keys` in g2p (and
+    /// `grid.keys` in the frame's first stage, which computes them afresh).
+    cells: RawSlice<Cell>,
+}
+
+impl<const D: usize> Clone for Stage<D> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<const D: usize> Copy for Stage<D> {}
+
+/// The solver, shared with the team's threads for one frame attempt.
+struct SolverPtr<const D: usize>(*mut Solver<D>)
+where
+    Dim<D>: DimOps<D>;
+
+// SAFETY: the team's protocol (see `run_substeps`) gives thread 0 exclusive
+// access in serial sections and every thread shared access in parallel ones.
+unsafe impl<const D: usize> Sync for SolverPtr<D> where Dim<D>: DimOps<D> {}
+unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
+
+/// The team or the calling thread alone, whichever is faster here and now.
+///
+/// On free cores a team of two runs a 4k-particle 2D substep 1.8× faster
+/// than one thread, but when the machine has fewer free cores than the team
+/// has threads (another process, or other solvers in this one, are busy),
+/// its members keep waiting for each other to be scheduled and the same
+/// substep became ~5× slower than one thread (measured, `yes` hogging one of
+/// two cores). So each mode's cost per particle-substep is tracked (an
+/// exponential average of the frame attempts that used it), the cheaper one
+/// runs, and every `PROBE_EVERY`-th frame runs the other to keep its
+/// estimate current. Results are the same in both modes.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct ModeChoice {
+    /// Seconds per particle-substep, `[solo, team]` (0: not measured yet).
+    cost: [f64; 2],
+    attempts: u64,
+    /// Tests: always this mode.
+    #[cfg(test)]
+    force: Option<bool>,
+}
+
+const PROBE_EVERY: u64 = 50;
+const COST_WEIGHT: f64 = 0.3;
+
+impl ModeChoice {
+    /// Whether the next attempt uses the team, and whether it is a probe.
+    fn choose(&self) -> (bool, bool) {
+        #[cfg(test)]
+        if let Some(team) = self.force {
+            return (team, false);
+        }
+        let [solo, team] = self.cost;
+        let best_is_team = !(solo > 0.0 && team > 0.0 && solo < team);
+        // probe the other mode once in a while (the first time soon after
+        // the start, so that a busy machine is noticed early)
+        let probe = self.attempts % PROBE_EVERY == 3;
+        (best_is_team != probe, probe)
+    }
+
+    /// A probe's cost replaces the estimate (it is the only recent sample
+    /// of its mode); the chosen mode's costs are averaged.
+    fn record(&mut self, team: bool, probe: bool, seconds_per_item: f64) {
+        let c = &mut self.cost[team as usize];
+        *c = if *c > 0.0 && !probe {
+            *c + COST_WEIGHT * (seconds_per_item - *c)
+        } else {
+            seconds_per_item
+        };
+        self.attempts += 1;
+    }
+}
+
+/// Particles per claimed item when the cells are computed at the frame's start.
+const KEYS_CHUNK: usize = 1024;
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// `n_sub` substeps of `dt` seconds on the solver's pool. Returns the
+    /// largest particle speed after the last substep, or the error that ends
+    /// the attempt: a non-finite state or inverted sand particle, or a
+    /// particle that would travel more than `max_travel` (CFL violation);
+    /// `retries` is reported in the error. On error the state is left where
+    /// the failing substep put it (the caller rolls back).
+    pub(super) fn run_substeps(
+        &mut self,
+        n_sub: usize,
+        dt: f32,
+        max_travel: f32,
+        retries: usize,
+    ) -> Result<f32> {
+        let pool = self.pool.clone();
+        let pool_threads = pool.current_num_threads().max(1);
+        let (team_chosen, probe) = self.mode.choose();
+        let use_team = pool_threads > 1 && team_chosen;
+        let threads = if use_team { pool_threads } else { 1 };
+        let started = std::time::Instant::now();
+        let team: Team<Stage<D>> = Team::new(threads);
+        let sp = SolverPtr(self as *mut Self);
+        let sp = &sp;
+        let team = &team;
+        let touched = &Mutex::new(Vec::new());
+        let member = |tid: usize| {
+            team.member(|| {
+                // SAFETY: every member of the team runs this once, concurrently
+                // (below); nothing else touches the solver meanwhile
+                unsafe {
+                    Self::substeps_member(
+                        sp, team, touched, threads, tid, n_sub, dt, max_travel, retries,
+                    )
+                }
+            })
+        };
+        let result = if threads == 1 {
+            member(0)
+        } else {
+            pool.broadcast(|ctx| member(ctx.index())).swap_remove(0)
+        };
+        if pool_threads > 1 {
+            let items = (n_sub * self.particles.len()).max(1) as f64;
+            self.mode
+                .record(use_team, probe, started.elapsed().as_secs_f64() / items);
+        }
+        if self.profile && use_team {
+            let (rounds, parks) = team.barrier_stats();
+            eprintln!("team: {threads} threads, {rounds} barriers, {parks} parked waits");
+        }
+        result.expect("thread 0 returns the frame's result")
+    }
+
+    /// One member of the team. Thread 0 (`tid == 0`) runs the serial
+    /// sections and returns the result; the others return `None`.
+    ///
+    /// # Safety
+    /// Every thread of the team must call it once, concurrently, with the
+    /// same arguments (what `run_substeps` does), and nothing else may touch
+    /// the solver meanwhile. Thread 0 takes `&mut Solver` only between
+    /// barriers, while the others wait; in parallel stages every thread
+    /// takes `&Solver` and writes only the chunks of the published buffers
+    /// that belong to the items it claimed (a buffer being written is never
+    /// read in the same stage).
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn substeps_member(
+        sp: &SolverPtr<D>,
+        team: &Team<Stage<D>>,
+        touched: &Mutex<Vec<u32>>,
+        n_chunks: usize,
+        tid: usize,
+        n_sub: usize,
+        dt: f32,
+        max_travel: f32,
+        retries: usize,
+    ) -> Option<Result<f32>> {
+        let mut result: Option<Result<f32>> = None;
+        // the cells of the frame's first substep, in parallel chunks
+        if tid == 0 {
+            // SAFETY: serial section (the others wait at the barrier below)
+            let s = unsafe { &mut *sp.0 };
+            let n = s.particles.len();
+            s.grid.keys.resize(n, Cell::default());
+            let keys = RawSlice::new(&mut s.grid.keys);
+            // SAFETY: serial section
+            unsafe { team.publish(s.stage_view(keys)) };
+        }
+        team.barrier();
+        {
+            // SAFETY: parallel section: shared reads, disjoint chunk writes
+            let s = unsafe { &*sp.0 };
+            let keys = unsafe { team.published() }.cells;
+            let n = s.particles.len();
+            let inv_dx = s.params.n_grid as f32;
+            let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, s.stencil.pad_stride);
+            while let Some(i) = team.claim(KEYS, n.div_ceil(KEYS_CHUNK)) {
+                let lo = i * KEYS_CHUNK;
+                let hi = (lo + KEYS_CHUNK).min(n);
+                // SAFETY: chunk i is this thread's alone
+                let out = unsafe { keys.chunk_mut(lo, hi - lo) };
+                for (k, p) in out.iter_mut().zip(&s.particles[lo..hi]) {
+                    *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
+                }
+            }
+        }
+        let mut patch = Vec::new();
+        let mut cursor = Vec::new();
+        let mut acc = Vec::new();
+        let mut clock = Profile::new(tid == 0 && unsafe { (*sp.0).profile });
+        for sub in 0..=n_sub {
+            team.barrier();
+            if sub > 0 {
+                clock.lap(Lap::G2p);
+            }
+            if tid == 0 {
+                // SAFETY: serial section (the others wait at the barrier below)
+                let s = unsafe { &mut *sp.0 };
+                if sub > 0 {
+                    s.g2p_finish();
+                    let (health, v) = team.outcome();
+                    let err = match health {
+                        Health::Ok if v * dt > max_travel => Some(MpmError::CflViolation {
+                            substep: sub - 1,
+                            substeps: n_sub,
+                            max_speed: v,
+                            retries,
+                        }),
+                        Health::Ok => None,
+                        Health::NonFinite => Some(MpmError::NonFinite {
+                            substep: sub - 1,
+                            substeps: n_sub,
+                            retries,
+                        }),
+                        Health::Inverted => Some(MpmError::Inverted {
+                            substep: sub - 1,
+                            substeps: n_sub,
+                            retries,
+                        }),
+                    };
+                    clock.lap(Lap::Finish);
+                    clock.print(s);
+                    if let Some(e) = err {
+                        result = Some(Err(e));
+                        team.set_stop();
+                    } else if sub == n_sub {
+                        result = Some(Ok(v));
+                        team.set_stop();
+                    }
+                }
+                if !team.stopped() {
+                    s.sort_begin();
+                    let keys = RawSlice::new(&mut s.grid.next_keys);
+                    // SAFETY: serial section
+                    unsafe { team.publish(s.stage_view(keys)) };
+                }
+            }
+            team.barrier();
+            if team.stopped() {
+                break;
+            }
+            // the block sort's parallel stages (see `grid.rs`)
+            {
+                // SAFETY: parallel section; `sort_mark`'s conditions hold
+                // (chunks are claimed once; src_map is only marked here)
+                let s = unsafe { &*sp.0 };
+                let view = unsafe { team.published() };
+                let mut mine = Vec::new();
+                while let Some(c) = team.claim(SORT_MARK, n_chunks) {
+                    unsafe { s.sort_mark(c, n_chunks, view.key_by_id, view.src_map, &mut mine) };
+                }
+                touched
+                    .lock()
+                    .expect("no member panicked holding it")
+                    .append(&mut mine);
+            }
+            team.barrier();
+            if tid == 0 {
+                // SAFETY: serial section
+                let s = unsafe { &mut *sp.0 };
+                let mut t = touched.lock().expect("no member panicked holding it");
+                s.sort_number(&mut t, n_chunks);
+                let keys = RawSlice::new(&mut s.grid.next_keys);
+                unsafe { team.publish(s.stage_view(keys)) };
+            }
+            team.barrier();
+            {
+                // SAFETY: parallel section; each chunk's row / places are its own
+                let s = unsafe { &*sp.0 };
+                let view = unsafe { team.published() };
+                while let Some(c) = team.claim(SORT_COUNT, n_chunks) {
+                    unsafe { s.sort_count(c, n_chunks, view.counts) };
+                }
+                team.barrier();
+                while let Some(c) = team.claim(SORT_SCATTER, n_chunks) {
+                    unsafe { s.sort_scatter(c, n_chunks, view.sorted, &mut cursor) };
+                }
+            }
+            team.barrier();
+            if tid == 0 {
+                // SAFETY: serial section
+                let s = unsafe { &mut *sp.0 };
+                s.sort_end(n_chunks);
+                let (n_src, n_out) = (s.grid.src_blocks.len(), s.grid.out_blocks.len());
+                let b = 1usize << s.grid.log2_b;
+                s.grid.local.resize(n_src * s.stencil.pad_nodes, [0.0; 4]);
+                s.grid.out_v.resize(n_out * b.pow(D as u32), [0.0; 4]);
+                let n = s.particles.len();
+                s.next.resize(n, s.particles[0]);
+                s.grid.next_keys.resize(n, Cell::default());
+                let keys = RawSlice::new(&mut s.grid.next_keys);
+                let view = s.stage_view(keys);
+                // SAFETY: serial section
+                unsafe { team.publish(view) };
+                clock.lap(Lap::Sort);
+            }
+            team.barrier();
+            // SAFETY: parallel sections from here to the loop's next barrier:
+            // shared reads, and writes to the claimed chunks only
+            let s = unsafe { &*sp.0 };
+            let view = unsafe { team.published() };
+            let st = &s.stencil;
+            let blk_nodes = 1usize << (s.grid.log2_b as usize * D);
+            patch.resize(st.pad_nodes, [0.0f32; 4]);
+            acc.resize(blk_nodes, [0.0f32; 4]);
+            while let Some(si) = team.claim(P2G, view.n_src) {
+                let buf = unsafe { view.local.chunk_mut(si * st.pad_nodes, st.pad_nodes) };
+                s.p2g_block(si, buf, dt);
+            }
+            team.barrier();
+            clock.lap(Lap::P2g);
+            while let Some(oi) = team.claim(GRID, view.n_out) {
+                let out = unsafe { view.out_v.chunk_mut(oi * blk_nodes, blk_nodes) };
+                s.grid_update_block(oi, out, &mut acc, dt);
+            }
+            team.barrier();
+            clock.lap(Lap::Grid);
+            let sand = SandModel::new::<D>(&s.params.sand);
+            let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
+            while let Some(si) = team.claim(G2P, view.n_src) {
+                let lo = s.grid.src_offsets[si] as usize;
+                let len = s.grid.src_offsets[si + 1] as usize - lo;
+                let (outp, outk) =
+                    unsafe { (view.next.chunk_mut(lo, len), view.cells.chunk_mut(lo, len)) };
+                let (h, v2) = s.g2p_block(si, &mut patch, outp, outk, dt, &sand);
+                health = health.max(h);
+                vmax2 = vmax2.max(v2);
+            }
+            team.report(health, vmax2);
+        }
+        result
+    }
+
+    /// The buffers the parallel stages write, sized for this substep.
+    fn stage_view(&mut self, cells: RawSlice<Cell>) -> Stage<D> {
+        Stage {
+            key_by_id: RawSlice::new(&mut self.grid.key_by_id),
+            src_map: RawSlice::new(&mut self.grid.src_map),
+            counts: RawSlice::new(&mut self.grid.counts),
+            sorted: RawSlice::new(&mut self.grid.sorted),
+            n_src: self.grid.src_blocks.len(),
+            n_out: self.grid.out_blocks.len(),
+            local: RawSlice::new(&mut self.grid.local),
+            out_v: RawSlice::new(&mut self.grid.out_v),
+            next: RawSlice::new(&mut self.next),
+            cells,
+        }
+    }
+}
+
+/// Stages timed by thread 0 when `HMPM_PROFILE` is set.
+#[derive(Clone, Copy)]
+enum Lap {
+    Sort,
+    P2g,
+    Grid,
+    G2p,
+    Finish,
+}
+
+/// Per-stage wall times of one substep, seen from thread 0 (each stage ends
+/// at the barrier after it, so it includes waiting for the slowest thread).
+struct Profile {
+    on: bool,
+    last: std::time::Instant,
+    laps: [std::time::Duration; 5],
+}
+
+impl Profile {
+    fn new(on: bool) -> Self {
+        Profile {
+            on,
+            last: std::time::Instant::now(),
+            laps: Default::default(),
+        }
+    }
+
+    fn lap(&mut self, lap: Lap) {
+        if self.on {
+            let now = std::time::Instant::now();
+            self.laps[lap as usize] = now - self.last;
+            self.last = now;
+        }
+    }
+
+    fn print<const D: usize>(&mut self, s: &Solver<D>)
+    where
+        Dim<D>: DimOps<D>,
+    {
+        if self.on {
+            let l = &self.laps;
+            eprintln!(
+                "blocks {:?} p2g {:?} grid {:?} g2p {:?} finish {:?} nsrc {} nout {}",
+                l[Lap::Sort as usize],
+                l[Lap::P2g as usize],
+                l[Lap::Grid as usize],
+                l[Lap::G2p as usize],
+                l[Lap::Finish as usize],
+                s.grid.src_blocks.len(),
+                s.grid.out_blocks.len()
+            );
+            // the printing is not part of the next stage
+            self.last = std::time::Instant::now();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::SolverParams;
+    use crate::particles::{Material, lattice};
+
+    /// A water and a sand block falling and colliding, stepped `frames`
+    /// frames with `threads` threads, the team forced on or off.
+    fn run<const D: usize>(threads: usize, team: bool, frames: usize) -> Vec<u8>
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let params = SolverParams::<D> {
+            n_grid: 48,
+            num_threads: threads,
+            ..Default::default()
+        };
+        let dx = params.dx();
+        let mut s = Solver::new(params, vec![]).unwrap();
+        let mut ps = lattice([0.1; D], 20, dx / 2.0, Material::Water, 1000.0);
+        ps.extend(lattice([0.45; D], 14, dx / 2.0, Material::Sand, 1000.0));
+        s.set_particles(ps).unwrap();
+        s.mode.force = Some(team);
+        for _ in 0..frames {
+            s.step_frame(2.5e-3).unwrap();
+        }
+        s.checkpoint()
+    }
+
+    /// The team's chunked block sort and claimed blocks give bitwise the
+    /// result of one thread, for teams of 2 and 3 (more threads than this
+    /// machine's cores: members are descheduled mid-stage), 2D and 3D.
+    #[test]
+    fn team_is_bitwise_identical_to_one_thread() {
+        let one = run::<2>(1, false, 12);
+        assert_eq!(one, run::<2>(2, true, 12));
+        assert_eq!(one, run::<2>(3, true, 12));
+        assert_eq!(one, run::<2>(2, false, 12));
+        let one = run::<3>(1, false, 6);
+        assert_eq!(one, run::<3>(2, true, 6));
+        assert_eq!(one, run::<3>(3, true, 6));
+    }
+
+    #[test]
+    fn the_cheaper_mode_runs_and_the_other_is_probed() {
+        let mut m = ModeChoice::default();
+        // nothing measured: the team
+        assert_eq!(m.choose(), (true, false));
+        for _ in 0..3 {
+            let (team, probe) = m.choose();
+            m.record(team, probe, 1.0);
+        }
+        // the fourth attempt probes the thread alone; it is cheaper: it wins
+        assert_eq!(m.choose(), (false, true));
+        m.record(false, true, 0.5);
+        assert_eq!(m.choose(), (false, false));
+        // ... until a probe of the team comes out cheaper
+        let mut probes = 0;
+        for _ in 0..PROBE_EVERY {
+            let (team, probe) = m.choose();
+            if probe {
+                probes += 1;
+                assert!(team);
+                m.record(team, probe, 0.25);
+            } else {
+                assert_eq!(team, probes == 1);
+                m.record(team, probe, if team { 0.25 } else { 0.5 });
+            }
+        }
+        assert_eq!(probes, 1);
+        assert_eq!(m.choose().0, true);
+    }
+}

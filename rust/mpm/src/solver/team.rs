@@ -1,0 +1,327 @@
+//! A persistent team of worker threads for one frame (issue 18).
+//!
+//! A fork-join per stage (rayon's parallel iterators) hands the work to the
+//! pool's threads four times per substep; a stage lasts only 5–50 µs for 4k
+//! particles, and an idle rayon worker goes to sleep within about that time,
+//! so every stage paid a wake-up (measured: p2g after the serial block sort
+//! took 38 µs on two threads, 27 µs when its threads were already awake).
+//! The team instead enters every thread of the solver's pool once per frame
+//! (`ThreadPool::broadcast`) and keeps them for all of its substeps: stages
+//! are separated by a spin barrier, items (blocks) are claimed from an atomic
+//! counter, and the serial parts run on thread 0 while the others wait at
+//! the barrier.
+//!
+//! Determinism does not depend on which thread takes which item: every item
+//! writes its own output, and the only cross-item combinations (the
+//! substep's [`Health`] and largest speed) are maxima, exact in any order.
+
+use std::cell::UnsafeCell;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU32, AtomicUsize, Ordering};
+use std::thread::Thread;
+
+use super::Health;
+
+/// Pads a value to its own cache line (no false sharing between counters).
+#[repr(align(128))]
+pub(super) struct Padded<T>(pub(super) T);
+
+/// A barrier for `n` threads that spins (a stage ends within microseconds),
+/// then parks the thread (on a busy machine the thread waited
+/// for may not be running: spinning would only keep it off the core). It
+/// panics in every waiting thread once the team is poisoned by a panicking
+/// member, instead of waiting for it forever.
+struct SpinBarrier {
+    n: usize,
+    arrived: Padded<AtomicUsize>,
+    generation: Padded<AtomicUsize>,
+    /// Members parked (or about to park) in `wait`.
+    sleepers: Padded<AtomicUsize>,
+    /// Barriers completed, and waits that ended parked (statistics).
+    rounds: AtomicUsize,
+    parks: AtomicUsize,
+    /// The members' threads, to unpark them.
+    threads: Mutex<Vec<Thread>>,
+}
+
+/// How long a waiting member spins before it parks: longer than the serial
+/// sections and the stages' imbalance on an idle machine (a few to 20 µs for
+/// 4k particles), so that a team on free cores never sleeps; a wait longer
+/// than that means the member waited for is not running (the machine is
+/// busy), and spinning would only keep it off the core.
+const SPIN: std::time::Duration = std::time::Duration::from_micros(50);
+
+impl SpinBarrier {
+    fn new(n: usize) -> Self {
+        SpinBarrier {
+            n,
+            arrived: Padded(AtomicUsize::new(0)),
+            generation: Padded(AtomicUsize::new(0)),
+            sleepers: Padded(AtomicUsize::new(0)),
+            rounds: AtomicUsize::new(0),
+            parks: AtomicUsize::new(0),
+            threads: Mutex::new(Vec::with_capacity(n)),
+        }
+    }
+
+    /// Register the calling thread (once per member, before its first `wait`).
+    fn join(&self) {
+        self.threads
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(std::thread::current());
+    }
+
+    fn wait(&self, poisoned: &AtomicBool) {
+        if self.n == 1 {
+            return;
+        }
+        let generation = self.generation.0.load(Ordering::Acquire);
+        if self.arrived.0.fetch_add(1, Ordering::AcqRel) + 1 == self.n {
+            self.arrived.0.store(0, Ordering::Relaxed);
+            self.rounds.fetch_add(1, Ordering::Relaxed);
+            self.generation.0.fetch_add(1, Ordering::SeqCst);
+            if self.sleepers.0.load(Ordering::SeqCst) > 0 {
+                for t in self
+                    .threads
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .iter()
+                {
+                    t.unpark();
+                }
+            }
+            return;
+        }
+        let mut parked = false;
+        let mut spins = 0u32;
+        let mut since: Option<std::time::Instant> = None;
+        while self.generation.0.load(Ordering::Acquire) == generation {
+            if poisoned.load(Ordering::Relaxed) {
+                panic!("a thread of the MPM team panicked");
+            }
+            spins = spins.wrapping_add(1);
+            if !spins.is_multiple_of(64) {
+                std::hint::spin_loop();
+                continue;
+            }
+            let t0 = *since.get_or_insert_with(std::time::Instant::now);
+            if t0.elapsed() < SPIN {
+                continue;
+            }
+            // announce, re-check (the releaser bumps the generation, then
+            // reads `sleepers`: one of the two sees the other), park
+            parked = true;
+            self.sleepers.0.fetch_add(1, Ordering::SeqCst);
+            if self.generation.0.load(Ordering::SeqCst) == generation {
+                std::thread::park_timeout(std::time::Duration::from_millis(1));
+            }
+            self.sleepers.0.fetch_sub(1, Ordering::SeqCst);
+        }
+        if parked {
+            self.parks.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// The team's shared state for one frame: the barrier, one work counter per
+/// stage, the substep's health and largest speed, the stop flag and a slot
+/// for what thread 0 publishes to the others (`V`, written only while the
+/// others wait at the barrier).
+pub(super) struct Team<V> {
+    barrier: SpinBarrier,
+    counters: [Padded<AtomicUsize>; 7],
+    health: AtomicU8,
+    /// Largest speed squared of the substep, as f32 bits (non-negative
+    /// floats order like their bits, so `fetch_max` is the float maximum).
+    vmax2: AtomicU32,
+    stop: AtomicBool,
+    poisoned: AtomicBool,
+    shared: UnsafeCell<Option<V>>,
+}
+
+// SAFETY: `shared` is written by thread 0 only between two barriers while
+// every other thread waits, and read by all only after the barrier that
+// follows (the barrier's Release/Acquire orders the write before the reads).
+unsafe impl<V: Send + Sync> Sync for Team<V> {}
+
+/// Stage counters (one each, so a stage's counter can be reset while the
+/// previous stage's is still being read).
+pub(super) const P2G: usize = 0;
+pub(super) const GRID: usize = 1;
+pub(super) const G2P: usize = 2;
+pub(super) const KEYS: usize = 3;
+pub(super) const SORT_MARK: usize = 4;
+pub(super) const SORT_COUNT: usize = 5;
+pub(super) const SORT_SCATTER: usize = 6;
+
+impl<V: Copy> Team<V> {
+    pub(super) fn new(threads: usize) -> Self {
+        Team {
+            barrier: SpinBarrier::new(threads.max(1)),
+            counters: std::array::from_fn(|_| Padded(AtomicUsize::new(0))),
+            health: AtomicU8::new(Health::Ok as u8),
+            vmax2: AtomicU32::new(0),
+            stop: AtomicBool::new(false),
+            poisoned: AtomicBool::new(false),
+            shared: UnsafeCell::new(None),
+        }
+    }
+
+    /// Barriers completed so far, and waits among them that had to park a
+    /// member (a sign that the machine has fewer free cores than the team
+    /// has threads).
+    pub(super) fn barrier_stats(&self) -> (usize, usize) {
+        (
+            self.barrier.rounds.load(Ordering::Relaxed),
+            self.barrier.parks.load(Ordering::Relaxed),
+        )
+    }
+
+    /// Every member waits here until all have arrived.
+    pub(super) fn barrier(&self) {
+        self.barrier.wait(&self.poisoned);
+    }
+
+    /// The next unclaimed item `< n` of stage `stage`, or `None`.
+    #[inline]
+    pub(super) fn claim(&self, stage: usize, n: usize) -> Option<usize> {
+        let i = self.counters[stage].0.fetch_add(1, Ordering::Relaxed);
+        (i < n).then_some(i)
+    }
+
+    /// Thread 0, serial section: reset the stage counters, the substep's
+    /// health and speed, and publish `v` for the next stages.
+    ///
+    /// # Safety
+    /// Only thread 0 may call it, and only while every other member waits at
+    /// the barrier (between two `barrier` calls).
+    pub(super) unsafe fn publish(&self, v: V) {
+        for c in &self.counters {
+            c.0.store(0, Ordering::Relaxed);
+        }
+        self.health.store(Health::Ok as u8, Ordering::Relaxed);
+        self.vmax2.store(0, Ordering::Relaxed);
+        // SAFETY: the caller guarantees exclusive access (see above)
+        unsafe { *self.shared.get() = Some(v) };
+    }
+
+    /// What thread 0 published (after the barrier that follows `publish`).
+    ///
+    /// # Safety
+    /// Call only between the barrier after a `publish` and the next serial section.
+    pub(super) unsafe fn published(&self) -> V {
+        // SAFETY: no write races with this read (see `publish`)
+        unsafe { (*self.shared.get()).expect("published before use") }
+    }
+
+    /// Combine one member's health and largest speed squared into the substep's.
+    pub(super) fn report(&self, health: Health, vmax2: f32) {
+        self.health.fetch_max(health as u8, Ordering::Relaxed);
+        // NaN makes health NonFinite, in which case the speed is not used
+        self.vmax2
+            .fetch_max(vmax2.max(0.0).to_bits(), Ordering::Relaxed);
+    }
+
+    /// The substep's health and largest speed (after the barrier that ends g2p).
+    pub(super) fn outcome(&self) -> (Health, f32) {
+        let h = match self.health.load(Ordering::Relaxed) {
+            x if x == Health::Ok as u8 => Health::Ok,
+            x if x == Health::Inverted as u8 => Health::Inverted,
+            _ => Health::NonFinite,
+        };
+        (h, f32::from_bits(self.vmax2.load(Ordering::Relaxed)).sqrt())
+    }
+
+    /// Thread 0: end the frame early (seen by all after the next barrier).
+    pub(super) fn set_stop(&self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+
+    pub(super) fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Run `body` as one member (each member calls it once, before its
+    /// first `barrier`); a panic poisons the team so that the other
+    /// members stop waiting for this one (and panic too).
+    pub(super) fn member<R>(&self, body: impl FnOnce() -> R) -> R {
+        struct Guard<'a>(&'a AtomicBool);
+        impl Drop for Guard<'_> {
+            fn drop(&mut self) {
+                if std::thread::panicking() {
+                    self.0.store(true, Ordering::Relaxed);
+                }
+            }
+        }
+        let _guard = Guard(&self.poisoned);
+        self.barrier.join();
+        body()
+    }
+}
+
+/// A raw view of a buffer that the team's members write in disjoint chunks.
+pub(super) struct RawSlice<T> {
+    ptr: *mut T,
+    len: usize,
+}
+
+impl<T> Clone for RawSlice<T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<T> Copy for RawSlice<T> {}
+
+// SAFETY: members only ever access disjoint chunks of the buffer through
+// `chunk_mut` (each chunk belongs to one claimed item), or read it whole
+// while nobody writes it (`as_slice`).
+unsafe impl<T: Send> Send for RawSlice<T> {}
+unsafe impl<T: Send + Sync> Sync for RawSlice<T> {}
+
+impl<T> RawSlice<T> {
+    pub(super) fn new(v: &mut [T]) -> Self {
+        RawSlice {
+            ptr: v.as_mut_ptr(),
+            len: v.len(),
+        }
+    }
+
+    /// Elements `start .. start + len`, exclusively.
+    ///
+    /// # Safety
+    /// No other reference to these elements may exist while the result lives,
+    /// and the buffer must not have been reallocated since [`RawSlice::new`].
+    #[inline]
+    pub(super) unsafe fn chunk_mut<'a>(&self, start: usize, len: usize) -> &'a mut [T] {
+        assert!(
+            start <= self.len && len <= self.len - start,
+            "chunk out of range"
+        );
+        // SAFETY: in bounds (checked); exclusivity is the caller's promise
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.add(start), len) }
+    }
+
+    /// Writes `value` at `i`.
+    ///
+    /// # Safety
+    /// No other thread may access element `i` meanwhile, and the buffer must
+    /// not have been reallocated since [`RawSlice::new`].
+    #[inline]
+    pub(super) unsafe fn write(&self, i: usize, value: T) {
+        assert!(i < self.len, "index out of range");
+        // SAFETY: in bounds (checked); exclusivity is the caller's promise
+        unsafe { self.ptr.add(i).write(value) }
+    }
+}
+
+impl RawSlice<u32> {
+    /// The buffer as atomics (same size and alignment as `u32`).
+    ///
+    /// # Safety
+    /// While the result lives every access to the buffer must go through it.
+    pub(super) unsafe fn as_atomic<'a>(&self) -> &'a [AtomicU32] {
+        // SAFETY: AtomicU32 has the size and alignment of u32 (std docs)
+        unsafe { &*std::ptr::slice_from_raw_parts(self.ptr as *const AtomicU32, self.len) }
+    }
+}
