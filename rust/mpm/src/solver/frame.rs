@@ -66,47 +66,77 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// has threads (another process, or other solvers in this one, are busy),
 /// its members keep waiting for each other to be scheduled and the same
 /// substep became ~5× slower than one thread (measured, `yes` hogging one of
-/// two cores). So each mode's cost per particle-substep is tracked (an
-/// exponential average of the frame attempts that used it), the cheaper one
-/// runs, and every `PROBE_EVERY`-th frame runs the other to keep its
-/// estimate current. Results are the same in both modes.
+/// two cores). So each mode's cost per particle-substep is tracked, the
+/// cheaper one runs, and every `PROBE_EVERY` frames two run the other to
+/// keep its estimate current. A mode's cost is the lowest of its last
+/// `WINDOW` attempts: a frame is only ever slowed down by noise (another
+/// process waking up, a page fault), so the minimum is what the mode can do
+/// on this machine now; the first `SKIP` attempts are not counted (they
+/// allocate the buffers and wake the pool, and measured up to 4× slower
+/// than the next ones). Results are the same in both modes.
 #[derive(Clone, Copy, Debug, Default)]
 pub(super) struct ModeChoice {
-    /// Seconds per particle-substep, `[solo, team]` (0: not measured yet).
-    cost: [f64; 2],
+    /// The last `WINDOW` costs per particle-substep [s] of `[solo, team]`
+    /// (0: none yet).
+    recent: [[f64; WINDOW]; 2],
     attempts: u64,
+    /// The mode the current probe measures (its second attempt uses it too).
+    probed_team: bool,
     /// Tests: always this mode.
     #[cfg(test)]
     force: Option<bool>,
 }
 
 const PROBE_EVERY: u64 = 50;
-const COST_WEIGHT: f64 = 0.3;
+const PROBE_AT: u64 = 8;
+const SKIP: u64 = 2;
+const WINDOW: usize = 8;
+/// The thread alone runs only when its cost is below this fraction of the
+/// team's (timings are noisy).
+const SOLO_MARGIN: f64 = 0.9;
 
 impl ModeChoice {
+    /// The estimated cost of a mode (0: unknown).
+    fn cost(&self, team: bool) -> f64 {
+        self.recent[team as usize]
+            .iter()
+            .copied()
+            .filter(|&c| c > 0.0)
+            .fold(0.0, |m: f64, c| if m == 0.0 { c } else { m.min(c) })
+    }
+
     /// Whether the next attempt uses the team, and whether it is a probe.
     fn choose(&self) -> (bool, bool) {
         #[cfg(test)]
         if let Some(team) = self.force {
             return (team, false);
         }
-        let [solo, team] = self.cost;
-        let best_is_team = !(solo > 0.0 && team > 0.0 && solo < team);
-        // probe the other mode once in a while (the first time soon after
-        // the start, so that a busy machine is noticed early)
-        let probe = self.attempts % PROBE_EVERY == 3;
-        (best_is_team != probe, probe)
+        let (solo, team) = (self.cost(false), self.cost(true));
+        let best_is_team = !(solo > 0.0 && team > 0.0 && solo < SOLO_MARGIN * team);
+        // probe the other mode for two attempts once in a while (the first
+        // time soon after the start, so that a busy machine is noticed early)
+        match self.attempts % PROBE_EVERY {
+            PROBE_AT => (!best_is_team, true),
+            r if r == PROBE_AT + 1 => (self.probed_team, true),
+            _ => (best_is_team, false),
+        }
     }
 
-    /// A probe's cost replaces the estimate (it is the only recent sample
-    /// of its mode); the chosen mode's costs are averaged.
+    /// Record an attempt's cost per particle-substep [s]. A probe starts its
+    /// mode's window afresh (older samples are stale).
     fn record(&mut self, team: bool, probe: bool, seconds_per_item: f64) {
-        let c = &mut self.cost[team as usize];
-        *c = if *c > 0.0 && !probe {
-            *c + COST_WEIGHT * (seconds_per_item - *c)
-        } else {
-            seconds_per_item
-        };
+        let first_probe = probe && self.attempts % PROBE_EVERY == PROBE_AT;
+        if probe {
+            self.probed_team = team;
+        }
+        if self.attempts >= SKIP {
+            let w = &mut self.recent[team as usize];
+            if first_probe {
+                *w = [0.0; WINDOW];
+            }
+            w.rotate_right(1);
+            w[0] = seconds_per_item;
+        }
         self.attempts += 1;
     }
 }
@@ -489,15 +519,38 @@ mod tests {
     #[test]
     fn the_cheaper_mode_runs_and_the_other_is_probed() {
         let mut m = ModeChoice::default();
-        // nothing measured: the team
-        assert_eq!(m.choose(), (true, false));
-        for _ in 0..3 {
-            let (team, probe) = m.choose();
-            m.record(team, probe, 1.0);
+        // nothing measured: the team; the first attempts are not counted
+        for _ in 0..SKIP {
+            assert_eq!(m.choose(), (true, false));
+            m.record(true, false, 100.0);
         }
-        // the fourth attempt probes the thread alone; it is cheaper: it wins
-        assert_eq!(m.choose(), (false, true));
-        m.record(false, true, 0.5);
+        assert_eq!((m.cost(false), m.cost(true)), (0.0, 0.0));
+        // the team's cost: the lowest of its recent attempts
+        for cost in [1.5, 1.0, 3.0, 1.2, 1.1, 1.3] {
+            assert_eq!(m.choose(), (true, false));
+            m.record(true, false, cost);
+        }
+        assert_eq!(m.cost(true), 1.0);
+        // two attempts probe the thread alone (the lower counts); only
+        // slightly cheaper it does not win, clearly cheaper it does
+        for cost in [2.0, 0.95] {
+            assert_eq!(m.choose(), (false, true));
+            m.record(false, true, cost);
+        }
+        assert_eq!(m.cost(false), 0.95);
+        assert_eq!(m.choose(), (true, false));
+        // the window forgets: 8 slower attempts later the team costs 1.02
+        while m.attempts < PROBE_EVERY + PROBE_AT {
+            assert_eq!(m.choose(), (true, false));
+            m.record(true, false, 1.02);
+        }
+        assert_eq!(m.cost(true), 1.02);
+        for cost in [0.5, 0.6] {
+            assert_eq!(m.choose(), (false, true));
+            m.record(false, true, cost);
+        }
+        // a probe starts afresh: 0.5, not the earlier 0.95 ... and wins
+        assert_eq!(m.cost(false), 0.5);
         assert_eq!(m.choose(), (false, false));
         // ... until a probe of the team comes out cheaper
         let mut probes = 0;
@@ -508,11 +561,11 @@ mod tests {
                 assert!(team);
                 m.record(team, probe, 0.25);
             } else {
-                assert_eq!(team, probes == 1);
+                assert_eq!(team, probes == 2);
                 m.record(team, probe, if team { 0.25 } else { 0.5 });
             }
         }
-        assert_eq!(probes, 1);
-        assert_eq!(m.choose().0, true);
+        assert_eq!(probes, 2);
+        assert!(m.choose().0);
     }
 }
