@@ -12,6 +12,11 @@ dam break; the same as benchmarks/taichi_peer.py):
   water3d_128  4096 water at 2 per cell on 128³ (8x the domain's cells), 16 substeps (dx halves); compare per substep
   water3d_32k  32768 water, 64³, origin (0.25, 0.1, 0.25), 8 substeps
   sand3d    4096 sand, 64³, 8 substeps
+  water_sand2d  the water2d block, its left half water and its right half sand
+Targets (issue 18) are checked from these rows: sand against water at equal
+particle count, water+sand against the average of the two, one thread
+against two. Scaling runs 1k-262k particles in 2D and 3D, each case in a
+fresh process (time, and memory as the growth of its resident set).
 Timing: 5 warm-up frames, then the median and p95 of per-frame wall times;
 start-up is excluded (as the paper's App. C does for Taichi).
 """
@@ -43,6 +48,16 @@ SCENES = {
     "water3d_128": (3, 128, (0.3, 0.1, 0.3), 16, WATER, 16),
     "water3d_32k": (3, 64, (0.25, 0.1, 0.25), 32, WATER, 8),
     "sand3d": (3, 64, (0.3, 0.1, 0.3), 16, SAND, 8),
+    # water and sand in one grid: the left half of the block water, the right half sand
+    "water_sand2d": (2, 128, (0.1, 0.1), 64, (WATER, SAND), 16),
+}
+
+# Scaling cases: (dim, n_grid, substeps per frame, lattice sides). The grid is
+# large enough for the biggest block at 2 particles per cell per dimension;
+# substeps keep dt = 0.02·dx as in the standard scenes.
+SCALING = {
+    2: (512, 64, [32, 64, 128, 256, 512]),
+    3: (64, 8, [10, 20, 32, 40, 64]),
 }
 
 
@@ -56,7 +71,12 @@ def make(dim, n_grid, origin, side, material, substeps, threads):
     lo = np.array(origin)
     x = lattice(lo, lo + side * spacing, spacing)
     params = MpmParams(dim=dim, n_grid=n_grid, substeps=substeps)
-    scene = Scene(f"bench{dim}d", params, x, np.full(len(x), material, np.int32), np.zeros_like(x), volumes=np.full(len(x), spacing**dim, np.float32))
+    if isinstance(material, tuple):
+        # (left, right): split at the block's middle along x
+        mats = np.where(x[:, 0] < lo[0] + 0.5 * side * spacing, material[0], material[1]).astype(np.int32)
+    else:
+        mats = np.full(len(x), material, np.int32)
+    scene = Scene(f"bench{dim}d", params, x, mats, np.zeros_like(x), volumes=np.full(len(x), spacing**dim, np.float32))
     return MpmSimulator(scene, threads=threads)
 
 
@@ -76,6 +96,75 @@ def rss_mb():
 
 def machine():
     return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version()}
+
+
+def scaling_case(dim, side, threads, frames):
+    """One scaling case (run in a fresh process by ``scaling``): water
+    released as a dam break; ms per frame and the growth of the resident set
+    from before the scene is built to after the timed frames (state, the g2p
+    double buffer, the sort, the grid blocks and the thread pool)."""
+    n_grid, substeps, _ = SCALING[dim]
+    origin = (0.2, 0.05) if dim == 2 else (0.2, 0.05, 0.2)
+    before = rss_mb()
+    sim = make(dim, n_grid, origin, side, WATER, substeps, threads)
+    med, _ = time_frames(sim, frames, warmup=2)
+    n = sim.particles.num_fluid
+    grown = rss_mb() - before
+    return {
+        "dim": dim,
+        "n_grid": n_grid,
+        "particles": n,
+        "threads": threads,
+        "substeps": substeps,
+        "ms_per_frame": med,
+        "us_per_substep": med * 1e3 / substeps,
+        "ns_per_particle_substep": med * 1e6 / substeps / n,
+        "rss_mb": grown,
+        "bytes_per_particle": grown * 2**20 / n,
+    }
+
+
+def scaling(frames, quick):
+    """Every scaling case in its own process (so that memory is measured from
+    a clean heap); returns their rows."""
+    rows = []
+    for dim, (_, _, sides) in SCALING.items():
+        for side in sides[:-1] if quick else sides:
+            for threads in (1, 2):
+                here = str(Path(__file__).parent)
+                code = f"import json, sys; sys.path.insert(0, {here!r}); import bench_mpm as b; print(json.dumps(b.scaling_case({dim}, {side}, {threads}, {frames})))"
+                r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+                if r.returncode != 0:
+                    raise RuntimeError(f"scaling case dim={dim} side={side} threads={threads} failed: {r.stderr[-2000:]}")
+                row = json.loads(r.stdout.strip().splitlines()[-1])
+                rows.append(row)
+                print(
+                    f"scaling {dim}D N={row['particles']:7d} t={threads}: {row['us_per_substep']:9.1f} us/substep,"
+                    f" {row['ns_per_particle_substep']:5.1f} ns per particle-substep, {row['bytes_per_particle']:6.0f} B/particle",
+                    flush=True,
+                )
+    return rows
+
+
+def targets(rows):
+    """Issue 18's ratios from the standard scenes (same run): sand / water at
+    equal particle count, water+sand / the average of water and sand, and one
+    thread / two threads."""
+    ms = {(x["scene"], x["threads"]): x["ms_per_frame"] for x in rows}
+    out = []
+    for t in (1, 2):
+        for dim in (2, 3):
+            w, sd = ms.get((f"water{dim}d", t)), ms.get((f"sand{dim}d", t))
+            if w and sd:
+                out.append({"check": f"sand{dim}d / water{dim}d", "threads": t, "value": sd / w, "target": "≤ 1.3"})
+        w, sd, mix = ms.get(("water2d", t)), ms.get(("sand2d", t)), ms.get(("water_sand2d", t))
+        if w and sd and mix:
+            out.append({"check": "water_sand2d / mean(water2d, sand2d)", "threads": t, "value": mix / (0.5 * (w + sd)), "target": "≤ 1.0"})
+    for name in SCENES:
+        one, two = ms.get((name, 1)), ms.get((name, 2))
+        if one and two:
+            out.append({"check": f"{name}: 1 thread / 2 threads", "threads": 2, "value": one / two, "target": "≤ 1.6"})
+    return out
 
 
 PEER_SCENES = {"water2d": "water2d", "sand2d": "sand2d", "water3d": "water3d_4k", "water3d_32k": "water3d_32k"}
@@ -156,14 +245,26 @@ def markdown(r):
             )
     lines += [
         "",
+        "## Targets (issue 18), from the standard scenes above",
+        "",
+        "| check | threads | value | target |",
+        "|---|---:|---:|---|",
+    ]
+    for x in r.get("targets", []):
+        lines.append(f"| {x['check']} | {x['threads']} | {x['value']:.2f} | {x['target']} |")
+    lines += [
+        "",
         "## Scaling with particle count and threads (water)",
         "",
-        "| dim | grid | particles | threads | ms/frame | µs/substep | ns per particle-substep |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "Each case in a fresh process; memory is the growth of its resident set (state, the g2p "
+        "double buffer, the sort, the grid blocks and, for the smallest cases mostly, the thread pool and the block index).",
+        "",
+        "| dim | grid | particles | threads | substeps | ms/frame | µs/substep | ns per particle-substep | bytes per particle |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for x in r["scaling"]:
         lines.append(
-            f"| {x['dim']} | {x['n_grid']} | {x['particles']} | {x['threads']} | {x['ms_per_frame']:.2f} | {x['us_per_substep']:.0f} | {x['ns_per_particle_substep']:.0f} |"
+            f"| {x['dim']} | {x['n_grid']} | {x['particles']} | {x['threads']} | {x['substeps']} | {x['ms_per_frame']:.2f} | {x['us_per_substep']:.0f} | {x['ns_per_particle_substep']:.0f} | {x['bytes_per_particle']:.0f} |"
         )
     mem = r["memory"]
     lines += [
@@ -205,40 +306,8 @@ def main():
                 flush=True,
             )
 
-    scaling = []
-    sides2 = [32, 64, 128, 256] if not args.quick else [32, 64, 128]
-    for side in sides2:
-        for threads in (1, 2):
-            sim = make(2, 256, (0.2, 0.05), side, WATER, 32, threads)
-            med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append(
-                {
-                    "dim": 2,
-                    "n_grid": 256,
-                    "particles": sim.particles.num_fluid,
-                    "threads": threads,
-                    "ms_per_frame": med,
-                    "us_per_substep": med * 1e3 / 32,
-                    "ns_per_particle_substep": med * 1e6 / 32 / sim.particles.num_fluid,
-                }
-            )
-            print(f"scaling 2D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 32:8.1f} us/substep", flush=True)
-    for side in [10, 16, 20, 32, 40] if not args.quick else [10, 16, 32]:
-        for threads in (1, 2):
-            sim = make(3, 64, (0.2, 0.05, 0.2), side, WATER, 8, threads)
-            med, p95 = time_frames(sim, max(5, frames // 2), warmup=2)
-            scaling.append(
-                {
-                    "dim": 3,
-                    "n_grid": 64,
-                    "particles": sim.particles.num_fluid,
-                    "threads": threads,
-                    "ms_per_frame": med,
-                    "us_per_substep": med * 1e3 / 8,
-                    "ns_per_particle_substep": med * 1e6 / 8 / sim.particles.num_fluid,
-                }
-            )
-            print(f"scaling 3D N={sim.particles.num_fluid:6d} t={threads}: {med * 1e3 / 8:8.1f} us/substep", flush=True)
+    # at least 20 frames: a solver's first frames measure both ways of running (see docs/engine.md)
+    scaling_rows = scaling(max(20, frames // 2), args.quick)
 
     # memory per particle: RSS growth for 1M 2D particles (state + scratch after a frame)
     before = rss_mb()
@@ -258,7 +327,8 @@ def main():
         "command": " ".join(["python"] + sys.argv),
         "frames": frames,
         "rows": rows,
-        "scaling": scaling,
+        "scaling": scaling_rows,
+        "targets": targets(rows),
         "memory": mem,
         "taichi": taichi,
     }
