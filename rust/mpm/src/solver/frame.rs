@@ -17,6 +17,7 @@
 
 use std::sync::Mutex;
 
+use super::g2p::G2pOut;
 use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team};
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
@@ -37,6 +38,8 @@ struct Stage<const D: usize> {
     local: RawSlice<[f32; 4]>,
     out_v: RawSlice<[f32; 4]>,
     next: RawSlice<Particle<D>>,
+    ids_next: RawSlice<u32>,
+    slot_of: RawSlice<u32>,
     /// The cells this substep writes: `grid.next_keys` in g2p (and
     /// `grid.keys` in the frame's first stage, which computes them afresh).
     cells: RawSlice<Cell>,
@@ -172,22 +175,28 @@ where
         let sp = &sp;
         let team = &team;
         let touched = &Mutex::new(Vec::new());
+        let result = &Mutex::new(None);
         let member = |tid: usize| {
             team.member(|| {
                 // SAFETY: every member of the team runs this once, concurrently
                 // (below); nothing else touches the solver meanwhile
                 unsafe {
                     Self::substeps_member(
-                        sp, team, touched, threads, tid, n_sub, dt, max_travel, retries,
+                        sp, team, touched, result, threads, tid, n_sub, dt, max_travel, retries,
                     )
                 }
             })
         };
-        let result = if threads == 1 {
-            member(0)
+        if threads == 1 {
+            member(0);
         } else {
-            pool.broadcast(|ctx| member(ctx.index())).swap_remove(0)
-        };
+            pool.broadcast(|ctx| member(ctx.index()));
+        }
+        let result = result
+            .lock()
+            .expect("no member panicked holding it")
+            .take()
+            .expect("the last substep leaves the frame's result");
         if pool_threads > 1 {
             let items = (n_sub * self.particles.len()).max(1) as f64;
             self.mode
@@ -197,48 +206,48 @@ where
             let (rounds, parks) = team.barrier_stats();
             eprintln!("team: {threads} threads, {rounds} barriers, {parks} parked waits");
         }
-        result.expect("thread 0 returns the frame's result")
+        result
     }
 
-    /// One member of the team. Thread 0 (`tid == 0`) runs the serial
-    /// sections and returns the result; the others return `None`.
+    /// One member of the team (`tid`: 0 ..); the frame's result is left in
+    /// `result`.
     ///
     /// # Safety
     /// Every thread of the team must call it once, concurrently, with the
     /// same arguments (what `run_substeps` does), and nothing else may touch
-    /// the solver meanwhile. Thread 0 takes `&mut Solver` only between
-    /// barriers, while the others wait; in parallel stages every thread
-    /// takes `&Solver` and writes only the chunks of the published buffers
-    /// that belong to the items it claimed (a buffer being written is never
-    /// read in the same stage).
+    /// the solver meanwhile. `&mut Solver` is taken only in serial sections
+    /// (run by the last member to arrive at a barrier while the others
+    /// wait); in parallel stages every member takes `&Solver` and writes
+    /// only the chunks of the published buffers that belong to the items it
+    /// claimed (a buffer being written is never read in the same stage).
     #[allow(clippy::too_many_arguments)]
     unsafe fn substeps_member(
         sp: &SolverPtr<D>,
         team: &Team<Stage<D>>,
         touched: &Mutex<Vec<u32>>,
+        result: &Mutex<Option<Result<f32>>>,
         n_chunks: usize,
         tid: usize,
         n_sub: usize,
         dt: f32,
         max_travel: f32,
         retries: usize,
-    ) -> Option<Result<f32>> {
-        let mut result: Option<Result<f32>> = None;
+    ) {
         // the cells of the frame's first substep, in parallel chunks
-        if tid == 0 {
-            // SAFETY: serial section (the others wait at the barrier below)
+        team.barrier_then(|| {
+            // SAFETY: serial section
             let s = unsafe { &mut *sp.0 };
             let n = s.particles.len();
             s.grid.keys.resize(n, Cell::default());
+            s.grid.key_by_id.resize(n, 0);
             let keys = RawSlice::new(&mut s.grid.keys);
-            // SAFETY: serial section
             unsafe { team.publish(s.stage_view(keys)) };
-        }
-        team.barrier();
+        });
         {
             // SAFETY: parallel section: shared reads, disjoint chunk writes
             let s = unsafe { &*sp.0 };
-            let keys = unsafe { team.published() }.cells;
+            let view = unsafe { team.published() };
+            let keys = view.cells;
             let n = s.particles.len();
             let inv_dx = s.params.n_grid as f32;
             let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, s.stencil.pad_stride);
@@ -247,8 +256,10 @@ where
                 let hi = (lo + KEYS_CHUNK).min(n);
                 // SAFETY: chunk i is this thread's alone
                 let out = unsafe { keys.chunk_mut(lo, hi - lo) };
-                for (k, p) in out.iter_mut().zip(&s.particles[lo..hi]) {
+                for ((k, p), &id) in out.iter_mut().zip(&s.particles[lo..hi]).zip(&s.ids[lo..hi]) {
                     *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
+                    // SAFETY: each id is at one slot, and so in one chunk
+                    unsafe { view.key_by_id.write(id as usize, k.key) };
                 }
             }
         }
@@ -257,12 +268,10 @@ where
         let mut acc = Vec::new();
         let mut clock = Profile::new(tid == 0 && unsafe { (*sp.0).profile });
         for sub in 0..=n_sub {
-            team.barrier();
-            if sub > 0 {
-                clock.lap(Lap::G2p);
-            }
-            if tid == 0 {
-                // SAFETY: serial section (the others wait at the barrier below)
+            // serial: finish the previous substep's g2p and check it, then
+            // start the block sort
+            team.barrier_then(|| {
+                // SAFETY: serial section
                 let s = unsafe { &mut *sp.0 };
                 if sub > 0 {
                     s.g2p_finish();
@@ -286,24 +295,25 @@ where
                             retries,
                         }),
                     };
-                    clock.lap(Lap::Finish);
-                    clock.print(s);
+                    let mut r = result.lock().expect("no member panicked holding it");
                     if let Some(e) = err {
-                        result = Some(Err(e));
+                        *r = Some(Err(e));
                         team.set_stop();
                     } else if sub == n_sub {
-                        result = Some(Ok(v));
+                        *r = Some(Ok(v));
                         team.set_stop();
                     }
                 }
                 if !team.stopped() {
                     s.sort_begin();
                     let keys = RawSlice::new(&mut s.grid.next_keys);
-                    // SAFETY: serial section
                     unsafe { team.publish(s.stage_view(keys)) };
                 }
+            });
+            if sub > 0 {
+                clock.lap(Lap::G2p);
+                clock.print(unsafe { &*sp.0 });
             }
-            team.barrier();
             if team.stopped() {
                 break;
             }
@@ -315,23 +325,21 @@ where
                 let view = unsafe { team.published() };
                 let mut mine = Vec::new();
                 while let Some(c) = team.claim(SORT_MARK, n_chunks) {
-                    unsafe { s.sort_mark(c, n_chunks, view.key_by_id, view.src_map, &mut mine) };
+                    unsafe { s.sort_mark(c, n_chunks, view.src_map, &mut mine) };
                 }
                 touched
                     .lock()
                     .expect("no member panicked holding it")
                     .append(&mut mine);
             }
-            team.barrier();
-            if tid == 0 {
+            team.barrier_then(|| {
                 // SAFETY: serial section
                 let s = unsafe { &mut *sp.0 };
                 let mut t = touched.lock().expect("no member panicked holding it");
                 s.sort_number(&mut t, n_chunks);
                 let keys = RawSlice::new(&mut s.grid.next_keys);
                 unsafe { team.publish(s.stage_view(keys)) };
-            }
-            team.barrier();
+            });
             {
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
@@ -344,8 +352,7 @@ where
                     unsafe { s.sort_scatter(c, n_chunks, view.sorted, &mut cursor) };
                 }
             }
-            team.barrier();
-            if tid == 0 {
+            team.barrier_then(|| {
                 // SAFETY: serial section
                 let s = unsafe { &mut *sp.0 };
                 s.sort_end(n_chunks);
@@ -355,14 +362,13 @@ where
                 s.grid.out_v.resize(n_out * b.pow(D as u32), [0.0; 4]);
                 let n = s.particles.len();
                 s.next.resize(n, s.particles[0]);
+                s.ids_next.resize(n, 0);
                 s.grid.next_keys.resize(n, Cell::default());
                 let keys = RawSlice::new(&mut s.grid.next_keys);
                 let view = s.stage_view(keys);
-                // SAFETY: serial section
                 unsafe { team.publish(view) };
-                clock.lap(Lap::Sort);
-            }
-            team.barrier();
+            });
+            clock.lap(Lap::Sort);
             // SAFETY: parallel sections from here to the loop's next barrier:
             // shared reads, and writes to the claimed chunks only
             let s = unsafe { &*sp.0 };
@@ -388,15 +394,23 @@ where
             while let Some(si) = team.claim(G2P, view.n_src) {
                 let lo = s.grid.src_offsets[si] as usize;
                 let len = s.grid.src_offsets[si + 1] as usize - lo;
-                let (outp, outk) =
-                    unsafe { (view.next.chunk_mut(lo, len), view.cells.chunk_mut(lo, len)) };
-                let (h, v2) = s.g2p_block(si, &mut patch, outp, outk, dt, &sand);
+                // SAFETY: block si's range of the next storage order and its
+                // ids are this thread's alone
+                let (h, v2) = unsafe {
+                    let out = G2pOut {
+                        particles: view.next.chunk_mut(lo, len),
+                        cells: view.cells.chunk_mut(lo, len),
+                        ids: view.ids_next.chunk_mut(lo, len),
+                        slot_of: view.slot_of,
+                        key_by_id: view.key_by_id,
+                    };
+                    s.g2p_block(si, &mut patch, out, dt, &sand)
+                };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
             }
             team.report(health, vmax2);
         }
-        result
     }
 
     /// The buffers the parallel stages write, sized for this substep.
@@ -411,6 +425,8 @@ where
             local: RawSlice::new(&mut self.grid.local),
             out_v: RawSlice::new(&mut self.grid.out_v),
             next: RawSlice::new(&mut self.next),
+            ids_next: RawSlice::new(&mut self.ids_next),
+            slot_of: RawSlice::new(&mut self.slot_of),
             cells,
         }
     }
@@ -423,7 +439,6 @@ enum Lap {
     P2g,
     Grid,
     G2p,
-    Finish,
 }
 
 /// Per-stage wall times of one substep, seen from thread 0 (each stage ends
@@ -431,7 +446,7 @@ enum Lap {
 struct Profile {
     on: bool,
     last: std::time::Instant,
-    laps: [std::time::Duration; 5],
+    laps: [std::time::Duration; 4],
 }
 
 impl Profile {
@@ -458,12 +473,11 @@ impl Profile {
         if self.on {
             let l = &self.laps;
             eprintln!(
-                "blocks {:?} p2g {:?} grid {:?} g2p {:?} finish {:?} nsrc {} nout {}",
+                "blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {} nout {}",
                 l[Lap::Sort as usize],
                 l[Lap::P2g as usize],
                 l[Lap::Grid as usize],
                 l[Lap::G2p as usize],
-                l[Lap::Finish as usize],
                 s.grid.src_blocks.len(),
                 s.grid.out_blocks.len()
             );

@@ -27,6 +27,7 @@
 use nalgebra::{SMatrix, SVector};
 
 use super::grid::{EMPTY, add4, fma4, fma4_nonzero, unflatten};
+use super::team::RawSlice;
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
@@ -40,19 +41,31 @@ where
 {
     /// g2p of source block `si`: gathers its padded velocity patch once
     /// (`patch`: scratch of `(B+2)^D` nodes), updates its particles and
-    /// writes them, and their [`Cell`] for the next substep, to `outp` /
-    /// `outk` (the block's contiguous range of the next storage order:
-    /// sorted by block, then id). Returns the block's health and largest
-    /// speed squared.
-    pub(super) fn g2p_block(
+    /// writes them, their [`Cell`] and their ids for the next substep to
+    /// `out` (the block's contiguous range of the next storage order: sorted
+    /// by block, then id), and each one's new slot and block key to
+    /// `slot_of` and `key_by_id` at its id. Returns the block's health and
+    /// largest speed squared.
+    ///
+    /// # Safety
+    /// `slot_of` and `key_by_id` view `self.slot_of` and `grid.key_by_id`;
+    /// nothing else may access them while g2p runs (each id is written by
+    /// the one block that holds it).
+    pub(super) unsafe fn g2p_block(
         &self,
         si: usize,
         patch: &mut [[f32; 4]],
-        outp: &mut [Particle<D>],
-        outk: &mut [Cell],
+        out: G2pOut<'_, D>,
         dt: f32,
         sand: &SandModel,
     ) -> (Health, f32) {
+        let G2pOut {
+            particles: outp,
+            cells: outk,
+            ids: out_ids,
+            slot_of,
+            key_by_id,
+        } = out;
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
@@ -97,8 +110,15 @@ where
         let mut finite_rest = true;
         let mut inverted = false;
         let mut vmax2 = 0.0f32;
-        for (j, (po, ko)) in outp.iter_mut().zip(outk.iter_mut()).enumerate() {
+        for (j, ((po, ko), io)) in outp
+            .iter_mut()
+            .zip(outk.iter_mut())
+            .zip(out_ids.iter_mut())
+            .enumerate()
+        {
             let slot = sorted[lo_i + j] as usize;
+            let id = self.ids[slot];
+            *io = id;
             let mut p = particles[slot];
             let cell = &cells[slot];
             let (fx, w) = weights::<D>(cell);
@@ -154,6 +174,11 @@ where
                 }
             };
             *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
+            // SAFETY: id is this block's alone (caller)
+            unsafe {
+                slot_of.write(id as usize, (lo_i + j) as u32);
+                key_by_id.write(id as usize, ko.key);
+            }
             // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;
@@ -173,15 +198,21 @@ where
     }
 
     /// After every block's g2p: the next storage order becomes the current
-    /// one (particles, their cells, and the id ↔ slot maps).
+    /// one (particles, their cells and ids; g2p wrote `slot_of`).
     pub(super) fn g2p_finish(&mut self) {
-        let g = &mut self.grid;
         std::mem::swap(&mut self.particles, &mut self.next);
-        std::mem::swap(&mut g.keys, &mut g.next_keys);
-        let ids_old = std::mem::take(&mut self.ids);
-        self.ids = g.sorted.iter().map(|&s| ids_old[s as usize]).collect();
-        for (slot, &id) in self.ids.iter().enumerate() {
-            self.slot_of[id as usize] = slot as u32;
-        }
+        std::mem::swap(&mut self.grid.keys, &mut self.grid.next_keys);
+        std::mem::swap(&mut self.ids, &mut self.ids_next);
     }
+}
+
+/// Where g2p writes one source block's results (see [`Solver::g2p_block`]).
+pub(super) struct G2pOut<'a, const D: usize> {
+    /// The block's particles, cells and ids in the next storage order.
+    pub(super) particles: &'a mut [Particle<D>],
+    pub(super) cells: &'a mut [Cell],
+    pub(super) ids: &'a mut [u32],
+    /// Written at the block's ids: their new slots and block keys.
+    pub(super) slot_of: RawSlice<u32>,
+    pub(super) key_by_id: RawSlice<u32>,
 }

@@ -103,9 +103,9 @@ where
     4 * std::mem::size_of::<Particle<D>>()
         // keys and next keys
         + 2 * std::mem::size_of::<Cell>()
-        // ids, slot_of, sorted, the block sort's keys by id, and the rollback
-        // copies of ids and slot_of
-        + 6 * std::mem::size_of::<u32>()
+        // ids and their g2p double buffer, slot_of, sorted, the block sort's
+        // keys by id, and the rollback copies of ids and slot_of
+        + 7 * std::mem::size_of::<u32>()
         + per_cell
 }
 
@@ -224,8 +224,8 @@ where
     // and blocks are numbered in key order, so the result (and every sum
     // that follows) is the same for any number of threads.
 
-    /// Sort stage 1 (thread 0): forget the previous substep's blocks and
-    /// size the scratch.
+    /// Sort stage 1 (serial): forget the previous substep's blocks and size
+    /// the scratch.
     pub(super) fn sort_begin(&mut self) {
         let g = &mut self.grid;
         for &b in &g.src_blocks {
@@ -247,32 +247,24 @@ where
         c * n / n_chunks..(c + 1) * n / n_chunks
     }
 
-    /// Sort stage 2 (parallel, chunk `c`): the block key of each id, into
-    /// `key_by_id` (this chunk's range), and mark the blocks this chunk
-    /// sees first in `src_map` (atomically: chunks mark concurrently),
-    /// appending their keys to `touched`.
+    /// Sort stage 2 (parallel, chunk `c`): mark the blocks of the chunk's
+    /// ids (`grid.key_by_id`, written by the previous g2p or the frame's
+    /// first stage) that this chunk sees first in `src_map` (atomically:
+    /// chunks mark concurrently), appending their keys to `touched`.
     ///
     /// # Safety
-    /// `key_by_id` and `src_map` view `grid.key_by_id` and `grid.src_map`;
-    /// during this stage nothing else may access `src_map` or this chunk's
-    /// range of `key_by_id`.
+    /// `src_map` views `grid.src_map`; during this stage nothing else may
+    /// access it.
     pub(super) unsafe fn sort_mark(
         &self,
         c: usize,
         n_chunks: usize,
-        key_by_id: RawSlice<u32>,
         src_map: RawSlice<u32>,
         touched: &mut Vec<u32>,
     ) {
-        let ids = self.chunk_ids(c, n_chunks);
-        // SAFETY: this chunk's range is ours alone (caller)
-        let out = unsafe { key_by_id.chunk_mut(ids.start, ids.len()) };
         // SAFETY: every access to `src_map` in this stage is atomic (caller)
         let map = unsafe { src_map.as_atomic() };
-        let keys = &self.grid.keys;
-        for (k, &slot) in out.iter_mut().zip(&self.slot_of[ids]) {
-            let key = keys[slot as usize].key;
-            *k = key;
+        for &key in &self.grid.key_by_id[self.chunk_ids(c, n_chunks)] {
             let m = &map[key as usize];
             if m.load(Ordering::Relaxed) == EMPTY
                 && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
@@ -283,7 +275,7 @@ where
         }
     }
 
-    /// Sort stage 3 (thread 0): number the marked blocks in key order
+    /// Sort stage 3 (serial): number the marked blocks in key order
     /// (`touched`: every chunk's marked keys, emptied) and zero the
     /// per-chunk counts.
     pub(super) fn sort_number(&mut self, touched: &mut Vec<u32>, n_chunks: usize) {
@@ -354,7 +346,7 @@ where
         }
     }
 
-    /// Sort stage 6 (thread 0): the blocks' offsets in the sorted order, and
+    /// Sort stage 6 (serial): the blocks' offsets in the sorted order, and
     /// the output blocks (each source block and its `+1` neighbours).
     pub(super) fn sort_end(&mut self, n_chunks: usize) {
         let g = &mut self.grid;

@@ -72,12 +72,19 @@ impl SpinBarrier {
             .push(std::thread::current());
     }
 
-    fn wait(&self, poisoned: &AtomicBool) {
+    /// Wait until every member has arrived; the last to arrive runs
+    /// `serial` first (while all the others wait), so a serial section costs
+    /// one barrier instead of two.
+    fn wait_then(&self, poisoned: &AtomicBool, serial: impl FnOnce()) {
         if self.n == 1 {
+            serial();
             return;
         }
         let generation = self.generation.0.load(Ordering::Acquire);
+        // AcqRel: the last to arrive sees everything the others wrote before
+        // arriving (their increments form one release sequence)
         if self.arrived.0.fetch_add(1, Ordering::AcqRel) + 1 == self.n {
+            serial();
             self.arrived.0.store(0, Ordering::Relaxed);
             self.rounds.fetch_add(1, Ordering::Relaxed);
             self.generation.0.fetch_add(1, Ordering::SeqCst);
@@ -140,9 +147,9 @@ pub(super) struct Team<V> {
     shared: UnsafeCell<Option<V>>,
 }
 
-// SAFETY: `shared` is written by thread 0 only between two barriers while
-// every other thread waits, and read by all only after the barrier that
-// follows (the barrier's Release/Acquire orders the write before the reads).
+// SAFETY: `shared` is written only in serial sections (by the last member
+// to arrive at a barrier, while every other member waits) and read by all
+// only after that barrier (its Release/Acquire orders the write before the reads).
 unsafe impl<V: Send + Sync> Sync for Team<V> {}
 
 /// Stage counters (one each, so a stage's counter can be reset while the
@@ -180,7 +187,13 @@ impl<V: Copy> Team<V> {
 
     /// Every member waits here until all have arrived.
     pub(super) fn barrier(&self) {
-        self.barrier.wait(&self.poisoned);
+        self.barrier.wait_then(&self.poisoned, || {});
+    }
+
+    /// A barrier whose last member to arrive runs `serial` (the same closure
+    /// in every member; one of them runs) before the others go on.
+    pub(super) fn barrier_then(&self, serial: impl FnOnce()) {
+        self.barrier.wait_then(&self.poisoned, serial);
     }
 
     /// The next unclaimed item `< n` of stage `stage`, or `None`.
@@ -190,12 +203,12 @@ impl<V: Copy> Team<V> {
         (i < n).then_some(i)
     }
 
-    /// Thread 0, serial section: reset the stage counters, the substep's
-    /// health and speed, and publish `v` for the next stages.
+    /// Serial section: reset the stage counters, the substep's health and
+    /// speed, and publish `v` for the next stages.
     ///
     /// # Safety
-    /// Only thread 0 may call it, and only while every other member waits at
-    /// the barrier (between two `barrier` calls).
+    /// Call it only in a serial section (the closure of `barrier_then`),
+    /// while every other member waits.
     pub(super) unsafe fn publish(&self, v: V) {
         for c in &self.counters {
             c.0.store(0, Ordering::Relaxed);
@@ -233,7 +246,7 @@ impl<V: Copy> Team<V> {
         (h, f32::from_bits(self.vmax2.load(Ordering::Relaxed)).sqrt())
     }
 
-    /// Thread 0: end the frame early (seen by all after the next barrier).
+    /// Serial section: end the frame (seen by all after the barrier).
     pub(super) fn set_stop(&self) {
         self.stop.store(true, Ordering::Relaxed);
     }
