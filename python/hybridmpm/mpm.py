@@ -405,8 +405,8 @@ class MpmSolver:
     (``8 · ⌈(n_grid + 2)/B + 1⌉^D`` bytes, B = 8 in 2D, 4 in 3D: 8.1 GiB for
     3D ``n_grid = 4096``) is refused at construction with
     :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid``, and
-    particles beyond ``memory_budget / bytes_per_particle`` (521 B in 2D,
-    902 B in 3D) by :meth:`add_particles` naming ``positions``; both say the
+    particles beyond ``memory_budget / bytes_per_particle`` (525 B in 2D,
+    906 B in 3D) by :meth:`add_particles` naming ``positions``; both say the
     size they would need. Colliders thinner than 2 cells (boxes) or of radius
     below 1.5 cells (spheres) are refused (``colliders[i].half_extents`` /
     ``colliders[i].radius``): particles would fall through them.
