@@ -5,7 +5,10 @@ to those of main at 202ef89, the last commit before :mod:`hybridmpm.sim`.
 recorded by ``golden/make_golden_202ef89.py`` running the 202ef89 code itself
 (its own frame loops: ``Scene.make_solver().step_frame``, ``run_neural``,
 ``HybridSimulator.step``); here the same runs go through :func:`hybridmpm.sim.rollout`.
-MPM: every registered scene, 2 seeds, 50 frames. Network alone and hybrid:
+MPM: every registered scene, 2 seeds, 50 frames; scenes whose numerics
+changed on purpose since (2D sand, issue 18) are checked against digests
+re-recorded by ``golden/rerecord_mpm.py``, and their coordinate sums against
+202ef89's within a rounding-level tolerance. Network alone and hybrid:
 water2d and the dam break, 2 seeds, 120 frames (the hybrid switches to the
 network and back in them). The digests are of this machine class's float
 arithmetic (x86-64, the Rust build's SIMD and onnxruntime's CPU kernels); on
@@ -50,11 +53,30 @@ def check(rec: dict, positions: np.ndarray) -> None:
         pytest.fail(f"trajectory differs from 202ef89: coordinate sum {positions.astype(np.float64).sum()!r} vs {rec['sum']!r}")
 
 
+#: Scenes whose MPM numerics changed on purpose since 202ef89, re-recorded by
+#: ``golden/rerecord_mpm.py`` (each entry says when and why).
+RERECORDED = json.loads((Path(__file__).parent / "golden" / "golden_mpm_rerecorded.json").read_text())
+
+#: How far the mean coordinate of a re-recorded run may move from 202ef89's
+#: [m]: a rounding-level change of the numerics, not of the model (1/780 of a
+#: grid cell at dx = 1/128 m). For 2D sand's update without singular vectors
+#: it measured up to 3.4e-6 m, and single particles moved up to 5.0e-5 m
+#: after 50 frames (against the SVD route run on the same commit).
+MEAN_SHIFT_TOL = 1e-5
+
+
 @pytest.mark.parametrize("key", sorted(GOLDEN["mpm"]))
 def test_mpm_trajectories_identical_to_202ef89(key: str):
     name, seed = key.split("/")
     ro = rollout(MpmSimulator(make_scene(name, seed=int(seed)), threads=0), 50)
-    check(GOLDEN["mpm"][key], ro.fluid_positions)
+    if key in RERECORDED:
+        rec = RERECORDED[key]
+        check(rec, ro.fluid_positions)
+        old = GOLDEN["mpm"][key]
+        assert rec["shape"] == old["shape"]
+        assert abs(rec["sum"] - old["sum"]) / np.prod(old["shape"]) <= MEAN_SHIFT_TOL, (rec["sum"], old["sum"])
+    else:
+        check(GOLDEN["mpm"][key], ro.fluid_positions)
 
 
 MODELS_202EF89 = Path(__file__).parent / "golden" / "models"

@@ -16,6 +16,10 @@
 //! `cargo test --release -p hybridmpm-mpm --test golden -- --nocapture`,
 //! which prints the new values) and say so in the commit.
 //!
+//! Re-recorded: sand2d and mixed2d_colliders on 2026-11-23, when 2D sand's
+//! update stopped computing singular vectors (`material/sand.rs`,
+//! `advance_2d`: the same model, closer to an f64 reference; issue 18).
+//!
 //! `exp`, `ln`, `sin`, `tan` come from the platform's libm, so the constants
 //! are asserted on x86_64 Linux only (where they were recorded); elsewhere
 //! the test only runs the configurations.
@@ -302,8 +306,8 @@ fn grid_mass_2d_3d() -> u64 {
 
 const EXPECTED: [(&str, u64); 7] = [
     ("water2d", 0x4175e9a64097c837),
-    ("sand2d", 0x3ced381e8d02c819),
-    ("mixed2d_colliders", 0xcb2ddb34072a4722),
+    ("sand2d", 0x8ab11cec94e67cb1),
+    ("mixed2d_colliders", 0xfd985ca7d4f15bb1),
     ("water3d", 0x410ad46de327c48d),
     ("sand3d", 0xc807bfbb5563a614),
     ("retry2d", 0x57a1270394ccbe64),
