@@ -70,30 +70,46 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// its members keep waiting for each other to be scheduled and the same
 /// substep became ~5× slower than one thread (measured, `yes` hogging one of
 /// two cores). So each mode's cost per particle-substep is tracked, the
-/// cheaper one runs, and every `PROBE_EVERY` frames two run the other to
-/// keep its estimate current. A mode's cost is the lowest of its last
+/// cheaper one runs, and now and then two frames run the other to keep its
+/// estimate current ("probes"). A mode's cost is the lowest of its last
 /// `WINDOW` attempts: a frame is only ever slowed down by noise (another
 /// process waking up, a page fault), so the minimum is what the mode can do
 /// on this machine now; the first `SKIP` attempts are not counted (they
 /// allocate the buffers and wake the pool, and measured up to 4× slower
-/// than the next ones). Results are the same in both modes.
+/// than the next ones).
+///
+/// The first probe comes at attempt `FIRST_PROBE`; after a probe that
+/// confirms the choice the next one waits twice as long (from `GAP` up to
+/// `MAX_GAP` attempts: a probe of the slower mode costs time), after one
+/// that changes it, `GAP`; and when the running mode's cost rises past
+/// `DEGRADED` times what it was at the last probe (the machine got busy),
+/// the probe comes at once. Results are the same in both modes.
 #[derive(Clone, Copy, Debug, Default)]
 pub(super) struct ModeChoice {
     /// The last `WINDOW` costs per particle-substep [s] of `[solo, team]`
     /// (0: none yet).
     recent: [[f64; WINDOW]; 2],
+    /// Each mode's cost when the last probe ended (0: none yet).
+    baseline: [f64; 2],
     attempts: u64,
-    /// The mode the current probe measures (its second attempt uses it too).
+    /// The attempt at which the next probe starts (0: `FIRST_PROBE`).
+    next_probe: u64,
+    /// Attempts between the last probe and the next (0: `GAP`).
+    gap: u64,
+    /// A probe is under way (its first attempt is done), and of which mode.
+    probing: bool,
     probed_team: bool,
     /// Tests: always this mode.
     #[cfg(test)]
     force: Option<bool>,
 }
 
-const PROBE_EVERY: u64 = 50;
-const PROBE_AT: u64 = 8;
+const FIRST_PROBE: u64 = 8;
+const GAP: u64 = 50;
+const MAX_GAP: u64 = 400;
 const SKIP: u64 = 2;
 const WINDOW: usize = 8;
+const DEGRADED: f64 = 1.5;
 /// The thread alone runs only when its cost is below this fraction of the
 /// team's (timings are noisy).
 const SOLO_MARGIN: f64 = 0.9;
@@ -108,39 +124,73 @@ impl ModeChoice {
             .fold(0.0, |m: f64, c| if m == 0.0 { c } else { m.min(c) })
     }
 
+    /// The cheaper mode as measured (the team while either is unknown).
+    fn best_is_team(&self) -> bool {
+        let (solo, team) = (self.cost(false), self.cost(true));
+        !(solo > 0.0 && team > 0.0 && solo < SOLO_MARGIN * team)
+    }
+
+    fn next_probe(&self) -> u64 {
+        if self.next_probe == 0 {
+            FIRST_PROBE
+        } else {
+            self.next_probe
+        }
+    }
+
     /// Whether the next attempt uses the team, and whether it is a probe.
     fn choose(&self) -> (bool, bool) {
         #[cfg(test)]
         if let Some(team) = self.force {
             return (team, false);
         }
-        let (solo, team) = (self.cost(false), self.cost(true));
-        let best_is_team = !(solo > 0.0 && team > 0.0 && solo < SOLO_MARGIN * team);
-        // probe the other mode for two attempts once in a while (the first
-        // time soon after the start, so that a busy machine is noticed early)
-        match self.attempts % PROBE_EVERY {
-            PROBE_AT => (!best_is_team, true),
-            r if r == PROBE_AT + 1 => (self.probed_team, true),
-            _ => (best_is_team, false),
+        let best = self.best_is_team();
+        if self.probing {
+            (self.probed_team, true)
+        } else if self.attempts >= self.next_probe() {
+            (!best, true)
+        } else {
+            (best, false)
         }
     }
 
-    /// Record an attempt's cost per particle-substep [s]. A probe starts its
-    /// mode's window afresh (older samples are stale).
+    /// Record an attempt's cost per particle-substep [s] (the mode and
+    /// probe flag that `choose` gave it).
     fn record(&mut self, team: bool, probe: bool, seconds_per_item: f64) {
-        let first_probe = probe && self.attempts % PROBE_EVERY == PROBE_AT;
-        if probe {
+        let m = team as usize;
+        let probe_ends = probe && self.probing;
+        if probe && !self.probing {
+            // a probe starts its mode's window afresh (older samples are stale)
+            self.recent[m] = [0.0; WINDOW];
+            self.probing = true;
             self.probed_team = team;
         }
         if self.attempts >= SKIP {
-            let w = &mut self.recent[team as usize];
-            if first_probe {
-                *w = [0.0; WINDOW];
-            }
+            let w = &mut self.recent[m];
             w.rotate_right(1);
             w[0] = seconds_per_item;
         }
         self.attempts += 1;
+        let gap = if self.gap == 0 { GAP } else { self.gap };
+        if probe_ends {
+            self.probing = false;
+            // the probe lost: wait longer for the next one; it won: soon
+            self.gap = if self.best_is_team() != team {
+                (2 * gap).min(MAX_GAP)
+            } else {
+                GAP
+            };
+            self.next_probe = self.attempts + self.gap;
+            self.baseline = [self.cost(false), self.cost(true)];
+        } else if !probe
+            && self.baseline[m] > 0.0
+            && self.cost(team) > DEGRADED * self.baseline[m]
+            && self.best_is_team() == team
+        {
+            // the running mode got slower (and still looks the cheaper):
+            // measure the other one now
+            self.next_probe = self.next_probe().min(self.attempts);
+        }
     }
 }
 
@@ -530,6 +580,18 @@ mod tests {
         assert_eq!(one, run::<3>(3, true, 6));
     }
 
+    /// Run `n` attempts at the given costs per mode; returns how many were
+    /// probes.
+    fn attempts(m: &mut ModeChoice, n: usize, solo: f64, team: f64) -> usize {
+        let mut probes = 0;
+        for _ in 0..n {
+            let (t, probe) = m.choose();
+            probes += probe as usize;
+            m.record(t, probe, if t { team } else { solo });
+        }
+        probes
+    }
+
     #[test]
     fn the_cheaper_mode_runs_and_the_other_is_probed() {
         let mut m = ModeChoice::default();
@@ -546,40 +608,37 @@ mod tests {
         }
         assert_eq!(m.cost(true), 1.0);
         // two attempts probe the thread alone (the lower counts); only
-        // slightly cheaper it does not win, clearly cheaper it does
+        // slightly cheaper, it does not win
         for cost in [2.0, 0.95] {
             assert_eq!(m.choose(), (false, true));
             m.record(false, true, cost);
         }
         assert_eq!(m.cost(false), 0.95);
         assert_eq!(m.choose(), (true, false));
-        // the window forgets: 8 slower attempts later the team costs 1.02
-        while m.attempts < PROBE_EVERY + PROBE_AT {
-            assert_eq!(m.choose(), (true, false));
-            m.record(true, false, 1.02);
-        }
-        assert_eq!(m.cost(true), 1.02);
-        for cost in [0.5, 0.6] {
-            assert_eq!(m.choose(), (false, true));
-            m.record(false, true, cost);
-        }
-        // a probe starts afresh: 0.5, not the earlier 0.95 ... and wins
-        assert_eq!(m.cost(false), 0.5);
-        assert_eq!(m.choose(), (false, false));
-        // ... until a probe of the team comes out cheaper
-        let mut probes = 0;
-        for _ in 0..PROBE_EVERY {
-            let (team, probe) = m.choose();
-            if probe {
-                probes += 1;
-                assert!(team);
-                m.record(team, probe, 0.25);
-            } else {
-                assert_eq!(team, probes == 2);
-                m.record(team, probe, if team { 0.25 } else { 0.5 });
+        // probes that confirm the choice come ever less often: each waits
+        // twice the last gap (from 2·GAP after the first) up to MAX_GAP
+        let mut starts = Vec::new();
+        for _ in 0..1500 {
+            let (t, probe) = m.choose();
+            if probe && !m.probing {
+                starts.push(m.attempts);
             }
+            m.record(t, probe, if t { 1.0 } else { 2.0 });
         }
-        assert_eq!(probes, 2);
-        assert!(m.choose().0);
+        assert_eq!(starts[0], FIRST_PROBE + 2 + 2 * GAP);
+        let gaps: Vec<u64> = starts.windows(2).map(|w| w[1] - w[0] - 2).collect();
+        assert_eq!(gaps, [4 * GAP, MAX_GAP, MAX_GAP]);
+        // the machine gets busy (the team's cost rises past DEGRADED × its
+        // baseline, a probe follows): within a window and a probe of
+        // attempts the thread alone runs
+        attempts(&mut m, WINDOW + 2, 1.5, 5.0);
+        assert_eq!(m.choose(), (false, false));
+        // the team is cheaper again: within MAX_GAP and a probe it runs
+        attempts(&mut m, MAX_GAP as usize + 2, 1.5, 0.5);
+        assert_eq!(m.choose(), (true, false));
+        // and a solver whose team was never cheaper stays alone
+        let mut m = ModeChoice::default();
+        assert!(attempts(&mut m, 1000, 1.0, 5.0) <= 2 + 2 * 1000 / (2 * GAP as usize));
+        assert_eq!(m.choose(), (false, false));
     }
 }
