@@ -71,12 +71,13 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// substep became ~5× slower than one thread (measured, `yes` hogging one of
 /// two cores). So each mode's cost per particle-substep is tracked, the
 /// cheaper one runs, and now and then two frames run the other to keep its
-/// estimate current ("probes"). A mode's cost is the lowest of its last
-/// `WINDOW` attempts: a frame is only ever slowed down by noise (another
-/// process waking up, a page fault), so the minimum is what the mode can do
-/// on this machine now; the first `SKIP` attempts are not counted (they
-/// allocate the buffers and wake the pool, and measured up to 4× slower
-/// than the next ones).
+/// estimate current ("probes"). A mode's cost is the mean of its last
+/// `WINDOW` attempts (the lowest was tried first: it kept a team whose
+/// frames alternated between 1.4 and 9.9 ms, when the thread pool had gone
+/// idle between frames and its second core was slow to come back, against
+/// 2.4 ms alone); the first `SKIP` attempts are not counted (they allocate
+/// the buffers and wake the pool, and measured up to 4× slower than the next
+/// ones).
 ///
 /// The first probe comes at attempt `FIRST_PROBE`; after a probe that
 /// confirms the choice the next one waits twice as long (from `GAP` up to
@@ -117,11 +118,11 @@ const SOLO_MARGIN: f64 = 0.9;
 impl ModeChoice {
     /// The estimated cost of a mode (0: unknown).
     fn cost(&self, team: bool) -> f64 {
-        self.recent[team as usize]
+        let (sum, n) = self.recent[team as usize]
             .iter()
-            .copied()
-            .filter(|&c| c > 0.0)
-            .fold(0.0, |m: f64, c| if m == 0.0 { c } else { m.min(c) })
+            .filter(|&&c| c > 0.0)
+            .fold((0.0, 0), |(s, n), &c| (s + c, n + 1));
+        if n == 0 { 0.0 } else { sum / n as f64 }
     }
 
     /// The cheaper mode as measured (the team while either is unknown).
@@ -601,15 +602,15 @@ mod tests {
             m.record(true, false, 100.0);
         }
         assert_eq!((m.cost(false), m.cost(true)), (0.0, 0.0));
-        // the team's cost: the lowest of its recent attempts
-        for cost in [1.5, 1.0, 3.0, 1.2, 1.1, 1.3] {
+        // the team's cost: the mean of its recent attempts
+        for cost in [1.5, 0.5, 2.0, 0.5, 0.5, 1.0] {
             assert_eq!(m.choose(), (true, false));
             m.record(true, false, cost);
         }
         assert_eq!(m.cost(true), 1.0);
-        // two attempts probe the thread alone (the lower counts); only
+        // two attempts probe the thread alone (their mean counts); only
         // slightly cheaper, it does not win
-        for cost in [2.0, 0.95] {
+        for cost in [0.9, 1.0] {
             assert_eq!(m.choose(), (false, true));
             m.record(false, true, cost);
         }
