@@ -71,13 +71,15 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// substep became ~5× slower than one thread (measured, `yes` hogging one of
 /// two cores). So each mode's cost per particle-substep is tracked, the
 /// cheaper one runs, and now and then two frames run the other to keep its
-/// estimate current ("probes"). A mode's cost is the mean of its last
-/// `WINDOW` attempts (the lowest was tried first: it kept a team whose
-/// frames alternated between 1.4 and 9.9 ms, when the thread pool had gone
-/// idle between frames and its second core was slow to come back, against
-/// 2.4 ms alone); the first `SKIP` attempts are not counted (they allocate
-/// the buffers and wake the pool, and measured up to 4× slower than the next
-/// ones).
+/// estimate current ("probes"). A mode's cost is the median of its last
+/// `WINDOW` attempts: single slow frames (another process waking up, a page
+/// fault) do not count, but a way of running that is slow in most frames
+/// does. (The lowest was tried first: it kept a team whose frames alternated
+/// between 1.4 and 9.9 ms, when the thread pool had gone idle between frames
+/// and its second core was slow to come back, against 2.4 ms alone; the mean
+/// sent a team alone for 50 frames after one 10 ms frame.) The first `SKIP`
+/// attempts are not counted (they allocate the buffers and wake the pool,
+/// and measured up to 4× slower than the next ones).
 ///
 /// The first probe comes at attempt `FIRST_PROBE`; after a probe that
 /// confirms the choice the next one waits twice as long (from `GAP` up to
@@ -118,11 +120,19 @@ const SOLO_MARGIN: f64 = 0.9;
 impl ModeChoice {
     /// The estimated cost of a mode (0: unknown).
     fn cost(&self, team: bool) -> f64 {
-        let (sum, n) = self.recent[team as usize]
-            .iter()
-            .filter(|&&c| c > 0.0)
-            .fold((0.0, 0), |(s, n), &c| (s + c, n + 1));
-        if n == 0 { 0.0 } else { sum / n as f64 }
+        let mut v = [0.0f64; WINDOW];
+        let mut n = 0;
+        for &c in self.recent[team as usize].iter().filter(|&&c| c > 0.0) {
+            v[n] = c;
+            n += 1;
+        }
+        let v = &mut v[..n];
+        v.sort_by(f64::total_cmp);
+        match n {
+            0 => 0.0,
+            _ if n % 2 == 1 => v[n / 2],
+            _ => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+        }
     }
 
     /// The cheaper mode as measured (the team while either is unknown).
@@ -602,8 +612,9 @@ mod tests {
             m.record(true, false, 100.0);
         }
         assert_eq!((m.cost(false), m.cost(true)), (0.0, 0.0));
-        // the team's cost: the mean of its recent attempts
-        for cost in [1.5, 0.5, 2.0, 0.5, 0.5, 1.0] {
+        // the team's cost: the median of its recent attempts (one slow
+        // frame does not count)
+        for cost in [1.5, 0.5, 9.0, 0.9, 1.0, 1.0] {
             assert_eq!(m.choose(), (true, false));
             m.record(true, false, cost);
         }
