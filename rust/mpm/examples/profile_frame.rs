@@ -1,5 +1,7 @@
 //! Time frames of one benchmark scene (for profiling with perf):
 //! `cargo run --release -p hybridmpm-mpm --example profile_frame -- water2d 1 200`
+//! (`HMPM_GAP_US=N` sleeps N µs between frames, `HMPM_BUSY_US=N` busy-waits: a
+//! caller doing other work between frames)
 use hybridmpm_mpm::{Dim, DimOps, Material, Solver, SolverParams, lattice};
 use std::time::Instant;
 
@@ -28,7 +30,26 @@ fn run<const D: usize>(
         s.step_frame(2.5e-3).unwrap();
     }
     let mut times = Vec::new();
+    // optional idle time between frames (HMPM_GAP_US microseconds asleep, or
+    // HMPM_BUSY_US busy on this thread): a caller doing other work between frames
+    let gap_us: u64 = std::env::var("HMPM_GAP_US")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    let busy_us: u64 = std::env::var("HMPM_BUSY_US")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
     for _ in 0..frames {
+        if gap_us > 0 {
+            std::thread::sleep(std::time::Duration::from_micros(gap_us));
+        }
+        if busy_us > 0 {
+            let t = Instant::now();
+            while t.elapsed().as_micros() < busy_us as u128 {
+                std::hint::spin_loop();
+            }
+        }
         let t = Instant::now();
         s.step_frame(2.5e-3).unwrap();
         times.push(t.elapsed().as_secs_f64() * 1e3);
