@@ -112,13 +112,12 @@ fn advance_svd<const D: usize>(
 where
     Dim<D>: DimOps<D>,
 {
-    let f_trial = *f_trial;
-    let svd = Dim::<D>::svd(&f_trial);
+    let svd = Dim::<D>::svd(f_trial);
     let e0 = svd.sigma.map(|s| s.max(1e-6).ln());
     let e_new = drucker_prager_project::<D>(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
     if e_new == e0 {
         // inside the cone: elastic, F is the trial F
-        *f = f_trial;
+        *f = *f_trial;
     } else {
         *f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&e_new.map(f32::exp)) * svd.v.transpose();
     }

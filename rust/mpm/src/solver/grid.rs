@@ -236,9 +236,8 @@ where
         }
         g.src_blocks.clear();
         g.out_blocks.clear();
-        let n = self.particles.len();
-        g.key_by_id.resize(n, 0);
-        g.sorted.resize(n, 0);
+        // (`key_by_id` is sized at the frame's start and filled by g2p)
+        g.sorted.resize(self.particles.len(), 0);
     }
 
     /// The ids of chunk `c` of `n_chunks`.
