@@ -1,6 +1,9 @@
-"""Rewrite shipped (or any) GNS .onnx files exported by torch's exporter as the
-compiled inference graph of the same weights (issue 17; see
-``hybridmpm.neural.compile``). Files already compiled are left alone.
+"""Rewrite shipped (or any) GNS .onnx files of an earlier layout as the current
+one (``hybridmpm.neural.export.upgrade_onnx``): files exported by torch's
+exporter as the compiled inference graph of the same weights (issue 17), files
+of the ``compiled-1`` layout with the sum over receivers that is exact on any
+number of onnxruntime threads (see ``hybridmpm.neural.compile``). Files of the
+current layout are left alone.
 
     python benchmarks/upgrade_models.py python/hybridmpm/models/*.onnx python/hybridmpm/models/variants/*/*.onnx
 """
@@ -18,7 +21,7 @@ def main() -> None:
     ap.add_argument("files", nargs="+", type=Path)
     args = ap.parse_args()
     for f in args.files:
-        print(f"{f}: {'rewritten' if upgrade_onnx(f) else 'already compiled'}")
+        print(f"{f}: {'rewritten' if upgrade_onnx(f) else 'already current'}")
 
 
 if __name__ == "__main__":

@@ -195,6 +195,11 @@ def test_onnx_matches_torch_on_many_edges_per_receiver(smoke_model: dict) -> Non
     out = cm.sessions["denoiser_head"].run(None, feed)[0]
     assert np.abs(ref).max() > 1e-3  # a trained, non-trivial output
     np.testing.assert_allclose(out, ref, atol=1e-4)
+    # its sums are ScatterNDs, which lose updates on more than one onnxruntime thread: only 1 is accepted
+    for bad in (2, 0, True):
+        with pytest.raises(InvalidInputError) as err:
+            ControlModel(run / "model", threads=bad)
+        assert err.value.field == "threads"
 
 
 def test_exported_model_controls_a_rollout_deterministically(smoke_model: dict) -> None:

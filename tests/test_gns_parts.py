@@ -228,6 +228,7 @@ def test_onnx_export_of_legacy_and_new_models_agree(tmp_path):
     import onnxruntime as ort
 
     from hybridmpm.neural.export import INPUT_NAMES, OUTPUT_NAMES, export_onnx
+    from hybridmpm.neural.runtime import aggregation_inputs
 
     cfg = config(2, 16, 2)
     old = legacy_model(cfg, seed=11)
@@ -248,8 +249,11 @@ def test_onnx_export_of_legacy_and_new_models_agree(tmp_path):
         hist, ptype, _, _ = (a.numpy() for a in inputs(n, 2, seed))
         s, r, disp, dist = radius_graph(hist[-1], R)
         feeds = {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist}
-        for a, b in zip(s_old.run(None, feeds), s_new.run(None, feeds)):
-            assert np.array_equal(a, b)
+        for gather in (False, True):
+            edges, degree = aggregation_inputs(r, len(ptype), gather)
+            both = {**feeds, "in_edges": edges, "in_degree": degree}
+            for a, b in zip(s_old.run(None, both), s_new.run(None, both)):
+                assert np.array_equal(a, b)
 
 
 # --- the encoder–processor–decoder on its own -----------------------------------------------------------

@@ -20,6 +20,7 @@ from hybridmpm.neural import NeuralModel
 from hybridmpm.neural.constants import KINEMATIC
 from hybridmpm.neural.export import export_onnx
 from hybridmpm.neural.model import GnsConfig, GnsModel
+from hybridmpm.neural.runtime import MAX_PADDING, SMALL_TABLE, aggregation_inputs
 
 logging.getLogger("torch.onnx").setLevel(logging.ERROR)
 R = 0.015
@@ -40,6 +41,24 @@ def random_state(n: int, dim: int = 2, seed: int = 0, lo: float = 0.3, hi: float
     hist = np.concatenate([x[None], x[None] + np.cumsum(v, axis=0)]).astype(np.float32)
     ptype = rng.choice([5, 6], n).astype(np.int64)
     return hist, ptype
+
+
+def onnx_feeds(hist, ptype, graph, gather: bool) -> dict:
+    """The compiled graph's inputs for a radius graph, the sum over receivers
+    the ScatterND way (``gather`` false) or the gather way."""
+    s, r, disp, dist = graph
+    edges, degree = aggregation_inputs(r, hist.shape[1], gather)
+    assert edges.shape[1] == (0 if not gather or not len(r) else np.bincount(r).max())
+    return {
+        "positions": hist,
+        "particle_type": ptype,
+        "senders": s,
+        "receivers": r,
+        "displacement": disp,
+        "distance": dist,
+        "in_edges": edges,
+        "in_degree": degree,
+    }
 
 
 def run_torch(model, hist, ptype):
@@ -157,6 +176,7 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
         ("positions", [6, "N", 2], "tensor(float)"), ("particle_type", ["N"], "tensor(int64)"),
         ("senders", ["E"], "tensor(int64)"), ("receivers", ["E"], "tensor(int64)"),
         ("displacement", ["E", 2], "tensor(float)"), ("distance", ["E"], "tensor(float)"),
+        ("in_edges", ["N", "K"], "tensor(int64)"), ("in_degree", ["N", 1], "tensor(float)"),
     ]  # fmt: skip
     assert nm.meta["graph"] == GRAPH_LAYOUT
     assert outs == [("acceleration", ["N", 2], "tensor(float)"), ("next_position", ["N", 2], "tensor(float)")]
@@ -167,14 +187,14 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
 
 def test_onnx_handles_no_edges(exported):
     model, path = exported
-    sess = NeuralModel(path).session
     hist, ptype = random_state(3, seed=9)
     empty = np.zeros(0, np.int64)
-    feeds = {"positions": hist, "particle_type": ptype, "senders": empty, "receivers": empty}
-    acc, nxt = sess.run(None, {**feeds, "displacement": np.zeros((0, 2), np.float32), "distance": np.zeros(0, np.float32)})
+    graph = (empty, empty, np.zeros((0, 2), np.float32), np.zeros(0, np.float32))
     with torch.no_grad():
         acc_t, _ = model(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(empty), torch.from_numpy(empty))
-    assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
+    for threads in (1, 2):
+        acc, nxt, _ = NeuralModel(path, threads=threads).predict(hist, ptype, graph=graph)
+        assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -203,14 +223,16 @@ def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embed
     import onnxruntime as ort
 
     sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
-    s, r, disp, dist = radius_graph(hist[-1], R)
-    acc, nxt = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist})
+    graph = radius_graph(hist[-1], R)
+    s, r = graph[:2]
     walls = model.features(*(torch.from_numpy(a) for a in (hist, ptype, s, r)))[0][:, (t_in - 1) * dim : (t_in + 1) * dim]
     assert 0.05 < float(walls[:20].abs().min()) and float(walls[:20].min()) < 0.95  # the unclipped range is exercised
     scale = np.abs(acc_t).max()
-    assert scale > 1e-5 and np.abs(acc - acc_t).max() <= 1e-4 * scale
-    assert np.abs(nxt - nxt_t).max() <= 1e-6
-    assert np.array_equal(nxt[ptype == 3], hist[-1, ptype == 3])
+    for gather in (False, True):  # both sums over receivers
+        acc, nxt = sess.run(None, onnx_feeds(hist, ptype, graph, gather))
+        assert scale > 1e-5 and np.abs(acc - acc_t).max() <= 1e-4 * scale
+        assert np.abs(nxt - nxt_t).max() <= 1e-6
+        assert np.array_equal(nxt[ptype == 3], hist[-1, ptype == 3])
 
 
 def test_compiled_graph_applies_a_vanishing_layer_norm_gain(tmp_path):
@@ -227,8 +249,7 @@ def test_compiled_graph_applies_a_vanishing_layer_norm_gain(tmp_path):
     import onnxruntime as ort
 
     sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
-    s, r, disp, dist = radius_graph(hist[-1], R)
-    acc, _ = sess.run(None, {"positions": hist, "particle_type": ptype, "senders": s, "receivers": r, "displacement": disp, "distance": dist})
+    acc, _ = sess.run(None, onnx_feeds(hist, ptype, radius_graph(hist[-1], R), gather=False))
     assert np.abs(acc - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
 
 
@@ -503,9 +524,14 @@ def test_threads_and_spinning(exported):
     one, two = NeuralModel(path), NeuralModel(path, threads=2)
     assert (one.spinning, two.spinning, NeuralModel(path, threads=2, spinning=False).spinning) == (False, True, False)
     hist, ptype = random_state(1500, seed=8, lo=0.3, hi=0.6)
-    a1, x1, _ = one.predict(hist, ptype)
-    a2, x2, _ = two.predict(hist, ptype)
-    assert np.abs(a2 - a1).max() <= 1e-5 * np.abs(a1).max() and np.abs(x2 - x1).max() <= 1e-6
+    a1, x1, graph = one.predict(hist, ptype)
+    # edges in a random order: onnxruntime's ScatterND on 2 threads loses updates on nearly every run so
+    # (module doc of hybridmpm.neural.compile); the gather way that 2 threads take must not, run after run
+    perm = np.random.default_rng(1).permutation(len(graph[1]))
+    shuffled = tuple(a[perm] for a in graph)
+    for g in [graph] * 5 + [shuffled] * 20:
+        a2, x2, _ = two.predict(hist, ptype, graph=g)
+        assert np.abs(a2 - a1).max() <= 1e-5 * np.abs(a1).max() and np.abs(x2 - x1).max() <= 1e-6
     for bad in (-1, 257, True, 1.5):
         with pytest.raises(InvalidInputError) as e:
             NeuralModel(path, threads=bad)
@@ -630,3 +656,81 @@ def test_ema_averages_the_trained_weights_without_changing_training(tmp_path):
     with pytest.raises(InvalidInputError) as e:
         TrainConfig(**base, out=str(tmp_path / "bad"), ema=1.0).validate()
     assert e.value.field == "ema"
+
+
+def test_aggregation_inputs_sum_each_nodes_in_edges():
+    """The gather way's table (aggregation_inputs) against a brute-force
+    scatter-add (np.add.at), for receivers in any order, nodes without in-edges
+    and repeated edges; a table that would outgrow MAX_PADDING times the edges
+    is not built (width 0: the ScatterND way)."""
+    rng = np.random.default_rng(12)
+    n = 50
+    r = rng.integers(0, n - 5, 400)  # the last 5 nodes have no in-edges
+    for receivers in (np.sort(r), r):
+        edges, degree = aggregation_inputs(receivers, n, gather=True)
+        assert edges.dtype == np.int64 and degree.dtype == np.float32 and degree.shape == (n, 1)
+        assert np.array_equal(degree[:, 0], np.bincount(receivers, minlength=n))
+        assert edges.shape == (n, np.bincount(receivers).max())
+        x = rng.normal(size=(len(receivers), 3))
+        want = np.zeros((n, 3))
+        np.add.at(want, receivers, x)
+        pads = edges.shape[1] - degree
+        got = x[edges].sum(axis=1) - pads * x[edges[:, 0]]  # what the graph computes
+        assert np.allclose(got, want, atol=1e-12)
+        real = np.arange(edges.shape[1])[None, :] < degree  # the slots that are not padding: every edge once
+        assert np.array_equal(np.sort(edges[real]), np.arange(len(receivers))) and (receivers[edges[real]] == np.nonzero(real)[0]).all()
+        assert aggregation_inputs(receivers, n, gather=False)[0].shape == (n, 0)
+    for n in (50, 400):  # node 0 receives 4n + 1 of 5n edges: a table of n·(4n + 1) entries
+        crowded = np.concatenate([np.arange(n), np.zeros(4 * n, np.int64)])
+        small = n * (4 * n + 1) <= SMALL_TABLE
+        assert n * (4 * n + 1) > MAX_PADDING * len(crowded) and aggregation_inputs(crowded, n, gather=True)[0].shape == (n, 4 * n + 1 if small else 0)
+
+
+def test_a_crowded_graph_runs_on_one_thread(exported):
+    """A graph whose padded in-edge table would be too large (a few crowded
+    particles) is summed the ScatterND way on a one-thread session, same
+    prediction; other graphs run on the model's own session."""
+    _, path = exported
+    hist, ptype = random_state(3000, seed=13, lo=0.05, hi=0.95)
+    hist[:, :400] = hist[:, :1] + np.float32(1e-5) * np.arange(400, dtype=np.float32)[None, :, None]  # 400 particles on one spot
+    one, two = NeuralModel(path), NeuralModel(path, threads=2)
+    a1, _, graph = one.predict(hist, ptype)
+    feeds = two.feeds(hist, ptype, graph)
+    assert feeds["in_edges"].shape[1] == 0 and two.session_for(feeds) is not two.session
+    a2, _, _ = two.predict(hist, ptype, graph=graph)
+    assert np.abs(a2 - a1).max() <= 1e-5 * np.abs(a1).max()
+    calm = random_state(3000, seed=13, lo=0.3, hi=0.6)
+    feeds = two.feeds(calm[0], calm[1], radius_graph(calm[0][-1], R))
+    assert feeds["in_edges"].shape[1] > 0 and two.session_for(feeds) is two.session
+
+
+def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
+    """A graph of layout compiled-1 (tests/golden/gns_compiled1_tiny.onnx,
+    exported before the race-free sum): on more than one thread NeuralModel
+    runs it on one, with a warning; upgrade_onnx rewrites it as the current
+    layout, which computes the same function on one thread and on two, edges in
+    any order."""
+    import shutil
+    from pathlib import Path
+
+    from hybridmpm.neural.compile import GRAPH_LAYOUT, GRAPH_LAYOUT_1
+    from hybridmpm.neural.export import upgrade_onnx
+
+    old = Path(__file__).parent / "golden" / "gns_compiled1_tiny.onnx"
+    ref = NeuralModel(old)
+    assert ref.meta["graph"] == GRAPH_LAYOUT_1 and "in_edges" not in ref.input_names
+    with pytest.warns(UserWarning, match="threads"):
+        assert NeuralModel(old, threads=2).threads == 1
+    new = tmp_path / "new.onnx"
+    shutil.copy(old, new)
+    assert upgrade_onnx(new) and not upgrade_onnx(new)
+    hist, ptype = random_state(1200, seed=14, lo=0.3, hi=0.6)
+    a0, x0, graph = ref.predict(hist, ptype)
+    perm = np.random.default_rng(2).permutation(len(graph[1]))
+    for threads in (1, 2):
+        nm = NeuralModel(new, threads=threads)
+        assert nm.meta["graph"] == GRAPH_LAYOUT and nm.threads == threads
+        assert {k: v for k, v in nm.meta.items() if k != "graph"} == {k: v for k, v in ref.meta.items() if k != "graph"}
+        for g in (graph, tuple(a[perm] for a in graph)):
+            a, x, _ = nm.predict(hist, ptype, graph=g)
+            assert np.abs(a - a0).max() <= 1e-5 * np.abs(a0).max() and np.abs(x - x0).max() <= 1e-6

@@ -230,13 +230,18 @@ class ControlModel:
 
     ``path`` a directory with :data:`GRAPHS` ``.onnx`` files and
     ``control.json`` (:func:`hybridmpm.control.train.export_control`);
-    ``threads`` onnxruntime intra-op threads (1: the latency target's).
+    ``threads`` onnxruntime intra-op threads: 1, the only count allowed (the
+    latency target's, and the graphs sum over particles with ``ScatterND``,
+    which onnxruntime's CPU kernel runs without atomics and so loses updates
+    on more threads: microsoft/onnxruntime#23396, ``hybridmpm.neural.compile``).
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
-    malformed model."""
+    malformed model, (``threads``) for another thread count."""
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
         import onnxruntime as ort
 
+        if isinstance(threads, bool) or threads != 1:
+            raise InvalidInputError(f"threads: the control model's graphs sum with ScatterND, exact on 1 onnxruntime thread only; got {threads!r}", "threads")
         self.path = Path(path)
         try:
             self.meta: dict[str, Any] = json.loads((self.path / META_FILE).read_text())
@@ -248,7 +253,7 @@ class ControlModel:
             self.coef_mean = np.asarray(cfg["coef_mean"], np.float64)
             self.coef_std = np.asarray(cfg["coef_std"], np.float64)
             opts = ort.SessionOptions()
-            opts.intra_op_num_threads = max(1, int(threads))
+            opts.intra_op_num_threads = 1
             opts.inter_op_num_threads = 1
             opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
             self.sessions = {g: ort.InferenceSession(str(self.path / f"{g}.onnx"), opts, providers=["CPUExecutionProvider"]) for g in GRAPHS}

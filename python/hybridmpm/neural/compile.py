@@ -34,13 +34,28 @@ arrays. On this class of machine every operator over an edge array costs
   the receiver degree as one more input column of the node MLP. No broadcast
   bias add (25–37 ns per row here) is left on an edge array.
 * **Gather, not GatherND**, for the per-edge node projections of the
-  factored first edge layer (``(W_r h)[r] + (W_s h)[s]``); the aggregation is a
-  ``ScatterND`` with ``reduction="add"`` over receivers.
+  factored first edge layer (``(W_r h)[r] + (W_s h)[s]``).
+* **The sum over receivers, two ways** (:func:`_aggregate`, an ``If`` on the
+  width of ``in_edges``). onnxruntime's CPU ``ScatterND`` with
+  ``reduction="add"`` splits the edges among its threads and adds without
+  atomics, so on more than one thread two edges into one node can be added at
+  once and one of them lost (microsoft/onnxruntime#23396; here, on edges in a
+  random order, 300 runs of 300 came out wrong on 2 threads, and on edges
+  sorted by receiver, where only the edges of a node split between two
+  threads' ranges can collide, a CI run lost one). So: with ``in_edges`` of
+  width 0 the sum is that ``ScatterND`` (exact on one thread, and the cheaper);
+  with ``in_edges`` [N, K] (each node's in-edges, padded with its first one:
+  :func:`hybridmpm.neural.runtime.aggregation_inputs`) it is a ``Gather`` to
+  [N, K, latent], a ``ReduceSum`` over K and the padding taken off again
+  (``− (K − deg)·e_first``): no two threads write one row, on any thread
+  count. The receiver degree is an input (``in_degree``), not a third sum.
 
 Inputs (names :data:`INPUT_NAMES`): ``positions`` float32 [t_in, N, D] (m,
 oldest first), ``particle_type`` int64 [N], ``senders``, ``receivers`` int64
 [E], ``displacement`` float32 [E, D] (``p_s − p_r`` of ``positions[-1]``, m),
-``distance`` float32 [E] (its norm, m). Outputs (:data:`OUTPUT_NAMES`):
+``distance`` float32 [E] (its norm, m), ``in_edges`` int64 [N, K] (K may be
+0) and ``in_degree`` float32 [N, 1] (edges into each node).
+Outputs (:data:`OUTPUT_NAMES`):
 ``acceleration`` [N, D] (m/step²) and ``next_position`` [N, D] (m), kinematic
 particles kept in place. Needs ``onnx`` (the 'train' extra); running the
 graph needs only onnxruntime.
@@ -57,8 +72,12 @@ from hybridmpm.neural.constants import INPUT_NAMES, KINEMATIC, OUTPUT_NAMES
 
 #: ONNX opset of the graph.
 OPSET = 18
-#: Marker stored in the model metadata (``graph``): graphs of this layout take edge geometry as inputs.
-GRAPH_LAYOUT = "compiled-1"
+#: Marker stored in the model metadata (``graph``): graphs of this layout take the edge geometry and
+#: the aggregation inputs (``in_edges``, ``in_degree``) as inputs.
+GRAPH_LAYOUT = "compiled-2"
+#: The earlier compiled layout: edge geometry as inputs, every sum over receivers a ``ScatterND``
+#: (exact on one onnxruntime thread only); :func:`upgrade_graph` rewrites it as :data:`GRAPH_LAYOUT`.
+GRAPH_LAYOUT_1 = "compiled-1"
 #: Node-name prefixes of the graph's stages, in execution order.
 STAGES = ("features", "node_encoder", "edge_encoder", "edge_mlp", "aggregate", "node_mlp", "decoder")
 #: LayerNorm gains smaller than this (in magnitude) are applied after the division, not folded.
@@ -68,17 +87,19 @@ MIN_GAIN = 1e-4
 class _Builder:
     """A list of ONNX nodes and initializers with fresh names."""
 
-    def __init__(self) -> None:
+    def __init__(self, prefix: str = "") -> None:
         self.nodes: list[Any] = []
         self.inits: list[Any] = []
         self._n = 0
+        #: Prefix of every fresh name (:func:`upgrade_graph` adds nodes to a graph that has names already).
+        self.prefix = prefix
         #: Prefix of the node names (``stage/op_n``): onnxruntime's profiler reports
         #: per node, and ``benchmarks/bench_inference.py`` groups by it (:data:`STAGES`).
         self.stage = "features"
 
     def name(self, hint: str) -> str:
         self._n += 1
-        return f"{hint}_{self._n}"
+        return f"{self.prefix}{hint}_{self._n}"
 
     def const(self, hint: str, value: Any, dtype: Any = np.float32) -> str:
         from onnx import numpy_helper
@@ -171,6 +192,43 @@ class _Compiler:
         return self.gemm(h, self.w(f"{key}.4"), self.bias(f"{key}.4")), None
 
 
+def _aggregation_switch(b: _Builder) -> tuple[str, str]:
+    """The two values every :func:`_aggregate` of a graph shares: the switch
+    (bool scalar, true when ``in_edges`` has width 0: sum with ``ScatterND``)
+    and the padding count ``K − in_degree`` float32 [N, 1] of the gather way."""
+    from onnx import TensorProto
+
+    k = b.op("Shape", ["in_edges"], "k", start=1, end=2)  # [1]
+    cond = b.op("Squeeze", [b.op("Equal", [k, b.const("k0", [0], np.int64)], "k_is_0")], "scatter_way")
+    pads = b.op("Sub", [b.op("Cast", [k], "k_f", to=TensorProto.FLOAT), "in_degree"], "pads")
+    return cond, pads
+
+
+def _aggregate(b: _Builder, et: str, zeros_nl: str, recv2: str, switch: tuple[str, str], out: str | None = None) -> str:
+    """``Σ_{edges e into i} et[e]`` [N, latent] of the edge latents ``et``
+    [E, latent] (module doc): an ``If`` on ``switch`` (:func:`_aggregation_switch`)
+    between ``ScatterND(zeros_nl, recv2, et, reduction="add")`` (``zeros_nl``
+    [N, latent] zeros, ``recv2`` the receivers [E, 1]) and the gather way over
+    ``in_edges``. ``out`` names the result (default: a fresh name)."""
+    from onnx import TensorProto, helper
+
+    cond, pads = switch
+    out = out or b.name("agg")
+    outer = b.nodes
+    b.nodes = []
+    t = b.op("ScatterND", [zeros_nl, recv2, et], "agg_scatter", reduction="add")
+    scatter_way = helper.make_graph(b.nodes, b.name("scatter_way"), [], [helper.make_tensor_value_info(t, TensorProto.FLOAT, None)])
+    b.nodes = []
+    g = b.op("Gather", [et, "in_edges"], "agg_rows", axis=0)  # [N, K, latent]
+    total = b.op("ReduceSum", [g, b.const("axK", [1], np.int64)], "agg_padded", keepdims=0)
+    first = b.op("Gather", [g, b.const("i0", np.int64(0), np.int64)], "agg_first", axis=1)  # the padding row of each node
+    e = b.op("Sub", [total, b.op("Mul", [pads, first], "agg_pad")], "agg_gather")
+    gather_way = helper.make_graph(b.nodes, b.name("gather_way"), [], [helper.make_tensor_value_info(e, TensorProto.FLOAT, None)])
+    b.nodes = outer
+    b.nodes.append(helper.make_node("If", [cond], [out], name=f"{b.stage}/{out}", then_branch=scatter_way, else_branch=gather_way))
+    return out
+
+
 def _state_dict_numpy(model: Any) -> dict[str, np.ndarray]:
     from hybridmpm.neural.model import remap_legacy_state_dict
 
@@ -235,18 +293,12 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     recv = "receivers"
     recv2 = b.op("Unsqueeze", [recv, b.const("ax1", [1], np.int64)], "recv2")
     n_shape = b.op("Shape", [last], "n_shape", end=1)  # [N]
-    e_shape = b.op("Shape", [recv], "e_shape")  # [E]
     zeros_nl = b.op(
         "ConstantOfShape", [b.op("Concat", [n_shape, b.const("L", [latent], np.int64)], "nl", axis=0)], "zeros_nl",
         value=helper.make_tensor("z", TensorProto.FLOAT, [1], [0.0]),
     )  # fmt: skip
-    if layers:
-        ones_e1 = b.op(
-            "ConstantOfShape", [b.op("Concat", [e_shape, b.const("one", [1], np.int64)], "e1", axis=0)], "ones_e1",
-            value=helper.make_tensor("o", TensorProto.FLOAT, [1], [1.0]),
-        )  # fmt: skip
-        zeros_n1 = b.op("Slice", [zeros_nl, b.const("z0", [0], np.int64), b.const("z1", [1], np.int64), b.const("ax1", [1], np.int64)], "zeros_n1")
-        degree = b.op("ScatterND", [zeros_n1, recv2, ones_e1], "degree", reduction="add")  # [N, 1] edges into each node
+    switch = _aggregation_switch(b)
+    degree = "in_degree"  # [N, 1] edges into each node
     for k in range(layers):
         eb, nb = f"{g}edge_blocks.{k}.", f"{g}node_blocks.{k}."
         # edge update: e += LN(MLP(W_e e + (W_r h)[r] + (W_s h)[s]))
@@ -264,7 +316,7 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
         # node update: h += LN(MLP([h, Σ_{edges into i} e]))
         et, ec = e
         b.stage = "aggregate"
-        agg = b.op("ScatterND", [zeros_nl, recv2, et], "agg", reduction="add")
+        agg = _aggregate(b, et, zeros_nl, recv2, switch)
         b.stage = "node_mlp"
         wn = c.w(nb + "0")
         w_h, w_a = wn[:latent], wn[latent:]
@@ -296,6 +348,8 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
         helper.make_tensor_value_info("receivers", i64, ["E"]),
         helper.make_tensor_value_info("displacement", f32, ["E", dim]),
         helper.make_tensor_value_info("distance", f32, ["E"]),
+        helper.make_tensor_value_info("in_edges", i64, ["N", "K"]),
+        helper.make_tensor_value_info("in_degree", f32, ["N", 1]),
     ]
     outputs = [helper.make_tensor_value_info("acceleration", f32, ["N", dim]), helper.make_tensor_value_info("next_position", f32, ["N", dim])]
     graph = helper.make_graph(b.nodes, "gns_step", inputs, outputs, initializer=b.inits)
@@ -306,6 +360,82 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
         entry.key = METADATA_KEY
         entry.value = metadata_json
     return proto
+
+
+def upgrade_graph(proto: Any) -> Any:
+    """Rewrite ``proto`` (an ``onnx.ModelProto`` of the :data:`GRAPH_LAYOUT_1`
+    layout) as :data:`GRAPH_LAYOUT`, in place, and return it: the ``ScatterND``
+    that counted each node's in-edges becomes the ``in_degree`` input, every
+    other ``ScatterND`` sum the ``If`` of :func:`_aggregate`, the two inputs are
+    added, nodes left unused are removed and the metadata's ``graph`` is
+    updated. The same function (the tests check it against the old graph on one
+    thread). Raises ``ValueError`` for a graph of another layout."""
+    import json
+
+    from onnx import TensorProto, helper, numpy_helper
+
+    from hybridmpm.neural.constants import METADATA_KEY
+
+    entry = next((p for p in proto.metadata_props if p.key == METADATA_KEY), None)
+    meta = json.loads(entry.value) if entry is not None else {}
+    if entry is None or meta.get("graph") != GRAPH_LAYOUT_1:
+        raise ValueError(f"not a graph of the {GRAPH_LAYOUT_1} layout (graph = {meta.get('graph')!r})")
+    g = proto.graph
+    producer = {o: n for n in g.node for o in n.output}
+
+    def ones(name: str) -> bool:
+        n = producer.get(name)
+        if n is None or n.op_type != "ConstantOfShape":
+            return False
+        value = [a for a in n.attribute if a.name == "value"]
+        return bool(value) and bool(np.all(numpy_helper.to_array(value[0].t) == 1))
+
+    b = _Builder(prefix="v2_")
+    b.stage = "aggregate"
+    switch = _aggregation_switch(b)
+    nodes = list(b.nodes)
+    for n in g.node:
+        if n.op_type != "ScatterND":
+            nodes.append(n)
+        elif ones(n.input[2]):
+            nodes.append(helper.make_node("Identity", ["in_degree"], [n.output[0]], name=n.name))
+        else:
+            b.nodes = []
+            _aggregate(b, n.input[2], n.input[0], n.input[1], switch, out=n.output[0])
+            nodes.extend(b.nodes)
+    del g.node[:]
+    g.node.extend(nodes)
+    g.initializer.extend(b.inits)
+    g.input.extend(
+        [helper.make_tensor_value_info("in_edges", TensorProto.INT64, ["N", "K"]), helper.make_tensor_value_info("in_degree", TensorProto.FLOAT, ["N", 1])]
+    )
+    _prune(g)
+    meta["graph"] = GRAPH_LAYOUT
+    entry.value = json.dumps(meta, sort_keys=True)
+    return proto
+
+
+def _prune(g: Any) -> None:
+    """Remove the nodes and initializers of graph ``g`` that no output depends on."""
+
+    def reads(n: Any) -> set[str]:
+        names = set(n.input)
+        for a in n.attribute:
+            for sub in [a.g] if a.HasField("g") else list(a.graphs):
+                for m in sub.node:
+                    names |= reads(m)
+        return names
+
+    while True:
+        used = {o.name for o in g.output}.union(*(reads(n) for n in g.node))
+        dead = [n for n in g.node if not any(o in used for o in n.output)]
+        if not dead:
+            break
+        for n in dead:
+            g.node.remove(n)
+    keep = [i for i in g.initializer if i.name in used]
+    del g.initializer[:]
+    g.initializer.extend(keep)
 
 
 def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -325,10 +455,13 @@ def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, An
 
     proto = onnx.load(str(path))
     meta = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY])
-    if meta.get("graph") == GRAPH_LAYOUT:
+    if meta.get("graph") in (GRAPH_LAYOUT, GRAPH_LAYOUT_1):
         raise ValueError(f"{path}: a compiled graph; its weights are folded and cannot be read back")
     inits = {i.name: numpy_helper.to_array(i) for i in proto.graph.initializer}
     return remap_legacy_state_dict({k: v for k, v in inits.items() if not k.startswith("val_")}), meta
 
 
-__all__ = ["GRAPH_LAYOUT", "INPUT_NAMES", "MIN_GAIN", "OPSET", "OUTPUT_NAMES", "STAGES", "inference_graph", "state_dict_from_onnx"]
+__all__ = [
+    "GRAPH_LAYOUT", "GRAPH_LAYOUT_1", "INPUT_NAMES", "MIN_GAIN", "OPSET", "OUTPUT_NAMES", "STAGES", "inference_graph", "state_dict_from_onnx",
+    "upgrade_graph",
+]  # fmt: skip

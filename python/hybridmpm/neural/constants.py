@@ -8,8 +8,9 @@ FEATURE_VERSION = 1
 NUM_TYPES = 9
 #: ONNX metadata property holding the model's JSON metadata.
 METADATA_KEY = "hybridmpm"
-#: Inputs of the GNS inference graph, in order (graphs of torch's exporter take the first four).
-INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displacement", "distance")
+#: Inputs of the GNS inference graph, in order (graphs of torch's exporter take the first four, graphs
+#: of the ``compiled-1`` layout the first six).
+INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displacement", "distance", "in_edges", "in_degree")
 #: Outputs of the GNS inference graph, in order.
 OUTPUT_NAMES = ("acceleration", "next_position")
 

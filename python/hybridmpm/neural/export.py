@@ -7,11 +7,13 @@ denormalisation and the Euler update — as the inference graph of
 :func:`hybridmpm.neural.compile.inference_graph`: written op by op from the
 weights for onnxruntime's CPU kernels (normalisations and LayerNorms folded
 into the Linear layers, edge geometry taken from the radius-graph pass,
-Gather and a ``ScatterND`` sum over receivers). Particle and edge counts are
-dynamic. Inputs :data:`INPUT_NAMES`: ``positions`` float32 [t_in, N, D],
-``particle_type`` int64 [N], ``senders``, ``receivers`` int64 [E],
-``displacement`` float32 [E, D] and ``distance`` float32 [E] (of
-:func:`hybridmpm.graph.radius_graph` on ``positions[-1]``); outputs
+Gather and a sum over receivers that is exact on any number of threads).
+Particle and edge counts are dynamic. Inputs :data:`INPUT_NAMES`:
+``positions`` float32 [t_in, N, D], ``particle_type`` int64 [N],
+``senders``, ``receivers`` int64 [E], ``displacement`` float32 [E, D] and
+``distance`` float32 [E] (of :func:`hybridmpm.graph.radius_graph` on
+``positions[-1]``), ``in_edges`` int64 [N, K] and ``in_degree`` float32 [N, 1]
+(:func:`hybridmpm.neural.runtime.aggregation_inputs`); outputs
 :data:`OUTPUT_NAMES`: ``acceleration`` float32 [N, D] (m/step²) and
 ``next_position`` float32 [N, D] (m). The tests check the graph against torch
 on graphs with many edges per receiver.
@@ -67,20 +69,31 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
 
 
 def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
-    """Rewrite a GNS exported by torch's ONNX exporter (before the compiled
-    layout, :data:`~hybridmpm.neural.compile.GRAPH_LAYOUT`) as the compiled
-    inference graph of the same weights, keeping its metadata; to ``out``
-    (default: in place, atomically). Returns False, writing nothing, if
-    ``path`` is already compiled. Same function: the tests check the two
-    graphs against each other. Needs torch and onnx."""
+    """Rewrite a GNS of an earlier layout as the current one
+    (:data:`~hybridmpm.neural.compile.GRAPH_LAYOUT`), keeping its metadata;
+    to ``out`` (default: in place, atomically). A graph exported by torch's
+    ONNX exporter becomes the compiled inference graph of the same weights
+    (needs torch); a graph of the ``compiled-1`` layout, whose sums over
+    receivers race on more than one onnxruntime thread, gets the race-free
+    aggregation (:func:`~hybridmpm.neural.compile.upgrade_graph`). Returns
+    False, writing nothing, if ``path`` is already of the current layout. Same
+    function: the tests check the graphs against each other. Needs torch and
+    onnx (the 'train' extra)."""
     import onnx
 
-    from hybridmpm.neural.compile import state_dict_from_onnx
+    from hybridmpm.neural.compile import GRAPH_LAYOUT_1, state_dict_from_onnx, upgrade_graph
     from hybridmpm.neural.model import GnsConfig
 
     proto = onnx.load(str(path))
-    if json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY]).get("graph") == GRAPH_LAYOUT:
+    layout = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY]).get("graph")
+    if layout == GRAPH_LAYOUT:
         return False
+    if layout == GRAPH_LAYOUT_1:
+        target = Path(out if out is not None else path)
+        tmp = target.with_name(target.name + ".tmp")
+        tmp.write_bytes(upgrade_graph(proto).SerializeToString())
+        os.replace(tmp, target)
+        return True
     sd, meta = state_dict_from_onnx(path)
     stats: dict[str, Any] = {k: [float(x) for x in sd[f"features.{k}"]] for k in ("vel_mean", "vel_std", "acc_mean", "acc_std")}
     # the stored stds already include the training noise (they are the effective stds): noise_std=0 keeps them

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,38 @@ def _check_meta(meta: dict[str, Any], path: Path) -> dict[str, Any]:
     return meta
 
 
+#: The gather way's [N, K] table of in-edges (:func:`aggregation_inputs`) may hold at most this many
+#: times the edges, or :data:`SMALL_TABLE` entries, whichever is more; a graph with more uneven
+#: in-degrees (a few crowded nodes) is summed the ScatterND way on one thread instead, so that the
+#: table never outgrows the edge arrays by more.
+MAX_PADDING = 4
+#: Entries of an [N, K] table that is always small enough (4 MB of gathered latents at width 16).
+SMALL_TABLE = 1 << 16
+
+
+def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The aggregation inputs of a compiled GNS graph (:mod:`hybridmpm.neural.compile`,
+    module doc) for ``receivers`` int64 [E] (values in ``[0, n)``, any order):
+    ``(in_edges, in_degree)``. ``in_degree`` float32 [n, 1] counts the edges into
+    each node. ``in_edges`` int64 [n, K], K the largest in-degree, lists in row i
+    the ids of the edges into node i (in edge order), padded with its first one
+    (with edge 0 for a node without in-edges, taken off again by the graph);
+    it has width 0, meaning "sum with ``ScatterND``" (exact on one onnxruntime
+    thread only), when ``gather`` is false, when there are no edges, or when
+    ``n·K`` exceeds both :data:`MAX_PADDING` times the edges and :data:`SMALL_TABLE`."""
+    deg = np.bincount(receivers, minlength=n)
+    in_degree = deg.astype(np.float32)[:, None]
+    k = int(deg.max()) if receivers.size else 0
+    if not gather or k == 0 or n * k > max(MAX_PADDING * receivers.size, SMALL_TABLE):
+        return np.zeros((n, 0), np.int64), in_degree
+    start = np.cumsum(deg) - deg
+    slot = np.arange(k)
+    pos = np.where(slot[None, :] < deg[:, None], start[:, None] + slot[None, :], np.where(deg > 0, start, 0)[:, None])
+    if np.any(receivers[1:] < receivers[:-1]):  # radius_graph sorts by receiver; a graph from elsewhere may not be
+        pos = np.argsort(receivers, kind="stable")[pos]
+    return pos.astype(np.int64, copy=False), in_degree
+
+
 class NeuralModel:
     """An exported GNS model loaded into onnxruntime.
 
@@ -75,7 +108,13 @@ class NeuralModel:
     spinning no faster (``benchmarks/results/inference.md``); the price is a
     worker that keeps spinning for tens of ms after each step, which slows an
     MPM step run right after by up to ~20%. So: two threads for the network
-    alone (MPM idle), one in the hybrid and the service (the default). ``meta`` holds the model's metadata: ``scene``,
+    alone (MPM idle), one in the hybrid and the service (the default). On
+    more than one thread the sums over receivers take the gather way
+    (:mod:`hybridmpm.neural.compile`): onnxruntime's ``ScatterND`` loses
+    updates there. A file of an earlier layout, which has only the
+    ``ScatterND`` sum, runs on one thread whatever ``threads`` says, with a
+    ``UserWarning`` (upgrade it with :func:`hybridmpm.neural.export.upgrade_onnx`).
+    ``meta`` holds the model's metadata: ``scene``,
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
@@ -86,8 +125,6 @@ class NeuralModel:
     """
 
     def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None, profile: bool = False) -> None:
-        import onnxruntime as ort
-
         if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
             raise InvalidInputError(f"threads: must be an integer in [0, 256] (0: onnxruntime's default, one per core), got {threads!r}", "threads")
         self.threads = threads
@@ -96,22 +133,9 @@ class NeuralModel:
         self.path = Path(path)
         if not self.path.is_file():
             raise InvalidInputError(f"model: no such file {self.path}", "model")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
-        # by default no busy-waiting worker threads: a served model idles at 0% CPU between steps
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.spinning else "0")
-        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        if profile:  # onnxruntime's per-node profiler (benchmarks/bench_inference.py); session.end_profiling() returns the file
-            import tempfile
-
-            opts.enable_profiling = True
-            opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "hybridmpm_ort_profile")
-        try:
-            self.session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
-        except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
-            raise InvalidInputError(f"model: {self.path} is not a loadable ONNX model: {e}", "model") from e
+        self._profile = profile
+        self.session = self._session(threads)
+        self._serial: Any = None
         raw = self.session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
         if raw is None:
             raise InvalidInputError(f"model: {self.path} has no '{METADATA_KEY}' metadata (not exported by hybridmpm)", "model")
@@ -130,6 +154,38 @@ class NeuralModel:
         unknown = sorted(set(self.input_names) - set(INPUT_NAMES))
         if unknown:
             raise InvalidInputError(f"model: {self.path.name} asks for inputs {unknown}, not among {list(INPUT_NAMES)}", "model")
+        if threads != 1 and "in_edges" not in self.input_names:
+            warnings.warn(
+                f"threads: {self.path.name} (graph layout {self.meta.get('graph', 'torch-exported')!r}) sums over receivers with onnxruntime's "
+                "ScatterND only, which loses updates on more than one thread (microsoft/onnxruntime#23396): running it on one thread; "
+                "hybridmpm.neural.export.upgrade_onnx rewrites it for any thread count",
+                UserWarning,
+                stacklevel=2,
+            )
+            self.threads, self.spinning = 1, False
+            self.session = self._session(1)
+
+    def _session(self, threads: int) -> Any:
+        """An onnxruntime session of the file on ``threads`` intra-op threads
+        (spinning as :attr:`spinning` says; one thread never spins)."""
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        # by default no busy-waiting worker threads: a served model idles at 0% CPU between steps
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.spinning and threads != 1 else "0")
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        if self._profile:  # onnxruntime's per-node profiler (benchmarks/bench_inference.py); session.end_profiling() returns the file
+            import tempfile
+
+            opts.enable_profiling = True
+            opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "hybridmpm_ort_profile")
+        try:
+            return ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
+            raise InvalidInputError(f"model: {self.path} is not a loadable ONNX model: {e}", "model") from e
 
     @property
     def dim(self) -> int:
@@ -188,18 +244,39 @@ class NeuralModel:
             graph = radius_graph(history[-1], self.radius, max_neighbors=max_neighbors)
         elif len(graph) != 4:
             raise InvalidInputError(f"graph: expected (senders, receivers, displacement, distance) as radius_graph returns, got {len(graph)} arrays", "graph")
-        acc, nxt = self.session.run(None, self.feeds(history, particle_type, graph))
+        else:
+            n, r = history.shape[1], np.asarray(graph[1])
+            if r.dtype != np.int64 or r.ndim != 1 or (r.size and not (0 <= int(r.min()) and int(r.max()) < n)):
+                raise InvalidInputError(f"graph: receivers must be int64 [E] with values in [0, {n}) (the particles)", "graph")
+        feeds = self.feeds(history, particle_type, graph)
+        acc, nxt = self.session_for(feeds).run(None, feeds)
         return acc, nxt, graph
 
     def feeds(self, history: np.ndarray, particle_type: np.ndarray, graph: Graph) -> dict[str, np.ndarray]:
         """The inputs this graph asks for (:attr:`input_names`), from a history,
-        the types and a radius graph as :meth:`predict` takes them (no checks)."""
+        the types and a radius graph as :meth:`predict` takes them (no checks);
+        the aggregation inputs by :func:`aggregation_inputs`, for the gather way
+        on more than one thread."""
         values = dict(zip(INPUT_NAMES, (history, particle_type, *graph)))
+        if "in_edges" in self.input_names:
+            values["in_edges"], values["in_degree"] = aggregation_inputs(graph[1], history.shape[1], gather=self.threads != 1)
         return {name: values[name] for name in self.input_names}
+
+    def session_for(self, feeds: dict[str, np.ndarray]) -> Any:
+        """The session to run ``feeds`` (:meth:`feeds`) on: :attr:`session`, or,
+        when the aggregation inputs ask for the ``ScatterND`` way on a model of
+        more than one thread (a graph of very uneven in-degrees), a one-thread
+        session of the same file (made on first use), where that way is exact."""
+        edges = feeds.get("in_edges")
+        if self.threads == 1 or edges is None or edges.shape[1] > 0:
+            return self.session
+        if self._serial is None:
+            self._serial = self._session(1)
+        return self._serial
 
 
 #: A radius graph as :func:`hybridmpm.graph.radius_graph` returns it: senders, receivers, displacement, distance.
 Graph = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-__all__ = ["Graph", "NeuralModel"]
+__all__ = ["MAX_PADDING", "SMALL_TABLE", "Graph", "NeuralModel", "aggregation_inputs"]
