@@ -532,9 +532,10 @@ mod tests {
 
     /// The 3D update without singular vectors against the f64 reference, as
     /// the 2D test does, on general trial F (isotropic plus noise of
-    /// amplitude 1e-7..0.3) and on rotated F with a double singular value
-    /// split by 0..1e-3 (uniaxial states, where the closed-form eigenvalues
-    /// are least accurate); inside the cone, on its surface, beyond the tip.
+    /// amplitude 1e-7..0.3), on diagonal F (with equal entries too) and on
+    /// rotated F with a double singular value split by 0..1e-3 (uniaxial
+    /// states, where the closed-form eigenvalues are least accurate); inside
+    /// the cone, on its surface, beyond the tip.
     #[test]
     fn advance_3d_matches_an_f64_svd_reference() {
         use nalgebra::{Matrix3, UnitQuaternion, Vector3};
@@ -556,9 +557,13 @@ mod tests {
             for i in 0..20_000 {
                 let amp = 10f32.powf(-7.0 + 6.5 * (i % 100) as f32 / 100.0);
                 let iso = 1.0 + 0.05 * rnd();
-                let ft = if i % 2 == 0 {
+                let ft = if i % 3 == 0 {
                     Matrix3::<f32>::from_fn(|r, c| if r == c { iso } else { 0.0 })
                         + Matrix3::<f32>::from_fn(|_, _| 0.0).map(|_| amp * rnd())
+                } else if i % 3 == 1 {
+                    // diagonal (a sand column at rest), entries equal when the amplitude is tiny
+                    let mut d = || iso * (1.0 + if rnd() > 0.0 { amp * rnd() } else { 0.0 });
+                    Matrix3::from_diagonal(&Vector3::new(d(), d(), d()))
                 } else {
                     let mut rot = || {
                         UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
