@@ -90,11 +90,15 @@ def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.
     if not gather or k == 0 or n * k > max(MAX_PADDING * receivers.size, SMALL_TABLE):
         return np.zeros((n, 0), np.int64), in_degree
     start = np.cumsum(deg) - deg
-    slot = np.arange(k)
-    pos = np.where(slot[None, :] < deg[:, None], start[:, None] + slot[None, :], np.where(deg > 0, start, 0)[:, None])
+    start[deg == 0] = 0
+    # in place, one [n, K] array (numpy's large temporaries each cost fresh pages: 4x slower)
+    pos = np.empty((n, k), np.int64)
+    pos[:] = np.arange(k)
+    pos[pos >= deg[:, None]] = 0
+    pos += start[:, None]
     if np.any(receivers[1:] < receivers[:-1]):  # radius_graph sorts by receiver; a graph from elsewhere may not be
         pos = np.argsort(receivers, kind="stable")[pos]
-    return pos.astype(np.int64, copy=False), in_degree
+    return pos, in_degree
 
 
 class NeuralModel:
