@@ -80,7 +80,7 @@ def _profile(path: Path, history: np.ndarray, ptype: np.ndarray, graph: tuple, r
     nm = NeuralModel(path, profile=True)
     feeds = nm.feeds(history, ptype, graph)
     for _ in range(repeats):
-        nm.session.run(None, feeds)
+        nm.session_for(feeds).run(None, feeds)
     prof = nm.session.end_profiling()
     groups: dict[str, float] = collections.defaultdict(float)
     with open(prof) as fh:
@@ -169,7 +169,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         mpm.advance()
     fns = {
         "radius_graph": lambda: radius_graph(hist[-1], model.radius),
-        **{f"onnx_{k}": (lambda s=s, f=f: s.session.run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
+        **{f"onnx_{k}": (lambda s=s, f=f: s.session_for(f).run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
         "checks_clamp_history": checks,
         "advance": lambda: step(1),
         "simulator_own": stubbed_step,
@@ -227,7 +227,8 @@ def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None
         for t in (1, 2) if exact_on_two else (1,):
             nm = NeuralModel(p, threads=t)  # 2 threads spin (NeuralModel's default)
             f = nm.feeds(hist, ptype, graph)
-            fns[f"{k}_{t}t"] = lambda s=nm.session, f=f: s.run(None, f)
+            session = nm.session_for(f)
+            fns[f"{k}_{t}t"] = lambda s=session, f=f: s.run(None, f)
     ms = _interleaved(fns, repeats, spinning=tuple(k for k in fns if k.endswith("_2t")))
     return {
         "scene": scene, "particles": len(x), "edges": len(graph[0]), "mean_degree": len(graph[0]) / len(x), "mflop_step": flops / 1e6,

@@ -62,7 +62,7 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
     out = {"particles": len(x), "edges": int(len(s))}
     out["graph_ms"] = _median_ms(lambda: radius_graph(hist[-1], nm.radius), repeats)
     feeds = nm.feeds(hist, ptype, (s, r, disp, dist))  # compiled graphs also take the edge geometry
-    out["onnx_ms"] = _median_ms(lambda: nm.session.run(None, feeds), repeats)
+    out["onnx_ms"] = _median_ms(lambda: nm.session_for(feeds).run(None, feeds), repeats)
     ckpt = model_dir / "checkpoint.pt"
     if ckpt.exists():
         state = torch.load(ckpt, weights_only=False)

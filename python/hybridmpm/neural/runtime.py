@@ -79,25 +79,26 @@ def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.
     module doc) for ``receivers`` int64 [E] (values in ``[0, n)``, any order):
     ``(in_edges, in_degree)``. ``in_degree`` float32 [n, 1] counts the edges into
     each node. ``in_edges`` int64 [n, K], K the largest in-degree, lists in row i
-    the ids of the edges into node i (in edge order), padded with its first one
-    (with edge 0 for a node without in-edges, taken off again by the graph);
-    it has width 0, meaning "sum with ``ScatterND``" (exact on one onnxruntime
-    thread only), when ``gather`` is false, when there are no edges, or when
-    ``n·K`` exceeds both :data:`MAX_PADDING` times the edges and :data:`SMALL_TABLE`."""
+    the ids of the edges into node i (in edge order), padded with E (the zero
+    row the graph appends); it has width 0, meaning "sum with ``ScatterND``"
+    (exact on one onnxruntime thread only), when ``gather`` is false, when
+    there are no edges, or when ``n·K`` exceeds both :data:`MAX_PADDING` times
+    the edges and :data:`SMALL_TABLE`."""
+    e = receivers.size
     deg = np.bincount(receivers, minlength=n)
     in_degree = deg.astype(np.float32)[:, None]
-    k = int(deg.max()) if receivers.size else 0
-    if not gather or k == 0 or n * k > max(MAX_PADDING * receivers.size, SMALL_TABLE):
+    k = int(deg.max()) if e else 0
+    if not gather or k == 0 or n * k > max(MAX_PADDING * e, SMALL_TABLE):
         return np.zeros((n, 0), np.int64), in_degree
-    start = np.cumsum(deg) - deg
-    start[deg == 0] = 0
     # in place, one [n, K] array (numpy's large temporaries each cost fresh pages: 4x slower)
     pos = np.empty((n, k), np.int64)
     pos[:] = np.arange(k)
-    pos[pos >= deg[:, None]] = 0
-    pos += start[:, None]
+    pad = pos >= deg[:, None]
+    pos += (np.cumsum(deg) - deg)[:, None]
     if np.any(receivers[1:] < receivers[:-1]):  # radius_graph sorts by receiver; a graph from elsewhere may not be
-        pos = np.argsort(receivers, kind="stable")[pos]
+        real = ~pad
+        pos[real] = np.argsort(receivers, kind="stable")[pos[real]]
+    pos[pad] = e
     return pos, in_degree
 
 
