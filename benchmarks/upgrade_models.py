@@ -2,8 +2,9 @@
 one (``hybridmpm.neural.export.upgrade_onnx``): files exported by torch's
 exporter as the compiled inference graph of the same weights (issue 17), files
 of the ``compiled-1`` layout with the sum over receivers that is exact on any
-number of onnxruntime threads (see ``hybridmpm.neural.compile``). Files of the
-current layout are left alone.
+number of onnxruntime threads, files of it or of ``compiled-2`` with each
+LayerNorm's variance as one column (see ``hybridmpm.neural.compile``). Files of
+the current layout are left alone.
 
     python benchmarks/upgrade_models.py python/hybridmpm/models/*.onnx python/hybridmpm/models/variants/*/*.onnx
 """

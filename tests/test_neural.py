@@ -756,3 +756,43 @@ def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
         for g in (graph, tuple(a[perm] for a in graph)):
             a, x, _ = nm.predict(hist, ptype, graph=g)
             assert np.abs(a - a0).max() <= 1e-5 * np.abs(a0).max() and np.abs(x - x0).max() <= 1e-6
+
+
+def test_graphs_of_the_second_compiled_layout_upgrade(tmp_path):
+    """A graph of layout compiled-2 (tests/golden/gns_compiled2_tiny.onnx: the
+    compiled-1 fixture upgraded before the LayerNorm's variance became one
+    column) upgrades to the current layout: the same bits on one thread and on
+    two, and every LayerNorm's square root now runs on a single column (a
+    Gemm of one output column feeds it), which is what makes it cheaper."""
+    import shutil
+    from pathlib import Path
+
+    import onnx
+    from onnx import numpy_helper
+
+    from hybridmpm.neural.compile import GRAPH_LAYOUT, GRAPH_LAYOUT_2, upgrade_graph
+    from hybridmpm.neural.export import upgrade_onnx
+
+    old = Path(__file__).parent / "golden" / "gns_compiled2_tiny.onnx"
+    new = tmp_path / "new.onnx"
+    shutil.copy(old, new)
+    assert upgrade_onnx(new) and not upgrade_onnx(new)
+    with pytest.raises(ValueError, match="layout"):
+        upgrade_graph(onnx.load(str(new)))
+    hist, ptype = random_state(1500, seed=21, lo=0.3, hi=0.6)
+    for threads in (1, 2):
+        ref, nm = NeuralModel(old, threads=threads), NeuralModel(new, threads=threads)
+        assert ref.meta["graph"] == GRAPH_LAYOUT_2 and nm.meta["graph"] == GRAPH_LAYOUT
+        a0, x0, graph = ref.predict(hist, ptype)
+        a, x, _ = nm.predict(hist, ptype, graph=graph)
+        assert np.array_equal(a, a0) and np.array_equal(x, x0)
+    for path, width in ((old, 8), (new, 1)):
+        g = onnx.load(str(path)).graph
+        consts = {i.name: numpy_helper.to_array(i) for i in g.initializer}
+        producer = {o: n for n in g.node for o in n.output}
+        sqrts = [n for n in g.node if n.op_type == "Sqrt"]
+        assert len(sqrts) == 6  # 2 encoders + 2 layers × (edge, node)
+        for n in sqrts:
+            var = producer[n.input[0]]
+            mm = producer[var.input[0]] if var.op_type == "Add" else var
+            assert consts[mm.input[1]].shape[1] == width, (path.name, n.name)

@@ -75,20 +75,21 @@ def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
     ONNX exporter becomes the compiled inference graph of the same weights
     (needs torch); a graph of the ``compiled-1`` layout, whose sums over
     receivers race on more than one onnxruntime thread, gets the race-free
-    aggregation (:func:`~hybridmpm.neural.compile.upgrade_graph`). Returns
+    aggregation, and one of it or ``compiled-2`` the narrower LayerNorm
+    (:func:`~hybridmpm.neural.compile.upgrade_graph`). Returns
     False, writing nothing, if ``path`` is already of the current layout. Same
     function: the tests check the graphs against each other. Needs torch and
     onnx (the 'train' extra)."""
     import onnx
 
-    from hybridmpm.neural.compile import GRAPH_LAYOUT_1, state_dict_from_onnx, upgrade_graph
+    from hybridmpm.neural.compile import GRAPH_LAYOUT_1, GRAPH_LAYOUT_2, state_dict_from_onnx, upgrade_graph
     from hybridmpm.neural.model import GnsConfig
 
     proto = onnx.load(str(path))
     layout = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY]).get("graph")
     if layout == GRAPH_LAYOUT:
         return False
-    if layout == GRAPH_LAYOUT_1:
+    if layout in (GRAPH_LAYOUT_1, GRAPH_LAYOUT_2):
         target = Path(out if out is not None else path)
         tmp = target.with_name(target.name + ".tmp")
         tmp.write_bytes(upgrade_graph(proto).SerializeToString())
