@@ -87,6 +87,14 @@ def time_frames(sim, frames, warmup=5):
     return float(np.median(t) * 1e3), float(np.percentile(t, 95) * 1e3)
 
 
+def team_share(sim):
+    """The share of a simulator's frame attempts that its team of threads ran
+    (the rest ran on the calling thread alone, as the solver's mode choice
+    decided: ``MpmSolver.mode_runs``); None if it made none."""
+    alone, team = sim.solver.mode_runs
+    return team / (alone + team) if alone + team else None
+
+
 def rss_mb():
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS"):
@@ -196,11 +204,18 @@ def peer_comparison(frames, repeats):
                 sim = make(*spec, threads)
                 med, p95 = time_frames(sim, frames)
                 if best_ours is None or med < best_ours[0]:
-                    best_ours = (med, p95)
+                    best_ours = (med, p95, team_share(sim))
                 row = run_taichi_one(peer_name, threads, frames)
                 if row and (best_peer is None or row["median_ms"] < best_peer[0]):
                     best_peer = (row["median_ms"], row["p95_ms"])
-            entry = {"scene": ours_name, "threads": threads, "substeps": spec[5], "ours_ms": best_ours[0], "ours_p95_ms": best_ours[1]}
+            entry = {
+                "scene": ours_name,
+                "threads": threads,
+                "substeps": spec[5],
+                "ours_ms": best_ours[0],
+                "ours_p95_ms": best_ours[1],
+                "ours_team_share": best_ours[2],
+            }
             if best_peer:
                 entry.update(taichi_ms=best_peer[0], taichi_p95_ms=best_peer[1], speedup=best_peer[0] / best_ours[0])
             table.append(entry)
@@ -210,6 +225,10 @@ def peer_comparison(frames, repeats):
                 flush=True,
             )
     return table
+
+
+def _share(x):
+    return "–" if x is None else f"{100 * x:.0f}%"
 
 
 def markdown(r):
@@ -224,24 +243,29 @@ def markdown(r):
         "",
         "## Standard scenes",
         "",
-        "| scene | threads | particles | substeps/frame | median ms/frame | p95 ms/frame | µs/substep |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "Team: the share of the case's frame attempts (warm-up included) run by the pool's team of threads; the rest ran on the calling thread alone, "
+        'which the solver\'s mode choice picks when the team measured slower (docs/engine.md, "A busy machine").',
+        "",
+        "| scene | threads | particles | substeps/frame | median ms/frame | p95 ms/frame | µs/substep | team |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for x in r["rows"]:
         lines.append(
             f"| {x['scene']} | {x['threads']} | {x['particles']} | {x['substeps']} | {x['ms_per_frame']:.2f} | {x['p95_ms_per_frame']:.2f} | {x['us_per_substep']:.0f} |"
+            f" {_share(x.get('team_share'))} |"
         )
     if r["taichi"]:
         lines += [
             "",
             "## Against Taichi's strongest CPU variant (serial p2g), alternated back to back",
             "",
-            "| scene | threads | substeps | hybridmpm ms/frame | Taichi ms/frame | Taichi / hybridmpm |",
-            "|---|---:|---:|---:|---:|---:|",
+            "| scene | threads | substeps | hybridmpm ms/frame | Taichi ms/frame | Taichi / hybridmpm | hybridmpm team |",
+            "|---|---:|---:|---:|---:|---:|---:|",
         ]
         for x in r["taichi"]:
             lines.append(
                 f"| {x['scene']} | {x['threads']} | {x['substeps']} | {x['ours_ms']:.2f} | {x.get('taichi_ms', float('nan')):.2f} | {x.get('speedup', float('nan')):.2f} |"
+                f" {_share(x.get('ours_team_share'))} |"
             )
     lines += [
         "",
@@ -299,6 +323,7 @@ def main():
                     "ms_per_frame": med,
                     "p95_ms_per_frame": p95,
                     "us_per_substep": med * 1e3 / spec[5],
+                    "team_share": team_share(sim),
                 }
             )
             print(

@@ -266,3 +266,18 @@ def test_solver_works_in_a_forked_child():
     assert p.exitcode == 0, "child hung or crashed"
     sim.step_frame()
     assert q.get(timeout=5) == pytest.approx(float(sim.positions.sum()))
+
+
+def test_mode_runs_count_every_frame_attempt():
+    """``mode_runs`` counts each frame attempt as run alone or by the team:
+    with one thread every attempt runs alone; on two, attempts of either kind
+    add up to at least the frames taken (CFL retries add attempts)."""
+    for threads in (1, 2):
+        sim = small(2, num_threads=threads)
+        assert sim.mode_runs == (0, 0)
+        for _ in range(6):
+            sim.step_frame()
+        alone, team = sim.mode_runs
+        assert alone + team >= 6
+        if threads == 1:
+            assert team == 0

@@ -575,6 +575,16 @@ class MpmSolver:
         return int(self._core.frame)
 
     @property
+    def mode_runs(self) -> tuple[int, int]:
+        """Frame attempts so far, ``(alone, team)``: run by the calling thread
+        alone or by the pool's team of threads. The solver picks the cheaper
+        way as measured and now and then probes the other (docs/engine.md, "A
+        busy machine"); every attempt runs alone with ``num_threads=1``. A
+        benchmark reads it to tell a slow team from frames run alone."""
+        alone, team = self._core.mode_runs
+        return int(alone), int(team)
+
+    @property
     def domain_bounds(self) -> tuple[float, float]:
         """Valid particle coordinates ``[lo, hi]`` (one cell inside the unit domain)."""
         lo, hi = self._core.domain_bounds

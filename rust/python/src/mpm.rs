@@ -849,6 +849,14 @@ impl MpmSolver {
         self.with(py, |inner| dispatch!(inner, s => s.time()))
     }
 
+    /// Frame attempts so far `(alone, team)`: run by the calling thread alone
+    /// or by the pool's team of threads, as the solver chose by measured cost
+    /// (docs/engine.md, "A busy machine"; probes of the other way included).
+    #[getter]
+    fn mode_runs(&self, py: Python<'_>) -> (u64, u64) {
+        self.with(py, |inner| dispatch!(inner, s => s.mode_runs()))
+    }
+
     /// Frames advanced so far.
     #[getter]
     fn frame(&self, py: Python<'_>) -> u64 {

@@ -102,6 +102,9 @@ pub(super) struct ModeChoice {
     /// Attempts left in the probe under way (0: none), and its mode.
     probe_left: u8,
     probed_team: bool,
+    /// Attempts run `[alone, by the team]` (probes included; all alone on a
+    /// pool of one thread): [`Solver::mode_runs`].
+    pub(super) runs: [u64; 2],
     /// Tests: always this mode.
     #[cfg(test)]
     force: Option<bool>,
@@ -239,6 +242,7 @@ where
         let pool_threads = pool.current_num_threads().max(1);
         let (team_chosen, probe) = self.mode.choose();
         let use_team = pool_threads > 1 && team_chosen;
+        self.mode.runs[use_team as usize] += 1;
         let threads = if use_team { pool_threads } else { 1 };
         let started = std::time::Instant::now();
         let team: Team<Stage<D>> = Team::new(threads);
@@ -599,6 +603,40 @@ mod tests {
         let one = run::<3>(1, false, 6);
         assert_eq!(one, run::<3>(2, true, 6));
         assert_eq!(one, run::<3>(3, true, 6));
+    }
+
+    /// `mode_runs` counts each frame attempt under the way it ran: the team
+    /// (forced on, 2 threads), the thread alone (forced off, or a pool of one
+    /// thread, where "the team" is the calling thread).
+    #[test]
+    fn mode_runs_count_the_way_each_frame_ran() {
+        for (threads, team, alone_expected) in [(2, true, false), (2, false, true), (1, true, true)]
+        {
+            let params = SolverParams::<2> {
+                n_grid: 32,
+                num_threads: threads,
+                ..Default::default()
+            };
+            let dx = params.dx();
+            let mut s = Solver::new(params, vec![]).unwrap();
+            s.set_particles(lattice([0.2; 2], 10, dx / 2.0, Material::Water, 1000.0))
+                .unwrap();
+            s.mode.force = Some(team);
+            assert_eq!(s.mode_runs(), (0, 0));
+            for _ in 0..5 {
+                s.step_frame(2.5e-3).unwrap();
+            }
+            let (alone, on_team) = s.mode_runs();
+            assert!(
+                alone + on_team >= 5,
+                "{threads} {team}: {alone} + {on_team}"
+            );
+            assert_eq!(
+                (alone > 0, on_team > 0),
+                (alone_expected, !alone_expected),
+                "{threads} {team}"
+            );
+        }
     }
 
     /// Run `n` attempts at the given costs per mode; returns how many were

@@ -255,6 +255,15 @@ where
         self.time
     }
 
+    /// How the frame attempts so far ran: `(alone, team)`, the calling
+    /// thread alone or the pool's team (probes of the other way included;
+    /// every attempt alone on a pool of one thread). Which one runs is the
+    /// solver's choice by measured cost (`ModeChoice`, docs/engine.md); a
+    /// benchmark reads it to tell a slow team from a frame run alone.
+    pub fn mode_runs(&self) -> (u64, u64) {
+        (self.mode.runs[0], self.mode.runs[1])
+    }
+
     /// Frames advanced so far.
     pub fn frame(&self) -> u64 {
         self.frame
