@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import json
 import os
 import tempfile
@@ -184,7 +185,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     mpm = MpmSimulator(sim.scene, r_t=1, threads=mpm_threads)
     for _ in range(max(5, sim.frame.frame)):
         mpm.advance()
-    mpm_state, mpm_calls = mpm.state(), iter(range(1 << 62))
+    mpm_state, mpm_calls = mpm.state(), itertools.count()
 
     def mpm_frame() -> None:
         if BURST > 1 and next(mpm_calls) % BURST == 0:

@@ -29,9 +29,9 @@ arrays. On this class of machine every operator over an edge array costs
   is between equal shapes: 5 cheap passes instead of one slow kernel. (Up to
   ``compiled-2`` the variance was a MatMul with ``diag(1/g²) 11ᵀ/L``, already
   as wide as the latent, and the ``Add`` of ``ε`` and the ``Sqrt`` ran on all
-  of it: 13.7 against 8.5 ns per row of 16 here; a division by the column
-  itself is slower still, onnxruntime's broadcasting ``Div`` costing 6 ns more
-  per row than the MatMul and the plain ``Div``. Same arithmetic, same bits.)
+  of it: 12.6 against 8.0 ns per row of 16, ``benchmarks/bench_inference.py
+  --ops``; dividing by the column itself, onnxruntime's broadcasting ``Div``,
+  costs 11.8. Same arithmetic, same bits.)
   (A gain with an entry of magnitude below :data:`MIN_GAIN` is applied by a
   MatMul after the division instead.)
 * **Carried biases.** The LayerNorm's ``β`` is not added: a latent is kept
