@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "grid_mass", "radius_graph"]
+__all__ = ["__version__", "MpmSolver", "grid_mass", "kernel_density", "radius_graph", "relax_density"]
 
 __version__: str
 
@@ -65,3 +65,13 @@ def radius_graph(
     max_neighbors: int | None = None,
     max_edges: int | None = None,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
+
+def kernel_density(positions: npt.NDArray[np.float32], radius: float) -> npt.NDArray[np.float32]: ...
+def relax_density(
+    positions: npt.NDArray[np.float32],
+    movable: npt.NDArray[np.bool_],
+    radius: float,
+    rest_density: float,
+    iterations: int = 3,
+    omega: float = 1.0,
+) -> tuple[npt.NDArray[np.float32], int, float]: ...

@@ -382,7 +382,7 @@ def _train(args: argparse.Namespace) -> int:
         scene=args.scene, data=args.data, out=args.out, latent=args.latent, layers=args.layers, r_t=args.r_t, steps=args.steps,
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
         seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after, ema=args.ema,
-        snapshots=not args.no_snapshots,
+        snapshots=not args.no_snapshots, unroll=args.unroll, unroll_after=args.unroll_after, clip_grad=args.clip_grad,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
     if not args.quiet:
@@ -599,6 +599,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="probability that a window's last input is the model's own prediction (pushforward training; default 0: off)",
     )
     tr.add_argument("--pushforward-after", type=float, default=0.2, help="fraction of the steps before pushforward starts (default 0.2)")
+    tr.add_argument(
+        "--unroll",
+        type=int,
+        default=1,
+        help="model steps each window is rolled out by the network, the loss backpropagated through all of them (default 1: one-step training)",
+    )
+    tr.add_argument("--unroll-after", type=float, default=0.0, help="fraction of the steps trained one-step before unrolling starts (default 0)")
+    tr.add_argument("--clip-grad", type=float, default=1.0, help="gradient-norm clip in unrolled steps (default 1)")
     tr.add_argument(
         "--ema",
         type=float,

@@ -23,6 +23,19 @@
   gradient from the window before), and whose target acceleration takes that
   predicted state to the true next position — the model learns to correct
   the drift of its own rollouts, not only input noise;
+* unrolled training (``unroll`` = K > 1, off by default; backpropagation
+  through time as in Ummenhofer et al. 2020 and Prantl et al. 2022, and
+  NeuralMPM's multi-call position loss): after the first ``unroll_after`` of
+  the steps, each window is rolled out K model steps by the network itself
+  (the radius graph rebuilt from each predicted state, without gradient; the
+  predicted positions clipped to the domain bounds as the simulator clips
+  them) and the loss is the mean over the K steps of the normalised
+  acceleration error *to the true next position* — with the history made of
+  the model's own predictions this is a position error, and its gradient
+  flows back through every earlier prediction, so the model is trained on
+  what a rollout accumulates, not only on one step from true inputs. The
+  gradient norm is clipped to ``clip_grad`` in these steps. K forward and
+  backward passes per window: a step costs about K times a one-step one;
 * ema (off by default): with ``ema`` = β > 0 the weights that are validated,
   snapshotted and exported are the exponential moving average of the trained
   ones (``w̄ ← β·w̄ + (1 − β)·w`` after every step; torch's ``AveragedModel``),
@@ -111,6 +124,9 @@ class TrainConfig:
     pushforward_after: float = 0.2
     snapshots: bool = True
     ema: float = 0.0
+    unroll: int = 1
+    unroll_after: float = 0.0
+    clip_grad: float = 1.0
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
@@ -121,7 +137,7 @@ class TrainConfig:
             if not (isinstance(self.data, (list, tuple)) and self.data and all(isinstance(d, (str, os.PathLike)) for d in self.data)):
                 raise InvalidInputError(f"data: must be a dataset directory or a non-empty list of them, got {self.data!r}", "data")
             self.data = str(self.data[0]) if len(self.data) == 1 else [str(d) for d in self.data]  # one directory is stored as before
-        for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps"):
+        for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps", "unroll"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise InvalidInputError(f"{name}: must be an integer >= 1, got {v!r}", name)
@@ -137,7 +153,11 @@ class TrainConfig:
             raise InvalidInputError(f"snapshots: must be true or false, got {self.snapshots!r}", "snapshots")
         if not (isinstance(self.ema, (int, float)) and math.isfinite(self.ema) and 0 <= self.ema < 1):
             raise InvalidInputError(f"ema: must be a number in [0, 1), got {self.ema!r}", "ema")
-        for name in ("pushforward", "pushforward_after"):
+        if self.unroll > 1 and self.pushforward > 0:
+            raise InvalidInputError("unroll: unrolled training and pushforward are alternatives; set one of them", "unroll")
+        if not (isinstance(self.clip_grad, (int, float)) and math.isfinite(self.clip_grad) and self.clip_grad > 0):
+            raise InvalidInputError(f"clip_grad: must be a number > 0, got {self.clip_grad!r}", "clip_grad")
+        for name in ("pushforward", "pushforward_after", "unroll_after"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
                 raise InvalidInputError(f"{name}: must be a number in [0, 1], got {v!r}", name)
@@ -182,19 +202,28 @@ class _Data:
         self.t_max = min(len(p) for p, _ in self.trajs)
 
 
+def _noised_history(traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Input history float64 [T_in, N, D] ending at step ``t``, with the random-walk
+    velocity noise (none on kinematic particles), and the noise of its last
+    position [N, D] (the shift the targets carry, so the model learns to undo
+    velocity noise, not position noise)."""
+    pos, ptype = traj
+    hist = pos[t - t_in + 1 : t + 1].astype(np.float64)
+    n, d = hist.shape[1], hist.shape[2]
+    if noise_std <= 0:
+        return hist, np.zeros((n, d))
+    steps = t_in - 1
+    vel_noise = np.cumsum(rng.normal(0.0, noise_std / math.sqrt(steps), (steps, n, d)), axis=0)
+    pos_noise = np.concatenate([np.zeros((1, n, d)), np.cumsum(vel_noise, axis=0)])
+    pos_noise[:, ptype == KINEMATIC] = 0.0
+    return hist + pos_noise, pos_noise[-1]
+
+
 def _window(traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, noise_std: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Input history [T_in, N, D], types [N], target acceleration [N, D] (noise-corrected)."""
     pos, ptype = traj
-    hist = pos[t - t_in + 1 : t + 1].astype(np.float64)
-    nxt = pos[t + 1].astype(np.float64)
-    if noise_std > 0:
-        n, d = hist.shape[1], hist.shape[2]
-        steps = t_in - 1
-        vel_noise = np.cumsum(rng.normal(0.0, noise_std / math.sqrt(steps), (steps, n, d)), axis=0)
-        pos_noise = np.concatenate([np.zeros((1, n, d)), np.cumsum(vel_noise, axis=0)])
-        pos_noise[:, ptype == KINEMATIC] = 0.0
-        hist = hist + pos_noise
-        nxt = nxt + pos_noise[-1]
+    hist, offset = _noised_history(traj, t, t_in, noise_std, rng)
+    nxt = pos[t + 1].astype(np.float64) + offset
     acc = nxt - 2 * hist[-1] + hist[-2]
     return hist.astype(np.float32), ptype, acc.astype(np.float32)
 
@@ -258,6 +287,64 @@ def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
     return ((pred - target)[mask] ** 2).mean()
 
 
+def _unrolled_window(
+    traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, unroll: int, noise_std: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A window for unrolled training at step ``t`` (``t + unroll`` within the
+    trajectory): the noised input history float32 [T_in, N, D], the types [N],
+    the targets float32 [unroll, N, D] (the true positions ``t + 1 … t + unroll``
+    shifted by the last input position's noise, as :func:`_window`'s target) and
+    the true positions float32 [unroll, N, D] (for kinematic particles)."""
+    pos, ptype = traj
+    hist, offset = _noised_history(traj, t, t_in, noise_std, rng)
+    truth = pos[t + 1 : t + 1 + unroll].astype(np.float64)
+    return hist.astype(np.float32), ptype, (truth + offset).astype(np.float32), truth.astype(np.float32)
+
+
+def _unrolled_loss(
+    model: GnsModel,
+    windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    radius: float,
+    max_neighbors: int | None,
+) -> torch.Tensor:
+    """The loss of unrolled training (module docstring): the windows of
+    :func:`_unrolled_window` joined into one disjoint graph, rolled out by
+    ``model`` for as many steps as they have targets; at each step the radius
+    graph is rebuilt from the detached predicted positions, the normalised
+    acceleration is compared with the one that reaches the target position
+    from the (predicted) history, and the prediction, clipped to the domain
+    bounds, becomes the next input (kinematic particles take their true
+    positions). Returns the mean over steps of the mean squared error over
+    non-kinematic particles; with one step it equals :func:`_loss` of the
+    same window."""
+    sizes = [w[0].shape[1] for w in windows]
+    starts = np.cumsum([0, *sizes[:-1]])
+    hist = torch.from_numpy(np.concatenate([w[0] for w in windows], axis=1))
+    ptype = torch.from_numpy(np.concatenate([w[1] for w in windows]))
+    targets = torch.from_numpy(np.concatenate([w[2] for w in windows], axis=1))
+    truth = torch.from_numpy(np.concatenate([w[3] for w in windows], axis=1))
+    kin = (ptype == KINEMATIC).unsqueeze(1)
+    mask = ptype != KINEMATIC
+    bounds = torch.tensor(model.config.bounds, dtype=hist.dtype)
+    losses = []
+    for k in range(targets.shape[0]):
+        last = hist[-1].detach().numpy()
+        ss, rs = [], []
+        for start, n in zip(starts, sizes):
+            s, r, _, _ = radius_graph(np.ascontiguousarray(last[start : start + n]), radius, max_neighbors=max_neighbors)
+            ss.append(s + start)
+            rs.append(r + start)
+        senders, receivers = torch.from_numpy(np.concatenate(ss)), torch.from_numpy(np.concatenate(rs))
+        pred = model.normalised_acceleration(hist, ptype, senders, receivers)
+        target = model.features.normalise_acceleration(targets[k] - 2 * hist[-1] + hist[-2])
+        losses.append(((pred - target)[mask] ** 2).mean())
+        if k + 1 < targets.shape[0]:
+            _, nxt = model.features.integrate(hist, ptype, pred)
+            nxt = torch.where(kin, truth[k], torch.clamp(nxt, bounds[:, 0], bounds[:, 1]))
+            hist = torch.cat([hist[1:], nxt[None]])
+    return torch.stack(losses).mean()
+
+
 def _rollout(model: GnsModel, traj: tuple[np.ndarray, np.ndarray], steps: int, radius: float, max_neighbors: int | None) -> np.ndarray:
     pos, ptype = traj
     t_in = model.config.t_in
@@ -312,6 +399,10 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     t_in = T_IN
     if train_data.t_max < t_in + 1:
         raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
+    if config.unroll > 1 and train_data.t_max < t_in + config.unroll:
+        raise InvalidInputError(
+            f"unroll: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; an unrolled window needs >= {t_in + config.unroll}", "unroll"
+        )
     if config.pushforward > 0 and train_data.t_max < t_in + 2:
         raise InvalidInputError(
             f"pushforward: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward"
@@ -406,6 +497,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                 "n_grid": n_grid,
                 "noise_std": config.noise_std,
                 "pushforward": config.pushforward,
+                "unroll": config.unroll,
                 "rollout_steps": rollout_steps,
                 **(extra or {}),
             },  # fmt: skip
@@ -421,11 +513,15 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             lr = config.lr_final + (config.lr - config.lr_final) * 0.1 ** (step / config.steps)
             for g in opt.param_groups:
                 g["lr"] = lr
-            windows = []
+            windows: list[Any] = []
             pushing = config.pushforward > 0 and step >= config.pushforward_after * config.steps
+            unrolling = config.unroll > 1 and step >= config.unroll_after * config.steps
             for _ in range(config.batch):
                 traj = train_data.trajs[int(rng.integers(len(train_data.trajs)))]
-                if pushing and rng.random() < config.pushforward:
+                if unrolling:
+                    t = int(rng.integers(t_in - 1, len(traj[0]) - config.unroll))
+                    windows.append(_unrolled_window(traj, t, t_in, config.unroll, config.noise_std, rng))
+                elif pushing and rng.random() < config.pushforward:
                     model.eval()
                     t = int(rng.integers(t_in, len(traj[0]) - 1))
                     windows.append(_pushforward_window(model, traj, t, t_in, config.noise_std, rng, radius, config.max_neighbors))
@@ -433,9 +529,14 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
                     t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
                     windows.append(_window(traj, t, t_in, config.noise_std, rng))
             model.train()
-            loss = _loss(model, _batch(windows, radius, config.max_neighbors))
+            if unrolling:
+                loss = _unrolled_loss(model, windows, radius, config.max_neighbors)
+            else:
+                loss = _loss(model, _batch(windows, radius, config.max_neighbors))
             opt.zero_grad()
             loss.backward()
+            if unrolling:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip_grad)
             opt.step()
             if ema is not None:
                 ema.update_parameters(model)

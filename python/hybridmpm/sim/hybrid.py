@@ -77,7 +77,7 @@ from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, reading_state, serialised
 from hybridmpm.sim.convert import VELOCITY_ESTIMATES, mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
-from hybridmpm.sim.neural import NeuralSimulator, load_model
+from hybridmpm.sim.neural import RELAX_ITERATIONS, REST_PERCENTILE, NeuralSimulator, load_model
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
 
 #: Default dwell (steps of s ≥ r_c on MPM before the network takes over again);
@@ -130,6 +130,8 @@ class HybridSimulator:
         :data:`AUDIT_TOL`).
     ke_factor, escape_cells, degree_factor, detect_failures:
         The network's failure checks (:class:`~hybridmpm.sim.neural.NeuralSimulator`).
+    relax, rest_percentile:
+        The density relaxation after each network step (:class:`~hybridmpm.sim.neural.NeuralSimulator`; ``relax`` = 0: off).
     mpm_threads, nn_threads:
         Threads of the MPM solver (0 = all cores) and of onnxruntime.
 
@@ -159,6 +161,8 @@ class HybridSimulator:
         escape_cells: float = 4.0,
         degree_factor: float = 2.0,
         detect_failures: bool = True,
+        relax: int = RELAX_ITERATIONS,
+        rest_percentile: float = REST_PERCENTILE,
         mpm_threads: int = 0,
         nn_threads: int = 1,
     ) -> None:
@@ -194,7 +198,7 @@ class HybridSimulator:
         self.scene = at_resolution(scene, self.model.r_p, seed)
         self.neural = NeuralSimulator(
             self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
-            degree_factor=degree_factor, warmup=False, mpm_threads=mpm_threads,
+            degree_factor=degree_factor, warmup=False, relax=relax, rest_percentile=rest_percentile, mpm_threads=mpm_threads,
         )  # fmt: skip
         self.mpm = MpmSimulator(self.scene, r_t=self.model.r_t, threads=mpm_threads)
         self.particles = self.mpm.particles

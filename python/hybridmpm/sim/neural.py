@@ -4,7 +4,23 @@ The scene is clustered to the model's ``r_p``; MPM runs the first ``T_in − 1``
 coarse steps to fill the network's position history (warm-up); from then on
 each :meth:`NeuralSimulator.advance` is one network step of ``r_t`` frames:
 radius graph (Rust cell list) + onnxruntime, predicted positions clipped to
-the model's domain bounds.
+the model's domain bounds, then relaxed where they are packed denser than the
+initial condition.
+
+Density relaxation (``relax`` iterations, default :data:`RELAX_ITERATIONS`;
+0 = off): a learned simulator of a nearly incompressible material lets its
+particles cluster step after step (on the column collapses the shipped
+networks' mean number of neighbours grew from 12 to 38 in 100 frames, where
+MPM's stays at 12), which no one-step loss sees. After each network step,
+:func:`hybridmpm.graph.relax_density` moves the particles denser than the
+rest density — the ``rest_percentile`` percentile (default 90) of the
+initial condition's :func:`~hybridmpm.graph.kernel_density` over fluid
+particles — apart with a unilateral Position Based Fluids constraint
+(Macklin & Müller 2013), as Neural SPH (Toshev et al. 2024, Sec. 4) relaxes
+its GNS rollouts; the relaxed positions become the history, so the next
+velocity carries the correction. Free surfaces and splashes (less dense) and
+obstacles are left alone. :attr:`NeuralSimulator.last_relaxed` counts the
+particles corrected in the last step.
 
 Failure checks (``detect_failures``, on by default): a step that predicts a
 non-finite position ("nan"), moves a particle more than ``escape_cells``
@@ -29,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.graph import radius_graph
+from hybridmpm.graph import kernel_density, radius_graph, relax_density
 from hybridmpm.neural.runtime import Graph, NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
@@ -37,6 +53,11 @@ from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimS
 from hybridmpm.sim.mpm import MpmSimulator
 
 _STATE_VERSION = 1
+
+#: Default Jacobi iterations of the density relaxation after each network step (module doc).
+RELAX_ITERATIONS = 3
+#: Default percentile of the initial condition's kernel density taken as the rest density.
+REST_PERCENTILE = 90.0
 
 
 def load_model(model: NeuralModel | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel:
@@ -97,6 +118,11 @@ class NeuralSimulator:
         Run MPM for the first ``T_in − 1`` steps (default). False: the
         history must be given with :meth:`set_history` before :meth:`advance`
         (the hybrid does so).
+    relax, rest_percentile:
+        Density relaxation after each network step (module doc): Jacobi
+        iterations (integer in [0, 100]; 0 = off) and the percentile in
+        (0, 100] of the initial condition's kernel density taken as the rest
+        density.
     max_neighbors, mpm_threads, nn_threads:
         Neighbour cap of the radius graph; MPM threads of the warm-up (0 = all
         cores); onnxruntime threads when ``model`` is a path.
@@ -119,6 +145,8 @@ class NeuralSimulator:
         degree_factor: float = 2.0,
         clamp: bool = True,
         warmup: bool = True,
+        relax: int = RELAX_ITERATIONS,
+        rest_percentile: float = REST_PERCENTILE,
         max_neighbors: int | None = None,
         mpm_threads: int = 0,
         nn_threads: int = 1,
@@ -138,6 +166,12 @@ class NeuralSimulator:
                 raise InvalidInputError(f"{name}: must be a finite number {'>=' if closed else '>'} {lo:g}, got {v!r}", name)
         if max_neighbors is not None:
             check_int("max_neighbors", max_neighbors, 1)
+        check_int("relax", relax, 0)
+        if relax > 100:
+            raise InvalidInputError(f"relax: must be an integer in [0, 100], got {relax!r}", "relax")
+        ok = isinstance(rest_percentile, (int, float)) and not isinstance(rest_percentile, bool) and math.isfinite(rest_percentile)
+        if not (ok and 0 < rest_percentile <= 100):
+            raise InvalidInputError(f"rest_percentile: must be a number in (0, 100], got {rest_percentile!r}", "rest_percentile")
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
@@ -173,6 +207,13 @@ class NeuralSimulator:
         self._lo, self._hi = b[:, 0], b[:, 1]
         x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
         self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
+        self.relax = relax
+        self._movable = np.ascontiguousarray(self.particles.fluid_mask)
+        rho = kernel_density(x0b, self.model.radius)[self._movable]
+        #: Rest density of the relaxation (kernel units; :func:`~hybridmpm.graph.kernel_density`).
+        self.rest_density = float(np.percentile(rho, rest_percentile)) if len(rho) else 1.0
+        #: Particles the relaxation corrected in the last network step.
+        self.last_relaxed = 0
         self._history: np.ndarray | None = None
         self._next_graph: Graph | None = None
         self.step_index = 0
@@ -291,6 +332,9 @@ class NeuralSimulator:
         graph: Graph | None = None
         if failure is None:
             clipped = self._clip(nxt)
+            if self.relax:
+                clipped, self.last_relaxed, _ = relax_density(clipped, self._movable, self.model.radius, self.rest_density, self.relax)
+                clipped = self._clip(clipped)
             built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
             if self.detect_failures and len(built[0]) > self.degree_factor * self._degree0 * len(clipped):
                 failure = "compressed"

@@ -75,6 +75,9 @@
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
+mod relax;
+pub use relax::{RelaxParams, RelaxStats, kernel_density, relax_density};
+
 use rayon::prelude::*;
 use thiserror::Error;
 

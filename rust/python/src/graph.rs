@@ -1,6 +1,6 @@
 //! `hybridmpm._core.radius_graph`: binding of the `hybridmpm-neighbors` crate.
 
-use hybridmpm_neighbors::{GraphError, GraphParams, Neighbors};
+use hybridmpm_neighbors::{self as nb, GraphError, GraphParams, Neighbors};
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyUntypedArray};
 use pyo3::exceptions::PyRuntimeError;
@@ -51,6 +51,162 @@ fn empty<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     static EMPTY: PyOnceLock<Py<PyAny>> = PyOnceLock::new();
     EMPTY.import(py, "numpy", "empty")?.call1((shape, dtype))
+}
+
+/// ``positions`` as a float32 [N, D] array, D in {2, 3}, and D; else an
+/// ``InvalidInputError`` naming ``positions``.
+fn positions_array<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+) -> PyResult<(Bound<'py, PyArray2<f32>>, usize)> {
+    let expect = "must be a numpy.ndarray of dtype float32 and shape (N, 2) or (N, 3)";
+    let Ok(untyped) = positions.cast::<PyUntypedArray>() else {
+        let ty = positions.get_type().name()?;
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got {ty}"),
+        ));
+    };
+    let dtype = untyped.dtype();
+    if !dtype.is_equiv_to(&numpy::dtype::<f32>(py)) {
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got dtype {dtype}"),
+        ));
+    }
+    let shape = untyped.shape();
+    if shape.len() != 2 || !(shape[1] == 2 || shape[1] == 3) {
+        let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+        let tuple = if dims.len() == 1 {
+            format!("({},)", dims[0])
+        } else {
+            format!("({})", dims.join(", "))
+        };
+        return Err(invalid_input(
+            py,
+            "positions",
+            format!("{expect}, got shape {tuple}"),
+        ));
+    }
+    Ok((positions.cast::<PyArray2<f32>>()?.clone(), shape[1]))
+}
+
+/// ``radius`` as a positive finite float32, else an ``InvalidInputError`` naming ``radius``.
+fn radius_f32(py: Python<'_>, radius: f64) -> PyResult<f32> {
+    let r32 = radius as f32;
+    if !(radius.is_finite() && radius > 0.0 && r32.is_finite() && r32 > 0.0) {
+        return Err(invalid_input(
+            py,
+            "radius",
+            format!("must be finite, > 0 and representable as float32, got {radius}"),
+        ));
+    }
+    Ok(r32)
+}
+
+fn to_py(py: Python<'_>) -> impl Fn(GraphError) -> PyErr + '_ {
+    move |e: GraphError| match e {
+        GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
+    }
+}
+
+/// Kernel density of every particle (``hybridmpm.graph.kernel_density``).
+///
+/// ``rho_i = sum_j W(|x_i - x_j| / R)`` with ``W(q) = (1 - q)^2`` for
+/// ``q < 1``, self included (an isolated particle has 1).
+///
+/// Parameters: ``positions`` numpy float32 (N, D), D in {2, 3}; ``radius``
+/// R > 0 (position units). Returns float32 (N,). Raises
+/// ``InvalidInputError`` naming ``positions`` or ``radius``.
+#[pyfunction]
+fn kernel_density<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    radius: f64,
+) -> PyResult<Bound<'py, PyArray1<f32>>> {
+    let (arr, dim) = positions_array(py, positions)?;
+    let r = radius_f32(py, radius)?;
+    let rho = if dim == 2 {
+        let pos = rows::<2>(&arr)?;
+        py.detach(|| nb::kernel_density(&pos, r))
+    } else {
+        let pos = rows::<3>(&arr)?;
+        py.detach(|| nb::kernel_density(&pos, r))
+    }
+    .map_err(to_py(py))?;
+    Ok(PyArray1::from_vec(py, rho))
+}
+
+fn relax_run<const D: usize>(
+    py: Python<'_>,
+    arr: &Bound<'_, PyArray2<f32>>,
+    movable: &[bool],
+    params: &nb::RelaxParams,
+) -> PyResult<(Vec<f32>, nb::RelaxStats)> {
+    let mut pos = rows::<D>(arr)?;
+    let stats = py
+        .detach(|| crate::pool::install(|| nb::relax_density(&mut pos, movable, params)))
+        .map_err(to_py(py))?;
+    Ok((pos.into_iter().flatten().collect(), stats))
+}
+
+/// Density relaxation (``hybridmpm.graph.relax_density``): unilateral
+/// Position Based Fluids density constraint, Jacobi iterations; see the
+/// ``hybridmpm-neighbors`` crate's ``relax`` module for the formulas.
+///
+/// Parameters: ``positions`` numpy float32 (N, D), D in {2, 3};
+/// ``movable`` numpy bool (N,); ``radius`` R > 0; ``rest_density`` > 0
+/// (kernel units); ``iterations`` in [0, 100]; ``omega`` in (0, 2].
+/// Returns ``(positions float32 (N, D), compressed_before, max_compression_before)``.
+/// Raises ``InvalidInputError`` naming the field.
+#[pyfunction]
+#[pyo3(signature = (positions, movable, radius, rest_density, iterations = 3, omega = 1.0))]
+fn relax_density<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    movable: &Bound<'py, PyAny>,
+    radius: f64,
+    rest_density: f64,
+    iterations: i64,
+    omega: f64,
+) -> PyResult<(Bound<'py, PyArray2<f32>>, usize, f32)> {
+    let (arr, dim) = positions_array(py, positions)?;
+    let r = radius_f32(py, radius)?;
+    let Ok(mv) = movable.cast::<PyArray1<bool>>() else {
+        return Err(invalid_input(
+            py,
+            "movable",
+            "must be a numpy.ndarray of dtype bool and shape (N,)",
+        ));
+    };
+    let mv: Vec<bool> = mv
+        .try_readonly()
+        .map_err(|e| invalid_input(py, "movable", format!("cannot be read: {e}")))?
+        .as_array()
+        .to_vec();
+    let Ok(iterations) = usize::try_from(iterations) else {
+        return Err(invalid_input(
+            py,
+            "iterations",
+            format!("must be >= 0, got {iterations}"),
+        ));
+    };
+    let params = nb::RelaxParams {
+        radius: r,
+        rest_density: rest_density as f32,
+        iterations,
+        omega: omega as f32,
+    };
+    let (flat, stats) = if dim == 2 {
+        relax_run::<2>(py, &arr, &mv, &params)?
+    } else {
+        relax_run::<3>(py, &arr, &mv, &params)?
+    };
+    let n = flat.len() / dim;
+    let out = PyArray1::from_vec(py, flat).reshape([n, dim])?;
+    Ok((out, stats.compressed_before, stats.max_compression_before))
 }
 
 fn run<'py, const D: usize>(
@@ -157,37 +313,7 @@ fn radius_graph<'py>(
     max_neighbors: Option<i64>,
     max_edges: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Edges<'py>> {
-    let expect = "must be a numpy.ndarray of dtype float32 and shape (N, 2) or (N, 3)";
-    let Ok(untyped) = positions.cast::<PyUntypedArray>() else {
-        let ty = positions.get_type().name()?;
-        return Err(invalid_input(
-            py,
-            "positions",
-            format!("{expect}, got {ty}"),
-        ));
-    };
-    let dtype = untyped.dtype();
-    if !dtype.is_equiv_to(&numpy::dtype::<f32>(py)) {
-        return Err(invalid_input(
-            py,
-            "positions",
-            format!("{expect}, got dtype {dtype}"),
-        ));
-    }
-    let shape = untyped.shape();
-    if shape.len() != 2 || !(shape[1] == 2 || shape[1] == 3) {
-        let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-        let tuple = if dims.len() == 1 {
-            format!("({},)", dims[0])
-        } else {
-            format!("({})", dims.join(", "))
-        };
-        return Err(invalid_input(
-            py,
-            "positions",
-            format!("{expect}, got shape {tuple}"),
-        ));
-    }
+    let (arr, dim) = positions_array(py, positions)?;
     if !(radius.is_finite() && radius > 0.0) {
         return Err(invalid_input(
             py,
@@ -228,15 +354,16 @@ fn radius_graph<'py>(
         max_neighbors,
         max_edges,
     };
-    let arr = positions.cast::<PyArray2<f32>>()?;
-    if shape[1] == 2 {
-        run::<2>(py, arr, params)
+    if dim == 2 {
+        run::<2>(py, &arr, params)
     } else {
-        run::<3>(py, arr, params)
+        run::<3>(py, &arr, params)
     }
 }
 
 /// Adds `radius_graph` to the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(radius_graph, m)?)
+    m.add_function(wrap_pyfunction!(radius_graph, m)?)?;
+    m.add_function(wrap_pyfunction!(kernel_density, m)?)?;
+    m.add_function(wrap_pyfunction!(relax_density, m)?)
 }
