@@ -33,6 +33,7 @@ def main() -> None:
     import onnx
 
     from hybridmpm.neural.train import TrainConfig
+    from hybridmpm.sim.neural import RELAX_ITERATIONS
 
     valid = json.loads(a.valid.read_text())
     test_all = json.loads(a.test.read_text())
@@ -73,6 +74,7 @@ def main() -> None:
             f"--latent {meta['latent']} --layers {meta['layers']} --r-t {meta['r_t']} --radius {meta['radius']} --steps {run_steps}",
             *([f"--noise-std {train_cfg['noise_std']}"] if train_cfg.get("noise_std", TrainConfig.noise_std) != TrainConfig.noise_std else []),
             *([f"--ema {train_cfg['ema']}"] if train_cfg.get("ema") else []),
+            *([f"--unroll {train_cfg['unroll']} --unroll-after {train_cfg['unroll_after']}"] if train_cfg.get("unroll", 1) > 1 else []),
             *([f"--seed {train_cfg['seed']}"] if train_cfg.get("seed") else []),
             "--threads 1",
         ]
@@ -100,6 +102,7 @@ def main() -> None:
         + f"`{train_command}` {how_trained}",
         "",
         "## Errors (grid-mass error against full-resolution MPM, DESIGN.md)",
+        f"Network rollouts as `NeuralSimulator` runs them: predictions clipped to the domain and density-relaxed ({RELAX_ITERATIONS} iterations, the default).",
         f"- test split ({test_all['seeds']} trajectories), {test_all['frames']}-frame rollout: mean {t['rollout_mean']:.3f}, last frame {t['rollout_last']:.3f}",
         f"- test split, one-step (from MPM-at-r_p history): {t['one_step']:.3f}",
         f"- validation rollout (selection): {chosen['rollout_mean']:.3f}",

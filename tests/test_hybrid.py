@@ -226,10 +226,11 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
     from hybridmpm.graph import radius_graph
 
     scene = make_scene("water2d", seed=1002)
-    clean = HybridSimulator(scene, NeuralModel(shipped_model("water2d")), r_c=0.0, mpm_threads=1)
+    # the network's raw output (no density relaxation, which would undo the "compressed" sabotage's squeeze)
+    clean = HybridSimulator(scene, NeuralModel(shipped_model("water2d")), r_c=0.0, relax=0, mpm_threads=1)
     ref = frames_of(clean, 200)
     at = 10
-    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=at, how=how), r_c=0.0, mpm_threads=1)
+    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=at, how=how), r_c=0.0, relax=0, mpm_threads=1)
     frames = frames_of(sim, 200)
     first_bad = sim.t_in - 1 + at - 1  # index in `frames` of the first sabotaged neural step
     k = next(i for i, f in enumerate(frames) if f.event)
@@ -397,9 +398,9 @@ def test_reference_rollout_covers_whole_coarse_steps(water_model):
 
 def test_a_network_that_keeps_failing_waits_longer_each_time():
     # a model that squeezes the fluid at every step fails again after each return;
-    # the MPM stretch before it gets the flow back doubles (dwell · 2^k)
+    # the MPM stretch before it gets the flow back doubles (dwell · 2^k); raw output, no density relaxation
     scene = make_scene("water2d", seed=1002)
-    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="compressed"), r_c=0.0, dwell=5, mpm_threads=1)
+    sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="compressed"), r_c=0.0, dwell=5, relax=0, mpm_threads=1)
     frames = frames_of(sim, 1600)
     fails = [f.step for f in frames if f.event == "fallback:compressed"]
     backs = [f.step for f in frames if f.event == "switch:neural"]
