@@ -455,32 +455,57 @@ def test_pushforward_window_targets_the_true_next_position():
     np.testing.assert_allclose(2 * h2[-1].astype(np.float64) - h2[-2] + a2, traj[0][t + 1] + offset, atol=1e-6)
 
 
+def _option_trains_and_old_runs_resume(tmp_path, tag: str, option: dict, defaults: dict, meta_key: str):
+    """A small run on the drag dataset with the TrainConfig fields ``option``
+    trains (its validation loss falls by more than half) and records
+    ``meta_key`` in its model; a run directory written before the fields of
+    ``defaults`` existed (its settings file lacks them) resumes with those
+    defaults. Returns ``(cfg, plain)``: the option's config and the old run's."""
+    from hybridmpm.neural.train import TrainConfig, train
+
+    data = tmp_path / "drag"
+    data.mkdir(exist_ok=True)
+    _drag_dataset(data, n_traj=4, frames=20, n=30)
+    cfg = TrainConfig(
+        scene="drag", data=str(data), out=str(tmp_path / tag), latent=8, layers=1, r_t=1, steps=120, batch=2,
+        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=40, val_windows=4, rollout_steps=5, threads=1, **option,
+    )  # fmt: skip
+    train(cfg, progress=False)
+    rows = list(csv.DictReader(open(tmp_path / tag / "log.csv")))
+    assert float(rows[-1]["val_one_step"]) < 0.5 * float(rows[0]["val_one_step"])
+    assert NeuralModel(tmp_path / tag / "model.onnx").meta[meta_key] == option[meta_key]
+    old = tmp_path / f"old_{tag}"
+    plain = TrainConfig(**{**cfg.__dict__, "out": str(old), "steps": 2, "val_every": 2, **defaults})
+    train(plain, progress=False)
+    saved = json.loads((old / "train_config.json").read_text())
+    for key in defaults:
+        del saved[key]
+    (old / "train_config.json").write_text(json.dumps(saved))
+    assert train(plain, progress=False)["steps"] == 2
+    return cfg, plain
+
+
+def _refused_on_short_data(tmp_path, cfg, frames: int, field: str) -> None:
+    """Training ``cfg`` on drag trajectories of ``frames`` frames is refused up front, naming ``field``."""
+    from hybridmpm.neural.train import TrainConfig, train
+
+    short = tmp_path / "short"
+    short.mkdir()
+    _drag_dataset(short, n_traj=4, frames=frames, n=30)
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**cfg.__dict__, "data": str(short), "out": str(tmp_path / "short_run")}), progress=False)
+    assert e.value.field == field
+
+
 def test_pushforward_training_runs_resumes_and_old_runs_still_resume(tmp_path):
     """A run with pushforward trains (its validation loss falls) and is
     recorded in the model; a run directory written before the pushforward
     settings existed resumes with their defaults; bad values name the field."""
     from hybridmpm.neural.train import TrainConfig, train
 
-    data = tmp_path / "drag"
-    data.mkdir()
-    _drag_dataset(data, n_traj=4, frames=20, n=30)
-    cfg = TrainConfig(
-        scene="drag", data=str(data), out=str(tmp_path / "pf"), latent=8, layers=1, r_t=1, steps=120, batch=2,
-        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=40, val_windows=4, rollout_steps=5, threads=1,
-        pushforward=0.5, pushforward_after=0.25,
-    )  # fmt: skip
-    train(cfg, progress=False)
-    rows = list(csv.DictReader(open(tmp_path / "pf" / "log.csv")))
-    assert float(rows[-1]["val_one_step"]) < 0.5 * float(rows[0]["val_one_step"])
-    assert NeuralModel(tmp_path / "pf" / "model.onnx").meta["pushforward"] == 0.5
-    # an older run's settings file lacks the two keys: it resumes (no more steps to do)
-    old = tmp_path / "old"
-    plain = TrainConfig(**{**cfg.__dict__, "out": str(old), "steps": 2, "val_every": 2, "pushforward": 0.0, "pushforward_after": 0.2})
-    train(plain, progress=False)
-    saved = json.loads((old / "train_config.json").read_text())
-    del saved["pushforward"], saved["pushforward_after"]
-    (old / "train_config.json").write_text(json.dumps(saved))
-    assert train(plain, progress=False)["steps"] == 2
+    cfg, plain = _option_trains_and_old_runs_resume(
+        tmp_path, "pf", {"pushforward": 0.5, "pushforward_after": 0.25}, {"pushforward": 0.0, "pushforward_after": 0.2}, "pushforward"
+    )
     with pytest.raises(InvalidInputError) as e:
         train(TrainConfig(**{**plain.__dict__, "pushforward": 0.3}), progress=False)
     assert e.value.field == "pushforward"
@@ -489,12 +514,7 @@ def test_pushforward_training_runs_resumes_and_old_runs_still_resume(tmp_path):
             TrainConfig(**{**cfg.__dict__, "pushforward_after": bad}).validate()
         assert e.value.field == "pushforward_after"
     # trajectories one step too short for a pushforward window are refused up front
-    short = tmp_path / "short"
-    short.mkdir()
-    _drag_dataset(short, n_traj=4, frames=6, n=30)
-    with pytest.raises(InvalidInputError) as e:
-        train(TrainConfig(**{**cfg.__dict__, "data": str(short), "out": str(tmp_path / "short_run")}), progress=False)
-    assert e.value.field == "pushforward"
+    _refused_on_short_data(tmp_path, cfg, 6, "pushforward")
 
 
 def _unroll_model(kinematic_first: int = 0):
@@ -575,24 +595,9 @@ def test_unrolled_training_trains_resumes_and_refuses_bad_settings(tmp_path):
     resumes with its default, and bad values are refused naming the field."""
     from hybridmpm.neural.train import TrainConfig, train
 
-    data = tmp_path / "drag"
-    data.mkdir()
-    _drag_dataset(data, n_traj=4, frames=20, n=30)
-    cfg = TrainConfig(
-        scene="drag", data=str(data), out=str(tmp_path / "ur"), latent=8, layers=1, r_t=1, steps=120, batch=2,
-        lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=40, val_windows=4, rollout_steps=5, threads=1, unroll=3, unroll_after=0.25,
-    )  # fmt: skip
-    train(cfg, progress=False)
-    rows = list(csv.DictReader(open(tmp_path / "ur" / "log.csv")))
-    assert float(rows[-1]["val_one_step"]) < 0.5 * float(rows[0]["val_one_step"])
-    assert NeuralModel(tmp_path / "ur" / "model.onnx").meta["unroll"] == 3
-    old = tmp_path / "old"
-    plain = TrainConfig(**{**cfg.__dict__, "out": str(old), "steps": 2, "val_every": 2, "unroll": 1, "unroll_after": 0.0})
-    train(plain, progress=False)
-    saved = json.loads((old / "train_config.json").read_text())
-    del saved["unroll"], saved["unroll_after"], saved["clip_grad"]
-    (old / "train_config.json").write_text(json.dumps(saved))
-    assert train(plain, progress=False)["steps"] == 2
+    cfg, plain = _option_trains_and_old_runs_resume(
+        tmp_path, "ur", {"unroll": 3, "unroll_after": 0.25}, {"unroll": 1, "unroll_after": 0.0, "clip_grad": 1.0}, "unroll"
+    )
     with pytest.raises(InvalidInputError) as e:
         train(TrainConfig(**{**plain.__dict__, "unroll": 2}), progress=False)
     assert e.value.field == "unroll"
@@ -603,12 +608,7 @@ def test_unrolled_training_trains_resumes_and_refuses_bad_settings(tmp_path):
     with pytest.raises(InvalidInputError) as e:
         TrainConfig(**{**cfg.__dict__, "pushforward": 0.2}).validate()
     assert e.value.field == "unroll"
-    short = tmp_path / "short"
-    short.mkdir()
-    _drag_dataset(short, n_traj=4, frames=7, n=30)
-    with pytest.raises(InvalidInputError) as e:
-        train(TrainConfig(**{**cfg.__dict__, "data": str(short), "out": str(tmp_path / "short_run")}), progress=False)
-    assert e.value.field == "unroll"
+    _refused_on_short_data(tmp_path, cfg, 7, "unroll")  # 3 unrolled steps after T_in = 6 need 9 frames
 
 
 def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):
