@@ -95,12 +95,19 @@ fn positions_array<'py>(
 
 /// ``radius`` as a positive finite float32, else an ``InvalidInputError`` naming ``radius``.
 fn radius_f32(py: Python<'_>, radius: f64) -> PyResult<f32> {
-    let r32 = radius as f32;
-    if !(radius.is_finite() && radius > 0.0 && r32.is_finite() && r32 > 0.0) {
+    if !(radius.is_finite() && radius > 0.0) {
         return Err(invalid_input(
             py,
             "radius",
-            format!("must be finite, > 0 and representable as float32, got {radius}"),
+            format!("must be finite and > 0, got {radius}"),
+        ));
+    }
+    let r32 = radius as f32;
+    if !(r32.is_finite() && r32 > 0.0) {
+        return Err(invalid_input(
+            py,
+            "radius",
+            format!("{radius} is not representable as a positive finite float32"),
         ));
     }
     Ok(r32)
@@ -215,12 +222,9 @@ fn run<'py, const D: usize>(
     params: GraphParams,
 ) -> PyResult<Edges<'py>> {
     let pos = rows::<D>(arr)?;
-    let to_py = |e: GraphError| match e {
-        GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
-    };
     let nb = py
         .detach(|| crate::pool::install(|| Neighbors::search(&pos, &params)))
-        .map_err(to_py)?;
+        .map_err(to_py(py))?;
     let e = nb.num_edges();
     let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
     let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
@@ -241,7 +245,7 @@ fn run<'py, const D: usize>(
         );
         let dp = dp.as_chunks_mut::<D>().0;
         py.detach(|| crate::pool::install(|| nb.write(s, r, dp, ds)))
-            .map_err(to_py)?;
+            .map_err(to_py(py))?;
     }
     Ok((senders, receivers, displacement, distance))
 }
@@ -314,21 +318,7 @@ fn radius_graph<'py>(
     max_edges: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Edges<'py>> {
     let (arr, dim) = positions_array(py, positions)?;
-    if !(radius.is_finite() && radius > 0.0) {
-        return Err(invalid_input(
-            py,
-            "radius",
-            format!("must be finite and > 0, got {radius}"),
-        ));
-    }
-    let r32 = radius as f32;
-    if !(r32.is_finite() && r32 > 0.0) {
-        return Err(invalid_input(
-            py,
-            "radius",
-            format!("{radius} is not representable as a positive finite float32"),
-        ));
-    }
+    let r32 = radius_f32(py, radius)?;
     let max_neighbors = match max_neighbors {
         None => None,
         Some(k) if k >= 1 => Some(usize::try_from(k).unwrap_or(usize::MAX)),
