@@ -56,6 +56,34 @@ def test_relaxation_undoes_compression_and_leaves_rest_alone(dim):
     assert (np.abs(out2[fixed] - squeezed[fixed]).max(1) > 0).any()
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_wall_clipped_stacks_and_clumps_move_a_bounded_distance(dim):
+    """What clipping a prediction to the walls makes (many particles stacked on
+    one corner point, rows on a wall line) and a clumping network makes (a
+    clump far above the rest density): every particle moves at most R/4 per
+    iteration, the stack comes apart, and the peak density falls. Before the
+    cap and the coincident-pair rule a sand pile clipped into a corner threw
+    a particle 85 R in one step (relax.rs module docs)."""
+    rng = np.random.default_rng(dim)
+    r = 1.0
+    rest = _lattice(6 if dim == 2 else 4, 0.5, dim)
+    rho0 = float(kernel_density(rest, r).max())
+    corner = np.zeros((25, dim), np.float32)
+    wall_row = np.zeros((15, dim), np.float32)
+    wall_row[:, 1:] = rng.uniform(0, 2, (15, dim - 1))  # all at x = 0, the wall line
+    clump = (1.2 + 0.01 * r * rng.standard_normal((30, dim))).astype(np.float32)
+    x = np.concatenate([rest, corner, wall_row, clump]).astype(np.float32)
+    movable = np.ones(len(x), bool)
+    iterations = 3
+    out, count, worst = relax_density(x, movable, r, rho0, iterations=iterations)
+    assert np.isfinite(out).all() and count > 0 and worst > 5
+    moves = np.linalg.norm(out.astype(np.float64) - x, axis=1)
+    assert moves.max() <= iterations * r / 4 * (1 + 1e-5)
+    stack = out[len(rest) : len(rest) + len(corner)]
+    assert len(np.unique(stack, axis=0)) == len(stack)
+    assert _brute_density(out, r).max() < 0.8 * _brute_density(x, r).max()
+
+
 def test_relaxation_bad_input_names_the_field():
     x = _lattice(4, 0.5)
     mv = np.ones(len(x), bool)

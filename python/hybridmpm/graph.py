@@ -75,7 +75,9 @@ def relax_density(
     A unilateral Position Based Fluids density constraint (Macklin & Müller
     2013, Eqs. 1–12: ``C_i = max(ρ_i/ρ_0 − 1, 0)`` with :func:`kernel_density`'s
     ``ρ_i``), solved by ``iterations`` Jacobi iterations on the neighbour list
-    of the given positions; only compression is corrected, so free surfaces
+    of the given positions, each move capped at ``R/4`` per iteration and
+    coincident particles pushed apart along the first axis (Rust
+    ``relax.rs`` module docs); only compression is corrected, so free surfaces
     and splashes are left alone. Used between network steps against the
     particle clustering a learned simulator accumulates (Toshev et al.
     2024, "Neural SPH", Sec. 4, relaxes its GNS rollouts with SPH the same

@@ -76,7 +76,7 @@
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 mod relax;
-pub use relax::{RelaxParams, RelaxStats, kernel_density, relax_density};
+pub use relax::{MAX_MOVE, RelaxParams, RelaxStats, kernel_density, relax_density};
 
 use rayon::prelude::*;
 use thiserror::Error;
