@@ -75,6 +75,7 @@ def main() -> None:
             *([f"--noise-std {train_cfg['noise_std']}"] if train_cfg.get("noise_std", TrainConfig.noise_std) != TrainConfig.noise_std else []),
             *([f"--ema {train_cfg['ema']}"] if train_cfg.get("ema") else []),
             *([f"--unroll {train_cfg['unroll']} --unroll-after {train_cfg['unroll_after']}"] if train_cfg.get("unroll", 1) > 1 else []),
+            *([f"--wall-reach {train_cfg['wall_reach']:g}"] if train_cfg.get("wall_reach", 1.0) != 1.0 else []),
             *([f"--seed {train_cfg['seed']}"] if train_cfg.get("seed") else []),
             "--threads 1",
         ]

@@ -117,6 +117,49 @@ def test_input_features_match_a_hand_computation():
     assert np.allclose(edges[0], 0.0)  # self-edge
 
 
+def test_wall_reach_scales_the_wall_features_and_is_recorded():
+    """With ``wall_reach`` k the wall features are the distances divided by
+    k·R, clipped to [−1, 1] (by hand: a particle 2.5 R above the floor sees
+    1 with GNS's clip and 2.5/k with k = 4); the exported model records k,
+    its graph computes the same features (a model whose node encoder reads
+    only the floor feature), and out-of-range reaches are refused naming
+    the field."""
+    from dataclasses import replace
+
+    from hybridmpm.neural.compile import inference_graph
+
+    hist = np.zeros((6, 3, 2), np.float32)
+    hist[:] = [[0.5, 0.02 + 2.5 * R], [0.5, 0.02 + 0.5 * R], [0.5, 0.5]]
+    ptype = np.array([5, 5, 5])
+    s = r = np.arange(3)
+    feats = {}
+    for reach in (1.0, 4.0):
+        model = GnsModel(replace(config(), wall_reach=reach))
+        nodes = model.input_features(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))[0].detach().numpy()
+        feats[reach] = nodes[:, 11]  # lower y wall: after 5 velocities × 2 and the lower x wall
+    assert np.allclose(feats[1.0], [1.0, 0.5, 1.0], atol=1e-5)
+    assert np.allclose(feats[4.0], [2.5 / 4, 0.5 / 4, 1.0], atol=1e-5)
+    # the compiled graph: zero every encoder input row but the lower-y wall's, so the output is a function of that feature only
+    model = perturbed(GnsModel(replace(config(), wall_reach=4.0)))
+    with torch.no_grad():
+        w = model.gnn.node_encoder[0].weight
+        keep = w[:, 11].clone()
+        w.zero_()
+        w[:, 11] = keep
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(inference_graph(model).SerializeToString(), providers=["CPUExecutionProvider"])
+    graph = radius_graph(hist[-1], R)
+    acc, _ = sess.run(None, onnx_feeds(hist, ptype, graph, False))
+    acc_t, _ = run_torch(model, hist, ptype)
+    assert np.abs(acc - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
+    assert np.abs(acc[0] - acc[2]).max() > 1e-3 * np.abs(acc_t).max()  # 2.5 R from the floor differs from far away
+    for bad in (0.5, float("nan"), 100.0):
+        with pytest.raises(InvalidInputError) as e:
+            GnsModel(replace(config(), wall_reach=bad))
+        assert e.value.field == "wall_reach"
+
+
 def test_prediction_is_translation_invariant_and_order_equivariant():
     torch.manual_seed(2)
     model = GnsModel(config(latent=16, layers=2)).eval()
@@ -198,25 +241,33 @@ def test_onnx_handles_no_edges(exported):
 
 
 @pytest.mark.parametrize(
-    ("dim", "latent", "layers", "t_in", "embedding", "seed"), [(2, 16, 0, 6, 16, 0), (2, 8, 1, 6, 16, 1), (3, 16, 2, 6, 16, 2), (2, 12, 3, 4, 8, 3)]
+    ("dim", "latent", "layers", "t_in", "embedding", "seed", "reach"),
+    [
+        (2, 16, 0, 6, 16, 0, 1.0),
+        (2, 8, 1, 6, 16, 1, 1.0),
+        (3, 16, 2, 6, 16, 2, 1.0),
+        (2, 12, 3, 4, 8, 3, 1.0),
+        (2, 16, 2, 6, 16, 4, 4.5),
+        (3, 8, 1, 6, 16, 5, 3.0),
+    ],
 )
-def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embedding, seed):
+def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embedding, seed, reach):
     """The compiled inference graph (folded normalisations and LayerNorms,
     carried biases, edge geometry as inputs) computes GnsModel.forward, on a
-    perturbed model with every particle type, particles within R of both
-    walls (unclipped wall features) and kinematic ones, across dims, depths,
-    history lengths and embedding widths."""
+    perturbed model with every particle type, particles within the wall reach
+    of both walls (unclipped wall features) and kinematic ones, across dims,
+    depths, history lengths, embedding widths and wall reaches."""
     from dataclasses import replace
 
     from hybridmpm.neural.compile import inference_graph
 
-    model = perturbed(GnsModel(replace(config(dim, latent, layers), t_in=t_in, embedding=embedding)), seed)
+    model = perturbed(GnsModel(replace(config(dim, latent, layers), t_in=t_in, embedding=embedding, wall_reach=reach)), seed)
     hist, _ = random_state(900, dim=dim, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(900 / 2300) ** (2 / dim))
     hist = np.ascontiguousarray(hist[-t_in:])
     rng = np.random.default_rng(seed)
     ptype = rng.integers(0, 9, len(hist[0])).astype(np.int64)
     ptype[::7] = 3
-    near = rng.uniform(0.1 * R, 0.9 * R, (20, dim)).astype(np.float32)  # within R of a wall: features in (0, 1)
+    near = rng.uniform(0.1 * reach * R, 0.9 * reach * R, (20, dim)).astype(np.float32)  # within the reach of a wall: features in (0, 1)
     hist[:, :10] = 0.02 + near[:10]
     hist[:, 10:20] = 0.98 - near[10:]
     acc_t, nxt_t = run_torch(model, hist, ptype)
@@ -285,7 +336,8 @@ def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
     new = NeuralModel(tmp_path / "new.onnx")
     acc_n, nxt_n, _ = new.predict(hist, ptype)
     assert np.abs(acc_n - acc_t).max() <= 1e-4 * np.abs(acc_t).max() and np.abs(nxt_n - nxt_t).max() <= 1e-6
-    assert {k: v for k, v in new.meta.items() if k != "graph"} == {**legacy.meta, "parameters": new.meta["parameters"]}
+    # an upgraded torch-exported graph predates the wall reach: it records GNS's clip at R
+    assert {k: v for k, v in new.meta.items() if k != "graph"} == {**legacy.meta, "parameters": new.meta["parameters"], "wall_reach": 1.0}
 
 
 def test_kinematic_particles_do_not_move(exported):
@@ -609,6 +661,22 @@ def test_unrolled_training_trains_resumes_and_refuses_bad_settings(tmp_path):
         TrainConfig(**{**cfg.__dict__, "pushforward": 0.2}).validate()
     assert e.value.field == "unroll"
     _refused_on_short_data(tmp_path, cfg, 7, "unroll")  # 3 unrolled steps after T_in = 6 need 9 frames
+
+
+def test_wall_reach_trains_resumes_and_refuses_bad_settings(tmp_path):
+    """A run with ``wall_reach`` 3 trains, records it in the model; a run made
+    before the setting existed resumes with reach 1; resuming with another
+    reach and out-of-range reaches are refused naming the field."""
+    from hybridmpm.neural.train import TrainConfig, train
+
+    cfg, plain = _option_trains_and_old_runs_resume(tmp_path, "wr", {"wall_reach": 3.0}, {"wall_reach": 1.0}, "wall_reach")
+    with pytest.raises(InvalidInputError) as e:
+        train(TrainConfig(**{**plain.__dict__, "wall_reach": 2.0}), progress=False)
+    assert e.value.field == "wall_reach"
+    for bad in (0.9, float("inf"), 17.0, "4"):
+        with pytest.raises(InvalidInputError) as e:
+            TrainConfig(**{**cfg.__dict__, "wall_reach": bad}).validate()
+        assert e.value.field == "wall_reach"
 
 
 def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):

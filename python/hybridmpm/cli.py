@@ -383,6 +383,7 @@ def _train(args: argparse.Namespace) -> int:
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
         seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after, ema=args.ema,
         snapshots=not args.no_snapshots, unroll=args.unroll, unroll_after=args.unroll_after, clip_grad=args.clip_grad,
+        wall_reach=args.wall_reach,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
     if not args.quiet:
@@ -607,6 +608,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tr.add_argument("--unroll-after", type=float, default=0.0, help="fraction of the steps trained one-step before unrolling starts (default 0)")
     tr.add_argument("--clip-grad", type=float, default=1.0, help="gradient-norm clip in unrolled steps (default 1)")
+    tr.add_argument(
+        "--wall-reach",
+        type=float,
+        default=1.0,
+        help="distance, in units of R, at which the wall-distance features saturate (default 1: GNS's clip at R; "
+        "more lets particles that move more than R per step see a wall coming)",
+    )
     tr.add_argument(
         "--ema",
         type=float,

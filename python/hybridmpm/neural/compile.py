@@ -289,8 +289,10 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     dp = b.op("Transpose", [dp], "dp_t", perm=[1, 0, 2])
     dp = b.op("Reshape", [dp, b.const("shape_v", [0, (t_in - 1) * dim], np.int64)], "vel_raw")  # [N, (t_in-1)·D]
     lower, upper = _vec(sd[f + "lower"]), _vec(sd[f + "upper"])
-    lo = b.op("Mul", [b.op("Sub", [last, b.const("lower", lower)]), b.const("invR", np.float32(inv_r))], "wall_lo")
-    hi = b.op("Mul", [b.op("Sub", [b.const("upper", upper), last]), b.const("invR", np.float32(inv_r))], "wall_hi")
+    # walls saturate at wall_reach·R (1 for models that predate the setting: GNS's clip at R)
+    inv_w = 1.0 / (float(cfg.radius) * float(getattr(cfg, "wall_reach", 1.0)))
+    lo = b.op("Mul", [b.op("Sub", [last, b.const("lower", lower)]), b.const("invR", np.float32(inv_w))], "wall_lo")
+    hi = b.op("Mul", [b.op("Sub", [b.const("upper", upper), last]), b.const("invR", np.float32(inv_w))], "wall_hi")
     walls = b.op("Clip", [b.op("Concat", [lo, hi], "walls_raw", axis=1), b.const("m1", np.float32(-1)), b.const("p1", np.float32(1))], "walls")
     node_in = b.op("Concat", [dp, walls], "node_in", axis=1)
     w0 = c.w(g + "node_encoder.0")  # rows: velocities, walls, embedding

@@ -4,6 +4,8 @@ from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
 
 #: Version of the feature construction inside exported models (bump on any change).
 FEATURE_VERSION = 1
+#: Largest wall reach (wall-distance features saturate at ``wall_reach·R``; 1 is GNS's clip).
+WALL_REACH_MAX = 16.0
 #: Particle-type vocabulary of the embedding (GNS: 9 types).
 NUM_TYPES = 9
 #: ONNX metadata property holding the model's JSON metadata.
@@ -14,4 +16,4 @@ INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displaceme
 #: Outputs of the GNS inference graph, in order.
 OUTPUT_NAMES = ("acceleration", "next_position")
 
-__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "KINEMATIC", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES"]
+__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "KINEMATIC", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES", "WALL_REACH_MAX"]

@@ -39,7 +39,7 @@ from hybridmpm.neural.model import GnsModel
 def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> Path:
     """Write ``model`` to ``path`` (atomically) with ``metadata`` merged over the
     architecture facts (``feature_version``, ``dim``, ``radius``, ``t_in``,
-    ``bounds``, ``latent``, ``layers``, ``parameters``); ``graph`` is always
+    ``bounds``, ``latent``, ``layers``, ``wall_reach``, ``parameters``); ``graph`` is always
     :data:`~hybridmpm.neural.compile.GRAPH_LAYOUT` (what the file holds). Returns the path.
 
     Input and output names are :data:`INPUT_NAMES` and :data:`OUTPUT_NAMES`
@@ -56,6 +56,7 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
         "bounds": cfg.bounds,
         "latent": cfg.latent,
         "layers": cfg.layers,
+        "wall_reach": cfg.wall_reach,
         "parameters": int(sum(p.numel() for p in model.parameters())),
         **metadata,
     }

@@ -10,7 +10,8 @@ so that :class:`~hybridmpm.neural.model.GnsModel` runs it inside its
   differences of ``T_in`` positions one model step apart, each normalised
   ``(v − vel_mean) / vel_std_eff`` and flattened oldest first;
 * :func:`wall_features` — the distances to the lower then the upper domain
-  walls divided by ``R`` and clipped to [−1, 1];
+  walls divided by ``wall_reach·R`` and clipped to [−1, 1] (``wall_reach`` 1:
+  GNS's clip at ``R``);
 * :func:`edge_features` — ``(p_s − p_r) / R`` and its norm for every edge
   ``senders → receivers``;
 * :func:`euler_step` — the semi-implicit Euler update with ``dt = 1`` model
@@ -37,7 +38,7 @@ from torch import nn
 
 from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural.constants import KINEMATIC, NUM_TYPES
+from hybridmpm.neural.constants import KINEMATIC, NUM_TYPES, WALL_REACH_MAX
 
 
 def effective_std(std: Sequence[float], noise_std: float) -> list[float]:
@@ -62,12 +63,20 @@ def velocity_features(positions: torch.Tensor, vel_mean: torch.Tensor, vel_std: 
 
 
 def wall_features(last: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, inv_radius: float) -> torch.Tensor:
-    """Distances to the domain walls in units of the connectivity radius.
+    """Distances to the domain walls in units of the distance at which they saturate.
 
     ``last`` float32 [N, D] current positions (m); ``lower``, ``upper``
-    float32 [D] the walls (m); ``inv_radius`` ``1 / R`` (1/m). Returns
-    float32 [N, 2·D]: ``(p − lower)/R`` then ``(upper − p)/R``, clipped to
-    [−1, 1] (a particle farther than ``R`` from a wall sees 1).
+    float32 [D] the walls (m); ``inv_radius`` ``1 / (wall_reach·R)`` (1/m;
+    GNS, Sanchez-Gonzalez et al. 2020 App. C.1, clips at the connectivity
+    radius: ``wall_reach`` 1). Returns float32 [N, 2·D]: ``(p − lower)·inv_radius``
+    then ``(upper − p)·inv_radius``, clipped to [−1, 1] (a particle farther
+    than ``1/inv_radius`` from a wall sees 1).
+
+    Why the reach may exceed ``R`` (issue 16): at ``r_t = 4`` a thrown block
+    moves 2–4 R per model step, so with GNS's clip a floor can be hit within
+    one step without ever being seen; a network trained on such data learns
+    to hedge on speed alone and slows every fast fall
+    (``benchmarks/free_fall.py``).
     """
     return torch.cat([(last - lower) * inv_radius, (upper - last) * inv_radius], dim=1).clamp(-1.0, 1.0)
 
@@ -153,6 +162,7 @@ class GnsFeatures(nn.Module):
         t_in: int = T_IN,
         embedding: int = 16,
         num_types: int = NUM_TYPES,
+        wall_reach: float = 1.0,
     ) -> None:
         super().__init__()
         if dim not in (2, 3):
@@ -169,10 +179,15 @@ class GnsFeatures(nn.Module):
             raise InvalidInputError(f"noise_std: must be a number >= 0, got {noise_std!r}", "noise_std")
         if t_in < 2:
             raise InvalidInputError(f"t_in: must be >= 2 (velocities are differences), got {t_in!r}", "t_in")
+        if not (isinstance(wall_reach, (int, float)) and math.isfinite(wall_reach) and 1 <= wall_reach <= WALL_REACH_MAX):
+            raise InvalidInputError(f"wall_reach: must be a number in [1, {WALL_REACH_MAX:g}] (units of R), got {wall_reach!r}", "wall_reach")
         self.dim = dim
         self.t_in = t_in
         self.radius = radius
         self.inv_radius = 1.0 / radius
+        self.wall_reach = float(wall_reach)
+        #: ``1 / (wall_reach·R)``, the wall features' scale (1/m)
+        self.inv_wall = 1.0 / (radius * self.wall_reach)
         self.register_buffer("vel_mean", torch.tensor(list(vel_mean), dtype=torch.float32))
         self.register_buffer("vel_std", torch.tensor(effective_std(vel_std, noise_std), dtype=torch.float32))
         self.register_buffer("acc_mean", torch.tensor(list(acc_mean), dtype=torch.float32))
@@ -202,7 +217,7 @@ class GnsFeatures(nn.Module):
             raise InvalidInputError(f"positions: must be [{self.t_in}, N, {self.dim}], got {list(positions.shape)}", "positions")
         last = positions[-1]
         vel = velocity_features(positions, self.vel_mean, self.vel_std)
-        walls = wall_features(last, self.lower, self.upper, self.inv_radius)
+        walls = wall_features(last, self.lower, self.upper, self.inv_wall)
         nodes = torch.cat([vel, walls, self.embed(particle_type)], dim=1)
         return nodes, edge_features(last, senders, receivers, self.inv_radius)
 

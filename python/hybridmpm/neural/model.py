@@ -56,7 +56,11 @@ class GnsConfig:
     ``vel_std``, ``acc_mean``, ``acc_std`` per dimension in per-step units
     (metadata.json of the training data); ``noise_std`` the training noise on
     the last input velocity (its variance is added to the normalisation
-    variances, as GNS does); ``t_in`` input positions (6).
+    variances, as GNS does); ``t_in`` input positions (6); ``wall_reach``
+    the distance, in units of R, at which the wall-distance features saturate
+    (1: GNS's clip at the connectivity radius; larger lets a particle that
+    moves more than R per step see a wall before it reaches it, see
+    :func:`~hybridmpm.neural.features.wall_features`).
     """
 
     dim: int
@@ -71,6 +75,7 @@ class GnsConfig:
     t_in: int = T_IN
     embedding: int = 16
     noise_std: float = 3e-4
+    wall_reach: float = 1.0
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -266,7 +271,7 @@ class GnsModel(nn.Module):
         self.features = GnsFeatures(
             dim=config.dim, radius=config.radius, bounds=config.bounds, vel_mean=config.vel_mean, vel_std=config.vel_std,
             acc_mean=config.acc_mean, acc_std=config.acc_std, noise_std=config.noise_std, t_in=config.t_in,
-            embedding=config.embedding, num_types=NUM_TYPES,
+            embedding=config.embedding, num_types=NUM_TYPES, wall_reach=config.wall_reach,
         )  # fmt: skip
         self.gnn = EncodeProcessDecode(self.features.node_size, self.features.edge_size, config.dim, latent=config.latent, layers=config.layers)
         self.register_load_state_dict_pre_hook(_legacy_pre_hook)

@@ -15,6 +15,11 @@
   joined into one disjoint graph (radius graph from the Rust crate);
 * noise: a random walk on the input velocities (std ``noise_std`` on the last
   velocity), the target acceleration corrected so the model learns to undo it;
+* walls: ``wall_reach`` (default 1, GNS's clip) sets the distance, in units
+  of R, at which the wall-distance features saturate
+  (:func:`~hybridmpm.neural.features.wall_features`); it is part of the
+  model (stored in its metadata; resuming a run with another raises, as for
+  every setting);
 * pushforward (Brandstetter et al. 2022, "Message passing neural PDE
   solvers", Sec. 2.3; off by default): after the first ``pushforward_after``
   of the steps (of this command's ``steps``: resuming with another ``steps``
@@ -91,7 +96,7 @@ from torch.optim import swa_utils
 from hybridmpm.conventions import DEFAULT_N_GRID, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.neural.constants import KINEMATIC
+from hybridmpm.neural.constants import KINEMATIC, WALL_REACH_MAX
 from hybridmpm.neural.model import GnsConfig, GnsModel
 
 
@@ -127,6 +132,7 @@ class TrainConfig:
     unroll: int = 1
     unroll_after: float = 0.0
     clip_grad: float = 1.0
+    wall_reach: float = 1.0
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
@@ -157,6 +163,8 @@ class TrainConfig:
             raise InvalidInputError("unroll: unrolled training and pushforward are alternatives; set one of them", "unroll")
         if not (isinstance(self.clip_grad, (int, float)) and math.isfinite(self.clip_grad) and self.clip_grad > 0):
             raise InvalidInputError(f"clip_grad: must be a number > 0, got {self.clip_grad!r}", "clip_grad")
+        if not (isinstance(self.wall_reach, (int, float)) and math.isfinite(self.wall_reach) and 1 <= self.wall_reach <= WALL_REACH_MAX):
+            raise InvalidInputError(f"wall_reach: must be a number in [1, {WALL_REACH_MAX:g}] (units of R), got {self.wall_reach!r}", "wall_reach")
         for name in ("pushforward", "pushforward_after", "unroll_after"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
@@ -415,7 +423,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     gcfg = GnsConfig(
         dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],
         vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
-        latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std,
+        latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std, wall_reach=float(config.wall_reach),
     )  # fmt: skip
     torch.manual_seed(config.seed)
     model = GnsModel(gcfg)
