@@ -163,6 +163,36 @@ def test_bench_resumes_without_rerunning_cells(tiny: dict, monkeypatch: pytest.M
         bench("water2d", seeds=[1000], frames=FRAMES + 4, out=tiny["out"], r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
 
 
+def test_bench_recomputes_cells_made_with_another_model(tiny: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """A finished cell is reused only if it was made with the same model file:
+    after a model is re-shipped (here: the neural cell records another hash,
+    the hybrid cell predates the hash), those cells rerun and the MPM cells
+    are reused."""
+    import shutil
+
+    import hybridmpm.bench.run as run
+
+    out = tmp_path / "water2d"
+    shutil.copytree(tiny["out"], out)
+    neural = out / "cells" / "neural_seed1000.json"
+    cell = json.loads(neural.read_text())
+    assert cell["model_sha256"] == run.model_digest(next(m for m in methods_for("water2d") if m.key == "neural"))
+    neural.write_text(json.dumps({**cell, "model_sha256": "0" * 64}))
+    hybrid = out / "cells" / "hybrid_rc0.8_seed1000.json"
+    hybrid.write_text(json.dumps({k: v for k, v in json.loads(hybrid.read_text()).items() if k != "model_sha256"}))
+    rerun: list[str] = []
+    real = run.run_cell
+
+    def spy(m, *a, **k):
+        rerun.append(m.key)
+        return real(m, *a, **k)
+
+    monkeypatch.setattr(run, "run_cell", spy)
+    bench("water2d", seeds=[1000], frames=FRAMES, out=out, r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
+    assert sorted(rerun) == ["hybrid_rc0.8", "neural"]
+    assert json.loads(neural.read_text())["model_sha256"] == cell["model_sha256"]
+
+
 def test_bench_rejects_bad_parameters(tmp_path: Path):
     with pytest.raises(InvalidInputError, match="r_c"):
         bench("water2d", seeds=[1000], frames=FRAMES, out=tmp_path, r_cs=(1.5,), progress=False)

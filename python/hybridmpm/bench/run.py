@@ -178,6 +178,27 @@ def _reference_record(cfg: BenchConfig, seed: int, particles: int, ro: Rollout) 
     }  # fmt: skip
 
 
+def model_digest(method: Method) -> str | None:
+    """sha256 of the method's ONNX file (None for MPM): a finished cell is
+    reused only if it was made with the same model bytes."""
+    if method.model is None:
+        return None
+    import hashlib
+
+    return hashlib.sha256(Path(method.model).read_bytes()).hexdigest()
+
+
+def _cell_current(path: Path, digest: str | None) -> bool:
+    """A finished cell made with the model of ``digest`` (cells written before
+    cells recorded their model count as current only for MPM methods)."""
+    if not path.is_file():
+        return False
+    try:
+        return json.loads(path.read_text()).get("model_sha256") == digest
+    except (OSError, ValueError):
+        return False  # a torn or foreign file: recompute it
+
+
 def _write_json(path: Path, obj: Any) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(obj))
@@ -192,6 +213,9 @@ def run_bench(
 ) -> list[dict[str, Any]]:
     """Run (or resume) every method × seed; returns the cell records in
     (method, seed) order. Writes ``out/bench.json`` and ``out/cells/*.json``.
+    A finished cell is reused only if it was made with the same model file
+    (its sha256, recorded in the cell); one made with another model, e.g.
+    before a model was re-shipped, is recomputed.
 
     Raises :class:`InvalidInputError` (field ``out``) if ``out`` holds a
     benchmark made with other settings (frames, warm-up, threads, scene).
@@ -213,7 +237,8 @@ def run_bench(
     keys = [m.key for m in methods]
     if len(set(keys)) != len(keys):
         raise InvalidInputError("methods: duplicate method keys", "methods")
-    todo = [(m, s) for s in cfg.seeds for m in methods if not (cells / f"{m.key}_seed{s}.json").is_file()]
+    digests = {m.key: model_digest(m) for m in methods}
+    todo = [(m, s) for s in cfg.seeds for m in methods if not _cell_current(cells / f"{m.key}_seed{s}.json", digests[m.key])]
     bar = tqdm(
         total=len(methods) * len(cfg.seeds), initial=len(methods) * len(cfg.seeds) - len(todo), desc=f"bench {cfg.scene}", unit="cell", disable=not progress
     )
@@ -223,8 +248,8 @@ def run_bench(
         if s not in refs:
             refs = {s: reference_cell(cfg, s, cells)}  # one seed's reference in memory at a time; writes the mpm_full cell
         path = cells / f"{m.key}_seed{s}.json"
-        if not path.is_file():
-            _write_json(path, run_cell(m, cfg, s, refs[s]))
+        if not _cell_current(path, digests[m.key]):
+            _write_json(path, {**run_cell(m, cfg, s, refs[s]), "model_sha256": digests[m.key]})
         bar.update()
     bar.close()
     return [json.loads((cells / f"{m.key}_seed{s}.json").read_text()) for m in methods for s in cfg.seeds]
