@@ -103,7 +103,8 @@ def rss_mb():
 
 
 def machine():
-    return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version()}
+    isa = make(*SCENES["water2d"], 1).solver.isa
+    return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version(), "isa": isa}
 
 
 def scaling_case(dim, side, threads, frames):
@@ -227,6 +228,28 @@ def peer_comparison(frames, repeats):
     return table
 
 
+def isa_comparison(frames, repeats):
+    """The frame loop's portable copy against the one the solver chose for
+    this CPU (``MpmSolver.isa``; docs/engine.md, "Two compiled copies"), one
+    thread, alternated back to back ``repeats`` times per scene; each keeps
+    its lowest median. Empty when the CPU runs only the portable copy."""
+    chosen = make(*SCENES["water2d"], 1).solver.isa
+    if chosen == "baseline":
+        return []
+    table = []
+    for name, spec in SCENES.items():
+        best = {}
+        for _ in range(repeats):
+            for isa in ("baseline", chosen):
+                sim = make(*spec, 1)
+                sim.solver.set_isa(isa)
+                med, _ = time_frames(sim, frames)
+                best[isa] = min(med, best.get(isa, float("inf")))
+        table.append({"scene": name, "isa": chosen, "baseline_ms": best["baseline"], "isa_ms": best[chosen], "ratio": best[chosen] / best["baseline"]})
+        print(f"isa {name:12s}: baseline {best['baseline']:.2f} ms, {chosen} {best[chosen]:.2f} ms, ratio {best[chosen] / best['baseline']:.3f}", flush=True)
+    return table
+
+
 def _share(x):
     return "–" if x is None else f"{100 * x:.0f}%"
 
@@ -239,6 +262,7 @@ def markdown(r):
         f"- command: `{r['command']}`",
         f"- date: {r['date']}, commit {r['commit']}",
         f"- machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}; shared and noisy (±30%): compare only within one run",
+        f'- frame loop: the copy compiled for {m.get("isa", "baseline")} (docs/engine.md, "Two compiled copies")',
         f"- {r['frames']} timed frames after 5 warm-up frames; a frame is 2.5 ms of simulated time",
         "",
         "## Standard scenes",
@@ -267,6 +291,18 @@ def markdown(r):
                 f"| {x['scene']} | {x['threads']} | {x['substeps']} | {x['ours_ms']:.2f} | {x.get('taichi_ms', float('nan')):.2f} | {x.get('speedup', float('nan')):.2f} |"
                 f" {_share(x.get('ours_team_share'))} |"
             )
+    if r.get("isa"):
+        lines += [
+            "",
+            "## The frame loop's two compiled copies, one thread, alternated back to back",
+            "",
+            "The same source compiled for the portable x86-64 baseline and for the CPU's instruction set; the same bits (tested).",
+            "",
+            "| scene | baseline ms/frame | chosen copy | its ms/frame | ratio |",
+            "|---|---:|---|---:|---:|",
+        ]
+        for x in r["isa"]:
+            lines.append(f"| {x['scene']} | {x['baseline_ms']:.2f} | {x['isa']} | {x['isa_ms']:.2f} | {x['ratio']:.3f} |")
     lines += [
         "",
         "## Targets (issue 18), from the standard scenes above",
@@ -344,6 +380,7 @@ def main():
     print(f"memory: {mem['bytes_per_particle']:.0f} bytes per 2D particle (1M particles)")
 
     taichi = peer_comparison(frames, args.repeats) if args.taichi else []
+    isa_rows = isa_comparison(frames, args.repeats)
 
     result = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -356,6 +393,7 @@ def main():
         "targets": targets(rows),
         "memory": mem,
         "taichi": taichi,
+        "isa": isa_rows,
     }
     (out / "mpm.json").write_text(json.dumps(result, indent=2))
     (out / "mpm.md").write_text(markdown(result))

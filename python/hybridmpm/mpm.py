@@ -585,6 +585,21 @@ class MpmSolver:
         return int(alone), int(team)
 
     @property
+    def isa(self) -> str:
+        """The compiled copy of the frame loop that runs: ``"x86-64-v3"``
+        (AVX2/FMA; chosen when the CPU has it) or ``"baseline"`` (portable;
+        also forced by ``HYBRIDMPM_ISA=baseline`` when the solver is made).
+        Both give the same bits (docs/engine.md, "Two compiled copies")."""
+        return str(self._core.isa)
+
+    def set_isa(self, name: str) -> None:
+        """Run the frame loop's copy ``name`` (see :attr:`isa`) from the next
+        frame on, e.g. to time one against the other. Raises
+        ``InvalidInputError`` (field ``isa``) for an unknown name or one this
+        CPU cannot run."""
+        self._core.set_isa(name)
+
+    @property
     def domain_bounds(self) -> tuple[float, float]:
         """Valid particle coordinates ``[lo, hi]`` (one cell inside the unit domain)."""
         lo, hi = self._core.domain_bounds

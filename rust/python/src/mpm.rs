@@ -857,6 +857,30 @@ impl MpmSolver {
         self.with(py, |inner| dispatch!(inner, s => s.mode_runs()))
     }
 
+    /// The compiled copy of the frame loop that runs: `"baseline"` (portable)
+    /// or `"x86-64-v3"` (AVX2/FMA, chosen when the CPU has it); the same bits
+    /// either way (docs/engine.md).
+    #[getter]
+    fn isa(&self, py: Python<'_>) -> &'static str {
+        self.with(py, |inner| dispatch!(inner, s => s.isa().name()))
+    }
+
+    /// Run the frame loop's copy `name` (see `isa`) from the next frame on:
+    /// for comparing them; `InvalidInputError` (field `isa`) for an unknown
+    /// name or one this CPU cannot run.
+    fn set_isa(&self, py: Python<'_>, name: &str) -> PyResult<()> {
+        let isa = core::Isa::from_name(name).ok_or_else(|| {
+            let known: Vec<&str> = core::Isa::ALL.iter().map(|i| i.name()).collect();
+            invalid_input(
+                py,
+                "isa",
+                format!("unknown instruction set {name:?}; expected one of {known:?}"),
+            )
+        })?;
+        self.with(py, |inner| dispatch!(inner, s => s.set_isa(isa)))
+            .map_err(|e| to_py(py, e))
+    }
+
     /// Frames advanced so far.
     #[getter]
     fn frame(&self, py: Python<'_>) -> u64 {

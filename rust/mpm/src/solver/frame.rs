@@ -22,6 +22,7 @@ use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SC
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
+use crate::isa::Isa;
 use crate::kernel::{Cell, cell_of};
 use crate::material::sand::SandModel;
 use crate::particles::Particle;
@@ -246,6 +247,7 @@ where
         let threads = if use_team { pool_threads } else { 1 };
         let started = std::time::Instant::now();
         let team: Team<Stage<D>> = Team::new(threads);
+        let isa = self.isa;
         let sp = SolverPtr(self as *mut Self);
         let sp = &sp;
         let team = &team;
@@ -257,7 +259,8 @@ where
                 // (below); nothing else touches the solver meanwhile
                 unsafe {
                     Self::substeps_member(
-                        sp, team, touched, result, threads, tid, n_sub, dt, max_travel, retries,
+                        isa, sp, team, touched, result, threads, tid, n_sub, dt, max_travel,
+                        retries,
                     )
                 }
             })
@@ -297,6 +300,72 @@ where
     /// claimed (a buffer being written is never read in the same stage).
     #[allow(clippy::too_many_arguments)]
     unsafe fn substeps_member(
+        isa: Isa,
+        sp: &SolverPtr<D>,
+        team: &Team<Stage<D>>,
+        touched: &Mutex<Vec<u32>>,
+        result: &Mutex<Option<Result<f32>>>,
+        n_chunks: usize,
+        tid: usize,
+        n_sub: usize,
+        dt: f32,
+        max_travel: f32,
+        retries: usize,
+    ) {
+        // SAFETY: `Solver::set_isa` and `Isa::detect` only choose a variant
+        // on a CPU that has its features; the caller's conditions are ours
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::X86_64V3 {
+            return unsafe {
+                Self::substeps_member_v3(
+                    sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
+                )
+            };
+        }
+        let _ = isa;
+        // SAFETY: the caller's conditions
+        unsafe {
+            Self::substeps_member_body(
+                sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
+            )
+        }
+    }
+
+    /// [`Self::substeps_member_body`] compiled for x86-64-v3 ([`crate::isa`]).
+    ///
+    /// # Safety
+    /// As `substeps_member`, on a CPU with the x86-64-v3 features.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx,avx2,fma,bmi1,bmi2,lzcnt,movbe,f16c,popcnt")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn substeps_member_v3(
+        sp: &SolverPtr<D>,
+        team: &Team<Stage<D>>,
+        touched: &Mutex<Vec<u32>>,
+        result: &Mutex<Option<Result<f32>>>,
+        n_chunks: usize,
+        tid: usize,
+        n_sub: usize,
+        dt: f32,
+        max_travel: f32,
+        retries: usize,
+    ) {
+        // SAFETY: the caller's conditions
+        unsafe {
+            Self::substeps_member_body(
+                sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
+            )
+        }
+    }
+
+    /// The frame loop of one member (see `substeps_member`); inlined into
+    /// each compiled copy.
+    ///
+    /// # Safety
+    /// As `substeps_member`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn substeps_member_body(
         sp: &SolverPtr<D>,
         team: &Team<Stage<D>>,
         touched: &Mutex<Vec<u32>>,
@@ -574,6 +643,14 @@ mod tests {
     where
         Dim<D>: DimOps<D>,
     {
+        run_with::<D>(Isa::Baseline, threads, team, frames)
+    }
+
+    /// [`run`] with the frame loop's copy for `isa`.
+    fn run_with<const D: usize>(isa: Isa, threads: usize, team: bool, frames: usize) -> Vec<u8>
+    where
+        Dim<D>: DimOps<D>,
+    {
         let params = SolverParams::<D> {
             n_grid: 48,
             num_threads: threads,
@@ -585,6 +662,7 @@ mod tests {
         ps.extend(lattice([0.45; D], 14, dx / 2.0, Material::Sand, 1000.0));
         s.set_particles(ps).unwrap();
         s.mode.force = Some(team);
+        s.set_isa(isa).unwrap();
         for _ in 0..frames {
             s.step_frame(2.5e-3).unwrap();
         }
@@ -603,6 +681,28 @@ mod tests {
         let one = run::<3>(1, false, 6);
         assert_eq!(one, run::<3>(2, true, 6));
         assert_eq!(one, run::<3>(3, true, 6));
+    }
+
+    /// Every compiled copy of the frame loop this CPU runs (`crate::isa`)
+    /// gives the bits of the portable one, alone and on a team, 2D and 3D,
+    /// water and sand (the blocks collide, so sand yields). On a CPU without
+    /// x86-64-v3 only the portable copy is compared with itself; the
+    /// machines this project is tested on have it.
+    #[test]
+    fn every_isa_gives_the_bits_of_the_portable_copy() {
+        let base2 = run::<2>(1, false, 12);
+        let base3 = run::<3>(1, false, 6);
+        for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+            assert_eq!(base2, run_with::<2>(isa, 1, false, 12), "{isa:?} 2D");
+            assert_eq!(base2, run_with::<2>(isa, 2, true, 12), "{isa:?} 2D team");
+            assert_eq!(base3, run_with::<3>(isa, 1, false, 6), "{isa:?} 3D");
+            assert_eq!(base3, run_with::<3>(isa, 2, true, 6), "{isa:?} 3D team");
+        }
+        let mut s = Solver::<2>::new(SolverParams::default(), vec![]).unwrap();
+        assert!(s.isa().available());
+        for isa in Isa::ALL {
+            assert_eq!(s.set_isa(isa).is_ok(), isa.available(), "{isa:?}");
+        }
     }
 
     /// `mode_runs` counts each frame attempt under the way it ran: the team

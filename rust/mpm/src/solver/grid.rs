@@ -254,6 +254,8 @@ where
     /// # Safety
     /// `src_map` views `grid.src_map`; during this stage nothing else may
     /// access it.
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
     pub(super) unsafe fn sort_mark(
         &self,
         c: usize,
@@ -294,6 +296,8 @@ where
     ///
     /// # Safety
     /// `counts` views `grid.counts`; nothing else may access its row `c`.
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
     pub(super) unsafe fn sort_count(&self, c: usize, n_chunks: usize, counts: RawSlice<u32>) {
         let n_src = self.grid.src_blocks.len();
         // SAFETY: row c is ours alone (caller)
@@ -311,6 +315,8 @@ where
     /// # Safety
     /// `sorted` views `grid.sorted`; the places this chunk writes are its
     /// alone (they are, by construction), and nothing reads `sorted` meanwhile.
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
     pub(super) unsafe fn sort_scatter(
         &self,
         c: usize,

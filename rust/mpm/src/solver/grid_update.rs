@@ -32,6 +32,8 @@ where
 {
     /// Grid update of output block `oi` into `out` (`B^D` nodes of
     /// `[v, 0]`, overwritten); `acc` is scratch of `B^D` nodes.
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
     pub(super) fn grid_update_block(
         &self,
         oi: usize,

@@ -41,6 +41,7 @@ pub use crate::material::sand::drucker_prager_project;
 use crate::collider::Collider;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
+use crate::isa::Isa;
 use crate::material::{sand, water};
 use crate::params::SolverParams;
 use crate::particles::{Material, Particle};
@@ -101,6 +102,8 @@ where
     mode: frame::ModeChoice,
     /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
     profile: bool,
+    /// The compiled copy of the frame loop that runs ([`crate::isa`]).
+    isa: Isa,
     /// Memory budget [bytes] for what the inputs make the solver allocate
     /// (`None`: unlimited); see [`Solver::with_memory_budget`].
     memory_budget: Option<u64>,
@@ -176,8 +179,29 @@ where
             pool_pid: std::process::id(),
             mode: Default::default(),
             profile: std::env::var_os("HMPM_PROFILE").is_some(),
+            isa: Isa::detect(),
             memory_budget,
         })
+    }
+
+    /// The instruction set the frame loop runs with ([`crate::isa`]): the
+    /// fastest this CPU has, unless `HYBRIDMPM_ISA` said otherwise when the
+    /// solver was made. Results are the same bits on every variant.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Runs the frame loop with `isa` from the next frame on. Errors (field
+    /// `isa`) when this CPU lacks it.
+    pub fn set_isa(&mut self, isa: Isa) -> Result<()> {
+        if !isa.available() {
+            return Err(MpmError::invalid(
+                "isa",
+                format!("this CPU cannot run the {} frame loop", isa.name()),
+            ));
+        }
+        self.isa = isa;
+        Ok(())
     }
 
     /// Bytes the solver allocates for a grid of `n_grid` cells per side

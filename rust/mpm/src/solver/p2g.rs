@@ -32,6 +32,8 @@ where
 {
     /// p2g of source block `si` into its padded buffer `buf` (`(B+2)^D`
     /// nodes of `[mass, momentum]`, overwritten).
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
     pub(super) fn p2g_block(&self, si: usize, buf: &mut [[f32; 4]], dt: f32) {
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
@@ -68,18 +70,23 @@ where
             let nodes = &mut buf[base_idx..];
             let w_last = w[D - 1];
             let last = cols[D - 1];
-            Dim::<D>::stencil_rows(&w, &st.pad_stride, |off, w_outer, o| {
-                let mut contrib = base4;
-                for c in 0..D - 1 {
-                    fma4_nonzero(&mut contrib, o[c], &cols[c]);
-                }
-                // the row's 3 nodes are contiguous (last stride 1)
-                let row = &mut nodes[off..off + 3];
-                for k in 0..3 {
-                    fma4(&mut row[k], w_outer * w_last[k], &contrib);
-                    add4(&mut contrib, &last);
-                }
-            });
+            Dim::<D>::stencil_rows(
+                &w,
+                &st.pad_stride,
+                #[inline(always)]
+                |off, w_outer, o| {
+                    let mut contrib = base4;
+                    for c in 0..D - 1 {
+                        fma4_nonzero(&mut contrib, o[c], &cols[c]);
+                    }
+                    // the row's 3 nodes are contiguous (last stride 1)
+                    let row = &mut nodes[off..off + 3];
+                    for k in 0..3 {
+                        fma4(&mut row[k], w_outer * w_last[k], &contrib);
+                        add4(&mut contrib, &last);
+                    }
+                },
+            );
         }
     }
 }
