@@ -253,16 +253,22 @@ where
         let team = &team;
         let touched = &Mutex::new(Vec::new());
         let result = &Mutex::new(None);
+        let args = &MemberArgs {
+            sp,
+            team,
+            touched,
+            result,
+            n_chunks: threads,
+            n_sub,
+            dt,
+            max_travel,
+            retries,
+        };
         let member = |tid: usize| {
             team.member(|| {
                 // SAFETY: every member of the team runs this once, concurrently
                 // (below); nothing else touches the solver meanwhile
-                unsafe {
-                    Self::substeps_member(
-                        isa, sp, team, touched, result, threads, tid, n_sub, dt, max_travel,
-                        retries,
-                    )
-                }
+                unsafe { Self::substeps_member(isa, args, tid) }
             })
         };
         if threads == 1 {
@@ -298,37 +304,16 @@ where
     /// wait); in parallel stages every member takes `&Solver` and writes
     /// only the chunks of the published buffers that belong to the items it
     /// claimed (a buffer being written is never read in the same stage).
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn substeps_member(
-        isa: Isa,
-        sp: &SolverPtr<D>,
-        team: &Team<Stage<D>>,
-        touched: &Mutex<Vec<u32>>,
-        result: &Mutex<Option<Result<f32>>>,
-        n_chunks: usize,
-        tid: usize,
-        n_sub: usize,
-        dt: f32,
-        max_travel: f32,
-        retries: usize,
-    ) {
+    unsafe fn substeps_member(isa: Isa, args: &MemberArgs<'_, D>, tid: usize) {
         // SAFETY: `Solver::set_isa` and `Isa::detect` only choose a variant
         // on a CPU that has its features; the caller's conditions are ours
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::X86_64V3 {
-            return unsafe {
-                Self::substeps_member_v3(
-                    sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
-                )
-            };
+            return unsafe { Self::substeps_member_v3(args, tid) };
         }
         let _ = isa;
         // SAFETY: the caller's conditions
-        unsafe {
-            Self::substeps_member_body(
-                sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
-            )
-        }
+        unsafe { Self::substeps_member_body(args, tid) }
     }
 
     /// [`Self::substeps_member_body`] compiled for x86-64-v3 ([`crate::isa`]).
@@ -337,25 +322,9 @@ where
     /// As `substeps_member`, on a CPU with the x86-64-v3 features.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx,avx2,fma,bmi1,bmi2,lzcnt,movbe,f16c,popcnt")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn substeps_member_v3(
-        sp: &SolverPtr<D>,
-        team: &Team<Stage<D>>,
-        touched: &Mutex<Vec<u32>>,
-        result: &Mutex<Option<Result<f32>>>,
-        n_chunks: usize,
-        tid: usize,
-        n_sub: usize,
-        dt: f32,
-        max_travel: f32,
-        retries: usize,
-    ) {
+    unsafe fn substeps_member_v3(args: &MemberArgs<'_, D>, tid: usize) {
         // SAFETY: the caller's conditions
-        unsafe {
-            Self::substeps_member_body(
-                sp, team, touched, result, n_chunks, tid, n_sub, dt, max_travel, retries,
-            )
-        }
+        unsafe { Self::substeps_member_body(args, tid) }
     }
 
     /// The frame loop of one member (see `substeps_member`); inlined into
@@ -364,19 +333,18 @@ where
     /// # Safety
     /// As `substeps_member`.
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn substeps_member_body(
-        sp: &SolverPtr<D>,
-        team: &Team<Stage<D>>,
-        touched: &Mutex<Vec<u32>>,
-        result: &Mutex<Option<Result<f32>>>,
-        n_chunks: usize,
-        tid: usize,
-        n_sub: usize,
-        dt: f32,
-        max_travel: f32,
-        retries: usize,
-    ) {
+    unsafe fn substeps_member_body(args: &MemberArgs<'_, D>, tid: usize) {
+        let MemberArgs {
+            sp,
+            team,
+            touched,
+            result,
+            n_chunks,
+            n_sub,
+            dt,
+            max_travel,
+            retries,
+        } = *args;
         // the cells of the frame's first substep, in parallel chunks
         team.barrier_then(|| {
             // SAFETY: serial section
@@ -575,6 +543,35 @@ where
         }
     }
 }
+
+/// What the members of a frame's team share (`Solver::run_substeps`): the
+/// solver, the team, the sort's touched blocks, the frame's result slot, the
+/// number of sort chunks (the team's size), and the frame's substeps.
+struct MemberArgs<'a, const D: usize>
+where
+    Dim<D>: DimOps<D>,
+{
+    sp: &'a SolverPtr<D>,
+    team: &'a Team<Stage<D>>,
+    touched: &'a Mutex<Vec<u32>>,
+    result: &'a Mutex<Option<Result<f32>>>,
+    n_chunks: usize,
+    n_sub: usize,
+    dt: f32,
+    max_travel: f32,
+    retries: usize,
+}
+
+impl<const D: usize> Clone for MemberArgs<'_, D>
+where
+    Dim<D>: DimOps<D>,
+{
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<const D: usize> Copy for MemberArgs<'_, D> where Dim<D>: DimOps<D> {}
 
 /// Stages timed by thread 0 when `HMPM_PROFILE` is set.
 #[derive(Clone, Copy)]
