@@ -82,7 +82,9 @@ def test_second_concurrent_control_is_409(server):
     async def run():
         async with httpx.AsyncClient(base_url=server.url, timeout=60) as client:
             sid = (await client.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})).json()["id"]
-            body = {"sketch": {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}, "method": "constant", "frames": 100}
+            # the longest control allowed (1000 frames, about 2 s of MPM here): 100 frames of
+            # the water dam break could finish within the 0.3 s before the second request
+            body = {"sketch": {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}, "method": "constant", "frames": 1000}
             first = asyncio.create_task(client.post(f"/v1/sessions/{sid}/controls", json=body))
             await asyncio.sleep(0.3)
             second = await client.post(f"/v1/sessions/{sid}/controls", json=body)
