@@ -17,12 +17,30 @@
 //! either path), and every sum keeps its order. The tests step the same
 //! scenes on both and compare the bits (`solver::frame::tests`).
 //!
+//! The sand update is compiled twice too, as its own functions
+//! (`material::sand::SandBatch::run`): it updates eight particles at once in
+//! SIMD lanes, and the frame loop calls it once per eight sand particles.
+//! [`x86_64_v3!`] marks a function as the x86-64-v3 copy.
+//!
 //! The environment variable `HYBRIDMPM_ISA=baseline` (read when a solver is
 //! made) forces the portable copy, e.g. to compare the two or to rule the
 //! dispatch out while debugging; [`crate::Solver::set_isa`] does the same for
 //! one solver.
 
 /// An instruction set the frame loop is compiled for.
+/// Compiles the function it wraps for x86-64-v3 (on x86-64 only): the one
+/// place the feature list is written. Calling it is `unsafe` except from
+/// code compiled with the same features; call it only when
+/// [`Isa::X86_64V3`] is [`available`](Isa::available).
+macro_rules! x86_64_v3 {
+    ($item:item) => {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx,avx2,fma,bmi1,bmi2,lzcnt,movbe,f16c,popcnt")]
+        $item
+    };
+}
+pub(crate) use x86_64_v3;
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Isa {
     /// The portable build (x86-64 baseline: SSE2; or the target's default

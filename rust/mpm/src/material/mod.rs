@@ -8,5 +8,7 @@
 //! - [`sand`]: Drucker–Prager elastoplasticity in Hencky strain, state `F`
 //!   and the volume correction (Klár et al. 2016; Tampubolon et al. 2017).
 
+mod lanes;
 pub mod sand;
+mod vmath;
 pub mod water;

@@ -18,7 +18,10 @@
 
 use nalgebra::{SMatrix, SVector};
 
+use super::lanes::{F8, LANES, Real};
+use super::vmath;
 use crate::dim::{Dim, DimOps};
+use crate::isa::{Isa, x86_64_v3};
 use crate::params::SandParams;
 
 /// The constants of the sand model derived from [`SandParams`] once per substep.
@@ -31,10 +34,13 @@ pub(crate) struct SandModel {
     pub(crate) alpha: f32,
     /// Trace of the log strain at the cone apex (0 without cohesion).
     pub(crate) tr_apex: f32,
+    /// The compiled copy of [`SandBatch::run`] to use (`crate::isa`).
+    pub(crate) isa: Isa,
 }
 
 impl SandModel {
-    pub(crate) fn new<const D: usize>(sand: &SandParams) -> Self
+    /// The constants for `sand`; `isa` must be [`available`](Isa::available).
+    pub(crate) fn new<const D: usize>(sand: &SandParams, isa: Isa) -> Self
     where
         Dim<D>: DimOps<D>,
     {
@@ -51,6 +57,7 @@ impl SandModel {
             la,
             alpha,
             tr_apex,
+            isa,
         }
     }
 }
@@ -84,29 +91,192 @@ where
     kirchhoff_stress(&svd.u, &eps, mu, la)
 }
 
-/// g2p update of one sand particle: elastic predictor `(I + Δt·c)·f`, return
-/// mapping onto the Drucker–Prager cone (updates `vc`), new `f`. Returns the
-/// new Kirchhoff stress.
-#[inline(always)]
-pub(crate) fn advance<const D: usize>(
-    f: &mut SMatrix<f32, D, D>,
-    vc: &mut f32,
-    c: &SMatrix<f32, D, D>,
-    dt: f32,
-    m: &SandModel,
-) -> SMatrix<f32, D, D>
-where
-    Dim<D>: DimOps<D>,
-{
-    let f_trial = (SMatrix::<f32, D, D>::identity() + c * dt) * *f;
-    if D == 2 {
-        advance_2d(f, vc, &f_trial, m)
-    } else {
-        advance_3d(f, vc, &f_trial, m)
+/// Sand particles gathered for their g2p material update, one lane of an
+/// [`F8`] each (structure of arrays), so that [`SandBatch::run`] updates
+/// eight at once with SIMD instructions: the elastic predictor
+/// `F* = (I + Δt·C)·F`, then [`advance_2d`] or [`advance_3d`] (written in
+/// [`Real`] arithmetic with selects instead of branches and [`vmath`] instead
+/// of libm) and the health checks, all on [`F8`]. Each lane gives the bits
+/// of the same update on one `f32` particle.
+///
+/// Use: [`push`](Self::push) each particle's F, C and `vc` with an index of
+/// the caller's; when it reports the batch full, and once at the end,
+/// [`run`](Self::run) it, read the lanes with [`lane`](Self::lane) and
+/// [`clear`](Self::clear) it. Lanes past [`len`](Self::len) hold finite
+/// leftovers that are computed and ignored. Matrices are row-major, `D ≤ 3`.
+pub(crate) struct SandBatch {
+    len: usize,
+    at: [u32; LANES],
+    /// The new velocity gradient C [1/s].
+    c: [F8; 9],
+    /// In: the elastic F; after `run`: the new one.
+    f: [F8; 9],
+    vc: F8,
+    /// After `run`: the Kirchhoff stress [Pa].
+    tau: [F8; 9],
+}
+
+/// What g2p's health check needs of a [`SandBatch`]'s lanes in use.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct SandHealth {
+    /// Every new F, volume correction and stress is finite.
+    pub(crate) finite: bool,
+    /// Some new F has `det F ≤ 0` (or NaN).
+    pub(crate) inverted: bool,
+}
+
+impl SandBatch {
+    /// An empty batch (its lanes hold identity F and zero C).
+    pub(crate) fn new() -> Self {
+        let mut f = [F8::splat(0.0); 9];
+        for k in [0, 4, 8] {
+            f[k] = F8::splat(1.0);
+        }
+        SandBatch {
+            len: 0,
+            at: [0; LANES],
+            c: [F8::splat(0.0); 9],
+            f,
+            vc: F8::splat(0.0),
+            tau: [F8::splat(0.0); 9],
+        }
+    }
+
+    /// Lanes in use.
+    pub(crate) fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Adds a particle (caller's index `at`, elastic F, new C, volume
+    /// correction); returns whether the batch is now full. Panics if it was
+    /// full.
+    #[inline(always)]
+    pub(crate) fn push<const D: usize>(
+        &mut self,
+        at: u32,
+        f: &SMatrix<f32, D, D>,
+        c: &SMatrix<f32, D, D>,
+        vc: f32,
+    ) -> bool {
+        let l = self.len;
+        self.at[l] = at;
+        for r in 0..D {
+            for k in 0..D {
+                self.f[r * D + k].0[l] = f[(r, k)];
+                self.c[r * D + k].0[l] = c[(r, k)];
+            }
+        }
+        self.vc.0[l] = vc;
+        self.len += 1;
+        self.len == LANES
+    }
+
+    /// The g2p update of every lane with time step `dt` [s]: elastic
+    /// predictor, return mapping (Klár et al. 2016, Sec. 7; see
+    /// [`advance_2d`], [`advance_3d`]); afterwards the lanes hold the new F,
+    /// `vc` and the stress, and [`len`](Self::len) is still the count pushed.
+    /// Returns the health of the lanes in use.
+    ///
+    /// Runs the copy compiled for `m.isa` (`crate::isa`); either gives the
+    /// same bits. Not inlined into the frame loop: its own function keeps
+    /// the lanes in registers.
+    pub(crate) fn run<const D: usize>(&mut self, m: &SandModel, dt: f32) -> SandHealth {
+        #[cfg(target_arch = "x86_64")]
+        if m.isa == Isa::X86_64V3 {
+            // SAFETY: an `Isa` in a `SandModel` is available on this CPU
+            return unsafe { self.run_v3::<D>(m, dt) };
+        }
+        self.run_portable::<D>(m, dt)
+    }
+
+    #[inline(never)]
+    fn run_portable<const D: usize>(&mut self, m: &SandModel, dt: f32) -> SandHealth {
+        self.run_body::<D>(m, dt)
+    }
+
+    x86_64_v3! {
+        #[inline(never)]
+        unsafe fn run_v3<const D: usize>(&mut self, m: &SandModel, dt: f32) -> SandHealth {
+            self.run_body::<D>(m, dt)
+        }
+    }
+
+    #[inline(always)]
+    fn run_body<const D: usize>(&mut self, m: &SandModel, dt: f32) -> SandHealth {
+        // F* = (I + Δt·C)·F
+        let dtv = F8::splat(dt);
+        let mut ft = [F8::splat(0.0); 9];
+        for r in 0..D {
+            for k in 0..D {
+                let mut acc = F8::splat(0.0);
+                for j in 0..D {
+                    let a = self.c[r * D + j] * dtv;
+                    let a = if r == j { F8::splat(1.0) + a } else { a };
+                    acc = if j == 0 {
+                        a * self.f[j * D + k]
+                    } else {
+                        acc + a * self.f[j * D + k]
+                    };
+                }
+                ft[r * D + k] = acc;
+            }
+        }
+        let det = if D == 2 {
+            let (f, vc, tau) = advance_2d(&[ft[0], ft[1], ft[2], ft[3]], self.vc, m);
+            self.f[..4].copy_from_slice(&f);
+            self.tau[..4].copy_from_slice(&tau);
+            self.vc = vc;
+            f[0] * f[3] - f[1] * f[2]
+        } else {
+            let (f, vc, tau) = advance_3d(&ft, self.vc, m);
+            (self.f, self.vc, self.tau) = (f, vc, tau);
+            f[0] * (f[4] * f[8] - f[5] * f[7]) - f[1] * (f[3] * f[8] - f[5] * f[6])
+                + f[2] * (f[3] * f[7] - f[4] * f[6])
+        };
+        // 0 where F, vc and τ are finite, NaN elsewhere (the stresses' sum is
+        // non-finite if one is, or if it overflows: a blow-up too)
+        let mut probe = self.vc.zero_if_finite();
+        let mut tau_sum = F8::splat(0.0);
+        for k in 0..D * D {
+            probe = probe + self.f[k].zero_if_finite();
+            tau_sum = tau_sum + self.tau[k];
+        }
+        probe = probe + tau_sum.zero_if_finite();
+        let mut health = SandHealth {
+            finite: true,
+            inverted: false,
+        };
+        for l in 0..self.len {
+            health.finite &= probe.0[l] == 0.0;
+            health.inverted |= !(det.0[l] > 0.0);
+        }
+        health
+    }
+
+    /// Lane `l` after [`run`](Self::run): `(at, new F, vc, τ)`.
+    #[inline(always)]
+    pub(crate) fn lane<const D: usize>(
+        &self,
+        l: usize,
+    ) -> (u32, SMatrix<f32, D, D>, f32, SMatrix<f32, D, D>) {
+        let mut f = SMatrix::<f32, D, D>::zeros();
+        let mut tau = SMatrix::<f32, D, D>::zeros();
+        for r in 0..D {
+            for c in 0..D {
+                f[(r, c)] = self.f[r * D + c].0[l];
+                tau[(r, c)] = self.tau[r * D + c].0[l];
+            }
+        }
+        (self.at[l], f, self.vc.0[l], tau)
+    }
+
+    /// Empties the batch (after its lanes were read).
+    pub(crate) fn clear(&mut self) {
+        self.len = 0;
     }
 }
 
-/// [`advance`] through the SVD of the trial `F`: the reference route, which
+/// The sand update through the SVD of the trial `F`: the reference route, which
 /// [`advance_2d`] and [`advance_3d`] replace (the tests compare them).
 #[cfg_attr(not(test), allow(dead_code))]
 #[inline(always)]
@@ -162,35 +332,82 @@ fn project_with_scale<const D: usize>(
     la: f32,
     tr_apex: f32,
 ) -> (SVector<f32, D>, f32) {
-    let dd = D as f32;
-    let shift = tr_apex / dd;
-    let e = e0.map(|x| x + *vc / dd - shift);
-    let tr = e.sum();
-    let ehat = e.map(|x| x - tr / dd);
-    let ehat_norm = ehat.norm();
-    let (e_new, scale) = if tr >= 0.0 {
-        // expansion: project to the cone tip
-        (SVector::<f32, D>::from_element(shift), 0.0)
-    } else {
-        let dgamma = ehat_norm + (dd * la + 2.0 * mu) / (2.0 * mu) * tr * alpha;
-        if dgamma <= 0.0 {
-            // inside the cone: elastic, no volume correction applied
-            (*e0, 1.0)
-        } else {
-            let k = dgamma / ehat_norm;
-            ((e - ehat * k).map(|x| x + shift), 1.0 - k)
-        }
-    };
-    *vc += e0.sum() - e_new.sum();
-    (e_new, scale)
+    let mut e0a = [0.0f32; D];
+    for i in 0..D {
+        e0a[i] = e0[i];
+    }
+    let (e_new, scale, vc_new) = project_lanes(&e0a, *vc, alpha, mu, la, tr_apex);
+    *vc = vc_new;
+    (SVector::<f32, D>::from_fn(|i, _| e_new[i]), scale)
 }
 
-/// The 2D sand update of [`advance`] without singular vectors: every
+#[inline(always)]
+fn k<R: Real>(x: f32) -> R {
+    R::splat(x)
+}
+
+#[inline(always)]
+fn sum<R: Real, const D: usize>(a: &[R; D]) -> R {
+    let mut s = a[0];
+    for i in 1..D {
+        s = s + a[i];
+    }
+    s
+}
+
+/// [`project_with_scale`] on lanes of `R` (one particle or eight):
+/// `(ε_new, s, vc_new)`. The three cases (beyond the tip, inside the cone, on
+/// its surface) are selects, not branches.
+#[inline(always)]
+fn project_lanes<R: Real, const D: usize>(
+    e0: &[R; D],
+    vc: R,
+    alpha: f32,
+    mu: f32,
+    la: f32,
+    tr_apex: f32,
+) -> ([R; D], R, R) {
+    let dd = D as f32;
+    let shift = k::<R>(tr_apex / dd);
+    let vcd = vc / k(dd);
+    let mut e = [k::<R>(0.0); D];
+    for i in 0..D {
+        e[i] = e0[i] + vcd - shift;
+    }
+    let tr = sum(&e);
+    let mean = tr / k(dd);
+    let mut ehat = e;
+    let mut norm2 = k::<R>(0.0);
+    for i in 0..D {
+        ehat[i] = e[i] - mean;
+        norm2 = norm2 + ehat[i] * ehat[i];
+    }
+    let ehat_norm = norm2.sqrt();
+    let dgamma = ehat_norm + k::<R>((dd * la + 2.0 * mu) / (2.0 * mu)) * tr * k(alpha);
+    // expansion (tr ≥ 0): the cone tip; tr < 0 and Δγ ≤ 0: inside the cone,
+    // elastic, no volume correction; otherwise onto the cone's surface
+    // (there Δγ > 0 needs ‖ê‖ > 0)
+    let tip = tr.ge(k(0.0));
+    let inside = R::and(R::not(tip), dgamma.le(k(0.0)));
+    let kk = dgamma / ehat_norm;
+    let mut e_new = e;
+    for i in 0..D {
+        let on_surface = e[i] - ehat[i] * kk + shift;
+        e_new[i] = R::select(tip, shift, R::select(inside, e0[i], on_surface));
+    }
+    let scale = R::select(tip, k(0.0), R::select(inside, k(1.0), k::<R>(1.0) - kk));
+    let vc_new = vc + (sum(e0) - sum(&e_new));
+    (e_new, scale, vc_new)
+}
+
+/// The 2D sand update of g2p ([`SandBatch`]) without singular vectors, on
+/// lanes of `R` (one particle or eight): trial F row-major and `vc` in, new F,
+/// `vc` and Kirchhoff stress out. Every
 /// quantity it needs is an isotropic function of the trial `F`, and in 2D
 /// such a function of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2`, `σ_i = √λ_i`) is
 /// `g(B) = g(λ2)·I + (g(λ1) − g(λ2))/(λ1 − λ2)·(B − λ2·I)`. So with the
 /// principal log strains `ε0_i = ½ ln λ_i` and their projection `ε_i`
-/// ([`project_with_scale`]):
+/// ([`project_lanes`]):
 ///
 /// - Kirchhoff stress `τ = U·diag(2μ·ε_i + λ·tr ε)·Uᵀ` is that function with
 ///   `g(λ_i) = 2μ·ε_i + λ·tr ε`;
@@ -206,61 +423,51 @@ fn project_with_scale<const D: usize>(
 ///
 /// [`Svd`]: crate::dim::Svd
 #[inline(always)]
-fn advance_2d<const D: usize>(
-    f: &mut SMatrix<f32, D, D>,
-    vc: &mut f32,
-    f_trial: &SMatrix<f32, D, D>,
-    m: &SandModel,
-) -> SMatrix<f32, D, D> {
-    let (a, b, c, d) = (
-        f_trial[(0, 0)],
-        f_trial[(0, 1)],
-        f_trial[(1, 0)],
-        f_trial[(1, 1)],
-    );
+pub(crate) fn advance_2d<R: Real>(ft: &[R; 4], vc: R, m: &SandModel) -> ([R; 4], R, [R; 4]) {
+    let [a, b, c, d] = *ft;
     let (b11, b12, b22) = (a * a + b * b, a * c + b * d, c * c + d * d);
     let det = a * d - b * c;
-    let half = 0.5 * (b11 - b22);
+    let half = k::<R>(0.5) * (b11 - b22);
     let rad = (half * half + b12 * b12).sqrt();
     // σ clamped to 1e-6 as in the SVD route (λ = σ² to 1e-12)
-    let l1 = (0.5 * (b11 + b22) + rad).max(1e-12);
+    let l1 = (k::<R>(0.5) * (b11 + b22) + rad).max(k(1e-12));
     // λ2 = det(B)/λ1 = det(F)²/λ1: no cancellation when F is nearly singular
-    let l2 = (det * det / l1).max(1e-12);
-    let e0 = SVector::<f32, D>::from_fn(|i, _| 0.5 * if i == 0 { l1 } else { l2 }.ln());
-    let (e_new, scale) = project_with_scale::<D>(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
+    let l2 = (det * det / l1).max(k(1e-12));
+    let e0 = [k::<R>(0.5) * vmath::ln(l1), k::<R>(0.5) * vmath::ln(l2)];
+    let (e_new, scale, vc) = project_lanes(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
     let dl = l1 - l2;
     // (ε0_1 − ε0_2)/(λ1 − λ2), or its limit 1/(2 λ2)
-    let near = dl <= 1e-6 * l2;
-    let de0_dl = if near { 0.5 / l2 } else { (e0[0] - e0[1]) / dl };
+    let near = dl.le(k::<R>(1e-6) * l2);
+    let de0_dl = R::select_div(near, k(0.5), l2, e0[0] - e0[1], dl);
     // B − λ2·I
     let (m11, m12, m22) = (b11 - l2, b12, b22 - l2);
-    if scale != 1.0 {
-        // plastic: F = G·F_trial, G = g2·I + β'·(B − λ2 I), g_i = e^{ε_i − ε0_i}
+    // plastic (s ≠ 1): F = G·F_trial, G = g2·I + β'·(B − λ2 I),
+    // g_i = e^{ε_i − ε0_i}; inside the cone F = F_trial
+    // (skipped if no lane is plastic)
+    let plastic = scale.ne(k(1.0));
+    let mut f = *ft;
+    if R::any(plastic) {
         let (d1, d2) = (e_new[0] - e0[0], e_new[1] - e0[1]);
-        let g2 = d2.exp();
+        let g2 = vmath::exp(d2);
         // (g1 − g2)/(λ1 − λ2) with g1 − g2 = g2·(e^{d1 − d2} − 1), d1 − d2 = (s − 1)(ε0_1 − ε0_2)
-        let beta = if near {
-            g2 * (scale - 1.0) * de0_dl
-        } else {
-            (d1.exp() - g2) / dl
-        };
+        let beta = R::select(
+            near,
+            g2 * (scale - k(1.0)) * de0_dl,
+            (vmath::exp(d1) - g2) / dl,
+        );
         let (g11, g12, g22) = (g2 + beta * m11, beta * m12, g2 + beta * m22);
-        f[(0, 0)] = g11 * a + g12 * c;
-        f[(0, 1)] = g11 * b + g12 * d;
-        f[(1, 0)] = g12 * a + g22 * c;
-        f[(1, 1)] = g12 * b + g22 * d;
-    } else {
-        *f = *f_trial;
+        f = [
+            R::select(plastic, g11 * a + g12 * c, a),
+            R::select(plastic, g11 * b + g12 * d, b),
+            R::select(plastic, g12 * a + g22 * c, c),
+            R::select(plastic, g12 * b + g22 * d, d),
+        ];
     }
     // τ = h2·I + β·(B − λ2 I), h_i = 2μ ε_i + λ tr ε, h1 − h2 = 2μ·s·(ε0_1 − ε0_2)
-    let h2 = 2.0 * m.mu * e_new[1] + m.la * e_new.sum();
-    let beta = 2.0 * m.mu * scale * de0_dl;
-    let mut tau = SMatrix::<f32, D, D>::zeros();
-    tau[(0, 0)] = h2 + beta * m11;
-    tau[(0, 1)] = beta * m12;
-    tau[(1, 0)] = beta * m12;
-    tau[(1, 1)] = h2 + beta * m22;
-    tau
+    let h2 = k::<R>(2.0 * m.mu) * e_new[1] + k::<R>(m.la) * (e_new[0] + e_new[1]);
+    let beta = k::<R>(2.0 * m.mu) * scale * de0_dl;
+    let tau = [h2 + beta * m11, beta * m12, beta * m12, h2 + beta * m22];
+    (f, vc, tau)
 }
 
 /// Eigenvalues `λ1 ≥ λ2 ≥ λ3` (each at least `1e-12`) of the symmetric 3×3
@@ -268,38 +475,61 @@ fn advance_2d<const D: usize>(
 /// (the trigonometric solution of the characteristic cubic, Smith 1961):
 /// `q = tr B / 3`, `p² = ‖B − qI‖²_F / 6`, `r = det(B − qI) / (2p³)`,
 /// `φ = acos(r) / 3`, `λ1 = q + 2p cos φ`, `λ3 = q + 2p cos(φ + 2π/3)`,
+/// (`acos`, `cos`, `sin` from [`vmath`]),
 /// `λ2 = 3q − λ1 − λ3`. Near a double eigenvalue (`r → ±1`) the pair comes out
 /// with an error of about `p·√ε`; [`advance_3d`] only interpolates at these
 /// nodes, which makes that error second order (see there).
 #[inline(always)]
-fn sym3_eigenvalues(b00: f32, b01: f32, b02: f32, b11: f32, b12: f32, b22: f32) -> (f32, f32, f32) {
-    let q = (b00 + b11 + b22) / 3.0;
+fn sym3_eigenvalues<R: Real>(b00: R, b01: R, b02: R, b11: R, b12: R, b22: R) -> (R, R, R) {
+    let q = (b00 + b11 + b22) / k(3.0);
     let (d0, d1, d2) = (b00 - q, b11 - q, b22 - q);
-    let p2 = (d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (b01 * b01 + b02 * b02 + b12 * b12)) / 6.0;
-    if p2 <= 1e-14 * q * q {
-        // isotropic to f32 rounding (and p³ below would underflow)
-        let l = q.max(1e-12);
-        return (l, l, l);
-    }
+    let p2 =
+        (d0 * d0 + d1 * d1 + d2 * d2 + k::<R>(2.0) * (b01 * b01 + b02 * b02 + b12 * b12)) / k(6.0);
+    // isotropic to f32 rounding (and p³ below would underflow): λ1 = λ2 = λ3 = q
+    let iso = p2.le(k::<R>(1e-14) * q * q);
     let p = p2.sqrt();
     let det =
         d0 * (d1 * d2 - b12 * b12) - b01 * (b01 * d2 - b12 * b02) + b02 * (b01 * b12 - d1 * b02);
-    let r = (det / (2.0 * p2 * p)).clamp(-1.0, 1.0);
-    let phi = r.acos() / 3.0;
-    let l1 = q + 2.0 * p * phi.cos();
-    let l3 = q + 2.0 * p * (phi + 2.0 * std::f32::consts::FRAC_PI_3).cos();
-    let l2 = (3.0 * q - l1 - l3).min(l1).max(l3); // not clamp: no panic on NaN (a blow-up the frame reports)
-    (l1.max(1e-12), l2.max(1e-12), l3.max(1e-12))
+    let r = det / (k::<R>(2.0) * p2 * p);
+    // clamp to [−1, 1]; NaN stays NaN (a blow-up the frame reports)
+    let r = R::select(r.lt(k(-1.0)), k(-1.0), R::select(r.gt(k(1.0)), k(1.0), r));
+    let phi = vmath::acos(r) / k(3.0);
+    // cos(φ + 2π/3) = −(cos φ + √3·sin φ)/2, φ ∈ [0, π/3]: no cancellation
+    let (cos_phi, sin_phi) = vmath::cos_sin_small(phi);
+    let l1 = q + k::<R>(2.0) * p * cos_phi;
+    let l3 = q - p * (cos_phi + k::<R>(3f32.sqrt()) * sin_phi);
+    let l2 = (k::<R>(3.0) * q - l1 - l3).min(l1).max(l3);
+    let (qc, tiny) = (q.max(k(1e-12)), k::<R>(1e-12));
+    (
+        R::select(iso, qc, l1.max(tiny)),
+        R::select(iso, qc, l2.max(tiny)),
+        R::select(iso, qc, l3.max(tiny)),
+    )
 }
 
-/// The 3D sand update of [`advance`] without singular vectors, as
-/// [`advance_2d`] does in 2D: every quantity it needs is an isotropic function
+/// `g0·I + g1·M3 + g2·P` (row-major) for symmetric `M3`, `P`: the Newton form
+/// of [`advance_3d`]. (A function, not a closure: a closure may be left out
+/// of line, outside the compiled copy of the frame loop it runs in.)
+#[inline(always)]
+fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R, g2: R) -> [R; 9] {
+    let mut out = [g0; 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            let x = g1 * m3[i][j] + g2 * pr[i][j];
+            out[3 * i + j] = if i == j { g0 + x } else { x };
+        }
+    }
+    out
+}
+
+/// The 3D sand update of g2p ([`SandBatch`]) without singular vectors, on
+/// lanes of `R` as [`advance_2d`] does in 2D: every quantity it needs is an isotropic function
 /// of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2 ≥ λ3` from [`sym3_eigenvalues`],
 /// `σ_i = √λ_i`), and for a symmetric 3×3 `B` such a function is its Newton
 /// interpolation at the eigenvalues,
 /// `g(B) = g[λ3]·I + g[λ3,λ2]·M3 + g[λ3,λ2,λ1]·M3·M2`, `M_i = B − λ_i·I`,
 /// with divided differences `g[·]`. With `ε0_i = ½ ln λ_i` and its
-/// projection `ε_i = s·ε0_i + c` ([`project_with_scale`]; `c` common):
+/// projection `ε_i = s·ε0_i + c` ([`project_lanes`]; `c` common):
 ///
 /// - Kirchhoff stress `τ = U·diag(2μ·ε_i + λ·tr ε)·Uᵀ`: `h(λ) = μ·s·ln λ + const`,
 ///   so `τ = h_3·I + μ·s·(ln[λ3,λ2]·M3 + ln[λ3,λ2,λ1]·M3·M2)`;
@@ -317,31 +547,29 @@ fn sym3_eigenvalues(b00: f32, b01: f32, b02: f32, b11: f32, b12: f32, b22: f32) 
 /// square roots was over half of a flowing sand3d frame; the tests compare
 /// both against an f64 SVD.
 #[inline(always)]
-fn advance_3d<const D: usize>(
-    f: &mut SMatrix<f32, D, D>,
-    vc: &mut f32,
-    f_trial: &SMatrix<f32, D, D>,
-    m: &SandModel,
-) -> SMatrix<f32, D, D> {
-    let row = |i: usize| [f_trial[(i, 0)], f_trial[(i, 1)], f_trial[(i, 2)]];
+pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &SandModel) -> ([R; 9], R, [R; 9]) {
+    let row = |i: usize| [ft[3 * i], ft[3 * i + 1], ft[3 * i + 2]];
     let (r0, r1, r2) = (row(0), row(1), row(2));
-    let dot = |a: [f32; 3], b: [f32; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let dot = |a: [R; 3], b: [R; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let (b00, b01, b02) = (dot(r0, r0), dot(r0, r1), dot(r0, r2));
     let (b11, b12, b22) = (dot(r1, r1), dot(r1, r2), dot(r2, r2));
     let (l1, l2, l3) = sym3_eigenvalues(b00, b01, b02, b11, b12, b22);
-    let e0 = SVector::<f32, D>::from_fn(|i, _| 0.5 * [l1, l2, l3][i].ln());
-    let (e_new, scale) = project_with_scale::<D>(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
+    let half = k::<R>(0.5);
+    let e0 = [
+        half * vmath::ln(l1),
+        half * vmath::ln(l2),
+        half * vmath::ln(l3),
+    ];
+    let (e_new, scale, vc) = project_lanes(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
     // divided differences of ln at λ3, λ2, λ1
+    let zero = k::<R>(0.0);
     let (g32, g21) = (l2 - l3, l1 - l2);
-    let (lp32, lp21) = ((g32 / l3).ln_1p(), (g21 / l2).ln_1p());
-    let ln32 = if g32 > 0.0 { lp32 / g32 } else { 1.0 / l3 };
-    let ln21 = if g21 > 0.0 { lp21 / g21 } else { 1.0 / l2 };
-    let near = l1 - l3 <= 1e-4 * l3;
-    let ln321 = if near {
-        -0.5 / (l2 * l2)
-    } else {
-        (ln21 - ln32) / (l1 - l3)
-    };
+    let (lp32, lp21) = (vmath::ln_1p(g32 / l3), vmath::ln_1p(g21 / l2));
+    let (gap32, gap21) = (g32.gt(zero), g21.gt(zero));
+    let ln32 = R::select_div(gap32, lp32, g32, k(1.0), l3);
+    let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
+    let near = (l1 - l3).le(k::<R>(1e-4) * l3);
+    let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
     // M3 = B − λ3 I and P = M3·M2 (symmetric: both are polynomials in B)
     let m3 = [
         [b00 - l3, b01, b02],
@@ -359,38 +587,34 @@ fn advance_3d<const D: usize>(
         [pm(0, 1), pm(1, 1), pm(1, 2)],
         [pm(0, 2), pm(1, 2), pm(2, 2)],
     ];
-    let func = |g0: f32, g1: f32, g2: f32| {
-        SMatrix::<f32, D, D>::from_fn(|i, j| {
-            let id = if i == j { g0 } else { 0.0 };
-            id + g1 * m3[i][j] + g2 * pr[i][j]
-        })
-    };
-    if scale != 1.0 {
-        // plastic: G = g(B), g(λ) = e^{ε_i − ε0_i} = e^c·λ^pw
-        let pw = 0.5 * (scale - 1.0);
-        let (g2, g3) = ((e_new[1] - e0[1]).exp(), (e_new[2] - e0[2]).exp());
-        let d32 = if g32 > 0.0 {
-            g3 * (pw * lp32).exp_m1() / g32
-        } else {
-            pw * g3 / l3
-        };
-        let d21 = if g21 > 0.0 {
-            g2 * (pw * lp21).exp_m1() / g21
-        } else {
-            pw * g2 / l2
-        };
-        let d321 = if near {
-            0.5 * pw * (pw - 1.0) * g2 / (l2 * l2)
-        } else {
-            (d21 - d32) / (l1 - l3)
-        };
-        *f = func(g3, d32, d321) * f_trial;
-    } else {
-        *f = *f_trial;
+    let func = |g0: R, g1: R, g2: R| newton_3(&m3, &pr, g0, g1, g2);
+    // plastic (s ≠ 1): G = g(B), g(λ) = e^{ε_i − ε0_i} = e^c·λ^pw, F =
+    // G·F_trial; inside the cone F = F_trial (skipped if no lane is plastic)
+    let plastic = scale.ne(k(1.0));
+    let mut f = *ft;
+    if R::any(plastic) {
+        let pw = half * (scale - k(1.0));
+        let (g2, g3) = (vmath::exp(e_new[1] - e0[1]), vmath::exp(e_new[2] - e0[2]));
+        let d32 = R::select_div(gap32, g3 * vmath::exp_m1(pw * lp32), g32, pw * g3, l3);
+        let d21 = R::select_div(gap21, g2 * vmath::exp_m1(pw * lp21), g21, pw * g2, l2);
+        let d321 = R::select_div(
+            near,
+            half * pw * (pw - k(1.0)) * g2,
+            l2 * l2,
+            d21 - d32,
+            l1 - l3,
+        );
+        let g = func(g3, d32, d321);
+        for i in 0..3 {
+            for j in 0..3 {
+                let gf = g[3 * i] * ft[j] + g[3 * i + 1] * ft[3 + j] + g[3 * i + 2] * ft[6 + j];
+                f[3 * i + j] = R::select(plastic, gf, ft[3 * i + j]);
+            }
+        }
     }
-    let h3 = 2.0 * m.mu * e_new[2] + m.la * e_new.sum();
-    let ms = m.mu * scale;
-    func(h3, ms * ln32, ms * ln321)
+    let h3 = k::<R>(2.0 * m.mu) * e_new[2] + k::<R>(m.la) * (e_new[0] + e_new[1] + e_new[2]);
+    let ms = k::<R>(m.mu) * scale;
+    (f, vc, func(h3, ms * ln32, ms * ln321))
 }
 
 #[cfg(test)]
@@ -475,6 +699,35 @@ mod tests {
         }
     }
 
+    /// The g2p sand update of one particle: [`advance_2d`] or [`advance_3d`]
+    /// on `f32` (one lane), with the signature of [`advance_svd`].
+    fn one_particle<const D: usize>(
+        f: &mut SMatrix<f32, D, D>,
+        vc: &mut f32,
+        f_trial: &SMatrix<f32, D, D>,
+        m: &SandModel,
+    ) -> SMatrix<f32, D, D> {
+        let mut ft = [0.0f32; 9];
+        for r in 0..D {
+            for c in 0..D {
+                ft[r * D + c] = f_trial[(r, c)];
+            }
+        }
+        let (f_new, vc_new, tau) = if D == 2 {
+            let (f4, v, t4) = advance_2d(&[ft[0], ft[1], ft[2], ft[3]], *vc, m);
+            let mut f9 = [0.0; 9];
+            let mut t9 = [0.0; 9];
+            f9[..4].copy_from_slice(&f4);
+            t9[..4].copy_from_slice(&t4);
+            (f9, v, t9)
+        } else {
+            advance_3d(&ft, *vc, m)
+        };
+        *vc = vc_new;
+        *f = SMatrix::<f32, D, D>::from_fn(|r, c| f_new[r * D + c]);
+        SMatrix::<f32, D, D>::from_fn(|r, c| tau[r * D + c])
+    }
+
     type Update<const D: usize> = fn(
         &mut SMatrix<f32, D, D>,
         &mut f32,
@@ -499,10 +752,13 @@ mod tests {
         let mut cases = [0usize; 3];
         let (mut worst, mut worst_svd, mut worst_f) = (0.0f64, 0.0f64, 0.0f64);
         for cohesion in [0.0, 200.0] {
-            let m = SandModel::new::<D>(&SandParams {
-                cohesion,
-                ..Default::default()
-            });
+            let m = SandModel::new::<D>(
+                &SandParams {
+                    cohesion,
+                    ..Default::default()
+                },
+                Isa::Baseline,
+            );
             for i in 0..20_000 {
                 let ft = trial(i, &mut rnd);
                 let vc0 = 0.01 * rnd();
@@ -551,6 +807,97 @@ mod tests {
         10f32.powf(-7.0 + 6.5 * (i % 100) as f32 / 100.0)
     }
 
+    /// A batch of eight particles gives, lane by lane, the bits of the
+    /// one-particle update (the elastic predictor `(I + Δt·C)·F` with its
+    /// sums in order, then [`one_particle`]), on every compiled copy this
+    /// CPU runs; its health covers the lanes in use and only those.
+    fn batch_matches_one_particle<const D: usize>()
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let mut rnd = stream(99 + D as u64);
+        let dt = 2e-4;
+        for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+            let m = SandModel::new::<D>(&SandParams::default(), isa);
+            let mut batch = SandBatch::new();
+            let mut pending = Vec::new();
+            let mut lanes = 0;
+            for round in 0..400 {
+                let amp = amplitude(round);
+                let f = SMatrix::<f32, D, D>::from_fn(|r, c| {
+                    (if r == c { 1.0 + 0.05 * rnd() } else { 0.0 }) + amp * rnd()
+                });
+                let c = SMatrix::<f32, D, D>::from_fn(|_, _| 2000.0 * amp * rnd());
+                let vc = 0.01 * rnd();
+                let at = 1000 + round as u32;
+                let full = batch.push::<D>(at, &f, &c, vc);
+                // the batch's predictor, one particle at a time
+                let a = SMatrix::<f32, D, D>::from_fn(|r, j| {
+                    let x = c[(r, j)] * dt;
+                    if r == j { 1.0 + x } else { x }
+                });
+                let ft = SMatrix::<f32, D, D>::from_fn(|r, k| {
+                    let mut acc = a[(r, 0)] * f[(0, k)];
+                    for j in 1..D {
+                        acc += a[(r, j)] * f[(j, k)];
+                    }
+                    acc
+                });
+                let (mut f1, mut vc1) = (SMatrix::<f32, D, D>::zeros(), vc);
+                let tau1 = one_particle(&mut f1, &mut vc1, &ft, &m);
+                pending.push((at, f1, vc1, tau1));
+                if full || round == 399 {
+                    let h = batch.run::<D>(&m, dt);
+                    let ok = SandHealth {
+                        finite: true,
+                        inverted: false,
+                    };
+                    assert_eq!(h, ok, "{isa:?}");
+                    assert_eq!(batch.len(), pending.len());
+                    let bits = |x: &SMatrix<f32, D, D>| x.map(f32::to_bits);
+                    for (l, (at1, f1, vc1, tau1)) in pending.drain(..).enumerate() {
+                        let (at, f, vc, tau) = batch.lane::<D>(l);
+                        assert_eq!(at, at1);
+                        assert_eq!(bits(&f), bits(&f1), "{isa:?} F, particle {at}");
+                        assert_eq!(bits(&tau), bits(&tau1), "{isa:?} τ, particle {at}");
+                        assert_eq!(vc.to_bits(), vc1.to_bits(), "{isa:?} vc, particle {at}");
+                        lanes += 1;
+                    }
+                    batch.clear();
+                }
+            }
+            assert_eq!(lanes, 400);
+            // health: a NaN velocity gradient, an inverting one, and the same
+            // left over in lanes past `len` (not counted)
+            let mut batch = SandBatch::new();
+            let id = SMatrix::<f32, D, D>::identity();
+            let mut c_nan = SMatrix::<f32, D, D>::zeros();
+            c_nan[(0, 0)] = f32::NAN;
+            let mut c_flip = SMatrix::<f32, D, D>::zeros();
+            c_flip[(0, 0)] = -2.0 / dt; // (I + Δt·C) = diag(−1, 1, …)
+            batch.push::<D>(0, &id, &c_nan, 0.0);
+            let h = batch.run::<D>(&m, dt);
+            assert!(!h.finite, "{isa:?}");
+            batch.clear();
+            batch.push::<D>(0, &id, &c_flip, 0.0);
+            let h = batch.run::<D>(&m, dt);
+            assert!(h.finite && h.inverted, "{isa:?} {h:?}");
+            batch.clear();
+            batch.push::<D>(0, &id, &SMatrix::zeros(), 0.0);
+            let h = batch.run::<D>(&m, dt);
+            assert!(
+                h.finite && !h.inverted,
+                "{isa:?}: leftover lanes counted ({h:?})"
+            );
+        }
+    }
+
+    #[test]
+    fn batch_of_eight_gives_the_bits_of_one_particle() {
+        batch_matches_one_particle::<2>();
+        batch_matches_one_particle::<3>();
+    }
+
     /// The 2D update without singular vectors against the f64 reference:
     /// stress, new F and volume correction, for trial F inside the cone, on
     /// its surface and beyond its tip, near-isotropic (to rounding) and
@@ -558,7 +905,7 @@ mod tests {
     /// least as close to the reference as the f32 SVD route.
     #[test]
     fn advance_2d_matches_an_f64_svd_reference() {
-        let (w, w_svd, w_f) = check_against_reference::<2>(advance_2d::<2>, |i, rnd| {
+        let (w, w_svd, w_f) = check_against_reference::<2>(one_particle::<2>, |i, rnd| {
             let (amp, iso) = (amplitude(i), 1.0 + 0.05 * rnd());
             Matrix2::new(
                 iso + amp * rnd(),
@@ -580,7 +927,7 @@ mod tests {
     /// the cone, on its surface, beyond the tip.
     #[test]
     fn advance_3d_matches_an_f64_svd_reference() {
-        let (w, w_svd, w_f) = check_against_reference::<3>(advance_3d::<3>, |i, rnd| {
+        let (w, w_svd, w_f) = check_against_reference::<3>(one_particle::<3>, |i, rnd| {
             let (amp, iso) = (amplitude(i), 1.0 + 0.05 * rnd());
             match i % 3 {
                 0 => {

@@ -22,7 +22,7 @@ use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SC
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::isa::Isa;
+use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::{Cell, cell_of};
 use crate::material::sand::SandModel;
 use crate::particles::Particle;
@@ -316,15 +316,15 @@ where
         unsafe { Self::substeps_member_body(args, tid) }
     }
 
-    /// [`Self::substeps_member_body`] compiled for x86-64-v3 ([`crate::isa`]).
-    ///
-    /// # Safety
-    /// As `substeps_member`, on a CPU with the x86-64-v3 features.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx,avx2,fma,bmi1,bmi2,lzcnt,movbe,f16c,popcnt")]
-    unsafe fn substeps_member_v3(args: &MemberArgs<'_, D>, tid: usize) {
-        // SAFETY: the caller's conditions
-        unsafe { Self::substeps_member_body(args, tid) }
+    x86_64_v3! {
+        /// [`Self::substeps_member_body`] compiled for x86-64-v3 ([`crate::isa`]).
+        ///
+        /// # Safety
+        /// As `substeps_member`, on a CPU with the x86-64-v3 features.
+        unsafe fn substeps_member_v3(args: &MemberArgs<'_, D>, tid: usize) {
+            // SAFETY: the caller's conditions
+            unsafe { Self::substeps_member_body(args, tid) }
+        }
     }
 
     /// The frame loop of one member (see `substeps_member`); inlined into
@@ -501,7 +501,7 @@ where
             }
             team.barrier();
             clock.lap(Lap::Grid);
-            let sand = SandModel::new::<D>(&s.params.sand);
+            let sand = SandModel::new::<D>(&s.params.sand, s.isa);
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
             while let Some(si) = team.claim(G2P, view.n_src) {
                 let lo = s.grid.src_offsets[si] as usize;

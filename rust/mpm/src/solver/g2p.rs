@@ -31,9 +31,9 @@ use super::team::RawSlice;
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
-use crate::material::sand::{self, SandModel};
+use crate::material::sand::{SandBatch, SandHealth, SandModel};
 use crate::material::water;
-use crate::particles::{Material, Particle, det};
+use crate::particles::{Material, Particle};
 
 impl<const D: usize> Solver<D>
 where
@@ -109,18 +109,18 @@ where
         let lo_i = src_offsets[si] as usize;
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
-        let mut finite_rest = true;
-        let mut inverted = false;
+        let mut sand_health = SandHealth {
+            finite: true,
+            inverted: false,
+        };
         let mut vmax2 = 0.0f32;
-        for (j, ((po, ko), io)) in outp
-            .iter_mut()
-            .zip(outk.iter_mut())
-            .zip(out_ids.iter_mut())
-            .enumerate()
-        {
+        // sand particles' material updates wait in `batch` and run eight at a
+        // time (SIMD across particles, see `SandBatch`)
+        let mut batch = SandBatch::new();
+        for j in 0..outp.len() {
             let slot = sorted[lo_i + j] as usize;
             let id = self.ids[slot];
-            *io = id;
+            out_ids[j] = id;
             let mut p = particles[slot];
             let cell = &cells[slot];
             let (fx, w) = weights::<D>(cell);
@@ -168,18 +168,17 @@ where
             for d in 0..D {
                 p.x[d] = p.x[d].max(lo).min(hi);
             }
-            p.tau = match p.material {
+            let mut sand_full = false;
+            match p.material {
                 Material::Water => {
                     water::advance_volume_ratio(&mut p.j, dt, &new_c);
-                    water::kirchhoff_stress(water, p.j, &new_c)
+                    p.tau = water::kirchhoff_stress(water, p.j, &new_c);
                 }
                 Material::Sand => {
-                    let tau = sand::advance(&mut p.f, &mut p.vc, &new_c, dt, sand);
-                    finite_rest &= p.f.iter().all(|x| x.is_finite()) && p.vc.is_finite();
-                    inverted |= !(det(&p.f) > 0.0);
-                    tau
+                    sand_full = batch.push(j as u32, &p.f, &new_c, p.vc);
                 }
             };
+            let ko = &mut outk[j];
             *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
             // SAFETY: id is this block's alone (caller)
             unsafe {
@@ -190,17 +189,23 @@ where
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;
             vmax2 = vmax2.max(p.v.norm_squared());
-            *po = p;
+            outp[j] = p;
+            if sand_full {
+                sand_flush(&mut batch, outp, sand, dt, &mut sand_health);
+            }
         }
+        if batch.len() > 0 {
+            sand_flush(&mut batch, outp, sand, dt, &mut sand_health);
+        }
+        let SandHealth { finite, inverted } = sand_health;
         // positions are clamped (NaN maps to the bound), so test the rest
-        let health =
-            if !(nan_probe.is_finite() && vmax2.is_finite() && finite_rest) || nonpositive_j {
-                Health::NonFinite
-            } else if inverted {
-                Health::Inverted
-            } else {
-                Health::Ok
-            };
+        let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite) || nonpositive_j {
+            Health::NonFinite
+        } else if inverted {
+            Health::Inverted
+        } else {
+            Health::Ok
+        };
         (health, vmax2)
     }
 
@@ -211,6 +216,31 @@ where
         std::mem::swap(&mut self.grid.keys, &mut self.grid.next_keys);
         std::mem::swap(&mut self.ids, &mut self.ids_next);
     }
+}
+
+/// Runs the sand `batch` with time step `dt`, writes its lanes into `outp`
+/// (at the indices pushed with them), adds its health to `health` and empties
+/// it.
+// inlined into each compiled copy of the frame loop (`crate::isa`)
+#[inline(always)]
+fn sand_flush<const D: usize>(
+    batch: &mut SandBatch,
+    outp: &mut [Particle<D>],
+    sand: &SandModel,
+    dt: f32,
+    health: &mut SandHealth,
+) where
+    Dim<D>: DimOps<D>,
+{
+    let h = batch.run::<D>(sand, dt);
+    health.finite &= h.finite;
+    health.inverted |= h.inverted;
+    for l in 0..batch.len() {
+        let (at, f, vc, tau) = batch.lane::<D>(l);
+        let p = &mut outp[at as usize];
+        (p.f, p.vc, p.tau) = (f, vc, tau);
+    }
+    batch.clear();
 }
 
 /// Where g2p writes one source block's results (see [`Solver::g2p_block`]).
