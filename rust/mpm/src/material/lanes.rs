@@ -28,7 +28,6 @@ pub(crate) trait Real:
     type Mask: Copy;
     fn splat(x: f32) -> Self;
     fn sqrt(self) -> Self;
-    fn abs(self) -> Self;
     /// As `f32::min`/`max`: a NaN operand yields the other one.
     fn min(self, o: Self) -> Self;
     fn max(self, o: Self) -> Self;
@@ -76,10 +75,6 @@ impl Real for f32 {
     #[inline(always)]
     fn sqrt(self) -> Self {
         f32::sqrt(self)
-    }
-    #[inline(always)]
-    fn abs(self) -> Self {
-        f32::abs(self)
     }
     #[inline(always)]
     fn min(self, o: Self) -> Self {
@@ -212,10 +207,6 @@ impl Real for F8 {
         self.map(f32::sqrt)
     }
     #[inline(always)]
-    fn abs(self) -> Self {
-        self.map(f32::abs)
-    }
-    #[inline(always)]
     fn min(self, o: Self) -> Self {
         self.zip(o, f32::min)
     }
@@ -327,7 +318,6 @@ mod tests {
         same(a / b, &|x, y| x / y);
         same(-a, &|x, _| -x);
         same(a.sqrt(), &|x, _| x.sqrt());
-        same(Real::abs(a), &|x, _| x.abs());
         same(Real::min(a, b), &|x, y| x.min(y));
         same(Real::max(a, b), &|x, y| x.max(y));
         same(F8::select(a.lt(b), a, b), &|x, y| if x < y { x } else { y });

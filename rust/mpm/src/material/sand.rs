@@ -474,8 +474,8 @@ pub(crate) fn advance_2d<R: Real>(ft: &[R; 4], vc: R, m: &SandModel) -> ([R; 4],
 /// matrix `[[b00, b01, b02], [b01, b11, b12], [b02, b12, b22]]` in closed form
 /// (the trigonometric solution of the characteristic cubic, Smith 1961):
 /// `q = tr B / 3`, `p² = ‖B − qI‖²_F / 6`, `r = det(B − qI) / (2p³)`,
-/// `φ = acos(r) / 3`, `λ1 = q + 2p cos φ`, `λ3 = q + 2p cos(φ + 2π/3)`,
-/// (`acos`, `cos`, `sin` from [`vmath`]),
+/// `φ = acos(r) / 3`, `λ1 = q + 2p cos φ`, `λ3 = q + 2p cos(φ + 2π/3)`
+/// (both cosines through [`vmath::cos_two_thirds_acos`]),
 /// `λ2 = 3q − λ1 − λ3`. Near a double eigenvalue (`r → ±1`) the pair comes out
 /// with an error of about `p·√ε`; [`advance_3d`] only interpolates at these
 /// nodes, which makes that error second order (see there).
@@ -493,11 +493,14 @@ fn sym3_eigenvalues<R: Real>(b00: R, b01: R, b02: R, b11: R, b12: R, b22: R) -> 
     let r = det / (k::<R>(2.0) * p2 * p);
     // clamp to [−1, 1]; NaN stays NaN (a blow-up the frame reports)
     let r = R::select(r.lt(k(-1.0)), k(-1.0), R::select(r.gt(k(1.0)), k(1.0), r));
-    let phi = vmath::acos(r) / k(3.0);
-    // cos(φ + 2π/3) = −(cos φ + √3·sin φ)/2, φ ∈ [0, π/3]: no cancellation
-    let (cos_phi, sin_phi) = vmath::cos_sin_small(phi);
-    let l1 = q + k::<R>(2.0) * p * cos_phi;
-    let l3 = q - p * (cos_phi + k::<R>(3f32.sqrt()) * sin_phi);
+    // cos(acos(r)/3) = C(√((1 + r)/2)) and cos(acos(r)/3 + 2π/3) =
+    // −cos(acos(−r)/3) = −C(√((1 − r)/2)), C = `vmath::cos_two_thirds_acos`
+    let half = k::<R>(0.5);
+    let c1 = vmath::cos_two_thirds_acos(((k::<R>(1.0) + r) * half).sqrt());
+    let c3 = vmath::cos_two_thirds_acos(((k::<R>(1.0) - r) * half).sqrt());
+    let two_p = k::<R>(2.0) * p;
+    let l1 = q + two_p * c1;
+    let l3 = q - two_p * c3;
     let l2 = (k::<R>(3.0) * q - l1 - l3).min(l1).max(l3);
     let (qc, tiny) = (q.max(k(1e-12)), k::<R>(1e-12));
     (

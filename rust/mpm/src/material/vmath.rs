@@ -17,9 +17,9 @@
 //! `ln` by `x = m·2^e`, `m ∈ [√½, √2)`, and the series of `2·atanh(s)`,
 //! `s = (m − 1)/(m + 1)`; `exp` and `exp_m1` by Cody–Waite reduction
 //! `x = k·ln 2 + r`, `|r| ≤ ln 2 / 2`, and Taylor series of `e^r` and
-//! `e^r − 1`; `acos` through `asin` on `[−½, ½]` (a least-squares fit at
-//! Chebyshev nodes, relative error 5e-9) and `acos x = 2·asin √((1 − x)/2)`
-//! for `|x| > ½`.
+//! `e^r − 1`; [`cos_two_thirds_acos`] (the trigonometric solution of the
+//! eigenvalue cubic) by a least-squares fit at Chebyshev nodes. Polynomials
+//! are evaluated by Estrin's scheme ([`poly`]).
 
 use super::lanes::{ROUND_MAGIC, Real};
 
@@ -33,6 +33,45 @@ fn c<R: Real>(x: f32) -> R {
     R::splat(x)
 }
 
+/// `Σ a_i·x^i` by Estrin's scheme: the pairs `a_2i + a_2i+1·x` combined with
+/// `x²`, `x⁴`, … as a tree, so its chain of dependent operations is about
+/// log₂ N multiply-adds long instead of Horner's N (the sand update's time is
+/// bound by such chains, not by its count of operations).
+#[inline(always)]
+fn poly<R: Real, const N: usize>(x: R, a: [f32; N]) -> R {
+    let mut t = [c::<R>(0.0); N];
+    let mut n = 0;
+    let mut i = 0;
+    while i < N {
+        t[n] = if i + 1 < N {
+            c::<R>(a[i]) + c::<R>(a[i + 1]) * x
+        } else {
+            c(a[i])
+        };
+        n += 1;
+        i += 2;
+    }
+    let mut xp = x * x;
+    while n > 1 {
+        let mut m = 0;
+        let mut i = 0;
+        while i < n {
+            t[m] = if i + 1 < n {
+                t[i] + t[i + 1] * xp
+            } else {
+                t[i]
+            };
+            m += 1;
+            i += 2;
+        }
+        n = m;
+        if n > 1 {
+            xp = xp * xp;
+        }
+    }
+    t[0]
+}
+
 /// Natural logarithm of a positive normal `x` (NaN for `x ≤ 0`, NaN and +∞).
 #[inline(always)]
 pub(crate) fn ln<R: Real>(x: R) -> R {
@@ -40,9 +79,7 @@ pub(crate) fn ln<R: Real>(x: R) -> R {
     let s = (m - c(1.0)) / (m + c(1.0));
     let z = s * s;
     // 2·atanh(s) = 2s·(1 + z/3 + z²/5 + …); |s| ≤ 0.172, so z⁵/11 < 1e-9
-    let series = c::<R>(2.0)
-        + z * (c::<R>(2.0 / 3.0)
-            + z * (c::<R>(2.0 / 5.0) + z * (c::<R>(2.0 / 7.0) + z * c(2.0 / 9.0))));
+    let series = poly(z, [2.0, 2.0 / 3.0, 2.0 / 5.0, 2.0 / 7.0, 2.0 / 9.0]);
     let r = e * c(LN2_HI) + (s * series + e * c(LN2_LO));
     // NaN and +∞ give NaN (adding 0 changes no bit)
     R::select(x.gt(c(0.0)), r + x.zero_if_finite(), c(f32::NAN))
@@ -76,10 +113,17 @@ fn reduce<R: Real>(x: R) -> (R, R) {
 /// `e^r − 1 − r` for `|r| ≤ ln 2 / 2` (Taylor to r⁷: error below 6e-9·|r|).
 #[inline(always)]
 fn exp_m1_tail<R: Real>(r: R) -> R {
-    let p = c::<R>(1.0 / 2.0)
-        + r * (c::<R>(1.0 / 6.0)
-            + r * (c::<R>(1.0 / 24.0)
-                + r * (c::<R>(1.0 / 120.0) + r * (c::<R>(1.0 / 720.0) + r * c(1.0 / 5040.0)))));
+    let p = poly(
+        r,
+        [
+            1.0 / 2.0,
+            1.0 / 6.0,
+            1.0 / 24.0,
+            1.0 / 120.0,
+            1.0 / 720.0,
+            1.0 / 5040.0,
+        ],
+    );
     r * r * p
 }
 
@@ -97,48 +141,28 @@ pub(crate) fn exp_m1<R: Real>(x: R) -> R {
     two_k * (r + exp_m1_tail(r)) + (two_k - c(1.0))
 }
 
-/// `asin x` for `|x| ≤ ½`: `x + x·z·P(z)`, `z = x²`.
+/// `cos(⅔·acos u)` for `u ∈ [0, 1]`: a polynomial of degree 8 (least
+/// squares at Chebyshev nodes, error 3.3e-9). It gives the trigonometric
+/// solution of a cubic without `acos` and `cos`:
+/// `cos(acos(r)/3) = cos(⅔·acos √((1 + r)/2))`. The function is analytic on
+/// [0, 1] (near `u = 1`, `acos u ∝ √(1 − u)` and cosine is even), so a low
+/// degree suffices.
 #[inline(always)]
-fn asin_small<R: Real>(x: R) -> R {
-    let z = x * x;
-    let p = c::<R>(0.166_667_54)
-        + z * (c::<R>(0.074_952_98)
-            + z * (c::<R>(0.045_469_19) + z * (c::<R>(0.024_188_65) + z * c(0.042_147_364))));
-    x + x * z * p
-}
-
-/// `acos x` in [0, π] for `x ∈ [−1, 1]` (NaN outside).
-#[inline(always)]
-pub(crate) fn acos<R: Real>(x: R) -> R {
-    let big = x.abs().gt(c(0.5));
-    let w = R::select(big, ((c::<R>(1.0) - x.abs()) * c(0.5)).sqrt(), x);
-    let s = asin_small(w);
-    let two_s = c::<R>(2.0) * s;
-    R::select(
-        big,
-        R::select(x.gt(c(0.0)), two_s, c::<R>(std::f32::consts::PI) - two_s),
-        c::<R>(std::f32::consts::FRAC_PI_2) - s,
+pub(crate) fn cos_two_thirds_acos<R: Real>(u: R) -> R {
+    poly(
+        u,
+        [
+            0.5,
+            0.577_349_7,
+            -0.111_095_68,
+            0.053_288_657,
+            -0.031_961_296,
+            0.019_675_719,
+            -0.010_325_493,
+            0.003_707_686_4,
+            -0.000_639_314_36,
+        ],
     )
-}
-
-/// `(cos φ, sin φ)` for `φ ∈ [0, π/3]` (Taylor to φ¹² and φ¹¹: error below
-/// 3e-10).
-#[inline(always)]
-pub(crate) fn cos_sin_small<R: Real>(phi: R) -> (R, R) {
-    let z = phi * phi;
-    let cos = c::<R>(1.0)
-        - z * (c::<R>(1.0 / 2.0)
-            - z * (c::<R>(1.0 / 24.0)
-                - z * (c::<R>(1.0 / 720.0)
-                    - z * (c::<R>(1.0 / 40_320.0)
-                        - z * (c::<R>(1.0 / 3_628_800.0) - z * c(1.0 / 479_001_600.0))))));
-    let sin = phi
-        * (c::<R>(1.0)
-            - z * (c::<R>(1.0 / 6.0)
-                - z * (c::<R>(1.0 / 120.0)
-                    - z * (c::<R>(1.0 / 5040.0)
-                        - z * (c::<R>(1.0 / 362_880.0) - z * c(1.0 / 39_916_800.0))))));
-    (cos, sin)
 }
 
 #[cfg(test)]
@@ -192,26 +216,16 @@ mod tests {
             f64::exp_m1,
             0.0,
         );
-        let e_acos = worst(lin_grid(-1.0, 1.0, n), acos::<f32>, f64::acos, 0.0);
-        let near_pm1 = log_grid(1e-7, 0.1, n).flat_map(|d| [1.0 - d, -1.0 + d]);
-        let e_acos1 = worst(near_pm1, acos::<f32>, f64::acos, 0.0);
-        let pi3 = std::f32::consts::FRAC_PI_3;
-        let e_cos = worst(
-            lin_grid(0.0, pi3, n),
-            |x| cos_sin_small::<f32>(x).0,
-            f64::cos,
-            0.0,
-        );
-        let e_sin = worst(
-            lin_grid(1e-6, pi3, n),
-            |x| cos_sin_small::<f32>(x).1,
-            f64::sin,
+        let cos_2_3_acos = |u: f64| (2.0 / 3.0 * u.acos()).cos();
+        let e_c23 = worst(
+            lin_grid(0.0, 1.0, n).chain(log_grid(1e-7, 0.1, n).map(|d| 1.0 - d)),
+            cos_two_thirds_acos::<f32>,
+            cos_2_3_acos,
             0.0,
         );
         eprintln!(
             "ulps: ln {e_ln:.2} (near 1: {e_ln1:.2}), ln_1p {e_ln1p:.2}, exp {e_exp:.2}, \
-             exp_m1 {e_expm1:.2} (small: {e_expm1_small:.2}), acos {e_acos:.2} (near ±1: {e_acos1:.2}), \
-             cos {e_cos:.2}, sin {e_sin:.2}"
+             exp_m1 {e_expm1:.2} (small: {e_expm1_small:.2}), cos(2/3 acos) {e_c23:.2}"
         );
         for (name, e, bound) in [
             ("ln", e_ln, 2.0),
@@ -220,10 +234,7 @@ mod tests {
             ("exp", e_exp, 2.0),
             ("exp_m1", e_expm1, 3.0),
             ("exp_m1 small", e_expm1_small, 3.0),
-            ("acos", e_acos, 3.0),
-            ("acos near ±1", e_acos1, 3.0),
-            ("cos", e_cos, 2.0),
-            ("sin", e_sin, 2.0),
+            ("cos(2/3 acos)", e_c23, 3.0),
         ] {
             assert!(e <= bound, "{name}: {e} ulps > {bound}");
         }
@@ -244,7 +255,7 @@ mod tests {
                 (ln_1p, ln_1p),
                 (exp, exp),
                 (exp_m1, exp_m1),
-                (acos, acos),
+                (cos_two_thirds_acos, cos_two_thirds_acos),
             ];
             for (f8, f1) in fs {
                 let out = f8(v);
@@ -256,29 +267,20 @@ mod tests {
                     );
                 }
             }
-            let (c8, s8) = cos_sin_small(v);
-            for l in 0..LANES {
-                let (c1, s1) = cos_sin_small(chunk[l]);
-                assert_eq!(
-                    (c8.0[l].to_bits(), s8.0[l].to_bits()),
-                    (c1.to_bits(), s1.to_bits())
-                );
-            }
         }
     }
 
     /// NaN in gives NaN out; out-of-domain arguments give NaN; saturation.
     #[test]
     fn nan_and_domain() {
-        for f in [ln::<f32>, ln_1p, exp, exp_m1, acos] {
+        for f in [ln::<f32>, ln_1p, exp, exp_m1, cos_two_thirds_acos] {
             assert!(f(f32::NAN).is_nan());
         }
         assert!(ln(0.0).is_nan() && ln(-1.0).is_nan() && ln(f32::INFINITY).is_nan());
-        assert!(acos(1.5).is_nan() && acos(-1.5).is_nan());
         assert_eq!(ln(1.0), 0.0);
         assert_eq!(exp(0.0), 1.0);
         assert_eq!(exp_m1(0.0), 0.0);
-        assert_eq!(acos(1.0), 0.0);
+        assert_eq!(cos_two_thirds_acos(0.0f32), 0.5);
         assert!(exp(1000.0).is_finite() && exp(-1000.0) > 0.0);
         assert_eq!(exp_m1(-1000.0), -1.0);
     }
