@@ -20,7 +20,7 @@
 //! The sand update is compiled twice too, as its own functions
 //! (`material::sand::SandBatch::run`): it updates eight particles at once in
 //! SIMD lanes, and the frame loop calls it once per eight sand particles.
-//! [`x86_64_v3!`] marks a function as the x86-64-v3 copy.
+//! The crate-private macro `x86_64_v3!` marks a function as the x86-64-v3 copy.
 //!
 //! The environment variable `HYBRIDMPM_ISA=baseline` (read when a solver is
 //! made) forces the portable copy, e.g. to compare the two or to rule the

@@ -48,6 +48,11 @@ pub(crate) trait Real:
     }
     /// Whether `m` holds in some lane.
     fn any(m: Self::Mask) -> bool;
+    /// Whether `m` holds in every lane.
+    #[inline(always)]
+    fn all(m: Self::Mask) -> bool {
+        !Self::any(Self::not(m))
+    }
     /// `a_num/a_den` where `m` holds, else `b_num/b_den`, with one division.
     #[inline(always)]
     fn select_div(m: Self::Mask, a_num: Self, a_den: Self, b_num: Self, b_den: Self) -> Self {
@@ -335,6 +340,7 @@ mod tests {
             if x < y { x / y } else { y / x }
         });
         assert!(F8::any(a.lt(b)) && !F8::any(a.lt(F8::splat(f32::NEG_INFINITY))));
+        assert!(!F8::all(a.lt(b)) && F8::all(F8::splat(1.0).gt(F8::splat(0.0))));
         let both = F8::and(a.gt(b), F8::not(a.lt(F8::splat(0.0))));
         same(F8::select(both, a, b), &|x, y| {
             if x > y && !(x < 0.0) { x } else { y }
