@@ -263,7 +263,8 @@ def markdown(r):
         f"- date: {r['date']}, commit {r['commit']}",
         f"- machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}; shared and noisy (±30%): compare only within one run",
         f'- frame loop: the copy compiled for {m.get("isa", "baseline")} (docs/engine.md, "Two compiled copies")',
-        f"- {r['frames']} timed frames after 5 warm-up frames; a frame is 2.5 ms of simulated time",
+        f"- {r['frames']} timed frames after 5 warm-up frames; a frame is 2.5 ms of simulated time;"
+        f" every case the lowest median of {r.get('repeats', 1)} repeats (the standard scenes taken in turn)",
         "",
         "## Standard scenes",
         "",
@@ -338,20 +339,31 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer frames and cases")
     ap.add_argument("--taichi", action="store_true", help="also time benchmarks/taichi_peer.py back to back")
-    ap.add_argument("--repeats", type=int, default=3, help="alternations of ours and the peer per case")
+    ap.add_argument(
+        "--repeats", type=int, default=5, help="repeats of every case (the standard scenes in turn; ours and the peer alternated); each keeps its lowest median"
+    )
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--out", default="benchmarks/results")
     args = ap.parse_args()
     frames = 15 if args.quick else args.frames
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for name, spec in SCENES.items():
-        for threads in (1, 2):
-            sim = make(*spec, threads)
-            med, p95 = time_frames(sim, frames)
-            rows.append(
-                {
+    # the standard scenes taken in turn `repeats` times (a slow moment of the
+    # machine then hits one repeat of several cases, not every repeat of one);
+    # each case keeps its lowest median, as the peer rows do
+    best = {}
+    for rep in range(args.repeats):
+        for name, spec in SCENES.items():
+            for threads in (1, 2):
+                sim = make(*spec, threads)
+                med, p95 = time_frames(sim, frames)
+                print(
+                    f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep  (repeat {rep + 1})",
+                    flush=True,
+                )
+                if (name, threads) in best and best[name, threads]["ms_per_frame"] <= med:
+                    continue
+                best[name, threads] = {
                     "scene": name,
                     "threads": threads,
                     "particles": sim.particles.num_fluid,
@@ -361,11 +373,7 @@ def main():
                     "us_per_substep": med * 1e3 / spec[5],
                     "team_share": team_share(sim),
                 }
-            )
-            print(
-                f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep",
-                flush=True,
-            )
+    rows = list(best.values())
 
     # at least 20 frames: a solver's first frames measure both ways of running (see docs/engine.md)
     scaling_rows = scaling(max(20, frames // 2), args.quick)
@@ -388,6 +396,7 @@ def main():
         "commit": git_commit(),
         "command": " ".join(["python"] + sys.argv),
         "frames": frames,
+        "repeats": args.repeats,
         "rows": rows,
         "scaling": scaling_rows,
         "targets": targets(rows),
