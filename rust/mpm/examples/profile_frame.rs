@@ -9,7 +9,8 @@ fn run<const D: usize>(
     n_grid: usize,
     origin: [f32; D],
     side: usize,
-    mat: Material,
+    // (left half, right half) of the block along x
+    mats: (Material, Material),
     substeps: usize,
     threads: usize,
     frames: usize,
@@ -24,8 +25,13 @@ fn run<const D: usize>(
     };
     let dx = p.dx();
     let mut s = Solver::new(p, vec![]).unwrap();
-    s.set_particles(lattice(origin, side, dx / 2.0, mat, 1000.0))
-        .unwrap();
+    let mut ps = lattice(origin, side, dx / 2.0, mats.0, 1000.0);
+    // split at the block's middle (water_sand2d in benchmarks/bench_mpm.py)
+    let mid = origin[0] + side as f32 * dx / 4.0;
+    for q in ps.iter_mut().filter(|q| q.x[0] >= mid) {
+        q.material = mats.1;
+    }
+    s.set_particles(ps).unwrap();
     for _ in 0..5 {
         s.step_frame(2.5e-3).unwrap();
     }
@@ -68,14 +74,47 @@ fn main() {
     let threads: usize = a.get(2).and_then(|s| s.parse().ok()).unwrap_or(1);
     let frames: usize = a.get(3).and_then(|s| s.parse().ok()).unwrap_or(100);
     match scene {
-        "water2d" => run::<2>(128, [0.1, 0.1], 64, Material::Water, 16, threads, frames),
-        "sand2d" => run::<2>(128, [0.1, 0.1], 64, Material::Sand, 16, threads, frames),
-        "water3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Water, 8, threads, frames),
+        "water2d" => run::<2>(
+            128,
+            [0.1, 0.1],
+            64,
+            (Material::Water, Material::Water),
+            16,
+            threads,
+            frames,
+        ),
+        "water_sand2d" => run::<2>(
+            128,
+            [0.1, 0.1],
+            64,
+            (Material::Water, Material::Sand),
+            16,
+            threads,
+            frames,
+        ),
+        "sand2d" => run::<2>(
+            128,
+            [0.1, 0.1],
+            64,
+            (Material::Sand, Material::Sand),
+            16,
+            threads,
+            frames,
+        ),
+        "water3d" => run::<3>(
+            64,
+            [0.3, 0.1, 0.3],
+            16,
+            (Material::Water, Material::Water),
+            8,
+            threads,
+            frames,
+        ),
         "water3d_128" => run::<3>(
             128,
             [0.3, 0.1, 0.3],
             16,
-            Material::Water,
+            (Material::Water, Material::Water),
             16,
             threads,
             frames,
@@ -84,12 +123,20 @@ fn main() {
             64,
             [0.25, 0.1, 0.25],
             32,
-            Material::Water,
+            (Material::Water, Material::Water),
             8,
             threads,
             frames,
         ),
-        "sand3d" => run::<3>(64, [0.3, 0.1, 0.3], 16, Material::Sand, 8, threads, frames),
+        "sand3d" => run::<3>(
+            64,
+            [0.3, 0.1, 0.3],
+            16,
+            (Material::Sand, Material::Sand),
+            8,
+            threads,
+            frames,
+        ),
         _ => eprintln!("unknown scene"),
     }
 }

@@ -26,6 +26,7 @@ mod material;
 pub mod params;
 pub mod particles;
 pub mod solver;
+mod v4;
 
 pub use collider::{Collider, Shape};
 pub use dim::{Dim, DimOps};

@@ -26,7 +26,7 @@
 
 use nalgebra::{SMatrix, SVector};
 
-use super::grid::{EMPTY, add4, fma4, fma4_nonzero, unflatten};
+use super::grid::{EMPTY, unflatten};
 use super::team::RawSlice;
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
@@ -125,38 +125,7 @@ where
             let cell = &cells[slot];
             let (fx, w) = weights::<D>(cell);
             let base_idx = cell.pad_off as usize;
-            let mut acc_v = [0.0f32; 4];
-            let mut acc_b = [[0.0f32; 4]; D];
-            let nodes = &patch[base_idx..];
-            let w_last = w[D - 1];
-            Dim::<D>::stencil_rows(
-                &w,
-                &st.pad_stride,
-                #[inline(always)]
-                |off, w_outer, o| {
-                    let row = &nodes[off..off + 3];
-                    // Σ_k w_k g_k and Σ_k k·w_k g_k along the row
-                    let mut sum = [0.0f32; 4];
-                    let mut sum_k = [0.0f32; 4];
-                    // (the k = 0 term of sum_k is a zero: left out, which
-                    // changes no bit of a finite sum, see `fma4_nonzero`)
-                    fma4(&mut sum, w_last[0], &row[0]);
-                    for k in 1..3 {
-                        let wk = w_last[k];
-                        fma4(&mut sum, wk, &row[k]);
-                        fma4(&mut sum_k, wk * k as f32, &row[k]);
-                    }
-                    for l in 0..4 {
-                        sum[l] *= w_outer;
-                        sum_k[l] *= w_outer;
-                    }
-                    add4(&mut acc_v, &sum);
-                    for c in 0..D - 1 {
-                        fma4_nonzero(&mut acc_b[c], o[c], &sum);
-                    }
-                    add4(&mut acc_b[D - 1], &sum_k);
-                },
-            );
+            let (acc_v, acc_b) = Dim::<D>::g2p_sums(&patch[base_idx..], &st.pad_stride, &w);
             // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
             let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
             let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| {

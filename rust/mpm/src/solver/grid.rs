@@ -388,30 +388,7 @@ where
     }
 }
 
-/// `acc += s·v` on 4 lanes (compiles to one vector FMA/mul-add).
-#[inline(always)]
-pub(super) fn fma4(acc: &mut [f32; 4], s: f32, v: &[f32; 4]) {
-    for k in 0..4 {
-        acc[k] += s * v[k];
-    }
-}
-
-/// [`fma4`] that skips `s = 0` (a stencil offset: a constant once the
-/// stencil loops are unrolled, so the test costs nothing). Adding `0·v` to a
-/// finite sum can only change the sign of a zero, and every such sum here
-/// ends up added to a node or particle sum that starts at `+0.0`, where a
-/// zero's sign is lost (`+0 + −0 = +0`): no result changes by a bit (the
-/// golden hashes check this). A non-finite `v` still reaches the result
-/// through other terms: in p2g a non-finite affine column makes the
-/// particle's base vector non-finite in the same lane; in g2p a non-finite
-/// node reaches the velocity sum, and so the substep's NaN probe.
-#[inline(always)]
-pub(super) fn fma4_nonzero(acc: &mut [f32; 4], s: f32, v: &[f32; 4]) {
-    if s != 0.0 {
-        fma4(acc, s, v);
-    }
-}
-
+/// `acc += v` on 4 lanes.
 #[inline(always)]
 pub(super) fn add4(acc: &mut [f32; 4], v: &[f32; 4]) {
     for k in 0..4 {

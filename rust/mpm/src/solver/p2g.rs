@@ -22,9 +22,9 @@
 //! The frame loop (`frame.rs`) hands the blocks to the team's threads.
 
 use super::Solver;
-use super::grid::{add4, fma4, fma4_nonzero};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::weights;
+use crate::v4::V4;
 
 impl<const D: usize> Solver<D>
 where
@@ -63,10 +63,11 @@ where
                     cols[c][1 + r] = a_mat[(r, c)];
                 }
             }
-            // Opaque to the optimiser: it would otherwise track the lanes
-            // known to be zero and split the 4-wide updates below into
-            // shuffles and scalar operations (same results, more instructions).
-            let (base4, cols) = std::hint::black_box((base4, cols));
+            // 4-lane values (`V4`): as `[f32; 4]` loops the optimiser tracks
+            // the lanes known to be zero and splits the updates below into
+            // shuffles and scalar operations (same results, more instructions)
+            let base4 = V4::load(&base4);
+            let cols = cols.map(|c| V4::load(&c));
             let nodes = &mut buf[base_idx..];
             let w_last = w[D - 1];
             let last = cols[D - 1];
@@ -77,13 +78,20 @@ where
                 |off, w_outer, o| {
                     let mut contrib = base4;
                     for c in 0..D - 1 {
-                        fma4_nonzero(&mut contrib, o[c], &cols[c]);
+                        // a zero offset's term (a constant once the loops are
+                        // unrolled) is left out: adding 0·v to a finite sum
+                        // changes at most a zero's sign, lost when the sum
+                        // reaches a node (which starts at +0); a non-finite
+                        // column makes `base4` non-finite too, in the same lane
+                        if o[c] != 0.0 {
+                            contrib = contrib + o[c] * cols[c];
+                        }
                     }
                     // the row's 3 nodes are contiguous (last stride 1)
                     let row = &mut nodes[off..off + 3];
                     for k in 0..3 {
-                        fma4(&mut row[k], w_outer * w_last[k], &contrib);
-                        add4(&mut contrib, &last);
+                        row[k] = (V4::load(&row[k]) + (w_outer * w_last[k]) * contrib).to_array();
+                        contrib = contrib + last;
                     }
                 },
             );
