@@ -85,7 +85,10 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// The first probe comes at attempt `FIRST_PROBE`; after a probe that
 /// confirms the choice the next one waits twice as long (from `GAP` up to
 /// `MAX_GAP` attempts: a probe of the slower mode costs time), after one
-/// that changes it, `GAP`; and when the running mode's cost rises past
+/// that changes it, `GAP` or, if the solver has made fewer attempts, that
+/// many (on this VM the pool's first team frames after a while alone took
+/// 5 ms where the next took 1, long enough to send a new solver's team alone
+/// for `GAP` frames; `a_choice_made_while_the_pool_wakes_is_checked_soon`); and when the running mode's cost rises past
 /// `DEGRADED` times what it was at the last probe (the machine got busy),
 /// the probe comes at once. Results are the same in both modes.
 #[derive(Clone, Copy, Debug, Default)]
@@ -100,8 +103,14 @@ pub(super) struct ModeChoice {
     next_probe: u64,
     /// Attempts between the last probe and the next (0: `GAP`).
     gap: u64,
-    /// Attempts left in the probe under way (0: none), and its mode.
+    /// Counted attempts left in the probe under way (0: none), and its mode.
     probe_left: u8,
+    /// The warm-up under way (a solver's first attempts, a probe's, or the
+    /// team's after attempts alone): its attempts and wall seconds so far
+    /// (`None`: none under way).
+    warm: Option<(u8, f64)>,
+    /// Whether the last attempt ran on the team.
+    last_team: bool,
     probed_team: bool,
     /// Attempts run `[alone, by the team]` (probes included; all alone on a
     /// pool of one thread): [`Solver::mode_runs`].
@@ -118,6 +127,14 @@ const FIRST_PROBE: u64 = 8;
 /// (the README's hybrid run, after its network steps).
 const PROBE_LEN: u8 = 4;
 const PROBE_WARMUP: u8 = 2;
+/// A warm-up (the first `SKIP` attempts of a solver, the first
+/// `PROBE_WARMUP` of a probe, the first `PROBE_WARMUP` of the team's after
+/// attempts alone) goes on until it has lasted this long [s], up to
+/// `WARMUP_MAX` attempts: on this VM the pool's second core, idle for a
+/// while, took 10–40 ms to come back (water3d, 4k particles, new solvers:
+/// two to seven team frames of 5 ms, then 1.1 ms; alone 1.9 ms).
+const WAKE_SECS: f64 = 0.05;
+const WARMUP_MAX: u8 = 8;
 const GAP: u64 = 50;
 const MAX_GAP: u64 = 400;
 const SKIP: u64 = 2;
@@ -175,35 +192,58 @@ impl ModeChoice {
         }
     }
 
-    /// Record an attempt's cost per particle-substep [s] (the mode and
-    /// probe flag that `choose` gave it).
-    fn record(&mut self, team: bool, probe: bool, seconds_per_item: f64) {
+    /// Record an attempt's cost per particle-substep [s] and its wall time
+    /// [s] (the mode and probe flag that `choose` gave it).
+    fn record(&mut self, team: bool, probe: bool, seconds_per_item: f64, seconds: f64) {
         let m = team as usize;
+        if self.attempts == 0 {
+            self.warm = Some((0, 0.0));
+        }
         let starts = probe && self.probe_left == 0;
         if starts {
             // a probe starts its mode's window afresh (older samples are stale)
             self.recent[m] = [0.0; WINDOW];
-            self.probe_left = PROBE_LEN;
+            self.probe_left = PROBE_LEN - PROBE_WARMUP;
             self.probed_team = team;
         }
-        let warmup = probe && self.probe_left > PROBE_LEN - PROBE_WARMUP;
-        if !warmup && self.attempts >= SKIP {
+        if starts || (team && !self.last_team && self.attempts > 0) {
+            // the pool has been idle if the thread ran alone: wake it first
+            self.warm = Some((0, 0.0));
+        }
+        self.last_team = team;
+        let least = if self.attempts < SKIP {
+            SKIP as u8
+        } else {
+            PROBE_WARMUP
+        };
+        let warmup = match self.warm {
+            Some((n, secs)) => n < least || (secs < WAKE_SECS && n < WARMUP_MAX),
+            None => false,
+        };
+        self.warm = match self.warm {
+            Some((n, secs)) if warmup => Some((n + 1, secs + seconds)),
+            _ => None,
+        };
+        if !warmup {
             let w = &mut self.recent[m];
             w.rotate_right(1);
             w[0] = seconds_per_item;
         }
-        let probe_ends = probe && {
+        let probe_ends = probe && !warmup && {
             self.probe_left -= 1;
             self.probe_left == 0
         };
         self.attempts += 1;
         let gap = if self.gap == 0 { GAP } else { self.gap };
         if probe_ends {
-            // the probe lost: wait longer for the next one; it won: soon
+            // the probe lost: wait longer for the next one; it won: soon,
+            // and sooner in a solver's first frames (a choice made while the
+            // pool was waking up is checked again after as many attempts as
+            // it was made after)
             self.gap = if self.best_is_team() != team {
                 (2 * gap).min(MAX_GAP)
             } else {
-                GAP
+                GAP.min(self.attempts)
             };
             self.next_probe = self.attempts + self.gap;
             self.baseline = [self.cost(false), self.cost(true)];
@@ -283,8 +323,15 @@ where
             .expect("the last substep leaves the frame's result");
         if pool_threads > 1 {
             let items = (n_sub * self.particles.len()).max(1) as f64;
-            self.mode
-                .record(use_team, probe, started.elapsed().as_secs_f64() / items);
+            let seconds = started.elapsed().as_secs_f64();
+            self.mode.record(use_team, probe, seconds / items, seconds);
+            if std::env::var_os("HMPM_MODE_DEBUG").is_some() {
+                eprintln!(
+                    "team {use_team} probe {probe} {:.3} ms {:?}",
+                    seconds * 1e3,
+                    self.mode
+                );
+            }
         }
         if self.profile && use_team {
             let (rounds, parks) = team.barrier_stats();
@@ -743,9 +790,53 @@ mod tests {
         for _ in 0..n {
             let (t, probe) = m.choose();
             probes += probe as usize;
-            m.record(t, probe, if t { team } else { solo });
+            let c = if t { team } else { solo };
+            m.record(t, probe, c, c);
         }
         probes
+    }
+
+    #[test]
+    fn the_frames_of_a_waking_pool_are_not_counted() {
+        // the team's first five frames take 5 ms (the pool's second core
+        // comes back), and its first two after frames alone, then 1.1 ms;
+        // alone 1.9 ms: the thread alone runs only in probes
+        let mut m = ModeChoice::default();
+        let (mut team_frames, mut since_alone, mut alone) = (0, 0, 0);
+        for _ in 0..200 {
+            let (t, probe) = m.choose();
+            let c = if t {
+                team_frames += 1;
+                since_alone += 1;
+                if team_frames <= 5 || since_alone <= 2 {
+                    0.005
+                } else {
+                    0.0011
+                }
+            } else {
+                alone += !probe as usize;
+                since_alone = 0;
+                0.0019
+            };
+            m.record(t, probe, c, c);
+        }
+        assert_eq!(m.choose(), (true, false));
+        assert_eq!(alone, 0, "attempts alone outside probes");
+    }
+
+    #[test]
+    fn a_choice_made_while_the_pool_wakes_is_checked_soon() {
+        // the team's first frames are slow (the pool wakes), then it is
+        // twice as fast as the thread alone: the thread alone wins the first
+        // probe, and the team is back within about as many attempts again
+        let mut m = ModeChoice::default();
+        attempts(&mut m, FIRST_PROBE as usize, 2.0, 5.0);
+        attempts(&mut m, PROBE_LEN as usize, 2.0, 1.0);
+        assert_eq!(m.choose(), (false, false));
+        let n = (FIRST_PROBE as usize + PROBE_LEN as usize) + PROBE_LEN as usize;
+        attempts(&mut m, n, 2.0, 1.0);
+        assert_eq!(m.choose(), (true, false));
+        assert!(m.attempts < GAP, "{}", m.attempts);
     }
 
     #[test]
@@ -754,14 +845,14 @@ mod tests {
         // nothing measured: the team; the first attempts are not counted
         for _ in 0..SKIP {
             assert_eq!(m.choose(), (true, false));
-            m.record(true, false, 100.0);
+            m.record(true, false, 100.0, 100.0);
         }
         assert_eq!((m.cost(false), m.cost(true)), (0.0, 0.0));
         // the team's cost: the median of its recent attempts (one slow
         // frame does not count)
         for cost in [1.5, 0.5, 9.0, 0.9, 1.0, 1.0] {
             assert_eq!(m.choose(), (true, false));
-            m.record(true, false, cost);
+            m.record(true, false, cost, cost);
         }
         assert_eq!(m.cost(true), 1.0);
         // four attempts probe the thread alone (the first two, which wake
@@ -769,7 +860,7 @@ mod tests {
         // it does not win
         for cost in [50.0, 20.0, 0.9, 1.0] {
             assert_eq!(m.choose(), (false, true));
-            m.record(false, true, cost);
+            m.record(false, true, cost, cost);
         }
         assert_eq!(m.cost(false), 0.95);
         assert_eq!(m.choose(), (true, false));
@@ -781,7 +872,8 @@ mod tests {
             if probe && m.probe_left == 0 {
                 starts.push(m.attempts);
             }
-            m.record(t, probe, if t { 1.0 } else { 2.0 });
+            let c = if t { 1.0 } else { 2.0 };
+            m.record(t, probe, c, c);
         }
         let len = PROBE_LEN as u64;
         assert_eq!(starts[0], FIRST_PROBE + len + 2 * GAP);
