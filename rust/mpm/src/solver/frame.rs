@@ -127,10 +127,10 @@ const FIRST_PROBE: u64 = 8;
 /// (the README's hybrid run, after its network steps).
 const PROBE_LEN: u8 = 4;
 const PROBE_WARMUP: u8 = 2;
-/// A warm-up (the first `SKIP` attempts of a solver, the first
-/// `PROBE_WARMUP` of a probe, the first `PROBE_WARMUP` of the team's after
-/// attempts alone) goes on until it has lasted this long [s], up to
-/// `WARMUP_MAX` attempts: on this VM the pool's second core, idle for a
+/// A warm-up of the team (its first `SKIP` attempts in a solver, the first
+/// `PROBE_WARMUP` of a probe, the first `PROBE_WARMUP` after attempts
+/// alone) goes on until it has lasted this long [s], up to `WARMUP_MAX`
+/// attempts: on this VM the pool's second core, idle for a
 /// while, took 10–40 ms to come back (water3d, 4k particles, new solvers:
 /// two to seven team frames of 5 ms, then 1.1 ms; alone 1.9 ms).
 const WAKE_SECS: f64 = 0.05;
@@ -216,8 +216,10 @@ impl ModeChoice {
         } else {
             PROBE_WARMUP
         };
+        // (only the team's warm-up waits for the pool: the thread alone is
+        // the caller's, already running)
         let warmup = match self.warm {
-            Some((n, secs)) => n < least || (secs < WAKE_SECS && n < WARMUP_MAX),
+            Some((n, secs)) => n < least || (team && secs < WAKE_SECS && n < WARMUP_MAX),
             None => false,
         };
         self.warm = match self.warm {
