@@ -18,8 +18,8 @@
 //! scenes on both and compare the bits (`solver::frame::tests`).
 //!
 //! The sand update is compiled twice too, as its own functions
-//! (`material::sand::SandBatch::run`): it updates eight particles at once in
-//! SIMD lanes, and the frame loop calls it once per eight sand particles.
+//! (`material::sand::SandBatch::run`): it updates sixteen particles at once
+//! in SIMD lanes, and the frame loop calls it once per sixteen sand particles.
 //! The crate-private macro `x86_64_v3!` marks a function as the x86-64-v3 copy.
 //!
 //! The environment variable `HYBRIDMPM_ISA=baseline` (read when a solver is

@@ -1,21 +1,24 @@
-//! One number or eight at once: the arithmetic the sand update is written in
+//! One number or sixteen at once: the arithmetic the sand update is written in
 //! ([`Real`]), so that the same source runs on one particle (`f32`, the
-//! tests) and on eight particles in SIMD registers ([`F8`], g2p's
+//! tests) and on sixteen particles in SIMD registers ([`FL`], g2p's
 //! [`super::sand::SandBatch`]).
 //!
-//! [`F8`]'s operations are loops over its eight lanes that the compiler turns
-//! into single SIMD instructions (AVX2 in the x86-64-v3 copy of the frame
-//! loop, two SSE2 ones in the portable copy, see `crate::isa`). Every lane
-//! does exactly what the `f32` operation does, so a lane of [`F8`] gives the
+//! [`FL`]'s operations are loops over its sixteen lanes that the compiler
+//! turns into SIMD instructions (two AVX2 ones in the x86-64-v3 copy of the
+//! frame loop, four SSE2 ones in the portable copy, see `crate::isa`).
+//! Sixteen lanes rather than eight (one AVX2 register): two independent
+//! chains of dependent operations to interleave, which made sand2d's frame
+//! 6% faster and sand3d's 2% (docs/engine.md). Every lane
+//! does exactly what the `f32` operation does, so a lane of [`FL`] gives the
 //! bits of the `f32` computation.
 
 use std::ops::{Add, Div, Mul, Neg, Sub};
 
-/// Lanes of an [`F8`].
-pub(crate) const LANES: usize = 8;
+/// Lanes of an [`FL`].
+pub(crate) const LANES: usize = 16;
 
 /// Floating-point arithmetic with comparisons as masks and `select` instead
-/// of branches, implemented by `f32` and by [`F8`] lane by lane.
+/// of branches, implemented by `f32` and by [`FL`] lane by lane.
 pub(crate) trait Real:
     Copy
     + Add<Output = Self>
@@ -139,50 +142,50 @@ impl Real for f32 {
     }
 }
 
-/// Eight `f32` lanes (32-byte aligned: one AVX2 register).
+/// Sixteen `f32` lanes (32-byte aligned: two AVX2 registers).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C, align(32))]
-pub(crate) struct F8(pub(crate) [f32; LANES]);
+pub(crate) struct FL(pub(crate) [f32; LANES]);
 
-/// Eight truth values, one per lane of an [`F8`]: all bits set (−1) for
+/// Sixteen truth values, one per lane of an [`FL`]: all bits set (−1) for
 /// true, 0 for false, as SIMD compares produce them.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(32))]
-pub(crate) struct M8([i32; LANES]);
+pub(crate) struct ML([i32; LANES]);
 
-impl F8 {
+impl FL {
     #[inline(always)]
-    fn map(self, f: impl Fn(f32) -> f32) -> F8 {
+    fn map(self, f: impl Fn(f32) -> f32) -> FL {
         let mut r = [0.0; LANES];
         for l in 0..LANES {
             r[l] = f(self.0[l]);
         }
-        F8(r)
+        FL(r)
     }
     #[inline(always)]
-    fn zip(self, o: F8, f: impl Fn(f32, f32) -> f32) -> F8 {
+    fn zip(self, o: FL, f: impl Fn(f32, f32) -> f32) -> FL {
         let mut r = [0.0; LANES];
         for l in 0..LANES {
             r[l] = f(self.0[l], o.0[l]);
         }
-        F8(r)
+        FL(r)
     }
     #[inline(always)]
-    fn cmp(self, o: F8, f: impl Fn(f32, f32) -> bool) -> M8 {
+    fn cmp(self, o: FL, f: impl Fn(f32, f32) -> bool) -> ML {
         let mut r = [0; LANES];
         for l in 0..LANES {
             r[l] = -(f(self.0[l], o.0[l]) as i32);
         }
-        M8(r)
+        ML(r)
     }
 }
 
 macro_rules! f8_binop {
     ($trait:ident, $method:ident, $op:tt) => {
-        impl $trait for F8 {
-            type Output = F8;
+        impl $trait for FL {
+            type Output = FL;
             #[inline(always)]
-            fn $method(self, o: F8) -> F8 {
+            fn $method(self, o: FL) -> FL {
                 self.zip(o, |a, b| a $op b)
             }
         }
@@ -193,19 +196,19 @@ f8_binop!(Sub, sub, -);
 f8_binop!(Mul, mul, *);
 f8_binop!(Div, div, /);
 
-impl Neg for F8 {
-    type Output = F8;
+impl Neg for FL {
+    type Output = FL;
     #[inline(always)]
-    fn neg(self) -> F8 {
+    fn neg(self) -> FL {
         self.map(|a| -a)
     }
 }
 
-impl Real for F8 {
-    type Mask = M8;
+impl Real for FL {
+    type Mask = ML;
     #[inline(always)]
     fn splat(x: f32) -> Self {
-        F8([x; LANES])
+        FL([x; LANES])
     }
     #[inline(always)]
     fn sqrt(self) -> Self {
@@ -220,51 +223,51 @@ impl Real for F8 {
         self.zip(o, f32::max)
     }
     #[inline(always)]
-    fn lt(self, o: Self) -> M8 {
+    fn lt(self, o: Self) -> ML {
         self.cmp(o, |a, b| a < b)
     }
     #[inline(always)]
-    fn le(self, o: Self) -> M8 {
+    fn le(self, o: Self) -> ML {
         self.cmp(o, |a, b| a <= b)
     }
     #[inline(always)]
-    fn gt(self, o: Self) -> M8 {
+    fn gt(self, o: Self) -> ML {
         self.cmp(o, |a, b| a > b)
     }
     #[inline(always)]
-    fn ge(self, o: Self) -> M8 {
+    fn ge(self, o: Self) -> ML {
         self.cmp(o, |a, b| a >= b)
     }
     #[inline(always)]
-    fn ne(self, o: Self) -> M8 {
+    fn ne(self, o: Self) -> ML {
         self.cmp(o, |a, b| a != b)
     }
     #[inline(always)]
-    fn and(a: M8, b: M8) -> M8 {
+    fn and(a: ML, b: ML) -> ML {
         let mut r = [0; LANES];
         for l in 0..LANES {
             r[l] = a.0[l] & b.0[l];
         }
-        M8(r)
+        ML(r)
     }
     #[inline(always)]
-    fn not(a: M8) -> M8 {
+    fn not(a: ML) -> ML {
         let mut r = [0; LANES];
         for l in 0..LANES {
             r[l] = !a.0[l];
         }
-        M8(r)
+        ML(r)
     }
     #[inline(always)]
-    fn select(m: M8, a: Self, b: Self) -> Self {
+    fn select(m: ML, a: Self, b: Self) -> Self {
         let mut r = [0.0; LANES];
         for l in 0..LANES {
             r[l] = if m.0[l] != 0 { a.0[l] } else { b.0[l] };
         }
-        F8(r)
+        FL(r)
     }
     #[inline(always)]
-    fn any(m: M8) -> bool {
+    fn any(m: ML) -> bool {
         let mut r = 0;
         for l in 0..LANES {
             r |= m.0[l];
@@ -277,7 +280,7 @@ impl Real for F8 {
         for l in 0..LANES {
             (e[l], m[l]) = self.0[l].split_exponent();
         }
-        (F8(e), F8(m))
+        (FL(e), FL(m))
     }
     #[inline(always)]
     fn pow2_from_magic(self) -> Self {
@@ -289,7 +292,7 @@ impl Real for F8 {
 mod tests {
     use super::*;
 
-    /// Each lane of every `F8` operation gives the bits of the `f32` one,
+    /// Each lane of every `FL` operation gives the bits of the `f32` one,
     /// NaN, ±0 and ±∞ included.
     #[test]
     fn every_lane_is_the_f32_operation() {
@@ -303,11 +306,9 @@ mod tests {
             1e-30,
             3.0e8,
         ];
-        let a = F8(vals);
-        let mut rot = vals;
-        rot.rotate_left(3);
-        let b = F8(rot);
-        let same = |x: F8, f: &dyn Fn(f32, f32) -> f32| {
+        let a = FL(std::array::from_fn(|l| vals[l % vals.len()]));
+        let b = FL(std::array::from_fn(|l| vals[(l + 3) % vals.len()]));
+        let same = |x: FL, f: &dyn Fn(f32, f32) -> f32| {
             for l in 0..LANES {
                 let want = f(a.0[l], b.0[l]);
                 assert!(
@@ -325,27 +326,28 @@ mod tests {
         same(a.sqrt(), &|x, _| x.sqrt());
         same(Real::min(a, b), &|x, y| x.min(y));
         same(Real::max(a, b), &|x, y| x.max(y));
-        same(F8::select(a.lt(b), a, b), &|x, y| if x < y { x } else { y });
-        same(F8::select(a.le(b), a, b), &|x, y| {
+        same(FL::select(a.lt(b), a, b), &|x, y| if x < y { x } else { y });
+        same(FL::select(a.le(b), a, b), &|x, y| {
             if x <= y { x } else { y }
         });
-        same(F8::select(a.gt(b), a, b), &|x, y| if x > y { x } else { y });
-        same(F8::select(a.ge(b), a, b), &|x, y| {
+        same(FL::select(a.gt(b), a, b), &|x, y| if x > y { x } else { y });
+        same(FL::select(a.ge(b), a, b), &|x, y| {
             if x >= y { x } else { y }
         });
-        same(F8::select(a.ne(b), a, b), &|x, y| {
+        same(FL::select(a.ne(b), a, b), &|x, y| {
             if x != y { x } else { y }
         });
-        same(F8::select_div(a.lt(b), a, b, b, a), &|x, y| {
+        same(FL::select_div(a.lt(b), a, b, b, a), &|x, y| {
             if x < y { x / y } else { y / x }
         });
-        assert!(F8::any(a.lt(b)) && !F8::any(a.lt(F8::splat(f32::NEG_INFINITY))));
-        assert!(!F8::all(a.lt(b)) && F8::all(F8::splat(1.0).gt(F8::splat(0.0))));
-        let both = F8::and(a.gt(b), F8::not(a.lt(F8::splat(0.0))));
-        same(F8::select(both, a, b), &|x, y| {
+        assert!(FL::any(a.lt(b)) && !FL::any(a.lt(FL::splat(f32::NEG_INFINITY))));
+        assert!(!FL::all(a.lt(b)) && FL::all(FL::splat(1.0).gt(FL::splat(0.0))));
+        let both = FL::and(a.gt(b), FL::not(a.lt(FL::splat(0.0))));
+        same(FL::select(both, a, b), &|x, y| {
             if x > y && !(x < 0.0) { x } else { y }
         });
-        let pos = F8([1.5, 0.7, 1.41, 1e-12, 3e20, 2.0, 1.0, 0.70710677]);
+        let pos = [1.5, 0.7, 1.41, 1e-12, 3e20, 2.0, 1.0, 0.70710677];
+        let pos = FL(std::array::from_fn(|l| pos[l % pos.len()]));
         let (e, m) = pos.split_exponent();
         for l in 0..LANES {
             let (es, ms) = pos.0[l].split_exponent();

@@ -168,7 +168,7 @@ pub(crate) fn cos_two_thirds_acos<R: Real>(u: R) -> R {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::material::lanes::{F8, LANES};
+    use crate::material::lanes::{FL, LANES};
 
     /// The largest error of `f` against `reference` over `xs`, in units of
     /// f32's epsilon times `max(|reference|, floor)`.
@@ -240,16 +240,16 @@ mod tests {
         }
     }
 
-    /// Each lane of the eight-lane functions gives the bits of the one-lane
+    /// Each lane of the many-lane functions gives the bits of the one-lane
     /// ones (what makes a batched sand update equal to one particle's).
     #[test]
-    fn eight_lanes_give_the_bits_of_one() {
+    fn all_lanes_give_the_bits_of_one() {
         let xs: Vec<f32> = lin_grid(-3.0, 3.0, 8 * 1000)
             .chain(log_grid(1e-12, 1e6, 8 * 1000))
             .collect();
         for chunk in xs.chunks_exact(LANES) {
-            let v = F8(chunk.try_into().unwrap());
-            type Pair = (fn(F8) -> F8, fn(f32) -> f32);
+            let v = FL(chunk.try_into().unwrap());
+            type Pair = (fn(FL) -> FL, fn(f32) -> f32);
             let fs: [Pair; 5] = [
                 (ln, ln),
                 (ln_1p, ln_1p),

@@ -114,7 +114,7 @@ where
             inverted: false,
         };
         let mut vmax2 = 0.0f32;
-        // sand particles' material updates wait in `batch` and run eight at a
+        // sand particles' material updates wait in `batch` and run sixteen at a
         // time (SIMD across particles, see `SandBatch`)
         let mut batch = SandBatch::new();
         for j in 0..outp.len() {
