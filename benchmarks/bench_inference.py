@@ -9,9 +9,12 @@ For every shipped model (``hybridmpm.models``) on a state of its own scene
   ``hybridmpm.neural.compile.STAGES``; graphs of torch's exporter, given with
   ``--baseline``, are grouped by operator type instead), the checks,
   clamping and history update of :class:`~hybridmpm.sim.NeuralSimulator`,
-  and the rest of ``advance()`` (Python overhead: the step timed with the
-  network and the radius graph replaced by their cached results, less the
-  checks);
+  the density relaxation of its prediction (``hybridmpm.graph.relax_density``,
+  with its own neighbour search), and the rest of ``advance()`` (Python
+  overhead: the step timed with the network and the radius graph replaced by
+  their cached results, less the checks and the relaxation); what the step
+  takes beyond the parts is listed as unattributed (the network's inputs
+  built around the ONNX run: the in-edge table, degrees, feeds);
 * **cost per frame**: the network alone (``advance()`` / ``r_t``) against
   MPM at ``r_p`` (``MpmSimulator`` at the model's ``r_p``, ``--mpm-threads``,
   from the frame of the network's state, restored to it at each burst),
@@ -50,7 +53,7 @@ import numpy as np
 
 from hybridmpm.bench.cost import gnn_flops
 from hybridmpm.bench.env import environment
-from hybridmpm.graph import radius_graph
+from hybridmpm.graph import radius_graph, relax_density
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import NeuralModel
 from hybridmpm.neural.compile import STAGES
@@ -140,6 +143,12 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         sim._clip(proposal.predicted)
         np.concatenate([hist[1:], proposal.predicted[None]])
 
+    clipped = sim._clip(proposal.predicted)
+
+    def relaxation() -> None:
+        if sim.relax:
+            relax_density(clipped, sim._movable, model.radius, sim.rest_density, sim.relax)
+
     # the full step from the same state each time: restore it (and the graph the
     # previous step built, which restore drops) before each advance
     state = sim.state()
@@ -196,6 +205,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "radius_graph": lambda: radius_graph(hist[-1], model.radius),
         **{f"onnx_{k}": (lambda s=s, f=f: s.session_for(f).run(None, f)) for (k, s), f in zip(sessions.items(), feeds.values())},
         "checks_clamp_history": checks,
+        "relaxation": relaxation,
         "advance": lambda: step(1),
         "simulator_own": stubbed_step,
         "mpm_rp_frame": mpm_frame,
@@ -210,12 +220,15 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     ms["advance_2t"] -= restore_ms
     ms["simulator_own"] -= restore_ms
     # advance() builds the graph of its prediction (for the next step): one radius graph per step
-    python_ms = ms["simulator_own"] - ms["checks_clamp_history"]
+    python_ms = ms["simulator_own"] - ms["checks_clamp_history"] - ms["relaxation"]
     lat, layers = int(model.meta["latent"]), int(model.meta["layers"])
     flops = gnn_flops(lat, layers, model.dim, n, e, t_in=model.t_in)
     out: dict[str, Any] = {
         "scene": scene, "particles": n, "edges": e, "latent": lat, "layers": layers, "r_t": model.r_t, "r_p": model.r_p,
         "ms": ms, "python_overhead_ms": python_ms, "mflop_step": flops / 1e6,
+        # the step less every part timed: the network's inputs built around the ONNX run
+        # (the in-edge table, degrees, feeds) and what the parts' separate timing misses
+        "unattributed_ms": ms["advance"] - ms["radius_graph"] - ms["onnx_shipped"] - ms["checks_clamp_history"] - ms["relaxation"] - python_ms,
         "gflops_onnx": flops / ms["onnx_shipped"] / 1e6,
         "network_ms_per_frame": ms["advance"] / model.r_t, "mpm_rp_ms_per_frame": ms["mpm_rp_frame"],
         "ratio_network_to_mpm_rp": ms["advance"] / model.r_t / ms["mpm_rp_frame"],
@@ -376,15 +389,15 @@ def _md(res: dict[str, Any]) -> str:
     ]
     lines += ["## Cost per frame (network alone, after warm-up, failure checks on) against MPM at r_p, same run", ""]
     lines += [
-        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | rest of advance() ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | network 2 threads ms/frame | ratio 2 threads | GFLOP/s (ONNX) |"
+        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | relaxation ms | rest of advance() (Python) ms | unattributed ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | network 2 threads ms/frame | ratio 2 threads | GFLOP/s (ONNX) |"
         + (" ONNX speedup vs baseline |" if res["baseline"] else "")
     ]
-    lines += ["|---" * (14 + bool(res["baseline"])) + "|"]
+    lines += ["|---" * (16 + bool(res["baseline"])) + "|"]
     for r in res["scenes"]:
         m = r["ms"]
         row = (
             f"| {r['scene']} | {r['particles']} | {r['edges']} | {m['radius_graph']:.2f} | {m['onnx_shipped']:.2f} | {m['checks_clamp_history']:.2f} | "
-            f"{r['python_overhead_ms']:.2f} | {m['advance']:.2f} | {r['network_ms_per_frame']:.2f} | {r['mpm_rp_ms_per_frame']:.2f} | "
+            f"{m['relaxation']:.2f} | {r['python_overhead_ms']:.2f} | {r['unattributed_ms']:.2f} | {m['advance']:.2f} | {r['network_ms_per_frame']:.2f} | {r['mpm_rp_ms_per_frame']:.2f} | "
             f"{r['ratio_network_to_mpm_rp']:.2f} | {r['network_2t_ms_per_frame']:.2f} | {r['ratio_network_2t_to_mpm_rp']:.2f} | {r['gflops_onnx']:.1f} |"
         )
         if res["baseline"]:
