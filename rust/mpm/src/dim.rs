@@ -52,7 +52,7 @@ pub trait DimOps<const D: usize> {
     /// `w` and `k·w` sums of each row along the last axis, then the same on
     /// those sums along the next axis, and so on; in 3D 116 four-lane
     /// operations, where summing every node's `w_o n_o` and `w_o o_d n_o`
-    /// takes about 200. A non-finite node reaches the first sum (no weight is
+    /// takes about 150. A non-finite node reaches the first sum (no weight is
     /// dropped from it).
     fn g2p_sums(nodes: &[[f32; 4]], stride: &[usize; D], w: &[[f32; 3]; D]) -> G2pSums<D>;
 }
