@@ -55,8 +55,10 @@ mod imp {
     }
 }
 
-#[cfg(not(target_arch = "x86_64"))]
-mod imp {
+/// The portable `V4` (the one elsewhere than x86-64; also compiled for the
+/// tests there, which compare it with the SSE one).
+#[cfg(any(test, not(target_arch = "x86_64")))]
+mod portable {
     #[derive(Clone, Copy, Debug)]
     pub(crate) struct V4([f32; 4]);
 
@@ -87,6 +89,9 @@ mod imp {
         }
     }
 }
+
+#[cfg(not(target_arch = "x86_64"))]
+use portable as imp;
 
 pub(crate) use imp::V4;
 
@@ -137,5 +142,28 @@ mod tests {
         assert_eq!(V4::splat(2.5).to_array(), [2.5; 4]);
         let nan = (V4::load(&[f32::NAN, 0.0, 0.0, 0.0]) * V4::splat(0.0)).to_array();
         assert!(nan[0].is_nan());
+    }
+
+    /// The portable `V4` gives the bits of the one in use (on x86-64 the SSE
+    /// one), so a build for another architecture simulates the same bits.
+    #[test]
+    fn the_portable_v4_gives_the_same_bits() {
+        use super::portable::V4 as P;
+        let mut seed = 7u32;
+        let mut rnd = move || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            f32::from_bits((seed >> 1) % 0x7f00_0000) // a finite positive float, any exponent
+        };
+        for _ in 0..1000 {
+            let (a, b, s) = ([0; 4].map(|_| rnd()), [0; 4].map(|_| -rnd()), rnd());
+            let (va, vb, pa, pb) = (V4::load(&a), V4::load(&b), P::load(&a), P::load(&b));
+            let bits = |x: [f32; 4]| x.map(f32::to_bits);
+            assert_eq!(bits((va + vb).to_array()), bits(pa.add(pb).to_array()));
+            assert_eq!(bits((va * vb).to_array()), bits(pa.mul(pb).to_array()));
+            assert_eq!(
+                bits((s * va).to_array()),
+                bits(P::splat(s).mul(pa).to_array())
+            );
+        }
     }
 }
