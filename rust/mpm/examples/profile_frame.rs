@@ -5,18 +5,47 @@
 use hybridmpm_mpm::{Dim, DimOps, Material, Solver, SolverParams, lattice};
 use std::time::Instant;
 
-fn run<const D: usize>(
+/// A benchmark scene (the standard scenes of `benchmarks/bench_mpm.py`): a
+/// lattice block of `side^D` particles at spacing dx/2 from `origin`.
+#[derive(Clone, Copy)]
+struct Spec<const D: usize> {
     n_grid: usize,
     origin: [f32; D],
     side: usize,
-    // (left half, right half) of the block along x
+    /// (left half, right half) of the block along x
     mats: (Material, Material),
     substeps: usize,
-    threads: usize,
-    frames: usize,
-) where
+}
+
+const W: Material = Material::Water;
+const S: Material = Material::Sand;
+
+#[rustfmt::skip]
+const SCENES_2D: [(&str, Spec<2>); 3] = [
+    ("water2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (W, W), substeps: 16 }),
+    ("sand2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (S, S), substeps: 16 }),
+    ("water_sand2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (W, S), substeps: 16 }),
+];
+
+#[rustfmt::skip]
+const SCENES_3D: [(&str, Spec<3>); 4] = [
+    ("water3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (W, W), substeps: 8 }),
+    ("water3d_128", Spec { n_grid: 128, origin: [0.3, 0.1, 0.3], side: 16, mats: (W, W), substeps: 16 }),
+    ("water3d_32k", Spec { n_grid: 64, origin: [0.25, 0.1, 0.25], side: 32, mats: (W, W), substeps: 8 }),
+    ("sand3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (S, S), substeps: 8 }),
+];
+
+fn run<const D: usize>(spec: &Spec<D>, threads: usize, frames: usize)
+where
     Dim<D>: DimOps<D>,
 {
+    let Spec {
+        n_grid,
+        origin,
+        side,
+        mats,
+        substeps,
+    } = *spec;
     let p = SolverParams::<D> {
         n_grid,
         substeps: Some(substeps),
@@ -73,70 +102,11 @@ fn main() {
     let scene = a.get(1).map(String::as_str).unwrap_or("water2d");
     let threads: usize = a.get(2).and_then(|s| s.parse().ok()).unwrap_or(1);
     let frames: usize = a.get(3).and_then(|s| s.parse().ok()).unwrap_or(100);
-    match scene {
-        "water2d" => run::<2>(
-            128,
-            [0.1, 0.1],
-            64,
-            (Material::Water, Material::Water),
-            16,
-            threads,
-            frames,
-        ),
-        "water_sand2d" => run::<2>(
-            128,
-            [0.1, 0.1],
-            64,
-            (Material::Water, Material::Sand),
-            16,
-            threads,
-            frames,
-        ),
-        "sand2d" => run::<2>(
-            128,
-            [0.1, 0.1],
-            64,
-            (Material::Sand, Material::Sand),
-            16,
-            threads,
-            frames,
-        ),
-        "water3d" => run::<3>(
-            64,
-            [0.3, 0.1, 0.3],
-            16,
-            (Material::Water, Material::Water),
-            8,
-            threads,
-            frames,
-        ),
-        "water3d_128" => run::<3>(
-            128,
-            [0.3, 0.1, 0.3],
-            16,
-            (Material::Water, Material::Water),
-            16,
-            threads,
-            frames,
-        ),
-        "water3d_32k" => run::<3>(
-            64,
-            [0.25, 0.1, 0.25],
-            32,
-            (Material::Water, Material::Water),
-            8,
-            threads,
-            frames,
-        ),
-        "sand3d" => run::<3>(
-            64,
-            [0.3, 0.1, 0.3],
-            16,
-            (Material::Sand, Material::Sand),
-            8,
-            threads,
-            frames,
-        ),
-        _ => eprintln!("unknown scene"),
+    if let Some((_, spec)) = SCENES_2D.iter().find(|(n, _)| *n == scene) {
+        run(spec, threads, frames);
+    } else if let Some((_, spec)) = SCENES_3D.iter().find(|(n, _)| *n == scene) {
+        run(spec, threads, frames);
+    } else {
+        eprintln!("unknown scene");
     }
 }

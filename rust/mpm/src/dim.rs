@@ -64,11 +64,11 @@ pub type G2pSums<const D: usize> = ([f32; 4], [[f32; 4]; D]);
 /// `(Σ_k w_k n_k, Σ_k k·w_k n_k)`.
 #[inline(always)]
 fn row_sums(row: &[[f32; 4]], w: &[f32; 3]) -> (V4, V4) {
+    let n2 = V4::load(&row[2]);
     let t1 = w[1] * V4::load(&row[1]);
-    let t2 = w[2] * V4::load(&row[2]);
-    let s = w[0] * V4::load(&row[0]) + t1 + t2;
+    let s = w[0] * V4::load(&row[0]) + t1 + w[2] * n2;
     // 2·w2 is exact: (2·w2)·n2 = 2·(w2·n2) bit for bit
-    let k = t1 + (2.0 * w[2]) * V4::load(&row[2]);
+    let k = t1 + (2.0 * w[2]) * n2;
     (s, k)
 }
 
