@@ -14,7 +14,8 @@ use std::ops::{Add, Mul};
 #[cfg(target_arch = "x86_64")]
 mod imp {
     use core::arch::x86_64::{
-        __m128, _mm_add_ps, _mm_loadu_ps, _mm_mul_ps, _mm_set1_ps, _mm_storeu_ps,
+        __m128, _mm_add_ps, _mm_loadu_ps, _mm_movehl_ps, _mm_movelh_ps, _mm_mul_ps, _mm_set1_ps,
+        _mm_storeu_ps, _mm_unpackhi_ps, _mm_unpacklo_ps,
     };
 
     #[derive(Clone, Copy, Debug)]
@@ -39,6 +40,32 @@ mod imp {
             // SAFETY: writes the 4 floats of `a` (unaligned store)
             unsafe { _mm_storeu_ps(a.as_mut_ptr(), self.0) };
             a
+        }
+
+        /// Writes the lanes to `out[..4]`. Panics if `out` is shorter.
+        #[inline(always)]
+        pub(crate) fn store(self, out: &mut [f32]) {
+            let out = &mut out[..4];
+            // SAFETY: writes the 4 floats of `out` (unaligned store)
+            unsafe { _mm_storeu_ps(out.as_mut_ptr(), self.0) };
+        }
+
+        /// The 4 × 4 transpose: lane `l` of result `i` is lane `i` of `r[l]`.
+        #[inline(always)]
+        pub(crate) fn transpose(r: [V4; 4]) -> [V4; 4] {
+            // SAFETY: as `splat`
+            unsafe {
+                let t0 = _mm_unpacklo_ps(r[0].0, r[1].0); // a0 b0 a1 b1
+                let t1 = _mm_unpacklo_ps(r[2].0, r[3].0); // c0 d0 c1 d1
+                let t2 = _mm_unpackhi_ps(r[0].0, r[1].0); // a2 b2 a3 b3
+                let t3 = _mm_unpackhi_ps(r[2].0, r[3].0); // c2 d2 c3 d3
+                [
+                    V4(_mm_movelh_ps(t0, t1)),
+                    V4(_mm_movehl_ps(t1, t0)),
+                    V4(_mm_movelh_ps(t2, t3)),
+                    V4(_mm_movehl_ps(t3, t2)),
+                ]
+            }
         }
 
         #[inline(always)]
@@ -76,6 +103,16 @@ mod portable {
         #[inline(always)]
         pub(crate) fn to_array(self) -> [f32; 4] {
             self.0
+        }
+
+        #[inline(always)]
+        pub(crate) fn store(self, out: &mut [f32]) {
+            out[..4].copy_from_slice(&self.0);
+        }
+
+        #[inline(always)]
+        pub(crate) fn transpose(r: [V4; 4]) -> [V4; 4] {
+            std::array::from_fn(|i| V4(std::array::from_fn(|l| r[l].0[i])))
         }
 
         #[inline(always)]
@@ -164,6 +201,28 @@ mod tests {
                 bits((s * va).to_array()),
                 bits(P::splat(s).mul(pa).to_array())
             );
+        }
+    }
+
+    /// The transpose against its definition (for both `V4`s), and `store`.
+    #[test]
+    fn transpose_swaps_lanes_and_values() {
+        use super::portable::V4 as P;
+        let m: [[f32; 4]; 4] =
+            std::array::from_fn(|i| std::array::from_fn(|l| (10 * i + l) as f32));
+        let t = V4::transpose(m.map(|r| V4::load(&r)));
+        let tp = P::transpose(m.map(|r| P::load(&r)));
+        for i in 0..4 {
+            let expected: [f32; 4] = std::array::from_fn(|l| m[l][i]);
+            assert_eq!(t[i].to_array(), expected);
+            assert_eq!(tp[i].to_array(), expected);
+            let (mut out, mut out_p) = ([f32::NAN; 6], [f32::NAN; 6]);
+            t[i].store(&mut out[1..]);
+            tp[i].store(&mut out_p[1..]);
+            for o in [out, out_p] {
+                assert_eq!(o[1..5], expected);
+                assert!(o[0].is_nan() && o[5].is_nan());
+            }
         }
     }
 }

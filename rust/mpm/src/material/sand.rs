@@ -25,6 +25,8 @@ use super::vmath;
 use crate::dim::{Dim, DimOps};
 use crate::isa::{Isa, x86_64_v3};
 use crate::params::SandParams;
+use crate::particles::Particle;
+use crate::v4::V4;
 
 /// The constants of the sand model derived from [`SandParams`] once per substep.
 #[derive(Clone, Copy, Debug)]
@@ -281,6 +283,53 @@ impl SandBatch {
             }
         }
         (self.at[l], f, self.vc.0[l], tau)
+    }
+
+    /// After [`run`](Self::run): writes each lane in use to `outp[at]` (`at`
+    /// as pushed): its new F, `vc` and stress, the values of
+    /// [`lane`](Self::lane). Four lanes at a time through 4 × 4 transposes
+    /// ([`V4::transpose`]): a store of four floats where a lane-by-lane copy
+    /// makes four, which made sand3d's g2p store-bound (docs/engine.md).
+    /// Panics if an `at` is out of range.
+    #[inline(always)]
+    pub(crate) fn write_lanes<const D: usize>(&self, outp: &mut [Particle<D>]) {
+        let n = D * D;
+        // batch index (row-major) of the particle's column-major entry `i`
+        let comp = |i: usize| (i % D) * D + i / D;
+        let quads = self.len / 4 * 4;
+        for l0 in (0..quads).step_by(4) {
+            let at: [usize; 4] = std::array::from_fn(|q| self.at[l0 + q] as usize);
+            for (src, tau) in [(&self.f, false), (&self.tau, true)] {
+                let mut i = 0;
+                while i + 4 <= n {
+                    let rows: [V4; 4] = std::array::from_fn(|q| {
+                        let lanes: &[f32; 4] = src[comp(i + q)].0[l0..l0 + 4].try_into().unwrap();
+                        V4::load(lanes)
+                    });
+                    for (q, col) in V4::transpose(rows).into_iter().enumerate() {
+                        let p = &mut outp[at[q]];
+                        let m = if tau { &mut p.tau } else { &mut p.f };
+                        col.store(&mut m.as_mut_slice()[i..]);
+                    }
+                    i += 4;
+                }
+                for i in i..n {
+                    for (q, &a) in at.iter().enumerate() {
+                        let p = &mut outp[a];
+                        let m = if tau { &mut p.tau } else { &mut p.f };
+                        m.as_mut_slice()[i] = src[comp(i)].0[l0 + q];
+                    }
+                }
+            }
+            for (q, &a) in at.iter().enumerate() {
+                outp[a].vc = self.vc.0[l0 + q];
+            }
+        }
+        for l in quads..self.len {
+            let (at, f, vc, tau) = self.lane::<D>(l);
+            let p = &mut outp[at as usize];
+            (p.f, p.vc, p.tau) = (f, vc, tau);
+        }
     }
 
     /// Empties the batch (after its lanes were read).
@@ -806,6 +855,7 @@ fn advance_3d_eigen<R: Real>(ft: &[R; 9], vc: R, m: &SandModel, b: &[R; 6]) -> (
 mod tests {
     use super::*;
     use crate::params::SandParams;
+    use crate::particles::Material;
     use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, UnitQuaternion, Vector3};
 
     /// The reference: the same model in f64 through nalgebra's SVD (any D):
@@ -1201,6 +1251,55 @@ mod tests {
     fn a_batch_gives_the_bits_of_one_particle() {
         batch_matches_one_particle::<2>();
         batch_matches_one_particle::<3>();
+    }
+
+    /// `write_lanes` writes each lane in use, and only those, to the
+    /// particle at its index with the values `lane` gives, for every number
+    /// of lanes in use (whole quads, a partial quad, none).
+    fn write_lanes_matches_lane<const D: usize>()
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let mut rnd = stream(5 + D as u64);
+        let m = SandModel::new::<D>(&SandParams::default(), Isa::detect());
+        for len in 0..=LANES {
+            let mut batch = SandBatch::new();
+            // particles pushed in a scrambled order of 40 slots
+            let at: Vec<u32> = (0..len as u32).map(|l| (l * 7 + 3) % 40).collect();
+            for &a in &at {
+                let f = SMatrix::<f32, D, D>::from_fn(|r, c| {
+                    (if r == c { 1.0 } else { 0.0 }) + 0.02 * rnd()
+                });
+                let c = SMatrix::<f32, D, D>::from_fn(|_, _| 50.0 * rnd());
+                batch.push::<D>(a, &f, &c, 0.01 * rnd());
+            }
+            batch.run::<D>(&m, 2e-4);
+            let blank = Particle::<D>::new(SVector::zeros(), Material::Sand, 1.0, 1.0);
+            let mut outp = vec![blank; 40];
+            batch.write_lanes::<D>(&mut outp);
+            let mut expected = vec![blank; 40];
+            for l in 0..len {
+                let (a, f, vc, tau) = batch.lane::<D>(l);
+                let p = &mut expected[a as usize];
+                (p.f, p.vc, p.tau) = (f, vc, tau);
+            }
+            for (i, (p, e)) in outp.iter().zip(&expected).enumerate() {
+                let bits = |x: &SMatrix<f32, D, D>| x.map(f32::to_bits);
+                assert_eq!(bits(&p.f), bits(&e.f), "{len} lanes, slot {i}: F");
+                assert_eq!(bits(&p.tau), bits(&e.tau), "{len} lanes, slot {i}: τ");
+                assert_eq!(p.vc.to_bits(), e.vc.to_bits(), "{len} lanes, slot {i}: vc");
+            }
+            // the lanes in use changed their particles (not a no-op)
+            for &a in &at {
+                assert_ne!(outp[a as usize].f, blank.f);
+            }
+        }
+    }
+
+    #[test]
+    fn write_lanes_gives_the_values_of_lane() {
+        write_lanes_matches_lane::<2>();
+        write_lanes_matches_lane::<3>();
     }
 
     /// The 2D update without singular vectors against the f64 reference:

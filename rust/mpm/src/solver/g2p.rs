@@ -204,11 +204,7 @@ fn sand_flush<const D: usize>(
     let h = batch.run::<D>(sand, dt);
     health.finite &= h.finite;
     health.inverted |= h.inverted;
-    for l in 0..batch.len() {
-        let (at, f, vc, tau) = batch.lane::<D>(l);
-        let p = &mut outp[at as usize];
-        (p.f, p.vc, p.tau) = (f, vc, tau);
-    }
+    batch.write_lanes::<D>(outp);
     batch.clear();
 }
 
