@@ -64,12 +64,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--variants", nargs="+", help="only these variants (labels as in the table)")
+    ap.add_argument("--model", type=Path, help="a GNS .onnx file other than the scene's shipped model (e.g. a training snapshot)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     variants = [v for v in VARIANTS if not args.variants or v[0] in args.variants]
     if args.variants and len(variants) != len(args.variants):
         ap.error(f"--variants: unknown label among {args.variants}; known: {[v[0] for v in VARIANTS]}")
-    model = NeuralModel(shipped_model(args.scene))
+    if args.model is not None and not args.model.is_file():
+        ap.error(f"--model: no such file: {args.model}")
+    model = NeuralModel(args.model if args.model is not None else shipped_model(args.scene))
     refs = {}
     for seed in args.seeds:
         refs[seed] = reference(make_scene(args.scene, seed=seed), args.frames, stride=model.r_t, threads=args.threads).fluid_positions
@@ -103,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         f"Command: `{cmd}`",
         "",
-        f"{args.scene}, seeds {args.seeds}, {args.frames} frames, shipped model; one setting changed per row from the defaults "
+        f"{args.scene}, seeds {args.seeds}, {args.frames} frames, {'model ' + str(args.model) if args.model else 'shipped model'}; one setting changed per row from the defaults "
         f"(r_c 0.8, δ 10, dwell 5, affine fit, J from density, velocity the last difference, accel_floor 1 m/s², an MPM audit every {AUDIT_EVERY} network steps with tolerance "
         f"{AUDIT_TOL:g} g).",
         "",
