@@ -288,8 +288,9 @@ impl SandBatch {
     /// After [`run`](Self::run): writes each lane in use to `outp[at]` (`at`
     /// as pushed): its new F, `vc` and stress, the values of
     /// [`lane`](Self::lane). Four lanes at a time through 4 × 4 transposes
-    /// ([`V4::transpose`]): a store of four floats where a lane-by-lane copy
-    /// makes four, which made sand3d's g2p store-bound (docs/engine.md).
+    /// ([`V4::transpose`]): one store of four floats where a lane-by-lane
+    /// copy makes four scalar stores, which made sand3d's g2p store-bound
+    /// (docs/engine.md).
     /// Panics if an `at` is out of range.
     #[inline(always)]
     pub(crate) fn write_lanes<const D: usize>(&self, outp: &mut [Particle<D>]) {
