@@ -327,7 +327,9 @@ where
             let items = (n_sub * self.particles.len()).max(1) as f64;
             let seconds = started.elapsed().as_secs_f64();
             self.mode.record(use_team, probe, seconds / items, seconds);
-            if std::env::var_os("HMPM_MODE_DEBUG").is_some() {
+            if self.profile {
+                // the mode choice's view of each attempt (`HMPM_PROFILE`,
+                // read once at construction, not per frame)
                 eprintln!(
                     "team {use_team} probe {probe} {:.3} ms {:?}",
                     seconds * 1e3,

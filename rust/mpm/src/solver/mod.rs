@@ -100,7 +100,8 @@ where
     pool_pid: u32,
     /// Whether frames run on the team or the calling thread alone (`frame.rs`).
     mode: frame::ModeChoice,
-    /// Print per-stage substep timings to stderr (env `HMPM_PROFILE` set at construction).
+    /// Print per-stage substep timings and each frame attempt's mode choice to
+    /// stderr (env `HMPM_PROFILE` set at construction).
     profile: bool,
     /// The compiled copy of the frame loop that runs ([`crate::isa`]).
     isa: Isa,
