@@ -94,9 +94,9 @@ def _interleaved(fns: dict[str, Any], repeats: int, spinning: tuple[str, ...] = 
     return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
 
 
-def _profile(path: Path, history: np.ndarray, ptype: np.ndarray, graph: tuple, repeats: int) -> dict[str, float]:
+def _profile(path: Path, history: np.ndarray, ptype: np.ndarray, graph: tuple, repeats: int, fused: bool | None = None) -> dict[str, float]:
     """Mean µs per run by stage (compiled graphs) or by operator (others), from onnxruntime's profiler."""
-    nm = NeuralModel(path, profile=True)
+    nm = NeuralModel(path, profile=True, fused=fused)
     feeds = nm.feeds(history, ptype, graph)
     for _ in range(repeats):
         nm.session_for(feeds).run(None, feeds)
@@ -134,7 +134,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     paths = {"shipped": model.path}
     if baseline is not None and (baseline / model.path.name).is_file():
         paths["baseline"] = baseline / model.path.name
-    sessions = {k: NeuralModel(p) for k, p in paths.items()}
+    sessions = {k: NeuralModel(p, fused=None if k == "shipped" else False) for k, p in paths.items()}  # a baseline as it was: unfused
     feeds = {k: s.feeds(hist, ptype, graph) for k, s in sessions.items()}
     proposal = sim.propose()
 
@@ -236,7 +236,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "stages_us": _profile(paths["shipped"], hist, ptype, graph, repeats),
     }  # fmt: skip
     if "baseline" in paths:
-        out["baseline_stages_us"] = _profile(paths["baseline"], hist, ptype, graph, repeats)
+        out["baseline_stages_us"] = _profile(paths["baseline"], hist, ptype, graph, repeats, fused=False)
         out["speedup_onnx"] = ms["onnx_baseline"] / ms["onnx_shipped"]
     return out
 
@@ -263,7 +263,7 @@ def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None
         # (NeuralModel would run it on one anyway): no 2-thread figure for it
         exact_on_two = "in_edges" in NeuralModel(p).input_names
         for t in (1, 2) if exact_on_two else (1,):
-            nm = NeuralModel(p, threads=t)  # 2 threads spin (NeuralModel's default)
+            nm = NeuralModel(p, threads=t, fused=None if k == "shipped" else False)  # 2 threads spin (NeuralModel's default)
             f = nm.feeds(hist, ptype, graph)
             session = nm.session_for(f)
             fns[f"{k}_{t}t"] = lambda s=session, f=f: s.run(None, f)

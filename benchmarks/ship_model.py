@@ -32,6 +32,7 @@ def main() -> None:
     a = ap.parse_args()
     import onnx
 
+    from hybridmpm.neural import fused
     from hybridmpm.neural.train import TrainConfig
     from hybridmpm.sim.neural import RELAX_ITERATIONS
 
@@ -53,6 +54,7 @@ def main() -> None:
     MODELS.mkdir(exist_ok=True)
     dst = MODELS / f"{a.scene}.onnx"
     onnx.save(proto, str(dst))
+    fused.write_fused(dst)  # models/fused/: the graph with the fused edge kernels, for serving without the onnx package
     t = test[chosen["model"]]
     data_meta = json.loads((Path(valid["data"]) / "metadata.json").read_text())
     train_cfg = json.loads((a.models_dir / chosen["model"] / "train_config.json").read_text())

@@ -696,14 +696,18 @@ def test_simulate_neural_writes_the_mpm_outputs(exported, tmp_path):
     assert main(["simulate", "sand2d", "--solver", "neural", "--model", str(path), "--frames", "14", "--out", str(tmp_path / "x"), "--quiet"]) == 2
 
 
-def test_threads_and_spinning(exported):
+@pytest.mark.parametrize("fused", [False, None])
+def test_threads_and_spinning(exported, fused):
     """Two onnxruntime threads spin by default (they pay only so), one does
-    not; the prediction is the same function either way; bad thread counts are
-    refused naming the field (``threads`` here, ``nn_threads`` on a simulator)."""
+    not; the prediction is the same function either way, with the fused edge
+    kernels (their serial sums) or the plain graph (its gather way); bad
+    thread counts are refused naming the field (``threads`` here,
+    ``nn_threads`` on a simulator)."""
     from hybridmpm.sim import NeuralSimulator
 
     _, path = exported
-    one, two = NeuralModel(path), NeuralModel(path, threads=2)
+    one, two = NeuralModel(path, fused=fused), NeuralModel(path, threads=2, fused=fused)
+    assert one.fused == two.fused == (fused is None)
     assert (one.spinning, two.spinning, NeuralModel(path, threads=2, spinning=False).spinning) == (False, True, False)
     hist, ptype = random_state(1500, seed=8, lo=0.3, hi=0.6)
     a1, x1, graph = one.predict(hist, ptype)
@@ -882,7 +886,7 @@ def test_the_gather_sum_is_as_precise_as_scatter_next_to_a_crowded_node(exported
     dist2 = np.concatenate([dist, np.full(200, 0.5 * R, np.float32)])
     order = np.argsort(r2, kind="stable")
     graph = (s2[order], r2[order], d2[order], dist2[order])
-    one, two = NeuralModel(path), NeuralModel(path, threads=2)
+    one, two = NeuralModel(path, fused=False), NeuralModel(path, threads=2, fused=False)  # the plain graph's two ways
     assert two.feeds(hist, ptype, graph)["in_edges"].shape[1] == 201
     a1, _, _ = one.predict(hist, ptype, graph=graph)
     a2, _, _ = two.predict(hist, ptype, graph=graph)
@@ -897,7 +901,7 @@ def test_a_crowded_graph_runs_on_one_thread(exported):
     _, path = exported
     hist, ptype = random_state(3000, seed=13, lo=0.05, hi=0.95)
     hist[:, :400] = hist[:, :1] + np.float32(1e-5) * np.arange(400, dtype=np.float32)[None, :, None]  # 400 particles on one spot
-    one, two = NeuralModel(path), NeuralModel(path, threads=2)
+    one, two = NeuralModel(path, fused=False), NeuralModel(path, threads=2, fused=False)  # the plain graph's fallback
     a1, _, graph = one.predict(hist, ptype)
     feeds = two.feeds(hist, ptype, graph)
     assert feeds["in_edges"].shape[1] == 0 and two.session_for(feeds) is not two.session

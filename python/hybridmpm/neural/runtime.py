@@ -8,8 +8,10 @@ history (paper Sec. 2.2, App. A). The simulator that rolls it out is
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -19,7 +21,20 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
+from hybridmpm.neural import fused
 from hybridmpm.neural.constants import FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
+
+
+@functools.lru_cache(maxsize=32)
+def _fused_cached(path: str, mtime_ns: int, size: int) -> bytes | None:
+    return fused.load_fused(Path(path))
+
+
+def _fused_bytes(path: Path) -> bytes | None:
+    """The fused graph of the model file at ``path`` (:func:`hybridmpm.neural.fused.load_fused`),
+    or None; cached per file version (sessions of the same model are made often)."""
+    st = path.stat()
+    return _fused_cached(str(path), st.st_mtime_ns, st.st_size)
 
 
 def _check_meta(meta: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -129,10 +144,15 @@ class NeuralModel:
     switches onnxruntime's profiler on (for benchmarks).
     """
 
-    def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None, profile: bool = False) -> None:
+    def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None, profile: bool = False, fused: bool | None = None) -> None:
         if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
             raise InvalidInputError(f"threads: must be an integer in [0, 256] (0: onnxruntime's default, one per core), got {threads!r}", "threads")
+        if fused is not None and not isinstance(fused, bool):
+            raise InvalidInputError(f"fused: must be True, False or None (automatic), got {fused!r}", "fused")
         self.threads = threads
+        self._fused_asked = fused
+        #: Whether the session runs the fused edge kernels (:mod:`hybridmpm.neural.fused`).
+        self.fused = False
         #: Whether onnxruntime's worker threads busy-wait (see the class doc).
         self.spinning = bool(threads != 1 if spinning is None else spinning)
         self.path = Path(path)
@@ -187,8 +207,17 @@ class NeuralModel:
 
             opts.enable_profiling = True
             opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "hybridmpm_ort_profile")
+        source: Any = str(self.path)
+        self.fused = False
+        if self._fused_asked is not False and os.environ.get("HYBRIDMPM_FUSED", "1") != "0":
+            graph = _fused_bytes(self.path)
+            if graph is not None:
+                fused.register(opts)
+                source, self.fused = graph, True
+            elif self._fused_asked:
+                raise InvalidInputError(f"fused: {self.path.name} is not a compiled graph the fused kernels replace ({fused.why_not()})", "fused")
         try:
-            return ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
         except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
             raise InvalidInputError(f"model: {self.path} is not a loadable ONNX model: {e}", "model") from e
 
@@ -263,8 +292,8 @@ class NeuralModel:
         the aggregation inputs by :func:`aggregation_inputs`, for the gather way
         on more than one thread."""
         values = dict(zip(INPUT_NAMES, (history, particle_type, *graph)))
-        if "in_edges" in self.input_names:
-            values["in_edges"], values["in_degree"] = aggregation_inputs(graph[1], history.shape[1], gather=self.threads != 1)
+        if "in_edges" in self.input_names:  # the fused graph sums exactly on any thread count: no table
+            values["in_edges"], values["in_degree"] = aggregation_inputs(graph[1], history.shape[1], gather=self.threads != 1 and not self.fused)
         return {name: values[name] for name in self.input_names}
 
     def session_for(self, feeds: dict[str, np.ndarray]) -> Any:
@@ -273,7 +302,7 @@ class NeuralModel:
         more than one thread (a graph of very uneven in-degrees), a one-thread
         session of the same file (made on first use), where that way is exact."""
         edges = feeds.get("in_edges")
-        if self.threads == 1 or edges is None or edges.shape[1] > 0:
+        if self.threads == 1 or self.fused or edges is None or edges.shape[1] > 0:
             return self.session
         if self._serial is None:
             self._serial = self._session(1)

@@ -8,6 +8,7 @@ use pyo3::prelude::*;
 mod errors;
 mod graph;
 mod mpm;
+mod ort_ops;
 mod pool;
 
 #[pymodule]

@@ -1,0 +1,1033 @@
+//! Fused edge kernels of the shipped GNS inference graph (latent width 16).
+//!
+//! The compiled inference graph (`hybridmpm.neural.compile`, layout
+//! `compiled-3`; paper App. A, Sanchez-Gonzalez et al. 2020) runs every
+//! edge-sized stage as a chain of onnxruntime operators, each one a pass over
+//! an `[E, 16]` array in memory: two `Gather`s, an `Add`, three `Gemm`s with
+//! their `Relu`s, five folded-LayerNorm operators, the residual `Add` and the
+//! `ScatterND` sum over receivers. At width 16 every pass costs a few
+//! nanoseconds per edge whatever it computes, so the chain, not the
+//! arithmetic, bounds a step (docs/neural.md, "What bounds it"). The two
+//! kernels here do the same arithmetic in one pass, a tile of edges at a
+//! time in registers:
+//!
+//! * [`edge_encoder`]: `ε = LN(MLP([d, |d|]))` from each edge's displacement
+//!   `d` (D = 2 or 3) and distance, the edge encoder;
+//! * [`edge_block`]: one message-passing step's edge update
+//!   `e' = e + LN(MLP(e W_e + (h W_r + b)[r] + (h W_s)[s]))` together with
+//!   its sum over receivers `agg[i] = Σ_{r(k) = i} e'_k` (the first layer
+//!   factored: the node projections `h W_r + b` and `h W_s` are computed on
+//!   the nodes, outside, and gathered here).
+//!
+//! Both MLPs are the graph's: `x → relu(x W₁ + b₁) → relu(· W₂ + b₂) → · W₃ + b₃`
+//! with row-major `[in, 16]` weights, and the LayerNorm is the graph's folded
+//! one: the centring and the gain are already in `W₃`, `b₃` and in the next
+//! layers, so what is left is `z / sqrt(Σ_j k_j z_j² + ε)` with the graph's
+//! one-column variance weights `k` and `ε`.
+//!
+//! **Numerics.** The same operations as the graph in float32, but not in the
+//! same order (the dot products are summed in another order, with fused
+//! multiply-adds where the CPU has them), so the results agree with
+//! onnxruntime's to float32 rounding, not bit for bit; the sum over
+//! receivers adds the edges in edge order, as `ScatterND` does on one
+//! thread. The kernels are single-threaded and deterministic: the same
+//! inputs give the same bits on a given CPU path (AVX2 + FMA when the CPU
+//! has them, else the portable path).
+//!
+//! Safe Rust except the run-time dispatch to the AVX2 + FMA copy.
+
+#![deny(unsafe_op_in_unsafe_fn)]
+// The tile loops index several fixed-size arrays by the same lane `t` or column `j`.
+#![allow(clippy::needless_range_loop)]
+
+/// Latent width the kernels are compiled for.
+pub const L: usize = 16;
+
+/// Edges processed together in registers.
+const TILE: usize = 4;
+
+/// An invalid argument; the message names the field.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{field}: {message}")]
+pub struct KernelError {
+    /// The offending argument.
+    pub field: &'static str,
+    /// What is wrong with it.
+    pub message: String,
+}
+
+fn bad(field: &'static str, message: impl Into<String>) -> KernelError {
+    KernelError {
+        field,
+        message: message.into(),
+    }
+}
+
+/// Weights of one MLP with its folded LayerNorm (module docs), borrowed.
+#[derive(Debug, Clone, Copy)]
+pub struct Mlp<'a> {
+    /// First layer `[in, 16]` row-major (`in` = D + 1 for the encoder, 16 for an edge block).
+    pub w1: &'a [f32],
+    /// First layer's bias `[16]` (the encoder's; an edge block's is inside its receiver projection).
+    pub b1: &'a [f32],
+    /// Second layer `[16, 16]`.
+    pub w2: &'a [f32],
+    /// Second layer's bias `[16]`.
+    pub b2: &'a [f32],
+    /// Third layer `[16, 16]` (centred: the LayerNorm's mean is folded in).
+    pub w3: &'a [f32],
+    /// Third layer's bias `[16]`.
+    pub b3: &'a [f32],
+    /// One-column variance weights `k` `[16]`.
+    pub kvar: &'a [f32],
+    /// The variance's `ε`.
+    pub eps: f32,
+}
+
+type Row = [f32; L];
+
+/// The weights as fixed-size rows, checked.
+struct Weights {
+    w1: Vec<Row>,
+    b1: Row,
+    w2: [Row; L],
+    b2: Row,
+    w3: [Row; L],
+    b3: Row,
+    kvar: Row,
+    eps: f32,
+}
+
+fn rows(field: &'static str, w: &[f32], n: usize) -> Result<Vec<Row>, KernelError> {
+    if w.len() != n * L {
+        return Err(bad(
+            field,
+            format!("expected {n} x {L} values, got {}", w.len()),
+        ));
+    }
+    Ok(w.chunks_exact(L)
+        .map(|c| c.try_into().expect("chunk of L"))
+        .collect())
+}
+
+fn row(field: &'static str, v: &[f32]) -> Result<Row, KernelError> {
+    v.try_into()
+        .map_err(|_| bad(field, format!("expected {L} values, got {}", v.len())))
+}
+
+fn square(field: &'static str, w: &[f32]) -> Result<[Row; L], KernelError> {
+    let r = rows(field, w, L)?;
+    Ok(std::array::from_fn(|i| r[i]))
+}
+
+impl Weights {
+    fn new(m: &Mlp<'_>, inputs: usize) -> Result<Self, KernelError> {
+        let w = Weights {
+            w1: rows("w1", m.w1, inputs)?,
+            b1: row("b1", m.b1)?,
+            w2: square("w2", m.w2)?,
+            b2: row("b2", m.b2)?,
+            w3: square("w3", m.w3)?,
+            b3: row("b3", m.b3)?,
+            kvar: row("kvar", m.kvar)?,
+            eps: m.eps,
+        };
+        let all = [&w.b1[..], &w.b2, &w.b3, &w.kvar].into_iter().flatten();
+        let mats = w.w1.iter().chain(&w.w2).chain(&w.w3).flatten();
+        if !all
+            .chain(mats)
+            .chain(std::iter::once(&w.eps))
+            .all(|v| v.is_finite())
+        {
+            return Err(bad("weights", "must be finite"));
+        }
+        Ok(w)
+    }
+}
+
+/// `a * b + c`, fused where the compiled copy has FMA.
+trait Madd {
+    fn madd(a: f32, b: f32, c: f32) -> f32;
+}
+
+/// Plain multiply and add (the portable copy).
+struct Plain;
+impl Madd for Plain {
+    #[inline(always)]
+    fn madd(a: f32, b: f32, c: f32) -> f32 {
+        a * b + c
+    }
+}
+
+/// `y[t] += x[t] · w` for a tile of rows (`x[t]` of `K` inputs).
+#[inline(always)]
+fn accumulate<M: Madd, const T: usize, const K: usize>(
+    x: &[[f32; K]; T],
+    w: &[Row],
+    y: &mut [Row; T],
+) {
+    for (k, wk) in w.iter().enumerate().take(K) {
+        for t in 0..T {
+            let xk = x[t][k];
+            for j in 0..L {
+                y[t][j] = M::madd(xk, wk[j], y[t][j]);
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn relu<const T: usize>(y: &mut [Row; T]) {
+    for r in y.iter_mut() {
+        for v in r.iter_mut() {
+            *v = v.max(0.0);
+        }
+    }
+}
+
+/// Layers 2 and 3 and the folded LayerNorm, in place: `y` holds the first
+/// layer's pre-activation on entry and the normalised output on return.
+#[inline(always)]
+fn rest<M: Madd, const T: usize>(w: &Weights, y: &mut [Row; T]) {
+    relu(y);
+    let mut z = [w.b2; T];
+    accumulate::<M, T, L>(y, &w.w2, &mut z);
+    relu(&mut z);
+    let mut o = [w.b3; T];
+    accumulate::<M, T, L>(&z, &w.w3, &mut o);
+    for t in 0..T {
+        let mut var = 0.0f32;
+        for j in 0..L {
+            var = M::madd(o[t][j] * o[t][j], w.kvar[j], var);
+        }
+        let std = (var + w.eps).sqrt();
+        for j in 0..L {
+            y[t][j] = o[t][j] / std;
+        }
+    }
+}
+
+#[inline(always)]
+fn encoder_tiles<M: Madd, const T: usize, const K: usize>(
+    w: &Weights,
+    disp: &[f32],
+    dist: &[f32],
+    out: &mut [f32],
+    first: usize,
+    count: usize,
+) {
+    let d = K - 1;
+    for base in (first..first + count).step_by(T) {
+        let mut x = [[0.0f32; K]; T];
+        for t in 0..T {
+            let k = base + t;
+            x[t][..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
+            x[t][d] = dist[k];
+        }
+        let mut y = [w.b1; T];
+        accumulate::<M, T, K>(&x, &w.w1, &mut y);
+        rest::<M, T>(w, &mut y);
+        for t in 0..T {
+            let k = base + t;
+            out[k * L..(k + 1) * L].copy_from_slice(&y[t]);
+        }
+    }
+}
+
+#[inline(always)]
+fn encoder_body<M: Madd, const K: usize>(w: &Weights, disp: &[f32], dist: &[f32], out: &mut [f32]) {
+    let e = dist.len();
+    let full = e / TILE * TILE;
+    encoder_tiles::<M, TILE, K>(w, disp, dist, out, 0, full);
+    encoder_tiles::<M, 1, K>(w, disp, dist, out, full, e - full);
+}
+
+struct Block<'a> {
+    e: &'a [f32],
+    hr: &'a [f32],
+    hs: &'a [f32],
+    receivers: &'a [usize],
+    senders: &'a [usize],
+}
+
+#[inline(always)]
+fn block_tiles<M: Madd, const T: usize>(
+    w: &Weights,
+    b: &Block<'_>,
+    out: &mut [f32],
+    agg: &mut [f32],
+    first: usize,
+    count: usize,
+) {
+    for base in (first..first + count).step_by(T) {
+        let mut x = [[0.0f32; L]; T];
+        let mut y = [[0.0f32; L]; T];
+        for t in 0..T {
+            let k = base + t;
+            let (r, s) = (b.receivers[k], b.senders[k]);
+            x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
+            let hr = &b.hr[r * L..(r + 1) * L];
+            let hs = &b.hs[s * L..(s + 1) * L];
+            for j in 0..L {
+                y[t][j] = hr[j] + hs[j];
+            }
+        }
+        accumulate::<M, T, L>(&x, &w.w1, &mut y);
+        rest::<M, T>(w, &mut y);
+        for t in 0..T {
+            let k = base + t;
+            let r = b.receivers[k];
+            let o = &mut out[k * L..(k + 1) * L];
+            for j in 0..L {
+                o[j] = x[t][j] + y[t][j];
+            }
+            let a = &mut agg[r * L..(r + 1) * L];
+            for j in 0..L {
+                a[j] += o[j];
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn block_body<M: Madd>(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+    agg.fill(0.0);
+    let e = b.receivers.len();
+    let full = e / TILE * TILE;
+    block_tiles::<M, TILE>(w, b, out, agg, 0, full);
+    block_tiles::<M, 1>(w, b, out, agg, full, e - full);
+}
+
+/// The AVX2 + FMA copy: the same arithmetic with each latent row as two
+/// 8-lane registers and a tile of [`TILE`] edges in flight, so the
+/// accumulators stay in registers (the generic code's arrays did not: they
+/// went through memory at every multiply-add, 2x slower).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{L, Row, TILE, Weights};
+    use std::arch::x86_64::*;
+
+    #[derive(Clone, Copy)]
+    struct R(__m256, __m256);
+
+    #[inline(always)]
+    unsafe fn load(p: &[f32]) -> R {
+        debug_assert!(p.len() >= L);
+        unsafe {
+            R(
+                _mm256_loadu_ps(p.as_ptr()),
+                _mm256_loadu_ps(p.as_ptr().add(8)),
+            )
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn store(p: &mut [f32], r: R) {
+        debug_assert!(p.len() >= L);
+        unsafe {
+            _mm256_storeu_ps(p.as_mut_ptr(), r.0);
+            _mm256_storeu_ps(p.as_mut_ptr().add(8), r.1);
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn add(a: R, b: R) -> R {
+        unsafe { R(_mm256_add_ps(a.0, b.0), _mm256_add_ps(a.1, b.1)) }
+    }
+
+    #[inline(always)]
+    unsafe fn relu(a: R) -> R {
+        unsafe {
+            let z = _mm256_setzero_ps();
+            R(_mm256_max_ps(a.0, z), _mm256_max_ps(a.1, z))
+        }
+    }
+
+    /// `y[t] += x[t] · w` (`x[t]` of `K` values in memory, broadcast one at a time).
+    #[inline(always)]
+    unsafe fn layer<const K: usize>(
+        x: &[[f32; K]; TILE],
+        w: &[Row],
+        mut y: [R; TILE],
+    ) -> [R; TILE] {
+        unsafe {
+            for (k, wk) in w.iter().enumerate().take(K) {
+                let (wl, wh) = (
+                    _mm256_loadu_ps(wk.as_ptr()),
+                    _mm256_loadu_ps(wk.as_ptr().add(8)),
+                );
+                for t in 0..TILE {
+                    let b = _mm256_broadcast_ss(&x[t][k]);
+                    y[t] = R(
+                        _mm256_fmadd_ps(b, wl, y[t].0),
+                        _mm256_fmadd_ps(b, wh, y[t].1),
+                    );
+                }
+            }
+        }
+        y
+    }
+
+    /// Layers 2 and 3 and the folded LayerNorm from the first layer's pre-activation.
+    #[inline(always)]
+    unsafe fn rest(w: &Weights, y: [R; TILE]) -> [R; TILE] {
+        unsafe {
+            let mut buf = [[0.0f32; L]; TILE];
+            for t in 0..TILE {
+                store(&mut buf[t], relu(y[t]));
+            }
+            let b2 = load(&w.b2);
+            let z = layer::<L>(&buf, &w.w2, [b2; TILE]);
+            for t in 0..TILE {
+                store(&mut buf[t], relu(z[t]));
+            }
+            let b3 = load(&w.b3);
+            let o = layer::<L>(&buf, &w.w3, [b3; TILE]);
+            let k = load(&w.kvar);
+            let mut out = o;
+            for t in 0..TILE {
+                let s = _mm256_fmadd_ps(
+                    _mm256_mul_ps(o[t].0, o[t].0),
+                    k.0,
+                    _mm256_mul_ps(_mm256_mul_ps(o[t].1, o[t].1), k.1),
+                );
+                let h = _mm_add_ps(_mm256_castps256_ps128(s), _mm256_extractf128_ps(s, 1));
+                let h = _mm_add_ps(h, _mm_movehl_ps(h, h));
+                let h = _mm_add_ss(h, _mm_shuffle_ps(h, h, 1));
+                let std = _mm_sqrt_ss(_mm_add_ss(h, _mm_set_ss(w.eps)));
+                let d = _mm256_broadcastss_ps(std);
+                out[t] = R(_mm256_div_ps(o[t].0, d), _mm256_div_ps(o[t].1, d));
+            }
+            out
+        }
+    }
+
+    #[target_feature(enable = "avx,avx2,fma")]
+    pub(super) fn encoder<const K: usize>(
+        w: &Weights,
+        disp: &[f32],
+        dist: &[f32],
+        out: &mut [f32],
+    ) {
+        let d = K - 1;
+        let e = dist.len();
+        let mut base = 0;
+        while base < e {
+            let count = TILE.min(e - base);
+            let mut x = [[0.0f32; K]; TILE];
+            for (t, xt) in x.iter_mut().enumerate() {
+                let k = base + t.min(count - 1);
+                xt[..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
+                xt[d] = dist[k];
+            }
+            // SAFETY: AVX2 and FMA are enabled on this function; every row read or written is L long.
+            unsafe {
+                let b1 = load(&w.b1);
+                let y = rest(w, layer::<K>(&x, &w.w1, [b1; TILE]));
+                for t in 0..count {
+                    store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
+                }
+            }
+            base += count;
+        }
+    }
+
+    #[target_feature(enable = "avx,avx2,fma")]
+    pub(super) fn block(w: &Weights, b: &super::Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+        agg.fill(0.0);
+        let e = b.receivers.len();
+        let mut base = 0;
+        while base < e {
+            let count = TILE.min(e - base);
+            let mut x = [[0.0f32; L]; TILE];
+            // SAFETY: AVX2 and FMA are enabled on this function; indices were checked against N; rows are L long.
+            unsafe {
+                let mut y = [R(_mm256_setzero_ps(), _mm256_setzero_ps()); TILE];
+                for t in 0..TILE {
+                    let k = base + t.min(count - 1);
+                    let (r, s) = (b.receivers[k], b.senders[k]);
+                    x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
+                    y[t] = add(
+                        load(&b.hr[r * L..(r + 1) * L]),
+                        load(&b.hs[s * L..(s + 1) * L]),
+                    );
+                }
+                let y = rest(w, layer::<L>(&x, &w.w1, y));
+                for t in 0..count {
+                    let k = base + t;
+                    let v = add(load(&x[t]), y[t]);
+                    store(&mut out[k * L..(k + 1) * L], v);
+                    let r = b.receivers[k];
+                    let a = &mut agg[r * L..(r + 1) * L];
+                    store(a, add(load(a), v));
+                }
+            }
+            base += count;
+        }
+    }
+}
+
+/// The AVX-512 copy: a latent row is one 16-lane register, and a tile of
+/// [`TILE512`] edges is in flight (eight accumulators of the 32 registers).
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{L, Row, Weights};
+    use std::arch::x86_64::*;
+
+    /// Edges processed together.
+    const T: usize = super::TILE512;
+
+    #[inline(always)]
+    unsafe fn load(p: &[f32]) -> __m512 {
+        debug_assert!(p.len() >= L);
+        unsafe { _mm512_loadu_ps(p.as_ptr()) }
+    }
+
+    #[inline(always)]
+    unsafe fn store(p: &mut [f32], r: __m512) {
+        debug_assert!(p.len() >= L);
+        unsafe { _mm512_storeu_ps(p.as_mut_ptr(), r) }
+    }
+
+    #[inline(always)]
+    unsafe fn layer<const K: usize>(
+        x: &[[f32; K]; T],
+        w: &[Row],
+        mut y: [__m512; T],
+    ) -> [__m512; T] {
+        unsafe {
+            for (k, wk) in w.iter().enumerate().take(K) {
+                let wv = _mm512_loadu_ps(wk.as_ptr());
+                for t in 0..T {
+                    y[t] = _mm512_fmadd_ps(_mm512_set1_ps(x[t][k]), wv, y[t]);
+                }
+            }
+        }
+        y
+    }
+
+    #[inline(always)]
+    unsafe fn rest(w: &Weights, y: [__m512; T]) -> [__m512; T] {
+        unsafe {
+            let zero = _mm512_setzero_ps();
+            let mut buf = [[0.0f32; L]; T];
+            for t in 0..T {
+                store(&mut buf[t], _mm512_max_ps(y[t], zero));
+            }
+            let z = layer::<L>(&buf, &w.w2, [load(&w.b2); T]);
+            for t in 0..T {
+                store(&mut buf[t], _mm512_max_ps(z[t], zero));
+            }
+            let o = layer::<L>(&buf, &w.w3, [load(&w.b3); T]);
+            let k = load(&w.kvar);
+            let mut out = o;
+            for t in 0..T {
+                let var = _mm512_reduce_add_ps(_mm512_mul_ps(_mm512_mul_ps(o[t], o[t]), k));
+                let std = (var + w.eps).sqrt();
+                out[t] = _mm512_div_ps(o[t], _mm512_set1_ps(std));
+            }
+            out
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn encoder<const K: usize>(
+        w: &Weights,
+        disp: &[f32],
+        dist: &[f32],
+        out: &mut [f32],
+    ) {
+        let d = K - 1;
+        let e = dist.len();
+        let mut base = 0;
+        while base < e {
+            let count = T.min(e - base);
+            let mut x = [[0.0f32; K]; T];
+            for (t, xt) in x.iter_mut().enumerate() {
+                let k = base + t.min(count - 1);
+                xt[..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
+                xt[d] = dist[k];
+            }
+            // SAFETY: AVX-512F is enabled on this function; every row read or written is L long.
+            unsafe {
+                let y = rest(w, layer::<K>(&x, &w.w1, [load(&w.b1); T]));
+                for t in 0..count {
+                    store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
+                }
+            }
+            base += count;
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn block(w: &Weights, b: &super::Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+        agg.fill(0.0);
+        let e = b.receivers.len();
+        let mut base = 0;
+        while base < e {
+            let count = T.min(e - base);
+            let mut x = [[0.0f32; L]; T];
+            // SAFETY: AVX-512F is enabled on this function; indices were checked against N; rows are L long.
+            unsafe {
+                let mut y = [_mm512_setzero_ps(); T];
+                for t in 0..T {
+                    let k = base + t.min(count - 1);
+                    let (r, s) = (b.receivers[k], b.senders[k]);
+                    x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
+                    y[t] = _mm512_add_ps(
+                        load(&b.hr[r * L..(r + 1) * L]),
+                        load(&b.hs[s * L..(s + 1) * L]),
+                    );
+                }
+                let y = rest(w, layer::<L>(&x, &w.w1, y));
+                for t in 0..count {
+                    let k = base + t;
+                    let v = _mm512_add_ps(load(&x[t]), y[t]);
+                    store(&mut out[k * L..(k + 1) * L], v);
+                    let r = b.receivers[k];
+                    let a = &mut agg[r * L..(r + 1) * L];
+                    store(a, _mm512_add_ps(load(a), v));
+                }
+            }
+            base += count;
+        }
+    }
+}
+
+/// Edges in flight in the AVX-512 copy.
+#[cfg(target_arch = "x86_64")]
+const TILE512: usize = 8;
+
+/// The instruction set the kernels run with, chosen once per call from the
+/// CPU (`HYBRIDMPM_ISA=baseline` forces the portable copy, `avx2` the AVX2
+/// one: for comparisons).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Isa {
+    /// Plain Rust, no FMA.
+    Portable,
+    /// AVX2 + FMA, two 8-lane registers per latent row.
+    Avx2,
+    /// AVX-512F, one 16-lane register per latent row.
+    Avx512,
+}
+
+/// The copy this CPU runs (see [`Isa`]).
+pub fn isa() -> Isa {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let asked = std::env::var("HYBRIDMPM_ISA").unwrap_or_default();
+        if asked == "baseline" {
+            return Isa::Portable;
+        }
+        if asked != "avx2" && is_x86_feature_detected!("avx512f") {
+            return Isa::Avx512;
+        }
+        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            return Isa::Avx2;
+        }
+        Isa::Portable
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        Isa::Portable
+    }
+}
+
+/// Whether this CPU runs a copy with fused multiply-adds.
+pub fn uses_fma() -> bool {
+    isa() != Isa::Portable
+}
+
+/// The edge encoder (module docs): `displacement` `[E, D]` and `distance`
+/// `[E]` (float32, the radius graph's; D = `dim` ∈ {2, 3}) →
+/// `out` `[E, 16]`, with `mlp.w1` of shape `[D + 1, 16]`.
+///
+/// # Errors
+/// [`KernelError`] naming `dim`, `displacement`, `out` or a weight for a
+/// shape that does not fit, or `weights` for a non-finite weight.
+pub fn edge_encoder(
+    mlp: &Mlp<'_>,
+    dim: usize,
+    displacement: &[f32],
+    distance: &[f32],
+    out: &mut [f32],
+) -> Result<(), KernelError> {
+    if dim != 2 && dim != 3 {
+        return Err(bad("dim", format!("must be 2 or 3, got {dim}")));
+    }
+    let e = distance.len();
+    if displacement.len() != e * dim {
+        return Err(bad(
+            "displacement",
+            format!("expected {e} x {dim} values, got {}", displacement.len()),
+        ));
+    }
+    if out.len() != e * L {
+        return Err(bad(
+            "out",
+            format!("expected {e} x {L} values, got {}", out.len()),
+        ));
+    }
+    let w = Weights::new(mlp, dim + 1)?;
+    run_encoder(isa(), &w, dim, displacement, distance, out);
+    Ok(())
+}
+
+/// Runs the edge encoder with the copy `isa`, which the CPU must have ([`isa`] checks it).
+fn run_encoder(
+    isa: Isa,
+    w: &Weights,
+    dim: usize,
+    displacement: &[f32],
+    distance: &[f32],
+    out: &mut [f32],
+) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: the callers pass `isa()`, so the CPU has the copy's features.
+    unsafe {
+        match (isa, dim) {
+            (Isa::Avx512, 2) => return avx512::encoder::<3>(w, displacement, distance, out),
+            (Isa::Avx512, _) => return avx512::encoder::<4>(w, displacement, distance, out),
+            (Isa::Avx2, 2) => return avx2::encoder::<3>(w, displacement, distance, out),
+            (Isa::Avx2, _) => return avx2::encoder::<4>(w, displacement, distance, out),
+            (Isa::Portable, _) => {}
+        }
+    }
+    let _ = isa;
+    if dim == 2 {
+        encoder_body::<Plain, 3>(w, displacement, distance, out);
+    } else {
+        encoder_body::<Plain, 4>(w, displacement, distance, out);
+    }
+}
+
+/// One message-passing step's edge update and its sum over receivers
+/// (module docs): edge latents `e` `[E, 16]`, node projections `hr`
+/// (`h W_r + b`) and `hs` (`h W_s`) `[N, 16]`, `receivers` and `senders`
+/// `[E]` (indices into the N nodes) → `out` `[E, 16]` (`e'`) and `agg`
+/// `[N, 16]` (`Σ e'` over each node's in-edges, in edge order; zero for a
+/// node without any). `mlp.w1` is `W_e` `[16, 16]`; `mlp.b1` is unused
+/// (pass the zeros: the bias is inside `hr`).
+///
+/// # Errors
+/// [`KernelError`] naming `e`, `hs`, `senders`, `receivers`, `out`, `agg` or
+/// a weight for a shape that does not fit or an index outside `[0, N)`.
+#[allow(clippy::too_many_arguments)] // the operator's own inputs and outputs, one slice each
+pub fn edge_block(
+    mlp: &Mlp<'_>,
+    e: &[f32],
+    hr: &[f32],
+    hs: &[f32],
+    receivers: &[i64],
+    senders: &[i64],
+    out: &mut [f32],
+    agg: &mut [f32],
+) -> Result<(), KernelError> {
+    let ne = receivers.len();
+    let n = hr.len() / L;
+    if hr.len() != n * L {
+        return Err(bad(
+            "hr",
+            format!("expected a multiple of {L} values, got {}", hr.len()),
+        ));
+    }
+    if hs.len() != hr.len() {
+        return Err(bad(
+            "hs",
+            format!("expected {n} x {L} values (as hr), got {}", hs.len()),
+        ));
+    }
+    if senders.len() != ne {
+        return Err(bad(
+            "senders",
+            format!(
+                "expected {ne} indices (as receivers), got {}",
+                senders.len()
+            ),
+        ));
+    }
+    if e.len() != ne * L || out.len() != ne * L {
+        return Err(bad(
+            if e.len() != ne * L { "e" } else { "out" },
+            format!("expected {ne} x {L} values"),
+        ));
+    }
+    if agg.len() != n * L {
+        return Err(bad(
+            "agg",
+            format!("expected {n} x {L} values, got {}", agg.len()),
+        ));
+    }
+    let index = |field: &'static str, v: &[i64]| -> Result<Vec<usize>, KernelError> {
+        v.iter()
+            .map(|&i| {
+                usize::try_from(i)
+                    .ok()
+                    .filter(|&i| i < n)
+                    .ok_or_else(|| bad(field, format!("index {i} outside [0, {n})")))
+            })
+            .collect()
+    };
+    let (receivers, senders) = (index("receivers", receivers)?, index("senders", senders)?);
+    let w = Weights::new(mlp, L)?;
+    let b = Block {
+        e,
+        hr,
+        hs,
+        receivers: &receivers,
+        senders: &senders,
+    };
+    run_block(isa(), &w, &b, out, agg);
+    Ok(())
+}
+
+/// Runs the edge block with the copy `isa`, which the CPU must have ([`isa`] checks it).
+fn run_block(isa: Isa, w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    match isa {
+        // SAFETY: the callers pass `isa()` or, in the tests, a copy `isa()` allows.
+        Isa::Avx512 => return unsafe { avx512::block(w, b, out, agg) },
+        Isa::Avx2 => return unsafe { avx2::block(w, b, out, agg) },
+        Isa::Portable => {}
+    }
+    let _ = isa;
+    block_body::<Plain>(w, b, out, agg);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small deterministic generator (xorshift), values in [-1, 1).
+    fn values(seed: u64, n: usize) -> Vec<f32> {
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    struct Owned {
+        w1: Vec<f32>,
+        b1: Vec<f32>,
+        w2: Vec<f32>,
+        b2: Vec<f32>,
+        w3: Vec<f32>,
+        b3: Vec<f32>,
+        kvar: Vec<f32>,
+    }
+
+    fn owned(inputs: usize, seed: u64) -> Owned {
+        Owned {
+            w1: values(seed, inputs * L),
+            b1: values(seed + 1, L),
+            w2: values(seed + 2, L * L),
+            b2: values(seed + 3, L),
+            w3: values(seed + 4, L * L),
+            b3: values(seed + 5, L),
+            kvar: values(seed + 6, L)
+                .iter()
+                .map(|v| v.abs() / L as f32)
+                .collect(),
+        }
+    }
+
+    fn mlp(o: &Owned) -> Mlp<'_> {
+        Mlp {
+            w1: &o.w1,
+            b1: &o.b1,
+            w2: &o.w2,
+            b2: &o.b2,
+            w3: &o.w3,
+            b3: &o.b3,
+            kvar: &o.kvar,
+            eps: 1e-5,
+        }
+    }
+
+    /// The graph's arithmetic, written the plain way in f64: one layer.
+    fn dense(x: &[f64], w: &[f32], b: &[f32], relu: bool) -> Vec<f64> {
+        (0..L)
+            .map(|j| {
+                let v = b[j] as f64
+                    + x.iter()
+                        .enumerate()
+                        .map(|(k, &xk)| xk * w[k * L + j] as f64)
+                        .sum::<f64>();
+                if relu { v.max(0.0) } else { v }
+            })
+            .collect()
+    }
+
+    fn reference(o: &Owned, first: Vec<f64>) -> Vec<f64> {
+        let h = dense(
+            &first.iter().map(|v| v.max(0.0)).collect::<Vec<_>>(),
+            &o.w2,
+            &o.b2,
+            true,
+        );
+        let z = dense(&h, &o.w3, &o.b3, false);
+        let var: f64 = z
+            .iter()
+            .zip(&o.kvar)
+            .map(|(v, k)| v * v * *k as f64)
+            .sum::<f64>()
+            + 1e-5;
+        z.iter().map(|v| v / var.sqrt()).collect()
+    }
+
+    fn close(a: &[f32], b: &[f64]) {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(
+                (*x as f64 - y).abs() <= 2e-5 * (1.0 + y.abs()),
+                "value {i}: {x} against {y}"
+            );
+        }
+    }
+
+    #[test]
+    fn encoder_matches_the_layers_written_out() {
+        for dim in [2usize, 3] {
+            for ne in [0usize, 1, 3, 4, 9] {
+                let o = owned(dim + 1, 7 + dim as u64);
+                let disp = values(11, ne * dim);
+                let dist: Vec<f32> = values(12, ne).iter().map(|v| v.abs()).collect();
+                let mut out = vec![f32::NAN; ne * L];
+                edge_encoder(&mlp(&o), dim, &disp, &dist, &mut out).unwrap();
+                let mut want = Vec::new();
+                for k in 0..ne {
+                    let mut x: Vec<f64> = disp[k * dim..(k + 1) * dim]
+                        .iter()
+                        .map(|&v| v as f64)
+                        .collect();
+                    x.push(dist[k] as f64);
+                    want.extend(reference(&o, dense(&x, &o.w1, &o.b1, false)));
+                }
+                close(&out, &want);
+            }
+        }
+    }
+
+    #[test]
+    fn block_matches_the_layers_written_out_and_sums_over_receivers() {
+        let n = 7;
+        for ne in [0usize, 1, 5, 8, 13] {
+            let o = owned(L, 3);
+            let zeros = vec![0.0f32; L];
+            let m = Mlp {
+                b1: &zeros,
+                ..mlp(&o)
+            };
+            let e = values(21, ne * L);
+            let hr = values(22, n * L);
+            let hs = values(23, n * L);
+            let receivers: Vec<i64> = (0..ne as i64).map(|k| (k * 3) % (n as i64 - 1)).collect();
+            let senders: Vec<i64> = (0..ne as i64).map(|k| (k * 5 + 1) % n as i64).collect();
+            let mut out = vec![f32::NAN; ne * L];
+            let mut agg = vec![f32::NAN; n * L];
+            edge_block(&m, &e, &hr, &hs, &receivers, &senders, &mut out, &mut agg).unwrap();
+            let mut want = Vec::new();
+            let mut want_agg = vec![0.0f64; n * L];
+            for k in 0..ne {
+                let (r, s) = (receivers[k] as usize, senders[k] as usize);
+                let x: Vec<f64> = e[k * L..(k + 1) * L].iter().map(|&v| v as f64).collect();
+                let mut first = dense(&x, &o.w1, &zeros, false);
+                for j in 0..L {
+                    first[j] += hr[r * L + j] as f64 + hs[s * L + j] as f64;
+                }
+                let ln = reference(&o, first);
+                for j in 0..L {
+                    let v = x[j] + ln[j];
+                    want.push(v);
+                    want_agg[r * L + j] += v;
+                }
+            }
+            close(&out, &want);
+            close(&agg, &want_agg);
+            // node n - 1 receives no edge: its sum is exactly zero
+            assert!(agg[(n - 1) * L..].iter().all(|&v| v == 0.0));
+        }
+    }
+
+    #[test]
+    fn every_copy_the_cpu_has_agrees_with_the_portable_one() {
+        let o = owned(L, 5);
+        let zeros = vec![0.0f32; L];
+        let m = Mlp {
+            b1: &zeros,
+            ..mlp(&o)
+        };
+        let (n, ne) = (9usize, 23usize);
+        let e = values(31, ne * L);
+        let hr = values(32, n * L);
+        let hs = values(33, n * L);
+        let receivers: Vec<usize> = (0..ne).map(|k| k % n).collect();
+        let senders: Vec<usize> = (0..ne).map(|k| (k * 7) % n).collect();
+        let b = Block {
+            e: &e,
+            hr: &hr,
+            hs: &hs,
+            receivers: &receivers,
+            senders: &senders,
+        };
+        let w = Weights::new(&m, L).unwrap();
+        let (mut o1, mut a1) = (vec![0.0; ne * L], vec![0.0; n * L]);
+        run_block(Isa::Portable, &w, &b, &mut o1, &mut a1);
+        let best = isa();
+        let copies: Vec<Isa> = [Isa::Avx2, Isa::Avx512]
+            .into_iter()
+            .filter(|&c| best == Isa::Avx512 || (best == Isa::Avx2 && c == Isa::Avx2))
+            .collect();
+        for c in copies {
+            let (mut o2, mut a2) = (vec![f32::NAN; ne * L], vec![f32::NAN; n * L]);
+            run_block(c, &w, &b, &mut o2, &mut a2);
+            for (x, y) in o1.iter().zip(&o2).chain(a1.iter().zip(&a2)) {
+                assert!(
+                    (x - y).abs() <= 1e-5 * (1.0 + x.abs()),
+                    "{c:?}: {x} against {y}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn bad_arguments_are_refused_naming_the_field() {
+        let o = owned(L, 1);
+        let m = mlp(&o);
+        let (hr, hs, e) = (vec![0.0f32; 2 * L], vec![0.0f32; 2 * L], vec![0.0f32; L]);
+        let mut out = vec![0.0f32; L];
+        let mut agg = vec![0.0f32; 2 * L];
+        let err = edge_block(&m, &e, &hr, &hs, &[2], &[0], &mut out, &mut agg).unwrap_err();
+        assert_eq!(err.field, "receivers");
+        let err = edge_block(&m, &e, &hr, &hs, &[0], &[-1], &mut out, &mut agg).unwrap_err();
+        assert_eq!(err.field, "senders");
+        let err = edge_block(&m, &e, &hr, &hs[..L], &[0], &[0], &mut out, &mut agg).unwrap_err();
+        assert_eq!(err.field, "hs");
+        let mut w2 = o.w2.clone();
+        w2[3] = f32::NAN;
+        let err = edge_block(
+            &Mlp { w2: &w2, ..m },
+            &e,
+            &hr,
+            &hs,
+            &[0],
+            &[0],
+            &mut out,
+            &mut agg,
+        )
+        .unwrap_err();
+        assert_eq!(err.field, "weights");
+        let enc = owned(3, 2);
+        let err = edge_encoder(&mlp(&enc), 4, &[0.0; 4], &[0.0], &mut out).unwrap_err();
+        assert_eq!(err.field, "dim");
+        let err = edge_encoder(&mlp(&enc), 2, &[0.0; 3], &[0.0], &mut out).unwrap_err();
+        assert_eq!(err.field, "displacement");
+        let err = edge_encoder(&mlp(&owned(4, 2)), 2, &[0.0; 2], &[0.0], &mut out).unwrap_err();
+        assert_eq!(err.field, "w1");
+    }
+}

@@ -1,0 +1,128 @@
+"""The fused edge kernels (issue 17; ``hybridmpm.neural.fused``, ``rust/gnn``,
+``rust/python/src/ort_ops.rs``) compute the compiled graph's function.
+
+Checked against onnxruntime's own operators running the unfused graph (an
+independent implementation of the same arithmetic): every shipped model on a
+state of its own scene, one and two threads; the kernels' Rust unit tests
+check them against the layers written out in f64 (``cargo test -p
+hybridmpm-gnn``)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
+from hybridmpm.models import shipped_model, shipped_models
+from hybridmpm.neural import NeuralModel, fused
+from hybridmpm.sim import NeuralSimulator, rollout
+
+GOLDEN = Path(__file__).parent / "golden"
+
+
+def scene_state(scene: str, steps: int = 2) -> NeuralSimulator:
+    sim = NeuralSimulator(scene, seed=5, mpm_threads=1)
+    while sim.warming_up:
+        sim.advance()
+    for _ in range(steps):
+        sim.advance()
+    return sim
+
+
+@pytest.mark.parametrize("scene", sorted(set(shipped_models())))
+def test_every_shipped_model_gives_the_plain_graphs_outputs(scene: str):
+    """On a state of its own scene: acceleration within 1e-5 of its largest
+    value (float32 rounding of sums in another order), next position within
+    1e-6 m; on two threads the fused sums are the same bits as on one."""
+    sim = scene_state(scene)
+    hist, ptype = sim.history, sim.particles.particle_type
+    assert hist is not None
+    graph = radius_graph(hist[-1], sim.model.radius)
+    plain = NeuralModel(shipped_model(scene), fused=False)
+    one, two = NeuralModel(shipped_model(scene)), NeuralModel(shipped_model(scene), threads=2)
+    assert (plain.fused, one.fused, two.fused) == (False, True, True)
+    a0, x0, _ = plain.predict(hist, ptype, graph=graph)
+    a1, x1, _ = one.predict(hist, ptype, graph=graph)
+    a2, x2, _ = two.predict(hist, ptype, graph=graph)
+    assert np.abs(a1 - a0).max() <= 1e-5 * np.abs(a0).max()
+    assert np.abs(x1 - x0).max() <= 1e-6
+    assert np.array_equal(a1, a2) and np.array_equal(x1, x2)
+
+
+def test_the_shipped_fused_files_are_the_rewrite_of_the_shipped_models(tmp_path):
+    """``models/fused/NAME.onnx`` (what serving without the onnx package runs)
+    is exactly :func:`fused.write_fused` of the shipped file, made from it
+    (its SHA-256 recorded)."""
+    for name in sorted(set(shipped_models().values())):
+        src = shipped_model(next(s for s, n in shipped_models().items() if n == name))
+        copy = tmp_path / name
+        shutil.copy(src, copy)
+        made = fused.write_fused(copy)
+        assert made is not None
+        assert made.read_bytes() == fused.fused_sibling(src).read_bytes(), f"{name}: models/fused/{name} is stale: rerun fused.write_fused"
+
+
+def test_a_stale_or_foreign_fused_file_is_not_used(tmp_path):
+    """A fused file made from another model is ignored: the model runs its own
+    graph (rewritten in memory here, where the onnx package is installed)."""
+    src = tmp_path / "water2d.onnx"
+    shutil.copy(shipped_model("water2d"), src)
+    (tmp_path / "fused").mkdir()
+    shutil.copy(fused.fused_sibling(shipped_model("sand2d")), fused.fused_sibling(src))
+    data = fused.load_fused(src)
+    assert data is not None and data != fused.fused_sibling(src).read_bytes()
+    sim = scene_state("water2d", steps=1)
+    hist, ptype = sim.history, sim.particles.particle_type
+    a_f, _, _ = NeuralModel(src).predict(hist, ptype)
+    a_p, _, _ = NeuralModel(src, fused=False).predict(hist, ptype)
+    assert np.abs(a_f - a_p).max() <= 2e-5 * np.abs(a_p).max()
+
+
+def test_graphs_of_other_layouts_are_left_alone():
+    """A torch-exported graph (202ef89) and a ``compiled-2`` graph (its
+    LayerNorm's variance as wide as the latent) do not match: ``fuse_graph``
+    returns None and the model runs unfused; asking for the kernels on such a
+    file is refused naming ``fused``."""
+    import onnx
+
+    for f in (GOLDEN / "models" / "water2d_202ef89.onnx", GOLDEN / "gns_compiled2_tiny.onnx"):
+        assert fused.fuse_graph(onnx.load(str(f))) is None
+        assert NeuralModel(f).fused is False
+        with pytest.raises(InvalidInputError) as e:
+            NeuralModel(f, fused=True)
+        assert e.value.field == "fused"
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(shipped_model("water2d"), fused="yes")  # type: ignore[arg-type]
+    assert e.value.field == "fused"
+
+
+def test_bad_indices_are_an_error_naming_them_not_a_crash():
+    """The operators check what onnxruntime hands them: a receiver outside the
+    nodes comes back as onnxruntime's error naming ``receivers``."""
+    model = NeuralModel(shipped_model("water2d"))
+    sim = scene_state("water2d", steps=1)
+    hist, ptype = sim.history, sim.particles.particle_type
+    s, r, d, dist = radius_graph(hist[-1], model.radius)
+    r = r.copy()
+    r[3] = hist.shape[1] + 5
+    feeds = model.feeds(hist, ptype, (s, r, d, dist))
+    with pytest.raises(Exception, match="receivers"):
+        model.session.run(None, feeds)
+
+
+def test_a_rollout_is_the_plain_graphs_to_rounding(monkeypatch):
+    """60 frames of the dam break's network, fused and not (``HYBRIDMPM_FUSED=0``
+    switches the kernels off): the positions stay within 1e-4 m (the flow
+    amplifies float32 rounding; the compiled graph against the torch export
+    drifted 4.6e-4 m over 120 frames)."""
+    runs = []
+    for on in ("1", "0"):
+        monkeypatch.setenv("HYBRIDMPM_FUSED", on)
+        sim = NeuralSimulator("dam_break2d", seed=0, mpm_threads=1)
+        assert sim.model.fused == (on == "1")
+        runs.append(rollout(sim, 60).fluid_positions)
+    assert np.abs(runs[0] - runs[1]).max() <= 1e-4
