@@ -3,7 +3,11 @@
 ``index.json`` maps each scene to the model file that serves it (one model may
 serve several scenes); every model has a card ``<name>.md`` beside it (data,
 config, training time, one-step and rollout errors). Simulating with a shipped
-model needs only numpy and onnxruntime.
+model needs only numpy and onnxruntime. ``fused/<name>`` beside a model (and
+beside each variant) is the same network with the fused edge kernels
+(:mod:`hybridmpm.neural.fused`), made from it by ``fused.write_fused`` and
+recording its SHA-256; :class:`~hybridmpm.neural.NeuralModel` runs it in
+its place.
 """
 
 from __future__ import annotations

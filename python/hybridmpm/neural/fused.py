@@ -147,6 +147,7 @@ def fuse_graph(proto: Any) -> Any | None:
     caller runs it unchanged. The input proto is not modified."""
     from onnx import helper
 
+    _LAST_REASON[0] = ""
     m = type(proto)()
     m.CopyFrom(proto)
     g = m.graph
