@@ -139,3 +139,23 @@ def test_a_rollout_is_the_plain_graphs_to_rounding(monkeypatch):
         assert sim.model.fused == (on == "1")
         runs.append(rollout(sim, 60).fluid_positions)
     assert np.abs(runs[0] - runs[1]).max() <= 1e-4
+
+
+def test_a_runtime_that_cannot_load_the_kernels_runs_the_plain_graph(monkeypatch):
+    """If onnxruntime refuses the custom operators (an old runtime, a library
+    that does not load), the model warns and runs its plain graph; asking for
+    the kernels explicitly is refused naming ``fused``."""
+
+    def refuse(options):
+        raise RuntimeError("custom op library refused")
+
+    monkeypatch.setattr(fused, "register", refuse)
+    with pytest.warns(RuntimeWarning, match="without the fused edge kernels"):
+        model = NeuralModel(shipped_model("water2d"))
+    assert model.fused is False
+    sim = scene_state("water2d", steps=1)
+    a, _, _ = model.predict(sim.history, sim.particles.particle_type)
+    assert np.isfinite(a).all()
+    with pytest.raises(InvalidInputError) as e:
+        NeuralModel(shipped_model("water2d"), fused=True)
+    assert e.value.field == "fused"

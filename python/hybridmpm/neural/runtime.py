@@ -192,9 +192,32 @@ class NeuralModel:
 
     def _session(self, threads: int) -> Any:
         """An onnxruntime session of the file on ``threads`` intra-op threads
-        (spinning as :attr:`spinning` says; one thread never spins)."""
+        (spinning as :attr:`spinning` says; one thread never spins): of its
+        fused graph (:mod:`hybridmpm.neural.fused`) unless ``fused=False``,
+        ``HYBRIDMPM_FUSED=0`` or there is none (then :attr:`fused` is False)."""
         import onnxruntime as ort
 
+        opts = self._options(ort, threads)
+        self.fused = False
+        if self._fused_asked is not False and os.environ.get("HYBRIDMPM_FUSED", "1") != "0":
+            graph = _fused_bytes(self.path)
+            if graph is None and self._fused_asked:
+                raise InvalidInputError(f"fused: {self.path.name} is not a compiled graph the fused kernels replace ({fused.why_not()})", "fused")
+            if graph is not None:
+                try:
+                    fused.register(opts)
+                    session = ort.InferenceSession(graph, opts, providers=["CPUExecutionProvider"])
+                except Exception as e:  # noqa: BLE001 - e.g. an onnxruntime too old for the custom-op API: run the plain graph
+                    if self._fused_asked:
+                        raise InvalidInputError(f"fused: onnxruntime could not load the fused kernels: {e}", "fused") from e
+                    warnings.warn(f"fused: running {self.path.name} without the fused edge kernels: {e}", RuntimeWarning, stacklevel=3)
+                    return self._session_of(ort, str(self.path), threads)
+                self.fused = True
+                return session
+        return self._session_of(ort, str(self.path), threads)
+
+    def _options(self, ort: Any, threads: int) -> Any:
+        """onnxruntime ``SessionOptions`` for ``threads`` intra-op threads."""
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1
@@ -207,15 +230,11 @@ class NeuralModel:
 
             opts.enable_profiling = True
             opts.profile_file_prefix = str(Path(tempfile.gettempdir()) / "hybridmpm_ort_profile")
-        source: Any = str(self.path)
-        self.fused = False
-        if self._fused_asked is not False and os.environ.get("HYBRIDMPM_FUSED", "1") != "0":
-            graph = _fused_bytes(self.path)
-            if graph is not None:
-                fused.register(opts)
-                source, self.fused = graph, True
-            elif self._fused_asked:
-                raise InvalidInputError(f"fused: {self.path.name} is not a compiled graph the fused kernels replace ({fused.why_not()})", "fused")
+        return opts
+
+    def _session_of(self, ort: Any, source: str, threads: int) -> Any:
+        """A plain session of the file (no custom operators)."""
+        opts = self._options(ort, threads)
         try:
             return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
         except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types
