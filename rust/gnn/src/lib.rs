@@ -43,9 +43,6 @@
 /// Latent width the kernels are compiled for.
 pub const L: usize = 16;
 
-/// Edges processed together in registers.
-const TILE: usize = 4;
-
 /// An invalid argument; the message names the field.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{field}: {message}")]
@@ -145,103 +142,6 @@ impl Weights {
     }
 }
 
-/// `a * b + c`, fused where the compiled copy has FMA.
-trait Madd {
-    fn madd(a: f32, b: f32, c: f32) -> f32;
-}
-
-/// Plain multiply and add (the portable copy).
-struct Plain;
-impl Madd for Plain {
-    #[inline(always)]
-    fn madd(a: f32, b: f32, c: f32) -> f32 {
-        a * b + c
-    }
-}
-
-/// `y[t] += x[t] · w` for a tile of rows (`x[t]` of `K` inputs).
-#[inline(always)]
-fn accumulate<M: Madd, const T: usize, const K: usize>(
-    x: &[[f32; K]; T],
-    w: &[Row],
-    y: &mut [Row; T],
-) {
-    for (k, wk) in w.iter().enumerate().take(K) {
-        for t in 0..T {
-            let xk = x[t][k];
-            for j in 0..L {
-                y[t][j] = M::madd(xk, wk[j], y[t][j]);
-            }
-        }
-    }
-}
-
-#[inline(always)]
-fn relu<const T: usize>(y: &mut [Row; T]) {
-    for r in y.iter_mut() {
-        for v in r.iter_mut() {
-            *v = v.max(0.0);
-        }
-    }
-}
-
-/// Layers 2 and 3 and the folded LayerNorm, in place: `y` holds the first
-/// layer's pre-activation on entry and the normalised output on return.
-#[inline(always)]
-fn rest<M: Madd, const T: usize>(w: &Weights, y: &mut [Row; T]) {
-    relu(y);
-    let mut z = [w.b2; T];
-    accumulate::<M, T, L>(y, &w.w2, &mut z);
-    relu(&mut z);
-    let mut o = [w.b3; T];
-    accumulate::<M, T, L>(&z, &w.w3, &mut o);
-    for t in 0..T {
-        let mut var = 0.0f32;
-        for j in 0..L {
-            var = M::madd(o[t][j] * o[t][j], w.kvar[j], var);
-        }
-        let std = (var + w.eps).sqrt();
-        for j in 0..L {
-            y[t][j] = o[t][j] / std;
-        }
-    }
-}
-
-#[inline(always)]
-fn encoder_tiles<M: Madd, const T: usize, const K: usize>(
-    w: &Weights,
-    disp: &[f32],
-    dist: &[f32],
-    out: &mut [f32],
-    first: usize,
-    count: usize,
-) {
-    let d = K - 1;
-    for base in (first..first + count).step_by(T) {
-        let mut x = [[0.0f32; K]; T];
-        for t in 0..T {
-            let k = base + t;
-            x[t][..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
-            x[t][d] = dist[k];
-        }
-        let mut y = [w.b1; T];
-        accumulate::<M, T, K>(&x, &w.w1, &mut y);
-        rest::<M, T>(w, &mut y);
-        for t in 0..T {
-            let k = base + t;
-            out[k * L..(k + 1) * L].copy_from_slice(&y[t]);
-        }
-    }
-}
-
-#[inline(always)]
-fn encoder_body<M: Madd, const K: usize>(w: &Weights, disp: &[f32], dist: &[f32], out: &mut [f32]) {
-    let e = dist.len();
-    let full = e / TILE * TILE;
-    encoder_tiles::<M, TILE, K>(w, disp, dist, out, 0, full);
-    encoder_tiles::<M, 1, K>(w, disp, dist, out, full, e - full);
-}
-
 struct Block<'a> {
     e: &'a [f32],
     hr: &'a [f32],
@@ -250,353 +150,341 @@ struct Block<'a> {
     senders: &'a [usize],
 }
 
-#[inline(always)]
-fn block_tiles<M: Madd, const T: usize>(
-    w: &Weights,
-    b: &Block<'_>,
-    out: &mut [f32],
-    agg: &mut [f32],
-    first: usize,
-    count: usize,
-) {
-    for base in (first..first + count).step_by(T) {
-        let mut x = [[0.0f32; L]; T];
-        let mut y = [[0.0f32; L]; T];
-        for t in 0..T {
-            let k = base + t;
-            let (r, s) = (b.receivers[k], b.senders[k]);
-            x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
-            let hr = &b.hr[r * L..(r + 1) * L];
-            let hs = &b.hs[s * L..(s + 1) * L];
-            for j in 0..L {
-                y[t][j] = hr[j] + hs[j];
-            }
-        }
-        accumulate::<M, T, L>(&x, &w.w1, &mut y);
-        rest::<M, T>(w, &mut y);
-        for t in 0..T {
-            let k = base + t;
-            let r = b.receivers[k];
-            let o = &mut out[k * L..(k + 1) * L];
-            for j in 0..L {
-                o[j] = x[t][j] + y[t][j];
-            }
-            let a = &mut agg[r * L..(r + 1) * L];
-            for j in 0..L {
-                a[j] += o[j];
-            }
-        }
+/// A latent row in registers and the few operations the kernels need. One
+/// implementation per instruction set; the kernels below are written once,
+/// over this trait, and compiled into each copy (the copy's function enables
+/// the target features, and everything here is inlined into it).
+///
+/// # Safety
+/// The methods may use the instruction set of their implementation: call
+/// them only from a function compiled with it, on a CPU that has it. `load`
+/// and `store` need slices of at least [`L`] values.
+unsafe trait Lanes {
+    /// A row of [`L`] values.
+    type R: Copy;
+    unsafe fn zero() -> Self::R;
+    unsafe fn load(p: &[f32]) -> Self::R;
+    unsafe fn store(p: &mut [f32], r: Self::R);
+    unsafe fn add(a: Self::R, b: Self::R) -> Self::R;
+    unsafe fn relu(a: Self::R) -> Self::R;
+    /// `acc + x · w` (every lane of `w` times the scalar `x`).
+    unsafe fn madd(x: f32, w: Self::R, acc: Self::R) -> Self::R;
+    /// The folded LayerNorm of `o`: `o / sqrt(Σ_j k_j o_j² + eps)`.
+    unsafe fn norm(o: Self::R, k: Self::R, eps: f32) -> Self::R;
+}
+
+/// Plain Rust, no FMA: the copy for any CPU.
+struct Portable;
+
+// SAFETY: plain Rust; `load` and `store` index the first L values (checked).
+unsafe impl Lanes for Portable {
+    type R = Row;
+    #[inline(always)]
+    unsafe fn zero() -> Row {
+        [0.0; L]
+    }
+    #[inline(always)]
+    unsafe fn load(p: &[f32]) -> Row {
+        p[..L].try_into().expect("a row of L values")
+    }
+    #[inline(always)]
+    unsafe fn store(p: &mut [f32], r: Row) {
+        p[..L].copy_from_slice(&r);
+    }
+    #[inline(always)]
+    unsafe fn add(a: Row, b: Row) -> Row {
+        std::array::from_fn(|j| a[j] + b[j])
+    }
+    #[inline(always)]
+    unsafe fn relu(a: Row) -> Row {
+        a.map(|v| v.max(0.0))
+    }
+    #[inline(always)]
+    unsafe fn madd(x: f32, w: Row, acc: Row) -> Row {
+        std::array::from_fn(|j| x * w[j] + acc[j])
+    }
+    #[inline(always)]
+    unsafe fn norm(o: Row, k: Row, eps: f32) -> Row {
+        let var: f32 = (0..L).map(|j| o[j] * o[j] * k[j]).sum();
+        let std = (var + eps).sqrt();
+        o.map(|v| v / std)
     }
 }
 
-#[inline(always)]
-fn block_body<M: Madd>(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-    agg.fill(0.0);
-    let e = b.receivers.len();
-    let full = e / TILE * TILE;
-    block_tiles::<M, TILE>(w, b, out, agg, 0, full);
-    block_tiles::<M, 1>(w, b, out, agg, full, e - full);
-}
-
-/// The AVX2 + FMA copy: the same arithmetic with each latent row as two
-/// 8-lane registers and a tile of [`TILE`] edges in flight, so the
-/// accumulators stay in registers (the generic code's arrays did not: they
-/// went through memory at every multiply-add, 2x slower).
+/// AVX2 + FMA: a row is two 8-lane registers.
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
-    use super::{L, Row, TILE, Weights};
-    use std::arch::x86_64::*;
+struct Avx2;
 
-    #[derive(Clone, Copy)]
-    struct R(__m256, __m256);
-
+#[cfg(target_arch = "x86_64")]
+// SAFETY: AVX/AVX2/FMA intrinsics, used only inside `#[target_feature(enable = "avx,avx2,fma")]` copies; rows of L values.
+unsafe impl Lanes for Avx2 {
+    type R = (std::arch::x86_64::__m256, std::arch::x86_64::__m256);
     #[inline(always)]
-    unsafe fn load(p: &[f32]) -> R {
-        debug_assert!(p.len() >= L);
+    unsafe fn zero() -> Self::R {
+        use std::arch::x86_64::*;
+        unsafe { (_mm256_setzero_ps(), _mm256_setzero_ps()) }
+    }
+    #[inline(always)]
+    unsafe fn load(p: &[f32]) -> Self::R {
+        use std::arch::x86_64::*;
+        assert!(p.len() >= L);
         unsafe {
-            R(
+            (
                 _mm256_loadu_ps(p.as_ptr()),
                 _mm256_loadu_ps(p.as_ptr().add(8)),
             )
         }
     }
-
     #[inline(always)]
-    unsafe fn store(p: &mut [f32], r: R) {
-        debug_assert!(p.len() >= L);
+    unsafe fn store(p: &mut [f32], r: Self::R) {
+        use std::arch::x86_64::*;
+        assert!(p.len() >= L);
         unsafe {
             _mm256_storeu_ps(p.as_mut_ptr(), r.0);
             _mm256_storeu_ps(p.as_mut_ptr().add(8), r.1);
         }
     }
-
     #[inline(always)]
-    unsafe fn add(a: R, b: R) -> R {
-        unsafe { R(_mm256_add_ps(a.0, b.0), _mm256_add_ps(a.1, b.1)) }
+    unsafe fn add(a: Self::R, b: Self::R) -> Self::R {
+        use std::arch::x86_64::*;
+        unsafe { (_mm256_add_ps(a.0, b.0), _mm256_add_ps(a.1, b.1)) }
     }
-
     #[inline(always)]
-    unsafe fn relu(a: R) -> R {
+    unsafe fn relu(a: Self::R) -> Self::R {
+        use std::arch::x86_64::*;
         unsafe {
             let z = _mm256_setzero_ps();
-            R(_mm256_max_ps(a.0, z), _mm256_max_ps(a.1, z))
+            (_mm256_max_ps(a.0, z), _mm256_max_ps(a.1, z))
         }
     }
-
-    /// `y[t] += x[t] · w` (`x[t]` of `K` values in memory, broadcast one at a time).
     #[inline(always)]
-    unsafe fn layer<const K: usize>(
-        x: &[[f32; K]; TILE],
-        w: &[Row],
-        mut y: [R; TILE],
-    ) -> [R; TILE] {
+    unsafe fn madd(x: f32, w: Self::R, acc: Self::R) -> Self::R {
+        use std::arch::x86_64::*;
         unsafe {
-            for (k, wk) in w.iter().enumerate().take(K) {
-                let (wl, wh) = (
-                    _mm256_loadu_ps(wk.as_ptr()),
-                    _mm256_loadu_ps(wk.as_ptr().add(8)),
-                );
-                for t in 0..TILE {
-                    let b = _mm256_broadcast_ss(&x[t][k]);
-                    y[t] = R(
-                        _mm256_fmadd_ps(b, wl, y[t].0),
-                        _mm256_fmadd_ps(b, wh, y[t].1),
-                    );
-                }
-            }
+            let b = _mm256_set1_ps(x);
+            (
+                _mm256_fmadd_ps(b, w.0, acc.0),
+                _mm256_fmadd_ps(b, w.1, acc.1),
+            )
         }
-        y
     }
-
-    /// Layers 2 and 3 and the folded LayerNorm from the first layer's pre-activation.
     #[inline(always)]
-    unsafe fn rest(w: &Weights, y: [R; TILE]) -> [R; TILE] {
+    unsafe fn norm(o: Self::R, k: Self::R, eps: f32) -> Self::R {
+        use std::arch::x86_64::*;
         unsafe {
-            let mut buf = [[0.0f32; L]; TILE];
-            for t in 0..TILE {
-                store(&mut buf[t], relu(y[t]));
-            }
-            let b2 = load(&w.b2);
-            let z = layer::<L>(&buf, &w.w2, [b2; TILE]);
-            for t in 0..TILE {
-                store(&mut buf[t], relu(z[t]));
-            }
-            let b3 = load(&w.b3);
-            let o = layer::<L>(&buf, &w.w3, [b3; TILE]);
-            let k = load(&w.kvar);
-            let mut out = o;
-            for t in 0..TILE {
-                let s = _mm256_fmadd_ps(
-                    _mm256_mul_ps(o[t].0, o[t].0),
-                    k.0,
-                    _mm256_mul_ps(_mm256_mul_ps(o[t].1, o[t].1), k.1),
-                );
-                let h = _mm_add_ps(_mm256_castps256_ps128(s), _mm256_extractf128_ps(s, 1));
-                let h = _mm_add_ps(h, _mm_movehl_ps(h, h));
-                let h = _mm_add_ss(h, _mm_shuffle_ps(h, h, 1));
-                let std = _mm_sqrt_ss(_mm_add_ss(h, _mm_set_ss(w.eps)));
-                let d = _mm256_broadcastss_ps(std);
-                out[t] = R(_mm256_div_ps(o[t].0, d), _mm256_div_ps(o[t].1, d));
-            }
-            out
+            let s = _mm256_fmadd_ps(
+                _mm256_mul_ps(o.0, o.0),
+                k.0,
+                _mm256_mul_ps(_mm256_mul_ps(o.1, o.1), k.1),
+            );
+            let h = _mm_add_ps(_mm256_castps256_ps128(s), _mm256_extractf128_ps(s, 1));
+            let h = _mm_add_ps(h, _mm_movehl_ps(h, h));
+            let h = _mm_add_ss(h, _mm_shuffle_ps(h, h, 1));
+            let d = _mm256_broadcastss_ps(_mm_sqrt_ss(_mm_add_ss(h, _mm_set_ss(eps))));
+            (_mm256_div_ps(o.0, d), _mm256_div_ps(o.1, d))
         }
     }
+}
+
+/// AVX-512F: a row is one 16-lane register.
+#[cfg(target_arch = "x86_64")]
+struct Avx512;
+
+#[cfg(target_arch = "x86_64")]
+// SAFETY: AVX-512F intrinsics, used only inside `#[target_feature(enable = "avx512f")]` copies; rows of L values.
+unsafe impl Lanes for Avx512 {
+    type R = std::arch::x86_64::__m512;
+    #[inline(always)]
+    unsafe fn zero() -> Self::R {
+        unsafe { std::arch::x86_64::_mm512_setzero_ps() }
+    }
+    #[inline(always)]
+    unsafe fn load(p: &[f32]) -> Self::R {
+        assert!(p.len() >= L);
+        unsafe { std::arch::x86_64::_mm512_loadu_ps(p.as_ptr()) }
+    }
+    #[inline(always)]
+    unsafe fn store(p: &mut [f32], r: Self::R) {
+        assert!(p.len() >= L);
+        unsafe { std::arch::x86_64::_mm512_storeu_ps(p.as_mut_ptr(), r) }
+    }
+    #[inline(always)]
+    unsafe fn add(a: Self::R, b: Self::R) -> Self::R {
+        unsafe { std::arch::x86_64::_mm512_add_ps(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn relu(a: Self::R) -> Self::R {
+        use std::arch::x86_64::*;
+        unsafe { _mm512_max_ps(a, _mm512_setzero_ps()) }
+    }
+    #[inline(always)]
+    unsafe fn madd(x: f32, w: Self::R, acc: Self::R) -> Self::R {
+        use std::arch::x86_64::*;
+        unsafe { _mm512_fmadd_ps(_mm512_set1_ps(x), w, acc) }
+    }
+    #[inline(always)]
+    unsafe fn norm(o: Self::R, k: Self::R, eps: f32) -> Self::R {
+        use std::arch::x86_64::*;
+        unsafe {
+            let var = _mm512_reduce_add_ps(_mm512_mul_ps(_mm512_mul_ps(o, o), k));
+            _mm512_div_ps(o, _mm512_set1_ps((var + eps).sqrt()))
+        }
+    }
+}
+
+/// `y[t] += x[t] · w` for a tile of `T` rows; `x[t]` holds `K` inputs in
+/// memory, broadcast one at a time, and the accumulators stay in registers.
+#[inline(always)]
+unsafe fn layer<S: Lanes, const T: usize, const K: usize>(
+    x: &[[f32; K]; T],
+    w: &[Row],
+    mut y: [S::R; T],
+) -> [S::R; T] {
+    for (k, wk) in w.iter().enumerate().take(K) {
+        // SAFETY: the caller runs with `S`'s instruction set; rows are L long.
+        unsafe {
+            let wv = S::load(wk);
+            for t in 0..T {
+                y[t] = S::madd(x[t][k], wv, y[t]);
+            }
+        }
+    }
+    y
+}
+
+/// Layers 2 and 3 and the folded LayerNorm from the first layer's pre-activation.
+#[inline(always)]
+unsafe fn rest<S: Lanes, const T: usize>(w: &Weights, y: [S::R; T]) -> [S::R; T] {
+    // SAFETY: the caller runs with `S`'s instruction set; every row is L long.
+    unsafe {
+        let mut buf = [[0.0f32; L]; T];
+        for t in 0..T {
+            S::store(&mut buf[t], S::relu(y[t]));
+        }
+        let z = layer::<S, T, L>(&buf, &w.w2, [S::load(&w.b2); T]);
+        for t in 0..T {
+            S::store(&mut buf[t], S::relu(z[t]));
+        }
+        let o = layer::<S, T, L>(&buf, &w.w3, [S::load(&w.b3); T]);
+        let k = S::load(&w.kvar);
+        let mut out = o;
+        for t in 0..T {
+            out[t] = S::norm(o[t], k, w.eps); // a loop, not `map`: a closure would not be inlined into the copy
+        }
+        out
+    }
+}
+
+/// The edge encoder over all edges, `T` at a time (the last tile padded by
+/// repeating its last edge, whose extra results are not stored).
+#[inline(always)]
+unsafe fn encoder<S: Lanes, const T: usize, const K: usize>(
+    w: &Weights,
+    disp: &[f32],
+    dist: &[f32],
+    out: &mut [f32],
+) {
+    let d = K - 1;
+    let e = dist.len();
+    let mut base = 0;
+    while base < e {
+        let count = T.min(e - base);
+        let mut x = [[0.0f32; K]; T];
+        for (t, xt) in x.iter_mut().enumerate() {
+            let k = base + t.min(count - 1);
+            xt[..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
+            xt[d] = dist[k];
+        }
+        // SAFETY: the caller runs with `S`'s instruction set; every row read or written is L long.
+        unsafe {
+            let y = rest::<S, T>(w, layer::<S, T, K>(&x, &w.w1, [S::load(&w.b1); T]));
+            for t in 0..count {
+                S::store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
+            }
+        }
+        base += count;
+    }
+}
+
+/// The edge block over all edges, `T` at a time, and the sum over receivers in edge order.
+#[inline(always)]
+unsafe fn block<S: Lanes, const T: usize>(
+    w: &Weights,
+    b: &Block<'_>,
+    out: &mut [f32],
+    agg: &mut [f32],
+) {
+    agg.fill(0.0);
+    let e = b.receivers.len();
+    let mut base = 0;
+    while base < e {
+        let count = T.min(e - base);
+        let mut x = [[0.0f32; L]; T];
+        // SAFETY: the caller runs with `S`'s instruction set; indices were checked against N; rows are L long.
+        unsafe {
+            let mut y = [S::zero(); T];
+            for t in 0..T {
+                let k = base + t.min(count - 1);
+                let (r, s) = (b.receivers[k], b.senders[k]);
+                x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
+                y[t] = S::add(
+                    S::load(&b.hr[r * L..(r + 1) * L]),
+                    S::load(&b.hs[s * L..(s + 1) * L]),
+                );
+            }
+            let y = rest::<S, T>(w, layer::<S, T, L>(&x, &w.w1, y));
+            for t in 0..count {
+                let k = base + t;
+                let v = S::add(S::load(&x[t]), y[t]);
+                S::store(&mut out[k * L..(k + 1) * L], v);
+                let r = b.receivers[k];
+                let a = &mut agg[r * L..(r + 1) * L];
+                S::store(a, S::add(S::load(a), v));
+            }
+        }
+        base += count;
+    }
+}
+
+/// The compiled copies: each enables its instruction set and instantiates the kernels.
+#[cfg(target_arch = "x86_64")]
+mod copies {
+    use super::{Avx2, Avx512, Block, Weights};
 
     #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn encoder<const K: usize>(
+    pub(super) fn encoder_avx2<const K: usize>(
         w: &Weights,
         disp: &[f32],
         dist: &[f32],
         out: &mut [f32],
     ) {
-        let d = K - 1;
-        let e = dist.len();
-        let mut base = 0;
-        while base < e {
-            let count = TILE.min(e - base);
-            let mut x = [[0.0f32; K]; TILE];
-            for (t, xt) in x.iter_mut().enumerate() {
-                let k = base + t.min(count - 1);
-                xt[..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
-                xt[d] = dist[k];
-            }
-            // SAFETY: AVX2 and FMA are enabled on this function; every row read or written is L long.
-            unsafe {
-                let b1 = load(&w.b1);
-                let y = rest(w, layer::<K>(&x, &w.w1, [b1; TILE]));
-                for t in 0..count {
-                    store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
-                }
-            }
-            base += count;
-        }
+        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
+        unsafe { super::encoder::<Avx2, 4, K>(w, disp, dist, out) }
     }
 
     #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn block(w: &Weights, b: &super::Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-        agg.fill(0.0);
-        let e = b.receivers.len();
-        let mut base = 0;
-        while base < e {
-            let count = TILE.min(e - base);
-            let mut x = [[0.0f32; L]; TILE];
-            // SAFETY: AVX2 and FMA are enabled on this function; indices were checked against N; rows are L long.
-            unsafe {
-                let mut y = [R(_mm256_setzero_ps(), _mm256_setzero_ps()); TILE];
-                for t in 0..TILE {
-                    let k = base + t.min(count - 1);
-                    let (r, s) = (b.receivers[k], b.senders[k]);
-                    x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
-                    y[t] = add(
-                        load(&b.hr[r * L..(r + 1) * L]),
-                        load(&b.hs[s * L..(s + 1) * L]),
-                    );
-                }
-                let y = rest(w, layer::<L>(&x, &w.w1, y));
-                for t in 0..count {
-                    let k = base + t;
-                    let v = add(load(&x[t]), y[t]);
-                    store(&mut out[k * L..(k + 1) * L], v);
-                    let r = b.receivers[k];
-                    let a = &mut agg[r * L..(r + 1) * L];
-                    store(a, add(load(a), v));
-                }
-            }
-            base += count;
-        }
-    }
-}
-
-/// The AVX-512 copy: a latent row is one 16-lane register, and a tile of
-/// [`TILE512`] edges is in flight (eight accumulators of the 32 registers).
-#[cfg(target_arch = "x86_64")]
-mod avx512 {
-    use super::{L, Row, Weights};
-    use std::arch::x86_64::*;
-
-    /// Edges processed together.
-    const T: usize = super::TILE512;
-
-    #[inline(always)]
-    unsafe fn load(p: &[f32]) -> __m512 {
-        debug_assert!(p.len() >= L);
-        unsafe { _mm512_loadu_ps(p.as_ptr()) }
-    }
-
-    #[inline(always)]
-    unsafe fn store(p: &mut [f32], r: __m512) {
-        debug_assert!(p.len() >= L);
-        unsafe { _mm512_storeu_ps(p.as_mut_ptr(), r) }
-    }
-
-    #[inline(always)]
-    unsafe fn layer<const K: usize>(
-        x: &[[f32; K]; T],
-        w: &[Row],
-        mut y: [__m512; T],
-    ) -> [__m512; T] {
-        unsafe {
-            for (k, wk) in w.iter().enumerate().take(K) {
-                let wv = _mm512_loadu_ps(wk.as_ptr());
-                for t in 0..T {
-                    y[t] = _mm512_fmadd_ps(_mm512_set1_ps(x[t][k]), wv, y[t]);
-                }
-            }
-        }
-        y
-    }
-
-    #[inline(always)]
-    unsafe fn rest(w: &Weights, y: [__m512; T]) -> [__m512; T] {
-        unsafe {
-            let zero = _mm512_setzero_ps();
-            let mut buf = [[0.0f32; L]; T];
-            for t in 0..T {
-                store(&mut buf[t], _mm512_max_ps(y[t], zero));
-            }
-            let z = layer::<L>(&buf, &w.w2, [load(&w.b2); T]);
-            for t in 0..T {
-                store(&mut buf[t], _mm512_max_ps(z[t], zero));
-            }
-            let o = layer::<L>(&buf, &w.w3, [load(&w.b3); T]);
-            let k = load(&w.kvar);
-            let mut out = o;
-            for t in 0..T {
-                let var = _mm512_reduce_add_ps(_mm512_mul_ps(_mm512_mul_ps(o[t], o[t]), k));
-                let std = (var + w.eps).sqrt();
-                out[t] = _mm512_div_ps(o[t], _mm512_set1_ps(std));
-            }
-            out
-        }
+    pub(super) fn block_avx2(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+        // SAFETY: as above.
+        unsafe { super::block::<Avx2, 4>(w, b, out, agg) }
     }
 
     #[target_feature(enable = "avx512f")]
-    pub(super) fn encoder<const K: usize>(
+    pub(super) fn encoder_avx512<const K: usize>(
         w: &Weights,
         disp: &[f32],
         dist: &[f32],
         out: &mut [f32],
     ) {
-        let d = K - 1;
-        let e = dist.len();
-        let mut base = 0;
-        while base < e {
-            let count = T.min(e - base);
-            let mut x = [[0.0f32; K]; T];
-            for (t, xt) in x.iter_mut().enumerate() {
-                let k = base + t.min(count - 1);
-                xt[..d].copy_from_slice(&disp[k * d..(k + 1) * d]);
-                xt[d] = dist[k];
-            }
-            // SAFETY: AVX-512F is enabled on this function; every row read or written is L long.
-            unsafe {
-                let y = rest(w, layer::<K>(&x, &w.w1, [load(&w.b1); T]));
-                for t in 0..count {
-                    store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
-                }
-            }
-            base += count;
-        }
+        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
+        unsafe { super::encoder::<Avx512, 8, K>(w, disp, dist, out) }
     }
 
     #[target_feature(enable = "avx512f")]
-    pub(super) fn block(w: &Weights, b: &super::Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-        agg.fill(0.0);
-        let e = b.receivers.len();
-        let mut base = 0;
-        while base < e {
-            let count = T.min(e - base);
-            let mut x = [[0.0f32; L]; T];
-            // SAFETY: AVX-512F is enabled on this function; indices were checked against N; rows are L long.
-            unsafe {
-                let mut y = [_mm512_setzero_ps(); T];
-                for t in 0..T {
-                    let k = base + t.min(count - 1);
-                    let (r, s) = (b.receivers[k], b.senders[k]);
-                    x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
-                    y[t] = _mm512_add_ps(
-                        load(&b.hr[r * L..(r + 1) * L]),
-                        load(&b.hs[s * L..(s + 1) * L]),
-                    );
-                }
-                let y = rest(w, layer::<L>(&x, &w.w1, y));
-                for t in 0..count {
-                    let k = base + t;
-                    let v = _mm512_add_ps(load(&x[t]), y[t]);
-                    store(&mut out[k * L..(k + 1) * L], v);
-                    let r = b.receivers[k];
-                    let a = &mut agg[r * L..(r + 1) * L];
-                    store(a, _mm512_add_ps(load(a), v));
-                }
-            }
-            base += count;
-        }
+    pub(super) fn block_avx512(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
+        // SAFETY: as above.
+        unsafe { super::block::<Avx512, 8>(w, b, out, agg) }
     }
 }
-
-/// Edges in flight in the AVX-512 copy.
-#[cfg(target_arch = "x86_64")]
-const TILE512: usize = 8;
 
 /// The instruction set the kernels run with, chosen once per call from the
 /// CPU (`HYBRIDMPM_ISA=baseline` forces the portable copy, `avx2` the AVX2
@@ -682,22 +570,20 @@ fn run_encoder(
     distance: &[f32],
     out: &mut [f32],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: the callers pass `isa()`, so the CPU has the copy's features.
+    // SAFETY: the callers pass `isa()` (or, in the tests, a copy it allows), so the CPU has the copy's features.
     unsafe {
         match (isa, dim) {
-            (Isa::Avx512, 2) => return avx512::encoder::<3>(w, displacement, distance, out),
-            (Isa::Avx512, _) => return avx512::encoder::<4>(w, displacement, distance, out),
-            (Isa::Avx2, 2) => return avx2::encoder::<3>(w, displacement, distance, out),
-            (Isa::Avx2, _) => return avx2::encoder::<4>(w, displacement, distance, out),
-            (Isa::Portable, _) => {}
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx512, 2) => copies::encoder_avx512::<3>(w, displacement, distance, out),
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx512, _) => copies::encoder_avx512::<4>(w, displacement, distance, out),
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx2, 2) => copies::encoder_avx2::<3>(w, displacement, distance, out),
+            #[cfg(target_arch = "x86_64")]
+            (Isa::Avx2, _) => copies::encoder_avx2::<4>(w, displacement, distance, out),
+            (_, 2) => encoder::<Portable, 1, 3>(w, displacement, distance, out),
+            _ => encoder::<Portable, 1, 4>(w, displacement, distance, out),
         }
-    }
-    let _ = isa;
-    if dim == 2 {
-        encoder_body::<Plain, 3>(w, displacement, distance, out);
-    } else {
-        encoder_body::<Plain, 4>(w, displacement, distance, out);
     }
 }
 
@@ -783,15 +669,16 @@ pub fn edge_block(
 
 /// Runs the edge block with the copy `isa`, which the CPU must have ([`isa`] checks it).
 fn run_block(isa: Isa, w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    match isa {
-        // SAFETY: the callers pass `isa()` or, in the tests, a copy `isa()` allows.
-        Isa::Avx512 => return unsafe { avx512::block(w, b, out, agg) },
-        Isa::Avx2 => return unsafe { avx2::block(w, b, out, agg) },
-        Isa::Portable => {}
+    // SAFETY: the callers pass `isa()` (or, in the tests, a copy it allows), so the CPU has the copy's features.
+    unsafe {
+        match isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => copies::block_avx512(w, b, out, agg),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => copies::block_avx2(w, b, out, agg),
+            _ => block::<Portable, 1>(w, b, out, agg),
+        }
     }
-    let _ = isa;
-    block_body::<Plain>(w, b, out, agg);
 }
 
 #[cfg(test)]
