@@ -214,8 +214,8 @@ def fuse_graph(proto: Any) -> Any | None:
             tail, ws, first, we, hrs, e_prev = found
             add = G.node(hrs, "Add")
             gr, gs = G.node(add.input[0], "Gather"), G.node(add.input[1], "Gather")
-            if gr.input[1] != "receivers" or gs.input[1] != "senders":
-                raise _NoMatch(f"{add.name}: not hr[receivers] + hs[senders]")
+            if gr.input[1] != "receivers" or gs.input[1] != "senders" or any(a.name == "axis" and a.i != 0 for a in [*gr.attribute, *gs.attribute]):
+                raise _NoMatch(f"{add.name}: not hr[receivers] + hs[senders] (row gathers)")
             block = helper.make_node(
                 "HmpmEdgeBlock",
                 [e_prev, gr.input[0], gs.input[0], "receivers", "senders", we, *ws],
