@@ -449,24 +449,22 @@ unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
             &format!("{:?}: {e}", k_name(k.which)),
         )
     };
-    let weights_from = |first: usize| -> Result<[Tensor; 7], Status> {
-        let names = ["w1", "b1", "w2", "b2", "w3", "b3", "kvar"];
-        let mut out = Vec::with_capacity(7);
-        for (j, n) in names.iter().enumerate() {
-            out.push(unsafe { input(api, ctx, first + j, n, FLOAT)? });
-        }
-        Ok(out.try_into().unwrap_or_else(|_| unreachable!()))
+    // the float inputs from `first` on, named for the error messages
+    let floats = |first: usize, names: &[&str]| -> Result<Vec<Tensor>, Status> {
+        names
+            .iter()
+            .enumerate()
+            .map(|(j, n)| unsafe { input(api, ctx, first + j, n, FLOAT) })
+            .collect()
     };
     match k.which {
         Which::Encoder => {
-            let disp = unsafe { input(api, ctx, 0, "displacement", FLOAT)? };
-            let dist = unsafe { input(api, ctx, 1, "distance", FLOAT)? };
-            let w = weights_from(2)?;
-            let eps = unsafe { input(api, ctx, 9, "eps", FLOAT)? };
+            let io = floats(0, &["displacement", "distance"])?;
+            let (disp, dist) = (&io[0], &io[1]);
+            let w = floats(2, &["w1", "b1", "w2", "b2", "w3", "b3", "kvar", "eps"])?;
             let dim = disp.dims.get(1).copied().unwrap_or(0).max(0) as usize;
-            let out = unsafe { output(api, ctx, 0, "out", &[first_dim(&dist), L as i64])? };
-            let eps = unsafe { eps.f32s() }.first().copied().unwrap_or(f32::NAN);
-            let mlp = unsafe { mlp(&w, eps) };
+            let out = unsafe { output(api, ctx, 0, "out", &[first_dim(dist), L as i64])? };
+            let mlp = unsafe { mlp(&w[0], w[1].f32s(), &w[2..]) };
             edge_encoder(
                 &mlp,
                 dim,
@@ -477,31 +475,15 @@ unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
             .map_err(fail)
         }
         Which::Block => {
-            let e = unsafe { input(api, ctx, 0, "e", FLOAT)? };
-            let hr = unsafe { input(api, ctx, 1, "hr", FLOAT)? };
-            let hs = unsafe { input(api, ctx, 2, "hs", FLOAT)? };
+            let io = floats(0, &["e", "hr", "hs"])?;
+            let (e, hr, hs) = (&io[0], &io[1], &io[2]);
             let recv = unsafe { input(api, ctx, 3, "receivers", INT64)? };
             let send = unsafe { input(api, ctx, 4, "senders", INT64)? };
-            let we = unsafe { input(api, ctx, 5, "we", FLOAT)? };
-            let rest: Vec<Tensor> = ["w2", "b2", "w3", "b3", "kvar"]
-                .iter()
-                .enumerate()
-                .map(|(j, n)| unsafe { input(api, ctx, 6 + j, n, FLOAT) })
-                .collect::<Result<_, _>>()?;
-            let eps = unsafe { input(api, ctx, 11, "eps", FLOAT)? };
+            let w = floats(5, &["we", "w2", "b2", "w3", "b3", "kvar", "eps"])?;
             let out = unsafe { output(api, ctx, 0, "e_out", &[first_dim(&recv), L as i64])? };
-            let agg = unsafe { output(api, ctx, 1, "agg", &[first_dim(&hr), L as i64])? };
-            let zeros = [0.0f32; L];
-            let mlp = Mlp {
-                w1: unsafe { we.f32s() },
-                b1: &zeros,
-                w2: unsafe { rest[0].f32s() },
-                b2: unsafe { rest[1].f32s() },
-                w3: unsafe { rest[2].f32s() },
-                b3: unsafe { rest[3].f32s() },
-                kvar: unsafe { rest[4].f32s() },
-                eps: unsafe { eps.f32s() }.first().copied().unwrap_or(f32::NAN),
-            };
+            let agg = unsafe { output(api, ctx, 1, "agg", &[first_dim(hr), L as i64])? };
+            let zeros = [0.0f32; L]; // the first layer's bias is inside `hr`
+            let mlp = unsafe { mlp(&w[0], &zeros, &w[1..]) };
             edge_block(
                 &mlp,
                 unsafe { e.f32s() },
@@ -524,17 +506,19 @@ fn k_name(w: Which) -> &'static str {
     }
 }
 
-unsafe fn mlp<'a>(w: &'a [Tensor; 7], eps: f32) -> Mlp<'a> {
+/// The MLP of the first layer `w1`, its bias `b1` and the rest
+/// `[w2, b2, w3, b3, kvar, eps]` as onnxruntime handed them over.
+unsafe fn mlp<'a>(w1: &'a Tensor, b1: &'a [f32], rest: &'a [Tensor]) -> Mlp<'a> {
     unsafe {
         Mlp {
-            w1: w[0].f32s(),
-            b1: w[1].f32s(),
-            w2: w[2].f32s(),
-            b2: w[3].f32s(),
-            w3: w[4].f32s(),
-            b3: w[5].f32s(),
-            kvar: w[6].f32s(),
-            eps,
+            w1: w1.f32s(),
+            b1,
+            w2: rest[0].f32s(),
+            b2: rest[1].f32s(),
+            w3: rest[2].f32s(),
+            b3: rest[3].f32s(),
+            kvar: rest[4].f32s(),
+            eps: rest[5].f32s().first().copied().unwrap_or(f32::NAN),
         }
     }
 }
