@@ -61,7 +61,8 @@
 //! Phase 1 keeps the sender lists as `u32` (4 bytes per edge) until phase 2;
 //! those buffers are recycled through a small process-wide pool (at most
 //! 64 MiB kept between calls) to avoid first-touch page faults. Small inputs
-//! (below 8192 particles / 2^18 edges) run on the calling thread.
+//! (below 8192 particles; [`uses_rayon`]) run on the calling thread, as
+//! does the edge writing below 2^18 edges.
 //!
 //! # Determinism
 //!
@@ -249,8 +250,19 @@ const CHUNK: usize = 512;
 /// work to the rayon pool (waking workers, waiting for them) cost more than
 /// it saved on the 2-core reference machine (4096 particles in 2D: 0.9 ms
 /// serial vs 1.3 ms through the pool). The output is the same either way.
-const SERIAL_PARTICLES: usize = 8192;
+pub const SERIAL_PARTICLES: usize = 8192;
 const SERIAL_EDGES: usize = 1 << 18;
+
+/// Whether the crate's functions ([`radius_graph`], [`Neighbors`],
+/// [`relax_density`], [`kernel_density`]) on `particles` particles hand
+/// work to rayon; below [`SERIAL_PARTICLES`] they run on the calling thread
+/// and never touch a rayon pool, whatever the edge count. A caller that runs
+/// them inside a pool of its own can skip entering it when this is false:
+/// entering one wakes a worker, which cost 20-70 µs on the 2-core machine,
+/// more than a 500-particle radius graph takes (0.03 ms).
+pub fn uses_rayon(particles: usize) -> bool {
+    particles >= SERIAL_PARTICLES
+}
 
 /// Most cells per particle before the cell size is grown (outlier guard).
 const CELLS_PER_PARTICLE: f64 = 4.0;
@@ -906,7 +918,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
             (found, lens)
         };
         let nchunks = n.div_ceil(CHUNK);
-        let results: Vec<(Found, Vec<u32>)> = if n < SERIAL_PARTICLES {
+        let results: Vec<(Found, Vec<u32>)> = if !uses_rayon(n) {
             vec![find(&mut Scratch::default(), 0, n)]
         } else {
             (0..nchunks)
@@ -1019,7 +1031,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
             let loc = &self.loc[c * CHUNK..((c + 1) * CHUNK).min(self.loc.len())];
             o.fill(positions, found, loc);
         };
-        if e < SERIAL_EDGES {
+        if !uses_rayon(self.positions.len()) || e < SERIAL_EDGES {
             parts.into_iter().for_each(run);
         } else {
             parts.into_par_iter().for_each(run);

@@ -64,7 +64,7 @@ use rayon::prelude::*;
 
 use crate::{GraphError, GraphParams, radius_graph};
 
-/// Particles per rayon task (below twice this, everything runs on the calling thread).
+/// Particles per rayon task, where the crate uses rayon at all ([`crate::uses_rayon`]).
 const CHUNK: usize = 4096;
 
 /// Largest move of a particle in one iteration, as a fraction of `R`: a
@@ -298,8 +298,10 @@ pub fn relax_density<const D: usize>(
     let (radius, rho0, omega) = (params.radius, params.rest_density, params.omega);
     let eps = 1e-6 / (radius * radius);
     let inv_rho0_sq = 1.0 / (rho0 * rho0);
-    let min_len = if n < 2 * CHUNK { n } else { CHUNK };
-    let edge_min_len = (min_len * 16).max(1);
+    // below SERIAL_PARTICLES everything runs on the calling thread, without rayon (`uses_rayon`)
+    let parallel = crate::uses_rayon(n);
+    let min_len = CHUNK;
+    let edge_min_len = CHUNK * 16;
     let mut lambda = vec![0.0f32; n];
     let mut compression = vec![0.0f32; n];
     let mut next = positions.to_vec();
@@ -324,60 +326,76 @@ pub fn relax_density<const D: usize>(
             let list: Vec<usize> = (0..n).filter(|&i| moved[i]).collect();
             spread(&list, &mut dirty);
             let (mv, dt): (&[bool], &[bool]) = (&moved, &dirty);
-            sep.par_iter_mut()
-                .zip(len.par_iter_mut())
-                .enumerate()
-                .with_min_len(edge_min_len)
-                .for_each(|(e, (s, l))| {
-                    let (i, j) = (receivers[e] as usize, senders[e] as usize);
-                    if dt[i] && (mv[i] || mv[j]) {
-                        (*s, *l) = separation(&x[i], &x[j]);
-                    }
-                });
+            let update = |(e, (s, l)): (usize, (&mut [f32; D], &mut f32))| {
+                let (i, j) = (receivers[e] as usize, senders[e] as usize);
+                if dt[i] && (mv[i] || mv[j]) {
+                    (*s, *l) = separation(&x[i], &x[j]);
+                }
+            };
+            if parallel {
+                sep.par_iter_mut()
+                    .zip(len.par_iter_mut())
+                    .enumerate()
+                    .with_min_len(edge_min_len)
+                    .for_each(update);
+            } else {
+                sep.iter_mut()
+                    .zip(len.iter_mut())
+                    .enumerate()
+                    .for_each(update);
+            }
         }
         let (sep, len): (&[[f32; D]], &[f32]) = (&sep, &len);
         let dt: &[bool] = &dirty;
-        lambda
-            .par_iter_mut()
-            .zip(compression.par_iter_mut())
-            .enumerate()
-            .with_min_len(min_len)
-            .for_each(|(i, (lam, comp))| {
-                if !dt[i] {
-                    return; // nothing it depends on moved: the same lambda as before
+        let density = |(i, (lam, comp)): (usize, (&mut f32, &mut f32))| {
+            if !dt[i] {
+                return; // nothing it depends on moved: the same lambda as before
+            }
+            *lam = 0.0;
+            *comp = 0.0;
+            if !movable[i] {
+                return;
+            }
+            let edges = offsets[i]..offsets[i + 1];
+            // the density first; the gradient sums only for a compressed particle
+            // (each sum in the same order as before: the same bits)
+            let mut rho = 1.0f32;
+            for e in edges.clone() {
+                let q = len[e] / radius;
+                if q < 1.0 {
+                    rho += kernel(q);
                 }
-                *lam = 0.0;
-                *comp = 0.0;
-                if !movable[i] {
-                    return;
-                }
-                let edges = offsets[i]..offsets[i + 1];
-                // the density first; the gradient sums only for a compressed particle
-                // (each sum in the same order as before: the same bits)
-                let mut rho = 1.0f32;
-                for e in edges.clone() {
-                    let q = len[e] / radius;
-                    if q < 1.0 {
-                        rho += kernel(q);
+            }
+            let c = rho / rho0 - 1.0;
+            if c > 0.0 {
+                let mut sum = [0.0f32; D];
+                let mut sq = 0.0f32;
+                for e in edges {
+                    let (_, gw) = gradient_from(&sep[e], len[e], i, senders[e] as usize, radius);
+                    for k in 0..D {
+                        sum[k] += gw[k];
+                        sq += gw[k] * gw[k];
                     }
                 }
-                let c = rho / rho0 - 1.0;
-                if c > 0.0 {
-                    let mut sum = [0.0f32; D];
-                    let mut sq = 0.0f32;
-                    for e in edges {
-                        let (_, gw) =
-                            gradient_from(&sep[e], len[e], i, senders[e] as usize, radius);
-                        for k in 0..D {
-                            sum[k] += gw[k];
-                            sq += gw[k] * gw[k];
-                        }
-                    }
-                    let norm: f32 = sum.iter().map(|v| v * v).sum();
-                    *comp = c;
-                    *lam = -c / ((sq + norm) * inv_rho0_sq + eps);
-                }
-            });
+                let norm: f32 = sum.iter().map(|v| v * v).sum();
+                *comp = c;
+                *lam = -c / ((sq + norm) * inv_rho0_sq + eps);
+            }
+        };
+        if parallel {
+            lambda
+                .par_iter_mut()
+                .zip(compression.par_iter_mut())
+                .enumerate()
+                .with_min_len(min_len)
+                .for_each(density);
+        } else {
+            lambda
+                .iter_mut()
+                .zip(compression.iter_mut())
+                .enumerate()
+                .for_each(density);
+        }
         if it == 0 {
             for (&c, &m) in compression.iter().zip(movable) {
                 if m && c > 0.0 {
@@ -392,44 +410,52 @@ pub fn relax_density<const D: usize>(
         }
         spread(&hot, &mut touched);
         let (lam, tc): (&[f32], &[bool]) = (&lambda, &touched);
-        next.par_iter_mut()
-            .zip(moved.par_iter_mut())
-            .enumerate()
-            .with_min_len(min_len)
-            .for_each(|(i, (out, mv))| {
-                *out = x[i];
-                *mv = false;
-                if !movable[i] || !tc[i] {
-                    return; // no lambda around i: every term of its move is zero
+        let step = |(i, (out, mv)): (usize, (&mut [f32; D], &mut bool))| {
+            *out = x[i];
+            *mv = false;
+            if !movable[i] || !tc[i] {
+                return; // no lambda around i: every term of its move is zero
+            }
+            let mut dx = [0.0f32; D];
+            for e in offsets[i]..offsets[i + 1] {
+                let j = senders[e] as usize;
+                let s = lam[i] + lam[j];
+                if s == 0.0 {
+                    continue;
                 }
-                let mut dx = [0.0f32; D];
-                for e in offsets[i]..offsets[i + 1] {
-                    let j = senders[e] as usize;
-                    let s = lam[i] + lam[j];
-                    if s == 0.0 {
-                        continue;
-                    }
-                    let (_, gw) = gradient_from(&sep[e], len[e], i, j, radius);
-                    for k in 0..D {
-                        dx[k] += s * gw[k];
-                    }
-                }
-                let mut len2 = 0.0f32;
-                for v in dx.iter_mut() {
-                    *v *= omega / rho0;
-                    len2 += *v * *v;
-                }
-                let cap = MAX_MOVE * radius;
-                let scale = if len2 > cap * cap {
-                    cap / len2.sqrt()
-                } else {
-                    1.0
-                };
+                let (_, gw) = gradient_from(&sep[e], len[e], i, j, radius);
                 for k in 0..D {
-                    out[k] += scale * dx[k];
+                    dx[k] += s * gw[k];
                 }
-                *mv = out.map(f32::to_bits) != x[i].map(f32::to_bits); // bits: a -0.0 turned +0.0 counts as moved
-            });
+            }
+            let mut len2 = 0.0f32;
+            for v in dx.iter_mut() {
+                *v *= omega / rho0;
+                len2 += *v * *v;
+            }
+            let cap = MAX_MOVE * radius;
+            let scale = if len2 > cap * cap {
+                cap / len2.sqrt()
+            } else {
+                1.0
+            };
+            for k in 0..D {
+                out[k] += scale * dx[k];
+            }
+            *mv = out.map(f32::to_bits) != x[i].map(f32::to_bits); // bits: a -0.0 turned +0.0 counts as moved
+        };
+        if parallel {
+            next.par_iter_mut()
+                .zip(moved.par_iter_mut())
+                .enumerate()
+                .with_min_len(min_len)
+                .for_each(step);
+        } else {
+            next.iter_mut()
+                .zip(moved.iter_mut())
+                .enumerate()
+                .for_each(step);
+        }
         positions.copy_from_slice(&next);
         if !moved.iter().any(|&m| m) {
             break; // nothing moved: every later iteration would compute the same and move nothing
@@ -621,6 +647,48 @@ mod tests {
                     .zip(&b)
                     .all(|(p, q)| p.map(f32::to_bits) == q.map(f32::to_bits)),
                 "3D seed {seed}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_parallel_path_matches_the_reference_bit_for_bit() {
+        // above SERIAL_PARTICLES the iterations run on rayon; below it on the calling thread
+        // (the test above): both must give the reference's bits, on two threads as on one
+        let n = crate::SERIAL_PARTICLES + 3000;
+        assert!(crate::uses_rayon(n) && !crate::uses_rayon(400));
+        let mut x: Vec<[f32; 2]> = (0..n)
+            .map(|i| {
+                let t = i as f32;
+                [(t * 0.618_034).fract(), (t * 0.754_877_7).fract()]
+            })
+            .collect();
+        for p in x.iter_mut().take(300) {
+            *p = [0.25 + 0.002 * p[0], 0.75 + 0.002 * p[1]]; // a clump
+        }
+        let movable: Vec<bool> = (0..n).map(|i| i % 13 != 5).collect();
+        let params = RelaxParams {
+            radius: 0.02,
+            rest_density: 4.0,
+            iterations: 3,
+            omega: 1.0,
+        };
+        let mut want = x.clone();
+        let sw = relax_reference(&mut want, &movable, &params).unwrap();
+        assert!(sw.compressed_before > 200, "{sw:?}");
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut got = x.clone();
+            let sg = pool.install(|| relax_density(&mut got, &movable, &params).unwrap());
+            assert_eq!(sg, sw);
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(p, q)| p.map(f32::to_bits) == q.map(f32::to_bits)),
+                "{threads} threads"
             );
         }
     }

@@ -137,10 +137,10 @@ fn kernel_density<'py>(
     let r = radius_f32(py, radius)?;
     let rho = if dim == 2 {
         let pos = rows::<2>(&arr)?;
-        py.detach(|| nb::kernel_density(&pos, r))
+        py.detach(|| crate::pool::install_for(pos.len(), || nb::kernel_density(&pos, r)))
     } else {
         let pos = rows::<3>(&arr)?;
-        py.detach(|| nb::kernel_density(&pos, r))
+        py.detach(|| crate::pool::install_for(pos.len(), || nb::kernel_density(&pos, r)))
     }
     .map_err(to_py(py))?;
     Ok(PyArray1::from_vec(py, rho))
@@ -154,7 +154,9 @@ fn relax_run<const D: usize>(
 ) -> PyResult<(Vec<f32>, nb::RelaxStats)> {
     let mut pos = rows::<D>(arr)?;
     let stats = py
-        .detach(|| crate::pool::install(|| nb::relax_density(&mut pos, movable, params)))
+        .detach(|| {
+            crate::pool::install_for(pos.len(), || nb::relax_density(&mut pos, movable, params))
+        })
         .map_err(to_py(py))?;
     Ok((pos.into_iter().flatten().collect(), stats))
 }
@@ -223,7 +225,7 @@ fn run<'py, const D: usize>(
 ) -> PyResult<Edges<'py>> {
     let pos = rows::<D>(arr)?;
     let nb = py
-        .detach(|| crate::pool::install(|| Neighbors::search(&pos, &params)))
+        .detach(|| crate::pool::install_for(pos.len(), || Neighbors::search(&pos, &params)))
         .map_err(to_py(py))?;
     let e = nb.num_edges();
     let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
@@ -244,7 +246,7 @@ fn run<'py, const D: usize>(
             ds.as_slice_mut()?,
         );
         let dp = dp.as_chunks_mut::<D>().0;
-        py.detach(|| crate::pool::install(|| nb.write(s, r, dp, ds)))
+        py.detach(|| crate::pool::install_for(pos.len(), || nb.write(s, r, dp, ds)))
             .map_err(to_py(py))?;
     }
     Ok((senders, receivers, displacement, distance))
