@@ -13,6 +13,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 
 from hybridmpm.errors import InvalidInputError
@@ -76,6 +77,11 @@ def test_the_shipped_fused_files_are_the_rewrite_of_the_shipped_models(tmp_path)
             assert not sibling.exists(), f"{sibling} is stale: {src.name} no longer fuses"
             continue
         assert sibling.is_file() and made.read_bytes() == sibling.read_bytes(), f"{sibling} is stale: rerun fused.write_fused({src})"
+        # every edge stage and every node update is one fused operator: an edge and a node block per message-passing step
+
+        ops = [n.op_type for n in onnx.load(str(sibling)).graph.node if n.domain == fused.DOMAIN]
+        steps = NeuralModel(src, fused=False).meta["layers"]
+        assert (ops.count("HmpmEdgeEncoder"), ops.count("HmpmEdgeBlock"), ops.count("HmpmNodeBlock")) == (1, steps, steps), (src.name, ops)
     assert not fused.fused_sibling(shipped_model("water2d").parent / "variants" / "water2d" / "size_L3x32_R15_rt2.onnx").exists()
 
 

@@ -14,14 +14,21 @@ the domain :data:`DOMAIN` do each stage in one pass:
   the folded LayerNorm, the residual ``Add``) **and** its sum over receivers
   (the ``If`` that picks ``ScatterND`` or the gather way).
 
-The node stages stay onnxruntime operators. The kernels are Rust
-(``rust/gnn``: :func:`hybridmpm_gnn::edge_block`, ``edge_encoder``), served by
+* ``HmpmNodeBlock`` replaces one message-passing step's node update (the
+  ``Concat`` of the node latent, its sum and its in-degree, three ``Gemm`` s
+  with their ``Relu`` s, the folded LayerNorm, the residual ``Add``).
+
+The feature construction, the node encoder, the node projections and the
+decoder stay onnxruntime operators. The kernels are Rust
+(``rust/gnn``: ``edge_encoder``, ``edge_block``, ``node_block``), served by
 the extension module itself, which is an onnxruntime custom-op library
 (``rust/python/src/ort_ops.rs``): :func:`register` loads it into a
 session's options. The weights stay in the graph as initializers, fed to
 the operators as inputs. The shipped ``.onnx`` files are not changed (any
 onnxruntime runs them); :class:`~hybridmpm.neural.NeuralModel` runs the
-fused graph instead on one onnxruntime thread (``fused=None``), taken from
+fused graph instead (``fused=None``), on any number of onnxruntime threads
+(the kernels cut their work into fixed parts run on the session's intra-op
+pool, with the same bits on any thread count), taken from
 :func:`fused_sibling` (written beside each shipped model by
 :func:`write_fused`, so that serving needs no ``onnx`` package) or, for
 other files, rewritten in memory when the ``onnx`` package is installed.
@@ -226,6 +233,39 @@ def fuse_graph(proto: Any) -> Any | None:
             nodes = [gr, gs, add, first, *tail, res, agg]
             remove += nodes
             new.append((position[id(res)], block))
+
+            # the node update that reads this sum: h + LN(MLP(Concat(h, agg, degree)))
+            cats = [n for n in G.consumers.get(agg.output[0], []) if n.op_type == "Concat"]
+            if len(cats) != 1 or len(cats[0].input) != 3 or cats[0].input[1] != agg.output[0]:
+                raise _NoMatch(f"{agg.name}: its sum does not feed one Concat(h, agg, degree)")
+            cat = cats[0]
+            h_in, degree = cat.input[0], cat.input[2]
+            users = G.consumers.get(cat.output[0], [])
+            if len(users) != 1 or users[0].op_type != "Gemm":
+                raise _NoMatch(f"{cat.name}: does not feed one Gemm")
+            g1, w1, b1 = G.gemm(users[0].output[0])
+            if G.array(w1).shape != (2 * LATENT + 1, LATENT):
+                raise _NoMatch(f"{g1.name}: weight is not [{2 * LATENT + 1}, {LATENT}]")
+            node_res = None
+            for r in G.consumers.get(h_in, []):
+                if r.op_type != "Add" or h_in not in r.input:
+                    continue
+                ln_name = r.input[1] if r.input[0] == h_in else r.input[0]
+                try:
+                    tail, first_out, ws = G.mlp_tail(ln_name)
+                except _NoMatch:
+                    continue
+                if first_out == g1.output[0]:
+                    node_res = r, tail, ws
+                    break
+            if node_res is None:
+                raise _NoMatch(f"{g1.name}: not h + LN(MLP(...)) after the Concat")
+            r, tail, ws = node_res
+            node = helper.make_node(
+                "HmpmNodeBlock", [h_in, agg.output[0], degree, w1, b1, *ws], [r.output[0]], name=f"node_mlp/fused_{agg.name.split('/')[-1]}", domain=DOMAIN
+            )
+            remove += [cat, g1, *tail, r]
+            new.append((position[id(r)], node))
     except (_NoMatch, KeyError, IndexError, ValueError) as e:
         _LAST_REASON[0] = str(e)
         return None

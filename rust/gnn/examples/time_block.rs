@@ -1,5 +1,5 @@
 //! Times `edge_block` and `edge_encoder` on a synthetic graph: `cargo run --release -p hybridmpm-gnn --example time_block [EDGES]`.
-use hybridmpm_gnn::{L, Mlp, edge_block, edge_encoder, uses_fma};
+use hybridmpm_gnn::{L, Mlp, Serial, edge_block, edge_encoder, uses_fma};
 use std::time::Instant;
 
 fn main() {
@@ -38,12 +38,12 @@ fn main() {
     let send: Vec<i64> = (0..ne).map(|k| ((k * 31) % n) as i64).collect();
     let (mut out, mut agg) = (vec![0.0; ne * L], vec![0.0; n * L]);
     for _ in 0..3 {
-        edge_block(&m, &e, &hr, &hs, &recv, &send, &mut out, &mut agg).unwrap();
+        edge_block(&m, &e, &hr, &hs, &recv, &send, &mut out, &mut agg, &Serial).unwrap();
     }
     let reps = 50;
     let t = Instant::now();
     for _ in 0..reps {
-        edge_block(&m, &e, &hr, &hs, &recv, &send, &mut out, &mut agg).unwrap();
+        edge_block(&m, &e, &hr, &hs, &recv, &send, &mut out, &mut agg, &Serial).unwrap();
     }
     let dt = t.elapsed().as_secs_f64() / reps as f64;
     println!(
@@ -62,7 +62,7 @@ fn main() {
     let dist = v(ne, 11);
     let t = Instant::now();
     for _ in 0..reps {
-        edge_encoder(&me, 2, &disp, &dist, &mut out).unwrap();
+        edge_encoder(&me, 2, &disp, &dist, &mut out, &Serial).unwrap();
     }
     let dt = t.elapsed().as_secs_f64() / reps as f64;
     println!(

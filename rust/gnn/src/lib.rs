@@ -60,6 +60,85 @@ fn bad(field: &'static str, message: impl Into<String>) -> KernelError {
     }
 }
 
+/// Runs `f(0), …, f(n − 1)`, in any order and possibly at once: a thread
+/// pool's parallel for. The kernels split their edges into parts whose
+/// results do not depend on how the parts are run, so any implementation
+/// gives the same bits as [`Serial`].
+pub trait ParallelFor {
+    /// Calls `f(i)` once for every `i < n` and returns when all have returned.
+    fn run(&self, n: usize, f: &(dyn Fn(usize) + Sync));
+}
+
+/// [`ParallelFor`] one part after another on the calling thread.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Serial;
+
+impl ParallelFor for Serial {
+    fn run(&self, n: usize, f: &(dyn Fn(usize) + Sync)) {
+        (0..n).for_each(f);
+    }
+}
+
+/// Edges per part of a kernel's work (a part of an edge block ends at the
+/// first receiver change after this many). Fixed, so the parts, and with
+/// them the results, do not depend on the thread count.
+pub const PART_EDGES: usize = 1024;
+
+/// The edge ranges of the encoder's parts.
+fn encoder_parts(e: usize) -> Vec<std::ops::Range<usize>> {
+    (0..e.div_ceil(PART_EDGES).max(1))
+        .map(|p| p * PART_EDGES..((p + 1) * PART_EDGES).min(e))
+        .collect()
+}
+
+/// The parts of an edge block over `n` nodes: `(edges, nodes)` ranges, each
+/// part's receivers inside its node range, the node ranges covering `0..n`
+/// without overlap (so each part zeroes and sums its own slice of `agg`, and
+/// every node's sum is one part's, in edge order). Receivers not sorted
+/// (the radius graph sorts them) make one part.
+fn block_parts(
+    receivers: &[usize],
+    n: usize,
+) -> Vec<(std::ops::Range<usize>, std::ops::Range<usize>)> {
+    let e = receivers.len();
+    if e <= PART_EDGES || receivers.windows(2).any(|w| w[0] > w[1]) {
+        return vec![(0..e, 0..n)];
+    }
+    let mut cuts = vec![0];
+    let mut c = PART_EDGES;
+    while c < e {
+        while c < e && receivers[c] == receivers[c - 1] {
+            c += 1;
+        }
+        if c < e {
+            cuts.push(c);
+        }
+        c += PART_EDGES;
+    }
+    (0..cuts.len())
+        .map(|p| {
+            let (lo, hi) = (cuts[p], cuts.get(p + 1).copied().unwrap_or(e));
+            let n0 = if p == 0 { 0 } else { receivers[lo] };
+            let n1 = if hi == e { n } else { receivers[hi] };
+            (lo..hi, n0..n1)
+        })
+        .collect()
+}
+
+/// `out` cut into consecutive slices of `lens[p] · L` values, each behind
+/// its own lock (the parts write disjoint slices; the locks are never contended).
+fn slices(
+    mut out: &mut [f32],
+    lens: impl Iterator<Item = usize>,
+) -> Vec<std::sync::Mutex<&mut [f32]>> {
+    lens.map(|len| {
+        let (head, tail) = std::mem::take(&mut out).split_at_mut(len * L);
+        out = tail;
+        std::sync::Mutex::new(head)
+    })
+    .collect()
+}
+
 /// Weights of one MLP with its folded LayerNorm (module docs), borrowed.
 #[derive(Debug, Clone, Copy)]
 pub struct Mlp<'a> {
@@ -142,12 +221,16 @@ impl Weights {
     }
 }
 
+/// The inputs of one part of an edge block (all of it on one thread): its
+/// edges' latents, receivers and senders, the whole node projections, and
+/// the first node of its slice of `agg` (its receivers are `node0` on).
 struct Block<'a> {
     e: &'a [f32],
     hr: &'a [f32],
     hs: &'a [f32],
     receivers: &'a [usize],
     senders: &'a [usize],
+    node0: usize,
 }
 
 /// A latent row in registers and the few operations the kernels need. One
@@ -406,7 +489,8 @@ unsafe fn encoder<S: Lanes, const T: usize, const K: usize>(
     }
 }
 
-/// The edge block over all edges, `T` at a time, and the sum over receivers in edge order.
+/// The edge block over the part's edges, `T` at a time, and the sum over
+/// receivers in edge order into the part's slice of `agg` (zeroed first).
 #[inline(always)]
 unsafe fn block<S: Lanes, const T: usize>(
     w: &Weights,
@@ -437,9 +521,43 @@ unsafe fn block<S: Lanes, const T: usize>(
                 let k = base + t;
                 let v = S::add(S::load(&x[t]), y[t]);
                 S::store(&mut out[k * L..(k + 1) * L], v);
-                let r = b.receivers[k];
+                let r = b.receivers[k] - b.node0;
                 let a = &mut agg[r * L..(r + 1) * L];
                 S::store(a, S::add(S::load(a), v));
+            }
+        }
+        base += count;
+    }
+}
+
+/// The node block over the part's nodes, `T` at a time: `out = h + LN(MLP([h, agg, degree]))`
+/// with the first layer over the `NODE_IN` concatenated inputs.
+#[inline(always)]
+unsafe fn node<S: Lanes, const T: usize>(
+    w: &Weights,
+    h: &[f32],
+    agg: &[f32],
+    degree: &[f32],
+    out: &mut [f32],
+) {
+    let n = degree.len();
+    let mut base = 0;
+    while base < n {
+        let count = T.min(n - base);
+        let mut x = [[0.0f32; NODE_IN]; T];
+        for (t, xt) in x.iter_mut().enumerate() {
+            let i = base + t.min(count - 1);
+            xt[..L].copy_from_slice(&h[i * L..(i + 1) * L]);
+            xt[L..2 * L].copy_from_slice(&agg[i * L..(i + 1) * L]);
+            xt[2 * L] = degree[i];
+        }
+        // SAFETY: the caller runs with `S`'s instruction set; every row read or written is L long.
+        unsafe {
+            let y = rest::<S, T>(w, layer::<S, T, NODE_IN>(&x, &w.w1, [S::load(&w.b1); T]));
+            for t in 0..count {
+                let i = base + t;
+                let v = S::add(S::load(&x[t][..L]), y[t]);
+                S::store(&mut out[i * L..(i + 1) * L], v);
             }
         }
         base += count;
@@ -483,6 +601,18 @@ mod copies {
     pub(super) fn block_avx512(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
         // SAFETY: as above.
         unsafe { super::block::<Avx512, 8>(w, b, out, agg) }
+    }
+
+    #[target_feature(enable = "avx,avx2,fma")]
+    pub(super) fn node_avx2(w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
+        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
+        unsafe { super::node::<Avx2, 4>(w, h, agg, deg, out) }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn node_avx512(w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
+        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
+        unsafe { super::node::<Avx512, 8>(w, h, agg, deg, out) }
     }
 }
 
@@ -529,6 +659,7 @@ pub fn uses_fma() -> bool {
 /// The edge encoder (module docs): `displacement` `[E, D]` and `distance`
 /// `[E]` (float32, the radius graph's; D = `dim` ∈ {2, 3}) →
 /// `out` `[E, 16]`, with `mlp.w1` of shape `[D + 1, 16]`.
+/// in parts of [`PART_EDGES`] edges run by `par` (the same bits for any `par`).
 ///
 /// # Errors
 /// [`KernelError`] naming `dim`, `displacement`, `out` or a weight for a
@@ -539,6 +670,7 @@ pub fn edge_encoder(
     displacement: &[f32],
     distance: &[f32],
     out: &mut [f32],
+    par: &dyn ParallelFor,
 ) -> Result<(), KernelError> {
     if dim != 2 && dim != 3 {
         return Err(bad("dim", format!("must be 2 or 3, got {dim}")));
@@ -557,7 +689,17 @@ pub fn edge_encoder(
         ));
     }
     let w = Weights::new(mlp, dim + 1)?;
-    run_encoder(isa(), &w, dim, displacement, distance, out);
+    let (isa, parts) = (isa(), encoder_parts(e));
+    let outs = slices(out, parts.iter().map(|r| r.len()));
+    par.run(parts.len(), &|p| {
+        let r = &parts[p];
+        let mut o = outs[p].lock().unwrap_or_else(|e| e.into_inner());
+        let (disp, dist) = (
+            &displacement[r.start * dim..r.end * dim],
+            &distance[r.clone()],
+        );
+        run_encoder(isa, &w, dim, disp, dist, &mut o);
+    });
     Ok(())
 }
 
@@ -593,7 +735,10 @@ fn run_encoder(
 /// `[E]` (indices into the N nodes) → `out` `[E, 16]` (`e'`) and `agg`
 /// `[N, 16]` (`Σ e'` over each node's in-edges, in edge order; zero for a
 /// node without any). `mlp.w1` is `W_e` `[16, 16]`; `mlp.b1` is unused
-/// (pass the zeros: the bias is inside `hr`).
+/// (pass the zeros: the bias is inside `hr`). The work is cut into parts of
+/// about [`PART_EDGES`] edges ending at receiver changes, run by `par`
+/// ([`Serial`] on the calling thread); each node's sum is one part's, so the
+/// result is the same bits for any `par`.
 ///
 /// # Errors
 /// [`KernelError`] naming `e`, `hs`, `senders`, `receivers`, `out`, `agg` or
@@ -608,6 +753,7 @@ pub fn edge_block(
     senders: &[i64],
     out: &mut [f32],
     agg: &mut [f32],
+    par: &dyn ParallelFor,
 ) -> Result<(), KernelError> {
     let ne = receivers.len();
     let n = hr.len() / L;
@@ -656,14 +802,23 @@ pub fn edge_block(
     };
     let (receivers, senders) = (index("receivers", receivers)?, index("senders", senders)?);
     let w = Weights::new(mlp, L)?;
-    let b = Block {
-        e,
-        hr,
-        hs,
-        receivers: &receivers,
-        senders: &senders,
-    };
-    run_block(isa(), &w, &b, out, agg);
+    let (isa, parts) = (isa(), block_parts(&receivers, n));
+    let outs = slices(out, parts.iter().map(|(edges, _)| edges.len()));
+    let aggs = slices(agg, parts.iter().map(|(_, nodes)| nodes.len()));
+    par.run(parts.len(), &|p| {
+        let (edges, nodes) = &parts[p];
+        let b = Block {
+            e: &e[edges.start * L..edges.end * L],
+            hr,
+            hs,
+            receivers: &receivers[edges.clone()],
+            senders: &senders[edges.clone()],
+            node0: nodes.start,
+        };
+        let mut o = outs[p].lock().unwrap_or_else(|e| e.into_inner());
+        let mut a = aggs[p].lock().unwrap_or_else(|e| e.into_inner());
+        run_block(isa, &w, &b, &mut o, &mut a);
+    });
     Ok(())
 }
 
@@ -677,6 +832,76 @@ fn run_block(isa: Isa, w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f
             #[cfg(target_arch = "x86_64")]
             Isa::Avx2 => copies::block_avx2(w, b, out, agg),
             _ => block::<Portable, 1>(w, b, out, agg),
+        }
+    }
+}
+
+/// Inputs of a node block's first layer: the node latent, its sum over in-edges and its in-degree.
+pub const NODE_IN: usize = 2 * L + 1;
+
+/// Nodes per part of [`node_block`] (fixed: the parts do not depend on the thread count).
+pub const PART_NODES: usize = 256;
+
+/// One message-passing step's node update (paper App. A; the graph's
+/// `node_mlp` stage): `out = h + LN(MLP([h, agg, degree]))` for node latents
+/// `h` `[N, 16]`, their sums over in-edges `agg` `[N, 16]` (from
+/// [`edge_block`]) and in-degrees `degree` `[N]` (float32), with `mlp.w1`
+/// of shape `[33, 16]` (rows in that order); `out` `[N, 16]`. Run in parts
+/// of [`PART_NODES`] nodes by `par` (every row on its own: the same bits for
+/// any `par`).
+///
+/// # Errors
+/// [`KernelError`] naming `h`, `agg`, `out` or a weight for a shape that
+/// does not fit.
+pub fn node_block(
+    mlp: &Mlp<'_>,
+    h: &[f32],
+    agg: &[f32],
+    degree: &[f32],
+    out: &mut [f32],
+    par: &dyn ParallelFor,
+) -> Result<(), KernelError> {
+    let n = degree.len();
+    for (field, v) in [("h", h.len()), ("agg", agg.len()), ("out", out.len())] {
+        if v != n * L {
+            return Err(bad(
+                field,
+                format!("expected {n} x {L} values (degree has {n}), got {v}"),
+            ));
+        }
+    }
+    let w = Weights::new(mlp, NODE_IN)?;
+    let isa = isa();
+    let parts: Vec<std::ops::Range<usize>> = (0..n.div_ceil(PART_NODES).max(1))
+        .map(|p| p * PART_NODES..((p + 1) * PART_NODES).min(n))
+        .collect();
+    let outs = slices(out, parts.iter().map(|r| r.len()));
+    par.run(parts.len(), &|p| {
+        let r = &parts[p];
+        let rows = r.start * L..r.end * L;
+        let mut o = outs[p].lock().unwrap_or_else(|e| e.into_inner());
+        run_node(
+            isa,
+            &w,
+            &h[rows.clone()],
+            &agg[rows],
+            &degree[r.clone()],
+            &mut o,
+        );
+    });
+    Ok(())
+}
+
+/// Runs the node block with the copy `isa`, which the CPU must have ([`isa`] checks it).
+fn run_node(isa: Isa, w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
+    // SAFETY: the callers pass `isa()` (or, in the tests, a copy it allows), so the CPU has the copy's features.
+    unsafe {
+        match isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => copies::node_avx512(w, h, agg, deg, out),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => copies::node_avx2(w, h, agg, deg, out),
+            _ => node::<Portable, 1>(w, h, agg, deg, out),
         }
     }
 }
@@ -778,6 +1003,67 @@ mod tests {
     }
 
     #[test]
+    fn node_block_matches_the_layers_written_out_on_every_copy_and_in_parts() {
+        for n in [0usize, 1, 5, 9, 3 * PART_NODES + 7] {
+            let o = owned(NODE_IN, 21);
+            let (h, agg) = (values(22, n * L), values(23, n * L));
+            let deg: Vec<f32> = (0..n).map(|i| (i % 13) as f32).collect();
+            let mut want = Vec::new();
+            for i in 0..n {
+                let mut x: Vec<f64> = h[i * L..(i + 1) * L].iter().map(|&v| v as f64).collect();
+                x.extend(agg[i * L..(i + 1) * L].iter().map(|&v| v as f64));
+                x.push(deg[i] as f64);
+                let y = reference(&o, dense(&x, &o.w1, &o.b1, false));
+                want.extend(y.iter().enumerate().map(|(j, v)| v + h[i * L + j] as f64));
+            }
+            let mut out = vec![f32::NAN; n * L];
+            node_block(&mlp(&o), &h, &agg, &deg, &mut out, &Serial).unwrap();
+            close(&out, &want);
+            let mut par = vec![f32::NAN; n * L];
+            node_block(&mlp(&o), &h, &agg, &deg, &mut par, &Threads).unwrap();
+            assert!(
+                out.iter()
+                    .zip(&par)
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
+            );
+            let w = Weights::new(&mlp(&o), NODE_IN).unwrap();
+            let best = isa();
+            for c in [Isa::Portable, Isa::Avx2, Isa::Avx512] {
+                if c == Isa::Avx512 && best != Isa::Avx512
+                    || c == Isa::Avx2 && best == Isa::Portable
+                {
+                    continue;
+                }
+                let mut one = vec![f32::NAN; n * L];
+                run_node(c, &w, &h, &agg, &deg, &mut one);
+                close(&one, &want);
+            }
+        }
+        let o = owned(NODE_IN, 1);
+        let mut out = vec![0.0f32; 2 * L];
+        let err = node_block(
+            &mlp(&o),
+            &[0.0; L],
+            &[0.0; 2 * L],
+            &[1.0, 2.0],
+            &mut out,
+            &Serial,
+        )
+        .unwrap_err();
+        assert_eq!(err.field, "h");
+        let err = node_block(
+            &mlp(&owned(L, 1)),
+            &[0.0; 2 * L],
+            &[0.0; 2 * L],
+            &[1.0, 2.0],
+            &mut out,
+            &Serial,
+        )
+        .unwrap_err();
+        assert_eq!(err.field, "w1");
+    }
+
+    #[test]
     fn encoder_matches_the_layers_written_out() {
         for dim in [2usize, 3] {
             for ne in [0usize, 1, 3, 4, 9] {
@@ -785,7 +1071,7 @@ mod tests {
                 let disp = values(11, ne * dim);
                 let dist: Vec<f32> = values(12, ne).iter().map(|v| v.abs()).collect();
                 let mut out = vec![f32::NAN; ne * L];
-                edge_encoder(&mlp(&o), dim, &disp, &dist, &mut out).unwrap();
+                edge_encoder(&mlp(&o), dim, &disp, &dist, &mut out, &Serial).unwrap();
                 let mut want = Vec::new();
                 for k in 0..ne {
                     let mut x: Vec<f64> = disp[k * dim..(k + 1) * dim]
@@ -817,7 +1103,10 @@ mod tests {
             let senders: Vec<i64> = (0..ne as i64).map(|k| (k * 5 + 1) % n as i64).collect();
             let mut out = vec![f32::NAN; ne * L];
             let mut agg = vec![f32::NAN; n * L];
-            edge_block(&m, &e, &hr, &hs, &receivers, &senders, &mut out, &mut agg).unwrap();
+            edge_block(
+                &m, &e, &hr, &hs, &receivers, &senders, &mut out, &mut agg, &Serial,
+            )
+            .unwrap();
             let mut want = Vec::new();
             let mut want_agg = vec![0.0f64; n * L];
             for k in 0..ne {
@@ -861,6 +1150,7 @@ mod tests {
             hs: &hs,
             receivers: &receivers,
             senders: &senders,
+            node0: 0,
         };
         let w = Weights::new(&m, L).unwrap();
         let (mut o1, mut a1) = (vec![0.0; ne * L], vec![0.0; n * L]);
@@ -882,6 +1172,67 @@ mod tests {
         }
     }
 
+    /// Runs the parts from last to first, spread over three threads.
+    struct Threads;
+
+    impl ParallelFor for Threads {
+        fn run(&self, n: usize, f: &(dyn Fn(usize) + Sync)) {
+            std::thread::scope(|s| {
+                for t in 0..3 {
+                    s.spawn(move || (0..n).rev().filter(|i| i % 3 == t).for_each(f));
+                }
+            });
+        }
+    }
+
+    #[test]
+    fn parts_run_at_once_give_the_same_bits_as_one_pass() {
+        let o = owned(L, 7);
+        let zeros = vec![0.0f32; L];
+        let m = Mlp {
+            b1: &zeros,
+            ..mlp(&o)
+        };
+        // 700 nodes, every fifth without in-edges, 3-17 in-edges each: several parts
+        let n = 700usize;
+        let mut receivers = Vec::new();
+        for i in 0..n {
+            if i % 5 != 2 {
+                receivers.extend(std::iter::repeat_n(i as i64, 3 + (i * 7) % 15));
+            }
+        }
+        let ne = receivers.len();
+        assert!(
+            ne > 4 * PART_EDGES
+                && block_parts(
+                    &receivers.iter().map(|&r| r as usize).collect::<Vec<_>>(),
+                    n
+                )
+                .len()
+                    > 4
+        );
+        let senders: Vec<i64> = (0..ne).map(|k| ((k * 131) % n) as i64).collect();
+        let (e, hr, hs) = (values(41, ne * L), values(42, n * L), values(43, n * L));
+        let mut shuffled = receivers.clone();
+        shuffled.swap(0, ne - 1); // unsorted: one part
+        for recv in [&receivers, &shuffled] {
+            let (mut o1, mut a1) = (vec![0.0; ne * L], vec![0.0; n * L]);
+            edge_block(&m, &e, &hr, &hs, recv, &senders, &mut o1, &mut a1, &Serial).unwrap();
+            let (mut o2, mut a2) = (vec![f32::NAN; ne * L], vec![f32::NAN; n * L]);
+            edge_block(&m, &e, &hr, &hs, recv, &senders, &mut o2, &mut a2, &Threads).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&o1), bits(&o2));
+            assert_eq!(bits(&a1), bits(&a2));
+            assert!(a1[2 * L..3 * L].iter().all(|&v| v == 0.0)); // node 2 has no in-edges
+        }
+        let enc = owned(3, 8);
+        let (disp, dist) = (values(44, ne * 2), values(45, ne));
+        let (mut o1, mut o2) = (vec![0.0; ne * L], vec![f32::NAN; ne * L]);
+        edge_encoder(&mlp(&enc), 2, &disp, &dist, &mut o1, &Serial).unwrap();
+        edge_encoder(&mlp(&enc), 2, &disp, &dist, &mut o2, &Threads).unwrap();
+        assert!(o1.iter().zip(&o2).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+
     #[test]
     fn bad_arguments_are_refused_naming_the_field() {
         let o = owned(L, 1);
@@ -889,11 +1240,24 @@ mod tests {
         let (hr, hs, e) = (vec![0.0f32; 2 * L], vec![0.0f32; 2 * L], vec![0.0f32; L]);
         let mut out = vec![0.0f32; L];
         let mut agg = vec![0.0f32; 2 * L];
-        let err = edge_block(&m, &e, &hr, &hs, &[2], &[0], &mut out, &mut agg).unwrap_err();
+        let err =
+            edge_block(&m, &e, &hr, &hs, &[2], &[0], &mut out, &mut agg, &Serial).unwrap_err();
         assert_eq!(err.field, "receivers");
-        let err = edge_block(&m, &e, &hr, &hs, &[0], &[-1], &mut out, &mut agg).unwrap_err();
+        let err =
+            edge_block(&m, &e, &hr, &hs, &[0], &[-1], &mut out, &mut agg, &Serial).unwrap_err();
         assert_eq!(err.field, "senders");
-        let err = edge_block(&m, &e, &hr, &hs[..L], &[0], &[0], &mut out, &mut agg).unwrap_err();
+        let err = edge_block(
+            &m,
+            &e,
+            &hr,
+            &hs[..L],
+            &[0],
+            &[0],
+            &mut out,
+            &mut agg,
+            &Serial,
+        )
+        .unwrap_err();
         assert_eq!(err.field, "hs");
         let mut w2 = o.w2.clone();
         w2[3] = f32::NAN;
@@ -906,15 +1270,17 @@ mod tests {
             &[0],
             &mut out,
             &mut agg,
+            &Serial,
         )
         .unwrap_err();
         assert_eq!(err.field, "weights");
         let enc = owned(3, 2);
-        let err = edge_encoder(&mlp(&enc), 4, &[0.0; 4], &[0.0], &mut out).unwrap_err();
+        let err = edge_encoder(&mlp(&enc), 4, &[0.0; 4], &[0.0], &mut out, &Serial).unwrap_err();
         assert_eq!(err.field, "dim");
-        let err = edge_encoder(&mlp(&enc), 2, &[0.0; 3], &[0.0], &mut out).unwrap_err();
+        let err = edge_encoder(&mlp(&enc), 2, &[0.0; 3], &[0.0], &mut out, &Serial).unwrap_err();
         assert_eq!(err.field, "displacement");
-        let err = edge_encoder(&mlp(&owned(4, 2)), 2, &[0.0; 2], &[0.0], &mut out).unwrap_err();
+        let err =
+            edge_encoder(&mlp(&owned(4, 2)), 2, &[0.0; 2], &[0.0], &mut out, &Serial).unwrap_err();
         assert_eq!(err.field, "w1");
     }
 }

@@ -1,5 +1,5 @@
 //! onnxruntime custom operators for the fused GNS edge kernels
-//! (`hybridmpm-gnn`): `HmpmEdgeEncoder` and `HmpmEdgeBlock` in the domain
+//! (`hybridmpm-gnn`): `HmpmEdgeEncoder`, `HmpmEdgeBlock` and `HmpmNodeBlock` in the domain
 //! [`DOMAIN`], registered by [`RegisterCustomOps`].
 //!
 //! The extension module itself is the custom-op library: onnxruntime's
@@ -19,6 +19,13 @@
 //! * `HmpmEdgeBlock(e [E, 16], hr [N, 16], hs [N, 16], receivers int64 [E],
 //!   senders int64 [E], we [16, 16], w2, b2, w3, b3, kvar, eps) →
 //!   (e' [E, 16], agg [N, 16])`
+//! * `HmpmNodeBlock(h [N, 16], agg [N, 16], degree [N, 1], w1 [33, 16], b1,
+//!   w2, b2, w3, b3, kvar, eps) → h' [N, 16]`
+//!
+//! Each kernel cuts its rows into fixed parts (`hybridmpm_gnn::PART_EDGES`,
+//! `PART_NODES`) and runs them on the session's intra-op threads
+//! (`KernelContext_ParallelFor`); the parts are fixed and each node's sum is
+//! one part's, so the results are the same bits on any number of threads.
 //!
 //! Bad shapes or indices come back as an onnxruntime error naming the
 //! argument (`INVALID_ARGUMENT`), never a crash: the kernel runs under
@@ -27,9 +34,9 @@
 
 use std::ffi::{CStr, c_char, c_int, c_void};
 use std::panic::{AssertUnwindSafe, catch_unwind};
-use std::sync::atomic::{AtomicPtr, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicPtr, Ordering};
 
-use hybridmpm_gnn::{KernelError, L, Mlp, edge_block, edge_encoder};
+use hybridmpm_gnn::{KernelError, L, Mlp, ParallelFor, edge_block, edge_encoder, node_block};
 
 /// The operators' domain in the ONNX graph.
 pub const DOMAIN: &CStr = c"hybridmpm.gnn";
@@ -52,10 +59,19 @@ mod idx {
     pub const KERNEL_CONTEXT_GET_OUTPUT: usize = 91;
     pub const RELEASE_STATUS: usize = 93;
     pub const RELEASE_TENSOR_TYPE_AND_SHAPE_INFO: usize = 99;
+    /// Since `OrtApi` version 17 (asked for as [`super::PARALLEL_API_VERSION`]).
+    pub const KERNEL_CONTEXT_PARALLEL_FOR: usize = 274;
 }
 
-/// The `OrtApi` version asked for: 16 (onnxruntime 1.16) has every entry above.
+/// The `OrtApi` version asked for: 16 (onnxruntime 1.16) has every entry
+/// above but `KernelContext_ParallelFor`.
 const API_VERSION: u32 = 16;
+/// The version whose table has `KernelContext_ParallelFor` for certain
+/// (onnxruntime 1.18, the oldest `pyproject.toml` allows): with an older
+/// runtime the kernels run their parts on the calling thread.
+const PARALLEL_API_VERSION: u32 = 18;
+/// Whether the runtime that registered the operators has `KernelContext_ParallelFor`.
+static HAS_PARALLEL_FOR: AtomicBool = AtomicBool::new(false);
 const ORT_FAIL: c_int = 1;
 const ORT_INVALID_ARGUMENT: c_int = 2;
 const FLOAT: c_int = 1;
@@ -109,6 +125,7 @@ struct OrtCustomOp {
 enum Which {
     Encoder,
     Block,
+    Node,
 }
 
 /// One `OrtCustomOp` per operator; `which` recovers the operator from the
@@ -186,6 +203,7 @@ const fn op(which: Which) -> Op {
 
 static ENCODER: Op = op(Which::Encoder);
 static BLOCK: Op = op(Which::Block);
+static NODE: Op = op(Which::Node);
 
 unsafe fn which(op: *const OrtCustomOp) -> Which {
     // SAFETY: onnxruntime passes back the pointer registered, the first field of an `Op`.
@@ -196,6 +214,7 @@ unsafe extern "C" fn get_name(op: *const OrtCustomOp) -> *const c_char {
     match unsafe { which(op) } {
         Which::Encoder => c"HmpmEdgeEncoder".as_ptr(),
         Which::Block => c"HmpmEdgeBlock".as_ptr(),
+        Which::Node => c"HmpmNodeBlock".as_ptr(),
     }
 }
 
@@ -209,12 +228,13 @@ fn input_types(w: Which) -> &'static [c_int] {
         Which::Block => &[
             FLOAT, FLOAT, FLOAT, INT64, INT64, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT,
         ],
+        Which::Node => &[FLOAT; 11],
     }
 }
 
 fn output_count(w: Which) -> usize {
     match w {
-        Which::Encoder => 1,
+        Which::Encoder | Which::Node => 1,
         Which::Block => 2,
     }
 }
@@ -440,8 +460,72 @@ fn first_dim(t: &Tensor) -> i64 {
     t.dims.first().copied().unwrap_or(0)
 }
 
+/// The kernels' parts run by onnxruntime's intra-op thread pool
+/// (`KernelContext_ParallelFor`): on as many threads as the session has
+/// (one: the calling thread, in order). A part that panics on a worker is
+/// caught there and re-raised on the calling thread, where
+/// `kernel_compute_v2` turns it into an error status; if the runtime refuses
+/// the call, the parts run on the calling thread (each part writes only its
+/// own outputs, so running one again is harmless).
+struct OrtParallel {
+    api: Api,
+    ctx: *mut c_void,
+}
+
+struct PartsCall<'a> {
+    f: &'a (dyn Fn(usize) + Sync),
+    panicked: AtomicBool,
+}
+
+unsafe extern "C" fn run_part(data: *mut c_void, i: usize) {
+    // SAFETY: `data` is the `PartsCall` that `OrtParallel::run` keeps alive until the call returns.
+    let call = unsafe { &*(data as *const PartsCall<'_>) };
+    if catch_unwind(AssertUnwindSafe(|| (call.f)(i))).is_err() {
+        call.panicked.store(true, Ordering::Release);
+    }
+}
+
+impl ParallelFor for OrtParallel {
+    fn run(&self, n: usize, f: &(dyn Fn(usize) + Sync)) {
+        if n <= 1 || !HAS_PARALLEL_FOR.load(Ordering::Acquire) {
+            return (0..n).for_each(f);
+        }
+        let call = PartsCall {
+            f,
+            panicked: AtomicBool::new(false),
+        };
+        type Par = unsafe extern "C" fn(
+            *const c_void,
+            unsafe extern "C" fn(*mut c_void, usize),
+            usize,
+            usize,
+            *mut c_void,
+        ) -> Status;
+        // SAFETY: entry 274 of a table of version >= 18 (checked at registration) is
+        // KernelContext_ParallelFor; `ctx` is the running kernel's context; it returns
+        // after every part has run.
+        let s = unsafe {
+            api_fn::<Par>(self.api, idx::KERNEL_CONTEXT_PARALLEL_FOR)(
+                self.ctx,
+                run_part,
+                n,
+                0,
+                &call as *const PartsCall<'_> as *mut c_void,
+            )
+        };
+        if !s.is_null() {
+            unsafe { api_fn::<unsafe extern "C" fn(Status)>(self.api, idx::RELEASE_STATUS)(s) };
+            return (0..n).for_each(f);
+        }
+        if call.panicked.load(Ordering::Acquire) {
+            panic!("a part of the kernel panicked on an onnxruntime worker");
+        }
+    }
+}
+
 unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
     let api = k.api;
+    let par = OrtParallel { api, ctx };
     let fail = |e: KernelError| unsafe {
         status(
             api,
@@ -471,6 +555,7 @@ unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
                 unsafe { disp.f32s() },
                 unsafe { dist.f32s() },
                 unsafe { out.f32s_mut() },
+                &par,
             )
             .map_err(fail)
         }
@@ -493,6 +578,22 @@ unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
                 unsafe { send.i64s() },
                 unsafe { out.f32s_mut() },
                 unsafe { agg.f32s_mut() },
+                &par,
+            )
+            .map_err(fail)
+        }
+        Which::Node => {
+            let io = floats(0, &["h", "agg", "degree"])?;
+            let w = floats(3, &["w1", "b1", "w2", "b2", "w3", "b3", "kvar", "eps"])?;
+            let out = unsafe { output(api, ctx, 0, "h_out", &[first_dim(&io[2]), L as i64])? };
+            let mlp = unsafe { mlp(&w[0], w[1].f32s(), &w[2..]) };
+            node_block(
+                &mlp,
+                unsafe { io[0].f32s() },
+                unsafe { io[1].f32s() },
+                unsafe { io[2].f32s() },
+                unsafe { out.f32s_mut() },
+                &par,
             )
             .map_err(fail)
         }
@@ -503,6 +604,7 @@ fn k_name(w: Which) -> &'static str {
     match w {
         Which::Encoder => "HmpmEdgeEncoder",
         Which::Block => "HmpmEdgeBlock",
+        Which::Node => "HmpmNodeBlock",
     }
 }
 
@@ -539,6 +641,7 @@ unsafe fn register(options: *mut c_void, api: Api) -> Result<(), Status> {
         let add = unsafe { api_fn::<Add>(api, idx::CUSTOM_OP_DOMAIN_ADD) };
         ort!(unsafe { add(d, &ENCODER.ort) });
         ort!(unsafe { add(d, &BLOCK.ort) });
+        ort!(unsafe { add(d, &NODE.ort) });
         match DOMAIN_PTR.compare_exchange(
             std::ptr::null_mut(),
             d,
@@ -571,6 +674,8 @@ pub unsafe extern "C" fn RegisterCustomOps(
     if api.is_null() {
         return std::ptr::null_mut(); // too old a runtime: the graph's operators stay unknown and the session fails to load
     }
+    let parallel = unsafe { ((*api_base).get_api)(PARALLEL_API_VERSION) };
+    HAS_PARALLEL_FOR.store(!parallel.is_null(), Ordering::Release);
     match catch_unwind(AssertUnwindSafe(|| unsafe { register(options, api) })) {
         Ok(Ok(())) => std::ptr::null_mut(),
         Ok(Err(s)) => s,
