@@ -244,6 +244,7 @@ def fuse_graph(proto: Any) -> Any | None:
             if len(users) != 1 or users[0].op_type != "Gemm":
                 raise _NoMatch(f"{cat.name}: does not feed one Gemm")
             g1, w1, b1 = G.gemm(users[0].output[0])
+            assert b1 is not None  # gemm() checked the bias
             if G.array(w1).shape != (2 * LATENT + 1, LATENT):
                 raise _NoMatch(f"{g1.name}: weight is not [{2 * LATENT + 1}, {LATENT}]")
             node_res = None
