@@ -123,15 +123,18 @@ class NeuralModel:
     ``path`` an ``.onnx`` file written by :func:`~hybridmpm.neural.export.export_onnx`;
     ``threads`` onnxruntime intra-op threads (1 leaves a core to MPM; 0
     onnxruntime's default, one per core); ``spinning`` whether the worker
-    threads busy-wait for work (default: for any count but 1, 0 included). Two threads pay only with spinning: on graphs of ≥ 2 000
-    particles the step is 1.3–1.45× faster than on one thread, without
-    spinning no faster (``benchmarks/results/inference.md``); the price is a
+    threads busy-wait for work (default: for any count but 1, 0 included).
+    The fused kernels (:mod:`hybridmpm.neural.fused`) run their parts on
+    these threads with the same bits on any count: on the scene states two
+    spinning threads make the whole network step 1.1–1.2× faster than one
+    (the ONNX graph alone 1.4–1.6× on 2 400-particle blocks),
+    ``benchmarks/results/inference.md``; the price is a
     worker that keeps spinning for tens of ms after each step, which slows an
     MPM step run right after by up to ~20%. So: two threads for the network
-    alone (MPM idle), one in the hybrid and the service (the default). On
-    more than one thread the sums over receivers take the gather way
-    (:mod:`hybridmpm.neural.compile`): onnxruntime's ``ScatterND`` loses
-    updates there. A file of an earlier layout, which has only the
+    alone (MPM idle), one in the hybrid and the service (the default). A
+    plain (unfused) graph on more than one thread sums over receivers the
+    gather way (:mod:`hybridmpm.neural.compile`): onnxruntime's ``ScatterND``
+    loses updates there. A file of an earlier layout, which has only the
     ``ScatterND`` sum, runs on one thread whatever ``threads`` says, with a
     ``UserWarning`` (upgrade it with :func:`hybridmpm.neural.export.upgrade_onnx`).
     ``meta`` holds the model's metadata: ``scene``,

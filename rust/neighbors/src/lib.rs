@@ -258,8 +258,8 @@ const SERIAL_EDGES: usize = 1 << 18;
 /// work to rayon; below [`SERIAL_PARTICLES`] they run on the calling thread
 /// and never touch a rayon pool, whatever the edge count. A caller that runs
 /// them inside a pool of its own can skip entering it when this is false:
-/// entering one wakes a worker, which cost 20-70 µs on the 2-core machine,
-/// more than a 500-particle radius graph takes (0.03 ms).
+/// entering one wakes a worker, about 15-35 µs on the 2-core machine, as
+/// much as a 500-particle radius graph takes (0.03 ms).
 pub fn uses_rayon(particles: usize) -> bool {
     particles >= SERIAL_PARTICLES
 }

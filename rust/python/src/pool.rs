@@ -33,8 +33,8 @@ pub fn install<R: Send>(f: impl FnOnce() -> R + Send) -> R {
 /// Run the neighbour-crate work `f` on `particles` particles: inside the
 /// process's pool where the crate uses rayon for that size
 /// (`hybridmpm_neighbors::uses_rayon`), else on the calling thread, which
-/// spares the wake-up of a pool worker (20-70 µs on the 2-core machine,
-/// more than the work itself for a few hundred particles).
+/// spares the wake-up of a pool worker (15-35 µs on the 2-core machine,
+/// as much as the work itself for a few hundred particles).
 pub fn install_for<R: Send>(particles: usize, f: impl FnOnce() -> R + Send) -> R {
     if hybridmpm_neighbors::uses_rayon(particles) {
         install(f)
