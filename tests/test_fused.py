@@ -121,7 +121,8 @@ def test_graphs_of_other_layouts_are_left_alone():
 
 def test_bad_indices_are_an_error_naming_them_not_a_crash():
     """The operators check what onnxruntime hands them: a receiver outside the
-    nodes comes back as onnxruntime's error naming ``receivers``."""
+    nodes, or a particle type outside the type table, comes back as
+    onnxruntime's error naming ``receivers`` or ``particle_type``."""
     model = NeuralModel(shipped_model("water2d"))
     sim = scene_state("water2d", steps=1)
     hist, ptype = sim.history, sim.particles.particle_type
@@ -131,20 +132,31 @@ def test_bad_indices_are_an_error_naming_them_not_a_crash():
     feeds = model.feeds(hist, ptype, (s, r, d, dist))
     with pytest.raises(Exception, match="receivers"):
         model.session.run(None, feeds)
+    # a particle type outside the type table (the Python side refuses it first; the kernel too)
+    feeds = model.feeds(hist, ptype, radius_graph(hist[-1], model.radius))
+    feeds["particle_type"] = feeds["particle_type"].copy()
+    feeds["particle_type"][0] = 99
+    with pytest.raises(Exception, match="particle_type"):
+        model.session.run(None, feeds)
 
 
 def test_a_rollout_is_the_plain_graphs_to_rounding(monkeypatch):
     """60 frames of the dam break's network, fused and not (``HYBRIDMPM_FUSED=0``
-    switches the kernels off): the positions stay within 1e-4 m (the flow
-    amplifies float32 rounding; the compiled graph against the torch export
-    drifted 4.6e-4 m over 120 frames)."""
-    runs = []
-    for on in ("1", "0"):
-        monkeypatch.setenv("HYBRIDMPM_FUSED", on)
-        sim = NeuralSimulator("dam_break2d", seed=0, mpm_threads=1)
-        assert sim.model.fused == (on == "1")
-        runs.append(rollout(sim, 60).fluid_positions)
-    assert np.abs(runs[0] - runs[1]).max() <= 1e-4
+    switches the kernels off). The network alone (no density relaxation)
+    stays within 1e-5 m (measured 5e-7: float32 rounding, amplified by the
+    flow). With the relaxation the bound is 1e-3 m (measured 2e-4): its
+    ``ρ > ρ₀`` test is a branch, which a one-ulp difference can flip for a
+    particle at the rest density, moving it by a fraction of a correction
+    (the compiled graph against the torch export drifted 4.6e-4 m over 120
+    frames)."""
+    for relax, bound in ((0, 1e-5), (3, 1e-3)):
+        runs = []
+        for on in ("1", "0"):
+            monkeypatch.setenv("HYBRIDMPM_FUSED", on)
+            sim = NeuralSimulator("dam_break2d", seed=0, mpm_threads=1, relax=relax)
+            assert sim.model.fused == (on == "1")
+            runs.append(rollout(sim, 60).fluid_positions)
+        assert np.abs(runs[0] - runs[1]).max() <= bound, relax
 
 
 def test_a_runtime_that_cannot_load_the_kernels_runs_the_plain_graph(monkeypatch):

@@ -16,10 +16,15 @@ the domain :data:`DOMAIN` do each stage in one pass:
 
 * ``HmpmNodeBlock`` replaces one message-passing step's node update (the
   ``Concat`` of the node latent, its sum and its in-degree, three ``Gemm`` s
-  with their ``Relu`` s, the folded LayerNorm, the residual ``Add``).
+  with their ``Relu`` s, the folded LayerNorm, the residual ``Add``);
+* ``HmpmNodeEncoder`` replaces the feature construction and the node
+  encoder (the velocities from the position history, the clipped wall
+  distances, the type-table ``Gather``, the MLP and its LayerNorm);
+* ``HmpmDecoder`` replaces the decoder's MLP and the Euler step with its
+  kinematic ``Where``.
 
-The feature construction, the node encoder, the node projections and the
-decoder stay onnxruntime operators. The kernels are Rust
+Only the node projections of each edge block (a ``Gemm`` and a ``MatMul``)
+stay onnxruntime operators. The kernels are Rust
 (``rust/gnn``: ``edge_encoder``, ``edge_block``, ``node_block``), served by
 the extension module itself, which is an onnxruntime custom-op library
 (``rust/python/src/ort_ops.rs``): :func:`register` loads it into a
@@ -267,6 +272,11 @@ def fuse_graph(proto: Any) -> Any | None:
             )
             remove += [cat, g1, *tail, r]
             new.append((position[id(r)], node))
+        node_enc = _match_node_encoder(G)
+        dec = _match_decoder(G)
+        for nodes, at, fused_node in (node_enc, dec):
+            remove += nodes
+            new.append((position[id(at)], fused_node))
     except (_NoMatch, KeyError, IndexError, ValueError) as e:
         _LAST_REASON[0] = str(e)
         return None
@@ -289,6 +299,162 @@ def fuse_graph(proto: Any) -> Any | None:
     _prune(g)
     m.opset_import.append(helper.make_opsetid(DOMAIN, 1))
     return m
+
+
+def _scalar(G: _Graph, name: str, dtype: Any) -> Any:
+    """The value of a scalar (or one-element) initializer ``name`` of ``dtype``."""
+    if name not in G.inits:
+        raise _NoMatch(f"{name}: not an initializer")
+    a = G.array(name)
+    if a.dtype != dtype or a.size != 1:
+        raise _NoMatch(f"{name}: not a {dtype} scalar")
+    return a.reshape(()).item()
+
+
+def _history_gather(G: _Graph, name: str, t: int) -> None:
+    """Check that ``name`` is ``positions[t]`` (a Gather on axis 0)."""
+    n = G.node(name, "Gather")
+    if n.input[0] != "positions" or _scalar(G, n.input[1], np.int64) != t or any(a.name == "axis" and a.i != 0 for a in n.attribute):
+        raise _NoMatch(f"{n.name}: not positions[{t}]")
+
+
+def _history_len(G: _Graph) -> tuple[int, int]:
+    """``(t_in, dim)`` of the graph's ``positions`` input ``[t_in, N, dim]``."""
+    inp = [i for i in G.g.input if i.name == "positions"]
+    if len(inp) != 1:
+        raise _NoMatch("no positions input")
+    dims = inp[0].type.tensor_type.shape.dim
+    if len(dims) != 3 or not dims[0].HasField("dim_value") or not dims[2].HasField("dim_value"):
+        raise _NoMatch("positions: not [t_in, N, dim] with t_in and dim fixed")
+    return int(dims[0].dim_value), int(dims[2].dim_value)
+
+
+def _match_node_encoder(G: _Graph) -> tuple[list[Any], Any, Any]:
+    """The feature construction and node encoder (:mod:`hybridmpm.neural.compile`):
+    ``LN(MLP(Concat(velocities, walls)) + table[particle_type])``, checked node by
+    node. Returns ``(nodes to remove, node whose place it takes, HmpmNodeEncoder)``;
+    the feature nodes left dead are pruned."""
+    from onnx import helper
+
+    t_in, dim = _history_len(G)
+    if (t_in - 1) * dim + 2 * dim > 32:
+        raise _NoMatch("node encoder: more than 32 node features")
+    types = [n for n in G.g.node if n.op_type == "Gather" and list(n.input[1:]) == ["particle_type"]]
+    if len(types) != 1 or types[0].input[0] not in G.inits:
+        raise _NoMatch("node encoder: no single type-table Gather")
+    type_node = types[0]
+    table = type_node.input[0]
+    if G.array(table).ndim != 2 or G.array(table).shape[1] != LATENT:
+        raise _NoMatch(f"{table}: not a [types, {LATENT}] table")
+    adds = [n for n in G.consumers.get(type_node.output[0], []) if n.op_type == "Add"]
+    if len(adds) != 1:
+        raise _NoMatch("node encoder: the type term does not feed one Add")
+    add = adds[0]
+    g1, w1, b1 = G.gemm(add.input[0] if add.input[1] == type_node.output[0] else add.input[1])
+    assert b1 is not None  # gemm() checked the bias
+    node_in = G.node(g1.input[0], "Concat")
+    vel, walls = node_in.input
+    # velocities: Reshape(Transpose(Sub(positions[1:t_in], positions[0:t_in-1]), [1, 0, 2]), [0, (t_in-1)·dim])
+    reshape = G.node(vel, "Reshape")
+    if list(G.array(reshape.input[1])) != [0, (t_in - 1) * dim]:
+        raise _NoMatch(f"{reshape.name}: not [N, (t_in - 1)·dim]")
+    tr = G.node(reshape.input[0], "Transpose")
+    if [list(a.ints) for a in tr.attribute if a.name == "perm"] != [[1, 0, 2]]:
+        raise _NoMatch(f"{tr.name}: not perm [1, 0, 2]")
+    sub = G.node(tr.input[0], "Sub")
+    for name, (lo, hi) in zip(sub.input, ((1, t_in), (0, t_in - 1))):
+        sl = G.node(name, "Slice")
+        if sl.input[0] != "positions" or [list(G.array(i)) for i in sl.input[1:4]] != [[lo], [hi], [0]]:
+            raise _NoMatch(f"{sl.name}: not positions[{lo}:{hi}]")
+    # walls: Clip(Concat((last - lower)·w, (upper - last)·w), -1, 1)
+    clip = G.node(walls, "Clip")
+    if _scalar(G, clip.input[1], np.float32) != -1.0 or _scalar(G, clip.input[2], np.float32) != 1.0:
+        raise _NoMatch(f"{clip.name}: not a clip to [-1, 1]")
+    wcat = G.node(clip.input[0], "Concat")
+    inv = []
+    bounds = []
+    for name, last_first in zip(wcat.input, (True, False)):
+        mul = G.node(name, "Mul")
+        d = G.node(mul.input[0], "Sub")
+        inv.append(_scalar(G, mul.input[1], np.float32))
+        last, bound = (d.input[0], d.input[1]) if last_first else (d.input[1], d.input[0])
+        _history_gather(G, last, t_in - 1)
+        if bound not in G.inits or G.array(bound).shape != (dim,):
+            raise _NoMatch(f"{d.name}: bound is not a [{dim}] initializer")
+        bounds.append(bound)
+    if inv[0] != inv[1]:
+        raise _NoMatch("walls: two different scales")
+    inv_w = G.producer[wcat.input[0]].input[1]
+    if G.array(w1).shape != ((t_in - 1) * dim + 2 * dim, LATENT):
+        raise _NoMatch(f"{g1.name}: weight is not [(t_in - 1)·dim + 2·dim, {LATENT}]")
+    out = None
+    for n in G.g.node:
+        if n.op_type == "Div":
+            try:
+                tail, x, ws = G.mlp_tail(n.output[0])
+            except _NoMatch:
+                continue
+            if x == add.output[0]:
+                out = n, tail, ws
+                break
+    if out is None:
+        raise _NoMatch("node encoder: no MLP with a folded LayerNorm after the type term")
+    div, tail, ws = out
+    node = helper.make_node(
+        "HmpmNodeEncoder",
+        ["positions", "particle_type", bounds[0], bounds[1], inv_w, table, w1, b1, *ws],
+        [div.output[0]],
+        name="node_encoder/fused",
+        domain=DOMAIN,
+    )
+    return [g1, add, *tail], div, node
+
+
+def _match_decoder(G: _Graph) -> tuple[list[Any], Any, Any]:
+    """The decoder and the Euler step: ``acceleration = MLP(h)`` (two ``Relu``
+    layers and a linear one to D), ``next_position = Where(type == kinematic,
+    last, (last + last) − prev + acceleration)``. Returns ``(nodes to remove,
+    node whose place it takes, HmpmDecoder)``."""
+    from onnx import helper
+
+    t_in, dim = _history_len(G)
+    where = G.node("next_position", "Where")
+    cond, last, nxt = where.input
+    _history_gather(G, last, t_in - 1)
+    unsq = G.node(cond, "Unsqueeze")
+    eq = G.node(unsq.input[0], "Equal")
+    if eq.input[0] != "particle_type":
+        raise _NoMatch(f"{eq.name}: not particle_type == kinematic")
+    kin = eq.input[1]
+    _scalar(G, kin, np.int64)
+    add_acc = G.node(nxt, "Add")
+    if add_acc.input[1] != "acceleration":
+        raise _NoMatch(f"{add_acc.name}: not inertia + acceleration")
+    inertia = G.node(add_acc.input[0], "Sub")
+    twice = G.node(inertia.input[0], "Add")
+    if list(twice.input) != [last, last]:
+        raise _NoMatch(f"{twice.name}: not last + last")
+    _history_gather(G, inertia.input[1], t_in - 2)
+    ident = G.node("acceleration", "Identity")
+    g3 = G.node(ident.input[0], "Gemm")
+    w3, b3 = g3.input[1], g3.input[2] if len(g3.input) > 2 else ""
+    if w3 not in G.inits or G.array(w3).shape != (LATENT, dim) or b3 not in G.inits or G.array(b3).shape != (dim,):
+        raise _NoMatch(f"{g3.name}: not [{LATENT}, {dim}] with a bias")
+    if any(a.name in ("transA", "transB") and a.i != 0 or a.name in ("alpha", "beta") and a.f != 1.0 for a in g3.attribute):
+        raise _NoMatch(f"{g3.name}: Gemm with transposes or scales")
+    r2 = G.node(g3.input[0], "Relu")
+    g2, w2, b2 = G.gemm(r2.input[0])
+    r1 = G.node(g2.input[0], "Relu")
+    g1, w1, b1 = G.gemm(r1.input[0])
+    assert b1 is not None and b2 is not None  # gemm() checked the biases
+    node = helper.make_node(
+        "HmpmDecoder",
+        [g1.input[0], "positions", "particle_type", kin, w1, b1, w2, b2, w3, b3],
+        ["acceleration", "next_position"],
+        name="decoder/fused",
+        domain=DOMAIN,
+    )
+    return [g1, r1, g2, r2, g3, ident, twice, inertia, add_acc, eq, unsq, where], where, node
 
 
 #: Why the last :func:`fuse_graph` returned ``None`` (for messages and tests).

@@ -127,16 +127,8 @@ fn block_parts(
 
 /// `out` cut into consecutive slices of `lens[p] · L` values, each behind
 /// its own lock (the parts write disjoint slices; the locks are never contended).
-fn slices(
-    mut out: &mut [f32],
-    lens: impl Iterator<Item = usize>,
-) -> Vec<std::sync::Mutex<&mut [f32]>> {
-    lens.map(|len| {
-        let (head, tail) = std::mem::take(&mut out).split_at_mut(len * L);
-        out = tail;
-        std::sync::Mutex::new(head)
-    })
-    .collect()
+fn slices(out: &mut [f32], lens: impl Iterator<Item = usize>) -> Vec<std::sync::Mutex<&mut [f32]>> {
+    slices_of(out, L, lens)
 }
 
 /// Weights of one MLP with its folded LayerNorm (module docs), borrowed.
@@ -564,10 +556,115 @@ unsafe fn node<S: Lanes, const T: usize>(
     }
 }
 
+/// Most node features a [`node_encoder`] takes (velocities and walls): `(T − 1)·D + 2D ≤ 32`.
+pub const MAX_NODE_FEATURES: usize = 32;
+
+/// The node-encoder inputs the kernel reads, checked.
+struct Features<'a> {
+    positions: &'a [f32],
+    types: &'a [usize],
+    lower: &'a [f32],
+    upper: &'a [f32],
+    inv_w: f32,
+    table: &'a [Row],
+    t_in: usize,
+    dim: usize,
+    n: usize,
+}
+
+impl Features<'_> {
+    /// Node `i`'s features: the `T − 1` position differences, oldest first,
+    /// then `(x − lower)/w` and `(upper − x)/w` of its last position, clipped to [−1, 1].
+    #[inline(always)]
+    fn row(&self, i: usize, x: &mut [f32; MAX_NODE_FEATURES]) {
+        let (d, n) = (self.dim, self.n);
+        let at = |t: usize, k: usize| self.positions[(t * n + i) * d + k];
+        for t in 0..self.t_in - 1 {
+            for k in 0..d {
+                x[t * d + k] = at(t + 1, k) - at(t, k);
+            }
+        }
+        let v = (self.t_in - 1) * d;
+        for k in 0..d {
+            let last = at(self.t_in - 1, k);
+            x[v + k] = ((last - self.lower[k]) * self.inv_w).clamp(-1.0, 1.0);
+            x[v + d + k] = ((self.upper[k] - last) * self.inv_w).clamp(-1.0, 1.0);
+        }
+    }
+}
+
+/// The node encoder over nodes `range`, `T` at a time: features (above),
+/// `LN(MLP(x) + table[type])` with the type term added after the first layer.
+#[inline(always)]
+unsafe fn node_enc<S: Lanes, const T: usize>(
+    w: &Weights,
+    f: &Features<'_>,
+    range: std::ops::Range<usize>,
+    out: &mut [f32],
+) {
+    let n = range.len();
+    let mut base = 0;
+    while base < n {
+        let count = T.min(n - base);
+        let mut x = [[0.0f32; MAX_NODE_FEATURES]; T];
+        for (t, xt) in x.iter_mut().enumerate() {
+            f.row(range.start + base + t.min(count - 1), xt);
+        }
+        // SAFETY: the caller runs with `S`'s instruction set; every row read or written is L long.
+        unsafe {
+            let mut y = layer::<S, T, MAX_NODE_FEATURES>(&x, &w.w1, [S::load(&w.b1); T]);
+            for t in 0..T {
+                let ty = f.types[range.start + base + t.min(count - 1)];
+                y[t] = S::add(y[t], S::load(&f.table[ty]));
+            }
+            let y = rest::<S, T>(w, y);
+            for t in 0..count {
+                S::store(&mut out[(base + t) * L..(base + t + 1) * L], y[t]);
+            }
+        }
+        base += count;
+    }
+}
+
+/// The decoder's MLP over the part's nodes, `T` at a time: `relu(relu(h W₁ + b₁) W₂ + b₂) W₃ + b₃`
+/// with `W₃`, `b₃` padded to [`L`] columns; the first `dim` of each row go to `acc`.
+#[inline(always)]
+unsafe fn dec<S: Lanes, const T: usize>(w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
+    let n = h.len() / L;
+    let mut base = 0;
+    while base < n {
+        let count = T.min(n - base);
+        let mut x = [[0.0f32; L]; T];
+        for (t, xt) in x.iter_mut().enumerate() {
+            let i = base + t.min(count - 1);
+            xt.copy_from_slice(&h[i * L..(i + 1) * L]);
+        }
+        // SAFETY: the caller runs with `S`'s instruction set; every row read or written is L long.
+        unsafe {
+            let y = layer::<S, T, L>(&x, &w.w1, [S::load(&w.b1); T]);
+            for t in 0..T {
+                S::store(&mut x[t], S::relu(y[t]));
+            }
+            let z = layer::<S, T, L>(&x, &w.w2, [S::load(&w.b2); T]);
+            for t in 0..T {
+                S::store(&mut x[t], S::relu(z[t]));
+            }
+            let o = layer::<S, T, L>(&x, &w.w3, [S::load(&w.b3); T]);
+            let mut row = [0.0f32; L];
+            for t in 0..count {
+                S::store(&mut row, o[t]);
+                let i = base + t;
+                acc[i * dim..(i + 1) * dim].copy_from_slice(&row[..dim]);
+            }
+        }
+        base += count;
+    }
+}
+
 /// The compiled copies: each enables its instruction set and instantiates the kernels.
 #[cfg(target_arch = "x86_64")]
 mod copies {
-    use super::{Avx2, Avx512, Block, Weights};
+    use super::{Avx2, Avx512, Block, Features, Weights};
 
     #[target_feature(enable = "avx,avx2,fma")]
     pub(super) fn encoder_avx2<const K: usize>(
@@ -607,6 +704,40 @@ mod copies {
     pub(super) fn node_avx2(w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
         // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
         unsafe { super::node::<Avx2, 4>(w, h, agg, deg, out) }
+    }
+
+    #[target_feature(enable = "avx,avx2,fma")]
+    pub(super) fn node_enc_avx2(
+        w: &Weights,
+        f: &Features<'_>,
+        r: std::ops::Range<usize>,
+        out: &mut [f32],
+    ) {
+        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
+        unsafe { super::node_enc::<Avx2, 4>(w, f, r, out) }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn node_enc_avx512(
+        w: &Weights,
+        f: &Features<'_>,
+        r: std::ops::Range<usize>,
+        out: &mut [f32],
+    ) {
+        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
+        unsafe { super::node_enc::<Avx512, 8>(w, f, r, out) }
+    }
+
+    #[target_feature(enable = "avx,avx2,fma")]
+    pub(super) fn dec_avx2(w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
+        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
+        unsafe { super::dec::<Avx2, 4>(w, h, dim, acc) }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn dec_avx512(w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
+        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
+        unsafe { super::dec::<Avx512, 8>(w, h, dim, acc) }
     }
 
     #[target_feature(enable = "avx512f")]
@@ -872,9 +1003,7 @@ pub fn node_block(
     }
     let w = Weights::new(mlp, NODE_IN)?;
     let isa = isa();
-    let parts: Vec<std::ops::Range<usize>> = (0..n.div_ceil(PART_NODES).max(1))
-        .map(|p| p * PART_NODES..((p + 1) * PART_NODES).min(n))
-        .collect();
+    let parts = node_parts(n);
     let outs = slices(out, parts.iter().map(|r| r.len()));
     par.run(parts.len(), &|p| {
         let r = &parts[p];
@@ -904,6 +1033,267 @@ fn run_node(isa: Isa, w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mu
             _ => node::<Portable, 1>(w, h, agg, deg, out),
         }
     }
+}
+
+/// Splits `0..n` into parts of [`PART_NODES`] (fixed: independent of the thread count).
+fn node_parts(n: usize) -> Vec<std::ops::Range<usize>> {
+    (0..n.div_ceil(PART_NODES).max(1))
+        .map(|p| p * PART_NODES..((p + 1) * PART_NODES).min(n))
+        .collect()
+}
+
+/// Checks `positions` `[T, N, D]` against `n` nodes: returns `T`.
+fn history_len(positions: &[f32], n: usize, dim: usize) -> Result<usize, KernelError> {
+    if dim != 2 && dim != 3 {
+        return Err(bad("dim", format!("must be 2 or 3, got {dim}")));
+    }
+    let per = n * dim;
+    if per == 0 {
+        return Ok(0);
+    }
+    if !positions.len().is_multiple_of(per) || positions.len() / per < 2 {
+        return Err(bad(
+            "positions",
+            format!(
+                "expected [T >= 2, {n}, {dim}] values, got {}",
+                positions.len()
+            ),
+        ));
+    }
+    Ok(positions.len() / per)
+}
+
+/// The node encoder with its feature construction (the graph's `features`
+/// and `node_encoder` stages; paper App. A, GNS node features): for
+/// `positions` `[T, N, D]` (float32, oldest first) and `particle_type`
+/// `[N]` (int64, rows of `table`), each node's features are its `T − 1`
+/// position differences (the velocity normalisation is folded into `w1`),
+/// then `(x − lower)·inv_w` and `(upper − x)·inv_w` of its last position
+/// (`lower`, `upper` `[D]`), each clipped to [−1, 1]; then
+/// `h = LN(MLP(features) + table[type])`, the type term added after the
+/// first layer (`table` `[K, 16]`, the type embedding times the first
+/// layer's rows), `mlp.w1` `[(T − 1)·D + 2D, 16]` (at most
+/// [`MAX_NODE_FEATURES`] rows). `out` `[N, 16]`; run in parts of
+/// [`PART_NODES`] by `par` (the same bits for any `par`).
+///
+/// # Errors
+/// [`KernelError`] naming `dim`, `positions`, `particle_type` (a code
+/// outside `[0, K)`), `lower`, `upper`, `inv_w`, `table`, `out` or a weight.
+#[allow(clippy::too_many_arguments)] // the operator's own inputs and outputs, one slice each
+pub fn node_encoder(
+    mlp: &Mlp<'_>,
+    dim: usize,
+    positions: &[f32],
+    particle_type: &[i64],
+    lower: &[f32],
+    upper: &[f32],
+    inv_w: f32,
+    table: &[f32],
+    out: &mut [f32],
+    par: &dyn ParallelFor,
+) -> Result<(), KernelError> {
+    let n = particle_type.len();
+    let t_in = history_len(positions, n, dim)?;
+    if out.len() != n * L {
+        return Err(bad(
+            "out",
+            format!("expected {n} x {L} values, got {}", out.len()),
+        ));
+    }
+    if n == 0 {
+        return Ok(());
+    }
+    let features = (t_in - 1) * dim + 2 * dim;
+    if features > MAX_NODE_FEATURES {
+        return Err(bad(
+            "positions",
+            format!(
+                "{t_in} steps of history in {dim}D make {features} features, more than {MAX_NODE_FEATURES}"
+            ),
+        ));
+    }
+    for (field, v) in [("lower", lower), ("upper", upper)] {
+        if v.len() != dim || !v.iter().all(|x| x.is_finite()) {
+            return Err(bad(
+                field,
+                format!("expected {dim} finite values, got {v:?}"),
+            ));
+        }
+    }
+    if !inv_w.is_finite() {
+        return Err(bad("inv_w", format!("must be finite, got {inv_w}")));
+    }
+    let table = rows("table", table, table.len() / L)?;
+    if !table.iter().flatten().all(|v| v.is_finite()) {
+        return Err(bad("table", "must be finite"));
+    }
+    let types: Vec<usize> = particle_type
+        .iter()
+        .map(|&t| {
+            usize::try_from(t)
+                .ok()
+                .filter(|&t| t < table.len())
+                .ok_or_else(|| {
+                    bad(
+                        "particle_type",
+                        format!("code {t} outside [0, {})", table.len()),
+                    )
+                })
+        })
+        .collect::<Result<_, _>>()?;
+    let w = Weights::new(mlp, features)?;
+    let f = Features {
+        positions,
+        types: &types,
+        lower,
+        upper,
+        inv_w,
+        table: &table,
+        t_in,
+        dim,
+        n,
+    };
+    let (isa, parts) = (isa(), node_parts(n));
+    let outs = slices(out, parts.iter().map(|r| r.len()));
+    par.run(parts.len(), &|p| {
+        let mut o = outs[p].lock().unwrap_or_else(|e| e.into_inner());
+        run_node_enc(isa, &w, &f, parts[p].clone(), &mut o);
+    });
+    Ok(())
+}
+
+/// The decoder and the Euler step (the graph's `decoder` stage): `acc =
+/// relu(relu(h W₁ + b₁) W₂ + b₂) W₃ + b₃` (output statistics folded;
+/// `mlp.w3` `[16, D]`, `mlp.b3` `[D]`; `kvar`, `eps` unused) and `next =
+/// (x_T + x_T) − x_{T−1} + acc`, or `x_T` for the particles whose type is
+/// `kinematic` (obstacles), from `h` `[N, 16]`, `positions` `[T, N, D]`
+/// and `particle_type` `[N]`; `acc` and `next` `[N, D]`. Run in parts of
+/// [`PART_NODES`] by `par` (the same bits for any `par`).
+///
+/// # Errors
+/// [`KernelError`] naming `dim`, `h`, `positions`, `acc`, `next` or a weight.
+#[allow(clippy::too_many_arguments)] // the operator's own inputs and outputs, one slice each
+pub fn decoder(
+    mlp: &Mlp<'_>,
+    dim: usize,
+    h: &[f32],
+    positions: &[f32],
+    particle_type: &[i64],
+    kinematic: i64,
+    acc: &mut [f32],
+    next: &mut [f32],
+    par: &dyn ParallelFor,
+) -> Result<(), KernelError> {
+    let n = particle_type.len();
+    let t_in = history_len(positions, n, dim)?;
+    for (field, v, want) in [
+        ("h", h.len(), n * L),
+        ("acc", acc.len(), n * dim),
+        ("next", next.len(), n * dim),
+    ] {
+        if v != want {
+            return Err(bad(
+                field,
+                format!("expected {want} values ({n} nodes), got {v}"),
+            ));
+        }
+    }
+    if mlp.w3.len() != L * dim || mlp.b3.len() != dim {
+        return Err(bad(
+            "w3",
+            format!("expected [{L}, {dim}] and a bias of {dim}"),
+        ));
+    }
+    if n == 0 {
+        return Ok(());
+    }
+    // the last layer padded to L columns, so that it runs as the others
+    let mut w3 = vec![0.0f32; L * L];
+    let mut b3 = vec![0.0f32; L];
+    for k in 0..L {
+        w3[k * L..k * L + dim].copy_from_slice(&mlp.w3[k * dim..(k + 1) * dim]);
+    }
+    b3[..dim].copy_from_slice(mlp.b3);
+    let ones = [1.0f32; L];
+    let padded = Mlp {
+        w3: &w3,
+        b3: &b3,
+        kvar: &ones,
+        eps: 1.0,
+        ..*mlp
+    };
+    let w = Weights::new(&padded, L)?;
+    let isa = isa();
+    let parts = node_parts(n);
+    let accs = slices_of(acc, dim, parts.iter().map(|r| r.len()));
+    let nexts = slices_of(next, dim, parts.iter().map(|r| r.len()));
+    par.run(parts.len(), &|p| {
+        let r = &parts[p];
+        let mut a = accs[p].lock().unwrap_or_else(|e| e.into_inner());
+        let hp = &h[r.start * L..r.end * L];
+        run_dec(isa, &w, hp, dim, &mut a);
+        let mut x = nexts[p].lock().unwrap_or_else(|e| e.into_inner());
+        let (last, prev) = ((t_in - 1) * n * dim, (t_in - 2) * n * dim);
+        for (j, i) in r.clone().enumerate() {
+            for k in 0..dim {
+                let l = positions[last + i * dim + k];
+                x[j * dim + k] = if particle_type[i] == kinematic {
+                    l
+                } else {
+                    ((l + l) - positions[prev + i * dim + k]) + a[j * dim + k]
+                };
+            }
+        }
+    });
+    Ok(())
+}
+
+/// Runs the node encoder with the copy `isa`, which the CPU must have ([`isa`] checks it).
+fn run_node_enc(
+    isa: Isa,
+    w: &Weights,
+    f: &Features<'_>,
+    r: std::ops::Range<usize>,
+    out: &mut [f32],
+) {
+    // SAFETY: the callers pass `isa()` (or, in the tests, a copy it allows), so the CPU has the copy's features.
+    unsafe {
+        match isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => copies::node_enc_avx512(w, f, r, out),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => copies::node_enc_avx2(w, f, r, out),
+            _ => node_enc::<Portable, 1>(w, f, r, out),
+        }
+    }
+}
+
+/// Runs the decoder's MLP with the copy `isa`, which the CPU must have ([`isa`] checks it).
+fn run_dec(isa: Isa, w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
+    // SAFETY: as above.
+    unsafe {
+        match isa {
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => copies::dec_avx512(w, h, dim, acc),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx2 => copies::dec_avx2(w, h, dim, acc),
+            _ => dec::<Portable, 1>(w, h, dim, acc),
+        }
+    }
+}
+
+/// `out` cut into consecutive slices of `lens[p] · width` values, each behind its own lock.
+fn slices_of(
+    mut out: &mut [f32],
+    width: usize,
+    lens: impl Iterator<Item = usize>,
+) -> Vec<std::sync::Mutex<&mut [f32]>> {
+    lens.map(|len| {
+        let (head, tail) = std::mem::take(&mut out).split_at_mut(len * width);
+        out = tail;
+        std::sync::Mutex::new(head)
+    })
+    .collect()
 }
 
 #[cfg(test)]
@@ -1061,6 +1451,208 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(err.field, "w1");
+    }
+
+    #[test]
+    fn node_encoder_and_decoder_match_the_layers_written_out() {
+        for dim in [2usize, 3] {
+            let (t_in, n, types) = (6usize, 3 * PART_NODES + 5, 4usize);
+            let nf = (t_in - 1) * dim + 2 * dim;
+            let o = owned(nf, 30 + dim as u64);
+            let pos = values(31, t_in * n * dim);
+            let ptype: Vec<i64> = (0..n).map(|i| ((i * 7) % types) as i64).collect();
+            let table = values(32, types * L);
+            let (lower, upper) = (vec![-0.9f32; dim], vec![0.8f32; dim]);
+            let inv_w = 2.5f32;
+            let mut h = vec![f32::NAN; n * L];
+            node_encoder(
+                &mlp(&o),
+                dim,
+                &pos,
+                &ptype,
+                &lower,
+                &upper,
+                inv_w,
+                &table,
+                &mut h,
+                &Serial,
+            )
+            .unwrap();
+            let at = |t: usize, i: usize, k: usize| pos[(t * n + i) * dim + k] as f64;
+            let mut want = Vec::new();
+            for i in 0..n {
+                let mut x = Vec::new();
+                for t in 0..t_in - 1 {
+                    x.extend((0..dim).map(|k| at(t + 1, i, k) - at(t, i, k)));
+                }
+                let last: Vec<f64> = (0..dim).map(|k| at(t_in - 1, i, k)).collect();
+                x.extend(
+                    (0..dim).map(|k| ((last[k] - lower[k] as f64) * inv_w as f64).clamp(-1.0, 1.0)),
+                );
+                x.extend(
+                    (0..dim).map(|k| ((upper[k] as f64 - last[k]) * inv_w as f64).clamp(-1.0, 1.0)),
+                );
+                let ty = ptype[i] as usize;
+                let first: Vec<f64> = dense(&x, &o.w1, &o.b1, false)
+                    .iter()
+                    .enumerate()
+                    .map(|(j, v)| v + table[ty * L + j] as f64)
+                    .collect();
+                want.extend(reference(&o, first));
+            }
+            close(&h, &want);
+            let mut h2 = vec![f32::NAN; n * L];
+            node_encoder(
+                &mlp(&o),
+                dim,
+                &pos,
+                &ptype,
+                &lower,
+                &upper,
+                inv_w,
+                &table,
+                &mut h2,
+                &Threads,
+            )
+            .unwrap();
+            assert!(h.iter().zip(&h2).all(|(a, b)| a.to_bits() == b.to_bits()));
+            let bad_type: Vec<i64> = (0..n as i64)
+                .map(|i| if i == 3 { types as i64 } else { 0 })
+                .collect();
+            let err = node_encoder(
+                &mlp(&o),
+                dim,
+                &pos,
+                &bad_type,
+                &lower,
+                &upper,
+                inv_w,
+                &table,
+                &mut h2,
+                &Serial,
+            )
+            .unwrap_err();
+            assert_eq!(err.field, "particle_type");
+            let err = node_encoder(
+                &mlp(&o),
+                dim,
+                &pos[1..],
+                &ptype,
+                &lower,
+                &upper,
+                inv_w,
+                &table,
+                &mut h2,
+                &Serial,
+            )
+            .unwrap_err();
+            assert_eq!(err.field, "positions");
+
+            // the decoder: an MLP without LayerNorm to D outputs, then the Euler step; type 3 is kinematic
+            let d = owned(L, 40 + dim as u64);
+            let (w3, b3) = (values(41, L * dim), values(42, dim));
+            let dm = Mlp {
+                w3: &w3,
+                b3: &b3,
+                ..mlp(&d)
+            };
+            let (mut acc, mut next) = (vec![f32::NAN; n * dim], vec![f32::NAN; n * dim]);
+            decoder(&dm, dim, &h, &pos, &ptype, 3, &mut acc, &mut next, &Serial).unwrap();
+            let (mut acc2, mut next2) = (vec![f32::NAN; n * dim], vec![f32::NAN; n * dim]);
+            decoder(
+                &dm, dim, &h, &pos, &ptype, 3, &mut acc2, &mut next2, &Threads,
+            )
+            .unwrap();
+            assert!(
+                acc.iter()
+                    .chain(&next)
+                    .zip(acc2.iter().chain(&next2))
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
+            );
+            let mut want_acc = Vec::new();
+            for i in 0..n {
+                let x: Vec<f64> = h[i * L..(i + 1) * L].iter().map(|&v| v as f64).collect();
+                let y = dense(&dense(&x, &d.w1, &d.b1, true), &d.w2, &d.b2, true);
+                want_acc.extend((0..dim).map(|k| {
+                    b3[k] as f64 + (0..L).map(|j| y[j] * w3[j * dim + k] as f64).sum::<f64>()
+                }));
+            }
+            close(&acc, &want_acc);
+            for i in 0..n {
+                for k in 0..dim {
+                    let (l, p) = (
+                        pos[((t_in - 1) * n + i) * dim + k],
+                        pos[((t_in - 2) * n + i) * dim + k],
+                    );
+                    let want = if ptype[i] == 3 {
+                        l
+                    } else {
+                        ((l + l) - p) + acc[i * dim + k]
+                    };
+                    assert_eq!(next[i * dim + k].to_bits(), want.to_bits());
+                }
+            }
+            let err = decoder(
+                &dm,
+                dim,
+                &h[L..],
+                &pos,
+                &ptype,
+                3,
+                &mut acc,
+                &mut next,
+                &Serial,
+            )
+            .unwrap_err();
+            assert_eq!(err.field, "h");
+            // every copy this CPU has gives the layers' values
+            let best = isa();
+            let types_u: Vec<usize> = ptype.iter().map(|&t| t as usize).collect();
+            let table_rows = rows("table", &table, types).unwrap();
+            let f = Features {
+                positions: &pos,
+                types: &types_u,
+                lower: &lower,
+                upper: &upper,
+                inv_w,
+                table: &table_rows,
+                t_in,
+                dim,
+                n,
+            };
+            let we = Weights::new(&mlp(&o), nf).unwrap();
+            let mut w3p = vec![0.0f32; L * L];
+            let mut b3p = vec![0.0f32; L];
+            for k in 0..L {
+                w3p[k * L..k * L + dim].copy_from_slice(&w3[k * dim..(k + 1) * dim]);
+            }
+            b3p[..dim].copy_from_slice(&b3);
+            let ones = [1.0f32; L];
+            let wd = Weights::new(
+                &Mlp {
+                    w3: &w3p,
+                    b3: &b3p,
+                    kvar: &ones,
+                    eps: 1.0,
+                    ..mlp(&d)
+                },
+                L,
+            )
+            .unwrap();
+            for c in [Isa::Portable, Isa::Avx2, Isa::Avx512] {
+                if c == Isa::Avx512 && best != Isa::Avx512
+                    || c == Isa::Avx2 && best == Isa::Portable
+                {
+                    continue;
+                }
+                let mut hc = vec![f32::NAN; n * L];
+                run_node_enc(c, &we, &f, 0..n, &mut hc);
+                close(&hc, &want);
+                let mut ac = vec![f32::NAN; n * dim];
+                run_dec(c, &wd, &h, dim, &mut ac);
+                close(&ac, &want_acc);
+            }
+        }
     }
 
     #[test]

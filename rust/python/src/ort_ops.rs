@@ -1,5 +1,6 @@
 //! onnxruntime custom operators for the fused GNS edge kernels
-//! (`hybridmpm-gnn`): `HmpmEdgeEncoder`, `HmpmEdgeBlock` and `HmpmNodeBlock` in the domain
+//! (`hybridmpm-gnn`): `HmpmEdgeEncoder`, `HmpmEdgeBlock`, `HmpmNodeBlock`,
+//! `HmpmNodeEncoder` and `HmpmDecoder` in the domain
 //! [`DOMAIN`], registered by [`RegisterCustomOps`].
 //!
 //! The extension module itself is the custom-op library: onnxruntime's
@@ -21,6 +22,12 @@
 //!   (e' [E, 16], agg [N, 16])`
 //! * `HmpmNodeBlock(h [N, 16], agg [N, 16], degree [N, 1], w1 [33, 16], b1,
 //!   w2, b2, w3, b3, kvar, eps) → h' [N, 16]`
+//! * `HmpmNodeEncoder(positions [T, N, D], particle_type int64 [N], lower [D],
+//!   upper [D], inv_w [], table [K, 16], w1 [(T-1)D+2D, 16], b1, w2, b2, w3,
+//!   b3, kvar, eps) → h [N, 16]`
+//! * `HmpmDecoder(h [N, 16], positions [T, N, D], particle_type int64 [N],
+//!   kinematic int64 [], w1, b1, w2, b2, w3 [16, D], b3 [D]) →
+//!   (acceleration [N, D], next_position [N, D])`
 //!
 //! Each kernel cuts its rows into fixed parts (`hybridmpm_gnn::PART_EDGES`,
 //! `PART_NODES`) and runs them on the session's intra-op threads
@@ -36,7 +43,9 @@ use std::ffi::{CStr, c_char, c_int, c_void};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::atomic::{AtomicBool, AtomicPtr, Ordering};
 
-use hybridmpm_gnn::{KernelError, L, Mlp, ParallelFor, edge_block, edge_encoder, node_block};
+use hybridmpm_gnn::{
+    KernelError, L, Mlp, ParallelFor, decoder, edge_block, edge_encoder, node_block, node_encoder,
+};
 
 /// The operators' domain in the ONNX graph.
 pub const DOMAIN: &CStr = c"hybridmpm.gnn";
@@ -126,6 +135,8 @@ enum Which {
     Encoder,
     Block,
     Node,
+    NodeEncoder,
+    Decoder,
 }
 
 /// One `OrtCustomOp` per operator; `which` recovers the operator from the
@@ -204,6 +215,8 @@ const fn op(which: Which) -> Op {
 static ENCODER: Op = op(Which::Encoder);
 static BLOCK: Op = op(Which::Block);
 static NODE: Op = op(Which::Node);
+static NODE_ENCODER: Op = op(Which::NodeEncoder);
+static DECODER: Op = op(Which::Decoder);
 
 unsafe fn which(op: *const OrtCustomOp) -> Which {
     // SAFETY: onnxruntime passes back the pointer registered, the first field of an `Op`.
@@ -215,6 +228,8 @@ unsafe extern "C" fn get_name(op: *const OrtCustomOp) -> *const c_char {
         Which::Encoder => c"HmpmEdgeEncoder".as_ptr(),
         Which::Block => c"HmpmEdgeBlock".as_ptr(),
         Which::Node => c"HmpmNodeBlock".as_ptr(),
+        Which::NodeEncoder => c"HmpmNodeEncoder".as_ptr(),
+        Which::Decoder => c"HmpmDecoder".as_ptr(),
     }
 }
 
@@ -229,13 +244,20 @@ fn input_types(w: Which) -> &'static [c_int] {
             FLOAT, FLOAT, FLOAT, INT64, INT64, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT,
         ],
         Which::Node => &[FLOAT; 11],
+        Which::NodeEncoder => &[
+            FLOAT, INT64, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT,
+            FLOAT, FLOAT,
+        ],
+        Which::Decoder => &[
+            FLOAT, FLOAT, INT64, INT64, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT, FLOAT,
+        ],
     }
 }
 
 fn output_count(w: Which) -> usize {
     match w {
-        Which::Encoder | Which::Node => 1,
-        Which::Block => 2,
+        Which::Encoder | Which::Node | Which::NodeEncoder => 1,
+        Which::Block | Which::Decoder => 2,
     }
 }
 
@@ -582,6 +604,71 @@ unsafe fn compute(k: &Kernel, ctx: *mut c_void) -> Result<(), Status> {
             )
             .map_err(fail)
         }
+        Which::NodeEncoder => {
+            let pos = unsafe { input(api, ctx, 0, "positions", FLOAT)? };
+            let ptype = unsafe { input(api, ctx, 1, "particle_type", INT64)? };
+            let geo = floats(2, &["lower", "upper", "inv_w", "table"])?;
+            let w = floats(6, &["w1", "b1", "w2", "b2", "w3", "b3", "kvar", "eps"])?;
+            let dim = pos.dims.get(2).copied().unwrap_or(0).max(0) as usize;
+            let out = unsafe { output(api, ctx, 0, "h", &[first_dim(&ptype), L as i64])? };
+            let mlp = unsafe { mlp(&w[0], w[1].f32s(), &w[2..]) };
+            let inv_w = unsafe { geo[2].f32s() }
+                .first()
+                .copied()
+                .unwrap_or(f32::NAN);
+            node_encoder(
+                &mlp,
+                dim,
+                unsafe { pos.f32s() },
+                unsafe { ptype.i64s() },
+                unsafe { geo[0].f32s() },
+                unsafe { geo[1].f32s() },
+                inv_w,
+                unsafe { geo[3].f32s() },
+                unsafe { out.f32s_mut() },
+                &par,
+            )
+            .map_err(fail)
+        }
+        Which::Decoder => {
+            let io = floats(0, &["h", "positions"])?;
+            let ptype = unsafe { input(api, ctx, 2, "particle_type", INT64)? };
+            let kin = unsafe { input(api, ctx, 3, "kinematic", INT64)? };
+            let w = floats(4, &["w1", "b1", "w2", "b2", "w3", "b3"])?;
+            let dim = io[1].dims.get(2).copied().unwrap_or(0).max(0);
+            let n = first_dim(&ptype);
+            let acc = unsafe { output(api, ctx, 0, "acceleration", &[n, dim])? };
+            let next = unsafe { output(api, ctx, 1, "next_position", &[n, dim])? };
+            let Some(&kinematic) = (unsafe { kin.i64s() }).first() else {
+                return Err(unsafe {
+                    status(api, ORT_INVALID_ARGUMENT, "HmpmDecoder: kinematic: missing")
+                });
+            };
+            let mlp = unsafe {
+                Mlp {
+                    w1: w[0].f32s(),
+                    b1: w[1].f32s(),
+                    w2: w[2].f32s(),
+                    b2: w[3].f32s(),
+                    w3: w[4].f32s(),
+                    b3: w[5].f32s(),
+                    kvar: &[],
+                    eps: f32::NAN,
+                }
+            };
+            decoder(
+                &mlp,
+                dim as usize,
+                unsafe { io[0].f32s() },
+                unsafe { io[1].f32s() },
+                unsafe { ptype.i64s() },
+                kinematic,
+                unsafe { acc.f32s_mut() },
+                unsafe { next.f32s_mut() },
+                &par,
+            )
+            .map_err(fail)
+        }
         Which::Node => {
             let io = floats(0, &["h", "agg", "degree"])?;
             let w = floats(3, &["w1", "b1", "w2", "b2", "w3", "b3", "kvar", "eps"])?;
@@ -605,6 +692,8 @@ fn k_name(w: Which) -> &'static str {
         Which::Encoder => "HmpmEdgeEncoder",
         Which::Block => "HmpmEdgeBlock",
         Which::Node => "HmpmNodeBlock",
+        Which::NodeEncoder => "HmpmNodeEncoder",
+        Which::Decoder => "HmpmDecoder",
     }
 }
 
@@ -642,6 +731,8 @@ unsafe fn register(options: *mut c_void, api: Api) -> Result<(), Status> {
         ort!(unsafe { add(d, &ENCODER.ort) });
         ort!(unsafe { add(d, &BLOCK.ort) });
         ort!(unsafe { add(d, &NODE.ort) });
+        ort!(unsafe { add(d, &NODE_ENCODER.ort) });
+        ort!(unsafe { add(d, &DECODER.ort) });
         match DOMAIN_PTR.compare_exchange(
             std::ptr::null_mut(),
             d,
