@@ -492,33 +492,63 @@ unsafe fn block<S: Lanes, const T: usize>(
 ) {
     agg.fill(0.0);
     let e = b.receivers.len();
+    // the running sum of the current receiver, in a register: the same
+    // additions in the same (edge) order as adding each edge into `agg`,
+    // without a store and a reload per edge; written back when the receiver
+    // changes (the receivers of a part are sorted, or the part is the whole
+    // unsorted graph, where a change writes back and a later edge of the same
+    // receiver reloads the sum)
+    let mut current = usize::MAX;
+    // SAFETY: the caller runs with `S`'s instruction set.
+    let mut sum = unsafe { S::zero() };
+    let mut pad = [[0.0f32; L]; T];
     let mut base = 0;
     while base < e {
         let count = T.min(e - base);
-        let mut x = [[0.0f32; L]; T];
+        // a full tile's edge latents are read in place; the last one, padded by
+        // repeating its last edge, from a copy
+        let x: &[[f32; L]; T] = match b.e[base * L..].as_chunks::<L>().0.get(..T) {
+            Some(rows) if count == T => rows.try_into().expect("T rows"),
+            _ => {
+                for (t, row) in pad.iter_mut().enumerate() {
+                    let k = base + t.min(count - 1);
+                    row.copy_from_slice(&b.e[k * L..(k + 1) * L]);
+                }
+                &pad
+            }
+        };
         // SAFETY: the caller runs with `S`'s instruction set; indices were checked against N; rows are L long.
         unsafe {
             let mut y = [S::zero(); T];
             for t in 0..T {
                 let k = base + t.min(count - 1);
                 let (r, s) = (b.receivers[k], b.senders[k]);
-                x[t].copy_from_slice(&b.e[k * L..(k + 1) * L]);
                 y[t] = S::add(
                     S::load(&b.hr[r * L..(r + 1) * L]),
                     S::load(&b.hs[s * L..(s + 1) * L]),
                 );
             }
-            let y = rest::<S, T>(w, layer::<S, T, L>(&x, &w.w1, y));
+            let y = rest::<S, T>(w, layer::<S, T, L>(x, &w.w1, y));
             for t in 0..count {
                 let k = base + t;
                 let v = S::add(S::load(&x[t]), y[t]);
                 S::store(&mut out[k * L..(k + 1) * L], v);
                 let r = b.receivers[k] - b.node0;
-                let a = &mut agg[r * L..(r + 1) * L];
-                S::store(a, S::add(S::load(a), v));
+                if r != current {
+                    if current != usize::MAX {
+                        S::store(&mut agg[current * L..(current + 1) * L], sum);
+                    }
+                    current = r;
+                    sum = S::load(&agg[r * L..(r + 1) * L]);
+                }
+                sum = S::add(sum, v);
             }
         }
         base += count;
+    }
+    if current != usize::MAX {
+        // SAFETY: as above.
+        unsafe { S::store(&mut agg[current * L..(current + 1) * L], sum) };
     }
 }
 
