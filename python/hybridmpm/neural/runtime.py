@@ -126,8 +126,9 @@ class NeuralModel:
     threads busy-wait for work (default: for any count but 1, 0 included).
     The fused kernels (:mod:`hybridmpm.neural.fused`) run their parts on
     these threads with the same bits on any count: on the scene states two
-    spinning threads make the whole network step 1.1–1.2× faster than one
-    (the ONNX graph alone 1.4–1.6× on 2 400-particle blocks),
+    spinning threads make the whole network step up to 1.35× faster than
+    one (water2d's 500 particles: 1.03×; the ONNX graph alone 1.7–1.8× on
+    2 400-particle blocks),
     ``benchmarks/results/inference.md``; the price is a
     worker that keeps spinning for tens of ms after each step, which slows an
     MPM step run right after by up to ~20%. So: two threads for the network
