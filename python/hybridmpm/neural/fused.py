@@ -1,10 +1,10 @@
-"""Fused edge kernels for the compiled inference graph (issue 17).
+"""Fused kernels for the compiled inference graph (issue 17).
 
 The compiled GNS graph (:mod:`hybridmpm.neural.compile`, layout
 ``compiled-3``) runs each edge-sized stage as a chain of onnxruntime
 operators, one pass over an ``[E, 16]`` array each; at width 16 the passes,
 not the arithmetic, bound a step (docs/neural.md, "What bounds it").
-:func:`fuse_graph` rewrites such a graph so that two custom operators of
+:func:`fuse_graph` rewrites such a graph so that five custom operators of
 the domain :data:`DOMAIN` do each stage in one pass:
 
 * ``HmpmEdgeEncoder`` replaces the edge encoder (``Concat`` of the edge

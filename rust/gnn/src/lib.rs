@@ -1,4 +1,4 @@
-//! Fused edge kernels of the shipped GNS inference graph (latent width 16).
+//! Fused kernels of the shipped GNS inference graph (latent width 16).
 //!
 //! The compiled inference graph (`hybridmpm.neural.compile`, layout
 //! `compiled-3`; paper App. A, Sanchez-Gonzalez et al. 2020) runs every
@@ -7,8 +7,8 @@
 //! their `Relu`s, five folded-LayerNorm operators, the residual `Add` and the
 //! `ScatterND` sum over receivers. At width 16 every pass costs a few
 //! nanoseconds per edge whatever it computes, so the chain, not the
-//! arithmetic, bounds a step (docs/neural.md, "What bounds it"). The two
-//! kernels here do the same arithmetic in one pass, a tile of edges at a
+//! arithmetic, bounds a step (docs/neural.md, "What bounds it"). The
+//! kernels here do the same arithmetic in one pass, a tile of rows at a
 //! time in registers:
 //!
 //! * [`edge_encoder`]: `ε = LN(MLP([d, |d|]))` from each edge's displacement
@@ -17,9 +17,13 @@
 //!   `e' = e + LN(MLP(e W_e + (h W_r + b)[r] + (h W_s)[s]))` together with
 //!   its sum over receivers `agg[i] = Σ_{r(k) = i} e'_k` (the first layer
 //!   factored: the node projections `h W_r + b` and `h W_s` are computed on
-//!   the nodes, outside, and gathered here).
+//!   the nodes, outside, and gathered here);
+//! * [`node_block`]: the node update `h' = h + LN(MLP([h, agg, degree]))`;
+//! * [`node_encoder`]: the node features from the position history and
+//!   `h = LN(MLP(features) + table[type])`;
+//! * [`decoder`]: the acceleration `MLP(h)` and the Euler step.
 //!
-//! Both MLPs are the graph's: `x → relu(x W₁ + b₁) → relu(· W₂ + b₂) → · W₃ + b₃`
+//! The MLPs are the graph's: `x → relu(x W₁ + b₁) → relu(· W₂ + b₂) → · W₃ + b₃`
 //! with row-major `[in, 16]` weights, and the LayerNorm is the graph's folded
 //! one: the centring and the gain are already in `W₃`, `b₃` and in the next
 //! layers, so what is left is `z / sqrt(Σ_j k_j z_j² + ε)` with the graph's
@@ -30,11 +34,13 @@
 //! multiply-adds where the CPU has them), so the results agree with
 //! onnxruntime's to float32 rounding, not bit for bit; the sum over
 //! receivers adds the edges in edge order, as `ScatterND` does on one
-//! thread. The kernels are single-threaded and deterministic: the same
-//! inputs give the same bits on a given CPU path (AVX2 + FMA when the CPU
-//! has them, else the portable path).
+//! thread. Each kernel cuts its rows into fixed parts run by a
+//! [`ParallelFor`] (onnxruntime's intra-op pool, or [`Serial`]); every row,
+//! and every node's sum, is one part's, so the same inputs give the same
+//! bits on any number of threads, on a given copy (AVX-512, AVX2 + FMA or
+//! portable, picked from the CPU at run time).
 //!
-//! Safe Rust except the run-time dispatch to the AVX2 + FMA copy.
+//! Safe Rust except the run-time dispatch to the SIMD copies.
 
 #![deny(unsafe_op_in_unsafe_fn)]
 // The tile loops index several fixed-size arrays by the same lane `t` or column `j`.
