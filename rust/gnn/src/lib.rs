@@ -702,6 +702,18 @@ unsafe fn dec<S: Lanes, const T: usize>(w: &Weights, h: &[f32], dim: usize, acc:
 mod copies {
     use super::{Avx2, Avx512, Block, Features, Weights};
 
+    /// `$name`: the kernel `$kernel` compiled with the target features
+    /// `$features`, on `$lanes` rows `$tile` at a time.
+    macro_rules! copy {
+        ($name:ident, $features:literal, $lanes:ty, $tile:literal, $kernel:ident, ($($arg:ident: $ty:ty),*)) => {
+            #[target_feature(enable = $features)]
+            pub(super) fn $name($($arg: $ty),*) {
+                // SAFETY: the copy's features are enabled here (the callers check the CPU).
+                unsafe { super::$kernel::<$lanes, $tile>($($arg),*) }
+            }
+        };
+    }
+
     #[target_feature(enable = "avx,avx2,fma")]
     pub(super) fn encoder_avx2<const K: usize>(
         w: &Weights,
@@ -711,12 +723,6 @@ mod copies {
     ) {
         // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
         unsafe { super::encoder::<Avx2, 4, K>(w, disp, dist, out) }
-    }
-
-    #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn block_avx2(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-        // SAFETY: as above.
-        unsafe { super::block::<Avx2, 4>(w, b, out, agg) }
     }
 
     #[target_feature(enable = "avx512f")]
@@ -730,57 +736,14 @@ mod copies {
         unsafe { super::encoder::<Avx512, 8, K>(w, disp, dist, out) }
     }
 
-    #[target_feature(enable = "avx512f")]
-    pub(super) fn block_avx512(w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]) {
-        // SAFETY: as above.
-        unsafe { super::block::<Avx512, 8>(w, b, out, agg) }
-    }
-
-    #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn node_avx2(w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
-        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
-        unsafe { super::node::<Avx2, 4>(w, h, agg, deg, out) }
-    }
-
-    #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn node_enc_avx2(
-        w: &Weights,
-        f: &Features<'_>,
-        r: std::ops::Range<usize>,
-        out: &mut [f32],
-    ) {
-        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
-        unsafe { super::node_enc::<Avx2, 4>(w, f, r, out) }
-    }
-
-    #[target_feature(enable = "avx512f")]
-    pub(super) fn node_enc_avx512(
-        w: &Weights,
-        f: &Features<'_>,
-        r: std::ops::Range<usize>,
-        out: &mut [f32],
-    ) {
-        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
-        unsafe { super::node_enc::<Avx512, 8>(w, f, r, out) }
-    }
-
-    #[target_feature(enable = "avx,avx2,fma")]
-    pub(super) fn dec_avx2(w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
-        // SAFETY: AVX2 and FMA are enabled here (the callers check the CPU).
-        unsafe { super::dec::<Avx2, 4>(w, h, dim, acc) }
-    }
-
-    #[target_feature(enable = "avx512f")]
-    pub(super) fn dec_avx512(w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]) {
-        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
-        unsafe { super::dec::<Avx512, 8>(w, h, dim, acc) }
-    }
-
-    #[target_feature(enable = "avx512f")]
-    pub(super) fn node_avx512(w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]) {
-        // SAFETY: AVX-512F is enabled here (the callers check the CPU).
-        unsafe { super::node::<Avx512, 8>(w, h, agg, deg, out) }
-    }
+    copy!(block_avx2, "avx,avx2,fma", Avx2, 4, block, (w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]));
+    copy!(block_avx512, "avx512f", Avx512, 8, block, (w: &Weights, b: &Block<'_>, out: &mut [f32], agg: &mut [f32]));
+    copy!(node_avx2, "avx,avx2,fma", Avx2, 4, node, (w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]));
+    copy!(node_avx512, "avx512f", Avx512, 8, node, (w: &Weights, h: &[f32], agg: &[f32], deg: &[f32], out: &mut [f32]));
+    copy!(node_enc_avx2, "avx,avx2,fma", Avx2, 4, node_enc, (w: &Weights, f: &Features<'_>, r: std::ops::Range<usize>, out: &mut [f32]));
+    copy!(node_enc_avx512, "avx512f", Avx512, 8, node_enc, (w: &Weights, f: &Features<'_>, r: std::ops::Range<usize>, out: &mut [f32]));
+    copy!(dec_avx2, "avx,avx2,fma", Avx2, 4, dec, (w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]));
+    copy!(dec_avx512, "avx512f", Avx512, 8, dec, (w: &Weights, h: &[f32], dim: usize, acc: &mut [f32]));
 }
 
 /// The instruction set the kernels run with, chosen once per call from the
