@@ -1463,20 +1463,12 @@ mod tests {
             let table = values(32, types * L);
             let (lower, upper) = (vec![-0.9f32; dim], vec![0.8f32; dim]);
             let inv_w = 2.5f32;
+            let m = mlp(&o);
+            let encode = |pos: &[f32], ptype: &[i64], out: &mut [f32], par: &dyn ParallelFor| {
+                node_encoder(&m, dim, pos, ptype, &lower, &upper, inv_w, &table, out, par)
+            };
             let mut h = vec![f32::NAN; n * L];
-            node_encoder(
-                &mlp(&o),
-                dim,
-                &pos,
-                &ptype,
-                &lower,
-                &upper,
-                inv_w,
-                &table,
-                &mut h,
-                &Serial,
-            )
-            .unwrap();
+            encode(&pos, &ptype, &mut h, &Serial).unwrap();
             let at = |t: usize, i: usize, k: usize| pos[(t * n + i) * dim + k] as f64;
             let mut want = Vec::new();
             for i in 0..n {
@@ -1501,50 +1493,14 @@ mod tests {
             }
             close(&h, &want);
             let mut h2 = vec![f32::NAN; n * L];
-            node_encoder(
-                &mlp(&o),
-                dim,
-                &pos,
-                &ptype,
-                &lower,
-                &upper,
-                inv_w,
-                &table,
-                &mut h2,
-                &Threads,
-            )
-            .unwrap();
+            encode(&pos, &ptype, &mut h2, &Threads).unwrap();
             assert!(h.iter().zip(&h2).all(|(a, b)| a.to_bits() == b.to_bits()));
             let bad_type: Vec<i64> = (0..n as i64)
                 .map(|i| if i == 3 { types as i64 } else { 0 })
                 .collect();
-            let err = node_encoder(
-                &mlp(&o),
-                dim,
-                &pos,
-                &bad_type,
-                &lower,
-                &upper,
-                inv_w,
-                &table,
-                &mut h2,
-                &Serial,
-            )
-            .unwrap_err();
+            let err = encode(&pos, &bad_type, &mut h2, &Serial).unwrap_err();
             assert_eq!(err.field, "particle_type");
-            let err = node_encoder(
-                &mlp(&o),
-                dim,
-                &pos[1..],
-                &ptype,
-                &lower,
-                &upper,
-                inv_w,
-                &table,
-                &mut h2,
-                &Serial,
-            )
-            .unwrap_err();
+            let err = encode(&pos[1..], &ptype, &mut h2, &Serial).unwrap_err();
             assert_eq!(err.field, "positions");
 
             // the decoder: an MLP without LayerNorm to D outputs, then the Euler step; type 3 is kinematic
