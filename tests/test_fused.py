@@ -15,7 +15,10 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.models import shipped_model, shipped_models
@@ -52,6 +55,39 @@ def test_every_shipped_model_gives_the_plain_graphs_outputs(scene: str):
     assert np.abs(a1 - a0).max() <= 1e-5 * np.abs(a0).max()
     assert np.abs(x1 - x0).max() <= 1e-6
     assert np.array_equal(a1, a2) and np.array_equal(x1, x2)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    scene=st.sampled_from(["water_sand2d", "water3d"]),
+    n=st.integers(0, 80),
+    seed=st.integers(0, 2**31 - 1),
+    spread=st.floats(0.02, 1.0),
+)
+def test_random_clouds_give_the_plain_graphs_outputs(scene: str, n: int, seed: int, spread: float):
+    """Any cloud, not only the scenes' states: random positions (clumped or
+    spread over the domain, some past the walls, where the wall features
+    clip), random histories, every trained type and kinematic particles
+    (which the decoder holds in place): the fused graph's outputs are the
+    plain graph's to float32 rounding, and kinematic particles stay put."""
+    plain = NeuralModel(shipped_model(scene), fused=False)
+    fused_m = NeuralModel(shipped_model(scene))
+    assert fused_m.fused
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(plain.meta["bounds"], np.float64).T
+    centre = lo + (hi - lo) * rng.uniform(0.2, 0.8, plain.dim)
+    last = centre + (hi - lo) * spread * rng.uniform(-0.6, 0.6, (n, plain.dim))
+    steps = rng.normal(0.0, 0.3 * plain.radius, (plain.t_in - 1, n, plain.dim)).cumsum(0)[::-1]
+    hist = np.concatenate([last - steps, last[None]]).astype(np.float32)
+    types = np.array([*plain.meta["particle_types"], GNS_KINEMATIC], np.int64)
+    ptype = rng.choice(types, n)
+    a0, x0, _ = plain.predict(hist, ptype)
+    a1, x1, _ = fused_m.predict(hist, ptype)
+    scale = float(np.abs(a0).max()) if n else 0.0
+    assert np.abs(a1 - a0).max(initial=0.0) <= 1e-5 * scale + 1e-9
+    assert np.abs(x1 - x0).max(initial=0.0) <= 1e-5 * (1.0 + scale)
+    kin = ptype == GNS_KINEMATIC
+    assert np.array_equal(x1[kin], hist[-1][kin])
 
 
 def shipped_files() -> list[Path]:
