@@ -433,9 +433,10 @@ unsafe fn layer<S: Lanes, const T: usize, const K: usize>(
     y
 }
 
-/// Layers 2 and 3 and the folded LayerNorm from the first layer's pre-activation.
+/// Layers 2 and 3 from the first layer's pre-activation:
+/// `relu(relu(y) W₂ + b₂) W₃ + b₃` (the decoder's output; the others' before the LayerNorm).
 #[inline(always)]
-unsafe fn rest<S: Lanes, const T: usize>(w: &Weights, y: [S::R; T]) -> [S::R; T] {
+unsafe fn hidden<S: Lanes, const T: usize>(w: &Weights, y: [S::R; T]) -> [S::R; T] {
     // SAFETY: the caller runs with `S`'s instruction set; every row is L long.
     unsafe {
         let mut buf = [[0.0f32; L]; T];
@@ -446,7 +447,16 @@ unsafe fn rest<S: Lanes, const T: usize>(w: &Weights, y: [S::R; T]) -> [S::R; T]
         for t in 0..T {
             S::store(&mut buf[t], S::relu(z[t]));
         }
-        let o = layer::<S, T, L>(&buf, &w.w3, [S::load(&w.b3); T]);
+        layer::<S, T, L>(&buf, &w.w3, [S::load(&w.b3); T])
+    }
+}
+
+/// Layers 2 and 3 and the folded LayerNorm from the first layer's pre-activation.
+#[inline(always)]
+unsafe fn rest<S: Lanes, const T: usize>(w: &Weights, y: [S::R; T]) -> [S::R; T] {
+    // SAFETY: the caller runs with `S`'s instruction set; every row is L long.
+    unsafe {
+        let o = hidden::<S, T>(w, y);
         let k = S::load(&w.kvar);
         let mut out = o;
         for t in 0..T {
@@ -677,15 +687,7 @@ unsafe fn dec<S: Lanes, const T: usize>(w: &Weights, h: &[f32], dim: usize, acc:
         }
         // SAFETY: the caller runs with `S`'s instruction set; every row read or written is L long.
         unsafe {
-            let y = layer::<S, T, L>(&x, &w.w1, [S::load(&w.b1); T]);
-            for t in 0..T {
-                S::store(&mut x[t], S::relu(y[t]));
-            }
-            let z = layer::<S, T, L>(&x, &w.w2, [S::load(&w.b2); T]);
-            for t in 0..T {
-                S::store(&mut x[t], S::relu(z[t]));
-            }
-            let o = layer::<S, T, L>(&x, &w.w3, [S::load(&w.b3); T]);
+            let o = hidden::<S, T>(w, layer::<S, T, L>(&x, &w.w1, [S::load(&w.b1); T]));
             let mut row = [0.0f32; L];
             for t in 0..count {
                 S::store(&mut row, o[t]);
