@@ -1,6 +1,7 @@
 """Density relaxation between network steps (``hybridmpm.graph.relax_density``,
-``NeuralSimulator(relax=...)``): against a brute-force density, against the
-packing it must undo, and on the shipped dam-break model's own rollout."""
+``relax_then_graph``, ``NeuralSimulator(relax=...)``): against a brute-force
+density, against the packing it must undo, against the three calls it fuses,
+and on the shipped dam-break model's own rollout."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.graph import kernel_density, radius_graph, relax_density
+from hybridmpm.graph import kernel_density, radius_graph, relax_density, relax_then_graph
 
 
 def _brute_density(x: np.ndarray, radius: float) -> np.ndarray:
@@ -106,6 +107,80 @@ def test_relaxation_bad_input_names_the_field():
         args = dict(positions=x, movable=mv, radius=1.0, rest_density=2.0, iterations=3, omega=1.0) | change
         with pytest.raises(InvalidInputError) as e:
             relax_density(**args)
+        assert e.value.field == field, (change, e.value)
+
+
+def _in_turn(x, mv, radius, rho0, iterations, bounds, max_neighbors=None):
+    """relax_density, numpy.clip and radius_graph one after the other."""
+    out, compressed, worst = relax_density(x, mv, radius, rho0, iterations)
+    clamped = 0
+    if bounds is not None:
+        clamped = int(((out < bounds[0]) | (out > bounds[1])).any(1).sum())
+        out = np.clip(out, bounds[0], bounds[1])
+    return out, compressed, worst, clamped, radius_graph(out, radius, max_neighbors=max_neighbors)
+
+
+def _same(a, b):
+    out_a, *rest_a, graph_a = a
+    out_b, *rest_b, graph_b = b
+    assert out_a.dtype == out_b.dtype == np.float32
+    assert np.array_equal(out_a.view(np.uint32), out_b.view(np.uint32))
+    assert rest_a == rest_b
+    for u, v in zip(graph_a, graph_b, strict=True):
+        assert u.dtype == v.dtype and np.array_equal(u, v)
+
+
+@pytest.mark.parametrize("scene", ["dam_break2d", "sand3d"])
+def test_relax_then_graph_is_the_three_calls_in_turn_on_network_steps(scene):
+    """On the shipped model's own predictions (the simulator's inputs to the
+    relaxation, early and late in a rollout) and with a compressed clump and
+    particles past the walls added: the relaxed positions, the counts and the
+    graph are those of relax_density, numpy.clip and radius_graph in turn,
+    bit for bit, whether the lists were updated or searched again."""
+    from hybridmpm.sim import NeuralSimulator
+
+    sim = NeuralSimulator(scene, detect_failures=False, mpm_threads=1)
+    while sim.warming_up:
+        sim.advance()
+    bounds = (sim._lo, sim._hi)
+    rng = np.random.default_rng(0)
+    for step in range(12):
+        x = sim.propose().predicted
+        if step in (0, 11):
+            for variant in range(3):
+                y = x.copy()
+                if variant == 1:  # a clump: few particles move, the lists are updated
+                    y[:40] = y[40] + 0.05 * sim.model.radius * rng.standard_normal((40, y.shape[1]))
+                if variant == 2:  # some past the walls
+                    y[::17] += 0.5 * (sim._hi - sim._lo)
+                args = (y, sim._movable, sim.model.radius, sim.rest_density, 3)
+                _same(relax_then_graph(*args, bounds=bounds), _in_turn(*args, bounds))
+                _same(relax_then_graph(*args), _in_turn(*args, None))
+                _same(relax_then_graph(*args, bounds=bounds, max_neighbors=6), _in_turn(*args, bounds, 6))
+        sim.advance()
+
+
+def test_relax_then_graph_bad_input_names_the_field():
+    x = _lattice(4, 0.5)
+    mv = np.ones(len(x), bool)
+    cases = [
+        (dict(positions=x[:, :1]), "positions"),
+        (dict(movable=mv[1:]), "movable"),
+        (dict(radius=0.0), "radius"),
+        (dict(iterations=101), "iterations"),
+        (dict(bounds=(np.zeros(3), np.ones(3))), "bounds"),
+        (dict(bounds=(np.ones(2), np.zeros(2))), "bounds"),
+        (dict(bounds=(np.array([0.0, np.nan]), np.ones(2))), "bounds"),
+        (dict(bounds="walls"), "bounds"),
+        (dict(graph_radius=-1.0), "radius"),
+        (dict(max_neighbors=0), "max_neighbors"),
+        (dict(max_edges=-1), "max_edges"),
+        (dict(max_edges=3), "radius"),
+    ]
+    for change, field in cases:
+        args = dict(positions=x, movable=mv, radius=1.0, rest_density=2.0, iterations=3) | change
+        with pytest.raises(InvalidInputError) as e:
+            relax_then_graph(**args)
         assert e.value.field == field, (change, e.value)
 
 

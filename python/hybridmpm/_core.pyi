@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "grid_mass", "kernel_density", "radius_graph", "relax_density"]
+__all__ = ["__version__", "MpmSolver", "grid_mass", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
 
 __version__: str
 
@@ -59,7 +59,6 @@ def grid_mass(
     *,
     memory_budget: int | None = None,
 ) -> npt.NDArray[np.float32]: ...
-
 def radius_graph(
     positions: npt.NDArray[np.float32],
     radius: float = 0.015,
@@ -68,7 +67,6 @@ def radius_graph(
     max_neighbors: int | None = None,
     max_edges: int | None = None,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
-
 def kernel_density(positions: npt.NDArray[np.float32], radius: float) -> npt.NDArray[np.float32]: ...
 def relax_density(
     positions: npt.NDArray[np.float32],
@@ -78,3 +76,24 @@ def relax_density(
     iterations: int = 3,
     omega: float = 1.0,
 ) -> tuple[npt.NDArray[np.float32], int, float]: ...
+def relax_then_graph(
+    positions: npt.NDArray[np.float32],
+    movable: npt.NDArray[np.bool_],
+    radius: float,
+    rest_density: float,
+    iterations: int,
+    omega: float,
+    bounds: tuple[list[float], list[float]] | None,
+    graph_radius: float,
+    *,
+    self_edges: bool = True,
+    max_neighbors: int | None = None,
+    max_edges: int | None = None,
+) -> tuple[
+    npt.NDArray[np.float32],
+    int,
+    float,
+    int,
+    int,
+    tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32], npt.NDArray[np.float32]],
+]: ...

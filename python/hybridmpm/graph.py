@@ -22,6 +22,15 @@ def default_max_edges(dim: int) -> int:
     return memory_budget() // bytes_per_edge(dim)
 
 
+def _edge_budget(max_edges: int | None, pos: np.ndarray) -> int:
+    """``max_edges`` checked, or :func:`default_max_edges` for None."""
+    if max_edges is None:
+        return default_max_edges(pos.shape[1] if pos.ndim == 2 else 2)
+    if isinstance(max_edges, bool) or not isinstance(max_edges, (int, np.integer)) or max_edges < 0:
+        raise InvalidInputError(f"max_edges: must be an integer >= 0 or None, got {max_edges!r}", "max_edges")
+    return int(max_edges)
+
+
 def radius_graph(
     positions: np.ndarray,
     radius: float = CONNECTIVITY_RADIUS,
@@ -48,10 +57,7 @@ def radius_graph(
     9·10⁸ edges and 25 GiB, are refused on a machine with a budget below that).
     """
     pos = as_f32("positions", positions)
-    if max_edges is None:
-        max_edges = default_max_edges(pos.shape[1] if pos.ndim == 2 else 2)
-    elif isinstance(max_edges, bool) or not isinstance(max_edges, (int, np.integer)) or max_edges < 0:
-        raise InvalidInputError(f"max_edges: must be an integer >= 0 or None, got {max_edges!r}", "max_edges")
+    max_edges = _edge_budget(max_edges, pos)
     return _core.radius_graph(pos, float(radius), self_edges=self_edges, max_neighbors=max_neighbors, max_edges=int(max_edges))
 
 
@@ -65,6 +71,21 @@ def kernel_density(positions: np.ndarray, radius: float = CONNECTIVITY_RADIUS) -
     Raises :class:`~hybridmpm.errors.InvalidInputError` naming ``positions``
     or ``radius``."""
     return _core.kernel_density(as_f32("positions", positions), float(radius))
+
+
+def _relax_inputs(positions: np.ndarray, movable: np.ndarray, rest_density: float, iterations: int, omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """The checks of :func:`relax_density`'s arguments Rust does not make:
+    positions as float32, ``movable`` bool [N], numbers where numbers are due."""
+    pos = as_f32("positions", positions)
+    mv = np.asarray(movable)
+    if mv.dtype != np.bool_ or mv.shape != (pos.shape[0] if pos.ndim == 2 else -1,):
+        raise InvalidInputError(f"movable: must be a bool array of shape ({pos.shape[0] if pos.ndim else '?'},), got {mv.dtype} {list(mv.shape)}", "movable")
+    for name, v in (("rest_density", rest_density), ("omega", omega)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+            raise InvalidInputError(f"{name}: must be a number, got {v!r}", name)
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):
+        raise InvalidInputError(f"iterations: must be an integer in [0, 100], got {iterations!r}", "iterations")
+    return pos, np.ascontiguousarray(mv)
 
 
 def relax_density(
@@ -93,17 +114,63 @@ def relax_density(
     their largest ``ρ/ρ_0 − 1``. The result is the same for any number of
     threads. Raises :class:`~hybridmpm.errors.InvalidInputError` naming the field.
     """
-    pos = as_f32("positions", positions)
-    mv = np.asarray(movable)
-    if mv.dtype != np.bool_ or mv.shape != (pos.shape[0] if pos.ndim == 2 else -1,):
-        raise InvalidInputError(f"movable: must be a bool array of shape ({pos.shape[0] if pos.ndim else '?'},), got {mv.dtype} {list(mv.shape)}", "movable")
-    for name, v in (("rest_density", rest_density), ("omega", omega)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
-            raise InvalidInputError(f"{name}: must be a number, got {v!r}", name)
-    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)):
-        raise InvalidInputError(f"iterations: must be an integer in [0, 100], got {iterations!r}", "iterations")
-    out, compressed, worst = _core.relax_density(pos, np.ascontiguousarray(mv), float(radius), float(rest_density), int(iterations), float(omega))
+    pos, mv = _relax_inputs(positions, movable, rest_density, iterations, omega)
+    out, compressed, worst = _core.relax_density(pos, mv, float(radius), float(rest_density), int(iterations), float(omega))
     return out, int(compressed), float(worst)
 
 
-__all__ = ["bytes_per_edge", "default_max_edges", "kernel_density", "radius_graph", "relax_density"]
+def relax_then_graph(
+    positions: np.ndarray,
+    movable: np.ndarray,
+    radius: float,
+    rest_density: float,
+    iterations: int = 3,
+    omega: float = 1.0,
+    *,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    graph_radius: float | None = None,
+    max_neighbors: int | None = None,
+    max_edges: int | None = None,
+) -> tuple[np.ndarray, int, float, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`relax_density`, then every coordinate clipped to ``bounds``,
+    then :func:`radius_graph` of the result (self-edges included), in one
+    call (Rust): the neural simulator's work between two network steps.
+
+    The result is the three calls' in turn, bit for bit, but the graph is
+    built from the relaxation's neighbour lists: particles that the
+    relaxation and the clipping left in place keep their lists, those that
+    moved are searched again (``hybridmpm-neighbors``, ``relax_then_graph``;
+    from scratch when more than a quarter moved, with ``max_neighbors`` or
+    another radius). Arguments as :func:`relax_density`; ``bounds`` None or
+    ``(lo, hi)``, float [D] each (m), finite with ``lo <= hi``
+    (``x < lo`` becomes ``lo``, ``x > hi`` becomes ``hi``, as
+    :func:`numpy.clip`); ``graph_radius`` the graph's connectivity radius
+    (default ``radius``); ``max_neighbors``, ``max_edges`` as
+    :func:`radius_graph` (``max_edges`` default :func:`default_max_edges`).
+
+    Returns ``(positions float32 [N, D], compressed, max_compression,
+    clamped, graph)``: the first three as :func:`relax_density` gives them,
+    ``clamped`` the particles with a coordinate outside ``bounds`` after the
+    relaxation, ``graph`` as :func:`radius_graph` returns it for
+    ``positions``. Raises :class:`~hybridmpm.errors.InvalidInputError`
+    naming the field (``bounds`` for bounds of the wrong length, non-finite
+    or crossed).
+    """
+    pos, mv = _relax_inputs(positions, movable, rest_density, iterations, omega)
+    b = None
+    if bounds is not None:
+        try:
+            lo, hi = (np.asarray(v, np.float32).reshape(-1) for v in bounds)
+        except (TypeError, ValueError) as e:
+            raise InvalidInputError(f"bounds: must be (lo, hi), two float arrays of D entries, got {bounds!r}", "bounds") from e
+        b = (lo.tolist(), hi.tolist())
+    max_edges = _edge_budget(max_edges, pos)
+    gr = radius if graph_radius is None else graph_radius
+    out, compressed, worst, clamped, _, graph = _core.relax_then_graph(
+        pos, mv, float(radius), float(rest_density), int(iterations), float(omega), b, float(gr),
+        max_neighbors=max_neighbors, max_edges=int(max_edges),
+    )  # fmt: skip
+    return out, int(compressed), float(worst), int(clamped), graph
+
+
+__all__ = ["bytes_per_edge", "default_max_edges", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]

@@ -20,7 +20,10 @@ particles — apart with a unilateral Position Based Fluids constraint
 its GNS rollouts; the relaxed positions become the history, so the next
 velocity carries the correction. Free surfaces and splashes (less dense) and
 obstacles are left alone. :attr:`NeuralSimulator.last_relaxed` counts the
-particles corrected in the last step.
+particles corrected in the last step. The relaxation, the second clipping
+and the next step's radius graph are one call
+(:func:`hybridmpm.graph.relax_then_graph`: the same result as the three in
+turn, the graph rebuilt only around the particles that moved).
 
 Failure checks (``detect_failures``, on by default): a step that predicts a
 non-finite position ("nan"), moves a particle more than ``escape_cells``
@@ -45,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.graph import kernel_density, radius_graph, relax_density
+from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
 from hybridmpm.neural.runtime import Graph, NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
@@ -333,9 +336,16 @@ class NeuralSimulator:
         if failure is None:
             clipped = self._clip(nxt)
             if self.relax:
-                clipped, self.last_relaxed, _ = relax_density(clipped, self._movable, self.model.radius, self.rest_density, self.relax)
-                clipped = self._clip(clipped)
-            built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
+                # relaxed, clipped again, and the next step's graph (one Rust call:
+                # the graph reuses the relaxation's neighbour lists where few moved)
+                bounds = (self._lo, self._hi) if self.clamp else None
+                clipped, self.last_relaxed, _, clamped, built = relax_then_graph(
+                    clipped, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
+                )
+                if self.clamp:
+                    self.last_clamped = clamped
+            else:
+                built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
             if self.detect_failures and len(built[0]) > self.degree_factor * self._degree0 * len(clipped):
                 failure = "compressed"
             else:

@@ -46,15 +46,18 @@
 //! # Algorithm
 //!
 //! A uniform cell grid with cell size `>= r` spans the bounding box of the
-//! data (particles may be anywhere); if that grid would have more than about
-//! `4 N` cells (an outlier far away), the cell size is grown. Particles are
-//! counting-sorted into the cells (CSR). Receivers are processed cell by
-//! cell: the candidates of a cell (the particles of its `3^D` neighbourhood;
-//! the cells of a row along axis 0 are contiguous) are gathered, sorted by
-//! index once (bitmap or comparison sort) and laid out as SoA, then each
-//! receiver of the cell tests them in vectorisable blocks and compacts the
-//! accepted ones, which come out in ascending sender order. Phase 1
-//! ([`Neighbors::search`]) finds these lists; phase 2
+//! data (particles may be anywhere), with one empty layer of cells around
+//! it; if that grid would have more than about `16 N` cells (a cloud spread
+//! thin, or an outlier far away), the cell size is grown. Particles are
+//! counting-sorted into the cells (CSR), their coordinates copied in cell
+//! order (SoA). Receivers are processed cell by cell; the candidates of a
+//! cell are the particles of its `3^D` neighbourhood, one contiguous range
+//! per row of cells along axis 0. In a cell of few receivers, each tests
+//! its rows directly (vectorisable blocks, branch-free compaction) and sorts
+//! the accepted senders; in a cell of more, the candidates are gathered and
+//! sorted by index once (bitmap or comparison sort), and each receiver
+//! tests that list, its accepted senders coming out in ascending order.
+//! Phase 1 ([`Neighbors::search`]) finds these lists; phase 2
 //! ([`Neighbors::write`]) writes the per-edge arrays in receiver order, in
 //! parallel, straight into caller-provided or freshly allocated memory.
 //!
@@ -77,7 +80,10 @@
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 mod relax;
-pub use relax::{MAX_MOVE, RelaxParams, RelaxStats, kernel_density, relax_density};
+pub use relax::{
+    MAX_MOVE, RelaxParams, RelaxStats, RelaxedGraph, kernel_density, relax_density,
+    relax_then_graph,
+};
 
 use rayon::prelude::*;
 use thiserror::Error;
@@ -264,11 +270,51 @@ pub fn uses_rayon(particles: usize) -> bool {
     particles >= SERIAL_PARTICLES
 }
 
-/// Most cells per particle before the cell size is grown (outlier guard).
-const CELLS_PER_PARTICLE: f64 = 4.0;
+/// Most cells per particle before the cell size is grown (outlier guard),
+/// beyond [`MIN_CELLS`]. At 4 (until 2026-11-24), sand run out over a 3D
+/// floor (1 900 particles, a bounding box of 86 000 cells of size `R`) got
+/// cells 2.3 `R` wide and 6 times the candidates per receiver; at 16 they
+/// are 1.4 `R` (2.2 times). More cells cost more than they save: the grid's
+/// counting sort and first touch are per cell (64 per particle: 226 µs
+/// against 154 for that cloud's graph).
+const CELLS_PER_PARTICLE: f64 = 16.0;
+
+/// Cells a grid may always have, whatever the number of particles.
+const MIN_CELLS: f64 = 4096.0;
 
 /// Candidates tested per block of the vectorised distance test.
 const BLOCK: usize = 64;
+
+/// Candidates of a row tested at a time ([`CellList::accept`]).
+const LANES: usize = 8;
+
+/// Receivers in a cell from which their candidates are gathered and sorted
+/// once for all ([`Union`]); below, each receiver tests its rows directly
+/// ([`CellList::accept`]). Sorting a union costs about 40 instructions per
+/// candidate, so it pays only when shared: radius graphs of network states
+/// (one thread, µs; thresholds 0 / 4 / never) sand3d run out, 1.4 particles
+/// per occupied cell: 307 / 171 / 159; sand3d and water3d at rest: 322 /
+/// 289 / 390 and 314 / 292 / 367; dam break 2D: 222 / 218 / 327.
+const UNION_RECEIVERS: usize = 4;
+
+/// Sorts a short list of distinct indices ascending (insertion sort: the
+/// lists are a receiver's accepted senders, a few dozen, nearly sorted);
+/// longer ones by `sort_unstable`.
+fn insertion_sort(v: &mut [u32]) {
+    if v.len() > 64 {
+        v.sort_unstable();
+        return;
+    }
+    for i in 1..v.len() {
+        let x = v[i];
+        let mut k = i;
+        while k > 0 && v[k - 1] > x {
+            v[k] = v[k - 1];
+            k -= 1;
+        }
+        v[k] = x;
+    }
+}
 
 #[inline(always)]
 fn sub<const D: usize>(a: &[f32; D], b: &[f32; D]) -> [f32; D] {
@@ -289,17 +335,39 @@ fn dot<const D: usize>(d: &[f32; D]) -> f32 {
     s
 }
 
+/// Largest exact separation that can pass `dd <= rr` in f32: `d` and `dd`
+/// carry a relative rounding error of a few 2^-24 (margin 1e-4), and
+/// underflow of `d[k]*d[k]` lets separations below ~5e-23 pass (1e-22).
+fn reach(rr: f32) -> f64 {
+    if rr.is_finite() {
+        (rr as f64).sqrt() * (1.0 + 1e-4) + 1e-22
+    } else {
+        f64::INFINITY
+    }
+}
+
 /// Uniform grid over the bounding box of the data (cell size `h >= reach`),
 /// particles counting-sorted into cells (CSR layout). Cells are numbered with
-/// axis 0 fastest, so the cells of one row along axis 0 are contiguous.
+/// axis 0 fastest, so the cells of one row along axis 0 are contiguous. The
+/// grid has one empty layer of cells on every side, so the `3^D`
+/// neighbourhood of an occupied cell is always inside it: its rows are fixed
+/// offsets of the cell's id ([`CellList::rows`]), found without bounds tests.
 struct CellList<const D: usize> {
     lo: [f64; D],
     inv_h: f64,
+    /// Cells along each axis, the two padding layers included.
     dims: [usize; D],
     /// `start[c]..start[c + 1]` is the slice of `sorted_idx` in cell `c`.
     start: Vec<u32>,
     /// Original particle indices in cell order (ascending within a cell).
     sorted_idx: Vec<u32>,
+    /// Coordinates in cell order (`xs[k][slot]` of particle
+    /// `sorted_idx[slot]`), followed by [`LANES`] padding entries so that a
+    /// row is read [`LANES`] at a time.
+    xs: [Vec<f32>; D],
+    /// Id offsets of the `3^(D-1)` rows of the neighbourhood, relative to
+    /// the cell's id: row `r` covers cells `id + rows[r] - 1 ..= id + rows[r] + 1`.
+    rows: Vec<isize>,
 }
 
 impl<const D: usize> CellList<D> {
@@ -318,12 +386,12 @@ impl<const D: usize> CellList<D> {
         // Cell size h >= reach, grown while the grid would have too many
         // cells (an outlier far away from the bulk of the particles). Cell
         // ids are u32.
-        let cap = (CELLS_PER_PARTICLE * n as f64 + 16.0).min(u32::MAX as f64 - 1.0);
+        let cap = (CELLS_PER_PARTICLE * n as f64 + MIN_CELLS).min(u32::MAX as f64 / 2.0);
         let count = |h: f64| -> ([f64; D], f64) {
             let mut dims = [1.0f64; D];
             let mut total = 1.0f64;
             for k in 0..D {
-                dims[k] = ((hi[k] - lo[k]) / h).floor() + 1.0;
+                dims[k] = ((hi[k] - lo[k]) / h).floor() + 3.0;
                 total *= dims[k];
             }
             (dims, total)
@@ -335,15 +403,28 @@ impl<const D: usize> CellList<D> {
             h *= grow;
             (dims_f, total) = count(h);
         }
+        let dims = dims_f.map(|d| d as usize);
+        let mut rows = Vec::with_capacity(3usize.pow(D as u32 - 1));
+        for r in 0..3usize.pow(D as u32 - 1) {
+            let (mut code, mut off, mut stride) = (r, 0isize, 1isize);
+            for &d in &dims[..D - 1] {
+                stride *= d as isize;
+                off += (code % 3) as isize * stride - stride;
+                code /= 3;
+            }
+            rows.push(off);
+        }
         let mut cl = CellList {
             lo,
             // Cell coordinates u = (p - lo) / h carry a relative f64 error of
             // ~1e-16, far inside the 1e-4 margin of `reach`: two particles
             // that pass the f32 test lie in the same or adjacent cells.
             inv_h: if h.is_finite() { 1.0 / h } else { 0.0 },
-            dims: dims_f.map(|d| d as usize),
+            dims,
             start: Vec::new(),
             sorted_idx: Vec::new(),
+            xs: std::array::from_fn(|_| Vec::new()),
+            rows,
         };
         let ncells = total as usize;
 
@@ -355,6 +436,9 @@ impl<const D: usize> CellList<D> {
         } else {
             pos.par_iter().with_min_len(1 << 14).map(cell_id).collect()
         };
+        // start[c + 1] = particles in cells <= c, then every particle, taken
+        // from the last, is put at its cell's end, which moves down: at the
+        // end start[c] is where cell c begins and indices ascend within it.
         let mut start = vec![0u32; ncells + 1];
         for &c in &cell_of {
             start[c as usize + 1] += 1;
@@ -362,16 +446,60 @@ impl<const D: usize> CellList<D> {
         for c in 0..ncells {
             start[c + 1] += start[c];
         }
-        let mut fill = start.clone();
         let mut sorted_idx = vec![0u32; n];
-        for (i, &c) in cell_of.iter().enumerate() {
-            let s = fill[c as usize] as usize;
-            fill[c as usize] += 1;
-            sorted_idx[s] = i as u32;
+        for (i, &c) in cell_of.iter().enumerate().rev() {
+            let end = &mut start[c as usize + 1];
+            *end -= 1;
+            sorted_idx[*end as usize] = i as u32;
+        }
+        // start[c + 1] now holds the beginning of cell c: shift back by one.
+        start.remove(0);
+        start.push(n as u32);
+        for (k, col) in cl.xs.iter_mut().enumerate() {
+            col.reserve_exact(n + LANES);
+            col.extend(sorted_idx.iter().map(|&i| pos[i as usize][k]));
+            col.resize(n + LANES, 0.0);
         }
         cl.start = start;
         cl.sorted_idx = sorted_idx;
         cl
+    }
+
+    /// Writes to `out` the particles `j` of the row ranges (of `sorted_idx`)
+    /// with `d·d <= rr` (`d = p_j - p`, the crate's edge criterion), sorted
+    /// ascending, and returns how many. `out` must hold the ranges' total.
+    ///
+    /// The squared distances are computed [`LANES`] candidates at a time
+    /// (vectorisable), then compacted branch-free; the accepted list is
+    /// sorted by insertion (a receiver has a few dozen neighbours at most,
+    /// found in nearly ascending order along the rows).
+    #[inline(always)]
+    fn accept(&self, p: &[f32; D], ranges: &[(usize, usize)], rr: f32, out: &mut [u32]) -> usize {
+        let mut len = 0;
+        for &(a, b) in ranges {
+            let mut t = a;
+            while t < b {
+                let mut dd = [0.0f32; LANES];
+                let cols: [&[f32]; D] = std::array::from_fn(|k| &self.xs[k][t..t + LANES]);
+                for (l, x) in dd.iter_mut().enumerate() {
+                    let d = cols[0][l] - p[0];
+                    let mut acc = d * d;
+                    for k in 1..D {
+                        let d = cols[k][l] - p[k];
+                        acc += d * d;
+                    }
+                    *x = acc;
+                }
+                let m = (b - t).min(LANES);
+                for (&j, &x) in self.sorted_idx[t..t + m].iter().zip(&dd) {
+                    out[len] = j;
+                    len += (x <= rr) as usize;
+                }
+                t += LANES;
+            }
+        }
+        insertion_sort(&mut out[..len]);
+        len
     }
 
     /// Upper bound on the number of edges: every receiver's candidates (the
@@ -380,12 +508,12 @@ impl<const D: usize> CellList<D> {
     fn edge_bound(&self, cap: Option<usize>, self_edges: bool) -> u64 {
         let mut ranges = Vec::new();
         let mut total = 0u64;
-        for cell in 0..self.start.len() - 1 {
-            let count = (self.start[cell + 1] - self.start[cell]) as u64;
-            if count == 0 {
-                continue;
-            }
-            self.neighbourhood(&self.unlinear(cell), &mut ranges);
+        let mut slot = 0;
+        while slot < self.sorted_idx.len() {
+            let cell = self.cell_at(slot);
+            let end = self.start[cell + 1] as usize;
+            let count = (end - slot) as u64;
+            self.neighbourhood(cell, &mut ranges);
             let mut cand: u64 = ranges.iter().map(|&(a, b)| (b - a) as u64).sum();
             if !self_edges {
                 cand -= 1;
@@ -394,11 +522,13 @@ impl<const D: usize> CellList<D> {
                 cand = cand.min(k as u64);
             }
             total = total.saturating_add(count.saturating_mul(cand));
+            slot = end;
         }
         total
     }
 
-    /// Cell coordinates of `p`: the one function that maps positions to cells.
+    /// Cell coordinates of `p`, the padding included: the one function that
+    /// maps positions to cells.
     #[inline(always)]
     fn coords(&self, p: &[f32; D]) -> [usize; D] {
         let mut c = [0usize; D];
@@ -406,7 +536,7 @@ impl<const D: usize> CellList<D> {
             // u >= 0 (p >= lo, rounding is monotonic), so truncation is
             // floor; `as` saturates and the clamp guards the top edge.
             let u = (p[k] as f64 - self.lo[k]) * self.inv_h;
-            c[k] = (u as usize).min(self.dims[k] - 1);
+            c[k] = (u as usize).min(self.dims[k] - 3) + 1;
         }
         c
     }
@@ -420,35 +550,23 @@ impl<const D: usize> CellList<D> {
         id
     }
 
-    fn unlinear(&self, mut id: usize) -> [usize; D] {
-        let mut c = [0usize; D];
-        for (ck, &dk) in c.iter_mut().zip(&self.dims) {
-            *ck = id % dk;
-            id /= dk;
-        }
-        c
+    /// The cell of the particle at `slot` of `sorted_idx`.
+    #[inline(always)]
+    fn cell_at(&self, slot: usize) -> usize {
+        // the last cell beginning at or before `slot` that is not empty
+        self.start.partition_point(|&s| (s as usize) <= slot) - 1
     }
 
-    /// Index ranges of `sorted_idx` covering the 3^D cells around cell `c`,
-    /// one contiguous range per row of cells along axis 0.
-    fn neighbourhood(&self, c: &[usize; D], out: &mut Vec<(usize, usize)>) {
+    /// Index ranges of `sorted_idx` covering the 3^D cells around `cell`
+    /// (an occupied cell, so not in the padding), one contiguous range per
+    /// row of cells along axis 0.
+    #[inline(always)]
+    fn neighbourhood(&self, cell: usize, out: &mut Vec<(usize, usize)>) {
         out.clear();
-        let nrows = 3usize.pow(D as u32 - 1);
-        'rows: for r in 0..nrows {
-            let mut rc = *c;
-            let mut code = r;
-            for k in 1..D {
-                let v = c[k] + code % 3; // neighbour coordinate + 1
-                code /= 3;
-                if v == 0 || v > self.dims[k] {
-                    continue 'rows;
-                }
-                rc[k] = v - 1;
-            }
-            rc[0] = c[0].saturating_sub(1);
-            let a = self.start[self.linear(&rc)] as usize;
-            rc[0] = (c[0] + 1).min(self.dims[0] - 1);
-            let b = self.start[self.linear(&rc) + 1] as usize;
+        for &off in &self.rows {
+            let first = (cell as isize + off - 1) as usize;
+            let a = self.start[first] as usize;
+            let b = self.start[first + 3] as usize;
             if a < b {
                 out.push((a, b));
             }
@@ -468,14 +586,18 @@ impl<const D: usize> Union<D> {
         &mut self,
         cells: &CellList<D>,
         positions: &[[f32; D]],
-        c: &[usize; D],
+        cell: usize,
         ranges: &mut Vec<(usize, usize)>,
         bits: &mut BitSorter,
     ) {
-        cells.neighbourhood(c, ranges);
+        cells.neighbourhood(cell, ranges);
         self.idx.clear();
         for &(a, b) in ranges.iter() {
-            self.idx.extend_from_slice(&cells.sorted_idx[a..b]);
+            // (a loop, not `extend_from_slice`: the rows are a few entries
+            // long, shorter than a `memcpy` call costs)
+            for &j in &cells.sorted_idx[a..b] {
+                self.idx.push(j);
+            }
         }
         sort_distinct(&mut self.idx, bits);
         for (k, col) in self.pos.iter_mut().enumerate() {
@@ -804,16 +926,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         }
 
         let rr = params.radius * params.radius;
-        // Largest exact separation that can pass `dd <= rr` in f32: `d` and
-        // `dd` carry a relative rounding error of a few 2^-24 (margin 1e-4),
-        // and underflow of `d[k]*d[k]` lets separations below ~5e-23 pass
-        // (1e-22).
-        let reach = if rr.is_finite() {
-            (rr as f64).sqrt() * (1.0 + 1e-4) + 1e-22
-        } else {
-            f64::INFINITY
-        };
-        let cells = CellList::build(positions, reach);
+        let cells = CellList::build(positions, reach(rr));
         let cap = params.max_neighbors;
         let self_edges = params.self_edges;
         // Edge budget: count as we go only if the cell-list bound exceeds it
@@ -844,20 +957,35 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 bits,
                 dd,
             } = scratch;
-            // First cell with a slot >= lo.
-            let mut cell = cells.start.partition_point(|&s| (s as usize) <= lo) - 1;
             let mut slot = lo;
             'cells: while slot < hi {
+                // the cell of the next receiver (empty cells are never visited)
+                let cell = cells.cell_at(slot);
                 let cell_end = (cells.start[cell + 1] as usize).min(hi);
-                if slot < cell_end {
-                    union.build(&cells, positions, &cells.unlinear(cell), ranges, bits);
+                // A cell of few receivers tests each one's rows directly and
+                // sorts what it accepts; one of more builds their common
+                // candidate list once, sorted, so accepted senders come out
+                // in order (UNION_RECEIVERS).
+                let direct = cell_end - slot < UNION_RECEIVERS;
+                if direct {
+                    cells.neighbourhood(cell, ranges);
+                    let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
+                    if buf.len() < total {
+                        buf.resize(total, 0);
+                    }
+                } else {
+                    union.build(&cells, positions, cell, ranges, bits);
                     if buf.len() < union.idx.len() {
                         buf.resize(union.idx.len(), 0);
                     }
                 }
                 for &iu in &cells.sorted_idx[slot..cell_end] {
                     let pi = &positions[iu as usize];
-                    let mut len = union.gather(pi, rr, buf, dd);
+                    let mut len = if direct {
+                        cells.accept(pi, ranges, rr, buf)
+                    } else {
+                        union.gather(pi, rr, buf, dd)
+                    };
                     if !self_edges {
                         // The receiver always finds itself (d = 0).
                         if let Ok(pos) = buf[..len].binary_search(&iu) {
@@ -913,7 +1041,6 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                     }
                 }
                 slot = cell_end;
-                cell += 1;
             }
             (found, lens)
         };
@@ -971,6 +1098,21 @@ impl<'a, const D: usize> Neighbors<'a, D> {
     /// Number of edges removed by `max_neighbors`.
     pub fn dropped(&self) -> usize {
         self.dropped
+    }
+
+    /// The sender lists as CSR: `senders[offsets[i]..offsets[i + 1]]` are
+    /// receiver `i`'s senders, ascending (the edges of [`Neighbors::write`]
+    /// in the same order, without their geometry).
+    pub fn csr(&self) -> (Vec<usize>, Vec<u32>) {
+        let mut offsets = Vec::with_capacity(self.loc.len() + 1);
+        let mut senders = Vec::with_capacity(self.num_edges);
+        offsets.push(0);
+        for l in &self.loc {
+            let list = &self.found[l.chunk as usize].senders[l.start..l.start + l.len as usize];
+            senders.extend_from_slice(list);
+            offsets.push(senders.len());
+        }
+        (offsets, senders)
     }
 
     /// Writes the edges (as in [`Graph`]) into caller-provided slices, in
@@ -1059,6 +1201,66 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         debug_assert!(written.is_ok());
         g
     }
+}
+
+/// Writes the edges of neighbour lists in CSR form (receiver `i`'s senders
+/// `senders[offsets[i]..offsets[i + 1]]`, as [`Neighbors::csr`] gives them)
+/// as [`Neighbors::write`] does: senders, receivers, `p[sender] -
+/// p[receiver]` and its length, in receiver order.
+///
+/// # Errors
+/// [`GraphError::InvalidInput`] (field `"output"`) if a slice's length is
+/// not the number of edges or `offsets` does not fit `positions`.
+pub fn write_edges<const D: usize, I: EdgeIndex>(
+    positions: &[[f32; D]],
+    offsets: &[usize],
+    senders: &[u32],
+    out_senders: &mut [I],
+    out_receivers: &mut [I],
+    displacement: &mut [[f32; D]],
+    distance: &mut [f32],
+) -> Result<(), GraphError> {
+    let e = senders.len();
+    let lens = [
+        out_senders.len(),
+        out_receivers.len(),
+        displacement.len(),
+        distance.len(),
+    ];
+    if lens.iter().any(|&l| l != e) {
+        return Err(GraphError::invalid(
+            "output",
+            format!("slices must have length {e} (the number of edges), got {lens:?}"),
+        ));
+    }
+    let n = positions.len();
+    if offsets.len() != n + 1
+        || offsets.first() != Some(&0)
+        || offsets.last() != Some(&e)
+        || offsets.windows(2).any(|w| w[0] > w[1])
+        || senders.iter().any(|&j| j as usize >= n)
+    {
+        return Err(GraphError::invalid(
+            "output",
+            format!("offsets must ascend from 0 to {e} over {n} particles and senders be < {n}"),
+        ));
+    }
+    for i in 0..positions.len() {
+        let (a, b) = (offsets[i], offsets[i + 1]);
+        let pi = &positions[i];
+        for e in a..b {
+            let j = senders[e];
+            out_senders[e] = I::from_u32(j);
+            out_receivers[e] = I::from_u32(i as u32);
+            let d = sub(&positions[j as usize], pi);
+            displacement[e] = d;
+            distance[e] = dot(&d);
+        }
+    }
+    for x in distance.iter_mut() {
+        *x = x.sqrt();
+    }
+    Ok(())
 }
 
 /// Radius graph of `positions` (GNS neighbour search), indices as `u32`.

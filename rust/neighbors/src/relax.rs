@@ -62,7 +62,7 @@
 
 use rayon::prelude::*;
 
-use crate::{GraphError, GraphParams, radius_graph};
+use crate::{GraphError, GraphParams, Neighbors, radius_graph};
 
 /// Particles per rayon task, where the crate uses rayon at all ([`crate::uses_rayon`]).
 const CHUNK: usize = 4096;
@@ -205,36 +205,83 @@ fn gradient<const D: usize>(
     (w, g)
 }
 
-/// [`gradient`] from the pair's separation `d = x_i - x_j` and its length
-/// `r = sqrt(d · d)` (summed left to right, as [`gradient`] and the radius
-/// graph compute them): the same bits as [`gradient`] on the positions.
-#[inline]
-fn gradient_from<const D: usize>(
-    d: &[f32; D],
-    r: f32,
-    i: usize,
-    j: usize,
-    radius: f32,
-) -> (f32, [f32; D]) {
+/// The kernel terms of one pair from its squared separation `dd` (summed
+/// left to right, as [`gradient`] and the radius graph sum it): its length
+/// `r = sqrt(dd)`, `W(q)` (0 for `q >= 1`) and the gradient's scale
+/// `-2 (1 - q) / (R r)` (meaningless where `W = 0` or `r = 0`). Each value
+/// is the one [`gradient`] computes (same operations, same order), so the
+/// per-pair cache changes no bit. Written branch-free so that a pass over
+/// many pairs vectorises (IEEE `sqrt` and division are correctly rounded
+/// in any lane width).
+#[inline(always)]
+fn pair_terms(dd: f32, radius: f32) -> (f32, f32, f32) {
+    let r = dd.sqrt();
     let q = r / radius;
-    if q >= 1.0 {
-        return (0.0, [0.0; D]);
-    }
-    let w = kernel(q);
-    let mut g = [0.0f32; D];
-    if r == 0.0 {
-        g[0] = if i < j { 2.0 / radius } else { -2.0 / radius };
-        return (w, g);
-    }
-    let s = -2.0 * (1.0 - q) / (radius * r);
-    for k in 0..D {
-        g[k] = s * d[k];
-    }
-    (w, g)
+    let t = 1.0 - q;
+    let w = if q < 1.0 { t * t } else { 0.0 };
+    (r, w, -2.0 * t / (radius * r))
 }
 
-/// `x_i - x_j` and its length, summed left to right (no fused multiply-add).
-#[inline]
+/// One chunk of [`Pairs::terms`]: `dd` in; `len`, `w`, `scale` out.
+type TermsChunk<'a> = (&'a [f32], &'a mut [f32], &'a mut [f32], &'a mut [f32]);
+
+/// Per-pair cache of [`relax_density`], by edge of the receiver-grouped
+/// lists: the separation `x_i - x_j`, its squared length, and
+/// [`pair_terms`] of it.
+struct Pairs<const D: usize> {
+    sep: Vec<[f32; D]>,
+    dd: Vec<f32>,
+    len: Vec<f32>,
+    w: Vec<f32>,
+    scale: Vec<f32>,
+}
+
+impl<const D: usize> Pairs<D> {
+    /// [`pair_terms`] of every edge from `dd`, in one vectorisable pass
+    /// (chunks in parallel where the crate uses rayon).
+    fn terms(&mut self, radius: f32, parallel: bool) {
+        let c = CHUNK * 16;
+        let parts = self
+            .dd
+            .chunks(c)
+            .zip(self.len.chunks_mut(c))
+            .zip(self.w.chunks_mut(c))
+            .zip(self.scale.chunks_mut(c))
+            .map(|(((dd, len), w), scale)| (dd, len, w, scale));
+        let run = |(dd, len, w, scale): TermsChunk<'_>| {
+            for (((&dd, len), w), scale) in dd.iter().zip(len).zip(w).zip(scale) {
+                (*len, *w, *scale) = pair_terms(dd, radius);
+            }
+        };
+        if parallel {
+            parts.par_bridge().for_each(run);
+        } else {
+            parts.for_each(run);
+        }
+    }
+
+    /// `dW/dx_i` of edge `e` (receiver `i`, sender `j`), as [`gradient`]
+    /// gives it; `None` where the pair is `R` or more apart (zero gradient).
+    #[inline(always)]
+    fn gradient(&self, e: usize, i: usize, j: usize, radius: f32) -> Option<[f32; D]> {
+        if self.w[e] == 0.0 {
+            // q >= 1 (for q < 1, W = (1 - q)^2 >= 2^-48 > 0)
+            return None;
+        }
+        let mut g = [0.0f32; D];
+        if self.len[e] == 0.0 {
+            g[0] = if i < j { 2.0 / radius } else { -2.0 / radius };
+        } else {
+            for (g, &d) in g.iter_mut().zip(&self.sep[e]) {
+                *g = self.scale[e] * d;
+            }
+        }
+        Some(g)
+    }
+}
+
+/// `x_i - x_j` and its squared length, summed left to right (no fused multiply-add).
+#[inline(always)]
 fn separation<const D: usize>(xi: &[f32; D], xj: &[f32; D]) -> ([f32; D], f32) {
     let mut d = [0.0f32; D];
     let mut dd = 0.0f32;
@@ -242,7 +289,7 @@ fn separation<const D: usize>(xi: &[f32; D], xj: &[f32; D]) -> ([f32; D], f32) {
         d[k] = xi[k] - xj[k];
         dd += d[k] * d[k];
     }
-    (d, dd.sqrt())
+    (d, dd)
 }
 
 /// Moves the movable particles of `positions` in place so that none stays
@@ -273,35 +320,70 @@ pub fn relax_density<const D: usize>(
         self_edges: false,
         ..GraphParams::default()
     };
-    let g = radius_graph(positions, &gp)?;
+    let (offsets, senders) = Neighbors::search(positions, &gp)?.csr();
+    Ok(relax_on(positions, movable, params, &offsets, &senders))
+}
+
+/// The iterations of [`relax_density`] on the neighbour lists of
+/// `positions` within `params.radius`, self-edges left out (CSR, as
+/// [`Neighbors::csr`] gives them). Inputs already checked.
+fn relax_on<const D: usize>(
+    positions: &mut [[f32; D]],
+    movable: &[bool],
+    params: &RelaxParams,
+    offsets: &[usize],
+    senders: &[u32],
+) -> RelaxStats {
+    let n = positions.len();
     let mut stats = RelaxStats::default();
     if params.iterations == 0 || n == 0 {
-        return Ok(stats);
+        return stats;
     }
-    // CSR offsets of the receiver-grouped edges
-    let mut offsets = vec![0usize; n + 1];
-    for &r in &g.receivers {
-        offsets[r as usize + 1] += 1;
-    }
-    for i in 0..n {
-        offsets[i + 1] += offsets[i];
-    }
-    let (senders, receivers) = (&g.senders, &g.receivers);
-    // Each edge's separation x_i - x_j (receiver minus sender) and its length,
-    // kept between iterations and recomputed only for the pairs of particles
-    // that moved: the radius graph's displacement is x_j - x_i and its
-    // distance the same sqrt of the same sum, so the negation and the copy
-    // give the same bits as computing them from the positions.
-    let mut sep: Vec<[f32; D]> = g.displacement.iter().map(|v| v.map(|c| -c)).collect();
-    let mut len: Vec<f32> = g.distance.clone();
-    let mut moved = vec![false; n];
     let (radius, rho0, omega) = (params.radius, params.rest_density, params.omega);
-    let eps = 1e-6 / (radius * radius);
-    let inv_rho0_sq = 1.0 / (rho0 * rho0);
     // below SERIAL_PARTICLES everything runs on the calling thread, without rayon (`uses_rayon`)
     let parallel = crate::uses_rayon(n);
+    let ne = senders.len();
+    let mut receivers = vec![0u32; ne];
+    for i in 0..n {
+        receivers[offsets[i]..offsets[i + 1]].fill(i as u32);
+    }
+    // Each edge's separation x_i - x_j (receiver minus sender), its squared
+    // length and kernel terms, kept between iterations: recomputed only for
+    // the pairs of particles that moved (the others would give the same bits).
+    let mut pairs = Pairs::<D> {
+        sep: vec![[0.0; D]; ne],
+        dd: vec![0.0; ne],
+        len: vec![0.0; ne],
+        w: vec![0.0; ne],
+        scale: vec![0.0; ne],
+    };
+    {
+        let x: &[[f32; D]] = positions;
+        let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
+            (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
+        };
+        if parallel {
+            pairs
+                .sep
+                .par_iter_mut()
+                .zip(pairs.dd.par_iter_mut())
+                .enumerate()
+                .with_min_len(CHUNK * 16)
+                .for_each(fill);
+        } else {
+            pairs
+                .sep
+                .iter_mut()
+                .zip(pairs.dd.iter_mut())
+                .enumerate()
+                .for_each(fill);
+        }
+    }
+    pairs.terms(radius, parallel);
+    let mut moved = vec![false; n];
+    let eps = 1e-6 / (radius * radius);
+    let inv_rho0_sq = 1.0 / (rho0 * rho0);
     let min_len = CHUNK;
-    let edge_min_len = CHUNK * 16;
     let mut lambda = vec![0.0f32; n];
     let mut compression = vec![0.0f32; n];
     let mut next = positions.to_vec();
@@ -326,26 +408,61 @@ pub fn relax_density<const D: usize>(
             let list: Vec<usize> = (0..n).filter(|&i| moved[i]).collect();
             spread(&list, &mut dirty);
             let (mv, dt): (&[bool], &[bool]) = (&moved, &dirty);
-            let update = |(e, (s, l)): (usize, (&mut [f32; D], &mut f32))| {
+            // the pairs of a moved particle with a dirty receiver (both ends
+            // of such a pair are dirty: the lists are symmetric)
+            let changed = |e: usize| {
                 let (i, j) = (receivers[e] as usize, senders[e] as usize);
-                if dt[i] && (mv[i] || mv[j]) {
-                    (*s, *l) = separation(&x[i], &x[j]);
-                }
+                dt[i] && (mv[i] || mv[j])
             };
-            if parallel {
-                sep.par_iter_mut()
-                    .zip(len.par_iter_mut())
-                    .enumerate()
-                    .with_min_len(edge_min_len)
-                    .for_each(update);
+            let count: usize = list
+                .iter()
+                .map(|&i| offsets[i + 1] - offsets[i])
+                .sum::<usize>()
+                * 2;
+            if count * 4 >= ne {
+                // many pairs changed: recompute all (the unchanged ones give
+                // the same bits), the kernel terms in one vectorised pass
+                let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
+                    if changed(e) {
+                        (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
+                    }
+                };
+                if parallel {
+                    pairs
+                        .sep
+                        .par_iter_mut()
+                        .zip(pairs.dd.par_iter_mut())
+                        .enumerate()
+                        .with_min_len(CHUNK * 16)
+                        .for_each(fill);
+                } else {
+                    pairs
+                        .sep
+                        .iter_mut()
+                        .zip(pairs.dd.iter_mut())
+                        .enumerate()
+                        .for_each(fill);
+                }
+                pairs.terms(radius, parallel);
             } else {
-                sep.iter_mut()
-                    .zip(len.iter_mut())
-                    .enumerate()
-                    .for_each(update);
+                // few: pair by pair
+                for &i in &list {
+                    for e in offsets[i]..offsets[i + 1] {
+                        let j = senders[e] as usize;
+                        // e = (i, j), and its mirror (j, i) in j's list
+                        for (e, a, b) in [(e, i, j), (mirror(offsets, senders, j, i), j, i)] {
+                            if dt[a] {
+                                let (s, dd) = separation(&x[a], &x[b]);
+                                pairs.sep[e] = s;
+                                pairs.dd[e] = dd;
+                                (pairs.len[e], pairs.w[e], pairs.scale[e]) = pair_terms(dd, radius);
+                            }
+                        }
+                    }
+                }
             }
         }
-        let (sep, len): (&[[f32; D]], &[f32]) = (&sep, &len);
+        let pairs_ref = &pairs;
         let dt: &[bool] = &dirty;
         let density = |(i, (lam, comp)): (usize, (&mut f32, &mut f32))| {
             if !dt[i] {
@@ -361,20 +478,18 @@ pub fn relax_density<const D: usize>(
             // (each sum in the same order as before: the same bits)
             let mut rho = 1.0f32;
             for e in edges.clone() {
-                let q = len[e] / radius;
-                if q < 1.0 {
-                    rho += kernel(q);
-                }
+                rho += pairs_ref.w[e];
             }
             let c = rho / rho0 - 1.0;
             if c > 0.0 {
                 let mut sum = [0.0f32; D];
                 let mut sq = 0.0f32;
                 for e in edges {
-                    let (_, gw) = gradient_from(&sep[e], len[e], i, senders[e] as usize, radius);
-                    for k in 0..D {
-                        sum[k] += gw[k];
-                        sq += gw[k] * gw[k];
+                    if let Some(gw) = pairs_ref.gradient(e, i, senders[e] as usize, radius) {
+                        for k in 0..D {
+                            sum[k] += gw[k];
+                            sq += gw[k] * gw[k];
+                        }
                     }
                 }
                 let norm: f32 = sum.iter().map(|v| v * v).sum();
@@ -417,15 +532,16 @@ pub fn relax_density<const D: usize>(
                 return; // no lambda around i: every term of its move is zero
             }
             let mut dx = [0.0f32; D];
-            for e in offsets[i]..offsets[i + 1] {
-                let j = senders[e] as usize;
+            for (e, &j) in (offsets[i]..).zip(&senders[offsets[i]..offsets[i + 1]]) {
+                let j = j as usize;
                 let s = lam[i] + lam[j];
                 if s == 0.0 {
                     continue;
                 }
-                let (_, gw) = gradient_from(&sep[e], len[e], i, j, radius);
-                for k in 0..D {
-                    dx[k] += s * gw[k];
+                if let Some(gw) = pairs_ref.gradient(e, i, j, radius) {
+                    for k in 0..D {
+                        dx[k] += s * gw[k];
+                    }
                 }
             }
             let mut len2 = 0.0f32;
@@ -461,7 +577,251 @@ pub fn relax_density<const D: usize>(
             break; // nothing moved: every later iteration would compute the same and move nothing
         }
     }
-    Ok(stats)
+    stats
+}
+
+/// What [`relax_then_graph`] returns besides the moved positions.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RelaxedGraph {
+    /// The relaxation's statistics, as [`relax_density`] gives them.
+    pub stats: RelaxStats,
+    /// Particles that had a coordinate outside the bounds after the relaxation (then clipped).
+    pub clamped: usize,
+    /// Receiver `i`'s senders are `senders[offsets[i]..offsets[i + 1]]`,
+    /// ascending: the radius graph of the final positions as
+    /// [`Neighbors::csr`] gives it (write it out with [`write_edges`]).
+    pub offsets: Vec<usize>,
+    /// See `offsets`.
+    pub senders: Vec<u32>,
+    /// Edges removed by `max_neighbors` (0 without a cap).
+    pub dropped: usize,
+    /// Particles whose neighbour lists were searched again at their final
+    /// position (the others' lists were kept); all of them when the graph was
+    /// built from scratch.
+    pub searched: usize,
+}
+
+/// [`relax_density`], then every coordinate clipped to `bounds` (`lo`,
+/// `hi`; `x < lo` becomes `lo`, `x > hi` becomes `hi`), then the radius
+/// graph of the result ([`radius_graph`] with `graph`): the neural
+/// simulator's work between two network steps, in one call.
+///
+/// The graph is the one [`Neighbors::search`] finds at the final positions,
+/// edge for edge, but is built from the relaxation's neighbour lists: a
+/// particle that the relaxation and the clipping left where it was keeps
+/// its list, less the particles that moved; each particle that moved is
+/// searched again (a cell list of the final positions) and added to the
+/// lists of its new neighbours (the relation is symmetric). When more than
+/// a quarter of the particles moved (measured: at 46% moved, updating the
+/// lists of a 2D dam break cost more than searching them again), with `max_neighbors` (a cap is not
+/// symmetric), with another radius, or from [`SERIAL_PARTICLES`]
+/// particles (where the search runs on rayon), the graph is searched from
+/// scratch instead.
+///
+/// # Errors
+/// As [`relax_density`] and [`radius_graph`] (`graph` is checked first;
+/// the edge budget `graph.max_edges` applies to the result, `"radius"`).
+/// On error `positions` is unchanged.
+///
+/// [`SERIAL_PARTICLES`]: crate::SERIAL_PARTICLES
+pub fn relax_then_graph<const D: usize>(
+    positions: &mut [[f32; D]],
+    movable: &[bool],
+    params: &RelaxParams,
+    bounds: Option<([f32; D], [f32; D])>,
+    graph: &GraphParams,
+) -> Result<RelaxedGraph, GraphError> {
+    graph.validate()?;
+    params.validate()?;
+    let n = positions.len();
+    if movable.len() != n {
+        return Err(GraphError::invalid(
+            "movable",
+            format!("has {} entries for {} particles", movable.len(), n),
+        ));
+    }
+    if let Some((lo, hi)) = &bounds
+        && (0..D).any(|k| !(lo[k].is_finite() && hi[k].is_finite() && lo[k] <= hi[k]))
+    {
+        return Err(GraphError::invalid(
+            "bounds",
+            format!("must be finite with lo <= hi, got {lo:?}, {hi:?}"),
+        ));
+    }
+    let gp = GraphParams {
+        radius: params.radius,
+        self_edges: false,
+        ..GraphParams::default()
+    };
+    let (offsets, senders) = Neighbors::search(positions, &gp)?.csr();
+    let before = positions.to_vec();
+    let mut work = before.clone();
+    let stats = relax_on(&mut work, movable, params, &offsets, &senders);
+    let mut clamped = 0;
+    if let Some((lo, hi)) = &bounds {
+        for p in work.iter_mut() {
+            let mut out = false;
+            for k in 0..D {
+                if p[k] < lo[k] {
+                    p[k] = lo[k];
+                    out = true;
+                } else if p[k] > hi[k] {
+                    p[k] = hi[k];
+                    out = true;
+                }
+            }
+            clamped += out as usize;
+        }
+    }
+    let moved: Vec<bool> = work
+        .iter()
+        .zip(&before)
+        .map(|(a, b)| a.map(f32::to_bits) != b.map(f32::to_bits))
+        .collect();
+    let count = moved.iter().filter(|&&m| m).count();
+    let from_scratch = count * 4 > n
+        || graph.max_neighbors.is_some()
+        || graph.radius.to_bits() != params.radius.to_bits()
+        || crate::uses_rayon(n);
+    let (offsets, senders, dropped, searched) = if from_scratch {
+        let nb = Neighbors::search(&work, graph)?;
+        let dropped = nb.dropped();
+        let (o, s) = nb.csr();
+        (o, s, dropped, n)
+    } else {
+        let (o, s) = updated_lists(&work, &moved, graph, &offsets, &senders)?;
+        (o, s, 0, count)
+    };
+    positions.copy_from_slice(&work);
+    Ok(RelaxedGraph {
+        stats,
+        clamped,
+        offsets,
+        senders,
+        dropped,
+        searched,
+    })
+}
+
+/// The neighbour lists within `graph.radius` at `x` (CSR, self-edges as
+/// `graph.self_edges`) from `offsets`/`senders`, the lists without
+/// self-edges at the positions before the particles flagged in `moved`
+/// moved (module docs of [`relax_then_graph`]).
+fn updated_lists<const D: usize>(
+    x: &[[f32; D]],
+    moved: &[bool],
+    graph: &GraphParams,
+    offsets: &[usize],
+    senders: &[u32],
+) -> Result<(Vec<usize>, Vec<u32>), GraphError> {
+    let n = x.len();
+    let rr = graph.radius * graph.radius;
+    let cells = crate::CellList::build(x, crate::reach(rr));
+    // each moved particle's list at its final position (self-edge dropped);
+    // and, for every particle that did not move, the moved ones that are now
+    // its neighbours, in ascending order (moved particles are visited so)
+    let mut fresh_offsets = vec![0usize];
+    let mut fresh: Vec<u32> = Vec::new();
+    let mut add_count = vec![0u32; n + 1];
+    let mut ranges = Vec::new();
+    let mut buf = Vec::new();
+    for i in (0..n).filter(|&i| moved[i]) {
+        let cell = cells.linear(&cells.coords(&x[i]));
+        cells.neighbourhood(cell, &mut ranges);
+        let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
+        buf.resize(total.max(buf.len()), 0);
+        let len = cells.accept(&x[i], &ranges, rr, &mut buf);
+        for &j in &buf[..len] {
+            if j as usize != i {
+                fresh.push(j);
+                if !moved[j as usize] {
+                    add_count[j as usize + 1] += 1;
+                }
+            }
+        }
+        fresh_offsets.push(fresh.len());
+    }
+    for j in 0..n {
+        add_count[j + 1] += add_count[j];
+    }
+    let mut adds = vec![0u32; add_count[n] as usize];
+    let mut fill: Vec<u32> = add_count[..n].to_vec();
+    for (m, i) in (0..n).filter(|&i| moved[i]).enumerate() {
+        for &j in &fresh[fresh_offsets[m]..fresh_offsets[m + 1]] {
+            if !moved[j as usize] {
+                adds[fill[j as usize] as usize] = i as u32;
+                fill[j as usize] += 1;
+            }
+        }
+    }
+    // merge: kept (unmoved) senders, the moved ones added, the self-edge
+    let mut out_offsets = Vec::with_capacity(n + 1);
+    let mut out = Vec::with_capacity(senders.len() + if graph.self_edges { n } else { 0 });
+    out_offsets.push(0);
+    let mut m = 0;
+    for i in 0..n {
+        let me = graph.self_edges.then_some(i as u32);
+        if moved[i] {
+            let list = &fresh[fresh_offsets[m]..fresh_offsets[m + 1]];
+            merge_into(&mut out, list.iter().copied(), &[], me);
+            m += 1;
+        } else {
+            let kept = senders[offsets[i]..offsets[i + 1]]
+                .iter()
+                .copied()
+                .filter(|&j| !moved[j as usize]);
+            let added = &adds[add_count[i] as usize..add_count[i + 1] as usize];
+            merge_into(&mut out, kept, added, me);
+        }
+        if let Some(m) = graph.max_edges
+            && out.len() > m
+        {
+            return Err(GraphError::invalid(
+                "radius",
+                format!(
+                    "radius {} gives more than max_edges = {m} edges ({n} particles); use a smaller radius, set max_neighbors, or raise max_edges",
+                    graph.radius
+                ),
+            ));
+        }
+        out_offsets.push(out.len());
+    }
+    Ok((out_offsets, out))
+}
+
+/// Appends to `out` the ascending merge of the ascending `a` and `b`
+/// (disjoint) and the optional `extra` (in neither).
+fn merge_into(out: &mut Vec<u32>, a: impl Iterator<Item = u32>, b: &[u32], extra: Option<u32>) {
+    let mut a = a.peekable();
+    let mut b = b.iter().copied().peekable();
+    let mut extra = extra;
+    loop {
+        let next = match (a.peek(), b.peek()) {
+            (Some(&x), Some(&y)) if x < y => a.next(),
+            (_, Some(_)) => b.next(),
+            (Some(_), None) => a.next(),
+            (None, None) => None,
+        };
+        let Some(next) = next else { break };
+        if let Some(e) = extra
+            && e < next
+        {
+            out.push(e);
+            extra = None;
+        }
+        out.push(next);
+    }
+    if let Some(e) = extra {
+        out.push(e);
+    }
+}
+
+/// The edge `(receiver i, sender j)` of the receiver-grouped lists (it
+/// exists: the lists are symmetric).
+#[inline]
+fn mirror(offsets: &[usize], senders: &[u32], i: usize, j: usize) -> usize {
+    let list = &senders[offsets[i]..offsets[i + 1]];
+    offsets[i] + list.partition_point(|&s| (s as usize) < j)
 }
 
 #[cfg(test)]
@@ -592,6 +952,32 @@ mod tests {
 
     #[test]
     fn the_separation_cache_changes_no_bit() {
+        // a lattice compressed throughout: nearly every pair changes in every
+        // iteration (the cache's pass over all pairs)
+        let lattice: Vec<[f32; 2]> = (0..900)
+            .map(|i| [(i % 30) as f32 * 0.011, (i / 30) as f32 * 0.013])
+            .collect();
+        let movable = vec![true; lattice.len()];
+        for iterations in [2usize, 5] {
+            let params = RelaxParams {
+                radius: 0.04,
+                rest_density: 4.0,
+                iterations,
+                omega: 1.0,
+            };
+            let (mut a, mut b) = (lattice.clone(), lattice.clone());
+            assert_eq!(
+                relax_density(&mut a, &movable, &params).unwrap(),
+                relax_reference(&mut b, &movable, &params).unwrap()
+            );
+            assert!(a.iter().zip(&lattice).filter(|(p, q)| p != q).count() > 800);
+            assert!(
+                a.iter()
+                    .zip(&b)
+                    .all(|(p, q)| p.map(f32::to_bits) == q.map(f32::to_bits)),
+                "compressed lattice, {iterations} iterations"
+            );
+        }
         // clouds with compressed clumps, stacks on one point and obstacles, 2D and 3D
         for seed in 0..6u32 {
             let mut x2: Vec<[f32; 2]> = (0..400)
@@ -691,6 +1077,209 @@ mod tests {
                 "{threads} threads"
             );
         }
+    }
+
+    /// `relax_density`, the clip and `radius_graph` one after the other.
+    fn in_turn<const D: usize>(
+        x: &[[f32; D]],
+        movable: &[bool],
+        params: &RelaxParams,
+        bounds: Option<([f32; D], [f32; D])>,
+        graph: &GraphParams,
+    ) -> (Vec<[f32; D]>, RelaxStats, usize, crate::Graph<D>) {
+        let mut p = x.to_vec();
+        let stats = relax_density(&mut p, movable, params).unwrap();
+        let mut clamped = 0;
+        if let Some((lo, hi)) = bounds {
+            for q in p.iter_mut() {
+                let before = *q;
+                for k in 0..D {
+                    q[k] = if q[k] < lo[k] {
+                        lo[k]
+                    } else if q[k] > hi[k] {
+                        hi[k]
+                    } else {
+                        q[k]
+                    };
+                }
+                clamped += (before != *q) as usize;
+            }
+        }
+        let g = radius_graph(&p, graph).unwrap();
+        (p, stats, clamped, g)
+    }
+
+    fn fused<const D: usize>(
+        x: &[[f32; D]],
+        movable: &[bool],
+        params: &RelaxParams,
+        bounds: Option<([f32; D], [f32; D])>,
+        graph: &GraphParams,
+    ) -> (Vec<[f32; D]>, RelaxedGraph, crate::Graph<D>) {
+        let mut p = x.to_vec();
+        let r = relax_then_graph(&mut p, movable, params, bounds, graph).unwrap();
+        let e = r.senders.len();
+        let mut g = crate::Graph::<D> {
+            senders: vec![0; e],
+            receivers: vec![0; e],
+            displacement: vec![[0.0; D]; e],
+            distance: vec![0.0; e],
+            dropped: r.dropped,
+        };
+        crate::write_edges(
+            &p,
+            &r.offsets,
+            &r.senders,
+            &mut g.senders,
+            &mut g.receivers,
+            &mut g.displacement,
+            &mut g.distance,
+        )
+        .unwrap();
+        (p, r, g)
+    }
+
+    fn same_bits<const D: usize>(a: &[[f32; D]], b: &[[f32; D]]) -> bool {
+        a.len() == b.len()
+            && a.iter()
+                .zip(b)
+                .all(|(p, q)| p.map(f32::to_bits) == q.map(f32::to_bits))
+    }
+
+    #[test]
+    fn relax_then_graph_is_relax_clip_and_graph_in_turn() {
+        // clouds with a few compressed clumps (few particles move: the lists
+        // are updated) and compressed throughout (most move: searched from
+        // scratch), some particles pushed past the bounds, 2D and 3D, with
+        // and without self-edges, a cap and another radius
+        let mut updated = 0;
+        let mut scratch = 0;
+        for seed in 0..8u32 {
+            // a jittered lattice (spacing 0.04, about 7 neighbours within R = 0.06)
+            let mut state = 0x9e37_79b9_7f4a_7c15u64 ^ seed as u64;
+            let mut rnd = move || {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                (state >> 40) as f32 / (1u64 << 24) as f32
+            };
+            let mut x2: Vec<[f32; 2]> = (0..600)
+                .map(|i| {
+                    let (a, b) = ((i % 25) as f32, (i / 25) as f32);
+                    [
+                        0.02 + 0.04 * a + 0.01 * rnd(),
+                        0.02 + 0.04 * b + 0.01 * rnd(),
+                    ]
+                })
+                .collect();
+            // the rest density of the cloud before the clumps (nothing else compressed)
+            let rho_max = kernel_density(&x2, 0.06)
+                .unwrap()
+                .into_iter()
+                .fold(0.0f32, f32::max);
+            for k in 0..(4 + 3 * seed as usize) {
+                // clumps by the lower wall
+                let c = [0.2 + 0.1 * (k % 5) as f32, 0.03];
+                x2[k * 7] = [c[0] + 0.01 * rnd(), c[1] + 0.01 * rnd()];
+            }
+            let movable: Vec<bool> = (0..x2.len()).map(|i| i % 13 != 5).collect();
+            let bounds = Some(([0.025f32, 0.03], [0.99f32, 0.99]));
+            let rho0 = if seed % 4 == 3 { 0.5 } else { rho_max * 1.01 };
+            for (iterations, self_edges, cap, radius) in [
+                (3usize, true, None, 0.06f32),
+                (1, false, None, 0.06),
+                (3, true, Some(6), 0.06),
+                (3, true, None, 0.05),
+            ] {
+                let params = RelaxParams {
+                    radius: 0.06,
+                    rest_density: rho0,
+                    iterations,
+                    omega: 1.0,
+                };
+                let graph = GraphParams {
+                    radius,
+                    self_edges,
+                    max_neighbors: cap,
+                    max_edges: None,
+                };
+                let (pa, sa, ca, ga) = in_turn(&x2, &movable, &params, bounds, &graph);
+                let (pb, rb, gb) = fused(&x2, &movable, &params, bounds, &graph);
+                assert!(same_bits(&pa, &pb), "2D seed {seed}");
+                assert_eq!((sa, ca), (rb.stats, rb.clamped));
+                assert_eq!(
+                    ga, gb,
+                    "2D seed {seed} {iterations} {self_edges} {cap:?} {radius}"
+                );
+                if rb.searched < x2.len() {
+                    updated += 1;
+                } else {
+                    scratch += 1;
+                }
+            }
+            let x3: Vec<[f32; 3]> = x2
+                .iter()
+                .enumerate()
+                .map(|(i, p)| [p[0], p[1], ((i as f32) * 0.381_966).fract() * 0.2])
+                .collect();
+            let params = RelaxParams {
+                radius: 0.09,
+                rest_density: rho0,
+                iterations: 3,
+                omega: 1.0,
+            };
+            let graph = GraphParams {
+                radius: 0.09,
+                ..GraphParams::default()
+            };
+            let b3 = Some(([0.0f32, 0.015, 0.0], [1.0f32, 1.0, 0.15]));
+            let (pa, sa, ca, ga) = in_turn(&x3, &movable, &params, b3, &graph);
+            let (pb, rb, gb) = fused(&x3, &movable, &params, b3, &graph);
+            assert!(same_bits(&pa, &pb), "3D seed {seed}");
+            assert_eq!((sa, ca), (rb.stats, rb.clamped));
+            assert_eq!(ga, gb, "3D seed {seed}");
+            assert!(rb.clamped > 0, "the 3D bounds cut the cloud");
+        }
+        assert!(
+            updated >= 4 && scratch >= 8,
+            "both ways taken: {updated} updated, {scratch} from scratch"
+        );
+        // nothing to relax: the relaxation's lists, with the self-edges
+        let x: Vec<[f32; 2]> = (0..50)
+            .map(|i| [(i % 10) as f32 * 0.1, (i / 10) as f32 * 0.1])
+            .collect();
+        let params = RelaxParams {
+            radius: 0.15,
+            rest_density: 100.0,
+            iterations: 3,
+            omega: 1.0,
+        };
+        let graph = GraphParams {
+            radius: 0.15,
+            ..GraphParams::default()
+        };
+        let (_, rb, gb) = fused(&x, &[true; 50], &params, None, &graph);
+        assert_eq!(rb.searched, 0);
+        assert_eq!(gb, radius_graph(&x, &graph).unwrap());
+        // empty input, bad bounds
+        let (p, rb, gb) = fused::<3>(&[], &[], &params, None, &graph);
+        assert!(p.is_empty() && rb.senders.is_empty() && gb.is_empty());
+        let mut y = x.clone();
+        let bad = relax_then_graph(
+            &mut y,
+            &[true; 50],
+            &params,
+            Some(([0.5, 0.0], [0.4, 1.0])),
+            &graph,
+        );
+        assert!(matches!(
+            bad,
+            Err(GraphError::InvalidInput {
+                field: "bounds",
+                ..
+            })
+        ));
+        assert!(same_bits(&x, &y));
     }
 
     fn lattice(n: usize, h: f32) -> Vec<[f32; 2]> {

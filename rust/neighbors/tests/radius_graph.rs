@@ -636,3 +636,43 @@ fn edge_budget_stops_a_huge_graph_early_on_any_thread_count() {
     assert!(radius_graph(&pos[..1], &p0).is_err());
     assert_eq!(radius_graph::<2>(&[], &p0).unwrap().num_edges(), 0);
 }
+
+#[test]
+fn sparse_sheet_and_dense_clump_match_brute_force() {
+    // A thin sheet spread over a tall bounding box (cells of one or two
+    // particles: each receiver tests its rows directly, and the grid's cell
+    // cap is reached) next to a dense clump (cells of many receivers: the
+    // shared candidate list), shuffled so the accepted senders of a row come
+    // out of order; with and without self-edges and a cap.
+    let mut s = 11u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let mut pos: Vec<[f32; 3]> = (0..900).map(|_| [next(), 0.02 * next(), next()]).collect();
+    pos.extend((0..400).map(|_| {
+        [
+            0.5 + 0.05 * next(),
+            0.9 + 0.05 * next(),
+            0.5 + 0.05 * next(),
+        ]
+    }));
+    let n = pos.len();
+    for i in (1..n).rev() {
+        let j = (next() * (i + 1) as f32) as usize % (i + 1);
+        pos.swap(i, j);
+    }
+    for (self_edges, max_neighbors) in [(true, None), (false, None), (true, Some(7))] {
+        check(
+            &pos,
+            &GraphParams {
+                radius: 0.04,
+                self_edges,
+                max_neighbors,
+                max_edges: None,
+            },
+        );
+    }
+}

@@ -113,6 +113,83 @@ fn radius_f32(py: Python<'_>, radius: f64) -> PyResult<f32> {
     Ok(r32)
 }
 
+/// ``movable`` as a bool vector, else an ``InvalidInputError`` naming it
+/// (its length is checked against the positions by the crate).
+fn movable_vec(py: Python<'_>, movable: &Bound<'_, PyAny>) -> PyResult<Vec<bool>> {
+    let Ok(mv) = movable.cast::<PyArray1<bool>>() else {
+        return Err(invalid_input(
+            py,
+            "movable",
+            "must be a numpy.ndarray of dtype bool and shape (N,)",
+        ));
+    };
+    Ok(mv
+        .try_readonly()
+        .map_err(|e| invalid_input(py, "movable", format!("cannot be read: {e}")))?
+        .as_array()
+        .to_vec())
+}
+
+/// The relaxation's settings (checked again, field by field, by the crate).
+fn relax_params(
+    py: Python<'_>,
+    radius: f64,
+    rest_density: f64,
+    iterations: i64,
+    omega: f64,
+) -> PyResult<nb::RelaxParams> {
+    let r = radius_f32(py, radius)?;
+    let Ok(iterations) = usize::try_from(iterations) else {
+        return Err(invalid_input(
+            py,
+            "iterations",
+            format!("must be >= 0, got {iterations}"),
+        ));
+    };
+    Ok(nb::RelaxParams {
+        radius: r,
+        rest_density: rest_density as f32,
+        iterations,
+        omega: omega as f32,
+    })
+}
+
+/// The radius graph's settings, else an ``InvalidInputError`` naming the field.
+fn graph_params(
+    py: Python<'_>,
+    radius: f64,
+    self_edges: bool,
+    max_neighbors: Option<i64>,
+    max_edges: Option<&Bound<'_, PyAny>>,
+) -> PyResult<GraphParams> {
+    let r32 = radius_f32(py, radius)?;
+    let max_neighbors = match max_neighbors {
+        None => None,
+        Some(k) if k >= 1 => Some(usize::try_from(k).unwrap_or(usize::MAX)),
+        Some(k) => {
+            return Err(invalid_input(
+                py,
+                "max_neighbors",
+                format!("must be >= 1 or None, got {k}"),
+            ));
+        }
+    };
+    let max_edges = match max_edges {
+        Some(m) if !m.is_none() => Some(crate::mpm::extract_count(
+            m,
+            "max_edges",
+            "an integer >= 0 or None",
+        )?),
+        _ => None,
+    };
+    Ok(GraphParams {
+        radius: r32,
+        self_edges,
+        max_neighbors,
+        max_edges,
+    })
+}
+
 fn to_py(py: Python<'_>) -> impl Fn(GraphError) -> PyErr + '_ {
     move |e: GraphError| match e {
         GraphError::InvalidInput { field, msg } => invalid_input(py, field, msg),
@@ -182,32 +259,8 @@ fn relax_density<'py>(
     omega: f64,
 ) -> PyResult<(Bound<'py, PyArray2<f32>>, usize, f32)> {
     let (arr, dim) = positions_array(py, positions)?;
-    let r = radius_f32(py, radius)?;
-    let Ok(mv) = movable.cast::<PyArray1<bool>>() else {
-        return Err(invalid_input(
-            py,
-            "movable",
-            "must be a numpy.ndarray of dtype bool and shape (N,)",
-        ));
-    };
-    let mv: Vec<bool> = mv
-        .try_readonly()
-        .map_err(|e| invalid_input(py, "movable", format!("cannot be read: {e}")))?
-        .as_array()
-        .to_vec();
-    let Ok(iterations) = usize::try_from(iterations) else {
-        return Err(invalid_input(
-            py,
-            "iterations",
-            format!("must be >= 0, got {iterations}"),
-        ));
-    };
-    let params = nb::RelaxParams {
-        radius: r,
-        rest_density: rest_density as f32,
-        iterations,
-        omega: omega as f32,
-    };
+    let mv = movable_vec(py, movable)?;
+    let params = relax_params(py, radius, rest_density, iterations, omega)?;
     let (flat, stats) = if dim == 2 {
         relax_run::<2>(py, &arr, &mv, &params)?
     } else {
@@ -320,32 +373,7 @@ fn radius_graph<'py>(
     max_edges: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Edges<'py>> {
     let (arr, dim) = positions_array(py, positions)?;
-    let r32 = radius_f32(py, radius)?;
-    let max_neighbors = match max_neighbors {
-        None => None,
-        Some(k) if k >= 1 => Some(usize::try_from(k).unwrap_or(usize::MAX)),
-        Some(k) => {
-            return Err(invalid_input(
-                py,
-                "max_neighbors",
-                format!("must be >= 1 or None, got {k}"),
-            ));
-        }
-    };
-    let max_edges = match max_edges {
-        Some(m) if !m.is_none() => Some(crate::mpm::extract_count(
-            m,
-            "max_edges",
-            "an integer >= 0 or None",
-        )?),
-        _ => None,
-    };
-    let params = GraphParams {
-        radius: r32,
-        self_edges,
-        max_neighbors,
-        max_edges,
-    };
+    let params = graph_params(py, radius, self_edges, max_neighbors, max_edges)?;
     if dim == 2 {
         run::<2>(py, &arr, params)
     } else {
@@ -353,9 +381,143 @@ fn radius_graph<'py>(
     }
 }
 
+/// Writes neighbour lists in CSR form into fresh numpy edge arrays, as `run` does.
+fn edges_from_csr<'py, const D: usize>(
+    py: Python<'py>,
+    pos: &[[f32; D]],
+    offsets: &[usize],
+    list: &[u32],
+) -> PyResult<Edges<'py>> {
+    let e = list.len();
+    let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
+    let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
+    let distance = empty(py, (e,), "float32")?.cast_into::<PyArray1<f32>>()?;
+    {
+        let borrow = |e: numpy::BorrowError| PyRuntimeError::new_err(e.to_string());
+        let mut s = senders.try_readwrite().map_err(borrow)?;
+        let mut r = receivers.try_readwrite().map_err(borrow)?;
+        let mut dp = displacement.try_readwrite().map_err(borrow)?;
+        let mut ds = distance.try_readwrite().map_err(borrow)?;
+        let (s, r, dp, ds) = (
+            s.as_slice_mut()?,
+            r.as_slice_mut()?,
+            dp.as_slice_mut()?,
+            ds.as_slice_mut()?,
+        );
+        let dp = dp.as_chunks_mut::<D>().0;
+        py.detach(|| nb::write_edges(pos, offsets, list, s, r, dp, ds))
+            .map_err(to_py(py))?;
+    }
+    Ok((senders, receivers, displacement, distance))
+}
+
+type Relaxed<'py> = (
+    Bound<'py, PyArray2<f32>>,
+    usize,
+    f32,
+    usize,
+    usize,
+    Edges<'py>,
+);
+
+fn relax_then_graph_run<'py, const D: usize>(
+    py: Python<'py>,
+    arr: &Bound<'py, PyArray2<f32>>,
+    movable: &[bool],
+    params: &nb::RelaxParams,
+    bounds: Option<(Vec<f32>, Vec<f32>)>,
+    graph: &GraphParams,
+) -> PyResult<Relaxed<'py>> {
+    let mut pos = rows::<D>(arr)?;
+    let bounds = match bounds {
+        None => None,
+        Some((lo, hi)) => {
+            if lo.len() != D || hi.len() != D {
+                return Err(invalid_input(
+                    py,
+                    "bounds",
+                    format!(
+                        "lo and hi must have {D} entries each, got {} and {}",
+                        lo.len(),
+                        hi.len()
+                    ),
+                ));
+            }
+            Some((
+                std::array::from_fn(|k| lo[k]),
+                std::array::from_fn(|k| hi[k]),
+            ))
+        }
+    };
+    let out = py
+        .detach(|| {
+            crate::pool::install_for(pos.len(), || {
+                nb::relax_then_graph(&mut pos, movable, params, bounds, graph)
+            })
+        })
+        .map_err(to_py(py))?;
+    let edges = edges_from_csr(py, &pos, &out.offsets, &out.senders)?;
+    let n = pos.len();
+    let flat: Vec<f32> = pos.into_iter().flatten().collect();
+    let positions = PyArray1::from_vec(py, flat).reshape([n, D])?;
+    Ok((
+        positions,
+        out.stats.compressed_before,
+        out.stats.max_compression_before,
+        out.clamped,
+        out.searched,
+        edges,
+    ))
+}
+
+/// Density relaxation, clipping and the radius graph of the result in one
+/// call (``hybridmpm.graph.relax_then_graph``): the same result as
+/// ``relax_density``, then ``numpy.clip`` to ``bounds``, then
+/// ``radius_graph`` (bit for bit), with the graph built from the
+/// relaxation's neighbour lists where few particles moved (the
+/// ``hybridmpm-neighbors`` crate's ``relax_then_graph``).
+///
+/// Parameters: as ``relax_density``; ``bounds`` None or ``(lo, hi)``,
+/// float32 sequences of D entries, finite, ``lo <= hi``; ``graph_radius``,
+/// ``self_edges``, ``max_neighbors``, ``max_edges`` as ``radius_graph``.
+/// Returns ``(positions float32 (N, D), compressed_before,
+/// max_compression_before, clamped, searched, (senders, receivers,
+/// displacement, distance))``: ``clamped`` the particles clipped after the
+/// relaxation, ``searched`` those whose neighbour lists were searched again.
+/// Raises ``InvalidInputError`` naming the field.
+#[pyfunction]
+#[pyo3(signature = (positions, movable, radius, rest_density, iterations, omega, bounds, graph_radius, *, self_edges = true, max_neighbors = None, max_edges = None))]
+#[allow(clippy::too_many_arguments)]
+fn relax_then_graph<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    movable: &Bound<'py, PyAny>,
+    radius: f64,
+    rest_density: f64,
+    iterations: i64,
+    omega: f64,
+    bounds: Option<(Vec<f32>, Vec<f32>)>,
+    graph_radius: f64,
+    self_edges: bool,
+    max_neighbors: Option<i64>,
+    max_edges: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Relaxed<'py>> {
+    let (arr, dim) = positions_array(py, positions)?;
+    let mv = movable_vec(py, movable)?;
+    let params = relax_params(py, radius, rest_density, iterations, omega)?;
+    let graph = graph_params(py, graph_radius, self_edges, max_neighbors, max_edges)?;
+    if dim == 2 {
+        relax_then_graph_run::<2>(py, &arr, &mv, &params, bounds, &graph)
+    } else {
+        relax_then_graph_run::<3>(py, &arr, &mv, &params, bounds, &graph)
+    }
+}
+
 /// Adds `radius_graph` to the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(radius_graph, m)?)?;
     m.add_function(wrap_pyfunction!(kernel_density, m)?)?;
-    m.add_function(wrap_pyfunction!(relax_density, m)?)
+    m.add_function(wrap_pyfunction!(relax_density, m)?)?;
+    m.add_function(wrap_pyfunction!(relax_then_graph, m)?)
 }
