@@ -4,17 +4,18 @@ For every shipped model (``hybridmpm.models``) on a state of its own scene
 (a rollout of the network alone from the seed, after the MPM warm-up):
 
 * **breakdown** of one network step (median over repeats, one onnxruntime
-  thread): the radius graph (Rust cell list, with the edge geometry), each
-  stage of the ONNX graph (onnxruntime's profiler; node-name prefixes
-  ``hybridmpm.neural.compile.STAGES``; graphs of torch's exporter, given with
-  ``--baseline``, are grouped by operator type instead), the checks,
-  clamping and history update of :class:`~hybridmpm.sim.NeuralSimulator`,
-  the density relaxation of its prediction (``hybridmpm.graph.relax_density``,
-  with its own neighbour search), and the rest of ``advance()`` (Python
-  overhead: the step timed with the network and the radius graph replaced by
-  their cached results, less the checks and the relaxation); what the step
-  takes beyond the parts is listed as unattributed (the network's inputs
-  built around the ONNX run: the in-edge table, degrees, feeds);
+  thread): each stage of the ONNX graph (onnxruntime's profiler; node-name
+  prefixes ``hybridmpm.neural.compile.STAGES``; graphs of torch's exporter,
+  given with ``--baseline``, are grouped by operator type instead), the
+  checks and history update of :class:`~hybridmpm.sim.NeuralSimulator`, the
+  clipping, density relaxation and next step's radius graph of its
+  prediction (``hybridmpm.graph.relax_then_graph``, one call), and the rest
+  of ``advance()`` (Python overhead: the step timed with the network and the
+  relaxation replaced by their cached results, less the checks); what the
+  step takes beyond the parts is listed as unattributed (the network's
+  inputs built around the ONNX run: feeds). The radius graph of the state
+  alone (Rust cell list, with the edge geometry) is timed for reference: the
+  step gets it from the relaxation;
 * **cost per frame**: the network alone (``advance()`` / ``r_t``) against
   MPM at ``r_p`` (``MpmSimulator`` at the model's ``r_p``, ``--mpm-threads``,
   from the frame of the network's state, restored to it at each burst),
@@ -53,7 +54,7 @@ import numpy as np
 
 from hybridmpm.bench.cost import gnn_flops
 from hybridmpm.bench.env import environment
-from hybridmpm.graph import radius_graph, relax_density
+from hybridmpm.graph import radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import NeuralModel
 from hybridmpm.neural.compile import STAGES
@@ -140,14 +141,16 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
 
     def checks() -> None:
         sim._failure(proposal.predicted)
-        sim._clip(proposal.predicted)
         np.concatenate([hist[1:], proposal.predicted[None]])
 
-    clipped = sim._clip(proposal.predicted)
+    bounds = (sim._lo, sim._hi) if sim.clamp else None
 
-    def relaxation() -> None:
+    def relaxation() -> Any:
+        # what advance() does with the prediction: clip, relax, clip and the next
+        # step's radius graph, one call (the graph alone without relaxation)
         if sim.relax:
-            relax_density(clipped, sim._movable, model.radius, sim.rest_density, sim.relax)
+            return relax_then_graph(proposal.predicted, sim._movable, model.radius, sim.rest_density, sim.relax, bounds=bounds)
+        return radius_graph(sim._clip(proposal.predicted), model.radius)
 
     # the full step from the same state each time: restore it (and the graph the
     # previous step built, which restore drops) before each advance
@@ -171,6 +174,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     import hybridmpm.sim.neural as neural_module
 
     cached = model.predict(hist, ptype, graph=graph)
+    relaxed = relaxation()
 
     class _Cached:
         radius = model.radius
@@ -179,15 +183,16 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
             return cached
 
     def stubbed_step() -> None:
-        real_graph = neural_module.radius_graph
+        real = neural_module.radius_graph, neural_module.relax_then_graph
         sim.model = _Cached()  # type: ignore[assignment]
-        neural_module.radius_graph = lambda *a, **k: graph  # type: ignore[assignment]
+        neural_module.radius_graph = lambda *a, **k: relaxed  # type: ignore[assignment]
+        neural_module.relax_then_graph = lambda *a, **k: relaxed  # type: ignore[assignment]
         try:
             restore()
             sim.advance()
         finally:
             sim.model = model
-            neural_module.radius_graph = real_graph
+            neural_module.radius_graph, neural_module.relax_then_graph = real
 
     # MPM at r_p from the frame of the network's state (sand's cost changes as it flows), back to
     # it at the start of each burst (the first, uncounted call): both are timed at the same point
@@ -219,8 +224,9 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     ms["advance"] -= restore_ms
     ms["advance_2t"] -= restore_ms
     ms["simulator_own"] -= restore_ms
-    # advance() builds the graph of its prediction (for the next step): one radius graph per step
-    python_ms = ms["simulator_own"] - ms["checks_clamp_history"] - ms["relaxation"]
+    # advance() builds the graph of its prediction (for the next step) with the relaxation:
+    # "relaxation" includes it; the radius graph alone is timed for reference
+    python_ms = ms["simulator_own"] - ms["checks_clamp_history"]
     lat, layers = int(model.meta["latent"]), int(model.meta["layers"])
     flops = gnn_flops(lat, layers, model.dim, n, e, t_in=model.t_in)
     out: dict[str, Any] = {
@@ -228,7 +234,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
         "ms": ms, "python_overhead_ms": python_ms, "mflop_step": flops / 1e6,
         # the step less every part timed: the network's inputs built around the ONNX run
         # (the in-edge table, degrees, feeds) and what the parts' separate timing misses
-        "unattributed_ms": ms["advance"] - ms["radius_graph"] - ms["onnx_shipped"] - ms["checks_clamp_history"] - ms["relaxation"] - python_ms,
+        "unattributed_ms": ms["advance"] - ms["onnx_shipped"] - ms["checks_clamp_history"] - ms["relaxation"] - python_ms,
         "gflops_onnx": flops / ms["onnx_shipped"] / 1e6,
         "network_ms_per_frame": ms["advance"] / model.r_t, "mpm_rp_ms_per_frame": ms["mpm_rp_frame"],
         "ratio_network_to_mpm_rp": ms["advance"] / model.r_t / ms["mpm_rp_frame"],
@@ -389,7 +395,7 @@ def _md(res: dict[str, Any]) -> str:
     ]
     lines += ["## Cost per frame (network alone, after warm-up, failure checks on) against MPM at r_p, same run", ""]
     lines += [
-        "| scene | particles | edges | radius graph ms | ONNX ms | checks+clamp+history ms | relaxation ms | rest of advance() (Python) ms | unattributed ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | network 2 threads ms/frame | ratio 2 threads | GFLOP/s (ONNX) |"
+        "| scene | particles | edges | radius graph alone ms (not in the step) | ONNX ms | checks+history ms | relaxation + next graph ms | rest of advance() (Python) ms | unattributed ms | step ms | network ms/frame | MPM r_p ms/frame | ratio | network 2 threads ms/frame | ratio 2 threads | GFLOP/s (ONNX) |"
         + (" ONNX speedup vs baseline |" if res["baseline"] else "")
     ]
     lines += ["|---" * (16 + bool(res["baseline"])) + "|"]

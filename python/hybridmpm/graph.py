@@ -132,11 +132,12 @@ def relax_then_graph(
     max_neighbors: int | None = None,
     max_edges: int | None = None,
 ) -> tuple[np.ndarray, int, float, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """:func:`relax_density`, then every coordinate clipped to ``bounds``,
-    then :func:`radius_graph` of the result (self-edges included), in one
-    call (Rust): the neural simulator's work between two network steps.
+    """Every coordinate clipped to ``bounds``, :func:`relax_density`, the
+    coordinates clipped again, then :func:`radius_graph` of the result
+    (self-edges included), in one call (Rust): the neural simulator's work
+    between two network steps (without ``bounds``, no clipping).
 
-    The result is the three calls' in turn, bit for bit, but the graph is
+    The result is the four calls' in turn, bit for bit, but the graph is
     built from the relaxation's neighbour lists: particles that the
     relaxation and the clipping left in place keep their lists, those that
     moved are searched again (``hybridmpm-neighbors``, ``relax_then_graph``;
@@ -151,7 +152,7 @@ def relax_then_graph(
     Returns ``(positions float32 [N, D], compressed, max_compression,
     clamped, graph)``: the first three as :func:`relax_density` gives them,
     ``clamped`` the particles with a coordinate outside ``bounds`` after the
-    relaxation, ``graph`` as :func:`radius_graph` returns it for
+    relaxation (the first clipping is not counted), ``graph`` as :func:`radius_graph` returns it for
     ``positions``. Raises :class:`~hybridmpm.errors.InvalidInputError`
     naming the field (``bounds`` for bounds of the wrong length, non-finite
     or crossed).

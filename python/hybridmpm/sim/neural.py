@@ -306,8 +306,9 @@ class NeuralSimulator:
         margin = self.escape_cells * self._dx
         if (fluid < self._lo - margin).any() or (fluid > self._hi + margin).any():
             return "escaped"
-        v = (fluid.astype(np.float64) - self._history[-1, :n]) / self.dt_step
-        ke = 0.5 * float((self._masses * (v**2).sum(1)).sum())
+        d = fluid.astype(np.float64)
+        d -= self._history[-1, :n]
+        ke = 0.5 * float(self._masses @ np.einsum("ij,ij->i", d, d)) / self.dt_step**2
         if ke > self.ke_factor * self.energy_budget:
             return "energy"
         return None
@@ -334,17 +335,18 @@ class NeuralSimulator:
         clipped: np.ndarray | None = None
         graph: Graph | None = None
         if failure is None:
-            clipped = self._clip(nxt)
             if self.relax:
-                # relaxed, clipped again, and the next step's graph (one Rust call:
-                # the graph reuses the relaxation's neighbour lists where few moved)
+                # clipped, relaxed, clipped again, and the next step's graph (one
+                # Rust call: the graph reuses the relaxation's neighbour lists
+                # where few particles moved)
                 bounds = (self._lo, self._hi) if self.clamp else None
                 clipped, self.last_relaxed, _, clamped, built = relax_then_graph(
-                    clipped, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
+                    nxt, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
                 )
                 if self.clamp:
                     self.last_clamped = clamped
             else:
+                clipped = self._clip(nxt)
                 built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
             if self.detect_failures and len(built[0]) > self.degree_factor * self._degree0 * len(clipped):
                 failure = "compressed"

@@ -585,7 +585,8 @@ fn relax_on<const D: usize>(
 pub struct RelaxedGraph {
     /// The relaxation's statistics, as [`relax_density`] gives them.
     pub stats: RelaxStats,
-    /// Particles that had a coordinate outside the bounds after the relaxation (then clipped).
+    /// Particles that had a coordinate outside the bounds after the
+    /// relaxation (then clipped again; the first clipping is not counted).
     pub clamped: usize,
     /// Receiver `i`'s senders are `senders[offsets[i]..offsets[i + 1]]`,
     /// ascending: the radius graph of the final positions as
@@ -601,10 +602,11 @@ pub struct RelaxedGraph {
     pub searched: usize,
 }
 
-/// [`relax_density`], then every coordinate clipped to `bounds` (`lo`,
-/// `hi`; `x < lo` becomes `lo`, `x > hi` becomes `hi`), then the radius
-/// graph of the result ([`radius_graph`] with `graph`): the neural
-/// simulator's work between two network steps, in one call.
+/// Every coordinate clipped to `bounds` (`lo`, `hi`; `x < lo` becomes
+/// `lo`, `x > hi` becomes `hi`, as `numpy.clip`), then [`relax_density`],
+/// then the coordinates clipped again, then the radius graph of the result
+/// ([`radius_graph`] with `graph`): the neural simulator's work between two
+/// network steps, in one call (without `bounds`: no clipping).
 ///
 /// The graph is the one [`Neighbors::search`] finds at the final positions,
 /// edge for edge, but is built from the relaxation's neighbour lists: a
@@ -653,26 +655,17 @@ pub fn relax_then_graph<const D: usize>(
         self_edges: false,
         ..GraphParams::default()
     };
-    let (offsets, senders) = Neighbors::search(positions, &gp)?.csr();
-    let before = positions.to_vec();
+    let mut before = positions.to_vec();
+    if let Some((lo, hi)) = &bounds {
+        clip(&mut before, lo, hi);
+    }
+    let (offsets, senders) = Neighbors::search(&before, &gp)?.csr();
     let mut work = before.clone();
     let stats = relax_on(&mut work, movable, params, &offsets, &senders);
-    let mut clamped = 0;
-    if let Some((lo, hi)) = &bounds {
-        for p in work.iter_mut() {
-            let mut out = false;
-            for k in 0..D {
-                if p[k] < lo[k] {
-                    p[k] = lo[k];
-                    out = true;
-                } else if p[k] > hi[k] {
-                    p[k] = hi[k];
-                    out = true;
-                }
-            }
-            clamped += out as usize;
-        }
-    }
+    let clamped = match &bounds {
+        Some((lo, hi)) => clip(&mut work, lo, hi),
+        None => 0,
+    };
     let moved: Vec<bool> = work
         .iter()
         .zip(&before)
@@ -701,6 +694,26 @@ pub fn relax_then_graph<const D: usize>(
         dropped,
         searched,
     })
+}
+
+/// Clips every coordinate to `[lo, hi]` (`x < lo` becomes `lo`, `x > hi`
+/// becomes `hi`, as `numpy.clip`); returns the particles that had one outside.
+fn clip<const D: usize>(x: &mut [[f32; D]], lo: &[f32; D], hi: &[f32; D]) -> usize {
+    let mut clamped = 0;
+    for p in x.iter_mut() {
+        let mut out = false;
+        for k in 0..D {
+            if p[k] < lo[k] {
+                p[k] = lo[k];
+                out = true;
+            } else if p[k] > hi[k] {
+                p[k] = hi[k];
+                out = true;
+            }
+        }
+        clamped += out as usize;
+    }
+    clamped
 }
 
 /// The neighbour lists within `graph.radius` at `x` (CSR, self-edges as
@@ -1088,6 +1101,13 @@ mod tests {
         graph: &GraphParams,
     ) -> (Vec<[f32; D]>, RelaxStats, usize, crate::Graph<D>) {
         let mut p = x.to_vec();
+        if let Some((lo, hi)) = bounds {
+            for q in p.iter_mut() {
+                for k in 0..D {
+                    q[k] = q[k].clamp(lo[k], hi[k]);
+                }
+            }
+        }
         let stats = relax_density(&mut p, movable, params).unwrap();
         let mut clamped = 0;
         if let Some((lo, hi)) = bounds {

@@ -471,10 +471,10 @@ fn relax_then_graph_run<'py, const D: usize>(
     ))
 }
 
-/// Density relaxation, clipping and the radius graph of the result in one
-/// call (``hybridmpm.graph.relax_then_graph``): the same result as
-/// ``relax_density``, then ``numpy.clip`` to ``bounds``, then
-/// ``radius_graph`` (bit for bit), with the graph built from the
+/// Clipping, density relaxation, clipping and the radius graph of the
+/// result in one call (``hybridmpm.graph.relax_then_graph``): the same
+/// result as ``numpy.clip`` to ``bounds``, ``relax_density``, ``numpy.clip``
+/// again, then ``radius_graph`` (bit for bit), with the graph built from the
 /// relaxation's neighbour lists where few particles moved (the
 /// ``hybridmpm-neighbors`` crate's ``relax_then_graph``).
 ///
@@ -484,7 +484,7 @@ fn relax_then_graph_run<'py, const D: usize>(
 /// Returns ``(positions float32 (N, D), compressed_before,
 /// max_compression_before, clamped, searched, (senders, receivers,
 /// displacement, distance))``: ``clamped`` the particles clipped after the
-/// relaxation, ``searched`` those whose neighbour lists were searched again.
+/// relaxation (the second clipping), ``searched`` those whose neighbour lists were searched again.
 /// Raises ``InvalidInputError`` naming the field.
 #[pyfunction]
 #[pyo3(signature = (positions, movable, radius, rest_density, iterations, omega, bounds, graph_radius, *, self_edges = true, max_neighbors = None, max_edges = None))]
