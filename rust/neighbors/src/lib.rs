@@ -1129,18 +1129,15 @@ impl<'a, const D: usize> Neighbors<'a, D> {
         distance: &mut [f32],
     ) -> Result<(), GraphError> {
         let e = self.num_edges;
-        let lens = [
-            senders.len(),
-            receivers.len(),
-            displacement.len(),
-            distance.len(),
-        ];
-        if lens.iter().any(|&l| l != e) {
-            return Err(GraphError::invalid(
-                "output",
-                format!("slices must have length {e} (the number of edges), got {lens:?}"),
-            ));
-        }
+        check_output(
+            e,
+            [
+                senders.len(),
+                receivers.len(),
+                displacement.len(),
+                distance.len(),
+            ],
+        )?;
         // Receivers in index order, CHUNK at a time.
         let lens: Vec<usize> = self
             .loc
@@ -1203,6 +1200,17 @@ impl<'a, const D: usize> Neighbors<'a, D> {
     }
 }
 
+/// The output slices' lengths against the number of edges `e`.
+fn check_output(e: usize, lens: [usize; 4]) -> Result<(), GraphError> {
+    if lens.iter().any(|&l| l != e) {
+        return Err(GraphError::invalid(
+            "output",
+            format!("slices must have length {e} (the number of edges), got {lens:?}"),
+        ));
+    }
+    Ok(())
+}
+
 /// Writes the edges of neighbour lists in CSR form (receiver `i`'s senders
 /// `senders[offsets[i]..offsets[i + 1]]`, as [`Neighbors::csr`] gives them)
 /// as [`Neighbors::write`] does: senders, receivers, `p[sender] -
@@ -1221,18 +1229,15 @@ pub fn write_edges<const D: usize, I: EdgeIndex>(
     distance: &mut [f32],
 ) -> Result<(), GraphError> {
     let e = senders.len();
-    let lens = [
-        out_senders.len(),
-        out_receivers.len(),
-        displacement.len(),
-        distance.len(),
-    ];
-    if lens.iter().any(|&l| l != e) {
-        return Err(GraphError::invalid(
-            "output",
-            format!("slices must have length {e} (the number of edges), got {lens:?}"),
-        ));
-    }
+    check_output(
+        e,
+        [
+            out_senders.len(),
+            out_receivers.len(),
+            displacement.len(),
+            distance.len(),
+        ],
+    )?;
     let n = positions.len();
     if offsets.len() != n + 1
         || offsets.first() != Some(&0)

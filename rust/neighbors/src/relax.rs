@@ -260,6 +260,38 @@ impl<const D: usize> Pairs<D> {
         }
     }
 
+    /// Recomputes the separation and squared length of every edge `e` with
+    /// `which(e)`, from the positions `x` (chunks in parallel where the
+    /// crate uses rayon).
+    fn separations(
+        &mut self,
+        x: &[[f32; D]],
+        receivers: &[u32],
+        senders: &[u32],
+        which: impl Fn(usize) -> bool + Sync,
+        parallel: bool,
+    ) {
+        let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
+            if which(e) {
+                (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
+            }
+        };
+        if parallel {
+            self.sep
+                .par_iter_mut()
+                .zip(self.dd.par_iter_mut())
+                .enumerate()
+                .with_min_len(CHUNK * 16)
+                .for_each(fill);
+        } else {
+            self.sep
+                .iter_mut()
+                .zip(self.dd.iter_mut())
+                .enumerate()
+                .for_each(fill);
+        }
+    }
+
     /// `dW/dx_i` of edge `e` (receiver `i`, sender `j`), as [`gradient`]
     /// gives it; `None` where the pair is `R` or more apart (zero gradient).
     #[inline(always)]
@@ -357,28 +389,7 @@ fn relax_on<const D: usize>(
         w: vec![0.0; ne],
         scale: vec![0.0; ne],
     };
-    {
-        let x: &[[f32; D]] = positions;
-        let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
-            (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
-        };
-        if parallel {
-            pairs
-                .sep
-                .par_iter_mut()
-                .zip(pairs.dd.par_iter_mut())
-                .enumerate()
-                .with_min_len(CHUNK * 16)
-                .for_each(fill);
-        } else {
-            pairs
-                .sep
-                .iter_mut()
-                .zip(pairs.dd.iter_mut())
-                .enumerate()
-                .for_each(fill);
-        }
-    }
+    pairs.separations(positions, &receivers, senders, |_| true, parallel);
     pairs.terms(radius, parallel);
     let mut moved = vec![false; n];
     let eps = 1e-6 / (radius * radius);
@@ -422,27 +433,7 @@ fn relax_on<const D: usize>(
             if count * 4 >= ne {
                 // many pairs changed: recompute all (the unchanged ones give
                 // the same bits), the kernel terms in one vectorised pass
-                let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
-                    if changed(e) {
-                        (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
-                    }
-                };
-                if parallel {
-                    pairs
-                        .sep
-                        .par_iter_mut()
-                        .zip(pairs.dd.par_iter_mut())
-                        .enumerate()
-                        .with_min_len(CHUNK * 16)
-                        .for_each(fill);
-                } else {
-                    pairs
-                        .sep
-                        .iter_mut()
-                        .zip(pairs.dd.iter_mut())
-                        .enumerate()
-                        .for_each(fill);
-                }
+                pairs.separations(x, &receivers, senders, changed, parallel);
                 pairs.terms(radius, parallel);
             } else {
                 // few: pair by pair

@@ -271,16 +271,14 @@ fn relax_density<'py>(
     Ok((out, stats.compressed_before, stats.max_compression_before))
 }
 
-fn run<'py, const D: usize>(
+/// Fresh numpy edge arrays of `e` edges (senders, receivers int64; displacement
+/// float32 [e, D]; distance float32), filled by `write` with the GIL released.
+fn edge_arrays<'py, const D: usize>(
     py: Python<'py>,
-    arr: &Bound<'py, PyArray2<f32>>,
-    params: GraphParams,
+    e: usize,
+    write: impl FnOnce(&mut [i64], &mut [i64], &mut [[f32; D]], &mut [f32]) -> Result<(), GraphError>
+    + Send,
 ) -> PyResult<Edges<'py>> {
-    let pos = rows::<D>(arr)?;
-    let nb = py
-        .detach(|| crate::pool::install_for(pos.len(), || Neighbors::search(&pos, &params)))
-        .map_err(to_py(py))?;
-    let e = nb.num_edges();
     let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
     let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
     let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
@@ -299,10 +297,24 @@ fn run<'py, const D: usize>(
             ds.as_slice_mut()?,
         );
         let dp = dp.as_chunks_mut::<D>().0;
-        py.detach(|| crate::pool::install_for(pos.len(), || nb.write(s, r, dp, ds)))
-            .map_err(to_py(py))?;
+        py.detach(|| write(s, r, dp, ds)).map_err(to_py(py))?;
     }
     Ok((senders, receivers, displacement, distance))
+}
+
+fn run<'py, const D: usize>(
+    py: Python<'py>,
+    arr: &Bound<'py, PyArray2<f32>>,
+    params: GraphParams,
+) -> PyResult<Edges<'py>> {
+    let pos = rows::<D>(arr)?;
+    let nb = py
+        .detach(|| crate::pool::install_for(pos.len(), || Neighbors::search(&pos, &params)))
+        .map_err(to_py(py))?;
+    let n = pos.len();
+    edge_arrays::<D>(py, nb.num_edges(), |s, r, dp, ds| {
+        crate::pool::install_for(n, || nb.write(s, r, dp, ds))
+    })
 }
 
 /// Radius graph of a particle cloud (GNS neighbour search).
@@ -381,37 +393,6 @@ fn radius_graph<'py>(
     }
 }
 
-/// Writes neighbour lists in CSR form into fresh numpy edge arrays, as `run` does.
-fn edges_from_csr<'py, const D: usize>(
-    py: Python<'py>,
-    pos: &[[f32; D]],
-    offsets: &[usize],
-    list: &[u32],
-) -> PyResult<Edges<'py>> {
-    let e = list.len();
-    let senders = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
-    let receivers = empty(py, (e,), "int64")?.cast_into::<PyArray1<i64>>()?;
-    let displacement = empty(py, (e, D), "float32")?.cast_into::<PyArray2<f32>>()?;
-    let distance = empty(py, (e,), "float32")?.cast_into::<PyArray1<f32>>()?;
-    {
-        let borrow = |e: numpy::BorrowError| PyRuntimeError::new_err(e.to_string());
-        let mut s = senders.try_readwrite().map_err(borrow)?;
-        let mut r = receivers.try_readwrite().map_err(borrow)?;
-        let mut dp = displacement.try_readwrite().map_err(borrow)?;
-        let mut ds = distance.try_readwrite().map_err(borrow)?;
-        let (s, r, dp, ds) = (
-            s.as_slice_mut()?,
-            r.as_slice_mut()?,
-            dp.as_slice_mut()?,
-            ds.as_slice_mut()?,
-        );
-        let dp = dp.as_chunks_mut::<D>().0;
-        py.detach(|| nb::write_edges(pos, offsets, list, s, r, dp, ds))
-            .map_err(to_py(py))?;
-    }
-    Ok((senders, receivers, displacement, distance))
-}
-
 type Relaxed<'py> = (
     Bound<'py, PyArray2<f32>>,
     usize,
@@ -457,7 +438,9 @@ fn relax_then_graph_run<'py, const D: usize>(
             })
         })
         .map_err(to_py(py))?;
-    let edges = edges_from_csr(py, &pos, &out.offsets, &out.senders)?;
+    let edges = edge_arrays::<D>(py, out.senders.len(), |s, r, dp, ds| {
+        nb::write_edges(&pos, &out.offsets, &out.senders, s, r, dp, ds)
+    })?;
     let n = pos.len();
     let flat: Vec<f32> = pos.into_iter().flatten().collect();
     let positions = PyArray1::from_vec(py, flat).reshape([n, D])?;
