@@ -606,10 +606,16 @@ pub struct RelaxedGraph {
 /// searched again (a cell list of the final positions) and added to the
 /// lists of its new neighbours (the relation is symmetric). When more than
 /// a quarter of the particles moved (measured: at 46% moved, updating the
-/// lists of a 2D dam break cost more than searching them again), with `max_neighbors` (a cap is not
-/// symmetric), with another radius, or from [`SERIAL_PARTICLES`]
-/// particles (where the search runs on rayon), the graph is searched from
-/// scratch instead.
+/// lists of a 2D dam break cost more than searching them again), with
+/// `max_neighbors` (a cap is not symmetric), with another radius, or from
+/// [`SERIAL_PARTICLES`] particles (where the search runs on rayon), the
+/// graph is searched from scratch instead.
+///
+/// `positions` `[N][D]` `f32` in position units (m), replaced by the
+/// result; `movable` `[N]`; `bounds` in position units. The relaxation is
+/// the module's (Neural SPH, Toshev et al. 2024, Sec. 4; PBF, Macklin &
+/// Müller 2013, Eqs. 1-12, made unilateral); the graph is GNS's radius
+/// graph (Sanchez-Gonzalez et al. 2020, App. A).
 ///
 /// # Errors
 /// As [`relax_density`] and [`radius_graph`] (`graph` is checked first;
