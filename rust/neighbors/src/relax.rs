@@ -260,35 +260,54 @@ impl<const D: usize> Pairs<D> {
         }
     }
 
-    /// Recomputes the separation and squared length of every edge `e` with
-    /// `which(e)`, from the positions `x` (chunks in parallel where the
-    /// crate uses rayon).
+    /// Recomputes the separation and squared length of the edges from the
+    /// positions `x`, receiver by receiver (`x_i` read once): all of them,
+    /// or with `changed = Some((dirty, moved))` those of a dirty receiver
+    /// whose receiver or sender moved. Chunks of receivers in parallel
+    /// where the crate uses rayon.
     fn separations(
         &mut self,
         x: &[[f32; D]],
-        receivers: &[u32],
+        offsets: &[usize],
         senders: &[u32],
-        which: impl Fn(usize) -> bool + Sync,
+        changed: Option<(&[bool], &[bool])>,
         parallel: bool,
     ) {
-        let fill = |(e, (s, dd)): (usize, (&mut [f32; D], &mut f32))| {
-            if which(e) {
-                (*s, *dd) = separation(&x[receivers[e] as usize], &x[senders[e] as usize]);
+        let n = x.len();
+        let fill = |first: usize, sep: &mut [[f32; D]], dd: &mut [f32]| {
+            let base = offsets[first];
+            let last = (first + CHUNK).min(n);
+            for i in first..last {
+                let all = match changed {
+                    None => true,
+                    Some((dt, _)) if !dt[i] => continue,
+                    Some((_, mv)) => mv[i],
+                };
+                let xi = &x[i];
+                for e in offsets[i]..offsets[i + 1] {
+                    let j = senders[e] as usize;
+                    if all || changed.is_some_and(|(_, mv)| mv[j]) {
+                        (sep[e - base], dd[e - base]) = separation(xi, &x[j]);
+                    }
+                }
             }
         };
+        // the edges of each chunk of CHUNK receivers
+        let lens: Vec<usize> = (0..n)
+            .step_by(CHUNK)
+            .map(|f| offsets[(f + CHUNK).min(n)] - offsets[f])
+            .collect();
+        let parts = crate::split_by(&mut self.sep, &lens)
+            .into_iter()
+            .zip(crate::split_by(&mut self.dd, &lens))
+            .enumerate();
         if parallel {
-            self.sep
-                .par_iter_mut()
-                .zip(self.dd.par_iter_mut())
-                .enumerate()
-                .with_min_len(CHUNK * 16)
-                .for_each(fill);
+            parts
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .for_each(|(c, (sep, dd))| fill(c * CHUNK, sep, dd));
         } else {
-            self.sep
-                .iter_mut()
-                .zip(self.dd.iter_mut())
-                .enumerate()
-                .for_each(fill);
+            parts.for_each(|(c, (sep, dd))| fill(c * CHUNK, sep, dd));
         }
     }
 
@@ -375,10 +394,6 @@ fn relax_on<const D: usize>(
     // below SERIAL_PARTICLES everything runs on the calling thread, without rayon (`uses_rayon`)
     let parallel = crate::uses_rayon(n);
     let ne = senders.len();
-    let mut receivers = vec![0u32; ne];
-    for i in 0..n {
-        receivers[offsets[i]..offsets[i + 1]].fill(i as u32);
-    }
     // Each edge's separation x_i - x_j (receiver minus sender), its squared
     // length and kernel terms, kept between iterations: recomputed only for
     // the pairs of particles that moved (the others would give the same bits).
@@ -389,7 +404,7 @@ fn relax_on<const D: usize>(
         w: vec![0.0; ne],
         scale: vec![0.0; ne],
     };
-    pairs.separations(positions, &receivers, senders, |_| true, parallel);
+    pairs.separations(positions, offsets, senders, None, parallel);
     pairs.terms(radius, parallel);
     let mut moved = vec![false; n];
     let eps = 1e-6 / (radius * radius);
@@ -419,12 +434,6 @@ fn relax_on<const D: usize>(
             let list: Vec<usize> = (0..n).filter(|&i| moved[i]).collect();
             spread(&list, &mut dirty);
             let (mv, dt): (&[bool], &[bool]) = (&moved, &dirty);
-            // the pairs of a moved particle with a dirty receiver (both ends
-            // of such a pair are dirty: the lists are symmetric)
-            let changed = |e: usize| {
-                let (i, j) = (receivers[e] as usize, senders[e] as usize);
-                dt[i] && (mv[i] || mv[j])
-            };
             let count: usize = list
                 .iter()
                 .map(|&i| offsets[i + 1] - offsets[i])
@@ -433,7 +442,9 @@ fn relax_on<const D: usize>(
             if count * 4 >= ne {
                 // many pairs changed: recompute all (the unchanged ones give
                 // the same bits), the kernel terms in one vectorised pass
-                pairs.separations(x, &receivers, senders, changed, parallel);
+                // (the pairs of a moved particle with a dirty receiver; both
+                // ends of such a pair are dirty: the lists are symmetric)
+                pairs.separations(x, offsets, senders, Some((dt, mv)), parallel);
                 pairs.terms(radius, parallel);
             } else {
                 // few: pair by pair
