@@ -193,6 +193,46 @@ def test_bench_recomputes_cells_made_with_another_model(tiny: dict, tmp_path: Pa
     assert json.loads(neural.read_text())["model_sha256"] == cell["model_sha256"]
 
 
+def test_networks_alone_run_on_their_own_thread_setting(tiny: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """The networks run alone get ``nn_alone_threads`` onnxruntime threads
+    (all cores by default: MPM is idle then), the hybrid ``nn_threads``;
+    results.csv records each row's; a run made before the setting resumes
+    as one whose networks ran on the hybrid's threads."""
+    import shutil
+
+    import hybridmpm.bench.run as run
+    from hybridmpm.scenes import make_scene
+
+    cfg = run.BenchConfig("water2d", (1000,), FRAMES, 8, 1, nn_threads=1, nn_alone_threads=2).validate()
+    kinds = {m.kind: m for m in methods_for("water2d", r_cs=(0.8,), variants=False)}
+    scene = make_scene("water2d", seed=1000)
+    assert run.method_simulator(kinds["neural"], scene, 1000, cfg).model.threads == 2
+    assert run.method_simulator(kinds["hybrid"], scene, 1000, cfg).model.threads == 1
+    with open(tiny["out"] / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["nn_threads"] for r in rows if r["kind"] == "neural"} == {"0"}
+    assert {r["nn_threads"] for r in rows if r["kind"] == "hybrid"} == {"1"}
+    assert "onnxruntime threads 1 in the hybrid, all for the networks alone" in (tiny["out"] / "report.md").read_text()
+    with pytest.raises(InvalidInputError, match="nn_alone_threads"):
+        run.BenchConfig("water2d", (1000,), FRAMES, nn_alone_threads=-1).validate()
+    # an older run's bench.json has no nn_alone_threads: its networks alone ran on nn_threads (1)
+    out = tmp_path / "water2d"
+    shutil.copytree(tiny["out"], out)
+    meta = json.loads((out / "bench.json").read_text())
+    del meta["settings"]["nn_alone_threads"]
+    (out / "bench.json").write_text(json.dumps(meta))
+
+    def boom(*a: object, **k: object) -> None:
+        raise AssertionError("a finished cell was rerun")
+
+    monkeypatch.setattr(run, "run_cell", boom)
+    monkeypatch.setattr(run, "reference", boom)
+    bench("water2d", seeds=[1000], frames=FRAMES, out=out, r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, nn_alone_threads=1, progress=False)
+    assert json.loads((out / "bench.json").read_text())["settings"]["nn_alone_threads"] == 1
+    with pytest.raises(InvalidInputError, match="nn_alone_threads"):  # the default (all cores) is another setting
+        bench("water2d", seeds=[1000], frames=FRAMES, out=out, r_cs=(0.0, 0.8), warmup=8, mpm_threads=1, progress=False)
+
+
 def test_bench_rejects_bad_parameters(tmp_path: Path):
     with pytest.raises(InvalidInputError, match="r_c"):
         bench("water2d", seeds=[1000], frames=FRAMES, out=tmp_path, r_cs=(1.5,), progress=False)

@@ -199,6 +199,7 @@ def _bench_kwargs(args: argparse.Namespace) -> dict:
     return {
         "frames": args.frames, "r_cs": r_cs, "model": args.model, "variants": not args.no_variants,
         "extra_models": tuple(args.extra_model or ()), "warmup": args.warmup, "mpm_threads": args.threads, "nn_threads": args.nn_threads,
+        "nn_alone_threads": args.nn_alone_threads,
     }  # fmt: skip
 
 
@@ -543,7 +544,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--no-variants", action="store_true", help="skip the shipped variant networks (full-resolution, spatial-/temporal-only)")
         p.add_argument("--warmup", type=int, default=24, help="frames at the start not timed (default 24)")
         p.add_argument("--threads", type=int, default=0, help="MPM threads (0 = all cores)")
-        p.add_argument("--nn-threads", type=int, default=1, help="onnxruntime threads (default 1)")
+        p.add_argument("--nn-threads", type=int, default=1, help="onnxruntime threads of the hybrid (default 1)")
+        p.add_argument(
+            "--nn-alone-threads", type=int, default=0, help="onnxruntime threads of the networks run alone (0 = all cores, the default: MPM is idle then)"
+        )
         p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     be = sub.add_parser("bench", help="error against latency for every method from the same held-out initial conditions; charts and report")

@@ -47,6 +47,7 @@ def bench(
     warmup: int = WARMUP_FRAMES,
     mpm_threads: int = 0,
     nn_threads: int = 1,
+    nn_alone_threads: int = 0,
     trajectory_r_c: float = R_C,
     command: str | None = None,
     progress: bool = True,
@@ -59,7 +60,10 @@ def bench(
     :data:`TEST_SEED0`); ``frames`` per rollout (default: the paper's T);
     ``r_cs`` hybrid thresholds; ``model`` the hybrid's network (default: the
     shipped one); ``variants`` include the shipped variant networks;
-    ``extra_models`` more ONNX files run alone; ``trajectory_r_c`` the
+    ``extra_models`` more ONNX files run alone; ``mpm_threads`` MPM threads
+    (0 = all cores); ``nn_threads`` onnxruntime threads of the hybrid,
+    ``nn_alone_threads`` of the networks run alone (0 = all cores:
+    :class:`~hybridmpm.bench.run.BenchConfig`); ``trajectory_r_c`` the
     hybrid drawn in ``error_trajectory.png``. Returns a dict with ``rows``
     (one per method, :func:`~hybridmpm.bench.report.aggregate`), ``cells``,
     ``pareto`` (labels on the front) and ``files``.
@@ -72,7 +76,7 @@ def bench(
     seeds = list(seeds) if seeds is not None else [TEST_SEED0 + i for i in range(3)]
     if len(set(seeds)) != len(seeds):
         raise InvalidInputError("seeds: must be distinct", "seeds")
-    cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads).validate()
+    cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads, nn_alone_threads).validate()
     methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models)
     out = Path(out) if out is not None else Path("runs/bench") / scene
     stride = max(m.r_t for m in methods)

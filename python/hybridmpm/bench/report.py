@@ -95,7 +95,8 @@ def write_results_csv(
                 frames=frames,
                 warmup_frames=settings["warmup"],
                 mpm_threads=settings["mpm_threads"],
-                nn_threads=settings["nn_threads"],
+                # the networks alone run on their own setting (absent from runs before it: the hybrid's)
+                nn_threads=settings.get("nn_alone_threads", settings["nn_threads"]) if m.kind == "neural" else settings["nn_threads"],
             )
             row["failure"] = c["failure"] or ""
             row["r_c"] = "" if m.r_c is None else m.r_c
@@ -231,7 +232,8 @@ def report_markdown(
         f"Command: `{command}`  ",
         f"Seeds (held-out initial conditions): {', '.join(map(str, seeds))}; {settings['frames']} frames per rollout; "
         f"latency excludes the first {settings['warmup']} frames and start-up.  ",
-        f"Machine: {env['machine']}, {env['cores']} cores; MPM threads {settings['mpm_threads'] or 'all'}, onnxruntime threads {settings['nn_threads']}.  ",
+        f"Machine: {env['machine']}, {env['cores']} cores; MPM threads {settings['mpm_threads'] or 'all'}, onnxruntime threads "
+        f"{settings['nn_threads'] or 'all'} in the hybrid, {settings.get('nn_alone_threads', settings['nn_threads']) or 'all'} for the networks alone.  ",
         f"Versions: hybridmpm {env['hybridmpm']} (commit {env['commit']}), numpy {env['numpy']}, onnxruntime {env['onnxruntime']}, Python {env['python']}.",
         "",
         "Error: grid-mass error against full-resolution MPM from the same initial condition (DESIGN.md), mean over the "

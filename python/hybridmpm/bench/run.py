@@ -56,7 +56,11 @@ class BenchConfig:
 
     ``scene`` registered scene; ``seeds`` initial conditions; ``frames``
     frames per rollout; ``warmup`` untimed frames; ``mpm_threads`` MPM threads
-    (0 = all cores); ``nn_threads`` onnxruntime threads.
+    (0 = all cores); ``nn_threads`` onnxruntime threads of the hybrid (one:
+    its MPM frames follow its network steps, and a spinning onnxruntime
+    worker would slow them); ``nn_alone_threads`` those of the networks run
+    alone (0 = all cores, as MPM: nothing else runs then; issue 17, "two
+    onnxruntime threads when MPM is idle").
     """
 
     scene: str
@@ -65,6 +69,7 @@ class BenchConfig:
     warmup: int = WARMUP_FRAMES
     mpm_threads: int = 0
     nn_threads: int = 1
+    nn_alone_threads: int = 0
 
     def validate(self) -> BenchConfig:
         if not self.seeds:
@@ -73,14 +78,21 @@ class BenchConfig:
             raise InvalidInputError(f"frames: must be an integer >= 2, got {self.frames!r}", "frames")
         if not isinstance(self.warmup, int) or not (0 <= self.warmup < self.frames):
             raise InvalidInputError(f"warmup: must be an integer in [0, frames), got {self.warmup!r}", "warmup")
-        for name in ("mpm_threads", "nn_threads"):
+        for name in ("mpm_threads", "nn_threads", "nn_alone_threads"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 0:
                 raise InvalidInputError(f"{name}: must be an integer >= 0, got {v!r}", name)
         return self
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"scene": self.scene, "frames": self.frames, "warmup": self.warmup, "mpm_threads": self.mpm_threads, "nn_threads": self.nn_threads}
+        return {
+            "scene": self.scene,
+            "frames": self.frames,
+            "warmup": self.warmup,
+            "mpm_threads": self.mpm_threads,
+            "nn_threads": self.nn_threads,
+            "nn_alone_threads": self.nn_alone_threads,
+        }
 
 
 def _latency(per_frame: np.ndarray) -> dict[str, float]:
@@ -115,7 +127,7 @@ def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) ->
     if method.kind == "mpm":
         return MpmSimulator(scene, r_p=method.r_p, seed=seed, threads=cfg.mpm_threads)
     if method.kind == "neural":
-        return NeuralSimulator(scene, method.model, seed=seed, detect_failures=False, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads)
+        return NeuralSimulator(scene, method.model, seed=seed, detect_failures=False, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_alone_threads)
     return HybridSimulator(scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads)
 
 
@@ -229,6 +241,8 @@ def run_bench(
     meta_path = out / "bench.json"
     if meta_path.is_file():
         old = json.loads(meta_path.read_text()).get("settings", {})
+        if old and "nn_alone_threads" not in old:  # written before the setting: the networks alone ran as the hybrid
+            old["nn_alone_threads"] = old.get("nn_threads")
         if old and old != cfg.fingerprint():
             diff = ", ".join(f"{k} {old.get(k)!r} → {v!r}" for k, v in cfg.fingerprint().items() if old.get(k) != v)
             raise InvalidInputError(f"out: {out} holds a benchmark with other settings ({diff}); use another --out or delete it", "out")
