@@ -73,9 +73,12 @@
 //! receiver's edges depend only on the input, so the output is bitwise
 //! identical for any number of threads.
 //!
-//! The crate is safe Rust only and knows nothing of Python.
+//! The crate is safe Rust but for one module, `avx512` (the distance test
+//! and compaction of the search sixteen candidates at a time: masked loads
+//! and stores within lengths asserted before the call, run only on a CPU
+//! that has the instructions), and knows nothing of Python.
 
-#![forbid(unsafe_code)]
+#![deny(unsafe_code)]
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
@@ -282,9 +285,6 @@ const CELLS_PER_PARTICLE: f64 = 16.0;
 /// Cells a grid may always have, whatever the number of particles.
 const MIN_CELLS: f64 = 4096.0;
 
-/// Candidates tested per block of the vectorised distance test.
-const BLOCK: usize = 64;
-
 /// Candidates of a row tested at a time ([`CellList::accept`]).
 const LANES: usize = 8;
 
@@ -313,6 +313,136 @@ fn insertion_sort(v: &mut [u32]) {
             k -= 1;
         }
         v[k] = x;
+    }
+}
+
+/// Appends to `out[len..]`, in order, the `idx[t]` (`t < n`) whose squared
+/// distance to `p`, `Σ_k (cols[k][t] - p[k])²` summed left to right without
+/// fused multiply-adds (the crate's criterion), is at most `rr`; returns the
+/// new length. `cols[k]` and `idx` hold at least `n` entries, `out` at least
+/// `len + n`. Sixteen candidates at a time with AVX-512 (a compare mask and
+/// a compress) where the CPU has it, else [`LANES`] at a time, compacted
+/// branch-free: the same candidates either way (same operations, same order).
+#[inline(always)]
+fn compact<const D: usize>(
+    cols: [&[f32]; D],
+    idx: &[u32],
+    n: usize,
+    p: &[f32; D],
+    rr: f32,
+    out: &mut [u32],
+    len: usize,
+) -> usize {
+    assert!(idx.len() >= n && cols.iter().all(|c| c.len() >= n) && out.len() >= len + n);
+    #[cfg(target_arch = "x86_64")]
+    if avx512::available() {
+        // SAFETY: the CPU has AVX-512F/VL (checked); lengths asserted above.
+        #[allow(unsafe_code)]
+        return unsafe { avx512::compact(cols, idx, n, p, rr, out, len) };
+    }
+    compact_portable(cols, idx, n, p, rr, out, len)
+}
+
+/// [`compact`] without SIMD intrinsics (the reference of the AVX-512 copy).
+#[inline(always)]
+fn compact_portable<const D: usize>(
+    cols: [&[f32]; D],
+    idx: &[u32],
+    n: usize,
+    p: &[f32; D],
+    rr: f32,
+    out: &mut [u32],
+    mut len: usize,
+) -> usize {
+    let mut t = 0;
+    while t < n {
+        let m = (n - t).min(LANES);
+        let mut dd = [0.0f32; LANES];
+        for (l, x) in dd.iter_mut().enumerate().take(m) {
+            let d = cols[0][t + l] - p[0];
+            let mut acc = d * d;
+            for k in 1..D {
+                let d = cols[k][t + l] - p[k];
+                acc += d * d;
+            }
+            *x = acc;
+        }
+        // branch-free compaction (the accept pattern is unpredictable)
+        for (&j, &x) in idx[t..t + m].iter().zip(&dd) {
+            out[len] = j;
+            len += (x <= rr) as usize;
+        }
+        t += LANES;
+    }
+    len
+}
+
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod avx512 {
+    use std::arch::x86_64::*;
+    use std::sync::OnceLock;
+
+    /// Whether the CPU has AVX-512F and VL, and `HYBRIDMPM_ISA` does not ask
+    /// for the portable code (`baseline`, as the MPM frame loop and the
+    /// network kernels read it).
+    pub(super) fn available() -> bool {
+        static ON: OnceLock<bool> = OnceLock::new();
+        *ON.get_or_init(|| {
+            let asked = std::env::var("HYBRIDMPM_ISA").unwrap_or_default();
+            asked != "baseline"
+                && asked != "avx2"
+                && is_x86_feature_detected!("avx512f")
+                && is_x86_feature_detected!("avx512vl")
+        })
+    }
+
+    /// [`super::compact`], sixteen candidates at a time.
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512F and VL; `cols[k]` and `idx` hold at least
+    /// `n` entries, `out` at least `len + n`.
+    #[target_feature(enable = "avx512f,avx512vl,popcnt")]
+    pub(super) unsafe fn compact<const D: usize>(
+        cols: [&[f32]; D],
+        idx: &[u32],
+        n: usize,
+        p: &[f32; D],
+        rr: f32,
+        out: &mut [u32],
+        mut len: usize,
+    ) -> usize {
+        let limit = _mm512_set1_ps(rr);
+        let mut t = 0;
+        while t < n {
+            let m = (n - t).min(16);
+            let live: __mmask16 = if m == 16 { u16::MAX } else { (1u16 << m) - 1 };
+            // SAFETY (all loads and the store): masked to the `m` entries left,
+            // which the slices hold (caller); masked-off lanes are not accessed.
+            unsafe {
+                let x = _mm512_maskz_loadu_ps(live, cols[0].as_ptr().add(t));
+                let d = _mm512_sub_ps(x, _mm512_set1_ps(p[0]));
+                let mut acc = _mm512_mul_ps(d, d);
+                for k in 1..D {
+                    let x = _mm512_maskz_loadu_ps(live, cols[k].as_ptr().add(t));
+                    let d = _mm512_sub_ps(x, _mm512_set1_ps(p[k]));
+                    acc = _mm512_add_ps(acc, _mm512_mul_ps(d, d));
+                }
+                let hit = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(live, acc, limit);
+                let j = _mm512_maskz_loadu_epi32(live, idx.as_ptr().add(t) as *const i32);
+                let kept = _mm512_maskz_compress_epi32(hit, j);
+                let count = hit.count_ones() as usize;
+                let first: __mmask16 = if count == 16 {
+                    u16::MAX
+                } else {
+                    (1u16 << count) - 1
+                };
+                _mm512_mask_storeu_epi32(out.as_mut_ptr().add(len) as *mut i32, first, kept);
+                len += count;
+            }
+            t += 16;
+        }
+        len
     }
 }
 
@@ -477,26 +607,8 @@ impl<const D: usize> CellList<D> {
     fn accept(&self, p: &[f32; D], ranges: &[(usize, usize)], rr: f32, out: &mut [u32]) -> usize {
         let mut len = 0;
         for &(a, b) in ranges {
-            let mut t = a;
-            while t < b {
-                let mut dd = [0.0f32; LANES];
-                let cols: [&[f32]; D] = std::array::from_fn(|k| &self.xs[k][t..t + LANES]);
-                for (l, x) in dd.iter_mut().enumerate() {
-                    let d = cols[0][l] - p[0];
-                    let mut acc = d * d;
-                    for k in 1..D {
-                        let d = cols[k][l] - p[k];
-                        acc += d * d;
-                    }
-                    *x = acc;
-                }
-                let m = (b - t).min(LANES);
-                for (&j, &x) in self.sorted_idx[t..t + m].iter().zip(&dd) {
-                    out[len] = j;
-                    len += (x <= rr) as usize;
-                }
-                t += LANES;
-            }
+            let cols: [&[f32]; D] = std::array::from_fn(|k| &self.xs[k][a..b]);
+            len = compact(cols, &self.sorted_idx[a..b], b - a, p, rr, out, len);
         }
         insertion_sort(&mut out[..len]);
         len
@@ -610,35 +722,12 @@ impl<const D: usize> Union<D> {
     /// (`d = p_j - p`), in ascending order, and returns `len`. `out` must
     /// hold at least `self.idx.len()` entries.
     ///
-    /// The squared distances are computed over blocks of [`BLOCK`]
-    /// candidates (vectorisable), then compacted branch-free.
+    /// The squared distances are tested and the accepted candidates
+    /// compacted by [`compact`].
     #[inline(always)]
-    fn gather(&self, p: &[f32; D], rr: f32, out: &mut [u32], dd: &mut [f32; BLOCK]) -> usize {
-        let mut len = 0;
-        let total = self.idx.len();
-        let mut s = 0;
-        while s < total {
-            let n = (total - s).min(BLOCK);
-            let idx = &self.idx[s..s + n];
-            let cols: [&[f32]; D] = std::array::from_fn(|k| &self.pos[k][s..s + n]);
-            let dd = &mut dd[..n];
-            for (t, x) in dd.iter_mut().enumerate() {
-                let d = cols[0][t] - p[0];
-                let mut acc = d * d;
-                for k in 1..D {
-                    let d = cols[k][t] - p[k];
-                    acc += d * d;
-                }
-                *x = acc;
-            }
-            // Branch-free compaction (the accept pattern is unpredictable).
-            for (&j, &x) in idx.iter().zip(dd.iter()) {
-                out[len] = j;
-                len += (x <= rr) as usize;
-            }
-            s += n;
-        }
-        len
+    fn gather(&self, p: &[f32; D], rr: f32, out: &mut [u32]) -> usize {
+        let cols: [&[f32]; D] = std::array::from_fn(|k| &self.pos[k][..]);
+        compact(cols, &self.idx, self.idx.len(), p, rr, out, 0)
     }
 }
 
@@ -649,7 +738,6 @@ struct Scratch<const D: usize> {
     buf: Vec<u32>,
     keyed: Vec<u64>,
     bits: BitSorter,
-    dd: [f32; BLOCK],
 }
 
 impl<const D: usize> Default for Scratch<D> {
@@ -663,7 +751,6 @@ impl<const D: usize> Default for Scratch<D> {
             buf: Vec::new(),
             keyed: Vec::new(),
             bits: BitSorter::default(),
-            dd: [0.0; BLOCK],
         }
     }
 }
@@ -955,7 +1042,6 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 buf,
                 keyed,
                 bits,
-                dd,
             } = scratch;
             let mut slot = lo;
             'cells: while slot < hi {
@@ -984,7 +1070,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                     let mut len = if direct {
                         cells.accept(pi, ranges, rr, buf)
                     } else {
-                        union.gather(pi, rr, buf, dd)
+                        union.gather(pi, rr, buf)
                     };
                     if !self_edges {
                         // The receiver always finds itself (d = 0).
@@ -1349,6 +1435,78 @@ mod tests {
                 sort_distinct(&mut v, &mut bits);
                 assert_eq!(v, want, "n {n} span {span}");
             }
+        }
+    }
+
+    /// The AVX-512 compaction keeps exactly the candidates of the portable
+    /// one, in the same order, for every length (full and partial vectors),
+    /// with candidates exactly at the radius and the output appended after
+    /// existing entries; the portable one is held to the criterion itself.
+    #[test]
+    fn compaction_copies_agree_with_the_criterion() {
+        fn check<const D: usize>(seed: u64) {
+            let mut s = seed;
+            let mut next = || {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 40) as f32) / (1u64 << 24) as f32
+            };
+            // on a 1/1024 grid, so that a candidate 0.25 away along an axis is at
+            // squared distance 0.0625 = rr exactly (a tie, which is kept)
+            let p: [f32; D] = std::array::from_fn(|_| (next() * 1024.0).floor() / 1024.0);
+            let rr = 0.0625f32;
+            for n in [0usize, 1, 7, 8, 15, 16, 17, 31, 33, 64, 100] {
+                let mut cols: [Vec<f32>; D] =
+                    std::array::from_fn(|_| (0..n).map(|_| next()).collect());
+                // some candidates exactly on the sphere, some at the receiver
+                for t in (0..n).step_by(5) {
+                    for (k, c) in cols.iter_mut().enumerate() {
+                        c[t] = p[k];
+                    }
+                    cols[0][t] = p[0] + 0.25;
+                }
+                for t in (2..n).step_by(7) {
+                    for (k, c) in cols.iter_mut().enumerate() {
+                        c[t] = p[k];
+                    }
+                }
+                let idx: Vec<u32> = (0..n as u32).map(|i| 3 * i + 1).collect();
+                let want: Vec<u32> = (0..n)
+                    .filter(|&t| {
+                        let d = cols[0][t] - p[0];
+                        let mut acc = d * d;
+                        for k in 1..D {
+                            let d = cols[k][t] - p[k];
+                            acc += d * d;
+                        }
+                        acc <= rr
+                    })
+                    .map(|t| idx[t])
+                    .collect();
+                let refs: [&[f32]; D] = std::array::from_fn(|k| &cols[k][..]);
+                let mut out = vec![7u32; 3 + n];
+                let len = super::compact_portable(refs, &idx, n, &p, rr, &mut out, 3);
+                assert_eq!(&out[3..len], &want[..], "portable, D {D}, n {n}");
+                assert_eq!(&out[..3], &[7, 7, 7]);
+                #[cfg(target_arch = "x86_64")]
+                if super::avx512::available() {
+                    let mut out2 = vec![7u32; 3 + n];
+                    #[allow(unsafe_code)]
+                    // SAFETY: checked above; lengths as `compact` asserts.
+                    let len2 =
+                        unsafe { super::avx512::compact(refs, &idx, n, &p, rr, &mut out2, 3) };
+                    assert_eq!(&out2[..len2], &out[..len], "AVX-512, D {D}, n {n}");
+                    assert!(
+                        out2[len2..].iter().all(|&v| v == 7),
+                        "wrote past the kept ones"
+                    );
+                }
+            }
+        }
+        for seed in 0..20 {
+            check::<2>(seed);
+            check::<3>(seed + 100);
         }
     }
 }
