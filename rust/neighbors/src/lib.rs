@@ -297,6 +297,21 @@ const LANES: usize = 8;
 /// 289 / 390 and 314 / 292 / 367; dam break 2D: 222 / 218 / 327.
 const UNION_RECEIVERS: usize = 4;
 
+/// [`UNION_RECEIVERS`] where the direct tests run on the portable code;
+/// with the AVX-512 compaction and rank sort the direct tests win in every
+/// cell (`relax_then_graph` on network states, µs, threshold 4 / 8 /
+/// never: dam break 697–703 / 666–687 / 663–666 and 1 281–1 300 / 1 212–1 223
+/// / 1 217; sand3d run out 749 / 704–710 / 713–717, at rest 276–279 / 262–267
+/// / 264–268; water3d 1 537–1 576 / 1 498–1 548 / 1 461–1 508), so the union
+/// is not built there.
+fn union_receivers() -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if avx512::available() {
+        return usize::MAX;
+    }
+    UNION_RECEIVERS
+}
+
 /// Sorts a short list of distinct indices ascending (a receiver's accepted
 /// senders, a few dozen): up to 64 by rank with AVX-512 where the CPU has it
 /// (no data-dependent branches: the insertion sort's comparisons mispredict,
@@ -316,6 +331,11 @@ fn insertion_sort(v: &mut [u32]) {
         };
         return;
     }
+    insertion_sort_portable(v);
+}
+
+/// The insertion sort of [`insertion_sort`] (any length).
+fn insertion_sort_portable(v: &mut [u32]) {
     for i in 1..v.len() {
         let x = v[i];
         let mut k = i;
@@ -488,7 +508,10 @@ mod avx512 {
             }
             v[rank as usize] = x;
         }
-        debug_assert!(v.windows(2).all(|w| w[0] < w[1]), "rank_sort: values must be distinct");
+        debug_assert!(
+            v.windows(2).all(|w| w[0] < w[1]),
+            "rank_sort: values must be distinct"
+        );
     }
 }
 
@@ -1031,6 +1054,16 @@ impl<'a, const D: usize> Neighbors<'a, D> {
     /// # Errors
     /// As [`radius_graph`].
     pub fn search(positions: &'a [[f32; D]], params: &GraphParams) -> Result<Self, GraphError> {
+        Self::search_with(positions, params, union_receivers())
+    }
+
+    /// [`Neighbors::search`] with cells of `union_from` receivers or more
+    /// searched through their shared candidate list (tests take both paths).
+    fn search_with(
+        positions: &'a [[f32; D]],
+        params: &GraphParams,
+        union_from: usize,
+    ) -> Result<Self, GraphError> {
         if D == 0 {
             return Err(GraphError::invalid("positions", "dimension must be >= 1"));
         }
@@ -1102,7 +1135,7 @@ impl<'a, const D: usize> Neighbors<'a, D> {
                 // sorts what it accepts; one of more builds their common
                 // candidate list once, sorted, so accepted senders come out
                 // in order (UNION_RECEIVERS).
-                let direct = cell_end - slot < UNION_RECEIVERS;
+                let direct = cell_end - slot < union_from;
                 if direct {
                     cells.neighbourhood(cell, ranges);
                     let total: usize = ranges.iter().map(|&(a, b)| b - a).sum();
@@ -1514,8 +1547,55 @@ mod tests {
                     let j = next() as usize % (i + 1);
                     v.swap(i, j);
                 }
+                let mut w = v.clone();
                 super::insertion_sort(&mut v);
                 assert_eq!(v, want, "n {n}");
+                super::insertion_sort_portable(&mut w);
+                assert_eq!(w, want, "n {n}, portable");
+            }
+        }
+    }
+
+    /// The two ways of searching a cell's receivers (each receiver's rows
+    /// tested directly, or the cell's candidates gathered and sorted once)
+    /// give the same lists, with and without self-edges and a cap, in 2D
+    /// and 3D on clouds from sparse to clumped (the proptests against brute
+    /// force in `tests/` cover the way the CPU runs).
+    #[test]
+    fn direct_and_union_searches_agree() {
+        fn check<const D: usize>(seed: u64, n: usize, spread: f32) {
+            let mut s = seed;
+            let mut next = || {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 40) as f32) / (1u64 << 24) as f32
+            };
+            let pos: Vec<[f32; D]> = (0..n)
+                .map(|_| std::array::from_fn(|_| next() * spread))
+                .collect();
+            for (self_edges, cap) in [(true, None), (false, None), (true, Some(5))] {
+                let gp = super::GraphParams {
+                    radius: 0.1,
+                    self_edges,
+                    max_neighbors: cap,
+                    ..Default::default()
+                };
+                let direct = super::Neighbors::search_with(&pos, &gp, usize::MAX)
+                    .unwrap()
+                    .csr();
+                for from in [1, 4] {
+                    let union = super::Neighbors::search_with(&pos, &gp, from)
+                        .unwrap()
+                        .csr();
+                    assert_eq!(direct, union, "D {D}, n {n}, spread {spread}, from {from}");
+                }
+            }
+        }
+        for seed in 0..4 {
+            for (n, spread) in [(50, 2.0), (400, 1.0), (800, 0.3)] {
+                check::<2>(seed, n, spread);
+                check::<3>(seed + 10, n, spread);
             }
         }
     }
