@@ -191,6 +191,32 @@ class _Exploding(NeuralModel):
         return acc, nxt + 1.0, g  # 1 m in one step: escapes the domain
 
 
+def test_the_escape_check_is_per_axis_and_per_side(water_model):
+    """The failure check's "escaped" verdict (a fluid particle more than
+    ``escape_cells`` cells outside the model's bounds, on either side of any
+    axis) against the [N, D] comparison written out, with bounds that differ
+    per axis and side, each particle pushed just inside and just outside."""
+    sim = NeuralSimulator(make_scene("water2d", seed=1000), water_model, mpm_threads=1)
+    sim._lo, sim._hi = np.array([0.05, 0.2], np.float32), np.array([0.9, 0.7], np.float32)
+    sim._escape_key = None  # the bounds changed under the cache
+    n = sim.particles.num_fluid
+    margin = np.float32(sim.escape_cells * sim._dx)
+    rng = np.random.default_rng(0)
+    base = (sim._lo + (sim._hi - sim._lo) * rng.random((n, 2))).astype(np.float32)
+    sim._history = np.stack([base] * sim.t_in)  # no motion: no kinetic energy
+    assert sim._failure(base) is None
+    for axis in (0, 1):
+        for side, edge in ((-1, sim._lo - margin), (1, sim._hi + margin)):
+            for eps, verdict in ((-1e-3, None), (1e-3, "escaped")):
+                x = base.copy()
+                x[rng.integers(n), axis] = edge[axis] + side * eps
+                want = "escaped" if ((x < sim._lo - margin).any() or (x > sim._hi + margin).any()) else None
+                assert want == verdict
+                # only the position check can fire: undo the step's kinetic energy
+                sim._history = np.stack([x] * sim.t_in)
+                assert sim._failure(x) == verdict, (axis, side, eps)
+
+
 def test_a_rejected_network_step_ends_the_network_alone_unchanged():
     sim = NeuralSimulator(make_scene("water2d", seed=3), _Exploding(shipped_model("water2d")), mpm_threads=1)
     ro = rollout(sim, 100)

@@ -208,6 +208,8 @@ class NeuralSimulator:
         self.energy_budget = float(0.5 * (masses * (v0**2).sum(1)).sum() + (masses * ((x0 - lo) @ -g).clip(min=0)).sum())
         b = np.asarray(self.model.meta["bounds"], np.float32)
         self._lo, self._hi = b[:, 0], b[:, 1]
+        self._escape_key: tuple[int, float] | None = None
+        self._escape: tuple[np.ndarray, np.ndarray] = (self._lo, self._hi)
         x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
         self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
         self.relax = relax
@@ -301,10 +303,11 @@ class NeuralSimulator:
         assert self._history is not None
         n = self.particles.num_fluid
         fluid = nxt[:n]
-        if not np.isfinite(fluid).all():
+        flat = fluid.reshape(-1)  # contiguous: one long comparison, not [N, D] against [D]
+        if not np.isfinite(flat).all():
             return "nan"
-        margin = self.escape_cells * self._dx
-        if (fluid < self._lo - margin).any() or (fluid > self._hi + margin).any():
+        lo, hi = self._escape_bounds(n)
+        if (flat < lo).any() or (flat > hi).any():
             return "escaped"
         d = fluid.astype(np.float64)
         d -= self._history[-1, :n]
@@ -312,6 +315,16 @@ class NeuralSimulator:
         if ke > self.ke_factor * self.energy_budget:
             return "energy"
         return None
+
+    def _escape_bounds(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The model's bounds widened by ``escape_cells`` cells, float32, each
+        repeated for ``n`` particles ([n·D], the layout of a flattened [n, D]
+        array); made again only when ``n`` or the margin changes."""
+        margin = self.escape_cells * self._dx
+        if self._escape_key != (n, margin):
+            self._escape = (np.tile(self._lo - margin, n), np.tile(self._hi + margin, n))
+            self._escape_key = (n, margin)
+        return self._escape
 
     def _clip(self, nxt: np.ndarray) -> np.ndarray:
         if self.clamp:
