@@ -172,7 +172,8 @@ def test_training_sketches_follow_the_centroids_and_principal_axes():
     start = rng.normal([0.3, 0.3], 0.02, (4000, 2))
     end = rng.normal([0.6, 0.5], [0.08, 0.02], (4000, 2))
     arrow = sketch_from_trajectory(start, end, "arrow")
-    np.testing.assert_allclose(arrow.start, start.mean(0)) and np.testing.assert_allclose(arrow.end, end.mean(0))
+    np.testing.assert_allclose(arrow.start, start.mean(0))
+    np.testing.assert_allclose(arrow.end, end.mean(0))
     oval = sketch_from_trajectory(start, end, "oval")
     c, r, ang = oval.ellipse()
     np.testing.assert_allclose(c, [0.6, 0.5], atol=5e-3)
@@ -314,7 +315,8 @@ def test_an_oval_drawn_in_a_png_reads_back_and_bad_pngs_are_refused():
     sk = sketch_from_png(_png(render_sketch(Sketch.oval([0.4, 0.6], [0.2, 0.1], 0.5), size=256)))
     c, r, ang = sk.ellipse()
     assert sk.kind == "oval" and abs(math.sin(ang - 0.5)) < 0.05
-    np.testing.assert_allclose(c, [0.4, 0.6], atol=0.01) and np.testing.assert_allclose(r, [0.2, 0.1], rtol=0.05)
+    np.testing.assert_allclose(c, [0.4, 0.6], atol=0.01)
+    np.testing.assert_allclose(r, [0.2, 0.1], rtol=0.05)
     for bad in (b"GIF89a...", _png(np.zeros((64, 64), np.uint8)), _png(np.zeros((4096, 4096), np.uint8))):
         with pytest.raises(InvalidInputError) as e:
             sketch_from_png(bad)
