@@ -1,5 +1,7 @@
 """A real server in a subprocess on 127.0.0.1 for tests and benchmarks
-(``hybridmpm serve`` on a free port; stopped with :meth:`LiveServer.stop`)."""
+(``hybridmpm serve --port 0``: the server binds a port the system chooses,
+read back from the child's listening socket, so no other process can take it
+between choosing and binding; stopped with :meth:`LiveServer.stop`)."""
 
 from __future__ import annotations
 
@@ -18,14 +20,36 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def listening_port(pid: int) -> int | None:
+    """The TCP port process ``pid`` listens on (Linux: its socket inodes
+    matched in ``/proc/PID/net/tcp``), or None while it listens on none."""
+    try:
+        inodes = set()
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            try:
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+            except OSError:  # closed meanwhile
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[len("socket:[") : -1])
+        for table in ("tcp", "tcp6"):
+            for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+                f = line.split()
+                if f[3] == "0A" and f[9] in inodes:  # state LISTEN
+                    return int(f[1].rsplit(":", 1)[1], 16)
+    except OSError:
+        return None
+    return None
+
+
 class LiveServer:
     """``hybridmpm serve`` in a child process. ``env`` adds ``HMPM_*`` settings
-    (:meth:`ServiceConfig.from_env`); ``url`` is its base URL once started."""
+    (:meth:`ServiceConfig.from_env`); ``port``, ``url`` and ``ws_url`` are
+    known once it is started (:meth:`start`, or entering the ``with``)."""
 
     def __init__(self, max_sessions: int = 100, ttl: float = 600.0, env: dict[str, str] | None = None, log: Path | None = None) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.ws_url = f"ws://127.0.0.1:{self.port}"
+        self.port = 0
+        self.url = self.ws_url = ""
         cmd = [
             sys.executable,
             "-m",
@@ -34,7 +58,7 @@ class LiveServer:
             "--host",
             "127.0.0.1",
             "--port",
-            str(self.port),
+            "0",
             "--max-sessions",
             str(max_sessions),
             "--ttl",
@@ -49,6 +73,14 @@ class LiveServer:
         while time.monotonic() < t_end:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"server exited with {self.proc.returncode}")
+            if not self.port:
+                port = listening_port(self.proc.pid)
+                if port is None:
+                    time.sleep(0.1)
+                    continue
+                self.port = port
+                self.url = f"http://127.0.0.1:{port}"
+                self.ws_url = f"ws://127.0.0.1:{port}"
             try:
                 with urllib.request.urlopen(self.url + "/healthz", timeout=1) as r:
                     if r.status == 200:
@@ -86,4 +118,4 @@ class LiveServer:
         self.stop()
 
 
-__all__ = ["LiveServer", "free_port"]
+__all__ = ["LiveServer", "free_port", "listening_port"]
