@@ -1,0 +1,70 @@
+"""Suite-wide settings.
+
+* Property tests: hypothesis's "ci" profile (derandomised: the same examples
+  on every run, no example database) when the environment sets ``CI``; the
+  "dev" profile (random examples, hypothesis's defaults) otherwise, so local
+  runs keep exploring. ``HYPOTHESIS_PROFILE`` picks one explicitly.
+* In CI a skipped test is a failure: the browser, service, Ray and
+  schemathesis tests skip when their packages or Debian's chromium are
+  missing, and CI installs them all, so a skip there means CI stopped testing
+  something. A test whose skip is legitimate on some CI machines says why
+  with ``@pytest.mark.may_skip_in_ci(reason)``. Skips raised while a module
+  is collected (``pytest.importorskip`` at module level) cannot be turned into
+  test failures; they are listed at the end and make the run fail.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from hypothesis import settings
+
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+settings.register_profile("dev")
+
+
+def in_ci() -> bool:
+    """Whether the environment says this is CI (``CI`` set to anything but empty, 0 or false)."""
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+
+
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if in_ci() else "dev"))
+
+_COLLECTION_SKIPS: list[str] = []
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "may_skip_in_ci(reason): the test may skip in CI (CI otherwise fails on a skip); the reason says when and why")
+
+
+def _skip_reason(longrepr: object) -> str:
+    if isinstance(longrepr, tuple) and len(longrepr) == 3:
+        return str(longrepr[2])
+    return str(longrepr)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> object:
+    outcome = yield
+    rep = outcome.get_result()
+    if in_ci() and rep.skipped and not hasattr(rep, "wasxfail") and item.get_closest_marker("may_skip_in_ci") is None:
+        rep.outcome = "failed"
+        rep.longrepr = f"skipped in CI, which fails the run (CI installs every test dependency): {_skip_reason(rep.longrepr)}"
+
+
+def pytest_collectreport(report: pytest.CollectReport) -> None:
+    if in_ci() and report.skipped:
+        _COLLECTION_SKIPS.append(f"{report.nodeid}: {_skip_reason(report.longrepr)}")
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:  # type: ignore[no-untyped-def]
+    if _COLLECTION_SKIPS:
+        terminalreporter.section("modules skipped in CI (a failure)", red=True)
+        for line in _COLLECTION_SKIPS:
+            terminalreporter.line(line)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if _COLLECTION_SKIPS and session.exitstatus == 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
