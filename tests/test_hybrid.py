@@ -240,9 +240,8 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
     for a, b in zip(frames[:first_bad], ref[:first_bad]):
         assert np.array_equal(a.positions, b.positions)
     assert len(frames) == len(ref)
-    lo, hi = sim.mpm.solver.domain_bounds
-    last = frames[-1].positions
-    assert np.isfinite(last).all() and (last >= lo - 1e-6).all() and (last <= hi + 1e-6).all()
+    # finite to the end (no "inside the domain" check: both solvers clamp to the domain, so it could not fail)
+    assert np.isfinite(frames[-1].positions).all()
     if how == "compressed":  # the last state kept is still within the bound, the rejected one was not
 
         def degree(x):
@@ -271,14 +270,28 @@ def test_mpm_halves_its_substep_on_trouble():
 
 
 @pytest.mark.parametrize("case", ["fast", "obstacle", "dense"])
-def test_out_of_distribution_scenes_end_finite_and_inside(case, water_model):
+def test_out_of_distribution_scenes_end_finite_and_beat_the_network_alone(case, water_model):
+    # (no "inside the domain" check: both solvers clamp to the domain, so it could not fail)
     scene = case_scene("water2d", case, seed=7)
     ro, _ = run_method(scene, "hybrid", 240, water_model, threads=1)
     assert ro.failure is None
-    lo, hi = scene.make_solver(num_threads=1).domain_bounds
     pos = ro.positions
-    assert np.isfinite(pos).all() and (pos >= lo - 1e-6).all() and (pos <= hi + 1e-6).all()
+    assert np.isfinite(pos).all()
     assert len(pos) == 240 // ro.r_t + 1
+    if case == "obstacle":
+        # the network sees the obstacle only as boundary particles and lets water 10 cells into it here;
+        # MPM's collider lets particles 0.8 cells in (its grid nodes see the sphere), the hybrid 0.7
+        (sphere,) = scene.params.colliders
+        dx = 1.0 / scene.params.n_grid
+        depth = sphere.radius - np.linalg.norm(ro.fluid_positions - np.asarray(sphere.center), axis=-1)
+        assert depth.max() < 2 * dx, depth.max() / dx
+    # the fallback pays off out of distribution too: the hybrid's error against full-resolution MPM is
+    # below the network alone's (measured at 4979fba: 0.47 vs 0.95 fast, 0.60 vs 0.79 obstacle, 0.56 vs 0.73 dense)
+    ref = reference(scene, 240, stride=ro.r_t, threads=1).fluid_positions
+    e_hy = grid_mass_error(ro.fluid_positions, ref, 128).mean()
+    alone = rollout(NeuralSimulator(scene, water_model, detect_failures=False, mpm_threads=1), 240).fluid_positions
+    e_nn = grid_mass_error(alone, ref, 128).mean()
+    assert e_hy < 0.9 * e_nn, (e_hy, e_nn)
 
 
 def test_stress_cases_change_what_they_say():
