@@ -150,7 +150,19 @@ def test_3d_scene_uniform_along_z_gives_the_2d_result():
     assert abs(h3 - h2) < 1.0 / n, (h2, h3)
     # and the flow stayed uniform along z
     assert np.abs(s3.velocities[:, 2]).max() < 0.05 * np.abs(s3.velocities[:, 0]).max()
-    # the grid mass of the 3D run, summed over z, matches the 2D one
+    # the mass on a grid of 4-cell bins (numpy's histogram, not the library's p2g), of the 3D run summed
+    # over z, matches the 2D run's: relative L2 difference 0.015 measured; the 2D mass moved by half a
+    # cell gives 0.11, by one cell 0.21; sticky instead of slip slab walls 0.26
+    bins = np.linspace(0.0, 1.0, n // 4 + 1)
+
+    def mass(pos: np.ndarray, m: np.ndarray) -> np.ndarray:
+        h, _, _ = np.histogram2d(pos[:, 0], pos[:, 1], bins=[bins, bins], weights=m)
+        return h / h.sum()
+
+    m2, m3 = mass(s2.positions, s2.masses), mass(s3.positions, s3.masses)
+    rel = float(np.linalg.norm(m3 - m2) / np.linalg.norm(m2))
+    assert rel < 0.08, rel
+    # and the water stayed between the slab's walls
     assert s3.positions[:, 2].min() >= z0 - 0.5 / n and s3.positions[:, 2].max() <= z1 + 0.5 / n
 
 
