@@ -11,10 +11,15 @@ re-recorded by ``golden/rerecord_mpm.py``, and their coordinate sums against
 202ef89's within a rounding-level tolerance. Network alone and hybrid:
 water2d and the dam break, 2 seeds, 120 frames (the hybrid switches to the
 network and back in them), without the density relaxation between network
-steps that issue 16 made the default (``relax=0``: 202ef89 had none). The digests are of this machine class's float
-arithmetic (x86-64, the Rust build's SIMD and onnxruntime's CPU kernels); on
-another CPU the MPM digests hold (no FMA contraction, deterministic across
-thread counts) but onnxruntime may pick other kernels.
+steps that issue 16 made the default (``relax=0``: 202ef89 had none). The MPM
+digests hold on any CPU (no FMA contraction, deterministic across thread
+counts). The network and hybrid digests depend on the CPU: onnxruntime picks
+its kernels per release and instruction set, and the radius graph has an
+AVX-512 path. They are checked only on the machine class they hold on
+(``golden/network_digest_machine.json``); everywhere, the same runs must stay
+within float32-rounding drift of the recorded coordinate sums and follow MPM
+at r_p (grid-mass error bounds), and the two graphs of the same weights must
+agree (below).
 
 The network runs use the graphs 202ef89 shipped (``golden/models/*_202ef89.onnx``,
 exported by torch's exporter: four inputs, the runtime's legacy path). Models
@@ -30,15 +35,19 @@ weights (the dam break's did, issue 16).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import platform
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hybridmpm.metrics import grid_mass_error
+from hybridmpm.neural import NeuralModel
 from hybridmpm.scenes import make_scene
-from hybridmpm.sim import HybridSimulator, MpmSimulator, NeuralSimulator, rollout
+from hybridmpm.sim import HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, rollout
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "golden_202ef89.json").read_text())
 
@@ -83,51 +92,112 @@ def test_mpm_trajectories_identical_to_202ef89(key: str):
 MODELS_202EF89 = Path(__file__).parent / "golden" / "models"
 
 
-@pytest.fixture(scope="module")
-def compiled(tmp_path_factory):
-    """Scene name → the compiled inference graph of 202ef89's weights for it."""
-    from hybridmpm.neural.export import upgrade_onnx
-
-    out = {}
-    for name in sorted({k.split("/")[0] for k in (*GOLDEN["neural"], *GOLDEN["hybrid"])}):
-        path = tmp_path_factory.mktemp("compiled") / f"{name}.onnx"
-        assert upgrade_onnx(MODELS_202EF89 / f"{name}_202ef89.onnx", path)
-        out[name] = path
-    return out
-
-
 #: How far a compiled-graph rollout may drift from the 202ef89 graph's in 120
 #: frames [m]: float32 rounding differences (~6e-8 m a step) amplified by the
 #: flow; measured up to 4.6e-4 m; a quarter of a grid cell (dx = 1/128 m).
 DRIFT_TOL = 2e-3
 
+#: Upper bounds of the mean grid-mass error (128 cells) of the 202ef89 graphs' 120-frame runs against
+#: MPM at r_p from the same state, measured 0.32-0.66 (network alone) and 0.32-0.46 (hybrid): the
+#: physics check that holds on every CPU. A network fed a one-step-stale history scores 2.9-4.4 alone
+#: and 1.0 in the water2d hybrid (the dam break's hybrid hands such a network to MPM: 0.41).
+NETWORK_ERROR_BOUND = {"neural": 0.8, "hybrid": 0.6}
+
+#: The SIMD extensions the network digests depend on (onnxruntime's MLAS kernels, the radius graph).
+DIGEST_ISA = ("avx", "avx2", "avx512bw", "avx512dq", "avx512f", "avx512vl", "f16c", "fma")
+DIGEST_MACHINE = json.loads((Path(__file__).parent / "golden" / "network_digest_machine.json").read_text())
+
+
+def machine_class() -> dict:
+    """This machine's class as ``network_digest_machine.json`` records it."""
+    import onnxruntime
+
+    flags: set[str] = set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    return {"machine": platform.machine(), "onnxruntime": onnxruntime.__version__, "isa": sorted(flags & set(DIGEST_ISA))}
+
+
+NETWORK_DIGESTS_HERE = machine_class() == {k: DIGEST_MACHINE[k] for k in ("machine", "onnxruntime", "isa")}
+
+
+@functools.cache
+def network_run(kind: str, key: str, graph: str) -> Rollout:
+    """The 120-frame ``kind`` ("neural" or "hybrid") run of ``key`` with the ``graph``
+    ("202ef89" or "compiled") of 202ef89's weights, as 202ef89 ran it (no MPM audit, no density relaxation)."""
+    name, seed = key.split("/")
+    model = MODELS_202EF89 / f"{name}_202ef89.onnx" if graph == "202ef89" else _compiled(name)
+    scene = make_scene(name, seed=int(seed))
+    if kind == "neural":
+        sim = NeuralSimulator(scene, model, seed=int(seed), detect_failures=False, relax=0)
+    else:
+        sim = HybridSimulator(scene, model, seed=int(seed), audit_every=0, relax=0)  # what 202ef89 had (issue 16 made both the default)
+    ro = rollout(sim, 120)
+    assert ro.failure is None
+    return ro
+
+
+@functools.cache
+def _compiled(name: str) -> Path:
+    import tempfile
+
+    from hybridmpm.neural.export import upgrade_onnx
+
+    path = Path(tempfile.mkdtemp(prefix="golden_compiled_")) / f"{name}.onnx"
+    assert upgrade_onnx(MODELS_202EF89 / f"{name}_202ef89.onnx", path)
+    return path
+
+
+def check_physics(kind: str, key: str, rec: dict, ro: Rollout) -> None:
+    """The checks that hold on every CPU: the run is within float32-rounding drift of the recorded
+    one (mean coordinate), and it follows MPM at r_p from the same state."""
+    assert list(ro.positions.shape) == rec["shape"]
+    mean_shift = abs(ro.positions.astype(np.float64).sum() - rec["sum"]) / np.prod(rec["shape"])
+    assert mean_shift <= DRIFT_TOL, mean_shift
+    name, seed = key.split("/")
+    model = NeuralModel(MODELS_202EF89 / f"{name}_202ef89.onnx")
+    mpm = rollout(MpmSimulator(make_scene(name, seed=int(seed)), r_p=model.r_p, r_t=model.r_t, seed=int(seed), threads=1), 120).fluid_positions
+    err = grid_mass_error(ro.fluid_positions, mpm, 128).mean()
+    assert err <= NETWORK_ERROR_BOUND[kind], (kind, key, err)
+
 
 @pytest.mark.parametrize("key", sorted(GOLDEN["neural"]))
-def test_network_alone_identical_to_202ef89(key: str, compiled):
-    name, seed = key.split("/")
-    runs = {}
-    for tag, model in (("202ef89", MODELS_202EF89 / f"{name}_202ef89.onnx"), ("compiled", compiled[name])):
-        sim = NeuralSimulator(make_scene(name, seed=int(seed)), model, seed=int(seed), detect_failures=False, relax=0)
-        ro = rollout(sim, 120)
-        assert ro.failure is None
-        runs[tag] = ro.positions
-    check(GOLDEN["neural"][key], runs["202ef89"])
+def test_network_alone_within_rounding_of_202ef89(key: str):
+    runs = {tag: network_run("neural", key, tag).positions for tag in ("202ef89", "compiled")}
+    check_physics("neural", key, GOLDEN["neural"][key], network_run("neural", key, "202ef89"))
     drift = np.abs(runs["compiled"] - runs["202ef89"]).max(axis=(1, 2))
-    first = sim.t_in  # rows 0 .. t_in - 1: the initial state and the MPM warm-up, the same in both runs
-    assert drift[:first].max() == 0 and 0 < drift[first] <= 1e-6, drift  # the first network step agrees to float32 rounding
+    first = NeuralModel(MODELS_202EF89 / f"{key.split('/')[0]}_202ef89.onnx").t_in
+    # rows 0 .. t_in - 1: the initial state and the MPM warm-up, the same in both runs; the first network
+    # step agrees to float32 rounding (the two graphs may also agree exactly: on some CPUs they do)
+    assert drift[:first].max() == 0 and drift[first] <= 1e-6, drift
     assert drift.max() <= DRIFT_TOL, drift
 
 
 @pytest.mark.parametrize("key", sorted(GOLDEN["hybrid"]))
-def test_hybrid_identical_to_202ef89(key: str, compiled):
-    # with what 202ef89 had: no MPM audit and no density relaxation (issue 16 made both the default)
-    name, seed = key.split("/")
-    rec = GOLDEN["hybrid"][key]
-    runs = {}
-    for tag, model in (("202ef89", MODELS_202EF89 / f"{name}_202ef89.onnx"), ("compiled", compiled[name])):
-        ro = rollout(HybridSimulator(make_scene(name, seed=int(seed)), model, seed=int(seed), audit_every=0, relax=0), 120)
+def test_hybrid_within_rounding_of_202ef89(key: str):
+    runs = {tag: network_run("hybrid", key, tag) for tag in ("202ef89", "compiled")}
+    check_physics("hybrid", key, GOLDEN["hybrid"][key], runs["202ef89"])
+    # the two graphs of the same weights switch alike
+    assert list(runs["compiled"].solver) == list(runs["202ef89"].solver)
+    assert runs["compiled"].events == runs["202ef89"].events
+    assert np.abs(runs["compiled"].positions - runs["202ef89"].positions).max() <= DRIFT_TOL
+
+
+@pytest.mark.may_skip_in_ci("the network digests hold only on the machine class they were recorded on (golden/network_digest_machine.json)")
+@pytest.mark.parametrize("kind, key", [(k, key) for k in ("neural", "hybrid") for key in sorted(GOLDEN[k])])
+def test_network_digests_identical_to_202ef89_where_recorded(kind: str, key: str):
+    if not NETWORK_DIGESTS_HERE:
+        pytest.skip(
+            f"network digests are of {DIGEST_MACHINE['machine']}, onnxruntime {DIGEST_MACHINE['onnxruntime']}, {DIGEST_MACHINE['isa']}; this is {machine_class()}"
+        )
+    rec = GOLDEN[kind][key]
+    ro = network_run(kind, key, "202ef89")
+    check(rec, ro.positions)
+    if kind == "hybrid":
         assert "".join("n" if s == "neural" else "m" for s in ro.solver) == rec["solver"]
         assert [[s, e] for s, e in ro.events] == rec["events"]
-        runs[tag] = ro.positions
-    check(rec, runs["202ef89"])
-    assert np.abs(runs["compiled"] - runs["202ef89"]).max() <= DRIFT_TOL
