@@ -21,6 +21,11 @@ ENV_VAR = "HYBRIDMPM_MEMORY_BUDGET"
 #: Fraction of physical memory the default budget allows.
 DEFAULT_FRACTION = 0.5
 
+#: Largest frame number a simulator state may hold (a restored ``step_index ·
+#: r_t``, and every counter of steps): int64 holds it and the simulated time
+#: ``frame · dt_frame`` stays exact in float64. Larger values are refused.
+MAX_FRAME_INDEX = 2**53
+
 _override: int | None = None
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 

@@ -380,6 +380,9 @@ class MpmParams:
 
 
 _MAGIC = b"HMPMPY01"
+#: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
+_CORE_MAGIC = b"HMPMCKP2"
+_CORE_HEADER = 36
 
 
 class MpmSolver:
@@ -619,12 +622,51 @@ class MpmSolver:
         sim._core.restore(state)
         return sim
 
-    def restore(self, blob: bytes) -> None:
-        """Restore :meth:`checkpoint` bytes into this solver (parameters must match)."""
+    def restore(self, blob: bytes, *, same_particles: bool = False) -> None:
+        """Restore :meth:`checkpoint` bytes into this solver (parameters must
+        match). With ``same_particles`` the checkpoint must also hold this
+        solver's particles: the same count, and per particle the same material
+        and mass (a simulator restoring its own state). The whole checkpoint
+        is validated before anything changes: raises :class:`CheckpointError`
+        (positions outside the domain, non-finite values, a truncated blob,
+        other parameters or particles) and the solver is then unchanged."""
+        self._core.restore(self.check_restore(blob, same_particles=same_particles))
+
+    def check_restore(self, blob: bytes, *, same_particles: bool = False) -> bytes:
+        """The checks of :meth:`restore` that need no new solver (format,
+        parameters, and with ``same_particles`` the particles' count,
+        materials and masses), changing nothing; returns the core's part of
+        the blob. Raises :class:`CheckpointError`."""
         params, state = self._split(blob)
         if params.to_dict() != self.params.to_dict():
             raise CheckpointError("checkpoint was written with different parameters; use MpmSolver.from_checkpoint")
-        self._core.restore(state)
+        if same_particles:
+            self._check_same_particles(state)
+        return state
+
+    def _check_same_particles(self, state: bytes) -> None:
+        """Refuse a core state (the Rust part of :meth:`checkpoint`: magic,
+        u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
+        whose particles are not this solver's: count, dimension, material and
+        mass per particle."""
+        d = self.dim
+        per = 4 * (3 * d + 3 * d * d + 4) + 1  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8)
+        if len(state) < _CORE_HEADER or state[:8] != _CORE_MAGIC:
+            raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
+        (dd,) = struct.unpack_from("<I", state, 8)
+        (n,) = struct.unpack_from("<Q", state, 12)
+        n_self = self.num_particles
+        if dd != d or n != n_self:
+            raise CheckpointError(f"checkpoint holds {n} particles in {dd}D, this solver {n_self} in {d}D")
+        if len(state) != _CORE_HEADER + n * per:
+            raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
+        rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
+        mass_at = 4 * (2 * d + 2 * d * d + 2)
+        masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
+        if not np.array_equal(rec[:, -1], np.asarray(self.material).astype(np.uint8)):
+            raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
+        if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
+            raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
 
     @staticmethod
     def _split(blob: bytes) -> tuple[MpmParams, bytes]:

@@ -31,6 +31,7 @@ from typing import Any, Protocol, TypeVar, Union, cast, runtime_checkable
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.limits import MAX_FRAME_INDEX
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.particles import ParticleSet
 
@@ -99,13 +100,26 @@ class SimStats:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SimStats:
+        """The counters of :meth:`to_dict`; each an integer in [0,
+        :data:`~hybridmpm.limits.MAX_FRAME_INDEX`] (else
+        :class:`InvalidInputError` naming ``state.stats.<key>``)."""
+
+        def counts(key: str) -> dict[str, int]:
+            v = d[key]
+            if not isinstance(v, dict) or not all(isinstance(k, str) for k in v):
+                raise InvalidInputError(f"state.stats.{key}: must be an object of counters", f"state.stats.{key}")
+            return {k: check_count(f"state.stats.{key}.{k}", x) for k, x in v.items()}
+
+        secs = d.get("audit_seconds", 0.0)
+        if isinstance(secs, bool) or not isinstance(secs, (int, float)) or not 0 <= float(secs) < float("inf"):
+            raise InvalidInputError("state.stats.audit_seconds: must be a finite number >= 0", "state.stats.audit_seconds")
         return cls(
-            {str(k): int(v) for k, v in dict(d["steps"]).items()},
-            int(d["switches"]),
-            {str(k): int(v) for k, v in dict(d["fallbacks"]).items()},
-            int(d["mpm_retries"]),
-            int(d.get("audits", 0)),  # states saved before the audit existed have none
-            float(d.get("audit_seconds", 0.0)),
+            counts("steps"),
+            check_count("state.stats.switches", d["switches"]),
+            counts("fallbacks"),
+            check_count("state.stats.mpm_retries", d["mpm_retries"]),
+            check_count("state.stats.audits", d.get("audits", 0)),  # states saved before the audit existed have none
+            float(secs),
         )
 
 
@@ -180,10 +194,13 @@ def serialised(method: _F) -> _F:
 @contextlib.contextmanager
 def reading_state(kind: str) -> Iterator[None]:
     """Turn what reading a malformed ``state()`` dict raises (a missing key, a
-    value of the wrong type) into :class:`InvalidInputError` (field ``state``)."""
+    value of the wrong type) into :class:`InvalidInputError` (field ``state``;
+    the message names the key, ``state.buffer: ...``)."""
     try:
         yield
-    except InvalidInputError:
+    except InvalidInputError as e:
+        if e.field is not None and e.field.startswith("state"):
+            e.field = "state"
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InvalidInputError(f"state: malformed {kind} state ({e})", "state") from e
@@ -224,11 +241,37 @@ def resolve_forcing(value: Forcing, frame: int, n: int, dim: int) -> np.ndarray 
     return value
 
 
-def check_int(name: str, value: Any, lo: int) -> int:
-    """``value`` as an int ≥ ``lo``, or :class:`InvalidInputError` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < lo:
-        raise InvalidInputError(f"{name}: must be an integer >= {lo}, got {value!r}", name)
+def check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
+    """``value`` as an int in [``lo``, ``hi``], or :class:`InvalidInputError` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < lo or (hi is not None and int(value) > hi):
+        shown = repr(value) if len(repr(value)) <= 40 else f"{type(value).__name__} {repr(value)[:30]}…"
+        bound = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+        raise InvalidInputError(f"{name}: must be {bound}, got {shown}", name)
     return int(value)
+
+
+def check_count(name: str, value: Any) -> int:
+    """A counter of steps or frames of a restored state: an integer in [0,
+    :data:`~hybridmpm.limits.MAX_FRAME_INDEX`], or :class:`InvalidInputError` naming ``name``."""
+    return check_int(name, value, 0, MAX_FRAME_INDEX)
+
+
+def check_step_index(name: str, value: Any, r_t: int) -> int:
+    """A restored ``step_index``: a counter whose frame ``value · r_t`` is at
+    most :data:`~hybridmpm.limits.MAX_FRAME_INDEX`."""
+    return check_int(name, value, 0, MAX_FRAME_INDEX // max(1, int(r_t)))
+
+
+def check_positions(name: str, value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """A restored positions array: float32 of exactly ``shape``, finite.
+    Raises :class:`InvalidInputError` naming ``name``."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "fiu" or a.shape != shape:
+        raise InvalidInputError(f"{name}: must be a float array {list(shape)}, got {a.dtype} {list(a.shape)}", name)
+    a = np.array(a, np.float32)
+    if not np.isfinite(a).all():
+        raise InvalidInputError(f"{name}: contains NaN or inf", name)
+    return a
 
 
 __all__ = [
@@ -239,8 +282,11 @@ __all__ = [
     "NetworkFailure",
     "SimStats",
     "Simulator",
+    "check_count",
     "check_forcing",
     "check_int",
+    "check_positions",
+    "check_step_index",
     "new_lock",
     "reading_state",
     "resolve_forcing",

@@ -74,7 +74,21 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, reading_state, serialised
+from hybridmpm.sim.base import (
+    MPM,
+    NEURAL,
+    Forcing,
+    Frame,
+    SimStats,
+    check_count,
+    check_forcing,
+    check_int,
+    check_positions,
+    check_step_index,
+    new_lock,
+    reading_state,
+    serialised,
+)
 from hybridmpm.sim.convert import VELOCITY_ESTIMATES, mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import RELAX_ITERATIONS, REST_PERCENTILE, NeuralSimulator, load_model
@@ -427,39 +441,45 @@ class HybridSimulator:
 
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state` of this simulator (same scene and model).
-        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
-        malformed state; the simulator is then unchanged."""
+        """Restore a :meth:`state` of this simulator (same scene and model),
+        all or nothing: the whole state — both simulators' states, the
+        position buffer (its shape, finite), the solver names, the counters
+        (integers within :data:`~hybridmpm.limits.MAX_FRAME_INDEX`) — is
+        validated before anything changes. Raises :class:`InvalidInputError`
+        (field ``state``…) for a foreign or malformed state; the simulator is
+        then unchanged."""
         with reading_state("hybrid"):
-            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or int(state["n_fluid"]) != self.n_fluid:
-                raise InvalidInputError("state: not a state of this hybrid simulator (kind, version or particle count differ)", "state")
-            buf = np.asarray(state["buffer"], np.float32)
-            if buf.ndim != 3 or buf.shape[1:] != (self.n_fluid, self.particles.dim) or not (1 <= buf.shape[0] <= self._buffer.maxlen):  # type: ignore[operator]
-                raise InvalidInputError(f"state: buffer has shape {list(buf.shape)}, expected [T, {self.n_fluid}, {self.particles.dim}]", "state")
-            solver_name = str(state["solver_name"])
-            frame_solver = str(state["frame_solver"])
+            if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
+                raise InvalidInputError("state: not a state of this hybrid simulator (kind or version differ)", "state")
+            if check_int("state.n_fluid", state["n_fluid"], 0) != self.n_fluid:
+                raise InvalidInputError(f"state.n_fluid: this simulator has {self.n_fluid} fluid particles", "state.n_fluid")
+            buf = state["buffer"]
+            depth = np.shape(buf)[0] if np.ndim(buf) == 3 else 0
+            if not 1 <= depth <= self._buffer.maxlen:  # type: ignore[operator]
+                raise InvalidInputError(
+                    f"state.buffer: expected [T, {self.n_fluid}, {self.particles.dim}] with 1 <= T <= {self._buffer.maxlen}", "state.buffer"
+                )
+            buf = check_positions("state.buffer", buf, (depth, self.n_fluid, self.particles.dim))
+            solver_name, frame_solver = state["solver_name"], state["frame_solver"]
             if solver_name not in (MPM, NEURAL) or frame_solver not in (MPM, NEURAL):
-                raise InvalidInputError(f"state: unknown solver {solver_name!r}", "state")
-            counters = {k: int(state[k]) for k in ("calm", "strikes", "neural_run", "step_index")}
-            if min(counters.values()) < 0:
-                raise InvalidInputError("state: negative counter", "state")
+                raise InvalidInputError(f"state.solver_name: must be {MPM!r} or {NEURAL!r}", "state.solver_name")
+            counters = {k: check_count(f"state.{k}", state[k]) for k in ("calm", "strikes", "neural_run")}
+            step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
-            last_score = float(state["last_score"])
-            mpm_before, neural_before = self.mpm.state(), self.neural.state()
-            self.mpm.restore(state["mpm"])
-            try:
-                self.neural.restore(state["neural"])
-            except InvalidInputError:
-                self.mpm.restore(mpm_before)
-                self.neural.restore(neural_before)
-                raise
+            last_score = state["last_score"]
+            if isinstance(last_score, bool) or not isinstance(last_score, (int, float)) or math.isinf(last_score):
+                raise InvalidInputError("state.last_score: must be a finite number (or NaN before the first score)", "state.last_score")
+            commit_mpm = self.mpm._prepare_restore(state["mpm"])
+            commit_neural = self.neural._prepare_restore(state["neural"])
+        commit_mpm()  # the one step that can fail, and it changes nothing then
+        commit_neural()
         self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
         self.solver_name = solver_name
-        self._calm, self._strikes = counters["calm"], counters["strikes"]
-        self._neural_run, self.step_index = counters["neural_run"], counters["step_index"]
+        self._calm, self._strikes, self._neural_run = counters["calm"], counters["strikes"], counters["neural_run"]
+        self.step_index = step
         self.stats = stats
-        self.last_score = last_score
-        self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=last_score)
+        self.last_score = float(last_score)
+        self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=self.last_score)
 
 
 __all__ = ["DWELL", "MAX_BACKOFF", "HybridSimulator"]

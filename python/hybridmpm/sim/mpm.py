@@ -10,6 +10,7 @@ accelerations are applied by MPM).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -18,7 +19,19 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t
-from hybridmpm.sim.base import MPM, Forcing, Frame, SimStats, check_forcing, check_int, new_lock, reading_state, resolve_forcing, serialised
+from hybridmpm.sim.base import (
+    MPM,
+    Forcing,
+    Frame,
+    SimStats,
+    check_forcing,
+    check_int,
+    check_step_index,
+    new_lock,
+    reading_state,
+    resolve_forcing,
+    serialised,
+)
 from hybridmpm.sim.convert import neural_to_mpm
 
 _STATE_VERSION = 1
@@ -169,21 +182,43 @@ class MpmSimulator:
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state` of a simulator of the same scene.
-        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
-        malformed state; this simulator is then unchanged."""
+        The whole state is validated first (kind, version, the solver's
+        particles — count, materials, masses, finite values inside the
+        domain — ``step_index`` within :data:`~hybridmpm.limits.MAX_FRAME_INDEX`
+        frames, the forcing): raises :class:`InvalidInputError` (field
+        ``state``…) or :class:`~hybridmpm.errors.CheckpointError` for a foreign
+        or malformed state, and this simulator is then unchanged."""
+        self._prepare_restore(state)()
+
+    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+        """Validate ``state`` whole without changing anything; returns the
+        commit. The commit's only step that can fail is the solver's restore,
+        which itself changes nothing unless it succeeds (so a commit that
+        raises has changed nothing)."""
         with reading_state("MpmSimulator"):
-            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
+            if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
                 raise InvalidInputError("state: not a state of an MpmSimulator of this version", "state")
-            step = check_int("state.step_index", state["step_index"], 0)
+            step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
             forcing = check_forcing(state["forcing"], self.particles.num_fluid, self.particles.dim)
+            applied = state.get("applied", False)
+            if not isinstance(applied, bool):
+                raise InvalidInputError("state.applied: must be true or false", "state.applied")
             blob = state["solver"]
-        self.solver.restore(blob)
-        self.step_index = step
-        self.stats = stats
-        self._forcing = forcing
-        self._applied = bool(state.get("applied", False))
-        self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM)
+            if not isinstance(blob, (bytes, bytearray)):
+                raise InvalidInputError("state.solver: must be the solver's checkpoint bytes", "state.solver")
+            blob = bytes(blob)
+            self.solver.check_restore(blob, same_particles=True)
+
+        def commit() -> None:
+            self.solver.restore(blob, same_particles=True)
+            self.step_index = step
+            self.stats = stats
+            self._forcing = forcing
+            self._applied = applied
+            self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM)
+
+        return commit
 
 
 __all__ = ["MpmSimulator"]

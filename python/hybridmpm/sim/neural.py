@@ -41,6 +41,7 @@ and leaves the state unchanged; the hybrid uses :meth:`propose` /
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,10 +50,24 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
+from hybridmpm.neural.grid import GridRuntime, open_model
 from hybridmpm.neural.runtime import Graph, NeuralModel
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, check_int, new_lock, reading_state, serialised
+from hybridmpm.sim.base import (
+    MPM,
+    NEURAL,
+    Forcing,
+    Frame,
+    NetworkFailure,
+    SimStats,
+    check_int,
+    check_positions,
+    check_step_index,
+    new_lock,
+    reading_state,
+    serialised,
+)
 from hybridmpm.sim.mpm import MpmSimulator
 
 _STATE_VERSION = 1
@@ -63,15 +78,17 @@ RELAX_ITERATIONS = 3
 REST_PERCENTILE = 90.0
 
 
-def load_model(model: NeuralModel | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel:
-    """``model`` as a :class:`NeuralModel`: itself, loaded from an ``.onnx``
-    path, or (None) the shipped model of ``scene_name``. Raises
-    :class:`InvalidInputError` (field ``model``; ``nn_threads`` for
-    ``threads`` outside [0, 256]). ``threads`` onnxruntime threads (0: one per
-    core; more than one also spins them, see :class:`NeuralModel`)."""
+def load_model(model: NeuralModel | GridRuntime | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel | GridRuntime:
+    """``model`` as a run-time model: itself, loaded from an ``.onnx`` path
+    (a :class:`~hybridmpm.neural.grid.GridRuntime` for a grid model, else a
+    GNS :class:`NeuralModel`), or (None) the shipped model of
+    ``scene_name``. Raises :class:`InvalidInputError` (field ``model``;
+    ``nn_threads`` for ``threads`` outside [0, 256]). ``threads``
+    onnxruntime threads (0: one per core; more than one also spins a GNS's
+    threads, see :class:`NeuralModel`)."""
     if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
         raise InvalidInputError(f"nn_threads: must be an integer in [0, 256], got {threads!r}", "nn_threads")
-    if isinstance(model, NeuralModel):
+    if isinstance(model, (NeuralModel, GridRuntime)):
         return model
     if model is None:
         from hybridmpm.models import shipped_model
@@ -79,7 +96,7 @@ def load_model(model: NeuralModel | str | Path | None, scene_name: str | None, t
         if scene_name is None:
             raise InvalidInputError("model: no model given and the scene has no name to find a shipped one", "model")
         model = shipped_model(scene_name)
-    return NeuralModel(model, threads=threads)
+    return open_model(model, threads=threads)
 
 
 @dataclass
@@ -139,7 +156,7 @@ class NeuralSimulator:
     def __init__(
         self,
         scene: Scene | str,
-        model: NeuralModel | str | Path | None = None,
+        model: NeuralModel | GridRuntime | str | Path | None = None,
         *,
         seed: int = 0,
         detect_failures: bool = True,
@@ -212,6 +229,7 @@ class NeuralSimulator:
         self._escape: tuple[np.ndarray, np.ndarray] = (self._lo, self._hi)
         x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
         self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
+        self._packing0 = self.model.packing(x0b, np.asarray(self.particles.fluid_mask)) if isinstance(self.model, GridRuntime) else 0.0
         self.relax = relax
         self._movable = np.ascontiguousarray(self.particles.fluid_mask)
         rho = kernel_density(x0b, self.model.radius)[self._movable]
@@ -342,12 +360,18 @@ class NeuralSimulator:
         if self._history is None:
             raise InvalidInputError("history: the network has no position history yet (warm-up not finished; see set_history)", "history")
         acc, nxt, used = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
-        self.last_edges = int(len(used[0]))
+        self.last_edges = 0 if used is None else int(len(used[0]))
         self._next_graph = None
         failure = self._failure(nxt) if self.detect_failures else None
         clipped: np.ndarray | None = None
         graph: Graph | None = None
-        if failure is None:
+        if failure is None and isinstance(self.model, GridRuntime):
+            # a grid model moves particles through the grid and clips them itself: no relaxation, no graph;
+            # its packing is the mass-weighted mean particle count per node
+            clipped = self._clip(nxt)
+            if self.detect_failures and self.model.packing(clipped, self._movable) > self.degree_factor * self._packing0:
+                failure = "compressed"
+        elif failure is None:
             if self.relax:
                 # clipped, relaxed, clipped again, and the next step's graph (one
                 # Rust call: the graph reuses the relaxation's neighbour lists
@@ -430,39 +454,49 @@ class NeuralSimulator:
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state` of a simulator of the same scene and model.
-        Raises :class:`InvalidInputError` (field ``state``) for a foreign or
-        malformed state; this simulator is then unchanged."""
+        The whole state is validated first (history, warm-up positions and
+        frame positions of their shapes and finite, the warm-up's MPM state,
+        ``step_index`` within :data:`~hybridmpm.limits.MAX_FRAME_INDEX`
+        frames): raises :class:`InvalidInputError` (field ``state``…) for a
+        foreign or malformed state, and this simulator is then unchanged."""
+        self._prepare_restore(state)()
+
+    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+        """Validate ``state`` whole without changing anything; returns the
+        commit, which cannot fail."""
         with reading_state("NeuralSimulator"):
-            if state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
+            if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
                 raise InvalidInputError("state: not a state of a NeuralSimulator of this version", "state")
-            step = check_int("state.step_index", state["step_index"], 0)
+            step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
-            hist = state["history"]
             n_all, d = self.particles.num_total, self.particles.dim
+            hist = state["history"]
             if hist is not None:
-                hist = np.asarray(hist, np.float32)
-                if hist.shape != (self.t_in, n_all, d) or not np.isfinite(hist).all():
-                    raise InvalidInputError(f"state: history must be finite [{self.t_in}, {n_all}, {d}], got {list(hist.shape)}", "state")
-            warm = [np.asarray(w, np.float32) for w in state["warm"]]
-            if any(w.shape != (self.particles.num_fluid, d) for w in warm) or len(warm) > self.t_in:
-                raise InvalidInputError("state: malformed warm-up positions", "state")
-            fpos = np.asarray(state["frame_positions"], np.float32)
-            if fpos.shape != (n_all, d):
-                raise InvalidInputError("state: malformed frame positions", "state")
-            solver = str(state["frame_solver"])
+                hist = check_positions("state.history", hist, (self.t_in, n_all, d))
+            warm_in = state["warm"]
+            if not isinstance(warm_in, list) or len(warm_in) > self.t_in:
+                raise InvalidInputError(f"state.warm: must be a list of at most {self.t_in} position arrays", "state.warm")
+            warm = [check_positions(f"state.warm[{i}]", w, (self.particles.num_fluid, d)) for i, w in enumerate(warm_in)]
+            fpos = check_positions("state.frame_positions", state["frame_positions"], (n_all, d))
+            solver = state["frame_solver"]
+            if solver not in (MPM, NEURAL):
+                raise InvalidInputError(f"state.frame_solver: must be {MPM!r} or {NEURAL!r}", "state.frame_solver")
             warmup_state = state["warmup"]
-        if warmup_state is not None:
-            mpm = MpmSimulator(self.scene, r_t=self.r_t, threads=self._mpm_threads)
-            mpm.restore(warmup_state)
+            mpm: MpmSimulator | None = None
+            if warmup_state is not None:
+                mpm = MpmSimulator(self.scene, r_t=self.r_t, threads=self._mpm_threads)
+                mpm.restore(warmup_state)  # a new simulator: a refusal leaves this one as it is
+
+        def commit() -> None:
             self._warmup = mpm
-        else:
-            self._warmup = None
-        self._history = hist
-        self._warm = warm
-        self._next_graph = None
-        self.step_index = step
-        self.stats = stats
-        self._frame = Frame(step, step * self.r_t, step * self.dt_step, fpos, solver)
+            self._history = hist
+            self._warm = warm
+            self._next_graph = None
+            self.step_index = step
+            self.stats = stats
+            self._frame = Frame(step, step * self.r_t, step * self.dt_step, fpos, solver)
+
+        return commit
 
 
 def warmup_frames(model: NeuralModel) -> int:
