@@ -174,14 +174,21 @@ class Sketch:
 
 #: Largest sketch image accepted [pixels] (a 2048² canvas).
 MAX_IMAGE_PIXELS = 2048 * 2048
+#: Longest side a sketch image is read at [pixels]: a larger one is read as its ink mask, max-pooled down to this.
+READ_SIZE = 512
+#: A pixel is ink when its colour is this far (in levels of 255) from the background's.
+INK_LEVEL = 64
 
 
 def sketch_from_png(data: bytes) -> Sketch:
     """A sketch from a PNG of the drawing (any size up to :data:`MAX_IMAGE_PIXELS`,
     the image spanning the domain ``[0, 1]²`` with y up, ink darker or
-    lighter than the background): :func:`sketch_from_image` of its pixels.
-    Raises :class:`InvalidInputError` (field ``sketch``) for a file that is not
-    a PNG, too large, or holds no readable stroke."""
+    lighter than the background): :func:`sketch_from_image` of its pixels,
+    decoded at 8 bits per channel. An image larger than :data:`READ_SIZE`
+    is read as its ink mask, computed in bands of rows and max-pooled down
+    to that size (a few bytes per pixel, never a float copy of the whole
+    image). Raises :class:`InvalidInputError` (field ``sketch``) for a file
+    that is not a PNG, too large, or holds no readable stroke."""
     import io
 
     from PIL import Image
@@ -189,15 +196,39 @@ def sketch_from_png(data: bytes) -> Sketch:
     if not isinstance(data, (bytes, bytearray)) or data[:8] != b"\x89PNG\r\n\x1a\n":
         raise InvalidInputError("sketch: not a PNG image", "sketch")
     try:
-        with Image.open(io.BytesIO(data)) as im:
+        with Image.open(io.BytesIO(data), formats=["PNG"]) as im:
             if im.width * im.height > MAX_IMAGE_PIXELS:
                 raise InvalidInputError(f"sketch: {im.width}×{im.height} pixels, more than {MAX_IMAGE_PIXELS}", "sketch")
-            img = np.asarray(im.convert("RGB"))
+            rgb = im.convert("RGB")
     except InvalidInputError:
         raise
     except Exception as e:  # noqa: BLE001 - Pillow raises many types for broken files
-        raise InvalidInputError(f"sketch: unreadable PNG ({e})", "sketch") from e
-    return sketch_from_image(img)
+        raise InvalidInputError(f"sketch: unreadable PNG ({type(e).__name__})", "sketch") from e
+    if max(rgb.size) <= READ_SIZE:
+        return sketch_from_image(np.asarray(rgb))
+    if min(rgb.size) < 8:
+        raise InvalidInputError(f"sketch: expected an image of at least 8×8 pixels, got {list(rgb.size)}", "sketch")
+    return _sketch_from_ink(_pooled_ink(np.asarray(rgb)))
+
+
+def _pooled_ink(a: np.ndarray) -> np.ndarray:
+    """The ink mask of a large uint8 [H, W, 3] image, max-pooled by the
+    smallest integer factor that brings its longer side to at most
+    :data:`READ_SIZE`, computed a band of rows at a time in float32."""
+    h, w = a.shape[:2]
+    k = -(-max(h, w) // READ_SIZE)
+    bg = np.median(a[::k, ::k].reshape(-1, 3), axis=0).astype(np.float32)  # the background: the median colour
+    hp, wp = -(-h // k), -(-w // k)
+    out = np.zeros((hp, wp), bool)
+    band = 16 * k
+    for r0 in range(0, h, band):
+        block = a[r0 : r0 + band].astype(np.float32) - bg
+        ink = np.einsum("ijc,ijc->ij", block, block) > INK_LEVEL**2
+        rows = -(-ink.shape[0] // k)
+        padded = np.zeros((rows * k, wp * k), bool)
+        padded[: ink.shape[0], :w] = ink
+        out[r0 // k : r0 // k + rows] = padded.reshape(rows, k, wp, k).any(axis=(1, 3))
+    return out
 
 
 def sketch_from_image(img: np.ndarray) -> Sketch:
@@ -216,8 +247,12 @@ def sketch_from_image(img: np.ndarray) -> Sketch:
         a = np.abs(a - float(np.median(a)))
     if a.ndim != 2 or min(a.shape) < 8:
         raise InvalidInputError(f"sketch: expected an image of at least 8×8 pixels, got {list(np.shape(img))}", "sketch")
-    h, w = a.shape
-    ink = a > 64
+    return _sketch_from_ink(a > INK_LEVEL)
+
+
+def _sketch_from_ink(ink: np.ndarray) -> Sketch:
+    """:func:`sketch_from_image` from the ink mask bool [H, W]."""
+    h, w = ink.shape
     if ink.sum() < 8 or ink.mean() > 0.5:
         raise InvalidInputError("sketch: no stroke found in the image", "sketch")
     rows, cols = np.nonzero(ink)
