@@ -31,7 +31,7 @@ OCTET = {"Accept": "application/octet-stream"}
 
 @pytest.fixture(scope="module")
 def client():
-    app = create_app(ServiceConfig(max_sessions=200, idle_ttl_s=600))
+    app = create_app(ServiceConfig(max_sessions=200, max_sessions_per_client=200, idle_ttl_s=600))
     with TestClient(app) as c:
         yield c
 

@@ -435,16 +435,25 @@ def _inspect(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     """``hybridmpm serve``: the HTTP service and its page (one process: sessions live in memory)."""
     try:
-        import uvicorn
-
         from hybridmpm.service import ServiceConfig, create_app
+        from hybridmpm.service.server import run
     except ImportError as e:
         raise InvalidInputError(f"serve: needs the service extra (pip install 'hybridmpm[service]'): {e}", "serve") from None
-    cfg = ServiceConfig.from_env(max_sessions=args.max_sessions, idle_ttl_s=args.ttl)
-    print(
-        f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, idle TTL {cfg.idle_ttl_s:g} s)", file=sys.stderr, flush=True
+    hosts = None if args.allowed_hosts is None else tuple(h.strip() for h in args.allowed_hosts.split(",") if h.strip())
+    cfg = ServiceConfig.from_env(
+        max_sessions=args.max_sessions,
+        idle_ttl_s=args.ttl,
+        allowed_hosts=hosts,
+        max_sessions_per_client=args.max_sessions_per_client,
+        memory_budget=args.memory_budget,
     )
-    uvicorn.run(create_app(cfg), host=args.host, port=args.port, workers=1, log_level=args.log_level, ws_max_size=1 << 16)
+    print(
+        f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, {cfg.max_sessions_per_client} per client, "
+        f"idle TTL {cfg.idle_ttl_s:g} s, hosts {', '.join(cfg.allowed_hosts) or 'loopback names on loopback addresses'})",
+        file=sys.stderr,
+        flush=True,
+    )
+    run(create_app(cfg), args.host, args.port, cfg, log_level=args.log_level)
     return 0
 
 
@@ -650,6 +659,15 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     sv.add_argument("--max-sessions", type=int, default=None, help="sessions held at once; more get 503 (default 100, env HMPM_MAX_SESSIONS)")
     sv.add_argument("--ttl", type=float, default=None, help="idle seconds before a session is removed (default 600, env HMPM_IDLE_TTL_S)")
+    sv.add_argument(
+        "--allowed-hosts", default=None,
+        help="comma-separated Host names served (others: 400; '*' any). Default (env HMPM_ALLOWED_HOSTS): the loopback names on loopback addresses, any elsewhere",
+    )  # fmt: skip
+    sv.add_argument("--max-sessions-per-client", type=int, default=None, help="sessions one client address may hold; more get 429 (default 20)")
+    sv.add_argument(
+        "--memory-budget", default=None,
+        help="memory for sessions, kept controls and requests together, e.g. 8G; beyond it 503 (default half the RAM, env HMPM_MEMORY_BUDGET)",
+    )  # fmt: skip
     sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
     sv.set_defaults(func=_serve)
     for p in sub.choices.values():

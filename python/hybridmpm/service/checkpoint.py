@@ -1,9 +1,12 @@
 """A simulator state (:meth:`Simulator.state`, a tree of dicts, lists, arrays,
 bytes and scalars) as a safe file: an ``.npz`` of plain numeric arrays plus one
 JSON document (``__tree__``) that references them. No pickle either way: the
-archive is read with ``allow_pickle=False``, its members' sizes are checked
-before they are decompressed, and the tree's shape is bounded; the simulator's
-own ``restore`` then validates the content."""
+archive is read with ``allow_pickle=False``; every bound is checked before the
+work it bounds — the members' number and decompressed sizes before anything
+is decompressed, each array's declared shape against its member's size before
+it is allocated, the JSON's size and nesting depth before it is parsed, the
+tree's node count while it is decoded — and ``meta`` must be a flat object of
+short scalar settings. The simulator's own ``restore`` then validates the content."""
 
 from __future__ import annotations
 
@@ -22,6 +25,13 @@ VERSION = 1
 MAX_NODES = 100_000
 MAX_DEPTH = 16
 MAX_MEMBERS = 10_000
+#: Largest ``__tree__`` JSON [bytes] (a hybrid session's is about 1 KiB).
+MAX_TREE_BYTES = 1 << 20
+#: Deepest nesting of ``[``/``{`` in ``__tree__`` (each list level of the state is two: ``{"__list__": [...]}``).
+MAX_JSON_DEPTH = 2 * MAX_DEPTH + 8
+#: ``meta`` (the settings a checkpoint was written for): at most this many, each value a scalar, strings at most this long.
+MAX_META_KEYS = 16
+MAX_META_CHARS = 64
 
 
 def _bad(msg: str) -> InvalidInputError:
@@ -60,41 +70,110 @@ def dumps(state: dict[str, Any], meta: dict[str, Any]) -> bytes:
     return buf.getvalue()
 
 
-def loads(data: bytes, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
-    """npz bytes → ``(state, meta)``. Raises :class:`InvalidInputError`
-    (field ``checkpoint``) for anything but a well-formed checkpoint whose
-    arrays total at most ``max_bytes`` once decompressed."""
+def json_depth(raw: bytes) -> int:
+    """Deepest nesting of arrays and objects in the JSON text ``raw``, found
+    without parsing it: vectorised, linear in ``len(raw)``, never recursive.
+    Brackets inside strings do not count (a quote after an odd run of
+    backslashes is escaped); exact on every valid prefix of the text, which
+    is all a parser reads before it stops at an error."""
+    a = np.frombuffer(raw, np.uint8)
+    if a.size == 0:
+        return 0
+    idx = np.arange(a.size, dtype=np.int64)
+    last_plain = np.maximum.accumulate(np.where(a == ord("\\"), -1, idx))  # last index <= i that is no backslash
+    run = np.zeros(a.size, np.int64)
+    run[1:] = idx[:-1] - last_plain[:-1]  # backslashes right before i
+    quote = (a == ord('"')) & (run % 2 == 0)
+    in_string = np.cumsum(quote, dtype=np.int64) % 2 == 1
+    opens = ((a == ord("[")) | (a == ord("{"))) & ~in_string
+    closes = ((a == ord("]")) | (a == ord("}"))) & ~in_string
+    return int(np.cumsum(opens.astype(np.int32) - closes.astype(np.int32)).max(initial=0))
+
+
+def decoded_nbytes(data: bytes) -> int:
+    """The decompressed size of the archive's members as its directory
+    declares it [bytes] (nothing is decompressed). Raises
+    :class:`InvalidInputError` (field ``checkpoint``) for a file that is no zip archive."""
+    try:
+        return sum(i.file_size for i in zipfile.ZipFile(io.BytesIO(data)).infolist())
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+        raise _bad(f"not an npz archive ({type(e).__name__})") from None
+
+
+def _read_members(data: bytes, max_bytes: int) -> dict[str, np.ndarray]:
+    """The archive's arrays, each checked before it is read: a plain numeric
+    ``.npy`` whose declared shape fits the member's decompressed size."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
         infos = zf.infolist()
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-        raise _bad(f"not an npz archive ({e})") from None
+        raise _bad(f"not an npz archive ({type(e).__name__})") from None
     if len(infos) > MAX_MEMBERS:
         raise _bad(f"more than {MAX_MEMBERS} arrays")
     if sum(i.file_size for i in infos) > max_bytes:
         raise _bad(f"arrays larger than {max_bytes} bytes once decompressed")
-    names = {i.filename for i in infos}
-    if "__tree__.npy" not in names:
+    if "__tree__.npy" not in {i.filename for i in infos}:
         raise _bad("no __tree__ member (not written by GET /checkpoint)")
     arrays: dict[str, np.ndarray] = {}
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            for key in npz.files:
-                arrays[key] = np.asarray(npz[key])
-    except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types on malformed input
-        raise _bad(f"unreadable array ({type(e).__name__}: {e})") from None
+    for info in infos:
+        key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+        shown = key if len(key) <= 40 else key[:40] + "…"
+        try:
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+                else:
+                    raise ValueError(f"npy version {version}")
+                if dtype.kind not in "biuf" or dtype.hasobject:
+                    raise _bad(f"array {shown!r} has dtype {dtype.str}")
+                if math.prod(shape) * dtype.itemsize > info.file_size:
+                    raise _bad(f"array {shown!r} declares more data than it holds")
+            with zf.open(info) as f:
+                arrays[key] = np.asarray(np.lib.format.read_array(f, allow_pickle=False))
+        except InvalidInputError:
+            raise
+        except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types on malformed input
+            raise _bad(f"unreadable array {shown!r} ({type(e).__name__})") from None
+    return arrays
+
+
+def check_meta(meta: Any) -> dict[str, Any]:
+    """``meta`` as a flat object of at most :data:`MAX_META_KEYS` short keys
+    and scalar values (strings at most :data:`MAX_META_CHARS` characters), or
+    :class:`InvalidInputError` (field ``checkpoint``)."""
+    if not isinstance(meta, dict) or len(meta) > MAX_META_KEYS:
+        raise _bad(f"meta must be an object of at most {MAX_META_KEYS} settings")
+    for k, v in meta.items():
+        if len(k) > MAX_META_CHARS or not (v is None or isinstance(v, (bool, int, float)) or (isinstance(v, str) and len(v) <= MAX_META_CHARS)):
+            raise _bad(f"meta: each setting must be a number, a string of at most {MAX_META_CHARS} characters, true, false or null")
+    return meta
+
+
+def loads(data: bytes, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    """npz bytes → ``(state, meta)``. Raises :class:`InvalidInputError`
+    (field ``checkpoint``, a short message) for anything but a well-formed
+    checkpoint whose arrays total at most ``max_bytes`` once decompressed;
+    nothing recursive runs on the input before its depth is known to be
+    within :data:`MAX_JSON_DEPTH`."""
+    arrays = _read_members(data, max_bytes)
     raw = arrays.pop("__tree__")
     if raw.dtype != np.uint8 or raw.ndim != 1:
         raise _bad("__tree__ must be uint8 bytes of JSON")
+    if raw.nbytes > MAX_TREE_BYTES:
+        raise _bad(f"__tree__ larger than {MAX_TREE_BYTES} bytes")
+    text = raw.tobytes()
+    if json_depth(text) > MAX_JSON_DEPTH:
+        raise _bad(f"__tree__ nested deeper than {MAX_JSON_DEPTH} levels")
     try:
-        tree = json.loads(raw.tobytes().decode())
-    except (ValueError, UnicodeDecodeError) as e:
-        raise _bad(f"__tree__ is not JSON ({e})") from None
+        tree = json.loads(text.decode())
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:
+        raise _bad(f"__tree__ is not JSON ({type(e).__name__})") from None
     if not isinstance(tree, dict) or tree.get("format") != FORMAT or tree.get("version") != VERSION:
         raise _bad(f"not a {FORMAT} version {VERSION}")
-    meta = tree.get("meta")
-    if not isinstance(meta, dict):
-        raise _bad("meta must be an object")
+    meta = check_meta(tree.get("meta"))
     count = [0]
 
     def dec(v: Any, depth: int) -> Any:
@@ -111,7 +190,7 @@ def loads(data: bytes, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
                 if len(v) == 1 and tag in v:
                     key = v[tag]
                     if not isinstance(key, str) or key not in arrays:
-                        raise _bad(f"{tag} references a missing array {key!r}")
+                        raise _bad(f"{tag} references a missing array")
                     a = arrays[key]
                     if a.dtype.kind not in "biuf":
                         raise _bad(f"array {key} has dtype {a.dtype}")
@@ -133,4 +212,16 @@ def loads(data: bytes, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
     return state, meta
 
 
-__all__ = ["FORMAT", "VERSION", "dumps", "loads"]
+__all__ = [
+    "FORMAT",
+    "MAX_JSON_DEPTH",
+    "MAX_TREE_BYTES",
+    "MAX_META_CHARS",
+    "MAX_META_KEYS",
+    "VERSION",
+    "check_meta",
+    "decoded_nbytes",
+    "dumps",
+    "json_depth",
+    "loads",
+]

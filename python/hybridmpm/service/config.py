@@ -9,6 +9,12 @@ from hybridmpm.errors import InvalidInputError
 
 #: Environment variables read by :meth:`ServiceConfig.from_env` (``HMPM_`` + the field name, upper case).
 ENV_PREFIX = "HMPM_"
+#: The names of this machine on the loopback interface: the default trusted ``Host`` values.
+LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
+#: Longest error message a client is sent [characters] (longer ones are cut, with "…").
+MAX_MESSAGE_CHARS = 300
+_TUPLES = ("allowed_origins", "allowed_hosts")
+_FLOATS = ("idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
 
 
 @dataclass
@@ -27,6 +33,22 @@ class ServiceConfig:
     page's own origin; ``max_json_bytes`` / ``max_checkpoint_bytes`` request
     body caps (413); ``max_frames`` frames per step request; ``max_control_frames``
     the longest control horizon.
+
+    ``allowed_hosts`` the ``Host`` header values served (others → 400; a
+    leading ``*.`` matches subdomains, ``"*"`` any host); empty (the
+    default): the loopback names (:data:`LOOPBACK_HOSTS`) on a connection to
+    a loopback address, which keeps DNS-rebinding pages out, any host on
+    other addresses; ``max_sessions_per_client``
+    sessions one client address may hold (more → 429 with ``Retry-After``);
+    ``memory_budget`` bytes (or ``"8G"``, ``"512M"``) that sessions, kept
+    controls and the transient buffers of requests may hold together (more →
+    503 with ``Retry-After``; default :func:`hybridmpm.limits.memory_budget`,
+    half the physical memory); ``header_timeout_s`` a connection whose
+    request line and headers are not complete in this time is closed;
+    ``keep_alive_s`` an idle keep-alive connection is closed after this;
+    ``body_timeout_s`` a request body not received in this time answers 408;
+    ``max_header_bytes`` request line and headers at most this large (uvicorn
+    answers 400 beyond it).
     """
 
     max_sessions: int = 100
@@ -41,33 +63,57 @@ class ServiceConfig:
     max_checkpoint_bytes: int = 32 * 1024 * 1024
     max_frames: int = 100
     max_control_frames: int = 1000
+    allowed_hosts: tuple[str, ...] = ()
+    max_sessions_per_client: int = 20
+    memory_budget: int | str | None = None
+    header_timeout_s: float = 10.0
+    keep_alive_s: float = 5.0
+    body_timeout_s: float = 30.0
+    max_header_bytes: int = 16 * 1024
 
     def __post_init__(self) -> None:
-        for name in ("max_sessions", "compute_threads", "max_controls", "max_json_bytes", "max_checkpoint_bytes", "max_frames", "max_control_frames"):
+        from hybridmpm.limits import memory_budget, parse_size
+
+        ints = ("max_sessions", "compute_threads", "max_controls", "max_json_bytes", "max_checkpoint_bytes", "max_frames", "max_control_frames")
+        for name in (*ints, "max_sessions_per_client", "max_header_bytes"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InvalidInputError(f"{name}: must be an integer >= 1, got {v!r}", name)
-        for name in ("idle_ttl_s", "send_timeout_s", "max_fps"):
+        for name in ("idle_ttl_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and 0 < float(v) < 1e9):
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0 < float(v) < 1e9):
                 raise InvalidInputError(f"{name}: must be a positive number, got {v!r}", name)
         if self.reap_interval_s is None:
             self.reap_interval_s = min(30.0, self.idle_ttl_s / 2)
         self.allowed_origins = tuple(self.allowed_origins)
+        self.allowed_hosts = tuple(h.strip().lower() for h in self.allowed_hosts if h.strip())
+        for h in self.allowed_hosts:
+            if not h or "*" in h[1:] or (h.startswith("*") and h != "*" and not h.startswith("*.")):
+                raise InvalidInputError(f"allowed_hosts: {h!r} is no host name (a leading '*.' or '*' alone are the only wildcards)", "allowed_hosts")
+        self.memory_budget = memory_budget() if self.memory_budget is None else parse_size(self.memory_budget, "memory_budget")
+
+    @property
+    def memory_budget_bytes(self) -> int:
+        """:attr:`memory_budget` in bytes."""
+        assert isinstance(self.memory_budget, int)
+        return self.memory_budget
 
     @classmethod
     def from_env(cls, **overrides: object) -> ServiceConfig:
         """Defaults, then ``HMPM_<FIELD>`` environment variables
-        (``HMPM_ALLOWED_ORIGINS`` comma-separated), then ``overrides`` (None ignored)."""
+        (``HMPM_ALLOWED_ORIGINS``, ``HMPM_ALLOWED_HOSTS`` comma-separated,
+        ``HMPM_MEMORY_BUDGET`` a size such as ``8G``), then ``overrides`` (None ignored)."""
         kw: dict[str, object] = {}
         for f in fields(cls):
             raw = os.environ.get(ENV_PREFIX + f.name.upper())
             if raw is None or raw == "":
                 continue
             try:
-                if f.name == "allowed_origins":
+                if f.name in _TUPLES:
                     kw[f.name] = tuple(o.strip() for o in raw.split(",") if o.strip())
-                elif f.name in ("idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps"):
+                elif f.name == "memory_budget":
+                    kw[f.name] = raw
+                elif f.name in _FLOATS:
                     kw[f.name] = float(raw)
                 else:
                     kw[f.name] = int(raw)
@@ -77,4 +123,4 @@ class ServiceConfig:
         return cls(**kw)  # type: ignore[arg-type]
 
 
-__all__ = ["ENV_PREFIX", "ServiceConfig"]
+__all__ = ["ENV_PREFIX", "LOOPBACK_HOSTS", "MAX_MESSAGE_CHARS", "ServiceConfig"]

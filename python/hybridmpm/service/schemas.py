@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from enum import Enum
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Strict as StrictType
 
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
@@ -16,10 +17,18 @@ MAX_SKETCH_POINTS = 2048
 #: Largest seed.
 MAX_SEED = 2**31 - 1
 
+#: A number that must be a JSON number (``true``, ``"1.5"`` refused; an integer is a number).
+Number = Annotated[float, StrictType()]
+#: An integer that must be a JSON integer (``true``, ``"10"``, ``10.0`` refused).
+Integer = Annotated[int, StrictType()]
+
 SceneName = Enum("SceneName", {name: name for name in sorted(DOMAINS)}, type=str)  # type: ignore[misc]
 
 
 class Strict(BaseModel):
+    """Request bodies: unknown keys refused, no NaN or infinity, numbers
+    strictly typed (:data:`Number`, :data:`Integer`)."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
@@ -35,13 +44,13 @@ class SceneInfo(BaseModel):
 
 class CreateSession(Strict):
     scene: SceneName = Field(description="a registered scene name (GET /v1/scenes); never a path")  # type: ignore[valid-type]
-    seed: int = Field(0, ge=0, le=MAX_SEED)
+    seed: Integer = Field(0, ge=0, le=MAX_SEED)
     solver: Literal["hybrid", "mpm", "neural"] = "hybrid"
-    r_c: float = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
+    r_c: Number = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
 
 
 class SessionInfo(BaseModel):
-    id: str = Field(description="unguessable session id (128 bits, URL-safe)")
+    id: str = Field(description="unguessable session id (192 bits, 32 URL-safe characters); the session's only credential")
     scene: str
     seed: int
     solver: str
@@ -59,7 +68,7 @@ class SessionInfo(BaseModel):
 
 
 class StepRequest(Strict):
-    frames: int = Field(1, ge=1, le=100, description="frames to advance (whole coarse steps: ceil(frames / r_t))")
+    frames: Integer = Field(1, ge=1, le=100, description="frames to advance (whole coarse steps: ceil(frames / r_t))")
 
 
 class StepFrame(BaseModel):
@@ -80,9 +89,9 @@ class StepResponse(BaseModel):
 
 class SketchIn(Strict):
     kind: Literal["arrow", "oval"]
-    points: list[tuple[float, float]] = Field(min_length=2, max_length=MAX_SKETCH_POINTS, description="[[x, y], ...] domain coordinates, y up")
-    t: list[float] | None = Field(None, max_length=MAX_SKETCH_POINTS)
-    width: list[float] | None = Field(None, max_length=MAX_SKETCH_POINTS)
+    points: list[tuple[Number, Number]] = Field(min_length=2, max_length=MAX_SKETCH_POINTS, description="[[x, y], ...] domain coordinates, y up")
+    t: list[Number] | None = Field(None, max_length=MAX_SKETCH_POINTS)
+    width: list[Number] | None = Field(None, max_length=MAX_SKETCH_POINTS)
 
 
 class ControlRequest(Strict):
@@ -91,7 +100,7 @@ class ControlRequest(Strict):
         None, max_length=60_000, description="the sketch as a PNG image (base64), the domain [0, 1]² filling it with y up; instead of `sketch`"
     )
     method: Literal["constant", "pd", "none", "diffusion"] = "constant"
-    frames: int = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
+    frames: Integer = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
 
 
 class ControlResponse(BaseModel):
@@ -113,6 +122,8 @@ class Health(BaseModel):
     status: str
     sessions: int
     max_sessions: int
+    memory_used: int = Field(description="bytes of the memory budget held by sessions, kept controls and requests in flight")
+    memory_budget: int = Field(description="the process's memory budget [bytes]")
     version: str
 
 

@@ -12,9 +12,11 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import secrets
 import time
-from collections.abc import Callable
+import traceback
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -23,8 +25,10 @@ import anyio.to_thread
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
+from hybridmpm.errors import HybridMpmError
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.frames import encode_frame
+from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.sim import Frame, Simulator
 
 log = logging.getLogger("hybridmpm.service")
@@ -32,10 +36,74 @@ T = TypeVar("T")
 
 #: Controls kept per session (their trajectories can be fetched).
 KEEP_CONTROLS = 8
+#: What a session costs beyond its state arrays (simulator objects, grids, buffers) [bytes], for the memory budget.
+SESSION_OVERHEAD = 4 << 20
+#: Copies of its state a session's cost counts: the live simulator, the initial state kept for "reset", a step's working copy.
+SESSION_STATE_COPIES = 3
+#: Seconds a client is asked to wait (``Retry-After``) when the memory budget is full.
+RETRY_AFTER_S = 5
 
 
 class SessionCapError(Exception):
     """No room for another session (→ 503)."""
+
+
+class QuotaError(Exception):
+    """The client address holds its quota of sessions (→ 429)."""
+
+
+class BudgetFullError(Exception):
+    """The memory budget cannot hold an allocation (→ 503 with ``Retry-After``)."""
+
+    def __init__(self, what: str, nbytes: int, used: int, total: int) -> None:
+        from hybridmpm.limits import human
+
+        super().__init__(f"{what} would need {human(nbytes)}; the server holds {human(used)} of its memory budget of {human(total)}; retry later")
+        self.what, self.nbytes = what, nbytes
+
+
+class MemoryBudget:
+    """One memory budget for the process [bytes]: sessions, kept controls
+    and the transient buffers of requests take from it before they
+    allocate and give back when freed. Used from the event loop thread only
+    (no lock needed)."""
+
+    def __init__(self, total: int) -> None:
+        self.total = int(total)
+        self.used = 0
+
+    def take(self, nbytes: float, what: str) -> int:
+        """Reserve ``nbytes`` (rounded up) or raise :class:`BudgetFullError`; returns the bytes reserved."""
+        n = max(0, int(math.ceil(nbytes)))
+        if self.used + n > self.total:
+            raise BudgetFullError(what, n, self.used, self.total)
+        self.used += n
+        return n
+
+    def give(self, nbytes: int) -> None:
+        self.used = max(0, self.used - int(nbytes))
+
+    @contextlib.contextmanager
+    def hold(self, nbytes: float, what: str) -> Iterator[int]:
+        """Reserve ``nbytes`` for the ``with`` block (:class:`BudgetFullError` if it cannot)."""
+        n = self.take(nbytes, what)
+        try:
+            yield n
+        finally:
+            self.give(n)
+
+
+def tree_nbytes(tree: Any) -> int:
+    """Bytes of the arrays and byte strings in a state tree (dicts, lists, arrays, bytes)."""
+    if isinstance(tree, dict):
+        return sum(tree_nbytes(v) for v in tree.values())
+    if isinstance(tree, (list, tuple)):
+        return sum(tree_nbytes(v) for v in tree)
+    if isinstance(tree, np.ndarray):
+        return int(tree.nbytes)
+    if isinstance(tree, (bytes, bytearray)):
+        return len(tree)
+    return 0
 
 
 class Viewer:
@@ -70,6 +138,7 @@ class Control:
     positions: np.ndarray
     solver: list[str]
     response: dict[str, Any]
+    cost: int = 0  # bytes taken from the memory budget while it is kept
 
 
 @dataclass
@@ -89,6 +158,8 @@ class Session:
     controlling: bool = False
     controls: collections.OrderedDict[str, Control] = field(default_factory=collections.OrderedDict)
     closed: bool = False
+    client: str = ""  # the address that created it (the per-client quota)
+    cost: int = 0  # bytes taken from the memory budget (controls not included)
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -137,37 +208,71 @@ class SessionManager:
         self.config = config
         self.sessions: dict[str, Session] = {}
         self.reserved = 0
+        self.reserved_by: collections.Counter[str] = collections.Counter()
+        self.budget = MemoryBudget(config.memory_budget_bytes)
         self.limiter = anyio.CapacityLimiter(config.compute_threads)
         self.controls_running = 0
         self._reaper: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------ compute
     async def compute(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run ``fn(*args)`` in a worker thread under the compute limiter."""
-        return await anyio.to_thread.run_sync(fn, *args, limiter=self.limiter)
+        """Run ``fn(*args)`` in a worker thread under the compute limiter.
+        A refusal (:class:`~hybridmpm.errors.HybridMpmError`) comes back with
+        the locals of its traceback's frames cleared: the answer keeps no
+        decoded image or state alive while it lingers."""
+        try:
+            return await anyio.to_thread.run_sync(fn, *args, limiter=self.limiter)
+        except HybridMpmError as e:
+            traceback.clear_frames(e.__traceback__)
+            raise
 
     # ------------------------------------------------------------ lifecycle
-    async def create(self, scene: str, seed: int, solver: str, r_c: float) -> Session:
-        """Build a session (raises :class:`SessionCapError` when full, and the
-        simulator's :class:`InvalidInputError` for bad settings)."""
+    def sessions_of(self, client: str) -> int:
+        """Sessions held or being built for the client address ``client``."""
+        return sum(1 for s in self.sessions.values() if s.client == client) + self.reserved_by[client]
+
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "") -> Session:
+        """Build a session for the client address ``client``. Raises
+        :class:`SessionCapError` when the server is full,
+        :class:`QuotaError` when the client holds its quota,
+        :class:`BudgetFullError` when the memory budget cannot hold it (its
+        cost: :data:`SESSION_STATE_COPIES` × its state + :data:`SESSION_OVERHEAD`,
+        known once it is built; a session that does not fit is dropped), and
+        the simulator's :class:`InvalidInputError` for bad settings."""
         if len(self.sessions) + self.reserved >= self.config.max_sessions:
             raise SessionCapError()
+        if self.sessions_of(client) >= self.config.max_sessions_per_client:
+            raise QuotaError()
         self.reserved += 1
+        self.reserved_by[client] += 1
         try:
+            with self.budget.hold(SESSION_OVERHEAD, "a new session"):
 
-            def build() -> tuple[Simulator, dict[str, Any]]:
-                from hybridmpm.sim import make_simulator
+                def build() -> tuple[Simulator, dict[str, Any]]:
+                    from hybridmpm.sim import make_simulator
 
-                sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1)
-                return sim, sim.state()
+                    sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1)
+                    return sim, sim.state()
 
-            sim, initial = await self.compute(build)
+                sim, initial = await self.compute(build)
+            cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a new session")
             sid = secrets.token_urlsafe(24)  # 192 bits
-            sess = Session(sid, scene, seed, solver, r_c, sim, initial)
+            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost)
             self.sessions[sid] = sess
             return sess
         finally:
             self.reserved -= 1
+            self.reserved_by[client] -= 1
+            if self.reserved_by[client] <= 0:
+                del self.reserved_by[client]
+
+    def keep_control(self, s: Session, c: Control) -> None:
+        """Keep ``c`` on ``s`` (its cost already taken from the budget),
+        dropping the oldest beyond :data:`KEEP_CONTROLS` and giving their cost back."""
+        s.controls[c.id] = c
+        while len(s.controls) > KEEP_CONTROLS:
+            _, old = s.controls.popitem(last=False)
+            self.budget.give(old.cost)
 
     def get(self, sid: str) -> Session | None:
         s = self.sessions.get(sid)
@@ -180,6 +285,10 @@ class SessionManager:
         if s is None:
             return False
         s.closed = True
+        self.budget.give(s.cost + sum(c.cost for c in s.controls.values()))
+        s.cost = 0
+        for c in s.controls.values():
+            c.cost = 0
         s.playing = False
         if s.play_task is not None:
             s.play_task.cancel()
@@ -194,7 +303,7 @@ class SessionManager:
         stale = [sid for sid, s in self.sessions.items() if now - s.last_used > ttl and not s.lock.locked()]
         for sid in stale:
             await self.close(sid, 4000, "expired")
-            log.info("session %s… expired", sid[:6])
+            log.info("session %s… expired", sid[:SHOWN_ID_CHARS])
         return stale
 
     async def _reap_forever(self) -> None:
@@ -256,4 +365,17 @@ async def close_ws(v: Viewer, code: int, reason: str) -> None:
             await asyncio.wait_for(v.ws.close(code=code, reason=reason), 2.0)
 
 
-__all__ = ["KEEP_CONTROLS", "Control", "Session", "SessionCapError", "SessionManager", "Viewer", "close_ws"]
+__all__ = [
+    "KEEP_CONTROLS",
+    "RETRY_AFTER_S",
+    "BudgetFullError",
+    "Control",
+    "MemoryBudget",
+    "QuotaError",
+    "Session",
+    "SessionCapError",
+    "SessionManager",
+    "Viewer",
+    "close_ws",
+    "tree_nbytes",
+]

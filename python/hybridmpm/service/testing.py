@@ -44,10 +44,20 @@ def listening_port(pid: int) -> int | None:
 
 class LiveServer:
     """``hybridmpm serve`` in a child process. ``env`` adds ``HMPM_*`` settings
-    (:meth:`ServiceConfig.from_env`); ``port``, ``url`` and ``ws_url`` are
-    known once it is started (:meth:`start`, or entering the ``with``)."""
+    (:meth:`ServiceConfig.from_env`; the per-client session quota is
+    ``max_sessions`` unless ``env`` sets it: every request of a test comes
+    from one address); ``args`` more ``serve`` arguments (``["--log-level",
+    "info"]``); ``port``, ``url`` and ``ws_url`` are known once it is started
+    (:meth:`start`, or entering the ``with``)."""
 
-    def __init__(self, max_sessions: int = 100, ttl: float = 600.0, env: dict[str, str] | None = None, log: Path | None = None) -> None:
+    def __init__(
+        self,
+        max_sessions: int = 100,
+        ttl: float = 600.0,
+        env: dict[str, str] | None = None,
+        log: Path | None = None,
+        args: list[str] | None = None,
+    ) -> None:
         self.port = 0
         self.url = self.ws_url = ""
         cmd = [
@@ -63,8 +73,9 @@ class LiveServer:
             str(max_sessions),
             "--ttl",
             str(ttl),
+            *(args or []),
         ]
-        full_env = {**os.environ, **(env or {})}
+        full_env = {**os.environ, "HMPM_MAX_SESSIONS_PER_CLIENT": str(max_sessions), **(env or {})}
         self._log = open(log, "wb") if log is not None else subprocess.DEVNULL  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(cmd, env=full_env, stdout=self._log, stderr=self._log)
 

@@ -1,0 +1,217 @@
+"""Hostile clients against a real server (``hybridmpm serve`` on 127.0.0.1 in
+a child process): heavy JSON steps do not stall the event loop, small PNGs
+that decode big do not blow up the memory, session ids stay out of the
+access log, forged Host headers are refused, slow headers are cut off, and a
+control whose client leaves stops."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fastapi")
+httpx = pytest.importorskip("httpx")
+websockets = pytest.importorskip("websockets")
+ws_exceptions = pytest.importorskip("websockets.exceptions")
+
+from hybridmpm.service.testing import LiveServer  # noqa: E402
+
+ARROW = {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    log = tmp_path_factory.mktemp("hostile") / "server.log"
+    env = {"HMPM_HEADER_TIMEOUT_S": "1", "HMPM_MAX_SESSIONS_PER_CLIENT": "40"}
+    with LiveServer(max_sessions=40, env=env, log=log, args=["--log-level", "info"]) as s:
+        s.log_path = log
+        yield s
+
+
+def vm(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+PROBE = """
+import sys, time, urllib.request
+url, out = sys.argv[1], []
+while True:
+    t0 = time.perf_counter()
+    with urllib.request.urlopen(url + "/healthz", timeout=30) as r:
+        assert r.status == 200
+    out.append(time.perf_counter() - t0)
+    try:
+        open(sys.argv[2]).close()
+        break
+    except OSError:
+        time.sleep(0.02)
+print(" ".join(f"{x:.6f}" for x in out))
+"""
+
+
+def probe_healthz(url: str, stop_file: Path) -> subprocess.Popen:
+    """/healthz round trips [s] over fresh connections from another process
+    (a client in this process would measure its own stalls parsing JSON)
+    until ``stop_file`` exists; its stdout lists them."""
+    return subprocess.Popen([sys.executable, "-c", PROBE, url, str(stop_file)], stdout=subprocess.PIPE, text=True)
+
+
+def test_healthz_stays_fast_while_four_clients_pull_100_frame_json_steps(server, tmp_path):
+    """Four clients each pull 100-frame JSON steps of dam_break2d (19 MB of
+    JSON each) while another process polls /healthz: the JSON is encoded off
+    the event loop, so /healthz answers within 100 ms throughout (on the old
+    code, with the encoding on the loop, it waited up to seconds)."""
+
+    async def run() -> None:
+        async with httpx.AsyncClient(base_url=server.url, timeout=120) as c:
+            ids = []
+            for _ in range(4):
+                r = await c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})
+                assert r.status_code == 201, r.text
+                ids.append(r.json()["id"])
+            sizes: list[int] = []
+
+            async def pull(sid: str) -> None:
+                for _ in range(2):
+                    r = await c.post(f"/v1/sessions/{sid}/step", json={"frames": 100})
+                    assert r.status_code == 200, r.text[:200]
+                    sizes.append(len(r.content))
+
+            probe = probe_healthz(server.url, tmp_path / "stop")
+            try:
+                await asyncio.gather(*(pull(s) for s in ids))
+            finally:
+                (tmp_path / "stop").touch()
+                lat_ms = np.array([float(x) for x in probe.communicate(timeout=60)[0].split()]) * 1e3
+            for s in ids:
+                await c.delete(f"/v1/sessions/{s}")
+            assert min(sizes) > 10e6  # the heavy answers really were made
+            print(f"/healthz under load: n={len(lat_ms)} p50 {np.median(lat_ms):.1f} p95 {np.percentile(lat_ms, 95):.1f} max {lat_ms.max():.1f} ms")
+            assert len(lat_ms) >= 10
+            assert lat_ms.max() < 100, lat_ms.max()
+
+    asyncio.run(run())
+
+
+def png_16bit_rgba(size: int = 2048, colour: tuple[int, int, int, int] = (1000, 40000, 20000, 65535)) -> bytes:
+    """A one-colour 16-bit RGBA PNG: about 32 KB on the wire, 2048² pixels once decoded."""
+    row = b"\x01" + struct.pack(">4H", *colour) + bytes(8 * (size - 1))  # filter "Sub": each pixel as the difference to the one before
+    raw = zlib.compress(row * size, 9)
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    ihdr = struct.pack(">IIBBBBB", size, size, 16, 6, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
+
+
+def test_ten_small_pngs_that_decode_big_stay_within_200_mb(server):
+    png = png_16bit_rgba()
+    assert len(png) < 40_000  # within the raw PNG body cap
+
+    peak: list[int] = []
+
+    async def run() -> list[int]:
+        async with httpx.AsyncClient(base_url=server.url, timeout=120) as c:
+            r = await c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm"})
+            sid = r.json()["id"]
+            url = f"/v1/sessions/{sid}/controls/png?frames=4"
+            await c.post(url, content=png, headers={"Content-Type": "image/png"})  # the modules it needs are loaded
+            peak.append(vm(server.proc.pid, "VmHWM"))
+            rs = await asyncio.gather(*(c.post(url, content=png, headers={"Content-Type": "image/png"}) for _ in range(10)))
+            await c.delete(f"/v1/sessions/{sid}")
+            return [x.status_code for x in rs]
+
+    t0 = time.perf_counter()
+    codes = asyncio.run(run())
+    wall = time.perf_counter() - t0
+    growth = vm(server.proc.pid, "VmHWM") - peak[0]
+    print(f"ten 2048² 16-bit PNGs: {wall:.2f} s, peak RSS growth {growth / 2**20:.0f} MiB, answers {codes}")
+    assert set(codes) <= {422, 503}, codes  # one colour: no stroke in it
+    assert growth < 200 * 2**20
+
+
+def test_no_full_session_id_in_the_logs(server):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm"}).json()["id"]
+        assert c.post(f"/v1/sessions/{sid}/step", json={"frames": 2}).status_code == 200
+        assert c.get(f"/v1/sessions/{sid}/checkpoint").status_code == 200
+        assert c.post(f"/v1/sessions/{sid}/step", json={"frames": "x"}).status_code == 422
+        assert c.get(f"/v1/sessions/{sid}/controls/nope").status_code == 404
+
+        async def ws() -> None:
+            async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream") as w:
+                await w.recv()
+
+        asyncio.run(ws())
+        assert c.delete(f"/v1/sessions/{sid}").status_code == 204
+    time.sleep(0.5)
+    text = server.log_path.read_text(errors="replace")
+    assert f"/v1/sessions/{sid[:6]}…/step" in text  # the access log is on, and shows the prefix
+    assert sid not in text and sid[6:] not in text
+
+
+def test_forged_host_is_refused_on_a_loopback_server(server):
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        assert c.get("/healthz").status_code == 200
+        assert c.get("/healthz", headers={"Host": f"localhost:{server.port}"}).status_code == 200
+        assert c.get("/healthz", headers={"Host": "evil.example"}).status_code == 400
+        sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm"}).json()["id"]
+
+    async def ws() -> None:
+        hdrs = {"Host": "evil.example", "Origin": "http://evil.example"}
+        with pytest.raises(ws_exceptions.InvalidStatus) as e:
+            async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", additional_headers=hdrs) as w:
+                await w.recv()
+        assert e.value.response.status_code == 400
+
+    asyncio.run(ws())
+
+
+def test_partial_headers_are_cut_off(server):
+    """A client that sends half a request line and then nothing is
+    disconnected after the header timeout (1 s here), not held forever."""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+        t0 = time.monotonic()
+        s.settimeout(10)
+        data = s.recv(100)  # b"" when the server closes
+        waited = time.monotonic() - t0
+    assert data == b"" and waited < 5, (data, waited)
+    # a complete request on a fresh connection is served as usual
+    with httpx.Client(base_url=server.url) as c:
+        assert c.get("/healthz").status_code == 200
+
+
+def test_a_control_whose_client_leaves_is_cancelled(server):
+    """A 1000-frame control takes seconds; its client gives up after 0.5 s.
+    The control stops (its session slot is free again within a second, the
+    session has advanced fewer than 1000 frames) instead of running on."""
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        sid = c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"}).json()["id"]
+        with pytest.raises(httpx.TimeoutException):
+            c.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "frames": 1000}, timeout=0.5)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 10:
+            r = c.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "frames": 2})
+            if r.status_code != 409:
+                break
+            time.sleep(0.1)
+        freed = time.monotonic() - t0
+        assert r.status_code == 200, r.text
+        frame = c.get(f"/v1/sessions/{sid}").json()["frame"]
+        print(f"slot free {freed:.2f} s after the client left; session at frame {frame}")
+        assert freed < 1.5 and frame < 1000
+        c.delete(f"/v1/sessions/{sid}")
