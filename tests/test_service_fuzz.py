@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("fastapi")
 schemathesis = pytest.importorskip("schemathesis")
-from hypothesis import HealthCheck, settings  # noqa: E402
+from hypothesis import HealthCheck, given, settings  # noqa: E402
 from starlette.testclient import TestClient  # noqa: E402
 
 from hybridmpm.service import ServiceConfig, create_app  # noqa: E402
@@ -25,9 +25,17 @@ EXAMPLES = 90  # × 12 operations ≈ 1000 requests
 COUNT: dict = {"requests": 0}
 
 
+FUZZ_SETTINGS = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+VOLUME = 500  # requests at least (some operations have fewer distinct inputs than EXAMPLES)
+
+
 @schema.parametrize()
-@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+@FUZZ_SETTINGS
 def test_fuzz_no_server_error(case):
+    fuzz_one(case)
+
+
+def fuzz_one(case) -> None:
     COUNT["requests"] += 1
     if "sid" in (case.path_parameters or {}) and case.method.upper() != "DELETE" and COUNT["requests"] % 8:
         case.path_parameters["sid"] = SID  # 7 in 8 requests hit the live session
@@ -45,7 +53,18 @@ def test_fuzz_no_server_error(case):
 
 
 def test_fuzz_volume():
-    """Runs after the fuzz cases (file order): the requests really were made."""
+    """The requests really were made, to every operation: after the fuzz cases above (file order),
+    or, when this test runs without them (selected alone), by the same fuzzing here."""
+    if COUNT["requests"] < VOLUME:
+        for result in schema.get_all_operations():
+
+            @FUZZ_SETTINGS
+            @given(case=result.ok().as_strategy())
+            def fuzz_operation(case):
+                fuzz_one(case)
+
+            fuzz_operation()
     for k, v in COUNT.items():
         print(k, v)
-    assert COUNT["requests"] >= 500
+    assert COUNT["requests"] >= VOLUME
+    assert {(op.ok().method.upper(), op.ok().path) for op in schema.get_all_operations()} <= set(COUNT)
