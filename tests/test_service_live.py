@@ -1,5 +1,5 @@
-"""The service on a real uvicorn (a child process on 127.0.0.1, random free
-port): many sessions stepped concurrently with no cross-talk, concurrent
+"""The service on a real uvicorn (a child process on 127.0.0.1, on a port the
+system chooses): many sessions stepped concurrently with no cross-talk, concurrent
 controls, a stalled WebSocket client, Origin refusal, TTL and the session cap."""
 
 from __future__ import annotations
@@ -85,13 +85,17 @@ def test_second_concurrent_control_is_409(server):
     async def run():
         async with httpx.AsyncClient(base_url=server.url, timeout=60) as client:
             sid = (await client.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})).json()["id"]
-            # the longest control allowed (1000 frames, about 2 s of MPM here): 100 frames of
-            # the water dam break could finish within the 0.3 s before the second request
+            # the longest control allowed (1000 frames, about 2 s of MPM here); the second request is
+            # sent once the stream announces the first running (no sleep that a loaded machine could outlast)
             body = {"sketch": {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}, "method": "constant", "frames": 1000}
-            first = asyncio.create_task(client.post(f"/v1/sessions/{sid}/controls", json=body))
-            await asyncio.sleep(0.3)
-            second = await client.post(f"/v1/sessions/{sid}/controls", json=body)
-            return (await first).status_code, second.status_code
+            async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws:
+                first = asyncio.create_task(client.post(f"/v1/sessions/{sid}/controls", json=body))
+                while True:
+                    m = await asyncio.wait_for(ws.recv(), 60)
+                    if isinstance(m, str) and '"running"' in m:
+                        break
+                second = await client.post(f"/v1/sessions/{sid}/controls", json=body)
+                return (await first).status_code, second.status_code
 
     assert asyncio.run(run()) == (200, 409)
 
@@ -190,8 +194,10 @@ def test_ttl_and_cap_live(tmp_path):
                         await asyncio.wait_for(ws.recv(), 5)
                 return e.value.rcvd.code, time.monotonic() - t0
 
+        # closed by the reaper (code 4000) while the client waits: the 5 s receive timeout above (5 x the TTL)
+        # is the only wall-clock bound, generous on purpose; how soon after the TTL is not asserted
         code, waited = asyncio.run(watch())
-        assert code == 4000 and waited < 2.5
+        assert code == 4000, (code, waited)
         with httpx.Client(base_url=srv.url, timeout=30) as c:
             assert all(c.get(f"/v1/sessions/{i}").status_code == 404 for i in ids)
             assert c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"}).status_code == 201
