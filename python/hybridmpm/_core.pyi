@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "grid_mass", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
+__all__ = ["__version__", "MpmSolver", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
 
 __version__: str
 
@@ -58,6 +58,33 @@ def grid_mass(
     masses: npt.NDArray[np.float32] | None = None,
     *,
     memory_budget: int | None = None,
+) -> npt.NDArray[np.float32]: ...
+def grid_p2g(
+    positions: npt.NDArray[np.float32],
+    values: npt.NDArray[np.float32],
+    origin: list[float],
+    spacing: list[float],
+    nodes: int,
+) -> npt.NDArray[np.float32]: ...
+def grid_g2p(
+    field: npt.NDArray[np.float32],
+    positions: npt.NDArray[np.float32],
+    origin: list[float],
+    spacing: list[float],
+    nodes: int,
+) -> npt.NDArray[np.float32]: ...
+def grid_advect(
+    positions: npt.NDArray[np.float32],
+    moving: npt.NDArray[np.bool_],
+    velocity: npt.NDArray[np.float32],
+    extra: npt.NDArray[np.float32],
+    drift: npt.NDArray[np.float32],
+    dt: float,
+    lo: list[float],
+    hi: list[float],
+    origin: list[float],
+    spacing: list[float],
+    nodes: int,
 ) -> npt.NDArray[np.float32]: ...
 def radius_graph(
     positions: npt.NDArray[np.float32],

@@ -26,6 +26,7 @@ mod material;
 pub mod params;
 pub mod particles;
 pub mod solver;
+pub mod transfer;
 mod v4;
 
 pub use collider::{Collider, Shape};
@@ -36,3 +37,4 @@ pub use isa::Isa;
 pub use params::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};
+pub use transfer::{TransferGrid, advect, g2p, p2g};

@@ -10,11 +10,13 @@ mod graph;
 mod mpm;
 mod ort_ops;
 mod pool;
+mod transfer;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     mpm::register(m)?;
     graph::register(m)?;
+    transfer::register(m)?;
     Ok(())
 }

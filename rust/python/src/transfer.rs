@@ -1,0 +1,238 @@
+//! `grid_p2g`, `grid_g2p`, `grid_advect`: the particle–grid transfers of the
+//! learned grid model (`hybridmpm_mpm::transfer`).
+
+use hybridmpm_mpm::{self as core, TransferGrid};
+use numpy::{
+    PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArrayDyn, PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+
+use crate::errors::invalid_input;
+use crate::mpm::{f32_array, to_py};
+
+fn grid<const D: usize>(
+    py: Python<'_>,
+    origin: &[f32],
+    spacing: &[f32],
+    nodes: usize,
+) -> PyResult<TransferGrid<D>> {
+    if origin.len() != D || spacing.len() != D {
+        return Err(invalid_input(
+            py,
+            "origin",
+            format!(
+                "origin and spacing must have {D} values, got {} and {}",
+                origin.len(),
+                spacing.len()
+            ),
+        ));
+    }
+    let g = TransferGrid {
+        origin: origin.try_into().expect("length checked"),
+        spacing: spacing.try_into().expect("length checked"),
+        nodes,
+    };
+    g.validate().map_err(|e| to_py(py, e))?;
+    Ok(g)
+}
+
+fn rows<const D: usize>(a: &PyReadonlyArrayDyn<'_, f32>) -> Vec<[f32; D]> {
+    a.as_array()
+        .iter()
+        .copied()
+        .collect::<Vec<f32>>()
+        .as_chunks::<D>()
+        .0
+        .to_vec()
+}
+
+fn flat(a: &PyReadonlyArrayDyn<'_, f32>) -> Vec<f32> {
+    a.as_array().iter().copied().collect()
+}
+
+fn out2<'py>(
+    py: Python<'py>,
+    v: Vec<f32>,
+    rows: usize,
+    cols: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    Ok(PyArray1::from_vec(py, v).reshape([rows, cols])?.into_any())
+}
+
+/// p2g of `values` float32 [N, C] at `positions` float32 [N, D] onto the
+/// grid `(origin [D], spacing [D], nodes)`: float32 [nodes^D, C].
+#[pyfunction]
+#[pyo3(signature = (positions, values, origin, spacing, nodes))]
+pub fn grid_p2g<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    values: &Bound<'py, PyAny>,
+    origin: Vec<f32>,
+    spacing: Vec<f32>,
+    nodes: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    let x = f32_array(positions, "positions", &[None, None])?;
+    let (n, d) = (x.shape()[0], x.shape()[1]);
+    let v = f32_array(values, "values", &[Some(n), None])?;
+    let c = v.shape()[1];
+    let vals = flat(&v);
+    let (out, len) = match d {
+        2 => {
+            let g = grid::<2>(py, &origin, &spacing, nodes)?;
+            let p = rows::<2>(&x);
+            (py.detach(|| core::p2g(&g, &p, &vals, c)), g.len())
+        }
+        3 => {
+            let g = grid::<3>(py, &origin, &spacing, nodes)?;
+            let p = rows::<3>(&x);
+            (py.detach(|| core::p2g(&g, &p, &vals, c)), g.len())
+        }
+        _ => {
+            return Err(invalid_input(
+                py,
+                "positions",
+                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
+            ));
+        }
+    };
+    out2(py, out.map_err(|e| to_py(py, e))?, len, c)
+}
+
+/// g2p of `field` float32 [nodes^D, C] at `positions` float32 [N, D]: float32 [N, C].
+#[pyfunction]
+#[pyo3(signature = (field, positions, origin, spacing, nodes))]
+pub fn grid_g2p<'py>(
+    py: Python<'py>,
+    field: &Bound<'py, PyAny>,
+    positions: &Bound<'py, PyAny>,
+    origin: Vec<f32>,
+    spacing: Vec<f32>,
+    nodes: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    let x = f32_array(positions, "positions", &[None, None])?;
+    let (n, d) = (x.shape()[0], x.shape()[1]);
+    let f = f32_array(field, "field", &[None, None])?;
+    let c = f.shape()[1];
+    let vals = flat(&f);
+    let out = match d {
+        2 => {
+            let g = grid::<2>(py, &origin, &spacing, nodes)?;
+            let p = rows::<2>(&x);
+            py.detach(|| core::g2p(&g, &vals, c, &p))
+        }
+        3 => {
+            let g = grid::<3>(py, &origin, &spacing, nodes)?;
+            let p = rows::<3>(&x);
+            py.detach(|| core::g2p(&g, &vals, c, &p))
+        }
+        _ => {
+            return Err(invalid_input(
+                py,
+                "positions",
+                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
+            ));
+        }
+    };
+    out2(py, out.map_err(|e| to_py(py, e))?, n, c)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn advect_d<const D: usize>(
+    py: Python<'_>,
+    x: &PyReadonlyArrayDyn<'_, f32>,
+    moving: Vec<bool>,
+    velocity: &PyReadonlyArrayDyn<'_, f32>,
+    extra: &PyReadonlyArrayDyn<'_, f32>,
+    drift: &PyReadonlyArrayDyn<'_, f32>,
+    dt: f32,
+    bounds: (&[f32], &[f32]),
+    g: TransferGrid<D>,
+) -> PyResult<Vec<f32>> {
+    if bounds.0.len() != D || bounds.1.len() != D {
+        return Err(invalid_input(
+            py,
+            "bounds",
+            format!("lo and hi must have {D} values"),
+        ));
+    }
+    let (lo, hi): ([f32; D], [f32; D]) = (
+        bounds.0.try_into().expect("checked"),
+        bounds.1.try_into().expect("checked"),
+    );
+    let (p, e, dr, v) = (
+        rows::<D>(x),
+        rows::<D>(extra),
+        rows::<D>(drift),
+        flat(velocity),
+    );
+    py.detach(|| core::advect(&g, &p, &moving, &v, &e, &dr, dt, lo, hi))
+        .map_err(|e| to_py(py, e))
+}
+
+/// Frame-by-frame advection (`hybridmpm_mpm::transfer::advect`): positions
+/// float32 [N, D], `moving` numpy bool [N], `velocity` float32 [K, nodes^D, D],
+/// `extra` float32 [N, D], `drift` float32 [K, D] → float32 [K, N, D].
+#[pyfunction]
+#[pyo3(signature = (positions, moving, velocity, extra, drift, dt, lo, hi, origin, spacing, nodes))]
+#[allow(clippy::too_many_arguments)]
+pub fn grid_advect<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    moving: PyReadonlyArray1<'py, bool>,
+    velocity: &Bound<'py, PyAny>,
+    extra: &Bound<'py, PyAny>,
+    drift: &Bound<'py, PyAny>,
+    dt: f32,
+    lo: Vec<f32>,
+    hi: Vec<f32>,
+    origin: Vec<f32>,
+    spacing: Vec<f32>,
+    nodes: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    let x = f32_array(positions, "positions", &[None, None])?;
+    let (n, d) = (x.shape()[0], x.shape()[1]);
+    let v = f32_array(velocity, "velocity", &[None, None, Some(d)])?;
+    let k = v.shape()[0];
+    let e = f32_array(extra, "extra", &[Some(n), Some(d)])?;
+    let dr = f32_array(drift, "drift", &[Some(k), Some(d)])?;
+    let moving: Vec<bool> = moving.as_array().iter().copied().collect();
+    let out = match d {
+        2 => advect_d::<2>(
+            py,
+            &x,
+            moving,
+            &v,
+            &e,
+            &dr,
+            dt,
+            (&lo, &hi),
+            grid::<2>(py, &origin, &spacing, nodes)?,
+        )?,
+        3 => advect_d::<3>(
+            py,
+            &x,
+            moving,
+            &v,
+            &e,
+            &dr,
+            dt,
+            (&lo, &hi),
+            grid::<3>(py, &origin, &spacing, nodes)?,
+        )?,
+        _ => {
+            return Err(invalid_input(
+                py,
+                "positions",
+                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
+            ));
+        }
+    };
+    Ok(PyArray1::from_vec(py, out).reshape([k, n, d])?.into_any())
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(grid_p2g, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_g2p, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_advect, m)?)?;
+    Ok(())
+}
