@@ -215,3 +215,21 @@ def test_a_control_whose_client_leaves_is_cancelled(server):
         print(f"slot free {freed:.2f} s after the client left; session at frame {frame}")
         assert freed < 1.5 and frame < 1000
         c.delete(f"/v1/sessions/{sid}")
+
+
+def test_a_binary_websocket_message_gets_a_close_frame(server):
+    """Binary messages are not part of the protocol: the server closes with
+    1003 and a close frame (not a dropped connection, 1006)."""
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm"}).json()["id"]
+
+    async def run() -> None:
+        async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream") as w:
+            await w.recv()
+            await w.send(b"\x00\x01")
+            with pytest.raises(ws_exceptions.ConnectionClosed) as e:
+                for _ in range(100):
+                    await asyncio.wait_for(w.recv(), 10)
+            assert e.value.rcvd is not None and e.value.rcvd.code == 1003, e.value
+
+    asyncio.run(run())
