@@ -34,7 +34,7 @@ from urllib.parse import urlsplit
 import numpy as np
 from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
@@ -289,9 +289,12 @@ def _json_floats(a: np.ndarray) -> str:
     return "[" + ", ".join(pieces) + "]"
 
 
-def _step_json(pos: np.ndarray, frames: list[int], solvers: list[str], seconds: list[float], r_t: int, dt: float, failure: str | None, latency: float) -> bytes:
-    """The JSON answer of a step, encoded in pieces in a worker thread
-    (:func:`_json_floats`), which lets the event loop run in between."""
+def _step_json(
+    pos: np.ndarray, frames: list[int], solvers: list[str], seconds: list[float], r_t: int, dt: float, failure: str | None, latency: float
+) -> list[bytes]:
+    """The JSON answer of a step as its pieces (one per frame), encoded in a
+    worker thread (:func:`_json_floats`), which lets the event loop run in
+    between; sent one piece at a time, never joined into one buffer."""
     parts = [b'{"frames": [']
     for k in range(len(pos)):
         fr = frames[k]
@@ -299,7 +302,7 @@ def _step_json(pos: np.ndarray, frames: list[int], solvers: list[str], seconds: 
         item = json.dumps(head, allow_nan=False)[:-1] + ', "positions": ' + _json_floats(pos[k]) + "}"
         parts.append(((", " if k else "") + item).encode())
     parts.append(("], " + json.dumps({"failure": failure, "latency_ms": latency})[1:]).encode())
-    return b"".join(parts)
+    return parts
 
 
 def _png(img: np.ndarray) -> str:
@@ -506,8 +509,14 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                 if failure:
                     headers["X-Failure"] = failure
                 return Response(await manager.compute(lambda: np.ascontiguousarray(pos, "<f4").tobytes()), media_type=OCTET, headers=headers)
-            data = await manager.compute(_step_json, pos, frames_, solvers, seconds, int(s.sim.r_t), float(s.sim.dt_frame), failure, latency)
-            return Response(data, media_type="application/json")
+            parts = await manager.compute(_step_json, pos, frames_, solvers, seconds, int(s.sim.r_t), float(s.sim.dt_frame), failure, latency)
+
+            async def pieces() -> AsyncIterator[bytes]:
+                while parts:
+                    yield parts.pop(0)
+
+            size = str(sum(len(x) for x in parts))
+            return StreamingResponse(pieces(), media_type="application/json", headers={"Content-Length": size})
 
     # ------------------------------------------------------------ controls
     @app.post(
