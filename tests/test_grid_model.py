@@ -31,6 +31,8 @@ def _random_model(cfg: GridConfig, seed: int = 0) -> GridModel:
         m.net.out.weight.normal_(0.0, 0.05)
         m.net.out.bias.normal_(0.0, 0.05)
         m.flip_logit.fill_(0.3)
+        if cfg.pressure:
+            m.pressure_logit.fill_(0.5)
     return m.eval()
 
 
@@ -65,10 +67,10 @@ def test_rust_transfers_equal_torch_and_conserve(dim: int) -> None:
     np.testing.assert_allclose(_core.grid_g2p(lin, x, origin.tolist(), spacing.tolist(), g)[:, 0], 0.5 + x @ np.arange(1, dim + 1), atol=1e-5)
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_exported_model_runs_as_torch_does(tmp_path, dim: int) -> None:
+@pytest.mark.parametrize("dim,pressure", [(2, False), (2, True), (3, True)])
+def test_exported_model_runs_as_torch_does(tmp_path, dim: int, pressure: bool) -> None:
     types = [GNS_WATER, GNS_SAND] if dim == 2 else [GNS_SAND]
-    cfg = _cfg(dim, types=types, velocity_scale=0.8, rest_count=5.0)
+    cfg = _cfg(dim, types=types, velocity_scale=0.8, rest_count=2.0, pressure=pressure)
     model = _random_model(cfg)
     path = export_grid(model, tmp_path / "g.onnx", {"scene": "test", "r_p": 0.5, "radius": 0.02})
     assert model_kind(path) == "grid"
@@ -77,7 +79,7 @@ def test_exported_model_runs_as_torch_does(tmp_path, dim: int) -> None:
     rng = np.random.default_rng(3)
     n = 400
     lo, hi = np.asarray(cfg.bounds, np.float32).T
-    x = rng.uniform(lo + 0.1, hi - 0.1, (n, dim)).astype(np.float32)
+    x = rng.uniform(lo + 0.1, lo + 0.4, (n, dim)).astype(np.float32)  # packed: the density correction acts
     steps = rng.normal(0, 0.004, (cfg.t_in - 1, n, dim)).astype(np.float32)
     hist = np.concatenate([x[None], x[None] + np.cumsum(steps, 0)]).astype(np.float32)
     pt = rng.choice(types + [GNS_KINEMATIC], n).astype(np.int64)

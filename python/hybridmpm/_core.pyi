@@ -85,6 +85,7 @@ def grid_advect(
     origin: list[float],
     spacing: list[float],
     nodes: int,
+    pressure: tuple[float, float] | None = None,
 ) -> npt.NDArray[np.float32]: ...
 def radius_graph(
     positions: npt.NDArray[np.float32],

@@ -392,6 +392,22 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_grid(args: argparse.Namespace) -> int:
+    try:
+        from hybridmpm.train.grid_train import GridTrainConfig, train_grid
+    except ImportError as e:
+        raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
+    cfg = GridTrainConfig(
+        scene=args.scene, data=args.data, out=args.out, grid=args.grid, width=args.width, levels=args.levels, r_t=args.r_t, steps=args.steps,
+        batch=args.batch, lr=args.lr, noise=args.noise, unroll=args.unroll, density_weight=args.density_weight, val_every=args.val_every,
+        val_steps=args.val_steps, seed=args.seed, threads=args.threads,
+    )  # fmt: skip
+    summary = train_grid(cfg, progress=not args.quiet)
+    if not args.quiet:
+        print(json.dumps({k: v for k, v in summary.items() if k != "curve"}, indent=2))
+    return 0
+
+
 def _generate(args: argparse.Namespace) -> int:
     from hybridmpm.data.generate import GenerateConfig, generate_dataset
 
@@ -641,6 +657,27 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_train)
+
+    tg = sub.add_parser("train-grid", help="train a grid model (p2g, U-Net, g2p; NeuralMPM-style) and export OUT/model.onnx (needs the 'train' extra)")
+    tg.add_argument("scene", help="scene family the model is for (stored in the model)")
+    tg.add_argument("--data", required=True, help="dataset directory stored every frame (hybridmpm generate SCENE --r-p R_P)")
+    tg.add_argument("--out", required=True, help="model directory: checkpoint.pt, best.pt, curve.json, model.onnx (resumes if present)")
+    tg.add_argument("--grid", type=int, default=64, help="grid nodes per dimension (default 64)")
+    tg.add_argument("--width", type=int, default=16, help="channels of the U-Net's first level, doubled per level (default 16)")
+    tg.add_argument("--levels", type=int, default=3, help="U-Net levels (default 3)")
+    tg.add_argument("--r-t", type=int, default=4, help="frames per call (default 4)")
+    tg.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
+    tg.add_argument("--batch", type=int, default=8, help="windows per step (default 8)")
+    tg.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (cosine decay)")
+    tg.add_argument("--noise", type=float, default=3e-4, help="random-walk noise on the input history [m per step]")
+    tg.add_argument("--unroll", type=int, default=3, help="chained calls in the loss, reached by mid-run (default 3)")
+    tg.add_argument("--density-weight", type=float, default=0.0, help="weight of the grid-count loss (default 0)")
+    tg.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
+    tg.add_argument("--val-steps", type=int, default=100, help="model steps per validation rollout (default 100)")
+    tg.add_argument("--seed", type=_seed, default=0)
+    tg.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    tg.add_argument("--quiet", action="store_true")
+    tg.set_defaults(func=_train_grid)
 
     ins = sub.add_parser("inspect", help="check a GNS-layout dataset directory and print its summary as JSON")
     ins.add_argument("directory", help="dataset directory (metadata.json + train/valid/test.npz)")

@@ -65,9 +65,9 @@ def neural_role(r_p: float, r_t: int) -> str:
 
 
 def _model_info(path: Path) -> tuple[float, int, int]:
-    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural.grid import open_model
 
-    m = NeuralModel(path)
+    m = open_model(path)
     params = int(m.meta.get("parameters", m.meta.get("params", 0)) or 0)
     return m.r_p, m.r_t, params
 

@@ -164,8 +164,11 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> di
         # the network's arithmetic per frame on the initial graph (nodes: fluid and boundary particles)
         meta = sim.model.meta  # type: ignore[attr-defined]
         nodes = sim.particles.num_total
-        flops = gnn_flops(int(meta["latent"]), int(meta["layers"]), sim.scene.dim, nodes, int(round(sim.initial_degree * nodes)), sim.t_in)  # type: ignore[attr-defined]
-        substeps, mflop = float("nan"), flops / sim.r_t / 1e6
+        if "latent" in meta:  # a GNS; a grid model's cost is its U-Net's, not counted here
+            flops = gnn_flops(int(meta["latent"]), int(meta["layers"]), sim.scene.dim, nodes, int(round(sim.initial_degree * nodes)), sim.t_in)  # type: ignore[attr-defined]
+            substeps, mflop = float("nan"), flops / sim.r_t / 1e6
+        else:
+            substeps, mflop = float("nan"), float("nan")
     frames_of = ro.frame_index
     keep = frames_of <= cfg.frames
     pos, frames_of, neural = ro.fluid_positions[keep], frames_of[keep], (ro.solver[keep] == NEURAL).astype(np.int8)

@@ -113,6 +113,7 @@ class GridRuntime:
             self._rest = np.float32(cfg["rest_count"])
             self._materials = [t for t in (GNS_WATER, GNS_SAND) if t in [int(v) for v in cfg["types"]]]
             self._beta = np.float32(meta["beta"])
+            self._pressure = float(meta["pressure_strength"]) if cfg.get("pressure") else None
         except (TypeError, KeyError, ValueError) as e:
             raise InvalidInputError(f"model.grid_config: {self.path.name} has malformed grid metadata ({e})", "model.grid_config") from e
         ok = (
@@ -126,6 +127,7 @@ class GridRuntime:
             and self._gravity.shape == (self._dim,)
             and all(math.isfinite(float(v)) and float(v) > 0 for v in (self._dt, self._vscale, self._rest))
             and math.isfinite(float(self._beta))
+            and (self._pressure is None or (math.isfinite(self._pressure) and self._pressure >= 0))
         )
         if not ok:
             raise InvalidInputError(f"model.grid_config: {self.path.name} has grid metadata out of range", "model.grid_config")
@@ -214,7 +216,18 @@ class GridRuntime:
         own = self._beta * (vel[-1] - _core.grid_g2p(v_last, x0, origin, spacing, g))
         lo, hi = self._bounds[:, 0].tolist(), self._bounds[:, 1].tolist()
         return _core.grid_advect(  # type: ignore[no-any-return]
-            x0, fluid, velocity, np.ascontiguousarray(own, np.float32), self._drift, float(self._dt), lo, hi, origin, spacing, g
+            x0,
+            fluid,
+            velocity,
+            np.ascontiguousarray(own, np.float32),
+            self._drift,
+            float(self._dt),
+            lo,
+            hi,
+            origin,
+            spacing,
+            g,
+            None if self._pressure is None else (self._pressure, float(self._rest)),
         )
 
     def packing(self, positions: np.ndarray, fluid: np.ndarray) -> float:

@@ -17,7 +17,7 @@ cosine decay to ``lr_final``, gradients clipped to ``clip_grad``.
 Selection: every ``val_every`` steps, rollouts of ``val_steps`` model steps
 from the start of the validation trajectories, scored with the grid-mass
 error against the data (MPM at the same ``r_p``); the best snapshot is kept
-(``best.pt``) and exported. The run is resumable: ``checkpoint.pt`` (model,
+(``best.pt``) and exported to ``model.onnx`` at the end. The run is resumable: ``checkpoint.pt`` (model,
 optimiser, step, random state, validation curve) is written every
 ``val_every`` steps, and a run started again with the same ``out`` goes on
 from it. ``curve.json`` holds the validation curve against core-seconds.
@@ -67,6 +67,7 @@ class GridTrainConfig:
     noise: float = 3e-4
     unroll: int = 3
     density_weight: float = 0.0
+    pressure: bool = False
     clip_grad: float = 1.0
     val_every: int = 500
     val_steps: int = 100
@@ -237,6 +238,7 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
         velocity_scale=velocity_scale(meta),
         rest_count=rest_count(train, bounds, c.grid),
         types=types,
+        pressure=c.pressure,
     )
     model = GridModel(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=c.lr)
@@ -312,6 +314,21 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
             bar.set_postfix(loss=f"{curve[-1]['train_loss']:.3g}", valid=f"{verr:.3f}", best=f"{best[0]:.3f}@{best[1]}")
     bar.close()
     summary = {"config": cfg.to_dict(), "train_config": asdict(c), "best_valid_error": best[0], "best_step": best[1], "core_seconds": seconds, "curve": curve}
+    if (out / "best.pt").exists():
+        export_grid(
+            load_snapshot(out / "best.pt"),
+            out / "model.onnx",
+            {
+                "scene": c.scene,
+                "r_p": float(meta.get("r_p", 1.0)),
+                "radius": float(meta.get("default_connectivity_radius", 0.015)),
+                "data_sha256": meta.get("sha256", {}).get("train") if isinstance(meta.get("sha256"), dict) else None,
+                "steps": best[1],
+                "core_seconds": seconds,
+                "valid_error": best[0],
+            },
+        )
+        summary["model"] = str(out / "model.onnx")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -334,7 +351,8 @@ def export_grid(model: GridModel, path: str | Path, metadata: dict[str, Any]) ->
     meta = {
         "kind": GRID_KIND,
         "grid_config": cfg.to_dict(),
-        "beta": float(torch.sigmoid(model.flip_logit)),
+        "beta": float(torch.sigmoid(model.flip_logit.detach())),
+        "pressure_strength": float(torch.nn.functional.softplus(model.pressure_logit.detach())) if cfg.pressure else None,
         "dim": cfg.dim,
         "r_t": cfg.r_t,
         "t_in": cfg.t_in,

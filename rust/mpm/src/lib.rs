@@ -37,4 +37,4 @@ pub use isa::Isa;
 pub use params::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};
-pub use transfer::{TransferGrid, advect, g2p, p2g};
+pub use transfer::{Pressure, TransferGrid, advect, g2p, p2g};

@@ -191,8 +191,9 @@ pub fn g2p<const D: usize>(
 /// `g2p(velocity_k)(x) + extra_p + drift_k` [m/s], moves by it times `dt`
 /// [s] and is clipped to `[lo, hi]`; the others stay at `x0`. `velocity` is
 /// `[K][nodes^D][D]` (flat), `extra` `[N][D]`, `drift` `[K][D]`. Returns the
-/// positions after each frame, `[K][N][D]` (flat). Errors name the argument
-/// of a wrong length or non-finite value.
+/// positions after each frame, `[K][N][D]` (flat). With `pressure`, each
+/// frame ends with one density correction ([`Pressure`], `pressure_step`).
+/// Errors name the argument of a wrong length or non-finite value.
 #[allow(clippy::too_many_arguments)]
 pub fn advect<const D: usize>(
     grid: &TransferGrid<D>,
@@ -204,9 +205,21 @@ pub fn advect<const D: usize>(
     dt: f32,
     lo: [f32; D],
     hi: [f32; D],
+    pressure: Option<Pressure>,
 ) -> Result<Vec<f32>> {
     grid.validate()?;
     check_positions("positions", x0)?;
+    if let Some(p) = pressure
+        && !(p.strength.is_finite()
+            && p.strength >= 0.0
+            && p.rest_count.is_finite()
+            && p.rest_count > 0.0)
+    {
+        return Err(MpmError::invalid(
+            "pressure",
+            "strength must be finite and >= 0, rest_count finite and > 0",
+        ));
+    }
     let (n, k) = (x0.len(), drift.len());
     if moving.len() != n {
         return Err(MpmError::invalid(
@@ -260,10 +273,84 @@ pub fn advect<const D: usize>(
                     x[p][d] = (x[p][d] + v * dt).max(lo[d]).min(hi[d]);
                 }
             }
-            out.extend_from_slice(&x[p]);
+        }
+        if let Some(pr) = pressure {
+            pressure_step(grid, &mut x, moving, pr, lo, hi);
+        }
+        for p in x.iter() {
+            out.extend_from_slice(p);
         }
     }
     Ok(out)
+}
+
+/// Strength and rest count of [`advect`]'s density correction.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pressure {
+    /// Displacement per unit excess-density gradient, in node spacings (> 0).
+    pub strength: f32,
+    /// Particles per node in resting fluid (> 0).
+    pub rest_count: f32,
+}
+
+/// One density correction: the moving particles' p2g count over the rest
+/// count less 1, clipped at 0 (excess density `e`), its central-difference
+/// gradient on the nodes (edges replicated), and each moving particle moved
+/// by `−strength · g2p(∇e) · spacing`, clipped to `[lo, hi]`
+/// (`hybridmpm.train.grid.pressure_shift`: a one-iteration position-based
+/// density constraint on the grid).
+fn pressure_step<const D: usize>(
+    grid: &TransferGrid<D>,
+    x: &mut [[f32; D]],
+    moving: &[bool],
+    pr: Pressure,
+    lo: [f32; D],
+    hi: [f32; D],
+) {
+    let g = grid.nodes;
+    let len = grid.len();
+    let (mut node, mut weight) = ([0usize; 27], [0.0f32; 27]);
+    let mut e = vec![0.0f32; len];
+    for (p, xp) in x.iter().enumerate() {
+        if moving[p] {
+            let m = grid.stencil(xp, &mut node, &mut weight);
+            for s in 0..m {
+                e[node[s]] += weight[s];
+            }
+        }
+    }
+    for v in e.iter_mut() {
+        *v = (*v / pr.rest_count - 1.0).max(0.0);
+    }
+    let mut grad = vec![0.0f32; len * D];
+    let mut stride = [1usize; D];
+    for d in (0..D.saturating_sub(1)).rev() {
+        stride[d] = stride[d + 1] * g;
+    }
+    for i in 0..len {
+        for d in 0..D {
+            let c = (i / stride[d]) % g;
+            let up = if c + 1 < g { i + stride[d] } else { i };
+            let down = if c > 0 { i - stride[d] } else { i };
+            grad[i * D + d] = 0.5 * (e[up] - e[down]);
+        }
+    }
+    for (p, xp) in x.iter_mut().enumerate() {
+        if moving[p] {
+            let m = grid.stencil(xp, &mut node, &mut weight);
+            let mut s_ = [0.0f32; D];
+            for s in 0..m {
+                for d in 0..D {
+                    s_[d] += weight[s] * grad[node[s] * D + d];
+                }
+            }
+            for d in 0..D {
+                xp[d] = (xp[d] - pr.strength * (s_[d] * grid.spacing[d]))
+                    .max(lo[d])
+                    .min(hi[d]);
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -316,6 +403,7 @@ mod tests {
             0.05,
             [0.0, 0.0],
             [0.95, 1.0],
+            None,
         )
         .unwrap();
         assert_eq!(out.len(), 2 * 3 * 2);

@@ -1,7 +1,7 @@
 //! `grid_p2g`, `grid_g2p`, `grid_advect`: the particle–grid transfers of the
 //! learned grid model (`hybridmpm_mpm::transfer`).
 
-use hybridmpm_mpm::{self as core, TransferGrid};
+use hybridmpm_mpm::{self as core, Pressure, TransferGrid};
 use numpy::{
     PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArrayDyn, PyUntypedArrayMethods,
 };
@@ -147,6 +147,7 @@ fn advect_d<const D: usize>(
     dt: f32,
     bounds: (&[f32], &[f32]),
     g: TransferGrid<D>,
+    pressure: Option<Pressure>,
 ) -> PyResult<Vec<f32>> {
     if bounds.0.len() != D || bounds.1.len() != D {
         return Err(invalid_input(
@@ -165,15 +166,16 @@ fn advect_d<const D: usize>(
         rows::<D>(drift),
         flat(velocity),
     );
-    py.detach(|| core::advect(&g, &p, &moving, &v, &e, &dr, dt, lo, hi))
+    py.detach(|| core::advect(&g, &p, &moving, &v, &e, &dr, dt, lo, hi, pressure))
         .map_err(|e| to_py(py, e))
 }
 
 /// Frame-by-frame advection (`hybridmpm_mpm::transfer::advect`): positions
 /// float32 [N, D], `moving` numpy bool [N], `velocity` float32 [K, nodes^D, D],
-/// `extra` float32 [N, D], `drift` float32 [K, D] → float32 [K, N, D].
+/// `extra` float32 [N, D], `drift` float32 [K, D] → float32 [K, N, D];
+/// `pressure` `(strength, rest_count)` adds a density correction per frame.
 #[pyfunction]
-#[pyo3(signature = (positions, moving, velocity, extra, drift, dt, lo, hi, origin, spacing, nodes))]
+#[pyo3(signature = (positions, moving, velocity, extra, drift, dt, lo, hi, origin, spacing, nodes, pressure=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn grid_advect<'py>(
     py: Python<'py>,
@@ -188,7 +190,12 @@ pub fn grid_advect<'py>(
     origin: Vec<f32>,
     spacing: Vec<f32>,
     nodes: usize,
+    pressure: Option<(f32, f32)>,
 ) -> PyResult<Bound<'py, PyAny>> {
+    let pressure = pressure.map(|(strength, rest_count)| Pressure {
+        strength,
+        rest_count,
+    });
     let x = f32_array(positions, "positions", &[None, None])?;
     let (n, d) = (x.shape()[0], x.shape()[1]);
     let v = f32_array(velocity, "velocity", &[None, None, Some(d)])?;
@@ -207,6 +214,7 @@ pub fn grid_advect<'py>(
             dt,
             (&lo, &hi),
             grid::<2>(py, &origin, &spacing, nodes)?,
+            pressure,
         )?,
         3 => advect_d::<3>(
             py,
@@ -218,6 +226,7 @@ pub fn grid_advect<'py>(
             dt,
             (&lo, &hi),
             grid::<3>(py, &origin, &spacing, nodes)?,
+            pressure,
         )?,
         _ => {
             return Err(invalid_input(
