@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The charts and tables of docs/benchmarks.md (issue 6): `hybridmpm bench` on
+# The charts and tables of docs/benchmarks.md: `hybridmpm bench` on
 # every 2D scene, water3d and sand3d, 3 held-out seeds (1000-1002), the paper's T
 # frames, MPM on all cores, onnxruntime on one thread; Taichi as the MPM peer
 # (needs `pip install -e '.[bench]'`; PEER= to skip). Resumable (finished

@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
-"""Control baselines on held-out reverse-simulation cases (issue 14; paper Table 4).
+"""Control baselines on held-out reverse-simulation cases (paper Table 4).
 
     python benchmarks/bench_control.py --scenes water2d,sand2d --cases 50 --out benchmarks/results/control
 
 Per scene, ``--cases`` cases (seeds 5000+, arrows and ovals alternating;
-:func:`hybridmpm.control.data.make_case`): the fluid at the controlled start
+:func:`hybridmpm.train.control.cases.make_case`): the fluid at the controlled start
 (``X_T`` reversed) and the sketch made from the reverse run; every method
 runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
 
@@ -23,7 +23,7 @@ runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
   as the paper's App. D does; ``kinematic`` — the paper's reverse formula
   replayed (how far the untracked data would land).
 
-Metrics (DESIGN.md): final-shape grid-mass error against ``X_1`` and the
+Metrics (docs/design.md): final-shape grid-mass error against ``X_1`` and the
 paper's RMSE_m̃, arrow adherence (cosine, length ratio) or oval adherence
 (fraction inside, IoU), effort (‖a‖/g), smoothness, plan latency (sketch →
 field) and whole-episode latency. Writes ``OUT.json`` (every case) and
@@ -44,8 +44,8 @@ from tqdm import tqdm
 
 from hybridmpm.bench.env import environment
 from hybridmpm.control import Controller, control_episode
-from hybridmpm.control.data import make_case
 from hybridmpm.control.prior import free_motion_of, prior_path
+from hybridmpm.train.control.cases import make_case
 
 METHODS = ("none", "constant", "pd", "diffusion", "diffusion_net", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
 

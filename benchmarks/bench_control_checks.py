@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The diffusion controller's behavioural checks and latency (issue 14):
+"""The diffusion controller's behavioural checks and latency:
 
     python benchmarks/bench_control_checks.py --scenes water2d,sand2d --out benchmarks/results/control_checks
 
@@ -39,8 +39,8 @@ from tqdm import tqdm
 
 from hybridmpm.bench.env import environment
 from hybridmpm.control import A_MAX, Controller, Sketch, control_episode
-from hybridmpm.control.data import make_case
 from hybridmpm.control.prior import free_motion_of
+from hybridmpm.train.control.cases import make_case
 
 
 def _centroid_shift(ep) -> np.ndarray:  # type: ignore[no-untyped-def]

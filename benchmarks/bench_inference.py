@@ -1,11 +1,11 @@
-"""Where a network step's time goes, per scene, and what it achieves (issue 17).
+"""Where a network step's time goes, per scene, and what it achieves.
 
 For every shipped model (``hybridmpm.models``) on a state of its own scene
 (a rollout of the network alone from the seed, after the MPM warm-up):
 
 * **breakdown** of one network step (median over repeats, one onnxruntime
   thread): each stage of the ONNX graph (onnxruntime's profiler; node-name
-  prefixes ``hybridmpm.neural.compile.STAGES``; graphs of torch's exporter,
+  prefixes ``hybridmpm.train.gns.onnx_graph.STAGES``; graphs of torch's exporter,
   given with ``--baseline``, are grouped by operator type instead), the
   checks and history update of :class:`~hybridmpm.sim.NeuralSimulator`, the
   clipping, density relaxation and next step's radius graph of its
@@ -57,9 +57,9 @@ from hybridmpm.bench.env import environment
 from hybridmpm.graph import radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import NeuralModel
-from hybridmpm.neural.compile import STAGES
 from hybridmpm.scenes import lattice
 from hybridmpm.sim import MpmSimulator, NeuralSimulator
+from hybridmpm.train.gns.onnx_graph import STAGES
 
 SCENES = ("water2d", "dam_break2d", "sand2d", "sand_ramps2d", "water_ramps2d", "water_sand2d", "water3d", "sand3d")
 
@@ -386,7 +386,7 @@ def op_costs(latent: int, rows: int, repeats: int) -> dict[str, float]:
 
 
 def _md(res: dict[str, Any]) -> str:
-    lines = ["# Network inference: breakdown, cost per frame, GFLOP/s (issue 17)", "", f"`{res['command']}`", ""]
+    lines = ["# Network inference: breakdown, cost per frame, GFLOP/s", "", f"`{res['command']}`", ""]
     lines += [
         f"Load before: {res['env'].get('loadavg_before', 'n/a')}. One onnxruntime thread unless stated; MPM at r_p with {res['mpm_threads'] or 'all'} threads. "
         f"Each callable runs in turn with the others, {res.get('burst', 1)} times back to back per turn, "

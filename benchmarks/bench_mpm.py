@@ -13,7 +13,7 @@ dam break; the same as benchmarks/taichi_peer.py):
   water3d_32k  32768 water, 64³, origin (0.25, 0.1, 0.25), 8 substeps
   sand3d    4096 sand, 64³, 8 substeps
   water_sand2d  the water2d block, its left half water and its right half sand
-Targets (issue 18) are checked from these rows: sand against water at equal
+Targets are checked from these rows: sand against water at equal
 particle count, water+sand against the average of the two, one thread
 against two. Scaling runs 1k-262k particles in 2D and 3D, each case in a
 fresh process (time, and memory as the growth of its resident set).
@@ -156,7 +156,7 @@ def scaling(frames, quick):
 
 
 def targets(rows):
-    """Issue 18's ratios from the standard scenes (same run): sand / water at
+    """The speed targets' ratios from the standard scenes (same run): sand / water at
     equal particle count, water+sand / the average of water and sand, and one
     thread / two threads."""
     ms = {(x["scene"], x["threads"]): x["ms_per_frame"] for x in rows}
@@ -306,7 +306,7 @@ def markdown(r):
             lines.append(f"| {x['scene']} | {x['baseline_ms']:.2f} | {x['isa']} | {x['isa_ms']:.2f} | {x['ratio']:.3f} |")
     lines += [
         "",
-        "## Targets (issue 18), from the standard scenes above",
+        "## Targets, from the standard scenes above",
         "",
         "| check | threads | value | target |",
         "|---|---:|---:|---|",

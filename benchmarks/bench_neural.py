@@ -8,7 +8,7 @@ For every model directory (``hybridmpm train`` output: ``model.onnx``, and
   (1 thread) and torch eager (1 thread, no grad) in the same run, medians;
 * **accuracy on the test split** (the first ``--seeds`` test trajectories of
   the dataset, rebuilt from ``scenes.json`` at full resolution): grid-mass
-  error (DESIGN.md) against full-resolution MPM over a ``--frames`` rollout
+  error (docs/design.md) against full-resolution MPM over a ``--frames`` rollout
   (mean and last) and one-step (each step predicted from the MPM-at-r_p
   history, compared with full-resolution MPM ``r_t`` frames later); MPM at
   ``r_p`` itself is reported as the floor;
@@ -48,8 +48,8 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
 
     from hybridmpm import radius_graph
     from hybridmpm.neural import NeuralModel
-    from hybridmpm.neural.model import GnsConfig, GnsModel
     from hybridmpm.scenes import lattice
+    from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
     nm = NeuralModel(model_dir / "model.onnx", threads=1)
     spacing = 0.5 / 128 / np.sqrt(nm.r_p) if nm.dim == 2 else 0.5 / 64 / np.cbrt(nm.r_p)
@@ -173,7 +173,7 @@ def main() -> None:
         f"# Neural simulator on `{a.data.name}`: cost and accuracy against MPM",
         "",
         f"`python benchmarks/bench_neural.py --data {a.data} --models ... --seeds {a.seeds} --frames {a.frames} --split {a.split}` (commit {commit}).",
-        f"Accuracy: mean over the first {a.seeds} {a.split} trajectories, {a.frames}-frame rollouts, grid-mass error (DESIGN.md) against full-resolution MPM.",
+        f"Accuracy: mean over the first {a.seeds} {a.split} trajectories, {a.frames}-frame rollouts, grid-mass error (docs/design.md) against full-resolution MPM.",
         "Timing: medians; onnxruntime and torch one thread each; graph = Rust radius graph.",
         "",
         "| model | params | train steps / s | rollout error mean | last | one-step error | neural ms/frame (rollouts) | step ms @2.3k: graph + onnx = total (torch) | @4k | onnx vs torch @2.3k |",

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """What the diffusion controller's representation costs, with the truth known
-(issue 14, acceptance A3 of shared/notes/control-facts.md):
+(see docs/control.md):
 
     python benchmarks/control_basis.py --scenes water2d,sand2d --cases 6 --out benchmarks/results/control_basis
 
@@ -29,8 +29,8 @@ import numpy as np
 from tqdm import tqdm
 
 from hybridmpm.control import Controller, control_episode
-from hybridmpm.control.data import make_case
 from hybridmpm.control.diffusion import expand, path_basis, project, temporal_basis
+from hybridmpm.train.control.cases import make_case
 
 KS = (4, 6, 8, 12, 16)
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Latency of the diffusion controller on a quiet machine (issue 14, A7):
+"""Latency of the diffusion controller on a quiet machine (A7):
 
     python benchmarks/control_latency.py --scenes water2d,sand2d --out benchmarks/results/control_latency
 
@@ -26,8 +26,8 @@ import numpy as np
 
 from hybridmpm.bench.env import cpu_times, environment, steal_fraction
 from hybridmpm.control import Controller, control_episode
-from hybridmpm.control.data import make_case
 from hybridmpm.control.prior import free_motion_of
+from hybridmpm.train.control.cases import make_case
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""How much the neural → MPM conversion alone changes MPM's next step (issue 16).
+"""How much the neural → MPM conversion alone changes MPM's next step.
 
 The hybrid's MPM audit compares a network step with MPM's step from the same
 *converted* state (:func:`hybridmpm.sim.convert.neural_to_mpm`: positions,

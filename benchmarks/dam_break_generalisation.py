@@ -1,4 +1,4 @@
-"""Does a network generalise to the dam break? (issue 16, target 2)
+"""Does a network generalise to the dam break? (target 2)
 
 The dam break (Martin & Moyce 1952; ``dam_break2d``) is a column at rest that
 no training domain contains (``water_columns2d`` redraws columns near it). For
@@ -7,7 +7,7 @@ safeguard, no audit; the bench's break-off rule at a collapsed graph), and
 MPM at the model's ``r_p`` runs on the same initial condition as the floor.
 Each is scored by
 
-* the grid-mass error (DESIGN.md) against full-resolution MPM, mean over the
+* the grid-mass error (docs/design.md) against full-resolution MPM, mean over the
   first 100 frames and at frame 100 (the model cards' figure);
 * the same for the particles held still after the warm-up (the trivial
   model: a network must beat it to have learnt anything);

@@ -1,4 +1,4 @@
-"""Does the network know gravity? One-step predictions of a block in free fall (issue 16).
+"""Does the network know gravity? One-step predictions of a block in free fall.
 
 A thrown block in flight is the simplest flow a scene has: every particle
 accelerates at exactly ``g`` (the analytic result; MPM reproduces it to

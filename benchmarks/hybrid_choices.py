@@ -1,7 +1,7 @@
-"""Measurements behind the hybrid simulator's defaults (issue 5): the dwell,
+"""Measurements behind the hybrid simulator's defaults: the dwell,
 the APIC ``C`` after neural → MPM (fitted or zero), water's ``J`` (from density
 or 1), the acceleration floor of the safeguard, ``r_c`` itself, and the MPM
-audit's period and tolerance (issue 16).
+audit's period and tolerance.
 
     python benchmarks/hybrid_choices.py --scene water2d --seeds 2000 2001 2002 --frames 600 \
         --out benchmarks/results/hybrid_choices_water2d

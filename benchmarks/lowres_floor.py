@@ -14,7 +14,7 @@ paper's T frames:
   (Gaussian): how fast the flow itself forgets its initial condition (chaos),
   the floor no method can go below.
 
-It reports the grid-mass error (DESIGN.md: p2g of 1/N per particle on the
+It reports the grid-mass error (docs/design.md: p2g of 1/N per particle on the
 128² grid, normalised; mean over the rollout and last frame), the same error
 with each particle weighted by its mass, and the error at frame 0 (the
 clustering alone). This is the floor the hybrid simulator can reach (paper
@@ -42,11 +42,11 @@ SCENES = ["water2d", "sand2d", "water_ramps2d", "sand_ramps2d", "water_sand2d"]
 def run_one(args: tuple[str, int, float, int | None]) -> dict:
     from dataclasses import replace
 
-    from hybridmpm.data.generate import trajectory_seed
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.scenes import make_scene
     from hybridmpm.scenes.resolution import cluster_centroids, downsample_scene
     from hybridmpm.sim import MpmSimulator, rollout
+    from hybridmpm.train.datasets import trajectory_seed
 
     name, k, r_p, frames = args
     seed = trajectory_seed(0, 10_000 + k)
@@ -103,7 +103,7 @@ def main() -> None:
         f"# Grid-mass error of MPM at r_p = {a.r_p:.4f} against MPM at full resolution",
         "",
         f"`python benchmarks/lowres_floor.py --seeds {a.seeds}` (commit {commit}); {a.seeds} seeds per scene, the paper's T frames,",
-        "128² reference grid. Error = ‖m̃_pred − m̃_ref‖₂/‖m̃_ref‖₂ (DESIGN.md, 1/N per particle), mean over frames ± std over seeds;",
+        "128² reference grid. Error = ‖m̃_pred − m̃_ref‖₂/‖m̃_ref‖₂ (docs/design.md, 1/N per particle), mean over frames ± std over seeds;",
         "'mass-weighted' splats each particle's mass instead; 'frame 0' is the clustering alone.",
         "",
         "| scene | T | N_h | N_l | MPM@r_p mean | MPM@r_p last | MPM@r_p mean (mass-weighted) | centroids mean | centroids last | frame 0 | chaos: full MPM, 1 µm jitter, mean | last | full MPM ms/frame | MPM@r_p ms/frame |",

@@ -33,8 +33,8 @@ def main() -> None:
     import onnx
 
     from hybridmpm.neural import fused
-    from hybridmpm.neural.train import TrainConfig
     from hybridmpm.sim.neural import RELAX_ITERATIONS
+    from hybridmpm.train.gns.train import TrainConfig
 
     valid = json.loads(a.valid.read_text())
     test_all = json.loads(a.test.read_text())
@@ -104,7 +104,7 @@ def main() -> None:
         + (f"the step-{meta['steps']} snapshot of " if meta["steps"] != run_steps else "")
         + f"`{train_command}` {how_trained}",
         "",
-        "## Errors (grid-mass error against full-resolution MPM, DESIGN.md)",
+        "## Errors (grid-mass error against full-resolution MPM, docs/design.md)",
         f"Network rollouts as `NeuralSimulator` runs them: predictions clipped to the domain and density-relaxed ({RELAX_ITERATIONS} iterations, the default).",
         f"- test split ({test_all['seeds']} trajectories), {test_all['frames']}-frame rollout: mean {t['rollout_mean']:.3f}, last frame {t['rollout_last']:.3f}",
         f"- test split, one-step (from MPM-at-r_p history): {t['one_step']:.3f}",

@@ -1,5 +1,5 @@
 """Ship the variant networks that ``hybridmpm bench`` compares with the shipped
-models (issue 6): copy each trained ``model.onnx`` to
+models: copy each trained ``model.onnx`` to
 ``python/hybridmpm/models/variants/<scene>/<name>.onnx`` (with a ``name`` in
 its metadata), write ``variants/index.json`` and the cards in
 ``variants/README.md``.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Train the shipped configuration of each scene longer (issue 4): the size sweep
+# Train the shipped configuration of each scene longer: the size sweep
 # (train_models.sh) compares candidates at an equal budget of 4000 steps; the
 # chosen configuration is then resumed to STEPS under runs/models/SCENE_long/.
 # Two trainings at a time, one torch thread each. Resumable.

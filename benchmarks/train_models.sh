@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Train the neural-simulator candidates (issue 4: "model no more than a scene needs").
+# Train the neural-simulator candidates ("model no more than a scene needs").
 # Two trainings at a time, one torch thread each (2-core machine). Resumable:
 # rerunning continues from each run's checkpoint.pt.
 #

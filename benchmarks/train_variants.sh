@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Train the neural variants that `hybridmpm bench` compares with the shipped
-# low-resolution models (issue 6; paper Fig. 5 a-c):
+# low-resolution models (paper Fig. 5 a-c):
 #   full      r_p = 1,      r_t = 1   every 2D scene (the paper's "original neural physics")
 #   spatial   r_p = 0.5714, r_t = 1   water2d only (spatial-only reduction)
 #   temporal  r_p = 1,      r_t = 4   water2d only (temporal-only reduction)

@@ -4,7 +4,7 @@ For every run directory (``hybridmpm train`` output with ``snapshots/``, on by
 default, and ``log.csv``), every ``--every``-th snapshot is scored by
 ``bench_neural.accuracy`` on the first ``--seeds`` trajectories of a split
 (``valid`` by default: this is for choosing a checkpoint): the network alone,
-after the MPM warm-up, over a ``--frames`` rollout, grid-mass error (DESIGN.md)
+after the MPM warm-up, over a ``--frames`` rollout, grid-mass error (docs/design.md)
 against full-resolution MPM, with MPM at ``r_p`` on the same initial
 conditions as the floor. The run's own validation one-step loss and wall time
 come from its ``log.csv``.

@@ -1,9 +1,9 @@
 """Rewrite shipped (or any) GNS .onnx files of an earlier layout as the current
-one (``hybridmpm.neural.export.upgrade_onnx``): files exported by torch's
-exporter as the compiled inference graph of the same weights (issue 17), files
+one (``hybridmpm.train.gns.export.upgrade_onnx``): files exported by torch's
+exporter as the compiled inference graph of the same weights, files
 of the ``compiled-1`` layout with the sum over receivers that is exact on any
 number of onnxruntime threads, files of it or of ``compiled-2`` with each
-LayerNorm's variance as one column (see ``hybridmpm.neural.compile``). Files of
+LayerNorm's variance as one column (see ``hybridmpm.train.gns.onnx_graph``). Files of
 the current layout are left alone.
 
     python benchmarks/upgrade_models.py python/hybridmpm/models/*.onnx python/hybridmpm/models/variants/*/*.onnx
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hybridmpm.neural.export import upgrade_onnx
+from hybridmpm.train.gns.export import upgrade_onnx
 
 
 def main() -> None:

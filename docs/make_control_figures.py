@@ -17,8 +17,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hybridmpm.control import Controller, control_episode  # noqa: E402
-from hybridmpm.control.data import make_case  # noqa: E402
 from hybridmpm.control.prior import free_motion_of, prior_path  # noqa: E402
+from hybridmpm.train.control.cases import make_case  # noqa: E402
 
 OUT = Path(__file__).with_name("img")
 METHODS = (

@@ -1,10 +1,15 @@
 """The layout keeps its promises (docs/architecture.md): one frame loop, one
-definition of each code and default."""
+definition of each code and default, no import cycle, serving apart from the
+torch side (hybridmpm.train), and no lazy import without its reason."""
 
 from __future__ import annotations
 
+import ast
 import re
+import subprocess
+import sys
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,3 +48,200 @@ def test_the_taichi_peer_is_not_in_the_package():
     assert not (ROOT / "python" / "hybridmpm" / "bench" / "taichi_peer.py").exists()
     for p in _sources("python"):
         assert "import taichi" not in p.read_text(), p
+
+
+# ------------------------------------------------------------------ the import graph
+PACKAGE = ROOT / "python" / "hybridmpm"
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+
+
+def _type_checking_only(node: ast.AST) -> bool:
+    return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+
+
+class _Import(NamedTuple):
+    target: str  # the module of the package that is imported
+    line: int
+    in_function: bool
+
+
+def _imports(path: Path, modules: dict[str, Path]) -> list[_Import]:
+    """The package's own modules that ``path`` imports (``from a import b``
+    names the module ``a.b`` when it is one, else ``a``); imports under
+    ``if TYPE_CHECKING:`` are no arrows (they never run)."""
+    found: list[_Import] = []
+
+    def targets(node: ast.Import | ast.ImportFrom) -> list[str]:
+        if isinstance(node, ast.Import):
+            return [a.name for a in node.names]
+        if node.level or not node.module:
+            raise AssertionError(f"{path}:{node.lineno}: relative import (the package imports absolutely)")
+        sub = [f"{node.module}.{a.name}" for a in node.names]
+        return [s for s in sub if s in modules or s == "hybridmpm._core"] or [node.module]
+
+    def walk(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if _type_checking_only(child):
+                continue
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                for t in targets(child):
+                    if t == "hybridmpm" or t.startswith("hybridmpm."):
+                        found.append(_Import(t, child.lineno, in_function))
+            walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    walk(ast.parse(path.read_text()), False)
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {name: {i.target for i in _imports(path, modules) if i.target in modules and i.target != name} for name, path in modules.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_package_has_no_import_cycle():
+    # lazy imports count too: an import inside a function is still an arrow, so it cannot hide a circle
+    assert not _cycles(_graph()), _cycles(_graph())
+
+
+def _importers_of(prefix: str) -> dict[str, set[str]]:
+    return {m: {t for t in ts if t == prefix or t.startswith(prefix + ".")} for m, ts in _graph().items()}
+
+
+def _inside(module: str, *packages: str) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def test_only_the_make_side_imports_hybridmpm_train():
+    # serving (neural/, control/, sim/, service/) runs exported files with numpy + onnxruntime; torch lives in train/
+    offenders = {
+        m: sorted(t) for m, t in _importers_of("hybridmpm.train").items() if t and not _inside(m, "hybridmpm.train", "hybridmpm.bench", "hybridmpm.cli")
+    }
+    assert not offenders, offenders
+
+
+def test_the_simulators_import_neither_control_nor_bench_nor_the_generators():
+    graph = _graph()
+    offenders = {
+        m: sorted(t for t in ts if _inside(t, "hybridmpm.control", "hybridmpm.bench", "hybridmpm.train", "hybridmpm.service"))
+        for m, ts in graph.items()
+        if _inside(m, "hybridmpm.sim")
+    }
+    assert not any(offenders.values()), offenders
+
+
+def test_the_dataset_format_runs_no_simulation():
+    # data/ is the GNS layout only; what makes datasets (and runs sim/) is hybridmpm.train.datasets
+    graph = _graph()
+    offenders = {
+        m: sorted(ts)
+        for m, ts in graph.items()
+        if _inside(m, "hybridmpm.data") and any(_inside(t, "hybridmpm.sim", "hybridmpm.neural", "hybridmpm.scenes") for t in ts)
+    }
+    assert not offenders, offenders
+
+
+# The service's lazy imports, pending its split into routers (file, imported module); the list only shrinks.
+SERVICE_LAZY_IMPORTS = {
+    ("service/app.py", "hybridmpm.models"),
+    ("service/app.py", "hybridmpm.scenes"),
+    ("service/app.py", "hybridmpm"),
+    ("service/app.py", "hybridmpm.sim"),
+    ("service/app.py", "hybridmpm.sim.rollout"),
+    ("service/app.py", "hybridmpm.control"),
+    ("service/app.py", "hybridmpm.control.sketch"),
+    ("service/config.py", "hybridmpm.limits"),
+    ("service/sessions.py", "hybridmpm.limits"),
+    ("service/sessions.py", "hybridmpm.sim"),
+}
+
+
+def test_in_function_imports_of_the_package_say_why():
+    # an import of the package's own modules inside a function is there for import time (the CLI starts without
+    # torch, the service without what a route alone needs), never to hide a circle: a comment on its line or the
+    # line before its block of imports says so
+    modules = _modules()
+    offenders = []
+    for path in modules.values():
+        text = path.read_text()
+        lines = text.splitlines()
+        # the lines of every import statement (a block of imports shares the comment above its first)
+        in_import = {n for node in ast.walk(ast.parse(text)) if isinstance(node, (ast.Import, ast.ImportFrom)) for n in range(node.lineno, node.end_lineno + 1)}
+        rel = str(path.relative_to(PACKAGE))
+        for imp in _imports(path, modules):
+            if not imp.in_function or (rel, imp.target) in SERVICE_LAZY_IMPORTS or "#" in lines[imp.line - 1]:
+                continue
+            above = imp.line - 1
+            while above in in_import and "#" not in lines[above - 1]:
+                above -= 1
+            if not (above >= 1 and "#" in lines[above - 1]):
+                offenders.append(f"{rel}:{imp.line}: {lines[imp.line - 1].strip()}")
+    assert not offenders, "\n".join(offenders)
+
+
+# Stands in for an environment without the train extra: torch (and onnx) cannot be imported.
+_NO_TORCH = """
+import sys
+from importlib.abc import MetaPathFinder
+
+class NoTrainExtra(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "onnx", "onnxscript"):
+            raise ImportError(f"{name} is not installed (the train extra)")
+        return None
+
+sys.meta_path.insert(0, NoTrainExtra())
+import hybridmpm, hybridmpm.sim, hybridmpm.neural, hybridmpm.control, hybridmpm.service.app
+loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("torch", "onnx", "onnxscript") or m.startswith("hybridmpm.train"))
+assert not loaded, loaded
+print("ok")
+"""
+
+
+def test_serving_imports_without_torch():
+    out = subprocess.run([sys.executable, "-c", _NO_TORCH], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -95,7 +95,7 @@ def test_the_cli_says_what_is_wrong_in_one_line(tmp_path, argv, says):
 
 
 def test_generate_with_a_bad_seed_writes_nothing(tmp_path):
-    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+    from hybridmpm.train.datasets import GenerateConfig, generate_dataset
 
     with pytest.raises(InvalidInputError) as e:
         generate_dataset(GenerateConfig("water2d", 3, frames=4, seed=-1), tmp_path / "g", progress=False)
@@ -117,7 +117,7 @@ def test_summary_json_is_strict_json(tmp_path):
 
 def test_inspect_checks_a_dataset_against_its_metadata(tmp_path, capsys):
     from hybridmpm.cli import main
-    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+    from hybridmpm.train.datasets import GenerateConfig, generate_dataset
 
     d = tmp_path / "ds"
     generate_dataset(GenerateConfig("water2d", 3, frames=6), d, workers=1, progress=False)
@@ -241,7 +241,7 @@ def test_a_rollout_beyond_the_budget_is_refused_before_any_step(small_budget):
 
 
 def test_generate_beyond_the_budget_writes_nothing(tmp_path, small_budget):
-    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+    from hybridmpm.train.datasets import GenerateConfig, generate_dataset
 
     with pytest.raises(InvalidInputError) as e:
         generate_dataset(GenerateConfig("water2d", 3, frames=10**7), tmp_path / "g", progress=False)

@@ -1,4 +1,4 @@
-"""Benchmarks and tuning (issue 6): the Pareto front on hand-made points, the
+"""Benchmarks and tuning: the Pareto front on hand-made points, the
 cheapest configuration within a budget on a hand-made table, a tiny bench
 that must produce every file with the right columns (and whose reference and
 MPM-at-r_p errors are checked against the dataset generator's independent
@@ -19,10 +19,10 @@ from hybridmpm.bench import VALID_SEED0, bench, choose, load_tuned, methods_for,
 from hybridmpm.bench.report import RESULT_COLUMNS, SWEEP_COLUMNS
 from hybridmpm.bench.tune import write_tuned
 from hybridmpm.cli import main
-from hybridmpm.data.generate import simulate_trajectory, trajectory_seed
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import make_scene
+from hybridmpm.train.datasets import simulate_trajectory, trajectory_seed
 
 # ------------------------------------------------------------------ Pareto front
 
@@ -337,7 +337,7 @@ def test_gnn_flops_match_the_layers_torch_runs(latent: int, layers: int, dim: in
     import torch  # the training extra, which the test setup installs
 
     from hybridmpm.bench.cost import gnn_flops
-    from hybridmpm.neural.model import GnsConfig, GnsModel
+    from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
     n = 50
     rng = np.random.default_rng(0)

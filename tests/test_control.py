@@ -94,11 +94,11 @@ def test_tracking_lands_the_replay_much_closer_to_x1_than_the_kinematic_field():
 
     kin = reverse_kinematic(forward, v_end, DT, scene_g)
     replay = reversed_start()
-    replay.forcing = lambda f: kin[f] if f < len(kin) else None
+    replay.forcing = lambda f, x, v: kin[f] if f < len(kin) else None
     end_kin = replay.particles.fluid(rollout(replay, len(kin)).positions[-1])
     tracked = reverse_tracking(reversed_start(), forward)
     replay = reversed_start()
-    replay.forcing = lambda f: tracked[f] if f < len(tracked) else None
+    replay.forcing = lambda f, x, v: tracked[f] if f < len(tracked) else None
     end_trk = replay.particles.fluid(rollout(replay, len(tracked)).positions[-1])
     miss_kin = np.abs(end_kin - forward[0]).mean()
     miss_trk = np.abs(end_trk - forward[0]).mean()

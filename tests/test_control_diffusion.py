@@ -1,4 +1,4 @@
-"""The Fluid ControlNet's numerics and pipeline (issue 14): temporal basis
+"""The Fluid ControlNet's numerics and pipeline: temporal basis
 against scipy, the DDIM sampler against its closed form, the per-particle
 sketch sampling against torch's grid_sample, ONNX against torch on graphs
 with many edges per receiver, and a CI training smoke run through export to
@@ -23,10 +23,10 @@ from hybridmpm.control.diffusion import (
     expand,
     path_basis,
     project,
-    sketch_geometry,
     temporal_basis,
     trailing_timesteps,
 )
+from hybridmpm.control.targets import sketch_geometry
 from hybridmpm.conventions import DT_FRAME
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import make_scene
@@ -60,7 +60,8 @@ def test_path_basis_starts_at_zero_and_projection_is_exact_in_span() -> None:
 
 
 def test_the_sketch_prior_is_a_smoothstep_to_each_target_held_exactly_by_the_basis() -> None:
-    from hybridmpm.control.diffusion import prior_coefficients, smoothstep
+    from hybridmpm.control.diffusion import prior_coefficients
+    from hybridmpm.control.targets import smoothstep
 
     b = path_basis(100, 8)
     off = np.random.default_rng(5).normal(size=(20, 2)) * 0.1
@@ -112,7 +113,7 @@ def test_ddim_with_a_fixed_x0_follows_the_closed_form() -> None:
 
 # ----------------------------------------------------------------- sketch sampling
 def test_bilinear_sample_matches_torch_grid_sample() -> None:
-    from hybridmpm.control.model import sample_local
+    from hybridmpm.train.control.model import sample_local
 
     rng = np.random.default_rng(2)
     fmap = rng.normal(size=(8, 32, 32)).astype(np.float32)
@@ -133,8 +134,8 @@ def test_sketch_geometry_blank_is_zero_and_arrow_is_the_vector() -> None:
 # ----------------------------------------------------------------- training smoke run, export, controlled rollout
 @pytest.fixture(scope="module")
 def smoke_model(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    from hybridmpm.control.dataset import generate_control
-    from hybridmpm.control.train import train_control
+    from hybridmpm.train.control.cases import generate_control
+    from hybridmpm.train.control.train import train_control
 
     root = tmp_path_factory.mktemp("ctl")
     generate_control("water2d", root / "data", 8, 100, progress=False)
@@ -166,9 +167,9 @@ def test_smoke_training_loss_falls(smoke_model: dict) -> None:
 def test_onnx_matches_torch_on_many_edges_per_receiver(smoke_model: dict) -> None:
     """The exported graphs reproduce the trained torch model (≤ 1e-4) on a
     dense cloud where each receiver has dozens of incoming edges."""
-    from hybridmpm.control.model import ControlNetConfig, FluidControlNet
     from hybridmpm.control.sketch import render_sketch
     from hybridmpm.graph import radius_graph
+    from hybridmpm.train.control.model import ControlNetConfig, FluidControlNet
 
     run = smoke_model["root"] / "run"
     ck = torch.load(run / "ckpt.pt", map_location="cpu", weights_only=False)
@@ -206,7 +207,7 @@ def test_onnx_matches_torch_on_many_edges_per_receiver(smoke_model: dict) -> Non
 
 
 def test_exported_model_controls_a_rollout_deterministically(smoke_model: dict) -> None:
-    from hybridmpm.control.data import make_case
+    from hybridmpm.train.control.cases import make_case
 
     case = make_case("water2d", 5001, "oval", tracking=False)
     model = ControlModel(smoke_model["root"] / "free" / "model")  # the shipped kind: the free-motion rollout on a second thread
@@ -226,7 +227,7 @@ def test_exported_model_controls_a_rollout_deterministically(smoke_model: dict) 
     np.testing.assert_allclose(plan.path[0], sim.particles.fluid(sim.positions), atol=1e-6)
     # no sketch: no force (the blank sketch is the sampler's unconditional branch, not a request)
     blank = Controller("diffusion", frames=40, model=model).plan(sim, None)
-    assert blank.path is None and blank(0) is None
+    assert blank.path is None and blank(0, np.zeros((1, 2)), np.zeros((1, 2))) is None
 
 
 def test_the_free_motion_prior_is_required_and_may_come_from_another_thread(smoke_model: dict) -> None:
@@ -234,8 +235,8 @@ def test_the_free_motion_prior_is_required_and_may_come_from_another_thread(smok
     ``free``), and a Future of it gives the same bits as the array."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from hybridmpm.control.data import make_case
     from hybridmpm.control.prior import free_motion, free_motion_of, material_of
+    from hybridmpm.train.control.cases import make_case
 
     model = ControlModel(smoke_model["root"] / "free" / "model")
     assert model.needs_free
@@ -263,8 +264,8 @@ def test_a_free_sketch_plan_ends_on_the_sketch(smoke_model: dict) -> None:
     whatever the network samples: an arrow's tip is where the centroid ends;
     an oval is the end cloud's ±2σ ellipse (centre, radii, axis), checked here
     on the end's own second moments, not through the mapping that imposes them."""
-    from hybridmpm.control.data import make_case
     from hybridmpm.control.prior import free_motion_of
+    from hybridmpm.train.control.cases import make_case
 
     model = ControlModel(smoke_model["root"] / "free" / "model")
     for seed, kind in ((5004, "arrow"), (5005, "oval")):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from hybridmpm.control import Sketch
-from hybridmpm.control.controller import pd_targets
 from hybridmpm.control.prior import BALLISTIC_TOL, ballistic_path, free_motion, in_free_flight, material_of, prior_path
+from hybridmpm.control.targets import pd_targets
 from hybridmpm.conventions import DT_FRAME, GNS_SAND, GNS_WATER, MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import make_scene

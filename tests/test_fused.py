@@ -1,4 +1,4 @@
-"""The fused edge kernels (issue 17; ``hybridmpm.neural.fused``, ``rust/gnn``,
+"""The fused edge kernels (``hybridmpm.neural.fused``, ``rust/gnn``,
 ``rust/python/src/ort_ops.rs``) compute the compiled graph's function.
 
 Checked against onnxruntime's own operators running the unfused graph (an

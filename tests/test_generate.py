@@ -17,10 +17,10 @@ import pytest
 
 from hybridmpm.cli import main
 from hybridmpm.data import GnsDataset, read_split
-from hybridmpm.data.generate import GenerateConfig, generate_dataset, simulate_trajectory, trajectory_seed
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import DOMAINS, make_scene, scene_spec
 from hybridmpm.scenes.resolution import PAPER_R_P
+from hybridmpm.train.datasets import GenerateConfig, generate_dataset, simulate_trajectory, trajectory_seed
 
 
 def _digest(directory: Path) -> dict[str, str]:

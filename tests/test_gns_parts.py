@@ -1,5 +1,5 @@
-"""The GNS split into parts: feature construction (neural/features.py), a
-reusable encoder–processor–decoder and the composed simulator (neural/model.py).
+"""The GNS split into parts: feature construction (train/gns/features.py), a
+reusable encoder–processor–decoder and the composed simulator (train/gns/model.py).
 
 * the pre-split model (frozen below, verbatim from commit 202ef89) and the
   composed one give bit-identical outputs from the same weights, in torch and
@@ -27,14 +27,14 @@ from torch import nn
 from hybridmpm import radius_graph
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
-from hybridmpm.neural.features import GnsFeatures, euler_step
-from hybridmpm.neural.model import EncodeProcessDecode, GnsConfig, GnsModel, remap_legacy_state_dict
+from hybridmpm.train.gns.features import GnsFeatures, euler_step
+from hybridmpm.train.gns.model import EncodeProcessDecode, GnsConfig, GnsModel, remap_legacy_state_dict
 
 logging.getLogger("torch.onnx").setLevel(logging.ERROR)
 R = 0.015
 
 
-# --- the pre-split model, frozen verbatim (202ef89:python/hybridmpm/neural/model.py) -------------------
+# --- the pre-split model, frozen verbatim (202ef89:python/hybridmpm/train/gns/model.py) -------------------
 
 
 def _legacy_mlp(inp: int, width: int, out: int, layer_norm: bool = True) -> nn.Sequential:
@@ -227,8 +227,8 @@ def test_legacy_loads_inside_a_larger_module():
 def test_onnx_export_of_legacy_and_new_models_agree(tmp_path):
     import onnxruntime as ort
 
-    from hybridmpm.neural.export import INPUT_NAMES, OUTPUT_NAMES, export_onnx
     from hybridmpm.neural.runtime import aggregation_inputs
+    from hybridmpm.train.gns.export import INPUT_NAMES, OUTPUT_NAMES, export_onnx
 
     cfg = config(2, 16, 2)
     old = legacy_model(cfg, seed=11)
@@ -428,7 +428,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
     from test_neural import _drag_dataset
 
     from hybridmpm.neural import NeuralModel
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     data, out = tmp_path / "drag", tmp_path / "model"
     data.mkdir()

@@ -6,12 +6,12 @@ recorded by ``golden/make_golden_202ef89.py`` running the 202ef89 code itself
 (its own frame loops: ``Scene.make_solver().step_frame``, ``run_neural``,
 ``HybridSimulator.step``); here the same runs go through :func:`hybridmpm.sim.rollout`.
 MPM: every registered scene, 2 seeds, 50 frames; scenes whose numerics
-changed on purpose since (2D sand, issue 18) are checked against digests
+changed on purpose since (2D sand) are checked against digests
 re-recorded by ``golden/rerecord_mpm.py``, and their coordinate sums against
 202ef89's within a rounding-level tolerance. Network alone and hybrid:
 water2d and the dam break, 2 seeds, 120 frames (the hybrid switches to the
 network and back in them), without the density relaxation between network
-steps that issue 16 made the default (``relax=0``: 202ef89 had none). The MPM
+steps that made the default since (``relax=0``: 202ef89 had none). The MPM
 digests hold on any CPU (no FMA contraction, deterministic across thread
 counts). The network and hybrid digests depend on the CPU: onnxruntime picks
 its kernels per release and instruction set, and the radius graph has an
@@ -23,14 +23,14 @@ agree (below).
 
 The network runs use the graphs 202ef89 shipped (``golden/models/*_202ef89.onnx``,
 exported by torch's exporter: four inputs, the runtime's legacy path). Models
-are now shipped as compiled inference graphs (issue 17,
-:mod:`hybridmpm.neural.compile`): the compiled graph of the same weights
-(:func:`hybridmpm.neural.export.upgrade_onnx`, as ``benchmarks/upgrade_models.py``
+are now shipped as compiled inference graphs (
+:mod:`hybridmpm.train.gns.onnx_graph`): the compiled graph of the same weights
+(:func:`hybridmpm.train.gns.export.upgrade_onnx`, as ``benchmarks/upgrade_models.py``
 made the shipped ones) computes the same function with other float32
 rounding, so its rollouts are checked against the 202ef89 graphs' within a
 tolerance (the hybrid's switching and events identical). It is compiled here
 rather than taken from the shipped files, which may since hold retrained
-weights (the dam break's did, issue 16).
+weights (the dam break's did).
 """
 
 from __future__ import annotations
@@ -136,7 +136,7 @@ def network_run(kind: str, key: str, graph: str) -> Rollout:
     if kind == "neural":
         sim = NeuralSimulator(scene, model, seed=int(seed), detect_failures=False, relax=0)
     else:
-        sim = HybridSimulator(scene, model, seed=int(seed), audit_every=0, relax=0)  # what 202ef89 had (issue 16 made both the default)
+        sim = HybridSimulator(scene, model, seed=int(seed), audit_every=0, relax=0)  # what 202ef89 had (made both the default since)
     ro = rollout(sim, 120)
     assert ro.failure is None
     return ro
@@ -146,7 +146,7 @@ def network_run(kind: str, key: str, graph: str) -> Rollout:
 def _compiled(name: str) -> Path:
     import tempfile
 
-    from hybridmpm.neural.export import upgrade_onnx
+    from hybridmpm.train.gns.export import upgrade_onnx
 
     path = Path(tempfile.mkdtemp(prefix="golden_compiled_")) / f"{name}.onnx"
     assert upgrade_onnx(MODELS_202EF89 / f"{name}_202ef89.onnx", path)

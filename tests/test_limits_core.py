@@ -1,4 +1,4 @@
-"""Bad input to the Rust core never kills the process (issue 13): memory and
+"""Bad input to the Rust core never kills the process: memory and
 edge budgets, clean substep errors, a solver that always accepts its own
 checkpoint, a solver shared between threads, field-naming messages, and
 colliders too thin to hold.

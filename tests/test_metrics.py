@@ -386,7 +386,7 @@ def test_cli_evaluate_bad_file_is_exit_2(two_runs, capsys):
 def test_mass_weighted_variant_sees_merged_particles_as_the_same_mass():
     """Merging two coincident particles into one of twice the mass leaves the
     mass distribution unchanged: the mass-weighted error is 0 while the 1/N
-    definition (DESIGN.md) sees one particle's worth of mass missing."""
+    definition (docs/design.md) sees one particle's worth of mass missing."""
     rng = np.random.default_rng(3)
     x = rng.uniform(0.3, 0.7, (3, 50, 2)).astype(np.float32)
     x[:, 1] = x[:, 0]  # particles 0 and 1 coincide

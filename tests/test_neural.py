@@ -18,9 +18,9 @@ from hybridmpm import radius_graph
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural import NeuralModel
 from hybridmpm.neural.constants import KINEMATIC
-from hybridmpm.neural.export import export_onnx
-from hybridmpm.neural.model import GnsConfig, GnsModel
 from hybridmpm.neural.runtime import MAX_PADDING, SMALL_TABLE, aggregation_inputs
+from hybridmpm.train.gns.export import export_onnx
+from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
 logging.getLogger("torch.onnx").setLevel(logging.ERROR)
 R = 0.015
@@ -126,7 +126,7 @@ def test_wall_reach_scales_the_wall_features_and_is_recorded():
     the field."""
     from dataclasses import replace
 
-    from hybridmpm.neural.compile import inference_graph
+    from hybridmpm.train.gns.onnx_graph import inference_graph
 
     hist = np.zeros((6, 3, 2), np.float32)
     hist[:] = [[0.5, 0.02 + 2.5 * R], [0.5, 0.02 + 0.5 * R], [0.5, 0.5]]
@@ -208,8 +208,8 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
     """Names, dtypes and shapes of the graph's inputs and outputs and its
     metadata: what neural/runtime.py feeds and reads (and what the shipped
     models have)."""
-    from hybridmpm.neural.compile import GRAPH_LAYOUT
     from hybridmpm.neural.constants import FEATURE_VERSION
+    from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT
 
     model, path = exported
     nm = NeuralModel(path)
@@ -259,7 +259,7 @@ def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embed
     depths, history lengths, embedding widths and wall reaches."""
     from dataclasses import replace
 
-    from hybridmpm.neural.compile import inference_graph
+    from hybridmpm.train.gns.onnx_graph import inference_graph
 
     model = perturbed(GnsModel(replace(config(dim, latent, layers), t_in=t_in, embedding=embedding, wall_reach=reach)), seed)
     hist, _ = random_state(900, dim=dim, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(900 / 2300) ** (2 / dim))
@@ -289,7 +289,7 @@ def test_compiled_graph_matches_torch(tmp_path, dim, latent, layers, t_in, embed
 def test_compiled_graph_applies_a_vanishing_layer_norm_gain(tmp_path):
     """A LayerNorm gain with an entry below MIN_GAIN (here exactly 0) cannot be
     folded through 1/g²: the graph applies it after the division, same function."""
-    from hybridmpm.neural.compile import MIN_GAIN, inference_graph
+    from hybridmpm.train.gns.onnx_graph import MIN_GAIN, inference_graph
 
     model = perturbed(GnsModel(config(2, 8, 1)), 5)
     with torch.no_grad():
@@ -311,7 +311,7 @@ def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
     import json
 
     from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
-    from hybridmpm.neural.export import upgrade_onnx
+    from hybridmpm.train.gns.export import upgrade_onnx
 
     model = perturbed(GnsModel(config(2, 8, 2)), 7)
     hist, ptype = random_state(400, seed=7)
@@ -410,7 +410,7 @@ def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0, scene=Non
 
 
 def test_short_training_lowers_the_validation_loss(tmp_path):
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     data = tmp_path / "drag"
     data.mkdir()
@@ -471,7 +471,7 @@ def test_pushforward_window_targets_the_true_next_position():
     ``err`` the target acceleration still lands on the true position
     ``t + 1`` (x_next = 2·x_t − x_{t−1} + a), i.e. it is the plain target
     minus 2·err, and kinematic particles keep their true positions."""
-    from hybridmpm.neural.train import _pushforward_window, _window
+    from hybridmpm.train.gns.train import _pushforward_window, _window
 
     rng = np.random.default_rng(0)
     n, frames, t, t_in = 12, 14, 9, 6
@@ -513,7 +513,7 @@ def _option_trains_and_old_runs_resume(tmp_path, tag: str, option: dict, default
     ``meta_key`` in its model; a run directory written before the fields of
     ``defaults`` existed (its settings file lacks them) resumes with those
     defaults. Returns ``(cfg, plain)``: the option's config and the old run's."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     data = tmp_path / "drag"
     data.mkdir(exist_ok=True)
@@ -539,7 +539,7 @@ def _option_trains_and_old_runs_resume(tmp_path, tag: str, option: dict, default
 
 def _refused_on_short_data(tmp_path, cfg, frames: int, field: str) -> None:
     """Training ``cfg`` on drag trajectories of ``frames`` frames is refused up front, naming ``field``."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     short = tmp_path / "short"
     short.mkdir()
@@ -553,7 +553,7 @@ def test_pushforward_training_runs_resumes_and_old_runs_still_resume(tmp_path):
     """A run with pushforward trains (its validation loss falls) and is
     recorded in the model; a run directory written before the pushforward
     settings existed resumes with their defaults; bad values name the field."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     cfg, plain = _option_trains_and_old_runs_resume(
         tmp_path, "pf", {"pushforward": 0.5, "pushforward_after": 0.25}, {"pushforward": 0.0, "pushforward_after": 0.2}, "pushforward"
@@ -596,7 +596,7 @@ def test_unrolled_loss_is_the_position_error_of_the_models_own_rollout():
     as the position error to the (noise-shifted) true positions over the
     acceleration scale; one step equals the one-step loss; the gradient
     reaches the first step's prediction (a detached history changes it)."""
-    from hybridmpm.neural.train import _batch, _loss, _unrolled_loss, _unrolled_window, _window
+    from hybridmpm.train.gns.train import _batch, _loss, _unrolled_loss, _unrolled_window, _window
 
     model, traj = _unroll_model(kinematic_first=5)
     radius, k = model.config.radius, 4
@@ -645,7 +645,7 @@ def test_unrolled_training_trains_resumes_and_refuses_bad_settings(tmp_path):
     """A run with ``unroll`` = 3 trains (validation loss falls), records the
     setting in the model, a run directory written before the setting existed
     resumes with its default, and bad values are refused naming the field."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     cfg, plain = _option_trains_and_old_runs_resume(
         tmp_path, "ur", {"unroll": 3, "unroll_after": 0.25}, {"unroll": 1, "unroll_after": 0.0, "clip_grad": 1.0}, "unroll"
@@ -667,7 +667,7 @@ def test_wall_reach_trains_resumes_and_refuses_bad_settings(tmp_path):
     """A run with ``wall_reach`` 3 trains, records it in the model; a run made
     before the setting existed resumes with reach 1; resuming with another
     reach and out-of-range reaches are refused naming the field."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     cfg, plain = _option_trains_and_old_runs_resume(tmp_path, "wr", {"wall_reach": 3.0}, {"wall_reach": 1.0}, "wall_reach")
     with pytest.raises(InvalidInputError) as e:
@@ -712,7 +712,7 @@ def test_threads_and_spinning(exported, fused):
     hist, ptype = random_state(1500, seed=8, lo=0.3, hi=0.6)
     a1, x1, graph = one.predict(hist, ptype)
     # edges in a random order: onnxruntime's ScatterND on 2 threads loses updates on nearly every run so
-    # (module doc of hybridmpm.neural.compile); the gather way that 2 threads take must not, run after run
+    # (module doc of hybridmpm.train.gns.onnx_graph); the gather way that 2 threads take must not, run after run
     perm = np.random.default_rng(1).permutation(len(graph[1]))
     shuffled = tuple(a[perm] for a in graph)
     for g in [graph] * 5 + [shuffled] * 20:
@@ -753,7 +753,7 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
     plain path (older runs resume), and datasets that disagree on the frame
     time are refused naming ``data``."""
     from hybridmpm.data import GnsDataset, compute_statistics
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir()
@@ -813,7 +813,7 @@ def test_ema_averages_the_trained_weights_without_changing_training(tmp_path):
     ``β·w₁ + (1 − β)·w₂`` after two steps (torch's AveragedModel starts from
     the first step's weights), and ``best.pt`` holds an averaged model, not
     the trained one."""
-    from hybridmpm.neural.train import TrainConfig, train
+    from hybridmpm.train.gns.train import TrainConfig, train
 
     data = tmp_path / "drag"
     data.mkdir()
@@ -921,8 +921,8 @@ def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
     import shutil
     from pathlib import Path
 
-    from hybridmpm.neural.compile import GRAPH_LAYOUT, GRAPH_LAYOUT_1
-    from hybridmpm.neural.export import upgrade_onnx
+    from hybridmpm.train.gns.export import upgrade_onnx
+    from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, GRAPH_LAYOUT_1
 
     old = Path(__file__).parent / "golden" / "gns_compiled1_tiny.onnx"
     ref = NeuralModel(old)
@@ -956,8 +956,8 @@ def test_graphs_of_the_second_compiled_layout_upgrade(tmp_path):
     import onnx
     from onnx import numpy_helper
 
-    from hybridmpm.neural.compile import GRAPH_LAYOUT, GRAPH_LAYOUT_2, upgrade_graph
-    from hybridmpm.neural.export import upgrade_onnx
+    from hybridmpm.train.gns.export import upgrade_onnx
+    from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, GRAPH_LAYOUT_2, upgrade_graph
 
     old = Path(__file__).parent / "golden" / "gns_compiled2_tiny.onnx"
     new = tmp_path / "new.onnx"

@@ -94,7 +94,8 @@ def test_a_forcing_callable_is_asked_for_every_frame_by_its_index():
     sim = MpmSimulator(blob(gravity=(0.0, 0.0)), r_t=2, threads=1)
     push = np.tile(np.array([[5.0, 0.0]], np.float32), (sim.particles.num_fluid, 1))
 
-    def forcing(frame: int):
+    def forcing(frame: int, positions: np.ndarray, velocities: np.ndarray):
+        assert positions.shape == velocities.shape == (sim.particles.num_fluid, 2)
         asked.append(frame)
         return push if frame < 3 else None
 
@@ -112,7 +113,7 @@ def test_bad_forcings_name_the_field(water_model):
         with pytest.raises(InvalidInputError) as e:
             sim.forcing = bad
         assert e.value.field == "forcing"
-    sim.forcing = lambda f: np.zeros((3, 2))  # wrong shape, found when used
+    sim.forcing = lambda f, x, v: np.zeros((3, 2))  # wrong shape, found when used
     with pytest.raises(InvalidInputError, match="forcing"):
         sim.advance()
     neural = NeuralSimulator(make_scene("water2d", seed=5), water_model, mpm_threads=1)

@@ -1,6 +1,6 @@
 """hybridmpm: real-time hybrid neural / MLS-MPM fluid simulation.
 
-The main path (DESIGN.md "Data flow")::
+The main path (docs/design.md "Data flow")::
 
     scene (make_scene) ─► simulator (MpmSimulator | NeuralSimulator | HybridSimulator)
         ─► rollout ─► Rollout (a Trajectory) ─► grid_mass_error against reference()
@@ -12,9 +12,11 @@ The main path (DESIGN.md "Data flow")::
 
 Subpackages: :mod:`hybridmpm.sim` (the simulator interface), :mod:`hybridmpm.scenes`
 (scene specs, the paper's domains, ``r_p`` clustering), :mod:`hybridmpm.neural`
-(the GNS: features, model, training, ONNX runtime), :mod:`hybridmpm.data`
-(GNS-layout datasets), :mod:`hybridmpm.metrics`, :mod:`hybridmpm.bench`
-(benchmarks, stress suite, tune), :mod:`hybridmpm.render`; the codes and
+(exported learned simulators run by onnxruntime), :mod:`hybridmpm.control`
+(sketch control), :mod:`hybridmpm.data` (the GNS dataset format),
+:mod:`hybridmpm.metrics`, :mod:`hybridmpm.bench` (benchmarks, stress suite,
+tune), :mod:`hybridmpm.render`, :mod:`hybridmpm.service` (the web service);
+:mod:`hybridmpm.train` makes the models (torch, the ``train`` extra); the codes and
 defaults are in :mod:`hybridmpm.conventions`. The Rust core
 (``hybridmpm._core``) holds the MLS-MPM solver, the radius graph and the
 grid-mass metric.

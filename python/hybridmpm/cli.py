@@ -15,7 +15,7 @@ within the budget, which ``simulate SCENE --solver auto`` then uses.
 failure cases of :mod:`hybridmpm.bench.stress` and writes a table.
 
 ``hybridmpm generate SCENE --trajectories M --out DIR`` writes a GNS-layout
-dataset of MPM rollouts (:func:`hybridmpm.data.generate.generate_dataset`);
+dataset of MPM rollouts (:func:`hybridmpm.train.datasets.generate_dataset`);
 ``hybridmpm inspect DIR`` checks and summarises a GNS dataset (ours or
 another tool's).
 
@@ -91,6 +91,7 @@ def _ms(seconds: np.ndarray) -> dict[str, float | None]:
 def _simulate(args: argparse.Namespace) -> int:
     """``hybridmpm simulate``: one simulator (:func:`hybridmpm.sim.make_simulator`),
     one :func:`~hybridmpm.sim.rollout`, then the files."""
+    # import time: loaded by this command only
     import hybridmpm
     from hybridmpm.metrics import grid_mass_error
     from hybridmpm.render import export_points, plot_timeline, render_gif
@@ -176,6 +177,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
     """``--solver auto``: take solver, model, r_p and r_c from the configuration
     ``hybridmpm tune`` wrote (``--tuned``, default tuned/SCENE.json)."""
+    # import time: loaded by this command only
     from hybridmpm.sim import load_tuned, tuned_settings
 
     if args.model is not None or args.r_p != 1.0:
@@ -193,6 +195,7 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
 
 
 def _bench_kwargs(args: argparse.Namespace) -> dict:
+    # import time: loaded by this command only
     from hybridmpm.bench import R_C_SWEEP
 
     r_cs = R_C_SWEEP if args.r_c is None else tuple(float(x) for x in args.r_c.split(","))
@@ -204,6 +207,7 @@ def _bench_kwargs(args: argparse.Namespace) -> dict:
 
 
 def _bench(args: argparse.Namespace) -> int:
+    # import time: loaded by this command only
     from hybridmpm.bench import TEST_SEED0, bench
 
     if args.seeds < 1:
@@ -219,6 +223,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
+    # import time: loaded by this command only
     from hybridmpm.bench import VALID_SEED0, tune
 
     if args.seeds < 1:
@@ -236,6 +241,7 @@ def _tune(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    # import time: loaded by this command only
     from hybridmpm.metrics import evaluate
 
     pred = Trajectory.load(args.pred)
@@ -267,6 +273,7 @@ def _control(args: argparse.Namespace) -> int:
     """``hybridmpm control``: a sketch applied to a scene's fluid (:func:`hybridmpm.control.control_episode`)."""
     from PIL import Image
 
+    # import time: loaded by this command only
     from hybridmpm.control import Controller, Sketch, control_episode, render_sketch, sketch_from_png
     from hybridmpm.render import render_gif
     from hybridmpm.scenes import make_scene
@@ -319,8 +326,9 @@ def _control(args: argparse.Namespace) -> int:
 
 
 def _generate_control(args: argparse.Namespace) -> int:
-    """``hybridmpm generate-control``: reverse-simulation control cases (:func:`hybridmpm.control.dataset.generate_control`)."""
-    from hybridmpm.control.dataset import generate_control
+    """``hybridmpm generate-control``: reverse-simulation control cases (:func:`hybridmpm.train.control.cases.generate_control`)."""
+    # import time: loaded by this command only
+    from hybridmpm.train.control.cases import generate_control
 
     try:
         paths = generate_control(args.scene, args.out, args.cases, args.first_seed, tracking=args.tracking, progress=not args.quiet)
@@ -336,7 +344,8 @@ def _generate_control(args: argparse.Namespace) -> int:
 def _train_control(args: argparse.Namespace) -> int:
     """``hybridmpm train-control``: train (or resume) and export a scene's diffusion controller."""
     try:
-        from hybridmpm.control.train import train_control
+        # import time: loaded by this command only
+        from hybridmpm.train.control.train import train_control
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     out = args.out or f"runs/control-{args.scene}"
@@ -351,6 +360,7 @@ def _train_control(args: argparse.Namespace) -> int:
 
 
 def _stress(args: argparse.Namespace) -> int:
+    # import time: loaded by this command only
     from hybridmpm.bench.stress import CASES, METHODS, markdown_table, stress
 
     cases = tuple(args.cases.split(",")) if args.cases else CASES
@@ -376,7 +386,8 @@ def _stress(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     try:
-        from hybridmpm.neural.train import TrainConfig, train
+        # import time: loaded by this command only
+        from hybridmpm.train.gns.train import TrainConfig, train
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     cfg = TrainConfig(
@@ -394,6 +405,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def _train_grid(args: argparse.Namespace) -> int:
     try:
+        # import time: loaded by this command only
         from hybridmpm.train.grid_train import GridTrainConfig, train_grid
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
@@ -409,7 +421,8 @@ def _train_grid(args: argparse.Namespace) -> int:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from hybridmpm.data.generate import GenerateConfig, generate_dataset
+    # import time: loaded by this command only
+    from hybridmpm.train.datasets import GenerateConfig, generate_dataset
 
     try:
         split = tuple(float(v) for v in args.split.split(","))
@@ -438,6 +451,7 @@ def _generate(args: argparse.Namespace) -> int:
 def _inspect(args: argparse.Namespace) -> int:
     """``hybridmpm inspect DIR``: the dataset's summary as JSON; exit status 1
     if it does not match its own metadata (:func:`hybridmpm.data.gns.check_dataset`)."""
+    # import time: loaded by this command only
     from hybridmpm.data import GnsDataset
     from hybridmpm.data.gns import check_dataset
 
@@ -451,6 +465,7 @@ def _inspect(args: argparse.Namespace) -> int:
 def _serve(args: argparse.Namespace) -> int:
     """``hybridmpm serve``: the HTTP service and its page (one process: sessions live in memory)."""
     try:
+        # import time: loaded by this command only
         from hybridmpm.service import ServiceConfig, create_app
         from hybridmpm.service.server import run
     except ImportError as e:
@@ -474,6 +489,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # import time: loaded by this command only
     from hybridmpm.scenes import SCENES
 
     parser = argparse.ArgumentParser(prog="hybridmpm", description="Real-time hybrid neural / MLS-MPM fluid simulation.")

@@ -1,4 +1,4 @@
-"""Codes and defaults of hybridmpm, defined once (DESIGN.md "Conventions").
+"""Codes and defaults of hybridmpm, defined once (docs/design.md "Conventions").
 
 Every other module imports these names; none restates the numbers.
 

@@ -36,6 +36,8 @@ from hybridmpm import _core
 from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.errors import as_f32 as _as_f32
+from hybridmpm.limits import human, memory_budget
+from hybridmpm.limits import memory_budget as default_budget
 
 #: Solver material codes, short names for :data:`~hybridmpm.conventions.MATERIAL_WATER`
 #: and :data:`~hybridmpm.conventions.MATERIAL_SAND` (not the GNS particle types).
@@ -424,8 +426,6 @@ class MpmSolver:
     """
 
     def __init__(self, params: MpmParams | None = None, *, memory_budget: int | None = None) -> None:
-        from hybridmpm.limits import memory_budget as default_budget
-
         self.params = params if params is not None else MpmParams()
         budget = default_budget() if memory_budget is None else memory_budget
         self._core = _core.MpmSolver(self.params.to_dict(), memory_budget=budget)
@@ -463,8 +463,6 @@ class MpmSolver:
         """
         shape = np.shape(positions)
         if len(shape) == 2:
-            from hybridmpm.limits import human
-
             n = self.num_particles + int(shape[0])
             nbytes = n * self.bytes_per_particle
             if nbytes > self.memory_budget:
@@ -683,7 +681,7 @@ class MpmSolver:
 
 
 def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = None) -> np.ndarray:
-    """Normalised grid mass (DESIGN.md "Grid-mass error"; paper Sec. 3.1.1).
+    """Normalised grid mass (docs/design.md "Grid-mass error"; paper Sec. 3.1.1).
 
     p2g of particle mass (1/N each unless ``masses`` [N] is given) with
     quadratic B-spline weights onto nodes ``i/n_grid``, ``i ∈ [0, n_grid)^D``,
@@ -697,7 +695,6 @@ def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = No
     :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid`` and the
     size it would need, before anything is allocated.
     """
-    from hybridmpm.limits import memory_budget
 
     if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)):
         raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")

@@ -18,18 +18,19 @@ import json
 from pathlib import Path
 from typing import Any
 
+from hybridmpm.bench import report
 from hybridmpm.bench.methods import R_C_SWEEP, Method, methods_for
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
 from hybridmpm.bench.tune import choose, write_tuned
 from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes import make_scene, scene_spec
 from hybridmpm.sim.config import load_tuned, tuned_path
 
 
 def default_frames(scene: str) -> int:
     """The paper's rollout length T of a registered scene."""
-    from hybridmpm.scenes import scene_spec
 
     return int(scene_spec(scene, seed=0).frames)
 
@@ -69,8 +70,6 @@ def bench(
     ``pareto`` (labels on the front) and ``files``.
     Raises :class:`InvalidInputError` naming the bad parameter.
     """
-    from hybridmpm.bench import report
-    from hybridmpm.scenes import make_scene
 
     frames = default_frames(scene) if frames is None else frames
     seeds = list(seeds) if seeds is not None else [TEST_SEED0 + i for i in range(3)]

@@ -2,11 +2,11 @@
 tiny network on a 2-core CPU is not always faster than MPM.
 
 :func:`gnn_flops` counts the floating-point operations of the dense layers of
-one GNS step (paper App. A; :class:`hybridmpm.neural.model.GnsModel`): every
+one GNS step (paper App. A; :class:`hybridmpm.train.gns.model.GnsModel`): every
 ``Linear`` costs ``2·in·out`` per row (multiply and add), applied to ``N``
 node rows or ``E`` edge rows. Gathers, scatter-adds, LayerNorms and
 activations are not counted (they are memory traffic, which is what bounds
-small latents; see ``../shared/notes/neural-facts.md``).
+small latents; see ``docs/neural.md``).
 """
 
 from __future__ import annotations

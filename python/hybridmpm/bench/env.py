@@ -8,6 +8,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from hybridmpm import _core
+
 
 def cpu_model() -> str:
     """The CPU's model name (with family/model/stepping on Linux)."""
@@ -49,12 +51,10 @@ def environment() -> dict[str, Any]:
     import numpy
     import onnxruntime
 
-    import hybridmpm
-
     return {
         "machine": f"{platform.machine()} {cpu_model()}",
         "cores": os.cpu_count() or 0,
-        "hybridmpm": hybridmpm.__version__,
+        "hybridmpm": _core.__version__,
         "numpy": numpy.__version__,
         "onnxruntime": onnxruntime.__version__,
         "python": platform.python_version(),

@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.models import shipped_model, variant_models
+from hybridmpm.neural.grid import open_model
 
 #: Hybrid thresholds of the sweep (paper Table 2).
 R_C_SWEEP = tuple(round(0.1 * i, 1) for i in range(10))
@@ -65,8 +67,6 @@ def neural_role(r_p: float, r_t: int) -> str:
 
 
 def _model_info(path: Path) -> tuple[float, int, int]:
-    from hybridmpm.neural.grid import open_model
-
     m = open_model(path)
     params = int(m.meta.get("parameters", m.meta.get("params", 0)) or 0)
     return m.r_p, m.r_t, params
@@ -88,7 +88,6 @@ def methods_for(
     ``extra_models`` more ONNX files, each run alone. Raises
     :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
     """
-    from hybridmpm.models import shipped_model, variant_models
 
     for r in r_cs:
         if not (0.0 <= float(r) <= 1.0):

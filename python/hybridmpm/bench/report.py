@@ -236,7 +236,7 @@ def report_markdown(
         f"{settings['nn_threads'] or 'all'} in the hybrid, {settings.get('nn_alone_threads', settings['nn_threads']) or 'all'} for the networks alone.  ",
         f"Versions: hybridmpm {env['hybridmpm']} (commit {env['commit']}), numpy {env['numpy']}, onnxruntime {env['onnxruntime']}, Python {env['python']}.",
         "",
-        "Error: grid-mass error against full-resolution MPM from the same initial condition (DESIGN.md), mean over the "
+        "Error: grid-mass error against full-resolution MPM from the same initial condition (docs/design.md), mean over the "
         "rollout (at the frames every method produces: multiples of the largest r_t) and at the last frame, mean over seeds. Latency: wall time per frame [ms]; the chart plots the mean. "
         "A network run alone breaks off when its graph collapses (more than 8× the initial neighbours per particle): "
         "such a method is drawn hollow and is not eligible for the Pareto front. Network MFLOP/frame: dense layers on "

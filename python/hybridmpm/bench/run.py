@@ -32,7 +32,7 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 #: Held-out seeds: trajectory seeds of generated datasets are 31-bit hashes
-#: (:func:`hybridmpm.data.generate.trajectory_seed`), so small integers never
+#: (:func:`hybridmpm.train.datasets.trajectory_seed`), so small integers never
 #: coincide with a training trajectory. Test seeds start at 1000, validation
 #: seeds (``hybridmpm tune``) at 2000.
 TEST_SEED0 = 1000
@@ -59,7 +59,7 @@ class BenchConfig:
     (0 = all cores); ``nn_threads`` onnxruntime threads of the hybrid (one:
     its MPM frames follow its network steps, and a spinning onnxruntime
     worker would slow them); ``nn_alone_threads`` those of the networks run
-    alone (0 = all cores, as MPM: nothing else runs then; issue 17, "two
+    alone (0 = all cores, as MPM: nothing else runs then; "two
     onnxruntime threads when MPM is idle").
     """
 

@@ -9,11 +9,14 @@ current fluid state → external accelerations that MPM applies over the next
 * :mod:`~hybridmpm.control.controller` — :class:`Controller` (none, constant
   force, PD attraction, oracle replay, the diffusion model) making
   :class:`Plan` s, which are simulator forcings;
+* :mod:`~hybridmpm.control.targets` — the sketch's geometry (each particle's
+  target point, the geometry the network reads, the smoothstep ramp);
+* :mod:`~hybridmpm.control.prior` — the free-motion prior (a coarse MPM rollout);
 * :mod:`~hybridmpm.control.diffusion` — the Fluid ControlNet's numpy half:
   temporal basis, schedule, DDIM, the onnxruntime sampler
-  (:class:`ControlModel`); :mod:`~hybridmpm.control.model` and
-  :mod:`~hybridmpm.control.train` its torch half (the ``train`` extra);
-* :mod:`~hybridmpm.control.dataset` — control cases on disk (``generate-control``);
+  (:class:`ControlModel`); its torch half and the control cases it trains on
+  are in :mod:`hybridmpm.train.control` (the ``train`` extra);
+* :mod:`~hybridmpm.control.metrics` — how close a controlled run lands;
 * :mod:`~hybridmpm.control.episode` — one controlled episode with its metrics.
 
 >>> from hybridmpm.control import Controller, Sketch
@@ -21,12 +24,13 @@ current fluid state → external accelerations that MPM applies over the next
 >>> sim.forcing = plan      # MPM applies it for the next T_ctr frames
 """
 
-from hybridmpm.control.controller import METHODS, Controller, Plan, pd_targets, track_path
+from hybridmpm.control.controller import METHODS, Controller, Plan, track_path
 from hybridmpm.control.diffusion import ControlModel
 from hybridmpm.control.episode import Episode, control_episode
 from hybridmpm.control.metrics import control_metrics
 from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
 from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_image, sketch_from_png, sketch_from_trajectory
+from hybridmpm.control.targets import pd_targets
 
 __all__ = [
     "A_MAX",

@@ -47,8 +47,10 @@ from hybridmpm.control.diffusion import SAMPLE_STEPS, ControlModel
 from hybridmpm.control.prior import ballistic_path, free_motion_of, in_free_flight, prior_path
 from hybridmpm.control.reverse import A_MAX, clip_norm
 from hybridmpm.control.sketch import Sketch
+from hybridmpm.control.targets import pd_targets
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.sim import Simulator
 
 #: Control methods.
 METHODS = ("none", "constant", "pd", "oracle", "diffusion")
@@ -96,30 +98,31 @@ def single_thread_blas() -> Iterator[None]:
         yield
 
 
-def track_path(src: Any, path: np.ndarray, omega: float, gravity: np.ndarray | None = None) -> Callable[[int], np.ndarray]:
+def track_path(path: np.ndarray, omega: float, dt_frame: float, gravity: np.ndarray | None = None) -> Callable[[int, np.ndarray, np.ndarray], np.ndarray]:
     """The tracking law shared by PD and the planned methods: at control frame
     ``k`` the acceleration [m/s²] ``ω²(y_k − x) + 2ω(ẏ_k − v) − g_ff``, with
     ``y`` = ``path`` float [F, N, D] (``y_0`` the start; held at its last
-    frame after the end), ``ẏ_k`` its central difference (one-sided at the
-    ends, 0 after the end), ``x``, ``v`` the state of ``src`` (a simulator)
-    read at that frame; ``gravity`` the feed-forward ``g_ff`` (None: 0 — a
-    plan already includes gravity's effect, so following the uncontrolled
-    motion costs no effort: the central difference matches MPM's velocity to
-    ``g·Δt/(2·substeps)`` on a ballistic path). Critically damped: settles in
-    about ``2π/ω``."""
+    frame after the end), ``ẏ_k`` its central difference over frames of
+    ``dt_frame`` s (one-sided at the ends, 0 after the end), ``x``, ``v`` the
+    fluid's positions and velocities [N, D] at that frame (what the simulator
+    applying the plan hands it, :data:`~hybridmpm.sim.ForcingFunction`);
+    ``gravity`` the feed-forward ``g_ff`` (None: 0 — a plan already includes
+    gravity's effect, so following the uncontrolled motion costs no effort:
+    the central difference matches MPM's velocity to ``g·Δt/(2·substeps)`` on
+    a ballistic path). Returns ``feedback(k, x, v)`` → float32 [N, D].
+    Critically damped: settles in about ``2π/ω``."""
     y = np.asarray(path, np.float64)
-    dt = src.dt_frame
+    dt = dt_frame
     if len(y) > 2:
         vel = np.concatenate([(y[1:2] - y[:1]) / dt, (y[2:] - y[:-2]) / (2 * dt), (y[-1:] - y[-2:-1]) / dt])
     else:
         vel = np.zeros_like(y)
     g = np.zeros(y.shape[-1]) if gravity is None else np.asarray(gravity, np.float64)
-    p = src.particles
     kp, kd = omega * omega, 2.0 * omega
 
-    def feedback(k: int) -> np.ndarray:
-        xk = p.fluid(src.positions).astype(np.float64)
-        vk = np.asarray(src.velocities, np.float64)
+    def feedback(k: int, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        xk = np.asarray(positions).astype(np.float64)
+        vk = np.asarray(velocities, np.float64)
         target = y[min(k, len(y) - 1)]
         v_plan = vel[k] if k < len(y) - 1 else 0.0
         return (kp * (target - xk) + kd * (v_plan - vk) - g).astype(np.float32)
@@ -130,10 +133,11 @@ def track_path(src: Any, path: np.ndarray, omega: float, gravity: np.ndarray | N
 @dataclass
 class Plan:
     """External accelerations for the ``frames`` frames after ``start_frame``:
-    a simulator ``forcing`` (call it with a frame index → float32 [N, D] m/s²,
-    None outside the horizon). Open loop (``accelerations`` [frames, N, D]) or
-    closed loop (``feedback(k)`` computed from the state at control frame
-    ``k``). ``applied`` keeps every field handed out (effort and smoothness
+    a simulator ``forcing`` (:data:`~hybridmpm.sim.ForcingFunction`: call it
+    with a frame index and the fluid's positions and velocities [N, D] →
+    float32 [N, D] m/s², None outside the horizon). Open loop
+    (``accelerations`` [frames, N, D]) or closed loop (``feedback(k, x, v)``
+    computed from the state at control frame ``k``). ``applied`` keeps every field handed out (effort and smoothness
     metrics); ``seconds`` the time the plan took to make (sketch → field);
     ``path`` float64 [F, N, D] the planned motion of a planned method;
     ``network`` whether a network made it (False for a diffusion plan of a
@@ -144,18 +148,23 @@ class Plan:
     frames: int
     num_particles: int
     accelerations: np.ndarray | None = None
-    feedback: Callable[[int], np.ndarray] | None = None
+    feedback: Callable[[int, np.ndarray, np.ndarray], np.ndarray] | None = None
     seconds: float = 0.0
     sketch: Sketch | None = None
     applied: list[np.ndarray] = field(default_factory=list)
     path: np.ndarray | None = None
     network: bool = False
 
-    def __call__(self, frame: int) -> np.ndarray | None:
+    def __call__(self, frame: int, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray | None:
         k = int(frame) - self.start_frame
-        if not 0 <= k < self.frames or (self.accelerations is None and self.feedback is None):  # "none", or no sketch
+        if not 0 <= k < self.frames:
             return None
-        a = self.accelerations[k] if self.accelerations is not None else self.feedback(k)  # type: ignore[misc]
+        if self.accelerations is not None:
+            a = self.accelerations[k]
+        elif self.feedback is not None:
+            a = self.feedback(k, positions, velocities)
+        else:  # "none", or no sketch
+            return None
         a = clip_norm(a, A_MAX)
         self.applied.append(a)
         return a
@@ -231,7 +240,7 @@ class Controller:
             kw["model"] = _cached_model(shipped_control_model(scene))
         return cls(method, **kw)
 
-    def plan(self, sim: Any, sketch: Sketch | None) -> Plan:
+    def plan(self, sim: Simulator, sketch: Sketch | None) -> Plan:
         """A plan from ``sim``'s current state (positions, velocities, masses,
         gravity; any :class:`~hybridmpm.sim.Simulator`) and ``sketch`` (None:
         no control — for the diffusion method too, whose blank sketch is
@@ -247,8 +256,7 @@ class Controller:
         if self.method == "oracle" and self.oracle_path is not None:
             if self.oracle_path.shape[1:] != (n, d):
                 raise InvalidInputError(f"oracle_path: expected [F, {n}, {d}], got {list(self.oracle_path.shape)}", "oracle_path")
-            src = getattr(sim, "mpm", sim)
-            fb = track_path(src, self.oracle_path, self._track_omega(sim))
+            fb = track_path(self.oracle_path, self._track_omega(sim), sim.dt_frame)
             return Plan("oracle", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
         if self.method == "oracle":
             assert self.oracle is not None
@@ -261,7 +269,6 @@ class Controller:
             assert self.model is not None
             if self.model.dim != d:
                 raise InvalidInputError(f"model: a {self.model.dim}D controller cannot drive a {d}D scene", "model")
-            src = getattr(sim, "mpm", sim)
             x, v = p.fluid(sim.positions), sim.velocities
             network = True
             if self.model.needs_free:
@@ -280,7 +287,7 @@ class Controller:
                     network = False
             else:
                 res = self.model.sample(x, v, p.particle_type[:n], sketch, seed=self.seed, steps=self.steps, guidance=self.guidance)
-            fb = track_path(src, res.path, self._track_omega(sim))
+            fb = track_path(res.path, self._track_omega(sim), sim.dt_frame)
             plan = Plan("diffusion", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
             plan.path = res.path
             plan.network = network
@@ -303,40 +310,11 @@ class Controller:
         # PD attraction to per-particle targets
         y = pd_targets(x, sketch)
         omega = 2.0 * math.pi / (self.settle * tau)
-
-        src = getattr(sim, "mpm", sim)  # the hybrid applies control on its MPM, which has the state frame by frame
-        feedback = track_path(src, y[None], omega, gravity=g)
+        feedback = track_path(y[None], omega, sim.dt_frame, gravity=g)
         return Plan("pd", start, self.frames, n, feedback=feedback, seconds=time.perf_counter() - t0, sketch=sketch)
 
-    def _track_omega(self, sim: Any) -> float:
+    def _track_omega(self, sim: Simulator) -> float:
         return 2.0 * math.pi / (TRACK_SETTLE * self.frames * sim.dt_frame)
 
 
-def pd_targets(x: np.ndarray, sketch: Sketch) -> np.ndarray:
-    """Per-particle targets of the PD controller, float64 [N, D]: arrow — each
-    particle moved by the arrow (x–y); oval — the cloud's ±2σ ellipse (x–y
-    principal axes) mapped affinely onto the drawn ellipse by a stretch along
-    the axes and the smaller of the two rotations that align the major axes
-    (an ellipse is the same turned by 180°), never a reflection: a cloud
-    mapped onto its own ±2σ oval stays where it is. Depth (3D z) is kept."""
-    y = np.array(x, np.float64)
-    if sketch.kind == "arrow":
-        y[:, :2] += sketch.vector
-        return y
-    xy = x[:, :2]
-    c0 = xy.mean(0)
-    vals, vecs = np.linalg.eigh(np.cov((xy - c0).T) if len(xy) > 1 else np.eye(2) * 1e-8)
-    order = np.argsort(vals)[::-1]
-    r0 = 2.0 * np.sqrt(np.maximum(vals[order], 1e-10))
-    c1, r1, angle = sketch.ellipse()
-    r1_axes = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
-    # eigh's axes have arbitrary signs: take the major axis on the drawn one's side and the minor axis a quarter turn
-    # from it, as r1_axes is built, so that the map is a rotation (det +1), never a mirror image of the cloud
-    major = vecs[:, order[0]] * (1.0 if vecs[:, order[0]] @ r1_axes[:, 0] >= 0.0 else -1.0)
-    r0_axes = np.array([[major[0], -major[1]], [major[1], major[0]]])
-    local = (xy - c0) @ r0_axes / r0  # unit-ellipse coordinates along the cloud's axes
-    y[:, :2] = c1 + (local * r1) @ r1_axes.T
-    return y
-
-
-__all__ = ["METHODS", "TRACK_SETTLE", "Controller", "Plan", "pd_targets", "shipped_control_model", "track_path"]
+__all__ = ["METHODS", "TRACK_SETTLE", "Controller", "Plan", "shipped_control_model", "track_path"]

@@ -1,10 +1,10 @@
 """The numpy half of the Fluid ControlNet: the temporal basis of the control
 field, the diffusion schedule, the closed-form DDIM update, and the
 onnxruntime sampler that turns a sketch and the fluid state into a field
-(paper Sec. 3.2, App. B; design D of ``shared/notes/control-facts.md``).
+(paper Sec. 3.2, App. B; ``docs/control.md``).
 
 Serving needs numpy and onnxruntime only; the torch model that is trained
-and exported lives in :mod:`hybridmpm.control.model`.
+and exported lives in :mod:`hybridmpm.train.control.model`.
 
 The sample (what is diffused) is, per particle, the coefficients of its
 planned displacement over the horizon on a temporal basis:
@@ -28,7 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.control.prior import prior_path
+from hybridmpm.control.sketch import render_sketch
+from hybridmpm.control.targets import GEOMETRY_SCALE, sketch_geometry, smoothstep
+from hybridmpm.errors import InvalidInputError, as_f32
+from hybridmpm.graph import radius_graph
 
 #: Diffusion steps of training (the schedule's length).
 DIFFUSION_STEPS = 100
@@ -149,48 +153,6 @@ def bilinear_sample(feature_map: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-# --------------------------------------------------------------------- sketch conditioning (training and serving)
-#: Length scale [m] of the sketch geometry features.
-GEOMETRY_SCALE = 0.3
-
-
-def sketch_geometry(sketch: Any, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The sketch's geometry as the model reads it, besides its image:
-    ``(global float32 [11], offset float32 [N, D])``.
-
-    ``global``: has-sketch, is-arrow, is-oval, the arrow vector, the oval's
-    centre relative to the fluid's centroid, its radii (all / 0.3 m), and
-    ``cos 2θ``, ``sin 2θ`` of its axis (x–y); ``offset``: per particle the
-    displacement to its target point under the sketch's geometric mapping
-    (:func:`~hybridmpm.control.controller.pd_targets`: the arrow, or the
-    cloud's ±2σ ellipse mapped onto the oval), 0 in z, / 0.3 m. A blank sketch
-    (None) gives zeros. ``positions`` float [N, D] m (the fluid)."""
-    from hybridmpm.control.controller import pd_targets
-
-    x = np.asarray(positions, np.float64)
-    g = np.zeros(11, np.float32)
-    if sketch is None:
-        return g, np.zeros_like(x, dtype=np.float32)
-    g[0] = 1.0
-    if sketch.kind == "arrow":
-        g[1] = 1.0
-        g[3:5] = sketch.vector / GEOMETRY_SCALE
-    else:
-        c, r, ang = sketch.ellipse()
-        g[2] = 1.0
-        g[5:7] = (c - x[:, :2].mean(0)) / GEOMETRY_SCALE
-        g[7:9] = r / GEOMETRY_SCALE
-        g[9:11] = math.cos(2 * ang), math.sin(2 * ang)
-    off = (pd_targets(x, sketch) - x) / GEOMETRY_SCALE
-    return g, off.astype(np.float32)
-
-
-def smoothstep(frames: int) -> np.ndarray:
-    """``3s² − 2s³`` at ``s = f/(frames − 1)``: float64 [frames], 0 → 1 with zero slope at both ends."""
-    u = np.linspace(0.0, 1.0, frames)
-    return 3 * u**2 - 2 * u**3
-
-
 def prior_coefficients(offset: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """The sketch's geometric plan on ``basis`` [F, K]: every particle moved to
     its target point (``offset`` [N, D] in metres, see :func:`sketch_geometry`)
@@ -229,11 +191,11 @@ class ControlModel:
     """An exported Fluid ControlNet run by onnxruntime (no torch).
 
     ``path`` a directory with :data:`GRAPHS` ``.onnx`` files and
-    ``control.json`` (:func:`hybridmpm.control.train.export_control`);
+    ``control.json`` (:func:`hybridmpm.train.control.train.export_control`);
     ``threads`` onnxruntime intra-op threads: 1, the only count allowed (the
     latency target's, and the graphs sum over particles with ``ScatterND``,
     which onnxruntime's CPU kernel runs without atomics and so loses updates
-    on more threads: microsoft/onnxruntime#23396, ``hybridmpm.neural.compile``).
+    on more threads: microsoft/onnxruntime#23396, ``hybridmpm.train.gns.onnx_graph``).
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
     malformed model, (``threads``) for another thread count."""
 
@@ -276,8 +238,6 @@ class ControlModel:
         return bool(self.meta.get("prior") == "free_sketch")
 
     def _encode_sketch(self, sketch: Any) -> tuple[np.ndarray, np.ndarray]:
-        from hybridmpm.control.sketch import render_sketch
-
         img = render_sketch(sketch).astype(np.float32).transpose(2, 0, 1)[None] / 255.0
         glob, local_map = self.sessions["sketch_encoder"].run(None, {"image": img})
         return glob, local_map[0]
@@ -305,9 +265,6 @@ class ControlModel:
         (:func:`~hybridmpm.control.prior.free_motion`), needed by a model whose
         ``prior`` is :data:`~hybridmpm.control.prior.PRIOR_FREE_SKETCH`
         (:attr:`needs_free`). Raises :class:`InvalidInputError` naming a bad argument."""
-        from hybridmpm.errors import as_f32
-        from hybridmpm.graph import radius_graph
-
         t0 = time.perf_counter()
         x = as_f32("positions", positions)
         v = as_f32("velocities", velocities)
@@ -331,8 +288,6 @@ class ControlModel:
             glob, local_map = self._encode_sketch(sk)
             geo, off = sketch_geometry(sk, x)
             conds.append((np.concatenate([glob, geo[None]], 1).astype(np.float32), bilinear_sample(local_map, x[:, :2]), off))
-
-        from hybridmpm.control.prior import prior_path  # (prior imports this module)
 
         def branch_priors() -> list[np.ndarray]:
             if self.needs_free:
@@ -391,8 +346,6 @@ __all__ = [
     "path_basis",
     "prior_coefficients",
     "project",
-    "smoothstep",
-    "sketch_geometry",
     "temporal_basis",
     "trailing_timesteps",
 ]

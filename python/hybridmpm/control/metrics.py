@@ -1,7 +1,7 @@
-"""Control metrics (DESIGN.md "Control metrics"; paper Table 4).
+"""Control metrics (docs/design.md "Control metrics"; paper Table 4).
 
 * final-shape error: grid-mass error of the controlled fluid at ``T_ctr``
-  against the target positions (DESIGN.md definition), and the paper's grid
+  against the target positions (docs/design.md definition), and the paper's grid
   RMSE of the normalised mass;
 * arrow adherence: cosine and length ratio of the centroid displacement
   against the arrow (x–y);

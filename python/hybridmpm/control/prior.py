@@ -29,11 +29,16 @@ rollout exactly.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
+from hybridmpm.control.sketch import Sketch
+from hybridmpm.control.targets import pd_targets, smoothstep
+from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmParams
+from hybridmpm.scenes.core import Scene
+from hybridmpm.sim import MpmSimulator, Simulator, rollout
 
 #: The sketch-ramp prior (first format): the plan minus every particle moved to its sketch target along a smoothstep.
 PRIOR_SKETCH_RAMP = "sketch_ramp"
@@ -58,7 +63,7 @@ def free_motion(
     positions: np.ndarray,
     velocities: np.ndarray,
     material: np.ndarray,
-    params: Any,
+    params: MpmParams,
     frames: int,
     *,
     dt_frame: float,
@@ -74,10 +79,6 @@ def free_motion(
     Raises :class:`InvalidInputError` naming a bad argument, and
     :class:`~hybridmpm.errors.SimulationError` if the coarse rollout fails."""
     from scipy.spatial import cKDTree
-
-    from hybridmpm.mpm import MpmParams
-    from hybridmpm.scenes.core import Scene
-    from hybridmpm.sim import MpmSimulator, rollout
 
     x = np.asarray(positions, np.float64)
     v = np.asarray(velocities, np.float64)
@@ -117,7 +118,7 @@ def free_motion(
     return x[None] + (out - out[:1])[:, nearest]
 
 
-def free_motion_of(sim: Any, frames: int) -> np.ndarray:
+def free_motion_of(sim: Simulator, frames: int) -> np.ndarray:
     """:func:`free_motion` of a simulator's fluid (any
     :class:`~hybridmpm.sim.Simulator`: its positions, velocities, particle
     types, scene parameters and frame length), float64 [frames + 1, N, D]."""
@@ -126,17 +127,14 @@ def free_motion_of(sim: Any, frames: int) -> np.ndarray:
     return free_motion(x, sim.velocities, material_of(p.particle_type[: p.num_fluid]), sim.scene.params, frames, dt_frame=sim.dt_frame)
 
 
-def prior_path(free: np.ndarray, positions: np.ndarray, sketch: Any) -> np.ndarray:
+def prior_path(free: np.ndarray, positions: np.ndarray, sketch: Sketch | None) -> np.ndarray:
     """The plan an untrained free-sketch model makes: the free motion ``free``
     float [F, N, D] (row 0 the start ``positions`` [N, D]) plus, along a
     smoothstep, the correction that moves its last row onto the sketch — an
     arrow: the centroid shifted to the start centroid plus the arrow (x–y); an
     oval: the end cloud's ±2σ ellipse mapped onto the drawn one
-    (:func:`~hybridmpm.control.controller.pd_targets`). ``sketch`` None: the
+    (:func:`~hybridmpm.control.targets.pd_targets`). ``sketch`` None: the
     free motion itself. float64 [F, N, D]."""
-    from hybridmpm.control.controller import pd_targets
-    from hybridmpm.control.diffusion import smoothstep
-
     y = np.asarray(free, np.float64)
     if sketch is None:
         return y.copy()
@@ -182,8 +180,6 @@ def material_of(particle_type: np.ndarray) -> np.ndarray:
     """Solver material codes int32 [N] of GNS particle-type codes [N]
     (:data:`~hybridmpm.conventions.GNS_TYPE_OF_MATERIAL` inverted). Raises
     :class:`InvalidInputError` naming ``particle_type`` for a code that is no fluid."""
-    from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
-
     inverse = {v: k for k, v in GNS_TYPE_OF_MATERIAL.items()}
     pt = np.asarray(particle_type).astype(np.int64)
     bad = ~np.isin(pt, list(inverse))

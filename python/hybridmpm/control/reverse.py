@@ -28,6 +28,7 @@ import numpy as np
 
 from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.sim import MpmSimulator
 
 #: Largest control acceleration [m/s²] (50 g): bounds the CFL substeps a
 #: controlled frame can need (one grid cell per frame is ≈ 127 g at 128²).
@@ -93,7 +94,9 @@ def smooth(a: np.ndarray, lam: float = SMOOTH_LAMBDA, beta: float = SMOOTH_BETA)
     return out.astype(np.float32)
 
 
-def reverse_tracking(sim: Any, forward: np.ndarray, a_max: float = A_MAX, iterations: int = 2, lam: float = 0.0, beta: float = SMOOTH_BETA) -> np.ndarray:
+def reverse_tracking(
+    sim: MpmSimulator, forward: np.ndarray, a_max: float = A_MAX, iterations: int = 2, lam: float = 0.0, beta: float = SMOOTH_BETA
+) -> np.ndarray:
     """Control accelerations solved through MPM, frame by frame.
 
     ``sim`` an :class:`~hybridmpm.sim.MpmSimulator` (``r_t = 1``) holding the

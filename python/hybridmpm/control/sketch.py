@@ -1,7 +1,7 @@
 """Sketches: arrows and ovals, as users draw them and as training makes them
 (paper Sec. 3.2, App. C).
 
-One format everywhere (CLI, Python, HTTP; DESIGN.md "Sketch"): JSON
+One format everywhere (CLI, Python, HTTP; docs/design.md "Sketch"): JSON
 ``{"kind": "arrow" | "oval", "points": [[x, y], ...], "t": [...]?, "width": [...]?}``
 in domain coordinates with y up. ``t`` (optional) is the time of each point
 [s] as drawn; ``width`` (optional) the stroke width at each point [m] — in 3D

@@ -1,6 +1,6 @@
 """Accuracy metrics of a rollout against a reference rollout.
 
-* :func:`grid_mass_error` — the accuracy metric across resolutions (DESIGN.md
+* :func:`grid_mass_error` — the accuracy metric across resolutions (docs/design.md
   "Definitions: Grid-mass error"; paper Sec. 3.1.1, ``RMSE_m̃``): each frame's
   particle mass is splatted to one grid with quadratic B-spline weights and
   normalised to sum 1 (``m̃``, :func:`hybridmpm.grid_mass`); the error at a
@@ -104,7 +104,7 @@ def grid_mass_error(
     pred_weights: np.ndarray | None = None,
     ref_weights: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Grid-mass error per frame (DESIGN.md "Grid-mass error"; paper Sec. 3.1.1,
+    """Grid-mass error per frame (docs/design.md "Grid-mass error"; paper Sec. 3.1.1,
     ``RMSE_m̃``).
 
     For every frame ``t``: ``‖m̃_pred(t) − m̃_ref(t)‖₂ / ‖m̃_ref(t)‖₂`` where
@@ -123,7 +123,7 @@ def grid_mass_error(
         within the memory budget (:mod:`hybridmpm.limits`).
     pred_weights, ref_weights:
         Optional particle masses [N] (any unit, only ratios matter); by
-        default every particle weighs ``1/N`` as DESIGN.md specifies.
+        default every particle weighs ``1/N`` as docs/design.md specifies.
 
     Returns
     -------
@@ -250,7 +250,7 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> di
     frame 0 included); kinematic particles (GNS type 3) are dropped from both.
 
     * ``grid_mass_error``: :func:`rollout_summary` of :func:`grid_mass_error`
-      with uniform particle weights (1/N, DESIGN.md) on the grid ``n_grid`` (argument, else
+      with uniform particle weights (1/N, docs/design.md) on the grid ``n_grid`` (argument, else
       ``ref.n_grid``, else 128 in 2D / 64 in 3D).
     * ``grid_mass_error_mass_weighted``: the same with each particle's own mass
       (when both trajectories store positive ``masses``), else ``None``; it

@@ -1,11 +1,14 @@
-"""Neural physics: a GNS simulator trained in PyTorch and run through onnxruntime.
+"""Neural physics at run time: exported learned simulators run by numpy +
+onnxruntime (no torch; what simulating with a shipped model needs).
 
-- :mod:`hybridmpm.neural.runtime` — :class:`NeuralModel` (numpy + onnxruntime
-  only: what simulating with a shipped model needs; the simulator is
-  :class:`hybridmpm.sim.NeuralSimulator`);
-- :mod:`hybridmpm.neural.model` — the GNS in PyTorch (training extra);
-- :mod:`hybridmpm.neural.train` — ``hybridmpm train``;
-- :mod:`hybridmpm.neural.export` — ONNX export with metadata.
+- :mod:`hybridmpm.neural.runtime` — :class:`NeuralModel`, an exported GNS
+  (the simulator is :class:`hybridmpm.sim.NeuralSimulator`);
+- :mod:`hybridmpm.neural.fused` — the fused-kernel rewrite of its graph
+  (onnxruntime custom operators in the Rust extension);
+- :mod:`hybridmpm.neural.grid` — an exported grid model;
+- :mod:`hybridmpm.neural.constants` — what the exporter and the runtime share.
+
+The models are made by :mod:`hybridmpm.train` (torch, the ``train`` extra).
 
 Paper Sec. 2.2, 3.1.1 and App. A; GNS: Sanchez-Gonzalez et al. 2020.
 """

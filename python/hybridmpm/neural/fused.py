@@ -1,6 +1,6 @@
-"""Fused kernels for the compiled inference graph (issue 17).
+"""Fused kernels for the compiled inference graph.
 
-The compiled GNS graph (:mod:`hybridmpm.neural.compile`, layout
+The compiled GNS graph (:mod:`hybridmpm.train.gns.onnx_graph`, layout
 ``compiled-3``) runs each edge-sized stage as a chain of onnxruntime
 operators, one pass over an ``[E, 16]`` array each; at width 16 the passes,
 not the arithmetic, bound a step (docs/neural.md, "What bounds it").
@@ -53,6 +53,8 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm import _core
+
 #: Domain of the fused operators (``rust/python/src/ort_ops.rs``).
 DOMAIN = "hybridmpm.gnn"
 #: Latent width the kernels are compiled for.
@@ -61,7 +63,6 @@ LATENT = 16
 
 def library_path() -> str:
     """Path of the custom-op library: the ``hybridmpm._core`` extension module."""
-    from hybridmpm import _core
 
     return str(_core.__file__)
 
@@ -330,7 +331,7 @@ def _history_len(G: _Graph) -> tuple[int, int]:
 
 
 def _match_node_encoder(G: _Graph) -> tuple[list[Any], Any, Any]:
-    """The feature construction and node encoder (:mod:`hybridmpm.neural.compile`):
+    """The feature construction and node encoder (:mod:`hybridmpm.train.gns.onnx_graph`):
     ``LN(MLP(Concat(velocities, walls)) + table[particle_type])``, checked node by
     node. Returns ``(nodes to remove, node whose place it takes, HmpmNodeEncoder)``;
     the feature nodes left dead are pruned."""

@@ -1,6 +1,6 @@
 """The network at run time: numpy + onnxruntime (no torch).
 
-:class:`NeuralModel` wraps an exported GNS (see :mod:`hybridmpm.neural.export`)
+:class:`NeuralModel` wraps an exported GNS (see :mod:`hybridmpm.train.gns.export`)
 and its metadata, and predicts one model step (``r_t`` frames) from a position
 history (paper Sec. 2.2, App. A). The simulator that rolls it out is
 :class:`hybridmpm.sim.NeuralSimulator`.
@@ -90,7 +90,7 @@ SMALL_TABLE = 1 << 16
 
 
 def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The aggregation inputs of a compiled GNS graph (:mod:`hybridmpm.neural.compile`,
+    """The aggregation inputs of a compiled GNS graph (:mod:`hybridmpm.train.gns.onnx_graph`,
     module doc) for ``receivers`` int64 [E] (values in ``[0, n)``, any order):
     ``(in_edges, in_degree)``. ``in_degree`` float32 [n, 1] counts the edges into
     each node. ``in_edges`` int64 [n, K], K the largest in-degree, lists in row i
@@ -120,7 +120,7 @@ def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.
 class NeuralModel:
     """An exported GNS model loaded into onnxruntime.
 
-    ``path`` an ``.onnx`` file written by :func:`~hybridmpm.neural.export.export_onnx`;
+    ``path`` an ``.onnx`` file written by :func:`~hybridmpm.train.gns.export.export_onnx`;
     ``threads`` onnxruntime intra-op threads (1 leaves a core to MPM; 0
     onnxruntime's default, one per core); ``spinning`` whether the worker
     threads busy-wait for work (default: for any count but 1, 0 included).
@@ -134,10 +134,10 @@ class NeuralModel:
     MPM step run right after by up to ~20%. So: two threads for the network
     alone (MPM idle), one in the hybrid and the service (the default). A
     plain (unfused) graph on more than one thread sums over receivers the
-    gather way (:mod:`hybridmpm.neural.compile`): onnxruntime's ``ScatterND``
+    gather way (:mod:`hybridmpm.train.gns.onnx_graph`): onnxruntime's ``ScatterND``
     loses updates there. A file of an earlier layout, which has only the
     ``ScatterND`` sum, runs on one thread whatever ``threads`` says, with a
-    ``UserWarning`` (upgrade it with :func:`hybridmpm.neural.export.upgrade_onnx`).
+    ``UserWarning`` (upgrade it with :func:`hybridmpm.train.gns.export.upgrade_onnx`).
     ``meta`` holds the model's metadata: ``scene``,
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
@@ -187,7 +187,7 @@ class NeuralModel:
             warnings.warn(
                 f"threads: {self.path.name} (graph layout {self.meta.get('graph', 'torch-exported')!r}) sums over receivers with onnxruntime's "
                 "ScatterND only, which loses updates on more than one thread (microsoft/onnxruntime#23396): running it on one thread; "
-                "hybridmpm.neural.export.upgrade_onnx rewrites it for any thread count",
+                "hybridmpm.train.gns.export.upgrade_onnx rewrites it for any thread count",
                 UserWarning,
                 stacklevel=2,
             )

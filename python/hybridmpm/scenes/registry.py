@@ -46,7 +46,7 @@ PAPER_FRAMES = {
     "water3d": 800,
     "sand3d": 350,
     "dam_break2d": 300,
-    # not in the paper: training data for column collapses (issue 16), about 1 s
+    # not in the paper: training data for column collapses, about 1 s
     "water_columns2d": 400,
 }
 
@@ -211,7 +211,7 @@ def water_columns2d(seed: int = 0, frames: int | None = None, n_grid: int = 128,
 
     Not one of the paper's domains: training data for the pressure-driven
     collapse of a column at rest, which the thrown blocks of ``water2d`` rarely
-    show (issue 16). The dam break stays held out: a column whose base is within
+    show. The dam break stays held out: a column whose base is within
     :data:`DAM_BREAK_HOLDOUT_CELLS` cells of :data:`DAM_BREAK_A_CELLS` and whose
     height is within twice that of ``2a`` is redrawn, whatever its wall.
     """

@@ -1,4 +1,4 @@
-"""The simulator interface (DESIGN.md "Data flow"): one protocol, three simulators, one rollout.
+"""The simulator interface (docs/design.md "Data flow"): one protocol, three simulators, one rollout.
 
 * :class:`MpmSimulator` — the Rust MLS-MPM solver (at ``r_p``, ``r_t`` frames a step);
 * :class:`NeuralSimulator` — the GNS network alone, after an MPM warm-up
@@ -15,7 +15,7 @@
 >>> fr = sim.advance()                              # one more coarse step
 """
 
-from hybridmpm.sim.base import MPM, NEURAL, Forcing, Frame, NetworkFailure, SimStats, Simulator
+from hybridmpm.sim.base import MPM, NEURAL, Forcing, ForcingFunction, Frame, NetworkFailure, SimStats, Simulator
 from hybridmpm.sim.config import SOLVERS, load_tuned, make_simulator, tuned_settings
 from hybridmpm.sim.hybrid import DWELL, HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
@@ -30,6 +30,7 @@ __all__ = [
     "NEURAL",
     "SOLVERS",
     "Forcing",
+    "ForcingFunction",
     "Frame",
     "HybridSimulator",
     "MpmSimulator",

@@ -1,4 +1,4 @@
-"""The simulator interface every solver shares (DESIGN.md "Data flow").
+"""The simulator interface every solver shares (docs/design.md "Data flow").
 
 A simulator advances one *coarse step* at a time — ``r_t`` frames of
 ``dt_frame`` seconds (MPM: ``r_t = 1`` unless asked otherwise; the network:
@@ -8,9 +8,12 @@ controller and the service all go through it.
 
 ``forcing`` is the controller's hook (paper Sec. 3.2): a per-particle external
 acceleration [m/s²] that MPM adds to gravity, given as an array ``[N, D]``
-(fluid particles), as a callable of the frame index returning such an array
-(or None for "no forcing in this frame"), or None. The network cannot apply a
-forcing: the hybrid runs MPM while one is set.
+(fluid particles), as a callable ``forcing(frame, positions, velocities)`` of
+the frame index and the fluid state it acts on (float32 [N, D] m and m/s, read
+by the simulator that applies it at the start of that frame) returning such an
+array (or None for "no forcing in this frame"), or None. The network cannot
+apply a forcing: the hybrid runs MPM while one is set, and its MPM hands the
+callable the state.
 
 Threads: a simulator may be shared between threads. Its mutating calls
 (``advance``, ``state``, ``restore``, setting ``forcing``) are serialised by
@@ -39,8 +42,11 @@ from hybridmpm.scenes.particles import ParticleSet
 MPM = "mpm"
 NEURAL = "neural"
 
-#: A forcing: fluid accelerations [N, D] m/s², a function of the frame index, or None.
-Forcing = Union[np.ndarray, Callable[[int], Union[np.ndarray, None]], None]
+#: A forcing function: ``(frame, positions, velocities) -> accelerations | None``, the fluid's state float32 [N, D]
+#: (m, m/s) at the start of frame ``frame`` in, its accelerations [N, D] m/s² out (None: no forcing in this frame).
+ForcingFunction = Callable[[int, np.ndarray, np.ndarray], Union[np.ndarray, None]]
+#: A forcing: fluid accelerations [N, D] m/s², a :data:`ForcingFunction`, or None.
+Forcing = Union[np.ndarray, ForcingFunction, None]
 
 
 @dataclass
@@ -227,12 +233,14 @@ def check_forcing(value: Forcing, n: int, dim: int) -> Forcing:
     return a
 
 
-def resolve_forcing(value: Forcing, frame: int, n: int, dim: int) -> np.ndarray | None:
-    """The forcing to apply to frame ``frame``: float32 [n, dim] or None."""
+def resolve_forcing(value: Forcing, frame: int, n: int, dim: int, state: Callable[[], tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+    """The forcing to apply to frame ``frame``: float32 [n, dim] or None. A
+    callable forcing is handed the fluid's ``state()`` (positions, velocities),
+    read only then."""
     if value is None:
         return None
     if callable(value):
-        out = value(int(frame))
+        out = value(int(frame), *state())
         if out is None:
             return None
         checked = check_forcing(np.asarray(out), n, dim)
@@ -278,6 +286,7 @@ __all__ = [
     "MPM",
     "NEURAL",
     "Forcing",
+    "ForcingFunction",
     "Frame",
     "NetworkFailure",
     "SimStats",

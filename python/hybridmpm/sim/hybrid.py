@@ -1,6 +1,6 @@
 """The hybrid simulator: neural physics by default, MPM when the flow gets complex.
 
-Paper Sec. 3.1.2, Eq. 1, Table 2; DESIGN.md "Safeguard". One *step* is one
+Paper Sec. 3.1.2, Eq. 1, Table 2; docs/design.md "Safeguard". One *step* is one
 coarse step of the neural model: ``r_t`` frames of ``dt_frame`` seconds, at the
 model's particle resolution ``r_p`` (the scene is clustered once; MPM and the
 network move the same particles).
@@ -72,6 +72,7 @@ import numpy as np
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, DELTA, R_C, G
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import (
@@ -180,7 +181,6 @@ class HybridSimulator:
         mpm_threads: int = 0,
         nn_threads: int = 1,
     ) -> None:
-        from hybridmpm.scenes import make_scene
 
         self._lock = new_lock()
         _check("r_c", _finite(r_c), f"must be a finite number, got {r_c!r}")

@@ -17,6 +17,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
+from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t
 from hybridmpm.sim.base import (
@@ -60,8 +61,6 @@ class MpmSimulator:
     kind = MPM
 
     def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0) -> None:
-        from hybridmpm.scenes import make_scene
-
         self._lock = new_lock()
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
@@ -103,7 +102,8 @@ class MpmSimulator:
     @property
     def forcing(self) -> Forcing:
         """External acceleration [m/s²] of the fluid particles: float32 [N, D],
-        a callable ``frame -> [N, D] | None``, or None (see :mod:`hybridmpm.sim.base`)."""
+        a callable ``(frame, positions, velocities) -> [N, D] | None``, or None
+        (see :mod:`hybridmpm.sim.base`)."""
         return self._forcing
 
     @forcing.setter
@@ -112,6 +112,10 @@ class MpmSimulator:
         self._forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
         if self._forcing is None and self._applied:
             self._clear_forcing()
+
+    def _fluid_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """What a forcing function is handed: fluid positions and velocities, float32 [N, D] (copies)."""
+        return self.fluid_positions, self.velocities
 
     def _clear_forcing(self) -> None:
         self.solver.external_acceleration = np.zeros((self.particles.num_fluid, self.particles.dim), np.float32)
@@ -130,7 +134,7 @@ class MpmSimulator:
         n, d = self.particles.num_fluid, self.particles.dim
         for k in range(self.r_t):
             if self._forcing is not None:
-                acc = resolve_forcing(self._forcing, self.step_index * self.r_t + k, n, d)
+                acc = resolve_forcing(self._forcing, self.step_index * self.r_t + k, n, d, self._fluid_state)
                 if acc is not None:
                     self.solver.external_acceleration = acc
                     self._applied = controlled = True

@@ -50,8 +50,10 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
+from hybridmpm.models import shipped_model
 from hybridmpm.neural.grid import GridRuntime, open_model
 from hybridmpm.neural.runtime import Graph, NeuralModel
+from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import (
@@ -91,8 +93,6 @@ def load_model(model: NeuralModel | GridRuntime | str | Path | None, scene_name:
     if isinstance(model, (NeuralModel, GridRuntime)):
         return model
     if model is None:
-        from hybridmpm.models import shipped_model
-
         if scene_name is None:
             raise InvalidInputError("model: no model given and the scene has no name to find a shipped one", "model")
         model = shipped_model(scene_name)
@@ -172,8 +172,6 @@ class NeuralSimulator:
         nn_threads: int = 1,
     ) -> None:
         import math
-
-        from hybridmpm.scenes import make_scene
 
         self._lock = new_lock()
         for name, v, lo, closed in (

@@ -7,7 +7,7 @@ then boundary particles) that also carries what each step was: its frame
 number, the solver that made it, its wall time, the safeguard score, MPM
 substeps, events, and why the rollout broke off, if it did.
 :func:`reference` is full-resolution MPM from the same initial condition
-(DESIGN.md "Grid-mass error": the reference of every error).
+(docs/design.md "Grid-mass error": the reference of every error).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.limits import check_allocation
 from hybridmpm.scenes.core import Scene
 from hybridmpm.sim.base import NEURAL, Frame, NetworkFailure, Simulator, check_int
+from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.trajectory import Trajectory
 
 #: ``stop(frame, sim)`` → None to go on, or the reason to break off.
@@ -188,7 +189,6 @@ def reference(scene: Scene, frames: int, *, stride: int = 1, threads: int = 0, p
     clustered to ``r_p < 1`` is rebuilt from its spec. Raises
     :class:`InvalidInputError` (field ``scene``) if such a scene has no spec,
     :class:`~hybridmpm.errors.SimulationError` if MPM fails."""
-    from hybridmpm.sim.mpm import MpmSimulator
 
     if scene.info.get("r_p", 1.0) < 1.0:
         if scene.spec is None:

@@ -1,4 +1,4 @@
-"""The fluid-complexity safeguard ``s(t)`` (DESIGN.md "Safeguard"; paper Sec. 3.1.2).
+"""The fluid-complexity safeguard ``s(t)`` (docs/design.md "Safeguard"; paper Sec. 3.1.2).
 
 With ``a_i(t) = p_i(t) − 2 p_i(t−1) + p_i(t−2)`` the per-particle acceleration
 of the trajectory at coarse step ``t`` (one step = ``r_t`` frames), ``u_i`` the

@@ -1,9 +1,17 @@
-"""Everything that needs torch: training and export of the learned simulators.
+"""Everything that needs torch, and everything that makes data for it: the
+*make* side of hybridmpm (install with ``pip install -e '.[train]'``).
 
-Install with ``pip install -e '.[train]'``. Serving never imports this
-package: the exported ONNX files run with numpy + onnxruntime alone
-(:mod:`hybridmpm.neural`).
+Serving never imports this package: the exported ONNX files run with numpy +
+onnxruntime alone (:mod:`hybridmpm.neural`, :mod:`hybridmpm.control`), and
+``tests/test_architecture.py`` keeps it so.
 
+* :mod:`hybridmpm.train.datasets` — GNS-layout datasets from MPM rollouts
+  (``hybridmpm generate``; the format is :mod:`hybridmpm.data`);
+* :mod:`hybridmpm.train.gns` — the GNS in PyTorch: features, model, training
+  (``hybridmpm train``), ONNX export and the inference graph;
+* :mod:`hybridmpm.train.control` — control cases by reverse simulation
+  (``hybridmpm generate-control``) and the Fluid ControlNet's training
+  (``hybridmpm train-control``);
 * :mod:`hybridmpm.train.grid` — the grid model (p2g, U-Net, g2p; a
   NeuralMPM-style learned simulator, arXiv 2408.15753) and its torch p2g/g2p;
 * :mod:`hybridmpm.train.grid_train` — its training loop and ONNX export.

@@ -40,6 +40,9 @@ from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.data.gns import GnsDataset
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
+from hybridmpm.neural.constants import METADATA_KEY
+from hybridmpm.neural.grid import GRID_INPUT, GRID_KIND, GRID_OUTPUT
+from hybridmpm.scenes import make_scene
 from hybridmpm.train.grid import GridConfig, GridModel, grid_geometry, p2g, stencil
 
 
@@ -220,7 +223,6 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
         raise InvalidInputError(f"data: the grid model trains on datasets stored every frame (r_t = 1), {c.data} has r_t = {meta.get('r_t')}", "data")
     train = _stack(ds["train"])
     valid = _stack(ds["valid"])[: c.val_trajectories]
-    from hybridmpm.scenes import make_scene
 
     gravity = [float(v) for v in make_scene(c.scene, seed=0).params.to_dict()["gravity"]]
     types = sorted({int(t) for _, pt in train for t in np.unique(pt)} - {GNS_KINEMATIC})
@@ -343,9 +345,6 @@ def export_grid(model: GridModel, path: str | Path, metadata: dict[str, Any]) ->
     import warnings
 
     import onnx
-
-    from hybridmpm.neural.constants import METADATA_KEY
-    from hybridmpm.neural.grid import GRID_INPUT, GRID_KIND, GRID_OUTPUT
 
     cfg = model.config
     meta = {

@@ -1,6 +1,6 @@
 //! Grid mass: p2g of particle mass only, onto a given grid, normalised to sum 1.
 //!
-//! Building block of the accuracy metric (DESIGN.md, "Grid-mass error"; paper
+//! Building block of the accuracy metric (docs/design.md, "Grid-mass error"; paper
 //! Sec. 3.1.1, `RMSE_m̃`): trajectories with different particle counts are
 //! compared through their normalised grid-mass fields on one reference grid.
 

@@ -18,7 +18,7 @@
 //!
 //! Re-recorded: sand2d and mixed2d_colliders on 2026-11-23, when 2D sand's
 //! update stopped computing singular vectors (`material/sand.rs`,
-//! `advance_2d`: the same model, closer to an f64 reference; issue 18);
+//! `advance_2d`: the same model, closer to an f64 reference);
 //! sand3d on 2026-11-23 (later), when 3D sand's update did the same
 //! (`advance_3d`: eigenvalues of F·Fᵀ in closed form and Newton
 //! interpolation, no Jacobi SVD; closer to the f64 reference too).
@@ -29,7 +29,7 @@
 //! of f64; polynomials by Estrin's scheme; the eigenvalue cubic through
 //! `cos_two_thirds_acos`) instead of libm's, and a few sums changed their
 //! order; 3D batches with small deviatoric strain take a matrix-series
-//! route instead of eigenvalues (issue 18).
+//! route instead of eigenvalues.
 //! water3d and sand3d on 2026-11-24 (later), when g2p's stencil sums became
 //! separable (`DimOps::g2p_sums`: the rows along the last axis first, then
 //! the other axes on the row sums, instead of every node's weight product);

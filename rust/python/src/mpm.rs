@@ -1074,7 +1074,7 @@ impl MpmSolver {
     }
 }
 
-/// Normalised grid mass (DESIGN.md "Grid-mass error"; paper Sec. 3.1.1):
+/// Normalised grid mass (docs/design.md "Grid-mass error"; paper Sec. 3.1.1):
 /// p2g of particle mass with quadratic B-splines onto the nodes `i·dx`,
 /// `i ∈ [0, n_grid)^D`, `dx = 1/n_grid`, divided by the total.
 ///

@@ -1,4 +1,4 @@
-//! A persistent team of worker threads for one frame (issue 18).
+//! A persistent team of worker threads for one frame.
 //!
 //! A fork-join per stage (rayon's parallel iterators) hands the work to the
 //! pool's threads four times per substep; a stage lasts only 5–50 µs for 4k

@@ -9,11 +9,11 @@ Simulate Complex Physics with Graph Networks").
   controller reuses it (other input/output sizes, latents returned, an
   optionally zero-initialised output).
 * :class:`GnsModel` — the simulator step ``(positions history, types, graph)
-  → (acceleration, next position)``: :class:`~hybridmpm.neural.features.GnsFeatures`
+  → (acceleration, next position)``: :class:`~hybridmpm.train.gns.features.GnsFeatures`
   (velocity history, wall distances, type embedding, edge displacements,
   normalisation), then :class:`EncodeProcessDecode`, then denormalisation and
   semi-implicit Euler. All of it runs in ``forward`` so that the exported
-  ONNX graph holds the feature construction too (DESIGN.md).
+  ONNX graph holds the feature construction too (docs/design.md).
 
 Processor details: the edge MLP's first layer is factored into per-node
 projections gathered per edge (``W·[e; h_r; h_s] = W_e e + (W_r h)[r] +
@@ -44,7 +44,7 @@ from torch import nn
 from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
-from hybridmpm.neural.features import GnsFeatures
+from hybridmpm.train.gns.features import GnsFeatures
 
 
 @dataclass
@@ -60,7 +60,7 @@ class GnsConfig:
     the distance, in units of R, at which the wall-distance features saturate
     (1: GNS's clip at the connectivity radius; larger lets a particle that
     moves more than R per step see a wall before it reaches it, see
-    :func:`~hybridmpm.neural.features.wall_features`).
+    :func:`~hybridmpm.train.gns.features.wall_features`).
     """
 
     dim: int
@@ -252,13 +252,13 @@ class GnsModel(nn.Module):
     [N, D] in m)``, kinematic (type 3) particles kept in place. Use
     :meth:`normalised_acceleration` for the training loss.
 
-    Composition: ``features`` (:class:`~hybridmpm.neural.features.GnsFeatures`)
+    Composition: ``features`` (:class:`~hybridmpm.train.gns.features.GnsFeatures`)
     → ``gnn`` (:class:`EncodeProcessDecode`, ``node_in = features.node_size``,
     ``edge_in = D + 1``, ``node_out = D``) → ``features.integrate``.
     Old flat checkpoints load through :func:`remap_legacy_state_dict`.
 
     Raises :class:`~hybridmpm.errors.InvalidInputError` for an inconsistent
-    ``config`` (see :class:`~hybridmpm.neural.features.GnsFeatures` and
+    ``config`` (see :class:`~hybridmpm.train.gns.features.GnsFeatures` and
     :class:`EncodeProcessDecode`) and, in ``forward``, for ``positions`` not
     [t_in, N, dim].
     """

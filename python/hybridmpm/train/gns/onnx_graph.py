@@ -1,8 +1,8 @@
 """The inference graph of a trained GNS, written op by op for onnxruntime's CPU
-kernels (issue 17; paper App. A; GNS, Sanchez-Gonzalez et al. 2020).
+kernels (paper App. A; GNS, Sanchez-Gonzalez et al. 2020).
 
 :func:`inference_graph` turns the weights of a
-:class:`~hybridmpm.neural.model.GnsModel` into an ONNX graph that computes the
+:class:`~hybridmpm.train.gns.model.GnsModel` into an ONNX graph that computes the
 same function as ``GnsModel.forward`` (float32 rounding aside; the tests check
 it against torch) with fewer and cheaper passes over the ``E × latent`` edge
 arrays. On this class of machine every operator over an edge array costs
@@ -78,7 +78,8 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.neural.constants import INPUT_NAMES, KINEMATIC, OUTPUT_NAMES
+from hybridmpm.neural.constants import INPUT_NAMES, KINEMATIC, METADATA_KEY, OUTPUT_NAMES
+from hybridmpm.train.gns.model import LN_EPS, remap_legacy_state_dict
 
 #: ONNX opset of the graph.
 OPSET = 18
@@ -253,21 +254,16 @@ def _aggregate(b: _Builder, et: str, zeros_nl: str, recv2: str, switch: tuple[st
 
 
 def _state_dict_numpy(model: Any) -> dict[str, np.ndarray]:
-    from hybridmpm.neural.model import remap_legacy_state_dict
-
     return {k: v.detach().cpu().numpy() for k, v in remap_legacy_state_dict(model.state_dict()).items()}
 
 
 def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     """The ONNX inference graph (``onnx.ModelProto``, opset :data:`OPSET`) of a
-    :class:`~hybridmpm.neural.model.GnsModel` (or a pre-split one: its state
+    :class:`~hybridmpm.train.gns.model.GnsModel` (or a pre-split one: its state
     dict is remapped), computing ``model.forward`` on the inputs of the module
     doc. ``metadata_json``, if given, is stored as the ``hybridmpm`` metadata
     property. Raises ``KeyError`` for a state dict without the GNS keys."""
     from onnx import TensorProto, helper
-
-    from hybridmpm.neural.constants import METADATA_KEY
-    from hybridmpm.neural.model import LN_EPS
 
     cfg = model.config
     dim, t_in, latent, layers = int(cfg.dim), int(cfg.t_in), int(cfg.latent), int(cfg.layers)
@@ -399,8 +395,6 @@ def upgrade_graph(proto: Any) -> Any:
     Raises ``ValueError`` for a graph of another layout."""
     import json
 
-    from hybridmpm.neural.constants import METADATA_KEY
-
     entry = next((p for p in proto.metadata_props if p.key == METADATA_KEY), None)
     meta = json.loads(entry.value) if entry is not None else {}
     if entry is None or meta.get("graph") not in (GRAPH_LAYOUT_1, GRAPH_LAYOUT_2):
@@ -514,16 +508,13 @@ def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, An
     """Weights and metadata of a GNS exported by torch's ONNX exporter (graphs
     without the ``graph`` metadata key, before :data:`GRAPH_LAYOUT`): the
     initializers named as the pre-split state dict (``node_encoder.0.weight``,
-    ``vel_std``, ...), remapped to :class:`~hybridmpm.neural.model.GnsModel`
+    ``vel_std``, ...), remapped to :class:`~hybridmpm.train.gns.model.GnsModel`
     keys. Raises ``ValueError`` for a compiled graph (its weights are folded),
     ``KeyError`` for a file without the ``hybridmpm`` metadata."""
     import json
 
     import onnx
     from onnx import numpy_helper
-
-    from hybridmpm.neural.constants import METADATA_KEY
-    from hybridmpm.neural.model import remap_legacy_state_dict
 
     proto = onnx.load(str(path))
     meta = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY])

@@ -3,8 +3,8 @@ Sanchez-Gonzalez et al. 2020, Sec. 2 and App. C.1).
 
 Everything between raw particle positions and the network's inputs, and
 between its output and the next positions, lives here, as torch operations,
-so that :class:`~hybridmpm.neural.model.GnsModel` runs it inside its
-``forward`` and the exported ONNX graph holds it too (DESIGN.md):
+so that :class:`~hybridmpm.train.gns.model.GnsModel` runs it inside its
+``forward`` and the exported ONNX graph holds it too (docs/design.md):
 
 * :func:`velocity_features` — the last ``T_in − 1`` velocities, finite
   differences of ``T_in`` positions one model step apart, each normalised
@@ -72,7 +72,7 @@ def wall_features(last: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, 
     then ``(upper − p)·inv_radius``, clipped to [−1, 1] (a particle farther
     than ``1/inv_radius`` from a wall sees 1).
 
-    Why the reach may exceed ``R`` (issue 16): at ``r_t = 4`` a thrown block
+    Why the reach may exceed ``R``: at ``r_t = 4`` a thrown block
     moves 2–4 R per model step, so with GNS's clip a floor can be hit within
     one step without ever being seen; a network trained on such data learns
     to hedge on speed alone and slows every fast fall

@@ -1,11 +1,11 @@
 """The Fluid ControlNet in torch (training and export; the ``train`` extra).
 
 Paper Sec. 3.2 and App. B, in the whole-horizon form of design D
-(``shared/notes/control-facts.md``; ``docs/control.md`` says why):
+(``docs/control.md`` says why):
 
-* **state encoder** — the GNS graph network (:class:`~hybridmpm.neural.model.EncodeProcessDecode`)
+* **state encoder** — the GNS graph network (:class:`~hybridmpm.train.gns.model.EncodeProcessDecode`)
   on the radius graph of the fluid at the sketch's frame, with the GNS edge
-  and wall features (:mod:`hybridmpm.neural.features`) plus the particle's
+  and wall features (:mod:`hybridmpm.train.gns.features`) plus the particle's
   velocity and place; run once per sketch;
 * **sketch encoder** — ControlNet's hint block (App. B: 8 convolutions, 3
   stride-2 downsamplings) on the 64×64 sketch image plus 2 CoordConv
@@ -34,14 +34,14 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from hybridmpm.neural.features import edge_features, wall_features
-from hybridmpm.neural.model import EncodeProcessDecode
+from hybridmpm.train.gns.features import edge_features, wall_features
+from hybridmpm.train.gns.model import EncodeProcessDecode
 
 #: Width of the sketch's global embedding (paper App. B: 44).
 SKETCH_EMBED = 44
 #: Channels of the per-particle local sketch feature.
 LOCAL_CHANNELS = 8
-#: Width of the sketch geometry vector (:func:`hybridmpm.control.diffusion.sketch_geometry`).
+#: Width of the sketch geometry vector (:func:`hybridmpm.control.targets.sketch_geometry`).
 GEOMETRY = 11
 #: Width of the diffusion-timestep embedding.
 TIME_EMBED = 32

@@ -34,7 +34,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, SPLITS
+from hybridmpm.data import gns
 from hybridmpm.errors import HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.limits import check_allocation
 from hybridmpm.scenes import DOMAINS, SceneSpec, scene_spec
@@ -413,8 +415,6 @@ def generate_dataset(
 
 
 def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[str], compress: bool) -> None:
-    from hybridmpm.data import gns
-
     parts = {i: parts_dir / f"{i:05d}.npz" for i in range(config.trajectories)}
     infos = [_part_info(parts[i]) for i in range(config.trajectories)]
     spec0 = SceneSpec.from_dict(infos[0]["spec"])
@@ -432,7 +432,6 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
     stats = gns.compute_statistics(_LazySplit(by_split["train"]).values(), exclude_types=(GNS_KINEMATIC,))
     wall = (spec0.params.walls.cells - 1) / n_grid
     frames = config.resolved_frames()
-    from hybridmpm import __version__
 
     meta = {
         "bounds": [[wall, 1.0 - wall]] * dim,
@@ -453,7 +452,7 @@ def _assemble(config: GenerateConfig, out: Path, parts_dir: Path, splits: list[s
         "trajectories": {s: len(by_split[s]) for s in SPLITS},
         "seed": config.seed,
         "sha256": hashes,
-        "generator": f"hybridmpm {__version__}",
+        "generator": f"hybridmpm {_core.__version__}",
     }
     tmp = out / "scenes.json.tmp"
     tmp.write_text(json.dumps(scenes, sort_keys=True))

@@ -1,7 +1,7 @@
 """Training and export of the Fluid ControlNet (``hybridmpm train-control``;
 the ``train`` extra: torch, onnx).
 
-Data: the cases of :mod:`hybridmpm.control.dataset`. Each case gives two
+Data: the cases of :mod:`hybridmpm.train.control.cases`. Each case gives two
 training pairs: (state, sketch) → the reverse-simulation path ``X_T … X_1``
 (paper Sec. 3.2), and (state, blank sketch) → the uncontrolled path from the
 same state (so that "no sketch" means "let it flow" and classifier-free
@@ -32,10 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.control.dataset import iter_cases, load_case
 from hybridmpm.control.diffusion import (
     DIFFUSION_STEPS,
-    GEOMETRY_SCALE,
     GRAPHS,
     META_FILE,
     cosine_alpha_bar,
@@ -43,12 +41,17 @@ from hybridmpm.control.diffusion import (
     path_basis,
     prior_coefficients,
     project,
-    sketch_geometry,
 )
-from hybridmpm.control.prior import PRIOR_FREE_SKETCH, PRIOR_SKETCH_RAMP
+from hybridmpm.control.prior import PRIOR_FREE_SKETCH, PRIOR_SKETCH_RAMP, free_motion, material_of, prior_path
 from hybridmpm.control.sketch import Sketch, render_sketch
+from hybridmpm.control.targets import GEOMETRY_SCALE, sketch_geometry
 from hybridmpm.conventions import CONNECTIVITY_RADIUS
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.graph import radius_graph
+from hybridmpm.scenes import make_scene
+from hybridmpm.sim import MpmSimulator
+from hybridmpm.train.control.cases import iter_cases, load_case
+from hybridmpm.train.control.model import GEOMETRY, LOCAL_CHANNELS, SKETCH_EMBED, ControlNetConfig, FluidControlNet
 
 #: Probability of a blank-sketch (uncontrolled) training pair.
 P_BLANK = 0.15
@@ -82,8 +85,6 @@ def _mirror_sketch(sk: Sketch, lo: float, hi: float) -> Sketch:
 
 def scene_bounds(scene: str) -> list[list[float]]:
     """The walls of registered ``scene`` as [[lo, hi]] × D [m]."""
-    from hybridmpm.scenes import make_scene
-    from hybridmpm.sim import MpmSimulator
 
     sim = MpmSimulator(make_scene(scene, seed=0))
     lo, hi = sim.solver.domain_bounds
@@ -104,10 +105,6 @@ def load_pairs(
     the coarse free rollout of each case is computed here, the same function
     the sampler calls)."""
     from tqdm import tqdm
-
-    from hybridmpm.control.prior import free_motion, material_of, prior_path
-    from hybridmpm.graph import radius_graph
-    from hybridmpm.scenes import make_scene
 
     if prior not in (PRIOR_SKETCH_RAMP, PRIOR_FREE_SKETCH):
         raise InvalidInputError(f"prior: must be {PRIOR_SKETCH_RAMP!r} or {PRIOR_FREE_SKETCH!r}, got {prior!r}", "prior")
@@ -176,8 +173,6 @@ def train_control(
     naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
     import torch
     from tqdm import tqdm
-
-    from hybridmpm.control.model import ControlNetConfig, FluidControlNet
 
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000_000:
         raise InvalidInputError(f"steps: must be an integer in [1, 10⁷], got {steps!r}", "steps")
@@ -345,7 +340,7 @@ def train_control(
 
 
 def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
-    """Export ``model`` (a :class:`~hybridmpm.control.model.FluidControlNet`)
+    """Export ``model`` (a :class:`~hybridmpm.train.control.model.FluidControlNet`)
     to the directory ``out``: the three ONNX graphs of
     :data:`~hybridmpm.control.diffusion.GRAPHS` and ``control.json`` (config,
     schedule, ``info``). Written to a temporary directory and moved into
@@ -353,8 +348,6 @@ def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
     import shutil
 
     import torch
-
-    from hybridmpm.graph import radius_graph
 
     model = model.eval()
     cfg = model.config
@@ -372,7 +365,6 @@ def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
     with torch.no_grad():
         h, edges = model.state(xt, vt, pt, st, rt)
     S = cfg.sample_size
-    from hybridmpm.control.model import GEOMETRY, LOCAL_CHANNELS, SKETCH_EMBED
 
     specs = {
         "sketch_encoder": (model.sketch, (torch.zeros(1, 3, 64, 64),), ["image"], ["global", "local_map"], None),

@@ -1,10 +1,10 @@
-"""Export a trained :class:`~hybridmpm.neural.model.GnsModel` to ONNX (needs torch and onnx).
+"""Export a trained :class:`~hybridmpm.train.gns.model.GnsModel` to ONNX (needs torch and onnx).
 
 The file holds the whole step of :meth:`GnsModel.forward` — feature
-construction and normalisation (:mod:`hybridmpm.neural.features`), the
-encoder–processor–decoder (:class:`~hybridmpm.neural.model.EncodeProcessDecode`),
+construction and normalisation (:mod:`hybridmpm.train.gns.features`), the
+encoder–processor–decoder (:class:`~hybridmpm.train.gns.model.EncodeProcessDecode`),
 denormalisation and the Euler update — as the inference graph of
-:func:`hybridmpm.neural.compile.inference_graph`: written op by op from the
+:func:`hybridmpm.train.gns.onnx_graph.inference_graph`: written op by op from the
 weights for onnxruntime's CPU kernels (normalisations and LayerNorms folded
 into the Linear layers, edge geometry taken from the radius-graph pass,
 Gather and a sum over receivers that is exact on any number of threads).
@@ -31,16 +31,25 @@ import os
 from pathlib import Path
 from typing import Any
 
-from hybridmpm.neural.compile import GRAPH_LAYOUT, INPUT_NAMES, OUTPUT_NAMES, inference_graph
 from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
-from hybridmpm.neural.model import GnsModel
+from hybridmpm.train.gns.model import GnsConfig, GnsModel
+from hybridmpm.train.gns.onnx_graph import (
+    GRAPH_LAYOUT,
+    GRAPH_LAYOUT_1,
+    GRAPH_LAYOUT_2,
+    INPUT_NAMES,
+    OUTPUT_NAMES,
+    inference_graph,
+    state_dict_from_onnx,
+    upgrade_graph,
+)
 
 
 def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> Path:
     """Write ``model`` to ``path`` (atomically) with ``metadata`` merged over the
     architecture facts (``feature_version``, ``dim``, ``radius``, ``t_in``,
     ``bounds``, ``latent``, ``layers``, ``wall_reach``, ``parameters``); ``graph`` is always
-    :data:`~hybridmpm.neural.compile.GRAPH_LAYOUT` (what the file holds). Returns the path.
+    :data:`~hybridmpm.train.gns.onnx_graph.GRAPH_LAYOUT` (what the file holds). Returns the path.
 
     Input and output names are :data:`INPUT_NAMES` and :data:`OUTPUT_NAMES`
     (what :class:`~hybridmpm.neural.runtime.NeuralModel` feeds and reads).
@@ -71,20 +80,17 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
 
 def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
     """Rewrite a GNS of an earlier layout as the current one
-    (:data:`~hybridmpm.neural.compile.GRAPH_LAYOUT`), keeping its metadata;
+    (:data:`~hybridmpm.train.gns.onnx_graph.GRAPH_LAYOUT`), keeping its metadata;
     to ``out`` (default: in place, atomically). A graph exported by torch's
     ONNX exporter becomes the compiled inference graph of the same weights
     (needs torch); a graph of the ``compiled-1`` layout, whose sums over
     receivers race on more than one onnxruntime thread, gets the race-free
     aggregation, and one of it or ``compiled-2`` the narrower LayerNorm
-    (:func:`~hybridmpm.neural.compile.upgrade_graph`). Returns
+    (:func:`~hybridmpm.train.gns.onnx_graph.upgrade_graph`). Returns
     False, writing nothing, if ``path`` is already of the current layout. Same
     function: the tests check the graphs against each other. Needs torch and
     onnx (the 'train' extra)."""
     import onnx
-
-    from hybridmpm.neural.compile import GRAPH_LAYOUT_1, GRAPH_LAYOUT_2, state_dict_from_onnx, upgrade_graph
-    from hybridmpm.neural.model import GnsConfig
 
     proto = onnx.load(str(path))
     layout = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY]).get("graph")

@@ -17,7 +17,7 @@
   velocity), the target acceleration corrected so the model learns to undo it;
 * walls: ``wall_reach`` (default 1, GNS's clip) sets the distance, in units
   of R, at which the wall-distance features saturate
-  (:func:`~hybridmpm.neural.features.wall_features`); it is part of the
+  (:func:`~hybridmpm.train.gns.features.wall_features`); it is part of the
   model (stored in its metadata; resuming a run with another raises, as for
   every setting);
 * pushforward (Brandstetter et al. 2022, "Message passing neural PDE
@@ -67,14 +67,14 @@
   validation rollout the run itself scores.
 
 ``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
-:class:`~hybridmpm.neural.model.GnsModel` state_dict), ``optimizer`` (Adam's,
+:class:`~hybridmpm.train.gns.model.GnsModel` state_dict), ``optimizer`` (Adam's,
 indexed by parameter order), ``step``, ``best`` (best rollout MSE),
 ``elapsed`` [s], ``rng`` (numpy bit-generator state), ``torch_rng``,
 ``gns_config`` (:meth:`GnsConfig.to_dict`) and, with ``ema``, ``ema`` (the
 ``AveragedModel``'s state_dict); ``best.pt`` is the best validated model's
 state_dict (the EMA's with ``ema``). Checkpoints written before the features / encoder–processor–decoder
 split (flat keys such as ``embed.weight``) resume unchanged: ``load_state_dict``
-remaps them (:func:`~hybridmpm.neural.model.remap_legacy_state_dict`) and the
+remaps them (:func:`~hybridmpm.train.gns.model.remap_legacy_state_dict`) and the
 parameter order, hence the optimiser state, is the same.
 """
 
@@ -94,10 +94,13 @@ import torch
 from torch.optim import swa_utils
 
 from hybridmpm.conventions import DEFAULT_N_GRID, T_IN
+from hybridmpm.data import GnsDataset, compute_statistics, read_metadata
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
+from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural.constants import KINEMATIC, WALL_REACH_MAX
-from hybridmpm.neural.model import GnsConfig, GnsModel
+from hybridmpm.train.gns.export import export_onnx
+from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
 
 @dataclass
@@ -179,7 +182,6 @@ _POOLED_KEYS = ("dim", "bounds", "dt", "r_p", "r_t")
 def _pooled_metadata(dirs: list[Path]) -> list[dict[str, Any]]:
     """The datasets' metadata, after checking that every one agrees with the first
     on :data:`_POOLED_KEYS` (raises :class:`InvalidInputError` naming ``data``)."""
-    from hybridmpm.data import read_metadata
 
     metas = [read_metadata(d / "metadata.json") for d in dirs]
     for d, m in zip(dirs[1:], metas[1:]):
@@ -195,8 +197,6 @@ class _Data:
     order, in memory (float32)."""
 
     def __init__(self, directories: list[Path], split: str, stride: int) -> None:
-        from hybridmpm.data import GnsDataset
-
         self.trajs: list[tuple[np.ndarray, np.ndarray]] = []
         #: index in ``trajs`` of each dataset's first trajectory
         self.first: list[int] = []
@@ -377,9 +377,6 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     """
     from tqdm import tqdm
 
-    from hybridmpm.metrics import grid_mass_error
-    from hybridmpm.neural.export import export_onnx
-
     config.validate()
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -415,7 +412,6 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         raise InvalidInputError(
             f"pushforward: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward"
         )
-    from hybridmpm.data import compute_statistics
 
     stats = compute_statistics(train_data.trajs, exclude_types=(KINEMATIC,))  # at the model step (strided data)
     radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
