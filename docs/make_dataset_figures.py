@@ -72,7 +72,7 @@ def clustering() -> None:
     gm_l = grid_mass(low.positions, 128, low.masses)
     gm_n = grid_mass(low.positions, 128)
     vmax = gm_h.max()
-    panels = ((gm_h, "grid mass m̃, N_h"), (gm_l, "m̃ of N_l, each its mass"), (gm_n, "m̃ of N_l, 1/N each (DESIGN.md)"))
+    panels = ((gm_h, "grid mass m̃, N_h"), (gm_l, "m̃ of N_l, each its mass"), (gm_n, "m̃ of N_l, 1/N each (docs/design.md)"))
     for k, (g, label) in enumerate(panels):
         ax = axes[2 + k]
         ax.imshow(g.T, origin="lower", extent=(0, 1, 0, 1), vmin=0, vmax=vmax, cmap="Blues")
