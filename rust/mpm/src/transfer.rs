@@ -80,6 +80,16 @@ impl<const D: usize> TransferGrid<D> {
             w[d] = quadratic_weights(u - b);
             base[d] = (b as i64).clamp(0, g as i64 - 3) as usize;
         }
+        if D == 2 {
+            let row = base[0] * g + base[1];
+            for i in 0..3 {
+                for j in 0..3 {
+                    node[3 * i + j] = row + i * g + j;
+                    weight[3 * i + j] = w[0][i] * w[1][j];
+                }
+            }
+            return 9;
+        }
         let k = 3usize.pow(D as u32);
         for s in 0..k {
             let mut rem = s;
