@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Stress suite (issues 5 and 16): neural-only, MPM-only, and the hybrid with and
+# Stress suite: neural-only, MPM-only, and the hybrid with and
 # without its MPM audit, through baseline / fast / obstacle / dense cases,
 # 1000-frame rollouts, on the 2D and 3D scenes (SCENES overrides the list).
 # Tables: benchmarks/results/stress/stress_SCENE.md (collected in docs/stability.md).

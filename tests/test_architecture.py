@@ -50,6 +50,13 @@ def test_the_taichi_peer_is_not_in_the_package():
         assert "import taichi" not in p.read_text(), p
 
 
+def test_every_benchmark_script_is_listed_in_the_benchmarks_readme():
+    readme = (ROOT / "benchmarks" / "README.md").read_text()
+    scripts = sorted(p.name for p in (ROOT / "benchmarks").iterdir() if p.suffix in (".py", ".sh") and not p.name.startswith("_"))
+    missing = [s for s in scripts if f"`{s}`" not in readme]
+    assert not missing, f"benchmarks/README.md does not list {missing}"
+
+
 # ------------------------------------------------------------------ the import graph
 PACKAGE = ROOT / "python" / "hybridmpm"
 
