@@ -463,7 +463,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    """``hybridmpm serve``: the HTTP service and its page (one process: sessions live in memory)."""
+    """``hybridmpm serve``: the HTTP service and its page (one process: sessions live in memory, and in ``--store`` when given)."""
     try:
         # import time: loaded by this command only
         from hybridmpm.service import ServiceConfig, create_app
@@ -477,26 +477,30 @@ def _serve(args: argparse.Namespace) -> int:
         allowed_hosts=hosts,
         max_sessions_per_client=args.max_sessions_per_client,
         memory_budget=args.memory_budget,
+        store=args.store,
+        save_every_s=args.save_every,
     )
+    app = create_app(cfg)  # opens the store (a clear error if it cannot be written)
     print(
         f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, {cfg.max_sessions_per_client} per client, "
-        f"idle TTL {cfg.idle_ttl_s:g} s, hosts {', '.join(cfg.allowed_hosts) or 'loopback names on loopback addresses'})",
+        f"idle TTL {cfg.idle_ttl_s:g} s, hosts {', '.join(cfg.allowed_hosts) or 'loopback names on loopback addresses'}"
+        f"{f', store {cfg.store}, saved every {cfg.save_every_s:g} s' if cfg.store else ', sessions in memory only'})",
         file=sys.stderr,
         flush=True,
     )
-    run(create_app(cfg), args.host, args.port, cfg, log_level=args.log_level)
+    run(app, args.host, args.port, cfg, log_level=args.log_level)
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     # import time: loaded by this command only
-    from hybridmpm.scenes import SCENES
+    from hybridmpm.scenes import DOMAINS
 
     parser = argparse.ArgumentParser(prog="hybridmpm", description="Real-time hybrid neural / MLS-MPM fluid simulation.")
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser("simulate", help="run a scene and write trajectory.npz, summary.json and render.gif")
     sim.add_argument(
-        "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(SCENES))}) or a scene file (.toml/.json); default dam_break2d"
+        "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(DOMAINS))}) or a scene file (.toml/.json); default dam_break2d"
     )
     sim.add_argument(
         "--solver", default="hybrid", choices=["hybrid", "mpm", "neural", "auto"],
@@ -577,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.set_defaults(func=_stress)
 
     def bench_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("scene", choices=sorted(SCENES), help="registered scene")
+        p.add_argument("scene", choices=sorted(DOMAINS), help="registered scene")
         p.add_argument("--frames", type=int, default=None, help="frames per rollout (default: the paper's T of the scene)")
         p.add_argument("--r-c", default=None, help="comma-separated hybrid thresholds (default 0,0.1,...,0.9)")
         p.add_argument("--model", default=None, help="the hybrid's ONNX model (default: the shipped model of the scene)")
@@ -608,7 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
     tu.set_defaults(func=_tune)
 
     gen = sub.add_parser("generate", help="generate a GNS-layout dataset (train/valid/test.npz, metadata.json) of MPM rollouts")
-    gen.add_argument("scene", choices=sorted(SCENES), help="domain")
+    gen.add_argument("scene", choices=sorted(DOMAINS), help="domain")
     gen.add_argument("--trajectories", type=int, required=True, help="number of trajectories M (>= 3; split 80/10/10 by default)")
     gen.add_argument("--out", required=True, help="dataset directory (resumes if it holds an unfinished generation)")
     gen.add_argument("--frames", type=int, default=None, help="frames T per trajectory (default: the paper's T for the domain)")
@@ -720,6 +724,14 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument(
         "--memory-budget", default=None,
         help="memory for sessions, kept controls and requests together, e.g. 8G; beyond it 503 (default half the RAM, env HMPM_MEMORY_BUDGET)",
+    )  # fmt: skip
+    sv.add_argument(
+        "--store", default=None,
+        help="directory or fsspec URL (s3://..., memory://...) keeping every session's checkpoint: a restarted server brings them back (env HMPM_STORE)",
+    )  # fmt: skip
+    sv.add_argument(
+        "--save-every", type=float, default=None,
+        help="with --store: seconds a stepping session goes at most without a save, what a crash can lose (default 1, env HMPM_SAVE_EVERY_S)",
     )  # fmt: skip
     sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
     sv.set_defaults(func=_serve)

@@ -339,6 +339,9 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         install_log_filters()  # again: uvicorn's logging configuration may have come after create_app
+        n = await manager.restore_all()
+        if manager.store is not None:
+            log.warning("store %s: %d sessions restored; saving every %g s", cfg.store, n, cfg.save_every_s)
         manager.start()
         try:
             yield
@@ -350,7 +353,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(
         title="hybridmpm service",
         version=__version__,
-        description="Sessions of the hybrid neural/MLS-MPM simulator: step, stream, control by sketch. In-memory sessions: run one process.",
+        description="Sessions of the hybrid neural/MLS-MPM simulator: step, stream, control by sketch. Sessions live in one process, in memory, and in a store with `hybridmpm serve --store`.",
         lifespan=lifespan,
     )
     app.state.manager = manager
@@ -418,7 +421,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     async def healthz() -> dict[str, Any]:
         return {
             "status": "ok",
-            "sessions": len(manager.sessions),
+            "sessions": manager.count(),
             "max_sessions": cfg.max_sessions,
             "memory_used": manager.budget.used,
             "memory_budget": manager.budget.total,
@@ -488,6 +491,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                 if s.closed:
                     raise ApiError(404, "no such session (unknown, deleted or expired)")
                 ro = await manager.compute(rollout, s.sim, body.frames)
+                manager.changed(s)
             latency = (time.perf_counter() - t0) * 1e3
             s.touch()
             pos = np.asarray(ro.positions[1:], np.float32)
@@ -643,6 +647,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                     return ro, plan, m
 
                 ro, plan, metrics = await manager.compute(run)
+                manager.changed(s)
             if left.is_set():
                 log.info("control %s on session %s… cancelled: its client left", cid, sid[:SHOWN_ID_CHARS])
                 s.broadcast({"type": "control", "status": "cancelled", "id": cid})
@@ -675,6 +680,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                 manager.budget.give(kept.cost)
             else:
                 manager.keep_control(s, kept)
+            await manager.save(s)  # a control is saved before it is answered
             s.broadcast({"type": "control", "status": "done", "id": cid, "metrics": resp["metrics"]})
             s.touch()
             return resp
@@ -804,6 +810,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                     raise FieldError(("body", "checkpoint"), f"checkpoint: {e}") from None
                 except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
                     raise FieldError(("body", "checkpoint"), f"checkpoint: malformed state ({type(e).__name__})") from None
+                manager.changed(s)
             del state
         s.publish(s.sim.frame)
         return s.info()
@@ -876,6 +883,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                 elif kind == "reset":
                     async with s.lock:
                         await manager.compute(s.sim.restore, s.initial)
+                        manager.changed(s)
                     s.publish(s.sim.frame)
                     s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame)})
                 elif kind == "ping":

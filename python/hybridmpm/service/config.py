@@ -14,7 +14,8 @@ LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
 #: Longest error message a client is sent [characters] (longer ones are cut, with "…").
 MAX_MESSAGE_CHARS = 300
 _TUPLES = ("allowed_origins", "allowed_hosts")
-_FLOATS = ("idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
+_STRINGS = ("store",)
+_FLOATS = ("save_every_s", "idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
 
 
 @dataclass
@@ -49,6 +50,11 @@ class ServiceConfig:
     ``body_timeout_s`` a request body not received in this time answers 408;
     ``max_header_bytes`` request line and headers at most this large (uvicorn
     answers 400 beyond it).
+
+    ``store`` a directory or fsspec URL where every session's checkpoint is
+    kept (durable sessions, :mod:`hybridmpm.service.store`; None: sessions
+    live in memory only); ``save_every_s`` the longest time a stepping
+    session goes without a save (its stepping lost to a crash at most).
     """
 
     max_sessions: int = 100
@@ -70,6 +76,8 @@ class ServiceConfig:
     keep_alive_s: float = 5.0
     body_timeout_s: float = 30.0
     max_header_bytes: int = 16 * 1024
+    store: str | None = None
+    save_every_s: float = 1.0
 
     def __post_init__(self) -> None:
         from hybridmpm.limits import memory_budget, parse_size
@@ -79,7 +87,7 @@ class ServiceConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InvalidInputError(f"{name}: must be an integer >= 1, got {v!r}", name)
-        for name in ("idle_ttl_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s"):
+        for name in ("save_every_s", "idle_ttl_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0 < float(v) < 1e9):
                 raise InvalidInputError(f"{name}: must be a positive number, got {v!r}", name)
@@ -109,7 +117,9 @@ class ServiceConfig:
             if raw is None or raw == "":
                 continue
             try:
-                if f.name in _TUPLES:
+                if f.name in _STRINGS:
+                    kw[f.name] = raw
+                elif f.name in _TUPLES:
                     kw[f.name] = tuple(o.strip() for o in raw.split(",") if o.strip())
                 elif f.name == "memory_budget":
                     kw[f.name] = raw

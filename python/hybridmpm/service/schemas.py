@@ -65,6 +65,10 @@ class SessionInfo(BaseModel):
     frame: int
     viewers: int = Field(0, description="WebSocket clients watching the session")
     stream: str = Field(description="WebSocket path of the frame stream")
+    saved_frame: int | None = Field(None, description="with a store (serve --store): the frame of the session's last save; null without one")
+    restored_from_frame: int | None = Field(
+        None, description="the frame the session resumed from when a restarted server restored it from its store; null if it was not restored"
+    )
 
 
 class StepRequest(Strict):

@@ -25,10 +25,12 @@ import anyio.to_thread
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
-from hybridmpm.errors import HybridMpmError
+from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
+from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, session_key
 from hybridmpm.sim import Frame, Simulator
 
 log = logging.getLogger("hybridmpm.service")
@@ -160,6 +162,11 @@ class Session:
     closed: bool = False
     client: str = ""  # the address that created it (the per-client quota)
     cost: int = 0  # bytes taken from the memory budget (controls not included)
+    key: str = ""  # its name in the store (SHA-256 of the id; the id is never stored)
+    dirty: bool = False  # changed since its last save
+    saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
+    restored_from_frame: int | None = None  # the frame it resumed from after a restart
+    save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -183,6 +190,8 @@ class Session:
             "frame": int(self.sim.frame.frame),
             "viewers": len(self.viewers),
             "stream": f"/v1/sessions/{self.id}/stream",
+            "saved_frame": self.saved_frame,
+            "restored_from_frame": self.restored_from_frame,
         }
 
     def meta(self) -> dict[str, Any]:
@@ -213,6 +222,14 @@ class SessionManager:
         self.limiter = anyio.CapacityLimiter(config.compute_threads)
         self.controls_running = 0
         self._reaper: asyncio.Task[None] | None = None
+        self._saver: asyncio.Task[None] | None = None
+        #: Durable sessions (None without ``config.store``).
+        self.store: SessionStore | None = None
+        #: Sessions restored from the store whose id no request has named yet, by key.
+        self.unclaimed: dict[str, Session] = {}
+        self.io_limiter = anyio.CapacityLimiter(1)
+        if config.store is not None:
+            self.store = SessionStore(config.store).open()
 
     # ------------------------------------------------------------ compute
     async def compute(self, fn: Callable[..., T], *args: Any) -> T:
@@ -227,9 +244,14 @@ class SessionManager:
             raise
 
     # ------------------------------------------------------------ lifecycle
+    def count(self) -> int:
+        """Sessions held (restored ones no request has named yet included)."""
+        return len(self.sessions) + len(self.unclaimed)
+
     def sessions_of(self, client: str) -> int:
         """Sessions held or being built for the client address ``client``."""
-        return sum(1 for s in self.sessions.values() if s.client == client) + self.reserved_by[client]
+        held = sum(1 for s in (*self.sessions.values(), *self.unclaimed.values()) if s.client == client)
+        return held + self.reserved_by[client]
 
     async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "") -> Session:
         """Build a session for the client address ``client``. Raises
@@ -239,7 +261,7 @@ class SessionManager:
         cost: :data:`SESSION_STATE_COPIES` × its state + :data:`SESSION_OVERHEAD`,
         known once it is built; a session that does not fit is dropped), and
         the simulator's :class:`InvalidInputError` for bad settings."""
-        if len(self.sessions) + self.reserved >= self.config.max_sessions:
+        if self.count() + self.reserved >= self.config.max_sessions:
             raise SessionCapError()
         if self.sessions_of(client) >= self.config.max_sessions_per_client:
             raise QuotaError()
@@ -257,8 +279,11 @@ class SessionManager:
                 sim, initial = await self.compute(build)
             cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a new session")
             sid = secrets.token_urlsafe(24)  # 192 bits
-            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost)
+            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost, key=session_key(sid))
             self.sessions[sid] = sess
+            if self.store is not None:
+                sess.dirty = True
+                await self.save(sess)
             return sess
         finally:
             self.reserved -= 1
@@ -276,15 +301,31 @@ class SessionManager:
 
     def get(self, sid: str) -> Session | None:
         s = self.sessions.get(sid)
+        if s is None and self.unclaimed and len(sid) < 256:
+            s = self.unclaimed.pop(session_key(sid), None)
+            if s is not None:  # a restored session, named for the first time since the restart
+                s.id = sid
+                self.sessions[sid] = s
         if s is not None:
             s.touch()
         return s
 
-    async def close(self, sid: str, code: int = 1000, reason: str = "closed") -> bool:
-        s = self.sessions.pop(sid, None)
+    async def close(self, sid: str, code: int = 1000, reason: str = "closed", forget: bool = True) -> bool:
+        """Remove session ``sid``, closing its sockets; ``forget``: its stored
+        record too (a delete or an expiry; not a shutdown, which keeps it for the next start)."""
+        s = self.get(sid) if self.unclaimed else self.sessions.get(sid)
         if s is None:
             return False
+        del self.sessions[sid]
+        await self._drop(s, code, reason, forget)
+        return True
+
+    async def _drop(self, s: Session, code: int, reason: str, forget: bool) -> None:
         s.closed = True
+        if forget and self.store is not None:
+            store = self.store
+            async with s.save_lock:  # a save under way ends first, so that no record outlives its session
+                await anyio.to_thread.run_sync(store.delete, s.key, limiter=self.io_limiter)
         self.budget.give(s.cost + sum(c.cost for c in s.controls.values()))
         s.cost = 0
         for c in s.controls.values():
@@ -295,7 +336,6 @@ class SessionManager:
         for v in list(s.viewers):
             await close_ws(v, code, reason)
         s.viewers.clear()
-        return True
 
     async def reap_once(self) -> list[str]:
         now = time.monotonic()
@@ -304,6 +344,9 @@ class SessionManager:
         for sid in stale:
             await self.close(sid, 4000, "expired")
             log.info("session %s… expired", sid[:SHOWN_ID_CHARS])
+        for key in [k for k, s in self.unclaimed.items() if now - s.last_used > ttl]:
+            await self._drop(self.unclaimed.pop(key), 4000, "expired", True)
+            log.info("restored session %s… (store key) expired", key[:SHOWN_KEY_CHARS])
         return stale
 
     async def _reap_forever(self) -> None:
@@ -318,15 +361,135 @@ class SessionManager:
     def start(self) -> None:
         if self._reaper is None:
             self._reaper = asyncio.get_running_loop().create_task(self._reap_forever())
+        if self.store is not None and self._saver is None:
+            self._saver = asyncio.get_running_loop().create_task(self._save_forever())
 
     async def stop(self) -> None:
-        if self._reaper is not None:
-            self._reaper.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._reaper
-            self._reaper = None
+        for task in (self._reaper, self._saver):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+        self._reaper = self._saver = None
+        if self.store is not None:
+            await self.save_all()  # a clean stop loses nothing
         for sid in list(self.sessions):
-            await self.close(sid, 1001, "server shutting down")
+            await self.close(sid, 1001, "server shutting down", forget=False)
+        for key in list(self.unclaimed):
+            await self._drop(self.unclaimed.pop(key), 1001, "server shutting down", False)
+
+    # ------------------------------------------------------------ durable sessions
+    def changed(self, s: Session) -> None:
+        """``s``'s state changed (a step, a control, a reset, a restored checkpoint): the saver writes it."""
+        if self.store is not None:
+            s.dirty = True
+
+    async def save(self, s: Session) -> bool:
+        """Write ``s``'s checkpoint to the store if it changed since its last
+        save; False when it could not (logged; it stays marked changed and
+        the saver tries again)."""
+        store = self.store
+        if store is None or s.closed or not s.dirty:
+            return True
+        async with s.save_lock:
+            if s.closed or not s.dirty:
+                return True
+            t0 = time.perf_counter()
+            try:
+                with self.budget.hold(2 * tree_nbytes(s.initial), "saving a session"):
+                    async with s.lock:
+                        if s.closed:
+                            return True
+                        s.dirty = False
+                        state = await self.compute(s.sim.state)
+                        frame = int(s.sim.frame.frame)
+                    meta = {
+                        "scene": s.scene,
+                        "seed": s.seed,
+                        "solver": s.solver_kind,
+                        "r_c": s.r_c,
+                        "last_used_at": time.time() - (time.monotonic() - s.last_used),
+                        "client": s.client[: ckpt.MAX_META_CHARS],
+                    }
+                    data = await self.compute(ckpt.dumps, state, meta)
+                    del state
+                    await anyio.to_thread.run_sync(store.write, s.key, data, limiter=self.io_limiter)
+            except Exception as e:  # noqa: BLE001 - a failed save must not fail the request or the saver
+                s.dirty = True
+                log.warning("store: saving session %s… failed: %s", s.id[:SHOWN_ID_CHARS], e)
+                return False
+            s.saved_frame = frame
+            log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", s.id[:SHOWN_ID_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
+            return True
+
+    async def save_all(self) -> None:
+        for s in list(self.sessions.values()):
+            await self.save(s)
+
+    async def _save_forever(self) -> None:
+        interval = float(self.config.save_every_s)
+        while True:
+            await asyncio.sleep(interval)
+            try:
+                await self.save_all()
+            except Exception:  # noqa: BLE001 - the saver must survive
+                log.exception("saver")
+
+    async def restore_all(self) -> int:
+        """Bring back every unexpired session of the store (once, at start;
+        each waits, unclaimed, for the first request that names its id).
+        Expired records are removed; a record that cannot be loaded is
+        logged (naming the field) and left in the store. Returns the number restored."""
+        store = self.store
+        if store is None:
+            return 0
+        from hybridmpm.sim import make_simulator
+
+        keys = await anyio.to_thread.run_sync(store.keys, limiter=self.io_limiter)
+        restored = 0
+        for key in keys:
+            shown = key[:SHOWN_KEY_CHARS]
+            try:
+                rec = await anyio.to_thread.run_sync(store.load, key, self.config.max_checkpoint_bytes, limiter=self.io_limiter)
+            except InvalidInputError as e:
+                log.warning("%s; not restored", e)
+                continue
+            idle = time.time() - rec.last_used_at
+            if idle > self.config.idle_ttl_s:
+                await anyio.to_thread.run_sync(store.delete, key, limiter=self.io_limiter)
+                log.info("store: session %s… expired while the server was down; removed", shown)
+                continue
+            if self.count() >= self.config.max_sessions:
+                log.warning("store: session %s… not restored: the server holds its maximum of %d sessions", shown, self.config.max_sessions)
+                continue
+            try:
+                with self.budget.hold(SESSION_OVERHEAD + 2 * tree_nbytes(rec.state), "restoring a session"):
+
+                    def build(rec: StoredSession = rec) -> tuple[Simulator, dict[str, Any]]:
+                        sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1)
+                        initial = sim.state()
+                        sim.restore(rec.state)
+                        return sim, initial
+
+                    sim, initial = await self.compute(build)
+                cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a restored session")
+            except BudgetFullError as e:
+                log.warning("store: session %s… not restored: %s", shown, e)
+                continue
+            except (InvalidInputError, CheckpointError) as e:
+                log.warning("store: session %s…: checkpoint: %s; not restored", shown, e)
+                continue
+            except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
+                log.warning("store: session %s…: checkpoint: malformed state (%s); not restored", shown, type(e).__name__)
+                continue
+            frame = int(sim.frame.frame)
+            s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key)
+            s.last_used = time.monotonic() - max(0.0, idle)
+            s.saved_frame = s.restored_from_frame = frame
+            self.unclaimed[key] = s
+            restored += 1
+            log.info("store: session %s… restored at frame %d", shown, frame)
+        return restored
 
     # ------------------------------------------------------------ play loop
     def ensure_playing(self, s: Session) -> None:
@@ -350,6 +513,7 @@ class SessionManager:
                         s.broadcast({"type": "error", "message": f"simulation stopped: {e}"})
                         break
                 s.touch()
+                self.changed(s)
                 s.publish(fr)
                 next_t = max(next_t + period, time.monotonic() - 0.25)
                 await asyncio.sleep(max(0.0, next_t - time.monotonic()))

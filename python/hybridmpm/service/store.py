@@ -1,0 +1,278 @@
+"""Durable sessions: each session's checkpoint (the npz + JSON of
+:mod:`hybridmpm.service.checkpoint`, no pickle) in a store — a directory or
+any fsspec URL — so that a restarted server brings its sessions back.
+
+A record is named by the SHA-256 of its session id (its *key*): the store
+never holds the id itself, so reading the store does not let anyone reach a
+session; only a client that holds the id finds its record again (the server
+hashes the id of each request). The checkpoint's ``meta`` holds what rebuilds
+the session (scene, seed, solver, r_c), the client address (quotas) and the
+wall time it was last used (expiry).
+
+Writes are atomic:
+
+* a local directory: ``<key>.npz`` is written as a temporary file in the same
+  directory (``.<key>.<random>.tmp``), flushed to disk, then renamed over the
+  old one (``os.replace``); a crash in the middle leaves the previous save
+  and a temporary file that the next start removes;
+* any other fsspec store (no atomic rename): each save is a new numbered
+  object ``<key>/<n>.npz``, then the pointer ``<key>/HEAD`` (the name of the
+  newest complete object) is written last; the previous object is kept until
+  the next save, and a reader that cannot load the object HEAD names falls
+  back to the newest numbered object that loads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import re
+import secrets
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.service import checkpoint as ckpt
+
+log = logging.getLogger("hybridmpm.service")
+
+#: Environment variable for tests: the Nth save of the process (1-based)
+#: writes part of its temporary file, then the process kills itself (SIGKILL).
+TEAR_ENV = "HMPM_STORE_TEAR_AT_SAVE"
+#: Characters of a key shown in logs.
+SHOWN_KEY_CHARS = 8
+#: The ``meta`` keys a stored session has besides the checkpoint's own (scene, seed, solver, r_c).
+STORE_META = ("last_used_at", "client")
+_KEY = re.compile(r"^[0-9a-f]{64}$")
+_NUMBERED = re.compile(r"^(\d{12})\.npz$")
+
+
+def session_key(sid: str) -> str:
+    """The store's name for session ``sid`` (SHA-256 hex; the id itself is never stored)."""
+    return hashlib.sha256(sid.encode()).hexdigest()
+
+
+@dataclass
+class StoredSession:
+    """One record read back from the store: what rebuilds the session and its state."""
+
+    key: str
+    scene: str
+    seed: int
+    solver: str
+    r_c: float
+    last_used_at: float
+    client: str
+    state: dict[str, Any]
+    nbytes: int
+
+
+def _bad(key: str, msg: str) -> InvalidInputError:
+    return InvalidInputError(f"store: session {key[:SHOWN_KEY_CHARS]}…: {msg}", "checkpoint")
+
+
+def parse_record(key: str, data: bytes, max_bytes: int) -> StoredSession:
+    """A stored checkpoint → :class:`StoredSession`; :class:`InvalidInputError`
+    naming the field (``checkpoint``, ``meta.<name>``) for a malformed one."""
+    state, meta = ckpt.loads(data, max_bytes)
+    want: dict[str, tuple[type, ...]] = {
+        "scene": (str,),
+        "seed": (int,),
+        "solver": (str,),
+        "r_c": (int, float),
+        "last_used_at": (int, float),
+        "client": (str,),
+    }
+    for name, types in want.items():
+        v = meta.get(name)
+        if isinstance(v, bool) or not isinstance(v, types):
+            raise _bad(key, f"meta.{name}: missing or not a {' or '.join(t.__name__ for t in types)} (got {v!r})")
+    return StoredSession(
+        key,
+        meta["scene"],
+        int(meta["seed"]),
+        meta["solver"],
+        float(meta["r_c"]),
+        float(meta["last_used_at"]),
+        meta["client"],
+        state,
+        len(data),
+    )
+
+
+class SessionStore:
+    """The records of one store (``url``: a directory or an fsspec URL).
+    :meth:`open` checks that it can be written (:class:`InvalidInputError`,
+    field ``store``, naming the path and the reason). Methods block: call them
+    off the event loop."""
+
+    def __init__(self, url: str) -> None:
+        import fsspec
+        from fsspec.implementations.local import LocalFileSystem
+
+        self.url = url
+        try:
+            fs, path = fsspec.core.url_to_fs(url)
+        except (ValueError, ImportError, OSError) as e:
+            raise InvalidInputError(f"store: cannot open {url!r} ({type(e).__name__}: {e})", "store") from None
+        self.fs = fs
+        self.local = isinstance(fs, LocalFileSystem)
+        self.root = os.path.abspath(path) if self.local else path.rstrip("/")
+        self._seq: dict[str, int] = {}
+        self.saves = 0
+
+    # ------------------------------------------------------------ setup
+    def open(self) -> SessionStore:
+        """Create the store if needed, check it is writable, remove temporary files of torn writes."""
+        probe = f".probe-{secrets.token_hex(4)}"
+        try:
+            if self.local:
+                os.makedirs(self.root, exist_ok=True)
+                p = os.path.join(self.root, probe)
+                with open(p, "wb") as f:
+                    f.write(b"ok")
+                os.remove(p)
+                for name in os.listdir(self.root):
+                    if name.startswith(".") and name.endswith(".tmp"):
+                        with contextlib.suppress(OSError):
+                            os.remove(os.path.join(self.root, name))
+                            log.info("store: removed %s (a save that did not finish)", name[:12])
+            else:
+                self.fs.makedirs(self.root, exist_ok=True)
+                self.fs.pipe_file(f"{self.root}/{probe}", b"ok")
+                self.fs.rm_file(f"{self.root}/{probe}")
+        except OSError as e:
+            raise InvalidInputError(f"store: cannot write to {self.url!r} ({type(e).__name__}: {e.strerror or e})", "store") from None
+        return self
+
+    # ------------------------------------------------------------ write
+    def write(self, key: str, data: bytes) -> None:
+        """Save ``data`` as ``key``'s checkpoint, atomically (see the module's notes)."""
+        assert _KEY.match(key)
+        self.saves += 1
+        tear = os.environ.get(TEAR_ENV)
+        torn = tear is not None and tear.isdigit() and int(tear) == self.saves
+        if self.local:
+            tmp = os.path.join(self.root, f".{key}.{secrets.token_hex(4)}.tmp")
+            try:
+                with open(tmp, "wb") as f:
+                    if torn:
+                        f.write(data[: len(data) // 2])
+                        f.flush()
+                        os.fsync(f.fileno())
+                        _die()
+                    f.write(data)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.replace(tmp, os.path.join(self.root, key + ".npz"))
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    os.remove(tmp)
+                raise
+            with contextlib.suppress(OSError):  # the rename itself made durable
+                fd = os.open(self.root, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            return
+        d = f"{self.root}/{key}"
+        seq = self._seq.get(key)
+        if seq is None:
+            seq = max(self._numbered(key), default=0)
+        seq += 1
+        name = f"{seq:012d}.npz"
+        if torn:
+            self.fs.pipe_file(f"{d}/{name}", data[: len(data) // 2])
+            _die()
+        self.fs.pipe_file(f"{d}/{name}", data)
+        self.fs.pipe_file(f"{d}/HEAD", name.encode())
+        self._seq[key] = seq
+        for old in self._numbered(key):
+            if old < seq - 1:
+                with contextlib.suppress(OSError, FileNotFoundError):
+                    self.fs.rm_file(f"{d}/{old:012d}.npz")
+
+    def delete(self, key: str) -> None:
+        """Forget ``key``'s record (a deleted or expired session)."""
+        self._seq.pop(key, None)
+        with contextlib.suppress(OSError, FileNotFoundError):
+            if self.local:
+                os.remove(os.path.join(self.root, key + ".npz"))
+            else:
+                self.fs.rm(f"{self.root}/{key}", recursive=True)
+
+    # ------------------------------------------------------------ read
+    def keys(self) -> list[str]:
+        if self.local:
+            return sorted(n[:-4] for n in os.listdir(self.root) if n.endswith(".npz") and _KEY.match(n[:-4]))
+        out = []
+        for p in self.fs.ls(self.root, detail=False):
+            name = str(p).rstrip("/").rsplit("/", 1)[-1]
+            if _KEY.match(name):
+                out.append(name)
+        return sorted(out)
+
+    def _numbered(self, key: str) -> list[int]:
+        try:
+            names = [str(p).rstrip("/").rsplit("/", 1)[-1] for p in self.fs.ls(f"{self.root}/{key}", detail=False)]
+        except (OSError, FileNotFoundError):
+            return []
+        return sorted(int(m.group(1)) for n in names if (m := _NUMBERED.match(n)))
+
+    def candidates(self, key: str) -> Iterator[bytes]:
+        """The saves of ``key`` to try, best first (local: the one file; other
+        stores: the object HEAD names, then the numbered objects newest first)."""
+        if self.local:
+            with open(os.path.join(self.root, key + ".npz"), "rb") as f:
+                yield f.read()
+            return
+        d = f"{self.root}/{key}"
+        tried = set()
+        with contextlib.suppress(OSError, FileNotFoundError, UnicodeDecodeError):
+            head = self.fs.cat_file(f"{d}/HEAD").decode().strip()
+            m = _NUMBERED.match(head)
+            if m:
+                tried.add(int(m.group(1)))
+                with contextlib.suppress(OSError, FileNotFoundError):
+                    yield self.fs.cat_file(f"{d}/{head}")
+        for seq in reversed(self._numbered(key)):
+            if seq not in tried:
+                with contextlib.suppress(OSError, FileNotFoundError):
+                    yield self.fs.cat_file(f"{d}/{seq:012d}.npz")
+
+    def load(self, key: str, max_bytes: int) -> StoredSession:
+        """The newest save of ``key`` that loads; :class:`InvalidInputError`
+        (naming the field) when none does."""
+        err: InvalidInputError | None = None
+        try:
+            for data in self.candidates(key):
+                try:
+                    rec = parse_record(key, data, max_bytes)
+                except InvalidInputError as e:
+                    err = e
+                    continue
+                if not self.local:
+                    self._seq[key] = max(self._numbered(key), default=0)
+                return rec
+        except OSError as e:
+            raise _bad(key, f"checkpoint: cannot read ({type(e).__name__})") from None
+        if err is not None:
+            raise _bad(key, str(err)) if not str(err).startswith("store:") else err
+        raise _bad(key, "checkpoint: no save found")
+
+
+def _die() -> None:
+    """A crash in the middle of a save (tests: :data:`TEAR_ENV`)."""
+    import signal
+
+    log.error("store: %s: killing the process in the middle of a save", TEAR_ENV)
+    os.kill(os.getpid(), signal.SIGKILL)
+    time.sleep(60)
+
+
+__all__ = ["STORE_META", "TEAR_ENV", "SessionStore", "StoredSession", "parse_record", "session_key"]

@@ -1,0 +1,172 @@
+"""Durable sessions (``hybridmpm serve --store``): a real server killed with
+SIGKILL and started again on the same store brings its sessions back under
+the same ids, and stepping on from the restored frame matches an
+uninterrupted run bit for bit; a save torn by a crash leaves the previous
+save; the fsspec layout (numbered objects and a pointer) falls back past a
+bad object; malformed records and unwritable stores give errors naming the field."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fastapi")
+httpx = pytest.importorskip("httpx")
+
+from hybridmpm.errors import InvalidInputError  # noqa: E402
+from hybridmpm.service import checkpoint as ckpt  # noqa: E402
+from hybridmpm.service.config import ServiceConfig  # noqa: E402
+from hybridmpm.service.sessions import SessionManager  # noqa: E402
+from hybridmpm.service.store import TEAR_ENV, SessionStore, session_key  # noqa: E402
+from hybridmpm.service.testing import LiveServer  # noqa: E402
+from hybridmpm.sim import make_simulator, rollout  # noqa: E402
+
+OCTET = {"Accept": "application/octet-stream"}
+#: Bounds on waiting (never a pass/fail threshold on time).
+WAIT_S = 60.0
+
+
+def _server(store, tmp_path, name, env=None):
+    return LiveServer(args=["--store", str(store), "--save-every", "0.2", "--log-level", "info"], env=env, log=tmp_path / f"{name}.log")
+
+
+def _step(c, sid, frames):
+    r = c.post(f"/v1/sessions/{sid}/step", json={"frames": frames}, headers=OCTET)
+    assert r.status_code == 200, r.text
+    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
+    return np.frombuffer(r.content, "<f4").reshape(shape)
+
+
+def _wait_saved(c, sid):
+    """The session's frame, once its last save has reached it."""
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        info = c.get(f"/v1/sessions/{sid}").json()
+        if info["saved_frame"] == info["frame"]:
+            return info["frame"]
+        time.sleep(0.05)
+    raise AssertionError(f"session not saved within {WAIT_S} s: frame {info['frame']}, saved {info['saved_frame']}")
+
+
+def _uninterrupted(scene, solver, seed, first, then):
+    """Positions of the steps after the first ``first`` frames, in one process, never stopped."""
+    sim = make_simulator(scene, solver, seed=seed, threads=1, nn_threads=1)
+    rollout(sim, first)
+    return rollout(sim, then).positions[1:]
+
+
+def _kill(server):
+    server.proc.kill()  # SIGKILL: no shutdown, no final save
+    server.proc.wait(WAIT_S)
+    server.stop()
+
+
+def test_sigkill_restart_restores_sessions_bitwise(tmp_path):
+    store = tmp_path / "store"
+    specs = {"a": ("water2d", "mpm", 3, 7), "b": ("dam_break2d", "hybrid", 1, 8)}
+    ids, saved = {}, {}
+    server = _server(store, tmp_path, "first").start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
+            for name, (scene, solver, seed, frames) in specs.items():
+                r = c.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": seed})
+                assert r.status_code == 201, r.text
+                ids[name] = r.json()["id"]
+                assert r.json()["saved_frame"] == 0 and r.json()["restored_from_frame"] is None
+                _step(c, ids[name], frames)
+                saved[name] = _wait_saved(c, ids[name])
+            gone = c.post("/v1/sessions", json={"scene": "water2d", "seed": 9}).json()["id"]
+            assert c.delete(f"/v1/sessions/{gone}").status_code == 204
+        # the store holds no session id, only their hashes
+        names = sorted(os.listdir(store))
+        assert names == sorted(session_key(sid) + ".npz" for sid in ids.values())
+        assert not any(sid.encode() in (store / n).read_bytes() for n in names for sid in ids.values())
+    finally:
+        _kill(server)
+    with _server(store, tmp_path, "second") as server, httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
+        assert c.get("/healthz").json()["sessions"] == 2
+        assert c.get(f"/v1/sessions/{gone}").status_code == 404
+        assert c.get(f"/v1/sessions/{session_key(ids['a'])}").status_code == 404  # the key is no credential
+        for name, (scene, solver, seed, frames) in specs.items():
+            info = c.get(f"/v1/sessions/{ids[name]}").json()
+            assert info["frame"] == saved[name] == info["restored_from_frame"] and info["id"] == ids[name]
+            after = _step(c, ids[name], 8)
+            assert np.array_equal(after, _uninterrupted(scene, solver, seed, frames, 8)), f"{scene} {solver}: the restored run differs"
+
+
+def test_torn_save_leaves_the_previous_one(tmp_path):
+    store = tmp_path / "store"
+    # save 1: the session's creation (frame 0); save 2 (after the step) is torn: the process dies in it
+    server = _server(store, tmp_path, "torn", env={TEAR_ENV: "2"}).start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
+            sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm", "seed": 4}).json()["id"]
+            _step(c, sid, 5)
+        assert server.proc.wait(WAIT_S) == -9
+    finally:
+        server.stop()
+    torn = [n for n in os.listdir(store) if n.endswith(".tmp")]
+    assert len(torn) == 1 and (store / torn[0]).stat().st_size > 0
+    with _server(store, tmp_path, "after") as server, httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
+        info = c.get(f"/v1/sessions/{sid}").json()
+        assert info["restored_from_frame"] == 0 and info["frame"] == 0
+        assert np.array_equal(_step(c, sid, 3), _uninterrupted("water2d", "mpm", 4, 0, 3))
+    assert not [n for n in os.listdir(store) if n.endswith(".tmp")]
+
+
+def _state_and_meta(frames=2):
+    sim = make_simulator("water2d", "mpm", seed=2, threads=1)
+    rollout(sim, frames)
+    meta = {"scene": "water2d", "seed": 2, "solver": "mpm", "r_c": 0.0, "last_used_at": time.time(), "client": "127.0.0.1"}
+    return sim.state(), meta
+
+
+def test_fsspec_store_falls_back_past_a_bad_object():
+    url = f"memory://hmpm-{uuid.uuid4().hex}"
+    st = SessionStore(url).open()
+    key = session_key("some-session")
+    state, meta = _state_and_meta()
+    st.write(key, ckpt.dumps(state, {**meta, "seed": 2}))
+    st.write(key, ckpt.dumps(state, {**meta, "seed": 5}))
+    assert st.keys() == [key] and st.load(key, 1 << 30).seed == 5
+    # the newest object, torn: the previous one is used
+    head = st.fs.cat_file(f"{st.root}/{key}/HEAD").decode()
+    st.fs.pipe_file(f"{st.root}/{key}/{head}", b"PK\x03\x04 torn")
+    assert st.load(key, 1 << 30).seed == 2
+    st.write(key, ckpt.dumps(state, {**meta, "seed": 7}))  # writes go on past it
+    assert st.load(key, 1 << 30).seed == 7
+    st.delete(key)
+    assert st.keys() == []
+
+
+def test_bad_records_and_unwritable_store(tmp_path, caplog):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InvalidInputError) as e:
+        SessionStore(str(tmp_path / "file" / "sub")).open()  # a path under a file: not writable
+    assert e.value.field == "store" and "cannot write" in str(e.value)
+    store = tmp_path / "store"
+    st = SessionStore(str(store)).open()
+    state, meta = _state_and_meta()
+    good, garbage, badmeta = (session_key(x) for x in ("good", "garbage", "badmeta"))
+    st.write(good, ckpt.dumps(state, meta))
+    (store / f"{garbage}.npz").write_bytes(b"not a zip")
+    st.write(badmeta, ckpt.dumps(state, {**meta, "seed": "two"}))
+    mgr = SessionManager(ServiceConfig(store=str(store), max_sessions=10))
+    with caplog.at_level(logging.WARNING, logger="hybridmpm.service"):
+        assert asyncio.run(mgr.restore_all()) == 1
+    text = caplog.text
+    assert "meta.seed" in text and "checkpoint: not an npz archive" in text
+    assert mgr.get("good") is not None and mgr.get("good").restored_from_frame == 2
+    assert mgr.get("garbage") is None and mgr.get("badmeta") is None
+    # an expired record is removed at start
+    old = session_key("old")
+    st.write(old, ckpt.dumps(state, {**meta, "last_used_at": time.time() - 10_000}))
+    mgr = SessionManager(ServiceConfig(store=str(store), max_sessions=10, idle_ttl_s=600))
+    asyncio.run(mgr.restore_all())
+    assert not (store / f"{old}.npz").exists() and mgr.get("old") is None
