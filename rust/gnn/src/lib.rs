@@ -749,8 +749,9 @@ mod copies {
 }
 
 /// The instruction set the kernels run with, chosen once per call from the
-/// CPU (`HYBRIDMPM_ISA=baseline` forces the portable copy, `avx2` the AVX2
-/// one: for comparisons).
+/// CPU and the ceiling `HYBRIDMPM_ISA` sets (`hybridmpm-isa`'s vocabulary:
+/// `baseline` forces the portable copy, `x86-64-v3` or `avx2` the AVX2 one
+/// at most: for comparisons).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Isa {
     /// Plain Rust, no FMA.
@@ -763,22 +764,13 @@ pub enum Isa {
 
 /// The copy this CPU runs (see [`Isa`]).
 pub fn isa() -> Isa {
-    #[cfg(target_arch = "x86_64")]
-    {
-        let asked = std::env::var("HYBRIDMPM_ISA").unwrap_or_default();
-        if asked == "baseline" {
-            return Isa::Portable;
-        }
-        if asked != "avx2" && is_x86_feature_detected!("avx512f") {
-            return Isa::Avx512;
-        }
-        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-            return Isa::Avx2;
-        }
-        Isa::Portable
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
+    use hybridmpm_isa::{Level, cpu};
+    let ceiling = Level::ceiling();
+    if ceiling >= Level::X86_64V4 && cpu::avx512f() {
+        Isa::Avx512
+    } else if ceiling >= Level::X86_64V3 && cpu::avx2_fma() {
+        Isa::Avx2
+    } else {
         Isa::Portable
     }
 }

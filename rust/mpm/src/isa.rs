@@ -22,10 +22,11 @@
 //! in SIMD lanes, and the frame loop calls it once per sixteen sand particles.
 //! The crate-private macro `x86_64_v3!` marks a function as the x86-64-v3 copy.
 //!
-//! The environment variable `HYBRIDMPM_ISA=baseline` (read when a solver is
-//! made) forces the portable copy, e.g. to compare the two or to rule the
-//! dispatch out while debugging; [`crate::Solver::set_isa`] does the same for
-//! one solver.
+//! The environment variable `HYBRIDMPM_ISA` (read when a solver is made, in
+//! the vocabulary of `hybridmpm-isa` that every crate shares) caps the
+//! choice: `baseline` forces the portable copy, e.g. to compare the two or to
+//! rule the dispatch out while debugging; [`crate::Solver::set_isa`] does the
+//! same for one solver. CPU detection is `hybridmpm-isa`'s too.
 
 /// An instruction set the frame loop is compiled for.
 /// Compiles the function it wraps for x86-64-v3 (on x86-64 only): the one
@@ -71,22 +72,26 @@ impl Isa {
     pub fn available(self) -> bool {
         match self {
             Isa::Baseline => true,
-            Isa::X86_64V3 => has_x86_64_v3(),
+            Isa::X86_64V3 => hybridmpm_isa::cpu::x86_64_v3(),
         }
     }
 
-    /// The fastest variant this CPU runs, unless `HYBRIDMPM_ISA` names
-    /// another one it can run (an unknown or unavailable name is ignored:
-    /// the choice never makes a solver fail).
-    pub fn detect() -> Isa {
-        if let Some(isa) = std::env::var("HYBRIDMPM_ISA")
-            .ok()
-            .and_then(|v| Isa::from_name(&v))
-            .filter(|i| i.available())
-        {
-            return isa;
+    /// The level of `hybridmpm-isa`'s vocabulary the variant needs.
+    pub fn level(self) -> hybridmpm_isa::Level {
+        match self {
+            Isa::Baseline => hybridmpm_isa::Level::Baseline,
+            Isa::X86_64V3 => hybridmpm_isa::Level::X86_64V3,
         }
-        Isa::best()
+    }
+
+    /// The fastest variant this CPU runs within the ceiling `HYBRIDMPM_ISA`
+    /// sets (an unknown name sets none: the choice never makes a solver fail).
+    pub fn detect() -> Isa {
+        Isa::ALL
+            .into_iter()
+            .rev()
+            .find(|i| i.available() && i.level().allows())
+            .unwrap_or(Isa::Baseline)
     }
 
     /// The fastest variant this CPU runs.
@@ -99,22 +104,6 @@ impl Isa {
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-fn has_x86_64_v3() -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-        && std::arch::is_x86_feature_detected!("bmi1")
-        && std::arch::is_x86_feature_detected!("bmi2")
-        && std::arch::is_x86_feature_detected!("lzcnt")
-        && std::arch::is_x86_feature_detected!("movbe")
-        && std::arch::is_x86_feature_detected!("f16c")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn has_x86_64_v3() -> bool {
-    false
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -125,6 +114,9 @@ mod tests {
             assert_eq!(Isa::from_name(isa.name()), Some(isa));
         }
         assert_eq!(Isa::from_name("avx9000"), None);
+        for isa in Isa::ALL {
+            assert_eq!(hybridmpm_isa::Level::parse(isa.name()), Some(isa.level()));
+        }
         assert!(Isa::Baseline.available());
         assert!(Isa::best().available());
     }

@@ -414,17 +414,14 @@ mod avx512 {
     use std::arch::x86_64::*;
     use std::sync::OnceLock;
 
-    /// Whether the CPU has AVX-512F and VL, and `HYBRIDMPM_ISA` does not ask
-    /// for the portable code (`baseline`, as the MPM frame loop and the
-    /// network kernels read it).
+    /// Whether the CPU has AVX-512F and VL, and `HYBRIDMPM_ISA` allows
+    /// x86-64-v4 (`hybridmpm-isa`'s vocabulary, shared with the MPM frame
+    /// loop and the network kernels; `baseline` and `x86-64-v3`/`avx2` keep
+    /// the portable code). Read once per process.
     pub(super) fn available() -> bool {
         static ON: OnceLock<bool> = OnceLock::new();
         *ON.get_or_init(|| {
-            let asked = std::env::var("HYBRIDMPM_ISA").unwrap_or_default();
-            asked != "baseline"
-                && asked != "avx2"
-                && is_x86_feature_detected!("avx512f")
-                && is_x86_feature_detected!("avx512vl")
+            hybridmpm_isa::Level::X86_64V4.allows() && hybridmpm_isa::cpu::avx512f_vl()
         })
     }
 
