@@ -56,7 +56,7 @@ from hybridmpm.bench.cost import gnn_flops
 from hybridmpm.bench.env import environment
 from hybridmpm.graph import radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import lattice
 from hybridmpm.sim import MpmSimulator, NeuralSimulator
 from hybridmpm.train.gns.onnx_graph import STAGES
@@ -97,7 +97,7 @@ def _interleaved(fns: dict[str, Any], repeats: int, spinning: tuple[str, ...] = 
 
 def _profile(path: Path, history: np.ndarray, ptype: np.ndarray, graph: tuple, repeats: int, fused: bool | None = None) -> dict[str, float]:
     """Mean µs per run by stage (compiled graphs) or by operator (others), from onnxruntime's profiler."""
-    nm = NeuralModel(path, profile=True, fused=fused)
+    nm = GnsRuntime(path, profile=True, fused=fused)
     feeds = nm.feeds(history, ptype, graph)
     for _ in range(repeats):
         nm.session_for(feeds).run(None, feeds)
@@ -135,7 +135,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     paths = {"shipped": model.path}
     if baseline is not None and (baseline / model.path.name).is_file():
         paths["baseline"] = baseline / model.path.name
-    sessions = {k: NeuralModel(p, fused=None if k == "shipped" else False) for k, p in paths.items()}  # a baseline as it was: unfused
+    sessions = {k: GnsRuntime(p, fused=None if k == "shipped" else False) for k, p in paths.items()}  # a baseline as it was: unfused
     feeds = {k: s.feeds(hist, ptype, graph) for k, s in sessions.items()}
     proposal = sim.propose()
 
@@ -155,7 +155,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     # the full step from the same state each time: restore it (and the graph the
     # previous step built, which restore drops) before each advance
     state = sim.state()
-    models = {1: model, 2: NeuralModel(model.path, threads=2)}
+    models = {1: model, 2: GnsRuntime(model.path, threads=2)}
 
     def restore() -> None:
         sim.restore(state)
@@ -249,7 +249,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
 
 def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None) -> dict[str, Any]:
     """GFLOP/s of the shipped model on a jittered lattice block of ``particles`` particles at its spacing, 1 and 2 threads."""
-    model = NeuralModel(shipped_model(scene))
+    model = GnsRuntime(shipped_model(scene))
     sim = NeuralSimulator(scene, model, seed=0, mpm_threads=1, warmup=False)
     spacing = sim._dx / 2 / model.r_p ** (1 / model.dim)  # the scenes seed 2^D particles per cell at full resolution
     side = int(np.ceil(particles ** (1 / model.dim)))
@@ -266,10 +266,10 @@ def block_gflops(scene: str, particles: int, repeats: int, baseline: Path | None
     fns = {}
     for k, p in paths.items():
         # a graph without the race-free sum (layouts before compiled-2) is exact on one thread only
-        # (NeuralModel would run it on one anyway): no 2-thread figure for it
-        exact_on_two = "in_edges" in NeuralModel(p).input_names
+        # (GnsRuntime would run it on one anyway): no 2-thread figure for it
+        exact_on_two = "in_edges" in GnsRuntime(p).input_names
         for t in (1, 2) if exact_on_two else (1,):
-            nm = NeuralModel(p, threads=t, fused=None if k == "shipped" else False)  # 2 threads spin (NeuralModel's default)
+            nm = GnsRuntime(p, threads=t, fused=None if k == "shipped" else False)  # 2 threads spin (GnsRuntime's default)
             f = nm.feeds(hist, ptype, graph)
             session = nm.session_for(f)
             fns[f"{k}_{t}t"] = lambda s=session, f=f: s.run(None, f)
@@ -478,7 +478,7 @@ def main() -> None:
         res["blocks"].append(b)
         print(f"  block of {b['particles']}: " + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in b["gflops"].items()), flush=True)
     if args.ops:
-        lat = int(NeuralModel(shipped_model(args.scenes[0])).meta["latent"])
+        lat = int(GnsRuntime(shipped_model(args.scenes[0])).meta["latent"])
         res["ops"] = {"latent": lat, "rows": 20000, "ns_per_row": op_costs(lat, 20000, args.repeats)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=float))

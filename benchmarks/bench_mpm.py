@@ -35,21 +35,22 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.bench.env import cpu_model, git_commit
-from hybridmpm.mpm import SAND, WATER, MpmParams
+from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import Scene, lattice
 from hybridmpm.sim import MpmSimulator, rollout
 
 SCENES = {
     # name: (dim, n_grid, origin, side, material, substeps, spacing in units of 1/64 or 1/128 -> see make)
-    "water2d": (2, 128, (0.1, 0.1), 64, WATER, 16),
-    "sand2d": (2, 128, (0.1, 0.1), 64, SAND, 16),
-    "water3d": (3, 64, (0.3, 0.1, 0.3), 16, WATER, 8),
+    "water2d": (2, 128, (0.1, 0.1), 64, MATERIAL_WATER, 16),
+    "sand2d": (2, 128, (0.1, 0.1), 64, MATERIAL_SAND, 16),
+    "water3d": (3, 64, (0.3, 0.1, 0.3), 16, MATERIAL_WATER, 8),
     # the same 4096 particles (2 per cell per dimension) in a domain of 8x the volume
-    "water3d_128": (3, 128, (0.3, 0.1, 0.3), 16, WATER, 16),
-    "water3d_32k": (3, 64, (0.25, 0.1, 0.25), 32, WATER, 8),
-    "sand3d": (3, 64, (0.3, 0.1, 0.3), 16, SAND, 8),
+    "water3d_128": (3, 128, (0.3, 0.1, 0.3), 16, MATERIAL_WATER, 16),
+    "water3d_32k": (3, 64, (0.25, 0.1, 0.25), 32, MATERIAL_WATER, 8),
+    "sand3d": (3, 64, (0.3, 0.1, 0.3), 16, MATERIAL_SAND, 8),
     # water and sand in one grid: the left half of the block water, the right half sand
-    "water_sand2d": (2, 128, (0.1, 0.1), 64, (WATER, SAND), 16),
+    "water_sand2d": (2, 128, (0.1, 0.1), 64, (MATERIAL_WATER, MATERIAL_SAND), 16),
 }
 
 # Scaling cases: (dim, n_grid, substeps per frame, lattice sides). The grid is
@@ -115,7 +116,7 @@ def scaling_case(dim, side, threads, frames):
     n_grid, substeps, _ = SCALING[dim]
     origin = (0.2, 0.05) if dim == 2 else (0.2, 0.05, 0.2)
     before = rss_mb()
-    sim = make(dim, n_grid, origin, side, WATER, substeps, threads)
+    sim = make(dim, n_grid, origin, side, MATERIAL_WATER, substeps, threads)
     med, _ = time_frames(sim, frames, warmup=2)
     n = sim.particles.num_fluid
     grown = rss_mb() - before
@@ -380,7 +381,7 @@ def main():
 
     # memory per particle: RSS growth for 1M 2D particles (state + scratch after a frame)
     before = rss_mb()
-    big = make(2, 2048, (0.1, 0.1), 1000, WATER, 1, 0)
+    big = make(2, 2048, (0.1, 0.1), 1000, MATERIAL_WATER, 1, 0)
     big.advance()
     mem = {"particles": big.particles.num_fluid, "rss_mb": rss_mb() - before}
     mem["bytes_per_particle"] = mem["rss_mb"] * 2**20 / big.particles.num_fluid

@@ -47,11 +47,11 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
     import torch
 
     from hybridmpm import radius_graph
-    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural import GnsRuntime
     from hybridmpm.scenes import lattice
     from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
-    nm = NeuralModel(model_dir / "model.onnx", threads=1)
+    nm = GnsRuntime(model_dir / "model.onnx", threads=1)
     spacing = 0.5 / 128 / np.sqrt(nm.r_p) if nm.dim == 2 else 0.5 / 64 / np.cbrt(nm.r_p)
     side = int(np.ceil(n ** (1 / nm.dim)))
     x = lattice([0.2] * nm.dim, [0.2 + side * spacing] * nm.dim, spacing)[:n]
@@ -82,7 +82,7 @@ def timing(model_dir: Path, n: int, repeats: int) -> dict:
 def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split: str = "test") -> tuple[dict, dict]:
     from hybridmpm.bench.run import held_still
     from hybridmpm.metrics import grid_mass_error
-    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural import GnsRuntime
     from hybridmpm.scenes import SceneSpec
     from hybridmpm.sim import MpmSimulator, NeuralSimulator, rollout, warmup_frames
 
@@ -90,7 +90,7 @@ def accuracy(model_dirs: list[Path], data: Path, seeds: int, frames: int, split:
     test = sorted(k for k, v in scenes.items() if v["split"] == split)[:seeds]
     per_model: dict[str, dict[str, list[float]]] = {d.name: {"rollout_mean": [], "rollout_last": [], "one_step": [], "ms_per_frame": []} for d in model_dirs}
     ref_stats: dict[str, list[float]] = {"mpm_full_ms_2t": [], "mpm_full_ms_1t": [], "mpm_rp_ms_1t": [], "mpm_rp_mean": [], "mpm_rp_last": [], "still_mean": []}
-    models = {d.name: NeuralModel(d / "model.onnx", threads=1) for d in model_dirs}
+    models = {d.name: GnsRuntime(d / "model.onnx", threads=1) for d in model_dirs}
     for tid in test:
         info = scenes[tid]
         full = SceneSpec.from_dict(info["spec"]).build()

@@ -32,7 +32,7 @@ import numpy as np
 
 from hybridmpm.conventions import G
 from hybridmpm.models import shipped_model
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator
 
@@ -47,7 +47,7 @@ VARIANTS = [
 
 def floor_samples(scene_name: str, seed: int, steps: int, every: int) -> dict[str, list[float]]:
     """The floor [g] of every variant at steps ``every, 2·every, …`` (≥ 6) of one rollout."""
-    model = NeuralModel(shipped_model(scene_name))
+    model = GnsRuntime(shipped_model(scene_name))
     sim = MpmSimulator(make_scene(scene_name, seed=seed), r_p=model.r_p, r_t=model.r_t, seed=seed, threads=1)
     dt_step = sim.dt_frame * sim.r_t
     n = sim.particles.num_fluid

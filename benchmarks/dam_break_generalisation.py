@@ -36,7 +36,7 @@ import numpy as np
 from hybridmpm.bench.env import git_commit
 from hybridmpm.bench.run import collapsed, held_still
 from hybridmpm.metrics import grid_mass_error
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
@@ -86,7 +86,7 @@ def main() -> None:
     scene = make_scene("dam_break2d")
     ref = reference(scene, FRAMES, threads=a.threads, progress="full-resolution MPM").fluid_positions
     result: dict = {"commit": git_commit(), "frames": FRAMES, "error_frames": ERROR_FRAMES, "runs": {}}
-    models = [NeuralModel(p) for p in a.models]
+    models = [GnsRuntime(p) for p in a.models]
     for name, model in zip(names, models):
         # a model trained on other domains is run on the dam break on purpose: that is the test
         model.meta["scenes"] = sorted({*model.meta.get("scenes", [model.meta.get("scene")]), "dam_break2d"})

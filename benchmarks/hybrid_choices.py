@@ -26,7 +26,7 @@ import numpy as np
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import HybridSimulator, MpmSimulator, reference, rollout
 
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--variants: unknown label among {args.variants}; known: {[v[0] for v in VARIANTS]}")
     if args.model is not None and not args.model.is_file():
         ap.error(f"--model: no such file: {args.model}")
-    model = NeuralModel(args.model if args.model is not None else shipped_model(args.scene))
+    model = GnsRuntime(args.model if args.model is not None else shipped_model(args.scene))
     refs = {}
     for seed in args.seeds:
         refs[seed] = reference(make_scene(args.scene, seed=seed), args.frames, stride=model.r_t, threads=args.threads).fluid_positions

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from hybridmpm import CheckpointError, InvalidInputError, SimulationError
-from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WaterParams
+from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.mpm import Box, MpmParams, MpmSolver, SandParams, Sphere, WaterParams
 from hybridmpm.scenes import dam_break2d, make_scene
 
 
@@ -17,7 +18,7 @@ def small(dim=2, **kw):
     sim = MpmSolver(MpmParams(dim=dim, **kw))
     rng = np.random.default_rng(0)
     x = rng.uniform(0.4, 0.6, (200, dim)).astype(np.float32)
-    sim.add_particles(x, WATER)
+    sim.add_particles(x, MATERIAL_WATER)
     return sim
 
 
@@ -78,7 +79,7 @@ def test_unknown_parameter_is_rejected():
 def test_bad_particles_name_the_field_and_change_nothing(kwargs, field):
     sim = small()
     before = sim.checkpoint()
-    kwargs.setdefault("material", WATER)
+    kwargs.setdefault("material", MATERIAL_WATER)
     with pytest.raises(InvalidInputError) as e:
         sim.add_particles(**kwargs)
     assert e.value.field == field, str(e.value)
@@ -87,7 +88,7 @@ def test_bad_particles_name_the_field_and_change_nothing(kwargs, field):
 
 def test_float64_input_is_converted():
     sim = MpmSolver()
-    assert sim.add_particles(np.full((4, 2), 0.5), WATER) == 4
+    assert sim.add_particles(np.full((4, 2), 0.5), MATERIAL_WATER) == 4
     assert sim.positions.dtype == np.float32
 
 
@@ -110,8 +111,8 @@ def test_get_set_round_trip_every_field():
         got = getattr(sim, name)
         assert got.dtype == np.float32 and got.shape == v.shape, name
         assert np.array_equal(got, v.astype(np.float32)), name
-    sim.material = np.array([SAND] * n)
-    assert (sim.material == SAND).all()
+    sim.material = np.array([MATERIAL_SAND] * n)
+    assert (sim.material == MATERIAL_SAND).all()
     assert sim.stress.shape == (n, 2, 2)
     with pytest.raises(InvalidInputError) as e:
         sim.volume_ratio = np.full(n, -1.0)
@@ -173,9 +174,9 @@ def test_add_and_remove_particles_between_frames():
     sim = small()
     x0 = sim.positions
     sim.step_frame()
-    n = sim.add_particles(np.array([[0.2, 0.8], [0.8, 0.8]], np.float32), SAND, velocities=np.zeros((2, 2), np.float32))
+    n = sim.add_particles(np.array([[0.2, 0.8], [0.8, 0.8]], np.float32), MATERIAL_SAND, velocities=np.zeros((2, 2), np.float32))
     assert n == 202
-    assert list(sim.material[-2:]) == [SAND, SAND]
+    assert list(sim.material[-2:]) == [MATERIAL_SAND, MATERIAL_SAND]
     mask = np.zeros(n, bool)
     mask[::2] = True
     kept_before = sim.positions[~mask]
@@ -232,7 +233,7 @@ def test_colliders_keep_particles_out():
     sim = MpmSolver(MpmParams(dim=2, colliders=[ramp, ball]))
     from hybridmpm.scenes import lattice
 
-    sim.add_particles(lattice([0.35, 0.5], [0.55, 0.6], sim.dx / 2), WATER)
+    sim.add_particles(lattice([0.35, 0.5], [0.55, 0.6], sim.dx / 2), MATERIAL_WATER)
     for _ in range(150):
         sim.step_frame()
     x = sim.positions.astype(np.float64)
@@ -291,7 +292,7 @@ def test_both_compiled_frame_loops_give_the_same_bits():
         runs = {}
         for isa in ("baseline", None):
             sim = small(dim)
-            sim.add_particles(np.full((8, dim), 0.6, np.float32) + 0.01 * np.arange(8, dtype=np.float32)[:, None], SAND)
+            sim.add_particles(np.full((8, dim), 0.6, np.float32) + 0.01 * np.arange(8, dtype=np.float32)[:, None], MATERIAL_SAND)
             if isa is not None:
                 sim.set_isa(isa)
                 assert sim.isa == isa

@@ -50,6 +50,25 @@ def test_the_taichi_peer_is_not_in_the_package():
         assert "import taichi" not in p.read_text(), p
 
 
+def test_one_name_per_concept():
+    # the retired aliases stay retired: MATERIAL_WATER/MATERIAL_SAND, DOMAINS, conventions.GNS_KINEMATIC, GnsRuntime
+    import importlib
+
+    retired = {
+        "hybridmpm": ("WATER", "SAND", "NeuralModel"),
+        "hybridmpm.mpm": ("WATER", "SAND"),
+        "hybridmpm.scenes": ("SCENES",),
+        "hybridmpm.trajectory": ("KINEMATIC",),
+        "hybridmpm.data": ("KINEMATIC",),
+        "hybridmpm.data.gns": ("KINEMATIC",),
+        "hybridmpm.neural": ("KINEMATIC", "NeuralModel"),
+        "hybridmpm.neural.constants": ("KINEMATIC",),
+        "hybridmpm.neural.runtime": ("NeuralModel",),
+    }
+    left = [f"{m}.{n}" for m, names in retired.items() for n in names if hasattr(importlib.import_module(m), n)]
+    assert not left, left
+
+
 def test_every_benchmark_script_is_listed_in_the_benchmarks_readme():
     readme = (ROOT / "benchmarks" / "README.md").read_text()
     scripts = sorted(p.name for p in (ROOT / "benchmarks").iterdir() if p.suffix in (".py", ".sh") and not p.name.startswith("_"))

@@ -10,7 +10,7 @@ import pytest
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_model
-from hybridmpm.neural import METADATA_KEY, NeuralModel
+from hybridmpm.neural import METADATA_KEY, GnsRuntime
 
 
 def _with_metadata(tmp: Path, edit) -> Path:  # type: ignore[no-untyped-def]
@@ -45,14 +45,14 @@ def test_model_metadata_out_of_range_names_the_key(tmp_path, key, value):
         return json.dumps(meta)
 
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(_with_metadata(tmp_path, edit))
+        GnsRuntime(_with_metadata(tmp_path, edit))
     assert e.value.field == f"model.{key}"
 
 
 @pytest.mark.parametrize("raw", ["{not json", "[1, 2]"])
 def test_malformed_model_metadata_is_refused(tmp_path, raw):
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(_with_metadata(tmp_path, lambda _: raw))
+        GnsRuntime(_with_metadata(tmp_path, lambda _: raw))
     assert e.value.field == "model"
 
 
@@ -62,7 +62,7 @@ def test_a_missing_key_of_an_old_export_gets_its_default(tmp_path):
         del meta["t_in"]
         return json.dumps(meta)
 
-    m = NeuralModel(_with_metadata(tmp_path, edit))
+    m = GnsRuntime(_with_metadata(tmp_path, edit))
     assert m.t_in == 6 and np.isfinite(m.r_p)
 
 

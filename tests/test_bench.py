@@ -370,14 +370,14 @@ def test_shipped_variants_are_what_their_roles_say():
 
     from hybridmpm.bench.methods import neural_role
     from hybridmpm.models import shipped_models, variant_models
-    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural import GnsRuntime
     from hybridmpm.scenes import make_scene
 
     card = resources.files("hybridmpm.models").joinpath("variants", "README.md").read_text()
     seen = 0
     for scene in shipped_models():
         for v in variant_models(scene):
-            m = NeuralModel(v["path"])
+            m = GnsRuntime(v["path"])
             sc = make_scene(scene, seed=1000)
             m.check_fits(sc.dim, sc.particle_type(), scene)
             if v["role"] != "size":

@@ -22,7 +22,7 @@ from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.models import shipped_model, shipped_models
-from hybridmpm.neural import NeuralModel, fused
+from hybridmpm.neural import GnsRuntime, fused
 from hybridmpm.sim import NeuralSimulator, rollout
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -46,8 +46,8 @@ def test_every_shipped_model_gives_the_plain_graphs_outputs(scene: str):
     hist, ptype = sim.history, sim.particles.particle_type
     assert hist is not None
     graph = radius_graph(hist[-1], sim.model.radius)
-    plain = NeuralModel(shipped_model(scene), fused=False)
-    one, two = NeuralModel(shipped_model(scene)), NeuralModel(shipped_model(scene), threads=2)
+    plain = GnsRuntime(shipped_model(scene), fused=False)
+    one, two = GnsRuntime(shipped_model(scene)), GnsRuntime(shipped_model(scene), threads=2)
     assert (plain.fused, one.fused, two.fused) == (False, True, True)
     a0, x0, _ = plain.predict(hist, ptype, graph=graph)
     a1, x1, _ = one.predict(hist, ptype, graph=graph)
@@ -70,8 +70,8 @@ def test_random_clouds_give_the_plain_graphs_outputs(scene: str, n: int, seed: i
     clip), random histories, every trained type and kinematic particles
     (which the decoder holds in place): the fused graph's outputs are the
     plain graph's to float32 rounding, and kinematic particles stay put."""
-    plain = NeuralModel(shipped_model(scene), fused=False)
-    fused_m = NeuralModel(shipped_model(scene))
+    plain = GnsRuntime(shipped_model(scene), fused=False)
+    fused_m = GnsRuntime(shipped_model(scene))
     assert fused_m.fused
     rng = np.random.default_rng(seed)
     lo, hi = np.asarray(plain.meta["bounds"], np.float64).T
@@ -116,7 +116,7 @@ def test_the_shipped_fused_files_are_the_rewrite_of_the_shipped_models(tmp_path)
         # every edge stage and every node update is one fused operator: an edge and a node block per message-passing step
 
         ops = [n.op_type for n in onnx.load(str(sibling)).graph.node if n.domain == fused.DOMAIN]
-        steps = NeuralModel(src, fused=False).meta["layers"]
+        steps = GnsRuntime(src, fused=False).meta["layers"]
         assert (ops.count("HmpmEdgeEncoder"), ops.count("HmpmEdgeBlock"), ops.count("HmpmNodeBlock")) == (1, steps, steps), (src.name, ops)
     assert not fused.fused_sibling(shipped_model("water2d").parent / "variants" / "water2d" / "size_L3x32_R15_rt2.onnx").exists()
 
@@ -132,8 +132,8 @@ def test_a_stale_or_foreign_fused_file_is_not_used(tmp_path):
     assert data is not None and data != fused.fused_sibling(src).read_bytes()
     sim = scene_state("water2d", steps=1)
     hist, ptype = sim.history, sim.particles.particle_type
-    a_f, _, _ = NeuralModel(src).predict(hist, ptype)
-    a_p, _, _ = NeuralModel(src, fused=False).predict(hist, ptype)
+    a_f, _, _ = GnsRuntime(src).predict(hist, ptype)
+    a_p, _, _ = GnsRuntime(src, fused=False).predict(hist, ptype)
     assert np.abs(a_f - a_p).max() <= 2e-5 * np.abs(a_p).max()
 
 
@@ -146,12 +146,12 @@ def test_graphs_of_other_layouts_are_left_alone():
 
     for f in (GOLDEN / "models" / "water2d_202ef89.onnx", GOLDEN / "gns_compiled2_tiny.onnx"):
         assert fused.fuse_graph(onnx.load(str(f))) is None
-        assert NeuralModel(f).fused is False
+        assert GnsRuntime(f).fused is False
         with pytest.raises(InvalidInputError) as e:
-            NeuralModel(f, fused=True)
+            GnsRuntime(f, fused=True)
         assert e.value.field == "fused"
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(shipped_model("water2d"), fused="yes")  # type: ignore[arg-type]
+        GnsRuntime(shipped_model("water2d"), fused="yes")  # type: ignore[arg-type]
     assert e.value.field == "fused"
 
 
@@ -159,7 +159,7 @@ def test_bad_indices_are_an_error_naming_them_not_a_crash():
     """The operators check what onnxruntime hands them: a receiver outside the
     nodes, or a particle type outside the type table, comes back as
     onnxruntime's error naming ``receivers`` or ``particle_type``."""
-    model = NeuralModel(shipped_model("water2d"))
+    model = GnsRuntime(shipped_model("water2d"))
     sim = scene_state("water2d", steps=1)
     hist, ptype = sim.history, sim.particles.particle_type
     s, r, d, dist = radius_graph(hist[-1], model.radius)
@@ -205,11 +205,11 @@ def test_a_runtime_that_cannot_load_the_kernels_runs_the_plain_graph(monkeypatch
 
     monkeypatch.setattr(fused, "register", refuse)
     with pytest.warns(RuntimeWarning, match="without the fused edge kernels"):
-        model = NeuralModel(shipped_model("water2d"))
+        model = GnsRuntime(shipped_model("water2d"))
     assert model.fused is False
     sim = scene_state("water2d", steps=1)
     a, _, _ = model.predict(sim.history, sim.particles.particle_type)
     assert np.isfinite(a).all()
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(shipped_model("water2d"), fused=True)
+        GnsRuntime(shipped_model("water2d"), fused=True)
     assert e.value.field == "fused"

@@ -25,8 +25,9 @@ import torch
 from torch import nn
 
 from hybridmpm import radius_graph
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
+from hybridmpm.neural.constants import FEATURE_VERSION, NUM_TYPES
 from hybridmpm.train.gns.features import GnsFeatures, euler_step
 from hybridmpm.train.gns.model import EncodeProcessDecode, GnsConfig, GnsModel, remap_legacy_state_dict
 
@@ -103,7 +104,7 @@ class LegacyGnsModel(nn.Module):
         acc = self.normalised_acceleration(positions, particle_type, senders, receivers) * self.acc_std + self.acc_mean
         last = positions[-1]
         nxt = last + (last - positions[-2]) + acc
-        kin = (particle_type == KINEMATIC).unsqueeze(1)
+        kin = (particle_type == GNS_KINEMATIC).unsqueeze(1)
         return acc, torch.where(kin, last, nxt)
 
 
@@ -134,7 +135,7 @@ def inputs(n: int, dim: int, seed: int) -> tuple[torch.Tensor, ...]:
     x = rng.uniform(0.3, 0.3 + 0.4 * (n / 2000) ** (1 / dim), (n, dim))
     x[: min(n, 4)] = rng.uniform(0.02, 0.03, (min(n, 4), dim))
     hist = np.concatenate([x[None], x[None] + np.cumsum(rng.normal(0, 2e-3, (5, n, dim)), axis=0)]).astype(np.float32)
-    ptype = rng.choice([KINEMATIC, 5, 6], n).astype(np.int64)
+    ptype = rng.choice([GNS_KINEMATIC, 5, 6], n).astype(np.int64)
     s, r, _, _ = radius_graph(hist[-1], R)
     return torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r)
 
@@ -368,7 +369,7 @@ def test_gns_model_is_features_then_network_then_integration():
 def test_euler_step_and_normalisation_by_hand():
     hist = torch.tensor(np.random.default_rng(0).uniform(0.2, 0.8, (6, 4, 2)), dtype=torch.float32)
     acc = torch.tensor([[1e-3, -2e-3]] * 4)
-    ptype = torch.tensor([5, KINEMATIC, 6, 5])
+    ptype = torch.tensor([5, GNS_KINEMATIC, 6, 5])
     nxt = euler_step(hist, acc, ptype).numpy().astype(np.float64)
     h = hist.numpy().astype(np.float64)
     want = 2 * h[-1] - h[-2] + acc.numpy()  # v' = v + a, p' = p + v' with dt = 1 step
@@ -427,7 +428,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
 
     from test_neural import _drag_dataset
 
-    from hybridmpm.neural import NeuralModel
+    from hybridmpm.neural import GnsRuntime
     from hybridmpm.train.gns.train import TrainConfig, train
 
     data, out = tmp_path / "drag", tmp_path / "model"
@@ -464,7 +465,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
     assert resumed["step"] == 4 and next(iter(resumed["model"])).startswith("features.")
     assert all(v["step"] == 3 for v in resumed["optimizer"]["state"].values())  # 1 saved Adam step + 2 resumed
     # best.pt was never beaten (best = 0): the export holds the legacy weights
-    nm = NeuralModel(out / "model.onnx")
+    nm = GnsRuntime(out / "model.onnx")
     hist, ptype, _, _ = inputs(200, 2, seed=4)
     acc_o, nxt_o, _ = nm.predict(hist.numpy(), ptype.numpy())
     ss, rr, _, _ = radius_graph(hist[-1].numpy(), 0.02)

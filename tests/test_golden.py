@@ -45,7 +45,7 @@ import numpy as np
 import pytest
 
 from hybridmpm.metrics import grid_mass_error
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, rollout
 
@@ -160,7 +160,7 @@ def check_physics(kind: str, key: str, rec: dict, ro: Rollout) -> None:
     mean_shift = abs(ro.positions.astype(np.float64).sum() - rec["sum"]) / np.prod(rec["shape"])
     assert mean_shift <= DRIFT_TOL, mean_shift
     name, seed = key.split("/")
-    model = NeuralModel(MODELS_202EF89 / f"{name}_202ef89.onnx")
+    model = GnsRuntime(MODELS_202EF89 / f"{name}_202ef89.onnx")
     mpm = rollout(MpmSimulator(make_scene(name, seed=int(seed)), r_p=model.r_p, r_t=model.r_t, seed=int(seed), threads=1), 120).fluid_positions
     err = grid_mass_error(ro.fluid_positions, mpm, 128).mean()
     assert err <= NETWORK_ERROR_BOUND[kind], (kind, key, err)
@@ -171,7 +171,7 @@ def test_network_alone_within_rounding_of_202ef89(key: str):
     runs = {tag: network_run("neural", key, tag).positions for tag in ("202ef89", "compiled")}
     check_physics("neural", key, GOLDEN["neural"][key], network_run("neural", key, "202ef89"))
     drift = np.abs(runs["compiled"] - runs["202ef89"]).max(axis=(1, 2))
-    first = NeuralModel(MODELS_202EF89 / f"{key.split('/')[0]}_202ef89.onnx").t_in
+    first = GnsRuntime(MODELS_202EF89 / f"{key.split('/')[0]}_202ef89.onnx").t_in
     # rows 0 .. t_in - 1: the initial state and the MPM warm-up, the same in both runs; the first network
     # step agrees to float32 rounding (the two graphs may also agree exactly: on some CPUs they do)
     assert drift[:first].max() == 0 and drift[first] <= 1e-6, drift

@@ -14,7 +14,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
 from hybridmpm.mpm import MpmParams, MpmSolver
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, NeuralSimulator, complexity_score, reference, rollout
 from hybridmpm.sim.convert import estimate_volume_ratio, fit_affine, mpm_history, neural_to_mpm, velocities_from_history
@@ -35,8 +35,8 @@ def network_alone(scene, model, frames: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def water_model() -> NeuralModel:
-    return NeuralModel(shipped_model("water2d"))
+def water_model() -> GnsRuntime:
+    return GnsRuntime(shipped_model("water2d"))
 
 
 # ----------------------------------------------------------------- safeguard
@@ -186,7 +186,7 @@ def test_volume_ratio_from_density_matches_settled_water_and_keeps_it_still():
 
 
 # ------------------------------------------------------------------ failures
-class _Sabotaged(NeuralModel):
+class _Sabotaged(GnsRuntime):
     """The shipped model, with the prediction of neural step ``at`` replaced
     (for "compressed": of every step from ``at`` on, a slow squeeze)."""
 
@@ -227,7 +227,7 @@ def test_neural_blowup_falls_back_to_mpm_from_the_last_good_state(how):
 
     scene = make_scene("water2d", seed=1002)
     # the network's raw output (no density relaxation, which would undo the "compressed" sabotage's squeeze)
-    clean = HybridSimulator(scene, NeuralModel(shipped_model("water2d")), r_c=0.0, relax=0, mpm_threads=1)
+    clean = HybridSimulator(scene, GnsRuntime(shipped_model("water2d")), r_c=0.0, relax=0, mpm_threads=1)
     ref = frames_of(clean, 200)
     at = 10
     sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=at, how=how), r_c=0.0, relax=0, mpm_threads=1)
@@ -432,7 +432,7 @@ def test_the_audit_measures_the_network_against_mpm_by_the_triangle_inequality()
     # step from the same state. Audit tolerance out of reach: nothing falls back.
     scene = make_scene("water2d", seed=1003)
     kw = dict(r_c=0.01, audit_every=1, audit_tol=1e6, mpm_threads=1)
-    clean = frames_of(HybridSimulator(scene, NeuralModel(shipped_model("water2d")), **kw), 80)
+    clean = frames_of(HybridSimulator(scene, GnsRuntime(shipped_model("water2d")), **kw), 80)
     sim = HybridSimulator(scene, _Sabotaged(shipped_model("water2d"), at=1, how="lifted"), **kw)
     lifted = frames_of(sim, 80)
     first = next(i for i, f in enumerate(lifted) if f.solver == "neural")

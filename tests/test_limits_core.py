@@ -23,10 +23,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hybridmpm import _core
+from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError, SimulationError
 from hybridmpm.graph import bytes_per_edge, radius_graph
 from hybridmpm.limits import set_memory_budget
-from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
+from hybridmpm.mpm import Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
 from hybridmpm.scenes import DOMAINS, lattice, make_scene
 
 #: address-space limit of the child processes: python + numpy + the solver's
@@ -288,7 +289,7 @@ def test_a_frame_that_inverts_sand_is_retried_or_refused_never_kept():
     x = (f32(0.5) - f32(0.5) * f32(0.25)) + f32(0.25) * offsets
     v = velocities + f32(597.2205) * (x - f32(0.5))
     sim = MpmSolver(params)
-    sim.add_particles(x, np.array([SAND, WATER, SAND, WATER, WATER]), velocities=v)
+    sim.add_particles(x, np.array([MATERIAL_SAND, MATERIAL_WATER, MATERIAL_SAND, MATERIAL_WATER, MATERIAL_WATER]), velocities=v)
     sim.deformation_gradient = np.eye(2, dtype=f32) + strain
     before = sim.checkpoint()
     try:
@@ -297,7 +298,7 @@ def test_a_frame_that_inverts_sand_is_retried_or_refused_never_kept():
         assert sim.checkpoint() == before, e
     else:
         MpmSolver.from_checkpoint(sim.checkpoint())
-        sand = sim.material == SAND
+        sand = sim.material == MATERIAL_SAND
         assert (np.linalg.det(sim.deformation_gradient[sand].astype(np.float64)) > 0).all()
 
 
@@ -360,7 +361,7 @@ def test_one_solver_stepped_on_one_thread_and_read_on_another():
     released): no exception, and every read is a state some frame boundary
     produced (it used to raise RuntimeError: Already borrowed)."""
     sim = MpmSolver(MpmParams(dim=2, num_threads=1))
-    sim.add_particles(lattice([0.3, 0.3], [0.6, 0.7], sim.dx / 2), WATER)
+    sim.add_particles(lattice([0.3, 0.3], [0.6, 0.7], sim.dx / 2), MATERIAL_WATER)
     frames = 25
     boundaries = [sim.positions.tobytes()]
     reads: list[bytes] = []
@@ -402,7 +403,7 @@ def test_one_solver_stepped_on_one_thread_and_read_on_another():
 def test_two_threads_stepping_the_same_solver_are_serialised():
     sims = [MpmSolver(MpmParams(dim=2, num_threads=1)) for _ in range(2)]
     for s in sims:
-        s.add_particles(lattice([0.3, 0.3], [0.5, 0.5], s.dx / 2), WATER)
+        s.add_particles(lattice([0.3, 0.3], [0.5, 0.5], s.dx / 2), MATERIAL_WATER)
     shared, alone = sims
     ts = [threading.Thread(target=lambda: [shared.step_frame() for _ in range(10)]) for _ in range(2)]
     for t in ts:
@@ -490,7 +491,7 @@ def _drop_on_plate(thickness_cells: float, frac: float, n_grid: int = 64, frames
     plate = Box(center=[0.5, yc], half_extents=[0.6, half])
     sim = MpmSolver(MpmParams(dim=2, n_grid=n_grid, colliders=[plate], num_threads=1))
     lo = yc + half + 2 * dx
-    sim.add_particles(lattice([0.4, lo], [0.6, lo + 0.15], dx / 2), WATER)
+    sim.add_particles(lattice([0.4, lo], [0.6, lo + 0.15], dx / 2), MATERIAL_WATER)
     for _ in range(frames):
         sim.step_frame()
     return int((sim.positions[:, 1] < yc - half).sum()), sim.num_particles
@@ -527,7 +528,7 @@ def test_small_spheres_are_refused_and_larger_ones_hold():
     c = np.array([(32 + 0.6) * dx, (20 + 0.6) * dx])
     rad = 1.5 * dx
     sim = MpmSolver(MpmParams(dim=2, n_grid=64, colliders=[Sphere(center=list(c), radius=rad)], num_threads=1))
-    sim.add_particles(lattice([c[0] - 3 * dx, c[1] + rad + 2 * dx], [c[0] + 3 * dx, c[1] + rad + 2 * dx + 0.2], dx / 2), WATER)
+    sim.add_particles(lattice([c[0] - 3 * dx, c[1] + rad + 2 * dx], [c[0] + 3 * dx, c[1] + rad + 2 * dx + 0.2], dx / 2), MATERIAL_WATER)
     crossed = np.zeros(sim.num_particles, bool)
     prev = sim.positions.astype(np.float64)
     for _ in range(150):

@@ -15,8 +15,9 @@ import pytest
 
 from hybridmpm import InvalidInputError
 from hybridmpm.cli import main
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.metrics import align_frames, evaluate, fluid_mask, grid_mass_error, kinetic_energy, position_mse, rollout_summary
-from hybridmpm.trajectory import KINEMATIC, Trajectory
+from hybridmpm.trajectory import Trajectory
 
 DT = 2.5e-3
 
@@ -138,7 +139,7 @@ def test_grid_mass_error_bad_input_names_the_field():
 
 def test_fluid_mask_drops_only_kinematic_particles():
     assert fluid_mask(np.array([5, 3, 6, 3])).tolist() == [True, False, True, False]
-    assert KINEMATIC == 3
+    assert GNS_KINEMATIC == 3
 
 
 # ----------------------------------------------------------------- position MSE
@@ -291,7 +292,7 @@ def test_evaluate_ignores_kinematic_particles_and_reports_one_step_mse():
     one_step[0] = np.nan  # a history frame with no prediction
     pred = Trajectory(
         positions=np.concatenate([walls, ref.positions], axis=1),
-        particle_type=np.r_[np.full(25, KINEMATIC), ref.particle_type],
+        particle_type=np.r_[np.full(25, GNS_KINEMATIC), ref.particle_type],
         dt_frame=DT,
         extras={"one_step_positions": np.concatenate([walls, one_step], axis=1)},
     )

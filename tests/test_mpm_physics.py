@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from reference_mpm88 import mpm88_substeps
 
-from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, WallParams
+from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.mpm import Box, MpmParams, MpmSolver, WallParams
 from hybridmpm.scenes import hydrostatic_volume_ratio, lattice, wall_face
 
 G = 9.8
@@ -64,7 +65,7 @@ def test_matches_independent_numpy_mpm88():
     params = MpmParams(dim=2, n_grid=n_grid, substeps=16)
     sim = MpmSolver(params)
     x = lattice([0.3, 0.04], [0.5, 0.2], 0.5 / n_grid)
-    sim.add_particles(x, WATER)
+    sim.add_particles(x, MATERIAL_WATER)
     vol = (0.5 / n_grid) ** 2
     xr, vr, Cr, Jr = x, np.zeros_like(x), np.zeros((len(x), 2, 2)), np.ones(len(x))
     dt = 2.5e-3 / 16
@@ -81,7 +82,7 @@ def test_free_fall_is_ballistic():
     sim = MpmSolver(MpmParams(dim=2))
     x0 = lattice([0.4, 0.55], [0.5, 0.65], sim.dx / 2)
     v0 = np.array([0.4, 1.0], np.float32)
-    sim.add_particles(x0, WATER, velocities=np.tile(v0, (len(x0), 1)))
+    sim.add_particles(x0, MATERIAL_WATER, velocities=np.tile(v0, (len(x0), 1)))
     for _ in range(60):
         sim.step_frame()
     t = sim.time
@@ -99,7 +100,7 @@ def test_water_column_at_rest_stays_at_rest():
     top = face + 0.3
     x = lattice([face, face], [1 - face, top], 0.5 / 64)
     sim = MpmSolver(params)
-    sim.add_particles(x, WATER)
+    sim.add_particles(x, MATERIAL_WATER)
     sim.volume_ratio = hydrostatic_volume_ratio(x, top, params)
     vol0 = float((sim.volumes * sim.volume_ratio).sum())
     vmax = 0.0
@@ -123,7 +124,7 @@ def test_3d_scene_uniform_along_z_gives_the_2d_result():
     face = wall_face(p2)
     x2 = lattice([face, face], [face + a, face + 2 * a], 0.5 / n)
     s2 = MpmSolver(p2)
-    s2.add_particles(x2, WATER)
+    s2.add_particles(x2, MATERIAL_WATER)
     s2.volume_ratio = hydrostatic_volume_ratio(x2, face + 2 * a, p2)
 
     # slip walls whose last constrained grid node lies on the slab's faces
@@ -137,7 +138,7 @@ def test_3d_scene_uniform_along_z_gives_the_2d_result():
     p3 = MpmParams(dim=3, n_grid=n, colliders=slab)
     x3 = lattice([face, face, z0], [face + a, face + 2 * a, z1], 0.5 / n)
     s3 = MpmSolver(p3)
-    s3.add_particles(x3, WATER)
+    s3.add_particles(x3, MATERIAL_WATER)
     s3.volume_ratio = hydrostatic_volume_ratio(x3, face + 2 * a, p3)
     for _ in range(60):
         s2.step_frame()
@@ -175,7 +176,7 @@ def test_sand_friction_on_a_frictional_floor_stops_a_sliding_block():
     sim = MpmSolver(params)
     x = lattice([0.2, face], [0.3, face + 0.05], sim.dx / 2)
     v0 = 1.0
-    sim.add_particles(x, SAND, velocities=np.tile([v0, 0.0], (len(x), 1)).astype(np.float32))
+    sim.add_particles(x, MATERIAL_SAND, velocities=np.tile([v0, 0.0], (len(x), 1)).astype(np.float32))
     for _ in range(200):
         sim.step_frame()
     dist = sim.positions[:, 0].mean() - x[:, 0].mean()
@@ -190,7 +191,7 @@ def test_external_acceleration_adds_to_gravity():
     sim = MpmSolver(MpmParams(dim=2))
     a_blk = lattice([0.2, 0.6], [0.3, 0.7], sim.dx / 2)
     b_blk = lattice([0.6, 0.6], [0.7, 0.7], sim.dx / 2)
-    sim.add_particles(np.concatenate([a_blk, b_blk]), WATER)
+    sim.add_particles(np.concatenate([a_blk, b_blk]), MATERIAL_WATER)
     ext = np.zeros((sim.num_particles, 2), np.float32)
     ext[: len(a_blk)] = [2.0, G]
     sim.external_acceleration = ext
@@ -212,16 +213,16 @@ def test_water_and_sand_share_one_grid():
     sim = MpmSolver(params)
     sand = lattice([face, face], [1 - face, face + 0.1], sim.dx / 2)
     water = lattice([0.4, 0.3], [0.6, 0.45], sim.dx / 2)
-    sim.add_particles(sand, SAND)
-    sim.add_particles(water, WATER)
-    m0 = {k: sim.masses[sim.material == k].sum() for k in (WATER, SAND)}
+    sim.add_particles(sand, MATERIAL_SAND)
+    sim.add_particles(water, MATERIAL_WATER)
+    m0 = {k: sim.masses[sim.material == k].sum() for k in (MATERIAL_WATER, MATERIAL_SAND)}
     for _ in range(150):
         sim.step_frame()
     x = sim.positions
     lo, hi = sim.domain_bounds
     assert np.isfinite(x).all() and (x >= lo).all() and (x <= hi).all()
-    for k in (WATER, SAND):
+    for k in (MATERIAL_WATER, MATERIAL_SAND):
         assert sim.masses[sim.material == k].sum() == m0[k]
     # the water landed on the bed and stays above it on average
-    assert x[sim.material == WATER, 1].mean() > x[sim.material == SAND, 1].mean()
-    assert np.quantile(x[sim.material == WATER, 1], 0.9) < 0.25  # landed (a few splash droplets aside)
+    assert x[sim.material == MATERIAL_WATER, 1].mean() > x[sim.material == MATERIAL_SAND, 1].mean()
+    assert np.quantile(x[sim.material == MATERIAL_WATER, 1], 0.9) < 0.25  # landed (a few splash droplets aside)

@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from hybridmpm import radius_graph
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural import NeuralModel
-from hybridmpm.neural.constants import KINEMATIC
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.neural.runtime import MAX_PADDING, SMALL_TABLE, aggregation_inputs
 from hybridmpm.train.gns.export import export_onnx
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
@@ -194,7 +194,7 @@ def test_every_block_updates_node_and_edge_latents():
 @pytest.mark.parametrize(("n", "seed"), [(1, 0), (37, 1), (600, 2), (2300, 3)])
 def test_onnx_matches_torch(exported, n, seed):
     model, path = exported
-    nm = NeuralModel(path)
+    nm = GnsRuntime(path)
     hist, ptype = random_state(n, seed=seed, lo=0.3, hi=0.3 + 0.4 * math.sqrt(n / 2300))
     acc_t, nxt_t = run_torch(model, hist, ptype)
     acc_o, nxt_o, (s, r, _, _) = nm.predict(hist, ptype)
@@ -212,7 +212,7 @@ def test_onnx_interface_is_what_the_runtime_feeds(exported):
     from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT
 
     model, path = exported
-    nm = NeuralModel(path)
+    nm = GnsRuntime(path)
     ins = [(i.name, i.shape, i.type) for i in nm.session.get_inputs()]
     outs = [(o.name, o.shape, o.type) for o in nm.session.get_outputs()]
     assert ins == [
@@ -236,7 +236,7 @@ def test_onnx_handles_no_edges(exported):
     with torch.no_grad():
         acc_t, _ = model(torch.from_numpy(hist), torch.from_numpy(ptype), torch.from_numpy(empty), torch.from_numpy(empty))
     for threads in (1, 2):
-        acc, nxt, _ = NeuralModel(path, threads=threads).predict(hist, ptype, graph=graph)
+        acc, nxt, _ = GnsRuntime(path, threads=threads).predict(hist, ptype, graph=graph)
         assert acc.shape == (3, 2) and np.allclose(acc, acc_t.numpy(), rtol=1e-4, atol=1e-9)
 
 
@@ -328,12 +328,12 @@ def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
     old = tmp_path / "old.onnx"
     old.write_bytes(proto.SerializeToString())
     acc_t, nxt_t = run_torch(model, hist, ptype)
-    legacy = NeuralModel(old)
+    legacy = GnsRuntime(old)
     assert legacy.input_names == ["positions", "particle_type", "senders", "receivers"]
     acc_l, _, _ = legacy.predict(hist, ptype)
     assert np.abs(acc_l - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
     assert upgrade_onnx(old, tmp_path / "new.onnx") and not upgrade_onnx(tmp_path / "new.onnx")
-    new = NeuralModel(tmp_path / "new.onnx")
+    new = GnsRuntime(tmp_path / "new.onnx")
     acc_n, nxt_n, _ = new.predict(hist, ptype)
     assert np.abs(acc_n - acc_t).max() <= 1e-4 * np.abs(acc_t).max() and np.abs(nxt_n - nxt_t).max() <= 1e-6
     # an upgraded torch-exported graph predates the wall reach: it records GNS's clip at R
@@ -344,7 +344,7 @@ def test_kinematic_particles_do_not_move(exported):
     _, path = exported
     hist, ptype = random_state(200, seed=6)
     ptype[:20] = 3
-    nm = NeuralModel(path)
+    nm = GnsRuntime(path)
     x = hist
     for _ in range(3):
         _, nxt, _ = nm.predict(x, ptype)
@@ -356,13 +356,13 @@ def test_runtime_errors_name_the_field(exported, tmp_path):
     _, path = exported
     hist, ptype = random_state(10, seed=7)
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(tmp_path / "missing.onnx")
+        GnsRuntime(tmp_path / "missing.onnx")
     assert e.value.field == "model"
     (tmp_path / "junk.onnx").write_bytes(b"not onnx")
     with pytest.raises(InvalidInputError) as e:
-        NeuralModel(tmp_path / "junk.onnx")
+        GnsRuntime(tmp_path / "junk.onnx")
     assert e.value.field == "model"
-    nm = NeuralModel(path)  # the history checks are the simulator's: tests/test_sim.py
+    nm = GnsRuntime(path)  # the history checks are the simulator's: tests/test_sim.py
     with pytest.raises(InvalidInputError, match="3D") as e:
         nm.check_fits(3, np.full(4, 5))
     assert e.value.field == "model"
@@ -425,7 +425,7 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
     assert rows[0]["step"] == "0" and last < 0.3 * first, (first, last)
     assert float(rows[-1]["val_rollout_mse"]) < float(rows[0]["val_rollout_mse"])
     # the exported model carries its metadata and runs
-    nm = NeuralModel(tmp_path / "model" / "model.onnx")
+    nm = GnsRuntime(tmp_path / "model" / "model.onnx")
     assert nm.meta["scene"] == "drag" and nm.meta["latent"] == 16 and nm.meta["r_t"] == 1 and nm.meta["particle_types"] == [5]
     assert summary["steps"] == 240
     # every validated step was exported; the shipped model.onnx is the snapshot of the best rollout
@@ -435,11 +435,11 @@ def test_short_training_lowers_the_validation_loss(tmp_path):
     x = np.random.default_rng(1).uniform(0.3, 0.7, (60, 2)).astype(np.float32)
     hist = np.stack([x + 1e-3 * k for k in range(nm.t_in)]).astype(np.float32)
     pt = np.full(60, 5, np.int64)
-    best_snap = NeuralModel(tmp_path / "model" / "snapshots" / f"step_{int(best_step):07d}" / "model.onnx")
+    best_snap = GnsRuntime(tmp_path / "model" / "snapshots" / f"step_{int(best_step):07d}" / "model.onnx")
     np.testing.assert_array_equal(nm.predict(hist, pt)[0], best_snap.predict(hist, pt)[0])
     best_row = next(r for r in rows if r["step"] == best_step)
     assert best_snap.meta["val_rollout_mse"] == pytest.approx(float(best_row["val_rollout_mse"]), rel=1e-3)
-    others = [NeuralModel(p) for p in snaps if p.parent.name != f"step_{int(best_step):07d}"]
+    others = [GnsRuntime(p) for p in snaps if p.parent.name != f"step_{int(best_step):07d}"]
     assert all(not np.array_equal(nm.predict(hist, pt)[0], o.predict(hist, pt)[0]) for o in others)
     # resuming a finished run does no more steps and keeps the log
     train(cfg, progress=False)
@@ -477,7 +477,7 @@ def test_pushforward_window_targets_the_true_next_position():
     n, frames, t, t_in = 12, 14, 9, 6
     x = np.cumsum(rng.normal(0, 1e-3, (frames, n, 2)), axis=0) + 0.5
     ptype = np.full(n, 5, np.int64)
-    ptype[:2] = KINEMATIC
+    ptype[:2] = GNS_KINEMATIC
     traj = (x.astype(np.float32), ptype)
     hist, pt, acc = _window(traj, t, t_in, 0.0, rng)
     zero = np.zeros((n, 2))
@@ -490,7 +490,7 @@ def test_pushforward_window_targets_the_true_next_position():
     np.testing.assert_allclose(a0, acc, atol=1e-9)
     err = rng.normal(0, 5e-4, (n, 2))
     h1, _, a1 = _pushforward_window(_Oracle(traj[0][t], err), traj, t, t_in, 0.0, rng, 0.05, None)
-    err[ptype == KINEMATIC] = 0.0
+    err[ptype == GNS_KINEMATIC] = 0.0
     np.testing.assert_allclose(h1[-1], traj[0][t] + err, atol=1e-7)
     np.testing.assert_array_equal(h1[:-1], hist[:-1])
     np.testing.assert_allclose(a1, acc - 2 * err, atol=1e-6)
@@ -503,7 +503,7 @@ def test_pushforward_window_targets_the_true_next_position():
     assert oracle.seen is not None
     np.testing.assert_array_equal(oracle.seen[1:], h2[:-1])  # the same noisy inputs, shifted by one
     offset = h2[-2].astype(np.float64) - traj[0][t - 1]
-    assert np.abs(offset[ptype != KINEMATIC]).max() > 1e-5
+    assert np.abs(offset[ptype != GNS_KINEMATIC]).max() > 1e-5
     np.testing.assert_allclose(2 * h2[-1].astype(np.float64) - h2[-2] + a2, traj[0][t + 1] + offset, atol=1e-6)
 
 
@@ -525,7 +525,7 @@ def _option_trains_and_old_runs_resume(tmp_path, tag: str, option: dict, default
     train(cfg, progress=False)
     rows = list(csv.DictReader(open(tmp_path / tag / "log.csv")))
     assert float(rows[-1]["val_one_step"]) < 0.5 * float(rows[0]["val_one_step"])
-    assert NeuralModel(tmp_path / tag / "model.onnx").meta[meta_key] == option[meta_key]
+    assert GnsRuntime(tmp_path / tag / "model.onnx").meta[meta_key] == option[meta_key]
     old = tmp_path / f"old_{tag}"
     plain = TrainConfig(**{**cfg.__dict__, "out": str(old), "steps": 2, "val_every": 2, **defaults})
     train(plain, progress=False)
@@ -584,7 +584,7 @@ def _unroll_model(kinematic_first: int = 0):
     rng = np.random.default_rng(2)
     pos = (0.35 + 0.3 * rng.random((1, 40, 2)) + np.cumsum(rng.normal(0, 1e-3, (14, 40, 2)), axis=0)).astype(np.float32)
     ptype = np.full(40, 5, np.int64)
-    ptype[:kinematic_first] = KINEMATIC
+    ptype[:kinematic_first] = GNS_KINEMATIC
     pos[:, :kinematic_first] = pos[0, :kinematic_first] + np.linspace(0, 0.01, 14)[:, None, None]  # obstacles moved by the scene
     return model, (pos, ptype)
 
@@ -615,7 +615,7 @@ def test_unrolled_loss_is_the_position_error_of_the_models_own_rollout():
             for j in range(k):
                 s, r, _, _ = radius_graph(hist[-1].detach().numpy(), radius)
                 _, nxt = model(hist, pt, torch.from_numpy(s), torch.from_numpy(r))
-                fluid = ptype != KINEMATIC
+                fluid = ptype != GNS_KINEMATIC
                 steps.append(((nxt - torch.from_numpy(targets[j])) / model.features.acc_std)[fluid] ** 2)
                 nxt = nxt.clamp(0.0, 1.0)
                 nxt[~fluid] = torch.from_numpy(truth[j][~fluid])
@@ -706,9 +706,9 @@ def test_threads_and_spinning(exported, fused):
     from hybridmpm.sim import NeuralSimulator
 
     _, path = exported
-    one, two = NeuralModel(path, fused=fused), NeuralModel(path, threads=2, fused=fused)
+    one, two = GnsRuntime(path, fused=fused), GnsRuntime(path, threads=2, fused=fused)
     assert one.fused == two.fused == (fused is None)
-    assert (one.spinning, two.spinning, NeuralModel(path, threads=2, spinning=False).spinning) == (False, True, False)
+    assert (one.spinning, two.spinning, GnsRuntime(path, threads=2, spinning=False).spinning) == (False, True, False)
     hist, ptype = random_state(1500, seed=8, lo=0.3, hi=0.6)
     a1, x1, graph = one.predict(hist, ptype)
     # edges in a random order: onnxruntime's ScatterND on 2 threads loses updates on nearly every run so
@@ -720,7 +720,7 @@ def test_threads_and_spinning(exported, fused):
         assert np.abs(a2 - a1).max() <= 1e-5 * np.abs(a1).max() and np.abs(x2 - x1).max() <= 1e-6
     for bad in (-1, 257, True, 1.5):
         with pytest.raises(InvalidInputError) as e:
-            NeuralModel(path, threads=bad)
+            GnsRuntime(path, threads=bad)
         assert e.value.field == "threads"
         with pytest.raises(InvalidInputError) as e:
             NeuralSimulator("water2d", nn_threads=bad)
@@ -732,7 +732,7 @@ def test_predict_refuses_foreign_types_and_graphs(exported):
     raises): refused naming particle_type; a graph that is not the four arrays
     of radius_graph (the pre-compiled (senders, receivers) pair) naming graph."""
     _, path = exported
-    nm = NeuralModel(path)
+    nm = GnsRuntime(path)
     hist, ptype = random_state(50, seed=10)
     for bad in (-1, 9):
         p = ptype.copy()
@@ -767,14 +767,14 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
     train(cfg, progress=False)
     union = [(t.positions, t.particle_type) for d in (a, b) for _, t in sorted(GnsDataset(d).split("train").items())]
     only_a = [(t.positions, t.particle_type) for _, t in sorted(GnsDataset(a).split("train").items())]
-    want, alone = compute_statistics(union, exclude_types=(KINEMATIC,)), compute_statistics(only_a, exclude_types=(KINEMATIC,))
+    want, alone = compute_statistics(union, exclude_types=(GNS_KINEMATIC,)), compute_statistics(only_a, exclude_types=(GNS_KINEMATIC,))
     gns = torch.load(tmp_path / "pool" / "checkpoint.pt", weights_only=False)["gns_config"]  # the ONNX graph folds them in
     for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
         np.testing.assert_allclose(gns[key], want[key], rtol=1e-5, atol=1e-12)
     assert not np.allclose(want["vel_std"], alone["vel_std"], rtol=1e-2)  # the pooled set is not the first one alone
     assert json.loads((tmp_path / "pool" / "train_config.json").read_text())["data"] == [str(a), str(b)]
     # the model serves the scene families of every pooled dataset, each once
-    snap = NeuralModel(tmp_path / "pool" / "snapshots" / "step_0000004" / "model.onnx")
+    snap = GnsRuntime(tmp_path / "pool" / "snapshots" / "step_0000004" / "model.onnx")
     assert snap.meta["scenes"] == ["drag", "slow_drag"]
     ptype = np.full(30, 5, np.int64)
     snap.check_fits(2, ptype, "slow_drag")
@@ -886,7 +886,7 @@ def test_the_gather_sum_is_as_precise_as_scatter_next_to_a_crowded_node(exported
     dist2 = np.concatenate([dist, np.full(200, 0.5 * R, np.float32)])
     order = np.argsort(r2, kind="stable")
     graph = (s2[order], r2[order], d2[order], dist2[order])
-    one, two = NeuralModel(path, fused=False), NeuralModel(path, threads=2, fused=False)  # the plain graph's two ways
+    one, two = GnsRuntime(path, fused=False), GnsRuntime(path, threads=2, fused=False)  # the plain graph's two ways
     assert two.feeds(hist, ptype, graph)["in_edges"].shape[1] == 201
     a1, _, _ = one.predict(hist, ptype, graph=graph)
     a2, _, _ = two.predict(hist, ptype, graph=graph)
@@ -901,7 +901,7 @@ def test_a_crowded_graph_runs_on_one_thread(exported):
     _, path = exported
     hist, ptype = random_state(3000, seed=13, lo=0.05, hi=0.95)
     hist[:, :400] = hist[:, :1] + np.float32(1e-5) * np.arange(400, dtype=np.float32)[None, :, None]  # 400 particles on one spot
-    one, two = NeuralModel(path, fused=False), NeuralModel(path, threads=2, fused=False)  # the plain graph's fallback
+    one, two = GnsRuntime(path, fused=False), GnsRuntime(path, threads=2, fused=False)  # the plain graph's fallback
     a1, _, graph = one.predict(hist, ptype)
     feeds = two.feeds(hist, ptype, graph)
     assert feeds["in_edges"].shape[1] == 0 and two.session_for(feeds) is not two.session
@@ -914,7 +914,7 @@ def test_a_crowded_graph_runs_on_one_thread(exported):
 
 def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
     """A graph of layout compiled-1 (tests/golden/gns_compiled1_tiny.onnx,
-    exported before the race-free sum): on more than one thread NeuralModel
+    exported before the race-free sum): on more than one thread GnsRuntime
     runs it on one, with a warning; upgrade_onnx rewrites it as the current
     layout, which computes the same function on one thread and on two, edges in
     any order."""
@@ -925,10 +925,10 @@ def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
     from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, GRAPH_LAYOUT_1
 
     old = Path(__file__).parent / "golden" / "gns_compiled1_tiny.onnx"
-    ref = NeuralModel(old)
+    ref = GnsRuntime(old)
     assert ref.meta["graph"] == GRAPH_LAYOUT_1 and "in_edges" not in ref.input_names
     with pytest.warns(UserWarning, match="threads"):
-        assert NeuralModel(old, threads=2).threads == 1
+        assert GnsRuntime(old, threads=2).threads == 1
     new = tmp_path / "new.onnx"
     shutil.copy(old, new)
     assert upgrade_onnx(new) and not upgrade_onnx(new)
@@ -936,7 +936,7 @@ def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
     a0, x0, graph = ref.predict(hist, ptype)
     perm = np.random.default_rng(2).permutation(len(graph[1]))
     for threads in (1, 2):
-        nm = NeuralModel(new, threads=threads)
+        nm = GnsRuntime(new, threads=threads)
         assert nm.meta["graph"] == GRAPH_LAYOUT and nm.threads == threads
         assert {k: v for k, v in nm.meta.items() if k != "graph"} == {k: v for k, v in ref.meta.items() if k != "graph"}
         for g in (graph, tuple(a[perm] for a in graph)):
@@ -967,7 +967,7 @@ def test_graphs_of_the_second_compiled_layout_upgrade(tmp_path):
         upgrade_graph(onnx.load(str(new)))
     hist, ptype = random_state(1500, seed=21, lo=0.3, hi=0.6)
     for threads in (1, 2):
-        ref, nm = NeuralModel(old, threads=threads), NeuralModel(new, threads=threads)
+        ref, nm = GnsRuntime(old, threads=threads), GnsRuntime(new, threads=threads)
         assert ref.meta["graph"] == GRAPH_LAYOUT_2 and nm.meta["graph"] == GRAPH_LAYOUT
         a0, x0, graph = ref.predict(hist, ptype)
         a, x, _ = nm.predict(hist, ptype, graph=graph)

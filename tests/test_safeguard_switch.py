@@ -15,7 +15,7 @@ import pytest
 from hybridmpm.conventions import DELTA, R_C
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import SceneSpec
 from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, rollout
 
@@ -25,7 +25,7 @@ KICK = 3e-3  # [m] standard deviation of the fault's per-particle kicks: 0.4 MPM
 ERROR_GRID = 32  # cells of the grid-mass error: where the water is at the scale of 4 MPM cells, not the sub-cell noise itself
 
 
-class Scripted(NeuralModel):
+class Scripted(GnsRuntime):
     """The water2d model's metadata (r_p, r_t, T_in, radius) with a scripted
     prediction: until call ``at`` the next state of ``truth`` (MPM at r_p,
     looked up by the current positions), from then on a free-fall step with
@@ -64,12 +64,12 @@ def _run(scene, model, r_c: float) -> tuple[list[Frame], np.ndarray]:
 
 @pytest.fixture(scope="module")
 def truth() -> np.ndarray:
-    return rollout(MpmSimulator(_scene(), r_p=NeuralModel(shipped_model("water2d")).r_p, r_t=4, threads=1), FRAMES).positions
+    return rollout(MpmSimulator(_scene(), r_p=GnsRuntime(shipped_model("water2d")).r_p, r_t=4, threads=1), FRAMES).positions
 
 
 def test_a_right_network_keeps_the_flow(truth):
     frames, pos = _run(_scene(), Scripted(truth, at=10**9), R_C)
-    t_in = NeuralModel(shipped_model("water2d")).t_in
+    t_in = GnsRuntime(shipped_model("water2d")).t_in
     assert [f.solver for f in frames] == ["mpm"] * (t_in - 1) + ["neural"] * (len(frames) - t_in + 1)
     assert not any(f.event for f in frames)
     assert all(f.score >= R_C for f in frames[t_in - 1 :])
@@ -79,7 +79,7 @@ def test_a_right_network_keeps_the_flow(truth):
 def test_a_network_gone_wrong_is_handed_over_within_the_window_and_the_hybrid_recovers(truth):
     right, _ = _run(_scene(), Scripted(truth, at=10**9), R_C)
     frames, pos = _run(_scene(), Scripted(truth, at=FAULT_AT), R_C)
-    t_in = NeuralModel(shipped_model("water2d")).t_in
+    t_in = GnsRuntime(shipped_model("water2d")).t_in
     k0 = t_in - 1 + FAULT_AT - 1  # index in `frames` of the first wrong network step
     for a, b in zip(frames[:k0], right[:k0]):  # right until then
         assert np.array_equal(a.positions, b.positions) and a.solver == b.solver

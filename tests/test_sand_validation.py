@@ -17,7 +17,8 @@ import math
 import numpy as np
 import pytest
 
-from hybridmpm.mpm import SAND, MpmParams, MpmSolver, SandParams, WallParams
+from hybridmpm.conventions import MATERIAL_SAND
+from hybridmpm.mpm import MpmParams, MpmSolver, SandParams, WallParams
 from hybridmpm.scenes import lattice, wall_face
 from hybridmpm.validation import granular_column_profile, surface_slope_deg
 
@@ -31,7 +32,7 @@ def collapse(phi_deg: float, l0_cells: int, h0_cells: int, frames: int = 300):
     dx = 1.0 / params.resolved_n_grid()
     face = wall_face(params)
     sim = MpmSolver(params)
-    sim.add_particles(lattice([face, face], [face + l0_cells * dx, face + h0_cells * dx], dx / 2), SAND)
+    sim.add_particles(lattice([face, face], [face + l0_cells * dx, face + h0_cells * dx], dx / 2), MATERIAL_SAND)
     for _ in range(frames):
         sim.step_frame()
     x = sim.positions

@@ -14,7 +14,7 @@ import pytest
 from hybridmpm.bench import TEST_SEED0
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model, shipped_models
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator, NeuralSimulator, rollout
 
@@ -33,7 +33,7 @@ def test_shipped_model_loads_fits_and_rolls_out(scene):
     card = path.with_suffix(".md").read_text()
     for word in ("Data", "Config", "Training", "rollout", "one-step"):
         assert word in card, word
-    nm = NeuralModel(path)
+    nm = GnsRuntime(path)
     assert scene in nm.meta["scenes"]
     s = make_scene(scene, seed=HELD_OUT_SEED)
     assert nm.dim == s.dim
@@ -64,7 +64,7 @@ ACCURACY_BOUND = {
 }
 
 
-class ZeroAcceleration(NeuralModel):
+class ZeroAcceleration(GnsRuntime):
     """A broken model: the shipped one's metadata, no acceleration (each particle keeps its last velocity)."""
 
     def predict(self, history, particle_type, max_neighbors=None, graph=None):
@@ -97,12 +97,12 @@ def test_every_shipped_model_has_an_accuracy_bound():
 
 @pytest.mark.parametrize("scene", sorted(INDEX))
 def test_the_shipped_model_meets_its_accuracy_bound(scene, tmp_path):
-    nm = NeuralModel(shipped_model(scene))
+    nm = GnsRuntime(shipped_model(scene))
     s = make_scene(scene, seed=TEST_SEED0)  # a test seed: held out from training and validation
     frames = (nm.t_in - 1 + HORIZON) * nm.r_t
     mpm = rollout(MpmSimulator(s, r_p=nm.r_p, r_t=nm.r_t, threads=1, seed=TEST_SEED0), frames).fluid_positions
 
-    def error(model: NeuralModel) -> float:
+    def error(model: GnsRuntime) -> float:
         ro = rollout(NeuralSimulator(s, model, seed=TEST_SEED0, detect_failures=False, relax=0, mpm_threads=1), frames)
         assert np.array_equal(ro.fluid_positions[: nm.t_in], mpm[: nm.t_in])  # the same MPM warm-up: the network starts from MPM's history
         return float(grid_mass_error(ro.fluid_positions, mpm, 128)[nm.t_in :].mean())
@@ -112,4 +112,4 @@ def test_the_shipped_model_meets_its_accuracy_bound(scene, tmp_path):
     print(f"{scene}: error {err:.4f} (bound {bound})")
     assert err <= bound
     assert error(ZeroAcceleration(shipped_model(scene))) > bound
-    assert error(NeuralModel(perturbed(shipped_model(scene), tmp_path / "perturbed.onnx"))) > bound
+    assert error(GnsRuntime(perturbed(shipped_model(scene), tmp_path / "perturbed.onnx"))) > bound

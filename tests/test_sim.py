@@ -11,7 +11,7 @@ from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_TYPE_OF_MATERIAL,
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_model
 from hybridmpm.mpm import MpmParams
-from hybridmpm.neural import NeuralModel
+from hybridmpm.neural import GnsRuntime
 from hybridmpm.scenes import Scene, lattice, make_scene
 from hybridmpm.sim import (
     MPM,
@@ -28,8 +28,8 @@ from hybridmpm.sim import (
 
 
 @pytest.fixture(scope="module")
-def water_model() -> NeuralModel:
-    return NeuralModel(shipped_model("water2d"))
+def water_model() -> GnsRuntime:
+    return GnsRuntime(shipped_model("water2d"))
 
 
 def blob(gravity=(0.0, -9.8)) -> Scene:
@@ -186,7 +186,7 @@ def test_rollout_breaks_off_and_keeps_what_came_before(water_model):
     assert e.value.field == "frames"
 
 
-class _Exploding(NeuralModel):
+class _Exploding(GnsRuntime):
     def predict(self, history, particle_type, max_neighbors=None, graph=None):
         acc, nxt, g = super().predict(history, particle_type, max_neighbors, graph)
         return acc, nxt + 1.0, g  # 1 m in one step: escapes the domain

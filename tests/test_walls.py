@@ -9,8 +9,9 @@ import json
 import numpy as np
 import pytest
 
+from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError
-from hybridmpm.mpm import SAND, WATER, MpmParams, MpmSolver, SandParams, WallFace, WallParams
+from hybridmpm.mpm import MpmParams, MpmSolver, SandParams, WallFace, WallParams
 from hybridmpm.scenes import SceneSpec, hydrostatic_volume_ratio, lattice, wall_face
 
 G_N = 9.8  # load pressing the block onto the face [m/s²]
@@ -26,7 +27,7 @@ def slide(dim: int, n_grid: int, gravity, walls: WallParams, lo, hi, axis: int, 
     # answer: a = g_t − μ·g_n while sliding, 0 once friction can hold it.
     params = MpmParams(dim=dim, n_grid=n_grid, gravity=list(gravity), walls=walls, sand=SandParams(cohesion=500.0))
     sim = MpmSolver(params)
-    sim.add_particles(lattice(lo, hi, sim.dx / 2), SAND)
+    sim.add_particles(lattice(lo, hi, sim.dx / 2), MATERIAL_SAND)
     t, v = [], []
     for _ in range(frames):
         sim.step_frame()
@@ -86,7 +87,7 @@ def water_column(walls: WallParams, frames: int = 60):
     a = 16 / 64
     x = lattice([face, face], [face + a, face + 2 * a], 0.5 / 64)
     sim = MpmSolver(params)
-    sim.add_particles(x, WATER)
+    sim.add_particles(x, MATERIAL_WATER)
     sim.volume_ratio = hydrostatic_volume_ratio(x, face + 2 * a, params)
     for _ in range(frames):
         sim.step_frame()
@@ -129,7 +130,7 @@ def test_per_face_form_equal_to_all_walls_is_bitwise_identical(dim):
         x = lattice(lo, [v + 0.15 for v in lo], sim.dx / 2)
         v = np.zeros_like(x)
         v[:, 0] = -1.5  # into the x- wall, sliding on the floor
-        sim.add_particles(x, SAND, velocities=v)
+        sim.add_particles(x, MATERIAL_SAND, velocities=v)
         for _ in range(20):
             sim.step_frame()
         runs.append((sim.positions, sim.velocities, sim.affine, sim.deformation_gradient))
@@ -156,7 +157,7 @@ def test_checkpoint_round_trips_per_face_walls():
     sim = MpmSolver(MpmParams(dim=2, n_grid=64, walls=walls))
     face = wall_face(sim.params)
     x = lattice([0.3, face], [0.4, face + 0.05], sim.dx / 2)
-    sim.add_particles(x, SAND, velocities=np.tile([1.0, 0.0], (len(x), 1)).astype(np.float32))
+    sim.add_particles(x, MATERIAL_SAND, velocities=np.tile([1.0, 0.0], (len(x), 1)).astype(np.float32))
     sim.step_frame()
     blob = sim.checkpoint()
     back = MpmSolver.from_checkpoint(blob)

@@ -27,8 +27,8 @@ from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, MATERIAL_S
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.graph import radius_graph
 from hybridmpm.metrics import grid_mass_error
-from hybridmpm.mpm import SAND, WATER, Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.mpm import Box, MpmParams, MpmSolver, SandParams, Sphere, WallParams, WaterParams, grid_mass
+from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import ParticleSet, Scene, SceneSpec, make_scene
 from hybridmpm.sim import Frame, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, make_simulator, reference, rollout
 from hybridmpm.trajectory import Trajectory
@@ -41,8 +41,6 @@ __all__ = [
     "GNS_WATER",
     "MATERIAL_SAND",
     "MATERIAL_WATER",
-    "SAND",
-    "WATER",
     "Box",
     "CheckpointError",
     "Frame",
@@ -52,7 +50,7 @@ __all__ = [
     "MpmParams",
     "MpmSimulator",
     "MpmSolver",
-    "NeuralModel",
+    "GnsRuntime",
     "NeuralSimulator",
     "ParticleSet",
     "Rollout",

@@ -10,10 +10,11 @@ matched to plane-strain Mohr–Coulomb, ``α = sin φ / √2``). Units are SI.
 Example
 -------
 >>> import numpy as np
->>> from hybridmpm.mpm import MpmParams, MpmSolver, WATER
+>>> from hybridmpm.conventions import MATERIAL_WATER
+>>> from hybridmpm.mpm import MpmParams, MpmSolver
 >>> sim = MpmSolver(MpmParams(dim=2))
 >>> x = np.random.default_rng(0).uniform(0.3, 0.5, (500, 2)).astype(np.float32)
->>> sim.add_particles(x, WATER)
+>>> sim.add_particles(x, MATERIAL_WATER)
 500
 
 Frames are advanced by the simulators of :mod:`hybridmpm.sim`
@@ -33,16 +34,11 @@ from typing import Any, Literal
 import numpy as np
 
 from hybridmpm import _core
-from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.errors import as_f32 as _as_f32
 from hybridmpm.limits import human, memory_budget
 from hybridmpm.limits import memory_budget as default_budget
-
-#: Solver material codes, short names for :data:`~hybridmpm.conventions.MATERIAL_WATER`
-#: and :data:`~hybridmpm.conventions.MATERIAL_SAND` (not the GNS particle types).
-WATER = MATERIAL_WATER
-SAND = MATERIAL_SAND
 
 Condition = Literal["sticky", "slip", "separate"]
 
@@ -445,7 +441,7 @@ class MpmSolver:
     def add_particles(
         self,
         positions: np.ndarray,
-        material: int | np.ndarray = WATER,
+        material: int | np.ndarray = MATERIAL_WATER,
         *,
         velocities: np.ndarray | None = None,
         masses: np.ndarray | None = None,
@@ -705,8 +701,6 @@ def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = No
 
 __all__ = [
     "DT_FRAME",
-    "SAND",
-    "WATER",
     "Box",
     "MpmParams",
     "MpmSolver",

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
+from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
@@ -60,7 +60,7 @@ class Trajectory:
         converted to float32.
     particle_type:
         int64 [N], GNS codes (water 5, sand 6, kinematic obstacle
-        :data:`KINEMATIC` = 3).
+        :data:`GNS_KINEMATIC` = 3).
     dt_frame:
         Simulated time between stored frames [s], finite and > 0 (``2.5e-3``
         for every MPM frame, ``2.5e-3 · r_t`` for a neural rollout).
@@ -168,7 +168,7 @@ class Trajectory:
 
     def fluid_mask(self) -> np.ndarray:
         """bool [N]: True for particles that are not kinematic (GNS type 3)."""
-        return np.asarray(self.particle_type != KINEMATIC)
+        return np.asarray(self.particle_type != GNS_KINEMATIC)
 
     # ------------------------------------------------------------------ io
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -256,4 +256,4 @@ class Trajectory:
         )
 
 
-__all__ = ["KINEMATIC", "RESERVED_KEYS", "Trajectory"]
+__all__ = ["RESERVED_KEYS", "Trajectory"]

@@ -34,7 +34,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
 from hybridmpm.mpm import Sphere
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import scene_spec
 from hybridmpm.scenes.core import Scene
 from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
@@ -84,7 +84,7 @@ class StressResult:
         return dict(self.__dict__)
 
 
-def method_simulator(scene: Scene, method: str, model: NeuralModel, seed: int = 0, threads: int = 1, r_c: float = R_C, **kw: Any) -> Simulator:
+def method_simulator(scene: Scene, method: str, model: GnsRuntime, seed: int = 0, threads: int = 1, r_c: float = R_C, **kw: Any) -> Simulator:
     """The simulator of a stress ``method``: "neural" the network alone (its
     first rejected step ends the rollout), "mpm" MPM alone at the model's
     ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it),
@@ -100,7 +100,7 @@ def method_simulator(scene: Scene, method: str, model: NeuralModel, seed: int = 
     raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
 
 
-def run_method(scene: Scene, method: str, frames: int, model: NeuralModel, seed: int = 0, **kw: Any) -> tuple[Rollout, float]:
+def run_method(scene: Scene, method: str, frames: int, model: GnsRuntime, seed: int = 0, **kw: Any) -> tuple[Rollout, float]:
     """Roll out ``method`` ("neural", "mpm", "hybrid") for ``frames`` frames;
     returns the :class:`~hybridmpm.sim.Rollout` (``failure`` says why it broke
     off, if it did) and the wall seconds."""
@@ -124,7 +124,7 @@ def stress(
     """Run the stress suite on registered scene ``name``; one :class:`StressResult` per case × method."""
     from tqdm import tqdm
 
-    nm = model if isinstance(model, NeuralModel) else NeuralModel(model or shipped_model(name))
+    nm = model if isinstance(model, GnsRuntime) else GnsRuntime(model or shipped_model(name))
     results = []
     bar = tqdm(total=len(cases) * (len(methods) + 1), desc=f"stress {name}", disable=not progress)
     for case in cases:

@@ -9,7 +9,6 @@
 from hybridmpm.data.gns import (
     GNS_SAND,
     GNS_WATER,
-    KINEMATIC,
     METADATA_FILE,
     REQUIRED_METADATA,
     SPLITS,
@@ -25,7 +24,6 @@ from hybridmpm.data.gns import (
 )
 
 __all__ = [
-    "KINEMATIC",
     "METADATA_FILE",
     "REQUIRED_METADATA",
     "GNS_SAND",

@@ -11,7 +11,7 @@ dataset is a directory holding
   ``(positions, particle_type)`` or ``(positions, particle_type,
   material_properties)`` with positions float32 ``[T, N, D]`` (``T =
   sequence_length + 1`` stored frames) and particle_type int64 ``[N]`` (GNS
-  codes: :data:`KINEMATIC` 3 for boundary/obstacle particles, :data:`GNS_WATER` 5,
+  codes: :data:`GNS_KINEMATIC` 3 for boundary/obstacle particles, :data:`GNS_WATER` 5,
   :data:`GNS_SAND` 6). geoelements also reads a variant with a single member
   ``gns_data``, an object array of such tuples.
 * ``metadata.json``: ``bounds`` ``[[lo, hi]] * D``, ``sequence_length``,
@@ -47,8 +47,7 @@ from typing import IO, Any, NamedTuple, Union
 import numpy as np
 from numpy.lib import format as npformat
 
-from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
-from hybridmpm.conventions import GNS_SAND, GNS_WATER, SPLITS
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, SPLITS
 from hybridmpm.errors import InvalidInputError
 
 """The split names of a GNS dataset directory, in canonical order."""
@@ -86,7 +85,7 @@ class GnsTrajectory(NamedTuple):
         float32 ``[T, N, D]``, D ∈ {2, 3}: particle positions at the ``T``
         stored frames (simulation units, the unit domain here).
     particle_type:
-        int64 ``[N]``: GNS particle type per particle (:data:`KINEMATIC`,
+        int64 ``[N]``: GNS particle type per particle (:data:`GNS_KINEMATIC`,
         :data:`GNS_WATER`, :data:`GNS_SAND`, ...).
     material_properties:
         The optional third element of the stored tuple (geoelements' material
@@ -485,7 +484,7 @@ class _Moments:
 def compute_statistics(
     trajectories: Mapping[str, TrajectoryLike] | Iterable[TrajectoryLike],
     *,
-    exclude_types: Iterable[int] = (KINEMATIC,),
+    exclude_types: Iterable[int] = (GNS_KINEMATIC,),
 ) -> dict[str, list[float]]:
     """Velocity and acceleration mean / std per axis, as GNS metadata wants them.
 
@@ -849,7 +848,6 @@ def check_dataset(ds: GnsDataset) -> dict[str, Any]:
 
 
 __all__ = [
-    "KINEMATIC",
     "METADATA_FILE",
     "REQUIRED_METADATA",
     "GNS_SAND",

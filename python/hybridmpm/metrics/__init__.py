@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import DEFAULT_N_GRID
+from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import grid_mass
-from hybridmpm.trajectory import KINEMATIC, Trajectory
+from hybridmpm.trajectory import Trajectory
 
 #: Relative tolerance on "the ratio of the frame intervals is an integer".
 _RATIO_RTOL = 1e-5
@@ -93,7 +93,7 @@ def fluid_mask(particle_type: Any) -> np.ndarray:
     pt = np.asarray(particle_type)
     if pt.dtype.kind not in "iu" or pt.ndim != 1:
         raise InvalidInputError(f"particle_type: expected an integer array [N], got {pt.dtype} {list(pt.shape)}", "particle_type")
-    return np.asarray(pt != KINEMATIC)
+    return np.asarray(pt != GNS_KINEMATIC)
 
 
 def grid_mass_error(
@@ -286,7 +286,7 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> di
     pm, rm = pred.fluid_mask(), ref.fluid_mask()
     for name, mask in (("pred", pm), ("ref", rm)):
         if not mask.any():
-            raise InvalidInputError(f"{name}.particle_type: no fluid particles (all are kinematic, type {KINEMATIC})", f"{name}.particle_type")
+            raise InvalidInputError(f"{name}.particle_type: no fluid particles (all are kinematic, type {GNS_KINEMATIC})", f"{name}.particle_type")
     pp = pred.positions[pi][:, pm]
     rp = ref.positions[ri][:, rm]
     n_pred, n_ref = int(pm.sum()), int(rm.sum())

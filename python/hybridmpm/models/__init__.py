@@ -6,7 +6,7 @@ config, training time, one-step and rollout errors). Simulating with a shipped
 model needs only numpy and onnxruntime. ``fused/<name>`` beside a model (and
 beside each variant) is the same network with the fused edge kernels
 (:mod:`hybridmpm.neural.fused`), made from it by ``fused.write_fused`` and
-recording its SHA-256; :class:`~hybridmpm.neural.NeuralModel` runs it in
+recording its SHA-256; :class:`~hybridmpm.neural.GnsRuntime` runs it in
 its place.
 """
 

@@ -1,7 +1,7 @@
 """Neural physics at run time: exported learned simulators run by numpy +
 onnxruntime (no torch; what simulating with a shipped model needs).
 
-- :mod:`hybridmpm.neural.runtime` — :class:`NeuralModel`, an exported GNS
+- :mod:`hybridmpm.neural.runtime` — :class:`GnsRuntime`, an exported GNS
   (the simulator is :class:`hybridmpm.sim.NeuralSimulator`);
 - :mod:`hybridmpm.neural.fused` — the fused-kernel rewrite of its graph
   (onnxruntime custom operators in the Rust extension);
@@ -13,7 +13,7 @@ The models are made by :mod:`hybridmpm.train` (torch, the ``train`` extra).
 Paper Sec. 2.2, 3.1.1 and App. A; GNS: Sanchez-Gonzalez et al. 2020.
 """
 
-from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, METADATA_KEY, NUM_TYPES
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY, NUM_TYPES
+from hybridmpm.neural.runtime import GnsRuntime
 
-__all__ = ["FEATURE_VERSION", "KINEMATIC", "METADATA_KEY", "NUM_TYPES", "NeuralModel"]
+__all__ = ["FEATURE_VERSION", "METADATA_KEY", "NUM_TYPES", "GnsRuntime"]

@@ -1,7 +1,5 @@
 """Constants shared by the torch model, the exporter and the onnxruntime runtime (no torch import)."""
 
-from hybridmpm.conventions import GNS_KINEMATIC as KINEMATIC
-
 #: Version of the feature construction inside exported models (bump on any change).
 FEATURE_VERSION = 1
 #: Largest wall reach (wall-distance features saturate at ``wall_reach·R``; 1 is GNS's clip).
@@ -16,4 +14,4 @@ INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displaceme
 #: Outputs of the GNS inference graph, in order.
 OUTPUT_NAMES = ("acceleration", "next_position")
 
-__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "KINEMATIC", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES", "WALL_REACH_MAX"]
+__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES", "WALL_REACH_MAX"]

@@ -30,7 +30,7 @@ the extension module itself, which is an onnxruntime custom-op library
 (``rust/python/src/ort_ops.rs``): :func:`register` loads it into a
 session's options. The weights stay in the graph as initializers, fed to
 the operators as inputs. The shipped ``.onnx`` files are not changed (any
-onnxruntime runs them); :class:`~hybridmpm.neural.NeuralModel` runs the
+onnxruntime runs them); :class:`~hybridmpm.neural.GnsRuntime` runs the
 fused graph instead (``fused=None``), on any number of onnxruntime threads
 (the kernels cut their work into fixed parts run on the session's intra-op
 pool, with the same bits on any thread count), taken from

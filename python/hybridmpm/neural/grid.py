@@ -12,7 +12,7 @@ advection (:func:`hybridmpm._core.grid_advect`) — the same arithmetic as
 :meth:`hybridmpm.train.grid.GridModel.frames` (the tests hold them equal).
 
 :class:`GridRuntime` offers the interface :class:`~hybridmpm.sim.NeuralSimulator`
-uses of a :class:`~hybridmpm.neural.runtime.NeuralModel` (``meta``, ``dim``,
+uses of a :class:`~hybridmpm.neural.runtime.GnsRuntime` (``meta``, ``dim``,
 ``radius``, ``r_t``, ``r_p``, ``t_in``, ``check_fits``, ``predict``) and
 ``needs_graph = False``: the simulator then builds no radius graph.
 """
@@ -31,7 +31,7 @@ from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import METADATA_KEY
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.neural.runtime import GnsRuntime
 
 #: Smallest node mass (in particle counts) a grid velocity is divided by: a
 #: node of less weighs less than this in every particle's g2p, so the floor
@@ -244,7 +244,7 @@ class GridRuntime:
     def predict(
         self, history: np.ndarray, particle_type: np.ndarray, max_neighbors: int | None = None, graph: Any = None
     ) -> tuple[np.ndarray, np.ndarray, None]:
-        """One step as :meth:`hybridmpm.neural.runtime.NeuralModel.predict` returns
+        """One step as :meth:`hybridmpm.neural.runtime.GnsRuntime.predict` returns
         it: ``(acceleration [N, D] in m per step², next_position [N, D], None)``
         (no graph; ``max_neighbors`` and ``graph`` are ignored)."""
         nxt = self.frames(history, particle_type)[-1]
@@ -280,13 +280,13 @@ def model_kind(path: str | Path) -> str:
     return _kind_cached(str(p), st.st_mtime_ns, st.st_size)
 
 
-def open_model(path: str | Path, threads: int = 1) -> NeuralModel | GridRuntime:
+def open_model(path: str | Path, threads: int = 1) -> GnsRuntime | GridRuntime:
     """The run-time model of an ``.onnx`` file, whichever kind it holds: a
     :class:`GridRuntime` for a grid model, else a
-    :class:`~hybridmpm.neural.runtime.NeuralModel` (GNS). Raises as they do."""
+    :class:`~hybridmpm.neural.runtime.GnsRuntime` (GNS). Raises as they do."""
     if model_kind(path) == GRID_KIND:
         return GridRuntime(path, threads=threads)
-    return NeuralModel(path, threads=threads)
+    return GnsRuntime(path, threads=threads)
 
 
 __all__ = ["GRID_INPUT", "GRID_KIND", "GRID_OUTPUT", "GridRuntime", "grid_geometry", "model_kind", "open_model", "read_metadata"]

@@ -1,6 +1,6 @@
 """The network at run time: numpy + onnxruntime (no torch).
 
-:class:`NeuralModel` wraps an exported GNS (see :mod:`hybridmpm.train.gns.export`)
+:class:`GnsRuntime` wraps an exported GNS (see :mod:`hybridmpm.train.gns.export`)
 and its metadata, and predicts one model step (``r_t`` frames) from a position
 history (paper Sec. 2.2, App. A). The simulator that rolls it out is
 :class:`hybridmpm.sim.NeuralSimulator`.
@@ -117,7 +117,7 @@ def aggregation_inputs(receivers: np.ndarray, n: int, gather: bool) -> tuple[np.
     return pos, in_degree
 
 
-class NeuralModel:
+class GnsRuntime:
     """An exported GNS model loaded into onnxruntime.
 
     ``path`` an ``.onnx`` file written by :func:`~hybridmpm.train.gns.export.export_onnx`;
@@ -336,4 +336,4 @@ class NeuralModel:
 Graph = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-__all__ = ["MAX_PADDING", "SMALL_TABLE", "Graph", "NeuralModel", "aggregation_inputs"]
+__all__ = ["MAX_PADDING", "SMALL_TABLE", "Graph", "GnsRuntime", "aggregation_inputs"]

@@ -36,16 +36,12 @@ from hybridmpm.scenes.registry import (
 from hybridmpm.scenes.resolution import PAPER_R_P, PAPER_R_T, at_resolution, downsample_scene
 from hybridmpm.scenes.spec import MATERIALS, Block, SceneSpec, boundary_particles, collider_sdf
 
-#: Scene names accepted by :func:`make_scene` (alias of :data:`DOMAINS`).
-SCENES = DOMAINS
-
 __all__ = [
     "DOMAINS",
     "MATERIALS",
     "PAPER_FRAMES",
     "PAPER_R_P",
     "PAPER_R_T",
-    "SCENES",
     "Block",
     "ParticleSet",
     "Scene",

@@ -42,7 +42,7 @@ def make_simulator(
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``; None: the defaults),
     "mpm" (at ``r_p``) or "neural" (the model alone after its MPM warm-up).
-    ``model`` an ONNX path, a :class:`~hybridmpm.neural.NeuralModel` or None
+    ``model`` an ONNX path, a :class:`~hybridmpm.neural.GnsRuntime` or None
     (the scene's shipped model); ``threads`` MPM threads (0 = all cores).
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
     ``r_p`` for a network solver: it runs at its model's ``r_p``)."""

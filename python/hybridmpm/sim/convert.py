@@ -27,9 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
-from hybridmpm.mpm import WATER, MpmSolver, grid_mass
+from hybridmpm.mpm import MpmSolver, grid_mass
 
 
 def bspline_weights(x: np.ndarray, n_grid: int) -> tuple[np.ndarray, np.ndarray]:
@@ -168,7 +169,7 @@ def neural_to_mpm(
     material = solver.material
     if volume_ratio == "density":
         j = estimate_volume_ratio(x, solver.masses, solver.volumes, solver.n_grid, j_min=hydrostatic_j_min(solver))
-        j = np.where(material == WATER, j, 1.0).astype(np.float32)
+        j = np.where(material == MATERIAL_WATER, j, 1.0).astype(np.float32)
     else:
         j = np.ones(n, np.float32)
     solver.positions = x

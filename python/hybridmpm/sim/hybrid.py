@@ -71,7 +71,7 @@ import numpy as np
 
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, DELTA, R_C, G
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural.runtime import NeuralModel
+from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
@@ -122,7 +122,7 @@ class HybridSimulator:
         A :class:`~hybridmpm.scenes.Scene` at full resolution (or a registered
         scene name / scene file, built with ``seed``).
     model:
-        :class:`~hybridmpm.neural.NeuralModel`, ``.onnx`` path, or None for the
+        :class:`~hybridmpm.neural.GnsRuntime`, ``.onnx`` path, or None for the
         shipped model of the scene.
     r_c, delta, dwell:
         Safeguard threshold (default 0.8), window δ in steps (10), and steps
@@ -160,7 +160,7 @@ class HybridSimulator:
     def __init__(
         self,
         scene: Scene | str,
-        model: NeuralModel | str | Path | None = None,
+        model: GnsRuntime | str | Path | None = None,
         *,
         r_c: float = R_C,
         delta: int = DELTA,

@@ -52,7 +52,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
 from hybridmpm.neural.grid import GridRuntime, open_model
-from hybridmpm.neural.runtime import Graph, NeuralModel
+from hybridmpm.neural.runtime import GnsRuntime, Graph
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import at_resolution
@@ -80,17 +80,17 @@ RELAX_ITERATIONS = 3
 REST_PERCENTILE = 90.0
 
 
-def load_model(model: NeuralModel | GridRuntime | str | Path | None, scene_name: str | None, threads: int = 1) -> NeuralModel | GridRuntime:
+def load_model(model: GnsRuntime | GridRuntime | str | Path | None, scene_name: str | None, threads: int = 1) -> GnsRuntime | GridRuntime:
     """``model`` as a run-time model: itself, loaded from an ``.onnx`` path
     (a :class:`~hybridmpm.neural.grid.GridRuntime` for a grid model, else a
-    GNS :class:`NeuralModel`), or (None) the shipped model of
+    GNS :class:`GnsRuntime`), or (None) the shipped model of
     ``scene_name``. Raises :class:`InvalidInputError` (field ``model``;
     ``nn_threads`` for ``threads`` outside [0, 256]). ``threads``
     onnxruntime threads (0: one per core; more than one also spins a GNS's
-    threads, see :class:`NeuralModel`)."""
+    threads, see :class:`GnsRuntime`)."""
     if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
         raise InvalidInputError(f"nn_threads: must be an integer in [0, 256], got {threads!r}", "nn_threads")
-    if isinstance(model, (NeuralModel, GridRuntime)):
+    if isinstance(model, (GnsRuntime, GridRuntime)):
         return model
     if model is None:
         if scene_name is None:
@@ -127,7 +127,7 @@ class NeuralSimulator:
         name / scene file built with ``seed``), or one already at the model's
         ``r_p``; clustered to the model's ``r_p`` with ``seed``.
     model:
-        :class:`~hybridmpm.neural.NeuralModel`, ``.onnx`` path, or None for the
+        :class:`~hybridmpm.neural.GnsRuntime`, ``.onnx`` path, or None for the
         shipped model of the scene.
     detect_failures, ke_factor, escape_cells, degree_factor:
         The failure checks (module doc). Off: every prediction is taken.
@@ -156,7 +156,7 @@ class NeuralSimulator:
     def __init__(
         self,
         scene: Scene | str,
-        model: NeuralModel | GridRuntime | str | Path | None = None,
+        model: GnsRuntime | GridRuntime | str | Path | None = None,
         *,
         seed: int = 0,
         detect_failures: bool = True,
@@ -497,7 +497,7 @@ class NeuralSimulator:
         return commit
 
 
-def warmup_frames(model: NeuralModel) -> int:
+def warmup_frames(model: GnsRuntime) -> int:
     """MPM frames needed before the first network step: ``(T_in − 1)·r_t``."""
     return (model.t_in - 1) * model.r_t
 

@@ -52,7 +52,7 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
     :data:`~hybridmpm.train.gns.onnx_graph.GRAPH_LAYOUT` (what the file holds). Returns the path.
 
     Input and output names are :data:`INPUT_NAMES` and :data:`OUTPUT_NAMES`
-    (what :class:`~hybridmpm.neural.runtime.NeuralModel` feeds and reads).
+    (what :class:`~hybridmpm.neural.runtime.GnsRuntime` feeds and reads).
     Needs torch and onnx (the 'train' extra); an I/O failure raises
     ``OSError`` and leaves any existing file at ``path`` untouched."""
     cfg = model.config

@@ -36,9 +36,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from hybridmpm.conventions import T_IN
+from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural.constants import KINEMATIC, NUM_TYPES, WALL_REACH_MAX
+from hybridmpm.neural.constants import NUM_TYPES, WALL_REACH_MAX
 
 
 def effective_std(std: Sequence[float], noise_std: float) -> list[float]:
@@ -101,11 +101,11 @@ def euler_step(positions: torch.Tensor, acceleration: torch.Tensor, particle_typ
     float32 [N, D] (m/step², *not* normalised); ``particle_type`` int64 [N].
     Returns the next positions float32 [N, D]:
     ``p' = p + (p − p_prev) + a``; kinematic particles (type
-    :data:`~hybridmpm.neural.constants.KINEMATIC`) keep their position.
+    :data:`~hybridmpm.neural.constants.GNS_KINEMATIC`) keep their position.
     """
     last = positions[-1]
     nxt = last + (last - positions[-2]) + acceleration
-    kin = (particle_type == KINEMATIC).unsqueeze(1)
+    kin = (particle_type == GNS_KINEMATIC).unsqueeze(1)
     return torch.where(kin, last, nxt)
 
 

@@ -43,7 +43,7 @@ from torch import nn
 
 from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.neural.constants import FEATURE_VERSION, KINEMATIC, NUM_TYPES
+from hybridmpm.neural.constants import FEATURE_VERSION, NUM_TYPES
 from hybridmpm.train.gns.features import GnsFeatures
 
 
@@ -302,6 +302,6 @@ class GnsModel(nn.Module):
 
 
 __all__ = [
-    "FEATURE_VERSION", "KINEMATIC", "LEGACY_PREFIXES", "LN_EPS", "NUM_TYPES", "EncodeProcessDecode", "GnsConfig", "GnsModel", "mlp",
+    "FEATURE_VERSION", "LEGACY_PREFIXES", "LN_EPS", "NUM_TYPES", "EncodeProcessDecode", "GnsConfig", "GnsModel", "mlp",
     "remap_legacy_state_dict",
 ]  # fmt: skip

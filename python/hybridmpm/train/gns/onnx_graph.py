@@ -78,7 +78,8 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.neural.constants import INPUT_NAMES, KINEMATIC, METADATA_KEY, OUTPUT_NAMES
+from hybridmpm.conventions import GNS_KINEMATIC
+from hybridmpm.neural.constants import INPUT_NAMES, METADATA_KEY, OUTPUT_NAMES
 from hybridmpm.train.gns.model import LN_EPS, remap_legacy_state_dict
 
 #: ONNX opset of the graph.
@@ -358,7 +359,7 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     acc = b.op("Gemm", [x, b.const("W", c.w(g + "decoder.4") * acc_std[None, :]), b.const("b", c.bias(g + "decoder.4") * acc_std + acc_mean)], "acc_raw")
     b.nodes.append(helper.make_node("Identity", [acc], ["acceleration"], name="decoder/acceleration"))
     nxt = b.op("Add", [b.op("Sub", [b.op("Add", [last, last]), prev], "inertia"), "acceleration"], "nxt")
-    kin = b.op("Unsqueeze", [b.op("Equal", ["particle_type", b.const("kin", np.int64(KINEMATIC), np.int64)], "is_kin"), b.const("ax1", [1], np.int64)])
+    kin = b.op("Unsqueeze", [b.op("Equal", ["particle_type", b.const("kin", np.int64(GNS_KINEMATIC), np.int64)], "is_kin"), b.const("ax1", [1], np.int64)])
     b.nodes.append(helper.make_node("Where", [kin, last, nxt], ["next_position"], name="decoder/next_position"))
 
     f32, i64 = TensorProto.FLOAT, TensorProto.INT64

@@ -93,12 +93,12 @@ import numpy as np
 import torch
 from torch.optim import swa_utils
 
-from hybridmpm.conventions import DEFAULT_N_GRID, T_IN
+from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC, T_IN
 from hybridmpm.data import GnsDataset, compute_statistics, read_metadata
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.metrics import grid_mass_error
-from hybridmpm.neural.constants import KINEMATIC, WALL_REACH_MAX
+from hybridmpm.neural.constants import WALL_REACH_MAX
 from hybridmpm.train.gns.export import export_onnx
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
@@ -223,7 +223,7 @@ def _noised_history(traj: tuple[np.ndarray, np.ndarray], t: int, t_in: int, nois
     steps = t_in - 1
     vel_noise = np.cumsum(rng.normal(0.0, noise_std / math.sqrt(steps), (steps, n, d)), axis=0)
     pos_noise = np.concatenate([np.zeros((1, n, d)), np.cumsum(vel_noise, axis=0)])
-    pos_noise[:, ptype == KINEMATIC] = 0.0
+    pos_noise[:, ptype == GNS_KINEMATIC] = 0.0
     return hist + pos_noise, pos_noise[-1]
 
 
@@ -259,7 +259,7 @@ def _pushforward_window(
     with torch.no_grad():
         _, pred_t = model(torch.from_numpy(hist0), torch.from_numpy(ptype), torch.from_numpy(s), torch.from_numpy(r))
     pred = pred_t.numpy().astype(np.float64)
-    kin = ptype == KINEMATIC
+    kin = ptype == GNS_KINEMATIC
     pred[kin] = pos[t][kin]
     hist = np.concatenate([hist0[1:].astype(np.float64), pred[None]])
     offset = hist[-2] - pos[t - 1]  # the last true input position's noise
@@ -291,7 +291,7 @@ def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
     hist, ptype, s, r, acc = batch
     pred = model.normalised_acceleration(hist, ptype, s, r)
     target = model.features.normalise_acceleration(acc)
-    mask = ptype != KINEMATIC
+    mask = ptype != GNS_KINEMATIC
     return ((pred - target)[mask] ** 2).mean()
 
 
@@ -331,8 +331,8 @@ def _unrolled_loss(
     ptype = torch.from_numpy(np.concatenate([w[1] for w in windows]))
     targets = torch.from_numpy(np.concatenate([w[2] for w in windows], axis=1))
     truth = torch.from_numpy(np.concatenate([w[3] for w in windows], axis=1))
-    kin = (ptype == KINEMATIC).unsqueeze(1)
-    mask = ptype != KINEMATIC
+    kin = (ptype == GNS_KINEMATIC).unsqueeze(1)
+    mask = ptype != GNS_KINEMATIC
     bounds = torch.tensor(model.config.bounds, dtype=hist.dtype)
     losses = []
     for k in range(targets.shape[0]):
@@ -413,9 +413,9 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             f"pushforward: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward"
         )
 
-    stats = compute_statistics(train_data.trajs, exclude_types=(KINEMATIC,))  # at the model step (strided data)
+    stats = compute_statistics(train_data.trajs, exclude_types=(GNS_KINEMATIC,))  # at the model step (strided data)
     radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
-    types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {KINEMATIC})
+    types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {GNS_KINEMATIC})
     gcfg = GnsConfig(
         dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],
         vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
@@ -466,7 +466,7 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         for val_traj in val_trajs:
             roll = _rollout(net, val_traj, rollout_steps, radius, config.max_neighbors)
             truth = val_traj[0][t_in : t_in + rollout_steps]
-            fluid = val_traj[1] != KINEMATIC
+            fluid = val_traj[1] != GNS_KINEMATIC
             m = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
             mses.append(m)
             gms.append(float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(m) else math.inf)
