@@ -20,12 +20,14 @@ on this engine's own transfer kernel. One call covers one model step of
    deviation from the grid's mean velocity at the start (a learned FLIP-like
    share ``β = sigmoid(flip_logit)``), and is clipped to the bounds, as the
    engine's walls keep it in. Obstacle particles do not move.
+4. optionally (``pressure``) a density correction after each frame
+   (:func:`pressure_shift`, learned strength).
 
-Everything is torch operators that export to standard ONNX (ScatterElements
-with ``add`` for p2g, Gather for g2p, Conv/ConvTranspose for the U-Net), so
-the exported file is the whole step and runs in onnxruntime without torch
-(:class:`hybridmpm.neural.runtime.NeuralModel`, which tells the kinds apart by
-their inputs). Batched training concatenates the windows' particles and gives
+Training runs the whole call in torch; the exported ``.onnx`` file holds the
+U-Net alone (standard operators), and the run time
+(:class:`hybridmpm.neural.grid.GridRuntime`) does p2g, g2p and the
+advection in Rust with the same arithmetic (the tests hold the two equal).
+Batched training concatenates the windows' particles and gives
 each its window index (``batch``), which offsets its grid nodes.
 
 Shapes: positions float32 ``[T, P, D]``; particle_type int64 ``[P]``; batch
