@@ -3,6 +3,7 @@ simulator's forcing for ``T_ctr`` frames (MPM runs them), measure."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -11,7 +12,8 @@ import numpy as np
 from hybridmpm.control.controller import Controller, Plan
 from hybridmpm.control.metrics import control_metrics
 from hybridmpm.control.sketch import Sketch
-from hybridmpm.sim import Rollout, Simulator, rollout
+from hybridmpm.sim import Frame, Rollout, Simulator, rollout
+from hybridmpm.sim.rollout import StopRule
 
 
 @dataclass
@@ -24,16 +26,27 @@ class Episode:
     metrics: dict[str, Any]
 
 
-def control_episode(sim: Simulator, sketch: Sketch | None, controller: Controller, *, target: np.ndarray | None = None, progress: str | None = None) -> Episode:
+def control_episode(
+    sim: Simulator,
+    sketch: Sketch | None,
+    controller: Controller,
+    *,
+    target: np.ndarray | None = None,
+    progress: str | None = None,
+    on_frame: Callable[[Frame], None] | None = None,
+    stop: StopRule | None = None,
+) -> Episode:
     """Plan with ``controller`` on ``sim``'s current state and ``sketch``, run
     the ``controller.frames`` frames with the plan as ``sim.forcing`` (cleared
     afterwards, whatever happens), and measure (:func:`~hybridmpm.control.metrics.control_metrics`;
-    ``target`` fluid positions [M, D] for the final-shape error). The
-    simulator continues from the controlled state."""
+    ``target`` fluid positions [M, D] for the final-shape error). ``on_frame``
+    and ``stop`` are :func:`~hybridmpm.sim.rollout`'s (called with every
+    controlled frame; a reason ends the episode early). The simulator
+    continues from the controlled state."""
     plan = controller.plan(sim, sketch)
     sim.forcing = plan
     try:
-        ro = rollout(sim, controller.frames, progress=progress)
+        ro = rollout(sim, controller.frames, progress=progress, on_frame=on_frame, stop=stop)
     finally:
         sim.forcing = None
     fluid = ro.fluid_positions
