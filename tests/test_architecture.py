@@ -211,15 +211,8 @@ def test_the_dataset_format_runs_no_simulation():
     assert not offenders, offenders
 
 
-# The service's lazy imports, pending its split into routers (file, imported module); the list only shrinks.
+# The service's lazy imports (file, imported module); the list only shrinks.
 SERVICE_LAZY_IMPORTS = {
-    ("service/app.py", "hybridmpm.models"),
-    ("service/app.py", "hybridmpm.scenes"),
-    ("service/app.py", "hybridmpm"),
-    ("service/app.py", "hybridmpm.sim"),
-    ("service/app.py", "hybridmpm.sim.rollout"),
-    ("service/app.py", "hybridmpm.control"),
-    ("service/app.py", "hybridmpm.control.sketch"),
     ("service/config.py", "hybridmpm.limits"),
     ("service/sessions.py", "hybridmpm.limits"),
     ("service/sessions.py", "hybridmpm.sim"),

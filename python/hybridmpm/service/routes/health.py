@@ -1,0 +1,66 @@
+"""The page at ``/``, ``/healthz`` and the scene list."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse
+
+from hybridmpm import __version__
+from hybridmpm.models import shipped_models
+from hybridmpm.scenes import DOMAINS
+from hybridmpm.service.deps import ConfigDep, ManagerDep
+from hybridmpm.service.schemas import Health, SceneInfo
+
+STATIC = Path(__file__).parent.parent / "static"
+CSP = "default-src 'self'; img-src 'self' data:; connect-src 'self'; style-src 'self'; script-src 'self'; object-src 'none'; base-uri 'none'"
+
+router = APIRouter()
+
+
+def scene_list() -> list[dict[str, Any]]:
+    ships = shipped_models()
+    out = []
+    for name, gen in sorted(DOMAINS.items()):
+        spec = gen(seed=0)
+        doc = (gen.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+        has = name in ships
+        out.append(
+            {
+                "name": name,
+                "dim": int(spec.params.dim),
+                "frames": int(spec.frames),
+                "seeded": name != "dam_break2d",
+                "doc": " ".join(doc.split()),
+                "solvers": ["hybrid", "mpm", "neural"] if has else ["mpm"],
+                "model": has,
+            }
+        )
+    return out
+
+
+@router.get("/", include_in_schema=False)
+async def page() -> FileResponse:
+    return FileResponse(STATIC / "index.html", headers={"Content-Security-Policy": CSP, "Cache-Control": "no-cache"})
+
+
+@router.get("/healthz", response_model=Health)
+async def healthz(manager: ManagerDep, cfg: ConfigDep) -> dict[str, Any]:
+    return {
+        "status": "ok",
+        "sessions": manager.count(),
+        "max_sessions": cfg.max_sessions,
+        "memory_used": manager.budget.used,
+        "memory_budget": manager.budget.total,
+        "version": __version__,
+    }
+
+
+@router.get("/v1/scenes", response_model=list[SceneInfo])
+async def scenes(request: Request, manager: ManagerDep) -> list[dict[str, Any]]:
+    cache: list[dict[str, Any]] = request.app.state.scenes
+    if not cache:
+        cache.extend(await manager.compute(scene_list))
+    return cache

@@ -1,0 +1,48 @@
+"""Sessions: create, read, delete."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request, Response
+
+from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
+from hybridmpm.service.errors import NO_SESSION, ApiError
+from hybridmpm.service.schemas import CreateSession, SessionInfo
+from hybridmpm.service.sessions import QuotaError, SessionCapError
+
+router = APIRouter()
+
+
+@router.post(
+    "/v1/sessions",
+    status_code=201,
+    response_model=SessionInfo,
+    responses={
+        429: {"description": "this client address holds its quota of sessions (Retry-After)"},
+        503: {"description": "session cap reached or memory budget full (Retry-After)"},
+    },
+)
+async def create_session(body: CreateSession, request: Request, manager: ManagerDep, cfg: ConfigDep) -> dict[str, Any]:
+    scene = body.scene.value if hasattr(body.scene, "value") else str(body.scene)
+    client = request.client.host if request.client is not None else ""
+    try:
+        s = await manager.create(scene, body.seed, body.solver, body.r_c, client)
+    except SessionCapError:
+        raise ApiError(503, f"the server holds its maximum of {cfg.max_sessions} sessions; retry later", {"Retry-After": "30"}) from None
+    except QuotaError:
+        msg = f"this client address holds its maximum of {cfg.max_sessions_per_client} sessions (per client); delete one or retry later"
+        raise ApiError(429, msg, {"Retry-After": "30"}) from None
+    return s.info()
+
+
+@router.get("/v1/sessions/{sid}", response_model=SessionInfo, responses={404: {"description": "no such session"}})
+async def get_session(s: SessionDep) -> dict[str, Any]:
+    return s.info()
+
+
+@router.delete("/v1/sessions/{sid}", status_code=204, responses={404: {"description": "no such session"}})
+async def delete_session(sid: str, manager: ManagerDep) -> Response:
+    if not await manager.close(sid, 1000, "deleted"):
+        raise ApiError(404, NO_SESSION)
+    return Response(status_code=204)

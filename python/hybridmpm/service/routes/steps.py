@@ -1,0 +1,116 @@
+"""Stepping a session: ``POST /v1/sessions/{sid}/step`` answers the frames as
+JSON (encoded a piece at a time) or raw float32."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Request
+from fastapi.responses import Response, StreamingResponse
+
+from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
+from hybridmpm.service.errors import NO_SESSION, ApiError, FieldError
+from hybridmpm.service.schemas import StepRequest, StepResponse, clean
+from hybridmpm.sim import rollout
+
+OCTET = "application/octet-stream"
+#: Transient bytes per position value of a step's answer: JSON text, its pieces and the joined body; raw float32 and its copies.
+JSON_BYTES_PER_VALUE = 64
+BINARY_BYTES_PER_VALUE = 16
+#: Values of a step's positions JSON-encoded at a time, the GIL handed over in between.
+JSON_VALUES_PER_PIECE = 1024
+
+router = APIRouter()
+
+
+def json_floats(a: np.ndarray) -> str:
+    """``a`` float [n, d] as a JSON array of arrays (what ``json.dumps(a.tolist())``
+    writes), formatted a few thousand values at a time with no list per row
+    (nothing for the garbage collector), handing the GIL over between pieces:
+    a worker thread running this stalls the event loop by one piece at most."""
+    if not np.isfinite(a).all():
+        return json.dumps(clean(a.tolist()))
+    n, d = a.shape
+    row = "[" + ", ".join(["%r"] * d) + "]"
+    step = max(1, JSON_VALUES_PER_PIECE // d)
+    pieces = []
+    for i in range(0, n, step):
+        block = a[i : i + step]
+        pieces.append(", ".join([row] * len(block)) % tuple(block.reshape(-1).tolist()))
+        time.sleep(0)
+    return "[" + ", ".join(pieces) + "]"
+
+
+def step_json(
+    pos: np.ndarray, frames: list[int], solvers: list[str], seconds: list[float], r_t: int, dt: float, failure: str | None, latency: float
+) -> list[bytes]:
+    """The JSON answer of a step as its pieces (one per frame), encoded in a
+    worker thread (:func:`json_floats`), which lets the event loop run in
+    between; sent one piece at a time, never joined into one buffer."""
+    parts = [b'{"frames": [']
+    for k in range(len(pos)):
+        fr = frames[k]
+        head = {"step": fr // r_t, "frame": fr, "time": fr * dt, "solver": solvers[k], "seconds": seconds[k], "controlled": False}
+        item = json.dumps(head, allow_nan=False)[:-1] + ', "positions": ' + json_floats(pos[k]) + "}"
+        parts.append(((", " if k else "") + item).encode())
+    parts.append(("], " + json.dumps({"failure": failure, "latency_ms": latency})[1:]).encode())
+    return parts
+
+
+@router.post(
+    "/v1/sessions/{sid}/step",
+    response_model=StepResponse,
+    responses={
+        200: {
+            "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}},
+            "description": "JSON, or float32 [K, N, D] with Accept: application/octet-stream (X-Shape, X-Solvers, X-Seconds headers)",
+        },
+        404: {"description": "no such session"},
+    },
+)
+async def step(s: SessionDep, body: StepRequest, request: Request, manager: ManagerDep, cfg: ConfigDep) -> Any:
+    if body.frames > cfg.max_frames:
+        raise FieldError(("body", "frames"), f"frames: at most {cfg.max_frames} per request")
+    binary = OCTET in request.headers.get("accept", "")
+    values = math.ceil(body.frames / int(s.sim.r_t)) * s.sim.particles.num_total * s.sim.particles.dim
+    with manager.budget.hold(values * (BINARY_BYTES_PER_VALUE if binary else JSON_BYTES_PER_VALUE), f"a step of {body.frames} frames"):
+        t0 = time.perf_counter()
+        async with s.lock:
+            if s.closed:
+                raise ApiError(404, NO_SESSION)
+            ro = await manager.compute(rollout, s.sim, body.frames)
+            manager.changed(s)
+        latency = (time.perf_counter() - t0) * 1e3
+        s.touch()
+        pos = np.asarray(ro.positions[1:], np.float32)
+        solvers = [str(x) for x in list(ro.solver)[1:]]
+        seconds = [float(x) for x in np.asarray(ro.seconds)[1:]]
+        frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
+        failure = None if ro.failure is None else str(ro.failure)
+        del ro
+        if len(pos):
+            s.publish(s.sim.frame)
+        if binary:
+            headers = {
+                "X-Shape": ",".join(str(x) for x in pos.shape),
+                "X-Solvers": ",".join(solvers),
+                "X-Seconds": ",".join(f"{x:.6g}" for x in seconds),
+                "X-Frames": ",".join(str(x) for x in frames_),
+                "X-Latency-Ms": f"{latency:.3f}",
+            }
+            if failure:
+                headers["X-Failure"] = failure
+            return Response(await manager.compute(lambda: np.ascontiguousarray(pos, "<f4").tobytes()), media_type=OCTET, headers=headers)
+        parts = await manager.compute(step_json, pos, frames_, solvers, seconds, int(s.sim.r_t), float(s.sim.dt_frame), failure, latency)
+
+        async def pieces() -> AsyncIterator[bytes]:
+            while parts:
+                yield parts.pop(0)
+
+        size = str(sum(len(x) for x in parts))
+        return StreamingResponse(pieces(), media_type="application/json", headers={"Content-Length": size})
