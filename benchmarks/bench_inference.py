@@ -197,7 +197,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     # MPM at r_p from the frame of the network's state (sand's cost changes as it flows), back to
     # it at the start of each burst (the first, uncounted call): both are timed at the same point
     mpm = MpmSimulator(sim.scene, r_t=1, threads=mpm_threads)
-    for _ in range(max(5, sim.frame.frame)):
+    for _ in range(max(5, sim.frame.frame_index)):
         mpm.advance()
     mpm_state, mpm_calls = mpm.state(), itertools.count()
 

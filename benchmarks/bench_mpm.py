@@ -83,7 +83,7 @@ def make(dim, n_grid, origin, side, material, substeps, threads):
 
 def time_frames(sim, frames, warmup=5):
     """Median and p95 wall ms per frame over ``frames`` frames after ``warmup``."""
-    start = sim.frame.frame  # read before the rollout advances it
+    start = sim.frame.frame_index  # read before the rollout advances it
     t = rollout(sim, warmup + frames).frame_seconds(after=start + warmup)
     return float(np.median(t) * 1e3), float(np.percentile(t, 95) * 1e3)
 

@@ -54,7 +54,7 @@ def measure(store: SessionStore, scene: str, solver: str, frames: int, repeats: 
         read.append(t1 - t0)
         build.append(t2 - t1)
         restore.append(t3 - t2)
-        assert int(fresh.frame.frame) == int(sim.frame.frame)
+        assert int(fresh.frame.frame_index) == int(sim.frame.frame_index)
     store.delete(key)
 
     def ms(xs: list[float]) -> float:

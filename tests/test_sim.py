@@ -53,7 +53,7 @@ def test_the_three_simulators_share_the_protocol(water_model):
         assert isinstance(sim.frame, Frame) and sim.frame.step == 0 and sim.frame.solver == MPM
         assert sim.positions.shape == (sim.particles.num_total, 2) and sim.positions.dtype == np.float32
         fr = sim.advance()
-        assert fr.step == 1 and fr.frame == sim.r_t and fr.time == pytest.approx(sim.r_t * 2.5e-3) and fr.seconds > 0
+        assert fr.step == 1 and fr.frame_index == sim.r_t and fr.time == pytest.approx(sim.r_t * 2.5e-3) and fr.seconds > 0
         assert sim.frame is fr
 
 
@@ -157,7 +157,7 @@ def test_state_restore_continues_bit_for_bit(kind, water_model):
     st = sim.state()
     a = rollout(sim, 60)
     sim.restore(st)
-    assert sim.frame.frame == a.frame_index[0]
+    assert sim.frame.frame_index == a.frame_index[0]
     b = rollout(sim, 60)
     assert np.array_equal(a.positions, b.positions) and np.array_equal(a.solver, b.solver)
     with pytest.raises(InvalidInputError) as e:
@@ -179,7 +179,7 @@ def test_a_foreign_state_is_refused(water_model):
 # -------------------------------------------------------------------- rollout
 def test_rollout_breaks_off_and_keeps_what_came_before(water_model):
     sim = NeuralSimulator(make_scene("water2d", seed=1000), water_model, mpm_threads=1)
-    ro = rollout(sim, 200, stop=lambda fr, s: "enough" if fr.frame >= 40 else None)
+    ro = rollout(sim, 200, stop=lambda fr, s: "enough" if fr.frame_index >= 40 else None)
     assert ro.failure == "enough" and ro.frame_index[-1] == 40 and ro.frames_done == 40
     with pytest.raises(InvalidInputError) as e:
         rollout(sim, -1)

@@ -250,7 +250,7 @@ class Controller:
         t0 = time.perf_counter()
         p = sim.particles
         n, d = p.num_fluid, p.dim
-        start = int(sim.frame.frame)
+        start = int(sim.frame.frame_index)
         if self.method == "none":
             return Plan("none", start, self.frames, n, seconds=time.perf_counter() - t0, sketch=sketch)
         if self.method == "oracle" and self.oracle_path is not None:

@@ -187,7 +187,7 @@ class Session:
             "bounds": [[0.0] * d, [1.0] * d],
             "dt_frame": float(self.sim.dt_frame),
             "r_t": int(self.sim.r_t),
-            "frame": int(self.sim.frame.frame),
+            "frame": int(self.sim.frame.frame_index),
             "viewers": len(self.viewers),
             "stream": f"/v1/sessions/{self.id}/stream",
             "saved_frame": self.saved_frame,
@@ -201,7 +201,7 @@ class Session:
         """Offer a frame to every viewer (event loop thread only)."""
         if not self.viewers:
             return
-        data = encode_frame(fr.positions, fr.frame, fr.time, fr.solver, fr.controlled, control_frame)
+        data = encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
         for v in list(self.viewers):
             v.offer(data)
 
@@ -402,7 +402,7 @@ class SessionManager:
                             return True
                         s.dirty = False
                         state = await self.compute(s.sim.state)
-                        frame = int(s.sim.frame.frame)
+                        frame = int(s.sim.frame.frame_index)
                     meta = {
                         "scene": s.scene,
                         "seed": s.seed,
@@ -482,7 +482,7 @@ class SessionManager:
             except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
                 log.warning("store: session %s…: checkpoint: malformed state (%s); not restored", shown, type(e).__name__)
                 continue
-            frame = int(sim.frame.frame)
+            frame = int(sim.frame.frame_index)
             s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key)
             s.last_used = time.monotonic() - max(0.0, idle)
             s.saved_frame = s.restored_from_frame = frame

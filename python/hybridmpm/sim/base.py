@@ -53,8 +53,8 @@ Forcing = Union[np.ndarray, ForcingFunction, None]
 class Frame:
     """One coarse step of a simulator.
 
-    ``step`` coarse step index (0 = initial condition); ``frame`` frame number
-    (``step·r_t``); ``time`` [s]; ``positions`` float32 [N + B, D] [m] (fluid,
+    ``step`` coarse step index (0 = initial condition); ``frame_index`` frame
+    number (``step·r_t``); ``time`` [s]; ``positions`` float32 [N + B, D] [m] (fluid,
     then static boundary particles; see :class:`~hybridmpm.scenes.ParticleSet`);
     ``solver`` "mpm" or "neural" (the one that produced these positions);
     ``seconds`` wall time of the step; ``score`` the safeguard ``s(t)`` after
@@ -67,7 +67,7 @@ class Frame:
     """
 
     step: int
-    frame: int
+    frame_index: int
     time: float
     positions: np.ndarray
     solver: str

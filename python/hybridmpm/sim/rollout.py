@@ -111,13 +111,13 @@ def rollout(
     # each kept frame's positions, once in its Frame and once in the stacked array
     check_allocation("frames", 2.0 * (steps + 1) * p.num_total * p.dim * 4, f"keeping {steps + 1} frames of {p.num_total} particles")
     start = sim.frame
-    target = start.frame + frames
+    target = start.frame_index + frames
     recs: list[Frame] = [start]
     failure: str | None = None
     detail: str | None = None
     bar = tqdm(total=steps, desc=progress, unit="step", disable=progress is None)
     try:
-        while sim.frame.frame < target:
+        while sim.frame.frame_index < target:
             try:
                 fr = sim.advance()
             except NetworkFailure as e:
@@ -151,7 +151,7 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     seconds = np.array([0.0] + [r.seconds for r in recs[1:]])
     score = np.array([r.score for r in recs], np.float64)
     substeps = np.array([r.substeps for r in recs], np.int64)
-    frame_index = np.array([r.frame for r in recs], np.int64)
+    frame_index = np.array([r.frame_index for r in recs], np.int64)
     extras = {
         "solver": (solver == NEURAL).astype(np.int8),
         "score": score,

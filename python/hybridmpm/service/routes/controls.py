@@ -131,12 +131,12 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         async with s.lock:
             if s.closed:
                 raise ApiError(404, NO_SESSION)
-            k0 = int(s.sim.frame.frame)
+            k0 = int(s.sim.frame.frame_index)
 
             def on_frame(fr: Frame) -> None:
                 if not first:
                     first.append(time.perf_counter())
-                loop.call_soon_threadsafe(s.publish, fr, int(fr.frame) - k0)
+                loop.call_soon_threadsafe(s.publish, fr, int(fr.frame_index) - k0)
 
             def client_left(fr: Frame, sim: Any) -> str | None:
                 return "cancelled: the client left" if left.is_set() else None
@@ -164,7 +164,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
             "frames": int(controller.frames),
             "shape": list(pos.shape),
             "start_frame": int(np.asarray(ro.frame_index)[0]),
-            "end_frame": int(s.sim.frame.frame),
+            "end_frame": int(s.sim.frame.frame_index),
             "metrics": clean(metrics),
             "sketch": clean(sketch.to_json()) if sketch is not None else None,
             "sketch_png": png,

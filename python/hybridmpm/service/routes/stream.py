@@ -88,7 +88,7 @@ async def stream(ws: WebSocket, sid: str) -> None:
     s.viewers.add(v)
     v.event(s.meta())
     fr = s.sim.frame
-    v.offer(encode_frame(fr.positions, fr.frame, fr.time, fr.solver, fr.controlled))
+    v.offer(encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled))
     task = asyncio.get_running_loop().create_task(sender(v, s, cfg))
     try:
         while not v.closed and not s.closed:
@@ -115,7 +115,7 @@ async def stream(ws: WebSocket, sid: str) -> None:
                     await manager.compute(s.sim.restore, s.initial)
                     manager.changed(s)
                 s.publish(s.sim.frame)
-                s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame)})
+                s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame_index)})
             elif kind == "ping":
                 t = msg.get("t")
                 v.event({"type": "pong", "t": t if isinstance(t, (int, float)) and not isinstance(t, bool) else None})
