@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("--scene", default="dam_break2d")
     ap.add_argument("--out", default=None, help="write the result as JSON here")
     args = ap.parse_args()
-    chromium = os.environ.get("HMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+    chromium = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
     with LiveServer(max_sessions=4, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=2, bypass_csp=True)

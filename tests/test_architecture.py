@@ -69,6 +69,21 @@ def test_one_name_per_concept():
     assert not left, left
 
 
+def test_one_environment_variable_prefix_and_one_meaning_per_name():
+    # every variable the package reads is HYBRIDMPM_*; the service's process budget is not the engine's allocation budget
+    from dataclasses import fields
+
+    from hybridmpm.limits import ENV_VAR
+    from hybridmpm.service.config import ServiceConfig, env_name
+
+    offenders = [f"{p.relative_to(ROOT)}" for p in _sources("python") if "HMPM_" in p.read_text()]
+    offenders += [f"{p.relative_to(ROOT)}" for p in (ROOT / "docs").glob("*.md") if "HMPM_" in p.read_text()]
+    assert not offenders, offenders
+    names = [env_name(f.name) for f in fields(ServiceConfig)]
+    assert all(n.startswith("HYBRIDMPM_") for n in names) and len(set(names)) == len(names), names
+    assert ENV_VAR not in names
+
+
 def test_every_benchmark_script_is_listed_in_the_benchmarks_readme():
     readme = (ROOT / "benchmarks" / "README.md").read_text()
     scripts = sorted(p.name for p in (ROOT / "benchmarks").iterdir() if p.suffix in (".py", ".sh") and not p.name.startswith("_"))

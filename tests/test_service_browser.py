@@ -18,7 +18,7 @@ sync_api = pytest.importorskip("playwright.sync_api")
 
 from hybridmpm.service.testing import LiveServer  # noqa: E402
 
-CHROMIUM = os.environ.get("HMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)")
 
 

@@ -31,7 +31,7 @@ ARROW = {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     log = tmp_path_factory.mktemp("hostile") / "server.log"
-    env = {"HMPM_HEADER_TIMEOUT_S": "1", "HMPM_MAX_SESSIONS_PER_CLIENT": "40"}
+    env = {"HYBRIDMPM_HEADER_TIMEOUT_S": "1", "HYBRIDMPM_MAX_SESSIONS_PER_CLIENT": "40"}
     with LiveServer(max_sessions=40, env=env, log=log, args=["--log-level", "info"]) as s:
         s.log_path = log
         yield s

@@ -33,7 +33,7 @@ OCTET = {"Accept": "application/octet-stream"}
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     log = tmp_path_factory.mktemp("server") / "server.log"
-    with LiveServer(max_sessions=N_SESSIONS + 10, env={"HMPM_SEND_TIMEOUT_S": "2"}, log=log) as s:
+    with LiveServer(max_sessions=N_SESSIONS + 10, env={"HYBRIDMPM_SEND_TIMEOUT_S": "2"}, log=log) as s:
         yield s
 
 
@@ -180,7 +180,7 @@ def test_foreign_origin_refused(server):
 
 
 def test_ttl_and_cap_live(tmp_path):
-    with LiveServer(max_sessions=3, ttl=1.0, env={"HMPM_REAP_INTERVAL_S": "0.2"}, log=tmp_path / "s.log") as srv:
+    with LiveServer(max_sessions=3, ttl=1.0, env={"HYBRIDMPM_REAP_INTERVAL_S": "0.2"}, log=tmp_path / "s.log") as srv:
         with httpx.Client(base_url=srv.url, timeout=30) as c:
             ids = [c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"}).json()["id"] for _ in range(3)]
             r = c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})

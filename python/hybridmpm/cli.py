@@ -714,24 +714,24 @@ def build_parser() -> argparse.ArgumentParser:
     sv = sub.add_parser("serve", help="the HTTP service and its web page (needs the 'service' extra; one process, sessions in memory)")
     sv.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     sv.add_argument("--port", type=int, default=8000, help="port (default 8000)")
-    sv.add_argument("--max-sessions", type=int, default=None, help="sessions held at once; more get 503 (default 100, env HMPM_MAX_SESSIONS)")
-    sv.add_argument("--ttl", type=float, default=None, help="idle seconds before a session is removed (default 600, env HMPM_IDLE_TTL_S)")
+    sv.add_argument("--max-sessions", type=int, default=None, help="sessions held at once; more get 503 (default 100, env HYBRIDMPM_MAX_SESSIONS)")
+    sv.add_argument("--ttl", type=float, default=None, help="idle seconds before a session is removed (default 600, env HYBRIDMPM_IDLE_TTL_S)")
     sv.add_argument(
         "--allowed-hosts", default=None,
-        help="comma-separated Host names served (others: 400; '*' any). Default (env HMPM_ALLOWED_HOSTS): the loopback names on loopback addresses, any elsewhere",
+        help="comma-separated Host names served (others: 400; '*' any). Default (env HYBRIDMPM_ALLOWED_HOSTS): the loopback names on loopback addresses, any elsewhere",
     )  # fmt: skip
     sv.add_argument("--max-sessions-per-client", type=int, default=None, help="sessions one client address may hold; more get 429 (default 20)")
     sv.add_argument(
         "--memory-budget", default=None,
-        help="memory for sessions, kept controls and requests together, e.g. 8G; beyond it 503 (default half the RAM, env HMPM_MEMORY_BUDGET)",
+        help="memory for sessions, kept controls and requests together, e.g. 8G; beyond it 503 (default half the RAM, env HYBRIDMPM_SERVICE_MEMORY_BUDGET)",
     )  # fmt: skip
     sv.add_argument(
         "--store", default=None,
-        help="directory or fsspec URL (s3://..., memory://...) keeping every session's checkpoint: a restarted server brings them back (env HMPM_STORE)",
+        help="directory or fsspec URL (s3://..., memory://...) keeping every session's checkpoint: a restarted server brings them back (env HYBRIDMPM_STORE)",
     )  # fmt: skip
     sv.add_argument(
         "--save-every", type=float, default=None,
-        help="with --store: seconds a stepping session goes at most without a save, what a crash can lose (default 1, env HMPM_SAVE_EVERY_S)",
+        help="with --store: seconds a stepping session goes at most without a save, what a crash can lose (default 1, env HYBRIDMPM_SAVE_EVERY_S)",
     )  # fmt: skip
     sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
     sv.set_defaults(func=_serve)

@@ -7,8 +7,13 @@ from dataclasses import dataclass, field, fields
 
 from hybridmpm.errors import InvalidInputError
 
-#: Environment variables read by :meth:`ServiceConfig.from_env` (``HMPM_`` + the field name, upper case).
-ENV_PREFIX = "HMPM_"
+#: Environment variables read by :meth:`ServiceConfig.from_env`: ``HYBRIDMPM_`` + the
+#: field name, upper case, except :data:`MEMORY_BUDGET_ENV`.
+ENV_PREFIX = "HYBRIDMPM_"
+#: The service's process-wide budget (``memory_budget``). Not ``HYBRIDMPM_MEMORY_BUDGET``:
+#: that name is the engine's budget of one allocation (:data:`hybridmpm.limits.ENV_VAR`),
+#: which is also this budget's default.
+MEMORY_BUDGET_ENV = "HYBRIDMPM_SERVICE_MEMORY_BUDGET"
 #: The names of this machine on the loopback interface: the default trusted ``Host`` values.
 LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
 #: Longest error message a client is sent [characters] (longer ones are cut, with "…").
@@ -16,6 +21,11 @@ MAX_MESSAGE_CHARS = 300
 _TUPLES = ("allowed_origins", "allowed_hosts")
 _STRINGS = ("store",)
 _FLOATS = ("save_every_s", "idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
+
+
+def env_name(field_name: str) -> str:
+    """The environment variable of a :class:`ServiceConfig` field."""
+    return MEMORY_BUDGET_ENV if field_name == "memory_budget" else ENV_PREFIX + field_name.upper()
 
 
 @dataclass
@@ -108,12 +118,12 @@ class ServiceConfig:
 
     @classmethod
     def from_env(cls, **overrides: object) -> ServiceConfig:
-        """Defaults, then ``HMPM_<FIELD>`` environment variables
-        (``HMPM_ALLOWED_ORIGINS``, ``HMPM_ALLOWED_HOSTS`` comma-separated,
-        ``HMPM_MEMORY_BUDGET`` a size such as ``8G``), then ``overrides`` (None ignored)."""
+        """Defaults, then :func:`env_name` environment variables
+        (``HYBRIDMPM_ALLOWED_ORIGINS``, ``HYBRIDMPM_ALLOWED_HOSTS`` comma-separated,
+        ``HYBRIDMPM_SERVICE_MEMORY_BUDGET`` a size such as ``8G``), then ``overrides`` (None ignored)."""
         kw: dict[str, object] = {}
         for f in fields(cls):
-            raw = os.environ.get(ENV_PREFIX + f.name.upper())
+            raw = os.environ.get(env_name(f.name))
             if raw is None or raw == "":
                 continue
             try:
@@ -128,9 +138,9 @@ class ServiceConfig:
                 else:
                     kw[f.name] = int(raw)
             except ValueError:
-                raise InvalidInputError(f"{f.name}: {ENV_PREFIX}{f.name.upper()}={raw!r} is not a number", f.name) from None
+                raise InvalidInputError(f"{f.name}: {env_name(f.name)}={raw!r} is not a number", f.name) from None
         kw.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**kw)  # type: ignore[arg-type]
 
 
-__all__ = ["ENV_PREFIX", "LOOPBACK_HOSTS", "MAX_MESSAGE_CHARS", "ServiceConfig"]
+__all__ = ["ENV_PREFIX", "LOOPBACK_HOSTS", "MAX_MESSAGE_CHARS", "MEMORY_BUDGET_ENV", "ServiceConfig", "env_name"]

@@ -42,7 +42,7 @@ log = logging.getLogger("hybridmpm.service")
 
 #: Environment variable for tests: the Nth save of the process (1-based)
 #: writes part of its temporary file, then the process kills itself (SIGKILL).
-TEAR_ENV = "HMPM_STORE_TEAR_AT_SAVE"
+TEAR_ENV = "HYBRIDMPM_STORE_TEAR_AT_SAVE"
 #: Characters of a key shown in logs.
 SHOWN_KEY_CHARS = 8
 #: The ``meta`` keys a stored session has besides the checkpoint's own (scene, seed, solver, r_c).

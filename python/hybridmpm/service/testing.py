@@ -43,7 +43,7 @@ def listening_port(pid: int) -> int | None:
 
 
 class LiveServer:
-    """``hybridmpm serve`` in a child process. ``env`` adds ``HMPM_*`` settings
+    """``hybridmpm serve`` in a child process. ``env`` adds ``HYBRIDMPM_*`` settings
     (:meth:`ServiceConfig.from_env`; the per-client session quota is
     ``max_sessions`` unless ``env`` sets it: every request of a test comes
     from one address); ``args`` more ``serve`` arguments (``["--log-level",
@@ -75,7 +75,7 @@ class LiveServer:
             str(ttl),
             *(args or []),
         ]
-        full_env = {**os.environ, "HMPM_MAX_SESSIONS_PER_CLIENT": str(max_sessions), **(env or {})}
+        full_env = {**os.environ, "HYBRIDMPM_MAX_SESSIONS_PER_CLIENT": str(max_sessions), **(env or {})}
         self._log = open(log, "wb") if log is not None else subprocess.DEVNULL  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(cmd, env=full_env, stdout=self._log, stderr=self._log)
 

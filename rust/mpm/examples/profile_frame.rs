@@ -1,6 +1,6 @@
 //! Time frames of one benchmark scene (for profiling with perf):
 //! `cargo run --release -p hybridmpm-mpm --example profile_frame -- water2d 1 200`
-//! (`HMPM_GAP_US=N` sleeps N µs between frames, `HMPM_BUSY_US=N` busy-waits: a
+//! (`HYBRIDMPM_GAP_US=N` sleeps N µs between frames, `HYBRIDMPM_BUSY_US=N` busy-waits: a
 //! caller doing other work between frames)
 use hybridmpm_mpm::{Dim, DimOps, Material, Solver, SolverParams, lattice};
 use std::time::Instant;
@@ -65,13 +65,13 @@ where
         s.step_frame(2.5e-3).unwrap();
     }
     let mut times = Vec::new();
-    // optional idle time between frames (HMPM_GAP_US microseconds asleep, or
-    // HMPM_BUSY_US busy on this thread): a caller doing other work between frames
-    let gap_us: u64 = std::env::var("HMPM_GAP_US")
+    // optional idle time between frames (HYBRIDMPM_GAP_US microseconds asleep, or
+    // HYBRIDMPM_BUSY_US busy on this thread): a caller doing other work between frames
+    let gap_us: u64 = std::env::var("HYBRIDMPM_GAP_US")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(0);
-    let busy_us: u64 = std::env::var("HMPM_BUSY_US")
+    let busy_us: u64 = std::env::var("HYBRIDMPM_BUSY_US")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(0);
