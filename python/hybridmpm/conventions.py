@@ -60,6 +60,18 @@ AUDIT_EVERY = 4
 #: network and MPM from the same state above which MPM takes over.
 AUDIT_TOL = 1.0
 
+# ----------------------------------------------------------------- the network's failure checks
+#: A network step fails ("energy") when it raises the kinetic energy above this
+#: factor times the energy available at the start (kinetic + potential above
+#: the floor); hybridmpm.sim.neural's module doc has every check.
+FAILURE_KE_FACTOR = 2.0
+#: ... ("escaped") when it moves a particle more than this many grid cells
+#: beyond the model's bounds.
+FAILURE_ESCAPE_CELLS = 4.0
+#: ... ("compressed") when the mean number of neighbours within R exceeds this
+#: factor times that of the initial condition.
+FAILURE_DEGREE_FACTOR = 2.0
+
 # ----------------------------------------------------------------- datasets
 #: Splits of a GNS-layout dataset, in order.
 SPLITS: tuple[str, ...] = ("train", "valid", "test")
@@ -71,6 +83,9 @@ __all__ = [
     "DEFAULT_N_GRID",
     "DELTA",
     "DT_FRAME",
+    "FAILURE_DEGREE_FACTOR",
+    "FAILURE_ESCAPE_CELLS",
+    "FAILURE_KE_FACTOR",
     "G",
     "GNS_KINEMATIC",
     "GNS_SAND",

@@ -69,7 +69,16 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, DELTA, R_C, G
+from hybridmpm.conventions import (
+    AUDIT_EVERY,
+    AUDIT_TOL,
+    DELTA,
+    FAILURE_DEGREE_FACTOR,
+    FAILURE_ESCAPE_CELLS,
+    FAILURE_KE_FACTOR,
+    R_C,
+    G,
+)
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import make_scene
@@ -172,9 +181,9 @@ class HybridSimulator:
         accel_floor: float = ACCEL_FLOOR,
         audit_every: int = AUDIT_EVERY,
         audit_tol: float = AUDIT_TOL,
-        ke_factor: float = 2.0,
-        escape_cells: float = 4.0,
-        degree_factor: float = 2.0,
+        ke_factor: float = FAILURE_KE_FACTOR,
+        escape_cells: float = FAILURE_ESCAPE_CELLS,
+        degree_factor: float = FAILURE_DEGREE_FACTOR,
         detect_failures: bool = True,
         relax: int = RELAX_ITERATIONS,
         rest_percentile: float = REST_PERCENTILE,

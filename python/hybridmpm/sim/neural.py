@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import FAILURE_DEGREE_FACTOR, FAILURE_ESCAPE_CELLS, FAILURE_KE_FACTOR
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
@@ -160,9 +161,9 @@ class NeuralSimulator:
         *,
         seed: int = 0,
         detect_failures: bool = True,
-        ke_factor: float = 2.0,
-        escape_cells: float = 4.0,
-        degree_factor: float = 2.0,
+        ke_factor: float = FAILURE_KE_FACTOR,
+        escape_cells: float = FAILURE_ESCAPE_CELLS,
+        degree_factor: float = FAILURE_DEGREE_FACTOR,
         clamp: bool = True,
         warmup: bool = True,
         relax: int = RELAX_ITERATIONS,
