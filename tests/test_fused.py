@@ -1,5 +1,5 @@
 """The fused edge kernels (``hybridmpm.neural.fused``, ``rust/gnn``,
-``rust/python/src/ort_ops.rs``) compute the compiled graph's function.
+``rust/ort-ops``) compute the compiled graph's function.
 
 Checked against onnxruntime's own operators running the unfused graph (an
 independent implementation of the same arithmetic): every shipped model on a

@@ -27,7 +27,7 @@ Only the node projections of each edge block (a ``Gemm`` and a ``MatMul``)
 stay onnxruntime operators. The kernels are Rust
 (``rust/gnn``: ``edge_encoder``, ``edge_block``, ``node_block``), served by
 the extension module itself, which is an onnxruntime custom-op library
-(``rust/python/src/ort_ops.rs``): :func:`register` loads it into a
+(operators in ``rust/ort-ops``, exported by ``rust/python``): :func:`register` loads it into a
 session's options. The weights stay in the graph as initializers, fed to
 the operators as inputs. The shipped ``.onnx`` files are not changed (any
 onnxruntime runs them); :class:`~hybridmpm.neural.GnsRuntime` runs the
@@ -55,7 +55,7 @@ import numpy as np
 
 from hybridmpm import _core
 
-#: Domain of the fused operators (``rust/python/src/ort_ops.rs``).
+#: Domain of the fused operators (``rust/ort-ops``).
 DOMAIN = "hybridmpm.gnn"
 #: Latent width the kernels are compiled for.
 LATENT = 16
