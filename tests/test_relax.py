@@ -64,7 +64,7 @@ def test_wall_clipped_stacks_and_clumps_move_a_bounded_distance(dim):
     clump far above the rest density): every particle moves at most R/4 per
     iteration, the stack comes apart, and the peak density falls. Before the
     cap and the coincident-pair rule a sand pile clipped into a corner threw
-    a particle 85 R in one step (relax.rs module docs)."""
+    a particle 85 R in one step (rust/neighbors/src/relax module docs)."""
     rng = np.random.default_rng(dim)
     r = 1.0
     rest = _lattice(6 if dim == 2 else 4, 0.5, dim)

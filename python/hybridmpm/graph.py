@@ -98,7 +98,7 @@ def relax_density(
     ``ρ_i``), solved by ``iterations`` Jacobi iterations on the neighbour list
     of the given positions, each move capped at ``R/4`` per iteration and
     coincident particles pushed apart along the first axis (Rust
-    ``relax.rs`` module docs); only compression is corrected, so free surfaces
+    ``rust/neighbors/src/relax`` module docs); only compression is corrected, so free surfaces
     and splashes are left alone. Used between network steps against the
     particle clustering a learned simulator accumulates (Toshev et al.
     2024, "Neural SPH", Sec. 4, relaxes its GNS rollouts with SPH the same
