@@ -11,13 +11,13 @@
 //! 3. `grid_update.rs`: per output block, gather the overlapping padded
 //!    buffers in a fixed order, add gravity, apply walls and colliders;
 //! 4. `g2p.rs`: per particle, new `v`, `C`, position, the material update
-//!    (`material/water.rs`, `material/sand.rs`) and the stress, and the
+//!    (`material/water.rs`, `material/sand/`) and the stress, and the
 //!    particle's block key for the next substep.
 //!
 //! `frame.rs` runs a frame's substeps on a persistent team of threads
 //! (`team.rs`: one entry into the pool per frame, a barrier between stages,
 //! blocks claimed from atomic counters), or on the calling thread alone when
-//! that is faster (a busy machine).
+//! that is faster (a busy machine): `mode.rs` measures both and chooses.
 //!
 //! `cfl.rs` chooses the substep size and drives the frame, with rollback
 //! and retry. The B-spline weights live in `kernel.rs`.
@@ -33,6 +33,7 @@ mod frame;
 mod g2p;
 mod grid;
 mod grid_update;
+mod mode;
 mod p2g;
 mod team;
 
@@ -98,10 +99,10 @@ where
     stencil: Stencil<D>,
     pool: std::sync::Arc<rayon::ThreadPool>,
     pool_pid: u32,
-    /// Whether frames run on the team or the calling thread alone (`frame.rs`).
-    mode: frame::ModeChoice,
+    /// Whether frames run on the team or the calling thread alone (`mode.rs`).
+    mode: mode::ModeChoice,
     /// Print per-stage substep timings and each frame attempt's mode choice to
-    /// stderr (env `HMPM_PROFILE` set at construction).
+    /// stderr (env `HYBRIDMPM_PROFILE` set at construction).
     profile: bool,
     /// The compiled copy of the frame loop that runs ([`crate::isa`]).
     isa: Isa,
@@ -179,7 +180,7 @@ where
             pool,
             pool_pid: std::process::id(),
             mode: Default::default(),
-            profile: std::env::var_os("HMPM_PROFILE").is_some(),
+            profile: std::env::var_os("HYBRIDMPM_PROFILE").is_some(),
             isa: Isa::detect(),
             memory_budget,
         })

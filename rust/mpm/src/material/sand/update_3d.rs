@@ -1,0 +1,333 @@
+//! The 3D sand update of g2p without singular vectors ([`advance_3d`]): a
+//! matrix-series route for small deviatoric strain
+//! ([`advance_3d_series`]), an eigenvalue route otherwise
+//! ([`advance_3d_eigen`]).
+
+use super::return_map::project_lanes;
+use super::{SandModel, k};
+use crate::material::lanes::Real;
+use crate::material::vmath;
+
+/// Eigenvalues `λ1 ≥ λ2 ≥ λ3` (each at least `1e-12`) of the symmetric 3×3
+/// matrix `[[b00, b01, b02], [b01, b11, b12], [b02, b12, b22]]` in closed form
+/// (the trigonometric solution of the characteristic cubic, Smith 1961):
+/// `q = tr B / 3`, `p² = ‖B − qI‖²_F / 6`, `r = det(B − qI) / (2p³)`,
+/// `φ = acos(r) / 3`, `λ1 = q + 2p cos φ`, `λ3 = q + 2p cos(φ + 2π/3)`
+/// (both cosines through [`vmath::cos_two_thirds_acos`]),
+/// `λ2 = 3q − λ1 − λ3`. Near a double eigenvalue (`r → ±1`) the pair comes out
+/// with an error of about `p·√ε`; [`advance_3d`] only interpolates at these
+/// nodes, which makes that error second order (see there).
+#[inline(always)]
+fn sym3_eigenvalues<R: Real>(b00: R, b01: R, b02: R, b11: R, b12: R, b22: R) -> (R, R, R) {
+    let q = (b00 + b11 + b22) / k(3.0);
+    let (d0, d1, d2) = (b00 - q, b11 - q, b22 - q);
+    let p2 =
+        (d0 * d0 + d1 * d1 + d2 * d2 + k::<R>(2.0) * (b01 * b01 + b02 * b02 + b12 * b12)) / k(6.0);
+    // isotropic to f32 rounding (and p³ below would underflow): λ1 = λ2 = λ3 = q
+    let iso = p2.le(k::<R>(1e-14) * q * q);
+    let p = p2.sqrt();
+    let det =
+        d0 * (d1 * d2 - b12 * b12) - b01 * (b01 * d2 - b12 * b02) + b02 * (b01 * b12 - d1 * b02);
+    let r = det / (k::<R>(2.0) * p2 * p);
+    // clamp to [−1, 1]; NaN stays NaN (a blow-up the frame reports)
+    let r = R::select(r.lt(k(-1.0)), k(-1.0), R::select(r.gt(k(1.0)), k(1.0), r));
+    // cos(acos(r)/3) = C(√((1 + r)/2)) and cos(acos(r)/3 + 2π/3) =
+    // −cos(acos(−r)/3) = −C(√((1 − r)/2)), C = `vmath::cos_two_thirds_acos`
+    let half = k::<R>(0.5);
+    let c1 = vmath::cos_two_thirds_acos(((k::<R>(1.0) + r) * half).sqrt());
+    let c3 = vmath::cos_two_thirds_acos(((k::<R>(1.0) - r) * half).sqrt());
+    let two_p = k::<R>(2.0) * p;
+    let l1 = q + two_p * c1;
+    let l3 = q - two_p * c3;
+    let l2 = (k::<R>(3.0) * q - l1 - l3).min(l1).max(l3);
+    let (qc, tiny) = (q.max(k(1e-12)), k::<R>(1e-12));
+    (
+        R::select(iso, qc, l1.max(tiny)),
+        R::select(iso, qc, l2.max(tiny)),
+        R::select(iso, qc, l3.max(tiny)),
+    )
+}
+
+/// `g0·I + g1·M3 + g2·P` (row-major) for symmetric `M3`, `P`: the Newton form
+/// of [`advance_3d`]. (A function, not a closure: a closure may be left out
+/// of line, outside the compiled copy of the frame loop it runs in.)
+#[inline(always)]
+fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R, g2: R) -> [R; 9] {
+    let mut out = [g0; 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            let x = g1 * m3[i][j] + g2 * pr[i][j];
+            out[3 * i + j] = if i == j { g0 + x } else { x };
+        }
+    }
+    out
+}
+
+/// The 3D sand update of g2p ([`SandBatch`](super::SandBatch)) without singular vectors, on
+/// lanes of `R` (one particle or sixteen): trial F row-major and `vc` in, new
+/// F, `vc` and Kirchhoff stress out. With `B = F·Fᵀ = q·(I + X)`
+/// ([`strain_3d`]) it takes the series route ([`advance_3d_series`]) when
+/// `‖X‖_F ≤` [`SERIES_MAX_X`] in every lane, else the eigenvalue route
+/// ([`advance_3d_eigen`]): the same model, both within about 1e-6·μ of an
+/// f64 SVD (tests). So in a batch a particle's bits depend on its batch
+/// mates through that choice; batches are a source block's sand particles
+/// in storage order, the same for any thread count, so the frame stays
+/// deterministic.
+#[inline(always)]
+pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &SandModel) -> ([R; 9], R, [R; 9]) {
+    let (b, q, x, small) = strain_3d(ft);
+    if R::all(small) {
+        advance_3d_series(ft, vc, m, q, &x)
+    } else {
+        advance_3d_eigen(ft, vc, m, &b)
+    }
+}
+
+/// `(B, q, X, small)` of a trial F: `B = F·Fᵀ = q·(I + X)` (upper triangles
+/// `[00, 01, 02, 11, 12, 22]`), `q = tr B / 3`, and whether `‖X‖_F ≤`
+/// [`SERIES_MAX_X`] (false for NaN and for `q = 0`), per lane.
+#[inline(always)]
+pub(super) fn strain_3d<R: Real>(ft: &[R; 9]) -> ([R; 6], R, [R; 6], R::Mask) {
+    let row = |i: usize| [ft[3 * i], ft[3 * i + 1], ft[3 * i + 2]];
+    let (r0, r1, r2) = (row(0), row(1), row(2));
+    let dot = |a: [R; 3], b: [R; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let b = [
+        dot(r0, r0),
+        dot(r0, r1),
+        dot(r0, r2),
+        dot(r1, r1),
+        dot(r1, r2),
+        dot(r2, r2),
+    ];
+    let q = (b[0] + b[3] + b[5]) * k(1.0 / 3.0);
+    let inv_q = k::<R>(1.0) / q;
+    let mut x = [k::<R>(0.0); 6];
+    for i in 0..6 {
+        x[i] = b[i] * inv_q;
+    }
+    for i in [0, 3, 5] {
+        x[i] = x[i] - k(1.0);
+    }
+    let off = x[1] * x[1] + x[2] * x[2] + x[4] * x[4];
+    let x2 = x[0] * x[0] + x[3] * x[3] + x[5] * x[5] + k::<R>(2.0) * off;
+    // q ≥ 2e-12 keeps every eigenvalue above the eigenvalue route's clamp
+    // (σ ≥ 1e-6, λ ≥ 1e-12), which the series does not apply
+    // (folded into the one comparison: a second mask and `and` made LLVM
+    // compile the batch 17% slower on sand3d)
+    (b, q, x, x2.le(k(SERIES_MAX_X * SERIES_MAX_X)))
+}
+
+/// `‖X‖_F` (with `B = F·Fᵀ = q·(I + X)`, `q = tr B / 3`) up to which
+/// [`advance_3d`] takes the series route ([`advance_3d_series`]): there the
+/// dropped terms of `ln(I + X)` (from `X⁵/5`) are below `5e-9`, and those of
+/// `exp(Y)` (from `Y⁴/24`, `‖Y‖ ≤ ‖X‖/2`) below `3e-9`. A sand particle's
+/// elastic shear strain is small (friction caps it), so nearly every batch
+/// qualifies (98% of sand3d's batches of eight had ‖X‖ ≤ 0.03 in every
+/// lane). (0.05 with one more term of each series: 2% slower on sand3d.)
+const SERIES_MAX_X: f32 = 0.03;
+
+/// The new elastic F of a 3D return mapping: `G·F_trial` (row-major) in the
+/// lanes where `plastic` holds, `F_trial` elsewhere.
+#[inline(always)]
+fn plastic_f<R: Real>(g: &[R; 9], ft: &[R; 9], plastic: R::Mask) -> [R; 9] {
+    let mut f = *ft;
+    for i in 0..3 {
+        for j in 0..3 {
+            let gf = g[3 * i] * ft[j] + g[3 * i + 1] * ft[3 + j] + g[3 * i + 2] * ft[6 + j];
+            f[3 * i + j] = R::select(plastic, gf, ft[3 * i + j]);
+        }
+    }
+    f
+}
+
+/// Product of two commuting symmetric 3×3 matrices (upper triangles
+/// `[00, 01, 02, 11, 12, 22]`), which is symmetric.
+#[inline(always)]
+fn sym_mul<R: Real>(a: &[R; 6], b: &[R; 6]) -> [R; 6] {
+    [
+        a[0] * b[0] + a[1] * b[1] + a[2] * b[2],
+        a[0] * b[1] + a[1] * b[3] + a[2] * b[4],
+        a[0] * b[2] + a[1] * b[4] + a[2] * b[5],
+        a[1] * b[1] + a[3] * b[3] + a[4] * b[4],
+        a[1] * b[2] + a[3] * b[4] + a[4] * b[5],
+        a[2] * b[2] + a[4] * b[4] + a[5] * b[5],
+    ]
+}
+
+/// `s·A + d·I` for a symmetric `A` (upper triangle).
+#[inline(always)]
+fn sym_axpi<R: Real>(a: &[R; 6], s: R, d: R) -> [R; 6] {
+    [
+        a[0] * s + d,
+        a[1] * s,
+        a[2] * s,
+        a[3] * s + d,
+        a[4] * s,
+        a[5] * s + d,
+    ]
+}
+
+/// The 3D sand update of [`advance_3d`] for small deviatoric strain, as
+/// matrix series instead of eigenvalues: with `B = q·(I + X)` (`X` from
+/// [`advance_3d`]), the Hencky strain is `L = ½ ln B = ½ (ln q·I + ln(I + X))`,
+/// `ln(I + X) = X − X²/2 + X³/3 − X⁴/4 + X⁵/5` (Horner in `X`: four products
+/// of commuting symmetric matrices). The return mapping acts on `L`'s trace
+/// and deviator `dev L` (whose norm is that of the principal deviatoric
+/// strains): new `L' = a·dev L + c·I` with `(a, c)` = `(0, shift)` beyond the
+/// tip, `(1, tr L/3)` inside the cone, `(1 − Δγ/‖dev L‖, tr L/3 + vc/3)` on
+/// its surface (the same cases as [`project_lanes`]); `τ = 2μ·L' + λ·tr L'·I`
+/// and, when plastic, `F = exp(L' − L)·F_trial` with
+/// `exp(L' − L) = e^{c − tr L/3}·exp((a − 1)·dev L)` (series to the 4th
+/// power). Same model as [`advance_3d_eigen`] (Klár et al. 2016, Sec. 7),
+/// without its chain of square roots, divisions, logarithms and
+/// exponentials; the tests compare both with an f64 SVD.
+#[inline(always)]
+pub(super) fn advance_3d_series<R: Real>(
+    ft: &[R; 9],
+    vc: R,
+    m: &SandModel,
+    q: R,
+    x: &[R; 6],
+) -> ([R; 9], R, [R; 9]) {
+    let one = k::<R>(1.0);
+    // ln(I + X) = X(I + X(−½I + X(⅓I − X/4)))
+    let mut p = sym_axpi(x, k(-1.0 / 4.0), k(1.0 / 3.0));
+    for c in [-1.0 / 2.0, 1.0] {
+        p = sym_axpi(&sym_mul(x, &p), one, k(c));
+    }
+    let ln_x = sym_mul(x, &p);
+    // L = ½ (ln q·I + ln(I + X))
+    let half = k::<R>(0.5);
+    // ln q clamped as the singular values are (σ ≥ 1e-6, λ ≥ 1e-12: the
+    // eigenvalue route and the reference): exact for an isotropic F
+    // compressed below it, within ‖X‖/2 of the reference otherwise (a
+    // blow-up's state; a mask for it in `strain_3d` cost 17% of sand3d)
+    let l = sym_axpi(&ln_x, half, half * vmath::ln(q.max(k(1e-12))));
+    let tr = l[0] + l[3] + l[5];
+    let mean = tr * k(1.0 / 3.0);
+    let dev = sym_axpi(&l, one, -mean);
+    let dev_off = dev[1] * dev[1] + dev[2] * dev[2] + dev[4] * dev[4];
+    let dev_norm =
+        (dev[0] * dev[0] + dev[3] * dev[3] + dev[5] * dev[5] + k::<R>(2.0) * dev_off).sqrt();
+    // the projection of `project_lanes` on (tr, dev)
+    let (mu, la) = (m.mu, m.la);
+    let shift = k::<R>(m.tr_apex / 3.0);
+    let vcd = vc * k(1.0 / 3.0);
+    let tr_e = tr + k::<R>(3.0) * (vcd - shift);
+    let dgamma = dev_norm + k::<R>((3.0 * la + 2.0 * mu) / (2.0 * mu)) * tr_e * k(m.alpha);
+    let tip = tr_e.ge(k(0.0));
+    let inside = R::and(R::not(tip), dgamma.le(k(0.0)));
+    let kk = dgamma / dev_norm;
+    let a = R::select(tip, k(0.0), R::select(inside, one, one - kk));
+    let c = R::select(tip, shift, R::select(inside, mean, mean + vcd));
+    let l_new = sym_axpi(&dev, a, c);
+    let tr_new = k::<R>(3.0) * c;
+    let vc_new = R::select(inside, vc, vc + (tr - tr_new));
+    let tau6 = sym_axpi(&l_new, k(2.0 * mu), k::<R>(la) * tr_new);
+    let full = |s: &[R; 6]| [s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]];
+    // plastic (a ≠ 1): G = e^{c − tr L/3}·exp(Y), Y = (a − 1)·dev L,
+    // exp(Y) = I + Y(I + Y(½I + Y/6))
+    let plastic = a.ne(one);
+    let mut f = *ft;
+    if R::any(plastic) {
+        let y = sym_axpi(&dev, a - one, k(0.0));
+        let mut e = sym_axpi(&y, k(1.0 / 6.0), k(0.5));
+        for cc in [1.0, 1.0] {
+            e = sym_axpi(&sym_mul(&y, &e), one, k(cc));
+        }
+        let g = full(&sym_axpi(&e, vmath::exp(c - mean), k(0.0)));
+        f = plastic_f(&g, ft, plastic);
+    }
+    (f, vc_new, full(&tau6))
+}
+
+/// The 3D sand update of [`advance_3d`] through the eigenvalues of `B`
+/// (upper triangle `b`), without singular vectors, as
+/// [`advance_2d`](super::update_2d::advance_2d) does in 2D: every quantity it needs is an isotropic function
+/// of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2 ≥ λ3` from [`sym3_eigenvalues`],
+/// `σ_i = √λ_i`), and for a symmetric 3×3 `B` such a function is its Newton
+/// interpolation at the eigenvalues,
+/// `g(B) = g[λ3]·I + g[λ3,λ2]·M3 + g[λ3,λ2,λ1]·M3·M2`, `M_i = B − λ_i·I`,
+/// with divided differences `g[·]`. With `ε0_i = ½ ln λ_i` and its
+/// projection `ε_i = s·ε0_i + c` ([`project_lanes`]; `c` common):
+///
+/// - Kirchhoff stress `τ = U·diag(2μ·ε_i + λ·tr ε)·Uᵀ`: `h(λ) = μ·s·ln λ + const`,
+///   so `τ = h_3·I + μ·s·(ln[λ3,λ2]·M3 + ln[λ3,λ2,λ1]·M3·M2)`;
+/// - new elastic `F = U·diag(e^{ε_i})·Vᵀ = G·F_trial`, `G` the function
+///   `g(λ) = e^{ε_i − ε0_i} = e^c·λ^{(s − 1)/2}` (`F = F_trial` inside the cone).
+///
+/// The first divided differences are formed without cancellation
+/// (`ln[a,b] = ln1p(t)/(a − b)`, `g[a,b] = g(b)·expm1(p·ln1p(t))/(a − b)`,
+/// `t = (a − b)/b`); the second ones as their difference over `λ1 − λ3`, or
+/// as `g''(λ2)/2` when `λ1 − λ3 ≤ 1e-4·λ3`. An error `δ` in a node moves the
+/// result by about `δ` times the gaps to the other nodes (interpolation at
+/// nearby nodes), so the closed-form eigenvalues' error near a double root
+/// does not show. Same model as the SVD route (Klár et al. 2016), which it
+/// replaces in 3D because the Jacobi SVD's chain of dependent divisions and
+/// square roots was over half of a flowing sand3d frame; the tests compare
+/// both against an f64 SVD.
+#[inline(always)]
+pub(super) fn advance_3d_eigen<R: Real>(
+    ft: &[R; 9],
+    vc: R,
+    m: &SandModel,
+    b: &[R; 6],
+) -> ([R; 9], R, [R; 9]) {
+    let [b00, b01, b02, b11, b12, b22] = *b;
+    let (l1, l2, l3) = sym3_eigenvalues(b00, b01, b02, b11, b12, b22);
+    let half = k::<R>(0.5);
+    let e0 = [
+        half * vmath::ln(l1),
+        half * vmath::ln(l2),
+        half * vmath::ln(l3),
+    ];
+    let (e_new, scale, vc) = project_lanes(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
+    // divided differences of ln at λ3, λ2, λ1
+    let zero = k::<R>(0.0);
+    let (g32, g21) = (l2 - l3, l1 - l2);
+    let (lp32, lp21) = (vmath::ln_1p(g32 / l3), vmath::ln_1p(g21 / l2));
+    let (gap32, gap21) = (g32.gt(zero), g21.gt(zero));
+    let ln32 = R::select_div(gap32, lp32, g32, k(1.0), l3);
+    let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
+    let near = (l1 - l3).le(k::<R>(1e-4) * l3);
+    let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
+    // M3 = B − λ3 I and P = M3·M2 (symmetric: both are polynomials in B)
+    let m3 = [
+        [b00 - l3, b01, b02],
+        [b01, b11 - l3, b12],
+        [b02, b12, b22 - l3],
+    ];
+    let m2 = [
+        [b00 - l2, b01, b02],
+        [b01, b11 - l2, b12],
+        [b02, b12, b22 - l2],
+    ];
+    let pm = |i: usize, j: usize| m3[i][0] * m2[0][j] + m3[i][1] * m2[1][j] + m3[i][2] * m2[2][j];
+    let pr = [
+        [pm(0, 0), pm(0, 1), pm(0, 2)],
+        [pm(0, 1), pm(1, 1), pm(1, 2)],
+        [pm(0, 2), pm(1, 2), pm(2, 2)],
+    ];
+    let func = |g0: R, g1: R, g2: R| newton_3(&m3, &pr, g0, g1, g2);
+    // plastic (s ≠ 1): G = g(B), g(λ) = e^{ε_i − ε0_i} = e^c·λ^pw, F =
+    // G·F_trial; inside the cone F = F_trial (skipped if no lane is plastic)
+    let plastic = scale.ne(k(1.0));
+    let mut f = *ft;
+    if R::any(plastic) {
+        let pw = half * (scale - k(1.0));
+        let (g2, g3) = (vmath::exp(e_new[1] - e0[1]), vmath::exp(e_new[2] - e0[2]));
+        let d32 = R::select_div(gap32, g3 * vmath::exp_m1(pw * lp32), g32, pw * g3, l3);
+        let d21 = R::select_div(gap21, g2 * vmath::exp_m1(pw * lp21), g21, pw * g2, l2);
+        let d321 = R::select_div(
+            near,
+            half * pw * (pw - k(1.0)) * g2,
+            l2 * l2,
+            d21 - d32,
+            l1 - l3,
+        );
+        f = plastic_f(&func(g3, d32, d321), ft, plastic);
+    }
+    let h3 = k::<R>(2.0 * m.mu) * e_new[2] + k::<R>(m.la) * (e_new[0] + e_new[1] + e_new[2]);
+    let ms = k::<R>(m.mu) * scale;
+    (f, vc, func(h3, ms * ln32, ms * ln321))
+}
