@@ -44,6 +44,21 @@ def test_codes_and_defaults_are_defined_once():
     assert not offenders, "\n".join(offenders)
 
 
+def test_the_failure_check_defaults_are_the_conventions():
+    # the simulators' keyword defaults are hybridmpm.conventions' values, not numbers of their own
+    import inspect
+
+    from hybridmpm import conventions
+    from hybridmpm.sim import HybridSimulator, NeuralSimulator
+
+    for cls in (NeuralSimulator, HybridSimulator):
+        params = inspect.signature(cls.__init__).parameters
+        for name in ("ke_factor", "escape_cells", "degree_factor"):
+            assert params[name].default == getattr(conventions, f"FAILURE_{name.upper()}"), (cls.__name__, name)
+    for p in _sources("python/hybridmpm/sim"):
+        assert not re.search(r"(ke_factor|escape_cells|degree_factor): float = \d", p.read_text()), p
+
+
 def test_the_taichi_peer_is_not_in_the_package():
     assert not (ROOT / "python" / "hybridmpm" / "bench" / "taichi_peer.py").exists()
     for p in _sources("python"):
@@ -76,8 +91,10 @@ def test_one_environment_variable_prefix_and_one_meaning_per_name():
     from hybridmpm.limits import ENV_VAR
     from hybridmpm.service.config import ServiceConfig, env_name
 
-    offenders = [f"{p.relative_to(ROOT)}" for p in _sources("python") if "HMPM_" in p.read_text()]
-    offenders += [f"{p.relative_to(ROOT)}" for p in (ROOT / "docs").glob("*.md") if "HMPM_" in p.read_text()]
+    old_prefix = "HMPM" + "_"  # split so that this file is not an offender
+    files = _sources("python", "benchmarks", "tests") + list((ROOT / "rust").rglob("*.rs")) + list((ROOT / "docs").glob("*.md"))
+    files += [ROOT / "README.md", ROOT / "scripts" / "test.sh", ROOT / ".ci" / "run"]
+    offenders = [f"{p.relative_to(ROOT)}" for p in files if old_prefix in p.read_text()]
     assert not offenders, offenders
     names = [env_name(f.name) for f in fields(ServiceConfig)]
     assert all(n.startswith("HYBRIDMPM_") for n in names) and len(set(names)) == len(names), names
