@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
+__all__ = ["__version__", "MpmSolver", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
 
 __version__: str
 
@@ -52,6 +52,8 @@ class MpmSolver:
     def checkpoint(self) -> bytes: ...
     def restore(self, blob: bytes) -> None: ...
 
+def default_params(dim: int) -> dict[str, Any]: ...
+def default_collider() -> dict[str, Any]: ...
 def grid_mass(
     positions: npt.NDArray[np.float32],
     n_grid: int,

@@ -34,7 +34,7 @@ from typing import Any, Literal
 import numpy as np
 
 from hybridmpm import _core
-from hybridmpm.conventions import DEFAULT_N_GRID, DT_FRAME, MATERIAL_WATER
+from hybridmpm.conventions import DT_FRAME, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.errors import as_f32 as _as_f32
 from hybridmpm.limits import human, memory_budget
@@ -42,28 +42,40 @@ from hybridmpm.limits import memory_budget as default_budget
 
 Condition = Literal["sticky", "slip", "separate"]
 
+#: The solver's defaults by dimension, from the Rust core
+#: (:func:`hybridmpm._core.default_params`: ``SolverParams::default()``), in
+#: the form of :meth:`MpmParams.to_dict`. The dataclass defaults below are
+#: these values: the parameters are defined once, in Rust.
+_DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim in (2, 3)}
+#: A collider's defaults (``condition``, ``friction``), from the Rust core.
+_COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
+_SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
+_WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
+
 
 @dataclass
 class WaterParams:
     """Weakly compressible water. ``density`` ρ [kg/m³], ``bulk_modulus`` K [Pa]
-    (sound speed ``sqrt(K/ρ)``, default 20 m/s), ``viscosity`` η [Pa·s]."""
+    (sound speed ``sqrt(K/ρ)``, default 20 m/s), ``viscosity`` η [Pa·s].
+    Defaults are the Rust core's (``WaterParams::default()``)."""
 
-    density: float = 1000.0
-    bulk_modulus: float = 4.0e5
-    viscosity: float = 0.0
+    density: float = _WATER["density"]
+    bulk_modulus: float = _WATER["bulk_modulus"]
+    viscosity: float = _WATER["viscosity"]
 
 
 @dataclass
 class SandParams:
     """Drucker–Prager sand. ``youngs_modulus`` E [Pa], ``poisson_ratio`` ν,
     ``friction_angle_deg`` φ [°], ``cohesion`` c [Pa] (cone apex at mean
-    stress ``c / tan φ``)."""
+    stress ``c / tan φ``), ``density`` ρ [kg/m³]. Defaults are the Rust
+    core's (``SandParams::default()``)."""
 
-    density: float = 1000.0
-    youngs_modulus: float = 3.5e5
-    poisson_ratio: float = 0.3
-    friction_angle_deg: float = 30.0
-    cohesion: float = 0.0
+    density: float = _SAND["density"]
+    youngs_modulus: float = _SAND["youngs_modulus"]
+    poisson_ratio: float = _SAND["poisson_ratio"]
+    friction_angle_deg: float = _SAND["friction_angle_deg"]
+    cohesion: float = _SAND["cohesion"]
 
 
 #: Wall faces by axis and side: ``x-`` is x = 0, ``x+`` x = 1, ``y-`` the floor
@@ -103,11 +115,13 @@ class WallParams:
     granular-collapse setup::
 
         WallParams(condition="slip", faces={"y-": WallFace("separate", 0.6)})
+
+    Defaults are the Rust core's (``WallParams::default()``).
     """
 
-    cells: int = 3
-    condition: Condition = "separate"
-    friction: float = 0.0
+    cells: int = _WALLS["cells"]
+    condition: Condition = _WALLS["condition"]
+    friction: float = _WALLS["friction"]
     faces: dict[str, WallFace] = field(default_factory=dict)
 
     def face(self, name: str) -> tuple[str, float]:
@@ -197,14 +211,15 @@ def _wall_face(name: str, v: Any) -> WallFace:
 class Box:
     """Static box collider: ``center``, ``half_extents`` [m]; rotated by
     ``angle_deg`` (2D) or a 3×3 ``rotation`` matrix (3D) — a rotated box is a ramp.
-    Must be at least 2 grid cells thick."""
+    Must be at least 2 grid cells thick. ``condition`` and ``friction``
+    default to the Rust core's (``ColliderParams::default()``)."""
 
     center: Sequence[float]
     half_extents: Sequence[float]
     angle_deg: float | None = None
     rotation: Sequence[Sequence[float]] | None = None
-    condition: Condition = "separate"
-    friction: float = 0.0
+    condition: Condition = _COLLIDER_DEFAULTS["condition"]
+    friction: float = _COLLIDER_DEFAULTS["friction"]
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {
@@ -223,12 +238,13 @@ class Box:
 
 @dataclass
 class Sphere:
-    """Static sphere (circle in 2D) collider: ``center``, ``radius`` [m]."""
+    """Static sphere (circle in 2D) collider: ``center``, ``radius`` [m].
+    ``condition`` and ``friction`` default to the Rust core's (``ColliderParams::default()``)."""
 
     center: Sequence[float]
     radius: float
-    condition: Condition = "separate"
-    friction: float = 0.0
+    condition: Condition = _COLLIDER_DEFAULTS["condition"]
+    friction: float = _COLLIDER_DEFAULTS["friction"]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -245,16 +261,19 @@ class MpmParams:
     """All solver parameters (see the Rust ``SolverParams`` for the ranges).
 
     ``substeps=None`` lets the CFL condition ``dt ≤ cfl·dx/(c + |v|max)`` pick
-    the substep count of each frame; an int fixes it.
+    the substep count of each frame; an int fixes it. Defaults are the Rust
+    core's (``SolverParams::default()``, as a dict
+    ``hybridmpm._core.default_params(dim)``): ``n_grid=None`` and
+    ``gravity=None`` [m/s², ``dim`` numbers] take those of ``dim``.
     """
 
     dim: int = 2
     n_grid: int | None = None
     gravity: Sequence[float] | None = None
-    cfl: float = 0.4
-    substeps: int | None = None
-    max_substeps: int = 1000
-    num_threads: int = 0
+    cfl: float = _SOLVER["cfl"]
+    substeps: int | None = _SOLVER["substeps"]
+    max_substeps: int = _SOLVER["max_substeps"]
+    num_threads: int = _SOLVER["num_threads"]
     water: WaterParams = field(default_factory=WaterParams)
     sand: SandParams = field(default_factory=SandParams)
     walls: WallParams = field(default_factory=WallParams)
@@ -262,7 +281,7 @@ class MpmParams:
 
     def resolved_n_grid(self) -> int:
         self._check_int("n_grid", self.n_grid, optional=True)
-        return int(self.n_grid) if self.n_grid is not None else DEFAULT_N_GRID.get(self.dim, DEFAULT_N_GRID[2])
+        return int(self.n_grid) if self.n_grid is not None else int(_DEFAULTS.get(self.dim, _DEFAULTS[2])["n_grid"])
 
     @staticmethod
     def _check_int(name: str, v: Any, *, optional: bool = False) -> None:
@@ -319,7 +338,7 @@ class MpmParams:
         """The plain dict the Rust binding takes (JSON-serialisable); validated
         first (:meth:`validate`)."""
         self.validate()
-        gravity = list(self.gravity) if self.gravity is not None else ([0.0, -9.8] if self.dim == 2 else [0.0, -9.8, 0.0])
+        gravity = list(self.gravity) if self.gravity is not None else _DEFAULTS[self.dim]["gravity"]
         return {
             "dim": int(self.dim),
             "n_grid": self.resolved_n_grid(),

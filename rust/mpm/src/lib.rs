@@ -34,7 +34,10 @@ pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
-pub use params::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
+pub use params::{
+    BoundaryCondition, ColliderParams, SandParams, ShapeKind, SolverParams, WallFace, WallParams,
+    WaterParams,
+};
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};
 pub use transfer::{Pressure, TransferGrid, advect, g2p, p2g};

@@ -1,6 +1,15 @@
 //! Solver parameters: one `...Params` struct per concept, each with `Default`,
 //! documented SI units and a `validate()` that names the bad field.
+//!
+//! These structs are the one schema of the parameters. With the `serde`
+//! feature they (de)serialise as the parameter dict of the Python binding:
+//! every field optional (a missing one takes its `Default`), an unknown key
+//! refused, boundary conditions as `"sticky"`, `"slip"`, `"separate"`. The
+//! binding reads its dict with them and gives Python the defaults from them.
 
+use nalgebra::{SMatrix, SVector};
+
+use crate::collider::{Collider, Shape};
 use crate::error::{MpmError, Result};
 
 fn finite(field: &str, x: f32) -> Result<()> {
@@ -23,6 +32,11 @@ fn positive(field: &str, x: f32) -> Result<()> {
 /// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
 /// carries `J` only; Kirchhoff stress `τ = K·J·(J − 1)·I + η·J·(C + Cᵀ)`.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct WaterParams {
     /// Rest density ρ [kg/m³].
     pub density: f32,
@@ -66,6 +80,11 @@ impl WaterParams {
 /// Sand: Drucker–Prager elastoplasticity in Hencky strain with SVD return
 /// mapping (Klár et al. 2016) and the volume correction of Tampubolon et al. 2017.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
 pub struct SandParams {
     /// Density ρ [kg/m³].
     pub density: f32,
@@ -144,8 +163,14 @@ impl SandParams {
     }
 }
 
-/// How a boundary acts on the grid velocity of nodes inside it.
+/// How a boundary acts on the grid velocity of nodes inside it (named
+/// `"sticky"`, `"slip"`, `"separate"` in the parameter dict).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
 pub enum BoundaryCondition {
     /// Velocity set to the boundary's (zero): no slip.
     Sticky,
@@ -197,7 +222,16 @@ pub struct WallFace {
 /// the usual granular-collapse setup, is `condition = Separate`,
 /// `friction = 0` and `faces[1][0] = Some(WallFace { condition: Separate,
 /// friction: μ })`.
+///
+/// In the parameter dict (`serde` feature) `faces` maps a face name to
+/// `{"condition": ..., "friction": ...}`; a key the face leaves out takes
+/// the all-faces value, and only overridden faces are written.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(from = "wire::Walls", into = "wire::Walls")
+)]
 pub struct WallParams {
     /// Thickness of the wall band in grid cells, in [2, n_grid/4).
     pub cells: usize,
@@ -276,11 +310,17 @@ fn non_negative(field: &str, x: f32) -> Result<()> {
 pub const MAX_SUBSTEPS: usize = 1_000_000;
 
 /// Solver-wide parameters.
+///
+/// (`serde` feature: serde's derive cannot read a struct generic over a
+/// const, so `Deserialize` goes through `wire::Solver`, which the compiler
+/// holds to these fields.)
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct SolverParams<const D: usize> {
     /// Grid cells per dimension over the unit domain (dx = 1 / n_grid), in [16, 4096].
     pub n_grid: usize,
-    /// Gravity [m/s²].
+    /// Gravity [m/s²] (a list of `D` numbers in the parameter dict).
+    #[cfg_attr(feature = "serde", serde(serialize_with = "wire::serialize_array"))]
     pub gravity: [f32; D],
     /// CFL number: substep `dt ≤ cfl·dx / (c_max + |v|_max)`, in (0, 1].
     pub cfl: f32,
@@ -373,5 +413,476 @@ impl<const D: usize> SolverParams<D> {
 
     pub fn dx(&self) -> f32 {
         1.0 / self.n_grid as f32
+    }
+}
+
+/// The shape of a collider in the parameter dict: `"box"` or `"sphere"`
+/// (`"circle"` is a synonym).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
+pub enum ShapeKind {
+    Box,
+    #[cfg_attr(feature = "serde", serde(alias = "circle"))]
+    Sphere,
+}
+
+/// A static collider as the parameter dict gives it, the same in 2D and 3D:
+/// the shape's fields flat (a box: `center`, `half_extents`, and
+/// `rotation` or, in 2D, `angle_deg`; a sphere: `center`, `radius`), its
+/// boundary condition and Coulomb friction. [`ColliderParams::build`] makes
+/// the [`Collider`] of a `D`-dimensional solver; fields the shape does not
+/// use are ignored.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct ColliderParams {
+    /// Box or sphere (required).
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub shape: Option<ShapeKind>,
+    /// Centre [m], `D` numbers (required).
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub center: Option<Vec<f32>>,
+    /// Box half extents [m], `D` numbers (required for a box).
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub half_extents: Option<Vec<f32>>,
+    /// Box rotation [degrees] counter-clockwise, 2D only (`rotation` wins).
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub angle_deg: Option<f64>,
+    /// Box rotation matrix, `D` rows of `D` numbers (columns: the box's
+    /// axes in world coordinates); identity when neither it nor
+    /// `angle_deg` is given.
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub rotation: Option<Vec<Vec<f32>>>,
+    /// Sphere radius [m] (required for a sphere).
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub radius: Option<f32>,
+    pub condition: BoundaryCondition,
+    /// Coulomb friction coefficient μ (≥ 0; used with `Separate`).
+    pub friction: f32,
+}
+
+impl Default for ColliderParams {
+    /// No shape; condition `Separate`, no friction.
+    fn default() -> Self {
+        ColliderParams {
+            shape: None,
+            center: None,
+            half_extents: None,
+            angle_deg: None,
+            rotation: None,
+            radius: None,
+            condition: BoundaryCondition::Separate,
+            friction: 0.0,
+        }
+    }
+}
+
+impl ColliderParams {
+    /// The collider in `D` dimensions. Errors name the field under `field`
+    /// (e.g. `colliders[0].center`): a missing shape, centre, half extents
+    /// (box) or radius (sphere), a vector of other than `D` numbers, a
+    /// rotation that is not `D`×`D`, an `angle_deg` in 3D. Ranges are left
+    /// to [`Collider::validate`].
+    pub fn build<const D: usize>(&self, field: &str) -> Result<Collider<D>> {
+        let name = |key: &str| format!("{field}.{key}");
+        let missing = |key: &str| MpmError::invalid(name(key), "missing");
+        let vector = |key: &str, v: &Option<Vec<f32>>| -> Result<SVector<f32, D>> {
+            let v = v.as_ref().ok_or_else(|| missing(key))?;
+            if v.len() != D {
+                return Err(MpmError::invalid(
+                    name(key),
+                    format!("expected {D} numbers, got {}", v.len()),
+                ));
+            }
+            Ok(SVector::from_column_slice(v))
+        };
+        let kind = self
+            .shape
+            .ok_or_else(|| MpmError::invalid(name("shape"), "missing ('box' or 'sphere')"))?;
+        let center = vector("center", &self.center)?;
+        let shape = match kind {
+            ShapeKind::Box => {
+                let half_extents = vector("half_extents", &self.half_extents)?;
+                let mut rotation = SMatrix::<f32, D, D>::identity();
+                if let Some(rows) = &self.rotation {
+                    if rows.len() != D || rows.iter().any(|row| row.len() != D) {
+                        return Err(MpmError::invalid(
+                            name("rotation"),
+                            format!("expected a {D}x{D} nested list"),
+                        ));
+                    }
+                    rotation = SMatrix::from_fn(|i, j| rows[i][j]);
+                } else if let Some(a) = self.angle_deg {
+                    if D != 2 {
+                        return Err(MpmError::invalid(
+                            name("angle_deg"),
+                            "only in 2D; give 'rotation' in 3D",
+                        ));
+                    }
+                    let (s, c) = (a.to_radians() as f32).sin_cos();
+                    rotation[(0, 0)] = c;
+                    rotation[(0, 1)] = -s;
+                    rotation[(1, 0)] = s;
+                    rotation[(1, 1)] = c;
+                }
+                Shape::Box {
+                    center,
+                    half_extents,
+                    rotation,
+                }
+            }
+            ShapeKind::Sphere => Shape::Sphere {
+                center,
+                radius: self.radius.ok_or_else(|| missing("radius"))?,
+            },
+        };
+        Ok(Collider {
+            shape,
+            condition: self.condition,
+            friction: self.friction,
+        })
+    }
+}
+
+/// The dict forms that differ from the structs (`serde` feature): `[f32; D]`
+/// as a list, [`SolverParams`] read through a mirror, [`WallParams`] with its
+/// face overrides by name.
+#[cfg(feature = "serde")]
+mod wire {
+    use std::fmt;
+
+    use serde::de::{self, DeserializeSeed, MapAccess, Visitor};
+    use serde::ser::SerializeMap;
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    use super::{BoundaryCondition, SandParams, SolverParams, WallFace, WallParams, WaterParams};
+
+    /// `[f32; D]` as a list of `D` numbers (serde's own array impls need a
+    /// literal length).
+    pub fn serialize_array<S: Serializer, const D: usize>(
+        a: &[f32; D],
+        s: S,
+    ) -> Result<S::Ok, S::Error> {
+        a.as_slice().serialize(s)
+    }
+
+    /// `[f32; D]` read from a list of `D` numbers.
+    pub struct Array<const D: usize>([f32; D]);
+
+    impl<'de, const D: usize> Deserialize<'de> for Array<D> {
+        fn deserialize<De: Deserializer<'de>>(d: De) -> Result<Self, De::Error> {
+            let v = Vec::<f32>::deserialize(d)?;
+            <[f32; D]>::try_from(v.as_slice())
+                .map(Array)
+                .map_err(|_| de::Error::invalid_length(v.len(), &format!("{D} numbers").as_str()))
+        }
+    }
+
+    /// [`SolverParams`] with its gravity as a type parameter (`Array<D>`),
+    /// which serde's derive can read. The conversions below name every field
+    /// without `..`, so the compiler holds the two to the same fields; the
+    /// defaults are `SolverParams`'s.
+    #[derive(Deserialize)]
+    #[serde(
+        default,
+        deny_unknown_fields,
+        rename = "SolverParams",
+        bound(deserialize = "G: Deserialize<'de>, Solver<G>: Default")
+    )]
+    pub struct Solver<G> {
+        n_grid: usize,
+        gravity: G,
+        cfl: f32,
+        substeps: Option<usize>,
+        max_substeps: usize,
+        num_threads: usize,
+        water: WaterParams,
+        sand: SandParams,
+        walls: WallParams,
+    }
+
+    impl<const D: usize> Default for Solver<Array<D>> {
+        fn default() -> Self {
+            let SolverParams {
+                n_grid,
+                gravity,
+                cfl,
+                substeps,
+                max_substeps,
+                num_threads,
+                water,
+                sand,
+                walls,
+            } = SolverParams::<D>::default();
+            Solver {
+                n_grid,
+                gravity: Array(gravity),
+                cfl,
+                substeps,
+                max_substeps,
+                num_threads,
+                water,
+                sand,
+                walls,
+            }
+        }
+    }
+
+    impl<const D: usize> From<Solver<Array<D>>> for SolverParams<D> {
+        fn from(w: Solver<Array<D>>) -> Self {
+            let Solver {
+                n_grid,
+                gravity,
+                cfl,
+                substeps,
+                max_substeps,
+                num_threads,
+                water,
+                sand,
+                walls,
+            } = w;
+            SolverParams {
+                n_grid,
+                gravity: gravity.0,
+                cfl,
+                substeps,
+                max_substeps,
+                num_threads,
+                water,
+                sand,
+                walls,
+            }
+        }
+    }
+
+    impl<'de, const D: usize> Deserialize<'de> for SolverParams<D> {
+        fn deserialize<De: Deserializer<'de>>(d: De) -> Result<Self, De::Error> {
+            Solver::<Array<D>>::deserialize(d).map(Into::into)
+        }
+    }
+
+    /// [`WallParams`] as written: a face override keeps the keys it leaves
+    /// out (`None`) until the all-faces values are known.
+    #[derive(Serialize, Deserialize)]
+    #[serde(default, deny_unknown_fields, rename = "WallParams")]
+    pub struct Walls {
+        cells: usize,
+        condition: BoundaryCondition,
+        friction: f32,
+        #[serde(skip_serializing_if = "Faces::is_empty")]
+        faces: Faces,
+    }
+
+    impl Default for Walls {
+        fn default() -> Self {
+            WallParams::default().into()
+        }
+    }
+
+    #[derive(Clone, Copy, Default, Serialize, Deserialize)]
+    #[serde(default, deny_unknown_fields, rename = "WallFace")]
+    struct Face {
+        #[serde(skip_serializing_if = "Option::is_none")]
+        condition: Option<BoundaryCondition>,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        friction: Option<f32>,
+    }
+
+    /// Face overrides by `[axis][side]`, written as a map keyed by
+    /// [`WallParams::FACE_NAMES`].
+    #[derive(Default)]
+    struct Faces([[Option<Face>; 2]; 3]);
+
+    /// [`WallParams::FACE_NAMES`] in one list (for error messages).
+    static FACE_LIST: [&str; 6] = {
+        let n = WallParams::FACE_NAMES;
+        [n[0][0], n[0][1], n[1][0], n[1][1], n[2][0], n[2][1]]
+    };
+
+    impl Faces {
+        fn is_empty(&self) -> bool {
+            self.0.iter().flatten().all(Option::is_none)
+        }
+    }
+
+    impl Serialize for Faces {
+        fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+            let mut map = s.serialize_map(None)?;
+            for (names, row) in WallParams::FACE_NAMES.iter().zip(&self.0) {
+                for (name, face) in names.iter().zip(row) {
+                    if let Some(face) = face {
+                        map.serialize_entry(name, face)?;
+                    }
+                }
+            }
+            map.end()
+        }
+    }
+
+    impl<'de> Deserialize<'de> for Faces {
+        fn deserialize<De: Deserializer<'de>>(d: De) -> Result<Self, De::Error> {
+            d.deserialize_map(FacesVisitor)
+        }
+    }
+
+    struct FacesVisitor;
+
+    impl<'de> Visitor<'de> for FacesVisitor {
+        type Value = Faces;
+
+        fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+            f.write_str("a map of wall face name to {condition, friction}")
+        }
+
+        fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Faces, A::Error> {
+            let mut faces = Faces::default();
+            while let Some((axis, side)) = map.next_key_seed(FaceName)? {
+                faces.0[axis][side] = Some(map.next_value()?);
+            }
+            Ok(faces)
+        }
+    }
+
+    /// A face name read as `(axis, side)`; any other name is an unknown field.
+    struct FaceName;
+
+    impl<'de> DeserializeSeed<'de> for FaceName {
+        type Value = (usize, usize);
+
+        fn deserialize<De: Deserializer<'de>>(self, d: De) -> Result<Self::Value, De::Error> {
+            d.deserialize_identifier(self)
+        }
+    }
+
+    impl<'de> Visitor<'de> for FaceName {
+        type Value = (usize, usize);
+
+        fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+            f.write_str("a wall face name")
+        }
+
+        fn visit_str<E: de::Error>(self, v: &str) -> Result<Self::Value, E> {
+            WallParams::face_index(v).ok_or_else(|| E::unknown_field(v, &FACE_LIST))
+        }
+    }
+
+    impl From<Walls> for WallParams {
+        fn from(w: Walls) -> Self {
+            let faces = w.faces.0.map(|row| {
+                row.map(|face| {
+                    face.map(|f| WallFace {
+                        condition: f.condition.unwrap_or(w.condition),
+                        friction: f.friction.unwrap_or(w.friction),
+                    })
+                })
+            });
+            WallParams {
+                cells: w.cells,
+                condition: w.condition,
+                friction: w.friction,
+                faces,
+            }
+        }
+    }
+
+    impl From<WallParams> for Walls {
+        fn from(w: WallParams) -> Self {
+            let faces = w.faces.map(|row| {
+                row.map(|face| {
+                    face.map(|f| Face {
+                        condition: Some(f.condition),
+                        friction: Some(f.friction),
+                    })
+                })
+            });
+            Walls {
+                cells: w.cells,
+                condition: w.condition,
+                friction: w.friction,
+                faces: Faces(faces),
+            }
+        }
+    }
+}
+
+#[cfg(all(test, feature = "serde"))]
+mod serde_tests {
+    use super::*;
+
+    #[test]
+    fn defaults_round_trip_and_fill_missing_keys() {
+        let d = SolverParams::<3>::default();
+        let json = serde_json::to_string(&d).unwrap();
+        assert_eq!(serde_json::from_str::<SolverParams<3>>(&json).unwrap(), d);
+        assert_eq!(serde_json::from_str::<SolverParams<3>>("{}").unwrap(), d);
+        // f32 written shortest, so a reader in f64 gets the decimal default
+        assert!(json.contains("\"cfl\":0.4,"), "{json}");
+        assert!(!json.contains("faces"), "{json}");
+    }
+
+    #[test]
+    fn a_face_override_falls_back_to_the_all_faces_values() {
+        let p: SolverParams<2> = serde_json::from_str(
+            r#"{"walls": {"faces": {"y-": {"condition": "sticky"}, "x+": {}}, "friction": 0.25}}"#,
+        )
+        .unwrap();
+        let w = &p.walls;
+        assert_eq!(
+            w.faces[1][0],
+            Some(WallFace {
+                condition: BoundaryCondition::Sticky,
+                friction: 0.25
+            })
+        );
+        assert_eq!(w.face(0, 1), w.face(0, 0));
+        assert_eq!(w.faces[0][0], None);
+        let back: SolverParams<2> =
+            serde_json::from_str(&serde_json::to_string(&p).unwrap()).unwrap();
+        assert_eq!(back, p);
+    }
+
+    #[test]
+    fn unknown_keys_and_faces_are_refused() {
+        for (json, word) in [
+            (r#"{"wter": {}}"#, "wter"),
+            (r#"{"water": {"bulk": 1}}"#, "bulk"),
+            (r#"{"walls": {"faces": {"w-": {}}}}"#, "w-"),
+            (r#"{"walls": {"faces": {"y-": {"mu": 1}}}}"#, "mu"),
+            (r#"{"gravity": [0, -9.8, 0]}"#, "2 numbers"),
+            (r#"{"walls": {"condition": "glue"}}"#, "glue"),
+        ] {
+            let e = serde_json::from_str::<SolverParams<2>>(json).unwrap_err();
+            assert!(e.to_string().contains(word), "{json}: {e}");
+        }
+    }
+
+    #[test]
+    fn colliders_build_in_their_dimension() {
+        let c: ColliderParams = serde_json::from_str(
+            r#"{"shape": "box", "center": [0.5, 0.2], "half_extents": [0.1, 0.05], "angle_deg": 90}"#,
+        )
+        .unwrap();
+        assert_eq!(c.condition, BoundaryCondition::Separate);
+        let Shape::Box { rotation, .. } = c.build::<2>("colliders[0]").unwrap().shape else {
+            panic!("not a box");
+        };
+        assert!((rotation[(1, 0)] - 1.0).abs() < 1e-6);
+        let e = c.build::<3>("colliders[0]").unwrap_err().to_string();
+        assert!(e.starts_with("colliders[0].center"), "{e}");
+        let s: ColliderParams =
+            serde_json::from_str(r#"{"shape": "circle", "center": [0.5, 0.2]}"#).unwrap();
+        let e = s.build::<2>("colliders[1]").unwrap_err().to_string();
+        assert!(e.starts_with("colliders[1].radius: missing"), "{e}");
+        assert_eq!(
+            serde_json::to_string(&ColliderParams::default()).unwrap(),
+            r#"{"condition":"separate","friction":0.0}"#
+        );
     }
 }

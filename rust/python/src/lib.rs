@@ -9,6 +9,7 @@ mod errors;
 mod graph;
 mod mpm;
 mod ort_ops;
+mod params;
 mod pool;
 mod transfer;
 
@@ -16,6 +17,7 @@ mod transfer;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     mpm::register(m)?;
+    params::register(m)?;
     graph::register(m)?;
     transfer::register(m)?;
     Ok(())

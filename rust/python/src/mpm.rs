@@ -1,14 +1,11 @@
 //! `MpmSolver` and `grid_mass`: the MLS-MPM crate exposed to Python.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{
-    BoundaryCondition, Collider, Material, MpmError, Particle, Shape, Solver, SolverParams,
-    WallFace, WallParams,
-};
+use hybridmpm_mpm::{Collider, Material, MpmError, Particle, Solver, SolverParams};
 use nalgebra::{SMatrix, SVector};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyBytes, PyDict, PyInt, PyList};
+use pyo3::types::{PyBool, PyBytes, PyDict, PyInt};
 use std::sync::Mutex;
 
 use crate::errors::{checkpoint_error, invalid_input, simulation_error};
@@ -124,337 +121,20 @@ pub fn f32_array<'py>(
 
 // ---------------------------------------------------------------- params
 
-fn get_item<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py, PyAny>>> {
-    match d.get_item(key)? {
-        Some(v) if v.is_none() => Ok(None),
-        other => Ok(other),
-    }
-}
-
-fn get_f32(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: f32) -> PyResult<f32> {
-    match get_item(d, key)? {
-        None => Ok(default),
-        Some(v) => {
-            let bad = || {
-                invalid_input(
-                    d.py(),
-                    &format!("{prefix}{key}"),
-                    format!("expected a number, got {}", repr(&v)),
-                )
-            };
-            if v.is_instance_of::<PyBool>() {
-                return Err(bad());
-            }
-            v.extract::<f64>().map(|x| x as f32).map_err(|_| bad())
-        }
-    }
-}
-
-fn get_usize(d: &Bound<'_, PyDict>, prefix: &str, key: &str, default: usize) -> PyResult<usize> {
-    match get_item(d, key)? {
-        None => Ok(default),
-        Some(v) => extract_count(&v, &format!("{prefix}{key}"), "a non-negative integer"),
-    }
-}
-
-fn get_vec<const D: usize>(
-    d: &Bound<'_, PyDict>,
-    field: &str,
-    key: &str,
-) -> PyResult<Option<SVector<f32, D>>> {
-    match get_item(d, key)? {
-        None => Ok(None),
-        Some(v) => {
-            let xs: Vec<f64> = v.extract().map_err(|_| {
-                invalid_input(d.py(), field, format!("expected a list of {D} numbers"))
-            })?;
-            if xs.len() != D {
-                return Err(invalid_input(
-                    d.py(),
-                    field,
-                    format!("expected {D} numbers, got {}", xs.len()),
-                ));
-            }
-            Ok(Some(SVector::<f32, D>::from_iterator(
-                xs.into_iter().map(|x| x as f32),
-            )))
-        }
-    }
-}
-
-fn sub_dict<'py>(d: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<Bound<'py, PyDict>>> {
-    match get_item(d, key)? {
-        None => Ok(None),
-        Some(v) => {
-            Ok(Some(v.cast_into::<PyDict>().map_err(|_| {
-                invalid_input(d.py(), key, "expected a dict")
-            })?))
-        }
-    }
-}
-
-const TOP_KEYS: &[&str] = &[
-    "dim",
-    "n_grid",
-    "gravity",
-    "cfl",
-    "substeps",
-    "max_substeps",
-    "num_threads",
-    "water",
-    "sand",
-    "walls",
-    "colliders",
-];
-
-fn check_keys(d: &Bound<'_, PyDict>, prefix: &str, allowed: &[&str]) -> PyResult<()> {
-    for k in d.keys() {
-        let k: String = k
-            .extract()
-            .map_err(|_| invalid_input(d.py(), prefix, "keys must be strings"))?;
-        if !allowed.contains(&k.as_str()) {
-            return Err(invalid_input(
-                d.py(),
-                &format!("{prefix}{k}"),
-                format!("unknown parameter (allowed: {})", allowed.join(", ")),
-            ));
-        }
-    }
-    Ok(())
-}
-
+/// The solver parameters and colliders of the dict `MpmSolver` takes, read
+/// by the core's types (`crate::params`); errors name the field.
 fn parse_params<const D: usize>(
     d: &Bound<'_, PyDict>,
 ) -> PyResult<(SolverParams<D>, Vec<Collider<D>>)> {
     let py = d.py();
-    check_keys(d, "", TOP_KEYS)?;
-    let mut p = SolverParams::<D>::default();
-    p.n_grid = get_usize(d, "", "n_grid", p.n_grid)?;
-    if let Some(g) = get_vec::<D>(d, "gravity", "gravity")? {
-        p.gravity.copy_from_slice(g.as_slice());
-    }
-    p.cfl = get_f32(d, "", "cfl", p.cfl)?;
-    p.substeps = match get_item(d, "substeps")? {
-        None => None,
-        Some(v) => Some(extract_count(&v, "substeps", "a positive integer or None")?),
-    };
-    p.max_substeps = get_usize(d, "", "max_substeps", p.max_substeps)?;
-    p.num_threads = get_usize(d, "", "num_threads", p.num_threads)?;
-    if let Some(w) = sub_dict(d, "water")? {
-        check_keys(&w, "water.", &["density", "bulk_modulus", "viscosity"])?;
-        p.water.density = get_f32(&w, "water.", "density", p.water.density)?;
-        p.water.bulk_modulus = get_f32(&w, "water.", "bulk_modulus", p.water.bulk_modulus)?;
-        p.water.viscosity = get_f32(&w, "water.", "viscosity", p.water.viscosity)?;
-    }
-    if let Some(s) = sub_dict(d, "sand")? {
-        check_keys(
-            &s,
-            "sand.",
-            &[
-                "density",
-                "youngs_modulus",
-                "poisson_ratio",
-                "friction_angle_deg",
-                "cohesion",
-            ],
-        )?;
-        p.sand.density = get_f32(&s, "sand.", "density", p.sand.density)?;
-        p.sand.youngs_modulus = get_f32(&s, "sand.", "youngs_modulus", p.sand.youngs_modulus)?;
-        p.sand.poisson_ratio = get_f32(&s, "sand.", "poisson_ratio", p.sand.poisson_ratio)?;
-        p.sand.friction_angle_deg =
-            get_f32(&s, "sand.", "friction_angle_deg", p.sand.friction_angle_deg)?;
-        p.sand.cohesion = get_f32(&s, "sand.", "cohesion", p.sand.cohesion)?;
-    }
-    if let Some(w) = sub_dict(d, "walls")? {
-        parse_walls::<D>(&w, &mut p.walls)?;
-    }
-    let mut colliders = Vec::new();
-    if let Some(list) = get_item(d, "colliders")? {
-        let list = list
-            .cast_into::<PyList>()
-            .map_err(|_| invalid_input(py, "colliders", "expected a list of dicts"))?;
-        for (i, item) in list.iter().enumerate() {
-            let f = format!("colliders[{i}]");
-            let c = item
-                .cast_into::<PyDict>()
-                .map_err(|_| invalid_input(py, &f, "expected a dict"))?;
-            colliders.push(parse_collider::<D>(&c, &f)?);
-        }
-    }
-    Ok((p, colliders))
-}
-
-fn get_condition(
-    d: &Bound<'_, PyDict>,
-    field: &str,
-    key: &str,
-) -> PyResult<Option<BoundaryCondition>> {
-    let py = d.py();
-    match get_item(d, key)? {
-        None => Ok(None),
-        Some(v) => {
-            let s: String = v
-                .extract()
-                .map_err(|_| invalid_input(py, field, "expected a string"))?;
-            BoundaryCondition::parse(field, &s)
-                .map(Some)
-                .map_err(|e| to_py(py, e))
-        }
-    }
-}
-
-/// `walls`: `cells`, `condition`, `friction` for every face, and optional
-/// per-face overrides `faces = {"y-": {"condition": ..., "friction": ...}}`
-/// (a face's missing key falls back to the all-walls value).
-fn parse_walls<const D: usize>(w: &Bound<'_, PyDict>, walls: &mut WallParams) -> PyResult<()> {
-    let py = w.py();
-    check_keys(w, "walls.", &["cells", "condition", "friction", "faces"])?;
-    walls.cells = get_usize(w, "walls.", "cells", walls.cells)?;
-    if let Some(c) = get_condition(w, "walls.condition", "condition")? {
-        walls.condition = c;
-    }
-    walls.friction = get_f32(w, "walls.", "friction", walls.friction)?;
-    let Some(faces) = get_item(w, "faces")? else {
-        return Ok(());
-    };
-    let faces = faces.cast_into::<PyDict>().map_err(|_| {
-        invalid_input(
-            py,
-            "walls.faces",
-            "expected a dict: face name -> {condition, friction}",
-        )
-    })?;
-    let allowed: Vec<&str> = WallParams::FACE_NAMES[..D]
+    let (params, specs) = crate::params::read_params::<D>(d)?;
+    let colliders = specs
         .iter()
-        .flatten()
-        .copied()
-        .collect();
-    for (k, v) in faces.iter() {
-        let name: String = k
-            .extract()
-            .map_err(|_| invalid_input(py, "walls.faces", "face names must be strings"))?;
-        let f = format!("walls.faces.{name}");
-        let (axis, side) = WallParams::face_index(&name)
-            .filter(|&(a, _)| a < D)
-            .ok_or_else(|| {
-                invalid_input(
-                    py,
-                    &f,
-                    format!(
-                        "unknown wall face in {D}D (allowed: {}; y- is the floor)",
-                        allowed.join(", ")
-                    ),
-                )
-            })?;
-        let fd = v.cast_into::<PyDict>().map_err(|_| {
-            invalid_input(py, &f, "expected a dict with 'condition' and/or 'friction'")
-        })?;
-        let pre = format!("{f}.");
-        check_keys(&fd, &pre, &["condition", "friction"])?;
-        let condition =
-            get_condition(&fd, &format!("{f}.condition"), "condition")?.unwrap_or(walls.condition);
-        let friction = get_f32(&fd, &pre, "friction", walls.friction)?;
-        walls.faces[axis][side] = Some(WallFace {
-            condition,
-            friction,
-        });
-    }
-    Ok(())
-}
-
-fn parse_collider<const D: usize>(c: &Bound<'_, PyDict>, f: &str) -> PyResult<Collider<D>> {
-    let py = c.py();
-    let pre = format!("{f}.");
-    check_keys(
-        c,
-        &pre,
-        &[
-            "shape",
-            "center",
-            "half_extents",
-            "angle_deg",
-            "rotation",
-            "radius",
-            "condition",
-            "friction",
-        ],
-    )?;
-    let shape: String = get_item(c, "shape")?
-        .ok_or_else(|| invalid_input(py, &format!("{f}.shape"), "missing ('box' or 'sphere')"))?
-        .extract()
-        .map_err(|_| invalid_input(py, &format!("{f}.shape"), "expected a string"))?;
-    let center = get_vec::<D>(c, &format!("{f}.center"), "center")?
-        .ok_or_else(|| invalid_input(py, &format!("{f}.center"), "missing"))?;
-    let shape = match shape.as_str() {
-        "box" => {
-            let half_extents = get_vec::<D>(c, &format!("{f}.half_extents"), "half_extents")?
-                .ok_or_else(|| invalid_input(py, &format!("{f}.half_extents"), "missing"))?;
-            let mut rotation = SMatrix::<f32, D, D>::identity();
-            if let Some(r) = get_item(c, "rotation")? {
-                let rows: Vec<Vec<f64>> = r.extract().map_err(|_| {
-                    invalid_input(
-                        py,
-                        &format!("{f}.rotation"),
-                        format!("expected a {D}x{D} nested list"),
-                    )
-                })?;
-                if rows.len() != D || rows.iter().any(|row| row.len() != D) {
-                    return Err(invalid_input(
-                        py,
-                        &format!("{f}.rotation"),
-                        format!("expected a {D}x{D} nested list"),
-                    ));
-                }
-                rotation = SMatrix::<f32, D, D>::from_fn(|i, j| rows[i][j] as f32);
-            } else if let Some(a) = get_item(c, "angle_deg")? {
-                if D != 2 {
-                    return Err(invalid_input(
-                        py,
-                        &format!("{f}.angle_deg"),
-                        "only in 2D; give 'rotation' in 3D",
-                    ));
-                }
-                let a: f64 = a.extract().map_err(|_| {
-                    invalid_input(py, &format!("{f}.angle_deg"), "expected a number")
-                })?;
-                let (s, co) = (a.to_radians() as f32).sin_cos();
-                rotation[(0, 0)] = co;
-                rotation[(0, 1)] = -s;
-                rotation[(1, 0)] = s;
-                rotation[(1, 1)] = co;
-            }
-            Shape::Box {
-                center,
-                half_extents,
-                rotation,
-            }
-        }
-        "sphere" | "circle" => Shape::Sphere {
-            center,
-            radius: get_f32(c, &pre, "radius", f32::NAN)?,
-        },
-        other => {
-            return Err(invalid_input(
-                py,
-                &format!("{f}.shape"),
-                format!("must be 'box' or 'sphere', got '{other}'"),
-            ));
-        }
-    };
-    let condition = match get_item(c, "condition")? {
-        None => BoundaryCondition::Separate,
-        Some(v) => {
-            let s: String = v
-                .extract()
-                .map_err(|_| invalid_input(py, &format!("{f}.condition"), "expected a string"))?;
-            BoundaryCondition::parse(&format!("{f}.condition"), &s).map_err(|e| to_py(py, e))?
-        }
-    };
-    Ok(Collider {
-        shape,
-        condition,
-        friction: get_f32(c, &pre, "friction", 0.0)?,
-    })
+        .enumerate()
+        .map(|(i, c)| c.build::<D>(&format!("colliders[{i}]")))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| to_py(py, e))?;
+    Ok((params, colliders))
 }
 
 // ---------------------------------------------------------------- solver
@@ -771,7 +451,12 @@ impl MpmSolver {
     fn new(params: &Bound<'_, PyDict>, memory_budget: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
         let py = params.py();
         let budget = extract_budget(memory_budget)?;
-        let dim = get_usize(params, "", "dim", 2)?;
+        let dim = match params.get_item("dim")? {
+            Some(v) if !v.is_none() => {
+                crate::params::read::<usize>(&v, "dim").map_err(|e| e.into_py(py))?
+            }
+            _ => 2,
+        };
         // parse with the GIL, build (allocations, the thread pool) without it
         let inner = match dim {
             2 => {

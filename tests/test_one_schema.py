@@ -1,0 +1,133 @@
+"""The solver's parameters have one schema, the Rust core's.
+
+The binding reads the parameter dict with the core's types (``SolverParams``,
+``ColliderParams`` and their serde derives) and Python takes its dataclass
+defaults from ``_core.default_params``: the names and the defaults must agree
+everywhere, and an unknown key is refused wherever it is, naming it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import get_args
+
+import pytest
+
+from hybridmpm import _core
+from hybridmpm.conventions import DEFAULT_N_GRID
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import WALL_FACES, Box, Condition, MpmParams, MpmSolver, SandParams, Sphere, WallFace, WallParams, WaterParams
+
+
+def fields(cls: type) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls)]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_python_defaults_are_the_rust_defaults(dim):
+    rust = _core.default_params(dim)
+    assert MpmParams(dim=dim).to_dict() == rust
+    assert list(MpmParams(dim=dim).to_dict()) == list(rust)  # same names, same order
+    assert DEFAULT_N_GRID[dim] == rust["n_grid"]
+    # the bits, not just equal floats: Rust's f32 defaults arrive as their decimals
+    assert repr(MpmParams(dim=dim).to_dict()) == repr(rust)
+
+
+def test_dataclass_fields_are_the_rust_keys():
+    rust = _core.default_params(2)
+    assert fields(MpmParams) == list(rust)
+    assert fields(WaterParams) == list(rust["water"])
+    assert fields(SandParams) == list(rust["sand"])
+    # faces: written only when some face is overridden
+    assert fields(WallParams) == [*rust["walls"], "faces"]
+    assert fields(WallFace) == ["condition", "friction"]
+    collider = _core.default_collider()
+    for cls in (Box, Sphere):
+        defaults = {f.name: f.default for f in dataclasses.fields(cls) if f.name in collider}
+        assert defaults == collider
+
+
+def test_dimension_free_defaults_are_the_same_in_2d_and_3d():
+    d2, d3 = _core.default_params(2), _core.default_params(3)
+    for key in ("cfl", "substeps", "max_substeps", "num_threads", "water", "sand", "walls"):
+        assert d2[key] == d3[key], key
+    assert d3["gravity"] == [0.0, -9.8, 0.0]
+
+
+def test_default_params_refuses_another_dim():
+    with pytest.raises(InvalidInputError) as e:
+        _core.default_params(4)
+    assert e.value.field == "dim"
+
+
+def test_the_defaults_reach_the_solver():
+    for dim in (2, 3):
+        sim = MpmSolver(MpmParams(dim=dim))
+        assert sim.n_grid == _core.default_params(dim)["n_grid"]
+        # the dict of defaults is a valid parameter dict
+        assert _core.MpmSolver(_core.default_params(dim)).n_grid == sim.n_grid
+
+
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"wter": {}}, "wter"),
+        ({"wter": None}, "wter"),
+        ({"water": {"bulk": 1.0}}, "water.bulk"),
+        ({"sand": {"phi": 30.0}}, "sand.phi"),
+        ({"walls": {"roughness": 1.0}}, "walls.roughness"),
+        ({"walls": {"faces": {"y-": {"mu": 0.1}}}}, "walls.faces.y-.mu"),
+        ({"walls": {"faces": {"floor": {}}}}, "walls.faces.floor"),
+        ({"colliders": [{"shape": "sphere", "center": [0.5, 0.5], "radius": 0.1, "spin": 1.0}]}, "colliders[0].spin"),
+    ],
+)
+def test_an_unknown_key_is_refused_naming_it(params, field):
+    with pytest.raises(InvalidInputError) as e:
+        _core.MpmSolver({"dim": 2, **params})
+    assert e.value.field == field, str(e.value)
+    assert str(e.value).startswith(f"{field}: unknown parameter (allowed: ")
+
+
+def test_the_top_level_names_every_allowed_key():
+    with pytest.raises(InvalidInputError) as e:
+        _core.MpmSolver({"dim": 2, "wter": {}})
+    assert str(e.value) == "wter: unknown parameter (allowed: " + ", ".join(_core.default_params(2)) + ")"
+
+
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"water": {"density": "1000"}}, "water.density"),
+        ({"water": {"density": True}}, "water.density"),
+        ({"water": 3}, "water"),
+        ({"gravity": [0.0, -9.8, 0.0]}, "gravity"),
+        ({"gravity": [0.0, "down"]}, "gravity[1]"),
+        ({"walls": {"cells": 3.0}}, "walls.cells"),
+        ({"walls": {"condition": "glue"}}, "walls.condition"),
+        ({"walls": {"faces": {"y-": 0.3}}}, "walls.faces.y-"),
+        ({"colliders": [{"shape": "cube", "center": [0.5, 0.5]}]}, "colliders[0].shape"),
+        ({"colliders": [{"center": [0.5, 0.5], "radius": 0.1}]}, "colliders[0].shape"),
+        ({"colliders": [{"shape": "box", "center": [0.5, 0.5]}]}, "colliders[0].half_extents"),
+        ({"colliders": [{"shape": "sphere", "center": [0.5], "radius": 0.1}]}, "colliders[0].center"),
+        ({"colliders": [{"shape": "circle", "center": [0.5, 0.5], "radius": 0.1, "friction": "rough"}]}, "colliders[0].friction"),
+        ({"colliders": [3]}, "colliders[0]"),
+    ],
+)
+def test_a_bad_value_names_its_field(params, field):
+    with pytest.raises(InvalidInputError) as e:
+        _core.MpmSolver({"dim": 2, **params})
+    assert e.value.field == field, str(e.value)
+    assert isinstance(e.value, ValueError)
+
+
+def test_none_is_a_missing_key():
+    sim = _core.MpmSolver({"dim": 2, "n_grid": None, "cfl": None, "water": None, "walls": {"faces": {"y-": {"friction": None}}}, "colliders": None})
+    assert sim.n_grid == _core.default_params(2)["n_grid"]
+
+
+def test_every_face_and_condition_python_names_is_a_rust_one():
+    conditions = get_args(Condition)
+    faces = {name: {"condition": c} for name, c in zip(WALL_FACES, conditions * 2)}
+    _core.MpmSolver({"dim": 3, "n_grid": 32, "walls": {"faces": faces}})
+    for condition in conditions:
+        _core.MpmSolver({"dim": 2, "walls": {"condition": condition}, "colliders": [Sphere([0.5, 0.5], 0.1, condition=condition).to_dict()]})
