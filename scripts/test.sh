@@ -23,6 +23,8 @@ python -m ruff check python tests benchmarks docs
 python -m ruff format --check python tests benchmarks docs
 cargo fmt --all --check
 cargo test --release
+# the parameter structs' serde reading (a feature only the binding turns on)
+cargo test --release -p hybridmpm-mpm --features serde --lib params
 cargo clippy --release --workspace --all-targets -- -D warnings
 python -m mypy python/hybridmpm --ignore-missing-imports
 python -m pytest -q
