@@ -48,7 +48,7 @@ def free_fall_samples(scene_name: str, model: str, seed: int, steps: int, tol: f
     net = NeuralSimulator(scene, model, seed=seed, relax=0, detect_failures=False, warmup=False, mpm_threads=1)
     mpm = MpmSimulator(scene, r_p=net.model.r_p, r_t=net.r_t, seed=seed, threads=1)
     n, t_in, dt = net.particles.num_fluid, net.t_in, net.dt_step
-    g = np.asarray(scene.params.to_dict()["gravity"], np.float64)
+    g = scene.params.resolved_gravity()
     g_hat = g / np.linalg.norm(g)
     lo, hi = np.asarray(net.model.meta["bounds"], np.float64).T
     pos = [mpm.particles.fluid(mpm.frame.positions).astype(np.float64)]

@@ -283,6 +283,11 @@ class MpmParams:
         self._check_int("n_grid", self.n_grid, optional=True)
         return int(self.n_grid) if self.n_grid is not None else int(_DEFAULTS.get(self.dim, _DEFAULTS[2])["n_grid"])
 
+    def resolved_gravity(self) -> np.ndarray:
+        """Gravity [m/s²], float64 ``[dim]``: ``gravity``, or the engine's
+        default for ``dim`` when it is None (what the solver applies)."""
+        return np.asarray(self.to_dict()["gravity"], np.float64)
+
     @staticmethod
     def _check_int(name: str, v: Any, *, optional: bool = False) -> None:
         """An integer (``int`` or numpy integer; not a bool, a float such as

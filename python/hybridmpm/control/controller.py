@@ -281,7 +281,7 @@ class Controller:
                 # exactly, and the network's correction could only add error; plan the parabola bent onto the sketch.
                 # The network's plan, made meanwhile, is dropped: waiting for the rollout before sampling would add the
                 # rollout's time to every plan to save it on the few in free flight.
-                g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64) if self.free_flight else None
+                g = sim.scene.params.resolved_gravity() if self.free_flight else None
                 if g is not None and in_free_flight(fm, x, v, g, sim.dt_frame):
                     res.path = prior_path(ballistic_path(x, v, g, self.model.frames - 1, sim.dt_frame), np.asarray(x, np.float64), sketch)
                     network = False
@@ -297,7 +297,7 @@ class Controller:
         x = p.fluid(sim.positions).astype(np.float64)
         v = np.asarray(sim.velocities, np.float64)
         m = p.masses.astype(np.float64)
-        g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64)
+        g = sim.scene.params.resolved_gravity()
         tau = self.frames * sim.dt_frame
         if self.method == "constant":
             com = (m[:, None] * x).sum(0) / m.sum()

@@ -125,6 +125,6 @@ def hydrostatic_volume_ratio(positions: np.ndarray, surface: float, params: MpmP
     """Volume ratio ``J = 1 − ρ·|g|·(surface − y)/K`` of water at hydrostatic rest
     (Cauchy pressure ``K(1 − J) = ρ|g|·depth``), float32 [N]. ``surface`` is the
     free-surface height [m]; ``y`` is the vertical (second) coordinate."""
-    g = abs(params.to_dict()["gravity"][1])
+    g = abs(float(params.resolved_gravity()[1]))
     depth = np.clip(surface - positions[:, 1], 0.0, None)
     return np.clip(1.0 - params.water.density * g * depth / params.water.bulk_modulus, 0.5, 1.0).astype(np.float32)

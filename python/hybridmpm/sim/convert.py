@@ -83,7 +83,7 @@ def hydrostatic_j_min(solver: MpmSolver, factor: float = 2.0) -> float:
     clump of network particles (e.g. pressed onto a wall by the position
     clipping) from turning into an explosive pressure after the switch."""
     p = solver.params
-    g = float(np.linalg.norm(p.to_dict()["gravity"]))
+    g = float(np.linalg.norm(p.resolved_gravity()))
     return float(max(0.5, 1.0 - factor * p.water.density * g * 1.0 / p.water.bulk_modulus))
 
 

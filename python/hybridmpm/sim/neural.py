@@ -216,7 +216,7 @@ class NeuralSimulator:
         self._dx = float(mpm.solver.dx)
         masses = np.asarray(mpm.solver.masses, np.float64)
         lo = mpm.solver.domain_bounds[0]
-        g = np.asarray(self.scene.params.to_dict()["gravity"], np.float64)
+        g = self.scene.params.resolved_gravity()
         x0 = np.asarray(self.scene.positions, np.float64)
         v0 = np.asarray(self.scene.velocities, np.float64)
         self._masses = masses

@@ -129,7 +129,7 @@ def make_case(
     free = MpmSimulator(make_scene(scene, seed=seed), r_p=r_p, seed=seed, threads=threads)
     free.restore(start)
     free_path = rollout(free, frames - 1).fluid_positions.astype(np.float32)  # the start, then T − 1 frames
-    g = np.asarray(sim.scene.params.to_dict()["gravity"], np.float64)
+    g = sim.scene.params.resolved_gravity()
     kinematic = reverse_kinematic(forward, v_end, sim.dt_frame, g)
     tracking_field = reverse_tracking(sim, forward) if tracking else np.zeros((0, *forward.shape[1:]), np.float32)
     sketch = sketch_from_trajectory(forward[-1], forward[0], kind)
@@ -207,7 +207,7 @@ def generate_control(scene: str, root: str | Path, cases: int, first_seed: int =
             "path": np.asarray(case.path, np.float32),
             "free_path": np.asarray(case.free_path, np.float32),
             "particle_type": p.particle_type[: p.num_fluid].astype(np.int64),
-            "gravity": np.asarray(sim.scene.params.to_dict()["gravity"], np.float32),
+            "gravity": sim.scene.params.resolved_gravity().astype(np.float32),
             "sketch": np.array(json.dumps(case.sketch.to_json())),
             "info": np.array(json.dumps(info)),
         }
