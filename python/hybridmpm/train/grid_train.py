@@ -21,6 +21,14 @@ error against the data (MPM at the same ``r_p``); the best snapshot is kept
 optimiser, step, random state, validation curve) is written every
 ``val_every`` steps, and a run started again with the same ``out`` goes on
 from it. ``curve.json`` holds the validation curve against core-seconds.
+
+Several processes (``nproc``, or torchrun; :mod:`hybridmpm.train.distributed`):
+DistributedDataParallel over gloo, ``batch`` windows per rank; every rank
+draws the global batch of ``nproc · batch`` windows (noise included) from the
+one random stream a single process of that batch draws, keeps its slice, and
+divides its squared errors by the global batch's fluid particles, so the
+averaged gradient is that process's. Rank 0 validates and writes; the
+core-seconds are summed over the ranks, and the curve records ``ranks``.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid import GRID_INPUT, GRID_KIND, GRID_OUTPUT
 from hybridmpm.scenes import make_scene
+from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
 from hybridmpm.train.grid import GridConfig, GridModel, grid_geometry, p2g, stencil
 
 
@@ -52,7 +61,8 @@ class GridTrainConfig:
     directory stored every frame; ``scene`` the scene family written to the
     model; ``grid``, ``width``, ``levels``, ``r_t``, ``t_in`` the
     architecture (:class:`~hybridmpm.train.grid.GridConfig`); ``steps``
-    optimiser steps of ``batch`` windows; ``threads`` torch threads."""
+    optimiser steps of ``batch`` windows per rank; ``threads`` torch threads
+    per rank; ``nproc`` local ranks (module doc)."""
 
     scene: str
     data: str
@@ -77,6 +87,7 @@ class GridTrainConfig:
     val_trajectories: int = 3
     seed: int = 0
     threads: int = 1
+    nproc: int = 1
 
     def validate(self) -> GridTrainConfig:
         for name in ("grid", "width", "levels", "r_t", "t_in", "steps", "batch", "unroll", "val_every", "val_steps", "val_trajectories", "threads"):
@@ -91,6 +102,7 @@ class GridTrainConfig:
             raise InvalidInputError(f"density_weight: must be a number >= 0, got {self.density_weight!r}", "density_weight")
         if not (isinstance(self.noise, (int, float)) and math.isfinite(self.noise) and self.noise >= 0):
             raise InvalidInputError(f"noise: must be a number >= 0 [m per step], got {self.noise!r}", "noise")
+        check_nproc(self.nproc)
         return self
 
 
@@ -179,10 +191,13 @@ def validation_error(model: GridModel, data: list[tuple[np.ndarray, np.ndarray]]
     return float(np.mean(errs))
 
 
-def _density_loss(model: GridModel, pred: torch.Tensor, target: torch.Tensor, fluid: torch.Tensor, batch: torch.Tensor, windows: int) -> torch.Tensor:
+def _density_loss(
+    model: GridModel, pred: torch.Tensor, target: torch.Tensor, fluid: torch.Tensor, batch: torch.Tensor, windows: int, count: Any = None
+) -> torch.Tensor:
     """Mean squared difference of the fluid's p2g counts (over ``rest_count``)
     of predicted and target frames [K, P, D] on the model's grid: the grid-mass
-    error's own quantity, which penalises clumping that positions alone barely see."""
+    error's own quantity, which penalises clumping that positions alone barely see.
+    Per fluid particle: of the batch, or ``count`` of them (a rank's share of a global batch)."""
     cfg = model.config
     nodes = windows * cfg.grid**cfg.dim
     total = torch.zeros(())
@@ -190,7 +205,7 @@ def _density_loss(model: GridModel, pred: torch.Tensor, target: torch.Tensor, fl
         wp, np_ = stencil(x, model.origin, model.spacing, cfg.grid, batch)
         wt, nt = stencil(y, model.origin, model.spacing, cfg.grid, batch)
         diff = p2g(fluid, wp, np_, nodes) - p2g(fluid, wt, nt, nodes)
-        total = total + diff.square().sum() / (cfg.rest_count**2 * fluid.sum())
+        total = total + diff.square().sum() / (cfg.rest_count**2 * (fluid.sum() if count is None else count))
     return total / len(pred)
 
 
@@ -209,14 +224,49 @@ def _atomic_save(obj: Any, path: Path) -> None:
 
 def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) a grid model (module doc); returns the summary written
-    to ``out/summary.json``. Raises :class:`InvalidInputError` for bad settings
+    to ``out/summary.json`` (rank 0's, with several processes). Raises :class:`InvalidInputError` for bad settings
     or a dataset that is not stored every frame."""
+    c.validate()
+    return launch(_train_grid, c.nproc, c, progress)
+
+
+def _slice(
+    windows: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], part: range
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The windows ``part`` of a global batch of :func:`_windows` (their window index renumbered from 0)."""
+    hist, target, pt, batch = windows
+    sel = (batch >= part.start) & (batch < part.stop)
+    return hist[:, sel], target[:, sel], pt[sel], batch[sel] - part.start
+
+
+def _grid_loss(
+    model: GridModel, hist: torch.Tensor, target: torch.Tensor, pt: torch.Tensor, batch: torch.Tensor, c: GridTrainConfig, unroll: int, count: Any
+) -> torch.Tensor:
+    """The loss of one step (module doc): ``unroll`` chained calls; squared
+    errors per fluid particle of the batch, or per ``count`` of them."""
+    cfg = model.config
+    fluid = (pt != GNS_KINEMATIC)[None, :, None].to(torch.float32)
+    per = fluid.sum() if count is None else count
+    loss = torch.zeros(())
+    h = hist
+    for k in range(unroll):
+        frames = model.frames(h, pt, batch, c.batch)
+        err = (frames - target[k * cfg.r_t : (k + 1) * cfg.r_t]) / model.spacing
+        loss = loss + (err.square() * fluid).sum() / (per * cfg.r_t * cfg.dim)
+        if c.density_weight > 0:
+            loss = loss + c.density_weight * _density_loss(model, frames, target[k * cfg.r_t : (k + 1) * cfg.r_t], fluid[0], batch, c.batch, count)
+        h = torch.cat([h[1:], frames[-1:]])
+    return loss / unroll
+
+
+def _train_grid(ranks: Ranks, c: GridTrainConfig, progress: bool) -> dict[str, Any]:
+    """:func:`train_grid` on one rank of ``ranks``."""
     from tqdm import tqdm
 
-    c.validate()
     torch.set_num_threads(c.threads)
     out = Path(c.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
     ds = GnsDataset(c.data)
     meta = ds.metadata
     if int(meta.get("r_t", 1)) != 1:
@@ -224,7 +274,7 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
     train = _stack(ds["train"])
     valid = _stack(ds["valid"])[: c.val_trajectories]
 
-    gravity = [float(v) for v in make_scene(c.scene, seed=0).params.to_dict()["gravity"]]
+    gravity = [float(v) for v in make_scene(c.scene, seed=0).params.resolved_gravity()]
     types = sorted({int(t) for _, pt in train for t in np.unique(pt)} - {GNS_KINEMATIC})
     bounds = [[float(a), float(b)] for a, b in meta["bounds"]]
     cfg = GridConfig(
@@ -242,42 +292,53 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
         types=types,
         pressure=c.pressure,
     )
+    torch.manual_seed(c.seed)  # the initial weights are the seed's, whichever process draws them
     model = GridModel(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=c.lr)
     rng = np.random.default_rng(c.seed)
-    torch.manual_seed(c.seed)
     step, seconds = 0, 0.0
     curve: list[dict[str, Any]] = []
     best: tuple[float, int] = (math.inf, -1)
     ckpt = out / "checkpoint.pt"
-    if ckpt.exists():
+    # rank 0 reads the checkpoint and sends it to the others (who may not share its directory)
+    state, error = None, None
+    if ranks.main and ckpt.exists():
         state = torch.load(ckpt, weights_only=False)
-        if state["train_config"] != asdict(c) | {"steps": state["train_config"]["steps"]}:
-            raise InvalidInputError(f"out: {out} holds a run of other settings; choose another directory", "out")
+        old, new = dict(state["train_config"]), asdict(c)
+        old_global, new_global = old.get("batch", 0) * int(state.get("ranks", 1)), c.batch * ranks.size
+        if {k: v for k, v in old.items() if k not in _RESUMABLE} != {k: v for k, v in new.items() if k not in _RESUMABLE}:
+            error = InvalidInputError(f"out: {out} holds a run of other settings; choose another directory", "out")
+        elif old_global != new_global:
+            error = InvalidInputError(
+                f"batch: {out} holds a run of {old_global} windows per step, not {new_global} ({c.batch} on each of {ranks.size} ranks)", "batch"
+            )
+    state, error = ranks.broadcast((state, error))
+    if error is not None:
+        raise error
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         step, seconds, curve, best = state["step"], state["seconds"], state["curve"], (float(state["best"][0]), int(state["best"][1]))
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
-    bar = tqdm(total=c.steps, initial=step, desc=f"train grid {c.scene}", disable=not progress, unit="step")
+    del state
+    # the loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients)
+    step_loss = ranks.wrap(LossOf(model, _grid_loss))
+    bar = tqdm(total=c.steps, initial=step, desc=f"train grid {c.scene}", disable=not (progress and ranks.main), unit="step")
     losses: list[float] = []
     t_last = time.process_time()
+    mine = ranks.part(c.batch)
     while step < c.steps:
         unroll = max(1, min(c.unroll, 1 + int((c.unroll - 1) * step / max(1, c.steps // 2))))
-        hist, target, pt, batch = _windows(train, cfg, unroll, c.batch, c.noise, rng)
+        # every rank draws the whole global batch (the random stream of one process of batch ranks x batch) and keeps its slice
+        windows = _windows(train, cfg, unroll, ranks.size * c.batch, c.noise, rng)
+        count = None
+        if ranks.size > 1:
+            count = float((windows[2] != GNS_KINEMATIC).sum()) / ranks.size  # the global batch's fluid particles per rank
+            windows = _slice(windows, mine)
         for group in opt.param_groups:
             group["lr"] = _lr(step, c)
-        fluid = (pt != GNS_KINEMATIC)[None, :, None].to(torch.float32)
-        loss = torch.zeros(())
-        h = hist
-        for k in range(unroll):
-            frames = model.frames(h, pt, batch, c.batch)
-            err = (frames - target[k * cfg.r_t : (k + 1) * cfg.r_t]) / model.spacing
-            loss = loss + (err.square() * fluid).sum() / (fluid.sum() * cfg.r_t * cfg.dim)
-            if c.density_weight > 0:
-                loss = loss + c.density_weight * _density_loss(model, frames, target[k * cfg.r_t : (k + 1) * cfg.r_t], fluid[0], batch, c.batch)
-            h = torch.cat([h[1:], frames[-1:]])
-        loss = loss / unroll
+        loss = step_loss(*windows, c, unroll, count)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), c.clip_grad)
@@ -287,13 +348,19 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
         bar.update(1)
         if step % c.val_every == 0 or step == c.steps:
             now = time.process_time()
-            seconds += now - t_last
+            # the global batch's loss is the ranks' mean; the CPU time, their sum
+            loss_sum, cpu = ranks.sum(float(np.mean(losses)), now - t_last)
+            seconds += cpu
             t_last = now
+            losses = []
+            if not ranks.main:
+                continue
             model.eval()
             verr = validation_error(model, valid, c.val_steps)
             model.train()
-            curve.append({"step": step, "core_seconds": seconds, "train_loss": float(np.mean(losses)), "valid_error": verr, "unroll": unroll})
-            losses = []
+            curve.append(
+                {"step": step, "core_seconds": seconds, "train_loss": loss_sum / ranks.size, "valid_error": verr, "unroll": unroll, "ranks": ranks.size}
+            )
             if verr < best[0]:
                 best = (verr, step)
                 _atomic_save({"model": model.state_dict(), "config": cfg.to_dict(), "step": step, "valid_error": verr}, out / "best.pt")
@@ -308,6 +375,7 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
                     "rng": rng.bit_generator.state,
                     "torch_rng": torch.get_rng_state(),
                     "train_config": asdict(c),
+                    "ranks": ranks.size,
                     "config": cfg.to_dict(),
                 },
                 ckpt,
@@ -315,24 +383,36 @@ def train_grid(c: GridTrainConfig, progress: bool = True) -> dict[str, Any]:
             (out / "curve.json").write_text(json.dumps(curve, indent=1))
             bar.set_postfix(loss=f"{curve[-1]['train_loss']:.3g}", valid=f"{verr:.3f}", best=f"{best[0]:.3f}@{best[1]}")
     bar.close()
-    summary = {"config": cfg.to_dict(), "train_config": asdict(c), "best_valid_error": best[0], "best_step": best[1], "core_seconds": seconds, "curve": curve}
-    if (out / "best.pt").exists():
-        export_grid(
-            load_snapshot(out / "best.pt"),
-            out / "model.onnx",
-            {
-                "scene": c.scene,
-                "r_p": float(meta.get("r_p", 1.0)),
-                "radius": float(meta.get("default_connectivity_radius", 0.015)),
-                "data_sha256": meta.get("sha256", {}).get("train") if isinstance(meta.get("sha256"), dict) else None,
-                "steps": best[1],
-                "core_seconds": seconds,
-                "valid_error": best[0],
-            },
-        )
-        summary["model"] = str(out / "model.onnx")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    return summary
+    summary: dict[str, Any] | None = None
+    if ranks.main:
+        summary = {
+            "config": cfg.to_dict(), "train_config": asdict(c), "ranks": ranks.size, "best_valid_error": best[0], "best_step": best[1],
+            "core_seconds": seconds, "curve": curve,
+        }  # fmt: skip
+        if (out / "best.pt").exists():
+            export_grid(
+                load_snapshot(out / "best.pt"),
+                out / "model.onnx",
+                {
+                    "scene": c.scene,
+                    "r_p": float(meta.get("r_p", 1.0)),
+                    "radius": float(meta.get("default_connectivity_radius", 0.015)),
+                    "data_sha256": meta.get("sha256", {}).get("train") if isinstance(meta.get("sha256"), dict) else None,
+                    "steps": best[1],
+                    "core_seconds": seconds,
+                    "valid_error": best[0],
+                },
+            )
+            summary["model"] = str(out / "model.onnx")
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    # the others wait for rank 0's export and return its summary
+    result = ranks.broadcast(summary)
+    assert result is not None
+    return result
+
+
+#: Settings a run may resume with changed (``batch`` and ``nproc`` are compared as the global batch).
+_RESUMABLE = ("steps", "nproc", "batch")
 
 
 def export_grid(model: GridModel, path: str | Path, metadata: dict[str, Any]) -> Path:

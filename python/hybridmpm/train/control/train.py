@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import time
 import warnings
@@ -52,6 +53,7 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator
 from hybridmpm.train.control.cases import iter_cases, load_case
 from hybridmpm.train.control.model import GEOMETRY, LOCAL_CHANNELS, SKETCH_EMBED, ControlNetConfig, FluidControlNet
+from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
 
 #: Probability of a blank-sketch (uncontrolled) training pair.
 P_BLANK = 0.15
@@ -162,20 +164,31 @@ def train_control(
     progress: bool = True,
     prior: str = PRIOR_FREE_SKETCH,
     init_from: str | Path | None = None,
+    batch: int = 1,
+    nproc: int = 1,
 ) -> dict[str, Any]:
     """Train (or resume) the controller of ``scene`` on the cases under
     ``data_root`` into ``out`` (``ckpt.pt``, ``log.jsonl``; module doc) for
-    ``steps`` optimiser steps (or until ``time_limit`` seconds), then export
+    ``steps`` optimiser steps of ``batch`` pairs (or until ``time_limit`` seconds), then export
     it (:func:`export_control`) to ``out/model``. Returns a summary
     (steps, seconds, mean loss of this call's first and last 10 steps, and
     ``fit_first`` / ``fit_last``: the loss on up to 8 training pairs at fixed
-    noise levels and draws, before this call and of the exported EMA). Raises :class:`InvalidInputError`
-    naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
-    import torch
-    from tqdm import tqdm
+    noise levels and draws, before this call and of the exported EMA;
+    ``ranks`` and ``core_seconds``, the CPU seconds of every rank's process, summed).
 
+    With ``nproc`` > 1 (or under torchrun) it trains on several processes
+    (:mod:`hybridmpm.train.distributed`), ``batch`` pairs each: every rank
+    draws the pairs, blank choices, noise levels and noise of the global batch
+    from the one random stream a single process of ``nproc · batch`` pairs
+    draws and keeps its slice, so the weights are that process's to float
+    rounding; rank 0 logs, checkpoints and exports. A run resumes with another
+    split of the same global batch. Raises :class:`InvalidInputError`
+    naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
     if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000_000:
         raise InvalidInputError(f"steps: must be an integer in [1, 10⁷], got {steps!r}", "steps")
+    if isinstance(batch, bool) or not isinstance(batch, int) or not 1 <= batch <= MAX_BATCH:
+        raise InvalidInputError(f"batch: must be an integer in [1, {MAX_BATCH}], got {batch!r}", "batch")
+    check_nproc(nproc)
     if not (0 < lr_final <= lr <= 1.0):
         raise InvalidInputError(f"lr: need 0 < lr_final <= lr <= 1, got {lr!r}, {lr_final!r}", "lr")
     paths = list(iter_cases(data_root, scene))[: max_cases or None]
@@ -183,15 +196,54 @@ def train_control(
         raise InvalidInputError(
             f"data_root: {len(paths)} control cases of {scene} under {data_root}; run `hybridmpm generate-control {scene}` first", "data_root"
         )
-    torch.set_num_threads(max(1, int(threads)))
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    n_valid = max(1, int(round(valid_fraction * len(paths))))
-    bounds = scene_bounds(scene)
-    if (out / "ckpt.pt").exists():  # a resumed run keeps the prior it started with
-        import torch as _torch
+    settings = dict(
+        scene=scene, paths=paths, out=Path(out), steps=steps, lr=lr, lr_final=lr_final, k_basis=k_basis, latent_state=latent_state,
+        latent_head=latent_head, valid_fraction=valid_fraction, checkpoint_every=checkpoint_every, seed=seed, threads=threads,
+        time_limit=time_limit, progress=progress, prior=prior, init_from=init_from, batch=batch,
+    )  # fmt: skip
+    return launch(_train_control, nproc, settings)
 
-        prior = str(_torch.load(out / "ckpt.pt", map_location="cpu", weights_only=False)["config"].get("extra", {}).get("prior", PRIOR_SKETCH_RAMP))
+
+#: Most pairs per step and rank.
+MAX_BATCH = 4096
+
+
+def _train_control(ranks: Ranks, kw: dict[str, Any]) -> dict[str, Any]:
+    """:func:`train_control` on one rank of ``ranks`` (``kw``: its settings, the case paths found)."""
+    import torch
+    from tqdm import tqdm
+
+    scene, paths, out, steps, lr, k_basis, seed = kw["scene"], kw["paths"], kw["out"], kw["steps"], kw["lr"], kw["k_basis"], kw["seed"]
+    checkpoint_every, time_limit, batch, prior = kw["checkpoint_every"], kw["time_limit"], kw["batch"], kw["prior"]
+    progress = kw["progress"] and ranks.main
+    torch.set_num_threads(max(1, int(kw["threads"])))
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
+    n_valid = max(1, int(round(kw["valid_fraction"] * len(paths))))
+    bounds = scene_bounds(scene)
+    ckpt_path = out / "ckpt.pt"
+    # rank 0 reads the checkpoint (or the warm start) and sends it to the others, who may not share its directory
+    ck, init, error = None, None, None
+    if ranks.main:
+        if ckpt_path.exists():
+            ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        elif kw["init_from"] is not None:  # warm start: the weights of another run (same sizes), fresh optimiser
+            try:
+                init = torch.load(Path(kw["init_from"]), map_location="cpu", weights_only=False)["ema"]
+            except (OSError, KeyError, RuntimeError) as e:
+                error = InvalidInputError(f"init_from: {kw['init_from']} is not a checkpoint of a control model ({e})", "init_from")
+        if ck is not None and int(ck.get("batch", 1)) * int(ck.get("ranks", 1)) != batch * ranks.size:
+            old_b, old_r = int(ck.get("batch", 1)), int(ck.get("ranks", 1))
+            error = InvalidInputError(
+                f"batch: {out} holds a run of {old_b * old_r} pairs per step ({old_b} on each of {old_r} ranks), "
+                f"not {batch * ranks.size} ({batch} on each of {ranks.size}); use another --out",
+                "batch",
+            )
+    ck, init, error = ranks.broadcast((ck, init, error))
+    if error is not None:
+        raise error
+    if ck is not None:  # a resumed run keeps the prior it started with
+        prior = str(ck["config"].get("extra", {}).get("prior", PRIOR_SKETCH_RAMP))
     train_pairs = load_pairs(paths[n_valid:], k_basis, bounds, prior=prior, progress=progress)
     valid_pairs = load_pairs(paths[:n_valid], k_basis, bounds, mirror=False, prior=prior)
     coef_all = np.concatenate([p.coef for p in train_pairs] + [p.free for p in train_pairs])
@@ -207,24 +259,22 @@ def train_control(
         offset_scale=1.0,
         coef_mean=mean.tolist(),
         coef_std=std.tolist(),
-        latent_state=latent_state,
-        latent_head=latent_head,
+        latent_state=kw["latent_state"],
+        latent_head=kw["latent_head"],
         extra={"scene": scene, "cases": len(paths) - n_valid, "valid_cases": n_valid, "prior": prior},
     )
-    ckpt_path = out / "ckpt.pt"
+    torch.manual_seed(seed)  # the initial weights are the seed's, whichever process draws them
     model = FluidControlNet(cfg)
     ema = copy.deepcopy(model)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    step, rng_state, spent = 0, None, 0.0
-    if init_from is not None and not ckpt_path.exists():  # warm start: the weights of another run (same sizes), fresh optimiser
+    step, rng_state, spent, core_seconds = 0, None, 0.0, 0.0
+    if init is not None:
         try:
-            init = torch.load(Path(init_from), map_location="cpu", weights_only=False)["ema"]
             model.load_state_dict(init)
             ema.load_state_dict(init)
-        except (OSError, KeyError, RuntimeError) as e:
-            raise InvalidInputError(f"init_from: {init_from} is not a checkpoint of a control model of the same sizes ({e})", "init_from") from e
-    if ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        except RuntimeError as e:
+            raise InvalidInputError(f"init_from: {kw['init_from']} is not a checkpoint of a control model of the same sizes ({e})", "init_from") from e
+    if ck is not None:
         cfg = ControlNetConfig.from_dict(ck["config"])
         model, ema = FluidControlNet(cfg), FluidControlNet(cfg)
         model.load_state_dict(ck["model"])
@@ -232,6 +282,8 @@ def train_control(
         opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
         opt.load_state_dict(ck["opt"])
         step, rng_state, spent = int(ck["step"]), ck["rng"], float(ck.get("seconds", 0.0))
+        core_seconds = float(ck.get("core_seconds", spent))  # a checkpoint from before the count: its wall time
+    del ck, init
     mean_t = torch.tensor(cfg.coef_mean, dtype=torch.float32)
     std_t = torch.tensor(cfg.coef_std, dtype=torch.float32)
     alpha_bar = torch.tensor(cosine_alpha_bar(DIFFUSION_STEPS), dtype=torch.float32)
@@ -239,8 +291,8 @@ def train_control(
     if rng_state is not None:
         rng.bit_generator.state = rng_state
     torch.manual_seed(seed + step)
-    gamma = (lr_final / lr) ** (1.0 / max(steps, 1))
-    log = (out / "log.jsonl").open("a")
+    gamma = (kw["lr_final"] / lr) ** (1.0 / max(steps, 1))
+    log = (out / "log.jsonl").open("a") if ranks.main else None
     blank_img = torch.zeros(1, 3, 64, 64)
 
     def tensors(p: _Pair, blank: bool) -> tuple[Any, ...]:
@@ -261,18 +313,23 @@ def train_control(
             target,
         )
 
-    def loss_of(net: FluidControlNet, p: _Pair, blank: bool, ts: list[int], gen: torch.Generator | None = None) -> Any:
+    def loss_of(net: FluidControlNet, p: _Pair, blank: bool, ts: list[int], gen: torch.Generator | None = None, noises: list[Any] | None = None) -> Any:
+        """The pair's loss at noise levels ``ts``, with the noise ``noises`` (default: drawn from ``gen``)."""
         x, v, pt, s, r, img, geo, off, target = tensors(p, blank)
         h, edges, local, glob = net.encode(x, v, pt, s, r, img)
         cond = torch.cat([glob, geo], dim=1)
         total = torch.zeros(())
-        for t in ts:
-            noise = torch.randn(target.shape, generator=gen)
+        for k, t in enumerate(ts):
+            noise = torch.randn(target.shape, generator=gen) if noises is None else noises[k]
             ab = alpha_bar[t]
             xt = ab.sqrt() * target + (1 - ab).sqrt() * noise
             pred = net.head(xt, h, local, off, edges, s, r, torch.tensor([t / DIFFUSION_STEPS]), cond)
             total = total + torch.mean((pred - target) ** 2)
         return total / len(ts)
+
+    def batch_loss(net: FluidControlNet, draws: list[tuple[_Pair, bool, list[int], list[Any]]]) -> Any:
+        """The mean loss of this rank's pairs (equal weights: the ranks' mean is the global batch's)."""
+        return sum(loss_of(net, p, blank, ts, noises=noises) for p, blank, ts, noises in draws) / len(draws)
 
     def validate(net: FluidControlNet | None = None, pairs: list[_Pair] | None = None) -> float:
         """The loss at fixed noise levels and draws (no sampling noise between calls): ``net`` (default the EMA) on ``pairs`` (default validation)."""
@@ -282,31 +339,54 @@ def train_control(
         return float(np.mean(vals))
 
     fit_pairs = train_pairs[:: max(1, len(train_pairs) // 8)][:8]
-    fit_first = validate(model, fit_pairs)
+    fit_first = validate(model, fit_pairs) if ranks.main else math.nan
+
+    cpu0 = time.process_time()
 
     def save() -> None:
+        """Rank 0 validates, logs and writes the checkpoint (every rank calls it: the CPU seconds are summed)."""
+        nonlocal core_seconds, cpu0
+        # the global batch's loss is the ranks' mean; the CPU time, their sum
+        loss_sum, cpu = ranks.sum(float(np.mean(recent[-checkpoint_every:])) if recent else 0.0, time.process_time() - cpu0)
+        core_seconds += cpu
+        cpu0 = time.process_time()
+        if not ranks.main:
+            return
+        assert log is not None
         val = validate()
         spent_now = spent + time.perf_counter() - t_start
-        log.write(json.dumps({"step": step, "loss": float(np.mean(recent[-checkpoint_every:])) if recent else None, "valid": val, "seconds": spent_now}) + "\n")
+        entry = {"step": step, "loss": loss_sum / ranks.size if recent else None, "valid": val, "seconds": spent_now}
+        log.write(json.dumps({**entry, "ranks": ranks.size, "core_seconds": core_seconds}) + "\n")
         log.flush()
         ck = {"config": cfg.to_dict(), "model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "step": step}
-        ck.update({"rng": rng.bit_generator.state, "seconds": spent_now})
+        ck.update({"rng": rng.bit_generator.state, "seconds": spent_now, "core_seconds": core_seconds, "batch": batch, "ranks": ranks.size})
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save(ck, tmp)
         os.replace(tmp, ckpt_path)
 
+    # the loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients);
+    # the state encoder's decoder takes no part in it (its latents are what the head reads)
+    step_loss = ranks.wrap(LossOf(model, batch_loss), unused=True)
     saved_at = step
     bar = tqdm(total=steps, initial=min(step, steps), desc=f"train-control {scene}", unit="step", disable=not progress)
     t_start = time.perf_counter()
+    cpu0 = time.process_time()
     recent: list[float] = []
+    mine = ranks.part(batch)
     model.train()
     while step < steps:
-        if time_limit is not None and time.perf_counter() - t_start > time_limit:
+        if time_limit is not None and ranks.any(time.perf_counter() - t_start > time_limit):  # every rank stops at the same step
             break
-        p = train_pairs[int(rng.integers(len(train_pairs)))]
-        blank = bool(rng.random() < P_BLANK)
-        ts = [int(t) for t in rng.integers(0, DIFFUSION_STEPS, NOISE_DRAWS)]
-        loss = loss_of(model, p, blank, ts)
+        # every rank draws the whole global batch (the random stream of one process of ranks x batch pairs) and keeps its slice
+        draws = []
+        for i in range(ranks.size * batch):
+            p = train_pairs[int(rng.integers(len(train_pairs)))]
+            blank = bool(rng.random() < P_BLANK)
+            ts = [int(t) for t in rng.integers(0, DIFFUSION_STEPS, NOISE_DRAWS)]
+            noises = [torch.randn(p.coef.shape) for _ in ts]  # the sample's shape: p.free's too
+            if i in mine:
+                draws.append((p, blank, ts, noises))
+        loss = step_loss(draws)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -329,14 +409,25 @@ def train_control(
     if saved_at != step:  # stopped by the time limit
         save()
     bar.close()
-    log.close()
-    seconds = spent + time.perf_counter() - t_start
-    export_control(ema, out / "model", {"scene": scene, "steps": step, "train_seconds": seconds, "cases": cfg.extra.get("cases")})
-    first = float(np.mean(recent[:10])) if recent else None  # this call's first and last 10 steps
-    last = float(np.mean(recent[-10:])) if recent else None
-    # the loss on up to 8 training pairs at fixed noise: the model this call started from, then the EMA it exports
-    fit_last = validate(ema, fit_pairs)
-    return {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last, "fit_first": fit_first, "fit_last": fit_last}
+    # this call's first and last 10 steps, the ranks' mean (every rank made as many steps)
+    first: float | None = None
+    last: float | None = None
+    if recent:
+        first, last = (v / ranks.size for v in ranks.sum(float(np.mean(recent[:10])), float(np.mean(recent[-10:]))))
+    summary = None
+    if ranks.main:
+        assert log is not None
+        log.close()
+        seconds = spent + time.perf_counter() - t_start
+        export_control(ema, out / "model", {"scene": scene, "steps": step, "train_seconds": seconds, "cases": cfg.extra.get("cases")})
+        # the loss on up to 8 training pairs at fixed noise: the model this call started from, then the EMA it exports
+        fit_last = validate(ema, fit_pairs)
+        summary = {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last, "fit_first": fit_first, "fit_last": fit_last}
+        summary.update({"ranks": ranks.size, "core_seconds": core_seconds})
+    # the others wait for rank 0's export and return its summary
+    result = ranks.broadcast(summary)
+    assert result is not None
+    return result
 
 
 def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
@@ -417,4 +508,4 @@ def export_control(model: Any, out: str | Path, info: dict[str, Any]) -> Path:
     return out
 
 
-__all__ = ["K_BASIS", "P_BLANK", "export_control", "load_pairs", "scene_bounds", "train_control"]
+__all__ = ["K_BASIS", "MAX_BATCH", "P_BLANK", "export_control", "load_pairs", "scene_bounds", "train_control"]

@@ -64,12 +64,24 @@
   checkpoint can be chosen afterwards on the benchmark's own rollout error
   (``benchmarks/bench_neural.py --split valid --models OUT/snapshots/*``,
   then ``benchmarks/ship_model.py``) rather than on the one 20-step
-  validation rollout the run itself scores.
+  validation rollout the run itself scores;
+* several processes (``nproc`` = N, or torchrun; :mod:`hybridmpm.train.distributed`):
+  data-parallel training with DistributedDataParallel over gloo. ``batch``
+  stays the windows per rank: every rank draws the windows of the global
+  batch of N·``batch`` (noise included) from the one random stream a single
+  process of batch N·``batch`` would draw, keeps its slice, and weighs its
+  loss by the non-kinematic particles of the whole batch, so the averaged
+  gradient is that process's and the weights agree to float rounding
+  (``tests/test_ddp.py``). Rank 0 validates, logs, checkpoints and exports.
+  A run may resume with another split of the same global batch (N = 2 of
+  batch 2 as N = 1 of batch 4). ``train_config.json`` records ``ranks``;
+  ``log.csv`` and ``summary.json`` add ``ranks`` and ``core_seconds`` (the
+  CPU seconds of every rank's process, summed).
 
 ``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
 :class:`~hybridmpm.train.gns.model.GnsModel` state_dict), ``optimizer`` (Adam's,
 indexed by parameter order), ``step``, ``best`` (best rollout MSE),
-``elapsed`` [s], ``rng`` (numpy bit-generator state), ``torch_rng``,
+``elapsed`` [s], ``core_seconds``, ``ranks``, ``rng`` (numpy bit-generator state), ``torch_rng``,
 ``gns_config`` (:meth:`GnsConfig.to_dict`) and, with ``ema``, ``ema`` (the
 ``AveragedModel``'s state_dict); ``best.pt`` is the best validated model's
 state_dict (the EMA's with ``ema``). Checkpoints written before the features / encoder–processor–decoder
@@ -99,6 +111,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural.constants import WALL_REACH_MAX
+from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
 from hybridmpm.train.gns.export import export_onnx
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
 
@@ -107,8 +120,10 @@ from hybridmpm.train.gns.model import GnsConfig, GnsModel
 class TrainConfig:
     """Settings of :func:`train` (see the module docstring). ``scene`` names the
     scene family stored in the model; ``steps`` optimiser steps; ``batch``
-    windows per step; ``max_neighbors`` caps the radius graph per receiver;
-    ``radius`` the connectivity radius R [m] (default: the dataset's)."""
+    windows per step and rank; ``max_neighbors`` caps the radius graph per receiver;
+    ``radius`` the connectivity radius R [m] (default: the dataset's);
+    ``nproc`` local processes (ranks) of data-parallel training (1: this
+    process; under torchrun, torchrun's ranks)."""
 
     scene: str
     data: str | list[str]
@@ -136,6 +151,7 @@ class TrainConfig:
     unroll_after: float = 0.0
     clip_grad: float = 1.0
     wall_reach: float = 1.0
+    nproc: int = 1
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
@@ -172,6 +188,7 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
                 raise InvalidInputError(f"{name}: must be a number in [0, 1], got {v!r}", name)
+        check_nproc(self.nproc)
         return self
 
 
@@ -287,12 +304,17 @@ def _batch(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], radius: flo
     )
 
 
-def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
+def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...], count: float | None = None) -> torch.Tensor:
+    """MSE of the normalised acceleration over the batch's non-kinematic
+    particles; with ``count``, the sum of their squared errors over ``count``
+    particles instead (a rank's share of a global batch's mean: ``count`` is
+    the global batch's particles over the ranks)."""
     hist, ptype, s, r, acc = batch
     pred = model.normalised_acceleration(hist, ptype, s, r)
     target = model.features.normalise_acceleration(acc)
     mask = ptype != GNS_KINEMATIC
-    return ((pred - target)[mask] ** 2).mean()
+    sq = (pred - target)[mask] ** 2
+    return sq.mean() if count is None else sq.sum() / (count * sq.shape[-1])
 
 
 def _unrolled_window(
@@ -314,6 +336,7 @@ def _unrolled_loss(
     windows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     radius: float,
     max_neighbors: int | None,
+    count: float | None = None,
 ) -> torch.Tensor:
     """The loss of unrolled training (module docstring): the windows of
     :func:`_unrolled_window` joined into one disjoint graph, rolled out by
@@ -323,8 +346,8 @@ def _unrolled_loss(
     from the (predicted) history, and the prediction, clipped to the domain
     bounds, becomes the next input (kinematic particles take their true
     positions). Returns the mean over steps of the mean squared error over
-    non-kinematic particles; with one step it equals :func:`_loss` of the
-    same window."""
+    non-kinematic particles (with ``count``, as :func:`_loss`); with one step
+    it equals :func:`_loss` of the same window."""
     sizes = [w[0].shape[1] for w in windows]
     starts = np.cumsum([0, *sizes[:-1]])
     hist = torch.from_numpy(np.concatenate([w[0] for w in windows], axis=1))
@@ -345,7 +368,8 @@ def _unrolled_loss(
         senders, receivers = torch.from_numpy(np.concatenate(ss)), torch.from_numpy(np.concatenate(rs))
         pred = model.normalised_acceleration(hist, ptype, senders, receivers)
         target = model.features.normalise_acceleration(targets[k] - 2 * hist[-1] + hist[-2])
-        losses.append(((pred - target)[mask] ** 2).mean())
+        sq = (pred - target)[mask] ** 2
+        losses.append(sq.mean() if count is None else sq.sum() / (count * sq.shape[-1]))
         if k + 1 < targets.shape[0]:
             _, nxt = model.features.integrate(hist, ptype, pred)
             nxt = torch.where(kin, truth[k], torch.clamp(nxt, bounds[:, 0], bounds[:, 1]))
@@ -368,28 +392,64 @@ def _rollout(model: GnsModel, traj: tuple[np.ndarray, np.ndarray], steps: int, r
     return np.stack(out)
 
 
+def _step_loss(model: GnsModel, windows: list[Any], unrolling: bool, radius: float, max_neighbors: int | None, count: float | None) -> torch.Tensor:
+    """The loss of one step's ``windows`` (one-step or unrolled; ``count`` as :func:`_loss`)."""
+    if unrolling:
+        return _unrolled_loss(model, windows, radius, max_neighbors, count)
+    return _loss(model, _batch(windows, radius, max_neighbors), count)
+
+
+#: Settings a run may resume with changed (``batch`` and ``nproc`` are compared as the global batch).
+_RESUMABLE = ("steps", "threads", "out", "snapshots", "nproc", "ranks", "batch")
+
+
+def _saved_config_error(saved: Path, config: TrainConfig, ranks: int) -> InvalidInputError | None:
+    """Why the run in ``saved``'s directory cannot be resumed by ``config`` on ``ranks`` ranks, or None."""
+    old = json.loads(saved.read_text())
+    defaults = asdict(TrainConfig(scene="", data="", out=""))
+    for key, v in asdict(config).items():
+        # a moved run directory still resumes; a setting added since the run was made has its default
+        if key not in _RESUMABLE and old.get(key, defaults[key]) != v:
+            return InvalidInputError(f"{key}: {saved.parent} holds a run with {key} = {old.get(key, defaults[key])!r}, not {v!r}; use another --out", key)
+    old_batch, old_ranks = old.get("batch", defaults["batch"]), old.get("ranks", 1)
+    if old_batch * old_ranks != config.batch * ranks:
+        return InvalidInputError(
+            f"batch: {saved.parent} holds a run of {old_batch * old_ranks} windows per step ({old_batch} on each of {old_ranks} ranks), "
+            f"not {config.batch * ranks} ({config.batch} on each of {ranks}); use another --out",
+            "batch",
+        )
+    return None
+
+
 def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) a GNS; returns a summary dict (also ``out/summary.json``).
+
+    With ``nproc`` > 1, or under torchrun, trains on several processes
+    (module docstring); the summary is rank 0's.
 
     Raises :class:`InvalidInputError` for bad settings, a dataset that does not
     fit (``r_t`` not a multiple of the data's), or an ``out`` directory holding
     a run with different settings.
     """
+    config.validate()
+    return launch(_train, config.nproc, config, progress)
+
+
+def _train(ranks: Ranks, config: TrainConfig, progress: bool) -> dict[str, Any]:
+    """:func:`train` on one rank of ``ranks``."""
     from tqdm import tqdm
 
-    config.validate()
     out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
     saved = out / "train_config.json"
-    cfg_json = asdict(config)
-    if saved.exists():
-        old = json.loads(saved.read_text())
-        defaults = asdict(TrainConfig(scene="", data="", out=""))
-        for key, v in cfg_json.items():
-            # a moved run directory still resumes; a setting added since the run was made has its default
-            if key not in ("steps", "threads", "out", "snapshots") and old.get(key, defaults[key]) != v:
-                raise InvalidInputError(f"{key}: {out} holds a run with {key} = {old.get(key, defaults[key])!r}, not {v!r}; use another --out", key)
-    saved.write_text(json.dumps(cfg_json, indent=2))
+    error = None
+    if ranks.main:
+        out.mkdir(parents=True, exist_ok=True)
+        error = _saved_config_error(saved, config, ranks.size) if saved.exists() else None
+        if error is None:
+            saved.write_text(json.dumps({**asdict(config), "ranks": ranks.size}, indent=2))
+    error = ranks.broadcast(error)
+    if error is not None:
+        raise error
     if config.threads:
         torch.set_num_threads(config.threads)
     dirs = config.data_dirs()
@@ -429,33 +489,48 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     ema = swa_utils.AveragedModel(model, multi_avg_fn=swa_utils.get_ema_multi_avg_fn(config.ema)) if config.ema > 0 else None
     net: GnsModel = ema.module if ema is not None else model  # type: ignore[assignment]
     rng = np.random.default_rng(config.seed)
-    step, best, elapsed = 0, math.inf, 0.0
+    step, best, elapsed, core_seconds = 0, math.inf, 0.0, 0.0
     ckpt = out / "checkpoint.pt"
-    if ckpt.exists():
-        state = torch.load(ckpt, weights_only=False)
+    # rank 0 reads the checkpoint and sends it to the others (who may not share its directory)
+    state = ranks.broadcast(torch.load(ckpt, weights_only=False) if ranks.main and ckpt.exists() else None)
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         if ema is not None:
             ema.load_state_dict(state["ema"])
         step, best, elapsed = state["step"], state["best"], state["elapsed"]
+        core_seconds = float(state.get("core_seconds", elapsed))  # a checkpoint from before the count: its wall time
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
-    vrng = np.random.default_rng(12345)
+    del state
+    # the loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients)
+    step_loss = ranks.wrap(LossOf(model, _step_loss))
     val_windows = []
-    for _ in range(config.val_windows):
-        k = int(vrng.integers(len(valid_data.trajs)))
-        traj = valid_data.trajs[k]
-        t = int(vrng.integers(t_in - 1, len(traj[0]) - 1))
-        val_windows.append(_window(traj, t, t_in, 0.0, vrng))
-    val_trajs = [valid_data.trajs[i] for i in valid_data.first]  # one per pooled dataset
-    rollout_steps = min(config.rollout_steps, min(len(v[0]) for v in val_trajs) - t_in)
+    val_trajs: list[tuple[np.ndarray, np.ndarray]] = []
+    rollout_steps = 0
+    if ranks.main:  # only rank 0 validates
+        vrng = np.random.default_rng(12345)
+        for _ in range(config.val_windows):
+            k = int(vrng.integers(len(valid_data.trajs)))
+            traj = valid_data.trajs[k]
+            t = int(vrng.integers(t_in - 1, len(traj[0]) - 1))
+            val_windows.append(_window(traj, t, t_in, 0.0, vrng))
+        val_trajs = [valid_data.trajs[i] for i in valid_data.first]  # one per pooled dataset
+        rollout_steps = min(config.rollout_steps, min(len(v[0]) for v in val_trajs) - t_in)
     n_grid = int(meta.get("n_grid", DEFAULT_N_GRID[gcfg.dim]))
-    log_path = out / "log.csv"
-    new_log = not log_path.exists()
-    log = open(log_path, "a", newline="")
-    writer = csv.writer(log)
-    if new_log:
-        writer.writerow(["step", "lr", "train_loss", "val_one_step", "val_rollout_mse", "val_rollout_grid_mass", "elapsed_s"])
+    log = None
+    counted = False  # whether the log has the columns ranks and core_seconds
+    if ranks.main:
+        log_path = out / "log.csv"
+        new_log = not log_path.exists()
+        log = open(log_path, "a", newline="")
+        writer = csv.writer(log)
+        if new_log:
+            counted = True
+            writer.writerow(["step", "lr", "train_loss", "val_one_step", "val_rollout_mse", "val_rollout_grid_mass", "elapsed_s", "ranks", "core_seconds"])
+        else:  # a log begun before the ranks were counted keeps its columns
+            with open(log_path, newline="") as f:
+                counted = "core_seconds" in next(csv.reader(f), [])
     running: list[float] = []
 
     def validate(lr: float, train_loss: float) -> float:
@@ -471,7 +546,9 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             mses.append(m)
             gms.append(float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(m) else math.inf)
         mse, gm = float(np.mean(mses)), float(np.mean(gms))
-        writer.writerow([step, f"{lr:.3e}", f"{train_loss:.5f}", f"{v1:.5f}", f"{mse:.4e}", f"{gm:.4f}", f"{time.perf_counter() - t0:.1f}"])
+        row = [step, f"{lr:.3e}", f"{train_loss:.5f}", f"{v1:.5f}", f"{mse:.4e}", f"{gm:.4f}", f"{time.perf_counter() - t0:.1f}"]
+        writer.writerow(row + ([ranks.size, f"{core_seconds:.1f}"] if counted else []))
+        assert log is not None
         log.flush()
         bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
         return mse
@@ -508,10 +585,14 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
         )
         return summary
 
-    bar = tqdm(total=config.steps, initial=step, desc=f"train {config.scene} L{config.layers}x{config.latent}", unit="step", disable=not progress)
+    bar = tqdm(
+        total=config.steps, initial=step, desc=f"train {config.scene} L{config.layers}x{config.latent}", unit="step", disable=not (progress and ranks.main)
+    )
     t0 = time.perf_counter() - elapsed
+    cpu0 = time.process_time()
+    mine = ranks.part(config.batch)
     try:
-        if step == 0:
+        if step == 0 and ranks.main:
             validate(config.lr, math.nan)  # the untrained baseline
         while step < config.steps:
             lr = config.lr_final + (config.lr - config.lr_final) * 0.1 ** (step / config.steps)
@@ -520,23 +601,30 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             windows: list[Any] = []
             pushing = config.pushforward > 0 and step >= config.pushforward_after * config.steps
             unrolling = config.unroll > 1 and step >= config.unroll_after * config.steps
-            for _ in range(config.batch):
+            particles = 0  # non-kinematic, in the global batch
+            # every rank draws the whole global batch (the random stream of one process of batch ranks x batch) and keeps its slice
+            for i in range(ranks.size * config.batch):
+                w: Any
                 traj = train_data.trajs[int(rng.integers(len(train_data.trajs)))]
+                particles += int(np.count_nonzero(traj[1] != GNS_KINEMATIC))
                 if unrolling:
                     t = int(rng.integers(t_in - 1, len(traj[0]) - config.unroll))
-                    windows.append(_unrolled_window(traj, t, t_in, config.unroll, config.noise_std, rng))
+                    w = _unrolled_window(traj, t, t_in, config.unroll, config.noise_std, rng)
                 elif pushing and rng.random() < config.pushforward:
                     model.eval()
                     t = int(rng.integers(t_in, len(traj[0]) - 1))
-                    windows.append(_pushforward_window(model, traj, t, t_in, config.noise_std, rng, radius, config.max_neighbors))
+                    if i in mine:
+                        w = _pushforward_window(model, traj, t, t_in, config.noise_std, rng, radius, config.max_neighbors)
+                    else:  # another rank's: the same draws (its one plain window), without the model step
+                        w = _window(traj, t - 1, t_in, config.noise_std, rng)
                 else:
                     t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
-                    windows.append(_window(traj, t, t_in, config.noise_std, rng))
+                    w = _window(traj, t, t_in, config.noise_std, rng)
+                if i in mine:
+                    windows.append(w)
             model.train()
-            if unrolling:
-                loss = _unrolled_loss(model, windows, radius, config.max_neighbors)
-            else:
-                loss = _loss(model, _batch(windows, radius, config.max_neighbors))
+            # one rank: the batch's own mean; several: this slice's share of the global batch's mean
+            loss = step_loss(windows, unrolling, radius, config.max_neighbors, particles / ranks.size if ranks.size > 1 else None)
             opt.zero_grad()
             loss.backward()
             if unrolling:
@@ -548,31 +636,45 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
             running.append(loss.item())
             bar.update(1)
             if step % config.val_every == 0 or step == config.steps:
-                mse = validate(lr, float(np.mean(running)))
-                elapsed = time.perf_counter() - t0
+                # the global batch's loss is the ranks' mean; the CPU time, their sum
+                loss_sum, cpu = ranks.sum(float(np.mean(running)), time.process_time() - cpu0)
+                core_seconds += cpu
+                cpu0 = time.process_time()
                 running = []
+                elapsed = time.perf_counter() - t0
+                if not ranks.main:
+                    continue
+                mse = validate(lr, loss_sum / ranks.size)
+                elapsed = time.perf_counter() - t0
                 if mse < best:
                     best = mse
                     torch.save(net.state_dict(), out / "best.pt")
-                state = {
+                ck = {
                     "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "best": best, "elapsed": elapsed,
+                    "core_seconds": core_seconds, "ranks": ranks.size,
                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "gns_config": gcfg.to_dict(),
                 }  # fmt: skip
                 if ema is not None:
-                    state["ema"] = ema.state_dict()
+                    ck["ema"] = ema.state_dict()
                 if config.snapshots:  # before the checkpoint, so a resumed run never lacks a validated step's snapshot
                     export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed, {"val_rollout_mse": mse})
                 tmp = out / "checkpoint.pt.tmp"
-                torch.save(state, tmp)
+                torch.save(ck, tmp)
                 os.replace(tmp, ckpt)
     finally:
         bar.close()
-        log.close()
-    if (out / "best.pt").exists():
-        net.load_state_dict(torch.load(out / "best.pt", weights_only=True))
-    summary = export_to(out / "model.onnx", elapsed)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
+        if log is not None:
+            log.close()
+    summary: dict[str, Any] | None = None
+    if ranks.main:
+        if (out / "best.pt").exists():
+            net.load_state_dict(torch.load(out / "best.pt", weights_only=True))
+        summary = {**export_to(out / "model.onnx", elapsed), "ranks": ranks.size, "core_seconds": round(core_seconds, 1)}
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    # the others wait for rank 0's export and return its summary
+    result = ranks.broadcast(summary)
+    assert result is not None
+    return result
 
 
 __all__ = ["TrainConfig", "train"]
