@@ -1,56 +1,95 @@
-// hybridmpm page: live particles over a binary WebSocket, sketches with mouse or pen.
-// No build step, no CDN. Test hook: window.__hmpm.
+// hybridmpm page: live particles over a binary WebSocket drawn with WebGL2 (render.js; Canvas2D where
+// WebGL2 is missing), sketches with mouse or pen, downloads. No build step, no CDN. Test hook: window.__hmpm.
+
+import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayPlane } from "./render.js";
+import { encodeGif } from "./gif.js";
 
 const HEADER_BYTES = 32;
-const COLORS = {
-  5: ["#1f5fd1", "#19b5c9"], // water: [MPM, network]
-  6: ["#b8862e", "#e3c44a"], // sand
-  3: ["#6b7280", "#6b7280"], // static boundary
-};
 const MAX_POINTS = 512;
+const HISTORY = 120;                 // frames kept for the GIF
+const GIF_SIZE = 320;                // pixels
+// a 3D arrow's depth travels as its width (control/sketch.py: wider = nearer the viewer, +z)
+const WIDTH_MIN = 0.006, WIDTH_MAX = 0.024, WIDTH_FLAT = 0.015, DEPTH_FLAT = 0.005;
+const INK = "#d1245a", PLAN = "#0b7a4b";
+
+const params = new URLSearchParams(location.search);
+const bench = params.get("bench") === "1";    // draw every animation frame (and turn a 3D camera): frames/s
+const syncDraw = params.get("sync") === "1";  // wait for the GPU inside the timed draw
+const syncPixel = new Uint8Array(4);
 
 const hook = (window.__hmpm = {
-  framesReceived: 0, framesRendered: 0, lastDrawMs: 0, drawMs: [], controls: [], errors: [],
-  session: null, status: "", lastFrame: -1, lastSketch: null,
+  framesReceived: 0, framesRendered: 0, lastDrawMs: 0, drawMs: [], fps: 0, controls: [], errors: [],
+  session: null, status: "", lastFrame: -1, lastSketch: null, renderer: "", look: "",
+  applied: null, strokeCss: [], planCss: [], lastControlFrame: 0, controlRunning: false, gif: null, camera: null,
+  showParticles: (on) => { renderer.showParticles = !!on; dirty = true; },
+  centroidCss: () => centroidCss(),
+  toCss: (p) => toCss(p),             // world point -> CSS pixels of the sketch canvas
+  view: null,                         // the renderer (tests and benchmarks)
 });
 window.addEventListener("error", (e) => hook.errors.push(String(e.message || e)));
 window.addEventListener("unhandledrejection", (e) => hook.errors.push(String(e.reason)));
 
 const $ = (id) => document.getElementById(id);
-const simCanvas = $("sim"), inkCanvas = $("ink");
-const sim2d = simCanvas.getContext("2d"), ink2d = inkCanvas.getContext("2d");
-const params = new URLSearchParams(location.search);
+const simCanvas = $("sim"), inkCanvas = $("ink"), ink2d = inkCanvas.getContext("2d");
+
+let renderer;
+try {
+  if (params.get("gl") === "0") throw new Error("WebGL switched off (?gl=0)");
+  renderer = new GLRenderer(simCanvas);
+} catch (e) {
+  renderer = new Canvas2DRenderer(simCanvas);
+  console.info(`Canvas2D view: ${e.message}`);
+}
+hook.renderer = renderer.kind; hook.view = renderer;
 
 let session = null, ws = null, playing = params.get("autoplay") !== "0";
-let latest = null;           // {frame, n, dim, solver, controlled, pos}
+let latest = null;           // {frame, n, dim, solver, controlled, cframe, time, pos}
+let fresh = false;           // latest not yet handed to the renderer
 let dirty = false;
-let stroke = [];             // domain points of the current sketch
-let drawing = false;
+let stroke = [];             // world points [x, y, z] of the sketch being drawn (2D: z = 0)
+let plane = null;            // 3D: {point, normal} of the sketch plane
+let drawing = false, orbiting = null;
+let applied = null;          // the applied sketch: {kind, stroke, plan, id, frames, running}
+const history = [];          // the last HISTORY frames received (the GIF's)
 const recentSolvers = [];    // 1 = network, last 200 frames
-let lastArrival = 0, interval = 0;
+const renderTimes = [];
+let lastArrival = 0, interval = 0, lastReadout = 0;
 
 function setStatus(text) { hook.status = text; $("status").textContent = text; }
+const is3D = () => !!session && session.dim === 3 && renderer.kind === "webgl2";
 
 // ---------------------------------------------------------------- coordinates (the one place)
-// CSS pixels of an element -> backing pixels (devicePixelRatio) and domain <-> CSS pixels,
-// with the y axis flipped exactly here: the canvas grows downwards, the domain upwards.
+// CSS pixels of the sketch canvas <-> the domain. 2D (and the Canvas2D view): the domain's x–y fills the
+// canvas, the y axis flipped exactly here (the canvas grows downwards, the domain upwards). 3D: the
+// camera's rays (render.js pixelRay) meet the sketch plane.
 function bounds() { return session ? session.bounds : [[0, 0], [1, 1]]; }
-function fitCanvas(c, ctx) {
-  const r = c.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
-  const w = Math.max(1, Math.round(r.width * dpr)), h = Math.max(1, Math.round(r.height * dpr));
-  if (c.width !== w || c.height !== h) { c.width = w; c.height = h; }
-  ctx.setTransform(dpr, 0, 0, dpr, 0, 0); // draw in CSS pixels
-  return r;
-}
 function toDomain(clientX, clientY) {
   const r = inkCanvas.getBoundingClientRect(), [lo, hi] = bounds();
   const u = (clientX - r.left) / r.width, v = (clientY - r.top) / r.height;
   return [lo[0] + u * (hi[0] - lo[0]), lo[1] + (1 - v) * (hi[1] - lo[1])];
 }
-function toCss(x, y, r) {
-  const [lo, hi] = bounds();
-  return [((x - lo[0]) / (hi[0] - lo[0])) * r.width, (1 - (y - lo[1]) / (hi[1] - lo[1])) * r.height];
+function toWorld(clientX, clientY) {
+  if (!is3D()) { const [x, y] = toDomain(clientX, clientY); return [x, y, plane ? plane.point[2] : 0]; }
+  const r = inkCanvas.getBoundingClientRect();
+  return rayPlane(pixelRay(matrices(), clientX - r.left, clientY - r.top, r.width, r.height), plane.point, plane.normal);
 }
+function matrices() { return renderer.last ? renderer.last.M : renderer.camera.matrices(1); }
+function toCss(p) {
+  const r = inkCanvas.getBoundingClientRect();
+  return project(matrices(), p, r.width, r.height);
+}
+function fluidCentroid() {
+  if (!latest || !session) return [0.5, 0.5, 0.5];
+  const { n, dim, pos } = latest, types = session.particle_type, c = [0, 0, 0];
+  let k = 0;
+  for (let i = 0; i < n; i++) {
+    if (types[i] === 3) continue;
+    for (let d = 0; d < dim; d++) c[d] += pos[i * dim + d];
+    k++;
+  }
+  return c.map((v) => v / Math.max(1, k));
+}
+function centroidCss() { return toCss(fluidCentroid()); }
 
 // ---------------------------------------------------------------- API
 async function api(method, path, body) {
@@ -82,6 +121,8 @@ async function loadScenes() {
   $("seed").value = params.get("seed") || "0";
   $("solver").value = params.get("solver") || "hybrid";
   if (params.get("method")) $("method").value = params.get("method");
+  if (params.get("frames")) $("frames").value = params.get("frames");
+  if (params.get("look")) setLook(params.get("look"));
   syncSolvers();
 }
 
@@ -97,6 +138,7 @@ async function newSession() {
   closeStream();
   if (session) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); }
   session = null; latest = null; hook.session = null; $("apply").disabled = true;
+  history.length = 0; stroke = []; setApplied(null);
   setStatus("creating session…");
   try {
     session = await api("POST", "/v1/sessions", {
@@ -104,8 +146,15 @@ async function newSession() {
     });
   } catch (e) { setStatus(`could not create a session: ${e.message}`); return; }
   hook.session = session;
+  renderer.setSession(session);
+  hook.camera = renderer.camera;
+  for (const el of document.querySelectorAll(".only3d")) el.hidden = !is3D();
+  if (!is3D() && tool() === "turn") document.querySelector("input[name=tool][value=arrow]").checked = true;
   $("r-n").textContent = `${session.num_fluid} fluid + ${session.num_particles - session.num_fluid} boundary`;
   $("apply").disabled = false;
+  $("dl-npz").href = `/v1/sessions/${session.id}/trajectory`;
+  $("dl-ply").href = `/v1/sessions/${session.id}/trajectory?format=ply`;
+  $("dl-control").hidden = true;
   openStream();
 }
 
@@ -120,95 +169,203 @@ function openStream() {
   ws.onclose = (ev) => setStatus(ev.code === 4000 ? "session expired: start a new one" : `stream closed (${ev.code} ${ev.reason})`);
 }
 function onEvent(msg) {
-  if (msg.type === "control") setStatus(msg.status === "running" ? `control ${msg.method} running…` : "control done; the simulation continues");
-  else if (msg.type === "error") setStatus(msg.message);
+  if (msg.type === "control") {
+    hook.controlRunning = msg.status === "running";
+    setStatus(msg.status === "running" ? `control ${msg.method} running…` : msg.status === "done" ? "control done; the simulation continues" : `control ${msg.status}`);
+  } else if (msg.type === "plan") {
+    if (applied && applied.running && !applied.plan) { applied.plan = msg; hook.applied.plan = msg; drawInk(true); }
+  } else if (msg.type === "reset") {
+    setApplied(null);
+  } else if (msg.type === "error") setStatus(msg.message);
 }
 function onFrame(buf) {
   const dv = new DataView(buf);
   const dim = dv.getUint8(6), frame = dv.getUint32(8, true), n = dv.getUint32(12, true);
-  const solver = dv.getUint8(24), controlled = dv.getUint8(25);
+  const time = dv.getFloat64(16, true), solver = dv.getUint8(24), controlled = dv.getUint8(25), cframe = dv.getUint32(28, true);
   if (buf.byteLength < HEADER_BYTES + n * dim * 4) return;
-  latest = { frame, n, dim, solver, controlled, pos: new Float32Array(buf, HEADER_BYTES, n * dim) };
+  latest = { frame, n, dim, solver, controlled, cframe, time, pos: new Float32Array(buf, HEADER_BYTES, n * dim) };
+  history.push(latest); if (history.length > HISTORY) history.shift();
   hook.framesReceived += 1; hook.lastFrame = frame;
+  if (controlled) hook.lastControlFrame = cframe;
   const now = performance.now();
   if (lastArrival) interval = 0.9 * interval + 0.1 * (now - lastArrival);
   lastArrival = now;
   recentSolvers.push(solver); if (recentSolvers.length > 200) recentSolvers.shift();
-  dirty = true;
+  fresh = dirty = true;
 }
 
 // ---------------------------------------------------------------- drawing
-function render() {
+function render(now) {
   requestAnimationFrame(render);
+  if (bench && latest) {
+    dirty = true;
+    if (is3D()) renderer.camera.yaw += 0.01;
+  }
   if (!dirty || !latest || !session) return;
   dirty = false;
   const t0 = performance.now();
-  const r = fitCanvas(simCanvas, sim2d);
-  sim2d.fillStyle = "#ffffff"; sim2d.fillRect(0, 0, r.width, r.height);
-  const { n, dim, pos, solver } = latest, types = session.particle_type;
-  const s = Math.max(1.5, r.width / 256);
-  for (const t of [3, 5, 6]) {
-    sim2d.fillStyle = (COLORS[t] || COLORS[5])[solver ? 1 : 0];
-    for (let i = 0; i < n; i++) {
-      if (types[i] !== t) continue;
-      const [cx, cy] = toCss(pos[i * dim], pos[i * dim + 1], r); // 3D: x–y view
-      sim2d.fillRect(cx - s / 2, cy - s / 2, s, s);
-    }
-  }
-  hook.lastDrawMs = performance.now() - t0; hook.drawMs.push(hook.lastDrawMs); if (hook.drawMs.length > 100) hook.drawMs.shift();
+  if (fresh) { renderer.setFrame(latest); fresh = false; }
+  renderer.draw();
+  if (syncDraw && renderer.gl) renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, syncPixel); // waits for the GPU
+  const ms = performance.now() - t0;
+  hook.lastDrawMs = ms; hook.drawMs.push(ms); if (hook.drawMs.length > 100) hook.drawMs.shift();
   hook.framesRendered += 1;
-  $("r-frame").textContent = `${latest.frame}${latest.controlled ? " (controlled)" : ""}`;
-  $("r-latency").textContent = `${interval.toFixed(1)} ms`;
-  $("r-draw").textContent = `${hook.lastDrawMs.toFixed(1)} ms`;
-  const share = recentSolvers.reduce((a, b) => a + b, 0) / Math.max(1, recentSolvers.length);
-  $("r-share").textContent = `${(100 * share).toFixed(0)} %`;
+  renderTimes.push(now); while (renderTimes.length > 2 && now - renderTimes[0] > 2000) renderTimes.shift();
+  hook.fps = renderTimes.length > 1 ? (1000 * (renderTimes.length - 1)) / (renderTimes.at(-1) - renderTimes[0]) : 0;
+  if (renderer.gl && hook.framesRendered % 120 === 1) {
+    const err = renderer.glError();
+    if (err) { hook.errors.push(`WebGL error ${err}`); console.error(`WebGL error ${err}`); }
+  }
+  drawInk();
+  $("badge").textContent = `${latest.solver ? "network" : "MPM"}${latest.controlled ? " · controlled" : ""}`;
+  $("badge").className = latest.solver ? "nn" : "mpm";
+  if (now - lastReadout > 250) {
+    lastReadout = now;
+    $("r-frame").textContent = `${latest.frame}${latest.controlled ? ` (controlled ${latest.cframe})` : ""}`;
+    $("r-latency").textContent = `${interval.toFixed(1)} ms`;
+    const med = [...hook.drawMs].sort((a, b) => a - b)[hook.drawMs.length >> 1];
+    $("r-draw").textContent = `${ms.toFixed(1)} ms (median ${med.toFixed(1)})${syncDraw ? ", GPU included" : ", CPU"}`;
+    $("r-fps").textContent = `${hook.fps.toFixed(0)} frames/s`;
+    const share = recentSolvers.reduce((a, b) => a + b, 0) / Math.max(1, recentSolvers.length);
+    $("r-share").textContent = `${(100 * share).toFixed(0)} %`;
+  }
 }
 
 function tool() { return document.querySelector("input[name=tool]:checked").value; }
-function redrawInk() {
-  const r = fitCanvas(inkCanvas, ink2d);
-  ink2d.clearRect(0, 0, r.width, r.height);
-  if (stroke.length < 2) return;
-  ink2d.strokeStyle = "#d1245a"; ink2d.lineWidth = 3; ink2d.lineJoin = ink2d.lineCap = "round";
+
+function polyline(pts, close) {
   ink2d.beginPath();
-  stroke.forEach(([x, y], i) => { const [px, py] = toCss(x, y, r); if (i) ink2d.lineTo(px, py); else ink2d.moveTo(px, py); });
-  if (tool() === "oval") ink2d.closePath();
+  let started = false;
+  for (const p of pts) {
+    if (!p) { started = false; continue; }
+    if (started) ink2d.lineTo(p[0], p[1]); else { ink2d.moveTo(p[0], p[1]); started = true; }
+  }
+  if (close) ink2d.closePath();
   ink2d.stroke();
-  if (tool() === "arrow") {
-    const [ax, ay] = toCss(...stroke[stroke.length - 2], r), [bx, by] = toCss(...stroke[stroke.length - 1], r);
-    const ang = Math.atan2(by - ay, bx - ax);
-    ink2d.beginPath(); ink2d.moveTo(bx, by);
-    ink2d.lineTo(bx - 14 * Math.cos(ang - 0.4), by - 14 * Math.sin(ang - 0.4));
-    ink2d.lineTo(bx - 14 * Math.cos(ang + 0.4), by - 14 * Math.sin(ang + 0.4));
-    ink2d.closePath(); ink2d.fillStyle = "#d1245a"; ink2d.fill();
+}
+function arrowHead(a, b, color) {
+  if (!a || !b) return;
+  const ang = Math.atan2(b[1] - a[1], b[0] - a[0]);
+  ink2d.beginPath(); ink2d.moveTo(b[0], b[1]);
+  ink2d.lineTo(b[0] - 14 * Math.cos(ang - 0.4), b[1] - 14 * Math.sin(ang - 0.4));
+  ink2d.lineTo(b[0] - 14 * Math.cos(ang + 0.4), b[1] - 14 * Math.sin(ang + 0.4));
+  ink2d.closePath(); ink2d.fillStyle = color; ink2d.fill();
+}
+
+// The overlay: the sketch plane while drawing (3D), the stroke (being drawn, or applied: it stays for the
+// whole controlled horizon and after, until cleared), and the plan's centroid path with where the plan is now.
+// Redrawn only when what it shows changes (an unchanged overlay costs nothing to composite again).
+let inkKey = "", inkBlank = false;
+function drawInk(force = false) {
+  const r = inkCanvas.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
+  const w = Math.max(1, Math.round(r.width * dpr)), h = Math.max(1, Math.round(r.height * dpr));
+  const cam = renderer.camera, plan = applied && !drawing ? applied.plan : null;
+  const step = plan && latest && latest.controlled ? Math.round(latest.cframe / plan.stride) : -1;
+  const key = [w, h, cam.yaw, cam.pitch, cam.dist, drawing, stroke.length, applied ? applied.stroke.length : -1, plan ? plan.centroid_path.length : -1, step, tool()].join();
+  if (!force && key === inkKey) return;
+  inkKey = key;
+  const empty = !drawing && !applied && stroke.length === 0;
+  if (empty && inkBlank && inkCanvas.width === w && inkCanvas.height === h) return; // nothing shown, nothing to redo
+  inkBlank = empty;
+  if (inkCanvas.width !== w || inkCanvas.height !== h) { inkCanvas.width = w; inkCanvas.height = h; }
+  ink2d.setTransform(dpr, 0, 0, dpr, 0, 0);
+  ink2d.clearRect(0, 0, r.width, r.height);
+  ink2d.lineJoin = ink2d.lineCap = "round";
+  if (drawing && plane && is3D()) { // the sketch plane: a square of 0.6 m facing the camera
+    const M = matrices(), v = M.view, right = [v[0], v[4], v[8]], up = [v[1], v[5], v[9]], c = plane.point;
+    const corner = (a, b) => toCss([c[0] + 0.3 * (a * right[0] + b * up[0]), c[1] + 0.3 * (a * right[1] + b * up[1]), c[2] + 0.3 * (a * right[2] + b * up[2])]);
+    ink2d.strokeStyle = "rgba(209, 36, 90, 0.35)"; ink2d.lineWidth = 1; ink2d.setLineDash([4, 4]);
+    polyline([corner(-1, -1), corner(1, -1), corner(1, 1), corner(-1, 1)], true);
+    ink2d.setLineDash([]);
+  }
+  const shown = drawing || !applied ? { kind: tool(), stroke } : applied;
+  const css = shown.stroke.map(toCss);
+  hook.strokeCss = css.filter(Boolean).map((p) => [p[0], p[1]]);
+  if (css.length >= 2) {
+    ink2d.strokeStyle = INK; ink2d.lineWidth = 3;
+    polyline(css, shown.kind === "oval");
+    if (shown.kind === "arrow") arrowHead(css.at(-2), css.at(-1), INK);
+  }
+  hook.planCss = [];
+  if (plan && plan.centroid_path.length > 1) {
+    const pts = plan.centroid_path.map((p) => toCss([p[0], p[1], p[2] || 0]));
+    hook.planCss = pts.filter(Boolean).map((p) => [p[0], p[1]]);
+    ink2d.strokeStyle = PLAN; ink2d.lineWidth = 2.5; ink2d.setLineDash([7, 5]);
+    polyline(pts, false);
+    ink2d.setLineDash([]);
+    const end = pts.at(-1);
+    if (end) { ink2d.beginPath(); ink2d.arc(end[0], end[1], 7, 0, 2 * Math.PI); ink2d.lineWidth = 2; ink2d.stroke(); }
+    if (latest && latest.controlled) { // where the plan is now
+      const k = Math.min(pts.length - 1, Math.round(latest.cframe / plan.stride)), p = pts[k];
+      if (p) { ink2d.beginPath(); ink2d.arc(p[0], p[1], 5, 0, 2 * Math.PI); ink2d.fillStyle = PLAN; ink2d.fill(); }
+    }
   }
 }
+
+function setApplied(a) {
+  applied = a;
+  hook.applied = a ? { kind: a.kind, stroke: a.stroke, plan: a.plan, running: a.running } : null;
+  dirty = true;
+  if (latest) drawInk(true);
+}
+
 function addSamples(ev) {
   const evs = typeof ev.getCoalescedEvents === "function" ? ev.getCoalescedEvents() : []; // secure contexts only
-  for (const e of evs.length ? evs : [ev]) stroke.push(toDomain(e.clientX, e.clientY));
+  for (const e of evs.length ? evs : [ev]) { const p = toWorld(e.clientX, e.clientY); if (p) stroke.push(p); }
 }
+inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
-  if (ev.button !== 0) return;
+  if (is3D() && (ev.button === 1 || ev.button === 2 || (ev.button === 0 && tool() === "turn"))) {
+    inkCanvas.setPointerCapture(ev.pointerId);
+    orbiting = [ev.clientX, ev.clientY];
+    return;
+  }
+  if (ev.button !== 0 || !latest) return;
   inkCanvas.setPointerCapture(ev.pointerId);
-  drawing = true; stroke = [toDomain(ev.clientX, ev.clientY)]; redrawInk();
+  const c = fluidCentroid();
+  if (is3D()) { // the plane facing the camera through the fluid's centroid, moved along the view by the slider
+    const n = renderer.camera.forward(), off = Number($("depth").value) || 0;
+    plane = { normal: n, point: [c[0] + off * n[0], c[1] + off * n[1], c[2] + off * n[2]] };
+  } else plane = { normal: [0, 0, 1], point: [0, 0, session && session.dim === 3 ? c[2] : 0] };
+  drawing = true; stroke = [];
+  const p = toWorld(ev.clientX, ev.clientY);
+  if (p) stroke.push(p);
+  drawInk(true);
 });
-inkCanvas.addEventListener("pointermove", (ev) => { if (drawing) { addSamples(ev); redrawInk(); } });
-const endStroke = (ev) => { if (!drawing) return; drawing = false; addSamples(ev); stroke = simplify(stroke, MAX_POINTS); redrawInk(); };
+inkCanvas.addEventListener("pointermove", (ev) => {
+  if (orbiting) {
+    renderer.camera.orbit(ev.clientX - orbiting[0], ev.clientY - orbiting[1]);
+    orbiting = [ev.clientX, ev.clientY]; dirty = true;
+  } else if (drawing) { addSamples(ev); drawInk(true); }
+});
+const endStroke = (ev) => {
+  if (orbiting) { orbiting = null; return; }
+  if (!drawing) return;
+  drawing = false; addSamples(ev); stroke = simplify(stroke, MAX_POINTS);
+  setApplied(null);
+};
 inkCanvas.addEventListener("pointerup", endStroke);
 inkCanvas.addEventListener("pointercancel", endStroke);
+inkCanvas.addEventListener("wheel", (ev) => {
+  if (!is3D()) return;
+  ev.preventDefault();
+  renderer.camera.zoom(ev.deltaY); dirty = true;
+}, { passive: false });
 
-// Ramer–Douglas–Peucker, then uniform thinning, to at most `max` points.
+// Ramer–Douglas–Peucker (3D distances), then uniform thinning, to at most `max` points.
 function simplify(pts, max) {
   if (pts.length <= 2) return pts;
   const keep = new Uint8Array(pts.length); keep[0] = keep[pts.length - 1] = 1;
   const eps = 1e-3, stack = [[0, pts.length - 1]];
   while (stack.length) {
     const [a, b] = stack.pop();
-    const [ax, ay] = pts[a], [bx, by] = pts[b], dx = bx - ax, dy = by - ay, len = Math.hypot(dx, dy) || 1e-12;
+    const A = pts[a], B = pts[b], d = [B[0] - A[0], B[1] - A[1], B[2] - A[2]], l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] || 1e-24;
     let best = -1, bi = -1;
     for (let i = a + 1; i < b; i++) {
-      const d = Math.abs(dy * (pts[i][0] - ax) - dx * (pts[i][1] - ay)) / len;
-      if (d > best) { best = d; bi = i; }
+      const q = [pts[i][0] - A[0], pts[i][1] - A[1], pts[i][2] - A[2]];
+      const t = (q[0] * d[0] + q[1] * d[1] + q[2] * d[2]) / l2;
+      const e = Math.hypot(q[0] - t * d[0], q[1] - t * d[1], q[2] - t * d[2]);
+      if (e > best) { best = e; bi = i; }
     }
     if (best > eps) { keep[bi] = 1; stack.push([a, bi], [bi, b]); }
   }
@@ -217,28 +374,114 @@ function simplify(pts, max) {
   return out;
 }
 
+// The sketch as the controller reads it: x–y points (the front view); in 3D an arrow's depth z as its
+// width, the stroke's depth range spanning WIDTH_MIN … WIDTH_MAX, wider = nearer (+z), constant when flat.
+function sketchBody(kind, pts) {
+  const clamp = (v) => Math.max(-0.99, Math.min(1.99, v));
+  const sketch = { kind, points: pts.map((p) => [clamp(p[0]), clamp(p[1])]) };
+  if (session.dim === 3 && kind === "arrow") {
+    const zs = pts.map((p) => p[2]), lo = Math.min(...zs), hi = Math.max(...zs);
+    sketch.width = zs.map((z) => (hi - lo < DEPTH_FLAT ? WIDTH_FLAT : WIDTH_MIN + ((z - lo) / (hi - lo)) * (WIDTH_MAX - WIDTH_MIN)));
+  }
+  return sketch;
+}
+
 async function applySketch() {
   if (!session || stroke.length < 2) { setStatus("draw an arrow or an oval first"); return; }
-  const body = { sketch: { kind: tool(), points: stroke.map(([x, y]) => [x, y]) }, method: $("method").value };
+  const frames = Number($("frames").value);
+  if (!Number.isInteger(frames) || frames < 1 || frames > 1000) { setStatus("frames: the control horizon must be an integer in [1, 1000]"); return; }
+  const kind = tool() === "oval" ? "oval" : "arrow";
+  const body = { sketch: sketchBody(kind, stroke), method: $("method").value, frames };
   hook.lastSketch = body.sketch;
+  const xy = body.sketch.points, span = Math.hypot(xy.at(-1)[0] - xy[0][0], xy.at(-1)[1] - xy[0][1]);
+  const len3 = Math.hypot(...[0, 1, 2].map((d) => stroke.at(-1)[d] - stroke[0][d]));
+  setApplied({ kind, stroke, plan: null, id: null, frames, running: true });
+  stroke = [];
   $("apply").disabled = true;
-  setStatus(`applying ${body.method}…`);
+  setStatus(`applying ${body.method}…${is3D() && kind === "arrow" && span < 0.5 * len3 ? " (the controller follows the x–y part of a 3D sketch: turn the camera toward the front for more)" : ""}`);
   try {
     const res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
     hook.controls.push(res);
+    if (applied) {
+      applied.id = res.id; applied.running = false;
+      if (!applied.plan && res.plan) applied.plan = res.plan;
+      setApplied(applied);
+    }
     if (res.sketch_png) { $("sketchpng").src = `data:image/png;base64,${res.sketch_png}`; $("sketchpng").hidden = false; }
+    $("dl-control").href = res.trajectory; $("dl-control").hidden = false;
     const d = res.metrics.centroid_displacement || [];
     setStatus(`done: ${res.frames} controlled frames, centroid moved (${d.map((x) => x.toFixed(3)).join(", ")}) m; first frame after ${res.first_frame_ms.toFixed(0)} ms`);
-    stroke = []; redrawInk();
   } catch (e) {
     setStatus(`control refused: ${e.message}`);
     hook.controls.push({ error: e.message });
+    setApplied(null);
   } finally { $("apply").disabled = false; }
 }
 
+// ---------------------------------------------------------------- take-away: a GIF of the last frames
+async function makeGif() {
+  const n = Number($("gif-n").value);
+  if (!Number.isInteger(n) || n < 2 || n > HISTORY) { setStatus(`gif frames: must be an integer in [2, ${HISTORY}]`); return; }
+  const frames = history.slice(-n);
+  if (frames.length < 2) { setStatus("gif frames: fewer than 2 frames received yet; play the simulation first"); return; }
+  $("gif").disabled = true;
+  try {
+    const tmp = document.createElement("canvas");
+    tmp.width = tmp.height = GIF_SIZE;
+    const ctx = tmp.getContext("2d");
+    const images = [];
+    drawInk(true);
+    for (let i = 0; i < frames.length; i++) {
+      renderer.setFrame(frames[i]);
+      ctx.putImageData(new ImageData(renderer.snapshot(GIF_SIZE, GIF_SIZE), GIF_SIZE, GIF_SIZE), 0, 0);
+      ctx.drawImage(inkCanvas, 0, 0, GIF_SIZE, GIF_SIZE);
+      images.push(ctx.getImageData(0, 0, GIF_SIZE, GIF_SIZE).data);
+      if (i % 8 === 0) { setStatus(`GIF: drawing frame ${i + 1} of ${frames.length}…`); await new Promise((r) => setTimeout(r, 0)); }
+    }
+    fresh = dirty = true;
+    const dt = (frames.at(-1).time - frames[0].time) / (frames.length - 1);
+    const delay = Math.max(2, Math.min(50, Math.round(dt * 100) || 4)); // real time, within what viewers show
+    const bytes = await encodeGif(images, GIF_SIZE, GIF_SIZE, delay, async (i) => {
+      if (i % 8 === 0) { setStatus(`GIF: encoding frame ${i + 1} of ${frames.length}…`); await new Promise((r) => setTimeout(r, 0)); }
+    });
+    const url = URL.createObjectURL(new Blob([bytes], { type: "image/gif" }));
+    const a = document.createElement("a");
+    a.href = url; a.download = `${session.scene}-seed${session.seed}-frames${frames[0].frame}-${frames.at(-1).frame}.gif`;
+    document.body.appendChild(a); a.click(); a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+    hook.gif = { frames: frames.length, bytes: bytes.length, delay };
+    setStatus(`GIF of ${frames.length} frames (${(bytes.length / 1024).toFixed(0)} KiB) saved`);
+  } catch (e) {
+    setStatus(`GIF failed: ${e.message}`);
+    hook.errors.push(String(e));
+  } finally { $("gif").disabled = false; }
+}
+
 // ---------------------------------------------------------------- controls
+function setLook(look) {
+  const want = look === "fluid" && renderer.fluidAvailable ? "fluid" : "particles";
+  renderer.look = want; hook.look = want;
+  const input = document.querySelector(`input[name=look][value=${want}]`);
+  if (input) input.checked = true;
+  dirty = true;
+}
+for (const input of document.querySelectorAll("input[name=look]")) input.addEventListener("change", () => setLook(input.value));
+if (!renderer.fluidAvailable) document.querySelector("input[name=look][value=fluid]").disabled = true;
+setLook(renderer.fluidAvailable ? "fluid" : "particles");
+$("r-view").textContent = renderer.kind === "webgl2"
+  ? `WebGL2${renderer.software ? ", software GL" : ""}${renderer.fluidAvailable ? "" : " (no float targets: particles)"}` : "Canvas2D (no WebGL2)";
+$("r-view").title = renderer.gpu || "";
+if (renderer.kind === "webgl2") {
+  const want = Number(params.get("scale"));
+  if ([0.5, 0.75, 1].includes(want)) renderer.scale = want;
+  $("scale").value = String(renderer.scale);
+  $("scale").addEventListener("change", () => { renderer.scale = Number($("scale").value); dirty = true; });
+} else $("scale-label").hidden = true;
+
 $("apply").addEventListener("click", applySketch);
-$("clear").addEventListener("click", () => { stroke = []; redrawInk(); });
+$("clear").addEventListener("click", () => { stroke = []; setApplied(null); });
+$("gif").addEventListener("click", makeGif);
+$("view-reset").addEventListener("click", () => { renderer.camera.reset(); dirty = true; });
 $("new").addEventListener("click", newSession);
 $("scene").addEventListener("change", () => { syncSolvers(); newSession(); });
 $("play").addEventListener("click", () => {
@@ -246,8 +489,8 @@ $("play").addEventListener("click", () => {
   $("play").textContent = playing ? "pause" : "play";
   if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: playing ? "play" : "pause" }));
 });
-$("reset").addEventListener("click", () => { if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "reset" })); });
-window.addEventListener("resize", () => { dirty = true; redrawInk(); });
+$("reset").addEventListener("click", () => { setApplied(null); if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "reset" })); });
+window.addEventListener("resize", () => { dirty = true; });
 $("play").textContent = playing ? "pause" : "play";
 
 requestAnimationFrame(render);
