@@ -346,15 +346,16 @@ def _train_control(args: argparse.Namespace) -> int:
     try:
         # import time: loaded by this command only
         from hybridmpm.train.control.train import train_control
+        from hybridmpm.train.distributed import is_main_process
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     out = args.out or f"runs/control-{args.scene}"
     summary = train_control(
         args.scene, args.data, out, steps=args.steps, lr=args.lr, k_basis=args.k_basis, max_cases=args.max_cases,
         checkpoint_every=args.checkpoint_every, seed=args.seed, threads=args.threads, time_limit=args.time_limit, progress=not args.quiet,
-        prior=args.prior, init_from=args.init_from,
+        prior=args.prior, init_from=args.init_from, batch=args.batch, nproc=args.nproc,
     )  # fmt: skip
-    if not args.quiet:
+    if not args.quiet and is_main_process():
         print(json.dumps(summary, indent=2) + f"\n-> {out}/model")
     return 0
 
@@ -387,6 +388,7 @@ def _stress(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     try:
         # import time: loaded by this command only
+        from hybridmpm.train.distributed import is_main_process
         from hybridmpm.train.gns.train import TrainConfig, train
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
@@ -395,10 +397,10 @@ def _train(args: argparse.Namespace) -> int:
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
         seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after, ema=args.ema,
         snapshots=not args.no_snapshots, unroll=args.unroll, unroll_after=args.unroll_after, clip_grad=args.clip_grad,
-        wall_reach=args.wall_reach,
+        wall_reach=args.wall_reach, nproc=args.nproc,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
-    if not args.quiet:
+    if not args.quiet and is_main_process():
         print(json.dumps(summary, indent=2))
     return 0
 
@@ -406,16 +408,17 @@ def _train(args: argparse.Namespace) -> int:
 def _train_grid(args: argparse.Namespace) -> int:
     try:
         # import time: loaded by this command only
+        from hybridmpm.train.distributed import is_main_process
         from hybridmpm.train.grid_train import GridTrainConfig, train_grid
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     cfg = GridTrainConfig(
         scene=args.scene, data=args.data, out=args.out, grid=args.grid, width=args.width, levels=args.levels, r_t=args.r_t, steps=args.steps,
-        batch=args.batch, lr=args.lr, noise=args.noise, unroll=args.unroll, density_weight=args.density_weight, val_every=args.val_every,
-        val_steps=args.val_steps, seed=args.seed, threads=args.threads,
+        batch=args.batch, lr=args.lr, noise=args.noise, unroll=args.unroll, density_weight=args.density_weight, pressure=args.pressure, val_every=args.val_every,
+        val_steps=args.val_steps, seed=args.seed, threads=args.threads, nproc=args.nproc,
     )  # fmt: skip
     summary = train_grid(cfg, progress=not args.quiet)
-    if not args.quiet:
+    if not args.quiet and is_main_process():
         print(json.dumps({k: v for k, v in summary.items() if k != "curve"}, indent=2))
     return 0
 
@@ -479,12 +482,17 @@ def _serve(args: argparse.Namespace) -> int:
         memory_budget=args.memory_budget,
         store=args.store,
         save_every_s=args.save_every,
+        backend=args.backend,
+        ray_address=args.ray_address,
+        ray_namespace=args.ray_namespace,
+        ray_num_cpus=args.ray_num_cpus,
     )
-    app = create_app(cfg)  # opens the store (a clear error if it cannot be written)
+    app = create_app(cfg)  # opens the store, joins the Ray cluster of --backend ray (a clear error if it cannot)
     print(
         f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, {cfg.max_sessions_per_client} per client, "
         f"idle TTL {cfg.idle_ttl_s:g} s, hosts {', '.join(cfg.allowed_hosts) or 'loopback names on loopback addresses'}"
-        f"{f', store {cfg.store}, saved every {cfg.save_every_s:g} s' if cfg.store else ', sessions in memory only'})",
+        f"{f', store {cfg.store}, saved every {cfg.save_every_s:g} s' if cfg.store else ''}"
+        f"{f', sessions in the Ray cluster at {cfg.ray_address}' if cfg.backend == 'ray' else ('' if cfg.store else ', sessions in memory only')})",
         file=sys.stderr,
         flush=True,
     )
@@ -565,7 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
     tc.add_argument("--seed", type=int, default=0)
     tc.add_argument("--init-from", default=None, help="warm start from another run's ckpt.pt (same sizes; a new run only)")
     tc.add_argument("--prior", default="free_sketch", choices=["free_sketch", "sketch_ramp"], help="what plans are relative to (default free_sketch)")
-    tc.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    tc.add_argument("--batch", type=int, default=1, help="training pairs per step and process (default 1)")
+    tc.add_argument("--threads", type=int, default=1, help="torch threads per process (default 1)")
+    tc.add_argument("--nproc", type=int, default=1, help="local processes of data-parallel training, --batch each (default 1; docs/neural.md)")
     tc.add_argument("--quiet", action="store_true")
     tc.set_defaults(func=_train_control)
     st = sub.add_parser("stress", help="neural-only, MPM-only and hybrid through failure cases over long rollouts; writes a table")
@@ -638,7 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--layers", type=int, default=3, help="message-passing layers L (default 3; paper 10)")
     tr.add_argument("--r-t", type=int, default=2, help="frames per model step (default 2, the paper's)")
     tr.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
-    tr.add_argument("--batch", type=int, default=2, help="windows per step (default 2)")
+    tr.add_argument("--batch", type=int, default=2, help="windows per step and process (default 2)")
     tr.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (decays x0.1 over the run)")
     tr.add_argument("--noise-std", type=float, default=3e-4, help="random-walk noise on the last input velocity [m/step]")
     tr.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
@@ -674,7 +684,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--max-neighbors", type=int, default=None, help="cap on neighbours per particle")
     tr.add_argument("--radius", type=float, default=None, help="connectivity radius R [m] (default: the dataset's)")
     tr.add_argument("--seed", type=_seed, default=0)
-    tr.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
+    tr.add_argument("--threads", type=int, default=0, help="torch threads per process (0 = default: the cores over the local processes)")
+    tr.add_argument("--nproc", type=int, default=1, help="local processes of data-parallel training, --batch each (default 1; docs/neural.md)")
     tr.add_argument("--quiet", action="store_true")
     tr.set_defaults(func=_train)
 
@@ -687,15 +698,20 @@ def build_parser() -> argparse.ArgumentParser:
     tg.add_argument("--levels", type=int, default=3, help="U-Net levels (default 3)")
     tg.add_argument("--r-t", type=int, default=4, help="frames per call (default 4)")
     tg.add_argument("--steps", type=int, default=20000, help="optimiser steps (default 20000)")
-    tg.add_argument("--batch", type=int, default=8, help="windows per step (default 8)")
+    tg.add_argument("--batch", type=int, default=8, help="windows per step and process (default 8)")
     tg.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (cosine decay)")
     tg.add_argument("--noise", type=float, default=3e-4, help="random-walk noise on the input history [m per step]")
     tg.add_argument("--unroll", type=int, default=3, help="chained calls in the loss, reached by mid-run (default 3)")
     tg.add_argument("--density-weight", type=float, default=0.0, help="weight of the grid-count loss (default 0)")
+    tg.add_argument(
+        "--pressure", action="store_true",
+        help="learn a density correction per frame (particles moved down the gradient of the fluid's excess p2g count; docs/grid_model.md)",
+    )  # fmt: skip
     tg.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
     tg.add_argument("--val-steps", type=int, default=100, help="model steps per validation rollout (default 100)")
     tg.add_argument("--seed", type=_seed, default=0)
-    tg.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    tg.add_argument("--threads", type=int, default=1, help="torch threads per process (default 1)")
+    tg.add_argument("--nproc", type=int, default=1, help="local processes of data-parallel training, --batch each (default 1; docs/neural.md)")
     tg.add_argument("--quiet", action="store_true")
     tg.set_defaults(func=_train_grid)
 
@@ -733,6 +749,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-every", type=float, default=None,
         help="with --store: seconds a stepping session goes at most without a save, what a crash can lose (default 1, env HYBRIDMPM_SAVE_EVERY_S)",
     )  # fmt: skip
+    sv.add_argument(
+        "--backend", default=None,
+        help="where sessions live: 'local' (this process, the default) or 'ray' (an actor each on a Ray cluster; any number of front ends; env HYBRIDMPM_BACKEND)",
+    )  # fmt: skip
+    sv.add_argument("--ray-address", default=None, help="with --backend ray: 'auto' (the cluster `ray start` made here; default) or HOST:PORT of its head")
+    sv.add_argument("--ray-namespace", default=None, help="with --backend ray: the Ray namespace of the sessions' actors (default hybridmpm)")
+    sv.add_argument("--ray-num-cpus", type=float, default=None, help="with --backend ray: CPUs Ray reserves for each session's actor (default 0.25)")
     sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
     sv.set_defaults(func=_serve)
     for p in sub.choices.values():

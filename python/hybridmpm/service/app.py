@@ -29,6 +29,7 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
 from hybridmpm import __version__
+from hybridmpm.errors import InvalidInputError
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.errors import ApiError, FieldError, install_error_handlers
 from hybridmpm.service.logs import install_log_filters
@@ -40,11 +41,27 @@ from hybridmpm.service.sessions import SessionManager
 log = logging.getLogger("hybridmpm.service")
 
 
+def session_manager(cfg: ServiceConfig) -> SessionManager:
+    """The sessions of ``cfg.backend``: this process's (``local``), or a Ray
+    cluster's (``ray``, :class:`hybridmpm.service.cluster.RaySessionManager`).
+    Raises :class:`InvalidInputError` naming ``backend`` when Ray is not
+    installed, ``ray_address`` when no cluster answers there."""
+    if cfg.backend == "local":
+        return SessionManager(cfg)
+    try:
+        # import time: Ray loads for the ray backend only
+        from hybridmpm.service.cluster import RaySessionManager
+    except ImportError as e:
+        raise InvalidInputError(f"backend: 'ray' needs Ray (pip install 'hybridmpm[cluster]'): {e}", "backend") from None
+    return RaySessionManager(cfg)
+
+
 def create_app(config: ServiceConfig | None = None) -> FastAPI:
     """The ASGI application (``uvicorn --factory hybridmpm.service:create_app``
-    reads :meth:`ServiceConfig.from_env`)."""
+    reads :meth:`ServiceConfig.from_env`). Raises :class:`InvalidInputError`
+    naming the field of a bad setting (:func:`session_manager`, the store)."""
     cfg = config if config is not None else ServiceConfig.from_env()
-    manager = SessionManager(cfg)
+    manager = session_manager(cfg)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -52,6 +69,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         n = await manager.restore_all()
         if manager.store is not None:
             log.warning("store %s: %d sessions restored; saving every %g s", cfg.store, n, cfg.save_every_s)
+        if manager.remote:
+            log.warning("sessions in the Ray cluster at %s (namespace %s, %g CPU each)", cfg.ray_address, cfg.ray_namespace, cfg.ray_num_cpus)
         manager.start()
         try:
             yield
@@ -61,7 +80,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(
         title="hybridmpm service",
         version=__version__,
-        description="Sessions of the hybrid neural/MLS-MPM simulator: step, stream, control by sketch. Sessions live in one process, in memory, and in a store with `hybridmpm serve --store`.",
+        description="Sessions of the hybrid neural/MLS-MPM simulator: step, stream, control by sketch. Sessions live in one process, in memory, "
+        "and in a store with `hybridmpm serve --store`; with `--backend ray`, each in an actor of a Ray cluster that every front end serves.",
         lifespan=lifespan,
     )
     app.state.manager = manager
@@ -78,4 +98,4 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     return app
 
 
-__all__ = ["ApiError", "BodyLimit", "FieldError", "create_app"]
+__all__ = ["ApiError", "BodyLimit", "FieldError", "create_app", "session_manager"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field, fields
 
 from hybridmpm.errors import InvalidInputError
@@ -18,9 +19,13 @@ MEMORY_BUDGET_ENV = "HYBRIDMPM_SERVICE_MEMORY_BUDGET"
 LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
 #: Longest error message a client is sent [characters] (longer ones are cut, with "…").
 MAX_MESSAGE_CHARS = 300
+#: Where sessions live (``ServiceConfig.backend``): this process, or a Ray cluster's actors.
+BACKENDS = ("local", "ray")
+_HOST_PORT = re.compile(r"^(?:[A-Za-z0-9.-]{1,253}|\[[0-9A-Fa-f:.]{2,45}\]):\d{1,5}$")
+_NAMESPACE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _TUPLES = ("allowed_origins", "allowed_hosts")
-_STRINGS = ("store",)
-_FLOATS = ("save_every_s", "idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
+_STRINGS = ("store", "backend", "ray_address", "ray_namespace")
+_FLOATS = ("ray_num_cpus", "save_every_s", "idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
 
 
 def env_name(field_name: str) -> str:
@@ -65,6 +70,17 @@ class ServiceConfig:
     kept (durable sessions, :mod:`hybridmpm.service.store`; None: sessions
     live in memory only); ``save_every_s`` the longest time a stepping
     session goes without a save (its stepping lost to a crash at most).
+
+    ``backend`` where sessions live: ``"local"`` in this process (the
+    default), ``"ray"`` each in a named actor of a Ray cluster
+    (:mod:`hybridmpm.service.cluster`), so that several front ends serve
+    every session; ``ray_address`` the cluster (``"auto"``: the one started
+    on this machine with ``ray start``, or ``HOST:PORT`` of its head);
+    ``ray_namespace`` the Ray namespace of the sessions' actors;
+    ``ray_num_cpus`` the CPUs Ray reserves for each session's actor (its
+    share of a core: the cluster's capacity is its CPUs divided by this).
+
+    Raises :class:`InvalidInputError` naming the field of a bad setting.
     """
 
     max_sessions: int = 100
@@ -88,6 +104,10 @@ class ServiceConfig:
     max_header_bytes: int = 16 * 1024
     store: str | None = None
     save_every_s: float = 1.0
+    backend: str = "local"
+    ray_address: str = "auto"
+    ray_namespace: str = "hybridmpm"
+    ray_num_cpus: float = 0.25
 
     def __post_init__(self) -> None:
         from hybridmpm.limits import memory_budget, parse_size
@@ -109,6 +129,22 @@ class ServiceConfig:
             if not h or "*" in h[1:] or (h.startswith("*") and h != "*" and not h.startswith("*.")):
                 raise InvalidInputError(f"allowed_hosts: {h!r} is no host name (a leading '*.' or '*' alone are the only wildcards)", "allowed_hosts")
         self.memory_budget = memory_budget() if self.memory_budget is None else parse_size(self.memory_budget, "memory_budget")
+        if self.backend not in BACKENDS:
+            raise InvalidInputError(f"backend: must be one of {', '.join(BACKENDS)}, got {self.backend!r}", "backend")
+        if not isinstance(self.ray_address, str) or not (self.ray_address == "auto" or _HOST_PORT.match(self.ray_address)):
+            raise InvalidInputError(f"ray_address: must be 'auto' or HOST:PORT (e.g. 10.0.0.5:6379), got {self.ray_address!r}", "ray_address")
+        if self.ray_address != "auto" and not 0 < int(self.ray_address.rsplit(":", 1)[1]) < 65536:
+            raise InvalidInputError(f"ray_address: the port must be in 1..65535, got {self.ray_address!r}", "ray_address")
+        if not isinstance(self.ray_namespace, str) or not _NAMESPACE.match(self.ray_namespace):
+            raise InvalidInputError(f"ray_namespace: letters, digits, '-', '_' and '.', 1 to 64 of them, got {self.ray_namespace!r}", "ray_namespace")
+        v = self.ray_num_cpus
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0.0001 <= float(v) <= 1024):
+            raise InvalidInputError(f"ray_num_cpus: must be a number in [0.0001, 1024], got {v!r}", "ray_num_cpus")
+        self.ray_num_cpus = float(v)
+        if self.backend == "ray" and self.store is not None and self.store.startswith("memory:"):
+            raise InvalidInputError(
+                "store: memory:// lives in one process; the ray backend needs a store every node reaches (a shared directory or an object store URL)", "store"
+            )
 
     @property
     def memory_budget_bytes(self) -> int:
@@ -143,4 +179,4 @@ class ServiceConfig:
         return cls(**kw)  # type: ignore[arg-type]
 
 
-__all__ = ["ENV_PREFIX", "LOOPBACK_HOSTS", "MAX_MESSAGE_CHARS", "MEMORY_BUDGET_ENV", "ServiceConfig", "env_name"]
+__all__ = ["BACKENDS", "ENV_PREFIX", "LOOPBACK_HOSTS", "MAX_MESSAGE_CHARS", "MEMORY_BUDGET_ENV", "ServiceConfig", "env_name"]

@@ -28,7 +28,7 @@ ConfigDep = Annotated[ServiceConfig, Depends(get_config)]
 
 async def session_or_404(sid: str, manager: ManagerDep) -> Session:
     """The session ``sid`` (the path's), or a 404."""
-    s = manager.get(sid)
+    s = await manager.find(sid)
     if s is None:
         raise ApiError(404, NO_SESSION)
     return s
@@ -37,9 +37,9 @@ async def session_or_404(sid: str, manager: ManagerDep) -> Session:
 SessionDep = Annotated[Session, Depends(session_or_404)]
 
 
-async def control_or_404(s: SessionDep, cid: str) -> Control:
+async def control_or_404(s: SessionDep, cid: str, manager: ManagerDep) -> Control:
     """The session's kept control ``cid`` (the path's), or a 404."""
-    c = s.controls.get(cid)
+    c = await manager.get_control(s, cid)
     if c is None:
         raise ApiError(404, "no such control (the last 8 are kept)")
     return c

@@ -21,7 +21,7 @@ from starlette.routing import Match
 
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.service.config import MAX_MESSAGE_CHARS
-from hybridmpm.service.sessions import RETRY_AFTER_S, BudgetFullError
+from hybridmpm.service.sessions import RETRY_AFTER_S, BudgetFullError, SessionGoneError
 
 log = logging.getLogger("hybridmpm.service")
 _REPR = re.compile(r"<[^<>]{0,200}? (?:object )?at 0x[0-9a-fA-F]+>")
@@ -94,6 +94,10 @@ async def on_budget(request: Request, exc: BudgetFullError) -> JSONResponse:
     return await on_api(request, budget_error(exc))
 
 
+async def on_gone(request: Request, exc: SessionGoneError) -> JSONResponse:
+    return await on_api(request, ApiError(404, NO_SESSION))
+
+
 async def on_invalid(request: Request, exc: InvalidInputError) -> JSONResponse:
     return await on_field(request, field_error(exc))
 
@@ -108,6 +112,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, on_validation)  # type: ignore[arg-type]
     app.add_exception_handler(StarletteHTTPException, on_http)  # type: ignore[arg-type]
     app.add_exception_handler(BudgetFullError, on_budget)  # type: ignore[arg-type]
+    app.add_exception_handler(SessionGoneError, on_gone)  # type: ignore[arg-type]
     app.add_exception_handler(FieldError, on_field)  # type: ignore[arg-type]
     app.add_exception_handler(InvalidInputError, on_invalid)  # type: ignore[arg-type]
     app.add_exception_handler(ApiError, on_api)  # type: ignore[arg-type]

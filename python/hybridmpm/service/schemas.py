@@ -69,6 +69,14 @@ class SessionInfo(BaseModel):
     restored_from_frame: int | None = Field(
         None, description="the frame the session resumed from when a restarted server restored it from its store; null if it was not restored"
     )
+    n_grid: int | None = Field(None, description="grid cells per dimension of the scene's MPM grid")
+    wall_thickness: float = Field(0.0, description="thickness of the domain's walls [m]: the fluid stays within [t, 1 - t] on every axis")
+    obstacles: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="the scene's static obstacles (MPM colliders): {shape: 'box', center, half_extents, angle_deg (2D) or rotation "
+        "(3D, 3×3, world = center + rotation · local)} or {shape: 'sphere', center, radius} [m], with their wall condition and friction",
+    )
+    recorded_frames: int = Field(0, description="coarse steps of the session's recent trajectory held for download (GET .../trajectory)")
 
 
 class StepRequest(Strict):
@@ -107,6 +115,19 @@ class ControlRequest(Strict):
     frames: Integer = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
 
 
+class PlanInfo(BaseModel):
+    """Where the controller plans the fluid's centroid over the controlled horizon."""
+
+    method: str
+    frames: int = Field(description="the control horizon T_ctr [frames]")
+    stride: int = Field(description="control frames between consecutive points of centroid_path")
+    centroid_path: list[list[float]] = Field(
+        description="the planned centroid of the fluid [m] at control frames 0, stride, 2·stride, …, frames (the last point is where "
+        "the plan ends: the arrow's tip relative to the start centroid, or the oval's centre); D coordinates (in 3D z as planned)"
+    )
+    target: list[float] = Field(description="the centroid the sketch asks for [m], x–y (an arrow: start centroid + the arrow; an oval: its centre)")
+
+
 class ControlResponse(BaseModel):
     id: str
     method: str
@@ -120,6 +141,7 @@ class ControlResponse(BaseModel):
     first_frame_ms: float = Field(description="request received → first controlled frame [ms]")
     total_ms: float
     trajectory: str = Field(description="path of the trajectory (npz, or float32 with Accept: application/octet-stream)")
+    plan: PlanInfo | None = Field(None, description="the plan's centroid path (null for method none or no sketch)")
 
 
 class Health(BaseModel):

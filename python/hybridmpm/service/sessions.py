@@ -4,6 +4,15 @@ them in memory (one process), caps their number and reaps idle ones.
 All simulation work runs through :meth:`SessionManager.compute` — off the
 event loop, on one capacity limiter sized to the cores — never in ``async``
 code directly (a CPU-bound call there would stall every client).
+
+The routes reach a session's simulator through the manager's ``async``
+methods (:meth:`SessionManager.find`, :meth:`~SessionManager.rollout`,
+:meth:`~SessionManager.checkpoint`, :meth:`~SessionManager.restore`,
+:meth:`~SessionManager.reset`, :meth:`~SessionManager.info`,
+:meth:`~SessionManager.attach`, ...; a control runs its episode itself where
+``manager.remote`` is False): the seam where
+:class:`hybridmpm.service.cluster.RaySessionManager` runs the same work in
+each session's Ray actor instead of in this process.
 """
 
 from __future__ import annotations
@@ -31,7 +40,7 @@ from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, session_key
-from hybridmpm.sim import Frame, Simulator
+from hybridmpm.sim import Frame, Rollout, Simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
 T = TypeVar("T")
@@ -44,6 +53,8 @@ SESSION_OVERHEAD = 4 << 20
 SESSION_STATE_COPIES = 3
 #: Seconds a client is asked to wait (``Retry-After``) when the memory budget is full.
 RETRY_AFTER_S = 5
+#: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
+RECORD_STEPS = 300
 
 
 class SessionCapError(Exception):
@@ -52,6 +63,10 @@ class SessionCapError(Exception):
 
 class QuotaError(Exception):
     """The client address holds its quota of sessions (→ 429)."""
+
+
+class SessionGoneError(Exception):
+    """The session was deleted, expired or lost while a request used it (→ 404)."""
 
 
 class BudgetFullError(Exception):
@@ -133,6 +148,58 @@ class Viewer:
         self.wake.set()
 
 
+class Recording:
+    """A session's latest frames for download: consecutive coarse steps (a
+    frame that does not follow the last one — a reset, a restored checkpoint —
+    starts it again), at most ``capacity``. The ring's memory is taken from
+    the budget as it grows and kept until the session is dropped; when the
+    budget cannot hold another frame the ring stops growing and drops its
+    oldest frame instead. Used from the event loop thread only."""
+
+    def __init__(self, budget: MemoryBudget, capacity: int, r_t: int) -> None:
+        self.budget = budget
+        self.capacity = int(capacity)
+        self.r_t = max(1, int(r_t))
+        self.frames: collections.deque[tuple[int, np.ndarray, str, bool]] = collections.deque()
+        self.held = 0  # bytes taken from the budget
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def clear(self) -> None:
+        self.frames.clear()
+
+    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
+        if self.capacity < 1:
+            return
+        k = int(frame_index)
+        if self.frames and k == self.frames[-1][0]:
+            return  # already recorded (a step's last frame is published after it was recorded)
+        if self.frames and k != self.frames[-1][0] + self.r_t:
+            self.frames.clear()
+        pos = np.array(positions, np.float32)
+        if len(self.frames) >= self.capacity:
+            self.frames.popleft()
+        elif (len(self.frames) + 1) * pos.nbytes > self.held:
+            try:
+                self.held += self.budget.take(pos.nbytes, "recording the session's frames")
+            except BudgetFullError:
+                if not self.frames:
+                    return
+                self.frames.popleft()
+        self.frames.append((k, pos, str(solver), bool(controlled)))
+
+    def last(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+        """The latest ``count`` frames recorded (fewer if fewer are held), oldest first."""
+        n = min(max(0, int(count)), len(self.frames))
+        return list(self.frames)[len(self.frames) - n :]
+
+    def release(self) -> None:
+        self.frames.clear()
+        self.budget.give(self.held)
+        self.held = 0
+
+
 @dataclass
 class Control:
     id: str
@@ -167,6 +234,7 @@ class Session:
     saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
     restored_from_frame: int | None = None  # the frame it resumed from after a restart
     save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    recording: Recording | None = None  # its latest frames, for download
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -192,13 +260,21 @@ class Session:
             "stream": f"/v1/sessions/{self.id}/stream",
             "saved_frame": self.saved_frame,
             "restored_from_frame": self.restored_from_frame,
+            **scene_geometry(self.sim),
+            "recorded_frames": len(self.recording) if self.recording is not None else 0,
         }
 
     def meta(self) -> dict[str, Any]:
         return {"type": "meta", **self.info(), "playing": self.playing, "header_bytes": 32}
 
+    def record(self, fr: Frame) -> None:
+        """Keep ``fr`` in the session's recent trajectory (event loop thread only)."""
+        if self.recording is not None:
+            self.recording.add(fr.frame_index, fr.positions, fr.solver, fr.controlled)
+
     def publish(self, fr: Frame, control_frame: int = 0) -> None:
-        """Offer a frame to every viewer (event loop thread only)."""
+        """Record a frame and offer it to every viewer (event loop thread only)."""
+        self.record(fr)
         if not self.viewers:
             return
         data = encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
@@ -209,9 +285,31 @@ class Session:
         for v in list(self.viewers):
             v.event(msg)
 
+    def settings(self) -> dict[str, Any]:
+        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c``."""
+        return {"scene": self.scene, "seed": self.seed, "solver": self.solver_kind, "r_c": self.r_c}
+
+
+def scene_geometry(sim: Simulator) -> dict[str, Any]:
+    """What a viewer draws besides the particles: the grid size, the walls'
+    thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``)."""
+    params = sim.scene.params
+    n_grid = int(params.resolved_n_grid())
+    return {
+        "n_grid": n_grid,
+        "wall_thickness": float(params.walls.cells) / n_grid,
+        "obstacles": [c.to_dict() for c in params.colliders],
+    }
+
 
 class SessionManager:
     """The sessions of this process (a plain dict) and the compute limiter."""
+
+    #: Whether sessions run elsewhere (a Ray actor each: :class:`hybridmpm.service.cluster.RaySessionManager`).
+    remote = False
+    #: Temporary files of torn saves older than this are removed when the store opens [s]
+    #: (:meth:`SessionStore.open`; one process writes this store, so all of them).
+    store_clean_after_s: float | None = 0.0
 
     def __init__(self, config: ServiceConfig) -> None:
         self.config = config
@@ -229,7 +327,7 @@ class SessionManager:
         self.unclaimed: dict[str, Session] = {}
         self.io_limiter = anyio.CapacityLimiter(1)
         if config.store is not None:
-            self.store = SessionStore(config.store).open()
+            self.store = SessionStore(config.store).open(self.store_clean_after_s)
 
     # ------------------------------------------------------------ compute
     async def compute(self, fn: Callable[..., T], *args: Any) -> T:
@@ -280,6 +378,8 @@ class SessionManager:
             cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a new session")
             sid = secrets.token_urlsafe(24)  # 192 bits
             sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost, key=session_key(sid))
+            sess.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))
+            sess.record(sim.frame)
             self.sessions[sid] = sess
             if self.store is not None:
                 sess.dirty = True
@@ -291,13 +391,29 @@ class SessionManager:
             if self.reserved_by[client] <= 0:
                 del self.reserved_by[client]
 
-    def keep_control(self, s: Session, c: Control) -> None:
+    async def keep_control(self, s: Session, c: Control) -> None:
         """Keep ``c`` on ``s`` (its cost already taken from the budget),
         dropping the oldest beyond :data:`KEEP_CONTROLS` and giving their cost back."""
         s.controls[c.id] = c
         while len(s.controls) > KEEP_CONTROLS:
             _, old = s.controls.popitem(last=False)
             self.budget.give(old.cost)
+
+    async def get_control(self, s: Session, cid: str) -> Control | None:
+        """The kept control ``cid`` of ``s``, or None."""
+        return s.controls.get(cid)
+
+    async def recorded(self, s: Session, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+        """The latest ``count`` frames of ``s``'s recent trajectory, oldest first (none when it records none)."""
+        return s.recording.last(count) if s.recording is not None else []
+
+    async def find(self, sid: str) -> Session | None:
+        """The session ``sid`` (touched), or None: what a request names."""
+        return self.get(sid)
+
+    async def held(self) -> int:
+        """Sessions held (``/healthz``)."""
+        return self.count()
 
     def get(self, sid: str) -> Session | None:
         s = self.sessions.get(sid)
@@ -327,6 +443,8 @@ class SessionManager:
             async with s.save_lock:  # a save under way ends first, so that no record outlives its session
                 await anyio.to_thread.run_sync(store.delete, s.key, limiter=self.io_limiter)
         self.budget.give(s.cost + sum(c.cost for c in s.controls.values()))
+        if s.recording is not None:
+            s.recording.release()
         s.cost = 0
         for c in s.controls.values():
             c.cost = 0
@@ -486,10 +604,82 @@ class SessionManager:
             s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key)
             s.last_used = time.monotonic() - max(0.0, idle)
             s.saved_frame = s.restored_from_frame = frame
+            s.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))
+            s.record(sim.frame)
             self.unclaimed[key] = s
             restored += 1
             log.info("store: session %s… restored at frame %d", shown, frame)
         return restored
+
+    # ------------------------------------------------------------ the work of the routes
+    async def info(self, s: Session) -> dict[str, Any]:
+        """``s``'s description (``GET /v1/sessions/{id}``)."""
+        return s.info()
+
+    async def rollout(self, s: Session, frames: int) -> Rollout:
+        """Advance ``s`` by ``frames`` frames under its lock (:func:`hybridmpm.sim.rollout`);
+        :class:`SessionGoneError` when it was closed meanwhile."""
+        async with s.lock:
+            if s.closed:
+                raise SessionGoneError()
+            ro = await self.compute(rollout, s.sim, frames)
+            self.changed(s)
+        return ro
+
+    async def run_control(self, s: Session, sketch: Any, controller: Any, left: Any, first: list[float], **hooks: Any) -> tuple[Rollout, dict[str, Any], Any]:
+        """A control episode of a session that runs elsewhere (:attr:`remote`;
+        :meth:`hybridmpm.service.cluster.RaySessionManager.run_control`). The
+        local backend's control route runs its episode itself: NotImplementedError here."""
+        raise NotImplementedError("the local backend runs a control's episode in its route")
+
+    async def checkpoint(self, s: Session) -> bytes:
+        """``s``'s whole state as a checkpoint (:func:`hybridmpm.service.checkpoint.dumps`);
+        :class:`BudgetFullError` when the budget cannot hold two copies of it."""
+        with self.budget.hold(2 * tree_nbytes(s.initial), "writing the checkpoint"):
+            async with s.lock:
+                state = await self.compute(s.sim.state)
+            data = await self.compute(ckpt.dumps, state, s.settings())
+            del state
+        return data
+
+    async def restore(self, s: Session, state: dict[str, Any]) -> None:
+        """Restore ``state`` into ``s``, all or nothing: the simulator's
+        refusal (:class:`InvalidInputError`, :class:`CheckpointError`, or a
+        ``KeyError``/``TypeError``/... of a malformed tree) leaves it as it was."""
+        async with s.lock:
+            if s.closed:
+                raise SessionGoneError()
+            await self.compute(s.sim.restore, state)
+            self.changed(s)
+            if s.recording is not None:
+                s.recording.clear()  # the recent trajectory starts again at the restored state
+        s.publish(s.sim.frame)
+
+    async def reset(self, s: Session) -> None:
+        """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
+        async with s.lock:
+            await self.compute(s.sim.restore, s.initial)
+            self.changed(s)
+            if s.recording is not None:
+                s.recording.clear()  # the recent trajectory starts again at the initial state
+        s.publish(s.sim.frame)
+        s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame_index)})
+
+    async def attach(self, s: Session, v: Viewer) -> None:
+        """A new viewer of ``s``: its ``meta`` message and the current frame are offered first."""
+        s.viewers.add(v)
+        v.event(s.meta())
+        fr = s.sim.frame
+        v.offer(encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled))
+
+    async def detach(self, s: Session, v: Viewer) -> None:
+        s.viewers.discard(v)
+
+    async def set_playing(self, s: Session, playing: bool) -> None:
+        """Play (one coarse step at a time, no faster than real time, while it has viewers) or pause ``s``."""
+        s.playing = playing
+        if playing:
+            self.ensure_playing(s)
 
     # ------------------------------------------------------------ play loop
     def ensure_playing(self, s: Session) -> None:
@@ -531,15 +721,19 @@ async def close_ws(v: Viewer, code: int, reason: str) -> None:
 
 __all__ = [
     "KEEP_CONTROLS",
+    "RECORD_STEPS",
     "RETRY_AFTER_S",
     "BudgetFullError",
     "Control",
     "MemoryBudget",
     "QuotaError",
+    "Recording",
     "Session",
     "SessionCapError",
+    "SessionGoneError",
     "SessionManager",
     "Viewer",
     "close_ws",
+    "scene_geometry",
     "tree_nbytes",
 ]

@@ -126,8 +126,12 @@ class SessionStore:
         self.saves = 0
 
     # ------------------------------------------------------------ setup
-    def open(self) -> SessionStore:
-        """Create the store if needed, check it is writable, remove temporary files of torn writes."""
+    def open(self, clean_after_s: float | None = 0.0) -> SessionStore:
+        """Create the store if needed, check it is writable, remove temporary
+        files of torn writes older than ``clean_after_s`` seconds (None: none;
+        a store that several processes write at once keeps the recent ones,
+        which may be saves in progress). Raises :class:`InvalidInputError`
+        (field ``store``) when it cannot be written."""
         probe = f".probe-{secrets.token_hex(4)}"
         try:
             if self.local:
@@ -136,10 +140,14 @@ class SessionStore:
                 with open(p, "wb") as f:
                     f.write(b"ok")
                 os.remove(p)
-                for name in os.listdir(self.root):
+                min_age = -1.0 if clean_after_s is None else float(clean_after_s)
+                for name in os.listdir(self.root) if min_age >= 0 else ():
                     if name.startswith(".") and name.endswith(".tmp"):
                         with contextlib.suppress(OSError):
-                            os.remove(os.path.join(self.root, name))
+                            tmp = os.path.join(self.root, name)
+                            if time.time() - os.stat(tmp).st_mtime < min_age:
+                                continue
+                            os.remove(tmp)
                             log.info("store: removed %s (a save that did not finish)", name[:12])
             else:
                 self.fs.makedirs(self.root, exist_ok=True)
@@ -196,6 +204,16 @@ class SessionStore:
             if old < seq - 1:
                 with contextlib.suppress(OSError, FileNotFoundError):
                     self.fs.rm_file(f"{d}/{old:012d}.npz")
+
+    def has(self, key: str) -> bool:
+        """Whether ``key`` has a record (not whether it loads)."""
+        assert _KEY.match(key)
+        if self.local:
+            return os.path.exists(os.path.join(self.root, key + ".npz"))
+        try:
+            return bool(self.fs.exists(f"{self.root}/{key}/HEAD"))
+        except OSError:
+            return False
 
     def delete(self, key: str) -> None:
         """Forget ``key``'s record (a deleted or expired session)."""

@@ -1,11 +1,15 @@
 """A real server in a subprocess on 127.0.0.1 for tests and benchmarks
 (``hybridmpm serve --port 0``: the server binds a port the system chooses,
 read back from the child's listening socket, so no other process can take it
-between choosing and binding; stopped with :meth:`LiveServer.stop`)."""
+between choosing and binding; stopped with :meth:`LiveServer.stop`), and a
+local Ray cluster for the ray backend (:class:`RayCluster`)."""
 
 from __future__ import annotations
 
+import http.client
 import os
+import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -23,6 +27,14 @@ def free_port() -> int:
 def listening_port(pid: int) -> int | None:
     """The TCP port process ``pid`` listens on (Linux: its socket inodes
     matched in ``/proc/PID/net/tcp``), or None while it listens on none."""
+    ports = listening_ports(pid)
+    return ports[0] if ports else None
+
+
+def listening_ports(pid: int) -> list[int]:
+    """The TCP ports process ``pid`` listens on (a front end of a Ray
+    cluster listens on Ray's ports too), in the order of the kernel's tables."""
+    found: list[int] = []
     try:
         inodes = set()
         for fd in os.listdir(f"/proc/{pid}/fd"):
@@ -36,10 +48,10 @@ def listening_port(pid: int) -> int | None:
             for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
                 f = line.split()
                 if f[3] == "0A" and f[9] in inodes:  # state LISTEN
-                    return int(f[1].rsplit(":", 1)[1], 16)
+                    found.append(int(f[1].rsplit(":", 1)[1], 16))
     except OSError:
-        return None
-    return None
+        return found
+    return found
 
 
 class LiveServer:
@@ -84,20 +96,17 @@ class LiveServer:
         while time.monotonic() < t_end:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"server exited with {self.proc.returncode}")
-            if not self.port:
-                port = listening_port(self.proc.pid)
-                if port is None:
-                    time.sleep(0.1)
+            for port in [self.port] if self.port else listening_ports(self.proc.pid):
+                try:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=1) as r:
+                        if r.status == 200:
+                            self.port = port
+                            self.url = f"http://127.0.0.1:{port}"
+                            self.ws_url = f"ws://127.0.0.1:{port}"
+                            return self
+                except (OSError, http.client.HTTPException):  # not up yet, or another listener (Ray's) of the process
                     continue
-                self.port = port
-                self.url = f"http://127.0.0.1:{port}"
-                self.ws_url = f"ws://127.0.0.1:{port}"
-            try:
-                with urllib.request.urlopen(self.url + "/healthz", timeout=1) as r:
-                    if r.status == 200:
-                        return self
-            except OSError:
-                time.sleep(0.1)
+            time.sleep(0.1)
         self.stop()
         raise RuntimeError("server did not start in time")
 
@@ -129,4 +138,122 @@ class LiveServer:
         self.stop()
 
 
-__all__ = ["LiveServer", "free_port", "listening_port"]
+def children() -> dict[int, list[int]]:
+    """Every process's children (Linux: ``/proc/PID/stat``)."""
+    out: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            out.setdefault(ppid, []).append(int(d))
+    return out
+
+
+def descendants(roots: list[int]) -> list[int]:
+    """``roots`` and every process below them, parents before children."""
+    kids = children()
+    seen: list[int] = []
+    todo = list(roots)
+    while todo:
+        p = todo.pop(0)
+        if p not in seen:
+            seen.append(p)
+            todo.extend(kids.get(p, []))
+    return seen
+
+
+def cmdline(pid: int) -> str:
+    """Process ``pid``'s command line (its title: ``ray::SessionActor`` for a session's actor); "" once it is gone."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+    except OSError:
+        return ""
+
+
+def private_bytes(pid: int) -> int:
+    """Memory only process ``pid`` holds (its private pages: what its end gives back) [bytes]; 0 once it is gone."""
+    try:
+        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except OSError:
+        return 0
+    return sum(int(line.split()[1]) * 1024 for line in text.splitlines() if line.startswith(("Private_Clean:", "Private_Dirty:")))
+
+
+class RayCluster:
+    """A Ray cluster of ``nodes`` node processes on this machine (``ray start
+    --block``: a head, then nodes joining it), each with ``num_cpus`` CPUs, on
+    127.0.0.1, token authentication with ``token`` (also in :attr:`env`, for
+    front ends: nothing is written to ``~/.ray``), Ray's files under ``root``
+    (keep it short: Ray's socket paths live under it). :meth:`stop` kills, by
+    their process ids, every process its commands started (``ray stop``
+    would end every Ray process of the machine's user). Raises
+    RuntimeError when a node does not come up within ``timeout`` seconds."""
+
+    def __init__(self, root: Path, token: str, nodes: int = 2, num_cpus: int = 1, object_store_bytes: int = 100 << 20, timeout: float = 180.0) -> None:
+        self.root, self.token, self.nodes, self.num_cpus = Path(root), token, nodes, num_cpus
+        self.object_store_bytes, self.timeout = object_store_bytes, timeout
+        self.env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": token}
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.port = 0
+        self.ray = shutil.which("ray") or str(Path(sys.executable).parent / "ray")
+
+    @property
+    def address(self) -> str:
+        return f"127.0.0.1:{self.port}"
+
+    def _node(self, name: str, args: list[str]) -> None:
+        log = self.root / f"{name}.log"
+        common = ["--node-ip-address", "127.0.0.1", "--num-cpus", str(self.num_cpus), "--temp-dir", str(self.root / "ray"), "--disable-usage-stats"]
+        common += [
+            "--object-store-memory",
+            str(self.object_store_bytes),
+            "--dashboard-agent-listen-port",
+            str(free_port()),
+            "--metrics-export-port",
+            str(free_port()),
+        ]
+        with open(log, "wb") as f:
+            proc = subprocess.Popen([self.ray, "start", *args, *common, "--block"], env=self.env, stdout=f, stderr=subprocess.STDOUT)
+        self.procs.append(proc)
+        deadline = time.monotonic() + self.timeout
+        while b"block forever" not in log.read_bytes():
+            if proc.poll() is not None or time.monotonic() > deadline:
+                tail = log.read_text(errors="replace")[-2000:]
+                self.stop()
+                raise RuntimeError(f"ray start ({name}) did not come up: {tail}")
+            time.sleep(0.2)
+
+    def start(self) -> RayCluster:
+        """Start the nodes (a new head port each time)."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.port = free_port()
+        self._node("head", ["--head", "--port", str(self.port), "--include-dashboard", "false", "--dashboard-port", str(free_port())])
+        for i in range(1, self.nodes):
+            self._node(f"node{i}", ["--address", self.address])
+        return self
+
+    def actor_pids(self, title: str = "ray::SessionActor") -> list[int]:
+        """The processes of the cluster's actors whose title starts with ``title``."""
+        return [p for p in descendants([q.pid for q in self.procs]) if cmdline(p).startswith(title)]
+
+    def stop(self) -> None:
+        """Kill every process the nodes started (SIGKILL, by process id) and wait for the commands."""
+        for pid in reversed(descendants([p.pid for p in self.procs if p.poll() is None])):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        for p in self.procs:
+            p.wait(60)
+        self.procs = []
+
+    def __enter__(self) -> RayCluster:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+__all__ = ["LiveServer", "RayCluster", "cmdline", "descendants", "free_port", "listening_port", "listening_ports", "private_bytes"]

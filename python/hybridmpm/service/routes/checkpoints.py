@@ -12,7 +12,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import FieldError
 from hybridmpm.service.schemas import SessionInfo
-from hybridmpm.service.sessions import Session, tree_nbytes
+from hybridmpm.service.sessions import Session
 
 OCTET = "application/octet-stream"
 NPZ = "application/x-npz"
@@ -21,7 +21,7 @@ router = APIRouter()
 
 
 def session_meta(s: Session) -> dict[str, Any]:
-    return {"scene": s.scene, "seed": s.seed, "solver": s.solver_kind, "r_c": s.r_c}
+    return s.settings()
 
 
 @router.get(
@@ -33,11 +33,7 @@ def session_meta(s: Session) -> dict[str, Any]:
     },
 )
 async def get_checkpoint(s: SessionDep, manager: ManagerDep) -> Response:
-    with manager.budget.hold(2 * tree_nbytes(s.initial), "writing the checkpoint"):
-        async with s.lock:
-            state = await manager.compute(s.sim.state)
-        data = await manager.compute(ckpt.dumps, state, session_meta(s))
-        del state
+    data = await manager.checkpoint(s)
     return Response(data, media_type=NPZ, headers={"Content-Disposition": 'attachment; filename="checkpoint.npz"'})
 
 
@@ -65,14 +61,11 @@ async def put_checkpoint(s: SessionDep, request: Request, manager: ManagerDep, c
             differ = sorted(k for k in mine.keys() | meta.keys() if meta.get(k) != mine.get(k))[:4]
             shown = ", ".join(f"{k} {meta.get(k)!r} (this session: {mine.get(k)!r})" for k in differ)
             raise FieldError(("body", "checkpoint"), f"checkpoint: written for another session: {shown}")
-        async with s.lock:
-            try:
-                await manager.compute(s.sim.restore, state)
-            except (InvalidInputError, CheckpointError) as e:
-                raise FieldError(("body", "checkpoint"), f"checkpoint: {e}") from None
-            except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
-                raise FieldError(("body", "checkpoint"), f"checkpoint: malformed state ({type(e).__name__})") from None
-            manager.changed(s)
+        try:
+            await manager.restore(s, state)  # the recent trajectory starts again at the restored state
+        except (InvalidInputError, CheckpointError) as e:
+            raise FieldError(("body", "checkpoint"), f"checkpoint: {e}") from None
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
+            raise FieldError(("body", "checkpoint"), f"checkpoint: malformed state ({type(e).__name__})") from None
         del state
-    s.publish(s.sim.frame)
-    return s.info()
+    return await manager.info(s)

@@ -50,7 +50,7 @@ async def page() -> FileResponse:
 async def healthz(manager: ManagerDep, cfg: ConfigDep) -> dict[str, Any]:
     return {
         "status": "ok",
-        "sessions": manager.count(),
+        "sessions": await manager.held(),
         "max_sessions": cfg.max_sessions,
         "memory_used": manager.budget.used,
         "memory_budget": manager.budget.total,

@@ -33,12 +33,12 @@ async def create_session(body: CreateSession, request: Request, manager: Manager
     except QuotaError:
         msg = f"this client address holds its maximum of {cfg.max_sessions_per_client} sessions (per client); delete one or retry later"
         raise ApiError(429, msg, {"Retry-After": "30"}) from None
-    return s.info()
+    return await manager.info(s)
 
 
 @router.get("/v1/sessions/{sid}", response_model=SessionInfo, responses={404: {"description": "no such session"}})
-async def get_session(s: SessionDep) -> dict[str, Any]:
-    return s.info()
+async def get_session(s: SessionDep, manager: ManagerDep) -> dict[str, Any]:
+    return await manager.info(s)
 
 
 @router.delete("/v1/sessions/{sid}", status_code=204, responses={404: {"description": "no such session"}})

@@ -14,9 +14,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response, StreamingResponse
 
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
-from hybridmpm.service.errors import NO_SESSION, ApiError, FieldError
+from hybridmpm.service.errors import FieldError
 from hybridmpm.service.schemas import StepRequest, StepResponse, clean
-from hybridmpm.sim import rollout
 
 OCTET = "application/octet-stream"
 #: Transient bytes per position value of a step's answer: JSON text, its pieces and the joined body; raw float32 and its copies.
@@ -80,11 +79,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
     values = math.ceil(body.frames / int(s.sim.r_t)) * s.sim.particles.num_total * s.sim.particles.dim
     with manager.budget.hold(values * (BINARY_BYTES_PER_VALUE if binary else JSON_BYTES_PER_VALUE), f"a step of {body.frames} frames"):
         t0 = time.perf_counter()
-        async with s.lock:
-            if s.closed:
-                raise ApiError(404, NO_SESSION)
-            ro = await manager.compute(rollout, s.sim, body.frames)
-            manager.changed(s)
+        ro = await manager.rollout(s, body.frames)
         latency = (time.perf_counter() - t0) * 1e3
         s.touch()
         pos = np.asarray(ro.positions[1:], np.float32)
@@ -93,6 +88,9 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
         frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
         failure = None if ro.failure is None else str(ro.failure)
         del ro
+        if s.recording is not None:
+            for k in range(len(pos)):
+                s.recording.add(frames_[k], pos[k], solvers[k], False)
         if len(pos):
             s.publish(s.sim.frame)
         if binary:

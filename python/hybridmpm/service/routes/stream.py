@@ -16,9 +16,8 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
-from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.schemas import clean
-from hybridmpm.service.sessions import Session, SessionManager, Viewer, close_ws
+from hybridmpm.service.sessions import Session, SessionGoneError, SessionManager, Viewer, close_ws
 
 log = logging.getLogger("hybridmpm.service")
 #: Deepest JSON a WebSocket message may nest (the protocol's messages are flat objects).
@@ -79,16 +78,13 @@ async def stream(ws: WebSocket, sid: str) -> None:
     if not origin_ok(ws, cfg):
         await ws.close(code=1008, reason="origin not allowed")
         return
-    s = manager.get(sid)
+    s = await manager.find(sid)
     if s is None:
         await ws.close(code=4004, reason="no such session")
         return
     await ws.accept()
     v = Viewer(ws)
-    s.viewers.add(v)
-    v.event(s.meta())
-    fr = s.sim.frame
-    v.offer(encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled))
+    await manager.attach(s, v)  # its meta message and the current frame first
     task = asyncio.get_running_loop().create_task(sender(v, s, cfg))
     try:
         while not v.closed and not s.closed:
@@ -105,17 +101,10 @@ async def stream(ws: WebSocket, sid: str) -> None:
                 with contextlib.suppress(ValueError):
                     msg = json.loads(raw)
             kind = msg.get("type") if isinstance(msg, dict) else None
-            if kind == "play":
-                s.playing = True
-                manager.ensure_playing(s)
-            elif kind == "pause":
-                s.playing = False
+            if kind in ("play", "pause"):
+                await manager.set_playing(s, kind == "play")
             elif kind == "reset":
-                async with s.lock:
-                    await manager.compute(s.sim.restore, s.initial)
-                    manager.changed(s)
-                s.publish(s.sim.frame)
-                s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame_index)})
+                await manager.reset(s)  # the recent trajectory starts again at the initial state
             elif kind == "ping":
                 t = msg.get("t")
                 v.event({"type": "pong", "t": t if isinstance(t, (int, float)) and not isinstance(t, bool) else None})
@@ -123,10 +112,12 @@ async def stream(ws: WebSocket, sid: str) -> None:
                 v.event({"type": "error", "message": 'unknown message; send {"type": "play" | "pause" | "reset" | "ping"}'})
     except (WebSocketDisconnect, RuntimeError, KeyError):
         pass
+    except SessionGoneError:  # deleted, expired or lost meanwhile (another front end of a cluster)
+        await close_ws(v, 4004, "no such session")
     finally:
         v.closed = True
         v.wake.set()
-        s.viewers.discard(v)
+        await manager.detach(s, v)
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task

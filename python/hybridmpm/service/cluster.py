@@ -1,0 +1,721 @@
+"""Sessions on a Ray cluster (``hybridmpm serve --backend ray``).
+
+Each session is a named, detached Ray actor
+(:class:`~hybridmpm.service.actor.SessionActor`, named ``session-`` + the
+SHA-256 of its id, in the namespace ``ServiceConfig.ray_namespace``) that
+holds its simulator, its kept controls, its play loop and its saves, placed
+by Ray with ``ServiceConfig.ray_num_cpus`` CPUs. This process is a *front
+end*: :class:`RaySessionManager` implements the
+:class:`~hybridmpm.service.sessions.SessionManager` seam by finding a
+session's actor by name and running the routes' work there (a step, a
+control episode, a checkpoint, a restore, a reset), so any number of front
+ends serve every session. The session cap and the per-client quota count the
+whole cluster (:class:`~hybridmpm.service.actor.Registry`); a session that
+does not fit on the cluster's CPUs answers 503 with ``Retry-After``.
+
+Streams: for each session with viewers here, one task pulls the actor's
+latest frame (at most ``max_fps`` a second, long polls) and its events, and
+offers the same bytes to every viewer's latest-frame slot (no copy per client).
+
+Durable sessions: with ``--store`` (shared by every node) each actor saves
+itself; when its process or its node dies, Ray builds it again on a live
+node from its last save (``max_restarts``), and a request meanwhile waits
+for it; a session whose actor is gone while its record is still in the store
+(a restarted cluster) is built again from it when a request names it, and a
+front end restores every unexpired record at start. Errors: a session
+deleted, expired or lost answers 404 (:class:`SessionGoneError`); one that
+does not come back within :data:`REVIVE_TIMEOUT_S` 503.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import secrets
+import socket
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import anyio
+import anyio.to_thread
+import numpy as np
+import ray
+import ray.exceptions
+
+from hybridmpm.control import Controller, Sketch
+from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.service.actor import ACTOR_PREFIX, ACTOR_THREADS, REGISTRY_NAME, Registry, SessionActor
+from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.errors import ApiError, tidy
+from hybridmpm.service.logs import SHOWN_ID_CHARS
+from hybridmpm.service.sessions import (
+    Control,
+    QuotaError,
+    Session,
+    SessionCapError,
+    SessionGoneError,
+    SessionManager,
+    Viewer,
+    close_ws,
+)
+from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, session_key
+from hybridmpm.sim import Rollout
+
+log = logging.getLogger("hybridmpm.service")
+
+#: How long creating a session waits for its actor to be placed and built [s] (then 503).
+PLACE_TIMEOUT_S = 120.0
+#: How long a request waits for a session's actor to come back after its process died [s] (then 503).
+REVIVE_TIMEOUT_S = 60.0
+#: How long joining the cluster waits for its head's port to answer [s].
+CONNECT_TIMEOUT_S = 5.0
+#: Longest wait of one poll of a session's frames and events [s].
+POLL_WAIT_S = 1.0
+#: ``Retry-After`` of a 503 for a cluster without room or a session not back yet [s].
+RETRY_S = 5
+#: A session's description in this front end is dropped after this long unused (its actor stays) [s].
+FORGET_AFTER_S = 600.0
+_BUILTIN_ERRORS = {c.__name__: c for c in (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError)}
+
+
+def connect(config: ServiceConfig) -> None:
+    """Join the Ray cluster at ``config.ray_address`` as a driver in
+    ``config.ray_namespace``; :class:`InvalidInputError` naming
+    ``ray_address`` when there is none (or its token is refused)."""
+    os.environ.setdefault("RAY_IGNORE_UNHANDLED_ERRORS", "1")  # events are sent without waiting for their answer
+    if ray.is_initialized():
+        return
+    hint = "start one with `ray start --head` (and set RAY_AUTH_MODE=token with the cluster's token where it has one)"
+    if config.ray_address != "auto":  # Ray itself retries a closed port for minutes
+        host, port = config.ray_address.rsplit(":", 1)
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+        except OSError as e:
+            raise InvalidInputError(
+                f"ray_address: no Ray cluster answers at {config.ray_address} ({e.strerror or type(e).__name__}); {hint}", "ray_address"
+            ) from None
+    try:
+        ray.init(address=config.ray_address, namespace=config.ray_namespace, logging_level=logging.WARNING, log_to_driver=False)
+    except Exception as e:  # noqa: BLE001 - ray raises ConnectionError, RuntimeError, ValueError, AuthenticationError...
+        raise InvalidInputError(f"ray_address: no Ray cluster at {config.ray_address!r}: {tidy(str(e), 160)}; {hint}", "ray_address") from None
+
+
+def error_from(kind: str, message: str, name: str | None) -> Exception:
+    """The error an actor answered (``("err", kind, message, field)``), raised again here as its type."""
+    if kind == "InvalidInputError":
+        return InvalidInputError(message, name)
+    if kind == "CheckpointError":
+        return CheckpointError(message)
+    if kind == "SimulationError":
+        return SimulationError(message)
+    if kind in _BUILTIN_ERRORS:
+        return _BUILTIN_ERRORS[kind](message)
+    return HybridMpmError(message)
+
+
+class SimView:
+    """What the routes read of a simulator that runs in an actor: its fixed
+    facts (``scene.name``, ``scene.params.resolved_n_grid()``, ``particles``
+    with ``full_masses()`` and ``full_material()``,
+    ``r_t``, ``dt_frame``, ``kind``) and ``frame``, its last known frame
+    (``frame_index``, ``time``, ``solver``, ``controlled``; no positions)."""
+
+    class _Params:
+        def __init__(self, n_grid: int) -> None:
+            self.n_grid = n_grid
+
+        def resolved_n_grid(self) -> int:
+            return self.n_grid
+
+    @dataclass
+    class _Scene:
+        name: str
+        params: Any
+
+    @dataclass
+    class _Particles:
+        num_total: int
+        num_fluid: int
+        dim: int
+        particle_type: np.ndarray
+        masses_all: np.ndarray
+        material_all: np.ndarray
+
+        def full_masses(self) -> np.ndarray:
+            return self.masses_all
+
+        def full_material(self) -> np.ndarray:
+            return self.material_all
+
+    @dataclass
+    class _Frame:
+        frame_index: int
+        time: float
+        solver: str
+        controlled: bool
+        positions: Any = None
+
+    def __init__(self, facts: dict[str, Any]) -> None:
+        self.kind = str(facts["kind"])
+        self.scene = SimView._Scene(str(facts["scene_name"]), SimView._Params(int(facts["n_grid"])))
+        self.particles = SimView._Particles(
+            int(facts["num_total"]),
+            int(facts["num_fluid"]),
+            int(facts["dim"]),
+            np.asarray(facts["particle_type"]),
+            np.asarray(facts["full_masses"]),
+            np.asarray(facts["full_material"]),
+        )
+        self.r_t = int(facts["r_t"])
+        self.dt_frame = float(facts["dt_frame"])
+        self.frame = SimView._Frame(*facts["frame"])
+
+    def at(self, frame_index: int) -> None:
+        """The session reached ``frame_index`` (what a call to its actor answered)."""
+        self.frame = SimView._Frame(int(frame_index), int(frame_index) * self.dt_frame, self.frame.solver, False)
+
+
+@dataclass(eq=False)
+class RaySession(Session):
+    """A session whose simulator runs in a Ray actor: the front end's
+    handle (``actor``), its view of the simulator (``sim``: :class:`SimView`),
+    the viewers connected here and the task that feeds them (``pump``)."""
+
+    actor: Any = None
+    name: str = ""
+    state_nbytes: int = 0
+    last_frame: bytes | None = None
+    pump: asyncio.Task[None] | None = None
+    touched_remote: float = 0.0
+
+    def publish(self, fr: Any, control_frame: int = 0) -> None:
+        """Nothing: the actor publishes its frames to every front end's stream."""
+
+    def broadcast(self, msg: dict[str, Any]) -> None:
+        """An event for the viewers of every front end (through the actor; not awaited)."""
+        with contextlib.suppress(Exception):
+            self.actor.event.remote(msg)
+
+    def deliver(self, msg: dict[str, Any]) -> None:
+        for v in list(self.viewers):
+            v.event(msg)
+
+    def touch(self) -> None:
+        super().touch()
+        if self.last_used - self.touched_remote > 1.0:  # the actor's idle clock (expiry), at most once a second
+            self.touched_remote = self.last_used
+            with contextlib.suppress(Exception):
+                self.actor.touch.remote()
+
+
+class RaySessionManager(SessionManager):
+    """The :class:`SessionManager` of a front end of a Ray cluster (module
+    doc). Raises :class:`InvalidInputError` naming ``ray_address`` when it
+    cannot join the cluster, ``store`` when the store cannot be written."""
+
+    remote = True
+    store_clean_after_s = 60.0  # other front ends' and actors' saves may be in progress
+
+    def __init__(self, config: ServiceConfig) -> None:
+        super().__init__(config)
+        connect(config)
+        self.ns = config.ray_namespace
+        self.front_id = secrets.token_hex(6)
+        self.cache: dict[str, RaySession] = {}
+        self.actor_class = ray.remote(SessionActor)
+        store_url = None
+        if self.store is not None:
+            store_url = self.store.root if self.store.local else self.store.url  # an absolute path: every node's actors
+        self.settings = {
+            "store": store_url,
+            "save_every_s": config.save_every_s,
+            "idle_ttl_s": config.idle_ttl_s,
+            "max_checkpoint_bytes": config.max_checkpoint_bytes,
+            "memory_budget": config.memory_budget_bytes,
+            "namespace": self.ns,
+        }
+        self.registry: Any = (
+            ray.remote(Registry)
+            .options(
+                name=REGISTRY_NAME,
+                namespace=self.ns,
+                lifetime="detached",
+                get_if_exists=True,
+                num_cpus=0,
+                max_restarts=-1,
+                resources={"node:__internal_head__": 0.001},  # on the head node: it lives as long as the cluster
+            )
+            .remote()
+        )
+
+    # ------------------------------------------------------------ actors
+    def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool) -> Any:
+        """The session actor of ``key`` (created, or the one already there). Blocks: call it off the event loop."""
+        return self.actor_class.options(
+            name=ACTOR_PREFIX + key,
+            namespace=self.ns,
+            lifetime="detached",
+            get_if_exists=True,
+            num_cpus=self.config.ray_num_cpus,
+            max_restarts=-1 if self.store is not None else 0,
+            max_task_retries=0,
+            max_concurrency=ACTOR_THREADS,
+            scheduling_strategy="SPREAD",
+        ).remote(key, scene, seed, solver, r_c, client, self.settings, restore)
+
+    def _lookup(self, key: str) -> Any:
+        """The live actor of ``key``, or None. Blocks."""
+        try:
+            return ray.get_actor(ACTOR_PREFIX + key, namespace=self.ns)
+        except ValueError:
+            return None
+
+    async def _kill(self, actor: Any) -> None:
+        with contextlib.suppress(Exception):
+            await anyio.to_thread.run_sync(lambda: ray.kill(actor, no_restart=True))
+
+    async def _reserve(self, key: str, client: str, restoring: bool = False) -> None:
+        verdict = await self.registry.reserve.remote(key, client, self.config.max_sessions, self.config.max_sessions_per_client, restoring)
+        if verdict == "cap":
+            raise SessionCapError()
+        if verdict == "quota":
+            raise QuotaError()
+
+    async def _room(self) -> None:
+        """503 when the cluster has no CPU left for another session's actor."""
+        free = await anyio.to_thread.run_sync(ray.available_resources)
+        if float(free.get("CPU", 0.0)) + 1e-9 < self.config.ray_num_cpus:
+            msg = f"the cluster has no free CPU for another session (each takes {self.config.ray_num_cpus:g}); add a node or retry later"
+            raise ApiError(503, msg, {"Retry-After": str(RETRY_S)})
+
+    async def _ready(self, actor: Any, timeout: float) -> dict[str, Any]:
+        """The actor's facts once it is built; its construction's error raised
+        (:func:`error_from`); :class:`SessionGoneError` if it died or cannot be reached in time."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                out = await asyncio.wait_for(actor.ready.remote(), max(0.1, deadline - time.monotonic()))
+            except asyncio.TimeoutError:
+                raise SessionGoneError() from None
+            except ray.exceptions.ActorUnavailableError:
+                if time.monotonic() > deadline:
+                    raise SessionGoneError() from None
+                await asyncio.sleep(0.05)
+                continue
+            except ray.exceptions.RayActorError:
+                raise SessionGoneError() from None
+            if out[0] == "ok":
+                return dict(out[1])
+            if out[0] == "err":
+                raise error_from(*out[1:])
+            raise SessionGoneError()
+
+    def _session(self, sid: str, key: str, actor: Any, facts: dict[str, Any]) -> RaySession:
+        s = RaySession(sid, facts["scene"], int(facts["seed"]), facts["solver"], float(facts["r_c"]), SimView(facts), {}, client=facts["client"], key=key)  # type: ignore[arg-type]
+        s.actor, s.name, s.state_nbytes = actor, ACTOR_PREFIX + key, int(facts["state_nbytes"])
+        s.touched_remote = s.last_used
+        return s
+
+    async def _from_store(self, key: str) -> Any:
+        """Build ``key``'s actor again from its stored record (a restarted
+        cluster, or an actor Ray did not restart); None when there is no
+        loadable, unexpired record. An expired one is removed."""
+        store = self.store
+        if store is None or not await anyio.to_thread.run_sync(store.has, key, limiter=self.io_limiter):
+            return None
+        try:
+            rec: StoredSession = await anyio.to_thread.run_sync(store.load, key, self.config.max_checkpoint_bytes, limiter=self.io_limiter)
+        except InvalidInputError as e:
+            log.warning("%s; not restored", e)
+            return None
+        if time.time() - rec.last_used_at > self.config.idle_ttl_s:
+            await anyio.to_thread.run_sync(store.delete, key, limiter=self.io_limiter)
+            log.info("store: session %s… expired while its actor was gone; removed", key[:SHOWN_KEY_CHARS])
+            return None
+        await self._reserve(key, rec.client, restoring=True)
+        try:
+            return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True)
+        except Exception:
+            await self.registry.release.remote(key)
+            raise
+
+    async def _restore(self, key: str) -> Any:
+        """:meth:`_from_store` for a request: a cluster at its cap answers 503 (the session waits in the store)."""
+        try:
+            return await self._from_store(key)
+        except SessionCapError:
+            msg = f"the cluster holds its maximum of {self.config.max_sessions} sessions; this one waits in the store, retry later"
+            raise ApiError(503, msg, {"Retry-After": str(RETRY_S)}) from None
+
+    async def _revive(self, s: RaySession) -> bool:
+        """``s``'s actor died: the one Ray builds again, or one built from the store. False when the session is gone."""
+        actor = await anyio.to_thread.run_sync(self._lookup, s.key)
+        if actor is None:
+            actor = await self._restore(s.key)
+        if actor is None:
+            return False
+        s.actor = actor
+        return True
+
+    async def _forget(self, s: RaySession, code: int = 4004, reason: str = "no such session") -> None:
+        s.closed = True
+        if self.cache.get(s.id) is s:
+            del self.cache[s.id]
+        for v in list(s.viewers):
+            await close_ws(v, code, reason)
+        s.viewers.clear()
+
+    async def _call(self, s: RaySession, method: str, *args: Any, retry: bool = True) -> Any:
+        """Run ``method`` of ``s``'s actor and answer its value. A refusal is
+        raised as its own type, a second control as a 409; a session deleted,
+        expired or lost as :class:`SessionGoneError`. When the actor's process
+        died, the call waits for it to come back (Ray's restart, or the store)
+        and runs again — unless ``retry`` is False (a control: 503)."""
+        deadline = time.monotonic() + REVIVE_TIMEOUT_S
+        while True:
+            try:
+                out = await getattr(s.actor, method).remote(*args)
+            except ray.exceptions.ActorUnavailableError:  # its process died a moment ago; Ray is restarting it
+                if not retry or time.monotonic() > deadline:
+                    raise ApiError(
+                        503, "the session's process was lost; it is being restored from its last save, retry", {"Retry-After": str(RETRY_S)}
+                    ) from None
+                await asyncio.sleep(0.05)
+                continue
+            except ray.exceptions.RayActorError:
+                if time.monotonic() > deadline or not await self._revive(s):
+                    await self._forget(s)
+                    raise SessionGoneError() from None
+                if not retry:
+                    raise ApiError(
+                        503, "the session's process was lost; it is being restored from its last save, retry", {"Retry-After": str(RETRY_S)}
+                    ) from None
+                continue
+            kind = out[0]
+            if kind == "ok":
+                return out[1]
+            if kind == "err":
+                raise error_from(*out[1:])
+            if kind == "busy":
+                raise ApiError(409, "a control is already running on this session")
+            await self._kill(s.actor)  # closed, or it could not be restored: its actor goes
+            with contextlib.suppress(Exception):
+                await self.registry.release.remote(s.key)
+            await self._forget(s)
+            raise SessionGoneError()
+
+    # ------------------------------------------------------------ lifecycle
+    async def held(self) -> int:
+        """Sessions of the whole cluster (the registry's count)."""
+        return int(await self.registry.count.remote())
+
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "") -> Session:
+        """A new session in its own actor. Raises :class:`SessionCapError` /
+        :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
+        when the cluster has no CPU for it, and the simulator's
+        :class:`InvalidInputError` for bad settings."""
+        sid = secrets.token_urlsafe(24)  # 192 bits
+        key = session_key(sid)
+        await self._reserve(key, client)
+        actor = None
+        try:
+            await self._room()
+            actor = await anyio.to_thread.run_sync(self._spawn, key, scene, seed, solver, r_c, client, False)
+            try:
+                facts = await self._ready(actor, PLACE_TIMEOUT_S)
+            except SessionGoneError:
+                raise ApiError(503, "no node of the cluster took the new session in time; retry later", {"Retry-After": str(RETRY_S)}) from None
+        except BaseException:
+            if actor is not None:
+                await self._kill(actor)
+            with contextlib.suppress(Exception):
+                await self.registry.release.remote(key)
+            raise
+        s = self._session(sid, key, actor, facts)
+        self.cache[sid] = s
+        return s
+
+    async def find(self, sid: str) -> Session | None:
+        """The session ``sid``: this front end's handle, or its actor found by
+        name (or built again from the store); None when there is none."""
+        s = self.cache.get(sid)
+        if s is not None and not s.closed:
+            s.touch()
+            return s
+        if len(sid) >= 256:
+            return None
+        key = session_key(sid)
+        actor = await anyio.to_thread.run_sync(self._lookup, key)
+        if actor is None:
+            actor = await self._restore(key)
+            if actor is None:
+                return None
+        try:
+            facts = await self._ready(actor, REVIVE_TIMEOUT_S)
+        except SessionGoneError:
+            return None
+        except (HybridMpmError, *_BUILTIN_ERRORS.values()) as e:  # its record could not be restored
+            log.warning("session %s… cannot be restored: %s", sid[:SHOWN_ID_CHARS], e)
+            await self._kill(actor)
+            with contextlib.suppress(Exception):
+                await self.registry.release.remote(key)
+            return None
+        s = self.cache.get(sid)  # another request may have found it meanwhile
+        if s is None or s.closed:
+            s = self._session(sid, key, actor, facts)
+            self.cache[sid] = s
+        s.touch()
+        return s
+
+    def get(self, sid: str) -> Session | None:
+        """This front end's handle of ``sid`` only (see :meth:`find`)."""
+        return self.cache.get(sid)
+
+    def count(self) -> int:
+        """Sessions this front end holds a handle of (the cluster's count: :meth:`held`)."""
+        return len(self.cache)
+
+    async def close(self, sid: str, code: int = 1000, reason: str = "closed", forget: bool = True) -> bool:
+        """Delete session ``sid`` in the cluster (its record too), closing its sockets here."""
+        s = await self.find(sid)
+        if not isinstance(s, RaySession):
+            return False
+        with contextlib.suppress(SessionGoneError):
+            await self._call(s, "delete", code, reason)
+        await self._kill(s.actor)
+        with contextlib.suppress(Exception):
+            await self.registry.release.remote(s.key)
+        await self._forget(s, code, reason)
+        return True
+
+    async def save(self, s: Session) -> bool:
+        """Nothing to do: each actor saves itself."""
+        return True
+
+    async def save_all(self) -> None:
+        """Nothing to do: each actor saves itself."""
+
+    async def reap_once(self) -> list[str]:
+        """Drop this front end's handles unused for :data:`FORGET_AFTER_S` (the actors expire themselves)."""
+        now = time.monotonic()
+        stale = [sid for sid, s in self.cache.items() if not s.viewers and now - s.last_used > max(FORGET_AFTER_S, self.config.idle_ttl_s)]
+        for sid in stale:
+            self.cache.pop(sid, None)
+        return stale
+
+    def start(self) -> None:
+        if self._reaper is None:
+            self._reaper = asyncio.get_running_loop().create_task(self._reap_forever())
+
+    async def stop(self) -> None:
+        """Close this front end's sockets (1001) and leave the cluster; the sessions stay in it."""
+        if self._reaper is not None:
+            self._reaper.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._reaper
+            self._reaper = None
+        for s in list(self.cache.values()):
+            if s.pump is not None:
+                s.pump.cancel()
+            for v in list(s.viewers):
+                await close_ws(v, 1001, "server shutting down")
+            s.viewers.clear()
+        self.cache.clear()
+        with contextlib.suppress(Exception):
+            await anyio.to_thread.run_sync(ray.shutdown)
+
+    async def restore_all(self) -> int:
+        """Build the actor of every unexpired record of the store that has
+        none (a restarted cluster), all at once; expired records are removed.
+        Returns the number of sessions restored."""
+        store = self.store
+        if store is None:
+            return 0
+        keys = await anyio.to_thread.run_sync(store.keys, limiter=self.io_limiter)
+        alive = set(await anyio.to_thread.run_sync(ray.util.list_named_actors))
+        pending = []
+        for key in keys:
+            if ACTOR_PREFIX + key in alive:
+                continue
+            try:
+                actor = await self._from_store(key)
+            except SessionCapError:
+                log.warning("store: session %s… not restored: the cluster holds its maximum of %d sessions", key[:SHOWN_KEY_CHARS], self.config.max_sessions)
+                continue
+            if actor is not None:
+                pending.append((key, actor))
+        restored = 0
+        for key, actor in pending:
+            try:
+                facts = await self._ready(actor, PLACE_TIMEOUT_S)
+            except (SessionGoneError, HybridMpmError, *_BUILTIN_ERRORS.values()) as e:
+                log.warning("store: session %s… not restored: %s", key[:SHOWN_KEY_CHARS], e or "its actor did not start")
+                await self._kill(actor)
+                with contextlib.suppress(Exception):
+                    await self.registry.release.remote(key)
+                continue
+            restored += 1
+            log.info("store: session %s… restored at frame %d", key[:SHOWN_KEY_CHARS], facts["frame"][0])
+        return restored
+
+    # ------------------------------------------------------------ the work of the routes, in the actors
+    async def info(self, s: Session) -> dict[str, Any]:
+        assert isinstance(s, RaySession)
+        d = dict(await self._call(s, "info", self.front_id, len(s.viewers)))
+        d.update(id=s.id, stream=f"/v1/sessions/{s.id}/stream")
+        s.sim.at(d["frame"])  # type: ignore[attr-defined]
+        s.playing = bool(d.pop("playing", False))
+        return d
+
+    async def meta(self, s: Session) -> dict[str, Any]:
+        d = await self.info(s)
+        return {"type": "meta", **d, "playing": s.playing, "header_bytes": 32}
+
+    async def rollout(self, s: Session, frames: int) -> Rollout:
+        assert isinstance(s, RaySession)
+        ro: Rollout = await self._call(s, "rollout", frames)
+        if len(ro.frame_index):
+            s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
+        return ro
+
+    async def run_control(self, s: Session, sketch: Sketch | None, controller: Controller, left: Any, first: list[float], **hooks: Any) -> Any:
+        """The control episode in ``s``'s actor (``hooks``: ``cid``, ``on_start``,
+        ``on_plan``, module-level functions the actor calls; see
+        :meth:`SessionActor.run_control`); a client that leaves (``left``
+        set) cancels it there. Returns ``(rollout, metrics, plan summary)``."""
+        assert isinstance(s, RaySession)
+        t0 = time.perf_counter()
+        call = asyncio.ensure_future(
+            self._call(
+                s,
+                "run_control",
+                controller.method,
+                int(controller.frames),
+                sketch.to_json() if sketch is not None else None,
+                hooks.get("cid", ""),
+                hooks.get("on_start"),
+                hooks.get("on_plan"),
+                retry=False,
+            )
+        )
+        cancelled = False
+        try:
+            while not call.done():
+                await asyncio.wait({call}, timeout=0.1)
+                if left.is_set() and not cancelled and not call.done():
+                    cancelled = True
+                    with contextlib.suppress(Exception):
+                        await s.actor.cancel_control.remote()
+        except asyncio.CancelledError:
+            with contextlib.suppress(Exception):
+                s.actor.cancel_control.remote()
+            raise
+        ro, metrics, planned, first_after, _ = call.result()
+        if first_after is not None:
+            first.append(t0 + first_after)
+        if len(ro.frame_index):
+            s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
+        return ro, metrics, planned
+
+    async def checkpoint(self, s: Session) -> bytes:
+        assert isinstance(s, RaySession)
+        with self.budget.hold(2 * s.state_nbytes, "writing the checkpoint"):
+            data: bytes = await self._call(s, "checkpoint")
+        return data
+
+    async def restore(self, s: Session, state: dict[str, Any]) -> None:
+        assert isinstance(s, RaySession)
+        await self._call(s, "restore", state)
+
+    async def reset(self, s: Session) -> None:
+        assert isinstance(s, RaySession)
+        await self._call(s, "reset")
+
+    async def keep_control(self, s: Session, c: Control) -> None:
+        """Kept by the actor (the last 8); its cost leaves this front end's budget."""
+        assert isinstance(s, RaySession)
+        try:
+            await self._call(s, "keep_control", c)
+        finally:
+            self.budget.give(c.cost)
+            c.cost = 0
+
+    async def recorded(self, s: Session, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+        """The actor's recent trajectory (its latest ``count`` frames)."""
+        assert isinstance(s, RaySession)
+        held: list[tuple[int, np.ndarray, str, bool]] = await self._call(s, "recorded", count)
+        return held
+
+    async def get_control(self, s: Session, cid: str) -> Control | None:
+        assert isinstance(s, RaySession)
+        c: Control | None = await self._call(s, "get_control", cid)
+        return c
+
+    # ------------------------------------------------------------ streams
+    async def attach(self, s: Session, v: Viewer) -> None:
+        assert isinstance(s, RaySession)
+        s.viewers.add(v)
+        try:
+            v.event(await self.meta(s))
+        except BaseException:
+            s.viewers.discard(v)
+            raise
+        if s.last_frame is not None:
+            v.offer(s.last_frame)
+        if s.pump is None or s.pump.done():
+            s.pump = asyncio.get_running_loop().create_task(self._pump(s))
+
+    async def detach(self, s: Session, v: Viewer) -> None:
+        s.viewers.discard(v)
+
+    async def set_playing(self, s: Session, playing: bool) -> None:
+        assert isinstance(s, RaySession)
+        await self._call(s, "set_playing", playing, self.front_id, len(s.viewers))
+        s.playing = playing
+
+    def ensure_playing(self, s: Session) -> None:
+        """Nothing here: the actor plays (:meth:`set_playing`)."""
+
+    async def _pump(self, s: RaySession) -> None:
+        """Feed the viewers of ``s`` here: the actor's latest frame (at most
+        ``max_fps`` a second; newer ones replace an unsent one in each
+        viewer's slot, the same bytes for all) and its events, until no
+        viewer is left, the session closes (its code and reason) or it is gone (4004)."""
+        epoch, fseq, eseq = "", -1, -1
+        gap = 1.0 / float(self.config.max_fps)
+        try:
+            while s.viewers and not s.closed:
+                try:
+                    epoch_now, frame, fseq, events, eseq, closing = await self._call(s, "poll", self.front_id, len(s.viewers), epoch, fseq, eseq, POLL_WAIT_S)
+                except SessionGoneError:
+                    break
+                except ApiError:  # its process is coming back
+                    await asyncio.sleep(0.2)
+                    continue
+                epoch = epoch_now
+                for msg in events:
+                    s.deliver(msg)
+                if frame is not None:
+                    s.last_frame = frame
+                    for v in list(s.viewers):
+                        v.offer(frame)
+                if closing is not None:
+                    self.cache.pop(s.id, None)
+                    await self._forget(s, int(closing[0]), str(closing[1]))
+                    break
+                if frame is not None:
+                    await asyncio.sleep(gap)
+        except asyncio.CancelledError:
+            pass
+        except Exception:  # noqa: BLE001 - a stream's feeder must not take the server down
+            log.exception("stream of session %s…", s.id[:SHOWN_ID_CHARS])
+        finally:
+            if not s.closed:
+                with contextlib.suppress(Exception):
+                    s.actor.poll.remote(self.front_id, len(s.viewers), epoch, fseq, eseq, 0.0)  # this front end's viewers now
+
+
+__all__ = ["POLL_WAIT_S", "REVIVE_TIMEOUT_S", "RaySession", "RaySessionManager", "SimView", "connect", "error_from"]

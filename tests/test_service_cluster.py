@@ -1,0 +1,258 @@
+"""Sessions on a Ray cluster (``hybridmpm serve --backend ray``): a local
+cluster of two node processes (a head and a second node, on this machine's
+loopback address, token authentication with a fresh token, Ray's files in a
+temporary directory) and two front ends on one store. A session created
+through one front end is stepped, controlled, checkpointed and streamed
+through the other, bit for bit as one uninterrupted local run; its actor's
+process killed with SIGKILL, the next step resumes from its last save and
+goes on bit for bit; the whole cluster and both front ends stopped and
+started again on the same store, the session is back. The session cap holds
+for the whole cluster. Settings that name no cluster, and the ray backend
+without Ray installed, are refused naming the field.
+
+The cluster is stopped by killing, by their process ids, the processes its
+``ray start --block`` commands started (``ray stop`` would end every Ray
+process of the machine's user, other clusters' too).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+
+from hybridmpm.control import Controller, Sketch, control_episode
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.service import decode_frame
+from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.testing import LiveServer, RayCluster, free_port
+from hybridmpm.sim import make_simulator, rollout
+
+OCTET = {"Accept": "application/octet-stream"}
+#: Bounds on waiting (never a pass/fail threshold on time).
+WAIT_S = 180.0
+SCENE, SOLVER, SEED = "water2d", "mpm", 3
+ARROW = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.4]]}
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    root = Path(tempfile.mkdtemp(prefix="hmray", dir="/tmp"))  # short: Ray's socket paths live under it
+    c = RayCluster(root, secrets.token_hex(16), nodes=2, num_cpus=1, timeout=WAIT_S)
+    try:
+        yield c.start()
+    finally:
+        c.stop()
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _front_end(cluster, store, log, max_sessions=10):
+    args = ["--backend", "ray", "--ray-address", cluster.address, "--store", str(store), "--save-every", "0.3", "--log-level", "info"]
+    return LiveServer(max_sessions=max_sessions, args=args, env={"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": cluster.token}, log=log)
+
+
+def _start(*servers):
+    for s in servers:
+        s.start(timeout=WAIT_S)
+    return servers
+
+
+def _step(c, sid, frames):
+    r = c.post(f"/v1/sessions/{sid}/step", json={"frames": frames}, headers=OCTET)
+    assert r.status_code == 200, r.text
+    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
+    return np.frombuffer(r.content, "<f4").reshape(shape)
+
+
+def _wait_saved(c, sid):
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        info = c.get(f"/v1/sessions/{sid}").json()
+        if info["saved_frame"] == info["frame"]:
+            return info["frame"]
+        time.sleep(0.05)
+    raise AssertionError(f"session not saved within {WAIT_S} s")
+
+
+def _paused(c, sid):
+    """The session's description once its frame stays put (the pause reached its actor)."""
+    last = None
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        info = c.get(f"/v1/sessions/{sid}").json()
+        if last is not None and info["frame"] == last["frame"]:
+            return info
+        last = info
+        time.sleep(0.5)
+    raise AssertionError("the session kept playing")
+
+
+async def _watch(url):
+    """The stream's meta and first frame, then the frames of a short play."""
+    async with websockets.connect(url, max_size=None) as ws:
+        meta = await asyncio.wait_for(ws.recv(), WAIT_S)
+        first = await asyncio.wait_for(ws.recv(), WAIT_S)
+        await ws.send('{"type": "play"}')
+        frames = []
+        while len(frames) < 3:
+            m = await asyncio.wait_for(ws.recv(), WAIT_S)
+            if isinstance(m, bytes):
+                frames.append(decode_frame(m)[0].frame)
+        await ws.send('{"type": "pause"}')
+        return meta, first, frames
+
+
+def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(cluster, tmp_path):
+    store = tmp_path / "store"
+    ref = make_simulator(SCENE, SOLVER, seed=SEED, threads=1, nn_threads=1)
+    a, b = _front_end(cluster, store, tmp_path / "a.log", max_sessions=3), _front_end(cluster, store, tmp_path / "b.log", max_sessions=3)
+    try:
+        _start(a, b)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as ca, httpx.Client(base_url=b.url, timeout=WAIT_S) as cb:
+            r = ca.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED})
+            assert r.status_code == 201, r.text
+            sid = r.json()["id"]
+            assert r.json()["saved_frame"] == 0 and r.json()["restored_from_frame"] is None
+            # stepped through B, then A: one uninterrupted run
+            assert np.array_equal(_step(cb, sid, 5), rollout(ref, 5).positions[1:])
+            assert np.array_equal(_step(ca, sid, 3), rollout(ref, 3).positions[1:])
+            # controlled through B, its trajectory fetched through A
+            r = cb.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 20})
+            assert r.status_code == 200, r.text
+            ep = control_episode(ref, Sketch.from_json(ARROW), Controller.for_scene(SCENE, "constant", frames=20))
+            t = ca.get(r.json()["trajectory"], headers=OCTET)
+            assert t.status_code == 200 and np.array_equal(np.frombuffer(t.content, "<f4").reshape(ep.rollout.positions.shape), ep.rollout.positions)
+            # checkpointed through B, restored through A
+            blob = cb.get(f"/v1/sessions/{sid}/checkpoint")
+            assert blob.status_code == 200
+            assert ca.put(f"/v1/sessions/{sid}/checkpoint", content=blob.content).json()["frame"] == 28
+            # streamed through B (its meta names the session; frames come from the actor)
+            meta, first, played = asyncio.run(_watch(f"{b.ws_url}/v1/sessions/{sid}/stream"))
+            assert '"meta"' in meta and sid in meta and decode_frame(first)[0].frame == 28 and played == sorted(played)
+            info = _paused(ca, sid)
+            # its recent trajectory (kept by the actor) through A: the frames played through B
+            t = ca.get(f"/v1/sessions/{sid}/trajectory", params={"frames": 3})
+            assert t.status_code == 200 and int(t.headers["x-frames"].split(",")[1]) == info["frame"], t.text[:200]
+            assert info["frame"] == played[-1] or info["frame"] > played[-1]
+            ref = make_simulator(SCENE, SOLVER, seed=SEED, threads=1, nn_threads=1)
+            rollout(ref, 8)
+            control_episode(ref, Sketch.from_json(ARROW), Controller.for_scene(SCENE, "constant", frames=20))
+            rollout(ref, info["frame"] - 28)
+            # its actor's process killed: the next request waits for it, resumed from the last save
+            saved = _wait_saved(ca, sid)
+            assert saved == info["frame"] or saved > info["frame"]
+            rollout(ref, saved - info["frame"])
+            pids = cluster.actor_pids()
+            assert len(pids) == 1, pids
+            os.kill(pids[0], signal.SIGKILL)
+            t0 = time.monotonic()
+            after = _step(ca, sid, 4)
+            back_s = time.monotonic() - t0
+            assert np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"
+            info = cb.get(f"/v1/sessions/{sid}").json()
+            assert info["restored_from_frame"] == saved and info["frame"] == saved + 4
+            assert cluster.actor_pids() != pids
+            print(f"session back {back_s:.2f} s after its actor was killed")
+            # a bad setting is refused as with one process (its actor goes)
+            r = cb.post("/v1/sessions", json={"scene": "water_columns2d", "solver": "hybrid"})
+            assert r.status_code == 422, r.text
+            assert ca.get("/healthz").json()["sessions"] == 1
+            # the cap counts the cluster: 3 sessions through A and B, a 4th refused through either
+            more = [c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER}) for c in (ca, cb)]
+            assert [m.status_code for m in more] == [201, 201]
+            assert ca.get("/healthz").json()["sessions"] == cb.get("/healthz").json()["sessions"] == 3
+            r = cb.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER})
+            assert r.status_code == 503 and r.headers["retry-after"]
+            for m in more:  # deleted through the other front end
+                assert (cb if m is more[0] else ca).delete(f"/v1/sessions/{m.json()['id']}").status_code == 204
+                assert ca.get(f"/v1/sessions/{m.json()['id']}").status_code == 404
+            assert ca.get("/healthz").json()["sessions"] == 1
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_cluster_and_front_ends_restarted_on_the_store_bring_the_session_back(cluster, tmp_path):
+    store = tmp_path / "store"
+    a = _front_end(cluster, store, tmp_path / "a.log")
+    try:
+        _start(a)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
+            sid = c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": 4}).json()["id"]
+            _step(c, sid, 6)
+            saved = _wait_saved(c, sid)
+    finally:
+        a.stop()
+    cluster.stop()
+    cluster.start()
+    a, b = _front_end(cluster, store, tmp_path / "a2.log"), _front_end(cluster, store, tmp_path / "b2.log")
+    try:
+        _start(a, b)
+        with httpx.Client(base_url=b.url, timeout=WAIT_S) as c:
+            info = c.get(f"/v1/sessions/{sid}").json()
+            assert info["frame"] == info["restored_from_frame"] == saved == 6
+            ref = make_simulator(SCENE, SOLVER, seed=4, threads=1, nn_threads=1)
+            rollout(ref, saved)
+            assert np.array_equal(_step(c, sid, 3), rollout(ref, 3).positions[1:])
+            assert c.get("/healthz").json()["sessions"] == 1
+    finally:
+        a.stop()
+        b.stop()
+
+
+# Stands in for an environment without Ray: the local backend needs none, the ray backend says what is missing.
+_NO_RAY = """
+import sys
+from importlib.abc import MetaPathFinder
+
+class NoRay(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "ray":
+            raise ImportError(f"{name} is not installed (the cluster extra)")
+        return None
+
+sys.meta_path.insert(0, NoRay())
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.service import ServiceConfig, create_app
+create_app(ServiceConfig(max_sessions=2))
+assert not [m for m in sys.modules if m.split(".")[0] == "ray"]
+try:
+    create_app(ServiceConfig(backend="ray"))
+except InvalidInputError as e:
+    assert "hybridmpm[cluster]" in str(e), e
+    print(e.field)
+"""
+
+
+def test_settings_that_name_no_cluster_are_refused_naming_the_field(tmp_path):
+    for kw, name in [
+        ({"backend": "grid"}, "backend"),
+        ({"backend": "ray", "ray_address": "10.0.0.5"}, "ray_address"),
+        ({"backend": "ray", "ray_address": "10.0.0.5:99999"}, "ray_address"),
+        ({"backend": "ray", "ray_num_cpus": 0}, "ray_num_cpus"),
+        ({"backend": "ray", "store": "memory://sessions"}, "store"),
+    ]:
+        with pytest.raises(InvalidInputError) as e:
+            ServiceConfig(**kw)
+        assert e.value.field == name, (kw, e.value)
+    out = subprocess.run([sys.executable, "-c", _NO_RAY], capture_output=True, text=True, timeout=WAIT_S)
+    assert out.returncode == 0 and out.stdout.strip() == "backend", out.stderr[-1000:]
+    out = subprocess.run(
+        [sys.executable, "-m", "hybridmpm", "serve", "--backend", "ray", "--ray-address", f"127.0.0.1:{free_port()}", "--port", "0"],
+        capture_output=True,
+        text=True,
+        timeout=WAIT_S,
+    )
+    assert out.returncode == 2 and "ray_address" in out.stderr, out.stderr[-500:]
