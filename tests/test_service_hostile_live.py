@@ -71,8 +71,11 @@ def probe_healthz(url: str, stop_file: Path) -> subprocess.Popen:
 def test_healthz_stays_fast_while_four_clients_pull_100_frame_json_steps(server, tmp_path):
     """Four clients each pull 100-frame JSON steps of dam_break2d (19 MB of
     JSON each) while another process polls /healthz: the JSON is encoded off
-    the event loop, so /healthz answers within 100 ms throughout (on the old
-    code, with the encoding on the loop, it waited up to seconds)."""
+    the event loop, so /healthz answers fast throughout: p95 under 50 ms and
+    every answer under 400 ms (on the old code, with the encoding on the
+    loop, it waited up to seconds). Measured on a quiet 2-core machine: p95
+    15-20 ms, max 98-197 ms (single scheduler or collector pauses), so a
+    100 ms bound on the max failed there on unchanged code."""
 
     async def run() -> None:
         async with httpx.AsyncClient(base_url=server.url, timeout=120) as c:
@@ -100,7 +103,8 @@ def test_healthz_stays_fast_while_four_clients_pull_100_frame_json_steps(server,
             assert min(sizes) > 10e6  # the heavy answers really were made
             print(f"/healthz under load: n={len(lat_ms)} p50 {np.median(lat_ms):.1f} p95 {np.percentile(lat_ms, 95):.1f} max {lat_ms.max():.1f} ms")
             assert len(lat_ms) >= 10
-            assert lat_ms.max() < 100, lat_ms.max()
+            assert np.percentile(lat_ms, 95) < 50, np.percentile(lat_ms, 95)
+            assert lat_ms.max() < 400, lat_ms.max()
 
     asyncio.run(run())
 
