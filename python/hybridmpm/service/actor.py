@@ -35,9 +35,10 @@ from typing import Any, TypeVar, cast
 import numpy as np
 import ray
 
-from hybridmpm.control import Controller, Sketch, control_episode
+from hybridmpm.control import Controller, Sketch
 from hybridmpm.errors import HybridMpmError
 from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.service.episode import run_episode
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.sessions import KEEP_CONTROLS, RECORD_STEPS, Control, MemoryBudget, Recording, Session, tree_nbytes
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore
@@ -266,58 +267,28 @@ class SessionActor:
 
     @_answer
     def run_control(
-        self,
-        method: str,
-        frames: int,
-        sketch_json: dict[str, Any] | None,
-        cid: str,
-        on_start: Callable[[Any], dict[str, Any]] | None = None,
-        on_plan: Callable[..., dict[str, Any] | None] | None = None,
+        self, method: str, frames: int, sketch_json: dict[str, Any] | None, cid: str
     ) -> tuple[Any, dict[str, Any], dict[str, Any] | None, float | None, bool]:
-        """Plan and run a control episode here (its forcing is a closure over
-        this simulator): ``(rollout, metrics, plan summary, seconds to the
-        first controlled frame, cancelled)``. ``on_start(sim)`` is called
-        before the episode and ``on_plan(plan, start, sketch, dt_frame,
-        settle)`` at its first frame (its answer, when not None, is the
-        ``plan`` event of the streams). Saved before it answers;
-        :meth:`cancel_control` stops it within a frame."""
+        """Plan and run control ``cid`` here (its forcing is a closure over
+        this simulator; :func:`hybridmpm.service.episode.run_episode`):
+        ``(rollout, metrics, plan summary, seconds to the first controlled
+        frame, cancelled)``. Saved before it answers; :meth:`cancel_control`
+        stops it within a frame."""
         with self.cond:
             if self.controlling:
                 raise Busy()
             self.controlling = True
         self.cancel.clear()
         t0 = time.perf_counter()
-        first: list[float] = []
-        planned: list[dict[str, Any] | None] = []
         try:
             sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None
             controller = Controller.for_scene(self.sim.scene.name, method, frames=frames)
             with self.lock:
-                sim = self.sim
-                k0 = int(sim.frame.frame_index)
-                start = on_start(sim) if on_start is not None else {}
-
-                def on_frame(fr: Frame) -> None:
-                    if not first:
-                        first.append(time.perf_counter())
-                    if not planned and on_plan is not None:
-                        try:
-                            planned.append(on_plan(sim.forcing, start, sketch, float(sim.dt_frame), controller.settle))
-                        except Exception:  # noqa: BLE001 - a summary for display must not stop the control
-                            log.exception("control %s: the plan's summary", cid)
-                            planned.append(None)
-                        if planned[0] is not None:
-                            self._event({"type": "plan", "id": cid, **planned[0]})
-                    self._publish(fr, int(fr.frame_index) - k0)
-
-                def stop(fr: Frame, sim_: Any) -> str | None:
-                    return "cancelled: the client left" if self.cancel.is_set() else None
-
-                ep = control_episode(sim, sketch, controller, on_frame=on_frame, stop=stop)
+                ro, metrics, plan, t_first = run_episode(self.sim, sketch, controller, cid, self._publish, self._event, self.cancel.is_set)
                 self.dirty = True
                 self._touch()
             self._save()  # a control is saved before it is answered
-            return ep.rollout, ep.metrics, (planned[0] if planned else None), ((first[0] - t0) if first else None), self.cancel.is_set()
+            return ro, metrics, plan, ((t_first - t0) if t_first is not None else None), self.cancel.is_set()
         finally:
             self.controlling = False
 

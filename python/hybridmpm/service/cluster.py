@@ -581,11 +581,10 @@ class RaySessionManager(SessionManager):
             s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
         return ro
 
-    async def run_control(self, s: Session, sketch: Sketch | None, controller: Controller, left: Any, first: list[float], **hooks: Any) -> Any:
-        """The control episode in ``s``'s actor (``hooks``: ``cid``, ``on_start``,
-        ``on_plan``, module-level functions the actor calls; see
-        :meth:`SessionActor.run_control`); a client that leaves (``left``
-        set) cancels it there. Returns ``(rollout, metrics, plan summary)``."""
+    async def run_control(self, s: Session, sketch: Sketch | None, controller: Controller, left: Any, first: list[float], cid: str) -> Any:
+        """Control ``cid`` in ``s``'s actor (:meth:`SessionActor.run_control`,
+        :func:`hybridmpm.service.episode.run_episode`); a client that leaves
+        (``left`` set) cancels it there. Returns ``(rollout, metrics, plan summary)``."""
         assert isinstance(s, RaySession)
         t0 = time.perf_counter()
         call = asyncio.ensure_future(
@@ -595,9 +594,7 @@ class RaySessionManager(SessionManager):
                 controller.method,
                 int(controller.frames),
                 sketch.to_json() if sketch is not None else None,
-                hooks.get("cid", ""),
-                hooks.get("on_start"),
-                hooks.get("on_plan"),
+                cid,
                 retry=False,
             )
         )

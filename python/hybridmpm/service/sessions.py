@@ -626,11 +626,31 @@ class SessionManager:
             self.changed(s)
         return ro
 
-    async def run_control(self, s: Session, sketch: Any, controller: Any, left: Any, first: list[float], **hooks: Any) -> tuple[Rollout, dict[str, Any], Any]:
-        """A control episode of a session that runs elsewhere (:attr:`remote`;
-        :meth:`hybridmpm.service.cluster.RaySessionManager.run_control`). The
-        local backend's control route runs its episode itself: NotImplementedError here."""
-        raise NotImplementedError("the local backend runs a control's episode in its route")
+    async def run_control(self, s: Session, sketch: Any, controller: Any, left: Any, first: list[float], cid: str) -> tuple[Rollout, dict[str, Any], Any]:
+        """Control ``cid`` on ``s`` (:func:`hybridmpm.service.episode.run_episode`)
+        on a worker thread under its lock, its frames and plan event offered
+        to the viewers as they come; ``left`` (a :class:`threading.Event`) set
+        stops it within a frame. Appends the time of the first controlled
+        frame to ``first``; returns ``(rollout, metrics, plan summary)``;
+        :class:`SessionGoneError` when it was closed meanwhile."""
+        from hybridmpm.service.episode import run_episode  # import time: the controllers load only when a control runs
+
+        loop = asyncio.get_running_loop()
+
+        def publish(fr: Frame, control_frame: int) -> None:
+            loop.call_soon_threadsafe(s.publish, fr, control_frame)
+
+        def event(msg: dict[str, Any]) -> None:
+            loop.call_soon_threadsafe(s.broadcast, msg)
+
+        async with s.lock:
+            if s.closed:
+                raise SessionGoneError()
+            ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
+            self.changed(s)
+        if t_first is not None:
+            first.append(t_first)
+        return ro, metrics, plan
 
     async def checkpoint(self, s: Session) -> bytes:
         """``s``'s whole state as a checkpoint (:func:`hybridmpm.service.checkpoint.dumps`);

@@ -25,18 +25,15 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from hybridmpm.control import Controller, Sketch, control_episode, render_sketch, sketch_from_png
-from hybridmpm.control.controller import Plan
+from hybridmpm.control import Controller, Sketch, render_sketch, sketch_from_png
 from hybridmpm.control.sketch import MAX_IMAGE_PIXELS
-from hybridmpm.control.targets import pd_targets
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.service.deps import ConfigDep, ControlDep, ManagerDep, SessionDep
-from hybridmpm.service.errors import NO_SESSION, ApiError, FieldError, field_error
+from hybridmpm.service.errors import ApiError, FieldError, field_error
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.schemas import ControlRequest, ControlResponse, clean
 from hybridmpm.service.sessions import Control
-from hybridmpm.sim import Frame
 
 log = logging.getLogger("hybridmpm.service")
 OCTET = "application/octet-stream"
@@ -47,8 +44,6 @@ CONTROL_COPIES = 3
 PNG_BYTES_PER_PIXEL = 8
 #: How often a running control looks whether its client has left [s].
 DISCONNECT_POLL_S = 0.25
-#: Most points of a plan's centroid path in an answer or a stream event.
-PLAN_POINTS = 101
 
 router = APIRouter()
 
@@ -59,58 +54,6 @@ def png_base64(img: np.ndarray) -> str:
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     return base64.b64encode(buf.getvalue()).decode()
-
-
-def plan_start(sim: Any) -> dict[str, np.ndarray]:
-    """The fluid's ``x``, ``v``, ``m`` and gravity ``g`` of ``sim`` when a plan is made (:func:`plan_info`'s ``start``)."""
-    p = sim.particles
-    return {
-        "x": np.asarray(p.fluid(sim.positions), np.float64),
-        "v": np.asarray(sim.velocities, np.float64),
-        "m": np.asarray(p.masses, np.float64),
-        "g": sim.scene.params.resolved_gravity(),
-    }
-
-
-def plan_info(plan: Any, start: dict[str, np.ndarray], sketch: Sketch | None, dt_frame: float, settle: float) -> dict[str, Any] | None:
-    """Where ``plan`` (a :class:`~hybridmpm.control.controller.Plan`) takes the
-    fluid's centroid (mass-weighted) over its horizon: a planned method's path
-    averaged over the particles; the constant force's centroid kinematics (it
-    lands on the target); PD's critically damped approach to its targets'
-    centroid (gravity fed forward). ``start``: the fluid's ``x``, ``v``, ``m``
-    when the plan was made. None for no control."""
-    if not isinstance(plan, Plan) or sketch is None or plan.method == "none":
-        return None
-    x, v, m = start["x"], start["v"], start["m"]
-    w = m / m.sum()
-    c0, v0 = w @ x, w @ v
-    frames = int(plan.frames)
-    stride = max(1, -(-frames // (PLAN_POINTS - 1)))
-    k = np.arange(0, frames + 1, stride)
-    if k[-1] != frames:
-        k = np.append(k, frames)
-    t = (k * dt_frame)[:, None]
-    if plan.path is not None:  # a planned method: its particles' paths
-        path = np.asarray(plan.path, np.float64)
-        path = np.einsum("fnd,n->fd", path, w)[np.minimum(k, len(path) - 1)]
-    elif plan.accelerations is not None:  # the constant force: a free cloud's centroid under gravity + a
-        a = np.asarray(plan.accelerations[0], np.float64)
-        path = c0 + v0 * t + 0.5 * (w @ a + start["g"]) * t * t
-    elif plan.method == "pd":
-        cy = w @ pd_targets(x, sketch)
-        omega = 2.0 * np.pi / (settle * frames * dt_frame)
-        e0 = c0 - cy
-        path = cy + (e0 + (v0 + omega * e0) * t) * np.exp(-omega * t)
-    else:
-        return None
-    target = c0[:2] + sketch.vector if sketch.kind == "arrow" else sketch.ellipse()[0]
-    return {
-        "method": plan.method,
-        "frames": frames,
-        "stride": stride,
-        "centroid_path": clean(np.round(path, 5).tolist()),
-        "target": clean(np.round(target, 5).tolist()),
-    }
 
 
 @router.post(
@@ -184,42 +127,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
     watcher = loop.create_task(watch())
     try:
         s.broadcast({"type": "control", "status": "running", "id": cid, "method": body.method})
-        if not manager.remote:
-            async with s.lock:
-                if s.closed:
-                    raise ApiError(404, NO_SESSION)
-                k0 = int(s.sim.frame.frame_index)
-                sim = s.sim
-                start: dict[str, np.ndarray] = {}
-                planned: list[dict[str, Any] | None] = []
-
-                def on_frame(fr: Frame) -> None:
-                    if not first:
-                        first.append(time.perf_counter())
-                    if not planned:  # the first controlled frame: the plan is the simulator's forcing
-                        try:
-                            planned.append(plan_info(sim.forcing, start, sketch, float(sim.dt_frame), controller.settle))
-                        except Exception:  # noqa: BLE001 - a summary for display must not stop the control
-                            log.exception("control %s: the plan's centroid path", cid)
-                            planned.append(None)
-                        if planned[0] is not None:
-                            loop.call_soon_threadsafe(s.broadcast, {"type": "plan", "id": cid, **planned[0]})
-                    loop.call_soon_threadsafe(s.publish, fr, int(fr.frame_index) - k0)
-
-                def client_left(fr: Frame, sim: Any) -> str | None:
-                    return "cancelled: the client left" if left.is_set() else None
-
-                def run() -> Any:
-                    start.update(plan_start(sim))
-                    return control_episode(sim, sketch, controller, on_frame=on_frame, stop=client_left)
-
-                ep = await manager.compute(run)
-                manager.changed(s)
-                ro, metrics = ep.rollout, ep.metrics
-                del ep
-        else:  # the episode runs in the session's Ray actor (hybridmpm.service.cluster): the forcing is a closure over its simulator
-            ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid=cid, on_start=plan_start, on_plan=plan_info)
-            planned = [plan]
+        ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid)
         if left.is_set():
             log.info("control %s on session %s… cancelled: its client left", cid, s.id[:SHOWN_ID_CHARS])
             s.broadcast({"type": "control", "status": "cancelled", "id": cid})
@@ -246,7 +154,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
             "first_frame_ms": ((first[0] if first else t_end) - t_req) * 1e3,
             "total_ms": (t_end - t_req) * 1e3,
             "trajectory": f"/v1/sessions/{s.id}/controls/{cid}/trajectory",
-            "plan": planned[0] if planned else None,
+            "plan": plan,
         }
         del ro
         manager.budget.give(transient)  # the kept trajectory is smaller than what was reserved for the run
