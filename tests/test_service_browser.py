@@ -94,7 +94,7 @@ def test_page_end_to_end(server, browser, tmp_path):
     hook = page.evaluate("window.__hmpm")
     # the page draws the stream as it comes: every draw is timed, and no more frames are drawn than received
     # (latest wins). How fast it draws is a wall-clock figure of a shared machine: benchmarks/bench_page.py
-    # measures its frames/s on software GL (docs/service.md), the suite does not assert it.
+    # measures its frames/s on software GL (docs/page.md), the suite does not assert it.
     assert len(hook["drawMs"]) >= 30 and all(ms >= 0 for ms in hook["drawMs"])
     assert hook["framesRendered"] <= hook["framesReceived"]
     print(f"median draw {np.median(hook['drawMs']):.1f} ms over {len(hook['drawMs'])} draws")

@@ -37,7 +37,7 @@ from hybridmpm.control import Controller, Sketch, control_episode
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.service import decode_frame
 from hybridmpm.service.config import ServiceConfig
-from hybridmpm.service.testing import LiveServer, RayCluster, free_port
+from hybridmpm.service.testing import LiveServer, RayCluster, free_port, step_binary, wait_saved
 from hybridmpm.sim import make_simulator, rollout
 
 OCTET = {"Accept": "application/octet-stream"}
@@ -67,23 +67,6 @@ def _start(*servers):
     for s in servers:
         s.start(timeout=WAIT_S)
     return servers
-
-
-def _step(c, sid, frames):
-    r = c.post(f"/v1/sessions/{sid}/step", json={"frames": frames}, headers=OCTET)
-    assert r.status_code == 200, r.text
-    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
-    return np.frombuffer(r.content, "<f4").reshape(shape)
-
-
-def _wait_saved(c, sid):
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        info = c.get(f"/v1/sessions/{sid}").json()
-        if info["saved_frame"] == info["frame"]:
-            return info["frame"]
-        time.sleep(0.05)
-    raise AssertionError(f"session not saved within {WAIT_S} s")
 
 
 def _paused(c, sid):
@@ -126,8 +109,8 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             sid = r.json()["id"]
             assert r.json()["saved_frame"] == 0 and r.json()["restored_from_frame"] is None
             # stepped through B, then A: one uninterrupted run
-            assert np.array_equal(_step(cb, sid, 5), rollout(ref, 5).positions[1:])
-            assert np.array_equal(_step(ca, sid, 3), rollout(ref, 3).positions[1:])
+            assert np.array_equal(step_binary(cb, sid, 5), rollout(ref, 5).positions[1:])
+            assert np.array_equal(step_binary(ca, sid, 3), rollout(ref, 3).positions[1:])
             # controlled through B, its trajectory fetched through A
             r = cb.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 20})
             assert r.status_code == 200, r.text
@@ -151,14 +134,14 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             control_episode(ref, Sketch.from_json(ARROW), Controller.for_scene(SCENE, "constant", frames=20))
             rollout(ref, info["frame"] - 28)
             # its actor's process killed: the next request waits for it, resumed from the last save
-            saved = _wait_saved(ca, sid)
+            saved = wait_saved(ca, sid, WAIT_S)
             assert saved == info["frame"] or saved > info["frame"]
             rollout(ref, saved - info["frame"])
             pids = cluster.actor_pids()
             assert len(pids) == 1, pids
             os.kill(pids[0], signal.SIGKILL)
             t0 = time.monotonic()
-            after = _step(ca, sid, 4)
+            after = step_binary(ca, sid, 4)
             back_s = time.monotonic() - t0
             assert np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"
             info = cb.get(f"/v1/sessions/{sid}").json()
@@ -191,8 +174,8 @@ def test_cluster_and_front_ends_restarted_on_the_store_bring_the_session_back(cl
         _start(a)
         with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
             sid = c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": 4}).json()["id"]
-            _step(c, sid, 6)
-            saved = _wait_saved(c, sid)
+            step_binary(c, sid, 6)
+            saved = wait_saved(c, sid, WAIT_S)
     finally:
         a.stop()
     cluster.stop()
@@ -205,7 +188,7 @@ def test_cluster_and_front_ends_restarted_on_the_store_bring_the_session_back(cl
             assert info["frame"] == info["restored_from_frame"] == saved == 6
             ref = make_simulator(SCENE, SOLVER, seed=4, threads=1, nn_threads=1)
             rollout(ref, saved)
-            assert np.array_equal(_step(c, sid, 3), rollout(ref, 3).positions[1:])
+            assert np.array_equal(step_binary(c, sid, 3), rollout(ref, 3).positions[1:])
             assert c.get("/healthz").json()["sessions"] == 1
     finally:
         a.stop()

@@ -24,34 +24,15 @@ from hybridmpm.service import checkpoint as ckpt  # noqa: E402
 from hybridmpm.service.config import ServiceConfig  # noqa: E402
 from hybridmpm.service.sessions import SessionManager  # noqa: E402
 from hybridmpm.service.store import TEAR_ENV, SessionStore, session_key  # noqa: E402
-from hybridmpm.service.testing import LiveServer  # noqa: E402
+from hybridmpm.service.testing import LiveServer, step_binary, wait_saved  # noqa: E402
 from hybridmpm.sim import make_simulator, rollout  # noqa: E402
 
-OCTET = {"Accept": "application/octet-stream"}
 #: Bounds on waiting (never a pass/fail threshold on time).
 WAIT_S = 60.0
 
 
 def _server(store, tmp_path, name, env=None):
     return LiveServer(args=["--store", str(store), "--save-every", "0.2", "--log-level", "info"], env=env, log=tmp_path / f"{name}.log")
-
-
-def _step(c, sid, frames):
-    r = c.post(f"/v1/sessions/{sid}/step", json={"frames": frames}, headers=OCTET)
-    assert r.status_code == 200, r.text
-    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
-    return np.frombuffer(r.content, "<f4").reshape(shape)
-
-
-def _wait_saved(c, sid):
-    """The session's frame, once its last save has reached it."""
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        info = c.get(f"/v1/sessions/{sid}").json()
-        if info["saved_frame"] == info["frame"]:
-            return info["frame"]
-        time.sleep(0.05)
-    raise AssertionError(f"session not saved within {WAIT_S} s: frame {info['frame']}, saved {info['saved_frame']}")
 
 
 def _uninterrupted(scene, solver, seed, first, then):
@@ -79,8 +60,8 @@ def test_sigkill_restart_restores_sessions_bitwise(tmp_path):
                 assert r.status_code == 201, r.text
                 ids[name] = r.json()["id"]
                 assert r.json()["saved_frame"] == 0 and r.json()["restored_from_frame"] is None
-                _step(c, ids[name], frames)
-                saved[name] = _wait_saved(c, ids[name])
+                step_binary(c, ids[name], frames)
+                saved[name] = wait_saved(c, ids[name], WAIT_S)
             gone = c.post("/v1/sessions", json={"scene": "water2d", "seed": 9}).json()["id"]
             assert c.delete(f"/v1/sessions/{gone}").status_code == 204
         # the store holds no session id, only their hashes
@@ -96,7 +77,7 @@ def test_sigkill_restart_restores_sessions_bitwise(tmp_path):
         for name, (scene, solver, seed, frames) in specs.items():
             info = c.get(f"/v1/sessions/{ids[name]}").json()
             assert info["frame"] == saved[name] == info["restored_from_frame"] and info["id"] == ids[name]
-            after = _step(c, ids[name], 8)
+            after = step_binary(c, ids[name], 8)
             assert np.array_equal(after, _uninterrupted(scene, solver, seed, frames, 8)), f"{scene} {solver}: the restored run differs"
 
 
@@ -107,7 +88,7 @@ def test_torn_save_leaves_the_previous_one(tmp_path):
     try:
         with httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
             sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm", "seed": 4}).json()["id"]
-            _step(c, sid, 5)
+            step_binary(c, sid, 5)
         assert server.proc.wait(WAIT_S) == -9
     finally:
         server.stop()
@@ -116,7 +97,7 @@ def test_torn_save_leaves_the_previous_one(tmp_path):
     with _server(store, tmp_path, "after") as server, httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
         info = c.get(f"/v1/sessions/{sid}").json()
         assert info["restored_from_frame"] == 0 and info["frame"] == 0
-        assert np.array_equal(_step(c, sid, 3), _uninterrupted("water2d", "mpm", 4, 0, 3))
+        assert np.array_equal(step_binary(c, sid, 3), _uninterrupted("water2d", "mpm", 4, 0, 3))
     assert not [n for n in os.listdir(store) if n.endswith(".tmp")]
 
 

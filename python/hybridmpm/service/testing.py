@@ -16,6 +16,9 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 def free_port() -> int:
@@ -256,4 +259,27 @@ class RayCluster:
         self.stop()
 
 
-__all__ = ["LiveServer", "RayCluster", "cmdline", "descendants", "free_port", "listening_port", "listening_ports", "private_bytes"]
+def step_binary(client: Any, sid: str, frames: int) -> np.ndarray:
+    """``POST /v1/sessions/{sid}/step`` with a binary answer through
+    ``client`` (an httpx or test client): the positions, float32
+    ``[steps, N, D]``. AssertionError when it does not answer 200."""
+    r = client.post(f"/v1/sessions/{sid}/step", json={"frames": frames}, headers={"Accept": "application/octet-stream"})
+    assert r.status_code == 200, r.text
+    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
+    return np.frombuffer(r.content, "<f4").reshape(shape)
+
+
+def wait_saved(client: Any, sid: str, timeout_s: float) -> int:
+    """The session's frame once its last save has reached it (``saved_frame ==
+    frame``); AssertionError after ``timeout_s`` seconds."""
+    deadline = time.monotonic() + timeout_s
+    info: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        info = client.get(f"/v1/sessions/{sid}").json()
+        if info["saved_frame"] == info["frame"]:
+            return int(info["frame"])
+        time.sleep(0.05)
+    raise AssertionError(f"session not saved within {timeout_s} s: frame {info.get('frame')}, saved {info.get('saved_frame')}")
+
+
+__all__ = ["LiveServer", "RayCluster", "cmdline", "descendants", "free_port", "listening_port", "listening_ports", "private_bytes", "step_binary", "wait_saved"]
