@@ -2,11 +2,12 @@
 checkpoint in a store (``hybridmpm serve --store``), in this process, with the
 code the server runs.
 
-A save is what the server does per session: take the simulator's state,
-encode it (npz + JSON), write it atomically (temporary file, flush to disk,
-rename). A restore is what a restarted server does per session: read and
-check the record, build the simulator from its scene, seed and solver, and
-restore the state into it.
+A save is what the server does per session: take the simulator's state
+(with its downsampled scene's clusters), encode it (npz + JSON), write it
+atomically (temporary file, flush to disk, rename). A restore is what a
+restarted server or actor does per session: read and check the record,
+build the simulator from its scene, seed, solver and clusters, and restore
+the state into it (``hybridmpm.service.store.rebuild``).
 
     python benchmarks/bench_store.py [--repeats 20] [--store DIR_OR_URL] [--out benchmarks/results/service.md]
 """
@@ -23,7 +24,7 @@ import time
 import numpy as np
 
 from hybridmpm.service import checkpoint as ckpt
-from hybridmpm.service.store import SessionStore, session_key
+from hybridmpm.service.store import SessionStore, rebuild, record_state, session_key
 from hybridmpm.sim import make_simulator, rollout
 
 CASES = [("water2d", "mpm", 40), ("dam_break2d", "hybrid", 40)]
@@ -36,24 +37,21 @@ def measure(store: SessionStore, scene: str, solver: str, frames: int, repeats: 
     meta = {"scene": scene, "seed": 0, "solver": solver, "r_c": 0.0}  # r_c: the solver default (not read back here)
     meta.update({"last_used_at": time.time(), "client": "127.0.0.1"})
     key = session_key(f"bench-{scene}-{solver}")
-    save, read, build, restore = [], [], [], []
+    save, read, build = [], [], []
     nbytes = 0
     for _ in range(repeats):
         t0 = time.perf_counter()
-        data = ckpt.dumps(sim.state(), meta)
+        data = ckpt.dumps(record_state(sim), meta)
         store.write(key, data)
         save.append(time.perf_counter() - t0)
         nbytes = len(data)
         t0 = time.perf_counter()
         rec = store.load(key, MAX_BYTES)
         t1 = time.perf_counter()
-        fresh = make_simulator(rec.scene, rec.solver, seed=rec.seed, threads=1, nn_threads=1)
+        fresh, _ = rebuild(rec)
         t2 = time.perf_counter()
-        fresh.restore(rec.state)
-        t3 = time.perf_counter()
         read.append(t1 - t0)
         build.append(t2 - t1)
-        restore.append(t3 - t2)
         assert int(fresh.frame.frame_index) == int(sim.frame.frame_index)
     store.delete(key)
 
@@ -65,8 +63,7 @@ def measure(store: SessionStore, scene: str, solver: str, frames: int, repeats: 
         "bytes": nbytes,
         "read_ms": ms(read),
         "build_ms": ms(build),
-        "restore_ms": ms(restore),
-        "total_ms": ms([a + b + c for a, b, c in zip(read, build, restore)]),
+        "total_ms": ms([a + b for a, b in zip(read, build)]),
     }
 
 
@@ -83,13 +80,13 @@ def main() -> None:
         f"\n## Durable sessions: save and restore — {time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, {os.cpu_count()} cores, {platform.python_version()}\n",
         f"Command: `python {' '.join(sys.argv)}` (store: {'a local directory' if args.store is None else args.store}; medians of {args.repeats})\n",
         "A save: state + npz encoding + atomic write (temporary file, fsync, rename). A restore: read and check the record,",
-        "build the simulator from its scene/seed/solver (the hybrid loads its ONNX model), restore the state.\n",
-        "| scene | solver | at frame | save [ms] | checkpoint [bytes] | read + check [ms] | build simulator [ms] | restore state [ms] | restore in all [ms] |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "build the simulator from its scene/seed/solver and the record's clusters (no k-means; the hybrid loads its ONNX model), restore the state.\n",
+        "| scene | solver | at frame | save [ms] | checkpoint [bytes] | read + check [ms] | build + restore [ms] | restore in all [ms] |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for scene, solver, frames, r in rows:
         lines.append(
-            f"| {scene} | {solver} | {frames} | {r['save_ms']:.1f} | {r['bytes']:,} | {r['read_ms']:.1f} | {r['build_ms']:.1f} | {r['restore_ms']:.1f} | {r['total_ms']:.1f} |"
+            f"| {scene} | {solver} | {frames} | {r['save_ms']:.1f} | {r['bytes']:,} | {r['read_ms']:.1f} | {r['build_ms']:.1f} | {r['total_ms']:.1f} |"
         )
     text = "\n".join(lines) + "\n"
     print(text)

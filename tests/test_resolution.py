@@ -104,3 +104,42 @@ def test_bad_r_t_and_positions():
     with pytest.raises(InvalidInputError) as e:
         cluster_particles(np.full((4, 2), np.nan), 0.5)
     assert e.value.field == "positions"
+
+
+@pytest.mark.parametrize(("name", "seed"), [("water_sand2d", 4), ("water_ramps2d", 5)])
+def test_clusters_rebuild_the_same_scene_without_clustering(name, seed):
+    scene = make_scene(name, seed)
+    first = downsample_scene(scene, PAPER_R_P, seed=seed).scene
+    assert first.clusters is not None
+    # labels that differ from what k-means would give (another seed): the scene follows the labels given
+    other = downsample_scene(scene, PAPER_R_P, seed=seed + 100).scene
+    again = downsample_scene(scene, PAPER_R_P, seed=seed + 100, clusters=first.clusters).scene
+    for field in ("positions", "velocities", "material", "masses", "volumes", "boundary_positions"):
+        assert np.array_equal(getattr(again, field), getattr(first, field)), field
+    assert not np.array_equal(other.positions, first.positions)  # the rebuild did not cluster again
+    assert np.array_equal(again.clusters.labels, first.clusters.labels)
+
+
+def test_bad_clusters_are_refused_naming_the_field():
+    from hybridmpm.scenes import Clusters
+
+    scene = make_scene("water_sand2d", 6)
+    good = downsample_scene(scene, PAPER_R_P, seed=6).scene.clusters
+    bad = {
+        "clusters.labels": [
+            Clusters(good.labels[:-1], good.boundary_labels),  # wrong length
+            Clusters(good.labels.astype(np.float32), good.boundary_labels),  # not integers
+            Clusters(np.zeros_like(good.labels), good.boundary_labels),  # too few clusters, mixing materials
+            Clusters(np.where(good.labels == 0, good.labels.max() + 1, good.labels), good.boundary_labels),  # a gap in the numbering
+        ],
+    }
+    # swap one water and one sand particle's labels: the counts still fit, the materials mix
+    water, sand = np.flatnonzero(scene.material == 0)[0], np.flatnonzero(scene.material == 1)[0]
+    mixed = good.labels.copy()
+    mixed[[water, sand]] = mixed[[sand, water]]
+    bad["clusters.labels"].append(Clusters(mixed, good.boundary_labels))
+    for field, cases in bad.items():
+        for c in cases:
+            with pytest.raises(InvalidInputError) as e:
+                downsample_scene(scene, PAPER_R_P, seed=6, clusters=c)
+            assert e.value.field == field

@@ -151,3 +151,40 @@ def test_bad_records_and_unwritable_store(tmp_path, caplog):
     mgr = SessionManager(ServiceConfig(store=str(store), max_sessions=10, idle_ttl_s=600))
     asyncio.run(mgr.restore_all())
     assert not (store / f"{old}.npz").exists() and mgr.get("old") is None
+
+
+def test_a_restored_session_rebuilds_its_scene_without_the_k_means(tmp_path):
+    """A record of a session at r_p < 1 holds its clusters: a fresh process
+    rebuilds the session from it without importing scikit-learn (the k-means
+    costs about 3 s of a crash's recovery), and steps on bit for bit; a
+    record whose clusters do not fit its scene is refused naming the field."""
+    import subprocess
+    import sys
+
+    from hybridmpm.service.store import CLUSTERS_KEY, parse_record, rebuild, record_state
+
+    sim = make_simulator("dam_break2d", "hybrid", seed=2, threads=1, nn_threads=1)
+    rollout(sim, 8)
+    state = record_state(sim)
+    assert CLUSTERS_KEY in state
+    meta = {"scene": "dam_break2d", "seed": 2, "solver": "hybrid", "r_c": sim.r_c, "last_used_at": time.time(), "client": ""}
+    path = tmp_path / "record.npz"
+    path.write_bytes(ckpt.dumps(state, meta))
+    want = rollout(sim, 8).positions[1:]
+    code = (
+        "import sys, numpy as np\n"
+        "from hybridmpm.service.store import parse_record, rebuild\n"
+        "from hybridmpm.sim import rollout\n"
+        f"rec = parse_record('0' * 64, open({str(path)!r}, 'rb').read(), 1 << 28)\n"
+        "sim, _ = rebuild(rec)\n"
+        "assert 'sklearn' not in sys.modules, 'the rebuild clustered again'\n"
+        f"np.save({str(tmp_path / 'after.npy')!r}, rollout(sim, 8).positions[1:])\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=WAIT_S)
+    assert np.array_equal(np.load(tmp_path / "after.npy"), want)
+    # clusters of another scene: refused, naming the field
+    state[CLUSTERS_KEY] = {"labels": state[CLUSTERS_KEY]["labels"][:-1], "boundary_labels": state[CLUSTERS_KEY]["boundary_labels"]}
+    rec = parse_record("0" * 64, ckpt.dumps(state, meta), 1 << 28)
+    with pytest.raises(InvalidInputError) as e:
+        rebuild(rec)
+    assert e.value.field == "clusters.labels"

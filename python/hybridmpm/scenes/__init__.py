@@ -16,7 +16,7 @@
 >>> sim = scene.make_solver()
 """
 
-from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_face
+from hybridmpm.scenes.core import Clusters, Scene, hydrostatic_volume_ratio, lattice, wall_face
 from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 from hybridmpm.scenes.registry import (
     DOMAINS,
@@ -43,6 +43,7 @@ __all__ = [
     "PAPER_R_P",
     "PAPER_R_T",
     "Block",
+    "Clusters",
     "ParticleSet",
     "Scene",
     "SceneSpec",

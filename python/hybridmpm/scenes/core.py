@@ -22,6 +22,19 @@ if TYPE_CHECKING:
     from hybridmpm.scenes.spec import SceneSpec
 
 
+@dataclass(frozen=True)
+class Clusters:
+    """Which particles of a full-resolution scene a downsampled one merged
+    (paper Sec. 3.1.1): ``labels`` int32 [N_h], the cluster (low-resolution
+    particle) of each solver particle, and ``boundary_labels`` int32 [B_h],
+    that of each boundary particle. Given back to
+    :func:`~hybridmpm.scenes.downsample_scene` they rebuild the same
+    low-resolution scene without clustering again (a restored session)."""
+
+    labels: np.ndarray
+    boundary_labels: np.ndarray
+
+
 @dataclass
 class Scene:
     """A scene: parameters, initial particles and static boundary particles.
@@ -34,7 +47,9 @@ class Scene:
     (density × (dx/2)^D) for downsampled scenes; ``volume_ratio`` [N] is the
     initial J (water at hydrostatic rest), or None for J = 1. ``frames`` is
     the default rollout length; ``info`` holds scene-specific facts;
-    ``spec`` is the declarative spec the scene was built from (if any).
+    ``spec`` is the declarative spec the scene was built from (if any);
+    ``clusters`` the particles of the full-resolution scene each particle of
+    a downsampled one merged (None for a scene at full resolution).
     """
 
     name: str
@@ -51,6 +66,7 @@ class Scene:
     volumes: np.ndarray | None = None
     connectivity_radius: float = CONNECTIVITY_RADIUS
     spec: SceneSpec | None = None
+    clusters: Clusters | None = None
 
     @property
     def dim(self) -> int:

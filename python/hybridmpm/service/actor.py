@@ -41,7 +41,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.sessions import KEEP_CONTROLS, RECORD_STEPS, Control, MemoryBudget, Recording, Session, tree_nbytes
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state
 from hybridmpm.sim import Frame, make_simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
@@ -172,9 +172,7 @@ class SessionActor:
         if self.store is None:
             raise HybridMpmError("the session's process was lost and there is no store to restore it from")
         rec = self.store.load(self.key, int(self.settings["max_checkpoint_bytes"]))
-        sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1)
-        initial = sim.state()
-        sim.restore(rec.state)
+        sim, initial = rebuild(rec)
         self.client_addr = rec.client
         self.sess = self._session(rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial)
         frame = int(sim.frame.frame_index)
@@ -465,7 +463,7 @@ class SessionActor:
             t0 = time.perf_counter()
             with self.lock:
                 self.dirty = False
-                state = self.sim.state()
+                state = record_state(self.sim)
                 frame = int(self.sim.frame.frame_index)
             meta = {
                 **self.sess.settings(),

@@ -39,7 +39,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, session_key
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state, session_key
 from hybridmpm.sim import Frame, Rollout, Simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
@@ -519,7 +519,7 @@ class SessionManager:
                         if s.closed:
                             return True
                         s.dirty = False
-                        state = await self.compute(s.sim.state)
+                        state = await self.compute(record_state, s.sim)
                         frame = int(s.sim.frame.frame_index)
                     meta = {
                         "scene": s.scene,
@@ -561,8 +561,6 @@ class SessionManager:
         store = self.store
         if store is None:
             return 0
-        from hybridmpm.sim import make_simulator
-
         keys = await anyio.to_thread.run_sync(store.keys, limiter=self.io_limiter)
         restored = 0
         for key in keys:
@@ -582,14 +580,7 @@ class SessionManager:
                 continue
             try:
                 with self.budget.hold(SESSION_OVERHEAD + 2 * tree_nbytes(rec.state), "restoring a session"):
-
-                    def build(rec: StoredSession = rec) -> tuple[Simulator, dict[str, Any]]:
-                        sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1)
-                        initial = sim.state()
-                        sim.restore(rec.state)
-                        return sim, initial
-
-                    sim, initial = await self.compute(build)
+                    sim, initial = await self.compute(rebuild, rec)
                 cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a restored session")
             except BudgetFullError as e:
                 log.warning("store: session %s… not restored: %s", shown, e)

@@ -11,7 +11,7 @@ from typing import Any
 
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, R_C
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.sim.base import Simulator
 from hybridmpm.sim.hybrid import DWELL, HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
@@ -38,12 +38,15 @@ def make_simulator(
     seed: int = 0,
     threads: int = 0,
     nn_threads: int = 1,
+    clusters: Clusters | None = None,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``; None: the defaults),
     "mpm" (at ``r_p``) or "neural" (the model alone after its MPM warm-up).
     ``model`` an ONNX path, a :class:`~hybridmpm.neural.GnsRuntime` or None
-    (the scene's shipped model); ``threads`` MPM threads (0 = all cores).
+    (the scene's shipped model); ``threads`` MPM threads (0 = all cores);
+    ``clusters`` an earlier simulator's ``scene.clusters`` (same scene and
+    ``r_p``), which skips the k-means of the downsampling.
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
     ``r_p`` for a network solver: it runs at its model's ``r_p``)."""
     if solver not in SOLVERS:
@@ -51,9 +54,9 @@ def make_simulator(
     if solver != "mpm" and r_p != 1.0:
         raise InvalidInputError(f"r_p: applies to the mpm solver; the {solver} solver runs at its model's r_p", "r_p")
     if solver == "mpm":
-        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads)
+        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
     if solver == "neural":
-        return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads)
+        return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads, clusters=clusters)
     return HybridSimulator(
         scene,
         model,
@@ -64,6 +67,7 @@ def make_simulator(
         seed=seed,
         mpm_threads=threads,
         nn_threads=nn_threads,
+        clusters=clusters,
     )
 
 

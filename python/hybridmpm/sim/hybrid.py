@@ -82,7 +82,7 @@ from hybridmpm.conventions import (
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import make_scene
-from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import (
     MPM,
@@ -158,6 +158,9 @@ class HybridSimulator:
         The density relaxation after each network step (:class:`~hybridmpm.sim.neural.NeuralSimulator`; ``relax`` = 0: off).
     mpm_threads, nn_threads:
         Threads of the MPM solver (0 = all cores) and of onnxruntime.
+    clusters:
+        The :attr:`~hybridmpm.scenes.Scene.clusters` of an earlier simulator of
+        the scene at the model's ``r_p``: rebuilt without the k-means.
 
     ``mpm`` and ``neural`` are the two composed simulators. Raises
     :class:`InvalidInputError` naming the parameter for out-of-range values
@@ -189,6 +192,7 @@ class HybridSimulator:
         rest_percentile: float = REST_PERCENTILE,
         mpm_threads: int = 0,
         nn_threads: int = 1,
+        clusters: Clusters | None = None,
     ) -> None:
 
         self._lock = new_lock()
@@ -218,7 +222,7 @@ class HybridSimulator:
         self.accel_floor = float(accel_floor)
         self.audit_every = audit_every
         self.audit_tol = float(audit_tol)
-        self.scene = at_resolution(scene, self.model.r_p, seed)
+        self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
         self.neural = NeuralSimulator(
             self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
             degree_factor=degree_factor, warmup=False, relax=relax, rest_percentile=rest_percentile, mpm_threads=mpm_threads,

@@ -18,7 +18,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.scenes import make_scene
-from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t
 from hybridmpm.sim.base import (
     MPM,
@@ -53,6 +53,10 @@ class MpmSimulator:
         Frames per coarse step (≥ 1).
     threads:
         Solver threads (0 = all cores).
+    clusters:
+        The :attr:`~hybridmpm.scenes.Scene.clusters` of an earlier simulator of
+        the same scene at the same ``r_p`` (a restored session): the
+        downsampled scene is rebuilt from them without the k-means.
 
     ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
     :class:`InvalidInputError` naming the bad parameter.
@@ -60,14 +64,14 @@ class MpmSimulator:
 
     kind = MPM
 
-    def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0) -> None:
+    def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0, clusters: Clusters | None = None) -> None:
         self._lock = new_lock()
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.r_t = check_r_t(r_t)
         threads = check_int("threads", threads, 0)
         self.scene_full = scene
-        self.scene = at_resolution(scene, r_p, seed)
+        self.scene = at_resolution(scene, r_p, seed, clusters)
         self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
         self.particles = self.scene.particles(self.solver.masses)
         self.dt_frame = float(self.scene.dt_frame)

@@ -55,7 +55,7 @@ from hybridmpm.models import shipped_model
 from hybridmpm.neural.grid import GridRuntime, open_model
 from hybridmpm.neural.runtime import GnsRuntime, Graph
 from hybridmpm.scenes import make_scene
-from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.resolution import at_resolution
 from hybridmpm.sim.base import (
     MPM,
@@ -147,6 +147,9 @@ class NeuralSimulator:
     max_neighbors, mpm_threads, nn_threads:
         Neighbour cap of the radius graph; MPM threads of the warm-up (0 = all
         cores); onnxruntime threads when ``model`` is a path.
+    clusters:
+        The :attr:`~hybridmpm.scenes.Scene.clusters` of an earlier simulator of
+        the scene at the model's ``r_p``: rebuilt without the k-means.
 
     Raises :class:`InvalidInputError` naming the parameter, or (``model``)
     for a model that does not fit the scene.
@@ -171,6 +174,7 @@ class NeuralSimulator:
         max_neighbors: int | None = None,
         mpm_threads: int = 0,
         nn_threads: int = 1,
+        clusters: Clusters | None = None,
     ) -> None:
         import math
 
@@ -195,7 +199,7 @@ class NeuralSimulator:
             scene = make_scene(scene, seed=seed)
         self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.scene_full = scene
-        self.scene = at_resolution(scene, self.model.r_p, seed)
+        self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
         self.model.check_fits(self.scene.dim, self.scene.particle_type(), scene.name)
         self.detect_failures = bool(detect_failures)
         self.ke_factor = float(ke_factor)
