@@ -6,7 +6,8 @@ through one front end is stepped, controlled, checkpointed and streamed
 through the other, bit for bit as one uninterrupted local run; its actor's
 process killed with SIGKILL, the next step resumes from its last save and
 goes on bit for bit; the whole cluster and both front ends stopped and
-started again on the same store, the session is back. The session cap holds
+started again on the same store, the session is back; the second node's
+processes killed, its sessions come back on the head. The session cap holds
 for the whole cluster. Settings that name no cluster, and the ray backend
 without Ray installed, are refused naming the field.
 
@@ -18,6 +19,7 @@ process of the machine's user, other clusters' too).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import secrets
 import shutil
@@ -193,6 +195,52 @@ def test_cluster_and_front_ends_restarted_on_the_store_bring_the_session_back(cl
     finally:
         a.stop()
         b.stop()
+
+
+def test_a_dead_node_s_sessions_come_back_on_a_live_node(cluster, tmp_path):
+    """The second node's processes killed (its raylet, its workers: a machine
+    lost): its session's actor is rebuilt on the head from the last save and
+    goes on bit for bit; the head's session is untouched."""
+    from hybridmpm.service.testing import descendants
+
+    store = tmp_path / "store"
+    a = _front_end(cluster, store, tmp_path / "a.log")
+    try:
+        _start(a)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
+            others = set(cluster.actor_pids())  # earlier tests' sessions live on in the cluster
+            sessions = {}  # id -> seed
+            for seed in range(10, 14):  # placed by SPREAD: until one lands on the second node
+                r = c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": seed})
+                assert r.status_code == 201, r.text
+                sessions[r.json()["id"]] = seed
+                node1 = set(descendants([cluster.procs[1].pid])) - others
+                if len(sessions) >= 2 and node1 & set(cluster.actor_pids()):
+                    break
+            assert node1 & set(cluster.actor_pids()), "no session's actor was placed on the second node"
+            on_node1 = len(node1 & set(cluster.actor_pids()))
+            saved = {}
+            for sid in sessions:
+                step_binary(c, sid, 5)
+                saved[sid] = wait_saved(c, sid, WAIT_S)
+            for pid in reversed(descendants([cluster.procs[1].pid])):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            cluster.procs[1].wait(WAIT_S)
+            restored = 0
+            for sid, seed in sessions.items():
+                ref = make_simulator(SCENE, SOLVER, seed=seed, threads=1, nn_threads=1)
+                rollout(ref, saved[sid])
+                assert np.array_equal(step_binary(c, sid, 3), rollout(ref, 3).positions[1:]), "a session differs after its node died"
+                info = c.get(f"/v1/sessions/{sid}").json()
+                restored += info["restored_from_frame"] == saved[sid]
+            assert restored == on_node1  # the dead node's sessions were restored, the head's were not
+            head = set(descendants([cluster.procs[0].pid]))
+            assert set(cluster.actor_pids()) <= head
+    finally:
+        a.stop()
+        cluster.stop()  # the next test that needs it starts it again
+        cluster.start()
 
 
 # Stands in for an environment without Ray: the local backend needs none, the ray backend says what is missing.
