@@ -23,7 +23,15 @@ obstacles are left alone. :attr:`NeuralSimulator.last_relaxed` counts the
 particles corrected in the last step. The relaxation, the second clipping
 and the next step's radius graph are one call
 (:func:`hybridmpm.graph.relax_then_graph`: the same result as the three in
-turn, the graph rebuilt only around the particles that moved).
+turn, the graph rebuilt only around the particles that moved). Where a step
+is still packed above :data:`RELAX_AGAIN_DEGREE` (1.5) × the initial mean
+neighbour count after that — a falling block the network drove into the
+floor, clipped onto a line of the wall — the relaxation runs again, up to
+:data:`RELAX_MAX_ROUNDS` more rounds, until it is not
+(:attr:`NeuralSimulator.last_relax_rounds`): three iterations move a
+particle at most 3R/4, short of undoing such a collapse, and the step would
+otherwise fail "compressed" (sand2d seed 0 did at frame 96). Steps that
+are not packed so (all others) cost nothing more.
 
 Failure checks (``detect_failures``, on by default): a step that predicts a
 non-finite position ("nan"), moves a particle more than ``escape_cells``
@@ -79,6 +87,10 @@ _STATE_VERSION = 1
 RELAX_ITERATIONS = 3
 #: Default percentile of the initial condition's kernel density taken as the rest density.
 REST_PERCENTILE = 90.0
+#: A step still packed above this × the initial mean neighbour count after its relaxation is relaxed again (module doc).
+RELAX_AGAIN_DEGREE = 1.5
+#: At most this many more rounds of ``relax`` iterations per step.
+RELAX_MAX_ROUNDS = 8
 
 
 def load_model(model: GnsRuntime | GridRuntime | str | Path | None, scene_name: str | None, threads: int = 1) -> GnsRuntime | GridRuntime:
@@ -240,6 +252,8 @@ class NeuralSimulator:
         self.rest_density = float(np.percentile(rho, rest_percentile)) if len(rho) else 1.0
         #: Particles the relaxation corrected in the last network step.
         self.last_relaxed = 0
+        #: Rounds of ``relax`` iterations the last network step took (more than one after an impact; module doc).
+        self.last_relax_rounds = 0
         self._history: np.ndarray | None = None
         self._next_graph: Graph | None = None
         self.step_index = 0
@@ -383,6 +397,15 @@ class NeuralSimulator:
                 clipped, self.last_relaxed, _, clamped, built = relax_then_graph(
                     nxt, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
                 )
+                rounds = 1
+                # an impact the network squashed into a wall: relax on until the packing is back near the initial one
+                while rounds <= RELAX_MAX_ROUNDS and len(built[0]) > RELAX_AGAIN_DEGREE * self._degree0 * len(clipped):
+                    clipped, _, _, more, built = relax_then_graph(
+                        clipped, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
+                    )
+                    clamped += more
+                    rounds += 1
+                self.last_relax_rounds = rounds
                 if self.clamp:
                     self.last_clamped = clamped
             else:
