@@ -414,7 +414,7 @@ def _train_grid(args: argparse.Namespace) -> int:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     cfg = GridTrainConfig(
         scene=args.scene, data=args.data, out=args.out, grid=args.grid, width=args.width, levels=args.levels, r_t=args.r_t, steps=args.steps,
-        batch=args.batch, lr=args.lr, noise=args.noise, unroll=args.unroll, density_weight=args.density_weight, pressure=args.pressure, val_every=args.val_every,
+        batch=args.batch, lr=args.lr, noise=args.noise, unroll=args.unroll, density_weight=args.density_weight, pressure=args.pressure, flip_init=args.flip_init, val_every=args.val_every,
         val_steps=args.val_steps, seed=args.seed, threads=args.threads, nproc=args.nproc,
     )  # fmt: skip
     summary = train_grid(cfg, progress=not args.quiet)
@@ -706,6 +706,10 @@ def build_parser() -> argparse.ArgumentParser:
     tg.add_argument(
         "--pressure", action="store_true",
         help="learn a density correction per frame (particles moved down the gradient of the fluid's excess p2g count; docs/grid_model.md)",
+    )  # fmt: skip
+    tg.add_argument(
+        "--flip-init", type=float, default=0.5,
+        help="initial share of a particle's own deviation from the grid velocity it keeps per call (FLIP beta, learned; default 0.5)",
     )  # fmt: skip
     tg.add_argument("--val-every", type=int, default=500, help="validate and checkpoint every N steps")
     tg.add_argument("--val-steps", type=int, default=100, help="model steps per validation rollout (default 100)")

@@ -36,6 +36,7 @@ int64 ``[P]``. Units: metres, seconds (the frame is ``dt_frame``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -62,7 +63,8 @@ class GridConfig:
     inputs; ``types`` the GNS particle types the model simulates;
     ``pressure`` adds, after each frame's advection, a displacement down the
     gradient of the fluid's excess density on the grid (:func:`pressure_shift`)
-    with a learned strength.
+    with a learned strength; ``flip_init`` the initial FLIP share ``β`` in
+    (0, 1) (default 0.5; learned from there).
     """
 
     dim: int
@@ -78,6 +80,7 @@ class GridConfig:
     rest_count: float = 1.0
     types: list[int] = field(default_factory=lambda: [GNS_WATER])
     pressure: bool = False
+    flip_init: float = 0.5
 
     def validate(self) -> GridConfig:
         if self.dim not in (2, 3):
@@ -95,6 +98,8 @@ class GridConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < (2 if name == "t_in" else 1):
                 raise InvalidInputError(f"{name}: must be an integer >= {2 if name == 't_in' else 1}, got {v!r}", name)
+        if isinstance(self.flip_init, bool) or not (isinstance(self.flip_init, (int, float)) and 0.0 < self.flip_init < 1.0):
+            raise InvalidInputError(f"flip_init: must be a number in (0, 1), got {self.flip_init!r}", "flip_init")
         for name in ("dt_frame", "velocity_scale", "rest_count"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and v > 0):
@@ -258,7 +263,7 @@ class GridModel(nn.Module):
         self.config = config.validate()
         d = config.dim
         self.net = UNet(d, config.in_channels, config.r_t * d, config.width, config.levels)
-        self.flip_logit = nn.Parameter(torch.zeros(()))
+        self.flip_logit = nn.Parameter(torch.full((), math.log(config.flip_init / (1.0 - config.flip_init))))
         if config.pressure:
             self.pressure_logit = nn.Parameter(torch.full((), -2.0))
         b = torch.tensor(config.bounds, dtype=torch.float32)

@@ -81,6 +81,7 @@ class GridTrainConfig:
     unroll: int = 3
     density_weight: float = 0.0
     pressure: bool = False
+    flip_init: float = 0.5
     clip_grad: float = 1.0
     val_every: int = 500
     val_steps: int = 100
@@ -102,6 +103,8 @@ class GridTrainConfig:
             raise InvalidInputError(f"density_weight: must be a number >= 0, got {self.density_weight!r}", "density_weight")
         if not (isinstance(self.noise, (int, float)) and math.isfinite(self.noise) and self.noise >= 0):
             raise InvalidInputError(f"noise: must be a number >= 0 [m per step], got {self.noise!r}", "noise")
+        if isinstance(self.flip_init, bool) or not (isinstance(self.flip_init, (int, float)) and 0.0 < self.flip_init < 1.0):
+            raise InvalidInputError(f"flip_init: must be a number in (0, 1), got {self.flip_init!r}", "flip_init")
         check_nproc(self.nproc)
         return self
 
@@ -291,6 +294,7 @@ def _train_grid(ranks: Ranks, c: GridTrainConfig, progress: bool) -> dict[str, A
         rest_count=rest_count(train, bounds, c.grid),
         types=types,
         pressure=c.pressure,
+        flip_init=float(c.flip_init),
     )
     torch.manual_seed(c.seed)  # the initial weights are the seed's, whichever process draws them
     model = GridModel(cfg)
@@ -304,7 +308,7 @@ def _train_grid(ranks: Ranks, c: GridTrainConfig, progress: bool) -> dict[str, A
     state, error = None, None
     if ranks.main and ckpt.exists():
         state = torch.load(ckpt, weights_only=False)
-        old, new = dict(state["train_config"]), asdict(c)
+        old, new = {**asdict(GridTrainConfig("", "", "")), **state["train_config"]}, asdict(c)  # settings added since: their defaults
         old_global, new_global = old.get("batch", 0) * int(state.get("ranks", 1)), c.batch * ranks.size
         if {k: v for k, v in old.items() if k not in _RESUMABLE} != {k: v for k, v in new.items() if k not in _RESUMABLE}:
             error = InvalidInputError(f"out: {out} holds a run of other settings; choose another directory", "out")
