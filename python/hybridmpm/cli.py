@@ -397,7 +397,8 @@ def _train(args: argparse.Namespace) -> int:
         batch=args.batch, lr=args.lr, noise_std=args.noise_std, val_every=args.val_every, max_neighbors=args.max_neighbors, radius=args.radius,
         seed=args.seed, threads=args.threads, pushforward=args.pushforward, pushforward_after=args.pushforward_after, ema=args.ema,
         snapshots=not args.no_snapshots, unroll=args.unroll, unroll_after=args.unroll_after, clip_grad=args.clip_grad,
-        wall_reach=args.wall_reach, nproc=args.nproc,
+        wall_reach=args.wall_reach, nproc=args.nproc, grid=args.grid, grid_width=args.grid_width, grid_levels=args.grid_levels,
+        rollout_steps=args.rollout_steps,
     )  # fmt: skip
     summary = train(cfg, progress=not args.quiet)
     if not args.quiet and is_main_process():
@@ -674,6 +675,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="distance, in units of R, at which the wall-distance features saturate (default 1: GNS's clip at R; "
         "more lets particles that move more than R per step see a wall coming)",
     )
+    tr.add_argument(
+        "--grid",
+        type=int,
+        default=0,
+        help="nodes per dimension of a grid branch that gives every particle the whole fluid's context (p2g, a U-Net, g2p; default 0: none; docs/neural.md)",
+    )
+    tr.add_argument("--grid-width", type=int, default=8, help="channels of the grid branch's first U-Net level (default 8)")
+    tr.add_argument("--grid-levels", type=int, default=3, help="resolutions of the grid branch's U-Net (default 3)")
+    tr.add_argument("--rollout-steps", type=int, default=20, help="model steps of the validation rollout that chooses model.onnx (default 20)")
     tr.add_argument(
         "--ema",
         type=float,

@@ -8,10 +8,14 @@ WALL_REACH_MAX = 16.0
 NUM_TYPES = 9
 #: ONNX metadata property holding the model's JSON metadata.
 METADATA_KEY = "hybridmpm"
+#: Metadata key of a GNS's grid branch (a JSON object in the ``hybridmpm`` metadata; hybridmpm.neural.grid_branch).
+BRANCH_KEY = "grid_branch"
+#: The input of a GNS graph with a grid branch that takes the gathered context (hybridmpm.neural.grid_branch).
+CONTEXT_INPUT = "grid_context"
 #: Inputs of the GNS inference graph, in order (graphs of torch's exporter take the first four, graphs
-#: of the ``compiled-1`` layout the first six).
-INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displacement", "distance", "in_edges", "in_degree")
+#: of the ``compiled-1`` layout the first six, graphs of a GNS with a grid branch all nine).
+INPUT_NAMES = ("positions", "particle_type", "senders", "receivers", "displacement", "distance", "in_edges", "in_degree", CONTEXT_INPUT)
 #: Outputs of the GNS inference graph, in order.
 OUTPUT_NAMES = ("acceleration", "next_position")
 
-__all__ = ["FEATURE_VERSION", "INPUT_NAMES", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES", "WALL_REACH_MAX"]
+__all__ = ["BRANCH_KEY", "CONTEXT_INPUT", "FEATURE_VERSION", "INPUT_NAMES", "METADATA_KEY", "NUM_TYPES", "OUTPUT_NAMES", "WALL_REACH_MAX"]

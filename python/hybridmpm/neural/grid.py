@@ -67,6 +67,18 @@ def grid_geometry(bounds: np.ndarray, grid: int) -> tuple[np.ndarray, np.ndarray
     return (b[:, 0] - spacing).astype(np.float32), spacing
 
 
+def wall_mask(bounds: np.ndarray, grid: int) -> np.ndarray:
+    """The mask channel of the nodes beyond the walls, float32 [1, 1, G^D...]
+    (1 outside ``bounds`` [[lo, hi]] * D, 0 inside), on :func:`grid_geometry`'s nodes."""
+    b = np.asarray(bounds, np.float32)
+    d = b.shape[0]
+    origin, spacing = grid_geometry(b, grid)
+    axes = [origin[k] + spacing[k] * np.arange(grid, dtype=np.float32) for k in range(d)]
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"))
+    outside = np.any((mesh < b[:, 0].reshape(d, *[1] * d)) | (mesh > b[:, 1].reshape(d, *[1] * d)), axis=0)
+    return np.asarray(outside, np.float32)[None, None]
+
+
 class GridRuntime:
     """An exported grid model loaded into onnxruntime (module doc).
 
@@ -135,12 +147,7 @@ class GridRuntime:
             self.meta.setdefault(key, default)
         self.meta.setdefault("bounds", self._bounds.tolist())
         self._origin, self._spacing = grid_geometry(self._bounds, self._grid)
-        d, g = self._dim, self._grid
-        axes = [self._origin[k] + self._spacing[k] * np.arange(g, dtype=np.float32) for k in range(d)]
-        mesh = np.stack(np.meshgrid(*axes, indexing="ij"))
-        lo = self._bounds[:, 0].reshape(d, *[1] * d)
-        hi = self._bounds[:, 1].reshape(d, *[1] * d)
-        self._wall = np.asarray(np.any((mesh < lo) | (mesh > hi), axis=0), np.float32)[None, None]  # [1, 1, G...]
+        self._wall = wall_mask(self._bounds, self._grid)
         t = (self._r_t / 2 + np.arange(self._r_t, dtype=np.float32) + 0.5) * self._dt
         self._drift = (self._gravity[None, :] * t[:, None].astype(np.float32)).astype(np.float32)  # [r_t, D]
 

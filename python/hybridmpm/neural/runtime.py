@@ -22,7 +22,7 @@ from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.neural import fused
-from hybridmpm.neural.constants import FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
+from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT, FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
 
 
 @functools.lru_cache(maxsize=32)
@@ -183,6 +183,14 @@ class GnsRuntime:
         unknown = sorted(set(self.input_names) - set(INPUT_NAMES))
         if unknown:
             raise InvalidInputError(f"model: {self.path.name} asks for inputs {unknown}, not among {list(INPUT_NAMES)}", "model")
+        #: The grid branch (:class:`hybridmpm.neural.grid_branch.GridBranchRuntime`) of a GNS trained with one, else None.
+        self.branch: Any = None
+        if (BRANCH_KEY in self.meta) != (CONTEXT_INPUT in self.input_names):
+            raise InvalidInputError(f"model.{BRANCH_KEY}: {self.path.name} has a grid branch in its metadata or its graph, not both", f"model.{BRANCH_KEY}")
+        if BRANCH_KEY in self.meta:
+            from hybridmpm.neural.grid_branch import GridBranchRuntime  # imports the grid model's runtime, which imports this module
+
+            self.branch = GridBranchRuntime(self.meta[BRANCH_KEY], self.meta, max(threads, 1) if threads else 0)
         if threads != 1 and "in_edges" not in self.input_names:
             warnings.warn(
                 f"threads: {self.path.name} (graph layout {self.meta.get('graph', 'torch-exported')!r}) sums over receivers with onnxruntime's "
@@ -315,6 +323,8 @@ class GnsRuntime:
         the aggregation inputs by :func:`aggregation_inputs`, for the gather way
         on more than one thread."""
         values = dict(zip(INPUT_NAMES, (history, particle_type, *graph)))
+        if self.branch is not None:
+            values[CONTEXT_INPUT] = self.branch.context(history, particle_type)
         if "in_edges" in self.input_names:  # the fused graph sums exactly on any thread count: no table
             values["in_edges"], values["in_degree"] = aggregation_inputs(graph[1], history.shape[1], gather=self.threads != 1 and not self.fused)
         return {name: values[name] for name in self.input_names}

@@ -26,12 +26,15 @@ onnxruntime without onnx installed.
 
 from __future__ import annotations
 
+import base64
+import copy
 import json
 import os
 from pathlib import Path
 from typing import Any
 
-from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
+from hybridmpm.neural.constants import BRANCH_KEY, FEATURE_VERSION, METADATA_KEY
+from hybridmpm.neural.grid_branch import BRANCH_INPUT, BRANCH_OUTPUT, branch_channels
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
 from hybridmpm.train.gns.onnx_graph import (
     GRAPH_LAYOUT,
@@ -70,12 +73,48 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
         **metadata,
     }
     meta["graph"] = GRAPH_LAYOUT
+    if model.branch is not None:
+        meta[BRANCH_KEY] = branch_metadata(model)
+    else:
+        meta.pop(BRANCH_KEY, None)
     proto = inference_graph(model, json.dumps(meta, sort_keys=True))
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(proto.SerializeToString())
     os.replace(tmp, path)
     return path
+
+
+def branch_metadata(model: GnsModel) -> dict[str, Any]:
+    """The ``grid_branch`` metadata of a GNS with a grid branch
+    (:mod:`hybridmpm.neural.grid_branch`): its constants and its U-Net as an
+    ONNX graph (torch's exporter, opset 18, standard operators), base64."""
+    import io
+    import warnings
+
+    import torch
+
+    branch = model.branch
+    assert branch is not None
+    cfg = model.config
+    example = torch.zeros(1, branch_channels(cfg.dim, len(branch.types), cfg.t_in), *[branch.grid] * cfg.dim)
+    buf = io.BytesIO()
+    net = copy.deepcopy(branch.net).eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(net, (example,), buf, input_names=[BRANCH_INPUT], output_names=[BRANCH_OUTPUT], opset_version=18, dynamo=False)  # type: ignore[arg-type]
+    feats = model.features
+    return {
+        "grid": branch.grid,
+        "width": cfg.grid_width,
+        "levels": cfg.grid_levels,
+        "types": list(branch.types),
+        "rest_count": branch.rest_count,
+        "latent": cfg.latent,
+        "vel_mean": [float(v) for v in feats.vel_mean],
+        "vel_std": [float(v) for v in feats.vel_std],
+        "onnx": base64.b64encode(buf.getvalue()).decode("ascii"),
+    }
 
 
 def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
@@ -117,4 +156,4 @@ def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
     return True
 
 
-__all__ = ["INPUT_NAMES", "METADATA_KEY", "OUTPUT_NAMES", "export_onnx", "upgrade_onnx"]
+__all__ = ["INPUT_NAMES", "METADATA_KEY", "OUTPUT_NAMES", "branch_metadata", "export_onnx", "upgrade_onnx"]

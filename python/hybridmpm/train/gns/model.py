@@ -45,6 +45,7 @@ from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import FEATURE_VERSION, NUM_TYPES
 from hybridmpm.train.gns.features import GnsFeatures
+from hybridmpm.train.gns.grid_branch import GridBranch
 
 
 @dataclass
@@ -60,7 +61,11 @@ class GnsConfig:
     the distance, in units of R, at which the wall-distance features saturate
     (1: GNS's clip at the connectivity radius; larger lets a particle that
     moves more than R per step see a wall before it reaches it, see
-    :func:`~hybridmpm.train.gns.features.wall_features`).
+    :func:`~hybridmpm.train.gns.features.wall_features`); ``grid`` nodes per
+    dimension of the grid branch (:mod:`hybridmpm.train.gns.grid_branch`; 0:
+    none, the plain GNS), ``grid_width`` and ``grid_levels`` its U-Net,
+    ``grid_types`` the fluid types it counts, ``grid_rest_count`` the p2g
+    count of a node inside resting fluid.
     """
 
     dim: int
@@ -77,6 +82,11 @@ class GnsConfig:
     noise_std: float = 3e-4
     wall_reach: float = 1.0
     extra: dict[str, Any] = field(default_factory=dict)
+    grid: int = 0
+    grid_width: int = 8
+    grid_levels: int = 3
+    grid_types: list[int] = field(default_factory=list)
+    grid_rest_count: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -274,6 +284,12 @@ class GnsModel(nn.Module):
             embedding=config.embedding, num_types=NUM_TYPES, wall_reach=config.wall_reach,
         )  # fmt: skip
         self.gnn = EncodeProcessDecode(self.features.node_size, self.features.edge_size, config.dim, latent=config.latent, layers=config.layers)
+        self.branch: GridBranch | None = None
+        if config.grid:
+            self.branch = GridBranch(
+                config.dim, config.bounds, config.latent, config.grid, config.grid_width, config.grid_levels, config.grid_types,
+                config.grid_rest_count, config.t_in,
+            )  # fmt: skip
         self.register_load_state_dict_pre_hook(_legacy_pre_hook)
 
     def input_features(
@@ -287,13 +303,25 @@ class GnsModel(nn.Module):
         nodes, edges = self.features(positions, particle_type, senders, receivers)
         return nodes, edges
 
-    def normalised_acceleration(self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> torch.Tensor:
+    def normalised_acceleration(
+        self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor, batch: torch.Tensor | None = None,
+        windows: int = 1,
+    ) -> torch.Tensor:  # fmt: skip
         """The network's output: normalised acceleration float32 [N, D]
         (``(a − acc_mean)/acc_std_eff``; compare with
-        ``features.normalise_acceleration(target)``)."""
+        ``features.normalise_acceleration(target)``). ``batch`` int64 [N]
+        (the window of each particle of a batch of ``windows`` disjoint
+        graphs; default one window) keeps the windows apart on the grid
+        branch's grid; without a branch it is not read."""
         nodes, edges = self.features(positions, particle_type, senders, receivers)
-        out: torch.Tensor = self.gnn(nodes, edges, senders, receivers)
-        return out
+        if self.branch is None:
+            out: torch.Tensor = self.gnn(nodes, edges, senders, receivers)
+            return out
+        h, e = self.gnn.encode(nodes, edges)
+        nv = (self.config.t_in - 1) * self.config.dim  # the node features start with the normalised velocities
+        h = h + self.branch(positions[-1], particle_type, nodes[:, :nv], batch, windows)
+        h, e = self.gnn.process(h, e, senders, receivers)
+        return self.gnn.decode(h)
 
     def forward(
         self, positions: torch.Tensor, particle_type: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor

@@ -79,7 +79,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC
-from hybridmpm.neural.constants import INPUT_NAMES, METADATA_KEY, OUTPUT_NAMES
+from hybridmpm.neural.constants import CONTEXT_INPUT, INPUT_NAMES, METADATA_KEY, OUTPUT_NAMES
 from hybridmpm.train.gns.model import LN_EPS, remap_legacy_state_dict
 
 #: ONNX opset of the graph.
@@ -303,6 +303,9 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     type_term = b.op("Gather", [b.const("type_table", table), "particle_type"], "type_term", axis=0)
     b.stage = "node_encoder"
     h: Latent = c.mlp([(node_in, w_nodes)], bias0, g + "node_encoder", True, extra=type_term)
+    branch = getattr(model, "branch", None) is not None
+    if branch:  # the grid branch's context (hybridmpm.neural.grid_branch), gathered outside, joins the node latents
+        h = (b.op("Add", [h[0], CONTEXT_INPUT], "h_context"), h[1])
 
     # ---- edge features from the radius-graph pass (1/R folded)
     b.stage = "edge_encoder"
@@ -373,6 +376,8 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
         helper.make_tensor_value_info("in_edges", i64, ["N", "K"]),
         helper.make_tensor_value_info("in_degree", f32, ["N", 1]),
     ]
+    if branch:
+        inputs.append(helper.make_tensor_value_info(CONTEXT_INPUT, f32, ["N", latent]))
     outputs = [helper.make_tensor_value_info("acceleration", f32, ["N", dim]), helper.make_tensor_value_info("next_position", f32, ["N", dim])]
     graph = helper.make_graph(b.nodes, "gns_step", inputs, outputs, initializer=b.inits)
     proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="hybridmpm")

@@ -114,6 +114,7 @@ from hybridmpm.neural.constants import WALL_REACH_MAX
 from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
 from hybridmpm.train.gns.export import export_onnx
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
+from hybridmpm.train.grid_train import rest_count
 
 
 @dataclass
@@ -123,7 +124,9 @@ class TrainConfig:
     windows per step and rank; ``max_neighbors`` caps the radius graph per receiver;
     ``radius`` the connectivity radius R [m] (default: the dataset's);
     ``nproc`` local processes (ranks) of data-parallel training (1: this
-    process; under torchrun, torchrun's ranks)."""
+    process; under torchrun, torchrun's ranks); ``grid`` nodes per dimension
+    of the grid branch (0: none; :mod:`hybridmpm.train.gns.grid_branch`),
+    ``grid_width`` and ``grid_levels`` its U-Net."""
 
     scene: str
     data: str | list[str]
@@ -152,6 +155,9 @@ class TrainConfig:
     clip_grad: float = 1.0
     wall_reach: float = 1.0
     nproc: int = 1
+    grid: int = 0
+    grid_width: int = 8
+    grid_levels: int = 3
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
@@ -188,6 +194,14 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
                 raise InvalidInputError(f"{name}: must be a number in [0, 1], got {v!r}", name)
+        for name in ("grid", "grid_width", "grid_levels"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "grid" else 1):
+                raise InvalidInputError(f"{name}: must be an integer >= {0 if name == 'grid' else 1}, got {v!r}", name)
+        if self.grid and (self.grid < 8 or self.grid > 128 or self.grid % 2 ** (self.grid_levels - 1)):
+            raise InvalidInputError(
+                f"grid: must be 0 (no grid branch) or in [8, 128] and divisible by 2^(grid_levels - 1) = {2 ** (self.grid_levels - 1)}, got {self.grid}", "grid"
+            )
         check_nproc(self.nproc)
         return self
 
@@ -285,15 +299,17 @@ def _pushforward_window(
 
 
 def _batch(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], radius: float, max_neighbors: int | None) -> tuple[torch.Tensor, ...]:
-    hs, ts, accs, ss, rs = [], [], [], [], []
+    """The windows as one disjoint graph: ``(history, types, senders, receivers, target acceleration, window of each particle)``."""
+    hs, ts, accs, ss, rs, ws = [], [], [], [], [], []
     offset = 0
-    for hist, ptype, acc in windows:
+    for k, (hist, ptype, acc) in enumerate(windows):
         s, r, _, _ = radius_graph(hist[-1], radius, max_neighbors=max_neighbors)
         hs.append(hist)
         ts.append(ptype)
         accs.append(acc)
         ss.append(s + offset)
         rs.append(r + offset)
+        ws.append(np.full(hist.shape[1], k, np.int64))
         offset += hist.shape[1]
     return (
         torch.from_numpy(np.concatenate(hs, axis=1)),
@@ -301,6 +317,7 @@ def _batch(windows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], radius: flo
         torch.from_numpy(np.concatenate(ss)),
         torch.from_numpy(np.concatenate(rs)),
         torch.from_numpy(np.concatenate(accs)),
+        torch.from_numpy(np.concatenate(ws)),
     )
 
 
@@ -309,8 +326,8 @@ def _loss(model: GnsModel, batch: tuple[torch.Tensor, ...], count: float | None 
     particles; with ``count``, the sum of their squared errors over ``count``
     particles instead (a rank's share of a global batch's mean: ``count`` is
     the global batch's particles over the ranks)."""
-    hist, ptype, s, r, acc = batch
-    pred = model.normalised_acceleration(hist, ptype, s, r)
+    hist, ptype, s, r, acc, window = batch
+    pred = model.normalised_acceleration(hist, ptype, s, r, window, int(window[-1]) + 1 if len(window) else 1)
     target = model.features.normalise_acceleration(acc)
     mask = ptype != GNS_KINEMATIC
     sq = (pred - target)[mask] ** 2
@@ -356,6 +373,7 @@ def _unrolled_loss(
     truth = torch.from_numpy(np.concatenate([w[3] for w in windows], axis=1))
     kin = (ptype == GNS_KINEMATIC).unsqueeze(1)
     mask = ptype != GNS_KINEMATIC
+    window = torch.from_numpy(np.repeat(np.arange(len(sizes), dtype=np.int64), sizes))
     bounds = torch.tensor(model.config.bounds, dtype=hist.dtype)
     losses = []
     for k in range(targets.shape[0]):
@@ -366,7 +384,7 @@ def _unrolled_loss(
             ss.append(s + start)
             rs.append(r + start)
         senders, receivers = torch.from_numpy(np.concatenate(ss)), torch.from_numpy(np.concatenate(rs))
-        pred = model.normalised_acceleration(hist, ptype, senders, receivers)
+        pred = model.normalised_acceleration(hist, ptype, senders, receivers, window, len(sizes))
         target = model.features.normalise_acceleration(targets[k] - 2 * hist[-1] + hist[-2])
         sq = (pred - target)[mask] ** 2
         losses.append(sq.mean() if count is None else sq.sum() / (count * sq.shape[-1]))
@@ -480,6 +498,8 @@ def _train(ranks: Ranks, config: TrainConfig, progress: bool) -> dict[str, Any]:
         dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],
         vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
         latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std, wall_reach=float(config.wall_reach),
+        grid=config.grid, grid_width=config.grid_width, grid_levels=config.grid_levels, grid_types=types,
+        grid_rest_count=rest_count(train_data.trajs, [list(map(float, b)) for b in meta["bounds"]], config.grid) if config.grid else 1.0,
     )  # fmt: skip
     torch.manual_seed(config.seed)
     model = GnsModel(gcfg)
