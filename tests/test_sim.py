@@ -218,6 +218,27 @@ def test_the_escape_check_is_per_axis_and_per_side(water_model):
                 assert sim._failure(x) == verdict, (axis, side, eps)
 
 
+def test_a_particle_carried_through_a_wall_by_its_own_speed_has_not_escaped(water_model):
+    """A particle on the wall whose last step was L cells lands up to
+    L + escape_cells cells beyond it by inertia (the wall clips it next): not
+    "escaped"; one cell farther than that, or the same landing from rest, is."""
+    sim = NeuralSimulator(make_scene("water2d", seed=1000), water_model, mpm_threads=1)
+    n = sim.particles.num_fluid
+    base = ((sim._lo + sim._hi) / 2 + np.zeros((n, 2))).astype(np.float32)
+    base += np.random.default_rng(0).normal(0, 1e-3, base.shape).astype(np.float32)
+    dx, margin = np.float32(sim._dx), sim.escape_cells
+    for step_cells in (0.0, 6.0):
+        hist = np.stack([base] * sim.t_in)
+        hist[-1, 0, 0] = sim._lo[0]  # on the left wall
+        hist[-2, 0, 0] = sim._lo[0] + step_cells * dx  # coming from the right at step_cells per step
+        for beyond, verdict in ((step_cells + margin - 0.1, None), (step_cells + margin + 1.0, "escaped")):
+            sim._history = hist
+            x = hist[-1].copy()
+            x[0, 0] = sim._lo[0] - beyond * dx
+            # the energy check alone would not fire: a single particle's kinetic energy
+            assert sim._failure(x) == verdict, (step_cells, beyond)
+
+
 def test_a_rejected_network_step_ends_the_network_alone_unchanged():
     sim = NeuralSimulator(make_scene("water2d", seed=3), _Exploding(shipped_model("water2d")), mpm_threads=1)
     ro = rollout(sim, 100)

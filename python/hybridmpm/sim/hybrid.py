@@ -19,8 +19,9 @@ Control (``r_c`` threshold, ``δ`` window, ``dwell``):
 
 Failure handling (always on, whatever ``r_c``): a neural step that predicts a
 non-finite position, moves a particle more than ``escape_cells`` cells (default
-4) beyond the model's domain bounds (a working water2d model overshoots the
-walls by at most 2.7 cells before clipping: 3 seeds × 1000 frames), raises the
+4) beyond the model's domain bounds farther than its own last step carries it
+(a particle on a wall keeps its speed for one step before the wall clips it;
+:mod:`hybridmpm.sim.neural`), raises the
 kinetic energy above ``ke_factor`` × the energy available at the start
 (kinetic + potential above the floor), or packs the particles so that their
 mean number of neighbours within R exceeds ``degree_factor`` (2) × that of the
