@@ -13,10 +13,22 @@ with the scenes it serves stamped into its metadata, writes the model card
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 from pathlib import Path
 
 MODELS = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models"
+
+
+def _core_hours(run: Path, step: int) -> float | None:
+    """The training's CPU time up to ``step`` from the run's ``log.csv`` (copied beside the candidate), if it has one."""
+    log = run / "log.csv"
+    if not log.exists():
+        return None
+    with open(log, newline="") as f:
+        rows = {int(r["step"]): r for r in csv.DictReader(f)}
+    row = rows.get(step)
+    return float(row["core_seconds"]) / 3600 if row and row.get("core_seconds") else None
 
 
 def main() -> None:
@@ -78,14 +90,25 @@ def main() -> None:
             *([f"--ema {train_cfg['ema']}"] if train_cfg.get("ema") else []),
             *([f"--unroll {train_cfg['unroll']} --unroll-after {train_cfg['unroll_after']}"] if train_cfg.get("unroll", 1) > 1 else []),
             *([f"--wall-reach {train_cfg['wall_reach']:g}"] if train_cfg.get("wall_reach", 1.0) != 1.0 else []),
+            *([f"--grid {train_cfg['grid']} --grid-width {train_cfg['grid_width']} --grid-levels {train_cfg['grid_levels']}"] if train_cfg.get("grid") else []),
             *([f"--seed {train_cfg['seed']}"] if train_cfg.get("seed") else []),
             "--threads 1",
         ]
     )
+    branch = meta.get("grid_branch")
+    core_h = _core_hours(a.models_dir / chosen["model"], meta["steps"])
     lines = [
         f"# Model card: `{a.scene}.onnx` ({chosen['model']})",
         "",
-        f"GNS (paper App. A) for `{a.scene}`" + (f", also serving {', '.join(f'`{s}`' for s in a.serves)}" if a.serves else "") + ".",
+        (
+            f"GNS (paper App. A) with a grid branch ({branch['grid']}^{meta['dim']} grid, U-Net width {branch['width']}, {branch['levels']} levels; "
+            "docs/neural.md, The grid branch)"
+            if branch
+            else "GNS (paper App. A)"
+        )
+        + f" for `{a.scene}`"
+        + (f", also serving {', '.join(f'`{s}`' for s in a.serves)}" if a.serves else "")
+        + ".",
         f"Chosen by `benchmarks/ship_model.py`: the fewest parameters among the candidates whose validation rollout error is within "
         f"{a.tolerance:.0%} of the best ({best:.3f}) among {len(rows)} candidate(s). {a.note}".rstrip(),
         "",
@@ -100,7 +123,9 @@ def main() -> None:
         f"batch {train_cfg['batch']} windows, Adam lr {train_cfg['lr']} → decayed ×0.1.",
         "",
         "## Training",
-        f"{meta['steps']} steps in {meta['train_seconds']:.0f} s on one CPU thread (2-core machine): "
+        f"{meta['steps']} steps in {meta['train_seconds']:.0f} s on one CPU thread (2-core machine"
+        + (f"; {core_h:.3f} core-hours" if core_h is not None else "")
+        + "): "
         + (f"the step-{meta['steps']} snapshot of " if meta["steps"] != run_steps else "")
         + f"`{train_command}` {how_trained}",
         "",

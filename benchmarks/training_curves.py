@@ -1,4 +1,4 @@
-"""Training curves of GNS runs: rollout error of each snapshot against training step and wall time.
+"""Training curves of GNS runs: rollout error of each snapshot against training step and core-hours.
 
 For every run directory (``hybridmpm train`` output with ``snapshots/``, on by
 default, and ``log.csv``), every ``--every``-th snapshot is scored by
@@ -7,10 +7,10 @@ default, and ``log.csv``), every ``--every``-th snapshot is scored by
 after the MPM warm-up, over a ``--frames`` rollout, grid-mass error (docs/design.md)
 against full-resolution MPM, with MPM at ``r_p`` on the same initial
 conditions as the floor. The run's own validation one-step loss and wall time
-come from its ``log.csv``.
+come from its ``log.csv`` (core-hours: its ``core_seconds``, the CPU time of the training processes).
 
 Writes ``OUT.md`` (one table per run, and each run's best snapshot), ``OUT.json``
-and ``OUT.png`` (rollout error against step and against wall hours; one-step
+and ``OUT.png`` (rollout error against step and against core-hours; one-step
 validation loss against step).
 
     python benchmarks/training_curves.py --data data/water2d_rp --runs runs/water2d_a runs/water2d_b --every 5 --out benchmarks/results/curves_water2d
@@ -74,6 +74,7 @@ def main() -> None:
                 {
                     "step": step,
                     "wall_h": float(lg["elapsed_s"]) / 3600 if "elapsed_s" in lg else None,
+                    "core_h": float(lg["core_seconds"]) / 3600 if lg.get("core_seconds") else None,
                     "val_one_step": float(lg["val_one_step"]) if "val_one_step" in lg else None,
                     "rollout_mean": float(np.mean(m["rollout_mean"])),
                     "rollout_last": float(np.mean(m["rollout_last"])),
@@ -101,13 +102,14 @@ def main() -> None:
             f"(the trivial model): {r['still_mean']:.3f}. Best snapshot: step {best['step']}, "
             f"{best['rollout_mean']:.3f} ({best['rollout_mean'] / r['mpm_rp_mean']:.2f}× MPM at r_p).",
             "",
-            "| step | wall h | val one-step loss | rollout error mean | last | one-step error |",
-            "|---|---|---|---|---|---|",
+            "| step | wall h | core h | val one-step loss | rollout error mean | last | one-step error |",
+            "|---|---|---|---|---|---|---|",
         ]
         for s in r["snapshots"]:
             wall = f"{s['wall_h']:.2f}" if s["wall_h"] is not None else "—"
+            core = f"{s['core_h']:.3f}" if s.get("core_h") is not None else "—"
             v1 = f"{s['val_one_step']:.3f}" if s["val_one_step"] is not None else "—"
-            lines.append(f"| {s['step']} | {wall} | {v1} | {s['rollout_mean']:.3f} | {s['rollout_last']:.3f} | {s['one_step']:.3f} |")
+            lines.append(f"| {s['step']} | {wall} | {core} | {v1} | {s['rollout_mean']:.3f} | {s['rollout_last']:.3f} | {s['one_step']:.3f} |")
     a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -121,7 +123,8 @@ def main() -> None:
         s = r["snapshots"]
         name = Path(run).name
         ax[0].plot([x["step"] for x in s], [x["rollout_mean"] for x in s], "o-", ms=3, label=name)
-        wall = [(x["wall_h"], x["rollout_mean"]) for x in s if x["wall_h"] is not None]
+        # core-hours (CPU time of the training process) where the log has them, else wall hours
+        wall = [(x["core_h"] if x.get("core_h") is not None else x["wall_h"], x["rollout_mean"]) for x in s if x["wall_h"] is not None]
         if wall:
             ax[1].plot(*zip(*wall), "o-", ms=3, label=name)
         v1 = [(x["step"], x["val_one_step"]) for x in s if x["val_one_step"] is not None]
@@ -136,7 +139,7 @@ def main() -> None:
             ax[k].axhline(float(np.mean(still)), color="grey", ls="-.", lw=1, label="particles held still")
         ax[k].set_ylabel("rollout grid-mass error (mean)")
     ax[0].set_xlabel("training step")
-    ax[1].set_xlabel("wall time [h, one CPU thread]")
+    ax[1].set_xlabel("training cost [core-hours; wall hours for logs without core_seconds]")
     ax[2].set_xlabel("training step")
     ax[2].set_ylabel("validation one-step loss")
     ax[0].legend(fontsize=7)
