@@ -31,12 +31,9 @@ from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import METADATA_KEY
+from hybridmpm.neural.grid_nodes import MASS_FLOOR, grid_geometry, wall_mask
 from hybridmpm.neural.runtime import GnsRuntime
 
-#: Smallest node mass (in particle counts) a grid velocity is divided by: a
-#: node of less weighs less than this in every particle's g2p, so the floor
-#: biases nothing a particle reads (a rigid translation is reproduced exactly).
-MASS_FLOOR = 1e-6
 #: ``kind`` of a grid model in its metadata (GNS files have none).
 GRID_KIND = "grid"
 #: The U-Net's input and output names.
@@ -56,27 +53,6 @@ def read_metadata(session: Any, path: Path) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise InvalidInputError(f"model: the '{METADATA_KEY}' metadata of {path} is not a JSON object", "model")
     return meta
-
-
-def grid_geometry(bounds: np.ndarray, grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(origin [D], spacing [D])`` float32 of a model's grid: nodes at
-    ``origin + i·spacing``, ``spacing = (hi − lo)/(G − 3)``, ``origin = lo − spacing``
-    (:func:`hybridmpm.train.grid.grid_geometry`, in float32 as torch computes it)."""
-    b = np.asarray(bounds, np.float32)
-    spacing = ((b[:, 1] - b[:, 0]) / np.float32(grid - 3)).astype(np.float32)
-    return (b[:, 0] - spacing).astype(np.float32), spacing
-
-
-def wall_mask(bounds: np.ndarray, grid: int) -> np.ndarray:
-    """The mask channel of the nodes beyond the walls, float32 [1, 1, G^D...]
-    (1 outside ``bounds`` [[lo, hi]] * D, 0 inside), on :func:`grid_geometry`'s nodes."""
-    b = np.asarray(bounds, np.float32)
-    d = b.shape[0]
-    origin, spacing = grid_geometry(b, grid)
-    axes = [origin[k] + spacing[k] * np.arange(grid, dtype=np.float32) for k in range(d)]
-    mesh = np.stack(np.meshgrid(*axes, indexing="ij"))
-    outside = np.any((mesh < b[:, 0].reshape(d, *[1] * d)) | (mesh > b[:, 1].reshape(d, *[1] * d)), axis=0)
-    return np.asarray(outside, np.float32)[None, None]
 
 
 class GridRuntime:
@@ -296,4 +272,4 @@ def open_model(path: str | Path, threads: int = 1) -> GnsRuntime | GridRuntime:
     return GnsRuntime(path, threads=threads)
 
 
-__all__ = ["GRID_INPUT", "GRID_KIND", "GRID_OUTPUT", "GridRuntime", "grid_geometry", "model_kind", "open_model", "read_metadata"]
+__all__ = ["GRID_INPUT", "GRID_KIND", "GRID_OUTPUT", "MASS_FLOOR", "GridRuntime", "grid_geometry", "model_kind", "open_model", "read_metadata", "wall_mask"]

@@ -26,7 +26,7 @@ from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT
-from hybridmpm.neural.grid import MASS_FLOOR, grid_geometry, wall_mask
+from hybridmpm.neural.grid_nodes import MASS_FLOOR, grid_geometry, wall_mask
 
 #: The branch U-Net's input and output names.
 BRANCH_INPUT, BRANCH_OUTPUT = "grid", "context"

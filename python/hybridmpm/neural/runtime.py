@@ -23,6 +23,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.neural import fused
 from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT, FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
+from hybridmpm.neural.grid_branch import GridBranchRuntime
 
 
 @functools.lru_cache(maxsize=32)
@@ -188,8 +189,6 @@ class GnsRuntime:
         if (BRANCH_KEY in self.meta) != (CONTEXT_INPUT in self.input_names):
             raise InvalidInputError(f"model.{BRANCH_KEY}: {self.path.name} has a grid branch in its metadata or its graph, not both", f"model.{BRANCH_KEY}")
         if BRANCH_KEY in self.meta:
-            from hybridmpm.neural.grid_branch import GridBranchRuntime  # imports the grid model's runtime, which imports this module
-
             self.branch = GridBranchRuntime(self.meta[BRANCH_KEY], self.meta, max(threads, 1) if threads else 0)
         if threads != 1 and "in_edges" not in self.input_names:
             warnings.warn(

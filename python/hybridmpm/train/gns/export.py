@@ -73,7 +73,7 @@ def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> 
         **metadata,
     }
     meta["graph"] = GRAPH_LAYOUT
-    if model.branch is not None:
+    if getattr(model, "branch", None) is not None:  # a model class from before the grid branch has no such attribute
         meta[BRANCH_KEY] = branch_metadata(model)
     else:
         meta.pop(BRANCH_KEY, None)

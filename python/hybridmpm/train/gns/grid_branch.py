@@ -33,8 +33,8 @@ import torch
 from torch import nn
 
 from hybridmpm.conventions import GNS_KINEMATIC
-from hybridmpm.neural.grid import MASS_FLOOR
 from hybridmpm.neural.grid_branch import branch_channels
+from hybridmpm.neural.grid_nodes import MASS_FLOOR
 from hybridmpm.train.grid import UNet, g2p, grid_geometry, p2g, stencil
 
 
