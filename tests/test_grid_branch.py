@@ -207,3 +207,16 @@ def test_bad_grid_settings_are_refused_naming_the_field(field, value):
     with pytest.raises(InvalidInputError) as e:
         cfg.validate()
     assert e.value.field == field
+
+
+def test_the_shipped_branch_model_steps_an_empty_cloud():
+    """water_sand2d ships a GNS with a grid branch; an empty cloud (a session whose
+    particles all left, or a fuzzed input) gives empty outputs, not a reshape error."""
+    from hybridmpm.models import shipped_model
+    from hybridmpm.neural import GnsRuntime
+
+    model = GnsRuntime(shipped_model("water_sand2d"))
+    assert model.branch is not None
+    hist = np.zeros((model.t_in, 0, model.dim), np.float32)
+    acc, nxt, _ = model.predict(hist, np.zeros(0, np.int64))
+    assert acc.shape == (0, model.dim) and nxt.shape == (0, model.dim)

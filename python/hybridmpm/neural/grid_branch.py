@@ -91,7 +91,7 @@ class GridBranchRuntime:
         pt = np.asarray(particle_type)
         n, d, g = h.shape[1], self.dim, self.grid
         x = np.ascontiguousarray(np.clip(h[-1], self._lo, self._hi), np.float32)
-        vel = ((h[1:] - h[:-1]).transpose(1, 0, 2).reshape(n, -1) - self.vel_mean) / self.vel_std  # [N, (t_in-1)·D]
+        vel = ((h[1:] - h[:-1]).transpose(1, 0, 2).reshape(n, (h.shape[0] - 1) * d) - self.vel_mean) / self.vel_std  # [N, (t_in-1)·D]; N may be 0
         fluid = (pt != GNS_KINEMATIC).astype(np.float32)[:, None]
         cols = [(pt == t).astype(np.float32)[:, None] for t in self.types] + [1.0 - fluid, fluid, vel * fluid]
         values = np.ascontiguousarray(np.concatenate(cols, axis=1), np.float32)
