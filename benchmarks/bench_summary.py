@@ -39,8 +39,8 @@ def main(argv: list[str]) -> int:
     root = Path(argv[0] if argv else "benchmarks/results/bench")
     dirs = sorted(d for d in root.iterdir() if (d / "results.csv").is_file())
     out = [
-        "| scene | seeds × frames | MPM full ms/frame | MPM r_p error / ms | neural (shipped) error / ms | neural r_p = r_t = 1 error / ms | hybrid r_c = 0.8 error / ms (MPM share) | Pareto front (fastest first) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scene | seeds × frames | MPM full ms/frame | MPM r_p error / ms | neural (shipped) error / ms | neural r_p = r_t = 1 error / ms | hybrid r_c = 0.8 error / ms (MPM share) | hybrid default: rule, error / ms (MPM share), vs MPM r_p | Pareto front (fastest first) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in dirs:
         rows = scene_rows(d / "results.csv")
@@ -53,11 +53,17 @@ def main(argv: list[str]) -> int:
         full = next((r for r in rows if r["role"] == "full"), None)
         hyb = k.get("hybrid_rc0.8")
         hyb_cell = "–" if hyb is None else f"{cell('hybrid_rc0.8')} ({100 * hyb['mpm_share']:.0f}%)"
+        dflt, lo = k.get("hybrid_default"), k["mpm_rp"]
+        dflt_cell = (
+            "–" if dflt is None else
+            f"{dflt['label'].split('(', 1)[-1].rstrip(')')}: {cell('hybrid_default')} ({100 * dflt['mpm_share']:.0f}%), "
+            f"{dflt['error_mean'] / lo['error_mean']:.2f}× / {dflt['ms_mean'] / lo['ms_mean']:.2f}×"
+        )  # fmt: skip
         front = sorted((r for r in rows if r.get("pareto")), key=lambda r: r["ms_mean"])
         out.append(
             f"| {d.name} | {k['mpm_full']['seeds']} × {k['mpm_full']['frames']} | {k['mpm_full']['ms_mean']:.2f} | {cell('mpm_rp')} | {cell('neural')} | "
             f"{'–' if full is None else cell(full['key'])} | "
-            f"{hyb_cell} | {'; '.join(r['label'] for r in front)} |"
+            f"{hyb_cell} | {dflt_cell} | {'; '.join(r['label'] for r in front)} |"
         )
     out += [
         "",

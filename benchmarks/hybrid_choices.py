@@ -53,6 +53,15 @@ VARIANTS: list[tuple[str, dict | None]] = [
     ("audit tol 1 g", {"audit_tol": 1.0}),
     ("audit tol 2 g", {"audit_tol": 2.0}),
     ("audit tol 3 g", {"audit_tol": 3.0}),
+    ("rule paper", {"safeguard": "paper"}),
+    ("rule error", {"safeguard": "error"}),
+    ("rule error, tol 0.5 g", {"safeguard": "error", "audit_tol": 0.5}),
+    ("rule error, tol 2 g", {"safeguard": "error", "audit_tol": 2.0}),
+    ("rule error, tol 3 g", {"safeguard": "error", "audit_tol": 3.0}),
+    ("rule error, tol 5 g", {"safeguard": "error", "audit_tol": 5.0}),
+    ("rule error, residual 0.25 g", {"safeguard": "error", "residual_tol": 0.25}),
+    ("rule error, residual 1 g", {"safeguard": "error", "residual_tol": 1.0}),
+    ("rule error, interval 4", {"safeguard": "error", "audit_max": 4}),
     ("MPM at r_p", None),
 ]
 

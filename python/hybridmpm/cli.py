@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.control.diffusion import SAMPLE_STEPS
-from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, R_C, T_CTR
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, AUDIT_TOL, R_C, RESIDUAL_TOL, SAFEGUARD, SAFEGUARDS, T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.trajectory import Trajectory
@@ -107,7 +107,7 @@ def _simulate(args: argparse.Namespace) -> int:
     out = _out_dir(args.out)
     sim = make_simulator(
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
-        seed=args.seed, threads=args.threads,
+        safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
@@ -137,7 +137,10 @@ def _simulate(args: argparse.Namespace) -> int:
         summary["warmup_mpm_frames"] = warmup_frames(model)
         summary["neural_steps"] = steps[NEURAL]
     if args.solver == "hybrid":
-        summary.update({"r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every, "audit_tol": sim.audit_tol})  # type: ignore[attr-defined]
+        summary.update(
+            {"safeguard": sim.safeguard, "r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every,  # type: ignore[attr-defined]
+             "audit_tol": sim.audit_tol, "residual_tol": sim.residual_tol, "audit_max": sim.audit_max}  # type: ignore[attr-defined]
+        )  # fmt: skip
     err = None
     if args.reference:
         t0 = time.perf_counter()
@@ -196,11 +199,18 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
 
 def _bench_kwargs(args: argparse.Namespace) -> dict:
     # import time: loaded by this command only
-    from hybridmpm.bench import R_C_SWEEP
+    from hybridmpm.bench import ERROR_TOL_SWEEP, R_C_SWEEP
 
-    r_cs = R_C_SWEEP if args.r_c is None else tuple(float(x) for x in args.r_c.split(","))
+    def numbers(field: str, text: str) -> tuple[float, ...]:
+        try:
+            return tuple(float(x) for x in text.split(",") if x.strip())
+        except ValueError:
+            raise HybridMpmError(f"{field}: expected comma-separated numbers, got {text!r}") from None
+
+    r_cs = R_C_SWEEP if args.r_c is None else numbers("r_c", args.r_c)
+    tols = ERROR_TOL_SWEEP if args.error_tols is None else numbers("error_tols", args.error_tols)
     return {
-        "frames": args.frames, "r_cs": r_cs, "model": args.model, "variants": not args.no_variants,
+        "frames": args.frames, "r_cs": r_cs, "error_tols": tols, "model": args.model, "variants": not args.no_variants,
         "extra_models": tuple(args.extra_model or ()), "warmup": args.warmup, "mpm_threads": args.threads, "nn_threads": args.nn_threads,
         "nn_alone_threads": args.nn_alone_threads,
     }  # fmt: skip
@@ -521,6 +531,14 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")
     sim.add_argument("--audit-tol", type=float, default=None, help=f"hybrid: MPM audit tolerance in g (default {AUDIT_TOL:g})")
+    sim.add_argument(
+        "--safeguard", default=None, choices=list(SAFEGUARDS),
+        help=f"hybrid: switching rule (default {SAFEGUARD}: s(t) and the MPM audit; paper: s(t) alone; error: an audit whose interval adapts, no s(t); docs/hybrid.md)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--residual-tol", type=float, default=None, help=f"hybrid, error rule: density residual in g that brings the audit forward (default {RESIDUAL_TOL:g})"
+    )
+    sim.add_argument("--audit-max", type=int, default=None, help=f"hybrid, error rule: longest interval between audits in network steps (default {AUDIT_MAX})")
     sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
     sim.add_argument(
         "--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)"
@@ -595,6 +613,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("scene", choices=sorted(DOMAINS), help="registered scene")
         p.add_argument("--frames", type=int, default=None, help="frames per rollout (default: the paper's T of the scene)")
         p.add_argument("--r-c", default=None, help="comma-separated hybrid thresholds (default 0,0.1,...,0.9)")
+        p.add_argument("--error-tols", default=None, help="comma-separated audit tolerances [g] of the hybrid's error rule (default 0.5,1,2,3,5; '' = none)")
         p.add_argument("--model", default=None, help="the hybrid's ONNX model (default: the shipped model of the scene)")
         p.add_argument("--extra-model", action="append", help="another ONNX model to run alone (repeatable)")
         p.add_argument("--no-variants", action="store_true", help="skip the shipped variant networks (full-resolution, spatial-/temporal-only)")

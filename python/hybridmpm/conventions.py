@@ -59,6 +59,19 @@ AUDIT_EVERY = 4
 #: MPM audit tolerance [g]: RMS one-step acceleration difference between the
 #: network and MPM from the same state above which MPM takes over.
 AUDIT_TOL = 1.0
+#: The hybrid's switching rules (docs/hybrid.md "Switching rules"): "paper", the
+#: complexity score s(t) alone (paper Sec. 3.1.2); "audit", s(t) plus the MPM
+#: audit every AUDIT_EVERY network steps; "error", the network's error alone:
+#: an MPM audit whose interval adapts to the measured disagreement, brought
+#: forward by the step's density residual.
+SAFEGUARDS: tuple[str, ...] = ("audit", "error", "paper")
+#: The rule HybridSimulator runs by default.
+SAFEGUARD = "audit"
+#: "error" rule: the longest interval [network steps] between two audits.
+AUDIT_MAX = 16
+#: "error" rule: a step whose density residual (the RMS correction of the
+#: density relaxation, as an acceleration in g) exceeds this is audited at once.
+RESIDUAL_TOL = 0.5
 
 # ----------------------------------------------------------------- the network's failure checks
 #: A network step fails ("energy") when it raises the kinetic energy above this
@@ -78,6 +91,7 @@ SPLITS: tuple[str, ...] = ("train", "valid", "test")
 
 __all__ = [
     "AUDIT_EVERY",
+    "AUDIT_MAX",
     "AUDIT_TOL",
     "CONNECTIVITY_RADIUS",
     "DEFAULT_N_GRID",
@@ -94,7 +108,10 @@ __all__ = [
     "MATERIALS",
     "MATERIAL_SAND",
     "MATERIAL_WATER",
+    "RESIDUAL_TOL",
     "R_C",
+    "SAFEGUARD",
+    "SAFEGUARDS",
     "SPLITS",
     "T_CTR",
     "T_IN",

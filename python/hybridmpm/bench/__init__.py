@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.bench import report
-from hybridmpm.bench.methods import R_C_SWEEP, Method, methods_for
+from hybridmpm.bench.methods import ERROR_TOL_SWEEP, R_C_SWEEP, Method, methods_for
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
 from hybridmpm.bench.tune import choose, write_tuned
@@ -42,6 +42,7 @@ def bench(
     frames: int | None = None,
     out: str | Path | None = None,
     r_cs: tuple[float, ...] = R_C_SWEEP,
+    error_tols: tuple[float, ...] = ERROR_TOL_SWEEP,
     model: str | Path | None = None,
     variants: bool = True,
     extra_models: tuple[str | Path, ...] = (),
@@ -59,7 +60,8 @@ def bench(
 
     ``seeds`` initial conditions (default: 3 held-out seeds from
     :data:`TEST_SEED0`); ``frames`` per rollout (default: the paper's T);
-    ``r_cs`` hybrid thresholds; ``model`` the hybrid's network (default: the
+    ``r_cs`` hybrid thresholds (the "audit" rule), ``error_tols`` the
+    "error" rule's audit tolerances [g] (docs/hybrid.md); ``model`` the hybrid's network (default: the
     shipped one); ``variants`` include the shipped variant networks;
     ``extra_models`` more ONNX files run alone; ``mpm_threads`` MPM threads
     (0 = all cores); ``nn_threads`` onnxruntime threads of the hybrid,
@@ -76,7 +78,7 @@ def bench(
     if len(set(seeds)) != len(seeds):
         raise InvalidInputError("seeds: must be distinct", "seeds")
     cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads, nn_alone_threads).validate()
-    methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models)
+    methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models, error_tols=error_tols)
     out = Path(out) if out is not None else Path("runs/bench") / scene
     stride = max(m.r_t for m in methods)
     cells = [report.on_common_frames(c, stride) for c in run_bench(cfg, methods, out, progress=progress)]
@@ -90,10 +92,12 @@ def bench(
     report.plot_pareto(out / "pareto.png", rows, title)
     files = {"pareto.png": "error against latency, every method"}
     # error over time, first seed: the shipped neural model, MPM at r_p and the hybrid nearest trajectory_r_c
-    hyb = [m for m in methods if m.kind == "hybrid"]
+    hyb = [m for m in methods if m.key.startswith("hybrid_rc")]
     traj_keys = ["neural", "mpm_rp"]
     if hyb:
         traj_keys.append(min(hyb, key=lambda m: abs(float(m.r_c or 0) - trajectory_r_c)).key)
+    if any(m.key == "hybrid_default" for m in methods):
+        traj_keys.append("hybrid_default")
     by = {c["method"]: c for c in cells if c["seed"] == seeds[0]}
     labels = {m.key: m.label for m in methods}
     report.plot_error_trajectory(
@@ -109,7 +113,9 @@ def bench(
         "rows": rows,
         "cells": cells,
         "pareto": [r["label"] for r in sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_mean"])],
-        "files": [str(out / f) for f in ("results.csv", "threshold_sweep.csv", "pareto.png", "pareto.svg", "error_trajectory.png", "report.md")],
+        "files": [
+            str(out / f) for f in ("results.csv", "threshold_sweep.csv", "error_sweep.csv", "pareto.png", "pareto.svg", "error_trajectory.png", "report.md")
+        ],
         "out": str(out),
     }
 
@@ -145,6 +151,6 @@ def tune(
 
 
 __all__ = [
-    "R_C_SWEEP", "TEST_SEED0", "VALID_SEED0", "BenchConfig", "Method", "aggregate", "bench", "choose", "default_frames",
+    "ERROR_TOL_SWEEP", "R_C_SWEEP", "TEST_SEED0", "VALID_SEED0", "BenchConfig", "Method", "aggregate", "bench", "choose", "default_frames",
     "load_tuned", "methods_for", "pareto_front", "tune", "tuned_path",
 ]  # fmt: skip

@@ -14,12 +14,15 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.models import shipped_model, variant_models
+from hybridmpm.models import shipped_model, shipped_switching, variant_models
 from hybridmpm.neural.grid import open_model
 
 #: Hybrid thresholds of the sweep (paper Table 2).
 R_C_SWEEP = tuple(round(0.1 * i, 1) for i in range(10))
+#: Audit tolerances [g] of the "error" rule's sweep (docs/hybrid.md "Switching rules").
+ERROR_TOL_SWEEP = (0.5, 1.0, 2.0, 3.0, 5.0)
 
 #: Method kinds.
 KINDS = ("mpm", "neural", "hybrid")
@@ -43,7 +46,9 @@ class Method:
     spatial and ``r_t`` temporal downsampling; ``r_c`` the hybrid threshold
     (None otherwise); ``role`` "reference", "mpm_rp", "full", "spatial",
     "temporal", "lowres" (the shipped model), "size" (another network size)
-    or "hybrid"; ``params`` network parameters (0 for MPM).
+    or "hybrid"; ``params`` network parameters (0 for MPM); ``safeguard``
+    the hybrid's switching rule (:data:`~hybridmpm.conventions.SAFEGUARDS`;
+    None: the default) and ``audit_tol`` its audit tolerance [g] (None: the default).
     """
 
     key: str
@@ -55,6 +60,8 @@ class Method:
     model: str | None = None
     role: str = "reference"
     params: int = 0
+    safeguard: str | None = None
+    audit_tol: float | None = None
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -79,13 +86,19 @@ def methods_for(
     model: str | Path | None = None,
     variants: bool = True,
     extra_models: tuple[str | Path, ...] = (),
+    error_tols: tuple[float, ...] = ERROR_TOL_SWEEP,
 ) -> list[Method]:
     """The methods of a benchmark of registered scene ``scene``.
 
     ``model`` the hybrid's network (default: the shipped model of the scene);
     its ``r_p`` is the resolution of "MPM at r_p". ``variants`` adds the
     shipped variants of the scene (:func:`hybridmpm.models.variant_models`),
-    ``extra_models`` more ONNX files, each run alone. Raises
+    ``extra_models`` more ONNX files, each run alone; the hybrid at each
+    ``r_cs`` (the "audit" rule), the paper's rule at ``r_c`` = 0.8, the
+    "error" rule at each audit tolerance of ``error_tols`` [g], and the
+    hybrid as ``hybridmpm simulate`` runs it by default (key
+    ``hybrid_default``: the rule shipped with the scene's model, else the
+    defaults). Raises
     :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
     """
 
@@ -109,5 +122,29 @@ def methods_for(
         out.append(Method(f"neural_{name}", "neural", label, vr_p, vr_t, model=str(path), role=role, params=vparams))
     out.append(Method("neural", "neural", f"neural r_p = {r_p:.3g}, r_t = {r_t} (shipped)", r_p, r_t, model=str(main), role="lowres", params=params))
     for r in r_cs:
-        out.append(Method(f"hybrid_rc{float(r):.1f}", "hybrid", f"hybrid r_c = {float(r):.1f}", r_p, r_t, float(r), str(main), "hybrid", params))
+        out.append(Method(f"hybrid_rc{float(r):.1f}", "hybrid", f"hybrid r_c = {float(r):.1f}", r_p, r_t, float(r), str(main), "hybrid", params, "audit"))
+    if r_cs:
+        out.append(Method("hybrid_paper", "hybrid", f"hybrid, paper's rule (s(t) alone), r_c = {R_C:g}", r_p, r_t, R_C, str(main), "hybrid", params, "paper"))
+    rule = shipped_switching(scene) if model is None else {}
+    safeguard, tol0 = rule.get("safeguard", SAFEGUARD), rule.get("audit_tol", AUDIT_TOL)
+    name = f"error rule, tol {float(tol0):g} g" if safeguard == "error" else ("s(t) + audit" if safeguard == "audit" else "s(t) alone")
+    out.append(Method("hybrid_default", "hybrid", f"hybrid, default ({name})", r_p, r_t, R_C, str(main), "hybrid", params, safeguard, float(tol0)))
+    for tol in error_tols:
+        if not (0.0 < float(tol) <= 100.0):
+            raise InvalidInputError(f"audit_tol: tolerances must lie in (0, 100] g, got {tol!r}", "audit_tol")
+        out.append(
+            Method(
+                f"hybrid_err{float(tol):g}",
+                "hybrid",
+                f"hybrid, error rule, tol {float(tol):g} g",
+                r_p,
+                r_t,
+                R_C,
+                str(main),
+                "hybrid",
+                params,
+                "error",
+                float(tol),
+            )
+        )
     return out

@@ -1,5 +1,5 @@
 """Tables, charts and the report of a benchmark run (paper Fig. 5, Fig. 7,
-Table 2): ``results.csv``, ``threshold_sweep.csv``, ``pareto.png|svg``,
+Table 2): ``results.csv``, ``threshold_sweep.csv``, ``error_sweep.csv``, ``pareto.png|svg``,
 ``error_trajectory.png`` and ``report.md``."""
 
 from __future__ import annotations
@@ -17,12 +17,14 @@ from hybridmpm.render.timeline import mpm_spans
 
 #: Columns of ``results.csv`` (one row per method × seed).
 RESULT_COLUMNS = (
-    "scene", "method", "label", "kind", "role", "seed", "r_p", "r_t", "r_c", "params", "model", "particles", "frames",
+    "scene", "method", "label", "kind", "role", "seed", "r_p", "r_t", "r_c", "safeguard", "audit_tol", "params", "model", "particles", "frames",
     "frames_done", "failure", "error_mean", "error_last", "ms_median", "ms_p95", "ms_mean", "mpm_share", "switches",
     "substeps_per_frame", "mflop_per_frame", "warmup_frames", "mpm_threads", "nn_threads", "machine", "cores", "hybridmpm", "numpy", "onnxruntime", "python", "commit",
 )  # fmt: skip
 #: Columns of ``threshold_sweep.csv`` (one row per hybrid threshold, means over seeds).
 SWEEP_COLUMNS = ("r_c", "error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "seeds")
+#: Columns of ``error_sweep.csv`` (one row per audit tolerance of the "error" rule, means over seeds).
+ERROR_SWEEP_COLUMNS = ("audit_tol",) + SWEEP_COLUMNS[1:]
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
@@ -100,22 +102,39 @@ def write_results_csv(
             )
             row["failure"] = c["failure"] or ""
             row["r_c"] = "" if m.r_c is None else m.r_c
+            row["safeguard"] = m.safeguard or ""
+            row["audit_tol"] = "" if m.audit_tol is None else m.audit_tol
             row["model"] = Path(m.model).name if m.model else ""
             w.writerow({k: row.get(k, "") for k in RESULT_COLUMNS})
 
 
+def _rc_sweep(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return sorted((r for r in rows if r["kind"] == "hybrid" and str(r["key"]).startswith("hybrid_rc")), key=lambda r: r["r_c"])
+
+
+def _error_sweep(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return sorted((r for r in rows if r["kind"] == "hybrid" and str(r["key"]).startswith("hybrid_err")), key=lambda r: r["audit_tol"])
+
+
 def sweep_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The hybrid rows of :func:`aggregate` as ``threshold_sweep.csv`` rows, by r_c."""
-    hyb = sorted((r for r in rows if r["kind"] == "hybrid"), key=lambda r: r["r_c"])
-    return [{k: r[k] for k in SWEEP_COLUMNS} for r in hyb]
+    """The hybrid rows of :func:`aggregate` at each threshold ``r_c`` (the
+    "audit" rule) as ``threshold_sweep.csv`` rows, by r_c."""
+    return [{k: r[k] for k in SWEEP_COLUMNS} for r in _rc_sweep(rows)]
+
+
+def error_sweep_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The "error" rule's rows of :func:`aggregate` as ``error_sweep.csv`` rows, by audit tolerance."""
+    return [{k: r[k] for k in ERROR_SWEEP_COLUMNS} for r in _error_sweep(rows)]
 
 
 def write_sweep_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=SWEEP_COLUMNS)
-        w.writeheader()
-        for r in sweep_rows(rows):
-            w.writerow(r)
+    """``threshold_sweep.csv`` at ``path`` and ``error_sweep.csv`` beside it."""
+    for p, cols, sweep in ((path, SWEEP_COLUMNS, sweep_rows(rows)), (path.with_name("error_sweep.csv"), ERROR_SWEEP_COLUMNS, error_sweep_rows(rows))):
+        with open(p, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=cols)
+            w.writeheader()
+            for r in sweep:
+                w.writerow(r)
 
 
 _STYLE = {
@@ -152,15 +171,22 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
             label="Pareto front",
             drawstyle="steps-post",
         )
-    hyb = sorted((r for r in rows if r["kind"] == "hybrid"), key=lambda r: r["r_c"])
+    hyb = _rc_sweep(rows)
     if hyb:
-        ax.plot([r["ms_mean"] for r in hyb], [r["error_mean"] for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9")
+        ax.plot(
+            [r["ms_mean"] for r in hyb], [r["error_mean"] for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9 (s(t) + audit)"
+        )
         for r in hyb:
             ax.annotate(f"{r['r_c']:.1f}", (r["ms_mean"], r["error_mean"]), textcoords="offset points", xytext=(4, 3), fontsize=7, color="tab:blue")
+    err = _error_sweep(rows)
+    if err:
+        ax.plot([r["ms_mean"] for r in err], [r["error_mean"] for r in err], "s--", color="tab:cyan", ms=5, zorder=3, label="hybrid, error rule, audit tol [g]")
+        for r in err:
+            ax.annotate(f"{r['audit_tol']:g} g", (r["ms_mean"], r["error_mean"]), textcoords="offset points", xytext=(4, -9), fontsize=7, color="teal")
     for r in rows:
-        if r["kind"] == "hybrid":
+        if str(r["key"]).startswith(("hybrid_rc", "hybrid_err")):
             continue
-        marker, color = _STYLE.get(r["role"], ("o", "tab:green"))
+        marker, color = ("P" if r["key"] == "hybrid_paper" else "X", "tab:blue") if r["kind"] == "hybrid" else _STYLE.get(r["role"], ("o", "tab:green"))
         broke = r["failures"] > 0
         label = r["label"] + (f" — broke off ({r['failures']}/{r['seeds']} seeds, ~{r['frames_done']:.0f} frames)" if broke else "")
         ax.plot(
@@ -265,6 +291,18 @@ def report_markdown(
             "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in sw) + " |",
             "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in sw) + " |",
             "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in sw) + " |",
+        ]
+    es = error_sweep_rows(rows)
+    if es:
+        lines += [
+            "",
+            '## The error rule\'s tolerance sweep (docs/hybrid.md "Switching rules")',
+            "",
+            "| audit tolerance [g] | " + " | ".join(f"{r['audit_tol']:g}" for r in es) + " |",
+            "|---|" + "---|" * len(es),
+            "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in es) + " |",
+            "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in es) + " |",
+            "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in es) + " |",
         ]
     lines += ["", "## Charts", ""]
     for name, cap in files.items():

@@ -128,7 +128,10 @@ def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) ->
         return MpmSimulator(scene, r_p=method.r_p, seed=seed, threads=cfg.mpm_threads)
     if method.kind == "neural":
         return NeuralSimulator(scene, method.model, seed=seed, detect_failures=False, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_alone_threads)
-    return HybridSimulator(scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads)
+    rule: dict[str, Any] = {} if method.safeguard is None else {"safeguard": method.safeguard}
+    if method.audit_tol is not None:
+        rule["audit_tol"] = method.audit_tol
+    return HybridSimulator(scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads, **rule)
 
 
 def collapsed(frame: Any, sim: Any) -> str | None:

@@ -1,6 +1,6 @@
-"""Stress suite: neural-only, MPM-only and hybrid (with and without its MPM
-audit) through the cases where methods fail, over long rollouts
-(``hybridmpm stress SCENE``).
+"""Stress suite: neural-only, MPM-only and the hybrid under each switching
+rule (the score with the MPM audit, the score alone, the error rule) through
+the cases where methods fail, over long rollouts (``hybridmpm stress SCENE``).
 
 Cases (:data:`CASES`), each built from the scene's own spec for a seed:
 
@@ -17,7 +17,8 @@ Per case and method the suite records frames until failure and its mode
 could not finish even with its smallest substep), and the grid-mass error
 (mean and last frame) against full-resolution MPM from the same initial
 condition over the frames simulated; for the hybrid also what its MPM audit
-caught (``fallbacks`` "audit") and what the audit cost per frame.
+caught (``fallbacks`` "audit"), the frame of its first fallback of any kind
+(when the rule first caught the network) and what the audit cost per frame.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from hybridmpm.scenes.core import Scene
 from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 CASES = ("baseline", "fast", "obstacle", "dense")
-METHODS = ("neural", "mpm", "hybrid", "hybrid_noaudit")
+METHODS = ("neural", "mpm", "hybrid", "hybrid_noaudit", "hybrid_error")
 
 
 def case_scene(name: str, case: str, seed: int = 0) -> Scene:
@@ -79,6 +80,7 @@ class StressResult:
     switches: int
     fallbacks: dict[str, int]
     audit_ms_per_frame: float = 0.0
+    first_catch_frame: int | None = None
 
     def row(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -88,7 +90,8 @@ def method_simulator(scene: Scene, method: str, model: GnsRuntime, seed: int = 0
     """The simulator of a stress ``method``: "neural" the network alone (its
     first rejected step ends the rollout), "mpm" MPM alone at the model's
     ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it),
-    "hybrid_noaudit" the same without its MPM audit (``audit_every = 0``)."""
+    "hybrid_noaudit" the same without its MPM audit (``audit_every = 0``: the
+    paper's rule), "hybrid_error" the hybrid under the "error" rule."""
     if method == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads)
     if method == "mpm":
@@ -97,6 +100,8 @@ def method_simulator(scene: Scene, method: str, model: GnsRuntime, seed: int = 0
         return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **kw)
     if method == "hybrid_noaudit":
         return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "audit_every": 0})
+    if method == "hybrid_error":
+        return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "safeguard": "error"})
     raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
 
 
@@ -137,12 +142,13 @@ def stress(
             err = grid_mass_error(ro.fluid_positions, ref[:k], scene.params.resolved_n_grid(), ref_weights=None)
             steps = ro.stats["steps"]
             total = max(1, steps["mpm"] + steps[NEURAL])
+            catches = [k * ro.r_t for k, e in ro.events if e and e.startswith("fallback")]
             results.append(
                 StressResult(
                     name, case, method, ro.num_fluid, frames, ro.frames_done, ro.failure,
                     float(np.mean(err)), float(err[-1]), 1e3 * secs / max(1, ro.frames_done),
                     steps["mpm"] / total, int(ro.stats["switches"]), dict(ro.stats["fallbacks"]),
-                    1e3 * float(ro.stats.get("audit_seconds", 0.0)) / max(1, ro.frames_done),
+                    1e3 * float(ro.stats.get("audit_seconds", 0.0)) / max(1, ro.frames_done), catches[0] if catches else None,
                 )
             )  # fmt: skip
             bar.update()
@@ -153,15 +159,15 @@ def stress(
 def markdown_table(results: list[StressResult]) -> str:
     """The stress results as a markdown table."""
     lines = [
-        "| scene | case | N_l | method | frames until failure | failure | grid-mass error mean | last | ms/frame | of which audit | MPM share | switches | fallbacks |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | case | N_l | method | frames until failure | failure | grid-mass error mean | last | ms/frame | of which audit | MPM share | switches | fallbacks | first caught at frame |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         until = f"{r.frames_done}" if r.failure else f"≥ {r.frames} (none)"
         fb = ", ".join(f"{k} {v}" for k, v in sorted(r.fallbacks.items())) or "–"
         lines.append(
             f"| {r.scene} | {r.case} | {r.particles} | {r.method} | {until} | {r.failure or '–'} | {r.error_mean:.3f} | {r.error_last:.3f} "
-            f"| {r.ms_per_frame:.2f} | {r.audit_ms_per_frame:.2f} | {100 * r.mpm_share:.0f}% | {r.switches} | {fb} |"
+            f"| {r.ms_per_frame:.2f} | {r.audit_ms_per_frame:.2f} | {100 * r.mpm_share:.0f}% | {r.switches} | {fb} | {'–' if r.first_catch_frame is None else r.first_catch_frame} |"
         )
     return "\n".join(lines) + "\n"
 

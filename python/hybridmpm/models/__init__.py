@@ -37,6 +37,19 @@ def shipped_model(scene: str) -> Path:
     return Path(str(resources.files("hybridmpm.models").joinpath(index[scene])))
 
 
+def shipped_switching(scene: str) -> dict:
+    """The switching rule chosen for the shipped model of ``scene``
+    (``switching.json``, written by ``benchmarks/ship_switching.py`` from
+    validation rollouts; docs/hybrid.md "Switching rules"): a dict with
+    ``safeguard`` and ``audit_tol`` [g], or empty where the hybrid's defaults
+    were not beaten (or the file is absent)."""
+    path = resources.files("hybridmpm.models").joinpath("switching.json")
+    if not path.is_file():
+        return {}
+    entry = json.loads(path.read_text()).get(scene, {})
+    return {k: entry[k] for k in ("safeguard", "audit_tol") if k in entry}
+
+
 def variant_models(scene: str) -> list[dict]:
     """The shipped variant networks of ``scene`` that ``hybridmpm bench``
     compares with the shipped model (paper Fig. 5 a-c): each a dict with
@@ -54,4 +67,4 @@ def variant_models(scene: str) -> list[dict]:
     return out
 
 
-__all__ = ["shipped_model", "shipped_models", "variant_models"]
+__all__ = ["shipped_model", "shipped_models", "shipped_switching", "variant_models"]

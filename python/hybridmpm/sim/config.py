@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL, R_C
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, R_C, RESIDUAL_TOL
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.sim.base import Simulator
@@ -22,7 +22,7 @@ SOLVERS = ("hybrid", "mpm", "neural")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
 #: Keys of a configuration (the chosen method) in the tuned file.
-CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params")
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol")
 
 
 def make_simulator(
@@ -35,13 +35,18 @@ def make_simulator(
     dwell: int | None = None,
     audit_every: int | None = None,
     audit_tol: float | None = None,
+    safeguard: str | None = None,
+    residual_tol: float | None = None,
+    audit_max: int | None = None,
     seed: int = 0,
     threads: int = 0,
     nn_threads: int = 1,
     clusters: Clusters | None = None,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
-    the MPM audit's ``audit_every`` and ``audit_tol``; None: the defaults),
+    the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
+    ``safeguard`` and the "error" rule's ``residual_tol`` and ``audit_max``;
+    None: the defaults),
     "mpm" (at ``r_p``) or "neural" (the model alone after its MPM warm-up).
     ``model`` an ONNX path, a :class:`~hybridmpm.neural.GnsRuntime` or None
     (the scene's shipped model); ``threads`` MPM threads (0 = all cores);
@@ -63,7 +68,10 @@ def make_simulator(
         r_c=r_c,
         dwell=DWELL if dwell is None else dwell,
         audit_every=AUDIT_EVERY if audit_every is None else audit_every,
-        audit_tol=AUDIT_TOL if audit_tol is None else audit_tol,
+        audit_tol=audit_tol,  # None: the shipped model's rule or the default (HybridSimulator)
+        safeguard=safeguard,
+        residual_tol=RESIDUAL_TOL if residual_tol is None else residual_tol,
+        audit_max=AUDIT_MAX if audit_max is None else audit_max,
         seed=seed,
         mpm_threads=threads,
         nn_threads=nn_threads,
@@ -100,13 +108,19 @@ def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
 
 def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of a tuned configuration
-    (``solver``, and ``r_p`` or ``model`` and ``r_c``)."""
+    (``solver``, and ``r_p`` or ``model`` and ``r_c``, and the hybrid's
+    ``safeguard`` and ``audit_tol`` where the configuration sets them)."""
     cfg = doc["config"]
     if cfg["kind"] == "mpm":
         return {"solver": "mpm", "r_p": float(cfg["r_p"])}
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
     if cfg["kind"] == "hybrid":
         out["r_c"] = float(cfg["r_c"])
+        # configurations tuned before the switching rules existed have neither: the defaults
+        if cfg.get("safeguard"):
+            out["safeguard"] = str(cfg["safeguard"])
+        if cfg.get("audit_tol") is not None:
+            out["audit_tol"] = float(cfg["audit_tol"])
     return out
 
 

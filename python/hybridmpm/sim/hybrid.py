@@ -50,6 +50,26 @@ is kept (nothing is recomputed), and the hybrid falls back (event
 step at ``r_p`` per ``audit_every`` network steps (``stats.audit_seconds``);
 ``audit_every = 0`` switches it off, and so does ``r_c ≤ 0`` (neural only).
 
+Switching rules (``safeguard``; docs/hybrid.md "Switching rules"):
+
+* ``"audit"`` (default): the complexity score ``s(t)`` against ``r_c`` and
+  the MPM audit every ``audit_every`` network steps, as above;
+* ``"paper"``: the score alone (the paper's rule; no audit);
+* ``"error"``: the network's error alone, the score only reported. The MPM
+  audit runs at a stint's first step and then at an interval that adapts to
+  what it measures: doubled (up to ``audit_max``) after an audit below half
+  of ``audit_tol``, back to 1 after one above it. Every network step also
+  computes its *density residual* — the RMS correction the density
+  relaxation applied to the network's prediction, as an acceleration
+  ``|Δx| / dt_step²`` in ``g`` (``last_residual``): a network that
+  compresses the fluid is being corrected, and a residual above
+  ``residual_tol`` brings the audit forward to this step. Back on MPM, the
+  network takes over again after ``dwell·2^k`` steps (the backoff below),
+  whatever the score.
+
+``r_c ≤ 0`` switches every rule off (the network alone) and ``r_c > 1``
+runs MPM only, whatever the rule.
+
 Control (paper Sec. 3.2): while a ``forcing`` is set the hybrid runs MPM,
 which applies it (a network step in progress hands over first, event
 "switch:mpm"); once it is cleared the usual ``dwell`` rule hands the flow
@@ -72,15 +92,20 @@ import numpy as np
 
 from hybridmpm.conventions import (
     AUDIT_EVERY,
+    AUDIT_MAX,
     AUDIT_TOL,
     DELTA,
     FAILURE_DEGREE_FACTOR,
     FAILURE_ESCAPE_CELLS,
     FAILURE_KE_FACTOR,
     R_C,
+    RESIDUAL_TOL,
+    SAFEGUARD,
+    SAFEGUARDS,
     G,
 )
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.models import shipped_switching
 from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
@@ -151,8 +176,17 @@ class HybridSimulator:
         [m/s²] particles calmer than this count as cos = 1 in s(t).
     audit_every, audit_tol:
         MPM audit of the network (module doc): network steps per audit
-        (default :data:`AUDIT_EVERY`; 0 = off) and tolerance [g] (default
-        :data:`AUDIT_TOL`).
+        (default :data:`AUDIT_EVERY`; 0 = off; the "audit" rule) and
+        tolerance [g] (default :data:`AUDIT_TOL`; the "audit" and "error" rules).
+    safeguard, residual_tol, audit_max:
+        The switching rule, one of :data:`~hybridmpm.conventions.SAFEGUARDS`
+        (module doc). Unset, ``safeguard`` and ``audit_tol`` are those chosen
+        for the scene's shipped model when ``model`` is None
+        (:func:`~hybridmpm.models.shipped_switching`), else
+        :data:`~hybridmpm.conventions.SAFEGUARD` and ``AUDIT_TOL``; and
+        the "error" rule's density-residual trigger [g] (default
+        :data:`~hybridmpm.conventions.RESIDUAL_TOL`) and longest audit
+        interval [network steps] (default :data:`~hybridmpm.conventions.AUDIT_MAX`).
     ke_factor, escape_cells, degree_factor, detect_failures:
         The network's failure checks (:class:`~hybridmpm.sim.neural.NeuralSimulator`).
     relax, rest_percentile:
@@ -184,7 +218,10 @@ class HybridSimulator:
         velocity: str = "last",
         accel_floor: float = ACCEL_FLOOR,
         audit_every: int = AUDIT_EVERY,
-        audit_tol: float = AUDIT_TOL,
+        audit_tol: float | None = None,
+        safeguard: str | None = None,
+        residual_tol: float = RESIDUAL_TOL,
+        audit_max: int = AUDIT_MAX,
         ke_factor: float = FAILURE_KE_FACTOR,
         escape_cells: float = FAILURE_ESCAPE_CELLS,
         degree_factor: float = FAILURE_DEGREE_FACTOR,
@@ -209,9 +246,22 @@ class HybridSimulator:
             isinstance(audit_every, int) and not isinstance(audit_every, bool) and audit_every >= 0,
             f"must be an integer >= 0 (0 = no audit), got {audit_every!r}",
         )
-        _check("audit_tol", _finite(audit_tol) and audit_tol > 0, f"must be > 0 [g], got {audit_tol!r}")
+        _check("residual_tol", _finite(residual_tol) and residual_tol > 0, f"must be > 0 [g], got {residual_tol!r}")
+        _check(
+            "audit_max",
+            isinstance(audit_max, int) and not isinstance(audit_max, bool) and 1 <= audit_max <= 1024,
+            f"must be an integer in [1, 1024] [network steps], got {audit_max!r}",
+        )
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
+        # the shipped model's rule (models/switching.json) where neither setting is given
+        shipped = shipped_switching(scene.name) if model is None and scene.name else {}
+        if safeguard is None:
+            safeguard = shipped.get("safeguard", SAFEGUARD)
+        if audit_tol is None:
+            audit_tol = shipped["audit_tol"] if shipped.get("safeguard") == safeguard and "audit_tol" in shipped else AUDIT_TOL
+        _check("audit_tol", _finite(audit_tol) and audit_tol > 0, f"must be > 0 [g], got {audit_tol!r}")
+        _check("safeguard", safeguard in SAFEGUARDS, f"must be one of {', '.join(map(repr, SAFEGUARDS))}, got {safeguard!r}")
         self.scene_full = scene
         self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.r_c = float(r_c)
@@ -223,6 +273,12 @@ class HybridSimulator:
         self.accel_floor = float(accel_floor)
         self.audit_every = audit_every
         self.audit_tol = float(audit_tol)
+        self.safeguard = safeguard
+        self.residual_tol = float(residual_tol)
+        self.audit_max = audit_max
+        self.last_residual = float("nan")
+        self._interval = 1
+        self._since_audit = 0
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
         self.neural = NeuralSimulator(
             self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
@@ -320,9 +376,33 @@ class HybridSimulator:
         or an audit needs no neural → MPM conversion and loses nothing."""
         return self._frame.solver == MPM
 
-    def _audit_due(self) -> bool:
+    @property
+    def mpm_only(self) -> bool:
+        return self.r_c > 1.0
+
+    def _density_residual(self, proposal: Any) -> float:
+        """The "error" rule's density residual [g] of a proposal: RMS over
+        fluid particles of (relaxed − predicted) / dt_step² (module doc)."""
+        if proposal.positions is None:
+            return float("nan")
+        corr = self.particles.fluid(proposal.positions).astype(np.float64) - self.particles.fluid(proposal.predicted)
+        rms = float(np.sqrt(np.mean(np.sum(corr * corr, axis=1)))) if len(corr) else 0.0
+        return rms / (self.dt_step * self.dt_step) / G
+
+    def _audit_due(self, residual: float) -> bool:
         # the audit belongs to the safeguard: r_c <= 0 (neural only, paper Table 2) switches it off too
-        return self.safeguard_on and self.audit_every > 0 and self._neural_run % self.audit_every == 0
+        if not self.safeguard_on:
+            return False
+        if self.safeguard == "audit":
+            return self.audit_every > 0 and self._neural_run % self.audit_every == 0
+        if self.safeguard == "error":
+            return self._neural_run == 0 or residual > self.residual_tol or self._since_audit + 1 >= self._interval
+        return False
+
+    def _adapt_interval(self, audit: float) -> None:
+        """The "error" rule's audit interval after an audit of ``audit`` [g]: doubled below half the tolerance, else 1."""
+        self._since_audit = 0
+        self._interval = min(2 * self._interval, self.audit_max) if audit <= 0.5 * self.audit_tol else 1
 
     def _audit(self, proposed: np.ndarray) -> tuple[float, Frame]:
         """MPM's step from the state the network started from (converted as a
@@ -362,11 +442,16 @@ class HybridSimulator:
         if ran == NEURAL:
             proposal = self.neural.propose()
             failure = proposal.failure
-            if failure is None and self._audit_due():
+            self.last_residual = self._density_residual(proposal) if self.safeguard == "error" else float("nan")
+            if failure is None and self._audit_due(self.last_residual):
                 assert proposal.positions is not None
                 audit, audited = self._audit(self.particles.fluid(proposal.positions))
+                if self.safeguard == "error":
+                    self._adapt_interval(audit)
                 if not (audit <= self.audit_tol):
                     failure = "audit"
+            elif failure is None:
+                self._since_audit += 1
             if failure is None:
                 pos = self.particles.fluid(self.neural.commit(proposal)).copy()
                 self._neural_run += 1
@@ -395,12 +480,13 @@ class HybridSimulator:
         score = complexity_score(np.stack(self._buffer), self.dt_step, self.delta, self.accel_floor) if self.safeguard_on else float("nan")
         self.last_score = score
         warm = self.step_index >= self.t_in - 1
+        by_score = self.safeguard != "error" or self.mpm_only
         if self.solver_name == NEURAL:
-            if self.safeguard_on and not (score >= self.r_c):
+            if self.safeguard_on and by_score and not (score >= self.r_c):
                 self._fall_back()
                 event = event or "switch:mpm"
         elif warm and not forced:
-            ok = (not self.safeguard_on) or score >= self.r_c
+            ok = (not self.safeguard_on) or (score >= self.r_c if by_score else True)
             self._calm = self._calm + 1 if ok else 0
             # after the warm-up a calm score hands over at once; after a switch it must hold for `dwell`
             # steps, doubled for each failure of the network since its last healthy stint (backoff)
@@ -412,6 +498,7 @@ class HybridSimulator:
                 self._to_neural()
                 self.solver_name = NEURAL
                 self._neural_run = 0
+                self._interval, self._since_audit = 1, 0
                 if self.stats.steps[NEURAL] > 0 or self.stats.switches > 0:
                     self.stats.switches += 1
                     event = event or "switch:neural"
@@ -447,6 +534,8 @@ class HybridSimulator:
             "calm": self._calm,
             "strikes": self._strikes,
             "neural_run": self._neural_run,
+            "interval": self._interval,
+            "since_audit": self._since_audit,
             "step_index": self.step_index,
             "stats": self.stats.to_dict(),
             "last_score": self.last_score,
@@ -478,6 +567,9 @@ class HybridSimulator:
             if solver_name not in (MPM, NEURAL) or frame_solver not in (MPM, NEURAL):
                 raise InvalidInputError(f"state.solver_name: must be {MPM!r} or {NEURAL!r}", "state.solver_name")
             counters = {k: check_count(f"state.{k}", state[k]) for k in ("calm", "strikes", "neural_run")}
+            # the "error" rule's audit schedule (absent from states written before the rule existed)
+            interval = max(1, check_count("state.interval", state.get("interval", 1)))
+            since_audit = check_count("state.since_audit", state.get("since_audit", 0))
             step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
             last_score = state["last_score"]
@@ -490,6 +582,7 @@ class HybridSimulator:
         self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
         self.solver_name = solver_name
         self._calm, self._strikes, self._neural_run = counters["calm"], counters["strikes"], counters["neural_run"]
+        self._interval, self._since_audit = interval, since_audit
         self.step_index = step
         self.stats = stats
         self.last_score = float(last_score)
