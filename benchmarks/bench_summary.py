@@ -82,6 +82,30 @@ def main(argv: list[str]) -> int:
             f"{nn['particles']:.0f}, {nn['mflop_per_frame']:.1f} | {nn['ms_mean']:.2f} | {nn['mflop_per_frame'] / nn['ms_mean']:.1f} | "
             f"{nn['ms_mean'] / f['ms_mean']:.2f} |"
         )
+    out += [
+        "",
+        "Against MPM at r_p from the same starts (ratios of the means over seeds): the network alone (and any extra model), "
+        "and the hybrid as `hybridmpm simulate` runs it by default (`hybrid_default`), with the network's share of its frames.",
+        "",
+        "| scene | seeds | MPM r_p error | network alone: error × | time × | hybrid default (rule) | error × | time × | network's share |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for d in dirs:
+        k = {r["key"]: r for r in scene_rows(d / "results.csv")}
+        lo, nn, dflt = k["mpm_rp"], k["neural"], k.get("hybrid_default")
+        extra = "".join(
+            f" ({key[len('neural_') :]}: {r['error_mean'] / lo['error_mean']:.2f}, time {r['ms_mean'] / lo['ms_mean']:.2f})"
+            for key, r in k.items()
+            if key.startswith("neural_") and r["role"] not in ("full", "spatial", "temporal", "size")
+        )
+        hyb = (
+            "– | – | – | –" if dflt is None else
+            f"{dflt['label'].split('(', 1)[-1].rstrip(')')} | {dflt['error_mean'] / lo['error_mean']:.2f} | {dflt['ms_mean'] / lo['ms_mean']:.2f} | "
+            f"{100 * (1 - dflt['mpm_share']):.0f}%"
+        )  # fmt: skip
+        out.append(
+            f"| {d.name} | {lo['seeds']} | {lo['error_mean']:.3f} | {nn['error_mean'] / lo['error_mean']:.2f}{extra} | {nn['ms_mean'] / lo['ms_mean']:.2f} | {hyb} |"
+        )
     print("\n".join(out))
     return 0
 

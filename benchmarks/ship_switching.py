@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from hybridmpm.models import shipped_models
+
 MODELS = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models"
 #: hybrid_choices label -> the hybrid's switching settings.
 CANDIDATES = {
@@ -45,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     out = {}
     for path in sorted(args.results.glob("*.json")):
         scene = path.stem
+        if scene not in shipped_models():
+            continue  # other measurements kept beside them
         rows = json.loads(path.read_text())
         label, row = choose(rows)
         d = next(r for r in rows if r["variant"] == "defaults")

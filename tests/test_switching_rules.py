@@ -38,8 +38,7 @@ def test_the_paper_rule_is_the_score_without_the_audit_bit_for_bit(water_model):
 
 
 def test_the_error_rule_doubles_its_audit_interval_while_the_network_agrees(water_model):
-    # Tolerance out of reach and no residual trigger: every audit passes below half the
-    # tolerance, so the interval doubles up to audit_max: audits at network steps 0, 2, 6, 14,
+    # Tolerance out of reach and no residual trigger: every audit passes, so the interval doubles up to audit_max: audits at network steps 0, 2, 6, 14,
     # then every 8th. The score is not consulted: the network keeps the flow through the splash.
     scene = make_scene("water2d", seed=1000)
     sim = HybridSimulator(scene, water_model, safeguard="error", audit_tol=1e6, residual_tol=1e6, audit_max=8, r_c=0.99, mpm_threads=1)

@@ -56,9 +56,11 @@ Switching rules (``safeguard``; docs/hybrid.md "Switching rules"):
   the MPM audit every ``audit_every`` network steps, as above;
 * ``"paper"``: the score alone (the paper's rule; no audit);
 * ``"error"``: the network's error alone, the score only reported. The MPM
-  audit runs at a stint's first step and then at an interval that adapts to
-  what it measures: doubled (up to ``audit_max``) after an audit below half
-  of ``audit_tol``, back to 1 after one above it. Every network step also
+  audit runs at a stint's first step and then at an interval that doubles
+  (up to ``audit_max``) after each audit within ``audit_tol``; an audit
+  beyond it hands the flow to MPM, and the next stint starts again at 1
+  (docs/hybrid.md: doubling only below half the tolerance audited almost
+  every step and cost more than MPM). Every network step also
   computes its *density residual* — the RMS correction the density
   relaxation applied to the network's prediction, as an acceleration
   ``|Δx| / dt_step²`` in ``g`` (``last_residual``): a network that
@@ -400,9 +402,9 @@ class HybridSimulator:
         return False
 
     def _adapt_interval(self, audit: float) -> None:
-        """The "error" rule's audit interval after an audit of ``audit`` [g]: doubled below half the tolerance, else 1."""
+        """The "error" rule's audit interval after an audit of ``audit`` [g]: doubled within the tolerance, else 1."""
         self._since_audit = 0
-        self._interval = min(2 * self._interval, self.audit_max) if audit <= 0.5 * self.audit_tol else 1
+        self._interval = min(2 * self._interval, self.audit_max) if audit <= self.audit_tol else 1
 
     def _audit(self, proposed: np.ndarray) -> tuple[float, Frame]:
         """MPM's step from the state the network started from (converted as a
