@@ -278,6 +278,14 @@ def test_tuned_config_drives_simulate_auto(tiny: dict, tmp_path: Path):
     assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--frames", "8", "--out", str(out), "--no-render", "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["solver"] == "hybrid" and summary["r_c"] == pytest.approx(0.8) and summary["r_t"] == 4
+    assert (summary["safeguard"], summary["audit_tol"]) == ("audit", 1.0)
+    # a configuration of the error rule carries its rule and tolerance to --solver auto
+    err = next(r for r in rows if r["key"] == "hybrid_err2")
+    write_tuned(path, "water2d", 1.0, "error_mean", err, rows, [2000], {"frames": FRAMES})
+    assert load_tuned("water2d", path)["config"]["safeguard"] == "error"
+    assert main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--frames", "8", "--out", str(out), "--no-render", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["safeguard"], summary["audit_tol"]) == ("error", 2.0)
 
 
 def test_load_tuned_errors(tmp_path: Path, capsys: pytest.CaptureFixture):
