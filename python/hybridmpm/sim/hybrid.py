@@ -65,7 +65,10 @@ Switching rules (``safeguard``; docs/hybrid.md "Switching rules"):
   relaxation applied to the network's prediction, as an acceleration
   ``|Δx| / dt_step²`` in ``g`` (``last_residual``): a network that
   compresses the fluid is being corrected, and a residual above
-  ``residual_tol`` brings the audit forward to this step. Back on MPM, the
+  ``residual_tol`` and above :data:`RESIDUAL_GROWTH` × the residual of the
+  stint's last passing audit brings the audit forward to this step (after
+  an impact the residual stays above ``residual_tol``: compared with the
+  level an audit accepted, only its growth triggers). Back on MPM, the
   network takes over again after ``dwell·2^k`` steps (the backoff below),
   whatever the score.
 
@@ -135,6 +138,9 @@ from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
 #: Default dwell (steps of s ≥ r_c on MPM before the network takes over again);
 #: see docs/hybrid.md for the measurement behind it.
 DWELL = 5
+#: "error" rule: a density residual this many times that of the last passing
+#: audit (and above ``residual_tol``) brings the next audit forward.
+RESIDUAL_GROWTH = 2.0
 #: After a failure fallback the dwell doubles per failure since the network's
 #: last healthy stint (2·dwell steps without failure), up to 2**MAX_BACKOFF.
 MAX_BACKOFF = 6
@@ -281,6 +287,7 @@ class HybridSimulator:
         self.last_residual = float("nan")
         self._interval = 1
         self._since_audit = 0
+        self._residual_ref = 0.0
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
         self.neural = NeuralSimulator(
             self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
@@ -398,7 +405,8 @@ class HybridSimulator:
         if self.safeguard == "audit":
             return self.audit_every > 0 and self._neural_run % self.audit_every == 0
         if self.safeguard == "error":
-            return self._neural_run == 0 or residual > self.residual_tol or self._since_audit + 1 >= self._interval
+            trigger = max(self.residual_tol, RESIDUAL_GROWTH * self._residual_ref)
+            return self._neural_run == 0 or residual > trigger or self._since_audit + 1 >= self._interval
         return False
 
     def _adapt_interval(self, audit: float) -> None:
@@ -450,6 +458,8 @@ class HybridSimulator:
                 audit, audited = self._audit(self.particles.fluid(proposal.positions))
                 if self.safeguard == "error":
                     self._adapt_interval(audit)
+                    # a residual the audit passed is the network's own level: only growth beyond it is news
+                    self._residual_ref = self.last_residual if audit <= self.audit_tol else 0.0
                 if not (audit <= self.audit_tol):
                     failure = "audit"
             elif failure is None:
@@ -500,7 +510,7 @@ class HybridSimulator:
                 self._to_neural()
                 self.solver_name = NEURAL
                 self._neural_run = 0
-                self._interval, self._since_audit = 1, 0
+                self._interval, self._since_audit, self._residual_ref = 1, 0, 0.0
                 if self.stats.steps[NEURAL] > 0 or self.stats.switches > 0:
                     self.stats.switches += 1
                     event = event or "switch:neural"
@@ -538,6 +548,7 @@ class HybridSimulator:
             "neural_run": self._neural_run,
             "interval": self._interval,
             "since_audit": self._since_audit,
+            "residual_ref": self._residual_ref,
             "step_index": self.step_index,
             "stats": self.stats.to_dict(),
             "last_score": self.last_score,
@@ -572,6 +583,9 @@ class HybridSimulator:
             # the "error" rule's audit schedule (absent from states written before the rule existed)
             interval = max(1, check_count("state.interval", state.get("interval", 1)))
             since_audit = check_count("state.since_audit", state.get("since_audit", 0))
+            residual_ref = state.get("residual_ref", 0.0)
+            if isinstance(residual_ref, bool) or not isinstance(residual_ref, (int, float)) or not (math.isfinite(residual_ref) and residual_ref >= 0):
+                raise InvalidInputError("state.residual_ref: must be a finite number >= 0 [g]", "state.residual_ref")
             step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
             last_score = state["last_score"]
@@ -584,11 +598,11 @@ class HybridSimulator:
         self._buffer = deque([b for b in buf], maxlen=self._buffer.maxlen)
         self.solver_name = solver_name
         self._calm, self._strikes, self._neural_run = counters["calm"], counters["strikes"], counters["neural_run"]
-        self._interval, self._since_audit = interval, since_audit
+        self._interval, self._since_audit, self._residual_ref = interval, since_audit, float(residual_ref)
         self.step_index = step
         self.stats = stats
         self.last_score = float(last_score)
         self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=self.last_score)
 
 
-__all__ = ["DWELL", "MAX_BACKOFF", "HybridSimulator"]
+__all__ = ["DWELL", "MAX_BACKOFF", "RESIDUAL_GROWTH", "HybridSimulator"]
