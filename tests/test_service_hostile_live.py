@@ -78,7 +78,11 @@ def test_healthz_stays_fast_while_four_clients_pull_100_frame_json_steps(server,
     100 ms bound on the max failed there on unchanged code."""
 
     async def run() -> None:
-        async with httpx.AsyncClient(base_url=server.url, timeout=120) as c:
+        # one connection per request: a pooled connection left idle past the server's 5 s keep-alive
+        # while the other clients' steps run can be closed as the next step is sent on it (an HTTP/1.1
+        # race every client meets; seen here once as "Server disconnected without sending a response")
+        no_reuse = httpx.Limits(max_keepalive_connections=0)
+        async with httpx.AsyncClient(base_url=server.url, timeout=120, limits=no_reuse) as c:
             ids = []
             for _ in range(4):
                 r = await c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})
