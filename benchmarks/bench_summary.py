@@ -35,15 +35,21 @@ def scene_rows(path: Path) -> list[dict]:
     return rows
 
 
+def rule_of(row: dict) -> str:
+    """The switching rule of the default hybrid's row, from its label "hybrid, default (RULE)"."""
+    return str(row["label"]).split("(", 1)[-1].rstrip(")")
+
+
 def main(argv: list[str]) -> int:
     root = Path(argv[0] if argv else "benchmarks/results/bench")
     dirs = sorted(d for d in root.iterdir() if (d / "results.csv").is_file())
+    scenes = {d: scene_rows(d / "results.csv") for d in dirs}  # each results.csv read once
     out = [
         "| scene | seeds × frames | MPM full ms/frame | MPM r_p error / ms | neural (shipped) error / ms | neural r_p = r_t = 1 error / ms | hybrid r_c = 0.8 error / ms (MPM share) | hybrid default: rule, error / ms (MPM share), vs MPM r_p | Pareto front (fastest first) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in dirs:
-        rows = scene_rows(d / "results.csv")
+        rows = scenes[d]
         k = {r["key"]: r for r in rows}
 
         def cell(key: str, k: dict = k) -> str:
@@ -56,7 +62,7 @@ def main(argv: list[str]) -> int:
         dflt, lo = k.get("hybrid_default"), k["mpm_rp"]
         dflt_cell = (
             "–" if dflt is None else
-            f"{dflt['label'].split('(', 1)[-1].rstrip(')')}: {cell('hybrid_default')} ({100 * dflt['mpm_share']:.0f}%), "
+            f"{rule_of(dflt)}: {cell('hybrid_default')} ({100 * dflt['mpm_share']:.0f}%), "
             f"{dflt['error_mean'] / lo['error_mean']:.2f}× / {dflt['ms_mean'] / lo['ms_mean']:.2f}×"
         )  # fmt: skip
         front = sorted((r for r in rows if r.get("pareto")), key=lambda r: r["ms_mean"])
@@ -74,7 +80,7 @@ def main(argv: list[str]) -> int:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in dirs:
-        k = {r["key"]: r for r in scene_rows(d / "results.csv")}
+        k = {r["key"]: r for r in scenes[d]}
         f, lo, nn = k["mpm_full"], k["mpm_rp"], k["neural"]
         ns = f["ms_mean"] * 1e6 / (f["particles"] * f["substeps_per_frame"])
         out.append(
@@ -91,7 +97,7 @@ def main(argv: list[str]) -> int:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in dirs:
-        k = {r["key"]: r for r in scene_rows(d / "results.csv")}
+        k = {r["key"]: r for r in scenes[d]}
         lo, nn, dflt = k["mpm_rp"], k["neural"], k.get("hybrid_default")
         extra = "".join(
             f" ({key[len('neural_') :]}: {r['error_mean'] / lo['error_mean']:.2f}, time {r['ms_mean'] / lo['ms_mean']:.2f})"
@@ -100,7 +106,7 @@ def main(argv: list[str]) -> int:
         )
         hyb = (
             "– | – | – | –" if dflt is None else
-            f"{dflt['label'].split('(', 1)[-1].rstrip(')')} | {dflt['error_mean'] / lo['error_mean']:.2f} | {dflt['ms_mean'] / lo['ms_mean']:.2f} | "
+            f"{rule_of(dflt)} | {dflt['error_mean'] / lo['error_mean']:.2f} | {dflt['ms_mean'] / lo['ms_mean']:.2f} | "
             f"{100 * (1 - dflt['mpm_share']):.0f}%"
         )  # fmt: skip
         out.append(

@@ -281,35 +281,33 @@ def report_markdown(
             f"{_fmt(r['mflop_per_frame'], 1) if r['kind'] != 'mpm' else ''} | {'**yes**' if r['pareto'] else ''} |"
         )
     sw = sweep_rows(rows)
-    if sw:
-        lines += [
-            "",
-            "## Hybrid threshold sweep (paper Table 2)",
-            "",
-            "| threshold r_c | " + " | ".join(f"{r['r_c']:.1f}" for r in sw) + " |",
-            "|---|" + "---|" * len(sw),
-            "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in sw) + " |",
-            "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in sw) + " |",
-            "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in sw) + " |",
-        ]
+    lines += _sweep_table("Hybrid threshold sweep (paper Table 2)", "threshold r_c", [f"{r['r_c']:.1f}" for r in sw], sw)
     es = error_sweep_rows(rows)
-    if es:
-        lines += [
-            "",
-            '## The error rule\'s tolerance sweep (docs/hybrid.md "Switching rules")',
-            "",
-            "| audit tolerance [g] | " + " | ".join(f"{r['audit_tol']:g}" for r in es) + " |",
-            "|---|" + "---|" * len(es),
-            "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in es) + " |",
-            "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in es) + " |",
-            "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in es) + " |",
-        ]
+    lines += _sweep_table(
+        'The error rule\'s tolerance sweep (docs/hybrid.md "Switching rules")', "audit tolerance [g]", [f"{r['audit_tol']:g}" for r in es], es
+    )
     lines += ["", "## Charts", ""]
     for name, cap in files.items():
         lines.append(f"![{cap}]({name})")
         lines.append("")
     lines += ["## Pareto front", "", "On the front (fastest first): " + "; ".join(front) + ".", ""]
     return "\n".join(lines)
+
+
+def _sweep_table(title: str, head: str, thresholds: list[str], sweep: list[dict[str, Any]]) -> list[str]:
+    """A report section: one column per threshold of a hybrid sweep (error, time, MPM share); none for an empty sweep."""
+    if not sweep:
+        return []
+    return [
+        "",
+        f"## {title}",
+        "",
+        f"| {head} | " + " | ".join(thresholds) + " |",
+        "|---|" + "---|" * len(sweep),
+        "| grid-mass error | " + " | ".join(_fmt(r["error_mean"], 4) for r in sweep) + " |",
+        "| time per frame (ms) | " + " | ".join(_fmt(r["ms_mean"], 3) for r in sweep) + " |",
+        "| share of frames on MPM | " + " | ".join(f"{100 * r['mpm_share']:.0f}%" for r in sweep) + " |",
+    ]
 
 
 def peer_markdown(res: dict[str, Any]) -> str:

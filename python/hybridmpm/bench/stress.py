@@ -90,8 +90,8 @@ def method_simulator(scene: Scene, method: str, model: GnsRuntime, seed: int = 0
     """The simulator of a stress ``method``: "neural" the network alone (its
     first rejected step ends the rollout), "mpm" MPM alone at the model's
     ``r_p`` and ``r_t``, "hybrid" the hybrid at ``r_c`` (``kw`` go to it),
-    "hybrid_noaudit" the same without its MPM audit (``audit_every = 0``: the
-    paper's rule), "hybrid_error" the hybrid under the "error" rule."""
+    "hybrid_noaudit" the same without its MPM audit (the paper's rule,
+    ``safeguard="paper"``), "hybrid_error" the hybrid under the "error" rule."""
     if method == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads)
     if method == "mpm":
@@ -99,7 +99,7 @@ def method_simulator(scene: Scene, method: str, model: GnsRuntime, seed: int = 0
     if method == "hybrid":
         return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **kw)
     if method == "hybrid_noaudit":
-        return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "audit_every": 0})
+        return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "safeguard": "paper"})
     if method == "hybrid_error":
         return HybridSimulator(scene, model, r_c=r_c, seed=seed, mpm_threads=threads, **{**kw, "safeguard": "error"})
     raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
