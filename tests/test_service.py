@@ -95,6 +95,26 @@ def test_create_session_bad_fields(client, body, field):
     assert field_of(client.post("/v1/sessions", json=body)) == field
 
 
+def test_a_session_on_a_coarser_grid(client):
+    """MPM sessions take the scene's grid as a knob (coarser only): the same scene, a quarter of the particles on 64²."""
+    from hybridmpm.scenes import make_scene
+
+    a = new(client, "water2d", seed=3, n_grid=64)
+    assert a["n_grid"] == 64 and a["num_fluid"] == make_scene("water2d", seed=3, n_grid=64).num_particles
+    assert a["wall_thickness"] == pytest.approx(2 / 64)  # the band of 2 cells keeps the fluid's rest face at 1/64 m, as 3 cells of 128
+    r = client.post(f"/v1/sessions/{a['id']}/step", json={"frames": 3})
+    assert r.status_code == 200, r.text
+    for body in (
+        {"scene": "water2d", "n_grid": 256},  # finer than the scene's own grid
+        {"scene": "water2d", "n_grid": 64.5},
+        {"scene": "water2d", "n_grid": "64"},
+        {"scene": "water2d", "n_grid": 8},
+        {"scene": "water2d", "solver": "hybrid", "n_grid": 64},  # a network runs at its model's resolution
+    ):
+        assert field_of(client.post("/v1/sessions", json={"solver": "mpm", **body})) == "n_grid", body
+    assert field_of(client.post("/v1/sessions", json={"scene": "water_ramps2d", "solver": "mpm", "n_grid": 64})) == "obstacles[0].half_extents"
+
+
 def test_create_session_not_json(client):
     r = client.post("/v1/sessions", content=b"{not json", headers={"Content-Type": "application/json"})
     assert r.status_code == 422

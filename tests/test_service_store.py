@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("fastapi")
 httpx = pytest.importorskip("httpx")
 
-from hybridmpm.errors import InvalidInputError  # noqa: E402
+from hybridmpm.errors import CheckpointError, InvalidInputError  # noqa: E402
 from hybridmpm.service import checkpoint as ckpt  # noqa: E402
 from hybridmpm.service.config import ServiceConfig  # noqa: E402
 from hybridmpm.service.sessions import SessionManager  # noqa: E402
@@ -188,3 +188,22 @@ def test_a_restored_session_rebuilds_its_scene_without_the_k_means(tmp_path):
     with pytest.raises(InvalidInputError) as e:
         rebuild(rec)
     assert e.value.field == "clusters.labels"
+
+
+def test_a_record_keeps_its_sessions_grid():
+    """A session on a coarser grid is saved with its grid (meta.n_grid) and rebuilt on it, bit for bit; older records without it rebuild on the scene's grid."""
+    from hybridmpm.service.store import parse_record, rebuild, record_state
+
+    sim = make_simulator("sand2d", "mpm", seed=4, threads=1, n_grid=64)
+    rollout(sim, 6)
+    meta = {"scene": "sand2d", "seed": 4, "solver": "mpm", "r_c": 0.8, "last_used_at": time.time(), "client": "", "n_grid": 64}
+    blob = ckpt.dumps(record_state(sim), meta)
+    back, _ = rebuild(parse_record("0" * 64, blob, 1 << 28))
+    assert back.scene.params.resolved_n_grid() == 64
+    assert np.array_equal(rollout(back, 6).positions, rollout(sim, 6).positions)
+    for bad in (64.5, "64", True, 8, 10**6):
+        with pytest.raises(InvalidInputError, match="meta.n_grid"):
+            parse_record("0" * 64, ckpt.dumps(record_state(sim), {**meta, "n_grid": bad}), 1 << 28)
+    old = {k: v for k, v in meta.items() if k != "n_grid"}
+    with pytest.raises((InvalidInputError, CheckpointError)):  # the scene's own grid: another solver's particles
+        rebuild(parse_record("0" * 64, ckpt.dumps(record_state(sim), old), 1 << 28))

@@ -108,7 +108,7 @@ def _simulate(args: argparse.Namespace) -> int:
     sim = make_simulator(
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
         safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
-        nn_threads=max(1, args.threads) if args.solver == "neural" else 1,
+        nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
@@ -146,7 +146,7 @@ def _simulate(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         ref = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads).fluid_positions
         ref_ms = (time.perf_counter() - t0) / max(1, ro.frames_done) * 1e3
-        err = grid_mass_error(ro.fluid_positions, ref[: len(ro.positions)], low.params.resolved_n_grid())
+        err = grid_mass_error(ro.fluid_positions, ref[: len(ro.positions)], scene.params.resolved_n_grid())  # the reference's grid
         summary["reference"] = {
             "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
             "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
@@ -166,6 +166,7 @@ def _simulate(args: argparse.Namespace) -> int:
         ms = summary["wall_ms_per_frame"]
         line = f"{scene.name}: {ro.frames_done} frames, {low.num_particles} particles"
         line += f" (r_p {summary['r_p']:g})" if summary["r_p"] < 1 else ""
+        line += f" on a {summary['n_grid']}^{low.dim} grid" if summary["n_grid"] != scene.params.resolved_n_grid() else ""
         line += f", {args.solver} median {ms['median']:.2f} ms/frame (p95 {ms['p95']:.2f})" if ms["median"] is not None else ""
         if args.solver == "hybrid":
             line += f", neural {100 * ro.share(NEURAL):.0f}% of steps, {ro.stats['switches']} switches"
@@ -183,8 +184,10 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
     # import time: loaded by this command only
     from hybridmpm.sim import load_tuned, tuned_settings
 
-    if args.model is not None or args.r_p != 1.0:
-        raise HybridMpmError("solver: --solver auto takes the model, r_p and r_c from the tuned configuration; drop --model/--r-p")
+    if args.model is not None or args.r_p != 1.0 or args.n_grid is not None or args.particles_per_cell is not None:
+        raise HybridMpmError(
+            "solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop --model/--r-p/--n-grid/--particles-per-cell"
+        )
     doc = load_tuned(scene, args.tuned)
     for key, value in tuned_settings(doc).items():
         setattr(args, key, value)
@@ -548,6 +551,15 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=_seed, default=0, help="seed of the scene's random initial condition")
     sim.add_argument("--threads", type=int, default=0, help="solver threads (0 = all cores)")
     sim.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
+    sim.add_argument(
+        "--n-grid", type=int, default=None, help="--solver mpm: run on this grid of the same domain (same blocks, obstacles, wall faces; default: the scene's)"
+    )
+    sim.add_argument(
+        "--particles-per-cell",
+        type=int,
+        default=None,
+        help="--solver mpm: particles per cell per axis of the lattice on --n-grid (1-4; default the scene's, 2)",
+    )
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)

@@ -650,6 +650,27 @@ class MpmSolver:
         other parameters or particles) and the solver is then unchanged."""
         self._core.restore(self.check_restore(blob, same_particles=same_particles))
 
+    def restore_particles(self, blob: bytes) -> None:
+        """Restore the particles of a :meth:`checkpoint` written by a solver
+        of the same particles on another grid of the same domain: positions,
+        velocities, APIC affine matrices, deformation and J, time and frame
+        move bit for bit; this solver keeps its own grid (``n_grid`` and the
+        wall band that keeps the walls' faces). Every other parameter must
+        match and the particles must be this solver's (count, materials,
+        masses). Raises :class:`CheckpointError` and leaves the solver
+        unchanged otherwise."""
+        params, state = self._split(blob)
+        mine, theirs = self.params.to_dict(), params.to_dict()
+        for d in (mine, theirs):
+            d.pop("n_grid")
+            d["walls"] = {k: v for k, v in d["walls"].items() if k != "cells"}
+            d.pop("num_threads", None)
+        if mine != theirs:
+            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            raise CheckpointError(f"checkpoint was written with other physics ({', '.join(diff)}); only the grid may differ")
+        self._check_same_particles(state)
+        self._core.restore(state)
+
     def check_restore(self, blob: bytes, *, same_particles: bool = False) -> bytes:
         """The checks of :meth:`restore` that need no new solver (format,
         parameters, and with ``same_particles`` the particles' count,

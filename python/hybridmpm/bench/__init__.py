@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.bench import report
-from hybridmpm.bench.methods import ERROR_TOL_SWEEP, R_C_SWEEP, Method, methods_for
+from hybridmpm.bench.methods import ERROR_TOL_SWEEP, GRID_FRACTIONS, R_C_SWEEP, Method, methods_for, mpm_grid_methods
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
 from hybridmpm.bench.tune import choose, write_tuned
@@ -51,6 +51,7 @@ def bench(
     nn_threads: int = 1,
     nn_alone_threads: int = 0,
     trajectory_r_c: float = R_C,
+    grids: tuple[float, ...] = GRID_FRACTIONS,
     command: str | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -67,7 +68,9 @@ def bench(
     (0 = all cores); ``nn_threads`` onnxruntime threads of the hybrid,
     ``nn_alone_threads`` of the networks run alone (0 = all cores:
     :class:`~hybridmpm.bench.run.BenchConfig`); ``trajectory_r_c`` the
-    hybrid drawn in ``error_trajectory.png``. Returns a dict with ``rows``
+    hybrid drawn in ``error_trajectory.png``; ``grids`` the coarser grids of
+    plain MPM (fractions of the scene's grid) that, with the scene's grid and
+    ``r_p``, make the classical front every method is judged against. Returns a dict with ``rows``
     (one per method, :func:`~hybridmpm.bench.report.aggregate`), ``cells``,
     ``pareto`` (labels on the front) and ``files``.
     Raises :class:`InvalidInputError` naming the bad parameter.
@@ -78,7 +81,7 @@ def bench(
     if len(set(seeds)) != len(seeds):
         raise InvalidInputError("seeds: must be distinct", "seeds")
     cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads, nn_alone_threads).validate()
-    methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models, error_tols=error_tols)
+    methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models, error_tols=error_tols, grids=grids, seed=seeds[0])
     out = Path(out) if out is not None else Path("runs/bench") / scene
     stride = max(m.r_t for m in methods)
     cells = [report.on_common_frames(c, stride) for c in run_bench(cfg, methods, out, progress=progress)]
@@ -105,7 +108,9 @@ def bench(
     )
     files["error_trajectory.png"] = "error over time; frames the hybrid ran on MPM shaded"
     cmd = command or f"hybridmpm bench {scene}"
-    text = report.report_markdown(scene, settings, env, seeds, rows, cmd, files)
+    main_r_p = next(m.r_p for m in methods if m.key == "mpm_rp")
+    refused = mpm_grid_methods(scene, main_r_p, seeds[0], grids)[1]
+    text = report.report_markdown(scene, settings, env, seeds, rows, cmd, files, n_grid=first.params.resolved_n_grid(), refused=refused)
     if (out / "peer_taichi.json").is_file():  # written by `python benchmarks/taichi_peer.py --bench-scene SCENE`
         text += report.peer_markdown(json.loads((out / "peer_taichi.json").read_text()))
     (out / "report.md").write_text(text)

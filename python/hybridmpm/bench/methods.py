@@ -18,11 +18,17 @@ from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_model, shipped_switching, variant_models
 from hybridmpm.neural.grid import open_model
+from hybridmpm.scenes import scene_spec
 
 #: Hybrid thresholds of the sweep (paper Table 2).
 R_C_SWEEP = tuple(round(0.1 * i, 1) for i in range(10))
 #: Audit tolerances [g] of the "error" rule's sweep (docs/hybrid.md "Switching rules").
 ERROR_TOL_SWEEP = (0.5, 1.0, 2.0, 3.0, 5.0)
+
+#: Coarser grids of plain MPM, as fractions of the scene's grid (2D: 96², 64²
+#: of 128²; 3D: 48³, 32³ of 64³), each at r_p = 1 and at the model's r_p:
+#: with the scene's grid they make the classical front every method is judged against.
+GRID_FRACTIONS = (0.75, 0.5)
 
 #: Method kinds.
 KINDS = ("mpm", "neural", "hybrid")
@@ -44,11 +50,14 @@ class Method:
     ``key`` unique id (file names, CSV); ``kind`` "mpm", "neural" or
     "hybrid"; ``model`` the ONNX file (neural and hybrid) or None; ``r_p``
     spatial and ``r_t`` temporal downsampling; ``r_c`` the hybrid threshold
-    (None otherwise); ``role`` "reference", "mpm_rp", "full", "spatial",
-    "temporal", "lowres" (the shipped model), "size" (another network size)
-    or "hybrid"; ``params`` network parameters (0 for MPM); ``safeguard``
-    the hybrid's switching rule (:data:`~hybridmpm.conventions.SAFEGUARDS`;
-    None: the default) and ``audit_tol`` its audit tolerance [g] (None: the default).
+    (None otherwise); ``role`` "reference", "mpm_rp", "mpm_grid" (MPM on a
+    coarser grid), "full", "spatial", "temporal", "lowres" (the shipped
+    model), "size" (another network size) or "hybrid"; ``params`` network
+    parameters (0 for MPM); ``safeguard`` the hybrid's switching rule
+    (:data:`~hybridmpm.conventions.SAFEGUARDS`; None: the default) and
+    ``audit_tol`` its audit tolerance [g] (None: the default); ``n_grid``
+    the grid MPM runs on (None: the scene's;
+    :func:`~hybridmpm.scenes.resolution.on_grid`, 2 particles per cell per axis).
     """
 
     key: str
@@ -62,6 +71,7 @@ class Method:
     params: int = 0
     safeguard: str | None = None
     audit_tol: float | None = None
+    n_grid: int | None = None
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -79,6 +89,28 @@ def _model_info(path: Path) -> tuple[float, int, int]:
     return m.r_p, m.r_t, params
 
 
+def mpm_grid_methods(scene: str, r_p: float, seed: int = 0, fractions: tuple[float, ...] = GRID_FRACTIONS) -> tuple[list[Method], dict[int, str]]:
+    """Plain MPM on coarser grids of ``scene`` (``fractions`` of its grid),
+    each at ``r_p = 1`` and at ``r_p``: the methods, and per grid the scene
+    refuses (checked on ``seed``'s initial condition) the reason, e.g. an
+    obstacle thinner than two cells of it."""
+    spec = scene_spec(scene, seed=seed)
+    n0 = spec.params.resolved_n_grid()
+    out: list[Method] = []
+    refused: dict[int, str] = {}
+    for frac in fractions:
+        n = int(round(n0 * float(frac)))
+        try:
+            spec.on_grid(n)
+        except InvalidInputError as e:
+            refused[n] = str(e)
+            continue
+        out.append(Method(f"mpm_g{n}", "mpm", f"MPM {n}^{spec.dim}", 1.0, 1, role="mpm_grid", n_grid=n))
+        if r_p < 1.0:
+            out.append(Method(f"mpm_g{n}_rp", "mpm", f"MPM {n}^{spec.dim}, r_p = {r_p:.3g}", r_p, 1, role="mpm_grid", n_grid=n))
+    return out, refused
+
+
 def methods_for(
     scene: str,
     *,
@@ -87,6 +119,8 @@ def methods_for(
     variants: bool = True,
     extra_models: tuple[str | Path, ...] = (),
     error_tols: tuple[float, ...] = ERROR_TOL_SWEEP,
+    grids: tuple[float, ...] = GRID_FRACTIONS,
+    seed: int = 0,
 ) -> list[Method]:
     """The methods of a benchmark of registered scene ``scene``.
 
@@ -98,7 +132,10 @@ def methods_for(
     "error" rule at each audit tolerance of ``error_tols`` [g], and the
     hybrid as ``hybridmpm simulate`` runs it by default (key
     ``hybrid_default``: the rule shipped with the scene's model, else the
-    defaults). Raises
+    defaults), and plain MPM on each coarser grid of ``grids`` (fractions of
+    the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
+    refuses on ``seed``'s initial condition are left out:
+    :func:`mpm_grid_methods`). Raises
     :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
     """
 
@@ -111,6 +148,7 @@ def methods_for(
         Method("mpm_full", "mpm", "MPM full resolution", 1.0, 1, role="reference"),
         Method("mpm_rp", "mpm", f"MPM r_p = {r_p:.3g}", r_p, 1, role="mpm_rp"),
     ]
+    out += mpm_grid_methods(scene, r_p, seed, grids)[0]
     models: list[tuple[str, Path, str]] = []
     if variants:
         models += [(v["name"], v["path"], v["role"]) for v in variant_models(scene)]

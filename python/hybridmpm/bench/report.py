@@ -43,6 +43,31 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return sorted(front, key=lambda i: (pts[i][0], pts[i][1]))
 
 
+def mpm_front(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The classical front: the Pareto-optimal plain-MPM rows (every grid and
+    ``r_p`` benchmarked, the full-resolution reference included, none that
+    broke off), fastest first."""
+    mpm = [r for r in rows if r["kind"] == "mpm" and not r.get("failures")]
+    return [mpm[i] for i in pareto_front([(r["ms_mean"], r["error_mean"]) for r in mpm])]
+
+
+def front_error_at(front: Sequence[dict[str, Any]], ms: float) -> float:
+    """The classical front's error at a mean latency of ``ms`` per frame:
+    linear in log(latency) between the two front points around it (a grid
+    between two benchmarked ones), the slowest point's error beyond it, and
+    NaN below the fastest (no plain MPM that fast was measured)."""
+    pts = [(math.log(r["ms_mean"]), r["error_mean"]) for r in front if r["ms_mean"] > 0 and math.isfinite(r["ms_mean"])]
+    if not pts or not (math.isfinite(ms) and ms > 0):
+        return float("nan")
+    x = math.log(ms)
+    if x < pts[0][0]:
+        return float("nan")
+    for (x0, e0), (x1, e1) in zip(pts, pts[1:]):
+        if x0 <= x <= x1:
+            return e0 + (e1 - e0) * (x - x0) / (x1 - x0) if x1 > x0 else min(e0, e1)
+    return pts[-1][1]
+
+
 def on_common_frames(cell: dict[str, Any], stride: int) -> dict[str, Any]:
     """``cell`` with ``error_mean`` recomputed over the frames that are
     multiples of ``stride`` (the largest ``r_t`` among the methods compared):
@@ -76,8 +101,13 @@ def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[s
         rows.append(row)
     # a rollout that broke off has no error over the whole rollout: it cannot be on the front
     front = set(pareto_front([(r["ms_mean"], r["error_mean"] if not r["failures"] else math.inf) for r in rows]))
+    classical = mpm_front(rows)
+    on_classical = {r["key"] for r in classical}
     for i, r in enumerate(rows):
         r["pareto"] = i in front
+        # the plain-MPM front's error at this method's time (NaN: faster than every plain MPM measured)
+        r["front_error"] = front_error_at(classical, r["ms_mean"])
+        r["mpm_front"] = r["key"] in on_classical
     return rows
 
 
@@ -140,6 +170,7 @@ def write_sweep_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 _STYLE = {
     "reference": ("*", "black"),
     "mpm_rp": ("s", "tab:gray"),
+    "mpm_grid": ("h", "dimgray"),
     "lowres": ("^", "tab:red"),
     "full": ("v", "tab:purple"),
     "spatial": ("<", "tab:brown"),
@@ -170,6 +201,17 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
             zorder=1,
             label="Pareto front",
             drawstyle="steps-post",
+        )
+    classical = mpm_front(rows)
+    if classical:
+        ax.plot(
+            [r["ms_mean"] for r in classical],
+            [r["error_mean"] for r in classical],
+            "--",
+            color="black",
+            lw=1.2,
+            zorder=2,
+            label="plain-MPM front (grids × r_p)",
         )
     hyb = _rc_sweep(rows)
     if hyb:
@@ -247,10 +289,21 @@ def _fmt(x: float, nd: int = 3) -> str:
 
 
 def report_markdown(
-    scene: str, settings: dict[str, Any], env: dict[str, Any], seeds: Sequence[int], rows: list[dict[str, Any]], command: str, files: dict[str, str]
+    scene: str,
+    settings: dict[str, Any],
+    env: dict[str, Any],
+    seeds: Sequence[int],
+    rows: list[dict[str, Any]],
+    command: str,
+    files: dict[str, str],
+    *,
+    n_grid: int | None = None,
+    refused: dict[int, str] | None = None,
 ) -> str:
     """``report.md``: settings, machine, the method table, the Table-2-like
-    threshold sweep, the charts and the methods on the Pareto front."""
+    threshold sweep, the charts, the methods on the Pareto front and every
+    method against the plain-MPM front (``n_grid`` the scene's grid,
+    ``refused`` the coarser grids the scene refused and why)."""
     front = [r["label"] for r in sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_mean"])]
     lines = [
         f"# Benchmark: {scene}",
@@ -268,17 +321,18 @@ def report_markdown(
         "such a method is drawn hollow and is not eligible for the Pareto front. Network MFLOP/frame: dense layers on "
         "the initial graph / r_t (a collapsing graph costs more).",
         "",
-        "| method | r_p | r_t | r_c | particles | error mean | error last | ms/frame mean | median | p95 | MPM share | MPM substeps/frame | network MFLOP/frame | Pareto |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| method | grid | r_p | r_t | r_c | particles | error mean | error last | ms/frame mean | median | p95 | MPM share | MPM substeps/frame | network MFLOP/frame | "
+        "plain-MPM front's error at its time | Pareto |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         err = "reference" if r["role"] == "reference" else _fmt(r["error_mean"])
         fail = f" (broke off in {r['failures']}/{r['seeds']} seeds: error over ~{r['frames_done']:.0f} frames)" if r["failures"] else ""
         lines.append(
-            f"| {r['label']}{fail} | {r['r_p']:.3g} | {r['r_t']} | {'' if r['r_c'] is None else format(r['r_c'], '.1f')} | {r['particles']:.0f} | {err} | "
+            f"| {r['label']}{fail} | {r.get('n_grid') or n_grid} | {r['r_p']:.3g} | {r['r_t']} | {'' if r['r_c'] is None else format(r['r_c'], '.1f')} | {r['particles']:.0f} | {err} | "
             f"{'–' if r['role'] == 'reference' else _fmt(r['error_last'])} | {_fmt(r['ms_mean'], 2)} | {_fmt(r['ms_median'], 2)} | "
             f"{_fmt(r['ms_p95'], 2)} | {100 * r['mpm_share']:.0f}% | {_fmt(r['substeps_per_frame'], 1) if r['kind'] == 'mpm' else ''} | "
-            f"{_fmt(r['mflop_per_frame'], 1) if r['kind'] != 'mpm' else ''} | {'**yes**' if r['pareto'] else ''} |"
+            f"{_fmt(r['mflop_per_frame'], 1) if r['kind'] != 'mpm' else ''} | {_vs_front(r)} | {'**yes**' if r['pareto'] else ''} |"
         )
     sw = sweep_rows(rows)
     lines += _sweep_table("Hybrid threshold sweep (paper Table 2)", "threshold r_c", [f"{r['r_c']:.1f}" for r in sw], sw)
@@ -291,7 +345,50 @@ def report_markdown(
         lines.append(f"![{cap}]({name})")
         lines.append("")
     lines += ["## Pareto front", "", "On the front (fastest first): " + "; ".join(front) + ".", ""]
+    lines += _classical_section(rows, refused or {})
     return "\n".join(lines)
+
+
+def _vs_front(r: dict[str, Any]) -> str:
+    """A row's cell "front error (its error ÷ it)": the plain-MPM front at the row's time."""
+    if r.get("mpm_front"):
+        return "on it"
+    f = r.get("front_error", float("nan"))
+    if not math.isfinite(f):
+        return "faster than every plain MPM"
+    if f <= 0:
+        return "0 (slower than the full-resolution reference)"
+    return f"{f:.3f} ({r['error_mean'] / f:.2f}×)"
+
+
+def _classical_section(rows: list[dict[str, Any]], refused: dict[int, str]) -> list[str]:
+    """The report's comparison with the classical front: which plain-MPM
+    configurations make it, and every other method's error against it at
+    equal time (interpolated in log time between front points)."""
+    classical = sorted((r for r in rows if r.get("mpm_front")), key=lambda r: r["ms_mean"])
+    if not classical:
+        return []
+    lines = [
+        "## Against the plain-MPM front",
+        "",
+        "The classical front: plain MPM over grids and r_p (the fastest configurations for their error): "
+        + "; ".join(f"{r['label']} ({r['ms_mean']:.2f} ms, error {r['error_mean']:.3f})" for r in classical)
+        + ". A method earns its place only below it: its error at its time against the front's, interpolated in log time between two "
+        "front points (the front's slowest point beyond it).",
+        "",
+    ]
+    below = [r for r in rows if r["kind"] != "mpm" and not r["failures"] and math.isfinite(r["front_error"]) and r["error_mean"] < r["front_error"]]
+    faster = [r for r in rows if r["kind"] != "mpm" and not r["failures"] and not math.isfinite(r["front_error"])]
+    lines.append(
+        "Below the front (more accurate than plain MPM at equal time): " + ("; ".join(f"{r['label']} ({_vs_front(r)})" for r in below) or "none") + "."
+    )
+    if faster:
+        lines.append("")
+        lines.append("Faster than every plain MPM measured (no front to compare with): " + "; ".join(r["label"] for r in faster) + ".")
+    for n, why in sorted(refused.items()):
+        lines += ["", f"Not run on a {n} grid: {why}"]
+    lines.append("")
+    return lines
 
 
 def _sweep_table(title: str, head: str, thresholds: list[str], sweep: list[dict[str, Any]]) -> list[str]:

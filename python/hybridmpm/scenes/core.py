@@ -9,6 +9,7 @@ network, static boundary particles of GNS type 3 sampled on their surface
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -117,12 +118,14 @@ class Scene:
         return sim
 
 
-def lattice(lo: np.ndarray | list[float], hi: np.ndarray | list[float], spacing: float) -> np.ndarray:
-    """Cell-centred lattice points filling the box ``[lo, hi]`` at ``spacing``: float32 [N, D]."""
+def lattice(lo: np.ndarray | list[float], hi: np.ndarray | list[float], spacing: float | np.ndarray) -> np.ndarray:
+    """Cell-centred lattice points filling the box ``[lo, hi]`` at ``spacing``
+    [m] (one number, or one per axis): float32 [N, D]."""
     lo_a = np.asarray(lo, dtype=np.float64)
     hi_a = np.asarray(hi, dtype=np.float64)
-    counts = np.maximum(np.round((hi_a - lo_a) / spacing).astype(int), 1)
-    axes = [lo_a[d] + (np.arange(counts[d]) + 0.5) * spacing for d in range(len(lo_a))]
+    sp = np.broadcast_to(np.asarray(spacing, np.float64), lo_a.shape)
+    counts = np.maximum(np.round((hi_a - lo_a) / sp).astype(int), 1)
+    axes = [lo_a[d] + (np.arange(counts[d]) + 0.5) * sp[d] for d in range(len(lo_a))]
     grid = np.meshgrid(*axes, indexing="ij")
     return np.stack([g.ravel() for g in grid], axis=1).astype(np.float32)
 
@@ -135,6 +138,18 @@ def wall_face(params: MpmParams) -> float:
     against a wall start there so that they start at rest.
     """
     return (params.walls.cells - 1) / params.resolved_n_grid()
+
+
+def wall_cells_for(face: float, n_grid: int) -> int:
+    """The wall band [cells] of a grid of ``n_grid`` cells whose face
+    ``(cells − 1)·dx`` (:func:`wall_face`) is the grid node nearest ``face``
+    [m] at or inside it, at least 2 cells (the quadratic stencil's reach).
+
+    The face is exactly ``face`` when ``face·n_grid`` is an integer (128² with
+    3 cells and 64² with 2 cells both rest fluid at 1/64 m); otherwise it lies
+    less than one cell further in.
+    """
+    return max(2, math.ceil(face * n_grid - 1e-6) + 1)
 
 
 def hydrostatic_volume_ratio(positions: np.ndarray, surface: float, params: MpmParams) -> np.ndarray:

@@ -305,25 +305,42 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
 }
 
 
-def scene_spec(name: str, seed: int = 0, frames: int | None = None, **kwargs: Any) -> SceneSpec:
-    """The spec of a registered domain for ``seed``. Raises :class:`InvalidInputError`
-    for an unknown name (the message lists the available ones)."""
+def scene_spec(
+    name: str, seed: int = 0, frames: int | None = None, *, n_grid: int | None = None, particles_per_cell: int | None = None, **kwargs: Any
+) -> SceneSpec:
+    """The spec of a registered domain for ``seed``; with ``n_grid`` and/or
+    ``particles_per_cell``, the same initial condition on another grid of the
+    same domain (:meth:`SceneSpec.on_grid`). Raises :class:`InvalidInputError`
+    for an unknown name (the message lists the available ones) or a grid too
+    coarse for the scene (naming the field)."""
     if name not in DOMAINS:
         raise InvalidInputError(f"scene: unknown scene {name!r} (available: {', '.join(sorted(DOMAINS))})", "scene")
     if frames is not None and (not isinstance(frames, int) or frames < 1):
         raise InvalidInputError(f"frames: must be an integer >= 1, got {frames!r}", "frames")
-    return DOMAINS[name](seed=seed, frames=frames, **kwargs)
+    spec = DOMAINS[name](seed=seed, frames=frames, **kwargs)
+    return _regrid(spec, n_grid, particles_per_cell)
 
 
-def make_scene(name: str, seed: int = 0, frames: int | None = None, **kwargs: Any) -> Scene:
+def _regrid(spec: SceneSpec, n_grid: int | None, particles_per_cell: int | None) -> SceneSpec:
+    if n_grid is None and particles_per_cell is None:
+        return spec
+    return spec.on_grid(spec.params.resolved_n_grid() if n_grid is None else n_grid, particles_per_cell)
+
+
+def make_scene(
+    name: str, seed: int = 0, frames: int | None = None, *, n_grid: int | None = None, particles_per_cell: int | None = None, **kwargs: Any
+) -> Scene:
     """Build a registered scene by name (see :data:`DOMAINS`), or load a scene
-    file if ``name`` ends in ``.toml`` or ``.json``. Raises :class:`InvalidInputError`."""
+    file if ``name`` ends in ``.toml`` or ``.json``; ``n_grid`` and
+    ``particles_per_cell`` put it on another grid of the same domain (the
+    same blocks, obstacles and wall faces: :meth:`SceneSpec.on_grid`).
+    Raises :class:`InvalidInputError`."""
     if name.endswith((".toml", ".json")):
         spec = SceneSpec.load(name)
         if frames is not None:
             spec.frames = frames
-        return spec.build()
-    return scene_spec(name, seed=seed, frames=frames, **kwargs).build()
+        return _regrid(spec, n_grid, particles_per_cell).build()
+    return scene_spec(name, seed=seed, frames=frames, n_grid=n_grid, particles_per_cell=particles_per_cell, **kwargs).build()
 
 
 def dam_break2d(seed: int = 0, n_grid: int = 128, a_cells: int = DAM_BREAK_A_CELLS) -> Scene:

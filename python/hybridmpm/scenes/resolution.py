@@ -233,6 +233,71 @@ def at_resolution(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters | 
     return downsample_scene(scene, r_p, seed=seed, clusters=clusters).scene
 
 
+def on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None = None, *, keep_particles: bool = False) -> Scene:
+    """``scene`` on another grid of the same domain.
+
+    By default the particles are seeded anew from the scene's spec
+    (:meth:`~hybridmpm.scenes.SceneSpec.on_grid`: the same blocks, obstacles
+    and wall faces, ``particles_per_cell`` per axis, default the spec's);
+    with ``keep_particles`` the scene's own particles (positions, velocities,
+    materials, masses and rest volumes, J) move onto the new grid unchanged,
+    so that a state moves between the two grids exactly. ``n_grid`` None (or
+    the scene's own grid with nothing else asked) returns ``scene`` itself.
+    The result records its ``info["base_n_grid"]``: the grid of its
+    full-resolution reference (:func:`full_resolution`).
+
+    Raises :class:`InvalidInputError` naming the field (``n_grid``,
+    ``particles_per_cell``, ``blocks[i]``, ``obstacles[i]...``; ``scene`` for
+    a scene without a spec, or an ``r_p`` clustered one, asked to reseed).
+    """
+    if n_grid is None and particles_per_cell is None:
+        return scene
+    n0 = scene.params.resolved_n_grid()
+    n = n0 if n_grid is None else n_grid
+    if scene.spec is None:
+        raise InvalidInputError("scene: only a scene built from a spec (a registered scene or a scene file) moves to another grid", "scene")
+    if keep_particles:
+        if particles_per_cell is not None:
+            raise InvalidInputError("particles_per_cell: the particles are kept; leave it unset", "particles_per_cell")
+        spec = scene.spec.on_grid(n)  # validates the grid against the scene; its lattice is not used
+        solver = scene.make_solver(num_threads=1)
+        info = {**scene.info, "base_n_grid": int(scene.info.get("base_n_grid", n0)), "kept_particles": True}
+        return replace(
+            scene,
+            params=spec.params,
+            masses=np.asarray(solver.masses, np.float32),
+            volumes=np.asarray(solver.volumes, np.float32),
+            info=info,
+        )
+    if scene.info.get("r_p", 1.0) < 1.0:
+        raise InvalidInputError("scene: an r_p-clustered scene keeps its particles on another grid (keep_particles=True), or move the grid first", "scene")
+    if n == n0 and (particles_per_cell is None or particles_per_cell == scene.spec.particles_per_cell):
+        return scene
+    new = scene.spec.on_grid(n, particles_per_cell).build()
+    new.name = scene.name
+    return new
+
+
+def full_resolution(scene: Scene) -> Scene:
+    """The full-resolution scene ``scene`` stands for: itself, unless it was
+    clustered to ``r_p < 1`` or moved to another grid than the one it was
+    made for (:func:`on_grid`); then the spec's scene on that grid (the
+    reference of every error). Raises :class:`InvalidInputError` (field
+    ``scene``) if such a scene has no spec to rebuild it from."""
+    n = scene.params.resolved_n_grid()
+    base = int(scene.info.get("base_n_grid", n))
+    if scene.info.get("r_p", 1.0) >= 1.0 and base == n and not scene.info.get("kept_particles"):
+        return scene
+    if scene.spec is None:
+        raise InvalidInputError("scene: the reference runs at full resolution; this scene has no spec to rebuild it from", "scene")
+    spec = scene.spec
+    if spec.params.resolved_n_grid() != base or spec.particles_per_cell != int(spec.info.get("base_particles_per_cell", spec.particles_per_cell)):
+        spec = spec.on_grid(base, int(spec.info.get("base_particles_per_cell", 2)))
+    full = spec.build()
+    full.name = scene.name
+    return full
+
+
 def temporal_downsample(positions: np.ndarray, r_t: int) -> np.ndarray:
     """Keep every ``r_t``-th frame: [T, N, D] → [ceil(T / r_t), N, D] (frame 0 kept)."""
     return np.asarray(positions)[:: check_r_t(r_t)]
@@ -250,5 +315,7 @@ __all__ = [
     "cluster_particles",
     "cluster_sums",
     "downsample_scene",
+    "full_resolution",
+    "on_grid",
     "temporal_downsample",
 ]

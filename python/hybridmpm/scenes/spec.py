@@ -65,8 +65,8 @@ from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RA
 from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.limits import check_allocation
-from hybridmpm.mpm import DT_FRAME, Box, MpmParams, Sphere
-from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice
+from hybridmpm.mpm import DT_FRAME, Box, MpmParams, MpmSolver, Sphere
+from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 
@@ -141,6 +141,77 @@ class SceneSpec:
     def spacing(self) -> float:
         """Lattice spacing of the blocks [m]: ``dx / particles_per_cell``."""
         return 1.0 / (self.params.resolved_n_grid() * self.particles_per_cell)
+
+    # ------------------------------------------------------------------ grids
+    def on_grid(self, n_grid: int, particles_per_cell: int | None = None) -> SceneSpec:
+        """The same scene on another grid of the same domain: a copy with
+        ``n_grid`` cells per side, the same blocks and obstacles (in metres),
+        the walls' faces where they were (:func:`~hybridmpm.scenes.core.wall_cells_for`:
+        exact when ``face·n_grid`` is an integer, e.g. 128² → 64² or 64³ → 32³,
+        else the nearest node inside), the obstacle clearance kept in metres
+        and ``particles_per_cell`` per axis (default: the spec's own), so the
+        lattice spacing becomes ``1 / (n_grid · particles_per_cell)``.
+
+        ``info["base_n_grid"]`` and ``info["base_particles_per_cell"]`` record
+        the grid and lattice the scene was made for (those of its reference,
+        full-resolution MPM) and a dam break's
+        ``info["spacing"]`` follows the new lattice.
+
+        Raises :class:`InvalidInputError` naming the field when the grid is too
+        coarse for the scene: ``n_grid`` (not an integer in [16, 4096], or too
+        few cells for the walls), ``particles_per_cell`` (not in [1, 4]),
+        ``blocks[i]`` (a side thinner than one cell), ``obstacles[i].half_extents``
+        / ``obstacles[i].radius`` (thinner than the solver holds: 2 cells for a
+        box, a radius of 1.5 cells for a sphere).
+        """
+        if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or not 16 <= int(n_grid) <= 4096:
+            raise InvalidInputError(f"n_grid: must be an integer in [16, 4096], got {n_grid!r}", "n_grid")
+        n = int(n_grid)
+        ppc = self.particles_per_cell if particles_per_cell is None else particles_per_cell
+        if isinstance(ppc, bool) or not isinstance(ppc, (int, np.integer)) or not 1 <= int(ppc) <= 4:
+            raise InvalidInputError(f"particles_per_cell: must be an integer in [1, 4], got {ppc!r}", "particles_per_cell")
+        n0 = self.params.resolved_n_grid()
+        face = wall_face(self.params)
+        cells = wall_cells_for(face, n)
+        if 4 * cells >= n:
+            raise InvalidInputError(
+                f"n_grid: {n} cells per side are too few for this scene's walls (a band of {cells} cells keeps their faces at {face:.4g} m; "
+                f"the band must stay under a quarter of the grid: n_grid > {4 * cells})",
+                "n_grid",
+            )
+        dx = 1.0 / n
+        for i, b in enumerate(self.blocks):
+            side = float(np.min(np.asarray(b.hi, np.float64) - np.asarray(b.lo, np.float64)))
+            if side < dx * (1.0 - 1e-6):
+                raise InvalidInputError(
+                    f"blocks[{i}]: {side:.4g} m thin, less than one cell of a {n} grid (dx = {dx:.4g} m); use n_grid >= {math.ceil(1.0 / side - 1e-6)}",
+                    f"blocks[{i}]",
+                )
+            if min(b.lo) < dx or max(b.hi) > 1.0 - dx:
+                raise InvalidInputError(f"blocks[{i}]: must lie inside [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}] on a {n} grid", f"blocks[{i}]")
+        d = self.params.to_dict()
+        d["n_grid"] = n
+        d["walls"] = {**d["walls"], "cells": cells}
+        params = MpmParams.from_dict(d)
+        _check_obstacles_hold(params)
+        info = {
+            **self.info,
+            "base_n_grid": int(self.info.get("base_n_grid", n0)),
+            "base_particles_per_cell": int(self.info.get("base_particles_per_cell", self.particles_per_cell)),
+        }
+        if "spacing" in info:
+            info["spacing"] = dx / int(ppc)
+        return SceneSpec(
+            self.name,
+            params,
+            [Block(b.material, list(b.lo), list(b.hi), None if b.velocity is None else list(b.velocity), b.hydrostatic) for b in self.blocks],
+            dt_frame=self.dt_frame,
+            frames=self.frames,
+            particles_per_cell=int(ppc),
+            connectivity_radius=self.connectivity_radius,
+            info=info,
+            obstacle_clearance_cells=self.obstacle_clearance_cells * n / n0,
+        )
 
     # ------------------------------------------------------------------ dict / files
     def to_dict(self) -> dict[str, Any]:
@@ -338,9 +409,15 @@ class SceneSpec:
         for i, n in enumerate(counts):
             check_allocation(f"blocks[{i}]", n * BYTES_PER_PARTICLE, f"{n} particles (lattice spacing {s:.3g} m = dx/{self.particles_per_cell})")
         check_allocation("blocks", sum(counts) * BYTES_PER_PARTICLE, f"{sum(counts)} particles in all")
+        vol_l: list[np.ndarray] = []
         for i, b in enumerate(self.blocks):
             lo, hi = np.asarray(b.lo, np.float64), np.asarray(b.hi, np.float64)
-            p = lattice(lo, hi, s)
+            # a block whose sides are not whole lattice spacings (a scene moved to a grid such as 96² from 128²) is
+            # filled exactly by a lattice stretched to its sides, each particle carrying its share of the block's volume
+            per_axis = np.maximum(np.round((hi - lo) / s), 1)
+            step = np.where(np.abs(per_axis * s - (hi - lo)) <= 1e-9, s, (hi - lo) / per_axis)
+            p = lattice(lo, hi, s if np.all(step == s) else step)
+            vol_l.append(np.full(len(p), float(np.prod(step)), np.float64))
             keep = np.ones(len(p), bool)
             for plo, phi in placed:
                 keep &= ~np.all((p >= plo) & (p < phi), axis=1)
@@ -359,6 +436,7 @@ class SceneSpec:
                     where,
                 )
             p = p[keep]
+            vol_l[-1] = vol_l[-1][keep]
             placed.append((lo, hi))
             pos_l.append(p)
             mat_l.append(np.full(len(p), MATERIALS[b.material], np.int32))
@@ -373,6 +451,9 @@ class SceneSpec:
             raise InvalidInputError("blocks: no particle left after removing overlaps with obstacles and earlier blocks", "blocks")
         volume_ratio = np.concatenate(j_l)
         boundary = boundary_particles(self.params.colliders, dim, s, dx)
+        # the solver's default volume is (dx/2)^D (2 particles per cell per axis); other lattices carry their own
+        vol = np.concatenate(vol_l)
+        volumes = None if self.particles_per_cell == 2 and np.all(vol == s**dim) else vol.astype(np.float32)
         return Scene(
             name=self.name,
             params=self.params,
@@ -386,7 +467,18 @@ class SceneSpec:
             boundary_positions=boundary if len(boundary) else None,
             connectivity_radius=self.connectivity_radius,
             spec=self,
+            volumes=volumes,
         )
+
+
+def _check_obstacles_hold(params: MpmParams) -> None:
+    """Refuse obstacles too thin for ``params``' grid, as the solver does at
+    construction (an empty solver: its grid only), naming ``obstacles[i]...``."""
+    try:
+        MpmSolver(params)
+    except InvalidInputError as e:
+        f = (e.field or "").replace("colliders", "obstacles", 1)
+        raise InvalidInputError(str(e).replace("colliders", "obstacles", 1), f) from e
 
 
 def _guess_field(pd: dict[str, Any]) -> str:

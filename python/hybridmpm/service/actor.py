@@ -113,7 +113,18 @@ class SessionActor:
     change; idle for ``idle_ttl_s`` it removes its record and ends itself.
     """
 
-    def __init__(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, settings: dict[str, Any], restore: bool = False) -> None:
+    def __init__(
+        self,
+        key: str,
+        scene: str,
+        seed: int,
+        solver: str,
+        r_c: float,
+        client: str,
+        settings: dict[str, Any],
+        restore: bool = False,
+        n_grid: int | None = None,
+    ) -> None:
         self.key = key
         self.client_addr = client
         self.settings = dict(settings)
@@ -146,7 +157,7 @@ class SessionActor:
             if restore or reconstructed:
                 self._load()
             else:
-                self._build(scene, seed, solver, r_c)
+                self._build(scene, seed, solver, r_c, n_grid)
         except _REFUSALS as e:
             self.failed = (type(e).__name__, str(e), getattr(e, "field", None))
             log.warning("session %s…: %s", key[:SHOWN_KEY_CHARS], e)
@@ -154,15 +165,15 @@ class SessionActor:
         threading.Thread(target=self._keeper, name="saver", daemon=True).start()
 
     # ------------------------------------------------------------ building
-    def _session(self, scene: str, seed: int, solver: str, r_c: float, sim: Any, initial: dict[str, Any]) -> Session:
-        sess = Session(self.key, scene, seed, solver, r_c, sim, initial, client=self.client_addr, key=self.key)
+    def _session(self, scene: str, seed: int, solver: str, r_c: float, sim: Any, initial: dict[str, Any], n_grid: int | None) -> Session:
+        sess = Session(self.key, scene, seed, solver, r_c, sim, initial, client=self.client_addr, key=self.key, n_grid=n_grid)
         budget = MemoryBudget(int(self.settings.get("memory_budget") or 1 << 30))
         sess.recording = Recording(budget, RECORD_STEPS, int(sim.r_t))
         return sess
 
-    def _build(self, scene: str, seed: int, solver: str, r_c: float) -> None:
-        sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1)
-        self.sess = self._session(scene, seed, solver, r_c, sim, sim.state())
+    def _build(self, scene: str, seed: int, solver: str, r_c: float, n_grid: int | None) -> None:
+        sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1, n_grid=n_grid)
+        self.sess = self._session(scene, seed, solver, r_c, sim, sim.state(), n_grid)
         self._publish(sim.frame)
         if self.store is not None:
             self.dirty = True
@@ -174,7 +185,7 @@ class SessionActor:
         rec = self.store.load(self.key, int(self.settings["max_checkpoint_bytes"]))
         sim, initial = rebuild(rec)
         self.client_addr = rec.client
-        self.sess = self._session(rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial)
+        self.sess = self._session(rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, rec.n_grid)
         frame = int(sim.frame.frame_index)
         self.sess.saved_frame = self.sess.restored_from_frame = frame
         self.last_used = time.monotonic() - max(0.0, time.time() - rec.last_used_at)

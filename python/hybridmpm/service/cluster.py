@@ -252,7 +252,7 @@ class RaySessionManager(SessionManager):
         )
 
     # ------------------------------------------------------------ actors
-    def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool) -> Any:
+    def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool, n_grid: int | None = None) -> Any:
         """The session actor of ``key`` (created, or the one already there). Blocks: call it off the event loop."""
         return self.actor_class.options(
             name=ACTOR_PREFIX + key,
@@ -264,7 +264,7 @@ class RaySessionManager(SessionManager):
             max_task_retries=0,
             max_concurrency=ACTOR_THREADS,
             scheduling_strategy="SPREAD",
-        ).remote(key, scene, seed, solver, r_c, client, self.settings, restore)
+        ).remote(key, scene, seed, solver, r_c, client, self.settings, restore, n_grid)
 
     def _lookup(self, key: str) -> Any:
         """The live actor of ``key``, or None. Blocks."""
@@ -337,7 +337,7 @@ class RaySessionManager(SessionManager):
             return None
         await self._reserve(key, rec.client, restoring=True)
         try:
-            return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True)
+            return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True, rec.n_grid)
         except Exception:
             await self.registry.release.remote(key)
             raise
@@ -412,7 +412,7 @@ class RaySessionManager(SessionManager):
         """Sessions of the whole cluster (the registry's count)."""
         return int(await self.registry.count.remote())
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "") -> Session:
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
         """A new session in its own actor. Raises :class:`SessionCapError` /
         :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
         when the cluster has no CPU for it, and the simulator's
@@ -423,7 +423,7 @@ class RaySessionManager(SessionManager):
         actor = None
         try:
             await self._room()
-            actor = await anyio.to_thread.run_sync(self._spawn, key, scene, seed, solver, r_c, client, False)
+            actor = await anyio.to_thread.run_sync(self._spawn, key, scene, seed, solver, r_c, client, False, n_grid)
             try:
                 facts = await self._ready(actor, PLACE_TIMEOUT_S)
             except SessionGoneError:

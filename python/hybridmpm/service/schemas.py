@@ -47,6 +47,13 @@ class CreateSession(Strict):
     seed: Integer = Field(0, ge=0, le=MAX_SEED)
     solver: Literal["hybrid", "mpm", "neural"] = "hybrid"
     r_c: Number = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
+    n_grid: Integer | None = Field(
+        None,
+        ge=16,
+        le=4096,
+        description="solver mpm: run on a coarser grid of the scene's domain (the same blocks, obstacles and wall faces; "
+        "at most the scene's own grid); null: the scene's grid",
+    )
 
 
 class SessionInfo(BaseModel):

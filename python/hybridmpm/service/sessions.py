@@ -35,6 +35,7 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
+from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.frames import encode_frame
@@ -235,6 +236,7 @@ class Session:
     restored_from_frame: int | None = None  # the frame it resumed from after a restart
     save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     recording: Recording | None = None  # its latest frames, for download
+    n_grid: int | None = None  # the grid it was asked to run on (None: the scene's)
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -286,8 +288,26 @@ class Session:
             v.event(msg)
 
     def settings(self) -> dict[str, Any]:
-        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c``."""
-        return {"scene": self.scene, "seed": self.seed, "solver": self.solver_kind, "r_c": self.r_c}
+        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c`` (and ``n_grid`` when asked)."""
+        d: dict[str, Any] = {"scene": self.scene, "seed": self.seed, "solver": self.solver_kind, "r_c": self.r_c}
+        if self.n_grid is not None:
+            d["n_grid"] = self.n_grid
+        return d
+
+
+def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
+    """A session's ``n_grid`` as asked: None, or for the ``mpm`` solver a grid
+    no finer than the registered scene's own (a coarser grid of the same
+    domain costs less; a finer one could ask for any memory). Raises
+    :class:`InvalidInputError` naming ``n_grid``."""
+    if n_grid is None:
+        return None
+    if solver != "mpm":
+        raise InvalidInputError(f"n_grid: applies to the mpm solver; the {solver} solver runs at its model's resolution", "n_grid")
+    own = scene_spec(scene).params.resolved_n_grid()
+    if n_grid > own:
+        raise InvalidInputError(f"n_grid: at most the scene's own grid, {own}, got {n_grid}", "n_grid")
+    return int(n_grid)
 
 
 def scene_geometry(sim: Simulator) -> dict[str, Any]:
@@ -351,8 +371,9 @@ class SessionManager:
         held = sum(1 for s in (*self.sessions.values(), *self.unclaimed.values()) if s.client == client)
         return held + self.reserved_by[client]
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "") -> Session:
-        """Build a session for the client address ``client``. Raises
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
+        """Build a session for the client address ``client`` (``n_grid``: MPM
+        on a coarser grid of the scene, :func:`checked_n_grid`). Raises
         :class:`SessionCapError` when the server is full,
         :class:`QuotaError` when the client holds its quota,
         :class:`BudgetFullError` when the memory budget cannot hold it (its
@@ -371,13 +392,13 @@ class SessionManager:
                 def build() -> tuple[Simulator, dict[str, Any]]:
                     from hybridmpm.sim import make_simulator
 
-                    sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1)
+                    sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1, n_grid=n_grid)
                     return sim, sim.state()
 
                 sim, initial = await self.compute(build)
             cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a new session")
             sid = secrets.token_urlsafe(24)  # 192 bits
-            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost, key=session_key(sid))
+            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost, key=session_key(sid), n_grid=n_grid)
             sess.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))
             sess.record(sim.frame)
             self.sessions[sid] = sess
@@ -592,7 +613,7 @@ class SessionManager:
                 log.warning("store: session %s…: checkpoint: malformed state (%s); not restored", shown, type(e).__name__)
                 continue
             frame = int(sim.frame.frame_index)
-            s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key)
+            s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key, n_grid=rec.n_grid)
             s.last_used = time.monotonic() - max(0.0, idle)
             s.saved_frame = s.restored_from_frame = frame
             s.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))

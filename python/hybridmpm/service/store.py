@@ -79,6 +79,7 @@ class StoredSession:
     client: str
     state: dict[str, Any]
     nbytes: int
+    n_grid: int | None = None
 
 
 def _bad(key: str, msg: str) -> InvalidInputError:
@@ -101,6 +102,9 @@ def parse_record(key: str, data: bytes, max_bytes: int) -> StoredSession:
         v = meta.get(name)
         if isinstance(v, bool) or not isinstance(v, types):
             raise _bad(key, f"meta.{name}: missing or not a {' or '.join(t.__name__ for t in types)} (got {v!r})")
+    n_grid = meta.get("n_grid")  # records of sessions on the scene's grid (and older records) have none
+    if n_grid is not None and (isinstance(n_grid, bool) or not isinstance(n_grid, int) or not 16 <= n_grid <= 4096):
+        raise _bad(key, f"meta.n_grid: not an integer in [16, 4096] (got {n_grid!r})")
     return StoredSession(
         key,
         meta["scene"],
@@ -111,6 +115,7 @@ def parse_record(key: str, data: bytes, max_bytes: int) -> StoredSession:
         meta["client"],
         state,
         len(data),
+        n_grid,
     )
 
 
@@ -140,7 +145,7 @@ def rebuild(rec: StoredSession) -> tuple[Any, dict[str, Any]]:
         if not isinstance(raw, dict) or set(raw) != {"labels", "boundary_labels"}:
             raise InvalidInputError(f"store: session {rec.key[:SHOWN_KEY_CHARS]}…: {CLUSTERS_KEY} must hold labels and boundary_labels", "checkpoint")
         clusters = Clusters(np.asarray(raw["labels"]), np.asarray(raw["boundary_labels"]))
-    sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1, clusters=clusters)
+    sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1, clusters=clusters, n_grid=rec.n_grid)
     initial = sim.state()
     sim.restore(state)
     return sim, initial

@@ -22,7 +22,7 @@ SOLVERS = ("hybrid", "mpm", "neural")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
 #: Keys of a configuration (the chosen method) in the tuned file.
-CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol")
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid")
 
 
 def make_simulator(
@@ -42,6 +42,8 @@ def make_simulator(
     threads: int = 0,
     nn_threads: int = 1,
     clusters: Clusters | None = None,
+    n_grid: int | None = None,
+    particles_per_cell: int | None = None,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
@@ -51,15 +53,20 @@ def make_simulator(
     ``model`` an ONNX path, a :class:`~hybridmpm.neural.GnsRuntime` or None
     (the scene's shipped model); ``threads`` MPM threads (0 = all cores);
     ``clusters`` an earlier simulator's ``scene.clusters`` (same scene and
-    ``r_p``), which skips the k-means of the downsampling.
+    ``r_p``), which skips the k-means of the downsampling; ``n_grid`` and
+    ``particles_per_cell`` run MPM on another grid of the same domain
+    (:func:`~hybridmpm.scenes.resolution.on_grid`; None: the scene's).
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
-    ``r_p`` for a network solver: it runs at its model's ``r_p``)."""
+    ``r_p``, ``n_grid`` or ``particles_per_cell`` for a network solver: it
+    runs at its model's resolution)."""
     if solver not in SOLVERS:
         raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
-    if solver != "mpm" and r_p != 1.0:
-        raise InvalidInputError(f"r_p: applies to the mpm solver; the {solver} solver runs at its model's r_p", "r_p")
+    if solver != "mpm":
+        for name, value, unset in (("r_p", r_p, 1.0), ("n_grid", n_grid, None), ("particles_per_cell", particles_per_cell, None)):
+            if value != unset:
+                raise InvalidInputError(f"{name}: applies to the mpm solver; the {solver} solver runs at its model's resolution", name)
     if solver == "mpm":
-        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
+        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell)
     if solver == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads, clusters=clusters)
     return HybridSimulator(
@@ -108,11 +115,12 @@ def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
 
 def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of a tuned configuration
-    (``solver``, and ``r_p`` or ``model`` and ``r_c``, and the hybrid's
+    (``solver``, and ``r_p`` and ``n_grid`` or ``model`` and ``r_c``, and the hybrid's
     ``safeguard`` and ``audit_tol`` where the configuration sets them)."""
     cfg = doc["config"]
     if cfg["kind"] == "mpm":
-        return {"solver": "mpm", "r_p": float(cfg["r_p"])}
+        # configurations tuned before grids were a knob ran on the scene's grid
+        return {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
     if cfg["kind"] == "hybrid":
         out["r_c"] = float(cfg["r_c"])

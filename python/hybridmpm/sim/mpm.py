@@ -19,7 +19,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
-from hybridmpm.scenes.resolution import at_resolution, check_r_t
+from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid
 from hybridmpm.sim.base import (
     MPM,
     Forcing,
@@ -57,6 +57,12 @@ class MpmSimulator:
         The :attr:`~hybridmpm.scenes.Scene.clusters` of an earlier simulator of
         the same scene at the same ``r_p`` (a restored session): the
         downsampled scene is rebuilt from them without the k-means.
+    n_grid, particles_per_cell, keep_particles:
+        Run on another grid of the same domain
+        (:func:`~hybridmpm.scenes.resolution.on_grid`: the same blocks,
+        obstacles and wall faces, reseeded at ``particles_per_cell`` per axis,
+        or with ``keep_particles`` the scene's own particles); None: the
+        scene's grid. Applied before ``r_p``.
 
     ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
     :class:`InvalidInputError` naming the bad parameter.
@@ -64,14 +70,26 @@ class MpmSimulator:
 
     kind = MPM
 
-    def __init__(self, scene: Scene | str, *, r_p: float = 1.0, r_t: int = 1, seed: int = 0, threads: int = 0, clusters: Clusters | None = None) -> None:
+    def __init__(
+        self,
+        scene: Scene | str,
+        *,
+        r_p: float = 1.0,
+        r_t: int = 1,
+        seed: int = 0,
+        threads: int = 0,
+        clusters: Clusters | None = None,
+        n_grid: int | None = None,
+        particles_per_cell: int | None = None,
+        keep_particles: bool = False,
+    ) -> None:
         self._lock = new_lock()
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         self.r_t = check_r_t(r_t)
         threads = check_int("threads", threads, 0)
         self.scene_full = scene
-        self.scene = at_resolution(scene, r_p, seed, clusters)
+        self.scene = at_resolution(on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles), r_p, seed, clusters)
         self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
         self.particles = self.scene.particles(self.solver.masses)
         self.dt_frame = float(self.scene.dt_frame)

@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.errors import SimulationError
 from hybridmpm.limits import check_allocation
 from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.resolution import full_resolution
 from hybridmpm.sim.base import NEURAL, Frame, NetworkFailure, Simulator, check_int
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.trajectory import Trajectory
@@ -186,16 +187,12 @@ def reference(scene: Scene, frames: int, *, stride: int = 1, threads: int = 0, p
     """Full-resolution MPM from ``scene``'s initial condition, every ``stride``
     frames for ``⌈frames/stride⌉·stride`` frames (whole strides, like the
     network's coarse steps): the reference of the grid-mass error. A scene
-    clustered to ``r_p < 1`` is rebuilt from its spec. Raises
-    :class:`InvalidInputError` (field ``scene``) if such a scene has no spec,
+    clustered to ``r_p < 1`` or moved to another grid is rebuilt from its spec
+    on the grid it was made for (:func:`~hybridmpm.scenes.resolution.full_resolution`).
+    Raises :class:`InvalidInputError` (field ``scene``) if such a scene has no spec,
     :class:`~hybridmpm.errors.SimulationError` if MPM fails."""
 
-    if scene.info.get("r_p", 1.0) < 1.0:
-        if scene.spec is None:
-            raise InvalidInputError("scene: the reference runs at full resolution; this clustered scene has no spec to rebuild it from", "scene")
-        name = scene.name
-        scene = scene.spec.build()
-        scene.name = name
+    scene = full_resolution(scene)
     ro = rollout(MpmSimulator(scene, r_t=stride, threads=threads), frames, progress=progress)
     if ro.failure is not None:
         raise SimulationError(f"reference: full-resolution MPM failed after {ro.frames_done} frames: {ro.failure_detail or ro.failure}")
