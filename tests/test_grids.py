@@ -222,3 +222,33 @@ def test_classical_front_and_its_error_at_equal_time():
     xs = np.geomspace(1.0, 8.0, 50)
     ys = [front_error_at(front, float(x)) for x in xs]
     assert all(a >= b - 1e-12 for a, b in zip(ys, ys[1:]))
+
+
+def test_the_classical_twin_hands_over_without_moving_a_particle():
+    """The hybrid with MPM on half the grid as its cheap half: its MPM steps are bit for bit those of MPM at r_p on
+    the scene's grid from the state the coarse grid handed over, and a rule that never leaves the coarse grid is
+    bit for bit MPM on that grid with the same particles."""
+    from hybridmpm.sim import HybridSimulator
+    from hybridmpm.sim.coarse import COARSE
+
+    twin = HybridSimulator("water2d", seed=12, cheap="mpm-coarse", safeguard="paper", r_c=-1.0, mpm_threads=1)  # r_c <= 0: the cheap half only
+    assert twin.cheap_kind == COARSE and twin.neural.n_grid == 64
+    ro = rollout(twin, 60)
+    assert ro.stats["steps"][COARSE] > 0 and set(ro.solver[1:].tolist()) <= {COARSE, "mpm"}
+    # the same particles on the coarse grid alone: the warm-up on the fine grid, then the coarse grid from its state
+    warm = int(np.sum(ro.solver[1:] == "mpm"))
+    fine = MpmSimulator(twin.scene, r_t=twin.r_t, threads=1)
+    rollout(fine, warm * twin.r_t)
+    coarse = MpmSimulator(on_grid(twin.scene, 64, keep_particles=True), r_t=twin.r_t, threads=1)
+    coarse.solver.restore_particles(fine.solver.checkpoint())
+    alone = rollout(coarse, (len(ro.solver) - 1 - warm) * twin.r_t)
+    assert np.array_equal(alone.fluid_positions[-1], ro.fluid_positions[-1])
+    # its state round-trips, and a twin's state is refused by the GNS hybrid
+    st = twin.state()
+    a = rollout(twin, 8).positions
+    twin.restore(st)
+    assert np.array_equal(rollout(twin, 8).positions, a)
+    with pytest.raises(InvalidInputError):
+        HybridSimulator("water2d", seed=12, mpm_threads=1).restore(st)
+    assert _field(lambda: HybridSimulator("water2d", seed=12, cheap="mpm-coarse", cheap_grid=8)) == "n_grid"
+    assert _field(lambda: HybridSimulator("water2d", seed=12, cheap="tensor")) == "cheap"

@@ -109,13 +109,14 @@ def _simulate(args: argparse.Namespace) -> int:
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
         safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
+        **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}),
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
     low = sim.scene
     per_frame = ro.frame_seconds()
     steps = ro.stats["steps"]
-    total = max(1, steps["mpm"] + steps[NEURAL])
+    total = max(1, sum(steps.values()))
     summary: dict = {
         "scene": scene.name, "solver": args.solver, "seed": args.seed, "frames": ro.frames_done, "frames_asked": frames,
         "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
@@ -135,12 +136,15 @@ def _simulate(args: argparse.Namespace) -> int:
         model = sim.model  # type: ignore[attr-defined]
         summary["model"] = str(model.path)
         summary["warmup_mpm_frames"] = warmup_frames(model)
-        summary["neural_steps"] = steps[NEURAL]
+        summary["neural_steps"] = steps.get(NEURAL, 0)
     if args.solver == "hybrid":
         summary.update(
             {"safeguard": sim.safeguard, "r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every,  # type: ignore[attr-defined]
-             "audit_tol": sim.audit_tol, "residual_tol": sim.residual_tol, "audit_max": sim.audit_max}  # type: ignore[attr-defined]
+             "audit_tol": sim.audit_tol, "residual_tol": sim.residual_tol, "audit_max": sim.audit_max,  # type: ignore[attr-defined]
+             "cheap": sim.cheap, "cheap_kind": sim.cheap_kind}  # type: ignore[attr-defined]
         )  # fmt: skip
+        if sim.cheap_kind != NEURAL:  # type: ignore[attr-defined]
+            summary["cheap_grid"] = sim.neural.n_grid  # type: ignore[attr-defined]
     err = None
     if args.reference:
         t0 = time.perf_counter()
@@ -169,7 +173,8 @@ def _simulate(args: argparse.Namespace) -> int:
         line += f" on a {summary['n_grid']}^{low.dim} grid" if summary["n_grid"] != scene.params.resolved_n_grid() else ""
         line += f", {args.solver} median {ms['median']:.2f} ms/frame (p95 {ms['p95']:.2f})" if ms["median"] is not None else ""
         if args.solver == "hybrid":
-            line += f", neural {100 * ro.share(NEURAL):.0f}% of steps, {ro.stats['switches']} switches"
+            cheap = sim.cheap_kind  # type: ignore[attr-defined]
+            line += f", {cheap} {100 * ro.share(cheap):.0f}% of steps, {ro.stats['switches']} switches"
         if err is not None:
             line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
         if ro.failure:
@@ -530,6 +535,13 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
+    sim.add_argument(
+        "--cheap",
+        default="neural",
+        choices=["neural", "mpm-coarse"],
+        help="hybrid: its cheap half, the network (default) or MPM on a coarser grid with the same particles (the classical twin)",
+    )
+    sim.add_argument("--cheap-grid", type=int, default=None, help="hybrid --cheap mpm-coarse: the coarse grid (default half the scene's)")
     sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")

@@ -57,7 +57,9 @@ class Method:
     (:data:`~hybridmpm.conventions.SAFEGUARDS`; None: the default) and
     ``audit_tol`` its audit tolerance [g] (None: the default); ``n_grid``
     the grid MPM runs on (None: the scene's;
-    :func:`~hybridmpm.scenes.resolution.on_grid`, 2 particles per cell per axis).
+    :func:`~hybridmpm.scenes.resolution.on_grid`, 2 particles per cell per
+    axis); ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": the
+    classical twin, MPM on half the grid, :mod:`hybridmpm.sim.coarse`).
     """
 
     key: str
@@ -72,6 +74,7 @@ class Method:
     safeguard: str | None = None
     audit_tol: float | None = None
     n_grid: int | None = None
+    cheap: str = "neural"
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -132,7 +135,8 @@ def methods_for(
     "error" rule at each audit tolerance of ``error_tols`` [g], and the
     hybrid as ``hybridmpm simulate`` runs it by default (key
     ``hybrid_default``: the rule shipped with the scene's model, else the
-    defaults), and plain MPM on each coarser grid of ``grids`` (fractions of
+    defaults), its classical twin with MPM on half the grid as the cheap
+    half (key ``hybrid_coarse``, the same rule), and plain MPM on each coarser grid of ``grids`` (fractions of
     the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
     refuses on ``seed``'s initial condition are left out:
     :func:`mpm_grid_methods`). Raises
@@ -167,6 +171,23 @@ def methods_for(
     safeguard, tol0 = rule.get("safeguard", SAFEGUARD), rule.get("audit_tol", AUDIT_TOL)
     name = f"error rule, tol {float(tol0):g} g" if safeguard == "error" else ("s(t) + audit" if safeguard == "audit" else "s(t) alone")
     out.append(Method("hybrid_default", "hybrid", f"hybrid, default ({name})", r_p, r_t, R_C, str(main), "hybrid", params, safeguard, float(tol0)))
+    if mpm_grid_methods(scene, r_p, seed, (0.5,))[0]:  # the classical twin, where the scene holds on half its grid
+        out.append(
+            Method(
+                "hybrid_coarse",
+                "hybrid",
+                f"hybrid, cheap half MPM on half the grid ({name})",
+                r_p,
+                r_t,
+                R_C,
+                str(main),
+                "hybrid",
+                0,
+                safeguard,
+                float(tol0),
+                cheap="mpm-coarse",
+            )
+        )
     for tol in error_tols:
         if not (0.0 < float(tol) <= 100.0):
             raise InvalidInputError(f"audit_tol: tolerances must lie in (0, 100] g, got {tol!r}", "audit_tol")

@@ -228,7 +228,12 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     for r in rows:
         if str(r["key"]).startswith(("hybrid_rc", "hybrid_err")):
             continue
-        marker, color = ("P" if r["key"] == "hybrid_paper" else "X", "tab:blue") if r["kind"] == "hybrid" else _STYLE.get(r["role"], ("o", "tab:green"))
+        if r.get("cheap", "neural") != "neural":
+            marker, color = "X", "dimgray"  # the classical twin
+        elif r["kind"] == "hybrid":
+            marker, color = ("P" if r["key"] == "hybrid_paper" else "X", "tab:blue")
+        else:
+            marker, color = _STYLE.get(r["role"], ("o", "tab:green"))
         broke = r["failures"] > 0
         label = r["label"] + (f" — broke off ({r['failures']}/{r['seeds']} seeds, ~{r['frames_done']:.0f} frames)" if broke else "")
         ax.plot(

@@ -29,7 +29,7 @@ from hybridmpm.bench.methods import Method
 from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import make_scene
-from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
+from hybridmpm.sim import MPM, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 #: Held-out seeds: trajectory seeds of generated datasets are 31-bit hashes
 #: (:func:`hybridmpm.train.datasets.trajectory_seed`), so small integers never
@@ -131,7 +131,9 @@ def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) ->
     rule: dict[str, Any] = {} if method.safeguard is None else {"safeguard": method.safeguard}
     if method.audit_tol is not None:
         rule["audit_tol"] = method.audit_tol
-    return HybridSimulator(scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads, **rule)
+    return HybridSimulator(
+        scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads, cheap=method.cheap, **rule
+    )
 
 
 def collapsed(frame: Any, sim: Any) -> str | None:
@@ -163,6 +165,8 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> di
     steps = ro.stats["steps"]
     if method.kind == "mpm":
         substeps, mflop = float(ro.substeps[1:].mean()), 0.0
+    elif method.cheap != "neural":  # the classical twin runs no network
+        substeps, mflop = float("nan"), 0.0
     else:
         # the network's arithmetic per frame on the initial graph (nodes: fluid and boundary particles)
         meta = sim.model.meta  # type: ignore[attr-defined]
@@ -174,12 +178,12 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> di
             substeps, mflop = float("nan"), float("nan")
     frames_of = ro.frame_index
     keep = frames_of <= cfg.frames
-    pos, frames_of, neural = ro.fluid_positions[keep], frames_of[keep], (ro.solver[keep] == NEURAL).astype(np.int8)
+    pos, frames_of, neural = ro.fluid_positions[keep], frames_of[keep], (ro.solver[keep] != MPM).astype(np.int8)  # the cheap half's frames
     err = grid_mass_error(pos, ref[frames_of], scene.params.resolved_n_grid())
     return {
         "method": method.key, "seed": int(seed), "particles": int(ro.num_fluid), "frames_done": int(frames_of[-1]),
         "failure": ro.failure, "error_mean": float(err.mean()), "error_last": float(err[-1]),
-        **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": steps["mpm"] / max(1, steps["mpm"] + steps[NEURAL]),
+        **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": steps["mpm"] / max(1, sum(steps.values())),
         "switches": int(ro.stats["switches"]), "substeps_per_frame": substeps, "mflop_per_frame": mflop,
         "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": neural.tolist()},
     }  # fmt: skip

@@ -38,7 +38,7 @@ from hybridmpm.mpm import Sphere
 from hybridmpm.neural.runtime import GnsRuntime
 from hybridmpm.scenes import scene_spec
 from hybridmpm.scenes.core import Scene
-from hybridmpm.sim import NEURAL, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
+from hybridmpm.sim import HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
 CASES = ("baseline", "fast", "obstacle", "dense")
 METHODS = ("neural", "mpm", "hybrid", "hybrid_noaudit", "hybrid_error")
@@ -141,7 +141,7 @@ def stress(
             k = len(ro.positions)
             err = grid_mass_error(ro.fluid_positions, ref[:k], scene.params.resolved_n_grid(), ref_weights=None)
             steps = ro.stats["steps"]
-            total = max(1, steps["mpm"] + steps[NEURAL])
+            total = max(1, sum(steps.values()))
             catches = [k * ro.r_t for k, e in ro.events if e and e.startswith("fallback")]
             results.append(
                 StressResult(

@@ -44,6 +44,8 @@ def make_simulator(
     clusters: Clusters | None = None,
     n_grid: int | None = None,
     particles_per_cell: int | None = None,
+    cheap: str = "neural",
+    cheap_grid: int | None = None,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
@@ -55,7 +57,9 @@ def make_simulator(
     ``clusters`` an earlier simulator's ``scene.clusters`` (same scene and
     ``r_p``), which skips the k-means of the downsampling; ``n_grid`` and
     ``particles_per_cell`` run MPM on another grid of the same domain
-    (:func:`~hybridmpm.scenes.resolution.on_grid`; None: the scene's).
+    (:func:`~hybridmpm.scenes.resolution.on_grid`; None: the scene's);
+    ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": its
+    classical twin, MPM on a ``cheap_grid`` grid, default half the scene's).
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
     ``r_p``, ``n_grid`` or ``particles_per_cell`` for a network solver: it
     runs at its model's resolution)."""
@@ -83,6 +87,8 @@ def make_simulator(
         mpm_threads=threads,
         nn_threads=nn_threads,
         clusters=clusters,
+        cheap=cheap,
+        cheap_grid=cheap_grid,
     )
 
 

@@ -130,11 +130,15 @@ from hybridmpm.sim.base import (
     reading_state,
     serialised,
 )
+from hybridmpm.sim.coarse import COARSE, CoarseMpmHalf
 from hybridmpm.sim.convert import VELOCITY_ESTIMATES, mpm_history
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import RELAX_ITERATIONS, REST_PERCENTILE, NeuralSimulator, load_model
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
 
+#: The hybrid's cheap halves: the network (the paper's hybrid) or plain MPM on
+#: a coarser grid of the same particles (its classical twin, :mod:`hybridmpm.sim.coarse`).
+CHEAP_HALVES = ("neural", "mpm-coarse")
 #: Default dwell (steps of s ≥ r_c on MPM before the network takes over again);
 #: see docs/hybrid.md for the measurement behind it.
 DWELL = 5
@@ -199,6 +203,14 @@ class HybridSimulator:
         The network's failure checks (:class:`~hybridmpm.sim.neural.NeuralSimulator`).
     relax, rest_percentile:
         The density relaxation after each network step (:class:`~hybridmpm.sim.neural.NeuralSimulator`; ``relax`` = 0: off).
+    cheap, cheap_grid:
+        The cheap half (:data:`CHEAP_HALVES`): ``"neural"`` (the network,
+        the paper's hybrid) or ``"mpm-coarse"``, the classical twin: MPM on
+        a coarser grid (``cheap_grid`` cells per side, default half the
+        scene's) with the same particles, handed over bit for bit
+        (:class:`~hybridmpm.sim.coarse.CoarseMpmHalf`); the model then only
+        sets ``r_p`` and ``r_t``. Its steps are counted and labelled
+        ``"coarse"`` (``cheap_kind``).
     mpm_threads, nn_threads:
         Threads of the MPM solver (0 = all cores) and of onnxruntime.
     clusters:
@@ -239,6 +251,8 @@ class HybridSimulator:
         mpm_threads: int = 0,
         nn_threads: int = 1,
         clusters: Clusters | None = None,
+        cheap: str = "neural",
+        cheap_grid: int | None = None,
     ) -> None:
 
         self._lock = new_lock()
@@ -270,6 +284,7 @@ class HybridSimulator:
             audit_tol = shipped["audit_tol"] if shipped.get("safeguard") == safeguard and "audit_tol" in shipped else AUDIT_TOL
         _check("audit_tol", _finite(audit_tol) and audit_tol > 0, f"must be > 0 [g], got {audit_tol!r}")
         _check("safeguard", safeguard in SAFEGUARDS, f"must be one of {', '.join(map(repr, SAFEGUARDS))}, got {safeguard!r}")
+        _check("cheap", cheap in CHEAP_HALVES, f"must be one of {', '.join(map(repr, CHEAP_HALVES))}, got {cheap!r}")
         self.scene_full = scene
         self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.r_c = float(r_c)
@@ -289,10 +304,17 @@ class HybridSimulator:
         self._since_audit = 0
         self._residual_ref = 0.0
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
-        self.neural = NeuralSimulator(
-            self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
-            degree_factor=degree_factor, warmup=False, relax=relax, rest_percentile=rest_percentile, mpm_threads=mpm_threads,
-        )  # fmt: skip
+        self.cheap = cheap
+        self.neural: NeuralSimulator | CoarseMpmHalf
+        if cheap == "neural":
+            self.cheap_kind = NEURAL
+            self.neural = NeuralSimulator(
+                self.scene, self.model, detect_failures=detect_failures, ke_factor=ke_factor, escape_cells=escape_cells,
+                degree_factor=degree_factor, warmup=False, relax=relax, rest_percentile=rest_percentile, mpm_threads=mpm_threads,
+            )  # fmt: skip
+        else:  # the classical twin: the model only sets the particles (r_p) and the step (r_t); its network never runs
+            self.cheap_kind = COARSE
+            self.neural = CoarseMpmHalf(self.scene, r_t=self.model.r_t, n_grid=cheap_grid, threads=mpm_threads)
         self.mpm = MpmSimulator(self.scene, r_t=self.model.r_t, threads=mpm_threads)
         self.particles = self.mpm.particles
         self.r_t = self.model.r_t
@@ -306,7 +328,7 @@ class HybridSimulator:
         self._strikes = 0
         self._neural_run = 0
         self.step_index = 0
-        self.stats = SimStats()
+        self.stats = SimStats(steps={MPM: 0, self.cheap_kind: 0})
         self.last_score = float("nan")
         self._frame = self.mpm.frame
 
@@ -334,14 +356,14 @@ class HybridSimulator:
     def velocities(self) -> np.ndarray:
         """Current fluid velocities [m/s], float32 [N, D]: MPM's when MPM made
         the last step, else the network's last finite difference."""
-        if self._frame.solver == NEURAL:
+        if self._frame.solver == self.cheap_kind:
             return self.neural.velocities
         return self.mpm.velocities
 
     @property
     def mean_degree(self) -> float:
         """Mean neighbours per particle of the network's graph for its next step; nan when the next step is MPM's."""
-        return self.neural.mean_degree if self.solver_name == NEURAL else float("nan")
+        return self.neural.mean_degree if self.solver_name == self.cheap_kind else float("nan")
 
     @property
     def initial_degree(self) -> float:
@@ -365,11 +387,17 @@ class HybridSimulator:
 
     # ------------------------------------------------------------ stepping
     def _to_mpm(self) -> None:
+        if isinstance(self.neural, CoarseMpmHalf):  # the same particles on the fine grid, bit for bit
+            self.mpm.solver.restore_particles(self.neural.handover_state())
+            return
         hist = np.stack(list(self._buffer)[-3:])
         self.mpm.load_history(hist, self.dt_step, affine=self.affine, affine_radius=self.model.radius, volume_ratio=self.volume_ratio, velocity=self.velocity)
 
     def _to_neural(self) -> None:
         # called after an MPM step: the buffer's newest entry is the solver's state
+        if isinstance(self.neural, CoarseMpmHalf):
+            self.neural.take_over(self.mpm.solver)
+            return
         self.neural.set_history(mpm_history(self.mpm.fluid_positions, np.stack(list(self._buffer)[-self.t_in : -1]), self.t_in))
 
     def _fall_back(self, convert: bool = True) -> None:
@@ -443,13 +471,13 @@ class HybridSimulator:
         retries = substeps = 0
         controlled = False
         forced = self.mpm.forcing is not None
-        if self.solver_name == NEURAL and forced:
+        if self.solver_name == self.cheap_kind and forced:
             self._fall_back(convert=not self._mpm_holds_state())
             event = "switch:mpm"
         ran = self.solver_name
         audit = float("nan")
         audited: Frame | None = None
-        if ran == NEURAL:
+        if ran == self.cheap_kind:
             proposal = self.neural.propose()
             failure = proposal.failure
             self.last_residual = self._density_residual(proposal) if self.safeguard == "error" else float("nan")
@@ -493,7 +521,7 @@ class HybridSimulator:
         self.last_score = score
         warm = self.step_index >= self.t_in - 1
         by_score = self.safeguard != "error" or self.mpm_only
-        if self.solver_name == NEURAL:
+        if self.solver_name == self.cheap_kind:
             if self.safeguard_on and by_score and not (score >= self.r_c):
                 self._fall_back()
                 event = event or "switch:mpm"
@@ -502,16 +530,16 @@ class HybridSimulator:
             self._calm = self._calm + 1 if ok else 0
             # after the warm-up a calm score hands over at once; after a switch it must hold for `dwell`
             # steps, doubled for each failure of the network since its last healthy stint (backoff)
-            if self.stats.steps[NEURAL] == 0 and self.stats.switches == 0:
+            if self.stats.steps[self.cheap_kind] == 0 and self.stats.switches == 0:
                 need = 1
             else:
                 need = self.dwell * 2 ** min(self._strikes, MAX_BACKOFF)
             if self._calm >= need and len(self._buffer) >= self.t_in:
                 self._to_neural()
-                self.solver_name = NEURAL
+                self.solver_name = self.cheap_kind
                 self._neural_run = 0
                 self._interval, self._since_audit, self._residual_ref = 1, 0, 0.0
-                if self.stats.steps[NEURAL] > 0 or self.stats.switches > 0:
+                if self.stats.steps[self.cheap_kind] > 0 or self.stats.switches > 0:
                     self.stats.switches += 1
                     event = event or "switch:neural"
         self._frame = Frame(
@@ -577,8 +605,8 @@ class HybridSimulator:
                 )
             buf = check_positions("state.buffer", buf, (depth, self.n_fluid, self.particles.dim))
             solver_name, frame_solver = state["solver_name"], state["frame_solver"]
-            if solver_name not in (MPM, NEURAL) or frame_solver not in (MPM, NEURAL):
-                raise InvalidInputError(f"state.solver_name: must be {MPM!r} or {NEURAL!r}", "state.solver_name")
+            if solver_name not in (MPM, self.cheap_kind) or frame_solver not in (MPM, self.cheap_kind):
+                raise InvalidInputError(f"state.solver_name: must be {MPM!r} or {self.cheap_kind!r}", "state.solver_name")
             counters = {k: check_count(f"state.{k}", state[k]) for k in ("calm", "strikes", "neural_run")}
             # the "error" rule's audit schedule (absent from states written before the rule existed)
             interval = max(1, check_count("state.interval", state.get("interval", 1)))
@@ -605,4 +633,4 @@ class HybridSimulator:
         self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=self.last_score)
 
 
-__all__ = ["DWELL", "MAX_BACKOFF", "RESIDUAL_GROWTH", "HybridSimulator"]
+__all__ = ["CHEAP_HALVES", "DWELL", "MAX_BACKOFF", "RESIDUAL_GROWTH", "HybridSimulator"]

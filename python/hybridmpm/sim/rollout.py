@@ -23,7 +23,7 @@ from hybridmpm.errors import SimulationError
 from hybridmpm.limits import check_allocation
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import full_resolution
-from hybridmpm.sim.base import NEURAL, Frame, NetworkFailure, Simulator, check_int
+from hybridmpm.sim.base import MPM, NEURAL, Frame, NetworkFailure, Simulator, check_int
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.trajectory import Trajectory
 
@@ -132,7 +132,7 @@ def rollout(
                 break
             recs.append(fr)
             bar.update()
-            if fr.solver == NEURAL or not math.isnan(fr.score):
+            if fr.solver != MPM or not math.isnan(fr.score):
                 bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}", refresh=False)
             if on_frame is not None:
                 on_frame(fr)
@@ -154,7 +154,7 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     substeps = np.array([r.substeps for r in recs], np.int64)
     frame_index = np.array([r.frame_index for r in recs], np.int64)
     extras = {
-        "solver": (solver == NEURAL).astype(np.int8),
+        "solver": (solver != MPM).astype(np.int8),  # 1: the cheap half (the network, or the coarse grid of the classical twin)
         "score": score,
         "step_seconds": seconds,
         "frame_index": frame_index,

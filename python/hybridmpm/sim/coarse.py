@@ -1,0 +1,120 @@
+"""MPM on a coarser grid as the hybrid's cheap half: the classical twin of the
+paper's hybrid (arXiv 2505.18926, Sec. 3.1.2), where plain MPM on a grid of
+half the resolution stands where the network stood.
+
+:class:`CoarseMpmHalf` runs the hybrid's particles (the scene clustered to
+``r_p``) on the coarse grid and hands them to MPM on the scene's grid and back
+without any conversion: the same particles move between the two grids bit for
+bit (:meth:`~hybridmpm.mpm.MpmSolver.restore_particles`: positions,
+velocities, APIC affine matrices, deformation, J). It offers the hybrid the
+network's protocol — :meth:`propose` a step, :meth:`commit` it — so the
+switching rules (``s(t)`` against ``r_c``, the MPM audit, the error rule)
+apply unchanged. Any learned cheap half has to beat this one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError, SimulationError
+from hybridmpm.mpm import MpmSolver
+from hybridmpm.scenes.core import Scene
+from hybridmpm.scenes.resolution import on_grid
+from hybridmpm.sim.base import reading_state
+from hybridmpm.sim.mpm import MpmSimulator
+from hybridmpm.sim.neural import Proposal
+
+#: The coarse grid by default: half the scene's grid (64² of 128², 32³ of 64³).
+COARSE_FRACTION = 0.5
+#: The label of the twin's cheap half in frames and step counts.
+COARSE = "coarse"
+_STATE_VERSION = 1
+
+
+class CoarseMpmHalf:
+    """MPM on a coarser grid of ``scene`` (already at the hybrid's ``r_p``),
+    ``r_t`` frames per step, with the same particles (``keep_particles``).
+
+    ``n_grid`` the coarse grid (default :data:`COARSE_FRACTION` of the
+    scene's); ``threads`` its solver threads. Raises :class:`InvalidInputError`
+    naming ``n_grid`` for a grid the scene refuses
+    (:func:`~hybridmpm.scenes.resolution.on_grid`).
+    """
+
+    kind = COARSE
+
+    def __init__(self, scene: Scene, *, r_t: int, n_grid: int | None = None, threads: int = 0) -> None:
+        n0 = scene.params.resolved_n_grid()
+        n = int(round(COARSE_FRACTION * n0)) if n_grid is None else n_grid
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 16 <= int(n) <= n0:
+            raise InvalidInputError(f"n_grid: the cheap half's grid must be an integer in [16, {n0}] (the scene's), got {n!r}", "n_grid")
+        self.sim = MpmSimulator(on_grid(scene, int(n), keep_particles=True), r_t=r_t, threads=threads)
+        self.n_grid = int(n)
+        self.particles = self.sim.particles
+        self.r_t = r_t
+        self._before: bytes | None = None  # the state a pending proposal started from
+
+    # ------------------------------------------------------------ the network's protocol
+    def propose(self) -> Proposal:
+        """Take ``r_t`` frames on the coarse grid; the step counts once
+        committed (a rejected one is left behind: the next hand-over from the
+        fine grid overwrites it). A frame MPM cannot finish is failure "mpm"."""
+        self._before = self.sim.solver.checkpoint()
+        try:
+            fr = self.sim.advance()
+        except SimulationError:
+            self.sim.solver.restore(self._before)
+            return Proposal(np.zeros(0), np.zeros(0), None, None, "mpm")
+        pos = fr.positions
+        return Proposal(np.zeros(0), pos, pos, None, None)
+
+    def commit(self, proposal: Proposal) -> np.ndarray:
+        """Keep a proposed step; returns its positions float32 [N + B, D]."""
+        if proposal.failure is not None or proposal.positions is None:
+            raise InvalidInputError(f"proposal: a rejected step ({proposal.failure}) cannot be committed", "proposal")
+        self._before = None
+        return proposal.positions
+
+    def handover_state(self) -> bytes:
+        """The checkpoint MPM on the scene's grid takes over from: the start of
+        a pending proposal's step (an audit replays it), else the current state."""
+        return self._before if self._before is not None else self.sim.solver.checkpoint()
+
+    def take_over(self, fine: MpmSolver) -> None:
+        """Continue from the fine grid's state (same particles, bit for bit)."""
+        self.sim.solver.restore_particles(fine.checkpoint())
+        self._before = None
+
+    @property
+    def velocities(self) -> np.ndarray:
+        return self.sim.velocities
+
+    @property
+    def mean_degree(self) -> float:
+        return float("nan")  # no graph
+
+    @property
+    def initial_degree(self) -> float:
+        return float("nan")
+
+    # ------------------------------------------------------------ checkpoint
+    def state(self) -> dict[str, Any]:
+        return {"kind": self.kind, "version": _STATE_VERSION, "n_grid": self.n_grid, "mpm": self.sim.state()}
+
+    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+        with reading_state("CoarseMpmHalf"):
+            if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or state.get("n_grid") != self.n_grid:
+                raise InvalidInputError("state: not a state of this coarse-grid half (kind, version or grid differ)", "state")
+            commit_mpm = self.sim._prepare_restore(state["mpm"])
+
+        def commit() -> None:
+            commit_mpm()
+            self._before = None
+
+        return commit
+
+
+__all__ = ["COARSE", "COARSE_FRACTION", "CoarseMpmHalf"]
