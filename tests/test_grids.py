@@ -252,3 +252,32 @@ def test_the_classical_twin_hands_over_without_moving_a_particle():
         HybridSimulator("water2d", seed=12, mpm_threads=1).restore(st)
     assert _field(lambda: HybridSimulator("water2d", seed=12, cheap="mpm-coarse", cheap_grid=8)) == "n_grid"
     assert _field(lambda: HybridSimulator("water2d", seed=12, cheap="tensor")) == "cheap"
+
+
+def test_tune_can_choose_a_coarse_grid_and_simulate_auto_runs_it(tmp_path: Path):
+    """tune's choice is the cheapest row within the budget; a coarse grid that is cheapest is chosen, written with its
+    grid, and `simulate --solver auto` runs MPM on that grid."""
+    from hybridmpm.bench import choose
+    from hybridmpm.bench.methods import Method
+    from hybridmpm.bench.tune import write_tuned
+
+    def row(m: Method, err: float, ms: float) -> dict:
+        return {**m.config(), "error_mean": err, "error_last": err, "ms_mean": ms, "ms_median": ms, "ms_p95": ms, "mpm_share": 1.0, "failures": 0}
+
+    rows = [
+        row(Method("mpm_full", "mpm", "MPM full resolution"), 0.0, 4.0),
+        row(Method("mpm_rp", "mpm", "MPM r_p", 0.5714, role="mpm_rp"), 0.30, 2.5),
+        row(Method("mpm_g64", "mpm", "MPM 64^2", role="mpm_grid", n_grid=64), 0.35, 0.6),
+        row(Method("neural", "neural", "neural", 0.5714, 4, role="lowres"), 0.55, 1.4),
+    ]
+    chosen = choose(rows, 0.4)
+    assert chosen["key"] == "mpm_g64"
+    path = tmp_path / "tuned.json"
+    write_tuned(path, "water2d", 0.4, "error_mean", chosen, rows, [2000], {"frames": 8})
+    out = tmp_path / "auto"
+    assert (
+        main(["simulate", "water2d", "--solver", "auto", "--tuned", str(path), "--seed", "3", "--frames", "4", "--out", str(out), "--no-render", "--quiet"])
+        == 0
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["solver"] == "mpm" and summary["n_grid"] == 64 and summary["particles"] == make_scene("water2d", seed=3, n_grid=64).num_particles
