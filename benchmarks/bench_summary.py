@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.bench import pareto_front
+from hybridmpm.bench.report import front_error_at, mpm_front
 
 
 def scene_rows(path: Path) -> list[dict]:
@@ -29,6 +30,7 @@ def scene_rows(path: Path) -> list[dict]:
         r = {"key": key, "label": cs[0]["label"], "kind": cs[0]["kind"], "role": cs[0]["role"], "seeds": len(cs), "frames": cs[0]["frames"]}
         for k in ("error_mean", "error_last", "ms_mean", "particles", "mpm_share", "substeps_per_frame", "mflop_per_frame"):
             r[k] = float(np.mean([float(c[k]) if c.get(k) not in (None, "") else float("nan") for c in cs]))
+        r["failures"] = sum(1 for c in cs if c.get("failure"))
         rows.append(r)
     for i in pareto_front([(r["ms_mean"], r["error_mean"]) for r in rows]):
         rows[i]["pareto"] = True
@@ -111,6 +113,37 @@ def main(argv: list[str]) -> int:
         )  # fmt: skip
         out.append(
             f"| {d.name} | {lo['seeds']} | {lo['error_mean']:.3f} | {nn['error_mean'] / lo['error_mean']:.2f}{extra} | {nn['ms_mean'] / lo['ms_mean']:.2f} | {hyb} |"
+        )
+    out += [
+        "",
+        "Against the plain-MPM front (MPM over grids and r_p, the fastest configurations for their error; "
+        "`hybridmpm.bench.report.mpm_front`): each method's error ÷ the front's at its time (interpolated in log time; "
+        "below 1: more accurate than any plain MPM as fast), and the methods below the front.",
+        "",
+        "| scene | plain-MPM front (fastest first: ms, error) | neural (shipped) | hybrid r_c = 0.8 | hybrid default | classical twin (hybrid, MPM on half the grid) | below the front |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for d in dirs:
+        rows = scenes[d]
+        k = {r["key"]: r for r in rows}
+        front = mpm_front(rows)
+
+        def vs(key: str, k: dict = k, front: list = front) -> str:
+            r = k.get(key)
+            if r is None:
+                return "–"
+            f = front_error_at(front, r["ms_mean"])
+            if not np.isfinite(f):
+                return "faster than every plain MPM"
+            return "0 (slower than the reference)" if f <= 0 else f"{r['error_mean'] / f:.2f}×"
+
+        below = [
+            r["label"] for r in rows
+            if r["kind"] != "mpm" and not r["failures"] and np.isfinite(front_error_at(front, r["ms_mean"])) and r["error_mean"] < front_error_at(front, r["ms_mean"])
+        ]  # fmt: skip
+        members = "; ".join(f"{r['label']} ({r['ms_mean']:.2f}, {r['error_mean']:.3f})" for r in front)
+        out.append(
+            f"| {d.name} | {members} | {vs('neural')} | {vs('hybrid_rc0.8')} | {vs('hybrid_default')} | {vs('hybrid_coarse')} | {'; '.join(below) or 'none'} |"
         )
     print("\n".join(out))
     return 0
