@@ -277,7 +277,7 @@ where
             });
             if sub > 0 {
                 clock.lap(Lap::G2p);
-                clock.print(unsafe { &*sp.0 });
+                clock.print();
             }
             if team.stopped() {
                 break;
@@ -334,6 +334,7 @@ where
                 unsafe { team.publish(view) };
             });
             clock.lap(Lap::Sort);
+            clock.blocks(unsafe { &*sp.0 });
             // SAFETY: parallel sections from here to the loop's next barrier:
             // shared reads, and writes to the claimed chunks only
             let s = unsafe { &*sp.0 };
@@ -441,6 +442,9 @@ struct Profile {
     on: bool,
     last: std::time::Instant,
     laps: [std::time::Duration; 4],
+    /// The substep's source and output blocks and its largest source block
+    /// (particles), noted after the block sort.
+    blocks: (usize, usize, usize),
 }
 
 impl Profile {
@@ -449,6 +453,7 @@ impl Profile {
             on,
             last: std::time::Instant::now(),
             laps: Default::default(),
+            blocks: (0, 0, 0),
         }
     }
 
@@ -460,20 +465,33 @@ impl Profile {
         }
     }
 
-    fn print<const D: usize>(&mut self, s: &Solver<D>)
+    /// Notes the substep's blocks (after the block sort).
+    fn blocks<const D: usize>(&mut self, s: &Solver<D>)
     where
         Dim<D>: DimOps<D>,
     {
         if self.on {
+            let largest = s.grid.src_offsets.windows(2).map(|w| w[1] - w[0]).max();
+            self.blocks = (
+                s.grid.src_blocks.len(),
+                s.grid.out_blocks.len(),
+                largest.unwrap_or(0) as usize,
+            );
+            // (not part of the next stage)
+            self.last = std::time::Instant::now();
+        }
+    }
+
+    fn print(&mut self) {
+        if self.on {
             let l = &self.laps;
+            let (n_src, n_out, largest) = self.blocks;
             eprintln!(
-                "blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {} nout {}",
+                "blocks {:?} p2g {:?} grid {:?} g2p {:?} nsrc {n_src} nout {n_out} largest {largest}",
                 l[Lap::Sort as usize],
                 l[Lap::P2g as usize],
                 l[Lap::Grid as usize],
                 l[Lap::G2p as usize],
-                s.grid.src_blocks.len(),
-                s.grid.out_blocks.len()
             );
             // the printing is not part of the next stage
             self.last = std::time::Instant::now();
