@@ -93,6 +93,9 @@ where
     slot_of: Vec<u32>,
     /// Scratch for the next substep's storage (g2p writes here in block order).
     next: Vec<Particle<D>>,
+    /// `particles`, `ids` and `slot_of` at the start of the frame under
+    /// way, to roll back to (`step_frame`).
+    rollback: (Vec<Particle<D>>, Vec<u32>, Vec<u32>),
     time: f64,
     frame: u64,
     grid: SparseGrid,
@@ -173,6 +176,7 @@ where
             ids_next: Vec::new(),
             slot_of: Vec::new(),
             next: Vec::new(),
+            rollback: Default::default(),
             time: 0.0,
             frame: 0,
             grid,
