@@ -118,7 +118,17 @@ where
         if threads == 1 {
             member(0);
         } else {
-            pool.broadcast(|ctx| member(ctx.index()));
+            // the calling thread is member 0 and the pool's threads the
+            // others: one thread fewer to wake per frame, and none at its
+            // end (`broadcast` left the caller asleep until the pool's
+            // members were done)
+            let member = &member;
+            pool.in_place_scope(|scope| {
+                for tid in 1..threads {
+                    scope.spawn(move |_| member(tid));
+                }
+                member(0);
+            });
         }
         let result = result
             .lock()

@@ -5,11 +5,14 @@
 //! particles, and an idle rayon worker goes to sleep within about that time,
 //! so every stage paid a wake-up (measured: p2g after the serial block sort
 //! took 38 µs on two threads, 27 µs when its threads were already awake).
-//! The team instead enters every thread of the solver's pool once per frame
-//! (`ThreadPool::broadcast`) and keeps them for all of its substeps: stages
-//! are separated by a spin barrier, items (blocks) are claimed from an atomic
-//! counter, and the serial parts run on thread 0 while the others wait at
-//! the barrier.
+//! The team instead takes its threads once per frame (the calling thread is
+//! member 0, and one job spawned on the solver's pool per other member) and
+//! keeps them for all of its substeps: stages are separated by a spin
+//! barrier, items (blocks) are claimed from an atomic counter, and the
+//! serial parts run on the last member to arrive while the others wait at
+//! the barrier. (`ThreadPool::broadcast`, every member a pool thread, woke
+//! one more sleeping thread per frame and left the caller asleep until the
+//! pool was done: 30–60 µs of a 0.5 ms frame at 789 particles.)
 //!
 //! Determinism does not depend on which thread takes which item: every item
 //! writes its own output, and the only cross-item combinations (the
