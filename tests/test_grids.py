@@ -254,6 +254,30 @@ def test_the_classical_twin_hands_over_without_moving_a_particle():
     assert _field(lambda: HybridSimulator("water2d", seed=12, cheap="tensor")) == "cheap"
 
 
+def test_the_coarse_half_takes_over_a_particle_in_the_fine_grids_outer_strip():
+    """The fine grid's domain reaches a fine cell further out than the coarse one's: a particle the fine grid left
+    there (inside the wall band) is moved onto the coarse domain's edge, every other particle moves bit for bit,
+    and the fine solver is left as it was (found by the bench: water2d seed 1001 stopped on it)."""
+    from hybridmpm.sim.coarse import CoarseMpmHalf
+
+    scene = make_scene("water2d", seed=3)
+    half = CoarseMpmHalf(scene, r_t=1, threads=1)
+    fine = scene.make_solver(num_threads=1)
+    lo_f, hi_f = fine.domain_bounds
+    lo_c, hi_c = half.sim.solver.domain_bounds
+    assert lo_f < lo_c and hi_c < hi_f
+    pos = fine.positions
+    pos[0] = [hi_f - 1e-4, lo_f + 1e-4]  # in the strip at two sides
+    fine.positions = pos
+    before = fine.checkpoint()
+    half.take_over(fine)
+    got = half.sim.solver.positions
+    assert fine.checkpoint() == before
+    assert np.array_equal(got[1:], pos[1:]) and np.array_equal(half.sim.solver.velocities, fine.velocities)
+    assert np.allclose(got[0], [hi_c, lo_c]) and np.all(np.abs(got[0] - pos[0]) < 1.0 / 128)
+    half.sim.advance()  # and the coarse grid steps on
+
+
 def test_tune_can_choose_a_coarse_grid_and_simulate_auto_runs_it(tmp_path: Path):
     """tune's choice is the cheapest row within the budget; a coarse grid that is cheapest is chosen, written with its
     grid, and `simulate --solver auto` runs MPM on that grid."""

@@ -84,8 +84,22 @@ class CoarseMpmHalf:
         return self._before if self._before is not None else self.sim.solver.checkpoint()
 
     def take_over(self, fine: MpmSolver) -> None:
-        """Continue from the fine grid's state (same particles, bit for bit)."""
-        self.sim.solver.restore_particles(fine.checkpoint())
+        """Continue from the fine grid's state (same particles, bit for bit).
+
+        The one exception: the coarse solver's domain ``[dx, 1 − dx]`` is a
+        fine cell narrower at each side than the fine one's, and a particle
+        the fine grid pushed into that strip (inside the wall band, past the
+        faces both grids share) is moved onto the coarse domain's edge, less
+        than one fine cell. ``fine`` is left as it was."""
+        blob = fine.checkpoint()
+        lo, hi = self.sim.solver.domain_bounds
+        pos = fine.positions
+        if (pos < lo).any() or (pos > hi).any():
+            fine.positions = np.clip(pos, lo, hi)
+            clamped = fine.checkpoint()
+            fine.restore(blob)
+            blob = clamped
+        self.sim.solver.restore_particles(blob)
         self._before = None
 
     @property
