@@ -1,0 +1,159 @@
+"""The learned correction of coarse MPM: its teacher (the split of a coarse
+state onto the scene's grid), its features, its runtime and its training
+loop, checked against exact facts (the full-resolution lattice, conservation,
+free fall, translation invariance) rather than "it ran"."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmParams, MpmSolver
+from hybridmpm.scenes import make_scene
+from hybridmpm.scenes.resolution import on_grid
+from hybridmpm.sim import rollout
+from hybridmpm.sim.correction.features import num_features, particle_features
+from hybridmpm.sim.correction.forcing import CorrectionForcing, LabelledForcing, OracleForcing, cell_average, coarse_simulator
+from hybridmpm.sim.correction.model import Correction
+from hybridmpm.sim.correction.teacher import split_state, teacher_frame
+
+DT = 2.5e-3
+
+
+@pytest.mark.parametrize("scene", ["water2d", "sand2d", "water3d"])
+def test_the_split_of_the_coarse_lattice_is_the_full_resolution_lattice(scene: str):
+    """Children of the coarse scene's particles on the scene's grid sit exactly on the full-resolution lattice,
+    carry its mass, and a moving state keeps mass, momentum and each parent's centre."""
+    base = make_scene(scene, seed=4)
+    coarse = on_grid(base, base.params.resolved_n_grid() // 2, 2).make_solver(num_threads=1)
+    fine = split_state(coarse, base.params)
+    full = base.make_solver(num_threads=1)
+    key = lambda p: np.lexsort(p.T[::-1])  # noqa: E731
+    a, b = np.asarray(fine.positions), np.asarray(full.positions)
+    assert a.shape == b.shape and np.allclose(a[key(a)], b[key(b)], atol=1e-6)
+    assert np.isclose(fine.masses.sum(), full.masses.sum(), rtol=1e-5)
+    rng = np.random.default_rng(0)
+    n, d = coarse.positions.shape
+    coarse.velocities = rng.normal(0, 0.3, (n, d)).astype(np.float32)
+    coarse.affine = rng.normal(0, 5.0, (n, d, d)).astype(np.float32)
+    fine = split_state(coarse, base.params)
+    k = 2**d
+    mom_c = (coarse.masses[:, None] * coarse.velocities).sum(0)
+    mom_f = (fine.masses[:, None] * fine.velocities).sum(0)
+    assert np.allclose(mom_f, mom_c, rtol=1e-4, atol=1e-4)
+    assert np.allclose(np.asarray(fine.positions).reshape(n, k, d).mean(1), coarse.positions, atol=1e-6)
+    # the children's velocities are the parent's APIC field at their offsets: v + C (x_child - x_parent)
+    off = np.asarray(fine.positions).reshape(n, k, d) - np.asarray(coarse.positions)[:, None]
+    want = coarse.velocities[:, None] + np.einsum("nij,nkj->nki", coarse.affine, off)
+    assert np.allclose(np.asarray(fine.velocities).reshape(n, k, d), want, atol=1e-4)
+
+
+def test_the_teacher_of_a_free_falling_block_is_gravity():
+    """A stress-free block away from every wall: one fine frame gives every particle g·Δt (APIC moves a uniform
+    velocity field exactly), so the teacher's mean velocity is g·Δt."""
+    coarse_p = MpmParams(n_grid=32)
+    coarse = MpmSolver(coarse_p)
+    g = np.arange(0.4, 0.6, 0.5 / 32, dtype=np.float32)
+    pos = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    coarse.add_particles(pos, 0)
+    x, v = teacher_frame(coarse, MpmParams(n_grid=64), DT)
+    gy = coarse_p.resolved_gravity()[1]
+    assert np.allclose(v, [0.0, gy * DT], atol=1e-5)
+    dy = x[:, 1] - pos[:, 1]
+    assert np.allclose(x[:, 0], pos[:, 0], atol=1e-6) and np.ptp(dy) < 1e-6  # a rigid drop
+    # symplectic Euler over n >= 2 equal substeps: Δy = g·Δt²·(n + 1)/(2n), between g·Δt²/2 and 3/4 of g·Δt²
+    r = dy.mean() / (gy * DT * DT)
+    assert 0.5 < r <= 0.75 + 1e-3
+    assert np.array_equal(coarse.positions, pos)  # the coarse state is untouched
+
+
+def test_features_are_local_and_translation_invariant():
+    """Width as documented; a block far from the walls moved by whole coarse cells has the same features."""
+    for dim in (2, 3):
+        s = make_scene("water2d" if dim == 2 else "water3d", seed=1)
+        sim = coarse_simulator(s, s.params.resolved_n_grid() // 2)
+        assert particle_features(sim.solver, DT).shape == (s.num_particles // 2**dim, num_features(dim))
+    n = 32
+    dx = 1.0 / n
+    g = np.arange(0.3 + dx / 4, 0.45, dx / 2, dtype=np.float32)
+    pos = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    rng = np.random.default_rng(3)
+    vel = rng.normal(0, 0.2, pos.shape).astype(np.float32)
+    feats = []
+    for shift in (0, 3):
+        s = MpmSolver(MpmParams(n_grid=n))
+        s.add_particles(pos + np.float32(shift * dx), 0, velocities=vel)
+        f = particle_features(s, DT)
+        assert np.isfinite(f).all()
+        feats.append(f)
+    assert np.allclose(feats[0], feats[1], atol=1e-5)
+
+
+def test_the_model_round_trips_and_its_acceleration_has_the_documented_units(tmp_path: Path):
+    f = num_features(2)
+    m = Correction(
+        [np.zeros((f, 2), np.float32)],
+        [np.array([1.0, -2.0], np.float32)],
+        np.zeros(f, np.float32),
+        np.ones(f, np.float32),
+        np.array([0.5, 0.5], np.float32),
+        {"scene": "x"},
+    )
+    x = np.random.default_rng(0).normal(size=(7, f)).astype(np.float32)
+    assert np.allclose(m.velocity_change(x), [[0.5, -1.0]] * 7)
+    assert np.allclose(m.acceleration(x, 64, DT), np.array([[0.5, -1.0]] * 7) / 64 / DT / DT, rtol=1e-5)
+    m.save(tmp_path / "m.npz")
+    back = Correction.load(tmp_path / "m.npz")
+    assert np.array_equal(back.velocity_change(x), m.velocity_change(x)) and back.meta == {"scene": "x"}
+    (tmp_path / "bad.npz").write_bytes(b"not a model")
+    with pytest.raises(InvalidInputError) as e:
+        Correction.load(tmp_path / "bad.npz")
+    assert e.value.field == "model"
+
+
+def test_labels_oracle_and_a_zero_correction():
+    """No model is plain coarse MPM bit for bit; the labels are the teacher's velocity minus a plain frame's; the
+    oracle, which applies them, brings the coarse frame's velocities closer to the teacher's than a plain frame."""
+    base = make_scene("water2d", seed=2)
+    plain = coarse_simulator(base, 64)
+    zero = coarse_simulator(base, 64)
+    zero.forcing = CorrectionForcing(zero, None)
+    assert np.array_equal(rollout(plain, 30).fluid_positions, rollout(zero, 30).fluid_positions)
+    lab = LabelledForcing(zero, None, base.params, every=1, smooth=False)
+    zero.forcing = lab
+    _, vt = teacher_frame(zero.solver, base.params, DT)
+    before = zero.solver.checkpoint()
+    zero.advance()
+    assert len(lab.ys) == 1
+    v_plain = zero.velocities.astype(np.float64)
+    assert np.allclose(lab.ys[0], (vt - v_plain) * DT * 64, atol=1e-4)  # cells per frame
+    zero.solver.restore(before)
+    oracle = OracleForcing(zero, base.params)
+    zero.forcing = oracle
+    zero.advance()
+    gap_o = np.linalg.norm(zero.velocities - vt)
+    gap_p = np.linalg.norm(v_plain - vt)
+    assert gap_o < 0.5 * gap_p
+    # cell_average: a brute-force mean per cell
+    p = np.random.default_rng(1).uniform(0.1, 0.9, (50, 2))
+    m = np.random.default_rng(2).uniform(1, 2, 50)
+    v = np.random.default_rng(3).normal(size=(50, 1))
+    got = cell_average(p, m, v, 4)
+    for i in range(50):
+        same = np.all(np.floor(p * 4) == np.floor(p[i] * 4), axis=1)
+        assert np.isclose(got[i, 0], (m[same] * v[same, 0]).sum() / m[same].sum())
+
+
+def test_dagger_fits_below_no_correction(tmp_path: Path):
+    """One round on two short trajectories: the held-out one-step loss is below the loss of no correction."""
+    pytest.importorskip("torch", reason="training needs the train extra (torch)")
+    from hybridmpm.train.correction import CorrectionTrainConfig, train_correction
+
+    cfg = CorrectionTrainConfig(scene="sand2d", train_seeds=2, val_seeds=1, frames=40, every=2, rounds=1, steps=300, workers=1, scales=(1.0,))
+    res = train_correction(cfg, tmp_path)
+    one = res["log"][0]
+    assert one["one_step_val"] < 0.8 * one["no_correction"]
+    assert (tmp_path / "model.npz").exists() and Correction.load(tmp_path / "model.npz").meta["n_grid"] == 64
