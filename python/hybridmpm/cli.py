@@ -293,22 +293,22 @@ def _control(args: argparse.Namespace) -> int:
 
     # import time: loaded by this command only
     from hybridmpm.control import Controller, Sketch, control_episode, render_sketch, sketch_from_png
+    from hybridmpm.control.sketch import MAX_SKETCH_FILE_BYTES
+    from hybridmpm.files import check_nesting, read_regular_file
     from hybridmpm.render import render_gif
     from hybridmpm.scenes import make_scene
     from hybridmpm.sim import make_simulator, rollout
 
-    path = Path(args.sketch)
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise InvalidInputError(f"sketch: cannot read {args.sketch} ({e.strerror})", "sketch") from e
+    raw = read_regular_file(args.sketch, MAX_SKETCH_FILE_BYTES, "sketch", "sketch file")
     if raw.startswith(b"\x89PNG"):
         sketch = sketch_from_png(raw)
     else:
         try:
-            sketch = Sketch.from_json(raw.decode("utf-8"))
+            text = raw.decode("utf-8")
         except UnicodeDecodeError as e:
             raise InvalidInputError(f"sketch: {args.sketch} is neither a PNG nor a JSON text file", "sketch") from e
+        check_nesting(text, "sketch")
+        sketch = Sketch.from_json(text)
     kw: dict[str, Any] = {"steps": args.steps, "guidance": args.guidance, "seed": args.seed}
     if args.model:
         kw["model"] = args.model

@@ -100,6 +100,8 @@ class Sketch:
                 obj = json.loads(obj)
             except ValueError as e:
                 raise InvalidInputError(f"sketch: not JSON ({e})", "sketch") from e
+            except RecursionError as e:  # the C parser's depth guard: nested far deeper than a sketch
+                raise InvalidInputError("sketch: nested too deep to be a sketch", "sketch") from e
         if not isinstance(obj, dict):
             raise InvalidInputError("sketch: expected a JSON object {kind, points, t?, width?}", "sketch")
         unknown = sorted(set(obj) - {"kind", "points", "t", "width"})
@@ -174,6 +176,8 @@ class Sketch:
 
 #: Largest sketch image accepted [pixels] (a 2048² canvas).
 MAX_IMAGE_PIXELS = 2048 * 2048
+#: Largest sketch file read [bytes] (a PNG or a JSON sketch).
+MAX_SKETCH_FILE_BYTES = 16 * 2**20
 #: Longest side a sketch image is read at [pixels]: a larger one is read as its ink mask, max-pooled down to this.
 READ_SIZE = 512
 #: A pixel is ink when its colour is this far (in levels of 255) from the background's.

@@ -52,6 +52,7 @@ names with ``+`` (``[walls.faces."x+"]``). See :class:`~hybridmpm.mpm.WallParams
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Sequence
@@ -64,6 +65,7 @@ import numpy as np
 from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
 from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import check_nesting, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import DT_FRAME, Box, MpmParams, MpmSolver, Sphere
 from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
@@ -76,6 +78,15 @@ _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 MAX_OBSTACLE_DROP_FRACTION = 0.5
 #: Largest scene file read [bytes] (a scene is a few kB of TOML/JSON).
 MAX_SCENE_FILE_BYTES = 16 * 2**20
+#: Most particle blocks and obstacles a scene may have (building is linear in
+#: both: overlaps are looked up in a spatial index of the earlier blocks).
+MAX_BLOCKS = 4096
+MAX_OBSTACLES = 256
+#: Fastest initial velocity of a block [m/s] per axis: faster than any frame's
+#: substeps can follow (the CFL rule would need more than ``max_substeps``).
+MAX_BLOCK_SPEED = 1000.0
+#: Cells per axis of the index of earlier blocks that :meth:`SceneSpec.build` keeps.
+_INDEX_CELLS = 16
 #: Memory a particle costs while a scene is built and simulated [bytes], an
 #: upper bound of the lattice and selection arrays (float64 temporaries), the
 #: Scene's arrays and the solver's particle state (~40 floats in 3D); a
@@ -264,6 +275,10 @@ class SceneSpec:
             if k in d:
                 pd[k] = d[k]
         pd["colliders"] = d.get("obstacles", [])
+        if isinstance(pd["colliders"], list) and len(pd["colliders"]) > MAX_OBSTACLES:
+            raise InvalidInputError(f"obstacles: {len(pd['colliders'])} obstacles, more than the {MAX_OBSTACLES} a scene may have", "obstacles")
+        if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
+            raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
         try:
             params = MpmParams.from_dict(pd)
             params.to_dict()
@@ -310,7 +325,9 @@ class SceneSpec:
                 raise InvalidInputError(f"{f}: must lie inside [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}]", f)
             vel = b.get("velocity")
             if vel is not None:
-                _check_vec(f"{f}.velocity", vel, dim)
+                v = _check_vec(f"{f}.velocity", vel, dim)
+                if np.any(np.abs(v) > MAX_BLOCK_SPEED):
+                    raise InvalidInputError(f"{f}.velocity: at most {MAX_BLOCK_SPEED:g} m/s per axis, got {vel!r}", f"{f}.velocity")
             blocks.append(Block(mat, list(lo), list(hi), None if vel is None else [float(v) for v in vel], bool(b.get("hydrostatic", False))))
         dt_frame = d.get("dt_frame", DT_FRAME)
         if not (isinstance(dt_frame, (int, float)) and math.isfinite(dt_frame) and dt_frame > 0):
@@ -362,17 +379,11 @@ class SceneSpec:
         """Read a TOML (``.toml``) or JSON file. Raises :class:`InvalidInputError`
         for a missing, unparsable or invalid file (the message names the field)."""
         path = Path(path)
+        text = read_text_file(path, MAX_SCENE_FILE_BYTES, "scene", "scene file")
+        toml = path.suffix == ".toml"
+        check_nesting(text, "scene", toml=toml)
         try:
-            size = path.stat().st_size
-            if size > MAX_SCENE_FILE_BYTES:
-                raise InvalidInputError(f"scene file {path}: {size} bytes, more than a scene file needs (at most {MAX_SCENE_FILE_BYTES})", "scene")
-            text = path.read_text(encoding="utf-8")
-        except OSError as e:
-            raise InvalidInputError(f"scene file {path}: {e.strerror or e}", "scene") from e
-        except UnicodeDecodeError as e:
-            raise InvalidInputError(f"scene file {path}: not a text file (not UTF-8 at byte {e.start})", "scene") from e
-        try:
-            if path.suffix == ".toml":
+            if toml:
                 try:
                     import tomllib
                 except ModuleNotFoundError:  # Python 3.10
@@ -381,7 +392,7 @@ class SceneSpec:
             else:
                 d = json.loads(text)
         except ValueError as e:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
-            raise InvalidInputError(f"scene file {path}: not valid {'TOML' if path.suffix == '.toml' else 'JSON'}: {e}", "scene") from e
+            raise InvalidInputError(f"scene file {path}: not valid {'TOML' if toml else 'JSON'}: {e}", "scene") from e
         return cls.from_dict(d)
 
     # ------------------------------------------------------------------ building
@@ -405,6 +416,7 @@ class SceneSpec:
         pos_l, mat_l, vel_l, j_l = [], [], [], []
         dropped: list[dict[str, int]] = []
         placed: list[tuple[np.ndarray, np.ndarray]] = []
+        index: dict[tuple[int, ...], list[int]] = {}  # cell of a coarse index grid -> earlier blocks overlapping it
         counts = [int(np.prod(np.maximum(np.round((np.asarray(b.hi, np.float64) - np.asarray(b.lo, np.float64)) / s), 1))) for b in self.blocks]
         for i, n in enumerate(counts):
             check_allocation(f"blocks[{i}]", n * BYTES_PER_PARTICLE, f"{n} particles (lattice spacing {s:.3g} m = dx/{self.particles_per_cell})")
@@ -419,8 +431,12 @@ class SceneSpec:
             p = lattice(lo, hi, s if np.all(step == s) else step)
             vol_l.append(np.full(len(p), float(np.prod(step)), np.float64))
             keep = np.ones(len(p), bool)
-            for plo, phi in placed:
+            cells = _index_cells(lo, hi)
+            for j in sorted({j for cell in cells for j in index.get(cell, ())}):
+                plo, phi = placed[j]
                 keep &= ~np.all((p >= plo) & (p < phi), axis=1)
+            for cell in cells:
+                index.setdefault(cell, []).append(i)
             n_overlap = int(len(p) - keep.sum())
             for c in self.params.colliders:
                 keep &= collider_sdf(c, p) >= clearance
@@ -469,6 +485,13 @@ class SceneSpec:
             spec=self,
             volumes=volumes,
         )
+
+
+def _index_cells(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, ...]]:
+    """The cells of an :data:`_INDEX_CELLS`-per-axis grid of the unit domain that the box ``[lo, hi]`` overlaps."""
+    a = np.clip(np.floor(lo * _INDEX_CELLS).astype(int), 0, _INDEX_CELLS - 1)
+    b = np.clip(np.floor(hi * _INDEX_CELLS).astype(int), 0, _INDEX_CELLS - 1)
+    return list(itertools.product(*(range(x, y + 1) for x, y in zip(a, b))))
 
 
 def _check_obstacles_hold(params: MpmParams) -> None:

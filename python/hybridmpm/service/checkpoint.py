@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import json_depth
 
 FORMAT = "hybridmpm-checkpoint"
 VERSION = 1
@@ -68,26 +69,6 @@ def dumps(state: dict[str, Any], meta: dict[str, Any]) -> bytes:
     members: dict[str, Any] = {"__tree__": np.frombuffer(json.dumps(tree).encode(), np.uint8), **arrays}
     np.savez(buf, **members)
     return buf.getvalue()
-
-
-def json_depth(raw: bytes) -> int:
-    """Deepest nesting of arrays and objects in the JSON text ``raw``, found
-    without parsing it: vectorised, linear in ``len(raw)``, never recursive.
-    Brackets inside strings do not count (a quote after an odd run of
-    backslashes is escaped); exact on every valid prefix of the text, which
-    is all a parser reads before it stops at an error."""
-    a = np.frombuffer(raw, np.uint8)
-    if a.size == 0:
-        return 0
-    idx = np.arange(a.size, dtype=np.int64)
-    last_plain = np.maximum.accumulate(np.where(a == ord("\\"), -1, idx))  # last index <= i that is no backslash
-    run = np.zeros(a.size, np.int64)
-    run[1:] = idx[:-1] - last_plain[:-1]  # backslashes right before i
-    quote = (a == ord('"')) & (run % 2 == 0)
-    in_string = np.cumsum(quote, dtype=np.int64) % 2 == 1
-    opens = ((a == ord("[")) | (a == ord("{"))) & ~in_string
-    closes = ((a == ord("]")) | (a == ord("}"))) & ~in_string
-    return int(np.cumsum(opens.astype(np.int32) - closes.astype(np.int32)).max(initial=0))
 
 
 def decoded_nbytes(data: bytes) -> int:

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import read_regular_file
 from hybridmpm.scenes.core import Clusters
 from hybridmpm.service import checkpoint as ckpt
 
@@ -289,12 +290,14 @@ class SessionStore:
             return []
         return sorted(int(m.group(1)) for n in names if (m := _NUMBERED.match(n)))
 
-    def candidates(self, key: str) -> Iterator[bytes]:
-        """The saves of ``key`` to try, best first (local: the one file; other
-        stores: the object HEAD names, then the numbered objects newest first)."""
+    def candidates(self, key: str, max_bytes: int) -> Iterator[bytes]:
+        """The saves of ``key`` to try, best first (local: the one file, which
+        must be a regular file of at most ``max_bytes``, checked on the open
+        file before reading — a FIFO, a device or a link to one is refused
+        without blocking; other stores: the object HEAD names, then the
+        numbered objects newest first)."""
         if self.local:
-            with open(os.path.join(self.root, key + ".npz"), "rb") as f:
-                yield f.read()
+            yield read_regular_file(os.path.join(self.root, key + ".npz"), max_bytes, "checkpoint", "store record")
             return
         d = f"{self.root}/{key}"
         tried = set()
@@ -315,7 +318,7 @@ class SessionStore:
         (naming the field) when none does."""
         err: InvalidInputError | None = None
         try:
-            for data in self.candidates(key):
+            for data in self.candidates(key, max_bytes):
                 try:
                     rec = parse_record(key, data, max_bytes)
                 except InvalidInputError as e:
@@ -326,6 +329,8 @@ class SessionStore:
                 return rec
         except OSError as e:
             raise _bad(key, f"checkpoint: cannot read ({type(e).__name__})") from None
+        except InvalidInputError as e:  # a local record that is not a regular file, or too large
+            raise _bad(key, str(e)) from None
         if err is not None:
             raise _bad(key, str(err)) if not str(err).startswith("store:") else err
         raise _bad(key, "checkpoint: no save found")

@@ -54,6 +54,10 @@ async def put_checkpoint(s: SessionDep, request: Request, manager: ManagerDep, c
     ``checkpoint``) leaves the session exactly as it was."""
     data = await request.body()
     need = await manager.compute(ckpt.decoded_nbytes, data)
+    if need > cfg.max_checkpoint_bytes:  # refused before anything is reserved: retrying cannot help
+        raise FieldError(
+            ("body", "checkpoint"), f"checkpoint: its arrays declare {need} bytes once decompressed, more than the {cfg.max_checkpoint_bytes} allowed"
+        )
     with manager.budget.hold(2 * need, "reading the checkpoint"):
         state, meta = await manager.compute(ckpt.loads, data, cfg.max_checkpoint_bytes)
         mine = session_meta(s)

@@ -1,0 +1,112 @@
+"""Reading user files safely: the one place scene files, sketch files and
+store records are opened.
+
+:func:`read_regular_file` opens without blocking (a FIFO cannot hang it),
+refuses anything but a regular file (a device such as ``/dev/zero``, a FIFO,
+a directory) after following links, checks the size bound on the open file
+(``fstat``, not the path's ``st_size``) and reads at most that many bytes
+(a file that grows while it is read is refused too). :func:`check_nesting`
+refuses JSON or TOML text nested deeper than :data:`MAX_NESTING` before a
+parser recurses into it.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import stat
+from pathlib import Path
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+
+#: Deepest nesting of arrays and tables/objects a scene or sketch file may have.
+MAX_NESTING = 32
+
+_KINDS = {stat.S_IFIFO: "a FIFO", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFDIR: "a directory", stat.S_IFSOCK: "a socket"}
+
+
+def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, what: str = "file") -> bytes:
+    """The bytes of the regular file ``path`` (links followed), at most
+    ``max_bytes``. Raises :class:`InvalidInputError` naming ``field`` for a
+    missing or unreadable path, anything that is not a regular file, or a
+    file over ``max_bytes`` (checked on the open file, before reading)."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as e:
+        raise InvalidInputError(f"{field}: cannot read {what} {path} ({e.strerror or e})", field) from e
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = _KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
+            raise InvalidInputError(f"{field}: {what} {path} is {kind}, not a regular file", field)
+        if st.st_size > max_bytes:
+            raise InvalidInputError(f"{field}: {what} {path} has {st.st_size} bytes, more than the {max_bytes} allowed", field)
+        chunks: list[bytes] = []
+        total = 0
+        while True:
+            try:
+                b = os.read(fd, min(1 << 20, max_bytes + 1 - total))
+            except OSError as e:
+                raise InvalidInputError(f"{field}: cannot read {what} {path} ({e.strerror or e})", field) from e
+            if not b:
+                break
+            total += len(b)
+            if total > max_bytes:
+                raise InvalidInputError(f"{field}: {what} {path} grew past the {max_bytes} bytes allowed while it was read", field)
+            chunks.append(b)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+_TOML_SKIPPED = re.compile(r'"""[\s\S]*?"""|\'\'\'[\s\S]*?\'\'\'|"(?:[^"\\\n]|\\.)*"|\'[^\'\n]*\'|#[^\n]*')
+
+
+def json_depth(raw: bytes) -> int:
+    """Deepest nesting of arrays and objects in the JSON text ``raw``, found
+    without parsing it: vectorised, linear in ``len(raw)``, never recursive.
+    Brackets inside strings do not count (a quote after an odd run of
+    backslashes is escaped); exact on every valid prefix of the text, which
+    is all a parser reads before it stops at an error."""
+    a = np.frombuffer(raw, np.uint8)
+    if a.size == 0:
+        return 0
+    idx = np.arange(a.size, dtype=np.int64)
+    last_plain = np.maximum.accumulate(np.where(a == ord("\\"), -1, idx))  # last index <= i that is no backslash
+    run = np.zeros(a.size, np.int64)
+    run[1:] = idx[:-1] - last_plain[:-1]  # backslashes right before i
+    quote = (a == ord('"')) & (run % 2 == 0)
+    in_string = np.cumsum(quote, dtype=np.int64) % 2 == 1
+    opens = ((a == ord("[")) | (a == ord("{"))) & ~in_string
+    closes = ((a == ord("]")) | (a == ord("}"))) & ~in_string
+    return int(np.cumsum(opens.astype(np.int32) - closes.astype(np.int32)).max(initial=0))
+
+
+def check_nesting(text: str, field: str, *, max_depth: int = MAX_NESTING, toml: bool = False) -> None:
+    """Refuse JSON (or TOML, ``toml=True``) text whose ``[``/``{`` nesting
+    outside strings (and TOML comments) goes deeper than ``max_depth``,
+    naming ``field``. Linear in the text: JSON by :func:`json_depth`, TOML
+    with its strings and comments removed by a regular expression first."""
+    if not toml:
+        depth = json_depth(text.encode("utf-8", "replace"))
+    else:
+        b = np.frombuffer(_TOML_SKIPPED.sub("", text).encode("utf-8", "replace"), np.uint8)
+        step = ((b == ord("[")) | (b == ord("{"))).astype(np.int32) - ((b == ord("]")) | (b == ord("}"))).astype(np.int32)
+        depth = int(np.cumsum(step).max(initial=0))
+    if depth > max_depth:
+        raise InvalidInputError(f"{field}: nested more than {max_depth} levels deep", field)
+
+
+def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "file") -> str:
+    """:func:`read_regular_file` decoded as UTF-8 (:class:`InvalidInputError` naming ``field`` if it is not)."""
+    raw = read_regular_file(path, max_bytes, field, what)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InvalidInputError(f"{field}: {what} {path} is not a text file (not UTF-8 at byte {e.start})", field) from e
+
+
+__all__ = ["MAX_NESTING", "check_nesting", "json_depth", "read_regular_file", "read_text_file"]
