@@ -12,6 +12,7 @@ import logging
 import os
 import time
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -207,3 +208,27 @@ def test_a_record_keeps_its_sessions_grid():
     old = {k: v for k, v in meta.items() if k != "n_grid"}
     with pytest.raises((InvalidInputError, CheckpointError)):  # the scene's own grid: another solver's particles
         rebuild(parse_record("0" * 64, ckpt.dumps(record_state(sim), old), 1 << 28))
+
+
+def test_the_periodic_saver_never_waits_for_a_control(tmp_path):
+    """A control holds its session's lock for its whole run: the periodic save skips that session (it stays
+    marked changed) and saves every other one at once, instead of queueing behind the control; a clean stop
+    waits and saves it too."""
+
+    async def go() -> None:
+        mgr = SessionManager(ServiceConfig(store=str(tmp_path / "store"), max_sessions=10))
+        a = await mgr.create("water2d", 0, "mpm", 0.8)
+        b = await mgr.create("water2d", 1, "mpm", 0.8)
+        root = Path(mgr.store.root)
+        for s in (a, b):  # both step on after their first save
+            s.sim.advance()
+            s.dirty = True
+        a_before, b_before = (root / f"{a.key}.npz").read_bytes(), (root / f"{b.key}.npz").read_bytes()
+        async with a.lock:  # a control (or a long step) running on a
+            await asyncio.wait_for(mgr.save_all(wait=False), 5.0)
+            assert not b.dirty and (root / f"{b.key}.npz").read_bytes() != b_before
+            assert a.dirty and (root / f"{a.key}.npz").read_bytes() == a_before
+        await mgr.save_all()
+        assert not a.dirty and (root / f"{a.key}.npz").read_bytes() != a_before
+
+    asyncio.run(go())

@@ -292,6 +292,7 @@ class SessionActor:
         try:
             sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None
             controller = Controller.for_scene(self.sim.scene.name, method, frames=frames)
+            self._save()  # the steps answered before it are durable: the keeper cannot save while the control holds the lock
             with self.lock:
                 ro, metrics, plan, t_first = run_episode(self.sim, sketch, controller, cid, self._publish, self._event, self.cancel.is_set)
                 self.dirty = True

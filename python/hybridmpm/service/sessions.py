@@ -523,19 +523,26 @@ class SessionManager:
         if self.store is not None:
             s.dirty = True
 
-    async def save(self, s: Session) -> bool:
+    async def save(self, s: Session, *, wait: bool = True) -> bool:
         """Write ``s``'s checkpoint to the store if it changed since its last
         save; False when it could not (logged; it stays marked changed and
-        the saver tries again)."""
+        the saver tries again). With ``wait=False`` a session whose lock is
+        held (a control or a step running) is left for the next interval
+        instead of waited for: the periodic saver never queues behind a
+        control, so no control delays another session's save."""
         store = self.store
         if store is None or s.closed or not s.dirty:
             return True
+        if not wait and (s.save_lock.locked() or s.lock.locked()):
+            return False
         async with s.save_lock:
             if s.closed or not s.dirty:
                 return True
             t0 = time.perf_counter()
             try:
                 with self.budget.hold(2 * tree_nbytes(s.initial), "saving a session"):
+                    if not wait and s.lock.locked():  # no await since this check: taking the lock cannot wait
+                        return False
                     async with s.lock:
                         if s.closed:
                             return True
@@ -561,16 +568,18 @@ class SessionManager:
             log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", s.id[:SHOWN_ID_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
             return True
 
-    async def save_all(self) -> None:
+    async def save_all(self, *, wait: bool = True) -> None:
+        """Save every changed session (:meth:`save`); ``wait=False`` (the
+        periodic saver) skips those busy in a control or a step."""
         for s in list(self.sessions.values()):
-            await self.save(s)
+            await self.save(s, wait=wait)
 
     async def _save_forever(self) -> None:
         interval = float(self.config.save_every_s)
         while True:
             await asyncio.sleep(interval)
             try:
-                await self.save_all()
+                await self.save_all(wait=False)
             except Exception:  # noqa: BLE001 - the saver must survive
                 log.exception("saver")
 

@@ -127,6 +127,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
     watcher = loop.create_task(watch())
     try:
         s.broadcast({"type": "control", "status": "running", "id": cid, "method": body.method})
+        await manager.save(s)  # the steps answered before it are durable: the periodic saver skips a session in a control
         ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid)
         if left.is_set():
             log.info("control %s on session %s… cancelled: its client left", cid, s.id[:SHOWN_ID_CHARS])
