@@ -491,11 +491,11 @@ class RaySessionManager(SessionManager):
         await self._forget(s, code, reason)
         return True
 
-    async def save(self, s: Session) -> bool:
+    async def save(self, s: Session, *, wait: bool = True) -> bool:
         """Nothing to do: each actor saves itself."""
         return True
 
-    async def save_all(self) -> None:
+    async def save_all(self, *, wait: bool = True) -> None:
         """Nothing to do: each actor saves itself."""
 
     async def reap_once(self) -> list[str]:
