@@ -225,6 +225,31 @@ def test_a_control_whose_client_leaves_is_cancelled(server):
         c.delete(f"/v1/sessions/{sid}")
 
 
+def test_a_session_deleted_during_its_control_stops_it_and_returns_every_byte(server):
+    """Sessions deleted 0.3 s into a 1000-frame control: each control stops within a frame and answers 404
+    (not 200 after running to its end), and the memory budget goes back to what it was before the sessions
+    (the control's frames used to be recorded into the budget again after the delete had given it back)."""
+
+    async def go() -> None:
+        async with httpx.AsyncClient(base_url=server.url, timeout=120) as c:
+            base = (await c.get("/healthz")).json()["memory_used"]
+            sids = [(await c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm", "seed": i})).json()["id"] for i in range(4)]
+            t0 = time.monotonic()
+            controls = [asyncio.create_task(c.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "frames": 1000})) for sid in sids]
+            await asyncio.sleep(0.3)
+            for sid in sids:
+                assert (await c.delete(f"/v1/sessions/{sid}")).status_code == 204
+            answers = await asyncio.gather(*controls)
+            took = time.monotonic() - t0
+            assert [r.status_code for r in answers] == [404] * 4, [r.text[:80] for r in answers]
+            await asyncio.sleep(0.2)
+            h = (await c.get("/healthz")).json()
+            assert h["memory_used"] == base, (h["memory_used"], base)
+            print(f"4 controls stopped {took:.2f} s after they started")
+
+    asyncio.run(go())
+
+
 def test_a_binary_websocket_message_gets_a_close_frame(server):
     """Binary messages are not part of the protocol: the server closes with
     1003 and a close frame (not a dropped connection, 1006)."""

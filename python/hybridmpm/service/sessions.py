@@ -23,6 +23,7 @@ import contextlib
 import logging
 import math
 import secrets
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -237,6 +238,7 @@ class Session:
     save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     recording: Recording | None = None  # its latest frames, for download
     n_grid: int | None = None  # the grid it was asked to run on (None: the scene's)
+    control_stop: threading.Event | None = None  # set stops the running control within a frame (a delete sets it)
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -270,8 +272,9 @@ class Session:
         return {"type": "meta", **self.info(), "playing": self.playing, "header_bytes": 32}
 
     def record(self, fr: Frame) -> None:
-        """Keep ``fr`` in the session's recent trajectory (event loop thread only)."""
-        if self.recording is not None:
+        """Keep ``fr`` in the session's recent trajectory (event loop thread
+        only); nothing once the session is closed (its budget was given back)."""
+        if self.recording is not None and not self.closed:
             self.recording.add(fr.frame_index, fr.positions, fr.solver, fr.controlled)
 
     def publish(self, fr: Frame, control_frame: int = 0) -> None:
@@ -459,6 +462,8 @@ class SessionManager:
 
     async def _drop(self, s: Session, code: int, reason: str, forget: bool) -> None:
         s.closed = True
+        if s.control_stop is not None:  # a control running on it stops within a frame and answers 404
+            s.control_stop.set()
         if forget and self.store is not None:
             store = self.store
             async with s.save_lock:  # a save under way ends first, so that no record outlives its session
@@ -651,9 +656,10 @@ class SessionManager:
         """Control ``cid`` on ``s`` (:func:`hybridmpm.service.episode.run_episode`)
         on a worker thread under its lock, its frames and plan event offered
         to the viewers as they come; ``left`` (a :class:`threading.Event`) set
-        stops it within a frame. Appends the time of the first controlled
-        frame to ``first``; returns ``(rollout, metrics, plan summary)``;
-        :class:`SessionGoneError` when it was closed meanwhile."""
+        stops it within a frame, and so does closing ``s`` (a delete, an
+        expiry). Appends the time of the first controlled frame to ``first``;
+        returns ``(rollout, metrics, plan summary)``; :class:`SessionGoneError`
+        when it was closed before or during the control."""
         from hybridmpm.service.episode import run_episode  # import time: the controllers load only when a control runs
 
         loop = asyncio.get_running_loop()
@@ -667,7 +673,13 @@ class SessionManager:
         async with s.lock:
             if s.closed:
                 raise SessionGoneError()
-            ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
+            s.control_stop = left
+            try:
+                ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
+            finally:
+                s.control_stop = None
+            if s.closed:
+                raise SessionGoneError()
             self.changed(s)
         if t_first is not None:
             first.append(t_first)
