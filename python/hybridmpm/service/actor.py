@@ -350,6 +350,7 @@ class SessionActor:
 
     def _close(self, code: int, reason: str) -> None:
         self.playing = False
+        self.cancel.set()  # a control running here stops within a frame
         with self.cond:
             self.closing = (code, reason)
             self.cond.notify_all()
