@@ -65,8 +65,8 @@ def test_sigkill_restart_restores_sessions_bitwise(tmp_path):
                 saved[name] = wait_saved(c, ids[name], WAIT_S)
             gone = c.post("/v1/sessions", json={"scene": "water2d", "seed": 9}).json()["id"]
             assert c.delete(f"/v1/sessions/{gone}").status_code == 204
-        # the store holds no session id, only their hashes
-        names = sorted(os.listdir(store))
+        # the store holds no session id, only their hashes (and the server's claim, .lock, holding its pid)
+        names = sorted(n for n in os.listdir(store) if n != ".lock")
         assert names == sorted(session_key(sid) + ".npz" for sid in ids.values())
         assert not any(sid.encode() in (store / n).read_bytes() for n in names for sid in ids.values())
     finally:
@@ -232,3 +232,21 @@ def test_the_periodic_saver_never_waits_for_a_control(tmp_path):
         assert not a.dirty and (root / f"{a.key}.npz").read_bytes() != a_before
 
     asyncio.run(go())
+
+
+def test_one_server_per_store(tmp_path):
+    """A second server on a store another one holds is refused at start, naming the store and the holder's pid;
+    once the first stops (or dies: the OS drops the lock), a server starts on it again."""
+    from fastapi.testclient import TestClient
+
+    from hybridmpm.service import create_app
+
+    cfg = ServiceConfig(store=str(tmp_path / "store"), allowed_hosts=("testserver",))
+    first = create_app(cfg)
+    with pytest.raises(InvalidInputError) as e:
+        create_app(cfg)
+    assert e.value.field == "store" and f"pid {os.getpid()}" in str(e.value)
+    with TestClient(first) as c:
+        assert c.get("/healthz").status_code == 200
+    with TestClient(create_app(cfg)) as c:  # the first stopped: its claim went with it
+        assert c.get("/healthz").status_code == 200

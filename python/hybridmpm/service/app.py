@@ -62,6 +62,8 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     naming the field of a bad setting (:func:`session_manager`, the store)."""
     cfg = config if config is not None else ServiceConfig.from_env()
     manager = session_manager(cfg)
+    if manager.store is not None and not manager.remote:
+        manager.store.claim()  # one server per store: a second is refused here, naming the first's pid
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

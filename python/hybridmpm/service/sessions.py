@@ -521,6 +521,8 @@ class SessionManager:
             await self.close(sid, 1001, "server shutting down", forget=False)
         for key in list(self.unclaimed):
             await self._drop(self.unclaimed.pop(key), 1001, "server shutting down", False)
+        if self.store is not None:
+            self.store.release()
 
     # ------------------------------------------------------------ durable sessions
     def changed(self, s: Session) -> None:

@@ -172,6 +172,7 @@ class SessionStore:
         self.root = os.path.abspath(path) if self.local else path.rstrip("/")
         self._seq: dict[str, int] = {}
         self.saves = 0
+        self._lock_fd: int | None = None  # the held claim (:meth:`claim`)
 
     # ------------------------------------------------------------ setup
     def open(self, clean_after_s: float | None = 0.0) -> SessionStore:
@@ -204,6 +205,40 @@ class SessionStore:
         except OSError as e:
             raise InvalidInputError(f"store: cannot write to {self.url!r} ({type(e).__name__}: {e.strerror or e})", "store") from None
         return self
+
+    def claim(self) -> None:
+        """Hold this (local) store for this process until :meth:`release` or
+        the process ends: one server writes a store, and a second one started
+        on it is refused with :class:`InvalidInputError` (field ``store``)
+        naming the holder's pid. An exclusive ``flock`` on ``.lock`` in the
+        store; the OS drops it when the holder dies, even by SIGKILL. Stores
+        on other filesystems (fsspec URLs) cannot be locked this way and are
+        not. Ray front ends share a store and do not claim it."""
+        if not self.local or self._lock_fd is not None:
+            return
+        import fcntl
+
+        fd = os.open(os.path.join(self.root, ".lock"), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.read(fd, 32).decode("ascii", "replace").strip() or "?"
+            finally:
+                os.close(fd)
+            raise InvalidInputError(
+                f"store: {self.url!r} is in use by another server (pid {holder}); one server writes a store (front ends share one only with --backend ray)",
+                "store",
+            ) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        self._lock_fd = fd
+
+    def release(self) -> None:
+        """Let another server claim the store (:meth:`claim`)."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     # ------------------------------------------------------------ write
     def write(self, key: str, data: bytes) -> None:
