@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import secrets
 import shutil
@@ -164,6 +165,43 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
                 assert (cb if m is more[0] else ca).delete(f"/v1/sessions/{m.json()['id']}").status_code == 204
                 assert ca.get(f"/v1/sessions/{m.json()['id']}").status_code == 404
             assert ca.get("/healthz").json()["sessions"] == 1
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_a_refused_control_tells_no_viewer_it_is_running(cluster, tmp_path):
+    """A control runs through front end A; a second one sent through B is refused (409 from the actor). A viewer
+    on B sees one "running" event (A's, emitted by the actor once it starts) and then its end: none for the
+    refused one (B announced every control before the actor accepted it)."""
+    a, b = _front_end(cluster, tmp_path / "store", tmp_path / "a.log"), _front_end(cluster, tmp_path / "store", tmp_path / "b.log")
+
+    async def go(sid: str) -> list[str]:
+        events: list[str] = []
+        async with websockets.connect(f"{b.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws, httpx.AsyncClient(timeout=WAIT_S) as c:
+            long = asyncio.create_task(c.post(f"{a.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 600}))
+            deadline = time.monotonic() + WAIT_S
+            while not any('"running"' in e for e in events) and time.monotonic() < deadline:
+                m = await asyncio.wait_for(ws.recv(), WAIT_S)
+                if isinstance(m, str):
+                    events.append(m)
+            refused = [await c.post(f"{b.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 5}) for _ in range(3)]
+            assert [r.status_code for r in refused] == [409] * 3, [r.text[:80] for r in refused]
+            assert (await long).status_code == 200
+            while not any('"done"' in e for e in events) and time.monotonic() < deadline:
+                m = await asyncio.wait_for(ws.recv(), WAIT_S)
+                if isinstance(m, str):
+                    events.append(m)
+        return events
+
+    try:
+        _start(a, b)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as ca:
+            sid = ca.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED}).json()["id"]
+            events = asyncio.run(go(sid))
+            control = [json.loads(e) for e in events if '"control"' in e]
+            assert [e["status"] for e in control] == ["running", "done"], control
+            ca.delete(f"/v1/sessions/{sid}")
     finally:
         a.stop()
         b.stop()

@@ -285,9 +285,10 @@ class SessionActor:
         stops it within a frame."""
         with self.cond:
             if self.controlling:
-                raise Busy()
+                raise Busy()  # refused: no viewer is told of it
             self.controlling = True
         self.cancel.clear()
+        self._event({"type": "control", "status": "running", "id": cid, "method": method})
         t0 = time.perf_counter()
         try:
             sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None

@@ -676,6 +676,7 @@ class SessionManager:
             if s.closed:
                 raise SessionGoneError()
             s.control_stop = left
+            s.broadcast({"type": "control", "status": "running", "id": cid, "method": controller.method})
             try:
                 ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
             finally:

@@ -33,7 +33,7 @@ from hybridmpm.service.deps import ConfigDep, ControlDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError, field_error
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.schemas import ControlRequest, ControlResponse, clean
-from hybridmpm.service.sessions import Control
+from hybridmpm.service.sessions import BudgetFullError, Control, SessionGoneError
 
 log = logging.getLogger("hybridmpm.service")
 OCTET = "application/octet-stream"
@@ -126,9 +126,15 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
 
     watcher = loop.create_task(watch())
     try:
-        s.broadcast({"type": "control", "status": "running", "id": cid, "method": body.method})
         await manager.save(s)  # the steps answered before it are durable: the periodic saver skips a session in a control
-        ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid)
+        # the backend tells the viewers "running" once the control has really started (a refused one, never)
+        try:
+            ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid)
+        except (ApiError, SessionGoneError, BudgetFullError):
+            raise  # refused before it ran, or its session is gone (its viewers were closed)
+        except Exception:
+            s.broadcast({"type": "control", "status": "failed", "id": cid})  # it started: its viewers see it end
+            raise
         if left.is_set():
             log.info("control %s on session %s… cancelled: its client left", cid, s.id[:SHOWN_ID_CHARS])
             s.broadcast({"type": "control", "status": "cancelled", "id": cid})
