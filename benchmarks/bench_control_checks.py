@@ -40,6 +40,7 @@ from tqdm import tqdm
 from hybridmpm.bench.env import environment
 from hybridmpm.control import A_MAX, Controller, Sketch, control_episode
 from hybridmpm.control.prior import free_motion_of
+from hybridmpm.conventions import G
 from hybridmpm.train.control.cases import make_case
 
 
@@ -134,7 +135,7 @@ def check_scene(scene: str, args: argparse.Namespace) -> dict:
         case = cases[j % len(cases)]
         ep = control_episode(case.simulator(), sk, ctl(seed=j, frames=frames))
         pos = ep.rollout.positions
-        amax = max(float(np.linalg.norm(a, axis=-1).max()) for a in ep.plan.applied) if ep.plan.applied else 0.0
+        amax = ep.plan.applied.effort()["effort_max_g"] * G  # the largest |a| handed out [m/s²]
         worst_a = max(worst_a, amax)
         worst_sub = max(worst_sub, float(np.max(ep.rollout.substeps)) / sub0)
         if not np.isfinite(pos).all() or (pos < 0).any() or (pos > 1).any() or amax > A_MAX * (1 + 1e-6) or ep.rollout.failure is not None:

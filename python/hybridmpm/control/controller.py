@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.control.diffusion import SAMPLE_STEPS, ControlModel
+from hybridmpm.control.metrics import AppliedStats
 from hybridmpm.control.prior import ballistic_path, free_motion_of, in_free_flight, prior_path
 from hybridmpm.control.reverse import A_MAX, clip_norm
 from hybridmpm.control.sketch import Sketch
@@ -137,8 +138,8 @@ class Plan:
     with a frame index and the fluid's positions and velocities [N, D] →
     float32 [N, D] m/s², None outside the horizon). Open loop
     (``accelerations`` [frames, N, D]) or closed loop (``feedback(k, x, v)``
-    computed from the state at control frame ``k``). ``applied`` keeps every field handed out (effort and smoothness
-    metrics); ``seconds`` the time the plan took to make (sketch → field);
+    computed from the state at control frame ``k``). ``applied`` takes every field handed out
+    (:class:`~hybridmpm.control.metrics.AppliedStats`: effort and smoothness, one field in memory); ``seconds`` the time the plan took to make (sketch → field);
     ``path`` float64 [F, N, D] the planned motion of a planned method;
     ``network`` whether a network made it (False for a diffusion plan of a
     fluid in free flight, :func:`~hybridmpm.control.prior.in_free_flight`)."""
@@ -151,7 +152,7 @@ class Plan:
     feedback: Callable[[int, np.ndarray, np.ndarray], np.ndarray] | None = None
     seconds: float = 0.0
     sketch: Sketch | None = None
-    applied: list[np.ndarray] = field(default_factory=list)
+    applied: AppliedStats = field(default_factory=AppliedStats)
     path: np.ndarray | None = None
     network: bool = False
 
@@ -166,7 +167,7 @@ class Plan:
         else:  # "none", or no sketch
             return None
         a = clip_norm(a, A_MAX)
-        self.applied.append(a)
+        self.applied.add(a)
         return a
 
 

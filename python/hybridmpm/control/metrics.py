@@ -64,33 +64,71 @@ def oval_adherence(end: np.ndarray, sketch: Sketch, n_grid: int = 64) -> dict[st
     return {"inside": frac, "iou": float((occ & ell).sum() / union) if union else 0.0}
 
 
+class AppliedStats:
+    """Effort and smoothness of a control, taken one applied field at a time
+    (:meth:`add`, float [N, D] m/s²): memory of one field, whatever the number
+    of frames (a list of every field, stacked in float64 at the end, was ~30×
+    a control's trajectory at its peak)."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self._norm_sum = 0.0
+        self._norm_count = 0
+        self._norm_max = 0.0
+        self._cos_sum = 0.0
+        self._cos_count = 0
+        self._previous: tuple[np.ndarray, np.ndarray] | None = None
+
+    def add(self, a: np.ndarray) -> None:
+        a64 = np.asarray(a, np.float64)
+        n = np.linalg.norm(a64, axis=-1)
+        self._norm_sum += float(n.sum())
+        self._norm_count += int(n.size)
+        if n.size:
+            self._norm_max = max(self._norm_max, float(n.max()))
+        if self._previous is not None:
+            u, nu = self._previous
+            ok = (nu > 0) & (n > 0)
+            if ok.any():
+                self._cos_sum += float(((u * a64).sum(-1)[ok] / (nu * n)[ok]).sum())
+                self._cos_count += int(ok.sum())
+        self._previous = (a64, n)
+        self.frames += 1
+
+    def effort(self) -> dict[str, float]:
+        """Mean and max ``‖a‖/g`` over particles and frames of the applied control (0 without)."""
+        if not self._norm_count:
+            return {"effort_mean_g": 0.0, "effort_max_g": 0.0}
+        return {"effort_mean_g": self._norm_sum / self._norm_count / G, "effort_max_g": self._norm_max / G}
+
+    def smoothness(self) -> float:
+        """Mean per-particle cosine of consecutive control accelerations (1 = steady; nan for < 2 frames)."""
+        if self.frames < 2:
+            return math.nan
+        return self._cos_sum / self._cos_count if self._cos_count else 1.0
+
+
 def effort(applied: list[np.ndarray]) -> dict[str, float]:
-    """Mean and max ``‖a‖/g`` over particles and frames of the applied control (0 without)."""
-    if not applied:
-        return {"effort_mean_g": 0.0, "effort_max_g": 0.0}
-    n = np.linalg.norm(np.stack(applied).astype(np.float64), axis=-1) / G
-    return {"effort_mean_g": float(n.mean()), "effort_max_g": float(n.max())}
+    """Mean and max ``‖a‖/g`` over particles and frames of the applied fields ``applied`` (0 without)."""
+    st = AppliedStats()
+    for a in applied:
+        st.add(a)
+    return st.effort()
 
 
 def smoothness(applied: list[np.ndarray]) -> float:
     """Mean per-particle cosine of consecutive control accelerations (1 = steady; nan for < 2 frames)."""
-    if len(applied) < 2:
-        return math.nan
-    a = np.stack(applied).astype(np.float64)
-    u, w = a[:-1], a[1:]
-    nu, nw = np.linalg.norm(u, axis=-1), np.linalg.norm(w, axis=-1)
-    ok = (nu > 0) & (nw > 0)
-    if not ok.any():
-        return 1.0
-    return float(((u * w).sum(-1)[ok] / (nu * nw)[ok]).mean())
+    st = AppliedStats()
+    for a in applied:
+        st.add(a)
+    return st.smoothness()
 
 
-def control_metrics(
-    start: np.ndarray, end: np.ndarray, sketch: Sketch | None, applied: list[np.ndarray], target: np.ndarray | None, n_grid: int
-) -> dict[str, Any]:
+def control_metrics(start: np.ndarray, end: np.ndarray, sketch: Sketch | None, applied: AppliedStats, target: np.ndarray | None, n_grid: int) -> dict[str, Any]:
     """Every metric of one controlled episode (``start``/``end`` fluid positions
-    at its first and last frame; ``target`` the positions it should reach, if known)."""
-    out: dict[str, Any] = {**effort(applied), "smoothness": smoothness(applied)}
+    at its first and last frame; ``applied`` the statistics of the fields it
+    applied; ``target`` the positions it should reach, if known)."""
+    out: dict[str, Any] = {**applied.effort(), "smoothness": applied.smoothness()}
     if target is not None:
         out.update(shape_errors(end, target, n_grid))
     if sketch is not None:
@@ -98,4 +136,4 @@ def control_metrics(
     return out
 
 
-__all__ = ["arrow_adherence", "control_metrics", "effort", "oval_adherence", "shape_errors", "smoothness"]
+__all__ = ["AppliedStats", "arrow_adherence", "control_metrics", "effort", "oval_adherence", "shape_errors", "smoothness"]
