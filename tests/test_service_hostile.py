@@ -15,6 +15,7 @@ import io
 import json
 import math
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -376,3 +377,35 @@ def test_schema_states_192_bit_ids(client):
     schema = client.get("/openapi.json").json()
     desc = schema["components"]["schemas"]["SessionInfo"]["properties"]["id"]["description"]
     assert "192 bits" in desc and "128" not in desc
+
+
+def test_the_ledger_returns_to_its_start_after_every_way_a_session_ends():
+    """The memory budget is one ledger: whatever a session took — its state, its recording, a kept control, a
+    download — comes back when it ends, by DELETE or by expiry, and a refused request takes nothing."""
+    app = create_app(ServiceConfig(allowed_hosts=HOST, idle_ttl_s=1.0, reap_interval_s=0.2))
+    arrow = {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}
+    with TestClient(app) as c:
+        base = c.get("/healthz").json()["memory_used"]
+
+        def used_every_way() -> str:
+            sid = new(c, scene="water2d", solver="mpm")
+            assert c.post(f"/v1/sessions/{sid}/step", json={"frames": 30}).status_code == 200
+            r = c.post(f"/v1/sessions/{sid}/controls", json={"sketch": arrow, "frames": 40})
+            assert r.status_code == 200, r.text
+            assert c.get(r.json()["trajectory"], headers=OCTET).status_code == 200
+            assert c.get(f"/v1/sessions/{sid}/trajectory", params={"frames": 10}).status_code == 200
+            before = c.get("/healthz").json()["memory_used"]
+            assert c.put(f"/v1/sessions/{sid}/checkpoint", content=b"not a checkpoint").status_code == 422
+            assert c.get("/healthz").json()["memory_used"] == before  # refused: nothing taken
+            assert before > base
+            return sid
+
+        sid = used_every_way()
+        assert c.delete(f"/v1/sessions/{sid}").status_code == 204
+        assert c.get("/healthz").json()["memory_used"] == base
+        used_every_way()  # left to expire
+        deadline = time.monotonic() + 30
+        while c.get("/healthz").json()["sessions"] and time.monotonic() < deadline:
+            time.sleep(0.2)
+        h = c.get("/healthz").json()
+        assert h["sessions"] == 0 and h["memory_used"] == base, h
