@@ -296,3 +296,17 @@ print("ok")
 def test_serving_imports_without_torch():
     out = subprocess.run([sys.executable, "-c", _NO_TORCH], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_the_connectivity_radius_value_is_written_once():
+    # R = 0.015 m lives in hybridmpm.conventions; defaults elsewhere name CONNECTIVITY_RADIUS
+    pattern = re.compile(r"(?<![\d.])0\.015(?!\d)")
+    offenders = []
+    for p in _sources("python"):
+        if p.name == "conventions.py":
+            continue
+        for i, line in enumerate(p.read_text().splitlines(), 1):
+            code = line.split("#", 1)[0]
+            if pattern.search(code) and '"""' not in line and not line.lstrip().startswith(("``", "-", "*")):
+                offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
+    assert not offenders, "\n".join(offenders)

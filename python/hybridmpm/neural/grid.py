@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm import _core
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
+from hybridmpm.conventions import CONNECTIVITY_RADIUS, GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid_nodes import MASS_FLOOR, grid_geometry, wall_mask
@@ -134,7 +134,7 @@ class GridRuntime:
     @property
     def radius(self) -> float:
         """The dataset's connectivity radius R [m] (the simulator's density and degree statistics use it)."""
-        return float(self.meta.get("radius", 0.015))
+        return float(self.meta.get("radius", CONNECTIVITY_RADIUS))
 
     @property
     def r_t(self) -> int:

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hybridmpm.conventions import GNS_KINEMATIC
+from hybridmpm.conventions import CONNECTIVITY_RADIUS, GNS_KINEMATIC
 from hybridmpm.data.gns import GnsDataset
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
@@ -400,7 +400,7 @@ def _train_grid(ranks: Ranks, c: GridTrainConfig, progress: bool) -> dict[str, A
                 {
                     "scene": c.scene,
                     "r_p": float(meta.get("r_p", 1.0)),
-                    "radius": float(meta.get("default_connectivity_radius", 0.015)),
+                    "radius": float(meta.get("default_connectivity_radius", CONNECTIVITY_RADIUS)),
                     "data_sha256": meta.get("sha256", {}).get("train") if isinstance(meta.get("sha256"), dict) else None,
                     "steps": best[1],
                     "core_seconds": seconds,
