@@ -1,0 +1,7 @@
+"""``python -m hybridmpm.cli``: the ``hybridmpm`` command."""
+
+import sys
+
+from hybridmpm.cli import main
+
+sys.exit(main())

@@ -1,0 +1,226 @@
+"""The ``hybridmpm`` command line: simulate a scene (``simulate``, ``--solver auto`` reading what ``tune`` chose) and compare two trajectories (``evaluate``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.cli.common import latency_ms, out_dir, parse_seed, write_json
+from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, AUDIT_TOL, R_C, RESIDUAL_TOL, SAFEGUARD, SAFEGUARDS
+from hybridmpm.errors import HybridMpmError, InvalidInputError
+from hybridmpm.trajectory import Trajectory
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    """``hybridmpm simulate``: one simulator (:func:`hybridmpm.sim.make_simulator`),
+    one :func:`~hybridmpm.sim.rollout`, then the files."""
+    # import time: loaded by this command only
+    import hybridmpm
+    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.render import export_points, plot_timeline, render_gif
+    from hybridmpm.scenes import make_scene
+    from hybridmpm.sim import NEURAL, make_simulator, reference, rollout, warmup_frames
+
+    scene = make_scene(args.scene, seed=args.seed)
+    frames = args.frames if args.frames is not None else scene.frames
+    if args.solver == "auto":
+        _apply_tuned(args, scene.name)
+    if frames < 1:
+        raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
+    out = out_dir(args.out)
+    sim = make_simulator(
+        scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
+        safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
+        nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
+        **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}),
+    )  # fmt: skip
+    label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
+    ro = rollout(sim, frames, progress=None if args.quiet else label)
+    low = sim.scene
+    per_frame = ro.frame_seconds()
+    steps = ro.stats["steps"]
+    total = max(1, sum(steps.values()))
+    summary: dict = {
+        "scene": scene.name, "solver": args.solver, "seed": args.seed, "frames": ro.frames_done, "frames_asked": frames,
+        "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
+        "dim": low.dim, "n_grid": low.params.resolved_n_grid(), "dt_frame": low.dt_frame, "r_p": float(low.info.get("r_p", 1.0)), "r_t": sim.r_t,
+        "wall_ms_per_frame": latency_ms(per_frame), "share_of_frames": {k: v / total for k, v in steps.items()}, **ro.stats,
+        "failure": ro.failure, "events": [{"step": k, "frame": k * sim.r_t, "event": e} for k, e in ro.events],
+        "threads": args.threads, "version": hybridmpm.__version__, "python": platform.python_version(), "machine": platform.machine(),
+    }  # fmt: skip
+    if ro.failure:
+        summary["failure_detail"] = ro.failure_detail
+    if args.solver == "mpm":
+        subs = ro.substeps[1:]
+        summary["substeps_total"] = int(subs.sum())
+        summary["substeps_per_frame"] = {"min": int(subs.min()), "median": float(np.median(subs)), "max": int(subs.max())} if len(subs) else None
+        summary["realtime_factor"] = float(low.dt_frame / np.median(per_frame)) if len(per_frame) else None
+    else:
+        model = sim.model  # type: ignore[attr-defined]
+        summary["model"] = str(model.path)
+        summary["warmup_mpm_frames"] = warmup_frames(model)
+        summary["neural_steps"] = steps.get(NEURAL, 0)
+    if args.solver == "hybrid":
+        summary.update(
+            {"safeguard": sim.safeguard, "r_c": sim.r_c, "delta": sim.delta, "dwell": sim.dwell, "audit_every": sim.audit_every,  # type: ignore[attr-defined]
+             "audit_tol": sim.audit_tol, "residual_tol": sim.residual_tol, "audit_max": sim.audit_max,  # type: ignore[attr-defined]
+             "cheap": sim.cheap, "cheap_kind": sim.cheap_kind}  # type: ignore[attr-defined]
+        )  # fmt: skip
+        if sim.cheap_kind != NEURAL:  # type: ignore[attr-defined]
+            summary["cheap_grid"] = sim.neural.n_grid  # type: ignore[attr-defined]
+    err = None
+    if args.reference:
+        t0 = time.perf_counter()
+        ref = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads).fluid_positions
+        ref_ms = (time.perf_counter() - t0) / max(1, ro.frames_done) * 1e3
+        err = grid_mass_error(ro.fluid_positions, ref[: len(ro.positions)], scene.params.resolved_n_grid())  # the reference's grid
+        summary["reference"] = {
+            "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
+            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
+        }  # fmt: skip
+    ro.save(out / "trajectory.npz")
+    write_json(out / "summary.json", summary)
+    title = f"{scene.name} ({args.solver}" + (f", r_c = {args.r_c:g})" if args.solver == "hybrid" else ")")
+    if args.solver == "hybrid":
+        plot_timeline(out / "timeline.png", ro.dt_frame, ro.solver, ro.score, args.r_c, err, title=title)
+    if not args.no_render:
+        render_gif(
+            ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None
+        )
+    if args.export:
+        export_points(ro.positions, ro.particle_type, out / "export", fmt=args.export, dt=ro.dt_frame, solver=ro.extras["solver"])
+    if not args.quiet:
+        ms = summary["wall_ms_per_frame"]
+        line = f"{scene.name}: {ro.frames_done} frames, {low.num_particles} particles"
+        line += f" (r_p {summary['r_p']:g})" if summary["r_p"] < 1 else ""
+        line += f" on a {summary['n_grid']}^{low.dim} grid" if summary["n_grid"] != scene.params.resolved_n_grid() else ""
+        line += f", {args.solver} median {ms['median']:.2f} ms/frame (p95 {ms['p95']:.2f})" if ms["median"] is not None else ""
+        if args.solver == "hybrid":
+            cheap = sim.cheap_kind  # type: ignore[attr-defined]
+            line += f", {cheap} {100 * ro.share(cheap):.0f}% of steps, {ro.stats['switches']} switches"
+        if err is not None:
+            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
+        if ro.failure:
+            line += f"; broke off: {ro.failure} ({ro.failure_detail})"
+        print(line + f" -> {out}/")
+    return 0
+
+
+def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
+    """``--solver auto``: take solver, model, r_p and r_c from the configuration
+    ``hybridmpm tune`` wrote (``--tuned``, default tuned/SCENE.json)."""
+    # import time: loaded by this command only
+    from hybridmpm.sim import load_tuned, tuned_settings
+
+    if args.model is not None or args.r_p != 1.0 or args.n_grid is not None or args.particles_per_cell is not None:
+        raise HybridMpmError(
+            "solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop --model/--r-p/--n-grid/--particles-per-cell"
+        )
+    doc = load_tuned(scene, args.tuned)
+    for key, value in tuned_settings(doc).items():
+        setattr(args, key, value)
+    cfg = doc["config"]
+    if not args.quiet:
+        m = doc["measured"]
+        print(
+            f"auto: {cfg['label']} (tuned for error <= {doc['error_budget']:g}: measured {m['error_mean']:.3f}, "
+            f"{m['ms_mean']:.2f} ms/frame on validation seeds)"
+        )
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    # import time: loaded by this command only
+    from hybridmpm.metrics import evaluate
+
+    pred = Trajectory.load(args.pred)
+    ref = Trajectory.load(args.ref)
+    result = evaluate(pred, ref, n_grid=args.n_grid)
+    result["pred"]["path"] = str(Path(args.pred))
+    result["ref"]["path"] = str(Path(args.ref))
+    out = Path(args.out) if args.out is not None else Path(args.pred).parent / "metrics.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(out)
+    if not args.quiet:
+        gme = result["grid_mass_error"]
+        lines = [
+            f"{result['frames_compared']} frames compared (pred every {pred.dt_frame * 1e3:g} ms, ref every {ref.dt_frame * 1e3:g} ms; "
+            f"{result['pred']['particles']} vs {result['ref']['particles']} fluid particles)",
+            f"grid-mass error (n_grid {result['n_grid']}): mean {gme['mean']:.4g}, last {gme['last']:.4g}",
+        ]
+        for key, label in (("position_mse_rollout", "rollout"), ("position_mse_one_step", "one-step")):
+            m = result[key]
+            lines.append(f"{label} position MSE: " + (f"mean {m['mean']:.4g} m², last {m['last']:.4g} m²" if m else f"n/a ({result[key + '_reason']})"))
+        lines.append(f"-> {out}")
+        print("\n".join(lines))
+    return 0
+
+
+def add_parsers(sub: Any) -> None:
+    """Register this group's commands on the subparsers ``sub``."""
+    from hybridmpm.scenes import DOMAINS  # import time: loaded when the parser is built
+
+    sim = sub.add_parser("simulate", help="run a scene and write trajectory.npz, summary.json and render.gif")
+    sim.add_argument(
+        "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(DOMAINS))}) or a scene file (.toml/.json); default dam_break2d"
+    )
+    sim.add_argument(
+        "--solver", default="hybrid", choices=["hybrid", "mpm", "neural", "auto"],
+        help="solver (default hybrid: neural, MPM while s(t) < r_c; auto: the configuration hybridmpm tune chose)",
+    )  # fmt: skip
+    sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
+    sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
+    sim.add_argument(
+        "--cheap",
+        default="neural",
+        choices=["neural", "mpm-coarse"],
+        help="hybrid: its cheap half, the network (default) or MPM on a coarser grid with the same particles (the classical twin)",
+    )
+    sim.add_argument("--cheap-grid", type=int, default=None, help="hybrid --cheap mpm-coarse: the coarse grid (default half the scene's)")
+    sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
+    sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
+    sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")
+    sim.add_argument("--audit-tol", type=float, default=None, help=f"hybrid: MPM audit tolerance in g (default {AUDIT_TOL:g})")
+    sim.add_argument(
+        "--safeguard", default=None, choices=list(SAFEGUARDS),
+        help=f"hybrid: switching rule (default {SAFEGUARD}: s(t) and the MPM audit; paper: s(t) alone; error: an audit whose interval adapts, no s(t); docs/hybrid.md)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--residual-tol", type=float, default=None, help=f"hybrid, error rule: density residual in g that brings the audit forward (default {RESIDUAL_TOL:g})"
+    )
+    sim.add_argument("--audit-max", type=int, default=None, help=f"hybrid, error rule: longest interval between audits in network steps (default {AUDIT_MAX})")
+    sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
+    sim.add_argument(
+        "--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)"
+    )
+    sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
+    sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
+    sim.add_argument("--seed", type=parse_seed, default=0, help="seed of the scene's random initial condition")
+    sim.add_argument("--threads", type=int, default=0, help="solver threads (0 = all cores)")
+    sim.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
+    sim.add_argument(
+        "--n-grid", type=int, default=None, help="--solver mpm: run on this grid of the same domain (same blocks, obstacles, wall faces; default: the scene's)"
+    )
+    sim.add_argument(
+        "--particles-per-cell",
+        type=int,
+        default=None,
+        help="--solver mpm: particles per cell per axis of the lattice on --n-grid (1-4; default the scene's, 2)",
+    )
+    sim.add_argument("--no-render", action="store_true", help="skip render.gif")
+    sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
+    sim.set_defaults(func=_simulate)
+    ev = sub.add_parser("evaluate", help="compare a predicted trajectory.npz with a reference one and write metrics.json")
+    ev.add_argument("pred", help="predicted trajectory (.npz, as written by simulate)")
+    ev.add_argument("ref", help="reference trajectory (.npz), e.g. full-resolution MPM from the same initial condition")
+    ev.add_argument("--n-grid", type=int, default=None, help="grid of the grid-mass error (default: the reference's, else 128 in 2D / 64 in 3D)")
+    ev.add_argument("--out", default=None, help="metrics JSON to write (default: metrics.json next to PRED)")
+    ev.add_argument("--quiet", action="store_true", help="no summary")
+    ev.set_defaults(func=_evaluate)
