@@ -230,7 +230,7 @@ def _brute_force_statistics(trajectories: list[tuple[np.ndarray, np.ndarray]], e
 
 @pytest.mark.parametrize("chunk", [3, 256])
 def test_statistics_equal_brute_force_and_exclude_kinematic(monkeypatch: pytest.MonkeyPatch, chunk: int) -> None:
-    monkeypatch.setattr(gns, "_STATS_CHUNK_FRAMES", chunk)  # 3 frames per chunk exercises the chunk seams
+    monkeypatch.setattr(gns.statistics, "_STATS_CHUNK_FRAMES", chunk)  # 3 frames per chunk exercises the chunk seams
     rng = np.random.default_rng(7)
     trajectories = []
     for t, n in [(9, 12), (10, 7), (11, 20), (2, 5)]:  # the T = 2 trajectory has velocities but no acceleration
