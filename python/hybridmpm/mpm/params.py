@@ -1,0 +1,374 @@
+"""The MLS-MPM solver's parameters (:class:`MpmParams` and its parts: water, sand, walls, colliders), typed and
+validated in Python; their defaults are the Rust core's (``SolverParams::default()``), defined once there."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from hybridmpm import _core
+from hybridmpm.errors import InvalidInputError
+
+Condition = Literal["sticky", "slip", "separate"]
+
+#: The solver's defaults by dimension, from the Rust core
+#: (:func:`hybridmpm._core.default_params`: ``SolverParams::default()``), in
+#: the form of :meth:`MpmParams.to_dict`. The dataclass defaults below are
+#: these values: the parameters are defined once, in Rust.
+_DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim in (2, 3)}
+#: A collider's defaults (``condition``, ``friction``), from the Rust core.
+_COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
+_SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
+_WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
+
+
+@dataclass
+class WaterParams:
+    """Weakly compressible water. ``density`` ρ [kg/m³], ``bulk_modulus`` K [Pa]
+    (sound speed ``sqrt(K/ρ)``, default 20 m/s), ``viscosity`` η [Pa·s].
+    Defaults are the Rust core's (``WaterParams::default()``)."""
+
+    density: float = _WATER["density"]
+    bulk_modulus: float = _WATER["bulk_modulus"]
+    viscosity: float = _WATER["viscosity"]
+
+
+@dataclass
+class SandParams:
+    """Drucker–Prager sand. ``youngs_modulus`` E [Pa], ``poisson_ratio`` ν,
+    ``friction_angle_deg`` φ [°], ``cohesion`` c [Pa] (cone apex at mean
+    stress ``c / tan φ``), ``density`` ρ [kg/m³]. Defaults are the Rust
+    core's (``SandParams::default()``)."""
+
+    density: float = _SAND["density"]
+    youngs_modulus: float = _SAND["youngs_modulus"]
+    poisson_ratio: float = _SAND["poisson_ratio"]
+    friction_angle_deg: float = _SAND["friction_angle_deg"]
+    cohesion: float = _SAND["cohesion"]
+
+
+#: Wall faces by axis and side: ``x-`` is x = 0, ``x+`` x = 1, ``y-`` the floor
+#: (y is up), ``y+`` the ceiling, ``z-`` / ``z+`` (3D only).
+WALL_FACES = ("x-", "x+", "y-", "y+", "z-", "z+")
+_CONDITIONS = ("sticky", "slip", "separate")
+
+
+@dataclass
+class WallFace:
+    """Override for one wall face: its boundary ``condition`` and/or Coulomb
+    ``friction`` μ; a field left ``None`` keeps the all-walls value."""
+
+    condition: Condition | None = None
+    friction: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {}
+        if self.condition is not None:
+            d["condition"] = self.condition
+        if self.friction is not None:
+            d["friction"] = float(self.friction)
+        return d
+
+
+@dataclass
+class WallParams:
+    """Domain walls: a band of ``cells`` grid cells inside every face of the
+    unit domain, with a boundary ``condition`` (``"sticky"``: no slip,
+    ``"slip"``: no normal motion, ``"separate"``: may leave the wall, with
+    Coulomb friction) and friction μ (used by ``separate``), for all faces.
+
+    ``faces`` overrides them per face: ``{"y-": WallFace(friction=0.6)}``
+    (a dict ``{"friction": 0.6}`` works too). Face names are
+    :data:`WALL_FACES`; ``y-`` is the floor (y is up), ``z-``/``z+`` exist
+    in 3D only. A rough floor with slipping side walls, the usual
+    granular-collapse setup::
+
+        WallParams(condition="slip", faces={"y-": WallFace("separate", 0.6)})
+
+    Defaults are the Rust core's (``WallParams::default()``).
+    """
+
+    cells: int = _WALLS["cells"]
+    condition: Condition = _WALLS["condition"]
+    friction: float = _WALLS["friction"]
+    faces: dict[str, WallFace] = field(default_factory=dict)
+
+    def face(self, name: str) -> tuple[str, float]:
+        """The ``(condition, friction)`` in force on face ``name``."""
+        f = _wall_face(f"walls.faces.{name}", self.faces.get(name, WallFace()))
+        return (f.condition or self.condition, float(self.friction if f.friction is None else f.friction))
+
+    def validate(self, dim: int | None = None) -> None:
+        """Check every field; raises :class:`InvalidInputError` naming it
+        (e.g. ``walls.faces.y-.friction``). ``dim`` also rejects z faces in 2D."""
+        if isinstance(self.cells, bool) or not isinstance(self.cells, (int, np.integer)) or self.cells < 2:
+            raise InvalidInputError(f"walls.cells: must be an integer >= 2, got {self.cells!r}", "walls.cells")
+        _check_condition("walls.condition", self.condition)
+        _check_friction("walls.friction", self.friction)
+        if not isinstance(self.faces, dict):
+            raise InvalidInputError("walls.faces: expected a mapping of face name to {condition, friction}", "walls.faces")
+        names = WALL_FACES[: 2 * dim] if dim in (2, 3) else WALL_FACES
+        for name, face in self.faces.items():
+            if name not in names:
+                where = f" in {dim}D" if dim in (2, 3) else ""
+                raise InvalidInputError(
+                    f"walls.faces.{name}: unknown wall face{where} (allowed: {', '.join(names)}; y- is the floor)",
+                    f"walls.faces.{name}",
+                )
+            _wall_face(f"walls.faces.{name}", face)
+
+    def to_dict(self, dim: int | None = None) -> dict[str, Any]:
+        """Plain dict (validated): ``faces`` only when some face is overridden,
+        in the order of :data:`WALL_FACES`."""
+        self.validate(dim)
+        d: dict[str, Any] = {"cells": int(self.cells), "condition": self.condition, "friction": float(self.friction)}
+        if self.faces:
+            d["faces"] = {n: _wall_face(f"walls.faces.{n}", self.faces[n]).to_dict() for n in WALL_FACES if n in self.faces}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], dim: int | None = None) -> WallParams:
+        """Inverse of :meth:`to_dict`; validates (errors name the field)."""
+        if not isinstance(d, dict):
+            raise InvalidInputError("walls: expected a table/object", "walls")
+        unknown = sorted(set(d) - {"cells", "condition", "friction", "faces"})
+        if unknown:
+            raise InvalidInputError(f"walls.{unknown[0]}: unknown wall parameter (allowed: cells, condition, friction, faces)", f"walls.{unknown[0]}")
+        faces_raw = d.get("faces") or {}
+        if not isinstance(faces_raw, dict):
+            raise InvalidInputError("walls.faces: expected a mapping of face name to {condition, friction}", "walls.faces")
+        default = cls()
+        walls = cls(
+            cells=d.get("cells", default.cells),
+            condition=d.get("condition", default.condition),
+            friction=d.get("friction", default.friction),
+            faces={str(k): _wall_face(f"walls.faces.{k}", v) for k, v in faces_raw.items()},
+        )
+        walls.validate(dim)
+        return walls
+
+
+def _check_condition(name: str, c: Any) -> None:
+    if c not in _CONDITIONS:
+        raise InvalidInputError(f"{name}: must be one of 'sticky', 'slip', 'separate', got {c!r}", name)
+
+
+def _check_friction(name: str, mu: Any) -> None:
+    if isinstance(mu, bool) or not isinstance(mu, (int, float, np.integer, np.floating)) or not math.isfinite(mu):
+        raise InvalidInputError(f"{name}: must be a finite number, got {mu!r}", name)
+    if mu < 0:
+        raise InvalidInputError(f"{name}: must be >= 0, got {mu!r}", name)
+
+
+def _wall_face(name: str, v: Any) -> WallFace:
+    """A validated :class:`WallFace` from a ``WallFace`` or a dict."""
+    if isinstance(v, dict):
+        extra = sorted(set(v) - {"condition", "friction"})
+        if extra:
+            raise InvalidInputError(f"{name}.{extra[0]}: unknown wall-face parameter (allowed: condition, friction)", f"{name}.{extra[0]}")
+        v = WallFace(condition=v.get("condition"), friction=v.get("friction"))
+    if not isinstance(v, WallFace):
+        raise InvalidInputError(f"{name}: expected a table/object with 'condition' and/or 'friction', got {v!r}", name)
+    if v.condition is not None:
+        _check_condition(f"{name}.condition", v.condition)
+    if v.friction is not None:
+        _check_friction(f"{name}.friction", v.friction)
+    return v
+
+
+@dataclass
+class Box:
+    """Static box collider: ``center``, ``half_extents`` [m]; rotated by
+    ``angle_deg`` (2D) or a 3×3 ``rotation`` matrix (3D) — a rotated box is a ramp.
+    Must be at least 2 grid cells thick. ``condition`` and ``friction``
+    default to the Rust core's (``ColliderParams::default()``)."""
+
+    center: Sequence[float]
+    half_extents: Sequence[float]
+    angle_deg: float | None = None
+    rotation: Sequence[Sequence[float]] | None = None
+    condition: Condition = _COLLIDER_DEFAULTS["condition"]
+    friction: float = _COLLIDER_DEFAULTS["friction"]
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "shape": "box",
+            "center": [float(c) for c in self.center],
+            "half_extents": [float(h) for h in self.half_extents],
+            "condition": self.condition,
+            "friction": float(self.friction),
+        }
+        if self.angle_deg is not None:
+            d["angle_deg"] = float(self.angle_deg)
+        if self.rotation is not None:
+            d["rotation"] = [[float(v) for v in row] for row in self.rotation]
+        return d
+
+
+@dataclass
+class Sphere:
+    """Static sphere (circle in 2D) collider: ``center``, ``radius`` [m].
+    ``condition`` and ``friction`` default to the Rust core's (``ColliderParams::default()``)."""
+
+    center: Sequence[float]
+    radius: float
+    condition: Condition = _COLLIDER_DEFAULTS["condition"]
+    friction: float = _COLLIDER_DEFAULTS["friction"]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "shape": "sphere",
+            "center": [float(c) for c in self.center],
+            "radius": float(self.radius),
+            "condition": self.condition,
+            "friction": float(self.friction),
+        }
+
+
+@dataclass
+class MpmParams:
+    """All solver parameters (see the Rust ``SolverParams`` for the ranges).
+
+    ``substeps=None`` lets the CFL condition ``dt ≤ cfl·dx/(c + |v|max)`` pick
+    the substep count of each frame; an int fixes it. Defaults are the Rust
+    core's (``SolverParams::default()``, as a dict
+    ``hybridmpm._core.default_params(dim)``): ``n_grid=None`` and
+    ``gravity=None`` [m/s², ``dim`` numbers] take those of ``dim``.
+    """
+
+    dim: int = 2
+    n_grid: int | None = None
+    gravity: Sequence[float] | None = None
+    cfl: float = _SOLVER["cfl"]
+    substeps: int | None = _SOLVER["substeps"]
+    max_substeps: int = _SOLVER["max_substeps"]
+    num_threads: int = _SOLVER["num_threads"]
+    water: WaterParams = field(default_factory=WaterParams)
+    sand: SandParams = field(default_factory=SandParams)
+    walls: WallParams = field(default_factory=WallParams)
+    colliders: list[Box | Sphere] = field(default_factory=list)
+
+    def resolved_n_grid(self) -> int:
+        self._check_int("n_grid", self.n_grid, optional=True)
+        return int(self.n_grid) if self.n_grid is not None else int(_DEFAULTS.get(self.dim, _DEFAULTS[2])["n_grid"])
+
+    def resolved_gravity(self) -> np.ndarray:
+        """Gravity [m/s²], float64 ``[dim]``: ``gravity``, or the engine's
+        default for ``dim`` when it is None (what the solver applies)."""
+        return np.asarray(self.to_dict()["gravity"], np.float64)
+
+    @staticmethod
+    def _check_int(name: str, v: Any, *, optional: bool = False) -> None:
+        """An integer (``int`` or numpy integer; not a bool, a float such as
+        ``64.5`` or ``64.0``, or a string such as ``"64"``), else
+        :class:`InvalidInputError` naming ``name``."""
+        if v is None and optional:
+            return
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            what = "an integer or None" if optional else "an integer"
+            raise InvalidInputError(f"{name}: must be {what}, got {v!r}", name)
+
+    @staticmethod
+    def _check_number(name: str, v: Any) -> None:
+        """A real number (not a bool or a string); the range is the solver's to check."""
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise InvalidInputError(f"{name}: must be a number, got {v!r}", name)
+
+    def validate(self) -> None:
+        """Check the type of every field: integer parameters (``dim``,
+        ``n_grid``, ``substeps``, ``max_substeps``, ``num_threads``,
+        ``walls.cells``) must be integers — ``64.5``, ``64.0``, ``"64"`` and
+        ``True`` are refused, not coerced — and real parameters numbers.
+        Raises :class:`InvalidInputError` naming the field. Ranges (``n_grid``
+        in [16, 4096], ``cfl`` in (0, 1], ...) are checked by the solver,
+        which names the field too."""
+        if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim not in (2, 3):
+            raise InvalidInputError(f"dim: must be 2 or 3, got {self.dim!r}", "dim")
+        self._check_int("n_grid", self.n_grid, optional=True)
+        self._check_int("substeps", self.substeps, optional=True)
+        self._check_int("max_substeps", self.max_substeps)
+        self._check_int("num_threads", self.num_threads)
+        self._check_number("cfl", self.cfl)
+        if self.gravity is not None:
+            if isinstance(self.gravity, (str, bytes, dict)) or not isinstance(self.gravity, (Sequence, np.ndarray)) or len(self.gravity) != self.dim:
+                raise InvalidInputError(f"gravity: must be a list of {self.dim} numbers, got {self.gravity!r}", "gravity")
+            for i, g in enumerate(self.gravity):
+                self._check_number(f"gravity[{i}]", g)
+        for name, group, cls in (("water", self.water, WaterParams), ("sand", self.sand, SandParams)):
+            if not isinstance(group, cls):
+                raise InvalidInputError(f"{name}: must be a {cls.__name__}, got {group!r}", name)
+            for key, value in asdict(group).items():
+                self._check_number(f"{name}.{key}", value)
+        if not isinstance(self.walls, WallParams):
+            raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
+        self.walls.validate(self.dim)
+        if not isinstance(self.colliders, (list, tuple)):
+            raise InvalidInputError(f"colliders: must be a list of Box / Sphere, got {self.colliders!r}", "colliders")
+        for i, c in enumerate(self.colliders):
+            if not isinstance(c, (Box, Sphere)):
+                raise InvalidInputError(f"colliders[{i}]: must be a Box or a Sphere, got {c!r}", f"colliders[{i}]")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The plain dict the Rust binding takes (JSON-serialisable); validated
+        first (:meth:`validate`)."""
+        self.validate()
+        gravity = list(self.gravity) if self.gravity is not None else _DEFAULTS[self.dim]["gravity"]
+        return {
+            "dim": int(self.dim),
+            "n_grid": self.resolved_n_grid(),
+            "gravity": [float(g) for g in gravity],
+            "cfl": float(self.cfl),
+            "substeps": None if self.substeps is None else int(self.substeps),
+            "max_substeps": int(self.max_substeps),
+            "num_threads": int(self.num_threads),
+            "water": asdict(self.water),
+            "sand": asdict(self.sand),
+            "walls": self.walls.to_dict(self.dim),
+            "colliders": [c.to_dict() for c in self.colliders],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> MpmParams:
+        """Inverse of :meth:`to_dict`; validates (errors name the field)."""
+        if not isinstance(d, dict):
+            raise InvalidInputError(f"params: expected a dict, got {d!r}", "params")
+        d = dict(d)
+
+        def build(name: str, factory: Any, kwargs: Any) -> Any:
+            if not isinstance(kwargs, dict):
+                raise InvalidInputError(f"{name}: expected a dict, got {kwargs!r}", name)
+            allowed = set(factory.__dataclass_fields__)
+            unknown = sorted(set(kwargs) - allowed, key=str)
+            if unknown:
+                raise InvalidInputError(f"{name}.{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(allowed))})", f"{name}.{unknown[0]}")
+            return factory(**kwargs)
+
+        raw_cols = d.pop("colliders", []) or []
+        if not isinstance(raw_cols, (list, tuple)):
+            raise InvalidInputError(f"colliders: expected a list, got {raw_cols!r}", "colliders")
+        cols: list[Box | Sphere] = []
+        for i, c in enumerate(raw_cols):
+            if not isinstance(c, dict):
+                raise InvalidInputError(f"colliders[{i}]: expected a dict, got {c!r}", f"colliders[{i}]")
+            c = dict(c)
+            shape = c.pop("shape", None)
+            if shape == "box":
+                cols.append(build(f"colliders[{i}]", Box, c))
+            elif shape in ("sphere", "circle"):
+                cols.append(build(f"colliders[{i}]", Sphere, c))
+            else:
+                raise InvalidInputError(f"colliders[{i}].shape: must be 'box' or 'sphere', got {shape!r}", f"colliders[{i}].shape")
+        water = build("water", WaterParams, d.pop("water", {}))
+        sand = build("sand", SandParams, d.pop("sand", {}))
+        walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))
+        top = set(cls.__dataclass_fields__) - {"water", "sand", "walls", "colliders"}
+        unknown = sorted(set(d) - top, key=str)
+        if unknown:
+            raise InvalidInputError(f"{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(top))})", str(unknown[0]))
+        params = cls(water=water, sand=sand, walls=walls, colliders=cols, **d)
+        params.validate()
+        return params

@@ -1,0 +1,360 @@
+"""The MLS-MPM solver from Python (:class:`MpmSolver`, over ``hybridmpm._core``) and the grid mass of a particle set."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from typing import Any
+
+import numpy as np
+
+from hybridmpm import _core
+from hybridmpm.conventions import DT_FRAME, MATERIAL_WATER
+from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.errors import as_f32 as _as_f32
+from hybridmpm.limits import human, memory_budget
+from hybridmpm.limits import memory_budget as default_budget
+from hybridmpm.mpm.params import MpmParams
+
+_MAGIC = b"HMPMPY01"
+#: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
+_CORE_MAGIC = b"HMPMCKP2"
+_CORE_HEADER = 36
+
+
+class MpmSolver:
+    """MLS-MPM solver on the unit domain (Hu et al. 2018).
+
+    Parameters
+    ----------
+    params:
+        :class:`MpmParams`; defaults give 2D water on a 128² grid.
+
+    Per-particle arrays are float32: ``positions``, ``velocities``,
+    ``external_acceleration`` ``[N, D]``; ``affine`` (APIC C),
+    ``deformation_gradient`` (F), ``stress`` (Kirchhoff τ, read-only)
+    ``[N, D, D]``; ``volume_ratio`` (J), ``masses``, ``volumes`` ``[N]``;
+    ``material`` int32 ``[N]`` (0 water, 1 sand). Setting any of them validates
+    the whole array (finite, inside the domain, physical) and raises
+    :class:`~hybridmpm.errors.InvalidInputError` naming the field; nothing
+    changes on error.
+
+    Memory: ``memory_budget`` (bytes; default
+    :func:`hybridmpm.limits.memory_budget` at construction) bounds what the
+    inputs make the solver allocate. The block index of the grid
+    (``8 · ⌈(n_grid + 2)/B + 1⌉^D`` bytes, B = 8 in 2D, 4 in 3D: 8.1 GiB for
+    3D ``n_grid = 4096``) is refused at construction with
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid``, and
+    particles beyond ``memory_budget / bytes_per_particle`` (525 B in 2D,
+    906 B in 3D) by :meth:`add_particles` naming ``positions``; both say the
+    size they would need. Colliders thinner than 2 cells (boxes) or of radius
+    below 1.5 cells (spheres) are refused (``colliders[i].half_extents`` /
+    ``colliders[i].radius``): particles would fall through them.
+
+    Threads: one solver may be used from several threads. Every call holds
+    the solver's lock for its duration (taken with the GIL released), so
+    calls are serialised: a thread reading ``positions`` while another is in
+    :meth:`step_frame` waits for that frame to finish and then sees the state
+    at a frame boundary, never a frame in progress; nothing raises because
+    another thread is using the solver. The lock is not fair, and a reader
+    waits at most one frame per call.
+    """
+
+    def __init__(self, params: MpmParams | None = None, *, memory_budget: int | None = None) -> None:
+        self.params = params if params is not None else MpmParams()
+        budget = default_budget() if memory_budget is None else memory_budget
+        self._core = _core.MpmSolver(self.params.to_dict(), memory_budget=budget)
+
+    @property
+    def memory_budget(self) -> int:
+        """The memory budget of this solver [bytes] (fixed at construction)."""
+        budget = self._core.memory_budget
+        return int(budget) if budget is not None else 2**63 - 1
+
+    @property
+    def bytes_per_particle(self) -> int:
+        """Estimated bytes the solver allocates per particle (the budget's unit for ``positions``)."""
+        return int(self._core.bytes_per_particle)
+
+    # ------------------------------------------------------------- particles
+    def add_particles(
+        self,
+        positions: np.ndarray,
+        material: int | np.ndarray = MATERIAL_WATER,
+        *,
+        velocities: np.ndarray | None = None,
+        masses: np.ndarray | None = None,
+        volumes: np.ndarray | None = None,
+    ) -> int:
+        """Append particles; returns the new particle count.
+
+        ``positions`` [N, D] in ``[dx, 1 − dx]`` [m]; ``material`` a code or
+        int array [N]; ``velocities`` [N, D] [m/s]; ``masses`` [N] [kg];
+        ``volumes`` [N] [m^D] (default ``(dx/2)^D``, 2 particles per cell per
+        dimension; mass defaults to density × volume). Refused with
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``positions``
+        when the particles would need more than the memory budget (checked
+        before any conversion or copy).
+        """
+        shape = np.shape(positions)
+        if len(shape) == 2:
+            n = self.num_particles + int(shape[0])
+            nbytes = n * self.bytes_per_particle
+            if nbytes > self.memory_budget:
+                raise InvalidInputError(
+                    f"positions: {n} particles ({self.bytes_per_particle} bytes each) would need {human(nbytes)} ({nbytes} bytes), "
+                    f"over the memory budget of {human(self.memory_budget)} (set HYBRIDMPM_MEMORY_BUDGET or call hybridmpm.limits.set_memory_budget to change it)",
+                    "positions",
+                )
+        return int(
+            self._core.add_particles(
+                _as_f32("positions", positions),
+                material,
+                velocities=None if velocities is None else _as_f32("velocities", velocities),
+                masses=None if masses is None else _as_f32("masses", masses),
+                volumes=None if volumes is None else _as_f32("volumes", volumes),
+            )
+        )
+
+    def remove_particles(self, mask: np.ndarray) -> int:
+        """Remove particles where the bool ``mask`` [N] is True; returns the new count."""
+        return int(self._core.remove_particles(np.asarray(mask)))
+
+    def _get(self, name: str) -> np.ndarray:
+        return self._core.get(name)  # type: ignore[no-any-return]
+
+    def _set(self, name: str, value: Any) -> None:
+        self._core.set(name, _as_f32(name, value))
+
+    positions = property(lambda self: self._get("positions"), lambda self, v: self._set("positions", v), doc="float32 [N, D], m")
+    velocities = property(lambda self: self._get("velocities"), lambda self, v: self._set("velocities", v), doc="float32 [N, D], m/s")
+    affine = property(lambda self: self._get("affine"), lambda self, v: self._set("affine", v), doc="APIC C, float32 [N, D, D], 1/s")
+    deformation_gradient = property(
+        lambda self: self._get("deformation_gradient"), lambda self, v: self._set("deformation_gradient", v), doc="elastic F, float32 [N, D, D]"
+    )
+    volume_ratio = property(lambda self: self._get("volume_ratio"), lambda self, v: self._set("volume_ratio", v), doc="J, float32 [N]")
+    masses = property(lambda self: self._get("masses"), lambda self, v: self._set("masses", v), doc="float32 [N], kg")
+    volumes = property(lambda self: self._get("volumes"), lambda self, v: self._set("volumes", v), doc="rest volume, float32 [N], m^D")
+    external_acceleration = property(
+        lambda self: self._get("external_acceleration"),
+        lambda self, v: self._set("external_acceleration", v),
+        doc="added to gravity, float32 [N, D], m/s²",
+    )
+    stress = property(lambda self: self._get("stress"), doc="Kirchhoff stress τ, float32 [N, D, D], Pa (read-only)")
+
+    @property
+    def material(self) -> np.ndarray:
+        """int32 [N]: 0 water, 1 sand."""
+        return self._get("material")
+
+    @material.setter
+    def material(self, value: Any) -> None:
+        self._core.set("material", np.asarray(value))
+
+    # ------------------------------------------------------------- stepping
+    @staticmethod
+    def _check_dt_frame(dt_frame: Any) -> float:
+        if isinstance(dt_frame, bool) or not isinstance(dt_frame, (int, float, np.integer, np.floating)) or not (math.isfinite(dt_frame) and 0 < dt_frame <= 1):
+            raise InvalidInputError(f"dt_frame: must be a number in (0, 1] s, got {dt_frame!r}", "dt_frame")
+        return float(dt_frame)
+
+    def step_frame(self, dt_frame: float = DT_FRAME) -> dict[str, float]:
+        """Advance one frame by as many substeps as the CFL condition needs.
+
+        Returns ``{"substeps", "dt", "max_speed", "active_blocks", "retries"}``.
+        A substep that leaves a state the solver would not accept (non-finite,
+        a water particle's ``J ≤ 0``, a sand particle's ``det F ≤ 0``) or breaks
+        the CFL condition restarts the frame with the substep halved; if even
+        ``max_substeps`` substeps fail, raises
+        :class:`~hybridmpm.errors.SimulationError` (with ``.substep``). A frame
+        that would need more than ``max_substeps`` substeps (particles too
+        fast, e.g. velocities of 1e30 m/s) raises ``SimulationError`` naming
+        the speed. In both cases the state is that of the frame's start; a
+        frame that returns leaves a state :meth:`restore` accepts.
+        """
+        return self._core.step_frame(self._check_dt_frame(dt_frame))  # type: ignore[no-any-return]
+
+    def substeps_for(self, dt_frame: float = DT_FRAME) -> int:
+        """Substeps the next :meth:`step_frame` would take: ``ceil(dt_frame /
+        dt_max)``, ``dt_max = cfl·dx / (c + |v|max)``, or the fixed
+        ``substeps``. Never capped or saturated: raises
+        :class:`~hybridmpm.errors.SimulationError` (naming the particles'
+        speed) when more than ``max_substeps`` would be needed, as
+        :meth:`step_frame` would, and :class:`InvalidInputError` naming
+        ``dt_frame`` unless it is in (0, 1] s."""
+        return int(self._core.substeps_for(self._check_dt_frame(dt_frame)))
+
+    # ------------------------------------------------------------- info
+    @property
+    def dim(self) -> int:
+        return int(self._core.dim)
+
+    @property
+    def dx(self) -> float:
+        return float(self._core.dx)
+
+    @property
+    def n_grid(self) -> int:
+        return int(self._core.n_grid)
+
+    @property
+    def num_particles(self) -> int:
+        return int(self._core.num_particles)
+
+    @property
+    def time(self) -> float:
+        """Simulated time [s]."""
+        return float(self._core.time)
+
+    @property
+    def frame(self) -> int:
+        return int(self._core.frame)
+
+    @property
+    def mode_runs(self) -> tuple[int, int]:
+        """Frame attempts so far, ``(alone, team)``: run by the calling thread
+        alone or by the pool's team of threads. The solver picks the cheaper
+        way as measured and now and then probes the other (docs/engine.md, "A
+        busy machine"); every attempt runs alone with ``num_threads=1``. A
+        benchmark reads it to tell a slow team from frames run alone."""
+        alone, team = self._core.mode_runs
+        return int(alone), int(team)
+
+    @property
+    def isa(self) -> str:
+        """The compiled copy of the frame loop that runs: ``"x86-64-v3"``
+        (AVX2/FMA; chosen when the CPU has it) or ``"baseline"`` (portable;
+        also forced by ``HYBRIDMPM_ISA=baseline`` when the solver is made).
+        Both give the same bits (docs/engine.md, "Two compiled copies")."""
+        return str(self._core.isa)
+
+    def set_isa(self, name: str) -> None:
+        """Run the frame loop's copy ``name`` (see :attr:`isa`) from the next
+        frame on, e.g. to time one against the other. Raises
+        ``InvalidInputError`` (field ``isa``) for an unknown name or one this
+        CPU cannot run."""
+        self._core.set_isa(name)
+
+    @property
+    def domain_bounds(self) -> tuple[float, float]:
+        """Valid particle coordinates ``[lo, hi]`` (one cell inside the unit domain)."""
+        lo, hi = self._core.domain_bounds
+        return float(lo), float(hi)
+
+    # ------------------------------------------------------------- checkpoint
+    def checkpoint(self) -> bytes:
+        """The whole state (parameters, particles, clock) as bytes."""
+        header = json.dumps(self.params.to_dict()).encode()
+        return _MAGIC + struct.pack("<Q", len(header)) + header + self._core.checkpoint()
+
+    @classmethod
+    def from_checkpoint(cls, blob: bytes) -> MpmSolver:
+        """A new solver from :meth:`checkpoint` bytes. Raises :class:`CheckpointError`."""
+        params, state = cls._split(blob)
+        sim = cls(params)
+        sim._core.restore(state)
+        return sim
+
+    def restore(self, blob: bytes, *, same_particles: bool = False) -> None:
+        """Restore :meth:`checkpoint` bytes into this solver (parameters must
+        match). With ``same_particles`` the checkpoint must also hold this
+        solver's particles: the same count, and per particle the same material
+        and mass (a simulator restoring its own state). The whole checkpoint
+        is validated before anything changes: raises :class:`CheckpointError`
+        (positions outside the domain, non-finite values, a truncated blob,
+        other parameters or particles) and the solver is then unchanged."""
+        self._core.restore(self.check_restore(blob, same_particles=same_particles))
+
+    def restore_particles(self, blob: bytes) -> None:
+        """Restore the particles of a :meth:`checkpoint` written by a solver
+        of the same particles on another grid of the same domain: positions,
+        velocities, APIC affine matrices, deformation and J, time and frame
+        move bit for bit; this solver keeps its own grid (``n_grid`` and the
+        wall band that keeps the walls' faces). Every other parameter must
+        match and the particles must be this solver's (count, materials,
+        masses). Raises :class:`CheckpointError` and leaves the solver
+        unchanged otherwise."""
+        params, state = self._split(blob)
+        mine, theirs = self.params.to_dict(), params.to_dict()
+        for d in (mine, theirs):
+            d.pop("n_grid")
+            d["walls"] = {k: v for k, v in d["walls"].items() if k != "cells"}
+            d.pop("num_threads", None)
+        if mine != theirs:
+            diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            raise CheckpointError(f"checkpoint was written with other physics ({', '.join(diff)}); only the grid may differ")
+        self._check_same_particles(state)
+        self._core.restore(state)
+
+    def check_restore(self, blob: bytes, *, same_particles: bool = False) -> bytes:
+        """The checks of :meth:`restore` that need no new solver (format,
+        parameters, and with ``same_particles`` the particles' count,
+        materials and masses), changing nothing; returns the core's part of
+        the blob. Raises :class:`CheckpointError`."""
+        params, state = self._split(blob)
+        if params.to_dict() != self.params.to_dict():
+            raise CheckpointError("checkpoint was written with different parameters; use MpmSolver.from_checkpoint")
+        if same_particles:
+            self._check_same_particles(state)
+        return state
+
+    def _check_same_particles(self, state: bytes) -> None:
+        """Refuse a core state (the Rust part of :meth:`checkpoint`: magic,
+        u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
+        whose particles are not this solver's: count, dimension, material and
+        mass per particle."""
+        d = self.dim
+        per = 4 * (3 * d + 3 * d * d + 4) + 1  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8)
+        if len(state) < _CORE_HEADER or state[:8] != _CORE_MAGIC:
+            raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
+        (dd,) = struct.unpack_from("<I", state, 8)
+        (n,) = struct.unpack_from("<Q", state, 12)
+        n_self = self.num_particles
+        if dd != d or n != n_self:
+            raise CheckpointError(f"checkpoint holds {n} particles in {dd}D, this solver {n_self} in {d}D")
+        if len(state) != _CORE_HEADER + n * per:
+            raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
+        rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
+        mass_at = 4 * (2 * d + 2 * d * d + 2)
+        masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
+        if not np.array_equal(rec[:, -1], np.asarray(self.material).astype(np.uint8)):
+            raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
+        if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
+            raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
+
+    @staticmethod
+    def _split(blob: bytes) -> tuple[MpmParams, bytes]:
+        if not isinstance(blob, (bytes, bytearray)) or blob[:8] != _MAGIC or len(blob) < 16:
+            raise CheckpointError("not a hybridmpm MpmSolver checkpoint")
+        (n,) = struct.unpack("<Q", blob[8:16])
+        if 16 + n > len(blob):
+            raise CheckpointError("truncated checkpoint header")
+        try:
+            params = MpmParams.from_dict(json.loads(blob[16 : 16 + n]))
+        except (ValueError, TypeError) as e:
+            raise CheckpointError(f"bad parameter header: {e}") from e
+        return params, bytes(blob[16 + n :])
+
+
+def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = None) -> np.ndarray:
+    """Normalised grid mass (docs/design.md "Grid-mass error"; paper Sec. 3.1.1).
+
+    p2g of particle mass (1/N each unless ``masses`` [N] is given) with
+    quadratic B-spline weights onto nodes ``i/n_grid``, ``i ∈ [0, n_grid)^D``,
+    normalised to sum 1. ``positions`` [N, D] float, D ∈ {2, 3}.
+    Returns float32 of shape ``[n_grid] * D``.
+
+    ``n_grid`` must be an integer in [3, 4096] (``64.5``, ``"64"`` and
+    ``True`` are refused) whose grid, 12 bytes per node (``12 · n_grid^D``:
+    192 MiB for 2D 4096, 12 GiB for 3D 1024), fits the memory budget
+    (:func:`hybridmpm.limits.memory_budget`); otherwise
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``n_grid`` and the
+    size it would need, before anything is allocated.
+    """
+
+    if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)):
+        raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")
+    return _core.grid_mass(  # type: ignore[no-any-return]
+        _as_f32("positions", positions), int(n_grid), None if masses is None else _as_f32("masses", masses), memory_budget=memory_budget()
+    )
