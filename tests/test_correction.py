@@ -157,3 +157,20 @@ def test_dagger_fits_below_no_correction(tmp_path: Path):
     one = res["log"][0]
     assert one["one_step_val"] < 0.8 * one["no_correction"]
     assert (tmp_path / "model.npz").exists() and Correction.load(tmp_path / "model.npz").meta["n_grid"] == 64
+
+
+def test_collider_features_are_the_scenes_signed_distance_and_its_normal():
+    """The collider columns use the scene's own signed distance; the normal is unit and points outwards (a point
+    moved along it gets farther from the obstacle)."""
+    from hybridmpm.mpm import Box, Sphere
+    from hybridmpm.scenes.spec import collider_sdf
+    from hybridmpm.sim.correction.features import _collider_sdf
+
+    obstacles = [Box([0.5, 0.4], [0.1, 0.04], angle_deg=25.0), Sphere([0.5, 0.75], 0.06)]
+    p = np.random.default_rng(4).uniform(0.1, 0.9, (200, 2))
+    sdf, normal = _collider_sdf(p, obstacles)
+    want = np.min([collider_sdf(c, p) for c in obstacles], axis=0)
+    assert np.allclose(sdf, want)
+    assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
+    farther = np.min([collider_sdf(c, p + 1e-3 * normal) for c in obstacles], axis=0)
+    assert np.all(farther > sdf)

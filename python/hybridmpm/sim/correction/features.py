@@ -25,12 +25,12 @@ Width: 2D 58, 3D 172 (:func:`num_features`).
 from __future__ import annotations
 
 import itertools
-import math
 
 import numpy as np
 
 from hybridmpm.conventions import MATERIAL_SAND
 from hybridmpm.mpm import Box, MpmParams, MpmSolver, Sphere
+from hybridmpm.scenes.spec import collider_sdf
 
 #: Distances to walls and colliders are seen up to this many cells.
 WALL_REACH = 4.0
@@ -45,35 +45,17 @@ def num_features(dim: int) -> int:
 
 
 def _collider_sdf(pos: np.ndarray, colliders: list[Box | Sphere]) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance [m] to the nearest collider (inf without any) and its outward unit normal [N, D]."""
+    """Signed distance [m] to the nearest collider (inf without any,
+    :func:`~hybridmpm.scenes.spec.collider_sdf`) and its outward unit normal
+    [N, D] (the distance's central-difference gradient)."""
     n, d = pos.shape
     best = np.full(n, np.inf)
     normal = np.zeros((n, d))
+    h = 1e-5  # [m], far below a cell
     for c in colliders:
-        centre = np.asarray(c.center, np.float64)
-        if isinstance(c, Sphere):
-            rel = pos - centre
-            r = np.linalg.norm(rel, axis=1)
-            sdf = r - float(c.radius)
-            nrm = rel / np.maximum(r, 1e-12)[:, None]
-        else:
-            rot = np.eye(d)
-            if c.angle_deg is not None and d == 2:
-                a = math.radians(float(c.angle_deg))
-                rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-            elif c.rotation is not None:
-                rot = np.asarray(c.rotation, np.float64)
-            local = (pos - centre) @ rot  # rows: coordinates in the box frame
-            h = np.asarray(c.half_extents, np.float64)
-            q = np.abs(local) - h
-            outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
-            inside = np.minimum(q.max(axis=1), 0.0)
-            sdf = outside + inside
-            # normal: gradient of the box SDF in the box frame, rotated back
-            g = np.where(q.max(axis=1, keepdims=True) > 0, np.maximum(q, 0.0), (q == q.max(axis=1, keepdims=True)).astype(np.float64))
-            g = g * np.sign(local + (local == 0))
-            g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
-            nrm = g @ rot.T
+        sdf = collider_sdf(c, pos)
+        grad = np.stack([(collider_sdf(c, pos + h * e) - collider_sdf(c, pos - h * e)) / (2 * h) for e in np.eye(d)], axis=1)
+        nrm = grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-12)
         closer = sdf < best
         best = np.where(closer, sdf, best)
         normal[closer] = nrm[closer]
