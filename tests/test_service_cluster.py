@@ -40,6 +40,7 @@ from hybridmpm.control import Controller, Sketch, control_episode
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.service import decode_frame
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.store import SessionStore
 from hybridmpm.service.testing import LiveServer, RayCluster, free_port, step_binary, wait_saved
 from hybridmpm.sim import make_simulator, rollout
 
@@ -325,3 +326,18 @@ def test_settings_that_name_no_cluster_are_refused_naming_the_field(tmp_path):
         timeout=WAIT_S,
     )
     assert out.returncode == 2 and "ray_address" in out.stderr, out.stderr[-500:]
+
+
+def test_the_registry_holds_the_store_so_a_plain_server_is_refused_on_it(cluster, tmp_path):
+    """One writer per store on a cluster too: the namespace's registry holds the store's lock for every front
+    end, so a plain server started on that store is refused (exit 2, naming the store and the registry), even
+    after the front ends stopped (the sessions' actors live on and save into it)."""
+    store = tmp_path / "store"
+    with _front_end(cluster, store, tmp_path / "a.log") as a:
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
+            assert c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED}).status_code == 201
+        with pytest.raises(InvalidInputError) as e:
+            SessionStore(str(store)).claim()
+        assert e.value.field == "store" and "Ray registry" in str(e.value), e.value
+    out = subprocess.run([sys.executable, "-m", "hybridmpm", "serve", "--store", str(store), "--port", "0"], capture_output=True, text=True, timeout=WAIT_S)
+    assert out.returncode == 2 and "store" in out.stderr and "Ray registry" in out.stderr, out.stderr[-500:]

@@ -36,7 +36,7 @@ import numpy as np
 import ray
 
 from hybridmpm.control import Controller, Sketch
-from hybridmpm.errors import HybridMpmError
+from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.frames import encode_frame
@@ -525,10 +525,21 @@ class Registry:
     per namespace: :meth:`reserve` enforces the session cap and the
     per-client quota for every front end at once. Built again after a
     restart from the session actors alive in the namespace; an entry whose
-    actor is gone is dropped after :data:`REGISTRY_GRACE_S`."""
+    actor is gone is dropped after :data:`REGISTRY_GRACE_S`.
 
-    def __init__(self) -> None:
+    It also holds the cluster's local store (``store``, the path its first
+    front end was given, and any other a front end asks for with
+    :meth:`claim_store`): the store's lock (:meth:`SessionStore.claim`) is the
+    registry's, taken again when Ray restarts it, so a plain server (or
+    another cluster's front end) started on that store is refused while the
+    cluster lives, and the cluster's front ends share it."""
+
+    def __init__(self, store: str | None = None, namespace: str = "") -> None:
         self.held: dict[str, tuple[str, float]] = {}
+        self.namespace = namespace
+        self.stores: dict[str, SessionStore] = {}
+        if store is not None:
+            self.claim_store(store)  # refused: the front end's own call says why
         now = time.monotonic()
         with contextlib.suppress(Exception):
             for name in ray.util.list_named_actors():
@@ -556,6 +567,20 @@ class Registry:
 
     def release(self, key: str) -> None:
         self.held.pop(key, None)
+
+    def claim_store(self, url: str) -> str | None:
+        """Hold the store at ``url`` for this cluster (a no-op for a store
+        that is not a local directory, or one already held): None, or why it
+        is refused (another server holds it)."""
+        if url in self.stores:
+            return None
+        store = SessionStore(url)
+        try:
+            store.claim(f"the Ray registry of namespace {self.namespace!r}")
+        except InvalidInputError as e:
+            return str(e)
+        self.stores[url] = store
+        return None
 
     def count(self) -> int:
         return len(self.held)

@@ -248,8 +248,12 @@ class RaySessionManager(SessionManager):
                 max_restarts=-1,
                 resources={"node:__internal_head__": 0.001},  # on the head node: it lives as long as the cluster
             )
-            .remote()
+            .remote(store_url if self.store is not None and self.store.local else None, self.ns)
         )
+        if self.store is not None and self.store.local:  # the registry holds the store's lock for every front end
+            refused = ray.get(self.registry.claim_store.remote(store_url), timeout=PLACE_TIMEOUT_S)
+            if refused is not None:
+                raise InvalidInputError(refused, "store")
 
     # ------------------------------------------------------------ actors
     def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool, n_grid: int | None = None) -> Any:

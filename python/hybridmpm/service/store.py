@@ -206,14 +206,16 @@ class SessionStore:
             raise InvalidInputError(f"store: cannot write to {self.url!r} ({type(e).__name__}: {e.strerror or e})", "store") from None
         return self
 
-    def claim(self) -> None:
+    def claim(self, holder: str = "") -> None:
         """Hold this (local) store for this process until :meth:`release` or
         the process ends: one server writes a store, and a second one started
         on it is refused with :class:`InvalidInputError` (field ``store``)
-        naming the holder's pid. An exclusive ``flock`` on ``.lock`` in the
-        store; the OS drops it when the holder dies, even by SIGKILL. Stores
-        on other filesystems (fsspec URLs) cannot be locked this way and are
-        not. Ray front ends share a store and do not claim it."""
+        naming the holder (its pid, then ``holder``, at most 100 characters).
+        An exclusive ``flock`` on ``.lock`` in the store; the OS drops it when
+        the holder dies, even by SIGKILL. Stores on other filesystems (fsspec
+        URLs) cannot be locked this way and are not. On a Ray cluster the
+        namespace's registry actor holds it for every front end
+        (:class:`~hybridmpm.service.actor.Registry`)."""
         if not self.local or self._lock_fd is not None:
             return
         import fcntl
@@ -223,15 +225,15 @@ class SessionStore:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             try:
-                holder = os.read(fd, 32).decode("ascii", "replace").strip() or "?"
+                held_by = os.read(fd, 128).decode("utf-8", "replace").strip() or "?"
             finally:
                 os.close(fd)
             raise InvalidInputError(
-                f"store: {self.url!r} is in use by another server (pid {holder}); one server writes a store (front ends share one only with --backend ray)",
+                f"store: {self.url!r} is in use by another server (pid {held_by}); one server writes a store (front ends share one only with --backend ray)",
                 "store",
             ) from None
         os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        os.write(fd, f"{os.getpid()}{', ' + holder[:100] if holder else ''}".encode())
         self._lock_fd = fd
 
     def release(self) -> None:
