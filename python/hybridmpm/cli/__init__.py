@@ -1,9 +1,13 @@
 """The ``hybridmpm`` command line.
 
 ``hybridmpm simulate [SCENE] [--solver hybrid|mpm|neural] --frames N --out DIR
-[--r-c 0.8] [--reference] [--export ply|vtu]`` runs a scene (default: the
+[--r-c 0.8] [--reference] [--export ply|vtu|mesh|usd ...]`` runs a scene (default: the
 dam break, hybrid) and writes ``trajectory.npz``, ``summary.json`` and
 ``render.gif`` (hybrid: also ``timeline.png``).
+
+``hybridmpm export TRAJ.npz --mesh [--usd] --out DIR`` writes fluid surface
+meshes and/or one USD file from a saved trajectory (also ``simulate --export
+mesh usd``; docs/mesh.md, docs/usd.md).
 
 ``hybridmpm bench SCENE [--seeds K] [--frames T] [--out DIR]``
 runs every method from the same held-out initial conditions and writes
@@ -30,11 +34,11 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from hybridmpm.cli import bench, control, data, serve, simulate, train
+from hybridmpm.cli import bench, control, data, export, serve, simulate, train
 from hybridmpm.errors import HybridMpmError
 
 #: The command groups, each a module that owns its commands' parsers and handlers.
-GROUPS = (simulate, control, bench, data, train, serve)
+GROUPS = (simulate, export, control, bench, data, train, serve)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,8 +22,9 @@ def _simulate(args: argparse.Namespace) -> int:
     one :func:`~hybridmpm.sim.rollout`, then the files."""
     # import time: loaded by this command only
     import hybridmpm
+    from hybridmpm.cli.export import PARAMS_KEY, params_json, write_exports
     from hybridmpm.metrics import grid_mass_error
-    from hybridmpm.render import export_points, plot_timeline, render_gif
+    from hybridmpm.render import plot_timeline, render_gif
     from hybridmpm.scenes import make_scene
     from hybridmpm.sim import NEURAL, make_simulator, reference, rollout, warmup_frames
 
@@ -33,6 +34,11 @@ def _simulate(args: argparse.Namespace) -> int:
         _apply_tuned(args, scene.name)
     if frames < 1:
         raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
+    exports = list(dict.fromkeys(args.export or []))
+    if "usd" in exports:  # before the run: a missing extra is an error now, not after minutes of simulation
+        from hybridmpm.render.usd import require_pxr
+
+        require_pxr("export")
     out = out_dir(args.out)
     sim = make_simulator(
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
@@ -84,6 +90,7 @@ def _simulate(args: argparse.Namespace) -> int:
             "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
             "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
         }  # fmt: skip
+    ro.extras[PARAMS_KEY] = params_json(low.params)  # walls, grid, obstacles: what hybridmpm export needs
     ro.save(out / "trajectory.npz")
     write_json(out / "summary.json", summary)
     title = f"{scene.name} ({args.solver}" + (f", r_c = {args.r_c:g})" if args.solver == "hybrid" else ")")
@@ -93,8 +100,8 @@ def _simulate(args: argparse.Namespace) -> int:
         render_gif(
             ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None
         )
-    if args.export:
-        export_points(ro.positions, ro.particle_type, out / "export", fmt=args.export, dt=ro.dt_frame, solver=ro.extras["solver"])
+    if exports:
+        write_exports(out / "export", exports, ro, low.params, mesh_format=args.mesh_format, solver=ro.extras["solver"])
     if not args.quiet:
         ms = summary["wall_ms_per_frame"]
         line = f"{scene.name}: {ro.frames_done} frames, {low.num_particles} particles"
@@ -198,8 +205,11 @@ def add_parsers(sub: Any) -> None:
     sim.add_argument("--audit-max", type=int, default=None, help=f"hybrid, error rule: longest interval between audits in network steps (default {AUDIT_MAX})")
     sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
     sim.add_argument(
-        "--export", default=None, choices=["ply", "vtu"], help="also write a point-cloud sequence to OUT/export/ (PLY for Blender, VTU for ParaView)"
-    )
+        "--export", nargs="+", default=None, choices=["ply", "vtu", "mesh", "usd"], metavar="{ply,vtu,mesh,usd}",
+        help="also write to OUT/export/: point clouds frame_#####.ply|vtu (Blender, ParaView), surface meshes <material>_#####.<--mesh-format> "
+        "(docs/mesh.md), one USD file run.usd (docs/usd.md; needs the usd extra); several at once: --export ply usd mesh",
+    )  # fmt: skip
+    sim.add_argument("--mesh-format", default="ply", choices=["ply", "obj", "glb"], help="--export mesh: file format (default ply)")
     sim.add_argument("--frames", type=int, default=None, help="frames of 2.5 ms (default: the scene's)")
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=parse_seed, default=0, help="seed of the scene's random initial condition")

@@ -1,0 +1,194 @@
+"""Fluid surfaces and USD export: time per frame, the 200-frame USD check, the pictures of docs/mesh.md.
+
+1. **Meshing + writing per frame** at a 64³ grid: a block of 16³ cells on the
+   scenes' lattice (2 particles per cell per axis: 32 768 particles), jittered
+   by 5 % of a cell so that the field is not the lattice's, meshed
+   (:func:`hybridmpm.render.surface_mesh`, the volume-matched level and the
+   fixed level 1/2) and written as binary PLY; then the frames of a water3d
+   MPM rollout (moving, splashing fluid). Median wall and CPU ms per frame
+   over ``--repeats`` runs (one core; nothing here is threaded).
+2. **USD**: a ``--usd-frames`` (default 200) frame water3d MPM run written by
+   :func:`hybridmpm.render.usd.write_usd` with its surfaces, read back with
+   ``pxr``: one time sample per frame of the points and the mesh, point counts
+   equal to the trajectory's.
+3. ``--figure DIR``: ``mesh_water3d.png`` (frames 0 and 90 of water3d seed 9, matplotlib
+   ``plot_trisurf``) and ``mesh_dam_break2d.png`` (the dam break's outline over
+   its particles).
+
+    python benchmarks/bench_surface.py --out benchmarks/results/surface.json --figure docs/img
+
+Time it on a quiet machine (``uptime``: load near 0); the figures in
+docs/mesh.md say which load they were measured under.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.render.surface import frame_surfaces, surface_mesh, surface_settings, write_surface
+from hybridmpm.scenes import make_scene
+from hybridmpm.scenes.core import lattice
+from hybridmpm.sim import MpmSimulator, rollout
+
+
+def _time(fn: Any, repeats: int) -> dict[str, float]:
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    return {"wall_ms_median": 1e3 * float(np.median(wall)), "cpu_ms_median": 1e3 * float(np.median(cpu)), "wall_ms_min": 1e3 * float(np.min(wall))}
+
+
+def block_timing(repeats: int, tmp: Path) -> dict[str, Any]:
+    n = 64
+    dx = 1.0 / n
+    face = 2 * dx
+    p = lattice([face + 8 * dx, face, face + 8 * dx], [face + 24 * dx, face + 16 * dx, face + 24 * dx], dx / 2).astype(np.float64)
+    p += np.random.default_rng(0).normal(0, 0.05 * dx, p.shape)
+    pt = np.full(len(p), 5)
+    domain = ([face] * 3, [1 - face] * 3)
+    out: dict[str, Any] = {"grid": n, "particles": len(p)}
+    for iso in ("volume", 0.5):
+
+        def frame(iso: Any = iso) -> None:
+            for m in surface_mesh(p, pt, domain=domain, dx=dx, iso=iso):
+                write_surface(m, tmp / "block.ply")
+
+        frame()
+        (m,) = surface_mesh(p, pt, domain=domain, dx=dx, iso=iso)
+        out[f"iso_{iso}"] = {**_time(frame, repeats), "faces": len(m.faces), "level": m.iso, "volume_error": m.volume / (16 * dx) ** 3 - 1}
+    return out
+
+
+def rollout_timing(frames: int, tmp: Path) -> dict[str, Any]:
+    scene = make_scene("water3d", seed=1)
+    ro = rollout(MpmSimulator(scene, threads=1), frames)
+    settings = surface_settings(scene.params, ro.particle_type, ro.masses)
+    wall, cpu, err = [], [], []
+    target = float(settings["volumes"].sum())
+    for t in range(ro.num_frames):
+        t0, c0 = time.perf_counter(), time.process_time()
+        surfaces = frame_surfaces(ro.positions[t], ro.particle_type, **settings)
+        for s in surfaces:
+            write_surface(s, tmp / f"{s.material}.ply")
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        err.append(sum(s.volume for s in surfaces) / target - 1)  # type: ignore[union-attr]
+    e = np.abs(np.asarray(err))
+    return {
+        "scene": "water3d seed 1", "particles": int(scene.num_particles), "frames": ro.num_frames,
+        "wall_ms_median": 1e3 * float(np.median(wall)), "cpu_ms_median": 1e3 * float(np.median(cpu)),
+        "volume_error_abs_median": float(np.median(e)), "volume_error_abs_max": float(e.max()),
+    }  # fmt: skip
+
+
+def usd_check(frames: int, tmp: Path) -> dict[str, Any]:
+    from pxr import Usd, UsdGeom
+
+    from hybridmpm.render.usd import write_usd
+
+    scene = make_scene("water3d", seed=0)
+    ro = rollout(MpmSimulator(scene, threads=1), frames)
+    settings = surface_settings(scene.params, ro.particle_type, ro.masses)
+    t0 = time.perf_counter()
+    surfaces = [frame_surfaces(ro.positions[t], ro.particle_type, **settings) for t in range(ro.num_frames)]
+    t1 = time.perf_counter()
+    path = write_usd(
+        tmp / "run.usd", ro.positions, ro.particle_type, ro.dt_frame, solver=ro.extras["solver"], surfaces=surfaces,
+        obstacles=settings["obstacles"], domain=settings["domain"], width=settings["dx"] / 2,
+    )  # fmt: skip
+    t2 = time.perf_counter()
+    stage = Usd.Stage.Open(str(path))
+    pts = UsdGeom.Points(stage.GetPrimAtPath("/Run/Particles")).GetPointsAttr()
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Run/Surfaces/water")).GetPointsAttr()
+    samples_points, samples_mesh = len(pts.GetTimeSamples()), len(mesh.GetTimeSamples())
+    counts_ok = all(len(pts.Get(t)) == ro.num_particles for t in range(ro.num_frames))
+    ok = samples_points == samples_mesh == ro.num_frames and counts_ok and stage.GetFramesPerSecond() == 1 / ro.dt_frame
+    return {
+        "frames_stored": ro.num_frames, "particles": ro.num_particles, "time_samples_points": samples_points, "time_samples_mesh": samples_mesh,
+        "point_counts_match": counts_ok, "fps": stage.GetFramesPerSecond(), "ok": bool(ok),
+        "surfaces_s": t1 - t0, "write_s": t2 - t1, "file_mib": os.path.getsize(path) / 2**20,
+    }  # fmt: skip
+
+
+def figures(out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    scene = make_scene("water3d", seed=9)  # one block thrown at the floor
+    ro = rollout(MpmSimulator(scene, threads=1), 90)
+    settings = surface_settings(scene.params, ro.particle_type, ro.masses)
+    fig = plt.figure(figsize=(9, 4.2))
+    for k, t in enumerate((0, 90)):
+        (m,) = frame_surfaces(ro.positions[t], ro.particle_type, **settings)
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        v = m.vertices  # type: ignore[union-attr]
+        ax.plot_trisurf(v[:, 0], v[:, 2], v[:, 1], triangles=m.faces, color="#4f8fd6", edgecolor="none", shade=True)  # type: ignore[union-attr]
+        c, r = (v.min(axis=0) + v.max(axis=0)) / 2, (v.max(axis=0) - v.min(axis=0)).max() / 2 + 0.02  # zoomed on the fluid, equal axes
+        ax.set(xlim=(c[0] - r, c[0] + r), ylim=(c[2] - r, c[2] + r), zlim=(c[1] - r, c[1] + r), xlabel="x [m]", ylabel="z [m]", zlabel="y [m]")
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_title(f"water3d seed 9, frame {t} ({len(m.faces)} triangles, level {m.iso:.2f})", fontsize=9)  # type: ignore[union-attr]
+    fig.tight_layout()
+    a = out / "mesh_water3d.png"
+    fig.savefig(a, dpi=110)
+    plt.close(fig)
+
+    scene2 = make_scene("dam_break2d")
+    ro2 = rollout(MpmSimulator(scene2, threads=1), 80)
+    s2 = surface_settings(scene2.params, ro2.particle_type, ro2.masses)
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    pos = ro2.positions[80]
+    ax.scatter(pos[:, 0], pos[:, 1], s=0.3, color="#888888", label="particles")
+    (c,) = frame_surfaces(pos, ro2.particle_type, **s2)
+    for i, loop in enumerate(c.loops):  # type: ignore[union-attr]
+        ax.plot(loop[:, 0], loop[:, 1], color="#1f5fbf", lw=1.2, label="outline" if i == 0 else None)
+    ax.set(xlim=(0, 0.75), ylim=(0, 0.45), aspect="equal", xlabel="x [m]", ylabel="y [m]")
+    ax.set_title(f"dam_break2d, frame 80: outline (level {c.iso:.2f}, area error {c.area / s2['volumes'].sum() - 1:+.1%})", fontsize=9)  # type: ignore[union-attr]
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    b = out / "mesh_dam_break2d.png"
+    fig.savefig(b, dpi=110)
+    plt.close(fig)
+    return [str(a), str(b)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--rollout-frames", type=int, default=100)
+    ap.add_argument("--usd-frames", type=int, default=200, help="frames of the USD check (0: skip)")
+    ap.add_argument("--figure", default=None, help="folder for the PNGs of docs/mesh.md")
+    ap.add_argument("--out", default=None, help="JSON file for the results")
+    args = ap.parse_args()
+    res: dict[str, Any] = {"machine": platform.machine(), "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        res["block_64"] = block_timing(args.repeats, tmp)
+        res["water3d_rollout"] = rollout_timing(args.rollout_frames, tmp)
+        if args.usd_frames:
+            res["usd"] = usd_check(args.usd_frames, tmp)
+    if args.figure:
+        res["figures"] = figures(Path(args.figure))
+    text = json.dumps(res, indent=2)
+    print(text)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

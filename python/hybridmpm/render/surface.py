@@ -1,0 +1,619 @@
+"""Fluid surfaces from particles: triangle meshes (3D) and closed contours (2D).
+
+The surface of one material (water, sand) in one frame is built in four steps:
+
+1. **Volume fraction.** Every particle's volume ``v_p`` [m^D] is spread onto a
+   grid of spacing ``h = dx / refine`` with the quadratic B-spline of MLS-MPM
+   (Hu et al. 2018, "A moving least squares material point method";
+   the weights of the solver's p2g): ``φ_i = Σ_p v_p·w_ip / h^D``, the
+   fraction of node ``i``'s cell the material fills (1 in the bulk of a block
+   seeded on the scene's lattice).
+2. **Smoothing.** ``smooth`` passes of the binomial filter ``[1, 2, 1]/4`` per
+   axis (the linear B-spline; it keeps ``Σ φ``).
+3. **Closure.** The field is clipped against the fluid domain (the wall faces)
+   and the obstacles: ``φ ← min(φ, iso + sdf/(2h))`` with ``sdf`` the signed
+   distance [m] to the domain box (positive inside) and to every obstacle
+   (:func:`~hybridmpm.scenes.collider_sdf`, positive outside the obstacle).
+   The iso-surface is then the boundary of ``{φ > iso} ∩ domain ∖ obstacles``:
+   water pressed against a wall or an obstacle ends on its face, and no
+   surface passes through an obstacle. The field is zero outside the
+   particles' bounding box plus 3 nodes, so every surface closes.
+4. **Iso-surface** at level ``c``: Lewiner marching cubes
+   (:func:`skimage.measure.marching_cubes`) in 3D,
+   :func:`skimage.measure.find_contours` in 2D. The kernels are symmetric, so a
+   flat face of a filled region crosses ``φ = 1/2`` exactly at its boundary,
+   but edges and corners are rounded inwards. ``iso="volume"`` (the default)
+   therefore matches the enclosed volume to the particles' volume ``Σ v_p``:
+   marching cubes at 1/2, then at most two Newton/secant steps on ``c`` within
+   [:data:`ISO_MIN`, :data:`ISO_MAX`] (docs/mesh.md); a number fixes ``c``.
+
+**Determinism.** No threads. The per-axis kernel weights are rounded to
+multiples of 2^-10 and the volume fractions to multiples of 2^-14, so every
+product and every partial sum of the p2g is exact in float64 (while a node's
+value stays below 2^8, i.e. unless the fluid is compressed 256-fold): the field, and
+so the mesh and the files, have the same bits whatever the order of the
+particles. Output is sorted by particle type.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
+from hybridmpm.errors import InvalidInputError
+
+#: Names of the materials by GNS particle type (other fluid codes get ``type<code>``).
+MATERIAL_NAMES = {GNS_WATER: "water", GNS_SAND: "sand"}
+#: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
+MAX_GRID_NODES = 512**3
+#: Formats of :func:`export_surfaces`.
+MESH_FORMATS = ("ply", "obj", "glb")
+#: Range of the volume-matched iso level (``iso="volume"``).
+ISO_MIN, ISO_MAX = 0.3, 0.7
+#: ``iso="volume"`` stops correcting the level within this relative volume error.
+VOLUME_TOL = 0.005
+#: Finest surface grid per simulation cell.
+MAX_REFINE = 8
+#: Nodes of zero field around the particles' bounding box (kernel reach 1.5 +
+#: smoothing 1 + a zero layer, rounded up).
+_MARGIN = 3
+# p2g quantisation (see the module doc): weights to 2^-10, volume fractions to 2^-14
+_W_SCALE = 2.0**10
+_V_SCALE = 2.0**14
+
+
+def material_name(ptype: int) -> str:
+    """``"water"`` (GNS 5), ``"sand"`` (GNS 6) or ``"type<code>"``."""
+    return MATERIAL_NAMES.get(int(ptype), f"type{int(ptype)}")
+
+
+@dataclass(frozen=True)
+class SurfaceMesh:
+    """The closed surface of one material in one frame (3D).
+
+    ``vertices`` float64 [V, 3] [m]; ``faces`` int32 [F, 3], indices into
+    ``vertices``, counter-clockwise seen from outside (outward normals);
+    ``material`` ``"water"``/``"sand"``; ``particle_type`` its GNS code;
+    ``iso`` the volume-fraction level it was drawn at.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    material: str
+    particle_type: int
+    iso: float = 0.5
+
+    @property
+    def volume(self) -> float:
+        """Enclosed volume [m³] (divergence theorem over the faces; exact for a closed mesh)."""
+        if len(self.faces) == 0:
+            return 0.0
+        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
+        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+@dataclass(frozen=True)
+class SurfaceContours:
+    """The closed outline of one material in one frame (2D).
+
+    ``loops`` tuple of float64 [K, 2] [m] polylines, each closed (last point =
+    first), outer boundaries counter-clockwise, holes clockwise; ``material``,
+    ``particle_type`` and ``iso`` as for :class:`SurfaceMesh`.
+    """
+
+    loops: tuple[np.ndarray, ...]
+    material: str
+    particle_type: int
+    iso: float = 0.5
+
+    @property
+    def area(self) -> float:
+        """Enclosed area [m²]: the signed shoelace areas of the loops summed (holes count negative)."""
+        return float(sum(_signed_area(p) for p in self.loops))
+
+
+def _signed_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return float(0.5 * (np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])))
+
+
+# ---------------------------------------------------------------------- input checks
+def _check_common(
+    positions: Any, particle_type: Any, domain: Any, dx: Any, refine: Any, iso: Any, smooth: Any, volumes: Any, dim: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+    p = np.asarray(positions)
+    if p.dtype.kind not in "fiu" or p.ndim != 2 or p.shape[1] != dim:
+        raise InvalidInputError(f"positions: expected a real array [N, {dim}], got {p.dtype} {list(p.shape)}", "positions")
+    p = p.astype(np.float64)
+    if not np.isfinite(p).all():
+        raise InvalidInputError(f"positions: particle {int(np.argwhere(~np.isfinite(p).all(axis=1))[0, 0])} has a non-finite coordinate", "positions")
+    n = p.shape[0]
+    pt = np.asarray(particle_type)
+    if pt.dtype.kind not in "iu" or pt.shape != (n,):
+        raise InvalidInputError(f"particle_type: expected an integer array [{n}], got {pt.dtype} {list(pt.shape)}", "particle_type")
+    if isinstance(dx, bool) or not isinstance(dx, (int, float, np.integer, np.floating)) or not math.isfinite(dx) or dx <= 0:
+        raise InvalidInputError(f"dx: must be a finite number > 0 [m], got {dx!r}", "dx")
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or not 1 <= refine <= MAX_REFINE:
+        raise InvalidInputError(f"refine: must be an integer in [1, {MAX_REFINE}], got {refine!r}", "refine")
+    if iso != "volume" and (isinstance(iso, bool) or not isinstance(iso, (int, float, np.integer, np.floating)) or not 0.0 < iso < 1.0):
+        raise InvalidInputError(f"iso: must be 'volume' or a volume fraction in (0, 1), got {iso!r}", "iso")
+    if isinstance(smooth, bool) or not isinstance(smooth, (int, np.integer)) or not 0 <= smooth <= 4:
+        raise InvalidInputError(f"smooth: must be an integer in [0, 4], got {smooth!r}", "smooth")
+    try:
+        lo, hi = (np.asarray(b, np.float64) for b in domain)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"domain: expected (lo, hi), each {dim} numbers [m], got {domain!r}", "domain") from None
+    if lo.shape != (dim,) or hi.shape != (dim,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()) or not (hi > lo).all():
+        raise InvalidInputError(f"domain: expected (lo, hi), each {dim} finite numbers [m] with lo < hi, got {domain!r}", "domain")
+    h = float(dx) / int(refine)
+    nodes = float(np.prod((hi - lo) / h + 2 * _MARGIN + 1))
+    if nodes > MAX_GRID_NODES:
+        raise InvalidInputError(
+            f"dx: a surface grid of spacing {h:.3g} m over the domain has {nodes:.3g} nodes, more than the cap of {MAX_GRID_NODES} (512³); "
+            "use a larger dx or a smaller refine",
+            "dx",
+        )
+    if volumes is None:
+        v = np.full(n, (float(dx) / 2) ** dim)
+    else:
+        v = np.asarray(volumes)
+        if v.dtype.kind not in "fiu" or v.shape != (n,):
+            raise InvalidInputError(f"volumes: expected a real array [{n}] [m^{dim}], got {v.dtype} {list(v.shape)}", "volumes")
+        v = v.astype(np.float64)
+        if not (np.isfinite(v) & (v >= 0)).all():
+            raise InvalidInputError("volumes: must be finite and >= 0", "volumes")
+    return p, pt.astype(np.int64), lo, hi, h, v
+
+
+def _is_sampled(c: Any) -> bool:
+    """A sampled-SDF collider (``origin``, ``cell``, ``values``: a scene's mesh obstacle)."""
+    return all(hasattr(c, k) for k in ("origin", "cell", "values"))
+
+
+def _check_obstacles(obstacles: Any) -> list[Any]:
+    from hybridmpm.mpm import Box, Sphere
+
+    obs = list(obstacles or ())
+    for i, c in enumerate(obs):
+        if not (isinstance(c, (Box, Sphere)) or _is_sampled(c)):
+            raise InvalidInputError(f"obstacles[{i}]: must be a collider of hybridmpm.mpm (Box, Sphere, sampled SDF), got {c!r}", f"obstacles[{i}]")
+    return obs
+
+
+# ---------------------------------------------------------------------- the field
+def _bspline_at_zero(n: int) -> float:
+    """``B_n(0)``, the centred cardinal B-spline of degree ``n`` at 0: the slope
+    [1/node] of the field across a flat face (step ∗ B2 ∗ B1^smooth = step ∗ B_{2+2·smooth})."""
+    return sum((-1) ** k * math.comb(n + 1, k) * max((n + 1) / 2 - k, 0.0) ** n for k in range(n + 2)) / math.factorial(n)
+
+
+def _field(
+    p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The smoothed volume fraction on the sub-grid around the particles:
+    (field float64 [n_0, ..., n_{D-1}], signed distance [m] of every node to
+    the nearest wall face or obstacle face (positive where fluid may be),
+    origin int64 [D] the global node index of the first node (node ``i`` sits
+    at ``i·h``), the volume [m^D] of the particles meshed). None if no particle
+    lies within 3 nodes of the domain."""
+    dim = p.shape[1]
+    pt = np.ascontiguousarray(p.T)  # [D, N]: reductions over particles run along contiguous rows
+    keep = ((pt >= (lo - _MARGIN * h)[:, None]) & (pt <= (hi + _MARGIN * h)[:, None])).all(axis=0)
+    if not keep.all():
+        pt, v = np.ascontiguousarray(pt[:, keep]), v[keep]
+    if pt.shape[1] == 0:
+        return None
+    # sub-grid: the particles' bounding box (within the domain) plus the margin
+    g_lo = np.floor(np.maximum(pt.min(axis=1), lo) / h).astype(np.int64) - _MARGIN - 1
+    g_hi = np.floor(np.minimum(pt.max(axis=1), hi) / h).astype(np.int64) + _MARGIN + 2
+    shape = tuple(int(s) for s in g_hi - g_lo + 1)
+    # quadratic B-spline weights per axis (MLS-MPM), rounded to 2^-10; axis-major layout [D, 3, N] for speed
+    xs = pt / h
+    base = np.floor(xs - 0.5)
+    fx = xs - base
+    w = np.empty((dim, 3, xs.shape[1]))  # [D, 3, N]
+    np.square(1.5 - fx, out=w[:, 0])
+    w[:, 0] *= 0.5
+    np.square(fx - 1.0, out=w[:, 1])
+    np.subtract(0.75, w[:, 1], out=w[:, 1])
+    np.square(fx - 0.5, out=w[:, 2])
+    w[:, 2] *= 0.5
+    w *= _W_SCALE
+    np.rint(w, out=w)
+    w *= 1.0 / _W_SCALE
+    frac = np.rint(v * (_V_SCALE / h**dim)) / _V_SCALE  # [N]
+    strides = np.array([int(np.prod(shape[k + 1 :])) for k in range(dim)], np.int64)
+    ib = base.astype(np.int64)
+    flat0 = (ib[0] - g_lo[0]) * strides[0]  # [N]
+    for k in range(1, dim):
+        flat0 += (ib[k] - g_lo[k]) * strides[k]
+    wt = w[0] * frac  # [3, N]
+    off = np.arange(3) * strides[0]
+    for k in range(1, dim):
+        wt = (wt[:, None, :] * w[k][None, :, :]).reshape(-1, len(frac))  # [3^(k+1), N]
+        off = (off[:, None] + np.arange(3)[None, :] * strides[k]).ravel()
+    idx = (off[:, None] + flat0[None, :]).ravel()
+    size = int(np.prod(shape))
+    phi = np.bincount(idx, weights=wt.ravel(), minlength=size).reshape(shape)
+    for _ in range(int(smooth)):
+        for ax in range(dim):
+            phi = _binomial(phi, ax)
+    # distance to the walls (separable box distance) and the obstacles
+    coords = [(np.arange(shape[k]) + g_lo[k]) * h for k in range(dim)]
+    sdf = np.full(shape, np.inf)
+    for k in range(dim):
+        d = np.minimum(coords[k] - lo[k], hi[k] - coords[k])
+        sl: list[Any] = [None] * dim
+        sl[k] = slice(None)
+        sdf = np.minimum(sdf, d[tuple(sl)])
+    for c in obstacles:
+        _obstacle_sdf(sdf, c, coords, h)
+    return phi, sdf, g_lo, float(v.sum())
+
+
+def _closed(phi: np.ndarray, sdf: np.ndarray, h: float, iso: float) -> np.ndarray:
+    """``min(φ, iso + sdf/(2h))``: the level set ends on the wall and obstacle faces."""
+    clip = iso + sdf / (2 * h)
+    return np.minimum(phi, clip)
+
+
+def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
+    """``[1, 2, 1]/4`` along axis ``ax`` (zero outside)."""
+    out = 0.5 * a
+    lo = [slice(None)] * a.ndim
+    hi = [slice(None)] * a.ndim
+    lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+    out[tuple(hi)] += 0.25 * a[tuple(lo)]
+    out[tuple(lo)] += 0.25 * a[tuple(hi)]
+    return out
+
+
+def _obstacle_sdf(sdf: np.ndarray, c: Any, coords: list[np.ndarray], h: float) -> None:
+    """``sdf ← min(sdf, collider_sdf)`` in place, over the nodes near obstacle ``c``."""
+    from hybridmpm.mpm import Sphere
+    from hybridmpm.scenes import collider_sdf
+
+    dim = sdf.ndim
+    if _is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
+        b_lo = np.asarray(c.origin, np.float64)
+        b_hi = b_lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
+    else:
+        center = np.asarray(c.center, np.float64)
+        r = float(c.radius) if isinstance(c, Sphere) else float(np.linalg.norm(c.half_extents))
+        b_lo, b_hi = center - r, center + r
+    sl = []
+    for k in range(dim):
+        i0 = int(np.searchsorted(coords[k], b_lo[k] - 3 * h))
+        i1 = int(np.searchsorted(coords[k], b_hi[k] + 3 * h, side="right"))
+        if i1 <= i0:
+            return
+        sl.append(slice(i0, i1))
+    grids = np.meshgrid(*[coords[k][sl[k]] for k in range(dim)], indexing="ij")
+    d = collider_sdf(c, np.stack([g.ravel() for g in grids], axis=1)).reshape(grids[0].shape)
+    sdf[tuple(sl)] = np.minimum(sdf[tuple(sl)], d)
+
+
+# ---------------------------------------------------------------------- public API
+def surface_mesh(
+    positions: Any,
+    particle_type: Any,
+    *,
+    domain: tuple[Sequence[float], Sequence[float]],
+    dx: float,
+    volumes: Any = None,
+    obstacles: Sequence[Any] = (),
+    refine: int = 1,
+    iso: float | str = "volume",
+    smooth: int = 1,
+) -> list[SurfaceMesh]:
+    """Closed triangle meshes of the fluid in one 3D frame, one per material.
+
+    Parameters
+    ----------
+    positions:
+        float [N, 3] [m], finite; kinematic particles (GNS type 3) are skipped.
+    particle_type:
+        int [N], GNS codes (water 5, sand 6, boundary 3).
+    domain:
+        ``(lo, hi)``, 3 numbers each [m]: the box the fluid is held in (the
+        wall faces: :func:`surface_settings` gives them for a scene).
+    dx:
+        The simulation's cell size [m]; the surface grid has spacing ``dx / refine``.
+    volumes:
+        float [N] [m³], each particle's volume; default ``(dx/2)³`` (the
+        scenes' lattice of 2 particles per cell per axis).
+    obstacles:
+        :class:`~hybridmpm.mpm.Box` / :class:`~hybridmpm.mpm.Sphere`
+        colliders; the surface ends on their faces.
+    refine:
+        Surface grid nodes per simulation cell per axis, 1 … 8.
+    iso:
+        ``"volume"`` (default): the level whose surface encloses the particles'
+        volume ``Σ volumes`` (within 0.5 %, ``c`` in [0.3, 0.7]); or a fixed
+        volume fraction in (0, 1).
+    smooth:
+        Passes of the ``[1, 2, 1]/4`` filter, 0 … 4.
+
+    Returns
+    -------
+    A :class:`SurfaceMesh` per fluid particle type present, sorted by type
+    (water before sand); a material with no surface (e.g. only isolated
+    droplets thinner than the grid) gets an empty mesh.
+
+    Raises
+    ------
+    InvalidInputError
+        naming ``positions`` (not [N, 3], non-finite), ``particle_type``,
+        ``domain``, ``dx`` (<= 0, or a grid over :data:`MAX_GRID_NODES`),
+        ``volumes``, ``obstacles[i]``, ``refine``, ``iso`` or ``smooth``.
+    """
+    p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, 3)
+    obs = _check_obstacles(obstacles)
+    out = []
+    for code in _fluid_types(pt):
+        sel = pt == code
+        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: _mc_measure(f, c, o, h))
+        verts, faces = geom if geom is not None else (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+        out.append(SurfaceMesh(verts, faces, material_name(code), int(code), level))
+    return out
+
+
+def surface_contours(
+    positions: Any,
+    particle_type: Any,
+    *,
+    domain: tuple[Sequence[float], Sequence[float]],
+    dx: float,
+    volumes: Any = None,
+    obstacles: Sequence[Any] = (),
+    refine: int = 1,
+    iso: float | str = "volume",
+    smooth: int = 1,
+) -> list[SurfaceContours]:
+    """Closed outlines of the fluid in one 2D frame, one :class:`SurfaceContours`
+    per material (sorted by type). The same field as :func:`surface_mesh`
+    (``positions`` float [N, 2] [m], ``volumes`` [m²], default ``(dx/2)²``),
+    the level set by :func:`skimage.measure.find_contours`. Raises
+    :class:`InvalidInputError` naming the field, as :func:`surface_mesh`."""
+    p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, 2)
+    obs = _check_obstacles(obstacles)
+    out = []
+    for code in _fluid_types(pt):
+        sel = pt == code
+        level, loops = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: _contour_measure(f, c, o, h))
+        out.append(SurfaceContours(loops if loops is not None else (), material_name(code), int(code), level))
+    return out
+
+
+def _fluid_types(pt: np.ndarray) -> list[int]:
+    lo = int(pt.min()) if len(pt) else 0
+    return [int(c) + lo for c in np.flatnonzero(np.bincount(pt - lo)) if int(c) + lo != GNS_KINEMATIC]
+
+
+def _select(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    return a if mask.all() else a[mask]
+
+
+def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obs: list[Any], iso: Any, measure: Any) -> tuple[float, Any]:
+    """(level, geometry) of one material. ``measure(closed_field, level, origin)``
+    → (geometry, enclosed volume, surface area) or None when the field has no
+    surface at that level. ``iso="volume"``: the level starts at 1/2 and is
+    corrected by at most two secant steps in [ISO_MIN, ISO_MAX] until the
+    enclosed volume is within VOLUME_TOL of the particles' volume; the first
+    step's slope is the flat-face estimate ``dV/dc = −A·h/s`` (``s`` the
+    field's slope per node across a flat face)."""
+    f = _field(p, v, lo, hi, h, smooth, obs)
+    if f is None:
+        return (0.5 if iso == "volume" else float(iso)), None
+    phi, sdf, origin, target = f
+
+    def at(c: float) -> tuple[Any, float, float]:
+        closed = _closed(phi, sdf, h, c)
+        r = measure(closed, c, origin) if closed.max() > c else None
+        return (None, 0.0, 0.0) if r is None else r
+
+    if iso != "volume":
+        return float(iso), at(float(iso))[0]
+    c0 = 0.5
+    g0, v0, a0 = at(c0)
+    if target <= 0 or abs(v0 - target) <= VOLUME_TOL * target:
+        return c0, g0
+    slope = _bspline_at_zero(2 + 2 * smooth)
+    c1 = float(np.clip(c0 + (v0 - target) * slope / (h * a0), ISO_MIN, ISO_MAX)) if a0 > 0 else ISO_MIN
+    g1, v1, _ = at(c1)
+    if abs(v1 - target) <= VOLUME_TOL * target or v1 == v0:
+        return c1, g1
+    c2 = float(np.clip(c1 + (target - v1) * (c1 - c0) / (v1 - v0), ISO_MIN, ISO_MAX))
+    return c2, at(c2)[0]
+
+
+def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, np.ndarray], float, float]:
+    from skimage.measure import marching_cubes
+
+    vs, fs, _, _ = marching_cubes(phi, level=level, allow_degenerate=False)
+    verts = (vs.astype(np.float64) + origin) * h
+    # skimage's faces are clockwise seen from the low side (outside here): reverse them for outward normals
+    faces = np.ascontiguousarray(fs[:, ::-1], dtype=np.int32)
+    a, b, c = (verts[faces[:, k]] for k in range(3))
+    cr = np.cross(b - a, c - a)
+    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    area = float(0.5 * np.linalg.norm(cr, axis=1).sum())
+    return (verts, faces), volume, area
+
+
+def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, ...], float, float]:
+    from skimage.measure import find_contours
+
+    loops = []
+    for c in find_contours(phi, level):
+        if len(c) >= 4:
+            # find_contours leaves high values on the right; reversed, outer loops run counter-clockwise
+            loops.append(np.ascontiguousarray(((c + origin) * h)[::-1]))
+    area = sum(_signed_area(lp) for lp in loops)
+    length = sum(float(np.linalg.norm(np.diff(lp, axis=0), axis=1).sum()) for lp in loops)
+    return tuple(loops), area, length
+
+
+# ---------------------------------------------------------------------- scenes and trajectories
+def surface_settings(params: Any, particle_type: Any = None, masses: Any = None) -> dict[str, Any]:
+    """The keyword arguments of :func:`surface_mesh` / :func:`surface_contours`
+    for a scene's :class:`~hybridmpm.mpm.MpmParams`: ``domain`` (the wall faces
+    ``(cells − 1)·dx`` in from every side, :func:`~hybridmpm.scenes.wall_face`),
+    ``dx`` = 1/n_grid, ``obstacles`` (the colliders) and, given
+    ``particle_type`` int [N] and ``masses`` float [N] [kg], ``volumes`` =
+    mass / rest density of the particle's material (water or sand density of
+    ``params``; 0 for kinematic particles)."""
+    from hybridmpm.scenes import wall_face
+
+    n = params.resolved_n_grid()
+    face = wall_face(params)
+    out: dict[str, Any] = {
+        "domain": ([face] * params.dim, [1.0 - face] * params.dim),
+        "dx": 1.0 / n,
+        "obstacles": list(params.colliders),
+    }
+    if particle_type is not None and masses is not None:
+        pt = np.asarray(particle_type)
+        m = np.asarray(masses, np.float64)
+        rho = np.where(pt == GNS_SAND, float(params.sand.density), float(params.water.density))
+        out["volumes"] = np.where(pt == GNS_KINEMATIC, 0.0, m / rho)
+    return out
+
+
+def export_surfaces(
+    positions: Any,
+    particle_type: Any,
+    out_dir: str | Path,
+    *,
+    fmt: str = "ply",
+    every: int = 1,
+    **settings: Any,
+) -> list[Path]:
+    """Write the surface of every ``every``-th frame of ``positions`` float
+    [T, N, D] [m] as a file sequence per material:
+    ``out_dir/water_00000.<fmt>``, ``sand_00000.<fmt>``, … (a common prefix
+    and a zero-padded frame number, what Blender's sequence importers look
+    for). 3D: triangle meshes in ``ply`` (binary), ``obj`` or ``glb``; 2D:
+    the closed outlines at z = 0 as line segments in ``ply`` (``edge``
+    elements) or ``obj`` (``l`` lines). ``settings`` are passed to
+    :func:`surface_mesh` / :func:`surface_contours` (``domain``, ``dx``, ...).
+    Returns the paths in frame order, materials sorted by type within a
+    frame. Raises :class:`InvalidInputError` naming ``fmt`` (unknown, or
+    ``glb`` in 2D), ``positions``, ``every`` or a setting."""
+    if fmt not in MESH_FORMATS:
+        raise InvalidInputError(f"fmt: must be one of {', '.join(MESH_FORMATS)}, got {fmt!r}", "fmt")
+    p = np.asarray(positions)
+    if p.ndim != 3 or p.shape[2] not in (2, 3) or p.shape[0] < 1:
+        raise InvalidInputError(f"positions: expected [T, N, 2|3], got {list(p.shape)}", "positions")
+    if p.shape[2] == 2 and fmt == "glb":
+        raise InvalidInputError("fmt: 2D outlines are written as ply or obj (glb holds triangle meshes)", "fmt")
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise InvalidInputError(f"every: must be an integer >= 1, got {every!r}", "every")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for t in range(0, p.shape[0], every):
+        surfaces = frame_surfaces(p[t], particle_type, **settings)
+        for s in surfaces:
+            path = out / f"{s.material}_{t:05d}.{fmt}"
+            write_surface(s, path, fmt)
+            paths.append(path)
+    return paths
+
+
+def frame_surfaces(positions: Any, particle_type: Any, **settings: Any) -> list[SurfaceMesh] | list[SurfaceContours]:
+    """:func:`surface_mesh` for a 3D frame, :func:`surface_contours` for a 2D one."""
+    p = np.asarray(positions)
+    if p.ndim == 2 and p.shape[1] == 2:
+        return surface_contours(p, particle_type, **settings)
+    return surface_mesh(p, particle_type, **settings)
+
+
+def write_surface(surface: SurfaceMesh | SurfaceContours, path: str | Path, fmt: str | None = None) -> Path:
+    """Write one surface; ``fmt`` (default: the file's suffix) ``ply``,
+    ``obj`` or ``glb`` (meshes only). PLY is binary little-endian with float32
+    ``x y z`` and an int32 ``vertex_indices`` list per face (or ``edge``
+    elements for outlines); OBJ is text with 9 significant digits. Neither
+    holds a time stamp, so the same surface gives the same bytes. Raises
+    :class:`InvalidInputError` naming ``fmt``."""
+    path = Path(path)
+    fmt = fmt or path.suffix.lstrip(".").lower()
+    if fmt not in MESH_FORMATS or (fmt == "glb" and isinstance(surface, SurfaceContours)):
+        raise InvalidInputError(f"fmt: cannot write a {type(surface).__name__} as {fmt!r}", "fmt")
+    if isinstance(surface, SurfaceMesh):
+        verts, cells, kind = surface.vertices, surface.faces, "face"
+    else:
+        verts, cells = _loops_to_edges(surface.loops)
+        kind = "edge"
+    if fmt == "glb":
+        import trimesh
+
+        data = trimesh.Trimesh(verts, cells, process=False).export(file_type="glb")
+        path.write_bytes(bytes(data))  # type: ignore[arg-type]
+    elif fmt == "ply":
+        path.write_bytes(_ply_bytes(verts, cells, kind))
+    else:
+        path.write_bytes(_obj_bytes(verts, cells, kind))
+    return path
+
+
+def _loops_to_edges(loops: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Closed loops → vertices [V, 3] (z = 0; the repeated last point dropped) and edges int32 [E, 2]."""
+    verts, edges, n = [np.zeros((0, 3))], [np.zeros((0, 2), np.int32)], 0
+    for loop in loops:
+        k = len(loop) - 1
+        verts.append(np.concatenate([loop[:-1], np.zeros((k, 1))], axis=1))
+        i = np.arange(k, dtype=np.int32) + n
+        edges.append(np.stack([i, np.roll(i, -1)], axis=1))
+        n += k
+    return np.concatenate(verts), np.concatenate(edges)
+
+
+def _ply_bytes(verts: np.ndarray, cells: np.ndarray, kind: str) -> bytes:
+    v = np.ascontiguousarray(verts, "<f4")
+    if kind == "face":
+        rec = np.empty(len(cells), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+        rec["n"] = 3
+        rec["i"] = cells
+        elem = "element face {}\nproperty list uchar int vertex_indices\n"
+    else:
+        rec = np.ascontiguousarray(cells, "<i4")
+        elem = "element edge {}\nproperty int vertex1\nproperty int vertex2\n"
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment hybridmpm fluid surface, metres, y up\n"
+        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n" + elem.format(len(cells)) + "end_header\n"
+    )
+    return header.encode() + v.tobytes() + rec.tobytes()
+
+
+def _obj_bytes(verts: np.ndarray, cells: np.ndarray, kind: str) -> bytes:
+    v = np.asarray(verts, np.float64)
+    c = np.asarray(cells, np.int64) + 1
+    tag = "f" if kind == "face" else "l"
+    row = " %d" * c.shape[1]
+    text = "# hybridmpm fluid surface, metres, y up\n"
+    text += ("v %.9g %.9g %.9g\n" * len(v)) % tuple(v.ravel())
+    text += ((tag + row + "\n") * len(c)) % tuple(c.ravel())
+    return text.encode()
+
+
+__all__ = [
+    "MATERIAL_NAMES",
+    "MAX_GRID_NODES",
+    "MESH_FORMATS",
+    "SurfaceContours",
+    "SurfaceMesh",
+    "export_surfaces",
+    "frame_surfaces",
+    "material_name",
+    "surface_contours",
+    "surface_mesh",
+    "surface_settings",
+    "write_surface",
+]
