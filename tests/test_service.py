@@ -277,6 +277,12 @@ def test_control_conflict_409_and_unknown(client):
     finally:
         sess.controlling = False
     assert client.post("/v1/sessions/nope/controls", json={"sketch": {"kind": "arrow", "points": GOOD}}).status_code == 404
+    # the network alone takes no control: 409 naming the solver (not a 422 on a field the request does not have)
+    s = new(client, scene="water2d", solver="neural")
+    before = client.get(f"/v1/sessions/{s['id']}").json()
+    r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": {"kind": "arrow", "points": GOOD}})
+    assert r.status_code == 409 and "network alone" in r.json()["detail"], r.text
+    assert client.get(f"/v1/sessions/{s['id']}").json() == before
 
 
 def test_checkpoint_roundtrip_hybrid(client):

@@ -29,7 +29,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -234,6 +236,49 @@ def test_cluster_and_front_ends_restarted_on_the_store_bring_the_session_back(cl
     finally:
         a.stop()
         b.stop()
+
+
+def test_an_actor_killed_during_a_control_keeps_the_steps_answered_before_it(cluster, tmp_path):
+    """Steps answered just before a control are durable (the actor saves when the control starts, while its
+    lock is held for the whole control): its process killed mid-control (SIGKILL), the session comes back at
+    the control's start frame, not at an older periodic save; the control answers 503 and a viewer sees it
+    end (not "running" forever while the frame jumps back)."""
+    a = _front_end(cluster, tmp_path / "store", tmp_path / "a.log")
+
+    async def go(sid: str, victim_of: Callable[[], int]) -> tuple[list[dict[str, Any]], int]:
+        events: list[dict[str, Any]] = []
+        async with websockets.connect(f"{a.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws, httpx.AsyncClient(timeout=WAIT_S) as c:
+            long = asyncio.create_task(c.post(f"{a.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 1000}))
+            deadline = time.monotonic() + WAIT_S
+            while not any(e.get("status") == "running" for e in events) and time.monotonic() < deadline:
+                m = await asyncio.wait_for(ws.recv(), WAIT_S)
+                if isinstance(m, str) and '"control"' in m:
+                    events.append(json.loads(m))
+            os.kill(victim_of(), signal.SIGKILL)
+            answer = await long
+            with contextlib.suppress(websockets.exceptions.ConnectionClosed, TimeoutError):  # the end event comes before any close
+                while not any(e.get("status") != "running" for e in events) and time.monotonic() < deadline:
+                    m = await asyncio.wait_for(ws.recv(), 30)
+                    if isinstance(m, str) and '"control"' in m:
+                        events.append(json.loads(m))
+        return events, answer.status_code
+
+    try:
+        _start(a)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
+            before = set(cluster.actor_pids())
+            sid = c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED}).json()["id"]
+            mine = set(cluster.actor_pids()) - before
+            assert len(mine) == 1, mine
+            step_binary(c, sid, 40)  # answered; the periodic save (every 0.3 s) may not have caught it yet
+            events, status = asyncio.run(go(sid, lambda: next(iter(mine))))
+            assert status == 503, status
+            assert [e["status"] for e in events][:1] == ["running"] and len(events) >= 2 and events[-1]["status"] != "running", events
+            info = c.get(f"/v1/sessions/{sid}").json()
+            assert info["restored_from_frame"] == 40 and info["frame"] == 40, info
+            c.delete(f"/v1/sessions/{sid}")
+    finally:
+        a.stop()
 
 
 def test_a_dead_node_s_sessions_come_back_on_a_live_node(cluster, tmp_path):

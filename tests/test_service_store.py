@@ -211,9 +211,9 @@ def test_a_record_keeps_its_sessions_grid():
 
 
 def test_the_periodic_saver_never_waits_for_a_control(tmp_path):
-    """A control holds its session's lock for its whole run: the periodic save skips that session (it stays
-    marked changed) and saves every other one at once, instead of queueing behind the control; a clean stop
-    waits and saves it too."""
+    """A control holds its session's lock for its whole run: a round of the periodic saver saves every other
+    session at once instead of queueing behind it, and that session's own save waits for the control's end
+    (a snapshot at its step boundary), then runs without another round."""
 
     async def go() -> None:
         mgr = SessionManager(ServiceConfig(store=str(tmp_path / "store"), max_sessions=10))
@@ -225,11 +225,18 @@ def test_the_periodic_saver_never_waits_for_a_control(tmp_path):
             s.dirty = True
         a_before, b_before = (root / f"{a.key}.npz").read_bytes(), (root / f"{b.key}.npz").read_bytes()
         async with a.lock:  # a control (or a long step) running on a
-            await asyncio.wait_for(mgr.save_all(wait=False), 5.0)
+            mgr.save_round()
+            deadline = time.monotonic() + 10
+            while b.dirty and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
             assert not b.dirty and (root / f"{b.key}.npz").read_bytes() != b_before
             assert a.dirty and (root / f"{a.key}.npz").read_bytes() == a_before
-        await mgr.save_all()
+            mgr.save_round()  # a's save is already waiting: no second one
+            assert list(mgr._saving) == [a.key]
+            a.sim.advance()  # the control's last step, before its lock goes
+        await asyncio.wait_for(mgr._saving[a.key], 10)
         assert not a.dirty and (root / f"{a.key}.npz").read_bytes() != a_before
+        assert a.saved_frame == a.sim.frame.frame_index
 
     asyncio.run(go())
 

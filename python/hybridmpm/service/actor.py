@@ -288,12 +288,12 @@ class SessionActor:
                 raise Busy()  # refused: no viewer is told of it
             self.controlling = True
         self.cancel.clear()
-        self._event({"type": "control", "status": "running", "id": cid, "method": method})
         t0 = time.perf_counter()
         try:
             sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None
             controller = Controller.for_scene(self.sim.scene.name, method, frames=frames)
-            self._save()  # the steps answered before it are durable: the keeper cannot save while the control holds the lock
+            self._save()  # the steps answered before it are durable (before it is announced running)
+            self._event({"type": "control", "status": "running", "id": cid, "method": method})
             with self.lock:
                 ro, metrics, plan, t_first = run_episode(self.sim, sketch, controller, cid, self._publish, self._event, self.cancel.is_set)
                 self.dirty = True

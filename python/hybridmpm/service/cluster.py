@@ -225,6 +225,7 @@ class RaySessionManager(SessionManager):
         self.ns = config.ray_namespace
         self.front_id = secrets.token_hex(6)
         self.cache: dict[str, RaySession] = {}
+        self._announcing: set[asyncio.Future[None]] = set()  # events sent to actors being restored
         self.actor_class = ray.remote(SessionActor)
         store_url = None
         if self.store is not None:
@@ -251,9 +252,10 @@ class RaySessionManager(SessionManager):
             .remote(store_url if self.store is not None and self.store.local else None, self.ns)
         )
         if self.store is not None and self.store.local:  # the registry holds the store's lock for every front end
-            refused = ray.get(self.registry.claim_store.remote(store_url), timeout=PLACE_TIMEOUT_S)
+            registry: Any = self.registry
+            refused = ray.get(registry.claim_store.remote(store_url), timeout=PLACE_TIMEOUT_S)
             if refused is not None:
-                raise InvalidInputError(refused, "store")
+                raise InvalidInputError(str(refused), "store")
 
     # ------------------------------------------------------------ actors
     def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool, n_grid: int | None = None) -> Any:
@@ -495,11 +497,14 @@ class RaySessionManager(SessionManager):
         await self._forget(s, code, reason)
         return True
 
-    async def save(self, s: Session, *, wait: bool = True) -> bool:
+    async def save(self, s: Session) -> bool:
         """Nothing to do: each actor saves itself."""
         return True
 
-    async def save_all(self, *, wait: bool = True) -> None:
+    async def save_all(self) -> None:
+        """Nothing to do: each actor saves itself."""
+
+    def save_round(self) -> None:
         """Nothing to do: each actor saves itself."""
 
     async def reap_once(self) -> list[str]:
@@ -614,12 +619,25 @@ class RaySessionManager(SessionManager):
             with contextlib.suppress(Exception):
                 s.actor.cancel_control.remote()
             raise
-        ro, metrics, planned, first_after, _ = call.result()
+        try:
+            ro, metrics, planned, first_after, _ = call.result()
+        except ApiError as e:
+            if e.status == 503:  # the actor was lost during the control: every front end's viewers see it end
+                task = asyncio.ensure_future(self._announce(s, {"type": "control", "status": "failed", "id": cid}))
+                self._announcing.add(task)
+                task.add_done_callback(self._announcing.discard)
+            raise
         if first_after is not None:
             first.append(t0 + first_after)
         if len(ro.frame_index):
             s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
         return ro, metrics, planned
+
+    async def _announce(self, s: RaySession, msg: dict[str, Any]) -> None:
+        """``msg`` for the viewers of every front end, through ``s``'s actor once it is back (a lost actor's
+        restart is waited for; a session that is gone has no viewers left)."""
+        with contextlib.suppress(Exception):
+            await self._call(s, "event", msg)
 
     async def checkpoint(self, s: Session) -> bytes:
         assert isinstance(s, RaySession)

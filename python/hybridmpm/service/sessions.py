@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import logging
 import math
 import secrets
@@ -344,6 +345,7 @@ class SessionManager:
         self.controls_running = 0
         self._reaper: asyncio.Task[None] | None = None
         self._saver: asyncio.Task[None] | None = None
+        self._saving: dict[str, asyncio.Task[bool]] = {}  # the periodic saver's save in progress, per session key
         #: Durable sessions (None without ``config.store``).
         self.store: SessionStore | None = None
         #: Sessions restored from the store whose id no request has named yet, by key.
@@ -515,6 +517,8 @@ class SessionManager:
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
         self._reaper = self._saver = None
+        if self._saving:
+            await asyncio.gather(*self._saving.values(), return_exceptions=True)
         if self.store is not None:
             await self.save_all()  # a clean stop loses nothing
         for sid in list(self.sessions):
@@ -530,31 +534,28 @@ class SessionManager:
         if self.store is not None:
             s.dirty = True
 
-    async def save(self, s: Session, *, wait: bool = True) -> bool:
+    async def save(self, s: Session) -> bool:
         """Write ``s``'s checkpoint to the store if it changed since its last
         save; False when it could not (logged; it stays marked changed and
-        the saver tries again). With ``wait=False`` a session whose lock is
-        held (a control or a step running) is left for the next interval
-        instead of waited for: the periodic saver never queues behind a
-        control, so no control delays another session's save."""
+        the saver tries again). The state is taken under the session's lock,
+        so at a step boundary (a step or control running is waited for: the
+        lock is fair, so the next step queues behind the snapshot); taking it
+        and encoding it run on the store's I/O thread, not the compute
+        workers, so busy sessions do not delay it."""
         store = self.store
         if store is None or s.closed or not s.dirty:
             return True
-        if not wait and (s.save_lock.locked() or s.lock.locked()):
-            return False
         async with s.save_lock:
             if s.closed or not s.dirty:
                 return True
             t0 = time.perf_counter()
             try:
                 with self.budget.hold(2 * tree_nbytes(s.initial), "saving a session"):
-                    if not wait and s.lock.locked():  # no await since this check: taking the lock cannot wait
-                        return False
                     async with s.lock:
                         if s.closed:
                             return True
                         s.dirty = False
-                        state = await self.compute(record_state, s.sim)
+                        state = await anyio.to_thread.run_sync(record_state, s.sim, limiter=self.io_limiter)
                         frame = int(s.sim.frame.frame_index)
                     meta = {
                         "scene": s.scene,
@@ -564,7 +565,7 @@ class SessionManager:
                         "last_used_at": time.time() - (time.monotonic() - s.last_used),
                         "client": s.client[: ckpt.MAX_META_CHARS],
                     }
-                    data = await self.compute(ckpt.dumps, state, meta)
+                    data = await anyio.to_thread.run_sync(ckpt.dumps, state, meta, limiter=self.io_limiter)
                     del state
                     await anyio.to_thread.run_sync(store.write, s.key, data, limiter=self.io_limiter)
             except Exception as e:  # noqa: BLE001 - a failed save must not fail the request or the saver
@@ -575,18 +576,31 @@ class SessionManager:
             log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", s.id[:SHOWN_ID_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
             return True
 
-    async def save_all(self, *, wait: bool = True) -> None:
-        """Save every changed session (:meth:`save`); ``wait=False`` (the
-        periodic saver) skips those busy in a control or a step."""
+    async def save_all(self) -> None:
+        """Save every changed session (:meth:`save`), each waiting only for its own lock."""
+        await asyncio.gather(*(self.save(s) for s in list(self.sessions.values())))
+
+    def save_round(self) -> None:
+        """One round of the periodic saver: a save task (:meth:`save`) for every
+        changed session that has none running. Returns at once: a session
+        busy in a long control or step delays only its own save (whose
+        steps answered before the control were saved when it started), never
+        another session's."""
         for s in list(self.sessions.values()):
-            await self.save(s, wait=wait)
+            if s.dirty and not s.closed and s.key not in self._saving:
+                task = asyncio.get_running_loop().create_task(self.save(s))
+                self._saving[s.key] = task
+                task.add_done_callback(functools.partial(self._saved, s.key))
+
+    def _saved(self, key: str, _task: asyncio.Task[bool]) -> None:
+        self._saving.pop(key, None)
 
     async def _save_forever(self) -> None:
         interval = float(self.config.save_every_s)
         while True:
             await asyncio.sleep(interval)
             try:
-                await self.save_all(wait=False)
+                self.save_round()
             except Exception:  # noqa: BLE001 - the saver must survive
                 log.exception("saver")
 

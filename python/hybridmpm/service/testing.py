@@ -282,4 +282,156 @@ def wait_saved(client: Any, sid: str, timeout_s: float) -> int:
     raise AssertionError(f"session not saved within {timeout_s} s: frame {info.get('frame')}, saved {info.get('saved_frame')}")
 
 
-__all__ = ["LiveServer", "RayCluster", "cmdline", "descendants", "free_port", "listening_port", "listening_ports", "private_bytes", "step_binary", "wait_saved"]
+#: The soak's sessions: (scene, solver), cycled over its sessions (the witness is extra).
+SOAK_MIX = [
+    ("water2d", "mpm"),
+    ("sand2d", "hybrid"),
+    ("dam_break2d", "hybrid"),
+    ("water_sand2d", "mpm"),
+    ("water3d", "hybrid"),
+    ("water2d", "neural"),
+    ("sand2d", "mpm"),
+    ("dam_break2d", "mpm"),
+]
+#: The soak's witness: a session only the soak's witness task steps, compared bitwise with an uninterrupted run.
+SOAK_WITNESS = ("water2d", "mpm", 7)
+
+
+async def soak(url: str, seconds: float, sessions: int = 16, workers: int = 6, seed: int = 0) -> dict[str, Any]:
+    """A mixed load on the server at ``url`` for ``seconds``: ``sessions``
+    sessions (:data:`SOAK_MIX`) that ``workers`` clients drive with random
+    steps (JSON and binary), controls (every method), checkpoint round trips,
+    trajectory downloads, short stream views and deletes 0.1-0.6 s into a
+    1000-frame control (the session is replaced by a new one), plus a
+    witness session (:data:`SOAK_WITNESS`) stepped in random chunks. At the
+    end every session is deleted. Returns ``{"statuses": {code: count},
+    "refusals": [method, route, status and text of each
+    4xx other than 404], "deleted_controls": [codes of the controls whose
+    session was deleted],
+    "witness": float32 [T, N, D] (its steps in order), "memory_used_start",
+    "memory_used_end", "ops": count}``."""
+    import asyncio
+    import random
+
+    import httpx
+    import websockets
+
+    rng = random.Random(seed)
+    statuses: dict[int, int] = {}
+    deleted_controls: list[int] = []
+    witness: list[np.ndarray] = []
+    ops = 0
+    arrow = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.4]]}
+
+    refusals: list[str] = []
+
+    def seen(r: httpx.Response) -> httpx.Response:
+        statuses[r.status_code] = statuses.get(r.status_code, 0) + 1
+        if r.status_code >= 400 and r.status_code != 404:
+            refusals.append(f"{r.request.method} {r.request.url.path.split('/')[-1]}: {r.status_code} {r.text[:160]}")
+        return r
+
+    async with httpx.AsyncClient(base_url=url, timeout=600) as c:
+        start_used = int((await c.get("/healthz")).json()["memory_used"])
+        solver_of: dict[str, str] = {}
+
+        async def create(k: int) -> str:
+            scene, solver = SOAK_MIX[k % len(SOAK_MIX)]
+            r = seen(await c.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": rng.randrange(1000)}))
+            assert r.status_code == 201, r.text[:200]
+            solver_of[str(r.json()["id"])] = solver
+            return str(r.json()["id"])
+
+        sids = [await create(k) for k in range(sessions)]
+        wscene, wsolver, wseed = SOAK_WITNESS
+        r = seen(await c.post("/v1/sessions", json={"scene": wscene, "solver": wsolver, "seed": wseed}))
+        witness_id = str(r.json()["id"])
+        busy: set[int] = set()
+        t_end = time.monotonic() + seconds
+
+        async def op(k: int) -> None:
+            nonlocal ops
+            sid = sids[k]
+            kind = rng.choice(["step", "step", "binary", "control", "control", "delete_in_control", "checkpoint", "trajectory", "view", "info"])
+            if kind == "delete_in_control" and solver_of[sid] == "neural":  # the network alone takes no control (a 422)
+                kind = "step"
+            ops += 1
+            if kind == "step":
+                seen(await c.post(f"/v1/sessions/{sid}/step", json={"frames": rng.randint(1, 30)}))
+            elif kind == "binary":
+                seen(await c.post(f"/v1/sessions/{sid}/step", json={"frames": rng.randint(1, 30)}, headers={"Accept": "application/octet-stream"}))
+            elif kind == "control":
+                body = {"method": rng.choice(["constant", "pd", "none", "diffusion"]), "sketch": arrow, "frames": rng.randint(30, 300)}
+                seen(await c.post(f"/v1/sessions/{sid}/controls", json=body))
+            elif kind == "delete_in_control":
+                task = asyncio.create_task(c.post(f"/v1/sessions/{sid}/controls", json={"sketch": arrow, "frames": 1000}))
+                await asyncio.sleep(rng.uniform(0.1, 0.6))
+                seen(await c.delete(f"/v1/sessions/{sid}"))
+                deleted_controls.append(seen(await task).status_code)
+                sids[k] = await create(rng.randrange(len(SOAK_MIX)))
+            elif kind == "checkpoint":
+                got = seen(await c.get(f"/v1/sessions/{sid}/checkpoint"))
+                if got.status_code == 200:
+                    seen(await c.put(f"/v1/sessions/{sid}/checkpoint", content=got.content, headers={"Content-Type": "application/octet-stream"}))
+            elif kind == "trajectory":
+                seen(await c.get(f"/v1/sessions/{sid}/trajectory", params={"format": rng.choice(["npz", "ply"]), "frames": rng.randint(1, 20)}))
+            elif kind == "view":
+                ws_url = url.replace("http://", "ws://", 1) + f"/v1/sessions/{sid}/stream"
+                async with websockets.connect(ws_url, max_size=None) as ws:
+                    await asyncio.wait_for(ws.recv(), 60)
+                    await ws.send('{"type": "play"}')
+                    await asyncio.sleep(rng.uniform(0.1, 0.5))
+                    await ws.send('{"type": "pause"}')
+            else:
+                seen(await c.get(f"/v1/sessions/{sid}"))
+
+        async def worker() -> None:
+            while time.monotonic() < t_end:
+                free = [k for k in range(sessions) if k not in busy]
+                if not free:
+                    await asyncio.sleep(0.01)
+                    continue
+                k = rng.choice(free)
+                busy.add(k)
+                try:
+                    await op(k)
+                finally:
+                    busy.discard(k)
+
+        async def step_witness() -> None:
+            while time.monotonic() < t_end:
+                r = seen(await c.post(f"/v1/sessions/{witness_id}/step", json={"frames": rng.randint(1, 12)}, headers={"Accept": "application/octet-stream"}))
+                if r.status_code == 200:
+                    shape = tuple(int(x) for x in r.headers["x-shape"].split(","))
+                    witness.append(np.frombuffer(r.content, "<f4").reshape(shape))
+                await asyncio.sleep(rng.uniform(0.0, 0.2))
+
+        await asyncio.gather(step_witness(), *(worker() for _ in range(workers)))
+        for sid in (*sids, witness_id):
+            seen(await c.delete(f"/v1/sessions/{sid}"))
+        await asyncio.sleep(0.5)
+        end_used = int((await c.get("/healthz")).json()["memory_used"])
+    return {
+        "statuses": statuses,
+        "refusals": refusals,
+        "deleted_controls": deleted_controls,
+        "witness": np.concatenate(witness) if witness else np.zeros((0, 0, 2), np.float32),
+        "memory_used_start": start_used,
+        "memory_used_end": end_used,
+        "ops": ops,
+    }
+
+
+__all__ = [
+    "LiveServer",
+    "RayCluster",
+    "cmdline",
+    "descendants",
+    "free_port",
+    "listening_port",
+    "listening_ports",
+    "private_bytes",
+    "soak",
+    "step_binary",
+    "wait_saved",
+]

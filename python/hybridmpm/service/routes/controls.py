@@ -63,7 +63,7 @@ def png_base64(img: np.ndarray) -> str:
     response_model=ControlResponse,
     responses={
         404: {"description": "no such session"},
-        409: {"description": "a control is already running on this session"},
+        409: {"description": "a control is already running on this session, or its solver is the network alone"},
         415: {"description": "a raw image body (use sketch_png, or POST .../controls/png)"},
         429: {"description": "too many controls running (Retry-After)"},
     },
@@ -106,6 +106,8 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")
     if s.controlling:
         raise ApiError(409, "a control is already running on this session")
+    if s.solver_kind == "neural":
+        raise ApiError(409, "this session's solver is the network alone, which takes no control (control runs on MPM); create it with solver 'hybrid' or 'mpm'")
     if manager.controls_running >= cfg.max_controls:
         raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})
     p = s.sim.particles
