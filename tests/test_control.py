@@ -407,3 +407,39 @@ def test_effort_and_smoothness_taken_one_field_at_a_time_equal_the_stacked_formu
     finally:
         tracemalloc.stop()
     assert peak < 5 * traj, (peak, traj)
+
+
+def test_a_plan_knows_its_centroid_path_and_the_sketch_fits_its_oval_once(monkeypatch):
+    """The plan carries its own geometry: the constant force's centroid path starts at the fluid's
+    mass-weighted centroid and ends on the sketch's target (the arrow's tip from the start centroid), and the
+    episode's centroid follows it; PD's path approaches its targets' centroid (critically damped: within 2% of
+    the start error at the end). An oval's ellipse is fitted once per sketch, however many parts ask for it."""
+    from hybridmpm.control import control_episode
+    from hybridmpm.control.sketch import Sketch as SketchClass
+
+    sim = MpmSimulator(make_scene("water2d", seed=3))
+    rollout(sim, 5)
+    arrow = Sketch.arrow([0.3, 0.3], [0.55, 0.4])
+    seen = []
+    ep = control_episode(sim, arrow, Controller("constant", frames=40), on_plan=seen.append)
+    plan = seen[0]
+    stride, path = plan.centroid_path()
+    assert stride == 1 and path.shape == (41, 2)
+    c0 = plan.origin.centroid
+    w = plan.origin.weights
+    fluid = ep.rollout.fluid_positions
+    assert np.allclose(path[0], w @ fluid[0], atol=1e-6)
+    assert np.allclose(path[-1], c0 + arrow.vector, atol=1e-9)
+    assert np.allclose(plan.summary()["target"], np.round(c0 + arrow.vector, 5))
+    assert np.linalg.norm(w @ fluid[-1] - path[-1]) < 0.25 * np.linalg.norm(arrow.vector)  # the fluid went where the plan said
+
+    oval = Sketch.oval([0.5, 0.3], [0.12, 0.06], 0.3)
+    calls = []
+    fit = SketchClass._fit
+    monkeypatch.setattr(SketchClass, "_fit", lambda self: calls.append(1) or fit(self))
+    pd = Controller("pd", frames=40).plan(sim, oval)
+    _, pd_path = pd.centroid_path()
+    e0 = np.linalg.norm(pd_path[0] - pd.pd_centroid)
+    assert np.linalg.norm(pd_path[-1] - pd.pd_centroid) < 0.02 * e0
+    control_episode(sim, oval, Controller("pd", frames=10))
+    assert oval.target(c0).tolist() == oval.ellipse()[0].tolist() and len(calls) == 1

@@ -131,6 +131,33 @@ def track_path(path: np.ndarray, omega: float, dt_frame: float, gravity: np.ndar
     return feedback
 
 
+#: Most points of a plan's centroid path (:meth:`Plan.centroid_path`).
+PLAN_POINTS = 101
+
+
+@dataclass(frozen=True)
+class PlanOrigin:
+    """The fluid when a plan is made: ``weights`` float64 [N] (its particles'
+    masses, normalised), ``centroid`` and ``velocity`` float64 [D] (mass-weighted,
+    m and m/s), ``gravity`` [D] (m/s²) and the frame step ``dt_frame`` [s]."""
+
+    weights: np.ndarray
+    centroid: np.ndarray
+    velocity: np.ndarray
+    gravity: np.ndarray
+    dt_frame: float
+
+    @classmethod
+    def of(cls, sim: Simulator) -> PlanOrigin:
+        """``sim``'s fluid now (any :class:`~hybridmpm.sim.Simulator`)."""
+        p = sim.particles
+        x = np.asarray(p.fluid(sim.positions), np.float64)
+        v = np.asarray(sim.velocities, np.float64)
+        m = np.asarray(p.masses, np.float64)
+        w = m / m.sum()
+        return cls(w, w @ x, w @ v, np.asarray(sim.scene.params.resolved_gravity(), np.float64), float(sim.dt_frame))
+
+
 @dataclass
 class Plan:
     """External accelerations for the ``frames`` frames after ``start_frame``:
@@ -155,6 +182,54 @@ class Plan:
     applied: AppliedStats = field(default_factory=AppliedStats)
     path: np.ndarray | None = None
     network: bool = False
+    origin: PlanOrigin | None = None
+    omega: float = 0.0  # PD: the approach rate [1/s]
+    pd_centroid: np.ndarray | None = None  # PD: its targets' centroid [D] [m]
+
+    def centroid_path(self, points: int = PLAN_POINTS) -> tuple[int, np.ndarray] | None:
+        """Where the plan takes the fluid's (mass-weighted) centroid: ``(stride,
+        path float64 [K, D] [m])`` at control frames 0, stride, …, ``frames``
+        (at most ``points`` of them). A planned method (diffusion, an oracle
+        path): its particles' paths averaged; the constant force: a free
+        cloud's centroid under gravity and the force (it lands on the
+        sketch's target); PD: the critically damped approach to its targets'
+        centroid, gravity fed forward. None for no control (or a plan made
+        without its origin)."""
+        o = self.origin
+        if o is None or self.sketch is None or self.method == "none":
+            return None
+        stride = max(1, -(-self.frames // (points - 1)))
+        k = np.arange(0, self.frames + 1, stride)
+        if k[-1] != self.frames:
+            k = np.append(k, self.frames)
+        t = (k * o.dt_frame)[:, None]
+        if self.path is not None:
+            path = np.einsum("fnd,n->fd", np.asarray(self.path, np.float64), o.weights)[np.minimum(k, len(self.path) - 1)]
+        elif self.method == "constant" and self.accelerations is not None:
+            a = np.asarray(self.accelerations[0], np.float64)
+            path = o.centroid + o.velocity * t + 0.5 * (o.weights @ a + o.gravity) * t * t
+        elif self.method == "pd" and self.pd_centroid is not None:
+            e0 = o.centroid - self.pd_centroid
+            path = self.pd_centroid + (e0 + (o.velocity + self.omega * e0) * t) * np.exp(-self.omega * t)
+        else:
+            return None
+        return stride, path
+
+    def summary(self, points: int = PLAN_POINTS) -> dict[str, Any] | None:
+        """What a viewer draws of the plan: ``{"method", "frames", "stride",
+        "centroid_path" [K][D], "target" [2]}`` (metres, 5 decimals;
+        :meth:`centroid_path` and :meth:`Sketch.target`), or None."""
+        cp = self.centroid_path(points)
+        if cp is None or self.origin is None or self.sketch is None:
+            return None
+        stride, path = cp
+        return {
+            "method": self.method,
+            "frames": int(self.frames),
+            "stride": stride,
+            "centroid_path": np.round(path, 5).tolist(),
+            "target": np.round(self.sketch.target(self.origin.centroid), 5).tolist(),
+        }
 
     def __call__(self, frame: int, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray | None:
         k = int(frame) - self.start_frame
@@ -248,6 +323,11 @@ class Controller:
         classifier-free guidance's unconditional branch inside the sampler,
         not a request to move the fluid). Raises :class:`InvalidInputError` naming ``sketch`` when
         the method needs one and none is given."""
+        plan = self._plan(sim, sketch)
+        plan.origin = PlanOrigin.of(sim)
+        return plan
+
+    def _plan(self, sim: Simulator, sketch: Sketch | None) -> Plan:
         t0 = time.perf_counter()
         p = sim.particles
         n, d = p.num_fluid, p.dim
@@ -304,7 +384,7 @@ class Controller:
             com = (m[:, None] * x).sum(0) / m.sum()
             vel = (m[:, None] * v).sum(0) / m.sum()
             target = com + vel * tau  # depth (3D z) drifts freely: the sketch is drawn in x–y
-            target[:2] = com[:2] + sketch.vector if sketch.kind == "arrow" else sketch.ellipse()[0]
+            target[:2] = sketch.target(com)
             a = 2.0 * (target - com - vel * tau) / (tau * tau) - g
             field_ = np.broadcast_to(a.astype(np.float32), (self.frames, n, d))
             return Plan("constant", start, self.frames, n, accelerations=field_, seconds=time.perf_counter() - t0, sketch=sketch)
@@ -312,10 +392,12 @@ class Controller:
         y = pd_targets(x, sketch)
         omega = 2.0 * math.pi / (self.settle * tau)
         feedback = track_path(y[None], omega, sim.dt_frame, gravity=g)
-        return Plan("pd", start, self.frames, n, feedback=feedback, seconds=time.perf_counter() - t0, sketch=sketch)
+        plan = Plan("pd", start, self.frames, n, feedback=feedback, seconds=time.perf_counter() - t0, sketch=sketch, omega=omega)
+        plan.pd_centroid = (m / m.sum()) @ y
+        return plan
 
     def _track_omega(self, sim: Simulator) -> float:
         return 2.0 * math.pi / (TRACK_SETTLE * self.frames * sim.dt_frame)
 
 
-__all__ = ["METHODS", "TRACK_SETTLE", "Controller", "Plan", "shipped_control_model", "track_path"]
+__all__ = ["METHODS", "PLAN_POINTS", "TRACK_SETTLE", "Controller", "Plan", "PlanOrigin", "shipped_control_model", "track_path"]

@@ -34,6 +34,7 @@ def control_episode(
     target: np.ndarray | None = None,
     progress: str | None = None,
     on_frame: Callable[[Frame], None] | None = None,
+    on_plan: Callable[[Plan], None] | None = None,
     stop: StopRule | None = None,
 ) -> Episode:
     """Plan with ``controller`` on ``sim``'s current state and ``sketch``, run
@@ -41,9 +42,13 @@ def control_episode(
     afterwards, whatever happens), and measure (:func:`~hybridmpm.control.metrics.control_metrics`;
     ``target`` fluid positions [M, D] for the final-shape error). ``on_frame``
     and ``stop`` are :func:`~hybridmpm.sim.rollout`'s (called with every
-    controlled frame; a reason ends the episode early). The simulator
-    continues from the controlled state."""
+    controlled frame; a reason ends the episode early); ``on_plan`` gets the
+    plan once it is made, before the first frame (it knows its own centroid
+    path, :meth:`~hybridmpm.control.controller.Plan.centroid_path`). The
+    simulator continues from the controlled state."""
     plan = controller.plan(sim, sketch)
+    if on_plan is not None:
+        on_plan(plan)
     sim.forcing = plan
     try:
         ro = rollout(sim, controller.frames, progress=progress, on_frame=on_frame, stop=stop)

@@ -52,6 +52,7 @@ class Sketch:
     t: np.ndarray | None = None
     width: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    _ellipse: tuple[np.ndarray, tuple[np.ndarray, np.ndarray, float]] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -134,13 +135,27 @@ class Sketch:
         """Arrow: end − start [m] (2D, x right, y up)."""
         return self.points[-1] - self.points[0]
 
+    def target(self, centroid: np.ndarray) -> np.ndarray:
+        """The fluid centroid the sketch asks for, x–y float64 [2] [m]: an
+        arrow's vector added to ``centroid``'s x–y (where the fluid is when
+        the control starts), an oval's centre (:meth:`ellipse`)."""
+        if self.kind == "arrow":
+            return np.asarray(centroid, np.float64)[:2] + self.vector
+        return self.ellipse()[0]
+
     def ellipse(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Oval: ``(centre [2], radii [2], angle [rad])`` of the ellipse that
         best fits the stroke (direct least-squares conic fit, Fitzgibbon et al.
         1999, on coordinates centred and scaled for conditioning; if the stroke
         is no ellipse — too few or collinear points — the second moments of its
         points). Radii sorted largest first; ``angle`` is the first radius's
-        direction."""
+        direction. Fitted once per sketch (copies are returned)."""
+        if self._ellipse is None or self._ellipse[0] is not self.points:
+            self._ellipse = (self.points, self._fit())
+        c, r, ang = self._ellipse[1]
+        return c.copy(), r.copy(), ang
+
+    def _fit(self) -> tuple[np.ndarray, np.ndarray, float]:
         p = self.points
         c0 = p.mean(0)
         scale = max(float(np.abs(p - c0).max()), 1e-12)
