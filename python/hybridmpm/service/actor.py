@@ -38,9 +38,11 @@ import ray
 from hybridmpm.control import Controller, Sketch
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.service.budget import MemoryBudget, Recording, tree_nbytes
 from hybridmpm.service.episode import run_episode
+from hybridmpm.service.facts import SessionFacts
 from hybridmpm.service.frames import encode_frame
-from hybridmpm.service.sessions import KEEP_CONTROLS, RECORD_STEPS, Control, MemoryBudget, Recording, Session, tree_nbytes
+from hybridmpm.service.sessions import KEEP_CONTROLS, RECORD_STEPS, Control, Session
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state
 from hybridmpm.sim import Frame, make_simulator, rollout
 
@@ -232,7 +234,6 @@ class SessionActor:
 
     def _describe(self) -> dict[str, Any]:
         sim = self.sim
-        p = sim.particles
         assert self.sess is not None
         return {
             "scene": self.sess.scene,
@@ -240,17 +241,7 @@ class SessionActor:
             "solver": self.sess.solver_kind,
             "r_c": self.sess.r_c,
             "client": self.client_addr,
-            "kind": sim.kind,
-            "scene_name": sim.scene.name,
-            "n_grid": int(sim.scene.params.resolved_n_grid()),
-            "num_total": int(p.num_total),
-            "num_fluid": int(p.num_fluid),
-            "dim": int(p.dim),
-            "particle_type": np.asarray(p.particle_type).copy(),
-            "full_masses": np.asarray(p.full_masses()).copy(),
-            "full_material": np.asarray(p.full_material()).copy(),
-            "r_t": int(sim.r_t),
-            "dt_frame": float(sim.dt_frame),
+            **SessionFacts.of(sim).to_dict(),
             "state_nbytes": tree_nbytes(self.sess.initial),
             "frame": self._frame_facts(),
         }

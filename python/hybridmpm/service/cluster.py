@@ -50,6 +50,7 @@ from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError,
 from hybridmpm.service.actor import ACTOR_PREFIX, ACTOR_THREADS, REGISTRY_NAME, Registry, SessionActor
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.errors import ApiError, tidy
+from hybridmpm.service.facts import SessionFacts
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.sessions import (
     Control,
@@ -116,82 +117,29 @@ def error_from(kind: str, message: str, name: str | None) -> Exception:
     return HybridMpmError(message)
 
 
-class SimView:
-    """What the routes read of a simulator that runs in an actor: its fixed
-    facts (``scene.name``, ``scene.params.resolved_n_grid()``, ``particles``
-    with ``full_masses()`` and ``full_material()``,
-    ``r_t``, ``dt_frame``, ``kind``) and ``frame``, its last known frame
-    (``frame_index``, ``time``, ``solver``, ``controlled``; no positions)."""
-
-    class _Params:
-        def __init__(self, n_grid: int) -> None:
-            self.n_grid = n_grid
-
-        def resolved_n_grid(self) -> int:
-            return self.n_grid
-
-    @dataclass
-    class _Scene:
-        name: str
-        params: Any
-
-    @dataclass
-    class _Particles:
-        num_total: int
-        num_fluid: int
-        dim: int
-        particle_type: np.ndarray
-        masses_all: np.ndarray
-        material_all: np.ndarray
-
-        def full_masses(self) -> np.ndarray:
-            return self.masses_all
-
-        def full_material(self) -> np.ndarray:
-            return self.material_all
-
-    @dataclass
-    class _Frame:
-        frame_index: int
-        time: float
-        solver: str
-        controlled: bool
-        positions: Any = None
-
-    def __init__(self, facts: dict[str, Any]) -> None:
-        self.kind = str(facts["kind"])
-        self.scene = SimView._Scene(str(facts["scene_name"]), SimView._Params(int(facts["n_grid"])))
-        self.particles = SimView._Particles(
-            int(facts["num_total"]),
-            int(facts["num_fluid"]),
-            int(facts["dim"]),
-            np.asarray(facts["particle_type"]),
-            np.asarray(facts["full_masses"]),
-            np.asarray(facts["full_material"]),
-        )
-        self.r_t = int(facts["r_t"])
-        self.dt_frame = float(facts["dt_frame"])
-        self.frame = SimView._Frame(*facts["frame"])
-
-    def at(self, frame_index: int) -> None:
-        """The session reached ``frame_index`` (what a call to its actor answered)."""
-        self.frame = SimView._Frame(int(frame_index), int(frame_index) * self.dt_frame, self.frame.solver, False)
-
-
 @dataclass(eq=False)
 class RaySession(Session):
-    """A session whose simulator runs in a Ray actor: the front end's
-    handle (``actor``), its view of the simulator (``sim``: :class:`SimView`),
-    the viewers connected here and the task that feeds them (``pump``)."""
+    """A session whose simulator runs in a Ray actor (``sim`` is None here):
+    the front end's handle (``actor``), the session's facts (sent by the
+    actor), the frame it was last known at (``at_frame``), the viewers
+    connected here and the task that feeds them (``pump``)."""
 
     actor: Any = None
+    at_frame: int = 0
     name: str = ""
     state_nbytes: int = 0
     last_frame: bytes | None = None
     pump: asyncio.Task[None] | None = None
     touched_remote: float = 0.0
 
+    @property
+    def frame_index(self) -> int:
+        return self.at_frame
+
     def publish(self, fr: Any, control_frame: int = 0) -> None:
+        """Nothing: the actor publishes its frames to every front end's stream."""
+
+    def republish(self) -> None:
         """Nothing: the actor publishes its frames to every front end's stream."""
 
     def broadcast(self, msg: dict[str, Any]) -> None:
@@ -320,7 +268,8 @@ class RaySessionManager(SessionManager):
             raise SessionGoneError()
 
     def _session(self, sid: str, key: str, actor: Any, facts: dict[str, Any]) -> RaySession:
-        s = RaySession(sid, facts["scene"], int(facts["seed"]), facts["solver"], float(facts["r_c"]), SimView(facts), {}, client=facts["client"], key=key)  # type: ignore[arg-type]
+        s = RaySession(sid, facts["scene"], int(facts["seed"]), facts["solver"], float(facts["r_c"]), None, {}, client=facts["client"], key=key)  # type: ignore[arg-type]
+        s._facts, s.at_frame = SessionFacts.from_dict(facts), int(facts["frame"][0])
         s.actor, s.name, s.state_nbytes = actor, ACTOR_PREFIX + key, int(facts["state_nbytes"])
         s.touched_remote = s.last_used
         return s
@@ -575,7 +524,7 @@ class RaySessionManager(SessionManager):
         assert isinstance(s, RaySession)
         d = dict(await self._call(s, "info", self.front_id, len(s.viewers)))
         d.update(id=s.id, stream=f"/v1/sessions/{s.id}/stream")
-        s.sim.at(d["frame"])  # type: ignore[attr-defined]
+        s.at_frame = int(d["frame"])
         s.playing = bool(d.pop("playing", False))
         return d
 
@@ -587,7 +536,7 @@ class RaySessionManager(SessionManager):
         assert isinstance(s, RaySession)
         ro: Rollout = await self._call(s, "rollout", frames)
         if len(ro.frame_index):
-            s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
+            s.at_frame = int(ro.frame_index[-1])
         return ro
 
     async def run_control(self, s: Session, sketch: Sketch | None, controller: Controller, left: Any, first: list[float], cid: str) -> Any:
@@ -630,7 +579,7 @@ class RaySessionManager(SessionManager):
         if first_after is not None:
             first.append(t0 + first_after)
         if len(ro.frame_index):
-            s.sim.at(int(ro.frame_index[-1]))  # type: ignore[attr-defined]
+            s.at_frame = int(ro.frame_index[-1])
         return ro, metrics, planned
 
     async def _announce(self, s: RaySession, msg: dict[str, Any]) -> None:
@@ -737,4 +686,4 @@ class RaySessionManager(SessionManager):
                     s.actor.poll.remote(self.front_id, len(s.viewers), epoch, fseq, eseq, 0.0)  # this front end's viewers now
 
 
-__all__ = ["POLL_WAIT_S", "REVIVE_TIMEOUT_S", "RaySession", "RaySessionManager", "SimView", "connect", "error_from"]
+__all__ = ["POLL_WAIT_S", "REVIVE_TIMEOUT_S", "RaySession", "RaySessionManager", "connect", "error_from"]

@@ -20,8 +20,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.service.budget import BudgetFullError
 from hybridmpm.service.config import MAX_MESSAGE_CHARS
-from hybridmpm.service.sessions import RETRY_AFTER_S, BudgetFullError, SessionGoneError
+from hybridmpm.service.sessions import RETRY_AFTER_S, SessionGoneError
 
 log = logging.getLogger("hybridmpm.service")
 _REPR = re.compile(r"<[^<>]{0,200}? (?:object )?at 0x[0-9a-fA-F]+>")

@@ -22,12 +22,11 @@ import collections
 import contextlib
 import functools
 import logging
-import math
 import secrets
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -37,9 +36,10 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
-from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.service.budget import BudgetFullError, MemoryBudget, Recording, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.facts import SessionFacts, scene_geometry
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state, session_key
@@ -72,60 +72,6 @@ class SessionGoneError(Exception):
     """The session was deleted, expired or lost while a request used it (→ 404)."""
 
 
-class BudgetFullError(Exception):
-    """The memory budget cannot hold an allocation (→ 503 with ``Retry-After``)."""
-
-    def __init__(self, what: str, nbytes: int, used: int, total: int) -> None:
-        from hybridmpm.limits import human
-
-        super().__init__(f"{what} would need {human(nbytes)}; the server holds {human(used)} of its memory budget of {human(total)}; retry later")
-        self.what, self.nbytes = what, nbytes
-
-
-class MemoryBudget:
-    """One memory budget for the process [bytes]: sessions, kept controls
-    and the transient buffers of requests take from it before they
-    allocate and give back when freed. Used from the event loop thread only
-    (no lock needed)."""
-
-    def __init__(self, total: int) -> None:
-        self.total = int(total)
-        self.used = 0
-
-    def take(self, nbytes: float, what: str) -> int:
-        """Reserve ``nbytes`` (rounded up) or raise :class:`BudgetFullError`; returns the bytes reserved."""
-        n = max(0, int(math.ceil(nbytes)))
-        if self.used + n > self.total:
-            raise BudgetFullError(what, n, self.used, self.total)
-        self.used += n
-        return n
-
-    def give(self, nbytes: int) -> None:
-        self.used = max(0, self.used - int(nbytes))
-
-    @contextlib.contextmanager
-    def hold(self, nbytes: float, what: str) -> Iterator[int]:
-        """Reserve ``nbytes`` for the ``with`` block (:class:`BudgetFullError` if it cannot)."""
-        n = self.take(nbytes, what)
-        try:
-            yield n
-        finally:
-            self.give(n)
-
-
-def tree_nbytes(tree: Any) -> int:
-    """Bytes of the arrays and byte strings in a state tree (dicts, lists, arrays, bytes)."""
-    if isinstance(tree, dict):
-        return sum(tree_nbytes(v) for v in tree.values())
-    if isinstance(tree, (list, tuple)):
-        return sum(tree_nbytes(v) for v in tree)
-    if isinstance(tree, np.ndarray):
-        return int(tree.nbytes)
-    if isinstance(tree, (bytes, bytearray)):
-        return len(tree)
-    return 0
-
-
 class Viewer:
     """One WebSocket connection: a latest-frame slot (newer frames overwrite
     an unsent one — never a queue of frames) and a short bounded queue of
@@ -149,58 +95,6 @@ class Viewer:
     def event(self, msg: dict[str, Any]) -> None:
         self.events.append(msg)
         self.wake.set()
-
-
-class Recording:
-    """A session's latest frames for download: consecutive coarse steps (a
-    frame that does not follow the last one — a reset, a restored checkpoint —
-    starts it again), at most ``capacity``. The ring's memory is taken from
-    the budget as it grows and kept until the session is dropped; when the
-    budget cannot hold another frame the ring stops growing and drops its
-    oldest frame instead. Used from the event loop thread only."""
-
-    def __init__(self, budget: MemoryBudget, capacity: int, r_t: int) -> None:
-        self.budget = budget
-        self.capacity = int(capacity)
-        self.r_t = max(1, int(r_t))
-        self.frames: collections.deque[tuple[int, np.ndarray, str, bool]] = collections.deque()
-        self.held = 0  # bytes taken from the budget
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def clear(self) -> None:
-        self.frames.clear()
-
-    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
-        if self.capacity < 1:
-            return
-        k = int(frame_index)
-        if self.frames and k == self.frames[-1][0]:
-            return  # already recorded (a step's last frame is published after it was recorded)
-        if self.frames and k != self.frames[-1][0] + self.r_t:
-            self.frames.clear()
-        pos = np.array(positions, np.float32)
-        if len(self.frames) >= self.capacity:
-            self.frames.popleft()
-        elif (len(self.frames) + 1) * pos.nbytes > self.held:
-            try:
-                self.held += self.budget.take(pos.nbytes, "recording the session's frames")
-            except BudgetFullError:
-                if not self.frames:
-                    return
-                self.frames.popleft()
-        self.frames.append((k, pos, str(solver), bool(controlled)))
-
-    def last(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
-        """The latest ``count`` frames recorded (fewer if fewer are held), oldest first."""
-        n = min(max(0, int(count)), len(self.frames))
-        return list(self.frames)[len(self.frames) - n :]
-
-    def release(self) -> None:
-        self.frames.clear()
-        self.budget.give(self.held)
-        self.held = 0
 
 
 @dataclass
@@ -240,6 +134,23 @@ class Session:
     recording: Recording | None = None  # its latest frames, for download
     n_grid: int | None = None  # the grid it was asked to run on (None: the scene's)
     control_stop: threading.Event | None = None  # set stops the running control within a frame (a delete sets it)
+    _facts: SessionFacts | None = None
+
+    @property
+    def facts(self) -> SessionFacts:
+        """The session's fixed facts, what routes read (:class:`~hybridmpm.service.facts.SessionFacts`)."""
+        if self._facts is None:
+            self._facts = SessionFacts.of(self.sim)
+        return self._facts
+
+    @property
+    def frame_index(self) -> int:
+        """The frame the session is at."""
+        return int(self.sim.frame.frame_index)
+
+    def republish(self) -> None:
+        """Offer the current frame to the viewers again (after a step or control that stopped early)."""
+        self.publish(self.sim.frame)
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
@@ -297,33 +208,6 @@ class Session:
         if self.n_grid is not None:
             d["n_grid"] = self.n_grid
         return d
-
-
-def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
-    """A session's ``n_grid`` as asked: None, or for the ``mpm`` solver a grid
-    no finer than the registered scene's own (a coarser grid of the same
-    domain costs less; a finer one could ask for any memory). Raises
-    :class:`InvalidInputError` naming ``n_grid``."""
-    if n_grid is None:
-        return None
-    if solver != "mpm":
-        raise InvalidInputError(f"n_grid: applies to the mpm solver; the {solver} solver runs at its model's resolution", "n_grid")
-    own = scene_spec(scene).params.resolved_n_grid()
-    if n_grid > own:
-        raise InvalidInputError(f"n_grid: at most the scene's own grid, {own}, got {n_grid}", "n_grid")
-    return int(n_grid)
-
-
-def scene_geometry(sim: Simulator) -> dict[str, Any]:
-    """What a viewer draws besides the particles: the grid size, the walls'
-    thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``)."""
-    params = sim.scene.params
-    n_grid = int(params.resolved_n_grid())
-    return {
-        "n_grid": n_grid,
-        "wall_thickness": float(params.walls.cells) / n_grid,
-        "obstacles": [c.to_dict() for c in params.colliders],
-    }
 
 
 class SessionManager:
@@ -793,17 +677,12 @@ __all__ = [
     "KEEP_CONTROLS",
     "RECORD_STEPS",
     "RETRY_AFTER_S",
-    "BudgetFullError",
     "Control",
-    "MemoryBudget",
     "QuotaError",
-    "Recording",
     "Session",
     "SessionCapError",
     "SessionGoneError",
     "SessionManager",
     "Viewer",
     "close_ws",
-    "scene_geometry",
-    "tree_nbytes",
 ]

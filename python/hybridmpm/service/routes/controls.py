@@ -29,11 +29,12 @@ from hybridmpm.control import Controller, Sketch, render_sketch, sketch_from_png
 from hybridmpm.control.sketch import MAX_IMAGE_PIXELS
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.service.budget import BudgetFullError
 from hybridmpm.service.deps import ConfigDep, ControlDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError, field_error
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.schemas import ControlRequest, ControlResponse, clean
-from hybridmpm.service.sessions import BudgetFullError, Control, SessionGoneError
+from hybridmpm.service.sessions import Control, SessionGoneError
 
 log = logging.getLogger("hybridmpm.service")
 OCTET = "application/octet-stream"
@@ -91,13 +92,13 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
             sketch = Sketch.from_json(body.sketch.model_dump(exclude_none=True))
         except InvalidInputError as e:
             raise field_error(e, ("body", "sketch"), "points") from None
-        n_grid = int(s.sim.scene.params.resolved_n_grid())
+        n_grid = s.facts.n_grid
         if float(np.linalg.norm(sketch.points.max(0) - sketch.points.min(0))) < 2.0 / n_grid:
             raise FieldError(("body", "sketch", "points"), f"points: the stroke must span at least 2 grid cells ({2.0 / n_grid:.4g} m)")
     if body.frames > cfg.max_control_frames:
         raise FieldError(("body", "frames"), f"frames: at most {cfg.max_control_frames}")
     try:
-        controller = Controller.for_scene(s.sim.scene.name, body.method, frames=body.frames)
+        controller = Controller.for_scene(s.facts.scene_name, body.method, frames=body.frames)
     except InvalidInputError as e:
         if e.field == "scene":  # no diffusion controller ships for this session's scene
             raise FieldError(("body", "method"), f"method: {e}".replace("scene: ", "", 1)) from None
@@ -110,9 +111,8 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         raise ApiError(409, "this session's solver is the network alone, which takes no control (control runs on MPM); create it with solver 'hybrid' or 'mpm'")
     if manager.controls_running >= cfg.max_controls:
         raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})
-    p = s.sim.particles
-    frame_bytes = p.num_total * p.dim * 4
-    steps = math.ceil(body.frames / int(s.sim.r_t))
+    frame_bytes = s.facts.frame_bytes
+    steps = math.ceil(body.frames / s.facts.r_t)
     transient = manager.budget.take(CONTROL_COPIES * (steps + 1) * frame_bytes, f"a control of {body.frames} frames")
     s.controlling = True
     manager.controls_running += 1
@@ -142,7 +142,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         if left.is_set():
             log.info("control %s on session %s… cancelled: its client left", cid, s.id[:SHOWN_ID_CHARS])
             s.broadcast({"type": "control", "status": "cancelled", "id": cid})
-            s.publish(s.sim.frame)
+            s.republish()
             raise ApiError(408, "control cancelled: the client left")
         fluid = ro.fluid_positions
         c0, c1 = fluid[0].mean(0), fluid[-1].mean(0)
@@ -158,7 +158,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
             "frames": int(controller.frames),
             "shape": list(pos.shape),
             "start_frame": int(np.asarray(ro.frame_index)[0]),
-            "end_frame": int(s.sim.frame.frame_index),
+            "end_frame": s.frame_index,
             "metrics": clean(metrics),
             "sketch": clean(sketch.to_json()) if sketch is not None else None,
             "sketch_png": png,
@@ -238,10 +238,7 @@ async def get_trajectory(s: SessionDep, c: ControlDep, request: Request, manager
         if OCTET in request.headers.get("accept", ""):
             data = await manager.compute(lambda: np.ascontiguousarray(c.positions, "<f4").tobytes())
             return Response(data, media_type=OCTET, headers={"X-Shape": ",".join(str(x) for x in c.positions.shape)})
-        ptype = np.asarray(s.sim.particles.particle_type)
-
-        dt = float(s.sim.dt_frame) * int(s.sim.r_t)
-        n_grid = int(s.sim.scene.params.resolved_n_grid())
+        ptype, dt, n_grid = s.facts.particle_type, s.facts.step_dt, s.facts.n_grid
 
         def npz() -> bytes:  # a hybridmpm trajectory (hybridmpm.trajectory.Trajectory.load, hybridmpm evaluate)
             buf = io.BytesIO()

@@ -8,8 +8,9 @@ from fastapi import APIRouter, Request, Response
 
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import NO_SESSION, ApiError
+from hybridmpm.service.facts import checked_n_grid
 from hybridmpm.service.schemas import CreateSession, SessionInfo
-from hybridmpm.service.sessions import QuotaError, SessionCapError, checked_n_grid
+from hybridmpm.service.sessions import QuotaError, SessionCapError
 
 router = APIRouter()
 

@@ -76,7 +76,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
     if body.frames > cfg.max_frames:
         raise FieldError(("body", "frames"), f"frames: at most {cfg.max_frames} per request")
     binary = OCTET in request.headers.get("accept", "")
-    values = math.ceil(body.frames / int(s.sim.r_t)) * s.sim.particles.num_total * s.sim.particles.dim
+    values = math.ceil(body.frames / s.facts.r_t) * s.facts.num_total * s.facts.dim
     with manager.budget.hold(values * (BINARY_BYTES_PER_VALUE if binary else JSON_BYTES_PER_VALUE), f"a step of {body.frames} frames"):
         t0 = time.perf_counter()
         ro = await manager.rollout(s, body.frames)
@@ -92,7 +92,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
             for k in range(len(pos)):
                 s.recording.add(frames_[k], pos[k], solvers[k], False)
         if len(pos):
-            s.publish(s.sim.frame)
+            s.republish()
         if binary:
             headers = {
                 "X-Shape": ",".join(str(x) for x in pos.shape),
@@ -104,7 +104,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
             if failure:
                 headers["X-Failure"] = failure
             return Response(await manager.compute(lambda: np.ascontiguousarray(pos, "<f4").tobytes()), media_type=OCTET, headers=headers)
-        parts = await manager.compute(step_json, pos, frames_, solvers, seconds, int(s.sim.r_t), float(s.sim.dt_frame), failure, latency)
+        parts = await manager.compute(step_json, pos, frames_, solvers, seconds, s.facts.r_t, s.facts.dt_frame, failure, latency)
 
         async def pieces() -> AsyncIterator[bytes]:
             while parts:

@@ -72,11 +72,10 @@ async def get_session_trajectory(
     held = await manager.recorded(s, frames)  # in the session's actor with --backend ray
     if not held:
         raise ApiError(409, "no frame of this session is recorded (the memory budget was full); step it and retry")
-    p = s.sim.particles
-    values = len(held) * p.num_total * p.dim
-    dt = float(s.sim.dt_frame) * int(s.sim.r_t)
-    n_grid = int(s.sim.scene.params.resolved_n_grid())
-    ptype, masses, material = np.asarray(p.particle_type), p.full_masses(), p.full_material()
+    f = s.facts
+    values = len(held) * f.num_total * f.dim
+    dt, n_grid = f.step_dt, f.n_grid
+    ptype, masses, material = f.particle_type, f.masses, f.material
     with manager.budget.hold(values * (PLY_BYTES_PER_VALUE if format == "ply" else 4 * FILE_COPIES), "the trajectory's file"):
 
         def make() -> Trajectory:

@@ -1,0 +1,122 @@
+"""The process's memory budget (one ledger for every allocation that scales
+with frames or particles) and a session's recording of its recent frames,
+which takes from it as it grows. Used from the event loop thread only."""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+
+class BudgetFullError(Exception):
+    """The memory budget cannot hold an allocation (→ 503 with ``Retry-After``)."""
+
+    def __init__(self, what: str, nbytes: int, used: int, total: int) -> None:
+        from hybridmpm.limits import human
+
+        super().__init__(f"{what} would need {human(nbytes)}; the server holds {human(used)} of its memory budget of {human(total)}; retry later")
+        self.what, self.nbytes = what, nbytes
+
+
+class MemoryBudget:
+    """One memory budget for the process [bytes]: sessions, kept controls
+    and the transient buffers of requests take from it before they
+    allocate and give back when freed. Used from the event loop thread only
+    (no lock needed)."""
+
+    def __init__(self, total: int) -> None:
+        self.total = int(total)
+        self.used = 0
+
+    def take(self, nbytes: float, what: str) -> int:
+        """Reserve ``nbytes`` (rounded up) or raise :class:`BudgetFullError`; returns the bytes reserved."""
+        n = max(0, int(math.ceil(nbytes)))
+        if self.used + n > self.total:
+            raise BudgetFullError(what, n, self.used, self.total)
+        self.used += n
+        return n
+
+    def give(self, nbytes: int) -> None:
+        self.used = max(0, self.used - int(nbytes))
+
+    @contextlib.contextmanager
+    def hold(self, nbytes: float, what: str) -> Iterator[int]:
+        """Reserve ``nbytes`` for the ``with`` block (:class:`BudgetFullError` if it cannot)."""
+        n = self.take(nbytes, what)
+        try:
+            yield n
+        finally:
+            self.give(n)
+
+
+def tree_nbytes(tree: Any) -> int:
+    """Bytes of the arrays and byte strings in a state tree (dicts, lists, arrays, bytes)."""
+    if isinstance(tree, dict):
+        return sum(tree_nbytes(v) for v in tree.values())
+    if isinstance(tree, (list, tuple)):
+        return sum(tree_nbytes(v) for v in tree)
+    if isinstance(tree, np.ndarray):
+        return int(tree.nbytes)
+    if isinstance(tree, (bytes, bytearray)):
+        return len(tree)
+    return 0
+
+
+class Recording:
+    """A session's latest frames for download: consecutive coarse steps (a
+    frame that does not follow the last one — a reset, a restored checkpoint —
+    starts it again), at most ``capacity``. The ring's memory is taken from
+    the budget as it grows and kept until the session is dropped; when the
+    budget cannot hold another frame the ring stops growing and drops its
+    oldest frame instead. Used from the event loop thread only."""
+
+    def __init__(self, budget: MemoryBudget, capacity: int, r_t: int) -> None:
+        self.budget = budget
+        self.capacity = int(capacity)
+        self.r_t = max(1, int(r_t))
+        self.frames: collections.deque[tuple[int, np.ndarray, str, bool]] = collections.deque()
+        self.held = 0  # bytes taken from the budget
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def clear(self) -> None:
+        self.frames.clear()
+
+    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
+        if self.capacity < 1:
+            return
+        k = int(frame_index)
+        if self.frames and k == self.frames[-1][0]:
+            return  # already recorded (a step's last frame is published after it was recorded)
+        if self.frames and k != self.frames[-1][0] + self.r_t:
+            self.frames.clear()
+        pos = np.array(positions, np.float32)
+        if len(self.frames) >= self.capacity:
+            self.frames.popleft()
+        elif (len(self.frames) + 1) * pos.nbytes > self.held:
+            try:
+                self.held += self.budget.take(pos.nbytes, "recording the session's frames")
+            except BudgetFullError:
+                if not self.frames:
+                    return
+                self.frames.popleft()
+        self.frames.append((k, pos, str(solver), bool(controlled)))
+
+    def last(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+        """The latest ``count`` frames recorded (fewer if fewer are held), oldest first."""
+        n = min(max(0, int(count)), len(self.frames))
+        return list(self.frames)[len(self.frames) - n :]
+
+    def release(self) -> None:
+        self.frames.clear()
+        self.budget.give(self.held)
+        self.held = 0
+
+
+__all__ = ["BudgetFullError", "MemoryBudget", "Recording", "tree_nbytes"]

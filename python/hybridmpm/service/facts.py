@@ -1,0 +1,107 @@
+"""What the routes read of a session: plain values, the same on both backends.
+
+A session's fixed facts (:class:`SessionFacts`: its scene, grid, particle
+counts and types, masses, frame step) are taken once from its simulator —
+in this process for the local backend, in the session's actor for the Ray
+one, which sends them to the front end — so a route never reaches into a
+simulator, and the Ray front end needs no stand-in for one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes import scene_spec
+from hybridmpm.sim import Simulator
+
+
+@dataclass(frozen=True)
+class SessionFacts:
+    """A session's fixed facts: ``scene_name`` (the scene's own name),
+    ``kind`` (the simulator's: ``mpm``, ``hybrid``, ``neural``), ``n_grid``
+    (the grid it runs on), ``dim``, ``num_fluid`` and ``num_total``
+    particles (fluid, and with the boundary particles), ``particle_type``
+    int [num_total] (GNS codes), ``masses`` float32 [num_total] [kg] and
+    ``material`` int [num_total] (the trajectory file's), ``r_t`` frames per
+    coarse step and ``dt_frame`` [s] between frames."""
+
+    scene_name: str
+    kind: str
+    n_grid: int
+    dim: int
+    num_fluid: int
+    num_total: int
+    particle_type: np.ndarray
+    masses: np.ndarray
+    material: np.ndarray
+    r_t: int
+    dt_frame: float
+
+    @classmethod
+    def of(cls, sim: Simulator) -> SessionFacts:
+        """The facts of ``sim`` (copies: they outlive any change to it)."""
+        p = sim.particles
+        return cls(
+            scene_name=str(sim.scene.name),
+            kind=str(sim.kind),
+            n_grid=int(sim.scene.params.resolved_n_grid()),
+            dim=int(p.dim),
+            num_fluid=int(p.num_fluid),
+            num_total=int(p.num_total),
+            particle_type=np.asarray(p.particle_type).copy(),
+            masses=np.asarray(p.full_masses()).copy(),
+            material=np.asarray(p.full_material()).copy(),
+            r_t=int(sim.r_t),
+            dt_frame=float(sim.dt_frame),
+        )
+
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes of one frame's positions (float32)."""
+        return self.num_total * self.dim * 4
+
+    @property
+    def step_dt(self) -> float:
+        """Seconds between stored frames of a trajectory (one coarse step: ``r_t`` frames)."""
+        return self.dt_frame * self.r_t
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SessionFacts:
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__})
+
+
+def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
+    """A session's ``n_grid`` as asked: None, or for the ``mpm`` solver a grid
+    no finer than the registered scene's own (a coarser grid of the same
+    domain costs less; a finer one could ask for any memory). Raises
+    :class:`InvalidInputError` naming ``n_grid``."""
+    if n_grid is None:
+        return None
+    if solver != "mpm":
+        raise InvalidInputError(f"n_grid: applies to the mpm solver; the {solver} solver runs at its model's resolution", "n_grid")
+    own = scene_spec(scene).params.resolved_n_grid()
+    if n_grid > own:
+        raise InvalidInputError(f"n_grid: at most the scene's own grid, {own}, got {n_grid}", "n_grid")
+    return int(n_grid)
+
+
+def scene_geometry(sim: Simulator) -> dict[str, Any]:
+    """What a viewer draws besides the particles: the grid size, the walls'
+    thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``)."""
+    params = sim.scene.params
+    n_grid = int(params.resolved_n_grid())
+    return {
+        "n_grid": n_grid,
+        "wall_thickness": float(params.walls.cells) / n_grid,
+        "obstacles": [c.to_dict() for c in params.colliders],
+    }
+
+
+__all__ = ["SessionFacts", "checked_n_grid", "scene_geometry"]
