@@ -32,6 +32,8 @@ GNS_WATER = 5
 GNS_SAND = 6
 #: GNS particle type of each solver material.
 GNS_TYPE_OF_MATERIAL = {MATERIAL_WATER: GNS_WATER, MATERIAL_SAND: GNS_SAND}
+#: Material name of each fluid GNS particle type (exported meshes and files are named by it).
+NAME_OF_GNS_TYPE = {GNS_TYPE_OF_MATERIAL[code]: name for name, code in MATERIALS.items()}
 
 # ----------------------------------------------------------------- units and resolutions
 #: One frame of simulated time [s] (made of CFL substeps in MPM).
@@ -90,6 +92,7 @@ FAILURE_DEGREE_FACTOR = 2.0
 SPLITS: tuple[str, ...] = ("train", "valid", "test")
 
 __all__ = [
+    "NAME_OF_GNS_TYPE",
     "AUDIT_EVERY",
     "AUDIT_MAX",
     "AUDIT_TOL",

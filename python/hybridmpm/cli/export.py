@@ -30,7 +30,7 @@ def params_of(traj: Any, scene: str | None = None, seed: int = 0) -> tuple[Any, 
     else the registered or file scene ``scene`` rebuilt with ``seed`` on the
     trajectory's grid; else the unit box with default walls on the
     trajectory's grid and no obstacles."""
-    from hybridmpm.mpm import MpmParams
+    from hybridmpm.mpm import MpmParams  # import time: loaded by this command only
 
     raw = traj.extras.get(PARAMS_KEY)
     if raw is not None:
@@ -40,7 +40,7 @@ def params_of(traj: Any, scene: str | None = None, seed: int = 0) -> tuple[Any, 
             raise InvalidInputError(f"{PARAMS_KEY}: unreadable in the trajectory ({e})", PARAMS_KEY) from e
     n_grid = traj.n_grid
     if scene is not None:
-        from hybridmpm.scenes import make_scene
+        from hybridmpm.scenes import make_scene  # import time: loaded by this command only
 
         return make_scene(scene, seed=seed, n_grid=n_grid).params, f"scene {scene} (seed {seed}) rebuilt"
     return MpmParams(dim=traj.dim, n_grid=n_grid), "default walls, no obstacles (no scene_params in the file; pass --scene)"
@@ -61,6 +61,7 @@ def write_exports(
     Surfaces are computed once for ``mesh`` and ``usd``. Returns a summary
     {kind: file count or path}. Raises :class:`InvalidInputError` naming
     ``export`` (unknown kind, or ``usd`` without ``pxr``) or ``mesh_format``."""
+    # import time: loaded by the commands that export only
     from hybridmpm.render import export_points
     from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, surface_settings, write_surface
 
@@ -70,7 +71,7 @@ def write_exports(
     if mesh_format not in MESH_FORMATS:
         raise InvalidInputError(f"mesh_format: must be one of {', '.join(MESH_FORMATS)}, got {mesh_format!r}", "mesh_format")
     if "usd" in kinds:
-        from hybridmpm.render.usd import require_pxr
+        from hybridmpm.render.usd import require_pxr  # import time: loaded by the commands that export only
 
         require_pxr("export")
     if "mesh" in kinds and traj.dim == 2 and mesh_format == "glb":
@@ -92,7 +93,7 @@ def write_exports(
                     count += 1
             done["mesh"] = count
         if "usd" in kinds:
-            from hybridmpm.render.usd import write_usd
+            from hybridmpm.render.usd import write_usd  # import time: loaded by the commands that export only
 
             path = write_usd(
                 out / "run.usd", traj.positions, traj.particle_type, traj.dt_frame, solver=tags, surfaces=surfaces,
@@ -103,7 +104,7 @@ def write_exports(
 
 
 def _export(args: argparse.Namespace) -> int:
-    from hybridmpm.trajectory import Trajectory
+    from hybridmpm.trajectory import Trajectory  # import time: loaded by this command only
 
     traj = Trajectory.load(args.trajectory)
     kinds = (["mesh"] if args.mesh else []) + (["usd"] if args.usd else []) + ([args.points] if args.points else [])

@@ -45,11 +45,11 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import Box, Sphere
+from hybridmpm.scenes import collider_sdf, wall_face
 
-#: Names of the materials by GNS particle type (other fluid codes get ``type<code>``).
-MATERIAL_NAMES = {GNS_WATER: "water", GNS_SAND: "sand"}
 #: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
 MAX_GRID_NODES = 512**3
 #: Formats of :func:`export_surfaces`.
@@ -70,7 +70,7 @@ _V_SCALE = 2.0**14
 
 def material_name(ptype: int) -> str:
     """``"water"`` (GNS 5), ``"sand"`` (GNS 6) or ``"type<code>"``."""
-    return MATERIAL_NAMES.get(int(ptype), f"type{int(ptype)}")
+    return NAME_OF_GNS_TYPE.get(int(ptype), f"type{int(ptype)}")
 
 
 @dataclass(frozen=True)
@@ -177,8 +177,6 @@ def _is_sampled(c: Any) -> bool:
 
 
 def _check_obstacles(obstacles: Any) -> list[Any]:
-    from hybridmpm.mpm import Box, Sphere
-
     obs = list(obstacles or ())
     for i, c in enumerate(obs):
         if not (isinstance(c, (Box, Sphere)) or _is_sampled(c)):
@@ -276,9 +274,6 @@ def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
 
 def _obstacle_sdf(sdf: np.ndarray, c: Any, coords: list[np.ndarray], h: float) -> None:
     """``sdf ← min(sdf, collider_sdf)`` in place, over the nodes near obstacle ``c``."""
-    from hybridmpm.mpm import Sphere
-    from hybridmpm.scenes import collider_sdf
-
     dim = sdf.ndim
     if _is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
         b_lo = np.asarray(c.origin, np.float64)
@@ -469,8 +464,6 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     ``particle_type`` int [N] and ``masses`` float [N] [kg], ``volumes`` =
     mass / rest density of the particle's material (water or sand density of
     ``params``; 0 for kinematic particles)."""
-    from hybridmpm.scenes import wall_face
-
     n = params.resolved_n_grid()
     face = wall_face(params)
     out: dict[str, Any] = {
@@ -604,7 +597,6 @@ def _obj_bytes(verts: np.ndarray, cells: np.ndarray, kind: str) -> bytes:
 
 
 __all__ = [
-    "MATERIAL_NAMES",
     "MAX_GRID_NODES",
     "MESH_FORMATS",
     "SurfaceContours",

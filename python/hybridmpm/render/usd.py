@@ -40,7 +40,9 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import Sphere
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, _is_sampled
+from hybridmpm.scenes.spec import _rotation
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -196,8 +198,6 @@ def _write_surfaces(stage: Any, surfaces: Sequence[Sequence[SurfaceMesh | Surfac
 def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
     from pxr import UsdGeom, Vt
 
-    from hybridmpm.mpm import Sphere
-
     if _is_sampled(c):  # a mesh obstacle: its zero level set
         from skimage.measure import marching_cubes
 
@@ -219,8 +219,6 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
         s.CreateExtentAttr(Vt.Vec3fArray([gf.Vec3f(-float(c.radius)), gf.Vec3f(float(c.radius))]))
         s.AddTranslateOp().Set(gf.Vec3d(*center))
         return
-    from hybridmpm.scenes.spec import _rotation
-
     half = np.full(3, DEPTH_2D)
     half[:dim] = np.asarray(c.half_extents, np.float64)
     rot = np.eye(3)

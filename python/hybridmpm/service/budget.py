@@ -12,13 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.limits import human
+
 
 class BudgetFullError(Exception):
     """The memory budget cannot hold an allocation (→ 503 with ``Retry-After``)."""
 
     def __init__(self, what: str, nbytes: int, used: int, total: int) -> None:
-        from hybridmpm.limits import human
-
         super().__init__(f"{what} would need {human(nbytes)}; the server holds {human(used)} of its memory budget of {human(total)}; retry later")
         self.what, self.nbytes = what, nbytes
 

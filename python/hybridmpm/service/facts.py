@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import SampledSdf
 from hybridmpm.scenes import scene_spec
 from hybridmpm.sim import Simulator
 
@@ -94,14 +95,24 @@ def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
 
 def scene_geometry(sim: Simulator) -> dict[str, Any]:
     """What a viewer draws besides the particles: the grid size, the walls'
-    thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``)."""
+    thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``;
+    a mesh obstacle as ``{"shape": "mesh", "lo", "hi"}``, the box its sampled
+    distance covers, never its samples or its file's path)."""
     params = sim.scene.params
     n_grid = int(params.resolved_n_grid())
     return {
         "n_grid": n_grid,
         "wall_thickness": float(params.walls.cells) / n_grid,
-        "obstacles": [c.to_dict() for c in params.colliders],
+        "obstacles": [_drawn(c) for c in params.colliders],
     }
+
+
+def _drawn(c: Any) -> dict[str, Any]:
+    if isinstance(c, SampledSdf):
+        lo = np.asarray(c.origin, np.float64)
+        hi = lo + float(c.cell) * (np.asarray(np.shape(c.values), np.float64) - 1)
+        return {"shape": "mesh", "lo": lo.tolist(), "hi": hi.tolist(), "condition": c.condition}
+    return dict(c.to_dict())
 
 
 __all__ = ["SessionFacts", "checked_n_grid", "scene_geometry"]
