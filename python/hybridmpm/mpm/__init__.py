@@ -23,15 +23,17 @@ one frame loop), which call :meth:`MpmSolver.step_frame`.
 """
 
 from hybridmpm.conventions import DT_FRAME
-from hybridmpm.mpm.params import WALL_FACES, Box, Condition, MpmParams, SandParams, Sphere, WallFace, WallParams, WaterParams
+from hybridmpm.mpm.params import WALL_FACES, Box, Collider, Condition, MpmParams, SampledSdf, SandParams, Sphere, WallFace, WallParams, WaterParams
 from hybridmpm.mpm.solver import MpmSolver, grid_mass
 
 __all__ = [
     "DT_FRAME",
     "Box",
+    "Collider",
     "Condition",
     "MpmParams",
     "MpmSolver",
+    "SampledSdf",
     "SandParams",
     "Sphere",
     "WALL_FACES",

@@ -229,6 +229,101 @@ class Sphere:
         }
 
 
+@dataclass(eq=False)
+class SampledSdf:
+    """Static collider given by its signed distance [m] sampled on a regular
+    grid (negative inside; a scene's mesh obstacle, made by
+    :mod:`hybridmpm.scenes.obstacle_mesh`): ``origin`` [m] (``dim`` numbers,
+    the position of sample ``[0, ..., 0]``), ``cell`` [m] (the spacing),
+    ``values`` float32 ``[n_0, ..., n_{dim-1}]`` (sample ``i`` at
+    ``origin + cell·i``); ``normals`` optional float32 ``[n_0, ...,
+    n_{dim-1}, dim]``, the outward unit normal at each sample (without them
+    the solver takes central differences of the distance). The solver
+    interpolates both multilinearly (Rust ``Shape::Sampled``);
+    :func:`hybridmpm.scenes.collider_sdf` interpolates ``values`` the same way.
+    ``source`` is the scene-file obstacle it was sampled from (``shape =
+    "mesh"``, ...), kept by :class:`~hybridmpm.scenes.SceneSpec` for saving
+    and regridding; it is not sent to the solver. ``condition`` and
+    ``friction`` default to the Rust core's (``ColliderParams::default()``)."""
+
+    origin: Sequence[float]
+    cell: float
+    values: np.ndarray
+    normals: np.ndarray | None = None
+    condition: Condition = _COLLIDER_DEFAULTS["condition"]
+    friction: float = _COLLIDER_DEFAULTS["friction"]
+    source: dict[str, Any] | None = None
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, SampledSdf):
+            return NotImplemented
+        return (
+            [float(v) for v in self.origin] == [float(v) for v in other.origin]
+            and float(self.cell) == float(other.cell)
+            and np.array_equal(np.asarray(self.values), np.asarray(other.values))
+            and (self.normals is None) == (other.normals is None)
+            and (self.normals is None or np.array_equal(np.asarray(self.normals), np.asarray(other.normals)))
+            and (self.condition, float(self.friction)) == (other.condition, float(other.friction))
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        values = np.asarray(self.values, np.float32)
+        d: dict[str, Any] = {
+            "shape": "sampled",
+            "origin": [float(c) for c in self.origin],
+            "cell": float(self.cell),
+            "dims": [int(n) for n in values.shape],
+            "values": values.ravel().tolist(),
+            "condition": self.condition,
+            "friction": float(self.friction),
+        }
+        if self.normals is not None:
+            d["normals"] = np.asarray(self.normals, np.float32).ravel().tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, name: str, d: dict[str, Any]) -> SampledSdf:
+        """Inverse of :meth:`to_dict` (without ``shape``); errors name ``{name}.<key>``."""
+        unknown = sorted(set(d) - {"origin", "cell", "dims", "values", "normals", "condition", "friction"}, key=str)
+        if unknown:
+            raise InvalidInputError(
+                f"{name}.{unknown[0]}: unknown parameter (allowed: cell, condition, dims, friction, normals, origin, values)", f"{name}.{unknown[0]}"
+            )
+        for key in ("origin", "cell", "dims", "values"):
+            if key not in d:
+                raise InvalidInputError(f"{name}.{key}: missing", f"{name}.{key}")
+        dims = d["dims"]
+        if not isinstance(dims, (list, tuple)) or not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 2 for n in dims):
+            raise InvalidInputError(f"{name}.dims: expected a list of integers >= 2, got {dims!r}", f"{name}.dims")
+        try:
+            values = np.asarray(d["values"], np.float32)
+        except (TypeError, ValueError) as e:
+            raise InvalidInputError(f"{name}.values: expected a list of numbers", f"{name}.values") from e
+        if values.ndim != 1 or values.size != math.prod(int(n) for n in dims):
+            raise InvalidInputError(f"{name}.values: expected {math.prod(int(n) for n in dims)} numbers (dims {list(dims)})", f"{name}.values")
+        normals = None
+        if d.get("normals") is not None:
+            try:
+                normals = np.asarray(d["normals"], np.float32)
+            except (TypeError, ValueError) as e:
+                raise InvalidInputError(f"{name}.normals: expected a list of numbers", f"{name}.normals") from e
+            if normals.ndim != 1 or normals.size != len(dims) * values.size:
+                raise InvalidInputError(f"{name}.normals: expected {len(dims) * values.size} numbers ({len(dims)} per sample)", f"{name}.normals")
+            normals = normals.reshape([*(int(n) for n in dims), len(dims)])
+        return cls(
+            origin=d["origin"],
+            cell=d["cell"],
+            values=values.reshape([int(n) for n in dims]),
+            normals=normals,
+            condition=d.get("condition", _COLLIDER_DEFAULTS["condition"]),
+            friction=d.get("friction", _COLLIDER_DEFAULTS["friction"]),
+        )
+
+
+#: A collider of :class:`MpmParams`.
+Collider = Box | Sphere | SampledSdf
+
+
 @dataclass
 class MpmParams:
     """All solver parameters (see the Rust ``SolverParams`` for the ranges).
@@ -250,7 +345,7 @@ class MpmParams:
     water: WaterParams = field(default_factory=WaterParams)
     sand: SandParams = field(default_factory=SandParams)
     walls: WallParams = field(default_factory=WallParams)
-    colliders: list[Box | Sphere] = field(default_factory=list)
+    colliders: list[Collider] = field(default_factory=list)
 
     def resolved_n_grid(self) -> int:
         self._check_int("n_grid", self.n_grid, optional=True)
@@ -307,10 +402,10 @@ class MpmParams:
             raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
         self.walls.validate(self.dim)
         if not isinstance(self.colliders, (list, tuple)):
-            raise InvalidInputError(f"colliders: must be a list of Box / Sphere, got {self.colliders!r}", "colliders")
+            raise InvalidInputError(f"colliders: must be a list of Box / Sphere / SampledSdf, got {self.colliders!r}", "colliders")
         for i, c in enumerate(self.colliders):
-            if not isinstance(c, (Box, Sphere)):
-                raise InvalidInputError(f"colliders[{i}]: must be a Box or a Sphere, got {c!r}", f"colliders[{i}]")
+            if not isinstance(c, (Box, Sphere, SampledSdf)):
+                raise InvalidInputError(f"colliders[{i}]: must be a Box, a Sphere or a SampledSdf, got {c!r}", f"colliders[{i}]")
 
     def to_dict(self) -> dict[str, Any]:
         """The plain dict the Rust binding takes (JSON-serialisable); validated
@@ -350,7 +445,7 @@ class MpmParams:
         raw_cols = d.pop("colliders", []) or []
         if not isinstance(raw_cols, (list, tuple)):
             raise InvalidInputError(f"colliders: expected a list, got {raw_cols!r}", "colliders")
-        cols: list[Box | Sphere] = []
+        cols: list[Collider] = []
         for i, c in enumerate(raw_cols):
             if not isinstance(c, dict):
                 raise InvalidInputError(f"colliders[{i}]: expected a dict, got {c!r}", f"colliders[{i}]")
@@ -360,8 +455,10 @@ class MpmParams:
                 cols.append(build(f"colliders[{i}]", Box, c))
             elif shape in ("sphere", "circle"):
                 cols.append(build(f"colliders[{i}]", Sphere, c))
+            elif shape == "sampled":
+                cols.append(SampledSdf.from_dict(f"colliders[{i}]", c))
             else:
-                raise InvalidInputError(f"colliders[{i}].shape: must be 'box' or 'sphere', got {shape!r}", f"colliders[{i}].shape")
+                raise InvalidInputError(f"colliders[{i}].shape: must be 'box', 'sphere' or 'sampled', got {shape!r}", f"colliders[{i}].shape")
         water = build("water", WaterParams, d.pop("water", {}))
         sand = build("sand", SandParams, d.pop("sand", {}))
         walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))

@@ -30,6 +30,13 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     half_extents = [0.15, 0.012]
     angle_deg = -20.0
 
+Obstacles are boxes (``half_extents``, ``angle_deg`` in 2D or ``rotation``),
+spheres (``radius``) and, in 3D, triangle meshes (``shape = "mesh"``,
+``path``, ``scale``, ``rotation``; :mod:`hybridmpm.scenes.obstacle_mesh`),
+all with ``center``, ``condition`` and ``friction``; docs/obstacles.md
+lists every key. A mesh's ``path`` is relative to the scene file's folder
+(:meth:`SceneSpec.load`; ``confine=True`` keeps it inside that folder).
+
 :meth:`SceneSpec.build` turns it into a :class:`~hybridmpm.scenes.Scene`:
 each block is filled with a cell-centred lattice at spacing
 ``dx / particles_per_cell``; a particle of a later block that falls inside an
@@ -55,6 +62,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +76,8 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import DT_FRAME, Box, MpmParams, MpmSolver, Sphere
+from hybridmpm.mpm.params import Collider, SampledSdf
+from hybridmpm.scenes import obstacle_mesh
 from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
@@ -172,8 +182,10 @@ class SceneSpec:
         coarse for the scene: ``n_grid`` (not an integer in [16, 4096], or too
         few cells for the walls), ``particles_per_cell`` (not in [1, 4]),
         ``blocks[i]`` (a side thinner than one cell), ``obstacles[i].half_extents``
-        / ``obstacles[i].radius`` (thinner than the solver holds: 2 cells for a
-        box, a radius of 1.5 cells for a sphere).
+        / ``obstacles[i].radius`` / ``obstacles[i].path`` (thinner than the
+        solver holds: 2 cells for a box, a radius of 1.5 cells for a sphere, a
+        node 1 cell inside for a mesh, whose signed distance is sampled again
+        on the new grid).
         """
         if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or not 16 <= int(n_grid) <= 4096:
             raise InvalidInputError(f"n_grid: must be an integer in [16, 4096], got {n_grid!r}", "n_grid")
@@ -204,6 +216,9 @@ class SceneSpec:
         d["n_grid"] = n
         d["walls"] = {**d["walls"], "cells": cells}
         params = MpmParams.from_dict(d)
+        for i, c in enumerate(self.params.colliders):  # a mesh obstacle is sampled again on the new grid's nodes
+            if isinstance(c, SampledSdf) and c.source is not None:
+                params.colliders[i] = obstacle_mesh.mesh_obstacle(c.source, f"obstacles[{i}]", n, Path(c.source["path"]))
         _check_obstacles_hold(params)
         info = {
             **self.info,
@@ -243,7 +258,7 @@ class SceneSpec:
             "sand": p["sand"],
             "walls": p["walls"],
             "blocks": [b.to_dict() for b in self.blocks],
-            "obstacles": p["colliders"],
+            "obstacles": [_obstacle_dict(c, raw) for c, raw in zip(self.params.colliders, p["colliders"])],
         }
         if p["substeps"] is not None:
             d["substeps"] = p["substeps"]
@@ -254,9 +269,14 @@ class SceneSpec:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SceneSpec:
+    def from_dict(cls, d: dict[str, Any], *, base_dir: str | os.PathLike[str] | None = None, confine: bool = False) -> SceneSpec:
         """Inverse of :meth:`to_dict`; validates every field (errors name it,
-        e.g. ``blocks[1].hi``). Raises :class:`InvalidInputError`."""
+        e.g. ``blocks[1].hi``). Raises :class:`InvalidInputError`.
+
+        A mesh obstacle's ``path`` is relative to ``base_dir`` (the working
+        directory when ``None``); ``confine=True`` refuses a path that leaves
+        ``base_dir`` (absolute, ``..``, or a link out), naming
+        ``obstacles[i].path`` (:func:`~hybridmpm.scenes.obstacle_mesh.resolve_mesh_path`)."""
         if not isinstance(d, dict):
             raise InvalidInputError("scene: expected a table/object at the top level", "scene")
         allowed = {
@@ -277,6 +297,16 @@ class SceneSpec:
         pd["colliders"] = d.get("obstacles", [])
         if isinstance(pd["colliders"], list) and len(pd["colliders"]) > MAX_OBSTACLES:
             raise InvalidInputError(f"obstacles: {len(pd['colliders'])} obstacles, more than the {MAX_OBSTACLES} a scene may have", "obstacles")
+        meshes: dict[int, tuple[dict[str, Any], Path]] = {}
+        if isinstance(pd["colliders"], list):  # a mesh obstacle is checked here and sampled once the grid is known
+            cols = list(pd["colliders"])
+            for i, c in enumerate(cols):
+                if isinstance(c, dict) and c.get("shape") == "mesh":
+                    f = f"obstacles[{i}]"
+                    checked = obstacle_mesh.check_mesh_obstacle(c, f, dim)
+                    meshes[i] = (checked, obstacle_mesh.resolve_mesh_path(c.get("path"), f"{f}.path", base_dir, confine))
+                    cols[i] = {"shape": "sphere", "center": [0.5] * dim, "radius": 0.25}  # placeholder, replaced below
+            pd["colliders"] = cols
         if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
             raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
         try:
@@ -290,7 +320,11 @@ class SceneSpec:
         n_grid = params.resolved_n_grid()
         if not isinstance(n_grid, int) or n_grid < 8:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
+        for i, (checked, resolved) in meshes.items():
+            params.colliders[i] = obstacle_mesh.mesh_obstacle(checked, f"obstacles[{i}]", n_grid, resolved)
         for i, c in enumerate(params.colliders):
+            if isinstance(c, SampledSdf):
+                continue
             _check_vec(f"obstacles[{i}].center", c.center, dim)
             if isinstance(c, Box):
                 _check_vec(f"obstacles[{i}].half_extents", c.half_extents, dim, positive=True)
@@ -363,6 +397,11 @@ class SceneSpec:
         """Write as TOML (``.toml``) or JSON (any other suffix); returns the path."""
         path = Path(path)
         d = self.to_dict()
+        for ob in d["obstacles"]:  # a mesh's path relative to the saved file's folder when the mesh lies under it
+            if ob.get("shape") == "mesh":
+                rel = os.path.relpath(ob["path"], os.path.abspath(path.parent))
+                if not rel.startswith(".."):
+                    ob["path"] = rel
         if path.suffix == ".toml":
             import tomli_w
 
@@ -375,9 +414,15 @@ class SceneSpec:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> SceneSpec:
+    def load(cls, path: str | Path, *, confine: bool = False) -> SceneSpec:
         """Read a TOML (``.toml``) or JSON file. Raises :class:`InvalidInputError`
-        for a missing, unparsable or invalid file (the message names the field)."""
+        for a missing, unparsable or invalid file (the message names the field).
+
+        Mesh obstacles' paths are relative to the file's folder. ``confine=True``
+        is for scene files from an untrusted source (a served request): a
+        mesh ``path`` that is absolute, contains ``..`` or resolves through a
+        link outside the scene file's folder is refused, naming
+        ``obstacles[i].path``."""
         path = Path(path)
         text = read_text_file(path, MAX_SCENE_FILE_BYTES, "scene", "scene file")
         toml = path.suffix == ".toml"
@@ -393,7 +438,7 @@ class SceneSpec:
                 d = json.loads(text)
         except ValueError as e:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
             raise InvalidInputError(f"scene file {path}: not valid {'TOML' if toml else 'JSON'}: {e}", "scene") from e
-        return cls.from_dict(d)
+        return cls.from_dict(d, base_dir=path.parent, confine=confine)
 
     # ------------------------------------------------------------------ building
     def build(self) -> Scene:
@@ -571,10 +616,22 @@ def _rotation(c: Box, dim: int) -> np.ndarray:
     return r
 
 
-def collider_sdf(c: Box | Sphere, points: np.ndarray) -> np.ndarray:
+def _obstacle_dict(c: Collider, raw: dict[str, Any]) -> dict[str, Any]:
+    """An obstacle as a scene file writes it: a mesh by its ``source`` (path,
+    center, scale, rotation), not by its samples; other shapes by ``raw``."""
+    if isinstance(c, SampledSdf) and c.source is not None:
+        return {**c.source, "condition": c.condition, "friction": float(c.friction)}
+    return raw
+
+
+def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:
     """Signed distance [m] from ``points`` [N, D] to an obstacle (negative inside),
-    float64 [N]; the same shapes and rotation convention as the Rust colliders."""
+    float64 [N]; the same shapes and rotation convention as the Rust colliders
+    (a :class:`~hybridmpm.mpm.params.SampledSdf` by the same multilinear
+    interpolation of its samples)."""
     p = np.asarray(points, np.float64)
+    if isinstance(c, SampledSdf):
+        return obstacle_mesh.sampled_sdf(c, p)
     center = np.asarray(c.center, np.float64)
     if isinstance(c, Sphere):
         return np.asarray(np.linalg.norm(p - center, axis=1) - float(c.radius))
@@ -584,16 +641,28 @@ def collider_sdf(c: Box | Sphere, points: np.ndarray) -> np.ndarray:
     return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
 
 
-def boundary_particles(colliders: Sequence[Box | Sphere], dim: int, spacing: float, dx: float) -> np.ndarray:
+def boundary_particles(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> np.ndarray:
     """Static boundary particles (GNS type 3) for the obstacles: float32 [B, D].
 
     A lattice at ``spacing`` [m] in each obstacle's own frame, kept where it lies
     within one spacing inside the surface (a shell one particle thick; a thin
-    ramp is filled). Points outside ``[dx, 1 − dx]^D`` are dropped (they are in
+    ramp is filled); for a mesh (:class:`~hybridmpm.mpm.params.SampledSdf`) a
+    lattice over its sampled box, kept where ``-spacing < sdf <= 0``. Points outside ``[dx, 1 − dx]^D`` are dropped (they are in
     the walls, which the network sees through its wall-distance features).
     """
     out = [np.zeros((0, dim), np.float32)]
     for i, c in enumerate(colliders):
+        if isinstance(c, SampledSdf):  # the same shell, found by the sampled signed distance
+            lo = np.asarray(c.origin, np.float64)
+            hi = lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
+            n = float(np.prod(np.maximum(np.round((hi - lo) / spacing), 1)))
+            check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
+            p = lattice(lo, hi, spacing).astype(np.float64)
+            sdf = obstacle_mesh.sampled_sdf(c, p)
+            p = p[(sdf <= 0) & (sdf > -spacing)]
+            inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
+            out.append(p[inside].astype(np.float32))
+            continue
         extent = 2.0 * np.full(dim, float(c.radius)) if isinstance(c, Sphere) else 2.0 * np.abs(np.asarray(c.half_extents, np.float64))
         n = float(np.prod(np.maximum(np.round(extent / spacing), 1)))
         check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")

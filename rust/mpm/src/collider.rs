@@ -14,6 +14,14 @@
 //! [`MIN_BOX_THICKNESS_CELLS`] and spheres of radius below
 //! [`MIN_SPHERE_RADIUS_CELLS`]. (A box of exactly 2 cells rotated by 5-10°
 //! still let up to 14 of 806 particles through in the same test; 3 cells held.)
+//!
+//! A [`Shape::Sampled`] collider (a triangle mesh's signed distance sampled
+//! on a grid, made by the Python scene layer) holds by the same rule stated
+//! on its samples: [`Collider::validate_resolution`] refuses one whose
+//! deepest sample lies less than [`MIN_SAMPLED_DEPTH_CELLS`] cells inside
+//! (a plate's centre is 1 cell deep at the 2-cell box limit).
+
+use std::sync::Arc;
 
 use nalgebra::{SMatrix, SVector};
 
@@ -35,6 +43,105 @@ pub enum Shape<const D: usize> {
         center: SVector<f32, D>,
         radius: f32,
     },
+    /// Signed distance [m] sampled on a regular grid (a triangle mesh's, in
+    /// practice): node `(i_0, .., i_{D-1})` sits at `origin + cell · i` and
+    /// holds `values[((i_0 · dims[1] + i_1) · dims[2] + i_2) ...]` (row-major,
+    /// the last axis fastest). Inside the grid the distance is the
+    /// multilinear interpolant of the samples; outside it, the interpolant
+    /// at the nearest point of the grid's box plus the distance to that box
+    /// (positive when the border samples are, as a margin around the mesh
+    /// makes them). The normal is the normalised multilinear interpolant of
+    /// `normals` (at the nearest point of the box outside it); without
+    /// `normals`, the normalised central difference, step `cell`, of the
+    /// distance. (A central difference fails inside parts a few cells thin,
+    /// where the slopes of the two faces cancel: there a mesh's sampled
+    /// normals point to the nearest surface point, as a box's least
+    /// penetration does.)
+    Sampled {
+        origin: SVector<f32, D>,
+        cell: f32,
+        dims: [usize; D],
+        values: Arc<[f32]>,
+        /// Optional outward unit normals at the nodes, `D` numbers per node
+        /// in the order of `values` (a mesh's: the direction between the
+        /// node and its nearest surface point where a central difference of
+        /// the distance fails).
+        normals: Option<Arc<[f32]>>,
+    },
+}
+
+/// Most samples a [`Shape::Sampled`] may hold (64 MiB of `f32`).
+pub const MAX_SAMPLED_NODES: usize = 1 << 24;
+
+/// The multilinear interpolant of the node vectors `normals` (`D` per node)
+/// at the nearest point of the grid's box to `p`.
+fn sampled_normal<const D: usize>(
+    origin: &SVector<f32, D>,
+    cell: f32,
+    dims: &[usize; D],
+    normals: &[f32],
+    p: &SVector<f32, D>,
+) -> SVector<f32, D> {
+    let mut idx = [0usize; D];
+    let mut t = [0.0f32; D];
+    for d in 0..D {
+        let uc = ((p[d] - origin[d]) / cell).clamp(0.0, (dims[d] - 1) as f32);
+        let i = (uc.floor() as usize).min(dims[d] - 2);
+        idx[d] = i;
+        t[d] = uc - i as f32;
+    }
+    let mut acc = SVector::<f32, D>::zeros();
+    for corner in 0..(1usize << D) {
+        let mut w = 1.0f32;
+        let mut lin = 0usize;
+        for d in 0..D {
+            let b = (corner >> d) & 1;
+            w *= if b == 1 { t[d] } else { 1.0 - t[d] };
+            lin = lin * dims[d] + idx[d] + b;
+        }
+        if w != 0.0 {
+            for d in 0..D {
+                acc[d] += w * normals[lin * D + d];
+            }
+        }
+    }
+    acc
+}
+
+/// The multilinear interpolant of a sampled grid at `p`, extended outside the
+/// grid's box by the distance to the box (see [`Shape::Sampled`]).
+fn sampled_sdf<const D: usize>(
+    origin: &SVector<f32, D>,
+    cell: f32,
+    dims: &[usize; D],
+    values: &[f32],
+    p: &SVector<f32, D>,
+) -> f32 {
+    let mut outside2 = 0.0f32;
+    let mut idx = [0usize; D];
+    let mut t = [0.0f32; D];
+    for d in 0..D {
+        let u = (p[d] - origin[d]) / cell;
+        let top = (dims[d] - 1) as f32;
+        let uc = u.clamp(0.0, top);
+        let excess = (u - uc) * cell;
+        outside2 += excess * excess;
+        let i = (uc.floor() as usize).min(dims[d] - 2);
+        idx[d] = i;
+        t[d] = uc - i as f32;
+    }
+    let mut acc = 0.0f32;
+    for corner in 0..(1usize << D) {
+        let mut w = 1.0f32;
+        let mut lin = 0usize;
+        for d in 0..D {
+            let b = (corner >> d) & 1;
+            w *= if b == 1 { t[d] } else { 1.0 - t[d] };
+            lin = lin * dims[d] + idx[d] + b;
+        }
+        acc += w * values[lin];
+    }
+    acc + outside2.sqrt()
 }
 
 /// A static collider: shape + boundary condition + Coulomb friction.
@@ -61,6 +168,13 @@ impl<const D: usize> Shape<D> {
                 outside + inside
             }
             Shape::Sphere { center, radius } => (p - center).norm() - radius,
+            Shape::Sampled {
+                origin,
+                cell,
+                dims,
+                values,
+                ..
+            } => sampled_sdf(origin, *cell, dims, values, p),
         }
     }
 
@@ -99,6 +213,37 @@ impl<const D: usize> Shape<D> {
                     n
                 }
             }
+            Shape::Sampled {
+                origin,
+                cell,
+                dims,
+                normals,
+                ..
+            } => {
+                let n = match normals {
+                    Some(normals) => sampled_normal(origin, *cell, dims, normals, p),
+                    None => {
+                        let mut n = SVector::<f32, D>::zeros();
+                        for d in 0..D {
+                            let mut a = *p;
+                            let mut b = *p;
+                            a[d] += cell;
+                            b[d] -= cell;
+                            n[d] = self.sdf(&a) - self.sdf(&b);
+                        }
+                        n
+                    }
+                };
+                let len = n.norm();
+                if len > 0.0 {
+                    n / len
+                } else {
+                    // a flat spot (no sample differs): up, as a sphere's centre
+                    let mut n = SVector::<f32, D>::zeros();
+                    n[1] = 1.0;
+                    n
+                }
+            }
         }
     }
 
@@ -107,12 +252,22 @@ impl<const D: usize> Shape<D> {
         match self {
             Shape::Box { half_extents, .. } => half_extents.norm(),
             Shape::Sphere { radius, .. } => *radius,
+            Shape::Sampled { cell, dims, .. } => {
+                0.5 * cell
+                    * (0..D)
+                        .map(|d| ((dims[d] - 1) as f32).powi(2))
+                        .sum::<f32>()
+                        .sqrt()
+            }
         }
     }
 
     pub fn center(&self) -> SVector<f32, D> {
         match self {
             Shape::Box { center, .. } | Shape::Sphere { center, .. } => *center,
+            Shape::Sampled {
+                origin, cell, dims, ..
+            } => origin + SVector::<f32, D>::from_fn(|d, _| 0.5 * cell * (dims[d] - 1) as f32),
         }
     }
 }
@@ -150,6 +305,63 @@ impl<const D: usize> Collider<D> {
                     return bad("radius", format!("must be finite and > 0, got {radius}"));
                 }
             }
+            Shape::Sampled {
+                origin,
+                cell,
+                dims,
+                values,
+                normals,
+            } => {
+                if !origin.iter().all(|x| x.is_finite()) {
+                    return bad("origin", "must be finite".into());
+                }
+                if !(cell.is_finite() && *cell > 0.0) {
+                    return bad("cell", format!("must be finite and > 0, got {cell}"));
+                }
+                if dims.iter().any(|&n| n < 2) {
+                    return bad("dims", format!("must be >= 2 on every axis, got {dims:?}"));
+                }
+                let total = dims.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
+                match total {
+                    Some(t) if t <= MAX_SAMPLED_NODES => {
+                        if values.len() != t {
+                            return bad(
+                                "values",
+                                format!(
+                                    "expected {t} samples (dims {dims:?}), got {}",
+                                    values.len()
+                                ),
+                            );
+                        }
+                    }
+                    _ => {
+                        return bad(
+                            "dims",
+                            format!(
+                                "{dims:?} is more than the {MAX_SAMPLED_NODES} samples allowed"
+                            ),
+                        );
+                    }
+                }
+                if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+                    return bad("values", format!("sample {i} is not finite"));
+                }
+                if let Some(normals) = normals {
+                    if normals.len() != D * values.len() {
+                        return bad(
+                            "normals",
+                            format!(
+                                "expected {} numbers ({D} per sample), got {}",
+                                D * values.len(),
+                                normals.len()
+                            ),
+                        );
+                    }
+                    if let Some(i) = normals.iter().position(|v| !v.is_finite()) {
+                        return bad("normals", format!("number {i} is not finite"));
+                    }
+                }
+            }
         }
         if !(self.friction.is_finite() && self.friction >= 0.0) {
             return bad(
@@ -165,13 +377,17 @@ impl<const D: usize> Collider<D> {
 pub const MIN_BOX_THICKNESS_CELLS: f32 = 2.0;
 /// Smallest sphere radius (in grid cells) that holds.
 pub const MIN_SPHERE_RADIUS_CELLS: f32 = 1.5;
+/// Least depth (in grid cells) of the deepest sample of a sampled shape:
+/// half of [`MIN_BOX_THICKNESS_CELLS`].
+pub const MIN_SAMPLED_DEPTH_CELLS: f32 = 0.5 * MIN_BOX_THICKNESS_CELLS;
 
 impl<const D: usize> Collider<D> {
     /// Refuses a collider too thin for a grid of spacing `dx` (particles
     /// would fall through it; see the module docs for the measurement):
     /// a box with a side below [`MIN_BOX_THICKNESS_CELLS`] cells (field
     /// `{field}.half_extents`), a sphere of radius below
-    /// [`MIN_SPHERE_RADIUS_CELLS`] cells (`{field}.radius`).
+    /// [`MIN_SPHERE_RADIUS_CELLS`] cells (`{field}.radius`), a sampled shape
+    /// with no sample [`MIN_SAMPLED_DEPTH_CELLS`] cells inside (`{field}.values`).
     pub fn validate_resolution(&self, field: &str, dx: f32) -> Result<()> {
         match &self.shape {
             Shape::Box { half_extents, .. } => {
@@ -196,6 +412,18 @@ impl<const D: usize> Collider<D> {
                         format!(
                             "smaller than {MIN_SPHERE_RADIUS_CELLS} grid cells: radius {radius} m = {:.3} cells (dx = {dx} m); particles would pass through it. Make it at least {min_radius} m or use a finer grid",
                             radius / dx
+                        ),
+                    ));
+                }
+            }
+            Shape::Sampled { values, .. } => {
+                let deepest = values.iter().fold(f32::INFINITY, |a, &v| a.min(v));
+                if !(deepest <= -MIN_SAMPLED_DEPTH_CELLS * dx) {
+                    return Err(MpmError::invalid(
+                        format!("{field}.values"),
+                        format!(
+                            "thinner than the solver holds: its deepest sample is {:.3} cells inside (dx = {dx} m), less than {MIN_SAMPLED_DEPTH_CELLS}; particles would fall through it. Make it thicker (at least {MIN_BOX_THICKNESS_CELLS} cells) or use a finer grid",
+                            (-deepest / dx).max(0.0)
                         ),
                     ));
                 }

@@ -416,8 +416,9 @@ impl<const D: usize> SolverParams<D> {
     }
 }
 
-/// The shape of a collider in the parameter dict: `"box"` or `"sphere"`
-/// (`"circle"` is a synonym).
+/// The shape of a collider in the parameter dict: `"box"`, `"sphere"`
+/// (`"circle"` is a synonym) or `"sampled"` (a signed distance sampled on a
+/// grid: a scene's mesh obstacle).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(
     feature = "serde",
@@ -428,11 +429,14 @@ pub enum ShapeKind {
     Box,
     #[cfg_attr(feature = "serde", serde(alias = "circle"))]
     Sphere,
+    Sampled,
 }
 
 /// A static collider as the parameter dict gives it, the same in 2D and 3D:
 /// the shape's fields flat (a box: `center`, `half_extents`, and
-/// `rotation` or, in 2D, `angle_deg`; a sphere: `center`, `radius`), its
+/// `rotation` or, in 2D, `angle_deg`; a sphere: `center`, `radius`; a
+/// sampled signed distance: `origin`, `cell`, `dims`, `values`, optional
+/// `normals`), its
 /// boundary condition and Coulomb friction. [`ColliderParams::build`] makes
 /// the [`Collider`] of a `D`-dimensional solver; fields the shape does not
 /// use are ignored.
@@ -443,7 +447,7 @@ pub enum ShapeKind {
     serde(default, deny_unknown_fields)
 )]
 pub struct ColliderParams {
-    /// Box or sphere (required).
+    /// Box, sphere or sampled (required).
     #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
     pub shape: Option<ShapeKind>,
     /// Centre [m], `D` numbers (required).
@@ -463,6 +467,23 @@ pub struct ColliderParams {
     /// Sphere radius [m] (required for a sphere).
     #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
     pub radius: Option<f32>,
+    /// Sampled: position of the first sample [m], `D` numbers.
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub origin: Option<Vec<f32>>,
+    /// Sampled: spacing of the samples [m].
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub cell: Option<f32>,
+    /// Sampled: samples per axis, `D` integers.
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub dims: Option<Vec<usize>>,
+    /// Sampled: the signed distances [m], row-major (last axis fastest);
+    /// see [`Shape::Sampled`].
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub values: Option<Vec<f32>>,
+    /// Sampled (optional): outward unit normals at the samples, `D` numbers
+    /// per sample in the order of `values`.
+    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
+    pub normals: Option<Vec<f32>>,
     pub condition: BoundaryCondition,
     /// Coulomb friction coefficient μ (≥ 0; used with `Separate`).
     pub friction: f32,
@@ -478,6 +499,11 @@ impl Default for ColliderParams {
             angle_deg: None,
             rotation: None,
             radius: None,
+            origin: None,
+            cell: None,
+            dims: None,
+            values: None,
+            normals: None,
             condition: BoundaryCondition::Separate,
             friction: 0.0,
         }
@@ -503,9 +529,31 @@ impl ColliderParams {
             }
             Ok(SVector::from_column_slice(v))
         };
-        let kind = self
-            .shape
-            .ok_or_else(|| MpmError::invalid(name("shape"), "missing ('box' or 'sphere')"))?;
+        let kind = self.shape.ok_or_else(|| {
+            MpmError::invalid(name("shape"), "missing ('box', 'sphere' or 'sampled')")
+        })?;
+        if kind == ShapeKind::Sampled {
+            let origin = vector("origin", &self.origin)?;
+            let dims = self.dims.as_ref().ok_or_else(|| missing("dims"))?;
+            let dims: [usize; D] = dims.as_slice().try_into().map_err(|_| {
+                MpmError::invalid(
+                    name("dims"),
+                    format!("expected {D} integers, got {}", dims.len()),
+                )
+            })?;
+            let values = self.values.as_ref().ok_or_else(|| missing("values"))?;
+            return Ok(Collider {
+                shape: Shape::Sampled {
+                    origin,
+                    cell: self.cell.ok_or_else(|| missing("cell"))?,
+                    dims,
+                    values: values.as_slice().into(),
+                    normals: self.normals.as_ref().map(|n| n.as_slice().into()),
+                },
+                condition: self.condition,
+                friction: self.friction,
+            });
+        }
         let center = vector("center", &self.center)?;
         let shape = match kind {
             ShapeKind::Box => {
@@ -542,6 +590,7 @@ impl ColliderParams {
                 center,
                 radius: self.radius.ok_or_else(|| missing("radius"))?,
             },
+            ShapeKind::Sampled => unreachable!("built above"),
         };
         Ok(Collider {
             shape,

@@ -29,7 +29,8 @@ import itertools
 import numpy as np
 
 from hybridmpm.conventions import MATERIAL_SAND
-from hybridmpm.mpm import Box, MpmParams, MpmSolver, Sphere
+from hybridmpm.mpm import MpmParams, MpmSolver
+from hybridmpm.mpm.params import Collider
 from hybridmpm.scenes.spec import collider_sdf
 
 #: Distances to walls and colliders are seen up to this many cells.
@@ -44,7 +45,7 @@ def num_features(dim: int) -> int:
     return own + 3**dim * (2 + dim) + 2 * dim + 1 + dim
 
 
-def _collider_sdf(pos: np.ndarray, colliders: list[Box | Sphere]) -> tuple[np.ndarray, np.ndarray]:
+def _collider_sdf(pos: np.ndarray, colliders: list[Collider]) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance [m] to the nearest collider (inf without any,
     :func:`~hybridmpm.scenes.spec.collider_sdf`) and its outward unit normal
     [N, D] (the distance's central-difference gradient)."""

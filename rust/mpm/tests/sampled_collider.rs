@@ -1,0 +1,240 @@
+//! The sampled signed-distance collider (`Shape::Sampled`, a scene's mesh
+//! obstacle) against analytic shapes: its distance, normal, validation and
+//! the flow it makes.
+
+use std::sync::Arc;
+
+use hybridmpm_mpm::collider::MIN_SAMPLED_DEPTH_CELLS;
+use hybridmpm_mpm::{BoundaryCondition, Collider, Material, Particle, Shape, Solver, SolverParams};
+use nalgebra::{SMatrix, SVector};
+
+/// `shape`'s distance and normal sampled on the nodes `origin + cell·i`.
+fn sample_with_normals<const D: usize>(
+    shape: &Shape<D>,
+    origin: [f32; D],
+    cell: f32,
+    dims: [usize; D],
+) -> Shape<D> {
+    let Shape::Sampled { values, .. } = sample(shape, origin, cell, dims) else {
+        unreachable!()
+    };
+    let normals: Vec<f32> = (0..values.len())
+        .flat_map(|mut lin| {
+            let mut p = SVector::<f32, D>::zeros();
+            for d in (0..D).rev() {
+                p[d] = origin[d] + cell * (lin % dims[d]) as f32;
+                lin /= dims[d];
+            }
+            shape.normal(&p).iter().copied().collect::<Vec<_>>()
+        })
+        .collect();
+    Shape::Sampled {
+        origin: SVector::from_column_slice(&origin),
+        cell,
+        dims,
+        values,
+        normals: Some(Arc::from(normals)),
+    }
+}
+
+/// `shape`'s distance sampled on the nodes `origin + cell·i`, `dims` per axis.
+fn sample<const D: usize>(
+    shape: &Shape<D>,
+    origin: [f32; D],
+    cell: f32,
+    dims: [usize; D],
+) -> Shape<D> {
+    let total: usize = dims.iter().product();
+    let values: Vec<f32> = (0..total)
+        .map(|mut lin| {
+            let mut p = SVector::<f32, D>::zeros();
+            for d in (0..D).rev() {
+                p[d] = origin[d] + cell * (lin % dims[d]) as f32;
+                lin /= dims[d];
+            }
+            shape.sdf(&p)
+        })
+        .collect();
+    Shape::Sampled {
+        origin: SVector::from_column_slice(&origin),
+        cell,
+        dims,
+        values: Arc::from(values),
+        normals: None,
+    }
+}
+
+fn lcg(seed: &mut u64) -> f32 {
+    *seed = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    (*seed >> 40) as f32 / (1u64 << 24) as f32
+}
+
+#[test]
+fn sampled_sphere_interpolates_the_analytic_distance_and_normal() {
+    let cell = 1.0 / 64.0;
+    let sphere = Shape::<3>::Sphere {
+        center: SVector::from([0.5, 0.4, 0.5]),
+        radius: 0.15,
+    };
+    let s = sample(&sphere, [0.3125, 0.203125, 0.3125], cell, [27, 27, 27]);
+    let mut seed = 7;
+    for _ in 0..2000 {
+        let p = SVector::<f32, 3>::from_fn(|d, _| {
+            0.34 + 0.32 * lcg(&mut seed) - if d == 1 { 0.1 } else { 0.0 }
+        });
+        let exact = sphere.sdf(&p);
+        if exact.abs() < 3.0 * cell {
+            assert!((s.sdf(&p) - exact).abs() < 0.05 * cell, "{p:?}");
+            assert!(s.normal(&p).dot(&sphere.normal(&p)) > 0.99, "{p:?}");
+        }
+    }
+    // outside the sampled box: positive, never below the true distance
+    let far = SVector::<f32, 3>::from([0.05, 0.9, 0.05]);
+    assert!(s.sdf(&far) >= sphere.sdf(&far) - 1e-5);
+}
+
+#[test]
+fn a_thin_sampled_slab_points_to_its_nearer_face() {
+    // slabs 2.6 cells thick, level and tilted, with sampled normals (a
+    // mesh's nearest-surface directions): at the nodes inside, the box's
+    let cell = 1.0 / 32.0;
+    for deg in [0.0f32, -20.0, 35.0] {
+        let (s, c) = deg.to_radians().sin_cos();
+        let slab = Shape::<2>::Box {
+            center: SVector::from([0.5, 0.5]),
+            half_extents: SVector::from([0.25, 1.3 * cell]),
+            rotation: SMatrix::<f32, 2, 2>::new(c, -s, s, c),
+        };
+        let sampled = sample_with_normals(&slab, [0.125, 0.125], cell, [25, 25]);
+
+        let mut checked = 0;
+        for i in 0..32 {
+            for j in 0..32 {
+                let p = SVector::<f32, 2>::from([i as f32 * cell, j as f32 * cell]);
+                // inside, away from the ends, and not on the mid-plane (no nearer face there)
+                let local =
+                    SMatrix::<f32, 2, 2>::new(c, s, -s, c) * (p - SVector::from([0.5, 0.5]));
+                if slab.sdf(&p) < -0.1 * cell
+                    && local[0].abs() < 0.15
+                    && local[1].abs() > 0.05 * cell
+                {
+                    assert!(sampled.sdf(&p) < 0.0);
+                    let dot = sampled.normal(&p).dot(&slab.normal(&p));
+                    assert!(
+                        dot > 0.999,
+                        "{deg}° {p:?}: {:?} vs {:?}",
+                        sampled.normal(&p),
+                        slab.normal(&p)
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 10, "{deg}°: {checked}");
+    }
+}
+
+#[test]
+fn validation_names_the_field() {
+    let c = |values: Vec<f32>, dims: [usize; 2]| Collider {
+        shape: Shape::<2>::Sampled {
+            origin: SVector::from([0.4, 0.4]),
+            cell: 1.0 / 32.0,
+            dims,
+            values: Arc::from(values),
+            normals: None,
+        },
+        condition: BoundaryCondition::Separate,
+        friction: 0.0,
+    };
+    let e = c(vec![0.0; 5], [2, 3])
+        .validate("colliders[0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("colliders[0].values"), "{e}");
+    let e = c(vec![0.0; 3], [1, 3])
+        .validate("colliders[0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("colliders[0].dims"), "{e}");
+    let e = c(vec![f32::NAN; 4], [2, 2])
+        .validate("colliders[0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("colliders[0].values"), "{e}");
+    let e = c(vec![1e9; 4], [1 << 13, 1 << 13])
+        .validate("colliders[0]")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("colliders[0]."), "{e}");
+    let dx = 1.0 / 32.0;
+    let shallow = c(
+        vec![0.1, -0.9 * MIN_SAMPLED_DEPTH_CELLS * dx, 0.1, 0.1],
+        [2, 2],
+    );
+    assert!(shallow.validate("colliders[0]").is_ok());
+    let e = shallow
+        .validate_resolution("colliders[0]", dx)
+        .unwrap_err()
+        .to_string();
+    assert!(e.starts_with("colliders[0].values"), "{e}");
+    let deep = c(
+        vec![0.1, -1.1 * MIN_SAMPLED_DEPTH_CELLS * dx, 0.1, 0.1],
+        [2, 2],
+    );
+    assert!(deep.validate_resolution("colliders[0]", dx).is_ok());
+}
+
+/// Water dropped on a disc: the sampled disc holds it as the analytic one does.
+#[test]
+fn water_on_a_sampled_disc_follows_the_analytic_disc() {
+    let params = SolverParams::<2> {
+        n_grid: 64,
+        ..Default::default()
+    };
+    let disc = Shape::<2>::Sphere {
+        center: SVector::from([0.5, 0.35]),
+        radius: 0.12,
+    };
+    let sampled = sample_with_normals(&disc, [0.34375, 0.1875], 1.0 / 64.0, [21, 21]);
+    let run = |shape: Shape<2>| {
+        let col = Collider {
+            shape,
+            condition: BoundaryCondition::Separate,
+            friction: 0.0,
+        };
+        let mut s = Solver::new(params.clone(), vec![col]).unwrap();
+        let sp = 0.5 / 64.0;
+        let vol = sp * sp;
+        let ps: Vec<Particle<2>> = (0..30 * 20)
+            .map(|i| {
+                let x = SVector::from([0.42 + (i % 30) as f32 * sp, 0.6 + (i / 30) as f32 * sp]);
+                Particle::new(x, Material::Water, 1000.0 * vol, vol)
+            })
+            .collect();
+        s.add_particles(ps).unwrap();
+        for _ in 0..60 {
+            s.step_frame(1.0 / 60.0).unwrap();
+        }
+        s.particles().iter().map(|p| p.x).collect::<Vec<_>>()
+    };
+    let a = run(disc.clone());
+    let b = run(sampled);
+    let depth =
+        |xs: &[SVector<f32, 2>]| xs.iter().map(|x| -disc.sdf(x)).fold(f32::MIN, f32::max) * 64.0;
+    let mean_y = |xs: &[SVector<f32, 2>]| xs.iter().map(|x| x[1]).sum::<f32>() / xs.len() as f32;
+    assert!(
+        depth(&b) < depth(&a).max(0.5) + 0.1,
+        "{} vs {}",
+        depth(&b),
+        depth(&a)
+    );
+    assert!(
+        (mean_y(&a) - mean_y(&b)).abs() < 0.01,
+        "{} vs {}",
+        mean_y(&a),
+        mean_y(&b)
+    );
+}
