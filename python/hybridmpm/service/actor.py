@@ -71,6 +71,10 @@ class Busy(Exception):
     """A control is already running on the session (→ 409)."""
 
 
+class Gone(Exception):
+    """The session was closed while the call waited or ran (→ 404)."""
+
+
 def _wrap(method: _F, failed_is_error: bool = False, when_closed: bool = False) -> _F:
     """An actor method answering ``("ok", value)``, ``("err", kind, message,
     field)`` for a refusal, ``("busy",)``, or ``("gone", reason)`` once the
@@ -87,6 +91,8 @@ def _wrap(method: _F, failed_is_error: bool = False, when_closed: bool = False) 
             return ("ok", method(self, *args, **kwargs))
         except Busy:
             return ("busy",)
+        except Gone:
+            return ("gone", self.closing[1] if self.closing is not None else "closed")
         except _REFUSALS as e:
             return ("err", type(e).__name__, str(e), getattr(e, "field", None))
 
@@ -274,11 +280,13 @@ class SessionActor:
         ``(rollout, metrics, plan summary, seconds to the first controlled
         frame, cancelled)``. Saved before it answers; :meth:`cancel_control`
         stops it within a frame."""
-        with self.cond:
+        with self.cond:  # a close sets `closing` under this lock, then the cancel flag: a control never clears a close's cancel
             if self.controlling:
                 raise Busy()  # refused: no viewer is told of it
+            if self.closing is not None:
+                raise Gone()
             self.controlling = True
-        self.cancel.clear()
+            self.cancel.clear()
         t0 = time.perf_counter()
         try:
             sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None
@@ -289,6 +297,8 @@ class SessionActor:
                 ro, metrics, plan, t_first = run_episode(self.sim, sketch, controller, cid, self._publish, self._event, self.cancel.is_set)
                 self.dirty = True
                 self._touch()
+            if self.closing is not None:  # deleted while it ran (it stopped within a frame)
+                raise Gone()
             self._save()  # a control is saved before it is answered
             return ro, metrics, plan, ((t_first - t0) if t_first is not None else None), self.cancel.is_set()
         finally:
@@ -342,9 +352,9 @@ class SessionActor:
 
     def _close(self, code: int, reason: str) -> None:
         self.playing = False
-        self.cancel.set()  # a control running here stops within a frame
         with self.cond:
             self.closing = (code, reason)
+            self.cancel.set()  # a control running here stops within a frame (after `closing`: see run_control)
             self.cond.notify_all()
         with self.save_lock:  # a save under way ends first: no record outlives its session
             if self.store is not None:
