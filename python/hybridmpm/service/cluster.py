@@ -45,7 +45,7 @@ import numpy as np
 import ray
 import ray.exceptions
 
-from hybridmpm.control import Controller, Sketch
+from hybridmpm.control import Sketch
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.service.actor import ACTOR_PREFIX, ACTOR_THREADS, REGISTRY_NAME, Registry, SessionActor
 from hybridmpm.service.config import ServiceConfig
@@ -539,7 +539,7 @@ class RaySessionManager(SessionManager):
             s.at_frame = int(ro.frame_index[-1])
         return ro
 
-    async def run_control(self, s: Session, sketch: Sketch | None, controller: Controller, left: Any, first: list[float], cid: str) -> Any:
+    async def run_control(self, s: Session, sketch: Sketch | None, method: str, frames: int, left: Any, first: list[float], cid: str) -> Any:
         """Control ``cid`` in ``s``'s actor (:meth:`SessionActor.run_control`,
         :func:`hybridmpm.service.episode.run_episode`); a client that leaves
         (``left`` set) cancels it there. Returns ``(rollout, metrics, plan summary)``."""
@@ -549,8 +549,8 @@ class RaySessionManager(SessionManager):
             self._call(
                 s,
                 "run_control",
-                controller.method,
-                int(controller.frames),
+                method,
+                int(frames),
                 sketch.to_json() if sketch is not None else None,
                 cid,
                 retry=False,

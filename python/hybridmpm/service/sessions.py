@@ -552,15 +552,20 @@ class SessionManager:
             self.changed(s)
         return ro
 
-    async def run_control(self, s: Session, sketch: Any, controller: Any, left: Any, first: list[float], cid: str) -> tuple[Rollout, dict[str, Any], Any]:
-        """Control ``cid`` on ``s`` (:func:`hybridmpm.service.episode.run_episode`)
+    async def run_control(
+        self, s: Session, sketch: Any, method: str, frames: int, left: Any, first: list[float], cid: str
+    ) -> tuple[Rollout, dict[str, Any], Any]:
+        """Control ``cid`` on ``s`` with ``method`` for ``frames`` frames
+        (the scene's :class:`~hybridmpm.control.Controller`, built on the
+        worker; :func:`hybridmpm.service.episode.run_episode`)
         on a worker thread under its lock, its frames and plan event offered
         to the viewers as they come; ``left`` (a :class:`threading.Event`) set
         stops it within a frame, and so does closing ``s`` (a delete, an
         expiry). Appends the time of the first controlled frame to ``first``;
         returns ``(rollout, metrics, plan summary)``; :class:`SessionGoneError`
         when it was closed before or during the control."""
-        from hybridmpm.service.episode import run_episode  # import time: the controllers load only when a control runs
+        from hybridmpm.control import Controller  # import time: the controllers load only when a control runs
+        from hybridmpm.service.episode import run_episode
 
         loop = asyncio.get_running_loop()
 
@@ -574,7 +579,8 @@ class SessionManager:
             if s.closed:
                 raise SessionGoneError()
             s.control_stop = left
-            s.broadcast({"type": "control", "status": "running", "id": cid, "method": controller.method})
+            controller = await self.compute(functools.partial(Controller.for_scene, s.facts.scene_name, method, frames=frames))
+            s.broadcast({"type": "control", "status": "running", "id": cid, "method": method})
             try:
                 ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
             finally:

@@ -9,14 +9,10 @@ its slots are freed.
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import binascii
 import io
 import logging
-import math
-import secrets
-import threading
 import time
 from typing import Any
 
@@ -25,38 +21,22 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from hybridmpm.control import Controller, Sketch, render_sketch, sketch_from_png
+from hybridmpm.control import Sketch, sketch_from_png
 from hybridmpm.control.sketch import MAX_IMAGE_PIXELS
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.service.budget import BudgetFullError
+from hybridmpm.service.controls import check_method, run_control
 from hybridmpm.service.deps import ConfigDep, ControlDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError, field_error
-from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.schemas import ControlRequest, ControlResponse, clean
-from hybridmpm.service.sessions import Control, SessionGoneError
+from hybridmpm.service.schemas import ControlRequest, ControlResponse
 
 log = logging.getLogger("hybridmpm.service")
 OCTET = "application/octet-stream"
 NPZ = "application/x-npz"
-#: Copies of a control's trajectory alive at its peak (its frames, the stacked array, the kept one, the plan's
-#: arrays): measured with tracemalloc at 2.4 (constant) and 4.1 (diffusion) for a 1000-frame water3d hybrid
-#: control, once the effort and smoothness metrics stopped keeping every applied field.
-CONTROL_COPIES = 5
 #: Bytes per pixel while a PNG sketch is decoded (the decoded image, its RGB copy, the ink mask).
 PNG_BYTES_PER_PIXEL = 8
-#: How often a running control looks whether its client has left [s].
-DISCONNECT_POLL_S = 0.25
 
 router = APIRouter()
-
-
-def png_base64(img: np.ndarray) -> str:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="PNG")
-    return base64.b64encode(buf.getvalue()).decode()
 
 
 @router.post(
@@ -98,11 +78,9 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
     if body.frames > cfg.max_control_frames:
         raise FieldError(("body", "frames"), f"frames: at most {cfg.max_control_frames}")
     try:
-        controller = Controller.for_scene(s.facts.scene_name, body.method, frames=body.frames)
+        check_method(s.facts.scene_name, body.method)  # no model is loaded to validate a request
     except InvalidInputError as e:
-        if e.field == "scene":  # no diffusion controller ships for this session's scene
-            raise FieldError(("body", "method"), f"method: {e}".replace("scene: ", "", 1)) from None
-        raise field_error(e, default="method") from None
+        raise FieldError(("body", "method"), str(e)) from None
     if sketch is None and body.method != "none":
         raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")
     if s.controlling:
@@ -111,81 +89,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         raise ApiError(409, "this session's solver is the network alone, which takes no control (control runs on MPM); create it with solver 'hybrid' or 'mpm'")
     if manager.controls_running >= cfg.max_controls:
         raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})
-    frame_bytes = s.facts.frame_bytes
-    steps = math.ceil(body.frames / s.facts.r_t)
-    transient = manager.budget.take(CONTROL_COPIES * (steps + 1) * frame_bytes, f"a control of {body.frames} frames")
-    s.controlling = True
-    manager.controls_running += 1
-    cid = secrets.token_urlsafe(9)
-    loop = asyncio.get_running_loop()
-    first: list[float] = []
-    left = threading.Event()  # set when the client has gone
-
-    async def watch() -> None:
-        while not left.is_set():
-            if await request.is_disconnected():
-                left.set()
-                return
-            await asyncio.sleep(DISCONNECT_POLL_S)
-
-    watcher = loop.create_task(watch())
-    try:
-        await manager.save(s)  # the steps answered before it are durable: the periodic saver skips a session in a control
-        # the backend tells the viewers "running" once the control has really started (a refused one, never)
-        try:
-            ro, metrics, plan = await manager.run_control(s, sketch, controller, left, first, cid)
-        except (ApiError, SessionGoneError, BudgetFullError):
-            raise  # refused before it ran, or its session is gone (its viewers were closed)
-        except Exception:
-            s.broadcast({"type": "control", "status": "failed", "id": cid})  # it started: its viewers see it end
-            raise
-        if left.is_set():
-            log.info("control %s on session %s… cancelled: its client left", cid, s.id[:SHOWN_ID_CHARS])
-            s.broadcast({"type": "control", "status": "cancelled", "id": cid})
-            s.republish()
-            raise ApiError(408, "control cancelled: the client left")
-        fluid = ro.fluid_positions
-        c0, c1 = fluid[0].mean(0), fluid[-1].mean(0)
-        metrics.update({"centroid_start": c0.tolist(), "centroid_end": c1.tolist(), "centroid_displacement": (c1 - c0).tolist()})
-        del fluid
-        png = await manager.compute(lambda: png_base64(render_sketch(sketch))) if sketch is not None else None
-        pos = np.asarray(ro.positions, np.float32)
-        solver_names = [str(x) for x in ro.solver]
-        t_end = time.perf_counter()
-        resp = {
-            "id": cid,
-            "method": body.method,
-            "frames": int(controller.frames),
-            "shape": list(pos.shape),
-            "start_frame": int(np.asarray(ro.frame_index)[0]),
-            "end_frame": s.frame_index,
-            "metrics": clean(metrics),
-            "sketch": clean(sketch.to_json()) if sketch is not None else None,
-            "sketch_png": png,
-            "first_frame_ms": ((first[0] if first else t_end) - t_req) * 1e3,
-            "total_ms": (t_end - t_req) * 1e3,
-            "trajectory": f"/v1/sessions/{s.id}/controls/{cid}/trajectory",
-            "plan": plan,
-        }
-        del ro
-        manager.budget.give(transient)  # the kept trajectory is smaller than what was reserved for the run
-        transient = 0
-        kept = Control(cid, body.method, pos, solver_names, resp)
-        kept.cost = manager.budget.take(pos.nbytes + len(png or "") + 4096, "keeping the control")
-        if s.closed:
-            manager.budget.give(kept.cost)
-        else:
-            await manager.keep_control(s, kept)
-        await manager.save(s)  # a control is saved before it is answered
-        s.broadcast({"type": "control", "status": "done", "id": cid, "metrics": resp["metrics"]})
-        s.touch()
-        return resp
-    finally:
-        left.set()
-        watcher.cancel()
-        manager.budget.give(transient)
-        s.controlling = False
-        manager.controls_running -= 1
+    return await run_control(manager, s, sketch, body.method, body.frames, request, t_req)
 
 
 @router.post(
