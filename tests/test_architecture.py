@@ -310,3 +310,25 @@ def test_the_connectivity_radius_value_is_written_once():
             if pattern.search(code) and '"""' not in line and not line.lstrip().startswith(("``", "-", "*")):
                 offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
     assert not offenders, "\n".join(offenders)
+
+
+def test_routes_read_session_facts_not_the_simulator():
+    # a route reads a session's plain facts (service/facts.py), the same on both backends; reaching into `s.sim`
+    # is what once needed a stand-in simulator on the Ray front end
+    offenders = []
+    for p in sorted((PACKAGE / "service" / "routes").glob("*.py")):
+        for i, line in enumerate(p.read_text().splitlines(), 1):
+            if re.search(r"\.sim\b", line):
+                offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_no_class_stands_in_for_a_simulator_in_the_service():
+    # the service holds real simulators (local sessions, actors) or none (a Ray front end's session has sim=None)
+    offenders = []
+    for p in sorted((PACKAGE / "service").rglob("*.py")):
+        tree = ast.parse(p.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef) and ("Sim" in node.name and "View" in node.name or node.name.endswith("Simulator")):
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: class {node.name}")
+    assert not offenders, "\n".join(offenders)
