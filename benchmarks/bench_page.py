@@ -16,8 +16,9 @@ Cases: the 3D scenes (water3d seed 26: 4032 particles, sand3d seed 3: 4032,
 the largest of their first 30 seeds; the scenes cap at 4096) in the fluid and
 the particles looks, the simulation paused (rendering alone) and playing (the
 server simulating on the same cores), at the resolution software GL starts
-with (3/4 of a CSS pixel), at full resolution and (water) at half, and the 2D
-dam break. The
+with (3/4 of a CSS pixel), at full resolution and (water) at half, the 2D
+dam break, and the page's default 3D scene, the 3D dam break (23,520
+particles; cases 10-15). The
 page's target is 50 frames/s.
 
     python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--out benchmarks/results/page]
@@ -105,6 +106,13 @@ CASES = [
     ("sand3d", 3, "fluid", False, 1.0),
     ("sand3d", 3, "fluid", True, 0.75),
     ("dam_break2d", 0, "fluid", True, 0.75),
+    # the page's default 3D scene: 23,520 particles
+    ("dam_break3d", 0, "fluid", False, 0.75),
+    ("dam_break3d", 0, "fluid", True, 0.75),
+    ("dam_break3d", 0, "particles", False, 0.75),
+    ("dam_break3d", 0, "particles", True, 0.75),
+    ("dam_break3d", 0, "fluid", False, 1.0),
+    ("dam_break3d", 0, "fluid", True, 0.5),
 ]
 
 

@@ -6,7 +6,9 @@ up (the y flip); a 3D scene renders and turns with the camera, an arrow drawn
 in 3D moves the fluid's centroid along it, the sketch and the plan's centroid
 path stay on the canvas through the controlled horizon; the downloads (the
 session's trajectory, PLY frames, the control's trajectory, a GIF) read back;
-the Canvas2D fallback draws. With ``HYBRIDMPM_PAGE_SCREENSHOTS=DIR`` the 2D and
+the Canvas2D fallback draws; the page opened bare shows the 3D dam break as a
+body of water, holds the frame while paused, advances exactly T frames over a
+T-frame control, and a rightward arrow moves the water's pixels right. With ``HYBRIDMPM_PAGE_SCREENSHOTS=DIR`` the 2D and
 3D pages with a sketch applied are saved as ``DIR/page_2d.png``, ``DIR/page_3d.png``
 (the docs' pictures: ``HYBRIDMPM_PAGE_SCREENSHOTS=docs/img``)."""
 
@@ -382,3 +384,87 @@ def test_the_api_behind_the_page(server, tmp_path):
             r = c.get(f"/v1/sessions/{s['id']}/trajectory?{query}")
             assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", field], r.text
         assert c.get("/v1/sessions/nope/trajectory").status_code == 404
+
+
+# ---------------------------------------------------------------- the default 3D scene
+def water_pixels(img):
+    """Mask of the water's pixels in a screenshot (RGB float, the page's light 3D view): blue well above red and
+    green. The room's walls and floor (greys), the background, the sketch (red) and the plan's path (green) are not."""
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return (b - r > 50) & (b - g > 20)
+
+
+def session_frame(server, sid):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        return c.get(f"/v1/sessions/{sid}").json()["frame"]
+
+
+def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward_arrow(server, browser):
+    """The page opened bare: the 3D dam break (WebGL2), tens of thousands of particles drawn as one body of water.
+    Paused, the frame holds; a 100-frame control advances exactly 100 frames and the page stays paused after it.
+    A rightward arrow moves the water's pixels right on the screen (fixed camera): against the same frame
+    reached without the control (reset, then stepped over HTTP), since the dam break flows right by itself."""
+    page, errors = new_page(browser, "?scale=1", server)
+    session = page.evaluate("window.__hmpm.session")
+    assert session["scene"] == "dam_break3d" and session["dim"] == 3 and session["solver"] == "mpm"
+    assert 20_000 <= session["num_fluid"] <= 60_000
+    assert page.evaluate("[window.__hmpm.renderer, window.__hmpm.look]") == ["webgl2", "fluid"]
+    page.evaluate("document.getElementById('badge').hidden = true")  # the badge is water-blue
+    sid = session["id"]
+
+    # it plays by default; paused, the frame holds (on the server and on the page)
+    page.wait_for_function("window.__hmpm.lastFrame >= 10", timeout=30_000)
+    page.click("#play")
+    assert page.locator("#play").text_content() == "play"
+    page.wait_for_timeout(500)
+    f0 = session_frame(server, sid)
+    page.wait_for_function(f"window.__hmpm.lastFrame === {f0}", timeout=10_000)
+    page.wait_for_timeout(1500)
+    assert session_frame(server, sid) == f0 and page.evaluate("window.__hmpm.lastFrame") == f0
+    before = shot(page, "#sim")
+    water0 = water_pixels(before)
+    assert water0.mean() > 0.05, "the water is not drawn as a body"  # the column covers well over 5 % of the canvas
+
+    # a rightward arrow from the water's centroid, applied with the page's default method (diffusion: none ships
+    # for the dam break, so the page applies the same sketch with PD)
+    c = page.evaluate("window.__hmpm.centroidCss()")
+    draw_stroke(page, (c[0], c[1]), (c[0] + 220, c[1]))
+    assert page.eval_on_selector("#method", "s => s.value") == "diffusion"
+    page.click("#apply")
+    page.wait_for_function("window.__hmpm.lastControlFrame >= 50", timeout=120_000)
+    keep_screenshot(page, "page_dam_break3d.png")
+    page.wait_for_function("window.__hmpm.controls.length > 0", timeout=120_000)
+    ctl = page.evaluate("window.__hmpm.controls.at(-1)")
+    assert "error" not in ctl, ctl
+    assert ctl["method"] == "pd" and page.eval_on_selector("#method", "s => s.value") == "pd"
+    assert (ctl["start_frame"], ctl["end_frame"]) == (f0, f0 + 100)  # a control of T frames advances T frames
+    page.wait_for_function(f"window.__hmpm.lastFrame === {f0 + 100}", timeout=10_000)
+    page.wait_for_timeout(1500)  # still paused after the control
+    assert session_frame(server, sid) == f0 + 100 and page.evaluate("window.__hmpm.lastFrame") == f0 + 100
+    assert "paused" in page.evaluate("window.__hmpm.status")
+    page.click("#clear")
+    page.wait_for_timeout(300)
+    controlled = shot(page, "#sim")
+
+    # the same frame without the control
+    page.click("#reset")
+    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
+    stepped(page, server, f0 + 100)
+    free = shot(page, "#sim")
+
+    w = before.shape[1]
+    xs = np.arange(w)[None, :]
+
+    def cx(img):
+        m = water_pixels(img)
+        return float((m * xs).sum() / m.sum()), float(m[:, w // 2 :].sum() / m.sum())
+
+    (x0, right0), (xc, right_c), (xf, right_f) = cx(before), cx(controlled), cx(free)
+    print(f"water centroid x [px]: before {x0:.0f}, controlled {xc:.0f}, free {xf:.0f}; right half: {right0:.2f} {right_c:.2f} {right_f:.2f}")
+    assert xc - xf >= 0.03 * w and right_c > right_f + 0.03, "the arrow does not move the water right on the screen"
+    assert xc > x0
+    assert ctl["metrics"]["centroid_displacement"][0] > 0  # the server agrees: the fluid's centroid moved +x
+    # the browser logs the refused diffusion control (422), once; nothing else
+    refused = [e for e in errors if "status of 422" in e]
+    assert len(refused) == 1 and page.evaluate("window.__hmpm.errors") == [] and len(errors) == 1, errors
+    page.close()

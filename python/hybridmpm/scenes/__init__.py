@@ -9,7 +9,8 @@
   (paper Sec. 3.1.1, :mod:`hybridmpm.scenes.resolution`).
 - :data:`DOMAINS` — seeded generators for ``water2d``, ``sand2d``,
   ``water_ramps2d``, ``sand_ramps2d``, ``water_sand2d``, ``water3d``,
-  ``sand3d`` and ``dam_break2d`` (:mod:`hybridmpm.scenes.registry`).
+  ``sand3d``, ``dam_break2d`` and its 3D twin ``dam_break3d``
+  (:mod:`hybridmpm.scenes.registry`).
 
 >>> from hybridmpm.scenes import make_scene
 >>> scene = make_scene("water_ramps2d", seed=3)
@@ -23,6 +24,7 @@ from hybridmpm.scenes.registry import (
     PAPER_FRAMES,
     dam_break2d,
     dam_break2d_spec,
+    dam_break3d_spec,
     make_scene,
     sand2d,
     sand3d,
@@ -52,6 +54,7 @@ __all__ = [
     "collider_sdf",
     "dam_break2d",
     "dam_break2d_spec",
+    "dam_break3d_spec",
     "downsample_scene",
     "hydrostatic_volume_ratio",
     "lattice",

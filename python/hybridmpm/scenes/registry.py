@@ -19,6 +19,7 @@ water_columns2d 4608   400   1–2 water columns at rest, released (ours, not th
 water3d         4096   800   1–3 water blocks
 sand3d          4096   350   1–3 sand blocks
 dam_break2d     —      300   Martin & Moyce (1952) column (deterministic)
+dam_break3d     —      300   its 3D twin across the box (ours, deterministic)
 =============== ====== ===== =========================================
 """
 
@@ -48,6 +49,8 @@ PAPER_FRAMES = {
     "dam_break2d": 300,
     # not in the paper: training data for column collapses, about 1 s
     "water_columns2d": 400,
+    # not in the paper: the page's 3D scene, 0.75 s (the surge reaches the far wall at about 0.4 s)
+    "dam_break3d": 300,
 }
 
 #: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
@@ -291,6 +294,42 @@ def dam_break2d_spec(seed: int = 0, frames: int | None = None, n_grid: int = 128
     return _spec("dam_break2d", seed, params, [block], frames, a=a, x_wall=wall, y_floor=wall, spacing=dx / 2)
 
 
+#: Grid of ``dam_break3d`` [cells per side] and its column's base ``a`` [cells]: the
+#: largest column that fits the surge (``4.2a``) on the grid chosen for speed
+#: (docs/page.md "The default 3D scene": ms per frame per grid).
+DAM_BREAK3D_N_GRID = 34
+DAM_BREAK3D_A_CELLS = 7
+
+
+def dam_break3d_spec(seed: int = 0, frames: int | None = None, n_grid: int = DAM_BREAK3D_N_GRID, a_cells: int = DAM_BREAK3D_A_CELLS) -> SceneSpec:
+    """Martin & Moyce's water column in 3D: base ``a = a_cells·dx`` along x,
+    height ``2a``, spanning the box across z (wall to wall, as the
+    experiment's column spanned its channel), against the x- wall, at
+    hydrostatic rest, released at t = 0. The walls are frictionless, so every
+    x–y slice collapses as the 2D dam break does (it meets Martin & Moyce's
+    tolerances as the 2D scene does: tests/test_scenes.py). Default: a 34³
+    grid, ``a`` = 7 cells = 0.206 m, 2 particles per cell per axis (spacing
+    dx/2): 14 × 28 × 60 = 23,520 particles. The grid is the finest at which
+    MPM advances it at about 100 frames/s on 2 cores (11 ms per frame; 17 ms
+    on one thread, as a service session runs it: docs/page.md). ``seed`` is
+    unused (the scene is deterministic).
+
+    ``info`` holds ``a`` [m], ``x_wall``, ``y_floor`` and ``z_walls`` [m]
+    (the wall faces the water rests against, :func:`~hybridmpm.scenes.wall_face`)
+    and the lattice ``spacing`` [m].
+    """
+    params = MpmParams(dim=3, n_grid=n_grid)
+    dx = 1.0 / n_grid
+    wall = wall_face(params)
+    if a_cells < 4:
+        raise InvalidInputError(f"a_cells: must be >= 4 grid cells, got {a_cells}", "a_cells")
+    a = a_cells * dx
+    if wall + 4.2 * a > 1.0 - wall:
+        raise InvalidInputError(f"a_cells: the surge would leave the domain; use a_cells <= {int((1 - 2 * wall) / 4.2 / dx)}", "a_cells")
+    block = Block("water", [wall, wall, wall], [wall + a, wall + 2 * a, 1.0 - wall], hydrostatic=True)
+    return _spec("dam_break3d", seed, params, [block], frames, a=a, x_wall=wall, y_floor=wall, z_walls=[wall, 1.0 - wall], spacing=dx / 2)
+
+
 #: Registered domains: name → seeded spec generator ``f(seed, frames=None, **kw) -> SceneSpec``.
 DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "water2d": water2d,
@@ -302,6 +341,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "water3d": water3d,
     "sand3d": sand3d,
     "dam_break2d": dam_break2d_spec,
+    "dam_break3d": dam_break3d_spec,
 }
 
 

@@ -11,6 +11,7 @@ const GIF_SIZE = 320;                // pixels
 // a 3D arrow's depth travels as its width (control/sketch.py: wider = nearer the viewer, +z)
 const WIDTH_MIN = 0.006, WIDTH_MAX = 0.024, WIDTH_FLAT = 0.015, DEPTH_FLAT = 0.005;
 const INK = "#d1245a", PLAN = "#0b7a4b";
+const DEFAULT_3D = "dam_break3d";      // the page's scene where WebGL2 draws 3D (a body of water, 23,520 particles)
 
 const params = new URLSearchParams(location.search);
 const bench = params.get("bench") === "1";    // draw every animation frame (and turn a 3D camera): frames/s
@@ -117,7 +118,9 @@ async function loadScenes() {
     sel.appendChild(o);
     sceneSolvers[s.name] = s.solvers;
   }
-  sel.value = params.get("scene") || "water2d";
+  // the default scene: the 3D dam break where WebGL2 draws 3D, the 2D water blocks on the Canvas2D fallback (an x–y view)
+  const fallback = renderer.kind === "webgl2" && sceneSolvers[DEFAULT_3D] ? DEFAULT_3D : "water2d";
+  sel.value = params.get("scene") || fallback;
   $("seed").value = params.get("seed") || "0";
   $("solver").value = params.get("solver") || "hybrid";
   if (params.get("method")) $("method").value = params.get("method");
@@ -126,8 +129,17 @@ async function loadScenes() {
   syncSolvers();
 }
 
+// the scenes whose control was refused for want of a diffusion controller: their method falls back to PD
+const noDiffusion = new Set();
+function syncMethods() {
+  const sel = $("method"), lacks = noDiffusion.has($("scene").value);
+  for (const o of sel.options) o.disabled = lacks && o.value === "diffusion";
+  if (lacks && sel.value === "diffusion") sel.value = "pd";
+}
+
 // offer only the scene's solvers; a solver it lacks falls back to its first (MPM)
 function syncSolvers() {
+  syncMethods();
   const allowed = sceneSolvers[$("scene").value] || [];
   const sel = $("solver");
   for (const o of sel.options) o.disabled = allowed.length > 0 && !allowed.includes(o.value);
@@ -159,19 +171,38 @@ async function newSession() {
 }
 
 // ---------------------------------------------------------------- stream
+// The WebSocket lives in a worker (stream.js) that keeps only the latest frame and hands it over when the page
+// asks. Read here, frames the page was too busy to take queued in the browser: a page drawing 2 frames/s
+// showed frames hundreds behind the server's (a paused session seemed to jump when it moved again).
+class FrameStream {
+  constructor(url) {
+    this.readyState = 0; this.onopen = null; this.onclose = null;
+    this.worker = new Worker("/static/stream.js");
+    this.worker.onmessage = (ev) => {
+      const m = ev.data;
+      if (m.type === "frame") { this.worker.postMessage({ type: "next" }); onFrame(m.data); }
+      else if (m.type === "event") onEvent(JSON.parse(m.data));
+      else if (m.type === "open") { this.readyState = 1; this.worker.postMessage({ type: "next" }); if (this.onopen) this.onopen(); }
+      else if (m.type === "close") { this.readyState = 3; if (this.onclose) this.onclose(m); }
+    };
+    this.worker.onerror = (e) => hook.errors.push(`stream worker: ${e.message}`);
+    this.worker.postMessage({ type: "open", url });
+  }
+  send(text) { this.worker.postMessage({ type: "send", data: text }); }
+  close() { this.readyState = 3; this.worker.onmessage = null; this.worker.postMessage({ type: "close" }); } // nothing more from it
+}
 function closeStream() { if (ws) { ws.onclose = null; ws.close(); ws = null; } }
 function openStream() {
   const proto = location.protocol === "https:" ? "wss" : "ws";
-  ws = new WebSocket(`${proto}://${location.host}${session.stream}`);
-  ws.binaryType = "arraybuffer";
+  ws = new FrameStream(`${proto}://${location.host}${session.stream}`);
   ws.onopen = () => { setStatus("streaming"); if (playing) ws.send(JSON.stringify({ type: "play" })); };
-  ws.onmessage = (ev) => (typeof ev.data === "string" ? onEvent(JSON.parse(ev.data)) : onFrame(ev.data));
   ws.onclose = (ev) => setStatus(ev.code === 4000 ? "session expired: start a new one" : `stream closed (${ev.code} ${ev.reason})`);
 }
 function onEvent(msg) {
   if (msg.type === "control") {
     hook.controlRunning = msg.status === "running";
-    setStatus(msg.status === "running" ? `control ${msg.method} running…` : msg.status === "done" ? "control done; the simulation continues" : `control ${msg.status}`);
+    setStatus(msg.status === "running" ? `control ${msg.method} running…`
+      : msg.status === "done" ? `control done; ${playing ? "the simulation continues" : "paused (press play to go on)"}` : `control ${msg.status}`);
   } else if (msg.type === "plan") {
     if (applied && applied.running && !applied.plan) { applied.plan = msg; hook.applied.plan = msg; drawInk(true); }
   } else if (msg.type === "reset") {
@@ -400,7 +431,18 @@ async function applySketch() {
   $("apply").disabled = true;
   setStatus(`applying ${body.method}…${is3D() && kind === "arrow" && span < 0.5 * len3 ? " (the controller follows the x–y part of a 3D sketch: turn the camera toward the front for more)" : ""}`);
   try {
-    const res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
+    let res;
+    try {
+      res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
+    } catch (e) {
+      // a scene without a shipped diffusion controller (the dam breaks): the same sketch with the PD tracker
+      if (body.method !== "diffusion" || !/no diffusion controller/.test(e.message)) throw e;
+      noDiffusion.add(session.scene);
+      syncMethods();
+      body.method = $("method").value;
+      setStatus(`no diffusion controller ships for ${session.scene}: applying ${body.method}…`);
+      res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
+    }
     hook.controls.push(res);
     if (applied) {
       applied.id = res.id; applied.running = false;
@@ -410,7 +452,7 @@ async function applySketch() {
     if (res.sketch_png) { $("sketchpng").src = `data:image/png;base64,${res.sketch_png}`; $("sketchpng").hidden = false; }
     $("dl-control").href = res.trajectory; $("dl-control").hidden = false;
     const d = res.metrics.centroid_displacement || [];
-    setStatus(`done: ${res.frames} controlled frames, centroid moved (${d.map((x) => x.toFixed(3)).join(", ")}) m; first frame after ${res.first_frame_ms.toFixed(0)} ms`);
+    setStatus(`done: ${res.frames} controlled frames, centroid moved (${d.map((x) => x.toFixed(3)).join(", ")}) m; first frame after ${res.first_frame_ms.toFixed(0)} ms${playing ? "" : "; paused (press play to go on)"}`);
   } catch (e) {
     setStatus(`control refused: ${e.message}`);
     hook.controls.push({ error: e.message });

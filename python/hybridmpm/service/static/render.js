@@ -4,7 +4,7 @@
 // shading from the normal reconstructed from it; 2D: a density field splatted and thresholded), sand as
 // grains. Canvas2DRenderer is the fallback where WebGL2 (or a float render target) is missing.
 
-import { Camera, dot, transform4 } from "./mat.js";
+import { Camera, dot, invert, transform4 } from "./mat.js";
 
 const WATER = 5, SAND = 6, WALL = 3;
 // [MPM, network] per material: the frame's solver tints the particles (the legend's colours)
@@ -56,16 +56,42 @@ void main() {
   o = vec4(base * (0.38 + 0.62 * diff) + 0.22 * spec, 1.0);
 }`;
 
+// 3D water: the part [s0, s1] of a sprite's chord inside the box the water rests in (s along the view's +z, in
+// [-h, h] around the particle's centre): a sphere of the splat pokes through a wall face by up to its radius, so
+// the surface ends flat at the wall (the glass of a tank), not in a row of bumps. u_clip = 0: the whole chord.
+const CLIP = `
+uniform mat4 u_viewInv;
+uniform vec3 u_boxLo, u_boxHi;
+uniform float u_clip;
+bool chord(vec2 c, float h, out float s0, out float s1) {
+  s0 = -h; s1 = h;
+  if (u_clip < 0.5) return true;
+  vec3 A = (u_viewInv * vec4(v_viewPos + vec3(c.x, -c.y, 0.0) * v_radius, 1.0)).xyz;
+  vec3 F = (u_viewInv * vec4(0.0, 0.0, 1.0, 0.0)).xyz;
+  for (int k = 0; k < 3; k++) {
+    if (abs(F[k]) < 1e-6) {
+      if (A[k] < u_boxLo[k] || A[k] > u_boxHi[k]) return false;
+      continue;
+    }
+    float t0 = (u_boxLo[k] - A[k]) / F[k], t1 = (u_boxHi[k] - A[k]) / F[k];
+    s0 = max(s0, min(t0, t1)); s1 = min(s1, max(t0, t1));
+  }
+  return s0 < s1;
+}`;
+
 // the water's view-space depth (distance along the view axis, sphere-corrected)
 const DEPTH_FS = `#version 300 es
 precision highp float;
 in float v_type; in float v_seed; in vec3 v_viewPos; in float v_radius;
 out vec4 o;
+${CLIP}
 void main() {
   vec2 c = gl_PointCoord * 2.0 - 1.0;
   float d2 = dot(c, c);
   if (d2 > 1.0) discard;
-  o = vec4(-v_viewPos.z - sqrt(1.0 - d2) * v_radius, 0.0, 0.0, 1.0);
+  float s0, s1;
+  if (!chord(c, sqrt(1.0 - d2) * v_radius, s0, s1)) discard;
+  o = vec4(-v_viewPos.z - s1, 0.0, 0.0, 1.0);
 }`;
 
 // thickness (3D: the sphere's chord) or density (2D: a smooth kernel), added up
@@ -74,11 +100,14 @@ precision highp float;
 in float v_type; in float v_seed; in vec3 v_viewPos; in float v_radius;
 uniform float u_kernel;                         // 0: chord [m], 1: density kernel
 out vec4 o;
+${CLIP}
 void main() {
   vec2 c = gl_PointCoord * 2.0 - 1.0;
   float d2 = dot(c, c);
   if (d2 > 1.0) discard;
-  float v = u_kernel > 0.5 ? (1.0 - d2) * (1.0 - d2) : 2.0 * v_radius * sqrt(1.0 - d2);
+  float s0, s1;
+  if (!chord(c, sqrt(1.0 - d2) * v_radius, s0, s1)) discard;
+  float v = u_kernel > 0.5 ? (1.0 - d2) * (1.0 - d2) : s1 - s0;
   o = vec4(v, 0.0, 0.0, 1.0);
 }`;
 
@@ -89,13 +118,17 @@ in float v_type; in float v_seed; in vec3 v_viewPos; in float v_radius;
 uniform float u_depthFrac;                      // the depth sphere's radius / the sprite's
 layout(location = 0) out vec4 o_depth;
 layout(location = 1) out vec4 o_thick;
+${CLIP}
 void main() {
   vec2 c = gl_PointCoord * 2.0 - 1.0;
   float d2 = dot(c, c);
   if (d2 > 1.0) discard;
-  o_thick = vec4(2.0 * v_radius * sqrt(1.0 - d2), 0.0, 0.0, 1.0);
+  float s0, s1;
+  if (!chord(c, sqrt(1.0 - d2) * v_radius, s0, s1)) discard;
+  o_thick = vec4(s1 - s0, 0.0, 0.0, 1.0);
   float e2 = d2 / (u_depthFrac * u_depthFrac);
-  o_depth = vec4(e2 < 1.0 ? -v_viewPos.z - sqrt(1.0 - e2) * v_radius * u_depthFrac : 1e4, 0.0, 0.0, 1.0);
+  float front = min(s1, sqrt(max(0.0, 1.0 - e2)) * v_radius * u_depthFrac);
+  o_depth = vec4(e2 < 1.0 && front > s0 ? -v_viewPos.z - front : 1e4, 0.0, 0.0, 1.0);
 }`;
 
 const QUAD_VS = `#version 300 es
@@ -164,7 +197,7 @@ void main() {
   vec3 sky = mix(vec3(0.80, 0.86, 0.93), vec3(0.42, 0.60, 0.86), clamp(R.y * 1.4, 0.0, 1.0));
   float spec = pow(max(dot(n, normalize(L + V)), 0.0), 90.0);
   float diff = max(dot(n, L), 0.0);
-  vec3 absorb = exp(-t * vec3(9.0, 3.2, 1.6));
+  vec3 absorb = exp(-min(t, 0.3) * vec3(9.0, 3.2, 1.6)); // deeper than 0.3 m: the same deep blue, not black
   vec3 body = u_water * (0.55 + 0.45 * diff) * mix(vec3(0.55), vec3(1.15), absorb);
   vec3 col = mix(body, sky, fres) + 0.9 * spec;
   float a = clamp(1.0 - exp(-t * 60.0), 0.35, 0.94);
@@ -381,6 +414,25 @@ export class GLRenderer {
     gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, s.dim, gl.FLOAT, false, 0, 0);
     gl.bindVertexArray(null);
     this.hasWater = s.particle_type.includes(WATER);
+    // the water's splat radius [particle spacings]: 2 closes the gaps of the paper's sparse scenes (≤ 4096
+    // particles); a dense body (the dam break's 23,520) is closed at 1.4, with half the fragments to shade
+    this.splat = s.dim === 3 && s.num_fluid > 8192 ? 1.4 : 2.0;
+    // a dense 3D body draws only its surface: the interior, hidden behind it, costs software GL most of a frame
+    this.cull = s.dim === 3 && s.num_fluid > 8192;
+    // and its fluid passes run at a third of the output's resolution (half for the rest): its surface spans
+    // most of the canvas, and the blur leaves no detail finer than a few pixels to lose
+    this.fluidScale = this.cull ? 0.35 : 0.5;
+    this.drawn = s.num_particles;
+    if (this.cull) {
+      this.idxBuf = this.idxBuf || gl.createBuffer();
+      this.indices = new Uint32Array(s.num_particles);
+      const G = Math.ceil(2 * (s.n_grid || 64)) + 3; // cells of the lattice spacing, a ring of empty ones around
+      this.occ = new Uint8Array(G * G * G); this.occG = G; this.cells = new Int32Array(s.num_particles);
+      gl.bindVertexArray(this.pvao);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.idxBuf);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, 4 * s.num_particles, gl.DYNAMIC_DRAW);
+      gl.bindVertexArray(null);
+    }
     this.hasSand = s.particle_type.includes(SAND);
   }
 
@@ -389,6 +441,40 @@ export class GLRenderer {
     const gl = this.gl;
     gl.bindBuffer(gl.ARRAY_BUFFER, this.posBuf);
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, f.pos);
+    if (this.cull) this.surface(f);
+  }
+
+  // The particles on the surface of the water (a face neighbour's cell of the lattice spacing is empty) and every
+  // other particle: their indices, handed to the GPU; the interior's cells are all full, its particles hidden.
+  surface(f) {
+    const { n, pos } = f, types = this.session.particle_type, G = this.occG, occ = this.occ, cells = this.cells;
+    const inv = 2 * (this.session.n_grid || 64), G2 = G * G;
+    occ.fill(0);
+    for (let i = 0; i < n; i++) {
+      const cx = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i] * inv) + 1));
+      const cy = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i + 1] * inv) + 1));
+      const cz = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i + 2] * inv) + 1));
+      cells[i] = (cx * G + cy) * G + cz;
+      if (types[i] === WATER) occ[cells[i]] = 1;
+    }
+    let m = 0;
+    for (let i = 0; i < n; i++) {
+      const k = cells[i];
+      if (types[i] !== WATER || !(occ[k - 1] && occ[k + 1] && occ[k - G] && occ[k + G] && occ[k - G2] && occ[k + G2])) this.indices[m++] = i;
+    }
+    this.drawn = m;
+    const gl = this.gl;
+    gl.bindVertexArray(this.pvao);
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.idxBuf);
+    gl.bufferSubData(gl.ELEMENT_ARRAY_BUFFER, 0, this.indices, 0, m);
+    gl.bindVertexArray(null);
+  }
+
+  // draw the particles (bound: pvao): the surface's when culled, else all
+  points() {
+    const gl = this.gl;
+    if (this.cull) gl.drawElements(gl.POINTS, this.drawn, gl.UNSIGNED_INT, 0);
+    else gl.drawArrays(gl.POINTS, 0, this.frame.n);
   }
 
   // backing-store size follows the element's CSS size × devicePixelRatio
@@ -505,7 +591,19 @@ export class GLRenderer {
     gl.uniformMatrix4fv(u.u_view, false, M.view);
     gl.uniformMatrix4fv(u.u_proj, false, M.proj);
     gl.uniform1f(u.u_pointScale, (h * M.proj[5]) / 2);
+    if (u.u_clip) { // the water's splats: clipped to the box the water rests in (3D)
+      const f = this.face(), on = this.session.dim === 3;
+      gl.uniform1f(u.u_clip, on ? 1 : 0);
+      gl.uniformMatrix4fv(u.u_viewInv, false, on ? invert(M.view) : M.view);
+      gl.uniform3fv(u.u_boxLo, [f, f, f]); gl.uniform3fv(u.u_boxHi, [1 - f, 1 - f, 1 - f]);
+    }
     return u;
+  }
+
+  // Where the fluid rests against the walls [m]: (cells − 1)·dx (scenes.wall_face), one cell inside the wall band
+  face() {
+    const s = this.session, n = s.n_grid || (s.dim === 3 ? 64 : 128);
+    return Math.max(0, (s.wall_thickness || 0) - 1 / n);
   }
 
   spacing() { return 1 / (2 * (this.session.n_grid || (this.session.dim === 3 ? 64 : 128))); }
@@ -520,7 +618,7 @@ export class GLRenderer {
     gl.uniform1f(u.u_grain, mask[0] ? 0.0 : 0.5);
     gl.enable(gl.DEPTH_TEST); gl.depthFunc(gl.LESS);
     gl.bindVertexArray(this.pvao);
-    gl.drawArrays(gl.POINTS, 0, this.frame.n);
+    this.points();
   }
 
   water(M, w, h, dim, solver, out) {
@@ -548,24 +646,24 @@ export class GLRenderer {
       gl.colorMask(true, true, true, true);
       if (fw) { // one pass: MIN keeps the nearest depth, FUNC_ADD sums the thickness; the occluders' depth still tests
         const u = this.uniforms("splat", M, T.h);
-        gl.uniform1f(u.u_radius, 2.0 * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_depthFrac, 1.0);
+        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_depthFrac, 1.0);
         gl.depthMask(false); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE);
         this.indexed.blendEquationiOES(0, gl.MIN); this.indexed.blendEquationiOES(1, gl.FUNC_ADD);
         gl.bindVertexArray(this.pvao);
-        gl.drawArrays(gl.POINTS, 0, this.frame.n);
+        this.points();
         gl.blendEquation(gl.FUNC_ADD); gl.disable(gl.BLEND); gl.depthMask(true);
       } else {
         let u = this.uniforms("depth", M, T.h);
-        gl.uniform1f(u.u_radius, 2.0 * r); gl.uniform3fv(u.u_mask, [1, 0, 0]);
+        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]);
         gl.bindVertexArray(this.pvao);
-        gl.drawArrays(gl.POINTS, 0, this.frame.n);
+        this.points();
         // 2. thickness, added up
         gl.bindFramebuffer(gl.FRAMEBUFFER, T.fThick);
         gl.clear(gl.COLOR_BUFFER_BIT);
         gl.disable(gl.DEPTH_TEST); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE);
         u = this.uniforms("thick", M, T.h);
-        gl.uniform1f(u.u_radius, 2.0 * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_kernel, 0);
-        gl.drawArrays(gl.POINTS, 0, this.frame.n);
+        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_kernel, 0);
+        this.points();
         gl.disable(gl.BLEND);
       }
       gl.disable(gl.DEPTH_TEST);
@@ -620,7 +718,7 @@ export class GLRenderer {
     gl.disable(gl.DEPTH_TEST); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE);
     const u = this.uniforms("thick", M, T.h);
     gl.uniform1f(u.u_radius, R * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_kernel, 1);
-    gl.drawArrays(gl.POINTS, 0, this.frame.n);
+    this.points();
     // shaded at this resolution (premultiplied), then laid over the frame, filtered up, behind the sand grains
     gl.bindFramebuffer(gl.FRAMEBUFFER, T.fShade);
     gl.clear(gl.COLOR_BUFFER_BIT);
@@ -674,7 +772,7 @@ export class GLRenderer {
   }
 
   drawSolids(M, dim) {
-    const gl = this.gl, t = this.session.wall_thickness || 0;
+    const gl = this.gl, t = this.face();
     gl.enable(gl.DEPTH_TEST); gl.depthFunc(gl.LESS);
     if (dim === 3) { // the room: its far walls and floor, seen from inside
       gl.enable(gl.CULL_FACE); gl.cullFace(gl.BACK);
@@ -689,7 +787,7 @@ export class GLRenderer {
   }
 
   drawEdges(M) {
-    const gl = this.gl, p = this.prog.line, t = this.session.wall_thickness || 0;
+    const gl = this.gl, p = this.prog.line, t = this.face();
     gl.useProgram(p.p);
     gl.uniformMatrix4fv(p.u.u_viewProj, false, M.viewProj);
     gl.uniformMatrix4fv(p.u.u_model, false, model([0.5, 0.5, 0.5], [0.5 - t, 0.5 - t, 0.5 - t]));
