@@ -418,3 +418,28 @@ def test_control_diffusion_follows_an_arrow_and_a_scene_without_a_model_is_named
     s = new(client)  # dam_break2d: no controller ships for it
     r = client.post(f"/v1/sessions/{s['id']}/controls", json={"sketch": arrow, "method": "diffusion"})
     assert r.status_code == 422 and "dam_break2d" in r.text
+
+
+def test_the_recent_frames_as_surface_meshes(client):
+    """GET .../trajectory?format=mesh: a zip of one closed surface per recorded frame (water3d: triangle meshes,
+    watertight, enclosing about the water's volume), named for sequence importers; 2D gives outlines."""
+    import zipfile
+
+    trimesh = pytest.importorskip("trimesh", reason="the mesh extra is in the test extra")
+    s = new(client, scene="water3d", solver="mpm", seed=2)
+    assert client.post(f"/v1/sessions/{s['id']}/step", json={"frames": 3}).status_code == 200
+    r = client.get(f"/v1/sessions/{s['id']}/trajectory", params={"format": "mesh", "frames": 2})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip", r.text[:200]
+    z = zipfile.ZipFile(io.BytesIO(r.content))
+    assert z.namelist() == ["water_00000.ply", "water_00001.ply"]
+    sim = make_simulator("water3d", "mpm", seed=2)
+    p = sim.particles
+    water = float(np.sum(p.full_masses()[: p.num_fluid])) / float(sim.scene.params.water.density)
+    for name in z.namelist():
+        mesh = trimesh.load(io.BytesIO(z.read(name)), file_type="ply")
+        assert mesh.is_watertight and 0.7 * water < mesh.volume < 1.3 * water, (name, mesh.volume, water)
+    s2 = new(client, scene="dam_break2d", solver="mpm")
+    assert client.post(f"/v1/sessions/{s2['id']}/step", json={"frames": 1}).status_code == 200
+    r = client.get(f"/v1/sessions/{s2['id']}/trajectory", params={"format": "mesh", "frames": 1})
+    assert r.status_code == 200 and zipfile.ZipFile(io.BytesIO(r.content)).namelist() == ["water_00000.ply"]
+    assert field_of(client.get(f"/v1/sessions/{s2['id']}/trajectory", params={"format": "obj"})) == "format"

@@ -16,6 +16,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import SampledSdf
+from hybridmpm.render.surface import surface_settings
 from hybridmpm.scenes import scene_spec
 from hybridmpm.sim import Simulator
 
@@ -28,7 +29,9 @@ class SessionFacts:
     particles (fluid, and with the boundary particles), ``particle_type``
     int [num_total] (GNS codes), ``masses`` float32 [num_total] [kg] and
     ``material`` int [num_total] (the trajectory file's), ``r_t`` frames per
-    coarse step and ``dt_frame`` [s] between frames."""
+    coarse step, ``dt_frame`` [s] between frames, and ``surface`` the
+    settings of its fluid surfaces (:func:`~hybridmpm.render.surface.surface_settings`:
+    the wall faces, the grid, the obstacles, each particle's volume)."""
 
     scene_name: str
     kind: str
@@ -41,6 +44,7 @@ class SessionFacts:
     material: np.ndarray
     r_t: int
     dt_frame: float
+    surface: dict[str, Any]
 
     @classmethod
     def of(cls, sim: Simulator) -> SessionFacts:
@@ -58,6 +62,7 @@ class SessionFacts:
             material=np.asarray(p.full_material()).copy(),
             r_t=int(sim.r_t),
             dt_frame=float(sim.dt_frame),
+            surface=surface_settings(sim.scene.params, p.particle_type, p.full_masses()),
         )
 
     @property

@@ -40,6 +40,7 @@ class SceneInfo(BaseModel):
     doc: str
     solvers: list[str]
     model: bool = Field(description="whether a trained network ships for the scene (hybrid and neural solvers)")
+    methods: list[str] = Field(description="the control methods a session of the scene takes (diffusion: where its controller ships)")
 
 
 class CreateSession(Strict):

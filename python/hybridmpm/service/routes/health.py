@@ -9,6 +9,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse
 
 from hybridmpm import __version__
+from hybridmpm.control.controller import shipped_control_model
+from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_models
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.deps import ConfigDep, ManagerDep
@@ -27,15 +29,21 @@ def scene_list() -> list[dict[str, Any]]:
         spec = gen(seed=0)
         doc = (gen.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
         has = name in ships
+        try:
+            shipped_control_model(name)
+            methods = ["constant", "pd", "none", "diffusion"]
+        except InvalidInputError:  # no diffusion controller ships for it
+            methods = ["constant", "pd", "none"]
         out.append(
             {
                 "name": name,
                 "dim": int(spec.params.dim),
                 "frames": int(spec.frames),
-                "seeded": name != "dam_break2d",
+                "seeded": spec.blocks != gen(seed=1).blocks,  # whether two seeds differ, not a list of names
                 "doc": " ".join(doc.split()),
                 "solvers": ["hybrid", "mpm", "neural"] if has else ["mpm"],
                 "model": has,
+                "methods": methods,
             }
         )
     return out

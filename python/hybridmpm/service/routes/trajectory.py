@@ -1,23 +1,26 @@
 """A session's recent trajectory for download: ``GET /v1/sessions/{sid}/trajectory``,
 its last recorded coarse steps as a trajectory ``.npz`` (what ``hybridmpm
-evaluate`` and :class:`hybridmpm.trajectory.Trajectory` read) or as a zip of
-PLY point clouds (:func:`hybridmpm.render.export_points`, for Blender)."""
+evaluate`` and :class:`hybridmpm.trajectory.Trajectory` read), as a zip of
+PLY point clouds (:func:`hybridmpm.render.export_points`, for Blender) or as
+a zip of the fluid's surface meshes per frame and material
+(:func:`hybridmpm.render.export_surfaces`; needs the ``mesh`` extra)."""
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from hybridmpm.render import export_points
+from hybridmpm.render import export_points, export_surfaces
 from hybridmpm.service.deps import ManagerDep, SessionDep
-from hybridmpm.service.errors import ApiError
+from hybridmpm.service.errors import ApiError, FieldError
 from hybridmpm.service.sessions import RECORD_STEPS
 from hybridmpm.trajectory import Trajectory
 
@@ -27,8 +30,21 @@ ZIP = "application/zip"
 FILE_COPIES = 3
 #: Bytes per position value of the PLY zip while it is made (the float64 copy, the velocities, the files, the zip).
 PLY_BYTES_PER_VALUE = 40
+#: Bytes per grid node while one frame's surface is meshed (the density field, its smoothing and clipping copies).
+MESH_BYTES_PER_NODE = 64
 
 router = APIRouter()
+
+
+def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any]) -> bytes:
+    """One binary PLY surface per frame and material (``water_00000.ply``, ``sand_00000.ply`` …; 2D: outlines), zipped."""
+    buf = io.BytesIO()
+    with tempfile.TemporaryDirectory(prefix="hybridmpm-mesh-") as tmp:
+        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", **settings)
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+            for p in paths:
+                z.write(p, Path(p).name)
+    return buf.getvalue()
 
 
 def trajectory_npz(traj: Trajectory) -> bytes:
@@ -64,11 +80,15 @@ async def get_session_trajectory(
     s: SessionDep,
     manager: ManagerDep,
     frames: Annotated[int, Query(ge=1, le=RECORD_STEPS, description="the latest coarse steps wanted (fewer if fewer are recorded)")] = RECORD_STEPS,
-    format: Annotated[Literal["npz", "ply"], Query(description="npz (a hybridmpm trajectory) or ply (a zip of PLY frames)")] = "npz",  # noqa: A002 - the query's name
+    format: Annotated[
+        Literal["npz", "ply", "mesh"], Query(description="npz (a hybridmpm trajectory), ply (a zip of PLY point clouds) or mesh (a zip of surface meshes)")
+    ] = "npz",  # noqa: A002 - the query's name
 ) -> Response:
     """The session's latest ``frames`` coarse steps, consecutive (a reset or
     a restored checkpoint starts the recording again; controls and steps are
     recorded as they run)."""
+    if format == "mesh" and importlib.util.find_spec("skimage") is None:
+        raise FieldError(("query", "format"), "format: mesh needs scikit-image on the server (pip install 'hybridmpm[mesh]')")
     held = await manager.recorded(s, frames)  # in the session's actor with --backend ray
     if not held:
         raise ApiError(409, "no frame of this session is recorded (the memory budget was full); step it and retry")
@@ -76,7 +96,8 @@ async def get_session_trajectory(
     values = len(held) * f.num_total * f.dim
     dt, n_grid = f.step_dt, f.n_grid
     ptype, masses, material = f.particle_type, f.masses, f.material
-    with manager.budget.hold(values * (PLY_BYTES_PER_VALUE if format == "ply" else 4 * FILE_COPIES), "the trajectory's file"):
+    per_value = {"ply": PLY_BYTES_PER_VALUE, "mesh": PLY_BYTES_PER_VALUE}.get(format, 4 * FILE_COPIES)
+    with manager.budget.hold(values * per_value + (MESH_BYTES_PER_NODE * f.n_grid**f.dim if format == "mesh" else 0), "the trajectory's file"):
 
         def make() -> Trajectory:
             return Trajectory(
@@ -99,6 +120,9 @@ async def get_session_trajectory(
         if format == "ply":
             data = await manager.compute(trajectory_ply_zip, traj, traj.extras["solver"])
             media, name = ZIP, name + "-ply.zip"
+        elif format == "mesh":
+            data = await manager.compute(trajectory_mesh_zip, traj, f.surface)
+            media, name = ZIP, name + "-mesh.zip"
         else:
             data = await manager.compute(trajectory_npz, traj)
             media, name = NPZ, name + ".npz"
