@@ -39,11 +39,12 @@ from hybridmpm.control import Controller, Sketch
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, Recording, tree_nbytes
+from hybridmpm.service.core import Pacer, encode_record, play_period, play_step, snapshot
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.sessions import KEEP_CONTROLS, RECORD_STEPS, Control, Session
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild
 from hybridmpm.sim import Frame, make_simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
@@ -449,14 +450,13 @@ class SessionActor:
 
     # ------------------------------------------------------------ threads
     def _play(self) -> None:
-        period = float(self.sim.dt_frame) * int(self.sim.r_t)
-        next_t = time.monotonic()
+        pacer = Pacer(play_period(self.sim))
         while self.playing and self.closing is None and self._viewer_count() > 0:
             with self.lock:
                 if not self.playing:
                     break
                 try:
-                    fr = self.sim.advance()
+                    fr = play_step(self.sim)
                 except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
                     self.playing = False
                     self._event({"type": "error", "message": f"simulation stopped: {e}"})
@@ -464,8 +464,7 @@ class SessionActor:
                 self.dirty = True
                 self._touch()
                 self._publish(fr)
-            next_t = max(next_t + period, time.monotonic() - 0.25)
-            time.sleep(max(0.0, next_t - time.monotonic()))
+            time.sleep(pacer.delay())
 
     def _save(self) -> bool:
         """Write the checkpoint to the store if it changed since the last save;
@@ -478,15 +477,9 @@ class SessionActor:
             t0 = time.perf_counter()
             with self.lock:
                 self.dirty = False
-                state = record_state(self.sim)
-                frame = int(self.sim.frame.frame_index)
-            meta = {
-                **self.sess.settings(),
-                "last_used_at": time.time() - (time.monotonic() - self.last_used),
-                "client": self.client_addr[: ckpt.MAX_META_CHARS],
-            }
+                state, frame = snapshot(self.sim)
             try:
-                data = ckpt.dumps(state, meta)
+                data = encode_record(state, self.sess.settings(), self.last_used, self.client_addr)
                 del state
                 self.store.write(self.key, data)
             except Exception as e:  # noqa: BLE001 - a failed save must not fail the session

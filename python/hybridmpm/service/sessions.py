@@ -39,10 +39,11 @@ from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget, Recording, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.core import Pacer, encode_record, play_period, play_step, snapshot
 from hybridmpm.service.facts import SessionFacts, scene_geometry
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, record_state, session_key
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, session_key
 from hybridmpm.sim import Frame, Rollout, Simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
@@ -439,17 +440,8 @@ class SessionManager:
                         if s.closed:
                             return True
                         s.dirty = False
-                        state = await anyio.to_thread.run_sync(record_state, s.sim, limiter=self.io_limiter)
-                        frame = int(s.sim.frame.frame_index)
-                    meta = {
-                        "scene": s.scene,
-                        "seed": s.seed,
-                        "solver": s.solver_kind,
-                        "r_c": s.r_c,
-                        "last_used_at": time.time() - (time.monotonic() - s.last_used),
-                        "client": s.client[: ckpt.MAX_META_CHARS],
-                    }
-                    data = await anyio.to_thread.run_sync(ckpt.dumps, state, meta, limiter=self.io_limiter)
+                        state, frame = await anyio.to_thread.run_sync(snapshot, s.sim, limiter=self.io_limiter)
+                    data = await anyio.to_thread.run_sync(encode_record, state, s.settings(), s.last_used, s.client, limiter=self.io_limiter)
                     del state
                     await anyio.to_thread.run_sync(store.write, s.key, data, limiter=self.io_limiter)
             except Exception as e:  # noqa: BLE001 - a failed save must not fail the request or the saver
@@ -649,15 +641,14 @@ class SessionManager:
     async def _play(self, s: Session) -> None:
         """Advance a playing session one coarse step at a time (no faster than
         real time) while it has viewers; frames go to the viewers' slots."""
-        period = float(s.sim.dt_frame) * int(s.sim.r_t)
-        next_t = time.monotonic()
+        pacer = Pacer(play_period(s.sim))
         try:
             while s.playing and s.viewers and not s.closed:
                 async with s.lock:
                     if not s.playing or s.closed:
                         break
                     try:
-                        fr = await self.compute(s.sim.advance)
+                        fr = await self.compute(play_step, s.sim)
                     except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
                         s.playing = False
                         s.broadcast({"type": "error", "message": f"simulation stopped: {e}"})
@@ -665,8 +656,7 @@ class SessionManager:
                 s.touch()
                 self.changed(s)
                 s.publish(fr)
-                next_t = max(next_t + period, time.monotonic() - 0.25)
-                await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+                await asyncio.sleep(pacer.delay())
         except asyncio.CancelledError:
             pass
 
