@@ -12,6 +12,7 @@ import numpy as np
 
 from hybridmpm import _core
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.motion import Keyframe
 
 Condition = Literal["sticky", "slip", "separate"]
 
@@ -185,7 +186,9 @@ class Box:
     """Static box collider: ``center``, ``half_extents`` [m]; rotated by
     ``angle_deg`` (2D) or a 3×3 ``rotation`` matrix (3D) — a rotated box is a ramp.
     Must be at least 2 grid cells thick. ``condition`` and ``friction``
-    default to the Rust core's (``ColliderParams::default()``)."""
+    default to the Rust core's (``ColliderParams::default()``).
+    ``keyframes``: a prescribed path (:mod:`hybridmpm.mpm.motion`; the
+    simulators follow it, the solver dict :meth:`to_dict` leaves it out)."""
 
     center: Sequence[float]
     half_extents: Sequence[float]
@@ -193,6 +196,7 @@ class Box:
     rotation: Sequence[Sequence[float]] | None = None
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
+    keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {
@@ -212,12 +216,14 @@ class Box:
 @dataclass
 class Sphere:
     """Static sphere (circle in 2D) collider: ``center``, ``radius`` [m].
-    ``condition`` and ``friction`` default to the Rust core's (``ColliderParams::default()``)."""
+    ``condition`` and ``friction`` default to the Rust core's (``ColliderParams::default()``).
+    ``keyframes``: a prescribed path, as :class:`Box`'s."""
 
     center: Sequence[float]
     radius: float
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
+    keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -244,7 +250,9 @@ class SampledSdf:
     ``source`` is the scene-file obstacle it was sampled from (``shape =
     "mesh"``, ...), kept by :class:`~hybridmpm.scenes.SceneSpec` for saving
     and regridding; it is not sent to the solver. ``condition`` and
-    ``friction`` default to the Rust core's (``ColliderParams::default()``)."""
+    ``friction`` default to the Rust core's (``ColliderParams::default()``).
+    ``keyframes``: a prescribed path of the mesh's ``center`` (``source``),
+    as :class:`Box`'s; not sent to the solver either."""
 
     origin: Sequence[float]
     cell: float
@@ -253,6 +261,7 @@ class SampledSdf:
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
     source: dict[str, Any] | None = None
+    keyframes: tuple[Keyframe, ...] | None = None
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, SampledSdf):

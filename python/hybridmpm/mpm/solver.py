@@ -15,12 +15,14 @@ from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.errors import as_f32 as _as_f32
 from hybridmpm.limits import human, memory_budget
 from hybridmpm.limits import memory_budget as default_budget
-from hybridmpm.mpm.params import MpmParams
+from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
 
 _MAGIC = b"HMPMPY01"
 #: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
 _CORE_MAGIC = b"HMPMCKP2"
 _CORE_HEADER = 36
+#: The checkpoint header's key for the colliders' poses and pending moves (absent while none has moved).
+_COLLIDER_STATE = "collider_state"
 
 
 class MpmSolver:
@@ -242,18 +244,100 @@ class MpmSolver:
         lo, hi = self._core.domain_bounds
         return float(lo), float(hi)
 
+    # ------------------------------------------------------------- moving colliders
+    @property
+    def collider_positions(self) -> np.ndarray:
+        """Each collider's anchor now [m], float32 ``[C, D]``: a
+        :class:`~hybridmpm.mpm.Box`'s or :class:`~hybridmpm.mpm.Sphere`'s
+        centre, a :class:`~hybridmpm.mpm.SampledSdf`'s ``origin``. ``params``
+        keeps the colliders where they were made; this is where they are."""
+        return np.asarray(self._core.collider_positions, np.float32)
+
+    @property
+    def collider_moves(self) -> list[tuple[int, list[float], list[float] | None]]:
+        """The pending moves for the next frame: ``(index, position, velocity)``
+        (see :meth:`move_collider`; ``velocity`` None: derived)."""
+        return [(int(i), list(x), None if v is None else list(v)) for i, x, v in self._core.collider_moves]
+
+    def move_collider(self, index: int, position: Any, velocity: Any = None) -> None:
+        """Move collider ``index`` over the next :meth:`step_frame`: its anchor
+        (:attr:`collider_positions`) goes linearly in time from where it is to
+        ``position`` [m] (``D`` numbers), reached exactly at the frame's end,
+        substep by substep; its boundary condition acts on the grid velocity
+        relative to ``velocity`` [m/s] (``D`` numbers; None: the distance
+        over ``dt_frame``, computed in float64), so it pushes the fluid. The
+        move is used once: afterwards the collider rests at ``position``. A
+        velocity of zero is the static collider's boundary condition, bit for
+        bit. Only translation: the shape keeps its rotation. Raises
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``index``,
+        ``position`` or ``velocity`` (not finite, a coordinate beyond 1000 m).
+        The simulators' :meth:`~hybridmpm.sim.MpmSimulator.move_obstacle` is
+        the call for an obstacle of a scene."""
+        self._core.move_collider(index, _as_f32("position", position), None if velocity is None else _as_f32("velocity", velocity))
+
+    def place_collider(self, index: int, position: Any) -> None:
+        """Put collider ``index``'s anchor at ``position`` [m] now, at rest
+        (no push), dropping its pending move (a restore). Raises
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``index`` or ``position``."""
+        self._core.place_collider(index, _as_f32("position", position))
+
+    def _collider_state(self) -> dict[str, Any] | None:
+        """The colliders' poses and pending moves for :meth:`checkpoint`; None
+        when every collider is where ``params`` made it and none moves (the
+        checkpoint is then the one of a solver without moving colliders)."""
+        if not self.params.colliders:
+            return None
+        pos = self.collider_positions
+        moves = self.collider_moves
+        if not moves and np.array_equal(pos, _initial_anchors(self.params.colliders, self.dim)):
+            return None
+        return {"positions": [[float(v) for v in row] for row in pos], "moves": [[i, x, v] for i, x, v in moves]}
+
+    def _check_collider_state(self, cs: Any) -> tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray | None]]]:
+        """The poses and moves of a checkpoint's ``collider_state`` (None: the
+        colliders where ``params`` made them), checked; raises :class:`CheckpointError`."""
+        n, d = len(self.params.colliders), self.dim
+        if cs is None:
+            return _initial_anchors(self.params.colliders, d), []
+        try:
+            pos = np.asarray(cs["positions"], np.float32)
+            moves = [(int(i), np.asarray(x, np.float32), None if v is None else np.asarray(v, np.float32)) for i, x, v in cs["moves"]]
+        except (KeyError, TypeError, ValueError) as e:
+            raise CheckpointError(f"bad collider state: {e}") from e
+        ok = pos.shape == (n, d) and np.isfinite(pos).all() and np.abs(pos).max(initial=0.0) <= 1e3
+        for i, x, v in moves:
+            ok = ok and 0 <= i < n and x.shape == (d,) and bool(np.isfinite(x).all()) and np.abs(x).max() <= 1e3
+            ok = ok and (v is None or (v.shape == (d,) and bool(np.isfinite(v).all())))
+        if not ok:
+            raise CheckpointError(f"bad collider state: expected the poses of {n} colliders in {d}D and their moves")
+        return pos, moves
+
+    def _set_collider_state(self, cs: tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray | None]]]) -> None:
+        pos, moves = cs
+        for i, x in enumerate(pos):
+            self._core.place_collider(i, np.ascontiguousarray(x))
+        for i, x, v in moves:
+            self._core.move_collider(i, x, v)
+
     # ------------------------------------------------------------- checkpoint
     def checkpoint(self) -> bytes:
-        """The whole state (parameters, particles, clock) as bytes."""
-        header = json.dumps(self.params.to_dict()).encode()
+        """The whole state (parameters, particles, clock, and the colliders'
+        poses and pending moves when any has moved) as bytes."""
+        head = self.params.to_dict()
+        cs = self._collider_state()
+        if cs is not None:
+            head[_COLLIDER_STATE] = cs
+        header = json.dumps(head).encode()
         return _MAGIC + struct.pack("<Q", len(header)) + header + self._core.checkpoint()
 
     @classmethod
     def from_checkpoint(cls, blob: bytes) -> MpmSolver:
         """A new solver from :meth:`checkpoint` bytes. Raises :class:`CheckpointError`."""
-        params, state = cls._split(blob)
+        params, state, cs = cls._split(blob)
         sim = cls(params)
+        poses = sim._check_collider_state(cs)
         sim._core.restore(state)
+        sim._set_collider_state(poses)
         return sim
 
     def restore(self, blob: bytes, *, same_particles: bool = False) -> None:
@@ -264,7 +348,10 @@ class MpmSolver:
         is validated before anything changes: raises :class:`CheckpointError`
         (positions outside the domain, non-finite values, a truncated blob,
         other parameters or particles) and the solver is then unchanged."""
-        self._core.restore(self.check_restore(blob, same_particles=same_particles))
+        state = self.check_restore(blob, same_particles=same_particles)
+        poses = self._check_collider_state(self._split(blob)[2])
+        self._core.restore(state)
+        self._set_collider_state(poses)
 
     def restore_particles(self, blob: bytes) -> None:
         """Restore the particles of a :meth:`checkpoint` written by a solver
@@ -273,9 +360,9 @@ class MpmSolver:
         move bit for bit; this solver keeps its own grid (``n_grid`` and the
         wall band that keeps the walls' faces). Every other parameter must
         match and the particles must be this solver's (count, materials,
-        masses). Raises :class:`CheckpointError` and leaves the solver
-        unchanged otherwise."""
-        params, state = self._split(blob)
+        masses). The colliders stay where they are. Raises
+        :class:`CheckpointError` and leaves the solver unchanged otherwise."""
+        params, state, _ = self._split(blob)
         mine, theirs = self.params.to_dict(), params.to_dict()
         for d in (mine, theirs):
             d.pop("n_grid")
@@ -292,7 +379,7 @@ class MpmSolver:
         parameters, and with ``same_particles`` the particles' count,
         materials and masses), changing nothing; returns the core's part of
         the blob. Raises :class:`CheckpointError`."""
-        params, state = self._split(blob)
+        params, state, _ = self._split(blob)
         if params.to_dict() != self.params.to_dict():
             raise CheckpointError("checkpoint was written with different parameters; use MpmSolver.from_checkpoint")
         if same_particles:
@@ -324,17 +411,27 @@ class MpmSolver:
             raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
 
     @staticmethod
-    def _split(blob: bytes) -> tuple[MpmParams, bytes]:
+    def _split(blob: bytes) -> tuple[MpmParams, bytes, Any]:
+        """A checkpoint's parameters, core state and collider state (None when absent)."""
         if not isinstance(blob, (bytes, bytearray)) or blob[:8] != _MAGIC or len(blob) < 16:
             raise CheckpointError("not a hybridmpm MpmSolver checkpoint")
         (n,) = struct.unpack("<Q", blob[8:16])
         if 16 + n > len(blob):
             raise CheckpointError("truncated checkpoint header")
         try:
-            params = MpmParams.from_dict(json.loads(blob[16 : 16 + n]))
+            head = json.loads(blob[16 : 16 + n])
+            cs = head.pop(_COLLIDER_STATE, None) if isinstance(head, dict) else None
+            params = MpmParams.from_dict(head)
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
-        return params, bytes(blob[16 + n :])
+        return params, bytes(blob[16 + n :]), cs
+
+
+def _initial_anchors(colliders: list[Collider], dim: int) -> np.ndarray:
+    """Where ``params`` makes each collider: its anchor, float32 ``[C, D]``
+    (a sampled shape's ``origin``, a box's or sphere's ``center``)."""
+    rows = [c.origin if isinstance(c, SampledSdf) else c.center for c in colliders]
+    return np.asarray([[float(v) for v in r] for r in rows], np.float32).reshape(len(colliders), dim)
 
 
 def grid_mass(positions: np.ndarray, n_grid: int, masses: np.ndarray | None = None) -> np.ndarray:

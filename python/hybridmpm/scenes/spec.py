@@ -33,8 +33,10 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
 Obstacles are boxes (``half_extents``, ``angle_deg`` in 2D or ``rotation``),
 spheres (``radius``) and, in 3D, triangle meshes (``shape = "mesh"``,
 ``path``, ``scale``, ``rotation``; :mod:`hybridmpm.scenes.obstacle_mesh`),
-all with ``center``, ``condition`` and ``friction``; docs/obstacles.md
-lists every key. A mesh's ``path`` is relative to the scene file's folder
+all with ``center``, ``condition`` and ``friction``, and optionally a
+keyframed path (``keyframes = [{t = 0.0, center = [..]}, ...]``,
+:mod:`hybridmpm.mpm.motion`; the simulators move the obstacle along it);
+docs/obstacles.md lists every key. A mesh's ``path`` is relative to the scene file's folder
 (:meth:`SceneSpec.load`; ``confine=True`` keeps it inside that folder).
 
 :meth:`SceneSpec.build` turns it into a :class:`~hybridmpm.scenes.Scene`:
@@ -76,6 +78,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import DT_FRAME, Box, MpmParams, MpmSolver, Sphere
+from hybridmpm.mpm.motion import Keyframe, check_keyframes
 from hybridmpm.mpm.params import Collider, SampledSdf
 from hybridmpm.scenes import obstacle_mesh
 from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
@@ -219,6 +222,7 @@ class SceneSpec:
         for i, c in enumerate(self.params.colliders):  # a mesh obstacle is sampled again on the new grid's nodes
             if isinstance(c, SampledSdf) and c.source is not None:
                 params.colliders[i] = obstacle_mesh.mesh_obstacle(c.source, f"obstacles[{i}]", n, Path(c.source["path"]))
+            params.colliders[i].keyframes = c.keyframes  # a path is no solver parameter: carried over here
         _check_obstacles_hold(params)
         info = {
             **self.info,
@@ -298,9 +302,23 @@ class SceneSpec:
         if isinstance(pd["colliders"], list) and len(pd["colliders"]) > MAX_OBSTACLES:
             raise InvalidInputError(f"obstacles: {len(pd['colliders'])} obstacles, more than the {MAX_OBSTACLES} a scene may have", "obstacles")
         meshes: dict[int, tuple[dict[str, Any], Path]] = {}
+        paths: dict[int, tuple[Keyframe, ...]] = {}
         if isinstance(pd["colliders"], list):  # a mesh obstacle is checked here and sampled once the grid is known
             cols = list(pd["colliders"])
             for i, c in enumerate(cols):
+                if isinstance(c, dict) and "keyframes" in c:  # a path: its first key is where the obstacle starts
+                    c = dict(c)
+                    keys = check_keyframes(f"obstacles[{i}].keyframes", c.pop("keyframes"), dim)
+                    first = list(keys[0].center)
+                    if "center" not in c:
+                        c["center"] = first
+                    elif not (isinstance(c["center"], (list, tuple)) and [float(v) if _is_number(v) else v for v in c["center"]] == first):
+                        raise InvalidInputError(
+                            f"obstacles[{i}].center: must be the first keyframe's centre {first} (where the path starts), or left out; got {c['center']!r}",
+                            f"obstacles[{i}].center",
+                        )
+                    paths[i] = keys
+                    cols[i] = c
                 if isinstance(c, dict) and c.get("shape") == "mesh":
                     f = f"obstacles[{i}]"
                     checked = obstacle_mesh.check_mesh_obstacle(c, f, dim)
@@ -322,6 +340,8 @@ class SceneSpec:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
         for i, (checked, resolved) in meshes.items():
             params.colliders[i] = obstacle_mesh.mesh_obstacle(checked, f"obstacles[{i}]", n_grid, resolved)
+        for i, keys in paths.items():
+            params.colliders[i].keyframes = keys
         for i, c in enumerate(params.colliders):
             if isinstance(c, SampledSdf):
                 continue
@@ -618,10 +638,12 @@ def _rotation(c: Box, dim: int) -> np.ndarray:
 
 def _obstacle_dict(c: Collider, raw: dict[str, Any]) -> dict[str, Any]:
     """An obstacle as a scene file writes it: a mesh by its ``source`` (path,
-    center, scale, rotation), not by its samples; other shapes by ``raw``."""
-    if isinstance(c, SampledSdf) and c.source is not None:
-        return {**c.source, "condition": c.condition, "friction": float(c.friction)}
-    return raw
+    center, scale, rotation), not by its samples; other shapes by ``raw``;
+    with its ``keyframes`` when it follows a path."""
+    d = {**c.source, "condition": c.condition, "friction": float(c.friction)} if isinstance(c, SampledSdf) and c.source is not None else dict(raw)
+    if c.keyframes:
+        d["keyframes"] = [k.to_dict() for k in c.keyframes]
+    return d
 
 
 def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:

@@ -80,6 +80,13 @@ which applies it (a network step in progress hands over first, event
 "switch:mpm"); once it is cleared the usual ``dwell`` rule hands the flow
 back to the network.
 
+Moving obstacles (docs/obstacles.md, "Moving obstacles"): the network sees
+an obstacle as static boundary particles where the scene put it. While an
+obstacle moves in a step (a keyframed path, :meth:`HybridSimulator.move_obstacle`)
+or stands anywhere else, the hybrid runs MPM, as for a forcing; once every
+obstacle is back where the scene put it and still, the ``dwell`` rule
+applies again.
+
 The hybrid composes an :class:`~hybridmpm.sim.mpm.MpmSimulator` and a
 :class:`~hybridmpm.sim.neural.NeuralSimulator` on the same particles (the
 scene clustered once to the model's ``r_p``) through their public methods.
@@ -385,6 +392,18 @@ class HybridSimulator:
     def forcing(self, value: Forcing) -> None:
         self.mpm.forcing = check_forcing(value, self.particles.num_fluid, self.particles.dim)
 
+    @property
+    def obstacle_centers(self) -> np.ndarray:
+        """Each obstacle's centre now [m], float64 [C, D] (MPM's; see :attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`)."""
+        return self.mpm.obstacle_centers
+
+    @serialised
+    def move_obstacle(self, index: int, center: Any, velocity: Any = None) -> None:
+        """Move obstacle ``index`` during the next :meth:`advance`, as
+        :meth:`~hybridmpm.sim.MpmSimulator.move_obstacle` (same arguments and errors); the
+        step then runs on MPM (module doc)."""
+        self.mpm.move_obstacle(index, center, velocity)
+
     # ------------------------------------------------------------ stepping
     def _to_mpm(self) -> None:
         if isinstance(self.neural, CoarseMpmHalf):  # the same particles on the fine grid, bit for bit
@@ -470,7 +489,8 @@ class HybridSimulator:
         event: str | None = None
         retries = substeps = 0
         controlled = False
-        forced = self.mpm.forcing is not None
+        self.mpm.step_index = self.step_index  # the obstacles' paths and the forcing's frame clock are the hybrid's
+        forced = self.mpm.forcing is not None or self.mpm.obstacles_moving or self.mpm.obstacles_displaced
         if self.solver_name == self.cheap_kind and forced:
             self._fall_back(convert=not self._mpm_holds_state())
             event = "switch:mpm"

@@ -5,6 +5,15 @@ substeps as the solver needs (it halves the substep and retries a frame that
 goes non-finite). A ``forcing`` is written into the solver's per-particle
 external acceleration before each frame (paper Sec. 3.2: the controller's
 accelerations are applied by MPM).
+
+Moving obstacles (docs/obstacles.md, "Moving obstacles"): before each frame
+the simulator moves every obstacle that follows a keyframed path
+(:mod:`hybridmpm.mpm.motion`) to the path's centre at the frame's end, and
+every obstacle given a :meth:`MpmSimulator.move_obstacle` for this step a
+share of the way to its target; the solver sweeps it there substep by
+substep and its boundary condition pushes the fluid with its velocity
+(:meth:`~hybridmpm.mpm.MpmSolver.move_collider`). A frame's time is
+``frame · dt_frame`` in float64.
 """
 
 from __future__ import annotations
@@ -16,7 +25,9 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.mpm import MpmSolver
+from hybridmpm.mpm import MpmSolver, SampledSdf
+from hybridmpm.mpm.motion import Keyframe, check_center, check_velocity, path_center
+from hybridmpm.mpm.params import Collider
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid
@@ -99,6 +110,12 @@ class MpmSimulator:
         self._forcing: Forcing = None
         self._applied = False
         self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM)
+        self._colliders: list[Collider] = list(self.scene.params.colliders)
+        #: (index, keyframes) of the obstacles that follow a path
+        self._paths: list[tuple[int, tuple[Keyframe, ...]]] = [(i, c.keyframes) for i, c in enumerate(self._colliders) if c.keyframes]
+        #: obstacle index -> (target centre float64 [D], boundary velocity float64 [D] or None) for the next step
+        self._moves: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+        self._anchors0 = self.solver.collider_positions.copy()
 
     # ------------------------------------------------------------ state
     @property
@@ -143,6 +160,87 @@ class MpmSimulator:
         self.solver.external_acceleration = np.zeros((self.particles.num_fluid, self.particles.dim), np.float32)
         self._applied = False
 
+    # ------------------------------------------------------------ obstacles
+    @property
+    def obstacle_centers(self) -> np.ndarray:
+        """Each obstacle's centre now [m], float64 ``[C, D]``: a box's or
+        sphere's centre (the solver's float32 value), a mesh's ``center``
+        (its sampled origin's displacement added to the scene's centre)."""
+        pos = self.solver.collider_positions.astype(np.float64)
+        out = pos.copy()
+        for i, c in enumerate(self._colliders):
+            if isinstance(c, SampledSdf):
+                out[i] = _reference(c) + (pos[i] - self._anchors0[i].astype(np.float64))
+        return out.reshape(len(self._colliders), self.particles.dim)
+
+    @property
+    def obstacles_displaced(self) -> bool:
+        """Whether an obstacle is away from where the scene put it (the
+        network's boundary particles stand there: the hybrid runs MPM then)."""
+        return not np.array_equal(self.solver.collider_positions, self._anchors0)
+
+    @property
+    def obstacles_moving(self) -> bool:
+        """Whether an obstacle moves in the next step: a pending
+        :meth:`move_obstacle`, or a path whose centre changes over the step."""
+        if self._moves:
+            return True
+        f0 = self.step_index * self.r_t
+        for _, keys in self._paths:
+            centres = [path_center(keys, (f0 + k) * self.dt_frame) for k in range(self.r_t + 1)]
+            if any(not np.array_equal(a, b) for a, b in zip(centres, centres[1:])):
+                return True
+        return False
+
+    @serialised
+    def move_obstacle(self, index: int, center: Any, velocity: Any = None) -> None:
+        """Move obstacle ``index`` (its place in the scene's ``obstacles``)
+        during the next :meth:`advance`: its centre goes linearly in time
+        from where it is to ``center`` [m] (``dim`` numbers inside the
+        domain ``[0, 1]``), reached exactly at the step's end; its boundary
+        condition pushes the fluid with ``velocity`` [m/s] (``dim`` numbers;
+        None: the distance over the step's duration ``r_t · dt_frame``).
+        Called again before the step, the last call wins; without a call the
+        obstacle stays where it is. The one entry of an obstacle's motion
+        from outside (the session's drag); a path of the scene file moves
+        its obstacle itself. Translation only.
+
+        Raises :class:`~hybridmpm.errors.InvalidInputError` naming ``index``
+        (not an obstacle, or one that follows a keyframed path), ``center``
+        or ``velocity``."""
+        n = len(self._colliders)
+        if n == 0:
+            raise InvalidInputError("index: this scene has no obstacles", "index")
+        i = check_int("index", index, 0, n - 1)
+        if self._colliders[i].keyframes:
+            raise InvalidInputError(f"index: obstacle {i} follows the keyframed path of its scene", "index")
+        c = check_center("center", center, self.particles.dim)
+        v = None if velocity is None else check_velocity("velocity", velocity, self.particles.dim)
+        self._moves[i] = (c, v)
+
+    def _anchor(self, i: int, center: np.ndarray) -> np.ndarray:
+        """The solver's anchor of obstacle ``i`` with its centre at ``center``, float32 [D]."""
+        c = self._colliders[i]
+        if isinstance(c, SampledSdf):
+            return (self._anchors0[i].astype(np.float64) + (center - _reference(c))).astype(np.float32)
+        return np.asarray(center, np.float32)
+
+    def _move_for_frame(self, k: int, frame: int, start: np.ndarray) -> None:
+        """Hand the solver the obstacles' moves for frame ``k`` (of ``r_t``)
+        of this step, frame number ``frame``; ``start`` the solver's anchors at the step's start."""
+        dt = self.dt_frame
+        for i, keys in self._paths:
+            c0, c1 = path_center(keys, frame * dt), path_center(keys, (frame + 1) * dt)
+            end = self._anchor(i, c1)
+            if np.array_equal(c0, c1) and np.array_equal(end, self.solver.collider_positions[i]):
+                continue  # still: the static boundary condition
+            self.solver.move_collider(i, end, ((c1 - c0) / dt).astype(np.float32))
+        for i, (target, v) in self._moves.items():  # in the solver's float32 anchors: a move to where it is has velocity 0
+            a, b = start[i].astype(np.float64), self._anchor(i, target).astype(np.float64)
+            end = b if k == self.r_t - 1 else a + (b - a) * ((k + 1) / self.r_t)
+            vel = (b - a) / self.dt_step if v is None else v
+            self.solver.move_collider(i, end.astype(np.float32), vel.astype(np.float32))
+
     # ------------------------------------------------------------ stepping
     @serialised
     def advance(self) -> Frame:
@@ -154,7 +252,10 @@ class MpmSimulator:
         retries = substeps = 0
         controlled = False
         n, d = self.particles.num_fluid, self.particles.dim
+        start = self.solver.collider_positions
         for k in range(self.r_t):
+            if self._paths or self._moves:
+                self._move_for_frame(k, self.step_index * self.r_t + k, start)
             if self._forcing is not None:
                 acc = resolve_forcing(self._forcing, self.step_index * self.r_t + k, n, d, self._fluid_state)
                 if acc is not None:
@@ -166,6 +267,7 @@ class MpmSimulator:
             retries += int(st.get("retries", 0))
             substeps += int(st["substeps"])
         pos = self.fluid_positions
+        self._moves.clear()
         self.step_index += 1
         self.stats.steps[MPM] += 1
         self.stats.mpm_retries += retries
@@ -193,8 +295,9 @@ class MpmSimulator:
     # ------------------------------------------------------------ checkpoint
     @serialised
     def state(self) -> dict[str, Any]:
-        """The whole state (picklable dict): solver checkpoint, step counter,
-        stats and an array forcing (a callable forcing is not saved)."""
+        """The whole state (picklable dict): solver checkpoint (with the
+        obstacles' poses), step counter, stats, an array forcing (a callable
+        forcing is not saved) and the obstacle moves pending for the next step."""
         return {
             "kind": self.kind,
             "version": _STATE_VERSION,
@@ -203,6 +306,7 @@ class MpmSimulator:
             "stats": self.stats.to_dict(),
             "forcing": self._forcing.copy() if isinstance(self._forcing, np.ndarray) else None,
             "applied": self._applied,
+            "obstacle_moves": {i: (c.tolist(), None if v is None else v.tolist()) for i, (c, v) in self._moves.items()},
         }
 
     @serialised
@@ -235,9 +339,11 @@ class MpmSimulator:
                 raise InvalidInputError("state.solver: must be the solver's checkpoint bytes", "state.solver")
             blob = bytes(blob)
             self.solver.check_restore(blob, same_particles=True)
+            moves = self._check_moves(state.get("obstacle_moves", {}))  # absent from states saved before obstacles moved
 
         def commit() -> None:
             self.solver.restore(blob, same_particles=True)
+            self._moves = moves
             self.step_index = step
             self.stats = stats
             self._forcing = forcing
@@ -245,6 +351,27 @@ class MpmSimulator:
             self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM)
 
         return commit
+
+    def _check_moves(self, raw: Any) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+        """A state's pending obstacle moves, checked as :meth:`move_obstacle` checks them (fields ``state.obstacle_moves...``)."""
+        if not isinstance(raw, dict):
+            raise InvalidInputError("state.obstacle_moves: must be a mapping of obstacle index to (center, velocity)", "state.obstacle_moves")
+        out: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+        d = self.particles.dim
+        for key, value in raw.items():
+            i = check_int("state.obstacle_moves", key, 0, len(self._colliders) - 1)
+            if self._colliders[i].keyframes or not isinstance(value, (list, tuple)) or len(value) != 2:
+                raise InvalidInputError(f"state.obstacle_moves: bad move of obstacle {i}", "state.obstacle_moves")
+            c = check_center(f"state.obstacle_moves.{i}.center", value[0], d)
+            v = None if value[1] is None else check_velocity(f"state.obstacle_moves.{i}.velocity", value[1], d)
+            out[i] = (c, v)
+        return out
+
+
+def _reference(c: SampledSdf) -> np.ndarray:
+    """A sampled obstacle's centre as the scene gives it: its mesh's ``center``, else its ``origin``; float64 [D]."""
+    ref = c.source["center"] if c.source is not None and "center" in c.source else c.origin
+    return np.asarray([float(v) for v in ref], np.float64)
 
 
 __all__ = ["MpmSimulator"]

@@ -746,6 +746,91 @@ impl MpmSolver {
         stats_dict(py, r.map_err(|e| to_py(py, e))?)
     }
 
+    /// Each collider's anchor now [m]: float32 [C, D], a box's or sphere's
+    /// centre, a sampled shape's origin (moved by `move_collider` /
+    /// `place_collider`).
+    #[getter]
+    fn collider_positions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let (n, flat) = self.with(py, |inner| {
+            dispatch!(inner, s => {
+                let flat: Vec<f32> = s
+                    .colliders()
+                    .iter()
+                    .flat_map(|c| c.shape.anchor().iter().copied().collect::<Vec<f32>>())
+                    .collect();
+                (s.colliders().len(), flat)
+            })
+        });
+        Ok(PyArray1::from_vec(py, flat)
+            .reshape(vec![n, self.dim])?
+            .into_any())
+    }
+
+    /// Pending moves for the next frame: a list of `(index, position,
+    /// velocity)`, `position` the anchor at the frame's end and `velocity`
+    /// the boundary velocity [m/s] or None (derived from the move), both
+    /// lists of D floats.
+    #[getter]
+    #[allow(clippy::type_complexity)]
+    fn collider_moves(&self, py: Python<'_>) -> Vec<(usize, Vec<f32>, Option<Vec<f32>>)> {
+        self.with(py, |inner| {
+            dispatch!(inner, s => (0..s.colliders().len())
+                .filter_map(|i| {
+                    s.collider_move(i).map(|m| {
+                        (i, m.end.as_slice().to_vec(), m.velocity.map(|v| v.as_slice().to_vec()))
+                    })
+                })
+                .collect())
+        })
+    }
+
+    /// Put collider `index` at anchor `position` (float32 [D], m) now, at
+    /// rest, dropping its pending move. `InvalidInputError` names `index`
+    /// or `position`.
+    fn place_collider(
+        &self,
+        py: Python<'_>,
+        index: &Bound<'_, PyAny>,
+        position: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let i = extract_count(index, "index", "a collider index (an integer >= 0)")?;
+        let x = f32_vec(position, "position", &[Some(self.dim)])?;
+        self.with(
+            py,
+            |inner| dispatch!(inner, s => s.place_collider(i, SVector::from_column_slice(&x))),
+        )
+        .map_err(|e| to_py(py, e))
+    }
+
+    /// Move collider `index` over the next frame to anchor `position`
+    /// (float32 [D], m), its boundary condition relative to `velocity`
+    /// (float32 [D], m/s; None: the move's distance over the frame's
+    /// duration). Used once (see the core's `Solver::move_collider`).
+    /// `InvalidInputError` names `index`, `position` or `velocity`.
+    #[pyo3(signature = (index, position, velocity=None))]
+    fn move_collider(
+        &self,
+        py: Python<'_>,
+        index: &Bound<'_, PyAny>,
+        position: &Bound<'_, PyAny>,
+        velocity: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<()> {
+        let i = extract_count(index, "index", "a collider index (an integer >= 0)")?;
+        let x = f32_vec(position, "position", &[Some(self.dim)])?;
+        let v = velocity
+            .filter(|v| !v.is_none())
+            .map(|v| f32_vec(v, "velocity", &[Some(self.dim)]))
+            .transpose()?;
+        self.with(py, |inner| {
+            dispatch!(inner, s => s.move_collider(
+                i,
+                SVector::from_column_slice(&x),
+                v.as_ref().map(|v| SVector::from_column_slice(v)),
+            ))
+        })
+        .map_err(|e| to_py(py, e))
+    }
+
     /// Particle state and clock as bytes (parameters not included).
     fn checkpoint<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
         let blob = self.with(py, |inner| dispatch!(inner, s => s.checkpoint()));

@@ -66,6 +66,11 @@ where
                 // exist (max is exact in any order)
                 self.particles.iter().map(speed).fold(0.0f32, f32::max)
             };
+        // a moving collider gives the fluid its speed: it counts as a particle's
+        let vmax = match self.move_speed(dt_frame) {
+            Some(u) => vmax.max(u),
+            None => vmax,
+        };
         let c = self.wave_speed();
         let dt_max = self.params.cfl * self.params.dx() / (c + vmax).max(1e-6);
         let needed = (dt_frame / dt_max).ceil();
@@ -81,7 +86,8 @@ where
                         .sum::<f64>()
                         .sqrt()
                 })
-                .fold(0.0f64, f64::max);
+                .fold(0.0f64, f64::max)
+                .max(self.move_speed(dt_frame).unwrap_or(0.0) as f64);
             let dt_max64 =
                 self.params.cfl as f64 * self.params.dx() as f64 / (c as f64 + vmax64).max(1e-6);
             return Err(MpmError::TooManySubsteps {
@@ -121,7 +127,9 @@ where
             self.pool_pid = std::process::id();
         }
         let n_sub = self.substeps_for(dt_frame)?;
+        self.begin_moves(dt_frame);
         if self.particles.is_empty() {
+            self.end_moves(true);
             self.time += dt_frame as f64;
             self.frame += 1;
             let dt = dt_frame / n_sub as f32;
@@ -146,6 +154,7 @@ where
             let result = self.run_substeps(n_sub, dt, max_travel, retries);
             match result {
                 Ok(vmax) => {
+                    self.end_moves(true);
                     self.time += dt_frame as f64;
                     self.frame += 1;
                     let active_blocks = self.grid.src_blocks.len();
@@ -164,6 +173,7 @@ where
                     self.ids.clone_from(&self.rollback.1);
                     self.slot_of.clone_from(&self.rollback.2);
                     if 2 * n_sub > self.params.max_substeps {
+                        self.end_moves(false);
                         return Err(e);
                     }
                     n_sub *= 2;

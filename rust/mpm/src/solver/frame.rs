@@ -280,6 +280,8 @@ where
                     }
                 }
                 if !team.stopped() {
+                    // the moving colliders where they are at this substep's end
+                    s.pose_colliders(sub + 1, n_sub);
                     s.sort_begin();
                     let keys = RawSlice::new(&mut s.grid.next_keys);
                     unsafe { team.publish(s.stage_view(keys)) };

@@ -6,8 +6,10 @@
 //! `v_i = (mv)_i / m_i + Δt·g` (explicit symplectic Euler, Hu et al. 2018);
 //! then enforce the boundaries on nodes inside them:
 //!
-//! - static colliders: nodes with `sdf < 0` get the collider's condition
-//!   with its outward normal (only colliders near the block are tested);
+//! - colliders: nodes with `sdf < 0` get the collider's condition with its
+//!   outward normal (only colliders near the block are tested); a moving
+//!   collider's condition acts on the velocity relative to its own
+//!   ([`crate::collider::apply_condition_moving`]);
 //! - domain walls: nodes within `walls.cells` of a face of the unit domain
 //!   get that face's condition and friction (`WallParams::face`: the
 //!   per-face override or the all-walls default) with the face's inward
@@ -22,7 +24,7 @@ use nalgebra::SVector;
 
 use super::Solver;
 use super::grid::{EMPTY, add4, unflatten, unflatten_pow2};
-use crate::collider::{Collider, apply_condition};
+use crate::collider::{Collider, apply_condition, apply_condition_moving};
 use crate::dim::{Dim, DimOps};
 use crate::params::WallFace;
 
@@ -89,7 +91,8 @@ where
             }
         }
         // Block-level test: is any collider near this block?
-        let near: Vec<&Collider<D>> = if colliders.is_empty() {
+        // each with its velocity in this frame (None: static)
+        let near: Vec<(&Collider<D>, Option<SVector<f32, D>>)> = if colliders.is_empty() {
             Vec::new()
         } else {
             let mut centre = SVector::<f32, D>::zeros();
@@ -99,7 +102,9 @@ where
             let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt() + dx;
             colliders
                 .iter()
-                .filter(|col| col.shape.sdf(&centre) < half_diag)
+                .zip(&self.collider_velocity)
+                .filter(|(col, _)| col.shape.sdf(&centre) < half_diag)
+                .map(|(col, v)| (col, *v))
                 .collect()
         };
         for l in 0..blk_nodes {
@@ -120,14 +125,19 @@ where
             for d in 0..D {
                 gi[d] = (c[d] << log2_b) + lc[d];
             }
-            for col in &near {
+            for (col, v_obs) in &near {
                 let mut xp = SVector::<f32, D>::zeros();
                 for d in 0..D {
                     xp[d] = gi[d] as f32 * dx;
                 }
                 if col.shape.sdf(&xp) < 0.0 {
                     let nrm = col.shape.normal(&xp);
-                    apply_condition(&mut v, &nrm, col.condition, col.friction);
+                    match v_obs {
+                        None => apply_condition(&mut v, &nrm, col.condition, col.friction),
+                        Some(u) => {
+                            apply_condition_moving(&mut v, &nrm, col.condition, col.friction, u)
+                        }
+                    }
                 }
             }
             for d in 0..D {

@@ -39,6 +39,8 @@ mod team;
 
 pub use crate::material::sand::drucker_prager_project;
 
+use nalgebra::SVector;
+
 use crate::collider::Collider;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
@@ -47,6 +49,47 @@ use crate::material::{sand, water};
 use crate::params::SolverParams;
 use crate::particles::{Material, Particle};
 use grid::{SparseGrid, Stencil};
+
+/// A pending move of a collider over the next frame
+/// ([`Solver::move_collider`]): its anchor ([`crate::Shape::anchor`]) goes
+/// from `start` to `end` linearly in time, substep by substep.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ColliderMove<const D: usize> {
+    /// Anchor at the frame's start [m] (where the collider was when the move was set).
+    pub start: SVector<f32, D>,
+    /// Anchor at the frame's end [m].
+    pub end: SVector<f32, D>,
+    /// The collider's velocity in its boundary condition [m/s]; `None`:
+    /// `(end − start) / dt_frame`, computed in f64.
+    pub velocity: Option<SVector<f32, D>>,
+}
+
+impl<const D: usize> ColliderMove<D> {
+    /// The velocity the boundary condition uses over a frame of `dt_frame` seconds.
+    pub fn velocity_over(&self, dt_frame: f32) -> SVector<f32, D> {
+        self.velocity.unwrap_or_else(|| {
+            SVector::from_fn(|d, _| {
+                ((self.end[d] as f64 - self.start[d] as f64) / dt_frame as f64) as f32
+            })
+        })
+    }
+
+    /// The anchor after substep `k` of `n` (`k = n`: `end` exactly).
+    fn anchor_after(&self, k: usize, n: usize) -> SVector<f32, D> {
+        if k >= n {
+            return self.end;
+        }
+        let f = k as f64 / n as f64;
+        SVector::from_fn(|d, _| {
+            let (a, b) = (self.start[d] as f64, self.end[d] as f64);
+            (a + (b - a) * f) as f32
+        })
+    }
+}
+
+/// Largest |coordinate| of a collider's anchor [m]: far beyond the unit
+/// domain, small enough that `(end − start) / dt_frame` stays finite.
+pub const MAX_ANCHOR_COORD: f32 = 1.0e3;
 
 /// Statistics of one `step_frame` call.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -83,6 +126,12 @@ where
 {
     params: SolverParams<D>,
     colliders: Vec<Collider<D>>,
+    /// Each collider's pending move for the next frame (`move_collider`).
+    moves: Vec<Option<ColliderMove<D>>>,
+    /// Each collider's velocity [m/s] in the frame under way: `Some` only
+    /// for a collider that moves with a velocity other than zero (the others
+    /// take the static boundary condition, bit for bit).
+    collider_velocity: Vec<Option<SVector<f32, D>>>,
     /// Particles in storage order: sorted by sparse block, then by id.
     particles: Vec<Particle<D>>,
     /// `ids[slot]`: the public index of the particle stored at `slot`.
@@ -168,9 +217,12 @@ where
         )?;
         let (grid, stencil) = grid::new_grid::<D>(params.n_grid)?;
         let pool = build_pool(params.num_threads)?;
+        let nc = colliders.len();
         Ok(Solver {
             params,
             colliders,
+            moves: vec![None; nc],
+            collider_velocity: vec![None; nc],
             particles: Vec::new(),
             ids: Vec::new(),
             ids_next: Vec::new(),
@@ -251,8 +303,134 @@ where
         &self.params
     }
 
+    /// The colliders at their current poses.
     pub fn colliders(&self) -> &[Collider<D>] {
         &self.colliders
+    }
+
+    fn check_collider(&self, index: usize) -> Result<()> {
+        if index >= self.colliders.len() {
+            return Err(MpmError::invalid(
+                "index",
+                format!(
+                    "no collider {index}: the solver has {}",
+                    self.colliders.len()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    fn check_vector(field: &str, v: &SVector<f32, D>, bound: f32) -> Result<()> {
+        if !v.iter().all(|x| x.is_finite() && x.abs() <= bound) {
+            return Err(MpmError::invalid(
+                field,
+                format!(
+                    "must be {D} finite numbers of magnitude <= {bound}, got {:?}",
+                    v.as_slice()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Where collider `index` is: its anchor ([`crate::Shape::anchor`]) [m].
+    /// Errors (field `index`) for no such collider.
+    pub fn collider_anchor(&self, index: usize) -> Result<SVector<f32, D>> {
+        self.check_collider(index)?;
+        Ok(self.colliders[index].shape.anchor())
+    }
+
+    /// Puts collider `index` at `anchor` now, without motion (its velocity
+    /// is zero in the boundary condition; a checkpoint restore, a reset), and
+    /// drops its pending move. Errors name `index` or `position` (not
+    /// finite, or a coordinate beyond [`MAX_ANCHOR_COORD`]).
+    pub fn place_collider(&mut self, index: usize, anchor: SVector<f32, D>) -> Result<()> {
+        self.check_collider(index)?;
+        Self::check_vector("position", &anchor, MAX_ANCHOR_COORD)?;
+        self.colliders[index].shape.set_anchor(anchor);
+        self.moves[index] = None;
+        Ok(())
+    }
+
+    /// Moves collider `index` over the next frame: its anchor goes linearly
+    /// in time from where it is to `end` [m], reached exactly at the frame's
+    /// end (substep `k` of `n` puts it at `start + (end − start)·k/n`, in
+    /// f64, before its grid update), and its boundary condition acts on the
+    /// grid velocity relative to `velocity` [m/s] (`None`: `(end − start) /
+    /// dt_frame`). The move is used once: after the frame the collider rests
+    /// at `end` unless moved again. A velocity of exactly zero takes the
+    /// static boundary condition, bit for bit. The substep count accounts
+    /// for the collider's speed as for a particle's. Replaces an earlier
+    /// pending move. Errors name `index`, `position` or `velocity` (not
+    /// finite, or beyond [`MAX_ANCHOR_COORD`]).
+    pub fn move_collider(
+        &mut self,
+        index: usize,
+        end: SVector<f32, D>,
+        velocity: Option<SVector<f32, D>>,
+    ) -> Result<()> {
+        self.check_collider(index)?;
+        Self::check_vector("position", &end, MAX_ANCHOR_COORD)?;
+        if let Some(v) = &velocity {
+            Self::check_vector("velocity", v, f32::MAX)?;
+        }
+        let start = self.colliders[index].shape.anchor();
+        self.moves[index] = Some(ColliderMove {
+            start,
+            end,
+            velocity,
+        });
+        Ok(())
+    }
+
+    /// The pending move of collider `index` for the next frame, if any.
+    pub fn collider_move(&self, index: usize) -> Option<ColliderMove<D>> {
+        self.moves.get(index).copied().flatten()
+    }
+
+    /// The fastest pending move's speed [m/s] over a frame of `dt_frame`
+    /// seconds (`None`: nothing moves).
+    fn move_speed(&self, dt_frame: f32) -> Option<f32> {
+        self.moves
+            .iter()
+            .flatten()
+            .map(|m| m.velocity_over(dt_frame).norm())
+            .reduce(f32::max)
+    }
+
+    /// Start of a frame: the velocity each moving collider has in it.
+    fn begin_moves(&mut self, dt_frame: f32) {
+        for (v, m) in self.collider_velocity.iter_mut().zip(&self.moves) {
+            *v = m
+                .map(|m| m.velocity_over(dt_frame))
+                .filter(|u| u.iter().any(|&x| x != 0.0));
+        }
+    }
+
+    /// Before substep `k` (1-based: the pose at that substep's end) of `n`:
+    /// the moving colliders' poses.
+    pub(super) fn pose_colliders(&mut self, k: usize, n: usize) {
+        for (c, m) in self.colliders.iter_mut().zip(&self.moves) {
+            if let Some(m) = m {
+                c.shape.set_anchor(m.anchor_after(k, n));
+            }
+        }
+    }
+
+    /// End of a frame: done, each moved collider rests where its move ended
+    /// and the moves are used; not done (the frame failed and the state is
+    /// its start), each is back at its start and its move still pending.
+    fn end_moves(&mut self, done: bool) {
+        for (c, m) in self.colliders.iter_mut().zip(self.moves.iter_mut()) {
+            if let Some(mv) = m {
+                c.shape.set_anchor(if done { mv.end } else { mv.start });
+                if done {
+                    *m = None;
+                }
+            }
+        }
+        self.collider_velocity.iter_mut().for_each(|v| *v = None);
     }
 
     /// The particles in their public order (index = the order they were given in).
