@@ -283,3 +283,25 @@ def test_bad_moves_name_the_field(args, field):
     with pytest.raises(InvalidInputError) as e:
         sim.solver.move_collider(0, [0.3, 2e3])
     assert e.value.field == "position"
+
+
+def test_an_obstacle_is_not_moved_faster_than_the_cap():
+    """No obstacle moves faster than MAX_OBSTACLE_SPEED (a faster one would ask the CFL rule for more substeps
+    than a frame takes): a given velocity, a one-step move and a keyframe leg beyond it are refused by name."""
+    from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, check_keyframes, check_velocity
+    from hybridmpm.sim import make_simulator
+
+    with pytest.raises(InvalidInputError) as e:
+        check_velocity("velocity", [MAX_OBSTACLE_SPEED * 1.01, 0.0], 2)
+    assert e.value.field == "velocity"
+    assert check_velocity("velocity", [MAX_OBSTACLE_SPEED * 0.99, 0.0], 2)[0] > 0
+    with pytest.raises(InvalidInputError) as e:
+        check_keyframes("obstacles[0].keyframes", [{"t": 0.0, "center": [0.2, 0.5]}, {"t": 0.001, "center": [0.8, 0.5]}], 2)
+    assert e.value.field == "obstacles[0].keyframes[1].center"
+    sim = make_simulator("water_ramps2d", "mpm", seed=1)
+    c = sim.obstacle_centers[0]
+    step_s = sim.r_t * sim.dt_frame
+    far = c + [min(0.9 - c[0], MAX_OBSTACLE_SPEED * step_s * 1.5), 0.0]
+    with pytest.raises(InvalidInputError) as e:
+        sim.move_obstacle(0, far.tolist())
+    assert e.value.field == "center"

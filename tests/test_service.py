@@ -443,3 +443,40 @@ def test_the_recent_frames_as_surface_meshes(client):
     r = client.get(f"/v1/sessions/{s2['id']}/trajectory", params={"format": "mesh", "frames": 1})
     assert r.status_code == 200 and zipfile.ZipFile(io.BytesIO(r.content)).namelist() == ["water_00000.ply"]
     assert field_of(client.get(f"/v1/sessions/{s2['id']}/trajectory", params={"format": "obj"})) == "format"
+
+
+def test_an_obstacle_moved_through_the_api_arrives_and_refusals_change_nothing(client):
+    """PUT .../obstacles/{index}: the obstacle reaches the centre asked at the end of the next step (what the
+    page's drag sends), every viewer is told; a bad index, centre or velocity is a 422 naming it, a network-only
+    session a 409, and a refused move changes nothing."""
+    s = new(client, scene="water_ramps2d", solver="mpm", seed=1)
+    c0 = np.array(s["obstacle_centers"][0])
+    assert np.allclose(c0, s["obstacles"][0]["center"], atol=1e-6)
+    with client.websocket_connect(f"/v1/sessions/{s['id']}/stream") as ws:
+        ws.receive_text()  # meta
+        target = (c0 + [0.02, 0.01]).tolist()
+        r = client.put(f"/v1/sessions/{s['id']}/obstacles/0", json={"center": target})
+        assert r.status_code == 200 and r.json()["index"] == 0, r.text
+        events = []
+        while not any('"obstacle"' in e for e in events):
+            m = ws.receive()
+            if m.get("text"):
+                events.append(m["text"])
+        assert json.loads([e for e in events if '"obstacle"' in e][0])["center"] == target
+    assert client.post(f"/v1/sessions/{s['id']}/step", json={"frames": 1}).status_code == 200
+    info = client.get(f"/v1/sessions/{s['id']}").json()
+    assert np.allclose(info["obstacle_centers"][0], target, atol=1e-6)
+    frame = info["frame"]
+    for path, body, field in [
+        ("obstacles/7", {"center": target}, "index"),
+        ("obstacles/0", {"center": [0.5, 0.5, 0.5]}, "center"),
+        ("obstacles/0", {"center": [1.5, 0.5]}, "center"),
+        ("obstacles/0", {"center": target, "velocity": [1e9, 0.0]}, "velocity"),
+        ("obstacles/0", {"center": ["x", 0.5]}, "center"),
+    ]:
+        r = client.put(f"/v1/sessions/{s['id']}/{path}", json=body)
+        assert r.status_code == 422 and field in json.dumps(r.json()["detail"][0]["loc"]), (body, r.text)
+    after = client.get(f"/v1/sessions/{s['id']}").json()
+    assert after["frame"] == frame and after["obstacle_centers"] == info["obstacle_centers"]
+    n = new(client, scene="water2d", solver="neural")
+    assert client.put(f"/v1/sessions/{n['id']}/obstacles/0", json={"center": [0.5, 0.5]}).status_code == 409

@@ -380,7 +380,11 @@ def test_the_registry_holds_the_store_so_a_plain_server_is_refused_on_it(cluster
     store = tmp_path / "store"
     with _front_end(cluster, store, tmp_path / "a.log") as a:
         with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
-            assert c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED}).status_code == 201
+            r = c.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED})
+            assert r.status_code == 201
+            # an obstacle move goes through the actor too (this scene has none: 422 naming the index)
+            moved = c.put(f"/v1/sessions/{r.json()['id']}/obstacles/0", json={"center": [0.5, 0.5]})
+            assert moved.status_code == 422 and moved.json()["detail"][0]["loc"] == ["path", "index"], moved.text
         with pytest.raises(InvalidInputError) as e:
             SessionStore(str(store)).claim()
         assert e.value.field == "store" and "Ray registry" in str(e.value), e.value

@@ -22,6 +22,9 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 
+#: Fastest an obstacle may move [m/s]: a given velocity, a move asked of one step, a path's leg (a faster
+#: one would ask the CFL rule for more substeps than a frame may take).
+MAX_OBSTACLE_SPEED = 50.0
 #: Most keyframes one obstacle's path may have.
 MAX_KEYFRAMES = 4096
 #: Latest keyframe time [s] (a day of simulated time; far beyond any rollout).
@@ -62,14 +65,17 @@ def check_velocity(name: str, value: Any, dim: int) -> np.ndarray:
         raise InvalidInputError(f"{name}: expected {dim} numbers [m/s], got {value!r}", name)
     if len(value) != dim or not all(_number(v) for v in value):
         raise InvalidInputError(f"{name}: expected {dim} finite numbers [m/s], got {list(value)!r}", name)
-    return np.asarray([float(v) for v in value], np.float64)
+    v = np.asarray([float(v) for v in value], np.float64)
+    if float(np.linalg.norm(v)) > MAX_OBSTACLE_SPEED:
+        raise InvalidInputError(f"{name}: at most {MAX_OBSTACLE_SPEED:g} m/s, got {float(np.linalg.norm(v)):.4g}", name)
+    return v
 
 
 def check_keyframes(name: str, raw: Any, dim: int) -> tuple[Keyframe, ...]:
     """A path as a scene file gives it: a list of 1 to :data:`MAX_KEYFRAMES`
     tables ``{t, center}`` (:class:`Keyframe` objects too), times finite, in
     ``[0, MAX_KEYFRAME_TIME]`` s and strictly increasing, centres inside the
-    domain. Raises :class:`InvalidInputError` naming the entry, e.g.
+    domain, no leg faster than :data:`MAX_OBSTACLE_SPEED`. Raises :class:`InvalidInputError` naming the entry, e.g.
     ``obstacles[1].keyframes[2].t``."""
     if isinstance(raw, (str, bytes, dict)) or not isinstance(raw, (list, tuple)):
         raise InvalidInputError(f"{name}: expected a list of {{t, center}} keyframes, got {type(raw).__name__}", name)
@@ -94,6 +100,10 @@ def check_keyframes(name: str, raw: Any, dim: int) -> tuple[Keyframe, ...]:
         if keys and not float(t) > keys[-1].t:
             raise InvalidInputError(f"{f}.t: keyframe times must increase, got {float(t)!r} after {keys[-1].t!r}", f"{f}.t")
         c = check_center(f"{f}.center", entry["center"], dim)
+        if keys:
+            speed = float(np.linalg.norm(c - np.asarray(keys[-1].center))) / (float(t) - keys[-1].t)
+            if speed > MAX_OBSTACLE_SPEED:
+                raise InvalidInputError(f"{f}.center: reached at {speed:.4g} m/s from the key before; at most {MAX_OBSTACLE_SPEED:g} m/s", f"{f}.center")
         keys.append(Keyframe(float(t), tuple(float(v) for v in c)))
     return tuple(keys)
 
@@ -107,4 +117,4 @@ def path_center(keys: Sequence[Keyframe], t: float) -> np.ndarray:
     return np.asarray([np.interp(float(t), ts, cs[:, d]) for d in range(cs.shape[1])], np.float64)
 
 
-__all__ = ["MAX_KEYFRAMES", "MAX_KEYFRAME_TIME", "Keyframe", "check_center", "check_keyframes", "check_velocity", "path_center"]
+__all__ = ["MAX_OBSTACLE_SPEED", "MAX_KEYFRAMES", "MAX_KEYFRAME_TIME", "Keyframe", "check_center", "check_keyframes", "check_velocity", "path_center"]

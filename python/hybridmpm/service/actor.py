@@ -339,6 +339,16 @@ class SessionActor:
         self._event({"type": "reset", "frame": int(self.sim.frame.frame_index)})
 
     @_answer
+    def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
+        """Move obstacle ``index`` to ``center`` over the next step (the simulator's ``move_obstacle``); the streams get an ``obstacle`` event."""
+        with self.lock:
+            self.sim.move_obstacle(index, center, velocity)  # type: ignore[attr-defined]
+            frame = int(self.sim.frame.frame_index)
+        self._touch()
+        self._event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
+        return frame
+
+    @_answer
     def keep_control(self, c: Control) -> None:
         """Keep ``c`` (the last :data:`~hybridmpm.service.sessions.KEEP_CONTROLS`)."""
         assert self.sess is not None

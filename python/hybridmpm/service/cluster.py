@@ -602,6 +602,11 @@ class RaySessionManager(SessionManager):
         assert isinstance(s, RaySession)
         await self._call(s, "reset")
 
+    async def move_obstacle(self, s: Session, index: int, center: list[float], velocity: list[float] | None) -> int:
+        assert isinstance(s, RaySession)
+        frame: int = await self._call(s, "move_obstacle", index, center, velocity)
+        return frame
+
     async def keep_control(self, s: Session, c: Control) -> None:
         """Kept by the actor (the last 8); its cost leaves this front end's budget."""
         assert isinstance(s, RaySession)

@@ -84,11 +84,27 @@ class SessionInfo(BaseModel):
         description="the scene's static obstacles (MPM colliders): {shape: 'box', center, half_extents, angle_deg (2D) or rotation "
         "(3D, 3×3, world = center + rotation · local)} or {shape: 'sphere', center, radius} [m], with their wall condition and friction",
     )
+    obstacle_centers: list[list[float]] = Field(
+        default_factory=list, description="each obstacle's centre now [m] (moved by PUT .../obstacles/{index} or its scene's path)"
+    )
     recorded_frames: int = Field(0, description="coarse steps of the session's recent trajectory held for download (GET .../trajectory)")
 
 
 class StepRequest(Strict):
     frames: Integer = Field(1, ge=1, le=100, description="frames to advance (whole coarse steps: ceil(frames / r_t))")
+
+
+class ObstacleMove(Strict):
+    center: list[Number] = Field(min_length=2, max_length=3, description="where the obstacle's centre goes over the next step [m] (D numbers in [0, 1])")
+    velocity: list[Number] | None = Field(
+        None, min_length=2, max_length=3, description="the velocity it pushes the fluid with [m/s]; null: the move over the step's duration"
+    )
+
+
+class ObstacleMoved(BaseModel):
+    index: int
+    center: list[float]
+    frame: int = Field(description="the session's frame when the move was accepted (the obstacle arrives at the end of the next step)")
 
 
 class StepFrame(BaseModel):

@@ -178,6 +178,7 @@ class Session:
             "saved_frame": self.saved_frame,
             "restored_from_frame": self.restored_from_frame,
             **scene_geometry(self.sim),
+            "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
             "recorded_frames": len(self.recording) if self.recording is not None else 0,
         }
 
@@ -616,6 +617,18 @@ class SessionManager:
                 s.recording.clear()  # the recent trajectory starts again at the initial state
         s.publish(s.sim.frame)
         s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame_index)})
+
+    async def move_obstacle(self, s: Session, index: int, center: list[float], velocity: list[float] | None) -> int:
+        """Move obstacle ``index`` of ``s`` to ``center`` over its next step
+        (:meth:`hybridmpm.sim.MpmSimulator.move_obstacle`; the errors it raises
+        name ``index``, ``center``, ``velocity``); every viewer gets an
+        ``obstacle`` event. Returns the session's frame."""
+        async with s.lock:
+            await self.compute(s.sim.move_obstacle, index, center, velocity)  # type: ignore[attr-defined] # MPM and hybrid (the route refuses the network alone)
+            frame = int(s.sim.frame.frame_index)
+        s.touch()
+        s.broadcast({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
+        return frame
 
     async def attach(self, s: Session, v: Viewer) -> None:
         """A new viewer of ``s``: its ``meta`` message and the current frame are offered first."""

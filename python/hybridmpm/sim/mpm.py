@@ -26,7 +26,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import MpmSolver, SampledSdf
-from hybridmpm.mpm.motion import Keyframe, check_center, check_velocity, path_center
+from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, check_velocity, path_center
 from hybridmpm.mpm.params import Collider
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
@@ -216,6 +216,13 @@ class MpmSimulator:
             raise InvalidInputError(f"index: obstacle {i} follows the keyframed path of its scene", "index")
         c = check_center("center", center, self.particles.dim)
         v = None if velocity is None else check_velocity("velocity", velocity, self.particles.dim)
+        step_s = self.r_t * self.dt_frame
+        speed = float(np.linalg.norm(c - self.obstacle_centers[i])) / step_s
+        if speed > MAX_OBSTACLE_SPEED:
+            raise InvalidInputError(
+                f"center: {speed:.4g} m/s to get there in one step ({step_s * 1e3:.3g} ms); at most {MAX_OBSTACLE_SPEED:g} m/s (move it in smaller steps)",
+                "center",
+            )
         self._moves[i] = (c, v)
 
     def _anchor(self, i: int, center: np.ndarray) -> np.ndarray:
