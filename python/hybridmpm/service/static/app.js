@@ -22,6 +22,7 @@ const hook = (window.__hmpm = {
   framesReceived: 0, framesRendered: 0, lastDrawMs: 0, drawMs: [], fps: 0, controls: [], errors: [],
   session: null, status: "", lastFrame: -1, lastSketch: null, renderer: "", look: "",
   applied: null, strokeCss: [], planCss: [], lastControlFrame: 0, controlRunning: false, gif: null, camera: null,
+  obstacleMoves: [], obstacleEvents: [], grabbed: null, // the drag tool: the PUTs it sent (answers), the stream's events
   showParticles: (on) => { renderer.showParticles = !!on; dirty = true; },
   centroidCss: () => centroidCss(),
   toCss: (p) => toCss(p),             // world point -> CSS pixels of the sketch canvas
@@ -149,7 +150,8 @@ function syncSolvers() {
 async function newSession() {
   closeStream();
   if (session) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); }
-  session = null; latest = null; hook.session = null; $("apply").disabled = true;
+  session = null; latest = null; hook.session = null; $("apply").disabled = true; resumeAfter = null;
+  if (grab) finishGrab();
   history.length = 0; stroke = []; setApplied(null);
   setStatus("creating session…");
   try {
@@ -161,7 +163,8 @@ async function newSession() {
   renderer.setSession(session);
   hook.camera = renderer.camera;
   for (const el of document.querySelectorAll(".only3d")) el.hidden = !is3D();
-  if (!is3D() && tool() === "turn") document.querySelector("input[name=tool][value=arrow]").checked = true;
+  for (const el of document.querySelectorAll(".only2d")) el.hidden = is3D();
+  if ((!is3D() && tool() === "turn") || (is3D() && tool() === "drag")) document.querySelector("input[name=tool][value=arrow]").checked = true;
   $("r-n").textContent = `${session.num_fluid} fluid + ${session.num_particles - session.num_fluid} boundary`;
   $("apply").disabled = false;
   $("dl-npz").href = `/v1/sessions/${session.id}/trajectory`;
@@ -207,6 +210,12 @@ function onEvent(msg) {
     if (applied && applied.running && !applied.plan) { applied.plan = msg; hook.applied.plan = msg; drawInk(true); }
   } else if (msg.type === "reset") {
     setApplied(null);
+    refreshObstacles(); // the obstacles are back where the scene put them
+  } else if (msg.type === "obstacle") {
+    hook.obstacleEvents.push(msg); if (hook.obstacleEvents.length > 200) hook.obstacleEvents.shift();
+    const ob = session && session.obstacles && session.obstacles[msg.index];
+    // drawn where the server moved it (every viewer), except the one this page is dragging: there the pointer leads
+    if (ob && !(grab && grab.index === msg.index)) { ob.center = msg.center; dirty = true; }
   } else if (msg.type === "error") setStatus(msg.message);
 }
 function onFrame(buf) {
@@ -223,6 +232,11 @@ function onFrame(buf) {
   lastArrival = now;
   recentSolvers.push(solver); if (recentSolvers.length > 200) recentSolvers.shift();
   fresh = dirty = true;
+  // a drag on a paused session: it played so the fluid answers the moves; paused again once the last move is stepped
+  if (resumeAfter !== null && !grab && !moveInFlight && frame > resumeAfter) {
+    resumeAfter = null;
+    if (!playing && ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "pause" }));
+  }
 }
 
 // ---------------------------------------------------------------- drawing
@@ -344,8 +358,105 @@ function addSamples(ev) {
   const evs = typeof ev.getCoalescedEvents === "function" ? ev.getCoalescedEvents() : []; // secure contexts only
   for (const e of evs.length ? evs : [ev]) { const p = toWorld(e.clientX, e.clientY); if (p) stroke.push(p); }
 }
+// ---------------------------------------------------------------- the drag tool: move an obstacle through the fluid
+// Pointer down inside an obstacle's outline (2D: boxes and spheres, a few pixels of slack) grabs it; the pointer's
+// moves go to the server as PUT /v1/sessions/{id}/obstacles/{i} with the new centre, at most one every
+// MOVE_EVERY_MS and one at a time (the latest position wins: each reaches the centre over the next coarse step);
+// pointer up sends the last one and lets go. The session plays while dragging (a paused one pauses again after).
+const MOVE_EVERY_MS = 50, GRAB_SLACK_PX = 6, OBSTACLE_SPEED_MAX = 50; // m/s, the solver's limit (mpm/motion.py)
+let grab = null;             // {index, offset: centre − pointer, target, sent, timer}
+let moveInFlight = false;
+let resumeAfter = null;      // frame after which a session paused before the drag is paused again
+
+function obstacleAt(p) {
+  const obs = (session && session.obstacles) || [], r = inkCanvas.getBoundingClientRect(), [lo, hi] = bounds();
+  const slack = (GRAB_SLACK_PX * (hi[0] - lo[0])) / Math.max(1, r.width);
+  for (let i = obs.length - 1; i >= 0; i--) { // the one drawn last (on top) first
+    const ob = obs[i], dx = p[0] - ob.center[0], dy = p[1] - ob.center[1];
+    if (ob.shape === "sphere") { if (Math.hypot(dx, dy) <= ob.radius + slack) return i; continue; }
+    if (ob.shape !== "box") continue; // meshes are not draggable
+    let c = 1, s = 0;
+    if (ob.rotation) { c = ob.rotation[0][0]; s = ob.rotation[1][0]; } // columns: the box's axes
+    else { const a = ((ob.angle_deg || 0) * Math.PI) / 180; c = Math.cos(a); s = Math.sin(a); }
+    const u = c * dx + s * dy, v = -s * dx + c * dy, e = ob.half_extents; // Rᵀ (p − centre)
+    if (Math.abs(u) <= e[0] + slack && Math.abs(v) <= e[1] + slack) return i;
+  }
+  return -1;
+}
+function clampCenter(c) { // inside the walls: the server refuses a centre out of the domain
+  const [lo, hi] = bounds(), t = (session && session.wall_thickness) || 0;
+  return c.map((x, d) => (d < 2 ? Math.max(lo[d] + t, Math.min(hi[d] - t, x)) : x));
+}
+async function sendMove() {
+  if (!grab || moveInFlight || !session) return;
+  if (!grab.target || grab.target === grab.sent) { if (grab.released) finishGrab(); return; }
+  if (latest && latest.frame <= grab.waitFrame) return; // at most one move per coarse step (the last one not stepped yet)
+  // one request moves it over one coarse step: a far pointer is followed in steps under the server's speed limit
+  const g = grab, index = g.index, sid = session.id, from = g.at, to = g.target;
+  const maxStep = 0.5 * OBSTACLE_SPEED_MAX * (session.r_t || 1) * (session.dt_frame || 0.0025);
+  const dist = Math.hypot(...to.map((x, d) => x - from[d])), f = dist > maxStep ? maxStep / dist : 1;
+  const center = f < 1 ? to.map((x, d) => from[d] + f * (x - from[d])) : to;
+  g.sent = f < 1 ? null : to; moveInFlight = true;
+  try {
+    const res = await api("PUT", `/v1/sessions/${sid}/obstacles/${index}`, { center, velocity: null });
+    hook.obstacleMoves.push(res);
+    g.at = center; g.waitFrame = res.frame;
+    if (resumeAfter !== null) resumeAfter = Math.max(resumeAfter, res.frame);
+  } catch (e) {
+    hook.obstacleMoves.push({ index, center, error: e.message });
+    setStatus(`obstacle move refused: ${e.message}`);
+    g.sent = g.target; // not again; the next pointer move tries from where the server has it
+    if (/^409/.test(e.message)) { g.released = true; g.target = null; } // a control runs, or the network alone steps
+  } finally { moveInFlight = false; }
+}
+function finishGrab() { clearInterval(grab.timer); grab = null; hook.grabbed = null; }
+function startGrab(ev, index) {
+  const p = toDomain(ev.clientX, ev.clientY), ob = session.obstacles[index];
+  inkCanvas.setPointerCapture(ev.pointerId);
+  grab = { index, offset: [ob.center[0] - p[0], ob.center[1] - p[1]], at: ob.center.slice(), target: null, sent: null,
+    waitFrame: -1, released: false, timer: setInterval(sendMove, MOVE_EVERY_MS / 5) };
+  hook.grabbed = index;
+  if (!playing && ws && ws.readyState === 1) { ws.send(JSON.stringify({ type: "play" })); resumeAfter = latest ? latest.frame : 0; }
+  setStatus(`dragging obstacle ${index}${playing ? "" : " (playing while you drag)"}`);
+}
+function moveGrab(ev) {
+  if (grab.released) return;
+  const now = performance.now(), p = toDomain(ev.clientX, ev.clientY), ob = session.obstacles[grab.index];
+  const c = clampCenter([p[0] + grab.offset[0], p[1] + grab.offset[1], ...ob.center.slice(2)]);
+  ob.center = c; dirty = true; // drawn under the pointer at once; the server follows
+  grab.pending = c;
+  if (!grab.lastTake || now - grab.lastTake >= MOVE_EVERY_MS) { grab.target = c; grab.lastTake = now; } // throttled, latest wins
+  else {
+    clearTimeout(grab.take);
+    grab.take = setTimeout(() => { if (grab && !grab.released) { grab.target = grab.pending; grab.lastTake = performance.now(); } }, MOVE_EVERY_MS);
+  }
+}
+function endGrab() {
+  clearTimeout(grab.take);
+  if (grab.pending) grab.target = grab.pending; // the drop point goes last
+  grab.released = true; // the timer sends what is left, then lets go
+  setStatus(`obstacle ${grab.index} let go${playing ? "" : "; paused after its last move"}`);
+}
+
+async function refreshObstacles() {
+  if (!session) return;
+  try {
+    const s = await api("GET", `/v1/sessions/${session.id}`);
+    if (!session || s.id !== session.id || !s.obstacles) return;
+    s.obstacles.forEach((ob, i) => { if (s.obstacle_centers && s.obstacle_centers[i]) ob.center = s.obstacle_centers[i]; });
+    session.obstacles = s.obstacles; dirty = true;
+  } catch { /* the session is gone: nothing to redraw */ }
+}
+
 inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
+  if (!is3D() && tool() === "drag" && session) {
+    if (ev.button !== 0 || grab) return;
+    const i = obstacleAt(toDomain(ev.clientX, ev.clientY));
+    if (i >= 0) startGrab(ev, i);
+    else setStatus((session.obstacles || []).length ? "no obstacle here: press on a ramp or a ball to drag it" : "this scene has no obstacle to drag");
+    return;
+  }
   if (is3D() && (ev.button === 1 || ev.button === 2 || (ev.button === 0 && tool() === "turn"))) {
     inkCanvas.setPointerCapture(ev.pointerId);
     orbiting = [ev.clientX, ev.clientY];
@@ -364,12 +475,14 @@ inkCanvas.addEventListener("pointerdown", (ev) => {
   drawInk(true);
 });
 inkCanvas.addEventListener("pointermove", (ev) => {
+  if (grab) { moveGrab(ev); return; }
   if (orbiting) {
     renderer.camera.orbit(ev.clientX - orbiting[0], ev.clientY - orbiting[1]);
     orbiting = [ev.clientX, ev.clientY]; dirty = true;
   } else if (drawing) { addSamples(ev); drawInk(true); }
 });
 const endStroke = (ev) => {
+  if (grab) { if (!grab.released) { moveGrab(ev); endGrab(); } return; }
   if (orbiting) { orbiting = null; return; }
   if (!drawing) return;
   drawing = false; addSamples(ev); stroke = simplify(stroke, MAX_POINTS);
