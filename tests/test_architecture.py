@@ -318,7 +318,7 @@ def test_routes_read_session_facts_not_the_simulator():
     offenders = []
     for p in sorted((PACKAGE / "service" / "routes").glob("*.py")):
         for i, line in enumerate(p.read_text().splitlines(), 1):
-            if re.search(r"\.sim\b", line):
+            if re.search(r"(?<!hybridmpm)\.sim\b", line):  # s.sim, session.sim; not the module hybridmpm.sim named in a docstring
                 offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
     assert not offenders, "\n".join(offenders)
 
