@@ -3,6 +3,10 @@
 - :class:`Scene` — parameters + initial particles (+ static boundary particles).
 - :class:`SceneSpec` — the declarative, TOML/JSON-serialisable description a
   scene is built from (:mod:`hybridmpm.scenes.spec`).
+- :func:`collider_sdf` / :func:`boundary_particles` — an obstacle's signed
+  distance and the network's static particles on it; reading and checking a
+  scene file's obstacles (:mod:`hybridmpm.scenes.obstacles`; mesh obstacles
+  in :mod:`hybridmpm.scenes.obstacle_mesh`).
 - :class:`ParticleSet` — which particles are fluid, which boundary (one place
   pads and slices).
 - :func:`downsample_scene` / :func:`at_resolution` — ``r_p`` clustering
@@ -18,6 +22,7 @@
 """
 
 from hybridmpm.scenes.core import Clusters, Scene, hydrostatic_volume_ratio, lattice, wall_face
+from hybridmpm.scenes.obstacles import boundary_particles, collider_sdf
 from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 from hybridmpm.scenes.registry import (
     DOMAINS,
@@ -36,7 +41,7 @@ from hybridmpm.scenes.registry import (
     water_sand2d,
 )
 from hybridmpm.scenes.resolution import PAPER_R_P, PAPER_R_T, at_resolution, downsample_scene
-from hybridmpm.scenes.spec import MATERIALS, Block, SceneSpec, boundary_particles, collider_sdf
+from hybridmpm.scenes.spec import MATERIALS, Block, SceneSpec
 
 __all__ = [
     "DOMAINS",

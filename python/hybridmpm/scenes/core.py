@@ -22,6 +22,12 @@ from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 if TYPE_CHECKING:
     from hybridmpm.scenes.spec import SceneSpec
 
+#: Memory a particle costs while a scene is built and simulated [bytes], an
+#: upper bound of the lattice and selection arrays (float64 temporaries), the
+#: Scene's arrays and the solver's particle state (~40 floats in 3D); a
+#: rollout's stored positions are budgeted separately.
+BYTES_PER_PARTICLE = 512
+
 
 @dataclass(frozen=True)
 class Clusters:

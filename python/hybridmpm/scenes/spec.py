@@ -1,4 +1,4 @@
-"""Declarative scene specs: domain, grid, materials, particle blocks, obstacles.
+"""Declarative scene specs: domain, grid, materials, walls, particle blocks, obstacles.
 
 A :class:`SceneSpec` is the whole description of an initial condition and its
 solver settings, small enough to keep beside a dataset and to edit by hand.
@@ -30,14 +30,14 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     half_extents = [0.15, 0.012]
     angle_deg = -20.0
 
-Obstacles are boxes (``half_extents``, ``angle_deg`` in 2D or ``rotation``),
-spheres (``radius``) and, in 3D, triangle meshes (``shape = "mesh"``,
-``path``, ``scale``, ``rotation``; :mod:`hybridmpm.scenes.obstacle_mesh`),
-all with ``center``, ``condition`` and ``friction``, and optionally a
-keyframed path (``keyframes = [{t = 0.0, center = [..]}, ...]``,
-:mod:`hybridmpm.mpm.motion`; the simulators move the obstacle along it);
-docs/obstacles.md lists every key. A mesh's ``path`` is relative to the scene file's folder
-(:meth:`SceneSpec.load`; ``confine=True`` keeps it inside that folder).
+Obstacles (boxes, spheres, 3D triangle meshes, optionally on a keyframed
+path) are read, checked, written back and sampled by
+:mod:`hybridmpm.scenes.obstacles`, which this module imports (never the
+reverse); docs/obstacles.md lists every key. A mesh's ``path`` is relative to
+the scene file's folder (:meth:`SceneSpec.load`; ``confine=True`` keeps it
+inside that folder). :func:`~hybridmpm.scenes.obstacles.collider_sdf` and
+:func:`~hybridmpm.scenes.obstacles.boundary_particles` stay importable from
+here.
 
 :meth:`SceneSpec.build` turns it into a :class:`~hybridmpm.scenes.Scene`:
 each block is filled with a cell-centred lattice at spacing
@@ -77,11 +77,23 @@ from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, read_text_file
 from hybridmpm.limits import check_allocation
-from hybridmpm.mpm import DT_FRAME, Box, MpmParams, MpmSolver, Sphere
-from hybridmpm.mpm.motion import Keyframe, check_keyframes
-from hybridmpm.mpm.params import Collider, SampledSdf
-from hybridmpm.scenes import obstacle_mesh
-from hybridmpm.scenes.core import Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
+from hybridmpm.mpm import DT_FRAME, MpmParams
+from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
+from hybridmpm.scenes.obstacles import (
+    MAX_OBSTACLES,
+    boundary_particles,
+    check_vec,
+    collider_sdf,
+    guess_obstacle_field,
+    is_number,
+    mesh_paths_relative_to,
+    obstacle_dict,
+    obstacles_error,
+    obstacles_on_grid,
+    place_obstacles,
+    read_obstacles,
+)
+from hybridmpm.scenes.obstacles import _rotation as _rotation  # hybridmpm.render.usd imports it from here
 
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 
@@ -91,20 +103,15 @@ _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 MAX_OBSTACLE_DROP_FRACTION = 0.5
 #: Largest scene file read [bytes] (a scene is a few kB of TOML/JSON).
 MAX_SCENE_FILE_BYTES = 16 * 2**20
-#: Most particle blocks and obstacles a scene may have (building is linear in
-#: both: overlaps are looked up in a spatial index of the earlier blocks).
+#: Most particle blocks a scene may have (building is linear in the blocks and
+#: the obstacles, of which it may have :data:`~hybridmpm.scenes.obstacles.MAX_OBSTACLES`:
+#: overlaps are looked up in a spatial index of the earlier blocks).
 MAX_BLOCKS = 4096
-MAX_OBSTACLES = 256
 #: Fastest initial velocity of a block [m/s] per axis: faster than any frame's
 #: substeps can follow (the CFL rule would need more than ``max_substeps``).
 MAX_BLOCK_SPEED = 1000.0
 #: Cells per axis of the index of earlier blocks that :meth:`SceneSpec.build` keeps.
 _INDEX_CELLS = 16
-#: Memory a particle costs while a scene is built and simulated [bytes], an
-#: upper bound of the lattice and selection arrays (float64 temporaries), the
-#: Scene's arrays and the solver's particle state (~40 floats in 3D); a
-#: rollout's stored positions are budgeted separately.
-BYTES_PER_PARTICLE = 512
 
 
 @dataclass
@@ -219,11 +226,7 @@ class SceneSpec:
         d["n_grid"] = n
         d["walls"] = {**d["walls"], "cells": cells}
         params = MpmParams.from_dict(d)
-        for i, c in enumerate(self.params.colliders):  # a mesh obstacle is sampled again on the new grid's nodes
-            if isinstance(c, SampledSdf) and c.source is not None:
-                params.colliders[i] = obstacle_mesh.mesh_obstacle(c.source, f"obstacles[{i}]", n, Path(c.source["path"]))
-            params.colliders[i].keyframes = c.keyframes  # a path is no solver parameter: carried over here
-        _check_obstacles_hold(params)
+        obstacles_on_grid(self.params.colliders, params, n)
         info = {
             **self.info,
             "base_n_grid": int(self.info.get("base_n_grid", n0)),
@@ -262,7 +265,7 @@ class SceneSpec:
             "sand": p["sand"],
             "walls": p["walls"],
             "blocks": [b.to_dict() for b in self.blocks],
-            "obstacles": [_obstacle_dict(c, raw) for c, raw in zip(self.params.colliders, p["colliders"])],
+            "obstacles": [obstacle_dict(c, raw) for c, raw in zip(self.params.colliders, p["colliders"])],
         }
         if p["substeps"] is not None:
             d["substeps"] = p["substeps"]
@@ -298,64 +301,21 @@ class SceneSpec:
         for k in ("n_grid", "gravity", "cfl", "max_substeps", "substeps", "water", "sand", "walls"):
             if k in d:
                 pd[k] = d[k]
-        pd["colliders"] = d.get("obstacles", [])
-        if isinstance(pd["colliders"], list) and len(pd["colliders"]) > MAX_OBSTACLES:
-            raise InvalidInputError(f"obstacles: {len(pd['colliders'])} obstacles, more than the {MAX_OBSTACLES} a scene may have", "obstacles")
-        meshes: dict[int, tuple[dict[str, Any], Path]] = {}
-        paths: dict[int, tuple[Keyframe, ...]] = {}
-        if isinstance(pd["colliders"], list):  # a mesh obstacle is checked here and sampled once the grid is known
-            cols = list(pd["colliders"])
-            for i, c in enumerate(cols):
-                if isinstance(c, dict) and "keyframes" in c:  # a path: its first key is where the obstacle starts
-                    c = dict(c)
-                    keys = check_keyframes(f"obstacles[{i}].keyframes", c.pop("keyframes"), dim)
-                    first = list(keys[0].center)
-                    if "center" not in c:
-                        c["center"] = first
-                    elif not (isinstance(c["center"], (list, tuple)) and [float(v) if _is_number(v) else v for v in c["center"]] == first):
-                        raise InvalidInputError(
-                            f"obstacles[{i}].center: must be the first keyframe's centre {first} (where the path starts), or left out; got {c['center']!r}",
-                            f"obstacles[{i}].center",
-                        )
-                    paths[i] = keys
-                    cols[i] = c
-                if isinstance(c, dict) and c.get("shape") == "mesh":
-                    f = f"obstacles[{i}]"
-                    checked = obstacle_mesh.check_mesh_obstacle(c, f, dim)
-                    meshes[i] = (checked, obstacle_mesh.resolve_mesh_path(c.get("path"), f"{f}.path", base_dir, confine))
-                    cols[i] = {"shape": "sphere", "center": [0.5] * dim, "radius": 0.25}  # placeholder, replaced below
-            pd["colliders"] = cols
+        # a mesh obstacle is checked here and sampled once the grid is known; a path is set aside until then
+        pd["colliders"], pending = read_obstacles(d.get("obstacles", []), dim, base_dir, confine)
         if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
             raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
         try:
             params = MpmParams.from_dict(pd)
             params.to_dict()
         except InvalidInputError as e:  # the solver calls obstacles "colliders"
-            f = (e.field or "").replace("colliders", "obstacles", 1)
-            raise InvalidInputError(str(e).replace("colliders", "obstacles", 1), f) from e
+            raise obstacles_error(e) from e
         except (TypeError, ValueError, AttributeError) as e:  # an unknown keyword or a value of the wrong type in a sub-table
             raise InvalidInputError(f"scene parameters: {e} (in {_guess_field(pd)})", _guess_field(pd)) from e
         n_grid = params.resolved_n_grid()
         if not isinstance(n_grid, int) or n_grid < 8:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
-        for i, (checked, resolved) in meshes.items():
-            params.colliders[i] = obstacle_mesh.mesh_obstacle(checked, f"obstacles[{i}]", n_grid, resolved)
-        for i, keys in paths.items():
-            params.colliders[i].keyframes = keys
-        for i, c in enumerate(params.colliders):
-            if isinstance(c, SampledSdf):
-                continue
-            _check_vec(f"obstacles[{i}].center", c.center, dim)
-            if isinstance(c, Box):
-                _check_vec(f"obstacles[{i}].half_extents", c.half_extents, dim, positive=True)
-                if c.angle_deg is not None and not (_is_number(c.angle_deg) and math.isfinite(c.angle_deg)):
-                    raise InvalidInputError(f"obstacles[{i}].angle_deg: must be a finite number [°], got {c.angle_deg!r}", f"obstacles[{i}].angle_deg")
-                if c.rotation is not None:
-                    rot = np.asarray(c.rotation, np.float64)
-                    if rot.shape != (dim, dim) or not np.isfinite(rot).all() or not np.allclose(rot @ rot.T, np.eye(dim), atol=1e-5):
-                        raise InvalidInputError(f"obstacles[{i}].rotation: must be a finite orthonormal {dim}×{dim} matrix", f"obstacles[{i}].rotation")
-            elif not (isinstance(c.radius, (int, float)) and math.isfinite(c.radius) and c.radius > 0):
-                raise InvalidInputError(f"obstacles[{i}].radius: must be a finite number > 0", f"obstacles[{i}].radius")
+        place_obstacles(params, pending, n_grid, dim)
         blocks_raw = d.get("blocks")
         if not isinstance(blocks_raw, list) or not blocks_raw:
             raise InvalidInputError("blocks: a scene needs at least one particle block", "blocks")
@@ -370,8 +330,8 @@ class SceneSpec:
             mat = b.get("material")
             if mat not in MATERIALS:
                 raise InvalidInputError(f"{f}.material: must be one of {sorted(MATERIALS)}, got {mat!r}", f"{f}.material")
-            lo = _check_vec(f"{f}.lo", b.get("lo"), dim)
-            hi = _check_vec(f"{f}.hi", b.get("hi"), dim)
+            lo = check_vec(f"{f}.lo", b.get("lo"), dim)
+            hi = check_vec(f"{f}.hi", b.get("hi"), dim)
             if np.any(hi <= lo):
                 raise InvalidInputError(f"{f}.hi: must exceed lo on every axis", f"{f}.hi")
             dx = 1.0 / n_grid
@@ -379,7 +339,7 @@ class SceneSpec:
                 raise InvalidInputError(f"{f}: must lie inside [dx, 1 - dx] = [{dx:.4g}, {1 - dx:.4g}]", f)
             vel = b.get("velocity")
             if vel is not None:
-                v = _check_vec(f"{f}.velocity", vel, dim)
+                v = check_vec(f"{f}.velocity", vel, dim)
                 if np.any(np.abs(v) > MAX_BLOCK_SPEED):
                     raise InvalidInputError(f"{f}.velocity: at most {MAX_BLOCK_SPEED:g} m/s per axis, got {vel!r}", f"{f}.velocity")
             blocks.append(Block(mat, list(lo), list(hi), None if vel is None else [float(v) for v in vel], bool(b.get("hydrostatic", False))))
@@ -417,11 +377,7 @@ class SceneSpec:
         """Write as TOML (``.toml``) or JSON (any other suffix); returns the path."""
         path = Path(path)
         d = self.to_dict()
-        for ob in d["obstacles"]:  # a mesh's path relative to the saved file's folder when the mesh lies under it
-            if ob.get("shape") == "mesh":
-                rel = os.path.relpath(ob["path"], os.path.abspath(path.parent))
-                if not rel.startswith(".."):
-                    ob["path"] = rel
+        mesh_paths_relative_to(d["obstacles"], path.parent)  # when the mesh lies under the saved file's folder
         if path.suffix == ".toml":
             import tomli_w
 
@@ -559,46 +515,23 @@ def _index_cells(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, ...]]:
     return list(itertools.product(*(range(x, y + 1) for x, y in zip(a, b))))
 
 
-def _check_obstacles_hold(params: MpmParams) -> None:
-    """Refuse obstacles too thin for ``params``' grid, as the solver does at
-    construction (an empty solver: its grid only), naming ``obstacles[i]...``."""
-    try:
-        MpmSolver(params)
-    except InvalidInputError as e:
-        f = (e.field or "").replace("colliders", "obstacles", 1)
-        raise InvalidInputError(str(e).replace("colliders", "obstacles", 1), f) from e
-
-
 def _guess_field(pd: dict[str, Any]) -> str:
     """The first solver-parameter entry of a scene that is not a plain value of
     its expected kind (for an error that a bare ``float()`` raised)."""
     for k, v in pd.items():
         if k in ("water", "sand", "walls") and not isinstance(v, dict):
             return k
-        if k == "colliders":
-            if not isinstance(v, list):
-                return "obstacles"
-            for i, c in enumerate(v):
-                if not isinstance(c, dict):
-                    return f"obstacles[{i}]"
-                for key, val in c.items():
-                    if key in ("center", "half_extents", "rotation") and not (isinstance(val, list) and all(_is_number(x) for x in val)):
-                        return f"obstacles[{i}].{key}"
-                    if key in ("radius", "angle_deg", "friction") and not _is_number(val):
-                        return f"obstacles[{i}].{key}"
-        if k == "gravity" and not (isinstance(v, list) and all(_is_number(x) for x in v)):
+        if k == "colliders" and (f := guess_obstacle_field(v)) is not None:
+            return f
+        if k == "gravity" and not (isinstance(v, list) and all(is_number(x) for x in v)):
             return k
-        if k in ("cfl", "n_grid", "max_substeps", "substeps") and v is not None and not _is_number(v):
+        if k in ("cfl", "n_grid", "max_substeps", "substeps") and v is not None and not is_number(v):
             return k
         if isinstance(v, dict):
             for key, val in v.items():
-                if key != "condition" and key != "faces" and not _is_number(val):
+                if key != "condition" and key != "faces" and not is_number(val):
                     return f"{k}.{key}"
     return "params"
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _plain(x: Any) -> Any:
@@ -614,94 +547,13 @@ def _plain(x: Any) -> Any:
     return x
 
 
-def _check_vec(name: str, v: Any, dim: int, positive: bool = False) -> np.ndarray:
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise InvalidInputError(f"{name}: expected {dim} numbers, got {v!r}", name) from e
-    if a.shape != (dim,) or not np.all(np.isfinite(a)):
-        raise InvalidInputError(f"{name}: expected {dim} finite numbers, got {v!r}", name)
-    if positive and np.any(a <= 0):
-        raise InvalidInputError(f"{name}: must be > 0 on every axis, got {v!r}", name)
-    return a
-
-
-def _rotation(c: Box, dim: int) -> np.ndarray:
-    if c.rotation is not None:
-        return np.asarray(c.rotation, np.float64)
-    r = np.eye(dim)
-    if c.angle_deg is not None and dim == 2:
-        a = math.radians(c.angle_deg)
-        r[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
-    return r
-
-
-def _obstacle_dict(c: Collider, raw: dict[str, Any]) -> dict[str, Any]:
-    """An obstacle as a scene file writes it: a mesh by its ``source`` (path,
-    center, scale, rotation), not by its samples; other shapes by ``raw``;
-    with its ``keyframes`` when it follows a path."""
-    d = {**c.source, "condition": c.condition, "friction": float(c.friction)} if isinstance(c, SampledSdf) and c.source is not None else dict(raw)
-    if c.keyframes:
-        d["keyframes"] = [k.to_dict() for k in c.keyframes]
-    return d
-
-
-def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:
-    """Signed distance [m] from ``points`` [N, D] to an obstacle (negative inside),
-    float64 [N]; the same shapes and rotation convention as the Rust colliders
-    (a :class:`~hybridmpm.mpm.params.SampledSdf` by the same multilinear
-    interpolation of its samples)."""
-    p = np.asarray(points, np.float64)
-    if isinstance(c, SampledSdf):
-        return obstacle_mesh.sampled_sdf(c, p)
-    center = np.asarray(c.center, np.float64)
-    if isinstance(c, Sphere):
-        return np.asarray(np.linalg.norm(p - center, axis=1) - float(c.radius))
-    local = (p - center) @ _rotation(c, p.shape[1])
-    q = np.abs(local) - np.asarray(c.half_extents, np.float64)
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
-    return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
-
-
-def boundary_particles(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> np.ndarray:
-    """Static boundary particles (GNS type 3) for the obstacles: float32 [B, D].
-
-    A lattice at ``spacing`` [m] in each obstacle's own frame, kept where it lies
-    within one spacing inside the surface (a shell one particle thick; a thin
-    ramp is filled); for a mesh (:class:`~hybridmpm.mpm.params.SampledSdf`) a
-    lattice over its sampled box, kept where ``-spacing < sdf <= 0``. Points outside ``[dx, 1 − dx]^D`` are dropped (they are in
-    the walls, which the network sees through its wall-distance features).
-    """
-    out = [np.zeros((0, dim), np.float32)]
-    for i, c in enumerate(colliders):
-        if isinstance(c, SampledSdf):  # the same shell, found by the sampled signed distance
-            lo = np.asarray(c.origin, np.float64)
-            hi = lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
-            n = float(np.prod(np.maximum(np.round((hi - lo) / spacing), 1)))
-            check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
-            p = lattice(lo, hi, spacing).astype(np.float64)
-            sdf = obstacle_mesh.sampled_sdf(c, p)
-            p = p[(sdf <= 0) & (sdf > -spacing)]
-            inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
-            out.append(p[inside].astype(np.float32))
-            continue
-        extent = 2.0 * np.full(dim, float(c.radius)) if isinstance(c, Sphere) else 2.0 * np.abs(np.asarray(c.half_extents, np.float64))
-        n = float(np.prod(np.maximum(np.round(extent / spacing), 1)))
-        check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
-        center = np.asarray(c.center, np.float64)
-        if isinstance(c, Sphere):
-            r = float(c.radius)
-            p = lattice(center - r, center + r, spacing).astype(np.float64)
-            d = np.linalg.norm(p - center, axis=1)
-            p = p[(d <= r) & (d > r - spacing)]
-        else:
-            h = np.asarray(c.half_extents, np.float64)
-            local = lattice(-h, h, spacing).astype(np.float64)
-            shell = np.any(np.abs(local) > h - spacing, axis=1)
-            p = center + local[shell] @ _rotation(c, dim).T
-        inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
-        out.append(p[inside].astype(np.float32))
-    return np.concatenate(out)
-
-
-__all__ = ["MATERIALS", "MAX_OBSTACLE_DROP_FRACTION", "Block", "SceneSpec", "boundary_particles", "collider_sdf"]
+__all__ = [
+    "BYTES_PER_PARTICLE",
+    "MATERIALS",
+    "MAX_OBSTACLES",
+    "MAX_OBSTACLE_DROP_FRACTION",
+    "Block",
+    "SceneSpec",
+    "boundary_particles",
+    "collider_sdf",
+]
