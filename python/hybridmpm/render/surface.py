@@ -348,14 +348,10 @@ def surface_mesh(
         ``domain``, ``dx`` (<= 0, or a grid over :data:`MAX_GRID_NODES`),
         ``volumes``, ``obstacles[i]``, ``refine``, ``iso`` or ``smooth``.
     """
-    p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, 3)
-    obs = _check_obstacles(obstacles)
     out = []
-    for code in _fluid_types(pt):
-        sel = pt == code
-        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: _mc_measure(f, c, o, h))
+    for code, level, geom in _per_material(3, _mc_measure, positions, particle_type, domain, dx, volumes, obstacles, refine, iso, smooth):
         verts, faces = geom if geom is not None else (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-        out.append(SurfaceMesh(verts, faces, material_name(code), int(code), level))
+        out.append(SurfaceMesh(verts, faces, material_name(code), code, level))
     return out
 
 
@@ -376,13 +372,26 @@ def surface_contours(
     (``positions`` float [N, 2] [m], ``volumes`` [m²], default ``(dx/2)²``),
     the level set by :func:`skimage.measure.find_contours`. Raises
     :class:`InvalidInputError` naming the field, as :func:`surface_mesh`."""
-    p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, 2)
+    out = []
+    for code, level, loops in _per_material(2, _contour_measure, positions, particle_type, domain, dx, volumes, obstacles, refine, iso, smooth):
+        out.append(SurfaceContours(loops if loops is not None else (), material_name(code), code, level))
+    return out
+
+
+def _per_material(
+    dim: int, measure: Any, positions: Any, particle_type: Any, domain: Any, dx: Any, volumes: Any, obstacles: Any, refine: Any, iso: Any, smooth: Any
+) -> list[tuple[int, float, Any]]:
+    """The arguments of :func:`surface_mesh` (``dim`` 3, ``measure``
+    :func:`_mc_measure`) or :func:`surface_contours` (2, :func:`_contour_measure`)
+    checked, then ``(type, level, geometry or None)`` of each fluid type
+    present, sorted by type (:func:`_surfaces`)."""
+    p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, dim)
     obs = _check_obstacles(obstacles)
     out = []
     for code in _fluid_types(pt):
         sel = pt == code
-        level, loops = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: _contour_measure(f, c, o, h))
-        out.append(SurfaceContours(loops if loops is not None else (), material_name(code), int(code), level))
+        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: measure(f, c, o, h))
+        out.append((int(code), level, geom))
     return out
 
 
