@@ -127,6 +127,34 @@ def create(c: httpx.Client, scene: str, solver: str, seed: int) -> str:
     return str(r.json()["id"])
 
 
+def start_round(url: str, sids: list[str], csid: str, args: argparse.Namespace, rng: random.Random) -> tuple[list[Stepper], Controller, float]:
+    """Start a round's clients (a stepper per stepped session, the controller on ``csid``) and wait the random
+    time to the kill: (steppers, controller, the round's start)."""
+    steppers = [Stepper(url, sid) for sid in sids]
+    ctl = Controller(url, csid)
+    t_start = time.monotonic()
+    for t in (*steppers, ctl):
+        t.start()
+    time.sleep(rng.uniform(args.min_wait, args.max_wait))
+    return steppers, ctl, t_start
+
+
+def stop_round(steppers: list[Stepper], ctl: Controller) -> None:
+    """Stop a round's clients and wait for them (after the kill)."""
+    clients: list[Stepper | Controller] = [*steppers, ctl]
+    for t in clients:
+        t.halt.set()
+    for t in clients:
+        t.join(WAIT_S)
+
+
+def round_row(k: int, args: argparse.Namespace, killed: str, said: str, losses: list[float], steppers: list[Stepper], ctl: Controller) -> dict[str, Any]:
+    """A round's row of the results (``killed``), printed as a line (``said``: what was killed)."""
+    row = {"kill": k, "killed": killed, "loss_s": losses, "errors_5xx": sum(len(s.errors) for s in steppers), "controls_done": ctl.done}
+    print(f"kill {k + 1}/{args.kills}: {said}; lost {max(losses):.2f} s (per session {', '.join(f'{x:.2f}' for x in losses)})", flush=True)
+    return row
+
+
 def run_local(args: argparse.Namespace, root: Path, rng: random.Random) -> list[dict[str, Any]]:
     store = root / "store"
 
@@ -139,26 +167,17 @@ def run_local(args: argparse.Namespace, root: Path, rng: random.Random) -> list[
         csid = create(c, *CONTROLLED)
     rows = []
     for k in range(args.kills):
-        steppers = [Stepper(srv.url, sid) for sid in sids]
-        ctl = Controller(srv.url, csid)
-        t_start = time.monotonic()
-        for t in (*steppers, ctl):
-            t.start()
-        time.sleep(rng.uniform(args.min_wait, args.max_wait))
+        steppers, ctl, t_start = start_round(srv.url, sids, csid, args, rng)
         t_kill = time.monotonic()
         srv.proc.send_signal(signal.SIGKILL)
         srv.proc.wait(WAIT_S)
-        for t in (*steppers, ctl):
-            t.halt.set()
-        for t in (*steppers, ctl):
-            t.join(WAIT_S)
+        stop_round(steppers, ctl)
         srv.stop()
         srv = server()
         with httpx.Client(base_url=srv.url, timeout=WAIT_S) as c:
             back = [int(info_of(c, sid)["frame"]) for sid in sids]
         losses = [loss_s(s.answers, t_start, t_kill, b) for s, b in zip(steppers, back)]
-        rows.append({"kill": k, "killed": "server", "loss_s": losses, "errors_5xx": sum(len(s.errors) for s in steppers), "controls_done": ctl.done})
-        print(f"kill {k + 1}/{args.kills}: the server; lost {max(losses):.2f} s (per session {', '.join(f'{x:.2f}' for x in losses)})", flush=True)
+        rows.append(round_row(k, args, "server", "the server", losses, steppers, ctl))
     srv.stop()
     return rows
 
@@ -176,39 +195,20 @@ def run_ray(args: argparse.Namespace, root: Path, rng: random.Random) -> list[di
                 sids = [create(c, *spec) for spec in STEPPED]
                 csid = create(c, *CONTROLLED)
                 for k in range(args.kills):
-                    steppers = [Stepper(srv.url, sid) for sid in sids]
-                    ctl = Controller(srv.url, csid)
-                    t_start = time.monotonic()
-                    for t in (*steppers, ctl):
-                        t.start()
-                    time.sleep(rng.uniform(args.min_wait, args.max_wait))
+                    steppers, ctl, t_start = start_round(srv.url, sids, csid, args, rng)
                     restored_before = [info_of(c, sid)["restored_from_frame"] for sid in sids]
                     pids = sorted(cluster.actor_pids())
                     victim = rng.choice(pids)
                     t_kill = time.monotonic()
                     os.kill(victim, signal.SIGKILL)
                     time.sleep(1.0)  # its clients see it gone and retry until it is back
-                    for t in (*steppers, ctl):
-                        t.halt.set()
-                    for t in (*steppers, ctl):
-                        t.join(WAIT_S)
+                    stop_round(steppers, ctl)
                     # a session whose actor was built again says from which saved frame (the others lost nothing)
                     after = [info_of(c, sid)["restored_from_frame"] for sid in sids]
                     losses = [
                         loss_s(s.answers, t_start, t_kill, int(b)) if b is not None and b != b0 else 0.0 for s, b, b0 in zip(steppers, after, restored_before)
                     ]
-                    rows.append(
-                        {
-                            "kill": k,
-                            "killed": f"actor pid {victim}",
-                            "loss_s": losses,
-                            "errors_5xx": sum(len(s.errors) for s in steppers),
-                            "controls_done": ctl.done,
-                        }
-                    )
-                    print(
-                        f"kill {k + 1}/{args.kills}: actor {victim}; lost {max(losses):.2f} s (per session {', '.join(f'{x:.2f}' for x in losses)})", flush=True
-                    )
+                    rows.append(round_row(k, args, f"actor pid {victim}", f"actor {victim}", losses, steppers, ctl))
     shutil.rmtree(ray_root, ignore_errors=True)
     return rows
 
