@@ -17,7 +17,7 @@ it must delay no other session's save). After a random moment (uniform in
 For every stepped session the loss is the span of answered steps it no
 longer has: from the answer that reached the frame it came back at to the
 last answer before the kill (0 when it came back at its last answered
-frame). The promise (docs/service.md) is a loss of at most ``--save-every``
+frame). The promise (docs/durability.md) is a loss of at most ``--save-every``
 seconds; the table gives the worst loss per kill and over all kills, with
 the save interval beside it.
 
