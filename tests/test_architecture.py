@@ -246,8 +246,6 @@ def test_the_dataset_format_runs_no_simulation():
 # The service's lazy imports (file, imported module); the list only shrinks.
 SERVICE_LAZY_IMPORTS = {
     ("service/config.py", "hybridmpm.limits"),
-    ("service/sessions.py", "hybridmpm.limits"),
-    ("service/sessions.py", "hybridmpm.sim"),
 }
 
 
@@ -314,13 +312,60 @@ def test_the_connectivity_radius_value_is_written_once():
 
 def test_routes_read_session_facts_not_the_simulator():
     # a route reads a session's plain facts (service/facts.py), the same on both backends; reaching into `s.sim`
-    # is what once needed a stand-in simulator on the Ray front end
+    # is what once needed a stand-in simulator on the Ray front end, and a session's core is its backend's
     offenders = []
     for p in sorted((PACKAGE / "service" / "routes").glob("*.py")):
         for i, line in enumerate(p.read_text().splitlines(), 1):
-            if re.search(r"(?<!hybridmpm)\.sim\b", line):  # s.sim, session.sim; not the module hybridmpm.sim named in a docstring
+            if re.search(r"(?<!hybridmpm)(?<!service)\.(sim|core)\b", line):  # s.sim, s.core; not the modules hybridmpm.sim, hybridmpm.service.core
                 offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
     assert not offenders, "\n".join(offenders)
+
+
+# What a session does with its simulator, called only by its core (service/core.py) — the play step, a rollout,
+# a save's snapshot, a rebuild from the store, the control episode, the pacing and the recording — so that the
+# local backend and the Ray actor run one session core instead of two copies of it.
+_SESSION_WORK = {"rollout", "advance", "record_state", "make_simulator", "rebuild", "run_episode", "Pacer", "Recording", "control_episode"}
+# where those names are defined (each defines one and calls none of the others on a session)
+_SESSION_WORK_HOMES = {"core.py", "store.py", "episode.py", "budget.py"}
+
+
+def test_one_session_core_does_a_sessions_work():
+    offenders = []
+    for p in sorted((PACKAGE / "service").rglob("*.py")):
+        if p.parent.name == "service" and p.name in _SESSION_WORK_HOMES:
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Call):
+                f = node.func
+                name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+                seam = isinstance(f, ast.Attribute) and ast.unparse(f.value).split(".")[-1] in ("core", "manager")  # core.rollout, manager.rollout
+                if name in _SESSION_WORK and not seam:
+                    offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: {name}(...)")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_ray_backend_lives_in_its_folder():
+    # only service/ray_backend/ imports ray; the local backend and the routes never do
+    offenders = []
+    for p in sorted((PACKAGE / "service").rglob("*.py")):
+        if p.parent.name == "ray_backend":
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            offenders += [f"{p.relative_to(ROOT)}:{node.lineno}: import {n}" for n in names if n.split(".")[0] == "ray"]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_controls_route_keeps_admission_and_the_http_shape_only():
+    # a control's budgets, watch, saves, events and kept control live in service/controls.py
+    tree = ast.parse((PACKAGE / "service" / "routes" / "controls.py").read_text())
+    (route,) = [n for n in tree.body if isinstance(n, ast.AsyncFunctionDef) and n.name == "control"]
+    assert route.end_lineno - route.lineno + 1 <= 50
+
+
+def test_no_python_file_of_the_package_is_over_700_lines():
+    big = {str(p.relative_to(ROOT)): n for p in PACKAGE.rglob("*.py") if (n := len(p.read_text().splitlines())) > 700}
+    assert not big, big
 
 
 def test_no_class_stands_in_for_a_simulator_in_the_service():

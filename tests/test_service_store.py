@@ -144,7 +144,7 @@ def test_bad_records_and_unwritable_store(tmp_path, caplog):
         assert asyncio.run(mgr.restore_all()) == 1
     text = caplog.text
     assert "meta.seed" in text and "checkpoint: not an npz archive" in text
-    assert mgr.get("good") is not None and mgr.get("good").restored_from_frame == 2
+    assert mgr.get("good") is not None and mgr.get("good").core.restored_from_frame == 2
     assert mgr.get("garbage") is None and mgr.get("badmeta") is None
     # an expired record is removed at start
     old = session_key("old")
@@ -221,22 +221,22 @@ def test_the_periodic_saver_never_waits_for_a_control(tmp_path):
         b = await mgr.create("water2d", 1, "mpm", 0.8)
         root = Path(mgr.store.root)
         for s in (a, b):  # both step on after their first save
-            s.sim.advance()
-            s.dirty = True
+            s.core.sim.advance()
+            s.core.dirty = True
         a_before, b_before = (root / f"{a.key}.npz").read_bytes(), (root / f"{b.key}.npz").read_bytes()
         async with a.lock:  # a control (or a long step) running on a
             mgr.save_round()
             deadline = time.monotonic() + 10
-            while b.dirty and time.monotonic() < deadline:
+            while (b.core.dirty or b.key in mgr._saving) and time.monotonic() < deadline:
                 await asyncio.sleep(0.01)
-            assert not b.dirty and (root / f"{b.key}.npz").read_bytes() != b_before
-            assert a.dirty and (root / f"{a.key}.npz").read_bytes() == a_before
+            assert not b.core.dirty and (root / f"{b.key}.npz").read_bytes() != b_before
+            assert a.core.dirty and (root / f"{a.key}.npz").read_bytes() == a_before
             mgr.save_round()  # a's save is already waiting: no second one
             assert list(mgr._saving) == [a.key]
-            a.sim.advance()  # the control's last step, before its lock goes
+            a.core.sim.advance()  # the control's last step, before its lock goes
         await asyncio.wait_for(mgr._saving[a.key], 10)
-        assert not a.dirty and (root / f"{a.key}.npz").read_bytes() != a_before
-        assert a.saved_frame == a.sim.frame.frame_index
+        assert not a.core.dirty and (root / f"{a.key}.npz").read_bytes() != a_before
+        assert a.core.saved_frame == a.core.frame_index
 
     asyncio.run(go())
 

@@ -6,7 +6,7 @@ streams their frames to browsers over a binary WebSocket, and applies sketches
 (:mod:`hybridmpm.control`) as controlled trajectories. Sessions live in one
 process: run it with one worker (``uvicorn --workers 1``; ``hybridmpm serve``
 does) — or, with ``hybridmpm serve --backend ray``, each in a named actor of a
-Ray cluster that any number of front ends serve (:mod:`hybridmpm.service.cluster`).
+Ray cluster that any number of front ends serve (:mod:`hybridmpm.service.ray_backend`).
 See ``docs/service.md``.
 
 >>> from hybridmpm.service import ServiceConfig, create_app
@@ -14,7 +14,7 @@ See ``docs/service.md``.
 
 FastAPI is imported only here, and only when ``create_app`` is first named:
 ``import hybridmpm`` never needs it, nor does a session's Ray actor
-(:mod:`hybridmpm.service.actor`), which imports the modules it uses alone.
+(:mod:`hybridmpm.service.ray_backend.actor`), which imports the modules it uses alone.
 """
 
 from __future__ import annotations

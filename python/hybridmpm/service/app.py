@@ -43,14 +43,14 @@ log = logging.getLogger("hybridmpm.service")
 
 def session_manager(cfg: ServiceConfig) -> SessionManager:
     """The sessions of ``cfg.backend``: this process's (``local``), or a Ray
-    cluster's (``ray``, :class:`hybridmpm.service.cluster.RaySessionManager`).
+    cluster's (``ray``, :class:`hybridmpm.service.ray_backend.manager.RaySessionManager`).
     Raises :class:`InvalidInputError` naming ``backend`` when Ray is not
     installed, ``ray_address`` when no cluster answers there."""
     if cfg.backend == "local":
         return SessionManager(cfg)
     try:
         # import time: Ray loads for the ray backend only
-        from hybridmpm.service.cluster import RaySessionManager
+        from hybridmpm.service.ray_backend.manager import RaySessionManager
     except ImportError as e:
         raise InvalidInputError(f"backend: 'ray' needs Ray (pip install 'hybridmpm[cluster]'): {e}", "backend") from None
     return RaySessionManager(cfg)

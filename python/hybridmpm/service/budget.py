@@ -1,12 +1,13 @@
 """The process's memory budget (one ledger for every allocation that scales
 with frames or particles) and a session's recording of its recent frames,
-which takes from it as it grows. Used from the event loop thread only."""
+which takes from it as it grows."""
 
 from __future__ import annotations
 
 import collections
 import contextlib
 import math
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -26,23 +27,26 @@ class BudgetFullError(Exception):
 class MemoryBudget:
     """One memory budget for the process [bytes]: sessions, kept controls
     and the transient buffers of requests take from it before they
-    allocate and give back when freed. Used from the event loop thread only
-    (no lock needed)."""
+    allocate and give back when freed. Thread-safe (the sessions' recordings
+    grow on worker threads)."""
 
     def __init__(self, total: int) -> None:
         self.total = int(total)
         self.used = 0
+        self._lock = threading.Lock()
 
     def take(self, nbytes: float, what: str) -> int:
         """Reserve ``nbytes`` (rounded up) or raise :class:`BudgetFullError`; returns the bytes reserved."""
         n = max(0, int(math.ceil(nbytes)))
-        if self.used + n > self.total:
-            raise BudgetFullError(what, n, self.used, self.total)
-        self.used += n
+        with self._lock:
+            if self.used + n > self.total:
+                raise BudgetFullError(what, n, self.used, self.total)
+            self.used += n
         return n
 
     def give(self, nbytes: int) -> None:
-        self.used = max(0, self.used - int(nbytes))
+        with self._lock:
+            self.used = max(0, self.used - int(nbytes))
 
     @contextlib.contextmanager
     def hold(self, nbytes: float, what: str) -> Iterator[int]:
@@ -73,7 +77,7 @@ class Recording:
     starts it again), at most ``capacity``. The ring's memory is taken from
     the budget as it grows and kept until the session is dropped; when the
     budget cannot hold another frame the ring stops growing and drops its
-    oldest frame instead. Used from the event loop thread only."""
+    oldest frame instead. Not thread-safe: its session's core guards it."""
 
     def __init__(self, budget: MemoryBudget, capacity: int, r_t: int) -> None:
         self.budget = budget

@@ -73,7 +73,7 @@ class ServiceConfig:
 
     ``backend`` where sessions live: ``"local"`` in this process (the
     default), ``"ray"`` each in a named actor of a Ray cluster
-    (:mod:`hybridmpm.service.cluster`), so that several front ends serve
+    (:mod:`hybridmpm.service.ray_backend`), so that several front ends serve
     every session; ``ray_address`` the cluster (``"auto"``: the one started
     on this machine with ``ray start``, or ``HOST:PORT`` of its head);
     ``ray_namespace`` the Ray namespace of the sessions' actors;

@@ -24,10 +24,11 @@ from hybridmpm.control import Sketch, render_sketch
 from hybridmpm.control.controller import shipped_control_model
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.service.budget import BudgetFullError
+from hybridmpm.service.core import Control, SessionGoneError
 from hybridmpm.service.errors import ApiError
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.schemas import clean
-from hybridmpm.service.sessions import Control, Session, SessionGoneError, SessionManager
+from hybridmpm.service.sessions import Session, SessionManager
 
 log = logging.getLogger("hybridmpm.service")
 #: Copies of a control's trajectory alive at its peak (its frames, the stacked array, the kept one, the plan's

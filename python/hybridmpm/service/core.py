@@ -1,22 +1,76 @@
-"""What both backends do the same way with a session, written once: the
-paced play step (real time, catching up at most :data:`PLAY_LAG_S`), the
-step a playing session takes, and the record a save writes. The local
-manager runs them on its event loop and workers
-(:class:`~hybridmpm.service.sessions.SessionManager`), the Ray actor in its
-own threads (:class:`~hybridmpm.service.actor.SessionActor`).
+"""A session's life, written once for both backends (:class:`SessionCore`).
+
+A session is one simulator and what the service keeps around it: the lock
+its work takes in turn, the recording of its recent frames, the controls it
+keeps, the play loop (real time, catching up at most :data:`PLAY_LAG_S`),
+its saves to the store (a snapshot at a step boundary, the record written
+after), its idle clock (expiry) and the control episode. The core is
+synchronous and thread-safe; the backends run it in place:
+
+- the local backend (:class:`~hybridmpm.service.sessions.SessionManager`)
+  calls its methods on worker threads, each behind the session's ``asyncio``
+  lock (so requests queue without holding a worker), and hands its frames
+  and events to the viewers on the event loop;
+- the Ray backend (:class:`~hybridmpm.service.ray_backend.actor.SessionActor`)
+  calls them in the session's actor and hands frames and events to every
+  front end's stream.
+
+What the core shows goes through three hooks the backend sets:
+``on_frame(frame, control_frame)``, ``on_event(msg)`` (both called from the
+thread that did the work) and ``has_viewers()`` (the play loop runs while
+it is true).
 """
 
 from __future__ import annotations
 
+import collections
+import logging
+import threading
 import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from hybridmpm.service import checkpoint as ckpt
-from hybridmpm.service.store import record_state
-from hybridmpm.sim import Frame, Simulator
+from hybridmpm.service.budget import MemoryBudget, Recording
+from hybridmpm.service.episode import run_episode
+from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
+from hybridmpm.sim import Frame, Rollout, Simulator, make_simulator, rollout
+
+log = logging.getLogger("hybridmpm.service")
 
 #: How far a playing session may fall behind real time before it stops catching up [s].
 PLAY_LAG_S = 0.25
+#: Controls kept per session (their trajectories can be fetched).
+KEEP_CONTROLS = 8
+#: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
+RECORD_STEPS = 300
+
+
+class SessionGoneError(Exception):
+    """The session was deleted, expired or lost while a request used it (→ 404)."""
+
+
+class BusyError(Exception):
+    """A control is already running on the session (→ 409)."""
+
+
+@dataclass
+class Control:
+    """A control a session keeps: its ``id``, ``method``, trajectory
+    (``positions`` float32 [steps + 1, N, D] and each step's ``solver``), the
+    answer it gave (``response``) and the bytes it holds of the memory
+    budget (``cost``; 0 where no ledger counts it)."""
+
+    id: str
+    method: str
+    positions: np.ndarray
+    solver: list[str]
+    response: dict[str, Any]
+    cost: int = 0
 
 
 class Pacer:
@@ -35,32 +89,358 @@ class Pacer:
         return max(0.0, self.next_t - time.monotonic())
 
 
-def play_period(sim: Simulator) -> float:
-    """Wall seconds per step of a playing session: its coarse step, ``dt_frame · r_t`` [s]."""
-    return float(sim.dt_frame) * int(sim.r_t)
+def _nothing(*_: Any) -> None:
+    return None
 
 
-def play_step(sim: Simulator) -> Frame:
-    """One step of a playing session (the caller holds its lock): ``sim.advance()``."""
-    return sim.advance()
+def _no_viewers() -> bool:
+    return False
 
 
-def snapshot(sim: Simulator) -> tuple[dict[str, Any], int]:
-    """The state a save writes (:func:`~hybridmpm.service.store.record_state`) and its frame; under the session's lock."""
-    return record_state(sim), int(sim.frame.frame_index)
+class SessionCore:
+    """One session: its simulator ``sim`` (at ``settings``, from ``initial``,
+    the state a reset goes back to), created by the client address
+    ``client``, named ``key`` in the store; its recording takes from
+    ``budget``. Build one with :meth:`build` or :meth:`load`.
+
+    Thread-safe: the simulation work takes :attr:`lock` (a re-entrant lock,
+    held for a whole step, control or restore); the recording and the kept
+    controls a short lock of their own, so reading them never waits for a
+    step. A closed session (:meth:`close`) refuses work with
+    :class:`SessionGoneError` and stops a running control within a frame.
+    """
+
+    def __init__(self, key: str, settings: SessionSettings, sim: Simulator, initial: dict[str, Any], client: str, budget: MemoryBudget) -> None:
+        self.key = key
+        self.settings = settings
+        self.sim = sim
+        self.initial = initial
+        self.client = client
+        self.facts = SessionFacts.of(sim)
+        self.lock = threading.RLock()  # the simulator
+        self._held = threading.Lock()  # the recording, the kept controls, the control flag
+        self._save_lock = threading.Lock()  # one save at a time; a delete waits for it
+        self.recording = Recording(budget, RECORD_STEPS, int(sim.r_t))
+        self.controls: collections.OrderedDict[str, Control] = collections.OrderedDict()
+        self.on_frame: Callable[[Frame, int], None] = _nothing
+        self.on_event: Callable[[dict[str, Any]], None] = _nothing
+        self.has_viewers: Callable[[], bool] = _no_viewers
+        self.playing = False
+        self.controlling = False
+        self.closed = False
+        self.cancel = threading.Event()  # set: the running control stops within a frame
+        self.dirty = False  # changed since its last save
+        self.saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
+        self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
+        self.last_used = time.monotonic()
+        self._record(sim.frame)
+
+    # ------------------------------------------------------------ building
+    @classmethod
+    def build(cls, key: str, settings: SessionSettings, client: str, budget: MemoryBudget, threads: int = 1) -> SessionCore:
+        """A new session (:func:`hybridmpm.sim.make_simulator` with ``threads``
+        MPM threads and one network thread). Blocks; raises the simulator's
+        :class:`~hybridmpm.errors.InvalidInputError` for bad settings."""
+        sim = make_simulator(settings.scene, settings.solver, r_c=settings.r_c, seed=settings.seed, threads=threads, nn_threads=1, n_grid=settings.n_grid)
+        return cls(key, settings, sim, sim.state(), client, budget)
+
+    @classmethod
+    def load(cls, rec: StoredSession, budget: MemoryBudget) -> SessionCore:
+        """The session of a store record, at its saved frame, its idle clock
+        as the record says (:func:`~hybridmpm.service.store.rebuild`; raises
+        what it raises). Blocks."""
+        sim, initial = rebuild(rec)
+        settings = SessionSettings(rec.scene, rec.seed, rec.solver, rec.r_c, rec.n_grid)
+        core = cls(rec.key, settings, sim, initial, rec.client, budget)
+        core.saved_frame = core.restored_from_frame = core.frame_index
+        core.last_used = time.monotonic() - max(0.0, time.time() - rec.last_used_at)
+        return core
+
+    # ------------------------------------------------------------ plain facts
+    @property
+    def frame_index(self) -> int:
+        """The frame the session is at."""
+        return int(self.sim.frame.frame_index)
+
+    def touch(self) -> None:
+        """Used now (its idle clock starts again)."""
+        self.last_used = time.monotonic()
+
+    def idle_s(self) -> float:
+        """Seconds since it was last used."""
+        return time.monotonic() - self.last_used
+
+    def expired(self, ttl: float) -> bool:
+        """Idle for more than ``ttl`` seconds and no control running."""
+        return not self.controlling and self.idle_s() > ttl
+
+    def info(self) -> dict[str, Any]:
+        """Its description, less what the backend adds (``id``, ``stream``, ``viewers``, ``playing``)."""
+        f = self.facts
+        d = f.dim
+        return {
+            **self.settings.meta(),
+            "dim": d,
+            "num_fluid": f.num_fluid,
+            "num_particles": f.num_total,
+            "particle_type": [int(t) for t in f.particle_type],
+            "bounds": [[0.0] * d, [1.0] * d],
+            "dt_frame": f.dt_frame,
+            "r_t": f.r_t,
+            "frame": self.frame_index,
+            "saved_frame": self.saved_frame,
+            "restored_from_frame": self.restored_from_frame,
+            **scene_geometry(self.sim),
+            "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
+            "recorded_frames": len(self.recording),
+        }
+
+    # ------------------------------------------------------------ what it shows
+    def _record(self, fr: Frame) -> None:
+        self._record_values(int(fr.frame_index), fr.positions, str(fr.solver), bool(fr.controlled))
+
+    def _record_values(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
+        with self._held:
+            if not self.closed:
+                self.recording.add(frame_index, positions, solver, controlled)
+
+    def _show(self, fr: Frame, control_frame: int = 0) -> None:
+        """Record ``fr`` and hand it to the viewers."""
+        self._record(fr)
+        self.on_frame(fr, control_frame)
+
+    def republish(self) -> None:
+        """Hand the current frame to the viewers again (after a control that stopped early)."""
+        self.on_frame(self.sim.frame, 0)
+
+    def recorded(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+        """The latest ``count`` frames of its recent trajectory, oldest first."""
+        self.touch()
+        with self._held:
+            return self.recording.last(count)
+
+    def _changed(self) -> None:
+        self.dirty = True
+        self.touch()
+
+    def _open(self) -> None:
+        if self.closed:
+            raise SessionGoneError()
+
+    # ------------------------------------------------------------ the work
+    def rollout(self, frames: int) -> Rollout:
+        """Advance ``frames`` frames (:func:`hybridmpm.sim.rollout`): every
+        coarse step is recorded, the last one shown."""
+        with self.lock:
+            self._open()
+            ro = rollout(self.sim, frames)
+            self._changed()
+            for k in range(1, len(ro.frame_index)):
+                self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False)
+            if len(ro.frame_index) > 1:
+                self.on_frame(self.sim.frame, 0)
+        return ro
+
+    def play(self) -> Iterator[float]:
+        """The play loop: one coarse step at a time while it plays, is open
+        and has viewers, yielding after each the seconds to wait before the
+        next (:class:`Pacer`: real time). A step that fails stops it, with an
+        ``error`` event. The backend waits between the steps (a thread's
+        sleep, or the event loop's with each step on a worker)."""
+        pacer = Pacer(float(self.sim.dt_frame) * int(self.sim.r_t))
+        while self.playing and not self.closed and self.has_viewers():
+            with self.lock:
+                if not self.playing or self.closed:
+                    return
+                try:
+                    fr = self.sim.advance()
+                except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
+                    self.playing = False
+                    self.on_event({"type": "error", "message": f"simulation stopped: {e}"})
+                    return
+                self._changed()
+                self._show(fr)
+            yield pacer.delay()
+
+    def control(
+        self,
+        method: str,
+        frames: int,
+        sketch: Any,
+        cid: str,
+        left: Callable[[], bool] | None = None,
+        store: SessionStore | None = None,
+    ) -> tuple[Rollout, dict[str, Any], dict[str, Any] | None, float | None]:
+        """Plan and run control ``cid`` with ``method`` for ``frames`` frames
+        of ``sketch`` (a :class:`~hybridmpm.control.Sketch` or None; the
+        scene's :class:`~hybridmpm.control.Controller`;
+        :func:`~hybridmpm.service.episode.run_episode`): the viewers get a
+        ``control running`` event once it starts, its plan and every
+        controlled frame. With ``store`` the session is saved before it is
+        announced (the steps answered before it are durable). It stops
+        within a frame when ``left()`` turns true (its client left), when
+        :attr:`cancel` is set, or when the session closes. Returns
+        ``(rollout, metrics, plan summary or None, time.perf_counter() of
+        the first controlled frame or None)``. Raises :class:`BusyError`
+        when a control is running and :class:`SessionGoneError` when the
+        session closed before or during it."""
+        from hybridmpm.control import Controller  # import time: the controllers load only when a control runs
+
+        with self._held:  # a close sets `closed` then the cancel flag under this lock: a control never clears a close's cancel
+            if self.controlling:
+                raise BusyError()
+            self._open()
+            self.controlling = True
+            self.cancel.clear()
+        try:
+            controller = Controller.for_scene(self.facts.scene_name, method, frames=frames)
+            if store is not None:
+                self.save(store)
+            with self.lock:
+                self._open()
+                self.on_event({"type": "control", "status": "running", "id": cid, "method": method})
+
+                def stop() -> bool:
+                    return self.cancel.is_set() or (left is not None and left())
+
+                out = run_episode(self.sim, sketch, controller, cid, self._show, self.on_event, stop)
+                self._changed()
+            self._open()
+            return out
+        finally:
+            self.controlling = False
+
+    def keep_control(self, c: Control) -> list[Control]:
+        """Keep ``c``; returns the oldest ones dropped beyond :data:`KEEP_CONTROLS`."""
+        with self._held:
+            self.controls[c.id] = c
+            dropped = []
+            while len(self.controls) > KEEP_CONTROLS:
+                dropped.append(self.controls.popitem(last=False)[1])
+        return dropped
+
+    def get_control(self, cid: str) -> Control | None:
+        """The kept control ``cid``, or None."""
+        self.touch()
+        with self._held:
+            return self.controls.get(cid)
+
+    def state(self) -> dict[str, Any]:
+        """Its whole state (:meth:`~hybridmpm.sim.Simulator.state`), between steps."""
+        with self.lock:
+            self._open()
+            return self.sim.state()
+
+    def checkpoint(self) -> bytes:
+        """Its whole state as a checkpoint (:func:`hybridmpm.service.checkpoint.dumps`)."""
+        state = self.state()
+        self.touch()
+        return ckpt.dumps(state, self.settings.meta())
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore ``state``, all or nothing: the simulator's refusal
+        (:class:`~hybridmpm.errors.InvalidInputError`,
+        :class:`~hybridmpm.errors.CheckpointError`, or a ``KeyError``/``TypeError``/...
+        of a malformed tree) leaves it as it was. The recent trajectory starts again."""
+        with self.lock:
+            self._open()
+            self.sim.restore(state)
+            self._changed()
+            with self._held:
+                self.recording.clear()
+            self._show(self.sim.frame)
+
+    def reset(self) -> None:
+        """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
+        with self.lock:
+            self.sim.restore(self.initial)
+            self._changed()
+            with self._held:
+                self.recording.clear()
+            self._show(self.sim.frame)
+            self.on_event({"type": "reset", "frame": self.frame_index})
+
+    def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
+        """Move obstacle ``index`` to ``center`` over the next step
+        (:meth:`hybridmpm.sim.MpmSimulator.move_obstacle`; its errors name
+        ``index``, ``center``, ``velocity``); the viewers get an ``obstacle``
+        event. Returns the session's frame."""
+        with self.lock:
+            self._open()
+            self.sim.move_obstacle(index, center, velocity)  # type: ignore[attr-defined] # MPM and hybrid (the route refuses the network alone)
+            frame = self.frame_index
+        self.touch()
+        self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
+        return frame
+
+    # ------------------------------------------------------------ saves
+    def snapshot(self) -> tuple[dict[str, Any], int] | None:
+        """The state a save writes (:func:`~hybridmpm.service.store.record_state`)
+        and its frame, taken between steps; None when it is closed or has not
+        changed since its last save. Clears its changed mark."""
+        with self.lock:
+            if self.closed or not self.dirty:
+                return None
+            self.dirty = False
+            return record_state(self.sim), self.frame_index
+
+    def write(self, store: SessionStore, state: dict[str, Any], frame: int) -> bool:
+        """Write a :meth:`snapshot` to ``store`` (its record: the state, the
+        settings that rebuild it, its idle clock as wall time, its client);
+        False when it could not (logged; it is marked changed again, so the
+        next save tries again)."""
+        t0 = time.perf_counter()
+        meta = {
+            **self.settings.meta(),
+            "last_used_at": time.time() - (time.monotonic() - self.last_used),
+            "client": self.client[: ckpt.MAX_META_CHARS],
+        }
+        try:
+            data = ckpt.dumps(state, meta)
+            store.write(self.key, data)
+        except Exception as e:  # noqa: BLE001 - a failed save must not fail the session
+            self.dirty = True
+            log.warning("store: saving session %s… failed: %s", self.key[:SHOWN_KEY_CHARS], e)
+            return False
+        self.saved_frame = frame
+        log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", self.key[:SHOWN_KEY_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
+        return True
+
+    def save(self, store: SessionStore) -> bool:
+        """:meth:`snapshot` then :meth:`write`, one save at a time; True when
+        there was nothing to save."""
+        with self._save_lock:
+            snap = self.snapshot()
+            if snap is None:
+                return True
+            return self.write(store, *snap)
+
+    def close(self, store: SessionStore | None = None) -> None:
+        """Close it: it refuses further work, a running control stops within
+        a frame, its recording's memory goes back to the budget, its hooks
+        show nothing more; with
+        ``store`` its record is removed (after a save under way: no record
+        outlives its session). Idempotent."""
+        with self._held:
+            self.closed = True
+            self.playing = False
+            self.cancel.set()
+            self.recording.release()
+        # a closed session shows nothing more; and its hooks (closures over the backend's objects) go, so that
+        # its simulator is freed with the last reference to it rather than by the cycle collector
+        self.on_frame, self.on_event, self.has_viewers = _nothing, _nothing, _no_viewers
+        if store is not None:
+            with self._save_lock:
+                store.delete(self.key)
 
 
-def encode_record(state: dict[str, Any], settings: dict[str, Any], last_used: float, client: str) -> bytes:
-    """The bytes of a session's record in the store: its ``state``, what rebuilds
-    it (``settings``: scene, seed, solver, ``r_c``, ``n_grid``), when it was last
-    used (``last_used``, a ``time.monotonic()``, written as wall time) and the
-    client address that created it (the per-client quota)."""
-    meta = {
-        **settings,
-        "last_used_at": time.time() - (time.monotonic() - last_used),
-        "client": client[: ckpt.MAX_META_CHARS],
-    }
-    return ckpt.dumps(state, meta)
-
-
-__all__ = ["PLAY_LAG_S", "Pacer", "encode_record", "play_period", "play_step", "snapshot"]
+__all__ = [
+    "KEEP_CONTROLS",
+    "PLAY_LAG_S",
+    "RECORD_STEPS",
+    "BusyError",
+    "Control",
+    "Pacer",
+    "SessionCore",
+    "SessionGoneError",
+]

@@ -10,8 +10,9 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.core import Control
 from hybridmpm.service.errors import NO_SESSION, ApiError
-from hybridmpm.service.sessions import Control, Session, SessionManager
+from hybridmpm.service.sessions import Session, SessionManager
 
 
 async def get_manager(request: Request) -> SessionManager:

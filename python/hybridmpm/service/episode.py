@@ -1,7 +1,7 @@
 """A control episode as the service runs it, written once for both
-backends: the local one runs it on a worker thread
-(:meth:`hybridmpm.service.sessions.SessionManager.run_control`), the Ray one
-inside the session's actor (:meth:`hybridmpm.service.actor.SessionActor.run_control`).
+backends: a session's core runs it
+(:meth:`hybridmpm.service.core.SessionCore.control`), on a worker thread of
+this process (the local backend) or in the session's Ray actor.
 
 Around :func:`~hybridmpm.control.control_episode` it adds what the streams
 show: the plan's centroid path once the plan is made (the plan's own

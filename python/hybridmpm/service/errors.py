@@ -22,7 +22,8 @@ from starlette.routing import Match
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.service.budget import BudgetFullError
 from hybridmpm.service.config import MAX_MESSAGE_CHARS
-from hybridmpm.service.sessions import RETRY_AFTER_S, SessionGoneError
+from hybridmpm.service.core import SessionGoneError
+from hybridmpm.service.sessions import RETRY_AFTER_S
 
 log = logging.getLogger("hybridmpm.service")
 _REPR = re.compile(r"<[^<>]{0,200}? (?:object )?at 0x[0-9a-fA-F]+>")

@@ -1,6 +1,7 @@
 """What the routes read of a session: plain values, the same on both backends.
 
-A session's fixed facts (:class:`SessionFacts`: its scene, grid, particle
+What it was created with (:class:`SessionSettings`: scene, seed, solver,
+``r_c``, grid) and its fixed facts (:class:`SessionFacts`: its scene, grid, particle
 counts and types, masses, frame step) are taken once from its simulator —
 in this process for the local backend, in the session's actor for the Ray
 one, which sends them to the front end — so a route never reaches into a
@@ -19,6 +20,27 @@ from hybridmpm.mpm import SampledSdf
 from hybridmpm.render.surface import surface_settings
 from hybridmpm.scenes import scene_spec
 from hybridmpm.sim import Simulator
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """What a session was created with, and what rebuilds it: ``scene``
+    (its registered name), ``seed``, ``solver`` (``mpm``, ``hybrid``,
+    ``neural``), ``r_c`` (the coarsening ratio of a learned solver) and
+    ``n_grid`` (MPM on a coarser grid of the scene; None: the scene's own)."""
+
+    scene: str
+    seed: int
+    solver: str
+    r_c: float
+    n_grid: int | None = None
+
+    def meta(self) -> dict[str, Any]:
+        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c``, and ``n_grid`` when asked."""
+        d: dict[str, Any] = {"scene": self.scene, "seed": self.seed, "solver": self.solver, "r_c": self.r_c}
+        if self.n_grid is not None:
+            d["n_grid"] = self.n_grid
+        return d
 
 
 @dataclass(frozen=True)
@@ -120,4 +142,4 @@ def _drawn(c: Any) -> dict[str, Any]:
     return dict(c.to_dict())
 
 
-__all__ = ["SessionFacts", "checked_n_grid", "scene_geometry"]
+__all__ = ["SessionFacts", "SessionSettings", "checked_n_grid", "scene_geometry"]

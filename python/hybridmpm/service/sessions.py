@@ -1,18 +1,22 @@
-"""Sessions: each owns one simulator, its lock, its viewers; a manager holds
+"""Sessions of the local backend: each a :class:`~hybridmpm.service.core.SessionCore`
+(its simulator, lock, recording, kept controls, play loop and saves,
+written once for both backends) and, here, its viewers; a manager holds
 them in memory (one process), caps their number and reaps idle ones.
 
 All simulation work runs through :meth:`SessionManager.compute` — off the
 event loop, on one capacity limiter sized to the cores — never in ``async``
-code directly (a CPU-bound call there would stall every client).
+code directly (a CPU-bound call there would stall every client). Each call
+into a session's core waits first for the session's ``asyncio`` lock (fair:
+requests queue in order without holding a worker).
 
-The routes reach a session's simulator through the manager's ``async``
-methods (:meth:`SessionManager.find`, :meth:`~SessionManager.rollout`,
-:meth:`~SessionManager.checkpoint`, :meth:`~SessionManager.restore`,
-:meth:`~SessionManager.reset`, :meth:`~SessionManager.info`,
-:meth:`~SessionManager.attach`, ...; a control runs its episode itself where
-``manager.remote`` is False): the seam where
-:class:`hybridmpm.service.cluster.RaySessionManager` runs the same work in
-each session's Ray actor instead of in this process.
+The routes reach a session through the manager's ``async`` methods
+(:meth:`SessionManager.find`, :meth:`~SessionManager.rollout`,
+:meth:`~SessionManager.run_control`, :meth:`~SessionManager.checkpoint`,
+:meth:`~SessionManager.restore`, :meth:`~SessionManager.reset`,
+:meth:`~SessionManager.info`, :meth:`~SessionManager.attach`, ...) and read
+its plain facts (:attr:`Session.facts`, :attr:`Session.settings`): the seam
+where :class:`hybridmpm.service.ray_backend.manager.RaySessionManager` runs
+the same core in each session's Ray actor instead of in this process.
 """
 
 from __future__ import annotations
@@ -23,10 +27,9 @@ import contextlib
 import functools
 import logging
 import secrets
-import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -36,29 +39,24 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
-from hybridmpm.service import checkpoint as ckpt
-from hybridmpm.service.budget import BudgetFullError, MemoryBudget, Recording, tree_nbytes
+from hybridmpm.service.budget import BudgetFullError, MemoryBudget, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
-from hybridmpm.service.core import Pacer, encode_record, play_period, play_step, snapshot
-from hybridmpm.service.facts import SessionFacts, scene_geometry
+from hybridmpm.service.core import Control, SessionCore, SessionGoneError
+from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, rebuild, session_key
-from hybridmpm.sim import Frame, Rollout, Simulator, rollout
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, session_key
+from hybridmpm.sim import Frame, Rollout
 
 log = logging.getLogger("hybridmpm.service")
 T = TypeVar("T")
 
-#: Controls kept per session (their trajectories can be fetched).
-KEEP_CONTROLS = 8
 #: What a session costs beyond its state arrays (simulator objects, grids, buffers) [bytes], for the memory budget.
 SESSION_OVERHEAD = 4 << 20
 #: Copies of its state a session's cost counts: the live simulator, the initial state kept for "reset", a step's working copy.
 SESSION_STATE_COPIES = 3
 #: Seconds a client is asked to wait (``Retry-After``) when the memory budget is full.
 RETRY_AFTER_S = 5
-#: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
-RECORD_STEPS = 300
 
 
 class SessionCapError(Exception):
@@ -67,10 +65,6 @@ class SessionCapError(Exception):
 
 class QuotaError(Exception):
     """The client address holds its quota of sessions (→ 429)."""
-
-
-class SessionGoneError(Exception):
-    """The session was deleted, expired or lost while a request used it (→ 404)."""
 
 
 class Viewer:
@@ -98,102 +92,47 @@ class Viewer:
         self.wake.set()
 
 
-@dataclass
-class Control:
-    id: str
-    method: str
-    positions: np.ndarray
-    solver: list[str]
-    response: dict[str, Any]
-    cost: int = 0  # bytes taken from the memory budget while it is kept
-
-
-@dataclass
+@dataclass(eq=False)
 class Session:
+    """A session as the routes hold it: its ``id``, store ``key``, plain
+    ``settings`` and ``facts`` (what routes read), the client address that
+    created it, the viewers connected to this process, and — on the local
+    backend — its :class:`~hybridmpm.service.core.SessionCore` (``core``;
+    None on the Ray backend, whose core lives in the session's actor)."""
+
     id: str
-    scene: str
-    seed: int
-    solver_kind: str
-    r_c: float
-    sim: Simulator
-    initial: dict[str, Any]
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    key: str
+    settings: SessionSettings
+    facts: SessionFacts
+    client: str = ""
+    core: SessionCore | None = None
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # calls into the core queue here, in order
+    save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     last_used: float = field(default_factory=time.monotonic)
     viewers: set[Viewer] = field(default_factory=set)
-    playing: bool = False
     play_task: asyncio.Task[None] | None = None
-    controlling: bool = False
-    controls: collections.OrderedDict[str, Control] = field(default_factory=collections.OrderedDict)
+    controlling: bool = False  # a control admitted here is running (the route's 409)
     closed: bool = False
-    client: str = ""  # the address that created it (the per-client quota)
     cost: int = 0  # bytes taken from the memory budget (controls not included)
-    key: str = ""  # its name in the store (SHA-256 of the id; the id is never stored)
-    dirty: bool = False  # changed since its last save
-    saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
-    restored_from_frame: int | None = None  # the frame it resumed from after a restart
-    save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    recording: Recording | None = None  # its latest frames, for download
-    n_grid: int | None = None  # the grid it was asked to run on (None: the scene's)
-    control_stop: threading.Event | None = None  # set stops the running control within a frame (a delete sets it)
-    _facts: SessionFacts | None = None
-
-    @property
-    def facts(self) -> SessionFacts:
-        """The session's fixed facts, what routes read (:class:`~hybridmpm.service.facts.SessionFacts`)."""
-        if self._facts is None:
-            self._facts = SessionFacts.of(self.sim)
-        return self._facts
 
     @property
     def frame_index(self) -> int:
         """The frame the session is at."""
-        return int(self.sim.frame.frame_index)
-
-    def republish(self) -> None:
-        """Offer the current frame to the viewers again (after a step or control that stopped early)."""
-        self.publish(self.sim.frame)
+        assert self.core is not None
+        return self.core.frame_index
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
+        if self.core is not None:
+            self.core.touch()
 
-    def info(self) -> dict[str, Any]:
-        p = self.sim.particles
-        d = p.dim
-        return {
-            "id": self.id,
-            "scene": self.scene,
-            "seed": self.seed,
-            "solver": self.solver_kind,
-            "r_c": self.r_c,
-            "dim": d,
-            "num_fluid": p.num_fluid,
-            "num_particles": p.num_total,
-            "particle_type": [int(t) for t in p.particle_type],
-            "bounds": [[0.0] * d, [1.0] * d],
-            "dt_frame": float(self.sim.dt_frame),
-            "r_t": int(self.sim.r_t),
-            "frame": int(self.sim.frame.frame_index),
-            "viewers": len(self.viewers),
-            "stream": f"/v1/sessions/{self.id}/stream",
-            "saved_frame": self.saved_frame,
-            "restored_from_frame": self.restored_from_frame,
-            **scene_geometry(self.sim),
-            "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
-            "recorded_frames": len(self.recording) if self.recording is not None else 0,
-        }
+    def republish(self) -> None:
+        """Offer the current frame to the viewers again (after a control that stopped early)."""
+        if self.core is not None:
+            self.core.republish()
 
-    def meta(self) -> dict[str, Any]:
-        return {"type": "meta", **self.info(), "playing": self.playing, "header_bytes": 32}
-
-    def record(self, fr: Frame) -> None:
-        """Keep ``fr`` in the session's recent trajectory (event loop thread
-        only); nothing once the session is closed (its budget was given back)."""
-        if self.recording is not None and not self.closed:
-            self.recording.add(fr.frame_index, fr.positions, fr.solver, fr.controlled)
-
-    def publish(self, fr: Frame, control_frame: int = 0) -> None:
-        """Record a frame and offer it to every viewer (event loop thread only)."""
-        self.record(fr)
+    def offer(self, fr: Frame, control_frame: int = 0) -> None:
+        """Offer a frame to every viewer (event loop thread only)."""
         if not self.viewers:
             return
         data = encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
@@ -201,21 +140,29 @@ class Session:
             v.offer(data)
 
     def broadcast(self, msg: dict[str, Any]) -> None:
+        """An event for every viewer (event loop thread only)."""
         for v in list(self.viewers):
             v.event(msg)
 
-    def settings(self) -> dict[str, Any]:
-        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c`` (and ``n_grid`` when asked)."""
-        d: dict[str, Any] = {"scene": self.scene, "seed": self.seed, "solver": self.solver_kind, "r_c": self.r_c}
-        if self.n_grid is not None:
-            d["n_grid"] = self.n_grid
-        return d
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Hand the core's frames and events to this process's viewers, on ``loop``."""
+        core = self.core
+        assert core is not None
+
+        def on_frame(fr: Frame, control_frame: int) -> None:
+            loop.call_soon_threadsafe(self.offer, fr, control_frame)
+
+        def on_event(msg: dict[str, Any]) -> None:
+            loop.call_soon_threadsafe(self.broadcast, msg)
+
+        core.on_frame, core.on_event = on_frame, on_event
+        core.has_viewers = lambda: bool(self.viewers)
 
 
 class SessionManager:
     """The sessions of this process (a plain dict) and the compute limiter."""
 
-    #: Whether sessions run elsewhere (a Ray actor each: :class:`hybridmpm.service.cluster.RaySessionManager`).
+    #: Whether sessions run elsewhere (a Ray actor each: :class:`hybridmpm.service.ray_backend.manager.RaySessionManager`).
     remote = False
     #: Temporary files of torn saves older than this are removed when the store opens [s]
     #: (:meth:`SessionStore.open`; one process writes this store, so all of them).
@@ -264,8 +211,8 @@ class SessionManager:
 
     async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
         """Build a session for the client address ``client`` (``n_grid``: MPM
-        on a coarser grid of the scene, :func:`checked_n_grid`). Raises
-        :class:`SessionCapError` when the server is full,
+        on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`).
+        Raises :class:`SessionCapError` when the server is full,
         :class:`QuotaError` when the client holds its quota,
         :class:`BudgetFullError` when the memory budget cannot hold it (its
         cost: :data:`SESSION_STATE_COPIES` × its state + :data:`SESSION_OVERHEAD`,
@@ -278,23 +225,19 @@ class SessionManager:
         self.reserved += 1
         self.reserved_by[client] += 1
         try:
-            with self.budget.hold(SESSION_OVERHEAD, "a new session"):
-
-                def build() -> tuple[Simulator, dict[str, Any]]:
-                    from hybridmpm.sim import make_simulator
-
-                    sim = make_simulator(scene, solver, r_c=r_c, seed=seed, threads=1, nn_threads=1, n_grid=n_grid)
-                    return sim, sim.state()
-
-                sim, initial = await self.compute(build)
-            cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a new session")
             sid = secrets.token_urlsafe(24)  # 192 bits
-            sess = Session(sid, scene, seed, solver, r_c, sim, initial, client=client, cost=cost, key=session_key(sid), n_grid=n_grid)
-            sess.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))
-            sess.record(sim.frame)
+            settings = SessionSettings(scene, int(seed), solver, float(r_c), n_grid)
+            with self.budget.hold(SESSION_OVERHEAD, "a new session"):
+                core = await self.compute(functools.partial(SessionCore.build, session_key(sid), settings, client, self.budget))
+            try:
+                cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(core.initial) + SESSION_OVERHEAD, "a new session")
+            except BudgetFullError:
+                core.close()
+                raise
+            sess = self._adopt(sid, core, cost)
             self.sessions[sid] = sess
             if self.store is not None:
-                sess.dirty = True
+                core.dirty = True
                 await self.save(sess)
             return sess
         finally:
@@ -303,21 +246,42 @@ class SessionManager:
             if self.reserved_by[client] <= 0:
                 del self.reserved_by[client]
 
+    def _adopt(self, sid: str, core: SessionCore, cost: int) -> Session:
+        """The routes' handle of ``core``, its frames and events bound to this process's viewers."""
+        s = Session(sid, core.key, core.settings, core.facts, client=core.client, core=core, cost=cost)
+        s.last_used = core.last_used
+        s.bind(asyncio.get_running_loop())
+        return s
+
+    @staticmethod
+    def core_of(s: Session) -> SessionCore:
+        """``s``'s core (a local session always has one)."""
+        assert s.core is not None
+        return s.core
+
+    async def on_core(self, s: Session, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn(*args)`` (a method of ``s``'s core) on a worker, after
+        the calls queued before it on ``s``; :class:`SessionGoneError` when
+        ``s`` was closed meanwhile."""
+        async with s.lock:
+            if s.closed:
+                raise SessionGoneError()
+            return await self.compute(fn, *args)
+
     async def keep_control(self, s: Session, c: Control) -> None:
         """Keep ``c`` on ``s`` (its cost already taken from the budget),
-        dropping the oldest beyond :data:`KEEP_CONTROLS` and giving their cost back."""
-        s.controls[c.id] = c
-        while len(s.controls) > KEEP_CONTROLS:
-            _, old = s.controls.popitem(last=False)
+        dropping the oldest beyond :data:`~hybridmpm.service.core.KEEP_CONTROLS` and giving their cost back."""
+        for old in self.core_of(s).keep_control(c):
             self.budget.give(old.cost)
+            old.cost = 0
 
     async def get_control(self, s: Session, cid: str) -> Control | None:
         """The kept control ``cid`` of ``s``, or None."""
-        return s.controls.get(cid)
+        return self.core_of(s).get_control(cid)
 
     async def recorded(self, s: Session, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
-        """The latest ``count`` frames of ``s``'s recent trajectory, oldest first (none when it records none)."""
-        return s.recording.last(count) if s.recording is not None else []
+        """The latest ``count`` frames of ``s``'s recent trajectory, oldest first."""
+        return self.core_of(s).recorded(count)
 
     async def find(self, sid: str) -> Session | None:
         """The session ``sid`` (touched), or None: what a request names."""
@@ -350,19 +314,16 @@ class SessionManager:
 
     async def _drop(self, s: Session, code: int, reason: str, forget: bool) -> None:
         s.closed = True
-        if s.control_stop is not None:  # a control running on it stops within a frame and answers 404
-            s.control_stop.set()
+        core = self.core_of(s)
+        core.close()  # a control running on it stops within a frame and answers 404
         if forget and self.store is not None:
             store = self.store
             async with s.save_lock:  # a save under way ends first, so that no record outlives its session
                 await anyio.to_thread.run_sync(store.delete, s.key, limiter=self.io_limiter)
-        self.budget.give(s.cost + sum(c.cost for c in s.controls.values()))
-        if s.recording is not None:
-            s.recording.release()
+        self.budget.give(s.cost + sum(c.cost for c in core.controls.values()))
         s.cost = 0
-        for c in s.controls.values():
+        for c in core.controls.values():
             c.cost = 0
-        s.playing = False
         if s.play_task is not None:
             s.play_task.cancel()
         for v in list(s.viewers):
@@ -370,13 +331,12 @@ class SessionManager:
         s.viewers.clear()
 
     async def reap_once(self) -> list[str]:
-        now = time.monotonic()
         ttl = self.config.idle_ttl_s
-        stale = [sid for sid, s in self.sessions.items() if now - s.last_used > ttl and not s.lock.locked()]
+        stale = [sid for sid, s in self.sessions.items() if self.core_of(s).expired(ttl) and not s.lock.locked()]
         for sid in stale:
             await self.close(sid, 4000, "expired")
             log.info("session %s… expired", sid[:SHOWN_ID_CHARS])
-        for key in [k for k, s in self.unclaimed.items() if now - s.last_used > ttl]:
+        for key in [k for k, s in self.unclaimed.items() if self.core_of(s).expired(ttl)]:
             await self._drop(self.unclaimed.pop(key), 4000, "expired", True)
             log.info("restored session %s… (store key) expired", key[:SHOWN_KEY_CHARS])
         return stale
@@ -415,43 +375,31 @@ class SessionManager:
             self.store.release()
 
     # ------------------------------------------------------------ durable sessions
-    def changed(self, s: Session) -> None:
-        """``s``'s state changed (a step, a control, a reset, a restored checkpoint): the saver writes it."""
-        if self.store is not None:
-            s.dirty = True
-
     async def save(self, s: Session) -> bool:
         """Write ``s``'s checkpoint to the store if it changed since its last
         save; False when it could not (logged; it stays marked changed and
-        the saver tries again). The state is taken under the session's lock,
-        so at a step boundary (a step or control running is waited for: the
-        lock is fair, so the next step queues behind the snapshot); taking it
-        and encoding it run on the store's I/O thread, not the compute
-        workers, so busy sessions do not delay it."""
-        store = self.store
-        if store is None or s.closed or not s.dirty:
+        the saver tries again). The snapshot
+        (:meth:`~hybridmpm.service.core.SessionCore.snapshot`) waits for the
+        session's lock, so it is taken at a step boundary (a step or control
+        running is waited for: the lock is fair, so the next step queues
+        behind the snapshot); taking it and writing it run on the store's
+        I/O thread, not the compute workers, so busy sessions do not delay it."""
+        store, core = self.store, self.core_of(s)
+        if store is None or s.closed or not core.dirty:
             return True
         async with s.save_lock:
-            if s.closed or not s.dirty:
+            if s.closed or not core.dirty:
                 return True
-            t0 = time.perf_counter()
-            try:
-                with self.budget.hold(2 * tree_nbytes(s.initial), "saving a session"):
-                    async with s.lock:
-                        if s.closed:
-                            return True
-                        s.dirty = False
-                        state, frame = await anyio.to_thread.run_sync(snapshot, s.sim, limiter=self.io_limiter)
-                    data = await anyio.to_thread.run_sync(encode_record, state, s.settings(), s.last_used, s.client, limiter=self.io_limiter)
-                    del state
-                    await anyio.to_thread.run_sync(store.write, s.key, data, limiter=self.io_limiter)
-            except Exception as e:  # noqa: BLE001 - a failed save must not fail the request or the saver
-                s.dirty = True
-                log.warning("store: saving session %s… failed: %s", s.id[:SHOWN_ID_CHARS], e)
-                return False
-            s.saved_frame = frame
-            log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", s.id[:SHOWN_ID_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
-            return True
+            with self.budget.hold(2 * tree_nbytes(core.initial), "saving a session"):
+                async with s.lock:
+                    if s.closed:
+                        return True
+                    snap = await anyio.to_thread.run_sync(core.snapshot, limiter=self.io_limiter)
+                if snap is None:
+                    return True
+                ok: bool = await anyio.to_thread.run_sync(core.write, store, *snap, limiter=self.io_limiter)
+                del snap
+                return ok
 
     async def save_all(self) -> None:
         """Save every changed session (:meth:`save`), each waiting only for its own lock."""
@@ -464,7 +412,7 @@ class SessionManager:
         steps answered before the control were saved when it started), never
         another session's."""
         for s in list(self.sessions.values()):
-            if s.dirty and not s.closed and s.key not in self._saving:
+            if self.core_of(s).dirty and not s.closed and s.key not in self._saving:
                 task = asyncio.get_running_loop().create_task(self.save(s))
                 self._saving[s.key] = task
                 task.add_done_callback(functools.partial(self._saved, s.key))
@@ -498,8 +446,7 @@ class SessionManager:
             except InvalidInputError as e:
                 log.warning("%s; not restored", e)
                 continue
-            idle = time.time() - rec.last_used_at
-            if idle > self.config.idle_ttl_s:
+            if time.time() - rec.last_used_at > self.config.idle_ttl_s:
                 await anyio.to_thread.run_sync(store.delete, key, limiter=self.io_limiter)
                 log.info("store: session %s… expired while the server was down; removed", shown)
                 continue
@@ -508,8 +455,12 @@ class SessionManager:
                 continue
             try:
                 with self.budget.hold(SESSION_OVERHEAD + 2 * tree_nbytes(rec.state), "restoring a session"):
-                    sim, initial = await self.compute(rebuild, rec)
-                cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(initial) + SESSION_OVERHEAD, "a restored session")
+                    core = await self.compute(SessionCore.load, rec, self.budget)
+                try:
+                    cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(core.initial) + SESSION_OVERHEAD, "a restored session")
+                except BudgetFullError:
+                    core.close()
+                    raise
             except BudgetFullError as e:
                 log.warning("store: session %s… not restored: %s", shown, e)
                 continue
@@ -519,68 +470,33 @@ class SessionManager:
             except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
                 log.warning("store: session %s…: checkpoint: malformed state (%s); not restored", shown, type(e).__name__)
                 continue
-            frame = int(sim.frame.frame_index)
-            s = Session(key, rec.scene, rec.seed, rec.solver, rec.r_c, sim, initial, client=rec.client, cost=cost, key=key, n_grid=rec.n_grid)
-            s.last_used = time.monotonic() - max(0.0, idle)
-            s.saved_frame = s.restored_from_frame = frame
-            s.recording = Recording(self.budget, RECORD_STEPS, int(sim.r_t))
-            s.record(sim.frame)
-            self.unclaimed[key] = s
+            self.unclaimed[key] = self._adopt(key, core, cost)
             restored += 1
-            log.info("store: session %s… restored at frame %d", shown, frame)
+            log.info("store: session %s… restored at frame %d", shown, core.frame_index)
         return restored
 
     # ------------------------------------------------------------ the work of the routes
     async def info(self, s: Session) -> dict[str, Any]:
         """``s``'s description (``GET /v1/sessions/{id}``)."""
-        return s.info()
+        return {"id": s.id, **self.core_of(s).info(), "viewers": len(s.viewers), "stream": f"/v1/sessions/{s.id}/stream"}
 
     async def rollout(self, s: Session, frames: int) -> Rollout:
-        """Advance ``s`` by ``frames`` frames under its lock (:func:`hybridmpm.sim.rollout`);
+        """Advance ``s`` by ``frames`` frames (:meth:`SessionCore.rollout <hybridmpm.service.core.SessionCore.rollout>`);
         :class:`SessionGoneError` when it was closed meanwhile."""
-        async with s.lock:
-            if s.closed:
-                raise SessionGoneError()
-            ro = await self.compute(rollout, s.sim, frames)
-            self.changed(s)
-        return ro
+        return await self.on_core(s, self.core_of(s).rollout, frames)
 
     async def run_control(
         self, s: Session, sketch: Any, method: str, frames: int, left: Any, first: list[float], cid: str
     ) -> tuple[Rollout, dict[str, Any], Any]:
         """Control ``cid`` on ``s`` with ``method`` for ``frames`` frames
-        (the scene's :class:`~hybridmpm.control.Controller`, built on the
-        worker; :func:`hybridmpm.service.episode.run_episode`)
-        on a worker thread under its lock, its frames and plan event offered
-        to the viewers as they come; ``left`` (a :class:`threading.Event`) set
-        stops it within a frame, and so does closing ``s`` (a delete, an
-        expiry). Appends the time of the first controlled frame to ``first``;
-        returns ``(rollout, metrics, plan summary)``; :class:`SessionGoneError`
-        when it was closed before or during the control."""
-        from hybridmpm.control import Controller  # import time: the controllers load only when a control runs
-        from hybridmpm.service.episode import run_episode
-
-        loop = asyncio.get_running_loop()
-
-        def publish(fr: Frame, control_frame: int) -> None:
-            loop.call_soon_threadsafe(s.publish, fr, control_frame)
-
-        def event(msg: dict[str, Any]) -> None:
-            loop.call_soon_threadsafe(s.broadcast, msg)
-
-        async with s.lock:
-            if s.closed:
-                raise SessionGoneError()
-            s.control_stop = left
-            controller = await self.compute(functools.partial(Controller.for_scene, s.facts.scene_name, method, frames=frames))
-            s.broadcast({"type": "control", "status": "running", "id": cid, "method": method})
-            try:
-                ro, metrics, plan, t_first = await self.compute(run_episode, s.sim, sketch, controller, cid, publish, event, left.is_set)
-            finally:
-                s.control_stop = None
-            if s.closed:
-                raise SessionGoneError()
-            self.changed(s)
+        (:meth:`SessionCore.control <hybridmpm.service.core.SessionCore.control>`
+        on a worker thread), its frames and plan offered to the viewers as
+        they come; ``left`` (a :class:`threading.Event`) set stops it within
+        a frame, and so does closing ``s`` (a delete, an expiry). Appends the
+        time of the first controlled frame to ``first``; returns ``(rollout,
+        metrics, plan summary)``; :class:`SessionGoneError` when it was
+        closed before or during the control."""
+        ro, metrics, plan, t_first = await self.on_core(s, self.core_of(s).control, method, frames, sketch, cid, left.is_set)
         if t_first is not None:
             first.append(t_first)
         return ro, metrics, plan
@@ -588,53 +504,33 @@ class SessionManager:
     async def checkpoint(self, s: Session) -> bytes:
         """``s``'s whole state as a checkpoint (:func:`hybridmpm.service.checkpoint.dumps`);
         :class:`BudgetFullError` when the budget cannot hold two copies of it."""
-        with self.budget.hold(2 * tree_nbytes(s.initial), "writing the checkpoint"):
-            async with s.lock:
-                state = await self.compute(s.sim.state)
-            data = await self.compute(ckpt.dumps, state, s.settings())
-            del state
-        return data
+        with self.budget.hold(2 * tree_nbytes(self.core_of(s).initial), "writing the checkpoint"):
+            return await self.on_core(s, self.core_of(s).checkpoint)
 
     async def restore(self, s: Session, state: dict[str, Any]) -> None:
         """Restore ``state`` into ``s``, all or nothing: the simulator's
         refusal (:class:`InvalidInputError`, :class:`CheckpointError`, or a
         ``KeyError``/``TypeError``/... of a malformed tree) leaves it as it was."""
-        async with s.lock:
-            if s.closed:
-                raise SessionGoneError()
-            await self.compute(s.sim.restore, state)
-            self.changed(s)
-            if s.recording is not None:
-                s.recording.clear()  # the recent trajectory starts again at the restored state
-        s.publish(s.sim.frame)
+        await self.on_core(s, self.core_of(s).restore, state)
 
     async def reset(self, s: Session) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
-        async with s.lock:
-            await self.compute(s.sim.restore, s.initial)
-            self.changed(s)
-            if s.recording is not None:
-                s.recording.clear()  # the recent trajectory starts again at the initial state
-        s.publish(s.sim.frame)
-        s.broadcast({"type": "reset", "frame": int(s.sim.frame.frame_index)})
+        await self.on_core(s, self.core_of(s).reset)
 
     async def move_obstacle(self, s: Session, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` to ``center`` over its next step
-        (:meth:`hybridmpm.sim.MpmSimulator.move_obstacle`; the errors it raises
-        name ``index``, ``center``, ``velocity``); every viewer gets an
-        ``obstacle`` event. Returns the session's frame."""
-        async with s.lock:
-            await self.compute(s.sim.move_obstacle, index, center, velocity)  # type: ignore[attr-defined] # MPM and hybrid (the route refuses the network alone)
-            frame = int(s.sim.frame.frame_index)
+        (:meth:`SessionCore.move_obstacle <hybridmpm.service.core.SessionCore.move_obstacle>`);
+        every viewer gets an ``obstacle`` event. Returns the session's frame."""
+        frame = await self.on_core(s, self.core_of(s).move_obstacle, index, center, velocity)
         s.touch()
-        s.broadcast({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
         return frame
 
     async def attach(self, s: Session, v: Viewer) -> None:
         """A new viewer of ``s``: its ``meta`` message and the current frame are offered first."""
         s.viewers.add(v)
-        v.event(s.meta())
-        fr = s.sim.frame
+        core = self.core_of(s)
+        v.event({"type": "meta", **(await self.info(s)), "playing": core.playing, "header_bytes": 32})
+        fr = core.sim.frame
         v.offer(encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled))
 
     async def detach(self, s: Session, v: Viewer) -> None:
@@ -642,34 +538,28 @@ class SessionManager:
 
     async def set_playing(self, s: Session, playing: bool) -> None:
         """Play (one coarse step at a time, no faster than real time, while it has viewers) or pause ``s``."""
-        s.playing = playing
+        self.core_of(s).playing = playing
         if playing:
             self.ensure_playing(s)
 
     # ------------------------------------------------------------ play loop
     def ensure_playing(self, s: Session) -> None:
-        if s.playing and s.viewers and (s.play_task is None or s.play_task.done()):
+        if self.core_of(s).playing and s.viewers and (s.play_task is None or s.play_task.done()):
             s.play_task = asyncio.get_running_loop().create_task(self._play(s))
 
     async def _play(self, s: Session) -> None:
-        """Advance a playing session one coarse step at a time (no faster than
-        real time) while it has viewers; frames go to the viewers' slots."""
-        pacer = Pacer(play_period(s.sim))
+        """Run ``s``'s play loop (:meth:`SessionCore.play <hybridmpm.service.core.SessionCore.play>`):
+        each step on a worker after the calls queued on ``s``, the wait between steps on the event loop."""
+        steps: Iterator[float] = self.core_of(s).play()
         try:
-            while s.playing and s.viewers and not s.closed:
+            while not s.closed:
                 async with s.lock:
-                    if not s.playing or s.closed:
+                    if s.closed:
                         break
-                    try:
-                        fr = await self.compute(play_step, s.sim)
-                    except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
-                        s.playing = False
-                        s.broadcast({"type": "error", "message": f"simulation stopped: {e}"})
-                        break
-                s.touch()
-                self.changed(s)
-                s.publish(fr)
-                await asyncio.sleep(pacer.delay())
+                    delay = await self.compute(next, steps, None)
+                if delay is None:
+                    break
+                await asyncio.sleep(delay)
         except asyncio.CancelledError:
             pass
 
@@ -683,14 +573,10 @@ async def close_ws(v: Viewer, code: int, reason: str) -> None:
 
 
 __all__ = [
-    "KEEP_CONTROLS",
-    "RECORD_STEPS",
     "RETRY_AFTER_S",
-    "Control",
     "QuotaError",
     "Session",
     "SessionCapError",
-    "SessionGoneError",
     "SessionManager",
     "Viewer",
     "close_ws",

@@ -215,7 +215,7 @@ class SessionStore:
         the holder dies, even by SIGKILL. Stores on other filesystems (fsspec
         URLs) cannot be locked this way and are not. On a Ray cluster the
         namespace's registry actor holds it for every front end
-        (:class:`~hybridmpm.service.actor.Registry`)."""
+        (:class:`~hybridmpm.service.ray_backend.registry.Registry`)."""
         if not self.local or self._lock_fd is not None:
             return
         import fcntl

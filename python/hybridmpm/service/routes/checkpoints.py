@@ -21,7 +21,7 @@ router = APIRouter()
 
 
 def session_meta(s: Session) -> dict[str, Any]:
-    return s.settings()
+    return s.settings.meta()
 
 
 @router.get(

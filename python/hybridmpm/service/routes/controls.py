@@ -85,7 +85,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")
     if s.controlling:
         raise ApiError(409, "a control is already running on this session")
-    if s.solver_kind == "neural":
+    if s.settings.solver == "neural":
         raise ApiError(409, "this session's solver is the network alone, which takes no control (control runs on MPM); create it with solver 'hybrid' or 'mpm'")
     if manager.controls_running >= cfg.max_controls:
         raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})

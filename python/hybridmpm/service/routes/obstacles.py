@@ -32,7 +32,7 @@ async def move_obstacle(s: SessionDep, index: int, body: ObstacleMove, manager: 
     refused move changes nothing."""
     if s.controlling:
         raise ApiError(409, "a control is running on this session; move its obstacles after it")
-    if s.solver_kind == "neural":
+    if s.settings.solver == "neural":
         raise ApiError(409, "this session's solver is the network alone, which moves no obstacle; create it with solver 'hybrid' or 'mpm'")
     if len(body.center) != s.facts.dim or (body.velocity is not None and len(body.velocity) != s.facts.dim):
         bad = "center" if len(body.center) != s.facts.dim else "velocity"

@@ -88,11 +88,6 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
         frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
         failure = None if ro.failure is None else str(ro.failure)
         del ro
-        if s.recording is not None:
-            for k in range(len(pos)):
-                s.recording.add(frames_[k], pos[k], solvers[k], False)
-        if len(pos):
-            s.republish()
         if binary:
             headers = {
                 "X-Shape": ",".join(str(x) for x in pos.shape),

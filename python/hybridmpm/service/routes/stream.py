@@ -16,8 +16,9 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.core import SessionGoneError
 from hybridmpm.service.schemas import clean
-from hybridmpm.service.sessions import Session, SessionGoneError, SessionManager, Viewer, close_ws
+from hybridmpm.service.sessions import Session, SessionManager, Viewer, close_ws
 
 log = logging.getLogger("hybridmpm.service")
 #: Deepest JSON a WebSocket message may nest (the protocol's messages are flat objects).

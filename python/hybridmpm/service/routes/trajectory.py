@@ -19,9 +19,9 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from hybridmpm.render import export_points, export_surfaces
+from hybridmpm.service.core import RECORD_STEPS
 from hybridmpm.service.deps import ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError
-from hybridmpm.service.sessions import RECORD_STEPS
 from hybridmpm.trajectory import Trajectory
 
 NPZ = "application/x-npz"
@@ -116,7 +116,7 @@ async def get_session_trajectory(
 
         traj = await manager.compute(make)
         first, last = held[0][0], held[-1][0]
-        name = f"{s.scene}-seed{s.seed}-frames{first}-{last}"
+        name = f"{s.settings.scene}-seed{s.settings.seed}-frames{first}-{last}"
         if format == "ply":
             data = await manager.compute(trajectory_ply_zip, traj, traj.extras["solver"])
             media, name = ZIP, name + "-ply.zip"

@@ -1,16 +1,17 @@
 """Sessions on a Ray cluster (``hybridmpm serve --backend ray``).
 
 Each session is a named, detached Ray actor
-(:class:`~hybridmpm.service.actor.SessionActor`, named ``session-`` + the
+(:class:`~hybridmpm.service.ray_backend.actor.SessionActor`, named ``session-`` + the
 SHA-256 of its id, in the namespace ``ServiceConfig.ray_namespace``) that
-holds its simulator, its kept controls, its play loop and its saves, placed
+runs its :class:`~hybridmpm.service.core.SessionCore` (the same core the
+local backend runs: simulator, kept controls, play loop, saves), placed
 by Ray with ``ServiceConfig.ray_num_cpus`` CPUs. This process is a *front
 end*: :class:`RaySessionManager` implements the
 :class:`~hybridmpm.service.sessions.SessionManager` seam by finding a
 session's actor by name and running the routes' work there (a step, a
 control episode, a checkpoint, a restore, a reset), so any number of front
 ends serve every session. The session cap and the per-client quota count the
-whole cluster (:class:`~hybridmpm.service.actor.Registry`); a session that
+whole cluster (:class:`~hybridmpm.service.ray_backend.registry.Registry`); a session that
 does not fit on the cluster's CPUs answers 503 with ``Retry-After``.
 
 Streams: for each session with viewers here, one task pulls the actor's
@@ -47,21 +48,14 @@ import ray.exceptions
 
 from hybridmpm.control import Sketch
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
-from hybridmpm.service.actor import ACTOR_PREFIX, ACTOR_THREADS, REGISTRY_NAME, Registry, SessionActor
 from hybridmpm.service.config import ServiceConfig
+from hybridmpm.service.core import Control, SessionGoneError
 from hybridmpm.service.errors import ApiError, tidy
-from hybridmpm.service.facts import SessionFacts
+from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.sessions import (
-    Control,
-    QuotaError,
-    Session,
-    SessionCapError,
-    SessionGoneError,
-    SessionManager,
-    Viewer,
-    close_ws,
-)
+from hybridmpm.service.ray_backend.actor import ACTOR_THREADS, SessionActor
+from hybridmpm.service.ray_backend.registry import ACTOR_PREFIX, REGISTRY_NAME, Registry
+from hybridmpm.service.sessions import QuotaError, Session, SessionCapError, SessionManager, Viewer, close_ws
 from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, session_key
 from hybridmpm.sim import Rollout
 
@@ -119,12 +113,14 @@ def error_from(kind: str, message: str, name: str | None) -> Exception:
 
 @dataclass(eq=False)
 class RaySession(Session):
-    """A session whose simulator runs in a Ray actor (``sim`` is None here):
-    the front end's handle (``actor``), the session's facts (sent by the
-    actor), the frame it was last known at (``at_frame``), the viewers
-    connected here and the task that feeds them (``pump``)."""
+    """A session whose core runs in a Ray actor (``core`` is None here):
+    the front end's handle (``actor``), the session's settings and facts
+    (sent by the actor), the frame it was last known at (``at_frame``),
+    whether it plays, the viewers connected here and the task that feeds
+    them (``pump``)."""
 
     actor: Any = None
+    playing: bool = False
     at_frame: int = 0
     name: str = ""
     state_nbytes: int = 0
@@ -152,7 +148,7 @@ class RaySession(Session):
             v.event(msg)
 
     def touch(self) -> None:
-        super().touch()
+        self.last_used = time.monotonic()
         if self.last_used - self.touched_remote > 1.0:  # the actor's idle clock (expiry), at most once a second
             self.touched_remote = self.last_used
             with contextlib.suppress(Exception):
@@ -267,10 +263,11 @@ class RaySessionManager(SessionManager):
                 raise error_from(*out[1:])
             raise SessionGoneError()
 
-    def _session(self, sid: str, key: str, actor: Any, facts: dict[str, Any]) -> RaySession:
-        s = RaySession(sid, facts["scene"], int(facts["seed"]), facts["solver"], float(facts["r_c"]), None, {}, client=facts["client"], key=key)  # type: ignore[arg-type]
-        s._facts, s.at_frame = SessionFacts.from_dict(facts), int(facts["frame"][0])
-        s.actor, s.name, s.state_nbytes = actor, ACTOR_PREFIX + key, int(facts["state_nbytes"])
+    def _session(self, sid: str, key: str, actor: Any, ready: dict[str, Any]) -> RaySession:
+        """The handle of a session whose actor answered ``ready`` (:meth:`SessionActor.ready <hybridmpm.service.ray_backend.actor.SessionActor.ready>`)."""
+        settings, facts = SessionSettings(**ready["settings"]), SessionFacts.from_dict(ready["facts"])
+        s = RaySession(sid, key, settings, facts, client=ready["client"], at_frame=int(ready["frame"]))
+        s.actor, s.name, s.state_nbytes = actor, ACTOR_PREFIX + key, int(ready["state_nbytes"])
         s.touched_remote = s.last_used
         return s
 
@@ -516,7 +513,7 @@ class RaySessionManager(SessionManager):
                     await self.registry.release.remote(key)
                 continue
             restored += 1
-            log.info("store: session %s… restored at frame %d", key[:SHOWN_KEY_CHARS], facts["frame"][0])
+            log.info("store: session %s… restored at frame %d", key[:SHOWN_KEY_CHARS], facts["frame"])
         return restored
 
     # ------------------------------------------------------------ the work of the routes, in the actors
@@ -529,6 +526,7 @@ class RaySessionManager(SessionManager):
         return d
 
     async def meta(self, s: Session) -> dict[str, Any]:
+        assert isinstance(s, RaySession)
         d = await self.info(s)
         return {"type": "meta", **d, "playing": s.playing, "header_bytes": 32}
 

@@ -1,0 +1,10 @@
+"""The Ray backend of the service (``hybridmpm serve --backend ray``): each
+session's :class:`~hybridmpm.service.core.SessionCore` runs in a Ray actor
+(:mod:`.actor`), a registry actor counts the cluster's sessions and holds
+its store (:mod:`.registry`), and any number of front ends reach them
+through :class:`~hybridmpm.service.ray_backend.manager.RaySessionManager`
+(:mod:`.manager`), the local backend's seam run over Ray.
+
+Importing this package needs Ray (the ``cluster`` extra); the local backend
+never imports it.
+"""
