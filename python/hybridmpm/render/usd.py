@@ -42,7 +42,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, _is_sampled
-from hybridmpm.scenes.spec import _rotation
+from hybridmpm.scenes.obstacles import _rotation
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
