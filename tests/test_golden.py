@@ -25,8 +25,8 @@ The network runs use the graphs 202ef89 shipped (``golden/models/*_202ef89.onnx`
 exported by torch's exporter: four inputs, the runtime's legacy path). Models
 are now shipped as compiled inference graphs (
 :mod:`hybridmpm.train.gns.onnx_graph`): the compiled graph of the same weights
-(:func:`hybridmpm.train.gns.export.upgrade_onnx`, as ``benchmarks/upgrade_models.py``
-made the shipped ones) computes the same function with other float32
+(:func:`hybridmpm.train.gns.export.upgrade_onnx`, which made the shipped ones
+of that time) computes the same function with other float32
 rounding, so its rollouts are checked against the 202ef89 graphs' within a
 tolerance (the hybrid's switching and events identical). It is compiled here
 rather than taken from the shipped files, which may since hold retrained

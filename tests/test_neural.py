@@ -306,8 +306,10 @@ def test_compiled_graph_applies_a_vanishing_layer_norm_gain(tmp_path):
 
 def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
     """A model exported by torch's ONNX exporter before the compiled layout (four
-    inputs): the runtime feeds it what it asks for, and upgrade_onnx rewrites it
-    as the compiled graph of the same weights (same outputs, metadata kept)."""
+    inputs): the runtime feeds it what it asks for, on one thread whatever
+    ``threads`` asks (its ScatterND sum loses updates on more: a warning says
+    so), and upgrade_onnx rewrites it as the compiled graph of the same weights
+    (same outputs, metadata kept)."""
     import json
 
     from hybridmpm.neural.constants import FEATURE_VERSION, METADATA_KEY
@@ -332,6 +334,10 @@ def test_graphs_of_torchs_exporter_still_run_and_upgrade(tmp_path):
     assert legacy.input_names == ["positions", "particle_type", "senders", "receivers"]
     acc_l, _, _ = legacy.predict(hist, ptype)
     assert np.abs(acc_l - acc_t).max() <= 1e-4 * np.abs(acc_t).max()
+    with pytest.warns(UserWarning, match="threads: old.onnx has no in_edges input"):
+        two = GnsRuntime(old, threads=2)
+    assert (two.threads, two.spinning) == (1, False)
+    assert np.array_equal(two.predict(hist, ptype)[0], acc_l)
     assert upgrade_onnx(old, tmp_path / "new.onnx") and not upgrade_onnx(tmp_path / "new.onnx")
     new = GnsRuntime(tmp_path / "new.onnx")
     acc_n, nxt_n, _ = new.predict(hist, ptype)
@@ -912,73 +918,69 @@ def test_a_crowded_graph_runs_on_one_thread(exported):
     assert feeds["in_edges"].shape[1] > 0 and two.session_for(feeds) is two.session
 
 
-def test_graphs_of_the_first_compiled_layout_upgrade(tmp_path):
-    """A graph of layout compiled-1 (tests/golden/gns_compiled1_tiny.onnx,
-    exported before the race-free sum): on more than one thread GnsRuntime
-    runs it on one, with a warning; upgrade_onnx rewrites it as the current
-    layout, which computes the same function on one thread and on two, edges in
-    any order."""
-    import shutil
-    from pathlib import Path
-
-    from hybridmpm.train.gns.export import upgrade_onnx
-    from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, GRAPH_LAYOUT_1
-
-    old = Path(__file__).parent / "golden" / "gns_compiled1_tiny.onnx"
-    ref = GnsRuntime(old)
-    assert ref.meta["graph"] == GRAPH_LAYOUT_1 and "in_edges" not in ref.input_names
-    with pytest.warns(UserWarning, match="threads"):
-        assert GnsRuntime(old, threads=2).threads == 1
-    new = tmp_path / "new.onnx"
-    shutil.copy(old, new)
-    assert upgrade_onnx(new) and not upgrade_onnx(new)
-    hist, ptype = random_state(1200, seed=14, lo=0.3, hi=0.6)
-    a0, x0, graph = ref.predict(hist, ptype)
-    perm = np.random.default_rng(2).permutation(len(graph[1]))
-    for threads in (1, 2):
-        nm = GnsRuntime(new, threads=threads)
-        assert nm.meta["graph"] == GRAPH_LAYOUT and nm.threads == threads
-        assert {k: v for k, v in nm.meta.items() if k != "graph"} == {k: v for k, v in ref.meta.items() if k != "graph"}
-        for g in (graph, tuple(a[perm] for a in graph)):
-            a, x, _ = nm.predict(hist, ptype, graph=g)
-            assert np.abs(a - a0).max() <= 1e-5 * np.abs(a0).max() and np.abs(x - x0).max() <= 1e-6
-
-
-def test_graphs_of_the_second_compiled_layout_upgrade(tmp_path):
-    """A graph of layout compiled-2 (tests/golden/gns_compiled2_tiny.onnx: the
-    compiled-1 fixture upgraded before the LayerNorm's variance became one
-    column) upgrades to the current layout: the same bits on one thread and on
-    two, and every LayerNorm's square root now runs on a single column (a
-    Gemm of one output column feeds it), which is what makes it cheaper."""
-    import shutil
+def test_a_compiled_graph_of_an_earlier_layout_is_refused_naming_the_file(exported, tmp_path):
+    """A compiled graph of a layout other than the current one (the real
+    compiled-2 file tests/golden/gns_compiled2_tiny.onnx, which has the
+    current graph's inputs; a current export relabelled compiled-1) is
+    refused on load, whatever the threads or fused kernels asked, with an
+    error naming the file and its layout and saying to re-export; upgrade_onnx
+    refuses it too and leaves the file alone."""
     from pathlib import Path
 
     import onnx
+
+    from hybridmpm.neural.constants import GRAPH_LAYOUT, METADATA_KEY
+    from hybridmpm.train.gns.export import upgrade_onnx
+
+    old2 = Path(__file__).parent / "golden" / "gns_compiled2_tiny.onnx"
+    proto = onnx.load(str(exported[1]))
+    entry = next(p for p in proto.metadata_props if p.key == METADATA_KEY)
+    assert json.loads(entry.value)["graph"] == GRAPH_LAYOUT
+    entry.value = json.dumps({**json.loads(entry.value), "graph": "compiled-1"})
+    old1 = tmp_path / "relabelled.onnx"
+    old1.write_bytes(proto.SerializeToString())
+    for old, layout in ((old2, "compiled-2"), (old1, "compiled-1")):
+        for kwargs in ({}, {"threads": 2}, {"fused": True}, {"fused": False}):
+            with pytest.raises(InvalidInputError) as e:
+                GnsRuntime(old, **kwargs)  # type: ignore[arg-type]
+            assert e.value.field == "model", kwargs
+            assert str(old) in str(e.value) and repr(layout) in str(e.value) and "re-export" in str(e.value), str(e.value)
+        before = old.read_bytes()
+        with pytest.raises(ValueError, match="re-export"):
+            upgrade_onnx(old, tmp_path / "never.onnx")
+        assert old.read_bytes() == before and not (tmp_path / "never.onnx").exists()
+
+
+def test_every_layer_norm_takes_its_square_root_on_one_column(exported):
+    """The folded LayerNorm of the compiled graph (train/gns/onnx_graph.py):
+    each Sqrt reads a Gemm of one output column (the variance, ε its C input)
+    and only a MatMul with a row of ones reads it back, widening it for the
+    division; the weights of that column are 1/(g²L) of the LayerNorm's gain
+    g, read from the torch model (the encoders' and every layer's edge and node
+    LayerNorms)."""
+    import onnx
     from onnx import numpy_helper
 
-    from hybridmpm.train.gns.export import upgrade_onnx
-    from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, GRAPH_LAYOUT_2, upgrade_graph
-
-    old = Path(__file__).parent / "golden" / "gns_compiled2_tiny.onnx"
-    new = tmp_path / "new.onnx"
-    shutil.copy(old, new)
-    assert upgrade_onnx(new) and not upgrade_onnx(new)
-    with pytest.raises(ValueError, match="layout"):
-        upgrade_graph(onnx.load(str(new)))
-    hist, ptype = random_state(1500, seed=21, lo=0.3, hi=0.6)
-    for threads in (1, 2):
-        ref, nm = GnsRuntime(old, threads=threads), GnsRuntime(new, threads=threads)
-        assert ref.meta["graph"] == GRAPH_LAYOUT_2 and nm.meta["graph"] == GRAPH_LAYOUT
-        a0, x0, graph = ref.predict(hist, ptype)
-        a, x, _ = nm.predict(hist, ptype, graph=graph)
-        assert np.array_equal(a, a0) and np.array_equal(x, x0)
-    for path, width in ((old, 8), (new, 1)):
-        g = onnx.load(str(path)).graph
-        consts = {i.name: numpy_helper.to_array(i) for i in g.initializer}
-        producer = {o: n for n in g.node for o in n.output}
-        sqrts = [n for n in g.node if n.op_type == "Sqrt"]
-        assert len(sqrts) == 6  # 2 encoders + 2 layers × (edge, node)
-        for n in sqrts:
-            var = producer[n.input[0]]
-            mm = producer[var.input[0]] if var.op_type == "Add" else var
-            assert consts[mm.input[1]].shape[1] == width, (path.name, n.name)
+    model, path = exported
+    g = onnx.load(str(path)).graph
+    consts = {i.name: numpy_helper.to_array(i) for i in g.initializer}
+    producer = {o: n for n in g.node for o in n.output}
+    readers: dict[str, list] = {}
+    for n in g.node:
+        for name in n.input:
+            readers.setdefault(name, []).append(n)
+    net = model.gnn
+    norms = [net.node_encoder[5], net.edge_encoder[5]]
+    for k in range(model.config.layers):
+        norms += [net.edge_blocks[k].rest[4], net.node_blocks[k][5]]
+    expected = sorted((1.0 / (ln.weight.detach().double().numpy() ** 2 * len(ln.weight)) for ln in norms), key=lambda k: k[0])
+    found = []
+    for n in (n for n in g.node if n.op_type == "Sqrt"):
+        var = producer[n.input[0]]
+        assert var.op_type == "Gemm" and consts[var.input[1]].shape == (16, 1) and consts[var.input[2]].size == 1, n.name
+        (widen,) = readers[n.output[0]]
+        assert widen.op_type == "MatMul" and np.array_equal(consts[widen.input[1]], np.ones((1, 16), np.float32)), n.name
+        assert {r.op_type for r in readers[widen.output[0]]} == {"Div"}, n.name
+        found.append(consts[var.input[1]][:, 0].astype(np.float64))
+    assert len(found) == len(expected) == 2 + 2 * model.config.layers
+    assert np.allclose(sorted(found, key=lambda k: k[0]), expected, rtol=1e-6, atol=0)

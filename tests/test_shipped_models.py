@@ -44,6 +44,26 @@ def test_shipped_model_loads_fits_and_rolls_out(scene):
     # could not fail; test_the_shipped_model_meets_its_accuracy_bound checks where the fluid goes)
 
 
+def test_every_shipped_gns_file_is_of_the_current_layout():
+    """Every GNS graph shipped (the models, their variants, the fused
+    siblings of both) records the compiled layout the runtime runs: a file
+    of an earlier layout would be refused on load (tests/test_neural.py)."""
+    import json
+
+    import onnx
+
+    from hybridmpm.neural.constants import GRAPH_LAYOUT, METADATA_KEY
+
+    root = shipped_model("water2d").parent
+    files = sorted(p for p in root.rglob("*.onnx") if "control" not in p.relative_to(root).parts)
+    layouts = {}
+    for f in files:
+        meta = {p.key: p.value for p in onnx.load(str(f), load_external_data=False).metadata_props}
+        layouts[str(f.relative_to(root))] = json.loads(meta[METADATA_KEY]).get("graph")
+    assert len(layouts) >= 2 * len(set(INDEX.values())), layouts  # the models and their fused siblings at least
+    assert set(layouts.values()) == {GRAPH_LAYOUT}, layouts
+
+
 #: Network steps of the accuracy check (after MPM's T_in − 1 warm-up steps).
 HORIZON = 5
 #: Bound on each shipped model's mean grid-mass error (128 cells) against MPM at its r_p over

@@ -22,7 +22,7 @@ from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.neural import fused
-from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT, FEATURE_VERSION, INPUT_NAMES, METADATA_KEY, NUM_TYPES
+from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT, FEATURE_VERSION, GRAPH_LAYOUT, INPUT_NAMES, METADATA_KEY, NUM_TYPES
 from hybridmpm.neural.grid_branch import GridBranchRuntime
 
 
@@ -136,14 +136,20 @@ class GnsRuntime:
     alone (MPM idle), one in the hybrid and the service (the default). A
     plain (unfused) graph on more than one thread sums over receivers the
     gather way (:mod:`hybridmpm.train.gns.onnx_graph`): onnxruntime's ``ScatterND``
-    loses updates there. A file of an earlier layout, which has only the
-    ``ScatterND`` sum, runs on one thread whatever ``threads`` says, with a
-    ``UserWarning`` (upgrade it with :func:`hybridmpm.train.gns.export.upgrade_onnx`).
+    loses updates there. A graph of torch's exporter (no ``graph`` in its
+    metadata), which has only the ``ScatterND`` sum, runs on one thread
+    whatever ``threads`` says, with a ``UserWarning``
+    (:func:`hybridmpm.train.gns.export.upgrade_onnx` rewrites it as the
+    compiled graph of the same weights). A compiled graph of a layout other
+    than :data:`~hybridmpm.neural.constants.GRAPH_LAYOUT` is refused: its
+    training run exports it again.
     ``meta`` holds the model's metadata: ``scene``,
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
-    foreign file or an incompatible feature version, (``model.<key>``) for
+    foreign file, a compiled graph of another layout or an incompatible
+    feature version, (``fused``) for ``fused=True`` on a graph the fused
+    kernels do not replace, (``model.<key>``) for
     metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]), (``threads``)
     for a thread count that is not an integer in [0, 256]. ``profile``
     switches onnxruntime's profiler on (for benchmarks).
@@ -156,6 +162,9 @@ class GnsRuntime:
             raise InvalidInputError(f"fused: must be True, False or None (automatic), got {fused!r}", "fused")
         self.threads = threads
         self._fused_asked = fused
+        #: Why the fused kernels do not replace this file's graph, when ``fused=True`` asked for them (refused
+        #: once the metadata is checked, so that a file of another layout is named as such first).
+        self._not_fused: str | None = None
         #: Whether the session runs the fused edge kernels (:mod:`hybridmpm.neural.fused`).
         self.fused = False
         #: Whether onnxruntime's worker threads busy-wait (see the class doc).
@@ -175,11 +184,19 @@ class GnsRuntime:
             raise InvalidInputError(f"model: the '{METADATA_KEY}' metadata of {self.path} is not JSON ({e})", "model") from e
         if not isinstance(meta, dict):
             raise InvalidInputError(f"model: the '{METADATA_KEY}' metadata of {self.path} is not a JSON object", "model")
+        if "graph" in meta and meta["graph"] != GRAPH_LAYOUT:
+            raise InvalidInputError(
+                f"model: {self.path} is a compiled graph of layout {meta['graph']!r}, which this hybridmpm no longer runs (it runs {GRAPH_LAYOUT!r}): "
+                "re-export it from its training run (`hybridmpm train` with the same --out resumes at its last step and writes model.onnx again)",
+                "model",
+            )
         if meta.get("feature_version") != FEATURE_VERSION:
             raise InvalidInputError(f"model: feature version {meta.get('feature_version')} of {self.path} is not {FEATURE_VERSION} (this hybridmpm)", "model")
         self.meta: dict[str, Any] = _check_meta(meta, self.path)
+        if self._not_fused is not None:
+            raise InvalidInputError(f"fused: {self.path.name} is not a compiled graph the fused kernels replace ({self._not_fused})", "fused")
         #: The graph's input names: compiled graphs also take the edge geometry
-        #: (``displacement``, ``distance``); graphs of earlier exports only the first four.
+        #: (``displacement``, ``distance``) and the aggregation inputs; graphs of torch's exporter only the first four.
         self.input_names: list[str] = [i.name for i in self.session.get_inputs()]
         unknown = sorted(set(self.input_names) - set(INPUT_NAMES))
         if unknown:
@@ -192,7 +209,7 @@ class GnsRuntime:
             self.branch = GridBranchRuntime(self.meta[BRANCH_KEY], self.meta, max(threads, 1) if threads else 0)
         if threads != 1 and "in_edges" not in self.input_names:
             warnings.warn(
-                f"threads: {self.path.name} (graph layout {self.meta.get('graph', 'torch-exported')!r}) sums over receivers with onnxruntime's "
+                f"threads: {self.path.name} has no in_edges input (a graph of torch's exporter): it sums over receivers with onnxruntime's "
                 "ScatterND only, which loses updates on more than one thread (microsoft/onnxruntime#23396): running it on one thread; "
                 "hybridmpm.train.gns.export.upgrade_onnx rewrites it for any thread count",
                 UserWarning,
@@ -213,7 +230,7 @@ class GnsRuntime:
         if self._fused_asked is not False and os.environ.get("HYBRIDMPM_FUSED", "1") != "0":
             graph = _fused_bytes(self.path)
             if graph is None and self._fused_asked:
-                raise InvalidInputError(f"fused: {self.path.name} is not a compiled graph the fused kernels replace ({fused.why_not()})", "fused")
+                self._not_fused = fused.why_not()  # refused by __init__ after the metadata checks
             if graph is not None:
                 try:
                     fused.register(opts)

@@ -36,16 +36,7 @@ from typing import Any
 from hybridmpm.neural.constants import BRANCH_KEY, FEATURE_VERSION, METADATA_KEY
 from hybridmpm.neural.grid_branch import BRANCH_INPUT, BRANCH_OUTPUT, branch_channels
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
-from hybridmpm.train.gns.onnx_graph import (
-    GRAPH_LAYOUT,
-    GRAPH_LAYOUT_1,
-    GRAPH_LAYOUT_2,
-    INPUT_NAMES,
-    OUTPUT_NAMES,
-    inference_graph,
-    state_dict_from_onnx,
-    upgrade_graph,
-)
+from hybridmpm.train.gns.onnx_graph import GRAPH_LAYOUT, INPUT_NAMES, OUTPUT_NAMES, inference_graph, state_dict_from_onnx
 
 
 def export_onnx(model: GnsModel, path: str | Path, metadata: dict[str, Any]) -> Path:
@@ -118,29 +109,21 @@ def branch_metadata(model: GnsModel) -> dict[str, Any]:
 
 
 def upgrade_onnx(path: str | Path, out: str | Path | None = None) -> bool:
-    """Rewrite a GNS of an earlier layout as the current one
-    (:data:`~hybridmpm.train.gns.onnx_graph.GRAPH_LAYOUT`), keeping its metadata;
-    to ``out`` (default: in place, atomically). A graph exported by torch's
-    ONNX exporter becomes the compiled inference graph of the same weights
-    (needs torch); a graph of the ``compiled-1`` layout, whose sums over
-    receivers race on more than one onnxruntime thread, gets the race-free
-    aggregation, and one of it or ``compiled-2`` the narrower LayerNorm
-    (:func:`~hybridmpm.train.gns.onnx_graph.upgrade_graph`). Returns
-    False, writing nothing, if ``path`` is already of the current layout. Same
-    function: the tests check the graphs against each other. Needs torch and
-    onnx (the 'train' extra)."""
+    """Rewrite a GNS exported by torch's ONNX exporter (no ``graph`` in its
+    metadata) as the compiled inference graph of the same weights
+    (:data:`~hybridmpm.train.gns.onnx_graph.GRAPH_LAYOUT`), keeping its
+    metadata; to ``out`` (default: in place, atomically). Returns False,
+    writing nothing, if ``path`` is already of the current layout. Same
+    function: the tests check the graphs against each other. Raises
+    ``ValueError`` for a compiled graph of another layout (its weights are
+    folded: only its training run can export it again). Needs torch and onnx
+    (the 'train' extra)."""
     import onnx
 
     proto = onnx.load(str(path))
     layout = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY]).get("graph")
     if layout == GRAPH_LAYOUT:
         return False
-    if layout in (GRAPH_LAYOUT_1, GRAPH_LAYOUT_2):
-        target = Path(out if out is not None else path)
-        tmp = target.with_name(target.name + ".tmp")
-        tmp.write_bytes(upgrade_graph(proto).SerializeToString())
-        os.replace(tmp, target)
-        return True
     sd, meta = state_dict_from_onnx(path)
     stats: dict[str, Any] = {k: [float(x) for x in sd[f"features.{k}"]] for k in ("vel_mean", "vel_std", "acc_mean", "acc_std")}
     # the stored stds already include the training noise (they are the effective stds): noise_std=0 keeps them

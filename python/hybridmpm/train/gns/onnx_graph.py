@@ -26,12 +26,11 @@ arrays. On this class of machine every operator over an edge array costs
   ``(d_g ⊙ d_g) · (1/g²)/L`` plus ``ε`` (one Gemm to a single column), and
   the output is ``d_g / sqrt(σ² + ε)``, the square root taken on that column
   and widened by a MatMul with a row of ones (``1ᵀ``) so that the division
-  is between equal shapes: 5 cheap passes instead of one slow kernel. (Up to
-  ``compiled-2`` the variance was a MatMul with ``diag(1/g²) 11ᵀ/L``, already
-  as wide as the latent, and the ``Add`` of ``ε`` and the ``Sqrt`` ran on all
-  of it: 12.6 against 8.0 ns per row of 16, ``benchmarks/bench_inference.py
-  --ops``; dividing by the column itself, onnxruntime's broadcasting ``Div``,
-  costs 11.8. Same arithmetic, same bits.)
+  is between equal shapes: 5 cheap passes instead of one slow kernel. (A
+  variance as wide as the latent, a MatMul with ``diag(1/g²) 11ᵀ/L`` with the
+  ``Add`` of ``ε`` and the ``Sqrt`` on all of it, costs 12.6 against 8.0 ns
+  per row of 16, ``benchmarks/bench_inference.py --ops``; dividing by the
+  column itself, onnxruntime's broadcasting ``Div``, 11.8.)
   (A gain with an entry of magnitude below :data:`MIN_GAIN` is applied by a
   MatMul after the division instead.)
 * **Carried biases.** The LayerNorm's ``β`` is not added: a latent is kept
@@ -79,22 +78,11 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC
-from hybridmpm.neural.constants import CONTEXT_INPUT, INPUT_NAMES, METADATA_KEY, OUTPUT_NAMES
+from hybridmpm.neural.constants import CONTEXT_INPUT, GRAPH_LAYOUT, INPUT_NAMES, METADATA_KEY, OUTPUT_NAMES
 from hybridmpm.train.gns.model import LN_EPS, remap_legacy_state_dict
 
 #: ONNX opset of the graph.
 OPSET = 18
-#: Marker stored in the model metadata (``graph``): graphs of this layout take the edge geometry and
-#: the aggregation inputs (``in_edges``, ``in_degree``) as inputs, and take each LayerNorm's variance
-#: as one column per row.
-GRAPH_LAYOUT = "compiled-3"
-#: The earlier compiled layouts, which :func:`upgrade_graph` rewrites as :data:`GRAPH_LAYOUT`. The
-#: second has the inputs of the current one but computes the LayerNorm's variance as wide as the
-#: latent (three passes more over it, module doc).
-GRAPH_LAYOUT_2 = "compiled-2"
-#: The first: edge geometry as inputs, every sum over receivers a ``ScatterND`` (exact on one
-#: onnxruntime thread only).
-GRAPH_LAYOUT_1 = "compiled-1"
 #: Node-name prefixes of the graph's stages, in execution order.
 STAGES = ("features", "node_encoder", "edge_encoder", "edge_mlp", "aggregate", "node_mlp", "decoder")
 #: LayerNorm gains smaller than this (in magnitude) are applied after the division, not folded.
@@ -104,19 +92,17 @@ MIN_GAIN = 1e-4
 class _Builder:
     """A list of ONNX nodes and initializers with fresh names."""
 
-    def __init__(self, prefix: str = "") -> None:
+    def __init__(self) -> None:
         self.nodes: list[Any] = []
         self.inits: list[Any] = []
         self._n = 0
-        #: Prefix of every fresh name (:func:`upgrade_graph` adds nodes to a graph that has names already).
-        self.prefix = prefix
         #: Prefix of the node names (``stage/op_n``): onnxruntime's profiler reports
         #: per node, and ``benchmarks/bench_inference.py`` groups by it (:data:`STAGES`).
         self.stage = "features"
 
     def name(self, hint: str) -> str:
         self._n += 1
-        return f"{self.prefix}{hint}_{self._n}"
+        return f"{hint}_{self._n}"
 
     def const(self, hint: str, value: Any, dtype: Any = np.float32) -> str:
         from onnx import numpy_helper
@@ -207,15 +193,15 @@ class _Compiler:
         return self.gemm(h, self.w(f"{key}.4"), self.bias(f"{key}.4")), None
 
 
-def _layer_norm_scale(b: _Builder, sq: str, k: np.ndarray, eps: float, out: str | None = None) -> str:
+def _layer_norm_scale(b: _Builder, sq: str, k: np.ndarray, eps: float) -> str:
     """``sqrt(sq · k + eps)`` [rows, L] for the squares ``sq`` [rows, L] and the
     weights ``k`` [L]: the sum to one column (a Gemm, ``eps`` its ``C``), its
     square root, widened to L columns by a MatMul with a row of ones (module
-    doc). ``out`` names the result (default: a fresh name)."""
+    doc)."""
     from onnx import helper
 
     std = b.op("Sqrt", [b.op("Gemm", [sq, b.const("Kvar", np.asarray(k).reshape(-1, 1)), b.const("eps", [eps])], "var_eps")], "std")
-    out = out or b.name("std_wide")
+    out = b.name("std_wide")  # named before its constant: an export keeps the node names it always had
     b.nodes.append(helper.make_node("MatMul", [std, b.const("ones", np.ones((1, len(k))))], [out], name=f"{b.stage}/{out}"))
     return out
 
@@ -229,17 +215,16 @@ def _aggregation_switch(b: _Builder, latent: int) -> tuple[str, str]:
     return cond, b.const("zero_row", np.zeros((1, latent)))
 
 
-def _aggregate(b: _Builder, et: str, zeros_nl: str, recv2: str, switch: tuple[str, str], out: str | None = None) -> str:
+def _aggregate(b: _Builder, et: str, zeros_nl: str, recv2: str, switch: tuple[str, str]) -> str:
     """``Σ_{edges e into i} et[e]`` [N, latent] of the edge latents ``et``
     [E, latent] (module doc): an ``If`` on ``switch`` (:func:`_aggregation_switch`)
     between ``ScatterND(zeros_nl, recv2, et, reduction="add")`` (``zeros_nl``
     [N, latent] zeros, ``recv2`` the receivers [E, 1]) and the gather way over
-    ``in_edges`` (rows of ``et`` and a zero row at index E, summed over K).
-    ``out`` names the result (default: a fresh name)."""
+    ``in_edges`` (rows of ``et`` and a zero row at index E, summed over K)."""
     from onnx import TensorProto, helper
 
     cond, zero_row = switch
-    out = out or b.name("agg")
+    out = b.name("agg")
     outer = b.nodes
     b.nodes = []
     t = b.op("ScatterND", [zeros_nl, recv2, et], "agg_scatter", reduction="add")
@@ -389,134 +374,14 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     return proto
 
 
-def upgrade_graph(proto: Any) -> Any:
-    """Rewrite ``proto`` (an ``onnx.ModelProto`` of the :data:`GRAPH_LAYOUT_1`
-    or :data:`GRAPH_LAYOUT_2` layout) as :data:`GRAPH_LAYOUT`, in place, and
-    return it. From ``compiled-1``: the ``ScatterND`` that counted each node's
-    in-edges becomes the ``in_degree`` input, every other ``ScatterND`` sum the
-    ``If`` of :func:`_aggregate`, and the two inputs are added. From either:
-    each LayerNorm's variance becomes one column (:func:`_layer_norm_scale`).
-    Nodes left unused are removed and the metadata's ``graph`` is updated. The
-    same function (the tests check it against the old graph on one thread).
-    Raises ``ValueError`` for a graph of another layout."""
-    import json
-
-    entry = next((p for p in proto.metadata_props if p.key == METADATA_KEY), None)
-    meta = json.loads(entry.value) if entry is not None else {}
-    if entry is None or meta.get("graph") not in (GRAPH_LAYOUT_1, GRAPH_LAYOUT_2):
-        raise ValueError(f"not a graph of the {GRAPH_LAYOUT_1} or {GRAPH_LAYOUT_2} layout (graph = {meta.get('graph')!r})")
-    g = proto.graph
-    if meta["graph"] == GRAPH_LAYOUT_1:
-        _race_free_sums(g, int(meta["latent"]))
-    _narrow_layer_norms(g)
-    _prune(g)
-    meta["graph"] = GRAPH_LAYOUT
-    entry.value = json.dumps(meta, sort_keys=True)
-    return proto
-
-
-def _race_free_sums(g: Any, latent: int) -> None:
-    """``compiled-1`` → ``compiled-2`` (:func:`upgrade_graph`) on graph ``g``."""
-    from onnx import TensorProto, helper, numpy_helper
-
-    producer = {o: n for n in g.node for o in n.output}
-
-    def ones(name: str) -> bool:
-        n = producer.get(name)
-        if n is None or n.op_type != "ConstantOfShape":
-            return False
-        value = [a for a in n.attribute if a.name == "value"]
-        return bool(value) and bool(np.all(numpy_helper.to_array(value[0].t) == 1))
-
-    b = _Builder(prefix="v2_")
-    b.stage = "aggregate"
-    switch = _aggregation_switch(b, latent)
-    nodes = list(b.nodes)
-    for n in g.node:
-        if n.op_type != "ScatterND":
-            nodes.append(n)
-        elif ones(n.input[2]):
-            nodes.append(helper.make_node("Identity", ["in_degree"], [n.output[0]], name=n.name))
-        else:
-            b.nodes = []
-            _aggregate(b, n.input[2], n.input[0], n.input[1], switch, out=n.output[0])
-            nodes.extend(b.nodes)
-    del g.node[:]
-    g.node.extend(nodes)
-    g.initializer.extend(b.inits)
-    g.input.extend(
-        [helper.make_tensor_value_info("in_edges", TensorProto.INT64, ["N", "K"]), helper.make_tensor_value_info("in_degree", TensorProto.FLOAT, ["N", 1])]
-    )
-
-
-def _narrow_layer_norms(g: Any) -> None:
-    """``compiled-2`` → ``compiled-3`` (:func:`upgrade_graph`) on graph ``g``:
-    each ``Sqrt(MatMul(sq, K) + eps)`` whose ``K`` [L, L] has equal columns and
-    whose result only divides becomes :func:`_layer_norm_scale` of ``sq`` with
-    ``K``'s first column (the same sums, so the same bits)."""
-    from onnx import numpy_helper
-
-    consts = {i.name: numpy_helper.to_array(i) for i in g.initializer}
-    readers: dict[str, list[Any]] = {}
-    for n in g.node:
-        for name in n.input:
-            readers.setdefault(name, []).append(n)
-
-    def only_reader(name: str, op_type: str) -> Any:
-        r = readers.get(name, [])
-        return r[0] if len(r) == 1 and r[0].op_type == op_type else None
-
-    b = _Builder(prefix="v3_")
-    replaced: dict[int, list[Any]] = {}
-    for n in g.node:
-        k = consts.get(n.input[1]) if n.op_type == "MatMul" else None
-        if k is None or k.ndim != 2 or k.shape[0] != k.shape[1] or not np.all(k == k[:, :1]):
-            continue
-        add = only_reader(n.output[0], "Add")
-        eps = None if add is None else consts.get(add.input[1])
-        sqrt = None if add is None else only_reader(add.output[0], "Sqrt")
-        if eps is None or eps.size != 1 or sqrt is None or not all(r.op_type == "Div" and r.input[1] == sqrt.output[0] for r in readers[sqrt.output[0]]):
-            continue
-        b.nodes = []
-        b.stage = n.name.split("/")[0]
-        _layer_norm_scale(b, n.input[0], k[:, 0], float(eps.reshape(())), out=sqrt.output[0])
-        replaced[id(n)], replaced[id(add)], replaced[id(sqrt)] = list(b.nodes), [], []
-    nodes = [m for n in g.node for m in replaced.get(id(n), [n])]
-    del g.node[:]
-    g.node.extend(nodes)
-    g.initializer.extend(b.inits)
-
-
-def _prune(g: Any) -> None:
-    """Remove the nodes and initializers of graph ``g`` that no output depends on."""
-
-    def reads(n: Any) -> set[str]:
-        names = set(n.input)
-        for a in n.attribute:
-            for sub in [a.g] if a.HasField("g") else list(a.graphs):
-                for m in sub.node:
-                    names |= reads(m)
-        return names
-
-    while True:
-        used = {o.name for o in g.output}.union(*(reads(n) for n in g.node))
-        dead = [n for n in g.node if not any(o in used for o in n.output)]
-        if not dead:
-            break
-        for n in dead:
-            g.node.remove(n)
-    keep = [i for i in g.initializer if i.name in used]
-    del g.initializer[:]
-    g.initializer.extend(keep)
-
-
 def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Weights and metadata of a GNS exported by torch's ONNX exporter (graphs
-    without the ``graph`` metadata key, before :data:`GRAPH_LAYOUT`): the
+    without the ``graph`` metadata key, before the compiled graph): the
     initializers named as the pre-split state dict (``node_encoder.0.weight``,
     ``vel_std``, ...), remapped to :class:`~hybridmpm.train.gns.model.GnsModel`
-    keys. Raises ``ValueError`` for a compiled graph (its weights are folded),
-    ``KeyError`` for a file without the ``hybridmpm`` metadata."""
+    keys. Raises ``ValueError`` for a compiled graph of any layout (its weights
+    are folded: only its training run can export it again), ``KeyError`` for a
+    file without the ``hybridmpm`` metadata."""
     import json
 
     import onnx
@@ -524,13 +389,12 @@ def state_dict_from_onnx(path: Any) -> tuple[dict[str, np.ndarray], dict[str, An
 
     proto = onnx.load(str(path))
     meta = json.loads({p.key: p.value for p in proto.metadata_props}[METADATA_KEY])
-    if meta.get("graph") in (GRAPH_LAYOUT, GRAPH_LAYOUT_1, GRAPH_LAYOUT_2):
-        raise ValueError(f"{path}: a compiled graph; its weights are folded and cannot be read back")
+    if "graph" in meta:
+        raise ValueError(
+            f"{path}: a compiled graph (layout {meta['graph']!r}); its weights are folded and cannot be read back: re-export it from its training run"
+        )
     inits = {i.name: numpy_helper.to_array(i) for i in proto.graph.initializer}
     return remap_legacy_state_dict({k: v for k, v in inits.items() if not k.startswith("val_")}), meta
 
 
-__all__ = [
-    "GRAPH_LAYOUT", "GRAPH_LAYOUT_1", "GRAPH_LAYOUT_2", "INPUT_NAMES", "MIN_GAIN", "OPSET", "OUTPUT_NAMES", "STAGES", "inference_graph", "state_dict_from_onnx",
-    "upgrade_graph",
-]  # fmt: skip
+__all__ = ["GRAPH_LAYOUT", "INPUT_NAMES", "MIN_GAIN", "OPSET", "OUTPUT_NAMES", "STAGES", "inference_graph", "state_dict_from_onnx"]
