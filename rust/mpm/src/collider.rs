@@ -33,8 +33,8 @@ use std::sync::Arc;
 
 use nalgebra::{SMatrix, SVector};
 
+use crate::boundary::BoundaryCondition;
 use crate::error::{MpmError, Result};
-use crate::params::BoundaryCondition;
 
 /// A signed-distance shape in `D` dimensions.
 #[derive(Clone, Debug, PartialEq)]

@@ -7,14 +7,16 @@
 //! particles are touched. Deterministic for any thread count.
 //!
 //! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`),
-//! `material` (water, sand), `collider` and `params` (boundaries and
-//! parameters), `solver` (one file per substep stage: grid, p2g,
+//! `material` (water, sand), `boundary`, `collider` and `params` (boundary
+//! conditions, obstacles and parameters; `params` uses `collider`, both use
+//! `boundary`), `solver` (one file per substep stage: grid, p2g,
 //! grid_update, g2p, and the CFL frame loop), `checkpoint`.
 
 // Numeric kernels index several small arrays with one loop variable (`for d
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod boundary;
 pub mod checkpoint;
 pub mod collider;
 pub mod dim;
@@ -29,14 +31,14 @@ pub mod solver;
 pub mod transfer;
 mod v4;
 
+pub use boundary::BoundaryCondition;
 pub use collider::{Collider, Shape};
 pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
 pub use params::{
-    BoundaryCondition, ColliderParams, SandParams, ShapeKind, SolverParams, WallFace, WallParams,
-    WaterParams,
+    ColliderParams, SandParams, ShapeKind, SolverParams, WallFace, WallParams, WaterParams,
 };
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};

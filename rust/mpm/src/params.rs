@@ -9,6 +9,7 @@
 
 use nalgebra::{SMatrix, SVector};
 
+pub use crate::boundary::BoundaryCondition;
 use crate::collider::{Collider, Shape};
 use crate::error::{MpmError, Result};
 
@@ -160,46 +161,6 @@ impl SandParams {
     pub fn wave_speed(&self) -> f32 {
         let (mu, la) = self.lame();
         ((la + 2.0 * mu) / self.density).sqrt()
-    }
-}
-
-/// How a boundary acts on the grid velocity of nodes inside it (named
-/// `"sticky"`, `"slip"`, `"separate"` in the parameter dict).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(rename_all = "lowercase")
-)]
-pub enum BoundaryCondition {
-    /// Velocity set to the boundary's (zero): no slip.
-    Sticky,
-    /// Normal component removed both ways (no penetration, no separation).
-    Slip,
-    /// Only the inward normal component removed; Coulomb friction on the
-    /// tangential part while in contact.
-    Separate,
-}
-
-impl BoundaryCondition {
-    pub fn parse(field: &str, s: &str) -> Result<Self> {
-        match s {
-            "sticky" => Ok(Self::Sticky),
-            "slip" => Ok(Self::Slip),
-            "separate" => Ok(Self::Separate),
-            other => Err(MpmError::invalid(
-                field,
-                format!("must be one of 'sticky', 'slip', 'separate', got '{other}'"),
-            )),
-        }
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Sticky => "sticky",
-            Self::Slip => "slip",
-            Self::Separate => "separate",
-        }
     }
 }
 

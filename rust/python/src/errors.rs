@@ -2,6 +2,8 @@
 //!
 //! The classes live in Python (so that `InvalidInputError` can subclass both
 //! `HybridMpmError` and `ValueError`); they are looked up on first use.
+//! [`repr`] shows a bad value in their messages. Every other module of the
+//! binding may use this one; it uses none of them.
 
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -50,4 +52,11 @@ pub fn simulation_error(py: Python<'_>, substep: Option<usize>, msg: impl Into<S
 /// `CheckpointError(msg)`.
 pub fn checkpoint_error(py: Python<'_>, msg: impl Into<String>) -> PyErr {
     make(py, "CheckpointError", msg.into(), None)
+}
+
+/// `repr(obj)` for an error message (`"?"` if it fails).
+pub fn repr(obj: &Bound<'_, PyAny>) -> String {
+    obj.repr()
+        .map(|r| r.to_string())
+        .unwrap_or_else(|_| "?".into())
 }

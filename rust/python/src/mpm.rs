@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyBytes, PyDict, PyInt};
 use std::sync::Mutex;
 
-use crate::errors::{checkpoint_error, invalid_input, simulation_error};
+use crate::errors::{checkpoint_error, invalid_input, repr, simulation_error};
 
 /// How to change the memory budget, appended to budget errors.
 pub const BUDGET_HINT: &str =
@@ -31,13 +31,6 @@ pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
         MpmError::TooManySubsteps { .. } => simulation_error(py, None, e.to_string()),
         MpmError::Checkpoint(m) => checkpoint_error(py, m),
     }
-}
-
-/// `repr(obj)` for an error message (`"?"` if it fails).
-pub fn repr(obj: &Bound<'_, PyAny>) -> String {
-    obj.repr()
-        .map(|r| r.to_string())
-        .unwrap_or_else(|_| "?".into())
 }
 
 /// A non-negative integer (Python `int` or numpy integer; not a bool, a

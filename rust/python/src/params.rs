@@ -23,8 +23,7 @@ use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
 use serde::de::{self, DeserializeOwned, DeserializeSeed, Visitor};
 use serde::forward_to_deserialize_any;
 
-use crate::errors::invalid_input;
-use crate::mpm::repr;
+use crate::errors::{invalid_input, repr};
 
 /// A parameter that cannot be read: the field it belongs to (its path from
 /// the root, once known) and what is wrong with it.
