@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, Recording
 from hybridmpm.service.episode import run_episode
@@ -48,6 +49,9 @@ PLAY_LAG_S = 0.25
 KEEP_CONTROLS = 8
 #: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
 RECORD_STEPS = 300
+#: A session whose scene holds at least this many particles steps on two MPM threads where two
+#: compute threads are free (:func:`session_threads`); a smaller one gains nothing from a second thread.
+WIDE_SESSION_PARTICLES = 10_000
 
 
 class SessionGoneError(Exception):
@@ -89,6 +93,19 @@ class Pacer:
         return max(0.0, self.next_t - time.monotonic())
 
 
+def session_threads(settings: SessionSettings, most: int) -> int:
+    """The MPM threads of a new session of ``settings``: 2 when ``most`` (the
+    compute threads the backend grants one session) is at least 2 and its
+    scene holds at least :data:`WIDE_SESSION_PARTICLES` particles, else 1.
+    The engine gives the same bits on any thread count, so this changes only
+    the speed. Builds the scene's initial condition to count (milliseconds);
+    raises what :func:`hybridmpm.scenes.scene_spec` raises."""
+    if most < 2:
+        return 1
+    n = scene_spec(settings.scene, seed=settings.seed, n_grid=settings.n_grid).build().num_particles
+    return 2 if n >= WIDE_SESSION_PARTICLES else 1
+
+
 def _nothing(*_: Any) -> None:
     return None
 
@@ -99,9 +116,9 @@ def _no_viewers() -> bool:
 
 class SessionCore:
     """One session: its simulator ``sim`` (at ``settings``, from ``initial``,
-    the state a reset goes back to), created by the client address
-    ``client``, named ``key`` in the store; its recording takes from
-    ``budget``. Build one with :meth:`build` or :meth:`load`.
+    the state a reset goes back to, stepping on ``threads`` MPM threads),
+    created by the client address ``client``, named ``key`` in the store;
+    its recording takes from ``budget``. Build one with :meth:`build` or :meth:`load`.
 
     Thread-safe: the simulation work takes :attr:`lock` (a re-entrant lock,
     held for a whole step, control or restore); the recording and the kept
@@ -110,8 +127,11 @@ class SessionCore:
     :class:`SessionGoneError` and stops a running control within a frame.
     """
 
-    def __init__(self, key: str, settings: SessionSettings, sim: Simulator, initial: dict[str, Any], client: str, budget: MemoryBudget) -> None:
+    def __init__(
+        self, key: str, settings: SessionSettings, sim: Simulator, initial: dict[str, Any], client: str, budget: MemoryBudget, threads: int = 1
+    ) -> None:
         self.key = key
+        self.threads = int(threads)  # the MPM threads its steps use (what a compute limiter counts)
         self.settings = settings
         self.sim = sim
         self.initial = initial
@@ -142,16 +162,18 @@ class SessionCore:
         MPM threads and one network thread). Blocks; raises the simulator's
         :class:`~hybridmpm.errors.InvalidInputError` for bad settings."""
         sim = make_simulator(settings.scene, settings.solver, r_c=settings.r_c, seed=settings.seed, threads=threads, nn_threads=1, n_grid=settings.n_grid)
-        return cls(key, settings, sim, sim.state(), client, budget)
+        return cls(key, settings, sim, sim.state(), client, budget, threads)
 
     @classmethod
-    def load(cls, rec: StoredSession, budget: MemoryBudget) -> SessionCore:
+    def load(cls, rec: StoredSession, budget: MemoryBudget, most_threads: int = 1) -> SessionCore:
         """The session of a store record, at its saved frame, its idle clock
-        as the record says (:func:`~hybridmpm.service.store.rebuild`; raises
+        as the record says, on :func:`session_threads` MPM threads (at most
+        ``most_threads``; :func:`~hybridmpm.service.store.rebuild`; raises
         what it raises). Blocks."""
-        sim, initial = rebuild(rec)
         settings = SessionSettings(rec.scene, rec.seed, rec.solver, rec.r_c, rec.n_grid)
-        core = cls(rec.key, settings, sim, initial, rec.client, budget)
+        threads = session_threads(settings, most_threads)
+        sim, initial = rebuild(rec, threads)
+        core = cls(rec.key, settings, sim, initial, rec.client, budget, threads)
         core.saved_frame = core.restored_from_frame = core.frame_index
         core.last_used = time.monotonic() - max(0.0, time.time() - rec.last_used_at)
         return core

@@ -41,7 +41,7 @@ from starlette.websockets import WebSocket, WebSocketState
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
-from hybridmpm.service.core import Control, SessionCore, SessionGoneError
+from hybridmpm.service.core import Control, SessionCore, SessionGoneError, session_threads
 from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.frames import encode_frame
 from hybridmpm.service.logs import SHOWN_ID_CHARS
@@ -175,6 +175,8 @@ class SessionManager:
         self.reserved_by: collections.Counter[str] = collections.Counter()
         self.budget = MemoryBudget(config.memory_budget_bytes)
         self.limiter = anyio.CapacityLimiter(config.compute_threads)
+        self._wide = asyncio.Lock()  # one wide call takes its tokens at a time (compute_wide)
+        self._unlimited = anyio.CapacityLimiter(max(1, config.max_sessions) + config.compute_threads)  # a wide call's thread: its tokens are held
         self.controls_running = 0
         self._reaper: asyncio.Task[None] | None = None
         self._saver: asyncio.Task[None] | None = None
@@ -228,7 +230,8 @@ class SessionManager:
             sid = secrets.token_urlsafe(24)  # 192 bits
             settings = SessionSettings(scene, int(seed), solver, float(r_c), n_grid)
             with self.budget.hold(SESSION_OVERHEAD, "a new session"):
-                core = await self.compute(functools.partial(SessionCore.build, session_key(sid), settings, client, self.budget))
+                threads = await self.compute(session_threads, settings, self.config.compute_threads)
+                core = await self.compute(functools.partial(SessionCore.build, session_key(sid), settings, client, self.budget, threads))
             try:
                 cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(core.initial) + SESSION_OVERHEAD, "a new session")
             except BudgetFullError:
@@ -259,14 +262,35 @@ class SessionManager:
         assert s.core is not None
         return s.core
 
+    async def compute_wide(self, width: int, fn: Callable[..., T], *args: Any) -> T:
+        """:meth:`compute` for work on ``width`` threads: it holds ``width``
+        of the compute limiter's tokens while it runs. The tokens are taken
+        one wide call at a time (a narrow call holds one and always ends), so
+        two wide calls never each hold part of what the other waits for."""
+        if width <= 1:
+            return await self.compute(fn, *args)
+        tokens = [object() for _ in range(width)]
+        async with self._wide:
+            for t in tokens:
+                await self.limiter.acquire_on_behalf_of(t)
+        try:
+            return await anyio.to_thread.run_sync(fn, *args, limiter=self._unlimited)
+        except HybridMpmError as e:
+            traceback.clear_frames(e.__traceback__)
+            raise
+        finally:
+            for t in tokens:
+                self.limiter.release_on_behalf_of(t)
+
     async def on_core(self, s: Session, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` (a method of ``s``'s core) on a worker, after
-        the calls queued before it on ``s``; :class:`SessionGoneError` when
-        ``s`` was closed meanwhile."""
+        the calls queued before it on ``s``, holding as many compute tokens
+        as the session's MPM threads (:meth:`compute_wide`);
+        :class:`SessionGoneError` when ``s`` was closed meanwhile."""
         async with s.lock:
             if s.closed:
                 raise SessionGoneError()
-            return await self.compute(fn, *args)
+            return await self.compute_wide(self.core_of(s).threads, fn, *args)
 
     async def keep_control(self, s: Session, c: Control) -> None:
         """Keep ``c`` on ``s`` (its cost already taken from the budget),
@@ -455,7 +479,7 @@ class SessionManager:
                 continue
             try:
                 with self.budget.hold(SESSION_OVERHEAD + 2 * tree_nbytes(rec.state), "restoring a session"):
-                    core = await self.compute(SessionCore.load, rec, self.budget)
+                    core = await self.compute(SessionCore.load, rec, self.budget, self.config.compute_threads)
                 try:
                     cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(core.initial) + SESSION_OVERHEAD, "a restored session")
                 except BudgetFullError:
@@ -556,7 +580,7 @@ class SessionManager:
                 async with s.lock:
                     if s.closed:
                         break
-                    delay = await self.compute(next, steps, None)
+                    delay = await self.compute_wide(self.core_of(s).threads, next, steps, None)
                 if delay is None:
                     break
                 await asyncio.sleep(delay)

@@ -131,9 +131,10 @@ def record_state(sim: Any) -> dict[str, Any]:
     return state
 
 
-def rebuild(rec: StoredSession) -> tuple[Any, dict[str, Any]]:
+def rebuild(rec: StoredSession, threads: int = 1) -> tuple[Any, dict[str, Any]]:
     """The simulator of a stored session at its saved state, and its initial
-    state (for a reset): built with the record's clusters (no k-means), then
+    state (for a reset): built with the record's clusters (no k-means) on
+    ``threads`` MPM threads, then
     restored. Blocks. Raises what :func:`~hybridmpm.sim.make_simulator` and
     ``restore`` raise (:class:`InvalidInputError` naming the field) for a
     record that does not fit its scene."""
@@ -146,7 +147,7 @@ def rebuild(rec: StoredSession) -> tuple[Any, dict[str, Any]]:
         if not isinstance(raw, dict) or set(raw) != {"labels", "boundary_labels"}:
             raise InvalidInputError(f"store: session {rec.key[:SHOWN_KEY_CHARS]}…: {CLUSTERS_KEY} must hold labels and boundary_labels", "checkpoint")
         clusters = Clusters(np.asarray(raw["labels"]), np.asarray(raw["boundary_labels"]))
-    sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=1, nn_threads=1, clusters=clusters, n_grid=rec.n_grid)
+    sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=threads, nn_threads=1, clusters=clusters, n_grid=rec.n_grid)
     initial = sim.state()
     sim.restore(state)
     return sim, initial
