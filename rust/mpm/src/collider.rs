@@ -82,18 +82,18 @@ pub enum Shape<const D: usize> {
 pub const MAX_SAMPLED_NODES: usize = 1 << 24;
 
 /// The multilinear interpolant of the node vectors `normals` (`D` per node)
-/// at the nearest point of the grid's box to `p`.
+/// at the nearest point of the grid's box to `rel`, the point relative to
+/// the grid's origin ([`Shape::local`]).
 fn sampled_normal<const D: usize>(
-    origin: &SVector<f32, D>,
     cell: f32,
     dims: &[usize; D],
     normals: &[f32],
-    p: &SVector<f32, D>,
+    rel: &SVector<f32, D>,
 ) -> SVector<f32, D> {
     let mut idx = [0usize; D];
     let mut t = [0.0f32; D];
     for d in 0..D {
-        let uc = ((p[d] - origin[d]) / cell).clamp(0.0, (dims[d] - 1) as f32);
+        let uc = (rel[d] / cell).clamp(0.0, (dims[d] - 1) as f32);
         let i = (uc.floor() as usize).min(dims[d] - 2);
         idx[d] = i;
         t[d] = uc - i as f32;
@@ -116,20 +116,20 @@ fn sampled_normal<const D: usize>(
     acc
 }
 
-/// The multilinear interpolant of a sampled grid at `p`, extended outside the
+/// The multilinear interpolant of a sampled grid at `rel`, the point
+/// relative to the grid's origin ([`Shape::local`]), extended outside the
 /// grid's box by the distance to the box (see [`Shape::Sampled`]).
 fn sampled_sdf<const D: usize>(
-    origin: &SVector<f32, D>,
     cell: f32,
     dims: &[usize; D],
     values: &[f32],
-    p: &SVector<f32, D>,
+    rel: &SVector<f32, D>,
 ) -> f32 {
     let mut outside2 = 0.0f32;
     let mut idx = [0usize; D];
     let mut t = [0.0f32; D];
     for d in 0..D {
-        let u = (p[d] - origin[d]) / cell;
+        let u = rel[d] / cell;
         let top = (dims[d] - 1) as f32;
         let uc = u.clamp(0.0, top);
         let excess = (u - uc) * cell;
@@ -161,28 +161,32 @@ pub struct Collider<const D: usize> {
 }
 
 impl<const D: usize> Shape<D> {
+    /// The query point `p` [m] in the shape's own frame: relative to its
+    /// [`Shape::anchor`] where the shape is now (a moving collider's anchor
+    /// moves), and for a box along its local axes. Every distance and normal
+    /// is evaluated there.
+    fn local(&self, p: &SVector<f32, D>) -> SVector<f32, D> {
+        let rel = p - self.anchor();
+        match self {
+            Shape::Box { rotation, .. } => rotation.transpose() * rel,
+            Shape::Sphere { .. } | Shape::Sampled { .. } => rel,
+        }
+    }
+
     /// Signed distance [m] (negative inside).
     pub fn sdf(&self, p: &SVector<f32, D>) -> f32 {
+        let local = self.local(p);
         match self {
-            Shape::Box {
-                center,
-                half_extents,
-                rotation,
-            } => {
-                let local = rotation.transpose() * (p - center);
+            Shape::Box { half_extents, .. } => {
                 let q = local.abs() - half_extents;
                 let outside = q.map(|x| x.max(0.0)).norm();
                 let inside = q.max().min(0.0);
                 outside + inside
             }
-            Shape::Sphere { center, radius } => (p - center).norm() - radius,
+            Shape::Sphere { radius, .. } => local.norm() - radius,
             Shape::Sampled {
-                origin,
-                cell,
-                dims,
-                values,
-                ..
-            } => sampled_sdf(origin, *cell, dims, values, p),
+                cell, dims, values, ..
+            } => sampled_sdf(*cell, dims, values, &local),
         }
     }
 
@@ -190,11 +194,11 @@ impl<const D: usize> Shape<D> {
     pub fn normal(&self, p: &SVector<f32, D>) -> SVector<f32, D> {
         match self {
             Shape::Box {
-                center,
                 half_extents,
                 rotation,
+                ..
             } => {
-                let local = rotation.transpose() * (p - center);
+                let local = self.local(p);
                 let q = local.abs() - half_extents;
                 let mut n = SVector::<f32, D>::zeros();
                 if q.max() > 0.0 {
@@ -210,8 +214,8 @@ impl<const D: usize> Shape<D> {
                 let len = n.norm();
                 if len > 0.0 { n / len } else { n }
             }
-            Shape::Sphere { center, .. } => {
-                let d = p - center;
+            Shape::Sphere { .. } => {
+                let d = self.local(p);
                 let len = d.norm();
                 if len > 0.0 {
                     d / len
@@ -222,14 +226,13 @@ impl<const D: usize> Shape<D> {
                 }
             }
             Shape::Sampled {
-                origin,
                 cell,
                 dims,
                 normals,
                 ..
             } => {
                 let n = match normals {
-                    Some(normals) => sampled_normal(origin, *cell, dims, normals, p),
+                    Some(normals) => sampled_normal(*cell, dims, normals, &self.local(p)),
                     None => {
                         let mut n = SVector::<f32, D>::zeros();
                         for d in 0..D {
