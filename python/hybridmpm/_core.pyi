@@ -5,9 +5,10 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "MpmSolver", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
+__all__ = ["__version__", "CONNECTIVITY_RADIUS", "MpmSolver", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
 
 __version__: str
+CONNECTIVITY_RADIUS: float
 
 @final
 class MpmSolver:
@@ -97,7 +98,7 @@ def grid_advect(
 ) -> npt.NDArray[np.float32]: ...
 def radius_graph(
     positions: npt.NDArray[np.float32],
-    radius: float = 0.015,
+    radius: float = ...,
     *,
     self_edges: bool = True,
     max_neighbors: int | None = None,

@@ -16,6 +16,8 @@ Two code tables exist and they are *different*:
 
 from __future__ import annotations
 
+from hybridmpm import _core
+
 # ----------------------------------------------------------------- codes
 #: Solver material code of weakly compressible water.
 MATERIAL_WATER = 0
@@ -41,7 +43,9 @@ DT_FRAME = 2.5e-3
 #: Default grid cells per dimension, by dimension (128² in 2D, 64³ in 3D).
 DEFAULT_N_GRID = {2: 128, 3: 64}
 #: Default connectivity radius R [m] of the network's radius graph (2D scenes).
-CONNECTIVITY_RADIUS = 0.015
+#: Values are defined once in Rust: this is the neighbour-search crate's
+#: ``CONNECTIVITY_RADIUS`` (also ``_core.radius_graph``'s default), as its decimal.
+CONNECTIVITY_RADIUS: float = _core.CONNECTIVITY_RADIUS
 #: Standard gravity [m/s²], the unit ``g`` in which accelerations are reported
 #: (control effort, the hybrid's MPM audit).
 G = 9.8

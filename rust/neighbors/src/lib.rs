@@ -146,11 +146,17 @@ impl GraphError {
     }
 }
 
+/// The connectivity radius R (in the positions' length unit, metres in
+/// hybridmpm) of the GNS WaterDrop / Water-2D datasets: [`GraphParams`]'s
+/// default radius. Defined here once; the binding gives it to Python, whose
+/// `hybridmpm.conventions.CONNECTIVITY_RADIUS` reads it.
+pub const CONNECTIVITY_RADIUS: f32 = 0.015;
+
 /// Parameters of [`radius_graph`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GraphParams {
     /// Connectivity radius `r` (same length unit as the positions), finite and `> 0`.
-    /// Default `0.015` (the GNS WaterDrop / Water-2D value).
+    /// Default [`CONNECTIVITY_RADIUS`].
     pub radius: f32,
     /// Whether every particle gets the self-edge `(i, i)` (displacement 0,
     /// distance 0). Default `true`.
@@ -171,7 +177,7 @@ pub struct GraphParams {
 impl Default for GraphParams {
     fn default() -> Self {
         GraphParams {
-            radius: 0.015,
+            radius: CONNECTIVITY_RADIUS,
             self_edges: true,
             max_neighbors: None,
             max_edges: None,

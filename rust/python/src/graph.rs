@@ -16,6 +16,14 @@ type Edges<'py> = (
     Bound<'py, PyArray1<f32>>,
 );
 
+/// [`nb::CONNECTIVITY_RADIUS`] as a Python float: its shortest decimal, as
+/// serde writes the solver's `f32` defaults, so that Python reads the
+/// decimal value, not the `f32` widened (the `f32` of either is the same).
+fn connectivity_radius() -> f64 {
+    let r = nb::CONNECTIVITY_RADIUS;
+    r.to_string().parse().unwrap_or(f64::from(r))
+}
+
 /// Copies rows of a float32 [N, D] array (any strides) into `[f32; D]`.
 fn rows<const D: usize>(arr: &Bound<'_, PyArray2<f32>>) -> PyResult<Vec<[f32; D]>> {
     let ro = arr
@@ -329,9 +337,11 @@ fn run<'py, const D: usize>(
 /// ----------
 /// positions : numpy.ndarray, float32, shape (N, D), D in {2, 3}
 ///     Particle positions (any length unit; any strides). N may be 0.
-/// radius : float, default 0.015
+/// radius : float, default ``CONNECTIVITY_RADIUS``
 ///     Connectivity radius R (same unit as ``positions``), finite and > 0;
-///     rounded to float32.
+///     rounded to float32. The default is the connectivity radius
+///     ``hybridmpm._core.CONNECTIVITY_RADIUS`` (the same as
+///     ``hybridmpm.conventions.CONNECTIVITY_RADIUS``).
 /// self_edges : bool, default True
 ///     Include the self-edge (i, i) of every particle (displacement 0).
 /// max_neighbors : int or None, default None
@@ -375,7 +385,7 @@ fn run<'py, const D: usize>(
 ///     ``max_edges`` < 0 (``"max_edges"``); more than ``max_edges`` edges
 ///     (``"radius"``, with the count).
 #[pyfunction]
-#[pyo3(signature = (positions, radius = 0.015, *, self_edges = true, max_neighbors = None, max_edges = None))]
+#[pyo3(signature = (positions, radius = connectivity_radius(), *, self_edges = true, max_neighbors = None, max_edges = None))]
 fn radius_graph<'py>(
     py: Python<'py>,
     positions: &Bound<'py, PyAny>,
@@ -497,8 +507,9 @@ fn relax_then_graph<'py>(
     }
 }
 
-/// Adds `radius_graph` to the module.
+/// Adds `CONNECTIVITY_RADIUS` and the functions of this file to the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("CONNECTIVITY_RADIUS", connectivity_radius())?;
     m.add_function(wrap_pyfunction!(radius_graph, m)?)?;
     m.add_function(wrap_pyfunction!(kernel_density, m)?)?;
     m.add_function(wrap_pyfunction!(relax_density, m)?)?;
