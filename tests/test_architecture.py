@@ -297,7 +297,7 @@ def test_serving_imports_without_torch():
 
 
 def test_the_connectivity_radius_value_is_written_once():
-    # R = 0.015 m lives in hybridmpm.conventions; defaults elsewhere name CONNECTIVITY_RADIUS
+    # R = 0.015 m lives in Rust (the neighbors crate), read once by hybridmpm.conventions; defaults elsewhere name CONNECTIVITY_RADIUS
     pattern = re.compile(r"(?<![\d.])0\.015(?!\d)")
     offenders = []
     for p in _sources("python"):
