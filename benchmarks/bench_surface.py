@@ -6,7 +6,8 @@
    (:func:`hybridmpm.render.surface_mesh`, the volume-matched level and the
    fixed level 1/2) and written as binary PLY; then the frames of a water3d
    MPM rollout (moving, splashing fluid). Median wall and CPU ms per frame
-   over ``--repeats`` runs (one core; nothing here is threaded).
+   over ``--repeats`` runs (one core; nothing here is threaded), and the
+   marching-cubes calls per frame (counted in an untimed pass).
 2. **USD**: a ``--usd-frames`` (default 200) frame water3d MPM run written by
    :func:`hybridmpm.render.usd.write_usd` with its surfaces, read back with
    ``pxr``: one time sample per frame of the points and the mesh, point counts
@@ -24,15 +25,18 @@ docs/mesh.md say which load they were measured under.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import skimage.measure
 
 from hybridmpm.render.surface import frame_surfaces, surface_mesh, surface_settings, write_surface
 from hybridmpm.scenes import make_scene
@@ -48,6 +52,23 @@ def _time(fn: Any, repeats: int) -> dict[str, float]:
         wall.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
     return {"wall_ms_median": 1e3 * float(np.median(wall)), "cpu_ms_median": 1e3 * float(np.median(cpu)), "wall_ms_min": 1e3 * float(np.min(wall))}
+
+
+@contextlib.contextmanager
+def count_marching_cubes() -> Iterator[list[int]]:
+    """Counts the calls of ``skimage.measure.marching_cubes`` (the surface
+    module imports it at each call) in the list it yields."""
+    calls, original = [0], skimage.measure.marching_cubes
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        calls[0] += 1
+        return original(*args, **kwargs)
+
+    skimage.measure.marching_cubes = counted
+    try:
+        yield calls
+    finally:
+        skimage.measure.marching_cubes = original
 
 
 def block_timing(repeats: int, tmp: Path) -> dict[str, Any]:
@@ -66,8 +87,12 @@ def block_timing(repeats: int, tmp: Path) -> dict[str, Any]:
                 write_surface(m, tmp / "block.ply")
 
         frame()
-        (m,) = surface_mesh(p, pt, domain=domain, dx=dx, iso=iso)
-        out[f"iso_{iso}"] = {**_time(frame, repeats), "faces": len(m.faces), "level": m.iso, "volume_error": m.volume / (16 * dx) ** 3 - 1}
+        with count_marching_cubes() as calls:
+            (m,) = surface_mesh(p, pt, domain=domain, dx=dx, iso=iso)
+        out[f"iso_{iso}"] = {
+            **_time(frame, repeats), "faces": len(m.faces), "level": m.iso, "volume_error": m.volume / (16 * dx) ** 3 - 1,
+            "marching_cubes_calls": calls[0],
+        }  # fmt: skip
     return out
 
 
@@ -86,10 +111,14 @@ def rollout_timing(frames: int, tmp: Path) -> dict[str, Any]:
         cpu.append(time.process_time() - c0)
         err.append(sum(s.volume for s in surfaces) / target - 1)  # type: ignore[union-attr]
     e = np.abs(np.asarray(err))
+    with count_marching_cubes() as calls:
+        for t in range(ro.num_frames):
+            frame_surfaces(ro.positions[t], ro.particle_type, **settings)
     return {
         "scene": "water3d seed 1", "particles": int(scene.num_particles), "frames": ro.num_frames,
         "wall_ms_median": 1e3 * float(np.median(wall)), "cpu_ms_median": 1e3 * float(np.median(cpu)),
         "volume_error_abs_median": float(np.median(e)), "volume_error_abs_max": float(e.max()),
+        "marching_cubes_calls_per_frame": calls[0] / ro.num_frames,
     }  # fmt: skip
 
 

@@ -4,6 +4,7 @@ the block the particles fill, closure, per-material meshes, determinism, bad inp
 from __future__ import annotations
 
 import hashlib
+import itertools
 import os
 import subprocess
 import sys
@@ -14,11 +15,13 @@ import numpy as np
 import pytest
 import trimesh
 
+from hybridmpm import _core
 from hybridmpm.cli import main
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, MpmParams, Sphere
-from hybridmpm.render.surface import MAX_GRID_NODES, export_surfaces, surface_contours, surface_mesh, write_surface
+from hybridmpm.render import surface as surface_module
+from hybridmpm.render.surface import MAX_GRID_NODES, VOLUME_TOL, export_surfaces, surface_contours, surface_mesh, write_surface
 from hybridmpm.scenes import collider_sdf
 from hybridmpm.scenes.core import lattice
 
@@ -123,6 +126,88 @@ def test_same_bytes_twice_and_for_any_particle_order(tmp_path):
     perm = rng.permutation(len(p))
     write_surface(surface_mesh(p[perm], pt[perm], domain=DOMAIN3, dx=DX)[0], c)
     assert a.read_bytes() == b.read_bytes() == c.read_bytes()
+
+
+def _reference_p2g(p, frac, h, g_lo, shape):
+    """The quantised p2g in plain numpy: weights 0.5(1.5 − f)², 0.75 − (f − 1)², 0.5(f − 0.5)² rounded to 2^-10."""
+    xs = p.T / h
+    base = np.floor(xs - 0.5)
+    fx = xs - base
+    w = np.rint(np.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1) * 2**10) / 2**10  # [D, 3, N]
+    out = np.zeros(shape)
+    for offs in itertools.product(range(3), repeat=p.shape[1]):
+        wt = frac.copy()
+        for k, a in enumerate(offs):
+            wt = wt * w[k, a]
+        np.add.at(out, tuple(base[k].astype(np.int64) - g_lo[k] + a for k, a in enumerate(offs)), wt)
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_compiled_p2g_is_the_quantised_spline_splat_in_any_order(dim):
+    rng = np.random.default_rng(dim)
+    h = 1 / 48  # not a power of two: x/h is rounded
+    p = rng.uniform(0.3, 0.6, (3000, dim))
+    frac = np.rint(rng.uniform(0.5, 2.0, len(p)) / 8 * 2**14) / 2**14
+    g_lo = np.floor(p.min(axis=0) / h).astype(np.int64) - 2
+    shape = [int(s) for s in np.floor(p.max(axis=0) / h).astype(np.int64) - g_lo + 3]
+    field = _core.surface_p2g(p, frac, h, [int(g) for g in g_lo], shape, 2.0**10)
+    assert field.dtype == np.float64 and list(field.shape) == shape
+    assert np.array_equal(field, _reference_p2g(p, frac, h, g_lo, shape))
+    perm = rng.permutation(len(p))
+    assert np.array_equal(_core.surface_p2g(p[perm], frac[perm], h, [int(g) for g in g_lo], shape, 2.0**10), field)
+    assert abs(field.sum() / frac.sum() - 1) < 1e-4  # the weights keep the volume (to their rounding, 2^-11 per weight)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"positions": np.full((2, 3), 0.5, np.float32)}, "positions"),
+        ({"positions": np.array([[0.5, 0.5, np.nan], [0.5, 0.5, 0.5]])}, "positions"),
+        ({"positions": np.array([[0.5, 0.5, 0.5], [0.9, 0.5, 0.5]])}, "positions"),  # its stencil leaves the grid
+        ({"values": np.ones(3)}, "values"),
+        ({"values": np.array([1.0, np.inf])}, "values"),
+        ({"spacing": 0.0}, "spacing"),
+        ({"origin": [0, 0]}, "origin"),
+        ({"shape": [8, 8]}, "shape"),
+        ({"weight_scale": 2.0**60}, "weight_scale"),
+    ],
+)
+def test_the_compiled_p2g_names_bad_input(change, field):
+    kw = {
+        "positions": np.full((2, 3), 0.5),
+        "values": np.ones(2),
+        "spacing": 1 / 16,
+        "origin": [4, 4, 4],
+        "shape": [8, 8, 8],
+        "weight_scale": 2.0**10,
+        **change,
+    }
+    with pytest.raises(InvalidInputError) as e:
+        _core.surface_p2g(**kw)
+    assert e.value.field == field
+
+
+@pytest.mark.parametrize(("lo_cells", "size_cells"), [([0, 0, 0], [12, 10, 14]), ([8, 6, 9], [8, 8, 8]), ([2, 0, 2], [6, 6, 6])])
+def test_the_volume_level_holds_the_particles_volume(lo_cells, size_cells):
+    p, lo, hi = block(lo_cells, size_cells)
+    (mesh,) = surface_mesh(p, np.full(len(p), GNS_WATER), domain=DOMAIN3, dx=DX)
+    assert abs(mesh.volume / np.prod(hi - lo) - 1) <= VOLUME_TOL  # the default volumes are the lattice's: the block's volume
+
+
+def test_the_volume_estimate_follows_marching_cubes_and_solves_for_the_level():
+    p, lo, hi = block([8, 6, 9], [8, 8, 8])
+    lo3, hi3 = (np.asarray(b, float) for b in DOMAIN3)
+    phi, sdf, origin, target = surface_module._field(p, np.full(len(p), (DX / 2) ** 3), lo3, hi3, DX, 1, [])
+    est = surface_module._VolumeEstimate(phi, sdf, DX)
+    levels = (0.35, 0.45, 0.55, 0.65)
+    volumes = [est.volume(c) for c in levels]
+    assert all(a > b for a, b in zip(volumes, volumes[1:]))
+    for c, v in zip(levels, volumes):
+        drawn = surface_module._mc_measure(surface_module._closed(phi, sdf, DX, c), c, origin, DX)[1]
+        assert 1.0 <= v / drawn < 1.03  # marching cubes cuts the rounded edges with flat triangles: a little less
+    c = est.level(target)
+    assert 0.35 < c < 0.55 and abs(est.volume(c) / target - 1) < 1e-6
 
 
 _THREADS_SCRIPT = """

@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "CONNECTIVITY_RADIUS", "MpmSolver", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph"]
+__all__ = ["__version__", "CONNECTIVITY_RADIUS", "MpmSolver", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
@@ -75,6 +75,14 @@ def grid_p2g(
     spacing: list[float],
     nodes: int,
 ) -> npt.NDArray[np.float32]: ...
+def surface_p2g(
+    positions: npt.NDArray[np.float64],
+    values: npt.NDArray[np.float64],
+    spacing: float,
+    origin: list[int],
+    shape: list[int],
+    weight_scale: float,
+) -> npt.NDArray[np.float64]: ...
 def grid_g2p(
     field: npt.NDArray[np.float32],
     positions: npt.NDArray[np.float32],

@@ -24,15 +24,20 @@ The surface of one material (water, sand) in one frame is built in four steps:
    flat face of a filled region crosses ``φ = 1/2`` exactly at its boundary,
    but edges and corners are rounded inwards. ``iso="volume"`` (the default)
    therefore matches the enclosed volume to the particles' volume ``Σ v_p``:
-   marching cubes at 1/2, then at most two Newton/secant steps on ``c`` within
-   [:data:`ISO_MIN`, :data:`ISO_MAX`] (docs/mesh.md); a number fixes ``c``.
+   the level in [:data:`ISO_MIN`, :data:`ISO_MAX`] whose volume, estimated
+   from the field cell by cell (:class:`_VolumeEstimate`, no surface drawn),
+   is ``Σ v_p``; marching cubes there, and once more (the level moved by the
+   estimate's error) if the surface's volume is off by more than
+   :data:`VOLUME_TOL` (docs/mesh.md); a number fixes ``c``.
 
-**Determinism.** No threads. The per-axis kernel weights are rounded to
-multiples of 2^-10 and the volume fractions to multiples of 2^-14, so every
-product and every partial sum of the p2g is exact in float64 (while a node's
-value stays below 2^8, i.e. unless the fluid is compressed 256-fold): the field, and
-so the mesh and the files, have the same bits whatever the order of the
-particles. Output is sorted by particle type.
+**Determinism.** The p2g runs in the compiled core
+(:func:`hybridmpm._core.surface_p2g`, serial); nothing else is threaded. The
+per-axis kernel weights are rounded to multiples of 2^-10 and the volume
+fractions to multiples of 2^-14, so every product and every partial sum of
+the p2g is exact in float64 (while a node's value stays below 2^8, i.e.
+unless the fluid is compressed 256-fold): the field, and so the mesh and the
+files, have the same bits whatever the order of the particles. Output is
+sorted by particle type.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
@@ -56,7 +62,7 @@ MAX_GRID_NODES = 512**3
 MESH_FORMATS = ("ply", "obj", "glb")
 #: Range of the volume-matched iso level (``iso="volume"``).
 ISO_MIN, ISO_MAX = 0.3, 0.7
-#: ``iso="volume"`` stops correcting the level within this relative volume error.
+#: ``iso="volume"`` draws the surface a second time when its volume is off by more than this (relative).
 VOLUME_TOL = 0.005
 #: Finest surface grid per simulation cell.
 MAX_REFINE = 8
@@ -92,10 +98,7 @@ class SurfaceMesh:
     @property
     def volume(self) -> float:
         """Enclosed volume [m³] (divergence theorem over the faces; exact for a closed mesh)."""
-        if len(self.faces) == 0:
-            return 0.0
-        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
-        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+        return _mesh_volume(self.vertices, self.faces)
 
 
 @dataclass(frozen=True)
@@ -130,7 +133,7 @@ def _check_common(
     p = np.asarray(positions)
     if p.dtype.kind not in "fiu" or p.ndim != 2 or p.shape[1] != dim:
         raise InvalidInputError(f"positions: expected a real array [N, {dim}], got {p.dtype} {list(p.shape)}", "positions")
-    p = p.astype(np.float64)
+    p = np.asarray(p, np.float64)
     if not np.isfinite(p).all():
         raise InvalidInputError(f"positions: particle {int(np.argwhere(~np.isfinite(p).all(axis=1))[0, 0])} has a non-finite coordinate", "positions")
     n = p.shape[0]
@@ -165,10 +168,10 @@ def _check_common(
         v = np.asarray(volumes)
         if v.dtype.kind not in "fiu" or v.shape != (n,):
             raise InvalidInputError(f"volumes: expected a real array [{n}] [m^{dim}], got {v.dtype} {list(v.shape)}", "volumes")
-        v = v.astype(np.float64)
+        v = np.asarray(v, np.float64)
         if not (np.isfinite(v) & (v >= 0)).all():
             raise InvalidInputError("volumes: must be finite and >= 0", "volumes")
-    return p, pt.astype(np.int64), lo, hi, h, v
+    return p, np.asarray(pt, np.int64), lo, hi, h, v
 
 
 def _is_sampled(c: Any) -> bool:
@@ -185,12 +188,6 @@ def _check_obstacles(obstacles: Any) -> list[Any]:
 
 
 # ---------------------------------------------------------------------- the field
-def _bspline_at_zero(n: int) -> float:
-    """``B_n(0)``, the centred cardinal B-spline of degree ``n`` at 0: the slope
-    [1/node] of the field across a flat face (step ∗ B2 ∗ B1^smooth = step ∗ B_{2+2·smooth})."""
-    return sum((-1) ** k * math.comb(n + 1, k) * max((n + 1) / 2 - k, 0.0) ** n for k in range(n + 2)) / math.factorial(n)
-
-
 def _field(
     p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
@@ -201,50 +198,25 @@ def _field(
     at ``i·h``), the volume [m^D] of the particles meshed). None if no particle
     lies within 3 nodes of the domain."""
     dim = p.shape[1]
-    pt = np.ascontiguousarray(p.T)  # [D, N]: reductions over particles run along contiguous rows
-    keep = ((pt >= (lo - _MARGIN * h)[:, None]) & (pt <= (hi + _MARGIN * h)[:, None])).all(axis=0)
-    if not keep.all():
-        pt, v = np.ascontiguousarray(pt[:, keep]), v[keep]
-    if pt.shape[1] == 0:
-        return None
+    p_min, p_max = _bounds(p)
+    if (p_min < lo - _MARGIN * h).any() or (p_max > hi + _MARGIN * h).any():
+        keep = ((p >= lo - _MARGIN * h) & (p <= hi + _MARGIN * h)).all(axis=1)
+        p, v = np.ascontiguousarray(p[keep]), v[keep]
+        if len(p) == 0:
+            return None
+        p_min, p_max = _bounds(p)
     # sub-grid: the particles' bounding box (within the domain) plus the margin
-    g_lo = np.floor(np.maximum(pt.min(axis=1), lo) / h).astype(np.int64) - _MARGIN - 1
-    g_hi = np.floor(np.minimum(pt.max(axis=1), hi) / h).astype(np.int64) + _MARGIN + 2
-    shape = tuple(int(s) for s in g_hi - g_lo + 1)
-    # quadratic B-spline weights per axis (MLS-MPM), rounded to 2^-10; axis-major layout [D, 3, N] for speed
-    xs = pt / h
-    base = np.floor(xs - 0.5)
-    fx = xs - base
-    w = np.empty((dim, 3, xs.shape[1]))  # [D, 3, N]
-    np.square(1.5 - fx, out=w[:, 0])
-    w[:, 0] *= 0.5
-    np.square(fx - 1.0, out=w[:, 1])
-    np.subtract(0.75, w[:, 1], out=w[:, 1])
-    np.square(fx - 0.5, out=w[:, 2])
-    w[:, 2] *= 0.5
-    w *= _W_SCALE
-    np.rint(w, out=w)
-    w *= 1.0 / _W_SCALE
+    g_lo = np.floor(np.maximum(p_min, lo) / h).astype(np.int64) - _MARGIN - 1
+    g_hi = np.floor(np.minimum(p_max, hi) / h).astype(np.int64) + _MARGIN + 2
+    shape = [int(s) for s in g_hi - g_lo + 1]
     frac = np.rint(v * (_V_SCALE / h**dim)) / _V_SCALE  # [N]
-    strides = np.array([int(np.prod(shape[k + 1 :])) for k in range(dim)], np.int64)
-    ib = base.astype(np.int64)
-    flat0 = (ib[0] - g_lo[0]) * strides[0]  # [N]
-    for k in range(1, dim):
-        flat0 += (ib[k] - g_lo[k]) * strides[k]
-    wt = w[0] * frac  # [3, N]
-    off = np.arange(3) * strides[0]
-    for k in range(1, dim):
-        wt = (wt[:, None, :] * w[k][None, :, :]).reshape(-1, len(frac))  # [3^(k+1), N]
-        off = (off[:, None] + np.arange(3)[None, :] * strides[k]).ravel()
-    idx = (off[:, None] + flat0[None, :]).ravel()
-    size = int(np.prod(shape))
-    phi = np.bincount(idx, weights=wt.ravel(), minlength=size).reshape(shape)
+    phi = _core.surface_p2g(np.ascontiguousarray(p), frac, h, [int(o) for o in g_lo], shape, _W_SCALE)
     for _ in range(int(smooth)):
         for ax in range(dim):
             phi = _binomial(phi, ax)
     # distance to the walls (separable box distance) and the obstacles
     coords = [(np.arange(shape[k]) + g_lo[k]) * h for k in range(dim)]
-    sdf = np.full(shape, np.inf)
+    sdf = np.full(phi.shape, np.inf)
     for k in range(dim):
         d = np.minimum(coords[k] - lo[k], hi[k] - coords[k])
         sl: list[Any] = [None] * dim
@@ -253,6 +225,12 @@ def _field(
     for c in obstacles:
         _obstacle_sdf(sdf, c, coords, h)
     return phi, sdf, g_lo, float(v.sum())
+
+
+def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis min and max of ``p`` [N, D], one column at a time (numpy's
+    ``min(axis=0)`` over short rows is about ten times slower)."""
+    return np.array([p[:, k].min() for k in range(p.shape[1])]), np.array([p[:, k].max() for k in range(p.shape[1])])
 
 
 def _closed(phi: np.ndarray, sdf: np.ndarray, h: float, iso: float) -> np.ndarray:
@@ -329,9 +307,11 @@ def surface_mesh(
     refine:
         Surface grid nodes per simulation cell per axis, 1 … 8.
     iso:
-        ``"volume"`` (default): the level whose surface encloses the particles'
-        volume ``Σ volumes`` (within 0.5 %, ``c`` in [0.3, 0.7]); or a fixed
-        volume fraction in (0, 1).
+        ``"volume"`` (default): the level ``c`` in [0.3, 0.7] whose surface
+        encloses the particles' volume ``Σ volumes``: marching cubes at the
+        level where an estimate from the field gives that volume and, if the
+        surface is off by more than 0.5 %, once more at a corrected level
+        (docs/mesh.md); or a fixed volume fraction in (0, 1).
     smooth:
         Passes of the ``[1, 2, 1]/4`` filter, 0 … 4.
 
@@ -397,6 +377,8 @@ def _per_material(
 
 def _fluid_types(pt: np.ndarray) -> list[int]:
     lo = int(pt.min()) if len(pt) else 0
+    if len(pt) and lo == int(pt.max()):
+        return [] if lo == GNS_KINEMATIC else [lo]
     return [int(c) + lo for c in np.flatnonzero(np.bincount(pt - lo)) if int(c) + lo != GNS_KINEMATIC]
 
 
@@ -406,52 +388,132 @@ def _select(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obs: list[Any], iso: Any, measure: Any) -> tuple[float, Any]:
     """(level, geometry) of one material. ``measure(closed_field, level, origin)``
-    → (geometry, enclosed volume, surface area) or None when the field has no
-    surface at that level. ``iso="volume"``: the level starts at 1/2 and is
-    corrected by at most two secant steps in [ISO_MIN, ISO_MAX] until the
-    enclosed volume is within VOLUME_TOL of the particles' volume; the first
-    step's slope is the flat-face estimate ``dV/dc = −A·h/s`` (``s`` the
-    field's slope per node across a flat face)."""
+    → (geometry, enclosed volume) or None when the field has no surface at
+    that level. ``iso="volume"``: the level at which the field's estimated
+    enclosed volume (:class:`_VolumeEstimate`) is the particles' volume, in
+    [ISO_MIN, ISO_MAX]; if the surface drawn there is off by more than
+    VOLUME_TOL, the level is moved once by the estimate's own error there."""
     f = _field(p, v, lo, hi, h, smooth, obs)
     if f is None:
         return (0.5 if iso == "volume" else float(iso)), None
     phi, sdf, origin, target = f
 
-    def at(c: float) -> tuple[Any, float, float]:
+    def at(c: float) -> tuple[Any, float]:
         closed = _closed(phi, sdf, h, c)
         r = measure(closed, c, origin) if closed.max() > c else None
-        return (None, 0.0, 0.0) if r is None else r
+        return (None, 0.0) if r is None else r
 
     if iso != "volume":
         return float(iso), at(float(iso))[0]
-    c0 = 0.5
-    g0, v0, a0 = at(c0)
-    if target <= 0 or abs(v0 - target) <= VOLUME_TOL * target:
-        return c0, g0
-    slope = _bspline_at_zero(2 + 2 * smooth)
-    c1 = float(np.clip(c0 + (v0 - target) * slope / (h * a0), ISO_MIN, ISO_MAX)) if a0 > 0 else ISO_MIN
-    g1, v1, _ = at(c1)
-    if abs(v1 - target) <= VOLUME_TOL * target or v1 == v0:
+    if target <= 0:
+        return 0.5, at(0.5)[0]
+    est = _VolumeEstimate(phi, sdf, h)
+    c1 = est.level(target)
+    g1, v1 = at(c1)
+    if abs(v1 - target) <= VOLUME_TOL * target or (c1 == ISO_MIN and v1 < target) or (c1 == ISO_MAX and v1 > target):
         return c1, g1
-    c2 = float(np.clip(c1 + (target - v1) * (c1 - c0) / (v1 - v0), ISO_MIN, ISO_MAX))
-    return c2, at(c2)[0]
+    c2 = est.level(target + est.volume(c1) - v1)  # the estimate's error at c1 taken as constant near it
+    return (c1, g1) if c2 == c1 else (c2, at(c2)[0])
 
 
-def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, np.ndarray], float, float]:
+class _VolumeEstimate:
+    """The volume [m^D] of ``{closed field > c}`` as a function of the level ``c``
+    without drawing the surface: every cell counts the fraction of itself
+    above ``c`` from the value ``φ̄`` and gradient of the field's multilinear
+    interpolant at its centre, ``clip(1/2 + (φ̄ − c)/|∇φ̄|₁, 0, 1)``
+    (``|∇φ̄|₁``: how much a linear field changes across the cell's extent
+    along its gradient; exact for a flat face of a linear field), capped by
+    the fraction of the cell inside the domain and out
+    of the obstacles (the same formula on ``sdf/h`` at level 0). Piecewise
+    linear and non-increasing in ``c``. Marching cubes cuts curved parts with
+    flat triangles, so its volume is a little smaller: by 0.3 % for a
+    16-cell block, 1-4 % for the water3d scenes' bodies (docs/mesh.md)."""
+
+    def __init__(self, phi: np.ndarray, sdf: np.ndarray, h: float) -> None:
+        val, g = _cell_centres(phi)
+        s, gs = _cell_centres(sdf / h)
+        dom = np.clip(0.5 + s / np.maximum(gs, 1e-12), 0.0, 1.0)
+        g = np.maximum(g, 1e-12)
+        full = val - 0.5 * g >= ISO_MAX  # cells above every level of the range: their domain fraction
+        band = ~full & (val + 0.5 * g > ISO_MIN) & (dom > 0)
+        self.cell = h**phi.ndim
+        self.full = float(dom[full].sum())
+        self.val, self.inv_g, self.dom = val[band], 1.0 / g[band], dom[band]
+
+    def volume(self, c: float) -> float:
+        frac = np.clip(0.5 + (self.val - c) * self.inv_g, 0.0, 1.0)
+        return self.cell * (self.full + float(np.minimum(frac, self.dom).sum()))
+
+    def level(self, target: float) -> float:
+        """The level in [ISO_MIN, ISO_MAX] whose estimated volume is ``target``
+        (a bound where none is): regula falsi (Illinois) to 1e-6 of ``target``."""
+        a, b = ISO_MIN, ISO_MAX
+        fa, fb = self.volume(a) - target, self.volume(b) - target
+        if fa <= 0:
+            return a
+        if fb >= 0:
+            return b
+        side = 0
+        for _ in range(60):
+            c = (a * fb - b * fa) / (fb - fa)
+            fc = self.volume(c) - target
+            if abs(fc) <= 1e-6 * target or b - a < 1e-9:
+                return c
+            if fc > 0:
+                a, fa = c, fc
+                fb = fb / 2 if side == 1 else fb
+                side = 1
+            else:
+                b, fb = c, fc
+                fa = fa / 2 if side == -1 else fa
+                side = -1
+        return c
+
+
+def _cell_centres(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Value and ``|gradient|₁`` [1/node] of the multilinear interpolant of the
+    node values ``a`` at every cell centre: two arrays [n_0 − 1, ...]."""
+    d = a.ndim
+    l1 = np.zeros([n - 1 for n in a.shape])
+    mean = l1
+    for k in range(d):
+        s = a  # summed over the cell's corners along every axis but k
+        for other in range(d):
+            if other != k:
+                s = _pair_sum(s, other)
+        l1 += np.abs(np.diff(s, axis=k))
+        if k == 0:
+            mean = _pair_sum(s, 0) * 0.5**d
+    return mean, l1 * 0.5 ** (d - 1)
+
+
+def _pair_sum(a: np.ndarray, ax: int) -> np.ndarray:
+    """Sums of neighbouring values along axis ``ax`` (one fewer along it)."""
+    lo: list[Any] = [slice(None)] * a.ndim
+    hi: list[Any] = [slice(None)] * a.ndim
+    lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+    return a[tuple(lo)] + a[tuple(hi)]
+
+
+def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, np.ndarray], float]:
     from skimage.measure import marching_cubes
 
     vs, fs, _, _ = marching_cubes(phi, level=level, allow_degenerate=False)
     verts = (vs.astype(np.float64) + origin) * h
     # skimage's faces are clockwise seen from the low side (outside here): reverse them for outward normals
     faces = np.ascontiguousarray(fs[:, ::-1], dtype=np.int32)
+    return (verts, faces), _mesh_volume(verts, faces)
+
+
+def _mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume [m³] of a closed mesh (divergence theorem over the faces)."""
+    if len(faces) == 0:
+        return 0.0
     a, b, c = (verts[faces[:, k]] for k in range(3))
-    cr = np.cross(b - a, c - a)
-    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-    area = float(0.5 * np.linalg.norm(cr, axis=1).sum())
-    return (verts, faces), volume, area
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
-def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, ...], float, float]:
+def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, ...], float]:
     from skimage.measure import find_contours
 
     loops = []
@@ -459,9 +521,7 @@ def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float
         if len(c) >= 4:
             # find_contours leaves high values on the right; reversed, outer loops run counter-clockwise
             loops.append(np.ascontiguousarray(((c + origin) * h)[::-1]))
-    area = sum(_signed_area(lp) for lp in loops)
-    length = sum(float(np.linalg.norm(np.diff(lp, axis=0), axis=1).sum()) for lp in loops)
-    return tuple(loops), area, length
+    return tuple(loops), float(sum(_signed_area(lp) for lp in loops))
 
 
 # ---------------------------------------------------------------------- scenes and trajectories
