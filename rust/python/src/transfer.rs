@@ -312,15 +312,15 @@ pub fn surface_p2g<'py>(
             ),
         ));
     }
-    // C-ordered arrays are read in place; others are copied once
+    // copied (while the GIL is held, so no Python thread changes them mid-read), then the GIL is released
     let (xs, vals) = (x.as_array(), v.as_array());
-    let xs: std::borrow::Cow<'_, [f64]> = match xs.as_slice() {
-        Some(s) => s.into(),
-        None => xs.iter().copied().collect::<Vec<f64>>().into(),
+    let xs: Vec<f64> = match xs.as_slice() {
+        Some(s) => s.to_vec(),
+        None => xs.iter().copied().collect(),
     };
-    let vals: std::borrow::Cow<'_, [f64]> = match vals.as_slice() {
-        Some(s) => s.into(),
-        None => vals.iter().copied().collect::<Vec<f64>>().into(),
+    let vals: Vec<f64> = match vals.as_slice() {
+        Some(s) => s.to_vec(),
+        None => vals.iter().copied().collect(),
     };
     if let Some(i) = vals.iter().position(|x| !x.is_finite()) {
         return Err(invalid_input(
