@@ -430,8 +430,10 @@ class _VolumeEstimate:
     16-cell block, 1-4 % for the water3d scenes' bodies (docs/mesh.md)."""
 
     def __init__(self, phi: np.ndarray, sdf: np.ndarray, h: float) -> None:
-        val, g = _cell_centres(phi)
-        s, gs = _cell_centres(sdf / h)
+        # only cells with a corner above ISO_MIN/2.5 can count (φ ≥ 0, so φ̄ + |∇φ̄|₁/2 ≤ 2.5·max corner)
+        cells = _cells_touching(phi > ISO_MIN / 2.5)
+        val, g = _cell_centres(phi, cells)
+        s, gs = _cell_centres(sdf / h, cells)
         dom = np.clip(0.5 + s / np.maximum(gs, 1e-12), 0.0, 1.0)
         g = np.maximum(g, 1e-12)
         full = val - 0.5 * g >= ISO_MAX  # cells above every level of the range: their domain fraction
@@ -470,29 +472,36 @@ class _VolumeEstimate:
         return c
 
 
-def _cell_centres(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _cells_touching(mask: np.ndarray) -> np.ndarray:
+    """Flat node indices (into ``mask``'s shape) of the first corner of every
+    cell with a corner where ``mask`` holds."""
+    d = mask.ndim
+    cell = np.zeros(mask.shape, bool)
+    inner = tuple(slice(0, n - 1) for n in mask.shape)
+    for bits in range(2**d):
+        cell[inner] |= mask[tuple(slice(b, n - 1 + b) for b, n in zip(_bits(bits, d), mask.shape))]
+    return np.flatnonzero(cell)
+
+
+def _bits(bits: int, d: int) -> list[int]:
+    """The corner offsets (0 or 1 per axis, first axis first) numbered ``bits``."""
+    return [(bits >> (d - 1 - k)) & 1 for k in range(d)]
+
+
+def _cell_centres(a: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Value and ``|gradient|₁`` [1/node] of the multilinear interpolant of the
-    node values ``a`` at every cell centre: two arrays [n_0 − 1, ...]."""
+    node values ``a`` at the centres of ``cells`` (flat indices of their first
+    corners): two arrays [len(cells)]."""
     d = a.ndim
-    l1 = np.zeros([n - 1 for n in a.shape])
-    mean = l1
+    flat = a.ravel()
+    strides = [int(np.prod(a.shape[k + 1 :])) for k in range(d)]
+    corners = [flat[cells + sum(b * s for b, s in zip(_bits(bits, d), strides))] for bits in range(2**d)]
+    total = np.sum(corners, axis=0)
+    l1 = np.zeros(len(cells))
     for k in range(d):
-        s = a  # summed over the cell's corners along every axis but k
-        for other in range(d):
-            if other != k:
-                s = _pair_sum(s, other)
-        l1 += np.abs(np.diff(s, axis=k))
-        if k == 0:
-            mean = _pair_sum(s, 0) * 0.5**d
-    return mean, l1 * 0.5 ** (d - 1)
-
-
-def _pair_sum(a: np.ndarray, ax: int) -> np.ndarray:
-    """Sums of neighbouring values along axis ``ax`` (one fewer along it)."""
-    lo: list[Any] = [slice(None)] * a.ndim
-    hi: list[Any] = [slice(None)] * a.ndim
-    lo[ax], hi[ax] = slice(None, -1), slice(1, None)
-    return a[tuple(lo)] + a[tuple(hi)]
+        upper = np.sum([c for bits, c in enumerate(corners) if _bits(bits, d)[k]], axis=0)
+        l1 += np.abs(2 * upper - total)  # Σ upper face − Σ lower face
+    return total * 0.5**d, l1 * 0.5 ** (d - 1)
 
 
 def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, np.ndarray], float]:
