@@ -21,6 +21,7 @@ from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, MpmParams, Sphere
 from hybridmpm.render import surface as surface_module
+from hybridmpm.render import surface_field
 from hybridmpm.render.surface import MAX_GRID_NODES, VOLUME_TOL, export_surfaces, surface_contours, surface_mesh, write_surface
 from hybridmpm.scenes import collider_sdf
 from hybridmpm.scenes.core import lattice
@@ -198,13 +199,13 @@ def test_the_volume_level_holds_the_particles_volume(lo_cells, size_cells):
 def test_the_volume_estimate_follows_marching_cubes_and_solves_for_the_level():
     p, lo, hi = block([8, 6, 9], [8, 8, 8])
     lo3, hi3 = (np.asarray(b, float) for b in DOMAIN3)
-    phi, sdf, origin, target = surface_module._field(p, np.full(len(p), (DX / 2) ** 3), lo3, hi3, DX, 1, [])
-    est = surface_module._VolumeEstimate(phi, sdf, DX)
+    phi, sdf, origin, target = surface_field._field(p, np.full(len(p), (DX / 2) ** 3), lo3, hi3, DX, 1, [])
+    est = surface_field._VolumeEstimate(phi, sdf, DX)
     levels = (0.35, 0.45, 0.55, 0.65)
     volumes = [est.volume(c) for c in levels]
     assert all(a > b for a, b in zip(volumes, volumes[1:]))
     for c, v in zip(levels, volumes):
-        drawn = surface_module._mc_measure(surface_module._closed(phi, sdf, DX, c), c, origin, DX)[1]
+        drawn = surface_module._mc_measure(surface_field._closed(phi, sdf, DX, c), c, origin, DX)[1]
         assert 1.0 <= v / drawn < 1.03  # marching cubes cuts the rounded edges with flat triangles: a little less
     c = est.level(target)
     assert 0.35 < c < 0.55 and abs(est.volume(c) / target - 1) < 1e-6
