@@ -448,10 +448,14 @@ pub struct ColliderParams {
     pub condition: BoundaryCondition,
     /// Coulomb friction coefficient μ (≥ 0; used with `Separate`).
     pub friction: f32,
+    /// Put particles that end a substep inside the collider back on its
+    /// surface ([`Collider::project`]); default on. (The registered ramps
+    /// scenes set it off: their models and datasets were made without it.)
+    pub project: bool,
 }
 
 impl Default for ColliderParams {
-    /// No shape; condition `Separate`, no friction.
+    /// No shape; condition `Separate`, no friction, particles projected.
     fn default() -> Self {
         ColliderParams {
             shape: None,
@@ -467,6 +471,7 @@ impl Default for ColliderParams {
             normals: None,
             condition: BoundaryCondition::Separate,
             friction: 0.0,
+            project: true,
         }
     }
 }
@@ -513,6 +518,7 @@ impl ColliderParams {
                 },
                 condition: self.condition,
                 friction: self.friction,
+                project: self.project,
             });
         }
         let center = vector("center", &self.center)?;
@@ -557,6 +563,7 @@ impl ColliderParams {
             shape,
             condition: self.condition,
             friction: self.friction,
+            project: self.project,
         })
     }
 }
@@ -892,7 +899,7 @@ mod serde_tests {
         assert!(e.starts_with("colliders[1].radius: missing"), "{e}");
         assert_eq!(
             serde_json::to_string(&ColliderParams::default()).unwrap(),
-            r#"{"condition":"separate","friction":0.0}"#
+            r#"{"condition":"separate","friction":0.0,"project":true}"#
         );
     }
 }

@@ -101,6 +101,7 @@ fn colliders_too_thin_for_the_grid_are_refused() {
         shape,
         condition: BoundaryCondition::Separate,
         friction: 0.0,
+        project: true,
     };
     let plate = |half: f32| {
         collider(Shape::Box {

@@ -17,6 +17,7 @@ fn paddle(center: [f32; 2], condition: BoundaryCondition) -> Collider<2> {
         },
         condition,
         friction: 0.0,
+        project: true,
     }
 }
 
@@ -147,6 +148,7 @@ fn a_sticky_collider_gives_nodes_its_velocity() {
         },
         condition: BoundaryCondition::Sticky,
         friction: 0.0,
+        project: true,
     };
     let mut s = Solver::new(params.clone(), vec![col]).unwrap();
     // a block 8 cells across around the centre: 2 cells or more from the faces

@@ -270,6 +270,7 @@ fn sticky_collider_stops_particles() {
         },
         condition: BoundaryCondition::Sticky,
         friction: 0.0,
+        project: true,
     };
     let mut s = Solver::new(params.clone(), vec![col.clone()]).unwrap();
     let ps = block(
