@@ -21,7 +21,7 @@ Condition = Literal["sticky", "slip", "separate"]
 #: the form of :meth:`MpmParams.to_dict`. The dataclass defaults below are
 #: these values: the parameters are defined once, in Rust.
 _DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim in (2, 3)}
-#: A collider's defaults (``condition``, ``friction``), from the Rust core.
+#: A collider's defaults (``condition``, ``friction``, ``project``), from the Rust core.
 _COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
 _SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
 _WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
@@ -186,7 +186,9 @@ class Box:
     """Static box collider: ``center``, ``half_extents`` [m]; rotated by
     ``angle_deg`` (2D) or a 3×3 ``rotation`` matrix (3D) — a rotated box is a ramp.
     Must be at least 2 grid cells thick. ``condition`` and ``friction``
-    default to the Rust core's (``ColliderParams::default()``).
+    default to the Rust core's (``ColliderParams::default()``), as does
+    ``project`` (on): a particle that ends a substep inside the box goes back
+    onto its surface and loses its velocity into it (docs/obstacles.md).
     ``keyframes``: a prescribed path (:mod:`hybridmpm.mpm.motion`; the
     simulators follow it, the solver dict :meth:`to_dict` leaves it out)."""
 
@@ -196,6 +198,7 @@ class Box:
     rotation: Sequence[Sequence[float]] | None = None
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
+    project: bool = _COLLIDER_DEFAULTS["project"]
     keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -205,6 +208,7 @@ class Box:
             "half_extents": [float(h) for h in self.half_extents],
             "condition": self.condition,
             "friction": float(self.friction),
+            "project": self.project,
         }
         if self.angle_deg is not None:
             d["angle_deg"] = float(self.angle_deg)
@@ -216,13 +220,15 @@ class Box:
 @dataclass
 class Sphere:
     """Static sphere (circle in 2D) collider: ``center``, ``radius`` [m].
-    ``condition`` and ``friction`` default to the Rust core's (``ColliderParams::default()``).
+    ``condition``, ``friction`` and ``project`` default to the Rust core's
+    (``ColliderParams::default()``), as :class:`Box`'s.
     ``keyframes``: a prescribed path, as :class:`Box`'s."""
 
     center: Sequence[float]
     radius: float
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
+    project: bool = _COLLIDER_DEFAULTS["project"]
     keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -232,6 +238,7 @@ class Sphere:
             "radius": float(self.radius),
             "condition": self.condition,
             "friction": float(self.friction),
+            "project": self.project,
         }
 
 
@@ -249,8 +256,9 @@ class SampledSdf:
     :func:`hybridmpm.scenes.collider_sdf` interpolates ``values`` the same way.
     ``source`` is the scene-file obstacle it was sampled from (``shape =
     "mesh"``, ...), kept by :class:`~hybridmpm.scenes.SceneSpec` for saving
-    and regridding; it is not sent to the solver. ``condition`` and
-    ``friction`` default to the Rust core's (``ColliderParams::default()``).
+    and regridding; it is not sent to the solver. ``condition``,
+    ``friction`` and ``project`` default to the Rust core's
+    (``ColliderParams::default()``), as :class:`Box`'s.
     ``keyframes``: a prescribed path of the mesh's ``center`` (``source``),
     as :class:`Box`'s; not sent to the solver either."""
 
@@ -260,6 +268,7 @@ class SampledSdf:
     normals: np.ndarray | None = None
     condition: Condition = _COLLIDER_DEFAULTS["condition"]
     friction: float = _COLLIDER_DEFAULTS["friction"]
+    project: bool = _COLLIDER_DEFAULTS["project"]
     source: dict[str, Any] | None = None
     keyframes: tuple[Keyframe, ...] | None = None
 
@@ -272,7 +281,7 @@ class SampledSdf:
             and np.array_equal(np.asarray(self.values), np.asarray(other.values))
             and (self.normals is None) == (other.normals is None)
             and (self.normals is None or np.array_equal(np.asarray(self.normals), np.asarray(other.normals)))
-            and (self.condition, float(self.friction)) == (other.condition, float(other.friction))
+            and (self.condition, float(self.friction), self.project) == (other.condition, float(other.friction), other.project)
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -285,6 +294,7 @@ class SampledSdf:
             "values": values.ravel().tolist(),
             "condition": self.condition,
             "friction": float(self.friction),
+            "project": self.project,
         }
         if self.normals is not None:
             d["normals"] = np.asarray(self.normals, np.float32).ravel().tolist()
@@ -293,10 +303,10 @@ class SampledSdf:
     @classmethod
     def from_dict(cls, name: str, d: dict[str, Any]) -> SampledSdf:
         """Inverse of :meth:`to_dict` (without ``shape``); errors name ``{name}.<key>``."""
-        unknown = sorted(set(d) - {"origin", "cell", "dims", "values", "normals", "condition", "friction"}, key=str)
+        unknown = sorted(set(d) - {"origin", "cell", "dims", "values", "normals", "condition", "friction", "project"}, key=str)
         if unknown:
             raise InvalidInputError(
-                f"{name}.{unknown[0]}: unknown parameter (allowed: cell, condition, dims, friction, normals, origin, values)", f"{name}.{unknown[0]}"
+                f"{name}.{unknown[0]}: unknown parameter (allowed: cell, condition, dims, friction, normals, origin, project, values)", f"{name}.{unknown[0]}"
             )
         for key in ("origin", "cell", "dims", "values"):
             if key not in d:
@@ -326,6 +336,7 @@ class SampledSdf:
             normals=normals,
             condition=d.get("condition", _COLLIDER_DEFAULTS["condition"]),
             friction=d.get("friction", _COLLIDER_DEFAULTS["friction"]),
+            project=d.get("project", _COLLIDER_DEFAULTS["project"]),
         )
 
 

@@ -11,6 +11,7 @@ triangle mesh (OBJ, STL, PLY or GLB, read by trimesh) and places it::
     rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]   # optional, orthonormal
     condition = "separate"
     friction = 0.3
+    project = true             # particles inside go back onto the surface (default)
 
 A vertex ``v`` of the file goes to ``center + rotation · (scale · v)``.
 :func:`mesh_obstacle` reads and checks the mesh, then samples its signed
@@ -69,7 +70,7 @@ MARGIN_CELLS = 3
 #: core's ``MIN_SAMPLED_DEPTH_CELLS``: half the 2-cell thinnest box that holds).
 MIN_DEPTH_CELLS = 1.0
 #: Keys of a mesh obstacle in a scene file.
-MESH_KEYS = ("shape", "path", "center", "scale", "rotation", "angle_deg", "condition", "friction")
+MESH_KEYS = ("shape", "path", "center", "scale", "rotation", "angle_deg", "condition", "friction", "project")
 #: Surface samples per node whose triangles are tested exactly.
 _NEAREST = 8
 #: Surface sample spacing, in grid cells.
@@ -179,7 +180,7 @@ def rotation_matrix(raw: dict[str, Any], field: str, dim: int) -> np.ndarray:
 
 def check_mesh_obstacle(raw: Any, field: str, dim: int) -> dict[str, Any]:
     """Check a scene file's mesh obstacle entry (keys :data:`MESH_KEYS`) and
-    return it normalised (``scale`` and ``condition``/``friction`` filled
+    return it normalised (``scale`` and ``condition``/``friction``/``project`` filled
     in); does not read the file. Raises :class:`InvalidInputError` naming the
     field (``obstacles[i].scale``, ...)."""
     if not isinstance(raw, dict):
@@ -206,11 +207,15 @@ def check_mesh_obstacle(raw: Any, field: str, dim: int) -> dict[str, Any]:
     friction = raw.get("friction", _COLLIDER_DEFAULTS["friction"])
     if not (_is_number(friction) and math.isfinite(friction) and friction >= 0):
         raise InvalidInputError(f"{field}.friction: must be a finite number >= 0, got {friction!r}", f"{field}.friction")
+    project = raw.get("project", _COLLIDER_DEFAULTS["project"])
+    if not isinstance(project, bool):
+        raise InvalidInputError(f"{field}.project: must be true or false, got {project!r}", f"{field}.project")
     out: dict[str, Any] = {"shape": "mesh", "path": raw.get("path"), "center": [float(v) for v in c], "scale": float(scale)}
     if raw.get("rotation") is not None:
         out["rotation"] = [[float(v) for v in row] for row in rot]
     out["condition"] = condition
     out["friction"] = float(friction)
+    out["project"] = project
     return out
 
 
@@ -412,7 +417,16 @@ def mesh_obstacle(obstacle: dict[str, Any], field: str, n_grid: int, resolved: P
             f"{field}.path",
         )
     source = {**obstacle, "path": str(resolved)}
-    return SampledSdf(origin=origin, cell=cell, values=values, normals=normals, condition=obstacle["condition"], friction=obstacle["friction"], source=source)
+    return SampledSdf(
+        origin=origin,
+        cell=cell,
+        values=values,
+        normals=normals,
+        condition=obstacle["condition"],
+        friction=obstacle["friction"],
+        project=obstacle["project"],
+        source=source,
+    )
 
 
 def sampled_sdf(c: SampledSdf, points: np.ndarray) -> np.ndarray:

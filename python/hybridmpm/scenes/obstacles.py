@@ -3,8 +3,8 @@
 A scene file's ``[[obstacles]]`` are boxes (``half_extents``, ``angle_deg``
 in 2D or ``rotation``), spheres (``radius``) and, in 3D, triangle meshes
 (``shape = "mesh"``, ``path``, ``scale``, ``rotation``;
-:mod:`hybridmpm.scenes.obstacle_mesh`), all with ``center``, ``condition``
-and ``friction``, and optionally a keyframed path (``keyframes = [{t = 0.0,
+:mod:`hybridmpm.scenes.obstacle_mesh`), all with ``center``, ``condition``,
+``friction`` and ``project`` (the particle projection, default on), and optionally a keyframed path (``keyframes = [{t = 0.0,
 center = [..]}, ...]``, :mod:`hybridmpm.mpm.motion`; the simulators move the
 obstacle along it); docs/obstacles.md lists every key.
 
@@ -177,7 +177,11 @@ def obstacle_dict(c: Collider, raw: dict[str, Any]) -> dict[str, Any]:
     """An obstacle as a scene file writes it: a mesh by its ``source`` (path,
     center, scale, rotation), not by its samples; other shapes by ``raw``;
     with its ``keyframes`` when it follows a path."""
-    d = {**c.source, "condition": c.condition, "friction": float(c.friction)} if isinstance(c, SampledSdf) and c.source is not None else dict(raw)
+    d = (
+        {**c.source, "condition": c.condition, "friction": float(c.friction), "project": c.project}
+        if isinstance(c, SampledSdf) and c.source is not None
+        else dict(raw)
+    )
     if c.keyframes:
         d["keyframes"] = [k.to_dict() for k in c.keyframes]
     return d

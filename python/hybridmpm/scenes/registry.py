@@ -119,7 +119,9 @@ def _random_blocks(
 
 def _random_ramps(rng: np.random.Generator, params: MpmParams, count: int, friction: float) -> list[Box]:
     """1–3 thin rotated boxes (2 cells thick, 0.16–0.4 m long, 10–40° either way)
-    in the lower part of the domain, apart from each other by ≥ 4 cells."""
+    in the lower part of the domain, apart from each other by ≥ 4 cells,
+    without the particle projection (``project=False``, as their models and
+    datasets were made)."""
     dx = 1.0 / params.resolved_n_grid()
     ramps: list[Box] = []
     for _ in range(400):
@@ -128,7 +130,9 @@ def _random_ramps(rng: np.random.Generator, params: MpmParams, count: int, frict
         half_len = rng.uniform(0.08, 0.2)
         angle = float(rng.uniform(10.0, 40.0) * rng.choice([-1.0, 1.0]))
         center = [float(rng.uniform(0.2, 0.8)), float(rng.uniform(0.12, 0.55))]
-        box = Box(center=center, half_extents=[float(half_len), 1.0 * dx], angle_deg=angle, friction=friction)
+        # project=False: the shipped models and datasets of the ramps scenes were
+        # made without the particle projection; on, their bits would change
+        box = Box(center=center, half_extents=[float(half_len), 1.0 * dx], angle_deg=angle, friction=friction, project=False)
         # keep the ramp inside the domain's free region and away from other ramps
         ends = np.array(center) + half_len * np.array([[math.cos(math.radians(angle)), math.sin(math.radians(angle))]]) * np.array([[1.0], [-1.0]])
         lim = (params.walls.cells + 2) * dx
