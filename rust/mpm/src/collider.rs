@@ -116,12 +116,6 @@ fn sampled_normal<const D: usize>(
     acc
 }
 
-/// Index along axis `d` of the node at row-major position `lin` of `dims`.
-fn i_of<const D: usize>(lin: usize, d: usize, dims: &[usize; D]) -> usize {
-    let stride: usize = dims[d + 1..].iter().product();
-    (lin / stride) % dims[d]
-}
-
 /// The multilinear interpolant of a sampled grid at `rel`, the point
 /// relative to the grid's origin ([`Shape::local`]), extended outside the
 /// grid's box by the distance to the box (see [`Shape::Sampled`]).
@@ -278,12 +272,23 @@ impl<const D: usize> Shape<D> {
     /// first-order estimates `φ_i + n_i·(p − x_i)` of the corners `x_i` of
     /// the cell around `p` (the plane of each corner's nearest surface
     /// point) with that corner's normal. Multilinear interpolation of the
-    /// distance misjudges depth near inner ridges and edges (a plate a few
-    /// cells thick reads up to half a cell shallower than it is, where the
-    /// corners' nearest faces differ); the largest plane estimate is exact
-    /// for a convex polyhedron whose nearest faces the corners see, and within
-    /// `O(cell²/R)` of a smooth surface of curvature radius `R`.
+    /// distance misjudges depth near inner ridges and edges (a rotated
+    /// plate a few cells thick reads up to half a cell shallower than it
+    /// is where the corners' nearest faces differ); the largest plane
+    /// estimate is exact for a convex polyhedron whose nearest faces the
+    /// corners see, and within `O(cell²/R)` of a smooth surface of
+    /// curvature radius `R`.
     pub fn surface_step(&self, p: &SVector<f32, D>) -> (f32, SVector<f32, D>) {
+        self.step_below(p, f32::NEG_INFINITY)
+            .unwrap_or((f32::NAN, SVector::zeros()))
+    }
+
+    /// [`Shape::surface_step`] where its distance is below `−depth`, else
+    /// `None`; the normal is found only then, and a sampled shape's other
+    /// corner planes only where the first corner's estimate (a lower bound
+    /// of the largest) is below `−depth`.
+    #[inline]
+    pub fn step_below(&self, p: &SVector<f32, D>, depth: f32) -> Option<(f32, SVector<f32, D>)> {
         if let Shape::Sampled {
             cell,
             dims,
@@ -301,31 +306,46 @@ impl<const D: usize> Shape<D> {
                 idx[d] = (u.max(0.0).floor() as usize).min(dims[d] - 2);
             }
             if inside {
-                let mut best = (f32::NEG_INFINITY, SVector::<f32, D>::zeros());
-                for corner in 0..(1usize << D) {
+                // corner 0's offset and row-major position
+                let mut lin0 = 0usize;
+                let mut off0 = SVector::<f32, D>::zeros();
+                for d in 0..D {
+                    lin0 = lin0 * dims[d] + idx[d];
+                    off0[d] = rel[d] - idx[d] as f32 * cell;
+                }
+                // corner 0's estimate bounds the largest from below
+                let mut est0 = values[lin0];
+                for d in 0..D {
+                    est0 += normals[lin0 * D + d] * off0[d];
+                }
+                if est0 >= -depth {
+                    return None;
+                }
+                let mut best = (est0, lin0);
+                for corner in 1..(1usize << D) {
                     let mut lin = 0usize;
-                    let mut est = 0.0f32;
-                    let mut n = SVector::<f32, D>::zeros();
                     for d in 0..D {
-                        let i = idx[d] + ((corner >> d) & 1);
-                        lin = lin * dims[d] + i;
+                        lin = lin * dims[d] + idx[d] + ((corner >> d) & 1);
                     }
+                    let mut est = values[lin];
                     for d in 0..D {
-                        n[d] = normals[lin * D + d];
-                        est += n[d] * (rel[d] - i_of(lin, d, dims) as f32 * cell);
+                        let b = ((corner >> d) & 1) as f32;
+                        est += normals[lin * D + d] * (off0[d] - b * cell);
                     }
-                    est += values[lin];
                     if est > best.0 {
-                        best = (est, n);
+                        best = (est, lin);
                     }
                 }
-                let len = best.1.norm();
+                let (phi, lin) = best;
+                let n = SVector::<f32, D>::from_fn(|d, _| normals[lin * D + d]);
+                let len = n.norm();
                 if len > 0.0 {
-                    return (best.0, best.1 / len);
+                    return (phi < -depth).then(|| (phi, n / len));
                 }
             }
         }
-        (self.sdf(p), self.normal(p))
+        let phi = self.sdf(p);
+        (phi < -depth).then(|| (phi, self.normal(p)))
     }
 
     /// Radius of a ball around the shape's centre that contains it.
@@ -562,10 +582,9 @@ impl<const D: usize> Collider<D> {
         if (*x - centre).norm_squared() >= *r2 {
             return false;
         }
-        let (phi, n) = self.shape.surface_step(x);
-        if !(phi < -depth) {
+        let Some((phi, n)) = self.shape.step_below(x, depth) else {
             return false;
-        }
+        };
         *x -= n * phi;
         match v_obs {
             None => project_velocity(v, &n, self.condition, self.friction),
