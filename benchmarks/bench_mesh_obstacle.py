@@ -10,13 +10,17 @@ Runs (3D, 64³ grid, 200 frames, water block dropped from above):
 * ``sphere``: a mesh sphere (icosphere, subdivisions 3 and 4) against the
   analytic sphere of the same radius: the largest grid-mass error over the
   frames (:func:`hybridmpm.metrics.grid_mass_error` on the 64³ grid), the
-  same for no obstacle at all (how much the obstacle matters), and the
-  deepest particle inside the analytic sphere at the last frame [cells].
+  same for no obstacle at all (how much the obstacle matters), the
+  deepest particle inside the analytic sphere at the last frame and at any
+  frame [cells], and the wall time per frame of each run.
 * ``ramp``: a mesh box rotated -20° about z against the analytic rotated box.
+
+``--project off`` runs the obstacles without the particle projection
+(``project = false``: the grid condition alone, as before it existed).
 
 Usage::
 
-    python benchmarks/bench_mesh_obstacle.py [--n-grid 64] [--frames 200] [--out runs/bench_mesh_obstacle.json]
+    python benchmarks/bench_mesh_obstacle.py [--n-grid 64] [--frames 200] [--project on|off] [--out runs/bench_mesh_obstacle.json]
         [--figure docs/img/mesh_obstacle_sdf.png]
 
 ``--figure`` also draws the slice z = 0.5 of the sampled signed distance of
@@ -58,9 +62,16 @@ def _scene(obstacles: list[dict[str, Any]], n: int, frames: int) -> dict[str, An
     }
 
 
+#: Wall time per frame [ms] of each rollout, in the order they ran.
+FRAME_MS: list[float] = []
+
+
 def _rollout(spec: SceneSpec) -> np.ndarray:
     """Fluid positions of frames 1 … ``spec.frames``: float32 [T, N, 3]."""
-    r = rollout(MpmSimulator(spec.build()), spec.frames)
+    sim = MpmSimulator(spec.build())
+    t = time.perf_counter()
+    r = rollout(sim, spec.frames)
+    FRAME_MS.append(1e3 * (time.perf_counter() - t) / spec.frames)
     return np.asarray(r.positions[1:, : r.num_fluid])
 
 
@@ -98,9 +109,13 @@ def bench_pair(mesh_ob: dict[str, Any], ana_ob: dict[str, Any], sdf_of: Any, n: 
     ana = SceneSpec.from_dict(_scene([ana_ob], n, frames))
     free = SceneSpec.from_dict(_scene([], n, frames))
     pm, pa, pf = _rollout(mesh), _rollout(ana), _rollout(free)
+    ms_mesh, ms_ana, ms_free = FRAME_MS[-3:]
     err = grid_mass_error(pm, pa, n)
     dx = 1.0 / n
     return {
+        "ms_per_frame_mesh": ms_mesh,
+        "ms_per_frame_analytic": ms_ana,
+        "ms_per_frame_no_obstacle": ms_free,
         "scene_load_s": load_s,
         "grid_mass_error_max": float(err.max()),
         "grid_mass_error_final": float(err[-1]),
@@ -108,6 +123,7 @@ def bench_pair(mesh_ob: dict[str, Any], ana_ob: dict[str, Any], sdf_of: Any, n: 
         "depth_mesh_cells": float(max(0.0, -sdf_of(pm[-1]).min() / dx)),
         "depth_analytic_cells": float(max(0.0, -sdf_of(pa[-1]).min() / dx)),
         "depth_mesh_cells_any_frame": float(max(0.0, -min(sdf_of(p).min() for p in pm) / dx)),
+        "depth_analytic_cells_any_frame": float(max(0.0, -min(sdf_of(p).min() for p in pa) / dx)),
     }
 
 
@@ -149,8 +165,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None)
+    ap.add_argument("--project", choices=["on", "off"], default="on", help="the obstacles' particle projection")
     a = ap.parse_args()
-    result: dict[str, Any] = {"n_grid": a.n_grid, "frames": a.frames, "sdf": bench_sdf(a.n_grid)}
+    proj = a.project == "on"
+    result: dict[str, Any] = {"n_grid": a.n_grid, "frames": a.frames, "project": proj, "sdf": bench_sdf(a.n_grid)}
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp)
 
@@ -160,8 +178,8 @@ def main() -> None:
         for sub in (3, 4):
             trimesh.creation.icosphere(subdivisions=sub, radius=1.0).export(base / f"sphere{sub}.stl")
             r = bench_pair(
-                {"shape": "mesh", "path": f"sphere{sub}.stl", "center": CENTER, "scale": RADIUS},
-                {"shape": "sphere", "center": CENTER, "radius": RADIUS},
+                {"shape": "mesh", "path": f"sphere{sub}.stl", "center": CENTER, "scale": RADIUS, "project": proj},
+                {"shape": "sphere", "center": CENTER, "radius": RADIUS, "project": proj},
                 sphere_sdf,
                 a.n_grid,
                 a.frames,
@@ -176,8 +194,8 @@ def main() -> None:
         trimesh.creation.box(extents=2 * np.asarray(half)).export(base / "ramp.stl")
         box = Box(center=centre, half_extents=half, rotation=rot)
         r = bench_pair(
-            {"shape": "mesh", "path": "ramp.stl", "center": centre, "rotation": rot},
-            {"shape": "box", "center": centre, "half_extents": half, "rotation": rot},
+            {"shape": "mesh", "path": "ramp.stl", "center": centre, "rotation": rot, "project": proj},
+            {"shape": "box", "center": centre, "half_extents": half, "rotation": rot, "project": proj},
             lambda p: collider_sdf(box, p),
             a.n_grid,
             a.frames,

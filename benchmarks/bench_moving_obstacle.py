@@ -10,10 +10,12 @@ momentum gained over the still-paddle run, against a piston's
 ``ρ·h·U²·t`` (h the paddle's immersed depth); the free surface 0.1 m ahead
 of and behind the paddle at the end, against the rest height and the
 linear piston-wavemaker rise ``U·h/√(g·depth)``; wall time per frame.
+``--project off`` runs the paddle without the particle projection
+(``project = false``: the grid condition alone, as before it existed).
 
 Usage::
 
-    python benchmarks/bench_moving_obstacle.py [--speed 0.5] [--frames 80] [--out runs/bench_moving_obstacle.json]
+    python benchmarks/bench_moving_obstacle.py [--speed 0.5] [--frames 80] [--project on|off] [--out runs/bench_moving_obstacle.json]
 """
 
 from __future__ import annotations
@@ -76,6 +78,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--speed", type=float, default=0.5, help="paddle speed [m/s]")
     ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--project", choices=["on", "off"], default="on", help="the paddle's particle projection")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     u, frames = args.speed, args.frames
@@ -85,12 +88,12 @@ def main() -> None:
     rise = u * immersed / math.sqrt(9.8 * (TOP - FLOOR))
     rows = []
     for cond in ("sticky", "slip", "separate"):
-        base = {"shape": "box", "half_extents": HALF, "condition": cond}
+        base = {"shape": "box", "half_extents": HALF, "condition": cond, "project": args.project == "on"}
         moving = run(tank({**base, "keyframes": [{"t": 0.0, "center": START}, {"t": duration, "center": [START[0] + u * duration, START[1]]}]}), frames)
         still = run(tank({**base, "center": START}), frames)
         streaming = run(tank({**base, "center": [0.5, START[1]]}, velocity=[-u, 0.0]), frames)
         rows.append({"condition": cond, "moving": moving, "still": still, "streaming": streaming})
-    print(f"paddle {2 * HALF[0]} x {2 * HALF[1]} m at {u} m/s for {frames} frames, {N_GRID}^2, immersed {immersed:.2f} m")
+    print(f"paddle {2 * HALF[0]} x {2 * HALF[1]} m at {u} m/s for {frames} frames, {N_GRID}^2, immersed {immersed:.2f} m, projection {args.project}")
     print(f"piston momentum {piston:.2f} kg·m/s per m; linear piston rise {rise:.3f} m")
     print(
         "| condition | deepest inside, moving / still / static in streaming water [cells] | x momentum gained [kg·m/s per m] | surface ahead / behind / rest [m] | ms/frame |"
@@ -104,7 +107,7 @@ def main() -> None:
         )
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"speed": u, "frames": frames, "piston": piston, "rise": rise, "rows": rows}, indent=2))
+        args.out.write_text(json.dumps({"speed": u, "frames": frames, "project": args.project == "on", "piston": piston, "rise": rise, "rows": rows}, indent=2))
 
 
 if __name__ == "__main__":
