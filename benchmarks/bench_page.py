@@ -19,7 +19,9 @@ server simulating on the same cores), at the resolution software GL starts
 with (3/4 of a CSS pixel), at full resolution and (water) at half, the 2D
 dam break, and the page's default 3D scene, the 3D dam break (23,520
 particles; cases 10-15). The
-page's target is 50 frames/s.
+page's target is 50 frames/s. Playing, it also reports the simulation frames
+the session advanced per second while the page watched (the session's
+``frame`` from ``GET /v1/sessions/{id}`` before and after).
 
     python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--out benchmarks/results/page]
 """
@@ -125,16 +127,18 @@ def run_case(browser, url: str, scene: str, seed: int, look: str, playing: bool,
     page.wait_for_function("window.__hmpm.framesRendered >= 10", timeout=60_000)
     time.sleep(1.0)  # warm up
     pids = browser_pids()
+    sid = page.evaluate("window.__hmpm.session.id")
+    frame0, t0 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
     start = page.evaluate("[window.__hmpm.framesRendered, performance.now()]")
     cpu0, (busy0, all0), load0 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
     time.sleep(seconds)
     end = page.evaluate("[window.__hmpm.framesRendered, performance.now()]")
+    frame1, t1 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
     cpu1, (busy1, all1), load1 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
     hook = page.evaluate(
         "({drawMs: __hmpm.drawMs, look: __hmpm.look, renderer: __hmpm.renderer, n: __hmpm.session.num_particles, received: __hmpm.framesReceived})"
     )
     size = page.evaluate("[document.getElementById('sim').width, document.getElementById('sim').height]")
-    sid = page.evaluate("window.__hmpm.session.id")
     page.close()
     httpx.delete(f"{url}/v1/sessions/{sid}", timeout=30)
     draw = np.array(hook["drawMs"])
@@ -142,6 +146,7 @@ def run_case(browser, url: str, scene: str, seed: int, look: str, playing: bool,
     browser_cpu = cpu1 - cpu0
     return {
         "fps": (end[0] - start[0]) * 1000.0 / (end[1] - start[1]),
+        "sim_fps": (frame1 - frame0) / (t1 - t0),
         "browser_cpu_ms_per_frame": 1000.0 * browser_cpu / drawn,
         "load_average": 0.5 * (load0 + load1),
         "others_cpu_share": max(0.0, (busy1 - busy0) - browser_cpu) / max(1e-9, all1 - all0),
@@ -211,14 +216,14 @@ def main() -> None:
             "the browser meanwhile (the server included).",
             "",
             "| scene | particles | look | simulation | resolution | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
-            "| browser CPU / frame [ms] | load | others |",
-            "|---|---:|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+            "| browser CPU / frame [ms] | load | others | simulation frames/s |",
+            "|---|---:|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in rows:
             lines.append(
                 f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {r['scale']:g} | "
                 f"{r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} | {r['draw_ms_gpu_median']:.1f} "
-                f"| {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % |"
+                f"| {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % | {r['sim_fps']:.0f} |"
             )
         out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 

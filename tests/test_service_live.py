@@ -179,6 +179,22 @@ def test_foreign_origin_refused(server):
     asyncio.run(run())
 
 
+def test_stream_is_not_compressed(server):
+    """The frame stream declines permessage-deflate, which the client offers:
+    float32 positions barely compress, and deflating them on the event loop
+    halved the frames a playing 3D session streamed (server.py)."""
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        sid = c.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"}).json()["id"]
+
+    async def run():
+        async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", compression="deflate") as ws:
+            assert ws.request is not None and "permessage-deflate" in ws.request.headers.get("Sec-WebSocket-Extensions", "")
+            assert ws.response is not None and "Sec-WebSocket-Extensions" not in ws.response.headers
+            assert '"meta"' in await ws.recv()
+
+    asyncio.run(run())
+
+
 def test_ttl_and_cap_live(tmp_path):
     with LiveServer(max_sessions=3, ttl=1.0, env={"HYBRIDMPM_REAP_INTERVAL_S": "0.2"}, log=tmp_path / "s.log") as srv:
         with httpx.Client(base_url=srv.url, timeout=30) as c:
