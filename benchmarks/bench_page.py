@@ -207,7 +207,8 @@ def main() -> None:
         lines = [
             "# The page's frame rate in headless Chromium, software GL",
             "",
-            f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}` — {version}, SwiftShader (software GL),",
+            f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}` — {version}, "
+            "SwiftShader (software GL),",
             f"{os.cpu_count()} cores shared by the server, the browser and its GPU process; canvas 640 CSS px × dpr {args.dpr:g}.",
             "frames/s: frames the page drew per second drawing on every animation frame (`?bench=1`);",
             "draw: CPU time of one draw call sequence; draw + GPU: the same waiting for the GPU (`?sync=1`: a 1-pixel `readPixels`);",
