@@ -10,25 +10,32 @@ The surface of one material (water, sand) in one frame is built in four steps:
    seeded on the scene's lattice).
 2. **Smoothing.** ``smooth`` passes of the binomial filter ``[1, 2, 1]/4`` per
    axis (the linear B-spline; it keeps ``Σ φ``).
-3. **Closure.** The field is clipped against the fluid domain (the wall faces)
-   and the obstacles: ``φ ← min(φ, iso + sdf/(2h))`` with ``sdf`` the signed
-   distance [m] to the domain box (positive inside) and to every obstacle
-   (:func:`~hybridmpm.scenes.collider_sdf`, positive outside the obstacle).
-   The iso-surface is then the boundary of ``{φ > iso} ∩ domain ∖ obstacles``:
-   water pressed against a wall or an obstacle ends on its face, and no
-   surface passes through an obstacle. The field is zero outside the
-   particles' bounding box plus 3 nodes, so every surface closes.
+3. **Closure.** A wall face of the fluid domain that lies on a node layer
+   (every scene's: ``(cells − 1)·dx``) folds the field (the particles'
+   mirror images across it are added, so fluid resting on the wall fills the
+   face and none of its volume is lost into the wall) and sets it to
+   ``-1e15`` beyond: the iso-surface ends exactly on the face, at any
+   thickness of the fluid there. Obstacles (and walls between node layers)
+   clip it, ``φ ← min(φ, c + sdf/(2h))`` with ``sdf`` the signed distance [m]
+   (:func:`~hybridmpm.scenes.collider_sdf`, positive outside the obstacle):
+   the surface ends on their faces and never passes through them. The field
+   is zero outside the particles' bounding box plus 3 nodes, so every
+   surface closes.
 4. **Iso-surface** at level ``c``: Lewiner marching cubes
    (:func:`skimage.measure.marching_cubes`) in 3D,
    :func:`skimage.measure.find_contours` in 2D. The kernels are symmetric, so a
    flat face of a filled region crosses ``φ = 1/2`` exactly at its boundary,
    but edges and corners are rounded inwards. ``iso="volume"`` (the default)
-   therefore matches the enclosed volume to the particles' volume ``Σ v_p``:
-   the level in [:data:`ISO_MIN`, :data:`ISO_MAX`] whose volume, estimated
-   from the field cell by cell (:class:`_VolumeEstimate`, no surface drawn),
-   is ``Σ v_p``; marching cubes there, and once more (the level moved by the
-   estimate's error) if the surface's volume is off by more than
-   :data:`VOLUME_TOL` (docs/mesh.md); a number fixes ``c``.
+   therefore matches the enclosed volume to the particles' volume per body
+   (a 26-connected component of ``φ > BODY_MIN``; a film on the floor and a
+   falling block are two): each body at the level in [:data:`ISO_MIN`,
+   :data:`ISO_MAX`] whose volume, estimated from the field cell by cell
+   (:class:`_VolumeEstimate`, no surface drawn), is its particles' volume;
+   marching cubes there, and once more (the level moved by the estimate's
+   error) if the body's surface is off by more than :data:`VOLUME_TOL`
+   (docs/mesh.md); a number fixes ``c`` for all. Vertices that marching
+   cubes puts on one node (at an edge of the domain) are merged, so no face
+   is degenerate or doubled.
 
 **Determinism.** The p2g runs in the compiled core
 (:func:`hybridmpm._core.surface_p2g`, serial); nothing else is threaded. The
@@ -53,7 +60,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
-from hybridmpm.render.surface_field import _MARGIN, ISO_MAX, ISO_MIN, _closed, _field, _is_sampled, _VolumeEstimate
+from hybridmpm.render.surface_field import _MARGIN, ISO_BULK, ISO_MAX, ISO_MIN, _bodies, _closed, _Field, _field, _is_sampled, _VolumeEstimate
 from hybridmpm.scenes import wall_face
 
 #: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
@@ -64,6 +71,8 @@ MESH_FORMATS = ("ply", "obj", "glb")
 VOLUME_TOL = 0.005
 #: Finest surface grid per simulation cell.
 MAX_REFINE = 8
+#: Field values within this of the level are moved this far from it before marching cubes (:func:`_off_level`).
+_LEVEL_GAP = 2.0**-16
 
 
 def material_name(ptype: int) -> str:
@@ -78,7 +87,8 @@ class SurfaceMesh:
     ``vertices`` float64 [V, 3] [m]; ``faces`` int32 [F, 3], indices into
     ``vertices``, counter-clockwise seen from outside (outward normals);
     ``material`` ``"water"``/``"sand"``; ``particle_type`` its GNS code;
-    ``iso`` the volume-fraction level it was drawn at.
+    ``iso`` the volume-fraction level it was drawn at (with
+    ``iso="volume"``: the level of the body with the most volume).
     """
 
     vertices: np.ndarray
@@ -209,19 +219,20 @@ def surface_mesh(
     refine:
         Surface grid nodes per simulation cell per axis, 1 … 8.
     iso:
-        ``"volume"`` (default): the level ``c`` in [0.3, 0.7] whose surface
-        encloses the particles' volume ``Σ volumes``: marching cubes at the
-        level where an estimate from the field gives that volume and, if the
-        surface is off by more than 0.5 %, once more at a corrected level
-        (docs/mesh.md); or a fixed volume fraction in (0, 1).
+        ``"volume"`` (default): each body of fluid (a connected part of the
+        field) at the level ``c`` in [0.02, 0.7] whose surface encloses its
+        particles' volume: marching cubes at the level where an estimate
+        from the field gives that volume and, if the surface is off by more
+        than 0.5 %, once more at a corrected level (docs/mesh.md); or a
+        fixed volume fraction in (0, 1) for all.
     smooth:
         Passes of the ``[1, 2, 1]/4`` filter, 0 … 4.
 
     Returns
     -------
     A :class:`SurfaceMesh` per fluid particle type present, sorted by type
-    (water before sand); a material with no surface (e.g. only isolated
-    droplets thinner than the grid) gets an empty mesh.
+    (water before sand); a material with no surface (e.g. only lone
+    particles, whose field stays below 0.02) gets an empty mesh.
 
     Raises
     ------
@@ -272,7 +283,7 @@ def _per_material(
     out = []
     for code in _fluid_types(pt):
         sel = pt == code
-        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, lambda f, c, o: measure(f, c, o, h))
+        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, measure)
         out.append((int(code), level, geom))
     return out
 
@@ -289,43 +300,147 @@ def _select(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obs: list[Any], iso: Any, measure: Any) -> tuple[float, Any]:
-    """(level, geometry) of one material. ``measure(closed_field, level, origin)``
-    → (geometry, enclosed volume) or None when the field has no surface at
-    that level. ``iso="volume"``: the level at which the field's estimated
-    enclosed volume (:class:`_VolumeEstimate`) is the particles' volume, in
-    [ISO_MIN, ISO_MAX]; if the surface drawn there is off by more than
-    VOLUME_TOL, the level is moved once by the estimate's own error there."""
+    """(level, geometry) of one material. ``measure(closed_field, level,
+    origin, field)`` → (geometry, enclosed volume). ``iso="volume"``: each
+    body (:func:`_bodies`) at the level in [ISO_MIN, ISO_MAX] at which the
+    field's estimated enclosed volume (:class:`_VolumeEstimate`) is its
+    particles' volume (the estimate covers the levels from ISO_BULK up
+    first, all of them when a body needs less); a body whose surface is off
+    by more than VOLUME_TOL is drawn once more, its level moved by the
+    estimate's own error there. The level returned is that of the body with
+    the most volume."""
     f = _field(p, v, lo, hi, h, smooth, obs)
     if f is None:
         return (0.5 if iso == "volume" else float(iso)), None
-    phi, sdf, origin, target = f
-
-    def at(c: float) -> tuple[Any, float]:
-        closed = _closed(phi, sdf, h, c)
-        r = measure(closed, c, origin) if closed.max() > c else None
-        return (None, 0.0) if r is None else r
-
     if iso != "volume":
-        return float(iso), at(float(iso))[0]
-    if target <= 0:
-        return 0.5, at(0.5)[0]
-    est = _VolumeEstimate(phi, sdf, h)
-    c1 = est.level(target)
-    g1, v1 = at(c1)
-    if abs(v1 - target) <= VOLUME_TOL * target or (c1 == ISO_MIN and v1 < target) or (c1 == ISO_MAX and v1 > target):
-        return c1, g1
-    c2 = est.level(target + est.volume(c1) - v1)  # the estimate's error at c1 taken as constant near it
-    return (c1, g1) if c2 == c1 else (c2, at(c2)[0])
+        return float(iso), _draw(f, measure, _level32(float(iso)))[0]
+    labels, n, targets = _bodies(f)
+    if not (targets > 0).any():
+        return 0.5, None
+    est = _VolumeEstimate(f.phi, f.sdf, h, labels, n, low=ISO_BULK)
+    c = est.levels(targets)
+    if ((c == ISO_BULK) & (est.volumes(ISO_BULK) < targets)).any():  # a body thinner than bulk water: all levels
+        est = _VolumeEstimate(f.phi, f.sdf, h, labels, n)
+        c = est.levels(targets)
+    boxes = _boxes(labels) if n > 1 else [None]
+    drawable = (targets > 0) & (est.volumes(ISO_MIN) > 0)  # a body whose field stays below ISO_MIN has no surface
+    drawn = [_draw(f, measure, _level32(c[k]), labels, k + 1, boxes[k]) if drawable[k] else (None, 0.0) for k in range(n)]
+    got = np.array([d[1] for d in drawn])
+    off = (np.abs(got - targets) > VOLUME_TOL * targets) & ~((c == ISO_MIN) & (got < targets)) & ~((c == ISO_MAX) & (got > targets))
+    if off.any():
+        want = targets + est.volumes(c) - got  # the estimate's error at c taken as constant near it
+        if est.low > ISO_MIN and (off & (est.volumes(est.low) < want)).any():
+            est = _VolumeEstimate(f.phi, f.sdf, h, labels, n)
+        c2 = est.levels(want)
+        for k in np.flatnonzero(off & (c2 != c)):
+            c[k] = c2[k]
+            drawn[k] = _draw(f, measure, _level32(c[k]), labels, int(k) + 1, boxes[k])
+    return _level32(c[int(np.argmax(targets))]), _join([d[0] for d in drawn if d[0] is not None])
 
 
-def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+def _join(parts: list[Any]) -> Any:
+    """The bodies' geometries as one: meshes ``(vertices, faces)`` concatenated,
+    outlines (tuples of loops) chained; None when there are none."""
+    if len(parts) <= 1:
+        return parts[0] if parts else None
+    if isinstance(parts[0], tuple) and len(parts[0]) == 2 and parts[0][0].shape[1:] == (3,) and parts[0][1].dtype == np.int32:
+        offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+        return np.concatenate([v for v, _ in parts]), np.concatenate([fs + np.int32(o) for (_, fs), o in zip(parts, offsets)])
+    return tuple(loop for part in parts for loop in part)
+
+
+def _boxes(labels: np.ndarray) -> list[Any]:
+    """The slices of each body's bounding box (``scipy.ndimage.find_objects``)."""
+    from scipy import ndimage  # here: scipy.ndimage takes half a second to import, and only volume-matched surfaces need it
+
+    return list(ndimage.find_objects(labels))
+
+
+def _level32(c: float) -> float:
+    """``c`` rounded to float32: marching cubes compares the float32 field with
+    the level, so a node clipped to exactly the level (on an obstacle face) is
+    then outside, as a node below the level."""
+    return float(np.float32(c))
+
+
+def _draw(f: _Field, measure: Any, c: float, labels: np.ndarray | None = None, body: int = 0, box: Any = None) -> tuple[Any, float]:
+    """(geometry, enclosed volume) of the field closed at level ``c``; with
+    ``box`` (a body's slices) the body ``body`` of ``labels`` alone, the
+    other bodies' nodes zeroed."""
+    if box is None or labels is None:
+        grid, clip, origin = f.phi, f.clip, f.origin
+    else:
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        lab = labels[box]
+        grid = np.where((lab == body) | (lab == 0), f.phi[box], 0.0)
+        clip = None if f.clip is None else f.clip[box]
+        origin = f.origin + np.array([b.start for b in box])
+    closed = _closed(grid, clip, f.h, c)
+    if not closed.max() > c:
+        return None, 0.0
+    return measure(closed, c, origin, f)
+
+
+def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: _Field) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """The closed triangle mesh of ``phi`` at ``level`` (vertices [m], faces
+    int32 with outward normals) and its volume."""
     from skimage.measure import marching_cubes
 
-    vs, fs, _, _ = marching_cubes(phi, level=level, allow_degenerate=False)
-    verts = (vs.astype(np.float64) + origin) * h
+    vs, fs, _, _ = marching_cubes(_off_level(phi, level), level=level, allow_degenerate=True)
+    # on the wall faces (on node layers) the vertices sit on the face nodes; clamped there exactly
+    vs = np.clip(vs, (f.faces_lo - origin).astype(np.float32), (f.faces_hi - origin).astype(np.float32))
+    vs, fs = _weld(vs, fs)
+    verts = (vs.astype(np.float64) + origin) * f.h
     # skimage's faces are clockwise seen from the low side (outside here): reverse them for outward normals
     faces = np.ascontiguousarray(fs[:, ::-1], dtype=np.int32)
     return (verts, faces), _mesh_volume(verts, faces)
+
+
+def _off_level(phi: np.ndarray, level: float) -> np.ndarray:
+    """``phi`` as float32 (what marching cubes works on) with no node at or
+    next to the level: the values within :data:`_LEVEL_GAP` of it are moved
+    to ``level ± _LEVEL_GAP`` (those at the level, on an obstacle face, below
+    it). A node at the level would give a vertex on it from each of its
+    edges that cross, and zero-area triangles between them; this way every
+    vertex lies at least ``_LEVEL_GAP`` / (the field's change along its edge)
+    of a cell from the nodes, except on the wall faces."""
+    g = np.asarray(phi, np.float32)
+    lv = np.float32(level)
+    near = np.abs(g - lv) < _LEVEL_GAP
+    if near.any():
+        g = g.copy() if g is phi else g
+        g[near] = np.where(g[near] > lv, lv + np.float32(_LEVEL_GAP), lv - np.float32(_LEVEL_GAP))
+    return g
+
+
+def _weld(vs: np.ndarray, fs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge the vertices on one grid node (marching cubes puts one on a wall
+    face node from each wall face it closes: two or three at an edge or
+    corner of the domain), then drop the faces this collapses and the
+    back-to-back pairs of coincident faces it leaves: the mesh stays closed,
+    with no zero-area or duplicate face."""
+    on = np.flatnonzero((vs == np.rint(vs)).all(axis=1))
+    if len(on) < 2:
+        return vs, fs
+    q = vs[on].astype(np.int64)
+    order = np.lexsort(q.T[::-1])
+    qs = q[order]
+    first = np.r_[True, (qs[1:] != qs[:-1]).any(axis=1)]
+    if first.all():
+        return vs, fs
+    remap = np.arange(len(vs))
+    remap[on[order]] = on[order][np.maximum.accumulate(np.where(first, np.arange(len(qs)), 0))]
+    fs = remap[fs]
+    fs = fs[(fs[:, 0] != fs[:, 1]) & (fs[:, 1] != fs[:, 2]) & (fs[:, 0] != fs[:, 2])]
+    s = np.sort(fs, axis=1)
+    order = np.lexsort(s.T[::-1])
+    same = (s[order][1:] == s[order][:-1]).all(axis=1)
+    twice = np.zeros(len(fs), bool)
+    twice[order[1:][same]] = twice[order[:-1][same]] = True
+    fs = fs[~twice]
+    used = np.zeros(len(vs), bool)
+    used[fs.ravel()] = True
+    return vs[used], (np.cumsum(used) - 1)[fs]
 
 
 def _mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
@@ -336,14 +451,19 @@ def _mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
-def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, h: float) -> tuple[tuple[np.ndarray, ...], float]:
+def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: _Field) -> tuple[tuple[np.ndarray, ...], float]:
+    """The closed outlines of ``phi`` at ``level`` ([m], outer loops
+    counter-clockwise) and their area."""
     from skimage.measure import find_contours
 
     loops = []
     for c in find_contours(phi, level):
+        # on the wall faces (on node layers) clamped onto the face; a face node met from two edges once
+        c = np.clip(c, f.faces_lo - origin, f.faces_hi - origin)
+        c = c[np.r_[True, (c[1:] != c[:-1]).any(axis=1)]]
         if len(c) >= 4:
             # find_contours leaves high values on the right; reversed, outer loops run counter-clockwise
-            loops.append(np.ascontiguousarray(((c + origin) * h)[::-1]))
+            loops.append(np.ascontiguousarray(((c + origin) * f.h)[::-1]))
     return tuple(loops), float(sum(_signed_area(lp) for lp in loops))
 
 

@@ -1,10 +1,12 @@
-"""The volume-fraction field of a fluid surface and the estimate of the volume
-it encloses at a level: steps 1-3 of :mod:`hybridmpm.render.surface` (the p2g
-of the particles' volumes, the smoothing, the closure against walls and
-obstacles) and the estimate its ``iso="volume"`` level is solved on."""
+"""The volume-fraction field of a fluid surface, its bodies and the estimate
+of the volume they enclose at a level: steps 1-3 of
+:mod:`hybridmpm.render.surface` (the p2g of the particles' volumes, the
+smoothing, the closure against walls and obstacles) and what its
+``iso="volume"`` levels are solved on."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,11 +15,24 @@ from hybridmpm import _core
 from hybridmpm.mpm import Sphere
 from hybridmpm.scenes import collider_sdf
 
-#: Range of the volume-matched iso level (``iso="volume"``).
-ISO_MIN, ISO_MAX = 0.3, 0.7
+#: Range of the volume-matched iso level of a body (``iso="volume"``): bulk
+#: water lands near 0.4, bodies a few cells across lower, films thinner than
+#: a cell down to 0.1 (docs/mesh.md). A body whose field stays below ISO_MIN
+#: is not drawn: a particle alone in the air (its field peaks at 0.010).
+ISO_MIN, ISO_MAX = 0.02, 0.7
+#: The levels bulk water needs start here: the estimate covers the cells that
+#: can reach them first, and all cells only when a body needs less (a film).
+ISO_BULK = 0.3
+#: Nodes with a volume fraction above this belong to a body (26-connected
+#: components); ``ISO_MIN / 2.5``, so every cell with a part above
+#: ``ISO_MIN`` has a corner above it (``φ̄ + |∇φ̄|₁/2 ≤ 2.5·max corner``).
+BODY_MIN = ISO_MIN / 2.5
 #: Nodes of zero field around the particles' bounding box (kernel reach 1.5 +
 #: smoothing 1 + a zero layer, rounded up).
 _MARGIN = 3
+#: Field value beyond a wall face that lies on a node layer: marching cubes
+#: puts the surface on the face node, ``(φ − c)/(φ + _WALL) < 1e-14`` of a cell out.
+_WALL = 1e15
 # p2g quantisation (the determinism paragraph of hybridmpm.render.surface): weights to 2^-10, volume fractions to 2^-14
 _W_SCALE = 2.0**10
 _V_SCALE = 2.0**14
@@ -28,15 +43,35 @@ def _is_sampled(c: Any) -> bool:
     return all(hasattr(c, k) for k in ("origin", "cell", "values"))
 
 
-def _field(
-    p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
-    """The smoothed volume fraction on the sub-grid around the particles:
-    (field float64 [n_0, ..., n_{D-1}], signed distance [m] of every node to
-    the nearest wall face or obstacle face (positive where fluid may be),
-    origin int64 [D] the global node index of the first node (node ``i`` sits
-    at ``i·h``), the volume [m^D] of the particles meshed). None if no particle
-    lies within 3 nodes of the domain."""
+@dataclass(frozen=True)
+class _Field:
+    """The closed field of one material on the sub-grid around its particles.
+
+    ``phi`` float64 [n_0, …, n_{D-1}]: the smoothed volume fraction, folded
+    about every wall face that lies on a node layer and ``-_WALL`` beyond it;
+    ``sdf`` [m]: distance of every node to the nearest wall or obstacle face
+    (positive where fluid may be); ``clip`` the same for the faces closed by
+    ``min(φ, c + sdf/(2h))`` (obstacles, walls off the node layers), None
+    when there are none; ``origin`` int64 [D] the global node index of
+    ``phi[0, …]`` (node ``i`` sits at ``i·h``); ``faces_lo``/``faces_hi``
+    float [D] the global node index of the wall faces on a node layer (±inf
+    for the others), where vertices are clamped; ``p``, ``v`` the particles
+    meshed and their volumes [m^D]."""
+
+    phi: np.ndarray
+    sdf: np.ndarray
+    clip: np.ndarray | None
+    origin: np.ndarray
+    faces_lo: np.ndarray
+    faces_hi: np.ndarray
+    h: float
+    p: np.ndarray
+    v: np.ndarray
+
+
+def _field(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]) -> _Field | None:
+    """The field of the particles ``p`` [N, D] with volumes ``v`` [N] [m^D]
+    (:class:`_Field`). None if no particle lies within 3 nodes of the domain."""
     dim = p.shape[1]
     p_min, p_max = _bounds(p)
     if (p_min < lo - _MARGIN * h).any() or (p_max > hi + _MARGIN * h).any():
@@ -54,17 +89,52 @@ def _field(
     for _ in range(int(smooth)):
         for ax in range(dim):
             phi = _binomial(phi, ax)
-    # distance to the walls (separable box distance) and the obstacles
     coords = [(np.arange(shape[k]) + g_lo[k]) * h for k in range(dim)]
-    sdf = np.full(phi.shape, np.inf)
+    sdf: Any = np.inf
+    clip: Any = None
+    faces = np.stack([np.full(dim, -np.inf), np.full(dim, np.inf)])
     for k in range(dim):
-        d = np.minimum(coords[k] - lo[k], hi[k] - coords[k])
         sl: list[Any] = [None] * dim
         sl[k] = slice(None)
-        sdf = np.minimum(sdf, d[tuple(sl)])
-    for c in obstacles:
-        _obstacle_sdf(sdf, c, coords, h)
-    return phi, sdf, g_lo, float(v.sum())
+        dist = (coords[k] - lo[k], hi[k] - coords[k])
+        sdf = np.minimum(sdf, np.minimum(*dist)[tuple(sl)])
+        for side, face in enumerate((lo[k], hi[k])):
+            node = round(face / h)
+            if abs(face / h - node) <= 1e-6:  # a face on a node layer: folded and closed there
+                faces[side, k] = node
+                _fold(phi, k, node - int(g_lo[k]), side)
+            else:  # a face between node layers: closed by the clip
+                clip = dist[side][tuple(sl)] if clip is None else np.minimum(clip, dist[side][tuple(sl)])
+    sdf = np.broadcast_to(sdf, phi.shape)
+    if obstacles:
+        sdf = sdf.copy()
+        clip = np.full(phi.shape, np.inf) if clip is None else np.broadcast_to(clip, phi.shape).copy()
+        for c in obstacles:
+            _obstacle_sdf((sdf, clip), c, coords, h)
+    if clip is not None:
+        clip = np.broadcast_to(clip, phi.shape)
+    return _Field(phi, sdf, clip, g_lo, faces[0], faces[1], h, p, v)
+
+
+def _fold(phi: np.ndarray, ax: int, i: int, side: int) -> None:
+    """In place: fold ``phi`` about its node layer ``i`` along axis ``ax``, a
+    wall face (``side`` 0: the fluid is above ``i``, 1: below): the field of
+    the particles' mirror images across the face is added (node ``i + j``
+    gains node ``i − j``'s value, the face node doubles), so that no volume
+    is lost into the wall and fluid resting on it fills the face; beyond
+    the face the field is ``-_WALL``."""
+    n = phi.shape[ax]
+    if not 0 <= i < n:
+        return
+    a = np.moveaxis(phi, ax, 0)  # a view
+    if side == 1:
+        a = a[::-1]
+        i = n - 1 - i
+    m = min(i, n - 1 - i)
+    if m > 0:
+        a[i + 1 : i + 1 + m] += a[i - m : i][::-1]
+    a[i] *= 2.0
+    a[:i] = -_WALL
 
 
 def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,10 +143,11 @@ def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p[:, k].min() for k in range(p.shape[1])]), np.array([p[:, k].max() for k in range(p.shape[1])])
 
 
-def _closed(phi: np.ndarray, sdf: np.ndarray, h: float, iso: float) -> np.ndarray:
-    """``min(φ, iso + sdf/(2h))``: the level set ends on the wall and obstacle faces."""
-    clip = iso + sdf / (2 * h)
-    return np.minimum(phi, clip)
+def _closed(phi: np.ndarray, clip: np.ndarray | None, h: float, iso: float) -> np.ndarray:
+    """The field ``phi`` closed at level ``iso``: ``min(φ, iso + clip/(2h))`` (``clip``
+    a :class:`_Field`'s), so that the level set ends on the obstacle faces
+    (and the walls off the node layers)."""
+    return phi if clip is None else np.minimum(phi, iso + clip * (0.5 / h))
 
 
 def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
@@ -90,9 +161,9 @@ def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
     return out
 
 
-def _obstacle_sdf(sdf: np.ndarray, c: Any, coords: list[np.ndarray], h: float) -> None:
-    """``sdf ← min(sdf, collider_sdf)`` in place, over the nodes near obstacle ``c``."""
-    dim = sdf.ndim
+def _obstacle_sdf(out: tuple[np.ndarray, ...], c: Any, coords: list[np.ndarray], h: float) -> None:
+    """``a ← min(a, collider_sdf)`` in place for every ``a`` of ``out``, over the nodes near obstacle ``c``."""
+    dim = len(coords)
     if _is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
         b_lo = np.asarray(c.origin, np.float64)
         b_hi = b_lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
@@ -109,25 +180,54 @@ def _obstacle_sdf(sdf: np.ndarray, c: Any, coords: list[np.ndarray], h: float) -
         sl.append(slice(i0, i1))
     grids = np.meshgrid(*[coords[k][sl[k]] for k in range(dim)], indexing="ij")
     d = collider_sdf(c, np.stack([g.ravel() for g in grids], axis=1)).reshape(grids[0].shape)
-    sdf[tuple(sl)] = np.minimum(sdf[tuple(sl)], d)
+    for a in out:
+        a[tuple(sl)] = np.minimum(a[tuple(sl)], d)
+
+
+def _bodies(f: _Field) -> tuple[np.ndarray, int, np.ndarray]:
+    """The bodies of the field: int32 labels of the nodes (26-connected
+    components of ``φ > BODY_MIN``, 1 … n; 0 elsewhere), n, and the volume
+    [m^D] of each body's particles, float64 [n] (a particle belongs to the
+    body of its nearest node in the domain; a particle whose node has
+    ``φ ≤ BODY_MIN``, spray on its own, to none)."""
+    from scipy import ndimage  # here: scipy.ndimage takes half a second to import, and only volume-matched surfaces need it
+
+    labels, n = ndimage.label(f.phi > BODY_MIN, structure=np.ones((3,) * f.phi.ndim, bool))
+    x = f.p * (1 / f.h)
+    x += 0.5
+    np.floor(x, out=x)  # the nearest node (global index)
+    lo_node, hi_node = _bounds(x)
+    for k in np.flatnonzero((lo_node < f.faces_lo) | (hi_node > f.faces_hi)):  # clamped into the domain
+        np.clip(x[:, k], f.faces_lo[k], f.faces_hi[k], out=x[:, k])
+    strides = np.cumprod((f.phi.shape[1:] + (1,))[::-1])[::-1].astype(np.float64)
+    body = labels.ravel().take((x @ strides).astype(np.intp) - int(f.origin @ strides))
+    if n == 1:
+        out = body == 0
+        return labels, 1, np.array([float(f.v.sum() - (f.v[out].sum() if out.any() else 0.0))])
+    targets = np.bincount(body, weights=f.v, minlength=n + 1)[1:]
+    return labels, int(n), targets
 
 
 class _VolumeEstimate:
-    """The volume [m^D] of ``{closed field > c}`` as a function of the level ``c``
-    without drawing the surface: every cell counts the fraction of itself
-    above ``c`` from the value ``φ̄`` and gradient of the field's multilinear
-    interpolant at its centre, ``clip(1/2 + (φ̄ − c)/|∇φ̄|₁, 0, 1)``
-    (``|∇φ̄|₁``: how much a linear field changes across the cell's extent
-    along its gradient; exact for a flat face of a linear field), capped by
-    the fraction of the cell inside the domain and out
-    of the obstacles (the same formula on ``sdf/h`` at level 0). Piecewise
-    linear and non-increasing in ``c``. Marching cubes cuts curved parts with
-    flat triangles, so its volume is a little smaller: by 0.3 % for a
-    16-cell block, 1-4 % for the water3d scenes' bodies (docs/mesh.md)."""
+    """The volume [m^D] of each body's part of ``{closed field > c}`` as a
+    function of its level ``c``, without drawing the surface: every cell
+    counts the fraction of itself above ``c`` from the value ``φ̄`` and
+    gradient of the field's multilinear interpolant at its centre,
+    ``clip(1/2 + (φ̄ − c)/|∇φ̄|₁, 0, 1)`` (``|∇φ̄|₁``: how much a linear field
+    changes across the cell's extent along its gradient; exact for a flat
+    face of a linear field), capped by the fraction of the cell inside the
+    domain and out of the obstacles (the same formula on ``sdf/h`` at level
+    0). A cell belongs to the body of its corners (``labels``, n bodies; all
+    to one when n is 1). Piecewise linear and non-increasing in ``c``; built
+    for the levels from ``low`` up (the fewer cells, the faster). Marching
+    cubes cuts curved parts with flat triangles, so its volume is a little
+    smaller: by 0.1-0.3 % for blocks of 8-16 cells, 1-4 % for the water3d
+    scenes' bodies (docs/mesh.md)."""
 
-    def __init__(self, phi: np.ndarray, sdf: np.ndarray, h: float) -> None:
-        # only cells with a corner above ISO_MIN/2.5 can count (φ ≥ 0, so φ̄ + |∇φ̄|₁/2 ≤ 2.5·max corner)
-        cells = _cells_touching(phi > ISO_MIN / 2.5)
+    def __init__(self, phi: np.ndarray, sdf: np.ndarray, h: float, labels: np.ndarray | None = None, n: int = 1, low: float = ISO_MIN) -> None:
+        # levels from ``low`` up: only cells with a corner above low/2.5 can count
+        self.low = low
+        cells = _cells_touching(phi > low / 2.5)
         val, g = _cell_centres(phi, cells)
         g = np.maximum(g, 1e-12)
         # the domain fraction is 1 where the first corner lies 4 nodes or more inside (sdf is a
@@ -137,29 +237,48 @@ class _VolumeEstimate:
         if len(near):
             s, gs = _cell_centres(sdf * (1 / h), cells[near])
             dom[near] = np.clip(0.5 + s / np.maximum(gs, 1e-12), 0.0, 1.0)
-        full = val - 0.5 * g >= ISO_MAX  # cells above every level of the range: their domain fraction
-        band = ~full & (val + 0.5 * g > ISO_MIN) & (dom > 0)
-        self.cell = h**phi.ndim
-        self.full = float(dom[full].sum())
+        full = np.flatnonzero(val - 0.5 * g >= ISO_MAX)  # cells above every level of the range: their domain fraction
+        band = np.flatnonzero((val - 0.5 * g < ISO_MAX) & (val + 0.5 * g > low) & (dom > 0))
+        self.n, self.cell = (n if labels is not None else 1), h**phi.ndim
+        if self.n > 1 and labels is not None:  # a cell's corners above BODY_MIN are of one body (26-connected)
+            self.full = np.bincount(_corner_max(labels, cells[full]) - 1, weights=dom[full], minlength=n)
+            lab = _corner_max(labels, cells[band]) - 1
+            order = np.argsort(lab, kind="stable")
+            band = band[order]
+            self.start = np.searchsorted(lab[order], np.arange(n + 1))
+        else:
+            self.full = np.array([dom[full].sum()])
+            self.start = np.array([0, len(band)])
         self.val, self.inv_g, self.dom = val[band], 1.0 / g[band], dom[band]
 
-    def volume(self, c: float) -> float:
-        frac = np.clip(0.5 + (self.val - c) * self.inv_g, 0.0, 1.0)
-        return self.cell * (self.full + float(np.minimum(frac, self.dom).sum()))
+    def volume(self, body: int, c: float) -> float:
+        """The estimated volume [m^D] of body ``body`` (0 … n − 1) at level ``c``."""
+        sl = slice(self.start[body], self.start[body + 1])
+        frac = np.clip(0.5 + (self.val[sl] - c) * self.inv_g[sl], 0.0, 1.0)
+        return self.cell * (float(self.full[body]) + float(np.minimum(frac, self.dom[sl]).sum()))
 
-    def level(self, target: float) -> float:
-        """The level in [ISO_MIN, ISO_MAX] whose estimated volume is ``target``
-        (a bound where none is): regula falsi (Illinois) to 1e-6 of ``target``."""
-        a, b = ISO_MIN, ISO_MAX
-        fa, fb = self.volume(a) - target, self.volume(b) - target
+    def volumes(self, c: Any) -> np.ndarray:
+        """The estimated volume of each body [n] at its level ``c`` [n]."""
+        return np.array([self.volume(k, float(ck)) for k, ck in enumerate(np.broadcast_to(c, (self.n,)))])
+
+    def levels(self, targets: Any) -> np.ndarray:
+        """The level of each body whose estimated volume is its ``targets`` [n]: :meth:`level`."""
+        return np.array([self.level(k, float(t)) for k, t in enumerate(np.broadcast_to(targets, (self.n,)))])
+
+    def level(self, body: int, target: float) -> float:
+        """The level in [low, ISO_MAX] whose estimated volume of body
+        ``body`` is ``target`` (a bound where none is): regula falsi
+        (Illinois) to 1e-6 of ``target``."""
+        a, b = self.low, ISO_MAX
+        fa, fb = self.volume(body, a) - target, self.volume(body, b) - target
         if fa <= 0:
             return a
         if fb >= 0:
             return b
-        side = 0
+        side, c = 0, a
         for _ in range(60):
             c = (a * fb - b * fa) / (fb - fa)
-            fc = self.volume(c) - target
+            fc = self.volume(body, c) - target
             if abs(fc) <= 1e-6 * target or b - a < 1e-9:
                 return c
             if fc > 0:
@@ -171,6 +290,17 @@ class _VolumeEstimate:
                 fa = fa / 2 if side == -1 else fa
                 side = -1
         return c
+
+
+def _corner_max(a: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The largest value of ``a`` at the corners of ``cells`` (flat indices of their first corners)."""
+    d = a.ndim
+    flat = a.ravel()
+    strides = [int(np.prod(a.shape[k + 1 :])) for k in range(d)]
+    out = flat.take(cells)
+    for bits in range(1, 2**d):
+        np.maximum(out, flat.take(cells + sum(b * s for b, s in zip(_bits(bits, d), strides))), out=out)
+    return out
 
 
 def _cells_touching(mask: np.ndarray) -> np.ndarray:
