@@ -95,6 +95,28 @@ def test_dam_break_matches_martin_moyce_on_coarse_grids(n: int):
     assert 0.85 <= score.height_ratio_min and score.height_ratio_max <= 1.25, score
 
 
+def test_the_rough_floor_brakes_a_sliding_sand_layer_alike_on_every_grid():
+    """Coulomb friction acts on the nodes of the floor's band, whose stencil reaches 1.5 cells into the sand: twice as far
+    in metres on the half grid. A sand layer two cells of 64² thick sliding at 1.5 m/s must still lose its speed at the
+    same rate on every grid, stopping near a rigid block's v²/(2μg) (docs/engine.md, "Coarse grids and sand")."""
+    mu, speed = math.tan(math.radians(30.0)), 1.5
+    params = MpmParams(dim=2, n_grid=128, walls=WallParams(friction=mu))
+    face = wall_face(params)
+    spec = SceneSpec("slide", params, [Block("sand", [0.1, face], [0.4, face + 2 / 64], [speed, 0.0])], frames=200)
+    travel = {}
+    for n in (128, 96, 64):
+        sim = (spec if n == 128 else spec.on_grid(n)).build().make_solver(num_threads=1)
+        x0 = float(np.mean(sim.positions[:, 0]))
+        for _ in range(spec.frames):
+            sim.step_frame()
+        assert float(np.abs(sim.velocities).max()) < 0.02, f"{n}²: still sliding"
+        travel[n] = float(np.mean(sim.positions[:, 0])) - x0
+    rigid = speed**2 / (2 * mu * 9.81)
+    for n, d in travel.items():
+        assert 0.95 <= d / rigid <= 1.15, (n, d, rigid)
+        assert d == pytest.approx(travel[128], rel=0.06), travel
+
+
 def test_a_state_moves_between_grids_bit_for_bit_with_the_same_particles():
     scene = make_scene("water2d", seed=5)
     coarse = MpmSimulator(scene, n_grid=64, keep_particles=True, threads=1)
