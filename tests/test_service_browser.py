@@ -6,10 +6,12 @@ up (the y flip); a 3D scene renders and turns with the camera, an arrow drawn
 in 3D moves the fluid's centroid along it, the sketch and the plan's centroid
 path stay on the canvas through the controlled horizon; the downloads (the
 session's trajectory, PLY frames, the control's trajectory, a GIF) read back;
-the Canvas2D fallback draws; the page opened bare shows the 3D dam break as a
-body of water, holds the frame while paused, advances exactly T frames over a
-T-frame control, and a rightward arrow moves the water's pixels right. With ``HYBRIDMPM_PAGE_SCREENSHOTS=DIR`` the 2D and
-3D pages with a sketch applied are saved as ``DIR/page_2d.png``, ``DIR/page_3d.png``
+the Canvas2D fallback draws; the page opened bare shows the 3D dam break with its
+paddle as a body of water, holds the frame while paused, advances exactly T frames
+over a T-frame control, and a rightward arrow moves the water's pixels right; the
+drag tool drags an obstacle through the water, in 2D and in 3D. With ``HYBRIDMPM_PAGE_SCREENSHOTS=DIR`` the 2D and
+3D pages with a sketch applied are saved as ``DIR/page_2d.png``, ``DIR/page_3d.png``,
+``DIR/page_paddle3d.png``, and the 3D drag as ``DIR/page_paddle3d_drag.png``
 (the docs' pictures: ``HYBRIDMPM_PAGE_SCREENSHOTS=docs/img``)."""
 
 from __future__ import annotations
@@ -401,13 +403,15 @@ def session_frame(server, sid):
 
 
 def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward_arrow(server, browser):
-    """The page opened bare: the 3D dam break (WebGL2), tens of thousands of particles drawn as one body of water.
+    """The page opened bare: the 3D dam break with its paddle (WebGL2), tens of thousands of particles drawn as one
+    body of water.
     Paused, the frame holds; a 100-frame control advances exactly 100 frames and the page stays paused after it.
-    A rightward arrow moves the water's pixels right on the screen (fixed camera): against the same frame
-    reached without the control (reset, then stepped over HTTP), since the dam break flows right by itself."""
+    A rightward arrow (from frame 80) moves the water's pixels right on the screen (fixed camera): against the same
+    frame reached without the control (reset, then stepped over HTTP), since the dam break flows right by itself."""
     page, errors = new_page(browser, "?scale=1", server)
     session = page.evaluate("window.__hmpm.session")
-    assert session["scene"] == "dam_break3d" and session["dim"] == 3 and session["solver"] == "mpm"
+    assert session["scene"] == "paddle3d" and session["dim"] == 3 and session["solver"] == "mpm"
+    assert [ob["shape"] for ob in session["obstacles"]] == ["box"]  # the paddle
     assert 20_000 <= session["num_fluid"] <= 60_000
     assert page.evaluate("[window.__hmpm.renderer, window.__hmpm.look]") == ["webgl2", "fluid"]
     page.evaluate("document.getElementById('badge').hidden = true")  # the badge is water-blue
@@ -422,6 +426,13 @@ def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward
     page.wait_for_function(f"window.__hmpm.lastFrame === {f0}", timeout=10_000)
     page.wait_for_timeout(1500)
     assert session_frame(server, sid) == f0 and page.evaluate("window.__hmpm.lastFrame") == f0
+    # the arrow acts from a fixed frame, 0.2 s in (the surge has just hit the paddle): where the pause fell depends on
+    # the machine's speed, and from about 0.4 s on the free flow's splash up the far wall moves the water's pixels
+    # right by itself nearly as far as the arrow does (12-18 px, under the 19 asked, from frames 158 and 175)
+    page.click("#reset")
+    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
+    f0 = 80
+    stepped(page, server, f0)
     before = shot(page, "#sim")
     water0 = water_pixels(before)
     assert water0.mean() > 0.05, "the water is not drawn as a body"  # the column covers well over 5 % of the canvas
@@ -433,7 +444,7 @@ def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward
     assert page.eval_on_selector("#method", "s => s.value") == "diffusion"
     page.click("#apply")
     page.wait_for_function("window.__hmpm.lastControlFrame >= 50", timeout=120_000)
-    keep_screenshot(page, "page_dam_break3d.png")
+    keep_screenshot(page, "page_paddle3d.png")
     page.wait_for_function("window.__hmpm.controls.length > 0", timeout=120_000)
     ctl = page.evaluate("window.__hmpm.controls.at(-1)")
     assert "error" not in ctl, ctl
@@ -472,14 +483,19 @@ def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward
 
 
 # ---------------------------------------------------------------- the drag tool
-def fluid_centroid(server, sid):
-    """The fluid's centroid in the session's last recorded frame (its recent trajectory, one frame)."""
+def fluid_positions(server, sid):
+    """The fluid's positions [N, D] in the session's last recorded frame (its recent trajectory, one frame)."""
     with httpx.Client(base_url=server.url, timeout=60) as c:
         t = c.get(f"/v1/sessions/{sid}/trajectory?frames=1")
     assert t.status_code == 200, t.text
     with np.load(io.BytesIO(t.content), allow_pickle=False) as z:
         pos, types = z["positions"], z["particle_type"]
-    return pos[-1][types != 3].mean(0)
+    return pos[-1][types != 3]
+
+
+def fluid_centroid(server, sid):
+    """The fluid's centroid in the session's last recorded frame."""
+    return fluid_positions(server, sid).mean(0)
 
 
 def settled_frame(server, sid):
@@ -552,5 +568,94 @@ def test_dragging_an_obstacle_through_the_water_pushes_it(server, browser):
     # left, another 0.042 m right), so only a difference of at least 0.005 m (0.6 cells) is asserted; that a moving
     # obstacle pushes the water ahead of it is asserted in tests/test_moving_obstacles.py.
     assert np.abs(free - dragged).max() >= 0.005, (dragged, free)
+    assert page.evaluate("window.__hmpm.errors") == [] and errors == [], errors
+    page.close()
+
+
+def test_dragging_the_paddle_through_the_water_in_3d(server, browser):
+    """The drag tool in 3D, on the page's default scene (paddle3d): once the surge has hit the paddle and flowed round
+    it, the right mouse button still turns the view and grabs nothing; the left button grabs the paddle where the
+    pointer's ray meets its top face, and the pointer drags it along the horizontal plane through that point (its y
+    stays), slowly, upstream and across z through the water. As in 2D: the page, paused, plays while dragging and
+    pauses again after the last move; the server's paddle ends where it was dropped and the page draws it there; the
+    ``obstacle`` events arrived; against the same session stepped as many frames without the drag (reset, which puts
+    the paddle back, then stepped over HTTP), the water ends elsewhere and out of the place the paddle was dropped
+    in, which it fills without the drag."""
+    page, errors = new_page(browser, "?autoplay=0&scale=1", server)
+    session = page.evaluate("window.__hmpm.session")
+    assert session["scene"] == "paddle3d" and session["dim"] == 3 and page.evaluate("window.__hmpm.renderer") == "webgl2"
+    sid, ob = session["id"], session["obstacles"][0]
+    assert ob["shape"] == "box"
+    c0 = np.array(ob["center"], np.float64)
+    top = c0[1] + ob["half_extents"][1]
+    stepped(page, server, 120)  # 0.3 s: the surge has hit the paddle and flows round both sides
+    water0 = fluid_centroid(server, sid)
+    assert water0[0] < c0[0], water0  # most of the water still upstream
+    page.check("input[name=tool][value=drag]")
+    box = page.locator("#ink").bounding_box()
+
+    def px(points):  # world points -> page pixels, under the camera of the last draw (one call: the page draws slowly)
+        css = page.evaluate(f"{[[float(v) for v in p] for p in points]}.map((p) => window.__hmpm.toCss(p))")
+        return [(box["x"] + q[0], box["y"] + q[1]) for q in css]
+
+    # the camera's own drag: the right button turns the view, over the paddle too, with the drag tool chosen
+    yaw = page.evaluate("window.__hmpm.camera.yaw")
+    page.mouse.move(*px([[c0[0], top, c0[2]]])[0])
+    page.mouse.down(button="right")
+    page.mouse.move(box["x"] + 0.8 * box["width"], box["y"] + 0.5 * box["height"], steps=8)
+    page.mouse.up(button="right")
+    assert page.evaluate("window.__hmpm.camera.yaw") != yaw and page.evaluate("window.__hmpm.grabbed") is None
+    redrawn(page, "document.getElementById('view-reset').click()")  # the drag below is laid out in the default view
+
+    # grab the middle of its top face and drag it upstream and across z, one pointer move per ~60 ms
+    grip, drop = np.array([c0[0], top, c0[2]]), np.array([0.3, top, 0.35])
+    path = px([grip + t * (drop - grip) for t in np.linspace(0, 1, 31)])
+    page.mouse.move(*path[0])
+    page.mouse.down()
+    assert page.evaluate("window.__hmpm.grabbed") == 0
+    for k, p in enumerate(path[1:], 1):
+        page.mouse.move(*p)
+        page.wait_for_timeout(60)
+        if k == 20:
+            keep_screenshot(page, "page_paddle3d_drag.png")  # the docs' picture: the paddle on its way, the water in its wake
+    page.mouse.up()
+    page.wait_for_function("window.__hmpm.grabbed === null", timeout=20_000)
+    moves = page.evaluate("window.__hmpm.obstacleMoves")
+    assert len(moves) >= 10 and not [m for m in moves if "error" in m], moves
+    want = [float(drop[0]), float(c0[1]), float(drop[2])]  # the grip is the middle of the top face: the centre lies below it
+    page.wait_for_function(
+        f"window.__hmpm.obstacleEvents.length && Math.hypot(...window.__hmpm.obstacleEvents.at(-1).center.map((x, d) => x - {want}[d])) < 0.01",
+        timeout=10_000,
+    )
+    frames = settled_frame(server, sid)  # paused again (the page was paused before the drag)
+    assert page.locator("#play").text_content() == "play"
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
+    assert np.abs(np.array(centers[0]) - want).max() < 0.01 and abs(centers[0][1] - c0[1]) < 1e-6, centers  # y kept
+    assert np.abs(np.array(page.evaluate("window.__hmpm.session.obstacles[0].center")) - centers[0]).max() < 0.01  # drawn there
+    dragged = fluid_positions(server, sid)
+
+    # the same number of frames without the drag: reset (the paddle goes back), then stepped over HTTP
+    page.click("#reset")
+    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
+    assert np.abs(np.array(centers[0]) - c0).max() < 1e-4, centers
+    stepped(page, server, frames)
+    free = fluid_positions(server, sid)
+
+    def inside(pos):  # water particles deeper than half a cell inside the paddle where it was dropped
+        return int(np.all(np.abs(pos - want) < np.array(ob["half_extents"]) - 0.5 / session["n_grid"], axis=1).sum())
+
+    moved = float(np.linalg.norm(free - dragged, axis=1).mean())
+    print(
+        f"after {frames} frames: water centroid dragged {dragged.mean(0).round(4)}, free {free.mean(0).round(4)}, at the grab "
+        f"{water0.round(4)}; particles moved {moved:.4f} m apart on average; in the dropped paddle's place: {inside(dragged)} dragged, {inside(free)} free"
+    )
+    # the paddle pushed the water out of where it was dropped, which the water fills without the drag (after a few
+    # seconds of real-time dragging the water is near rest, and the centroids lie within a cell of each other: the
+    # particles, not the centroid, tell the flows apart); and the flow differs (at least 0.6 cells of the 34³ grid's)
+    assert inside(dragged) == 0 and inside(free) >= 20, (inside(dragged), inside(free))
+    assert moved >= 0.6 / session["n_grid"], moved
     assert page.evaluate("window.__hmpm.errors") == [] and errors == [], errors
     page.close()

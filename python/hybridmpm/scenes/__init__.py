@@ -13,8 +13,9 @@
   (paper Sec. 3.1.1, :mod:`hybridmpm.scenes.resolution`).
 - :data:`DOMAINS` — seeded generators for ``water2d``, ``sand2d``,
   ``water_ramps2d``, ``sand_ramps2d``, ``water_sand2d``, ``water3d``,
-  ``sand3d``, ``dam_break2d`` and its 3D twin ``dam_break3d``
-  (:mod:`hybridmpm.scenes.registry`).
+  ``sand3d``, ``dam_break2d``, its 3D twin ``dam_break3d`` and
+  ``paddle3d`` (``dam_break3d`` with a paddle downstream, the page's
+  default 3D scene) (:mod:`hybridmpm.scenes.registry`).
 
 >>> from hybridmpm.scenes import make_scene
 >>> scene = make_scene("water_ramps2d", seed=3)
@@ -31,6 +32,7 @@ from hybridmpm.scenes.registry import (
     dam_break2d_spec,
     dam_break3d_spec,
     make_scene,
+    paddle3d_spec,
     sand2d,
     sand3d,
     sand_ramps2d,
@@ -65,6 +67,7 @@ __all__ = [
     "lattice",
     "make_scene",
     "pad_boundary",
+    "paddle3d_spec",
     "sand2d",
     "sand3d",
     "sand_ramps2d",

@@ -20,6 +20,7 @@ water3d         4096   800   1–3 water blocks
 sand3d          4096   350   1–3 sand blocks
 dam_break2d     —      300   Martin & Moyce (1952) column (deterministic)
 dam_break3d     —      300   its 3D twin across the box (ours, deterministic)
+paddle3d        —      300   dam_break3d with a paddle the surge hits (ours, deterministic)
 =============== ====== ===== =========================================
 """
 
@@ -51,6 +52,8 @@ PAPER_FRAMES = {
     "water_columns2d": 400,
     # not in the paper: the page's 3D scene, 0.75 s (the surge reaches the far wall at about 0.4 s)
     "dam_break3d": 300,
+    # not in the paper: the page's default 3D scene, the same 0.75 s (the surge reaches the paddle at about 0.16 s)
+    "paddle3d": 300,
 }
 
 #: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
@@ -334,6 +337,34 @@ def dam_break3d_spec(seed: int = 0, frames: int | None = None, n_grid: int = DAM
     return _spec("dam_break3d", seed, params, [block], frames, a=a, x_wall=wall, y_floor=wall, z_walls=[wall, 1.0 - wall], spacing=dx / 2)
 
 
+def paddle3d_spec(seed: int = 0, frames: int | None = None, n_grid: int = DAM_BREAK3D_N_GRID, a_cells: int = DAM_BREAK3D_A_CELLS) -> SceneSpec:
+    """:func:`dam_break3d_spec`'s water column (the same grid, particles,
+    hydrostatic release and frictionless walls) with one box obstacle
+    downstream of it: a paddle standing on the floor, 2 cells thick in x, as
+    tall as the column (``2a``) and ``2a`` wide across z, centred in z, its
+    upstream face ``2a`` from the x- wall (``a`` clear of the column's face).
+    The surge hits it about 0.16 s after the release and flows round both
+    sides of it (and, in the page, a person drags it through the water:
+    docs/page.md). The paddle is frictionless and ``separate`` like the
+    walls, with the particle projection on. Default (34³ grid, ``a`` = 7
+    cells = 0.206 m): the paddle is 0.059 × 0.412 × 0.412 m, centred at
+    (0.5, 0.265, 0.5) m; 23,520 water particles and 1,784 boundary
+    particles (GNS type 3) on it. ``seed`` is unused (the scene is
+    deterministic).
+
+    ``info`` holds :func:`dam_break3d_spec`'s (``a``, ``x_wall``,
+    ``y_floor``, ``z_walls``, ``spacing``, all [m]). Raises
+    :class:`InvalidInputError` naming ``a_cells`` as :func:`dam_break3d_spec`
+    does (the paddle fits wherever the column's surge does: ``2a + 2dx < 4.2a``).
+    """
+    column = dam_break3d_spec(seed=seed, n_grid=n_grid, a_cells=a_cells)
+    params, info = column.params, dict(column.info)
+    dx = 1.0 / n_grid
+    wall, a = info["x_wall"], info["a"]
+    params.colliders = [Box(center=[wall + 2 * a + dx, wall + a, 0.5], half_extents=[dx, a, a], friction=params.walls.friction)]
+    return _spec("paddle3d", seed, params, column.blocks, frames, **{k: v for k, v in info.items() if k != "seed"})
+
+
 #: Registered domains: name → seeded spec generator ``f(seed, frames=None, **kw) -> SceneSpec``.
 DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "water2d": water2d,
@@ -346,6 +377,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "sand3d": sand3d,
     "dam_break2d": dam_break2d_spec,
     "dam_break3d": dam_break3d_spec,
+    "paddle3d": paddle3d_spec,
 }
 
 

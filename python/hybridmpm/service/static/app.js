@@ -1,7 +1,7 @@
 // hybridmpm page: live particles over a binary WebSocket drawn with WebGL2 (render.js; Canvas2D where
 // WebGL2 is missing), sketches with mouse or pen, downloads. No build step, no CDN. Test hook: window.__hmpm.
 
-import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayPlane } from "./render.js";
+import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
 import { encodeGif } from "./gif.js";
 
 const HEADER_BYTES = 32;
@@ -11,7 +11,7 @@ const GIF_SIZE = 320;                // pixels
 // a 3D arrow's depth travels as its width (control/sketch.py: wider = nearer the viewer, +z)
 const WIDTH_MIN = 0.006, WIDTH_MAX = 0.024, WIDTH_FLAT = 0.015, DEPTH_FLAT = 0.005;
 const INK = "#d1245a", PLAN = "#0b7a4b";
-const DEFAULT_3D = "dam_break3d";      // the page's scene where WebGL2 draws 3D (a body of water, 23,520 particles)
+const DEFAULT_3D = "paddle3d";         // the page's scene where WebGL2 draws 3D (the dam break's 23,520 particles, a paddle to drag)
 
 const params = new URLSearchParams(location.search);
 const bench = params.get("bench") === "1";    // draw every animation frame (and turn a 3D camera): frames/s
@@ -119,7 +119,7 @@ async function loadScenes() {
     sel.appendChild(o);
     sceneSolvers[s.name] = s.solvers;
   }
-  // the default scene: the 3D dam break where WebGL2 draws 3D, the 2D water blocks on the Canvas2D fallback (an x–y view)
+  // the default scene: the 3D dam break with its paddle where WebGL2 draws 3D, the 2D water blocks on the Canvas2D fallback (an x–y view)
   const fallback = renderer.kind === "webgl2" && sceneSolvers[DEFAULT_3D] ? DEFAULT_3D : "water2d";
   sel.value = params.get("scene") || fallback;
   $("seed").value = params.get("seed") || "0";
@@ -164,7 +164,7 @@ async function newSession() {
   hook.camera = renderer.camera;
   for (const el of document.querySelectorAll(".only3d")) el.hidden = !is3D();
   for (const el of document.querySelectorAll(".only2d")) el.hidden = is3D();
-  if ((!is3D() && tool() === "turn") || (is3D() && tool() === "drag")) document.querySelector("input[name=tool][value=arrow]").checked = true;
+  if (!is3D() && tool() === "turn") document.querySelector("input[name=tool][value=arrow]").checked = true;
   $("r-n").textContent = `${session.num_fluid} fluid + ${session.num_particles - session.num_fluid} boundary`;
   $("apply").disabled = false;
   $("dl-npz").href = `/v1/sessions/${session.id}/trajectory`;
@@ -359,12 +359,14 @@ function addSamples(ev) {
   for (const e of evs.length ? evs : [ev]) { const p = toWorld(e.clientX, e.clientY); if (p) stroke.push(p); }
 }
 // ---------------------------------------------------------------- the drag tool: move an obstacle through the fluid
-// Pointer down inside an obstacle's outline (2D: boxes and spheres, a few pixels of slack) grabs it; the pointer's
-// moves go to the server as PUT /v1/sessions/{id}/obstacles/{i} with the new centre, at most one every
-// MOVE_EVERY_MS and one at a time (the latest position wins: each reaches the centre over the next coarse step);
-// pointer up sends the last one and lets go. The session plays while dragging (a paused one pauses again after).
+// Pointer down on an obstacle (boxes and spheres, a few pixels of slack; 2D: inside its outline, 3D: the first one
+// the pointer's ray from the camera meets) grabs it. The pointer's moves move it in a plane: 2D the domain's x–y,
+// 3D the horizontal plane through the point grabbed (its y stays). They go to the server as
+// PUT /v1/sessions/{id}/obstacles/{i} with the new centre, at most one every MOVE_EVERY_MS and one at a time (the
+// latest position wins: each reaches the centre over the next coarse step); pointer up sends the last one and lets
+// go. The session plays while dragging (a paused one pauses again after).
 const MOVE_EVERY_MS = 50, GRAB_SLACK_PX = 6, OBSTACLE_SPEED_MAX = 50; // m/s, the solver's limit (mpm/motion.py)
-let grab = null;             // {index, offset: centre − pointer, target, sent, timer}
+let grab = null;             // {index, axes, y, offset: centre − pointer, target, sent, timer}
 let moveInFlight = false;
 let resumeAfter = null;      // frame after which a session paused before the drag is paused again
 
@@ -383,9 +385,30 @@ function obstacleAt(p) {
   }
   return -1;
 }
-function clampCenter(c) { // inside the walls: the server refuses a centre out of the domain
+// 3D: the obstacle the pointer's ray meets first, and where ({index, point}), or null
+function obstacleHit(clientX, clientY) {
+  const obs = (session && session.obstacles) || [], r = inkCanvas.getBoundingClientRect(), M = matrices();
+  const ray = pixelRay(M, clientX - r.left, clientY - r.top, r.width, r.height);
+  let best = null;
+  obs.forEach((ob, i) => {
+    if (ob.shape !== "box" && ob.shape !== "sphere") return; // meshes are not draggable
+    const far = Math.hypot(...[0, 1, 2].map((d) => ob.center[d] - M.eye[d]));
+    const slack = (2 * GRAB_SLACK_PX * far) / (M.proj[5] * Math.max(1, r.height)); // the pixels' size at its distance
+    const t = rayObstacle(ray, ob, slack);
+    if (t !== null && (!best || t < best.t)) best = { index: i, t, point: ray.origin.map((o, d) => o + t * ray.dir[d]) };
+  });
+  return best;
+}
+// Where the pointer is in the grab's plane: 2D the domain's x–y; 3D on the horizontal plane at height y (null where
+// its ray misses the plane: above the horizon)
+function grabPointer(ev, y) {
+  if (!is3D()) return toDomain(ev.clientX, ev.clientY);
+  const r = inkCanvas.getBoundingClientRect();
+  return rayPlane(pixelRay(matrices(), ev.clientX - r.left, ev.clientY - r.top, r.width, r.height), [0, y, 0], [0, 1, 0]);
+}
+function clampCenter(c, axes) { // the moved axes inside the walls: the server refuses a centre out of the domain
   const [lo, hi] = bounds(), t = (session && session.wall_thickness) || 0;
-  return c.map((x, d) => (d < 2 ? Math.max(lo[d] + t, Math.min(hi[d] - t, x)) : x));
+  return c.map((x, d) => (axes.includes(d) ? Math.max(lo[d] + t, Math.min(hi[d] - t, x)) : x));
 }
 async function sendMove() {
   if (!grab || moveInFlight || !session) return;
@@ -410,22 +433,24 @@ async function sendMove() {
   } finally { moveInFlight = false; }
 }
 function finishGrab() { clearInterval(grab.timer); grab = null; hook.grabbed = null; }
-function startGrab(ev, index) {
-  const p = toDomain(ev.clientX, ev.clientY), ob = session.obstacles[index];
+function startGrab(ev, index, point) { // point: where it was grabbed (the pointer, in 2D; the ray's hit, in 3D)
+  const ob = session.obstacles[index], axes = is3D() ? [0, 2] : [0, 1];
   inkCanvas.setPointerCapture(ev.pointerId);
-  grab = { index, offset: [ob.center[0] - p[0], ob.center[1] - p[1]], at: ob.center.slice(), target: null, sent: null,
-    waitFrame: -1, released: false, timer: setInterval(sendMove, MOVE_EVERY_MS / 5) };
+  grab = { index, axes, y: point[1], offset: axes.map((d) => ob.center[d] - point[d]), at: ob.center.slice(), target: null,
+    sent: null, waitFrame: -1, released: false, timer: setInterval(sendMove, MOVE_EVERY_MS / 5) };
   hook.grabbed = index;
   if (!playing && ws && ws.readyState === 1) { ws.send(JSON.stringify({ type: "play" })); resumeAfter = latest ? latest.frame : 0; }
   setStatus(`dragging obstacle ${index}${playing ? "" : " (playing while you drag)"}`);
 }
 function moveGrab(ev) {
   if (grab.released) return;
-  const now = performance.now(), p = toDomain(ev.clientX, ev.clientY), ob = session.obstacles[grab.index];
-  const c = clampCenter([p[0] + grab.offset[0], p[1] + grab.offset[1], ...ob.center.slice(2)]);
-  ob.center = c; dirty = true; // drawn under the pointer at once; the server follows
-  grab.pending = c;
-  if (!grab.lastTake || now - grab.lastTake >= MOVE_EVERY_MS) { grab.target = c; grab.lastTake = now; } // throttled, latest wins
+  const now = performance.now(), p = grabPointer(ev, grab.y), ob = session.obstacles[grab.index];
+  if (!p) return; // the ray misses the drag plane: the obstacle stays where it was last drawn
+  const c = ob.center.slice();
+  grab.axes.forEach((d, k) => { c[d] = p[d] + grab.offset[k]; });
+  ob.center = clampCenter(c, grab.axes); dirty = true; // drawn under the pointer at once; the server follows
+  grab.pending = ob.center;
+  if (!grab.lastTake || now - grab.lastTake >= MOVE_EVERY_MS) { grab.target = ob.center; grab.lastTake = now; } // throttled, latest wins
   else {
     clearTimeout(grab.take);
     grab.take = setTimeout(() => { if (grab && !grab.released) { grab.target = grab.pending; grab.lastTake = performance.now(); } }, MOVE_EVERY_MS);
@@ -450,11 +475,11 @@ async function refreshObstacles() {
 
 inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
-  if (!is3D() && tool() === "drag" && session) {
+  if (tool() === "drag" && session && (ev.button === 0 || !is3D())) { // 3D: the other buttons turn the camera (below)
     if (ev.button !== 0 || grab) return;
-    const i = obstacleAt(toDomain(ev.clientX, ev.clientY));
-    if (i >= 0) startGrab(ev, i);
-    else setStatus((session.obstacles || []).length ? "no obstacle here: press on a ramp or a ball to drag it" : "this scene has no obstacle to drag");
+    const hit = is3D() ? obstacleHit(ev.clientX, ev.clientY) : { index: obstacleAt(toDomain(ev.clientX, ev.clientY)), point: toDomain(ev.clientX, ev.clientY) };
+    if (hit && hit.index >= 0) startGrab(ev, hit.index, hit.point);
+    else setStatus((session.obstacles || []).length ? "no obstacle here: press on a box or a ball to drag it" : "this scene has no obstacle to drag");
     return;
   }
   if (is3D() && (ev.button === 1 || ev.button === 2 || (ev.button === 0 && tool() === "turn"))) {

@@ -847,6 +847,30 @@ export function rayPlane(ray, point, n) {
   return [ray.origin[0] + t * ray.dir[0], ray.origin[1] + t * ray.dir[1], ray.origin[2] + t * ray.dir[2]];
 }
 
+// Where the ray first meets an obstacle grown by `slack` metres (a box with its rotation, a sphere): the distance
+// along the ray [m], or null (a miss, only behind the origin, or a mesh: never hit). 3D; the ray's dir is a unit vector.
+export function rayObstacle(ray, ob, slack = 0) {
+  const o = [0, 1, 2].map((d) => ray.origin[d] - (ob.center[d] || 0)), dir = ray.dir;
+  if (ob.shape === "sphere") {
+    const r = ob.radius + slack, b = dot(o, dir), disc = b * b - (dot(o, o) - r * r);
+    if (disc < 0) return null;
+    const s = Math.sqrt(disc), t = -b - s >= 0 ? -b - s : -b + s; // from inside: where the ray leaves it
+    return t >= 0 ? t : null;
+  }
+  if (ob.shape !== "box") return null;
+  const R = rotation(ob, 3); // columns: the box's axes; the slab test in the box's frame, Rᵀ (p − centre)
+  let t0 = 0, t1 = Infinity;
+  for (let k = 0; k < 3; k++) {
+    const ok = R[0][k] * o[0] + R[1][k] * o[1] + R[2][k] * o[2], dk = R[0][k] * dir[0] + R[1][k] * dir[1] + R[2][k] * dir[2];
+    const e = (ob.half_extents[k] || 0) + slack;
+    if (Math.abs(dk) < 1e-12) { if (Math.abs(ok) > e) return null; continue; }
+    const a = (-e - ok) / dk, b = (e - ok) / dk;
+    t0 = Math.max(t0, Math.min(a, b)); t1 = Math.min(t1, Math.max(a, b));
+    if (t0 > t1) return null;
+  }
+  return t0;
+}
+
 // The Canvas2D fallback (no WebGL2): particles as dots, 3D scenes as their x–y view (the controller's front view).
 export class Canvas2DRenderer {
   constructor(canvas) {
