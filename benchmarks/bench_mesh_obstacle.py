@@ -18,10 +18,18 @@ Runs (3D, 64³ grid, 200 frames, water block dropped from above):
 ``--project off`` runs the obstacles without the particle projection
 (``project = false``: the grid condition alone, as before it existed).
 
+``--frame-cost`` measures the projection's cost alone instead: the
+icosphere(4) obstacle and the analytic sphere, each with and without the
+projection, frames 40-100 of the sphere run on one thread, the four runs
+interleaved in one process ``--repeats`` times (each from its frame-40
+state); the fastest wall and CPU (``time.process_time``) time per frame of
+each, and the ratios with/without.
+
 Usage::
 
     python benchmarks/bench_mesh_obstacle.py [--n-grid 64] [--frames 200] [--project on|off] [--out runs/bench_mesh_obstacle.json]
         [--figure docs/img/mesh_obstacle_sdf.png]
+    python benchmarks/bench_mesh_obstacle.py --frame-cost [--repeats 5] [--out runs/mesh_obstacle_frame_cost.json]
 
 ``--figure`` also draws the slice z = 0.5 of the sampled signed distance of
 the icosphere(4) obstacle with the water particles within half a cell of
@@ -127,6 +135,39 @@ def bench_pair(mesh_ob: dict[str, Any], ana_ob: dict[str, Any], sdf_of: Any, n: 
     }
 
 
+def frame_cost(n: int, repeats: int, base: Path) -> dict[str, Any]:
+    """The projection's cost (see the module docstring): per run, the fastest
+    wall and CPU time per frame of frames 40-100 [ms] over ``repeats``
+    interleaved rounds, and the ratios with/without the projection."""
+    trimesh.creation.icosphere(subdivisions=4, radius=1.0).export(base / "sphere4.stl")
+    mesh = {"shape": "mesh", "path": "sphere4.stl", "center": CENTER, "scale": RADIUS}
+    sphere = {"shape": "sphere", "center": CENTER, "radius": RADIUS}
+    runs = {f"{name}_{'on' if proj else 'off'}": {**ob, "project": proj} for name, ob in (("mesh", mesh), ("analytic", sphere)) for proj in (True, False)}
+    sims = {}
+    for name, ob in runs.items():
+        sim = MpmSimulator(SceneSpec.from_dict(_scene([ob], n, 100), base_dir=base).build(), threads=1)
+        for _ in range(40):
+            sim.advance()
+        sims[name] = (sim, sim.state())
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, (sim, state) in sims.items():
+            sim.restore(state)
+            wall, cpu = time.perf_counter(), time.process_time()
+            for _ in range(60):
+                sim.advance()
+            times[name].append((1e3 * (time.perf_counter() - wall) / 60, 1e3 * (time.process_time() - cpu) / 60))
+    out: dict[str, Any] = {"n_grid": n, "frames": [40, 100], "repeats": repeats, "threads": 1}
+    for name, t in times.items():
+        out[name] = {"wall_ms_per_frame": min(w for w, _ in t), "cpu_ms_per_frame": min(c for _, c in t)}
+        print(f"{name:13s} wall {out[name]['wall_ms_per_frame']:6.1f} ms/frame  cpu {out[name]['cpu_ms_per_frame']:6.1f} ms/frame")
+    for name in ("mesh", "analytic"):
+        r = out[f"{name}_on"]["cpu_ms_per_frame"] / out[f"{name}_off"]["cpu_ms_per_frame"]
+        out[f"{name}_cpu_ratio_on_off"] = r
+        print(f"{name}: CPU time with/without the projection {r:.3f}")
+    return out
+
+
 def figure(path: Path, n: int, base: Path) -> None:
     import matplotlib
 
@@ -166,7 +207,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None)
     ap.add_argument("--project", choices=["on", "off"], default="on", help="the obstacles' particle projection")
+    ap.add_argument("--frame-cost", action="store_true", help="measure the projection's cost alone (module docstring)")
+    ap.add_argument("--repeats", type=int, default=5, help="--frame-cost: interleaved rounds")
     a = ap.parse_args()
+    if a.frame_cost:
+        with tempfile.TemporaryDirectory() as tmp:
+            cost = frame_cost(a.n_grid, a.repeats, Path(tmp))
+        if a.out is not None:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps(cost, indent=2))
+            print(f"wrote {a.out}")
+        return
     proj = a.project == "on"
     result: dict[str, Any] = {"n_grid": a.n_grid, "frames": a.frames, "project": proj, "sdf": bench_sdf(a.n_grid)}
     with tempfile.TemporaryDirectory() as tmp:

@@ -291,3 +291,213 @@ fn the_projection_step_of_a_sampled_shape_follows_the_analytic_one() {
         "worst interpolated error {worst_interp} cells"
     );
 }
+
+/// `f32` neighbours of `x`, `k` units in the last place away (k may be < 0).
+fn ulps(x: f32, k: i32) -> f32 {
+    if x == 0.0 {
+        return f32::from_bits(k.unsigned_abs()) * k.signum() as f32;
+    }
+    let b = x.to_bits() as i64 + if x > 0.0 { k as i64 } else { -(k as i64) };
+    f32::from_bits(b as u32)
+}
+
+/// The particle projection's quick test (`Reach::may_act` with a sampled
+/// shape's `ShallowCells`) leaves a particle alone only where the
+/// projection without it (the full step, `Shape::step_below`, within the
+/// shape's bounding ball) does: at random points in and around the grid, on
+/// the cells' sides and a few units in the last place from them, with the
+/// grid at its origin and moved; for shapes whose border samples are all
+/// ≥ 0 and ones cut by the grid's side (whose outside then goes to the full
+/// step). And it settles many points (else it would cost, not save).
+#[test]
+fn the_projections_quick_test_leaves_alone_only_what_the_full_step_does() {
+    // a power of two (1/cell exact: the product is the quotient) and not
+    for n in [64.0f32, 60.0] {
+        let cell = 1.0 / n;
+        let (sin, cos) = (-20.0f32).to_radians().sin_cos();
+        let sphere = Shape::<3>::Sphere {
+            center: SVector::from([0.5, 0.4, 0.5]),
+            radius: 0.15,
+        };
+        let plate = Shape::<3>::Box {
+            center: SVector::from([0.5, 0.45, 0.5]),
+            half_extents: SVector::from([0.25, 1.3 * cell, 0.2]),
+            rotation: SMatrix::<f32, 3, 3>::new(cos, -sin, 0.0, sin, cos, 0.0, 0.0, 0.0, 1.0),
+        };
+        // the sphere's nodes on the grid's lattice (i·cell) with a margin of
+        // samples around it; the plate's off the lattice, its ends beyond
+        // the grid's sides
+        let lattice = |x: f32| (x / cell).floor() * cell;
+        let sphere_origin = [lattice(0.3), lattice(0.2), lattice(0.3)];
+        let plate_origin = [0.3013, 0.3507, 0.3491];
+        let sphere = sample_with_normals(&sphere, sphere_origin, cell, [27, 27, 27]);
+        let plate = sample_with_normals(&plate, plate_origin, cell, [26, 12, 20]);
+        quick_test_agrees("sphere", &sphere, cell, 1);
+        sphere_threshold_on_cell_sides(&sphere, cell);
+        quick_test_agrees("plate", &plate, cell, 2);
+        // in 2D: a disc, and a rotated plate cut by the grid
+        let disc = Shape::<2>::Sphere {
+            center: SVector::from([0.5, 0.5]),
+            radius: 0.15,
+        };
+        let plate2 = Shape::<2>::Box {
+            center: SVector::from([0.5, 0.5]),
+            half_extents: SVector::from([0.3, 1.3 * cell]),
+            rotation: SMatrix::<f32, 2, 2>::new(cos, -sin, sin, cos),
+        };
+        let origin = [0.5 - 12.0 * cell + 1e-3, 0.5 - 12.0 * cell - 2e-3];
+        let disc = sample_with_normals(&disc, origin, cell, [25, 25]);
+        quick_test_agrees("disc", &disc, cell, 3);
+        let plate2 = sample_with_normals(&plate2, origin, cell, [25, 25]);
+        quick_test_agrees("2D plate", &plate2, cell, 4);
+        // outside the grid the quick test settles points where the border
+        // samples are ≥ 0; where the plate leaves the grid (its +x side), a
+        // point half a cell beyond the side, in the plate, goes to the step,
+        // which moves it
+        let depth = hybridmpm_mpm::collider::PROJECT_DEPTH_CELLS * cell;
+        let x = plate_origin[0] + 25.5 * cell;
+        for (shape, point, clear) in [
+            (
+                &sphere,
+                SVector::from([sphere_origin[0] - 0.5 * cell, 0.4, 0.5]),
+                true,
+            ),
+            (
+                &plate,
+                SVector::from([x, 0.45 + (x - 0.5) * sin / cos, 0.5]),
+                false,
+            ),
+        ] {
+            let shallow = hybridmpm_mpm::collider::ShallowCells::new(shape, depth).unwrap();
+            let col = Collider {
+                shape: shape.clone(),
+                condition: BoundaryCondition::Separate,
+                friction: 0.0,
+                project: true,
+            };
+            let reach = col.reach(depth, Some(&shallow));
+            assert_eq!(reach.may_act(&point), !clear);
+            assert_eq!(shape.step_below(&point, depth).is_some(), !clear);
+        }
+    }
+}
+
+/// The check of `the_projections_quick_test_leaves_alone_only_what_the_full_step_does`
+/// for one sampled shape (with normals) on a grid of spacing `cell`.
+fn quick_test_agrees<const D: usize>(name: &str, sampled: &Shape<D>, cell: f32, seed: u64)
+where
+    hybridmpm_mpm::Dim<D>: hybridmpm_mpm::DimOps<D>,
+{
+    let Shape::Sampled { dims, .. } = sampled else {
+        unreachable!()
+    };
+    let depth = hybridmpm_mpm::collider::PROJECT_DEPTH_CELLS * cell;
+    let shallow = hybridmpm_mpm::collider::ShallowCells::new(sampled, depth).unwrap();
+    let mut seed = seed;
+    let mut shift = SVector::<f32, D>::zeros();
+    shift[0] = 0.0123;
+    shift[1] = -0.0071;
+    for shift in [SVector::zeros(), shift] {
+        let mut col = Collider {
+            shape: sampled.clone(),
+            condition: BoundaryCondition::Separate,
+            friction: 0.0,
+            project: true,
+        };
+        let anchor = col.shape.anchor() + shift;
+        col.shape.set_anchor(anchor);
+        let reach = col.reach(depth, Some(&shallow));
+        // the projection without the quick test: the step where the
+        // shape's bounding ball holds the point
+        let r = col.shape.bounding_radius() * 1.001 + 1e-6;
+        let (centre, r2) = (col.shape.center(), r * r);
+        let (mut tried, mut settled) = (0usize, 0usize);
+        let mut check = |x: SVector<f32, D>| {
+            tried += 1;
+            if !reach.may_act(&x) {
+                settled += 1;
+                assert!(
+                    (x - centre).norm_squared() >= r2 || col.shape.step_below(&x, depth).is_none(),
+                    "{name}, cell {cell}, grid at {anchor:?}: the quick test leaves alone {x:?}, which the step moves"
+                );
+            }
+        };
+        // random points in the grid's box and two cells around it
+        for _ in 0..200_000 {
+            check(SVector::from_fn(|d, _| {
+                anchor[d] + (lcg(&mut seed) * (dims[d] + 3) as f32 - 2.0) * cell
+            }));
+        }
+        // on cells' sides (and the grid's), and a few ulps off them
+        for _ in 0..20_000 {
+            let mut x = SVector::<f32, D>::from_fn(|d, _| {
+                anchor[d] + lcg(&mut seed) * (dims[d] - 1) as f32 * cell
+            });
+            let d = (lcg(&mut seed) * D as f32) as usize % D;
+            let k = (lcg(&mut seed) * dims[d] as f32) as usize;
+            x[d] = anchor[d] + k as f32 * cell;
+            for off in [-3, -1, 0, 1, 3] {
+                let mut y = x;
+                y[d] = ulps(x[d], off);
+                check(y);
+            }
+        }
+        assert!(
+            settled * 4 > tried,
+            "{name}, cell {cell}: settled {settled} of {tried} points"
+        );
+    }
+}
+
+/// The quick test at the sampled sphere's projection threshold (about
+/// `depth` inside) on cells' sides, where the product and the quotient can
+/// name different cells: points on a side, at `R − depth ± 0.05` cells from
+/// the centre, and a few ulps off the side.
+fn sphere_threshold_on_cell_sides(sampled: &Shape<3>, cell: f32) {
+    let (centre, radius) = (SVector::<f32, 3>::from([0.5, 0.4, 0.5]), 0.15f32);
+    let depth = hybridmpm_mpm::collider::PROJECT_DEPTH_CELLS * cell;
+    let shallow = hybridmpm_mpm::collider::ShallowCells::new(sampled, depth).unwrap();
+    let col = Collider {
+        shape: sampled.clone(),
+        condition: BoundaryCondition::Separate,
+        friction: 0.0,
+        project: true,
+    };
+    let reach = col.reach(depth, Some(&shallow));
+    let anchor = col.shape.anchor();
+    let mut seed = 11u64;
+    let (mut tried, mut near) = (0usize, 0usize);
+    for _ in 0..50_000 {
+        // a side of the cells along axis d through a point of the sphere
+        let d = (lcg(&mut seed) * 3.0) as usize % 3;
+        let (e, f) = ((d + 1) % 3, (d + 2) % 3);
+        let r = radius - depth + (lcg(&mut seed) - 0.5) * 0.1 * cell;
+        let k = ((centre[d] - anchor[d] + (lcg(&mut seed) - 0.5) * 1.6 * r) / cell).round();
+        let mut x = centre;
+        x[d] = anchor[d] + k * cell;
+        // on the circle of radius r in the plane of the side
+        let rho2 = r * r - (x[d] - centre[d]).powi(2);
+        if rho2 <= 0.0 {
+            continue;
+        }
+        let a = lcg(&mut seed) * std::f32::consts::TAU;
+        x[e] = centre[e] + rho2.sqrt() * a.cos();
+        x[f] = centre[f] + rho2.sqrt() * a.sin();
+        for off in -4..=4 {
+            let mut y = x;
+            y[d] = ulps(x[d], off);
+            tried += 1;
+            let moves = col.shape.step_below(&y, depth).is_some();
+            near += moves as usize;
+            assert!(
+                reach.may_act(&y) || !moves,
+                "cell {cell}: the quick test leaves alone {y:?}, which the step moves"
+            );
+        }
+    }
+    // the points straddle the threshold
+    assert!(
+        near * 10 > tried && near * 10 < 9 * tried,
+        "{near} of {tried} moved"
+    );
+}

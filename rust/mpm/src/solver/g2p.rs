@@ -34,7 +34,7 @@ use nalgebra::{SMatrix, SVector};
 use super::grid::{EMPTY, unflatten};
 use super::team::RawSlice;
 use super::{Health, Solver};
-use crate::collider::PROJECT_DEPTH_CELLS;
+use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
 use crate::material::sand::{SandBatch, SandHealth, SandModel};
@@ -124,16 +124,18 @@ where
         // time (SIMD across particles, see `SandBatch`)
         let mut batch = SandBatch::new();
         // the colliders that project particles (`Collider::project`), each
-        // with its bounding ball and its velocity in this frame (None: at
-        // rest), at their poses at this substep's end
+        // with the region where it can act (`Collider::reach`) and its
+        // velocity in this frame (None: at rest), at their poses at this
+        // substep's end
+        let depth = PROJECT_DEPTH_CELLS * dx;
         let projecting: Vec<_> = self
             .colliders
             .iter()
             .zip(&self.collider_velocity)
-            .filter(|(col, _)| col.project)
-            .map(|(col, u)| (col, col.reach(), u.as_ref()))
+            .zip(&self.shallow)
+            .filter(|((col, _), _)| col.project)
+            .map(|((col, u), shallow)| (col, col.reach(depth, shallow.as_ref()), u.as_ref()))
             .collect();
-        let depth = PROJECT_DEPTH_CELLS * dx;
         for j in 0..outp.len() {
             let slot = sorted[lo_i + j] as usize;
             let id = self.ids[slot];
@@ -154,15 +156,9 @@ where
             for d in 0..D {
                 p.x[d] = p.x[d].max(lo).min(hi);
             }
-            if !projecting.is_empty() {
-                let mut moved = false;
-                for (col, reach, u) in &projecting {
-                    moved |= col.project_particle(reach, depth, &mut p.x, &mut p.v, *u);
-                }
-                if moved {
-                    for d in 0..D {
-                        p.x[d] = p.x[d].max(lo).min(hi);
-                    }
+            if !projecting.is_empty() && project(&projecting, &mut p.x, &mut p.v) {
+                for d in 0..D {
+                    p.x[d] = p.x[d].max(lo).min(hi);
                 }
             }
             let mut sand_full = false;
@@ -213,6 +209,24 @@ where
         std::mem::swap(&mut self.grid.keys, &mut self.grid.next_keys);
         std::mem::swap(&mut self.ids, &mut self.ids_next);
     }
+}
+
+/// The particle projection of each collider of `projecting` (with its
+/// reach and velocity, [`crate::Collider::project_particle`]) in turn, at
+/// `x` with velocity `v`; returns whether any moved the particle. Kept out of
+/// the particle loop (one call per particle where a collider projects), whose
+/// code it would otherwise crowd for every scene.
+#[inline(never)]
+fn project<const D: usize>(
+    projecting: &[(&Collider<D>, Reach<'_, D>, Option<&SVector<f32, D>>)],
+    x: &mut SVector<f32, D>,
+    v: &mut SVector<f32, D>,
+) -> bool {
+    let mut moved = false;
+    for (col, reach, u) in projecting {
+        moved |= col.project_particle(reach, x, v, *u);
+    }
+    moved
 }
 
 /// Runs the sand `batch` with time step `dt`, writes its lanes into `outp`

@@ -41,7 +41,7 @@ pub use crate::material::sand::drucker_prager_project;
 
 use nalgebra::SVector;
 
-use crate::collider::Collider;
+use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
 use crate::isa::Isa;
@@ -132,6 +132,10 @@ where
     /// for a collider that moves with a velocity other than zero (the others
     /// take the static boundary condition, bit for bit).
     collider_velocity: Vec<Option<SVector<f32, D>>>,
+    /// Each projecting sampled collider's [`ShallowCells`], made once (a
+    /// collider only translates): where its particle projection can act
+    /// ([`Collider::reach`]).
+    shallow: Vec<Option<ShallowCells>>,
     /// Particles in storage order: sorted by sparse block, then by id.
     particles: Vec<Particle<D>>,
     /// `ids[slot]`: the public index of the particle stored at `slot`.
@@ -218,9 +222,19 @@ where
         let (grid, stencil) = grid::new_grid::<D>(params.n_grid)?;
         let pool = build_pool(params.num_threads)?;
         let nc = colliders.len();
+        let depth = PROJECT_DEPTH_CELLS * params.dx();
+        let shallow = colliders
+            .iter()
+            .map(|c| {
+                c.project
+                    .then(|| ShallowCells::new(&c.shape, depth))
+                    .flatten()
+            })
+            .collect();
         Ok(Solver {
             params,
             colliders,
+            shallow,
             moves: vec![None; nc],
             collider_velocity: vec![None; nc],
             particles: Vec::new(),
