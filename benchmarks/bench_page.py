@@ -17,8 +17,8 @@ the largest of their first 30 seeds; the scenes cap at 4096) in the fluid and
 the particles looks, the simulation paused (rendering alone) and playing (the
 server simulating on the same cores), at the resolution software GL starts
 with (3/4 of a CSS pixel), at full resolution and (water) at half, the 2D
-dam break, and the page's default 3D scene, the 3D dam break (23,520
-particles; cases 10-15). The
+dam break, the 3D dam break (23,520 particles; cases 10-15) and the page's
+default 3D scene, paddle3d (the same water and a paddle; cases 16-19). The
 page's target is 50 frames/s. Playing, it also reports the simulation frames
 the session advanced per second while the page watched (the session's
 ``frame`` from ``GET /v1/sessions/{id}`` before and after).
@@ -108,13 +108,18 @@ CASES = [
     ("sand3d", 3, "fluid", False, 1.0),
     ("sand3d", 3, "fluid", True, 0.75),
     ("dam_break2d", 0, "fluid", True, 0.75),
-    # the page's default 3D scene: 23,520 particles
+    # the 3D dam break: 23,520 particles
     ("dam_break3d", 0, "fluid", False, 0.75),
     ("dam_break3d", 0, "fluid", True, 0.75),
     ("dam_break3d", 0, "particles", False, 0.75),
     ("dam_break3d", 0, "particles", True, 0.75),
     ("dam_break3d", 0, "fluid", False, 1.0),
     ("dam_break3d", 0, "fluid", True, 0.5),
+    # the page's default 3D scene: the 3D dam break's water and a paddle downstream
+    ("paddle3d", 0, "fluid", False, 0.75),
+    ("paddle3d", 0, "fluid", True, 0.75),
+    ("paddle3d", 0, "particles", False, 0.75),
+    ("paddle3d", 0, "particles", True, 0.75),
 ]
 
 

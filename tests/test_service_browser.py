@@ -510,6 +510,32 @@ def settled_frame(server, sid):
     raise AssertionError("the session keeps playing after the drag")
 
 
+def replay_without_drag(page, server, sid, want, c0, read):
+    """After a drag dropped obstacle 0 of session ``sid`` at ``want``: waits for the last ``obstacle`` event to
+    report it there and for the page to pause again (it was paused before the drag), checks the server's obstacle
+    lies within 0.01 m of ``want`` and the page draws it there, and reads the water (``read(server, sid)``); then resets the session (which puts
+    the obstacle back at ``c0``, checked), steps it as many frames over HTTP and reads the water again. Returns
+    (frames, the server's obstacle centre after the drag, water after the drag, water without it)."""
+    page.wait_for_function(
+        f"window.__hmpm.obstacleEvents.length && Math.hypot(...window.__hmpm.obstacleEvents.at(-1).center.map((x, d) => x - {[float(v) for v in want]}[d])) < 0.01",
+        timeout=10_000,
+    )
+    frames = settled_frame(server, sid)
+    assert page.locator("#play").text_content() == "play"
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        center = np.array(c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"][0])
+    assert np.abs(center - want).max() < 0.01, center
+    assert np.abs(np.array(page.evaluate("window.__hmpm.session.obstacles[0].center")) - center).max() < 0.01  # drawn there
+    dragged = read(server, sid)
+    page.click("#reset")
+    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        back = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"][0]
+    assert np.abs(np.array(back) - c0).max() < 1e-4, back
+    stepped(page, server, frames)
+    return frames, center, dragged, read(server, sid)
+
+
 def test_dragging_an_obstacle_through_the_water_pushes_it(server, browser):
     """The drag tool: the ramp of water_ramps2d (seed 0, at the right) grabbed with the mouse, pulled down to the
     floor and dragged left through the water that has pooled there, slowly (one pointer move per ~60 ms: the page
@@ -543,25 +569,9 @@ def test_dragging_an_obstacle_through_the_water_pushes_it(server, browser):
     page.wait_for_function("window.__hmpm.grabbed === null", timeout=20_000)
     moves = page.evaluate("window.__hmpm.obstacleMoves")
     assert len(moves) >= 10 and not [m for m in moves if "error" in m], moves
-    page.wait_for_function(
-        f"window.__hmpm.obstacleEvents.length && Math.hypot(window.__hmpm.obstacleEvents.at(-1).center[0] - {drop[0]}, window.__hmpm.obstacleEvents.at(-1).center[1] - {drop[1]}) < 0.01",
-        timeout=10_000,
-    )
-    frames = settled_frame(server, sid)  # paused again (the page was paused before the drag)
-    assert page.locator("#play").text_content() == "play"
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
-    assert np.abs(np.array(centers[0]) - drop).max() < 0.01, centers  # where it was dropped (the pointer's offset is 0)
-    dragged = fluid_centroid(server, sid)
-
-    # the same number of frames without the drag: reset (the ramp goes back), then stepped over HTTP
-    page.click("#reset")
-    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
-    assert np.abs(np.array(centers[0]) - c0).max() < 1e-4, centers
-    stepped(page, server, frames)
-    free = fluid_centroid(server, sid)
+    # the server's ramp ends where it was dropped (the pointer's offset is 0); then the same number of frames without
+    # the drag: reset (the ramp goes back), then stepped over HTTP
+    frames, _, dragged, free = replay_without_drag(page, server, sid, drop, c0, fluid_centroid)
     print(f"after {frames} frames: water centroid dragged {dragged.round(4)}, free {free.round(4)}, at the grab {water0.round(4)}")
     # the drag changed the flow: the same deterministic MPM without it ends elsewhere. How far, and which way, depends on
     # how many frames the real-time drag took and on the sloshing's phase thousands of frames on (one run: 0.058 m further
@@ -622,27 +632,11 @@ def test_dragging_the_paddle_through_the_water_in_3d(server, browser):
     page.wait_for_function("window.__hmpm.grabbed === null", timeout=20_000)
     moves = page.evaluate("window.__hmpm.obstacleMoves")
     assert len(moves) >= 10 and not [m for m in moves if "error" in m], moves
-    want = [float(drop[0]), float(c0[1]), float(drop[2])]  # the grip is the middle of the top face: the centre lies below it
-    page.wait_for_function(
-        f"window.__hmpm.obstacleEvents.length && Math.hypot(...window.__hmpm.obstacleEvents.at(-1).center.map((x, d) => x - {want}[d])) < 0.01",
-        timeout=10_000,
-    )
-    frames = settled_frame(server, sid)  # paused again (the page was paused before the drag)
-    assert page.locator("#play").text_content() == "play"
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
-    assert np.abs(np.array(centers[0]) - want).max() < 0.01 and abs(centers[0][1] - c0[1]) < 1e-6, centers  # y kept
-    assert np.abs(np.array(page.evaluate("window.__hmpm.session.obstacles[0].center")) - centers[0]).max() < 0.01  # drawn there
-    dragged = fluid_positions(server, sid)
-
-    # the same number of frames without the drag: reset (the paddle goes back), then stepped over HTTP
-    page.click("#reset")
-    page.wait_for_function("window.__hmpm.lastFrame === 0", timeout=10_000)
-    with httpx.Client(base_url=server.url, timeout=60) as c:
-        centers = c.get(f"/v1/sessions/{sid}").json()["obstacle_centers"]
-    assert np.abs(np.array(centers[0]) - c0).max() < 1e-4, centers
-    stepped(page, server, frames)
-    free = fluid_positions(server, sid)
+    want = np.array([drop[0], c0[1], drop[2]])  # the grip is the middle of the top face: the centre lies below it
+    # the server's paddle ends where it was dropped; then the same number of frames without the drag: reset (the
+    # paddle goes back), then stepped over HTTP
+    frames, center, dragged, free = replay_without_drag(page, server, sid, want, c0, fluid_positions)
+    assert abs(center[1] - c0[1]) < 1e-6, center  # y kept
 
     def inside(pos):  # water particles deeper than half a cell inside the paddle where it was dropped
         return int(np.all(np.abs(pos - want) < np.array(ob["half_extents"]) - 0.5 / session["n_grid"], axis=1).sum())
