@@ -50,6 +50,10 @@ class Scene:
     ``velocities`` float32 [N, D] [m/s]: the particles the MPM solver moves.
     ``boundary_positions`` float32 [B, D] [m]: static obstacle particles (GNS
     type 3) that only the network sees; MPM sees the colliders in ``params``.
+    ``boundary_obstacle`` int32 [B]: the obstacle (index in
+    ``params.colliders``) each boundary particle was sampled on, so that it
+    follows a moved obstacle in the frames; -1 for a particle of no obstacle,
+    which stays put (None: not known, and none moves).
     ``masses`` [N] kg and ``volumes`` [N] m^D override the solver defaults
     (density × (dx/2)^D) for downsampled scenes; ``volume_ratio`` [N] is the
     initial J (water at hydrostatic rest), or None for J = 1. ``frames`` is
@@ -74,6 +78,7 @@ class Scene:
     connectivity_radius: float = CONNECTIVITY_RADIUS
     spec: SceneSpec | None = None
     clusters: Clusters | None = None
+    boundary_obstacle: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -110,6 +115,7 @@ class Scene:
             self.particle_type(),
             np.asarray(self.material, np.int32),
             np.asarray(masses, np.float32),
+            None if self.boundary_obstacle is None else np.asarray(self.boundary_obstacle, np.int32),
         )
 
     def make_solver(self, num_threads: int | None = None) -> MpmSolver:

@@ -21,8 +21,8 @@ the field as the scene file spells it (``obstacles[i].center``,
 which call obstacles ``colliders`` (:func:`obstacles_error`).
 
 :func:`collider_sdf` is the signed distance the solver sees and
-:func:`boundary_particles` the network's static boundary particles (GNS
-type 3) on a shell inside each surface.
+:func:`sample_boundary` the network's static boundary particles (GNS
+type 3) on a shell inside each surface, with the obstacle each belongs to.
 
 :mod:`hybridmpm.scenes.spec` imports this module, never the reverse; the
 small checks both use (:func:`check_vec`, :func:`is_number`) live here.
@@ -244,16 +244,22 @@ def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:
     return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
 
 
-def boundary_particles(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> np.ndarray:
-    """Static boundary particles (GNS type 3) for the obstacles: float32 [B, D].
+def sample_boundary(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> tuple[np.ndarray, np.ndarray]:
+    """Static boundary particles (GNS type 3) for the obstacles and the
+    obstacle each lies on: float32 [B, D] [m] and int32 [B] (the index in
+    ``colliders``, which follow in order: obstacle 0's particles first).
 
     A lattice at ``spacing`` [m] in each obstacle's own frame, kept where it lies
     within one spacing inside the surface (a shell one particle thick; a thin
     ramp is filled); for a mesh (:class:`~hybridmpm.mpm.params.SampledSdf`) a
     lattice over its sampled box, kept where ``-spacing < sdf <= 0``. Points outside ``[dx, 1 − dx]^D`` are dropped (they are in
     the walls, which the network sees through its wall-distance features).
+    The one place that knows which obstacle a boundary particle belongs to
+    (a moved obstacle's particles follow it: :meth:`~hybridmpm.scenes.ParticleSet.pad`).
+    Raises :class:`InvalidInputError` (field ``colliders[i]``) for a lattice over the memory limit.
     """
     out = [np.zeros((0, dim), np.float32)]
+    owner = [np.zeros(0, np.int32)]
     for i, c in enumerate(colliders):
         if isinstance(c, SampledSdf):  # the same shell, found by the sampled signed distance
             lo = np.asarray(c.origin, np.float64)
@@ -263,26 +269,30 @@ def boundary_particles(colliders: Sequence[Collider], dim: int, spacing: float, 
             p = lattice(lo, hi, spacing).astype(np.float64)
             sdf = obstacle_mesh.sampled_sdf(c, p)
             p = p[(sdf <= 0) & (sdf > -spacing)]
-            inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
-            out.append(p[inside].astype(np.float32))
-            continue
-        extent = 2.0 * np.full(dim, float(c.radius)) if isinstance(c, Sphere) else 2.0 * np.abs(np.asarray(c.half_extents, np.float64))
-        n = float(np.prod(np.maximum(np.round(extent / spacing), 1)))
-        check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
-        center = np.asarray(c.center, np.float64)
-        if isinstance(c, Sphere):
-            r = float(c.radius)
-            p = lattice(center - r, center + r, spacing).astype(np.float64)
-            d = np.linalg.norm(p - center, axis=1)
-            p = p[(d <= r) & (d > r - spacing)]
         else:
-            h = np.asarray(c.half_extents, np.float64)
-            local = lattice(-h, h, spacing).astype(np.float64)
-            shell = np.any(np.abs(local) > h - spacing, axis=1)
-            p = center + local[shell] @ _rotation(c, dim).T
+            extent = 2.0 * np.full(dim, float(c.radius)) if isinstance(c, Sphere) else 2.0 * np.abs(np.asarray(c.half_extents, np.float64))
+            n = float(np.prod(np.maximum(np.round(extent / spacing), 1)))
+            check_allocation(f"colliders[{i}]", n * BYTES_PER_PARTICLE, f"sampling its boundary particles ({n:.3g} lattice points at spacing {spacing:.3g} m)")
+            center = np.asarray(c.center, np.float64)
+            if isinstance(c, Sphere):
+                r = float(c.radius)
+                p = lattice(center - r, center + r, spacing).astype(np.float64)
+                d = np.linalg.norm(p - center, axis=1)
+                p = p[(d <= r) & (d > r - spacing)]
+            else:
+                h = np.asarray(c.half_extents, np.float64)
+                local = lattice(-h, h, spacing).astype(np.float64)
+                shell = np.any(np.abs(local) > h - spacing, axis=1)
+                p = center + local[shell] @ _rotation(c, dim).T
         inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
         out.append(p[inside].astype(np.float32))
-    return np.concatenate(out)
+        owner.append(np.full(int(inside.sum()), i, np.int32))
+    return np.concatenate(out), np.concatenate(owner)
+
+
+def boundary_particles(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> np.ndarray:
+    """The positions of :func:`sample_boundary`: float32 [B, D] [m]."""
+    return sample_boundary(colliders, dim, spacing, dx)[0]
 
 
 __all__ = [
@@ -300,4 +310,5 @@ __all__ = [
     "obstacles_on_grid",
     "place_obstacles",
     "read_obstacles",
+    "sample_boundary",
 ]

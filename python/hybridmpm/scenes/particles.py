@@ -5,7 +5,10 @@ trajectory file stores, what a renderer draws) lists the ``N`` fluid particles
 — the ones MPM moves, in solver order — and then the ``B`` static boundary /
 obstacle particles (GNS type :data:`~hybridmpm.conventions.GNS_KINEMATIC`)
 that only the network sees. :class:`ParticleSet` is the one place that pads
-fluid arrays with the boundary and slices them back.
+fluid arrays with the boundary and slices them back. The network always sees
+the boundary where the scene put it; a frame of a simulator whose obstacles
+moved pads with each obstacle's particles translated with it
+(:meth:`ParticleSet.pad`'s ``offsets``).
 """
 
 from __future__ import annotations
@@ -33,9 +36,14 @@ def pad_boundary(fluid: np.ndarray, boundary: np.ndarray | None) -> np.ndarray:
 class ParticleSet:
     """Fluid particles followed by static boundary particles.
 
-    ``num_fluid`` N; ``boundary`` float32 [B, D] [m] (B may be 0);
-    ``particle_type`` int64 [N + B] (GNS codes); ``material`` int32 [N]
-    (solver codes); ``masses`` float32 [N] [kg] as the solver resolved them.
+    ``num_fluid`` N; ``boundary`` float32 [B, D] [m] (B may be 0) where the
+    scene put the obstacles; ``particle_type`` int64 [N + B] (GNS codes);
+    ``material`` int32 [N] (solver codes); ``masses`` float32 [N] [kg] as the
+    solver resolved them; ``boundary_obstacle`` int32 [B]: the obstacle each
+    boundary particle lies on (its index in the scene's colliders; -1: none),
+    or None when not known (the boundary then never moves). Raises
+    :class:`InvalidInputError` (field ``boundary_obstacle``) for another shape
+    or an index below -1.
     """
 
     num_fluid: int
@@ -43,6 +51,17 @@ class ParticleSet:
     particle_type: np.ndarray
     material: np.ndarray
     masses: np.ndarray
+    boundary_obstacle: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        owner = self.boundary_obstacle
+        if owner is not None and (
+            np.shape(owner) != (self.num_boundary,) or not np.issubdtype(np.asarray(owner).dtype, np.integer) or np.any(np.asarray(owner) < -1)
+        ):
+            raise InvalidInputError(
+                f"boundary_obstacle: expected {self.num_boundary} obstacle indices >= -1, got {np.asarray(owner).dtype} {list(np.shape(owner))}",
+                "boundary_obstacle",
+            )
 
     @property
     def num_boundary(self) -> int:
@@ -62,14 +81,38 @@ class ParticleSet:
         """bool [N + B]: True for fluid particles."""
         return np.asarray(self.particle_type != GNS_KINEMATIC)
 
-    def pad(self, fluid: Any) -> np.ndarray:
+    def pad(self, fluid: Any, offsets: Any = None) -> np.ndarray:
         """Fluid positions ``[..., N, D]`` → all particles ``[..., N + B, D]`` float32
-        (the boundary appended, broadcast over leading axes). Raises
-        :class:`InvalidInputError` (field ``positions``) for another particle count."""
+        (the boundary appended, broadcast over leading axes), with the
+        boundary of :meth:`boundary_at` ``offsets``. Raises
+        :class:`InvalidInputError` (field ``positions``) for another particle
+        count, or what :meth:`boundary_at` raises."""
         x = np.asarray(fluid, dtype=np.float32)
         if x.ndim < 2 or x.shape[-2] != self.num_fluid or x.shape[-1] != self.dim:
             raise InvalidInputError(f"positions: expected [..., {self.num_fluid}, {self.dim}] fluid positions, got {list(x.shape)}", "positions")
-        return pad_boundary(x, self.boundary)
+        return pad_boundary(x, self.boundary_at(offsets))
+
+    def boundary_at(self, offsets: Any = None) -> np.ndarray:
+        """The boundary particles with each obstacle moved: float32 [B, D] [m].
+
+        ``offsets`` float [C, D] [m]: each obstacle's displacement from where
+        the scene put it (current centre − scene centre; obstacles translate,
+        they do not rotate). A particle of obstacle ``i`` moves by
+        ``offsets[i]`` (added in float64); particles of no obstacle, and all of
+        them when ``boundary_obstacle`` is None, stay put. None or all zeros
+        returns :attr:`boundary` itself (no copy). Raises
+        :class:`InvalidInputError` (field ``offsets``) for a shape other than
+        [C, D] with C above every obstacle index, or a non-finite offset."""
+        owner = self.boundary_obstacle
+        if offsets is None or owner is None or self.num_boundary == 0:
+            return self.boundary
+        off = np.asarray(offsets, np.float64)
+        if off.ndim != 2 or off.shape[1] != self.dim or len(off) <= int(owner.max()) or not np.all(np.isfinite(off)):
+            raise InvalidInputError(f"offsets: expected finite [C, {self.dim}] displacements with C > {int(owner.max())}, got {list(off.shape)}", "offsets")
+        if not np.any(off):
+            return self.boundary
+        shift = np.where((owner >= 0)[:, None], off[np.maximum(owner, 0)], 0.0)
+        return (self.boundary.astype(np.float64) + shift).astype(np.float32)
 
     def fluid(self, positions: Any) -> np.ndarray:
         """All particles ``[..., N + B, D]`` (or already fluid-only ``[..., N, D]``)

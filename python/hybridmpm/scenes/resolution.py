@@ -169,7 +169,9 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
     Materials are clustered separately; each cluster particle gets its members'
     summed mass [kg] and rest volume [m^D], their mass-weighted centroid and
     mean velocity (momentum conserved) and volume-weighted mean J. Boundary
-    particles (static) are clustered with the same ``r_p``. ``r_p = 1`` returns
+    particles (static) are clustered with the same ``r_p``; a merged boundary
+    particle belongs to the obstacle most of its members lie on (the lowest
+    index on a tie; ``Scene.boundary_obstacle``). ``r_p = 1`` returns
     the scene unchanged (identity labels). ``clusters`` (the low-resolution
     scene's :attr:`~hybridmpm.scenes.Scene.clusters` from an earlier call
     with the same scene and ``r_p``) skips the k-means: the same scene comes
@@ -200,12 +202,17 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
     j_l = None
     if scene.volume_ratio is not None:
         j_l = (cluster_sums(np.asarray(scene.volume_ratio, np.float64) * volumes, labels, k) / v_l).astype(np.float32)
-    boundary_l = scene.boundary_positions
+    boundary_l, owner_l = scene.boundary_positions, scene.boundary_obstacle
     b_labels = np.zeros(0, np.int64)
     if scene.num_boundary:
         assert scene.boundary_positions is not None
         b_labels = clusters.boundary_labels if clusters is not None else cluster_particles(scene.boundary_positions, r_p, seed=seed)
         boundary_l = cluster_centroids(scene.boundary_positions, b_labels)
+        if scene.boundary_obstacle is not None:  # each cluster's obstacle: its members' most common one
+            owner = np.asarray(scene.boundary_obstacle, np.int64) + 1  # -1 (no obstacle) counts as 0
+            counts = np.zeros((int(b_labels.max()) + 1, int(owner.max()) + 1), np.int64)
+            np.add.at(counts, (b_labels, owner), 1)
+            owner_l = (counts.argmax(axis=1) - 1).astype(np.int32)
     low = replace(
         scene,
         positions=pos_l,
@@ -215,6 +222,7 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
         volumes=v_l.astype(np.float32),
         volume_ratio=j_l,
         boundary_positions=boundary_l,
+        boundary_obstacle=owner_l,
         info={**scene.info, "r_p": r_p, "n_h": n, "cluster_seed": int(seed)},
         clusters=Clusters(labels.astype(np.int32), b_labels.astype(np.int32)),
     )

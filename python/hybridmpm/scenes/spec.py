@@ -92,6 +92,7 @@ from hybridmpm.scenes.obstacles import (
     obstacles_on_grid,
     place_obstacles,
     read_obstacles,
+    sample_boundary,
 )
 from hybridmpm.scenes.obstacles import _rotation as _rotation  # hybridmpm.render.usd imports it from here
 
@@ -487,7 +488,7 @@ class SceneSpec:
         if len(positions) == 0:
             raise InvalidInputError("blocks: no particle left after removing overlaps with obstacles and earlier blocks", "blocks")
         volume_ratio = np.concatenate(j_l)
-        boundary = boundary_particles(self.params.colliders, dim, s, dx)
+        boundary, owner = sample_boundary(self.params.colliders, dim, s, dx)
         # the solver's default volume is (dx/2)^D (2 particles per cell per axis); other lattices carry their own
         vol = np.concatenate(vol_l)
         volumes = None if self.particles_per_cell == 2 and np.all(vol == s**dim) else vol.astype(np.float32)
@@ -502,6 +503,7 @@ class SceneSpec:
             info={**self.info, "dropped_particles": dropped} if dropped else dict(self.info),
             volume_ratio=None if np.all(volume_ratio == 1.0) else volume_ratio,
             boundary_positions=boundary if len(boundary) else None,
+            boundary_obstacle=owner if len(boundary) else None,
             connectivity_radius=self.connectivity_radius,
             spec=self,
             volumes=volumes,

@@ -55,7 +55,8 @@ class Frame:
 
     ``step`` coarse step index (0 = initial condition); ``frame_index`` frame
     number (``step·r_t``); ``time`` [s]; ``positions`` float32 [N + B, D] [m] (fluid,
-    then static boundary particles; see :class:`~hybridmpm.scenes.ParticleSet`);
+    then boundary particles, each obstacle's at its current pose; see
+    :class:`~hybridmpm.scenes.ParticleSet`);
     ``solver`` "mpm" or "neural" (the one that produced these positions);
     ``seconds`` wall time of the step; ``score`` the safeguard ``s(t)`` after
     the step (nan where not computed); ``event`` None or what happened

@@ -85,7 +85,8 @@ an obstacle as static boundary particles where the scene put it. While an
 obstacle moves in a step (a keyframed path, :meth:`HybridSimulator.move_obstacle`)
 or stands anywhere else, the hybrid runs MPM, as for a forcing; once every
 obstacle is back where the scene put it and still, the ``dwell`` rule
-applies again.
+applies again. The frames' boundary particles stand at each obstacle's
+current pose (MPM's :attr:`~hybridmpm.sim.MpmSimulator.obstacle_offsets`).
 
 The hybrid composes an :class:`~hybridmpm.sim.mpm.MpmSimulator` and a
 :class:`~hybridmpm.sim.neural.NeuralSimulator` on the same particles (the
@@ -351,8 +352,9 @@ class HybridSimulator:
 
     @property
     def positions(self) -> np.ndarray:
-        """Current positions with boundary particles, float32 [N + B, D]."""
-        return self.particles.pad(self._buffer[-1])
+        """Current positions with boundary particles, float32 [N + B, D] (each
+        obstacle's at its current pose)."""
+        return self.particles.pad(self._buffer[-1], self.mpm.obstacle_offsets)
 
     @property
     def frame(self) -> Frame:
@@ -566,7 +568,7 @@ class HybridSimulator:
             self.step_index,
             self.step_index * self.r_t,
             self.step_index * self.dt_step,
-            self.particles.pad(pos),
+            self.particles.pad(pos, self.mpm.obstacle_offsets),
             ran,
             time.perf_counter() - t0,
             score,

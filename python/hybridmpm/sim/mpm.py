@@ -13,7 +13,8 @@ every obstacle given a :meth:`MpmSimulator.move_obstacle` for this step a
 share of the way to its target; the solver sweeps it there substep by
 substep and its boundary condition pushes the fluid with its velocity
 (:meth:`~hybridmpm.mpm.MpmSolver.move_collider`). A frame's time is
-``frame · dt_frame`` in float64.
+``frame · dt_frame`` in float64. Each obstacle's boundary particles in the
+frames move with it (:attr:`MpmSimulator.obstacle_offsets`).
 """
 
 from __future__ import annotations
@@ -125,8 +126,9 @@ class MpmSimulator:
 
     @property
     def positions(self) -> np.ndarray:
-        """Current positions with boundary particles, float32 [N + B, D]."""
-        return self.particles.pad(self.fluid_positions)
+        """Current positions with boundary particles, float32 [N + B, D] (each
+        obstacle's at its current pose: :attr:`obstacle_offsets`)."""
+        return self.particles.pad(self.fluid_positions, self.obstacle_offsets)
 
     @property
     def velocities(self) -> np.ndarray:
@@ -172,6 +174,19 @@ class MpmSimulator:
             if isinstance(c, SampledSdf):
                 out[i] = _reference(c) + (pos[i] - self._anchors0[i].astype(np.float64))
         return out.reshape(len(self._colliders), self.particles.dim)
+
+    @property
+    def obstacle_offsets(self) -> np.ndarray | None:
+        """Each obstacle's displacement from where the scene put it [m],
+        float64 ``[C, D]`` (the solver's float32 anchors' difference: exactly
+        0 for an obstacle that stands there), or None while none is away. A
+        frame's boundary particles of obstacle ``i`` are the scene's moved by
+        row ``i`` (:meth:`~hybridmpm.scenes.ParticleSet.pad`); obstacles
+        translate only, so this is the whole pose change."""
+        pos = self.solver.collider_positions
+        if np.array_equal(pos, self._anchors0):
+            return None
+        return pos.astype(np.float64) - self._anchors0.astype(np.float64)
 
     @property
     def obstacles_displaced(self) -> bool:
@@ -282,7 +297,7 @@ class MpmSimulator:
             self.step_index,
             self.step_index * self.r_t,
             self.step_index * self.dt_step,
-            self.particles.pad(pos),
+            self.particles.pad(pos, self.obstacle_offsets),
             MPM,
             time.perf_counter() - t0,
             mpm_retries=retries,
