@@ -42,7 +42,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, _is_sampled
-from hybridmpm.scenes.obstacles import _rotation
+from hybridmpm.scenes.obstacles import box_rotation
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -222,7 +222,7 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
     half = np.full(3, DEPTH_2D)
     half[:dim] = np.asarray(c.half_extents, np.float64)
     rot = np.eye(3)
-    rot[:dim, :dim] = _rotation(c, dim)
+    rot[:dim, :dim] = box_rotation(c, dim)
     m = np.eye(4)
     m[:3, :3] = (rot * half[None, :]).T  # row-vector convention: p' = p · M, columns of rot scaled by the half extents
     m[3, :3] = center

@@ -217,7 +217,10 @@ def check_vec(name: str, v: Any, dim: int, positive: bool = False) -> np.ndarray
     return a
 
 
-def _rotation(c: Box, dim: int) -> np.ndarray:
+def box_rotation(c: Box, dim: int) -> np.ndarray:
+    """A box's rotation matrix, float64 [D, D]: its ``rotation`` as given, a
+    2D box's ``angle_deg`` (counter-clockwise), or the identity. Columns are
+    the box's local axes in world coordinates, as the Rust colliders take them."""
     if c.rotation is not None:
         return np.asarray(c.rotation, np.float64)
     r = np.eye(dim)
@@ -238,7 +241,7 @@ def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:
     center = np.asarray(c.center, np.float64)
     if isinstance(c, Sphere):
         return np.asarray(np.linalg.norm(p - center, axis=1) - float(c.radius))
-    local = (p - center) @ _rotation(c, p.shape[1])
+    local = (p - center) @ box_rotation(c, p.shape[1])
     q = np.abs(local) - np.asarray(c.half_extents, np.float64)
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
     return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
@@ -283,7 +286,7 @@ def sample_boundary(colliders: Sequence[Collider], dim: int, spacing: float, dx:
                 h = np.asarray(c.half_extents, np.float64)
                 local = lattice(-h, h, spacing).astype(np.float64)
                 shell = np.any(np.abs(local) > h - spacing, axis=1)
-                p = center + local[shell] @ _rotation(c, dim).T
+                p = center + local[shell] @ box_rotation(c, dim).T
         inside = np.all((p >= dx) & (p <= 1.0 - dx), axis=1)
         out.append(p[inside].astype(np.float32))
         owner.append(np.full(int(inside.sum()), i, np.int32))
@@ -299,6 +302,7 @@ __all__ = [
     "MAX_OBSTACLES",
     "PendingObstacles",
     "boundary_particles",
+    "box_rotation",
     "check_obstacles_hold",
     "check_vec",
     "collider_sdf",

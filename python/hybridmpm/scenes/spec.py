@@ -94,7 +94,6 @@ from hybridmpm.scenes.obstacles import (
     read_obstacles,
     sample_boundary,
 )
-from hybridmpm.scenes.obstacles import _rotation as _rotation  # hybridmpm.render.usd imports it from here
 
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 

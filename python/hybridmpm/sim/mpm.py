@@ -183,6 +183,8 @@ class MpmSimulator:
         frame's boundary particles of obstacle ``i`` are the scene's moved by
         row ``i`` (:meth:`~hybridmpm.scenes.ParticleSet.pad`); obstacles
         translate only, so this is the whole pose change."""
+        if not self._colliders:
+            return None
         pos = self.solver.collider_positions
         if np.array_equal(pos, self._anchors0):
             return None
