@@ -2,7 +2,7 @@
 
 Every array that holds *all* particles (what the network reads, what a
 trajectory file stores, what a renderer draws) lists the ``N`` fluid particles
-— the ones MPM moves, in solver order — and then the ``B`` static boundary /
+— the ones MPM moves, in solver order — and then the ``B`` boundary /
 obstacle particles (GNS type :data:`~hybridmpm.conventions.GNS_KINEMATIC`)
 that only the network sees. :class:`ParticleSet` is the one place that pads
 fluid arrays with the boundary and slices them back. The network always sees
@@ -34,7 +34,7 @@ def pad_boundary(fluid: np.ndarray, boundary: np.ndarray | None) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ParticleSet:
-    """Fluid particles followed by static boundary particles.
+    """Fluid particles followed by boundary particles (on the obstacles, not simulated).
 
     ``num_fluid`` N; ``boundary`` float32 [B, D] [m] (B may be 0) where the
     scene put the obstacles; ``particle_type`` int64 [N + B] (GNS codes);

@@ -8,7 +8,7 @@ offset   type    field
 6        u8      dim (2 or 3)
 7        u8      flags: bit1 controlled, bit2 neural solver (bit0 reserved: quantised)
 8        u32     frame number (frames of ``dt_frame`` since the initial condition)
-12       u32     particle count ``n`` (fluid, then static boundary particles)
+12       u32     particle count ``n`` (fluid, then boundary particles)
 16       f64     simulated time [s]
 24       u8      solver: 0 MPM, 1 neural
 25       u8      controlled: 1 if a control forcing acted during the step

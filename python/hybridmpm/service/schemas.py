@@ -65,7 +65,7 @@ class SessionInfo(BaseModel):
     r_c: float
     dim: int
     num_fluid: int
-    num_particles: int = Field(description="fluid + static boundary particles (the rows of every positions array)")
+    num_particles: int = Field(description="fluid + boundary particles (the obstacles', not simulated; the rows of every positions array)")
     particle_type: list[int] = Field(description="GNS type per particle: 5 water, 6 sand, 3 boundary")
     bounds: list[list[float]] = Field(description="[[lo...], [hi...]] of the domain [m]")
     dt_frame: float
