@@ -5,8 +5,8 @@ the scene's grid (the reference), MPM at the paper's ``r_p`` on it, and MPM on
 the coarser grids of the bench (3/4 and 1/2 of the scene's, 2 particles per
 cell per axis; ramps scenes refuse them), each at ``r_p = 1`` and ``r_p``.
 Reports per configuration the mean ms per frame after a warm-up (the
-fastest of ``--repeats`` runs, default 2: frames of a few hundred µs move by
-±30% with the machine), particles,
+fastest of ``--repeats`` runs, default 2, taken round the configurations:
+frames of a few hundred µs move by ±30% with the machine), particles,
 substeps per frame, particles x substeps per frame (the work), and the mean
 grid-mass error against the reference; ratios to MPM at ``r_p`` in the same
 run. Writes ``OUT/grids.json``, ``OUT/grids.md`` and the chart
@@ -43,29 +43,33 @@ WARMUP = 24
 
 
 def run_scene(scene: str, seeds: list[int], frames: int, threads: int, repeats: int = 2) -> list[dict]:
+    """Every configuration of ``scene`` on every seed. The repeats go round the
+    configurations (all of them once, then again), so that a slow spell of
+    the machine lands on several configurations' runs, not on all of one's."""
     rows = []
     methods = [("mpm_full", None, 1.0), ("mpm_rp", None, PAPER_R_P)]
     methods += [(m.key, m.n_grid, m.r_p) for m in mpm_grid_methods(scene, PAPER_R_P, seeds[0])[0]]
     for seed in seeds:
         base = make_scene(scene, seed=seed)
-        ref = None
-        for key, n_grid, r_p in methods:
-            times = []
-            for _ in range(repeats):  # the same bits each time; the fastest mean is the least disturbed
+        times: dict[str, list[float]] = {key: [] for key, _, _ in methods}
+        runs: dict[str, tuple] = {}
+        for _ in range(repeats):  # the same bits each time; the fastest mean is the least disturbed
+            for key, n_grid, r_p in methods:
                 sim = MpmSimulator(base, r_p=r_p, n_grid=n_grid, seed=seed, threads=threads)
                 ro = rollout(sim, frames)
                 if ro.failure:
                     raise SystemExit(f"{scene} seed {seed} {key}: {ro.failure_detail}")
-                times.append(float(ro.frame_seconds(after=WARMUP).mean() * 1e3))
-            if ref is None:
-                ref = ro.fluid_positions
-            ms = min(times)
+                times[key].append(float(ro.frame_seconds(after=WARMUP).mean() * 1e3))
+                runs[key] = (sim, ro)
+        ref = runs[methods[0][0]][1].fluid_positions
+        for key, _, r_p in methods:
+            sim, ro = runs[key]
             subs = float(ro.substeps[1 + WARMUP :].mean())
             err = float(grid_mass_error(ro.fluid_positions, ref, base.params.resolved_n_grid()).mean())
             n = sim.scene.num_particles
             rows.append(
                 {"scene": scene, "seed": seed, "method": key, "n_grid": sim.scene.params.resolved_n_grid(), "r_p": r_p, "particles": n,
-                 "substeps_per_frame": subs, "work": n * subs, "ms_mean": ms, "error_mean": err}
+                 "substeps_per_frame": subs, "work": n * subs, "ms_mean": min(times[key]), "error_mean": err}
             )  # fmt: skip
     return rows
 
@@ -162,7 +166,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--frames", type=int, default=400)
     ap.add_argument("--threads", type=int, default=0)
-    ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration; its time is the fastest run's mean")
+    ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration, round the configurations; its time is the fastest run's mean")
     ap.add_argument("--out", default="benchmarks/results/grids")
     a = ap.parse_args()
     out = Path(a.out)
