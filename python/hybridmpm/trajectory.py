@@ -15,6 +15,10 @@ key                 dtype / shape   meaning
 ``n_grid``          int64 []        cells per dimension of the scene's grid (optional)
 ``masses``          float32 [N]     particle masses [kg] (optional, finite, >= 0)
 ``material``        int32 [N]       solver material codes, 0 water, 1 sand (optional)
+``obstacle_centers`` float64        each obstacle's centre [m] in every stored frame
+                    [T,C,D]         (optional: written when the scene has obstacles;
+                                    without it the obstacles stand where the scene
+                                    put them)
 anything else       any             kept in :attr:`Trajectory.extras`, saved as-is
 ==================  ==============  ======================================================
 """
@@ -35,7 +39,7 @@ from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
-RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material")
+RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material", "obstacle_centers")
 _REQUIRED_KEYS = ("positions", "particle_type", "dt_frame")
 
 
@@ -74,6 +78,11 @@ class Trajectory:
     extras:
         Further named arrays (e.g. ``one_step_positions``), saved and loaded
         as-is; names may not be one of :data:`RESERVED_KEYS`.
+    obstacle_centers:
+        float64 [T, C, D] [m], finite: each of the scene's ``C`` obstacles'
+        centre in every stored frame (:attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`;
+        the surfaces and the USD file place the obstacles there), or
+        ``None``: the obstacles stand where the scene put them.
 
     Construction validates and normalises every field and raises
     :class:`~hybridmpm.errors.InvalidInputError` naming the bad field.
@@ -86,6 +95,7 @@ class Trajectory:
     masses: np.ndarray | None = None
     material: np.ndarray | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    obstacle_centers: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pos = np.asarray(self.positions)
@@ -134,6 +144,18 @@ class Trajectory:
             if mat.dtype.kind not in "iu" or mat.shape != (n,):
                 raise InvalidInputError(f"material: expected an integer array of shape [{n}], got {mat.dtype} {list(mat.shape)}", "material")
             self.material = mat.astype(np.int32)
+
+        if self.obstacle_centers is not None:
+            oc = np.asarray(self.obstacle_centers)
+            if oc.dtype.kind not in "fiu" or oc.ndim != 3 or oc.shape[0] != pos.shape[0] or oc.shape[2] != pos.shape[2]:
+                raise InvalidInputError(
+                    f"obstacle_centers: expected a real array [{pos.shape[0]}, C, {pos.shape[2]}] (a centre per frame and obstacle), got {oc.dtype} {list(oc.shape)}",
+                    "obstacle_centers",
+                )
+            oc = np.ascontiguousarray(oc, np.float64)
+            if not np.isfinite(oc).all():
+                raise InvalidInputError("obstacle_centers: contains NaN or inf", "obstacle_centers")
+            self.obstacle_centers = oc
 
         extras: dict[str, np.ndarray] = {}
         for key, value in dict(self.extras).items():
@@ -184,6 +206,8 @@ class Trajectory:
             out["masses"] = self.masses
         if self.material is not None:
             out["material"] = self.material
+        if self.obstacle_centers is not None:
+            out["obstacle_centers"] = self.obstacle_centers
         out.update(self.extras)
         return out
 
@@ -212,7 +236,9 @@ class Trajectory:
         Raises :class:`~hybridmpm.errors.InvalidInputError`: with field
         ``"path"`` if the file is missing or not a readable ``.npz``; with the
         key's name if a required key (``positions``, ``particle_type``,
-        ``dt_frame``) is missing or any array is malformed.
+        ``dt_frame``) is missing or any array is malformed (``obstacle_centers``:
+        not [T, C, D], or not finite). A file without ``obstacle_centers``
+        loads with None (static obstacles).
         """
         path = Path(path)
         if not path.is_file():
@@ -252,6 +278,7 @@ class Trajectory:
             n_grid=arrays.pop("n_grid", None),  # type: ignore[arg-type]
             masses=arrays.pop("masses", None),
             material=arrays.pop("material", None),
+            obstacle_centers=arrays.pop("obstacle_centers", None),
             extras=arrays,
         )
 

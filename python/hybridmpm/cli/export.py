@@ -19,9 +19,23 @@ EXPORTS = ("ply", "vtu", "mesh", "usd")
 PARAMS_KEY = "scene_params"
 
 
+#: Key of a sampled (mesh) obstacle's entry in ``scene_params`` holding its scene centre (its mesh's ``center``).
+CENTER_KEY = "scene_center"
+
+
 def params_json(params: Any) -> np.ndarray:
-    """The scene's :class:`~hybridmpm.mpm.MpmParams` as a 0-d unicode array (a trajectory extra, no pickle)."""
-    return np.asarray(json.dumps(params.to_dict()))
+    """The scene's :class:`~hybridmpm.mpm.MpmParams` as a 0-d unicode array
+    (a trajectory extra, no pickle); a sampled (mesh) obstacle's entry also
+    holds its centre as :data:`CENTER_KEY` (the reference of the
+    trajectory's ``obstacle_centers``: its mesh's, not its samples' corner)."""
+    from hybridmpm.mpm import SampledSdf  # import time: loaded by the commands that export only
+    from hybridmpm.scenes.obstacles import obstacle_center
+
+    d = params.to_dict()
+    for entry, c in zip(d["colliders"], params.colliders):
+        if isinstance(c, SampledSdf):
+            entry[CENTER_KEY] = obstacle_center(c).tolist()
+    return np.asarray(json.dumps(d))
 
 
 def params_of(traj: Any, scene: str | None = None, seed: int = 0) -> tuple[Any, str]:
@@ -29,15 +43,24 @@ def params_of(traj: Any, scene: str | None = None, seed: int = 0) -> tuple[Any, 
     they came from: its ``scene_params`` extra (written by ``simulate``);
     else the registered or file scene ``scene`` rebuilt with ``seed`` on the
     trajectory's grid; else the unit box with default walls on the
-    trajectory's grid and no obstacles."""
-    from hybridmpm.mpm import MpmParams  # import time: loaded by this command only
+    trajectory's grid and no obstacles. Obstacles stand where the scene put
+    them (a trajectory's ``obstacle_centers`` places them per frame:
+    :func:`write_exports`)."""
+    from hybridmpm.mpm import MpmParams, SampledSdf  # import time: loaded by this command only
 
     raw = traj.extras.get(PARAMS_KEY)
     if raw is not None:
         try:
-            return MpmParams.from_dict(json.loads(str(np.asarray(raw)))), "the trajectory's scene_params"
-        except (ValueError, TypeError) as e:
+            d = json.loads(str(np.asarray(raw)))
+            cols = d.get("colliders") if isinstance(d, dict) else None
+            centers = [c.pop(CENTER_KEY, None) if isinstance(c, dict) else None for c in cols] if isinstance(cols, list) else []
+            params = MpmParams.from_dict(d)
+        except (ValueError, TypeError, AttributeError) as e:
             raise InvalidInputError(f"{PARAMS_KEY}: unreadable in the trajectory ({e})", PARAMS_KEY) from e
+        for c, center in zip(params.colliders, centers):
+            if center is not None and isinstance(c, SampledSdf):  # a mesh obstacle: where its centre is (its only source key here)
+                c.source = {"center": [float(v) for v in center]}
+        return params, "the trajectory's scene_params"
     n_grid = traj.n_grid
     if scene is not None:
         from hybridmpm.scenes import make_scene  # import time: loaded by this command only
@@ -58,12 +81,16 @@ def write_exports(
     """Write every export of ``kinds`` (:data:`EXPORTS`) for trajectory
     ``traj`` into ``out``: ``frame_#####.ply|vtu`` point clouds,
     ``<material>_#####.<mesh_format>`` surface sequences, ``run.usd``.
-    Surfaces are computed once for ``mesh`` and ``usd``. Returns a summary
+    Surfaces are computed once for ``mesh`` and ``usd``; the obstacles of
+    ``params`` stand in each frame where the trajectory's
+    ``obstacle_centers`` put them (surfaces end on them there, the USD file
+    samples their translation), or where ``params`` put them when it has
+    none. Returns a summary
     {kind: file count or path}. Raises :class:`InvalidInputError` naming
     ``export`` (unknown kind, or ``usd`` without ``pxr``) or ``mesh_format``."""
     # import time: loaded by the commands that export only
     from hybridmpm.render import export_points
-    from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, surface_settings, write_surface
+    from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, posed_settings, surface_settings, write_surface
 
     bad = [k for k in kinds if k not in EXPORTS]
     if bad:
@@ -84,7 +111,12 @@ def write_exports(
             done[fmt] = len(export_points(traj.positions, traj.particle_type, out, fmt=fmt, dt=traj.dt_frame, solver=tags))
     if "mesh" in kinds or "usd" in kinds:
         settings = surface_settings(params, traj.particle_type, traj.masses)
-        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **settings) for t in range(traj.num_frames)]
+        centers = traj.obstacle_centers
+        if centers is not None and centers.shape[1] != len(settings["obstacles"]):
+            raise InvalidInputError(
+                f"obstacle_centers: the trajectory places {centers.shape[1]} obstacles, its scene has {len(settings['obstacles'])}", "obstacle_centers"
+            )
+        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t)) for t in range(traj.num_frames)]
         if "mesh" in kinds:
             count = 0
             for t, frame in enumerate(surfaces):
@@ -97,7 +129,7 @@ def write_exports(
 
             path = write_usd(
                 out / "run.usd", traj.positions, traj.particle_type, traj.dt_frame, solver=tags, surfaces=surfaces,
-                obstacles=settings["obstacles"], domain=settings["domain"], width=settings["dx"] / 2,
+                obstacles=settings["obstacles"], obstacle_centers=centers, domain=settings["domain"], width=settings["dx"] / 2,
             )  # fmt: skip
             done["usd"] = str(path)
     return done
@@ -138,4 +170,4 @@ def add_parsers(sub: Any) -> None:
     ex.set_defaults(func=_export)
 
 
-__all__ = ["EXPORTS", "PARAMS_KEY", "add_parsers", "params_json", "params_of", "write_exports"]
+__all__ = ["CENTER_KEY", "EXPORTS", "PARAMS_KEY", "add_parsers", "params_json", "params_of", "write_exports"]

@@ -62,6 +62,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
 from hybridmpm.render.surface_field import _MARGIN, ISO_BULK, ISO_MAX, ISO_MIN, _bodies, _closed, _Field, _field, _is_sampled, _VolumeEstimate
 from hybridmpm.scenes import wall_face
+from hybridmpm.scenes.obstacles import obstacles_at
 
 #: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
 MAX_GRID_NODES = 512**3
@@ -472,7 +473,8 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     """The keyword arguments of :func:`surface_mesh` / :func:`surface_contours`
     for a scene's :class:`~hybridmpm.mpm.MpmParams`: ``domain`` (the wall faces
     ``(cells − 1)·dx`` in from every side, :func:`~hybridmpm.scenes.wall_face`),
-    ``dx`` = 1/n_grid, ``obstacles`` (the colliders) and, given
+    ``dx`` = 1/n_grid, ``obstacles`` (the colliders where the scene puts
+    them; a frame of a run whose obstacles move: :func:`posed_settings`) and, given
     ``particle_type`` int [N] and ``masses`` float [N] [kg], ``volumes`` =
     mass / rest density of the particle's material (water or sand density of
     ``params``; 0 for kinematic particles)."""
@@ -491,6 +493,23 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     return out
 
 
+def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int) -> dict[str, Any]:
+    """``settings`` (:func:`surface_settings`) for frame ``t`` of a run whose
+    obstacles move: its ``obstacles`` translated to ``obstacle_centers[t]``
+    (float [T, C, D] [m], a trajectory's
+    :attr:`~hybridmpm.trajectory.Trajectory.obstacle_centers`;
+    :func:`~hybridmpm.scenes.obstacles.obstacles_at`), so that the surface
+    ends on each obstacle where it is in that frame. ``obstacle_centers``
+    None: ``settings`` as they are. Raises :class:`InvalidInputError` naming
+    ``obstacle_centers`` (not [T, C, D] for the settings' C obstacles, not finite)."""
+    if obstacle_centers is None:
+        return settings
+    oc = np.asarray(obstacle_centers)
+    if oc.ndim != 3 or not 0 <= t < oc.shape[0]:
+        raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
+    return {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
+
+
 def export_surfaces(
     positions: Any,
     particle_type: Any,
@@ -498,6 +517,7 @@ def export_surfaces(
     *,
     fmt: str = "ply",
     every: int = 1,
+    obstacle_centers: Any = None,
     **settings: Any,
 ) -> list[Path]:
     """Write the surface of every ``every``-th frame of ``positions`` float
@@ -507,10 +527,12 @@ def export_surfaces(
     for). 3D: triangle meshes in ``ply`` (binary), ``obj`` or ``glb``; 2D:
     the closed outlines at z = 0 as line segments in ``ply`` (``edge``
     elements) or ``obj`` (``l`` lines). ``settings`` are passed to
-    :func:`surface_mesh` / :func:`surface_contours` (``domain``, ``dx``, ...).
+    :func:`surface_mesh` / :func:`surface_contours` (``domain``, ``dx``, ...);
+    ``obstacle_centers`` float [T, C, D] [m] places the obstacles in each
+    frame (:func:`posed_settings`; None: where ``settings`` put them).
     Returns the paths in frame order, materials sorted by type within a
     frame. Raises :class:`InvalidInputError` naming ``fmt`` (unknown, or
-    ``glb`` in 2D), ``positions``, ``every`` or a setting."""
+    ``glb`` in 2D), ``positions``, ``every``, ``obstacle_centers`` or a setting."""
     if fmt not in MESH_FORMATS:
         raise InvalidInputError(f"fmt: must be one of {', '.join(MESH_FORMATS)}, got {fmt!r}", "fmt")
     p = np.asarray(positions)
@@ -520,11 +542,13 @@ def export_surfaces(
         raise InvalidInputError("fmt: 2D outlines are written as ply or obj (glb holds triangle meshes)", "fmt")
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise InvalidInputError(f"every: must be an integer >= 1, got {every!r}", "every")
+    if obstacle_centers is not None and np.shape(obstacle_centers)[:1] != p.shape[:1]:
+        raise InvalidInputError(f"obstacle_centers: expected one row per frame ({p.shape[0]}), got {list(np.shape(obstacle_centers))}", "obstacle_centers")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for t in range(0, p.shape[0], every):
-        surfaces = frame_surfaces(p[t], particle_type, **settings)
+        surfaces = frame_surfaces(p[t], particle_type, **posed_settings(settings, obstacle_centers, t))
         for s in surfaces:
             path = out / f"{s.material}_{t:05d}.{fmt}"
             write_surface(s, path, fmt)
@@ -616,6 +640,7 @@ __all__ = [
     "export_surfaces",
     "frame_surfaces",
     "material_name",
+    "posed_settings",
     "surface_contours",
     "surface_mesh",
     "surface_settings",

@@ -19,7 +19,9 @@ prim                        type                  contents
 ``/Run/Obstacles/obstacle_<i>``  ``Cube``/``Sphere``/``Mesh``  boxes as unit cubes scaled to the half extents and
                                                   rotated (``xformOp:transform``), spheres as
                                                   spheres, sampled-SDF (mesh) obstacles as their
-                                                  zero level set
+                                                  zero level set; an obstacle that moves has an
+                                                  ``xformOp:translate`` sampled per frame (its
+                                                  centre; a mesh: its displacement)
 ``/Run/Domain``             ``BasisCurves``       the edges of the fluid domain (the wall faces),
                                                   purpose ``guide``
 ==========================  ====================  ==================================================
@@ -42,7 +44,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, _is_sampled
-from hybridmpm.scenes.obstacles import box_rotation
+from hybridmpm.scenes.obstacles import box_rotation, obstacle_center
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -74,6 +76,7 @@ def write_usd(
     solver: Any = None,
     surfaces: Sequence[Sequence[SurfaceMesh | SurfaceContours]] | None = None,
     obstacles: Sequence[Any] = (),
+    obstacle_centers: Any = None,
     domain: tuple[Sequence[float], Sequence[float]] | None = None,
     width: float | None = None,
 ) -> Path:
@@ -83,13 +86,18 @@ def write_usd(
     int [N]; ``dt_frame`` [s] between stored frames (> 0); ``solver`` int [T]
     (0 MPM, 1 neural) or None (all 0); ``surfaces`` one list per frame of
     :class:`SurfaceMesh` (3D) / :class:`SurfaceContours` (2D), or None for
-    none; ``obstacles`` the scene's colliders; ``domain`` ``(lo, hi)`` [m] or
+    none; ``obstacles`` the scene's colliders (where the scene puts them);
+    ``obstacle_centers`` float [T, C, D] [m] each obstacle's centre per frame
+    (a trajectory's :attr:`~hybridmpm.trajectory.Trajectory.obstacle_centers`)
+    or None (they stand still): an obstacle whose centre differs from the
+    scene's in float32 in some frame gets a translate op sampled at every
+    frame, the others are written once; ``domain`` ``(lo, hi)`` [m] or
     None (no domain prim); ``width`` the points' display width [m] (default:
     none written). Returns the path.
 
     Raises :class:`InvalidInputError` naming ``path`` (suffix not one of
     :data:`USD_SUFFIXES`, folder missing or not writable), ``positions``,
-    ``particle_type``, ``dt_frame``, ``solver``, ``surfaces`` or ``usd``
+    ``particle_type``, ``dt_frame``, ``solver``, ``surfaces``, ``obstacle_centers`` or ``usd``
     (``pxr`` not installed).
     """
     require_pxr()
@@ -116,6 +124,13 @@ def write_usd(
         raise InvalidInputError(f"solver: expected [{t_count}] tags, got {list(tags.shape)}", "solver")
     if surfaces is not None and len(surfaces) != t_count:
         raise InvalidInputError(f"surfaces: expected one list per frame ({t_count}), got {len(surfaces)}", "surfaces")
+    oc = None if obstacle_centers is None else np.asarray(obstacle_centers)
+    if oc is not None:
+        if oc.dtype.kind not in "fiu" or oc.shape != (t_count, len(obstacles), dim) or not np.isfinite(oc).all():
+            raise InvalidInputError(
+                f"obstacle_centers: expected finite numbers [{t_count}, {len(obstacles)}, {dim}], got {oc.dtype} {list(oc.shape)}", "obstacle_centers"
+            )
+        oc = oc.astype(np.float64)
 
     tmp = path.with_name(path.name + ".tmp" + path.suffix)
     stage = Usd.Stage.CreateNew(str(tmp))
@@ -155,7 +170,8 @@ def write_usd(
     # obstacles and domain
     UsdGeom.Scope.Define(stage, "/Run/Obstacles")
     for i, c in enumerate(obstacles):
-        _write_obstacle(stage, f"/Run/Obstacles/obstacle_{i}", c, dim, Gf)
+        moved = oc is not None and not (oc[:, i].astype(np.float32) == obstacle_center(c).astype(np.float32)).all()
+        _write_obstacle(stage, f"/Run/Obstacles/obstacle_{i}", c, dim, Gf, oc[:, i] if moved and oc is not None else None)
     if domain is not None:
         lo, hi = (_vec3(np.asarray(b, np.float32)) for b in domain)
         _write_domain(stage, lo, hi, dim)
@@ -195,7 +211,17 @@ def _write_surfaces(stage: Any, surfaces: Sequence[Sequence[SurfaceMesh | Surfac
                 prim.CreateExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(axis=0), v.max(axis=0)])), t)
 
 
-def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
+def _translate(prim: Any, centers: np.ndarray, gf: Any) -> None:
+    """A translate op on ``prim`` sampled at every frame: ``centers`` float64 [T, D] (z = 0 in 2D)."""
+    c3 = np.zeros((len(centers), 3))
+    c3[:, : centers.shape[1]] = centers
+    op = prim.AddTranslateOp()
+    for t, c in enumerate(c3):
+        op.Set(gf.Vec3d(*c.tolist()), t)
+
+
+def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any, centers: np.ndarray | None) -> None:
+    """Obstacle ``c`` at ``where``; ``centers`` float64 [T, D] its centre per frame when it moves (None: it stands where the scene put it)."""
     from pxr import UsdGeom, Vt
 
     if _is_sampled(c):  # a mesh obstacle: its zero level set
@@ -210,6 +236,8 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
             mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(fs), 3, np.int32)))
             mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(fs[:, ::-1].astype(np.int32).ravel()))
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        if centers is not None:  # the level set stays at the scene's pose, moved by the displacement
+            _translate(mesh, centers - obstacle_center(c), gf)
         return
     center = np.zeros(3)
     center[:dim] = np.asarray(c.center, np.float64)
@@ -217,7 +245,10 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
         s = UsdGeom.Sphere.Define(stage, where)
         s.CreateRadiusAttr(float(c.radius))
         s.CreateExtentAttr(Vt.Vec3fArray([gf.Vec3f(-float(c.radius)), gf.Vec3f(float(c.radius))]))
-        s.AddTranslateOp().Set(gf.Vec3d(*center))
+        if centers is not None:
+            _translate(s, centers, gf)
+        else:
+            s.AddTranslateOp().Set(gf.Vec3d(*center))
         return
     half = np.full(3, DEPTH_2D)
     half[:dim] = np.asarray(c.half_extents, np.float64)
@@ -225,9 +256,12 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any) -> None:
     rot[:dim, :dim] = box_rotation(c, dim)
     m = np.eye(4)
     m[:3, :3] = (rot * half[None, :]).T  # row-vector convention: p' = p · M, columns of rot scaled by the half extents
-    m[3, :3] = center
     cube = UsdGeom.Cube.Define(stage, where)
     cube.CreateSizeAttr(2.0)
+    if centers is not None:  # moving: translate (sampled) ∘ the rotation and scale
+        _translate(cube, centers, gf)
+    else:
+        m[3, :3] = center
     cube.AddTransformOp().Set(gf.Matrix4d(*m.ravel().tolist()))
 
 

@@ -23,6 +23,9 @@ which call obstacles ``colliders`` (:func:`obstacles_error`).
 :func:`collider_sdf` is the signed distance the solver sees and
 :func:`sample_boundary` the network's static boundary particles (GNS
 type 3) on a shell inside each surface, with the obstacle each belongs to.
+:func:`obstacle_center` is an obstacle's centre as the scene places it and
+:func:`obstacles_at` the obstacles translated to other centres (a recorded
+frame's poses: the surfaces and the USD file of a run whose obstacles move).
 
 :mod:`hybridmpm.scenes.spec` imports this module, never the reverse; the
 small checks both use (:func:`check_vec`, :func:`is_number`) live here.
@@ -30,6 +33,7 @@ small checks both use (:func:`check_vec`, :func:`is_number`) live here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -247,6 +251,52 @@ def collider_sdf(c: Collider, points: np.ndarray) -> np.ndarray:
     return np.asarray(outside + np.minimum(q.max(axis=1), 0.0))
 
 
+def obstacle_center(c: Collider) -> np.ndarray:
+    """An obstacle's centre as the scene places it [m], float64 [D]: a box's
+    or sphere's ``center``; a mesh's ``center`` (its ``source``), else its
+    sampled ``origin``. The centre :attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`
+    reports for an obstacle that stands where the scene put it."""
+    if isinstance(c, SampledSdf):
+        ref = c.source["center"] if c.source is not None and "center" in c.source else c.origin
+        return np.asarray([float(v) for v in ref], np.float64)
+    return np.asarray([float(v) for v in c.center], np.float64)
+
+
+def obstacles_at(colliders: Sequence[Collider], centers: Any) -> list[Collider]:
+    """``colliders`` translated so that obstacle ``i``'s centre
+    (:func:`obstacle_center`) is ``centers[i]`` [m] (float [C, D]): a box's
+    or sphere's ``center`` replaced, a sampled (mesh) obstacle's ``origin``
+    and ``source`` centre shifted by the displacement; shape, rotation and
+    everything else kept (obstacles translate only). An obstacle whose
+    centre is its own in float32 (where the solver keeps it: one that did not
+    move) is given back as it is, a moved one is a copy: a new list, and
+    ``colliders`` is not changed.
+
+    Raises :class:`InvalidInputError` naming ``obstacle_centers`` for an
+    array that is not finite float [C, D]."""
+    cols = list(colliders)
+    d = len(obstacle_center(cols[0])) if cols else 0
+    a = np.asarray(centers)
+    if a.dtype.kind not in "fiu" or a.ndim != 2 or a.shape[0] != len(cols) or (cols and a.shape[1] != d):
+        raise InvalidInputError(f"obstacle_centers: expected a real array [{len(cols)}, {d}] [m], got {a.dtype} {list(a.shape)}", "obstacle_centers")
+    a = np.asarray(a, np.float64)
+    if not np.isfinite(a).all():
+        raise InvalidInputError("obstacle_centers: contains NaN or inf", "obstacle_centers")
+    out: list[Collider] = []
+    for c, new in zip(cols, a):
+        ref = obstacle_center(c)
+        if np.array_equal(ref.astype(np.float32), new.astype(np.float32)):
+            out.append(c)
+        elif isinstance(c, SampledSdf):
+            shift = new - ref
+            origin = [float(v) for v in np.asarray(c.origin, np.float64) + shift]
+            source = None if c.source is None else {**c.source, "center": [float(v) for v in new]}
+            out.append(dataclasses.replace(c, origin=origin, source=source))
+        else:
+            out.append(dataclasses.replace(c, center=[float(v) for v in new]))
+    return out
+
+
 def sample_boundary(colliders: Sequence[Collider], dim: int, spacing: float, dx: float) -> tuple[np.ndarray, np.ndarray]:
     """Static boundary particles (GNS type 3) for the obstacles and the
     obstacle each lies on: float32 [B, D] [m] and int32 [B] (the index in
@@ -309,7 +359,9 @@ __all__ = [
     "guess_obstacle_field",
     "is_number",
     "mesh_paths_relative_to",
+    "obstacle_center",
     "obstacle_dict",
+    "obstacles_at",
     "obstacles_error",
     "obstacles_on_grid",
     "place_obstacles",

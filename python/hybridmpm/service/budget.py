@@ -71,6 +71,11 @@ def tree_nbytes(tree: Any) -> int:
     return 0
 
 
+#: A recorded frame: frame index, positions float32 [N + B, D] [m], solver, whether controlled, and the obstacles'
+#: centres float64 [C, D] [m] (:attr:`~hybridmpm.sim.base.Frame.obstacle_centers`; None in a scene without obstacles).
+RecordedFrame = tuple[int, np.ndarray, str, bool, np.ndarray | None]
+
+
 class Recording:
     """A session's latest frames for download: consecutive coarse steps (a
     frame that does not follow the last one — a reset, a restored checkpoint —
@@ -83,7 +88,7 @@ class Recording:
         self.budget = budget
         self.capacity = int(capacity)
         self.r_t = max(1, int(r_t))
-        self.frames: collections.deque[tuple[int, np.ndarray, str, bool]] = collections.deque()
+        self.frames: collections.deque[RecordedFrame] = collections.deque()
         self.held = 0  # bytes taken from the budget
 
     def __len__(self) -> int:
@@ -92,7 +97,7 @@ class Recording:
     def clear(self) -> None:
         self.frames.clear()
 
-    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
+    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None = None) -> None:
         if self.capacity < 1:
             return
         k = int(frame_index)
@@ -110,9 +115,9 @@ class Recording:
                 if not self.frames:
                     return
                 self.frames.popleft()
-        self.frames.append((k, pos, str(solver), bool(controlled)))
+        self.frames.append((k, pos, str(solver), bool(controlled), None if centers is None else np.array(centers, np.float64)))
 
-    def last(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+    def last(self, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames recorded (fewer if fewer are held), oldest first."""
         n = min(max(0, int(count)), len(self.frames))
         return list(self.frames)[len(self.frames) - n :]
@@ -123,4 +128,4 @@ class Recording:
         self.held = 0
 
 
-__all__ = ["BudgetFullError", "MemoryBudget", "Recording", "tree_nbytes"]
+__all__ = ["BudgetFullError", "MemoryBudget", "RecordedFrame", "Recording", "tree_nbytes"]

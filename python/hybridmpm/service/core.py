@@ -35,7 +35,7 @@ import numpy as np
 
 from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
-from hybridmpm.service.budget import MemoryBudget, Recording
+from hybridmpm.service.budget import MemoryBudget, RecordedFrame, Recording
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
@@ -219,12 +219,12 @@ class SessionCore:
 
     # ------------------------------------------------------------ what it shows
     def _record(self, fr: Frame) -> None:
-        self._record_values(int(fr.frame_index), fr.positions, str(fr.solver), bool(fr.controlled))
+        self._record_values(int(fr.frame_index), fr.positions, str(fr.solver), bool(fr.controlled), fr.obstacle_centers)
 
-    def _record_values(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool) -> None:
+    def _record_values(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None) -> None:
         with self._held:
             if not self.closed:
-                self.recording.add(frame_index, positions, solver, controlled)
+                self.recording.add(frame_index, positions, solver, controlled, centers)
 
     def _show(self, fr: Frame, control_frame: int = 0) -> None:
         """Record ``fr`` and hand it to the viewers."""
@@ -235,7 +235,7 @@ class SessionCore:
         """Hand the current frame to the viewers again (after a control that stopped early)."""
         self.on_frame(self.sim.frame, 0)
 
-    def recorded(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+    def recorded(self, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames of its recent trajectory, oldest first."""
         self.touch()
         with self._held:
@@ -258,7 +258,8 @@ class SessionCore:
             ro = rollout(self.sim, frames)
             self._changed()
             for k in range(1, len(ro.frame_index)):
-                self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False)
+                centers = None if ro.obstacle_centers is None else ro.obstacle_centers[k]
+                self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False, centers)
             if len(ro.frame_index) > 1:
                 self.on_frame(self.sim.frame, 0)
         return ro

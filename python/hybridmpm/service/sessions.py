@@ -35,11 +35,10 @@ from typing import Any, TypeVar
 
 import anyio
 import anyio.to_thread
-import numpy as np
 from starlette.websockets import WebSocket, WebSocketState
 
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
-from hybridmpm.service.budget import BudgetFullError, MemoryBudget, tree_nbytes
+from hybridmpm.service.budget import BudgetFullError, MemoryBudget, RecordedFrame, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionCore, SessionGoneError, session_threads
 from hybridmpm.service.facts import SessionFacts, SessionSettings
@@ -303,7 +302,7 @@ class SessionManager:
         """The kept control ``cid`` of ``s``, or None."""
         return self.core_of(s).get_control(cid)
 
-    async def recorded(self, s: Session, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+    async def recorded(self, s: Session, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames of ``s``'s recent trajectory, oldest first."""
         return self.core_of(s).recorded(count)
 

@@ -64,7 +64,11 @@ class Frame:
     halvings MPM needed; ``substeps`` MPM substeps taken (0 for a network step);
     ``controlled`` whether a forcing was applied during the step; ``audit``
     the MPM audit's discrepancy of a network step in units of g (see
-    :class:`~hybridmpm.sim.hybrid.HybridSimulator`; nan where none ran).
+    :class:`~hybridmpm.sim.hybrid.HybridSimulator`; nan where none ran);
+    ``obstacle_centers`` float64 [C, D] [m] each obstacle's centre at the
+    frame's end (:attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`;
+    None in a scene without obstacles, and from the network alone, whose
+    obstacles stand where the scene put them).
     """
 
     step: int
@@ -79,6 +83,7 @@ class Frame:
     substeps: int = 0
     controlled: bool = False
     audit: float = float("nan")
+    obstacle_centers: np.ndarray | None = None
 
 
 @dataclass

@@ -577,6 +577,7 @@ class HybridSimulator:
             substeps,
             controlled,
             audit,
+            self.mpm.frame_centers(),
         )
         return self._frame
 
@@ -652,7 +653,10 @@ class HybridSimulator:
         self.step_index = step
         self.stats = stats
         self.last_score = float(last_score)
-        self._frame = Frame(self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver, score=self.last_score)
+        self._frame = Frame(
+            self.step_index, self.step_index * self.r_t, self.step_index * self.dt_step, self.positions, frame_solver,
+            score=self.last_score, obstacle_centers=self.mpm.frame_centers(),
+        )  # fmt: skip
 
 
 __all__ = ["CHEAP_HALVES", "DWELL", "MAX_BACKOFF", "RESIDUAL_GROWTH", "HybridSimulator"]

@@ -31,6 +31,7 @@ from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, che
 from hybridmpm.mpm.params import Collider
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
+from hybridmpm.scenes.obstacles import obstacle_center
 from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid
 from hybridmpm.sim.base import (
     MPM,
@@ -110,13 +111,13 @@ class MpmSimulator:
         self.stats = SimStats()
         self._forcing: Forcing = None
         self._applied = False
-        self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM)
         self._colliders: list[Collider] = list(self.scene.params.colliders)
         #: (index, keyframes) of the obstacles that follow a path
         self._paths: list[tuple[int, tuple[Keyframe, ...]]] = [(i, c.keyframes) for i, c in enumerate(self._colliders) if c.keyframes]
         #: obstacle index -> (target centre float64 [D], boundary velocity float64 [D] or None) for the next step
         self._moves: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self._anchors0 = self.solver.collider_positions.copy()
+        self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM, obstacle_centers=self.frame_centers())
 
     # ------------------------------------------------------------ state
     @property
@@ -172,8 +173,12 @@ class MpmSimulator:
         out = pos.copy()
         for i, c in enumerate(self._colliders):
             if isinstance(c, SampledSdf):
-                out[i] = _reference(c) + (pos[i] - self._anchors0[i].astype(np.float64))
+                out[i] = obstacle_center(c) + (pos[i] - self._anchors0[i].astype(np.float64))
         return out.reshape(len(self._colliders), self.particles.dim)
+
+    def frame_centers(self) -> np.ndarray | None:
+        """What a :class:`Frame` records as ``obstacle_centers``: :attr:`obstacle_centers`, or None in a scene without obstacles."""
+        return self.obstacle_centers if self._colliders else None
 
     @property
     def obstacle_offsets(self) -> np.ndarray | None:
@@ -246,7 +251,7 @@ class MpmSimulator:
         """The solver's anchor of obstacle ``i`` with its centre at ``center``, float32 [D]."""
         c = self._colliders[i]
         if isinstance(c, SampledSdf):
-            return (self._anchors0[i].astype(np.float64) + (center - _reference(c))).astype(np.float32)
+            return (self._anchors0[i].astype(np.float64) + (center - obstacle_center(c))).astype(np.float32)
         return np.asarray(center, np.float32)
 
     def _move_for_frame(self, k: int, frame: int, start: np.ndarray) -> None:
@@ -305,6 +310,7 @@ class MpmSimulator:
             mpm_retries=retries,
             substeps=substeps,
             controlled=controlled,
+            obstacle_centers=self.frame_centers(),
         )
         return self._frame
 
@@ -372,7 +378,7 @@ class MpmSimulator:
             self.stats = stats
             self._forcing = forcing
             self._applied = applied
-            self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM)
+            self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM, obstacle_centers=self.frame_centers())
 
         return commit
 
@@ -390,12 +396,6 @@ class MpmSimulator:
             v = None if value[1] is None else check_velocity(f"state.obstacle_moves.{i}.velocity", value[1], d)
             out[i] = (c, v)
         return out
-
-
-def _reference(c: SampledSdf) -> np.ndarray:
-    """A sampled obstacle's centre as the scene gives it: its mesh's ``center``, else its ``origin``; float64 [D]."""
-    ref = c.source["center"] if c.source is not None and "center" in c.source else c.origin
-    return np.asarray([float(v) for v in ref], np.float64)
 
 
 __all__ = ["MpmSimulator"]

@@ -41,7 +41,9 @@ class Rollout(Trajectory):
     ``frame_index`` int64 [K + 1]; ``solver`` str [K + 1] ("mpm"/"neural");
     ``seconds`` float64 [K + 1] wall time of the step (0 for the first);
     ``score`` float64 [K + 1] safeguard s(t) (nan where not computed);
-    ``substeps`` int64 [K + 1]; ``controlled`` bool [K + 1]. And ``events``
+    ``substeps`` int64 [K + 1]; ``controlled`` bool [K + 1]; the
+    trajectory's ``obstacle_centers`` float64 [K + 1, C, D] when the
+    simulator records them (a scene with obstacles). And ``events``
     [(step, event)], ``failure`` (None, "nan", "mpm", a network failure mode
     or a stop rule's reason) and ``failure_detail`` (the error's message),
     ``stats`` (the simulator's counters),
@@ -153,6 +155,7 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     score = np.array([r.score for r in recs], np.float64)
     substeps = np.array([r.substeps for r in recs], np.int64)
     frame_index = np.array([r.frame_index for r in recs], np.int64)
+    centers = [r.obstacle_centers for r in recs if r.obstacle_centers is not None]
     extras = {
         "solver": (solver != MPM).astype(np.int8),  # 1: the cheap half (the network, or the coarse grid of the classical twin)
         "score": score,
@@ -162,6 +165,7 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     }
     return Rollout(
         positions=np.stack([r.positions for r in recs]),
+        obstacle_centers=np.stack(centers) if centers and len(centers) == len(recs) else None,
         particle_type=p.particle_type,
         dt_frame=sim.dt_frame * sim.r_t,
         n_grid=sim.scene.params.resolved_n_grid(),

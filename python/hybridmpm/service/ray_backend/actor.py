@@ -29,12 +29,11 @@ import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
-import numpy as np
 import ray
 
 from hybridmpm.control import Sketch
 from hybridmpm.errors import HybridMpmError
-from hybridmpm.service.budget import MemoryBudget, tree_nbytes
+from hybridmpm.service.budget import MemoryBudget, RecordedFrame, tree_nbytes
 from hybridmpm.service.core import BusyError, Control, SessionCore, SessionGoneError
 from hybridmpm.service.facts import SessionSettings
 from hybridmpm.service.frames import encode_frame
@@ -243,7 +242,7 @@ class SessionActor:
         return self.core.get_control(cid)
 
     @_answer
-    def recorded(self, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+    def recorded(self, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames of the recent trajectory, oldest first (``GET /v1/sessions/{id}/trajectory``)."""
         return self.core.recorded(count)
 

@@ -42,12 +42,12 @@ from typing import Any
 
 import anyio
 import anyio.to_thread
-import numpy as np
 import ray
 import ray.exceptions
 
 from hybridmpm.control import Sketch
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.service.budget import RecordedFrame
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionGoneError
 from hybridmpm.service.errors import ApiError, tidy
@@ -614,10 +614,10 @@ class RaySessionManager(SessionManager):
             self.budget.give(c.cost)
             c.cost = 0
 
-    async def recorded(self, s: Session, count: int) -> list[tuple[int, np.ndarray, str, bool]]:
+    async def recorded(self, s: Session, count: int) -> list[RecordedFrame]:
         """The actor's recent trajectory (its latest ``count`` frames)."""
         assert isinstance(s, RaySession)
-        held: list[tuple[int, np.ndarray, str, bool]] = await self._call(s, "recorded", count)
+        held: list[RecordedFrame] = await self._call(s, "recorded", count)
         return held
 
     async def get_control(self, s: Session, cid: str) -> Control | None:

@@ -3,7 +3,8 @@ its last recorded coarse steps as a trajectory ``.npz`` (what ``hybridmpm
 evaluate`` and :class:`hybridmpm.trajectory.Trajectory` read), as a zip of
 PLY point clouds (:func:`hybridmpm.render.export_points`, for Blender) or as
 a zip of the fluid's surface meshes per frame and material
-(:func:`hybridmpm.render.export_surfaces`; needs the ``mesh`` extra)."""
+(:func:`hybridmpm.render.export_surfaces`, each frame's surface ending on
+the obstacles where they are in it; needs the ``mesh`` extra)."""
 
 from __future__ import annotations
 
@@ -37,10 +38,11 @@ router = APIRouter()
 
 
 def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any]) -> bytes:
-    """One binary PLY surface per frame and material (``water_00000.ply``, ``sand_00000.ply`` …; 2D: outlines), zipped."""
+    """One binary PLY surface per frame and material (``water_00000.ply``, ``sand_00000.ply`` …; 2D: outlines), zipped;
+    the obstacles of ``settings`` placed in each frame at the trajectory's ``obstacle_centers`` (when it has them)."""
     buf = io.BytesIO()
     with tempfile.TemporaryDirectory(prefix="hybridmpm-mesh-") as tmp:
-        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", **settings)
+        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, **settings)
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for p in paths:
                 z.write(p, Path(p).name)
@@ -70,7 +72,8 @@ def trajectory_ply_zip(traj: Trajectory, solver: np.ndarray) -> bytes:
         200: {
             "content": {NPZ: {}, ZIP: {}},
             "description": "npz: positions [T, N, D], particle_type, dt_frame (between stored frames), n_grid, masses, material, "
-            "frame_index [T], solver [T] (0 MPM, 1 network), controlled [T]; or a zip of one PLY point cloud per frame",
+            "frame_index [T], solver [T] (0 MPM, 1 network), controlled [T], obstacle_centers [T, C, D] (a scene with obstacles); "
+            "or a zip of one PLY point cloud per frame",
         },
         404: {"description": "no such session"},
         409: {"description": "no frame recorded (the memory budget was full)"},
@@ -100,7 +103,9 @@ async def get_session_trajectory(
     with manager.budget.hold(values * per_value + (MESH_BYTES_PER_NODE * f.n_grid**f.dim if format == "mesh" else 0), "the trajectory's file"):
 
         def make() -> Trajectory:
+            centers = [h[4] for h in held if h[4] is not None]
             return Trajectory(
+                obstacle_centers=np.stack(centers) if centers and len(centers) == len(held) else None,
                 positions=np.stack([h[1] for h in held]),
                 particle_type=ptype,
                 dt_frame=dt,
