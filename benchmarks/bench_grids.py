@@ -164,6 +164,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="*", default=list(SCENES))
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--seed0", type=int, default=SEED0, help=f"the first seed (default {SEED0}: seeds no benchmark, tune or dataset uses)")
     ap.add_argument("--frames", type=int, default=400)
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration, round the configurations; its time is the fastest run's mean")
@@ -173,11 +174,12 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     for scene in tqdm(a.scenes, desc="scenes"):
-        seeds = [SEED0] if scene == "dam_break2d" else [SEED0 + i for i in range(a.seeds)]
+        seeds = [a.seed0] if scene == "dam_break2d" else [a.seed0 + i for i in range(a.seeds)]
         rows += run_scene(scene, seeds, a.frames, a.threads, a.repeats)
     rat = ratios(rows)
     env = environment()
-    cmd = "python benchmarks/bench_grids.py " + " ".join(a.scenes) + f" --seeds {a.seeds} --frames {a.frames} --out {a.out}"
+    cmd = "python benchmarks/bench_grids.py " + " ".join(a.scenes) + f" --seeds {a.seeds} --frames {a.frames} --repeats {a.repeats}"
+    cmd += (f" --seed0 {a.seed0}" if a.seed0 != SEED0 else "") + f" --out {a.out}"
     (out / "grids.json").write_text(json.dumps({"rows": rows, "ratios": rat, "environment": env, "command": cmd}, indent=1))
     (out / "grids.md").write_text(markdown(rat, env, cmd))
     plot(rows, out / "mpm_cost_grids.png")
