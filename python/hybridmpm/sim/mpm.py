@@ -199,7 +199,7 @@ class MpmSimulator:
     def obstacles_displaced(self) -> bool:
         """Whether an obstacle is away from where the scene put it (the
         network's boundary particles stand there: the hybrid runs MPM then)."""
-        return not np.array_equal(self.solver.collider_positions, self._anchors0)
+        return self.obstacle_offsets is not None
 
     @property
     def obstacles_moving(self) -> bool:
