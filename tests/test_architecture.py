@@ -377,3 +377,48 @@ def test_no_class_stands_in_for_a_simulator_in_the_service():
             if isinstance(node, ast.ClassDef) and ("Sim" in node.name and "View" in node.name or node.name.endswith("Simulator")):
                 offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: class {node.name}")
     assert not offenders, "\n".join(offenders)
+
+
+# The one private module that crosses modules: the compiled extension, whose public face is its typed wrappers
+# (hybridmpm.mpm, hybridmpm.graph, ...); its name is the extension's, not a private name of another module.
+_EXTENSION = "hybridmpm._core"
+
+
+def test_no_private_name_is_imported_across_modules():
+    """A name with a leading underscore is its module's own: no module of the
+    package imports one from another (``from a import _b``, ``import a._b``,
+    or ``a._b`` through an imported module), in a function or not. What a
+    neighbour needs is public API of the module that owns it, documented there
+    (the surfaces: ``render/surface_field.py`` serves ``render/surface.py``
+    and ``render/usd.py``). There is no exception for modules of one package:
+    a pair that shares its privates is one concept cut in two. The one private
+    module imported across modules is the compiled extension ``hybridmpm._core``."""
+    modules = _modules()
+
+    def private(dotted: str) -> bool:
+        return dotted != _EXTENSION and any(part.startswith("_") and not part.startswith("__") for part in dotted.split("."))
+
+    offenders = []
+    for name, path in sorted(modules.items()):
+        tree = ast.parse(path.read_text())
+        aliases: dict[str, str] = {}  # local name -> module of the package it is bound to
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("hybridmpm"):
+                for a in node.names:
+                    full = f"{node.module}.{a.name}"
+                    if private(full):
+                        offenders.append(f"{name}:{node.lineno}: from {node.module} import {a.name}")
+                    if full in modules or full == _EXTENSION:
+                        aliases[a.asname or a.name] = full
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.startswith("hybridmpm"):
+                        if private(a.name):
+                            offenders.append(f"{name}:{node.lineno}: import {a.name}")
+                        aliases[a.asname or a.name] = a.name
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+                base = ast.unparse(node.value)
+                if base in aliases and private(f"{aliases[base]}.{node.attr}"):
+                    offenders.append(f"{name}:{node.lineno}: {base}.{node.attr}")
+    assert not offenders, "\n".join(offenders)

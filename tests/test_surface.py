@@ -199,15 +199,15 @@ def test_the_volume_level_holds_the_particles_volume(lo_cells, size_cells):
 def test_the_volume_estimate_follows_marching_cubes_and_solves_for_the_level():
     p, lo, hi = block([8, 6, 9], [8, 8, 8])
     lo3, hi3 = (np.asarray(b, float) for b in DOMAIN3)
-    f = surface_field._field(p, np.full(len(p), (DX / 2) ** 3), lo3, hi3, DX, 1, [])
-    labels, n, targets = surface_field._bodies(f)
+    f = surface_field.field(p, np.full(len(p), (DX / 2) ** 3), lo3, hi3, DX, 1, [])
+    labels, n, targets = surface_field.bodies(f)
     assert n == 1 and np.isclose(targets[0], np.prod(hi - lo))
-    est = surface_field._VolumeEstimate(f.phi, f.sdf, DX, labels, n)
+    est = surface_field.VolumeEstimate(f.phi, f.sdf, DX, labels, n)
     levels = (0.35, 0.45, 0.55, 0.65)
     volumes = [est.volumes(c)[0] for c in levels]
     assert all(a > b for a, b in zip(volumes, volumes[1:]))
     for c, v in zip(levels, volumes):
-        drawn = surface_module._mc_measure(surface_field._closed(f.phi, f.clip, DX, c), c, f.origin, f)[1]
+        drawn = surface_module._mc_measure(surface_field.closed(f.phi, f.clip, DX, c), c, f.origin, f)[1]
         assert 1.0 <= v / drawn < 1.03  # marching cubes cuts the rounded edges with flat triangles: a little less
     (c,) = est.levels(targets)
     assert 0.35 < c < 0.55 and abs(est.volumes(c)[0] / targets[0] - 1) < 1e-6

@@ -22,7 +22,7 @@ Condition = Literal["sticky", "slip", "separate"]
 #: these values: the parameters are defined once, in Rust.
 _DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim in (2, 3)}
 #: A collider's defaults (``condition``, ``friction``, ``project``), from the Rust core.
-_COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
+COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
 _SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
 _WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
 
@@ -196,9 +196,9 @@ class Box:
     half_extents: Sequence[float]
     angle_deg: float | None = None
     rotation: Sequence[Sequence[float]] | None = None
-    condition: Condition = _COLLIDER_DEFAULTS["condition"]
-    friction: float = _COLLIDER_DEFAULTS["friction"]
-    project: bool = _COLLIDER_DEFAULTS["project"]
+    condition: Condition = COLLIDER_DEFAULTS["condition"]
+    friction: float = COLLIDER_DEFAULTS["friction"]
+    project: bool = COLLIDER_DEFAULTS["project"]
     keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -226,9 +226,9 @@ class Sphere:
 
     center: Sequence[float]
     radius: float
-    condition: Condition = _COLLIDER_DEFAULTS["condition"]
-    friction: float = _COLLIDER_DEFAULTS["friction"]
-    project: bool = _COLLIDER_DEFAULTS["project"]
+    condition: Condition = COLLIDER_DEFAULTS["condition"]
+    friction: float = COLLIDER_DEFAULTS["friction"]
+    project: bool = COLLIDER_DEFAULTS["project"]
     keyframes: tuple[Keyframe, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -266,9 +266,9 @@ class SampledSdf:
     cell: float
     values: np.ndarray
     normals: np.ndarray | None = None
-    condition: Condition = _COLLIDER_DEFAULTS["condition"]
-    friction: float = _COLLIDER_DEFAULTS["friction"]
-    project: bool = _COLLIDER_DEFAULTS["project"]
+    condition: Condition = COLLIDER_DEFAULTS["condition"]
+    friction: float = COLLIDER_DEFAULTS["friction"]
+    project: bool = COLLIDER_DEFAULTS["project"]
     source: dict[str, Any] | None = None
     keyframes: tuple[Keyframe, ...] | None = None
 
@@ -334,9 +334,9 @@ class SampledSdf:
             cell=d["cell"],
             values=values.reshape([int(n) for n in dims]),
             normals=normals,
-            condition=d.get("condition", _COLLIDER_DEFAULTS["condition"]),
-            friction=d.get("friction", _COLLIDER_DEFAULTS["friction"]),
-            project=d.get("project", _COLLIDER_DEFAULTS["project"]),
+            condition=d.get("condition", COLLIDER_DEFAULTS["condition"]),
+            friction=d.get("friction", COLLIDER_DEFAULTS["friction"]),
+            project=d.get("project", COLLIDER_DEFAULTS["project"]),
         )
 
 
@@ -489,3 +489,40 @@ class MpmParams:
         params = cls(water=water, sand=sand, walls=walls, colliders=cols, **d)
         params.validate()
         return params
+
+
+#: The constitutive parameters a calibrated coarse material may set (dotted
+#: paths into :meth:`MpmParams.to_dict`), with the physical bounds its fit
+#: searches within (benchmarks/coarse_ladder.py; docs/correction.md "Rung 1"):
+#: sand's friction angle φ [°], Young's modulus E [Pa] and cohesion c [Pa],
+#: the floor's Coulomb friction μ (face ``y-``), water's bulk modulus K [Pa]
+#: (sound speed 10–28 m/s) and viscosity η [Pa·s].
+CALIBRATION_BOUNDS: dict[str, tuple[float, float]] = {
+    "sand.friction_angle_deg": (15.0, 45.0),
+    "sand.youngs_modulus": (1.0e5, 1.0e6),
+    "sand.cohesion": (0.0, 200.0),
+    "walls.faces.y-.friction": (0.0, 1.2),
+    "water.bulk_modulus": (1.0e5, 8.0e5),
+    "water.viscosity": (0.0, 0.5),
+}
+
+
+def with_calibration(params: MpmParams, values: dict[str, float]) -> MpmParams:
+    """A copy of ``params`` with the constitutive parameters of ``values`` set
+    (keys of :data:`CALIBRATION_BOUNDS`, e.g. ``{"sand.friction_angle_deg":
+    27.5, "walls.faces.y-.friction": 0.5}``; a wall face's other settings are
+    kept). Raises :class:`InvalidInputError` naming ``calibrated.<key>`` for an
+    unknown key, a value that is not a finite number, or one outside its bounds."""
+    d = params.to_dict()
+    for key, value in values.items():
+        if key not in CALIBRATION_BOUNDS:
+            raise InvalidInputError(f"calibrated.{key}: not a calibrated parameter (allowed: {', '.join(CALIBRATION_BOUNDS)})", f"calibrated.{key}")
+        lo, hi = CALIBRATION_BOUNDS[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not lo <= float(value) <= hi:
+            raise InvalidInputError(f"calibrated.{key}: must be a number in [{lo:g}, {hi:g}], got {value!r}", f"calibrated.{key}")
+        *path, leaf = key.split(".")
+        node = d
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = float(value)
+    return MpmParams.from_dict(d)

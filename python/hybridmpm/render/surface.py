@@ -30,7 +30,7 @@ The surface of one material (water, sand) in one frame is built in four steps:
    (a 26-connected component of ``φ > BODY_MIN``; a film on the floor and a
    falling block are two): each body at the level in [:data:`ISO_MIN`,
    :data:`ISO_MAX`] whose volume, estimated from the field cell by cell
-   (:class:`_VolumeEstimate`, no surface drawn), is its particles' volume;
+   (:class:`VolumeEstimate`, no surface drawn), is its particles' volume;
    marching cubes there, and once more (the level moved by the estimate's
    error) if the body's surface is off by more than :data:`VOLUME_TOL`
    (docs/mesh.md); a number fixes ``c`` for all. Vertices that marching
@@ -60,7 +60,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
-from hybridmpm.render.surface_field import _MARGIN, ISO_BULK, ISO_MAX, ISO_MIN, _bodies, _closed, _Field, _field, _is_sampled, _VolumeEstimate
+from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, VolumeEstimate, bodies, closed, field, is_sampled
 from hybridmpm.scenes import wall_face
 from hybridmpm.scenes.obstacles import obstacles_at
 
@@ -158,7 +158,7 @@ def _check_common(
     if lo.shape != (dim,) or hi.shape != (dim,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()) or not (hi > lo).all():
         raise InvalidInputError(f"domain: expected (lo, hi), each {dim} finite numbers [m] with lo < hi, got {domain!r}", "domain")
     h = float(dx) / int(refine)
-    nodes = float(np.prod((hi - lo) / h + 2 * _MARGIN + 1))
+    nodes = float(np.prod((hi - lo) / h + 2 * MARGIN + 1))
     if nodes > MAX_GRID_NODES:
         raise InvalidInputError(
             f"dx: a surface grid of spacing {h:.3g} m over the domain has {nodes:.3g} nodes, more than the cap of {MAX_GRID_NODES} (512³); "
@@ -180,7 +180,7 @@ def _check_common(
 def _check_obstacles(obstacles: Any) -> list[Any]:
     obs = list(obstacles or ())
     for i, c in enumerate(obs):
-        if not (isinstance(c, (Box, Sphere)) or _is_sampled(c)):
+        if not (isinstance(c, (Box, Sphere)) or is_sampled(c)):
             raise InvalidInputError(f"obstacles[{i}]: must be a collider of hybridmpm.mpm (Box, Sphere, sampled SDF), got {c!r}", f"obstacles[{i}]")
     return obs
 
@@ -303,25 +303,25 @@ def _select(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obs: list[Any], iso: Any, measure: Any) -> tuple[float, Any]:
     """(level, geometry) of one material. ``measure(closed_field, level,
     origin, field)`` → (geometry, enclosed volume). ``iso="volume"``: each
-    body (:func:`_bodies`) at the level in [ISO_MIN, ISO_MAX] at which the
-    field's estimated enclosed volume (:class:`_VolumeEstimate`) is its
+    body (:func:`bodies`) at the level in [ISO_MIN, ISO_MAX] at which the
+    field's estimated enclosed volume (:class:`VolumeEstimate`) is its
     particles' volume (the estimate covers the levels from ISO_BULK up
     first, all of them when a body needs less); a body whose surface is off
     by more than VOLUME_TOL is drawn once more, its level moved by the
     estimate's own error there. The level returned is that of the body with
     the most volume."""
-    f = _field(p, v, lo, hi, h, smooth, obs)
+    f = field(p, v, lo, hi, h, smooth, obs)
     if f is None:
         return (0.5 if iso == "volume" else float(iso)), None
     if iso != "volume":
         return float(iso), _draw(f, measure, _level32(float(iso)))[0]
-    labels, n, targets = _bodies(f)
+    labels, n, targets = bodies(f)
     if not (targets > 0).any():
         return 0.5, None
-    est = _VolumeEstimate(f.phi, f.sdf, h, labels, n, low=ISO_BULK)
+    est = VolumeEstimate(f.phi, f.sdf, h, labels, n, low=ISO_BULK)
     c = est.levels(targets)
     if ((c == ISO_BULK) & (est.volumes(ISO_BULK) < targets)).any():  # a body thinner than bulk water: all levels
-        est = _VolumeEstimate(f.phi, f.sdf, h, labels, n)
+        est = VolumeEstimate(f.phi, f.sdf, h, labels, n)
         c = est.levels(targets)
     boxes = _boxes(labels) if n > 1 else [None]
     drawable = (targets > 0) & (est.volumes(ISO_MIN) > 0)  # a body whose field stays below ISO_MIN has no surface
@@ -331,7 +331,7 @@ def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: f
     if off.any():
         want = targets + est.volumes(c) - got  # the estimate's error at c taken as constant near it
         if est.low > ISO_MIN and (off & (est.volumes(est.low) < want)).any():
-            est = _VolumeEstimate(f.phi, f.sdf, h, labels, n)
+            est = VolumeEstimate(f.phi, f.sdf, h, labels, n)
         c2 = est.levels(want)
         for k in np.flatnonzero(off & (c2 != c)):
             c[k] = c2[k]
@@ -364,7 +364,7 @@ def _level32(c: float) -> float:
     return float(np.float32(c))
 
 
-def _draw(f: _Field, measure: Any, c: float, labels: np.ndarray | None = None, body: int = 0, box: Any = None) -> tuple[Any, float]:
+def _draw(f: Field, measure: Any, c: float, labels: np.ndarray | None = None, body: int = 0, box: Any = None) -> tuple[Any, float]:
     """(geometry, enclosed volume) of the field closed at level ``c``; with
     ``box`` (a body's slices) the body ``body`` of ``labels`` alone, the
     other bodies' nodes zeroed."""
@@ -376,13 +376,13 @@ def _draw(f: _Field, measure: Any, c: float, labels: np.ndarray | None = None, b
         grid = np.where((lab == body) | (lab == 0), f.phi[box], 0.0)
         clip = None if f.clip is None else f.clip[box]
         origin = f.origin + np.array([b.start for b in box])
-    closed = _closed(grid, clip, f.h, c)
-    if not closed.max() > c:
+    shut = closed(grid, clip, f.h, c)
+    if not shut.max() > c:
         return None, 0.0
-    return measure(closed, c, origin, f)
+    return measure(shut, c, origin, f)
 
 
-def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: _Field) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field) -> tuple[tuple[np.ndarray, np.ndarray], float]:
     """The closed triangle mesh of ``phi`` at ``level`` (vertices [m], faces
     int32 with outward normals) and its volume."""
     from skimage.measure import marching_cubes
@@ -452,7 +452,7 @@ def _mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
-def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: _Field) -> tuple[tuple[np.ndarray, ...], float]:
+def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field) -> tuple[tuple[np.ndarray, ...], float]:
     """The closed outlines of ``phi`` at ``level`` ([m], outer loops
     counter-clockwise) and their area."""
     from skimage.measure import find_contours

@@ -2,7 +2,13 @@
 of the volume they enclose at a level: steps 1-3 of
 :mod:`hybridmpm.render.surface` (the p2g of the particles' volumes, the
 smoothing, the closure against walls and obstacles) and what its
-``iso="volume"`` levels are solved on."""
+``iso="volume"`` levels are solved on.
+
+Its public names are the seam with :mod:`hybridmpm.render.surface` (which
+draws the level sets) and :mod:`hybridmpm.render.usd` (which needs
+:func:`is_sampled`): :func:`field` builds a :class:`Field`, :func:`bodies`
+labels it, :class:`VolumeEstimate` finds each body's level, :func:`closed`
+closes it at that level; :data:`MARGIN` sizes the sub-grid."""
 
 from __future__ import annotations
 
@@ -28,8 +34,8 @@ ISO_BULK = 0.3
 #: ``ISO_MIN`` has a corner above it (``φ̄ + |∇φ̄|₁/2 ≤ 2.5·max corner``).
 BODY_MIN = ISO_MIN / 2.5
 #: Nodes of zero field around the particles' bounding box (kernel reach 1.5 +
-#: smoothing 1 + a zero layer, rounded up).
-_MARGIN = 3
+#: smoothing 1 + a zero layer, rounded up): an int, in nodes of spacing ``h``.
+MARGIN = 3
 #: Field value beyond a wall face that lies on a node layer: marching cubes
 #: puts the surface on the face node, ``(φ − c)/(φ + _WALL) < 1e-14`` of a cell out.
 _WALL = 1e15
@@ -38,13 +44,16 @@ _W_SCALE = 2.0**10
 _V_SCALE = 2.0**14
 
 
-def _is_sampled(c: Any) -> bool:
-    """A sampled-SDF collider (``origin``, ``cell``, ``values``: a scene's mesh obstacle)."""
+def is_sampled(c: Any) -> bool:
+    """Whether collider ``c`` is a sampled SDF (it has ``origin`` float [D] [m],
+    ``cell`` [m] and ``values`` float [n_0, …, n_{D-1}] [m]: a scene's mesh
+    obstacle, :class:`hybridmpm.mpm.SampledSdf`) rather than a
+    :class:`~hybridmpm.mpm.Box` or :class:`~hybridmpm.mpm.Sphere`."""
     return all(hasattr(c, k) for k in ("origin", "cell", "values"))
 
 
 @dataclass(frozen=True)
-class _Field:
+class Field:
     """The closed field of one material on the sub-grid around its particles.
 
     ``phi`` float64 [n_0, …, n_{D-1}]: the smoothed volume fraction, folded
@@ -69,20 +78,25 @@ class _Field:
     v: np.ndarray
 
 
-def _field(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]) -> _Field | None:
-    """The field of the particles ``p`` [N, D] with volumes ``v`` [N] [m^D]
-    (:class:`_Field`). None if no particle lies within 3 nodes of the domain."""
+def field(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obstacles: list[Any]) -> Field | None:
+    """The closed field (:class:`Field`) of the particles ``p`` float64 [N, D]
+    [m] with volumes ``v`` float64 [N] [m^D] in the domain ``lo``, ``hi``
+    float64 [D] [m], on nodes of spacing ``h`` [m], after ``smooth`` binomial
+    passes per axis and closed against the walls and ``obstacles``
+    (colliders of :mod:`hybridmpm.mpm`: steps 1-3 of
+    :mod:`hybridmpm.render.surface`). None if no particle lies within
+    :data:`MARGIN` nodes of the domain."""
     dim = p.shape[1]
     p_min, p_max = _bounds(p)
-    if (p_min < lo - _MARGIN * h).any() or (p_max > hi + _MARGIN * h).any():
-        keep = ((p >= lo - _MARGIN * h) & (p <= hi + _MARGIN * h)).all(axis=1)
+    if (p_min < lo - MARGIN * h).any() or (p_max > hi + MARGIN * h).any():
+        keep = ((p >= lo - MARGIN * h) & (p <= hi + MARGIN * h)).all(axis=1)
         p, v = np.ascontiguousarray(p[keep]), v[keep]
         if len(p) == 0:
             return None
         p_min, p_max = _bounds(p)
     # sub-grid: the particles' bounding box (within the domain) plus the margin
-    g_lo = np.floor(np.maximum(p_min, lo) / h).astype(np.int64) - _MARGIN - 1
-    g_hi = np.floor(np.minimum(p_max, hi) / h).astype(np.int64) + _MARGIN + 2
+    g_lo = np.floor(np.maximum(p_min, lo) / h).astype(np.int64) - MARGIN - 1
+    g_hi = np.floor(np.minimum(p_max, hi) / h).astype(np.int64) + MARGIN + 2
     shape = [int(s) for s in g_hi - g_lo + 1]
     frac = np.rint(v * (_V_SCALE / h**dim)) / _V_SCALE  # [N]
     phi = _core.surface_p2g(np.ascontiguousarray(p), frac, h, [int(o) for o in g_lo], shape, _W_SCALE)
@@ -113,7 +127,7 @@ def _field(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: floa
             _obstacle_sdf((sdf, clip), c, coords, h)
     if clip is not None:
         clip = np.broadcast_to(clip, phi.shape)
-    return _Field(phi, sdf, clip, g_lo, faces[0], faces[1], h, p, v)
+    return Field(phi, sdf, clip, g_lo, faces[0], faces[1], h, p, v)
 
 
 def _fold(phi: np.ndarray, ax: int, i: int, side: int) -> None:
@@ -143,10 +157,12 @@ def _bounds(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p[:, k].min() for k in range(p.shape[1])]), np.array([p[:, k].max() for k in range(p.shape[1])])
 
 
-def _closed(phi: np.ndarray, clip: np.ndarray | None, h: float, iso: float) -> np.ndarray:
-    """The field ``phi`` closed at level ``iso``: ``min(φ, iso + clip/(2h))`` (``clip``
-    a :class:`_Field`'s), so that the level set ends on the obstacle faces
-    (and the walls off the node layers)."""
+def closed(phi: np.ndarray, clip: np.ndarray | None, h: float, iso: float) -> np.ndarray:
+    """The field ``phi`` float64 [n_0, …, n_{D-1}] closed at level ``iso``:
+    ``min(φ, iso + clip/(2h))`` (``clip`` [m] a :class:`Field`'s, or a box of
+    it, the same shape; None: ``phi`` itself; ``h`` the node spacing [m]), so
+    that the level set ends on the obstacle faces (and the walls off the node
+    layers). A new array of ``phi``'s shape."""
     return phi if clip is None else np.minimum(phi, iso + clip * (0.5 / h))
 
 
@@ -164,7 +180,7 @@ def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
 def _obstacle_sdf(out: tuple[np.ndarray, ...], c: Any, coords: list[np.ndarray], h: float) -> None:
     """``a ← min(a, collider_sdf)`` in place for every ``a`` of ``out``, over the nodes near obstacle ``c``."""
     dim = len(coords)
-    if _is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
+    if is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
         b_lo = np.asarray(c.origin, np.float64)
         b_hi = b_lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
     else:
@@ -184,7 +200,7 @@ def _obstacle_sdf(out: tuple[np.ndarray, ...], c: Any, coords: list[np.ndarray],
         a[tuple(sl)] = np.minimum(a[tuple(sl)], d)
 
 
-def _bodies(f: _Field) -> tuple[np.ndarray, int, np.ndarray]:
+def bodies(f: Field) -> tuple[np.ndarray, int, np.ndarray]:
     """The bodies of the field: int32 labels of the nodes (26-connected
     components of ``φ > BODY_MIN``, 1 … n; 0 elsewhere), n, and the volume
     [m^D] of each body's particles, float64 [n] (a particle belongs to the
@@ -208,7 +224,7 @@ def _bodies(f: _Field) -> tuple[np.ndarray, int, np.ndarray]:
     return labels, int(n), targets
 
 
-class _VolumeEstimate:
+class VolumeEstimate:
     """The volume [m^D] of each body's part of ``{closed field > c}`` as a
     function of its level ``c``, without drawing the surface: every cell
     counts the fraction of itself above ``c`` from the value ``φ̄`` and

@@ -43,7 +43,8 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
-from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, _is_sampled
+from hybridmpm.render.surface import SurfaceContours, SurfaceMesh
+from hybridmpm.render.surface_field import is_sampled
 from hybridmpm.scenes.obstacles import box_rotation, obstacle_center
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
@@ -224,7 +225,7 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any, centers: 
     """Obstacle ``c`` at ``where``; ``centers`` float64 [T, D] its centre per frame when it moves (None: it stands where the scene put it)."""
     from pxr import UsdGeom, Vt
 
-    if _is_sampled(c):  # a mesh obstacle: its zero level set
+    if is_sampled(c):  # a mesh obstacle: its zero level set
         from skimage.measure import marching_cubes
 
         vals = np.asarray(c.values, np.float32)

@@ -56,7 +56,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import read_regular_file
 from hybridmpm.limits import check_allocation
-from hybridmpm.mpm.params import _COLLIDER_DEFAULTS, SampledSdf
+from hybridmpm.mpm.params import COLLIDER_DEFAULTS, SampledSdf
 
 #: File kinds a mesh obstacle may be (by suffix, case-insensitive).
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
@@ -201,13 +201,13 @@ def check_mesh_obstacle(raw: Any, field: str, dim: int) -> dict[str, Any]:
     if not (_is_number(scale) and math.isfinite(scale) and scale > 0):
         raise InvalidInputError(f"{field}.scale: must be a finite number > 0, got {scale!r}", f"{field}.scale")
     rot = rotation_matrix(raw, field, dim)
-    condition = raw.get("condition", _COLLIDER_DEFAULTS["condition"])
+    condition = raw.get("condition", COLLIDER_DEFAULTS["condition"])
     if condition not in ("sticky", "slip", "separate"):
         raise InvalidInputError(f"{field}.condition: must be one of 'sticky', 'slip', 'separate', got {condition!r}", f"{field}.condition")
-    friction = raw.get("friction", _COLLIDER_DEFAULTS["friction"])
+    friction = raw.get("friction", COLLIDER_DEFAULTS["friction"])
     if not (_is_number(friction) and math.isfinite(friction) and friction >= 0):
         raise InvalidInputError(f"{field}.friction: must be a finite number >= 0, got {friction!r}", f"{field}.friction")
-    project = raw.get("project", _COLLIDER_DEFAULTS["project"])
+    project = raw.get("project", COLLIDER_DEFAULTS["project"])
     if not isinstance(project, bool):
         raise InvalidInputError(f"{field}.project: must be true or false, got {project!r}", f"{field}.project")
     out: dict[str, Any] = {"shape": "mesh", "path": raw.get("path"), "center": [float(v) for v in c], "scale": float(scale)}

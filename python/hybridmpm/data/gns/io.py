@@ -58,11 +58,15 @@ def _where(source: str | None, tid: str) -> str:
     return f"{prefix}trajectory {tid!r}"
 
 
-def _check_trajectory(tid: str, value: Any, *, source: str | None, lenient: bool) -> GnsTrajectory:
-    """Validate one ``(positions, particle_type[, material_properties])`` item.
+def check_trajectory(tid: str, value: Any, *, source: str | None, lenient: bool) -> GnsTrajectory:
+    """Validate one ``(positions, particle_type[, material_properties])`` item
+    (positions [T, N, D], particle_type [N]) of trajectory ``tid``.
 
     ``lenient`` (reading files of other tools) also accepts integral-valued
-    float particle types. Returns canonical arrays (float32 / int64, C order).
+    float particle types. Returns canonical arrays (positions float32
+    [T, N, D], particle_type int64 [N], C order); raises
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``tid`` (with
+    ``source``, the file, in the message) for anything else.
     """
     where = _where(source, tid)
     if isinstance(value, np.ndarray) and value.dtype == object and value.ndim == 1:
@@ -145,8 +149,11 @@ def _check_id(tid: Any, *, source: str | None = None) -> str:
 # --------------------------------------------------------------------------- atomic files
 
 
-def _atomic_write(path: PathLike, write: Callable[[IO[bytes]], None]) -> None:
-    """Write ``path`` through a temporary file in the same folder and ``os.replace``."""
+def atomic_write(path: PathLike, write: Callable[[IO[bytes]], None]) -> None:
+    """Write ``path`` through a temporary file in the same folder (``write(fh)``
+    fills it; it is fsynced) and ``os.replace``: readers see the old file or
+    the whole new one. Whatever ``write`` raises propagates, the temporary
+    file removed."""
     target = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(target))
     tmp = os.path.join(folder, f".{os.path.basename(target)}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
@@ -230,14 +237,14 @@ def write_split(path: PathLike, trajectories: Mapping[str, TrajectoryLike], *, c
     def write(fh: IO[bytes]) -> None:
         with zipfile.ZipFile(fh, mode="w", compression=method, compresslevel=_ZIP_COMPRESS_LEVEL if compress else None) as zf:
             for tid in ordered:
-                traj = _check_trajectory(tid, trajectories[tid], source=None, lenient=False)
+                traj = check_trajectory(tid, trajectories[tid], source=None, lenient=False)
                 info = zipfile.ZipInfo(f"{tid}.npy", date_time=_ZIP_DATE_TIME)
                 info.compress_type = method
                 info.create_system = 3  # Unix, whatever the writing platform
                 info.external_attr = 0o644 << 16
                 zf.writestr(info, _member_bytes(traj), compresslevel=_ZIP_COMPRESS_LEVEL if compress else None)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 # --------------------------------------------------------------------------- restricted unpickling
@@ -389,7 +396,7 @@ def read_split(path: PathLike) -> dict[str, GnsTrajectory]:
         out: dict[str, GnsTrajectory] = {}
         for key, info in members.items():
             item = _read_member(zf, info, source, key)
-            out[key] = _check_trajectory(key, item, source=source, lenient=True)
+            out[key] = check_trajectory(key, item, source=source, lenient=True)
         return out
 
 
@@ -402,7 +409,7 @@ def _read_gns_data(data: Any, source: str) -> dict[str, GnsTrajectory]:
     out: dict[str, GnsTrajectory] = {}
     for i, item in enumerate(items):
         tid = f"simulation_trajectory_{i:0{width}d}"
-        out[tid] = _check_trajectory(tid, item, source=f"{source} ({GNS_DATA_KEY}[{i}])", lenient=True)
+        out[tid] = check_trajectory(tid, item, source=f"{source} ({GNS_DATA_KEY}[{i}])", lenient=True)
     return out
 
 

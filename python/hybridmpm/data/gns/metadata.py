@@ -11,7 +11,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from hybridmpm.data.gns.io import PathLike, _atomic_write
+from hybridmpm.data.gns.io import PathLike, atomic_write
 from hybridmpm.errors import InvalidInputError
 
 METADATA_FILE = "metadata.json"
@@ -122,7 +122,7 @@ def write_metadata(path: PathLike, meta: Mapping[str, Any]) -> None:
     def write(fh: IO[bytes]) -> None:
         fh.write(payload)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 def read_metadata(path: PathLike) -> dict[str, Any]:

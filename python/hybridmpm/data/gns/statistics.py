@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC
-from hybridmpm.data.gns.io import TrajectoryLike, _check_trajectory
+from hybridmpm.data.gns.io import TrajectoryLike, check_trajectory
 from hybridmpm.errors import InvalidInputError
 
 _STATS_CHUNK_FRAMES = 256
@@ -86,7 +86,7 @@ def compute_statistics(
     vel: _Moments | None = None
     acc: _Moments | None = None
     for tid, value in pairs:
-        traj = _check_trajectory(str(tid), value, source=None, lenient=True)
+        traj = check_trajectory(str(tid), value, source=None, lenient=True)
         t_count, _, d = traj.positions.shape
         if dim is None:
             dim = d
