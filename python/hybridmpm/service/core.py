@@ -392,7 +392,7 @@ class SessionCore:
             self._open()
             self.sim.move_obstacle(index, center, velocity)  # type: ignore[attr-defined] # MPM and hybrid (the route refuses the network alone)
             frame = self.frame_index
-        self.touch()
+            self._changed()  # a pending move is part of the state: saved like a step
         self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
         return frame
 

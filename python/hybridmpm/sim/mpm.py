@@ -327,7 +327,11 @@ class MpmSimulator:
     def state(self) -> dict[str, Any]:
         """The whole state (picklable dict): solver checkpoint (with the
         obstacles' poses), step counter, stats, an array forcing (a callable
-        forcing is not saved) and the obstacle moves pending for the next step."""
+        forcing is not saved) and the obstacle moves pending for the next step
+        (``obstacle_moves``: a list of records ``{"index": int, "center":
+        [D floats], "velocity": [D floats] or None}``, in the order they were
+        given; plain JSON values, so the state survives a JSON round trip —
+        the service's checkpoint — unchanged)."""
         return {
             "kind": self.kind,
             "version": _STATE_VERSION,
@@ -336,7 +340,7 @@ class MpmSimulator:
             "stats": self.stats.to_dict(),
             "forcing": self._forcing.copy() if isinstance(self._forcing, np.ndarray) else None,
             "applied": self._applied,
-            "obstacle_moves": {i: (c.tolist(), None if v is None else v.tolist()) for i, (c, v) in self._moves.items()},
+            "obstacle_moves": [{"index": i, "center": c.tolist(), "velocity": None if v is None else v.tolist()} for i, (c, v) in self._moves.items()],
         }
 
     @serialised
@@ -383,17 +387,39 @@ class MpmSimulator:
         return commit
 
     def _check_moves(self, raw: Any) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
-        """A state's pending obstacle moves, checked as :meth:`move_obstacle` checks them (fields ``state.obstacle_moves...``)."""
-        if not isinstance(raw, dict):
-            raise InvalidInputError("state.obstacle_moves: must be a mapping of obstacle index to (center, velocity)", "state.obstacle_moves")
+        """A state's pending obstacle moves (its ``obstacle_moves``, absent
+        from states saved before obstacles moved), checked as
+        :meth:`move_obstacle` checks them: the list of records :meth:`state`
+        writes, or the form states held before it — a mapping of obstacle
+        index (an int, or its decimal string after a JSON round trip) to
+        ``(center, velocity)``. Raises :class:`InvalidInputError` naming
+        ``state.obstacle_moves…``."""
+        field = "state.obstacle_moves"
+        if isinstance(raw, dict):  # states written before the moves were a list
+            records = []
+            for key, value in raw.items():
+                if isinstance(key, str) and key.isascii() and key.isdigit() and len(key) <= 6:
+                    key = int(key)
+                if not isinstance(value, (list, tuple)) or len(value) != 2:
+                    raise InvalidInputError(f"{field}: bad move of obstacle {key!r} (expected [center, velocity])", field)
+                records.append({"index": key, "center": value[0], "velocity": value[1]})
+            raw = records
+        if not isinstance(raw, (list, tuple)):
+            raise InvalidInputError(f"{field}: must be a list of {{index, center, velocity}} records", field)
         out: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         d = self.particles.dim
-        for key, value in raw.items():
-            i = check_int("state.obstacle_moves", key, 0, len(self._colliders) - 1)
-            if self._colliders[i].keyframes or not isinstance(value, (list, tuple)) or len(value) != 2:
-                raise InvalidInputError(f"state.obstacle_moves: bad move of obstacle {i}", "state.obstacle_moves")
-            c = check_center(f"state.obstacle_moves.{i}.center", value[0], d)
-            v = None if value[1] is None else check_velocity(f"state.obstacle_moves.{i}.velocity", value[1], d)
+        for k, rec in enumerate(raw):
+            if not isinstance(rec, dict) or set(rec) != {"index", "center", "velocity"}:
+                raise InvalidInputError(f"{field}[{k}]: must be a record with exactly index, center and velocity", field)
+            if not self._colliders:
+                raise InvalidInputError(f"{field}[{k}]: this scene has no obstacles", field)
+            i = check_int(f"{field}[{k}].index", rec["index"], 0, len(self._colliders) - 1)
+            if self._colliders[i].keyframes:
+                raise InvalidInputError(f"{field}[{k}].index: obstacle {i} follows the keyframed path of its scene", field)
+            if i in out:
+                raise InvalidInputError(f"{field}[{k}].index: obstacle {i} moved twice", field)
+            c = check_center(f"{field}[{k}].center", rec["center"], d)
+            v = None if rec["velocity"] is None else check_velocity(f"{field}[{k}].velocity", rec["velocity"], d)
             out[i] = (c, v)
         return out
 
