@@ -24,7 +24,14 @@ from hybridmpm.errors import InvalidInputError
 #: Deepest nesting of arrays and tables/objects a scene or sketch file may have.
 MAX_NESTING = 32
 
-_KINDS = {stat.S_IFIFO: "a FIFO", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFDIR: "a directory", stat.S_IFSOCK: "a socket"}
+#: What a path that is not a regular file is, by ``stat.S_IFMT`` (for messages).
+FILE_KINDS = {
+    stat.S_IFIFO: "a FIFO",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFDIR: "a directory",
+    stat.S_IFSOCK: "a socket",
+}
 
 
 def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, what: str = "file") -> bytes:
@@ -40,7 +47,7 @@ def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, 
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            kind = _KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
+            kind = FILE_KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
             raise InvalidInputError(f"{field}: {what} {path} is {kind}, not a regular file", field)
         if st.st_size > max_bytes:
             raise InvalidInputError(f"{field}: {what} {path} has {st.st_size} bytes, more than the {max_bytes} allowed", field)
@@ -109,4 +116,4 @@ def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "fi
         raise InvalidInputError(f"{field}: {what} {path} is not a text file (not UTF-8 at byte {e.start})", field) from e
 
 
-__all__ = ["MAX_NESTING", "check_nesting", "json_depth", "read_regular_file", "read_text_file"]
+__all__ = ["FILE_KINDS", "MAX_NESTING", "check_nesting", "json_depth", "read_regular_file", "read_text_file"]

@@ -35,6 +35,7 @@ import logging
 import os
 import re
 import secrets
+import stat
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.files import read_regular_file
+from hybridmpm.files import FILE_KINDS, read_regular_file
 from hybridmpm.scenes.core import Clusters
 from hybridmpm.service import checkpoint as ckpt
 
@@ -213,7 +214,11 @@ class SessionStore:
         on it is refused with :class:`InvalidInputError` (field ``store``)
         naming the holder (its pid, then ``holder``, at most 100 characters).
         An exclusive ``flock`` on ``.lock`` in the store; the OS drops it when
-        the holder dies, even by SIGKILL. Stores on other filesystems (fsspec
+        the holder dies, even by SIGKILL. ``.lock`` must be a regular file of
+        its own: it is opened without following links, and a symbolic or hard
+        link, a directory, a FIFO or a device there is refused
+        (:class:`InvalidInputError`, field ``store``) before anything is
+        written. Stores on other filesystems (fsspec
         URLs) cannot be locked this way and are not. On a Ray cluster the
         namespace's registry actor holds it for every front end
         (:class:`~hybridmpm.service.ray_backend.registry.Registry`)."""
@@ -221,7 +226,7 @@ class SessionStore:
             return
         import fcntl
 
-        fd = os.open(os.path.join(self.root, ".lock"), os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        fd = self._open_lock()
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -236,6 +241,33 @@ class SessionStore:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}{', ' + holder[:100] if holder else ''}".encode())
         self._lock_fd = fd
+
+    def _open_lock(self) -> int:
+        """The store's ``.lock``, opened (created if missing) for reading and
+        writing without following a symbolic link and without blocking, and
+        kept only if it is a regular file with no other name (a hard link
+        would let the claim write into a file outside the store). Raises
+        :class:`InvalidInputError` (field ``store``) naming what it is instead."""
+        path = os.path.join(self.root, ".lock")
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+        try:
+            fd = os.open(path, flags, 0o644)
+        except OSError as e:
+            try:
+                mode = os.lstat(path).st_mode
+                kind = "a symbolic link" if stat.S_ISLNK(mode) else FILE_KINDS.get(stat.S_IFMT(mode), f"not a file the server can open ({e.strerror or e})")
+            except OSError:
+                kind = f"not a file the server can open ({e.strerror or e})"
+            raise InvalidInputError(f"store: {path} is {kind}; the claim of a store must be a regular file (remove it)", "store") from None
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
+                kind = "a hard link to another file" if stat.S_ISREG(st.st_mode) else FILE_KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
+                raise InvalidInputError(f"store: {path} is {kind}; the claim of a store must be a regular file (remove it)", "store")
+        except BaseException:
+            os.close(fd)
+            raise
+        return fd
 
     def release(self) -> None:
         """Let another server claim the store (:meth:`claim`)."""
