@@ -17,6 +17,7 @@ from typing import Any
 from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_model, shipped_switching, variant_models
+from hybridmpm.models.calibrated import fit_name, shipped_calibrations
 from hybridmpm.neural.grid import open_model
 from hybridmpm.scenes import scene_spec
 
@@ -59,7 +60,9 @@ class Method:
     the grid MPM runs on (None: the scene's;
     :func:`~hybridmpm.scenes.resolution.on_grid`, 2 particles per cell per
     axis); ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": the
-    classical twin, MPM on half the grid, :mod:`hybridmpm.sim.coarse`).
+    classical twin, MPM on half the grid, :mod:`hybridmpm.sim.coarse`);
+    ``calibrated`` MPM on ``n_grid`` with the calibrated coarse material of
+    the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
     """
 
     key: str
@@ -75,6 +78,7 @@ class Method:
     audit_tol: float | None = None
     n_grid: int | None = None
     cheap: str = "neural"
+    calibrated: bool = False
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -139,7 +143,8 @@ def methods_for(
     half (key ``hybrid_coarse``, the same rule), and plain MPM on each coarser grid of ``grids`` (fractions of
     the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
     refuses on ``seed``'s initial condition are left out:
-    :func:`mpm_grid_methods`). Raises
+    :func:`mpm_grid_methods`; with the calibrated coarse material where one
+    was fitted for the scene and grid, key ``mpm_g<n>_cal``). Raises
     :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
     """
 
@@ -153,6 +158,11 @@ def methods_for(
         Method("mpm_rp", "mpm", f"MPM r_p = {r_p:.3g}", r_p, 1, role="mpm_rp"),
     ]
     out += mpm_grid_methods(scene, r_p, seed, grids)[0]
+    out += [  # a calibrated coarse material: one more plain-MPM configuration, where one was fitted (docs/correction.md)
+        Method(f"mpm_g{m.n_grid}_cal", "mpm", f"{m.label}, calibrated", role="mpm_grid", n_grid=m.n_grid, calibrated=True)
+        for m in mpm_grid_methods(scene, r_p, seed, grids)[0]
+        if m.r_p == 1.0 and fit_name(scene, int(m.n_grid or 0)) in shipped_calibrations()
+    ]
     models: list[tuple[str, Path, str]] = []
     if variants:
         models += [(v["name"], v["path"], v["role"]) for v in variant_models(scene)]

@@ -44,7 +44,7 @@ def _simulate(args: argparse.Namespace) -> int:
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
         safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
-        **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}),
+        calibrated=args.calibrated, **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}),
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
@@ -125,9 +125,9 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
     # import time: loaded by this command only
     from hybridmpm.sim import load_tuned, tuned_settings
 
-    if args.model is not None or args.r_p != 1.0 or args.n_grid is not None or args.particles_per_cell is not None:
+    if args.model is not None or args.r_p != 1.0 or args.n_grid is not None or args.particles_per_cell is not None or args.calibrated:
         raise HybridMpmError(
-            "solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop --model/--r-p/--n-grid/--particles-per-cell"
+            "solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop --model/--r-p/--n-grid/--particles-per-cell/--calibrated"
         )
     doc = load_tuned(scene, args.tuned)
     for key, value in tuned_settings(doc).items():
@@ -223,6 +223,11 @@ def add_parsers(sub: Any) -> None:
         type=int,
         default=None,
         help="--solver mpm: particles per cell per axis of the lattice on --n-grid (1-4; default the scene's, 2)",
+    )
+    sim.add_argument(
+        "--calibrated",
+        action="store_true",
+        help="--solver mpm --n-grid N: the calibrated coarse material fitted for the scene on that grid (docs/correction.md); refused where none was fitted",
     )
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")

@@ -241,7 +241,7 @@ def at_resolution(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters | 
     return downsample_scene(scene, r_p, seed=seed, clusters=clusters).scene
 
 
-def on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None = None, *, keep_particles: bool = False) -> Scene:
+def on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None = None, *, keep_particles: bool = False, calibrated: bool = False) -> Scene:
     """``scene`` on another grid of the same domain.
 
     By default the particles are seeded anew from the scene's spec
@@ -254,10 +254,43 @@ def on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None = N
     The result records its ``info["base_n_grid"]``: the grid of its
     full-resolution reference (:func:`full_resolution`).
 
+    With ``calibrated`` the result runs the calibrated coarse material of
+    its scene and grid (:func:`calibrate`): the one place a simulator's
+    ``calibrated`` switch takes effect.
+
     Raises :class:`InvalidInputError` naming the field (``n_grid``,
     ``particles_per_cell``, ``blocks[i]``, ``obstacles[i]...``; ``scene`` for
-    a scene without a spec, or an ``r_p`` clustered one, asked to reseed).
+    a scene without a spec, or an ``r_p`` clustered one, asked to reseed;
+    ``calibrated`` where no fit exists for the scene and grid).
     """
+    new = _on_grid(scene, n_grid, particles_per_cell, keep_particles)
+    return calibrate(new) if calibrated else new
+
+
+def calibrate(scene: Scene) -> Scene:
+    """``scene`` (a registered scene moved to a coarser grid by :func:`on_grid`)
+    with its calibrated coarse material: the constitutive parameters fitted
+    for its scene and grid (:func:`hybridmpm.models.calibrated.calibration`,
+    set by :func:`hybridmpm.mpm.params.with_calibration`;
+    docs/correction.md "Rung 1"). Its spec keeps the scene's own material, so
+    its full-resolution reference (:func:`full_resolution`) is unchanged;
+    ``info["calibrated"]`` names the fit. Raises :class:`InvalidInputError`
+    (field ``calibrated``, naming ``--calibrated``) where no fit exists: the
+    scene on its own grid, another grid or lattice, a clustered scene."""
+    from hybridmpm.models.calibrated import calibration  # the package's data: loaded when asked for
+    from hybridmpm.mpm.params import with_calibration
+
+    n = scene.params.resolved_n_grid()
+    if scene.info.get("r_p", 1.0) < 1.0:
+        raise InvalidInputError("calibrated: --calibrated applies to plain MPM on a coarser grid at r_p = 1; drop --calibrated or --r-p", "calibrated")
+    if scene.spec is None or scene.info.get("kept_particles"):
+        raise InvalidInputError("calibrated: --calibrated applies to a registered scene reseeded on a coarser grid (not its kept particles)", "calibrated")
+    ppc = scene.spec.particles_per_cell
+    fit = calibration(scene.name, n, int(scene.info.get("base_n_grid", n)), ppc)
+    return replace(scene, params=with_calibration(scene.params, fit["params"]), info={**scene.info, "calibrated": fit["name"]})
+
+
+def _on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None, keep_particles: bool) -> Scene:
     if n_grid is None and particles_per_cell is None:
         return scene
     n0 = scene.params.resolved_n_grid()

@@ -22,7 +22,7 @@ SOLVERS = ("hybrid", "mpm", "neural")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
 #: Keys of a configuration (the chosen method) in the tuned file.
-CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid")
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid", "calibrated")
 
 
 def make_simulator(
@@ -46,6 +46,7 @@ def make_simulator(
     particles_per_cell: int | None = None,
     cheap: str = "neural",
     cheap_grid: int | None = None,
+    calibrated: bool = False,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
@@ -59,18 +60,27 @@ def make_simulator(
     ``particles_per_cell`` run MPM on another grid of the same domain
     (:func:`~hybridmpm.scenes.resolution.on_grid`; None: the scene's);
     ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": its
-    classical twin, MPM on a ``cheap_grid`` grid, default half the scene's).
+    classical twin, MPM on a ``cheap_grid`` grid, default half the scene's);
+    ``calibrated`` runs MPM on ``n_grid`` with the calibrated coarse material
+    of the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
     ``r_p``, ``n_grid`` or ``particles_per_cell`` for a network solver: it
     runs at its model's resolution)."""
     if solver not in SOLVERS:
         raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
     if solver != "mpm":
-        for name, value, unset in (("r_p", r_p, 1.0), ("n_grid", n_grid, None), ("particles_per_cell", particles_per_cell, None)):
+        for name, value, unset in (
+            ("r_p", r_p, 1.0),
+            ("n_grid", n_grid, None),
+            ("particles_per_cell", particles_per_cell, None),
+            ("calibrated", calibrated, False),
+        ):
             if value != unset:
                 raise InvalidInputError(f"{name}: applies to the mpm solver; the {solver} solver runs at its model's resolution", name)
     if solver == "mpm":
-        return MpmSimulator(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell)
+        return MpmSimulator(
+            scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell, calibrated=calibrated
+        )
     if solver == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads, clusters=clusters)
     return HybridSimulator(
@@ -121,12 +131,13 @@ def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
 
 def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of a tuned configuration
-    (``solver``, and ``r_p`` and ``n_grid`` or ``model`` and ``r_c``, and the hybrid's
+    (``solver``, and ``r_p``, ``n_grid`` and ``calibrated`` where set, or ``model`` and ``r_c``, and the hybrid's
     ``safeguard`` and ``audit_tol`` where the configuration sets them)."""
     cfg = doc["config"]
     if cfg["kind"] == "mpm":
         # configurations tuned before grids were a knob ran on the scene's grid
-        return {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
+        mpm: dict[str, Any] = {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
+        return {**mpm, "calibrated": True} if cfg.get("calibrated") else mpm  # a calibrated coarse material (docs/correction.md)
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
     if cfg["kind"] == "hybrid":
         out["r_c"] = float(cfg["r_c"])

@@ -76,6 +76,10 @@ class MpmSimulator:
         obstacles and wall faces, reseeded at ``particles_per_cell`` per axis,
         or with ``keep_particles`` the scene's own particles); None: the
         scene's grid. Applied before ``r_p``.
+    calibrated:
+        Run the calibrated coarse material of the scene on ``n_grid``
+        (:func:`~hybridmpm.scenes.resolution.calibrate`; docs/correction.md);
+        refused (field ``calibrated``) where no fit exists.
 
     ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
     :class:`InvalidInputError` naming the bad parameter.
@@ -95,6 +99,7 @@ class MpmSimulator:
         n_grid: int | None = None,
         particles_per_cell: int | None = None,
         keep_particles: bool = False,
+        calibrated: bool = False,
     ) -> None:
         self._lock = new_lock()
         if isinstance(scene, str):
@@ -102,7 +107,7 @@ class MpmSimulator:
         self.r_t = check_r_t(r_t)
         threads = check_int("threads", threads, 0)
         self.scene_full = scene
-        self.scene = at_resolution(on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles), r_p, seed, clusters)
+        self.scene = at_resolution(on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles, calibrated=calibrated), r_p, seed, clusters)
         self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
         self.particles = self.scene.particles(self.solver.masses)
         self.dt_frame = float(self.scene.dt_frame)
