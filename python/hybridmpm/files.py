@@ -7,22 +7,34 @@ a directory) after following links, checks the size bound on the open file
 (``fstat``, not the path's ``st_size``) and reads at most that many bytes
 (a file that grows while it is read is refused too). :func:`check_nesting`
 refuses JSON or TOML text nested deeper than :data:`MAX_NESTING` before a
-parser recurses into it.
+parser recurses into it; :func:`loads_json` is the one JSON reader (the
+depth checked, then parsed). :func:`npz_headers` reads the ``.npy`` headers
+of an ``.npz`` archive without its data, so that its arrays are sized
+against the memory budget before one is read.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import re
 import stat
+import zipfile
+import zlib
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import human
 
-#: Deepest nesting of arrays and tables/objects a scene or sketch file may have.
+#: Deepest nesting of arrays and tables/objects a scene or sketch file (or any JSON read, unless its reader says otherwise) may have.
 MAX_NESTING = 32
+#: Most members an ``.npz`` archive read by :func:`npz_headers` may have.
+MAX_NPZ_MEMBERS = 10_000
 
 #: What a path that is not a regular file is, by ``stat.S_IFMT`` (for messages).
 FILE_KINDS = {
@@ -107,6 +119,93 @@ def check_nesting(text: str, field: str, *, max_depth: int = MAX_NESTING, toml: 
         raise InvalidInputError(f"{field}: nested more than {max_depth} levels deep", field)
 
 
+def loads_json(text: str | bytes, field: str, *, max_depth: int = MAX_NESTING) -> Any:
+    """Parse the JSON ``text`` after checking its nesting (:func:`json_depth`,
+    linear, before the parser recurses): the one way the library reads JSON
+    it did not write itself in this process (scene files, sketches,
+    trajectories' ``scene_params``, checkpoints, stream messages, dataset
+    and model metadata). Raises :class:`InvalidInputError` naming ``field``
+    for text nested deeper than ``max_depth`` or that is not JSON (UTF-8)."""
+    raw = text.encode("utf-8", "replace") if isinstance(text, str) else bytes(text)
+    if json_depth(raw) > max_depth:
+        raise InvalidInputError(f"{field}: nested more than {max_depth} levels deep", field)
+    try:
+        return json.loads(raw.decode("utf-8") if isinstance(text, (bytes, bytearray, memoryview)) else text)
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:  # RecursionError: cannot happen within max_depth; kept as a guard
+        raise InvalidInputError(f"{field}: not valid JSON ({str(e)[:120]})", field) from None
+
+
+@dataclass(frozen=True)
+class NpyHeader:
+    """One member of an ``.npz`` archive as its ``.npy`` header declares it,
+    read without its data: ``name`` (the key: the member's name less
+    ``.npy``), ``shape``, ``dtype``, ``fortran_order``, ``stored_bytes`` (its
+    decompressed size as the archive's directory declares it [bytes]) and
+    ``member`` (its name in the archive)."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    fortran_order: bool
+    stored_bytes: int
+    member: str
+
+    @property
+    def size(self) -> int:
+        """Values the header declares (the product of ``shape``)."""
+        return math.prod(self.shape)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the array takes once read [bytes]: ``size · dtype.itemsize``."""
+        return self.size * self.dtype.itemsize
+
+
+def npz_headers(zf: zipfile.ZipFile, field: str | None = None, max_members: int = MAX_NPZ_MEMBERS) -> list[NpyHeader]:
+    """The ``.npy`` header of every member of the open archive ``zf``, read
+    before any member's data (each header is at most a few kilobytes): what
+    sizes an ``.npz`` against the memory budget before it is read. A member
+    whose header declares more bytes than the member holds is refused (a
+    header cannot make a reader allocate what the file does not back).
+    Raises :class:`InvalidInputError` naming ``field`` (None: the member's
+    key) for more than ``max_members`` members, a member that is no ``.npy``
+    array (bad magic, unknown version, malformed header) or one that
+    declares more than it holds. Object dtypes are returned: the caller
+    refuses them (they need pickle)."""
+    infos = zf.infolist()
+    if len(infos) > max_members:
+        name = field or "path"
+        raise InvalidInputError(f"{name}: more than {max_members} arrays in the archive", name)
+    out = []
+    for info in infos:
+        key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+        shown = key if len(key) <= 40 else key[:40] + "…"
+        name = field or shown
+        try:
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+                else:
+                    raise ValueError(f"npy version {version}")
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError) as e:
+            raise InvalidInputError(f"{name}: array {shown!r} is not a readable .npy array ({type(e).__name__})", name) from None
+        h = NpyHeader(key, tuple(int(n) for n in shape), dtype, bool(fortran), int(info.file_size), info.filename)
+        if h.nbytes > h.stored_bytes:
+            raise InvalidInputError(f"{name}: array {shown!r} declares {list(h.shape)} {dtype.str} ({human(h.nbytes)}) but holds {h.stored_bytes} bytes", name)
+        out.append(h)
+    return out
+
+
+def read_npz_member(zf: zipfile.ZipFile, header: NpyHeader) -> np.ndarray:
+    """The array of a member :func:`npz_headers` read (no pickle). Raises
+    what :func:`numpy.lib.format.read_array` raises for a corrupt member."""
+    with zf.open(header.member) as f:
+        return np.asarray(np.lib.format.read_array(f, allow_pickle=False))
+
+
 def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "file") -> str:
     """:func:`read_regular_file` decoded as UTF-8 (:class:`InvalidInputError` naming ``field`` if it is not)."""
     raw = read_regular_file(path, max_bytes, field, what)
@@ -116,4 +215,16 @@ def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "fi
         raise InvalidInputError(f"{field}: {what} {path} is not a text file (not UTF-8 at byte {e.start})", field) from e
 
 
-__all__ = ["FILE_KINDS", "MAX_NESTING", "check_nesting", "json_depth", "read_regular_file", "read_text_file"]
+__all__ = [
+    "FILE_KINDS",
+    "MAX_NESTING",
+    "MAX_NPZ_MEMBERS",
+    "NpyHeader",
+    "check_nesting",
+    "json_depth",
+    "loads_json",
+    "npz_headers",
+    "read_npz_member",
+    "read_regular_file",
+    "read_text_file",
+]

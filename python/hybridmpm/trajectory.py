@@ -37,10 +37,38 @@ import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import NpyHeader, npz_headers, read_npz_member
+from hybridmpm.limits import check_allocation
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
 RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material", "obstacle_centers")
 _REQUIRED_KEYS = ("positions", "particle_type", "dt_frame")
+#: Largest velocity a trajectory's frames may imply [m/s]: ``|Δx| / dt_frame`` must stay a finite float32
+#: (what the point clouds and the USD file store), so no export holds an infinite value.
+MAX_FRAME_VELOCITY = float(np.finfo(np.float32).max)
+
+
+def check_frame_velocities(positions: np.ndarray, dt_frame: float, field: str = "dt_frame") -> None:
+    """Refuse a ``dt_frame`` [s] so small for ``positions`` (finite, [T, N, D])
+    that a particle's velocity between two frames, ``|Δx| / dt_frame`` per
+    axis, exceeds :data:`MAX_FRAME_VELOCITY` — what the exports
+    (point clouds, USD) would store as infinity. Frame by frame (no
+    ``[T, N, D]`` copy). Raises :class:`InvalidInputError` naming ``field``."""
+    p = np.asarray(positions)
+    step = max((float(np.abs(p[t].astype(np.float64) - p[t - 1]).max(initial=0.0)) for t in range(1, p.shape[0])), default=0.0)
+    if step / float(dt_frame) > MAX_FRAME_VELOCITY:
+        raise InvalidInputError(
+            f"{field}: {float(dt_frame)!r} s between frames makes the particles' velocities overflow "
+            f"(a particle moves {step:.3g} m in one frame: {step / float(dt_frame):.3g} m/s, beyond float32)",
+            field,
+        )
+
+
+def load_bytes(h: NpyHeader) -> int:
+    """What reading the array of header ``h`` takes at its peak [bytes]: the
+    array as read, its validated copy (float32 positions, int64 types, ...)
+    and a one-byte finiteness mask per value."""
+    return 2 * h.nbytes + h.size
 
 
 def _scalar(name: str, value: Any) -> Any:
@@ -67,7 +95,10 @@ class Trajectory:
         :data:`GNS_KINEMATIC` = 3).
     dt_frame:
         Simulated time between stored frames [s], finite and > 0 (``2.5e-3``
-        for every MPM frame, ``2.5e-3 · r_t`` for a neural rollout).
+        for every MPM frame, ``2.5e-3 · r_t`` for a neural rollout), and
+        large enough that no particle's velocity between two frames,
+        ``|Δx| / dt_frame``, exceeds :data:`MAX_FRAME_VELOCITY` (the largest
+        float32: the exports store velocities as float32).
     n_grid:
         Cells per dimension of the scene's grid (3 … 4096), or ``None``
         (then consumers use 128 in 2D and 64 in 3D).
@@ -123,6 +154,7 @@ class Trajectory:
         if not (math.isfinite(dt) and dt > 0):
             raise InvalidInputError(f"dt_frame: must be a finite number > 0 [s], got {dt!r}", "dt_frame")
         self.dt_frame = float(dt)
+        check_frame_velocities(pos, self.dt_frame)
 
         if self.n_grid is not None:
             g = _scalar("n_grid", self.n_grid)
@@ -233,11 +265,18 @@ class Trajectory:
     def load(cls, path: str | os.PathLike[str]) -> Trajectory:
         """Read and validate a trajectory ``.npz`` (no pickles).
 
+        Every array is sized from its ``.npy`` header before any is read
+        (:func:`~hybridmpm.files.npz_headers`): the array, its validated
+        copy and a byte per value (:func:`load_bytes`), each and all
+        together, against the memory budget (:func:`hybridmpm.limits.check_allocation`).
+
         Raises :class:`~hybridmpm.errors.InvalidInputError`: with field
         ``"path"`` if the file is missing or not a readable ``.npz``; with the
         key's name if a required key (``positions``, ``particle_type``,
-        ``dt_frame``) is missing or any array is malformed (``obstacle_centers``:
-        not [T, C, D], or not finite). A file without ``obstacle_centers``
+        ``dt_frame``) is missing, an array's header is malformed, declares
+        more than its member holds, needs pickle or more than the memory
+        budget, or any array is malformed (``obstacle_centers``: not
+        [T, C, D], or not finite). A file without ``obstacle_centers``
         loads with None (static obstacles).
         """
         path = Path(path)
@@ -253,21 +292,25 @@ class Trajectory:
         if magic[:2] != b"PK":
             raise InvalidInputError(f"path: {path} is not an .npz archive (no zip signature)", "path")
         try:
-            data = np.load(path, allow_pickle=False)
+            zf = zipfile.ZipFile(path)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise InvalidInputError(f"path: {path} is not a readable .npz file ({e})", "path") from e
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise InvalidInputError(f"path: {path} is a single .npy array, not an .npz archive", "path")
         arrays: dict[str, np.ndarray] = {}
-        with data:
-            keys = list(data.files)
-            for key in keys:
+        with zf:
+            headers = npz_headers(zf)  # every array's shape and dtype, before any is read
+            for h in headers:
+                if h.dtype.hasobject:
+                    raise InvalidInputError(f"{h.name}: cannot be read from {path} without pickle (dtype {h.dtype})", h.name)
+                check_allocation(h.name, load_bytes(h), f"reading {h.name} {list(h.shape)} {h.dtype} from {path.name}")
+            if headers:
+                biggest = max(headers, key=load_bytes)
+                check_allocation(biggest.name, sum(load_bytes(h) for h in headers), f"reading the trajectory {path.name} (its largest array: {biggest.name})")
+            keys = [h.name for h in headers]
+            for h in headers:
                 try:
-                    arrays[key] = data[key]
-                except ValueError as e:  # object arrays need pickle
-                    raise InvalidInputError(f"{key}: cannot be read from {path} without pickle ({e})", key) from e
-                except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-                    raise InvalidInputError(f"path: {path}: entry {key!r} is corrupt ({e})", "path") from e
+                    arrays[h.name] = read_npz_member(zf, h)
+                except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as e:
+                    raise InvalidInputError(f"path: {path}: entry {h.name!r} is corrupt ({e})", "path") from e
         for key in _REQUIRED_KEYS:
             if key not in arrays:
                 raise InvalidInputError(f"{key}: missing from {path} (it has: {', '.join(keys) or 'nothing'})", key)
@@ -283,4 +326,4 @@ class Trajectory:
         )
 
 
-__all__ = ["RESERVED_KEYS", "Trajectory"]
+__all__ = ["MAX_FRAME_VELOCITY", "RESERVED_KEYS", "Trajectory", "check_frame_velocities", "load_bytes"]

@@ -12,6 +12,7 @@ import numpy as np
 
 from hybridmpm.cli.common import out_dir
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 
 #: What ``--export`` takes: point clouds (``ply``, ``vtu``), surface meshes (``mesh``), one USD file (``usd``).
 EXPORTS = ("ply", "vtu", "mesh", "usd")
@@ -50,8 +51,11 @@ def params_of(traj: Any, scene: str | None = None, seed: int = 0) -> tuple[Any, 
 
     raw = traj.extras.get(PARAMS_KEY)
     if raw is not None:
+        arr = np.asarray(raw)
+        if arr.ndim != 0 or arr.dtype.kind != "U":
+            raise InvalidInputError(f"{PARAMS_KEY}: expected one JSON string in the trajectory, got {arr.dtype} {list(arr.shape)}", PARAMS_KEY)
+        d = loads_json(str(arr), PARAMS_KEY)  # nesting checked before parsing
         try:
-            d = json.loads(str(np.asarray(raw)))
             cols = d.get("colliders") if isinstance(d, dict) else None
             centers = [c.pop(CENTER_KEY, None) if isinstance(c, dict) else None for c in cols] if isinstance(cols, list) else []
             params = MpmParams.from_dict(d)

@@ -19,7 +19,6 @@ explains why the plan, not the acceleration field, is what is diffused.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -32,6 +31,7 @@ from hybridmpm.control.prior import prior_path
 from hybridmpm.control.sketch import render_sketch
 from hybridmpm.control.targets import GEOMETRY_SCALE, sketch_geometry, smoothstep
 from hybridmpm.errors import InvalidInputError, as_f32
+from hybridmpm.files import loads_json
 from hybridmpm.graph import radius_graph
 
 #: Diffusion steps of training (the schedule's length).
@@ -206,7 +206,7 @@ class ControlModel:
             raise InvalidInputError(f"threads: the control model's graphs sum with ScatterND, exact on 1 onnxruntime thread only; got {threads!r}", "threads")
         self.path = Path(path)
         try:
-            self.meta: dict[str, Any] = json.loads((self.path / META_FILE).read_text())
+            self.meta: dict[str, Any] = loads_json((self.path / META_FILE).read_text(), "model")  # nesting checked before parsing
             cfg = self.meta["config"]
             self.dim = int(cfg["dim"])
             self.k_basis = int(cfg["k_basis"])

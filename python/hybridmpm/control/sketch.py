@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 
 #: Sketch kinds.
 KINDS = ("arrow", "oval")
@@ -94,15 +95,8 @@ class Sketch:
     def from_json(cls, obj: Any) -> Sketch:
         """A sketch from its JSON object (a dict, or a JSON string). Raises
         :class:`InvalidInputError` naming the field."""
-        import json
-
         if isinstance(obj, (str, bytes)):
-            try:
-                obj = json.loads(obj)
-            except ValueError as e:
-                raise InvalidInputError(f"sketch: not JSON ({e})", "sketch") from e
-            except RecursionError as e:  # the C parser's depth guard: nested far deeper than a sketch
-                raise InvalidInputError("sketch: nested too deep to be a sketch", "sketch") from e
+            obj = loads_json(obj, "sketch")  # nesting checked before parsing
         if not isinstance(obj, dict):
             raise InvalidInputError("sketch: expected a JSON object {kind, points, t?, width?}", "sketch")
         unknown = sorted(set(obj) - {"kind", "points", "t", "width"})

@@ -13,6 +13,7 @@ from hybridmpm import _core
 from hybridmpm.conventions import DT_FRAME, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.errors import as_f32 as _as_f32
+from hybridmpm.files import loads_json
 from hybridmpm.limits import human, memory_budget
 from hybridmpm.limits import memory_budget as default_budget
 from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
@@ -419,7 +420,7 @@ class MpmSolver:
         if 16 + n > len(blob):
             raise CheckpointError("truncated checkpoint header")
         try:
-            head = json.loads(blob[16 : 16 + n])
+            head = loads_json(blob[16 : 16 + n], "checkpoint")  # nesting checked before parsing
             cs = head.pop(_COLLIDER_STATE, None) if isinstance(head, dict) else None
             params = MpmParams.from_dict(head)
         except (ValueError, TypeError) as e:

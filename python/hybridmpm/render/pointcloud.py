@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.trajectory import check_frame_velocities
 
 FORMATS = ("ply", "vtu")
 
@@ -32,7 +33,9 @@ def export_points(
     frame, ``out_dir/frame_00000.<fmt>`` …, every ``every``-th frame. ``dt`` [s]
     between stored frames (for the velocity), ``solver`` int [T] (0 MPM, 1
     neural) or None. Returns the paths. Raises :class:`InvalidInputError`
-    naming ``fmt``, ``positions``, ``particle_type``, ``solver`` or ``every``."""
+    naming ``fmt``, ``positions`` (also non-finite), ``particle_type``, ``solver``,
+    ``every`` or ``dt`` (not finite and > 0, or so small that a velocity
+    overflows: :func:`~hybridmpm.trajectory.check_frame_velocities`)."""
     import meshio
 
     if fmt not in FORMATS:
@@ -47,6 +50,11 @@ def export_points(
         raise InvalidInputError(f"solver: expected [{p.shape[0]}] tags, got {list(np.asarray(solver).shape)}", "solver")
     if not isinstance(every, int) or every < 1:
         raise InvalidInputError(f"every: must be an integer >= 1, got {every!r}", "every")
+    if not np.isfinite(p).all():
+        raise InvalidInputError("positions: non-finite coordinates", "positions")
+    if not (isinstance(dt, (int, float, np.integer, np.floating)) and np.isfinite(dt) and dt > 0):
+        raise InvalidInputError(f"dt: must be a finite number > 0 [s], got {dt!r}", "dt")
+    check_frame_velocities(p, float(dt), "dt")  # the velocities written below stay finite
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n = p.shape[1]

@@ -46,6 +46,7 @@ from hybridmpm.mpm import Sphere
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh
 from hybridmpm.render.surface_field import is_sampled
 from hybridmpm.scenes.obstacles import box_rotation, obstacle_center
+from hybridmpm.trajectory import check_frame_velocities
 
 #: Suffixes :func:`write_usd` writes (``.usd`` is the binary crate format).
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -98,7 +99,9 @@ def write_usd(
 
     Raises :class:`InvalidInputError` naming ``path`` (suffix not one of
     :data:`USD_SUFFIXES`, folder missing or not writable), ``positions``,
-    ``particle_type``, ``dt_frame``, ``solver``, ``surfaces``, ``obstacle_centers`` or ``usd``
+    ``particle_type``, ``dt_frame`` (also when it makes a particle's velocity
+    between frames overflow float32: :func:`~hybridmpm.trajectory.check_frame_velocities`),
+    ``solver``, ``surfaces``, ``obstacle_centers`` or ``usd``
     (``pxr`` not installed).
     """
     require_pxr()
@@ -120,6 +123,7 @@ def write_usd(
         raise InvalidInputError(f"particle_type: expected an integer array [{n}], got {list(pt.shape)}", "particle_type")
     if not (isinstance(dt_frame, (int, float, np.integer, np.floating)) and np.isfinite(dt_frame) and dt_frame > 0):
         raise InvalidInputError(f"dt_frame: must be a finite number > 0 [s], got {dt_frame!r}", "dt_frame")
+    check_frame_velocities(p, float(dt_frame))  # the velocities written below stay finite float32
     tags = np.zeros(t_count, np.int32) if solver is None else np.asarray(solver)
     if tags.shape != (t_count,):
         raise InvalidInputError(f"solver: expected [{t_count}] tags, got {list(tags.shape)}", "solver")

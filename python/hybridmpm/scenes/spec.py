@@ -75,7 +75,7 @@ import numpy as np
 from hybridmpm.conventions import CONNECTIVITY_RADIUS as DEFAULT_CONNECTIVITY_RADIUS
 from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.files import check_nesting, read_text_file
+from hybridmpm.files import check_nesting, loads_json, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.mpm import DT_FRAME, MpmParams
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
@@ -402,18 +402,18 @@ class SceneSpec:
         path = Path(path)
         text = read_text_file(path, MAX_SCENE_FILE_BYTES, "scene", "scene file")
         toml = path.suffix == ".toml"
-        check_nesting(text, "scene", toml=toml)
-        try:
-            if toml:
-                try:
-                    import tomllib
-                except ModuleNotFoundError:  # Python 3.10
-                    import tomli as tomllib  # type: ignore[no-redef]
+        if toml:
+            check_nesting(text, "scene", toml=True)
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib  # type: ignore[no-redef]
+            try:
                 d = tomllib.loads(text)
-            else:
-                d = json.loads(text)
-        except ValueError as e:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
-            raise InvalidInputError(f"scene file {path}: not valid {'TOML' if toml else 'JSON'}: {e}", "scene") from e
+            except ValueError as e:  # tomllib.TOMLDecodeError is a ValueError
+                raise InvalidInputError(f"scene file {path}: not valid TOML: {e}", "scene") from e
+        else:
+            d = loads_json(text, "scene")  # nesting checked before parsing
         return cls.from_dict(d, base_dir=path.parent, confine=confine)
 
     # ------------------------------------------------------------------ building

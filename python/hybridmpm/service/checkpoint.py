@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.files import json_depth
+from hybridmpm.files import json_depth, loads_json, npz_headers, read_npz_member
 
 FORMAT = "hybridmpm-checkpoint"
 VERSION = 1
@@ -82,8 +82,9 @@ def decoded_nbytes(data: bytes) -> int:
 
 
 def _read_members(data: bytes, max_bytes: int) -> dict[str, np.ndarray]:
-    """The archive's arrays, each checked before it is read: a plain numeric
-    ``.npy`` whose declared shape fits the member's decompressed size."""
+    """The archive's arrays, each checked before it is read
+    (:func:`~hybridmpm.files.npz_headers`): a plain numeric ``.npy`` whose
+    declared shape fits the member's decompressed size."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
         infos = zf.infolist()
@@ -95,27 +96,17 @@ def _read_members(data: bytes, max_bytes: int) -> dict[str, np.ndarray]:
         raise _bad(f"arrays larger than {max_bytes} bytes once decompressed")
     if "__tree__.npy" not in {i.filename for i in infos}:
         raise _bad("no __tree__ member (not written by GET /checkpoint)")
+    try:
+        headers = npz_headers(zf, "checkpoint", MAX_MEMBERS)
+    except InvalidInputError as e:
+        raise _bad(str(e).removeprefix("checkpoint: ")) from None
     arrays: dict[str, np.ndarray] = {}
-    for info in infos:
-        key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-        shown = key if len(key) <= 40 else key[:40] + "…"
+    for h in headers:
+        shown = h.name if len(h.name) <= 40 else h.name[:40] + "…"
+        if h.dtype.kind not in "biuf" or h.dtype.hasobject:
+            raise _bad(f"array {shown!r} has dtype {h.dtype.str}")
         try:
-            with zf.open(info) as f:
-                version = np.lib.format.read_magic(f)
-                if version == (1, 0):
-                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-                elif version == (2, 0):
-                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-                else:
-                    raise ValueError(f"npy version {version}")
-                if dtype.kind not in "biuf" or dtype.hasobject:
-                    raise _bad(f"array {shown!r} has dtype {dtype.str}")
-                if math.prod(shape) * dtype.itemsize > info.file_size:
-                    raise _bad(f"array {shown!r} declares more data than it holds")
-            with zf.open(info) as f:
-                arrays[key] = np.asarray(np.lib.format.read_array(f, allow_pickle=False))
-        except InvalidInputError:
-            raise
+            arrays[h.name] = read_npz_member(zf, h)
         except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types on malformed input
             raise _bad(f"unreadable array {shown!r} ({type(e).__name__})") from None
     return arrays
@@ -145,13 +136,10 @@ def loads(data: bytes, max_bytes: int) -> tuple[dict[str, Any], dict[str, Any]]:
         raise _bad("__tree__ must be uint8 bytes of JSON")
     if raw.nbytes > MAX_TREE_BYTES:
         raise _bad(f"__tree__ larger than {MAX_TREE_BYTES} bytes")
-    text = raw.tobytes()
-    if json_depth(text) > MAX_JSON_DEPTH:
-        raise _bad(f"__tree__ nested deeper than {MAX_JSON_DEPTH} levels")
     try:
-        tree = json.loads(text.decode())
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise _bad(f"__tree__ is not JSON ({type(e).__name__})") from None
+        tree = loads_json(raw.tobytes(), "checkpoint.__tree__", max_depth=MAX_JSON_DEPTH)
+    except InvalidInputError as e:
+        raise _bad(str(e).removeprefix("checkpoint.")) from None
     if not isinstance(tree, dict) or tree.get("format") != FORMAT or tree.get("version") != VERSION:
         raise _bad(f"not a {FORMAT} version {VERSION}")
     meta = check_meta(tree.get("meta"))

@@ -13,6 +13,7 @@ import numpy as np
 
 from hybridmpm.data.gns.io import PathLike, atomic_write
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 
 METADATA_FILE = "metadata.json"
 
@@ -140,9 +141,9 @@ def read_metadata(path: PathLike) -> dict[str, Any]:
     with open(source, "rb") as fh:
         raw = fh.read()
     try:
-        meta = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InvalidInputError(f"{source}: not valid JSON ({exc})", "path") from exc
+        meta = loads_json(raw, "path")  # nesting checked before parsing
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{source}: {str(exc).removeprefix('path: ')}", "path") from None
     validate_metadata(meta, source=source)
     assert isinstance(meta, dict)
     return meta

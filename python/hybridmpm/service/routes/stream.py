@@ -14,7 +14,8 @@ from urllib.parse import urlsplit
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import SessionGoneError
 from hybridmpm.service.schemas import clean
@@ -98,9 +99,8 @@ async def stream(ws: WebSocket, sid: str) -> None:
             raw = str(m["text"])
             s.touch()
             msg: Any = None
-            if ckpt.json_depth(raw.encode()) <= WS_MAX_JSON_DEPTH:
-                with contextlib.suppress(ValueError):
-                    msg = json.loads(raw)
+            with contextlib.suppress(InvalidInputError):  # not JSON, or nested too deep: answered as an unknown message
+                msg = loads_json(raw, "message", max_depth=WS_MAX_JSON_DEPTH)
             kind = msg.get("type") if isinstance(msg, dict) else None
             if kind in ("play", "pause"):
                 await manager.set_playing(s, kind == "play")

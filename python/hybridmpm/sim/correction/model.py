@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 
 
 @dataclass
@@ -67,7 +68,7 @@ class Correction:
                     z["x_mean"].astype(np.float32),
                     z["x_std"].astype(np.float32),
                     z["y_std"].astype(np.float32),
-                    json.loads(str(z["meta"])),
+                    loads_json(str(z["meta"]), "model"),  # nesting checked before parsing
                 )
         except (OSError, KeyError, ValueError) as e:
             raise InvalidInputError(f"model: {path} is not a correction model ({e})", "model") from e
