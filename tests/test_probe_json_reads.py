@@ -31,6 +31,7 @@ DEEP = b"[" * 100_000 + b"]" * 100_000
 NOT_ROUTED = {
     "files.py": "the helper itself",
     "models/__init__.py": "the package's own model index files",
+    "models/calibrated/__init__.py": "the package's own calibrated fits",
     "bench/__init__.py": "the benchmark's own result files",
     "bench/run.py": "the benchmark's own result files",
     "train/gns/export.py": "the metadata of the model the same run exported",
