@@ -45,17 +45,20 @@ Mesh obstacles are 3D only: a 2D scene refuses ``shape = "mesh"``
 
 from __future__ import annotations
 
+import collections
 import io
 import math
 import os
+import re
+import struct
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.files import read_regular_file
-from hybridmpm.limits import check_allocation
+from hybridmpm.files import loads_json, read_regular_file
+from hybridmpm.limits import check_allocation, human
 from hybridmpm.mpm.params import COLLIDER_DEFAULTS, SampledSdf
 
 #: File kinds a mesh obstacle may be (by suffix, case-insensitive).
@@ -64,6 +67,10 @@ MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
 MAX_MESH_FILE_BYTES = 128 * 2**20
 #: Most triangles a mesh obstacle may have.
 MAX_MESH_TRIANGLES = 200_000
+#: Memory a mesh takes per triangle while it is loaded and checked [bytes]: the file's arrays in trimesh, the
+#: merged copy, the triangles' corners and areas (measured with tracemalloc, benchmarks/bench_mesh_memory.py:
+#: at most 886 B for an 81,920-triangle sphere in STL, whose vertices are not shared; 494-552 B in OBJ, PLY, GLB).
+MESH_BYTES_PER_TRIANGLE = 1024
 #: Cells of margin around the mesh's bounding box in the sampled grid.
 MARGIN_CELLS = 3
 #: The deepest sample must lie at least this many grid cells inside (the Rust
@@ -79,6 +86,12 @@ _SAMPLE_CELLS = 0.25
 #: gradient 1), else the direction to the nearest surface point (measured: 0.9 let a mesh ramp drift from the
 #: analytic one by a grid-mass error of 0.22 at 64³, 0.98 by 0.0008; see docs/obstacles.md).
 _SMOOTH_GRADIENT = 0.98
+#: glTF accessor types and component types: values per element, bytes per value.
+_GLTF_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_GLTF_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+#: An OBJ face line (its corners in group 1) and a corner.
+_OBJ_FACE = re.compile(rb"(?m)^f[ \t]+([^\r\n]*)")
+_TOKEN = re.compile(rb"\S+")
 #: Ray offsets off the node lines, in cells (irrational multiples of 1e-5).
 _RAY_OFFSET = (math.sqrt(2.0) * 1e-5, math.sqrt(3.0) * 1e-5)
 
@@ -125,19 +138,107 @@ def resolve_mesh_path(path: Any, field: str, base_dir: str | os.PathLike[str] | 
     return Path(os.path.abspath(full))
 
 
+def _glb_declared(raw: bytes, path: Path, field: str) -> tuple[int, int]:
+    """A GLB's triangles (each mesh's triangle primitives, times the nodes
+    that place it) and the bytes of all its accessors, from its JSON chunk
+    (:func:`~hybridmpm.files.loads_json`), without reading its buffers."""
+
+    def bad(why: str) -> InvalidInputError:
+        return InvalidInputError(f"{field}: {path} is not a readable GLB mesh ({why})", field)
+
+    if len(raw) < 20 or raw[:4] != b"glTF":
+        raise bad("no glTF header")
+    (n, kind) = struct.unpack_from("<I4s", raw, 12)
+    if kind != b"JSON" or 20 + n > len(raw):
+        raise bad("its first chunk is not the JSON of its length")
+    doc = loads_json(raw[20 : 20 + n], field)
+    try:
+        accessors = doc.get("accessors", [])
+        counts = []
+        nbytes = 0
+        for a in accessors:
+            c = a["count"]
+            if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+                raise ValueError(f"accessor count {c!r}")
+            counts.append(c)
+            nbytes += c * _GLTF_COMPONENTS[a["type"]] * _GLTF_COMPONENT_BYTES[a["componentType"]]
+        uses = collections.Counter(node["mesh"] for node in doc.get("nodes", []) if isinstance(node, dict) and "mesh" in node)
+        triangles = 0
+        for i, mesh in enumerate(doc.get("meshes", [])):
+            per = 0
+            for prim in mesh.get("primitives", []):
+                mode = prim.get("mode", 4)
+                k = counts[prim["indices"]] if "indices" in prim else counts[prim["attributes"]["POSITION"]]
+                per += k // 3 if mode == 4 else max(k - 2, 0) if mode in (5, 6) else 0
+            triangles += per * max(1, uses.get(i, 0))
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError) as e:
+        raise bad(f"malformed accessors or meshes: {type(e).__name__} {str(e)[:80]}") from None
+    return triangles, nbytes
+
+
+def _obj_triangles(raw: bytes, most: int) -> int:
+    """An OBJ's triangles once its faces are split in fans (corners − 2 per
+    ``f`` line), counted up to just past ``most`` (no list of the lines or
+    their corners is made)."""
+    total = 0
+    for m in _OBJ_FACE.finditer(raw):
+        corners = 0
+        for _ in _TOKEN.finditer(raw, m.start(1), m.end(1)):
+            corners += 1
+            if total + corners - 2 > most:
+                return total + corners - 2
+        total += max(corners - 2, 0)
+    return total
+
+
+def declared_size(raw: bytes, kind: str, path: Path, field: str) -> tuple[int, int]:
+    """``(triangles, bytes)`` a mesh file declares, read without loading it:
+    a binary STL's count (its ASCII ``endfacet`` lines otherwise), a PLY
+    header's ``element face`` count, an OBJ's faces split in fans, a GLB's
+    triangle primitives (:func:`_glb_declared`; ``bytes``: its accessors,
+    which trimesh allocates even when no buffer backs them). Raises
+    :class:`InvalidInputError` naming ``field`` for a GLB whose JSON is
+    malformed or too deep."""
+    if kind == "stl":
+        ascii_count = raw.count(b"endfacet") + raw.count(b"ENDFACET")
+        binary = struct.unpack_from("<I", raw, 80)[0] if len(raw) >= 84 else 0
+        return max(ascii_count, binary if 84 + 50 * binary <= len(raw) else 0), 0
+    if kind == "ply":
+        end = raw.find(b"end_header", 0, 1 << 16)
+        faces = re.search(rb"(?m)^element[ \t]+face[ \t]+(\d{1,18})", raw[: end if end >= 0 else 1 << 16])
+        return (int(faces.group(1)) if faces else 0), 0
+    if kind == "obj":
+        return _obj_triangles(raw, MAX_MESH_TRIANGLES), 0
+    if kind == "glb":
+        return _glb_declared(raw, path, field)
+    return 0, 0
+
+
 def load_mesh(path: Path, field: str) -> tuple[np.ndarray, np.ndarray]:
-    """Read and check a mesh file: vertices float64 [V, 3] (file units) and
-    triangles int64 [F, 3]. Raises :class:`InvalidInputError` naming
+    """Read and check a mesh file for its geometry: vertices float64 [V, 3]
+    (file units) and triangles int64 [F, 3]. Before trimesh reads it, what
+    the file declares (:func:`declared_size`) is held to
+    :data:`MAX_MESH_TRIANGLES` and, at :data:`MESH_BYTES_PER_TRIANGLE` per
+    triangle plus a GLB's accessors, to the memory budget; a GLB's
+    materials and their image textures are skipped (never decoded: the
+    collider reads no colour). Raises :class:`InvalidInputError` naming
     ``field`` for a file that is missing, not a regular file, over
     :data:`MAX_MESH_FILE_BYTES`, not a triangle mesh trimesh can read, with
-    more than :data:`MAX_MESH_TRIANGLES` triangles, non-finite vertices,
-    degenerate (zero-area) triangles, or not watertight (a closed surface is
-    needed to tell inside from outside)."""
+    more than :data:`MAX_MESH_TRIANGLES` triangles (declared or loaded),
+    over the memory budget, with non-finite vertices, degenerate
+    (zero-area) triangles, or not watertight (a closed surface is needed to
+    tell inside from outside)."""
     trimesh = _trimesh()
     raw = read_regular_file(path, MAX_MESH_FILE_BYTES, field, "mesh file")
     kind = path.suffix.lower().lstrip(".")
+    triangles, accessor_bytes = declared_size(raw, kind, path, field)
+    if triangles > MAX_MESH_TRIANGLES:
+        raise InvalidInputError(f"{field}: {path} declares {triangles} triangles, more than the {MAX_MESH_TRIANGLES} allowed; simplify it", field)
+    declared = f"{triangles} triangles" + (f", accessors of {human(accessor_bytes)}" if accessor_bytes else "")
+    check_allocation(field, MESH_BYTES_PER_TRIANGLE * triangles + accessor_bytes, f"loading the mesh {path.name} ({declared})")
+    extra = {"skip_materials": True} if kind == "glb" else {}
     try:
-        mesh = trimesh.load(io.BytesIO(raw), file_type=kind, force="mesh", process=False)
+        mesh = trimesh.load(io.BytesIO(raw), file_type=kind, force="mesh", process=False, **extra)
     except Exception as e:  # trimesh raises many kinds (ValueError, KeyError, struct.error, ...) for a bad file
         raise InvalidInputError(f"{field}: {path} is not a readable {kind.upper()} mesh ({type(e).__name__}: {e})", field) from e
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
@@ -400,7 +501,15 @@ def mesh_obstacle(obstacle: dict[str, Any], field: str, n_grid: int, resolved: P
     use a finer grid), ``{field}.center`` for a mesh not inside the domain
     ``[0, 1]³`` once placed."""
     vertices, faces = load_mesh(resolved, f"{field}.path")
-    world = place(vertices, obstacle)
+    with np.errstate(over="ignore", invalid="ignore"):
+        world = place(vertices, obstacle)
+    if not np.isfinite(world).all():
+        reach = float(np.abs(vertices).max())
+        raise InvalidInputError(
+            f"{field}.scale: {obstacle['scale']:g} times the mesh's vertices (up to {reach:g} in file units) overflows once placed; "
+            "give the scale from file units to metres",
+            f"{field}.scale",
+        )
     lo, hi = world.min(axis=0), world.max(axis=0)
     if lo.min() < 0.0 or hi.max() > 1.0:
         raise InvalidInputError(
@@ -454,10 +563,12 @@ __all__ = [
     "MARGIN_CELLS",
     "MAX_MESH_FILE_BYTES",
     "MAX_MESH_TRIANGLES",
+    "MESH_BYTES_PER_TRIANGLE",
     "MESH_KEYS",
     "MESH_SUFFIXES",
     "MIN_DEPTH_CELLS",
     "check_mesh_obstacle",
+    "declared_size",
     "load_mesh",
     "mesh_obstacle",
     "place",
