@@ -350,6 +350,14 @@ def inference_graph(model: Any, metadata_json: str | None = None) -> Any:
     kin = b.op("Unsqueeze", [b.op("Equal", ["particle_type", b.const("kin", np.int64(GNS_KINEMATIC), np.int64)], "is_kin"), b.const("ax1", [1], np.int64)])
     b.nodes.append(helper.make_node("Where", [kin, last, nxt], ["next_position"], name="decoder/next_position"))
 
+    return _model_proto(b, t_in, dim, latent, branch, metadata_json)
+
+
+def _model_proto(b: _Builder, t_in: int, dim: int, latent: int, branch: bool, metadata_json: str | None) -> Any:
+    """The ``onnx.ModelProto`` of the graph built in ``b``: the inputs and outputs of the module doc (``context`` with a grid
+    ``branch``), opset :data:`OPSET`, ``metadata_json`` as the ``hybridmpm`` property."""
+    from onnx import TensorProto, helper
+
     f32, i64 = TensorProto.FLOAT, TensorProto.INT64
     inputs = [
         helper.make_tensor_value_info("positions", f32, [t_in, "N", dim]),
