@@ -22,8 +22,7 @@ import onnxruntime as ort
 
 from hybridmpm.conventions import GNS_WATER
 from hybridmpm.neural.grid import GridRuntime
-from hybridmpm.train.grid import GridConfig, GridModel
-from hybridmpm.train.grid_train import export_grid
+from hybridmpm.train.grid import GridConfig, GridModel, export_grid
 
 CONFIGS = [(32, 16, 3), (32, 24, 3), (32, 32, 3), (48, 8, 3), (64, 8, 3), (64, 8, 4), (64, 16, 3), (64, 24, 3)]
 

@@ -422,3 +422,31 @@ def test_no_private_name_is_imported_across_modules():
                 if base in aliases and private(f"{aliases[base]}.{node.attr}"):
                     offenders.append(f"{name}:{node.lineno}: {base}.{node.attr}")
     assert not offenders, "\n".join(offenders)
+
+
+#: The longest function the training package may hold, in lines (its def line to its last, nested functions included).
+TRAIN_FUNCTION_LINES = 120
+
+
+def test_no_function_in_the_training_package_is_over_120_lines():
+    # a family's trainer is its parts (data, step, evaluation, export) on the one scaffold (hybridmpm.train.scaffold)
+    offenders = []
+    for p in sorted((PACKAGE / "train").rglob("*.py")):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and (n := node.end_lineno - node.lineno + 1) > TRAIN_FUNCTION_LINES:
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: {node.name} is {n} lines")
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_training_families_stand_on_the_one_scaffold():
+    # the GNS, the grid model and the controller start with start_run and train through TrainingLoop; none calls
+    # torch.save itself (checkpoints and best weights go through the scaffold's atomic save_torch)
+    trainers = {"gns/train.py": "_train", "grid/train.py": "_train_grid", "control/train.py": "_train_control"}
+    for rel, fn in trainers.items():
+        tree = ast.parse((PACKAGE / "train" / rel).read_text())
+        (node,) = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == fn]
+        called = {ast.unparse(c.func).split(".")[-1] for c in ast.walk(node) if isinstance(c, ast.Call)}
+        assert {"TrainingLoop", "start_run"} <= called, (rel, sorted(called))
+        saves = [f"{rel}:{c.lineno}" for c in ast.walk(tree) if isinstance(c, ast.Call) and ast.unparse(c.func) == "torch.save"]
+        assert not saves, saves
+    assert not (PACKAGE / "train" / "grid_train.py").exists() and (PACKAGE / "train" / "grid" / "__init__.py").exists()

@@ -35,7 +35,7 @@ def _train_grid(args: argparse.Namespace) -> int:
     try:
         # import time: loaded by this command only
         from hybridmpm.train.distributed import is_main_process
-        from hybridmpm.train.grid_train import GridTrainConfig, train_grid
+        from hybridmpm.train.grid import GridTrainConfig, train_grid
     except ImportError as e:
         raise HybridMpmError(f"training needs PyTorch and onnx: pip install 'hybridmpm[train]' ({e})") from e
     cfg = GridTrainConfig(

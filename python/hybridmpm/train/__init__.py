@@ -13,6 +13,12 @@ onnxruntime alone (:mod:`hybridmpm.neural`, :mod:`hybridmpm.control`), and
   (``hybridmpm generate-control``) and the Fluid ControlNet's training
   (``hybridmpm train-control``);
 * :mod:`hybridmpm.train.grid` — the grid model (p2g, U-Net, g2p; a
-  NeuralMPM-style learned simulator, arXiv 2408.15753) and its torch p2g/g2p;
-* :mod:`hybridmpm.train.grid_train` — its training loop and ONNX export.
+  NeuralMPM-style learned simulator, arXiv 2408.15753): the model and its
+  torch p2g/g2p, its training (``hybridmpm train-grid``) and ONNX export;
+* :mod:`hybridmpm.train.scaffold` — what the three families' trainings share:
+  the settings' base, the loop with progress and resumable checkpoints, the
+  validation curve and the export metadata;
+* :mod:`hybridmpm.train.distributed` — data-parallel ranks;
+* :mod:`hybridmpm.train.correction` — the learned correction of coarse MPM
+  (experimental).
 """

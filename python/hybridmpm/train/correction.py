@@ -37,35 +37,38 @@ from hybridmpm.sim.correction.features import num_features
 from hybridmpm.sim.correction.forcing import CorrectionForcing, LabelledForcing, coarse_simulator
 from hybridmpm.sim.correction.model import Correction
 from hybridmpm.train.datasets import trajectory_seed
+from hybridmpm.train.scaffold import RunConfig, flag, integer, number, optional, setting
 
 #: Dataset seeds of the correction's training and validation trajectories (streams of :func:`trajectory_seed`).
 TRAIN_STREAM, VAL_STREAM = 5601, 5602
 
 
 @dataclass
-class CorrectionTrainConfig:
+class CorrectionTrainConfig(RunConfig):
     """Settings of :func:`train_correction`: the scene, the coarse grid
     (default half the scene's), seeds, frames per trajectory, labelling every
     ``every`` frames, DAgger ``rounds``, the MLP (``hidden`` × ``layers``),
     Adam ``steps`` of ``batch`` rows per round at ``lr`` (cosine decay),
     worker processes, targets averaged per coarse cell (``smooth``), and the
-    factors the correction is scored at on validation."""
+    factors the correction is scored at on validation. :meth:`validate`
+    refuses a bad value naming its field (the training scaffold's
+    :class:`~hybridmpm.train.scaffold.RunConfig`)."""
 
     scene: str = "water2d"
-    n_grid: int | None = None
-    train_seeds: int = 8
-    val_seeds: int = 4
-    frames: int = 400
-    every: int = 4
-    rounds: int = 2
-    hidden: int = 64
-    layers: int = 2
-    steps: int = 3000
-    batch: int = 4096
-    lr: float = 2e-3
-    workers: int = 2
+    n_grid: int | None = setting(None, optional(integer(1)))
+    train_seeds: int = setting(8, integer(1))
+    val_seeds: int = setting(4, integer(1))
+    frames: int = setting(400, integer(1))
+    every: int = setting(4, integer(1))
+    rounds: int = setting(2, integer(1))
+    hidden: int = setting(64, integer(1))
+    layers: int = setting(2, integer(1))
+    steps: int = setting(3000, integer(1))
+    batch: int = setting(4096, integer(1))
+    lr: float = setting(2e-3, number(0, low_open=True))
+    workers: int = setting(2, integer(1))
     seed: int = 0
-    smooth: bool = True
+    smooth: bool = setting(True, flag)
     scales: tuple[float, ...] = (0.5, 1.0)
 
 
@@ -166,7 +169,9 @@ def fit(x: np.ndarray, y: np.ndarray, cfg: CorrectionTrainConfig, meta: dict, *,
 def train_correction(cfg: CorrectionTrainConfig, out: Path) -> dict[str, Any]:
     """DAgger rounds (module doc); writes ``roundR.npz``, ``model.npz`` (the
     best round, its scale in ``meta``) and ``log.json`` under ``out``;
-    returns the best round, its validation error and the log."""
+    returns the best round, its validation error and the log. Raises
+    :class:`~hybridmpm.errors.InvalidInputError` naming a bad setting."""
+    cfg.validate()
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, cfg.workers))
     n = coarse_grid(cfg.scene, cfg.n_grid)

@@ -14,9 +14,12 @@ normalised per (basis, dimension).
 Diffusion: cosine schedule, T = 100, x0 prediction, MSE on the normalised
 coefficients (a few noise levels per state encoding); AdamW with exponential
 learning-rate decay; an EMA of the weights is what gets exported.
-Checkpoints every ``checkpoint_every`` steps (``ckpt.pt``: model, EMA,
-optimiser, step, RNG) make a run resumable: re-running the same command
-continues it. ``log.jsonl`` holds the training and validation losses.
+The loop, checkpoints and curve are the training scaffold's
+(:mod:`hybridmpm.train.scaffold`): checkpoints every ``checkpoint_every``
+steps (``ckpt.pt``: model, EMA, optimiser, step, random streams) make a run
+resumable: re-running the same command continues it as if it had not
+stopped. ``log.jsonl`` (every call's rows) and ``curve.json`` (the run's)
+hold the training and validation losses.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -53,7 +56,21 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator
 from hybridmpm.train.control.cases import iter_cases, load_case
 from hybridmpm.train.control.model import GEOMETRY, LOCAL_CHANNELS, SKETCH_EMBED, ControlNetConfig, FluidControlNet
-from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
+from hybridmpm.train.distributed import LossOf, Ranks, launch
+from hybridmpm.train.scaffold import (
+    Parts,
+    RunConfig,
+    TrainingLoop,
+    ValidationCurve,
+    export_metadata,
+    integer,
+    number,
+    one_of,
+    optional,
+    processes,
+    setting,
+    start_run,
+)
 
 #: Probability of a blank-sketch (uncontrolled) training pair.
 P_BLANK = 0.15
@@ -144,6 +161,52 @@ def load_pairs(
     return pairs
 
 
+#: Most pairs per step and rank.
+MAX_BATCH = 4096
+#: The checkpoint's file name.
+CKPT = "ckpt.pt"
+
+
+@dataclass
+class ControlTrainConfig(RunConfig):
+    """Settings of :func:`train_control` (its arguments; module doc). A run
+    resumes with any of them changed but the global batch (``batch`` times
+    the ranks): the sizes and the prior of the model are the checkpoint's."""
+
+    RESUMABLE: ClassVar[tuple[str, ...]] = (
+        "scene", "data_root", "out", "steps", "lr", "lr_final", "k_basis", "latent_state", "latent_head", "valid_fraction", "max_cases",
+        "checkpoint_every", "seed", "threads", "time_limit", "prior", "init_from", "nproc", "ranks",
+    )  # fmt: skip
+
+    scene: str
+    data_root: str
+    out: str
+    steps: int = setting(20000, integer(1, 10_000_000))
+    lr: float = setting(1e-3, number(0, 1, low_open=True))
+    lr_final: float = setting(1e-4, number(0, 1, low_open=True))
+    k_basis: int = setting(K_BASIS, integer(1))
+    latent_state: int = setting(32, integer(1))
+    latent_head: int = setting(32, integer(1))
+    valid_fraction: float = setting(0.05, number(0, 1))
+    max_cases: int | None = setting(None, optional(integer(0)))
+    checkpoint_every: int = setting(500, integer(1))
+    seed: int = 0
+    threads: int = 1
+    time_limit: float | None = setting(None, optional(number(0)))
+    prior: str = setting(PRIOR_FREE_SKETCH, one_of((PRIOR_SKETCH_RAMP, PRIOR_FREE_SKETCH)))
+    init_from: str | None = None
+    batch: int = setting(1, integer(1, MAX_BATCH))
+    nproc: int = setting(1, processes)
+
+    def check(self) -> None:
+        if not self.lr_final <= self.lr:
+            raise InvalidInputError(f"lr: need 0 < lr_final <= lr <= 1, got {self.lr!r}, {self.lr_final!r}", "lr")
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of step ``step``: from ``lr`` down to ``lr_final`` exponentially over ``steps``."""
+        return self.lr * ((self.lr_final / self.lr) ** (1.0 / max(self.steps, 1))) ** step
+
+
 def train_control(
     scene: str,
     data_root: str | Path,
@@ -168,7 +231,7 @@ def train_control(
     nproc: int = 1,
 ) -> dict[str, Any]:
     """Train (or resume) the controller of ``scene`` on the cases under
-    ``data_root`` into ``out`` (``ckpt.pt``, ``log.jsonl``; module doc) for
+    ``data_root`` into ``out`` (``ckpt.pt``, ``log.jsonl``, ``curve.json``; module doc) for
     ``steps`` optimiser steps of ``batch`` pairs (or until ``time_limit`` seconds), then export
     it (:func:`export_control`) to ``out/model``. Returns a summary
     (steps, seconds, mean loss of this call's first and last 10 steps, and
@@ -183,247 +246,216 @@ def train_control(
     draws and keeps its slice, so the weights are that process's to float
     rounding; rank 0 logs, checkpoints and exports. A run resumes with another
     split of the same global batch. Raises :class:`InvalidInputError`
-    naming ``data_root`` when there are fewer than 4 cases, or a bad setting."""
-    if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000_000:
-        raise InvalidInputError(f"steps: must be an integer in [1, 10⁷], got {steps!r}", "steps")
-    if isinstance(batch, bool) or not isinstance(batch, int) or not 1 <= batch <= MAX_BATCH:
-        raise InvalidInputError(f"batch: must be an integer in [1, {MAX_BATCH}], got {batch!r}", "batch")
-    check_nproc(nproc)
-    if not (0 < lr_final <= lr <= 1.0):
-        raise InvalidInputError(f"lr: need 0 < lr_final <= lr <= 1, got {lr!r}, {lr_final!r}", "lr")
+    naming ``data_root`` when there are fewer than 4 cases, or a bad setting
+    (:class:`ControlTrainConfig`)."""
+    config = ControlTrainConfig(
+        scene=scene, data_root=str(data_root), out=str(out), steps=steps, lr=lr, lr_final=lr_final, k_basis=k_basis, latent_state=latent_state,
+        latent_head=latent_head, valid_fraction=valid_fraction, max_cases=max_cases, checkpoint_every=checkpoint_every, seed=seed,
+        threads=threads, time_limit=time_limit, prior=prior, init_from=None if init_from is None else str(init_from), batch=batch, nproc=nproc,
+    ).validate()  # fmt: skip
     paths = list(iter_cases(data_root, scene))[: max_cases or None]
     if len(paths) < 4:
         raise InvalidInputError(
             f"data_root: {len(paths)} control cases of {scene} under {data_root}; run `hybridmpm generate-control {scene}` first", "data_root"
         )
-    settings = dict(
-        scene=scene, paths=paths, out=Path(out), steps=steps, lr=lr, lr_final=lr_final, k_basis=k_basis, latent_state=latent_state,
-        latent_head=latent_head, valid_fraction=valid_fraction, checkpoint_every=checkpoint_every, seed=seed, threads=threads,
-        time_limit=time_limit, progress=progress, prior=prior, init_from=init_from, batch=batch,
-    )  # fmt: skip
-    return launch(_train_control, nproc, settings)
+    return launch(_train_control, nproc, config, paths, progress)
 
 
-#: Most pairs per step and rank.
-MAX_BATCH = 4096
-
-
-def _train_control(ranks: Ranks, kw: dict[str, Any]) -> dict[str, Any]:
-    """:func:`train_control` on one rank of ``ranks`` (``kw``: its settings, the case paths found)."""
+def _start(ranks: Ranks, c: ControlTrainConfig) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """The run's checkpoint (rank 0 reads it, or the warm start's weights, and sends them to the
+    others, who may not share its directory): ``(checkpoint or None, warm-start state dict or None)``."""
     import torch
-    from tqdm import tqdm
 
-    scene, paths, out, steps, lr, k_basis, seed = kw["scene"], kw["paths"], kw["out"], kw["steps"], kw["lr"], kw["k_basis"], kw["seed"]
-    checkpoint_every, time_limit, batch, prior = kw["checkpoint_every"], kw["time_limit"], kw["batch"], kw["prior"]
-    progress = kw["progress"] and ranks.main
-    torch.set_num_threads(max(1, int(kw["threads"])))
-    if ranks.main:
-        out.mkdir(parents=True, exist_ok=True)
-    n_valid = max(1, int(round(kw["valid_fraction"] * len(paths))))
-    bounds = scene_bounds(scene)
-    ckpt_path = out / "ckpt.pt"
-    # rank 0 reads the checkpoint (or the warm start) and sends it to the others, who may not share its directory
     ck, init, error = None, None, None
     if ranks.main:
-        if ckpt_path.exists():
-            ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        elif kw["init_from"] is not None:  # warm start: the weights of another run (same sizes), fresh optimiser
+        path = Path(c.out) / CKPT
+        if path.exists():
+            ck = torch.load(path, map_location="cpu", weights_only=False)
+        elif c.init_from is not None:  # warm start: the weights of another run (same sizes), fresh optimiser
             try:
-                init = torch.load(Path(kw["init_from"]), map_location="cpu", weights_only=False)["ema"]
+                init = torch.load(Path(c.init_from), map_location="cpu", weights_only=False)["ema"]
             except (OSError, KeyError, RuntimeError) as e:
-                error = InvalidInputError(f"init_from: {kw['init_from']} is not a checkpoint of a control model ({e})", "init_from")
-        if ck is not None and int(ck.get("batch", 1)) * int(ck.get("ranks", 1)) != batch * ranks.size:
-            old_b, old_r = int(ck.get("batch", 1)), int(ck.get("ranks", 1))
-            error = InvalidInputError(
-                f"batch: {out} holds a run of {old_b * old_r} pairs per step ({old_b} on each of {old_r} ranks), "
-                f"not {batch * ranks.size} ({batch} on each of {ranks.size}); use another --out",
-                "batch",
-            )
+                error = InvalidInputError(f"init_from: {c.init_from} is not a checkpoint of a control model ({e})", "init_from")
     ck, init, error = ranks.broadcast((ck, init, error))
     if error is not None:
         raise error
-    if ck is not None:  # a resumed run keeps the prior it started with
-        prior = str(ck["config"].get("extra", {}).get("prior", PRIOR_SKETCH_RAMP))
-    train_pairs = load_pairs(paths[n_valid:], k_basis, bounds, prior=prior, progress=progress)
-    valid_pairs = load_pairs(paths[:n_valid], k_basis, bounds, mirror=False, prior=prior)
-    coef_all = np.concatenate([p.coef for p in train_pairs] + [p.free for p in train_pairs])
-    mean, std = coef_all.mean(0), np.maximum(coef_all.std(0), 1e-6)
-    vel_scale = float(np.concatenate([p.velocities for p in train_pairs]).std()) or 1.0
-    cfg = ControlNetConfig(
-        dim=int(train_pairs[0].positions.shape[1]),
-        k_basis=k_basis,
-        frames=int(load_case(paths[0]).path.shape[0]),
-        bounds=bounds,
-        radius=CONNECTIVITY_RADIUS,
-        vel_scale=vel_scale,
-        offset_scale=1.0,
-        coef_mean=mean.tolist(),
-        coef_std=std.tolist(),
-        latent_state=kw["latent_state"],
-        latent_head=kw["latent_head"],
-        extra={"scene": scene, "cases": len(paths) - n_valid, "valid_cases": n_valid, "prior": prior},
-    )
-    torch.manual_seed(seed)  # the initial weights are the seed's, whichever process draws them
-    model = FluidControlNet(cfg)
-    ema = copy.deepcopy(model)
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    step, rng_state, spent, core_seconds = 0, None, 0.0, 0.0
-    if init is not None:
-        try:
-            model.load_state_dict(init)
-            ema.load_state_dict(init)
-        except RuntimeError as e:
-            raise InvalidInputError(f"init_from: {kw['init_from']} is not a checkpoint of a control model of the same sizes ({e})", "init_from") from e
-    if ck is not None:
-        cfg = ControlNetConfig.from_dict(ck["config"])
-        model, ema = FluidControlNet(cfg), FluidControlNet(cfg)
-        model.load_state_dict(ck["model"])
-        ema.load_state_dict(ck["ema"])
-        opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-        opt.load_state_dict(ck["opt"])
-        step, rng_state, spent = int(ck["step"]), ck["rng"], float(ck.get("seconds", 0.0))
-        core_seconds = float(ck.get("core_seconds", spent))  # a checkpoint from before the count: its wall time
-    del ck, init
-    mean_t = torch.tensor(cfg.coef_mean, dtype=torch.float32)
-    std_t = torch.tensor(cfg.coef_std, dtype=torch.float32)
-    alpha_bar = torch.tensor(cosine_alpha_bar(DIFFUSION_STEPS), dtype=torch.float32)
-    rng = np.random.default_rng(seed)
-    if rng_state is not None:
-        rng.bit_generator.state = rng_state
-    torch.manual_seed(seed + step)
-    gamma = (kw["lr_final"] / lr) ** (1.0 / max(steps, 1))
-    log = (out / "log.jsonl").open("a") if ranks.main else None
-    blank_img = torch.zeros(1, 3, 64, 64)
+    if ck is not None and "opt" in ck:  # written before the training scaffold: its keys
+        ck = {**ck, "optimizer": ck["opt"], "elapsed": float(ck.get("seconds", 0.0))}
+    return ck, init
 
-    def tensors(p: _Pair, blank: bool) -> tuple[Any, ...]:
+
+class _Run:
+    """One rank's controller run: the pairs, the model and what the training
+    loop (:class:`~hybridmpm.train.scaffold.TrainingLoop`) calls of it."""
+
+    def __init__(self, c: ControlTrainConfig, ranks: Ranks, paths: list[Path], ck: dict[str, Any] | None, progress: bool) -> None:
+        import torch
+
+        self.c, self.ranks = c, ranks
+        n_valid = max(1, int(round(c.valid_fraction * len(paths))))
+        bounds = scene_bounds(c.scene)
+        prior = c.prior if ck is None else str(ck["config"].get("extra", {}).get("prior", PRIOR_SKETCH_RAMP))  # a resumed run keeps its prior
+        self.train_pairs = load_pairs(paths[n_valid:], c.k_basis, bounds, prior=prior, progress=progress and ranks.main)
+        self.valid_pairs = load_pairs(paths[:n_valid], c.k_basis, bounds, mirror=False, prior=prior)
+        coef_all = np.concatenate([p.coef for p in self.train_pairs] + [p.free for p in self.train_pairs])
+        mean, std = coef_all.mean(0), np.maximum(coef_all.std(0), 1e-6)
+        vel_scale = float(np.concatenate([p.velocities for p in self.train_pairs]).std()) or 1.0
+        cfg = ControlNetConfig(
+            dim=int(self.train_pairs[0].positions.shape[1]), k_basis=c.k_basis, frames=int(load_case(paths[0]).path.shape[0]), bounds=bounds,
+            radius=CONNECTIVITY_RADIUS, vel_scale=vel_scale, offset_scale=1.0, coef_mean=mean.tolist(), coef_std=std.tolist(),
+            latent_state=c.latent_state, latent_head=c.latent_head,
+            extra={"scene": c.scene, "cases": len(paths) - n_valid, "valid_cases": n_valid, "prior": prior},
+        )  # fmt: skip
+        torch.manual_seed(c.seed)  # the initial weights are the seed's, whichever process draws them
+        self.model = FluidControlNet(cfg)
+        self.ema = copy.deepcopy(self.model)
+        if ck is not None:
+            cfg = ControlNetConfig.from_dict(ck["config"])
+            self.model, self.ema = FluidControlNet(cfg), FluidControlNet(cfg)
+        self.cfg = cfg
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=c.lr, weight_decay=1e-4)
+        self.parts = Parts(self.model, self.opt, np.random.default_rng(c.seed), lr=c.lr_at, extra={"ema": self.ema})
+        self.mean_t = torch.tensor(cfg.coef_mean, dtype=torch.float32)
+        self.std_t = torch.tensor(cfg.coef_std, dtype=torch.float32)
+        self.alpha_bar = torch.tensor(cosine_alpha_bar(DIFFUSION_STEPS), dtype=torch.float32)
+        self.fit_pairs = self.train_pairs[:: max(1, len(self.train_pairs) // 8)][:8]
+        self.mine = ranks.part(c.batch)
+        self.step_loss: Any = None
+        self.loop: TrainingLoop | None = None
+
+    def warm_start(self, init: dict[str, Any]) -> None:
+        """Load another run's EMA weights into the model and its EMA (same sizes, or :class:`InvalidInputError`)."""
+        try:
+            self.model.load_state_dict(init)
+            self.ema.load_state_dict(init)
+        except RuntimeError as e:
+            raise InvalidInputError(f"init_from: {self.c.init_from} is not a checkpoint of a control model of the same sizes ({e})", "init_from") from e
+
+    def wrap(self) -> None:
+        """The loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the
+        gradients); the state encoder's decoder takes no part in it (its latents are what the head reads)."""
+        self.step_loss = self.ranks.wrap(LossOf(self.model, self.batch_loss), unused=True)
+
+    def tensors(self, p: _Pair, blank: bool) -> tuple[Any, ...]:
+        """A pair's inputs and normalised target (the blank sketch's: no image, geometry or offset)."""
+        import torch
+
         x = torch.from_numpy(p.positions)
-        target = (torch.from_numpy(p.free if blank else p.coef) - mean_t) / std_t
-        img = blank_img if blank else torch.from_numpy(p.image)
+        target = (torch.from_numpy(p.free if blank else p.coef) - self.mean_t) / self.std_t
+        img = torch.zeros(1, 3, 64, 64) if blank else torch.from_numpy(p.image)
         geo = torch.zeros(1, 11) if blank else torch.from_numpy(p.geometry)[None]
         off = torch.zeros_like(x) if blank else torch.from_numpy(p.offset)
-        return (
-            x,
-            torch.from_numpy(p.velocities),
-            torch.from_numpy(p.particle_type),
-            torch.from_numpy(p.senders),
-            torch.from_numpy(p.receivers),
-            img,
-            geo,
-            off,
-            target,
-        )
+        v, pt, s, r = (torch.from_numpy(a) for a in (p.velocities, p.particle_type, p.senders, p.receivers))
+        return x, v, pt, s, r, img, geo, off, target
 
-    def loss_of(net: FluidControlNet, p: _Pair, blank: bool, ts: list[int], gen: torch.Generator | None = None, noises: list[Any] | None = None) -> Any:
+    def loss_of(self, net: FluidControlNet, p: _Pair, blank: bool, ts: list[int], gen: Any = None, noises: list[Any] | None = None) -> Any:
         """The pair's loss at noise levels ``ts``, with the noise ``noises`` (default: drawn from ``gen``)."""
-        x, v, pt, s, r, img, geo, off, target = tensors(p, blank)
+        import torch
+
+        x, v, pt, s, r, img, geo, off, target = self.tensors(p, blank)
         h, edges, local, glob = net.encode(x, v, pt, s, r, img)
         cond = torch.cat([glob, geo], dim=1)
         total = torch.zeros(())
         for k, t in enumerate(ts):
             noise = torch.randn(target.shape, generator=gen) if noises is None else noises[k]
-            ab = alpha_bar[t]
+            ab = self.alpha_bar[t]
             xt = ab.sqrt() * target + (1 - ab).sqrt() * noise
             pred = net.head(xt, h, local, off, edges, s, r, torch.tensor([t / DIFFUSION_STEPS]), cond)
             total = total + torch.mean((pred - target) ** 2)
         return total / len(ts)
 
-    def batch_loss(net: FluidControlNet, draws: list[tuple[_Pair, bool, list[int], list[Any]]]) -> Any:
+    def batch_loss(self, net: FluidControlNet, draws: list[tuple[_Pair, bool, list[int], list[Any]]]) -> Any:
         """The mean loss of this rank's pairs (equal weights: the ranks' mean is the global batch's)."""
-        return sum(loss_of(net, p, blank, ts, noises=noises) for p, blank, ts, noises in draws) / len(draws)
+        return sum(self.loss_of(net, p, blank, ts, noises=noises) for p, blank, ts, noises in draws) / len(draws)
 
-    def validate(net: FluidControlNet | None = None, pairs: list[_Pair] | None = None) -> float:
+    def validate(self, net: FluidControlNet | None = None, pairs: list[_Pair] | None = None) -> float:
         """The loss at fixed noise levels and draws (no sampling noise between calls): ``net`` (default the EMA) on ``pairs`` (default validation)."""
+        import torch
+
         gen = torch.Generator().manual_seed(1234)
         with torch.no_grad():
-            vals = [float(loss_of(net or ema, p, False, [10, 40, 70, 95], gen)) for p in (valid_pairs if pairs is None else pairs)]
+            vals = [float(self.loss_of(net or self.ema, p, False, [10, 40, 70, 95], gen)) for p in (self.valid_pairs if pairs is None else pairs)]
         return float(np.mean(vals))
 
-    fit_pairs = train_pairs[:: max(1, len(train_pairs) // 8)][:8]
-    fit_first = validate(model, fit_pairs) if ranks.main else math.nan
+    def train_step(self, step: int) -> float:
+        """One optimiser step (the loop has set its learning rate), then the EMA; its loss on this rank."""
+        import torch
 
-    cpu0 = time.process_time()
-
-    def save() -> None:
-        """Rank 0 validates, logs and writes the checkpoint (every rank calls it: the CPU seconds are summed)."""
-        nonlocal core_seconds, cpu0
-        # the global batch's loss is the ranks' mean; the CPU time, their sum
-        loss_sum, cpu = ranks.sum(float(np.mean(recent[-checkpoint_every:])) if recent else 0.0, time.process_time() - cpu0)
-        core_seconds += cpu
-        cpu0 = time.process_time()
-        if not ranks.main:
-            return
-        assert log is not None
-        val = validate()
-        spent_now = spent + time.perf_counter() - t_start
-        entry = {"step": step, "loss": loss_sum / ranks.size if recent else None, "valid": val, "seconds": spent_now}
-        log.write(json.dumps({**entry, "ranks": ranks.size, "core_seconds": core_seconds}) + "\n")
-        log.flush()
-        ck = {"config": cfg.to_dict(), "model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(), "step": step}
-        ck.update({"rng": rng.bit_generator.state, "seconds": spent_now, "core_seconds": core_seconds, "batch": batch, "ranks": ranks.size})
-        tmp = ckpt_path.with_suffix(".tmp")
-        torch.save(ck, tmp)
-        os.replace(tmp, ckpt_path)
-
-    # the loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients);
-    # the state encoder's decoder takes no part in it (its latents are what the head reads)
-    step_loss = ranks.wrap(LossOf(model, batch_loss), unused=True)
-    saved_at = step
-    bar = tqdm(total=steps, initial=min(step, steps), desc=f"train-control {scene}", unit="step", disable=not progress)
-    t_start = time.perf_counter()
-    cpu0 = time.process_time()
-    recent: list[float] = []
-    mine = ranks.part(batch)
-    model.train()
-    while step < steps:
-        if time_limit is not None and ranks.any(time.perf_counter() - t_start > time_limit):  # every rank stops at the same step
-            break
+        rng = self.parts.rng
         # every rank draws the whole global batch (the random stream of one process of ranks x batch pairs) and keeps its slice
         draws = []
-        for i in range(ranks.size * batch):
-            p = train_pairs[int(rng.integers(len(train_pairs)))]
+        for i in range(self.ranks.size * self.c.batch):
+            p = self.train_pairs[int(rng.integers(len(self.train_pairs)))]
             blank = bool(rng.random() < P_BLANK)
             ts = [int(t) for t in rng.integers(0, DIFFUSION_STEPS, NOISE_DRAWS)]
             noises = [torch.randn(p.coef.shape) for _ in ts]  # the sample's shape: p.free's too
-            if i in mine:
+            if i in self.mine:
                 draws.append((p, blank, ts, noises))
-        loss = step_loss(draws)
-        opt.zero_grad()
+        loss = self.step_loss(draws)
+        self.opt.zero_grad()
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        for grp in opt.param_groups:
-            grp["lr"] = lr * gamma**step
-        opt.step()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        self.opt.step()
         decay = min(0.999, (1 + step) / (10 + step))
         with torch.no_grad():
-            for pe, pm in zip(ema.parameters(), model.parameters()):
+            for pe, pm in zip(self.ema.parameters(), self.model.parameters()):
                 pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
-        step += 1
-        lv = float(loss.detach())
-        recent.append(lv)
-        bar.update(1)
-        if step % 50 == 0:
-            bar.set_postfix(loss=f"{np.mean(recent[-50:]):.4f}")
-        if step % checkpoint_every == 0 or step == steps:
-            save()
-            saved_at = step
-    if saved_at != step:  # stopped by the time limit
-        save()
-    bar.close()
+        return float(loss.detach())
+
+    def evaluate(self, step: int, train_loss: float | None) -> dict[str, Any]:
+        """Rank 0's validation of the EMA: the row of ``log.jsonl``."""
+        assert self.loop is not None
+        return {
+            "step": step,
+            "loss": train_loss,
+            "valid": self.validate(),
+            "seconds": self.loop.wall(),
+            "ranks": self.ranks.size,
+            "core_seconds": self.loop.core_seconds,
+        }
+
+
+def _train_control(ranks: Ranks, c: ControlTrainConfig, paths: list[Path], progress: bool) -> dict[str, Any]:
+    """:func:`train_control` on one rank of ``ranks`` (``paths``: the case files found)."""
+    import torch
+
+    torch.set_num_threads(max(1, int(c.threads)))
+    out = Path(c.out)
+    start_run(c, ranks, out, CKPT)
+    ck, init = _start(ranks, c)
+    run = _Run(c, ranks, paths, ck, progress)
+    if init is not None:
+        run.warm_start(init)
+    run.loop = loop = TrainingLoop(
+        out, ranks, run.parts, steps=c.steps, every=c.checkpoint_every, desc=f"train-control {c.scene}", progress=progress, checkpoint=CKPT,
+        curve=ValidationCurve(out, "log.jsonl"), state=lambda: {"config": run.cfg.to_dict(), "batch": c.batch},
+    )  # fmt: skip
+    if ck is not None:
+        loop.restore(ck)
+    if ck is None or "torch_rng" not in ck:  # a checkpoint from before the scaffold saved no torch stream
+        torch.manual_seed(c.seed + loop.step)
+    del ck, init
+    fit_first = run.validate(run.model, run.fit_pairs) if ranks.main else math.nan
+    run.wrap()
+    run.model.train()
+    t_start = time.perf_counter()
+    stop = None if c.time_limit is None else (lambda: time.perf_counter() - t_start > float(c.time_limit))  # type: ignore[arg-type]
+    loop.run(run.train_step, run.evaluate, stop=stop)
     # this call's first and last 10 steps, the ranks' mean (every rank made as many steps)
     first: float | None = None
     last: float | None = None
-    if recent:
-        first, last = (v / ranks.size for v in ranks.sum(float(np.mean(recent[:10])), float(np.mean(recent[-10:]))))
+    if loop.losses:
+        first, last = (v / ranks.size for v in ranks.sum(float(np.mean(loop.losses[:10])), float(np.mean(loop.losses[-10:]))))
     summary = None
     if ranks.main:
-        assert log is not None
-        log.close()
-        seconds = spent + time.perf_counter() - t_start
-        export_control(ema, out / "model", {"scene": scene, "steps": step, "train_seconds": seconds, "cases": cfg.extra.get("cases")})
+        seconds = loop.wall()
+        export_control(
+            run.ema, out / "model", export_metadata(run.ema, scene=c.scene, steps=loop.step, train_seconds=seconds, cases=run.cfg.extra.get("cases"))
+        )
         # the loss on up to 8 training pairs at fixed noise: the model this call started from, then the EMA it exports
-        fit_last = validate(ema, fit_pairs)
-        summary = {"steps": step, "seconds": seconds, "first_loss": first, "last_loss": last, "fit_first": fit_first, "fit_last": fit_last}
-        summary.update({"ranks": ranks.size, "core_seconds": core_seconds})
+        fit_last = run.validate(run.ema, run.fit_pairs)
+        summary = {"steps": loop.step, "seconds": seconds, "first_loss": first, "last_loss": last, "fit_first": fit_first, "fit_last": fit_last}
+        summary.update({"ranks": ranks.size, "core_seconds": loop.core_seconds})
     # the others wait for rank 0's export and return its summary
     result = ranks.broadcast(summary)
     assert result is not None

@@ -6,7 +6,7 @@ reach. The grid branch gives every particle a view of the whole fluid, as
 CoRGI (a grid CNN beside a GNS) does:
 
 1. **p2g** with the quadratic B-spline of MLS-MPM (the engine's kernel, the
-   grid model's :func:`~hybridmpm.train.grid.stencil`) of the last position's
+   grid model's :func:`~hybridmpm.train.grid.model.stencil`) of the last position's
    particles onto ``G^D`` nodes over the model's bounds (one node of margin
    beyond each wall). Channels per node (:func:`branch_channels`): the
    particle count of each fluid type and of the obstacles over the count of a
@@ -14,7 +14,7 @@ CoRGI (a grid CNN beside a GNS) does:
    of each of the ``t_in − 1`` normalised input velocities (the GNS node
    features' ``(v − vel_mean)/vel_std_eff``), and a mask of the nodes beyond
    the walls;
-2. a **U-Net** (:class:`~hybridmpm.train.grid.UNet`) to ``latent`` channels,
+2. a **U-Net** (:class:`~hybridmpm.train.grid.model.UNet`) to ``latent`` channels,
    its last convolution zero at the start (a new branch leaves the GNS as it
    was);
 3. **g2p** of those channels at each particle, **added to the node latent**
@@ -35,7 +35,7 @@ from torch import nn
 from hybridmpm.conventions import GNS_KINEMATIC
 from hybridmpm.neural.grid_branch import branch_channels
 from hybridmpm.neural.grid_nodes import MASS_FLOOR
-from hybridmpm.train.grid import UNet, g2p, grid_geometry, p2g, stencil
+from hybridmpm.train.grid.model import UNet, g2p, grid_geometry, p2g, stencil
 
 
 class GridBranch(nn.Module):

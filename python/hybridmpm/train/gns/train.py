@@ -55,9 +55,12 @@
   trajectory of each dataset (position MSE and grid-mass error of the last
   step; with pooled datasets, their means, so that every pooled domain counts
   in the choice of ``model.onnx``);
-* ``checkpoint.pt`` at every validation (model, optimiser, step, RNG states):
-  rerunning the same command resumes; ``log.csv`` holds the losses;
-  ``model.onnx`` (the best validation rollout) is exported at the end;
+* the loop, checkpoints and curve are the training scaffold's
+  (:mod:`hybridmpm.train.scaffold`): ``checkpoint.pt`` at every validation
+  (model, optimiser, step, RNG states): rerunning the same command resumes,
+  as if it had not stopped; ``log.csv`` (every call's rows) and
+  ``curve.json`` (the run's) hold the losses; ``model.onnx`` (the best
+  validation rollout) is exported at the end;
 * with ``snapshots`` (default) every validation also exports the model of
   that step as ``snapshots/step_NNNNNNN/model.onnx`` (a few tens of kB; its
   metadata's ``val_rollout_mse`` is that step's own score), so a
@@ -78,11 +81,12 @@
   ``log.csv`` and ``summary.json`` add ``ranks`` and ``core_seconds`` (the
   CPU seconds of every rank's process, summed).
 
-``checkpoint.pt`` is a ``torch.save`` dict: ``model`` (the
-:class:`~hybridmpm.train.gns.model.GnsModel` state_dict), ``optimizer`` (Adam's,
-indexed by parameter order), ``step``, ``best`` (best rollout MSE),
-``elapsed`` [s], ``core_seconds``, ``ranks``, ``rng`` (numpy bit-generator state), ``torch_rng``,
-``gns_config`` (:meth:`GnsConfig.to_dict`) and, with ``ema``, ``ema`` (the
+``checkpoint.pt`` is the scaffold's (:class:`~hybridmpm.train.scaffold.TrainingLoop`):
+``model`` (the :class:`~hybridmpm.train.gns.model.GnsModel` state_dict),
+``optimizer`` (Adam's, indexed by parameter order), ``step``, ``best`` (best
+rollout MSE) and ``best_step``, ``curve``, ``elapsed`` [s], ``core_seconds``,
+``ranks``, ``rng`` (numpy bit-generator state), ``torch_rng``, ``gns_config``
+(:meth:`GnsConfig.to_dict`) and, with ``ema``, ``ema`` (the
 ``AveragedModel``'s state_dict); ``best.pt`` is the best validated model's
 state_dict (the EMA's with ``ema``). Checkpoints written before the features / encoder–processor–decoder
 split (flat keys such as ``embed.weight``) resume unchanged: ``load_state_dict``
@@ -92,14 +96,12 @@ parameter order, hence the optimiser state, is the same.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -111,14 +113,31 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import radius_graph
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural.constants import WALL_REACH_MAX
-from hybridmpm.train.distributed import LossOf, Ranks, check_nproc, launch
+from hybridmpm.train.distributed import LossOf, Ranks, launch
 from hybridmpm.train.gns.export import export_onnx
 from hybridmpm.train.gns.model import GnsConfig, GnsModel
-from hybridmpm.train.grid_train import rest_count
+from hybridmpm.train.grid.model import rest_count
+from hybridmpm.train.scaffold import (
+    CHECKPOINT,
+    Parts,
+    RunConfig,
+    TrainingLoop,
+    ValidationCurve,
+    export_metadata,
+    flag,
+    integer,
+    load_checkpoint,
+    number,
+    optional,
+    processes,
+    save_torch,
+    setting,
+    start_run,
+)
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(RunConfig):
     """Settings of :func:`train` (see the module docstring). ``scene`` names the
     scene family stored in the model; ``steps`` optimiser steps; ``batch``
     windows per step and rank; ``max_neighbors`` caps the radius graph per receiver;
@@ -126,84 +145,65 @@ class TrainConfig:
     ``nproc`` local processes (ranks) of data-parallel training (1: this
     process; under torchrun, torchrun's ranks); ``grid`` nodes per dimension
     of the grid branch (0: none; :mod:`hybridmpm.train.gns.grid_branch`),
-    ``grid_width`` and ``grid_levels`` its U-Net."""
+    ``grid_width`` and ``grid_levels`` its U-Net. :meth:`validate` refuses a
+    bad value naming its field."""
+
+    RESUMABLE: ClassVar[tuple[str, ...]] = (*RunConfig.RESUMABLE, "snapshots")
 
     scene: str
     data: str | list[str]
     out: str
-    latent: int = 32
-    layers: int = 3
-    r_t: int = 2
-    steps: int = 20000
-    batch: int = 2
-    lr: float = 1e-3
-    lr_final: float = 1e-5
-    noise_std: float = 3e-4
-    val_every: int = 500
-    val_windows: int = 16
-    rollout_steps: int = 20
-    max_neighbors: int | None = None
-    radius: float | None = None
+    latent: int = setting(32, integer(1))
+    layers: int = setting(3, integer(1))
+    r_t: int = setting(2, integer(1))
+    steps: int = setting(20000, integer(1))
+    batch: int = setting(2, integer(1))
+    lr: float = setting(1e-3, number(0, low_open=True))
+    lr_final: float = setting(1e-5, number(0, low_open=True))
+    noise_std: float = setting(3e-4, number(0))
+    val_every: int = setting(500, integer(1))
+    val_windows: int = setting(16, integer(1))
+    rollout_steps: int = setting(20, integer(1))
+    max_neighbors: int | None = setting(None, optional(integer(1)))
+    radius: float | None = setting(None, optional(number(0, 0.5, low_open=True, high_open=True, unit="m")))
     seed: int = 0
-    threads: int = 0
-    pushforward: float = 0.0
-    pushforward_after: float = 0.2
-    snapshots: bool = True
-    ema: float = 0.0
-    unroll: int = 1
-    unroll_after: float = 0.0
-    clip_grad: float = 1.0
-    wall_reach: float = 1.0
-    nproc: int = 1
-    grid: int = 0
-    grid_width: int = 8
-    grid_levels: int = 3
+    threads: int = setting(0, integer(0))
+    pushforward: float = setting(0.0, number(0, 1))
+    pushforward_after: float = setting(0.2, number(0, 1))
+    snapshots: bool = setting(True, flag)
+    ema: float = setting(0.0, number(0, 1, high_open=True))
+    unroll: int = setting(1, integer(1))
+    unroll_after: float = setting(0.0, number(0, 1))
+    clip_grad: float = setting(1.0, number(0, low_open=True))
+    wall_reach: float = setting(1.0, number(1, WALL_REACH_MAX, unit="(units of R)"))
+    nproc: int = setting(1, processes)
+    grid: int = setting(0, integer(0))
+    grid_width: int = setting(8, integer(1))
+    grid_levels: int = setting(3, integer(1))
 
     def data_dirs(self) -> list[Path]:
         """The dataset directories (``data`` is one path or a list of them)."""
         return [Path(d) for d in ([self.data] if isinstance(self.data, (str, os.PathLike)) else self.data)]
 
     def validate(self) -> TrainConfig:
+        """``data`` as stored (one directory a string, several a list), then every field's check and :meth:`check`."""
         if not isinstance(self.data, (str, os.PathLike)):
             if not (isinstance(self.data, (list, tuple)) and self.data and all(isinstance(d, (str, os.PathLike)) for d in self.data)):
                 raise InvalidInputError(f"data: must be a dataset directory or a non-empty list of them, got {self.data!r}", "data")
             self.data = str(self.data[0]) if len(self.data) == 1 else [str(d) for d in self.data]  # one directory is stored as before
-        for name in ("latent", "layers", "r_t", "steps", "batch", "val_every", "val_windows", "rollout_steps", "unroll"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise InvalidInputError(f"{name}: must be an integer >= 1, got {v!r}", name)
-        for name in ("lr", "lr_final"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise InvalidInputError(f"{name}: must be a number > 0, got {v!r}", name)
-        if self.radius is not None and not (isinstance(self.radius, (int, float)) and math.isfinite(self.radius) and 0 < self.radius < 0.5):
-            raise InvalidInputError(f"radius: must be in (0, 0.5) m, got {self.radius!r}", "radius")
-        if not (isinstance(self.noise_std, (int, float)) and math.isfinite(self.noise_std) and self.noise_std >= 0):
-            raise InvalidInputError(f"noise_std: must be a number >= 0, got {self.noise_std!r}", "noise_std")
-        if not isinstance(self.snapshots, bool):
-            raise InvalidInputError(f"snapshots: must be true or false, got {self.snapshots!r}", "snapshots")
-        if not (isinstance(self.ema, (int, float)) and math.isfinite(self.ema) and 0 <= self.ema < 1):
-            raise InvalidInputError(f"ema: must be a number in [0, 1), got {self.ema!r}", "ema")
+        return super().validate()  # type: ignore[no-any-return]
+
+    def check(self) -> None:
         if self.unroll > 1 and self.pushforward > 0:
             raise InvalidInputError("unroll: unrolled training and pushforward are alternatives; set one of them", "unroll")
-        if not (isinstance(self.clip_grad, (int, float)) and math.isfinite(self.clip_grad) and self.clip_grad > 0):
-            raise InvalidInputError(f"clip_grad: must be a number > 0, got {self.clip_grad!r}", "clip_grad")
-        if not (isinstance(self.wall_reach, (int, float)) and math.isfinite(self.wall_reach) and 1 <= self.wall_reach <= WALL_REACH_MAX):
-            raise InvalidInputError(f"wall_reach: must be a number in [1, {WALL_REACH_MAX:g}] (units of R), got {self.wall_reach!r}", "wall_reach")
-        for name in ("pushforward", "pushforward_after", "unroll_after"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
-                raise InvalidInputError(f"{name}: must be a number in [0, 1], got {v!r}", name)
-        for name in ("grid", "grid_width", "grid_levels"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "grid" else 1):
-                raise InvalidInputError(f"{name}: must be an integer >= {0 if name == 'grid' else 1}, got {v!r}", name)
         if self.grid and (self.grid < 8 or self.grid > 128 or self.grid % 2 ** (self.grid_levels - 1)):
             raise InvalidInputError(
                 f"grid: must be 0 (no grid branch) or in [8, 128] and divisible by 2^(grid_levels - 1) = {2 ** (self.grid_levels - 1)}, got {self.grid}", "grid"
             )
-        check_nproc(self.nproc)
-        return self
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of step ``step``: ``lr_final + (lr − lr_final)·0.1^(step/steps)``."""
+        return self.lr_final + (self.lr - self.lr_final) * 0.1 ** (step / self.steps)
 
 
 #: Metadata entries that pooled datasets must share.
@@ -417,26 +417,13 @@ def _step_loss(model: GnsModel, windows: list[Any], unrolling: bool, radius: flo
     return _loss(model, _batch(windows, radius, max_neighbors), count)
 
 
-#: Settings a run may resume with changed (``batch`` and ``nproc`` are compared as the global batch).
-_RESUMABLE = ("steps", "threads", "out", "snapshots", "nproc", "ranks", "batch")
-
-
-def _saved_config_error(saved: Path, config: TrainConfig, ranks: int) -> InvalidInputError | None:
-    """Why the run in ``saved``'s directory cannot be resumed by ``config`` on ``ranks`` ranks, or None."""
-    old = json.loads(saved.read_text())
-    defaults = asdict(TrainConfig(scene="", data="", out=""))
-    for key, v in asdict(config).items():
-        # a moved run directory still resumes; a setting added since the run was made has its default
-        if key not in _RESUMABLE and old.get(key, defaults[key]) != v:
-            return InvalidInputError(f"{key}: {saved.parent} holds a run with {key} = {old.get(key, defaults[key])!r}, not {v!r}; use another --out", key)
-    old_batch, old_ranks = old.get("batch", defaults["batch"]), old.get("ranks", 1)
-    if old_batch * old_ranks != config.batch * ranks:
-        return InvalidInputError(
-            f"batch: {saved.parent} holds a run of {old_batch * old_ranks} windows per step ({old_batch} on each of {old_ranks} ranks), "
-            f"not {config.batch * ranks} ({config.batch} on each of {ranks}); use another --out",
-            "batch",
-        )
-    return None
+#: How ``log.csv`` writes its numbers.
+_LOG_FORMATS = {
+    "lr": ".3e", "train_loss": ".5f", "val_one_step": ".5f", "val_rollout_mse": ".4e", "val_rollout_grid_mass": ".4f", "elapsed_s": ".1f",
+    "core_seconds": ".1f",
+}  # fmt: skip
+#: What :func:`train` returns of a model's export metadata (then ``ranks`` and ``core_seconds``).
+_SUMMARY_KEYS = ("scene", "latent", "layers", "r_t", "r_p", "steps", "train_seconds", "best_val_rollout_mse", "parameters")
 
 
 def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
@@ -453,243 +440,197 @@ def train(config: TrainConfig, progress: bool = True) -> dict[str, Any]:
     return launch(_train, config.nproc, config, progress)
 
 
-def _train(ranks: Ranks, config: TrainConfig, progress: bool) -> dict[str, Any]:
-    """:func:`train` on one rank of ``ranks``."""
-    from tqdm import tqdm
+class _Run:
+    """One rank's GNS run: the data, the model and what the training loop
+    (:class:`~hybridmpm.train.scaffold.TrainingLoop`) calls of it."""
 
-    out = Path(config.out)
-    saved = out / "train_config.json"
-    error = None
-    if ranks.main:
-        out.mkdir(parents=True, exist_ok=True)
-        error = _saved_config_error(saved, config, ranks.size) if saved.exists() else None
-        if error is None:
-            saved.write_text(json.dumps({**asdict(config), "ranks": ranks.size}, indent=2))
-    error = ranks.broadcast(error)
-    if error is not None:
-        raise error
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    dirs = config.data_dirs()
-    metas = _pooled_metadata(dirs)
-    meta = metas[0]
-    r_t_data = int(meta.get("r_t", 1))
-    if config.r_t % r_t_data:
-        raise InvalidInputError(f"r_t: {config.r_t} frames is not a multiple of the data's step ({r_t_data} frames)", "r_t")
-    stride = config.r_t // r_t_data
-    train_data = _Data(dirs, "train", stride)
-    valid_data = _Data(dirs, "valid", stride)
-    t_in = T_IN
-    if train_data.t_max < t_in + 1:
-        raise InvalidInputError(f"data: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
-    if config.unroll > 1 and train_data.t_max < t_in + config.unroll:
-        raise InvalidInputError(
-            f"unroll: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; an unrolled window needs >= {t_in + config.unroll}", "unroll"
-        )
-    if config.pushforward > 0 and train_data.t_max < t_in + 2:
-        raise InvalidInputError(
-            f"pushforward: trajectories have {train_data.t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward"
-        )
+    def __init__(self, config: TrainConfig, ranks: Ranks) -> None:
+        self.config, self.ranks, self.out = config, ranks, Path(config.out)
+        dirs = config.data_dirs()
+        self.metas = _pooled_metadata(dirs)
+        self.meta = meta = self.metas[0]
+        r_t_data = int(meta.get("r_t", 1))
+        if config.r_t % r_t_data:
+            raise InvalidInputError(f"r_t: {config.r_t} frames is not a multiple of the data's step ({r_t_data} frames)", "r_t")
+        stride = config.r_t // r_t_data
+        self.train_data = _Data(dirs, "train", stride)
+        self.valid_data = _Data(dirs, "valid", stride)
+        self.t_in = T_IN
+        _check_lengths(config, self.train_data.t_max, self.t_in)
+        self.radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
+        self.types = sorted({int(v) for _, t in self.train_data.trajs for v in np.unique(t)} - {GNS_KINEMATIC})
+        self.gcfg = _model_config(config, meta, self.train_data, self.radius, self.types, self.t_in)
+        torch.manual_seed(config.seed)
+        self.model = GnsModel(self.gcfg)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        # the weights that are validated, snapshotted and exported: the EMA of the
+        # trained ones when ``ema`` > 0 (torch's AveragedModel), else the trained ones
+        self.ema = swa_utils.AveragedModel(self.model, multi_avg_fn=swa_utils.get_ema_multi_avg_fn(config.ema)) if config.ema > 0 else None
+        self.net: GnsModel = self.ema.module if self.ema is not None else self.model  # type: ignore[assignment]
+        self.rng = np.random.default_rng(config.seed)
+        self.parts = Parts(self.model, self.opt, self.rng, lr=config.lr_at, extra={"ema": self.ema} if self.ema is not None else {})
+        self.n_grid = int(meta.get("n_grid", DEFAULT_N_GRID[self.gcfg.dim]))
+        self.mine = ranks.part(config.batch)
+        self.step_loss: Any = None  # set by wrap(), after the checkpoint is restored
+        self.loop: TrainingLoop | None = None
+        self.val_windows: list[Any] = []
+        self.val_trajs: list[tuple[np.ndarray, np.ndarray]] = []
+        self.rollout_steps = 0
+        if ranks.main:  # only rank 0 validates
+            vrng = np.random.default_rng(12345)
+            for _ in range(config.val_windows):
+                traj = self.valid_data.trajs[int(vrng.integers(len(self.valid_data.trajs)))]
+                t = int(vrng.integers(self.t_in - 1, len(traj[0]) - 1))
+                self.val_windows.append(_window(traj, t, self.t_in, 0.0, vrng))
+            self.val_trajs = [self.valid_data.trajs[i] for i in self.valid_data.first]  # one per pooled dataset
+            self.rollout_steps = min(config.rollout_steps, min(len(v[0]) for v in self.val_trajs) - self.t_in)
 
-    stats = compute_statistics(train_data.trajs, exclude_types=(GNS_KINEMATIC,))  # at the model step (strided data)
-    radius = float(config.radius if config.radius is not None else meta["default_connectivity_radius"])
-    types = sorted({int(v) for _, t in train_data.trajs for v in np.unique(t)} - {GNS_KINEMATIC})
-    gcfg = GnsConfig(
-        dim=int(meta["dim"]), radius=radius, bounds=[list(map(float, b)) for b in meta["bounds"]],
-        vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
-        latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std, wall_reach=float(config.wall_reach),
-        grid=config.grid, grid_width=config.grid_width, grid_levels=config.grid_levels, grid_types=types,
-        grid_rest_count=rest_count(train_data.trajs, [list(map(float, b)) for b in meta["bounds"]], config.grid) if config.grid else 1.0,
-    )  # fmt: skip
-    torch.manual_seed(config.seed)
-    model = GnsModel(gcfg)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    # the weights that are validated, snapshotted and exported: the EMA of the
-    # trained ones when ``ema`` > 0 (torch's AveragedModel), else the trained ones
-    ema = swa_utils.AveragedModel(model, multi_avg_fn=swa_utils.get_ema_multi_avg_fn(config.ema)) if config.ema > 0 else None
-    net: GnsModel = ema.module if ema is not None else model  # type: ignore[assignment]
-    rng = np.random.default_rng(config.seed)
-    step, best, elapsed, core_seconds = 0, math.inf, 0.0, 0.0
-    ckpt = out / "checkpoint.pt"
-    # rank 0 reads the checkpoint and sends it to the others (who may not share its directory)
-    state = ranks.broadcast(torch.load(ckpt, weights_only=False) if ranks.main and ckpt.exists() else None)
-    if state is not None:
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        if ema is not None:
-            ema.load_state_dict(state["ema"])
-        step, best, elapsed = state["step"], state["best"], state["elapsed"]
-        core_seconds = float(state.get("core_seconds", elapsed))  # a checkpoint from before the count: its wall time
-        rng.bit_generator.state = state["rng"]
-        torch.set_rng_state(state["torch_rng"])
-    del state
-    # the loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients)
-    step_loss = ranks.wrap(LossOf(model, _step_loss))
-    val_windows = []
-    val_trajs: list[tuple[np.ndarray, np.ndarray]] = []
-    rollout_steps = 0
-    if ranks.main:  # only rank 0 validates
-        vrng = np.random.default_rng(12345)
-        for _ in range(config.val_windows):
-            k = int(vrng.integers(len(valid_data.trajs)))
-            traj = valid_data.trajs[k]
-            t = int(vrng.integers(t_in - 1, len(traj[0]) - 1))
-            val_windows.append(_window(traj, t, t_in, 0.0, vrng))
-        val_trajs = [valid_data.trajs[i] for i in valid_data.first]  # one per pooled dataset
-        rollout_steps = min(config.rollout_steps, min(len(v[0]) for v in val_trajs) - t_in)
-    n_grid = int(meta.get("n_grid", DEFAULT_N_GRID[gcfg.dim]))
-    log = None
-    counted = False  # whether the log has the columns ranks and core_seconds
-    if ranks.main:
-        log_path = out / "log.csv"
-        new_log = not log_path.exists()
-        log = open(log_path, "a", newline="")
-        writer = csv.writer(log)
-        if new_log:
-            counted = True
-            writer.writerow(["step", "lr", "train_loss", "val_one_step", "val_rollout_mse", "val_rollout_grid_mass", "elapsed_s", "ranks", "core_seconds"])
-        else:  # a log begun before the ranks were counted keeps its columns
-            with open(log_path, newline="") as f:
-                counted = "core_seconds" in next(csv.reader(f), [])
-    running: list[float] = []
+    def wrap(self) -> None:
+        """The loss of a step, in DistributedDataParallel when there are several ranks (its backward averages the gradients)."""
+        self.step_loss = self.ranks.wrap(LossOf(self.model, _step_loss))
 
-    def validate(lr: float, train_loss: float) -> float:
+    def draw(self, step: int) -> tuple[list[Any], bool, int]:
+        """This rank's windows of step ``step``, whether they are unrolled, and
+        the non-kinematic particles of the global batch: every rank draws the
+        whole global batch (the random stream of one process of batch ranks x
+        batch) and keeps its slice."""
+        c, rng, t_in = self.config, self.rng, self.t_in
+        pushing = c.pushforward > 0 and step >= c.pushforward_after * c.steps
+        unrolling = c.unroll > 1 and step >= c.unroll_after * c.steps
+        windows: list[Any] = []
+        particles = 0
+        for i in range(self.ranks.size * c.batch):
+            w: Any
+            traj = self.train_data.trajs[int(rng.integers(len(self.train_data.trajs)))]
+            particles += int(np.count_nonzero(traj[1] != GNS_KINEMATIC))
+            if unrolling:
+                t = int(rng.integers(t_in - 1, len(traj[0]) - c.unroll))
+                w = _unrolled_window(traj, t, t_in, c.unroll, c.noise_std, rng)
+            elif pushing and rng.random() < c.pushforward:
+                self.model.eval()
+                t = int(rng.integers(t_in, len(traj[0]) - 1))
+                if i in self.mine:
+                    w = _pushforward_window(self.model, traj, t, t_in, c.noise_std, rng, self.radius, c.max_neighbors)
+                else:  # another rank's: the same draws (its one plain window), without the model step
+                    w = _window(traj, t - 1, t_in, c.noise_std, rng)
+            else:
+                t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
+                w = _window(traj, t, t_in, c.noise_std, rng)
+            if i in self.mine:
+                windows.append(w)
+        return windows, unrolling, particles
+
+    def train_step(self, step: int) -> float:
+        """One optimiser step (the loop has set its learning rate); its loss on this rank."""
+        c, size = self.config, self.ranks.size
+        windows, unrolling, particles = self.draw(step)
+        self.model.train()
+        # one rank: the batch's own mean; several: this slice's share of the global batch's mean
+        loss = self.step_loss(windows, unrolling, self.radius, c.max_neighbors, particles / size if size > 1 else None)
+        self.opt.zero_grad()
+        loss.backward()
+        if unrolling:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), c.clip_grad)
+        self.opt.step()
+        if self.ema is not None:
+            self.ema.update_parameters(self.model)
+        return float(loss.item())
+
+    def evaluate(self, step: int, train_loss: float | None) -> dict[str, Any]:
+        """Rank 0's validation (module doc): the row of ``log.csv``."""
+        assert self.loop is not None
+        net, c = self.net, self.config
         net.eval()
         with torch.no_grad():
-            v1 = float(np.mean([_loss(net, _batch([w], radius, config.max_neighbors)).item() for w in val_windows]))
+            v1 = float(np.mean([_loss(net, _batch([w], self.radius, c.max_neighbors)).item() for w in self.val_windows]))
         mses, gms = [], []
-        for val_traj in val_trajs:
-            roll = _rollout(net, val_traj, rollout_steps, radius, config.max_neighbors)
-            truth = val_traj[0][t_in : t_in + rollout_steps]
+        for val_traj in self.val_trajs:
+            roll = _rollout(net, val_traj, self.rollout_steps, self.radius, c.max_neighbors)
+            truth = val_traj[0][self.t_in : self.t_in + self.rollout_steps]
             fluid = val_traj[1] != GNS_KINEMATIC
             m = float(np.mean((roll[:, fluid] - truth[:, fluid]) ** 2)) if np.all(np.isfinite(roll)) else math.inf
             mses.append(m)
-            gms.append(float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], n_grid)[0]) if math.isfinite(m) else math.inf)
-        mse, gm = float(np.mean(mses)), float(np.mean(gms))
-        row = [step, f"{lr:.3e}", f"{train_loss:.5f}", f"{v1:.5f}", f"{mse:.4e}", f"{gm:.4f}", f"{time.perf_counter() - t0:.1f}"]
-        writer.writerow(row + ([ranks.size, f"{core_seconds:.1f}"] if counted else []))
-        assert log is not None
-        log.flush()
-        bar.set_postfix(val=f"{v1:.3f}", roll=f"{mse:.2e}")
-        return mse
-
-    # the scene families the model may serve: the one named, then those of the pooled datasets
-    scenes = list(dict.fromkeys([config.scene, *(str(m["scene"]) for m in metas if m.get("scene"))]))
-    shas = [m["sha256"].get("train") if isinstance(m.get("sha256"), dict) else None for m in metas]
-    sha = shas[0] if len(shas) == 1 else shas  # a list for pooled datasets, in order
-
-    def export_to(path: Path, seconds: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Export the model's current weights to ``path`` with the run's metadata (and ``extra``); returns the summary part."""
-        summary = {
-            "scene": config.scene, "latent": config.latent, "layers": config.layers, "r_t": config.r_t,
-            "r_p": float(meta.get("r_p", 1.0)), "steps": step, "train_seconds": round(seconds, 1),
-            "best_val_rollout_mse": best, "parameters": int(sum(p.numel() for p in net.parameters())),
+            gms.append(float(grid_mass_error(roll[-1:, fluid], truth[-1:, fluid], self.n_grid)[0]) if math.isfinite(m) else math.inf)
+        return {
+            "step": step, "lr": c.lr if step == 0 else c.lr_at(step - 1), "train_loss": math.nan if train_loss is None else train_loss,
+            "val_one_step": v1, "val_rollout_mse": float(np.mean(mses)), "val_rollout_grid_mass": float(np.mean(gms)),
+            "elapsed_s": self.loop.wall(), "ranks": self.ranks.size, "core_seconds": self.loop.core_seconds,
         }  # fmt: skip
-        path.parent.mkdir(parents=True, exist_ok=True)
-        export_onnx(
-            net,
-            path,
-            {
-                **summary,
-                "particle_types": types,
-                "scenes": scenes,
-                "data_sha256": sha,
-                "dt_frame": float(meta.get("dt_frame", 2.5e-3)),
-                "n_grid": n_grid,
-                "noise_std": config.noise_std,
-                "pushforward": config.pushforward,
-                "unroll": config.unroll,
-                "rollout_steps": rollout_steps,
-                **(extra or {}),
-            },  # fmt: skip
-        )
-        return summary
 
-    bar = tqdm(
-        total=config.steps, initial=step, desc=f"train {config.scene} L{config.layers}x{config.latent}", unit="step", disable=not (progress and ranks.main)
-    )
-    t0 = time.perf_counter() - elapsed
-    cpu0 = time.process_time()
-    mine = ranks.part(config.batch)
-    try:
-        if step == 0 and ranks.main:
-            validate(config.lr, math.nan)  # the untrained baseline
-        while step < config.steps:
-            lr = config.lr_final + (config.lr - config.lr_final) * 0.1 ** (step / config.steps)
-            for g in opt.param_groups:
-                g["lr"] = lr
-            windows: list[Any] = []
-            pushing = config.pushforward > 0 and step >= config.pushforward_after * config.steps
-            unrolling = config.unroll > 1 and step >= config.unroll_after * config.steps
-            particles = 0  # non-kinematic, in the global batch
-            # every rank draws the whole global batch (the random stream of one process of batch ranks x batch) and keeps its slice
-            for i in range(ranks.size * config.batch):
-                w: Any
-                traj = train_data.trajs[int(rng.integers(len(train_data.trajs)))]
-                particles += int(np.count_nonzero(traj[1] != GNS_KINEMATIC))
-                if unrolling:
-                    t = int(rng.integers(t_in - 1, len(traj[0]) - config.unroll))
-                    w = _unrolled_window(traj, t, t_in, config.unroll, config.noise_std, rng)
-                elif pushing and rng.random() < config.pushforward:
-                    model.eval()
-                    t = int(rng.integers(t_in, len(traj[0]) - 1))
-                    if i in mine:
-                        w = _pushforward_window(model, traj, t, t_in, config.noise_std, rng, radius, config.max_neighbors)
-                    else:  # another rank's: the same draws (its one plain window), without the model step
-                        w = _window(traj, t - 1, t_in, config.noise_std, rng)
-                else:
-                    t = int(rng.integers(t_in - 1, len(traj[0]) - 1))
-                    w = _window(traj, t, t_in, config.noise_std, rng)
-                if i in mine:
-                    windows.append(w)
-            model.train()
-            # one rank: the batch's own mean; several: this slice's share of the global batch's mean
-            loss = step_loss(windows, unrolling, radius, config.max_neighbors, particles / ranks.size if ranks.size > 1 else None)
-            opt.zero_grad()
-            loss.backward()
-            if unrolling:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip_grad)
-            opt.step()
-            if ema is not None:
-                ema.update_parameters(model)
-            step += 1
-            running.append(loss.item())
-            bar.update(1)
-            if step % config.val_every == 0 or step == config.steps:
-                # the global batch's loss is the ranks' mean; the CPU time, their sum
-                loss_sum, cpu = ranks.sum(float(np.mean(running)), time.process_time() - cpu0)
-                core_seconds += cpu
-                cpu0 = time.process_time()
-                running = []
-                elapsed = time.perf_counter() - t0
-                if not ranks.main:
-                    continue
-                mse = validate(lr, loss_sum / ranks.size)
-                elapsed = time.perf_counter() - t0
-                if mse < best:
-                    best = mse
-                    torch.save(net.state_dict(), out / "best.pt")
-                ck = {
-                    "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "best": best, "elapsed": elapsed,
-                    "core_seconds": core_seconds, "ranks": ranks.size,
-                    "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "gns_config": gcfg.to_dict(),
-                }  # fmt: skip
-                if ema is not None:
-                    ck["ema"] = ema.state_dict()
-                if config.snapshots:  # before the checkpoint, so a resumed run never lacks a validated step's snapshot
-                    export_to(out / "snapshots" / f"step_{step:07d}" / "model.onnx", elapsed, {"val_rollout_mse": mse})
-                tmp = out / "checkpoint.pt.tmp"
-                torch.save(ck, tmp)
-                os.replace(tmp, ckpt)
-    finally:
-        bar.close()
-        if log is not None:
-            log.close()
+    def save_best(self, step: int) -> None:
+        save_torch(self.net.state_dict(), self.out / "best.pt")
+
+    def snapshot(self, step: int, row: dict[str, Any]) -> None:
+        """Before the checkpoint, so a resumed run never lacks a validated step's snapshot."""
+        if self.config.snapshots:
+            assert self.loop is not None
+            self.export(self.out / "snapshots" / f"step_{step:07d}" / "model.onnx", {"val_rollout_mse": row["val_rollout_mse"]})
+
+    def export(self, path: Path, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Export the model's current weights to ``path`` with the run's metadata (and ``extra``); returns the summary part."""
+        c, loop = self.config, self.loop
+        assert loop is not None
+        # the scene families the model may serve: the one named, then those of the pooled datasets
+        scenes = list(dict.fromkeys([c.scene, *(str(m["scene"]) for m in self.metas if m.get("scene"))]))
+        meta = export_metadata(
+            self.net, scene=c.scene, steps=loop.step, data=self.metas[0] if len(self.metas) == 1 else self.metas, latent=c.latent,
+            layers=c.layers, r_t=c.r_t, train_seconds=round(loop.elapsed, 1), best_val_rollout_mse=loop.best, particle_types=self.types,
+            scenes=scenes, dt_frame=float(self.meta.get("dt_frame", 2.5e-3)), n_grid=self.n_grid, noise_std=c.noise_std,
+            pushforward=c.pushforward, unroll=c.unroll, rollout_steps=self.rollout_steps, **(extra or {}),
+        )  # fmt: skip
+        path.parent.mkdir(parents=True, exist_ok=True)
+        export_onnx(self.net, path, meta)
+        return {k: meta[k] for k in _SUMMARY_KEYS}
+
+
+def _check_lengths(config: TrainConfig, t_max: int, t_in: int) -> None:
+    """Refuse trajectories of ``t_max`` steps (at the model step) too short for the windows ``config`` draws."""
+    if t_max < t_in + 1:
+        raise InvalidInputError(f"data: trajectories have {t_max} steps at r_t = {config.r_t}; need >= {t_in + 1}", "data")
+    if config.unroll > 1 and t_max < t_in + config.unroll:
+        raise InvalidInputError(f"unroll: trajectories have {t_max} steps at r_t = {config.r_t}; an unrolled window needs >= {t_in + config.unroll}", "unroll")
+    if config.pushforward > 0 and t_max < t_in + 2:
+        raise InvalidInputError(f"pushforward: trajectories have {t_max} steps at r_t = {config.r_t}; a pushforward window needs >= {t_in + 2}", "pushforward")
+
+
+def _model_config(config: TrainConfig, meta: dict[str, Any], train_data: _Data, radius: float, types: list[int], t_in: int) -> GnsConfig:
+    """The model's architecture and normalisation from the settings and the (strided) training data."""
+    stats = compute_statistics(train_data.trajs, exclude_types=(GNS_KINEMATIC,))  # at the model step (strided data)
+    bounds = [list(map(float, b)) for b in meta["bounds"]]
+    return GnsConfig(
+        dim=int(meta["dim"]), radius=radius, bounds=bounds,
+        vel_mean=stats["vel_mean"], vel_std=stats["vel_std"], acc_mean=stats["acc_mean"], acc_std=stats["acc_std"],
+        latent=config.latent, layers=config.layers, t_in=t_in, noise_std=config.noise_std, wall_reach=float(config.wall_reach),
+        grid=config.grid, grid_width=config.grid_width, grid_levels=config.grid_levels, grid_types=types,
+        grid_rest_count=rest_count(train_data.trajs, bounds, config.grid) if config.grid else 1.0,
+    )  # fmt: skip
+
+
+def _train(ranks: Ranks, config: TrainConfig, progress: bool) -> dict[str, Any]:
+    """:func:`train` on one rank of ``ranks``."""
+    out = Path(config.out)
+    start_run(config, ranks, out)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    run = _Run(config, ranks)
+    run.loop = loop = TrainingLoop(
+        out, ranks, run.parts, steps=config.steps, every=config.val_every, desc=f"train {config.scene} L{config.layers}x{config.latent}",
+        progress=progress, curve=ValidationCurve(out, "log.csv", _LOG_FORMATS), score="val_rollout_mse",
+        postfix=lambda row: {"val": f"{row['val_one_step']:.3f}", "roll": f"{row['val_rollout_mse']:.2e}"},
+        state=lambda: {"gns_config": run.gcfg.to_dict()},
+    )  # fmt: skip
+    # rank 0 reads the checkpoint and sends it to the others (who may not share its directory)
+    state = load_checkpoint(out / CHECKPOINT, ranks)
+    if state is not None:
+        loop.restore(state)
+    del state
+    run.wrap()
+    loop.run(run.train_step, run.evaluate, on_best=run.save_best, before_save=run.snapshot, evaluate_first=True)
     summary: dict[str, Any] | None = None
     if ranks.main:
         if (out / "best.pt").exists():
-            net.load_state_dict(torch.load(out / "best.pt", weights_only=True))
-        summary = {**export_to(out / "model.onnx", elapsed), "ranks": ranks.size, "core_seconds": round(core_seconds, 1)}
+            run.net.load_state_dict(torch.load(out / "best.pt", weights_only=True))
+        summary = {**run.export(out / "model.onnx"), "ranks": ranks.size, "core_seconds": round(loop.core_seconds, 1)}
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
     # the others wait for rank 0's export and return its summary
     result = ranks.broadcast(summary)

@@ -40,6 +40,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -169,6 +170,23 @@ def g2p(grid_values: torch.Tensor, weights: torch.Tensor, node: torch.Tensor) ->
     """Interpolate node values [nodes, C] at particles with a :func:`stencil`:
     returns [P, C], ``Σ_i w_pi · grid_i``."""
     return (grid_values[node] * weights[:, :, None]).sum(dim=1)
+
+
+def rest_count(trajectories: list[tuple[np.ndarray, np.ndarray]], bounds: list[list[float]], grid: int) -> float:
+    """Particles per grid node inside resting fluid: the 90th percentile of the
+    first frames' fluid counts over the nodes that hold any, on a grid of
+    ``grid`` nodes per dimension over ``bounds`` [m] (trajectories: positions
+    float32 [T, N, D] and GNS particle types int64 [N]; the first 8 are
+    read). A normalisation of the count channels (:attr:`GridConfig.rest_count`)."""
+    b = torch.tensor(bounds, dtype=torch.float32)
+    origin, spacing = grid_geometry(b, grid)
+    counts = []
+    for pos, pt in trajectories[:8]:
+        x = torch.from_numpy(pos[0][pt != GNS_KINEMATIC])
+        w, node = stencil(x, origin, spacing, grid)
+        c = p2g(torch.ones(len(x), 1), w, node, grid ** x.shape[1])[:, 0]
+        counts.append(c[c > 0.05].numpy())
+    return float(np.percentile(np.concatenate(counts), 90))
 
 
 def pressure_shift(
@@ -334,4 +352,4 @@ class GridModel(nn.Module):
         return acc, nxt
 
 
-__all__ = ["GRID_KIND", "MASS_FLOOR", "pressure_shift", "GridConfig", "GridModel", "UNet", "g2p", "grid_geometry", "p2g", "stencil"]
+__all__ = ["GRID_KIND", "MASS_FLOOR", "GridConfig", "GridModel", "UNet", "g2p", "grid_geometry", "p2g", "pressure_shift", "rest_count", "stencil"]
