@@ -151,6 +151,7 @@ class SessionCore:
         self.cancel = threading.Event()  # set: the running control stops within a frame
         self.dirty = False  # changed since its last save
         self.saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
+        self.save_failure: tuple[int | None, str] | None = None  # (errno, message) of its last failed save; None after a save
         self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
         self.last_used = time.monotonic()
         self._record(sim.frame)
@@ -423,9 +424,11 @@ class SessionCore:
             store.write(self.key, data)
         except Exception as e:  # noqa: BLE001 - a failed save must not fail the session
             self.dirty = True
+            self.save_failure = (getattr(e, "errno", None), f"{type(e).__name__}: {getattr(e, 'strerror', None) or e}")
             log.warning("store: saving session %s… failed: %s", self.key[:SHOWN_KEY_CHARS], e)
             return False
         self.saved_frame = frame
+        self.save_failure = None
         log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", self.key[:SHOWN_KEY_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
         return True
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import errno
 import functools
 import logging
 import secrets
@@ -56,6 +57,22 @@ SESSION_OVERHEAD = 4 << 20
 SESSION_STATE_COPIES = 3
 #: Seconds a client is asked to wait (``Retry-After``) when the memory budget is full.
 RETRY_AFTER_S = 5
+#: What a failed save's errno says when the store is full (→ 507).
+_FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
+def store_refusal(failure: tuple[int | None, str] | None) -> Exception:
+    """The answer to a create whose first save failed (``failure``: the
+    save's ``(errno, message)``, :attr:`SessionCore.save_failure
+    <hybridmpm.service.core.SessionCore.save_failure>`): 507 naming ``store``
+    when the store is full (``ENOSPC``, ``EDQUOT``, ``EFBIG``), else 503
+    with ``Retry-After``; nothing was created."""
+    from hybridmpm.service.errors import ApiError  # the errors module imports this one
+
+    code, why = failure or (None, "unknown error")
+    if code in _FULL:
+        return ApiError(507, f"store: full, the new session could not be saved ({why}); nothing was created")
+    return ApiError(503, f"store: the new session could not be saved ({why}); nothing was created, retry later", {"Retry-After": str(RETRY_AFTER_S)})
 
 
 class SessionCapError(Exception):
@@ -213,6 +230,9 @@ class SessionManager:
     async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
         """Build a session for the client address ``client`` (``n_grid``: MPM
         on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`).
+        With a store the session is saved before it is answered; when that
+        save fails the session is dropped and :func:`store_refusal` raised
+        (507 for a full store, 503 otherwise; nothing already saved changes).
         Raises :class:`SessionCapError` when the server is full,
         :class:`QuotaError` when the client holds its quota,
         :class:`BudgetFullError` when the memory budget cannot hold it (its
@@ -240,7 +260,11 @@ class SessionManager:
             self.sessions[sid] = sess
             if self.store is not None:
                 core.dirty = True
-                await self.save(sess)
+                if not await self.save(sess):  # a 201 means the session is durable: one that is not is not created
+                    failure = core.save_failure
+                    del self.sessions[sid]
+                    await self._drop(sess, 1011, "not saved", True)
+                    raise store_refusal(failure)
             return sess
         finally:
             self.reserved -= 1

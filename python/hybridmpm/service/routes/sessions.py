@@ -21,7 +21,8 @@ router = APIRouter()
     response_model=SessionInfo,
     responses={
         429: {"description": "this client address holds its quota of sessions (Retry-After)"},
-        503: {"description": "session cap reached or memory budget full (Retry-After)"},
+        503: {"description": "session cap reached, memory budget full, or the store could not save the new session (Retry-After)"},
+        507: {"description": "the store is full: the new session could not be saved, and nothing was created"},
     },
 )
 async def create_session(body: CreateSession, request: Request, manager: ManagerDep, cfg: ConfigDep) -> dict[str, Any]:
