@@ -341,6 +341,12 @@ KEYS = {
     "position_mse_one_step",
     "position_mse_one_step_reason",
     "kinetic_energy",
+    "short_horizon_error",
+    "sinkhorn_divergence",
+    "kinetic_energy_error",
+    "dam_break_front",
+    "metrics",
+    "metric_seconds",
 }
 
 

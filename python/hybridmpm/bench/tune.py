@@ -20,23 +20,28 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.metrics import ROLLOUT_METRICS
 from hybridmpm.sim.config import CONFIG_KEYS
 
 
 def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean") -> dict[str, Any]:
-    """The row with the lowest ``ms_mean`` among ``rows`` whose ``metric``
-    ("error_mean" or "error_last") is ≤ ``budget`` and whose rollouts never
-    broke off (ties: the lower error). Rows are :func:`~hybridmpm.bench.report.aggregate`
-    rows (any dicts with those keys). Raises :class:`InvalidInputError`
-    (``error_budget``) for a negative or non-finite budget or when no row
-    qualifies, (``metric``) for another metric."""
-    if metric not in ("error_mean", "error_last"):
-        raise InvalidInputError(f"metric: must be 'error_mean' or 'error_last', got {metric!r}", "metric")
+    """The row with the lowest ``ms_mean`` among ``rows`` whose ``metric`` (a
+    score of :data:`~hybridmpm.metrics.ROLLOUT_METRICS`: "error_mean",
+    "error_last", "short_error", "sinkhorn", "ke_error", "front_rms") is ≤
+    ``budget`` and whose rollouts never broke off (ties: the lower score). Rows
+    are :func:`~hybridmpm.bench.report.aggregate` rows (any dicts with those
+    keys). Raises :class:`InvalidInputError` (``error_budget``) for a negative
+    or non-finite budget or when no row qualifies, (``metric``) for another
+    metric or one no row measured (``front_rms`` off the dam break)."""
+    if metric not in ROLLOUT_METRICS:
+        raise InvalidInputError(f"metric: must be one of {', '.join(ROLLOUT_METRICS)}, got {metric!r}", "metric")
     if not (isinstance(budget, (int, float)) and math.isfinite(budget) and budget >= 0):
         raise InvalidInputError(f"error_budget: must be a finite number >= 0, got {budget!r}", "error_budget")
-    ok = [r for r in rows if math.isfinite(r[metric]) and r[metric] <= budget and not r.get("failures") and math.isfinite(r["ms_mean"])]
+    if not any(math.isfinite(r.get(metric, math.nan)) for r in rows):
+        raise InvalidInputError(f"metric: no configuration has a {metric} (not measured on this scene, or a benchmark made before it)", "metric")
+    ok = [r for r in rows if math.isfinite(r.get(metric, math.nan)) and r[metric] <= budget and not r.get("failures") and math.isfinite(r["ms_mean"])]
     if not ok:
-        best = min((r[metric] for r in rows if math.isfinite(r[metric])), default=float("nan"))
+        best = min((r[metric] for r in rows if math.isfinite(r.get(metric, math.nan))), default=float("nan"))
         raise InvalidInputError(f"error_budget: no configuration has {metric} <= {budget:g} (the lowest is {best:.4g})", "error_budget")
     return min(ok, key=lambda r: (r["ms_mean"], r[metric]))
 
@@ -59,6 +64,7 @@ def write_tuned(
         ],
         "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
     }
+    doc["measured"][metric] = chosen.get(metric)  # the score it was chosen on
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=2))

@@ -12,6 +12,14 @@
   squared position error, reported one-step (each prediction made from
   ground-truth history) and over a rollout (:func:`rollout_summary`).
 * :func:`kinetic_energy` — a physical sanity series from finite differences.
+* :func:`rollout_metrics` — the scores of a whole rollout that stay fair on a
+  chaotic flow (:mod:`hybridmpm.metrics.chaotic`; :data:`ROLLOUT_METRICS`):
+  the long-horizon grid-mass error, its mean over the first 50 frames
+  (:func:`short_horizon_error`), the Sinkhorn divergence between the
+  mass-weighted particle sets (:func:`sinkhorn_divergence`, POT, NumPy only:
+  :mod:`hybridmpm.metrics.transport`), the kinetic energy's relative error
+  (:func:`kinetic_energy_error`) and the dam break's surge front against
+  Martin & Moyce (:func:`dam_break_front`).
 * :func:`align_frames` — pairs the frames of two rollouts stored at different
   frame intervals (temporal reduction ``r_t``).
 * :func:`evaluate` — all of the above for two :class:`~hybridmpm.trajectory.Trajectory`
@@ -24,336 +32,24 @@ dropped with :func:`fluid_mask` before any metric. Every function raises
 
 from __future__ import annotations
 
-import math
-from typing import Any
-
-import numpy as np
-
-from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC
-from hybridmpm.errors import InvalidInputError
-from hybridmpm.limits import check_allocation
-from hybridmpm.mpm import grid_mass
-from hybridmpm.trajectory import Trajectory
-
-#: Relative tolerance on "the ratio of the frame intervals is an integer".
-_RATIO_RTOL = 1e-5
-
-
-def _frames(name: str, x: Any) -> np.ndarray:
-    """``x`` as float [T, N, D] (a single frame [N, D] becomes T = 1), finite."""
-    arr = np.asarray(x)
-    if arr.dtype.kind != "f":
-        raise InvalidInputError(f"{name}: expected a floating-point array, got dtype {arr.dtype}", name)
-    if arr.ndim == 2:
-        arr = arr[None]
-    if arr.ndim != 3 or arr.shape[2] not in (2, 3):
-        raise InvalidInputError(f"{name}: expected shape [T, N, D] or [N, D] with D in {{2, 3}}, got {list(np.shape(x))}", name)
-    if arr.shape[0] < 1 or arr.shape[1] < 1:
-        raise InvalidInputError(f"{name}: need at least one frame and one particle, got shape {list(arr.shape)}", name)
-    if not np.isfinite(arr).all():
-        raise InvalidInputError(f"{name}: positions must be finite", name)
-    return arr
-
-
-def _weights(name: str, w: Any, n: int) -> np.ndarray | None:
-    if w is None:
-        return None
-    arr = np.asarray(w)
-    if arr.dtype.kind not in "fiu" or arr.shape != (n,):
-        raise InvalidInputError(f"{name}: expected a real array of shape [{n}], got {arr.dtype} {list(arr.shape)}", name)
-    arr = arr.astype(np.float32)
-    if not (np.isfinite(arr) & (arr >= 0)).all() or not arr.sum() > 0:
-        raise InvalidInputError(f"{name}: must be finite, >= 0 and not all zero", name)
-    return arr
-
-
-def _n_grid(n_grid: Any) -> int:
-    if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or not 3 <= int(n_grid) <= 4096:
-        raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")
-    return int(n_grid)
-
-
-def _positive(name: str, x: Any) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name}: must be a finite number > 0, got {x!r}", name) from None
-    if not (math.isfinite(v) and v > 0):
-        raise InvalidInputError(f"{name}: must be a finite number > 0, got {x!r}", name)
-    return v
-
-
-def fluid_mask(particle_type: Any) -> np.ndarray:
-    """bool [N]: True for particles that count in the metrics, i.e. every
-    particle whose GNS type (int [N]) is not kinematic (3: boundary / obstacle).
-
-    Raises :class:`InvalidInputError` (``particle_type``) for a non-integer or
-    non-1-D array.
-    """
-    pt = np.asarray(particle_type)
-    if pt.dtype.kind not in "iu" or pt.ndim != 1:
-        raise InvalidInputError(f"particle_type: expected an integer array [N], got {pt.dtype} {list(pt.shape)}", "particle_type")
-    return np.asarray(pt != GNS_KINEMATIC)
-
-
-def grid_mass_error(
-    pred: np.ndarray,
-    ref: np.ndarray,
-    n_grid: int,
-    *,
-    pred_weights: np.ndarray | None = None,
-    ref_weights: np.ndarray | None = None,
-) -> np.ndarray:
-    """Grid-mass error per frame (docs/design.md "Grid-mass error"; paper Sec. 3.1.1,
-    ``RMSE_m̃``).
-
-    For every frame ``t``: ``‖m̃_pred(t) − m̃_ref(t)‖₂ / ‖m̃_ref(t)‖₂`` where
-    ``m̃ = grid_mass(positions, n_grid, weights)`` is the quadratic B-spline p2g
-    of particle mass onto the nodes ``i/n_grid`` of ``[0, 1]^D``, normalised to
-    sum 1 (particles outside the grid land on the border nodes).
-
-    Parameters
-    ----------
-    pred, ref:
-        Positions [m], float [T, N_pred, D] and [T, N_ref, D] (or single
-        frames [N, D]): the particle counts may differ, T and D must match.
-        Drop kinematic particles first (:func:`fluid_mask`).
-    n_grid:
-        Cells per dimension of the reference grid, 3 … 4096, and its grid
-        within the memory budget (:mod:`hybridmpm.limits`).
-    pred_weights, ref_weights:
-        Optional particle masses [N] (any unit, only ratios matter); by
-        default every particle weighs ``1/N`` as docs/design.md specifies.
-
-    Returns
-    -------
-    float64 [T]; 0 for identical frames. Raises :class:`InvalidInputError`
-    naming ``pred``, ``ref``, ``n_grid``, ``pred_weights`` or ``ref_weights``.
-    """
-    p = _frames("pred", pred)
-    r = _frames("ref", ref)
-    if p.shape[2] != r.shape[2]:
-        raise InvalidInputError(f"ref: dimension {r.shape[2]} differs from pred's {p.shape[2]}", "ref")
-    if p.shape[0] != r.shape[0]:
-        raise InvalidInputError(f"ref: has {r.shape[0]} frames but pred has {p.shape[0]}; align them first (align_frames)", "ref")
-    n = _n_grid(n_grid)
-    # two float32 grids from Rust, their float64 copies and the difference: 28 bytes per node
-    check_allocation("n_grid", 28.0 * (n + 1) ** p.shape[2], f"a {n}^{p.shape[2]} grid-mass grid")
-    pw = _weights("pred_weights", pred_weights, p.shape[1])
-    rw = _weights("ref_weights", ref_weights, r.shape[1])
-    out = np.empty(p.shape[0], dtype=np.float64)
-    for t in range(p.shape[0]):
-        gp = grid_mass(np.asarray(p[t], dtype=np.float32), n, pw).astype(np.float64)
-        gr = grid_mass(np.asarray(r[t], dtype=np.float32), n, rw).astype(np.float64)
-        out[t] = np.linalg.norm(gp - gr) / np.linalg.norm(gr)
-    return out
-
-
-def position_mse(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Mean squared position error per frame (GNS, Sanchez-Gonzalez et al. 2020).
-
-    ``mean over particles i and dims d of (pred[t, i, d] − ref[t, i, d])²`` [m²],
-    float64 [T]. ``pred`` and ``ref`` are float [T, N, D] (or [N, D]) of the
-    *same* shape: particle ``i`` of one must be particle ``i`` of the other
-    (no correspondence exists across resolutions: use
-    :func:`grid_mass_error`). Raises :class:`InvalidInputError` (``pred`` /
-    ``ref``) otherwise.
-    """
-    p = _frames("pred", pred)
-    r = _frames("ref", ref)
-    if p.shape != r.shape:
-        raise InvalidInputError(f"ref: shape {list(r.shape)} differs from pred's {list(p.shape)}; position MSE needs the same frames and particles", "ref")
-    diff = p.astype(np.float64) - r.astype(np.float64)
-    return np.asarray(np.mean(diff * diff, axis=(1, 2)), dtype=np.float64)
-
-
-def rollout_summary(per_frame: Any) -> dict[str, Any]:
-    """``{"mean", "last", "per_frame"}`` of a per-frame error series (1-D,
-    non-empty): its mean over the rollout, its last value, and the series as a
-    list of floats (JSON-serialisable)."""
-    arr = np.asarray(per_frame, dtype=np.float64)
-    if arr.ndim != 1 or arr.size == 0:
-        raise InvalidInputError(f"per_frame: expected a non-empty 1-D series, got shape {list(arr.shape)}", "per_frame")
-    return {"mean": float(arr.mean()), "last": float(arr[-1]), "per_frame": [float(v) for v in arr]}
-
-
-def kinetic_energy(positions: np.ndarray, dt: float, masses: np.ndarray | None = None) -> np.ndarray:
-    """Kinetic energy from finite differences, float64 [T − 1].
-
-    Velocities ``v = (p[t+1] − p[t]) / dt`` [m/s] are those at the midpoints
-    ``(t + ½)·dt`` (exact there for motion quadratic in time, e.g. free fall).
-
-    * ``masses`` [N] [kg] given: total kinetic energy ``Σ_i ½ m_i |v_i|²`` [J]
-      (in 2D the solver's masses are per unit depth, so J/m).
-    * ``masses=None``: *specific* kinetic energy, ``mean_i ½ |v_i|²`` [J/kg],
-      which compares across resolutions.
-
-    ``positions`` float [T, N, D] with T >= 2, ``dt`` [s] the time between its
-    frames. Raises :class:`InvalidInputError` (``positions``, ``dt``, ``masses``).
-    """
-    p = _frames("positions", positions)
-    if np.ndim(positions) != 3 or p.shape[0] < 2:
-        raise InvalidInputError(f"positions: need [T, N, D] with T >= 2 frames, got shape {list(np.shape(positions))}", "positions")
-    h = _positive("dt", dt)
-    v = np.diff(p.astype(np.float64), axis=0) / h
-    e = 0.5 * np.sum(v * v, axis=2)  # [T-1, N]
-    if masses is None:
-        return np.asarray(e.mean(axis=1), dtype=np.float64)
-    m = np.asarray(masses)
-    if m.dtype.kind not in "fiu" or m.shape != (p.shape[1],) or not (np.isfinite(m) & (m >= 0)).all():
-        raise InvalidInputError(f"masses: expected finite masses >= 0 of shape [{p.shape[1]}], got {m.dtype} {list(m.shape)}", "masses")
-    return np.asarray(e @ m.astype(np.float64), dtype=np.float64)
-
-
-def align_frames(pred_dt: float, pred_len: int, ref_dt: float, ref_len: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame pairs of two rollouts at their common times.
-
-    Both rollouts start at t = 0 and store a frame every ``pred_dt`` /
-    ``ref_dt`` seconds; the longer interval must be an integer multiple ``k``
-    of the shorter (relative tolerance 1e-5), e.g. a neural rollout at
-    ``r_t = 2`` (5 ms) against MPM frames (2.5 ms) pairs pred frames 0, 1, 2, …
-    with ref frames 0, 2, 4, … . The pairs stop where either rollout ends.
-
-    Returns ``(pred_idx, ref_idx, times)``: int64, int64 and float64 [F]
-    (``times = ref_idx · ref_dt`` [s]), F >= 1 (frame 0 always pairs).
-    Raises :class:`InvalidInputError` (``pred_dt``, ``ref_dt``, ``pred_len``,
-    ``ref_len``) for non-positive values or a non-integer interval ratio.
-    """
-    pdt = _positive("pred_dt", pred_dt)
-    rdt = _positive("ref_dt", ref_dt)
-    for name, n in (("pred_len", pred_len), ("ref_len", ref_len)):
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise InvalidInputError(f"{name}: must be an integer >= 1, got {n!r}", name)
-    ratio = pdt / rdt
-    big = max(ratio, 1.0 / ratio)
-    k = round(big)
-    if k < 1 or abs(big - k) > _RATIO_RTOL * k:
-        raise InvalidInputError(
-            f"pred_dt: the frame intervals {pdt:g} s (pred) and {rdt:g} s (ref) are not integer multiples of each other (ratio {ratio:g})",
-            "pred_dt",
-        )
-    if ratio >= 1.0:  # pred is the coarser: every pred frame i is ref frame k·i
-        f = min(int(pred_len), (int(ref_len) - 1) // k + 1)
-        pred_idx = np.arange(f, dtype=np.int64)
-        ref_idx = pred_idx * k
-    else:  # ref is the coarser: every ref frame j is pred frame k·j
-        f = min(int(ref_len), (int(pred_len) - 1) // k + 1)
-        ref_idx = np.arange(f, dtype=np.int64)
-        pred_idx = ref_idx * k
-    return pred_idx, ref_idx, ref_idx.astype(np.float64) * rdt
-
-
-def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None) -> dict[str, Any]:
-    """Every metric of a predicted rollout against a reference rollout.
-
-    Frames are paired with :func:`align_frames` (times that both store,
-    frame 0 included); kinematic particles (GNS type 3) are dropped from both.
-
-    * ``grid_mass_error``: :func:`rollout_summary` of :func:`grid_mass_error`
-      with uniform particle weights (1/N, docs/design.md) on the grid ``n_grid`` (argument, else
-      ``ref.n_grid``, else 128 in 2D / 64 in 3D).
-    * ``grid_mass_error_mass_weighted``: the same with each particle's own mass
-      (when both trajectories store positive ``masses``), else ``None``; it
-      differs from the 1/N definition for unequal masses (k-means clusters).
-    * ``position_mse_rollout``: summary of :func:`position_mse` when both have
-      the same number of fluid particles (particle ``i`` assumed to be the same
-      particle in both), else ``None`` and ``position_mse_rollout_reason`` says
-      why.
-    * ``position_mse_one_step``: the same for ``pred.extras["one_step_positions"]``
-      (float [T_pred, N_pred, D], frame ``t`` predicted from ground-truth
-      history); frames holding non-finite values (e.g. NaN for history frames
-      with no prediction) are skipped and ``times`` lists those kept. ``None``
-      with a reason when absent.
-    * ``kinetic_energy``: specific kinetic energy [J/kg] of both
-      (:func:`kinetic_energy` over the paired frames, velocities over the
-      common frame interval) at the midpoint ``times``.
-    * counts: ``frames_compared``, ``times`` [s], and for ``pred`` and ``ref``
-      their ``frames``, ``dt_frame`` [s], fluid ``particles`` and
-      ``kinematic_particles``; ``n_grid`` and ``dim``.
-
-    The result holds only str, int, float, list, dict and None (JSON-ready).
-    Raises :class:`InvalidInputError` for mismatched dimensions, a
-    non-integer frame-interval ratio, a bad ``n_grid``, no fluid particles or
-    a malformed ``one_step_positions``.
-    """
-    for name, tr in (("pred", pred), ("ref", ref)):
-        if not isinstance(tr, Trajectory):
-            raise InvalidInputError(f"{name}: expected a Trajectory, got {type(tr).__name__}", name)
-    if pred.dim != ref.dim:
-        raise InvalidInputError(f"ref: dimension {ref.dim} differs from pred's {pred.dim}", "ref")
-    n = _n_grid(n_grid if n_grid is not None else ref.n_grid if ref.n_grid is not None else DEFAULT_N_GRID[ref.dim])
-    pi, ri, times = align_frames(pred.dt_frame, pred.num_frames, ref.dt_frame, ref.num_frames)
-    pm, rm = pred.fluid_mask(), ref.fluid_mask()
-    for name, mask in (("pred", pm), ("ref", rm)):
-        if not mask.any():
-            raise InvalidInputError(f"{name}.particle_type: no fluid particles (all are kinematic, type {GNS_KINEMATIC})", f"{name}.particle_type")
-    pp = pred.positions[pi][:, pm]
-    rp = ref.positions[ri][:, rm]
-    n_pred, n_ref = int(pm.sum()), int(rm.sum())
-
-    result: dict[str, Any] = {
-        "n_grid": n,
-        "dim": ref.dim,
-        "frames_compared": len(pi),
-        "times": [float(t) for t in times],
-        "pred": {"frames": pred.num_frames, "dt_frame": pred.dt_frame, "particles": n_pred, "kinematic_particles": int((~pm).sum())},
-        "ref": {"frames": ref.num_frames, "dt_frame": ref.dt_frame, "particles": n_ref, "kinematic_particles": int((~rm).sum())},
-        "grid_mass_error": rollout_summary(grid_mass_error(pp, rp, n)),
-        "grid_mass_error_mass_weighted": None,
-    }
-    if pred.masses is not None and ref.masses is not None and np.all(pred.masses[pm] > 0) and np.all(ref.masses[rm] > 0):
-        # the same error with each particle splatting its own mass: differs from the
-        # 1/N definition when particles carry unequal masses (k-means clusters, r_p < 1)
-        result["grid_mass_error_mass_weighted"] = rollout_summary(grid_mass_error(pp, rp, n, pred_weights=pred.masses[pm], ref_weights=ref.masses[rm]))
-
-    mismatch = f"fluid particle counts differ (pred {n_pred}, ref {n_ref}): no particle correspondence, use grid_mass_error"
-    if n_pred == n_ref:
-        result["position_mse_rollout"] = rollout_summary(position_mse(pp, rp))
-        result["position_mse_rollout_reason"] = None
-    else:
-        result["position_mse_rollout"] = None
-        result["position_mse_rollout_reason"] = mismatch
-
-    one_step = pred.extras.get("one_step_positions")
-    result["position_mse_one_step"] = None
-    if one_step is None:
-        result["position_mse_one_step_reason"] = "pred has no one_step_positions array"
-    else:
-        field = "extras.one_step_positions"
-        arr = np.asarray(one_step)
-        if arr.dtype.kind != "f" or arr.shape != pred.positions.shape:
-            raise InvalidInputError(
-                f"{field}: expected a float array shaped like pred.positions {list(pred.positions.shape)}, got {arr.dtype} {list(arr.shape)}", field
-            )
-        if n_pred != n_ref:
-            result["position_mse_one_step_reason"] = mismatch
-        else:
-            os_ = arr[pi][:, pm]
-            keep = np.isfinite(os_).all(axis=(1, 2))
-            if not keep.any():
-                result["position_mse_one_step_reason"] = "one_step_positions has no finite frame at the compared times"
-            else:
-                summary = rollout_summary(position_mse(os_[keep], rp[keep]))
-                summary["times"] = [float(t) for t in times[keep]]
-                result["position_mse_one_step"] = summary
-                result["position_mse_one_step_reason"] = None
-
-    ke: dict[str, Any] = {"units": "J/kg", "times": [], "pred": [], "ref": []}
-    if len(pi) >= 2:
-        ke["times"] = [float(t) for t in 0.5 * (times[:-1] + times[1:])]
-        ke["pred"] = [float(v) for v in kinetic_energy(pp, pred.dt_frame * float(pi[1] - pi[0]))]
-        ke["ref"] = [float(v) for v in kinetic_energy(rp, ref.dt_frame * float(ri[1] - ri[0]))]
-    result["kinetic_energy"] = ke
-    return result
-
+from hybridmpm.conventions import DEFAULT_N_GRID
+from hybridmpm.metrics.chaotic import (
+    KE_FLOOR,
+    ROLLOUT_METRICS,
+    SHORT_HORIZON_FRAMES,
+    dam_break_front,
+    dam_break_geometry,
+    kinetic_energy_error,
+    rollout_metrics,
+    short_horizon_error,
+)
+from hybridmpm.metrics.compare import evaluate
+from hybridmpm.metrics.core import align_frames, fluid_mask, grid_mass_error, kinetic_energy, position_mse, rollout_summary
+from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_FRAMES, SINKHORN_MAX_POINTS, sinkhorn_divergence, sinkhorn_frames, sinkhorn_series, subsample
 
 __all__ = [
-    "DEFAULT_N_GRID",
-    "align_frames",
-    "evaluate",
-    "fluid_mask",
-    "grid_mass_error",
-    "kinetic_energy",
-    "position_mse",
-    "rollout_summary",
-]
+    "DEFAULT_N_GRID", "KE_FLOOR", "ROLLOUT_METRICS", "SHORT_HORIZON_FRAMES", "SINKHORN_BLUR", "SINKHORN_FRAMES", "SINKHORN_MAX_POINTS",
+    "align_frames", "dam_break_front", "dam_break_geometry", "evaluate", "fluid_mask", "grid_mass_error", "kinetic_energy",
+    "kinetic_energy_error", "position_mse", "rollout_metrics", "rollout_summary", "short_horizon_error", "sinkhorn_divergence",
+    "sinkhorn_frames", "sinkhorn_series", "subsample",
+]  # fmt: skip

@@ -1,0 +1,205 @@
+"""The Sinkhorn divergence between two mass-weighted particle sets: a distance
+between the *distributions* of matter, blind to which particle went where, so a
+chaotic flow that puts the same water in the same places scores near zero.
+
+For particle sets ``α = Σ a_i δ(x_i)`` and ``β = Σ b_j δ(y_j)`` (weights summing
+to 1) and the cost ``C(x, y) = |x − y|²`` [m²]:
+
+* ``OT_ε(α, β) = min_π ⟨π, C⟩ + ε·KL(π ‖ α⊗β)`` over couplings ``π`` with
+  marginals ``a`` and ``b`` (entropic optimal transport, Cuturi 2013), solved
+  by Sinkhorn's iterations in POT (Flamary et al. 2021, JMLR 22(78),
+  ``ot.sinkhorn``; the log-domain solver where the plain one loses precision);
+* ``S_ε(α, β) = OT_ε(α, β) − ½·OT_ε(α, α) − ½·OT_ε(β, β)`` — the debiased
+  Sinkhorn divergence (Genevay, Peyré & Cuturi 2018; Feydy et al. 2019, AISTATS,
+  "Interpolating between optimal transport and MMD using Sinkhorn divergences"):
+  0 for identical distributions, symmetric, ≥ 0, and → ``W₂²(α, β)`` as ε → 0.
+  For a set and its translate by ``d`` it is ``|d|²`` exactly, for every ε.
+
+LagrangeBench (Toshev et al. 2023, arXiv 2309.16342) scores particle rollouts
+with it. Its settings live here and only here:
+
+* ``ε = blur²`` with ``blur`` = :data:`SINKHORN_BLUR` [m] = 1/32 of the
+  domain's side (every scene's domain is the unit box ``[0, 1]^D``): 4 cells
+  of the 2D scenes' 128² grid, 2 of the 3D scenes' 64³. Transport over
+  distances well above the blur is counted as ``|d|²``; rearrangements inside
+  it are smoothed out, as the grid-mass error's B-spline smooths below a cell.
+* at most :data:`SINKHORN_MAX_POINTS` particles per set: a larger set is
+  subsampled once per trajectory (the same particles in every frame) by a
+  fixed-seed draw without replacement (:func:`subsample`), and the drawn
+  particles' masses renormalised (an unbiased estimate of the mass
+  distribution);
+* :data:`SINKHORN_FRAMES` frames per rollout, evenly spaced
+  (:func:`sinkhorn_frames`); the rollout's score is their mean.
+
+POT is imported when a divergence is first computed, with its PyTorch, JAX,
+CuPy and TensorFlow backends switched off (``POT_BACKEND_DISABLE_*``, unless
+already set): the metric runs on NumPy alone and importing
+:mod:`hybridmpm.metrics` loads neither POT nor torch.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_allocation
+
+#: Blur of the Sinkhorn divergence [m] (ε = blur²): 1/32 of the unit domain's side.
+SINKHORN_BLUR = 1.0 / 32.0
+#: Particles per set at most (larger sets are subsampled, :func:`subsample`).
+SINKHORN_MAX_POINTS = 1000
+#: Frames of a rollout the divergence is computed on (evenly spaced, :func:`sinkhorn_frames`).
+SINKHORN_FRAMES = 8
+#: Seed of the subsampling draw: fixed, so a set's subsample depends on its size alone.
+_SUBSAMPLE_SEED = 0
+#: Sinkhorn stops when the coupling's marginal misses ``b`` by this much (2-norm), or after ``_MAX_ITER`` iterations.
+_STOP_THR = 1e-7
+_MAX_ITER = 5000
+#: A coupling whose marginals miss ``a`` or ``b`` by more than this (1-norm, of total mass 1) is re-solved in the log domain.
+_MARGINAL_TOL = 1e-4
+
+
+def _ot() -> Any:
+    """POT with its GPU/autodiff backends off (NumPy only; see the module docstring)."""
+    for backend in ("PYTORCH", "JAX", "CUPY", "TENSORFLOW"):
+        os.environ.setdefault(f"POT_BACKEND_DISABLE_{backend}", "1")
+    try:
+        import ot
+    except ImportError as e:  # a dependency of the package: only a broken install lacks it
+        raise ImportError("the Sinkhorn divergence needs POT (pip install pot), a dependency of hybridmpm") from e
+    return ot
+
+
+def subsample(n: int, max_points: int = SINKHORN_MAX_POINTS) -> np.ndarray:
+    """Indices (int64, sorted) of the particles of an ``n``-particle set that the
+    divergence uses: all of them when ``n <= max_points``, else ``max_points``
+    drawn without replacement by a generator of fixed seed, so the same ``n``
+    always gives the same subsample. Raises :class:`InvalidInputError`
+    (``max_points``) unless it is an integer >= 1."""
+    if isinstance(max_points, bool) or not isinstance(max_points, (int, np.integer)) or max_points < 1:
+        raise InvalidInputError(f"max_points: must be an integer >= 1, got {max_points!r}", "max_points")
+    if n <= max_points:
+        return np.arange(n, dtype=np.int64)
+    return np.sort(np.random.default_rng(_SUBSAMPLE_SEED).choice(n, int(max_points), replace=False)).astype(np.int64)
+
+
+def sinkhorn_frames(frame_index: Any, count: int = SINKHORN_FRAMES) -> np.ndarray:
+    """Positions (int64, increasing, distinct) into ``frame_index`` (int [F],
+    increasing) of the frames the divergence is computed on: for ``k = 1 … count``
+    the stored frame nearest to ``first + k·(last − first)/count`` (the first
+    frame is the shared start; the last frame is always included). Fewer when
+    frames are fewer; empty for a single frame."""
+    f = np.asarray(frame_index, dtype=np.float64)
+    if f.ndim != 1 or len(f) < 2:
+        return np.zeros(0, np.int64)
+    targets = f[0] + (f[-1] - f[0]) * np.arange(1, int(count) + 1) / int(count)
+    pos = np.abs(f[None, :] - targets[:, None]).argmin(axis=1)
+    return np.unique(pos[pos > 0]).astype(np.int64)
+
+
+def _set(name: str, x: Any) -> np.ndarray:
+    arr = np.asarray(x)
+    if arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] not in (2, 3) or arr.shape[0] < 1:
+        raise InvalidInputError(f"{name}: expected float positions [N, D] with N >= 1 and D in {{2, 3}}, got {arr.dtype} {list(arr.shape)}", name)
+    if not np.isfinite(arr).all():
+        raise InvalidInputError(f"{name}: positions must be finite", name)
+    return arr.astype(np.float64)
+
+
+def _mass(name: str, w: Any, n: int) -> np.ndarray:
+    if w is None:
+        return np.full(n, 1.0 / n)
+    arr = np.asarray(w)
+    if arr.dtype.kind not in "fiu" or arr.shape != (n,):
+        raise InvalidInputError(f"{name}: expected a real array of shape [{n}], got {arr.dtype} {list(arr.shape)}", name)
+    arr = arr.astype(np.float64)
+    if not (np.isfinite(arr) & (arr >= 0)).all() or not arr.sum() > 0:
+        raise InvalidInputError(f"{name}: must be finite, >= 0 and not all zero", name)
+    return arr / arr.sum()
+
+
+def entropic_ot(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray, eps: float) -> float:
+    """``OT_ε`` [m²] between the weighted sets ``(x, a)`` and ``(y, b)``
+    (float64 [N, D], [M, D]; weights [N], [M] summing to 1): the transport cost
+    ``⟨π, C⟩`` plus ``ε·KL(π ‖ a⊗b)`` of POT's Sinkhorn coupling ``π``."""
+    ot = _ot()
+    cost = ot.dist(x, y)  # squared Euclidean [N, M]
+    with warnings.catch_warnings(), np.errstate(all="ignore"):  # an underflowed kernel is detected below, not reported
+        warnings.simplefilter("ignore")
+        plan = ot.sinkhorn(a, b, cost, eps, method="sinkhorn", numItermax=_MAX_ITER, stopThr=_STOP_THR, warn=False)
+        if not (
+            np.isfinite(plan).all() and np.abs(plan.sum(axis=1) - a).sum() <= _MARGINAL_TOL and np.abs(plan.sum(axis=0) - b).sum() <= _MARGINAL_TOL
+        ):  # the kernel exp(-C/ε) underflowed for far-apart points: the log-domain solver keeps its precision
+            plan = ot.sinkhorn(a, b, cost, eps, method="sinkhorn_log", numItermax=_MAX_ITER, stopThr=_STOP_THR, warn=False)
+    ab = a[:, None] * b[None, :]
+    pos = plan > 0
+    kl = float(np.sum(plan[pos] * np.log(plan[pos] / ab[pos])))
+    return float(np.sum(plan * cost)) + eps * kl
+
+
+def sinkhorn_divergence(
+    x: Any,
+    y: Any,
+    x_weights: Any = None,
+    y_weights: Any = None,
+    *,
+    blur: float = SINKHORN_BLUR,
+    max_points: int = SINKHORN_MAX_POINTS,
+) -> float:
+    """The debiased Sinkhorn divergence ``S_ε`` [m²] between two particle sets
+    (module docstring; ε = ``blur``²).
+
+    ``x``, ``y``: positions [m], float [N, D] and [M, D] (N and M may differ);
+    ``x_weights``, ``y_weights``: particle masses [N], [M] (any unit; default
+    equal masses), normalised to sum 1. Sets larger than ``max_points`` are
+    subsampled (:func:`subsample`). Returns a float >= 0 (clipped at 0 where
+    the solvers' tolerance leaves a few 1e-12 below it). Raises
+    :class:`InvalidInputError` naming ``x``, ``y``, ``x_weights``,
+    ``y_weights``, ``blur`` or ``max_points``.
+    """
+    return float(sinkhorn_series(np.asarray(x)[None], np.asarray(y)[None], x_weights, y_weights, blur=blur, max_points=max_points)[0])
+
+
+def sinkhorn_series(
+    pred: Any,
+    ref: Any,
+    pred_weights: Any = None,
+    ref_weights: Any = None,
+    *,
+    blur: float = SINKHORN_BLUR,
+    max_points: int = SINKHORN_MAX_POINTS,
+) -> np.ndarray:
+    """:func:`sinkhorn_divergence` frame by frame, float64 [F] [m²], for
+    ``pred`` float [F, N, D] and ``ref`` float [F, M, D] (the frames to compare:
+    pick them with :func:`sinkhorn_frames`), with one subsample of each set for
+    every frame. Raises :class:`InvalidInputError` as :func:`sinkhorn_divergence`."""
+    p, r = np.asarray(pred), np.asarray(ref)
+    for name, arr in (("x", p), ("y", r)):
+        if arr.ndim != 3 or arr.shape[0] < 1:
+            raise InvalidInputError(f"{name}: expected float positions [F, N, D], got {list(arr.shape)}", name)
+    if p.shape[0] != r.shape[0] or p.shape[2] != r.shape[2]:
+        raise InvalidInputError(f"y: {list(r.shape)} does not match x's frames and dimension {list(p.shape)}", "y")
+    try:
+        b = float(blur)
+    except (TypeError, ValueError):
+        b = float("nan")
+    if not (np.isfinite(b) and b > 0):
+        raise InvalidInputError(f"blur: must be a finite length > 0 [m], got {blur!r}", "blur")
+    ip, ir = subsample(p.shape[1], max_points), subsample(r.shape[1], max_points)
+    a = _mass("x_weights", pred_weights, p.shape[1])[ip]
+    c = _mass("y_weights", ref_weights, r.shape[1])[ir]
+    a, c = a / a.sum(), c / c.sum()
+    n, m = len(ip), len(ir)
+    # the cost matrix, the coupling and their products, float64, for the largest of the three problems
+    check_allocation("max_points", 4 * 8.0 * max(n, m) ** 2, f"Sinkhorn on {max(n, m)} particles")
+    out = np.empty(p.shape[0], np.float64)
+    for t in range(p.shape[0]):
+        xs, ys = _set("x", p[t][ip]), _set("y", r[t][ir])
+        eps = b * b
+        s = entropic_ot(xs, ys, a, c, eps) - 0.5 * (entropic_ot(xs, xs, a, a, eps) + entropic_ot(ys, ys, c, c, eps))
+        out[t] = max(s, 0.0)
+    return out
