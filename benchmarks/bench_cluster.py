@@ -25,7 +25,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import secrets
 import shutil
 import signal
@@ -36,6 +35,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.service.testing import LiveServer, RayCluster, private_bytes
 
 OCTET = {"Accept": "application/octet-stream"}
@@ -164,11 +164,10 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="actor deaths per workload")
     ap.add_argument("--backends", default="local,ray1,ray2", help="local, ray1 (one node process), ray2 (two)")
     ap.add_argument("--num-cpus", type=int, default=16, help="logical CPUs of each node process (the sessions' placement, not the machine's cores)")
-    ap.add_argument("--out", default=None, help="append a Markdown report here")
+    ap.add_argument("--out", default=None, help="append a Markdown report here (FILE.md)")
     args = ap.parse_args()
     args.levels = [int(x) for x in args.levels.split(",")]
     results = {}
-    load0 = os.getloadavg()
     big = max(args.levels) + 4
     for name in args.backends.split(","):
         tmp = Path(tempfile.mkdtemp(prefix="hmbench", dir="/tmp"))
@@ -186,23 +185,20 @@ def main() -> None:
                     results[name] = run_backend(name, srv, cluster, args)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    load1 = os.getloadavg()
     print(json.dumps(results, indent=1))
     if args.out:
-        write(args, results, load0, load1)
+        write(args, results)
 
 
 def cluster_row(name: str) -> bool:
     return name != "local"
 
 
-def write(args: argparse.Namespace, results: dict, load0: tuple, load1: tuple) -> None:
+def write(args: argparse.Namespace, results: dict) -> None:
     names = {"local": "local (1 process)", "ray1": "ray, 1 node process", "ray2": "ray, 2 node processes"}
     lines = [
-        f"\n## Sessions on a Ray cluster — {time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, {os.cpu_count()} cores, {platform.python_version()}\n",
-        f"Command: `python benchmarks/bench_cluster.py --seconds {args.seconds:g} --levels {','.join(map(str, args.levels))} --rate {args.rate:g} "
-        f"--repeats {args.repeats} --backends {args.backends} --num-cpus {args.num_cpus}`",
-        f"(load average of the machine, shared with other jobs: {load0[0]:.1f} before, {load1[0]:.1f} after)\n",
+        "\n## Sessions on a Ray cluster\n",
+        "The machine is shared with other jobs (the load average before and after above).\n",
         "Each session stepped by its own client in a closed loop, `POST /step {frames: 1}` with a binary answer: one coarse step "
         '(water2d MPM: 1 frame of 2.5 ms; dam break hybrid: r_t = 4 frames). "Held": the most sessions with every one at '
         f">= {args.rate:g} steps/s. Ray: one front end, sessions of 0.25 CPU, node processes of {args.num_cpus} logical CPUs all on "
@@ -244,8 +240,8 @@ def write(args: argparse.Namespace, results: dict, load0: tuple, load1: tuple) -
         lines += ["| backend | workload | actor death → session answering a step [s] (each kill) | median |", "|---|---|---|---:|"]
         for n, k, v in deaths:
             lines.append(f"| {n} | {k} | {', '.join(f'{x:.2f}' for x in v)} | {float(np.median(v)):.2f} |")
-    with open(args.out, "a") as f:
-        f.write("\n".join(lines) + "\n")
+    out = Path(args.out)
+    write_results(out.parent, out.stem, markdown="\n".join(lines), append=True)
 
 
 if __name__ == "__main__":

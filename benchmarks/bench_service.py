@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import httpx
 import numpy as np
 import websockets
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.service import decode_frame
 from hybridmpm.service.testing import LiveServer
 
@@ -114,7 +113,7 @@ def main() -> None:
     ap.add_argument("--hybrid-sessions", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--seconds", type=float, default=5.0)
-    ap.add_argument("--out", default=None, help="append a Markdown report here")
+    ap.add_argument("--out", default=None, help="append a Markdown report here (FILE.md)")
     ap.add_argument("--server-log", default=None, help="write the server's output here")
     args = ap.parse_args()
     log = Path(args.server_log) if args.server_log else None
@@ -131,8 +130,7 @@ def main() -> None:
     print(json.dumps({"load": rows, "stream": streams}, indent=2))
     if args.out:
         lines = [
-            f"\n## {time.strftime('%Y-%m-%d %H:%M')} — {platform.node()}, {os.cpu_count()} cores, {platform.python_version()}\n",
-            f"Command: `python benchmarks/bench_service.py --sessions {args.sessions} --hybrid-sessions {args.hybrid_sessions} --rounds {args.rounds} --seconds {args.seconds}`\n",
+            "\n## Sessions held, stepping and streaming\n",
             "| scene | solver | sessions held | create all [s] | step p50 [ms] | step p95 [ms] | steps/s (all) | MiB / session | server threads |",
             "|---|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
@@ -150,8 +148,8 @@ def main() -> None:
             lines.append(
                 f"| {s['scene']} | {s['solver']} | {s['fps_received']:.1f} | {s['sim_frames_per_s']:.0f} | {s['neural_share']:.2f} | {ms[0]} | {ms[1]} | {ms[2]} |"
             )
-        with open(args.out, "a") as f:
-            f.write("\n".join(lines) + "\n")
+        out = Path(args.out)
+        write_results(out.parent, out.stem, markdown="\n".join(lines), append=True)
 
 
 if __name__ == "__main__":

@@ -15,14 +15,13 @@ the state into it (``hybridmpm.service.store.rebuild``).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.store import SessionStore, rebuild, record_state, session_key
 from hybridmpm.sim import make_simulator, rollout
@@ -71,14 +70,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--store", default=None, help="directory or fsspec URL (default: a temporary directory)")
-    ap.add_argument("--out", default=None, help="append a Markdown report here")
+    ap.add_argument("--out", default=None, help="append a Markdown report here (FILE.md)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         store = SessionStore(args.store or tmp).open()
         rows = [(scene, solver, frames, measure(store, scene, solver, frames, args.repeats)) for scene, solver, frames in CASES]
     lines = [
-        f"\n## Durable sessions: save and restore — {time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, {os.cpu_count()} cores, {platform.python_version()}\n",
-        f"Command: `python {' '.join(sys.argv)}` (store: {'a local directory' if args.store is None else args.store}; medians of {args.repeats})\n",
+        "\n## Durable sessions: save and restore\n",
+        f"Store: {'a local directory' if args.store is None else args.store}; medians of {args.repeats}.\n",
         "A save: state + npz encoding + atomic write (temporary file, fsync, rename). A restore: read and check the record,",
         "build the simulator from its scene/seed/solver and the record's clusters (no k-means; the hybrid loads its ONNX model), restore the state.\n",
         "| scene | solver | at frame | save [ms] | checkpoint [bytes] | read + check [ms] | build + restore [ms] | restore in all [ms] |",
@@ -91,8 +90,8 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        with open(args.out, "a") as f:
-            f.write(text)
+        out = Path(args.out)
+        write_results(out.parent, out.stem, markdown=text, append=True)
 
 
 if __name__ == "__main__":

@@ -21,13 +21,13 @@ Writes OUT.json and OUT.md.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.diffusion import expand, path_basis, project, temporal_basis
 from hybridmpm.train.control.cases import make_case
@@ -61,17 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = [run(s, args.first_seed + i) for s in args.scenes.split(",") for i in tqdm(range(args.cases), desc=s)]
     out = Path(args.out)
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
     cols = [k for k in rows[0] if k.startswith(("field", "path"))]
-    lines = [f"Command: `python benchmarks/control_basis.py {' '.join(sys.argv[1:] if argv is None else argv)}`", ""]
-    lines += ["Mean final grid-mass error against X_1 (mean effort, g), true targets replayed:", ""]
+    lines = ["Mean final grid-mass error against X_1 (mean effort, g), true targets replayed:", ""]
     lines += ["| scene | cases | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for s in args.scenes.split(","):
         rs = [r for r in rows if r["scene"] == s]
         cells = [f"{np.mean([r[c][0] for r in rs]):.3f} ({np.mean([r[c][1] for r in rs]):.1f})" for c in cols]
         lines.append(f"| {s} | {len(rs)} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
-    out.with_suffix(".md").write_text(text)
+    write_results(out.parent, out.name, doc={"rows": rows}, markdown=text, argv=script_argv(__file__, argv))
     print(text)
     return 0
 

@@ -16,15 +16,13 @@ frames, the case's one MPM thread), median. Check the load first
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.env import cpu_times, environment, steal_fraction
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.prior import free_motion_of
 from hybridmpm.train.control.cases import make_case
@@ -36,8 +34,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--out", default="benchmarks/results/control_latency")
     args = ap.parse_args(argv)
-    load_before = os.getloadavg()[0]
-    ticks = cpu_times()
     rows = []
     for scene in args.scenes.split(","):
         plans: list[float] = []
@@ -69,14 +65,8 @@ def main(argv: list[str] | None = None) -> int:
             {"scene": scene, "particles": sizes, "plan_ms_p50": float(np.percentile(plans, 50)), "plan_ms_p95": float(np.percentile(plans, 95)),
              "prior_ms_p50": float(np.median(priors)), "sampler_ms_p50": float(np.median(samplers)), "episode_ms": float(np.median(eps))}
         )  # fmt: skip
-    steal = steal_fraction(ticks, cpu_times())
     out = Path(args.out)
-    out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "load": os.getloadavg(), "steal": steal, "scenes": rows}, indent=1))
     lines = [
-        f"Command: `python benchmarks/control_latency.py {' '.join(sys.argv[1:] if argv is None else argv)}` (load average before: {load_before:.2f}; CPU time stolen by the hypervisor during the run: {'unknown' if steal is None else f'{100 * steal:.0f} %'})",
-        "",
-    ]
-    lines += [
         "| scene | particles | sketch → field ms p50 / p95 (1 ORT thread + the prior on a 2nd thread) | prior alone ms p50 | sampler alone ms p50 | episode ms, plan + 99 MPM frames on one thread (median) |",
         "|---|---|---|---|---|---|",
     ]
@@ -85,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['scene']} | {min(r['particles'])}–{max(r['particles'])} | {r['plan_ms_p50']:.0f} / {r['plan_ms_p95']:.0f} | {r['prior_ms_p50']:.0f} | {r['sampler_ms_p50']:.0f} | {r['episode_ms']:.0f} |"
         )
     text = "\n".join(lines) + "\n"
-    out.with_suffix(".md").write_text(text)
+    write_results(out.parent, out.name, doc={"scenes": rows}, markdown=text, argv=script_argv(__file__, argv))
     print(text)
     return 0
 

@@ -23,13 +23,12 @@ difference) and water's ``J`` (``density`` or ``one``).
 from __future__ import annotations
 
 import argparse
-import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.conventions import G
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import GnsRuntime
@@ -86,10 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             v = np.asarray(vals)
             rows.append({"scene": scene, "variant": label, "samples": len(v), "median_g": float(np.median(v)), "p90_g": float(np.percentile(v, 90))})
             print(f"{scene:14s} {label:38s} median {np.median(v):.2f} g, p90 {np.percentile(v, 90):.2f} g ({len(v)} samples)", file=sys.stderr)
-    cmd = "python benchmarks/conversion_floor.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
-        f"Command: `{cmd}`",
-        "",
         f"One-step difference [g] between MPM continuing and MPM restarted from the converted state; seeds {args.seeds}, "
         f"{args.steps} steps, a sample every {args.every} steps from step 6 on; median and 90th percentile over samples.",
         "",
@@ -97,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---|---|---|",
     ]
     lines += [f"| {r['scene']} | {r['variant']} | {r['median_g']:.2f} | {r['p90_g']:.2f} | {r['samples']} |" for r in rows]
-    Path(args.out + ".md").write_text("\n".join(lines) + "\n")
-    Path(args.out + ".json").write_text(json.dumps(rows, indent=2))
+    out = Path(args.out)
+    write_results(out.parent, out.name, doc={"rows": rows}, markdown="\n".join(lines), argv=script_argv(__file__, argv))
     print("\n".join(lines))
     return 0
 

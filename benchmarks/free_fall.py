@@ -25,12 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.conventions import G
 from hybridmpm.models import shipped_model
 from hybridmpm.scenes import make_scene
@@ -82,9 +82,9 @@ def free_fall_samples(scene_name: str, model: str, seed: int, steps: int, tol: f
     return out
 
 
-def plot(rows: list[dict], path: str) -> None:
+def plot(rows: list[dict]):
     """Per free-fall step, the predicted acceleration along gravity / g
-    against the fluid's speed in R per model step, one panel per scene."""
+    against the fluid's speed in R per model step, one panel per scene (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,8 +103,7 @@ def plot(rows: list[dict], path: str) -> None:
         ax.legend(fontsize=7)
     axes[0][0].set_ylabel("predicted / true acceleration")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,10 +134,7 @@ def main(argv: list[str] | None = None) -> int:
             row["ratio_min"] = float(np.min([s["ratio"] for s in samples]))
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "samples"}), file=sys.stderr)
-    cmd = "python benchmarks/free_fall.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
-        f"Command: `{cmd}`",
-        "",
         f"One network step from MPM's true history while the whole fluid is in free fall (every particle within {args.tol:g} g of g "
         f"over the input window and the next step); seeds {args.seeds}, the first {args.steps} model steps of each. "
         "Predicted mean acceleration along gravity / g (1 is right; its minimum over the steps), its component across gravity, "
@@ -152,10 +148,10 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {r['scene']} | {r['model']} | {r['steps']} | {r['ratio']:.3f} | {r['ratio_min']:.3f} | {r['across_g']:.3f} | {r['rms_g']:.3f} |")
         else:
             lines.append(f"| {r['scene']} | {r['model']} | 0 | – | – | – | – |")
-    lines += ["", f"![along g / g against speed](./{Path(args.out).name}.png)"]
-    plot(rows, args.out + ".png")
-    Path(args.out + ".md").write_text("\n".join(lines) + "\n")
-    Path(args.out + ".json").write_text(json.dumps(rows, indent=2))
+    out = Path(args.out)
+    lines += ["", f"![along g / g against speed](./{out.name}.png)"]
+    md = "\n".join(lines)
+    write_results(out.parent, out.name, doc={"rows": rows}, markdown=md, figures={f"{out.name}.png": plot(rows)}, dpi=110, argv=script_argv(__file__, argv))
     print("\n".join(lines))
     return 0
 

@@ -15,14 +15,13 @@ MPM and switches. Seeds other than the dataset's (which used 0…M−1).
 from __future__ import annotations
 
 import argparse
-import json
-import shlex
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_TOL
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models import shipped_model
@@ -111,10 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{name}: {row['error_mean']:.3f} / {row['error_last']:.3f}, {row['ms_per_frame']:.2f} ms/frame, MPM {100 * row['mpm_share']:.0f}%, {row['switches']:.1f} switches, {row['audit_fallbacks']:.1f} audit fallbacks",
             file=sys.stderr,
         )
-    cmd = "python benchmarks/hybrid_choices.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
-        f"Command: `{cmd}`",
-        "",
         f"{args.scene}, seeds {args.seeds}, {args.frames} frames, {'model ' + str(args.model) if args.model else 'shipped model'}; one setting changed per row from the defaults "
         f"(r_c 0.8, δ 10, dwell 5, affine fit, J from density, velocity the last difference, accel_floor 1 m/s², an MPM audit every {AUDIT_EVERY} network steps with tolerance "
         f"{AUDIT_TOL:g} g).",
@@ -127,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['variant']} | {r['error_mean']:.3f} | {r['error_last']:.3f} | {r['ms_per_frame']:.2f} | {100 * r['mpm_share']:.0f}% | {r['switches']:.1f} | {r['audit_fallbacks']:.1f} "
             f"| {', '.join(f'{x:.3f}' for x in r['per_seed_error'])} |"
         )
-    Path(args.out + ".md").write_text("\n".join(lines) + "\n")
-    Path(args.out + ".json").write_text(json.dumps(rows, indent=2))
+    out = Path(args.out)
+    write_results(out.parent, out.name, doc={"rows": rows}, markdown="\n".join(lines), argv=script_argv(__file__, argv))
     print("\n".join(lines))
     return 0
 

@@ -11,10 +11,10 @@ and the steps whose density relaxation had to run more than one round.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
+from pathlib import Path
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.models import shipped_models
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import NeuralSimulator, rollout
@@ -38,15 +38,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="0-9", help="first-last seed (default 0-9)")
     ap.add_argument("--frames", type=int, default=400)
-    ap.add_argument("--out", default=None, help="append a Markdown table here")
+    ap.add_argument("--out", default=None, help="append a Markdown table here (FILE.md)")
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.seeds.split("-"))
     seeds = list(range(lo, hi + 1))
     scenes = sorted(s for s in shipped_models() if make_scene(s, seed=0).dim == 2)
     rows = [check(s, seeds, args.frames) for s in scenes]
     lines = [
-        f"\n## Network alone: rollouts that stop early — {time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, {os.cpu_count()} cores\n",
-        f"Command: `python benchmarks/network_failures.py --seeds {args.seeds} --frames {args.frames}` (shipped models, default settings)\n",
+        "\n## Network alone: rollouts that stop early\n",
+        "Shipped models, default settings.\n",
         "| scene | rollouts stopped early | steps relaxed again (rollouts) | seconds |",
         "|---|---|---:|---:|",
     ]
@@ -56,8 +56,8 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        with open(args.out, "a") as f:
-            f.write(text)
+        out = Path(args.out)
+        write_results(out.parent, out.stem, markdown=text, append=True)
 
 
 if __name__ == "__main__":

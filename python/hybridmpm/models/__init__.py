@@ -39,7 +39,7 @@ def shipped_model(scene: str) -> Path:
 
 def shipped_switching(scene: str) -> dict:
     """The switching rule chosen for the shipped model of ``scene``
-    (``switching.json``, written by ``benchmarks/ship_switching.py`` from
+    (``switching.json``, written by ``benchmarks/release/ship_switching.py`` from
     validation rollouts; docs/hybrid.md "Switching rules"): a dict with
     ``safeguard`` and ``audit_tol`` [g], or empty where the hybrid's defaults
     were not beaten (or the file is absent)."""

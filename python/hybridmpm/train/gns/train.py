@@ -66,7 +66,7 @@
   metadata's ``val_rollout_mse`` is that step's own score), so a
   checkpoint can be chosen afterwards on the benchmark's own rollout error
   (``benchmarks/bench_neural.py --split valid --models OUT/snapshots/*``,
-  then ``benchmarks/ship_model.py``) rather than on the one 20-step
+  then ``benchmarks/release/ship_model.py``) rather than on the one 20-step
   validation rollout the run itself scores;
 * several processes (``nproc`` = N, or torchrun; :mod:`hybridmpm.train.distributed`):
   data-parallel training with DistributedDataParallel over gloo. ``batch``

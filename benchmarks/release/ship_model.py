@@ -6,7 +6,7 @@ card), copies the chosen ``model.onnx`` to ``python/hybridmpm/models/<scene>.onn
 with the scenes it serves stamped into its metadata, writes the model card
 ``<scene>.md`` and updates ``index.json``.
 
-    python benchmarks/ship_model.py --scene water2d --valid benchmarks/results/neural_water2d_valid.json \
+    python benchmarks/release/ship_model.py --scene water2d --valid benchmarks/results/neural_water2d_valid.json \
         --test benchmarks/results/neural_water2d_test.json --models-dir runs/models/water2d --serves dam_break2d
 """
 
@@ -17,7 +17,9 @@ import csv
 import json
 from pathlib import Path
 
-MODELS = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models"
+from hybridmpm.bench.harness import write_file, write_json
+
+MODELS = Path(__file__).resolve().parents[2] / "python" / "hybridmpm" / "models"
 
 
 def _core_hours(run: Path, step: int) -> float | None:
@@ -109,7 +111,7 @@ def main() -> None:
         + f" for `{a.scene}`"
         + (f", also serving {', '.join(f'`{s}`' for s in a.serves)}" if a.serves else "")
         + ".",
-        f"Chosen by `benchmarks/ship_model.py`: the fewest parameters among the candidates whose validation rollout error is within "
+        f"Chosen by `benchmarks/release/ship_model.py`: the fewest parameters among the candidates whose validation rollout error is within "
         f"{a.tolerance:.0%} of the best ({best:.3f}) among {len(rows)} candidate(s). {a.note}".rstrip(),
         "",
         "## Data",
@@ -146,12 +148,12 @@ def main() -> None:
         f"step at 2.3k particles {t['timing_2300']['step_ms']:.2f} ms, at 4k {t['timing_4096']['step_ms']:.2f} ms; "
         f"MPM at full resolution {test_all['reference']['mpm_full_ms_2t']:.2f} ms/frame (2 threads) in the same run.",
     ]
-    dst.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_file(dst.with_suffix(".md"), "\n".join(lines) + "\n")
     index_path = MODELS / "index.json"
     index = json.loads(index_path.read_text()) if index_path.exists() else {}
     for s in [a.scene, *a.serves]:
         index[s] = dst.name
-    index_path.write_text(json.dumps(dict(sorted(index.items())), indent=2) + "\n")
+    write_json(index_path, dict(sorted(index.items())), indent=2)
     print(f"shipped {chosen['model']} as {dst} ({dst.stat().st_size / 1e3:.0f} kB) for {[a.scene, *a.serves]}")
 
 

@@ -1,7 +1,7 @@
 """Choose each scene's switching rule for the shipped model and write
 ``python/hybridmpm/models/switching.json`` (docs/hybrid.md "Switching rules").
 
-    python benchmarks/ship_switching.py benchmarks/results/switching
+    python benchmarks/release/ship_switching.py benchmarks/results/switching
 
 Reads the ``benchmarks/hybrid_choices.py`` results ``DIR/SCENE.json`` made on
 validation seeds (2000-2002, 400 frames) with the variants "defaults" (the
@@ -14,13 +14,13 @@ higher than the defaults', the one that gives the network the most frames
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from hybridmpm.bench.harness import read_results, write_json
 from hybridmpm.models import shipped_models
 
-MODELS = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models"
+MODELS = Path(__file__).resolve().parents[2] / "python" / "hybridmpm" / "models"
 #: hybrid_choices label -> the hybrid's switching settings.
 CANDIDATES = {
     "defaults": {"safeguard": "audit"},
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         scene = path.stem
         if scene not in shipped_models():
             continue  # other measurements kept beside them
-        rows = json.loads(path.read_text())
+        rows = read_results(path)["rows"]
         label, row = choose(rows)
         d = next(r for r in rows if r["variant"] == "defaults")
         print(
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
                 "validation": {"seeds": "2000-2002", "frames": 400, "error_mean": round(row["error_mean"], 4), "network_share": round(1 - row["mpm_share"], 3),
                                "defaults_error_mean": round(d["error_mean"], 4), "defaults_network_share": round(1 - d["mpm_share"], 3)},
             }  # fmt: skip
-    (MODELS / "switching.json").write_text(json.dumps(out, indent=2, sort_keys=True) + "\n")
+    write_json(MODELS / "switching.json", out, indent=2, sort_keys=True)
     return 0
 
 

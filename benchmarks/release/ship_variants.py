@@ -4,7 +4,7 @@ models: copy each trained ``model.onnx`` to
 its metadata), write ``variants/index.json`` and the cards in
 ``variants/README.md``.
 
-    python benchmarks/ship_variants.py   # after benchmarks/train_variants.sh
+    python benchmarks/release/ship_variants.py   # after benchmarks/train_variants.sh
 
 Variants: ``runs/models/variants/<scene>/<role>_<config>/`` (train_variants.sh)
 and, for water2d, two network sizes from the 4000-step sweep
@@ -16,7 +16,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from hybridmpm.bench.harness import write_file, write_json
+
+ROOT = Path(__file__).resolve().parents[2]
 DST = ROOT / "python" / "hybridmpm" / "models" / "variants"
 SIZES = {"water2d": ["L3x32_R15_rt2", "L2x16_R10_rt2"]}
 
@@ -48,7 +50,7 @@ def main() -> None:
         "(the shipped 2D models have 20000): they are the equal-budget comparison, not tuned to their best. "
         "The connectivity radius scales with the particle spacing (R = 0.0103 m at r_p = 0.5714, 0.0078 m at r_p = 1), "
         "so every variant sees about the same number of neighbours. Made by `benchmarks/train_variants.sh` and "
-        "`benchmarks/train_models.sh`; shipped by `benchmarks/ship_variants.py`. The validation MSE is over 20 model "
+        "`benchmarks/train_models.sh`; shipped by `benchmarks/release/ship_variants.py`. The validation MSE is over 20 model "
         "steps (r_t frames each), so it does not compare across r_t; their errors against full-resolution MPM are in "
         "docs/benchmarks.md.",
         "",
@@ -73,8 +75,8 @@ def main() -> None:
             f"| {scene} | {name} | {role} | {meta['r_p']:.4g} | {meta['r_t']} | {meta['latent']} × {meta['layers']} | {meta['radius']:.4g} | "
             f"{summ['parameters']} | {summ['steps']} | {summ['train_seconds']:.0f} | {summ['best_val_rollout_mse']:.3g} | `{cfg['data']}` |"
         )
-    (DST / "index.json").write_text(json.dumps(index, indent=2, sort_keys=True) + "\n")
-    (DST / "README.md").write_text("\n".join(lines) + "\n")
+    write_json(DST / "index.json", index, indent=2, sort_keys=True)
+    write_file(DST / "README.md", "\n".join(lines) + "\n")
     print(f"{sum(len(v) for v in index.values())} variants -> {DST}")
 
 

@@ -4,7 +4,7 @@
 ``python/hybridmpm/models/control/SCENE.md`` from the run's ``control.json``
 and ``log.jsonl`` and, when given, the benchmark results.
 
-    python benchmarks/ship_control.py --scene water2d --run runs/control-water2d \
+    python benchmarks/release/ship_control.py --scene water2d --run runs/control-water2d \
         --data-cmd "hybridmpm generate-control water2d --cases 800" --bench benchmarks/results/control.json
 """
 
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import write_file, write_json
 from hybridmpm.control.diffusion import SAMPLE_STEPS
 
-DEST = Path(__file__).resolve().parents[1] / "python" / "hybridmpm" / "models" / "control"
+DEST = Path(__file__).resolve().parents[2] / "python" / "hybridmpm" / "models" / "control"
 
 
 def main() -> None:
@@ -46,7 +47,7 @@ def main() -> None:
         shutil.copy2(f, dest / f.name)
     if a.sample_steps is not None:
         meta["sample_steps"] = int(a.sample_steps)
-        (dest / "control.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
+        write_json(dest / "control.json", meta, indent=1, sort_keys=True)
     steps = int(meta.get("sample_steps", SAMPLE_STEPS))
     size = sum(f.stat().st_size for f in dest.iterdir())
     train_cmd = a.train_cmd or f"hybridmpm train-control {a.scene} --steps {meta['steps']}"
@@ -108,7 +109,7 @@ def main() -> None:
                 )
     if a.note:
         lines += ["", a.note]
-    (DEST / f"{a.scene}.md").write_text("\n".join(lines) + "\n")
+    write_file(DEST / f"{a.scene}.md", "\n".join(lines) + "\n")
     print(f"shipped {a.scene}: {size / 1e6:.2f} MB -> {dest}")
 
 
