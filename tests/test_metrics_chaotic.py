@@ -1,0 +1,289 @@
+"""The scores of a chaotic flow (hybridmpm.metrics.chaotic, .transport): the
+Sinkhorn divergence, the kinetic energy's relative error, the short-horizon
+grid-mass error and the dam break's front.
+
+Each is checked against a truth of its own: the exact transport of a
+translated set (|d|², for every ε), of two point masses and of a two-point
+set onto one point (analytic), POT's exact linear program (ot.emd2, an
+independent solver) as ε → 0, the analytic kinetic energy of motion scaled in
+time, a brute-force NumPy splat (tests/test_metrics.py) averaged by hand,
+and Martin & Moyce's published table read here from the data file.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from importlib import resources
+
+import numpy as np
+import pytest
+from test_metrics import brute_error
+
+from hybridmpm import InvalidInputError
+from hybridmpm.bench import choose
+from hybridmpm.conventions import DT_FRAME, G
+from hybridmpm.metrics import (
+    KE_FLOOR,
+    ROLLOUT_METRICS,
+    SINKHORN_BLUR,
+    dam_break_front,
+    dam_break_geometry,
+    kinetic_energy_error,
+    rollout_metrics,
+    short_horizon_error,
+    sinkhorn_divergence,
+    sinkhorn_frames,
+    subsample,
+)
+from hybridmpm.scenes import scene_spec
+
+RNG = np.random.default_rng(7)
+BLOB = RNG.uniform(0.3, 0.5, (300, 2))
+
+
+# ----------------------------------------------------------------- Sinkhorn divergence
+def test_sinkhorn_of_a_set_with_itself_is_zero():
+    assert sinkhorn_divergence(BLOB, BLOB) == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("d", [(1e-3, 0.0), (0.01, -0.02), (0.1, 0.05), (0.3, 0.2)])
+def test_sinkhorn_of_a_translate_is_the_squared_shift(d):
+    # OT_eps(a, a + d) = OT_eps(a, a) + |d|² for every eps (the cross term integrates to 0 over any coupling)
+    s = sinkhorn_divergence(BLOB, BLOB + np.array(d))
+    assert s == pytest.approx(d[0] ** 2 + d[1] ** 2, rel=1e-3)
+
+
+def test_sinkhorn_grows_with_the_shift():
+    values = [sinkhorn_divergence(BLOB, BLOB + [d, 0.0]) for d in (0.0, 0.01, 0.03, 0.1)]
+    assert all(b > a for a, b in zip(values, values[1:])), values
+
+
+def test_sinkhorn_of_two_point_masses_is_their_squared_distance():
+    x, y = np.array([[0.1, 0.2]]), np.array([[0.4, 0.6]])
+    assert sinkhorn_divergence(x, y) == pytest.approx(0.25, rel=1e-9)  # 0.3² + 0.4², one coupling, KL = 0
+
+
+def test_sinkhorn_with_masses_matches_the_analytic_value():
+    # α = 3/4 δ(p) + 1/4 δ(q), β = δ(p): OT(α, β) = |p − q|²/4 (one coupling), OT(β, β) = 0 and, the two points
+    # being far apart on the blur's scale, OT(α, α) = ε·H(a) (the diagonal coupling, KL = entropy of a)
+    p, q = [0.2, 0.3], [0.7, 0.3]
+    a = np.array([0.75, 0.25])
+    blur = 1.0 / 64
+    expected = 0.25 * 0.25 - 0.5 * blur**2 * float(-(a * np.log(a)).sum())
+    assert sinkhorn_divergence(np.array([p, q]), np.array([p]), x_weights=[3.0, 1.0], blur=blur) == pytest.approx(expected, rel=1e-6)
+
+
+def test_sinkhorn_approaches_the_exact_w2_as_blur_shrinks():
+    ot = pytest.importorskip("ot")
+    x, y = RNG.uniform(0.2, 0.5, (30, 2)), RNG.uniform(0.3, 0.7, (20, 2))
+    w2 = ot.emd2(np.full(30, 1 / 30), np.full(20, 1 / 20), ot.dist(x, y))  # POT's exact linear program
+    gaps = [abs(sinkhorn_divergence(x, y, blur=b) - w2) / w2 for b in (1 / 16, 1 / 32, 1 / 128)]
+    assert gaps[-1] < 0.01 and gaps[0] > gaps[-1], gaps
+
+
+def test_sinkhorn_is_symmetric():
+    y = RNG.uniform(0.35, 0.6, (200, 2))
+    assert sinkhorn_divergence(BLOB, y) == pytest.approx(sinkhorn_divergence(y, BLOB), rel=1e-6)
+
+
+def test_sinkhorn_does_not_depend_on_the_particle_count_of_one_distribution():
+    y = RNG.uniform(0.35, 0.6, (200, 2))
+    twice = np.concatenate([BLOB, BLOB])  # every particle duplicated: the same distribution with 2N particles
+    assert sinkhorn_divergence(BLOB, twice) == pytest.approx(0.0, abs=1e-12)
+    assert sinkhorn_divergence(twice, y) == pytest.approx(sinkhorn_divergence(BLOB, y), rel=1e-6)
+    # every particle split into a 1/4 and a 3/4 part at the same place: masses carry the distribution
+    split = np.concatenate([BLOB, BLOB])
+    masses = np.concatenate([np.full(300, 0.25), np.full(300, 0.75)])
+    assert sinkhorn_divergence(split, y, x_weights=masses) == pytest.approx(sinkhorn_divergence(BLOB, y), rel=1e-6)
+
+
+def test_sinkhorn_subsample_is_deterministic_and_bounded():
+    a, b = subsample(5000, 1000), subsample(5000, 1000)
+    assert len(a) == 1000 and (a == b).all() and len(np.unique(a)) == 1000 and (np.diff(a) > 0).all()
+    assert (subsample(800, 1000) == np.arange(800)).all()
+    big = RNG.uniform(0.3, 0.5, (3000, 2))
+    assert sinkhorn_divergence(big, big + [0.05, 0.0]) == pytest.approx(0.0025, rel=1e-3)  # the same subsample on both
+
+
+def test_sinkhorn_frames_are_evenly_spaced_and_end_on_the_last():
+    f = np.arange(0, 401, 4)
+    picked = f[sinkhorn_frames(f, 8)]
+    assert picked[-1] == 400 and len(picked) == 8 and 0 not in picked
+    assert np.abs(picked - np.arange(50, 401, 50)).max() <= 2
+    assert len(sinkhorn_frames(np.array([0]), 8)) == 0
+
+
+def test_sinkhorn_bad_input_names_the_field():
+    with pytest.raises(InvalidInputError, match="y"):
+        sinkhorn_divergence(BLOB, np.zeros((3, 3)))
+    with pytest.raises(InvalidInputError, match="blur"):
+        sinkhorn_divergence(BLOB, BLOB, blur=0.0)
+    with pytest.raises(InvalidInputError, match="x_weights"):
+        sinkhorn_divergence(BLOB, BLOB, x_weights=np.ones(3))
+    with pytest.raises(InvalidInputError, match="x"):
+        sinkhorn_divergence(BLOB * np.nan, BLOB)
+
+
+_NO_TORCH = """
+import sys
+from importlib.abc import MetaPathFinder
+
+class NoTorch(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "torch":
+            raise ImportError("no torch")
+        return None
+
+if sys.argv[1] == "blocked":
+    sys.meta_path.insert(0, NoTorch())
+import numpy as np
+from hybridmpm.metrics import sinkhorn_divergence
+assert "ot" not in sys.modules  # POT loads with the first divergence, not with the package
+x = np.random.default_rng(0).uniform(0.3, 0.5, (50, 2))
+print(round(sinkhorn_divergence(x, x + [0.1, 0.0]), 6), "torch" in sys.modules)
+"""
+
+
+@pytest.mark.parametrize("torch", ["blocked", "installed"])
+def test_the_sinkhorn_divergence_runs_without_torch(torch):
+    # serving stays torch-free: POT's NumPy backend needs no torch, and an installed torch is not loaded
+    out = subprocess.run([sys.executable, "-c", _NO_TORCH, torch], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["0.01", "False"]
+
+
+# ----------------------------------------------------------------- kinetic energy
+def _linear_motion(n: int, frames: int, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    x0 = RNG.uniform(0.3, 0.6, (n, 2))
+    v = RNG.normal(0.0, 0.5, (n, 2))
+    t = np.arange(frames) * DT_FRAME
+    return x0[None] + scale * v[None] * t[:, None, None], t
+
+
+@pytest.mark.parametrize("k", [0.5, 0.9, 1.25, 2.0])
+def test_ke_error_of_motion_scaled_in_time_is_k_squared_minus_one(k):
+    ref, t = _linear_motion(200, 30)
+    pred = ref[0][None] + k * (ref - ref[0][None])  # x0 + v·(k t): the same motion k times faster
+    err, kp, kr = kinetic_energy_error(pred, ref, t)
+    assert err == pytest.approx(abs(k * k - 1.0), rel=1e-9)
+    assert kp == pytest.approx(k * k * kr, rel=1e-9)
+
+
+def test_ke_error_compares_particle_counts_with_masses_one_over_n():
+    ref, t = _linear_motion(150, 20)
+    twice = np.concatenate([ref, ref], axis=1)
+    assert kinetic_energy_error(twice, ref, t)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_ke_error_counts_a_reference_at_rest_against_the_floor():
+    # the reference moves for 10 frames then stops; the prediction keeps moving: relative to KE_FLOOR × the peak there
+    ref, t = _linear_motion(100, 21)
+    ref[11:] = ref[10]
+    pred = ref[0][None] + (ref[10] - ref[0])[None] * (t / t[10])[:, None, None]  # the same speed throughout
+    err, kp, kr = kinetic_energy_error(pred, ref, t)
+    assert (kr[10:] == 0).all() and kp == pytest.approx(np.full(20, kr[0]), rel=1e-9)
+    assert err == pytest.approx(10 / 20 * (1.0 / KE_FLOOR), rel=1e-9)  # 10 frames at 0, 10 frames at kp/(floor·peak)
+
+
+def test_ke_error_bad_input():
+    ref, t = _linear_motion(10, 5)
+    with pytest.raises(InvalidInputError, match="times"):
+        kinetic_energy_error(ref, ref, t[::-1])
+    with pytest.raises(InvalidInputError, match="times"):
+        kinetic_energy_error(ref, ref, np.array([0, 1, 2, 4, 5]) * DT_FRAME)
+    with pytest.raises(InvalidInputError, match="ref"):
+        kinetic_energy_error(ref, ref[:3], t)
+
+
+# ----------------------------------------------------------------- short horizon
+@pytest.fixture(scope="module")
+def drifting() -> tuple[np.ndarray, np.ndarray]:
+    """Two 81-frame rollouts of 120 particles drifting apart (pred and ref)."""
+    rng = np.random.default_rng(3)
+    x0 = rng.uniform(0.3, 0.6, (120, 2))
+    steps = rng.normal(0.0, 1e-3, (80, 120, 2))
+    ref = np.concatenate([x0[None], x0[None] + np.cumsum(steps, axis=0)]).astype(np.float32)
+    pred = (ref + np.linspace(0.0, 0.02, 81)[:, None, None] * rng.normal(size=(1, 120, 2))).astype(np.float32)
+    return pred, ref
+
+
+@pytest.mark.parametrize("stride", [1, 4])
+def test_short_horizon_error_is_the_mean_over_the_first_50_frames(drifting, stride):
+    pred, ref = drifting[0][::stride], drifting[1][::stride]
+    t = np.arange(len(pred)) * stride * DT_FRAME
+    frames = np.arange(len(pred)) * stride
+    brute = np.mean([brute_error(pred[i], ref[i], 64) for i in range(len(pred)) if 1 <= frames[i] <= 50])
+    m = rollout_metrics(pred, ref, t, 64)
+    assert m["short_error"] == pytest.approx(brute, rel=1e-4)
+    assert m["error_mean"] == pytest.approx(np.mean([brute_error(pred[i], ref[i], 64) for i in range(len(pred))]), rel=1e-4)
+    assert math.isnan(short_horizon_error(np.ones(3), np.array([0.0, 1.0, 2.0])))  # no frame in (0, 50 frames]
+
+
+def test_rollout_metrics_of_a_rollout_against_itself(drifting):
+    _, ref = drifting
+    t = np.arange(len(ref)) * DT_FRAME
+    m = rollout_metrics(ref, ref, t, 64)
+    assert set(ROLLOUT_METRICS) <= set(m)
+    assert m["error_mean"] == 0 and m["short_error"] == 0 and m["ke_error"] == 0
+    assert m["sinkhorn"] == pytest.approx(0.0, abs=1e-12) and math.isnan(m["front_rms"])
+    assert len(m["series"]["sinkhorn"]) == 8 and m["series"]["sinkhorn_times"][-1] == pytest.approx(t[-1])
+    shifted = rollout_metrics(ref + np.float32(0.01), ref, t, 64)
+    assert shifted["sinkhorn"] == pytest.approx(2e-4, rel=1e-3)  # |(0.01, 0.01)|² on every frame
+
+
+# ----------------------------------------------------------------- dam-break front
+def _experiment() -> tuple[np.ndarray, np.ndarray]:
+    text = resources.files("hybridmpm.data").joinpath("martin_moyce_1952.csv").read_text()
+    rows = [r for r in csv.reader(line for line in text.splitlines() if line and not line.startswith("#"))][1:]
+    front = [(float(t), float(v)) for k, t, v in rows if k == "front"]
+    return np.array([t for t, _ in front]), np.array([v for _, v in front])
+
+
+def _water_with_front(z: np.ndarray, geo: dict[str, float]) -> np.ndarray:
+    """[F, 50, 2] particles behind a leading particle whose volume ends at x_wall + a·z(t)."""
+    lead = geo["x_wall"] + geo["a"] * z - 0.5 * geo["spacing"]
+    pos = np.empty((len(z), 50, 2))
+    pos[:, :, 0] = geo["x_wall"] + np.linspace(0.1, 0.9, 50)[None] * (lead[:, None] - geo["x_wall"])
+    pos[:, -1, 0] = lead
+    pos[:, :, 1] = geo["y_floor"] + 0.01
+    return pos
+
+
+def test_dam_break_front_of_a_synthetic_surge():
+    geo = dam_break_geometry(scene_spec("dam_break2d", seed=0).info)
+    assert geo is not None and dam_break_geometry({"seed": 0}) is None
+    t_exp, z_exp = _experiment()
+    t = np.arange(141) * DT_FRAME
+    T = t * math.sqrt(2 * G / geo["a"])
+    # a surge 0.3 ahead of the experiment in T: the best shift takes it back, the RMS vanishes
+    ahead = dam_break_front(_water_with_front(np.interp(T + 0.3, t_exp, z_exp), geo), t, geo)
+    assert ahead["shift"] == pytest.approx(0.3, abs=0.011) and ahead["rms"] < 0.01
+    assert ahead["front"] == pytest.approx(np.interp(T + 0.3, t_exp, z_exp), abs=1e-9)
+    # a column that never moves (Z = 1): no shift helps, the RMS is the table's own, over 1.19 <= T <= 3.33
+    still = dam_break_front(_water_with_front(np.ones(len(t)), geo), t, geo)
+    sel = (t_exp >= 1.19) & (t_exp <= 3.33)
+    assert still["rms"] == pytest.approx(float(np.sqrt(np.mean((1.0 - z_exp[sel]) ** 2))), rel=1e-9)
+    short = dam_break_front(_water_with_front(np.ones(40), geo), t[:40], geo)
+    assert short["rms"] is None and "T = 3.33" in short["reason"]
+    m = rollout_metrics(_water_with_front(np.ones(len(t)), geo), _water_with_front(np.ones(len(t)), geo), t, 64, dam_break=geo)
+    assert m["front_rms"] == pytest.approx(still["rms"])
+
+
+# ----------------------------------------------------------------- tune --metric
+def test_tune_chooses_on_any_metric():
+    def row(key, ms, **scores):
+        base = {k: 0.5 for k in ROLLOUT_METRICS} | {"front_rms": float("nan")}
+        return {"key": key, "ms_mean": ms, "failures": 0, **base, **scores}
+
+    rows = [row("mpm_full", 4.0, error_mean=0.0, sinkhorn=0.0), row("fast", 1.0, error_mean=0.4, sinkhorn=0.002), row("faster", 0.5, sinkhorn=0.01)]
+    assert choose(rows, 0.45)["key"] == "fast"
+    assert choose(rows, 0.005, metric="sinkhorn")["key"] == "fast"
+    assert choose(rows, 0.02, metric="sinkhorn")["key"] == "faster"
+    with pytest.raises(InvalidInputError, match="metric: no configuration has a front_rms"):
+        choose(rows, 1.0, metric="front_rms")
+    with pytest.raises(InvalidInputError, match="metric"):
+        choose(rows, 1.0, metric="wasserstein")
+    assert SINKHORN_BLUR == pytest.approx(1 / 32)
