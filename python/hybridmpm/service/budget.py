@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.limits import human
+from hybridmpm.render.surface_field import MARGIN as SURFACE_MARGIN
 
 
 class BudgetFullError(Exception):
@@ -56,6 +57,30 @@ class MemoryBudget:
             yield n
         finally:
             self.give(n)
+
+
+#: What a session's mesh download (``GET .../trajectory?format=mesh``) takes per position value of the frames it
+#: meshes [bytes]: the stacked float32 trajectory (4), its validation's finiteness mask (1) and the zip of the
+#: frames' surfaces with its copy (under 1). Measured with tracemalloc for 300 frames of every registered scene
+#: (benchmarks/bench_mesh_memory.py, benchmarks/results/mesh_memory.json): 5.0-5.1 B per value at the peak
+#: wherever the positions outweigh one frame's surface.
+MESH_DOWNLOAD_BYTES_PER_VALUE = 6
+#: What meshing one frame's surface takes per node of its grid [bytes] (the density field, its smoothing and
+#: clipping copies, marching cubes' output; the grid: the scene's cells plus :data:`SURFACE_PAD_NODES` per axis,
+#: at most): 5-40 B measured in 3D, under 20 B in 2D.
+MESH_DOWNLOAD_BYTES_PER_NODE = 64
+#: Nodes a frame's surface grid has per axis beyond the scene's ``n_grid`` at most (its margin on both sides).
+SURFACE_PAD_NODES = 2 * SURFACE_MARGIN + 4
+
+
+def mesh_download_bytes(frames: int, particles: int, dim: int, n_grid: int) -> int:
+    """The memory a mesh download of ``frames`` frames of ``particles``
+    particles in ``dim`` dimensions on an ``n_grid`` grid reserves [bytes]:
+    :data:`MESH_DOWNLOAD_BYTES_PER_VALUE` per position value plus one
+    frame's surface grid, ``(n_grid + SURFACE_PAD_NODES)^dim`` nodes at
+    :data:`MESH_DOWNLOAD_BYTES_PER_NODE`."""
+    values = int(frames) * int(particles) * int(dim)
+    return MESH_DOWNLOAD_BYTES_PER_VALUE * values + MESH_DOWNLOAD_BYTES_PER_NODE * (int(n_grid) + SURFACE_PAD_NODES) ** int(dim)
 
 
 def tree_nbytes(tree: Any) -> int:
@@ -128,4 +153,14 @@ class Recording:
         self.held = 0
 
 
-__all__ = ["BudgetFullError", "MemoryBudget", "RecordedFrame", "Recording", "tree_nbytes"]
+__all__ = [
+    "MESH_DOWNLOAD_BYTES_PER_NODE",
+    "MESH_DOWNLOAD_BYTES_PER_VALUE",
+    "SURFACE_PAD_NODES",
+    "BudgetFullError",
+    "MemoryBudget",
+    "RecordedFrame",
+    "Recording",
+    "mesh_download_bytes",
+    "tree_nbytes",
+]

@@ -20,6 +20,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from hybridmpm.render import export_points, export_surfaces
+from hybridmpm.service.budget import mesh_download_bytes
 from hybridmpm.service.core import RECORD_STEPS
 from hybridmpm.service.deps import ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError
@@ -31,8 +32,6 @@ ZIP = "application/zip"
 FILE_COPIES = 3
 #: Bytes per position value of the PLY zip while it is made (the float64 copy, the velocities, the files, the zip).
 PLY_BYTES_PER_VALUE = 40
-#: Bytes per grid node while one frame's surface is meshed (the density field, its smoothing and clipping copies).
-MESH_BYTES_PER_NODE = 64
 
 router = APIRouter()
 
@@ -99,8 +98,11 @@ async def get_session_trajectory(
     values = len(held) * f.num_total * f.dim
     dt, n_grid = f.step_dt, f.n_grid
     ptype, masses, material = f.particle_type, f.masses, f.material
-    per_value = {"ply": PLY_BYTES_PER_VALUE, "mesh": PLY_BYTES_PER_VALUE}.get(format, 4 * FILE_COPIES)
-    with manager.budget.hold(values * per_value + (MESH_BYTES_PER_NODE * f.n_grid**f.dim if format == "mesh" else 0), "the trajectory's file"):
+    if format == "mesh":
+        reserve = mesh_download_bytes(len(held), f.num_total, f.dim, f.n_grid)  # measured: benchmarks/bench_mesh_memory.py
+    else:
+        reserve = values * (PLY_BYTES_PER_VALUE if format == "ply" else 4 * FILE_COPIES)
+    with manager.budget.hold(reserve, "the trajectory's file"):
 
         def make() -> Trajectory:
             centers = [h[4] for h in held if h[4] is not None]
