@@ -15,15 +15,22 @@ during the measurement.
 Cases: the 3D scenes (water3d seed 26: 4032 particles, sand3d seed 3: 4032,
 the largest of their first 30 seeds; the scenes cap at 4096) in the fluid and
 the particles looks, the simulation paused (rendering alone) and playing (the
-server simulating on the same cores), at the resolution software GL starts
-with (3/4 of a CSS pixel), at full resolution and (water) at half, the 2D
-dam break, the 3D dam break (23,520 particles; cases 10-15) and the page's
-default 3D scene, paddle3d (the same water and a paddle; cases 16-19). The
-page's target is 50 frames/s. Playing, it also reports the simulation frames
-the session advanced per second while the page watched (the session's
-``frame`` from ``GET /v1/sessions/{id}`` before and after).
+server simulating on the same cores), at 3/4 of a CSS pixel, at full
+resolution and (water) at half, the 2D dam break, the 3D dam break (23,520
+particles; cases 10-15) and the page's default 3D scene, paddle3d (the same
+water and a paddle; cases 16-19). Cases 0-19 fix a quality level by its
+resolution (``?scale=``: the highest level drawn at it, every particle
+splatted, ``static/quality.js``); cases 20-21 let the page choose
+(``?quality=auto``: it steps down while it draws under 24 frames/s), and are
+measured once no level has changed for 3 s (at most 60 s); cases 22-28 fix
+each of the seven levels in turn (``?quality=N``), playing, and 29-35 paused.
+With ``--advance N`` a paused case is measured N frames in (stepped over HTTP
+first: the water spread over the floor, the costly case for the splats). The
+old target was 50 frames/s; the page keeps 24. Playing, it also reports the
+simulation frames the session advanced per second while the page watched
+(the session's ``frame`` from ``GET /v1/sessions/{id}`` before and after).
 
-    python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--out benchmarks/results/page]
+    python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--cases 20,21] [--advance 300] [--no-sync] [--out benchmarks/results/page]
 """
 
 from __future__ import annotations
@@ -44,7 +51,8 @@ from playwright.sync_api import sync_playwright
 
 from hybridmpm.service.testing import LiveServer
 
-TARGET_FPS = 50.0
+TARGET_FPS = 24.0  # static/quality.js TARGET_FPS
+SETTLE_S, SETTLE_MAX_S = 3.0, 60.0  # an auto case is measured once its quality has not changed for SETTLE_S
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -120,28 +128,55 @@ CASES = [
     ("paddle3d", 0, "fluid", True, 0.75),
     ("paddle3d", 0, "particles", False, 0.75),
     ("paddle3d", 0, "particles", True, 0.75),
+    # the quality the page keeps: auto, then each level fixed (static/quality.js LEVELS, 1 the cheapest)
+    ("paddle3d", 0, "fluid", True, "auto"),
+    ("paddle3d", 0, "fluid", False, "auto"),
+    *[("paddle3d", 0, "fluid", True, str(q)) for q in range(1, 8)],
+    *[("paddle3d", 0, "fluid", False, str(q)) for q in range(1, 8)],
 ]
 
 
-def run_case(browser, url: str, scene: str, seed: int, look: str, playing: bool, scale: float, seconds: float, dpr: float, sync: bool) -> dict:
+def settle(page) -> float:
+    """Wait until the page's quality has not changed for SETTLE_S (at most SETTLE_MAX_S); returns the seconds waited."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < SETTLE_MAX_S:
+        n = page.evaluate("__hmpm.quality.changes.length")
+        time.sleep(SETTLE_S)
+        if page.evaluate("__hmpm.quality.changes.length") == n:
+            break
+    return time.monotonic() - t0
+
+
+def run_case(
+    browser, url: str, scene: str, seed: int, look: str, playing: bool, preset: float | str, seconds: float, dpr: float, sync: bool, advance: int = 0
+) -> dict:
+    """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…7``)."""
     page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    query = f"/?scene={scene}&seed={seed}&solver=mpm&look={look}&scale={scale:g}&bench=1" + ("" if playing else "&autoplay=0") + ("&sync=1" if sync else "")
+    fix = f"quality={preset}" if isinstance(preset, str) else f"scale={preset:g}"
+    query = f"/?scene={scene}&seed={seed}&solver=mpm&look={look}&{fix}&bench=1" + ("" if playing else "&autoplay=0") + ("&sync=1" if sync else "")
     page.goto(url + query)
     page.wait_for_function("window.__hmpm.framesRendered >= 10", timeout=60_000)
+    if advance and not playing:
+        sid = page.evaluate("window.__hmpm.session.id")
+        for left in range(advance, 0, -100):
+            httpx.post(f"{url}/v1/sessions/{sid}/step", json={"frames": min(100, left)}, timeout=300).raise_for_status()
+        page.wait_for_function(f"window.__hmpm.lastFrame >= {advance}", timeout=60_000)
     time.sleep(1.0)  # warm up
+    settled_s = settle(page) if preset == "auto" else 0.0
     pids = browser_pids()
     sid = page.evaluate("window.__hmpm.session.id")
     frame0, t0 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
-    start = page.evaluate("[window.__hmpm.framesRendered, performance.now()]")
+    start = page.evaluate("[window.__hmpm.framesRendered, performance.now(), window.__hmpm.view.surfacesDrawn, window.__hmpm.quality.changes.length]")
     cpu0, (busy0, all0), load0 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
     time.sleep(seconds)
-    end = page.evaluate("[window.__hmpm.framesRendered, performance.now()]")
+    end = page.evaluate("[window.__hmpm.framesRendered, performance.now(), window.__hmpm.view.surfacesDrawn, window.__hmpm.quality.changes.length]")
     frame1, t1 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
     cpu1, (busy1, all1), load1 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
     hook = page.evaluate(
-        "({drawMs: __hmpm.drawMs, look: __hmpm.look, renderer: __hmpm.renderer, n: __hmpm.session.num_particles, received: __hmpm.framesReceived})"
+        "({drawMs: __hmpm.drawMs, look: __hmpm.look, renderer: __hmpm.renderer, n: __hmpm.session.num_particles, received: __hmpm.framesReceived,"
+        " quality: __hmpm.quality, frame: __hmpm.lastFrame})"
     )
     size = page.evaluate("[document.getElementById('sim').width, document.getElementById('sim').height]")
     page.close()
@@ -162,6 +197,13 @@ def run_case(browser, url: str, scene: str, seed: int, look: str, playing: bool,
         "renderer": hook["renderer"],
         "canvas_px": size,
         "frames_received": hook["received"],
+        "frame": hook["frame"],
+        "quality_level": hook["quality"]["level"] + 1,
+        "quality_label": hook["quality"]["settings"]["label"],
+        "quality_changes": [(c["from"] + 1, c["to"] + 1, c["why"], round(c["fps"], 1)) for c in hook["quality"]["changes"]],
+        "quality_changes_measured": end[3] - start[3],
+        "settle_s": settled_s,
+        "surfaces_per_frame": (end[2] - start[2]) / drawn,
         "console_errors": errors,
     }
 
@@ -179,18 +221,25 @@ def main() -> None:
     ap.add_argument("--dpr", type=float, default=1.0, help="device pixel ratio of the page (the canvas is 640 CSS px square)")
     ap.add_argument("--cases", default=None, help="comma-separated indices into CASES (default: all)")
     ap.add_argument("--out", default=None, help="write the results here (.json and .md)")
+    ap.add_argument("--advance", type=int, default=0, help="paused cases: step the session this many frames first")
+    ap.add_argument("--no-sync", action="store_true", help="skip the second run that waits for the GPU (draw + GPU column)")
     args = ap.parse_args()
     chromium = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
     cases = CASES if args.cases is None else [CASES[int(i)] for i in args.cases.split(",")]
     rows = []
     with LiveServer(max_sessions=16, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
-        for scene, seed, look, playing, scale in cases:
-            r = run_case(browser, srv.url, scene, seed, look, playing, scale, args.seconds, args.dpr, sync=False)
-            r["draw_ms_gpu_median"] = run_case(browser, srv.url, scene, seed, look, playing, scale, min(args.seconds, 3.0), args.dpr, sync=True)[
-                "draw_ms_median"
-            ]
-            r.update(scene=scene, seed=seed, playing=playing, scale=scale)
+        for scene, seed, look, playing, preset in cases:
+            r = run_case(browser, srv.url, scene, seed, look, playing, preset, args.seconds, args.dpr, sync=False, advance=args.advance)
+            skip = args.no_sync or preset == "auto"  # an auto case would settle again, elsewhere
+            r["draw_ms_gpu_median"] = (
+                float("nan")
+                if skip
+                else run_case(browser, srv.url, scene, seed, look, playing, preset, min(args.seconds, 3.0), args.dpr, sync=True, advance=args.advance)[
+                    "draw_ms_median"
+                ]
+            )
+            r.update(scene=scene, seed=seed, playing=playing, preset=preset)
             rows.append(r)
             print(json.dumps(r))
         version = browser.version
@@ -212,24 +261,28 @@ def main() -> None:
         lines = [
             "# The page's frame rate in headless Chromium, software GL",
             "",
-            f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}` — {version}, "
+            f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}"
+            f"{f' --advance {args.advance}' if args.advance else ''}{' --no-sync' if args.no_sync else ''}` — {version}, "
             "SwiftShader (software GL),",
             f"{os.cpu_count()} cores shared by the server, the browser and its GPU process; canvas 640 CSS px × dpr {args.dpr:g}.",
             "frames/s: frames the page drew per second drawing on every animation frame (`?bench=1`);",
             "draw: CPU time of one draw call sequence; draw + GPU: the same waiting for the GPU (`?sync=1`: a 1-pixel `readPixels`);",
             "browser CPU / frame: CPU time of all the browser's processes (SwiftShader draws in the GPU process) per frame drawn;",
             "load: the machine's 1-minute load average; others: the share of the machine's CPU time taken by processes other than",
-            "the browser meanwhile (the server included).",
+            "the browser meanwhile (the server included). quality: the level drawn (static/quality.js; `auto`: the level the page",
+            "settled on); surfaces: the share of the frames drawn whose water went through the fluid passes.",
             "",
-            "| scene | particles | look | simulation | resolution | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
-            "| browser CPU / frame [ms] | load | others | simulation frames/s |",
-            "|---|---:|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| scene | particles | look | simulation | preset | quality | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
+            "| browser CPU / frame [ms] | load | others | simulation frames/s | frame | surfaces |",
+            "|---|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in rows:
+            preset = f"quality={r['preset']}" if isinstance(r["preset"], str) else f"scale={r['preset']:g}"
             lines.append(
-                f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {r['scale']:g} | "
-                f"{r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} | {r['draw_ms_gpu_median']:.1f} "
-                f"| {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % | {r['sim_fps']:.0f} |"
+                f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {preset} | "
+                f"{r['quality_level']}/7 | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
+                f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
+                f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
             )
         out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 

@@ -3,6 +3,7 @@
 
 import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
 import { encodeGif } from "./gif.js";
+import { LEVELS, QualityController, SOFTWARE_START, levelForScale } from "./quality.js";
 
 const HEADER_BYTES = 32;
 const MAX_POINTS = 512;
@@ -240,13 +241,18 @@ function onFrame(buf) {
 }
 
 // ---------------------------------------------------------------- drawing
+// every animation frame: draw what changed, and tell the quality controller whether it drew
 function render(now) {
   requestAnimationFrame(render);
+  const drew = drawFrame(now);
+  if (quality) quality.frame(now, drew);
+}
+function drawFrame(now) {
   if (bench && latest) {
     dirty = true;
     if (is3D()) renderer.camera.yaw += 0.01;
   }
-  if (!dirty || !latest || !session) return;
+  if (!dirty || !latest || !session) return false;
   dirty = false;
   const t0 = performance.now();
   if (fresh) { renderer.setFrame(latest); fresh = false; }
@@ -273,7 +279,9 @@ function render(now) {
     $("r-fps").textContent = `${hook.fps.toFixed(0)} frames/s`;
     const share = recentSolvers.reduce((a, b) => a + b, 0) / Math.max(1, recentSolvers.length);
     $("r-share").textContent = `${(100 * share).toFixed(0)} %`;
+    showQuality();
   }
+  return true;
 }
 
 function tool() { return document.querySelector("input[name=tool]:checked").value; }
@@ -605,6 +613,7 @@ async function makeGif() {
   const frames = history.slice(-n);
   if (frames.length < 2) { setStatus("gif frames: fewer than 2 frames received yet; play the simulation first"); return; }
   $("gif").disabled = true;
+  if (quality) quality.hold(true); // its long draws say nothing of the page's frame rate
   try {
     const tmp = document.createElement("canvas");
     tmp.width = tmp.height = GIF_SIZE;
@@ -634,7 +643,7 @@ async function makeGif() {
   } catch (e) {
     setStatus(`GIF failed: ${e.message}`);
     hook.errors.push(String(e));
-  } finally { $("gif").disabled = false; }
+  } finally { $("gif").disabled = false; if (quality) quality.hold(false); }
 }
 
 // ---------------------------------------------------------------- controls
@@ -651,12 +660,38 @@ setLook(renderer.fluidAvailable ? "fluid" : "particles");
 $("r-view").textContent = renderer.kind === "webgl2"
   ? `WebGL2${renderer.software ? ", software GL" : ""}${renderer.fluidAvailable ? "" : " (no float targets: particles)"}` : "Canvas2D (no WebGL2)";
 $("r-view").title = renderer.gpu || "";
+// The quality (quality.js): auto, or a level the user fixes. `?quality=auto|1…` presets it; `?scale=1|0.75|0.5` fixes
+// the highest level drawn at that resolution.
+let quality = null;
+function showQuality() {
+  if (!quality) return;
+  const l = LEVELS[quality.level];
+  $("r-quality").textContent = `${quality.describe()} · ${l.label}`;
+  $("r-quality").title = `${quality.fps.toFixed(1)} frames/s drawable (last measurement); ${quality.changes.length} changes`;
+}
 if (renderer.kind === "webgl2") {
-  const want = Number(params.get("scale"));
-  if ([0.5, 0.75, 1].includes(want)) renderer.scale = want;
-  $("scale").value = String(renderer.scale);
-  $("scale").addEventListener("change", () => { renderer.scale = Number($("scale").value); dirty = true; });
-} else $("scale-label").hidden = true;
+  const sel = $("quality");
+  for (let i = LEVELS.length - 1; i >= 0; i--) {
+    const o = document.createElement("option");
+    o.value = String(i + 1); o.textContent = `${i + 1}: ${LEVELS[i].label}`;
+    sel.appendChild(o);
+  }
+  const q = params.get("quality"), scale = Number(params.get("scale"));
+  const asked = q && /^[0-9]+$/.test(q) && Number(q) >= 1 && Number(q) <= LEVELS.length ? Number(q) - 1 : null;
+  const fixed = asked !== null ? asked : [0.5, 0.75, 1].includes(scale) ? levelForScale(scale) : null;
+  const start = fixed !== null ? fixed : renderer.software ? SOFTWARE_START : LEVELS.length - 1;
+  quality = new QualityController((l) => {
+    renderer.scale = l.scale; renderer.lod = l.lod; renderer.fluidFactor = l.fluid; renderer.blurTaps = l.taps;
+    dirty = true; showQuality();
+  }, start, fixed === null);
+  sel.value = fixed === null ? "auto" : String(fixed + 1);
+  sel.addEventListener("change", () => {
+    if (sel.value === "auto") quality.setAuto(true); else quality.fix(Number(sel.value) - 1);
+    showQuality();
+  });
+  document.addEventListener("visibilitychange", () => quality.hold(document.hidden)); // no frames while hidden
+} else $("quality-label").hidden = true;
+Object.defineProperty(hook, "quality", { enumerable: true, get: () => (quality ? quality.state() : null) });
 
 $("apply").addEventListener("click", applySketch);
 $("clear").addEventListener("click", () => { stroke = []; setApplied(null); });

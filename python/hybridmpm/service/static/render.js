@@ -4,6 +4,7 @@
 // shading from the normal reconstructed from it; 2D: a density field splatted and thresholded), sand as
 // grains. Canvas2DRenderer is the fallback where WebGL2 (or a float render target) is missing.
 
+import { Lattice, PER_CELL, cellSplats, surfaceIndices } from "./cells.js";
 import { Camera, dot, invert, transform4 } from "./mat.js";
 
 const WATER = 5, SAND = 6, WALL = 3;
@@ -18,11 +19,15 @@ const rgb = (hex) => [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 25
 // ------------------------------------------------------------------ shaders
 const SPRITE_VS = `#version 300 es
 layout(location = 0) in vec3 a_pos;
-layout(location = 1) in vec2 a_info;          // GNS type, particle index
+layout(location = 1) in vec2 a_info;          // GNS type, particle index (a cell's splat: its particle count)
 uniform mat4 u_view, u_proj;
 uniform float u_pointScale, u_radius;
+uniform float u_lod;                           // > 0: splats of cells of this many particles at rest
 uniform vec3 u_mask;                           // draw water, sand, boundary
+uniform vec3 u_boxLo, u_boxHi;                 // the box the water rests in (CLIP, below)
+uniform float u_clip;
 out float v_type; out float v_seed; out vec3 v_viewPos; out float v_radius;
+flat out float v_clip;                         // the sphere pokes through a wall face: its fragments are clipped
 float hash(float x) { return fract(sin(x * 12.9898) * 43758.5453); }
 void main() {
   float t = a_info.x;
@@ -30,8 +35,10 @@ void main() {
   vec4 vp = u_view * vec4(a_pos, 1.0);
   gl_Position = u_proj * vp;
   float r = u_radius * (t == 6.0 ? 0.78 + 0.4 * hash(a_info.y) : 1.0);
+  if (u_lod > 0.0) r *= clamp(pow(a_info.y / u_lod, 1.0 / 3.0), 0.5, 1.0); // a cell's splat: a_info.y its particles
   gl_PointSize = max(1.0, 2.0 * r * u_pointScale / gl_Position.w);
   if (on < 0.5) gl_Position = vec4(2.0, 2.0, 2.0, 1.0);
+  v_clip = u_clip > 0.5 && (any(lessThan(a_pos - r, u_boxLo)) || any(greaterThan(a_pos + r, u_boxHi))) ? 1.0 : 0.0;
   v_type = t; v_seed = a_info.y; v_viewPos = vp.xyz; v_radius = r;
 }`;
 
@@ -62,12 +69,12 @@ void main() {
 const CLIP = `
 uniform mat4 u_viewInv;
 uniform vec3 u_boxLo, u_boxHi;
-uniform float u_clip;
+flat in float v_clip;
 bool chord(vec2 c, float h, out float s0, out float s1) {
   s0 = -h; s1 = h;
-  if (u_clip < 0.5) return true;
+  if (v_clip < 0.5) return true;                // the whole sphere is inside the box (decided per splat)
   vec3 A = (u_viewInv * vec4(v_viewPos + vec3(c.x, -c.y, 0.0) * v_radius, 1.0)).xyz;
-  vec3 F = (u_viewInv * vec4(0.0, 0.0, 1.0, 0.0)).xyz;
+  vec3 F = u_viewInv[2].xyz;
   for (int k = 0; k < 3; k++) {
     if (abs(F[k]) < 1e-6) {
       if (A[k] < u_boxLo[k] || A[k] > u_boxHi[k]) return false;
@@ -144,18 +151,20 @@ const float FAR = 1000.0;                       // no water (the one-pass splat 
 uniform sampler2D u_tex;
 uniform vec2 u_dir;
 uniform float u_step, u_falloff;
+uniform int u_taps;                             // taps each side: fewer, farther apart, over the same span
 out vec4 o;
 void main() {
   ivec2 size = textureSize(u_tex, 0);
   ivec2 p = ivec2(gl_FragCoord.xy);
   float d = texelFetch(u_tex, p, 0).r;
   if (d <= 0.0 || d > FAR) { o = vec4(0.0); return; }
-  float sum = 0.0, wsum = 0.0;
-  for (int i = -6; i <= 6; i++) {
-    ivec2 q = clamp(p + ivec2(u_dir * float(i) * u_step), ivec2(0), size - 1);
+  float sum = 0.0, wsum = 0.0, k = 6.0 / float(u_taps);
+  for (int i = -u_taps; i <= u_taps; i++) {
+    float x = float(i) * k;                     // in the 6-tap kernel's units (Gaussian, sigma 3)
+    ivec2 q = clamp(p + ivec2(u_dir * x * u_step), ivec2(0), size - 1);
     float s = texelFetch(u_tex, q, 0).r;
     if (s <= 0.0 || s > FAR) continue;
-    float ws = exp(-float(i * i) / 18.0);
+    float ws = exp(-x * x / 18.0);
     float dz = (s - d) * u_falloff;
     float w = ws * exp(-dz * dz);
     sum += s * w; wsum += w;
@@ -362,6 +371,11 @@ export class GLRenderer {
     this.indexed = gl.getExtension("OES_draw_buffers_indexed");
     this.onePass = !!(floatBlend && this.indexed);
     this.look = "fluid"; this.showParticles = true; this.fluidScale = 0.5;
+    // the quality the page runs at (quality.js sets them): the fluid passes' resolution as a share of the scene's
+    // own (fluidScale), the depth blur's taps each side (0: no blur)
+    this.fluidFactor = 1; this.blurTaps = 6; this.lod = 0;
+    this.splats = null;
+    this.surfacesDrawn = 0; // frames whose 3D water was drawn as a surface (the fluid passes to the end)
     this.session = null; this.frame = null; this.camera = new Camera(2);
     const prog = (vs, fs) => {
       const p = gl.createProgram();
@@ -405,6 +419,7 @@ export class GLRenderer {
     const gl = this.gl;
     this.session = s; this.frame = null;
     this.camera = new Camera(s.dim);
+    if (this.splats) { gl.deleteVertexArray(this.splats.vao); gl.deleteBuffer(this.splats.posBuf); gl.deleteBuffer(this.splats.infoBuf); this.splats = null; }
     const info = new Float32Array(2 * s.num_particles);
     s.particle_type.forEach((t, i) => { info[2 * i] = t; info[2 * i + 1] = i; });
     gl.bindVertexArray(this.pvao);
@@ -426,8 +441,7 @@ export class GLRenderer {
     if (this.cull) {
       this.idxBuf = this.idxBuf || gl.createBuffer();
       this.indices = new Uint32Array(s.num_particles);
-      const G = Math.ceil(2 * (s.n_grid || 64)) + 3; // cells of the lattice spacing, a ring of empty ones around
-      this.occ = new Uint8Array(G * G * G); this.occG = G; this.cells = new Int32Array(s.num_particles);
+      this.cullCells = new Lattice(s.n_grid || 64, 1, s.num_particles);
       gl.bindVertexArray(this.pvao);
       gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.idxBuf);
       gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, 4 * s.num_particles, gl.DYNAMIC_DRAW);
@@ -444,30 +458,51 @@ export class GLRenderer {
     if (this.cull) this.surface(f);
   }
 
-  // The particles on the surface of the water (a face neighbour's cell of the lattice spacing is empty) and every
-  // other particle: their indices, handed to the GPU; the interior's cells are all full, its particles hidden.
+  // The particles on the surface of the water and every other particle (cells.js): their indices, handed to the GPU.
   surface(f) {
-    const { n, pos } = f, types = this.session.particle_type, G = this.occG, occ = this.occ, cells = this.cells;
-    const inv = 2 * (this.session.n_grid || 64), G2 = G * G;
-    occ.fill(0);
-    for (let i = 0; i < n; i++) {
-      const cx = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i] * inv) + 1));
-      const cy = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i + 1] * inv) + 1));
-      const cz = Math.min(G - 2, Math.max(1, Math.floor(pos[3 * i + 2] * inv) + 1));
-      cells[i] = (cx * G + cy) * G + cz;
-      if (types[i] === WATER) occ[cells[i]] = 1;
-    }
-    let m = 0;
-    for (let i = 0; i < n; i++) {
-      const k = cells[i];
-      if (types[i] !== WATER || !(occ[k - 1] && occ[k + 1] && occ[k - G] && occ[k + G] && occ[k - G2] && occ[k + G2])) this.indices[m++] = i;
-    }
-    this.drawn = m;
+    const m = (this.drawn = surfaceIndices(f.pos, f.n, this.session.particle_type, this.cullCells, this.indices));
     const gl = this.gl;
     gl.bindVertexArray(this.pvao);
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.idxBuf);
     gl.bufferSubData(gl.ELEMENT_ARRAY_BUFFER, 0, this.indices, 0, m);
     gl.bindVertexArray(null);
+  }
+
+  // The water as one splat per cell of `lod` grid cells (cells.js), for the frame shown; made once per frame and level.
+  coarseSplats() {
+    const s = this.session, f = this.frame, c = this.lod;
+    if (this.splats && this.splats.frame === f && this.splats.c === c) return this.splats;
+    const gl = this.gl;
+    if (!this.splats || this.splats.c !== c) {
+      const lat = new Lattice(s.n_grid || 64, c, s.num_particles, true);
+      this.splats = { c, lat, pos: new Float32Array(3 * s.num_fluid), info: new Float32Array(2 * s.num_fluid), vao: this.splats ? this.splats.vao : gl.createVertexArray(),
+        posBuf: this.splats ? this.splats.posBuf : gl.createBuffer(), infoBuf: this.splats ? this.splats.infoBuf : gl.createBuffer() };
+      gl.bindVertexArray(this.splats.vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.splats.posBuf); gl.bufferData(gl.ARRAY_BUFFER, this.splats.pos.byteLength, gl.DYNAMIC_DRAW);
+      gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.splats.infoBuf); gl.bufferData(gl.ARRAY_BUFFER, this.splats.info.byteLength, gl.DYNAMIC_DRAW);
+      gl.enableVertexAttribArray(1); gl.vertexAttribPointer(1, 2, gl.FLOAT, false, 0, 0);
+      gl.bindVertexArray(null);
+    }
+    const S = this.splats;
+    S.frame = f;
+    S.count = cellSplats(f.pos, f.n, s.particle_type, S.lat, S.pos, S.info);
+    gl.bindBuffer(gl.ARRAY_BUFFER, S.posBuf); gl.bufferSubData(gl.ARRAY_BUFFER, 0, S.pos, 0, 3 * S.count);
+    gl.bindBuffer(gl.ARRAY_BUFFER, S.infoBuf); gl.bufferSubData(gl.ARRAY_BUFFER, 0, S.info, 0, 2 * S.count);
+    return S;
+  }
+
+  // the water's splats of the fluid look, with the program `u` in use: every (visible) particle, or one per cell
+  // (lod > 0: its radius `lod` grid cells' worth, shrunk with the cube root of how full the cell is)
+  waterSplats(u, r) {
+    const gl = this.gl, coarse = this.lod > 0 && this.session.dim === 3;
+    gl.uniform1f(u.u_radius, this.splat * r * (coarse ? 2 * this.lod : 1));
+    gl.uniform1f(u.u_lod, coarse ? PER_CELL * this.lod ** 3 : 0);
+    if (!coarse) { gl.bindVertexArray(this.pvao); this.points(); return; }
+    const S = this.coarseSplats();
+    gl.bindVertexArray(S.vao);
+    gl.drawArrays(gl.POINTS, 0, S.count);
+    gl.bindVertexArray(this.pvao);
   }
 
   // draw the particles (bound: pvao): the surface's when culled, else all
@@ -490,7 +525,7 @@ export class GLRenderer {
   // float render targets of the fluid passes at `fluidScale` of the output size
   ensureTargets(w, h) {
     const gl = this.gl;
-    const fw = Math.max(1, Math.round(w * this.fluidScale)), fh = Math.max(1, Math.round(h * this.fluidScale));
+    const f = Math.min(1, this.fluidScale * this.fluidFactor), fw = Math.max(1, Math.round(w * f)), fh = Math.max(1, Math.round(h * f));
     if (this.targets && this.targets.w === fw && this.targets.h === fh) return this.targets;
     if (this.targets) for (const t of this.targets.all) t();
     const all = [];
@@ -550,7 +585,7 @@ export class GLRenderer {
       const solver = f.solver ? 1 : 0;
       if (!fluid) this.sprites(M, h, [1, 1, 1], solver, 0.62);
       else {
-        this.sprites(M, h, [0, 1, 0], solver, 0.55);
+        if (this.hasSand) this.sprites(M, h, [0, 1, 0], solver, 0.55);
         if (this.hasWater) this.water(M, w, h, dim, solver, out);
       }
     }
@@ -591,6 +626,7 @@ export class GLRenderer {
     gl.uniformMatrix4fv(u.u_view, false, M.view);
     gl.uniformMatrix4fv(u.u_proj, false, M.proj);
     gl.uniform1f(u.u_pointScale, (h * M.proj[5]) / 2);
+    gl.uniform1f(u.u_lod, 0);
     if (u.u_clip) { // the water's splats: clipped to the box the water rests in (3D)
       const f = this.face(), on = this.session.dim === 3;
       gl.uniform1f(u.u_clip, on ? 1 : 0);
@@ -646,24 +682,22 @@ export class GLRenderer {
       gl.colorMask(true, true, true, true);
       if (fw) { // one pass: MIN keeps the nearest depth, FUNC_ADD sums the thickness; the occluders' depth still tests
         const u = this.uniforms("splat", M, T.h);
-        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_depthFrac, 1.0);
+        gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_depthFrac, 1.0);
         gl.depthMask(false); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE);
         this.indexed.blendEquationiOES(0, gl.MIN); this.indexed.blendEquationiOES(1, gl.FUNC_ADD);
-        gl.bindVertexArray(this.pvao);
-        this.points();
+        this.waterSplats(u, r);
         gl.blendEquation(gl.FUNC_ADD); gl.disable(gl.BLEND); gl.depthMask(true);
       } else {
         let u = this.uniforms("depth", M, T.h);
-        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]);
-        gl.bindVertexArray(this.pvao);
-        this.points();
+        gl.uniform3fv(u.u_mask, [1, 0, 0]);
+        this.waterSplats(u, r);
         // 2. thickness, added up
         gl.bindFramebuffer(gl.FRAMEBUFFER, T.fThick);
         gl.clear(gl.COLOR_BUFFER_BIT);
         gl.disable(gl.DEPTH_TEST); gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE);
         u = this.uniforms("thick", M, T.h);
-        gl.uniform1f(u.u_radius, this.splat * r); gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_kernel, 0);
-        this.points();
+        gl.uniform3fv(u.u_mask, [1, 0, 0]); gl.uniform1f(u.u_kernel, 0);
+        this.waterSplats(u, r);
         gl.disable(gl.BLEND);
       }
       gl.disable(gl.DEPTH_TEST);
@@ -671,10 +705,12 @@ export class GLRenderer {
       const b = this.prog.blur;
       gl.useProgram(b.p); gl.bindVertexArray(this.emptyVao);
       const pxPerM = (T.h * M.proj[5]) / 2 / this.camera.dist;
-      gl.uniform1f(b.u.u_step, Math.max(1, (pxPerM * r) / 1.6));
-      gl.uniform1f(b.u.u_falloff, 1 / (4 * r));
+      const rb = this.lod > 0 ? 2 * this.lod * r : r; // the splats' spacing: the bumps the blur smooths
+      gl.uniform1f(b.u.u_step, Math.max(1, (pxPerM * rb) / 1.6));
+      gl.uniform1f(b.u.u_falloff, 1 / (4 * rb));
+      gl.uniform1i(b.u.u_taps, Math.max(1, this.blurTaps));
       gl.activeTexture(gl.TEXTURE0); gl.uniform1i(b.u.u_tex, 0);
-      for (const [src, dst, dir] of [[T.depthA, T.fDepthB, [1, 0]], [T.depthB, T.fDepthA, [0, 1]]]) {
+      for (const [src, dst, dir] of this.blurTaps > 0 ? [[T.depthA, T.fDepthB, [1, 0]], [T.depthB, T.fDepthA, [0, 1]]] : []) {
         gl.bindFramebuffer(gl.FRAMEBUFFER, dst);
         gl.bindTexture(gl.TEXTURE_2D, src);
         gl.uniform2fv(b.u.u_dir, dir);
@@ -704,6 +740,7 @@ export class GLRenderer {
       gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
       gl.drawArrays(gl.TRIANGLES, 0, 3);
       gl.disable(gl.BLEND); gl.disable(gl.SCISSOR_TEST);
+      this.surfacesDrawn++;
       return;
     }
     // 2D: a density field of the water, thresholded and shaded (scissored to where the water is)
