@@ -20,4 +20,4 @@ for s in "${scenes[@]}"; do
   fi
   hybridmpm bench "$s" --seeds $seeds --out "benchmarks/results/bench/$s"
 done
-python benchmarks/bench_summary.py benchmarks/results/bench > benchmarks/results/bench/summary.md
+python benchmarks/bench_summary.py benchmarks/results/bench --out benchmarks/results/bench/summary.md

@@ -34,7 +34,6 @@ beats the constant force on).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -42,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import read_results, script_argv, write_results
 from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.prior import free_motion_of, prior_path
 from hybridmpm.train.control.cases import make_case
@@ -124,16 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"--methods: unknown {', '.join(sorted(unknown))}")
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done = json.loads(out.with_suffix(".json").read_text())["cases"] if out.with_suffix(".json").is_file() else []
+    done = read_results(out.with_suffix(".json"))["cases"] if out.with_suffix(".json").is_file() else []
     have = {(c["scene"], c["seed"]) for c in done}
     todo = [(s, args.first_seed + i, "arrow" if i % 2 == 0 else "oval") for s in args.scenes.split(",") for i in range(args.cases)]
     for scene, seed, kind in tqdm([t for t in todo if (t[0], t[1]) not in have], desc="control cases"):
         done.append(run_case(scene, seed, kind, args.model_root, methods))
-        out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "cases": done}))  # resumable
-    cmd = "python benchmarks/bench_control.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = f"Command: `{cmd}`\n\n" + summarise([c for c in done if (c["scene"], c["seed"], c["kind"]) in set(todo)])
-    out.with_suffix(".md").write_text(text)
+        write_results(out.parent, out.name, doc={"cases": done}, indent=None, argv=script_argv(__file__, argv))  # resumable
+    text = summarise([c for c in done if (c["scene"], c["seed"], c["kind"]) in set(todo)])
+    write_results(out.parent, out.name, markdown=text, argv=script_argv(__file__, argv))
     print(text)
     return 0
 

@@ -29,7 +29,6 @@ Writes OUT.json and OUT.md. Time the latency on a quiet machine.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -37,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.control import A_MAX, Controller, Sketch, control_episode
 from hybridmpm.control.prior import free_motion_of
 from hybridmpm.conventions import G
@@ -157,9 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = [check_scene(s, args) for s in args.scenes.split(",")]
     out = Path(args.out)
-    out.with_suffix(".json").write_text(json.dumps({"environment": environment(), "scenes": rows}, indent=1))
-    lines = [f"Command: `python benchmarks/bench_control_checks.py {' '.join(sys.argv[1:] if argv is None else argv)}`", ""]
-    lines += [
+    lines = [
         "| scene | particles | plan ms p50 / p95 (1 ORT thread) | episode ms (median) | flipped arrow cos (mean / worst; vs no control) | blank / drawn effort (means over the cases) | the model's unconditional plan tracked / drawn effort (means over the cases) | random sketches bad | max ‖a‖/g | max substeps / uncontrolled | bitwise deterministic | seed spread (m) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -172,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['random_max_substeps_ratio']:.2f} | {'yes' if r['deterministic'] else 'NO'} | {r['seed_spread_m']:.2e} |"
         )
     text = "\n".join(lines) + "\n"
-    out.with_suffix(".md").write_text(text)
+    write_results(out.parent, out.name, doc={"scenes": rows}, markdown=text, argv=script_argv(__file__, argv))
     print(text)
     return 0
 

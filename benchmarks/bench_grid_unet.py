@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.conventions import GNS_WATER
 from hybridmpm.neural.grid import GridRuntime
 from hybridmpm.train.grid import GridConfig, GridModel, export_grid
@@ -42,7 +43,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--calls", type=int, default=60)
     ap.add_argument("--particles", type=int, default=1300)
-    ap.add_argument("--out", default=None, help="write a markdown table here")
+    ap.add_argument("--out", default=None, help="write a markdown table here (FILE.md)")
     args = ap.parse_args()
     rows = []
     rng = np.random.default_rng(0)
@@ -69,14 +70,15 @@ def main() -> None:
         lines = [
             "# Grid model: U-Net cost per call (r_t = 4 frames)",
             "",
-            f"`python benchmarks/bench_grid_unet.py --calls {args.calls} --particles {args.particles}`; 20th percentile of the calls, ms.",
+            "20th percentile of the calls, ms.",
             "",
             f"| grid | width | levels | U-Net, 1 thread | U-Net, 2 threads | whole call, {args.particles} particles, 1 thread |",
             "|---|---|---|---|---|---|",
             *[f"| {g}² | {w} | {lv} | {a:.3f} | {b:.3f} | {c:.3f} |" for g, w, lv, a, b, c in rows],
             "",
         ]
-        Path(args.out).write_text("\n".join(lines))
+        out = Path(args.out)
+        write_results(out.parent, out.stem, markdown="\n".join(lines))
 
 
 if __name__ == "__main__":

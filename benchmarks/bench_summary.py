@@ -1,13 +1,16 @@
 """One table over every scene benchmarked by ``hybridmpm bench`` (docs/benchmarks.md).
 
-    python benchmarks/bench_summary.py benchmarks/results/bench > benchmarks/results/bench/summary.md
+    python benchmarks/bench_summary.py benchmarks/results/bench --out benchmarks/results/bench/summary.md
 
 Reads ``DIR/*/results.csv``; per scene and method the means over seeds; the
 Pareto front recomputed from them (:func:`hybridmpm.bench.pareto_front`).
+Prints the tables; ``--out FILE.md`` also writes them there, under the
+harness's header (the command, the machine).
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import sys
 from collections import defaultdict
@@ -16,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from hybridmpm.bench import pareto_front
+from hybridmpm.bench.harness import script_argv, write_results
 from hybridmpm.bench.report import front_error_at, mpm_front
 
 
@@ -42,8 +46,12 @@ def rule_of(row: dict) -> str:
     return str(row["label"]).split("(", 1)[-1].rstrip(")")
 
 
-def main(argv: list[str]) -> int:
-    root = Path(argv[0] if argv else "benchmarks/results/bench")
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("root", nargs="?", default="benchmarks/results/bench", help="the folder of hybridmpm bench's SCENE/results.csv")
+    ap.add_argument("--out", default=None, help="also write the tables here (FILE.md)")
+    args = ap.parse_args(argv)
+    root = Path(args.root)
     dirs = sorted(d for d in root.iterdir() if (d / "results.csv").is_file())
     scenes = {d: scene_rows(d / "results.csv") for d in dirs}  # each results.csv read once
     out = [
@@ -146,8 +154,11 @@ def main(argv: list[str]) -> int:
             f"| {d.name} | {members} | {vs('neural')} | {vs('hybrid_rc0.8')} | {vs('hybrid_default')} | {vs('hybrid_coarse')} | {'; '.join(below) or 'none'} |"
         )
     print("\n".join(out))
+    if args.out:
+        path = Path(args.out)
+        write_results(path.parent, path.stem, markdown="\n".join(out), argv=script_argv(__file__, argv))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    sys.exit(main())

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import read_results, write_results
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator, rollout
@@ -108,7 +108,7 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     rows = []
     if a.retime:
-        rows = json.loads((a.out / "go_no_go.json").read_text())["rows"]
+        rows = read_results(a.out / "go_no_go.json")["rows"]
         for row in rows:
             model = Correction.load(a.runs / f"correction_{row['scene']}" / "model.npz")
             first = trajectory_seed(VAL_STREAM, 0)
@@ -145,13 +145,8 @@ def main() -> None:
         }
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k not in ("config", "per_seed")}), flush=True)
-    env = environment()
-    (a.out / "go_no_go.json").write_text(json.dumps({"env": env, "rows": rows}, indent=1))
     lines = [
         "# The learned correction of coarse MPM: go/no-go",
-        "",
-        f"Command: `python benchmarks/correction_go_no_go.py {' '.join(a.scenes)} --out {a.out}`  ",
-        f"Machine: {env['machine']}, {env['cores']} cores; commit {env['commit']}.",
         "",
         f"Validation seeds: {a.val_seeds} (stream {VAL_STREAM}), {a.frames} frames; error = mean grid-mass error against full-resolution MPM. "
         "'excess removed' = (plain coarse − row) / (plain coarse − MPM at r_p).",
@@ -180,7 +175,7 @@ def main() -> None:
     for r in rows:
         for s, p in r["per_seed"].items():
             lines.append(f"- {r['scene']} seed {s}: {p['corrected']:.3f} / {p['plain']:.3f} / {p['rp']:.3f} / {p['oracle']:.3f} / {p['floor']:.3f}")
-    (a.out / "go_no_go.md").write_text("\n".join(lines) + "\n")
+    write_results(a.out, "go_no_go", doc={"rows": rows}, markdown="\n".join(lines))
     print("\n".join(lines))
 
 

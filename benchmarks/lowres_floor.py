@@ -26,15 +26,14 @@ Fig. 5 and 9).
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import subprocess
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+
+from hybridmpm.bench.harness import write_results
 
 SCENES = ["water2d", "sand2d", "water_ramps2d", "sand_ramps2d", "water_sand2d"]
 
@@ -94,15 +93,12 @@ def main() -> None:
     with ProcessPoolExecutor(a.workers, mp_context=get_context("spawn")) as pool:
         for r in tqdm(pool.map(run_one, tasks), total=len(tasks), desc="lowres floor"):
             rows.append(r)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"r_p": a.r_p, "seeds": a.seeds, "machine": platform.machine(), "python": platform.python_version(), "commit": commit}
-    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    meta = {"r_p": a.r_p, "seeds": a.seeds}
     lines = [
         f"# Grid-mass error of MPM at r_p = {a.r_p:.4f} against MPM at full resolution",
         "",
-        f"`python benchmarks/lowres_floor.py --seeds {a.seeds}` (commit {commit}); {a.seeds} seeds per scene, the paper's T frames,",
+        f"{a.seeds} seeds per scene, the paper's T frames,",
         "128² reference grid. Error = ‖m̃_pred − m̃_ref‖₂/‖m̃_ref‖₂ (docs/design.md, 1/N per particle), mean over frames ± std over seeds;",
         "'mass-weighted' splats each particle's mass instead; 'frame 0' is the clustering alone.",
         "",
@@ -124,7 +120,7 @@ def main() -> None:
         )
     lines.append("")
     lines.append("ms/frame: one thread per run, two runs in parallel (2 workers), median over seeds; the machine is shared (±30%).")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_results(out.parent, out.name, doc={"meta": meta, "rows": rows}, markdown="\n".join(lines))
     print("\n".join(lines))
 
 
