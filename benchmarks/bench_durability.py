@@ -28,7 +28,6 @@ the save interval beside it.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import shutil
@@ -41,6 +40,7 @@ from typing import Any
 
 import httpx
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.service.testing import LiveServer, RayCluster
 
 STEPPED = [("water2d", "mpm", 11), ("dam_break2d", "hybrid", 12), ("sand2d", "mpm", 13)]
@@ -241,9 +241,7 @@ def main() -> None:
         "errors_5xx": sum(r["errors_5xx"] for r in rows),
         "rows": rows,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{args.backend}.json").write_text(json.dumps(summary, indent=1))
+    write_results(args.out, args.backend, doc=summary)
     print(
         f"{args.backend}: {args.kills} kills, --save-every {args.save_every:g} s: worst loss {worst:.2f} s, "
         f"{summary['kills_over_save_every']} kills over the interval, {summary['errors_5xx']} answers 5xx other than 503"

@@ -21,13 +21,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.scenes import SceneSpec
 from hybridmpm.scenes.spec import collider_sdf
 from hybridmpm.sim import MpmSimulator
@@ -106,8 +106,8 @@ def main() -> None:
             f"| {m['ahead']:.3f} / {m['behind']:.3f} / {m['rest']:.3f} | {m['ms_per_frame']:.2f} |"
         )
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"speed": u, "frames": frames, "project": args.project == "on", "piston": piston, "rise": rise, "rows": rows}, indent=2))
+        doc = {"speed": u, "frames": frames, "project": args.project == "on", "piston": piston, "rise": rise, "rows": rows}
+        write_results(args.out.parent, args.out.stem, doc=doc)
 
 
 if __name__ == "__main__":

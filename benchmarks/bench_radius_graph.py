@@ -25,15 +25,16 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+from hybridmpm.bench.harness import write_results
 
 
 def _jitter_stream(seed: int, count: int) -> np.ndarray:
@@ -133,23 +134,12 @@ def worker(reps_2d: int, reps_3d: int) -> dict:
     return {"threads": os.environ.get("RAYON_NUM_THREADS", "default"), "results": results}
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--reps-2d", type=int, default=61)
     ap.add_argument("--reps-3d", type=int, default=21)
-    ap.add_argument("--out", default=None, help="markdown file to write the table to")
+    ap.add_argument("--out", default=None, help="markdown file to write the table to (FILE.md)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
 
@@ -157,7 +147,6 @@ def main() -> None:
         print(json.dumps(worker(args.reps_2d, args.reps_3d)))
         return
 
-    load_before = os.getloadavg()
     runs = []
     for t in args.threads:
         # OpenBLAS (loaded by numpy) is not used by either path; one thread
@@ -166,7 +155,6 @@ def main() -> None:
         cmd = [sys.executable, __file__, "--worker", "--reps-2d", str(args.reps_2d), "--reps-3d", str(args.reps_3d)]
         res = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
         runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
-    load_after = os.getloadavg()
 
     import scipy
 
@@ -191,36 +179,9 @@ def main() -> None:
     print("\n".join(notes))
 
     if args.out:
-        cmdline = "python benchmarks/bench_radius_graph.py " + " ".join(sys.argv[1:])
-        nproc = os.cpu_count()
-        try:
-            nproc = int(subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip())
-        except (OSError, ValueError):
-            pass
-        try:
-            commit = (
-                subprocess.run(
-                    ["git", "rev-parse", "--short", "HEAD"],
-                    capture_output=True,
-                    text=True,
-                    cwd=os.path.dirname(os.path.abspath(__file__)),
-                ).stdout.strip()
-                or "unknown"
-            )
-        except OSError:
-            commit = "unknown"
         md = f"""# Radius graph: hybridmpm vs scipy cKDTree
 
-Produced by:
-
-```
-{cmdline}
-```
-
-- date: {datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
-- machine: `nproc` = {nproc}, CPU: {cpu_model()}
-- load average (1/5/15 min) before: {load_before[0]:.2f} / {load_before[1]:.2f} / {load_before[2]:.2f}, after: {load_after[0]:.2f} / {load_after[1]:.2f} / {load_after[2]:.2f}
-- Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, hybridmpm commit {commit}
+scipy {scipy.__version__}.
 
 Both sides return the same arrays: int64 senders/receivers with self-edges,
 sorted by receiver then sender, float32 displacement `p[s] - p[r]` [E, D] and
@@ -243,9 +204,8 @@ in a random particle order (indices no longer spatially coherent).
 {table}
 {chr(10).join(notes)}
 """
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            f.write(md)
+        out = Path(args.out)
+        write_results(out.parent, out.stem, markdown=md)
         print(f"wrote {args.out}")
 
 

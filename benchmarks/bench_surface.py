@@ -32,7 +32,6 @@ import argparse
 import contextlib
 import json
 import os
-import platform
 import tempfile
 import time
 from collections.abc import Iterator
@@ -42,6 +41,7 @@ from typing import Any
 import numpy as np
 import skimage.measure
 
+from hybridmpm.bench.harness import save_figure, write_results
 from hybridmpm.render.surface import frame_surfaces, surface_mesh, surface_settings, write_surface
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import lattice
@@ -203,7 +203,6 @@ def figures(out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out.mkdir(parents=True, exist_ok=True)
     scene = make_scene("water3d", seed=9)  # one block thrown at the floor
     ro = rollout(MpmSimulator(scene, threads=1), 90)
     settings = surface_settings(scene.params, ro.particle_type, ro.masses)
@@ -218,9 +217,7 @@ def figures(out: Path) -> list[str]:
         ax.set_box_aspect((1, 1, 1))
         ax.set_title(f"water3d seed 9, frame {t} ({len(m.faces)} triangles, level {m.iso:.2f})", fontsize=9)  # type: ignore[union-attr]
     fig.tight_layout()
-    a = out / "mesh_water3d.png"
-    fig.savefig(a, dpi=110)
-    plt.close(fig)
+    a = save_figure(fig, out / "mesh_water3d.png", dpi=110)
 
     scene2 = make_scene("dam_break2d")
     ro2 = rollout(MpmSimulator(scene2, threads=1), 80)
@@ -235,9 +232,7 @@ def figures(out: Path) -> list[str]:
     ax.set_title(f"dam_break2d, frame 80: outline (level {c.iso:.2f}, area error {c.area / s2['volumes'].sum() - 1:+.1%})", fontsize=9)  # type: ignore[union-attr]
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    b = out / "mesh_dam_break2d.png"
-    fig.savefig(b, dpi=110)
-    plt.close(fig)
+    b = save_figure(fig, out / "mesh_dam_break2d.png", dpi=110)
     return [str(a), str(b)]
 
 
@@ -248,9 +243,9 @@ def main() -> None:
     ap.add_argument("--spread-frames", type=int, default=200, help="frames of the water3d seed 9 rollout, spread over the whole floor (0: skip)")
     ap.add_argument("--usd-frames", type=int, default=200, help="frames of the USD check (0: skip)")
     ap.add_argument("--figure", default=None, help="folder for the PNGs of docs/mesh.md")
-    ap.add_argument("--out", default=None, help="JSON file for the results")
+    ap.add_argument("--out", default=None, help="JSON file for the results (FILE.json)")
     args = ap.parse_args()
-    res: dict[str, Any] = {"machine": platform.machine(), "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0]}
+    res: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         res["block_64"] = block_timing(args.repeats, tmp)
@@ -262,11 +257,10 @@ def main() -> None:
             res["usd"] = usd_check(args.usd_frames, tmp)
     if args.figure:
         res["figures"] = figures(Path(args.figure))
-    text = json.dumps(res, indent=2)
-    print(text)
+    print(json.dumps(res, indent=2))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+        out = Path(args.out)
+        write_results(out.parent, out.stem, doc=res)
 
 
 if __name__ == "__main__":

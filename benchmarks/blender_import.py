@@ -34,7 +34,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import re
 import shutil
 import subprocess
@@ -356,17 +355,19 @@ def _squeeze(text: str, keep: int = 3) -> str:
 
 
 def run_blender(cmd: list[str], plan: dict[str, Any], tag: str, results: Path, timeout: float) -> dict[str, Any]:
+    from hybridmpm.bench.harness import write_file, write_json  # here, not at the top: Blender's Python runs this file too, without hybridmpm
+
     plan_path = results / f"plan_{tag}.json"
     out_path = results / f"blender_{tag}.json"
     plan = {**plan, "result": str(out_path)}
-    plan_path.write_text(json.dumps(plan))
+    write_json(plan_path, plan, indent=None)
     if out_path.exists():
         out_path.unlink()
     t = time.perf_counter()
     proc = subprocess.run([*cmd, str(plan_path)], capture_output=True, text=True, timeout=timeout, env=_clean_env())
     wall = time.perf_counter() - t
     log = results / f"blender_{tag}.log"
-    log.write_text(f"$ {' '.join(cmd)} {plan_path}\n(exit {proc.returncode}, {wall:.1f} s)\n" + _squeeze(proc.stdout + proc.stderr))
+    write_file(log, f"$ {' '.join(cmd)} {plan_path}\n(exit {proc.returncode}, {wall:.1f} s)\n" + _squeeze(proc.stdout + proc.stderr))
     plan_path.unlink()
     if not out_path.exists():
         return {"ok": False, "error": f"Blender exited {proc.returncode} without a result; see {log}", "wall_s": wall}
@@ -384,6 +385,8 @@ def doc_has_loader(doc: Path) -> bool | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hybridmpm.bench.harness import script_argv, write_results  # here, not at the top: Blender's Python runs this file too, without hybridmpm
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--export-dir", help="an existing OUT/export (default: simulate one)")
     ap.add_argument("--scene", default="water3d")
@@ -421,8 +424,6 @@ def main(argv: list[str] | None = None) -> int:
     results = Path(a.summary).resolve().parent
     results.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = {
-        "command": "python benchmarks/blender_import.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0]},
         "export": {
             **info,
             "commands": log,
@@ -455,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
     summary["total_s"] = time.perf_counter() - t0
     ok = summary["usd_pxr"].get("ok", True) is not False and all(r.get("ok") for r in summary["runs"].values())
     summary["ok"] = bool(ok)
-    Path(a.summary).write_text(json.dumps(summary, indent=1) + "\n")
+    write_results(results, Path(a.summary).stem, doc=summary, argv=script_argv(__file__, argv))
     print(f"pxr check of run.usd: {summary['usd_pxr'].get('ok')}; summary -> {a.summary}")
     return 0 if ok else 1
 
@@ -730,6 +731,8 @@ def inside_render(bpy: Any, plan: dict[str, Any]) -> dict[str, Any]:
 
 
 def inside(plan_path: str) -> None:
+    import platform  # Blender's own Python, reported with the build
+
     import bpy
 
     plan = json.loads(Path(plan_path).read_text())

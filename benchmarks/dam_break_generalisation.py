@@ -27,13 +27,11 @@ against the experiment).
 from __future__ import annotations
 
 import argparse
-import json
-import shlex
 from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.env import git_commit
+from hybridmpm.bench.harness import write_results
 from hybridmpm.bench.run import collapsed, held_still
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.neural import GnsRuntime
@@ -85,7 +83,7 @@ def main() -> None:
         raise SystemExit("--names: give one per model")
     scene = make_scene("dam_break2d")
     ref = reference(scene, FRAMES, threads=a.threads, progress="full-resolution MPM").fluid_positions
-    result: dict = {"commit": git_commit(), "frames": FRAMES, "error_frames": ERROR_FRAMES, "runs": {}}
+    result: dict = {"frames": FRAMES, "error_frames": ERROR_FRAMES, "runs": {}}
     models = [GnsRuntime(p) for p in a.models]
     for name, model in zip(names, models):
         # a model trained on other domains is run on the dam break on purpose: that is the test
@@ -105,14 +103,9 @@ def main() -> None:
         result["runs"][f"held still after frame {warm} (r_p = {r_p:.4f})"] = {
             "kind": "still", "r_p": r_p, **score_positions(still, ro.frame_index, None, scene, ref, r_p),
         }  # fmt: skip
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
     lines = [
         "# Dam break: the network alone against Martin & Moyce (1952)",
         "",
-        f"`python benchmarks/dam_break_generalisation.py --models {shlex.join(map(str, a.models))}"
-        + (f" --names {shlex.join(names)}" if a.names else "")
-        + f" --out {a.out}` (commit {result['commit']}).",
         f"Network alone after its MPM warm-up, {FRAMES} frames; grid-mass error against full-resolution MPM over the first {ERROR_FRAMES} frames.",
         "",
         "| run | error mean | error at 100 | front RMS (shifted; ≤ 0.12) | front ratio (0.90–1.32) | height ratio (0.85–1.25) | passes | frames |",
@@ -123,7 +116,13 @@ def main() -> None:
             f"| {name} | {r['error_mean']:.3f} | {r['error_last']:.3f} | {r['front_rms_shifted']:.3f} | {r['front_ratio'][0]:.2f}–{r['front_ratio'][1]:.2f} "
             f"| {r['height_ratio'][0]:.2f}–{r['height_ratio'][1]:.2f} | {'yes' if r['mm_passes'] else 'no'} | {r['frames_done']}{' (' + r['failure'] + ')' if r['failure'] else ''} |"
         )
-    a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    fig = plot(result, scene)
+    write_results(a.out.parent, a.out.name, doc=result, markdown="\n".join(lines), figures={f"{a.out.name}.png": fig}, dpi=110)
+    print("\n".join(lines))
+
+
+def plot(result: dict, scene):  # type: ignore[no-untyped-def]
+    """Surge front and column height of every run against Martin & Moyce's (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,8 +144,7 @@ def main() -> None:
     ax[1].set(xlabel="T = t·sqrt(g/a)", ylabel="column height H = h/2a", xlim=(0, 2.5), ylim=(0, 1.1))
     ax[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(a.out.with_suffix(".png"), dpi=110)
-    print("\n".join(lines))
+    return fig
 
 
 if __name__ == "__main__":

@@ -63,15 +63,15 @@ import itertools
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hybridmpm.bench.env import cpu_model
+from hybridmpm.bench.harness import load_average, round_robin, script_argv, write_results
 
 FRAME_DT = 2.5e-3
 RHO = 1000.0
@@ -445,14 +445,12 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def write_markdown(path: str, meta: dict, rows: list[dict]) -> None:
+def markdown(meta: dict, rows: list[dict]) -> str:
+    """The report: the table of :func:`markdown_table` and how the Taichi side is built."""
     lines = [
         "# Taichi CPU peer benchmark (MLS-MPM)",
         "",
-        f"- command: `{meta['command']}`",
-        f"- date: {meta['date']}",
-        f"- nproc: {meta['nproc']}, CPU: {meta['cpu_model']}",
-        f"- taichi {meta['taichi_version']}, Python {meta['python']}, numpy {meta['numpy']}",
+        f"- taichi {meta['taichi_version']}",
         f"- kernel launches: {meta['launch']}; warm-up {meta['warmup']} frames, {meta['frames']} timed frames "
         "per row, each row in its own process; "
         f"{meta['repeats']} pass(es) over the matrix, each row shows the pass with the lowest median",
@@ -476,8 +474,7 @@ def write_markdown(path: str, meta: dict, rows: list[dict]) -> None:
         "- The sanity column is the particle centroid's y before the run and after all warm-up + timed frames (no NaN, all particles inside the domain).",
         "",
     ]
-    with open(path, "w") as f:
-        f.write("\n".join(lines))
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- #
@@ -559,7 +556,7 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="serial,atomic")
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--warmup", type=int, default=5)
-    ap.add_argument("--json", default=None, help="write all results to this JSON file")
+    ap.add_argument("--json", default=None, help="write all results to this JSON file (FILE.json)")
     ap.add_argument("--positions", default=None, help=".npz scene (positions, material, n_grid, substeps)")
     ap.add_argument(
         "--launch",
@@ -573,7 +570,7 @@ def main(argv=None) -> int:
         default=1,
         help="run every combination this many times (whole matrix per pass) and report, per row, the pass with the lowest median (default 1)",
     )
-    ap.add_argument("--md", default=None, help="write a markdown report (table + machine info) here")
+    ap.add_argument("--md", default=None, help="write a markdown report (table + machine info) here (FILE.md)")
     ap.add_argument("--timeout", type=float, default=600.0, help="per-subprocess timeout, s")
     ap.add_argument(
         "--bench-scene",
@@ -588,9 +585,7 @@ def main(argv=None) -> int:
     if args.bench_scene is not None:
         out = args.bench_out or os.path.join("runs", "bench", args.bench_scene)
         res = bench_peer(args.bench_scene, args.seed, None, 24, threads=0)
-        os.makedirs(out, exist_ok=True)
-        with open(os.path.join(out, "peer_taichi.json"), "w") as f:
-            json.dump(res, f, indent=2)
+        write_results(out, "peer_taichi", doc=res, argv=script_argv(__file__, argv))
         print(f"peer taichi: {res['ms_mean']:.2f} ms/frame against ours {res['ours_ms_mean']:.2f} -> {out}/peer_taichi.json")
         return 0
 
@@ -615,7 +610,7 @@ def main(argv=None) -> int:
     def run_one(cfg: dict, label: str) -> dict:
         cmd = [sys.executable, os.path.abspath(__file__), "--_worker", json.dumps(cfg)]
         print(f"# running {label} / {cfg['variant']} / {cfg['threads']} thread(s) ...", file=sys.stderr, flush=True)
-        load = os.getloadavg()[0]
+        load = load_average()[0]
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
             lines = [l for l in proc.stdout.splitlines() if l.startswith(WORKER_TAG)]
@@ -637,43 +632,38 @@ def main(argv=None) -> int:
         return r
 
     combos = [(scene, variant, k) for scene in scenes for variant in variants for k in threads]
-    runs: dict = {c: [] for c in combos}
     t_all = time.perf_counter()
-    # repeats as outer loop: noise bursts on a shared machine are correlated in time
-    for _rep in range(max(1, args.repeats)):
-        for scene, variant, k in combos:
-            cfg = {
-                "scene": scene,
-                "positions": args.positions,
-                "variant": variant,
-                "threads": k,
-                "frames": args.frames,
-                "warmup": args.warmup,
-                "launch": args.launch,
-            }
-            label = scene if scene is not None else os.path.splitext(os.path.basename(args.positions))[0]
-            runs[(scene, variant, k)].append(run_one(cfg, label))
+
+    def run_combo(combo: tuple) -> dict:
+        scene, variant, k = combo
+        cfg = {
+            "scene": scene,
+            "positions": args.positions,
+            "variant": variant,
+            "threads": k,
+            "frames": args.frames,
+            "warmup": args.warmup,
+            "launch": args.launch,
+        }
+        label = scene if scene is not None else os.path.splitext(os.path.basename(args.positions))[0]
+        return run_one(cfg, label)
+
+    # repeats round the combinations: noise bursts on a shared machine are correlated in time
     rows = []
-    for c in combos:
-        ok = [r for r in runs[c] if "error" not in r]
+    for runs in round_robin(combos, max(1, args.repeats), run_combo):
+        ok = [r for r in runs if "error" not in r]
         if not ok:
-            rows.append(runs[c][0])
+            rows.append(runs[0])
             continue
         best = dict(min(ok, key=lambda r: r["median_ms"]))  # least disturbed run
         best["repeat_medians_ms"] = [r["median_ms"] for r in ok]
-        best["sane"] = all(r["sane"] for r in ok) and len(ok) == len(runs[c])
+        best["sane"] = all(r["sane"] for r in ok) and len(ok) == len(runs)
         rows.append(best)
 
     print(markdown_table(rows))
     print(f"\n(total wall time {time.perf_counter() - t_all:.0f} s)", file=sys.stderr)
     versions = [r["taichi_version"] for r in rows if "taichi_version" in r]
     meta = {
-        "command": " ".join(["python", os.path.relpath(os.path.abspath(__file__))] + (argv if argv is not None else sys.argv[1:])),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
-        "nproc": os.cpu_count(),
-        "cpu_model": cpu_model(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
         "taichi_version": versions[0] if versions else "unknown",
         "launch": args.launch,
         "warmup": args.warmup,
@@ -682,10 +672,11 @@ def main(argv=None) -> int:
         "total_wall_s": time.perf_counter() - t_all,
     }
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"meta": meta, "results": rows}, f, indent=2)
+        out = Path(args.json)
+        write_results(out.parent, out.stem, doc={"meta": meta, "results": rows}, argv=script_argv(__file__, argv))
     if args.md:
-        write_markdown(args.md, meta, rows)
+        out = Path(args.md)
+        write_results(out.parent, out.stem, markdown=markdown(meta, rows), argv=script_argv(__file__, argv))
     bad = [r for r in rows if "error" in r or not r.get("sane", False)]
     return 1 if bad else 0
 
