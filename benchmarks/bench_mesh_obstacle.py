@@ -39,7 +39,6 @@ that plane at frame 60 of the sphere run (matplotlib).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import tempfile
 import time
@@ -49,6 +48,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from hybridmpm.bench.harness import save_figure, write_results
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.mpm import Box
 from hybridmpm.scenes import SceneSpec, collider_sdf
@@ -195,8 +195,7 @@ def figure(path: Path, n: int, base: Path) -> None:
     fig.colorbar(im, ax=ax, label="sampled signed distance [m]")
     ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal", xlabel="x [m]", ylabel="y [m]", title=f"icosphere(4) obstacle, {n}³ grid, frame 60, z = 0.5")
     ax.legend(loc="upper right", fontsize=7)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
     print(f"wrote {path}")
 
 
@@ -204,7 +203,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n-grid", type=int, default=64)
     ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--out", type=Path, default=None, help="JSON file for the results (FILE.json)")
     ap.add_argument("--figure", type=Path, default=None)
     ap.add_argument("--project", choices=["on", "off"], default="on", help="the obstacles' particle projection")
     ap.add_argument("--frame-cost", action="store_true", help="measure the projection's cost alone (module docstring)")
@@ -214,8 +213,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             cost = frame_cost(a.n_grid, a.repeats, Path(tmp))
         if a.out is not None:
-            a.out.parent.mkdir(parents=True, exist_ok=True)
-            a.out.write_text(json.dumps(cost, indent=2))
+            write_results(a.out.parent, a.out.stem, doc=cost)
             print(f"wrote {a.out}")
         return
     proj = a.project == "on"
@@ -257,8 +255,7 @@ def main() -> None:
         if a.figure is not None:
             figure(a.figure, a.n_grid, base)
     if a.out is not None:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(result, indent=2))
+        write_results(a.out.parent, a.out.stem, doc=result)
         print(f"wrote {a.out}")
 
 

@@ -25,12 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
+
+from hybridmpm.bench.harness import write_results
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -152,27 +152,10 @@ def main() -> None:
         m = per_model[d.name]
         rows.append({"model": d.name, "meta": meta, "timing_2300": t23, "timing_4096": t4, **{k: float(np.mean(v)) for k, v in m.items()}})
     refm = {k: float(np.mean(v)) for k, v in ref.items()}
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".json").write_text(
-        json.dumps(
-            {
-                "commit": commit,
-                "machine": platform.machine(),
-                "split": a.split,
-                "seeds": a.seeds,
-                "frames": a.frames,
-                "data": str(a.data),
-                "reference": refm,
-                "models": rows,
-            },
-            indent=1,
-        )
-    )
+    doc = {"split": a.split, "seeds": a.seeds, "frames": a.frames, "data": str(a.data), "reference": refm, "models": rows}
     lines = [
         f"# Neural simulator on `{a.data.name}`: cost and accuracy against MPM",
         "",
-        f"`python benchmarks/bench_neural.py --data {a.data} --models ... --seeds {a.seeds} --frames {a.frames} --split {a.split}` (commit {commit}).",
         f"Accuracy: mean over the first {a.seeds} {a.split} trajectories, {a.frames}-frame rollouts, grid-mass error (docs/design.md) against full-resolution MPM.",
         "Timing: medians; onnxruntime and torch one thread each; graph = Rust radius graph.",
         "",
@@ -195,8 +178,13 @@ def main() -> None:
         f"{refm['mpm_rp_mean']:.3f} mean, {refm['mpm_rp_last']:.3f} last (the floor of any model at this r_p); "
         f"its particles held still after the warm-up (the trivial model): {refm['still_mean']:.3f} mean.",
     ]
-    a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    fig = plot(rows, refm, a.frames, a.data.name)
+    write_results(a.out.parent, a.out.name, doc=doc, markdown="\n".join(lines), figures={f"{a.out.name}.png": fig}, dpi=120)
     print("\n".join(lines))
+
+
+def plot(rows: list[dict], refm: dict, frames: int, title: str):  # type: ignore[no-untyped-def]
+    """Each model's rollout error against its cost per frame, with MPM's (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -217,10 +205,10 @@ def main() -> None:
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(bottom=-0.05)
     ax.set_xlabel("cost per frame [ms] (neural: graph + onnxruntime step / r_t)")
-    ax.set_ylabel(f"grid-mass error, {a.frames}-frame rollout (mean)")
-    ax.set_title(a.data.name, fontsize=9)
+    ax.set_ylabel(f"grid-mass error, {frames}-frame rollout (mean)")
+    ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(a.out.with_suffix(".png"), dpi=120)
+    return fig
 
 
 if __name__ == "__main__":

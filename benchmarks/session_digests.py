@@ -11,11 +11,13 @@ SHA-256 of every float the service answered (the steps' positions, the
 control's trajectory, the arrays of the recent trajectory's file) and of the checkpoint's state
 arrays (less its meta and its ``stats``, which hold wall-clock times).
 
-Run it at two commits and compare the JSON files: equal digests mean the
-same floats.
+Run it at two commits and compare the files' ``digests`` (``--compare``;
+their ``provenance`` differs from run to run): equal digests mean the same
+floats.
 
     python benchmarks/session_digests.py --backend local --out /tmp/digests-local.json
     python benchmarks/session_digests.py --backend ray --out /tmp/digests-ray.json
+    python benchmarks/session_digests.py --backend local --out /tmp/new.json --compare benchmarks/results/session_digests/local.json
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import io
 import json
 import secrets
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -34,6 +37,7 @@ import httpx
 import numpy as np
 from websockets.sync.client import connect
 
+from hybridmpm.bench.harness import read_results, write_results
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.testing import LiveServer, RayCluster, step_binary
 
@@ -124,7 +128,8 @@ def run(url: str, ws_url: str) -> dict[str, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--backend", choices=("local", "ray"), default="local")
-    ap.add_argument("--out", type=Path, required=True, help="JSON file of the digests")
+    ap.add_argument("--out", type=Path, required=True, help="JSON file of the digests (FILE.json)")
+    ap.add_argument("--compare", type=Path, default=None, help="a recorded digests file: exit status 1 unless every digest is equal")
     args = ap.parse_args()
     root = Path(tempfile.mkdtemp(prefix="hmdig", dir="/tmp"))
     try:
@@ -143,8 +148,13 @@ def main() -> None:
                     s.stop()
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"backend": args.backend, "seed": SEED, "digests": digests}, indent=1) + "\n")
+    write_results(args.out.parent, args.out.stem, doc={"backend": args.backend, "seed": SEED, "digests": digests})
+    if args.compare is not None:
+        doc = read_results(args.compare)
+        old = doc["digests"] if "digests" in doc else doc["after"]["digests"]  # a recorded before/after pair: its "after"
+        differ = sorted(k for k in {*old, *digests} if old.get(k) != digests.get(k))
+        print(f"{len(digests) - len(differ)} of {len({*old, *digests})} digests equal to {args.compare}" + (f"; differ: {', '.join(differ)}" if differ else ""))
+        sys.exit(1 if differ else 0)
 
 
 if __name__ == "__main__":

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
 from bench_neural import accuracy
 
-from hybridmpm.bench.env import git_commit
+from hybridmpm.bench.harness import write_results
 
 
 def snapshots(run: Path, every: int) -> list[Path]:
@@ -58,7 +57,7 @@ def main() -> None:
     a = ap.parse_args()
     if a.every < 1:
         raise SystemExit("--every: must be >= 1")
-    result: dict = {"commit": git_commit(), "data": str(a.data), "split": a.split, "seeds": a.seeds, "frames": a.frames, "runs": {}}
+    result: dict = {"data": str(a.data), "split": a.split, "seeds": a.seeds, "frames": a.frames, "runs": {}}
     floor = None
     for run in a.runs:
         dirs = snapshots(run, a.every)
@@ -82,13 +81,9 @@ def main() -> None:
                 }
             )
         result["runs"][str(run)] = {"mpm_rp_mean": floor, "still_mean": float(np.mean(ref["still_mean"])), "snapshots": rows}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".json").write_text(json.dumps(result, indent=1))
     lines = [
         f"# Training curves on `{a.data.name}` ({a.split} split)",
         "",
-        f"`python benchmarks/training_curves.py --data {a.data} --runs {' '.join(map(str, a.runs))} --every {a.every} "
-        f"--seeds {a.seeds} --frames {a.frames} --split {a.split}` (commit {result['commit']}).",
         f"Network alone after the MPM warm-up, {a.frames}-frame rollouts, mean over the first {a.seeds} {a.split} "
         "trajectories; grid-mass error against full-resolution MPM.",
     ]
@@ -110,9 +105,13 @@ def main() -> None:
             core = f"{s['core_h']:.3f}" if s.get("core_h") is not None else "—"
             v1 = f"{s['val_one_step']:.3f}" if s["val_one_step"] is not None else "—"
             lines.append(f"| {s['step']} | {wall} | {core} | {v1} | {s['rollout_mean']:.3f} | {s['rollout_last']:.3f} | {s['one_step']:.3f} |")
-    a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    fig = plot(result, floor)
+    write_results(a.out.parent, a.out.name, doc=result, markdown="\n".join(lines), figures={f"{a.out.name}.png": fig}, dpi=120)
     print("\n".join(lines))
 
+
+def plot(result: dict, floor: float | None):
+    """Rollout error against step and training cost, and the validation one-step loss, per run (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -144,7 +143,7 @@ def main() -> None:
     ax[2].set_ylabel("validation one-step loss")
     ax[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(a.out.with_suffix(".png"), dpi=120)
+    return fig
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ def test_provenance_names_the_commit_the_command_and_the_load(tmp_path):
     prov = harness.provenance([str(harness.REPO_ROOT / "benchmarks" / "x.py"), "--out", "a b"])
     assert prov["commit"].removesuffix("-dirty") == head
     assert prov["command"] == "python benchmarks/x.py --out 'a b'"
+    assert harness.command(["/somewhere/.venv/bin/hybridmpm", "bench", "water2d"]) == "hybridmpm bench water2d"  # an installed command
     assert prov["cores"] == os.cpu_count()
     assert len(prov["load_before"]) == len(prov["load_after"]) == 3
     assert prov["load_after"][0] == pytest.approx(os.getloadavg()[0], abs=0.5)

@@ -86,12 +86,16 @@ _START: Start = Start(load_average(), cpu_times(), _dt.datetime.now(_dt.timezone
 
 def command(argv: Sequence[str] | None = None) -> str:
     """The command line that reproduces the run, from the repository root:
-    ``python benchmarks/SCRIPT.py ARGS`` (``argv``: the program then its
-    arguments; default ``sys.argv``)."""
+    ``python benchmarks/SCRIPT.py ARGS`` for a script (its path relative to
+    the root when inside it), ``NAME ARGS`` for an installed command such as
+    ``hybridmpm`` (``argv``: the program then its arguments; default
+    ``sys.argv``)."""
     argv = list(sys.argv if argv is None else argv)
     if not argv:
         return "python"
     prog = Path(argv[0])
+    if prog.suffix != ".py":
+        return shlex.join([prog.name, *map(str, argv[1:])])
     try:
         shown = str(prog.resolve().relative_to(REPO_ROOT))
     except ValueError:
