@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.bench.cost import gnn_flops
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import write_file, write_results
 from hybridmpm.graph import radius_graph, relax_then_graph
 from hybridmpm.models import shipped_model
 from hybridmpm.neural import GnsRuntime
@@ -395,9 +395,9 @@ def op_costs(latent: int, rows: int, repeats: int) -> dict[str, float]:
 
 
 def _md(res: dict[str, Any]) -> str:
-    lines = ["# Network inference: breakdown, cost per frame, GFLOP/s", "", f"`{res['command']}`", ""]
+    lines = ["# Network inference: breakdown, cost per frame, GFLOP/s", ""]
     lines += [
-        f"Load before: {res['env'].get('loadavg_before', 'n/a')}. One onnxruntime thread unless stated; MPM at r_p with {res['mpm_threads'] or 'all'} threads. "
+        f"One onnxruntime thread unless stated; MPM at r_p with {res['mpm_threads'] or 'all'} threads. "
         f"Each callable runs in turn with the others, {res.get('burst', 1)} times back to back per turn, "
         + ("the first of each burst not counted (a rollout's steady state)." if res.get("burst", 1) > 1 else "every call counted."),
         "",
@@ -446,9 +446,6 @@ def _md(res: dict[str, Any]) -> str:
 
 def main() -> None:
     global BURST
-    import shlex
-    import sys
-
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--seed", type=int, default=1000)
@@ -474,10 +471,9 @@ def main() -> None:
         for scene in args.scenes:
             name = shipped_model(scene).name
             blob = subprocess.run(["git", "show", f"{args.baseline_rev}:python/hybridmpm/models/{name}"], capture_output=True, check=True).stdout
-            (args.baseline / name).write_bytes(blob)
-    env = {"loadavg_before": os.getloadavg()[0], **environment()}
+            write_file(args.baseline / name, blob)
     res: dict[str, Any] = {
-        "command": shlex.join(["python", "benchmarks/bench_inference.py", *sys.argv[1:]]), "env": env, "mpm_threads": args.mpm_threads,
+        "mpm_threads": args.mpm_threads,
         "baseline": args.baseline_rev or (str(args.baseline) if args.baseline else None), "burst": BURST, "scenes": [], "blocks": [],
     }  # fmt: skip
     for scene in args.scenes:
@@ -491,9 +487,7 @@ def main() -> None:
     if args.ops:
         lat = int(GnsRuntime(shipped_model(args.scenes[0])).meta["latent"])
         res["ops"] = {"latent": lat, "rows": 20000, "ns_per_row": op_costs(lat, 20000, args.repeats)}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(res, indent=1, default=float))
-    args.out.with_suffix(".md").write_text(_md(res))
+    write_results(args.out.parent, args.out.name, doc=res, markdown=_md(res))
     print(_md(res))
 
 
