@@ -61,18 +61,17 @@ RETRY_AFTER_S = 5
 _FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 
 
-def store_refusal(failure: tuple[int | None, str] | None) -> Exception:
-    """The answer to a create whose first save failed (``failure``: the
-    save's ``(errno, message)``, :attr:`SessionCore.save_failure
-    <hybridmpm.service.core.SessionCore.save_failure>`): 507 naming ``store``
-    when the store is full (``ENOSPC``, ``EDQUOT``, ``EFBIG``), else 503
-    with ``Retry-After``; nothing was created."""
-    from hybridmpm.service.errors import ApiError  # the errors module imports this one
+class StoreSaveError(Exception):
+    """A create whose first save failed: nothing was created (→ 507 naming
+    ``store`` when ``full``, else 503 with ``Retry-After``). ``why``: the
+    save's error, :attr:`SessionCore.save_failure
+    <hybridmpm.service.core.SessionCore.save_failure>`'s message."""
 
-    code, why = failure or (None, "unknown error")
-    if code in _FULL:
-        return ApiError(507, f"store: full, the new session could not be saved ({why}); nothing was created")
-    return ApiError(503, f"store: the new session could not be saved ({why}); nothing was created, retry later", {"Retry-After": str(RETRY_AFTER_S)})
+    def __init__(self, failure: tuple[int | None, str] | None) -> None:
+        code, why = failure or (None, "unknown error")
+        super().__init__(why)
+        self.full = code in _FULL
+        self.why = why
 
 
 class SessionCapError(Exception):
@@ -231,8 +230,8 @@ class SessionManager:
         """Build a session for the client address ``client`` (``n_grid``: MPM
         on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`).
         With a store the session is saved before it is answered; when that
-        save fails the session is dropped and :func:`store_refusal` raised
-        (507 for a full store, 503 otherwise; nothing already saved changes).
+        save fails the session is dropped and :class:`StoreSaveError` raised
+        (nothing already saved changes).
         Raises :class:`SessionCapError` when the server is full,
         :class:`QuotaError` when the client holds its quota,
         :class:`BudgetFullError` when the memory budget cannot hold it (its
@@ -264,7 +263,7 @@ class SessionManager:
                     failure = core.save_failure
                     del self.sessions[sid]
                     await self._drop(sess, 1011, "not saved", True)
-                    raise store_refusal(failure)
+                    raise StoreSaveError(failure)
             return sess
         finally:
             self.reserved -= 1
@@ -625,6 +624,7 @@ __all__ = [
     "Session",
     "SessionCapError",
     "SessionManager",
+    "StoreSaveError",
     "Viewer",
     "close_ws",
 ]

@@ -10,7 +10,7 @@ from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import NO_SESSION, ApiError
 from hybridmpm.service.facts import checked_n_grid
 from hybridmpm.service.schemas import CreateSession, SessionInfo
-from hybridmpm.service.sessions import QuotaError, SessionCapError
+from hybridmpm.service.sessions import RETRY_AFTER_S, QuotaError, SessionCapError, StoreSaveError
 
 router = APIRouter()
 
@@ -35,6 +35,11 @@ async def create_session(body: CreateSession, request: Request, manager: Manager
     except QuotaError:
         msg = f"this client address holds its maximum of {cfg.max_sessions_per_client} sessions (per client); delete one or retry later"
         raise ApiError(429, msg, {"Retry-After": "30"}) from None
+    except StoreSaveError as e:  # a 201 means the session is in the store
+        if e.full:
+            raise ApiError(507, f"store: full, the new session could not be saved ({e.why}); nothing was created") from None
+        msg = f"store: the new session could not be saved ({e.why}); nothing was created, retry later"
+        raise ApiError(503, msg, {"Retry-After": str(RETRY_AFTER_S)}) from None
     return await manager.info(s)
 
 
