@@ -24,17 +24,16 @@ start-up is excluded (as the paper's App. C does for Taichi).
 from __future__ import annotations
 
 import argparse
-import datetime
+import collections
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.env import cpu_model, git_commit
+from hybridmpm.bench.harness import round_robin, write_results
 from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import Scene, lattice
@@ -103,9 +102,9 @@ def rss_mb():
     return float("nan")
 
 
-def machine():
-    isa = make(*SCENES["water2d"], 1).solver.isa
-    return {"cpu": cpu_model(), "nproc": os.cpu_count(), "python": platform.python_version(), "isa": isa}
+def frame_loop_isa():
+    """The instruction set of the frame loop's copy the solver chose for this CPU (docs/engine.md, "Two compiled copies")."""
+    return make(*SCENES["water2d"], 1).solver.isa
 
 
 def scaling_case(dim, side, threads, frames):
@@ -201,15 +200,17 @@ def peer_comparison(frames, repeats):
     for ours_name, peer_name in PEER_SCENES.items():
         spec = SCENES[ours_name]
         for threads in (1, 2):
-            best_ours, best_peer = None, None
-            for _ in range(repeats):
-                sim = make(*spec, threads)
-                med, p95 = time_frames(sim, frames)
-                if best_ours is None or med < best_ours[0]:
-                    best_ours = (med, p95, team_share(sim))
+
+            def one(side, spec=spec, threads=threads, peer_name=peer_name):
+                if side == "ours":
+                    sim = make(*spec, threads)
+                    return (*time_frames(sim, frames), team_share(sim))
                 row = run_taichi_one(peer_name, threads, frames)
-                if row and (best_peer is None or row["median_ms"] < best_peer[0]):
-                    best_peer = (row["median_ms"], row["p95_ms"])
+                return (row["median_ms"], row["p95_ms"]) if row else None
+
+            ours, peer = round_robin(["ours", "taichi"], repeats, one)
+            best_ours = min(ours, key=lambda x: x[0])
+            best_peer = min((p for p in peer if p), key=lambda x: x[0], default=None)
             entry = {
                 "scene": ours_name,
                 "threads": threads,
@@ -239,13 +240,13 @@ def isa_comparison(frames, repeats):
         return []
     table = []
     for name, spec in SCENES.items():
-        best = {}
-        for _ in range(repeats):
-            for isa in ("baseline", chosen):
-                sim = make(*spec, 1)
-                sim.solver.set_isa(isa)
-                med, _ = time_frames(sim, frames)
-                best[isa] = min(med, best.get(isa, float("inf")))
+
+        def one(isa, spec=spec):
+            sim = make(*spec, 1)
+            sim.solver.set_isa(isa)
+            return time_frames(sim, frames)[0]
+
+        best = dict(zip(("baseline", chosen), map(min, round_robin(["baseline", chosen], repeats, one))))
         table.append({"scene": name, "isa": chosen, "baseline_ms": best["baseline"], "isa_ms": best[chosen], "ratio": best[chosen] / best["baseline"]})
         print(f"isa {name:12s}: baseline {best['baseline']:.2f} ms, {chosen} {best[chosen]:.2f} ms, ratio {best[chosen] / best['baseline']:.3f}", flush=True)
     return table
@@ -256,14 +257,11 @@ def _share(x):
 
 
 def markdown(r):
-    m = r["machine"]
     lines = [
         "# MPM solver benchmark",
         "",
-        f"- command: `{r['command']}`",
-        f"- date: {r['date']}, commit {r['commit']}",
-        f"- machine: {m['nproc']} cores, {m['cpu']}, Python {m['python']}; shared and noisy (±30%): compare only within one run",
-        f'- frame loop: the copy compiled for {m.get("isa", "baseline")} (docs/engine.md, "Two compiled copies")',
+        "- the machine is shared and noisy (±30%): compare only within one run",
+        f'- frame loop: the copy compiled for {r.get("frame_loop_isa", "baseline")} (docs/engine.md, "Two compiled copies")',
         f"- {r['frames']} timed frames after 5 warm-up frames; a frame is 2.5 ms of simulated time;"
         f" every case the lowest median of {r.get('repeats', 1)} repeats (the standard scenes taken in turn)",
         "",
@@ -348,33 +346,33 @@ def main():
     args = ap.parse_args()
     frames = 15 if args.quick else args.frames
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     # the standard scenes taken in turn `repeats` times (a slow moment of the
     # machine then hits one repeat of several cases, not every repeat of one);
     # each case keeps its lowest median, as the peer rows do
-    best = {}
-    for rep in range(args.repeats):
-        for name, spec in SCENES.items():
-            for threads in (1, 2):
-                sim = make(*spec, threads)
-                med, p95 = time_frames(sim, frames)
-                print(
-                    f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep  (repeat {rep + 1})",
-                    flush=True,
-                )
-                if (name, threads) in best and best[name, threads]["ms_per_frame"] <= med:
-                    continue
-                best[name, threads] = {
-                    "scene": name,
-                    "threads": threads,
-                    "particles": sim.particles.num_fluid,
-                    "substeps": spec[5],
-                    "ms_per_frame": med,
-                    "p95_ms_per_frame": p95,
-                    "us_per_substep": med * 1e3 / spec[5],
-                    "team_share": team_share(sim),
-                }
-    rows = list(best.values())
+    cases = [(name, spec, threads) for name, spec in SCENES.items() for threads in (1, 2)]
+    done: collections.Counter = collections.Counter()
+
+    def run_case(case):
+        name, spec, threads = case
+        sim = make(*spec, threads)
+        med, p95 = time_frames(sim, frames)
+        done[name, threads] += 1
+        print(
+            f"{name:12s} t={threads} N={sim.particles.num_fluid:6d}  {med:7.2f} ms/frame (p95 {p95:7.2f})  {med * 1e3 / spec[5]:8.1f} us/substep  (repeat {done[name, threads]})",
+            flush=True,
+        )
+        return {
+            "scene": name,
+            "threads": threads,
+            "particles": sim.particles.num_fluid,
+            "substeps": spec[5],
+            "ms_per_frame": med,
+            "p95_ms_per_frame": p95,
+            "us_per_substep": med * 1e3 / spec[5],
+            "team_share": team_share(sim),
+        }
+
+    rows = [min(runs, key=lambda x: x["ms_per_frame"]) for runs in round_robin(cases, args.repeats, run_case)]
 
     # at least 20 frames: a solver's first frames measure both ways of running (see docs/engine.md)
     scaling_rows = scaling(max(20, frames // 2), args.quick)
@@ -392,10 +390,7 @@ def main():
     isa_rows = isa_comparison(frames, args.repeats)
 
     result = {
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": machine(),
-        "commit": git_commit(),
-        "command": " ".join(["python"] + sys.argv),
+        "frame_loop_isa": frame_loop_isa(),
         "frames": frames,
         "repeats": args.repeats,
         "rows": rows,
@@ -405,8 +400,7 @@ def main():
         "taichi": taichi,
         "isa": isa_rows,
     }
-    (out / "mpm.json").write_text(json.dumps(result, indent=2))
-    (out / "mpm.md").write_text(markdown(result))
+    write_results(out, "mpm", doc=result, markdown=markdown(result))
     print(f"wrote {out / 'mpm.json'} and {out / 'mpm.md'}")
 
 
