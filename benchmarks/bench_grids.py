@@ -23,14 +23,13 @@ Time it on a quiet machine (``uptime``: load near 0).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import round_robin, write_results
 from hybridmpm.bench.methods import mpm_grid_methods
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import PAPER_R_P, make_scene
@@ -51,16 +50,19 @@ def run_scene(scene: str, seeds: list[int], frames: int, threads: int, repeats: 
     methods += [(m.key, m.n_grid, m.r_p) for m in mpm_grid_methods(scene, PAPER_R_P, seeds[0])[0]]
     for seed in seeds:
         base = make_scene(scene, seed=seed)
-        times: dict[str, list[float]] = {key: [] for key, _, _ in methods}
-        runs: dict[str, tuple] = {}
-        for _ in range(repeats):  # the same bits each time; the fastest mean is the least disturbed
-            for key, n_grid, r_p in methods:
-                sim = MpmSimulator(base, r_p=r_p, n_grid=n_grid, seed=seed, threads=threads)
-                ro = rollout(sim, frames)
-                if ro.failure:
-                    raise SystemExit(f"{scene} seed {seed} {key}: {ro.failure_detail}")
-                times[key].append(float(ro.frame_seconds(after=WARMUP).mean() * 1e3))
-                runs[key] = (sim, ro)
+
+        def run(method: tuple, base=base, seed=seed) -> tuple:
+            key, n_grid, r_p = method
+            sim = MpmSimulator(base, r_p=r_p, n_grid=n_grid, seed=seed, threads=threads)
+            ro = rollout(sim, frames)
+            if ro.failure:
+                raise SystemExit(f"{scene} seed {seed} {key}: {ro.failure_detail}")
+            return float(ro.frame_seconds(after=WARMUP).mean() * 1e3), sim, ro
+
+        # the same bits each time; the fastest mean is the least disturbed
+        results = dict(zip((key for key, _, _ in methods), round_robin(methods, repeats, run)))
+        times = {key: [t for t, _, _ in res] for key, res in results.items()}
+        runs = {key: res[-1][1:] for key, res in results.items()}
         ref = runs[methods[0][0]][1].fluid_positions
         for key, _, r_p in methods:
             sim, ro = runs[key]
@@ -94,7 +96,8 @@ def ratios(rows: list[dict]) -> list[dict]:
     return out
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict]):
+    """ms per frame against particles x substeps per frame, one panel per dimension (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,20 +133,16 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    return fig
 
 
 def make_dim(scene: str) -> int:
     return 3 if scene.endswith("3d") else 2
 
 
-def markdown(rat: list[dict], env: dict, cmd: str) -> str:
+def markdown(rat: list[dict]) -> str:
     lines = [
         "# Plain MPM over grids",
-        "",
-        f"Command: `{cmd}`  ",
-        f"Machine: {env['machine']}, {env['cores']} cores; hybridmpm {env['hybridmpm']} (commit {env['commit']}).",
         "",
         "Ratios to MPM at r_p = 0.571 on the scene's grid, same seed, same run (min-max over seeds); error = mean grid-mass error against "
         "full-resolution MPM on the scene's grid.",
@@ -171,19 +170,13 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/grids")
     a = ap.parse_args()
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     for scene in tqdm(a.scenes, desc="scenes"):
         seeds = [a.seed0] if scene == "dam_break2d" else [a.seed0 + i for i in range(a.seeds)]
         rows += run_scene(scene, seeds, a.frames, a.threads, a.repeats)
     rat = ratios(rows)
-    env = environment()
-    cmd = "python benchmarks/bench_grids.py " + " ".join(a.scenes) + f" --seeds {a.seeds} --frames {a.frames} --repeats {a.repeats}"
-    cmd += (f" --seed0 {a.seed0}" if a.seed0 != SEED0 else "") + f" --out {a.out}"
-    (out / "grids.json").write_text(json.dumps({"rows": rows, "ratios": rat, "environment": env, "command": cmd}, indent=1))
-    (out / "grids.md").write_text(markdown(rat, env, cmd))
-    plot(rows, out / "mpm_cost_grids.png")
-    print(markdown(rat, env, cmd))
+    write_results(out, "grids", doc={"rows": rows, "ratios": rat}, markdown=markdown(rat), figures={"mpm_cost_grids.png": plot(rows)})
+    print(markdown(rat))
 
 
 if __name__ == "__main__":

@@ -18,15 +18,14 @@ code reserves for them.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import sys
 import tempfile
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
+
+from hybridmpm.bench.harness import write_results
 
 
 def measure_load(subdivisions: int) -> list[dict[str, float]]:
@@ -125,16 +124,16 @@ def main() -> int:
     ap.add_argument("--scenes", nargs="*", default=sorted(DOMAINS))
     ap.add_argument("--frames", type=int, default=300, help="recorded coarse steps (the route's most: 300)")
     ap.add_argument("--simulate", type=int, default=40, help="frames actually simulated, repeated to --frames")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="JSON file for the results (FILE.json)")
     args = ap.parse_args()
-    report: dict[str, object] = {"command": " ".join(sys.argv), "python": platform.python_version(), "machine": platform.machine()}
+    report: dict[str, object] = {}
     if "load" in args.part:
         report["load"] = measure_load(args.subdivisions)
     if "download" in args.part:
         report["download"] = measure_download(args.scenes, args.frames, args.simulate)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+        out = Path(args.out)
+        write_results(out.parent, out.stem, doc=report)
     return 0
 
 

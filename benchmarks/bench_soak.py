@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.service.testing import SOAK_WITNESS, LiveServer, RayCluster, soak
 from hybridmpm.sim import make_simulator, rollout
 
@@ -95,9 +96,7 @@ def main() -> None:
         "refusals": rep["refusals"],
         "checks": checks,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{args.backend}.json").write_text(json.dumps(summary, indent=1))
+    write_results(args.out, args.backend, doc=summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "refusals"}, indent=1))
     if not all(checks.values()):
         raise SystemExit(f"soak failed: {[k for k, v in checks.items() if not v]}")

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import write_results
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.mpm import MpmParams, WallParams
 from hybridmpm.scenes import PAPER_R_P, Block, SceneSpec, make_scene, wall_face
@@ -141,13 +141,10 @@ def column_runout(n: int, frames: int = 300) -> float:
     return float((x[-1, :, 0].max() + 0.5 * spacing - face) / (32 / 128) - 1.0)
 
 
-def markdown(rows: list[dict], slide: dict, column: dict, frames: int, cmd: str, env: dict) -> str:
+def markdown(rows: list[dict], slide: dict, column: dict, frames: int) -> str:
     h = horizons(frames)
     lines = [
         "# Coarse grids and sand: the error taken apart",
-        "",
-        f"Command: `{cmd}`  ",
-        f"Machine: {env['machine']}; hybridmpm {env['hybridmpm']} (commit {env['commit']}).",
         "",
         "Grid-mass error against full-resolution MPM on the scene's grid (mean over the rollout); "
         "`g64` / `g96`: MPM on 64² / 96²; `nudged`: the reference with its start moved by up to 1e-5 m; "
@@ -203,7 +200,6 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/coarse_sand")
     a = ap.parse_args()
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for scene in a.scenes:
         for i in range(a.seeds):
@@ -211,19 +207,8 @@ def main() -> None:
             print(json.dumps(rows[-1]), flush=True)
     slide = sliding_layer()
     column = {str(n): column_runout(n) for n in (64, 96, 128, 256)}
-    env = environment()
-    cmd = (
-        "python benchmarks/coarse_sand.py "
-        + " ".join(a.scenes)
-        + f" --seeds {a.seeds} --frames {a.frames}"
-        + (f" --seed0 {a.seed0}" if a.seed0 != SEED0 else "")
-        + f" --out {a.out}"
-    )
-    (out / "coarse_sand.json").write_text(
-        json.dumps({"rows": rows, "sliding_layer": slide, "column_runout": column, "environment": env, "command": cmd}, indent=1)
-    )
-    md = markdown(rows, slide, column, a.frames, cmd, env)
-    (out / "coarse_sand.md").write_text(md)
+    md = markdown(rows, slide, column, a.frames)
+    write_results(out, "coarse_sand", doc={"rows": rows, "sliding_layer": slide, "column_runout": column}, markdown=md)
     print(md)
 
 

@@ -14,7 +14,8 @@ SHA-256 of every frame's positions, the hybrid's velocities after it, the
 frame's solver, event, score and audit, and the stats at its end (less the
 wall-clock seconds).
 
-Run it at two commits and compare: equal digests mean the same floats.
+Run it at two commits and compare the ``runs`` (``--compare``; the
+``provenance`` differs from run to run): equal digests mean the same floats.
 
     python benchmarks/hybrid_digests.py --out benchmarks/results/hybrid_digests.json
     python benchmarks/hybrid_digests.py --out /tmp/after.json --compare benchmarks/results/hybrid_digests.json
@@ -28,7 +29,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 import hybridmpm
+from hybridmpm.bench.harness import read_results, script_argv, write_results
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_models
 from hybridmpm.scenes import make_scene
@@ -123,16 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compare", type=Path, default=None, help="an earlier output: exit 1 where a digest differs")
     args = ap.parse_args(argv)
     scenes = args.scenes or sorted(shipped_models())
-    root = Path(hybridmpm.__file__).resolve().parents[2]
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD", "--", "python/hybridmpm"]).returncode != 0
-        commit += " (with uncommitted changes)" if dirty else ""
-    except (OSError, subprocess.CalledProcessError):
-        commit = None
     doc: dict[str, Any] = {
         "package": str(Path(hybridmpm.__file__).resolve()),
-        "commit": commit,
         "seed": SEED,
         "steps": list(STEPS),
         "push": list(PUSH),
@@ -148,11 +141,10 @@ def main(argv: list[str] | None = None) -> int:
                     r = doc["runs"][key]
                     print(key, r.get("refused") or r["before"]["solvers"] + "|" + r["after"]["solvers"], flush=True)
     doc["seconds"] = time.perf_counter() - t0
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    write_results(args.out.parent, args.out.stem, doc=doc, sort_keys=True, argv=script_argv(__file__, argv))
     if args.compare is None:
         return 0
-    old = json.loads(args.compare.read_text())["runs"]
+    old = read_results(args.compare)["runs"]
     bad = [k for k in doc["runs"] if k in old and doc["runs"][k] != old[k]]
     missing = sorted(set(old) ^ set(doc["runs"]))
     for k in bad:
