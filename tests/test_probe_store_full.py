@@ -50,3 +50,40 @@ def test_a_create_whose_first_save_fails_is_refused_and_loses_nothing(tmp_path, 
         assert r.status_code == 201 and r.json()["saved_frame"] == 0
         assert (store / f"{session_key(r.json()['id'])}.npz").is_file()
         assert c.get(f"/v1/sessions/{kept}").json()["frame"] == 4
+
+
+def test_a_ray_actor_whose_first_save_fails_answers_the_error_and_is_not_created(tmp_path, monkeypatch):
+    """The Ray backend's create waits for the actor's ``ready``: an actor whose
+    first save failed answers ``StoreSaveError`` with the save's errno (the
+    route's 507 naming ``store`` when full, 503 otherwise), not its facts (a 201
+    of a session that is not in the store). The actor is built in this process
+    (Ray's runtime context stubbed), so the store's write can be made to fail."""
+    pytest.importorskip("ray")
+    import types
+
+    import ray
+
+    from hybridmpm.service.ray_backend import actor as actor_mod
+    from hybridmpm.service.ray_backend.manager import error_from
+    from hybridmpm.service.sessions import StoreSaveError
+
+    monkeypatch.setattr(ray, "get_runtime_context", lambda: types.SimpleNamespace(was_current_actor_reconstructed=False))
+    store = tmp_path / "store"
+    SessionStore(str(store)).open()
+    settings = {"store": str(store), "save_every_s": 600.0, "idle_ttl_s": 600.0, "max_checkpoint_bytes": 1 << 28, "memory_budget": 1 << 30, "namespace": "t"}
+    for err, full in ((errno.ENOSPC, True), (errno.EACCES, False)):
+
+        def failing(self, key, data, err=err):
+            raise OSError(err, errno.errorcode[err])
+
+        monkeypatch.setattr(SessionStore, "write", failing)
+        a = actor_mod.SessionActor(session_key(f"s{err}"), "water2d", 3, "mpm", 0.8, "client", settings)
+        out = a.ready()
+        assert out[0] == "err" and out[1] == "StoreSaveError", out
+        e = error_from(*out[1:])
+        assert isinstance(e, StoreSaveError) and e.full is full and errno.errorcode[err] in e.why
+        assert not any(p.suffix == ".npz" for p in store.iterdir())
+    monkeypatch.setattr(SessionStore, "write", lambda self, key, data: None)
+    ok = actor_mod.SessionActor(session_key("sok"), "water2d", 3, "mpm", 0.8, "client", settings)
+    assert ok.ready()[0] == "ok"
+    ok.closing = (1000, "test over")

@@ -153,7 +153,11 @@ class SessionActor:
         self._publish(core.sim.frame)
         if self.store is not None and not (restore or reconstructed):
             core.dirty = True
-            core.save(self.store)
+            if not core.save(self.store):  # a new session not in the store is not created (a 201 means it is durable)
+                code, why = core.save_failure or (None, "unknown error")
+                self.failed = ("StoreSaveError", why, None if code is None else str(code))
+                core.close()
+                return
         threading.Thread(target=self._keeper, name="saver", daemon=True).start()
 
     # ------------------------------------------------------------ frames and events

@@ -55,7 +55,7 @@ from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.ray_backend.actor import ACTOR_THREADS, SessionActor
 from hybridmpm.service.ray_backend.registry import ACTOR_PREFIX, REGISTRY_NAME, Registry
-from hybridmpm.service.sessions import QuotaError, Session, SessionCapError, SessionManager, Viewer, close_ws
+from hybridmpm.service.sessions import QuotaError, Session, SessionCapError, SessionManager, StoreSaveError, Viewer, close_ws
 from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, session_key
 from hybridmpm.sim import Rollout
 
@@ -106,6 +106,8 @@ def error_from(kind: str, message: str, name: str | None) -> Exception:
         return CheckpointError(message)
     if kind == "SimulationError":
         return SimulationError(message)
+    if kind == "StoreSaveError":  # the new session's first save failed; ``name`` carries the errno
+        return StoreSaveError((int(name) if name and name.lstrip("-").isdigit() else None, message))
     if kind in _BUILTIN_ERRORS:
         return _BUILTIN_ERRORS[kind](message)
     return HybridMpmError(message)
