@@ -111,6 +111,108 @@ def test_every_benchmark_script_is_listed_in_the_benchmarks_readme():
     assert not missing, f"benchmarks/README.md does not list {missing}"
 
 
+# ------------------------------------------------------------------ the benchmark harness
+#: Scripts that write no file (they print, and their exit status is the result): they need not import the harness.
+BENCH_WRITES_NOTHING = {"compare_errors.py": "prints the comparison; its exit status says whether the errors agree"}
+#: (script, function) that may write a file or name the machine itself, and why.
+BENCH_OWN_WRITES = {
+    ("blender_import.py", "inside"): "runs in Blender's own Python, which has no hybridmpm: it hands its result file to the outer "
+    "process (which writes the summary through the harness) and reports Blender's Python version",
+}
+#: Scripts not on the harness yet, and why (each must still need its entry: a converted script leaves the list).
+BENCH_NOT_YET = {
+    "bench_page.py": "being edited for the page when the harness came; its own header and load readings wait for that to settle",
+    "coarse_ladder.py": "being edited by the calibration work when the harness came; its state files and charts wait for that to settle",
+    "coarse_ladder_rung2.py": "being written by the calibration work when the harness came",
+    "metric_floor.py": "being written by the metrics work when the harness came",
+}
+#: Calls that write a file, by the called attribute's name.
+_WRITING_METHODS = {"write_text", "write_bytes", "savefig"}
+
+
+def _bench_scripts() -> list[Path]:
+    bench = ROOT / "benchmarks"
+    return sorted([*bench.glob("*.py"), *(bench / "release").glob("*.py")])
+
+
+def _bench_offences(text: str) -> list[str]:
+    """What in a benchmark script's source writes a file or describes the
+    machine other than through hybridmpm.bench.harness: ``.write_text``,
+    ``.write_bytes``, ``.savefig``, ``json.dump`` and ``open``/``Path.open``
+    with a mode that writes ("w", "a", "x", "+"); importing ``platform`` or
+    ``hybridmpm.bench.env``, ``os.getloadavg``, ``/proc/cpuinfo`` and
+    ``git rev-parse``. Each as ``function:line: what`` (``<module>`` at the
+    top level)."""
+    found: list[str] = []
+
+    def mode_writes(node: ast.Call, index: int) -> bool:
+        mode = node.args[index] if len(node.args) > index else next((k.value for k in node.keywords if k.arg == "mode"), None)
+        return isinstance(mode, ast.Constant) and isinstance(mode.value, str) and any(c in mode.value for c in "wax+")
+
+    def visit(node: ast.AST, func: str) -> None:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            func = node.name
+        what = None
+        if isinstance(node, ast.Call):
+            f = node.func
+            if isinstance(f, ast.Attribute) and f.attr in _WRITING_METHODS:
+                what = f".{f.attr}()"
+            elif isinstance(f, ast.Attribute) and f.attr == "dump" and isinstance(f.value, ast.Name) and f.value.id == "json":
+                what = "json.dump()"
+            elif isinstance(f, ast.Name) and f.id == "open" and mode_writes(node, 1):
+                what = "open() for writing"
+            elif isinstance(f, ast.Attribute) and f.attr == "open" and not (isinstance(f.value, ast.Name) and f.value.id == "os") and mode_writes(node, 0):
+                what = ".open() for writing"
+            elif isinstance(f, ast.Attribute) and f.attr == "getloadavg":
+                what = "os.getloadavg()"
+        elif isinstance(node, ast.Import) and any(a.name == "platform" for a in node.names):
+            what = "import platform"
+        elif isinstance(node, ast.ImportFrom) and node.module in ("platform", "hybridmpm.bench.env"):
+            what = f"from {node.module} import"
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and ("/proc/cpuinfo" in node.value or "rev-parse" in node.value):
+            what = repr(node.value)
+        if what:
+            found.append(f"{func}:{node.lineno}: {what}")
+        for child in ast.iter_child_nodes(node):
+            visit(child, func)
+
+    visit(ast.parse(text), "<module>")
+    return found
+
+
+def _imports_the_harness(text: str) -> bool:
+    return any(
+        (isinstance(n, ast.ImportFrom) and n.module == "hybridmpm.bench.harness")
+        or (isinstance(n, ast.ImportFrom) and n.module == "hybridmpm.bench" and any(a.name == "harness" for a in n.names))
+        or (isinstance(n, ast.Import) and any(a.name == "hybridmpm.bench.harness" for a in n.names))
+        for n in ast.walk(ast.parse(text))
+    )
+
+
+def test_every_benchmark_script_writes_through_the_one_harness():
+    # The rule: every Python script in benchmarks/ and benchmarks/release/ imports hybridmpm.bench.harness (unless it writes
+    # no file: BENCH_WRITES_NOTHING), and none writes a file itself (.write_text, .write_bytes, .savefig, json.dump, open for
+    # writing) or describes the machine itself (platform, hybridmpm.bench.env, os.getloadavg, /proc/cpuinfo, git rev-parse):
+    # results go through write_results (their JSON with provenance, their Markdown under the command/machine/load header),
+    # other files through write_file/write_json/save_figure, the load through load_average. Exceptions are named with their
+    # reason (BENCH_OWN_WRITES by function, BENCH_NOT_YET by script).
+    offenders, stale = [], []
+    for p in _bench_scripts():
+        rel = str(p.relative_to(ROOT / "benchmarks"))
+        text = p.read_text()
+        found = [o for o in _bench_offences(text) if (rel, o.split(":", 1)[0]) not in BENCH_OWN_WRITES]
+        if not _imports_the_harness(text) and rel not in BENCH_WRITES_NOTHING:
+            found.append("does not import hybridmpm.bench.harness")
+        if rel in BENCH_NOT_YET:
+            stale += [] if found else [rel]
+            continue
+        offenders += [f"benchmarks/{rel}: {o}" for o in found]
+    assert not offenders, "\n".join(offenders)
+    assert not stale, f"on the harness now: remove {stale} from BENCH_NOT_YET"
+    used = {(s, f) for s, f in BENCH_OWN_WRITES if any(o.startswith(f"{f}:") for o in _bench_offences((ROOT / "benchmarks" / s).read_text()))}
+    assert used == set(BENCH_OWN_WRITES), f"BENCH_OWN_WRITES entries no longer needed: {set(BENCH_OWN_WRITES) - used}"
+
+
 # ------------------------------------------------------------------ the import graph
 PACKAGE = ROOT / "python" / "hybridmpm"
 
