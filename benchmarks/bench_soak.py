@@ -277,9 +277,7 @@ def main_restarts(args: argparse.Namespace, seed: int, root: Path) -> None:
         "refusals": rep["refusals"][:50],
         "checks": checks,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "restarts.json").write_text(json.dumps(summary, indent=1))
+    write_results(args.out, "restarts", doc=summary)
     print(json.dumps({k: v for k, v in summary.items() if k not in ("rows", "refusals")}, indent=1))
     if not all(checks.values()):
         raise SystemExit(f"restart soak failed: {[k for k, v in checks.items() if not v]}")
