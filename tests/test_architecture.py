@@ -45,16 +45,15 @@ def test_codes_and_defaults_are_defined_once():
 
 
 def test_the_failure_check_defaults_are_the_conventions():
-    # the simulators' keyword defaults are hybridmpm.conventions' values, not numbers of their own
-    import inspect
+    # the failure checks' defaults (declared once, FailureChecks) are hybridmpm.conventions' values, not numbers of their own
+    import dataclasses
 
     from hybridmpm import conventions
-    from hybridmpm.sim import HybridSimulator, NeuralSimulator
+    from hybridmpm.sim import FailureChecks
 
-    for cls in (NeuralSimulator, HybridSimulator):
-        params = inspect.signature(cls.__init__).parameters
-        for name in ("ke_factor", "escape_cells", "degree_factor"):
-            assert params[name].default == getattr(conventions, f"FAILURE_{name.upper()}"), (cls.__name__, name)
+    defaults = {f.name: f.default for f in dataclasses.fields(FailureChecks)}
+    for name in ("ke_factor", "escape_cells", "degree_factor"):
+        assert defaults[name] == getattr(conventions, f"FAILURE_{name.upper()}"), name
     for p in _sources("python/hybridmpm/sim"):
         assert not re.search(r"(ke_factor|escape_cells|degree_factor): float = \d", p.read_text()), p
 

@@ -10,7 +10,8 @@ from hybridmpm import _core
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import grid_mass
-from hybridmpm.neural.grid import GridRuntime, grid_geometry, model_kind, open_model
+from hybridmpm.neural.base import model_kind, open_model
+from hybridmpm.neural.grid import GridRuntime, grid_geometry
 from hybridmpm.train.grid import GridConfig, GridModel, export_grid, g2p, p2g, stencil
 
 BOUNDS2 = [[0.015625, 0.984375], [0.015625, 0.984375]]

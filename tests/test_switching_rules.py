@@ -57,20 +57,20 @@ def test_the_density_residual_brings_the_audit_forward(water_model):
     # exceeds residual_tol and twice the residual of the stint's last passing audit is audited,
     # whatever the schedule; with audit_max out of reach nothing else is audited but the schedule's
     # steps 0, 2, 6, 14, ... of a stint.
-    from hybridmpm.sim.hybrid import RESIDUAL_GROWTH
+    from hybridmpm.sim.switching import RESIDUAL_GROWTH
 
     scene = make_scene("water2d", seed=1002)
     sim = HybridSimulator(scene, water_model, safeguard="error", audit_tol=1e6, residual_tol=0.3, audit_max=1024, mpm_threads=1)
     seen: list[float] = []
-    orig = sim.neural.propose
+    orig = sim.half.propose
 
-    def spy():
-        p = orig()
+    def spy(checks=None):
+        p = orig(checks)
         corr = sim.particles.fluid(p.positions).astype(np.float64) - sim.particles.fluid(p.predicted)
         seen.append(float(np.sqrt(np.mean(np.sum(corr**2, axis=1)))) / sim.dt_step**2 / G)
         return p
 
-    sim.neural.propose = spy  # type: ignore[method-assign]
+    sim.half.propose = spy  # type: ignore[method-assign]
     ref, k, interval, since, last = 0.0, 0, 1, 0, "mpm"
     triggered = scheduled_only = 0
     for _ in range(100):
@@ -172,3 +172,47 @@ def test_each_scene_runs_the_rule_shipped_with_its_model(water_model):
     if unlisted:
         sim = HybridSimulator(unlisted[0], seed=0, mpm_threads=1)
         assert (sim.safeguard, sim.audit_tol) == (SAFEGUARD, AUDIT_TOL)
+
+
+def test_a_rule_round_trips_through_its_dict_and_the_shipped_table_reads_as_rules(tmp_path):
+    """Each rule's to_dict is what models/switching.json and tune store: from_dict of it gives the
+    same rule (settings, not counters); the shipped table's entries read as the rules they name;
+    make_rule takes the shipped rule's settings only for that rule; a tuned configuration of a hybrid
+    carries its rule to make_simulator's settings."""
+    from hybridmpm.bench.tune import write_tuned
+    from hybridmpm.models import shipped_switching
+    from hybridmpm.sim.config import load_tuned, tuned_settings
+    from hybridmpm.sim.switching import RULES, AuditRule, ErrorRule, PaperRule, SwitchingRule, make_rule
+
+    rules = [
+        PaperRule(r_c=0.7, dwell=3),
+        AuditRule(audit_every=2, audit_tol=0.4, delta=8),
+        ErrorRule(audit_tol=2.0, residual_tol=0.25, audit_max=8, accel_floor=0.5),
+    ]
+    assert sorted(r.name for r in rules) == sorted(RULES)
+    for rule in rules:
+        d = rule.to_dict()
+        assert d["safeguard"] == rule.name and json.loads(json.dumps(d)) == d
+        back = SwitchingRule.from_dict(d)
+        assert type(back) is type(rule) and back == rule and back.to_dict() == d
+        assert back != type(rule)()  # the settings are compared, not just the kind
+    table = json.loads((shipped_model("water2d").parent / "switching.json").read_text())
+    for scene, entry in table.items():
+        rule = SwitchingRule.from_dict(shipped_switching(scene))
+        assert (rule.name, rule.audit_tol) == (entry["safeguard"], entry["audit_tol"])  # type: ignore[attr-defined]
+    shipped = {"safeguard": "error", "audit_tol": 2.0}
+    assert make_rule(shipped=shipped) == ErrorRule(audit_tol=2.0)
+    assert make_rule("error", shipped=shipped, audit_max=4) == ErrorRule(audit_tol=2.0, audit_max=4)
+    assert make_rule("audit", shipped=shipped) == AuditRule()  # another rule: the shipped tolerance is not its
+    assert make_rule("audit", residual_tol=0.3) == AuditRule()  # another rule's setting: checked, not used
+    for bad, field in (({"safeguard": "complexity"}, "safeguard"), ({"audit_tol": -1}, "audit_tol"), ({"gain": 1.0}, "gain")):
+        with pytest.raises(InvalidInputError, match=field):
+            SwitchingRule.from_dict(bad)
+    # a hybrid's tuned configuration: its rule, written by tune, read back as make_simulator's settings
+    row = {"key": "hybrid_err2", "kind": "hybrid", "label": "", "r_p": 0.5714, "r_t": 4, "r_c": 0.8, "model": str(shipped_model("water2d")),
+           "role": "hybrid", "params": 0, "safeguard": "error", "audit_tol": 2.0, "n_grid": None,
+           "error_mean": 0.5, "error_last": 0.6, "ms_mean": 1.0, "ms_median": 1.0, "ms_p95": 1.0, "mpm_share": 0.5}  # fmt: skip
+    doc = write_tuned(tmp_path / "water2d.json", "water2d", 1.0, "error_mean", row, [row], [2000], {})
+    assert load_tuned("water2d", tmp_path / "water2d.json") == doc and doc["config"]["rule"] == ErrorRule(audit_tol=2.0).to_dict()
+    settings = tuned_settings(doc)
+    assert make_rule(**{k: settings[k] for k in ("safeguard", "r_c", "dwell", "audit_tol", "residual_tol", "audit_max")}) == ErrorRule(audit_tol=2.0)

@@ -18,7 +18,7 @@ from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_model, shipped_switching, variant_models
 from hybridmpm.models.calibrated import fit_name, shipped_calibrations
-from hybridmpm.neural.grid import open_model
+from hybridmpm.neural.base import open_model
 from hybridmpm.scenes import scene_spec
 
 #: Hybrid thresholds of the sweep (paper Table 2).

@@ -22,6 +22,7 @@ from typing import Any
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import ROLLOUT_METRICS
 from hybridmpm.sim.config import CONFIG_KEYS
+from hybridmpm.sim.switching import make_rule
 
 
 def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean") -> dict[str, Any]:
@@ -49,13 +50,17 @@ def choose(rows: list[dict[str, Any]], budget: float, metric: str = "error_mean"
 def write_tuned(
     path: Path, scene: str, budget: float, metric: str, chosen: dict[str, Any], rows: list[dict[str, Any]], seeds: list[int], settings: dict[str, Any]
 ) -> dict[str, Any]:
-    """Write the tuned config (the chosen configuration, what it measured, and
-    every candidate) as JSON; returns it."""
+    """Write the tuned config (the chosen configuration, with a hybrid's switching
+    rule as :meth:`~hybridmpm.sim.switching.SwitchingRule.to_dict` writes it; what
+    it measured; every candidate) as JSON; returns it."""
+    config = {k: chosen.get(k) for k in CONFIG_KEYS}
+    if config["kind"] == "hybrid":
+        config["rule"] = make_rule(config.get("safeguard"), r_c=config.get("r_c"), audit_tol=config.get("audit_tol")).to_dict()
     doc = {
         "scene": scene,
         "error_budget": float(budget),
         "metric": metric,
-        "config": {k: chosen.get(k) for k in CONFIG_KEYS},
+        "config": config,
         "measured": {k: chosen[k] for k in ("error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share")},
         "validation_seeds": list(seeds),
         "settings": settings,

@@ -1,6 +1,9 @@
 """Neural physics at run time: exported learned simulators run by numpy +
 onnxruntime (no torch; what simulating with a shipped model needs).
 
+- :mod:`hybridmpm.neural.base` — :class:`~hybridmpm.neural.base.Runtime`, what
+  every learned kind offers at run time, and :func:`~hybridmpm.neural.base.open_model`,
+  the one way to open a model file of any kind;
 - :mod:`hybridmpm.neural.runtime` — :class:`GnsRuntime`, an exported GNS
   (the simulator is :class:`hybridmpm.sim.NeuralSimulator`);
 - :mod:`hybridmpm.neural.fused` — the fused-kernel rewrite of its graph

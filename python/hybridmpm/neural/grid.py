@@ -11,15 +11,15 @@ frames: p2g of the history's counts and velocities
 advection (:func:`hybridmpm._core.grid_advect`) — the same arithmetic as
 :meth:`hybridmpm.train.grid.GridModel.frames` (the tests hold them equal).
 
-:class:`GridRuntime` offers the interface :class:`~hybridmpm.sim.NeuralSimulator`
-uses of a :class:`~hybridmpm.neural.runtime.GnsRuntime` (``meta``, ``dim``,
-``radius``, ``r_t``, ``r_p``, ``t_in``, ``check_fits``, ``predict``) and
-``needs_graph = False``: the simulator then builds no radius graph.
+:class:`GridRuntime` satisfies :class:`hybridmpm.neural.base.Runtime` with
+``needs_graph = False``: the simulator then builds no radius graph and
+relaxes nothing, and :meth:`GridRuntime.packing` measures how densely the
+particles are packed. :func:`hybridmpm.neural.base.open_model` opens a file
+of this kind (its metadata's ``kind``) as a :class:`GridRuntime`.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 from pathlib import Path
@@ -32,7 +32,6 @@ from hybridmpm.conventions import CONNECTIVITY_RADIUS, GNS_KINEMATIC, GNS_SAND, 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid_nodes import MASS_FLOOR, grid_geometry, wall_mask
-from hybridmpm.neural.runtime import GnsRuntime
 
 #: ``kind`` of a grid model in its metadata (GNS files have none).
 GRID_KIND = "grid"
@@ -235,41 +234,4 @@ class GridRuntime:
         return nxt - 2 * h[-1] + h[-2], nxt, None
 
 
-@functools.lru_cache(maxsize=64)
-def _kind_cached(path: str, mtime_ns: int, size: int) -> str:
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-    try:
-        session = ort.InferenceSession(path, opts, providers=["CPUExecutionProvider"])
-    except Exception:  # noqa: BLE001 - not loadable as a plain graph (e.g. a fused GNS): the GNS loader says why
-        return "gns"
-    raw = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
-    try:
-        kind = json.loads(raw).get("kind") if raw else None
-    except (ValueError, AttributeError):
-        kind = None
-    return GRID_KIND if kind == GRID_KIND else "gns"
-
-
-def model_kind(path: str | Path) -> str:
-    """``"grid"`` for a grid model file, ``"gns"`` for anything else (read from
-    its metadata once per file version)."""
-    p = Path(path)
-    if not p.is_file():
-        return "gns"
-    st = p.stat()
-    return _kind_cached(str(p), st.st_mtime_ns, st.st_size)
-
-
-def open_model(path: str | Path, threads: int = 1) -> GnsRuntime | GridRuntime:
-    """The run-time model of an ``.onnx`` file, whichever kind it holds: a
-    :class:`GridRuntime` for a grid model, else a
-    :class:`~hybridmpm.neural.runtime.GnsRuntime` (GNS). Raises as they do."""
-    if model_kind(path) == GRID_KIND:
-        return GridRuntime(path, threads=threads)
-    return GnsRuntime(path, threads=threads)
-
-
-__all__ = ["GRID_INPUT", "GRID_KIND", "GRID_OUTPUT", "MASS_FLOOR", "GridRuntime", "grid_geometry", "model_kind", "open_model", "read_metadata", "wall_mask"]
+__all__ = ["GRID_INPUT", "GRID_KIND", "GRID_OUTPUT", "MASS_FLOOR", "GridRuntime", "grid_geometry", "read_metadata", "wall_mask"]

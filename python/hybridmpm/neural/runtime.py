@@ -155,6 +155,9 @@ class GnsRuntime:
     switches onnxruntime's profiler on (for benchmarks).
     """
 
+    #: Its input is a radius graph of the particles (:class:`hybridmpm.neural.base.Runtime`).
+    needs_graph = True
+
     def __init__(self, path: str | Path, threads: int = 1, spinning: bool | None = None, profile: bool = False, fused: bool | None = None) -> None:
         if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
             raise InvalidInputError(f"threads: must be an integer in [0, 256] (0: onnxruntime's default, one per core), got {threads!r}", "threads")
@@ -300,6 +303,12 @@ class GnsRuntime:
         families = self.meta.get("scenes", [self.meta.get("scene")])
         if scene is not None and families and None not in families and scene not in families:
             raise InvalidInputError(f"model: {self.path.name} was trained for {families}, not {scene!r}", "model")
+
+    def packing(self, positions: np.ndarray, fluid: np.ndarray) -> float:
+        """How densely ``positions`` float32 [N, D] are packed: the mean number of neighbours within
+        R per particle of their radius graph, self-edges included, over all N particles (``fluid`` is
+        not used: the graph's degree, which the network's cost follows, counts every particle)."""
+        return len(radius_graph(positions, self.radius)[0]) / max(1, len(positions))
 
     def predict(
         self,

@@ -4,7 +4,9 @@
 * :class:`NeuralSimulator` — the GNS network alone, after an MPM warm-up
   (paper Sec. 2.2, 3.1.1);
 * :class:`HybridSimulator` — the network by default, MPM while the safeguard
-  ``s(t) < r_c`` or a forcing is set (paper Sec. 3.1.2, 3.2);
+  ``s(t) < r_c`` or a forcing is set (paper Sec. 3.1.2, 3.2); its cheap half
+  is any :class:`CheapHalf` (the network, or MPM on a coarser grid), its
+  switching rule a :class:`SwitchingRule` (:mod:`hybridmpm.sim.switching`);
 * :func:`rollout` — the one frame loop; :func:`reference` — full-resolution
   MPM, the reference of every error.
 
@@ -16,12 +18,14 @@
 """
 
 from hybridmpm.sim.base import MPM, NEURAL, Forcing, ForcingFunction, Frame, NetworkFailure, SimStats, Simulator
+from hybridmpm.sim.cheap import CheapHalf, FailureChecks, Proposal
 from hybridmpm.sim.config import SOLVERS, load_tuned, make_simulator, tuned_settings
-from hybridmpm.sim.hybrid import DWELL, HybridSimulator
+from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
-from hybridmpm.sim.neural import NeuralSimulator, Proposal, warmup_frames
+from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
 from hybridmpm.sim.rollout import Rollout, reference, rollout
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
+from hybridmpm.sim.switching import DWELL, AuditRule, ErrorRule, PaperRule, SwitchingRule, make_rule
 
 __all__ = [
     "ACCEL_FLOOR",
@@ -29,6 +33,10 @@ __all__ = [
     "MPM",
     "NEURAL",
     "SOLVERS",
+    "AuditRule",
+    "CheapHalf",
+    "ErrorRule",
+    "FailureChecks",
     "Forcing",
     "ForcingFunction",
     "Frame",
@@ -36,12 +44,15 @@ __all__ = [
     "MpmSimulator",
     "NetworkFailure",
     "NeuralSimulator",
+    "PaperRule",
     "Proposal",
     "Rollout",
     "SimStats",
     "Simulator",
+    "SwitchingRule",
     "complexity_score",
     "load_tuned",
+    "make_rule",
     "make_simulator",
     "reference",
     "rollout",

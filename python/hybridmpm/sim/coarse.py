@@ -6,10 +6,15 @@ half the resolution stands where the network stood.
 ``r_p``) on the coarse grid and hands them to MPM on the scene's grid and back
 without any conversion: the same particles move between the two grids bit for
 bit (:meth:`~hybridmpm.mpm.MpmSolver.restore_particles`: positions,
-velocities, APIC affine matrices, deformation, J). It offers the hybrid the
-network's protocol — :meth:`propose` a step, :meth:`commit` it — so the
-switching rules (``s(t)`` against ``r_c``, the MPM audit, the error rule)
+velocities, APIC affine matrices, deformation, J). It is a
+:class:`~hybridmpm.sim.cheap.CheapHalf` — :meth:`propose` a step,
+:meth:`commit` it, :meth:`take_over` from MPM, :meth:`hand_back` to it — so
+the switching rules (``s(t)`` against ``r_c``, the MPM audit, the error rule)
 apply unchanged. Any learned cheap half has to beat this one.
+
+No network runs and none is loaded: the twin moves the particle set of a
+network's resolution (``r_p``, ``r_t``, ``T_in``), read from the model file's
+metadata (:func:`hybridmpm.neural.base.read_header`).
 """
 
 from __future__ import annotations
@@ -19,13 +24,15 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.mpm import MpmSolver
+from hybridmpm.neural.base import ModelHeader
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import on_grid
 from hybridmpm.sim.base import reading_state
+from hybridmpm.sim.cheap import FailureChecks, Proposal
 from hybridmpm.sim.mpm import MpmSimulator
-from hybridmpm.sim.neural import Proposal
 
 #: The coarse grid by default: half the scene's grid (64² of 128², 32³ of 64³).
 COARSE_FRACTION = 0.5
@@ -34,34 +41,49 @@ COARSE = "coarse"
 _STATE_VERSION = 1
 
 
+def coarse_grid(scene: Scene, n_grid: int | None) -> int:
+    """The cheap half's grid: ``n_grid``, or (None) :data:`COARSE_FRACTION` of the scene's. Raises
+    :class:`InvalidInputError` (field ``n_grid``) outside [16, the scene's grid]."""
+    n0 = scene.params.resolved_n_grid()
+    n = int(round(COARSE_FRACTION * n0)) if n_grid is None else n_grid
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 16 <= int(n) <= n0:
+        raise InvalidInputError(f"n_grid: the cheap half's grid must be an integer in [16, {n0}] (the scene's), got {n!r}", "n_grid")
+    return int(n)
+
+
 class CoarseMpmHalf:
     """MPM on a coarser grid of ``scene`` (already at the hybrid's ``r_p``),
     ``r_t`` frames per step, with the same particles (``keep_particles``).
 
     ``n_grid`` the coarse grid (default :data:`COARSE_FRACTION` of the
-    scene's); ``threads`` its solver threads. Raises :class:`InvalidInputError`
-    naming ``n_grid`` for a grid the scene refuses
+    scene's); ``threads`` its solver threads; ``t_in`` the trajectory
+    positions the hybrid keeps before handing over to it (the network's
+    ``T_in``: the same warm-up as the paper's hybrid); ``model`` the header
+    of the network whose resolution the particles are at (or None). Raises
+    :class:`InvalidInputError` naming ``n_grid`` for a grid the scene refuses
     (:func:`~hybridmpm.scenes.resolution.on_grid`).
     """
 
     kind = COARSE
+    #: The hybrid's ``cheap`` setting that builds it.
+    name = "mpm-coarse"
 
-    def __init__(self, scene: Scene, *, r_t: int, n_grid: int | None = None, threads: int = 0) -> None:
-        n0 = scene.params.resolved_n_grid()
-        n = int(round(COARSE_FRACTION * n0)) if n_grid is None else n_grid
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 16 <= int(n) <= n0:
-            raise InvalidInputError(f"n_grid: the cheap half's grid must be an integer in [16, {n0}] (the scene's), got {n!r}", "n_grid")
-        self.sim = MpmSimulator(on_grid(scene, int(n), keep_particles=True), r_t=r_t, threads=threads)
-        self.n_grid = int(n)
+    def __init__(self, scene: Scene, *, r_t: int, n_grid: int | None = None, threads: int = 0, t_in: int = T_IN, model: ModelHeader | None = None) -> None:
+        n = coarse_grid(scene, n_grid)
+        self.sim = MpmSimulator(on_grid(scene, n, keep_particles=True), r_t=r_t, threads=threads)
+        self.n_grid = n
         self.particles = self.sim.particles
         self.r_t = r_t
+        self.t_in = t_in
+        self.model = model
         self._before: bytes | None = None  # the state a pending proposal started from
 
-    # ------------------------------------------------------------ the network's protocol
-    def propose(self) -> Proposal:
+    # ------------------------------------------------------------ the cheap half (hybridmpm.sim.cheap)
+    def propose(self, checks: FailureChecks | None = None) -> Proposal:
         """Take ``r_t`` frames on the coarse grid; the step counts once
         committed (a rejected one is left behind: the next hand-over from the
-        fine grid overwrites it). A frame MPM cannot finish is failure "mpm"."""
+        fine grid overwrites it). A frame MPM cannot finish is failure "mpm",
+        its only check (``checks``, the network's, do not apply)."""
         self._before = self.sim.solver.checkpoint()
         try:
             fr = self.sim.advance()
@@ -83,8 +105,14 @@ class CoarseMpmHalf:
         a pending proposal's step (an audit replays it), else the current state."""
         return self._before if self._before is not None else self.sim.solver.checkpoint()
 
-    def take_over(self, fine: MpmSolver) -> None:
-        """Continue from the fine grid's state (same particles, bit for bit).
+    def hand_back(self, fine: MpmSolver, trajectory: np.ndarray | None = None) -> None:
+        """Write :meth:`handover_state` into the fine grid's solver: the same
+        particles, bit for bit (``trajectory`` is not needed)."""
+        fine.restore_particles(self.handover_state())
+
+    def take_over(self, fine: MpmSolver, trajectory: np.ndarray | None = None) -> None:
+        """Continue from the fine grid's state (same particles, bit for bit;
+        ``trajectory`` is not needed).
 
         The one exception: the coarse solver's domain ``[dx, 1 − dx]`` is a
         fine cell narrower at each side than the fine one's, and a particle
@@ -118,7 +146,7 @@ class CoarseMpmHalf:
     def state(self) -> dict[str, Any]:
         return {"kind": self.kind, "version": _STATE_VERSION, "n_grid": self.n_grid, "mpm": self.sim.state()}
 
-    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+    def prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
         with reading_state("CoarseMpmHalf"):
             if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or state.get("n_grid") != self.n_grid:
                 raise InvalidInputError("state: not a state of this coarse-grid half (kind, version or grid differ)", "state")
@@ -131,4 +159,4 @@ class CoarseMpmHalf:
         return commit
 
 
-__all__ = ["COARSE", "COARSE_FRACTION", "CoarseMpmHalf"]
+__all__ = ["COARSE", "COARSE_FRACTION", "CoarseMpmHalf", "coarse_grid"]

@@ -9,18 +9,22 @@ import json
 from pathlib import Path
 from typing import Any
 
-from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, R_C, RESIDUAL_TOL
+from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.sim.base import Simulator
-from hybridmpm.sim.hybrid import DWELL, HybridSimulator
+from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator
+from hybridmpm.sim.switching import SwitchingRule
 
 #: Solver kinds :func:`make_simulator` builds.
 SOLVERS = ("hybrid", "mpm", "neural")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
+#: The rule settings :func:`make_simulator` takes (the rest of a rule's
+#: :meth:`~hybridmpm.sim.switching.SwitchingRule.to_dict` are the defaults).
+RULE_KEYS = ("safeguard", "r_c", "dwell", "audit_every", "audit_tol", "residual_tol", "audit_max")
 #: Keys of a configuration (the chosen method) in the tuned file.
 CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid", "calibrated")
 
@@ -86,13 +90,14 @@ def make_simulator(
     return HybridSimulator(
         scene,
         model,
+        # None: the shipped model's rule or the defaults (hybridmpm.sim.switching.make_rule)
         r_c=r_c,
-        dwell=DWELL if dwell is None else dwell,
-        audit_every=AUDIT_EVERY if audit_every is None else audit_every,
-        audit_tol=audit_tol,  # None: the shipped model's rule or the default (HybridSimulator)
+        dwell=dwell,
+        audit_every=audit_every,
+        audit_tol=audit_tol,
         safeguard=safeguard,
-        residual_tol=RESIDUAL_TOL if residual_tol is None else residual_tol,
-        audit_max=AUDIT_MAX if audit_max is None else audit_max,
+        residual_tol=residual_tol,
+        audit_max=audit_max,
         seed=seed,
         mpm_threads=threads,
         nn_threads=nn_threads,
@@ -132,14 +137,19 @@ def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
 def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of a tuned configuration
     (``solver``, and ``r_p``, ``n_grid`` and ``calibrated`` where set, or ``model`` and ``r_c``, and the hybrid's
-    ``safeguard`` and ``audit_tol`` where the configuration sets them)."""
+    rule: its ``rule`` (a :meth:`~hybridmpm.sim.switching.SwitchingRule.to_dict`), or in
+    configurations tuned before that was written, ``safeguard`` and ``audit_tol`` where set).
+    Raises :class:`InvalidInputError` naming a bad rule setting."""
     cfg = doc["config"]
     if cfg["kind"] == "mpm":
         # configurations tuned before grids were a knob ran on the scene's grid
         mpm: dict[str, Any] = {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
         return {**mpm, "calibrated": True} if cfg.get("calibrated") else mpm  # a calibrated coarse material (docs/correction.md)
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
-    if cfg["kind"] == "hybrid":
+    if cfg["kind"] == "hybrid" and cfg.get("rule"):
+        rule = SwitchingRule.from_dict(cfg["rule"]).to_dict()
+        out.update({k: rule[k] for k in RULE_KEYS if k in rule})
+    elif cfg["kind"] == "hybrid":
         out["r_c"] = float(cfg["r_c"])
         # configurations tuned before the switching rules existed have neither: the defaults
         if cfg.get("safeguard"):
@@ -149,4 +159,4 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-__all__ = ["CONFIG_KEYS", "SOLVERS", "TUNED_DIR", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]
+__all__ = ["CONFIG_KEYS", "RULE_KEYS", "SOLVERS", "TUNED_DIR", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]

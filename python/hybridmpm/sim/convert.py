@@ -19,10 +19,12 @@ its trajectory, whichever solver made them, and the newest entry is the MPM
 solver's current positions (bit-exact).
 
 Particles keep their order and count both ways (none lost or duplicated).
+
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -125,6 +127,31 @@ def velocities_from_history(history: np.ndarray, dt_step: float, velocity: str =
     return v.astype(np.float32)
 
 
+@dataclass(frozen=True)
+class Conversion:
+    """How a network's state is converted for MPM (:func:`neural_to_mpm`; docs/hybrid.md "State
+    conversion"): ``affine`` APIC ``C`` "fit" (least squares of the neighbours' velocities) or "zero";
+    ``volume_ratio`` water's ``J`` "density" (from the local density) or "one"; ``velocity`` "last"
+    (the last finite difference) or "second" (:func:`velocities_from_history`). Raises
+    :class:`InvalidInputError` naming the field."""
+
+    affine: str = "fit"
+    volume_ratio: str = "density"
+    velocity: str = "last"
+
+    def __post_init__(self) -> None:
+        if self.affine not in ("fit", "zero"):
+            raise InvalidInputError(f"affine: must be 'fit' or 'zero', got {self.affine!r}", "affine")
+        if self.volume_ratio not in ("density", "one"):
+            raise InvalidInputError(f"volume_ratio: must be 'density' or 'one', got {self.volume_ratio!r}", "volume_ratio")
+        if self.velocity not in VELOCITY_ESTIMATES:
+            raise InvalidInputError(f"velocity: must be one of {', '.join(map(repr, VELOCITY_ESTIMATES))}, got {self.velocity!r}", "velocity")
+
+    def settings(self) -> dict[str, str]:
+        """The keyword arguments of :func:`neural_to_mpm` it stands for."""
+        return {"affine": self.affine, "volume_ratio": self.volume_ratio, "velocity": self.velocity}
+
+
 def neural_to_mpm(
     solver: MpmSolver,
     history: np.ndarray,
@@ -193,6 +220,8 @@ def mpm_history(current: np.ndarray, kept: np.ndarray, t_in: int) -> np.ndarray:
 
 
 __all__ = [
+    "VELOCITY_ESTIMATES",
+    "Conversion",
     "bspline_weights",
     "estimate_volume_ratio",
     "fit_affine",

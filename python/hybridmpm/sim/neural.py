@@ -33,7 +33,7 @@ particle at most 3R/4, short of undoing such a collapse, and the step would
 otherwise fail "compressed" (sand2d seed 0 did at frame 96). Steps that
 are not packed so (all others) cost nothing more.
 
-Failure checks (``detect_failures``, on by default): a step that predicts a
+Failure checks (:class:`~hybridmpm.sim.cheap.FailureChecks`, on by default): a step that predicts a
 non-finite position ("nan"), moves a particle more than ``escape_cells``
 cells beyond the model's bounds farther than its own last step carries it
 ("escaped": a particle on a wall that keeps its speed lands beyond the wall
@@ -49,24 +49,35 @@ graph — hence the cost — grows with the packing) is rejected:
 :meth:`~NeuralSimulator.advance` raises :class:`~hybridmpm.sim.base.NetworkFailure`
 and leaves the state unchanged; the hybrid uses :meth:`propose` /
 :meth:`commit` to fall back to MPM instead.
+
+Any learned kind runs here through :class:`hybridmpm.neural.base.Runtime`:
+a kind whose input is a radius graph (``needs_graph``, the GNS) gets the
+graph, the density relaxation and the degree check; one that moves the
+particles through its own grid (the grid model) is only clipped, and its
+:meth:`~hybridmpm.neural.base.Runtime.packing` is checked instead.
+
+In the hybrid the simulator is the cheap half of the paper's hybrid
+(:class:`hybridmpm.sim.cheap.CheapHalf`): :meth:`NeuralSimulator.take_over`
+starts it from MPM's trajectory, :meth:`NeuralSimulator.hand_back` converts
+its state for MPM (:class:`~hybridmpm.sim.convert.Conversion`).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import FAILURE_DEGREE_FACTOR, FAILURE_ESCAPE_CELLS, FAILURE_KE_FACTOR
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
-from hybridmpm.models import shipped_model
-from hybridmpm.neural.grid import GridRuntime, open_model
-from hybridmpm.neural.runtime import GnsRuntime, Graph
+from hybridmpm.mpm import MpmSolver
+from hybridmpm.neural.base import Runtime, open_model
+from hybridmpm.neural.runtime import Graph
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.resolution import at_resolution
@@ -84,6 +95,8 @@ from hybridmpm.sim.base import (
     reading_state,
     serialised,
 )
+from hybridmpm.sim.cheap import FailureChecks, Proposal
+from hybridmpm.sim.convert import Conversion, mpm_history, neural_to_mpm
 from hybridmpm.sim.mpm import MpmSimulator
 
 _STATE_VERSION = 1
@@ -98,43 +111,6 @@ RELAX_AGAIN_DEGREE = 1.5
 RELAX_MAX_ROUNDS = 8
 
 
-def load_model(model: GnsRuntime | GridRuntime | str | Path | None, scene_name: str | None, threads: int = 1) -> GnsRuntime | GridRuntime:
-    """``model`` as a run-time model: itself, loaded from an ``.onnx`` path
-    (a :class:`~hybridmpm.neural.grid.GridRuntime` for a grid model, else a
-    GNS :class:`GnsRuntime`), or (None) the shipped model of
-    ``scene_name``. Raises :class:`InvalidInputError` (field ``model``;
-    ``nn_threads`` for ``threads`` outside [0, 256]). ``threads``
-    onnxruntime threads (0: one per core; more than one also spins a GNS's
-    threads, see :class:`GnsRuntime`)."""
-    if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
-        raise InvalidInputError(f"nn_threads: must be an integer in [0, 256], got {threads!r}", "nn_threads")
-    if isinstance(model, (GnsRuntime, GridRuntime)):
-        return model
-    if model is None:
-        if scene_name is None:
-            raise InvalidInputError("model: no model given and the scene has no name to find a shipped one", "model")
-        model = shipped_model(scene_name)
-    return open_model(model, threads=threads)
-
-
-@dataclass
-class Proposal:
-    """A network step not yet taken (:meth:`NeuralSimulator.propose`).
-
-    ``acceleration`` and ``predicted`` float32 [N + B, D] (raw network output);
-    ``positions`` the prediction clipped to the domain (None if rejected
-    before clipping); ``graph`` the radius graph of ``positions`` (senders,
-    receivers, displacement, distance; :data:`hybridmpm.neural.runtime.Graph`),
-    reused by the next step; ``failure`` None or the failure mode.
-    """
-
-    acceleration: np.ndarray
-    predicted: np.ndarray
-    positions: np.ndarray | None
-    graph: Graph | None
-    failure: str | None
-
-
 class NeuralSimulator:
     """The GNS network alone (after an MPM warm-up), one model step per :meth:`advance`.
 
@@ -145,10 +121,15 @@ class NeuralSimulator:
         name / scene file built with ``seed``), or one already at the model's
         ``r_p``; clustered to the model's ``r_p`` with ``seed``.
     model:
-        :class:`~hybridmpm.neural.GnsRuntime`, ``.onnx`` path, or None for the
-        shipped model of the scene.
-    detect_failures, ke_factor, escape_cells, degree_factor:
-        The failure checks (module doc). Off: every prediction is taken.
+        A run-time model of any learned kind (:class:`~hybridmpm.neural.base.Runtime`),
+        an ``.onnx`` path (:func:`~hybridmpm.neural.base.open_model`), or None for
+        the shipped model of the scene.
+    checks, detect_failures:
+        The failure checks (:class:`~hybridmpm.sim.cheap.FailureChecks`; None: the
+        defaults); ``detect_failures=False`` turns them off (every prediction is taken).
+    conversion:
+        How :meth:`hand_back` converts the network's state for MPM
+        (:class:`~hybridmpm.sim.convert.Conversion`; None: the defaults).
     clamp:
         Clip predicted positions to the model's domain bounds (the walls,
         which the network sees only through its wall-distance features).
@@ -173,17 +154,18 @@ class NeuralSimulator:
     """
 
     kind = NEURAL
+    #: The hybrid's ``cheap`` setting that makes this simulator its cheap half (:class:`~hybridmpm.sim.cheap.CheapHalf`).
+    name = "neural"
 
     def __init__(
         self,
         scene: Scene | str,
-        model: GnsRuntime | GridRuntime | str | Path | None = None,
+        model: Runtime | str | Path | None = None,
         *,
         seed: int = 0,
+        checks: FailureChecks | None = None,
         detect_failures: bool = True,
-        ke_factor: float = FAILURE_KE_FACTOR,
-        escape_cells: float = FAILURE_ESCAPE_CELLS,
-        degree_factor: float = FAILURE_DEGREE_FACTOR,
+        conversion: Conversion | None = None,
         clamp: bool = True,
         warmup: bool = True,
         relax: int = RELAX_ITERATIONS,
@@ -193,17 +175,12 @@ class NeuralSimulator:
         nn_threads: int = 1,
         clusters: Clusters | None = None,
     ) -> None:
-        import math
-
         self._lock = new_lock()
-        for name, v, lo, closed in (
-            ("ke_factor", ke_factor, 0.0, False),
-            ("escape_cells", escape_cells, 0.0, True),
-            ("degree_factor", degree_factor, 1.0, False),
-        ):
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v >= lo if closed else v > lo)
-            if not ok:
-                raise InvalidInputError(f"{name}: must be a finite number {'>=' if closed else '>'} {lo:g}, got {v!r}", name)
+        checks = FailureChecks() if checks is None else checks
+        #: The failure checks of :meth:`propose` (the hybrid passes its own).
+        self.checks = checks if detect_failures else replace(checks, detect_failures=False)
+        #: How :meth:`hand_back` converts the state for MPM.
+        self.conversion = Conversion() if conversion is None else conversion
         if max_neighbors is not None:
             check_int("max_neighbors", max_neighbors, 1)
         check_int("relax", relax, 0)
@@ -214,14 +191,10 @@ class NeuralSimulator:
             raise InvalidInputError(f"rest_percentile: must be a number in (0, 100], got {rest_percentile!r}", "rest_percentile")
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
-        self.model = load_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
+        self.model: Runtime = open_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.scene_full = scene
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)
         self.model.check_fits(self.scene.dim, self.scene.particle_type(), scene.name)
-        self.detect_failures = bool(detect_failures)
-        self.ke_factor = float(ke_factor)
-        self.escape_cells = float(escape_cells)
-        self.degree_factor = float(degree_factor)
         self.clamp = bool(clamp)
         self.max_neighbors = max_neighbors
         self.r_t = self.model.r_t
@@ -249,7 +222,7 @@ class NeuralSimulator:
         self._escape: tuple[np.ndarray, np.ndarray] = (self._lo, self._hi)
         x0b = self.particles.pad(np.asarray(self.scene.positions, np.float32))
         self._degree0 = len(radius_graph(x0b, self.model.radius)[0]) / max(1, len(x0b))
-        self._packing0 = self.model.packing(x0b, np.asarray(self.particles.fluid_mask)) if isinstance(self.model, GridRuntime) else 0.0
+        self._packing0 = self.model.packing(x0b, np.asarray(self.particles.fluid_mask))
         self.relax = relax
         self._movable = np.ascontiguousarray(self.particles.fluid_mask)
         rho = kernel_density(x0b, self.model.radius)[self._movable]
@@ -297,6 +270,14 @@ class NeuralSimulator:
         return self._history is None
 
     @property
+    def detect_failures(self) -> bool:
+        return self.checks.detect_failures
+
+    @property
+    def escape_cells(self) -> float:
+        return self.checks.escape_cells
+
+    @property
     def initial_degree(self) -> float:
         """Mean neighbours per particle within R of the initial condition (self-edge included)."""
         return float(self._degree0)
@@ -339,32 +320,33 @@ class NeuralSimulator:
         self._warmup = None
         self._warm = []
 
-    def _failure(self, nxt: np.ndarray) -> str | None:
+    def _failure(self, nxt: np.ndarray, checks: FailureChecks | None = None) -> str | None:
         assert self._history is not None
+        checks = self.checks if checks is None else checks
         n = self.particles.num_fluid
         fluid = nxt[:n]
         flat = fluid.reshape(-1)  # contiguous: one long comparison, not [N, D] against [D]
         if not np.isfinite(flat).all():
             return "nan"
-        lo, hi = self._escape_bounds(n)
+        lo, hi = self._escape_bounds(n, checks.escape_cells)
         if (flat < lo).any() or (flat > hi).any():
             # beyond the margin: escaped only if farther than the particle's own last step would carry it (module doc)
             last = self._history[-1, :n]
-            carry = np.abs(last - self._history[-2, :n]).max(axis=1, keepdims=True) + np.float32(self.escape_cells * self._dx)
+            carry = np.abs(last - self._history[-2, :n]).max(axis=1, keepdims=True) + np.float32(checks.escape_cells * self._dx)
             if ((fluid < self._lo - carry) | (fluid > self._hi + carry)).any():
                 return "escaped"
         d = fluid.astype(np.float64)
         d -= self._history[-1, :n]
         ke = 0.5 * float(self._masses @ np.einsum("ij,ij->i", d, d)) / self.dt_step**2
-        if ke > self.ke_factor * self.energy_budget:
+        if ke > checks.ke_factor * self.energy_budget:
             return "energy"
         return None
 
-    def _escape_bounds(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+    def _escape_bounds(self, n: int, escape_cells: float) -> tuple[np.ndarray, np.ndarray]:
         """The model's bounds widened by ``escape_cells`` cells, float32, each
         repeated for ``n`` particles ([n·D], the layout of a flattened [n, D]
         array); made again only when ``n`` or the margin changes."""
-        margin = self.escape_cells * self._dx
+        margin = escape_cells * self._dx
         if self._escape_key != (n, margin):
             self._escape = (np.tile(self._lo - margin, n), np.tile(self._hi + margin, n))
             self._escape_key = (n, margin)
@@ -379,52 +361,54 @@ class NeuralSimulator:
         return nxt
 
     @serialised
-    def propose(self) -> Proposal:
-        """Predict the next network step without taking it (failure checks
-        included when ``detect_failures``). Raises :class:`InvalidInputError`
-        (field ``history``) during the warm-up."""
+    def propose(self, checks: FailureChecks | None = None) -> Proposal:
+        """Predict the next network step without taking it, under ``checks``
+        (None: :attr:`checks`). Raises :class:`InvalidInputError` (field
+        ``history``) during the warm-up."""
+        checks = self.checks if checks is None else checks
         if self._history is None:
             raise InvalidInputError("history: the network has no position history yet (warm-up not finished; see set_history)", "history")
         acc, nxt, used = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
         self.last_edges = 0 if used is None else int(len(used[0]))
         self._next_graph = None
-        failure = self._failure(nxt) if self.detect_failures else None
-        clipped: np.ndarray | None = None
-        graph: Graph | None = None
-        if failure is None and isinstance(self.model, GridRuntime):
-            # a grid model moves particles through the grid and clips them itself: no relaxation, no graph;
-            # its packing is the mass-weighted mean particle count per node
+        failure = self._failure(nxt, checks) if checks.detect_failures else None
+        if failure is not None:
+            return Proposal(acc, nxt, None, None, failure)
+        if self.model.needs_graph:
+            clipped, built = self._settle(nxt)
+            packed = checks.detect_failures and len(built[0]) > checks.degree_factor * self._degree0 * len(clipped)
+        else:
+            # a kind that moves particles through its own grid clips them itself: no relaxation, no graph;
+            # its packing (the grid model's: the mass-weighted mean particle count per node) is checked instead
+            clipped, built = self._clip(nxt), None
+            packed = checks.detect_failures and self.model.packing(clipped, self._movable) > checks.degree_factor * self._packing0
+        return Proposal(acc, nxt, clipped, None, "compressed") if packed else Proposal(acc, nxt, clipped, built, None)
+
+    def _settle(self, nxt: np.ndarray) -> tuple[np.ndarray, Graph]:
+        """A graph kind's prediction clipped, relaxed (module doc) and clipped
+        again, with the radius graph of the result (the next step's input)."""
+        if not self.relax:
             clipped = self._clip(nxt)
-            if self.detect_failures and self.model.packing(clipped, self._movable) > self.degree_factor * self._packing0:
-                failure = "compressed"
-        elif failure is None:
-            if self.relax:
-                # clipped, relaxed, clipped again, and the next step's graph (one
-                # Rust call: the graph reuses the relaxation's neighbour lists
-                # where few particles moved)
-                bounds = (self._lo, self._hi) if self.clamp else None
-                clipped, self.last_relaxed, _, clamped, built = relax_then_graph(
-                    nxt, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
-                )
-                rounds = 1
-                # an impact the network squashed into a wall: relax on until the packing is back near the initial one
-                while rounds <= RELAX_MAX_ROUNDS and len(built[0]) > RELAX_AGAIN_DEGREE * self._degree0 * len(clipped):
-                    clipped, _, _, more, built = relax_then_graph(
-                        clipped, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
-                    )
-                    clamped += more
-                    rounds += 1
-                self.last_relax_rounds = rounds
-                if self.clamp:
-                    self.last_clamped = clamped
-            else:
-                clipped = self._clip(nxt)
-                built = radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
-            if self.detect_failures and len(built[0]) > self.degree_factor * self._degree0 * len(clipped):
-                failure = "compressed"
-            else:
-                graph = built
-        return Proposal(acc, nxt, clipped, graph, failure)
+            return clipped, radius_graph(clipped, self.model.radius, max_neighbors=self.max_neighbors)
+        # clipped, relaxed, clipped again, and the next step's graph (one
+        # Rust call: the graph reuses the relaxation's neighbour lists
+        # where few particles moved)
+        bounds = (self._lo, self._hi) if self.clamp else None
+        clipped, self.last_relaxed, _, clamped, built = relax_then_graph(
+            nxt, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
+        )
+        rounds = 1
+        # an impact the network squashed into a wall: relax on until the packing is back near the initial one
+        while rounds <= RELAX_MAX_ROUNDS and len(built[0]) > RELAX_AGAIN_DEGREE * self._degree0 * len(clipped):
+            clipped, _, _, more, built = relax_then_graph(
+                clipped, self._movable, self.model.radius, self.rest_density, self.relax, bounds=bounds, max_neighbors=self.max_neighbors
+            )
+            clamped += more
+            rounds += 1
+        self.last_relax_rounds = rounds
+        if self.clamp:
+            self.last_clamped = clamped
+        return clipped, built
 
     @serialised
     def commit(self, proposal: Proposal) -> np.ndarray:
@@ -469,6 +453,22 @@ class NeuralSimulator:
             self.set_history(np.stack(self._warm))
         return fr
 
+    # ------------------------------------------------------------ the hybrid's cheap half
+    def take_over(self, fine: MpmSolver, trajectory: np.ndarray) -> None:
+        """Start from MPM (:class:`~hybridmpm.sim.cheap.CheapHalf`): the history
+        is the last ``T_in − 1`` positions of ``trajectory`` float32 [T, N, D]
+        before the current ones, which are taken from MPM's solver ``fine`` bit
+        for bit (:func:`~hybridmpm.sim.convert.mpm_history`)."""
+        self.set_history(mpm_history(fine.positions, trajectory[-self.t_in : -1], self.t_in))
+
+    def hand_back(self, fine: MpmSolver, trajectory: np.ndarray) -> None:
+        """Convert the state of the last network step into MPM's solver ``fine``
+        (:class:`~hybridmpm.sim.cheap.CheapHalf`): from the last positions of
+        ``trajectory`` float32 [T, N, D] (that step's and those before it), as
+        :attr:`conversion` says, with the model's R for the ``C`` fit
+        (:func:`~hybridmpm.sim.convert.neural_to_mpm`)."""
+        neural_to_mpm(fine, trajectory[-3:], self.dt_step, affine_radius=self.model.radius, **self.conversion.settings())
+
     # ------------------------------------------------------------ checkpoint
     @serialised
     def state(self) -> dict[str, Any]:
@@ -494,9 +494,9 @@ class NeuralSimulator:
         ``step_index`` within :data:`~hybridmpm.limits.MAX_FRAME_INDEX`
         frames): raises :class:`InvalidInputError` (field ``state``…) for a
         foreign or malformed state, and this simulator is then unchanged."""
-        self._prepare_restore(state)()
+        self.prepare_restore(state)()
 
-    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+    def prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
         """Validate ``state`` whole without changing anything; returns the
         commit, which cannot fail."""
         with reading_state("NeuralSimulator"):
@@ -534,9 +534,9 @@ class NeuralSimulator:
         return commit
 
 
-def warmup_frames(model: GnsRuntime) -> int:
+def warmup_frames(model: Runtime) -> int:
     """MPM frames needed before the first network step: ``(T_in − 1)·r_t``."""
     return (model.t_in - 1) * model.r_t
 
 
-__all__ = ["NeuralSimulator", "Proposal", "load_model", "warmup_frames"]
+__all__ = ["RELAX_AGAIN_DEGREE", "RELAX_ITERATIONS", "RELAX_MAX_ROUNDS", "REST_PERCENTILE", "NeuralSimulator", "Proposal", "warmup_frames"]
