@@ -640,3 +640,42 @@ def test_the_hybrid_names_no_cheap_half_kind():
     cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "HybridSimulator")
     names = {n.id for n in ast.walk(cls) if isinstance(n, ast.Name)}
     assert not names & {"NeuralSimulator", "CoarseMpmHalf", "GnsRuntime", "GridRuntime"}
+
+
+def test_the_twin_can_carry_its_grids_own_particles_merged_and_split_at_each_handover():
+    """cheap_particles="grid": the coarse grid carries as many particles as plain MPM puts on it, each a
+    group of the hybrid's. A merge conserves mass, centre of mass and momentum (as the r_p clustering
+    does); a split right after it puts every particle back where it was (but for a group centred in the
+    strip the coarse domain leaves out: less than a cell), with the group's affine
+    velocity, and the merge's reported error is exactly the velocity that field does not carry."""
+    from hybridmpm.scenes.resolution import on_grid
+    from hybridmpm.sim.convert import merge_state, split_state
+
+    twin = HybridSimulator("water2d", seed=1006, cheap="mpm-coarse", cheap_particles="grid", mpm_threads=1)
+    half = twin.half
+    assert half.sim.particles.num_fluid == on_grid(twin.scene_full, 64).num_particles < twin.n_fluid
+    ro = rollout(twin, 80)
+    assert ro.stats["steps"]["coarse"] > 0 and half.conversions >= 1 and ro.positions.shape[1] == twin.particles.num_total
+    # a merge of MPM's own state, by hand against the sums
+    fine = twin.mpm.solver
+    coarse = half.sim.solver
+    m, v, x = (np.asarray(a, np.float64) for a in (fine.masses, fine.velocities, fine.positions))
+    offsets, residual = merge_state(fine, coarse, half.labels)
+    mc = np.asarray(coarse.masses, np.float64)
+    np.testing.assert_allclose(mc.sum(), m.sum(), rtol=1e-6)
+    np.testing.assert_allclose((mc[:, None] * np.asarray(coarse.velocities, np.float64)).sum(0), (m[:, None] * v).sum(0), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose((mc[:, None] * np.asarray(coarse.positions, np.float64)).sum(0), (m[:, None] * x).sum(0), rtol=1e-5)
+    before = fine.checkpoint()
+    split_state(coarse, fine, half.labels, offsets)
+    moved = np.abs(np.asarray(fine.positions, np.float64) - x).max(axis=1)
+    assert moved.max() < 1 / 128 and np.mean(moved < 1e-6) > 0.95  # only a group whose centre was in the fine grid's outer strip moves (clipped)
+    carried = np.asarray(fine.velocities, np.float64)
+    assert residual == pytest.approx(float(np.sqrt((m * ((v - carried) ** 2).sum(1)).sum() / m.sum())), rel=1e-3, abs=1e-9)
+    fine.restore(before)
+    # a checkpoint round trip, and the default twin (the network's particles) untouched
+    st = twin.state()
+    a = rollout(twin, 12).positions
+    twin.restore(st)
+    assert np.array_equal(rollout(twin, 12).positions, a)
+    with pytest.raises(InvalidInputError, match="cheap_particles"):
+        HybridSimulator("water2d", seed=1006, cheap="mpm-coarse", cheap_particles="some")

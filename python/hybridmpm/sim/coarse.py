@@ -32,6 +32,7 @@ from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import on_grid
 from hybridmpm.sim.base import reading_state
 from hybridmpm.sim.cheap import FailureChecks, Proposal
+from hybridmpm.sim.convert import merge_state, split_state
 from hybridmpm.sim.mpm import MpmSimulator
 
 #: The coarse grid by default: half the scene's grid (64² of 128², 32³ of 64³).
@@ -159,4 +160,103 @@ class CoarseMpmHalf:
         return commit
 
 
-__all__ = ["COARSE", "COARSE_FRACTION", "CoarseMpmHalf", "coarse_grid"]
+class CoarseOwnHalf:
+    """MPM on a coarser grid with the grid's own particle set as the hybrid's cheap half: the classical
+    twin carrying fewer particles than the hybrid's (``particles="grid"``; docs/hybrid.md).
+
+    ``scene`` the hybrid's particle set (the scene at ``r_p``); ``coarse`` the coarse grid's scene,
+    each of its particles a group of ``scene``'s (``labels`` int64 [N], values ``0 .. N_c − 1``: the
+    ``r_p`` clustering of ``scene`` to the count plain MPM puts on that grid), on its grid. A take-over
+    merges the hybrid's particles into their groups and a hand-back splits them again
+    (:func:`~hybridmpm.sim.convert.merge_state`, :func:`~hybridmpm.sim.convert.split_state`); each
+    proposal's positions are the split of the coarse state (each particle at its group's position
+    plus its offset, the offsets carried along by the group's APIC ``C``). ``conversions`` counts the
+    merges and ``merge_residual`` [m/s] is the last one's measured error (the fine velocities the
+    groups' affine fields do not carry). ``r_t``, ``threads``, ``t_in``, ``model`` as for
+    :class:`CoarseMpmHalf`."""
+
+    kind = COARSE
+    name = "mpm-coarse"
+
+    def __init__(
+        self, scene: Scene, coarse: Scene, labels: np.ndarray, *, r_t: int, threads: int = 0, t_in: int = T_IN, model: ModelHeader | None = None
+    ) -> None:
+        self.sim = MpmSimulator(coarse, r_t=r_t, threads=threads)
+        self.fine = scene.make_solver(num_threads=1)  # the hybrid's particles, for the split's fields and the padding
+        self.particles = scene.particles(self.fine.masses)
+        self.labels = np.asarray(labels, np.int64)
+        self.n_grid = int(coarse.params.resolved_n_grid())
+        self.r_t, self.t_in, self.model = r_t, t_in, model
+        self.dt_step = float(scene.dt_frame) * r_t
+        self.offsets = np.zeros((self.particles.num_fluid, scene.dim))
+        self.conversions = 0
+        self.merge_residual = float("nan")
+        self._before: tuple[bytes, np.ndarray] | None = None  # the coarse state and offsets a pending proposal started from
+        self._pending = self.offsets  # the offsets after a pending proposal
+
+    def _split(self, offsets: np.ndarray) -> np.ndarray:
+        split_state(self.sim.solver, self.fine, self.labels, offsets)
+        return np.asarray(self.fine.positions, np.float32)
+
+    def propose(self, checks: FailureChecks | None = None) -> Proposal:
+        """``r_t`` frames on the coarse grid, reported split onto the hybrid's particles; a frame MPM cannot finish is failure "mpm"."""
+        self._before = (self.sim.solver.checkpoint(), self.offsets)
+        try:
+            self.sim.advance()
+        except SimulationError:
+            self.sim.solver.restore(self._before[0])
+            return Proposal(np.zeros(0), np.zeros(0), None, None, "mpm")
+        aff = np.asarray(self.sim.solver.affine, np.float64)[self.labels]
+        self._pending = self.offsets + self.dt_step * np.einsum("nij,nj->ni", aff, self.offsets)  # carried by the group's affine field
+        pos = self.particles.pad(self._split(self._pending))
+        return Proposal(np.zeros(0), pos, pos, None, None)
+
+    def commit(self, proposal: Proposal) -> np.ndarray:
+        if proposal.failure is not None or proposal.positions is None:
+            raise InvalidInputError(f"proposal: a rejected step ({proposal.failure}) cannot be committed", "proposal")
+        self.offsets, self._before = self._pending, None
+        return proposal.positions
+
+    def hand_back(self, fine: MpmSolver, trajectory: np.ndarray | None = None) -> None:
+        """Split the state of the last committed step (the start of a pending proposal) into ``fine``."""
+        if self._before is None:
+            split_state(self.sim.solver, fine, self.labels, self.offsets)
+            return
+        now = self.sim.solver.checkpoint()
+        self.sim.solver.restore(self._before[0])
+        split_state(self.sim.solver, fine, self.labels, self._before[1])
+        self.sim.solver.restore(now)
+
+    def take_over(self, fine: MpmSolver, trajectory: np.ndarray | None = None) -> None:
+        """Merge ``fine``'s particles into their groups on the coarse grid (``fine`` is left as it was)."""
+        self.offsets, self.merge_residual = merge_state(fine, self.sim.solver, self.labels)
+        self.conversions += 1
+        self._before = None
+
+    @property
+    def velocities(self) -> np.ndarray:
+        split_state(self.sim.solver, self.fine, self.labels, self.offsets)
+        return np.asarray(self.fine.velocities, np.float32)
+
+    mean_degree = initial_degree = property(lambda self: float("nan"))
+
+    def state(self) -> dict[str, Any]:
+        return {"kind": self.kind, "version": _STATE_VERSION, "n_grid": self.n_grid, "mpm": self.sim.state(), "offsets": self.offsets.copy()}
+
+    def prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+        with reading_state("CoarseOwnHalf"):
+            if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("n_grid") != self.n_grid or "offsets" not in state:
+                raise InvalidInputError("state: not a state of this coarse-grid half with its own particles", "state")
+            offsets = np.asarray(state["offsets"], np.float64)
+            if offsets.shape != self.offsets.shape or not np.isfinite(offsets).all():
+                raise InvalidInputError(f"state.offsets: expected finite [{len(self.offsets)}, {self.offsets.shape[1]}]", "state.offsets")
+            commit_mpm = self.sim._prepare_restore(state["mpm"])
+
+        def commit() -> None:
+            commit_mpm()
+            self.offsets, self._before = offsets.copy(), None
+
+        return commit
+
+
+__all__ = ["COARSE", "COARSE_FRACTION", "CoarseMpmHalf", "CoarseOwnHalf", "coarse_grid"]

@@ -20,6 +20,14 @@ solver's current positions (bit-exact).
 
 Particles keep their order and count both ways (none lost or duplicated).
 
+Between two particle sets of MPM (:func:`merge_state`, :func:`split_state`): the
+classical twin may carry the coarse grid's own particle set, fewer particles
+than the hybrid's; each of its particles is a group of the hybrid's (the
+``r_p`` clustering's labels), merged at a handover to the coarse grid (mass,
+centre of mass and momentum conserved; the velocities the group's affine field
+does not carry are the merge's measured error) and split back at a handover
+to the scene's grid (each particle at its group's position plus its offset,
+with the group's affine velocity).
 """
 
 from __future__ import annotations
@@ -207,6 +215,59 @@ def neural_to_mpm(
     return {"positions": x, "velocities": v, "affine": c, "volume_ratio": j}
 
 
+#: The per-particle fields of MPM's state that a merge averages and a split copies (``volume_correction``: sand's log-volume correction).
+_FIELDS = ("affine", "deformation_gradient", "volume_ratio", "volume_correction")
+
+
+def merge_state(fine: MpmSolver, coarse: MpmSolver, labels: np.ndarray) -> tuple[np.ndarray, float]:
+    """Merge the particles of ``fine`` into those of ``coarse`` (MPM on another grid): particle ``i``
+    of ``fine`` belongs to particle ``labels[i]`` of ``coarse`` (int64 [N_f], values ``0 .. N_c − 1``,
+    every group one material; ``coarse``'s masses and rest volumes are the groups' sums). The group's
+    position and velocity are the mass-weighted means (mass, centre of mass and momentum conserved,
+    as the ``r_p`` clustering does, paper Sec. 3.1.1), its APIC ``C``, elastic ``F`` and sand's
+    log-volume correction the mass-weighted means, water's ``J`` the rest-volume-weighted mean.
+    Returns each fine particle's offset from its group's centre float64 [N_f, D] (what
+    :func:`split_state` puts back) and the merge's error: the mass-weighted RMS [m/s] of the fine
+    velocities the group's affine field ``v + C·offset`` does not carry."""
+    lab = np.asarray(labels, np.int64)
+    k = coarse.num_particles
+    m = np.asarray(fine.masses, np.float64)
+    msum = np.bincount(lab, m, minlength=k)
+
+    def mean(a: np.ndarray, w: np.ndarray, wsum: np.ndarray) -> np.ndarray:
+        flat = np.asarray(a, np.float64).reshape(len(lab), -1) * w[:, None]
+        out = np.zeros((k, flat.shape[1]))
+        np.add.at(out, lab, flat)
+        return (out / wsum[:, None]).reshape((k,) + np.shape(a)[1:])
+
+    x, v = np.asarray(fine.positions, np.float64), np.asarray(fine.velocities, np.float64)
+    xc, vc = mean(x, m, msum), mean(v, m, msum)
+    vol = np.asarray(fine.volumes, np.float64)
+    merged = {f: mean(fine._get(f), vol if f == "volume_ratio" else m, np.bincount(lab, vol if f == "volume_ratio" else m, minlength=k)) for f in _FIELDS}
+    offsets = x - xc[lab]
+    lo, hi = coarse.domain_bounds
+    coarse.positions = np.clip(xc, lo, hi).astype(np.float32)
+    coarse.velocities = vc.astype(np.float32)
+    for f, a in merged.items():
+        coarse._set(f, a.astype(np.float32))
+    carried = vc[lab] + np.einsum("nij,nj->ni", merged["affine"][lab], offsets)
+    residual = float(np.sqrt((m * ((v - carried) ** 2).sum(1)).sum() / max(m.sum(), 1e-300)))
+    return offsets, residual
+
+
+def split_state(coarse: MpmSolver, fine: MpmSolver, labels: np.ndarray, offsets: np.ndarray) -> None:
+    """The inverse of :func:`merge_state`: each fine particle ``i`` at its group's position plus
+    ``offsets[i]`` (clipped to ``fine``'s domain), with the group's affine velocity ``v + C·offset``
+    and its ``C``, ``F``, ``J`` and log-volume correction."""
+    lab = np.asarray(labels, np.int64)
+    aff = np.asarray(coarse.affine, np.float64)[lab]
+    lo, hi = fine.domain_bounds
+    fine.positions = np.clip(np.asarray(coarse.positions, np.float64)[lab] + offsets, lo, hi).astype(np.float32)
+    fine.velocities = (np.asarray(coarse.velocities, np.float64)[lab] + np.einsum("nij,nj->ni", aff, offsets)).astype(np.float32)
+    for f in _FIELDS:
+        fine._set(f, np.asarray(coarse._get(f))[lab])
+
+
 def mpm_history(current: np.ndarray, kept: np.ndarray, t_in: int) -> np.ndarray:
     """The neural simulator's input after MPM: the last ``t_in − 1`` kept coarse
     positions followed by the MPM solver's ``current`` positions float [N, D],
@@ -226,8 +287,10 @@ __all__ = [
     "estimate_volume_ratio",
     "fit_affine",
     "hydrostatic_j_min",
+    "merge_state",
     "mpm_history",
     "neural_to_mpm",
     "particle_density",
+    "split_state",
     "velocities_from_history",
 ]

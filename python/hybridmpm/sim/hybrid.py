@@ -44,7 +44,7 @@ from hybridmpm.models import shipped_switching
 from hybridmpm.neural.base import Runtime, open_model, read_header
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
-from hybridmpm.scenes.resolution import at_resolution
+from hybridmpm.scenes.resolution import at_resolution, downsample_scene, on_grid
 from hybridmpm.sim.base import (
     MPM,
     Forcing,
@@ -59,7 +59,7 @@ from hybridmpm.sim.base import (
     serialised,
 )
 from hybridmpm.sim.cheap import CheapHalf, FailureChecks
-from hybridmpm.sim.coarse import CoarseMpmHalf
+from hybridmpm.sim.coarse import CoarseMpmHalf, CoarseOwnHalf, coarse_grid
 from hybridmpm.sim.convert import Conversion
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator
@@ -76,17 +76,31 @@ def _network_half(scene: Scene, model: Any, seed: int, clusters: Clusters | None
     return low, NeuralSimulator(low, runtime, warmup=False, mpm_threads=threads, **kw)
 
 
+#: What the classical twin's coarse grid carries (``cheap_particles``): the hybrid's particles
+#: (the network's ``r_p`` set, handed over bit for bit) or the grid's own set (merged and split at each handover).
+TWIN_PARTICLES = ("network", "grid")
+
+
 def _coarse_half(scene: Scene, model: Any, seed: int, clusters: Clusters | None, threads: int, nn_threads: int, **kw: Any) -> tuple[Scene, CheapHalf]:
     """The classical twin: MPM on ``cheap_grid`` (default half the scene's grid) with the particles of the
-    network's resolution, read from the model file's metadata (:func:`~hybridmpm.neural.base.read_header`; no network loaded)."""
-    cheap_grid = kw.pop("cheap_grid", None)
+    network's resolution, read from the model file's metadata (:func:`~hybridmpm.neural.base.read_header`;
+    no network loaded), or (``cheap_particles="grid"``) with the coarse grid's own particle set, as many as
+    plain MPM puts on that grid, each a group of the hybrid's (:class:`~hybridmpm.sim.coarse.CoarseOwnHalf`)."""
+    cheap_grid, particles = kw.pop("cheap_grid", None), kw.pop("cheap_particles", "network")
     kw.pop("checks", None), kw.pop("conversion", None)  # the network's: checked, and not used by MPM
     if kw:
         name = next(iter(kw))
         raise InvalidInputError(f"{name}: a setting of the network cheap half, not of 'mpm-coarse'", name)
+    if particles not in TWIN_PARTICLES:
+        raise InvalidInputError(f"cheap_particles: must be one of {', '.join(map(repr, TWIN_PARTICLES))}, got {particles!r}", "cheap_particles")
     header = read_header(model, scene.name)
     low = at_resolution(scene, header.r_p, seed, clusters)
-    return low, CoarseMpmHalf(low, r_t=header.r_t, n_grid=cheap_grid, threads=threads, t_in=header.t_in, model=header)
+    if particles == "network":
+        return low, CoarseMpmHalf(low, r_t=header.r_t, n_grid=cheap_grid, threads=threads, t_in=header.t_in, model=header)
+    n = coarse_grid(low, cheap_grid)
+    groups = downsample_scene(low, min(1.0, on_grid(scene, n).num_particles / low.num_particles), seed)
+    coarse = on_grid(groups.scene, n, keep_particles=True)
+    return low, CoarseOwnHalf(low, coarse, groups.labels, r_t=header.r_t, threads=threads, t_in=header.t_in, model=header)
 
 
 #: The hybrid's cheap halves by the name ``cheap`` takes: a builder ``(scene, model, seed, clusters,
@@ -474,4 +488,4 @@ class HybridSimulator:
         )  # fmt: skip
 
 
-__all__ = ["CHEAP_HALVES", "HybridSimulator"]
+__all__ = ["CHEAP_HALVES", "TWIN_PARTICLES", "HybridSimulator"]
