@@ -1,8 +1,9 @@
 """The one benchmark harness: what every benchmark script records beside its
 figures, how it takes repeats, and how it writes its results.
 
-Every script under ``benchmarks/`` (and ``hybridmpm bench``) writes through
-this module (``tests/test_architecture.py`` holds it):
+Every script under ``benchmarks/`` writes through this module
+(``tests/test_architecture.py`` holds it); it lives in the package so that
+``hybridmpm bench`` can record the same provenance:
 
 * :func:`provenance` — the machine (CPU model, cores, host), the commit
   (``-dirty`` when the code differs from it), the versions (hybridmpm,
