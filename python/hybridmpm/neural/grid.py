@@ -57,7 +57,7 @@ def read_metadata(session: Any, path: Path) -> dict[str, Any]:
 class GridRuntime:
     """An exported grid model loaded into onnxruntime (module doc).
 
-    ``path`` an ``.onnx`` file of :func:`hybridmpm.train.grid_train.export_grid`;
+    ``path`` an ``.onnx`` file of :func:`hybridmpm.train.grid.export_grid`;
     ``threads`` onnxruntime intra-op threads (0: one per core). Raises
     :class:`InvalidInputError` (field ``model``) for a missing file, another
     kind of model or metadata out of range; (``threads``) for a count outside
