@@ -679,3 +679,27 @@ def test_the_twin_can_carry_its_grids_own_particles_merged_and_split_at_each_han
     assert np.array_equal(rollout(twin, 12).positions, a)
     with pytest.raises(InvalidInputError, match="cheap_particles"):
         HybridSimulator("water2d", seed=1006, cheap="mpm-coarse", cheap_particles="some")
+
+
+def test_the_command_line_picks_the_twins_particles(tmp_path):
+    """``simulate --cheap mpm-coarse --cheap-particles grid`` runs the twin on its grid's own particles (its
+    summary says so, and the run differs from the twin on the network's particles from the same start);
+    ``--cheap-particles`` without the twin is refused in one line naming it."""
+    import json
+
+    from hybridmpm.cli import main
+
+    outs = {}
+    for particles in ("network", "grid"):
+        out = tmp_path / particles
+        args = ["simulate", "water2d", "--seed", "1006", "--frames", "24", "--cheap", "mpm-coarse", "--cheap-particles", particles]
+        assert main([*args, "--out", str(out), "--quiet", "--no-render", "--threads", "1"]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["cheap_particles"] == particles and summary["cheap_kind"] == "coarse"
+        outs[particles] = np.load(out / "trajectory.npz")["positions"]
+    assert outs["grid"].shape == outs["network"].shape and not np.array_equal(outs["grid"], outs["network"])
+    with pytest.raises(InvalidInputError, match="cheap_particles"):
+        from hybridmpm.sim import make_simulator
+
+        make_simulator("water2d", "hybrid", cheap_particles="grid")
+    assert main(["simulate", "water2d", "--frames", "4", "--cheap-particles", "grid", "--out", str(tmp_path / "bad"), "--quiet"]) == 2

@@ -44,7 +44,7 @@ def _simulate(args: argparse.Namespace) -> int:
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
         safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
-        calibrated=args.calibrated, **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}),
+        calibrated=args.calibrated, **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}), cheap_particles=args.cheap_particles,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
@@ -80,6 +80,7 @@ def _simulate(args: argparse.Namespace) -> int:
         )  # fmt: skip
         if sim.cheap_kind != NEURAL:  # type: ignore[attr-defined]
             summary["cheap_grid"] = sim.neural.n_grid  # type: ignore[attr-defined]
+            summary["cheap_particles"] = args.cheap_particles or "network"
     err = None
     if args.reference:
         t0 = time.perf_counter()
@@ -191,6 +192,10 @@ def add_parsers(sub: Any) -> None:
         help="hybrid: its cheap half, the network (default) or MPM on a coarser grid with the same particles (the classical twin)",
     )
     sim.add_argument("--cheap-grid", type=int, default=None, help="hybrid --cheap mpm-coarse: the coarse grid (default half the scene's)")
+    sim.add_argument(
+        "--cheap-particles", default=None, choices=["network", "grid"],
+        help="hybrid --cheap mpm-coarse: the particles its coarse grid carries, the network's r_p set (default) or the grid's own (merged and split at each handover)",
+    )  # fmt: skip
     sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")

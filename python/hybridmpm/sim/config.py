@@ -50,6 +50,7 @@ def make_simulator(
     particles_per_cell: int | None = None,
     cheap: str = "neural",
     cheap_grid: int | None = None,
+    cheap_particles: str | None = None,
     calibrated: bool = False,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
@@ -64,7 +65,10 @@ def make_simulator(
     ``particles_per_cell`` run MPM on another grid of the same domain
     (:func:`~hybridmpm.scenes.resolution.on_grid`; None: the scene's);
     ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": its
-    classical twin, MPM on a ``cheap_grid`` grid, default half the scene's);
+    classical twin, MPM on a ``cheap_grid`` grid, default half the scene's)
+    and ``cheap_particles`` what the twin's coarse grid carries ("network":
+    the network's ``r_p`` set, the default; "grid": the grid's own set,
+    merged and split at each handover; :data:`~hybridmpm.sim.hybrid.TWIN_PARTICLES`);
     ``calibrated`` runs MPM on ``n_grid`` with the calibrated coarse material
     of the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
@@ -81,6 +85,8 @@ def make_simulator(
         ):
             if value != unset:
                 raise InvalidInputError(f"{name}: applies to the mpm solver; the {solver} solver runs at its model's resolution", name)
+    if cheap_particles is not None and (solver != "hybrid" or cheap != "mpm-coarse"):
+        raise InvalidInputError("cheap_particles: applies to the hybrid whose cheap half is 'mpm-coarse' (the classical twin)", "cheap_particles")
     if solver == "mpm":
         return MpmSimulator(
             scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell, calibrated=calibrated
@@ -104,6 +110,7 @@ def make_simulator(
         clusters=clusters,
         cheap=cheap,
         cheap_grid=cheap_grid,
+        **({} if cheap_particles is None else {"cheap_particles": cheap_particles}),
     )
 
 
