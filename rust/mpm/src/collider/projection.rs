@@ -24,6 +24,9 @@ impl<const D: usize> Collider<D> {
     ///
     /// A particle where `reach` says the projection cannot act returns at
     /// once, untouched ([`Reach::may_act`], inlined here: most particles).
+    ///
+    /// [`Shape::step_below`]: super::Shape::step_below
+    /// [`apply_condition`]: super::apply_condition
     #[inline(always)]
     pub fn project_particle(
         &self,

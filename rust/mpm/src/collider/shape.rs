@@ -160,6 +160,8 @@ impl<const D: usize> Shape<D> {
     /// estimate is exact for a convex polyhedron whose nearest faces the
     /// corners see, and within `O(cell²/R)` of a smooth surface of
     /// curvature radius `R`.
+    ///
+    /// [`Collider::project_particle`]: super::Collider::project_particle
     pub fn surface_step(&self, p: &SVector<f32, D>) -> (f32, SVector<f32, D>) {
         self.step_below(p, f32::NEG_INFINITY)
             .unwrap_or((f32::NAN, SVector::zeros()))
