@@ -1,5 +1,5 @@
 //! The p2g of the fluid surfaces' density field (`hybridmpm.render.surface`):
-//! float64, with the quadratic B-spline weights of [`crate::kernel`] rounded
+//! float64, with the quadratic B-spline weights of `kernel.rs` rounded
 //! per axis to multiples of `1/weight_scale`, so that the field has the same
 //! bits for any particle order where every product and partial sum is exact.
 
@@ -9,21 +9,23 @@ use crate::kernel::quadratic_weights;
 /// Largest grid [`surface_p2g`] fills, in nodes in all (2 GiB of float64).
 pub const MAX_SURFACE_NODES: usize = 1 << 28;
 /// Largest `weight_scale` of [`surface_p2g`] (weights times it stay far
-/// below 2^52, where [`round_ties_even`] holds).
+/// below 2^52, where the rounding without libm holds).
 pub const MAX_WEIGHT_SCALE: f64 = (1u64 << 40) as f64;
 
 /// `values` [N] spread from `positions` [N, D] [m] (flat, row-major, of
-/// shape `[n, dim]`, `D = dim` ∈ {2, 3}) onto the nodes `(origin + i)·spacing`, `i ∈ [0, shape)`,
-/// with the quadratic B-spline weights ([`quadratic_weights`]) of the
-/// offset `f = x/spacing − ⌊x/spacing − 1/2⌋` rounded per axis to multiples
-/// of `1/weight_scale`, `rint(w·weight_scale)·(1/weight_scale)`; returns the
+/// shape `[n, dim]`, `D = dim` ∈ {2, 3}) onto the nodes
+/// `(origin + i)·spacing`, `i ∈ [0, shape)`, with the quadratic B-spline
+/// weights (`kernel.rs`'s `quadratic_weights`) of the offset
+/// `f = x/spacing − ⌊x/spacing − 1/2⌋` rounded per axis to multiples of
+/// `1/weight_scale`, `rint(w·weight_scale)·(1/weight_scale)`; returns the
 /// field, `shape` row-major (first axis slowest).
 ///
 /// Summed in float64, one particle after the other: where every product
 /// and partial sum is exact (`values` quantised, see the surface module),
 /// the field has the same bits for any particle order. Serial, so the same
 /// bits for any thread count. Errors (`MpmError::InvalidInput`) name, in
-/// this order: `values` (not `N` of them), `spacing` (not finite and > 0),
+/// this order: `positions` (not `n·dim` numbers), `values` (not `n` of
+/// them), `spacing` (not finite and > 0),
 /// `weight_scale` (not in `(0, 2^40]`), `origin` (not `dim` values),
 /// `shape` (not `dim` counts > 0, or more than [`MAX_SURFACE_NODES`] nodes),
 /// `values` (one not finite), `positions` (`dim` not 2 or 3, a coordinate
