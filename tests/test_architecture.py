@@ -472,6 +472,14 @@ def test_no_python_file_of_the_package_is_over_700_lines():
     assert not big, big
 
 
+def test_no_rust_source_file_is_over_700_lines():
+    # test modules and integration tests included: a concept too big for a file becomes a folder
+    sources = list((ROOT / "rust").rglob("*.rs"))
+    assert len(sources) > 50, "the Rust sources were not found"
+    big = {str(p.relative_to(ROOT)): n for p in sources if (n := len(p.read_text().splitlines())) > 700}
+    assert not big, big
+
+
 def test_no_class_stands_in_for_a_simulator_in_the_service():
     # the service holds real simulators (local sessions, actors) or none (a Ray front end's session has sim=None)
     offenders = []

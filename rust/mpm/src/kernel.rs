@@ -11,8 +11,9 @@
 //!
 //! They sum to 1 and reproduce linear functions, which is what makes the
 //! APIC/MLS transfers conserve linear and angular momentum. This module is
-//! the one place the weights are written: the solver (f32) and the grid-mass
-//! metric (f64) both call [`quadratic_weights`].
+//! the one place the weights are written: the solver and the grid model's
+//! transfers (f32), the grid-mass metric and the surfaces' p2g (f64) all
+//! call [`quadratic_weights`].
 
 use std::ops::{Add, Mul, Sub};
 

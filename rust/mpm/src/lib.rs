@@ -6,11 +6,16 @@
 //! correction of Tampubolon et al. 2017. Sparse block grid: only blocks near
 //! particles are touched. Deterministic for any thread count.
 //!
-//! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`),
-//! `material` (water, sand), `boundary`, `collider` and `params` (boundary
-//! conditions, obstacles and parameters; `params` uses `collider`, both use
-//! `boundary`), `solver` (one file per substep stage: grid, p2g,
-//! grid_update, g2p, and the CFL frame loop), `checkpoint`.
+//! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`,
+//! `transfer` and `surface`), `material` (water, sand), `boundary`,
+//! `collider/` (a file per concept: shape, sampled signed distance, motion,
+//! validation, particle projection and its reach, boundary condition) and
+//! `params/` (boundary conditions, obstacles and parameters; `params` uses
+//! `collider`, both use `boundary`), `solver` (one file per substep stage:
+//! grid, p2g, grid_update, g2p, and the CFL frame loop), `checkpoint`;
+//! outside the solver, on the same kernel: `grid_mass` (the accuracy
+//! metric's field), `transfer` (the grid model's transfers), `surface` (the
+//! fluid surfaces' p2g).
 
 // Numeric kernels index several small arrays with one loop variable (`for d
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
@@ -28,6 +33,7 @@ mod material;
 pub mod params;
 pub mod particles;
 pub mod solver;
+pub mod surface;
 pub mod transfer;
 mod v4;
 
@@ -42,4 +48,5 @@ pub use params::{
 };
 pub use particles::{Material, Particle, lattice};
 pub use solver::{FrameStats, Solver};
+pub use surface::surface_p2g;
 pub use transfer::{Pressure, TransferGrid, advect, g2p, p2g};

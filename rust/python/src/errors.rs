@@ -2,9 +2,11 @@
 //!
 //! The classes live in Python (so that `InvalidInputError` can subclass both
 //! `HybridMpmError` and `ValueError`); they are looked up on first use.
-//! [`repr`] shows a bad value in their messages. Every other module of the
-//! binding may use this one; it uses none of them.
+//! [`to_py`] maps each error of the core (`MpmError`) to its class; [`repr`]
+//! shows a bad value in their messages. Every other module of the binding
+//! may use this one; it uses none of them.
 
+use hybridmpm_mpm::MpmError;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
@@ -59,4 +61,27 @@ pub fn repr(obj: &Bound<'_, PyAny>) -> String {
     obj.repr()
         .map(|r| r.to_string())
         .unwrap_or_else(|_| "?".into())
+}
+
+/// How to change the memory budget, appended to budget errors.
+pub const BUDGET_HINT: &str =
+    "set HYBRIDMPM_MEMORY_BUDGET or call hybridmpm.limits.set_memory_budget to change it";
+
+/// Map a core error to its Python exception.
+pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
+    match e {
+        MpmError::InvalidInput { field, msg } => invalid_input(py, &field, msg),
+        MpmError::OverBudget { ref field, .. } => {
+            let full = e.to_string();
+            let msg = full.strip_prefix(&format!("{field}: ")).unwrap_or(&full);
+            invalid_input(py, field, format!("{msg} ({BUDGET_HINT})"))
+        }
+        MpmError::NonFinite { substep, .. }
+        | MpmError::Inverted { substep, .. }
+        | MpmError::CflViolation { substep, .. } => {
+            simulation_error(py, Some(substep), e.to_string())
+        }
+        MpmError::TooManySubsteps { .. } => simulation_error(py, None, e.to_string()),
+        MpmError::Checkpoint(m) => checkpoint_error(py, m),
+    }
 }

@@ -183,7 +183,7 @@ fn graph_params(
         }
     };
     let max_edges = match max_edges {
-        Some(m) if !m.is_none() => Some(crate::mpm::extract_count(
+        Some(m) if !m.is_none() => Some(crate::args::extract_count(
             m,
             "max_edges",
             "an integer >= 0 or None",

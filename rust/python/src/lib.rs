@@ -5,18 +5,23 @@
 
 use pyo3::prelude::*;
 
+mod args;
 mod errors;
+mod fields;
 mod graph;
-mod mpm;
+mod grid_mass;
+mod material;
 mod ort_ops;
 mod params;
 mod pool;
+mod solver;
 mod transfer;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
-    mpm::register(m)?;
+    solver::register(m)?;
+    grid_mass::register(m)?;
     params::register(m)?;
     graph::register(m)?;
     transfer::register(m)?;

@@ -8,8 +8,8 @@ use numpy::{
 };
 use pyo3::prelude::*;
 
-use crate::errors::invalid_input;
-use crate::mpm::{f32_array, to_py};
+use crate::args::f32_array;
+use crate::errors::{invalid_input, to_py};
 
 fn grid<const D: usize>(
     py: Python<'_>,
@@ -240,26 +240,21 @@ pub fn grid_advect<'py>(
     Ok(PyArray1::from_vec(py, out).reshape([k, n, d])?.into_any())
 }
 
-/// Largest grid `surface_p2g` fills, in nodes in all (2 GiB of float64).
-const MAX_SURFACE_NODES: usize = 1 << 28;
-/// Largest `weight_scale` of `surface_p2g` (weights times it stay far below
-/// 2^52, where [`round_ties_even`] holds).
-const MAX_WEIGHT_SCALE: f64 = (1u64 << 40) as f64;
-
 /// `surface_p2g`: `values` float64 [N] spread from `positions` float64 [N, D]
 /// [m] onto the nodes `(origin + i)·spacing`, `i ∈ [0, shape)`, with the
 /// quadratic B-spline weights of MLS-MPM rounded per axis to multiples of
-/// `1/weight_scale`: float64 `shape`, row-major (first axis slowest).
+/// `1/weight_scale`: float64 `shape`, row-major (first axis slowest)
+/// (`hybridmpm_mpm::surface::surface_p2g`).
 ///
-/// The weights are computed with the same float64 operations as numpy's
-/// `w = 0.5·(1.5 − f)², 0.75 − (f − 1)², 0.5·(f − 0.5)²`,
-/// `rint(w·weight_scale)·(1/weight_scale)`, `f = x/spacing − ⌊x/spacing − 1/2⌋`,
-/// and summed in float64, one particle after the other: where every product
-/// and partial sum is exact (`values` quantised, see the surface module),
-/// the field has the same bits for any particle order. Serial, so the same
-/// bits for any thread count. Errors name `positions` (shape, non-finite, a
-/// stencil outside the grid), `values`, `spacing`, `origin`, `shape` or
-/// `weight_scale`.
+/// The weights are the engine's (`kernel.rs`), which have the bits of
+/// numpy's `w = 0.5·(1.5 − f)², 0.75 − (f − 1)², 0.5·(f − 0.5)²`, rounded as
+/// `rint(w·weight_scale)·(1/weight_scale)`, `f = x/spacing − ⌊x/spacing −
+/// 1/2⌋`, and summed in float64, one particle after the other: where every
+/// product and partial sum is exact (`values` quantised, see the surface
+/// module), the field has the same bits for any particle order. Serial, so
+/// the same bits for any thread count. Errors name `positions` (shape,
+/// non-finite, a stencil outside the grid), `values`, `spacing`, `origin`,
+/// `shape` or `weight_scale`.
 #[pyfunction]
 #[pyo3(signature = (positions, values, spacing, origin, shape, weight_scale))]
 pub fn surface_p2g<'py>(
@@ -282,36 +277,6 @@ pub fn surface_p2g<'py>(
         .try_readonly()
         .map_err(|e| invalid_input(py, "values", format!("cannot be read: {e}")))?;
     let (n, d) = (x.shape()[0], x.shape()[1]);
-    if v.len() != n {
-        return Err(invalid_input(
-            py,
-            "values",
-            format!("expected [{n}] values, got [{}]", v.len()),
-        ));
-    }
-    if !(spacing.is_finite() && spacing > 0.0) {
-        return Err(invalid_input(py, "spacing", "must be finite and > 0"));
-    }
-    if !(weight_scale > 0.0 && weight_scale <= MAX_WEIGHT_SCALE) {
-        return Err(invalid_input(
-            py,
-            "weight_scale",
-            format!("must be in (0, 2^40], got {weight_scale}"),
-        ));
-    }
-    if origin.len() != d {
-        return Err(invalid_input(py, "origin", format!("expected {d} values")));
-    }
-    let size = shape.iter().try_fold(1usize, |a, &s| a.checked_mul(s));
-    if shape.len() != d || size.is_none_or(|s| s == 0 || s > MAX_SURFACE_NODES) {
-        return Err(invalid_input(
-            py,
-            "shape",
-            format!(
-                "expected {d} node counts > 0, at most {MAX_SURFACE_NODES} nodes in all, got {shape:?}"
-            ),
-        ));
-    }
     // copied (while the GIL is held, so no Python thread changes them mid-read), then the GIL is released
     let (xs, vals) = (x.as_array(), v.as_array());
     let xs: Vec<f64> = match xs.as_slice() {
@@ -322,106 +287,10 @@ pub fn surface_p2g<'py>(
         Some(s) => s.to_vec(),
         None => vals.iter().copied().collect(),
     };
-    if let Some(i) = vals.iter().position(|x| !x.is_finite()) {
-        return Err(invalid_input(
-            py,
-            "values",
-            format!("value {i} is not finite"),
-        ));
-    }
-    let out = match d {
-        2 => py.detach(|| splat::<2>(&xs, &vals, spacing, &origin, &shape, weight_scale)),
-        3 => py.detach(|| splat::<3>(&xs, &vals, spacing, &origin, &shape, weight_scale)),
-        _ => {
-            return Err(invalid_input(
-                py,
-                "positions",
-                format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
-            ));
-        }
-    };
-    let out = out.map_err(|msg| invalid_input(py, "positions", msg))?;
+    let out = py
+        .detach(|| core::surface_p2g(&xs, [n, d], &vals, spacing, &origin, &shape, weight_scale))
+        .map_err(|e| to_py(py, e))?;
     Ok(PyArray1::from_vec(py, out).reshape(shape)?.into_any())
-}
-
-/// The body of [`surface_p2g`]; `Err` names the first particle that is
-/// not finite or whose stencil leaves the grid.
-fn splat<const D: usize>(
-    xs: &[f64],
-    vals: &[f64],
-    spacing: f64,
-    origin: &[i64],
-    shape: &[usize],
-    scale: f64,
-) -> Result<Vec<f64>, String> {
-    let mut out = vec![0.0f64; shape.iter().product()];
-    let mut stride = [1usize; D];
-    for k in (0..D - 1).rev() {
-        stride[k] = stride[k + 1] * shape[k + 1];
-    }
-    let inv = 1.0 / scale;
-    for (p, (x, &value)) in xs.as_chunks::<D>().0.iter().zip(vals).enumerate() {
-        let mut w = [[0.0f64; 3]; D];
-        let mut first = 0usize;
-        for k in 0..D {
-            if !x[k].is_finite() {
-                return Err(format!("particle {p} has a non-finite coordinate"));
-            }
-            let u = x[k] / spacing;
-            let b = floor(u - 0.5);
-            let f = u - b;
-            let (t0, t1, t2) = (1.5 - f, f - 1.0, f - 0.5);
-            let raw = [t0 * t0 * 0.5, 0.75 - t1 * t1, t2 * t2 * 0.5];
-            for (wq, r) in w[k].iter_mut().zip(raw) {
-                *wq = round_ties_even(r * scale) * inv;
-            }
-            let i = b - origin[k] as f64;
-            if !(i >= 0.0 && i + 3.0 <= shape[k] as f64) {
-                return Err(format!(
-                    "particle {p}: its stencil leaves the grid along axis {k}"
-                ));
-            }
-            first += i as usize * stride[k];
-        }
-        if D == 2 {
-            for a in 0..3 {
-                let wa = value * w[0][a];
-                let row = first + a * stride[0];
-                for b in 0..3 {
-                    out[row + b] += wa * w[1][b];
-                }
-            }
-        } else {
-            for a in 0..3 {
-                let wa = value * w[0][a];
-                for b in 0..3 {
-                    let wab = wa * w[1][b];
-                    let row = first + a * stride[0] + b * stride[1];
-                    for c in 0..3 {
-                        out[row + c] += wab * w[D - 1][c];
-                    }
-                }
-            }
-        }
-    }
-    Ok(out)
-}
-
-/// `x.floor()` without a libm call (the x86-64 baseline has no rounding
-/// instruction): exact for |x| < 2^63 (beyond, the stencil check fails).
-#[inline]
-fn floor(x: f64) -> f64 {
-    let t = x as i64 as f64; // toward zero
-    if t > x { t - 1.0 } else { t }
-}
-
-/// `x.round_ties_even()` for `0 <= x < 2^52` (the weights times the scale)
-/// without a libm call: adding 2^52 leaves no fraction bits, so the sum is
-/// rounded to the nearest integer, ties to even.
-#[inline]
-fn round_ties_even(x: f64) -> f64 {
-    const TWO52: f64 = 4_503_599_627_370_496.0;
-    (x + TWO52) - TWO52
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {

@@ -67,6 +67,8 @@ use crate::{GraphError, GraphParams, Neighbors, radius_graph};
 mod graph;
 mod pairs;
 #[cfg(test)]
+mod reference;
+#[cfg(test)]
 mod tests;
 
 pub use graph::{RelaxedGraph, relax_then_graph};

@@ -1,118 +1,18 @@
-//! `MpmSolver` and `grid_mass`: the MLS-MPM crate exposed to Python.
+//! `MpmSolver`: the MLS-MPM solver (`hybridmpm_mpm::Solver`, 2D or 3D)
+//! as a Python class behind a lock.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{Collider, Material, MpmError, Particle, Solver, SolverParams};
-use nalgebra::{SMatrix, SVector};
-use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use hybridmpm_mpm::{Collider, Material, Particle, Solver, SolverParams};
+use nalgebra::SVector;
+use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyBytes, PyDict, PyInt};
+use pyo3::types::{PyBytes, PyDict};
 use std::sync::Mutex;
 
-use crate::errors::{checkpoint_error, invalid_input, repr, simulation_error};
-
-/// How to change the memory budget, appended to budget errors.
-pub const BUDGET_HINT: &str =
-    "set HYBRIDMPM_MEMORY_BUDGET or call hybridmpm.limits.set_memory_budget to change it";
-
-/// Map a core error to its Python exception.
-pub fn to_py(py: Python<'_>, e: MpmError) -> PyErr {
-    match e {
-        MpmError::InvalidInput { field, msg } => invalid_input(py, &field, msg),
-        MpmError::OverBudget { ref field, .. } => {
-            let full = e.to_string();
-            let msg = full.strip_prefix(&format!("{field}: ")).unwrap_or(&full);
-            invalid_input(py, field, format!("{msg} ({BUDGET_HINT})"))
-        }
-        MpmError::NonFinite { substep, .. }
-        | MpmError::Inverted { substep, .. }
-        | MpmError::CflViolation { substep, .. } => {
-            simulation_error(py, Some(substep), e.to_string())
-        }
-        MpmError::TooManySubsteps { .. } => simulation_error(py, None, e.to_string()),
-        MpmError::Checkpoint(m) => checkpoint_error(py, m),
-    }
-}
-
-/// A non-negative integer (Python `int` or numpy integer; not a bool, a
-/// float or a string), else `InvalidInputError` naming `field`.
-pub fn extract_count(v: &Bound<'_, PyAny>, field: &str, what: &str) -> PyResult<usize> {
-    let bad = || invalid_input(v.py(), field, format!("expected {what}, got {}", repr(v)));
-    if v.is_instance_of::<PyBool>() {
-        return Err(bad());
-    }
-    v.extract::<usize>().map_err(|_| bad())
-}
-
-/// An optional memory budget in bytes (`None`: unlimited), an integer >= 1.
-pub fn extract_budget(v: Option<&Bound<'_, PyAny>>) -> PyResult<Option<u64>> {
-    match v {
-        None => Ok(None),
-        Some(v) if v.is_none() => Ok(None),
-        Some(v) => {
-            let b = extract_count(
-                v,
-                "memory_budget",
-                "an integer number of bytes >= 1 or None",
-            )?;
-            if b == 0 {
-                return Err(invalid_input(
-                    v.py(),
-                    "memory_budget",
-                    "must be >= 1 byte, got 0",
-                ));
-            }
-            Ok(Some(b as u64))
-        }
-    }
-}
-
-/// Borrow a float32 array, checking dtype and shape; `shape` uses `None` for "any".
-pub fn f32_array<'py>(
-    obj: &Bound<'py, PyAny>,
-    field: &str,
-    shape: &[Option<usize>],
-) -> PyResult<PyReadonlyArrayDyn<'py, f32>> {
-    let py = obj.py();
-    let arr = match obj.cast::<PyArrayDyn<f32>>() {
-        Ok(a) => a
-            .try_readonly()
-            .map_err(|e| invalid_input(py, field, format!("cannot be read: {e}")))?,
-        Err(_) => {
-            let dtype = obj
-                .getattr("dtype")
-                .map(|d| d.to_string())
-                .unwrap_or_else(|_| obj.get_type().to_string());
-            return Err(invalid_input(
-                py,
-                field,
-                format!("expected a float32 numpy array, got {dtype}"),
-            ));
-        }
-    };
-    let got = arr.shape().to_vec();
-    let ok = got.len() == shape.len()
-        && got
-            .iter()
-            .zip(shape)
-            .all(|(g, s)| s.is_none_or(|s| s == *g));
-    if !ok {
-        let want: Vec<String> = shape
-            .iter()
-            .map(|s| s.map_or("*".to_string(), |v| v.to_string()))
-            .collect();
-        return Err(invalid_input(
-            py,
-            field,
-            format!("expected shape [{}], got {:?}", want.join(", "), got),
-        ));
-    }
-    if arr.as_array().iter().any(|x| !x.is_finite()) {
-        return Err(invalid_input(py, field, "contains NaN or inf"));
-    }
-    Ok(arr)
-}
-
-// ---------------------------------------------------------------- params
+use crate::args::{extract_budget, extract_count, f32_array, f32_vec};
+use crate::errors::{invalid_input, to_py};
+use crate::fields::{self, Column, read_column, write_column};
+use crate::material::{Codes, material_codes};
 
 /// The solver parameters and colliders of the dict `MpmSolver` takes, read
 /// by the core's types (`crate::params`); errors name the field.
@@ -129,8 +29,6 @@ fn parse_params<const D: usize>(
         .map_err(|e| to_py(py, e))?;
     Ok((params, colliders))
 }
-
-// ---------------------------------------------------------------- solver
 
 enum Inner {
     D2(Solver<2>),
@@ -184,209 +82,6 @@ impl MpmSolver {
             f(&mut guard)
         })
     }
-}
-
-fn field_dim(field: &str) -> usize {
-    match field {
-        "positions" | "velocities" | "external_acceleration" => 1,
-        "affine" | "deformation_gradient" | "stress" => 2,
-        _ => 0,
-    }
-}
-
-const FIELDS: &[&str] = &[
-    "positions",
-    "velocities",
-    "affine",
-    "deformation_gradient",
-    "volume_ratio",
-    "volume_correction",
-    "masses",
-    "volumes",
-    "material",
-    "external_acceleration",
-    "stress",
-];
-
-fn read_field<const D: usize>(p: &Particle<D>, field: &str, out: &mut Vec<f32>) {
-    match field {
-        "positions" => out.extend_from_slice(p.x.as_slice()),
-        "velocities" => out.extend_from_slice(p.v.as_slice()),
-        "external_acceleration" => out.extend_from_slice(p.ext.as_slice()),
-        "affine" | "deformation_gradient" | "stress" => {
-            let m = match field {
-                "affine" => p.c,
-                "deformation_gradient" => p.f,
-                _ => p.stress(),
-            };
-            for r in 0..D {
-                for c in 0..D {
-                    out.push(m[(r, c)]);
-                }
-            }
-        }
-        "volume_ratio" => out.push(p.j),
-        "volume_correction" => out.push(p.vc),
-        "masses" => out.push(p.mass),
-        "volumes" => out.push(p.volume),
-        _ => {}
-    }
-}
-
-fn write_field<const D: usize>(p: &mut Particle<D>, field: &str, v: &[f32]) {
-    match field {
-        "positions" => p.x.copy_from_slice(v),
-        "velocities" => p.v.copy_from_slice(v),
-        "external_acceleration" => p.ext.copy_from_slice(v),
-        "affine" | "deformation_gradient" => {
-            let m = SMatrix::<f32, D, D>::from_fn(|r, c| v[r * D + c]);
-            if field == "affine" { p.c = m } else { p.f = m }
-        }
-        "volume_ratio" => p.j = v[0],
-        "volume_correction" => p.vc = v[0],
-        "masses" => p.mass = v[0],
-        "volumes" => p.volume = v[0],
-        _ => {}
-    }
-}
-
-/// A copy of one per-particle field (public order): floats, or the material codes.
-enum Column {
-    F32(Vec<f32>),
-    I32(Vec<i32>),
-}
-
-fn read_column<const D: usize>(s: &Solver<D>, field: &str) -> (usize, Column)
-where
-    core::Dim<D>: core::DimOps<D>,
-{
-    let n = s.num_particles();
-    if field == "material" {
-        let mut m = Vec::with_capacity(n);
-        s.for_each_particle(|_, p| m.push(p.material as i32));
-        return (n, Column::I32(m));
-    }
-    let mut out = Vec::with_capacity(n * D.pow(field_dim(field) as u32));
-    s.for_each_particle(|_, p| read_field(p, field, &mut out));
-    (n, Column::F32(out))
-}
-
-fn write_column<const D: usize>(s: &mut Solver<D>, field: &str, flat: &[f32]) -> core::Result<()>
-where
-    core::Dim<D>: core::DimOps<D>,
-{
-    let n = s.num_particles();
-    let per = D.pow(field_dim(field) as u32);
-    if flat.len() != n * per {
-        return Err(MpmError::invalid(
-            field,
-            format!("the particle count changed to {n} while the call waited for another thread"),
-        ));
-    }
-    let refresh = matches!(field, "affine" | "deformation_gradient" | "volume_ratio");
-    s.modify_particles(refresh, |i, p| {
-        write_field(p, field, &flat[i * per..(i + 1) * per])
-    })
-}
-
-/// Material codes: one for every particle, or one per particle.
-enum Codes {
-    All(Material),
-    Each(Vec<Material>),
-}
-
-impl Codes {
-    fn expand(&self, n: usize) -> core::Result<Vec<Material>> {
-        match self {
-            Codes::All(m) => Ok(vec![*m; n]),
-            Codes::Each(v) if v.len() == n => Ok(v.clone()),
-            Codes::Each(v) => Err(MpmError::invalid(
-                "material",
-                format!("expected shape [{n}], got [{}]", v.len()),
-            )),
-        }
-    }
-}
-
-fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
-    invalid_input(
-        py,
-        "material",
-        format!("unknown material code {code} (0 = water, 1 = sand)"),
-    )
-}
-
-/// Material codes from an int, a numpy integer or an integer array; an
-/// unknown code is reported as given (`2**64 - 1`, not its int64 wrap).
-fn material_codes(value: &Bound<'_, PyAny>) -> PyResult<Codes> {
-    let py = value.py();
-    let expect = "expected an integer code or an integer array (0 = water, 1 = sand)";
-    if value.is_instance_of::<PyBool>() {
-        return Err(invalid_input(
-            py,
-            "material",
-            format!("{expect}, got {}", repr(value)),
-        ));
-    }
-    if value.is_instance_of::<PyInt>() {
-        return match value.extract::<i64>().ok().and_then(Material::from_code) {
-            Some(m) => Ok(Codes::All(m)),
-            None => Err(unknown_code(py, &value.str()?.to_string())),
-        };
-    }
-    let np = py.import("numpy")?;
-    let arr = np.call_method1("asarray", (value,))?;
-    let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
-    if kind != "i" && kind != "u" {
-        return Err(invalid_input(
-            py,
-            "material",
-            format!("{expect}, got dtype {}", arr.getattr("dtype")?.str()?),
-        ));
-    }
-    let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
-    if shape.len() > 1 {
-        return Err(invalid_input(
-            py,
-            "material",
-            format!("expected shape [N], got {shape:?}"),
-        ));
-    }
-    let size: usize = arr.getattr("size")?.extract()?;
-    if size > 0 {
-        // every code must fit an int64 before the conversion (uint64 would wrap)
-        for ext in ["min", "max"] {
-            let v = arr.call_method0(ext)?.call_method0("item")?;
-            if v.extract::<i64>()
-                .ok()
-                .and_then(Material::from_code)
-                .is_none()
-            {
-                return Err(unknown_code(py, &v.str()?.to_string()));
-            }
-        }
-    }
-    let as64 = arr
-        .call_method1("astype", ("int64",))?
-        .call_method0("ravel")?;
-    let codes: Vec<i64> = as64.call_method0("tolist")?.extract()?;
-    let mats = codes
-        .iter()
-        .map(|&c| Material::from_code(c).ok_or_else(|| unknown_code(py, &c.to_string())))
-        .collect::<PyResult<Vec<Material>>>()?;
-    if shape.is_empty() {
-        return Ok(Codes::All(mats[0]));
-    }
-    Ok(Codes::Each(mats))
-}
-
-/// Copy of a validated float32 array (dtype, shape, finite) as a flat Vec.
-fn f32_vec(obj: &Bound<'_, PyAny>, field: &str, shape: &[Option<usize>]) -> PyResult<Vec<f32>> {
-    let arr = f32_array(obj, field, shape)?;
-    Ok(match arr.as_slice() {
-        Ok(flat) => flat.to_vec(),
-        Err(_) => arr.as_array().iter().copied().collect(),
-    })
 }
 
 /// New particles, read from Python before the solver's lock is taken.
@@ -646,20 +341,9 @@ impl MpmSolver {
     /// float32 [N, D]; affine/deformation_gradient/stress float32 [N, D, D];
     /// volume_ratio/volume_correction/masses/volumes float32 [N]; material int32 [N].
     fn get(&self, py: Python<'_>, field: &str) -> PyResult<Py<PyAny>> {
-        if !FIELDS.contains(&field) {
-            return Err(invalid_input(
-                py,
-                "field",
-                format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
-            ));
-        }
+        fields::check_name(py, field)?;
         let (n, col) = self.with(py, |inner| dispatch!(inner, s => read_column(s, field)));
-        let d = self.dim;
-        let shape = match field_dim(field) {
-            0 => vec![n],
-            1 => vec![n, d],
-            _ => vec![n, d, d],
-        };
+        let shape = fields::shape(field, n, self.dim);
         Ok(match col {
             Column::I32(v) => PyArray1::from_vec(py, v)
                 .reshape(shape)?
@@ -675,13 +359,7 @@ impl MpmSolver {
     /// Overwrite a per-particle array (same shapes as `get`; `stress` is read-only).
     /// Validated as a whole: on error nothing changes.
     fn set(&self, py: Python<'_>, field: &str, value: &Bound<'_, PyAny>) -> PyResult<()> {
-        if !FIELDS.contains(&field) {
-            return Err(invalid_input(
-                py,
-                "field",
-                format!("unknown field '{field}' (one of {})", FIELDS.join(", ")),
-            ));
-        }
+        fields::check_name(py, field)?;
         if field == "stress" {
             return Err(invalid_input(
                 py,
@@ -701,12 +379,10 @@ impl MpmSolver {
                 .map_err(|e| to_py(py, e));
         }
         let n = self.num_particles(py);
-        let d = self.dim;
-        let shape: Vec<Option<usize>> = match field_dim(field) {
-            0 => vec![Some(n)],
-            1 => vec![Some(n), Some(d)],
-            _ => vec![Some(n), Some(d), Some(d)],
-        };
+        let shape: Vec<Option<usize>> = fields::shape(field, n, self.dim)
+            .into_iter()
+            .map(Some)
+            .collect();
         let flat = f32_vec(value, field, &shape)?;
         self.with(
             py,
@@ -837,71 +513,7 @@ impl MpmSolver {
     }
 }
 
-/// Normalised grid mass (docs/design.md "Grid-mass error"; paper Sec. 3.1.1):
-/// p2g of particle mass with quadratic B-splines onto the nodes `i·dx`,
-/// `i ∈ [0, n_grid)^D`, `dx = 1/n_grid`, divided by the total.
-///
-/// `positions`: float32 [N, D], D ∈ {2, 3}, in the unit domain;
-/// `n_grid`: an integer in [3, 4096]; `masses`: float32 [N] or None (equal
-/// masses, 1/N each); `memory_budget`: bytes or None (no budget): a grid of
-/// more than that (12 bytes per node: an f64 accumulator and the f32
-/// result) is refused before anything is allocated, naming `n_grid`.
-/// Returns float32 [n_grid]*D summing to 1. Stencil nodes outside the grid
-/// are clamped to the edge. Raises `InvalidInputError` naming the field.
-#[pyfunction]
-#[pyo3(signature = (positions, n_grid, masses=None, *, memory_budget=None))]
-pub fn grid_mass(
-    py: Python<'_>,
-    positions: &Bound<'_, PyAny>,
-    n_grid: &Bound<'_, PyAny>,
-    masses: Option<&Bound<'_, PyAny>>,
-    memory_budget: Option<&Bound<'_, PyAny>>,
-) -> PyResult<Py<PyAny>> {
-    let n_grid = extract_count(n_grid, "n_grid", "an integer in [3, 4096]")?;
-    let budget = extract_budget(memory_budget)?;
-    let x = f32_array(positions, "positions", &[None, None])?;
-    let (n, d) = (x.shape()[0], x.shape()[1]);
-    if d != 2 && d != 3 {
-        return Err(invalid_input(
-            py,
-            "positions",
-            format!("expected shape [N, 2] or [N, 3], got [N, {d}]"),
-        ));
-    }
-    // refuse the grid before copying anything
-    if !(3..=4096).contains(&n_grid) {
-        return Err(invalid_input(
-            py,
-            "n_grid",
-            format!("must be in [3, 4096], got {n_grid}"),
-        ));
-    }
-    core::error::check_budget(
-        "n_grid",
-        &format!("a {d}D grid-mass grid of {n_grid}^{d} nodes"),
-        core::grid_mass_bytes(n_grid, d),
-        budget,
-    )
-    .map_err(|e| to_py(py, e))?;
-    let m = masses
-        .map(|m| f32_array(m, "masses", &[Some(n)]))
-        .transpose()?;
-    let mv: Option<Vec<f32>> = m.map(|m| m.as_array().iter().copied().collect());
-    let flat: Vec<f32> = x.as_array().iter().copied().collect();
-    let res = if d == 2 {
-        let pts: Vec<[f32; 2]> = flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
-        py.detach(|| core::grid_mass_with_budget::<2>(&pts, mv.as_deref(), n_grid, budget))
-    } else {
-        let pts: Vec<[f32; 3]> = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-        py.detach(|| core::grid_mass_with_budget::<3>(&pts, mv.as_deref(), n_grid, budget))
-    };
-    let g = res.map_err(|e| to_py(py, e))?;
-    let arr = PyArray1::from_vec(py, g);
-    Ok(arr.reshape(vec![n_grid; d])?.into_any().unbind())
-}
-
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<MpmSolver>()?;
-    m.add_function(wrap_pyfunction!(grid_mass, m)?)?;
     Ok(())
 }

@@ -1,0 +1,75 @@
+//! The particle projection: a particle that ends a substep deeper than
+//! [`PROJECT_DEPTH_CELLS`] inside a collider goes back onto its surface.
+
+use nalgebra::SVector;
+
+use super::condition::project_velocity;
+use super::{Collider, Reach};
+
+impl<const D: usize> Collider<D> {
+    /// The particle projection of a collider with [`Collider::project`]
+    /// (the solver calls it for each particle after g2p has moved it, with
+    /// `depth` = [`PROJECT_DEPTH_CELLS`] cells, the threshold `reach` was
+    /// made with: [`Collider::reach`]). A particle at `x` with signed
+    /// distance `φ < −depth` (deeper inside than that) goes to the surface
+    /// along the outward normal `n`, `x ← x − φ·n` (`φ` and `n` from
+    /// [`Shape::step_below`]: exactly onto a box's face of least
+    /// penetration or a sphere's surface, onto a sampled shape's to first
+    /// order), and its velocity relative to the collider's (`v_obs`, `None`
+    /// for a collider at rest) loses its inward normal part: `Sticky` takes
+    /// the collider's velocity, `Slip` keeps the tangential part and an
+    /// outward normal part, `Separate` does the same with Coulomb friction μ
+    /// on the tangential speed as the grid condition does
+    /// ([`apply_condition`]). Returns whether the particle moved.
+    ///
+    /// A particle where `reach` says the projection cannot act returns at
+    /// once, untouched ([`Reach::may_act`], inlined here: most particles).
+    ///
+    /// [`Shape::step_below`]: super::Shape::step_below
+    /// [`apply_condition`]: super::apply_condition
+    #[inline(always)]
+    pub fn project_particle(
+        &self,
+        reach: &Reach<'_, D>,
+        x: &mut SVector<f32, D>,
+        v: &mut SVector<f32, D>,
+        v_obs: Option<&SVector<f32, D>>,
+    ) -> bool {
+        reach.may_act(x) && self.project_deeper(reach.depth, x, v, v_obs)
+    }
+
+    /// [`Collider::project_particle`] past its inlined test.
+    #[inline]
+    fn project_deeper(
+        &self,
+        depth: f32,
+        x: &mut SVector<f32, D>,
+        v: &mut SVector<f32, D>,
+        v_obs: Option<&SVector<f32, D>>,
+    ) -> bool {
+        let Some((phi, n)) = self.shape.step_below(x, depth) else {
+            return false;
+        };
+        *x -= n * phi;
+        match v_obs {
+            None => project_velocity(v, &n, self.condition, self.friction),
+            Some(u) => {
+                let mut rel = *v - u;
+                project_velocity(&mut rel, &n, self.condition, self.friction);
+                *v = u + rel;
+            }
+        }
+        true
+    }
+}
+
+/// How deep [grid cells] a particle may end a substep inside a collider
+/// that projects particles ([`Collider::project_particle`]); a deeper one
+/// goes back onto the surface. Particles within a fraction of a cell of the
+/// surface are MPM's ordinary contact (the kernel spreads a particle over
+/// nodes on both sides) and are left alone: measured (docs/obstacles.md),
+/// a threshold of 0 rather than a quarter cell makes a mesh sphere's and a
+/// mesh ramp's runs depart from their analytic twins' more (grid-mass
+/// error 0.014 and 0.048 against 0.009 and 0.021 on a 32³ grid), and the
+/// deepest particle stays below 0.3 cells either way.
+pub const PROJECT_DEPTH_CELLS: f32 = 0.25;

@@ -1,0 +1,139 @@
+//! The materials' parameters: weakly compressible water and
+//! Drucker–Prager sand.
+
+use super::{finite, positive};
+use crate::error::{MpmError, Result};
+
+/// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
+/// carries `J` only; Kirchhoff stress `τ = K·J·(J − 1)·I + η·J·(C + Cᵀ)`.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct WaterParams {
+    /// Rest density ρ [kg/m³].
+    pub density: f32,
+    /// Bulk modulus K [Pa]; the sound speed is `sqrt(K/ρ)`.
+    pub bulk_modulus: f32,
+    /// Dynamic viscosity η [Pa·s] (0 = inviscid).
+    pub viscosity: f32,
+}
+
+impl Default for WaterParams {
+    fn default() -> Self {
+        // K/ρ = 400 m²/s²: sound speed 20 m/s, the usual weakly compressible choice.
+        WaterParams {
+            density: 1000.0,
+            bulk_modulus: 4.0e5,
+            viscosity: 0.0,
+        }
+    }
+}
+
+impl WaterParams {
+    pub fn validate(&self) -> Result<()> {
+        positive("water.density", self.density)?;
+        positive("water.bulk_modulus", self.bulk_modulus)?;
+        finite("water.viscosity", self.viscosity)?;
+        if self.viscosity < 0.0 {
+            return Err(MpmError::invalid(
+                "water.viscosity",
+                format!("must be >= 0, got {}", self.viscosity),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Longitudinal wave speed [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        (self.bulk_modulus / self.density).sqrt()
+    }
+}
+
+/// Sand: Drucker–Prager elastoplasticity in Hencky strain with SVD return
+/// mapping (Klár et al. 2016) and the volume correction of Tampubolon et al. 2017.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct SandParams {
+    /// Density ρ [kg/m³].
+    pub density: f32,
+    /// Young's modulus E [Pa].
+    pub youngs_modulus: f32,
+    /// Poisson's ratio ν [-], in (−1, 0.5).
+    pub poisson_ratio: f32,
+    /// Internal friction angle φ [degrees], in [0, 80].
+    pub friction_angle_deg: f32,
+    /// Cohesion c [Pa] (≥ 0): shifts the cone apex to the tensile mean stress `c / tan φ`.
+    pub cohesion: f32,
+}
+
+impl Default for SandParams {
+    fn default() -> Self {
+        SandParams {
+            density: 1000.0,
+            youngs_modulus: 3.5e5,
+            poisson_ratio: 0.3,
+            friction_angle_deg: 30.0,
+            cohesion: 0.0,
+        }
+    }
+}
+
+impl SandParams {
+    pub fn validate(&self) -> Result<()> {
+        positive("sand.density", self.density)?;
+        positive("sand.youngs_modulus", self.youngs_modulus)?;
+        finite("sand.poisson_ratio", self.poisson_ratio)?;
+        if !(self.poisson_ratio > -1.0 && self.poisson_ratio < 0.5) {
+            return Err(MpmError::invalid(
+                "sand.poisson_ratio",
+                format!("must be in (-1, 0.5), got {}", self.poisson_ratio),
+            ));
+        }
+        finite("sand.friction_angle_deg", self.friction_angle_deg)?;
+        if !(0.0..=80.0).contains(&self.friction_angle_deg) {
+            return Err(MpmError::invalid(
+                "sand.friction_angle_deg",
+                format!(
+                    "must be in [0, 80] degrees, got {}",
+                    self.friction_angle_deg
+                ),
+            ));
+        }
+        finite("sand.cohesion", self.cohesion)?;
+        if self.cohesion < 0.0 {
+            return Err(MpmError::invalid(
+                "sand.cohesion",
+                format!("must be >= 0, got {}", self.cohesion),
+            ));
+        }
+        if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
+            return Err(MpmError::invalid(
+                "sand.cohesion",
+                "cohesion needs a friction angle > 0",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Lamé parameters (μ, λ) [Pa].
+    pub fn lame(&self) -> (f32, f32) {
+        let (e, nu) = (self.youngs_modulus, self.poisson_ratio);
+        (
+            e / (2.0 * (1.0 + nu)),
+            e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+        )
+    }
+
+    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        let (mu, la) = self.lame();
+        ((la + 2.0 * mu) / self.density).sqrt()
+    }
+}

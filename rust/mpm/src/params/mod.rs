@@ -1,0 +1,186 @@
+//! Solver parameters: one `...Params` struct per concept, each with `Default`,
+//! documented SI units and a `validate()` that names the bad field.
+//!
+//! These structs are the one schema of the parameters. With the `serde`
+//! feature they (de)serialise as the parameter dict of the Python binding:
+//! every field optional (a missing one takes its `Default`), an unknown key
+//! refused, boundary conditions as `"sticky"`, `"slip"`, `"separate"`. The
+//! binding reads its dict with them and gives Python the defaults from them.
+//!
+//! Here the solver-wide [`SolverParams`] and the checks every part shares;
+//! `material.rs` the water and the sand, `walls.rs` the domain's walls (and
+//! their faces by name in the dict), `collider.rs` a collider as the dict
+//! gives it.
+
+mod collider;
+mod material;
+#[cfg(all(test, feature = "serde"))]
+mod tests;
+mod walls;
+
+pub use crate::boundary::BoundaryCondition;
+pub use collider::{ColliderParams, ShapeKind};
+pub use material::{SandParams, WaterParams};
+pub use walls::{WallFace, WallParams};
+
+use crate::error::{MpmError, Result};
+
+fn finite(field: &str, x: f32) -> Result<()> {
+    if x.is_finite() {
+        Ok(())
+    } else {
+        Err(MpmError::invalid(field, format!("must be finite, got {x}")))
+    }
+}
+
+fn positive(field: &str, x: f32) -> Result<()> {
+    finite(field, x)?;
+    if x > 0.0 {
+        Ok(())
+    } else {
+        Err(MpmError::invalid(field, format!("must be > 0, got {x}")))
+    }
+}
+
+fn non_negative(field: &str, x: f32) -> Result<()> {
+    finite(field, x)?;
+    if x < 0.0 {
+        return Err(MpmError::invalid(field, format!("must be >= 0, got {x}")));
+    }
+    Ok(())
+}
+
+/// Largest `max_substeps`: a million substeps make a frame of minutes.
+pub const MAX_SUBSTEPS: usize = 1_000_000;
+
+/// Solver-wide parameters.
+///
+/// (`serde` feature: the empty `bound` spares serde's derive the bound
+/// `SolverParams<D>: Default` it would write for `default`, which it cannot
+/// write for a struct generic over a const; the `Default` below holds for
+/// every `D`.)
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields, bound(deserialize = ""))
+)]
+pub struct SolverParams<const D: usize> {
+    /// Grid cells per dimension over the unit domain (dx = 1 / n_grid), in [16, 4096].
+    pub n_grid: usize,
+    /// Gravity [m/s²] (a list of `D` numbers in the parameter dict).
+    #[cfg_attr(feature = "serde", serde(with = "array"))]
+    pub gravity: [f32; D],
+    /// CFL number: substep `dt ≤ cfl·dx / (c_max + |v|_max)`, in (0, 1].
+    pub cfl: f32,
+    /// Fixed substep count per frame (overrides the CFL choice), or `None`.
+    pub substeps: Option<usize>,
+    /// Upper bound on substeps per frame, in [1, 10^6] ([`MAX_SUBSTEPS`]);
+    /// a frame that needs more is an error.
+    pub max_substeps: usize,
+    /// Worker threads (0 = all cores).
+    pub num_threads: usize,
+    pub water: WaterParams,
+    pub sand: SandParams,
+    pub walls: WallParams,
+}
+
+impl<const D: usize> Default for SolverParams<D> {
+    fn default() -> Self {
+        let mut gravity = [0.0; D];
+        gravity[1] = -9.8;
+        SolverParams {
+            n_grid: if D == 2 { 128 } else { 64 },
+            gravity,
+            cfl: 0.4,
+            substeps: None,
+            max_substeps: 1000,
+            num_threads: 0,
+            water: WaterParams::default(),
+            sand: SandParams::default(),
+            walls: WallParams::default(),
+        }
+    }
+}
+
+impl<const D: usize> SolverParams<D> {
+    pub fn validate(&self) -> Result<()> {
+        if !(16..=4096).contains(&self.n_grid) {
+            return Err(MpmError::invalid(
+                "n_grid",
+                format!("must be in [16, 4096], got {}", self.n_grid),
+            ));
+        }
+        for (i, &g) in self.gravity.iter().enumerate() {
+            finite(&format!("gravity[{i}]"), g)?;
+        }
+        positive("cfl", self.cfl)?;
+        if self.cfl > 1.0 {
+            return Err(MpmError::invalid(
+                "cfl",
+                format!("must be in (0, 1], got {}", self.cfl),
+            ));
+        }
+        if !(1..=MAX_SUBSTEPS).contains(&self.max_substeps) {
+            return Err(MpmError::invalid(
+                "max_substeps",
+                format!("must be in [1, {MAX_SUBSTEPS}], got {}", self.max_substeps),
+            ));
+        }
+        if let Some(s) = self.substeps
+            && (s == 0 || s > self.max_substeps)
+        {
+            return Err(MpmError::invalid(
+                "substeps",
+                format!(
+                    "must be in [1, max_substeps={}], got {s}",
+                    self.max_substeps
+                ),
+            ));
+        }
+        if self.num_threads > 1024 {
+            return Err(MpmError::invalid(
+                "num_threads",
+                format!("must be in [0, 1024], got {}", self.num_threads),
+            ));
+        }
+        self.water.validate()?;
+        self.sand.validate()?;
+        self.walls.validate(self.n_grid)?;
+        for axis in D..3 {
+            for side in 0..2 {
+                if self.walls.faces[axis][side].is_some() {
+                    return Err(MpmError::invalid(
+                        format!("walls.faces.{}", WallParams::FACE_NAMES[axis][side]),
+                        format!("a {D}D domain has no such wall (faces: x-, x+, y-, y+)"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn dx(&self) -> f32 {
+        1.0 / self.n_grid as f32
+    }
+}
+
+/// `[f32; D]` as a list of `D` numbers in the dict (serde's own array impls
+/// need a literal length).
+#[cfg(feature = "serde")]
+mod array {
+    use serde::de::{self, Deserialize, Deserializer};
+    use serde::ser::{Serialize, Serializer};
+
+    pub fn serialize<S: Serializer, const D: usize>(a: &[f32; D], s: S) -> Result<S::Ok, S::Error> {
+        a.as_slice().serialize(s)
+    }
+
+    pub fn deserialize<'de, De: Deserializer<'de>, const D: usize>(
+        d: De,
+    ) -> Result<[f32; D], De::Error> {
+        let v = Vec::<f32>::deserialize(d)?;
+        <[f32; D]>::try_from(v.as_slice())
+            .map_err(|_| de::Error::invalid_length(v.len(), &format!("{D} numbers").as_str()))
+    }
+}
