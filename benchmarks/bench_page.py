@@ -24,13 +24,19 @@ splatted, ``static/quality.js``); cases 20-21 let the page choose
 (``?quality=auto``: it steps down while it draws under 24 frames/s), and are
 measured once no level has changed for 3 s (at most 60 s); cases 22-28 fix
 each of the seven levels in turn (``?quality=N``), playing, and 29-35 paused.
-With ``--advance N`` a paused case is measured N frames in (stepped over HTTP
-first: the water spread over the floor, the costly case for the splats). The
+With ``--advance N`` a case starts N frames in (stepped over HTTP first,
+paused: the water spread over the floor, the costly case for the splats; a
+playing case then plays from there). The
 old target was 50 frames/s; the page keeps 24. Playing, it also reports the
 simulation frames the session advanced per second while the page watched
 (the session's ``frame`` from ``GET /v1/sessions/{id}`` before and after).
 
     python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--cases 20,21] [--advance 300] [--no-sync] [--out benchmarks/results/page]
+
+``--ladder R`` measures the quality levels' costs instead (the ``cost`` of
+``static/quality.js``'s levels): one paddle3d page, paused ``--advance``
+frames in, the levels taken in turn R times (interleaved, so that a shared
+machine's load falls on each alike), the median browser CPU per frame each.
 """
 
 from __future__ import annotations
@@ -155,14 +161,18 @@ def run_case(
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     fix = f"quality={preset}" if isinstance(preset, str) else f"scale={preset:g}"
-    query = f"/?scene={scene}&seed={seed}&solver=mpm&look={look}&{fix}&bench=1" + ("" if playing else "&autoplay=0") + ("&sync=1" if sync else "")
+    query = (
+        f"/?scene={scene}&seed={seed}&solver=mpm&look={look}&{fix}&bench=1" + ("" if playing and not advance else "&autoplay=0") + ("&sync=1" if sync else "")
+    )
     page.goto(url + query)
     page.wait_for_function("window.__hmpm.framesRendered >= 10", timeout=60_000)
-    if advance and not playing:
+    if advance:  # paused while it steps; a playing case plays from there
         sid = page.evaluate("window.__hmpm.session.id")
         for left in range(advance, 0, -100):
             httpx.post(f"{url}/v1/sessions/{sid}/step", json={"frames": min(100, left)}, timeout=300).raise_for_status()
         page.wait_for_function(f"window.__hmpm.lastFrame >= {advance}", timeout=60_000)
+        if playing:
+            page.click("#play")
     time.sleep(1.0)  # warm up
     settled_s = settle(page) if preset == "auto" else 0.0
     pids = browser_pids()
@@ -208,6 +218,49 @@ def run_case(
     }
 
 
+def ladder(browser, url: str, scene: str, advance: int, rounds: int, seconds: float) -> list[dict]:
+    """The quality levels' costs on one page, paused ``advance`` frames in, the camera turning: the levels taken in
+    turn (the quality select), ``rounds`` times, so that what else runs on the machine meanwhile falls on every level
+    alike; per level the median over the rounds of the browser's CPU per frame drawn and of the frames drawn per
+    second, and the splats drawn (the water's particles, or its cells' splats)."""
+    page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
+    page.goto(f"{url}/?scene={scene}&solver=mpm&look=fluid&bench=1&autoplay=0&quality=1")
+    page.wait_for_function("window.__hmpm.framesRendered >= 2", timeout=60_000)
+    sid = page.evaluate("window.__hmpm.session.id")
+    for left in range(advance, 0, -100):
+        httpx.post(f"{url}/v1/sessions/{sid}/step", json={"frames": min(100, left)}, timeout=300).raise_for_status()
+    page.wait_for_function(f"window.__hmpm.lastFrame >= {advance}", timeout=60_000)
+    levels = page.evaluate("__hmpm.quality.levels")
+    pids = browser_pids()
+    got: dict[int, list[tuple[float, float, int]]] = {q: [] for q in range(1, levels + 1)}
+    for _ in range(rounds):
+        for q in got:
+            page.select_option("#quality", str(q))
+            time.sleep(0.8)
+            a, c0 = page.evaluate("[__hmpm.framesRendered, performance.now()]"), cpu_seconds(pids)
+            time.sleep(seconds)
+            b, c1 = (
+                page.evaluate("[__hmpm.framesRendered, performance.now(), __hmpm.view.lod ? __hmpm.view.splats.count : __hmpm.view.drawn]"),
+                cpu_seconds(pids),
+            )
+            n = max(1, b[0] - a[0])
+            got[q].append((1000.0 * (c1 - c0) / n, n * 1000.0 / (b[1] - a[1]), b[2]))
+    page.close()
+    httpx.delete(f"{url}/v1/sessions/{sid}", timeout=30)
+    base = float(np.median([x[0] for x in got[1]]))
+    return [
+        {
+            "level": q,
+            "browser_cpu_ms_per_frame": float(np.median([x[0] for x in v])),
+            "rounds_ms": [round(x[0], 1) for x in v],
+            "relative": float(np.median([x[0] for x in v])) / base,
+            "fps": float(np.median([x[1] for x in v])),
+            "splats": v[-1][2],
+        }
+        for q, v in got.items()
+    ]
+
+
 def chromium_version(path: str) -> str:
     try:
         return subprocess.run([path, "--version"], capture_output=True, text=True, timeout=30).stdout.strip()
@@ -221,12 +274,38 @@ def main() -> None:
     ap.add_argument("--dpr", type=float, default=1.0, help="device pixel ratio of the page (the canvas is 640 CSS px square)")
     ap.add_argument("--cases", default=None, help="comma-separated indices into CASES (default: all)")
     ap.add_argument("--out", default=None, help="write the results here (.json and .md)")
-    ap.add_argument("--advance", type=int, default=0, help="paused cases: step the session this many frames first")
+    ap.add_argument("--advance", type=int, default=0, help="step the session this many frames first (paused; playing cases then play)")
     ap.add_argument("--no-sync", action="store_true", help="skip the second run that waits for the GPU (draw + GPU column)")
+    ap.add_argument("--ladder", type=int, default=0, help="instead of the cases: the quality levels' costs on paddle3d, this many rounds")
     args = ap.parse_args()
     chromium = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+    if args.ladder:
+        with LiveServer(max_sessions=4, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
+            load0 = os.getloadavg()[0]
+            rows = ladder(browser, srv.url, "paddle3d", args.advance, args.ladder, args.seconds)
+            load1 = os.getloadavg()[0]
+            browser.close()
+        for r in rows:
+            print(json.dumps(r))
+        if args.out:
+            lines = [
+                "# The quality levels' costs: paddle3d, paused, headless Chromium, software GL",
+                "",
+                f"`python benchmarks/bench_page.py --ladder {args.ladder} --advance {args.advance} --seconds {args.seconds:g}`: "
+                f"the levels in turn on one page, {args.ladder} rounds, {args.advance} frames in; load average {load0:.1f} before, {load1:.1f} after.",
+                "",
+                "| level | browser CPU / frame [ms] (median) | rounds [ms] | relative | frames/s | splats |",
+                "|---:|---:|---|---:|---:|---:|",
+                *[
+                    f"| {r['level']} | {r['browser_cpu_ms_per_frame']:.1f} | {', '.join(map(str, r['rounds_ms']))} | {r['relative']:.2f} | {r['fps']:.1f} | {r['splats']} |"
+                    for r in rows
+                ],
+            ]
+            Path(args.out).with_suffix(".md").write_text("\n".join(lines) + "\n")
+        return
     cases = CASES if args.cases is None else [CASES[int(i)] for i in args.cases.split(",")]
-    rows = []
+    rows: list[dict] = []
     with LiveServer(max_sessions=16, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
         for scene, seed, look, playing, preset in cases:
@@ -241,9 +320,14 @@ def main() -> None:
             )
             r.update(scene=scene, seed=seed, playing=playing, preset=preset)
             rows.append(r)
-            print(json.dumps(r))
-        version = browser.version
+            print(json.dumps(r), flush=True)
+            if args.out:  # after every case: a run cut short keeps what it measured
+                write(Path(args.out), rows, args, browser.version, chromium)
         browser.close()
+
+
+def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, chromium: str) -> None:
+    """The results so far as ``out``.json and ``out``.md."""
     res = {
         "chromium": version,
         "chromium_binary": chromium_version(chromium),
@@ -255,36 +339,34 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "cases": rows,
     }
-    if args.out:
-        out = Path(args.out)
-        out.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
-        lines = [
-            "# The page's frame rate in headless Chromium, software GL",
-            "",
-            f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}"
-            f"{f' --advance {args.advance}' if args.advance else ''}{' --no-sync' if args.no_sync else ''}` — {version}, "
-            "SwiftShader (software GL),",
-            f"{os.cpu_count()} cores shared by the server, the browser and its GPU process; canvas 640 CSS px × dpr {args.dpr:g}.",
-            "frames/s: frames the page drew per second drawing on every animation frame (`?bench=1`);",
-            "draw: CPU time of one draw call sequence; draw + GPU: the same waiting for the GPU (`?sync=1`: a 1-pixel `readPixels`);",
-            "browser CPU / frame: CPU time of all the browser's processes (SwiftShader draws in the GPU process) per frame drawn;",
-            "load: the machine's 1-minute load average; others: the share of the machine's CPU time taken by processes other than",
-            "the browser meanwhile (the server included). quality: the level drawn (static/quality.js; `auto`: the level the page",
-            "settled on); surfaces: the share of the frames drawn whose water went through the fluid passes.",
-            "",
-            "| scene | particles | look | simulation | preset | quality | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
-            "| browser CPU / frame [ms] | load | others | simulation frames/s | frame | surfaces |",
-            "|---|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-        ]
-        for r in rows:
-            preset = f"quality={r['preset']}" if isinstance(r["preset"], str) else f"scale={r['preset']:g}"
-            lines.append(
-                f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {preset} | "
-                f"{r['quality_level']}/7 | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
-                f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
-                f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
-            )
-        out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    out.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
+    lines = [
+        "# The page's frame rate in headless Chromium, software GL",
+        "",
+        f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}"
+        f"{f' --advance {args.advance}' if args.advance else ''}{' --no-sync' if args.no_sync else ''}` — {version}, "
+        "SwiftShader (software GL),",
+        f"{os.cpu_count()} cores shared by the server, the browser and its GPU process; canvas 640 CSS px × dpr {args.dpr:g}.",
+        "frames/s: frames the page drew per second drawing on every animation frame (`?bench=1`);",
+        "draw: CPU time of one draw call sequence; draw + GPU: the same waiting for the GPU (`?sync=1`: a 1-pixel `readPixels`);",
+        "browser CPU / frame: CPU time of all the browser's processes (SwiftShader draws in the GPU process) per frame drawn;",
+        "load: the machine's 1-minute load average; others: the share of the machine's CPU time taken by processes other than",
+        "the browser meanwhile (the server included). quality: the level drawn (static/quality.js; `auto`: the level the page",
+        "settled on); surfaces: the share of the frames drawn whose water went through the fluid passes.",
+        "",
+        "| scene | particles | look | simulation | preset | quality | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
+        "| browser CPU / frame [ms] | load | others | simulation frames/s | frame | surfaces |",
+        "|---|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        preset = f"quality={r['preset']}" if isinstance(r["preset"], str) else f"scale={r['preset']:g}"
+        lines.append(
+            f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {preset} | "
+            f"{r['quality_level']}/7 | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
+            f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
+            f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
+        )
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

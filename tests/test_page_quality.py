@@ -9,16 +9,20 @@ CPU renderer, on the machine that runs the server).
   (its ``cost``) predicts 30 frames/s there and stops where it predicts
   less; a level that falls under 24 when tried is tried again only after a
   back-off that doubles (no oscillation); callbacks that did not draw
-  (frames arriving slower than the display) are not read as a slow page; a
-  fixed level is kept; a hold (a GIF being drawn) changes nothing.
+  (frames arriving slower than the display) are not read as a slow page;
+  the rate is the mean interval's (intervals of 16.7 and 50 ms in turn are
+  30 frames/s, where their median says 20); a fixed level is kept; a hold
+  (a GIF being drawn) changes nothing.
 * The page itself: the default scene (``paddle3d``: 25,304 particles)
   playing, with its camera turning (``?bench=1``: a draw every animation
   frame, so the frames drawn are the page's own capacity, not the stream's
   rate). At the top level it draws under 24 frames/s; switched to auto, it
   steps down, and once settled it draws at least 24 frames/s by its own
-  counter (``__hmpm.framesRendered``), the water still drawn as a surface
-  (every frame ran the fluid passes to the end: ``surfacesDrawn``). A level
-  the user fixes is kept while the page draws under 24 frames/s there.
+  counter (``__hmpm.framesRendered``; less a reaction time's share, and on a
+  machine where jobs this test did not start take over half the CPU, the
+  cheapest level instead), the water still drawn as a surface (every frame
+  ran the fluid passes to the end: ``surfacesDrawn``). A level the user
+  fixes is kept while the page draws under 24 frames/s there.
 """
 
 from __future__ import annotations
@@ -39,12 +43,17 @@ CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "
 pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)")
 
 TARGET_FPS = 24.0  # quality.js TARGET_FPS
+CLK_TCK = os.sysconf("SC_CLK_TCK")
 # The settled rate is read over MEASURE_S seconds. The controller reacts to a slowdown within one window (1.5 s)
 # and its settle time (0.3 s); a burst of other jobs that starts inside the measurement can cost up to that much
 # of it at the old rate before the controller steps down: the tolerance is that share of the measurement.
 MEASURE_S = 8.0
 REACTION_S = 1.5 + 0.3
 SETTLED_FPS = TARGET_FPS * (MEASURE_S - REACTION_S) / MEASURE_S
+# The claim is this page's on this machine: it holds while jobs this test did not start leave it at least one of the
+# machine's two cores (FOREIGN_MAX of its CPU time). Beyond that (other tests in parallel, other people's jobs) the
+# page cannot draw 24 frames/s at any level, and what is checked is that the controller went to the cheapest level.
+FOREIGN_MAX = 0.5
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +115,10 @@ DRIVE = """async () => {
   // frames arriving 10 a second, each drawn within one display interval: the page is not slow (never down; up: room)
   c = make(3);
   feed(c, 10000, 60, 6); out.contentLimited = c.level; out.contentLimitedFps = c.fps; out.contentLimitedWhy = c.changes.map((x) => x.why);
+  // 30 frames/s as the display delivers them: intervals of 1 and 3 display frames in turn (16.7 and 50 ms)
+  c = make(3);
+  for (let k = 0; k < 240; k++) { t += (k % 2 ? 3 : 1) * 1000 / 60; c.frame(t, true); }
+  out.alternating = [c.level, c.fps];
   // fixed by the user: kept however slowly it draws
   c = make(3);
   c.fix(6); feed(c, 20000, 5); out.fixed = [c.level, c.auto, c.changes.map((x) => x.why)];
@@ -125,7 +138,7 @@ def test_the_controller_steps_with_hysteresis_on_a_driven_clock(server, browser)
     # 10 frames/s from level index 3: 3 -> 1 (two: under half the target) -> 0 -> stays
     assert (r["slowA"], r["slowB"], r["slowC"]) == (1, 0, 0), r
     assert r["slowChanges"] == [[3, 1, "down"], [1, 0, "down"]]
-    # 50 frames/s: index 4's cost (3.3) over index 5's (6) predicts 27.5 < 30 frames/s: it stops at index 4
+    # 50 frames/s: index 4's cost (2.6) over index 5's (5) predicts 26 < 30 frames/s: it stops at index 4
     assert r["climb"] == 4 and [x[1] for x in r["climbChanges"]] == [1, 2, 3, 4] and all(x[2] == "up" for x in r["climbChanges"]), r
     # tried again only after 8, 16, 32, 64 s: at most 5 tries in 120 s (every 3 s of 50 frames/s without the back-off)
     ups = r["flapUps"]
@@ -136,18 +149,49 @@ def test_the_controller_steps_with_hysteresis_on_a_driven_clock(server, browser)
     # content-limited (10 of 60 callbacks draw): the intervals after its draws are the display's, ~60 frames/s: never
     # read as a slow page (a rate from all callbacks' draws would say 10 frames/s and step down)
     assert r["contentLimited"] >= 3 and r["contentLimitedFps"] > 50 and "down" not in r["contentLimitedWhy"], r
+    # the mean interval, 33.3 ms: 30 frames/s (the median of an even count, 50 ms, would say 20 and step down)
+    assert r["alternating"][0] == 3 and abs(r["alternating"][1] - 30.0) < 0.5, r
     assert r["fixed"] == [6, False, ["fixed"]], r
     assert r["held"] == 3 and r["released"] < 3, r
     assert errors == [], errors
 
 
+def _stat(pid: str) -> list[str] | None:
+    try:
+        text = open(f"/proc/{pid}/stat").read()
+    except OSError:
+        return None
+    return text[text.rindex(")") + 2 :].split()
+
+
+def cpu_split() -> tuple[float, float, float]:
+    """(CPU seconds of this process and its descendants — the server, Playwright, the browser —, CPU seconds the
+    machine was busy, CPU seconds it had), since boot (/proc)."""
+    parent, times = {}, {}
+    for d in os.listdir("/proc"):
+        if d.isdigit() and (f := _stat(d)) is not None:
+            parent[int(d)], times[int(d)] = int(f[1]), (int(f[11]) + int(f[12]) + int(f[13]) + int(f[14])) / CLK_TCK
+    mine, grew = {os.getpid()}, True
+    while grew:
+        grew = False
+        for pid, pp in parent.items():
+            if pp in mine and pid not in mine:
+                mine.add(pid)
+                grew = True
+    with open("/proc/stat") as fh:
+        v = [int(x) for x in fh.readline().split()[1:]]
+    return sum(times.get(p, 0.0) for p in mine), (sum(v) - v[3] - v[4]) / CLK_TCK, sum(v) / CLK_TCK
+
+
 def drawn_rate(page, seconds):
-    """Frames the page drew per second over ``seconds`` (its own counter), the frames whose water went through the
-    fluid passes, and the quality's changes meanwhile."""
-    a = page.evaluate("[__hmpm.framesRendered, __hmpm.view.surfacesDrawn, performance.now(), __hmpm.quality.changes.length]")
+    """Frames the page drew per second over ``seconds`` (its own counter), the frames drawn and those whose water went
+    through the fluid passes, the quality's changes meanwhile, and the share of the machine's CPU time that jobs this
+    test did not start took meanwhile."""
+    a, c0 = page.evaluate("[__hmpm.framesRendered, __hmpm.view.surfacesDrawn, performance.now(), __hmpm.quality.changes.length]"), cpu_split()
     time.sleep(seconds)
-    b = page.evaluate("[__hmpm.framesRendered, __hmpm.view.surfacesDrawn, performance.now(), __hmpm.quality.changes.length]")
-    return (b[0] - a[0]) * 1000.0 / (b[2] - a[2]), (b[0] - a[0], b[1] - a[1]), b[3] - a[3]
+    b, c1 = page.evaluate("[__hmpm.framesRendered, __hmpm.view.surfacesDrawn, performance.now(), __hmpm.quality.changes.length]"), cpu_split()
+    foreign = max(0.0, (c1[1] - c0[1]) - (c1[0] - c0[0])) / max(1e-9, c1[2] - c0[2])
+    return (b[0] - a[0]) * 1000.0 / (b[2] - a[2]), (b[0] - a[0], b[1] - a[1]), b[3] - a[3], foreign
 
 
 def water_share(page):
@@ -168,7 +212,7 @@ def test_the_default_scene_playing_keeps_24_frames_drawn_with_its_water_a_surfac
     assert session["scene"] == "paddle3d" and session["num_particles"] > 25_000
     assert page.evaluate("[__hmpm.renderer, __hmpm.look, __hmpm.view.software]") == ["webgl2", "fluid", True]
     page.wait_for_function("window.__hmpm.lastFrame >= 60", timeout=60_000)  # the surge is on its way
-    top, _, changes = drawn_rate(page, 3.0)
+    top, _, changes, _ = drawn_rate(page, 3.0)
     q = page.evaluate("__hmpm.quality")
     assert q["level"] == 6 and not q["auto"] and changes == 0
     assert top < TARGET_FPS, f"the top level already draws {top:.1f} frames/s: nothing to adapt here"
@@ -180,7 +224,7 @@ def test_the_default_scene_playing_keeps_24_frames_drawn_with_its_water_a_surfac
         n0 = page.evaluate("__hmpm.quality.changes.length")
         time.sleep(3.0)  # no change for 3 s: two windows measured over 24 frames/s, or the cheapest level
         if page.evaluate("__hmpm.quality.changes.length") == n0:
-            fps, (drawn, surfaces), moved = drawn_rate(page, MEASURE_S)
+            fps, (drawn, surfaces), moved, foreign = drawn_rate(page, MEASURE_S)
             if moved == 0:  # none meanwhile either
                 settled = fps
                 break
@@ -188,18 +232,22 @@ def test_the_default_scene_playing_keeps_24_frames_drawn_with_its_water_a_surfac
     steps = [(c["from"], c["to"], c["why"]) for c in q["changes"]]
     assert settled is not None, f"the quality did not settle in 90 s: {steps}"
     assert q["auto"] and q["level"] < 6 and steps[0][2] == "down", steps
-    print(f"settled at level {q['level'] + 1}/7 ({q['settings']['label']}): {settled:.1f} frames/s drawn; steps {steps}; load {os.getloadavg()}")
-    assert settled >= SETTLED_FPS, f"{settled:.1f} frames/s drawn at level {q['level'] + 1} (steps {steps}; load {os.getloadavg()})"
+    said = f"{settled:.1f} frames/s drawn at level {q['level'] + 1}/7 ({q['settings']['label']}); steps {steps}; others' CPU share {foreign:.0%}"
+    print(f"{said}; load {os.getloadavg()}")
+    if foreign <= FOREIGN_MAX:
+        assert settled >= SETTLED_FPS, said
+    else:  # a machine taken by other jobs: the page does what it can
+        assert settled >= SETTLED_FPS or q["level"] == 0, said
     # the water is still a surface: every frame drawn ran the fluid passes, and the stage shows it
     assert page.evaluate("[__hmpm.look, __hmpm.view.showParticles]") == ["fluid", True]
     assert surfaces == drawn > 0
     assert water_share(page) > 0.03
 
     # a level the user fixes is kept, though the page draws under 24 frames/s there
+    n0 = page.evaluate("__hmpm.quality.changes.length")  # auto went on meanwhile
     page.select_option("#quality", "6")
-    n0 = len(q["changes"])
     time.sleep(1.0)
-    fixed, _, _ = drawn_rate(page, 3.0)
+    fixed, _, _, _ = drawn_rate(page, 3.0)
     q = page.evaluate("__hmpm.quality")
     assert q["level"] == 5 and not q["auto"] and [c["why"] for c in q["changes"][n0:]] == ["fixed"], q["changes"][n0:]
     assert fixed < TARGET_FPS, f"level 6 draws {fixed:.1f} frames/s: the test shows nothing about keeping it"
