@@ -11,7 +11,7 @@ import numpy as np
 from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics.chaotic import KE_FLOOR, ROLLOUT_METRICS, SHORT_HORIZON_FRAMES, rollout_metrics
-from hybridmpm.metrics.core import _n_grid, align_frames, grid_mass_error, position_mse, rollout_summary
+from hybridmpm.metrics.core import align_frames, checked_n_grid, grid_mass_error, position_mse, rollout_summary
 from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_MAX_POINTS
 from hybridmpm.trajectory import Trajectory
 
@@ -69,7 +69,7 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None, *, da
             raise InvalidInputError(f"{name}: expected a Trajectory, got {type(tr).__name__}", name)
     if pred.dim != ref.dim:
         raise InvalidInputError(f"ref: dimension {ref.dim} differs from pred's {pred.dim}", "ref")
-    n = _n_grid(n_grid if n_grid is not None else ref.n_grid if ref.n_grid is not None else DEFAULT_N_GRID[ref.dim])
+    n = checked_n_grid(n_grid if n_grid is not None else ref.n_grid if ref.n_grid is not None else DEFAULT_N_GRID[ref.dim])
     pi, ri, times = align_frames(pred.dt_frame, pred.num_frames, ref.dt_frame, ref.num_frames)
     pm, rm = pred.fluid_mask(), ref.fluid_mask()
     for name, mask in (("pred", pm), ("ref", rm)):
