@@ -69,7 +69,8 @@ def write_tuned(
         ],
         "date": time.strftime("%Y-%m-%d %H:%M:%S %z"),
     }
-    doc["measured"][metric] = chosen.get(metric)  # the score it was chosen on
+    measured: dict[str, Any] = doc["measured"]  # type: ignore[assignment]
+    measured[metric] = chosen.get(metric)  # the score it was chosen on
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=2))

@@ -87,6 +87,7 @@ def make_simulator(
                 raise InvalidInputError(f"{name}: applies to the mpm solver; the {solver} solver runs at its model's resolution", name)
     if cheap_particles is not None and (solver != "hybrid" or cheap != "mpm-coarse"):
         raise InvalidInputError("cheap_particles: applies to the hybrid whose cheap half is 'mpm-coarse' (the classical twin)", "cheap_particles")
+    twin: dict[str, Any] = {} if cheap_particles is None else {"cheap_particles": cheap_particles}
     if solver == "mpm":
         return MpmSimulator(
             scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell, calibrated=calibrated
@@ -110,7 +111,7 @@ def make_simulator(
         clusters=clusters,
         cheap=cheap,
         cheap_grid=cheap_grid,
-        **({} if cheap_particles is None else {"cheap_particles": cheap_particles}),
+        **twin,
     )
 
 

@@ -149,7 +149,7 @@ def _check_id(tid: Any, *, source: str | None = None) -> str:
 # --------------------------------------------------------------------------- atomic files
 
 
-def atomic_write(path: PathLike, write: Callable[[IO[bytes]], None]) -> None:
+def atomic_write(path: PathLike, write: Callable[[IO[bytes]], object]) -> None:
     """Write ``path`` through a temporary file in the same folder (``write(fh)``
     fills it; it is fsynced) and ``os.replace``: readers see the old file or
     the whole new one. Whatever ``write`` raises propagates, the temporary
