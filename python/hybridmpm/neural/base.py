@@ -16,7 +16,6 @@ Paper Sec. 2.2, 3.1.1 (``r_p``, ``r_t``, ``T_in``) and App. A.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ import numpy as np
 
 from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 from hybridmpm.models import shipped_model
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid import GRID_KIND, GridRuntime
@@ -161,7 +161,7 @@ def file_metadata(path: str | Path) -> dict[str, Any] | None:
                 continue
             entry = dict(_fields(value))
             if bytes(entry.get(_KEY, b"")) == METADATA_KEY.encode():
-                meta = json.loads(bytes(entry.get(_VALUE, b"")).decode())
+                meta = loads_json(bytes(entry.get(_VALUE, b"")), "model")  # nesting checked: a deep one is unreadable (None)
                 return meta if isinstance(meta, dict) else None
     except (OSError, ValueError, IndexError, UnicodeDecodeError):
         return None
