@@ -34,7 +34,7 @@ import numpy as np
 
 from hybridmpm.conventions import DT_FRAME, G
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.metrics.core import _frames, grid_mass_error, kinetic_energy
+from hybridmpm.metrics.core import check_frames, grid_mass_error, kinetic_energy
 from hybridmpm.metrics.transport import sinkhorn_frames, sinkhorn_series
 from hybridmpm.validation import dam_break_front_height, load_martin_moyce, score_dam_break
 
@@ -58,6 +58,12 @@ ROLLOUT_METRICS = {
     "ke_error": "kinetic energy's relative error (mean over frames)",
     "front_rms": "dam-break front against Martin & Moyce (RMS of x/a, best shift)",
 }
+
+
+def json_scores(scores: dict[str, Any]) -> dict[str, float | None]:
+    """The :data:`ROLLOUT_METRICS` scores of :func:`rollout_metrics`' result as
+    JSON: floats, None where undefined (JSON has no NaN)."""
+    return {k: float(scores[k]) if math.isfinite(scores[k]) else None for k in ROLLOUT_METRICS}
 
 
 def _times(name: str, times: Any, n: int) -> np.ndarray:
@@ -93,7 +99,7 @@ def kinetic_energy_error(pred: Any, ref: Any, times: Any) -> tuple[float, np.nda
     with fewer than 2 frames or a reference that never moves. Raises
     :class:`InvalidInputError` (``pred``, ``ref``, ``times``).
     """
-    p, r = _frames("pred", pred), _frames("ref", ref)
+    p, r = check_frames("pred", pred), check_frames("ref", ref)
     if p.shape[0] != r.shape[0]:
         raise InvalidInputError(f"ref: has {r.shape[0]} frames but pred has {p.shape[0]}", "ref")
     t = _times("times", times, p.shape[0])
@@ -130,7 +136,7 @@ def dam_break_front(positions: Any, times: Any, geometry: dict[str, float]) -> d
     ``dT ∈ [0, 0.5]``. Returns ``{"rms", "shift", "front", "reason"}``:
     ``rms`` None (and ``reason`` why) when the rollout ends before ``T = 3.33``.
     """
-    x = _frames("positions", positions)
+    x = check_frames("positions", positions)
     t = _times("times", times, x.shape[0])
     a = float(geometry["a"])
     z, h = dam_break_front_height(x, a, geometry["x_wall"], geometry["y_floor"], geometry["spacing"])
@@ -171,7 +177,7 @@ def rollout_metrics(
     ``front_reason`` for the dam break) and ``seconds``: the wall time of
     each metric. Raises :class:`InvalidInputError` naming the bad argument.
     """
-    p, r = _frames("pred", pred), _frames("ref", ref)
+    p, r = check_frames("pred", pred), check_frames("ref", ref)
     if p.shape[0] != r.shape[0]:
         raise InvalidInputError(f"ref: has {r.shape[0]} frames but pred has {p.shape[0]}", "ref")
     t = _times("times", times, p.shape[0])

@@ -19,8 +19,9 @@ from hybridmpm.mpm import grid_mass
 _RATIO_RTOL = 1e-5
 
 
-def _frames(name: str, x: Any) -> np.ndarray:
-    """``x`` as float [T, N, D] (a single frame [N, D] becomes T = 1), finite."""
+def check_frames(name: str, x: Any) -> np.ndarray:
+    """``x`` as float [T, N, D] (a single frame [N, D] becomes T = 1), finite;
+    :class:`InvalidInputError` naming ``name`` otherwise."""
     arr = np.asarray(x)
     if arr.dtype.kind != "f":
         raise InvalidInputError(f"{name}: expected a floating-point array, got dtype {arr.dtype}", name)
@@ -47,7 +48,8 @@ def _weights(name: str, w: Any, n: int) -> np.ndarray | None:
     return arr
 
 
-def _n_grid(n_grid: Any) -> int:
+def check_n_grid(n_grid: Any) -> int:
+    """``n_grid`` as an int in [3, 4096]; :class:`InvalidInputError` (``n_grid``) otherwise."""
     if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or not 3 <= int(n_grid) <= 4096:
         raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")
     return int(n_grid)
@@ -110,13 +112,13 @@ def grid_mass_error(
     float64 [T]; 0 for identical frames. Raises :class:`InvalidInputError`
     naming ``pred``, ``ref``, ``n_grid``, ``pred_weights`` or ``ref_weights``.
     """
-    p = _frames("pred", pred)
-    r = _frames("ref", ref)
+    p = check_frames("pred", pred)
+    r = check_frames("ref", ref)
     if p.shape[2] != r.shape[2]:
         raise InvalidInputError(f"ref: dimension {r.shape[2]} differs from pred's {p.shape[2]}", "ref")
     if p.shape[0] != r.shape[0]:
         raise InvalidInputError(f"ref: has {r.shape[0]} frames but pred has {p.shape[0]}; align them first (align_frames)", "ref")
-    n = _n_grid(n_grid)
+    n = check_n_grid(n_grid)
     # two float32 grids from Rust, their float64 copies and the difference: 28 bytes per node
     check_allocation("n_grid", 28.0 * (n + 1) ** p.shape[2], f"a {n}^{p.shape[2]} grid-mass grid")
     pw = _weights("pred_weights", pred_weights, p.shape[1])
@@ -139,8 +141,8 @@ def position_mse(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
     :func:`grid_mass_error`). Raises :class:`InvalidInputError` (``pred`` /
     ``ref``) otherwise.
     """
-    p = _frames("pred", pred)
-    r = _frames("ref", ref)
+    p = check_frames("pred", pred)
+    r = check_frames("ref", ref)
     if p.shape != r.shape:
         raise InvalidInputError(f"ref: shape {list(r.shape)} differs from pred's {list(p.shape)}; position MSE needs the same frames and particles", "ref")
     diff = p.astype(np.float64) - r.astype(np.float64)
@@ -171,7 +173,7 @@ def kinetic_energy(positions: np.ndarray, dt: float, masses: np.ndarray | None =
     ``positions`` float [T, N, D] with T >= 2, ``dt`` [s] the time between its
     frames. Raises :class:`InvalidInputError` (``positions``, ``dt``, ``masses``).
     """
-    p = _frames("positions", positions)
+    p = check_frames("positions", positions)
     if np.ndim(positions) != 3 or p.shape[0] < 2:
         raise InvalidInputError(f"positions: need [T, N, D] with T >= 2 frames, got shape {list(np.shape(positions))}", "positions")
     h = _positive("dt", dt)
