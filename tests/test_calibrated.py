@@ -64,7 +64,6 @@ def test_calibration_values_are_bounded_and_named():
 
 
 @pytest.mark.skipif(not FITS, reason="no calibrated fit shipped")
-@pytest.mark.may_skip_in_ci("they test the shipped fits: none ships until benchmarks/coarse_ladder.py rung1-fit has written one")
 @pytest.mark.parametrize("name", FITS)
 def test_shipped_fits_load_within_their_bounds_and_differ_from_the_defaults(name: str):
     fit = _fit(name)
@@ -89,7 +88,6 @@ def test_shipped_fits_load_within_their_bounds_and_differ_from_the_defaults(name
 
 
 @pytest.mark.skipif(not FITS, reason="no calibrated fit shipped")
-@pytest.mark.may_skip_in_ci("they test the shipped fits: none ships until benchmarks/coarse_ladder.py rung1-fit has written one")
 @pytest.mark.parametrize("name", [n for n in FITS if n.startswith("sand2d")])
 def test_the_card_holds_for_a_held_out_seed_recomputed(name: str):
     """The held-out errors the card reports, recomputed on its first held-out seed (400 frames, one thread: the
@@ -109,7 +107,6 @@ def test_the_card_holds_for_a_held_out_seed_recomputed(name: str):
 
 
 @pytest.mark.skipif(not FITS, reason="no calibrated fit shipped")
-@pytest.mark.may_skip_in_ci("they test the shipped fits: none ships until benchmarks/coarse_ladder.py rung1-fit has written one")
 def test_bench_and_tune_see_a_calibrated_member_as_plain_mpm():
     name = FITS[0]
     fit = _fit(name)

@@ -94,6 +94,7 @@ def bench(
     title = f"{scene} ({first.dim}D): {len(seeds)} held-out seed(s) × {frames} frames"
     report.plot_pareto(out / "pareto.png", rows, title)
     files = {"pareto.png": "error against latency, every method"}
+    files.update(report.plot_metric_charts(out, rows, title))  # one chart per score of a chaotic flow (pareto_METRIC.png)
     # error over time, first seed: the shipped neural model, MPM at r_p and the hybrid nearest trajectory_r_c
     hyb = [m for m in methods if m.key.startswith("hybrid_rc")]
     traj_keys = ["neural", "mpm_rp"]

@@ -1,6 +1,7 @@
 """Tables, charts and the report of a benchmark run (paper Fig. 5, Fig. 7,
-Table 2): ``results.csv``, ``threshold_sweep.csv``, ``error_sweep.csv``, ``pareto.png|svg``,
-``error_trajectory.png`` and ``report.md``."""
+Table 2): ``results.csv``, ``threshold_sweep.csv``, ``error_sweep.csv``, ``pareto.png|svg``
+(and ``pareto_METRIC.png|svg`` for every other score of
+:data:`~hybridmpm.metrics.ROLLOUT_METRICS`), ``error_trajectory.png`` and ``report.md``."""
 
 from __future__ import annotations
 
@@ -13,18 +14,23 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.bench.methods import Method
+from hybridmpm.conventions import DT_FRAME
+from hybridmpm.metrics import ROLLOUT_METRICS, short_horizon_error
 from hybridmpm.render.timeline import mpm_spans
 
 #: Columns of ``results.csv`` (one row per method × seed).
 RESULT_COLUMNS = (
     "scene", "method", "label", "kind", "role", "seed", "r_p", "r_t", "r_c", "safeguard", "audit_tol", "params", "model", "particles", "frames",
-    "frames_done", "failure", "error_mean", "error_last", "ms_median", "ms_p95", "ms_mean", "mpm_share", "switches",
+    "frames_done", "failure", "error_mean", "error_last", "short_error", "sinkhorn", "ke_error", "front_rms", "metric_cost", "ms_median", "ms_p95", "ms_mean", "mpm_share", "switches",
     "substeps_per_frame", "mflop_per_frame", "warmup_frames", "mpm_threads", "nn_threads", "machine", "cores", "hybridmpm", "numpy", "onnxruntime", "python", "commit",
 )  # fmt: skip
 #: Columns of ``threshold_sweep.csv`` (one row per hybrid threshold, means over seeds).
 SWEEP_COLUMNS = ("r_c", "error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "seeds")
 #: Columns of ``error_sweep.csv`` (one row per audit tolerance of the "error" rule, means over seeds).
 ERROR_SWEEP_COLUMNS = ("audit_tol",) + SWEEP_COLUMNS[1:]
+#: The scores drawn beside the long-horizon error, one chart each (``pareto_METRIC.png``) and one column of the report's
+#: table of them (``error_last`` is the long-horizon error's last frame: in the main table).
+CHART_METRICS = tuple(k for k in ROLLOUT_METRICS if k not in ("error_mean", "error_last"))
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
@@ -43,20 +49,20 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return sorted(front, key=lambda i: (pts[i][0], pts[i][1]))
 
 
-def mpm_front(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The classical front: the Pareto-optimal plain-MPM rows (every grid and
-    ``r_p`` benchmarked, the full-resolution reference included, none that
-    broke off), fastest first."""
+def mpm_front(rows: Sequence[dict[str, Any]], metric: str = "error_mean") -> list[dict[str, Any]]:
+    """The classical front on ``metric`` (a score of :data:`~hybridmpm.metrics.ROLLOUT_METRICS`):
+    the Pareto-optimal plain-MPM rows (every grid and ``r_p`` benchmarked, the
+    full-resolution reference included, none that broke off), fastest first."""
     mpm = [r for r in rows if r["kind"] == "mpm" and not r.get("failures")]
-    return [mpm[i] for i in pareto_front([(r["ms_mean"], r["error_mean"]) for r in mpm])]
+    return [mpm[i] for i in pareto_front([(r["ms_mean"], r.get(metric, math.nan)) for r in mpm])]
 
 
-def front_error_at(front: Sequence[dict[str, Any]], ms: float) -> float:
-    """The classical front's error at a mean latency of ``ms`` per frame:
+def front_error_at(front: Sequence[dict[str, Any]], ms: float, metric: str = "error_mean") -> float:
+    """The classical front's ``metric`` at a mean latency of ``ms`` per frame:
     linear in log(latency) between the two front points around it (a grid
-    between two benchmarked ones), the slowest point's error beyond it, and
+    between two benchmarked ones), the slowest point's value beyond it, and
     NaN below the fastest (no plain MPM that fast was measured)."""
-    pts = [(math.log(r["ms_mean"]), r["error_mean"]) for r in front if r["ms_mean"] > 0 and math.isfinite(r["ms_mean"])]
+    pts = [(math.log(r["ms_mean"]), r[metric]) for r in front if r["ms_mean"] > 0 and math.isfinite(r["ms_mean"])]
     if not pts or not (math.isfinite(ms) and ms > 0):
         return float("nan")
     x = math.log(ms)
@@ -69,16 +75,20 @@ def front_error_at(front: Sequence[dict[str, Any]], ms: float) -> float:
 
 
 def on_common_frames(cell: dict[str, Any], stride: int) -> dict[str, Any]:
-    """``cell`` with ``error_mean`` recomputed over the frames that are
-    multiples of ``stride`` (the largest ``r_t`` among the methods compared):
-    every method is averaged over the same instants, whatever its own stride
-    (a per-frame MPM mean and a every-4th-frame network mean would otherwise
-    differ by sampling alone). ``error_last`` is unchanged."""
+    """``cell`` with ``error_mean`` and ``short_error`` recomputed over the
+    frames that are multiples of ``stride`` (the largest ``r_t`` among the
+    methods compared): every method is averaged over the same instants,
+    whatever its own stride (a per-frame MPM mean and a every-4th-frame
+    network mean would otherwise differ by sampling alone). ``error_last`` is
+    unchanged; the other scores were computed on those frames
+    (:func:`~hybridmpm.bench.run.run_cell`)."""
     f = np.asarray(cell["series"]["frame"])
     e = np.asarray(cell["series"]["error"], np.float64)
     keep = f % int(stride) == 0
     out = dict(cell)
     out["error_mean"] = float(e[keep].mean()) if keep.any() else float(e.mean())
+    if keep.any():
+        out["short_error"] = short_horizon_error(e[keep], f[keep] * DT_FRAME)
     return out
 
 
@@ -94,7 +104,7 @@ def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[s
         if not cs:
             continue
         row: dict[str, Any] = {**m.config(), "seeds": len(cs), "particles": float(np.mean([c["particles"] for c in cs]))}
-        for k in ("error_mean", "error_last", "ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "substeps_per_frame", "mflop_per_frame"):
+        for k in ("ms_mean", "ms_median", "ms_p95", "mpm_share", "switches", "substeps_per_frame", "mflop_per_frame", "metric_cost", *ROLLOUT_METRICS):
             row[k] = float(np.mean([c.get(k, float("nan")) for c in cs]))
         row["failures"] = sum(1 for c in cs if c["failure"])
         row["frames_done"] = float(np.mean([c["frames_done"] for c in cs]))
@@ -108,6 +118,16 @@ def aggregate(methods: list[Method], cells: list[dict[str, Any]]) -> list[dict[s
         # the plain-MPM front's error at this method's time (NaN: faster than every plain MPM measured)
         r["front_error"] = front_error_at(classical, r["ms_mean"])
         r["mpm_front"] = r["key"] in on_classical
+    # the same on every other score: ``at_front[metric]`` its plain-MPM front's value at the method's time,
+    # ``on_front[metric]`` whether the method is on that front
+    for r in rows:
+        r["at_front"], r["on_front"] = {}, {}
+    for metric in CHART_METRICS:
+        fr = mpm_front(rows, metric)
+        keys = {q["key"] for q in fr}
+        for r in rows:
+            r["at_front"][metric] = front_error_at(fr, r["ms_mean"], metric) if fr else math.nan
+            r["on_front"][metric] = r["key"] in keys
     return rows
 
 
@@ -179,21 +199,28 @@ _STYLE = {
 }
 
 
-def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
-    """Error (y) against mean latency per frame (x, log): one marker per method,
-    the hybrid thresholds joined as a curve, the Pareto front highlighted."""
+def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str, metric: str = "error_mean") -> None:
+    """``metric`` (y; a score of :data:`~hybridmpm.metrics.ROLLOUT_METRICS`,
+    default the long-horizon grid-mass error) against mean latency per frame
+    (x, log): one marker per method, the hybrid thresholds joined as a curve,
+    the plain-MPM front dashed, the Pareto front on that metric highlighted
+    (methods whose rollouts broke off are never on it)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(11.0, 5.0), dpi=110)
-    front = [r for r in rows if r["pareto"]]
-    front.sort(key=lambda r: r["ms_mean"])
+
+    def y(r: dict[str, Any]) -> float:
+        return float(r.get(metric, math.nan))
+
+    on = set(pareto_front([(r["ms_mean"], y(r) if not r["failures"] else math.inf) for r in rows]))
+    front = sorted((r for i, r in enumerate(rows) if i in on), key=lambda r: r["ms_mean"])
     if front:
         ax.plot(
             [r["ms_mean"] for r in front],
-            [r["error_mean"] for r in front],
+            [y(r) for r in front],
             "-",
             color="gold",
             lw=7,
@@ -202,11 +229,11 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
             label="Pareto front",
             drawstyle="steps-post",
         )
-    classical = mpm_front(rows)
+    classical = mpm_front(rows, metric)
     if classical:
         ax.plot(
             [r["ms_mean"] for r in classical],
-            [r["error_mean"] for r in classical],
+            [y(r) for r in classical],
             "--",
             color="black",
             lw=1.2,
@@ -215,16 +242,14 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
         )
     hyb = _rc_sweep(rows)
     if hyb:
-        ax.plot(
-            [r["ms_mean"] for r in hyb], [r["error_mean"] for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9 (s(t) + audit)"
-        )
+        ax.plot([r["ms_mean"] for r in hyb], [y(r) for r in hyb], "o-", color="tab:blue", ms=5, zorder=3, label="hybrid, r_c = 0 … 0.9 (s(t) + audit)")
         for r in hyb:
-            ax.annotate(f"{r['r_c']:.1f}", (r["ms_mean"], r["error_mean"]), textcoords="offset points", xytext=(4, 3), fontsize=7, color="tab:blue")
+            ax.annotate(f"{r['r_c']:.1f}", (r["ms_mean"], y(r)), textcoords="offset points", xytext=(4, 3), fontsize=7, color="tab:blue")
     err = _error_sweep(rows)
     if err:
-        ax.plot([r["ms_mean"] for r in err], [r["error_mean"] for r in err], "s--", color="tab:cyan", ms=5, zorder=3, label="hybrid, error rule, audit tol [g]")
+        ax.plot([r["ms_mean"] for r in err], [y(r) for r in err], "s--", color="tab:cyan", ms=5, zorder=3, label="hybrid, error rule, audit tol [g]")
         for r in err:
-            ax.annotate(f"{r['audit_tol']:g} g", (r["ms_mean"], r["error_mean"]), textcoords="offset points", xytext=(4, -9), fontsize=7, color="teal")
+            ax.annotate(f"{r['audit_tol']:g} g", (r["ms_mean"], y(r)), textcoords="offset points", xytext=(4, -9), fontsize=7, color="teal")
     for r in rows:
         if str(r["key"]).startswith(("hybrid_rc", "hybrid_err")):
             continue
@@ -237,11 +262,11 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
         broke = r["failures"] > 0
         label = r["label"] + (f" — broke off ({r['failures']}/{r['seeds']} seeds, ~{r['frames_done']:.0f} frames)" if broke else "")
         ax.plot(
-            r["ms_mean"], r["error_mean"], marker, color=color, mfc="none" if broke else color, mew=1.5,
+            r["ms_mean"], y(r), marker, color=color, mfc="none" if broke else color, mew=1.5,
             ms=10 if marker == "*" else 8, zorder=4, label=label, ls="none",
         )  # fmt: skip
     for r in front:
-        ax.plot(r["ms_mean"], r["error_mean"], "o", mfc="none", mec="darkorange", ms=14, mew=1.5, zorder=5)
+        ax.plot(r["ms_mean"], y(r), "o", mfc="none", mec="darkorange", ms=14, mew=1.5, zorder=5)
     ax.set_xscale("log")
     from matplotlib.ticker import FormatStrFormatter
 
@@ -249,7 +274,7 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
     ax.tick_params(axis="x", which="minor", labelsize=7)
     ax.set_xlabel("latency per frame [ms] (mean over frames after warm-up, mean over seeds)")
-    ax.set_ylabel("grid-mass error (mean over the rollout)")
+    ax.set_ylabel(ROLLOUT_METRICS[metric])
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
@@ -257,6 +282,19 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str) -> None:
     fig.savefig(path_png)
     fig.savefig(path_png.with_suffix(".svg"))
     plt.close(fig)
+
+
+def plot_metric_charts(out: Path, rows: list[dict[str, Any]], title: str) -> dict[str, str]:
+    """``pareto_METRIC.png|svg`` in ``out`` for every score of
+    :data:`CHART_METRICS` some method measured (``front_rms`` on the dam
+    break only), drawn as ``pareto.png`` is; returns ``{file: caption}``."""
+    files = {}
+    for metric in CHART_METRICS:
+        if not any(math.isfinite(r.get(metric, math.nan)) for r in rows):
+            continue
+        plot_pareto(out / f"pareto_{metric}.png", rows, title, metric)
+        files[f"pareto_{metric}.png"] = f"{ROLLOUT_METRICS[metric]} against latency, every method, with the plain-MPM front on it"
+    return files
 
 
 def plot_error_trajectory(path: Path, cells: dict[str, dict[str, Any]], labels: dict[str, str], dt_frame: float, title: str) -> None:
@@ -351,6 +389,7 @@ def report_markdown(
         lines.append("")
     lines += ["## Pareto front", "", "On the front (fastest first): " + "; ".join(front) + ".", ""]
     lines += _classical_section(rows, refused or {})
+    lines += _metrics_section(rows)
     return "\n".join(lines)
 
 
@@ -392,6 +431,55 @@ def _classical_section(rows: list[dict[str, Any]], refused: dict[int, str]) -> l
         lines.append("Faster than every plain MPM measured (no front to compare with): " + "; ".join(r["label"] for r in faster) + ".")
     for n, why in sorted(refused.items()):
         lines += ["", f"Not run on a {n} grid: {why}"]
+    lines.append("")
+    return lines
+
+
+def _g(x: float) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.3g}"
+
+
+def _vs_metric_front(r: dict[str, Any], metric: str) -> str:
+    """A row's cell "value (÷ the plain-MPM front's at its time)" on ``metric``."""
+    v = r.get(metric, math.nan)
+    if not math.isfinite(v):
+        return "–"
+    if r.get("on_front", {}).get(metric):
+        return f"{_g(v)} (on it)"
+    f = r.get("at_front", {}).get(metric, math.nan)
+    if not math.isfinite(f):
+        return f"{_g(v)} (faster than every plain MPM)"
+    return f"{_g(v)} ({v / f:.2f}×)" if f > 0 else f"{_g(v)} (front 0)"
+
+
+def _metrics_section(rows: list[dict[str, Any]]) -> list[str]:
+    """The report's table of the scores of a chaotic flow (docs/benchmarks.md
+    "Metrics for a chaotic flow"): each method's value and its ratio to the
+    plain-MPM front's at its time, the methods below each front, and what the
+    metrics cost per rollout."""
+    metrics = [m for m in CHART_METRICS if any(math.isfinite(r.get(m, math.nan)) for r in rows)]
+    if not metrics:
+        return []
+    lines = [
+        "## Metrics for a chaotic flow",
+        "",
+        "Beside the long-horizon grid-mass error: " + "; ".join(f"`{m}`: {ROLLOUT_METRICS[m]}" for m in metrics) + ". Each value with its "
+        "ratio to the plain-MPM front's on the same metric at the method's time (`pareto_METRIC.png`); the metrics' cost is their wall time "
+        'over a rollout ÷ the rollout\'s own (docs/benchmarks.md "Metrics for a chaotic flow").',
+        "",
+        "| method | ms/frame | " + " | ".join(metrics) + " | metrics' cost ÷ rollout |",
+        "|---|---|" + "---|" * len(metrics) + "---|",
+    ]
+    for r in rows:
+        cells = ["reference" if r["role"] == "reference" and m != "front_rms" else _vs_metric_front(r, m) for m in metrics]
+        lines.append(f"| {r['label']} | {_fmt(r['ms_mean'], 2)} | " + " | ".join(cells) + f" | {_fmt(r.get('metric_cost', math.nan), 2)} |")
+    lines.append("")
+    for m in metrics:
+        below = [
+            r["label"] for r in rows
+            if r["kind"] != "mpm" and not r["failures"] and math.isfinite(r.get("at_front", {}).get(m, math.nan)) and r[m] < r["at_front"][m]
+        ]  # fmt: skip
+        lines.append(f"Below the plain-MPM front on `{m}`: " + ("; ".join(below) or "none") + ".  ")
     lines.append("")
     return lines
 

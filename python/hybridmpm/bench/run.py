@@ -1,10 +1,14 @@
 """Running the benchmark: every method × seed from the same held-out initial
-condition, per-frame latency and grid-mass error against full-resolution MPM.
+condition, per-frame latency and every score of :data:`~hybridmpm.metrics.ROLLOUT_METRICS`
+against full-resolution MPM (the grid-mass error every stored frame; the
+others, :func:`~hybridmpm.metrics.rollout_metrics`, on the frames every method
+stores), with what the scores cost against the rollout's own time.
 
 One *cell* is one method on one seed. Cells are written as JSON under
 ``OUT/cells/`` as they finish; a rerun skips finished cells (resumable), and
-the full-resolution reference positions of each seed are cached in
-``OUT/cells/ref_seed<S>.npz``.
+the full-resolution reference positions and masses of each seed are cached in
+``OUT/cells/ref_seed<S>.npz``. A cell made before the scores it lacks
+(:data:`METRICS_VERSION`) or on other common frames is rerun.
 
 Latency (paper App. C): wall time of each step (a step covers ``r_t``
 frames; MPM methods step one frame), divided by ``r_t``, for the frames after
@@ -17,6 +21,7 @@ is the throughput a user sees and is what the charts plot.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +32,7 @@ from hybridmpm.bench.cost import gnn_flops
 from hybridmpm.bench.env import environment
 from hybridmpm.bench.methods import Method
 from hybridmpm.errors import InvalidInputError, SimulationError
-from hybridmpm.metrics import grid_mass_error
+from hybridmpm.metrics import dam_break_front, dam_break_geometry, grid_mass_error, rollout_metrics
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MPM, HybridSimulator, MpmSimulator, NeuralSimulator, Rollout, Simulator, reference, rollout
 
@@ -47,6 +52,9 @@ WARMUP_FRAMES = 24
 #: ~this factor more (a collapsed full-resolution water2d rollout ran for
 #: over 10 minutes). The hybrid falls back to MPM at 2× (``degree_factor``).
 COLLAPSE_FACTOR = 8.0
+
+#: The scores a cell records; a cell of another version (or none: made before them) is rerun.
+METRICS_VERSION = 1
 
 
 @dataclass
@@ -102,23 +110,24 @@ def _latency(per_frame: np.ndarray) -> dict[str, float]:
     return {"ms_median": float(np.median(ms)), "ms_p95": float(np.percentile(ms, 95)), "ms_mean": float(ms.mean())}
 
 
-def reference_cell(cfg: BenchConfig, seed: int, cells: Path) -> np.ndarray:
-    """Full-resolution MPM positions of ``seed`` every frame [frames + 1, N, D],
-    cached in ``cells/ref_seed<S>.npz`` together with the ``mpm_full`` cell
-    (its timing); both are (re)made when either is missing."""
+def reference_cell(cfg: BenchConfig, seed: int, cells: Path, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution MPM of ``seed``: its fluid positions every frame
+    [frames + 1, N, D] and masses [N], cached in ``cells/ref_seed<S>.npz``
+    together with the ``mpm_full`` cell (its timing; ``stride`` the common
+    frames of its scores); both are (re)made when either is missing or stale."""
     path, cell = cells / f"ref_seed{seed}.npz", cells / f"mpm_full_seed{seed}.json"
-    if path.is_file() and cell.is_file():
+    if path.is_file() and _cell_current(cell, None, stride):
         with np.load(path) as z:
-            if int(z["frames"]) == cfg.frames:
-                return np.asarray(z["positions"])
+            if int(z["frames"]) == cfg.frames and "masses" in z:
+                return np.asarray(z["positions"]), np.asarray(z["masses"])
     scene = make_scene(cfg.scene, seed=seed)
     ro = reference(scene, cfg.frames, threads=cfg.mpm_threads)
-    pos = ro.fluid_positions
+    pos, masses = ro.fluid_positions, ro.masses[: ro.num_fluid]
     tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez(tmp, positions=pos, frames=np.int64(cfg.frames))
+    np.savez(tmp, positions=pos, masses=masses, frames=np.int64(cfg.frames))
     tmp.replace(path)
-    _write_json(cell, _reference_record(cfg, seed, scene.num_particles, ro))
-    return pos
+    _write_json(cell, _reference_record(cfg, seed, scene, ro, stride))
+    return pos, masses
 
 
 def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) -> Simulator:
@@ -153,9 +162,13 @@ def held_still(positions: np.ndarray, frame_index: np.ndarray, warmup: int) -> n
     return still
 
 
-def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> dict[str, Any]:
-    """One method on one seed: the cell's record (errors per stored frame,
-    solver per stored frame, latency, MPM share, switches, failure).
+def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: tuple[np.ndarray, np.ndarray], stride: int = 1) -> dict[str, Any]:
+    """One method on one seed against ``ref`` (:func:`reference_cell`'s
+    positions and masses): the cell's record (errors per stored frame, solver
+    per stored frame, latency, MPM share, switches, failure, and every score
+    of :func:`~hybridmpm.metrics.rollout_metrics` on the stored frames that
+    are multiples of ``stride``, the largest ``r_t`` compared, with their cost
+    ``metric_seconds`` and ``metric_cost`` = their sum ÷ ``rollout_seconds``).
     Raises :class:`SimulationError` if an MPM method fails."""
     scene = make_scene(cfg.scene, seed=seed)
     sim = method_simulator(method, scene, seed, cfg)
@@ -179,24 +192,53 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: np.ndarray) -> di
     frames_of = ro.frame_index
     keep = frames_of <= cfg.frames
     pos, frames_of, neural = ro.fluid_positions[keep], frames_of[keep], (ro.solver[keep] != MPM).astype(np.int8)  # the cheap half's frames
-    err = grid_mass_error(pos, ref[frames_of], scene.params.resolved_n_grid())
+    ref_pos, ref_masses = ref
+    t0 = time.perf_counter()
+    err = grid_mass_error(pos, ref_pos[frames_of], scene.params.resolved_n_grid())
+    grid_s = time.perf_counter() - t0
+    common = frames_of % int(stride) == 0
+    scores = rollout_metrics(
+        pos[common], ref_pos[frames_of[common]], frames_of[common] * scene.dt_frame, scene.params.resolved_n_grid(), errors=err[common],
+        pred_weights=ro.masses[: ro.num_fluid], ref_weights=ref_masses, dam_break=dam_break_geometry(scene.info),
+    )  # fmt: skip
     return {
         "method": method.key, "seed": int(seed), "particles": int(ro.num_fluid), "frames_done": int(frames_of[-1]),
         "failure": ro.failure, "error_mean": float(err.mean()), "error_last": float(err[-1]),
         **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": steps["mpm"] / max(1, sum(steps.values())),
         "switches": int(ro.stats["switches"]), "substeps_per_frame": substeps, "mflop_per_frame": mflop,
-        "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": neural.tolist()},
+        "series": {"frame": frames_of.tolist(), "error": [float(e) for e in err], "neural": neural.tolist(), "scores": scores["series"]},
+        **_scores(scores, grid_s, float(ro.seconds.sum()), stride),
     }  # fmt: skip
 
 
-def _reference_record(cfg: BenchConfig, seed: int, particles: int, ro: Rollout) -> dict[str, Any]:
-    """The ``mpm_full`` cell: the reference itself (error 0 by definition) and its timing."""
-    n = cfg.frames + 1
+def _scores(scores: dict[str, Any], grid_s: float, rollout_s: float, stride: int) -> dict[str, Any]:
+    """A cell's scores (besides the grid-mass error's mean and last) and their cost against the rollout's wall time."""
+    seconds = {**scores["seconds"], "grid_mass": grid_s}
     return {
-        "method": "mpm_full", "seed": int(seed), "particles": int(particles), "frames_done": cfg.frames, "failure": None,
+        **{k: scores[k] for k in ("short_error", "sinkhorn", "ke_error", "front_rms")},
+        "metric_seconds": seconds, "rollout_seconds": rollout_s, "metric_cost": sum(seconds.values()) / rollout_s if rollout_s > 0 else float("nan"),
+        "metrics_version": METRICS_VERSION, "metric_stride": int(stride),
+    }  # fmt: skip
+
+
+def _reference_record(cfg: BenchConfig, seed: int, scene: Any, ro: Rollout, stride: int) -> dict[str, Any]:
+    """The ``mpm_full`` cell: the reference itself (every score against itself 0 by
+    definition; the dam break's front against the experiment its own) and its timing."""
+    n = cfg.frames + 1
+    geo = dam_break_geometry(scene.info)
+    t0 = time.perf_counter()
+    common = ro.frame_index % int(stride) == 0
+    front = dam_break_front(ro.fluid_positions[common], ro.frame_index[common] * scene.dt_frame, geo) if geo is not None else None
+    scores = {
+        "short_error": 0.0, "sinkhorn": 0.0, "ke_error": 0.0, "front_rms": float("nan") if front is None or front["rms"] is None else front["rms"],
+        "seconds": {"front": time.perf_counter() - t0}, "series": {},
+    }  # fmt: skip
+    return {
+        "method": "mpm_full", "seed": int(seed), "particles": int(scene.num_particles), "frames_done": cfg.frames, "failure": None,
         "error_mean": 0.0, "error_last": 0.0, **_latency(ro.frame_seconds(after=cfg.warmup)), "mpm_share": 1.0, "switches": 0,
         "substeps_per_frame": float(np.mean(ro.substeps[1:])), "mflop_per_frame": 0.0,
         "series": {"frame": list(range(n)), "error": [0.0] * n, "neural": [0] * n},
+        **_scores(scores, 0.0, float(ro.seconds.sum()), stride),
     }  # fmt: skip
 
 
@@ -210,15 +252,17 @@ def model_digest(method: Method) -> str | None:
     return hashlib.sha256(Path(method.model).read_bytes()).hexdigest()
 
 
-def _cell_current(path: Path, digest: str | None) -> bool:
+def _cell_current(path: Path, digest: str | None, stride: int) -> bool:
     """A finished cell made with the model of ``digest`` (cells written before
-    cells recorded their model count as current only for MPM methods)."""
+    cells recorded their model count as current only for MPM methods), with
+    the scores of :data:`METRICS_VERSION` on the frames that are multiples of ``stride``."""
     if not path.is_file():
         return False
     try:
-        return json.loads(path.read_text()).get("model_sha256") == digest
+        cell = json.loads(path.read_text())
     except (OSError, ValueError):
         return False  # a torn or foreign file: recompute it
+    return cell.get("model_sha256") == digest and cell.get("metrics_version") == METRICS_VERSION and cell.get("metric_stride") == stride
 
 
 def _write_json(path: Path, obj: Any) -> None:
@@ -262,18 +306,19 @@ def run_bench(
     if len(set(keys)) != len(keys):
         raise InvalidInputError("methods: duplicate method keys", "methods")
     digests = {m.key: model_digest(m) for m in methods}
-    todo = [(m, s) for s in cfg.seeds for m in methods if not _cell_current(cells / f"{m.key}_seed{s}.json", digests[m.key])]
+    stride = max(m.r_t for m in methods)  # the scores are computed on the frames every method stores
+    todo = [(m, s) for s in cfg.seeds for m in methods if not _cell_current(cells / f"{m.key}_seed{s}.json", digests[m.key], stride)]
     bar = tqdm(
         total=len(methods) * len(cfg.seeds), initial=len(methods) * len(cfg.seeds) - len(todo), desc=f"bench {cfg.scene}", unit="cell", disable=not progress
     )
-    refs: dict[int, np.ndarray] = {}
+    refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for m, s in todo:
         bar.set_postfix_str(f"{m.key} seed {s}", refresh=True)
         if s not in refs:
-            refs = {s: reference_cell(cfg, s, cells)}  # one seed's reference in memory at a time; writes the mpm_full cell
+            refs = {s: reference_cell(cfg, s, cells, stride)}  # one seed's reference in memory at a time; writes the mpm_full cell
         path = cells / f"{m.key}_seed{s}.json"
-        if not _cell_current(path, digests[m.key]):
-            _write_json(path, {**run_cell(m, cfg, s, refs[s]), "model_sha256": digests[m.key]})
+        if not _cell_current(path, digests[m.key], stride):
+            _write_json(path, {**run_cell(m, cfg, s, refs[s], stride), "model_sha256": digests[m.key]})
         bar.update()
     bar.close()
     return [json.loads((cells / f"{m.key}_seed{s}.json").read_text()) for m in methods for s in cfg.seeds]

@@ -23,9 +23,11 @@ dataset of MPM rollouts (:func:`hybridmpm.train.datasets.generate_dataset`);
 ``hybridmpm inspect DIR`` checks and summarises a GNS dataset (ours or
 another tool's).
 
-``hybridmpm evaluate PRED.npz REF.npz [--n-grid N] [--out metrics.json]``
+``hybridmpm evaluate PRED.npz REF.npz [--n-grid N] [--scene SCENE] [--out metrics.json]``
 compares two trajectories (:func:`hybridmpm.metrics.evaluate`: grid-mass
-error, position MSE, kinetic energy) and writes the metrics as JSON.
+error, position MSE, kinetic energy, and the scores of a chaotic flow:
+short-horizon error, Sinkhorn divergence, kinetic energy's relative error,
+the dam break's front with ``--scene``) and writes the metrics as JSON.
 """
 
 from __future__ import annotations

@@ -41,7 +41,10 @@ def _bench(args: argparse.Namespace) -> int:
     res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
     if not args.quiet:
         for r in res["rows"]:
-            print(f"{r['label']:<48} error {r['error_mean']:.3f}  {r['ms_mean']:7.2f} ms/frame{'  (Pareto)' if r['pareto'] else ''}")
+            print(
+                f"{r['label']:<48} error {r['error_mean']:.3f} (first 50 frames {r['short_error']:.3f}), Sinkhorn {r['sinkhorn']:.2e} m², "
+                f"KE {r['ke_error']:.3f}  {r['ms_mean']:7.2f} ms/frame{'  (Pareto)' if r['pareto'] else ''}"
+            )
         print(f"Pareto front: {'; '.join(res['pareto'])}\n-> {res['out']}/report.md")
     return 0
 
@@ -57,8 +60,8 @@ def _tune(args: argparse.Namespace) -> int:
     if not args.quiet:
         c, m = doc["config"], doc["measured"]
         print(
-            f"{args.scene}: {c['label']} — error {m['error_mean']:.3f} (mean) / {m['error_last']:.3f} (last) <= budget "
-            f"{args.error_budget:g} ({args.metric}), {m['ms_mean']:.2f} ms/frame -> {doc['path']}\n"
+            f"{args.scene}: {c['label']} — {args.metric} {m[args.metric]:.4g} <= budget {args.error_budget:g} (grid-mass error "
+            f"{m['error_mean']:.3f} mean / {m['error_last']:.3f} last), {m['ms_mean']:.2f} ms/frame -> {doc['path']}\n"
             f"use it: hybridmpm simulate {args.scene} --solver auto" + (f" --tuned {doc['path']}" if args.out else "")
         )
     return 0
@@ -91,7 +94,8 @@ def _stress(args: argparse.Namespace) -> int:
 
 def add_parsers(sub: Any) -> None:
     """Register this group's commands on the subparsers ``sub``."""
-    from hybridmpm.scenes import DOMAINS  # import time: loaded when the parser is built
+    from hybridmpm.metrics import ROLLOUT_METRICS  # import time: loaded when the parser is built
+    from hybridmpm.scenes import DOMAINS
 
     st = sub.add_parser("stress", help="neural-only, MPM-only and hybrid through failure cases over long rollouts; writes a table")
     st.add_argument("scene", help="registered scene (its shipped model is used unless --model)")
@@ -130,8 +134,11 @@ def add_parsers(sub: Any) -> None:
 
     tu = sub.add_parser("tune", help="the fastest configuration (r_p, r_t, r_c, model) within an error budget, for --solver auto")
     bench_args(tu)
-    tu.add_argument("--error-budget", type=float, required=True, help="largest allowed grid-mass error (see --metric)")
-    tu.add_argument("--metric", default="error_mean", choices=["error_mean", "error_last"], help="error over the rollout (mean, default) or at its last frame")
+    tu.add_argument("--error-budget", type=float, required=True, help="largest allowed value of --metric (default: the grid-mass error over the rollout)")
+    tu.add_argument(
+        "--metric", default="error_mean", choices=list(ROLLOUT_METRICS),
+        help="the score to hold within the budget: " + "; ".join(f"{k}: {v}" for k, v in ROLLOUT_METRICS.items()) + " (docs/benchmarks.md)",
+    )  # fmt: skip
     tu.add_argument("--seeds", type=int, default=2, help="number of validation seeds (default 2: 2000, 2001)")
     tu.add_argument("--out", default=None, help="config file to write (default tuned/SCENE.json)")
     tu.add_argument("--work", default=None, help="benchmark directory (default runs/tune/SCENE; resumes finished cells)")

@@ -23,7 +23,7 @@ def _simulate(args: argparse.Namespace) -> int:
     # import time: loaded by this command only
     import hybridmpm
     from hybridmpm.cli.export import PARAMS_KEY, params_json, write_exports
-    from hybridmpm.metrics import grid_mass_error
+    from hybridmpm.metrics import dam_break_geometry, grid_mass_error, json_scores, rollout_metrics
     from hybridmpm.render import plot_timeline, render_gif
     from hybridmpm.scenes import make_scene
     from hybridmpm.sim import NEURAL, make_simulator, reference, rollout, warmup_frames
@@ -84,12 +84,18 @@ def _simulate(args: argparse.Namespace) -> int:
     err = None
     if args.reference:
         t0 = time.perf_counter()
-        ref = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads).fluid_positions
+        ref_ro = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads)
+        ref, n = ref_ro.fluid_positions, len(ro.positions)
         ref_ms = (time.perf_counter() - t0) / max(1, ro.frames_done) * 1e3
-        err = grid_mass_error(ro.fluid_positions, ref[: len(ro.positions)], scene.params.resolved_n_grid())  # the reference's grid
+        err = grid_mass_error(ro.fluid_positions, ref[:n], scene.params.resolved_n_grid())  # the reference's grid
+        # every score of a chaotic flow (docs/benchmarks.md "Metrics for a chaotic flow") on the stored frames
+        scores = rollout_metrics(
+            ro.fluid_positions, ref[:n], (ro.frame_index - ro.frame_index[0]) * scene.dt_frame, scene.params.resolved_n_grid(), errors=err,
+            pred_weights=ro.masses[: ro.num_fluid], ref_weights=ref_ro.masses[: ref_ro.num_fluid], dam_break=dam_break_geometry(scene.info),
+        )  # fmt: skip
         summary["reference"] = {
             "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
-            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])},
+            "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])}, "metrics": json_scores(scores), "metric_seconds": scores["seconds"],
         }  # fmt: skip
     ro.extras[PARAMS_KEY] = params_json(low.params)  # walls, grid, obstacles: what hybridmpm export needs
     ro.save(out / "trajectory.npz")
@@ -113,7 +119,10 @@ def _simulate(args: argparse.Namespace) -> int:
             cheap = sim.cheap_kind  # type: ignore[attr-defined]
             line += f", {cheap} {100 * ro.share(cheap):.0f}% of steps, {ro.stats['switches']} switches"
         if err is not None:
-            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}"
+            sc = summary["reference"]["metrics"]
+            line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}" + "".join(
+                f", {k} {sc[k]:.3g}" for k in ("short_error", "sinkhorn", "ke_error", "front_rms") if sc[k] is not None
+            )
         if ro.failure:
             line += f"; broke off: {ro.failure} ({ro.failure_detail})"
         print(line + f" -> {out}/")
@@ -148,7 +157,13 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     pred = Trajectory.load(args.pred)
     ref = Trajectory.load(args.ref)
-    result = evaluate(pred, ref, n_grid=args.n_grid)
+    geometry = None
+    if args.scene is not None:  # the dam break's geometry: its front against Martin & Moyce
+        from hybridmpm.metrics import dam_break_geometry
+        from hybridmpm.scenes import scene_spec
+
+        geometry = dam_break_geometry(scene_spec(args.scene, seed=0).info)
+    result = evaluate(pred, ref, n_grid=args.n_grid, dam_break=geometry)
     result["pred"]["path"] = str(Path(args.pred))
     result["ref"]["path"] = str(Path(args.ref))
     out = Path(args.out) if args.out is not None else Path(args.pred).parent / "metrics.json"
@@ -166,6 +181,11 @@ def _evaluate(args: argparse.Namespace) -> int:
         for key, label in (("position_mse_rollout", "rollout"), ("position_mse_one_step", "one-step")):
             m = result[key]
             lines.append(f"{label} position MSE: " + (f"mean {m['mean']:.4g} m², last {m['last']:.4g} m²" if m else f"n/a ({result[key + '_reason']})"))
+        sc = result["metrics"]
+        lines.append(
+            "chaotic-flow scores: " + ", ".join(f"{k} {sc[k]:.4g}" if sc[k] is not None else f"{k} n/a" for k in ("short_error", "sinkhorn", "ke_error"))
+            + (f", front_rms {sc['front_rms']:.4g}" if sc["front_rms"] is not None else "")
+        )  # fmt: skip
         lines.append(f"-> {out}")
         print("\n".join(lines))
     return 0
@@ -208,7 +228,10 @@ def add_parsers(sub: Any) -> None:
         "--residual-tol", type=float, default=None, help=f"hybrid, error rule: density residual in g that brings the audit forward (default {RESIDUAL_TOL:g})"
     )
     sim.add_argument("--audit-max", type=int, default=None, help=f"hybrid, error rule: longest interval between audits in network steps (default {AUDIT_MAX})")
-    sim.add_argument("--reference", action="store_true", help="also run full-resolution MPM and report the grid-mass error (hybrid)")
+    sim.add_argument(
+        "--reference", action="store_true",
+        help="also run full-resolution MPM and report the grid-mass error and the scores of a chaotic flow in summary.json (docs/benchmarks.md)",
+    )  # fmt: skip
     sim.add_argument(
         "--export", nargs="+", default=None, choices=["ply", "vtu", "mesh", "usd"], metavar="{ply,vtu,mesh,usd}",
         help="also write to OUT/export/: point clouds frame_#####.ply|vtu (Blender, ParaView), surface meshes <material>_#####.<--mesh-format> "
@@ -241,6 +264,10 @@ def add_parsers(sub: Any) -> None:
     ev.add_argument("pred", help="predicted trajectory (.npz, as written by simulate)")
     ev.add_argument("ref", help="reference trajectory (.npz), e.g. full-resolution MPM from the same initial condition")
     ev.add_argument("--n-grid", type=int, default=None, help="grid of the grid-mass error (default: the reference's, else 128 in 2D / 64 in 3D)")
+    ev.add_argument(
+        "--scene", default=None, choices=sorted(DOMAINS),
+        help="the registered scene both come from: for the dam break (dam_break2d, dam_break3d) adds the front against Martin & Moyce (1952)",
+    )  # fmt: skip
     ev.add_argument("--out", default=None, help="metrics JSON to write (default: metrics.json next to PRED)")
     ev.add_argument("--quiet", action="store_true", help="no summary")
     ev.set_defaults(func=_evaluate)

@@ -39,6 +39,7 @@ from hybridmpm.metrics.chaotic import (
     SHORT_HORIZON_FRAMES,
     dam_break_front,
     dam_break_geometry,
+    json_scores,
     kinetic_energy_error,
     rollout_metrics,
     short_horizon_error,
@@ -49,7 +50,7 @@ from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_FRAMES, SINKHORN
 
 __all__ = [
     "DEFAULT_N_GRID", "KE_FLOOR", "ROLLOUT_METRICS", "SHORT_HORIZON_FRAMES", "SINKHORN_BLUR", "SINKHORN_FRAMES", "SINKHORN_MAX_POINTS",
-    "align_frames", "dam_break_front", "dam_break_geometry", "evaluate", "fluid_mask", "grid_mass_error", "kinetic_energy",
+    "align_frames", "dam_break_front", "dam_break_geometry", "evaluate", "fluid_mask", "grid_mass_error", "json_scores", "kinetic_energy",
     "kinetic_energy_error", "position_mse", "rollout_metrics", "rollout_summary", "short_horizon_error", "sinkhorn_divergence",
     "sinkhorn_frames", "sinkhorn_series", "subsample",
 ]  # fmt: skip

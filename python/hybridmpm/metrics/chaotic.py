@@ -60,6 +60,12 @@ ROLLOUT_METRICS = {
 }
 
 
+def json_scores(scores: dict[str, Any]) -> dict[str, float | None]:
+    """The :data:`ROLLOUT_METRICS` scores of :func:`rollout_metrics`' result as
+    JSON: floats, None where undefined (JSON has no NaN)."""
+    return {k: float(scores[k]) if math.isfinite(scores[k]) else None for k in ROLLOUT_METRICS}
+
+
 def _times(name: str, times: Any, n: int) -> np.ndarray:
     t = np.asarray(times, dtype=np.float64)
     if t.shape != (n,) or not np.isfinite(t).all() or (n > 1 and not (np.diff(t) > 0).all()):

@@ -10,7 +10,7 @@ import numpy as np
 
 from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.metrics.chaotic import KE_FLOOR, ROLLOUT_METRICS, SHORT_HORIZON_FRAMES, rollout_metrics
+from hybridmpm.metrics.chaotic import KE_FLOOR, SHORT_HORIZON_FRAMES, json_scores, rollout_metrics
 from hybridmpm.metrics.core import align_frames, checked_n_grid, grid_mass_error, position_mse, rollout_summary
 from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_MAX_POINTS
 from hybridmpm.trajectory import Trajectory
@@ -142,6 +142,6 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None, *, da
     result["dam_break_front"] = None
     if dam_break is not None:
         result["dam_break_front"] = {"rms": _finite(m["front_rms"]), "front": s["front"], "reason": s["front_reason"], "geometry": dict(dam_break)}
-    result["metrics"] = {k: _finite(m[k]) for k in ROLLOUT_METRICS}
+    result["metrics"] = json_scores(m)
     result["metric_seconds"] = m["seconds"]
     return result

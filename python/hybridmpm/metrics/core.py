@@ -20,8 +20,8 @@ _RATIO_RTOL = 1e-5
 
 
 def checked_frames(name: str, x: Any) -> np.ndarray:
-    """``x`` as float [T, N, D] (a single frame [N, D] becomes T = 1), finite.
-    Raises :class:`InvalidInputError` naming ``name`` for another dtype, shape or a non-finite value."""
+    """``x`` as float [T, N, D] (a single frame [N, D] becomes T = 1), finite;
+    :class:`InvalidInputError` naming ``name`` otherwise."""
     arr = np.asarray(x)
     if arr.dtype.kind != "f":
         raise InvalidInputError(f"{name}: expected a floating-point array, got dtype {arr.dtype}", name)
@@ -49,7 +49,7 @@ def _weights(name: str, w: Any, n: int) -> np.ndarray | None:
 
 
 def checked_n_grid(n_grid: Any) -> int:
-    """``n_grid`` as an int in [3, 4096]. Raises :class:`InvalidInputError` (field ``n_grid``) otherwise."""
+    """``n_grid`` as an int in [3, 4096]; :class:`InvalidInputError` (``n_grid``) otherwise."""
     if isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or not 3 <= int(n_grid) <= 4096:
         raise InvalidInputError(f"n_grid: must be an integer in [3, 4096], got {n_grid!r}", "n_grid")
     return int(n_grid)
