@@ -248,12 +248,12 @@ def expected_figures(export: Path, a: argparse.Namespace) -> dict[str, Any]:
     water_ply = {str(k): read_ply(p) for k, p in water.items()}
     # frames spread over the run, and up to 3 whose surface has two faces on the same vertices
     dup = [k for k in frames if water_ply[str(k)]["faces"] != water_ply[str(k)]["faces_distinct"]]
-    check = sorted(set(spread(frames, a.checked_frames)) | set(dup[:3]))
+    check = sorted(set(spread(frames, a.check_frames)) | set(dup[:3]))
     exp: dict[str, Any] = {
         "export_dir": str(export),
         "usd": str(export / "run.usd") if (export / "run.usd").is_file() else None,
         "frames": frames,
-        "checked_frames": check,
+        "check_frames": check,
         "water_ply": water_ply,
         "frames_with_duplicate_faces": dup,
         "water_obj": {str(k): read_obj(p) for k, p in water_obj.items()},
@@ -295,7 +295,7 @@ def pxr_check(exp: dict[str, Any]) -> dict[str, Any]:
     out["mesh_time_samples"] = len(mesh.GetPointsAttr().GetTimeSamples())
     frames: dict[str, Any] = {}
     ok = out["points_time_samples"] == out["mesh_time_samples"] == len(exp["frames"]) and (out["start"], out["end"]) == (exp["frames"][0], exp["frames"][-1])
-    for k in exp["checked_frames"]:
+    for k in exp["check_frames"]:
         w = exp["water_ply"][str(k)]
         mp = np.array(mesh.GetPointsAttr().Get(k), np.float64).reshape(-1, 3)
         faces = len(mesh.GetFaceVertexCountsAttr().Get(k) or [])
@@ -434,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
             "frames_with_duplicate_faces": exp["frames_with_duplicate_faces"],
             "water_vertices_min_max": [min(w["vertices"] for w in exp["water_ply"].values()), max(w["vertices"] for w in exp["water_ply"].values())],
         },
-        "checked_frames": exp["checked_frames"],
+        "check_frames": exp["check_frames"],
     }
     t = time.perf_counter()
     summary["usd_pxr"] = {**pxr_check(exp), "seconds": time.perf_counter() - t}
@@ -537,7 +537,7 @@ def inside_usd(bpy: Any, plan: dict[str, Any]) -> dict[str, Any]:
     frames: dict[str, Any] = {}
     t = time.perf_counter()
     seen: set[tuple[float, ...]] = set()
-    for k in plan["checked_frames"]:
+    for k in plan["check_frames"]:
         scene.frame_set(k)
         dg = bpy.context.evaluated_depsgraph_get()
         row: dict[str, Any] = {}
@@ -563,7 +563,7 @@ def inside_usd(bpy: Any, plan: dict[str, Any]) -> dict[str, Any]:
         if "surface" in r and r["surface"]["faces"] != r["surface_file_faces"]
     ]
     checks["frames_match_files"] = all(r["ok"] for r in frames.values())
-    checks["surface_changes_between_frames"] = len(seen) == len(plan["checked_frames"])
+    checks["surface_changes_between_frames"] = len(seen) == len(plan["check_frames"])
     domain = bpy.data.objects.get("Domain")
     checks["domain_guide_imported"] = domain is not None
     out["checks"] = checks
