@@ -9,7 +9,8 @@ Per scene, ``--cases`` cases (seeds 5000+, arrows and ovals alternating;
 runs the same ``T_ctr`` = 100 frames of MPM at r_p = 0.5714 from that state:
 
 * ``none`` — no control; ``constant`` — the paper's baseline; ``pd`` — PD
-  attraction; ``diffusion`` — the Fluid ControlNet (shipped models, or
+  attraction; ``mpc`` — model-predictive control on the coarse grid
+  (:mod:`hybridmpm.control.mpc`, its default budget; sampler seed = the case's); ``diffusion`` — the Fluid ControlNet (shipped models, or
   ``--model-root DIR/SCENE``; noise seed = the case's seed), which plans a
   fluid in free flight without its network
   (:func:`hybridmpm.control.prior.in_free_flight`); ``diffusion_net`` — the
@@ -46,7 +47,7 @@ from hybridmpm.control import Controller, control_episode
 from hybridmpm.control.prior import free_motion_of, prior_path
 from hybridmpm.train.control.cases import make_case
 
-METHODS = ("none", "constant", "pd", "diffusion", "diffusion_net", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
+METHODS = ("none", "constant", "pd", "mpc", "diffusion", "diffusion_net", "prior", "oracle_path", "oracle", "smoothed", "kinematic")
 
 
 def run_case(scene: str, seed: int, kind: str, model_root: str | None = None, methods: tuple[str, ...] = METHODS) -> dict:
@@ -70,7 +71,7 @@ def run_case(scene: str, seed: int, kind: str, model_root: str | None = None, me
             model = None if model_root is None else Path(model_root) / scene
             ctl = Controller.for_scene(scene, "diffusion", frames=frames, model=model, seed=seed, free_flight=m == "diffusion")
         else:
-            ctl = Controller(m, frames=frames)
+            ctl = Controller(m, frames=frames, seed=seed)
         ep = control_episode(sim, case.sketch, ctl, target=case.target)
         rows["methods"][m] = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in ep.metrics.items()}
     return rows

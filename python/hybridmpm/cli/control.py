@@ -21,7 +21,7 @@ def _control(args: argparse.Namespace) -> int:
     from PIL import Image
 
     # import time: loaded by this command only
-    from hybridmpm.control import Controller, Sketch, control_episode, render_sketch, sketch_from_png
+    from hybridmpm.control import Controller, MpcSettings, Sketch, control_episode, default_method, render_sketch, sketch_from_png
     from hybridmpm.control.sketch import MAX_SKETCH_FILE_BYTES
     from hybridmpm.files import check_nesting, read_regular_file
     from hybridmpm.render import render_gif
@@ -41,7 +41,11 @@ def _control(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"steps": args.steps, "guidance": args.guidance, "seed": args.seed}
     if args.model:
         kw["model"] = args.model
-    controller = Controller.for_scene(Path(args.scene).stem, args.method, frames=args.frames, **kw)
+    method = args.method or default_method(Path(args.scene).stem)
+    if method == "mpc":
+        kw["mpc"] = MpcSettings(rollouts=args.rollouts, rounds=args.rounds, effort_weight=args.effort_weight, seed=args.seed % 2**32)
+    args.method = method
+    controller = Controller.for_scene(Path(args.scene).stem, method, frames=args.frames, **kw)
     if args.from_frame < 0:
         raise InvalidInputError(f"from_frame: must be >= 0, got {args.from_frame}", "from_frame")
     out = out_dir(args.out)
@@ -114,7 +118,13 @@ def add_parsers(sub: Any) -> None:
     co.add_argument(
         "--sketch", required=True, help='sketch: JSON {"kind": "arrow"|"oval", "points": [[x, y], ...]} in domain coordinates (y up), or a PNG of the drawing'
     )
-    co.add_argument("--method", default="diffusion", choices=["none", "constant", "pd", "diffusion"], help="controller (default diffusion: the shipped model)")
+    co.add_argument(
+        "--method", default=None, choices=["none", "constant", "pd", "mpc", "diffusion"],
+        help="controller (default: the scene's, control.default_method; docs/control.md 'Defaults')",
+    )  # fmt: skip
+    co.add_argument("--rollouts", type=int, default=16, help="mpc: rollouts of the coarse model per plan (default 16)")
+    co.add_argument("--rounds", type=int, default=4, help="mpc: cross-entropy rounds (default 4; at most --rollouts)")
+    co.add_argument("--effort-weight", type=float, default=0.02, help="mpc: score lost per g of mean effort (default 0.02)")
     co.add_argument("--model", default=None, help="diffusion controller directory (default: the scene's shipped one)")
     co.add_argument(
         "--steps", type=int, default=None, help=f"DDIM steps of the diffusion controller (default: the model's control.json sample_steps, else {SAMPLE_STEPS})"

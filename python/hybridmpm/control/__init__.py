@@ -7,8 +7,12 @@ current fluid state → external accelerations that MPM applies over the next
   (the paper's kinematic formula and a tracking variant solved through MPM),
   smoothing;
 * :mod:`~hybridmpm.control.controller` — :class:`Controller` (none, constant
-  force, PD attraction, oracle replay, the diffusion model) making
-  :class:`Plan` s, which are simulator forcings;
+  force, PD attraction, model-predictive control, oracle replay, the
+  diffusion model) making :class:`Plan` s, which are simulator forcings;
+  each scene's default method and what a viewer offers
+  (:func:`default_method`, :func:`scene_methods`);
+* :mod:`~hybridmpm.control.mpc` — the 16-number force field, the
+  cross-entropy method and MPC on the coarse-grid model;
 * :mod:`~hybridmpm.control.targets` — the sketch's geometry (each particle's
   target point, the geometry the network reads, the smoothstep ramp);
 * :mod:`~hybridmpm.control.prior` — the free-motion prior (a coarse MPM rollout);
@@ -20,14 +24,15 @@ current fluid state → external accelerations that MPM applies over the next
 * :mod:`~hybridmpm.control.episode` — one controlled episode with its metrics.
 
 >>> from hybridmpm.control import Controller, Sketch
->>> plan = Controller.for_scene("water2d", "diffusion").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
+>>> plan = Controller.for_scene("water2d").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
 >>> sim.forcing = plan      # MPM applies it for the next T_ctr frames
 """
 
-from hybridmpm.control.controller import METHODS, Controller, Plan, track_path
+from hybridmpm.control.controller import METHODS, Controller, Plan, default_method, scene_methods, track_path
 from hybridmpm.control.diffusion import ControlModel
 from hybridmpm.control.episode import Episode, control_episode
 from hybridmpm.control.metrics import control_metrics
+from hybridmpm.control.mpc import MpcSettings
 from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
 from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_image, sketch_from_png, sketch_from_trajectory
 from hybridmpm.control.targets import pd_targets
@@ -39,15 +44,18 @@ __all__ = [
     "ControlModel",
     "Controller",
     "Episode",
+    "MpcSettings",
     "Plan",
     "Sketch",
     "clip_norm",
     "control_episode",
     "control_metrics",
+    "default_method",
     "pd_targets",
     "render_sketch",
     "reverse_kinematic",
     "reverse_tracking",
+    "scene_methods",
     "sketch_from_image",
     "sketch_from_png",
     "sketch_from_trajectory",

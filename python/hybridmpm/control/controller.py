@@ -19,12 +19,18 @@ a place (its centre and shape);
   − k_d v_i − g``, critically damped (ω = 2π/τ);
 * ``"oracle"`` — a given field replayed open loop (``oracle=``), or a given
   path tracked (``oracle_path=``): the floors, when the truth is known;
+* ``"mpc"`` — model-predictive control by sampling
+  (:mod:`hybridmpm.control.mpc`): the cross-entropy method over a 16-number
+  force field (per quarter of the horizon a push, a pull toward PD's targets
+  and a damping), each candidate rolled out on the cheap coarse-grid model,
+  starting from PD's field; the best field applied in closed loop;
 * ``"diffusion"`` — the Fluid ControlNet (:mod:`hybridmpm.control.diffusion`):
   a sampled plan of the fluid's motion over the horizon (every particle's
   path, from the sketch and the state), tracked by the same law as
   ``oracle_path`` (:func:`track_path`).
 
-Every acceleration is clipped at :data:`~hybridmpm.control.reverse.A_MAX`.
+Every acceleration is clipped at :data:`~hybridmpm.control.reverse.A_MAX`
+(or the controller's lower ``cap_g``).
 
 >>> plan = Controller("constant").plan(sim, Sketch.arrow([0.3, 0.2], [0.7, 0.4]))
 >>> sim.forcing = plan                                   # the next T_ctr frames are controlled
@@ -45,19 +51,50 @@ import numpy as np
 
 from hybridmpm.control.diffusion import SAMPLE_STEPS, ControlModel
 from hybridmpm.control.metrics import AppliedStats
+from hybridmpm.control.mpc import MpcSettings, field_feedback, mpc_plan
 from hybridmpm.control.prior import ballistic_path, free_motion_of, in_free_flight, prior_path
 from hybridmpm.control.reverse import A_MAX, clip_norm
 from hybridmpm.control.sketch import Sketch
 from hybridmpm.control.targets import pd_targets
-from hybridmpm.conventions import T_CTR
+from hybridmpm.conventions import T_CTR, G
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.sim import Simulator
 
 #: Control methods.
-METHODS = ("none", "constant", "pd", "oracle", "diffusion")
+METHODS = ("none", "constant", "pd", "mpc", "oracle", "diffusion")
 #: Settling time of the path tracker as a fraction of the horizon (``docs/control.md``: on validation seeds 4000–4011 the
 #: free-sketch diffusion plans land as close with 0.5 as with 0.25 at half the effort; the true path is followed more loosely).
 TRACK_SETTLE = 0.5
+
+
+#: Each registered scene's default method (``hybridmpm control``, :meth:`Controller.for_scene`, :func:`scene_methods`):
+#: the best classical controller at live latency (plan p95 <= 150 ms) on the adherence-effort front of
+#: ``benchmarks/bench_control_user.py`` (``docs/control.md``, "Defaults"); a scene not listed gets :data:`FALLBACK_METHOD`.
+DEFAULT_METHODS: dict[str, str] = {"water2d": "pd", "sand2d": "pd", "water3d": "pd", "sand3d": "pd"}
+FALLBACK_METHOD = "pd"
+#: Methods a user can pick for any scene (``oracle`` needs the truth; ``diffusion`` needs a shipped model).
+USER_METHODS = ("none", "constant", "pd", "mpc")
+
+
+def default_method(scene: str) -> str:
+    """The default control method of ``scene`` (a registered scene's name, or a scene file's stem): :data:`DEFAULT_METHODS`."""
+    return DEFAULT_METHODS.get(str(scene), FALLBACK_METHOD)
+
+
+def scene_methods(scene: str) -> dict[str, Any]:
+    """What a viewer offers for ``scene``: ``{"methods": [names], "default": name}``
+    — the methods of :data:`USER_METHODS`, plus ``"diffusion"`` where a
+    controller ships for the scene (:func:`shipped_control_model`), and
+    :func:`default_method`. Never raises for an unknown scene (it has the
+    classical methods)."""
+    methods = list(USER_METHODS)
+    try:
+        shipped_control_model(str(scene))
+        methods.append("diffusion")
+    except InvalidInputError:
+        pass
+    default = default_method(scene)
+    return {"methods": methods, "default": default if default in methods else FALLBACK_METHOD}
 
 
 def shipped_control_model(scene: str) -> Path:
@@ -185,6 +222,8 @@ class Plan:
     origin: PlanOrigin | None = None
     omega: float = 0.0  # PD: the approach rate [1/s]
     pd_centroid: np.ndarray | None = None  # PD: its targets' centroid [D] [m]
+    cap: float = A_MAX  # the clip of every acceleration [m/s²]
+    model_centroids: np.ndarray | None = None  # MPC: the centroid path [frames + 1, D] its model predicts for the plan [m]
 
     def centroid_path(self, points: int = PLAN_POINTS) -> tuple[int, np.ndarray] | None:
         """Where the plan takes the fluid's (mass-weighted) centroid: ``(stride,
@@ -203,7 +242,9 @@ class Plan:
         if k[-1] != self.frames:
             k = np.append(k, self.frames)
         t = (k * o.dt_frame)[:, None]
-        if self.path is not None:
+        if self.method == "mpc" and self.model_centroids is not None:
+            path = self.model_centroids[np.minimum(k, len(self.model_centroids) - 1)]
+        elif self.path is not None:
             path = np.einsum("fnd,n->fd", np.asarray(self.path, np.float64), o.weights)[np.minimum(k, len(self.path) - 1)]
         elif self.method == "constant" and self.accelerations is not None:
             a = np.asarray(self.accelerations[0], np.float64)
@@ -241,7 +282,7 @@ class Plan:
             a = self.feedback(k, positions, velocities)
         else:  # "none", or no sketch
             return None
-        a = clip_norm(a, A_MAX)
+        a = clip_norm(a, self.cap)
         self.applied.add(a)
         return a
 
@@ -259,7 +300,11 @@ class Controller:
     guidance scale ``guidance`` and noise ``seed``; ``free_flight`` (default
     True) plans a fluid in free flight without the network (the parabola bent
     onto the sketch, :func:`~hybridmpm.control.prior.in_free_flight`; False
-    always samples, for comparison).
+    always samples, for comparison); ``gain`` scales the constant force (a
+    sweep of magnitudes, 1: the paper's), ``cap_g`` clips every acceleration
+    at that many g (None: ``A_MAX``), ``mpc`` the
+    :class:`~hybridmpm.control.mpc.MpcSettings` of the ``"mpc"`` method
+    (None: the defaults, its sampler seeded by ``seed``).
     Raises :class:`InvalidInputError` naming the argument (``method`` for an
     unknown method, ``model`` for a diffusion controller without one)."""
 
@@ -276,6 +321,9 @@ class Controller:
         guidance: float = 1.0,
         seed: int = 0,
         free_flight: bool = True,
+        gain: float = 1.0,
+        cap_g: float | None = None,
+        mpc: MpcSettings | None = None,
     ) -> None:
         if method not in METHODS:
             raise InvalidInputError(f"method: must be one of {', '.join(METHODS)}, got {method!r}", "method")
@@ -295,8 +343,17 @@ class Controller:
             raise InvalidInputError(f"settle: must be in [0.05, 1], got {settle!r}", "settle")
         if method == "oracle" and oracle is None and oracle_path is None:
             raise InvalidInputError("oracle: the oracle method replays a given field (oracle=) or tracks a given path (oracle_path=)", "oracle")
+        if isinstance(gain, bool) or not isinstance(gain, (int, float)) or not 0.0 < gain <= 10.0:
+            raise InvalidInputError(f"gain: must be a number in (0, 10], got {gain!r}", "gain")
+        if cap_g is not None and (isinstance(cap_g, bool) or not isinstance(cap_g, (int, float)) or not 0.0 < cap_g <= A_MAX / G):
+            raise InvalidInputError(f"cap_g: must be a number in (0, {A_MAX / G:g}] (g), got {cap_g!r}", "cap_g")
+        if mpc is not None and not isinstance(mpc, MpcSettings):
+            raise InvalidInputError("mpc: must be an MpcSettings", "mpc")
         self.method = method
         self.frames = frames
+        self.gain = float(gain)
+        self.cap = A_MAX if cap_g is None else float(cap_g) * G
+        self.mpc = mpc if mpc is not None else MpcSettings(seed=seed % 2**32)
         self.settle = float(settle)
         self.oracle = None if oracle is None else np.asarray(oracle, np.float32)
         self.oracle_path = None if oracle_path is None else np.asarray(oracle_path, np.float64)
@@ -307,11 +364,13 @@ class Controller:
         self.free_flight = bool(free_flight)
 
     @classmethod
-    def for_scene(cls, scene: str, method: str = "constant", **kw: Any) -> Controller:
-        """The controller of a registered scene: for ``"diffusion"`` the
+    def for_scene(cls, scene: str, method: str | None = None, **kw: Any) -> Controller:
+        """The controller of a registered scene: ``method`` None is the
+        scene's default (:func:`default_method`); for ``"diffusion"`` the
         shipped model of ``scene`` (:func:`shipped_control_model`; raises
         :class:`InvalidInputError` naming ``scene`` when none ships); the
-        baselines are the same for all scenes."""
+        classical methods are the same for all scenes."""
+        method = default_method(scene) if method is None else method
         if method == "diffusion" and kw.get("model") is None:
             kw["model"] = _cached_model(shipped_control_model(scene))
         return cls(method, **kw)
@@ -325,6 +384,7 @@ class Controller:
         the method needs one and none is given."""
         plan = self._plan(sim, sketch)
         plan.origin = PlanOrigin.of(sim)
+        plan.cap = min(plan.cap, self.cap)
         return plan
 
     def _plan(self, sim: Simulator, sketch: Sketch | None) -> Plan:
@@ -385,9 +445,15 @@ class Controller:
             vel = (m[:, None] * v).sum(0) / m.sum()
             target = com + vel * tau  # depth (3D z) drifts freely: the sketch is drawn in x–y
             target[:2] = sketch.target(com)
-            a = 2.0 * (target - com - vel * tau) / (tau * tau) - g
+            a = self.gain * (2.0 * (target - com - vel * tau) / (tau * tau) - g)
             field_ = np.broadcast_to(a.astype(np.float32), (self.frames, n, d))
             return Plan("constant", start, self.frames, n, accelerations=field_, seconds=time.perf_counter() - t0, sketch=sketch)
+        if self.method == "mpc":
+            res = mpc_plan(sim, sketch, self.frames, self.mpc)
+            fb = field_feedback(res.theta, res.targets, self.frames, sim.dt_frame)
+            plan = Plan("mpc", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
+            plan.model_centroids = res.centroids
+            return plan
         # PD attraction to per-particle targets
         y = pd_targets(x, sketch)
         omega = 2.0 * math.pi / (self.settle * tau)
@@ -400,4 +466,18 @@ class Controller:
         return 2.0 * math.pi / (TRACK_SETTLE * self.frames * sim.dt_frame)
 
 
-__all__ = ["METHODS", "PLAN_POINTS", "TRACK_SETTLE", "Controller", "Plan", "PlanOrigin", "shipped_control_model", "track_path"]
+__all__ = [
+    "DEFAULT_METHODS",
+    "FALLBACK_METHOD",
+    "METHODS",
+    "PLAN_POINTS",
+    "TRACK_SETTLE",
+    "USER_METHODS",
+    "Controller",
+    "Plan",
+    "PlanOrigin",
+    "default_method",
+    "scene_methods",
+    "shipped_control_model",
+    "track_path",
+]

@@ -8,7 +8,12 @@
 * oval adherence: fraction of particles inside the drawn ellipse, and the
   IoU of the occupied cells with the ellipse;
 * effort: mean and max ``‖a‖/g`` of the applied control;
-* smoothness: mean per-particle cosine of consecutive control accelerations.
+* smoothness: mean per-particle cosine of consecutive control accelerations;
+* a user's sketch (``benchmarks/bench_control_user.py``): the centroid's
+  lateral deviation from an arrow's line over the whole path
+  (:func:`lateral_deviation`), the share of the fluid's mass an arrow carries
+  (:func:`mass_carried`), and how far fluid away from the sketch is pushed
+  off its free motion (:func:`off_sketch_disturbance`).
 """
 
 from __future__ import annotations
@@ -124,6 +129,76 @@ def smoothness(applied: list[np.ndarray]) -> float:
     return st.smoothness()
 
 
+def lateral_deviation(centroids: np.ndarray, sketch: Sketch) -> dict[str, float]:
+    """How far the fluid's centroid strays sideways from an arrow on its way:
+    ``centroids`` float [F, ≥2] the (mass-weighted) centroid at every frame
+    (row 0 where the arrow starts from: an arrow is a displacement, so its line
+    is ``centroids[0] + s·vector``); the perpendicular distance [m] (x–y) of
+    each row from that line, its max and mean over the frames, and the max over
+    the arrow's length (``lateral_max_rel``). Raises :class:`ValueError` for an
+    oval or a zero-length arrow."""
+    if sketch.kind != "arrow":
+        raise ValueError("lateral_deviation: needs an arrow")
+    v = np.asarray(sketch.vector, np.float64)
+    nv = float(np.linalg.norm(v))
+    if nv == 0.0:
+        raise ValueError("lateral_deviation: zero-length arrow")
+    c = np.asarray(centroids, np.float64)[:, :2]
+    rel = c - c[0]
+    perp = np.abs(rel[:, 0] * v[1] - rel[:, 1] * v[0]) / nv
+    return {"lateral_max_m": float(perp.max()), "lateral_mean_m": float(perp.mean()), "lateral_max_rel": float(perp.max() / nv)}
+
+
+def mass_carried(start: np.ndarray, end: np.ndarray, masses: np.ndarray, sketch: Sketch, share: float = 0.5) -> float:
+    """Share of the fluid's mass an arrow carries: the mass of the particles
+    (``start``/``end`` float [N, D] m, ``masses`` [N] kg) whose own x–y
+    displacement along the arrow is at least ``share`` of its length, over
+    the total mass. Raises :class:`ValueError` for an oval."""
+    if sketch.kind != "arrow":
+        raise ValueError("mass_carried: needs an arrow")
+    v = np.asarray(sketch.vector, np.float64)
+    nv2 = float(v @ v)
+    along = (np.asarray(end, np.float64)[:, :2] - np.asarray(start, np.float64)[:, :2]) @ v / max(nv2, 1e-300)
+    m = np.asarray(masses, np.float64)
+    return float(m[along >= share].sum() / m.sum()) if m.sum() > 0 else 0.0
+
+
+def sketch_distance(points: np.ndarray, sketch: Sketch) -> np.ndarray:
+    """Distance [m] (x–y) of each of ``points`` float [N, ≥2] to what a sketch
+    covers: an arrow's segment (from its first to its last point), or an oval's
+    filled ellipse (0 inside; outside, the distance to the nearest of 256
+    points on its outline). float64 [N]."""
+    xy = np.asarray(points, np.float64)[:, :2]
+    if sketch.kind == "arrow":
+        a, b = sketch.points[0], sketch.points[-1]
+        ab = b - a
+        s = np.clip((xy - a) @ ab / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+        return np.linalg.norm(xy - (a + s[:, None] * ab), axis=-1)
+    c, r, angle = sketch.ellipse()
+    rot = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    q = (xy - c) @ rot / np.maximum(r, 1e-9)
+    inside = (q**2).sum(-1) <= 1.0
+    t = np.linspace(0.0, 2 * math.pi, 256, endpoint=False)
+    outline = c + (np.stack([r[0] * np.cos(t), r[1] * np.sin(t)], -1)) @ rot.T
+    d = np.sqrt(((xy[:, None, :] - outline[None]) ** 2).sum(-1)).min(1)
+    return np.where(inside, 0.0, d)
+
+
+def off_sketch_disturbance(start: np.ndarray, end: np.ndarray, free_end: np.ndarray, sketch: Sketch, radius: float = 0.1) -> dict[str, float]:
+    """How far the control pushes fluid away from the sketch off its free
+    motion: for the particles whose start position (``start`` float [N, D] m)
+    lies farther than ``radius`` m from the sketch (:func:`sketch_distance`),
+    the mean and max distance [m] between their end position under control
+    (``end``) and without it (``free_end``, the same start run with no
+    control). ``off_sketch_share`` the share of particles counted; the means
+    are nan when there are none."""
+    far = sketch_distance(start, sketch) > radius
+    if not far.any():
+        return {"off_sketch_share": 0.0, "off_sketch_mean_m": math.nan, "off_sketch_max_m": math.nan}
+    gap = np.linalg.norm(np.asarray(end, np.float64)[far] - np.asarray(free_end, np.float64)[far], axis=-1)
+    return {"off_sketch_share": float(far.mean()), "off_sketch_mean_m": float(gap.mean()), "off_sketch_max_m": float(gap.max())}
+
+
 def control_metrics(start: np.ndarray, end: np.ndarray, sketch: Sketch | None, applied: AppliedStats, target: np.ndarray | None, n_grid: int) -> dict[str, Any]:
     """Every metric of one controlled episode (``start``/``end`` fluid positions
     at its first and last frame; ``applied`` the statistics of the fields it
@@ -136,4 +211,16 @@ def control_metrics(start: np.ndarray, end: np.ndarray, sketch: Sketch | None, a
     return out
 
 
-__all__ = ["AppliedStats", "arrow_adherence", "control_metrics", "effort", "oval_adherence", "shape_errors", "smoothness"]
+__all__ = [
+    "AppliedStats",
+    "arrow_adherence",
+    "control_metrics",
+    "effort",
+    "lateral_deviation",
+    "mass_carried",
+    "off_sketch_disturbance",
+    "oval_adherence",
+    "shape_errors",
+    "sketch_distance",
+    "smoothness",
+]

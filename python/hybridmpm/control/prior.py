@@ -59,27 +59,27 @@ CFL: float | None = 0.8
 BALLISTIC_TOL = 0.01
 
 
-def free_motion(
+def coarse_model(
     positions: np.ndarray,
     velocities: np.ndarray,
     material: np.ndarray,
     params: MpmParams,
-    frames: int,
     *,
     dt_frame: float,
+    frames: int = 1,
     stride: int = STRIDE,
     coarsen: int = COARSEN,
     cfl: float | None = None,
-) -> np.ndarray:
-    """The uncontrolled motion of the fluid ``positions`` [N, D] m with
-    ``velocities`` [N, D] m/s and solver ``material`` codes int [N], under
-    :class:`~hybridmpm.mpm.MpmParams` ``params`` (gravity, walls, colliders,
-    grid), for ``frames`` frames of ``dt_frame`` s at CFL number ``cfl``
-    (None: :data:`CFL`): float64 [frames + 1, N, D] (row 0 the start). Approximate by design (module doc); deterministic.
-    Raises :class:`InvalidInputError` naming a bad argument, and
-    :class:`~hybridmpm.errors.SimulationError` if the coarse rollout fails."""
-    from scipy.spatial import cKDTree
-
+) -> tuple[MpmSimulator, np.ndarray, np.ndarray]:
+    """The cheap model of a fluid (module doc): an :class:`~hybridmpm.sim.MpmSimulator`
+    of every ``stride``-th particle of ``positions`` [N, D] m (``velocities``
+    [N, D] m/s, solver ``material`` codes int [N]) on a grid ``coarsen`` times
+    coarser than ``params``' at CFL number ``cfl`` (None: :data:`CFL`), one
+    thread, started one coarse cell inside the walls' band. Returns ``(sim,
+    idx int [M] the simulated particles' indices, start float64 [M, D] their
+    start positions)``. Used by the free-motion prior and by model-predictive
+    control (:mod:`~hybridmpm.control.mpc`). Raises :class:`InvalidInputError`
+    naming a bad argument."""
     x = np.asarray(positions, np.float64)
     v = np.asarray(velocities, np.float64)
     if x.ndim != 2 or v.shape != x.shape:
@@ -112,6 +112,32 @@ def free_motion(
     pad = 1.01 / sim.solver.n_grid
     xs = np.clip(x[idx], lo + pad, hi - pad)
     sim.solver.positions = xs.astype(np.float32)
+    return sim, idx, xs
+
+
+def free_motion(
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    material: np.ndarray,
+    params: MpmParams,
+    frames: int,
+    *,
+    dt_frame: float,
+    stride: int = STRIDE,
+    coarsen: int = COARSEN,
+    cfl: float | None = None,
+) -> np.ndarray:
+    """The uncontrolled motion of the fluid ``positions`` [N, D] m with
+    ``velocities`` [N, D] m/s and solver ``material`` codes int [N], under
+    :class:`~hybridmpm.mpm.MpmParams` ``params`` (gravity, walls, colliders,
+    grid), for ``frames`` frames of ``dt_frame`` s at CFL number ``cfl``
+    (None: :data:`CFL`): float64 [frames + 1, N, D] (row 0 the start). Approximate by design (module doc); deterministic.
+    Raises :class:`InvalidInputError` naming a bad argument, and
+    :class:`~hybridmpm.errors.SimulationError` if the coarse rollout fails."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(positions, np.float64)
+    sim, _, xs = coarse_model(positions, velocities, material, params, dt_frame=dt_frame, frames=frames, stride=stride, coarsen=coarsen, cfl=cfl)
     out = rollout(sim, frames).fluid_positions.astype(np.float64)  # the start, then ``frames`` frames
     out[0] = xs  # (the simulator's first frame predates the clipping above)
     nearest = cKDTree(xs).query(x, k=1)[1]
@@ -198,6 +224,7 @@ __all__ = [
     "PRIOR_SKETCH_RAMP",
     "STRIDE",
     "ballistic_path",
+    "coarse_model",
     "free_motion",
     "free_motion_of",
     "in_free_flight",
