@@ -339,3 +339,19 @@ def test_evaluate_writes_every_score_with_the_dam_break_front(dam_run, capsys):
     assert main(["evaluate", str(dam_run / "trajectory.npz"), str(dam_run / "trajectory.npz"), "--out", str(out), "--quiet"]) == 0
     res = json.loads(out.read_text())
     assert res["dam_break_front"] is None and res["metrics"]["front_rms"] is None  # no --scene: no geometry
+
+
+def test_the_remembered_self_term_equals_a_fresh_solve_and_keys_on_values_not_objects():
+    from hybridmpm.metrics import transport
+
+    rng = np.random.default_rng(5)
+    x = rng.random((60, 2))
+    a = np.full(60, 1 / 60)
+    eps = transport.SINKHORN_BLUR**2
+    transport._SELF_CACHE.clear()
+    first = transport.self_ot(x, a, eps)
+    assert first == transport.entropic_ot(x, x, a, a, eps)
+    assert transport.self_ot(x.copy(), a.copy(), eps) == first and len(transport._SELF_CACHE) == 1
+    moved = x + 1e-9
+    assert len(transport._SELF_CACHE) == 1 and transport.self_ot(moved, a, eps) == transport.entropic_ot(moved, moved, a, a, eps)
+    assert len(transport._SELF_CACHE) == 2
