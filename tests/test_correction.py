@@ -1,10 +1,15 @@
-"""The learned correction of coarse MPM: its teacher (the split of a coarse
-state onto the scene's grid), its features, its runtime and its training
-loop, checked against exact facts (the full-resolution lattice, conservation,
-free fall, translation invariance) rather than "it ran"."""
+"""The coarse-grid ladder's experiments (docs/correction.md), out of the
+package in ``benchmarks/``: the learned correction of coarse MPM
+(``benchmarks/experiments/learned_correction``: its teacher, the split of a
+coarse state onto the scene's grid, its features, its runtime and its
+training loop) and rung 2's projection of full resolution onto the coarse
+particles (``benchmarks/coarse_ladder_rung2.py``), checked against exact
+facts (the full-resolution lattice, conservation, free fall, translation
+invariance, brute-force sums) rather than "it ran"."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +20,13 @@ from hybridmpm.mpm import MpmParams, MpmSolver
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.resolution import on_grid
 from hybridmpm.sim import rollout
-from hybridmpm.sim.correction.features import num_features, particle_features
-from hybridmpm.sim.correction.forcing import CorrectionForcing, LabelledForcing, OracleForcing, cell_average, coarse_simulator
-from hybridmpm.sim.correction.model import Correction
-from hybridmpm.sim.correction.teacher import split_state, teacher_frame
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the experiments are scripts' modules, not the package's
+from coarse_ladder_rung2 import Projection  # noqa: E402
+from experiments.learned_correction.features import num_features, particle_features  # noqa: E402
+from experiments.learned_correction.forcing import CorrectionForcing, LabelledForcing, OracleForcing, cell_average, coarse_simulator  # noqa: E402
+from experiments.learned_correction.model import Correction  # noqa: E402
+from experiments.learned_correction.teacher import split_state, teacher_frame  # noqa: E402
 
 DT = 2.5e-3
 
@@ -150,7 +158,7 @@ def test_labels_oracle_and_a_zero_correction():
 def test_dagger_fits_below_no_correction(tmp_path: Path):
     """One round on two short trajectories: the held-out one-step loss is below the loss of no correction."""
     pytest.importorskip("torch", reason="training needs the train extra (torch)")
-    from hybridmpm.train.correction import CorrectionTrainConfig, train_correction
+    from experiments.learned_correction.train import CorrectionTrainConfig, train_correction
 
     cfg = CorrectionTrainConfig(scene="sand2d", train_seeds=2, val_seeds=1, frames=40, every=2, rounds=1, steps=300, workers=1, scales=(1.0,))
     res = train_correction(cfg, tmp_path)
@@ -162,9 +170,10 @@ def test_dagger_fits_below_no_correction(tmp_path: Path):
 def test_collider_features_are_the_scenes_signed_distance_and_its_normal():
     """The collider columns use the scene's own signed distance; the normal is unit and points outwards (a point
     moved along it gets farther from the obstacle)."""
+    from experiments.learned_correction.features import _collider_sdf
+
     from hybridmpm.mpm import Box, Sphere
     from hybridmpm.scenes.spec import collider_sdf
-    from hybridmpm.sim.correction.features import _collider_sdf
 
     obstacles = [Box([0.5, 0.4], [0.1, 0.04], angle_deg=25.0), Sphere([0.5, 0.75], 0.06)]
     p = np.random.default_rng(4).uniform(0.1, 0.9, (200, 2))
@@ -174,3 +183,59 @@ def test_collider_features_are_the_scenes_signed_distance_and_its_normal():
     assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
     farther = np.min([collider_sdf(c, p + 1e-3 * normal) for c in obstacles], axis=0)
     assert np.all(farther > sdf)
+
+
+# ------------------------------------------------------------------ rung 2: full resolution seen through the coarse particles
+
+
+def _sand_pair(seed: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sand2d's full-resolution particles (positions, masses) and its half grid's positions."""
+    base = make_scene("sand2d", seed=seed)
+    fine = base.make_solver(num_threads=1)
+    coarse = on_grid(base, base.params.resolved_n_grid() // 2, 2).make_solver(num_threads=1)
+    return np.asarray(fine.positions, np.float64), np.asarray(fine.masses, np.float64), np.asarray(coarse.positions, np.float64)
+
+
+def test_the_projection_keeps_mass_and_momentum_and_groups_the_lattice_in_fours():
+    """Brute force: every coarse particle of the half grid has the 4 fine particles of the lattice around it as
+    children; the groups' masses add up to the fine set's, and mass times the projected velocity (and position)
+    summed over the coarse particles is the fine set's momentum (and first moment), for any velocity field and
+    unequal masses."""
+    xf, mf, xc = _sand_pair()
+    mf = mf * np.random.default_rng(5).uniform(0.5, 2.0, len(mf))  # the lattice's masses are equal: a plain mean would pass
+    proj = Projection(xf, mf, xc, spacing=0.5 / 64, vunit=1.0)
+    assert np.all(np.bincount(proj.parent, minlength=len(xc)) == 4)
+    assert np.all(np.abs(xf - xc[proj.parent]).max(axis=1) < 0.5 / 64 * 0.5)  # each child within half a coarse spacing of its parent
+    assert np.isclose(proj.group_mass.sum(), mf.sum(), rtol=1e-12)
+    v = np.random.default_rng(0).normal(0.0, 1.0, xf.shape)
+    for field in (v, xf):
+        got = (proj.group_mass[:, None] * proj.mean(field)).sum(axis=0)
+        want = np.array([sum(mf[i] * field[i, k] for i in range(len(mf))) for k in range(2)])  # the brute-force sum
+        assert np.allclose(got, want, rtol=1e-10, atol=1e-12)
+    # each coarse particle's projection is its own children's mass-weighted mean, summed one by one
+    for j in np.random.default_rng(1).choice(len(xc), 5, replace=False):
+        kids = np.flatnonzero(proj.parent == j)
+        assert np.allclose(proj.mean(v)[j], (mf[kids, None] * v[kids]).sum(axis=0) / mf[kids].sum())
+
+
+def test_the_privileged_features_are_the_childrens_covariance():
+    """A fine set that is exactly the coarse set (each coarse particle its own only child) has no sub-cell state:
+    zero spread; the lattice's children at rest have the lattice's own covariance (children at ±s/4 per axis:
+    (s/4)² = 1/16 spacings² on the diagonal, 0 off it) and no velocity spread; and any state's features are the
+    weighted covariances computed with numpy, group by group."""
+    xf, mf, xc = _sand_pair()
+    mc = np.full(len(xc), 4 * mf[0])
+    same = Projection(xc, mc, xc, spacing=0.5 / 64, vunit=1.0)
+    vc = np.random.default_rng(2).normal(0.0, 1.0, xc.shape)
+    assert np.all(same.privileged(xc, vc) == 0.0)
+    proj = Projection(xf, mf, xc, spacing=0.5 / 64, vunit=0.4)
+    rest = proj.privileged(xf, np.zeros_like(xf))
+    assert np.allclose(rest[:, :3], [1 / 16, 0.0, 1 / 16], atol=1e-6) and np.all(np.abs(rest[:, 3:]) < 1e-12)
+    rng = np.random.default_rng(3)
+    x, v = xf + rng.normal(0.0, 1e-3, xf.shape), rng.normal(0.0, 1.0, xf.shape)
+    got = proj.privileged(x, v)
+    for j in rng.choice(len(xc), 5, replace=False):
+        kids = np.flatnonzero(proj.parent == j)
+        cx = np.cov(x[kids].T / proj.spacing, aweights=mf[kids], bias=True)
+        cv = np.cov(v[kids].T * proj.vunit, aweights=mf[kids], bias=True)
+        assert np.allclose(got[j], [cx[0, 0], cx[0, 1], cx[1, 1], cv[0, 0], cv[0, 1], cv[1, 1]], rtol=1e-8, atol=1e-12)

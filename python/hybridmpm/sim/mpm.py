@@ -51,6 +51,18 @@ from hybridmpm.sim.convert import neural_to_mpm
 _STATE_VERSION = 1
 
 
+def probe_frame(solver: MpmSolver, dt_frame: float) -> dict[str, float]:
+    """One frame (``dt_frame`` [s]) of a bare :class:`~hybridmpm.mpm.MpmSolver` that no
+    simulator holds: a state built for a one-frame question (a coarse state
+    split onto the scene's grid, a solver put back to a checkpoint
+    afterwards), as the experiments of docs/correction.md ask it. Returns the
+    solver's frame statistics (``substeps``, ``dt``, ``max_speed``,
+    ``active_blocks``, ``retries``: :meth:`~hybridmpm.mpm.MpmSolver.step_frame`). Raises
+    :class:`~hybridmpm.errors.SimulationError` if the frame cannot be
+    finished. Rollouts go through :func:`hybridmpm.sim.rollout`, never here."""
+    return solver.step_frame(dt_frame)
+
+
 class MpmSimulator:
     """MLS-MPM on a scene, one coarse step (``r_t`` frames) per :meth:`advance`.
 
@@ -429,4 +441,4 @@ class MpmSimulator:
         return out
 
 
-__all__ = ["MpmSimulator"]
+__all__ = ["MpmSimulator", "probe_frame"]

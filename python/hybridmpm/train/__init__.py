@@ -18,7 +18,5 @@ onnxruntime alone (:mod:`hybridmpm.neural`, :mod:`hybridmpm.control`), and
 * :mod:`hybridmpm.train.scaffold` — what the three families' trainings share:
   the settings' base, the loop with progress and resumable checkpoints, the
   validation curve and the export metadata;
-* :mod:`hybridmpm.train.distributed` — data-parallel ranks;
-* :mod:`hybridmpm.train.correction` — the learned correction of coarse MPM
-  (experimental).
+* :mod:`hybridmpm.train.distributed` — data-parallel ranks.
 """

@@ -1,8 +1,8 @@
 """Go/no-go of the learned correction of coarse MPM, with the bounds that explain it.
 
 Per scene (default water2d and sand2d): trains the correction
-(:func:`hybridmpm.train.correction.train_correction`, DAgger, the defaults
-of :class:`~hybridmpm.train.correction.CorrectionTrainConfig` unless told),
+(:func:`experiments.learned_correction.train.train_correction`, DAgger, the defaults
+of :class:`~experiments.learned_correction.train.CorrectionTrainConfig` unless told),
 then on its validation seeds (400 frames; none of the training's) reports
 the mean grid-mass error against full-resolution MPM of:
 
@@ -11,7 +11,7 @@ the mean grid-mass error against full-resolution MPM of:
 * the learned correction (its best round, at its best scale);
 * the *oracle*: the coarse MPM given, before every frame, the exact
   one-frame target the correction is trained on
-  (:class:`~hybridmpm.sim.correction.forcing.OracleForcing`), the best any
+  (:class:`~experiments.learned_correction.forcing.OracleForcing`), the best any
   correction of that target can do;
 * the *floor*: full-resolution MPM itself seen through the coarse
   particles (the mass-weighted mean of the fine particles each coarse
@@ -21,13 +21,14 @@ the mean grid-mass error against full-resolution MPM of:
 and which fraction of the coarse grid's excess error over MPM at ``r_p``
 each removes (the go/no-go asks for a quarter).
 
-    python benchmarks/correction_go_no_go.py --out benchmarks/results/correction
+    python benchmarks/experiments/learned_correction/go_no_go.py --out benchmarks/results/correction
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import asdict
 from multiprocessing import get_context
@@ -40,10 +41,12 @@ from hybridmpm.bench.harness import read_results, write_results
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import make_scene
 from hybridmpm.sim import MpmSimulator, rollout
-from hybridmpm.sim.correction.forcing import OracleForcing, coarse_simulator
-from hybridmpm.sim.correction.model import Correction
-from hybridmpm.train.correction import VAL_STREAM, CorrectionTrainConfig, coarse_grid, train_correction
 from hybridmpm.train.datasets import trajectory_seed
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # benchmarks/: the experiment's modules are experiments.learned_correction.*
+from experiments.learned_correction.forcing import OracleForcing, coarse_simulator  # noqa: E402
+from experiments.learned_correction.model import Correction  # noqa: E402
+from experiments.learned_correction.train import VAL_STREAM, CorrectionTrainConfig, coarse_grid, train_correction  # noqa: E402
 
 
 def bounds(args: tuple[str, int, int, int]) -> dict:
@@ -73,8 +76,8 @@ def bounds(args: tuple[str, int, int, int]) -> dict:
 
 def timing(scene_name: str, sd: int, n: int, model: Correction, scale: float, frames: int) -> dict:
     """ms per frame (after 24) of MPM at r_p, the plain coarse grid and the corrected one, one process, back to back."""
+    from experiments.learned_correction.forcing import CorrectionForcing
     from hybridmpm.scenes import PAPER_R_P
-    from hybridmpm.sim.correction.forcing import CorrectionForcing
 
     base = make_scene(scene_name, seed=sd)
     out = {}

@@ -1,5 +1,5 @@
 """The learned correction at run time: a per-particle MLP on
-:func:`~hybridmpm.sim.correction.features.particle_features`, in numpy (no torch).
+:func:`~experiments.learned_correction.features.particle_features`, in numpy (no torch).
 
 ``Correction.velocity_change(features)`` returns the change of velocity
 [cells per frame] the fine grid would have made that the coarse grid does not;

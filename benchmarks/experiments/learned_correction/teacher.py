@@ -20,6 +20,7 @@ import itertools
 import numpy as np
 
 from hybridmpm.mpm import MpmParams, MpmSolver
+from hybridmpm.sim.mpm import probe_frame
 
 
 def split_state(coarse: MpmSolver, fine_params: MpmParams, *, num_threads: int = 1) -> MpmSolver:
@@ -58,7 +59,7 @@ def teacher_frame(coarse: MpmSolver, fine_params: MpmParams, dt_frame: float, *,
     each. ``coarse`` is unchanged. Raises
     :class:`~hybridmpm.errors.SimulationError` if the fine frame fails."""
     fine = split_state(coarse, fine_params, num_threads=num_threads)
-    fine.step_frame(dt_frame)
+    probe_frame(fine, dt_frame)
     n, d = np.shape(coarse.positions)
     k = 2**d
     x = np.asarray(fine.positions, np.float64).reshape(n, k, d).mean(axis=1)

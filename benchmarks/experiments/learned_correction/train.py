@@ -5,7 +5,7 @@ Ross et al. 2011).
 Round 0 rolls out plain MPM on the coarse grid (2 particles per cell per
 axis) from the training seeds' initial states; every ``every``-th frame it
 saves the particles' features and target
-(:class:`~hybridmpm.sim.correction.forcing.LabelledForcing`: the teacher's
+(:class:`~experiments.learned_correction.forcing.LabelledForcing`: the teacher's
 velocity after one frame on the scene's grid minus one plain coarse frame's,
 in cells per frame). A per-particle MLP is fitted to the aggregate; each later
 round rolls out the *corrected* coarse MPM, labels the states it visits the
@@ -13,7 +13,7 @@ same way, adds them and fits again. Every round's model is scored on the
 validation seeds' rollouts (mean grid-mass error against full-resolution
 MPM, at each of ``scales``); the best is kept (``model.npz``).
 
-    from hybridmpm.train.correction import CorrectionTrainConfig, train_correction
+    from experiments.learned_correction.train import CorrectionTrainConfig, train_correction
     train_correction(CorrectionTrainConfig("sand2d"), Path("runs/correction_sand2d"))
 """
 
@@ -30,12 +30,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from experiments.learned_correction.features import num_features
+from experiments.learned_correction.forcing import CorrectionForcing, LabelledForcing, coarse_simulator
+from experiments.learned_correction.model import Correction
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import PAPER_R_P, make_scene
 from hybridmpm.sim import MpmSimulator, rollout
-from hybridmpm.sim.correction.features import num_features
-from hybridmpm.sim.correction.forcing import CorrectionForcing, LabelledForcing, coarse_simulator
-from hybridmpm.sim.correction.model import Correction
 from hybridmpm.train.datasets import trajectory_seed
 from hybridmpm.train.scaffold import RunConfig, flag, integer, number, optional, setting
 

@@ -3,10 +3,10 @@
 corrected, labelled or oracle run goes through the one rollout
 (:func:`hybridmpm.sim.rollout`).
 
-:class:`CorrectionForcing` applies a :class:`~hybridmpm.sim.correction.model.Correction`
+:class:`CorrectionForcing` applies a :class:`~experiments.learned_correction.model.Correction`
 (or none); :class:`LabelledForcing` does the same and, every ``every`` frames,
 labels the state it is about to step (the teacher's velocity minus one plain
-coarse frame's, :mod:`hybridmpm.sim.correction.teacher`) for DAgger;
+coarse frame's, :mod:`experiments.learned_correction.teacher`) for DAgger;
 :class:`OracleForcing` applies the teacher's own answer, the best any
 correction trained on that target can do.
 """
@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from experiments.learned_correction.features import particle_features
+from experiments.learned_correction.model import Correction
+from experiments.learned_correction.teacher import teacher_frame
 from hybridmpm.errors import SimulationError
 from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import on_grid
-from hybridmpm.sim.correction.features import particle_features
-from hybridmpm.sim.correction.model import Correction
-from hybridmpm.sim.correction.teacher import teacher_frame
-from hybridmpm.sim.mpm import MpmSimulator
+from hybridmpm.sim.mpm import MpmSimulator, probe_frame
 
 
 def coarse_simulator(scene: Scene, n_grid: int, *, threads: int = 1) -> MpmSimulator:
@@ -80,7 +80,7 @@ class LabelledForcing(CorrectionForcing):
         try:
             _, vt = teacher_frame(s, self.fine_params, self.dt)
             s.external_acceleration = np.zeros_like(vt, np.float32)
-            s.step_frame(self.dt)
+            probe_frame(s, self.dt)
             y = (vt - np.asarray(s.velocities, np.float64)) * self.dt * self.n_grid
             if self.smooth:
                 y = cell_average(np.asarray(s.positions, np.float64), np.asarray(s.masses, np.float64), y, self.n_grid)
