@@ -24,12 +24,14 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import AsyncIterator
+from typing import Any
 
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
 from hybridmpm import __version__
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.service.backend import SessionBackend
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.errors import ApiError, FieldError, install_error_handlers
 from hybridmpm.service.logs import install_log_filters
@@ -41,9 +43,10 @@ from hybridmpm.service.sessions import SessionManager
 log = logging.getLogger("hybridmpm.service")
 
 
-def session_manager(cfg: ServiceConfig) -> SessionManager:
-    """The sessions of ``cfg.backend``: this process's (``local``), or a Ray
-    cluster's (``ray``, :class:`hybridmpm.service.ray_backend.manager.RaySessionManager`).
+def session_manager(cfg: ServiceConfig) -> SessionBackend[Any]:
+    """The session backend of ``cfg.backend``: this process's (``local``,
+    :class:`hybridmpm.service.sessions.SessionManager`), or a Ray cluster's
+    (``ray``, :class:`hybridmpm.service.ray_backend.manager.RaySessionManager`).
     Raises :class:`InvalidInputError` naming ``backend`` when Ray is not
     installed, ``ray_address`` when no cluster answers there."""
     if cfg.backend == "local":

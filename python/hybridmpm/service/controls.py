@@ -23,12 +23,12 @@ from fastapi import Request
 from hybridmpm.control import Sketch, render_sketch
 from hybridmpm.control.controller import shipped_control_model
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.service.backend import Session, SessionBackend
 from hybridmpm.service.budget import BudgetFullError
 from hybridmpm.service.core import Control, SessionGoneError
 from hybridmpm.service.errors import ApiError
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.schemas import clean
-from hybridmpm.service.sessions import Session, SessionManager
 
 log = logging.getLogger("hybridmpm.service")
 #: Copies of a control's trajectory alive at its peak (its frames, the stacked array, the kept one, the plan's
@@ -58,9 +58,12 @@ def png_base64(img: np.ndarray) -> str:
     return base64.b64encode(buf.getvalue()).decode()
 
 
-async def run_control(manager: SessionManager, s: Session, sketch: Sketch | None, method: str, frames: int, request: Request, t_req: float) -> dict[str, Any]:
+async def run_control(
+    manager: SessionBackend[Any], s: Session, sketch: Sketch | None, method: str, frames: int, request: Request, t_req: float
+) -> dict[str, Any]:
     """Run an admitted control of ``frames`` frames with ``method`` on ``s``
-    (the backend's :meth:`~hybridmpm.service.sessions.SessionManager.run_control`)
+    (the backend's :meth:`~hybridmpm.service.backend.SessionBackend.run_control`,
+    whose core saves the session before the control is announced and before it answers)
     and answer it (:class:`~hybridmpm.service.schemas.ControlResponse`'s
     fields; ``t_req`` when the request came, ``time.perf_counter()``).
     Reserves :data:`CONTROL_COPIES` copies of its trajectory for the run
@@ -88,7 +91,6 @@ async def run_control(manager: SessionManager, s: Session, sketch: Sketch | None
 
     watcher = loop.create_task(watch())
     try:
-        await manager.save(s)  # the steps answered before it are durable: the periodic saver skips a session in a control
         # the backend tells the viewers "running" once the control has really started (a refused one, never)
         try:
             ro, metrics, plan = await manager.run_control(s, sketch, method, frames, left, first, cid)
@@ -134,7 +136,6 @@ async def run_control(manager: SessionManager, s: Session, sketch: Sketch | None
             manager.budget.give(kept.cost)
         else:
             await manager.keep_control(s, kept)
-        await manager.save(s)  # a control is saved before it is answered
         s.broadcast({"type": "control", "status": "done", "id": cid, "metrics": resp["metrics"]})
         s.touch()
         return resp

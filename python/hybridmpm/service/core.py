@@ -139,7 +139,10 @@ class SessionCore:
         self.facts = SessionFacts.of(sim)
         self.lock = threading.RLock()  # the simulator
         self._held = threading.Lock()  # the recording, the kept controls, the control flag
-        self._save_lock = threading.Lock()  # one save at a time; a delete waits for it
+        self._save_lock = threading.Lock()  # one save (snapshot then write) at a time
+        self._write_lock = threading.Lock()  # a record's write or removal: a closed session's record is never written again
+        self._snapshots = 0  # snapshots taken (a write of an older one than the last written is skipped)
+        self._written = 0  # the snapshot the record holds
         self.recording = Recording(budget, RECORD_STEPS, int(sim.r_t))
         self.controls: collections.OrderedDict[str, Control] = collections.OrderedDict()
         self.on_frame: Callable[[Frame, int], None] = _nothing
@@ -300,8 +303,11 @@ class SessionCore:
         scene's :class:`~hybridmpm.control.Controller`;
         :func:`~hybridmpm.service.episode.run_episode`): the viewers get a
         ``control running`` event once it starts, its plan and every
-        controlled frame. With ``store`` the session is saved before it is
-        announced (the steps answered before it are durable). It stops
+        controlled frame. The save policy around a control, for both
+        backends: with ``store`` the session is saved before it is announced
+        (the steps answered before it are durable; a periodic saver skips a
+        session in a control) and again once it ends, before it is answered
+        (a control that answered is durable). It stops
         within a frame when ``left()`` turns true (its client left), when
         :attr:`cancel` is set, or when the session closes. Returns
         ``(rollout, metrics, plan summary or None, time.perf_counter() of
@@ -330,6 +336,8 @@ class SessionCore:
                 out = run_episode(self.sim, sketch, controller, cid, self._show, self.on_event, stop)
                 self._changed()
             self._open()
+            if store is not None:
+                self.save(store)
             return out
         finally:
             self.controlling = False
@@ -398,35 +406,43 @@ class SessionCore:
         return frame
 
     # ------------------------------------------------------------ saves
-    def snapshot(self) -> tuple[dict[str, Any], int] | None:
-        """The state a save writes (:func:`~hybridmpm.service.store.record_state`)
-        and its frame, taken between steps; None when it is closed or has not
-        changed since its last save. Clears its changed mark."""
+    def snapshot(self) -> tuple[dict[str, Any], int, int] | None:
+        """The state a save writes (:func:`~hybridmpm.service.store.record_state`),
+        its frame and its number (snapshots are numbered in the order taken),
+        taken between steps; None when it is closed or has not changed since
+        its last save. Clears its changed mark."""
         with self.lock:
             if self.closed or not self.dirty:
                 return None
             self.dirty = False
-            return record_state(self.sim), self.frame_index
+            self._snapshots += 1
+            return record_state(self.sim), self.frame_index, self._snapshots
 
-    def write(self, store: SessionStore, state: dict[str, Any], frame: int) -> bool:
-        """Write a :meth:`snapshot` to ``store`` (its record: the state, the
-        settings that rebuild it, its idle clock as wall time, its client);
-        False when it could not (logged; it is marked changed again, so the
-        next save tries again)."""
+    def write(self, store: SessionStore, state: dict[str, Any], frame: int, number: int = 0) -> bool:
+        """Write :meth:`snapshot` number ``number`` to ``store`` (its record:
+        the state, the settings that rebuild it, its idle clock as wall time,
+        its client); False when it could not (logged; it is marked changed
+        again, so the next save tries again). A snapshot older than the one
+        the record holds (two saves that crossed: the periodic saver's and a
+        control's), or one of a closed session, is not written (True)."""
         t0 = time.perf_counter()
         meta = {
             **self.settings.meta(),
             "last_used_at": time.time() - (time.monotonic() - self.last_used),
             "client": self.client[: ckpt.MAX_META_CHARS],
         }
-        try:
-            data = ckpt.dumps(state, meta)
-            store.write(self.key, data)
-        except Exception as e:  # noqa: BLE001 - a failed save must not fail the session
-            self.dirty = True
-            self.save_failure = (getattr(e, "errno", None), f"{type(e).__name__}: {getattr(e, 'strerror', None) or e}")
-            log.warning("store: saving session %s… failed: %s", self.key[:SHOWN_KEY_CHARS], e)
-            return False
+        with self._write_lock:
+            if self.closed or (number and number < self._written):
+                return True
+            try:
+                data = ckpt.dumps(state, meta)
+                store.write(self.key, data)
+            except Exception as e:  # noqa: BLE001 - a failed save must not fail the session
+                self.dirty = True
+                self.save_failure = (getattr(e, "errno", None), f"{type(e).__name__}: {getattr(e, 'strerror', None) or e}")
+                log.warning("store: saving session %s… failed: %s", self.key[:SHOWN_KEY_CHARS], e)
+                return False
+            self._written = max(self._written, number)
         self.saved_frame = frame
         self.save_failure = None
         log.debug("store: session %s… saved at frame %d: %d bytes in %.1f ms", self.key[:SHOWN_KEY_CHARS], frame, len(data), (time.perf_counter() - t0) * 1e3)
@@ -445,8 +461,9 @@ class SessionCore:
         """Close it: it refuses further work, a running control stops within
         a frame, its recording's memory goes back to the budget, its hooks
         show nothing more; with
-        ``store`` its record is removed (after a save under way: no record
-        outlives its session). Idempotent."""
+        ``store`` its record is removed (after a write under way; none comes
+        after: no record outlives its session). Idempotent: a backend closes
+        it at once, then removes its record off the event loop."""
         with self._held:
             self.closed = True
             self.playing = False
@@ -456,7 +473,7 @@ class SessionCore:
         # its simulator is freed with the last reference to it rather than by the cycle collector
         self.on_frame, self.on_event, self.has_viewers = _nothing, _nothing, _no_viewers
         if store is not None:
-            with self._save_lock:
+            with self._write_lock:
                 store.delete(self.key)
 
 

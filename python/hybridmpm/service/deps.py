@@ -1,21 +1,22 @@
-"""Typed dependencies of the routes: the application's session manager and
+"""Typed dependencies of the routes: the application's session backend
+(:class:`~hybridmpm.service.backend.SessionBackend`, either backend) and
 configuration (``app.state``), and the session and control a path names
 (404 if none). They are ``async``: FastAPI runs a plain function dependency
 on its thread pool, these run on the event loop."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 
+from hybridmpm.service.backend import Session, SessionBackend
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control
 from hybridmpm.service.errors import NO_SESSION, ApiError
-from hybridmpm.service.sessions import Session, SessionManager
 
 
-async def get_manager(request: Request) -> SessionManager:
+async def get_manager(request: Request) -> SessionBackend[Any]:
     return request.app.state.manager  # type: ignore[no-any-return]
 
 
@@ -23,7 +24,7 @@ async def get_config(request: Request) -> ServiceConfig:
     return request.app.state.config  # type: ignore[no-any-return]
 
 
-ManagerDep = Annotated[SessionManager, Depends(get_manager)]
+ManagerDep = Annotated[SessionBackend[Any], Depends(get_manager)]
 ConfigDep = Annotated[ServiceConfig, Depends(get_config)]
 
 

@@ -20,10 +20,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.service.backend import RETRY_AFTER_S
 from hybridmpm.service.budget import BudgetFullError
 from hybridmpm.service.config import MAX_MESSAGE_CHARS
 from hybridmpm.service.core import SessionGoneError
-from hybridmpm.service.sessions import RETRY_AFTER_S
 
 log = logging.getLogger("hybridmpm.service")
 _REPR = re.compile(r"<[^<>]{0,200}? (?:object )?at 0x[0-9a-fA-F]+>")

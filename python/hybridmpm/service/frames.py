@@ -24,8 +24,12 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from hybridmpm.sim import Frame
 
 MAGIC = b"HMPF"
 VERSION = 1
@@ -58,6 +62,13 @@ def encode_frame(positions: np.ndarray, frame: int, time: float, solver: str, co
     return head + pos.tobytes()
 
 
+def frame_message(fr: Frame, control_frame: int = 0) -> bytes:
+    """What a session's viewers get of simulator frame ``fr`` (:class:`hybridmpm.sim.Frame`):
+    its binary frame (:func:`encode_frame`), ``control_frame`` frames into a
+    control (0 when not controlled). The one place both backends encode a frame for a stream."""
+    return encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
+
+
 def decode_frame(data: bytes) -> tuple[FrameHeader, np.ndarray]:
     """Parse a binary frame: its header and positions float32 [n, dim] (a test and client helper)."""
     if len(data) < HEADER_SIZE:
@@ -69,4 +80,4 @@ def decode_frame(data: bytes) -> tuple[FrameHeader, np.ndarray]:
     return FrameHeader(dim, frame, n, t, "neural" if code == 1 else "mpm", bool(controlled), cframe), pos
 
 
-__all__ = ["FLAG_CONTROLLED", "FLAG_NEURAL", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "FrameHeader", "decode_frame", "encode_frame"]
+__all__ = ["FLAG_CONTROLLED", "FLAG_NEURAL", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "FrameHeader", "decode_frame", "encode_frame", "frame_message"]

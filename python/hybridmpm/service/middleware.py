@@ -12,9 +12,9 @@ from typing import Any
 
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
+from hybridmpm.service.backend import RETRY_AFTER_S
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget
 from hybridmpm.service.config import LOOPBACK_HOSTS, ServiceConfig
-from hybridmpm.service.sessions import RETRY_AFTER_S
 
 Scope = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]

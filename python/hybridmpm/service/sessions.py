@@ -9,43 +9,50 @@ code directly (a CPU-bound call there would stall every client). Each call
 into a session's core waits first for the session's ``asyncio`` lock (fair:
 requests queue in order without holding a worker).
 
-The routes reach a session through the manager's ``async`` methods
-(:meth:`SessionManager.find`, :meth:`~SessionManager.rollout`,
-:meth:`~SessionManager.run_control`, :meth:`~SessionManager.checkpoint`,
-:meth:`~SessionManager.restore`, :meth:`~SessionManager.reset`,
-:meth:`~SessionManager.info`, :meth:`~SessionManager.attach`, ...) and read
-its plain facts (:attr:`Session.facts`, :attr:`Session.settings`): the seam
-where :class:`hybridmpm.service.ray_backend.manager.RaySessionManager` runs
-the same core in each session's Ray actor instead of in this process.
+:class:`SessionManager` implements :class:`~hybridmpm.service.backend.SessionBackend`
+(what the routes call) over :class:`LocalSession` handles; the Ray backend
+(:class:`hybridmpm.service.ray_backend.manager.RaySessionManager`) implements
+it beside this one, running the same core in each session's Ray actor.
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
-import errno
 import functools
 import logging
 import secrets
 import time
-import traceback
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import anyio
 import anyio.to_thread
-from starlette.websockets import WebSocket, WebSocketState
 
-from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError
+from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.service.backend import (
+    RETRY_AFTER_S,
+    QuotaError,
+    SessionCapError,
+    StoreSaveError,
+    Viewer,
+    close_viewers,
+    close_ws,
+    every,
+    meta_message,
+    offer_all,
+    on_worker,
+    open_store,
+    stop_task,
+)
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget, RecordedFrame, tree_nbytes
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionCore, SessionGoneError, session_threads
 from hybridmpm.service.facts import SessionFacts, SessionSettings
-from hybridmpm.service.frames import encode_frame
+from hybridmpm.service.frames import frame_message
 from hybridmpm.service.logs import SHOWN_ID_CHARS
-from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, session_key
+from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, load_unexpired, session_key
 from hybridmpm.sim import Frame, Rollout
 
 log = logging.getLogger("hybridmpm.service")
@@ -55,72 +62,21 @@ T = TypeVar("T")
 SESSION_OVERHEAD = 4 << 20
 #: Copies of its state a session's cost counts: the live simulator, the initial state kept for "reset", a step's working copy.
 SESSION_STATE_COPIES = 3
-#: Seconds a client is asked to wait (``Retry-After``) when the memory budget is full.
-RETRY_AFTER_S = 5
-#: What a failed save's errno says when the store is full (→ 507).
-_FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
-
-
-class StoreSaveError(Exception):
-    """A create whose first save failed: nothing was created (→ 507 naming
-    ``store`` when ``full``, else 503 with ``Retry-After``). ``why``: the
-    save's error, :attr:`SessionCore.save_failure
-    <hybridmpm.service.core.SessionCore.save_failure>`'s message."""
-
-    def __init__(self, failure: tuple[int | None, str] | None) -> None:
-        code, why = failure or (None, "unknown error")
-        super().__init__(why)
-        self.full = code in _FULL
-        self.why = why
-
-
-class SessionCapError(Exception):
-    """No room for another session (→ 503)."""
-
-
-class QuotaError(Exception):
-    """The client address holds its quota of sessions (→ 429)."""
-
-
-class Viewer:
-    """One WebSocket connection: a latest-frame slot (newer frames overwrite
-    an unsent one — never a queue of frames) and a short bounded queue of
-    JSON events (oldest dropped)."""
-
-    def __init__(self, ws: WebSocket) -> None:
-        self.ws = ws
-        self.frame: bytes | None = None
-        self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=16)
-        self.wake = asyncio.Event()
-        self.sent = 0
-        self.dropped = 0
-        self.closed = False
-
-    def offer(self, data: bytes) -> None:
-        if self.frame is not None:
-            self.dropped += 1
-        self.frame = data
-        self.wake.set()
-
-    def event(self, msg: dict[str, Any]) -> None:
-        self.events.append(msg)
-        self.wake.set()
 
 
 @dataclass(eq=False)
-class Session:
-    """A session as the routes hold it: its ``id``, store ``key``, plain
-    ``settings`` and ``facts`` (what routes read), the client address that
-    created it, the viewers connected to this process, and — on the local
-    backend — its :class:`~hybridmpm.service.core.SessionCore` (``core``;
-    None on the Ray backend, whose core lives in the session's actor)."""
+class LocalSession:
+    """A session of this process as the routes hold it (a
+    :class:`~hybridmpm.service.backend.Session`): its ``id``, store ``key``,
+    plain ``settings`` and ``facts``, the client address that created it, its
+    :class:`~hybridmpm.service.core.SessionCore` (``core``) and its viewers."""
 
     id: str
     key: str
     settings: SessionSettings
     facts: SessionFacts
+    core: SessionCore
     client: str = ""
-    core: SessionCore | None = None
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # calls into the core queue here, in order
     save_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     last_used: float = field(default_factory=time.monotonic)
@@ -133,26 +89,20 @@ class Session:
     @property
     def frame_index(self) -> int:
         """The frame the session is at."""
-        assert self.core is not None
         return self.core.frame_index
 
     def touch(self) -> None:
         self.last_used = time.monotonic()
-        if self.core is not None:
-            self.core.touch()
+        self.core.touch()
 
     def republish(self) -> None:
         """Offer the current frame to the viewers again (after a control that stopped early)."""
-        if self.core is not None:
-            self.core.republish()
+        self.core.republish()
 
     def offer(self, fr: Frame, control_frame: int = 0) -> None:
         """Offer a frame to every viewer (event loop thread only)."""
-        if not self.viewers:
-            return
-        data = encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
-        for v in list(self.viewers):
-            v.offer(data)
+        if self.viewers:
+            offer_all(self.viewers, frame_message(fr, control_frame))
 
     def broadcast(self, msg: dict[str, Any]) -> None:
         """An event for every viewer (event loop thread only)."""
@@ -161,8 +111,6 @@ class Session:
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """Hand the core's frames and events to this process's viewers, on ``loop``."""
-        core = self.core
-        assert core is not None
 
         def on_frame(fr: Frame, control_frame: int) -> None:
             loop.call_soon_threadsafe(self.offer, fr, control_frame)
@@ -170,14 +118,16 @@ class Session:
         def on_event(msg: dict[str, Any]) -> None:
             loop.call_soon_threadsafe(self.broadcast, msg)
 
-        core.on_frame, core.on_event = on_frame, on_event
-        core.has_viewers = lambda: bool(self.viewers)
+        self.core.on_frame, self.core.on_event = on_frame, on_event
+        self.core.has_viewers = lambda: bool(self.viewers)
 
 
 class SessionManager:
-    """The sessions of this process (a plain dict) and the compute limiter."""
+    """The local backend (:class:`~hybridmpm.service.backend.SessionBackend`
+    over :class:`LocalSession`): the sessions of this process (a plain dict),
+    the compute limiter, the reaper and, with a store, the periodic saver."""
 
-    #: Whether sessions run elsewhere (a Ray actor each: :class:`hybridmpm.service.ray_backend.manager.RaySessionManager`).
+    #: Sessions run here (the Ray backend's run in actors).
     remote = False
     #: Temporary files of torn saves older than this are removed when the store opens [s]
     #: (:meth:`SessionStore.open`; one process writes this store, so all of them).
@@ -185,7 +135,7 @@ class SessionManager:
 
     def __init__(self, config: ServiceConfig) -> None:
         self.config = config
-        self.sessions: dict[str, Session] = {}
+        self.sessions: dict[str, LocalSession] = {}
         self.reserved = 0
         self.reserved_by: collections.Counter[str] = collections.Counter()
         self.budget = MemoryBudget(config.memory_budget_bytes)
@@ -197,24 +147,16 @@ class SessionManager:
         self._saver: asyncio.Task[None] | None = None
         self._saving: dict[str, asyncio.Task[bool]] = {}  # the periodic saver's save in progress, per session key
         #: Durable sessions (None without ``config.store``).
-        self.store: SessionStore | None = None
+        self.store: SessionStore | None
         #: Sessions restored from the store whose id no request has named yet, by key.
-        self.unclaimed: dict[str, Session] = {}
+        self.unclaimed: dict[str, LocalSession] = {}
         self.io_limiter = anyio.CapacityLimiter(1)
-        if config.store is not None:
-            self.store = SessionStore(config.store).open(self.store_clean_after_s)
+        self.store = open_store(config, self.store_clean_after_s)
 
     # ------------------------------------------------------------ compute
     async def compute(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run ``fn(*args)`` in a worker thread under the compute limiter.
-        A refusal (:class:`~hybridmpm.errors.HybridMpmError`) comes back with
-        the locals of its traceback's frames cleared: the answer keeps no
-        decoded image or state alive while it lingers."""
-        try:
-            return await anyio.to_thread.run_sync(fn, *args, limiter=self.limiter)
-        except HybridMpmError as e:
-            traceback.clear_frames(e.__traceback__)
-            raise
+        """Run ``fn(*args)`` in a worker thread under the compute limiter (:func:`~hybridmpm.service.backend.on_worker`)."""
+        return await on_worker(self.limiter, fn, *args)
 
     # ------------------------------------------------------------ lifecycle
     def count(self) -> int:
@@ -226,7 +168,7 @@ class SessionManager:
         held = sum(1 for s in (*self.sessions.values(), *self.unclaimed.values()) if s.client == client)
         return held + self.reserved_by[client]
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> LocalSession:
         """Build a session for the client address ``client`` (``n_grid``: MPM
         on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`).
         With a store the session is saved before it is answered; when that
@@ -271,17 +213,16 @@ class SessionManager:
             if self.reserved_by[client] <= 0:
                 del self.reserved_by[client]
 
-    def _adopt(self, sid: str, core: SessionCore, cost: int) -> Session:
+    def _adopt(self, sid: str, core: SessionCore, cost: int) -> LocalSession:
         """The routes' handle of ``core``, its frames and events bound to this process's viewers."""
-        s = Session(sid, core.key, core.settings, core.facts, client=core.client, core=core, cost=cost)
+        s = LocalSession(sid, core.key, core.settings, core.facts, client=core.client, core=core, cost=cost)
         s.last_used = core.last_used
         s.bind(asyncio.get_running_loop())
         return s
 
     @staticmethod
-    def core_of(s: Session) -> SessionCore:
-        """``s``'s core (a local session always has one)."""
-        assert s.core is not None
+    def core_of(s: LocalSession) -> SessionCore:
+        """``s``'s core."""
         return s.core
 
     async def compute_wide(self, width: int, fn: Callable[..., T], *args: Any) -> T:
@@ -296,15 +237,12 @@ class SessionManager:
             for t in tokens:
                 await self.limiter.acquire_on_behalf_of(t)
         try:
-            return await anyio.to_thread.run_sync(fn, *args, limiter=self._unlimited)
-        except HybridMpmError as e:
-            traceback.clear_frames(e.__traceback__)
-            raise
+            return await on_worker(self._unlimited, fn, *args)
         finally:
             for t in tokens:
                 self.limiter.release_on_behalf_of(t)
 
-    async def on_core(self, s: Session, fn: Callable[..., T], *args: Any) -> T:
+    async def on_core(self, s: LocalSession, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` (a method of ``s``'s core) on a worker, after
         the calls queued before it on ``s``, holding as many compute tokens
         as the session's MPM threads (:meth:`compute_wide`);
@@ -314,22 +252,22 @@ class SessionManager:
                 raise SessionGoneError()
             return await self.compute_wide(self.core_of(s).threads, fn, *args)
 
-    async def keep_control(self, s: Session, c: Control) -> None:
+    async def keep_control(self, s: LocalSession, c: Control) -> None:
         """Keep ``c`` on ``s`` (its cost already taken from the budget),
         dropping the oldest beyond :data:`~hybridmpm.service.core.KEEP_CONTROLS` and giving their cost back."""
         for old in self.core_of(s).keep_control(c):
             self.budget.give(old.cost)
             old.cost = 0
 
-    async def get_control(self, s: Session, cid: str) -> Control | None:
+    async def get_control(self, s: LocalSession, cid: str) -> Control | None:
         """The kept control ``cid`` of ``s``, or None."""
         return self.core_of(s).get_control(cid)
 
-    async def recorded(self, s: Session, count: int) -> list[RecordedFrame]:
+    async def recorded(self, s: LocalSession, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames of ``s``'s recent trajectory, oldest first."""
         return self.core_of(s).recorded(count)
 
-    async def find(self, sid: str) -> Session | None:
+    async def find(self, sid: str) -> LocalSession | None:
         """The session ``sid`` (touched), or None: what a request names."""
         return self.get(sid)
 
@@ -337,7 +275,7 @@ class SessionManager:
         """Sessions held (``/healthz``)."""
         return self.count()
 
-    def get(self, sid: str) -> Session | None:
+    def get(self, sid: str) -> LocalSession | None:
         s = self.sessions.get(sid)
         if s is None and self.unclaimed and len(sid) < 256:
             s = self.unclaimed.pop(session_key(sid), None)
@@ -358,23 +296,20 @@ class SessionManager:
         await self._drop(s, code, reason, forget)
         return True
 
-    async def _drop(self, s: Session, code: int, reason: str, forget: bool) -> None:
+    async def _drop(self, s: LocalSession, code: int, reason: str, forget: bool) -> None:
         s.closed = True
         core = self.core_of(s)
         core.close()  # a control running on it stops within a frame and answers 404
         if forget and self.store is not None:
-            store = self.store
-            async with s.save_lock:  # a save under way ends first, so that no record outlives its session
-                await anyio.to_thread.run_sync(store.delete, s.key, limiter=self.io_limiter)
+            async with s.save_lock:  # a save under way ends first (and the core writes no record once closed)
+                await anyio.to_thread.run_sync(core.close, self.store, limiter=self.io_limiter)
         self.budget.give(s.cost + sum(c.cost for c in core.controls.values()))
         s.cost = 0
         for c in core.controls.values():
             c.cost = 0
         if s.play_task is not None:
             s.play_task.cancel()
-        for v in list(s.viewers):
-            await close_ws(v, code, reason)
-        s.viewers.clear()
+        await close_viewers(s.viewers, code, reason)
 
     async def reap_once(self) -> list[str]:
         ttl = self.config.idle_ttl_s
@@ -387,27 +322,18 @@ class SessionManager:
             log.info("restored session %s… (store key) expired", key[:SHOWN_KEY_CHARS])
         return stale
 
-    async def _reap_forever(self) -> None:
-        interval = float(self.config.reap_interval_s or 30.0)
-        while True:
-            await asyncio.sleep(interval)
-            try:
-                await self.reap_once()
-            except Exception:  # noqa: BLE001 - the reaper must survive
-                log.exception("reaper")
-
     def start(self) -> None:
+        """Start the reaper (every ``reap_interval_s``) and, with a store, the periodic saver (every ``save_every_s``)."""
+        loop = asyncio.get_running_loop()
         if self._reaper is None:
-            self._reaper = asyncio.get_running_loop().create_task(self._reap_forever())
+            self._reaper = loop.create_task(every(float(self.config.reap_interval_s or 30.0), self.reap_once, "reaper"))
         if self.store is not None and self._saver is None:
-            self._saver = asyncio.get_running_loop().create_task(self._save_forever())
+            self._saver = loop.create_task(every(float(self.config.save_every_s), self.save_round, "saver"))
 
     async def stop(self) -> None:
-        for task in (self._reaper, self._saver):
-            if task is not None:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
+        """Stop the loops, save every changed session (a clean stop loses nothing) and close them, keeping their records."""
+        await stop_task(self._reaper)
+        await stop_task(self._saver)
         self._reaper = self._saver = None
         if self._saving:
             await asyncio.gather(*self._saving.values(), return_exceptions=True)
@@ -421,7 +347,7 @@ class SessionManager:
             self.store.release()
 
     # ------------------------------------------------------------ durable sessions
-    async def save(self, s: Session) -> bool:
+    async def save(self, s: LocalSession) -> bool:
         """Write ``s``'s checkpoint to the store if it changed since its last
         save; False when it could not (logged; it stays marked changed and
         the saver tries again). The snapshot
@@ -466,15 +392,6 @@ class SessionManager:
     def _saved(self, key: str, _task: asyncio.Task[bool]) -> None:
         self._saving.pop(key, None)
 
-    async def _save_forever(self) -> None:
-        interval = float(self.config.save_every_s)
-        while True:
-            await asyncio.sleep(interval)
-            try:
-                self.save_round()
-            except Exception:  # noqa: BLE001 - the saver must survive
-                log.exception("saver")
-
     async def restore_all(self) -> int:
         """Bring back every unexpired session of the store (once, at start;
         each waits, unclaimed, for the first request that names its id).
@@ -488,13 +405,13 @@ class SessionManager:
         for key in keys:
             shown = key[:SHOWN_KEY_CHARS]
             try:
-                rec = await anyio.to_thread.run_sync(store.load, key, self.config.max_checkpoint_bytes, limiter=self.io_limiter)
+                rec = await anyio.to_thread.run_sync(
+                    load_unexpired, store, key, self.config.max_checkpoint_bytes, self.config.idle_ttl_s, limiter=self.io_limiter
+                )
             except InvalidInputError as e:
                 log.warning("%s; not restored", e)
                 continue
-            if time.time() - rec.last_used_at > self.config.idle_ttl_s:
-                await anyio.to_thread.run_sync(store.delete, key, limiter=self.io_limiter)
-                log.info("store: session %s… expired while the server was down; removed", shown)
+            if rec is None:
                 continue
             if self.count() >= self.config.max_sessions:
                 log.warning("store: session %s… not restored: the server holds its maximum of %d sessions", shown, self.config.max_sessions)
@@ -522,17 +439,17 @@ class SessionManager:
         return restored
 
     # ------------------------------------------------------------ the work of the routes
-    async def info(self, s: Session) -> dict[str, Any]:
+    async def info(self, s: LocalSession) -> dict[str, Any]:
         """``s``'s description (``GET /v1/sessions/{id}``)."""
         return {"id": s.id, **self.core_of(s).info(), "viewers": len(s.viewers), "stream": f"/v1/sessions/{s.id}/stream"}
 
-    async def rollout(self, s: Session, frames: int) -> Rollout:
+    async def rollout(self, s: LocalSession, frames: int) -> Rollout:
         """Advance ``s`` by ``frames`` frames (:meth:`SessionCore.rollout <hybridmpm.service.core.SessionCore.rollout>`);
         :class:`SessionGoneError` when it was closed meanwhile."""
         return await self.on_core(s, self.core_of(s).rollout, frames)
 
     async def run_control(
-        self, s: Session, sketch: Any, method: str, frames: int, left: Any, first: list[float], cid: str
+        self, s: LocalSession, sketch: Any, method: str, frames: int, left: Any, first: list[float], cid: str
     ) -> tuple[Rollout, dict[str, Any], Any]:
         """Control ``cid`` on ``s`` with ``method`` for ``frames`` frames
         (:meth:`SessionCore.control <hybridmpm.service.core.SessionCore.control>`
@@ -541,29 +458,30 @@ class SessionManager:
         a frame, and so does closing ``s`` (a delete, an expiry). Appends the
         time of the first controlled frame to ``first``; returns ``(rollout,
         metrics, plan summary)``; :class:`SessionGoneError` when it was
-        closed before or during the control."""
-        ro, metrics, plan, t_first = await self.on_core(s, self.core_of(s).control, method, frames, sketch, cid, left.is_set)
+        closed before or during the control. With a store the core saves it
+        before the control is announced and after it ends (its save policy)."""
+        ro, metrics, plan, t_first = await self.on_core(s, self.core_of(s).control, method, frames, sketch, cid, left.is_set, self.store)
         if t_first is not None:
             first.append(t_first)
         return ro, metrics, plan
 
-    async def checkpoint(self, s: Session) -> bytes:
+    async def checkpoint(self, s: LocalSession) -> bytes:
         """``s``'s whole state as a checkpoint (:func:`hybridmpm.service.checkpoint.dumps`);
         :class:`BudgetFullError` when the budget cannot hold two copies of it."""
         with self.budget.hold(2 * tree_nbytes(self.core_of(s).initial), "writing the checkpoint"):
             return await self.on_core(s, self.core_of(s).checkpoint)
 
-    async def restore(self, s: Session, state: dict[str, Any]) -> None:
+    async def restore(self, s: LocalSession, state: dict[str, Any]) -> None:
         """Restore ``state`` into ``s``, all or nothing: the simulator's
         refusal (:class:`InvalidInputError`, :class:`CheckpointError`, or a
         ``KeyError``/``TypeError``/... of a malformed tree) leaves it as it was."""
         await self.on_core(s, self.core_of(s).restore, state)
 
-    async def reset(self, s: Session) -> None:
+    async def reset(self, s: LocalSession) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
         await self.on_core(s, self.core_of(s).reset)
 
-    async def move_obstacle(self, s: Session, index: int, center: list[float], velocity: list[float] | None) -> int:
+    async def move_obstacle(self, s: LocalSession, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` to ``center`` over its next step
         (:meth:`SessionCore.move_obstacle <hybridmpm.service.core.SessionCore.move_obstacle>`);
         every viewer gets an ``obstacle`` event. Returns the session's frame."""
@@ -571,29 +489,28 @@ class SessionManager:
         s.touch()
         return frame
 
-    async def attach(self, s: Session, v: Viewer) -> None:
+    async def attach(self, s: LocalSession, v: Viewer) -> None:
         """A new viewer of ``s``: its ``meta`` message and the current frame are offered first."""
         s.viewers.add(v)
         core = self.core_of(s)
-        v.event({"type": "meta", **(await self.info(s)), "playing": core.playing, "header_bytes": 32})
-        fr = core.sim.frame
-        v.offer(encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled))
+        v.event(meta_message(await self.info(s), core.playing))
+        v.offer(frame_message(core.sim.frame))
 
-    async def detach(self, s: Session, v: Viewer) -> None:
+    async def detach(self, s: LocalSession, v: Viewer) -> None:
         s.viewers.discard(v)
 
-    async def set_playing(self, s: Session, playing: bool) -> None:
+    async def set_playing(self, s: LocalSession, playing: bool) -> None:
         """Play (one coarse step at a time, no faster than real time, while it has viewers) or pause ``s``."""
         self.core_of(s).playing = playing
         if playing:
             self.ensure_playing(s)
 
     # ------------------------------------------------------------ play loop
-    def ensure_playing(self, s: Session) -> None:
+    def ensure_playing(self, s: LocalSession) -> None:
         if self.core_of(s).playing and s.viewers and (s.play_task is None or s.play_task.done()):
             s.play_task = asyncio.get_running_loop().create_task(self._play(s))
 
-    async def _play(self, s: Session) -> None:
+    async def _play(self, s: LocalSession) -> None:
         """Run ``s``'s play loop (:meth:`SessionCore.play <hybridmpm.service.core.SessionCore.play>`):
         each step on a worker after the calls queued on ``s``, the wait between steps on the event loop."""
         steps: Iterator[float] = self.core_of(s).play()
@@ -610,18 +527,11 @@ class SessionManager:
             pass
 
 
-async def close_ws(v: Viewer, code: int, reason: str) -> None:
-    v.closed = True
-    v.wake.set()
-    if v.ws.application_state == WebSocketState.CONNECTED:
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(v.ws.close(code=code, reason=reason), 2.0)
-
-
 __all__ = [
     "RETRY_AFTER_S",
+    "LocalSession",
     "QuotaError",
-    "Session",
+    "LocalSession",
     "SessionCapError",
     "SessionManager",
     "StoreSaveError",

@@ -83,6 +83,12 @@ class StoredSession:
     nbytes: int
     n_grid: int | None = None
 
+    def expired(self, ttl: float) -> bool:
+        """Idle for more than ``ttl`` seconds of wall time since its last use
+        (the record-expiry rule of both backends; a live session's is
+        :meth:`SessionCore.expired <hybridmpm.service.core.SessionCore.expired>`)."""
+        return time.time() - self.last_used_at > ttl
+
 
 def _bad(key: str, msg: str) -> InvalidInputError:
     return InvalidInputError(f"store: session {key[:SHOWN_KEY_CHARS]}…: {msg}", "checkpoint")
@@ -406,6 +412,18 @@ class SessionStore:
         raise _bad(key, "checkpoint: no save found")
 
 
+def load_unexpired(store: SessionStore, key: str, max_bytes: int, ttl: float) -> StoredSession | None:
+    """``key``'s record (:meth:`SessionStore.load`; its :class:`InvalidInputError`
+    raised), or None when it is expired (:meth:`StoredSession.expired`: idle
+    for more than ``ttl`` seconds), which is removed. Blocks: the store's I/O."""
+    rec = store.load(key, max_bytes)
+    if not rec.expired(ttl):
+        return rec
+    store.delete(key)
+    log.info("store: session %s… expired while it was not running; removed", key[:SHOWN_KEY_CHARS])
+    return None
+
+
 def _die() -> None:
     """A crash in the middle of a save (tests: :data:`TEAR_ENV`)."""
     import signal
@@ -415,4 +433,4 @@ def _die() -> None:
     time.sleep(60)
 
 
-__all__ = ["STORE_META", "TEAR_ENV", "SessionStore", "StoredSession", "parse_record", "session_key"]
+__all__ = ["STORE_META", "TEAR_ENV", "SessionStore", "StoredSession", "load_unexpired", "parse_record", "session_key"]

@@ -36,7 +36,7 @@ from hybridmpm.errors import HybridMpmError
 from hybridmpm.service.budget import MemoryBudget, RecordedFrame, tree_nbytes
 from hybridmpm.service.core import BusyError, Control, SessionCore, SessionGoneError
 from hybridmpm.service.facts import SessionSettings
-from hybridmpm.service.frames import encode_frame
+from hybridmpm.service.frames import frame_message
 from hybridmpm.service.ray_backend.registry import REGISTRY_NAME
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore
 from hybridmpm.sim import Frame, Rollout
@@ -163,7 +163,7 @@ class SessionActor:
     # ------------------------------------------------------------ frames and events
     def _publish(self, fr: Frame, control_frame: int = 0) -> None:
         """Make ``fr`` the latest frame of every front end's stream (the core records it)."""
-        data = encode_frame(fr.positions, fr.frame_index, fr.time, fr.solver, fr.controlled, control_frame)
+        data = frame_message(fr, control_frame)
         with self.cond:
             self.frame_seq += 1
             self.frame_bytes = data
@@ -205,15 +205,13 @@ class SessionActor:
         self, method: str, frames: int, sketch_json: dict[str, Any] | None, cid: str
     ) -> tuple[Any, dict[str, Any], dict[str, Any] | None, float | None, bool]:
         """Plan and run control ``cid`` here (:meth:`SessionCore.control
-        <hybridmpm.service.core.SessionCore.control>`, saved before it is
-        announced and before it answers): ``(rollout, metrics, plan summary,
+        <hybridmpm.service.core.SessionCore.control>`, whose save policy
+        saves it before it is announced and before it answers): ``(rollout, metrics, plan summary,
         seconds to the first controlled frame, cancelled)``;
         :meth:`cancel_control` stops it within a frame."""
         t0 = time.perf_counter()
         sketch = Sketch.from_json(sketch_json) if sketch_json is not None else None
         ro, metrics, plan, t_first = self.core.control(method, frames, sketch, cid, store=self.store)
-        if self.store is not None:
-            self.core.save(self.store)  # a control is saved before it is answered
         return ro, metrics, plan, ((t_first - t0) if t_first is not None else None), self.core.cancel.is_set()
 
     @_answer

@@ -6,8 +6,10 @@ SHA-256 of its id, in the namespace ``ServiceConfig.ray_namespace``) that
 runs its :class:`~hybridmpm.service.core.SessionCore` (the same core the
 local backend runs: simulator, kept controls, play loop, saves), placed
 by Ray with ``ServiceConfig.ray_num_cpus`` CPUs. This process is a *front
-end*: :class:`RaySessionManager` implements the
-:class:`~hybridmpm.service.sessions.SessionManager` seam by finding a
+end*: :class:`RaySessionManager` implements
+:class:`~hybridmpm.service.backend.SessionBackend` (what the routes call;
+the local :class:`~hybridmpm.service.sessions.SessionManager` implements it
+beside this one) over :class:`RaySession` handles, by finding a
 session's actor by name and running the routes' work there (a step, a
 control episode, a checkpoint, a restore, a reset), so any number of front
 ends serve every session. The session cap and the per-client quota count the
@@ -37,8 +39,9 @@ import os
 import secrets
 import socket
 import time
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import anyio
 import anyio.to_thread
@@ -47,7 +50,20 @@ import ray.exceptions
 
 from hybridmpm.control import Sketch
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
-from hybridmpm.service.budget import RecordedFrame
+from hybridmpm.service.backend import (
+    QuotaError,
+    SessionCapError,
+    StoreSaveError,
+    Viewer,
+    close_viewers,
+    every,
+    meta_message,
+    offer_all,
+    on_worker,
+    open_store,
+    stop_task,
+)
+from hybridmpm.service.budget import MemoryBudget, RecordedFrame
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionGoneError
 from hybridmpm.service.errors import ApiError, tidy
@@ -55,11 +71,11 @@ from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.ray_backend.actor import ACTOR_THREADS, SessionActor
 from hybridmpm.service.ray_backend.registry import ACTOR_PREFIX, REGISTRY_NAME, Registry
-from hybridmpm.service.sessions import QuotaError, Session, SessionCapError, SessionManager, StoreSaveError, Viewer, close_ws
-from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, session_key
+from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, load_unexpired, session_key
 from hybridmpm.sim import Rollout
 
 log = logging.getLogger("hybridmpm.service")
+T = TypeVar("T")
 
 #: How long creating a session waits for its actor to be placed and built [s] (then 503).
 PLACE_TIMEOUT_S = 120.0
@@ -114,13 +130,19 @@ def error_from(kind: str, message: str, name: str | None) -> Exception:
 
 
 @dataclass(eq=False)
-class RaySession(Session):
-    """A session whose core runs in a Ray actor (``core`` is None here):
-    the front end's handle (``actor``), the session's settings and facts
-    (sent by the actor), the frame it was last known at (``at_frame``),
-    whether it plays, the viewers connected here and the task that feeds
-    them (``pump``)."""
+class RaySession:
+    """A session whose core runs in a Ray actor, as a front end's routes hold
+    it (a :class:`~hybridmpm.service.backend.Session`): its ``id``, store
+    ``key``, settings and facts (sent by the actor), the client address that
+    created it, the front end's handle of its actor (``actor``), the frame it
+    was last known at (``at_frame``), whether it plays, the viewers connected
+    here and the task that feeds them (``pump``)."""
 
+    id: str
+    key: str
+    settings: SessionSettings
+    facts: SessionFacts
+    client: str = ""
     actor: Any = None
     playing: bool = False
     at_frame: int = 0
@@ -128,14 +150,15 @@ class RaySession(Session):
     state_nbytes: int = 0
     last_frame: bytes | None = None
     pump: asyncio.Task[None] | None = None
+    last_used: float = field(default_factory=time.monotonic)
     touched_remote: float = 0.0
+    viewers: set[Viewer] = field(default_factory=set)
+    controlling: bool = False  # a control admitted here is running (the route's 409; the actor refuses a second from any front end)
+    closed: bool = False
 
     @property
     def frame_index(self) -> int:
         return self.at_frame
-
-    def publish(self, fr: Any, control_frame: int = 0) -> None:
-        """Nothing: the actor publishes its frames to every front end's stream."""
 
     def republish(self) -> None:
         """Nothing: the actor publishes its frames to every front end's stream."""
@@ -157,16 +180,27 @@ class RaySession(Session):
                 self.actor.touch.remote()
 
 
-class RaySessionManager(SessionManager):
-    """The :class:`SessionManager` of a front end of a Ray cluster (module
-    doc). Raises :class:`InvalidInputError` naming ``ray_address`` when it
-    cannot join the cluster, ``store`` when the store cannot be written."""
+class RaySessionManager:
+    """The session backend of a front end of a Ray cluster (module doc;
+    :class:`~hybridmpm.service.backend.SessionBackend` over
+    :class:`RaySession`). Raises :class:`InvalidInputError` naming
+    ``ray_address`` when it cannot join the cluster, ``store`` when the store
+    cannot be written."""
 
+    #: Sessions run in the cluster's actors, which save and expire themselves.
     remote = True
-    store_clean_after_s = 60.0  # other front ends' and actors' saves may be in progress
+    #: Temporary files of torn saves older than this are removed when the store opens [s]
+    #: (other front ends' and actors' saves may be in progress).
+    store_clean_after_s = 60.0
 
     def __init__(self, config: ServiceConfig) -> None:
-        super().__init__(config)
+        self.config = config
+        self.budget = MemoryBudget(config.memory_budget_bytes)  # this front end's buffers (checkpoints, controls' answers)
+        self.limiter = anyio.CapacityLimiter(config.compute_threads)  # this front end's own work (decoding, encoding)
+        self.io_limiter = anyio.CapacityLimiter(1)
+        self.controls_running = 0
+        self._reaper: asyncio.Task[None] | None = None
+        self.store = open_store(config, self.store_clean_after_s)
         connect(config)
         self.ns = config.ray_namespace
         self.front_id = secrets.token_hex(6)
@@ -225,9 +259,19 @@ class RaySessionManager(SessionManager):
         except ValueError:
             return None
 
-    async def _kill(self, actor: Any) -> None:
+    async def compute(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` on a worker thread of this front end (:func:`~hybridmpm.service.backend.on_worker`)."""
+        return await on_worker(self.limiter, fn, *args)
+
+    async def _end(self, key: str, actor: Any | None) -> None:
+        """The one way a session leaves the cluster from a front end: its actor
+        (if any) is killed, not to be restarted, and the registry no longer
+        counts ``key``. Errors (an actor or registry already gone) are ignored."""
+        if actor is not None:
+            with contextlib.suppress(Exception):
+                await anyio.to_thread.run_sync(lambda: ray.kill(actor, no_restart=True))
         with contextlib.suppress(Exception):
-            await anyio.to_thread.run_sync(lambda: ray.kill(actor, no_restart=True))
+            await self.registry.release.remote(key)
 
     async def _reserve(self, key: str, client: str, restoring: bool = False) -> None:
         verdict = await self.registry.reserve.remote(key, client, self.config.max_sessions, self.config.max_sessions_per_client, restoring)
@@ -281,19 +325,18 @@ class RaySessionManager(SessionManager):
         if store is None or not await anyio.to_thread.run_sync(store.has, key, limiter=self.io_limiter):
             return None
         try:
-            rec: StoredSession = await anyio.to_thread.run_sync(store.load, key, self.config.max_checkpoint_bytes, limiter=self.io_limiter)
+            max_bytes, ttl = self.config.max_checkpoint_bytes, self.config.idle_ttl_s
+            rec: StoredSession | None = await anyio.to_thread.run_sync(load_unexpired, store, key, max_bytes, ttl, limiter=self.io_limiter)
         except InvalidInputError as e:
             log.warning("%s; not restored", e)
             return None
-        if time.time() - rec.last_used_at > self.config.idle_ttl_s:
-            await anyio.to_thread.run_sync(store.delete, key, limiter=self.io_limiter)
-            log.info("store: session %s… expired while its actor was gone; removed", key[:SHOWN_KEY_CHARS])
+        if rec is None:
             return None
         await self._reserve(key, rec.client, restoring=True)
         try:
             return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True, rec.n_grid)
         except Exception:
-            await self.registry.release.remote(key)
+            await self._end(key, None)
             raise
 
     async def _restore(self, key: str) -> Any:
@@ -318,9 +361,7 @@ class RaySessionManager(SessionManager):
         s.closed = True
         if self.cache.get(s.id) is s:
             del self.cache[s.id]
-        for v in list(s.viewers):
-            await close_ws(v, code, reason)
-        s.viewers.clear()
+        await close_viewers(s.viewers, code, reason)
 
     async def _call(self, s: RaySession, method: str, *args: Any, retry: bool = True) -> Any:
         """Run ``method`` of ``s``'s actor and answer its value. A refusal is
@@ -355,9 +396,7 @@ class RaySessionManager(SessionManager):
                 raise error_from(*out[1:])
             if kind == "busy":
                 raise ApiError(409, "a control is already running on this session")
-            await self._kill(s.actor)  # closed, or it could not be restored: its actor goes
-            with contextlib.suppress(Exception):
-                await self.registry.release.remote(s.key)
+            await self._end(s.key, s.actor)  # closed, or it could not be restored: its actor goes
             await self._forget(s)
             raise SessionGoneError()
 
@@ -366,7 +405,7 @@ class RaySessionManager(SessionManager):
         """Sessions of the whole cluster (the registry's count)."""
         return int(await self.registry.count.remote())
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> Session:
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> RaySession:
         """A new session in its own actor. Raises :class:`SessionCapError` /
         :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
         when the cluster has no CPU for it, and the simulator's
@@ -383,16 +422,13 @@ class RaySessionManager(SessionManager):
             except SessionGoneError:
                 raise ApiError(503, "no node of the cluster took the new session in time; retry later", {"Retry-After": str(RETRY_S)}) from None
         except BaseException:
-            if actor is not None:
-                await self._kill(actor)
-            with contextlib.suppress(Exception):
-                await self.registry.release.remote(key)
+            await self._end(key, actor)
             raise
         s = self._session(sid, key, actor, facts)
         self.cache[sid] = s
         return s
 
-    async def find(self, sid: str) -> Session | None:
+    async def find(self, sid: str) -> RaySession | None:
         """The session ``sid``: this front end's handle, or its actor found by
         name (or built again from the store); None when there is none."""
         s = self.cache.get(sid)
@@ -413,9 +449,7 @@ class RaySessionManager(SessionManager):
             return None
         except (HybridMpmError, *_BUILTIN_ERRORS.values()) as e:  # its record could not be restored
             log.warning("session %s… cannot be restored: %s", sid[:SHOWN_ID_CHARS], e)
-            await self._kill(actor)
-            with contextlib.suppress(Exception):
-                await self.registry.release.remote(key)
+            await self._end(key, actor)
             return None
         s = self.cache.get(sid)  # another request may have found it meanwhile
         if s is None or s.closed:
@@ -424,36 +458,16 @@ class RaySessionManager(SessionManager):
         s.touch()
         return s
 
-    def get(self, sid: str) -> Session | None:
-        """This front end's handle of ``sid`` only (see :meth:`find`)."""
-        return self.cache.get(sid)
-
-    def count(self) -> int:
-        """Sessions this front end holds a handle of (the cluster's count: :meth:`held`)."""
-        return len(self.cache)
-
     async def close(self, sid: str, code: int = 1000, reason: str = "closed", forget: bool = True) -> bool:
         """Delete session ``sid`` in the cluster (its record too), closing its sockets here."""
         s = await self.find(sid)
-        if not isinstance(s, RaySession):
+        if s is None:
             return False
         with contextlib.suppress(SessionGoneError):
             await self._call(s, "delete", code, reason)
-        await self._kill(s.actor)
-        with contextlib.suppress(Exception):
-            await self.registry.release.remote(s.key)
+        await self._end(s.key, s.actor)
         await self._forget(s, code, reason)
         return True
-
-    async def save(self, s: Session) -> bool:
-        """Nothing to do: each actor saves itself."""
-        return True
-
-    async def save_all(self) -> None:
-        """Nothing to do: each actor saves itself."""
-
-    def save_round(self) -> None:
-        """Nothing to do: each actor saves itself."""
 
     async def reap_once(self) -> list[str]:
         """Drop this front end's handles unused for :data:`FORGET_AFTER_S` (the actors expire themselves)."""
@@ -464,22 +478,18 @@ class RaySessionManager(SessionManager):
         return stale
 
     def start(self) -> None:
+        """Start the reaper of this front end's handles (every ``reap_interval_s``; the actors save and expire themselves)."""
         if self._reaper is None:
-            self._reaper = asyncio.get_running_loop().create_task(self._reap_forever())
+            self._reaper = asyncio.get_running_loop().create_task(every(float(self.config.reap_interval_s or 30.0), self.reap_once, "reaper"))
 
     async def stop(self) -> None:
         """Close this front end's sockets (1001) and leave the cluster; the sessions stay in it."""
-        if self._reaper is not None:
-            self._reaper.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._reaper
-            self._reaper = None
+        await stop_task(self._reaper)
+        self._reaper = None
         for s in list(self.cache.values()):
             if s.pump is not None:
                 s.pump.cancel()
-            for v in list(s.viewers):
-                await close_ws(v, 1001, "server shutting down")
-            s.viewers.clear()
+            await close_viewers(s.viewers, 1001, "server shutting down")
         self.cache.clear()
         with contextlib.suppress(Exception):
             await anyio.to_thread.run_sync(ray.shutdown)
@@ -510,40 +520,31 @@ class RaySessionManager(SessionManager):
                 facts = await self._ready(actor, PLACE_TIMEOUT_S)
             except (SessionGoneError, HybridMpmError, *_BUILTIN_ERRORS.values()) as e:
                 log.warning("store: session %s… not restored: %s", key[:SHOWN_KEY_CHARS], e or "its actor did not start")
-                await self._kill(actor)
-                with contextlib.suppress(Exception):
-                    await self.registry.release.remote(key)
+                await self._end(key, actor)
                 continue
             restored += 1
             log.info("store: session %s… restored at frame %d", key[:SHOWN_KEY_CHARS], facts["frame"])
         return restored
 
     # ------------------------------------------------------------ the work of the routes, in the actors
-    async def info(self, s: Session) -> dict[str, Any]:
-        assert isinstance(s, RaySession)
+    async def info(self, s: RaySession) -> dict[str, Any]:
+        """``s``'s description, from its actor (the viewers of every front end counted)."""
         d = dict(await self._call(s, "info", self.front_id, len(s.viewers)))
         d.update(id=s.id, stream=f"/v1/sessions/{s.id}/stream")
         s.at_frame = int(d["frame"])
         s.playing = bool(d.pop("playing", False))
         return d
 
-    async def meta(self, s: Session) -> dict[str, Any]:
-        assert isinstance(s, RaySession)
-        d = await self.info(s)
-        return {"type": "meta", **d, "playing": s.playing, "header_bytes": 32}
-
-    async def rollout(self, s: Session, frames: int) -> Rollout:
-        assert isinstance(s, RaySession)
+    async def rollout(self, s: RaySession, frames: int) -> Rollout:
         ro: Rollout = await self._call(s, "rollout", frames)
         if len(ro.frame_index):
             s.at_frame = int(ro.frame_index[-1])
         return ro
 
-    async def run_control(self, s: Session, sketch: Sketch | None, method: str, frames: int, left: Any, first: list[float], cid: str) -> Any:
+    async def run_control(self, s: RaySession, sketch: Sketch | None, method: str, frames: int, left: Any, first: list[float], cid: str) -> Any:
         """Control ``cid`` in ``s``'s actor (:meth:`SessionActor.run_control`,
         :func:`hybridmpm.service.episode.run_episode`); a client that leaves
         (``left`` set) cancels it there. Returns ``(rollout, metrics, plan summary)``."""
-        assert isinstance(s, RaySession)
         t0 = time.perf_counter()
         call = asyncio.ensure_future(
             self._call(
@@ -588,51 +589,44 @@ class RaySessionManager(SessionManager):
         with contextlib.suppress(Exception):
             await self._call(s, "event", msg)
 
-    async def checkpoint(self, s: Session) -> bytes:
-        assert isinstance(s, RaySession)
+    async def checkpoint(self, s: RaySession) -> bytes:
         with self.budget.hold(2 * s.state_nbytes, "writing the checkpoint"):
             data: bytes = await self._call(s, "checkpoint")
         return data
 
-    async def restore(self, s: Session, state: dict[str, Any]) -> None:
-        assert isinstance(s, RaySession)
+    async def restore(self, s: RaySession, state: dict[str, Any]) -> None:
         await self._call(s, "restore", state)
 
-    async def reset(self, s: Session) -> None:
-        assert isinstance(s, RaySession)
+    async def reset(self, s: RaySession) -> None:
         await self._call(s, "reset")
 
-    async def move_obstacle(self, s: Session, index: int, center: list[float], velocity: list[float] | None) -> int:
-        assert isinstance(s, RaySession)
+    async def move_obstacle(self, s: RaySession, index: int, center: list[float], velocity: list[float] | None) -> int:
         frame: int = await self._call(s, "move_obstacle", index, center, velocity)
         return frame
 
-    async def keep_control(self, s: Session, c: Control) -> None:
+    async def keep_control(self, s: RaySession, c: Control) -> None:
         """Kept by the actor (the last 8); its cost leaves this front end's budget."""
-        assert isinstance(s, RaySession)
         try:
             await self._call(s, "keep_control", c)
         finally:
             self.budget.give(c.cost)
             c.cost = 0
 
-    async def recorded(self, s: Session, count: int) -> list[RecordedFrame]:
+    async def recorded(self, s: RaySession, count: int) -> list[RecordedFrame]:
         """The actor's recent trajectory (its latest ``count`` frames)."""
-        assert isinstance(s, RaySession)
         held: list[RecordedFrame] = await self._call(s, "recorded", count)
         return held
 
-    async def get_control(self, s: Session, cid: str) -> Control | None:
-        assert isinstance(s, RaySession)
+    async def get_control(self, s: RaySession, cid: str) -> Control | None:
         c: Control | None = await self._call(s, "get_control", cid)
         return c
 
     # ------------------------------------------------------------ streams
-    async def attach(self, s: Session, v: Viewer) -> None:
-        assert isinstance(s, RaySession)
+    async def attach(self, s: RaySession, v: Viewer) -> None:
         s.viewers.add(v)
         try:
-            v.event(await self.meta(s))
+            info = await self.info(s)
+            v.event(meta_message(info, s.playing))
         except BaseException:
             s.viewers.discard(v)
             raise
@@ -641,16 +635,12 @@ class RaySessionManager(SessionManager):
         if s.pump is None or s.pump.done():
             s.pump = asyncio.get_running_loop().create_task(self._pump(s))
 
-    async def detach(self, s: Session, v: Viewer) -> None:
+    async def detach(self, s: RaySession, v: Viewer) -> None:
         s.viewers.discard(v)
 
-    async def set_playing(self, s: Session, playing: bool) -> None:
-        assert isinstance(s, RaySession)
+    async def set_playing(self, s: RaySession, playing: bool) -> None:
         await self._call(s, "set_playing", playing, self.front_id, len(s.viewers))
         s.playing = playing
-
-    def ensure_playing(self, s: Session) -> None:
-        """Nothing here: the actor plays (:meth:`set_playing`)."""
 
     async def _pump(self, s: RaySession) -> None:
         """Feed the viewers of ``s`` here: the actor's latest frame (at most
@@ -673,8 +663,7 @@ class RaySessionManager(SessionManager):
                     s.deliver(msg)
                 if frame is not None:
                     s.last_frame = frame
-                    for v in list(s.viewers):
-                        v.offer(frame)
+                    offer_all(s.viewers, frame)
                 if closing is not None:
                     self.cache.pop(s.id, None)
                     await self._forget(s, int(closing[0]), str(closing[1]))

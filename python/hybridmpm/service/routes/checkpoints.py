@@ -9,10 +9,10 @@ from fastapi.responses import Response
 
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.service import checkpoint as ckpt
+from hybridmpm.service.backend import Session
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import FieldError
 from hybridmpm.service.schemas import SessionInfo
-from hybridmpm.service.sessions import Session
 
 OCTET = "application/octet-stream"
 NPZ = "application/x-npz"

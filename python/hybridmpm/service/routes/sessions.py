@@ -6,11 +6,11 @@ from typing import Any
 
 from fastapi import APIRouter, Request, Response
 
+from hybridmpm.service.backend import RETRY_AFTER_S, QuotaError, SessionCapError, StoreSaveError
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import NO_SESSION, ApiError
 from hybridmpm.service.facts import checked_n_grid
 from hybridmpm.service.schemas import CreateSession, SessionInfo
-from hybridmpm.service.sessions import RETRY_AFTER_S, QuotaError, SessionCapError, StoreSaveError
 
 router = APIRouter()
 

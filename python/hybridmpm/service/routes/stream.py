@@ -16,10 +16,10 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import loads_json
+from hybridmpm.service.backend import Session, SessionBackend, Viewer, close_ws
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import SessionGoneError
 from hybridmpm.service.schemas import clean
-from hybridmpm.service.sessions import Session, SessionManager, Viewer, close_ws
 
 log = logging.getLogger("hybridmpm.service")
 #: Deepest JSON a WebSocket message may nest (the protocol's messages are flat objects).
@@ -75,7 +75,7 @@ async def sender(v: Viewer, s: Session, cfg: ServiceConfig) -> None:
 
 @router.websocket("/v1/sessions/{sid}/stream")
 async def stream(ws: WebSocket, sid: str) -> None:
-    manager: SessionManager = ws.app.state.manager
+    manager: SessionBackend[Any] = ws.app.state.manager
     cfg: ServiceConfig = ws.app.state.config
     if not origin_ok(ws, cfg):
         await ws.close(code=1008, reason="origin not allowed")
