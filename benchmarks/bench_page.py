@@ -44,7 +44,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import subprocess
 import tempfile
@@ -55,6 +54,7 @@ import httpx
 import numpy as np
 from playwright.sync_api import sync_playwright
 
+from hybridmpm.bench.harness import load_average, write_results
 from hybridmpm.service.testing import LiveServer
 
 TARGET_FPS = 24.0  # static/quality.js TARGET_FPS
@@ -179,11 +179,11 @@ def run_case(
     sid = page.evaluate("window.__hmpm.session.id")
     frame0, t0 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
     start = page.evaluate("[window.__hmpm.framesRendered, performance.now(), window.__hmpm.view.surfacesDrawn, window.__hmpm.quality.changes.length]")
-    cpu0, (busy0, all0), load0 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
+    cpu0, (busy0, all0), load0 = cpu_seconds(pids), machine_busy(), load_average()[0]
     time.sleep(seconds)
     end = page.evaluate("[window.__hmpm.framesRendered, performance.now(), window.__hmpm.view.surfacesDrawn, window.__hmpm.quality.changes.length]")
     frame1, t1 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
-    cpu1, (busy1, all1), load1 = cpu_seconds(pids), machine_busy(), os.getloadavg()[0]
+    cpu1, (busy1, all1), load1 = cpu_seconds(pids), machine_busy(), load_average()[0]
     hook = page.evaluate(
         "({drawMs: __hmpm.drawMs, look: __hmpm.look, renderer: __hmpm.renderer, n: __hmpm.session.num_particles, received: __hmpm.framesReceived,"
         " quality: __hmpm.quality, frame: __hmpm.lastFrame})"
@@ -282,18 +282,16 @@ def main() -> None:
     if args.ladder:
         with LiveServer(max_sessions=4, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
             browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
-            load0 = os.getloadavg()[0]
             rows = ladder(browser, srv.url, "paddle3d", args.advance, args.ladder, args.seconds)
-            load1 = os.getloadavg()[0]
+            version = browser.version
             browser.close()
         for r in rows:
             print(json.dumps(r))
-        if args.out:
+        if args.out:  # the harness's header says the command, the machine and the load before and after
             lines = [
                 "# The quality levels' costs: paddle3d, paused, headless Chromium, software GL",
                 "",
-                f"`python benchmarks/bench_page.py --ladder {args.ladder} --advance {args.advance} --seconds {args.seconds:g}`: "
-                f"the levels in turn on one page, {args.ladder} rounds, {args.advance} frames in; load average {load0:.1f} before, {load1:.1f} after.",
+                f"{version}: the levels in turn on one page, {args.ladder} rounds, {args.advance} frames in.",
                 "",
                 "| level | browser CPU / frame [ms] (median) | rounds [ms] | relative | frames/s | splats |",
                 "|---:|---:|---|---:|---:|---:|",
@@ -302,7 +300,9 @@ def main() -> None:
                     for r in rows
                 ],
             ]
-            Path(args.out).with_suffix(".md").write_text("\n".join(lines) + "\n")
+            out = Path(args.out)
+            doc = {"chromium": version, "advance": args.advance, "rounds": args.ladder, "seconds": args.seconds, "levels": rows}
+            write_results(out.parent, out.stem, doc=doc, markdown="\n".join(lines))
         return
     cases = CASES if args.cases is None else [CASES[int(i)] for i in args.cases.split(",")]
     rows: list[dict] = []
@@ -327,7 +327,7 @@ def main() -> None:
 
 
 def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, chromium: str) -> None:
-    """The results so far as ``out``.json and ``out``.md."""
+    """The results so far as ``out``.json and ``out``.md (:func:`hybridmpm.bench.harness.write_results`)."""
     res = {
         "chromium": version,
         "chromium_binary": chromium_version(chromium),
@@ -335,17 +335,12 @@ def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, c
         "dpr": args.dpr,
         "seconds": args.seconds,
         "target_fps": TARGET_FPS,
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
         "cases": rows,
     }
-    out.with_suffix(".json").write_text(json.dumps(res, indent=1) + "\n")
     lines = [
         "# The page's frame rate in headless Chromium, software GL",
         "",
-        f"`python benchmarks/bench_page.py --seconds {args.seconds:g} --dpr {args.dpr:g}{f' --cases {args.cases}' if args.cases else ''}"
-        f"{f' --advance {args.advance}' if args.advance else ''}{' --no-sync' if args.no_sync else ''}` — {version}, "
-        "SwiftShader (software GL),",
+        f"{version}, SwiftShader (software GL),",
         f"{os.cpu_count()} cores shared by the server, the browser and its GPU process; canvas 640 CSS px × dpr {args.dpr:g}.",
         "frames/s: frames the page drew per second drawing on every animation frame (`?bench=1`);",
         "draw: CPU time of one draw call sequence; draw + GPU: the same waiting for the GPU (`?sync=1`: a 1-pixel `readPixels`);",
@@ -366,7 +361,7 @@ def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, c
             f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
             f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
         )
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_results(out.parent, out.stem, doc=res, markdown="\n".join(lines))  # the harness's header: the command, the machine, the load
 
 
 if __name__ == "__main__":

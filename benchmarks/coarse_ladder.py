@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pickle
 import time
 from dataclasses import replace
@@ -50,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import provenance, save_figure, write_file, write_json, write_results
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.models.calibrated import fit_name
 from hybridmpm.mpm.params import CALIBRATION_BOUNDS, with_calibration
@@ -156,18 +155,6 @@ def rng3(v: list[float], fmt: str = ".2f") -> str:
     return f"{v[1]:{fmt}} ({v[0]:{fmt}} to {v[2]:{fmt}})"
 
 
-def env() -> dict[str, Any]:
-    """The machine and versions, with its load average (1, 5, 15 min) when the figures were taken."""
-    return {**environment(), "load": " ".join(f"{v:.1f}" for v in os.getloadavg())}
-
-
-def write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 # ------------------------------------------------------------------ rung 0
 
 
@@ -212,23 +199,19 @@ def rung0(a: argparse.Namespace) -> None:
     for scene, sd in tqdm(jobs, desc="rung0"):
         rows.append(rung0_seed(scene, sd, a.frames))
     keys = ["plain", *(f"ppc{p:g}" for p in RUNG0_PPC if p != 2)]
-    doc: dict[str, Any] = {"rows": rows, "summary": {}, "seeds": list(a.seeds), "frames": a.frames, "command": a.cmd, "environment": env()}
+    doc: dict[str, Any] = {"rows": rows, "summary": {}, "seeds": list(a.seeds), "frames": a.frames}
     for scene in a.scenes:
         rs = [r for r in rows if r["scene"] == scene]
         doc["summary"][scene] = {m: summarise(rs, keys, m) for m in ("grid", "half")}
-    write(a.out / "rung0.json", json.dumps(doc, indent=1))
-    write(a.out / "rung0.md", rung0_markdown(doc, keys))
-    rung0_chart(doc, keys, a.out / "rung0.png")
-    print((a.out / "rung0.md").read_text())
+    written = write_results(a.out, "rung0", doc=doc, markdown=rung0_markdown(doc, keys), figures={"rung0.png": rung0_chart(doc, keys)}, dpi=80)
+    print(written["md"].read_text())
 
 
 def rung0_markdown(doc: dict, keys: list[str]) -> str:
-    env = doc["environment"]
+    """Rung 0's table (the harness's header, with the command, the machine and the load, goes under its title)."""
     lines = [
         "# Rung 0: more particles on the half grid, and the error's own deposit",
         "",
-        f"Command: `{doc['command']}`  ",
-        f"Machine: {env['machine']}; hybridmpm {env['hybridmpm']} (commit {env['commit']}); load at the end: {env.get('load', '?')}.",
         f"Seeds {doc['seeds'][0]}-{doc['seeds'][-1]}, {doc['frames']} frames; error = mean grid-mass error against full-resolution MPM, "
         "on the scene's grid (`grid`) and deposited on the half grid (`half`: the kernel matched to the coarse spacing, every method alike); "
         "f = (plain half grid - row) / (plain half grid - MPM at r_p) of the means; per seed: median (min to max); "
@@ -253,7 +236,8 @@ def rung0_markdown(doc: dict, keys: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def rung0_chart(doc: dict, keys: list[str], path: Path) -> None:
+def rung0_chart(doc: dict, keys: list[str]) -> Any:
+    """Error against time, each relative to MPM at r_p's, one panel per scene (the figure: the harness saves it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -274,8 +258,7 @@ def rung0_chart(doc: dict, keys: list[str], path: Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    return fig
 
 
 # ------------------------------------------------------------------ rung 1
@@ -357,9 +340,8 @@ def rung1_fit(a: argparse.Namespace) -> None:
             errs = [r[0] for r in res]
             e = {"u": uu, "values": values, "per_seed": errs, "objective": float(np.mean(errs)), "generation": gen, "seconds": time.time() - t0}
             e["cpu_seconds"] = float(sum(r[1] for r in res))
-            with log_path.open("a") as f:
-                f.write(json.dumps(e) + "\n")
             logged[key] = e
+            write_file(log_path, "".join(json.dumps(x) + "\n" for x in logged.values()))  # the whole log, atomically: a kill leaves it whole
         return float(logged[key]["objective"])
 
     pool.map(_cache_reference, [(scene, sd, a.frames) for sd in seeds])  # the references first (cached on disk)
@@ -378,8 +360,7 @@ def rung1_fit(a: argparse.Namespace) -> None:
         es.tell(X, F)
         bar.update(len(logged) - before)
         bar.set_postfix(best=f"{min(e['objective'] for e in logged.values()):.4f}", plain=f"{plain:.4f}")
-        with (state / "es.pkl").open("wb") as f:
-            pickle.dump({"generation": gen, "xbest": es.result.xbest}, f)
+        write_file(state / "es.pkl", pickle.dumps({"generation": gen, "xbest": es.result.xbest}))
     bar.close()
     rp = pool.map(_rp_error, [(scene, sd, a.frames) for sd in seeds])
     pool.close()
@@ -408,12 +389,13 @@ def rung1_fit(a: argparse.Namespace) -> None:
         "command": a.cmd,
         "held_out": None,
     }
-    (CALIBRATED / f"{name}.json").write_text(json.dumps(fit, indent=1) + "\n")
-    curve_chart(fit, CALIBRATED / f"{name}.png")
+    write_json(CALIBRATED / f"{name}.json", fit)  # package data: the fit a user runs
+    save_figure(curve_chart(fit), CALIBRATED / f"{name}.png", dpi=80)
     print(json.dumps({k: fit[k] for k in ("params", "defaults", "fit", "core_hours")}, indent=1))
 
 
-def curve_chart(fit: dict, path: Path) -> None:
+def curve_chart(fit: dict) -> Any:
+    """The fit's evaluations and its best so far, beside the plain half grid and MPM at r_p (the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -431,8 +413,7 @@ def curve_chart(fit: dict, path: Path) -> None:
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    return fig
 
 
 def rung1_seed(scene: str, seed: int, frames: int) -> dict:
@@ -472,14 +453,14 @@ def rung1_eval(a: argparse.Namespace) -> None:
         "f_half_grid_deposit": summary["half"]["calibrated"]["f"],
         "command": a.cmd,
     }
-    path.write_text(json.dumps(fit, indent=1) + "\n")
-    doc = {"fit": fit, "rows": rows, "summary": summary, "environment": env(), "command": a.cmd}
-    write(a.out / f"rung1_{scene}.json", json.dumps(doc, indent=1))
-    write(CALIBRATED / f"{name}.md", card(fit, doc["environment"]))
+    write_json(path, fit)
+    write_results(a.out, f"rung1_{scene}", doc={"fit": fit, "rows": rows, "summary": summary})
+    write_file(CALIBRATED / f"{name}.md", card(fit, provenance()))
     print((CALIBRATED / f"{name}.md").read_text())
 
 
-def card(fit: dict, env: dict) -> str:
+def card(fit: dict, prov: dict) -> str:
+    """The fit's card (package data beside it), its held-out timings with the machine and load of ``prov`` (the harness's provenance)."""
     h = fit["held_out"]
     vals = "\n".join(f"| `{k}` | {fit['defaults'][k]:.4g} | {v:.4g} | [{fit['bounds'][k][0]:g}, {fit['bounds'][k][1]:g}] |" for k, v in fit["params"].items())
     er, tr = h["error_ratio"], h["time_ratio"]
@@ -504,7 +485,7 @@ nothing at run time (docs/correction.md, "Rung 1"). Run it with
   calibrated {h["error"]["calibrated"]:.3f}, MPM at r_p {h["error"]["rp"]:.3f}; **f = {h["f"]:+.2f}** (per seed {rng3(h["f_seeds"])});
   error / MPM at r_p's: plain {rng3(er["plain"])}, calibrated {rng3(er["calibrated"])} (median, range over seeds);
   time / MPM at r_p's: plain {rng3(tr["plain"])}, calibrated {rng3(tr["calibrated"])} (one thread, one run;
-  {env["machine"]}, load {env.get("load", "?")}). With every field deposited on the half grid: f = {h["f_half_grid_deposit"]:+.2f}.
+  {prov["machine"]}, load {prov["load_after"][0]:.1f}). With every field deposited on the half grid: f = {h["f_half_grid_deposit"]:+.2f}.
 
 ![the fit's curve]({fit["name"]}.png)
 

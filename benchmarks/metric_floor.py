@@ -17,15 +17,14 @@ reported against the rollout's own time (same process, same run).
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import subprocess
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+
+from hybridmpm.bench.harness import table, write_results
 
 SCENES = ["water2d", "sand2d"]
 #: The spread of the initial jitter [m].
@@ -89,47 +88,42 @@ def main() -> None:
     tasks = [(s, a.seed0 + k, a.frames, a.r_p, blurs) for s in scenes for k in range(a.seeds)]
     with ProcessPoolExecutor(a.workers, mp_context=get_context("spawn")) as pool:
         rows = list(tqdm(pool.map(run_one, tasks), total=len(tasks), desc="metric floor"))
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"commit": commit, "machine": platform.machine(), "load": load, "rows": rows}, indent=1))
     keys = [k for k in ROLLOUT_METRICS if any(np.isfinite(r["jitter"][k]) for r in rows)]
     keys += [f"sinkhorn_blur_{b:g}" for b in blurs]
-    lines = [
-        "# The jitter floor of each rollout metric",
-        "",
-        f"`python benchmarks/metric_floor.py --seeds {a.seeds} --seed0 {a.seed0} --frames {a.frames}"
-        + (f" --blurs {a.blurs}" if blurs else "")
-        + f"` (commit {commit}); full-resolution MPM with every initial position moved by N(0, {JITTER:g} m) (jitter) and MPM at "
-        f"r_p = {a.r_p:.3g}, each against full-resolution MPM from the unmoved start; mean ± std over seeds {a.seed0}–{a.seed0 + a.seeds - 1}; "
-        f"Sinkhorn blur {SINKHORN_BLUR:g} m. Load while measured: `{load}`.",
-        "",
-        "| scene | metric | jitter | MPM at r_p | jitter ÷ MPM at r_p |",
-        "|---|---|---|---|---|",
-    ]
+    floor = []
     for s in scenes:
         rs = [r for r in rows if r["scene"] == s]
         for k in keys:
             (jm, js), (rm, rsd) = _ms(rs, "jitter", k), _ms(rs, "mpm_rp", k)
-            lines.append(f"| {s} | {k} | {jm:.3g} ± {js:.2g} | {rm:.3g} ± {rsd:.2g} | {jm / rm:.3f} |")
-    lines += [
-        "",
-        f"Cost per rollout (MPM at r_p's metrics, seconds, mean over seeds; ratio to that rollout's own wall time, one thread, {a.workers} runs in parallel):",
-        "",
-        "| scene | particles (ref / r_p) | rollout s | grid-mass s | Sinkhorn s | kinetic energy s | all metrics ÷ rollout |",
-        "|---|---|---|---|---|---|---|",
-    ]
+            floor.append((s, k, f"{jm:.3g} ± {js:.2g}", f"{rm:.3g} ± {rsd:.2g}", f"{jm / rm:.3f}"))
+    cost_rows = []
     for s in scenes:
         rs = [r for r in rows if r["scene"] == s]
         roll = np.mean([r["rollout_s"]["mpm_rp"] for r in rs])
         cost = {k: np.mean([r["mpm_rp"]["metric_s"][k] for r in rs]) for k in ("grid_mass", "sinkhorn", "kinetic_energy", "front")}
-        lines.append(
-            f"| {s} | {np.mean([r['particles'] for r in rs]):.0f} / {np.mean([r['mpm_rp']['particles'] for r in rs]):.0f} | {roll:.2f} | "
-            f"{cost['grid_mass']:.2f} | {cost['sinkhorn']:.2f} | {cost['kinetic_energy']:.3f} | {sum(cost.values()) / roll:.2f} |"
+        particles = f"{np.mean([r['particles'] for r in rs]):.0f} / {np.mean([r['mpm_rp']['particles'] for r in rs]):.0f}"
+        cost_rows.append(
+            (
+                s,
+                particles,
+                f"{roll:.2f}",
+                f"{cost['grid_mass']:.2f}",
+                f"{cost['sinkhorn']:.2f}",
+                f"{cost['kinetic_energy']:.3f}",
+                f"{sum(cost.values()) / roll:.2f}",
+            )
         )
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    sections = [
+        "# The jitter floor of each rollout metric",
+        f"Full-resolution MPM with every initial position moved by N(0, {JITTER:g} m) (jitter) and MPM at r_p = {a.r_p:.3g}, each against "
+        f"full-resolution MPM from the unmoved start; mean ± std over seeds {a.seed0}–{a.seed0 + a.seeds - 1}; Sinkhorn blur {SINKHORN_BLUR:g} m.",
+        "\n".join(table(["scene", "metric", "jitter", "MPM at r_p", "jitter ÷ MPM at r_p"], floor)),
+        f"Cost per rollout (MPM at r_p's metrics, seconds, mean over seeds; ratio to that rollout's own wall time, one thread, {a.workers} runs in parallel):",
+        "\n".join(table(["scene", "particles (ref / r_p)", "rollout s", "grid-mass s", "Sinkhorn s", "kinetic energy s", "all metrics ÷ rollout"], cost_rows)),
+    ]
+    write_results(out.parent, out.name, doc={"rows": rows}, markdown=sections)
+    print("\n\n".join(sections))
 
 
 if __name__ == "__main__":

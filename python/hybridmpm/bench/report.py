@@ -140,7 +140,7 @@ def write_results_csv(
         w.writeheader()
         for c in cells:
             m = by_key[c["method"]]
-            row = {**m.config(), **{k: v for k, v in c.items() if k != "series"}, **env}
+            row = {**m.config(), **{k: v for k, v in c.items() if k != "series"}, **{k: v for k, v in env.items() if k in RESULT_COLUMNS}}
             row.update(
                 scene=scene,
                 method=m.key,

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.bench.cost import gnn_flops
-from hybridmpm.bench.env import environment
+from hybridmpm.bench.harness import provenance, write_json
 from hybridmpm.bench.methods import Method
 from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.metrics import dam_break_front, dam_break_geometry, grid_mass_error, rollout_metrics
@@ -122,12 +122,20 @@ def reference_cell(cfg: BenchConfig, seed: int, cells: Path, stride: int = 1) ->
                 return np.asarray(z["positions"]), np.asarray(z["masses"])
     scene = make_scene(cfg.scene, seed=seed)
     ro = reference(scene, cfg.frames, threads=cfg.mpm_threads)
-    pos, masses = ro.fluid_positions, ro.masses[: ro.num_fluid]
+    pos, masses = ro.fluid_positions, fluid_masses(ro)
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, positions=pos, masses=masses, frames=np.int64(cfg.frames))
     tmp.replace(path)
     _write_json(cell, _reference_record(cfg, seed, scene, ro, stride))
     return pos, masses
+
+
+def fluid_masses(ro: Rollout) -> np.ndarray:
+    """The fluid particles' masses of rollout ``ro`` [kg], float [num_fluid] (the Sinkhorn divergence's and the
+    kinetic energy's weights); :class:`SimulationError` if the simulator recorded none."""
+    if ro.masses is None:
+        raise SimulationError("rollout: the simulator recorded no particle masses")
+    return ro.masses[: ro.num_fluid]
 
 
 def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) -> Simulator:
@@ -199,7 +207,7 @@ def run_cell(method: Method, cfg: BenchConfig, seed: int, ref: tuple[np.ndarray,
     common = frames_of % int(stride) == 0
     scores = rollout_metrics(
         pos[common], ref_pos[frames_of[common]], frames_of[common] * scene.dt_frame, scene.params.resolved_n_grid(), errors=err[common],
-        pred_weights=ro.masses[: ro.num_fluid], ref_weights=ref_masses, dam_break=dam_break_geometry(scene.info),
+        pred_weights=fluid_masses(ro), ref_weights=ref_masses, dam_break=dam_break_geometry(scene.info),
     )  # fmt: skip
     return {
         "method": method.key, "seed": int(seed), "particles": int(ro.num_fluid), "frames_done": int(frames_of[-1]),
@@ -266,9 +274,8 @@ def _cell_current(path: Path, digest: str | None, stride: int) -> bool:
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj))
-    tmp.replace(path)
+    """``obj`` as compact JSON at ``path``, atomically (:func:`hybridmpm.bench.harness.write_json`)."""
+    write_json(path, obj, indent=None)
 
 
 def run_bench(
@@ -300,7 +307,7 @@ def run_bench(
         if old and old != cfg.fingerprint():
             diff = ", ".join(f"{k} {old.get(k)!r} → {v!r}" for k, v in cfg.fingerprint().items() if old.get(k) != v)
             raise InvalidInputError(f"out: {out} holds a benchmark with other settings ({diff}); use another --out or delete it", "out")
-    env = environment()
+    env = provenance()  # the one machine description (the harness's): machine, commit, versions, load, command
     _write_json(meta_path, {"settings": cfg.fingerprint(), "environment": env})
     keys = [m.key for m in methods]
     if len(set(keys)) != len(keys):
