@@ -119,12 +119,7 @@ BENCH_OWN_WRITES = {
     "process (which writes the summary through the harness) and reports Blender's Python version",
 }
 #: Scripts not on the harness yet, and why (each must still need its entry: a converted script leaves the list).
-BENCH_NOT_YET = {
-    "bench_page.py": "being edited for the page when the harness came; its own header and load readings wait for that to settle",
-    "coarse_ladder.py": "being edited by the calibration work when the harness came; its state files and charts wait for that to settle",
-    "coarse_ladder_rung2.py": "being written by the calibration work when the harness came",
-    "metric_floor.py": "being written by the metrics work when the harness came",
-}
+BENCH_NOT_YET: dict[str, str] = {}
 #: Calls that write a file, by the called attribute's name.
 _WRITING_METHODS = {"write_text", "write_bytes", "savefig"}
 
@@ -210,6 +205,20 @@ def test_every_benchmark_script_writes_through_the_one_harness():
     assert not stale, f"on the harness now: remove {stale} from BENCH_NOT_YET"
     used = {(s, f) for s, f in BENCH_OWN_WRITES if any(o.startswith(f"{f}:") for o in _bench_offences((ROOT / "benchmarks" / s).read_text()))}
     assert used == set(BENCH_OWN_WRITES), f"BENCH_OWN_WRITES entries no longer needed: {set(BENCH_OWN_WRITES) - used}"
+
+
+def test_the_bench_package_describes_the_machine_through_the_harness():
+    # hybridmpm bench (bench/run.py) records the same provenance as the scripts: only the harness reads bench/env.py's
+    # machine description (environment()), so there is one
+    offenders = []
+    for p in sorted((PACKAGE / "bench").glob("*.py")):
+        if p.name in ("harness.py", "env.py"):
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == "hybridmpm.bench.env" and any(a.name == "environment" for a in node.names):
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}")
+    assert not offenders, offenders
+    assert "from hybridmpm.bench.harness import provenance" in (PACKAGE / "bench" / "run.py").read_text()
 
 
 # ------------------------------------------------------------------ the import graph
@@ -562,3 +571,114 @@ def test_the_training_families_stand_on_the_one_scaffold():
         saves = [f"{rel}:{c.lineno}" for c in ast.walk(tree) if isinstance(c, ast.Call) and ast.unparse(c.func) == "torch.save"]
         assert not saves, saves
     assert not (PACKAGE / "train" / "grid_train.py").exists() and (PACKAGE / "train" / "grid" / "__init__.py").exists()
+
+
+# ------------------------------------------------------------------ the session backends
+SERVICE = PACKAGE / "service"
+
+
+def _service_classes() -> dict[str, tuple[Path, ast.ClassDef]]:
+    return {n.name: (p, n) for p in sorted(SERVICE.rglob("*.py")) for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.ClassDef)}
+
+
+def test_no_session_manager_or_handle_subclasses_another():
+    # the local and the Ray backends stand side by side on one protocol (service/backend.py), sharing helpers, not a base class
+    classes = _service_classes()
+    offenders = []
+    for name, (p, node) in classes.items():
+        if not name.endswith(("Manager", "Session")):
+            continue
+        for base in node.bases:
+            b = ast.unparse(base).split("[")[0].split(".")[-1]
+            if b in classes and b.endswith(("Manager", "Session")):
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: class {name}({ast.unparse(base)})")
+    assert not offenders, "\n".join(offenders)
+
+
+def _methods(node: ast.ClassDef) -> dict[str, list[str]]:
+    """The methods defined in a class body (not inherited), with their parameter names."""
+    return {
+        f.name: [a.arg for a in (*f.args.posonlyargs, *f.args.args, *f.args.kwonlyargs)]
+        for f in node.body
+        if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+    }
+
+
+def test_both_backends_implement_the_session_backend_protocol_themselves():
+    # every method of SessionBackend (what the routes call) is written in each backend's own class, with the protocol's
+    # parameter names (FastAPI's dependencies and the control runner call them by keyword too); the protocol's attributes
+    # are set by each. A backend that inherited its methods from the other would fail here
+    classes = _service_classes()
+    protocol = _methods(classes["SessionBackend"][1])
+    attributes = {ast.unparse(n.target) for n in classes["SessionBackend"][1].body if isinstance(n, ast.AnnAssign)}
+    assert {"find", "create", "close", "info", "rollout", "run_control", "attach", "compute"} <= set(protocol)
+    for name in ("SessionManager", "RaySessionManager"):
+        path, node = classes[name]
+        have = _methods(node)
+        missing = sorted(m for m in protocol if m not in have)
+        differ = sorted(m for m in protocol if m in have and have[m][: len(protocol[m])] != protocol[m])
+        assert not missing and not differ, (name, missing, differ)
+        text = ast.unparse(node)
+        unset = sorted(a for a in attributes if f"self.{a} =" not in text and not re.search(rf"^\s*{a}\s*=", text, re.M))
+        assert not unset, (name, unset)
+
+
+def test_the_routes_type_their_backend_with_the_protocol():
+    # the routes, their dependencies and the control runner name SessionBackend and Session (service/backend.py), never a
+    # backend's class: what they call of a backend is the protocol, the same on either
+    files = [*sorted((SERVICE / "routes").glob("*.py")), SERVICE / "deps.py", SERVICE / "controls.py"]
+    concrete = {"SessionManager", "RaySessionManager", "LocalSession", "RaySession"}
+    offenders = []
+    annotated = 0
+    for p in files:
+        tree = ast.parse(p.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module in ("hybridmpm.service.sessions", "hybridmpm.service.ray_backend.manager"):
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: from {node.module} import ...")
+            if isinstance(node, ast.Name) and node.id in concrete:
+                offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: {node.id}")
+            if isinstance(node, ast.arg) and node.arg == "manager" or isinstance(node, ast.AnnAssign) and ast.unparse(node.target) == "manager":
+                ann = node.annotation
+                annotated += 1
+                if ann is None or ast.unparse(ann) not in ("ManagerDep", "SessionBackend[Any]"):
+                    offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}: manager: {ann and ast.unparse(ann)}")
+    deps = (SERVICE / "deps.py").read_text()
+    assert "ManagerDep = Annotated[SessionBackend[Any], Depends(get_manager)]" in deps
+    assert "SessionDep = Annotated[Session, Depends(session_or_404)]" in deps and "from hybridmpm.service.backend import Session, SessionBackend" in deps
+    assert annotated >= 10, annotated
+    assert not offenders, "\n".join(offenders)
+
+
+def _calls(path: Path, name: str) -> list[int]:
+    """Lines of ``path`` that call ``name`` (a plain name or an attribute's last part)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            if (f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else "") == name:
+                found.append(node.lineno)
+    return found
+
+
+def test_each_rule_of_a_session_is_written_once():
+    # a frame's bytes for its viewers: frames.frame_message (encode_frame, the wire format, is called only there)
+    enc = {str(p.relative_to(SERVICE)): _calls(p, "encode_frame") for p in SERVICE.rglob("*.py")}
+    assert {k: v for k, v in enc.items() if v} == {"frames.py": enc["frames.py"]} and len(enc["frames.py"]) == 1, enc
+    # the record-expiry rule: StoredSession.expired in the store, nowhere else compared by hand
+    by_hand = [
+        f"{p.relative_to(ROOT)}:{i}"
+        for p in SERVICE.rglob("*.py")
+        if p.name != "store.py"
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if "last_used_at" in line and ">" in line
+    ]
+    assert not by_hand, by_hand
+    # kill-the-actor-and-release-the-registry: once in the front end (RaySessionManager._end)
+    manager = SERVICE / "ray_backend" / "manager.py"
+    assert len(_calls(manager, "kill")) == 1 and len([n for n in _calls(manager, "remote") if "release.remote" in manager.read_text().splitlines()[n - 1]]) == 1
+    # the save policy around a control: the core's (SessionCore.control); the control runner and the actor save nothing themselves
+    runner = ast.parse((SERVICE / "controls.py").read_text())
+    assert not [c.lineno for c in ast.walk(runner) if isinstance(c, ast.Call) and ast.unparse(c.func).startswith(("manager.save", "s.save"))]
+    actor = ast.parse((SERVICE / "ray_backend" / "actor.py").read_text())
+    (run_control,) = [n for n in ast.walk(actor) if isinstance(n, ast.FunctionDef) and n.name == "run_control"]
+    assert not [c for c in ast.walk(run_control) if isinstance(c, ast.Call) and ast.unparse(c.func).endswith(".save")]
