@@ -11,6 +11,15 @@
   with ``@pytest.mark.may_skip_in_ci(reason)``. Skips raised while a module
   is collected (``pytest.importorskip`` at module level) cannot be turned into
   test failures; they are listed at the end and make the run fail.
+* Parallel runs (pytest-xdist): ``scripts/test.sh`` runs ``-n 2 --dist
+  loadfile -m "not alone"``, then ``-m alone`` by itself. One worker runs all
+  of a file's tests, so a module-scoped fixture is built once, as in a serial
+  run. Tests marked ``alone`` assert rates on this machine's cores (the
+  page's frame rates, real-time drags in the browser); they run after the
+  parallel phase, with no other test beside them. The skip rule above holds
+  on the workers: a skipped test's report is failed before it leaves the
+  worker, and a module skipped while collected is reported to the
+  controller, which fails the run.
 """
 
 from __future__ import annotations
@@ -36,6 +45,9 @@ _COLLECTION_SKIPS: list[str] = []
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "may_skip_in_ci(reason): the test may skip in CI (CI otherwise fails on a skip); the reason says when and why")
+    config.addinivalue_line(
+        "markers", "alone: the test asserts rates on this machine's cores (frame rates); scripts/test.sh runs it after the parallel phase, by itself"
+    )
 
 
 def _skip_reason(longrepr: object) -> str:

@@ -40,7 +40,11 @@ sync_api = pytest.importorskip("playwright.sync_api")
 from hybridmpm.service.testing import LiveServer  # noqa: E402
 
 CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)")
+# alone: frame rates and real-time drags on Chromium's CPU renderer; scripts/test.sh runs these after the parallel phase
+pytestmark = [
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
+    pytest.mark.alone,
+]
 
 TARGET_FPS = 24.0  # quality.js TARGET_FPS
 CLK_TCK = os.sysconf("SC_CLK_TCK")

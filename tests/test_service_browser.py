@@ -36,7 +36,11 @@ CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "
 SCREENSHOTS = os.environ.get("HYBRIDMPM_PAGE_SCREENSHOTS")
 INK = np.array([209, 36, 90])  # the page's sketch colour
 PLAN = np.array([11, 122, 75])  # the plan's centroid path
-pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)")
+# alone: frame rates and real-time drags on Chromium's CPU renderer; scripts/test.sh runs these after the parallel phase
+pytestmark = [
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
+    pytest.mark.alone,
+]
 
 
 @pytest.fixture(scope="module")
