@@ -11,10 +11,12 @@
 # Order, for the wall time on a 2-core machine: the Rust checks need no Python,
 # so they build and run in the background (their own target directory, so the
 # extension's build inside pip never waits on their lock) while pip installs;
-# pytest starts once they are done, on two workers (pytest-xdist; one worker
-# per file, so a module's fixtures are built once), and the tests marked
-# `alone` (frame rates and real-time drags in the browser) run last, by
-# themselves, so they keep the machine they were written for.
+# mypy joins them once pip is done. The parallel pytest phase starts beside
+# whatever of them is left, on two workers (pytest-xdist; one worker per file,
+# so a module's fixtures are built once). The background checks' output is
+# printed once they end, and any failure fails the run. The tests marked
+# `alone` (frame rates and real-time drags in the browser) run last, with
+# nothing else running, so they keep the machine they were written for.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ci="${CI:-}"
@@ -22,18 +24,44 @@ case "${ci,,}" in
     "" | 0 | false | no) ;;
     *) export PROPTEST_RNG_SEED="${PROPTEST_RNG_SEED:-20251125}" ;;
 esac
-rust_log="$(mktemp)"
-rust=""
-stop_rust() {
-    # on an early exit (a failed pip install, ruff, mypy): stop the background Rust checks, then drop their log
-    if [ -n "$rust" ] && kill -0 "$rust" 2>/dev/null; then
-        pkill -TERM -P "$rust" 2>/dev/null || true
-        kill -TERM "$rust" 2>/dev/null || true
-    fi
-    rm -f "$rust_log"
+bg_pids=()
+bg_logs=()
+bg_names=()
+stop_background() {
+    # on an early exit (a failed pip install or ruff): stop the background checks, then drop their logs
+    local pid
+    for pid in "${bg_pids[@]}"; do
+        if kill -0 "$pid" 2>/dev/null; then
+            pkill -TERM -P "$pid" 2>/dev/null || true
+            kill -TERM "$pid" 2>/dev/null || true
+        fi
+    done
+    rm -f "${bg_logs[@]}"
 }
-trap stop_rust EXIT
-(
+trap stop_background EXIT
+background() { # background NAME FUNCTION: run FUNCTION (under set -e) with its output kept for later
+    local log
+    log="$(mktemp)"
+    ("$2") >"$log" 2>&1 &
+    bg_pids+=("$!")
+    bg_logs+=("$log")
+    bg_names+=("$1")
+}
+wait_background() { # wait for every background check, print its output, return non-zero if any failed
+    local i rc failed=0
+    for i in "${!bg_pids[@]}"; do
+        rc=0
+        wait "${bg_pids[$i]}" || rc=$?
+        cat "${bg_logs[$i]}"
+        if [ "$rc" != 0 ]; then
+            echo "scripts/test.sh: ${bg_names[$i]} failed (exit $rc; its output is above)" >&2
+            failed=1
+        fi
+    done
+    bg_pids=()
+    return "$failed"
+}
+rust_checks() {
     set -euo pipefail
     export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target/checks}"
     cargo fmt --all --check
@@ -41,8 +69,12 @@ trap stop_rust EXIT
     # the parameter structs' serde reading (a feature only the binding turns on)
     cargo test --release -p hybridmpm-mpm --features serde --lib params
     cargo clippy --release --workspace --all-targets -- -D warnings
-) >"$rust_log" 2>&1 &
-rust=$!
+}
+type_check() {
+    set -euo pipefail
+    python -m mypy python/hybridmpm --ignore-missing-imports
+}
+background "the Rust checks (cargo fmt, test, clippy)" rust_checks
 python3 -m venv .venv
 . .venv/bin/activate
 python -m pip install --quiet --upgrade pip
@@ -50,14 +82,11 @@ python -m pip install --quiet -e '.[test]'
 # lint and format: they take seconds
 python -m ruff check python tests benchmarks docs
 python -m ruff format --check python tests benchmarks docs
-python -m mypy python/hybridmpm --ignore-missing-imports
-rust_rc=0
-wait "$rust" || rust_rc=$?
-rust=""
-cat "$rust_log"
-if [ "$rust_rc" != 0 ]; then
-    echo "scripts/test.sh: the Rust checks failed (exit $rust_rc; their output is above)" >&2
-    exit "$rust_rc"
+background "mypy" type_check
+pytest_rc=0
+python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not alone" || pytest_rc=$?
+wait_background
+if [ "$pytest_rc" != 0 ]; then
+    exit "$pytest_rc"
 fi
-python -m pytest -q -n 2 --dist loadfile -m "not alone"
 python -m pytest -q -m alone

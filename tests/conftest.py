@@ -12,9 +12,11 @@
   is collected (``pytest.importorskip`` at module level) cannot be turned into
   test failures; they are listed at the end and make the run fail.
 * Parallel runs (pytest-xdist): ``scripts/test.sh`` runs ``-n 2 --dist
-  loadfile -m "not alone"``, then ``-m alone`` by itself. One worker runs all
+  loadfile --no-loadscope-reorder -m "not alone"``, then ``-m alone`` by itself. One worker runs all
   of a file's tests, so a module-scoped fixture is built once, as in a serial
-  run. Tests marked ``alone`` assert rates on this machine's cores (the
+  run. The files that take longest are handed out first (``_LONGEST_FILES``
+  with ``--no-loadscope-reorder``), so that no worker ends the run alone on
+  one of them. Tests marked ``alone`` assert rates on this machine's cores (the
   page's frame rates, real-time drags in the browser); they run after the
   parallel phase, with no other test beside them. The skip rule above holds
   on the workers: a skipped test's report is failed before it leaves the
@@ -48,6 +50,29 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", "alone: the test asserts rates on this machine's cores (frame rates); scripts/test.sh runs it after the parallel phase, by itself"
     )
+
+
+# The files whose tests take longest on the 2-core machine (pytest --durations, summed per file, 60-100 s of a worker
+# each for the first three): on the workers of a parallel run they are collected first, so each starts early.
+_LONGEST_FILES = (
+    "test_control_diffusion.py",
+    "test_bench.py",
+    "test_service_cluster.py",
+    "test_service_hostile_live.py",
+    "test_service_live.py",
+    "test_hybrid.py",
+    "test_generate.py",
+    "test_probe_obstacle_moves.py",
+    "test_ddp.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """On a pytest-xdist worker: the longest files first (a stable sort, so each file keeps its tests' order)."""
+    if not hasattr(config, "workerinput"):
+        return
+    rank = {name: i for i, name in enumerate(_LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def _skip_reason(longrepr: object) -> str:
