@@ -159,7 +159,7 @@ def front(cases: list[dict], scene: str, names: list[str]) -> list[dict[str, Any
     ovals = [c for c in cs if c["kind"] == "oval"]
     out = []
     for n in names:
-        if not any(n in c["methods"] for c in cs):
+        if not cs or not all(n in c["methods"] for c in cs):  # a controller on every case of the scene, or not on its front
             continue
         out.append(
             {

@@ -17,7 +17,7 @@ frames each in rounds of 8):
   arrow: minus the centroid's miss of the tip over the arrow's length) less
   1 per g of mean effort above PD's;
 * **effort at equal adherence**: minimise mean effort / PD's, less 10 per unit
-  of adherence below PD's.
+  of adherence below PD's (within 0.005 of PD's counts as equal in the verdict).
 
 The go/no-go (a learned controller amortising this optimiser is worth
 building only if the teacher beats the PD front by a margin): >= 25% higher
@@ -60,7 +60,12 @@ def validation_cases(scene: str, seeds: range, ovals: int) -> list[tuple[str, in
     return out
 
 
-def run_case(scene: str, seed: int, label: str, sketch_json: str, rollouts: int) -> dict[str, Any]:
+GOALS = ("equal_effort", "equal_adherence")
+#: Adherence within this of PD's counts as equal (IoU, or the arrow's miss over its length).
+ADHERENCE_TOL = 0.005
+
+
+def run_case(scene: str, seed: int, label: str, sketch_json: str, rollouts: int, goals: tuple[str, ...] = GOALS) -> dict[str, Any]:
     sketch = Sketch.from_json(sketch_json)
     sim = start_sim(scene, seed)
     state = sim.state()
@@ -82,7 +87,7 @@ def run_case(scene: str, seed: int, label: str, sketch_json: str, rollouts: int)
         "lo": np.tile(FIELD_LO, QUARTERS),
         "hi": np.tile(FIELD_HI, QUARTERS),
     }
-    seen: dict[str, dict[bytes, tuple[float, float]]] = {"equal_effort": {}, "equal_adherence": {}}
+    seen: dict[str, dict[bytes, tuple[float, float]]] = {g: {} for g in GOALS}
 
     def objective(goal: str):
         def f(theta: np.ndarray) -> float:
@@ -94,7 +99,7 @@ def run_case(scene: str, seed: int, label: str, sketch_json: str, rollouts: int)
 
         return f
 
-    for goal in ("equal_effort", "equal_adherence"):
+    for goal in goals:
 
         def on_round(r: int, best: np.ndarray, score: float, goal: str = goal) -> None:
             print(f"{time.strftime('%H:%M:%S')} {scene} {seed} {label} {goal} round {r}: best score {score:.4f}", flush=True)
@@ -112,11 +117,11 @@ def verdict(cases: list[dict]) -> tuple[list[str], dict[str, Any]]:
     for scene in sorted({c["scene"] for c in cases}):
         cs = [c for c in cases if c["scene"] == scene]
         ov = [c for c in cs if c["kind"] == "oval"]
-        iou_gain = [c["equal_effort"]["adherence"] / max(c["pd"]["adherence"], 1e-9) for c in ov]
+        iou_gain = [c["equal_effort"]["adherence"] / max(c["pd"]["adherence"], 1e-9) for c in ov if "equal_effort" in c]
         eff_ratio = [
             c["equal_adherence"]["effort_mean_g"] / max(c["pd"]["effort_mean_g"], 1e-9)
             for c in cs
-            if c["equal_adherence"]["adherence"] >= c["pd"]["adherence"] - 1e-9
+            if "equal_adherence" in c and c["equal_adherence"]["adherence"] >= c["pd"]["adherence"] - ADHERENCE_TOL
         ]
         mean_gain = float(np.mean(iou_gain)) if iou_gain else math.nan
         mean_eff = float(np.mean(eff_ratio)) if eff_ratio else math.nan
@@ -132,10 +137,10 @@ def verdict(cases: list[dict]) -> tuple[list[str], dict[str, Any]]:
 def summarise(cases: list[dict]) -> str:
     rows = []
     for c in sorted(cases, key=lambda c: (c["scene"], c["seed"], c["label"])):
-        a, b, p = c["equal_effort"], c["equal_adherence"], c["pd"]
+        p = c["pd"]
+        cell = {g: f"{c[g]['adherence']:.3f} / {c[g]['effort_mean_g']:.2f}" if g in c else "–" for g in GOALS}
         rows.append(
-            [c["scene"], c["seed"], c["label"], f"{p['adherence']:.3f} / {p['effort_mean_g']:.2f}", f"{a['adherence']:.3f} / {a['effort_mean_g']:.2f}",
-             f"{b['adherence']:.3f} / {b['effort_mean_g']:.2f}", f"{c['seconds']:.0f}"]
+            [c["scene"], c["seed"], c["label"], f"{p['adherence']:.3f} / {p['effort_mean_g']:.2f}", cell["equal_effort"], cell["equal_adherence"], f"{c['seconds']:.0f}"]
         )  # fmt: skip
     lines = table(
         ["scene", "seed", "sketch", "PD adherence / effort g", "teacher at PD's effort", "teacher at PD's adherence", "s"], rows
@@ -152,15 +157,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ovals", type=int, default=2)
     ap.add_argument("--rollouts", type=int, default=64, help="full-simulation rollouts per search (rounds of 8)")
     ap.add_argument("--procs", type=int, default=2)
+    ap.add_argument("--goals", default=",".join(GOALS), help=f"comma-separated subset of {', '.join(GOALS)}")
+    ap.add_argument("--labels", default=None, help="only these sketches (comma-separated labels, e.g. oval-9,arrow-up)")
     ap.add_argument("--out", default="benchmarks/results/control_teacher")
     args = ap.parse_args(argv)
     out = Path(args.out)
     done = read_results(out.with_suffix(".json"))["cases"] if out.with_suffix(".json").is_file() else []
     have = {(c["scene"], c["seed"], c["label"]) for c in done}
     todo = [t for s in args.scenes.split(",") for t in validation_cases(s, range(args.first_seed, args.first_seed + args.seeds), args.ovals)]
-    todo = [t for t in todo if t[:3] not in have]
+    todo = [t for t in todo if t[:3] not in have and (args.labels is None or t[2] in args.labels.split(","))]
+    goals = tuple(g for g in GOALS if g in args.goals.split(","))
     with ProcessPoolExecutor(args.procs) as pool:
-        futs = [pool.submit(run_case, *t, args.rollouts) for t in todo]
+        futs = [pool.submit(run_case, *t, args.rollouts, goals) for t in todo]
         for f in as_completed(futs):
             done.append(f.result())
             write_results(out.parent, out.name, doc={"cases": done}, indent=None, argv=script_argv(__file__, argv))
