@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 from coarse_ladder import FIT_SEEDS, FRAMES, HELD_OUT, OUT, RUNS, WARMUP, half_grid, share
 from experiments.learned_correction.features import particle_features
+from experiments.learned_correction.forcing import cell_average
 from scipy import sparse
 from scipy.spatial import cKDTree
 
@@ -237,10 +238,11 @@ def inputs(rows: dict[str, np.ndarray], features: str) -> np.ndarray:
 class ClosureForcing:
     """``sim.forcing``: before every frame, the closure's velocity change [cells per frame] over the frame as an
     acceleration [m/s²], from the coarse state's features (and the reference's sub-cell state at that frame when
-    ``fine`` is given)."""
+    ``fine`` is given); with ``cell``, its mass-weighted mean over each coarse cell's particles (a field, without the
+    per-particle scatter of the closure's error that disorders the coarse particles)."""
 
-    def __init__(self, sim: MpmSimulator, model: Any, proj: Projection, fine: dict[str, np.ndarray] | None) -> None:
-        self.sim, self.model, self.proj, self.fine = sim, model, proj, fine
+    def __init__(self, sim: MpmSimulator, model: Any, proj: Projection, fine: dict[str, np.ndarray] | None, cell: bool = False) -> None:
+        self.sim, self.model, self.proj, self.fine, self.cell = sim, model, proj, fine, cell
         self.dt = float(sim.dt_frame)
 
     def __call__(self, frame: int, positions: np.ndarray, velocities: np.ndarray) -> np.ndarray:
@@ -248,6 +250,9 @@ class ClosureForcing:
         if self.fine is not None:
             x = np.concatenate([x, self.proj.privileged(self.fine["x"][frame], self.fine["v"][frame])], axis=1)
         dv = np.asarray(self.model.predict(x), np.float64) / self.proj.vunit  # m/s over the frame
+        if self.cell:
+            s = self.sim.solver
+            dv = cell_average(np.asarray(s.positions, np.float64), np.asarray(s.masses, np.float64), dv, s.n_grid)
         return (dv / self.dt).astype(np.float32)
 
 
@@ -287,11 +292,12 @@ def held_out_seed(scene: str, seed: int, frames: int, models: dict[str, Any]) ->
     err["rp"] = score(x, ref, n0)
     x, ms["plain"], failed["plain"] = timed_rollout(sim, frames)
     err["plain"] = score(x, ref, n0)
-    for key, model in models.items():
-        sim = coarse_sim(scene, seed)
-        sim.forcing = ClosureForcing(sim, model, proj, fine if key.startswith("privileged") else None)
-        x, ms[key], failed[key] = timed_rollout(sim, frames)
-        err[key] = score(x, ref, n0)
+    for name, model in models.items():
+        for key, cell in ((name, False), (f"{name}_cell", True)):
+            sim = coarse_sim(scene, seed)
+            sim.forcing = ClosureForcing(sim, model, proj, fine if key.startswith("privileged") else None, cell)
+            x, ms[key], failed[key] = timed_rollout(sim, frames)
+            err[key] = score(x, ref, n0)
     floor = np.stack([proj.mean(fine["x"][t]) for t in range(frames + 1)])
     has = proj.group_mass > 0
     err["floor"] = score(floor[:, has], ref, n0, proj.group_mass[has])
@@ -347,7 +353,8 @@ def main() -> None:
             print(f"held-out seed {sd}: {time.time() - t0:.0f} s", flush=True)
         per_seed.append(json.loads(path.read_text()))
         print(json.dumps(per_seed[-1]["error"]), flush=True)
-    keys = [*models, "floor", "fine_subset"]
+    closures = [k for name in models for k in (name, f"{name}_cell")]
+    keys = [*closures, "floor", "fine_subset"]
     mean = {m: {k: float(np.mean([r["error"][k][m] for r in per_seed])) for k in ["rp", "plain", *keys]} for m in METRICS}
     summary: dict[str, dict] = {}
     for k in keys:
@@ -364,7 +371,7 @@ def main() -> None:
                 "f_seeds": [float(np.min(f_seeds)), float(np.median(f_seeds)), float(np.max(f_seeds))],
             }
     plain_t = [r["ms"]["plain"] / r["ms"]["rp"] for r in per_seed]
-    best = max((k for k in models if k.startswith("privileged")), key=lambda k: summary[k]["grid"]["f"])
+    best = max((k for k in closures if k.startswith("privileged")), key=lambda k: summary[k]["grid"]["f"])
     fb, ff = summary[best]["grid"]["f"], summary["floor"]["grid"]["f"]
     stop = fb < STOP_F
     verdict = (
@@ -419,10 +426,11 @@ def markdown(doc: dict) -> str:
         ["plain half grid", "", f"{g['plain']:.3f}", "0", "", f"{h['plain']:.3f}", "0", "", t(doc["plain_time_ratio"]), ""],
     ]
     for k, v in s.items():
-        w = doc["weights"].get(k, "")
+        w = doc["weights"].get(k.removesuffix("_cell"), "")
         failed = ", ".join(map(str, v["failed_seeds"])) or ""
         vg, vh = v["grid"], v["half"]
         label = {"floor": "floor (the projected reference)", "fine_subset": "fine subset (one child per coarse particle)"}.get(k, k.replace("_", ", "))
+        label = label.replace(", cell", ", cell mean")
         rows.append([label, str(w), f"{vg['error']:.3f}", f"{vg['f']:+.2f}", rng(vg["f_seeds"]), f"{vh['error']:.3f}", f"{vh['f']:+.2f}", rng(vh["f_seeds"]),
                      t(v["time_ratio"]), failed])  # fmt: skip
     lines = [
