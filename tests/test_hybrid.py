@@ -353,7 +353,7 @@ def test_hybrid_beats_neural_only_on_water2d_test_seeds(water_model):
 
 
 # ----------------------------------------------------------------------- CLI
-def test_simulate_defaults_to_the_hybrid_dam_break_and_writes_every_output(tmp_path):
+def test_simulate_runs_the_hybrid_on_the_dam_break_by_default_scene_and_writes_every_output(tmp_path):
     import json
 
     import meshio
@@ -362,7 +362,7 @@ def test_simulate_defaults_to_the_hybrid_dam_break_and_writes_every_output(tmp_p
     from hybridmpm.trajectory import Trajectory
 
     out = tmp_path / "db"
-    assert main(["simulate", "--frames", "60", "--out", str(out), "--reference", "--export", "ply", "--quiet", "--threads", "1"]) == 0
+    assert main(["simulate", "--solver", "hybrid", "--frames", "60", "--out", str(out), "--reference", "--export", "ply", "--quiet", "--threads", "1"]) == 0
     for f in ("trajectory.npz", "summary.json", "render.gif", "timeline.png"):
         assert (out / f).stat().st_size > 0, f
     s = json.loads((out / "summary.json").read_text())
@@ -499,11 +499,11 @@ def test_simulate_takes_the_audit_settings_and_reports_them(tmp_path):
 
     from hybridmpm.cli import main
 
-    assert main(["simulate", "water2d", "--seed", "1000", "--frames", "60", "--audit-every", "1", "--audit-tol", "1e6", "--out", str(tmp_path), "--quiet"]) == 0
+    assert main(["simulate", "water2d", "--solver", "hybrid", "--seed", "1000", "--frames", "60", "--audit-every", "1", "--audit-tol", "1e6", "--out", str(tmp_path), "--quiet"]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert (s["audit_every"], s["audit_tol"]) == (1, 1e6)
     assert s["audits"] == s["neural_steps"] > 0 and s["audit_seconds"] > 0 and "audit" not in s["fallbacks"]
-    assert main(["simulate", "water2d", "--frames", "8", "--audit-every", "-1", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
+    assert main(["simulate", "water2d", "--solver", "hybrid", "--frames", "8", "--audit-every", "-1", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
 
 
 # ------------------------------------------------------------ the socket
@@ -692,7 +692,7 @@ def test_the_command_line_picks_the_twins_particles(tmp_path):
     outs = {}
     for particles in ("network", "grid"):
         out = tmp_path / particles
-        args = ["simulate", "water2d", "--seed", "1006", "--frames", "24", "--cheap", "mpm-coarse", "--cheap-particles", particles]
+        args = ["simulate", "water2d", "--solver", "hybrid", "--seed", "1006", "--frames", "24", "--cheap", "mpm-coarse", "--cheap-particles", particles]
         assert main([*args, "--out", str(out), "--quiet", "--no-render", "--threads", "1"]) == 0
         summary = json.loads((out / "summary.json").read_text())
         assert summary["cheap_particles"] == particles and summary["cheap_kind"] == "coarse"
@@ -702,4 +702,4 @@ def test_the_command_line_picks_the_twins_particles(tmp_path):
         from hybridmpm.sim import make_simulator
 
         make_simulator("water2d", "hybrid", cheap_particles="grid")
-    assert main(["simulate", "water2d", "--frames", "4", "--cheap-particles", "grid", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
+    assert main(["simulate", "water2d", "--solver", "hybrid", "--frames", "4", "--cheap-particles", "grid", "--out", str(tmp_path / "bad"), "--quiet"]) == 2

@@ -30,8 +30,11 @@ def _simulate(args: argparse.Namespace) -> int:
 
     scene = make_scene(args.scene, seed=args.seed)
     frames = args.frames if args.frames is not None else scene.frames
+    default: dict[str, Any] | None = None
     if args.solver == "auto":
         _apply_tuned(args, scene.name)
+    elif args.solver == "default":
+        default = _apply_default(args, scene.name)
     if frames < 1:
         raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
     exports = list(dict.fromkeys(args.export or []))
@@ -62,6 +65,15 @@ def _simulate(args: argparse.Namespace) -> int:
     }  # fmt: skip
     if ro.failure:
         summary["failure_detail"] = ro.failure_detail
+    # which cheap half ran and on what share of frames (a fallback to MPM counts as MPM); None: no cheap half
+    cheap_kind = getattr(sim, "cheap_kind", None) if args.solver == "hybrid" else None
+    summary["cheap_half"] = cheap_kind
+    summary["cheap_share"] = float(ro.share(cheap_kind)) if cheap_kind is not None else None
+    if default is not None:  # --solver default: the chart's choice, or (a scene without one) plain MPM as given
+        summary["configuration"] = "default"
+        summary["default"] = (
+            {k: default.get(k) for k in ("label", "config", "ratios_to_mpm_rp", "cheap_share", "validation_seeds", "budget")} if default else None
+        )
     if args.solver == "mpm":
         subs = ro.substeps[1:]
         summary["substeps_total"] = int(subs.sum())
@@ -82,6 +94,11 @@ def _simulate(args: argparse.Namespace) -> int:
             summary["cheap_grid"] = sim.neural.n_grid  # type: ignore[attr-defined]
             summary["cheap_particles"] = args.cheap_particles or "network"
     err = None
+    if args.baseline:
+        # MPM at r_p (the shipped network's r_p, the scene's grid) from the same start: what the run is judged against
+        base_sim = make_simulator(scene, "mpm", r_p=_shipped_r_p(scene.name), seed=args.seed, threads=args.threads)
+        base_ro = rollout(base_sim, ro.frames_done, progress=None if args.quiet else f"{scene.name} [MPM at r_p]")
+        summary["baseline"] = {"solver": "mpm", "r_p": float(base_sim.scene.info.get("r_p", 1.0)), "wall_ms_per_frame": latency_ms(base_ro.frame_seconds())}
     if args.reference:
         t0 = time.perf_counter()
         ref_ro = reference(scene, ro.frames_done, stride=sim.r_t, threads=args.threads)
@@ -91,12 +108,16 @@ def _simulate(args: argparse.Namespace) -> int:
         # every score of a chaotic flow (docs/benchmarks.md "Metrics for a chaotic flow") on the stored frames
         scores = rollout_metrics(
             ro.fluid_positions, ref[:n], (ro.frame_index - ro.frame_index[0]) * scene.dt_frame, scene.params.resolved_n_grid(), errors=err,
-            pred_weights=ro.masses[: ro.num_fluid], ref_weights=ref_ro.masses[: ref_ro.num_fluid], dam_break=dam_break_geometry(scene.info),
+            pred_weights=None if ro.masses is None else ro.masses[: ro.num_fluid], ref_weights=None if ref_ro.masses is None else ref_ro.masses[: ref_ro.num_fluid], dam_break=dam_break_geometry(scene.info),
         )  # fmt: skip
         summary["reference"] = {
             "solver": "mpm", "r_p": 1.0, "particles": scene.num_particles, "wall_ms_per_frame_mean": ref_ms,
             "grid_mass_error": {"mean": float(err.mean()), "last": float(err[-1])}, "metrics": json_scores(scores), "metric_seconds": scores["seconds"],
         }  # fmt: skip
+        if args.baseline:
+            b = base_ro.fluid_positions
+            berr = grid_mass_error(b, ref[: len(b)], scene.params.resolved_n_grid())
+            summary["baseline"]["grid_mass_error"] = {"mean": float(berr.mean()), "last": float(berr[-1])}
     ro.extras[PARAMS_KEY] = params_json(low.params)  # walls, grid, obstacles: what hybridmpm export needs
     ro.save(out / "trajectory.npz")
     write_json(out / "summary.json", summary)
@@ -126,7 +147,73 @@ def _simulate(args: argparse.Namespace) -> int:
         if ro.failure:
             line += f"; broke off: {ro.failure} ({ro.failure_detail})"
         print(line + f" -> {out}/")
+        if args.baseline:
+            print(_baseline_line(summary, default))
     return 0
+
+
+#: Settings that choose a solver's configuration: with the default configuration (chosen by the chart) they are refused.
+_CONFIG_FLAGS = (
+    ("model", None), ("r_c", R_C), ("r_p", 1.0), ("dwell", None), ("audit_every", None), ("audit_tol", None), ("safeguard", None),
+    ("residual_tol", None), ("audit_max", None), ("n_grid", None), ("particles_per_cell", None), ("cheap", "neural"), ("cheap_grid", None),
+    ("cheap_particles", None), ("calibrated", False), ("tuned", None),
+)  # fmt: skip
+
+
+def _apply_default(args: argparse.Namespace, scene: str) -> dict[str, Any]:
+    """``--solver default`` (the default): take the scene's shipped default configuration
+    (:func:`hybridmpm.sim.default_settings`); returns its entry (empty for a scene without one:
+    plain MPM). A flag that sets another configuration is refused, naming it."""
+    # import time: loaded by this command only
+    from hybridmpm.models import shipped_default
+    from hybridmpm.sim import default_settings
+
+    for key, unset in _CONFIG_FLAGS:
+        if getattr(args, key) != unset:
+            flag = "--" + key.replace("_", "-")
+            raise InvalidInputError(
+                f'solver: {flag} sets a configuration of its own; the default of {scene} is chosen by the chart (docs/hybrid.md "Defaults per scene"): '
+                f"add --solver hybrid, mpm or neural to use {flag}",
+                "solver",
+            )
+    for key, value in default_settings(scene).items():
+        setattr(args, key, value)
+    entry = shipped_default(scene)
+    if not args.quiet:
+        r = entry.get("ratios_to_mpm_rp", {})
+        print(
+            f"default: {entry['label']} (on validation seeds: {r.get('time')}x MPM at r_p's time, {r.get('error_mean')}x its error)"
+            if entry
+            else f"default: no default was chosen for {scene}; plain MPM on the scene as given"
+        )
+    return entry
+
+
+def _shipped_r_p(scene: str) -> float:
+    """``r_p`` of the scene's shipped network (MPM at ``r_p`` is the baseline every configuration is judged against); 1 without one."""
+    # import time: loaded by this command only
+    from hybridmpm.models import shipped_model, shipped_models
+    from hybridmpm.neural.base import read_header
+
+    return float(read_header(shipped_model(scene)).r_p) if scene in shipped_models() else 1.0
+
+
+def _baseline_line(summary: dict[str, Any], default: dict[str, Any] | None) -> str:
+    """This run's time and error as ratios to MPM at ``r_p``'s (``--baseline``), and the plain-MPM front's error at that time."""
+    base, ms = summary["baseline"], summary["wall_ms_per_frame"]["median"]
+    bms = base["wall_ms_per_frame"]["median"]
+    line = f"against MPM at r_p = {base['r_p']:.3g} (same start): time {ms / bms:.2f}x" if ms and bms else "against MPM at r_p: time n/a"
+    if "reference" in summary and "grid_mass_error" in base:
+        line += f", error {summary['reference']['grid_mass_error']['mean'] / base['grid_mass_error']['mean']:.2f}x"
+    if summary.get("cheap_half"):
+        line += f", cheap half ({summary['cheap_half']}) on {100 * summary['cheap_share']:.0f}% of steps"
+    if default:
+        t = (default.get("ratios_to_mpm_rp") or {}).get("time")
+        plain = [c["ratios"] for c in default.get("candidates", []) if c["key"].startswith("mpm_") and c["ratios"].get("time") is not None]
+        front = [c["error_mean"] for c in plain if t is not None and c["time"] <= t * 1.000001 and c.get("error_mean") is not None]
+        if front:
+            line += f"; the plain-MPM front at its time on the validation seeds errs {min(front):.2f}x MPM at r_p"
+    return line
 
 
 def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
@@ -200,8 +287,9 @@ def add_parsers(sub: Any) -> None:
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(DOMAINS))}) or a scene file (.toml/.json); default dam_break2d"
     )
     sim.add_argument(
-        "--solver", default="hybrid", choices=["hybrid", "mpm", "neural", "auto"],
-        help="solver (default hybrid: neural, MPM while s(t) < r_c; auto: the configuration hybridmpm tune chose)",
+        "--solver", default="default", choices=["default", "hybrid", "mpm", "neural", "auto"],
+        help="solver (default: the scene's default configuration, chosen by the chart: docs/hybrid.md \"Defaults per scene\"; hybrid: the paper's, "
+        "neural, MPM while s(t) < r_c; auto: the configuration hybridmpm tune chose)",
     )  # fmt: skip
     sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
@@ -257,6 +345,11 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="--solver mpm --n-grid N: the calibrated coarse material fitted for the scene on that grid (docs/correction.md); refused where none was fitted",
     )
+    sim.add_argument(
+        "--baseline", action="store_true",
+        help="also run MPM at r_p (the shipped network's r_p, the scene's grid) from the same start and print this run's time (and with --reference "
+        "its error) as ratios to it",
+    )  # fmt: skip
     sim.add_argument("--no-render", action="store_true", help="skip render.gif")
     sim.add_argument("--quiet", action="store_true", help="no progress bar or summary line")
     sim.set_defaults(func=_simulate)

@@ -50,6 +50,21 @@ def shipped_switching(scene: str) -> dict:
     return {k: entry[k] for k in ("safeguard", "audit_tol") if k in entry}
 
 
+def shipped_default(scene: str) -> dict:
+    """The default configuration of ``scene`` (``defaults.json``, written by
+    ``benchmarks/release/ship_defaults.py`` from validation rollouts; docs/hybrid.md
+    "Defaults per scene"): a dict with ``config`` (a tuned configuration:
+    :data:`~hybridmpm.sim.config.CONFIG_KEYS`, a hybrid's ``rule`` and ``cheap``),
+    ``label``, ``ratios_to_mpm_rp`` (time and scores against MPM at ``r_p`` on
+    the validation seeds), ``cheap_share`` and the candidates it was chosen
+    among; empty where none was chosen for the scene (or the file is absent)."""
+    path = resources.files("hybridmpm.models").joinpath("defaults.json")
+    if not path.is_file():
+        return {}
+    entry = json.loads(path.read_text()).get(scene, {})
+    return dict(entry) if isinstance(entry, dict) else {}
+
+
 def variant_models(scene: str) -> list[dict]:
     """The shipped variant networks of ``scene`` that ``hybridmpm bench``
     compares with the shipped model (paper Fig. 5 a-c): each a dict with
@@ -67,4 +82,4 @@ def variant_models(scene: str) -> list[dict]:
     return out
 
 
-__all__ = ["shipped_model", "shipped_models", "shipped_switching", "variant_models"]
+__all__ = ["shipped_default", "shipped_model", "shipped_models", "shipped_switching", "variant_models"]

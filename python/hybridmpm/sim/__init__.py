@@ -19,7 +19,7 @@
 
 from hybridmpm.sim.base import MPM, NEURAL, Forcing, ForcingFunction, Frame, NetworkFailure, SimStats, Simulator
 from hybridmpm.sim.cheap import CheapHalf, FailureChecks, Proposal
-from hybridmpm.sim.config import SOLVERS, load_tuned, make_simulator, tuned_settings
+from hybridmpm.sim.config import SOLVERS, default_settings, load_tuned, make_simulator, tuned_settings
 from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
@@ -51,6 +51,7 @@ __all__ = [
     "Simulator",
     "SwitchingRule",
     "complexity_score",
+    "default_settings",
     "load_tuned",
     "make_rule",
     "make_simulator",

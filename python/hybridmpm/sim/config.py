@@ -11,6 +11,7 @@ from typing import Any
 
 from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.models import shipped_default
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.sim.base import Simulator
 from hybridmpm.sim.hybrid import HybridSimulator
@@ -18,8 +19,9 @@ from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator
 from hybridmpm.sim.switching import SwitchingRule
 
-#: Solver kinds :func:`make_simulator` builds.
-SOLVERS = ("hybrid", "mpm", "neural")
+#: Solver kinds :func:`make_simulator` builds; "default" is the scene's shipped default configuration
+#: (:func:`default_settings`: one of the other three, chosen by the chart).
+SOLVERS = ("default", "hybrid", "mpm", "neural")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
 #: The rule settings :func:`make_simulator` takes (the rest of a rule's
@@ -53,7 +55,9 @@ def make_simulator(
     cheap_particles: str | None = None,
     calibrated: bool = False,
 ) -> Simulator:
-    """A simulator of ``scene`` by kind: "hybrid" (model, ``r_c``, ``dwell``,
+    """A simulator of ``scene`` by kind: "default" (the scene's shipped default
+    configuration, :func:`default_settings`; only ``seed``, ``threads``,
+    ``nn_threads`` and ``clusters`` may be given with it), "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
     ``safeguard`` and the "error" rule's ``residual_tol`` and ``audit_max``;
     None: the defaults),
@@ -76,6 +80,21 @@ def make_simulator(
     runs at its model's resolution)."""
     if solver not in SOLVERS:
         raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
+    if solver == "default":
+        name = scene.name if isinstance(scene, Scene) else str(scene)
+        for field, value, unset in (
+            ("model", model, None), ("r_c", r_c, R_C), ("r_p", r_p, 1.0), ("dwell", dwell, None), ("audit_every", audit_every, None),
+            ("audit_tol", audit_tol, None), ("safeguard", safeguard, None), ("residual_tol", residual_tol, None), ("audit_max", audit_max, None),
+            ("n_grid", n_grid, None), ("particles_per_cell", particles_per_cell, None), ("cheap", cheap, "neural"), ("cheap_grid", cheap_grid, None),
+            ("cheap_particles", cheap_particles, None), ("calibrated", calibrated, False),
+        ):  # fmt: skip
+            if value != unset:
+                raise InvalidInputError(
+                    f'{field}: the default configuration of {name} is chosen by the chart (docs/hybrid.md "Defaults per scene"); '
+                    f"name the solver (hybrid, mpm or neural) to set {field}",
+                    field,
+                )
+        return make_simulator(scene, seed=seed, threads=threads, nn_threads=nn_threads, clusters=clusters, **default_settings(name))
     if solver != "mpm":
         for name, value, unset in (
             ("r_p", r_p, 1.0),
@@ -113,6 +132,16 @@ def make_simulator(
         cheap_grid=cheap_grid,
         **twin,
     )
+
+
+def default_settings(scene: str) -> dict[str, Any]:
+    """The :func:`make_simulator` keyword arguments of ``scene``'s shipped default
+    configuration (:func:`hybridmpm.models.shipped_default`, chosen on validation
+    seeds by ``benchmarks/release/ship_defaults.py``: the fastest candidate within
+    its error budget against MPM at ``r_p``); a scene without one (a scene file of
+    your own) runs plain MPM as given, ``{"solver": "mpm"}``."""
+    entry = shipped_default(scene)
+    return tuned_settings({"config": entry["config"]}) if entry else {"solver": "mpm"}
 
 
 def tuned_path(scene: str, path: str | Path | None = None) -> Path:
@@ -154,6 +183,8 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
         mpm: dict[str, Any] = {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
         return {**mpm, "calibrated": True} if cfg.get("calibrated") else mpm  # a calibrated coarse material (docs/correction.md)
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
+    if cfg["kind"] == "hybrid" and cfg.get("cheap", "neural") != "neural":
+        out["cheap"] = str(cfg["cheap"])  # the classical twin (a default may be one)
     if cfg["kind"] == "hybrid" and cfg.get("rule"):
         rule = SwitchingRule.from_dict(cfg["rule"]).to_dict()
         out.update({k: rule[k] for k in RULE_KEYS if k in rule})
@@ -167,4 +198,4 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-__all__ = ["CONFIG_KEYS", "RULE_KEYS", "SOLVERS", "TUNED_DIR", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]
+__all__ = ["CONFIG_KEYS", "RULE_KEYS", "SOLVERS", "TUNED_DIR", "default_settings", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]
