@@ -17,8 +17,10 @@
   run. The files that take longest are handed out first (``_LONGEST_FILES``
   with ``--no-loadscope-reorder``), so that no worker ends the run alone on
   one of them. Tests marked ``alone`` assert rates on this machine's cores (the
-  page's frame rates, real-time drags in the browser); they run after the
-  parallel phase, with no other test beside them. The skip rule above holds
+  page's frame rates, real-time drags in the browser) or share a node id with
+  another test (schemathesis's one test per API operation, which pytest-xdist
+  would run once); they run after the parallel phase, with no other test
+  beside them. The skip rule above holds
   on the workers: a skipped test's report is failed before it leaves the
   worker, and a module skipped while collected is reported to the
   controller, which fails the run.
@@ -27,6 +29,7 @@
 from __future__ import annotations
 
 import os
+from collections import Counter
 
 import pytest
 from hypothesis import settings
@@ -48,7 +51,9 @@ _COLLECTION_SKIPS: list[str] = []
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "may_skip_in_ci(reason): the test may skip in CI (CI otherwise fails on a skip); the reason says when and why")
     config.addinivalue_line(
-        "markers", "alone: the test asserts rates on this machine's cores (frame rates); scripts/test.sh runs it after the parallel phase, by itself"
+        "markers",
+        "alone: scripts/test.sh runs the test after the parallel phase, by itself: it asserts rates on this machine's cores (frame rates), or shares "
+        "its node id with another test (which pytest-xdist cannot tell apart)",
     )
 
 
@@ -67,8 +72,15 @@ _LONGEST_FILES = (
 )
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects: the marks added here count
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """On a pytest-xdist worker: the longest files first (a stable sort, so each file keeps its tests' order)."""
+    """Tests that share a node id (schemathesis's one test per API operation) are marked ``alone``: pytest-xdist
+    hands out tests by node id, so all but one of them would never run on a worker. On a pytest-xdist worker, the
+    longest files first (a stable sort, so each file keeps its tests' order)."""
+    counts = Counter(item.nodeid for item in items)
+    for item in items:
+        if counts[item.nodeid] > 1:
+            item.add_marker(pytest.mark.alone)
     if not hasattr(config, "workerinput"):
         return
     rank = {name: i for i, name in enumerate(_LONGEST_FILES)}
