@@ -112,6 +112,8 @@ def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
     :class:`InvalidInputError` naming ``n_grid``."""
     if n_grid is None:
         return None
+    if solver == "default":
+        raise InvalidInputError("n_grid: applies to the mpm solver; the default solver runs the grid the chart chose for the scene", "n_grid")
     if solver != "mpm":
         raise InvalidInputError(f"n_grid: applies to the mpm solver; the {solver} solver runs at its model's resolution", "n_grid")
     own = scene_spec(scene).params.resolved_n_grid()

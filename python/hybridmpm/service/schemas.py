@@ -38,15 +38,19 @@ class SceneInfo(BaseModel):
     frames: int = Field(description="the scene's default rollout length [frames]")
     seeded: bool = Field(description="whether the seed changes the initial condition")
     doc: str
-    solvers: list[str]
+    solvers: list[str] = Field(description='the solvers a session of the scene takes; "default" (first) is the scene\'s default configuration')
+    default_configuration: str = Field(description='what the default solver runs for the scene (docs/hybrid.md "Defaults per scene")')
     model: bool = Field(description="whether a trained network ships for the scene (hybrid and neural solvers)")
     methods: list[str] = Field(description="the control methods a session of the scene takes (diffusion: where its controller ships)")
+    default_method: str = Field(description='the control method a control without one runs (docs/control.md "Defaults")')
 
 
 class CreateSession(Strict):
     scene: SceneName = Field(description="a registered scene name (GET /v1/scenes); never a path")  # type: ignore[valid-type]
     seed: Integer = Field(0, ge=0, le=MAX_SEED)
-    solver: Literal["hybrid", "mpm", "neural"] = "hybrid"
+    solver: Literal["default", "hybrid", "mpm", "neural"] = Field(
+        "default", description="default: the scene's default configuration, chosen by the chart (SceneInfo.default_configuration); hybrid: the paper's"
+    )
     r_c: Number = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
     n_grid: Integer | None = Field(
         None,
@@ -135,7 +139,9 @@ class ControlRequest(Strict):
     sketch_png: str | None = Field(
         None, max_length=60_000, description="the sketch as a PNG image (base64), the domain [0, 1]² filling it with y up; instead of `sketch`"
     )
-    method: Literal["constant", "pd", "none", "diffusion"] = "constant"
+    method: Literal["constant", "pd", "mpc", "none", "diffusion"] | None = Field(
+        None, description="the control method (SceneInfo.methods); null: the scene's default (SceneInfo.default_method)"
+    )
     frames: Integer = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
 
 

@@ -22,6 +22,7 @@ from fastapi.responses import Response
 from pydantic import ValidationError
 
 from hybridmpm.control import Sketch, sketch_from_png
+from hybridmpm.control.controller import default_method
 from hybridmpm.control.sketch import MAX_IMAGE_PIXELS
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import InvalidInputError
@@ -77,19 +78,20 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
             raise FieldError(("body", "sketch", "points"), f"points: the stroke must span at least 2 grid cells ({2.0 / n_grid:.4g} m)")
     if body.frames > cfg.max_control_frames:
         raise FieldError(("body", "frames"), f"frames: at most {cfg.max_control_frames}")
+    method = body.method or default_method(s.facts.scene_name)  # none given: the scene's default (docs/control.md "Defaults")
     try:
-        check_method(s.facts.scene_name, body.method)  # no model is loaded to validate a request
+        check_method(s.facts.scene_name, method)  # no model is loaded to validate a request
     except InvalidInputError as e:
         raise FieldError(("body", "method"), str(e)) from None
-    if sketch is None and body.method != "none":
-        raise FieldError(("body", "sketch"), f"sketch: the {body.method} method needs a sketch")
+    if sketch is None and method != "none":
+        raise FieldError(("body", "sketch"), f"sketch: the {method} method needs a sketch")
     if s.controlling:
         raise ApiError(409, "a control is already running on this session")
     if s.settings.solver == "neural":
         raise ApiError(409, "this session's solver is the network alone, which takes no control (control runs on MPM); create it with solver 'hybrid' or 'mpm'")
     if manager.controls_running >= cfg.max_controls:
         raise ApiError(429, "too many controls running; retry shortly", {"Retry-After": "2"})
-    return await run_control(manager, s, sketch, body.method, body.frames, request, t_req)
+    return await run_control(manager, s, sketch, method, body.frames, request, t_req)
 
 
 @router.post(
@@ -104,7 +106,7 @@ async def control(s: SessionDep, body: ControlRequest, request: Request, manager
         422: {"description": "no readable sketch in the image, or a bad query parameter"},
     },
 )
-async def control_png(s: SessionDep, request: Request, manager: ManagerDep, cfg: ConfigDep, method: str = "constant", frames: int = T_CTR) -> dict[str, Any]:
+async def control_png(s: SessionDep, request: Request, manager: ManagerDep, cfg: ConfigDep, method: str | None = None, frames: int = T_CTR) -> dict[str, Any]:
     """The controls route with the sketch as a raw PNG body (``Content-Type:
     image/png``; the image spans the domain, y up); ``method`` and
     ``frames`` as query parameters."""

@@ -9,9 +9,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse
 
 from hybridmpm import __version__
-from hybridmpm.control.controller import shipped_control_model
-from hybridmpm.errors import InvalidInputError
-from hybridmpm.models import shipped_models
+from hybridmpm.control.controller import scene_methods
+from hybridmpm.models import shipped_default, shipped_models
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.deps import ConfigDep, ManagerDep
 from hybridmpm.service.schemas import Health, SceneInfo
@@ -29,11 +28,8 @@ def scene_list() -> list[dict[str, Any]]:
         spec = gen(seed=0)
         doc = (gen.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
         has = name in ships
-        try:
-            shipped_control_model(name)
-            methods = ["constant", "pd", "none", "diffusion"]
-        except InvalidInputError:  # no diffusion controller ships for it
-            methods = ["constant", "pd", "none"]
+        offered = scene_methods(name)  # the classical methods, diffusion where its controller ships, and the scene's default
+        default = shipped_default(name)
         out.append(
             {
                 "name": name,
@@ -41,9 +37,11 @@ def scene_list() -> list[dict[str, Any]]:
                 "frames": int(spec.frames),
                 "seeded": spec.blocks != gen(seed=1).blocks,  # whether two seeds differ, not a list of names
                 "doc": " ".join(doc.split()),
-                "solvers": ["hybrid", "mpm", "neural"] if has else ["mpm"],
+                "solvers": ["default", "hybrid", "mpm", "neural"] if has else ["default", "mpm"],
+                "default_configuration": default.get("label") or "MPM on the scene as given",
                 "model": has,
-                "methods": methods,
+                "methods": offered["methods"],
+                "default_method": offered["default"],
             }
         )
     return out

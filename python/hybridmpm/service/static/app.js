@@ -109,8 +109,8 @@ async function api(method, path, body) {
   return data;
 }
 
-// the solvers each scene offers (a scene without a shipped model: MPM only)
-const sceneSolvers = {};
+// the solvers and control methods each scene offers, and its defaults (GET /v1/scenes: no probing by error)
+const sceneSolvers = {}, sceneMethods = {};
 async function loadScenes() {
   const scenes = await api("GET", "/v1/scenes");
   const sel = $("scene");
@@ -119,24 +119,26 @@ async function loadScenes() {
     o.value = s.name; o.textContent = `${s.name} (${s.dim}D)${s.model ? "" : ", MPM only"}`;
     sel.appendChild(o);
     sceneSolvers[s.name] = s.solvers;
+    sceneMethods[s.name] = { methods: s.methods, def: s.default_method };
   }
   // the default scene: the 3D dam break with its paddle where WebGL2 draws 3D, the 2D water blocks on the Canvas2D fallback (an x–y view)
   const fallback = renderer.kind === "webgl2" && sceneSolvers[DEFAULT_3D] ? DEFAULT_3D : "water2d";
   sel.value = params.get("scene") || fallback;
   $("seed").value = params.get("seed") || "0";
-  $("solver").value = params.get("solver") || "hybrid";
+  $("solver").value = params.get("solver") || "default";
+  syncSolvers();
   if (params.get("method")) $("method").value = params.get("method");
   if (params.get("frames")) $("frames").value = params.get("frames");
   if (params.get("look")) setLook(params.get("look"));
-  syncSolvers();
 }
 
-// the scenes whose control was refused for want of a diffusion controller: their method falls back to PD
-const noDiffusion = new Set();
+// offer only the scene's control methods, its default selected
 function syncMethods() {
-  const sel = $("method"), lacks = noDiffusion.has($("scene").value);
-  for (const o of sel.options) o.disabled = lacks && o.value === "diffusion";
-  if (lacks && sel.value === "diffusion") sel.value = "pd";
+  const offered = sceneMethods[$("scene").value];
+  if (!offered) return;
+  const sel = $("method");
+  for (const o of sel.options) o.disabled = !offered.methods.includes(o.value);
+  sel.value = offered.def;
 }
 
 // offer only the scene's solvers; a solver it lacks falls back to its first (MPM)
@@ -577,18 +579,7 @@ async function applySketch() {
   $("apply").disabled = true;
   setStatus(`applying ${body.method}…${is3D() && kind === "arrow" && span < 0.5 * len3 ? " (the controller follows the x–y part of a 3D sketch: turn the camera toward the front for more)" : ""}`);
   try {
-    let res;
-    try {
-      res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
-    } catch (e) {
-      // a scene without a shipped diffusion controller (the dam breaks): the same sketch with the PD tracker
-      if (body.method !== "diffusion" || !/no diffusion controller/.test(e.message)) throw e;
-      noDiffusion.add(session.scene);
-      syncMethods();
-      body.method = $("method").value;
-      setStatus(`no diffusion controller ships for ${session.scene}: applying ${body.method}…`);
-      res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
-    }
+    const res = await api("POST", `/v1/sessions/${session.id}/controls`, body);
     hook.controls.push(res);
     if (applied) {
       applied.id = res.id; applied.running = false;
