@@ -449,10 +449,10 @@ class Controller:
             field_ = np.broadcast_to(a.astype(np.float32), (self.frames, n, d))
             return Plan("constant", start, self.frames, n, accelerations=field_, seconds=time.perf_counter() - t0, sketch=sketch)
         if self.method == "mpc":
-            res = mpc_plan(sim, sketch, self.frames, self.mpc)
-            fb = field_feedback(res.theta, res.targets, self.frames, sim.dt_frame)
+            best = mpc_plan(sim, sketch, self.frames, self.mpc)
+            fb = field_feedback(best.theta, best.targets, self.frames, sim.dt_frame)
             plan = Plan("mpc", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
-            plan.model_centroids = res.centroids
+            plan.model_centroids = best.centroids
             return plan
         # PD attraction to per-particle targets
         y = pd_targets(x, sketch)
