@@ -78,9 +78,7 @@ background "the Rust checks (cargo fmt, test, clippy)" rust_checks
 python3 -m venv .venv
 . .venv/bin/activate
 python -m pip install --quiet --upgrade pip
-# --no-compile: no bytecode for the ~6 GB of wheels up front (PyTorch's alone is thousands of modules); Python
-# compiles what the tests import, when they import it
-python -m pip install --quiet --no-compile -e '.[test]'
+python -m pip install --quiet -e '.[test]'
 # lint and format: they take seconds
 python -m ruff check python tests benchmarks docs
 python -m ruff format --check python tests benchmarks docs
