@@ -499,28 +499,8 @@ def test_simulate_takes_the_audit_settings_and_reports_them(tmp_path):
 
     from hybridmpm.cli import main
 
-    assert (
-        main(
-            [
-                "simulate",
-                "water2d",
-                "--solver",
-                "hybrid",
-                "--seed",
-                "1000",
-                "--frames",
-                "60",
-                "--audit-every",
-                "1",
-                "--audit-tol",
-                "1e6",
-                "--out",
-                str(tmp_path),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    hybrid = ["simulate", "water2d", "--solver", "hybrid", "--seed", "1000", "--frames", "60"]
+    assert main([*hybrid, "--audit-every", "1", "--audit-tol", "1e6", "--out", str(tmp_path), "--quiet"]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert (s["audit_every"], s["audit_tol"]) == (1, 1e6)
     assert s["audits"] == s["neural_steps"] > 0 and s["audit_seconds"] > 0 and "audit" not in s["fallbacks"]

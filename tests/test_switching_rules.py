@@ -143,28 +143,8 @@ def test_bad_rule_parameters_name_the_field(water_model):
 def test_simulate_takes_the_rule_and_reports_it(tmp_path):
     from hybridmpm.cli import main
 
-    assert (
-        main(
-            [
-                "simulate",
-                "water2d",
-                "--solver",
-                "hybrid",
-                "--seed",
-                "1000",
-                "--frames",
-                "60",
-                "--safeguard",
-                "error",
-                "--audit-max",
-                "4",
-                "--out",
-                str(tmp_path),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    hybrid = ["simulate", "water2d", "--solver", "hybrid", "--seed", "1000", "--frames", "60"]
+    assert main([*hybrid, "--safeguard", "error", "--audit-max", "4", "--out", str(tmp_path), "--quiet"]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert (s["safeguard"], s["audit_max"]) == ("error", 4) and s["audits"] >= 1
     assert main(["simulate", "water2d", "--solver", "hybrid", "--frames", "8", "--residual-tol", "-1", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
