@@ -77,8 +77,10 @@ type_check() {
 background "the Rust checks (cargo fmt, test, clippy)" rust_checks
 python3 -m venv .venv
 . .venv/bin/activate
-python -m pip install --quiet --upgrade pip
-python -m pip install --quiet -e '.[test]'
+# uv installs the same packages as pip would, downloading them in parallel (the training
+# extra's CUDA build of torch is ~3 GB of wheels): 1 min 44 s cold here against ~5 min for pip
+python -m pip install --quiet uv
+uv pip install --quiet --compile-bytecode -e '.[test]'
 # lint and format: they take seconds
 python -m ruff check python tests benchmarks docs
 python -m ruff format --check python tests benchmarks docs
