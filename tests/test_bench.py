@@ -16,11 +16,13 @@ import numpy as np
 import pytest
 
 from hybridmpm.bench import VALID_SEED0, bench, choose, load_tuned, methods_for, pareto_front
-from hybridmpm.bench.report import RESULT_COLUMNS, SWEEP_COLUMNS
+from hybridmpm.bench.methods import Method, shipped_default_method
+from hybridmpm.bench.report import CHART_METRICS, RESULT_COLUMNS, SWEEP_COLUMNS, front_error_at, mpm_front
 from hybridmpm.bench.tune import write_tuned
 from hybridmpm.cli import main
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.metrics import grid_mass_error
+from hybridmpm.models import shipped_default
 from hybridmpm.scenes import make_scene
 from hybridmpm.train.datasets import simulate_trajectory, trajectory_seed
 
@@ -119,6 +121,43 @@ def test_bench_writes_every_file_with_the_right_columns(tiny: dict):
     report = (out / "report.md").read_text()
     assert "![" in report and "pareto.png" in report and "## Pareto front" in report
     assert "Table 2" in report
+
+
+def test_the_shipped_default_runs_and_is_judged_on_every_front(tiny: dict):
+    """The configuration `hybridmpm simulate water2d` runs is one of the bench's rows, flagged, and the report's verdict
+    on each score (on that score's plain-MPM front, or its value over the front's at its time) is what the rows say."""
+    key = shipped_default("water2d")["config"]["key"]
+    rows = tiny["res"]["rows"]
+    flagged = [r for r in rows if r["shipped_default"]]
+    assert tiny["res"]["shipped_default"] == key and [r["key"] for r in flagged] == [key]
+    d = flagged[0]
+    section = (tiny["out"] / "report.md").read_text().split("## The shipped default", 1)[1]
+    assert d["label"] in section and f"`hybridmpm simulate water2d` runs **{d['label']}**" in section
+    checked = 0
+    for m in ("error_mean", *CHART_METRICS):
+        if not math.isfinite(d.get(m, math.nan)):
+            continue
+        line = next(ln for ln in section.splitlines() if ln.startswith(f"| `{m}` |"))
+        front = mpm_front(rows, m)
+        if d["key"] in {q["key"] for q in front}:
+            assert line.endswith("| on it |"), line
+        else:
+            f = front_error_at(front, d["ms_mean"], m)
+            assert math.isfinite(f) and f"({d[m] / f:.2f}×)" in line, line
+        checked += 1
+    assert checked >= 4  # the long-horizon error, the short-horizon error, Sinkhorn, kinetic energy
+
+
+def test_a_shipped_default_outside_the_grid_of_methods_is_added(monkeypatch: pytest.MonkeyPatch):
+    methods = [Method("mpm_full", "mpm", "MPM full resolution")]
+    twin = {"key": "hybrid_twin", "kind": "hybrid", "label": "twin", "r_p": 0.5, "cheap": "mpm-coarse", "safeguard": "error", "rule": {"x": 1}}
+    monkeypatch.setattr("hybridmpm.bench.methods.shipped_default", lambda scene: {"config": twin})
+    m = shipped_default_method("water2d", methods)
+    assert m is methods[-1] and len(methods) == 2
+    assert (m.key, m.kind, m.cheap, m.safeguard, m.r_p) == ("hybrid_twin", "hybrid", "mpm-coarse", "error", 0.5)
+    assert shipped_default_method("water2d", methods) is m and len(methods) == 2  # found, not added twice
+    monkeypatch.setattr("hybridmpm.bench.methods.shipped_default", lambda scene: {})
+    assert shipped_default_method("water2d", methods) is None
 
 
 def test_bench_errors_against_an_independent_reference(tiny: dict):

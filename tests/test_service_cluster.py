@@ -248,6 +248,10 @@ def test_an_actor_killed_during_a_control_keeps_the_steps_answered_before_it(clu
     async def go(sid: str, victim_of: Callable[[], int]) -> tuple[list[dict[str, Any]], int]:
         events: list[dict[str, Any]] = []
         async with websockets.connect(f"{a.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws, httpx.AsyncClient(timeout=WAIT_S) as c:
+            # attached first (the stream's meta, then the current frame): a control started before the viewer is
+            # attached sends its "running" event to nobody (seen under load on two test workers)
+            while not isinstance(await asyncio.wait_for(ws.recv(), WAIT_S), bytes):
+                pass
             long = asyncio.create_task(c.post(f"{a.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 1000}))
             deadline = time.monotonic() + WAIT_S
             while not any(e.get("status") == "running" for e in events) and time.monotonic() < deadline:

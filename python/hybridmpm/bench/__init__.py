@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hybridmpm.bench import report
-from hybridmpm.bench.methods import ERROR_TOL_SWEEP, GRID_FRACTIONS, R_C_SWEEP, Method, methods_for, mpm_grid_methods
+from hybridmpm.bench.methods import ERROR_TOL_SWEEP, GRID_FRACTIONS, R_C_SWEEP, Method, methods_for, mpm_grid_methods, shipped_default_method
 from hybridmpm.bench.report import aggregate, pareto_front
 from hybridmpm.bench.run import TEST_SEED0, VALID_SEED0, WARMUP_FRAMES, BenchConfig, run_bench
 from hybridmpm.bench.tune import choose, write_tuned
@@ -71,8 +71,10 @@ def bench(
     hybrid drawn in ``error_trajectory.png``; ``grids`` the coarser grids of
     plain MPM (fractions of the scene's grid) that, with the scene's grid and
     ``r_p``, make the classical front every method is judged against. Returns a dict with ``rows``
-    (one per method, :func:`~hybridmpm.bench.report.aggregate`), ``cells``,
-    ``pareto`` (labels on the front) and ``files``.
+    (one per method, :func:`~hybridmpm.bench.report.aggregate`; the scene's
+    shipped default, run beside the others, flagged ``shipped_default``), ``cells``,
+    ``pareto`` (labels on the front), ``files`` and ``shipped_default`` (its key;
+    None with another ``model``).
     Raises :class:`InvalidInputError` naming the bad parameter.
     """
 
@@ -82,12 +84,16 @@ def bench(
         raise InvalidInputError("seeds: must be distinct", "seeds")
     cfg = BenchConfig(scene, tuple(seeds), frames, warmup, mpm_threads, nn_threads, nn_alone_threads).validate()
     methods = methods_for(scene, r_cs=r_cs, model=model, variants=variants, extra_models=extra_models, error_tols=error_tols, grids=grids, seed=seeds[0])
+    # the scene's shipped default (what `hybridmpm simulate SCENE` runs): marked on every chart and in the report
+    default = shipped_default_method(scene, methods) if model is None else None
     out = Path(out) if out is not None else Path("runs/bench") / scene
     stride = max(m.r_t for m in methods)
     cells = [report.on_common_frames(c, stride) for c in run_bench(cfg, methods, out, progress=progress)]
     env = json.loads((out / "bench.json").read_text())["environment"]
     settings = cfg.fingerprint()
     rows = aggregate(methods, cells)
+    for r in rows:
+        r["shipped_default"] = default is not None and r["key"] == default.key
     report.write_results_csv(out / "results.csv", scene, frames, settings, env, methods, cells)
     report.write_sweep_csv(out / "threshold_sweep.csv", rows)
     first = make_scene(scene, seed=seeds[0])
@@ -112,6 +118,7 @@ def bench(
     main_r_p = next(m.r_p for m in methods if m.key == "mpm_rp")
     refused = mpm_grid_methods(scene, main_r_p, seeds[0], grids)[1]
     text = report.report_markdown(scene, settings, env, seeds, rows, cmd, files, n_grid=first.params.resolved_n_grid(), refused=refused)
+    text += "\n" + "\n".join(report.default_section(scene, rows))
     if (out / "peer_taichi.json").is_file():  # written by `python benchmarks/taichi_peer.py --bench-scene SCENE`
         text += report.peer_markdown(json.loads((out / "peer_taichi.json").read_text()))
     (out / "report.md").write_text(text)
@@ -123,6 +130,7 @@ def bench(
             str(out / f) for f in ("results.csv", "threshold_sweep.csv", "error_sweep.csv", "pareto.png", "pareto.svg", "error_trajectory.png", "report.md")
         ],
         "out": str(out),
+        "shipped_default": None if default is None else default.key,
     }
 
 

@@ -10,13 +10,13 @@ temporal-only) only where a model was trained for them
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.models import shipped_model, shipped_switching, variant_models
+from hybridmpm.models import shipped_default, shipped_model, shipped_switching, variant_models
 from hybridmpm.models.calibrated import fit_name, shipped_calibrations
 from hybridmpm.neural.base import open_model
 from hybridmpm.scenes import scene_spec
@@ -137,9 +137,8 @@ def methods_for(
     ``extra_models`` more ONNX files, each run alone; the hybrid at each
     ``r_cs`` (the "audit" rule), the paper's rule at ``r_c`` = 0.8, the
     "error" rule at each audit tolerance of ``error_tols`` [g], and the
-    hybrid as ``hybridmpm simulate`` runs it by default (key
-    ``hybrid_default``: the rule shipped with the scene's model, else the
-    defaults), its classical twin with MPM on half the grid as the cheap
+    GNS hybrid under the rule shipped with the scene's model (key
+    ``hybrid_default``; else the rule's defaults), its classical twin with MPM on half the grid as the cheap
     half (key ``hybrid_coarse``, the same rule), and plain MPM on each coarser grid of ``grids`` (fractions of
     the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
     refuses on ``seed``'s initial condition are left out:
@@ -180,7 +179,9 @@ def methods_for(
     rule = shipped_switching(scene) if model is None else {}
     safeguard, tol0 = rule.get("safeguard", SAFEGUARD), rule.get("audit_tol", AUDIT_TOL)
     name = f"error rule, tol {float(tol0):g} g" if safeguard == "error" else ("s(t) + audit" if safeguard == "audit" else "s(t) alone")
-    out.append(Method("hybrid_default", "hybrid", f"hybrid, default ({name})", r_p, r_t, R_C, str(main), "hybrid", params, safeguard, float(tol0)))
+    out.append(
+        Method("hybrid_default", "hybrid", f"hybrid, GNS with its shipped rule ({name})", r_p, r_t, R_C, str(main), "hybrid", params, safeguard, float(tol0))
+    )
     if mpm_grid_methods(scene, r_p, seed, (0.5,))[0]:  # the classical twin, where the scene holds on half its grid
         out.append(
             Method(
@@ -217,3 +218,22 @@ def methods_for(
             )
         )
     return out
+
+
+def shipped_default_method(scene: str, methods: list[Method]) -> Method | None:
+    """The configuration ``hybridmpm simulate SCENE`` runs by default
+    (``models/defaults.json``: :func:`hybridmpm.models.shipped_default`) as one
+    of ``methods``: the method with its key, appended to ``methods`` when none
+    has it. None where the scene ships no default."""
+
+    cfg = shipped_default(scene).get("config") or {}
+    key = cfg.get("key")
+    if not key:
+        return None
+    for m in methods:
+        if m.key == key:
+            return m
+    names = {f.name for f in fields(Method)}
+    m = Method(**{k: v for k, v in cfg.items() if k in names})
+    methods.append(m)
+    return m

@@ -267,6 +267,9 @@ def plot_pareto(path_png: Path, rows: list[dict[str, Any]], title: str, metric: 
         )  # fmt: skip
     for r in front:
         ax.plot(r["ms_mean"], y(r), "o", mfc="none", mec="darkorange", ms=14, mew=1.5, zorder=5)
+    for r in rows:
+        if r.get("shipped_default"):
+            ax.plot(r["ms_mean"], y(r), "*", mfc="none", mec="red", ms=22, mew=1.8, zorder=6, ls="none", label=f"shipped default: {r['label']}")
     ax.set_xscale("log")
     from matplotlib.ticker import FormatStrFormatter
 
@@ -480,6 +483,44 @@ def _metrics_section(rows: list[dict[str, Any]]) -> list[str]:
             if r["kind"] != "mpm" and not r["failures"] and math.isfinite(r.get("at_front", {}).get(m, math.nan)) and r[m] < r["at_front"][m]
         ]  # fmt: skip
         lines.append(f"Below the plain-MPM front on `{m}`: " + ("; ".join(below) or "none") + ".  ")
+    lines.append("")
+    return lines
+
+
+def default_section(scene: str, rows: list[dict[str, Any]]) -> list[str]:
+    """The report's section on the scene's shipped default (the row flagged
+    ``shipped_default``: what ``hybridmpm simulate SCENE`` runs): its time and
+    every score against MPM at ``r_p`` and against each score's plain-MPM
+    front at its time. Empty where no row is flagged."""
+    d = next((r for r in rows if r.get("shipped_default")), None)
+    lo = next((r for r in rows if r["key"] == "mpm_rp"), None)
+    if d is None or lo is None:
+        return []
+    metrics = ["error_mean", *(m for m in CHART_METRICS if math.isfinite(d.get(m, math.nan)))]
+
+    def front_cell(m: str) -> str:
+        on = d.get("mpm_front") if m == "error_mean" else d.get("on_front", {}).get(m)
+        if on:
+            return "on it"
+        f = d.get("front_error", math.nan) if m == "error_mean" else d.get("at_front", {}).get(m, math.nan)
+        if not math.isfinite(f):
+            return "faster than every plain MPM"
+        return f"{_g(f)} ({d[m] / f:.2f}×)" if f > 0 else f"{_g(f)}"
+
+    lines = [
+        "## The shipped default",
+        "",
+        f"`hybridmpm simulate {scene}` runs **{d['label']}** (`models/defaults.json`, chosen on validation seeds by "
+        "`benchmarks/release/ship_defaults.py`; the red star on every chart). On these seeds it takes "
+        f"{d['ms_mean']:.2f} ms per frame, {d['ms_mean'] / lo['ms_mean']:.2f}× MPM at r_p's time.",
+        "",
+        "| score | shipped default | MPM at r_p | default ÷ MPM at r_p | the score's plain-MPM front at the default's time (default ÷ it) |",
+        "|---|---|---|---|---|",
+    ]
+    for m in metrics:
+        v, ref = d.get(m, math.nan), lo.get(m, math.nan)
+        ratio = f"{v / ref:.2f}" if math.isfinite(v) and math.isfinite(ref) and ref > 0 else "–"
+        lines.append(f"| `{m}` | {_g(v)} | {_g(ref)} | {ratio} | {front_cell(m)} |")
     lines.append("")
     return lines
 
