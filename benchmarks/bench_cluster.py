@@ -36,23 +36,10 @@ import httpx
 import numpy as np
 
 from hybridmpm.bench.harness import write_results
-from hybridmpm.service.testing import LiveServer, RayCluster, private_bytes
+from hybridmpm.service.testing import LiveServer, RayCluster, cpu_seconds, private_bytes
 
 OCTET = {"Accept": "application/octet-stream"}
 WORKLOADS = [("water2d", "mpm"), ("dam_break2d", "hybrid")]
-
-
-def cpu_seconds(pids: list[int]) -> float:
-    """CPU time (user + system) the processes ``pids`` have used [s]."""
-    tick = os.sysconf("SC_CLK_TCK")
-    total = 0.0
-    for pid in pids:
-        try:
-            f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(f[11]) + int(f[12])) / tick
-    return total
 
 
 async def level(srv: LiveServer, cluster: RayCluster | None, scene: str, solver: str, n: int, seconds: float) -> dict:

@@ -141,6 +141,26 @@ class LiveServer:
         self.stop()
 
 
+def cpu_seconds(pids: list[int]) -> float:
+    """CPU time (user + system) the processes ``pids`` have used [s] (Linux:
+    ``/proc/PID/stat``); a process gone meanwhile counts 0."""
+    return sum(_stat_cpu(f"/proc/{pid}/stat") for pid in pids)
+
+
+def thread_cpu_seconds(pid: int, tid: int | None = None) -> float:
+    """CPU time (user + system) thread ``tid`` of process ``pid`` has used [s]
+    (default its main thread: a server's event loop); 0 once it is gone."""
+    return _stat_cpu(f"/proc/{pid}/task/{pid if tid is None else tid}/stat")
+
+
+def _stat_cpu(path: str) -> float:
+    try:
+        f = Path(path).read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def children() -> dict[int, list[int]]:
     """Every process's children (Linux: ``/proc/PID/stat``)."""
     out: dict[int, list[int]] = {}
@@ -426,6 +446,7 @@ __all__ = [
     "LiveServer",
     "RayCluster",
     "cmdline",
+    "cpu_seconds",
     "descendants",
     "free_port",
     "listening_port",
@@ -433,5 +454,6 @@ __all__ = [
     "private_bytes",
     "soak",
     "step_binary",
+    "thread_cpu_seconds",
     "wait_saved",
 ]

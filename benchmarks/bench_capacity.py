@@ -1,0 +1,302 @@
+"""Capacity: how many water2d sessions one server holds at real time.
+
+A real ``hybridmpm serve`` on 127.0.0.1 (child process). For each N of the
+ladder (1, 2, 4, 6, 8, 10, 12, ... until a rung fails), N water2d sessions
+are created with the service's default configuration (solver ``default``:
+what the scene ships, ``models/defaults.json``; seeds 0..N-1), each gets one
+WebSocket viewer that sends ``play`` as the page does (a session plays only
+while it has a viewer), and after ``--warmup`` seconds, for ``--seconds``:
+
+* frames/s each session reaches: the frame numbers in the headers its viewer
+  receives (the stream sends at most ``max_fps`` of them a second, the newest
+  one: latest wins), first and last of the window; min and median over the N;
+* step latency p50/p95: a probe, one more water2d session of the same
+  configuration that does not play, stepped one frame at a time (``POST
+  /step {frames: 1}``, binary answer) every ``--probe-gap`` seconds: the
+  client's round trip, and the engine's part of it (``X-Seconds``);
+* CPU: the server process (cores busy), its main thread (the event loop:
+  frame offers, the WebSocket sends, the play loops' waits), this client
+  (the viewers and the probe), and the whole machine (the rest is other
+  processes);
+* real time held: every session at >= ``REAL_TIME_SHARE`` of 1/dt_frame
+  (water2d: 400 frames/s, dt_frame 2.5 ms).
+
+The capacity is the largest N whose rung and every smaller one held. Then
+one dam_break3d session (default solver) with one viewer: the frames/s it
+steps (the page's 3D scene).
+
+    python benchmarks/bench_capacity.py [--seconds 4] [--warmup 1.5] [--out-dir benchmarks/results]
+    python benchmarks/bench_capacity.py --quick --out-dir /tmp/cap   # seconds, tiny settings
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import statistics
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import websockets
+
+from hybridmpm.bench.harness import REPO_ROOT, load_average, script_argv, table, write_results
+from hybridmpm.service import decode_frame
+from hybridmpm.service.core import PLAY_LAG_S
+from hybridmpm.service.testing import LiveServer, cpu_seconds, thread_cpu_seconds
+
+OCTET = {"Accept": "application/octet-stream"}
+#: A session holds real time when it steps at least this share of 1/dt_frame frames/s.
+REAL_TIME_SHARE = 0.95
+#: Frames a viewer's stream sends per second at most (the service's default ``max_fps``).
+STREAM_FPS = 60.0
+
+
+def ladder(most: int) -> list[int]:
+    """The session counts tried, in order: 1, 2, 4, then every second count up to ``most``."""
+    return [n for n in (1, 2, 4) if n <= most] + list(range(6, most + 1, 2))
+
+
+def stream_rate(seen: Sequence[tuple[float, int]], t0: float, t1: float) -> float:
+    """Frames/s a session stepped in the window [``t0``, ``t1``] as its viewer
+    saw it: ``seen`` the (arrival time [s], frame number) of every frame
+    received; the first and last of the window. 0 with fewer than two."""
+    inside = [(t, f) for t, f in seen if t0 <= t <= t1]
+    if len(inside) < 2 or inside[-1][0] <= inside[0][0]:
+        return 0.0
+    return (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+
+
+def rate_bound(dt_frame: float, r_t: int, window: float, max_fps: float = STREAM_FPS) -> float:
+    """The most frames/s :func:`stream_rate` can show for a session the play
+    loop paces at real time over a ``window`` of seconds: one coarse step
+    (``r_t`` frames of ``dt_frame`` s) per ``r_t·dt_frame`` of wall time,
+    plus a catch-up of at most ``PLAY_LAG_S`` and the stream's latest-wins
+    lag (one send gap ``1/max_fps`` at either end) and one step of rounding."""
+    return ((window + PLAY_LAG_S + 2.0 / max_fps) / dt_frame + r_t) / window
+
+
+def holds(rate: float, dt_frame: float) -> bool:
+    """Real time: at least :data:`REAL_TIME_SHARE` of 1/``dt_frame`` frames/s."""
+    return rate >= REAL_TIME_SHARE / dt_frame
+
+
+def capacity(rows: Sequence[dict[str, Any]]) -> int:
+    """The largest ``sessions`` of ``rows`` (in ladder order) whose row and
+    every earlier one held real time (``all_real_time``); 0 when the first did not."""
+    best = 0
+    for r in rows:
+        if not r["all_real_time"]:
+            break
+        best = r["sessions"]
+    return best
+
+
+def machine_ticks() -> tuple[int, int]:
+    """(busy, total) CPU ticks of the whole machine since boot (``/proc/stat``; idle and iowait are not busy)."""
+    v = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    total = sum(v[:8])
+    return total - v[3] - v[4], total
+
+
+async def watch(ws_url: str, sid: str, seen: list[tuple[float, int]], playing: asyncio.Event) -> None:
+    """A viewer of session ``sid`` as the page is one: its ``meta`` message,
+    then ``play``; every binary frame's (arrival time, frame number) into ``seen``."""
+    async with websockets.connect(f"{ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws:
+        await ws.recv()  # meta
+        await ws.send('{"type": "play"}')
+        playing.set()
+        while True:
+            m = await ws.recv()
+            if isinstance(m, bytes):
+                seen.append((time.monotonic(), decode_frame(m)[0].frame))
+
+
+async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seconds: float, probe_gap: float | None) -> dict[str, Any]:
+    """``n`` sessions of ``scene`` (default solver) playing at once, one viewer
+    each, measured for ``seconds`` after ``warmup``; with ``probe_gap`` one more
+    session of ``scene`` stepped one frame at a time that often (step latency)."""
+    async with httpx.AsyncClient(base_url=srv.url, timeout=120, limits=httpx.Limits(max_connections=n + 4)) as c:
+        made = [await c.post("/v1/sessions", json={"scene": scene, "seed": i}) for i in range(n + (probe_gap is not None))]
+        bad = [r for r in made if r.status_code != 201]
+        if bad:
+            raise RuntimeError(f"creating a {scene} session: {bad[0].status_code} {bad[0].text[:200]}")
+        info = made[0].json()
+        listed = (await c.get("/v1/scenes")).json()
+        listed = listed.get("scenes", listed) if isinstance(listed, dict) else listed
+        default = next((x.get("default_configuration") for x in listed if x.get("name") == scene), None)
+        ids = [r.json()["id"] for r in made]
+        probe = ids.pop() if probe_gap is not None else None
+        seen: list[list[tuple[float, int]]] = [[] for _ in ids]
+        playing = [asyncio.Event() for _ in ids]
+        viewers = [asyncio.create_task(watch(srv.ws_url, sid, s, p)) for sid, s, p in zip(ids, seen, playing)]
+        try:
+            await asyncio.wait_for(asyncio.gather(*(p.wait() for p in playing)), 60)
+            await asyncio.sleep(warmup)
+            lat, engine = [], []
+            pid = srv.proc.pid
+            cpu0, loop0, mine0, box0 = cpu_seconds([pid]), thread_cpu_seconds(pid), time.process_time(), machine_ticks()
+            t0 = time.monotonic()
+            t_end = t0 + seconds
+            while time.monotonic() < t_end:
+                if probe is None:
+                    await asyncio.sleep(t_end - time.monotonic())
+                    break
+                t = time.perf_counter()
+                r = await c.post(f"/v1/sessions/{probe}/step", json={"frames": 1}, headers=OCTET)
+                lat.append((time.perf_counter() - t) * 1e3)
+                if r.status_code != 200:
+                    raise RuntimeError(f"probe step: {r.status_code} {r.text[:200]}")
+                engine.append(sum(float(x) for x in r.headers["x-seconds"].split(",")) * 1e3)
+                await asyncio.sleep(max(0.0, min(probe_gap or 0.0, t_end - time.monotonic())))
+            t1 = time.monotonic()
+            wall = t1 - t0
+            cpu1, loop1, mine1, box1 = cpu_seconds([pid]), thread_cpu_seconds(pid), time.process_time(), machine_ticks()
+            failed = [v for v in viewers if v.done()]
+            if failed:  # a viewer that ended early: its error
+                failed[0].result()
+        finally:
+            for v in viewers:
+                v.cancel()
+            await asyncio.gather(*viewers, return_exceptions=True)
+            for sid in [*ids, *([probe] if probe else [])]:
+                await c.delete(f"/v1/sessions/{sid}")
+    rates = np.array([stream_rate(s, t0, t1) for s in seen])
+    cores = os.cpu_count() or 1
+    out: dict[str, Any] = {
+        "scene": scene,
+        "solver": info["solver"],
+        "configuration": default if info["solver"] == "default" else None,
+        "particles": info["num_particles"],
+        "dt_frame": info["dt_frame"],
+        "r_t": info["r_t"],
+        "sessions": n,
+        "window_s": wall,
+        "rates": rates.tolist(),
+        "min_fps": float(rates.min()),
+        "median_fps": float(np.median(rates)),
+        "all_real_time": bool(all(holds(x, info["dt_frame"]) for x in rates)),
+        "server_cores": (cpu1 - cpu0) / wall,
+        "loop_thread_share": (loop1 - loop0) / wall,
+        "client_cores": (mine1 - mine0) / wall,
+        "machine_cores": cores * (box1[0] - box0[0]) / max(1, box1[1] - box0[1]),
+        "load_1min": load_average()[0],
+    }
+    if lat:
+        out |= {
+            "probe_steps": len(lat),
+            "step_p50_ms": float(np.percentile(lat, 50)),
+            "step_p95_ms": float(np.percentile(lat, 95)),
+            "engine_p50_ms": float(np.percentile(engine, 50)),
+        }
+    return out
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    rows: list[dict[str, Any]] = []
+    log = Path(args.server_log) if args.server_log else None
+    with LiveServer(max_sessions=args.most + 4, log=log) as srv:
+        for n in ladder(args.most):
+            r = asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap))
+            rows.append(r)
+            print(json.dumps({k: v for k, v in r.items() if k != "rates"}), flush=True)
+            if not r["all_real_time"]:
+                break
+        three = asyncio.run(play_sessions(srv, args.scene3d, 1, args.warmup, args.seconds, None)) if args.scene3d else None
+        if three:
+            print(json.dumps(three), flush=True)
+    return {"rows": rows, "capacity": capacity(rows), "real_time_share": REAL_TIME_SHARE, "scene3d": three}
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    rows = doc["rows"]
+    r0 = rows[0]
+    lines = [
+        "# Capacity: real-time water2d sessions on one server",
+        "",
+        f"water2d, solver `{r0['solver']}` ({r0['configuration'] or 'the scene default'}), {r0['particles']} particles, "
+        f"real time = {1 / r0['dt_frame']:.0f} frames/s (dt_frame {r0['dt_frame'] * 1e3:g} ms); a session holds it at >= "
+        f"{doc['real_time_share']:.2f}x. Each session has one WebSocket viewer playing it; step latency: one more session stepped "
+        "one frame at a time (client round trip; engine: its X-Seconds). CPU in cores busy over the window.",
+        "",
+        f"**Sessions held at real time: {doc['capacity']}**",
+        "",
+    ]
+    lines += table(
+        [
+            "sessions",
+            "frames/s min",
+            "frames/s median",
+            "all real time",
+            "step p50 [ms]",
+            "step p95 [ms]",
+            "engine p50 [ms]",
+            "server CPU",
+            "event loop thread",
+            "client CPU",
+            "machine CPU",
+            "load (1 min)",
+        ],
+        [
+            [
+                r["sessions"],
+                f"{r['min_fps']:.0f}",
+                f"{r['median_fps']:.0f}",
+                "yes" if r["all_real_time"] else "no",
+                f"{r.get('step_p50_ms', float('nan')):.2f}",
+                f"{r.get('step_p95_ms', float('nan')):.2f}",
+                f"{r.get('engine_p50_ms', float('nan')):.2f}",
+                f"{r['server_cores']:.2f}",
+                f"{r['loop_thread_share']:.2f}",
+                f"{r['client_cores']:.2f}",
+                f"{r['machine_cores']:.2f}",
+                f"{r['load_1min']:.2f}",
+            ]
+            for r in rows
+        ],
+        "rrrlrrrrrrrr",
+    )
+    t = doc.get("scene3d")
+    if t:
+        lines += [
+            "",
+            f"{t['scene']}, solver `{t['solver']}` ({t['configuration'] or 'the scene default'}), {t['particles']} particles, one session, one viewer: "
+            f"**{t['min_fps']:.1f} frames/s** stepped (real time {1 / t['dt_frame']:.0f}); server CPU {t['server_cores']:.2f} cores, "
+            f"event loop thread {t['loop_thread_share']:.2f}, load {t['load_1min']:.2f}.",
+        ]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=4.0, help="measured window per rung [s]")
+    ap.add_argument("--warmup", type=float, default=1.5, help="playing before the window [s]")
+    ap.add_argument("--most", type=int, default=40, help="the largest session count tried")
+    ap.add_argument("--probe-gap", type=float, default=0.05, help="seconds between the probe's one-frame steps")
+    ap.add_argument("--scene3d", default="dam_break3d", help='the 3D scene of the last figure ("" to skip)')
+    ap.add_argument("--quick", action="store_true", help="tiny settings (1 and 2 sessions, short windows, no 3D): a check that it runs")
+    ap.add_argument("--out-dir", default=str(REPO_ROOT / "benchmarks" / "results"), help="capacity.md and capacity.json go here")
+    ap.add_argument("--server-log", default=None, help="write the server's output here")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.seconds, args.warmup, args.most, args.scene3d = 1.0, 0.5, 2, ""
+    for name in ("seconds", "warmup", "probe_gap"):
+        if not getattr(args, name) > 0:
+            ap.error(f"--{name.replace('_', '-')}: must be > 0")
+    if args.most < 1:
+        ap.error("--most: must be >= 1")
+    doc = run(args)
+    write_results(args.out_dir, "capacity", doc=doc, markdown=markdown(doc), argv=script_argv(__file__, argv))
+    print(
+        f"sessions held at real time: {doc['capacity']}; median over the rungs of the median rate {statistics.median(r['median_fps'] for r in doc['rows']):.0f}"
+    )
+    return doc
+
+
+if __name__ == "__main__":
+    main()
