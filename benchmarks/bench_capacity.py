@@ -21,11 +21,18 @@ while it has a viewer), and after ``--warmup`` seconds, for ``--seconds``:
 * real time held: every session at >= ``REAL_TIME_SHARE`` of 1/dt_frame
   (water2d: 400 frames/s, dt_frame 2.5 ms).
 
-The capacity is the largest N whose rung and every smaller one held. Then
-one dam_break3d session (default solver) with one viewer: the frames/s it
-steps (the page's 3D scene).
+After the first failing rung, the counts between the last that held and it
+are tried. Last, the engine alone (``--engine-frames``, default warmup +
+window): each seed's simulator stepped in this process, one at a time: the
+cores a rung's sessions need at real time without the service.
 
-    python benchmarks/bench_capacity.py [--seconds 4] [--warmup 1.5] [--out-dir benchmarks/results]
+Each rung runs ``--repeats`` times (fresh sessions each time) and keeps its
+best run: a shared machine's slow spells only lower a rate. The capacity is
+the largest N whose rung and every smaller one held. Then
+one dam_break3d session (default solver) with one viewer, best of the same
+repeats: the frames/s it steps (the page's 3D scene).
+
+    python benchmarks/bench_capacity.py [--seconds 4] [--warmup 1.5] [--repeats 3] [--out-dir benchmarks/results]
     python benchmarks/bench_capacity.py --quick --out-dir /tmp/cap   # seconds, tiny settings
 """
 
@@ -37,7 +44,7 @@ import json
 import os
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -87,14 +94,36 @@ def holds(rate: float, dt_frame: float) -> bool:
 
 
 def capacity(rows: Sequence[dict[str, Any]]) -> int:
-    """The largest ``sessions`` of ``rows`` (in ladder order) whose row and
-    every earlier one held real time (``all_real_time``); 0 when the first did not."""
+    """The largest ``sessions`` of ``rows`` whose row and every row of fewer
+    sessions held real time (``all_real_time``); 0 when the smallest did not."""
     best = 0
-    for r in rows:
+    for r in sorted(rows, key=lambda r: r["sessions"]):
         if not r["all_real_time"]:
             break
         best = r["sessions"]
     return best
+
+
+def best_of(repeats: int, measure: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """``measure()`` ``repeats`` times; the run that held real time with the
+    highest slowest-session rate (a shared machine's slow spells only lower
+    a rate), with every run's slowest rate under ``min_fps_runs``."""
+    runs = [measure() for _ in range(repeats)]
+    best = max(runs, key=lambda r: (r["all_real_time"], r["min_fps"]))
+    return {**best, "min_fps_runs": [r["min_fps"] for r in runs]}
+
+
+def engine_ms_per_frame(scene: str, seed: int, frames: int) -> float:
+    """The engine alone, in this process, one thread: wall time per frame [ms]
+    of ``frames`` frames of a ``scene`` simulator of the default configuration
+    from the initial condition of ``seed`` (what a session's play loop steps)."""
+    from hybridmpm.sim import make_simulator
+
+    sim = make_simulator(scene, "default", seed=seed, threads=1)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        sim.advance()
+    return (time.perf_counter() - t0) / frames * 1e3
 
 
 def machine_ticks() -> tuple[int, int]:
@@ -172,7 +201,7 @@ async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seco
         "scene": scene,
         "solver": info["solver"],
         "configuration": default if info["solver"] == "default" else None,
-        "particles": info["num_particles"],
+        "particles": [r.json()["num_particles"] for r in made[:n]],
         "dt_frame": info["dt_frame"],
         "r_t": info["r_t"],
         "sessions": n,
@@ -201,16 +230,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     log = Path(args.server_log) if args.server_log else None
     with LiveServer(max_sessions=args.most + 4, log=log) as srv:
-        for n in ladder(args.most):
-            r = asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap))
+
+        def rung(n: int) -> bool:
+            r = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap)))
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k != "rates"}), flush=True)
-            if not r["all_real_time"]:
+            return bool(r["all_real_time"])
+
+        for n in ladder(args.most):
+            if not rung(n):  # then the counts between the last that held and this one
+                held = max([r["sessions"] for r in rows if r["all_real_time"]], default=0)
+                for k in range(held + 1, n):
+                    if not rung(k):
+                        break
                 break
-        three = asyncio.run(play_sessions(srv, args.scene3d, 1, args.warmup, args.seconds, None)) if args.scene3d else None
+        three = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, args.scene3d, 1, args.warmup, args.seconds, None))) if args.scene3d else None
         if three:
             print(json.dumps(three), flush=True)
-    return {"rows": rows, "capacity": capacity(rows), "real_time_share": REAL_TIME_SHARE, "scene3d": three}
+    frames = round((args.warmup + args.seconds) / rows[0]["dt_frame"]) if args.engine_frames is None else args.engine_frames
+    if frames:  # the engine alone, one seed at a time: the CPU each rung's sessions need at real time
+        cost = [engine_ms_per_frame("water2d", seed, frames) for seed in range(max(r["sessions"] for r in rows))]
+        for r in rows:
+            r["engine_ms_per_frame"] = cost[: r["sessions"]]
+            r["engine_cores"] = sum(cost[: r["sessions"]]) / 1e3 / r["dt_frame"]
+        print("engine alone [ms/frame] by seed:", [round(x, 3) for x in cost], flush=True)
+    return {"rows": rows, "capacity": capacity(rows), "engine_frames": frames, "real_time_share": REAL_TIME_SHARE, "repeats": args.repeats, "scene3d": three}
 
 
 def markdown(doc: dict[str, Any]) -> str:
@@ -219,10 +263,13 @@ def markdown(doc: dict[str, Any]) -> str:
     lines = [
         "# Capacity: real-time water2d sessions on one server",
         "",
-        f"water2d, solver `{r0['solver']}` ({r0['configuration'] or 'the scene default'}), {r0['particles']} particles, "
-        f"real time = {1 / r0['dt_frame']:.0f} frames/s (dt_frame {r0['dt_frame'] * 1e3:g} ms); a session holds it at >= "
+        f"water2d, solver `{r0['solver']}` ({r0['configuration'] or 'the scene default'}), session i of a rung on seed i "
+        f"({min(min(r['particles']) for r in rows)} to {max(max(r['particles']) for r in rows)} particles: the scene's random blocks), real time = {1 / r0['dt_frame']:.0f} frames/s (dt_frame {r0['dt_frame'] * 1e3:g} ms); a session holds it at >= "
         f"{doc['real_time_share']:.2f}x. Each session has one WebSocket viewer playing it; step latency: one more session stepped "
-        "one frame at a time (client round trip; engine: its X-Seconds). CPU in cores busy over the window.",
+        "one frame at a time (client round trip; engine: its X-Seconds). CPU in cores busy over the window. Each rung is run "
+        f"{doc['repeats']} times; the table shows the best run (the slowest session's rate of every run in the third column). "
+        f"Engine alone: the same seeds' simulators stepped {doc['engine_frames']} frames each in one process, one at a time; "
+        "the cores their sessions need at real time (sum over the rung's seeds of the time per frame, times the frame rate).",
         "",
         f"**Sessions held at real time: {doc['capacity']}**",
         "",
@@ -231,11 +278,13 @@ def markdown(doc: dict[str, Any]) -> str:
         [
             "sessions",
             "frames/s min",
+            "min, every run",
             "frames/s median",
             "all real time",
             "step p50 [ms]",
             "step p95 [ms]",
             "engine p50 [ms]",
+            "engine alone: cores needed",
             "server CPU",
             "event loop thread",
             "client CPU",
@@ -246,26 +295,28 @@ def markdown(doc: dict[str, Any]) -> str:
             [
                 r["sessions"],
                 f"{r['min_fps']:.0f}",
+                " / ".join(f"{x:.0f}" for x in r["min_fps_runs"]),
                 f"{r['median_fps']:.0f}",
                 "yes" if r["all_real_time"] else "no",
                 f"{r.get('step_p50_ms', float('nan')):.2f}",
                 f"{r.get('step_p95_ms', float('nan')):.2f}",
                 f"{r.get('engine_p50_ms', float('nan')):.2f}",
+                f"{r['engine_cores']:.2f}" if "engine_cores" in r else "—",
                 f"{r['server_cores']:.2f}",
                 f"{r['loop_thread_share']:.2f}",
                 f"{r['client_cores']:.2f}",
                 f"{r['machine_cores']:.2f}",
                 f"{r['load_1min']:.2f}",
             ]
-            for r in rows
+            for r in sorted(rows, key=lambda r: r["sessions"])
         ],
-        "rrrlrrrrrrrr",
+        "rrrrlrrrrrrrrr",
     )
     t = doc.get("scene3d")
     if t:
         lines += [
             "",
-            f"{t['scene']}, solver `{t['solver']}` ({t['configuration'] or 'the scene default'}), {t['particles']} particles, one session, one viewer: "
+            f"{t['scene']}, solver `{t['solver']}` ({t['configuration'] or 'the scene default'}), {t['particles'][0]} particles, one session, one viewer: "
             f"**{t['min_fps']:.1f} frames/s** stepped (real time {1 / t['dt_frame']:.0f}); server CPU {t['server_cores']:.2f} cores, "
             f"event loop thread {t['loop_thread_share']:.2f}, load {t['load_1min']:.2f}.",
         ]
@@ -277,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--seconds", type=float, default=4.0, help="measured window per rung [s]")
     ap.add_argument("--warmup", type=float, default=1.5, help="playing before the window [s]")
     ap.add_argument("--most", type=int, default=40, help="the largest session count tried")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each rung; the best is reported (all runs' slowest rates beside it)")
+    ap.add_argument("--engine-frames", type=int, default=None, help="frames of the engine alone per seed (0: skip; default: warmup + window)")
     ap.add_argument("--probe-gap", type=float, default=0.05, help="seconds between the probe's one-frame steps")
     ap.add_argument("--scene3d", default="dam_break3d", help='the 3D scene of the last figure ("" to skip)')
     ap.add_argument("--quick", action="store_true", help="tiny settings (1 and 2 sessions, short windows, no 3D): a check that it runs")
@@ -284,12 +337,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--server-log", default=None, help="write the server's output here")
     args = ap.parse_args(argv)
     if args.quick:
-        args.seconds, args.warmup, args.most, args.scene3d = 1.0, 0.5, 2, ""
+        args.seconds, args.warmup, args.most, args.repeats, args.scene3d, args.engine_frames = 1.0, 0.5, 2, 1, "", 20
     for name in ("seconds", "warmup", "probe_gap"):
         if not getattr(args, name) > 0:
             ap.error(f"--{name.replace('_', '-')}: must be > 0")
-    if args.most < 1:
-        ap.error("--most: must be >= 1")
+    if args.engine_frames is not None and args.engine_frames < 0:
+        ap.error("--engine-frames: must be >= 0")
+    for name in ("most", "repeats"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name}: must be >= 1")
     doc = run(args)
     write_results(args.out_dir, "capacity", doc=doc, markdown=markdown(doc), argv=script_argv(__file__, argv))
     print(

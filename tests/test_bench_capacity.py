@@ -34,6 +34,9 @@ def test_ladder_and_capacity_on_hand_made_rows(cap):
     rows = [{"sessions": n, "all_real_time": ok} for n, ok in [(1, True), (2, True), (4, True), (6, False), (8, True)]]
     assert cap.capacity(rows) == 4  # the first failing rung ends it, a later pass does not count
     assert cap.capacity([{"sessions": 1, "all_real_time": False}]) == 0
+    # the fill-in after a failing rung comes after it in the rows: 6 failed, then 5 held
+    filled = [{"sessions": n, "all_real_time": ok} for n, ok in [(1, True), (2, True), (4, True), (6, False), (5, True)]]
+    assert cap.capacity(filled) == 5
 
 
 def test_stream_rate_reads_the_window_of_frame_numbers(cap):
@@ -65,6 +68,8 @@ def test_quick_run_against_a_real_server(cap, tmp_path: Path):
         assert 0 < min(r["rates"]) and max(r["rates"]) <= bound, (r["rates"], bound)  # the play loop paces every session
         assert r["all_real_time"] == all(cap.holds(x, r["dt_frame"]) for x in r["rates"])
         assert r["probe_steps"] >= 1 and r["step_p95_ms"] >= r["step_p50_ms"] > 0
+        assert len(r["particles"]) == len(r["engine_ms_per_frame"]) == r["sessions"]
+        assert r["engine_cores"] == pytest.approx(sum(r["engine_ms_per_frame"]) / 1e3 / r["dt_frame"])
     saved = json.loads((tmp_path / "capacity.json").read_text())
     assert saved["capacity"] == doc["capacity"] and "provenance" in saved
     assert f"Sessions held at real time: {doc['capacity']}" in (tmp_path / "capacity.md").read_text()
