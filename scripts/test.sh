@@ -86,9 +86,9 @@ python -m ruff check python tests benchmarks docs
 python -m ruff format --check python tests benchmarks docs
 background "mypy" type_check
 pytest_rc=0
-python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not alone" || pytest_rc=$?
+python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not alone" --durations=10 || pytest_rc=$?
 wait_background
 if [ "$pytest_rc" != 0 ]; then
     exit "$pytest_rc"
 fi
-python -m pytest -q -m alone
+python -m pytest -q -m alone --durations=5
