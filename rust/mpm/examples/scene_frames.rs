@@ -7,11 +7,12 @@
 //! substeps per frame and the ns per particle-substep of the best repeat,
 //! and a bitwise hash of the final state (the same for any thread count).
 //! With `HYBRIDMPM_PROFILE=1` the solver prints per-stage substep times.
-use hybridmpm_mpm::{Dim, DimOps, Solver, SolverParams};
+use hybridmpm_mpm::{ColliderParams, Dim, DimOps, Solver, SolverParams};
 use std::time::Instant;
 
 fn run<const D: usize>(
     params: serde_json::Value,
+    colliders: &[ColliderParams],
     blob: &[u8],
     threads: usize,
     warmup: usize,
@@ -23,7 +24,12 @@ fn run<const D: usize>(
 {
     let mut p: SolverParams<D> = serde_json::from_value(params).expect("solver parameters");
     p.num_threads = threads;
-    let mut s = Solver::new(p, vec![]).unwrap();
+    let colliders = colliders
+        .iter()
+        .enumerate()
+        .map(|(i, c)| c.build::<D>(&format!("colliders[{i}]")).unwrap())
+        .collect();
+    let mut s = Solver::new(p, colliders).unwrap();
     let dt_frame = 2.5e-3;
     let mut best = f64::INFINITY;
     let mut medians = Vec::new();
@@ -84,14 +90,13 @@ fn main() {
     let repeats: usize = a.get(6).and_then(|s| s.parse().ok()).unwrap_or(3);
     let obj = params.as_object_mut().unwrap();
     let dim = obj.remove("dim").and_then(|d| d.as_u64()).unwrap_or(2);
-    let colliders = obj.remove("colliders");
-    assert!(
-        colliders.is_none_or(|c| c.as_array().is_none_or(|c| c.is_empty())),
-        "colliders are not supported here"
-    );
+    let colliders: Vec<ColliderParams> = obj
+        .remove("colliders")
+        .map(|c| serde_json::from_value(c).expect("colliders"))
+        .unwrap_or_default();
     match dim {
-        2 => run::<2>(params, &blob, threads, warmup, frames, repeats),
-        3 => run::<3>(params, &blob, threads, warmup, frames, repeats),
+        2 => run::<2>(params, &colliders, &blob, threads, warmup, frames, repeats),
+        3 => run::<3>(params, &colliders, &blob, threads, warmup, frames, repeats),
         _ => panic!("dim {dim}"),
     }
 }

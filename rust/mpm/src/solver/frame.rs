@@ -66,6 +66,12 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 /// Particles per claimed item when the cells are computed at the frame's start.
 const KEYS_CHUNK: usize = 1024;
 
+/// Below this many particles per member the block sort runs whole in the
+/// serial section that starts a substep instead of in chunks between three
+/// more barriers: its work, ~3 ns a particle per chunked stage, is less than
+/// the barriers cost a small frame.
+pub(super) const SERIAL_SORT_BELOW: usize = 2048;
+
 impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
@@ -102,7 +108,12 @@ where
             team,
             touched,
             result,
-            n_chunks: threads,
+            members: threads,
+            sort_chunks: if self.particles.len() < self.serial_sort_below.saturating_mul(threads) {
+                1
+            } else {
+                threads
+            },
             n_sub,
             dt,
             max_travel,
@@ -202,12 +213,14 @@ where
             team,
             touched,
             result,
-            n_chunks,
+            members,
+            sort_chunks,
             n_sub,
             dt,
             max_travel,
             retries,
         } = *args;
+        let serial_sort = sort_chunks == 1;
         // the cells of the frame's first substep, in parallel chunks
         team.barrier_then(|| {
             // SAFETY: serial section
@@ -239,7 +252,6 @@ where
             }
         }
         let mut patch = Vec::new();
-        let mut cursor = Vec::new();
         let mut acc = Vec::new();
         let mut clock = Profile::new(tid == 0 && unsafe { (*sp.0).profile });
         for sub in 0..=n_sub {
@@ -283,8 +295,28 @@ where
                     // the moving colliders where they are at this substep's end
                     s.pose_colliders(sub + 1, n_sub);
                     s.sort_begin();
-                    let keys = RawSlice::new(&mut s.grid.next_keys);
-                    unsafe { team.publish(s.stage_view(keys)) };
+                    let view = if serial_sort {
+                        // the whole block sort here: three barriers fewer
+                        // (same order: the sort is stable in id order for
+                        // any chunking)
+                        let keys = RawSlice::new(&mut s.grid.next_keys);
+                        let view = s.stage_view(keys);
+                        let mut t = touched.lock().expect("no member panicked holding it");
+                        // SAFETY: serial section: nothing else accesses the
+                        // sort's buffers
+                        unsafe { s.sort_mark(0, 1, view.src_map, &mut t) };
+                        s.sort_number(&mut t, 1);
+                        let view = s.stage_view(view.cells);
+                        unsafe {
+                            s.sort_count(0, 1, view.counts);
+                            s.sort_scatter(0, 1, view.sorted, &mut Vec::new());
+                        }
+                        s.size_stages(1, members)
+                    } else {
+                        let keys = RawSlice::new(&mut s.grid.next_keys);
+                        s.stage_view(keys)
+                    };
+                    unsafe { team.publish(view) };
                 }
             });
             if sub > 0 {
@@ -295,56 +327,45 @@ where
                 break;
             }
             // the block sort's parallel stages (see `grid.rs`)
-            {
+            if !serial_sort {
                 // SAFETY: parallel section; `sort_mark`'s conditions hold
                 // (chunks are claimed once; src_map is only marked here)
                 let s = unsafe { &*sp.0 };
                 let view = unsafe { team.published() };
                 let mut mine = Vec::new();
-                while let Some(c) = team.claim(SORT_MARK, n_chunks) {
-                    unsafe { s.sort_mark(c, n_chunks, view.src_map, &mut mine) };
+                while let Some(c) = team.claim(SORT_MARK, sort_chunks) {
+                    unsafe { s.sort_mark(c, sort_chunks, view.src_map, &mut mine) };
                 }
                 touched
                     .lock()
                     .expect("no member panicked holding it")
                     .append(&mut mine);
-            }
-            team.barrier_then(|| {
-                // SAFETY: serial section
-                let s = unsafe { &mut *sp.0 };
-                let mut t = touched.lock().expect("no member panicked holding it");
-                s.sort_number(&mut t, n_chunks);
-                let keys = RawSlice::new(&mut s.grid.next_keys);
-                unsafe { team.publish(s.stage_view(keys)) };
-            });
-            {
+                team.barrier_then(|| {
+                    // SAFETY: serial section
+                    let s = unsafe { &mut *sp.0 };
+                    let mut t = touched.lock().expect("no member panicked holding it");
+                    s.sort_number(&mut t, sort_chunks);
+                    let keys = RawSlice::new(&mut s.grid.next_keys);
+                    unsafe { team.publish(s.stage_view(keys)) };
+                });
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
                 let view = unsafe { team.published() };
-                while let Some(c) = team.claim(SORT_COUNT, n_chunks) {
-                    unsafe { s.sort_count(c, n_chunks, view.counts) };
+                while let Some(c) = team.claim(SORT_COUNT, sort_chunks) {
+                    unsafe { s.sort_count(c, sort_chunks, view.counts) };
                 }
                 team.barrier();
-                while let Some(c) = team.claim(SORT_SCATTER, n_chunks) {
-                    unsafe { s.sort_scatter(c, n_chunks, view.sorted, &mut cursor) };
+                let mut cur = Vec::new();
+                while let Some(c) = team.claim(SORT_SCATTER, sort_chunks) {
+                    unsafe { s.sort_scatter(c, sort_chunks, view.sorted, &mut cur) };
                 }
+                team.barrier_then(|| {
+                    // SAFETY: serial section
+                    let s = unsafe { &mut *sp.0 };
+                    let view = s.size_stages(sort_chunks, members);
+                    unsafe { team.publish(view) };
+                });
             }
-            team.barrier_then(|| {
-                // SAFETY: serial section
-                let s = unsafe { &mut *sp.0 };
-                s.sort_end(n_chunks);
-                let (n_src, n_out) = (s.grid.src_blocks.len(), s.grid.out_blocks.len());
-                let b = 1usize << s.grid.log2_b;
-                s.grid.local.resize(n_src * s.stencil.pad_nodes, [0.0; 4]);
-                s.grid.out_v.resize(n_out * b.pow(D as u32), [0.0; 4]);
-                let n = s.particles.len();
-                s.next.resize(n, s.particles[0]);
-                s.ids_next.resize(n, 0);
-                s.grid.next_keys.resize(n, Cell::default());
-                let keys = RawSlice::new(&mut s.grid.next_keys);
-                let view = s.stage_view(keys);
-                unsafe { team.publish(view) };
-            });
             clock.lap(Lap::Sort);
             clock.blocks(unsafe { &*sp.0 });
             // SAFETY: parallel sections from here to the loop's next barrier:
@@ -355,7 +376,8 @@ where
             let blk_nodes = 1usize << (s.grid.log2_b as usize * D);
             patch.resize(st.pad_nodes, [0.0f32; 4]);
             acc.resize(blk_nodes, [0.0f32; 4]);
-            while let Some(si) = team.claim(P2G, view.n_src) {
+            while let Some(k) = team.claim(P2G, view.n_src) {
+                let si = s.grid.p2g_order[k] as usize;
                 let buf = unsafe { view.local.chunk_mut(si * st.pad_nodes, st.pad_nodes) };
                 s.p2g_block(si, buf, dt);
             }
@@ -369,10 +391,16 @@ where
             clock.lap(Lap::Grid);
             let sand = SandModel::new::<D>(&s.params.sand, s.isa);
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
-            while let Some(si) = team.claim(G2P, view.n_src) {
-                let lo = s.grid.src_offsets[si] as usize;
-                let len = s.grid.src_offsets[si + 1] as usize - lo;
-                // SAFETY: block si's range of the next storage order and its
+            // the block whose velocity patch `patch` holds
+            let mut patch_of = usize::MAX;
+            while let Some(k) = team.claim(G2P, s.grid.g2p_items.len()) {
+                let item = s.grid.g2p_items[k];
+                let (si, lo, len) = (item.block as usize, item.first as usize, item.len as usize);
+                if si != patch_of {
+                    s.g2p_patch(si, &mut patch);
+                    patch_of = si;
+                }
+                // SAFETY: the item's range of the next storage order and its
                 // ids are this thread's alone
                 let (h, v2) = unsafe {
                     let out = G2pOut {
@@ -382,13 +410,34 @@ where
                         slot_of: view.slot_of,
                         key_by_id: view.key_by_id,
                     };
-                    s.g2p_block(si, &mut patch, out, dt, &sand)
+                    s.g2p_block(lo, &patch, out, dt, &sand)
                 };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
             }
             team.report(health, vmax2);
         }
+    }
+
+    /// After the block sort (`sort_chunks` chunks): the blocks' offsets and
+    /// the output blocks ([`Self::sort_end`]), the claim order of a team of
+    /// `members` ([`Self::schedule`]), and the buffers of p2g, the grid
+    /// update and g2p sized for this substep; returns their view.
+    fn size_stages(&mut self, sort_chunks: usize, members: usize) -> Stage<D> {
+        self.sort_end(sort_chunks);
+        self.schedule(members);
+        let (n_src, n_out) = (self.grid.src_blocks.len(), self.grid.out_blocks.len());
+        let b = 1usize << self.grid.log2_b;
+        self.grid
+            .local
+            .resize(n_src * self.stencil.pad_nodes, [0.0; 4]);
+        self.grid.out_v.resize(n_out * b.pow(D as u32), [0.0; 4]);
+        let n = self.particles.len();
+        self.next.resize(n, self.particles[0]);
+        self.ids_next.resize(n, 0);
+        self.grid.next_keys.resize(n, Cell::default());
+        let keys = RawSlice::new(&mut self.grid.next_keys);
+        self.stage_view(keys)
     }
 
     /// The buffers the parallel stages write, sized for this substep.
@@ -412,7 +461,7 @@ where
 
 /// What the members of a frame's team share (`Solver::run_substeps`): the
 /// solver, the team, the sort's touched blocks, the frame's result slot, the
-/// number of sort chunks (the team's size), and the frame's substeps.
+/// team's size and the number of sort chunks, and the frame's substeps.
 struct MemberArgs<'a, const D: usize>
 where
     Dim<D>: DimOps<D>,
@@ -421,7 +470,10 @@ where
     team: &'a Team<Stage<D>>,
     touched: &'a Mutex<Vec<u32>>,
     result: &'a Mutex<Option<Result<f32>>>,
-    n_chunks: usize,
+    /// The team's size, and the chunks of the block sort (1: the sort runs
+    /// whole in the serial section that starts a substep).
+    members: usize,
+    sort_chunks: usize,
     n_sub: usize,
     dt: f32,
     max_travel: f32,
@@ -512,110 +564,5 @@ impl Profile {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::params::SolverParams;
-    use crate::particles::{Material, lattice};
-
-    /// A water and a sand block falling and colliding, stepped `frames`
-    /// frames with `threads` threads, the team forced on or off.
-    fn run<const D: usize>(threads: usize, team: bool, frames: usize) -> Vec<u8>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        run_with::<D>(Isa::Baseline, threads, team, frames)
-    }
-
-    /// [`run`] with the frame loop's copy for `isa`.
-    fn run_with<const D: usize>(isa: Isa, threads: usize, team: bool, frames: usize) -> Vec<u8>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        let params = SolverParams::<D> {
-            n_grid: 48,
-            num_threads: threads,
-            ..Default::default()
-        };
-        let dx = params.dx();
-        let mut s = Solver::new(params, vec![]).unwrap();
-        let mut ps = lattice([0.1; D], 20, dx / 2.0, Material::Water, 1000.0);
-        ps.extend(lattice([0.45; D], 14, dx / 2.0, Material::Sand, 1000.0));
-        s.set_particles(ps).unwrap();
-        s.mode.force = Some(team);
-        s.set_isa(isa).unwrap();
-        for _ in 0..frames {
-            s.step_frame(2.5e-3).unwrap();
-        }
-        s.checkpoint()
-    }
-
-    /// The team's chunked block sort and claimed blocks give bitwise the
-    /// result of one thread, for teams of 2 and 3 (more threads than this
-    /// machine's cores: members are descheduled mid-stage), 2D and 3D.
-    #[test]
-    fn team_is_bitwise_identical_to_one_thread() {
-        let one = run::<2>(1, false, 12);
-        assert_eq!(one, run::<2>(2, true, 12));
-        assert_eq!(one, run::<2>(3, true, 12));
-        assert_eq!(one, run::<2>(2, false, 12));
-        let one = run::<3>(1, false, 6);
-        assert_eq!(one, run::<3>(2, true, 6));
-        assert_eq!(one, run::<3>(3, true, 6));
-    }
-
-    /// Every compiled copy of the frame loop this CPU runs (`crate::isa`)
-    /// gives the bits of the portable one, alone and on a team, 2D and 3D,
-    /// water and sand (the blocks collide, so sand yields). On a CPU without
-    /// x86-64-v3 only the portable copy is compared with itself; the
-    /// machines this project is tested on have it.
-    #[test]
-    fn every_isa_gives_the_bits_of_the_portable_copy() {
-        let base2 = run::<2>(1, false, 12);
-        let base3 = run::<3>(1, false, 6);
-        for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
-            assert_eq!(base2, run_with::<2>(isa, 1, false, 12), "{isa:?} 2D");
-            assert_eq!(base2, run_with::<2>(isa, 2, true, 12), "{isa:?} 2D team");
-            assert_eq!(base3, run_with::<3>(isa, 1, false, 6), "{isa:?} 3D");
-            assert_eq!(base3, run_with::<3>(isa, 2, true, 6), "{isa:?} 3D team");
-        }
-        let mut s = Solver::<2>::new(SolverParams::default(), vec![]).unwrap();
-        assert!(s.isa().available());
-        for isa in Isa::ALL {
-            assert_eq!(s.set_isa(isa).is_ok(), isa.available(), "{isa:?}");
-        }
-    }
-
-    /// `mode_runs` counts each frame attempt under the way it ran: the team
-    /// (forced on, 2 threads), the thread alone (forced off, or a pool of one
-    /// thread, where "the team" is the calling thread).
-    #[test]
-    fn mode_runs_count_the_way_each_frame_ran() {
-        for (threads, team, alone_expected) in [(2, true, false), (2, false, true), (1, true, true)]
-        {
-            let params = SolverParams::<2> {
-                n_grid: 32,
-                num_threads: threads,
-                ..Default::default()
-            };
-            let dx = params.dx();
-            let mut s = Solver::new(params, vec![]).unwrap();
-            s.set_particles(lattice([0.2; 2], 10, dx / 2.0, Material::Water, 1000.0))
-                .unwrap();
-            s.mode.force = Some(team);
-            assert_eq!(s.mode_runs(), (0, 0));
-            for _ in 0..5 {
-                s.step_frame(2.5e-3).unwrap();
-            }
-            let (alone, on_team) = s.mode_runs();
-            assert!(
-                alone + on_team >= 5,
-                "{threads} {team}: {alone} + {on_team}"
-            );
-            assert_eq!(
-                (alone > 0, on_team > 0),
-                (alone_expected, !alone_expected),
-                "{threads} {team}"
-            );
-        }
-    }
-}
+#[path = "frame_tests.rs"]
+mod tests;

@@ -45,13 +45,15 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// g2p of source block `si`: gathers its padded velocity patch once
-    /// (`patch`: scratch of `(B+2)^D` nodes), updates its particles and
-    /// writes them, their [`Cell`] and their ids for the next substep to
-    /// `out` (the block's contiguous range of the next storage order: sorted
+    /// g2p of the particles of source block `si` at places `first ..
+    /// first + out.len()` of the sorted order (the whole block, or a piece of
+    /// it: [`super::grid::G2pItem`]), from the block's padded velocity patch
+    /// (`patch`: `(B+2)^D` nodes, filled by [`Self::g2p_patch`]): updates the
+    /// particles and writes them, their [`Cell`] and their ids for the next
+    /// substep to `out` (the same places of the next storage order: sorted
     /// by block, then id), and each one's new slot and block key to
-    /// `slot_of` and `key_by_id` at its id. Returns the block's health and
-    /// largest speed squared.
+    /// `slot_of` and `key_by_id` at its id. Returns the health and largest
+    /// speed squared of these particles.
     ///
     /// # Safety
     /// `slot_of` and `key_by_id` view `self.slot_of` and `grid.key_by_id`;
@@ -61,8 +63,8 @@ where
     #[inline(always)]
     pub(super) unsafe fn g2p_block(
         &self,
-        si: usize,
-        patch: &mut [[f32; 4]],
+        first: usize,
+        patch: &[[f32; 4]],
         out: G2pOut<'_, D>,
         dt: f32,
         sand: &SandModel,
@@ -78,41 +80,13 @@ where
         let inv_dx = 1.0 / dx;
         let (lo, hi) = self.domain_bounds();
         let log2_b = self.grid.log2_b;
-        let blk_nodes = 1usize << (log2_b as usize * D);
         let st = &self.stencil;
         let lat = st.lat_stride;
         let water = &self.params.water;
-        let g = &self.grid;
-        let (out_map, out_v, src_blocks, src_offsets, sorted) = (
-            &g.out_map,
-            &g.out_v,
-            &g.src_blocks,
-            &g.src_offsets,
-            &g.sorted,
-        );
+        let sorted = &self.grid.sorted;
         let particles = &self.particles;
-        let cells = &g.keys;
-        let c = unflatten::<D>(src_blocks[si] as usize, &lat);
-        // padded velocity patch of this block: nodes c·B + q, q ∈ [0, B+2)^D,
-        // copied by runs from the 2^D output blocks c + s it overlaps (the
-        // same node pairs the grid update gathers; every node lies in an
-        // output block, so all are overwritten)
-        for (s, runs) in st.gather_runs.iter().enumerate() {
-            let mut lin = 0usize;
-            for d in 0..D {
-                lin += (c[d] + ((s >> d) & 1)) * lat[d];
-            }
-            let ob = out_map.get(lin).copied().unwrap_or(EMPTY);
-            if ob == EMPTY {
-                continue;
-            }
-            let blk = &out_v[(ob - 1) as usize * blk_nodes..ob as usize * blk_nodes];
-            for &(l, q, len) in runs {
-                let (l, q, len) = (l as usize, q as usize, len as usize);
-                patch[q..q + len].copy_from_slice(&blk[l..l + len]);
-            }
-        }
-        let lo_i = src_offsets[si] as usize;
+        let cells = &self.grid.keys;
+        let lo_i = first;
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
         let mut sand_health = SandHealth {
@@ -200,6 +174,35 @@ where
             Health::Ok
         };
         (health, vmax2)
+    }
+
+    /// The padded velocity patch of source block `si` (`patch`: `(B+2)^D`
+    /// nodes, c·B + q for q ∈ [0, B+2)^D), copied by runs from the 2^D
+    /// output blocks c + s it overlaps (the same node pairs the grid update
+    /// gathers; every node lies in an output block, so all are overwritten).
+    // inlined into each compiled copy of the frame loop (`crate::isa`)
+    #[inline(always)]
+    pub(super) fn g2p_patch(&self, si: usize, patch: &mut [[f32; 4]]) {
+        let g = &self.grid;
+        let st = &self.stencil;
+        let lat = st.lat_stride;
+        let blk_nodes = 1usize << (g.log2_b as usize * D);
+        let c = unflatten::<D>(g.src_blocks[si] as usize, &lat);
+        for (s, runs) in st.gather_runs.iter().enumerate() {
+            let mut lin = 0usize;
+            for d in 0..D {
+                lin += (c[d] + ((s >> d) & 1)) * lat[d];
+            }
+            let ob = g.out_map.get(lin).copied().unwrap_or(EMPTY);
+            if ob == EMPTY {
+                continue;
+            }
+            let blk = &g.out_v[(ob - 1) as usize * blk_nodes..ob as usize * blk_nodes];
+            for &(l, q, len) in runs {
+                let (l, q, len) = (l as usize, q as usize, len as usize);
+                patch[q..q + len].copy_from_slice(&blk[l..l + len]);
+            }
+        }
     }
 
     /// After every block's g2p: the next storage order becomes the current

@@ -51,7 +51,28 @@ pub(super) struct SparseGrid {
     pub(super) counts: Vec<u32>,
     /// Block key of each particle in id order (scratch of the block sort).
     pub(super) key_by_id: Vec<u32>,
+    /// The order in which a substep's members claim p2g's source blocks and
+    /// g2p's items ([`Solver::schedule`]).
+    pub(super) p2g_order: Vec<u32>,
+    pub(super) g2p_items: Vec<G2pItem>,
 }
+
+/// A piece of a source block's particles that g2p hands to one member: the
+/// block, and the places `first .. first + len` of the sorted order.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct G2pItem {
+    pub(super) block: u32,
+    pub(super) first: u32,
+    pub(super) len: u32,
+}
+
+/// g2p items per member a team aims at (finer items balance the members'
+/// loads better, each costs a claim and, for a piece of a block, a gather
+/// of the block's velocity patch) ...
+const ITEMS_PER_MEMBER: usize = 8;
+/// ... and the fewest particles a piece of a block holds (a multiple of the
+/// sand lanes' batch, [`crate::material::sand::SandBatch`]).
+const MIN_ITEM: usize = 32;
 
 /// Precomputed stencil offsets.
 pub(super) struct Stencil<const D: usize> {
@@ -172,6 +193,8 @@ where
         next_keys: Vec::new(),
         counts: Vec::new(),
         key_by_id: Vec::new(),
+        p2g_order: Vec::new(),
+        g2p_items: Vec::new(),
     };
     Ok((
         grid,
@@ -385,6 +408,61 @@ where
                 }
             }
         }
+    }
+}
+
+impl<const D: usize> Solver<D>
+where
+    Dim<D>: DimOps<D>,
+{
+    /// The order in which the `members` of a team claim this substep's work
+    /// (after [`Self::sort_end`]): alone, every source block whole, in key
+    /// order; on a team, p2g's blocks and g2p's items largest first (the last
+    /// items claimed are the small ones, so the members end close together),
+    /// g2p's blocks cut into pieces of about `n / (members · ITEMS_PER_MEMBER)`
+    /// particles (at least `MIN_ITEM`): a small frame has few blocks, and one
+    /// large block claimed last kept the other member waiting. Which member
+    /// runs which piece changes no result: each particle's g2p reads only the
+    /// grid and writes only its own place.
+    pub(super) fn schedule(&mut self, members: usize) {
+        let g = &mut self.grid;
+        let n_src = g.src_blocks.len();
+        let len = |b: usize| g.src_offsets[b + 1] - g.src_offsets[b];
+        g.p2g_order.clear();
+        g.p2g_order.extend(0..n_src as u32);
+        g.g2p_items.clear();
+        if members <= 1 {
+            g.g2p_items.extend((0..n_src).map(|b| G2pItem {
+                block: b as u32,
+                first: g.src_offsets[b],
+                len: len(b),
+            }));
+            return;
+        }
+        // stable: equal blocks stay in key order (neighbours share grid data)
+        g.p2g_order
+            .sort_by_key(|&b| std::cmp::Reverse(len(b as usize)));
+        let n = self.particles.len();
+        let target = (n / (members * ITEMS_PER_MEMBER))
+            .max(MIN_ITEM)
+            .next_multiple_of(16) as u32;
+        for b in 0..n_src {
+            let (first, total) = (g.src_offsets[b], len(b));
+            let pieces = total.div_ceil(target).max(1);
+            // near-equal pieces, each a multiple of 16 but the last
+            let step = total.div_ceil(pieces).next_multiple_of(16);
+            let mut at = 0;
+            while at < total {
+                let l = step.min(total - at);
+                g.g2p_items.push(G2pItem {
+                    block: b as u32,
+                    first: first + at,
+                    len: l,
+                });
+                at += l;
+            }
+        }
+        g.g2p_items.sort_by_key(|it| std::cmp::Reverse(it.len));
     }
 }
 

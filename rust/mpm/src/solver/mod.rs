@@ -157,6 +157,9 @@ where
     pool_pid: u32,
     /// Whether frames run on the team or the calling thread alone (`mode.rs`).
     mode: mode::ModeChoice,
+    /// A team sorts in one serial section below this many particles per
+    /// member, in chunks above (`frame.rs`; tests set it to try both).
+    serial_sort_below: usize,
     /// Print per-stage substep timings and each frame attempt's mode choice to
     /// stderr (env `HYBRIDMPM_PROFILE` set at construction).
     profile: bool,
@@ -250,6 +253,7 @@ where
             pool,
             pool_pid: std::process::id(),
             mode: Default::default(),
+            serial_sort_below: frame::SERIAL_SORT_BELOW,
             profile: std::env::var_os("HYBRIDMPM_PROFILE").is_some(),
             isa: Isa::detect(),
             memory_budget,

@@ -1,0 +1,198 @@
+//! Tests of the frame loop (`frame.rs`): the team, the compiled copies, the
+//! block sort's two ways and g2p's items give the bits of one thread.
+use super::super::Solver;
+use crate::dim::{Dim, DimOps};
+use crate::isa::Isa;
+use crate::params::SolverParams;
+use crate::particles::{Material, lattice};
+
+/// A water and a sand block falling and colliding, stepped `frames`
+/// frames with `threads` threads, the team forced on or off.
+fn run<const D: usize>(threads: usize, team: bool, frames: usize) -> Vec<u8>
+where
+    Dim<D>: DimOps<D>,
+{
+    run_with::<D>(Isa::Baseline, threads, team, frames)
+}
+
+/// [`run`] with the block sort in chunks (`serial` false) or whole in
+/// a serial section (true) whatever the particle count.
+fn run_sorted<const D: usize>(threads: usize, team: bool, frames: usize, serial: bool) -> Vec<u8>
+where
+    Dim<D>: DimOps<D>,
+{
+    run_full::<D>(Isa::Baseline, threads, team, frames, Some(serial))
+}
+
+/// [`run`] with the frame loop's copy for `isa`.
+fn run_with<const D: usize>(isa: Isa, threads: usize, team: bool, frames: usize) -> Vec<u8>
+where
+    Dim<D>: DimOps<D>,
+{
+    run_full::<D>(isa, threads, team, frames, None)
+}
+
+fn run_full<const D: usize>(
+    isa: Isa,
+    threads: usize,
+    team: bool,
+    frames: usize,
+    serial_sort: Option<bool>,
+) -> Vec<u8>
+where
+    Dim<D>: DimOps<D>,
+{
+    let params = SolverParams::<D> {
+        n_grid: 48,
+        num_threads: threads,
+        ..Default::default()
+    };
+    let dx = params.dx();
+    let mut s = Solver::new(params, vec![]).unwrap();
+    let mut ps = lattice([0.1; D], 20, dx / 2.0, Material::Water, 1000.0);
+    ps.extend(lattice([0.45; D], 14, dx / 2.0, Material::Sand, 1000.0));
+    s.set_particles(ps).unwrap();
+    s.mode.force = Some(team);
+    if let Some(serial) = serial_sort {
+        s.serial_sort_below = if serial { usize::MAX } else { 0 };
+    }
+    s.set_isa(isa).unwrap();
+    for _ in 0..frames {
+        s.step_frame(2.5e-3).unwrap();
+    }
+    s.checkpoint()
+}
+
+/// The team's chunked block sort and claimed blocks give bitwise the
+/// result of one thread, for teams of 2 and 3 (more threads than this
+/// machine's cores: members are descheduled mid-stage), 2D and 3D.
+#[test]
+fn team_is_bitwise_identical_to_one_thread() {
+    let one = run::<2>(1, false, 12);
+    assert_eq!(one, run::<2>(2, true, 12));
+    assert_eq!(one, run::<2>(3, true, 12));
+    assert_eq!(one, run::<2>(2, false, 12));
+    let one = run::<3>(1, false, 6);
+    assert_eq!(one, run::<3>(2, true, 6));
+    assert_eq!(one, run::<3>(3, true, 6));
+}
+
+/// The block sort gives the same bits whole in a serial section and in
+/// chunks between barriers, alone and on teams of 2 and 3 (g2p's pieces
+/// of blocks: `Solver::schedule`).
+#[test]
+fn the_serial_and_the_chunked_sort_give_the_same_bits() {
+    let one = run_sorted::<2>(1, false, 12, false);
+    for (threads, serial) in [(1, true), (2, true), (2, false), (3, true), (3, false)] {
+        assert_eq!(
+            one,
+            run_sorted::<2>(threads, true, 12, serial),
+            "2D {threads} {serial}"
+        );
+    }
+    let one = run_sorted::<3>(1, false, 6, false);
+    for (threads, serial) in [(2, true), (2, false), (3, false)] {
+        assert_eq!(
+            one,
+            run_sorted::<3>(threads, true, 6, serial),
+            "3D {threads} {serial}"
+        );
+    }
+}
+
+/// g2p's items cover every place of the sorted order once, each inside
+/// its block; on a team, large blocks are cut and the items come largest
+/// first, and p2g's order is a permutation of the blocks.
+#[test]
+fn g2p_items_cover_every_particle_once() {
+    let params = SolverParams::<2> {
+        n_grid: 48,
+        num_threads: 2,
+        ..Default::default()
+    };
+    let dx = params.dx();
+    let mut s = Solver::new(params, vec![]).unwrap();
+    s.set_particles(lattice([0.1; 2], 40, dx / 2.0, Material::Water, 1000.0))
+        .unwrap();
+    s.step_frame(2.5e-3).unwrap();
+    for members in [1, 2, 3] {
+        s.schedule(members);
+        let g = &s.grid;
+        let mut seen = vec![0u8; s.particles.len()];
+        for it in &g.g2p_items {
+            let b = it.block as usize;
+            assert!(g.src_offsets[b] <= it.first && it.first + it.len <= g.src_offsets[b + 1]);
+            for k in it.first..it.first + it.len {
+                seen[k as usize] += 1;
+            }
+        }
+        assert!(seen.iter().all(|&c| c == 1), "{members}");
+        let mut order = g.p2g_order.clone();
+        order.sort_unstable();
+        assert!(
+            order.iter().enumerate().all(|(i, &b)| i as u32 == b),
+            "{members}"
+        );
+        if members > 1 {
+            assert!(g.g2p_items.windows(2).all(|w| w[0].len >= w[1].len));
+            assert!(g.g2p_items.len() > g.src_blocks.len(), "{members}");
+        } else {
+            assert_eq!(g.g2p_items.len(), g.src_blocks.len());
+        }
+    }
+}
+
+/// Every compiled copy of the frame loop this CPU runs (`crate::isa`)
+/// gives the bits of the portable one, alone and on a team, 2D and 3D,
+/// water and sand (the blocks collide, so sand yields). On a CPU without
+/// x86-64-v3 only the portable copy is compared with itself; the
+/// machines this project is tested on have it.
+#[test]
+fn every_isa_gives_the_bits_of_the_portable_copy() {
+    let base2 = run::<2>(1, false, 12);
+    let base3 = run::<3>(1, false, 6);
+    for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+        assert_eq!(base2, run_with::<2>(isa, 1, false, 12), "{isa:?} 2D");
+        assert_eq!(base2, run_with::<2>(isa, 2, true, 12), "{isa:?} 2D team");
+        assert_eq!(base3, run_with::<3>(isa, 1, false, 6), "{isa:?} 3D");
+        assert_eq!(base3, run_with::<3>(isa, 2, true, 6), "{isa:?} 3D team");
+    }
+    let mut s = Solver::<2>::new(SolverParams::default(), vec![]).unwrap();
+    assert!(s.isa().available());
+    for isa in Isa::ALL {
+        assert_eq!(s.set_isa(isa).is_ok(), isa.available(), "{isa:?}");
+    }
+}
+
+/// `mode_runs` counts each frame attempt under the way it ran: the team
+/// (forced on, 2 threads), the thread alone (forced off, or a pool of one
+/// thread, where "the team" is the calling thread).
+#[test]
+fn mode_runs_count_the_way_each_frame_ran() {
+    for (threads, team, alone_expected) in [(2, true, false), (2, false, true), (1, true, true)] {
+        let params = SolverParams::<2> {
+            n_grid: 32,
+            num_threads: threads,
+            ..Default::default()
+        };
+        let dx = params.dx();
+        let mut s = Solver::new(params, vec![]).unwrap();
+        s.set_particles(lattice([0.2; 2], 10, dx / 2.0, Material::Water, 1000.0))
+            .unwrap();
+        s.mode.force = Some(team);
+        assert_eq!(s.mode_runs(), (0, 0));
+        for _ in 0..5 {
+            s.step_frame(2.5e-3).unwrap();
+        }
+        let (alone, on_team) = s.mode_runs();
+        assert!(
+            alone + on_team >= 5,
+            "{threads} {team}: {alone} + {on_team}"
+        );
+        assert_eq!(
+            (alone > 0, on_team > 0),
+            (alone_expected, !alone_expected),
+            "{threads} {team}"
+        );
+    }
+}
