@@ -34,13 +34,12 @@ time: compare figures only within one run, and say the load.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hybridmpm.bench.harness import write_results
 from hybridmpm.conventions import MATERIAL_WATER
 from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import PAPER_R_P, Scene, lattice, make_scene
@@ -85,10 +84,10 @@ def curve_case(dim: int, side: int, frames: int, repeats: int) -> list[dict]:
     times: dict[int, list[float]] = {1: [], 2: []}
     for s in sims.values():
         for _ in range(3):
-            s.solver.step_frame(scene.dt_frame)
+            s.advance()
     for _ in range(repeats):
         for t, s in sims.items():
-            times[t] += timed(lambda s=s: s.solver.step_frame(scene.dt_frame), frames)
+            times[t] += timed(s.advance, frames)
     rows = []
     for t, s in sims.items():
         n = s.solver.num_particles
@@ -177,7 +176,8 @@ def session(args) -> list[dict]:
     return rows
 
 
-def chart(rows: list[dict], path: Path) -> None:
+def chart(rows: list[dict]):
+    """The cost curves (ms per frame, ns per particle-substep) against particles, per dimension and thread count."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -199,7 +199,7 @@ def chart(rows: list[dict], path: Path) -> None:
     axes[0].legend()
     fig.suptitle("MPM frame cost (water dam break, 2.5 ms frames; 2D 64, 3D 8 substeps)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    return fig
 
 
 def main() -> None:
@@ -214,11 +214,10 @@ def main() -> None:
     args = ap.parse_args()
     rows = {"curves": curves, "ratios": ratios, "session": session}[args.mode](args)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {"load": os.getloadavg(), "rows": rows}
-    (out / f"{args.mode}.json").write_text(json.dumps(meta, indent=1))
+    figures = {}
     if args.mode == "curves":
-        chart(rows, Path(args.png) if args.png else out / "frame_cost.png")
+        figures[str(Path(args.png).resolve()) if args.png else "frame_cost.png"] = chart(rows)
+    write_results(out, args.mode, doc={"rows": rows}, figures=figures, dpi=100)  # the load is in the provenance
 
 
 if __name__ == "__main__":

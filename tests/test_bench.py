@@ -160,6 +160,19 @@ def test_a_shipped_default_outside_the_grid_of_methods_is_added(monkeypatch: pyt
     assert shipped_default_method("water2d", methods) is None
 
 
+def test_the_twin_with_its_own_particles_is_benchmarked_as_such():
+    """The bench's own-particle twin is the hybrid whose coarse grid carries its own particle set (fewer particles
+    than the network's set the other twin carries), not a relabelled copy of the other twin."""
+    from hybridmpm.bench.run import BenchConfig, method_simulator
+    from hybridmpm.sim.coarse import CoarseMpmHalf, CoarseOwnHalf
+
+    ms = {m.key: m for m in methods_for("water2d", r_cs=(), error_tols=(), variants=False)}
+    cfg = BenchConfig("water2d", (1000,), 32, warmup=8).validate()
+    own, net = (method_simulator(ms[k], make_scene("water2d", seed=1000), 1000, cfg) for k in ("hybrid_coarse_own", "hybrid_coarse"))
+    assert isinstance(own.half, CoarseOwnHalf) and isinstance(net.half, CoarseMpmHalf)
+    assert ms["hybrid_coarse_own"].cheap_particles == "grid" and ms["hybrid_coarse"].cheap_particles is None
+
+
 def test_bench_errors_against_an_independent_reference(tiny: dict):
     """The reference stepped by hand on the solver, and MPM at r_p through the
     dataset generator (other code paths): the bench's errors must match."""

@@ -6,7 +6,7 @@ Per scene it benchmarks, on validation seeds (2000-, not the held-out test seeds
 a default can be: MPM at ``r_p`` on the scene's grid, plain MPM on coarser grids (7/8, 3/4, 5/8 and 1/2 of the scene's
 grid, two particles per cell per axis; the calibrated coarse material where one was fitted), the paper's hybrid with the
 shipped network and its shipped switching rule, and the classical twin (the hybrid whose cheap half is MPM on half the
-grid) under the shipped rule and under the "error" rule at two more tolerances. The default is the fastest candidate (mean time
+grid, carrying the network's particle set or its own) under the shipped rule and under the "error" rule at two more tolerances. The default is the fastest candidate (mean time
 ratio over the seeds) whose long-horizon grid-mass error and Sinkhorn divergence are both within the scene's budget
 times MPM at ``r_p``'s on every validation seed (:func:`seed_ratio_rows`, :func:`hybridmpm.bench.tune.choose_default`:
 1.15, 1.3 on the scenes of sand alone); MPM at ``r_p`` always qualifies.
@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -47,16 +48,20 @@ TWIN_TOLS = (0.5, 3.0)
 def candidates(scene: str, seed: int) -> list[Method]:
     """The configurations a default of ``scene`` can be (module docstring)."""
     ms = methods_for(scene, r_cs=(), error_tols=(), variants=False, grids=GRIDS, seed=seed)
-    keep = [m for m in ms if m.kind == "mpm" and not m.key.endswith("_rp") or m.key in ("mpm_rp", "hybrid_default", "hybrid_coarse")]
-    twin = next((m for m in keep if m.key == "hybrid_coarse"), None)
-    if twin is not None:
+    keep = [m for m in ms if m.kind == "mpm" and not m.key.endswith("_rp") or m.key in ("mpm_rp", "hybrid_default", "hybrid_coarse", "hybrid_coarse_own")]
+    for twin in [m for m in keep if m.key in ("hybrid_coarse", "hybrid_coarse_own")]:  # the twin on the network's particles and on its own
         for tol in TWIN_TOLS:
             if twin.safeguard == "error" and twin.audit_tol == tol:
                 continue
             keep.append(
-                Method(f"hybrid_coarse_err{tol:g}", "hybrid", f"hybrid, cheap half MPM on half the grid (error rule, tol {tol:g} g)", twin.r_p, twin.r_t,
-                       twin.r_c, twin.model, "hybrid", 0, "error", float(tol), cheap="mpm-coarse")
-            )  # fmt: skip
+                replace(
+                    twin,
+                    key=f"{twin.key}_err{tol:g}",
+                    label=twin.label.rsplit(" (", 1)[0] + f" (error rule, tol {tol:g} g)",
+                    safeguard="error",
+                    audit_tol=float(tol),
+                )
+            )
     return keep
 
 
@@ -66,6 +71,8 @@ def config_of(row: dict[str, Any]) -> dict[str, Any]:
     if config["kind"] == "hybrid":
         config["rule"] = make_rule(row.get("safeguard"), r_c=row.get("r_c"), audit_tol=row.get("audit_tol")).to_dict()
         config["cheap"] = row.get("cheap", "neural")
+        if row.get("cheap_particles"):
+            config["cheap_particles"] = row["cheap_particles"]
     if config["kind"] == "mpm" or row.get("cheap") == "mpm-coarse":
         config["model"] = None  # plain MPM and the twin load no network (the twin reads r_p from the shipped model's header)
     return config

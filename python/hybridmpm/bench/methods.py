@@ -62,7 +62,10 @@ class Method:
     axis); ``cheap`` the hybrid's cheap half ("neural", or "mpm-coarse": the
     classical twin, MPM on half the grid, :mod:`hybridmpm.sim.coarse`);
     ``calibrated`` MPM on ``n_grid`` with the calibrated coarse material of
-    the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
+    the scene (:func:`~hybridmpm.scenes.resolution.calibrate`);
+    ``cheap_particles`` what the classical twin's coarse grid carries (None:
+    the hybrid's particle set; "grid": its own, two per cell per axis,
+    :class:`~hybridmpm.sim.coarse.CoarseOwnHalf`).
     """
 
     key: str
@@ -79,6 +82,7 @@ class Method:
     n_grid: int | None = None
     cheap: str = "neural"
     calibrated: bool = False
+    cheap_particles: str | None = None
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -139,7 +143,8 @@ def methods_for(
     "error" rule at each audit tolerance of ``error_tols`` [g], and the
     GNS hybrid under the rule shipped with the scene's model (key
     ``hybrid_default``; else the rule's defaults), its classical twin with MPM on half the grid as the cheap
-    half (key ``hybrid_coarse``, the same rule), and plain MPM on each coarser grid of ``grids`` (fractions of
+    half (key ``hybrid_coarse``, the same rule; ``hybrid_coarse_own`` with the
+    coarse grid's own particle set), and plain MPM on each coarser grid of ``grids`` (fractions of
     the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
     refuses on ``seed``'s initial condition are left out:
     :func:`mpm_grid_methods`; with the calibrated coarse material where one
@@ -183,21 +188,10 @@ def methods_for(
         Method("hybrid_default", "hybrid", f"hybrid, GNS with its shipped rule ({name})", r_p, r_t, R_C, str(main), "hybrid", params, safeguard, float(tol0))
     )
     if mpm_grid_methods(scene, r_p, seed, (0.5,))[0]:  # the classical twin, where the scene holds on half its grid
+        twin = dict(r_p=r_p, r_t=r_t, r_c=R_C, model=str(main), role="hybrid", params=0, safeguard=safeguard, audit_tol=float(tol0), cheap="mpm-coarse")
+        out.append(Method("hybrid_coarse", "hybrid", f"hybrid, cheap half MPM on half the grid ({name})", **twin))
         out.append(
-            Method(
-                "hybrid_coarse",
-                "hybrid",
-                f"hybrid, cheap half MPM on half the grid ({name})",
-                r_p,
-                r_t,
-                R_C,
-                str(main),
-                "hybrid",
-                0,
-                safeguard,
-                float(tol0),
-                cheap="mpm-coarse",
-            )
+            Method("hybrid_coarse_own", "hybrid", f"hybrid, cheap half MPM on half the grid, its own particles ({name})", cheap_particles="grid", **twin)
         )
     for tol in error_tols:
         if not (0.0 < float(tol) <= 100.0):

@@ -148,6 +148,8 @@ def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) ->
     rule: dict[str, Any] = {} if method.safeguard is None else {"safeguard": method.safeguard}
     if method.audit_tol is not None:
         rule["audit_tol"] = method.audit_tol
+    if method.cheap_particles is not None:  # the classical twin with the coarse grid's own particle set
+        rule["cheap_particles"] = method.cheap_particles
     return HybridSimulator(
         scene, method.model, r_c=float(method.r_c or 0.0), seed=seed, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_threads, cheap=method.cheap, **rule
     )

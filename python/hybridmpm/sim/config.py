@@ -185,6 +185,8 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
     if cfg["kind"] == "hybrid" and cfg.get("cheap", "neural") != "neural":
         out["cheap"] = str(cfg["cheap"])  # the classical twin (a default may be one)
+        if cfg.get("cheap_particles"):
+            out["cheap_particles"] = str(cfg["cheap_particles"])  # with the coarse grid's own particle set
     if cfg["kind"] == "hybrid" and cfg.get("rule"):
         rule = SwitchingRule.from_dict(cfg["rule"]).to_dict()
         out.update({k: rule[k] for k in RULE_KEYS if k in rule})
