@@ -170,7 +170,8 @@ class CoarseOwnHalf:
     merges the hybrid's particles into their groups and a hand-back splits them again
     (:func:`~hybridmpm.sim.convert.merge_state`, :func:`~hybridmpm.sim.convert.split_state`); each
     proposal's positions are the split of the coarse state (each particle at its group's position
-    plus its offset, the offsets carried along by the group's APIC ``C``). ``conversions`` counts the
+    plus its offset, the offsets carried along by the group's APIC ``C`` and held within one coarse
+    cell, ``max_offset`` [m], of the centre). ``conversions`` counts the
     merges and ``merge_residual`` [m/s] is the last one's measured error (the fine velocities the
     groups' affine fields do not carry). ``r_t``, ``threads``, ``t_in``, ``model`` as for
     :class:`CoarseMpmHalf`."""
@@ -188,6 +189,7 @@ class CoarseOwnHalf:
         self.n_grid = int(coarse.params.resolved_n_grid())
         self.r_t, self.t_in, self.model = r_t, t_in, model
         self.dt_step = float(scene.dt_frame) * r_t
+        self.max_offset = float(self.sim.solver.dx)  # [m] the furthest a particle is placed from its group's centre
         self.offsets = np.zeros((self.particles.num_fluid, scene.dim))
         self.conversions = 0
         self.merge_residual = float("nan")
@@ -207,7 +209,12 @@ class CoarseOwnHalf:
             self.sim.solver.restore(self._before[0])
             return Proposal(np.zeros(0), np.zeros(0), None, None, "mpm")
         aff = np.asarray(self.sim.solver.affine, np.float64)[self.labels]
-        self._pending = self.offsets + self.dt_step * np.einsum("nij,nj->ni", aff, self.offsets)  # carried by the group's affine field
+        pending = self.offsets + self.dt_step * np.einsum("nij,nj->ni", aff, self.offsets)  # carried by the group's affine field
+        # at most one coarse cell from the group's centre: a stretching field grows the offsets without bound over a long spell
+        # on the coarse grid, and a particle split far out of its group's kernel took the group's affine velocity there
+        # (water_sand2d seed 1001: 1,948 m/s at a hand-back, which MPM refused)
+        norm = np.linalg.norm(pending, axis=1, keepdims=True)
+        self._pending = pending * np.minimum(1.0, self.max_offset / np.maximum(norm, 1e-30))
         pos = self.particles.pad(self._split(self._pending))
         return Proposal(np.zeros(0), pos, pos, None, None)
 
