@@ -140,7 +140,7 @@ def smoke_model(tmp_path_factory: pytest.TempPathFactory) -> dict:
     root = tmp_path_factory.mktemp("ctl")
     generate_control("water2d", root / "data", 8, 100, progress=False)
     summary = train_control(
-        "water2d", root / "data", root / "run", steps=400, lr=3e-3, checkpoint_every=1000, valid_fraction=0.2, progress=False,
+        "water2d", root / "data", root / "run", steps=200, lr=3e-3, checkpoint_every=1000, valid_fraction=0.2, progress=False,
         prior="sketch_ramp",
     )  # fmt: skip
     log = [json.loads(line) for line in (root / "run" / "log.jsonl").read_text().splitlines()]
@@ -150,16 +150,17 @@ def smoke_model(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def test_smoke_training_loss_falls(smoke_model: dict) -> None:
-    """A13: 400 steps of training on 8 cases (under a minute on the 2-core
+    """A13: 200 steps of training on 8 cases (about half a minute on the 2-core
     machine: a wall-clock figure, printed, not asserted; the step count
-    decides, so a slow machine trains as far) lower the loss by ≥ 30 %. On the
+    decides, so a slow machine trains as far) lower the loss by ≥ 30 % (to
+    0.36 of its first value here; 0.26 after 400 steps). On the
     sketch-ramp target: the free-sketch target (the true path minus the coarse
     free motion bent onto the sketch) is mostly splash the state does not
     predict, and its loss falls by only about a quarter in that time
     (docs/control.md)."""
     s = smoke_model["summary"]
     print(f"{s['steps']} training steps in {s['seconds']:.1f} s")
-    assert s["steps"] == 400
+    assert s["steps"] == 200
     # measured at fixed noise levels and draws on training pairs, so the per-step sampling noise cannot decide it
     assert s["fit_last"] <= 0.7 * s["fit_first"], s
 
