@@ -66,6 +66,12 @@ def block_scene(dim: int, side: int) -> Scene:
     return Scene(f"block{dim}d", params, x, mats, np.zeros_like(x), volumes=np.full(len(x), spacing**dim, np.float32))
 
 
+def team_share(sim: MpmSimulator) -> float:
+    """The share of the simulator's frame attempts the team of threads ran (``MpmSolver.mode_runs``)."""
+    alone, team = sim.solver.mode_runs
+    return team / max(alone + team, 1)
+
+
 def timed(step, frames: int) -> list[float]:
     """Wall seconds of each of ``frames`` calls of ``step``."""
     out = []
@@ -92,7 +98,6 @@ def curve_case(dim: int, side: int, frames: int, repeats: int) -> list[dict]:
     for t, s in sims.items():
         n = s.solver.num_particles
         med = float(np.median(times[t]))
-        alone, team = s.solver.mode_runs
         rows.append(
             {
                 "dim": dim,
@@ -102,7 +107,7 @@ def curve_case(dim: int, side: int, frames: int, repeats: int) -> list[dict]:
                 "substeps": substeps,
                 "ms_per_frame": med * 1e3,
                 "ns_per_particle_substep": med * 1e9 / (substeps * n),
-                "team_share": team / max(alone + team, 1),
+                "team_share": team_share(s),
             }
         )
     return rows
@@ -145,7 +150,7 @@ def ratios(args) -> list[dict]:
                 "half_ms": t["half"] / n * 1e3,
                 "rp_ms": t["rp"] / n * 1e3,
                 "ratio": t["half"] / t["rp"],
-                "half_team_share": half.solver.mode_runs[1] / max(sum(half.solver.mode_runs), 1),
+                "half_team_share": team_share(half),
             }
             rows.append(row)
             print(
@@ -169,7 +174,7 @@ def session(args) -> list[dict]:
             "frames": args.frames,
             "fps_mean": len(t) / sum(t),
             "ms_median": float(np.median(t)) * 1e3,
-            "team_share": sim.solver.mode_runs[1] / max(sum(sim.solver.mode_runs), 1),
+            "team_share": team_share(sim),
         }
         rows.append(row)
         print(f"{name} ({row['particles']}): {row['fps_mean']:.1f} frames/s, median {row['ms_median']:.2f} ms", flush=True)
