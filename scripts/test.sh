@@ -65,10 +65,11 @@ rust_checks() {
     set -euo pipefail
     export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target/checks}"
     cargo fmt --all --check
-    cargo test --release
+    # the checks profile (Cargo.toml): release's optimisation and bits, quicker to build
+    cargo test --profile checks
     # the parameter structs' serde reading (a feature only the binding turns on)
-    cargo test --release -p hybridmpm-mpm --features serde --lib params
-    cargo clippy --release --workspace --all-targets -- -D warnings
+    cargo test --profile checks -p hybridmpm-mpm --features serde --lib params
+    cargo clippy --profile checks --workspace --all-targets -- -D warnings
 }
 type_check() {
     set -euo pipefail
