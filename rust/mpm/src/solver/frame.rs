@@ -38,9 +38,12 @@ struct Stage<const D: usize> {
     n_out: usize,
     local: RawSlice<[f32; 4]>,
     out_v: RawSlice<[f32; 4]>,
+    particles: RawSlice<Particle<D>>,
     next: RawSlice<Particle<D>>,
     ids_next: RawSlice<u32>,
     slot_of: RawSlice<u32>,
+    /// The cells of the current storage order (`grid.keys`).
+    keys: RawSlice<Cell>,
     /// The cells this substep writes: `grid.next_keys` in g2p (and
     /// `grid.keys` in the frame's first stage, which computes them afresh).
     cells: RawSlice<Cell>,
@@ -89,6 +92,7 @@ where
         max_travel: f32,
         retries: usize,
     ) -> Result<f32> {
+        self.start_in_next = false;
         let pool = self.pool.clone();
         let pool_threads = pool.current_num_threads().max(1);
         let (team_chosen, probe) = self.mode.choose();
@@ -261,7 +265,7 @@ where
                 // SAFETY: serial section
                 let s = unsafe { &mut *sp.0 };
                 if sub > 0 {
-                    s.g2p_finish();
+                    s.g2p_finish(reorders(sub - 1));
                     let (health, v) = team.outcome();
                     let err = match health {
                         Health::Ok if v * dt > max_travel => Some(MpmError::CflViolation {
@@ -400,17 +404,23 @@ where
                     s.g2p_patch(si, &mut patch);
                     patch_of = si;
                 }
-                // SAFETY: the item's range of the next storage order and its
-                // ids are this thread's alone
+                // SAFETY: the item's slots, its range of the next storage
+                // order and its ids are this thread's alone
                 let (h, v2) = unsafe {
                     let out = G2pOut {
-                        particles: view.next.chunk_mut(lo, len),
-                        cells: view.cells.chunk_mut(lo, len),
-                        ids: view.ids_next.chunk_mut(lo, len),
+                        particles: view.particles,
+                        cells: view.keys,
+                        next: view.next,
+                        next_cells: view.cells,
+                        ids_next: view.ids_next,
                         slot_of: view.slot_of,
                         key_by_id: view.key_by_id,
                     };
-                    s.g2p_block(lo, &patch, out, dt, &sand)
+                    if reorders(sub) {
+                        s.g2p_block::<true>(lo, len, &patch, out, dt, &sand)
+                    } else {
+                        s.g2p_block::<false>(lo, len, &patch, out, dt, &sand)
+                    }
                 };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
@@ -451,12 +461,23 @@ where
             n_out: self.grid.out_blocks.len(),
             local: RawSlice::new(&mut self.grid.local),
             out_v: RawSlice::new(&mut self.grid.out_v),
+            particles: RawSlice::new(&mut self.particles),
             next: RawSlice::new(&mut self.next),
             ids_next: RawSlice::new(&mut self.ids_next),
+            keys: RawSlice::new(&mut self.grid.keys),
             slot_of: RawSlice::new(&mut self.slot_of),
             cells,
         }
     }
+}
+
+/// Whether substep `sub` of a frame attempt reorders the particle storage
+/// in its g2p ([`Solver::g2p_block`]): the first one, which writes the
+/// particles in its sorted order into the other buffer and so leaves the
+/// frame's start there for a rollback (`Solver::start_in_next`); the others
+/// update in place.
+fn reorders(sub: usize) -> bool {
+    sub == 0
 }
 
 /// What the members of a frame's team share (`Solver::run_substeps`): the
