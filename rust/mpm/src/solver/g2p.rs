@@ -18,9 +18,11 @@
 //! mapping for sand) and the new Kirchhoff stress for the next p2g.
 //!
 //! Blocks are processed in parallel: each source block gathers its padded
-//! velocity patch once, its particles read it with fixed strides and are
-//! written contiguously into the next storage (sorted by block, then id),
-//! together with their [`Cell`] for the next substep. The per-block results
+//! velocity patch once and its particles read it with fixed strides. A
+//! frame attempt's first substep writes them contiguously into the next
+//! storage (sorted by block, then id), together with their [`Cell`] for the
+//! next substep; the later substeps update them where they are stored (the
+//! storage order enters no sum). The per-block results
 //! (the state's [`Health`], max speed) are combined with `max`, which is
 //! exact in any order.
 //!
@@ -99,7 +101,6 @@ where
         let inv_dx = 1.0 / dx;
         let c_scale = V4::splat(4.0 * inv_dx);
         let (lo, hi) = self.domain_bounds();
-        let log2_b = self.grid.log2_b;
         let st = &self.stencil;
         let lat = st.lat_stride;
         let water = &self.params.water;
@@ -167,7 +168,13 @@ where
                     sand_full = batch.push(at as u32, &p.f, &new_c, p.vc);
                 }
             };
-            let ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
+            let ko = cell_of::<D>(
+                &p.x,
+                inv_dx,
+                Dim::<D>::LOG2_BLOCK,
+                &lat,
+                &Dim::<D>::PAD_STRIDE,
+            );
             // SAFETY: the place `at` and the id are this item's alone (caller)
             unsafe {
                 dst_cells.write(at, ko);
