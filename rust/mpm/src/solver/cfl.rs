@@ -143,7 +143,8 @@ where
         }
         // the frame's start, to roll back to (buffers kept across frames:
         // allocating them afresh cost 10–30 µs a frame at 789 particles);
-        // the particles stay in `next` (`start_in_next`), no copy
+        // the particles stay in `next` (`start_in_next`) or are copied when
+        // a team runs the attempt (`start_copied`, `run_substeps`)
         self.rollback.0.clone_from(&self.ids);
         self.rollback.1.clone_from(&self.slot_of);
         let max_travel = self.params.dx(); // a particle may not cross more than one cell per substep
@@ -169,7 +170,9 @@ where
                 Err(e) => {
                     // Roll back to the frame's start; retry with the substep halved
                     // while the substep budget allows it.
-                    if self.start_in_next {
+                    if self.start_copied {
+                        self.particles.clone_from(&self.rollback.2);
+                    } else if self.start_in_next {
                         std::mem::swap(&mut self.particles, &mut self.next);
                         self.start_in_next = false;
                     }

@@ -146,9 +146,13 @@ where
     slot_of: Vec<u32>,
     /// Scratch for the next substep's storage (g2p writes here in block order).
     next: Vec<Particle<D>>,
-    /// `ids` and `slot_of` at the start of the frame under way, to roll
-    /// back to (`step_frame`).
-    rollback: (Vec<u32>, Vec<u32>),
+    /// `ids` and `slot_of` at the start of the frame under way, and its
+    /// particles when a team runs it (`start_copied`), to roll back to
+    /// (`step_frame`).
+    rollback: (Vec<u32>, Vec<u32>, Vec<Particle<D>>),
+    /// Whether `rollback.2` holds the particles at the start of the frame
+    /// attempt under way (a team runs it: its g2p reorders every substep).
+    start_copied: bool,
     /// Whether `next` holds the particles at the start of the frame attempt
     /// under way: its first substep's g2p reorders the particles into the
     /// other buffer, the later ones update them in place
@@ -253,6 +257,7 @@ where
             next: Vec::new(),
             rollback: Default::default(),
             start_in_next: false,
+            start_copied: false,
             time: 0.0,
             frame: 0,
             grid,
