@@ -22,6 +22,10 @@ pub struct Svd<const D: usize> {
 pub trait DimOps<const D: usize> {
     /// log2 of the edge length (in cells) of a sparse grid block.
     const LOG2_BLOCK: u32;
+    /// The node strides of a block's padded `(B+2)^D` buffer (`B = 2^LOG2_BLOCK`,
+    /// the last dimension contiguous), as constants: the transfers' stencil
+    /// offsets then fold into their addresses.
+    const PAD_STRIDE: [usize; D];
     /// SVD with non-negative singular values (`U`, `V` may contain a reflection
     /// when `det F < 0`, which a physical deformation gradient never has).
     fn svd(f: &SMatrix<f32, D, D>) -> Svd<D>;
@@ -89,6 +93,7 @@ fn weighted(a: [V4; 3], w: &[f32; 3]) -> V4 {
 
 impl DimOps<2> for Dim<2> {
     const LOG2_BLOCK: u32 = 3;
+    const PAD_STRIDE: [usize; 2] = [(1 << Self::LOG2_BLOCK) + 2, 1];
 
     #[inline(always)]
     fn svd(f: &SMatrix<f32, 2, 2>) -> Svd<2> {
@@ -113,6 +118,8 @@ impl DimOps<2> for Dim<2> {
     #[inline(always)]
     fn g2p_sums(nodes: &[[f32; 4]], stride: &[usize; 2], w: &[[f32; 3]; 2]) -> G2pSums<2> {
         // rows i along the last axis: (S_i, K_i); then along the first axis
+        // (one bounds check for the whole stencil)
+        let nodes = &nodes[..2 * stride[0] + 3];
         let (s0, k0) = row_sums(&nodes[..3], &w[1]);
         let (s1, k1) = row_sums(&nodes[stride[0]..stride[0] + 3], &w[1]);
         let (s2, k2) = row_sums(&nodes[2 * stride[0]..2 * stride[0] + 3], &w[1]);
@@ -137,6 +144,11 @@ impl DimOps<2> for Dim<2> {
 
 impl DimOps<3> for Dim<3> {
     const LOG2_BLOCK: u32 = 2;
+    const PAD_STRIDE: [usize; 3] = [
+        ((1 << Self::LOG2_BLOCK) + 2) * ((1 << Self::LOG2_BLOCK) + 2),
+        (1 << Self::LOG2_BLOCK) + 2,
+        1,
+    ];
 
     fn svd(f: &SMatrix<f32, 3, 3>) -> Svd<3> {
         svd3(f)
@@ -169,6 +181,8 @@ impl DimOps<3> for Dim<3> {
         // rows (i, j) along the last axis: (S_ij, K_ij); along the middle
         // axis, per i: (P_i, Q_i) = Σ_j (w_j, j·w_j) S_ij, R_i = Σ_j w_j K_ij;
         // along the first: v = Σ_i w_i P_i, b = (Σ_i i·w_i P_i, Σ_i w_i Q_i, Σ_i w_i R_i)
+        // (one bounds check for the whole stencil)
+        let nodes = &nodes[..2 * stride[0] + 2 * stride[1] + 3];
         let plane = |i: usize| {
             let row = |j: usize| {
                 let off = i * stride[0] + j * stride[1];

@@ -9,13 +9,13 @@
 //! operation is the IEEE operation lane by lane (no fused multiply-add), so
 //! both give the same bits (`every_operation_is_the_f32_one`).
 
-use std::ops::{Add, Mul};
+use std::ops::{Add, Mul, Sub};
 
 #[cfg(target_arch = "x86_64")]
 mod imp {
     use core::arch::x86_64::{
         __m128, _mm_add_ps, _mm_loadu_ps, _mm_movehl_ps, _mm_movelh_ps, _mm_mul_ps, _mm_set1_ps,
-        _mm_storeu_ps, _mm_unpackhi_ps, _mm_unpacklo_ps,
+        _mm_storeu_ps, _mm_sub_ps, _mm_unpackhi_ps, _mm_unpacklo_ps,
     };
 
     #[derive(Clone, Copy, Debug)]
@@ -79,6 +79,12 @@ mod imp {
             // SAFETY: as `splat`
             V4(unsafe { _mm_mul_ps(self.0, o.0) })
         }
+
+        #[inline(always)]
+        pub(super) fn sub(self, o: V4) -> V4 {
+            // SAFETY: as `splat`
+            V4(unsafe { _mm_sub_ps(self.0, o.0) })
+        }
     }
 }
 
@@ -124,6 +130,11 @@ mod portable {
         pub(super) fn mul(self, o: V4) -> V4 {
             V4(std::array::from_fn(|l| self.0[l] * o.0[l]))
         }
+
+        #[inline(always)]
+        pub(super) fn sub(self, o: V4) -> V4 {
+            V4(std::array::from_fn(|l| self.0[l] - o.0[l]))
+        }
     }
 }
 
@@ -137,6 +148,14 @@ impl Add for V4 {
     #[inline(always)]
     fn add(self, o: V4) -> V4 {
         V4::add(self, o)
+    }
+}
+
+impl Sub for V4 {
+    type Output = V4;
+    #[inline(always)]
+    fn sub(self, o: V4) -> V4 {
+        V4::sub(self, o)
     }
 }
 
@@ -169,10 +188,12 @@ mod tests {
         let (va, vb) = (V4::load(&a), V4::load(&b));
         let s = 1.0f32 / 3.0;
         let sum = (va + vb).to_array();
+        let diff = (va - vb).to_array();
         let prod = (va * vb).to_array();
         let scaled = (s * va).to_array();
         for l in 0..4 {
             assert_eq!(sum[l].to_bits(), (a[l] + b[l]).to_bits());
+            assert_eq!(diff[l].to_bits(), (a[l] - b[l]).to_bits());
             assert_eq!(prod[l].to_bits(), (a[l] * b[l]).to_bits());
             assert_eq!(scaled[l].to_bits(), (s * a[l]).to_bits());
         }
@@ -197,6 +218,7 @@ mod tests {
             let bits = |x: [f32; 4]| x.map(f32::to_bits);
             assert_eq!(bits((va + vb).to_array()), bits(pa.add(pb).to_array()));
             assert_eq!(bits((va * vb).to_array()), bits(pa.mul(pb).to_array()));
+            assert_eq!(bits((va - vb).to_array()), bits(pa.sub(pb).to_array()));
             assert_eq!(
                 bits((s * va).to_array()),
                 bits(P::splat(s).mul(pa).to_array())

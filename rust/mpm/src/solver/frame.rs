@@ -38,9 +38,12 @@ struct Stage<const D: usize> {
     n_out: usize,
     local: RawSlice<[f32; 4]>,
     out_v: RawSlice<[f32; 4]>,
+    particles: RawSlice<Particle<D>>,
     next: RawSlice<Particle<D>>,
     ids_next: RawSlice<u32>,
     slot_of: RawSlice<u32>,
+    /// The cells of the current storage order (`grid.keys`).
+    keys: RawSlice<Cell>,
     /// The cells this substep writes: `grid.next_keys` in g2p (and
     /// `grid.keys` in the frame's first stage, which computes them afresh).
     cells: RawSlice<Cell>,
@@ -89,12 +92,24 @@ where
         max_travel: f32,
         retries: usize,
     ) -> Result<f32> {
+        self.start_in_next = false;
         let pool = self.pool.clone();
         let pool_threads = pool.current_num_threads().max(1);
         let (team_chosen, probe) = self.mode.choose();
         let use_team = pool_threads > 1 && team_chosen;
         self.mode.runs[use_team as usize] += 1;
         let threads = if use_team { pool_threads } else { 1 };
+        let sort_chunks = if self.particles.len() < self.serial_sort_below.saturating_mul(threads) {
+            1
+        } else {
+            threads
+        };
+        // a small frame's team reorders every substep (`reorders`), so the
+        // frame's start is copied for a rollback
+        self.start_copied = reorders(1, threads, sort_chunks);
+        if self.start_copied {
+            self.rollback.2.clone_from(&self.particles);
+        }
         let started = std::time::Instant::now();
         let team: Team<Stage<D>> = Team::new(threads);
         let isa = self.isa;
@@ -109,11 +124,7 @@ where
             touched,
             result,
             members: threads,
-            sort_chunks: if self.particles.len() < self.serial_sort_below.saturating_mul(threads) {
-                1
-            } else {
-                threads
-            },
+            sort_chunks,
             n_sub,
             dt,
             max_travel,
@@ -261,7 +272,7 @@ where
                 // SAFETY: serial section
                 let s = unsafe { &mut *sp.0 };
                 if sub > 0 {
-                    s.g2p_finish();
+                    s.g2p_finish(reorders(sub - 1, members, sort_chunks));
                     let (health, v) = team.outcome();
                     let err = match health {
                         Health::Ok if v * dt > max_travel => Some(MpmError::CflViolation {
@@ -400,17 +411,23 @@ where
                     s.g2p_patch(si, &mut patch);
                     patch_of = si;
                 }
-                // SAFETY: the item's range of the next storage order and its
-                // ids are this thread's alone
+                // SAFETY: the item's slots, its range of the next storage
+                // order and its ids are this thread's alone
                 let (h, v2) = unsafe {
                     let out = G2pOut {
-                        particles: view.next.chunk_mut(lo, len),
-                        cells: view.cells.chunk_mut(lo, len),
-                        ids: view.ids_next.chunk_mut(lo, len),
+                        particles: view.particles,
+                        cells: view.keys,
+                        next: view.next,
+                        next_cells: view.cells,
+                        ids_next: view.ids_next,
                         slot_of: view.slot_of,
                         key_by_id: view.key_by_id,
                     };
-                    s.g2p_block(lo, &patch, out, dt, &sand)
+                    if reorders(sub, members, sort_chunks) {
+                        s.g2p_block::<true>(lo, len, &patch, out, dt, &sand)
+                    } else {
+                        s.g2p_block::<false>(lo, len, &patch, out, dt, &sand)
+                    }
                 };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
@@ -451,12 +468,28 @@ where
             n_out: self.grid.out_blocks.len(),
             local: RawSlice::new(&mut self.grid.local),
             out_v: RawSlice::new(&mut self.grid.out_v),
+            particles: RawSlice::new(&mut self.particles),
             next: RawSlice::new(&mut self.next),
             ids_next: RawSlice::new(&mut self.ids_next),
+            keys: RawSlice::new(&mut self.grid.keys),
             slot_of: RawSlice::new(&mut self.slot_of),
             cells,
         }
     }
+}
+
+/// Whether substep `sub` of a frame attempt on a team of `members`, whose
+/// block sort runs in `sort_chunks` chunks, reorders the particle storage in
+/// its g2p ([`Solver::g2p_block`]). The first one does, writing the
+/// particles in its sorted order into the other buffer, which so keeps the
+/// frame's start for a rollback (`Solver::start_in_next`); the others update
+/// in place, except on the team of a small frame (one sort chunk, see
+/// [`SERIAL_SORT_BELOW`]), which reorders every substep so that each member
+/// writes a contiguous range: in place, its members' few-particle items
+/// interleave in the storage and their writes share cache lines (the 2D half
+/// grids' team frames took up to 1.3× as long).
+fn reorders(sub: usize, members: usize, sort_chunks: usize) -> bool {
+    sub == 0 || (members > 1 && sort_chunks == 1)
 }
 
 /// What the members of a frame's team share (`Solver::run_substeps`): the

@@ -18,9 +18,11 @@
 //! mapping for sand) and the new Kirchhoff stress for the next p2g.
 //!
 //! Blocks are processed in parallel: each source block gathers its padded
-//! velocity patch once, its particles read it with fixed strides and are
-//! written contiguously into the next storage (sorted by block, then id),
-//! together with their [`Cell`] for the next substep. The per-block results
+//! velocity patch once and its particles read it with fixed strides. A
+//! frame attempt's first substep writes them contiguously into the next
+//! storage (sorted by block, then id), together with their [`Cell`] for the
+//! next substep; the later substeps update them where they are stored (the
+//! storage order enters no sum). The per-block results
 //! (the state's [`Health`], max speed) are combined with `max`, which is
 //! exact in any order.
 //!
@@ -37,56 +39,72 @@ use super::{Health, Solver};
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
-use crate::material::sand::{SandBatch, SandHealth, SandModel};
+use crate::material::sand::{ParticleSink, SandBatch, SandHealth, SandModel};
 use crate::material::water;
 use crate::particles::{Material, Particle};
+use crate::v4::V4;
 
 impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
     /// g2p of the particles of source block `si` at places `first ..
-    /// first + out.len()` of the sorted order (the whole block, or a piece of
-    /// it: [`super::grid::G2pItem`]), from the block's padded velocity patch
+    /// first + len` of the sorted order (the whole block, or a piece of it:
+    /// [`super::grid::G2pItem`]), from the block's padded velocity patch
     /// (`patch`: `(B+2)^D` nodes, filled by [`Self::g2p_patch`]): updates the
-    /// particles and writes them, their [`Cell`] and their ids for the next
-    /// substep to `out` (the same places of the next storage order: sorted
-    /// by block, then id), and each one's new slot and block key to
-    /// `slot_of` and `key_by_id` at its id. Returns the health and largest
-    /// speed squared of these particles.
+    /// particles and their [`Cell`] for the next substep, and writes each
+    /// one's new block key to `key_by_id` at its id. Returns the health and
+    /// largest speed squared of these particles.
+    ///
+    /// `REORDER`: the particles, their cells and their ids go to the same
+    /// places of the next storage order (sorted by block, then id), and each
+    /// one's new slot to `slot_of`; otherwise each particle is updated where
+    /// it is stored (its slot and id stay). The storage order changes no
+    /// result (every sum runs in the sorted order, by block then id), so the
+    /// frame loop reorders once per frame attempt, in its first substep
+    /// (which leaves the frame's start in `next` for a rollback), and
+    /// updates in place otherwise: no copy of every particle into another
+    /// buffer per substep.
     ///
     /// # Safety
-    /// `slot_of` and `key_by_id` view `self.slot_of` and `grid.key_by_id`;
-    /// nothing else may access them while g2p runs (each id is written by
-    /// the one block that holds it).
+    /// The views of `out` are the solver's buffers (`G2pOut`); nothing else
+    /// may access the places of this item's slots (in place) or of this
+    /// item's range of the next order (reordering) meanwhile, nor `slot_of`
+    /// and `key_by_id` at its ids (each id is in the one block that holds it).
     // inlined into each compiled copy of the frame loop (`crate::isa`)
     #[inline(always)]
-    pub(super) unsafe fn g2p_block(
+    pub(super) unsafe fn g2p_block<const REORDER: bool>(
         &self,
         first: usize,
+        len: usize,
         patch: &[[f32; 4]],
-        out: G2pOut<'_, D>,
+        out: G2pOut<D>,
         dt: f32,
         sand: &SandModel,
     ) -> (Health, f32) {
         let G2pOut {
-            particles: outp,
-            cells: outk,
-            ids: out_ids,
+            particles,
+            cells,
+            next,
+            next_cells,
+            ids_next,
             slot_of,
             key_by_id,
         } = out;
+        // where the updated particles and cells go
+        let (dst, dst_cells) = if REORDER {
+            (next, next_cells)
+        } else {
+            (particles, cells)
+        };
         let dx = self.params.dx();
         let inv_dx = 1.0 / dx;
+        let c_scale = V4::splat(4.0 * inv_dx);
         let (lo, hi) = self.domain_bounds();
-        let log2_b = self.grid.log2_b;
         let st = &self.stencil;
         let lat = st.lat_stride;
         let water = &self.params.water;
-        let sorted = &self.grid.sorted;
-        let particles = &self.particles;
-        let cells = &self.grid.keys;
-        let lo_i = first;
+        let sorted = &self.grid.sorted[first..first + len];
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
         let mut sand_health = SandHealth {
@@ -97,6 +115,7 @@ where
         // sand particles' material updates wait in `batch` and run sixteen at a
         // time (SIMD across particles, see `SandBatch`)
         let mut batch = SandBatch::new();
+        let mut sink = Sink(dst);
         // the colliders that project particles (`Collider::project`), each
         // with the region where it can act (`Collider::reach`) and its
         // velocity in this frame (None: at rest), at their poses at this
@@ -110,20 +129,24 @@ where
             .filter(|((col, _), _)| col.project)
             .map(|((col, u), shallow)| (col, col.reach(depth, shallow.as_ref()), u.as_ref()))
             .collect();
-        for j in 0..outp.len() {
-            let slot = sorted[lo_i + j] as usize;
+        for (j, &slot) in sorted.iter().enumerate() {
+            let slot = slot as usize;
             let id = self.ids[slot];
-            out_ids[j] = id;
-            let mut p = particles[slot];
-            let cell = &cells[slot];
-            let (fx, w) = weights::<D>(cell);
+            // its place in the storage this substep leaves
+            let at = if REORDER { first + j } else { slot };
+            // SAFETY: the slot is this item's alone (caller)
+            let (mut p, cell) = unsafe { (particles.read(slot), cells.read(slot)) };
+            let (fx, w) = weights::<D>(&cell);
             let base_idx = cell.pad_off as usize;
-            let (acc_v, acc_b) = Dim::<D>::g2p_sums(&patch[base_idx..], &st.pad_stride, &w);
+            let (acc_v, acc_b) = Dim::<D>::g2p_sums(&patch[base_idx..], &Dim::<D>::PAD_STRIDE, &w);
             // B = Σ w v (o − fx)ᵀ·dx; C = 4/dx² · B = 4/dx · (Σ w v oᵀ − v fxᵀ)
             let new_v = SVector::<f32, D>::from_fn(|r, _| acc_v[r]);
-            let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| {
-                (acc_b[c][r] - acc_v[r] * fx[c]) * (4.0 * inv_dx)
-            });
+            // column c in 4 lanes (rows r < D; the others unused), each the
+            // f32 expression per entry
+            let v4 = V4::load(&acc_v);
+            let cols: [[f32; 4]; D] =
+                std::array::from_fn(|c| ((V4::load(&acc_b[c]) - fx[c] * v4) * c_scale).to_array());
+            let new_c = SMatrix::<f32, D, D>::from_fn(|r, c| cols[c][r]);
             p.v = new_v;
             p.c = new_c;
             p.x += new_v * dt;
@@ -142,27 +165,37 @@ where
                     p.tau = water::kirchhoff_stress(water, p.j, &new_c);
                 }
                 Material::Sand => {
-                    sand_full = batch.push(j as u32, &p.f, &new_c, p.vc);
+                    sand_full = batch.push(at as u32, &p.f, &new_c, p.vc);
                 }
             };
-            let ko = &mut outk[j];
-            *ko = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &st.pad_stride);
-            // SAFETY: id is this block's alone (caller)
+            let ko = cell_of::<D>(
+                &p.x,
+                inv_dx,
+                Dim::<D>::LOG2_BLOCK,
+                &lat,
+                &Dim::<D>::PAD_STRIDE,
+            );
+            // SAFETY: the place `at` and the id are this item's alone (caller)
             unsafe {
-                slot_of.write(id as usize, (lo_i + j) as u32);
+                dst_cells.write(at, ko);
+                if REORDER {
+                    ids_next.write(at, id);
+                    slot_of.write(id as usize, at as u32);
+                }
                 key_by_id.write(id as usize, ko.key);
             }
             // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;
             vmax2 = vmax2.max(p.v.norm_squared());
-            outp[j] = p;
+            // SAFETY: as above
+            unsafe { dst.write(at, p) };
             if sand_full {
-                sand_flush(&mut batch, outp, sand, dt, &mut sand_health);
+                sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
             }
         }
         if batch.len() > 0 {
-            sand_flush(&mut batch, outp, sand, dt, &mut sand_health);
+            sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
         }
         let SandHealth { finite, inverted } = sand_health;
         // positions are clamped (NaN maps to the bound), so test the rest
@@ -205,12 +238,17 @@ where
         }
     }
 
-    /// After every block's g2p: the next storage order becomes the current
-    /// one (particles, their cells and ids; g2p wrote `slot_of`).
-    pub(super) fn g2p_finish(&mut self) {
-        std::mem::swap(&mut self.particles, &mut self.next);
-        std::mem::swap(&mut self.grid.keys, &mut self.grid.next_keys);
-        std::mem::swap(&mut self.ids, &mut self.ids_next);
+    /// After every block's g2p: if it reordered (`reordered`), the next
+    /// storage order becomes the current one (particles, their cells and
+    /// ids; g2p wrote `slot_of`), and `next` holds the particles g2p read;
+    /// in place there is nothing to do.
+    pub(super) fn g2p_finish(&mut self, reordered: bool) {
+        if reordered {
+            std::mem::swap(&mut self.particles, &mut self.next);
+            std::mem::swap(&mut self.grid.keys, &mut self.grid.next_keys);
+            std::mem::swap(&mut self.ids, &mut self.ids_next);
+            self.start_in_next = true;
+        }
     }
 }
 
@@ -239,7 +277,7 @@ fn project<const D: usize>(
 #[inline(always)]
 fn sand_flush<const D: usize>(
     batch: &mut SandBatch,
-    outp: &mut [Particle<D>],
+    outp: &mut impl ParticleSink<D>,
     sand: &SandModel,
     dt: f32,
     health: &mut SandHealth,
@@ -253,15 +291,31 @@ fn sand_flush<const D: usize>(
     batch.clear();
 }
 
-/// Where g2p writes one source block's results (see [`Solver::g2p_block`]).
-pub(super) struct G2pOut<'a, const D: usize> {
-    /// The block's particles, cells and ids in the next storage order.
-    pub(super) particles: &'a mut [Particle<D>],
-    pub(super) cells: &'a mut [Cell],
-    pub(super) ids: &'a mut [u32],
-    /// Written at the block's ids: their new slots and block keys.
+/// The buffers g2p reads and writes (see [`Solver::g2p_block`]), whole.
+pub(super) struct G2pOut<const D: usize> {
+    /// The current storage: the particles and their cells (read at their
+    /// slots; written there when g2p updates in place).
+    pub(super) particles: RawSlice<Particle<D>>,
+    pub(super) cells: RawSlice<Cell>,
+    /// The next storage order when g2p reorders: particles, cells and ids.
+    pub(super) next: RawSlice<Particle<D>>,
+    pub(super) next_cells: RawSlice<Cell>,
+    pub(super) ids_next: RawSlice<u32>,
+    /// Written at the ids: the new slots (when reordering) and block keys.
     pub(super) slot_of: RawSlice<u32>,
     pub(super) key_by_id: RawSlice<u32>,
+}
+
+/// g2p's view of the storage it writes, for the sand lanes' write-back.
+struct Sink<const D: usize>(RawSlice<Particle<D>>);
+
+impl<const D: usize> ParticleSink<D> for Sink<D> {
+    #[inline(always)]
+    fn at(&mut self, i: usize) -> &mut Particle<D> {
+        // SAFETY: the lanes' places are those of the calling item's
+        // particles, its alone (`Solver::g2p_block`'s caller)
+        unsafe { self.0.get_mut(i) }
+    }
 }
 
 #[cfg(test)]

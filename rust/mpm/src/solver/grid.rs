@@ -175,6 +175,8 @@ where
         lat_stride[d] = nb.pow((D - 1 - d) as u32);
     }
     let pad_nodes = p.pow(D as u32);
+    // the transfers use the constant form
+    assert_eq!(pad_stride, <Dim<D> as DimOps<D>>::PAD_STRIDE);
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();

@@ -146,9 +146,19 @@ where
     slot_of: Vec<u32>,
     /// Scratch for the next substep's storage (g2p writes here in block order).
     next: Vec<Particle<D>>,
-    /// `particles`, `ids` and `slot_of` at the start of the frame under
-    /// way, to roll back to (`step_frame`).
-    rollback: (Vec<Particle<D>>, Vec<u32>, Vec<u32>),
+    /// `ids` and `slot_of` at the start of the frame under way, and its
+    /// particles when a team runs it (`start_copied`), to roll back to
+    /// (`step_frame`).
+    rollback: (Vec<u32>, Vec<u32>, Vec<Particle<D>>),
+    /// Whether `rollback.2` holds the particles at the start of the frame
+    /// attempt under way (a team runs it: its g2p reorders every substep).
+    start_copied: bool,
+    /// Whether `next` holds the particles at the start of the frame attempt
+    /// under way: its first substep's g2p reorders the particles into the
+    /// other buffer, the later ones update them in place
+    /// (`Solver::g2p_block`), so `next` keeps the frame's start, what a
+    /// rollback restores (`step_frame`).
+    start_in_next: bool,
     time: f64,
     frame: u64,
     grid: SparseGrid,
@@ -246,6 +256,8 @@ where
             slot_of: Vec::new(),
             next: Vec::new(),
             rollback: Default::default(),
+            start_in_next: false,
+            start_copied: false,
             time: 0.0,
             frame: 0,
             grid,

@@ -40,7 +40,6 @@ where
         let stress_scale = -dt * 4.0 * inv_dx * inv_dx;
         let g = &self.grid;
         let particles = &self.particles;
-        let st = &self.stencil;
         let (src_offsets, sorted, cells) = (&g.src_offsets, &g.sorted, &g.keys);
         buf.fill([0.0; 4]);
         let lo = src_offsets[si] as usize;
@@ -68,12 +67,14 @@ where
             // shuffles and scalar operations (same results, more instructions)
             let base4 = V4::load(&base4);
             let cols = cols.map(|c| V4::load(&c));
-            let nodes = &mut buf[base_idx..];
+            // the stencil's nodes (one bounds check for all of them)
+            let span = Dim::<D>::PAD_STRIDE.iter().map(|s| 2 * s).sum::<usize>() + 1;
+            let nodes = &mut buf[base_idx..base_idx + span];
             let w_last = w[D - 1];
             let last = cols[D - 1];
             Dim::<D>::stencil_rows(
                 &w,
-                &st.pad_stride,
+                &Dim::<D>::PAD_STRIDE,
                 #[inline(always)]
                 |off, w_outer, o| {
                     let mut contrib = base4;

@@ -329,6 +329,32 @@ impl<T> RawSlice<T> {
         // SAFETY: in bounds (checked); exclusivity is the caller's promise
         unsafe { self.ptr.add(i).write(value) }
     }
+
+    /// A copy of element `i`.
+    ///
+    /// # Safety
+    /// No other thread may write element `i` meanwhile, and the buffer must
+    /// not have been reallocated since [`RawSlice::new`].
+    #[inline]
+    pub(super) unsafe fn read(&self, i: usize) -> T
+    where
+        T: Copy,
+    {
+        assert!(i < self.len, "index out of range");
+        // SAFETY: in bounds (checked); no concurrent write (caller)
+        unsafe { self.ptr.add(i).read() }
+    }
+
+    /// Element `i`, exclusively.
+    ///
+    /// # Safety
+    /// As [`RawSlice::chunk_mut`] for the one element.
+    #[inline]
+    pub(super) unsafe fn get_mut<'a>(&self, i: usize) -> &'a mut T {
+        assert!(i < self.len, "index out of range");
+        // SAFETY: in bounds (checked); exclusivity is the caller's promise
+        unsafe { &mut *self.ptr.add(i) }
+    }
 }
 
 impl RawSlice<u32> {

@@ -37,6 +37,20 @@ pub(crate) struct SandBatch {
     tau: [FL; 9],
 }
 
+/// Where [`SandBatch::write_lanes`] writes: the particle at an index
+/// pushed with a lane (a slice, or g2p's view of the particle storage).
+pub(crate) trait ParticleSink<const D: usize> {
+    /// The particle at `i`. Panics if `i` is out of range.
+    fn at(&mut self, i: usize) -> &mut Particle<D>;
+}
+
+impl<const D: usize> ParticleSink<D> for [Particle<D>] {
+    #[inline(always)]
+    fn at(&mut self, i: usize) -> &mut Particle<D> {
+        &mut self[i]
+    }
+}
+
 /// What g2p's health check needs of a [`SandBatch`]'s lanes in use.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct SandHealth {
@@ -210,7 +224,7 @@ impl SandBatch {
     /// (docs/engine.md).
     /// Panics if an `at` is out of range.
     #[inline(always)]
-    pub(crate) fn write_lanes<const D: usize>(&self, outp: &mut [Particle<D>]) {
+    pub(crate) fn write_lanes<const D: usize>(&self, outp: &mut (impl ParticleSink<D> + ?Sized)) {
         let n = D * D;
         // batch index (row-major) of the particle's column-major entry `i`
         let comp = |i: usize| (i % D) * D + i / D;
@@ -225,7 +239,7 @@ impl SandBatch {
                         V4::load(lanes)
                     });
                     for (q, col) in V4::transpose(rows).into_iter().enumerate() {
-                        let p = &mut outp[at[q]];
+                        let p = outp.at(at[q]);
                         let m = if tau { &mut p.tau } else { &mut p.f };
                         col.store(&mut m.as_mut_slice()[i..]);
                     }
@@ -233,19 +247,19 @@ impl SandBatch {
                 }
                 for i in i..n {
                     for (q, &a) in at.iter().enumerate() {
-                        let p = &mut outp[a];
+                        let p = outp.at(a);
                         let m = if tau { &mut p.tau } else { &mut p.f };
                         m.as_mut_slice()[i] = src[comp(i)].0[l0 + q];
                     }
                 }
             }
             for (q, &a) in at.iter().enumerate() {
-                outp[a].vc = self.vc.0[l0 + q];
+                outp.at(a).vc = self.vc.0[l0 + q];
             }
         }
         for l in quads..self.len {
             let (at, f, vc, tau) = self.lane::<D>(l);
-            let p = &mut outp[at as usize];
+            let p = outp.at(at as usize);
             (p.f, p.vc, p.tau) = (f, vc, tau);
         }
     }

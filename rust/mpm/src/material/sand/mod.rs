@@ -33,7 +33,7 @@ mod tests;
 mod update_2d;
 mod update_3d;
 
-pub(crate) use batch::{SandBatch, SandHealth};
+pub(crate) use batch::{ParticleSink, SandBatch, SandHealth};
 pub use return_map::drucker_prager_project;
 
 use nalgebra::{SMatrix, SVector};
