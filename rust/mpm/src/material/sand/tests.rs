@@ -424,7 +424,7 @@ where
         }
         batch.run::<D>(&m, 2e-4);
         let blank = Particle::<D>::new(SVector::zeros(), Material::Sand, 1.0, 1.0);
-        let mut outp = vec![blank; 40];
+        let mut outp = [blank; 40];
         batch.write_lanes::<D>(&mut outp[..]);
         let mut expected = vec![blank; 40];
         for l in 0..len {
