@@ -54,7 +54,7 @@ import websockets
 
 from hybridmpm.bench.harness import REPO_ROOT, load_average, script_argv, table, write_results
 from hybridmpm.service import decode_frame
-from hybridmpm.service.core import PLAY_LAG_S
+from hybridmpm.service.core import PLAY_LAG_S, PLAY_TICK_S
 from hybridmpm.service.testing import LiveServer, cpu_seconds, thread_cpu_seconds
 
 OCTET = {"Accept": "application/octet-stream"}
@@ -83,9 +83,11 @@ def rate_bound(dt_frame: float, r_t: int, window: float, max_fps: float = STREAM
     """The most frames/s :func:`stream_rate` can show for a session the play
     loop paces at real time over a ``window`` of seconds: one coarse step
     (``r_t`` frames of ``dt_frame`` s) per ``r_t·dt_frame`` of wall time,
-    plus a catch-up of at most ``PLAY_LAG_S`` and the stream's latest-wins
-    lag (one send gap ``1/max_fps`` at either end) and one step of rounding."""
-    return ((window + PLAY_LAG_S + 2.0 / max_fps) / dt_frame + r_t) / window
+    plus a catch-up of at most ``PLAY_LAG_S``, the stream's latest-wins
+    lag (one send gap ``1/max_fps`` at either end), the play loop's tick
+    (a call shows its last step: ``PLAY_TICK_S`` at either end) and one
+    step of rounding."""
+    return ((window + PLAY_LAG_S + 2.0 / max_fps + 2.0 * PLAY_TICK_S) / dt_frame + r_t) / window
 
 
 def holds(rate: float, dt_frame: float) -> bool:

@@ -45,6 +45,11 @@ log = logging.getLogger("hybridmpm.service")
 
 #: How far a playing session may fall behind real time before it stops catching up [s].
 PLAY_LAG_S = 0.25
+#: A playing session wakes at most once per tick [s] and steps, in that one call, the frames that are
+#: due (while the call is under a tick of wall time), showing its viewers the last of them: the hand-off
+#: to a worker, the timer and the frame's encoding cost once per tick instead of once per frame (water2d
+#: plays 400 frames/s; a viewer's stream sends at most 60 a second, the newest).
+PLAY_TICK_S = 0.01
 #: Controls kept per session (their trajectories can be fetched).
 KEEP_CONTROLS = 8
 #: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
@@ -269,25 +274,42 @@ class SessionCore:
         return ro
 
     def play(self) -> Iterator[float]:
-        """The play loop: one coarse step at a time while it plays, is open
-        and has viewers, yielding after each the seconds to wait before the
-        next (:class:`Pacer`: real time). A step that fails stops it, with an
-        ``error`` event. The backend waits between the steps (a thread's
-        sleep, or the event loop's with each step on a worker)."""
+        """The play loop: while it plays, is open and has viewers, it steps
+        the coarse steps that are due (:class:`Pacer`: real time) in calls
+        of at most about :data:`PLAY_TICK_S` of wall time, yielding after
+        each call the seconds to wait before the next (at least the rest of
+        the tick). Every step is recorded; the viewers are shown the last
+        step of a call (the step before a pause or a failure included). A
+        step that fails stops it, with an ``error`` event. The backend waits
+        between the calls (a thread's sleep, or the event loop's with each
+        call on a worker). :attr:`lock` is taken per step; the local
+        backend queues a session's requests behind a whole call (about a
+        tick)."""
         pacer = Pacer(float(self.sim.dt_frame) * int(self.sim.r_t))
         while self.playing and not self.closed and self.has_viewers():
-            with self.lock:
-                if not self.playing or self.closed:
-                    return
-                try:
-                    fr = self.sim.advance()
-                except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
-                    self.playing = False
-                    self.on_event({"type": "error", "message": f"simulation stopped: {e}"})
-                    return
-                self._changed()
-                self._show(fr)
-            yield pacer.delay()
+            start = time.monotonic()
+            unshown: Frame | None = None  # the call's last step, until the viewers have it
+            while True:
+                with self.lock:
+                    if not self.playing or self.closed:
+                        if unshown is not None and not self.closed:
+                            self.on_frame(unshown, 0)
+                        return
+                    try:
+                        unshown = self.sim.advance()
+                    except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
+                        self.playing = False
+                        if unshown is not None:
+                            self.on_frame(unshown, 0)
+                        self.on_event({"type": "error", "message": f"simulation stopped: {e}"})
+                        return
+                    self._changed()
+                    self._record(unshown)
+                    delay = pacer.delay()
+                    if delay > 0 or time.monotonic() - start >= PLAY_TICK_S or not (self.playing and self.has_viewers()):
+                        self.on_frame(unshown, 0)
+                        break
+            yield max(delay, start + PLAY_TICK_S - time.monotonic())
 
     def control(
         self,
@@ -480,6 +502,7 @@ class SessionCore:
 __all__ = [
     "KEEP_CONTROLS",
     "PLAY_LAG_S",
+    "PLAY_TICK_S",
     "RECORD_STEPS",
     "BusyError",
     "Control",
