@@ -24,7 +24,9 @@ while it has a viewer), and after ``--warmup`` seconds, for ``--seconds``:
 After the first failing rung, the counts between the last that held and it
 are tried. Last, the engine alone (``--engine-frames``, default warmup +
 window): each seed's simulator stepped in this process, one at a time: the
-cores a rung's sessions need at real time without the service.
+cores a rung's sessions need at real time without the service, and, over
+at least ``--engine-seeds`` seeds (8), the most sessions whose engine work
+alone fits in the machine's cores (an upper bound on the capacity).
 
 Each rung runs ``--repeats`` times (fresh sessions each time) and keeps its
 best run: a shared machine's slow spells only lower a rate. The capacity is
@@ -104,6 +106,20 @@ def capacity(rows: Sequence[dict[str, Any]]) -> int:
             break
         best = r["sessions"]
     return best
+
+
+def engine_bound(cost_ms: Sequence[float], dt_frame: float, cores: float) -> int:
+    """The most sessions (seeds 0, 1, ... with the engine alone's ``cost_ms``
+    per frame [ms], one thread each) whose engine work at real time
+    (1/``dt_frame`` frames/s) fits in ``cores``, with no service at all: an
+    upper bound on the capacity."""
+    n, need = 0, 0.0
+    for c in cost_ms:
+        need += c / 1e3 / dt_frame
+        if need > cores:
+            break
+        n += 1
+    return n
 
 
 def best_of(repeats: int, measure: Callable[[], dict[str, Any]]) -> dict[str, Any]:
@@ -250,13 +266,29 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if three:
             print(json.dumps(three), flush=True)
     frames = round((args.warmup + args.seconds) / rows[0]["dt_frame"]) if args.engine_frames is None else args.engine_frames
+    out: dict[str, Any] = {
+        "rows": rows,
+        "capacity": capacity(rows),
+        "engine_frames": frames,
+        "real_time_share": REAL_TIME_SHARE,
+        "repeats": args.repeats,
+        "scene3d": three,
+    }
     if frames:  # the engine alone, one seed at a time: the CPU each rung's sessions need at real time
-        cost = [engine_ms_per_frame("water2d", seed, frames) for seed in range(max(r["sessions"] for r in rows))]
+        dt = rows[0]["dt_frame"]
+        cost = [engine_ms_per_frame("water2d", seed, frames) for seed in range(max(args.engine_seeds, *(r["sessions"] for r in rows)))]
         for r in rows:
             r["engine_ms_per_frame"] = cost[: r["sessions"]]
             r["engine_cores"] = sum(cost[: r["sessions"]]) / 1e3 / r["dt_frame"]
+        cores = float(os.cpu_count() or 1)
+        out |= {
+            "engine_ms_by_seed": cost,
+            "engine_cores_by_count": [sum(cost[:n]) / 1e3 / dt for n in range(1, len(cost) + 1)],
+            "engine_bound": engine_bound(cost, dt, cores),
+            "cores": cores,
+        }
         print("engine alone [ms/frame] by seed:", [round(x, 3) for x in cost], flush=True)
-    return {"rows": rows, "capacity": capacity(rows), "engine_frames": frames, "real_time_share": REAL_TIME_SHARE, "repeats": args.repeats, "scene3d": three}
+    return out
 
 
 def markdown(doc: dict[str, Any]) -> str:
@@ -314,6 +346,17 @@ def markdown(doc: dict[str, Any]) -> str:
         ],
         "rrrrlrrrrrrrrr",
     )
+    if "engine_bound" in doc:
+        need = doc["engine_cores_by_count"]
+        lines += [
+            "",
+            f"**The engine alone bounds it at {doc['engine_bound']} sessions on {doc['cores']:.0f} cores**: seeds 0..N-1 stepped one at a "
+            "time on one thread each, with no service at all, need at real time (cores, N = 1, 2, ...): "
+            + ", ".join(f"{x:.2f}" for x in need)
+            + "; ms a frame by seed: "
+            + ", ".join(f"{x:.2f}" for x in doc["engine_ms_by_seed"])
+            + ".",
+        ]
     t = doc.get("scene3d")
     if t:
         lines += [
@@ -332,6 +375,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--most", type=int, default=40, help="the largest session count tried")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each rung; the best is reported (all runs' slowest rates beside it)")
     ap.add_argument("--engine-frames", type=int, default=None, help="frames of the engine alone per seed (0: skip; default: warmup + window)")
+    ap.add_argument("--engine-seeds", type=int, default=8, help="seeds of the engine alone at least (the engine's bound on the count is read from them)")
     ap.add_argument("--probe-gap", type=float, default=0.05, help="seconds between the probe's one-frame steps")
     ap.add_argument("--scene3d", default="dam_break3d", help='the 3D scene of the last figure ("" to skip)')
     ap.add_argument("--quick", action="store_true", help="tiny settings (1 and 2 sessions, short windows, no 3D): a check that it runs")
@@ -339,12 +383,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--server-log", default=None, help="write the server's output here")
     args = ap.parse_args(argv)
     if args.quick:
-        args.seconds, args.warmup, args.most, args.repeats, args.scene3d, args.engine_frames = 1.0, 0.5, 2, 1, "", 20
+        args.seconds, args.warmup, args.most, args.repeats, args.scene3d, args.engine_frames, args.engine_seeds = 1.0, 0.5, 2, 1, "", 20, 2
     for name in ("seconds", "warmup", "probe_gap"):
         if not getattr(args, name) > 0:
             ap.error(f"--{name.replace('_', '-')}: must be > 0")
     if args.engine_frames is not None and args.engine_frames < 0:
         ap.error("--engine-frames: must be >= 0")
+    if not 0 <= args.engine_seeds <= 64:
+        ap.error("--engine-seeds: must be in [0, 64]")
     for name in ("most", "repeats"):
         if getattr(args, name) < 1:
             ap.error(f"--{name}: must be >= 1")

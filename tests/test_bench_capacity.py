@@ -39,6 +39,15 @@ def test_ladder_and_capacity_on_hand_made_rows(cap):
     assert cap.capacity(filled) == 5
 
 
+def test_engine_bound_counts_the_seeds_whose_engine_work_fits_the_cores(cap):
+    # 1 ms a frame at 400 frames/s is 0.4 of a core: five such sessions fit on 2 cores, not six
+    assert cap.engine_bound([1.0] * 8, 0.0025, 2.0) == 5
+    assert cap.engine_bound([0.25, 1.6, 1.2], 0.0025, 2.0) == 3  # 0.1 + 0.64 + 0.48 cores
+    assert cap.engine_bound([6.0], 0.0025, 2.0) == 0  # one session alone needs 2.4 cores
+    assert cap.engine_bound([0.5, 6.0, 0.1], 0.0025, 2.0) == 1  # seeds are taken in order: a heavy seed ends the count
+    assert cap.engine_bound([], 0.0025, 2.0) == 0
+
+
 def test_stream_rate_reads_the_window_of_frame_numbers(cap):
     # a session at exactly 400 frames/s seen 60 times a second from t = 0; the window [1, 3] s
     seen = [(k / 60, int(400 * k / 60)) for k in range(240)]
@@ -70,6 +79,9 @@ def test_quick_run_against_a_real_server(cap, tmp_path: Path):
         assert r["probe_steps"] >= 1 and r["step_p95_ms"] >= r["step_p50_ms"] > 0
         assert len(r["particles"]) == len(r["engine_ms_per_frame"]) == r["sessions"]
         assert r["engine_cores"] == pytest.approx(sum(r["engine_ms_per_frame"]) / 1e3 / r["dt_frame"])
+    cost = doc["engine_ms_by_seed"]
+    assert len(cost) >= max(r["sessions"] for r in rows) and doc["engine_bound"] == cap.engine_bound(cost, rows[0]["dt_frame"], doc["cores"])
     saved = json.loads((tmp_path / "capacity.json").read_text())
     assert saved["capacity"] == doc["capacity"] and "provenance" in saved
     assert f"Sessions held at real time: {doc['capacity']}" in (tmp_path / "capacity.md").read_text()
+    assert f"The engine alone bounds it at {doc['engine_bound']} sessions" in (tmp_path / "capacity.md").read_text()
