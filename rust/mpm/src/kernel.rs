@@ -19,6 +19,8 @@ use std::ops::{Add, Mul, Sub};
 
 use nalgebra::SVector;
 
+use crate::v4::V4;
+
 /// Quadratic B-spline weights of the 3 stencil nodes for the offset `f ∈ [0.5, 1.5)`
 /// (in cells, from the stencil's base node). Generic over `f32` / `f64`; the
 /// constants are exact in both, so each precision evaluates the same expression.
@@ -103,12 +105,14 @@ fn truncate_in_domain(v: f32) -> u32 {
 #[inline(always)]
 pub(crate) fn weights<const D: usize>(cell: &Cell) -> (SVector<f32, D>, [[f32; 3]; D]) {
     let mut fx = SVector::<f32, D>::zeros();
-    let mut w = [[0.0f32; 3]; D];
     for d in 0..D {
-        let f = cell.fx[d];
-        fx[d] = f;
-        w[d] = quadratic_weights(f);
+        fx[d] = cell.fx[d];
     }
+    // every dimension at once, one lane each (the same f32 operations; the
+    // unused lanes hold finite values from offsets 0)
+    let [w0, w1, w2] =
+        quadratic_weights(V4::load(&[cell.fx[0], cell.fx[1], cell.fx[2], 0.0])).map(V4::to_array);
+    let w = std::array::from_fn(|d| [w0[d], w1[d], w2[d]]);
     (fx, w)
 }
 
