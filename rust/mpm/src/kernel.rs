@@ -19,6 +19,8 @@ use std::ops::{Add, Mul, Sub};
 
 use nalgebra::SVector;
 
+use crate::v4::V4;
+
 /// Quadratic B-spline weights of the 3 stencil nodes for the offset `f ∈ [0.5, 1.5)`
 /// (in cells, from the stencil's base node). Generic over `f32` / `f64`; the
 /// constants are exact in both, so each precision evaluates the same expression.
@@ -63,10 +65,8 @@ pub(crate) fn cell_of<const D: usize>(
     let mask = (1usize << log2_b) - 1;
     for d in 0..D {
         let xg = x[d] * inv_dx;
-        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor (and
-        // the signed conversion, one instruction cheaper per step of range
-        // checking than `as u32`, gives the same value)
-        let b = (xg - 0.5) as i32 as u32;
+        // xg ≥ 1 inside the domain [dx, 1 − dx], so truncation is floor
+        let b = truncate_in_domain(xg - 0.5);
         c.fx[d] = xg - b as f32;
         key += (b as usize >> log2_b) * lat[d];
         // the base node's place in its own block's padded buffer
@@ -77,17 +77,42 @@ pub(crate) fn cell_of<const D: usize>(
     c
 }
 
+/// `v` truncated toward zero, for `0 ≤ v < 2^31` (a stencil base in cells:
+/// positions are kept in the domain [dx, 1 − dx]). On x86-64 one
+/// `cvttss2si` instead of `as i32`'s saturating conversion (two more
+/// compares and selects for NaN and overflow, which cannot occur here): the
+/// same value for every such `v`.
+#[inline(always)]
+fn truncate_in_domain(v: f32) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_cvttss_si32, _mm_set_ss};
+        // SSE is part of the x86-64 baseline; the intrinsic is defined for
+        // every input (out of range gives i32::MIN)
+        #[allow(unused_unsafe)]
+        unsafe {
+            _mm_cvttss_si32(_mm_set_ss(v)) as u32
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        v as i32 as u32
+    }
+}
+
 /// The offsets `fx` of a [`Cell`] and the quadratic B-spline weights of its
 /// stencil, per dimension.
 #[inline(always)]
 pub(crate) fn weights<const D: usize>(cell: &Cell) -> (SVector<f32, D>, [[f32; 3]; D]) {
     let mut fx = SVector::<f32, D>::zeros();
-    let mut w = [[0.0f32; 3]; D];
     for d in 0..D {
-        let f = cell.fx[d];
-        fx[d] = f;
-        w[d] = quadratic_weights(f);
+        fx[d] = cell.fx[d];
     }
+    // every dimension at once, one lane each (the same f32 operations; the
+    // unused lanes hold finite values from offsets 0)
+    let [w0, w1, w2] =
+        quadratic_weights(V4::load(&[cell.fx[0], cell.fx[1], cell.fx[2], 0.0])).map(V4::to_array);
+    let w = std::array::from_fn(|d| [w0[d], w1[d], w2[d]]);
     (fx, w)
 }
 
@@ -105,6 +130,19 @@ mod tests {
             let first: f64 = (0..3).map(|k| w[k] * (k as f64 - f)).sum();
             assert!(first.abs() < 1e-12, "{f}: {first}");
             assert!(w.iter().all(|&x| x >= 0.0));
+        }
+    }
+
+    #[test]
+    fn truncation_is_the_saturating_conversion_in_the_domain() {
+        // every stencil base of a position in [dx, 1 − dx] (and beyond, up to
+        // 2^24 cells) truncates as `as i32` does
+        let mut v = 0.0f32;
+        while v < (1u32 << 24) as f32 {
+            for x in [v, v + 0.5, v + 0.999_99, v.next_up()] {
+                assert_eq!(truncate_in_domain(x), x as i32 as u32, "{x}");
+            }
+            v = if v < 4096.0 { v + 1.0 } else { v * 1.01 };
         }
     }
 

@@ -167,6 +167,15 @@ impl Mul for V4 {
     }
 }
 
+impl From<f32> for V4 {
+    /// Every lane `x` (so that scalar-generic code, such as
+    /// [`crate::kernel::quadratic_weights`], runs on four lanes).
+    #[inline(always)]
+    fn from(x: f32) -> V4 {
+        V4::splat(x)
+    }
+}
+
 impl Mul<V4> for f32 {
     type Output = V4;
     /// Every lane times the scalar.

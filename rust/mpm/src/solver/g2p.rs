@@ -134,8 +134,21 @@ where
             let id = self.ids[slot];
             // its place in the storage this substep leaves
             let at = if REORDER { first + j } else { slot };
-            // SAFETY: the slot is this item's alone (caller)
-            let (mut p, cell) = unsafe { (particles.read(slot), cells.read(slot)) };
+            // the particle, updated where it goes: in place, only the fields
+            // that change are written (no copy of the whole particle in and
+            // out); reordering, a copy at its new place
+            // SAFETY: the slot and the place `at` are this item's alone
+            // (caller); `p` is the only reference to it until the next
+            // particle (the sand lanes write it after the loop's body)
+            let (p, cell) = unsafe {
+                let p = if REORDER {
+                    dst.write(at, particles.read(slot));
+                    dst.get_mut(at)
+                } else {
+                    particles.get_mut(slot)
+                };
+                (p, cells.read(slot))
+            };
             let (fx, w) = weights::<D>(&cell);
             let base_idx = cell.pad_off as usize;
             let (acc_v, acc_b) = Dim::<D>::g2p_sums(&patch[base_idx..], &Dim::<D>::PAD_STRIDE, &w);
@@ -188,8 +201,6 @@ where
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;
             vmax2 = vmax2.max(p.v.norm_squared());
-            // SAFETY: as above
-            unsafe { dst.write(at, p) };
             if sand_full {
                 sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
             }

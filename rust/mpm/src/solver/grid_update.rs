@@ -107,6 +107,27 @@ where
                 .map(|(col, v)| (col, *v))
                 .collect()
         };
+        let g_dt = gravity * dt;
+        // a block whose nodes all lie between the wall bands, with no
+        // collider near: each node's update is its velocity and gravity only
+        // (the same arithmetic as below, without the per-node tests)
+        let clear_of_walls = (0..D).all(|d| {
+            let first = c[d] << log2_b;
+            first >= wall_lo && first + b - 1 <= wall_hi
+        });
+        if clear_of_walls && near.is_empty() {
+            for (o, a) in out[..blk_nodes].iter_mut().zip(&acc[..blk_nodes]) {
+                let m = a[0];
+                if m <= 0.0 {
+                    *o = [0.0; 4];
+                    continue;
+                }
+                for d in 0..D {
+                    o[d] = a[1 + d] / m + g_dt[d];
+                }
+            }
+            return;
+        }
         for l in 0..blk_nodes {
             let a = &acc[l];
             let m = a[0];
@@ -119,7 +140,7 @@ where
             for d in 0..D {
                 v[d] = a[1 + d] / m;
             }
-            v += gravity * dt;
+            v += g_dt;
             let lc = unflatten_pow2::<D>(l, log2_b);
             let mut gi = [0usize; D];
             for d in 0..D {
