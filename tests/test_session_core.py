@@ -39,6 +39,28 @@ def test_a_wide_call_holds_as_many_tokens_as_threads():
     assert asyncio.run(go()) == (2, 1)
 
 
+def test_a_wide_call_cancelled_while_it_takes_its_tokens_leaves_none_taken():
+    # a session deleted while its play loop waits for its second token (its task is cancelled there) must not keep
+    # the first: a leaked token leaves every later two-thread session waiting for ever (a 3D session that never plays)
+    async def go() -> tuple[int, int]:
+        m = SessionManager(ServiceConfig(compute_threads=2, max_sessions=4))
+        other = object()
+        await m.limiter.acquire_on_behalf_of(other)  # a narrow call holds one of the two tokens
+        wide = asyncio.ensure_future(m.compute_wide(2, lambda: None))
+        for _ in range(20):  # the wide call takes the free token and waits for the other
+            await asyncio.sleep(0)
+        waiting = m.limiter.borrowed_tokens
+        wide.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await wide
+        m.limiter.release_on_behalf_of(other)
+        left = m.limiter.borrowed_tokens
+        await asyncio.wait_for(m.compute_wide(2, lambda: None), 5)  # a later wide call gets both
+        return waiting, left
+
+    assert asyncio.run(go()) == (2, 0)
+
+
 def test_wide_and_narrow_sessions_step_at_once_without_deadlock_and_bit_for_bit():
     frames = 6
     specs = [("dam_break3d", 1), ("dam_break3d", 2), ("water2d", 3), ("sand2d", 4)]

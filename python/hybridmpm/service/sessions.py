@@ -229,13 +229,21 @@ class SessionManager:
         """:meth:`compute` for work on ``width`` threads: it holds ``width``
         of the compute limiter's tokens while it runs. The tokens are taken
         one wide call at a time (a narrow call holds one and always ends), so
-        two wide calls never each hold part of what the other waits for."""
+        two wide calls never each hold part of what the other waits for; a call
+        cancelled while it takes them gives back those it took."""
         if width <= 1:
             return await self.compute(fn, *args)
         tokens = [object() for _ in range(width)]
         async with self._wide:
-            for t in tokens:
-                await self.limiter.acquire_on_behalf_of(t)
+            taken = 0
+            try:
+                for t in tokens:
+                    await self.limiter.acquire_on_behalf_of(t)
+                    taken += 1
+            except BaseException:  # cancelled while it waits for a token (its session deleted): give back what it took
+                for t in tokens[:taken]:
+                    self.limiter.release_on_behalf_of(t)
+                raise
         try:
             return await on_worker(self._unlimited, fn, *args)
         finally:
