@@ -249,7 +249,7 @@ where
             let keys = view.cells;
             let n = s.particles.len();
             let inv_dx = s.params.n_grid as f32;
-            let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, s.stencil.pad_stride);
+            let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, Dim::<D>::PAD_STRIDE);
             while let Some(i) = team.claim(KEYS, n.div_ceil(KEYS_CHUNK)) {
                 let lo = i * KEYS_CHUNK;
                 let hi = (lo + KEYS_CHUNK).min(n);
