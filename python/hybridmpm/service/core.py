@@ -287,28 +287,30 @@ class SessionCore:
         tick)."""
         pacer = Pacer(float(self.sim.dt_frame) * int(self.sim.r_t))
         while self.playing and not self.closed and self.has_viewers():
-            start = time.monotonic()
-            unshown: Frame | None = None  # the call's last step, until the viewers have it
+            start, delay = time.monotonic(), 0.0
+            last: Frame | None = None  # the call's latest step: the viewers get it when the call ends
+            failure: Exception | None = None
             while True:
                 with self.lock:
-                    if not self.playing or self.closed:
-                        if unshown is not None and not self.closed:
-                            self.on_frame(unshown, 0)
-                        return
-                    try:
-                        unshown = self.sim.advance()
-                    except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
-                        self.playing = False
-                        if unshown is not None:
-                            self.on_frame(unshown, 0)
-                        self.on_event({"type": "error", "message": f"simulation stopped: {e}"})
-                        return
-                    self._changed()
-                    self._record(unshown)
-                    delay = pacer.delay()
-                    if delay > 0 or time.monotonic() - start >= PLAY_TICK_S or not (self.playing and self.has_viewers()):
-                        self.on_frame(unshown, 0)
-                        break
+                    going = self.playing and not self.closed
+                    if going:
+                        try:
+                            last = self.sim.advance()
+                        except Exception as e:  # noqa: BLE001 - a failed step pauses the stream with a message
+                            self.playing, going, failure = False, False, e
+                        else:
+                            self._changed()
+                            self._record(last)
+                            delay = pacer.delay()
+                    ends = not going or delay > 0 or time.monotonic() - start >= PLAY_TICK_S or not (self.playing and self.has_viewers())
+                    if ends and last is not None:
+                        self.on_frame(last, 0)  # under the lock: a request's frame after it is never overtaken
+                    if failure is not None:
+                        self.on_event({"type": "error", "message": f"simulation stopped: {failure}"})
+                if not going:
+                    return
+                if ends:
+                    break
             yield max(delay, start + PLAY_TICK_S - time.monotonic())
 
     def control(
