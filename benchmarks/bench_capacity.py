@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import os
 import statistics
@@ -108,18 +109,17 @@ def capacity(rows: Sequence[dict[str, Any]]) -> int:
     return best
 
 
+def engine_cores(cost_ms: Sequence[float], dt_frame: float) -> list[float]:
+    """The cores the engine alone needs at real time (1/``dt_frame``
+    frames/s) for the first 1, 2, ... sessions (seeds 0, 1, ..., one thread
+    each, ``cost_ms`` per frame [ms]), with no service at all."""
+    return list(itertools.accumulate(c / 1e3 / dt_frame for c in cost_ms))
+
+
 def engine_bound(cost_ms: Sequence[float], dt_frame: float, cores: float) -> int:
-    """The most sessions (seeds 0, 1, ... with the engine alone's ``cost_ms``
-    per frame [ms], one thread each) whose engine work at real time
-    (1/``dt_frame`` frames/s) fits in ``cores``, with no service at all: an
-    upper bound on the capacity."""
-    n, need = 0, 0.0
-    for c in cost_ms:
-        need += c / 1e3 / dt_frame
-        if need > cores:
-            break
-        n += 1
-    return n
+    """The most sessions whose engine work alone (:func:`engine_cores`) fits
+    in ``cores``: an upper bound on the capacity."""
+    return sum(1 for need in engine_cores(cost_ms, dt_frame) if need <= cores)
 
 
 def best_of(repeats: int, measure: Callable[[], dict[str, Any]]) -> dict[str, Any]:
@@ -277,16 +277,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if frames:  # the engine alone, one seed at a time: the CPU each rung's sessions need at real time
         dt = rows[0]["dt_frame"]
         cost = [engine_ms_per_frame("water2d", seed, frames) for seed in range(max(args.engine_seeds, *(r["sessions"] for r in rows)))]
+        need = engine_cores(cost, dt)
         for r in rows:
             r["engine_ms_per_frame"] = cost[: r["sessions"]]
-            r["engine_cores"] = sum(cost[: r["sessions"]]) / 1e3 / r["dt_frame"]
+            r["engine_cores"] = need[r["sessions"] - 1]
         cores = float(os.cpu_count() or 1)
-        out |= {
-            "engine_ms_by_seed": cost,
-            "engine_cores_by_count": [sum(cost[:n]) / 1e3 / dt for n in range(1, len(cost) + 1)],
-            "engine_bound": engine_bound(cost, dt, cores),
-            "cores": cores,
-        }
+        out |= {"engine_ms_by_seed": cost, "engine_cores_by_count": need, "engine_bound": engine_bound(cost, dt, cores), "cores": cores}
         print("engine alone [ms/frame] by seed:", [round(x, 3) for x in cost], flush=True)
     return out
 
