@@ -85,6 +85,13 @@ pub(super) struct Stencil<const D: usize> {
     /// contiguous along the last dimension in both, as
     /// `(first node in the output block, first node in the padded buffer, length)`.
     pub(super) gather_runs: Vec<Vec<(u16, u16, u16)>>,
+    /// The nodes of an output block that any of its present source blocks
+    /// reaches, by the mask of those present (bit `s`: source block `c − s`
+    /// exists): runs `(first node, length)` of consecutive nodes. Only
+    /// these nodes receive mass, and g2p reads only these (its patch takes
+    /// from output block `c + s` the runs of `gather_runs[s]`, inside the
+    /// union by definition), so the grid update visits no other node.
+    pub(super) union_runs: Vec<Vec<(u16, u16)>>,
 }
 
 /// Blocks per dimension of the block lattice for `n_grid` cells per dimension.
@@ -176,6 +183,9 @@ where
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();
+    let union_runs = (0..(1usize << (1usize << D)))
+        .map(|mask| union_runs_for::<D>(mask, log2_b))
+        .collect();
     let grid = SparseGrid {
         log2_b,
         nb,
@@ -200,8 +210,33 @@ where
             lat_stride,
             pad_nodes,
             gather_runs,
+            union_runs,
         },
     ))
+}
+
+/// The runs of output-block nodes reached by the source blocks of `mask`
+/// (bit `s`: source block `c − s` present): node `lc` is reached by `c − s`
+/// iff every `s_d = 0` or `lc_d < 2` (the rule of [`gather_runs_for`]).
+fn union_runs_for<const D: usize>(mask: usize, log2_b: u32) -> Vec<(u16, u16)> {
+    let b = 1usize << log2_b;
+    let reached = |l: usize| {
+        let lc = unflatten_pow2::<D>(l, log2_b);
+        (0..(1usize << D))
+            .any(|s| (mask >> s) & 1 == 1 && (0..D).all(|d| (s >> d) & 1 == 0 || lc[d] < 2))
+    };
+    let mut runs: Vec<(u16, u16)> = Vec::new();
+    for l in 0..b.pow(D as u32) {
+        if !reached(l) {
+            continue;
+        }
+        // a run is a range of consecutive nodes (rows joined where they meet)
+        match runs.last_mut() {
+            Some((first, len)) if *first as usize + *len as usize == l => *len += 1,
+            _ => runs.push((l as u16, 1)),
+        }
+    }
+    runs
 }
 
 /// The runs an output block gathers from the padded buffer of source block
@@ -463,14 +498,6 @@ where
     }
 }
 
-/// `acc += v` on 4 lanes.
-#[inline(always)]
-pub(super) fn add4(acc: &mut [f32; 4], v: &[f32; 4]) {
-    for k in 0..4 {
-        acc[k] += v[k];
-    }
-}
-
 /// Coordinates of the linear index `lin` of a lattice with `strides`.
 #[inline(always)]
 pub(super) fn unflatten<const D: usize>(mut lin: usize, strides: &[usize; D]) -> [usize; D] {
@@ -529,6 +556,36 @@ mod tests {
             got.sort();
             assert_eq!(got, want, "D = {D}, s = {s}");
         }
+    }
+
+    /// The union runs of every mask cover exactly the output nodes that the
+    /// gather runs of the mask's source blocks write, each node once.
+    fn union_runs_are_the_gathered_nodes<const D: usize>()
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let (_, st) = new_grid::<D>(64).unwrap();
+        assert_eq!(st.union_runs.len(), 1 << (1 << D));
+        for (mask, runs) in st.union_runs.iter().enumerate() {
+            let mut want: Vec<usize> = (0..(1usize << D))
+                .filter(|s| (mask >> s) & 1 == 1)
+                .flat_map(|s| st.gather_runs[s].iter())
+                .flat_map(|&(l, _, len)| l as usize..(l + len) as usize)
+                .collect();
+            want.sort();
+            want.dedup();
+            let got: Vec<usize> = runs
+                .iter()
+                .flat_map(|&(l, len)| l as usize..(l + len) as usize)
+                .collect();
+            assert_eq!(got, want, "D = {D}, mask = {mask:#b}");
+        }
+    }
+
+    #[test]
+    fn union_runs_cover_the_gathered_nodes() {
+        union_runs_are_the_gathered_nodes::<2>();
+        union_runs_are_the_gathered_nodes::<3>();
     }
 
     #[test]
