@@ -92,6 +92,11 @@ pub(super) struct Stencil<const D: usize> {
     /// from output block `c + s` the runs of `gather_runs[s]`, inside the
     /// union by definition), so the grid update visits no other node.
     pub(super) union_runs: Vec<Vec<(u16, u16)>>,
+    /// The same nodes as bits (bit `l`: node `l`; a block has at most 64).
+    pub(super) union_masks: Vec<u64>,
+    /// `below[d][k]`: the nodes of a block whose coordinate along axis `d`
+    /// is below `k` (`k` in `0..=B`), as bits: the wall bands of a block.
+    pub(super) below: [Vec<u64>; D],
 }
 
 /// Blocks per dimension of the block lattice for `n_grid` cells per dimension.
@@ -183,9 +188,29 @@ where
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();
-    let union_runs = (0..(1usize << (1usize << D)))
+    let union_runs: Vec<Vec<(u16, u16)>> = (0..(1usize << (1usize << D)))
         .map(|mask| union_runs_for::<D>(mask, log2_b))
         .collect();
+    // a block's nodes fit the bits of a u64 (8² in 2D, 4³ in 3D)
+    assert!(b.pow(D as u32) <= 64, "a block's nodes must fit a u64 mask");
+    let bits = |nodes: &mut dyn Iterator<Item = usize>| nodes.fold(0u64, |m, l| m | (1u64 << l));
+    let union_masks = union_runs
+        .iter()
+        .map(|runs| {
+            bits(
+                &mut runs
+                    .iter()
+                    .flat_map(|&(l, len)| l as usize..(l + len) as usize),
+            )
+        })
+        .collect();
+    let below = std::array::from_fn(|d| {
+        (0..=b)
+            .map(|k| {
+                bits(&mut (0..b.pow(D as u32)).filter(|&l| unflatten_pow2::<D>(l, log2_b)[d] < k))
+            })
+            .collect()
+    });
     let grid = SparseGrid {
         log2_b,
         nb,
@@ -211,6 +236,8 @@ where
             pad_nodes,
             gather_runs,
             union_runs,
+            union_masks,
+            below,
         },
     ))
 }

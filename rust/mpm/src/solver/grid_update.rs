@@ -4,7 +4,12 @@
 //! of the `2^D` source blocks that reach it, in a fixed order (so sums do not
 //! depend on the thread count); turn momentum into velocity,
 //! `v_i = (mv)_i / m_i + Δt·g` (explicit symplectic Euler, Hu et al. 2018);
-//! then enforce the boundaries on nodes inside them:
+//! then enforce the boundaries on nodes inside them. Only the nodes that the
+//! block's present source blocks reach are zeroed, gathered and updated
+//! (`Stencil::union_runs`; a block reached only by its neighbours' padding
+//! has 8 to 56 of its 64 nodes so, in 3D), and the boundary tests visit only
+//! the nodes of a wall band (bit masks, `Stencil::below`) unless a collider
+//! is near:
 //!
 //! - colliders: nodes with `sdf < 0` get the collider's condition with its
 //!   outward normal (only colliders near the block are tested); a moving
@@ -95,10 +100,18 @@ where
             let sid = src_of[s] as usize;
             let src = &local[sid * pad_nodes..(sid + 1) * pad_nodes];
             for &(l, q, len) in &st.gather_runs[s] {
-                let (l, q, len) = (l as usize, q as usize, len as usize);
-                // 4-lane adds (`V4`: one SSE add a node, the per-lane f32 add)
-                for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
-                    *a = (V4::load(a) + V4::load(sv)).to_array();
+                let (l, q) = (l as usize, q as usize);
+                // a run is 2 or B nodes: unrolled at those lengths
+                match len {
+                    2 => add_run::<2>(&mut acc[l..], &src[q..]),
+                    4 => add_run::<4>(&mut acc[l..], &src[q..]),
+                    8 => add_run::<8>(&mut acc[l..], &src[q..]),
+                    _ => {
+                        let len = len as usize;
+                        for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
+                            *a = (V4::load(a) + V4::load(sv)).to_array();
+                        }
+                    }
                 }
             }
         }
@@ -158,51 +171,74 @@ where
             (lo[d], hi[d]) = (1.0, -1.0);
             [lo, hi]
         });
-        for &(l0, len) in runs {
-            for l in l0 as usize..(l0 + len) as usize {
-                let m = acc[l][0];
-                if m <= 0.0 {
-                    continue;
-                }
-                let lc = unflatten_pow2::<D>(l, log2_b);
-                let mut gi = [0usize; D];
+        // the nodes to visit: every reached one with a collider near, else
+        // those in a wall band (node coordinate below `wall_lo` or above
+        // `wall_hi` along some axis)
+        let mut visit = st.union_masks[mask];
+        if near.is_empty() {
+            let mut band = 0u64;
+            for d in 0..D {
+                let first = c[d] << log2_b;
+                let lo = wall_lo.saturating_sub(first).min(b);
+                let hi = (wall_hi + 1).saturating_sub(first).min(b);
+                band |= st.below[d][lo] | !st.below[d][hi];
+            }
+            visit &= band;
+        }
+        while visit != 0 {
+            let l = visit.trailing_zeros() as usize;
+            visit &= visit - 1;
+            let m = acc[l][0];
+            if m <= 0.0 {
+                continue;
+            }
+            let lc = unflatten_pow2::<D>(l, log2_b);
+            let mut gi = [0usize; D];
+            for d in 0..D {
+                gi[d] = (c[d] << log2_b) + lc[d];
+            }
+            let o = &mut out[l];
+            let mut v = SVector::<f32, D>::from_column_slice(&o[..D]);
+            for (col, v_obs) in &near {
+                let mut xp = SVector::<f32, D>::zeros();
                 for d in 0..D {
-                    gi[d] = (c[d] << log2_b) + lc[d];
+                    xp[d] = gi[d] as f32 * dx;
                 }
-                let in_band = (0..D).any(|d| gi[d] < wall_lo || gi[d] > wall_hi);
-                if !in_band && near.is_empty() {
-                    continue;
-                }
-                let o = &mut out[l];
-                let mut v = SVector::<f32, D>::from_column_slice(&o[..D]);
-                for (col, v_obs) in &near {
-                    let mut xp = SVector::<f32, D>::zeros();
-                    for d in 0..D {
-                        xp[d] = gi[d] as f32 * dx;
-                    }
-                    if col.shape.sdf(&xp) < 0.0 {
-                        let nrm = col.shape.normal(&xp);
-                        match v_obs {
-                            None => apply_condition(&mut v, &nrm, col.condition, col.friction),
-                            Some(u) => {
-                                apply_condition_moving(&mut v, &nrm, col.condition, col.friction, u)
-                            }
+                if col.shape.sdf(&xp) < 0.0 {
+                    let nrm = col.shape.normal(&xp);
+                    match v_obs {
+                        None => apply_condition(&mut v, &nrm, col.condition, col.friction),
+                        Some(u) => {
+                            apply_condition_moving(&mut v, &nrm, col.condition, col.friction, u)
                         }
                     }
                 }
-                for d in 0..D {
-                    let side = if gi[d] < wall_lo {
-                        0
-                    } else if gi[d] > wall_hi {
-                        1
-                    } else {
-                        continue;
-                    };
-                    let f = &faces[d][side];
-                    apply_condition(&mut v, &normals[d][side], f.condition, f.friction);
-                }
-                o[..D].copy_from_slice(v.as_slice());
             }
+            for d in 0..D {
+                let side = if gi[d] < wall_lo {
+                    0
+                } else if gi[d] > wall_hi {
+                    1
+                } else {
+                    continue;
+                };
+                let f = &faces[d][side];
+                apply_condition(&mut v, &normals[d][side], f.condition, f.friction);
+            }
+            o[..D].copy_from_slice(v.as_slice());
         }
+    }
+}
+
+/// `acc[..N] += src[..N]`, node by node on 4 lanes (`V4`: one SSE add a
+/// node, the per-lane `f32` add). Panics if either is shorter than `N`.
+#[inline(always)]
+fn add_run<const N: usize>(acc: &mut [[f32; 4]], src: &[[f32; 4]]) {
+    let a = acc.first_chunk_mut::<N>().expect("a run inside the block");
+    let s = src
+        .first_chunk::<N>()
+        .expect("a run inside the padded buffer");
+    for k in 0..N {
+        a[k] = (V4::load(&a[k]) + V4::load(&s[k])).to_array();
     }
 }
