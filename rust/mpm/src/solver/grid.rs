@@ -188,22 +188,28 @@ where
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();
-    let union_runs: Vec<Vec<(u16, u16)>> = (0..(1usize << (1usize << D)))
-        .map(|mask| union_runs_for::<D>(mask, log2_b))
-        .collect();
     // a block's nodes fit the bits of a u64 (8² in 2D, 4³ in 3D)
-    assert!(b.pow(D as u32) <= 64, "a block's nodes must fit a u64 mask");
+    let blk_nodes = b.pow(D as u32);
+    assert!(blk_nodes <= 64, "a block's nodes must fit a u64 mask");
     let bits = |nodes: &mut dyn Iterator<Item = usize>| nodes.fold(0u64, |m, l| m | (1u64 << l));
-    let union_masks = union_runs
-        .iter()
-        .map(|runs| {
-            bits(
-                &mut runs
-                    .iter()
-                    .flat_map(|&(l, len)| l as usize..(l + len) as usize),
-            )
+    // the output nodes that source block c − s reaches: every s_d = 0 or
+    // lc_d < 2 (the rule of `gather_runs_for`)
+    let region: Vec<u64> = (0..(1usize << D))
+        .map(|s| {
+            bits(&mut (0..blk_nodes).filter(|&l| {
+                let lc = unflatten_pow2::<D>(l, log2_b);
+                (0..D).all(|d| (s >> d) & 1 == 0 || lc[d] < 2)
+            }))
         })
         .collect();
+    let union_masks: Vec<u64> = (0..(1usize << (1usize << D)))
+        .map(|mask| {
+            (0..(1usize << D))
+                .filter(|s| (mask >> s) & 1 == 1)
+                .fold(0, |m, s| m | region[s])
+        })
+        .collect();
+    let union_runs = union_masks.iter().map(|&m| runs_of(m)).collect();
     let below = std::array::from_fn(|d| {
         (0..=b)
             .map(|k| {
@@ -242,26 +248,20 @@ where
     ))
 }
 
-/// The runs of output-block nodes reached by the source blocks of `mask`
-/// (bit `s`: source block `c − s` present): node `lc` is reached by `c − s`
-/// iff every `s_d = 0` or `lc_d < 2` (the rule of [`gather_runs_for`]).
-fn union_runs_for<const D: usize>(mask: usize, log2_b: u32) -> Vec<(u16, u16)> {
-    let b = 1usize << log2_b;
-    let reached = |l: usize| {
-        let lc = unflatten_pow2::<D>(l, log2_b);
-        (0..(1usize << D))
-            .any(|s| (mask >> s) & 1 == 1 && (0..D).all(|d| (s >> d) & 1 == 0 || lc[d] < 2))
-    };
-    let mut runs: Vec<(u16, u16)> = Vec::new();
-    for l in 0..b.pow(D as u32) {
-        if !reached(l) {
-            continue;
-        }
-        // a run is a range of consecutive nodes (rows joined where they meet)
-        match runs.last_mut() {
-            Some((first, len)) if *first as usize + *len as usize == l => *len += 1,
-            _ => runs.push((l as u16, 1)),
-        }
+/// The runs `(first node, length)` of consecutive set bits of `mask`.
+fn runs_of(mask: u64) -> Vec<(u16, u16)> {
+    let mut runs = Vec::new();
+    let mut rest = mask;
+    while rest != 0 {
+        let first = rest.trailing_zeros();
+        let len = (rest >> first).trailing_ones();
+        runs.push((first as u16, len as u16));
+        let run = if len == 64 {
+            u64::MAX
+        } else {
+            ((1u64 << len) - 1) << first
+        };
+        rest &= !run;
     }
     runs
 }
@@ -606,6 +606,10 @@ mod tests {
                 .flat_map(|&(l, len)| l as usize..(l + len) as usize)
                 .collect();
             assert_eq!(got, want, "D = {D}, mask = {mask:#b}");
+            let bits: Vec<usize> = (0..64)
+                .filter(|l| (st.union_masks[mask] >> l) & 1 == 1)
+                .collect();
+            assert_eq!(bits, want, "D = {D}, mask = {mask:#b} (bits)");
         }
     }
 
