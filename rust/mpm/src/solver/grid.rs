@@ -94,6 +94,11 @@ pub(super) struct Stencil<const D: usize> {
     pub(super) union_runs: Vec<Vec<(u16, u16)>>,
     /// The same nodes as bits (bit `l`: node `l`; a block has at most 64).
     pub(super) union_masks: Vec<u64>,
+    /// The nodes of `union_runs[mask]` that the mask's first source block
+    /// (the lowest `s`) does not reach, as runs: the first gathers as
+    /// `0 + x` (the sum's start, +0, and its first term), so only these start
+    /// from a zero written before.
+    pub(super) zero_runs: Vec<Vec<(u16, u16)>>,
     /// `below[d][k]`: the nodes of a block whose coordinate along axis `d`
     /// is below `k` (`k` in `0..=B`), as bits: the wall bands of a block.
     pub(super) below: [Vec<u64>; D],
@@ -210,6 +215,14 @@ where
         })
         .collect();
     let union_runs = union_masks.iter().map(|&m| runs_of(m)).collect();
+    let zero_runs = union_masks
+        .iter()
+        .enumerate()
+        .map(|(mask, &m)| match mask {
+            0 => Vec::new(),
+            _ => runs_of(m & !region[mask.trailing_zeros() as usize]),
+        })
+        .collect();
     let below = std::array::from_fn(|d| {
         (0..=b)
             .map(|k| {
@@ -243,6 +256,7 @@ where
             gather_runs,
             union_runs,
             union_masks,
+            zero_runs,
             below,
         },
     ))
@@ -610,6 +624,24 @@ mod tests {
                 .filter(|l| (st.union_masks[mask] >> l) & 1 == 1)
                 .collect();
             assert_eq!(bits, want, "D = {D}, mask = {mask:#b} (bits)");
+            // the zero runs: the union less the lowest source's gathered nodes
+            let first: Vec<usize> = match mask {
+                0 => Vec::new(),
+                _ => st.gather_runs[mask.trailing_zeros() as usize]
+                    .iter()
+                    .flat_map(|&(l, _, len)| l as usize..(l + len) as usize)
+                    .collect(),
+            };
+            let zero: Vec<usize> = st.zero_runs[mask]
+                .iter()
+                .flat_map(|&(l, len)| l as usize..(l + len) as usize)
+                .collect();
+            let rest: Vec<usize> = want
+                .iter()
+                .copied()
+                .filter(|l| !first.contains(l))
+                .collect();
+            assert_eq!(zero, rest, "D = {D}, mask = {mask:#b} (zero runs)");
         }
     }
 

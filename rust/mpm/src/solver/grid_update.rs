@@ -88,28 +88,37 @@ where
         }
         // Only the nodes these reach get mass, and only these are read
         // (`Stencil::union_runs`): zero, gather and update those alone.
+        // Each node's sum starts at +0 and adds the sources in a fixed order
+        // of s (the sums do not depend on threads): the first source block
+        // writes `0 + x` over its region, and the nodes outside it are zeroed.
         let runs = &st.union_runs[mask];
-        for &(l, len) in runs {
-            acc[l as usize..(l + len) as usize].fill([0.0; 4]);
+        for &(l, len) in &st.zero_runs[mask] {
+            for a in &mut acc[l as usize..(l + len) as usize] {
+                *a = [0.0; 4];
+            }
         }
-        // Gather in a fixed order of s (the sums do not depend on threads).
         for s in 0..(1usize << D) {
             if (mask >> s) & 1 == 0 {
                 continue;
             }
+            let first = s == mask.trailing_zeros() as usize;
             let sid = src_of[s] as usize;
             let src = &local[sid * pad_nodes..(sid + 1) * pad_nodes];
             for &(l, q, len) in &st.gather_runs[s] {
                 let (l, q) = (l as usize, q as usize);
                 // a run is 2 or B nodes: unrolled at those lengths
-                match len {
-                    2 => add_run::<2>(&mut acc[l..], &src[q..]),
-                    4 => add_run::<4>(&mut acc[l..], &src[q..]),
-                    8 => add_run::<8>(&mut acc[l..], &src[q..]),
+                match (len, first) {
+                    (2, false) => add_run::<2, false>(&mut acc[l..], &src[q..]),
+                    (4, false) => add_run::<4, false>(&mut acc[l..], &src[q..]),
+                    (8, false) => add_run::<8, false>(&mut acc[l..], &src[q..]),
+                    (2, true) => add_run::<2, true>(&mut acc[l..], &src[q..]),
+                    (4, true) => add_run::<4, true>(&mut acc[l..], &src[q..]),
+                    (8, true) => add_run::<8, true>(&mut acc[l..], &src[q..]),
                     _ => {
                         let len = len as usize;
                         for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
-                            *a = (V4::load(a) + V4::load(sv)).to_array();
+                            let start = if first { V4::splat(0.0) } else { V4::load(a) };
+                            *a = (start + V4::load(sv)).to_array();
                         }
                     }
                 }
@@ -230,15 +239,21 @@ where
     }
 }
 
-/// `acc[..N] += src[..N]`, node by node on 4 lanes (`V4`: one SSE add a
-/// node, the per-lane `f32` add). Panics if either is shorter than `N`.
+/// `acc[..N] += src[..N]` node by node on 4 lanes (`V4`: one SSE add a
+/// node, the per-lane `f32` add); with `FIRST`, `acc[..N] = 0 + src[..N]`
+/// (the same sum from a zeroed `acc`). Panics if either is shorter than `N`.
 #[inline(always)]
-fn add_run<const N: usize>(acc: &mut [[f32; 4]], src: &[[f32; 4]]) {
+fn add_run<const N: usize, const FIRST: bool>(acc: &mut [[f32; 4]], src: &[[f32; 4]]) {
     let a = acc.first_chunk_mut::<N>().expect("a run inside the block");
     let s = src
         .first_chunk::<N>()
         .expect("a run inside the padded buffer");
     for k in 0..N {
-        a[k] = (V4::load(&a[k]) + V4::load(&s[k])).to_array();
+        let start = if FIRST {
+            V4::splat(0.0)
+        } else {
+            V4::load(&a[k])
+        };
+        a[k] = (start + V4::load(&s[k])).to_array();
     }
 }
