@@ -85,6 +85,23 @@ pub(super) struct Stencil<const D: usize> {
     /// contiguous along the last dimension in both, as
     /// `(first node in the output block, first node in the padded buffer, length)`.
     pub(super) gather_runs: Vec<Vec<(u16, u16, u16)>>,
+    /// The nodes of an output block that any of its present source blocks
+    /// reaches, by the mask of those present (bit `s`: source block `c − s`
+    /// exists): runs `(first node, length)` of consecutive nodes. Only
+    /// these nodes receive mass, and g2p reads only these (its patch takes
+    /// from output block `c + s` the runs of `gather_runs[s]`, inside the
+    /// union by definition), so the grid update visits no other node.
+    pub(super) union_runs: Vec<Vec<(u16, u16)>>,
+    /// The same nodes as bits (bit `l`: node `l`; a block has at most 64).
+    pub(super) union_masks: Vec<u64>,
+    /// The nodes of `union_runs[mask]` that the mask's first source block
+    /// (the lowest `s`) does not reach, as runs: the first gathers as
+    /// `0 + x` (the sum's start, +0, and its first term), so only these start
+    /// from a zero written before.
+    pub(super) zero_runs: Vec<Vec<(u16, u16)>>,
+    /// `below[d][k]`: the nodes of a block whose coordinate along axis `d`
+    /// is below `k` (`k` in `0..=B`), as bits: the wall bands of a block.
+    pub(super) below: [Vec<u64>; D],
 }
 
 /// Blocks per dimension of the block lattice for `n_grid` cells per dimension.
@@ -176,6 +193,43 @@ where
     let gather_runs = (0..(1usize << D))
         .map(|s| gather_runs_for::<D>(s, b, &pad_stride, &blk_stride))
         .collect();
+    // a block's nodes fit the bits of a u64 (8² in 2D, 4³ in 3D)
+    let blk_nodes = b.pow(D as u32);
+    assert!(blk_nodes <= 64, "a block's nodes must fit a u64 mask");
+    let bits = |nodes: &mut dyn Iterator<Item = usize>| nodes.fold(0u64, |m, l| m | (1u64 << l));
+    // the output nodes that source block c − s reaches: every s_d = 0 or
+    // lc_d < 2 (the rule of `gather_runs_for`)
+    let region: Vec<u64> = (0..(1usize << D))
+        .map(|s| {
+            bits(&mut (0..blk_nodes).filter(|&l| {
+                let lc = unflatten_pow2::<D>(l, log2_b);
+                (0..D).all(|d| (s >> d) & 1 == 0 || lc[d] < 2)
+            }))
+        })
+        .collect();
+    let union_masks: Vec<u64> = (0..(1usize << (1usize << D)))
+        .map(|mask| {
+            (0..(1usize << D))
+                .filter(|s| (mask >> s) & 1 == 1)
+                .fold(0, |m, s| m | region[s])
+        })
+        .collect();
+    let union_runs = union_masks.iter().map(|&m| runs_of(m)).collect();
+    let zero_runs = union_masks
+        .iter()
+        .enumerate()
+        .map(|(mask, &m)| match mask {
+            0 => Vec::new(),
+            _ => runs_of(m & !region[mask.trailing_zeros() as usize]),
+        })
+        .collect();
+    let below = std::array::from_fn(|d| {
+        (0..=b)
+            .map(|k| {
+                bits(&mut (0..b.pow(D as u32)).filter(|&l| unflatten_pow2::<D>(l, log2_b)[d] < k))
+            })
+            .collect()
+    });
     let grid = SparseGrid {
         log2_b,
         nb,
@@ -200,8 +254,30 @@ where
             lat_stride,
             pad_nodes,
             gather_runs,
+            union_runs,
+            union_masks,
+            zero_runs,
+            below,
         },
     ))
+}
+
+/// The runs `(first node, length)` of consecutive set bits of `mask`.
+fn runs_of(mask: u64) -> Vec<(u16, u16)> {
+    let mut runs = Vec::new();
+    let mut rest = mask;
+    while rest != 0 {
+        let first = rest.trailing_zeros();
+        let len = (rest >> first).trailing_ones();
+        runs.push((first as u16, len as u16));
+        let run = if len == 64 {
+            u64::MAX
+        } else {
+            ((1u64 << len) - 1) << first
+        };
+        rest &= !run;
+    }
+    runs
 }
 
 /// The runs an output block gathers from the padded buffer of source block
@@ -463,14 +539,6 @@ where
     }
 }
 
-/// `acc += v` on 4 lanes.
-#[inline(always)]
-pub(super) fn add4(acc: &mut [f32; 4], v: &[f32; 4]) {
-    for k in 0..4 {
-        acc[k] += v[k];
-    }
-}
-
 /// Coordinates of the linear index `lin` of a lattice with `strides`.
 #[inline(always)]
 pub(super) fn unflatten<const D: usize>(mut lin: usize, strides: &[usize; D]) -> [usize; D] {
@@ -529,6 +597,58 @@ mod tests {
             got.sort();
             assert_eq!(got, want, "D = {D}, s = {s}");
         }
+    }
+
+    /// The union runs of every mask cover exactly the output nodes that the
+    /// gather runs of the mask's source blocks write, each node once.
+    fn union_runs_are_the_gathered_nodes<const D: usize>()
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let (_, st) = new_grid::<D>(64).unwrap();
+        assert_eq!(st.union_runs.len(), 1 << (1 << D));
+        for (mask, runs) in st.union_runs.iter().enumerate() {
+            let mut want: Vec<usize> = (0..(1usize << D))
+                .filter(|s| (mask >> s) & 1 == 1)
+                .flat_map(|s| st.gather_runs[s].iter())
+                .flat_map(|&(l, _, len)| l as usize..(l + len) as usize)
+                .collect();
+            want.sort();
+            want.dedup();
+            let got: Vec<usize> = runs
+                .iter()
+                .flat_map(|&(l, len)| l as usize..(l + len) as usize)
+                .collect();
+            assert_eq!(got, want, "D = {D}, mask = {mask:#b}");
+            let bits: Vec<usize> = (0..64)
+                .filter(|l| (st.union_masks[mask] >> l) & 1 == 1)
+                .collect();
+            assert_eq!(bits, want, "D = {D}, mask = {mask:#b} (bits)");
+            // the zero runs: the union less the lowest source's gathered nodes
+            let first: Vec<usize> = match mask {
+                0 => Vec::new(),
+                _ => st.gather_runs[mask.trailing_zeros() as usize]
+                    .iter()
+                    .flat_map(|&(l, _, len)| l as usize..(l + len) as usize)
+                    .collect(),
+            };
+            let zero: Vec<usize> = st.zero_runs[mask]
+                .iter()
+                .flat_map(|&(l, len)| l as usize..(l + len) as usize)
+                .collect();
+            let rest: Vec<usize> = want
+                .iter()
+                .copied()
+                .filter(|l| !first.contains(l))
+                .collect();
+            assert_eq!(zero, rest, "D = {D}, mask = {mask:#b} (zero runs)");
+        }
+    }
+
+    #[test]
+    fn union_runs_cover_the_gathered_nodes() {
+        union_runs_are_the_gathered_nodes::<2>();
+        union_runs_are_the_gathered_nodes::<3>();
     }
 
     #[test]

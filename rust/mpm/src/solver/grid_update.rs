@@ -4,7 +4,12 @@
 //! of the `2^D` source blocks that reach it, in a fixed order (so sums do not
 //! depend on the thread count); turn momentum into velocity,
 //! `v_i = (mv)_i / m_i + Δt·g` (explicit symplectic Euler, Hu et al. 2018);
-//! then enforce the boundaries on nodes inside them:
+//! then enforce the boundaries on nodes inside them. Only the nodes that the
+//! block's present source blocks reach are zeroed, gathered and updated
+//! (`Stencil::union_runs`; a block reached only by its neighbours' padding
+//! has 8 to 56 of its 64 nodes so, in 3D), and the boundary tests visit only
+//! the nodes of a wall band (bit masks, `Stencil::below`) unless a collider
+//! is near:
 //!
 //! - colliders: nodes with `sdf < 0` get the collider's condition with its
 //!   outward normal (only colliders near the block are tested); a moving
@@ -23,17 +28,21 @@
 use nalgebra::SVector;
 
 use super::Solver;
-use super::grid::{EMPTY, add4, unflatten, unflatten_pow2};
+use super::grid::{EMPTY, unflatten, unflatten_pow2};
 use crate::collider::{Collider, apply_condition, apply_condition_moving};
 use crate::dim::{Dim, DimOps};
 use crate::params::WallFace;
+use crate::v4::V4;
 
 impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
     /// Grid update of output block `oi` into `out` (`B^D` nodes of
-    /// `[v, 0]`, overwritten); `acc` is scratch of `B^D` nodes.
+    /// `[v, 0]`); `acc` is scratch of `B^D` nodes. Only the nodes that the
+    /// block's present source blocks reach are written
+    /// (`Stencil::union_runs`): the others get no mass and g2p never reads
+    /// them.
     // inlined into each compiled copy of the frame loop (`crate::isa`)
     #[inline(always)]
     pub(super) fn grid_update_block(
@@ -44,16 +53,12 @@ where
         dt: f32,
     ) {
         let b = 1usize << self.grid.log2_b;
-        let blk_nodes = b.pow(D as u32);
         let p = b + 2;
         let pad_nodes = p.pow(D as u32);
         let n = self.params.n_grid;
         let dx = self.params.dx();
         let gravity = SVector::<f32, D>::from_column_slice(&self.params.gravity);
         let walls = &self.params.walls;
-        // condition and friction of each wall face, [axis][side] (side 0: the lower face)
-        let faces: [[WallFace; 2]; D] =
-            std::array::from_fn(|d| [walls.face(d, 0), walls.face(d, 1)]);
         let colliders = &self.colliders;
         let st = &self.stencil;
         let g = &self.grid;
@@ -62,8 +67,9 @@ where
         let wall_lo = walls.cells;
         let wall_hi = n.saturating_sub(walls.cells);
         let c = unflatten::<D>(out_blocks[oi] as usize, &lat);
-        acc.fill([0.0; 4]);
-        // Gather from source blocks c - s, s ∈ {0,1}^D, in a fixed order.
+        // The source blocks c - s, s ∈ {0,1}^D, that exist (bit s of `mask`).
+        let mut src_of = [0u32; 8];
+        let mut mask = 0usize;
         for s in 0..(1usize << D) {
             let mut lin = 0usize;
             let mut ok = true;
@@ -75,18 +81,46 @@ where
                 }
                 lin += (c[d] - sd) * lat[d];
             }
-            if !ok {
+            if ok && src_map[lin] != EMPTY {
+                src_of[s] = src_map[lin] - 1;
+                mask |= 1 << s;
+            }
+        }
+        // Only the nodes these reach get mass, and only these are read
+        // (`Stencil::union_runs`): zero, gather and update those alone.
+        // Each node's sum starts at +0 and adds the sources in a fixed order
+        // of s (the sums do not depend on threads): the first source block
+        // writes `0 + x` over its region, and the nodes outside it are zeroed.
+        let runs = &st.union_runs[mask];
+        for &(l, len) in &st.zero_runs[mask] {
+            for a in &mut acc[l as usize..(l + len) as usize] {
+                *a = [0.0; 4];
+            }
+        }
+        for s in 0..(1usize << D) {
+            if (mask >> s) & 1 == 0 {
                 continue;
             }
-            if src_map[lin] == EMPTY {
-                continue;
-            }
-            let sid = src_map[lin] - 1;
-            let src = &local[sid as usize * pad_nodes..(sid as usize + 1) * pad_nodes];
+            let first = s == mask.trailing_zeros() as usize;
+            let sid = src_of[s] as usize;
+            let src = &local[sid * pad_nodes..(sid + 1) * pad_nodes];
             for &(l, q, len) in &st.gather_runs[s] {
-                let (l, q, len) = (l as usize, q as usize, len as usize);
-                for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
-                    add4(a, sv);
+                let (l, q) = (l as usize, q as usize);
+                // a run is 2 or B nodes: unrolled at those lengths
+                match (len, first) {
+                    (2, false) => add_run::<2, false>(&mut acc[l..], &src[q..]),
+                    (4, false) => add_run::<4, false>(&mut acc[l..], &src[q..]),
+                    (8, false) => add_run::<8, false>(&mut acc[l..], &src[q..]),
+                    (2, true) => add_run::<2, true>(&mut acc[l..], &src[q..]),
+                    (4, true) => add_run::<4, true>(&mut acc[l..], &src[q..]),
+                    (8, true) => add_run::<8, true>(&mut acc[l..], &src[q..]),
+                    _ => {
+                        let len = len as usize;
+                        for (a, sv) in acc[l..l + len].iter_mut().zip(&src[q..q + len]) {
+                            let start = if first { V4::splat(0.0) } else { V4::load(a) };
+                            *a = (start + V4::load(sv)).to_array();
+                        }
+                    }
                 }
             }
         }
@@ -108,44 +142,72 @@ where
                 .collect()
         };
         let g_dt = gravity * dt;
+        // gravity's velocity change in the node layout `[v, 0]` (lanes past D zero)
+        let g4: [f32; 4] = std::array::from_fn(|k| if k < D { g_dt[k] } else { 0.0 });
+        // Every reached node: its velocity and gravity, `v = (mv)/m + Δt·g`,
+        // or zero without mass (a NaN mass is not `<= 0`: it gives NaN, as
+        // the per-node form did). Lane k < D of the output is lane 1 + k of
+        // the sum; the lanes past D stay zero.
+        for &(l, len) in runs {
+            let (l, len) = (l as usize, len as usize);
+            for (o, a) in out[l..l + len].iter_mut().zip(&acc[l..l + len]) {
+                let m = a[0];
+                let v: [f32; 4] =
+                    std::array::from_fn(|k| if k < D { a[1 + k] / m + g4[k] } else { 0.0 });
+                *o = if m <= 0.0 { [0.0; 4] } else { v };
+            }
+        }
         // a block whose nodes all lie between the wall bands, with no
-        // collider near: each node's update is its velocity and gravity only
-        // (the same arithmetic as below, without the per-node tests)
+        // collider near, is done
         let clear_of_walls = (0..D).all(|d| {
             let first = c[d] << log2_b;
             first >= wall_lo && first + b - 1 <= wall_hi
         });
         if clear_of_walls && near.is_empty() {
-            for (o, a) in out[..blk_nodes].iter_mut().zip(&acc[..blk_nodes]) {
-                let m = a[0];
-                if m <= 0.0 {
-                    *o = [0.0; 4];
-                    continue;
-                }
-                for d in 0..D {
-                    o[d] = a[1 + d] / m + g_dt[d];
-                }
-            }
             return;
         }
-        for l in 0..blk_nodes {
-            let a = &acc[l];
-            let m = a[0];
-            let o = &mut out[l];
+        // The boundary conditions on the nodes with mass: the colliders
+        // near, then the walls, axis by axis.
+        // condition and friction of each wall face, [axis][side] (side 0: the lower face)
+        let faces: [[WallFace; 2]; D] =
+            std::array::from_fn(|d| [walls.face(d, 0), walls.face(d, 1)]);
+        // and its inward normal, built once: a normal built per node on the
+        // stack (a zeroed vector, then one lane set) was read back before its
+        // stores had left, a store-forwarding stall per wall node
+        let normals: [[SVector<f32, D>; 2]; D] = std::array::from_fn(|d| {
+            let (mut lo, mut hi) = (SVector::<f32, D>::zeros(), SVector::<f32, D>::zeros());
+            // (not `-lo`: its other lanes would be −0)
+            (lo[d], hi[d]) = (1.0, -1.0);
+            [lo, hi]
+        });
+        // the nodes to visit: every reached one with a collider near, else
+        // those in a wall band (node coordinate below `wall_lo` or above
+        // `wall_hi` along some axis)
+        let mut visit = st.union_masks[mask];
+        if near.is_empty() {
+            let mut band = 0u64;
+            for d in 0..D {
+                let first = c[d] << log2_b;
+                let lo = wall_lo.saturating_sub(first).min(b);
+                let hi = (wall_hi + 1).saturating_sub(first).min(b);
+                band |= st.below[d][lo] | !st.below[d][hi];
+            }
+            visit &= band;
+        }
+        while visit != 0 {
+            let l = visit.trailing_zeros() as usize;
+            visit &= visit - 1;
+            let m = acc[l][0];
             if m <= 0.0 {
-                *o = [0.0; 4];
                 continue;
             }
-            let mut v = SVector::<f32, D>::zeros();
-            for d in 0..D {
-                v[d] = a[1 + d] / m;
-            }
-            v += g_dt;
             let lc = unflatten_pow2::<D>(l, log2_b);
             let mut gi = [0usize; D];
             for d in 0..D {
                 gi[d] = (c[d] << log2_b) + lc[d];
             }
+            let o = &mut out[l];
+            let mut v = SVector::<f32, D>::from_column_slice(&o[..D]);
             for (col, v_obs) in &near {
                 let mut xp = SVector::<f32, D>::zeros();
                 for d in 0..D {
@@ -162,19 +224,36 @@ where
                 }
             }
             for d in 0..D {
-                if gi[d] < wall_lo {
-                    let mut nrm = SVector::<f32, D>::zeros();
-                    nrm[d] = 1.0;
-                    let f = &faces[d][0];
-                    apply_condition(&mut v, &nrm, f.condition, f.friction);
+                let side = if gi[d] < wall_lo {
+                    0
                 } else if gi[d] > wall_hi {
-                    let mut nrm = SVector::<f32, D>::zeros();
-                    nrm[d] = -1.0;
-                    let f = &faces[d][1];
-                    apply_condition(&mut v, &nrm, f.condition, f.friction);
-                }
+                    1
+                } else {
+                    continue;
+                };
+                let f = &faces[d][side];
+                apply_condition(&mut v, &normals[d][side], f.condition, f.friction);
             }
             o[..D].copy_from_slice(v.as_slice());
         }
+    }
+}
+
+/// `acc[..N] += src[..N]` node by node on 4 lanes (`V4`: one SSE add a
+/// node, the per-lane `f32` add); with `FIRST`, `acc[..N] = 0 + src[..N]`
+/// (the same sum from a zeroed `acc`). Panics if either is shorter than `N`.
+#[inline(always)]
+fn add_run<const N: usize, const FIRST: bool>(acc: &mut [[f32; 4]], src: &[[f32; 4]]) {
+    let a = acc.first_chunk_mut::<N>().expect("a run inside the block");
+    let s = src
+        .first_chunk::<N>()
+        .expect("a run inside the padded buffer");
+    for k in 0..N {
+        let start = if FIRST {
+            V4::splat(0.0)
+        } else {
+            V4::load(&a[k])
+        };
+        a[k] = (start + V4::load(&s[k])).to_array();
     }
 }
