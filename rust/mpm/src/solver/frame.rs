@@ -11,14 +11,17 @@
 //! 4. g2p per source block (`g2p.rs`), each block reporting its health and
 //!    largest speed.
 //!
-//! Stages 2–4 are parallel: the team's threads claim blocks from an atomic
-//! counter, and each block writes only its own output, so results are
-//! bitwise the same for any number of threads.
+//! Stages 2–4 are parallel: each member of the team claims the blocks it
+//! owns (the same run of blocks in every stage, `Solver::schedule`) from
+//! an atomic counter, then helps the others, and each block writes only its
+//! own output, so results are bitwise the same for any number of threads.
 
 use std::sync::Mutex;
 
 use super::g2p::G2pOut;
-use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team};
+use super::team::{
+    KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team,
+};
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
@@ -34,8 +37,6 @@ struct Stage<const D: usize> {
     src_map: RawSlice<u32>,
     counts: RawSlice<u32>,
     sorted: RawSlice<u32>,
-    n_src: usize,
-    n_out: usize,
     local: RawSlice<[f32; 4]>,
     out_v: RawSlice<[f32; 4]>,
     particles: RawSlice<Particle<D>>,
@@ -387,14 +388,14 @@ where
             let blk_nodes = 1usize << (s.grid.log2_b as usize * D);
             patch.resize(st.pad_nodes, [0.0f32; 4]);
             acc.resize(blk_nodes, [0.0f32; 4]);
-            while let Some(k) = team.claim(P2G, view.n_src) {
+            while let Some(k) = team.claim_own(OWN_P2G, tid, &s.grid.p2g_bounds) {
                 let si = s.grid.p2g_order[k] as usize;
                 let buf = unsafe { view.local.chunk_mut(si * st.pad_nodes, st.pad_nodes) };
                 s.p2g_block(si, buf, dt);
             }
             team.barrier();
             clock.lap(Lap::P2g);
-            while let Some(oi) = team.claim(GRID, view.n_out) {
+            while let Some(oi) = team.claim_own(OWN_GRID, tid, &s.grid.grid_bounds) {
                 let out = unsafe { view.out_v.chunk_mut(oi * blk_nodes, blk_nodes) };
                 s.grid_update_block(oi, out, &mut acc, dt);
             }
@@ -404,7 +405,7 @@ where
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
             // the block whose velocity patch `patch` holds
             let mut patch_of = usize::MAX;
-            while let Some(k) = team.claim(G2P, s.grid.g2p_items.len()) {
+            while let Some(k) = team.claim_own(OWN_G2P, tid, &s.grid.g2p_bounds) {
                 let item = s.grid.g2p_items[k];
                 let (si, lo, len) = (item.block as usize, item.first as usize, item.len as usize);
                 if si != patch_of {
@@ -464,8 +465,6 @@ where
             src_map: RawSlice::new(&mut self.grid.src_map),
             counts: RawSlice::new(&mut self.grid.counts),
             sorted: RawSlice::new(&mut self.grid.sorted),
-            n_src: self.grid.src_blocks.len(),
-            n_out: self.grid.out_blocks.len(),
             local: RawSlice::new(&mut self.grid.local),
             out_v: RawSlice::new(&mut self.grid.out_v),
             particles: RawSlice::new(&mut self.particles),

@@ -52,9 +52,14 @@ pub(super) struct SparseGrid {
     /// Block key of each particle in id order (scratch of the block sort).
     pub(super) key_by_id: Vec<u32>,
     /// The order in which a substep's members claim p2g's source blocks and
-    /// g2p's items ([`Solver::schedule`]).
+    /// g2p's items ([`Solver::schedule`]) ...
     pub(super) p2g_order: Vec<u32>,
     pub(super) g2p_items: Vec<G2pItem>,
+    /// ... and each member's range of them and of the output blocks
+    /// (`bounds[m] .. bounds[m + 1]`, [`super::team::Team::claim_own`]).
+    pub(super) p2g_bounds: Vec<u32>,
+    pub(super) g2p_bounds: Vec<u32>,
+    pub(super) grid_bounds: Vec<u32>,
 }
 
 /// A piece of a source block's particles that g2p hands to one member: the
@@ -193,6 +198,9 @@ where
         key_by_id: Vec::new(),
         p2g_order: Vec::new(),
         g2p_items: Vec::new(),
+        p2g_bounds: Vec::new(),
+        g2p_bounds: Vec::new(),
+        grid_bounds: Vec::new(),
     };
     Ok((
         grid,
@@ -413,14 +421,24 @@ where
     Dim<D>: DimOps<D>,
 {
     /// The order in which the `members` of a team claim this substep's work
-    /// (after [`Self::sort_end`]): alone, every source block whole, in key
-    /// order; on a team, p2g's blocks and g2p's items largest first (the last
-    /// items claimed are the small ones, so the members end close together),
-    /// g2p's blocks cut into pieces of about `n / (members · ITEMS_PER_MEMBER)`
-    /// particles (at least `MIN_ITEM`): a small frame has few blocks, and one
-    /// large block claimed last kept the other member waiting. Which member
-    /// runs which piece changes no result: each particle's g2p reads only the
-    /// grid and writes only its own place.
+    /// (after [`Self::sort_end`]), and each member's share of it. Alone,
+    /// every source block whole, in key order. On a team, member `m` owns
+    /// the source blocks whose particles' middle place lies in the `m`-th
+    /// of `members` equal parts of the sorted order (a run of blocks in key
+    /// order), g2p's pieces of those blocks and the output blocks they first
+    /// reach ([`Self::sort_end`] numbers output blocks in that order): a
+    /// member so works on the same particles and grid nodes in every stage
+    /// and substep, which stay in its core's cache, and the others take
+    /// over its items only once they have run out of their own
+    /// ([`super::team::Team::claim_own`]). Inside a member's range p2g's
+    /// blocks and g2p's items come largest first (the last items claimed
+    /// are the small ones, so the members end close together), g2p's
+    /// blocks cut into pieces of about `n / (members · ITEMS_PER_MEMBER)`
+    /// particles (at least `MIN_ITEM`): a small frame has few blocks, and
+    /// one large block claimed last kept the other member waiting. Which
+    /// member runs which item changes no result: each block's p2g writes its
+    /// own buffer, each output block its own nodes, and each particle's g2p
+    /// reads only the grid and writes only its own place.
     pub(super) fn schedule(&mut self, members: usize) {
         let g = &mut self.grid;
         let n_src = g.src_blocks.len();
@@ -428,38 +446,79 @@ where
         g.p2g_order.clear();
         g.p2g_order.extend(0..n_src as u32);
         g.g2p_items.clear();
+        for bounds in [&mut g.p2g_bounds, &mut g.g2p_bounds, &mut g.grid_bounds] {
+            bounds.clear();
+            bounds.push(0);
+        }
         if members <= 1 {
             g.g2p_items.extend((0..n_src).map(|b| G2pItem {
                 block: b as u32,
                 first: g.src_offsets[b],
                 len: len(b),
             }));
+            g.p2g_bounds.push(n_src as u32);
+            g.g2p_bounds.push(n_src as u32);
+            g.grid_bounds.push(g.out_blocks.len() as u32);
             return;
         }
-        // stable: equal blocks stay in key order (neighbours share grid data)
-        g.p2g_order
-            .sort_by_key(|&b| std::cmp::Reverse(len(b as usize)));
-        let n = self.particles.len();
-        let target = (n / (members * ITEMS_PER_MEMBER))
+        let n = self.particles.len() as u64;
+        // the owner of block b (non-decreasing in b)
+        let owner = |b: usize| {
+            let mid2 = (g.src_offsets[b] + g.src_offsets[b + 1]) as u64;
+            ((mid2 * members as u64) / (2 * n.max(1))).min(members as u64 - 1) as usize
+        };
+        let target = (n as usize / (members * ITEMS_PER_MEMBER))
             .max(MIN_ITEM)
             .next_multiple_of(16) as u32;
-        for b in 0..n_src {
-            let (first, total) = (g.src_offsets[b], len(b));
-            let pieces = total.div_ceil(target).max(1);
-            // near-equal pieces, each a multiple of 16 but the last
-            let step = total.div_ceil(pieces).next_multiple_of(16);
-            let mut at = 0;
-            while at < total {
-                let l = step.min(total - at);
-                g.g2p_items.push(G2pItem {
-                    block: b as u32,
-                    first: first + at,
-                    len: l,
-                });
-                at += l;
+        let lat = self.stencil.lat_stride;
+        let nb = g.nb;
+        // the output blocks numbered so far (`sort_end` numbers them in the
+        // order in which the source blocks, in key order, first reach them)
+        let mut reached = 0u32;
+        let mut b = 0;
+        for m in 0..members {
+            // member m's blocks, p2g's order and g2p's items
+            let first_block = b;
+            while b < n_src && owner(b) == m {
+                let (first, total) = (g.src_offsets[b], len(b));
+                let pieces = total.div_ceil(target).max(1);
+                // near-equal pieces, each a multiple of 16 but the last
+                let step = total.div_ceil(pieces).next_multiple_of(16);
+                let mut at = 0;
+                while at < total {
+                    let l = step.min(total - at);
+                    g.g2p_items.push(G2pItem {
+                        block: b as u32,
+                        first: first + at,
+                        len: l,
+                    });
+                    at += l;
+                }
+                let c = unflatten::<D>(g.src_blocks[b] as usize, &lat);
+                for s in 0..(1usize << D) {
+                    let mut lin = 0usize;
+                    let mut ok = true;
+                    for d in 0..D {
+                        let cd = c[d] + ((s >> d) & 1);
+                        ok &= cd < nb;
+                        lin += cd * lat[d];
+                    }
+                    if ok {
+                        reached = reached.max(g.out_map[lin]);
+                    }
+                }
+                b += 1;
             }
+            // stable: equal blocks stay in key order (neighbours share grid data)
+            g.p2g_order[first_block..b].sort_by_key(|&k| std::cmp::Reverse(len(k as usize)));
+            let items = *g.g2p_bounds.last().expect("starts with 0") as usize;
+            g.g2p_items[items..].sort_by_key(|it| std::cmp::Reverse(it.len));
+            g.p2g_bounds.push(b as u32);
+            g.g2p_bounds.push(g.g2p_items.len() as u32);
+            g.grid_bounds.push(reached);
         }
-        g.g2p_items.sort_by_key(|it| std::cmp::Reverse(it.len));
+        debug_assert_eq!(b, n_src);
+        debug_assert_eq!(reached as usize, g.out_blocks.len());
     }
 }
 
