@@ -5,11 +5,14 @@
 //!
 //! 1. thread 0, serial: finish the previous substep's g2p (the new storage
 //!    order), check its health and speed, sort the particles into blocks
-//!    (`grid.rs`) and size the buffers;
+//!    (`grid.rs`: the blocks were marked in g2p; a large frame counts and
+//!    scatters in parallel chunks, between two more barriers) and size the
+//!    buffers;
 //! 2. p2g per source block (`p2g.rs`);
-//! 3. grid update per output block (`grid_update.rs`);
+//! 3. grid update per output block (`grid_update.rs`), after which the
+//!    source blocks leave the block map;
 //! 4. g2p per source block (`g2p.rs`), each block reporting its health and
-//!    largest speed.
+//!    largest speed, and marking the blocks its particles move to.
 //!
 //! Stages 2–4 are parallel: each member of the team claims the blocks it
 //! owns (the same run of blocks in every stage, `Solver::schedule`) from
@@ -19,9 +22,8 @@
 use std::sync::Mutex;
 
 use super::g2p::G2pOut;
-use super::team::{
-    KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team,
-};
+use super::grid::BlockMarks;
+use super::team::{KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_SCATTER, Team};
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
@@ -71,7 +73,7 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 const KEYS_CHUNK: usize = 1024;
 
 /// Below this many particles per member the block sort runs whole in the
-/// serial section that starts a substep instead of in chunks between three
+/// serial section that starts a substep instead of in chunks between two
 /// more barriers: its work, ~3 ns a particle per chunked stage, is less than
 /// the barriers cost a small frame.
 pub(super) const SERIAL_SORT_BELOW: usize = 2048;
@@ -251,6 +253,8 @@ where
             let n = s.particles.len();
             let inv_dx = s.params.n_grid as f32;
             let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, Dim::<D>::PAD_STRIDE);
+            // SAFETY: src_map is only marked in this stage
+            let mut marks = unsafe { BlockMarks::new(view.src_map) };
             while let Some(i) = team.claim(KEYS, n.div_ceil(KEYS_CHUNK)) {
                 let lo = i * KEYS_CHUNK;
                 let hi = (lo + KEYS_CHUNK).min(n);
@@ -260,8 +264,13 @@ where
                     *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
                     // SAFETY: each id is at one slot, and so in one chunk
                     unsafe { view.key_by_id.write(id as usize, k.key) };
+                    marks.mark(k.key);
                 }
             }
+            touched
+                .lock()
+                .expect("no member panicked holding it")
+                .append(&mut marks.touched);
         }
         let mut patch = Vec::new();
         let mut acc = Vec::new();
@@ -303,22 +312,22 @@ where
                         team.set_stop();
                     }
                 }
-                if !team.stopped() {
+                let mut t = touched.lock().expect("no member panicked holding it");
+                if team.stopped() {
+                    s.forget_marks(&mut t);
+                } else {
                     // the moving colliders where they are at this substep's end
                     s.pose_colliders(sub + 1, n_sub);
                     s.sort_begin();
+                    s.sort_number(&mut t, sort_chunks);
                     let view = if serial_sort {
-                        // the whole block sort here: three barriers fewer
+                        // the whole block sort here: two barriers fewer
                         // (same order: the sort is stable in id order for
                         // any chunking)
                         let keys = RawSlice::new(&mut s.grid.next_keys);
                         let view = s.stage_view(keys);
-                        let mut t = touched.lock().expect("no member panicked holding it");
                         // SAFETY: serial section: nothing else accesses the
                         // sort's buffers
-                        unsafe { s.sort_mark(0, 1, view.src_map, &mut t) };
-                        s.sort_number(&mut t, 1);
-                        let view = s.stage_view(view.cells);
                         unsafe {
                             s.sort_count(0, 1, view.counts);
                             s.sort_scatter(0, 1, view.sorted, &mut Vec::new());
@@ -340,26 +349,6 @@ where
             }
             // the block sort's parallel stages (see `grid.rs`)
             if !serial_sort {
-                // SAFETY: parallel section; `sort_mark`'s conditions hold
-                // (chunks are claimed once; src_map is only marked here)
-                let s = unsafe { &*sp.0 };
-                let view = unsafe { team.published() };
-                let mut mine = Vec::new();
-                while let Some(c) = team.claim(SORT_MARK, sort_chunks) {
-                    unsafe { s.sort_mark(c, sort_chunks, view.src_map, &mut mine) };
-                }
-                touched
-                    .lock()
-                    .expect("no member panicked holding it")
-                    .append(&mut mine);
-                team.barrier_then(|| {
-                    // SAFETY: serial section
-                    let s = unsafe { &mut *sp.0 };
-                    let mut t = touched.lock().expect("no member panicked holding it");
-                    s.sort_number(&mut t, sort_chunks);
-                    let keys = RawSlice::new(&mut s.grid.next_keys);
-                    unsafe { team.publish(s.stage_view(keys)) };
-                });
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
                 let view = unsafe { team.published() };
@@ -399,12 +388,17 @@ where
                 let out = unsafe { view.out_v.chunk_mut(oi * blk_nodes, blk_nodes) };
                 s.grid_update_block(oi, out, &mut acc, dt);
             }
-            team.barrier();
+            team.barrier_then(|| {
+                // SAFETY: serial section
+                unsafe { (*sp.0).forget_sources() };
+            });
             clock.lap(Lap::Grid);
             let sand = SandModel::new::<D>(&s.params.sand, s.isa);
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
             // the block whose velocity patch `patch` holds
             let mut patch_of = usize::MAX;
+            // SAFETY: src_map is only marked in g2p
+            let mut marks = unsafe { BlockMarks::new(view.src_map) };
             while let Some(k) = team.claim_own(OWN_G2P, tid, &s.grid.g2p_bounds) {
                 let item = s.grid.g2p_items[k];
                 let (si, lo, len) = (item.block as usize, item.first as usize, item.len as usize);
@@ -425,15 +419,19 @@ where
                         key_by_id: view.key_by_id,
                     };
                     if reorders(sub, members, sort_chunks) {
-                        s.g2p_block::<true>(lo, len, &patch, out, dt, &sand)
+                        s.g2p_block::<true>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
                     } else {
-                        s.g2p_block::<false>(lo, len, &patch, out, dt, &sand)
+                        s.g2p_block::<false>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
                     }
                 };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
             }
             team.report(health, vmax2);
+            touched
+                .lock()
+                .expect("no member panicked holding it")
+                .append(&mut marks.touched);
         }
     }
 

@@ -10,7 +10,7 @@
 //! block — and with it every floating-point sum — depends only on the
 //! particle set, never on the thread count.
 
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use super::Solver;
 use super::team::RawSlice;
@@ -69,6 +69,52 @@ pub(super) struct G2pItem {
     pub(super) block: u32,
     pub(super) first: u32,
     pub(super) len: u32,
+}
+
+/// One member's marks of the blocks that hold particles, set where the
+/// particles' keys are computed for the next substep (the block sort's
+/// first stage, fused into g2p and into a frame's first stage: no pass of
+/// its own over the keys): the first member to see a block sets its
+/// `src_map` entry to `MARKED` (atomically: members mark concurrently) and
+/// keeps its key in `touched`; a key equal to the one before is skipped
+/// (the particles come by block).
+pub(super) struct BlockMarks<'a> {
+    map: &'a [AtomicU32],
+    last: u32,
+    pub(super) touched: Vec<u32>,
+}
+
+impl BlockMarks<'_> {
+    /// Marks in `src_map` (a view of `grid.src_map`).
+    ///
+    /// # Safety
+    /// While the result lives, every access to `grid.src_map` goes through
+    /// a `BlockMarks` (or another atomic view), and the buffer is not
+    /// reallocated.
+    pub(super) unsafe fn new(src_map: RawSlice<u32>) -> Self {
+        BlockMarks {
+            // SAFETY: the caller's conditions
+            map: unsafe { src_map.as_atomic() },
+            // no block has this key (the lattice has fewer than u32::MAX blocks)
+            last: u32::MAX,
+            touched: Vec::new(),
+        }
+    }
+
+    /// Marks the block `key` (a particle lies in it).
+    #[inline(always)]
+    pub(super) fn mark(&mut self, key: u32) {
+        if key != self.last {
+            self.last = key;
+            let m = &self.map[key as usize];
+            if m.load(Ordering::Relaxed) == EMPTY
+                && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
+                    .is_ok()
+            {
+                self.touched.push(key);
+            }
+        }
+    }
 }
 
 /// g2p items per member a team aims at (finer items balance the members'
@@ -245,27 +291,46 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    // The block sort, a stable counting sort of the ids by block in four
-    // stages that the frame loop (`frame.rs`) runs between barriers: the ids
-    // are cut into `n_chunks` contiguous ranges, each handled by one thread.
-    // Inside a block the particles end up in id order whatever the chunking,
-    // and blocks are numbered in key order, so the result (and every sum
-    // that follows) is the same for any number of threads.
+    // The block sort, a stable counting sort of the ids by block, in
+    // stages that the frame loop (`frame.rs`) runs between barriers: the
+    // blocks that hold particles are marked where their keys are computed
+    // (g2p, or a frame's first stage: [`BlockMarks`]), then numbered; the ids
+    // are cut into `n_chunks` contiguous ranges, each counted and scattered
+    // by one thread. Inside a block the particles end up in id order
+    // whatever the chunking, and blocks are numbered in key order, so the
+    // result (and every sum that follows) is the same for any number of
+    // threads.
 
-    /// Sort stage 1 (serial): forget the previous substep's blocks and size
-    /// the scratch.
+    /// Sort stage 1 (serial): forget the previous substep's output blocks
+    /// and size the scratch (its source blocks left `src_map` after the grid
+    /// update, [`Self::forget_sources`], and the marks of this substep's are
+    /// there).
     pub(super) fn sort_begin(&mut self) {
+        let g = &mut self.grid;
+        for &b in &g.out_blocks {
+            g.out_map[b as usize] = EMPTY;
+        }
+        g.out_blocks.clear();
+        // (`key_by_id` is sized at the frame's start and filled by g2p)
+        g.sorted.resize(self.particles.len(), 0);
+    }
+
+    /// Serial, after the grid update (the last reader of the source blocks'
+    /// numbers): the source blocks leave `src_map`, which g2p marks next.
+    pub(super) fn forget_sources(&mut self) {
         let g = &mut self.grid;
         for &b in &g.src_blocks {
             g.src_map[b as usize] = EMPTY;
         }
-        for &b in &g.out_blocks {
-            g.out_map[b as usize] = EMPTY;
+    }
+
+    /// Serial, when a frame attempt ends: the blocks its last stage marked
+    /// (`touched`, emptied) leave `src_map`, so that the next frame finds it
+    /// empty.
+    pub(super) fn forget_marks(&mut self, touched: &mut Vec<u32>) {
+        for k in touched.drain(..) {
+            self.grid.src_map[k as usize] = EMPTY;
         }
-        g.src_blocks.clear();
-        g.out_blocks.clear();
-        // (`key_by_id` is sized at the frame's start and filled by g2p)
-        g.sorted.resize(self.particles.len(), 0);
     }
 
     /// The ids of chunk `c` of `n_chunks`.
@@ -274,37 +339,7 @@ where
         c * n / n_chunks..(c + 1) * n / n_chunks
     }
 
-    /// Sort stage 2 (parallel, chunk `c`): mark the blocks of the chunk's
-    /// ids (`grid.key_by_id`, written by the previous g2p or the frame's
-    /// first stage) that this chunk sees first in `src_map` (atomically:
-    /// chunks mark concurrently), appending their keys to `touched`.
-    ///
-    /// # Safety
-    /// `src_map` views `grid.src_map`; during this stage nothing else may
-    /// access it.
-    // inlined into each compiled copy of the frame loop (`crate::isa`)
-    #[inline(always)]
-    pub(super) unsafe fn sort_mark(
-        &self,
-        c: usize,
-        n_chunks: usize,
-        src_map: RawSlice<u32>,
-        touched: &mut Vec<u32>,
-    ) {
-        // SAFETY: every access to `src_map` in this stage is atomic (caller)
-        let map = unsafe { src_map.as_atomic() };
-        for &key in &self.grid.key_by_id[self.chunk_ids(c, n_chunks)] {
-            let m = &map[key as usize];
-            if m.load(Ordering::Relaxed) == EMPTY
-                && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
-                    .is_ok()
-            {
-                touched.push(key);
-            }
-        }
-    }
-
-    /// Sort stage 3 (serial): number the marked blocks in key order
+    /// Sort stage 2 (serial): number the marked blocks in key order
     /// (`touched`: every chunk's marked keys, emptied) and zero the
     /// per-chunk counts.
     pub(super) fn sort_number(&mut self, touched: &mut Vec<u32>, n_chunks: usize) {
@@ -319,7 +354,7 @@ where
         g.counts.resize(n_chunks * g.src_blocks.len(), 0);
     }
 
-    /// Sort stage 4 (parallel, chunk `c`): how many of the chunk's ids each
+    /// Sort stage 3 (parallel, chunk `c`): how many of the chunk's ids each
     /// block holds, into row `c` of `counts` (`n_chunks × blocks`).
     ///
     /// # Safety
@@ -336,7 +371,7 @@ where
         }
     }
 
-    /// Sort stage 5 (parallel, chunk `c`): write the chunk's slots to their
+    /// Sort stage 4 (parallel, chunk `c`): write the chunk's slots to their
     /// places in `sorted`: block by block, and inside a block after the ids
     /// of the chunks before this one (`cursor`: scratch).
     ///
@@ -379,7 +414,7 @@ where
         }
     }
 
-    /// Sort stage 6 (serial): the blocks' offsets in the sorted order, and
+    /// Sort stage 5 (serial): the blocks' offsets in the sorted order, and
     /// the output blocks (each source block and its `+1` neighbours).
     pub(super) fn sort_end(&mut self, n_chunks: usize) {
         let g = &mut self.grid;

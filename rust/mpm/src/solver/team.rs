@@ -140,7 +140,7 @@ impl SpinBarrier {
 /// others wait at the barrier).
 pub(super) struct Team<V> {
     barrier: SpinBarrier,
-    counters: [Padded<AtomicUsize>; 4],
+    counters: [Padded<AtomicUsize>; 3],
     /// The stages claimed by member ([`Team::claim_own`]): one counter per
     /// (stage, member), `stage * members + member`.
     own: Vec<Padded<AtomicUsize>>,
@@ -161,9 +161,8 @@ unsafe impl<V: Send + Sync> Sync for Team<V> {}
 /// Stage counters (one each, so a stage's counter can be reset while the
 /// previous stage's is still being read).
 pub(super) const KEYS: usize = 0;
-pub(super) const SORT_MARK: usize = 1;
-pub(super) const SORT_COUNT: usize = 2;
-pub(super) const SORT_SCATTER: usize = 3;
+pub(super) const SORT_COUNT: usize = 1;
+pub(super) const SORT_SCATTER: usize = 2;
 
 /// The stages whose items each member claims from its own range first
 /// ([`Team::claim_own`]).
