@@ -270,7 +270,7 @@ where
             touched
                 .lock()
                 .expect("no member panicked holding it")
-                .append(&mut marks.touched);
+                .append(&mut marks.finish());
         }
         let mut patch = Vec::new();
         let mut acc = Vec::new();
@@ -328,11 +328,8 @@ where
                         let view = s.stage_view(keys);
                         // SAFETY: serial section: nothing else accesses the
                         // sort's buffers
-                        unsafe {
-                            s.sort_count(0, 1, view.counts);
-                            s.sort_scatter(0, 1, view.sorted, &mut Vec::new());
-                        }
-                        s.size_stages(1, members)
+                        unsafe { s.sort_scatter(0, 1, view.sorted, &mut Vec::new()) };
+                        s.size_stages(members)
                     } else {
                         let keys = RawSlice::new(&mut s.grid.next_keys);
                         s.stage_view(keys)
@@ -352,10 +349,12 @@ where
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
                 let view = unsafe { team.published() };
-                while let Some(c) = team.claim(SORT_COUNT, sort_chunks) {
-                    unsafe { s.sort_count(c, sort_chunks, view.counts) };
+                if sort_chunks > 2 {
+                    while let Some(c) = team.claim(SORT_COUNT, sort_chunks) {
+                        unsafe { s.sort_count(c, sort_chunks, view.counts) };
+                    }
+                    team.barrier();
                 }
-                team.barrier();
                 let mut cur = Vec::new();
                 while let Some(c) = team.claim(SORT_SCATTER, sort_chunks) {
                     unsafe { s.sort_scatter(c, sort_chunks, view.sorted, &mut cur) };
@@ -363,7 +362,7 @@ where
                 team.barrier_then(|| {
                     // SAFETY: serial section
                     let s = unsafe { &mut *sp.0 };
-                    let view = s.size_stages(sort_chunks, members);
+                    let view = s.size_stages(members);
                     unsafe { team.publish(view) };
                 });
             }
@@ -431,16 +430,16 @@ where
             touched
                 .lock()
                 .expect("no member panicked holding it")
-                .append(&mut marks.touched);
+                .append(&mut marks.finish());
         }
     }
 
-    /// After the block sort (`sort_chunks` chunks): the blocks' offsets and
-    /// the output blocks ([`Self::sort_end`]), the claim order of a team of
+    /// After the block sort: the output blocks
+    /// ([`Self::sort_end`]), the claim order of a team of
     /// `members` ([`Self::schedule`]), and the buffers of p2g, the grid
     /// update and g2p sized for this substep; returns their view.
-    fn size_stages(&mut self, sort_chunks: usize, members: usize) -> Stage<D> {
-        self.sort_end(sort_chunks);
+    fn size_stages(&mut self, members: usize) -> Stage<D> {
+        self.sort_end();
         self.schedule(members);
         let (n_src, n_out) = (self.grid.src_blocks.len(), self.grid.out_blocks.len());
         let b = 1usize << self.grid.log2_b;

@@ -20,12 +20,9 @@ use crate::kernel::Cell;
 use crate::particles::Particle;
 
 /// Marks an unused entry of the block lattice maps, which store `index + 1`
-/// otherwise: zero, so that the maps are allocated zeroed (`calloc`) and a
+/// otherwise (`src_map`, while the block sort counts: the block's particles): zero, so that the maps are allocated zeroed (`calloc`) and a
 /// large grid's pages are only touched where particles are.
 pub(super) const EMPTY: u32 = 0;
-
-/// A `src_map` entry while the block sort marks blocks (before they are numbered).
-const MARKED: u32 = u32::MAX;
 
 /// Scratch space of the sparse block grid, reused across substeps.
 pub(super) struct SparseGrid {
@@ -48,6 +45,7 @@ pub(super) struct SparseGrid {
     /// Stencil base cell, fraction and block key of each particle (storage order).
     pub(super) keys: Vec<Cell>,
     pub(super) next_keys: Vec<Cell>,
+    /// Per-chunk block counts of the block sort (more than two chunks only).
     pub(super) counts: Vec<u32>,
     /// Block key of each particle in id order (scratch of the block sort).
     pub(super) key_by_id: Vec<u32>,
@@ -74,18 +72,20 @@ pub(super) struct G2pItem {
 /// One member's marks of the blocks that hold particles, set where the
 /// particles' keys are computed for the next substep (the block sort's
 /// first stage, fused into g2p and into a frame's first stage: no pass of
-/// its own over the keys): the first member to see a block sets its
-/// `src_map` entry to `MARKED` (atomically: members mark concurrently) and
-/// keeps its key in `touched`; a key equal to the one before is skipped
-/// (the particles come by block).
+/// its own over the keys): each block's `src_map` entry counts its
+/// particles (atomically: members count concurrently; `EMPTY` is a count of
+/// zero), one addition per run of particles with the same key (the
+/// particles come by block), and the member that finds a block empty keeps
+/// its key in `touched`.
 pub(super) struct BlockMarks<'a> {
     map: &'a [AtomicU32],
     last: u32,
+    run: u32,
     pub(super) touched: Vec<u32>,
 }
 
 impl BlockMarks<'_> {
-    /// Marks in `src_map` (a view of `grid.src_map`).
+    /// Counts in `src_map` (a view of `grid.src_map`).
     ///
     /// # Safety
     /// While the result lives, every access to `grid.src_map` goes through
@@ -95,25 +95,38 @@ impl BlockMarks<'_> {
         BlockMarks {
             // SAFETY: the caller's conditions
             map: unsafe { src_map.as_atomic() },
-            // no block has this key (the lattice has fewer than u32::MAX blocks)
-            last: u32::MAX,
+            last: 0,
+            run: 0,
             touched: Vec::new(),
         }
     }
 
-    /// Marks the block `key` (a particle lies in it).
+    /// One particle lies in block `key`.
     #[inline(always)]
     pub(super) fn mark(&mut self, key: u32) {
-        if key != self.last {
+        if key == self.last {
+            self.run += 1;
+        } else {
+            self.flush();
             self.last = key;
-            let m = &self.map[key as usize];
-            if m.load(Ordering::Relaxed) == EMPTY
-                && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
-                    .is_ok()
-            {
-                self.touched.push(key);
-            }
+            self.run = 1;
         }
+    }
+
+    /// Adds the current run to its block's count.
+    #[inline(always)]
+    fn flush(&mut self) {
+        if self.run > 0
+            && self.map[self.last as usize].fetch_add(self.run, Ordering::Relaxed) == EMPTY
+        {
+            self.touched.push(self.last);
+        }
+    }
+
+    /// The blocks this member found empty (after its last [`Self::mark`]).
+    pub(super) fn finish(mut self) -> Vec<u32> {
+        self.flush();
+        self.touched
     }
 }
 
@@ -339,23 +352,33 @@ where
         c * n / n_chunks..(c + 1) * n / n_chunks
     }
 
-    /// Sort stage 2 (serial): number the marked blocks in key order
-    /// (`touched`: every chunk's marked keys, emptied) and zero the
-    /// per-chunk counts.
+    /// Sort stage 2 (serial): number the counted blocks in key order
+    /// (`touched`: every member's, emptied), their offsets in the sorted
+    /// order from their counts, and zero the per-chunk counts (more than two
+    /// chunks: [`Self::sort_count`]).
     pub(super) fn sort_number(&mut self, touched: &mut Vec<u32>, n_chunks: usize) {
         let g = &mut self.grid;
         touched.sort_unstable();
+        g.src_offsets.clear();
+        g.src_offsets.push(0);
+        let mut acc = 0u32;
         for (i, &k) in touched.iter().enumerate() {
+            acc += g.src_map[k as usize];
+            g.src_offsets.push(acc);
             g.src_map[k as usize] = i as u32 + 1;
         }
+        debug_assert_eq!(acc as usize, self.particles.len());
         g.src_blocks.clear();
         g.src_blocks.append(touched);
         g.counts.clear();
-        g.counts.resize(n_chunks * g.src_blocks.len(), 0);
+        if n_chunks > 2 {
+            g.counts.resize(n_chunks * g.src_blocks.len(), 0);
+        }
     }
 
-    /// Sort stage 3 (parallel, chunk `c`): how many of the chunk's ids each
-    /// block holds, into row `c` of `counts` (`n_chunks × blocks`).
+    /// Sort stage 3 (parallel, chunk `c`; more than two chunks only): how
+    /// many of the chunk's ids each block holds, into row `c` of `counts`
+    /// (`n_chunks × blocks`).
     ///
     /// # Safety
     /// `counts` views `grid.counts`; nothing else may access its row `c`.
@@ -373,7 +396,9 @@ where
 
     /// Sort stage 4 (parallel, chunk `c`): write the chunk's slots to their
     /// places in `sorted`: block by block, and inside a block after the ids
-    /// of the chunks before this one (`cursor`: scratch).
+    /// of the chunks before this one (`cursor`: scratch). With one or two
+    /// chunks no counts per chunk are needed: the first fills each block
+    /// from its start and the second from its end, its ids in reverse.
     ///
     /// # Safety
     /// `sorted` views `grid.sorted`; the places this chunk writes are its
@@ -389,24 +414,28 @@ where
     ) {
         let g = &self.grid;
         let n_src = g.src_blocks.len();
-        cursor.clear();
-        cursor.resize(n_src, 0);
-        let mut start = 0u32;
-        for (b, cur) in cursor.iter_mut().enumerate() {
-            let mut before = 0u32;
-            let mut total = 0u32;
-            for cc in 0..n_chunks {
-                let k = g.counts[cc * n_src + b];
-                if cc < c {
-                    before += k;
-                }
-                total += k;
-            }
-            *cur = start + before;
-            start += total;
-        }
         let ids = self.chunk_ids(c, n_chunks);
-        for (&k, &slot) in g.key_by_id[ids.clone()].iter().zip(&self.slot_of[ids]) {
+        let (keys, slots) = (&g.key_by_id[ids.clone()], &self.slot_of[ids]);
+        cursor.clear();
+        if n_chunks == 2 && c == 1 {
+            cursor.extend_from_slice(&g.src_offsets[1..]);
+            for (&k, &slot) in keys.iter().zip(slots).rev() {
+                let b = g.src_map[k as usize] as usize - 1;
+                cursor[b] -= 1;
+                // SAFETY: place `cursor[b]` belongs to this chunk (see above)
+                unsafe { sorted.write(cursor[b] as usize, slot) };
+            }
+            return;
+        }
+        cursor.extend_from_slice(&g.src_offsets[..n_src]);
+        if n_chunks > 2 {
+            for (b, cur) in cursor.iter_mut().enumerate() {
+                for cc in 0..c {
+                    *cur += g.counts[cc * n_src + b];
+                }
+            }
+        }
+        for (&k, &slot) in keys.iter().zip(slots) {
             let b = g.src_map[k as usize] as usize - 1;
             // SAFETY: place `cursor[b]` belongs to this chunk (see above)
             unsafe { sorted.write(cursor[b] as usize, slot) };
@@ -414,20 +443,10 @@ where
         }
     }
 
-    /// Sort stage 5 (serial): the blocks' offsets in the sorted order, and
-    /// the output blocks (each source block and its `+1` neighbours).
-    pub(super) fn sort_end(&mut self, n_chunks: usize) {
+    /// Sort stage 5 (serial): the output blocks (each source block and its
+    /// `+1` neighbours).
+    pub(super) fn sort_end(&mut self) {
         let g = &mut self.grid;
-        let n_src = g.src_blocks.len();
-        g.src_offsets.clear();
-        g.src_offsets.push(0);
-        let mut acc = 0u32;
-        for b in 0..n_src {
-            for c in 0..n_chunks {
-                acc += g.counts[c * n_src + b];
-            }
-            g.src_offsets.push(acc);
-        }
         let lat = self.stencil.lat_stride;
         let nb = g.nb;
         for &b in &g.src_blocks {
