@@ -8,7 +8,8 @@
 //! The team instead takes its threads once per frame (the calling thread is
 //! member 0, and one job spawned on the solver's pool per other member) and
 //! keeps them for all of its substeps: stages are separated by a spin
-//! barrier, items (blocks) are claimed from an atomic counter, and the
+//! barrier, items (blocks) are claimed from atomic counters (each member's
+//! own range first, [`Team::claim_own`]), and the
 //! serial parts run on the last member to arrive while the others wait at
 //! the barrier. (`ThreadPool::broadcast`, every member a pool thread, woke
 //! one more sleeping thread per frame and left the caller asleep until the
