@@ -115,6 +115,15 @@ where
         }
         let started = std::time::Instant::now();
         let team: Team<Stage<D>> = Team::new(threads);
+        // the buffers of the frame's first stage, published before any
+        // member starts: the first stage needs no barrier before it, so the
+        // calling thread computes cells while the pool's threads wake up
+        let n = self.particles.len();
+        self.grid.keys.resize(n, Cell::default());
+        self.grid.key_by_id.resize(n, 0);
+        let keys = RawSlice::new(&mut self.grid.keys);
+        // SAFETY: no member runs yet: this thread has the team to itself
+        unsafe { team.publish(self.stage_view(keys)) };
         let isa = self.isa;
         let sp = SolverPtr(self as *mut Self);
         let sp = &sp;
@@ -235,16 +244,8 @@ where
             retries,
         } = *args;
         let serial_sort = sort_chunks == 1;
-        // the cells of the frame's first substep, in parallel chunks
-        team.barrier_then(|| {
-            // SAFETY: serial section
-            let s = unsafe { &mut *sp.0 };
-            let n = s.particles.len();
-            s.grid.keys.resize(n, Cell::default());
-            s.grid.key_by_id.resize(n, 0);
-            let keys = RawSlice::new(&mut s.grid.keys);
-            unsafe { team.publish(s.stage_view(keys)) };
-        });
+        // the cells of the frame's first substep, in parallel chunks (the
+        // buffers were published before the members started)
         {
             // SAFETY: parallel section: shared reads, disjoint chunk writes
             let s = unsafe { &*sp.0 };

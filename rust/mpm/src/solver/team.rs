@@ -253,7 +253,7 @@ impl<V: Copy> Team<V> {
     ///
     /// # Safety
     /// Call it only in a serial section (the closure of `barrier_then`),
-    /// while every other member waits.
+    /// while every other member waits, or before any member has started.
     pub(super) unsafe fn publish(&self, v: V) {
         for c in self.counters.iter().chain(&self.own) {
             c.0.store(0, Ordering::Relaxed);
@@ -267,7 +267,9 @@ impl<V: Copy> Team<V> {
     /// What thread 0 published (after the barrier that follows `publish`).
     ///
     /// # Safety
-    /// Call only between the barrier after a `publish` and the next serial section.
+    /// Call only between the barrier after a `publish` (or, for a `publish`
+    /// before any member started, the member's start) and the next serial
+    /// section.
     pub(super) unsafe fn published(&self) -> V {
         // SAFETY: no write races with this read (see `publish`)
         unsafe { (*self.shared.get()).expect("published before use") }
