@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.harness import round_robin, write_results
+from hybridmpm.bench.harness import load_average, round_robin, write_results
 from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import Scene, lattice
@@ -260,7 +260,7 @@ def builds_against_taichi(other_python, rounds=9, frames=100, scene="water2d", t
     names = list(sides)
     rows = []
     for r in range(rounds):
-        load = os.getloadavg()[0]
+        load = load_average()[0]
         order = names[r % 3 :] + names[: r % 3]
         got = {k: sides[k]() for k in order}
         if any(v is None for v in got.values()):
