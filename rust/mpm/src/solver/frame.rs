@@ -5,9 +5,9 @@
 //!
 //! 1. thread 0, serial: finish the previous substep's g2p (the new storage
 //!    order), check its health and speed, sort the particles into blocks
-//!    (`grid.rs`: the blocks were marked in g2p; a large frame counts and
-//!    scatters in parallel chunks, between two more barriers) and size the
-//!    buffers;
+//!    (`grid.rs`: g2p counted the blocks' particles; a large frame scatters
+//!    in parallel chunks, after one more barrier, and with more than two
+//!    chunks counts per chunk first, after another) and size the buffers;
 //! 2. p2g per source block (`p2g.rs`);
 //! 3. grid update per output block (`grid_update.rs`), after which the
 //!    source blocks leave the block map;
@@ -73,8 +73,8 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 const KEYS_CHUNK: usize = 1024;
 
 /// Below this many particles per member the block sort runs whole in the
-/// serial section that starts a substep instead of in chunks between two
-/// more barriers: its work, ~3 ns a particle per chunked stage, is less than
+/// serial section that starts a substep instead of in chunks after one or
+/// two more barriers (two chunks: the scatter; more: the counts too): its work, ~3 ns a particle per chunked stage, is less than
 /// the barriers cost a small frame.
 pub(super) const SERIAL_SORT_BELOW: usize = 2048;
 
@@ -322,7 +322,7 @@ where
                     s.sort_begin();
                     s.sort_number(&mut t, sort_chunks);
                     let view = if serial_sort {
-                        // the whole block sort here: two barriers fewer
+                        // the whole block sort here: a barrier fewer
                         // (same order: the sort is stable in id order for
                         // any chunking)
                         let keys = RawSlice::new(&mut s.grid.next_keys);
