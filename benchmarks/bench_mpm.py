@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.bench.harness import round_robin, write_results
+from hybridmpm.bench.harness import load_average, round_robin, write_results
 from hybridmpm.conventions import MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.mpm import MpmParams
 from hybridmpm.scenes import Scene, lattice
@@ -228,6 +228,52 @@ def peer_comparison(frames, repeats):
                 flush=True,
             )
     return table
+
+
+def _ours_in(python, scene, threads, frames):
+    """``time_frames`` of ``scene`` in a subprocess of ``python`` (a virtual
+    environment's interpreter, with its own build of the engine) on the
+    ``bench_mpm.py`` beside this file; returns (median ms, team share)."""
+    code = (
+        f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_mpm as b; "
+        f"sim = b.make(*b.SCENES[{scene!r}], {threads}); m, _ = b.time_frames(sim, {frames}); print(json.dumps([m, b.team_share(sim)]))"
+    )
+    r = subprocess.run([python, "-c", code], capture_output=True, text=True, cwd="/tmp")
+    if r.returncode != 0:
+        print(f"{python} failed:", r.stderr[-2000:], file=sys.stderr)
+        return None
+    return tuple(json.loads(r.stdout.strip().splitlines()[-1]))
+
+
+def builds_against_taichi(other_python, rounds=9, frames=100, scene="water2d", threads=2):
+    """Two builds of the engine and Taichi's serial-p2g variant on ``scene``,
+    in turn (the order rotated every round), each run in its own subprocess:
+    this environment's build, the one of ``other_python`` (say
+    ``/work/main/.venv/bin/python``) and Taichi. Prints each round's times,
+    the load and the per-round ratios to Taichi (Taichi's time moves between
+    regimes from run to run: compare within a round)."""
+    sides = {
+        "this": lambda: _ours_in(sys.executable, scene, threads, frames),
+        "other": lambda: _ours_in(other_python, scene, threads, frames),
+        "taichi": lambda: (row["median_ms"], None) if (row := run_taichi_one(PEER_SCENES[scene], threads, frames)) else None,
+    }
+    names = list(sides)
+    rows = []
+    for r in range(rounds):
+        load = load_average()[0]
+        order = names[r % 3 :] + names[: r % 3]
+        got = {k: sides[k]() for k in order}
+        if any(v is None for v in got.values()):
+            continue
+        row = {"round": r, "load": load, **{f"{k}_ms": v[0] for k, v in got.items()}, "this_team": got["this"][1], "other_team": got["other"][1]}
+        rows.append(row)
+        print(
+            f"round {r} load {load:.2f}: this {row['this_ms']:.3f} ms (team {_share(row['this_team'])}), other {row['other_ms']:.3f} ms"
+            f" (team {_share(row['other_team'])}), taichi {row['taichi_ms']:.3f} ms; ratios this {row['this_ms'] / row['taichi_ms']:.3f},"
+            f" other {row['other_ms'] / row['taichi_ms']:.3f}",
+            flush=True,
+        )
+    return rows
 
 
 def isa_comparison(frames, repeats):

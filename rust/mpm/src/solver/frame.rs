@@ -5,20 +5,25 @@
 //!
 //! 1. thread 0, serial: finish the previous substep's g2p (the new storage
 //!    order), check its health and speed, sort the particles into blocks
-//!    (`grid.rs`) and size the buffers;
+//!    (`grid.rs`: g2p counted the blocks' particles; a large frame scatters
+//!    in parallel chunks, after one more barrier, and with more than two
+//!    chunks counts per chunk first, after another) and size the buffers;
 //! 2. p2g per source block (`p2g.rs`);
-//! 3. grid update per output block (`grid_update.rs`);
+//! 3. grid update per output block (`grid_update.rs`), after which the
+//!    source blocks leave the block map;
 //! 4. g2p per source block (`g2p.rs`), each block reporting its health and
-//!    largest speed.
+//!    largest speed, and marking the blocks its particles move to.
 //!
-//! Stages 2–4 are parallel: the team's threads claim blocks from an atomic
-//! counter, and each block writes only its own output, so results are
-//! bitwise the same for any number of threads.
+//! Stages 2–4 are parallel: each member of the team claims the blocks it
+//! owns (the same run of blocks in every stage, `Solver::schedule`) from
+//! an atomic counter, then helps the others, and each block writes only its
+//! own output, so results are bitwise the same for any number of threads.
 
 use std::sync::Mutex;
 
+use super::block_sort::BlockMarks;
 use super::g2p::G2pOut;
-use super::team::{G2P, GRID, KEYS, P2G, RawSlice, SORT_COUNT, SORT_MARK, SORT_SCATTER, Team};
+use super::team::{KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_SCATTER, Team};
 use super::{Health, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
@@ -34,8 +39,6 @@ struct Stage<const D: usize> {
     src_map: RawSlice<u32>,
     counts: RawSlice<u32>,
     sorted: RawSlice<u32>,
-    n_src: usize,
-    n_out: usize,
     local: RawSlice<[f32; 4]>,
     out_v: RawSlice<[f32; 4]>,
     particles: RawSlice<Particle<D>>,
@@ -70,8 +73,8 @@ unsafe impl<const D: usize> Send for SolverPtr<D> where Dim<D>: DimOps<D> {}
 const KEYS_CHUNK: usize = 1024;
 
 /// Below this many particles per member the block sort runs whole in the
-/// serial section that starts a substep instead of in chunks between three
-/// more barriers: its work, ~3 ns a particle per chunked stage, is less than
+/// serial section that starts a substep instead of in chunks after one or
+/// two more barriers (two chunks: the scatter; more: the counts too): its work, ~3 ns a particle per chunked stage, is less than
 /// the barriers cost a small frame.
 pub(super) const SERIAL_SORT_BELOW: usize = 2048;
 
@@ -112,6 +115,15 @@ where
         }
         let started = std::time::Instant::now();
         let team: Team<Stage<D>> = Team::new(threads);
+        // the buffers of the frame's first stage, published before any
+        // member starts: the first stage needs no barrier before it, so the
+        // calling thread computes cells while the pool's threads wake up
+        let n = self.particles.len();
+        self.grid.keys.resize(n, Cell::default());
+        self.grid.key_by_id.resize(n, 0);
+        let keys = RawSlice::new(&mut self.grid.keys);
+        // SAFETY: no member runs yet: this thread has the team to itself
+        unsafe { team.publish(self.stage_view(keys)) };
         let isa = self.isa;
         let sp = SolverPtr(self as *mut Self);
         let sp = &sp;
@@ -232,16 +244,8 @@ where
             retries,
         } = *args;
         let serial_sort = sort_chunks == 1;
-        // the cells of the frame's first substep, in parallel chunks
-        team.barrier_then(|| {
-            // SAFETY: serial section
-            let s = unsafe { &mut *sp.0 };
-            let n = s.particles.len();
-            s.grid.keys.resize(n, Cell::default());
-            s.grid.key_by_id.resize(n, 0);
-            let keys = RawSlice::new(&mut s.grid.keys);
-            unsafe { team.publish(s.stage_view(keys)) };
-        });
+        // the cells of the frame's first substep, in parallel chunks (the
+        // buffers were published before the members started)
         {
             // SAFETY: parallel section: shared reads, disjoint chunk writes
             let s = unsafe { &*sp.0 };
@@ -250,6 +254,8 @@ where
             let n = s.particles.len();
             let inv_dx = s.params.n_grid as f32;
             let (log2_b, lat, pad) = (s.grid.log2_b, s.stencil.lat_stride, Dim::<D>::PAD_STRIDE);
+            // SAFETY: src_map is only marked in this stage
+            let mut marks = unsafe { BlockMarks::new(view.src_map) };
             while let Some(i) = team.claim(KEYS, n.div_ceil(KEYS_CHUNK)) {
                 let lo = i * KEYS_CHUNK;
                 let hi = (lo + KEYS_CHUNK).min(n);
@@ -259,8 +265,13 @@ where
                     *k = cell_of::<D>(&p.x, inv_dx, log2_b, &lat, &pad);
                     // SAFETY: each id is at one slot, and so in one chunk
                     unsafe { view.key_by_id.write(id as usize, k.key) };
+                    marks.mark(k.key);
                 }
             }
+            touched
+                .lock()
+                .expect("no member panicked holding it")
+                .append(&mut marks.finish());
         }
         let mut patch = Vec::new();
         let mut acc = Vec::new();
@@ -302,27 +313,24 @@ where
                         team.set_stop();
                     }
                 }
-                if !team.stopped() {
+                let mut t = touched.lock().expect("no member panicked holding it");
+                if team.stopped() {
+                    s.forget_marks(&mut t);
+                } else {
                     // the moving colliders where they are at this substep's end
                     s.pose_colliders(sub + 1, n_sub);
                     s.sort_begin();
+                    s.sort_number(&mut t, sort_chunks);
                     let view = if serial_sort {
-                        // the whole block sort here: three barriers fewer
+                        // the whole block sort here: a barrier fewer
                         // (same order: the sort is stable in id order for
                         // any chunking)
                         let keys = RawSlice::new(&mut s.grid.next_keys);
                         let view = s.stage_view(keys);
-                        let mut t = touched.lock().expect("no member panicked holding it");
                         // SAFETY: serial section: nothing else accesses the
                         // sort's buffers
-                        unsafe { s.sort_mark(0, 1, view.src_map, &mut t) };
-                        s.sort_number(&mut t, 1);
-                        let view = s.stage_view(view.cells);
-                        unsafe {
-                            s.sort_count(0, 1, view.counts);
-                            s.sort_scatter(0, 1, view.sorted, &mut Vec::new());
-                        }
-                        s.size_stages(1, members)
+                        unsafe { s.sort_scatter(0, 1, view.sorted, &mut Vec::new()) };
+                        s.size_stages(members)
                     } else {
                         let keys = RawSlice::new(&mut s.grid.next_keys);
                         s.stage_view(keys)
@@ -339,33 +347,15 @@ where
             }
             // the block sort's parallel stages (see `grid.rs`)
             if !serial_sort {
-                // SAFETY: parallel section; `sort_mark`'s conditions hold
-                // (chunks are claimed once; src_map is only marked here)
-                let s = unsafe { &*sp.0 };
-                let view = unsafe { team.published() };
-                let mut mine = Vec::new();
-                while let Some(c) = team.claim(SORT_MARK, sort_chunks) {
-                    unsafe { s.sort_mark(c, sort_chunks, view.src_map, &mut mine) };
-                }
-                touched
-                    .lock()
-                    .expect("no member panicked holding it")
-                    .append(&mut mine);
-                team.barrier_then(|| {
-                    // SAFETY: serial section
-                    let s = unsafe { &mut *sp.0 };
-                    let mut t = touched.lock().expect("no member panicked holding it");
-                    s.sort_number(&mut t, sort_chunks);
-                    let keys = RawSlice::new(&mut s.grid.next_keys);
-                    unsafe { team.publish(s.stage_view(keys)) };
-                });
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
                 let view = unsafe { team.published() };
-                while let Some(c) = team.claim(SORT_COUNT, sort_chunks) {
-                    unsafe { s.sort_count(c, sort_chunks, view.counts) };
+                if sort_chunks > 2 {
+                    while let Some(c) = team.claim(SORT_COUNT, sort_chunks) {
+                        unsafe { s.sort_count(c, sort_chunks, view.counts) };
+                    }
+                    team.barrier();
                 }
-                team.barrier();
                 let mut cur = Vec::new();
                 while let Some(c) = team.claim(SORT_SCATTER, sort_chunks) {
                     unsafe { s.sort_scatter(c, sort_chunks, view.sorted, &mut cur) };
@@ -373,7 +363,7 @@ where
                 team.barrier_then(|| {
                     // SAFETY: serial section
                     let s = unsafe { &mut *sp.0 };
-                    let view = s.size_stages(sort_chunks, members);
+                    let view = s.size_stages(members);
                     unsafe { team.publish(view) };
                 });
             }
@@ -387,24 +377,29 @@ where
             let blk_nodes = 1usize << (s.grid.log2_b as usize * D);
             patch.resize(st.pad_nodes, [0.0f32; 4]);
             acc.resize(blk_nodes, [0.0f32; 4]);
-            while let Some(k) = team.claim(P2G, view.n_src) {
+            while let Some(k) = team.claim_own(OWN_P2G, tid, &s.grid.p2g_bounds) {
                 let si = s.grid.p2g_order[k] as usize;
                 let buf = unsafe { view.local.chunk_mut(si * st.pad_nodes, st.pad_nodes) };
                 s.p2g_block(si, buf, dt);
             }
             team.barrier();
             clock.lap(Lap::P2g);
-            while let Some(oi) = team.claim(GRID, view.n_out) {
+            while let Some(oi) = team.claim_own(OWN_GRID, tid, &s.grid.grid_bounds) {
                 let out = unsafe { view.out_v.chunk_mut(oi * blk_nodes, blk_nodes) };
                 s.grid_update_block(oi, out, &mut acc, dt);
             }
-            team.barrier();
+            team.barrier_then(|| {
+                // SAFETY: serial section
+                unsafe { (*sp.0).forget_sources() };
+            });
             clock.lap(Lap::Grid);
             let sand = SandModel::new::<D>(&s.params.sand, s.isa);
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
             // the block whose velocity patch `patch` holds
             let mut patch_of = usize::MAX;
-            while let Some(k) = team.claim(G2P, s.grid.g2p_items.len()) {
+            // SAFETY: src_map is only marked in g2p
+            let mut marks = unsafe { BlockMarks::new(view.src_map) };
+            while let Some(k) = team.claim_own(OWN_G2P, tid, &s.grid.g2p_bounds) {
                 let item = s.grid.g2p_items[k];
                 let (si, lo, len) = (item.block as usize, item.first as usize, item.len as usize);
                 if si != patch_of {
@@ -424,24 +419,28 @@ where
                         key_by_id: view.key_by_id,
                     };
                     if reorders(sub, members, sort_chunks) {
-                        s.g2p_block::<true>(lo, len, &patch, out, dt, &sand)
+                        s.g2p_block::<true>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
                     } else {
-                        s.g2p_block::<false>(lo, len, &patch, out, dt, &sand)
+                        s.g2p_block::<false>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
                     }
                 };
                 health = health.max(h);
                 vmax2 = vmax2.max(v2);
             }
             team.report(health, vmax2);
+            touched
+                .lock()
+                .expect("no member panicked holding it")
+                .append(&mut marks.finish());
         }
     }
 
-    /// After the block sort (`sort_chunks` chunks): the blocks' offsets and
-    /// the output blocks ([`Self::sort_end`]), the claim order of a team of
+    /// After the block sort: the output blocks
+    /// ([`Self::sort_end`]), the claim order of a team of
     /// `members` ([`Self::schedule`]), and the buffers of p2g, the grid
     /// update and g2p sized for this substep; returns their view.
-    fn size_stages(&mut self, sort_chunks: usize, members: usize) -> Stage<D> {
-        self.sort_end(sort_chunks);
+    fn size_stages(&mut self, members: usize) -> Stage<D> {
+        self.sort_end();
         self.schedule(members);
         let (n_src, n_out) = (self.grid.src_blocks.len(), self.grid.out_blocks.len());
         let b = 1usize << self.grid.log2_b;
@@ -464,8 +463,6 @@ where
             src_map: RawSlice::new(&mut self.grid.src_map),
             counts: RawSlice::new(&mut self.grid.counts),
             sorted: RawSlice::new(&mut self.grid.sorted),
-            n_src: self.grid.src_blocks.len(),
-            n_out: self.grid.out_blocks.len(),
             local: RawSlice::new(&mut self.grid.local),
             out_v: RawSlice::new(&mut self.grid.out_v),
             particles: RawSlice::new(&mut self.particles),

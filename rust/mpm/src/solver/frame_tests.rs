@@ -101,8 +101,10 @@ fn the_serial_and_the_chunked_sort_give_the_same_bits() {
 }
 
 /// g2p's items cover every place of the sorted order once, each inside
-/// its block; on a team, large blocks are cut and the items come largest
-/// first, and p2g's order is a permutation of the blocks.
+/// its block; on a team, large blocks are cut, each member owns a run of
+/// blocks in key order (about its share of the particles), the g2p items
+/// of those blocks and the output blocks they first reach, its items come
+/// largest first, and p2g's order is a permutation of the blocks.
 #[test]
 fn g2p_items_cover_every_particle_once() {
     let params = SolverParams::<2> {
@@ -118,6 +120,7 @@ fn g2p_items_cover_every_particle_once() {
     for members in [1, 2, 3] {
         s.schedule(members);
         let g = &s.grid;
+        let n_src = g.src_blocks.len();
         let mut seen = vec![0u8; s.particles.len()];
         for it in &g.g2p_items {
             let b = it.block as usize;
@@ -133,11 +136,40 @@ fn g2p_items_cover_every_particle_once() {
             order.iter().enumerate().all(|(i, &b)| i as u32 == b),
             "{members}"
         );
+        let ranges = [&g.p2g_bounds, &g.g2p_bounds, &g.grid_bounds];
+        let ends = [n_src, g.g2p_items.len(), g.out_blocks.len()];
+        for (bounds, end) in ranges.iter().zip(ends) {
+            assert_eq!(bounds.len(), members + 1, "{members}");
+            assert_eq!((bounds[0], bounds[members]), (0, end as u32));
+            assert!(bounds.windows(2).all(|w| w[0] <= w[1]));
+        }
+        for m in 0..members {
+            let blocks = &g.p2g_order[g.p2g_bounds[m] as usize..g.p2g_bounds[m + 1] as usize];
+            let items = &g.g2p_items[g.g2p_bounds[m] as usize..g.g2p_bounds[m + 1] as usize];
+            // the member's blocks are a run in key order, and its items theirs
+            let lo = g.p2g_bounds[m];
+            let mut own = blocks.to_vec();
+            own.sort_unstable();
+            assert!(own.iter().enumerate().all(|(i, &b)| b == lo + i as u32));
+            assert!(items.iter().all(|it| own.binary_search(&it.block).is_ok()));
+            if members > 1 {
+                assert!(items.windows(2).all(|w| w[0].len >= w[1].len));
+                let len = |b: u32| g.src_offsets[b as usize + 1] - g.src_offsets[b as usize];
+                assert!(blocks.windows(2).all(|w| len(w[0]) >= len(w[1])));
+                // a member's share is within a block of n / members
+                let share = items.iter().map(|it| it.len).sum::<u32>() as f64;
+                let largest = (0..n_src as u32).map(len).max().unwrap() as f64;
+                let fair = s.particles.len() as f64 / members as f64;
+                assert!(
+                    (share - fair).abs() <= largest,
+                    "{members} {m} {share} {fair}"
+                );
+            }
+        }
         if members > 1 {
-            assert!(g.g2p_items.windows(2).all(|w| w[0].len >= w[1].len));
-            assert!(g.g2p_items.len() > g.src_blocks.len(), "{members}");
+            assert!(g.g2p_items.len() > n_src, "{members}");
         } else {
-            assert_eq!(g.g2p_items.len(), g.src_blocks.len());
+            assert_eq!(g.g2p_items.len(), n_src);
         }
     }
 }

@@ -33,6 +33,7 @@
 
 use nalgebra::{SMatrix, SVector};
 
+use super::block_sort::BlockMarks;
 use super::grid::{EMPTY, unflatten};
 use super::team::RawSlice;
 use super::{Health, Solver};
@@ -48,12 +49,13 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// g2p of the particles of source block `si` at places `first ..
-    /// first + len` of the sorted order (the whole block, or a piece of it:
+    /// g2p of the particles of source block `si` at places `places` of the
+    /// sorted order (the whole block, or a piece of it:
     /// [`super::grid::G2pItem`]), from the block's padded velocity patch
     /// (`patch`: `(B+2)^D` nodes, filled by [`Self::g2p_patch`]): updates the
-    /// particles and their [`Cell`] for the next substep, and writes each
-    /// one's new block key to `key_by_id` at its id. Returns the health and
+    /// particles and their [`Cell`] for the next substep, writes each
+    /// one's new block key to `key_by_id` at its id and marks its block
+    /// (`marks`, the block sort's first stage). Returns the health and
     /// largest speed squared of these particles.
     ///
     /// `REORDER`: the particles, their cells and their ids go to the same
@@ -75,12 +77,12 @@ where
     #[inline(always)]
     pub(super) unsafe fn g2p_block<const REORDER: bool>(
         &self,
-        first: usize,
-        len: usize,
+        places: std::ops::Range<usize>,
         patch: &[[f32; 4]],
         out: G2pOut<D>,
         dt: f32,
         sand: &SandModel,
+        marks: &mut BlockMarks<'_>,
     ) -> (Health, f32) {
         let G2pOut {
             particles,
@@ -91,6 +93,7 @@ where
             slot_of,
             key_by_id,
         } = out;
+        let first = places.start;
         // where the updated particles and cells go
         let (dst, dst_cells) = if REORDER {
             (next, next_cells)
@@ -104,7 +107,7 @@ where
         let st = &self.stencil;
         let lat = st.lat_stride;
         let water = &self.params.water;
-        let sorted = &self.grid.sorted[first..first + len];
+        let sorted = &self.grid.sorted[places];
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
         let mut sand_health = SandHealth {
@@ -197,6 +200,7 @@ where
                 }
                 key_by_id.write(id as usize, ko.key);
             }
+            marks.mark(ko.key);
             // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;

@@ -1,31 +1,23 @@
-//! The sparse block grid (scratch reused across substeps) and the block sort
-//! that starts every substep.
+//! The sparse block grid: scratch reused across substeps, and the tables of
+//! which padded nodes an output block gathers (the block sort that fills it
+//! is in `block_sort.rs`).
 //!
 //! The domain's node lattice is tiled into blocks of `B^D` nodes (`B = 8` in
 //! 2D, `4` in 3D). Only *source* blocks (those holding particles' stencil
 //! base nodes) and their `+1` neighbours (*output* blocks, reached by the
 //! 3-node stencil) exist in a substep, so the cost follows the particle
-//! count, not the domain volume. Particles are sorted into source blocks by a
-//! stable counting sort that visits them in id order, so the order inside a
-//! block — and with it every floating-point sum — depends only on the
-//! particle set, never on the thread count.
+//! count, not the domain volume.
 
-use std::sync::atomic::Ordering;
-
-use super::Solver;
-use super::team::RawSlice;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, human_bytes};
 use crate::kernel::Cell;
 use crate::particles::Particle;
 
 /// Marks an unused entry of the block lattice maps, which store `index + 1`
-/// otherwise: zero, so that the maps are allocated zeroed (`calloc`) and a
+/// otherwise (`src_map`, while the block sort counts: the block's
+/// particles): zero, so that the maps are allocated zeroed (`calloc`) and a
 /// large grid's pages are only touched where particles are.
 pub(super) const EMPTY: u32 = 0;
-
-/// A `src_map` entry while the block sort marks blocks (before they are numbered).
-const MARKED: u32 = u32::MAX;
 
 /// Scratch space of the sparse block grid, reused across substeps.
 pub(super) struct SparseGrid {
@@ -48,13 +40,19 @@ pub(super) struct SparseGrid {
     /// Stencil base cell, fraction and block key of each particle (storage order).
     pub(super) keys: Vec<Cell>,
     pub(super) next_keys: Vec<Cell>,
+    /// Per-chunk block counts of the block sort (more than two chunks only).
     pub(super) counts: Vec<u32>,
     /// Block key of each particle in id order (scratch of the block sort).
     pub(super) key_by_id: Vec<u32>,
     /// The order in which a substep's members claim p2g's source blocks and
-    /// g2p's items ([`Solver::schedule`]).
+    /// g2p's items ([`Solver::schedule`]) ...
     pub(super) p2g_order: Vec<u32>,
     pub(super) g2p_items: Vec<G2pItem>,
+    /// ... and each member's range of them and of the output blocks
+    /// (`bounds[m] .. bounds[m + 1]`, [`super::team::Team::claim_own`]).
+    pub(super) p2g_bounds: Vec<u32>,
+    pub(super) g2p_bounds: Vec<u32>,
+    pub(super) grid_bounds: Vec<u32>,
 }
 
 /// A piece of a source block's particles that g2p hands to one member: the
@@ -65,14 +63,6 @@ pub(super) struct G2pItem {
     pub(super) first: u32,
     pub(super) len: u32,
 }
-
-/// g2p items per member a team aims at (finer items balance the members'
-/// loads better, each costs a claim and, for a piece of a block, a gather
-/// of the block's velocity patch) ...
-const ITEMS_PER_MEMBER: usize = 8;
-/// ... and the fewest particles a piece of a block holds (a multiple of the
-/// sand lanes' batch, [`crate::material::sand::SandBatch`]).
-const MIN_ITEM: usize = 32;
 
 /// Precomputed stencil offsets.
 pub(super) struct Stencil<const D: usize> {
@@ -247,6 +237,9 @@ where
         key_by_id: Vec::new(),
         p2g_order: Vec::new(),
         g2p_items: Vec::new(),
+        p2g_bounds: Vec::new(),
+        g2p_bounds: Vec::new(),
+        grid_bounds: Vec::new(),
     };
     Ok((
         grid,
@@ -307,236 +300,6 @@ fn gather_runs_for<const D: usize>(
         runs.push((l as u16, q as u16, extent(D - 1) as u16));
     }
     runs
-}
-
-impl<const D: usize> Solver<D>
-where
-    Dim<D>: DimOps<D>,
-{
-    // The block sort, a stable counting sort of the ids by block in four
-    // stages that the frame loop (`frame.rs`) runs between barriers: the ids
-    // are cut into `n_chunks` contiguous ranges, each handled by one thread.
-    // Inside a block the particles end up in id order whatever the chunking,
-    // and blocks are numbered in key order, so the result (and every sum
-    // that follows) is the same for any number of threads.
-
-    /// Sort stage 1 (serial): forget the previous substep's blocks and size
-    /// the scratch.
-    pub(super) fn sort_begin(&mut self) {
-        let g = &mut self.grid;
-        for &b in &g.src_blocks {
-            g.src_map[b as usize] = EMPTY;
-        }
-        for &b in &g.out_blocks {
-            g.out_map[b as usize] = EMPTY;
-        }
-        g.src_blocks.clear();
-        g.out_blocks.clear();
-        // (`key_by_id` is sized at the frame's start and filled by g2p)
-        g.sorted.resize(self.particles.len(), 0);
-    }
-
-    /// The ids of chunk `c` of `n_chunks`.
-    fn chunk_ids(&self, c: usize, n_chunks: usize) -> std::ops::Range<usize> {
-        let n = self.particles.len();
-        c * n / n_chunks..(c + 1) * n / n_chunks
-    }
-
-    /// Sort stage 2 (parallel, chunk `c`): mark the blocks of the chunk's
-    /// ids (`grid.key_by_id`, written by the previous g2p or the frame's
-    /// first stage) that this chunk sees first in `src_map` (atomically:
-    /// chunks mark concurrently), appending their keys to `touched`.
-    ///
-    /// # Safety
-    /// `src_map` views `grid.src_map`; during this stage nothing else may
-    /// access it.
-    // inlined into each compiled copy of the frame loop (`crate::isa`)
-    #[inline(always)]
-    pub(super) unsafe fn sort_mark(
-        &self,
-        c: usize,
-        n_chunks: usize,
-        src_map: RawSlice<u32>,
-        touched: &mut Vec<u32>,
-    ) {
-        // SAFETY: every access to `src_map` in this stage is atomic (caller)
-        let map = unsafe { src_map.as_atomic() };
-        for &key in &self.grid.key_by_id[self.chunk_ids(c, n_chunks)] {
-            let m = &map[key as usize];
-            if m.load(Ordering::Relaxed) == EMPTY
-                && m.compare_exchange(EMPTY, MARKED, Ordering::Relaxed, Ordering::Relaxed)
-                    .is_ok()
-            {
-                touched.push(key);
-            }
-        }
-    }
-
-    /// Sort stage 3 (serial): number the marked blocks in key order
-    /// (`touched`: every chunk's marked keys, emptied) and zero the
-    /// per-chunk counts.
-    pub(super) fn sort_number(&mut self, touched: &mut Vec<u32>, n_chunks: usize) {
-        let g = &mut self.grid;
-        touched.sort_unstable();
-        for (i, &k) in touched.iter().enumerate() {
-            g.src_map[k as usize] = i as u32 + 1;
-        }
-        g.src_blocks.clear();
-        g.src_blocks.append(touched);
-        g.counts.clear();
-        g.counts.resize(n_chunks * g.src_blocks.len(), 0);
-    }
-
-    /// Sort stage 4 (parallel, chunk `c`): how many of the chunk's ids each
-    /// block holds, into row `c` of `counts` (`n_chunks × blocks`).
-    ///
-    /// # Safety
-    /// `counts` views `grid.counts`; nothing else may access its row `c`.
-    // inlined into each compiled copy of the frame loop (`crate::isa`)
-    #[inline(always)]
-    pub(super) unsafe fn sort_count(&self, c: usize, n_chunks: usize, counts: RawSlice<u32>) {
-        let n_src = self.grid.src_blocks.len();
-        // SAFETY: row c is ours alone (caller)
-        let row = unsafe { counts.chunk_mut(c * n_src, n_src) };
-        let map = &self.grid.src_map;
-        for &k in &self.grid.key_by_id[self.chunk_ids(c, n_chunks)] {
-            row[map[k as usize] as usize - 1] += 1;
-        }
-    }
-
-    /// Sort stage 5 (parallel, chunk `c`): write the chunk's slots to their
-    /// places in `sorted`: block by block, and inside a block after the ids
-    /// of the chunks before this one (`cursor`: scratch).
-    ///
-    /// # Safety
-    /// `sorted` views `grid.sorted`; the places this chunk writes are its
-    /// alone (they are, by construction), and nothing reads `sorted` meanwhile.
-    // inlined into each compiled copy of the frame loop (`crate::isa`)
-    #[inline(always)]
-    pub(super) unsafe fn sort_scatter(
-        &self,
-        c: usize,
-        n_chunks: usize,
-        sorted: RawSlice<u32>,
-        cursor: &mut Vec<u32>,
-    ) {
-        let g = &self.grid;
-        let n_src = g.src_blocks.len();
-        cursor.clear();
-        cursor.resize(n_src, 0);
-        let mut start = 0u32;
-        for (b, cur) in cursor.iter_mut().enumerate() {
-            let mut before = 0u32;
-            let mut total = 0u32;
-            for cc in 0..n_chunks {
-                let k = g.counts[cc * n_src + b];
-                if cc < c {
-                    before += k;
-                }
-                total += k;
-            }
-            *cur = start + before;
-            start += total;
-        }
-        let ids = self.chunk_ids(c, n_chunks);
-        for (&k, &slot) in g.key_by_id[ids.clone()].iter().zip(&self.slot_of[ids]) {
-            let b = g.src_map[k as usize] as usize - 1;
-            // SAFETY: place `cursor[b]` belongs to this chunk (see above)
-            unsafe { sorted.write(cursor[b] as usize, slot) };
-            cursor[b] += 1;
-        }
-    }
-
-    /// Sort stage 6 (serial): the blocks' offsets in the sorted order, and
-    /// the output blocks (each source block and its `+1` neighbours).
-    pub(super) fn sort_end(&mut self, n_chunks: usize) {
-        let g = &mut self.grid;
-        let n_src = g.src_blocks.len();
-        g.src_offsets.clear();
-        g.src_offsets.push(0);
-        let mut acc = 0u32;
-        for b in 0..n_src {
-            for c in 0..n_chunks {
-                acc += g.counts[c * n_src + b];
-            }
-            g.src_offsets.push(acc);
-        }
-        let lat = self.stencil.lat_stride;
-        let nb = g.nb;
-        for &b in &g.src_blocks {
-            let c = unflatten::<D>(b as usize, &lat);
-            for s in 0..(1usize << D) {
-                let mut lin = 0usize;
-                let mut ok = true;
-                for d in 0..D {
-                    let cd = c[d] + ((s >> d) & 1);
-                    if cd >= nb {
-                        ok = false;
-                    }
-                    lin += cd * lat[d];
-                }
-                if ok && g.out_map[lin] == EMPTY {
-                    g.out_blocks.push(lin as u32);
-                    g.out_map[lin] = g.out_blocks.len() as u32;
-                }
-            }
-        }
-    }
-}
-
-impl<const D: usize> Solver<D>
-where
-    Dim<D>: DimOps<D>,
-{
-    /// The order in which the `members` of a team claim this substep's work
-    /// (after [`Self::sort_end`]): alone, every source block whole, in key
-    /// order; on a team, p2g's blocks and g2p's items largest first (the last
-    /// items claimed are the small ones, so the members end close together),
-    /// g2p's blocks cut into pieces of about `n / (members · ITEMS_PER_MEMBER)`
-    /// particles (at least `MIN_ITEM`): a small frame has few blocks, and one
-    /// large block claimed last kept the other member waiting. Which member
-    /// runs which piece changes no result: each particle's g2p reads only the
-    /// grid and writes only its own place.
-    pub(super) fn schedule(&mut self, members: usize) {
-        let g = &mut self.grid;
-        let n_src = g.src_blocks.len();
-        let len = |b: usize| g.src_offsets[b + 1] - g.src_offsets[b];
-        g.p2g_order.clear();
-        g.p2g_order.extend(0..n_src as u32);
-        g.g2p_items.clear();
-        if members <= 1 {
-            g.g2p_items.extend((0..n_src).map(|b| G2pItem {
-                block: b as u32,
-                first: g.src_offsets[b],
-                len: len(b),
-            }));
-            return;
-        }
-        // stable: equal blocks stay in key order (neighbours share grid data)
-        g.p2g_order
-            .sort_by_key(|&b| std::cmp::Reverse(len(b as usize)));
-        let n = self.particles.len();
-        let target = (n / (members * ITEMS_PER_MEMBER))
-            .max(MIN_ITEM)
-            .next_multiple_of(16) as u32;
-        for b in 0..n_src {
-            let (first, total) = (g.src_offsets[b], len(b));
-            let pieces = total.div_ceil(target).max(1);
-            // near-equal pieces, each a multiple of 16 but the last
-            let step = total.div_ceil(pieces).next_multiple_of(16);
-            let mut at = 0;
-            while at < total {
-                let l = step.min(total - at);
-                g.g2p_items.push(G2pItem {
-                    block: b as u32,
-                    first: first + at,
-                    len: l,
-                });
-                at += l;
-            }
-        }
-        g.g2p_items.sort_by_key(|it| std::cmp::Reverse(it.len));
-    }
 }
 
 /// Coordinates of the linear index `lin` of a lattice with `strides`.

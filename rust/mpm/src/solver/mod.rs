@@ -28,6 +28,7 @@
 //! fixed order that does not depend on the thread count: results are bitwise
 //! identical for any number of threads.
 
+mod block_sort;
 mod cfl;
 mod frame;
 mod g2p;
