@@ -6,6 +6,7 @@
 //! floating-point sum — depends only on the particle set, never on the
 //! thread count.
 
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use super::Solver;
@@ -25,7 +26,7 @@ pub(super) struct BlockMarks<'a> {
     map: &'a [AtomicU32],
     last: u32,
     run: u32,
-    pub(super) touched: Vec<u32>,
+    touched: Vec<u32>,
 }
 
 impl BlockMarks<'_> {
@@ -67,10 +68,13 @@ impl BlockMarks<'_> {
         }
     }
 
-    /// The blocks this member found empty (after its last [`Self::mark`]).
-    pub(super) fn finish(mut self) -> Vec<u32> {
+    /// After this member's last [`Self::mark`]: the blocks it found empty
+    /// join every member's (`all`, which the block sort numbers).
+    pub(super) fn finish_into(mut self, all: &Mutex<Vec<u32>>) {
         self.flush();
-        self.touched
+        all.lock()
+            .expect("no member panicked holding it")
+            .append(&mut self.touched);
     }
 }
 
@@ -250,12 +254,7 @@ where
             }
         }
     }
-}
 
-impl<const D: usize> Solver<D>
-where
-    Dim<D>: DimOps<D>,
-{
     /// The order in which the `members` of a team claim this substep's work
     /// (after [`Self::sort_end`]), and each member's share of it. Alone,
     /// every source block whole, in key order. On a team, member `m` owns

@@ -5,7 +5,7 @@
 //!
 //! 1. thread 0, serial: finish the previous substep's g2p (the new storage
 //!    order), check its health and speed, sort the particles into blocks
-//!    (`grid.rs`: g2p counted the blocks' particles; a large frame scatters
+//!    (`block_sort.rs`: g2p counted the blocks' particles; a large frame scatters
 //!    in parallel chunks, after one more barrier, and with more than two
 //!    chunks counts per chunk first, after another) and size the buffers;
 //! 2. p2g per source block (`p2g.rs`);
@@ -74,8 +74,9 @@ const KEYS_CHUNK: usize = 1024;
 
 /// Below this many particles per member the block sort runs whole in the
 /// serial section that starts a substep instead of in chunks after one or
-/// two more barriers (two chunks: the scatter; more: the counts too): its work, ~3 ns a particle per chunked stage, is less than
-/// the barriers cost a small frame.
+/// two more barriers (two chunks: the scatter; more: the counts too): its
+/// work, ~3 ns a particle per chunked stage, is less than the barriers cost
+/// a small frame.
 pub(super) const SERIAL_SORT_BELOW: usize = 2048;
 
 impl<const D: usize> Solver<D>
@@ -268,10 +269,7 @@ where
                     marks.mark(k.key);
                 }
             }
-            touched
-                .lock()
-                .expect("no member panicked holding it")
-                .append(&mut marks.finish());
+            marks.finish_into(touched);
         }
         let mut patch = Vec::new();
         let mut acc = Vec::new();
@@ -345,7 +343,7 @@ where
             if team.stopped() {
                 break;
             }
-            // the block sort's parallel stages (see `grid.rs`)
+            // the block sort's parallel stages (see `block_sort.rs`)
             if !serial_sort {
                 // SAFETY: parallel section; each chunk's row / places are its own
                 let s = unsafe { &*sp.0 };
@@ -428,10 +426,7 @@ where
                 vmax2 = vmax2.max(v2);
             }
             team.report(health, vmax2);
-            touched
-                .lock()
-                .expect("no member panicked holding it")
-                .append(&mut marks.finish());
+            marks.finish_into(touched);
         }
     }
 

@@ -4,8 +4,9 @@
 //!
 //! One substep, one file per stage:
 //!
-//! 1. `grid.rs`: sort the particles into sparse blocks (a stable counting
-//!    sort in chunks of ids);
+//! 1. `block_sort.rs`: sort the particles into sparse blocks (a stable
+//!    counting sort, each block's count taken by the previous g2p) and
+//!    schedule the team's work (`grid.rs`: the sparse grid's buffers);
 //! 2. `p2g.rs`: per sparse block, into a private padded buffer (no atomics,
 //!    no shared writes);
 //! 3. `grid_update.rs`: per output block, gather the overlapping padded
@@ -16,7 +17,7 @@
 //!
 //! `frame.rs` runs a frame's substeps on a persistent team of threads
 //! (`team.rs`: one entry into the pool per frame, a barrier between stages,
-//! blocks claimed from atomic counters), or on the calling thread alone when
+//! each member's own blocks claimed first from atomic counters), or on the calling thread alone when
 //! that is faster (a busy machine): `mode.rs` measures both and chooses.
 //!
 //! `cfl.rs` chooses the substep size and drives the frame, with rollback
