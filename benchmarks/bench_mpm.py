@@ -238,7 +238,7 @@ def _ours_in(python, scene, threads, frames):
         f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_mpm as b; "
         f"sim = b.make(*b.SCENES[{scene!r}], {threads}); m, _ = b.time_frames(sim, {frames}); print(json.dumps([m, b.team_share(sim)]))"
     )
-    r = subprocess.run([python, "-c", code], capture_output=True, text=True, cwd="/tmp")
+    r = subprocess.run([python, "-c", code], capture_output=True, text=True)
     if r.returncode != 0:
         print(f"{python} failed:", r.stderr[-2000:], file=sys.stderr)
         return None
