@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridmpm.bench import VALID_SEED0, bench, choose, load_tuned, methods_for, pareto_front
+from hybridmpm.bench import VALID_SEED0, bench, choose, load_tuned, methods_for, pareto_front, report
 from hybridmpm.bench.methods import Method, shipped_default_method
 from hybridmpm.bench.report import CHART_METRICS, RESULT_COLUMNS, SWEEP_COLUMNS, front_error_at, mpm_front
 from hybridmpm.bench.tune import write_tuned
@@ -143,9 +143,30 @@ def test_the_shipped_default_runs_and_is_judged_on_every_front(tiny: dict):
             assert line.endswith("| on it |"), line
         else:
             f = front_error_at(front, d["ms_mean"], m)
-            assert math.isfinite(f) and f"({d[m] / f:.2f}×)" in line, line
+            last = line.rstrip(" |").rsplit("|", 1)[1]
+            if not math.isfinite(f):  # faster than every plain MPM measured
+                assert last.strip() == "faster than every plain MPM", line
+            elif f <= 0:  # slower than the full-resolution reference (its error is 0): no ratio to give
+                assert "×" not in last, line
+            else:
+                assert f"({d[m] / f:.2f}×)" in last, line
         checked += 1
     assert checked >= 4  # the long-horizon error, the short-horizon error, Sinkhorn, kinetic energy
+
+
+@pytest.mark.parametrize(
+    ("front", "cell"),
+    [(0.02, "0.02 (2.00×)"), (0.0, "0"), (math.nan, "faster than every plain MPM")],
+    ids=["ratio", "slower-than-the-reference", "faster-than-every-mpm"],
+)
+def test_the_default_section_gives_a_ratio_only_over_a_positive_front(front: float, cell: str):
+    """The default's cell against the plain-MPM front at its time: a ratio where the front's value is positive, the
+    bare 0 where the default is slower than the full-resolution reference (the front's value there is the reference's
+    own error, 0), and no number where no plain MPM was as fast (timing noise can put a run in either of the last two)."""
+    d = {"key": "hyb", "label": "hybrid", "shipped_default": True, "ms_mean": 2.0, "error_mean": 0.04, "mpm_front": False, "front_error": front}
+    lo = {"key": "mpm_rp", "label": "MPM at r_p", "shipped_default": False, "ms_mean": 1.0, "error_mean": 0.05}
+    line = next(ln for ln in report.default_section("water2d", [lo, d]) if ln.startswith("| `error_mean` |"))
+    assert line == f"| `error_mean` | 0.04 | 0.05 | 0.80 | {cell} |"
 
 
 def test_a_shipped_default_outside_the_grid_of_methods_is_added(monkeypatch: pytest.MonkeyPatch):
