@@ -32,6 +32,7 @@ mod kernel;
 mod material;
 pub mod params;
 pub mod particles;
+pub mod pool;
 pub mod solver;
 pub mod surface;
 pub mod transfer;
@@ -47,6 +48,7 @@ pub use params::{
     ColliderParams, SandParams, ShapeKind, SolverParams, WallFace, WallParams, WaterParams,
 };
 pub use particles::{Material, Particle, lattice};
+pub use pool::shared_pool;
 pub use solver::{FrameStats, Solver};
 pub use surface::surface_p2g;
 pub use transfer::{Pressure, TransferGrid, advect, g2p, p2g};

@@ -1,9 +1,10 @@
-//! A fork-safe thread pool for the module-level functions.
-//!
+//! The thread pool of the module-level functions: the process's pool of one
+//! thread per core, shared with the solvers that ask for as many
+//! ([`hybridmpm_mpm::shared_pool`], which also says why it is fork-safe).
 //! rayon's global pool does not survive `fork` (PyTorch DataLoader workers
-//! and `multiprocessing` fork): a child would wait forever on threads that do
-//! not exist in it. Module functions therefore run in this pool, rebuilt when
-//! the process id changes. (Each `MpmSolver` has its own pool with the same guard.)
+//! and `multiprocessing` fork), so the module functions never use it; this
+//! module holds its pool for the process's life and takes a new one when the
+//! process id changes.
 
 use std::sync::{Arc, Mutex};
 
@@ -15,7 +16,7 @@ fn current() -> Option<Arc<rayon::ThreadPool>> {
     match &*guard {
         Some((p, pool)) if *p == pid => Some(pool.clone()),
         _ => {
-            let pool = Arc::new(rayon::ThreadPoolBuilder::new().build().ok()?);
+            let pool = hybridmpm_mpm::shared_pool(0).ok()?;
             *guard = Some((pid, pool.clone()));
             Some(pool)
         }

@@ -10,9 +10,10 @@
 
 use rayon::prelude::*;
 
-use super::{FrameStats, Solver, build_pool};
+use super::{FrameStats, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
+use crate::pool::shared_pool;
 
 impl<const D: usize> Solver<D>
 where
@@ -52,20 +53,23 @@ where
             return Ok(s);
         }
         let speed = |p: &crate::particles::Particle<D>| p.v.norm();
-        let vmax =
-            if self.pool_pid == std::process::id() && self.particles.len() > SERIAL_SPEED_SCAN {
-                self.pool.install(|| {
-                    self.particles
-                        .par_iter()
-                        .map(speed)
-                        .reduce(|| 0.0f32, f32::max)
-                })
-            } else {
-                // few particles: a scan on this thread takes less time than waking
-                // the pool; or a forked child, where the pool's threads do not
-                // exist (max is exact in any order)
-                self.particles.iter().map(speed).fold(0.0f32, f32::max)
-            };
+        let vmax = if self.pool_pid == std::process::id()
+            && self.particles.len() > SERIAL_SPEED_SCAN
+            && self.pool.current_num_threads() > 1
+        {
+            self.pool.install(|| {
+                self.particles
+                    .par_iter()
+                    .map(speed)
+                    .reduce(|| 0.0f32, f32::max)
+            })
+        } else {
+            // few particles: a scan on this thread takes less time than waking
+            // the pool; a pool of one thread (shared, `crate::pool`: the scan
+            // would wait for other solvers' scans); or a forked child, where
+            // the pool's threads do not exist (max is exact in any order)
+            self.particles.iter().map(speed).fold(0.0f32, f32::max)
+        };
         // a moving collider gives the fluid its speed: it counts as a particle's
         let vmax = match self.move_speed(dt_frame) {
             Some(u) => vmax.max(u),
@@ -123,7 +127,7 @@ where
         check_dt_frame(dt_frame)?;
         if self.pool_pid != std::process::id() {
             // We are in a forked child: the parent's worker threads do not exist here.
-            self.pool = build_pool(self.params.num_threads)?;
+            self.pool = shared_pool(self.params.num_threads)?;
             self.pool_pid = std::process::id();
         }
         let n_sub = self.substeps_for(dt_frame)?;

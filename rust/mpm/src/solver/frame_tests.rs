@@ -77,6 +77,43 @@ fn team_is_bitwise_identical_to_one_thread() {
     assert_eq!(one, run::<3>(3, true, 6));
 }
 
+/// Solvers asking for one thread count share the process's pool
+/// ([`crate::pool::shared_pool`]), other counts get other pools, a pool no
+/// solver holds any more is gone; and four teams stepping at once on one
+/// shared pool of two
+/// threads (more team members than the pool has threads: a member waits for
+/// a pool thread busy with another frame's member) each give the bits of
+/// one thread and finish.
+#[test]
+fn solvers_share_a_pool_and_concurrent_teams_keep_their_bits() {
+    use std::sync::Arc;
+    // a thread count no other test asks for: the other tests run at the
+    // same time, and a pool they hold would outlive this test's solvers
+    let make = |threads: usize| {
+        let params = SolverParams::<2> {
+            n_grid: 16,
+            num_threads: threads,
+            ..Default::default()
+        };
+        Solver::new(params, vec![]).unwrap()
+    };
+    let (a, b, c) = (make(5), make(5), make(6));
+    assert!(Arc::ptr_eq(&a.pool, &b.pool));
+    assert!(!Arc::ptr_eq(&a.pool, &c.pool));
+    assert_eq!(a.pool.current_num_threads(), 5);
+    let gone = Arc::downgrade(&a.pool);
+    drop((a, b));
+    assert!(gone.upgrade().is_none(), "the pool outlived its solvers");
+
+    let one = run::<2>(1, false, 12);
+    let teams: Vec<_> = (0..4)
+        .map(|_| std::thread::spawn(|| run::<2>(2, true, 12)))
+        .collect();
+    for t in teams {
+        assert_eq!(t.join().unwrap(), one);
+    }
+}
+
 /// The block sort gives the same bits whole in a serial section and in
 /// chunks between barriers, alone and on teams of 2 and 3 (g2p's pieces
 /// of blocks: `Solver::schedule`).

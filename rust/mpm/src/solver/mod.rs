@@ -165,6 +165,9 @@ where
     frame: u64,
     grid: SparseGrid,
     stencil: Stencil<D>,
+    /// The process's pool of `num_threads` threads, shared with the other
+    /// solvers that ask for as many ([`crate::pool::shared_pool`]), and the
+    /// process id it was taken in (a forked child takes a new one).
     pool: std::sync::Arc<rayon::ThreadPool>,
     pool_pid: u32,
     /// Whether frames run on the team or the calling thread alone (`mode.rs`).
@@ -180,15 +183,6 @@ where
     /// Memory budget [bytes] for what the inputs make the solver allocate
     /// (`None`: unlimited); see [`Solver::with_memory_budget`].
     memory_budget: Option<u64>,
-}
-
-/// The solver's own rayon pool (`num_threads = 0`: all cores).
-fn build_pool(num_threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(num_threads)
-        .build()
-        .map(std::sync::Arc::new)
-        .map_err(|e| MpmError::invalid("num_threads", format!("cannot start the thread pool: {e}")))
 }
 
 impl<const D: usize> Solver<D>
@@ -235,7 +229,7 @@ where
             memory_budget,
         )?;
         let (grid, stencil) = grid::new_grid::<D>(params.n_grid)?;
-        let pool = build_pool(params.num_threads)?;
+        let pool = crate::pool::shared_pool(params.num_threads)?;
         let nc = colliders.len();
         let depth = PROJECT_DEPTH_CELLS * params.dx();
         let shallow = colliders
