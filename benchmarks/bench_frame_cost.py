@@ -5,6 +5,7 @@ session frame (docs/engine.md, "Cost per frame").
     python benchmarks/bench_frame_cost.py curves [--repeats 3] [--out benchmarks/results/frame_cost]
     python benchmarks/bench_frame_cost.py ratios [--seeds 4100 4101 4102] [--frames 200]
     python benchmarks/bench_frame_cost.py session [--frames 300]
+    python benchmarks/bench_frame_cost.py turns [--seeds 4100 4101 4102 4103] [--frames 200]
 
 ``curves``: water released as a dam break (a lattice block at 2 particles
 per cell per axis, dt = 0.02·dx as in ``bench_mpm.py``), 2D from 484 to
@@ -27,6 +28,12 @@ particles in 2D, 0.22× in 3D, and takes half the substeps).
 
 ``session``: dam_break3d and paddle3d at ``r_p = 1`` (the page's scenes), two
 threads: frames per second of ``MpmSimulator.advance``.
+
+``turns``: solvers stepped in turn in one process (a hybrid's two MPMs, a
+server's sessions): one water2d half grid (64²) per seed, all on one thread
+each and then all on two threads each (twice, in that order), one frame of
+each in turn; the mean wall ms per frame. With one pool per thread count in
+the process (``hybridmpm_mpm::shared_pool``) two threads cost no more than one.
 
 Every mode writes ``<out>/<mode>.json`` and prints its rows; ``curves`` also
 draws ``<out>/frame_cost.png`` (``--png`` another path). Timings are wall
@@ -192,6 +199,23 @@ def session(args) -> list[dict]:
     return rows
 
 
+def turns(args) -> list[dict]:
+    rows = []
+    for rnd in range(2):
+        for threads in (1, 2):
+            sims = [MpmSimulator(make_scene("water2d", seed=s), n_grid=HALF_GRID["water2d"], seed=s, threads=threads) for s in args.seeds]
+            for sim in sims:
+                for _ in range(5):
+                    sim.advance()
+            t = 0.0
+            for _ in range(args.frames):
+                t += sum(sum(timed(sim.advance, 1)) for sim in sims)
+            row = {"round": rnd, "threads": threads, "solvers": len(sims), "ms_per_frame": t / (args.frames * len(sims)) * 1e3}
+            rows.append(row)
+            print(f"round {rnd}: {len(sims)} water2d half grids in turn, {threads} thread(s) each: {row['ms_per_frame']:.3f} ms a frame", flush=True)
+    return rows
+
+
 def chart(rows: list[dict]):
     """The cost curves (ms per frame, ns per particle-substep) against particles, per dimension and thread count."""
     import matplotlib
@@ -220,15 +244,15 @@ def chart(rows: list[dict]):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("curves", "ratios", "session"))
+    ap.add_argument("mode", choices=("curves", "ratios", "session", "turns"))
     ap.add_argument("--repeats", type=int, default=3, help="curves: timed blocks per thread count")
-    ap.add_argument("--frames", type=int, default=200, help="ratios, session: frames")
+    ap.add_argument("--frames", type=int, default=200, help="ratios, session, turns: frames")
     ap.add_argument("--block", type=int, default=8, help="curves: frames per timed block")
     ap.add_argument("--seeds", type=int, nargs="+", default=[4100, 4101, 4102])
     ap.add_argument("--out", default="benchmarks/results/frame_cost")
     ap.add_argument("--png", default=None, help="curves: the chart's path (default <out>/frame_cost.png)")
     args = ap.parse_args()
-    rows = {"curves": curves, "ratios": ratios, "session": session}[args.mode](args)
+    rows = {"curves": curves, "ratios": ratios, "session": session, "turns": turns}[args.mode](args)
     out = Path(args.out)
     figures = {}
     if args.mode == "curves":
