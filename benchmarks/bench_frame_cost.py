@@ -33,7 +33,9 @@ threads: frames per second of ``MpmSimulator.advance``.
 server's sessions): one water2d half grid (64²) per seed, all on one thread
 each and then all on two threads each (twice, in that order), one frame of
 each in turn; the mean wall ms per frame. With one pool per thread count in
-the process (``hybridmpm_mpm::shared_pool``) two threads cost no more than one.
+the process (``hybridmpm_mpm::shared_pool``) two threads cost about what one
+does; with a pool per solver they cost more (docs/engine.md, "Solvers stepped
+in turn").
 
 Every mode writes ``<out>/<mode>.json`` and prints its rows; ``curves`` also
 draws ``<out>/frame_cost.png`` (``--png`` another path). Timings are wall
@@ -209,7 +211,8 @@ def turns(args) -> list[dict]:
                     sim.advance()
             t = 0.0
             for _ in range(args.frames):
-                t += sum(sum(timed(sim.advance, 1)) for sim in sims)
+                for sim in sims:
+                    t += timed(sim.advance, 1)[0]
             row = {"round": rnd, "threads": threads, "solvers": len(sims), "ms_per_frame": t / (args.frames * len(sims)) * 1e3}
             rows.append(row)
             print(f"round {rnd}: {len(sims)} water2d half grids in turn, {threads} thread(s) each: {row['ms_per_frame']:.3f} ms a frame", flush=True)

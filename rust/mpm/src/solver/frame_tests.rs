@@ -80,10 +80,9 @@ fn team_is_bitwise_identical_to_one_thread() {
 /// Solvers asking for one thread count share the process's pool
 /// ([`crate::pool::shared_pool`]), other counts get other pools, a pool no
 /// solver holds any more is gone; and four teams stepping at once on one
-/// shared pool of two
-/// threads (more team members than the pool has threads: a member waits for
-/// a pool thread busy with another frame's member) each give the bits of
-/// one thread and finish.
+/// shared pool of two threads (more team members than the pool has
+/// threads: a member waits for a pool thread busy with another frame's
+/// member) each give the bits of one thread and finish.
 #[test]
 fn solvers_share_a_pool_and_concurrent_teams_keep_their_bits() {
     use std::sync::Arc;
