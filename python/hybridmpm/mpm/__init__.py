@@ -5,7 +5,10 @@ method ...", APIC transfers, quadratic B-splines) on the unit domain
 ``[0, 1]^D`` with ``n_grid`` cells per dimension. Materials: weakly
 compressible water (Kirchhoff stress ``τ = K·J·(J−1)·I``) and Drucker–Prager
 sand (Klár et al. 2016, Hencky strain, SVD return mapping; in 2D the cone is
-matched to plane-strain Mohr–Coulomb, ``α = sin φ / √2``). Units are SI.
+matched to plane-strain Mohr–Coulomb, ``α = sin φ / √2``); elastic solids
+(fixed-corotated, Stomakhin et al. 2012, or neo-Hookean), snow (Stomakhin et
+al. 2013) and viscoplastic solids (von Mises on the Hencky strain with viscous
+relaxation); docs/materials.md. Units are SI.
 
 Example
 -------
@@ -23,7 +26,23 @@ one frame loop), which call :meth:`MpmSolver.step_frame`.
 """
 
 from hybridmpm.conventions import DT_FRAME
-from hybridmpm.mpm.params import WALL_FACES, Box, Collider, Condition, MpmParams, SampledSdf, SandParams, Sphere, WallFace, WallParams, WaterParams
+from hybridmpm.mpm.params import (
+    WALL_FACES,
+    Box,
+    Collider,
+    Condition,
+    ElasticParams,
+    MaterialSet,
+    MpmParams,
+    SampledSdf,
+    SandParams,
+    SnowParams,
+    Sphere,
+    ViscoplasticParams,
+    WallFace,
+    WallParams,
+    WaterParams,
+)
 from hybridmpm.mpm.solver import MpmSolver, grid_mass
 
 __all__ = [
@@ -31,11 +50,15 @@ __all__ = [
     "Box",
     "Collider",
     "Condition",
+    "ElasticParams",
+    "MaterialSet",
     "MpmParams",
     "MpmSolver",
     "SampledSdf",
     "SandParams",
+    "SnowParams",
     "Sphere",
+    "ViscoplasticParams",
     "WALL_FACES",
     "WallFace",
     "WallParams",

@@ -1,5 +1,6 @@
-"""The MLS-MPM solver's parameters (:class:`MpmParams` and its parts: water, sand, walls, colliders), typed and
-validated in Python; their defaults are the Rust core's (``SolverParams::default()``), defined once there."""
+"""The MLS-MPM solver's parameters (:class:`MpmParams` and its parts: water, sand, the elastic solid, snow, the
+viscoplastic solid, the table of further parameter sets, walls, colliders), typed and validated in Python; their
+defaults are the Rust core's (``SolverParams::default()``), defined once there."""
 
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ _DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim i
 COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
 _SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
 _WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
+_ELASTIC, _SNOW, _VISCO = _SOLVER["elastic"], _SOLVER["snow"], _SOLVER["viscoplastic"]
 
 
 @dataclass
@@ -50,6 +52,61 @@ class SandParams:
     poisson_ratio: float = _SAND["poisson_ratio"]
     friction_angle_deg: float = _SAND["friction_angle_deg"]
     cohesion: float = _SAND["cohesion"]
+
+
+@dataclass
+class ElasticParams:
+    """Elastic solid. ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa],
+    ``poisson_ratio`` ν in [0, 0.5), ``model``: ``"corotated"`` (fixed-corotated,
+    Stomakhin et al. 2012) or ``"neohookean"``. Defaults are the Rust core's."""
+
+    density: float = _ELASTIC["density"]
+    youngs_modulus: float = _ELASTIC["youngs_modulus"]
+    poisson_ratio: float = _ELASTIC["poisson_ratio"]
+    model: str = _ELASTIC["model"]
+
+
+@dataclass
+class SnowParams:
+    """Snow (Stomakhin et al. 2013). ``density`` ρ [kg/m³], ``youngs_modulus``
+    E₀ [Pa], ``poisson_ratio`` ν, ``theta_c`` critical compression θc and
+    ``theta_s`` critical stretch θs (in (0, 1)), ``hardening`` ξ. Defaults are
+    the Rust core's (the paper's: 400, 1.4e5, 0.2, 2.5e-2, 7.5e-3, 10)."""
+
+    density: float = _SNOW["density"]
+    youngs_modulus: float = _SNOW["youngs_modulus"]
+    poisson_ratio: float = _SNOW["poisson_ratio"]
+    theta_c: float = _SNOW["theta_c"]
+    theta_s: float = _SNOW["theta_s"]
+    hardening: float = _SNOW["hardening"]
+
+
+@dataclass
+class ViscoplasticParams:
+    """Viscoplastic solid: von Mises on the Hencky strain with viscous
+    relaxation (Bingham). ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa],
+    ``poisson_ratio`` ν, ``yield_stress`` τ_y [Pa] (the Bingham yield stress in
+    simple shear: flow when √J₂ > τ_y), ``viscosity`` η [Pa·s]. Defaults are
+    the Rust core's."""
+
+    density: float = _VISCO["density"]
+    youngs_modulus: float = _VISCO["youngs_modulus"]
+    poisson_ratio: float = _VISCO["poisson_ratio"]
+    yield_stress: float = _VISCO["yield_stress"]
+    viscosity: float = _VISCO["viscosity"]
+
+
+#: A parameter set of any material (an entry of :attr:`MpmParams.sets`).
+MaterialSet = WaterParams | SandParams | ElasticParams | SnowParams | ViscoplasticParams
+#: Each parameter-set class by the material name the parameter dict uses.
+SET_CLASSES: dict[str, type] = {
+    "water": WaterParams,
+    "sand": SandParams,
+    "elastic": ElasticParams,
+    "snow": SnowParams,
+    "viscoplastic": ViscoplasticParams,
+}
+_SET_NAMES = {cls: name for name, cls in SET_CLASSES.items()}
 
 
 #: Wall faces by axis and side: ``x-`` is x = 0, ``x+`` x = 1, ``y-`` the floor
@@ -353,6 +410,11 @@ class MpmParams:
     core's (``SolverParams::default()``, as a dict
     ``hybridmpm._core.default_params(dim)``): ``n_grid=None`` and
     ``gravity=None`` [m/s², ``dim`` numbers] take those of ``dim``.
+
+    ``water`` ... ``viscoplastic`` are each material's default parameter set
+    (entries 0 to 4 of the table particles index, by material code);
+    ``sets`` holds further sets (entries 5, 6, ...), e.g. a second jelly of
+    another stiffness: a particle's ``material_set`` names its entry.
     """
 
     dim: int = 2
@@ -364,6 +426,10 @@ class MpmParams:
     num_threads: int = _SOLVER["num_threads"]
     water: WaterParams = field(default_factory=WaterParams)
     sand: SandParams = field(default_factory=SandParams)
+    elastic: ElasticParams = field(default_factory=ElasticParams)
+    snow: SnowParams = field(default_factory=SnowParams)
+    viscoplastic: ViscoplasticParams = field(default_factory=ViscoplasticParams)
+    sets: list[MaterialSet] = field(default_factory=list)
     walls: WallParams = field(default_factory=WallParams)
     colliders: list[Collider] = field(default_factory=list)
 
@@ -413,10 +479,21 @@ class MpmParams:
                 raise InvalidInputError(f"gravity: must be a list of {self.dim} numbers, got {self.gravity!r}", "gravity")
             for i, g in enumerate(self.gravity):
                 self._check_number(f"gravity[{i}]", g)
-        for name, group, cls in (("water", self.water, WaterParams), ("sand", self.sand, SandParams)):
+        groups: list[tuple[str, Any, type]] = [(name, getattr(self, name), cls) for name, cls in SET_CLASSES.items()]
+        if not isinstance(self.sets, (list, tuple)):
+            raise InvalidInputError(f"sets: must be a list of parameter sets, got {self.sets!r}", "sets")
+        for i, group in enumerate(self.sets):
+            if type(group) not in _SET_NAMES:
+                raise InvalidInputError(f"sets[{i}]: must be one of {', '.join(c.__name__ for c in SET_CLASSES.values())}, got {group!r}", f"sets[{i}]")
+            groups.append((f"sets[{i}].{_SET_NAMES[type(group)]}", group, type(group)))
+        for name, group, cls in groups:
             if not isinstance(group, cls):
                 raise InvalidInputError(f"{name}: must be a {cls.__name__}, got {group!r}", name)
             for key, value in asdict(group).items():
+                if key == "model":
+                    if value not in ("corotated", "neohookean"):
+                        raise InvalidInputError(f"{name}.model: must be 'corotated' or 'neohookean', got {value!r}", f"{name}.model")
+                    continue
                 self._check_number(f"{name}.{key}", value)
         if not isinstance(self.walls, WallParams):
             raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
@@ -442,6 +519,10 @@ class MpmParams:
             "num_threads": int(self.num_threads),
             "water": asdict(self.water),
             "sand": asdict(self.sand),
+            "elastic": asdict(self.elastic),
+            "snow": asdict(self.snow),
+            "viscoplastic": asdict(self.viscoplastic),
+            "sets": [{_SET_NAMES[type(g)]: asdict(g)} for g in self.sets],
             "walls": self.walls.to_dict(self.dim),
             "colliders": [c.to_dict() for c in self.colliders],
         }
@@ -479,14 +560,22 @@ class MpmParams:
                 cols.append(SampledSdf.from_dict(f"colliders[{i}]", c))
             else:
                 raise InvalidInputError(f"colliders[{i}].shape: must be 'box', 'sphere' or 'sampled', got {shape!r}", f"colliders[{i}].shape")
-        water = build("water", WaterParams, d.pop("water", {}))
-        sand = build("sand", SandParams, d.pop("sand", {}))
+        groups = {name: build(name, c, d.pop(name, {})) for name, c in SET_CLASSES.items()}
+        raw_sets = d.pop("sets", []) or []
+        if not isinstance(raw_sets, (list, tuple)):
+            raise InvalidInputError(f"sets: expected a list, got {raw_sets!r}", "sets")
+        sets: list[MaterialSet] = []
+        for i, entry in enumerate(raw_sets):
+            if not (isinstance(entry, dict) and len(entry) == 1 and next(iter(entry)) in SET_CLASSES):
+                raise InvalidInputError(f"sets[{i}]: expected one of {{{', '.join(SET_CLASSES)}: {{...}}}}, got {entry!r}", f"sets[{i}]")
+            ((name, kwargs),) = entry.items()
+            sets.append(build(f"sets[{i}].{name}", SET_CLASSES[name], kwargs))
         walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))
-        top = set(cls.__dataclass_fields__) - {"water", "sand", "walls", "colliders"}
+        top = set(cls.__dataclass_fields__) - {*SET_CLASSES, "sets", "walls", "colliders"}
         unknown = sorted(set(d) - top, key=str)
         if unknown:
             raise InvalidInputError(f"{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(top))})", str(unknown[0]))
-        params = cls(water=water, sand=sand, walls=walls, colliders=cols, **d)
+        params = cls(**groups, sets=sets, walls=walls, colliders=cols, **d)
         params.validate()
         return params
 

@@ -20,7 +20,7 @@ from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
 
 _MAGIC = b"HMPMPY01"
 #: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
-_CORE_MAGIC = b"HMPMCKP2"
+_CORE_MAGIC = b"HMPMCKP3"
 _CORE_HEADER = 36
 #: The checkpoint header's key for the colliders' poses and pending moves (absent while none has moved).
 _COLLIDER_STATE = "collider_state"
@@ -89,11 +89,15 @@ class MpmSolver:
         velocities: np.ndarray | None = None,
         masses: np.ndarray | None = None,
         volumes: np.ndarray | None = None,
+        material_set: int | np.ndarray | None = None,
     ) -> int:
         """Append particles; returns the new particle count.
 
         ``positions`` [N, D] in ``[dx, 1 − dx]`` [m]; ``material`` a code or
-        int array [N]; ``velocities`` [N, D] [m/s]; ``masses`` [N] [kg];
+        int array [N]; ``material_set`` the parameter set of each (an int or
+        int array [N]: an index into the table of the material defaults, by
+        code, then ``params.sets``; default: the material's own default set);
+        ``velocities`` [N, D] [m/s]; ``masses`` [N] [kg];
         ``volumes`` [N] [m^D] (default ``(dx/2)^D``, 2 particles per cell per
         dimension; mass defaults to density × volume). Refused with
         :class:`~hybridmpm.errors.InvalidInputError` naming ``positions``
@@ -117,6 +121,7 @@ class MpmSolver:
                 velocities=None if velocities is None else _as_f32("velocities", velocities),
                 masses=None if masses is None else _as_f32("masses", masses),
                 volumes=None if volumes is None else _as_f32("volumes", volumes),
+                material_set=None if material_set is None else np.asarray(material_set),
             )
         )
 
@@ -148,12 +153,23 @@ class MpmSolver:
 
     @property
     def material(self) -> np.ndarray:
-        """int32 [N]: 0 water, 1 sand."""
+        """int32 [N]: 0 water, 1 sand, 2 elastic, 3 snow, 4 viscoplastic
+        (setting it puts each particle in its material's default set)."""
         return self._get("material")
 
     @material.setter
     def material(self, value: Any) -> None:
         self._core.set("material", np.asarray(value))
+
+    @property
+    def material_set(self) -> np.ndarray:
+        """int32 [N]: each particle's parameter set (index into the table of
+        the material defaults, by code, then ``params.sets``)."""
+        return self._get("material_set")
+
+    @material_set.setter
+    def material_set(self, value: Any) -> None:
+        self._core.set("material_set", np.asarray(value))
 
     # ------------------------------------------------------------- stepping
     @staticmethod
@@ -393,7 +409,7 @@ class MpmSolver:
         whose particles are not this solver's: count, dimension, material and
         mass per particle."""
         d = self.dim
-        per = 4 * (3 * d + 3 * d * d + 4) + 1  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8)
+        per = 4 * (3 * d + 3 * d * d + 4) + 3  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16)
         if len(state) < _CORE_HEADER or state[:8] != _CORE_MAGIC:
             raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
         (dd,) = struct.unpack_from("<I", state, 8)
@@ -406,7 +422,7 @@ class MpmSolver:
         rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
         mass_at = 4 * (2 * d + 2 * d * d + 2)
         masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
-        if not np.array_equal(rec[:, -1], np.asarray(self.material).astype(np.uint8)):
+        if not np.array_equal(rec[:, -3], np.asarray(self.material).astype(np.uint8)):
             raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
         if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
             raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")

@@ -19,20 +19,29 @@ struct Spec<const D: usize> {
 
 const W: Material = Material::Water;
 const S: Material = Material::Sand;
+const E: Material = Material::Elastic;
+const N: Material = Material::Snow;
+const V: Material = Material::Viscoplastic;
 
 #[rustfmt::skip]
-const SCENES_2D: [(&str, Spec<2>); 3] = [
+const SCENES_2D: [(&str, Spec<2>); 6] = [
     ("water2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (W, W), substeps: 16 }),
     ("sand2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (S, S), substeps: 16 }),
     ("water_sand2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (W, S), substeps: 16 }),
+    ("elastic2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (E, E), substeps: 16 }),
+    ("snow2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (N, N), substeps: 16 }),
+    ("viscoplastic2d", Spec { n_grid: 128, origin: [0.1, 0.1], side: 64, mats: (V, V), substeps: 16 }),
 ];
 
 #[rustfmt::skip]
-const SCENES_3D: [(&str, Spec<3>); 4] = [
+const SCENES_3D: [(&str, Spec<3>); 7] = [
     ("water3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (W, W), substeps: 8 }),
     ("water3d_128", Spec { n_grid: 128, origin: [0.3, 0.1, 0.3], side: 16, mats: (W, W), substeps: 16 }),
     ("water3d_32k", Spec { n_grid: 64, origin: [0.25, 0.1, 0.25], side: 32, mats: (W, W), substeps: 8 }),
     ("sand3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (S, S), substeps: 8 }),
+    ("elastic3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (E, E), substeps: 8 }),
+    ("snow3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (N, N), substeps: 8 }),
+    ("viscoplastic3d", Spec { n_grid: 64, origin: [0.3, 0.1, 0.3], side: 16, mats: (V, V), substeps: 8 }),
 ];
 
 fn run<const D: usize>(spec: &Spec<D>, threads: usize, frames: usize)
@@ -59,6 +68,7 @@ where
     let mid = origin[0] + side as f32 * dx / 4.0;
     for q in ps.iter_mut().filter(|q| q.x[0] >= mid) {
         q.material = mats.1;
+        q.set = mats.1 as u16;
     }
     s.set_particles(ps).unwrap();
     for _ in 0..5 {

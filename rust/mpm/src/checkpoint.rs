@@ -1,10 +1,12 @@
 //! Checkpoint / restore of the particle state and clock as bytes.
 //!
-//! Format (little endian): magic `HMPMCKP2`, `u32` D, `u64` N, `f64` time,
+//! Format (little endian): magic `HMPMCKP3`, `u32` D, `u64` N, `f64` time,
 //! `u64` frame, then per particle `x, v, C, F` (f32), `j, vc, mass, volume`
 //! (f32), `ext` (f32 × D), the derived stress τ (f32 × D², stored so that a
-//! restored run continues bit-for-bit), `material` (u8). Parameters are not included: the
-//! Python layer stores them beside this blob.
+//! restored run continues bit-for-bit), `material` (u8), its parameter set
+//! `set` (u16). Parameters are not included: the Python layer stores them
+//! beside this blob. A `HMPMCKP2` blob (before parameter sets: no `set`)
+//! restores with each particle in its material's default set.
 
 use nalgebra::{SMatrix, SVector};
 
@@ -13,7 +15,8 @@ use crate::error::{MpmError, Result};
 use crate::particles::{Material, Particle};
 use crate::solver::Solver;
 
-const MAGIC: &[u8; 8] = b"HMPMCKP2";
+const MAGIC: &[u8; 8] = b"HMPMCKP3";
+const MAGIC_V2: &[u8; 8] = b"HMPMCKP2";
 
 fn put(out: &mut Vec<u8>, xs: &[f32]) {
     for x in xs {
@@ -67,7 +70,7 @@ where
     /// Serialise the particle state and the clock.
     pub fn checkpoint(&self) -> Vec<u8> {
         let ps = self.particles();
-        let mut out = Vec::with_capacity(40 + ps.len() * (4 * (3 * D + 3 * D * D + 4) + 1));
+        let mut out = Vec::with_capacity(40 + ps.len() * (4 * (3 * D + 3 * D * D + 4) + 3));
         out.extend_from_slice(MAGIC);
         out.extend_from_slice(&(D as u32).to_le_bytes());
         out.extend_from_slice(&(ps.len() as u64).to_le_bytes());
@@ -82,6 +85,7 @@ where
             put(&mut out, p.ext.as_slice());
             put(&mut out, p.stress().as_slice());
             out.push(p.material as u8);
+            out.extend_from_slice(&p.set.to_le_bytes());
         }
         out
     }
@@ -89,7 +93,9 @@ where
     /// Restore a state written by [`Solver::checkpoint`]. On error the solver is unchanged.
     pub fn restore(&mut self, blob: &[u8]) -> Result<()> {
         let mut r = Reader { buf: blob, pos: 0 };
-        if r.take(8)? != MAGIC {
+        let magic = r.take(8)?;
+        let with_set = magic == MAGIC;
+        if !with_set && magic != MAGIC_V2 {
             return Err(MpmError::Checkpoint(
                 "not a hybridmpm MPM checkpoint (bad magic)".into(),
             ));
@@ -101,7 +107,7 @@ where
             )));
         }
         let n = r.u64()? as usize;
-        let per = 4 * (3 * D + 3 * D * D + 4) + 1;
+        let per = 4 * (3 * D + 3 * D * D + 4) + if with_set { 3 } else { 1 };
         if n.checked_mul(per).is_none_or(|b| b > blob.len()) {
             return Err(MpmError::Checkpoint(format!(
                 "declares {n} particles but holds {} bytes",
@@ -123,6 +129,9 @@ where
             let material = Material::from_code(code as i64)
                 .ok_or_else(|| MpmError::Checkpoint(format!("unknown material code {code}")))?;
             let mut p = Particle::new(x, material, mass, volume);
+            if with_set {
+                p.set = u16::from_le_bytes(r.take(2)?.try_into().unwrap());
+            }
             p.v = v;
             p.c = c;
             p.f = f;

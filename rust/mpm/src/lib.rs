@@ -1,13 +1,16 @@
-//! MLS-MPM solver for water, Drucker–Prager sand and their mixture, with
+//! MLS-MPM solver for water, Drucker–Prager sand, elastic solids, snow and
+//! viscoplastic mud, and their mixture, with
 //! static signed-distance obstacles, in 2D and 3D from one source.
 //!
 //! Method: Hu et al. 2018 (MLS-MPM, APIC transfers, quadratic B-splines);
 //! sand: Klár et al. 2016 (Hencky strain, SVD return mapping) with the volume
-//! correction of Tampubolon et al. 2017. Sparse block grid: only blocks near
+//! correction of Tampubolon et al. 2017; elastic: fixed-corotated
+//! (Stomakhin et al. 2012) or neo-Hookean; snow: Stomakhin et al. 2013;
+//! viscoplastic: von Mises on the Hencky strain with viscous relaxation. Sparse block grid: only blocks near
 //! particles are touched. Deterministic for any thread count.
 //!
 //! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`,
-//! `transfer` and `surface`), `material` (water, sand), `boundary`,
+//! `transfer` and `surface`), `material` (water, sand, solid), `boundary`,
 //! `collider/` (a file per concept: shape, sampled signed distance, motion,
 //! validation, particle projection and its reach, boundary condition) and
 //! `params/` (boundary conditions, obstacles and parameters; `params` uses
@@ -45,7 +48,8 @@ pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
 pub use params::{
-    ColliderParams, SandParams, ShapeKind, SolverParams, WallFace, WallParams, WaterParams,
+    ColliderParams, ElasticModel, ElasticParams, MaterialParams, MaterialSet, SandParams,
+    ShapeKind, SnowParams, SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams,
 };
 pub use particles::{Material, Particle, lattice};
 pub use pool::shared_pool;

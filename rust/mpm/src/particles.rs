@@ -13,14 +13,40 @@ pub enum Material {
     Water = 0,
     /// Drucker–Prager sand (carries the elastic deformation gradient `F`).
     Sand = 1,
+    /// Elastic solid, fixed-corotated or neo-Hookean (carries `F`).
+    Elastic = 2,
+    /// Snow, Stomakhin et al. 2013 (carries the elastic `F_E` in `f` and
+    /// the plastic volume ratio `J_P` in `j`).
+    Snow = 3,
+    /// Viscoplastic solid: von Mises with viscous relaxation (carries the
+    /// elastic `F`).
+    Viscoplastic = 4,
 }
 
 impl Material {
+    /// Every material, by code.
+    pub const ALL: [Material; 5] = [
+        Material::Water,
+        Material::Sand,
+        Material::Elastic,
+        Material::Snow,
+        Material::Viscoplastic,
+    ];
+
     pub fn from_code(code: i64) -> Option<Material> {
-        match code {
-            0 => Some(Material::Water),
-            1 => Some(Material::Sand),
-            _ => None,
+        usize::try_from(code)
+            .ok()
+            .and_then(|c| Material::ALL.get(c).copied())
+    }
+
+    /// The material's name in parameter dicts and scene files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Material::Water => "water",
+            Material::Sand => "sand",
+            Material::Elastic => "elastic",
+            Material::Snow => "snow",
+            Material::Viscoplastic => "viscoplastic",
         }
     }
 }
@@ -34,11 +60,14 @@ pub struct Particle<const D: usize> {
     pub v: SVector<f32, D>,
     /// APIC affine velocity matrix C [1/s].
     pub c: SMatrix<f32, D, D>,
-    /// Elastic deformation gradient F [-] (sand; identity for water).
+    /// Deformation gradient F [-]: the elastic part for sand, snow (`F_E`)
+    /// and the viscoplastic solid, the whole F for the elastic solid;
+    /// identity for water.
     pub f: SMatrix<f32, D, D>,
-    /// Volume ratio J = V/V0 [-] (water; 1 for sand).
+    /// Volume ratio J = V/V0 [-] for water; the plastic volume ratio
+    /// `J_P = det F_P` for snow (so `J_P · det F_E = det F`); 1 otherwise.
     pub j: f32,
-    /// Log-volume correction of Tampubolon et al. 2017 (sand) [-].
+    /// Log-volume correction of Tampubolon et al. 2017 (sand) [-]; 0 otherwise.
     pub vc: f32,
     /// Mass [kg] (per unit depth in 2D).
     pub mass: f32,
@@ -47,6 +76,10 @@ pub struct Particle<const D: usize> {
     /// External acceleration added to gravity [m/s²].
     pub ext: SVector<f32, D>,
     pub material: Material,
+    /// The particle's parameter set: an index into the solver's table
+    /// (`SolverParams::table`: the default set of each material at its code,
+    /// then `SolverParams::sets`), whose material must be `material`.
+    pub set: u16,
     /// Kirchhoff stress τ [Pa], derived from the state above (kept in sync by the solver).
     pub(crate) tau: SMatrix<f32, D, D>,
 }
@@ -65,6 +98,7 @@ impl<const D: usize> Particle<D> {
             volume,
             ext: SVector::zeros(),
             material,
+            set: material as u16,
             tau: SMatrix::zeros(),
         }
     }

@@ -30,6 +30,7 @@ pub(crate) const FIELDS: &[&str] = &[
     "masses",
     "volumes",
     "material",
+    "material_set",
     "external_acceleration",
     "stress",
 ];
@@ -98,7 +99,8 @@ fn write_field<const D: usize>(p: &mut Particle<D>, field: &str, v: &[f32]) {
     }
 }
 
-/// A copy of one per-particle field (public order): floats, or the material codes.
+/// A copy of one per-particle field (public order): floats, or the material
+/// codes and parameter-set indices.
 pub(crate) enum Column {
     F32(Vec<f32>),
     I32(Vec<i32>),
@@ -109,9 +111,13 @@ where
     core::Dim<D>: core::DimOps<D>,
 {
     let n = s.num_particles();
-    if field == "material" {
+    if field == "material" || field == "material_set" {
         let mut m = Vec::with_capacity(n);
-        s.for_each_particle(|_, p| m.push(p.material as i32));
+        if field == "material" {
+            s.for_each_particle(|_, p| m.push(p.material as i32));
+        } else {
+            s.for_each_particle(|_, p| m.push(p.set as i32));
+        }
         return (n, Column::I32(m));
     }
     let mut out = Vec::with_capacity(n * D.pow(field_dim(field) as u32));

@@ -1,5 +1,6 @@
-//! Material codes from Python (`0` water, `1` sand: `Material::from_code`):
-//! one for every particle or one per particle.
+//! Material codes from Python (`0` water, `1` sand, `2` elastic, `3` snow,
+//! `4` viscoplastic: `Material::from_code`) and parameter-set indices: one
+//! for every particle or one per particle.
 
 use hybridmpm_mpm as core;
 use hybridmpm_mpm::{Material, MpmError};
@@ -27,11 +28,14 @@ impl Codes {
     }
 }
 
+/// The codes, as error messages list them.
+const CODES: &str = "0 = water, 1 = sand, 2 = elastic, 3 = snow, 4 = viscoplastic";
+
 fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
     invalid_input(
         py,
         "material",
-        format!("unknown material code {code} (0 = water, 1 = sand)"),
+        format!("unknown material code {code} ({CODES})"),
     )
 }
 
@@ -39,7 +43,7 @@ fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
 /// unknown code is reported as given (`2**64 - 1`, not its int64 wrap).
 pub(crate) fn material_codes(value: &Bound<'_, PyAny>) -> PyResult<Codes> {
     let py = value.py();
-    let expect = "expected an integer code or an integer array (0 = water, 1 = sand)";
+    let expect = format!("expected an integer code or an integer array ({CODES})");
     if value.is_instance_of::<PyBool>() {
         return Err(invalid_input(
             py,
@@ -97,4 +101,73 @@ pub(crate) fn material_codes(value: &Bound<'_, PyAny>) -> PyResult<Codes> {
         return Ok(Codes::All(mats[0]));
     }
     Ok(Codes::Each(mats))
+}
+
+/// Parameter-set indices (`Particle::set`, in [0, 65535]): one for every
+/// particle or one per particle, from an int or an integer array [N]
+/// (argument `field`).
+pub(crate) fn set_indices(value: &Bound<'_, PyAny>, field: &str) -> PyResult<Vec<u16>> {
+    let py = value.py();
+    let expect = "expected an integer parameter-set index or an integer array [N]";
+    if value.is_instance_of::<PyBool>() {
+        return Err(invalid_input(
+            py,
+            field,
+            format!("{expect}, got {}", repr(value)),
+        ));
+    }
+    let np = py.import("numpy")?;
+    let arr = np.call_method1("asarray", (value,))?;
+    let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
+    let shape: Vec<usize> = arr.getattr("shape")?.extract()?;
+    if (kind != "i" && kind != "u") || shape.len() > 1 {
+        return Err(invalid_input(
+            py,
+            field,
+            format!(
+                "{expect}, got dtype {} shape {shape:?}",
+                arr.getattr("dtype")?.str()?
+            ),
+        ));
+    }
+    let size: usize = arr.getattr("size")?.extract()?;
+    if size > 0 {
+        for ext in ["min", "max"] {
+            let v = arr.call_method0(ext)?.call_method0("item")?;
+            if v.extract::<i64>()
+                .ok()
+                .and_then(|c| u16::try_from(c).ok())
+                .is_none()
+            {
+                return Err(invalid_input(
+                    py,
+                    field,
+                    format!(
+                        "a parameter-set index must be in [0, 65535], got {}",
+                        v.str()?
+                    ),
+                ));
+            }
+        }
+    }
+    let flat: Vec<i64> = arr
+        .call_method1("astype", ("int64",))?
+        .call_method0("ravel")?
+        .call_method0("tolist")?
+        .extract()?;
+    Ok(flat.into_iter().map(|c| c as u16).collect())
+}
+
+/// `sets` (one, or one per particle) for `n` particles (field `field`).
+pub(crate) fn expand_sets(sets: &[u16], n: usize, scalar: bool) -> core::Result<Vec<u16>> {
+    if scalar {
+        return Ok(vec![sets[0]; n]);
+    }
+    if sets.len() != n {
+        return Err(MpmError::invalid(
+            "material_set",
+            format!("expected shape [{n}], got [{}]", sets.len()),
+        ));
+    }
+    Ok(sets.to_vec())
 }

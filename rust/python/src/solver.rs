@@ -2,7 +2,7 @@
 //! as a Python class behind a lock.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{Collider, Material, Particle, Solver, SolverParams};
+use hybridmpm_mpm::{Collider, Particle, Solver, SolverParams};
 use nalgebra::SVector;
 use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -12,7 +12,7 @@ use std::sync::Mutex;
 use crate::args::{extract_budget, extract_count, f32_array, f32_vec};
 use crate::errors::{invalid_input, to_py};
 use crate::fields::{self, Column, read_column, write_column};
-use crate::material::{Codes, material_codes};
+use crate::material::{Codes, expand_sets, material_codes, set_indices};
 
 /// The solver parameters and colliders of the dict `MpmSolver` takes, read
 /// by the core's types (`crate::params`); errors name the field.
@@ -89,6 +89,9 @@ struct NewParticles {
     n: usize,
     x: Vec<f32>,
     mats: Codes,
+    /// Parameter-set indices (one for all when `sets_scalar`), or `None`:
+    /// each material's default set.
+    sets: Option<(Vec<u16>, bool)>,
     v: Option<Vec<f32>>,
     m: Option<Vec<f32>>,
     vol: Option<Vec<f32>>,
@@ -101,6 +104,11 @@ where
     let n = new.n;
     s.check_particle_budget(s.num_particles().saturating_add(n))?;
     let mats = new.mats.expand(n)?;
+    let sets = match &new.sets {
+        Some((v, scalar)) => Some(expand_sets(v, n, *scalar)?),
+        None => None,
+    };
+    let table = s.material_table();
     let params = s.params();
     // default: 2 particles per cell per dimension
     let default_vol = (0.5 * params.dx()).powi(D as i32);
@@ -108,12 +116,12 @@ where
     for i in 0..n {
         let xi = SVector::<f32, D>::from_column_slice(&new.x[i * D..(i + 1) * D]);
         let volume = new.vol.as_ref().map_or(default_vol, |a| a[i]);
-        let rho = match mats[i] {
-            Material::Water => params.water.density,
-            Material::Sand => params.sand.density,
-        };
+        let set = sets.as_ref().map_or(mats[i] as u16, |v| v[i]);
+        // a missing set is refused by `add_particles` (field `material_set`)
+        let rho = table.get(set as usize).map_or(1.0, |t| t.density());
         let mass = new.m.as_ref().map_or(rho * volume, |a| a[i]);
         let mut p = Particle::new(xi, mats[i], mass, volume);
+        p.set = set;
         if let Some(v) = &new.v {
             p.v = SVector::<f32, D>::from_column_slice(&v[i * D..(i + 1) * D]);
         }
@@ -267,11 +275,16 @@ impl MpmSolver {
     }
 
     /// Append particles. `positions` float32 [N, D] in [dx, 1 - dx]; `material`
-    /// int code or int array [N] (0 = water, 1 = sand); optional `velocities`
-    /// float32 [N, D] [m/s], `masses` [N] [kg], `volumes` [N] [m^D] (default
-    /// volume (dx/2)^D, mass = density·volume). Returns the new count.
-    /// Refused (field `positions`) beyond the memory budget.
-    #[pyo3(signature = (positions, material, *, velocities=None, masses=None, volumes=None))]
+    /// int code or int array [N] (0 = water, 1 = sand, 2 = elastic, 3 = snow,
+    /// 4 = viscoplastic); optional `material_set` int or int array [N], the
+    /// parameter set of each (an index into the table: each material's
+    /// default at its code, then `params["sets"]`; default: the material's
+    /// code), `velocities` float32 [N, D] [m/s], `masses` [N] [kg], `volumes`
+    /// [N] [m^D] (default volume (dx/2)^D, mass = the set's density·volume).
+    /// Returns the new count. Refused (field `positions`) beyond the memory
+    /// budget.
+    #[pyo3(signature = (positions, material, *, velocities=None, masses=None, volumes=None, material_set=None))]
+    #[allow(clippy::too_many_arguments)] // pyo3's signature: the keyword arguments of Python's call
     fn add_particles(
         &self,
         py: Python<'_>,
@@ -280,6 +293,7 @@ impl MpmSolver {
         velocities: Option<&Bound<'_, PyAny>>,
         masses: Option<&Bound<'_, PyAny>>,
         volumes: Option<&Bound<'_, PyAny>>,
+        material_set: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<usize> {
         let d = self.dim;
         let x = f32_array(positions, "positions", &[None, Some(d)])?;
@@ -299,6 +313,15 @@ impl MpmSolver {
             n,
             x: f32_vec(positions, "positions", &[Some(n), Some(d)])?,
             mats: material_codes(material)?,
+            sets: match material_set {
+                Some(v) => {
+                    let scalar = v
+                        .getattr("ndim")
+                        .map_or(true, |d| d.extract::<usize>().ok() == Some(0));
+                    Some((set_indices(v, "material_set")?, scalar))
+                }
+                None => None,
+            },
             v: velocities
                 .map(|v| f32_vec(v, "velocities", &[Some(n), Some(d)]))
                 .transpose()?,
@@ -339,7 +362,8 @@ impl MpmSolver {
 
     /// Copy of a per-particle array: positions/velocities/external_acceleration
     /// float32 [N, D]; affine/deformation_gradient/stress float32 [N, D, D];
-    /// volume_ratio/volume_correction/masses/volumes float32 [N]; material int32 [N].
+    /// volume_ratio/volume_correction/masses/volumes float32 [N]; material and
+    /// material_set (the parameter set of each particle) int32 [N].
     fn get(&self, py: Python<'_>, field: &str) -> PyResult<Py<PyAny>> {
         fields::check_name(py, field)?;
         let (n, col) = self.with(py, |inner| dispatch!(inner, s => read_column(s, field)));
@@ -373,7 +397,25 @@ impl MpmSolver {
                 .with(py, |inner| {
                     dispatch!(inner, s => {
                         let mats = codes.expand(s.num_particles())?;
-                        s.modify_particles(true, |i, p| p.material = mats[i])
+                        // each particle takes its new material's default set
+                        s.modify_particles(true, |i, p| {
+                            p.material = mats[i];
+                            p.set = mats[i] as u16;
+                        })
+                    })
+                })
+                .map_err(|e| to_py(py, e));
+        }
+        if field == "material_set" {
+            let scalar = value
+                .getattr("ndim")
+                .map_or(true, |d| d.extract::<usize>().ok() == Some(0));
+            let sets = set_indices(value, "material_set")?;
+            return self
+                .with(py, |inner| {
+                    dispatch!(inner, s => {
+                        let sets = expand_sets(&sets, s.num_particles(), scalar)?;
+                        s.modify_particles(true, |i, p| p.set = sets[i])
                     })
                 })
                 .map_err(|e| to_py(py, e));

@@ -7,8 +7,14 @@
 //! - [`water`]: weakly compressible water, state `J` (Hu et al. 2018, mpm88).
 //! - [`sand`]: Drucker–Prager elastoplasticity in Hencky strain, state `F`
 //!   and the volume correction (Klár et al. 2016; Tampubolon et al. 2017).
+//! - [`solid`]: the elastic solid (fixed-corotated, Stomakhin et al. 2012, or
+//!   neo-Hookean), snow (Stomakhin et al. 2013) and the viscoplastic solid
+//!   (von Mises on the Hencky strain with viscous relaxation), state `F`
+//!   (and `J_P` for snow); and the per-set constants of every material
+//!   ([`solid::Models`]).
 
 mod lanes;
 pub mod sand;
+pub(crate) mod solid;
 mod vmath;
 pub mod water;

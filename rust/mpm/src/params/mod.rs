@@ -8,12 +8,14 @@
 //! binding reads its dict with them and gives Python the defaults from them.
 //!
 //! Here the solver-wide [`SolverParams`] and the checks every part shares;
-//! `material.rs` the water and the sand, `walls.rs` the domain's walls (and
+//! `material.rs` the water and the sand, `solid.rs` the elastic solid, snow,
+//! the viscoplastic solid and the table of parameter sets, `walls.rs` the domain's walls (and
 //! their faces by name in the dict), `collider.rs` a collider as the dict
 //! gives it.
 
 mod collider;
 mod material;
+mod solid;
 #[cfg(all(test, feature = "serde"))]
 mod tests;
 mod walls;
@@ -21,6 +23,9 @@ mod walls;
 pub use crate::boundary::BoundaryCondition;
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
+pub use solid::{
+    ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams, lame,
+};
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
@@ -80,10 +85,26 @@ pub struct SolverParams<const D: usize> {
     pub max_substeps: usize,
     /// Worker threads (0 = all cores).
     pub num_threads: usize,
+    /// The default parameter set of each material (table entries 0 to 4,
+    /// by material code: a particle's `set` is its code unless it names one
+    /// of `sets`).
     pub water: WaterParams,
     pub sand: SandParams,
+    pub elastic: ElasticParams,
+    pub snow: SnowParams,
+    pub viscoplastic: ViscoplasticParams,
+    /// Further parameter sets (table entries 5, 6, ...): a scene's blocks
+    /// of one material with different parameters (two jellies of different
+    /// stiffness). At most [`MAX_SETS`] entries in all.
+    pub sets: Vec<MaterialSet>,
     pub walls: WallParams,
 }
+
+/// Largest parameter table (`Particle::set` is a `u16`).
+pub const MAX_SETS: usize = 1 << 16;
+
+/// Table entries before [`SolverParams::sets`]: one default per material code.
+pub const BASE_SETS: usize = 5;
 
 impl<const D: usize> Default for SolverParams<D> {
     fn default() -> Self {
@@ -98,6 +119,10 @@ impl<const D: usize> Default for SolverParams<D> {
             num_threads: 0,
             water: WaterParams::default(),
             sand: SandParams::default(),
+            elastic: ElasticParams::default(),
+            snow: SnowParams::default(),
+            viscoplastic: ViscoplasticParams::default(),
+            sets: Vec::new(),
             walls: WallParams::default(),
         }
     }
@@ -146,6 +171,22 @@ impl<const D: usize> SolverParams<D> {
         }
         self.water.validate()?;
         self.sand.validate()?;
+        self.elastic.validate()?;
+        self.snow.validate()?;
+        self.viscoplastic.validate()?;
+        if BASE_SETS + self.sets.len() > MAX_SETS {
+            return Err(MpmError::invalid(
+                "sets",
+                format!(
+                    "at most {} parameter sets, got {}",
+                    MAX_SETS - BASE_SETS,
+                    self.sets.len()
+                ),
+            ));
+        }
+        for (i, set) in self.sets.iter().enumerate() {
+            set.validate(&format!("sets[{i}]"))?;
+        }
         self.walls.validate(self.n_grid)?;
         for axis in D..3 {
             for side in 0..2 {
@@ -158,6 +199,21 @@ impl<const D: usize> SolverParams<D> {
             }
         }
         Ok(())
+    }
+
+    /// The table of parameter sets particles index: the five defaults by
+    /// material code, then [`Self::sets`]. Call after [`Self::validate`]
+    /// (a malformed extra set is left out).
+    pub fn table(&self) -> Vec<MaterialParams> {
+        let mut t = vec![
+            MaterialParams::Water(self.water.clone()),
+            MaterialParams::Sand(self.sand.clone()),
+            MaterialParams::Elastic(self.elastic.clone()),
+            MaterialParams::Snow(self.snow.clone()),
+            MaterialParams::Viscoplastic(self.viscoplastic.clone()),
+        ];
+        t.extend(self.sets.iter().filter_map(|s| s.params("sets").ok()));
+        t
     }
 
     pub fn dx(&self) -> f32 {

@@ -2,8 +2,8 @@
 //!
 //! A frame of `dt_frame` seconds is cut into `n` equal substeps with
 //! `Δt = dt_frame / n ≤ cfl·Δx / (c + |v|max)`, `c` the largest wave speed
-//! of the materials present (water: `sqrt(K/ρ)`; sand: the P-wave speed
-//! `sqrt((λ + 2μ)/ρ)`) — the explicit-integration stability limit. If a
+//! of the parameter sets present (water: `sqrt(K/ρ)`; sand and the solids:
+//! the P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's with its hardening) — the explicit-integration stability limit. If a
 //! substep still produces a non-finite state or moves a particle more than
 //! one cell, the frame is rolled back to its start and retried with the
 //! substep halved, as long as `max_substeps` allows.
@@ -13,27 +13,50 @@ use rayon::prelude::*;
 use super::{FrameStats, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
+use crate::params::MaterialParams;
+use crate::particles::Material;
 use crate::pool::shared_pool;
 
 impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
-    /// Largest wave speed among the materials present [m/s].
+    /// Largest wave speed among the parameter sets present [m/s]: water
+    /// `sqrt(K/ρ)`, the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
+    /// hardened by `e^{ξ(1 − J_P)}` at its smallest `J_P` present.
     fn wave_speed(&self) -> f32 {
-        let mut has = [false; 2];
+        let table = &self.models.params;
+        let n = table.len();
+        let mut has = vec![false; n];
+        let mut jp_min = vec![f32::INFINITY; n];
+        let any_snow = table.iter().any(|m| matches!(m, MaterialParams::Snow(_)));
+        let mut found = 0;
         for p in &self.particles {
-            has[p.material as usize] = true;
-            if has[0] && has[1] {
+            let s = p.set as usize;
+            if !has[s] {
+                has[s] = true;
+                found += 1;
+            }
+            if any_snow {
+                if p.material == Material::Snow {
+                    jp_min[s] = jp_min[s].min(p.j);
+                }
+            } else if found == n {
                 break;
             }
         }
         let mut c = 0.0f32;
-        if has[0] {
-            c = c.max(self.params.water.wave_speed());
-        }
-        if has[1] {
-            c = c.max(self.params.sand.wave_speed());
+        for (s, m) in table.iter().enumerate() {
+            if !has[s] {
+                continue;
+            }
+            c = c.max(match m {
+                MaterialParams::Water(w) => w.wave_speed(),
+                MaterialParams::Sand(p) => p.wave_speed(),
+                MaterialParams::Elastic(p) => p.wave_speed(),
+                MaterialParams::Snow(p) => p.wave_speed(jp_min[s]),
+                MaterialParams::Viscoplastic(p) => p.wave_speed(),
+            });
         }
         c
     }

@@ -29,7 +29,6 @@ use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::{Cell, cell_of};
-use crate::material::sand::SandModel;
 use crate::particles::Particle;
 
 /// What thread 0 publishes for a substep's parallel stages: the sizes of the
@@ -391,7 +390,7 @@ where
                 unsafe { (*sp.0).forget_sources() };
             });
             clock.lap(Lap::Grid);
-            let sand = SandModel::new::<D>(&s.params.sand, s.isa);
+            let models = &s.models;
             let (mut health, mut vmax2) = (Health::Ok, 0.0f32);
             // the block whose velocity patch `patch` holds
             let mut patch_of = usize::MAX;
@@ -417,9 +416,9 @@ where
                         key_by_id: view.key_by_id,
                     };
                     if reorders(sub, members, sort_chunks) {
-                        s.g2p_block::<true>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
+                        s.g2p_block::<true>(lo..lo + len, &patch, out, dt, models, &mut marks)
                     } else {
-                        s.g2p_block::<false>(lo..lo + len, &patch, out, dt, &sand, &mut marks)
+                        s.g2p_block::<false>(lo..lo + len, &patch, out, dt, models, &mut marks)
                     }
                 };
                 health = health.max(h);

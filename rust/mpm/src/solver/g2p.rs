@@ -28,8 +28,8 @@
 //!
 //! Health: every particle must leave g2p in a state that `Particle::validate`
 //! (and so checkpoint restore) accepts: finite `v`, `C`, `F`, `J`, `vc` and
-//! stress, `J > 0` for water and `det F > 0` for sand (positions are clamped
-//! to the domain). Otherwise the frame is rolled back and retried.
+//! stress, `J > 0` for water (and `J_P > 0` for snow) and `det F > 0` for
+//! sand and the solids (positions are clamped to the domain). Otherwise the frame is rolled back and retried.
 
 use nalgebra::{SMatrix, SVector};
 
@@ -41,6 +41,7 @@ use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
 use crate::material::sand::{ParticleSink, SandBatch, SandHealth, SandModel};
+use crate::material::solid::{self, Models};
 use crate::material::water;
 use crate::particles::{Material, Particle};
 use crate::v4::V4;
@@ -81,7 +82,7 @@ where
         patch: &[[f32; 4]],
         out: G2pOut<D>,
         dt: f32,
-        sand: &SandModel,
+        models: &Models,
         marks: &mut BlockMarks<'_>,
     ) -> (Health, f32) {
         let G2pOut {
@@ -106,7 +107,6 @@ where
         let (lo, hi) = self.domain_bounds();
         let st = &self.stencil;
         let lat = st.lat_stride;
-        let water = &self.params.water;
         let sorted = &self.grid.sorted[places];
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
@@ -117,7 +117,10 @@ where
         let mut vmax2 = 0.0f32;
         // sand particles' material updates wait in `batch` and run sixteen at a
         // time (SIMD across particles, see `SandBatch`)
+        // (one parameter set per batch: a particle of another set flushes it)
         let mut batch = SandBatch::new();
+        let mut batch_set = Material::Sand as u16;
+        let mut solid_ok = (true, false);
         let mut sink = Sink(dst);
         // the colliders that project particles (`Collider::project`), each
         // with the region where it can act (`Collider::reach`) and its
@@ -178,10 +181,23 @@ where
             match p.material {
                 Material::Water => {
                     water::advance_volume_ratio(&mut p.j, dt, &new_c);
-                    p.tau = water::kirchhoff_stress(water, p.j, &new_c);
+                    p.tau = water::kirchhoff_stress(models.water(p.set), p.j, &new_c);
                 }
                 Material::Sand => {
+                    if p.set != batch_set {
+                        if batch.len() > 0 {
+                            let sand = models.sand(batch_set);
+                            sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
+                        }
+                        batch_set = p.set;
+                    }
                     sand_full = batch.push(at as u32, &p.f, &new_c, p.vc);
+                }
+                Material::Elastic | Material::Snow | Material::Viscoplastic => {
+                    let (finite, inverted) =
+                        solid::advance(&models.models[p.set as usize], p, dt, &new_c);
+                    solid_ok.0 &= finite;
+                    solid_ok.1 |= inverted;
                 }
             };
             let ko = cell_of::<D>(
@@ -206,13 +222,16 @@ where
             nonpositive_j |= p.j <= 0.0;
             vmax2 = vmax2.max(p.v.norm_squared());
             if sand_full {
+                let sand = models.sand(batch_set);
                 sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
             }
         }
         if batch.len() > 0 {
+            let sand = models.sand(batch_set);
             sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
         }
         let SandHealth { finite, inverted } = sand_health;
+        let (finite, inverted) = (finite && solid_ok.0, inverted || solid_ok.1);
         // positions are clamped (NaN maps to the bound), so test the rest
         let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite) || nonpositive_j {
             Health::NonFinite

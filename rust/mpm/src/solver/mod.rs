@@ -47,6 +47,7 @@ use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
 use crate::isa::Isa;
+use crate::material::solid::{self, Models};
 use crate::material::{sand, water};
 use crate::params::SolverParams;
 use crate::particles::{Material, Particle};
@@ -115,9 +116,9 @@ pub(crate) enum Health {
     /// Every particle is finite and physical (what `Particle::validate` and
     /// so `restore` accept).
     Ok,
-    /// A sand particle's `det F ≤ 0`.
+    /// A sand or solid particle's `det F ≤ 0`.
     Inverted,
-    /// A non-finite value, or a water particle's `J ≤ 0`.
+    /// A non-finite value, or a water particle's `J ≤ 0` (a snow particle's `J_P ≤ 0`).
     NonFinite,
 }
 
@@ -180,6 +181,9 @@ where
     profile: bool,
     /// The compiled copy of the frame loop that runs ([`crate::isa`]).
     isa: Isa,
+    /// The table of parameter sets and each set's constants, indexed by
+    /// `Particle::set`.
+    models: Models,
     /// Memory budget [bytes] for what the inputs make the solver allocate
     /// (`None`: unlimited); see [`Solver::with_memory_budget`].
     memory_budget: Option<u64>,
@@ -240,7 +244,10 @@ where
                     .flatten()
             })
             .collect();
+        let isa = Isa::detect();
+        let models = Models::new(&params, isa);
         Ok(Solver {
+            models,
             params,
             colliders,
             shallow,
@@ -263,7 +270,7 @@ where
             mode: Default::default(),
             serial_sort_below: frame::SERIAL_SORT_BELOW,
             profile: std::env::var_os("HYBRIDMPM_PROFILE").is_some(),
-            isa: Isa::detect(),
+            isa,
             memory_budget,
         })
     }
@@ -285,6 +292,7 @@ where
             ));
         }
         self.isa = isa;
+        self.models.set_isa(isa);
         Ok(())
     }
 
@@ -515,6 +523,7 @@ where
         let (lo, hi) = self.domain_bounds();
         for (i, p) in particles.iter().enumerate() {
             p.validate(i, lo, hi)?;
+            self.check_set(i, p)?;
         }
         for p in particles.iter_mut() {
             self.refresh_stress(p);
@@ -530,6 +539,7 @@ where
         let (lo, hi) = self.domain_bounds();
         for (i, p) in particles.iter().enumerate() {
             p.validate(i, lo, hi)?;
+            self.check_set(i, p)?;
             if !p.tau.iter().all(|a| a.is_finite()) {
                 return Err(MpmError::invalid(
                     "stress",
@@ -557,6 +567,7 @@ where
         let (lo, hi) = self.domain_bounds();
         for (id, &slot) in self.slot_of.iter().enumerate() {
             ps[slot as usize].validate(id, lo, hi)?;
+            self.check_set(id, &ps[slot as usize])?;
         }
         if refresh_stress {
             for p in ps.iter_mut() {
@@ -580,6 +591,7 @@ where
         }
         for (i, p) in new.iter().enumerate() {
             p.validate(n0 + i, lo, hi)?;
+            self.check_set(n0 + i, p)?;
         }
         for mut p in new {
             self.refresh_stress(&mut p);
@@ -623,11 +635,43 @@ where
     /// Recompute the derived stress τ from the particle's state.
     fn refresh_stress(&self, p: &mut Particle<D>) {
         p.tau = match p.material {
-            Material::Water => water::kirchhoff_stress(&self.params.water, p.j, &p.c),
+            Material::Water => water::kirchhoff_stress(self.models.water(p.set), p.j, &p.c),
             Material::Sand => {
-                let (mu, la) = self.params.sand.lame();
-                sand::stress_of(&p.f, mu, la)
+                let m = self.models.sand(p.set);
+                sand::stress_of(&p.f, m.mu, m.la)
             }
+            _ => solid::stress(&self.models.models[p.set as usize], &p.f, p.j),
         };
+    }
+
+    /// The table of parameter sets particles index (`Particle::set`): the
+    /// default set of each material at its code, then `params.sets`.
+    pub fn material_table(&self) -> &[crate::params::MaterialParams] {
+        &self.models.params
+    }
+
+    /// Checks that particle `index`'s parameter set exists and is of its
+    /// material (field `material_set`).
+    fn check_set(&self, index: usize, p: &Particle<D>) -> Result<()> {
+        match self.models.params.get(p.set as usize) {
+            Some(set) if set.material() == p.material => Ok(()),
+            Some(set) => Err(MpmError::invalid(
+                "material_set",
+                format!(
+                    "particle {index} is {} but its parameter set {} is {}",
+                    p.material.name(),
+                    p.set,
+                    set.material().name()
+                ),
+            )),
+            None => Err(MpmError::invalid(
+                "material_set",
+                format!(
+                    "particle {index}: parameter set {} does not exist (the table has {})",
+                    p.set,
+                    self.models.params.len()
+                ),
+            )),
+        }
     }
 }

@@ -1,0 +1,225 @@
+//! The solid updates against their definitions, one particle at a time, in
+//! f64 where a reference is computed (nalgebra's SVD).
+
+use nalgebra::{DMatrix, SMatrix, SVector};
+
+use super::*;
+use crate::params::{ElasticParams, SnowParams, ViscoplasticParams};
+
+/// `m` in f64, dynamically sized (nalgebra's SVD and determinant need a
+/// known size).
+fn dyn64<const D: usize>(m: &SMatrix<f32, D, D>) -> DMatrix<f64> {
+    DMatrix::from_fn(D, D, |r, c| m[(r, c)] as f64)
+}
+
+fn rnd(seed: &mut u64) -> f32 {
+    *seed = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    ((*seed >> 33) as f32 / (1u64 << 31) as f32) - 0.5
+}
+
+fn model<const D: usize>(m: MaterialParams) -> Model
+where
+    Dim<D>: DimOps<D>,
+{
+    let p = SolverParams::<D> {
+        sets: vec![m.into()],
+        ..Default::default()
+    };
+    Models::new(&p, Isa::detect()).models.pop().unwrap()
+}
+
+fn particle<const D: usize>(material: Material, f: SMatrix<f32, D, D>) -> Particle<D> {
+    let mut p = Particle::new(SVector::from_element(0.5), material, 1.0, 1.0);
+    p.f = f;
+    p
+}
+
+/// The crate's SVD (the one the solids use) gives nalgebra's singular values
+/// (f64) and, for det F > 0, the rotation of the polar decomposition.
+fn svd_matches_nalgebra<const D: usize>()
+where
+    Dim<D>: DimOps<D>,
+{
+    let mut seed = 7u64;
+    for _ in 0..2000 {
+        let f = SMatrix::<f32, D, D>::identity()
+            + SMatrix::<f32, D, D>::from_fn(|_, _| 0.8 * rnd(&mut seed));
+        if det(&f) <= 1e-3 {
+            continue;
+        }
+        let ours = Dim::<D>::svd(&f);
+        let reference = dyn64(&f).svd(true, true);
+        let mut want: Vec<f64> = reference.singular_values.iter().copied().collect();
+        want.sort_by(|a, b| b.partial_cmp(a).unwrap());
+        let mut got: Vec<f64> = ours.sigma.iter().map(|&s| s as f64).collect();
+        got.sort_by(|a, b| b.partial_cmp(a).unwrap());
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() < 2e-5 * (1.0 + w), "σ {got:?} vs {want:?}");
+        }
+        // polar rotation: R = U Vᵀ against nalgebra's (F = R S, S symmetric positive)
+        let r = dyn64(&(ours.u * ours.v.transpose()));
+        let (u, vt) = (reference.u.unwrap(), reference.v_t.unwrap());
+        let want_r = u * vt;
+        assert!((&r - &want_r).norm() < 1e-4, "R {r} vs {want_r}");
+    }
+}
+
+#[test]
+fn the_svd_matches_nalgebras() {
+    svd_matches_nalgebra::<2>();
+    svd_matches_nalgebra::<3>();
+}
+
+/// Fixed-corotated stress against `2μ(F − R)Fᵀ + λJ(J − 1)I` in f64 with
+/// nalgebra's polar rotation; neo-Hookean against its formula; rest state
+/// stress-free; a rotation stress-free.
+fn elastic_stress<const D: usize>()
+where
+    Dim<D>: DimOps<D>,
+{
+    let e = ElasticParams {
+        youngs_modulus: 1.0e5,
+        poisson_ratio: 0.3,
+        ..Default::default()
+    };
+    let (mu, la) = e.lame();
+    let m = model::<D>(MaterialParams::Elastic(e.clone()));
+    let neo = model::<D>(MaterialParams::Elastic(ElasticParams {
+        model: ElasticModel::Neohookean,
+        ..e
+    }));
+    let mut seed = 3u64;
+    let i64m = DMatrix::<f64>::identity(D, D);
+    for _ in 0..500 {
+        let f = SMatrix::<f32, D, D>::identity()
+            + SMatrix::<f32, D, D>::from_fn(|_, _| 0.4 * rnd(&mut seed));
+        if det(&f) <= 0.1 {
+            continue;
+        }
+        let f64m = dyn64(&f);
+        let svd = f64m.clone().svd(true, true);
+        let r = svd.u.unwrap() * svd.v_t.unwrap();
+        let j = f64m.determinant();
+        let (mu64, la64) = (mu as f64, la as f64);
+        let want = (&f64m - r) * f64m.transpose() * (2.0 * mu64) + &i64m * (la64 * j * (j - 1.0));
+        let got = dyn64(&stress::<D>(&m, &f, 1.0));
+        assert!(
+            (&got - &want).norm() < 1e-4 * (mu64 + want.norm()),
+            "{got} vs {want}"
+        );
+        let want_neo = (&f64m * f64m.transpose() - &i64m) * mu64 + &i64m * (la64 * j.ln());
+        let got_neo = dyn64(&stress::<D>(&neo, &f, 1.0));
+        assert!((&got_neo - &want_neo).norm() < 1e-4 * (mu64 + want_neo.norm()));
+    }
+    let rest = SMatrix::<f32, D, D>::identity();
+    assert!(stress::<D>(&m, &rest, 1.0).norm() < 1e-3);
+    assert!(stress::<D>(&neo, &rest, 1.0).norm() < 1e-3);
+    let mut rot = SMatrix::<f32, D, D>::identity();
+    let (s, c) = 0.7f32.sin_cos();
+    rot[(0, 0)] = c;
+    rot[(0, 1)] = -s;
+    rot[(1, 0)] = s;
+    rot[(1, 1)] = c;
+    assert!(stress::<D>(&m, &rot, 1.0).norm() < 1e-2 * mu);
+}
+
+#[test]
+fn elastic_stress_matches_its_definition() {
+    elastic_stress::<2>();
+    elastic_stress::<3>();
+}
+
+/// Snow: after an update the singular values of F_E lie in
+/// [1 − θc, 1 + θs] and `J_P · det F_E = det(I + ΔtC) · J_P⁰ · det F_E⁰`;
+/// compression past θc lowers J_P, and the hardened stress grows.
+fn snow_invariants<const D: usize>()
+where
+    Dim<D>: DimOps<D>,
+{
+    let sp = SnowParams::default();
+    let m = model::<D>(MaterialParams::Snow(sp.clone()));
+    let mut seed = 11u64;
+    for _ in 0..500 {
+        let mut p = particle::<D>(Material::Snow, SMatrix::identity());
+        for _ in 0..20 {
+            let c = SMatrix::<f32, D, D>::from_fn(|_, _| 40.0 * rnd(&mut seed));
+            let dt = 1e-3;
+            let before = p.j as f64 * det(&p.f) as f64;
+            let step = dyn64(&(SMatrix::<f32, D, D>::identity() + c * dt)).determinant();
+            let (finite, inverted) = advance(&m, &mut p, dt, &c);
+            assert!(finite && !inverted);
+            let sig = Dim::<D>::svd(&p.f).sigma;
+            for &s in sig.iter() {
+                assert!(
+                    s >= (1.0 - sp.theta_c) * (1.0 - 1e-5)
+                        && s <= (1.0 + sp.theta_s) * (1.0 + 1e-5),
+                    "σ {sig}"
+                );
+            }
+            let after = p.j as f64 * det(&p.f) as f64;
+            assert!(
+                (after - before * step).abs() < 1e-5 * after.abs(),
+                "J_P det F_E {after} vs {}",
+                before * step
+            );
+        }
+    }
+    // uniform compression by 10 %: J_P drops below 1, and the stress of the
+    // same F_E is larger in magnitude than unhardened
+    let mut p = particle::<D>(Material::Snow, SMatrix::identity());
+    let c = SMatrix::<f32, D, D>::identity() * (-100.0);
+    let (_, _) = advance(&m, &mut p, 1e-3, &c);
+    assert!(p.j < 0.95, "J_P = {}", p.j);
+    let hardened = stress::<D>(&m, &p.f, p.j).norm();
+    let soft = stress::<D>(&m, &p.f, 1.0).norm();
+    assert!(hardened > 1.5 * soft, "{hardened} vs {soft}");
+}
+
+#[test]
+fn snow_keeps_its_invariants() {
+    snow_invariants::<2>();
+    snow_invariants::<3>();
+}
+
+/// Viscoplastic: simple shear at rate γ̇ held for many steps settles at the
+/// Bingham stress τ_y + η·γ̇ (√J₂ of the deviatoric Kirchhoff stress), and
+/// at τ_y with η = 0; below yield it is elastic.
+fn bingham_shear<const D: usize>()
+where
+    Dim<D>: DimOps<D>,
+{
+    for (eta, rate) in [(0.0f32, 2.0f32), (5.0, 2.0), (5.0, 10.0)] {
+        let vp = ViscoplasticParams {
+            youngs_modulus: 1.0e6,
+            poisson_ratio: 0.3,
+            yield_stress: 100.0,
+            viscosity: eta,
+            ..Default::default()
+        };
+        let m = model::<D>(MaterialParams::Viscoplastic(vp));
+        let mut p = particle::<D>(Material::Viscoplastic, SMatrix::identity());
+        let mut c = SMatrix::<f32, D, D>::zeros();
+        c[(0, 1)] = rate;
+        let dt = 1e-5;
+        for _ in 0..20000 {
+            // the flow rotates the material; hold the velocity gradient fixed
+            advance(&m, &mut p, dt, &c);
+        }
+        let tau = p.tau;
+        let dev = tau - SMatrix::<f32, D, D>::identity() * (tau.trace() / D as f32);
+        let sqrt_j2 = (0.5 * dev.norm_squared()).sqrt();
+        let want = 100.0 + eta * rate;
+        assert!(
+            (sqrt_j2 - want).abs() < 0.03 * want,
+            "η {eta}, γ̇ {rate}: √J₂ = {sqrt_j2}, want {want}"
+        );
+    }
+}
+
+#[test]
+fn viscoplastic_shear_settles_at_the_bingham_stress() {
+    bingham_shear::<2>();
+    bingham_shear::<3>();
+}
