@@ -154,7 +154,7 @@ radius = 0.0625
     [
         (lambda d: d.update(colour="blue"), "colour"),
         (lambda d: d.update(dim=4), "dim"),
-        (lambda d: d["blocks"][0].update(material="honey"), "blocks[0].material"),
+        (lambda d: d["blocks"][0].update(material="lava"), "blocks[0].material"),
         (lambda d: d["blocks"][0].update(hi=d["blocks"][0]["lo"]), "blocks[0].hi"),
         (lambda d: d["blocks"][0].update(lo=[0.0, d["blocks"][0]["lo"][1]]), "blocks[0]"),
         (lambda d: d["blocks"][0].update(velocity=[1.0]), "blocks[0].velocity"),

@@ -22,7 +22,7 @@ defaults are in :mod:`hybridmpm.conventions`. The Rust core
 grid-mass metric.
 """
 
-from hybridmpm import _core
+from hybridmpm import _core, materials
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER, MATERIAL_SAND, MATERIAL_WATER
 from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
 from hybridmpm.graph import radius_graph
@@ -36,6 +36,7 @@ from hybridmpm.trajectory import Trajectory
 __version__: str = _core.__version__
 
 __all__ = [
+    "materials",
     "GNS_KINEMATIC",
     "GNS_SAND",
     "GNS_WATER",

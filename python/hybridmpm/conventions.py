@@ -4,8 +4,10 @@ Every other module imports these names; none restates the numbers.
 
 Two code tables exist and they are *different*:
 
-* **solver material codes** (:data:`MATERIAL_WATER` 0, :data:`MATERIAL_SAND` 1):
-  what the Rust MPM solver stores per particle (``MpmSolver.material``);
+* **solver material codes** (:data:`MATERIAL_WATER` 0, :data:`MATERIAL_SAND` 1,
+  :data:`MATERIAL_ELASTIC` 2, :data:`MATERIAL_SNOW` 3,
+  :data:`MATERIAL_VISCOPLASTIC` 4): what the Rust MPM solver stores per
+  particle (``MpmSolver.material``; ``Material`` in ``rust/mpm/src/particles.rs``);
 * **GNS particle-type codes** (:data:`GNS_KINEMATIC` 3, :data:`GNS_WATER` 5,
   :data:`GNS_SAND` 6; DeepMind ``learning_to_simulate``): what datasets,
   trajectories and the network see (``particle_type``). Boundary / obstacle
@@ -23,8 +25,23 @@ from hybridmpm import _core
 MATERIAL_WATER = 0
 #: Solver material code of Drucker–Prager sand.
 MATERIAL_SAND = 1
+#: Solver material code of the elastic solid (fixed-corotated or neo-Hookean).
+MATERIAL_ELASTIC = 2
+#: Solver material code of snow (Stomakhin et al. 2013).
+MATERIAL_SNOW = 3
+#: Solver material code of the viscoplastic solid (von Mises with viscous relaxation).
+MATERIAL_VISCOPLASTIC = 4
 #: Solver material codes by name (scene files say ``material = "water"``).
-MATERIALS = {"water": MATERIAL_WATER, "sand": MATERIAL_SAND}
+MATERIALS = {
+    "water": MATERIAL_WATER,
+    "sand": MATERIAL_SAND,
+    "elastic": MATERIAL_ELASTIC,
+    "snow": MATERIAL_SNOW,
+    "viscoplastic": MATERIAL_VISCOPLASTIC,
+}
+#: The materials the learned simulators and the diffusion controller were
+#: trained on (they refuse a scene holding any other, naming it).
+LEARNED_MATERIALS: tuple[str, ...] = ("water", "sand")
 
 #: GNS particle type of kinematic (static boundary / obstacle) particles.
 GNS_KINEMATIC = 3
@@ -32,8 +49,20 @@ GNS_KINEMATIC = 3
 GNS_WATER = 5
 #: GNS particle type of sand.
 GNS_SAND = 6
+#: GNS particle type of the viscoplastic solid (the GNS datasets' "goop").
+GNS_GOOP = 7
+#: GNS particle type of the elastic solid (past the GNS datasets' codes).
+GNS_ELASTIC = 8
+#: GNS particle type of snow (past the GNS datasets' codes).
+GNS_SNOW = 9
 #: GNS particle type of each solver material.
-GNS_TYPE_OF_MATERIAL = {MATERIAL_WATER: GNS_WATER, MATERIAL_SAND: GNS_SAND}
+GNS_TYPE_OF_MATERIAL = {
+    MATERIAL_WATER: GNS_WATER,
+    MATERIAL_SAND: GNS_SAND,
+    MATERIAL_ELASTIC: GNS_ELASTIC,
+    MATERIAL_SNOW: GNS_SNOW,
+    MATERIAL_VISCOPLASTIC: GNS_GOOP,
+}
 #: Material name of each fluid GNS particle type (exported meshes and files are named by it).
 NAME_OF_GNS_TYPE = {GNS_TYPE_OF_MATERIAL[code]: name for name, code in MATERIALS.items()}
 
@@ -108,12 +137,19 @@ __all__ = [
     "FAILURE_ESCAPE_CELLS",
     "FAILURE_KE_FACTOR",
     "G",
+    "GNS_ELASTIC",
+    "GNS_GOOP",
     "GNS_KINEMATIC",
     "GNS_SAND",
+    "GNS_SNOW",
     "GNS_TYPE_OF_MATERIAL",
     "GNS_WATER",
+    "LEARNED_MATERIALS",
     "MATERIALS",
+    "MATERIAL_ELASTIC",
     "MATERIAL_SAND",
+    "MATERIAL_SNOW",
+    "MATERIAL_VISCOPLASTIC",
     "MATERIAL_WATER",
     "RESIDUAL_TOL",
     "R_C",

@@ -14,7 +14,7 @@ key                 dtype / shape   meaning
                                     e.g. ``2.5e-3 · r_t`` (required, finite, > 0)
 ``n_grid``          int64 []        cells per dimension of the scene's grid (optional)
 ``masses``          float32 [N]     particle masses [kg] (optional, finite, >= 0)
-``material``        int32 [N]       solver material codes, 0 water, 1 sand (optional)
+``material``        int32 [N]       solver material codes, 0 water, 1 sand, 2 elastic, 3 snow, 4 viscoplastic (optional)
 ``obstacle_centers`` float64        each obstacle's centre [m] in every stored frame
                     [T,C,D]         (optional: written when the scene has obstacles;
                                     without it the obstacles stand where the scene

@@ -33,6 +33,7 @@ from hybridmpm.control.targets import GEOMETRY_SCALE, sketch_geometry, smoothste
 from hybridmpm.errors import InvalidInputError, as_f32
 from hybridmpm.files import loads_json
 from hybridmpm.graph import radius_graph
+from hybridmpm.materials import refuse_untrained
 
 #: Diffusion steps of training (the schedule's length).
 DIFFUSION_STEPS = 100
@@ -275,6 +276,7 @@ class ControlModel:
         if not (isinstance(guidance, (int, float)) and 0.0 <= guidance <= 5.0):
             raise InvalidInputError(f"guidance: must be in [0, 5], got {guidance!r}", "guidance")
         ptype = np.asarray(particle_type, np.int64)
+        refuse_untrained(ptype, "diffusion controller", gns=True)
         ts = trailing_timesteps(self.sample_steps if steps is None else steps, len(self.alpha_bar))
         s, r, _, _ = radius_graph(x, self.radius)
         h, edges = self.sessions["state_encoder"].run(None, {"positions": x, "velocities": v, "particle_type": ptype, "senders": s, "receivers": r})

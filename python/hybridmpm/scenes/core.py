@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hybridmpm.conventions import CONNECTIVITY_RADIUS, DT_FRAME, GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIAL_SAND, MATERIAL_WATER
+from hybridmpm.conventions import CONNECTIVITY_RADIUS, DT_FRAME, GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIAL_WATER
 from hybridmpm.mpm import MpmParams, MpmSolver
 from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 
@@ -46,7 +46,10 @@ class Clusters:
 class Scene:
     """A scene: parameters, initial particles and static boundary particles.
 
-    ``positions`` float32 [N, D] [m], ``material`` int32 [N] (0 water, 1 sand),
+    ``positions`` float32 [N, D] [m], ``material`` int32 [N] (0 water, 1 sand,
+    2 elastic, 3 snow, 4 viscoplastic; ``material_set`` int32 [N], each
+    particle's parameter set in ``params``' table, or None for each
+    material's default set),
     ``velocities`` float32 [N, D] [m/s]: the particles the MPM solver moves.
     ``boundary_positions`` float32 [B, D] [m]: static obstacle particles (GNS
     type 3) that only the network sees; MPM sees the colliders in ``params``.
@@ -79,6 +82,7 @@ class Scene:
     spec: SceneSpec | None = None
     clusters: Clusters | None = None
     boundary_obstacle: np.ndarray | None = None
+    material_set: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -94,8 +98,12 @@ class Scene:
         return 0 if self.boundary_positions is None else int(self.boundary_positions.shape[0])
 
     def particle_type(self) -> np.ndarray:
-        """GNS particle types int64 [N + B]: water 5, sand 6, then boundary 3."""
-        fluid = np.where(self.material == MATERIAL_SAND, GNS_TYPE_OF_MATERIAL[MATERIAL_SAND], GNS_TYPE_OF_MATERIAL[MATERIAL_WATER]).astype(np.int64)
+        """GNS particle types int64 [N + B]: water 5, sand 6, viscoplastic 7,
+        elastic 8, snow 9 (:data:`~hybridmpm.conventions.GNS_TYPE_OF_MATERIAL`), then boundary 3."""
+        lookup = np.full(max(GNS_TYPE_OF_MATERIAL) + 1, GNS_TYPE_OF_MATERIAL[MATERIAL_WATER], np.int64)
+        for code, gns in GNS_TYPE_OF_MATERIAL.items():
+            lookup[code] = gns
+        fluid = lookup[np.asarray(self.material, np.int64)]
         return np.concatenate([fluid, np.full(self.num_boundary, GNS_KINEMATIC, np.int64)])
 
     def with_boundary(self, positions: np.ndarray) -> np.ndarray:
@@ -124,7 +132,7 @@ class Scene:
         if num_threads is not None:
             params = MpmParams.from_dict({**params.to_dict(), "num_threads": int(num_threads)})
         sim = MpmSolver(params)
-        sim.add_particles(self.positions, self.material, velocities=self.velocities, masses=self.masses, volumes=self.volumes)
+        sim.add_particles(self.positions, self.material, velocities=self.velocities, masses=self.masses, volumes=self.volumes, material_set=self.material_set)
         if self.volume_ratio is not None:
             sim.volume_ratio = self.volume_ratio
         return sim

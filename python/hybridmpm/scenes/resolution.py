@@ -191,7 +191,9 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
         clusters = check_clusters(clusters, scene, r_p)
         labels = clusters.labels
     else:
-        labels = cluster_particles(scene.positions, r_p, groups=scene.material, weights=masses, seed=seed)
+        # a parameter set implies its material: clusters never mix sets
+        groups = scene.material if scene.material_set is None else scene.material_set
+        labels = cluster_particles(scene.positions, r_p, groups=groups, weights=masses, seed=seed)
     k = int(labels.max()) + 1
     m_l = cluster_sums(masses, labels, k)
     v_l = cluster_sums(volumes, labels, k)
@@ -199,6 +201,10 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
     vel_l = (cluster_sums(np.asarray(scene.velocities, np.float64) * masses[:, None], labels, k) / m_l[:, None]).astype(np.float32)
     mat_l = np.zeros(k, np.int32)
     mat_l[labels] = scene.material
+    set_l = None
+    if scene.material_set is not None:
+        set_l = np.zeros(k, np.int32)
+        set_l[labels] = scene.material_set
     j_l = None
     if scene.volume_ratio is not None:
         j_l = (cluster_sums(np.asarray(scene.volume_ratio, np.float64) * volumes, labels, k) / v_l).astype(np.float32)
@@ -217,6 +223,7 @@ def downsample_scene(scene: Scene, r_p: float, seed: int = 0, clusters: Clusters
         scene,
         positions=pos_l,
         material=mat_l,
+        material_set=set_l,
         velocities=vel_l,
         masses=m_l.astype(np.float32),
         volumes=v_l.astype(np.float32),

@@ -24,6 +24,13 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     hi = [0.3, 0.35]
     velocity = [0.5, 0.0]
 
+    [[blocks]]              # a model or a preset, and its parameters
+    material = "elastic"    # water, sand, elastic, snow, viscoplastic; jello, rubber, ...
+    E = 2.0e5
+    nu = 0.3
+    lo = [0.5, 0.5]
+    hi = [0.6, 0.6]
+
     [[obstacles]]
     shape = "box"
     center = [0.6, 0.3]
@@ -52,6 +59,15 @@ obstacles, is an error. Obstacles become MPM colliders and, for the network,
 static boundary particles (GNS type 3) on a shell one spacing thick inside
 their surface (GNS WaterRamps represents its ramps the same way).
 
+A block's material is a model (``water``, ``sand``, ``elastic``, ``snow``,
+``viscoplastic``) or a preset (``jello``, ``rubber``, ``snow``, ``mud``,
+``plasticine``, ``honey``, ``soil``: :data:`hybridmpm.materials.PRESETS`),
+with the model's parameters as keys of the block (``E``, ``nu``, ``density``,
+``model``, ``theta_c``, ``theta_s``, ``hardening``, ``yield_stress``,
+``viscosity``; :mod:`hybridmpm.materials`). Blocks of one model with
+different parameters become parameter sets of the solver
+(:attr:`~hybridmpm.mpm.MpmParams.sets`), one per distinct set.
+
 Walls (``[walls]``) take one ``condition`` (``sticky``, ``slip``,
 ``separate``) and Coulomb ``friction`` for every face, and optional per-face
 overrides in ``[walls.faces.<face>]`` with faces ``x-``, ``x+``, ``y-`` (the
@@ -66,7 +82,7 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +93,7 @@ from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, loads_json, read_text_file
 from hybridmpm.limits import check_allocation
+from hybridmpm.materials import block_keys, material_from_block
 from hybridmpm.mpm import DT_FRAME, MpmParams
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 from hybridmpm.scenes.obstacles import (
@@ -96,6 +113,8 @@ from hybridmpm.scenes.obstacles import (
 )
 
 _MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
+#: A block's keys besides its material's parameters.
+_BLOCK_KEYS = frozenset({"material", "lo", "hi", "velocity", "hydrostatic"})
 
 #: A block may lose at most this fraction of its lattice particles to
 #: obstacles; more (or all of its particles, for any reason) is an error
@@ -118,10 +137,13 @@ _INDEX_CELLS = 16
 class Block:
     """A box of particles of one material.
 
+    ``material``: a model or a preset (:mod:`hybridmpm.materials`);
     ``lo``, ``hi``: opposite corners [m] (``lo < hi`` on every axis, inside the
     domain); ``velocity`` [m/s] (default 0); ``hydrostatic``: start water at
     hydrostatic rest below the block's top (only right for a block resting on
-    the floor; see :func:`~hybridmpm.scenes.hydrostatic_volume_ratio`).
+    the floor; see :func:`~hybridmpm.scenes.hydrostatic_volume_ratio`);
+    ``params``: the model's parameters that differ from the model's (or the
+    preset's) own (``{"E": 2e5}``).
     """
 
     material: str
@@ -129,9 +151,16 @@ class Block:
     hi: Sequence[float]
     velocity: Sequence[float] | None = None
     hydrostatic: bool = False
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def resolved(self, where: str = "block") -> Any:
+        """The block's :data:`~hybridmpm.materials.Material` (model or preset
+        with ``params`` applied). Raises :class:`InvalidInputError` naming the field."""
+        return material_from_block(self.material, self.params, where)
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"material": self.material, "lo": [float(v) for v in self.lo], "hi": [float(v) for v in self.hi]}
+        d: dict[str, Any] = {"material": self.material, **block_keys(self.resolved(), self.material)}
+        d["lo"], d["hi"] = [float(v) for v in self.lo], [float(v) for v in self.hi]
         if self.velocity is not None:
             d["velocity"] = [float(v) for v in self.velocity]
         if self.hydrostatic:
@@ -237,7 +266,7 @@ class SceneSpec:
         return SceneSpec(
             self.name,
             params,
-            [Block(b.material, list(b.lo), list(b.hi), None if b.velocity is None else list(b.velocity), b.hydrostatic) for b in self.blocks],
+            [Block(b.material, list(b.lo), list(b.hi), None if b.velocity is None else list(b.velocity), b.hydrostatic, dict(b.params)) for b in self.blocks],
             dt_frame=self.dt_frame,
             frames=self.frames,
             particles_per_cell=int(ppc),
@@ -324,12 +353,9 @@ class SceneSpec:
             f = f"blocks[{i}]"
             if not isinstance(b, dict):
                 raise InvalidInputError(f"{f}: expected a table/object", f)
-            extra = sorted(set(b) - {"material", "lo", "hi", "velocity", "hydrostatic"})
-            if extra:
-                raise InvalidInputError(f"{f}.{extra[0]}: unknown block field", f"{f}.{extra[0]}")
             mat = b.get("material")
-            if mat not in MATERIALS:
-                raise InvalidInputError(f"{f}.material: must be one of {sorted(MATERIALS)}, got {mat!r}", f"{f}.material")
+            keys = {k: v for k, v in b.items() if k not in _BLOCK_KEYS}
+            material_from_block(mat, keys, f)  # the model or preset and its keys, each checked
             lo = check_vec(f"{f}.lo", b.get("lo"), dim)
             hi = check_vec(f"{f}.hi", b.get("hi"), dim)
             if np.any(hi <= lo):
@@ -342,7 +368,7 @@ class SceneSpec:
                 v = check_vec(f"{f}.velocity", vel, dim)
                 if np.any(np.abs(v) > MAX_BLOCK_SPEED):
                     raise InvalidInputError(f"{f}.velocity: at most {MAX_BLOCK_SPEED:g} m/s per axis, got {vel!r}", f"{f}.velocity")
-            blocks.append(Block(mat, list(lo), list(hi), None if vel is None else [float(v) for v in vel], bool(b.get("hydrostatic", False))))
+            blocks.append(Block(str(mat), list(lo), list(hi), None if vel is None else [float(v) for v in vel], bool(b.get("hydrostatic", False)), keys))
         dt_frame = d.get("dt_frame", DT_FRAME)
         if not (isinstance(dt_frame, (int, float)) and math.isfinite(dt_frame) and dt_frame > 0):
             raise InvalidInputError(f"dt_frame: must be a finite number > 0, got {dt_frame!r}", "dt_frame")
@@ -434,7 +460,12 @@ class SceneSpec:
         s = self.spacing
         dx = 1.0 / self.params.resolved_n_grid()
         clearance = self.obstacle_clearance_cells * dx
-        pos_l, mat_l, vel_l, j_l = [], [], [], []
+        pos_l, mat_l, vel_l, j_l, set_l = [], [], [], [], []
+        # each block's parameter set: its model's default (at the model's code) or one of `sets` (5, 6, ...)
+        defaults = {"water": self.params.water, "sand": self.params.sand, "elastic": self.params.elastic, "snow": self.params.snow}
+        defaults["viscoplastic"] = self.params.viscoplastic
+        sets: list[Any] = list(self.params.sets)
+        base = len(MATERIALS)
         dropped: list[dict[str, int]] = []
         placed: list[tuple[np.ndarray, np.ndarray]] = []
         index: dict[tuple[int, ...], list[int]] = {}  # cell of a coarse index grid -> earlier blocks overlapping it
@@ -476,10 +507,18 @@ class SceneSpec:
             vol_l[-1] = vol_l[-1][keep]
             placed.append((lo, hi))
             pos_l.append(p)
-            mat_l.append(np.full(len(p), MATERIALS[b.material], np.int32))
+            m = b.resolved(f"blocks[{i}]")
+            mat_l.append(np.full(len(p), m.code, np.int32))
+            ps = m.to_params()
+            if ps == defaults[m.name]:
+                set_l.append(np.full(len(p), m.code, np.int32))
+            else:
+                if ps not in sets:
+                    sets.append(ps)
+                set_l.append(np.full(len(p), base + sets.index(ps), np.int32))
             v = np.zeros(dim) if b.velocity is None else np.asarray(b.velocity, np.float64)
             vel_l.append(np.tile(v.astype(np.float32), (len(p), 1)))
-            if b.hydrostatic and b.material == "water":
+            if b.hydrostatic and m.name == "water":
                 j_l.append(hydrostatic_volume_ratio(p, float(hi[1]), self.params))
             else:
                 j_l.append(np.ones(len(p), np.float32))
@@ -491,11 +530,14 @@ class SceneSpec:
         # the solver's default volume is (dx/2)^D (2 particles per cell per axis); other lattices carry their own
         vol = np.concatenate(vol_l)
         volumes = None if self.particles_per_cell == 2 and np.all(vol == s**dim) else vol.astype(np.float32)
+        material_set = np.concatenate(set_l)
+        material = np.concatenate(mat_l)
         return Scene(
             name=self.name,
-            params=self.params,
+            params=self.params if len(sets) == len(self.params.sets) else replace(self.params, sets=sets),
+            material_set=None if np.array_equal(material_set, material) else material_set,
             positions=positions,
-            material=np.concatenate(mat_l),
+            material=material,
             velocities=np.concatenate(vel_l).reshape(-1, dim).astype(np.float32),
             dt_frame=self.dt_frame,
             frames=self.frames,

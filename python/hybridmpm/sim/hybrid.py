@@ -40,6 +40,7 @@ import numpy as np
 
 from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.materials import refuse_untrained
 from hybridmpm.models import shipped_switching
 from hybridmpm.neural.base import Runtime, open_model, read_header
 from hybridmpm.scenes import make_scene
@@ -167,6 +168,8 @@ class HybridSimulator:
         nn_threads = check_int("nn_threads", nn_threads, 0)
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
+        if cheap == "neural":
+            refuse_untrained(scene.material, "learned simulator")
         ruled = _split(settings, set(SETTINGS) | {"safeguard"})
         if rule is None:
             rule = make_rule(shipped=shipped_switching(scene.name) if model is None and scene.name else None, **ruled)

@@ -75,6 +75,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
+from hybridmpm.materials import refuse_untrained
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.neural.base import Runtime, open_model
 from hybridmpm.neural.runtime import Graph
@@ -191,6 +192,7 @@ class NeuralSimulator:
             raise InvalidInputError(f"rest_percentile: must be a number in (0, 100], got {rest_percentile!r}", "rest_percentile")
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
+        refuse_untrained(scene.material, "learned simulator")
         self.model: Runtime = open_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.scene_full = scene
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)

@@ -1,0 +1,299 @@
+"""Materials as users pour them: the five constitutive models in the field's
+standard terms, and presets named as artists know them (docs/materials.md).
+
+Each class is one model with its parameters in SI units, named as a scene
+file's block names them (``E``, ``nu``, ``density``, ...); ``to_params()``
+gives the solver's parameter set (:mod:`hybridmpm.mpm.params`), ``code`` the
+solver material code (:data:`~hybridmpm.conventions.MATERIALS`). A scene
+file's block takes a material by name or by preset
+(``material = "elastic"``, ``material = "jello"``) and overrides any key::
+
+    [[blocks]]
+    material = "jello"
+    E = 5.0e4
+    lo = [0.4, 0.5]
+    hi = [0.6, 0.7]
+
+>>> import hybridmpm as hm
+>>> hm.materials.Elastic(E=1e5, nu=0.3).code
+2
+>>> hm.materials.PRESETS["snow"].theta_c
+0.025
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, ClassVar
+
+import numpy as np
+
+from hybridmpm.conventions import (
+    GNS_TYPE_OF_MATERIAL,
+    LEARNED_MATERIALS,
+    MATERIAL_ELASTIC,
+    MATERIAL_SAND,
+    MATERIAL_SNOW,
+    MATERIAL_VISCOPLASTIC,
+    MATERIAL_WATER,
+    MATERIALS,
+)
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.params import ElasticParams, SandParams, SnowParams, ViscoplasticParams, WaterParams
+
+_W, _S, _E, _N, _V = WaterParams(), SandParams(), ElasticParams(), SnowParams(), ViscoplasticParams()
+
+
+def _number(field: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise InvalidInputError(f"{field}: must be a finite number, got {v!r}", field)
+    return float(v)
+
+
+def _check(field: str, v: Any, ok: bool, want: str) -> None:
+    if not ok:
+        raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
+
+
+@dataclass(frozen=True)
+class _Material:
+    """Shared checks: ``density`` ρ [kg/m³] > 0 and finite."""
+
+    name: ClassVar[str]
+    code: ClassVar[int]
+    density: float
+
+    def validate(self, where: str = "") -> None:
+        """Raises :class:`InvalidInputError` naming the bad field (``where`` is
+        prepended, e.g. ``blocks[2].``)."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name != "model":
+                _number(where + f.name, v)
+        _check(where + "density", self.density, self.density > 0, "> 0 kg/m³")
+
+    def _elastic(self, where: str, e: float, nu: float) -> None:
+        _check(where + "E", e, e > 0, "> 0 Pa")
+        _check(where + "nu", nu, 0 <= nu < 0.5, "in [0, 0.5)")
+
+    def to_params(self) -> Any:  # pragma: no cover - each model overrides
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Water(_Material):
+    """Weakly compressible water (Hu et al. 2018, mpm88): pressure
+    ``K(1 − J)``, Newtonian viscosity. ``density`` ρ [kg/m³],
+    ``bulk_modulus`` K [Pa] (sound speed √(K/ρ)), ``viscosity`` η [Pa·s]."""
+
+    name: ClassVar[str] = "water"
+    code: ClassVar[int] = MATERIAL_WATER
+    density: float = _W.density
+    bulk_modulus: float = _W.bulk_modulus
+    viscosity: float = _W.viscosity
+
+    def validate(self, where: str = "") -> None:
+        super().validate(where)
+        _check(where + "bulk_modulus", self.bulk_modulus, self.bulk_modulus > 0, "> 0 Pa")
+        _check(where + "viscosity", self.viscosity, self.viscosity >= 0, ">= 0 Pa·s")
+
+    def to_params(self) -> WaterParams:
+        return WaterParams(density=self.density, bulk_modulus=self.bulk_modulus, viscosity=self.viscosity)
+
+
+@dataclass(frozen=True)
+class Sand(_Material):
+    """Drucker–Prager sand on the Hencky strain (Klár et al. 2016).
+    ``E`` [Pa], ``nu`` [-], ``friction_angle_deg`` φ [°], ``cohesion`` c [Pa],
+    ``density`` ρ [kg/m³]."""
+
+    name: ClassVar[str] = "sand"
+    code: ClassVar[int] = MATERIAL_SAND
+    density: float = _S.density
+    E: float = _S.youngs_modulus
+    nu: float = _S.poisson_ratio
+    friction_angle_deg: float = _S.friction_angle_deg
+    cohesion: float = _S.cohesion
+
+    def validate(self, where: str = "") -> None:
+        super().validate(where)
+        self._elastic(where, self.E, self.nu)
+        _check(where + "friction_angle_deg", self.friction_angle_deg, 0 <= self.friction_angle_deg <= 80, "in [0, 80] degrees")
+        _check(where + "cohesion", self.cohesion, self.cohesion >= 0, ">= 0 Pa")
+
+    def to_params(self) -> SandParams:
+        return SandParams(self.density, self.E, self.nu, self.friction_angle_deg, self.cohesion)
+
+
+@dataclass(frozen=True)
+class Elastic(_Material):
+    """Elastic solid ("jelly"). ``E`` Young's modulus [Pa], ``nu`` Poisson's
+    ratio in [0, 0.5), ``density`` ρ [kg/m³], ``model``: ``"corotated"``
+    (fixed-corotated, Stomakhin et al. 2012: τ = 2μ(F − R)Fᵀ + λJ(J − 1)I) or
+    ``"neohookean"`` (τ = μ(FFᵀ − I) + λ ln J·I)."""
+
+    name: ClassVar[str] = "elastic"
+    code: ClassVar[int] = MATERIAL_ELASTIC
+    density: float = _E.density
+    E: float = _E.youngs_modulus
+    nu: float = _E.poisson_ratio
+    model: str = _E.model
+
+    def validate(self, where: str = "") -> None:
+        super().validate(where)
+        self._elastic(where, self.E, self.nu)
+        _check(where + "model", self.model, self.model in ("corotated", "neohookean"), "'corotated' or 'neohookean'")
+
+    def to_params(self) -> ElasticParams:
+        return ElasticParams(self.density, self.E, self.nu, self.model)
+
+
+@dataclass(frozen=True)
+class Snow(_Material):
+    """Snow (Stomakhin et al. 2013, "A material point method for snow
+    simulation"): fixed-corotated elasticity on F_E, singular values clamped
+    to [1 − θc, 1 + θs], Lamé parameters hardened by e^{ξ(1 − J_P)}.
+    ``E`` E₀ [Pa], ``nu`` [-], ``theta_c`` θc and ``theta_s`` θs in (0, 1),
+    ``hardening`` ξ [-], ``density`` ρ [kg/m³]. Defaults: the paper's."""
+
+    name: ClassVar[str] = "snow"
+    code: ClassVar[int] = MATERIAL_SNOW
+    density: float = _N.density
+    E: float = _N.youngs_modulus
+    nu: float = _N.poisson_ratio
+    theta_c: float = _N.theta_c
+    theta_s: float = _N.theta_s
+    hardening: float = _N.hardening
+
+    def validate(self, where: str = "") -> None:
+        super().validate(where)
+        self._elastic(where, self.E, self.nu)
+        for k in ("theta_c", "theta_s"):
+            v = getattr(self, k)
+            _check(where + k, v, 0 < v < 1, "in (0, 1)")
+        _check(where + "hardening", self.hardening, 0 <= self.hardening <= 50, "in [0, 50]")
+
+    def to_params(self) -> SnowParams:
+        return SnowParams(self.density, self.E, self.nu, self.theta_c, self.theta_s, self.hardening)
+
+
+@dataclass(frozen=True)
+class Viscoplastic(_Material):
+    """Viscoplastic solid (Bingham mud; plasticine at zero viscosity): von
+    Mises plasticity on the Hencky strain with viscous relaxation.
+    ``yield_stress`` τ_y [Pa] is the Bingham yield stress in simple shear
+    (flow when √J₂ > τ_y), ``viscosity`` η [Pa·s] the plastic viscosity (in
+    steady shear at rate γ̇ the shear stress is τ_y + η·γ̇), ``E`` [Pa] and
+    ``nu`` the elastic part, ``density`` ρ [kg/m³]."""
+
+    name: ClassVar[str] = "viscoplastic"
+    code: ClassVar[int] = MATERIAL_VISCOPLASTIC
+    density: float = _V.density
+    E: float = _V.youngs_modulus
+    nu: float = _V.poisson_ratio
+    yield_stress: float = _V.yield_stress
+    viscosity: float = _V.viscosity
+
+    def validate(self, where: str = "") -> None:
+        super().validate(where)
+        self._elastic(where, self.E, self.nu)
+        _check(where + "yield_stress", self.yield_stress, self.yield_stress >= 0, ">= 0 Pa")
+        _check(where + "viscosity", self.viscosity, self.viscosity >= 0, ">= 0 Pa·s")
+
+    def to_params(self) -> ViscoplasticParams:
+        return ViscoplasticParams(self.density, self.E, self.nu, self.yield_stress, self.viscosity)
+
+
+#: A material of any model.
+Material = Water | Sand | Elastic | Snow | Viscoplastic
+#: Each model's class by the name a scene file's block gives.
+MODELS: dict[str, type[Material]] = {c.name: c for c in (Water, Sand, Elastic, Snow, Viscoplastic)}
+
+#: Presets named as artists know them: each a parameter set of one model,
+#: with its source in :data:`PRESET_SOURCES` (orders of magnitude where the
+#: material varies; docs/materials.md).
+PRESETS: dict[str, Material] = {
+    "jello": Elastic(density=1050.0, E=2.0e4, nu=0.45),
+    "rubber": Elastic(density=1100.0, E=1.0e6, nu=0.45, model="neohookean"),
+    "snow": Snow(),
+    "mud": Viscoplastic(density=1800.0, E=1.0e6, nu=0.3, yield_stress=100.0, viscosity=10.0),
+    "plasticine": Viscoplastic(density=1800.0, E=2.0e6, nu=0.3, yield_stress=2.0e4, viscosity=0.0),
+    "honey": Water(density=1420.0, viscosity=10.0),
+    "soil": Sand(density=1600.0, E=1.0e6, nu=0.3, friction_angle_deg=32.0, cohesion=500.0),
+}
+#: Where each preset's numbers come from.
+PRESET_SOURCES: dict[str, str] = {
+    "jello": "gelatin gels: E of order 10 kPa, density near water's, nearly incompressible (ν held at 0.45 for the explicit step)",
+    "rubber": "soft rubber: E of order 1 MPa, ν near 0.5 (held at 0.45), neo-Hookean (the usual rubber energy)",
+    "snow": "Stomakhin et al. 2013, Table 2 (E₀ = 1.4e5 Pa, ν = 0.2, θc = 2.5e-2, θs = 7.5e-3, ξ = 10, ρ = 400)",
+    "mud": "mudflow rheology (Coussot 1997, 'Mudflow rheology and dynamics'): Bingham yield stresses 10-1000 Pa, viscosities 1-100 Pa·s",
+    "plasticine": "modelling clay: flow stress of order 10 kPa in shear, no rate dependence (η = 0)",
+    "honey": "honey at 20 °C: a Newtonian liquid of viscosity of order 10 Pa·s and density 1420 kg/m³",
+    "soil": "loose silty sand / soil: friction angle about 30°, small cohesion (Terzaghi-style textbook ranges)",
+}
+
+
+def material_from_block(name: Any, keys: dict[str, Any], where: str) -> Material:
+    """The material of a scene block: ``name`` a model (``"elastic"``) or a
+    preset (``"jello"``), ``keys`` the block's overrides (``E``, ``nu``,
+    ``density``, ``model``, ``theta_c``, ``theta_s``, ``hardening``,
+    ``yield_stress``, ``viscosity``; those of the model only). ``where`` names
+    the block (``blocks[2]``). Raises :class:`InvalidInputError` naming the
+    field."""
+    if isinstance(name, str) and name in PRESETS:
+        base: Material = PRESETS[name]
+    elif isinstance(name, str) and name in MODELS:
+        base = MODELS[name]()
+    else:
+        raise InvalidInputError(f"{where}.material: must be one of {sorted(MODELS)} or a preset {sorted(PRESETS)}, got {name!r}", f"{where}.material")
+    allowed = {f.name for f in fields(base)}
+    for k in keys:
+        if k not in allowed:
+            raise InvalidInputError(f"{where}.{k}: not a parameter of {base.name} (allowed: {', '.join(sorted(allowed))})", f"{where}.{k}")
+    m = replace(base, **keys)
+    m.validate(where + ".")
+    return m
+
+
+def block_keys(m: Material, name: str) -> dict[str, Any]:
+    """The keys a scene block writes for material ``m`` given as ``name`` (a
+    model or preset): the values that differ from that base."""
+    base = PRESETS[name] if name in PRESETS else MODELS[name]()
+    return {k: v for k, v in asdict(m).items() if asdict(base)[k] != v}
+
+
+def refuse_untrained(material: Any, who: str, *, gns: bool = False) -> None:
+    """Raise :class:`InvalidInputError` (field ``material``) naming the first
+    material of ``material`` (solver codes [N]; GNS particle types with
+    ``gns``) that the learned ``who`` was not trained on
+    (:data:`~hybridmpm.conventions.LEARNED_MATERIALS`); PD control and MPM run
+    every material."""
+    codes = np.unique(np.asarray(material, np.int64)).tolist()
+    names = {code: name for name, code in MATERIALS.items()}
+    if gns:
+        names = {GNS_TYPE_OF_MATERIAL[code]: name for code, name in names.items()}
+    for c in codes:
+        name = names.get(int(c))
+        if name is not None and name not in LEARNED_MATERIALS:
+            raise InvalidInputError(
+                f"material: the {who} was trained on {' and '.join(LEARNED_MATERIALS)} only, and this scene holds {name}; "
+                "run it with the mpm solver (and PD control)",
+                "material",
+            )
+
+
+__all__ = [
+    "MODELS",
+    "PRESETS",
+    "PRESET_SOURCES",
+    "Elastic",
+    "Material",
+    "Sand",
+    "Snow",
+    "Viscoplastic",
+    "Water",
+    "block_keys",
+    "material_from_block",
+    "refuse_untrained",
+]
