@@ -137,6 +137,31 @@ fn a_jelly_block_dropped_keeps_its_shape_2d() {
     assert!((area - 1.0).abs() <= 0.05, "area ratio {area}");
 }
 
+/// A snow block (the paper's defaults) dropped the same way ends compacted:
+/// flatter by at least 8 % or smaller by at least 5 % (its bounding box).
+#[test]
+fn a_snow_block_dropped_ends_compacted() {
+    let params = SolverParams::<2> {
+        n_grid: 128,
+        ..Default::default()
+    };
+    let dx = params.dx();
+    let ps = block([0.4, 0.25], 40, dx, Material::Snow, 3, params.snow.density);
+    let e0 = extents(&ps);
+    let mut s = solver(params, ps);
+    for _ in 0..240 {
+        s.step_frame(2.5e-3).unwrap();
+    }
+    let e = extents(&s.particles());
+    let flatter = 1.0 - (e[1] / e[0]) / (e0[1] / e0[0]);
+    let smaller = 1.0 - (e[0] * e[1]) / (e0[0] * e0[1]);
+    eprintln!("snow: flatter by {flatter:.3}, smaller by {smaller:.3}");
+    assert!(
+        flatter >= 0.08 || smaller >= 0.05,
+        "flatter {flatter}, smaller {smaller}"
+    );
+}
+
 /// The same in 3D on a 32³ grid: each extent within 10 %.
 #[test]
 fn a_jelly_cube_dropped_keeps_its_shape_3d() {
