@@ -4,6 +4,8 @@ parameter sets, and the learned solvers refusing what they were not trained on."
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
 
@@ -118,3 +120,21 @@ def test_material_objects_validate_like_scene_files():
         Elastic(E=-1.0).validate()
     assert e.value.field == "E"
     Viscoplastic(yield_stress=0.0, viscosity=0.0).validate()
+
+
+def test_a_checkpoint_from_before_parameter_sets_restores():
+    # the core format before parameter sets (HMPMCKP2): no set per particle, each takes its material's default
+    sim = MpmSolver(MpmParams(n_grid=64))
+    sim.add_particles(np.random.default_rng(0).uniform(0.3, 0.6, (50, 2)).astype(np.float32), 1)
+    sim.step_frame()
+    blob = sim.checkpoint()
+    (hlen,) = struct.unpack("<Q", blob[8:16])
+    head, core = blob[: 16 + hlen], blob[16 + hlen :]
+    per = 4 * (3 * 2 + 3 * 4 + 4) + 3
+    records = np.frombuffer(core, np.uint8, 50 * per, 36).reshape(50, per)[:, :-2]
+    old = b"HMPMCKP2" + core[8:36] + records.tobytes()
+    other = MpmSolver(MpmParams(n_grid=64))
+    other.add_particles(np.full((50, 2), 0.5, np.float32), 1)
+    other.restore(head + old, same_particles=True)
+    assert np.array_equal(other.positions, sim.positions)
+    assert np.array_equal(other.material_set, np.ones(50, np.int32))

@@ -21,6 +21,8 @@ from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
 _MAGIC = b"HMPMPY01"
 #: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
 _CORE_MAGIC = b"HMPMCKP3"
+#: The core format before parameter sets (no per-particle set; still restored).
+_CORE_MAGIC_V2 = b"HMPMCKP2"
 _CORE_HEADER = 36
 #: The checkpoint header's key for the colliders' poses and pending moves (absent while none has moved).
 _COLLIDER_STATE = "collider_state"
@@ -409,9 +411,10 @@ class MpmSolver:
         whose particles are not this solver's: count, dimension, material and
         mass per particle."""
         d = self.dim
-        per = 4 * (3 * d + 3 * d * d + 4) + 3  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16)
-        if len(state) < _CORE_HEADER or state[:8] != _CORE_MAGIC:
+        if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
             raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
+        tail = 3 if state[:8] == _CORE_MAGIC else 1
+        per = 4 * (3 * d + 3 * d * d + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
         (dd,) = struct.unpack_from("<I", state, 8)
         (n,) = struct.unpack_from("<Q", state, 12)
         n_self = self.num_particles
@@ -422,7 +425,7 @@ class MpmSolver:
         rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
         mass_at = 4 * (2 * d + 2 * d * d + 2)
         masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
-        if not np.array_equal(rec[:, -3], np.asarray(self.material).astype(np.uint8)):
+        if not np.array_equal(rec[:, -tail], np.asarray(self.material).astype(np.uint8)):
             raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
         if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
             raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
