@@ -223,3 +223,62 @@ fn viscoplastic_shear_settles_at_the_bingham_stress() {
     bingham_shear::<2>();
     bingham_shear::<3>();
 }
+
+/// The 2D viscoplastic update (an isotropic function of `B`, no singular
+/// vectors) against the SVD route in f64: new F and τ, yielding or not.
+#[test]
+fn viscoplastic_2d_matches_the_svd_route() {
+    let vp = ViscoplasticParams {
+        youngs_modulus: 1.0e5,
+        poisson_ratio: 0.3,
+        yield_stress: 200.0,
+        viscosity: 0.5,
+        ..Default::default()
+    };
+    let (mu, la) = vp.lame();
+    let radius = std::f64::consts::SQRT_2 * vp.yield_stress as f64;
+    let m = model::<2>(MaterialParams::Viscoplastic(vp.clone()));
+    let dt = 1e-4f32;
+    let keep = (vp.viscosity as f64 / mu as f64) / (vp.viscosity as f64 / mu as f64 + dt as f64);
+    let mut seed = 5u64;
+    let mut yielded = 0;
+    for _ in 0..2000 {
+        let f0 = SMatrix::<f32, 2, 2>::identity() + SMatrix::from_fn(|_, _| 0.02 * rnd(&mut seed));
+        let c = SMatrix::<f32, 2, 2>::from_fn(|_, _| 50.0 * rnd(&mut seed));
+        let mut p = particle::<2>(Material::Viscoplastic, f0);
+        let ft = (SMatrix::<f32, 2, 2>::identity() + c * dt) * f0;
+        advance(&m, &mut p, dt, &c);
+        // reference: SVD in f64
+        let svd = dyn64(&ft).svd(true, true);
+        let (u, vt, s) = (svd.u.unwrap(), svd.v_t.unwrap(), svd.singular_values);
+        let mut eps: Vec<f64> = s.iter().map(|x| x.ln()).collect();
+        let mean = (eps[0] + eps[1]) / 2.0;
+        let dev = [eps[0] - mean, eps[1] - mean];
+        let s_norm = 2.0 * mu as f64 * (dev[0] * dev[0] + dev[1] * dev[1]).sqrt();
+        if s_norm > radius {
+            yielded += 1;
+            let target = radius + (s_norm - radius) * keep;
+            eps = dev.iter().map(|d| d * target / s_norm + mean).collect();
+        }
+        let tr = eps[0] + eps[1];
+        let diag = |g: &dyn Fn(f64) -> f64| {
+            DMatrix::from_diagonal(&nalgebra::DVector::from_iterator(
+                2,
+                eps.iter().map(|&e| g(e)),
+            ))
+        };
+        let want_f = &u * diag(&|e| e.exp()) * &vt;
+        let want_tau = &u * diag(&|e| 2.0 * mu as f64 * e + la as f64 * tr) * u.transpose();
+        assert!(
+            (dyn64(&p.f) - &want_f).norm() < 2e-5,
+            "F {} vs {want_f}",
+            p.f
+        );
+        assert!(
+            (dyn64(&p.tau) - &want_tau).norm() < 1e-3 * (mu as f64 * 1e-3 + want_tau.norm()),
+            "τ {} vs {want_tau}",
+            p.tau
+        );
+    }
+    assert!(yielded > 200 && yielded < 1800, "{yielded} of 2000 yielded");
+}
