@@ -1,0 +1,110 @@
+"""Regenerate the figures of docs/materials.md.
+
+    python docs/make_material_figures.py
+
+Writes docs/img/materials_checks.png: the cantilever's tip deflection against
+beam theory, the stopped Bingham slump against the lubrication shape, and a
+jelly and a snow block dropped on the floor (start and end), each as the
+tests in rust/mpm/tests/ set them up (2D, 128²).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from hybridmpm.conventions import DT_FRAME, MATERIAL_ELASTIC, MATERIAL_SNOW, MATERIAL_VISCOPLASTIC
+from hybridmpm.mpm import ElasticParams, MpmParams, MpmSolver, ViscoplasticParams, WallFace, WallParams
+from hybridmpm.scenes.core import lattice, wall_face
+
+OUT = Path(__file__).with_name("img")
+N = 128
+DX = 1.0 / N
+
+
+def cantilever(ax: plt.Axes) -> None:
+    length, h, e, rho, g = 0.5, 0.1, 3.0e6, 1000.0, 9.8
+    params = MpmParams(
+        n_grid=N,
+        elastic=ElasticParams(density=rho, youngs_modulus=e, poisson_ratio=0.0),
+        walls=WallParams(faces={"x-": WallFace(condition="sticky")}),
+    )
+    face = wall_face(params)
+    sim = MpmSolver(params)
+    x = lattice([DX, 0.5 - h / 2], [face + length, 0.5 + h / 2], DX / 2)
+    sim.add_particles(x, MATERIAL_ELASTIC)
+    tip = x[:, 0] > face + length - DX / 2
+    y0 = float(x[tip, 1].mean())
+    frames = 400
+    defl = []
+    for _ in range(frames):
+        sim.step_frame()
+        defl.append(y0 - float(sim.positions[tip, 1].mean()))
+    i, a = h**3 / 12, h
+    q = rho * g * a
+    want = q * length**4 / (8 * e * i) + q * length**2 / (2 * 5 / 6 * (e / 2) * a)
+    t = (np.arange(frames) + 1) * DT_FRAME
+    ax.plot(t, 1e3 * np.asarray(defl), label="MPM tip deflection")
+    ax.axhline(1e3 * want, color="k", ls="--", label="Euler–Bernoulli + shear (static)")
+    ax.axhline(1e3 * float(np.mean(defl)), color="C1", ls=":", label="MPM mean")
+    ax.set(xlabel="t [s]", ylabel="deflection [mm]", title="Cantilever, E = 3 MPa, ν = 0")
+    ax.legend(fontsize=7)
+
+
+def slump(ax: plt.Axes) -> None:
+    tau_y, rho, g, side = 100.0, 1000.0, 9.8, 0.14
+    params = MpmParams(
+        n_grid=N,
+        viscoplastic=ViscoplasticParams(density=rho, youngs_modulus=1e6, poisson_ratio=0.3, yield_stress=tau_y, viscosity=0.0),
+        walls=WallParams(faces={"y-": WallFace(condition="sticky")}),
+    )
+    floor = wall_face(params)
+    sim = MpmSolver(params)
+    x0 = lattice([0.5 - side / 2, floor], [0.5 + side / 2, floor + side], DX / 2)
+    sim.add_particles(x0, MATERIAL_VISCOPLASTIC)
+    for _ in range(300):
+        sim.step_frame()
+    x = sim.positions
+    k = tau_y / (rho * g)
+    half = (3 * side * side / (4 * np.sqrt(2 * k))) ** (2 / 3)
+    xs = np.linspace(-half, half, 200)
+    ax.scatter(x0[:, 0] - 0.5, x0[:, 1] - floor, s=0.3, c="0.8", label="start")
+    ax.scatter(x[:, 0] - x[:, 0].mean(), x[:, 1] - floor, s=0.3, c="saddlebrown", label="stopped")
+    ax.plot(xs, np.sqrt(2 * k * (half - np.abs(xs))), "k--", label="√(2k(L − |x|))")
+    ax.set(xlabel="x [m]", ylabel="height [m]", title="Bingham slump, τ_y = 100 Pa", aspect="equal")
+    ax.legend(fontsize=7, markerscale=10)
+
+
+def dropped(ax: plt.Axes, code: int, color: str, title: str) -> None:
+    params = MpmParams(n_grid=N, elastic=ElasticParams(youngs_modulus=1e6, poisson_ratio=0.3))
+    sim = MpmSolver(params)
+    x0 = lattice([0.4, 0.25], [0.4 + 40 * DX / 2, 0.25 + 40 * DX / 2], DX / 2)
+    sim.add_particles(x0, code)
+    for _ in range(240):
+        sim.step_frame()
+    x = sim.positions
+    ax.scatter(x0[:, 0], x0[:, 1], s=0.3, c="0.8", label="start")
+    ax.scatter(x[:, 0], x[:, 1], s=0.3, c=color, label="after 0.6 s")
+    ax.set(xlim=(0.3, 0.7), ylim=(0.0, 0.45), aspect="equal", title=title, xlabel="x [m]")
+    ax.legend(fontsize=7, markerscale=10)
+
+
+def main() -> None:
+    OUT.mkdir(exist_ok=True)
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4))
+    cantilever(axes[0])
+    slump(axes[1])
+    dropped(axes[2], MATERIAL_ELASTIC, "tab:red", "Jelly dropped, E = 1 MPa")
+    dropped(axes[3], MATERIAL_SNOW, "tab:blue", "Snow dropped (Stomakhin 2013)")
+    fig.tight_layout()
+    fig.savefig(OUT / "materials_checks.png", dpi=110)
+    print(OUT / "materials_checks.png")
+
+
+if __name__ == "__main__":
+    main()
