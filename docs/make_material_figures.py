@@ -19,12 +19,20 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from hybridmpm.conventions import DT_FRAME, MATERIAL_ELASTIC, MATERIAL_SNOW, MATERIAL_VISCOPLASTIC
-from hybridmpm.mpm import ElasticParams, MpmParams, MpmSolver, ViscoplasticParams, WallFace, WallParams
+from hybridmpm.mpm import ElasticParams, MpmParams, ViscoplasticParams, WallFace, WallParams
+from hybridmpm.scenes import Scene
 from hybridmpm.scenes.core import lattice, wall_face
+from hybridmpm.sim import MpmSimulator, rollout
 
 OUT = Path(__file__).with_name("img")
 N = 128
 DX = 1.0 / N
+
+
+def run(params: MpmParams, x: np.ndarray, code: int, frames: int) -> np.ndarray:
+    """Positions [frames + 1, N, 2] of the particles ``x`` of material ``code`` at rest."""
+    scene = Scene("check", params, x, np.full(len(x), code, np.int32), np.zeros_like(x))
+    return rollout(MpmSimulator(scene), frames).fluid_positions
 
 
 def cantilever(ax: plt.Axes) -> None:
@@ -35,16 +43,11 @@ def cantilever(ax: plt.Axes) -> None:
         walls=WallParams(faces={"x-": WallFace(condition="sticky")}),
     )
     face = wall_face(params)
-    sim = MpmSolver(params)
     x = lattice([DX, 0.5 - h / 2], [face + length, 0.5 + h / 2], DX / 2)
-    sim.add_particles(x, MATERIAL_ELASTIC)
     tip = x[:, 0] > face + length - DX / 2
-    y0 = float(x[tip, 1].mean())
     frames = 400
-    defl = []
-    for _ in range(frames):
-        sim.step_frame()
-        defl.append(y0 - float(sim.positions[tip, 1].mean()))
+    traj = run(params, x, MATERIAL_ELASTIC, frames)
+    defl = float(x[tip, 1].mean()) - traj[1:, tip, 1].mean(axis=1)
     i, a = h**3 / 12, h
     q = rho * g * a
     want = q * length**4 / (8 * e * i) + q * length**2 / (2 * 5 / 6 * (e / 2) * a)
@@ -64,12 +67,8 @@ def slump(ax: plt.Axes) -> None:
         walls=WallParams(faces={"y-": WallFace(condition="sticky")}),
     )
     floor = wall_face(params)
-    sim = MpmSolver(params)
     x0 = lattice([0.5 - side / 2, floor], [0.5 + side / 2, floor + side], DX / 2)
-    sim.add_particles(x0, MATERIAL_VISCOPLASTIC)
-    for _ in range(300):
-        sim.step_frame()
-    x = sim.positions
+    x = run(params, x0, MATERIAL_VISCOPLASTIC, 300)[-1]
     k = tau_y / (rho * g)
     half = (3 * side * side / (4 * np.sqrt(2 * k))) ** (2 / 3)
     xs = np.linspace(-half, half, 200)
@@ -82,12 +81,8 @@ def slump(ax: plt.Axes) -> None:
 
 def dropped(ax: plt.Axes, code: int, color: str, title: str) -> None:
     params = MpmParams(n_grid=N, elastic=ElasticParams(youngs_modulus=1e6, poisson_ratio=0.3))
-    sim = MpmSolver(params)
     x0 = lattice([0.4, 0.25], [0.4 + 40 * DX / 2, 0.25 + 40 * DX / 2], DX / 2)
-    sim.add_particles(x0, code)
-    for _ in range(240):
-        sim.step_frame()
-    x = sim.positions
+    x = run(params, x0, code, 240)[-1]
     ax.scatter(x0[:, 0], x0[:, 1], s=0.3, c="0.8", label="start")
     ax.scatter(x[:, 0], x[:, 1], s=0.3, c=color, label="after 0.6 s")
     ax.set(xlim=(0.3, 0.7), ylim=(0.0, 0.45), aspect="equal", title=title, xlabel="x [m]")
