@@ -15,7 +15,9 @@
 //! condition holds nodes, not particles, which end up to about a cell inside
 //! without it); then the material update with the new velocity gradient `C_p`
 //! ([`crate::material`]: `J` for water, `F` and the Drucker–Prager return
-//! mapping for sand) and the new Kirchhoff stress for the next p2g.
+//! mapping for sand, `F` (and snow's `J_P`) for the solids; each particle
+//! with the constants of its parameter set) and the new Kirchhoff stress for
+//! the next p2g.
 //!
 //! Blocks are processed in parallel: each source block gathers its padded
 //! velocity patch once and its particles read it with fixed strides. A

@@ -12,7 +12,8 @@
 //! 3. `grid_update.rs`: per output block, gather the overlapping padded
 //!    buffers in a fixed order, add gravity, apply walls and colliders;
 //! 4. `g2p.rs`: per particle, new `v`, `C`, position, the material update
-//!    (`material/water.rs`, `material/sand/`) and the stress, and the
+//!    (`material/water.rs`, `material/sand/`, `material/solid.rs`, each
+//!    particle with its parameter set) and the stress, and the
 //!    particle's block key for the next substep.
 //!
 //! `frame.rs` runs a frame's substeps on a persistent team of threads
