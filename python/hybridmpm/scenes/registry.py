@@ -22,6 +22,10 @@ dam_break2d     —      300   Martin & Moyce (1952) column (deterministic)
 dam_break3d     —      300   its 3D twin across the box (ours, deterministic)
 paddle3d        —      300   dam_break3d with a paddle the surge hits (ours, deterministic)
 =============== ====== ===== =========================================
+
+and the scenes that show each solid with water
+(:mod:`hybridmpm.scenes.material_scenes`: ``jelly_dam_break2d``,
+``jelly_dam_break3d``, ``snowball2d``, ``mud_slump2d``).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, MpmParams, SandParams, WallParams
 from hybridmpm.scenes.core import Scene, wall_face
+from hybridmpm.scenes.material_scenes import MATERIAL_DOMAINS, MATERIAL_FRAMES
 from hybridmpm.scenes.spec import Block, SceneSpec, collider_sdf
 
 #: Paper T (frames per trajectory) per domain, Table "Datasets".
@@ -54,6 +59,8 @@ PAPER_FRAMES = {
     "dam_break3d": 300,
     # not in the paper: the page's default 3D scene, the same 0.75 s (the surge reaches the paddle at about 0.16 s)
     "paddle3d": 300,
+    # not in the paper: each solid with water (hybridmpm.scenes.material_scenes)
+    **MATERIAL_FRAMES,
 }
 
 #: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
@@ -378,6 +385,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "dam_break2d": dam_break2d_spec,
     "dam_break3d": dam_break3d_spec,
     "paddle3d": paddle3d_spec,
+    **MATERIAL_DOMAINS,
 }
 
 
