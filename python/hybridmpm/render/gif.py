@@ -6,10 +6,34 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, GNS_WATER
+from hybridmpm.conventions import GNS_ELASTIC, GNS_GOOP, GNS_KINEMATIC, GNS_SAND, GNS_SNOW, GNS_WATER
 
-#: colours by GNS particle type
-_COLOURS = {GNS_WATER: "#1f77b4", GNS_SAND: "#d2a25a", GNS_KINEMATIC: "#444444"}
+#: colours by GNS particle type: water blue, sand ochre, jelly (elastic) a translucent red, snow white,
+#: mud (viscoplastic) brown, obstacles grey
+_COLOURS = {
+    GNS_WATER: "#1f77b4",
+    GNS_SAND: "#d2a25a",
+    GNS_ELASTIC: "#e0457b",
+    GNS_SNOW: "#fbfdff",
+    GNS_GOOP: "#6b4226",
+    GNS_KINEMATIC: "#444444",
+}
+#: opacity by GNS particle type (the rest opaque): jelly is translucent
+_ALPHA = {GNS_ELASTIC: 0.55}
+#: background of a scene with snow (white snow on the default white would vanish)
+SNOW_BACKGROUND = "#c9d3df"
+
+
+def particle_colours(particle_type: np.ndarray) -> np.ndarray:
+    """RGBA in [0, 1], float64 [N, 4], of each particle by its GNS type
+    (:data:`_COLOURS`, :data:`_ALPHA`; an unknown type grey)."""
+    from matplotlib.colors import to_rgba
+
+    table = {t: to_rgba(c, _ALPHA.get(t, 1.0)) for t, c in _COLOURS.items()}
+    grey = to_rgba("#7f7f7f")
+    return np.array([table.get(int(t), grey) for t in np.asarray(particle_type).ravel()], np.float64).reshape(-1, 4)
+
+
 #: frame background / title colour by solver (hybrid renders)
 _SOLVER_BG = {"mpm": "#fde9d4", "neural": "#e6f0fb"}
 _SOLVER_FG = {"mpm": "#b35900", "neural": "#1f5fa8"}
@@ -30,7 +54,11 @@ def render_gif(
 ) -> Path:
     """Write ``positions`` [T, N, D] as an animated GIF at ``path``.
 
-    2D: particles coloured by type; 3D: the x–y projection, shaded by depth z.
+    2D: particles coloured by material (water blue, sand ochre, jelly a
+    translucent red, snow white on a grey-blue background, mud brown:
+    :func:`particle_colours`); 3D: the x–y projection shaded by depth z
+    (water alone in blues; with another material, each in its colour,
+    darker with depth).
     At most ``max_frames`` evenly spaced frames are drawn. ``frame_solver``
     [T] of "mpm" / "neural" tints each frame by the solver that produced it
     (MPM: warm background, neural: cool) and names it in the title.
@@ -48,7 +76,10 @@ def render_gif(
         raise ValueError(f"positions: expected shape [T, N, 2|3], got {positions.shape}")
     t_count, _, dim = positions.shape
     idx = np.unique(np.linspace(0, t_count - 1, min(max_frames, t_count)).round().astype(int))
-    colours = np.array([_COLOURS.get(int(t), "#7f7f7f") for t in particle_type])
+    types = np.asarray(particle_type).ravel()
+    colours = particle_colours(types)
+    materials = set(np.unique(types).tolist()) - {GNS_KINEMATIC}
+    background = SNOW_BACKGROUND if GNS_SNOW in materials else "white"
     dpi = 100
     fig, ax = plt.subplots(figsize=(size_px / dpi, size_px / dpi), dpi=dpi)
     frames = []
@@ -56,13 +87,17 @@ def render_gif(
         ax.clear()
         p = positions[i]
         tag = None if frame_solver is None else str(frame_solver[i])
-        if tag is not None:
-            ax.set_facecolor(_SOLVER_BG.get(tag, "white"))
+        ax.set_facecolor(background if tag is None else _SOLVER_BG.get(tag, background))
         if dim == 2:
             ax.scatter(p[:, 0], p[:, 1], s=1.0, c=colours, linewidths=0)
-        else:
+        elif materials <= {GNS_WATER}:
             order = np.argsort(-p[:, 2])
             ax.scatter(p[order, 0], p[order, 1], s=1.0, c=p[order, 2], cmap="Blues_r", vmin=0, vmax=1, linewidths=0)
+        else:
+            order = np.argsort(-p[:, 2])
+            shade = colours[order].copy()
+            shade[:, :3] *= (1.0 - 0.45 * np.clip(p[order, 2], 0.0, 1.0))[:, None]
+            ax.scatter(p[order, 0], p[order, 1], s=1.0, c=shade, linewidths=0)
         for line in overlay or []:
             ax.plot(line[:, 0], line[:, 1], color="#d62728", lw=1.5, alpha=0.8)
         ax.set_xlim(0, 1)

@@ -57,7 +57,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_SAND, NAME_OF_GNS_TYPE
+from hybridmpm.conventions import GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIALS, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
 from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, VolumeEstimate, bodies, closed, field, is_sampled
@@ -469,6 +469,24 @@ def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field
 
 
 # ---------------------------------------------------------------------- scenes and trajectories
+def rest_densities(params: Any, particle_type: Any) -> np.ndarray:
+    """The rest density [kg/m³] of each particle of GNS type ``particle_type``
+    int [N] under a scene's :class:`~hybridmpm.mpm.MpmParams`: its material's
+    parameter set where the scene holds exactly one further set of that
+    material (a preset block: a jelly of ``jello``, ``mud``, ...), else the
+    material's default set (with several further sets of one material, the
+    default too: a trajectory does not carry each particle's set); 1 for
+    kinematic particles."""
+    pt = np.asarray(particle_type)
+    rho = np.ones(len(pt), np.float64)
+    for name, code in MATERIALS.items():
+        group = getattr(params, name)
+        own = [g for g in params.sets if type(g) is type(group)]
+        density = float((own[0] if len(own) == 1 else group).density)
+        rho[pt == GNS_TYPE_OF_MATERIAL[code]] = density
+    return rho
+
+
 def surface_settings(params: Any, particle_type: Any = None, masses: Any = None) -> dict[str, Any]:
     """The keyword arguments of :func:`surface_mesh` / :func:`surface_contours`
     for a scene's :class:`~hybridmpm.mpm.MpmParams`: ``domain`` (the wall faces
@@ -476,8 +494,8 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     ``dx`` = 1/n_grid, ``obstacles`` (the colliders where the scene puts
     them; a frame of a run whose obstacles move: :func:`posed_settings`) and, given
     ``particle_type`` int [N] and ``masses`` float [N] [kg], ``volumes`` =
-    mass / rest density of the particle's material (water or sand density of
-    ``params``; 0 for kinematic particles)."""
+    mass / rest density of the particle's material (:func:`rest_densities`;
+    0 for kinematic particles)."""
     n = params.resolved_n_grid()
     face = wall_face(params)
     out: dict[str, Any] = {
@@ -488,7 +506,7 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     if particle_type is not None and masses is not None:
         pt = np.asarray(particle_type)
         m = np.asarray(masses, np.float64)
-        rho = np.where(pt == GNS_SAND, float(params.sand.density), float(params.water.density))
+        rho = rest_densities(params, pt)
         out["volumes"] = np.where(pt == GNS_KINEMATIC, 0.0, m / rho)
     return out
 
@@ -640,6 +658,7 @@ __all__ = [
     "export_surfaces",
     "frame_surfaces",
     "material_name",
+    "rest_densities",
     "posed_settings",
     "surface_contours",
     "surface_mesh",

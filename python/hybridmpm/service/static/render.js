@@ -7,13 +7,18 @@
 import { Lattice, PER_CELL, cellSplats, surfaceIndices } from "./cells.js";
 import { Camera, dot, invert, transform4 } from "./mat.js";
 
-const WATER = 5, SAND = 6, WALL = 3;
-// [MPM, network] per material: the frame's solver tints the particles (the legend's colours)
+const WATER = 5, SAND = 6, WALL = 3, MUD = 7, JELLY = 8, SNOW = 9;
+// [MPM, network] per material: the frame's solver tints the particles (the legend's colours); the solids
+// (jelly translucent, snow white, mud brown) run on MPM only
 export const COLORS = {
   [WATER]: ["#1f5fd1", "#19b5c9"],
   [SAND]: ["#b8862e", "#e3c44a"],
   [WALL]: ["#6b7280", "#6b7280"],
+  [MUD]: ["#6b4226", "#6b4226"],
+  [JELLY]: ["#e0457b", "#e0457b"],
+  [SNOW]: ["#f7f9fc", "#f7f9fc"],
 };
+export const JELLY_ALPHA = 0.55;
 const rgb = (hex) => [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
 
 // ------------------------------------------------------------------ shaders
@@ -23,7 +28,8 @@ layout(location = 1) in vec2 a_info;          // GNS type, particle index (a cel
 uniform mat4 u_view, u_proj;
 uniform float u_pointScale, u_radius;
 uniform float u_lod;                           // > 0: splats of cells of this many particles at rest
-uniform vec3 u_mask;                           // draw water, sand, boundary
+uniform vec3 u_mask;                           // draw water, sand and the solids, boundary
+uniform float u_jellyPass;                     // 0: all but jelly, 1: jelly only (translucent, drawn last)
 uniform vec3 u_boxLo, u_boxHi;                 // the box the water rests in (CLIP, below)
 uniform float u_clip;
 out float v_type; out float v_seed; out vec3 v_viewPos; out float v_radius;
@@ -31,7 +37,8 @@ flat out float v_clip;                         // the sphere pokes through a wal
 float hash(float x) { return fract(sin(x * 12.9898) * 43758.5453); }
 void main() {
   float t = a_info.x;
-  float on = t == 5.0 ? u_mask.x : (t == 6.0 ? u_mask.y : u_mask.z);
+  float on = t == 5.0 ? u_mask.x : (t == 3.0 ? u_mask.z : u_mask.y);
+  if ((t == 8.0) != (u_jellyPass > 0.5)) on = 0.0;
   vec4 vp = u_view * vec4(a_pos, 1.0);
   gl_Position = u_proj * vp;
   float r = u_radius * (t == 6.0 ? 0.78 + 0.4 * hash(a_info.y) : 1.0);
@@ -46,8 +53,9 @@ void main() {
 const SPRITE_FS = `#version 300 es
 precision highp float;
 in float v_type; in float v_seed; in vec3 v_viewPos; in float v_radius;
-uniform vec3 u_water, u_sand, u_wall;
+uniform vec3 u_water, u_sand, u_wall, u_mud, u_jelly, u_snow;
 uniform float u_grain;                          // colour jitter of sand grains
+uniform float u_alpha;                          // the jelly pass's opacity
 out vec4 o;
 float hash(float x) { return fract(sin(x * 78.233) * 43758.5453); }
 void main() {
@@ -55,12 +63,12 @@ void main() {
   float d2 = dot(c, c);
   if (d2 > 1.0) discard;
   vec3 n = vec3(c, sqrt(1.0 - d2));
-  vec3 base = v_type == 5.0 ? u_water : (v_type == 6.0 ? u_sand : u_wall);
+  vec3 base = v_type == 5.0 ? u_water : (v_type == 6.0 ? u_sand : (v_type == 7.0 ? u_mud : (v_type == 8.0 ? u_jelly : (v_type == 9.0 ? u_snow : u_wall))));
   if (v_type == 6.0) base *= 1.0 + u_grain * (hash(v_seed) - 0.5);
   vec3 L = normalize(vec3(-0.4, 0.7, 0.6));
   float diff = max(dot(n, L), 0.0);
   float spec = pow(max(dot(n, normalize(L + vec3(0.0, 0.0, 1.0))), 0.0), 36.0);
-  o = vec4(base * (0.38 + 0.62 * diff) + 0.22 * spec, 1.0);
+  o = vec4(base * (0.38 + 0.62 * diff) + 0.22 * spec, u_alpha);
 }`;
 
 // 3D water: the part [s0, s1] of a sprite's chord inside the box the water rests in (s along the view's +z, in
@@ -448,6 +456,8 @@ export class GLRenderer {
       gl.bindVertexArray(null);
     }
     this.hasSand = s.particle_type.includes(SAND);
+    this.hasSolid = [MUD, JELLY, SNOW].some((t) => s.particle_type.includes(t));
+    this.hasJelly = s.particle_type.includes(JELLY);
   }
 
   setFrame(f) {
@@ -585,7 +595,7 @@ export class GLRenderer {
       const solver = f.solver ? 1 : 0;
       if (!fluid) this.sprites(M, h, [1, 1, 1], solver, 0.62);
       else {
-        if (this.hasSand) this.sprites(M, h, [0, 1, 0], solver, 0.55);
+        if (this.hasSand || this.hasSolid) this.sprites(M, h, [0, 1, 0], solver, 0.55);
         if (this.hasWater) this.water(M, w, h, dim, solver, out);
       }
     }
@@ -651,10 +661,20 @@ export class GLRenderer {
     gl.uniform3fv(u.u_water, rgb(COLORS[WATER][solver]));
     gl.uniform3fv(u.u_sand, rgb(COLORS[SAND][solver]));
     gl.uniform3fv(u.u_wall, rgb(COLORS[WALL][0]));
+    gl.uniform3fv(u.u_mud, rgb(COLORS[MUD][0]));
+    gl.uniform3fv(u.u_jelly, rgb(COLORS[JELLY][0]));
+    gl.uniform3fv(u.u_snow, rgb(COLORS[SNOW][0]));
     gl.uniform1f(u.u_grain, mask[0] ? 0.0 : 0.5);
+    gl.uniform1f(u.u_jellyPass, 0); gl.uniform1f(u.u_alpha, 1);
     gl.enable(gl.DEPTH_TEST); gl.depthFunc(gl.LESS);
     gl.bindVertexArray(this.pvao);
     this.points();
+    if (this.hasJelly && mask[1]) { // jelly last, translucent: blended over what is drawn, writing no depth
+      gl.uniform1f(u.u_jellyPass, 1); gl.uniform1f(u.u_alpha, JELLY_ALPHA);
+      gl.enable(gl.BLEND); gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA); gl.depthMask(false);
+      this.points();
+      gl.depthMask(true); gl.disable(gl.BLEND);
+    }
   }
 
   water(M, w, h, dim, solver, out) {
@@ -928,13 +948,15 @@ export class Canvas2DRenderer {
     const s = this.session, f = this.frame;
     if (!s || !f || !this.showParticles) return M;
     const sz = Math.max(1.5, r.width / 256), types = s.particle_type, { n, dim, pos } = f;
-    for (const t of [WALL, WATER, SAND]) {
+    for (const t of [WALL, WATER, SAND, MUD, SNOW, JELLY]) {
       ctx.fillStyle = (COLORS[t] || COLORS[WATER])[f.solver ? 1 : 0];
+      ctx.globalAlpha = t === JELLY ? JELLY_ALPHA : 1;
       for (let i = 0; i < n; i++) {
         if (types[i] !== t) continue;
         ctx.fillRect(pos[i * dim] * r.width - sz / 2, (1 - pos[i * dim + 1]) * r.height - sz / 2, sz, sz);
       }
     }
+    ctx.globalAlpha = 1;
     return M;
   }
   snapshot(width, height) {
