@@ -24,6 +24,7 @@
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod body;
 pub mod boundary;
 pub mod checkpoint;
 pub mod collider;
@@ -41,6 +42,7 @@ pub mod surface;
 pub mod transfer;
 mod v4;
 
+pub use body::{Body, BodyShape, BodyState};
 pub use boundary::BoundaryCondition;
 pub use collider::{Collider, Shape};
 pub use dim::{Dim, DimOps};
@@ -48,8 +50,9 @@ pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
 pub use params::{
-    ColliderParams, ElasticModel, ElasticParams, MaterialParams, MaterialSet, SandParams,
-    ShapeKind, SnowParams, SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams,
+    BodyParams, BodyShapeKind, ColliderParams, ElasticModel, ElasticParams, MaterialParams,
+    MaterialSet, SandParams, ShapeKind, SnowParams, SolverParams, ViscoplasticParams, WallFace,
+    WallParams, WaterParams,
 };
 pub use particles::{Material, Particle, lattice};
 pub use pool::shared_pool;

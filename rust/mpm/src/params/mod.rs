@@ -13,6 +13,7 @@
 //! their faces by name in the dict), `collider.rs` a collider as the dict
 //! gives it.
 
+mod body;
 mod collider;
 mod material;
 mod solid;
@@ -21,6 +22,7 @@ mod tests;
 mod walls;
 
 pub use crate::boundary::BoundaryCondition;
+pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
 pub use solid::{

@@ -98,6 +98,8 @@ where
             Some(u) => vmax.max(u),
             None => vmax,
         };
+        // and so does a body's fastest point
+        let vmax = vmax.max(self.bodies.max_speed());
         let c = self.wave_speed();
         let dt_max = self.params.cfl * self.params.dx() / (c + vmax).max(1e-6);
         let needed = (dt_frame / dt_max).ceil();
@@ -179,7 +181,9 @@ where
         let mut retries = 0;
         loop {
             let dt = dt_frame / n_sub as f32;
+            self.begin_bodies();
             let result = self.run_substeps(n_sub, dt, max_travel, retries);
+            self.bodies.end(result.is_ok(), dt_frame);
             match result {
                 Ok(vmax) => {
                     self.end_moves(true);

@@ -25,6 +25,7 @@ use super::block_sort::BlockMarks;
 use super::g2p::G2pOut;
 use super::team::{KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_SCATTER, Team};
 use super::{Health, Solver};
+use crate::body::ImpulseSum;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::isa::{Isa, x86_64_v3};
@@ -272,6 +273,9 @@ where
         }
         let mut patch = Vec::new();
         let mut acc = Vec::new();
+        // this member's sums of the bodies' impulses in a grid update
+        let mut sums = vec![ImpulseSum::default(); unsafe { (*sp.0).bodies.len() }];
+        let mut coupled = Vec::new();
         let mut clock = Profile::new(tid == 0 && unsafe { (*sp.0).profile });
         for sub in 0..=n_sub {
             // serial: finish the previous substep's g2p and check it, then
@@ -383,11 +387,19 @@ where
             clock.lap(Lap::P2g);
             while let Some(oi) = team.claim_own(OWN_GRID, tid, &s.grid.grid_bounds) {
                 let out = unsafe { view.out_v.chunk_mut(oi * blk_nodes, blk_nodes) };
-                s.grid_update_block(oi, out, &mut acc, dt);
+                s.grid_update_block(oi, out, &mut acc, &mut sums, &mut coupled, dt);
+            }
+            if !sums.is_empty() {
+                s.bodies.merge(&sums, &mut coupled);
+                sums.fill(ImpulseSum::default());
             }
             team.barrier_then(|| {
                 // SAFETY: serial section
-                unsafe { (*sp.0).forget_sources() };
+                let s = unsafe { &mut *sp.0 };
+                s.forget_sources();
+                // the bodies take the fluid's impulses and step; the nodes
+                // they hold follow their new velocities
+                s.bodies.substep(dt, &mut s.grid.out_v);
             });
             clock.lap(Lap::Grid);
             let models = &s.models;

@@ -15,6 +15,11 @@
 //!   outward normal (only colliders near the block are tested); a moving
 //!   collider's condition acts on the velocity relative to its own
 //!   ([`crate::collider::apply_condition_moving`]);
+//! - bodies: nodes inside a body or less than `BODY_REACH_CELLS` outside
+//!   it get the `Separate` condition relative to the body's point velocity
+//!   `v + ω × r` (Coulomb friction on the rest), and the node's momentum
+//!   change, sign flipped, is summed into the body's impulse and torque
+//!   (`crate::body::ImpulseSum`: integer sums, the same bits in any order);
 //! - domain walls: nodes within `walls.cells` of a face of the unit domain
 //!   get that face's condition and friction (`WallParams::face`: the
 //!   per-face override or the all-walls default) with the face's inward
@@ -29,6 +34,8 @@ use nalgebra::SVector;
 
 use super::Solver;
 use super::grid::{EMPTY, unflatten, unflatten_pow2};
+use crate::BoundaryCondition;
+use crate::body::{BODY_REACH_CELLS, BodyPose, Coupled, ImpulseSum};
 use crate::collider::{Collider, apply_condition, apply_condition_moving};
 use crate::dim::{Dim, DimOps};
 use crate::params::WallFace;
@@ -50,6 +57,8 @@ where
         oi: usize,
         out: &mut [[f32; 4]],
         acc: &mut [[f32; 4]],
+        sums: &mut [ImpulseSum],
+        coupled: &mut Vec<Coupled>,
         dt: f32,
     ) {
         let b = 1usize << self.grid.log2_b;
@@ -141,6 +150,24 @@ where
                 .map(|(col, v)| (col, *v))
                 .collect()
         };
+        // the bodies near this block (index, pose): their nodes to
+        // `BODY_REACH_CELLS` outside the surface are coupled
+        let reach = BODY_REACH_CELLS * dx;
+        let near_bodies: Vec<(usize, &BodyPose<D>)> = if self.bodies.is_empty() {
+            Vec::new()
+        } else {
+            let mut centre = SVector::<f32, D>::zeros();
+            for d in 0..D {
+                centre[d] = ((c[d] << log2_b) as f32 + 0.5 * (b as f32 - 1.0)) * dx;
+            }
+            let half_diag = 0.5 * (b as f32) * dx * (D as f32).sqrt();
+            self.bodies
+                .poses
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| p.near(&centre, half_diag, reach))
+                .collect()
+        };
         let g_dt = gravity * dt;
         // gravity's velocity change in the node layout `[v, 0]` (lanes past D zero)
         let g4: [f32; 4] = std::array::from_fn(|k| if k < D { g_dt[k] } else { 0.0 });
@@ -163,7 +190,7 @@ where
             let first = c[d] << log2_b;
             first >= wall_lo && first + b - 1 <= wall_hi
         });
-        if clear_of_walls && near.is_empty() {
+        if clear_of_walls && near.is_empty() && near_bodies.is_empty() {
             return;
         }
         // The boundary conditions on the nodes with mass: the colliders
@@ -184,7 +211,7 @@ where
         // those in a wall band (node coordinate below `wall_lo` or above
         // `wall_hi` along some axis)
         let mut visit = st.union_masks[mask];
-        if near.is_empty() {
+        if near.is_empty() && near_bodies.is_empty() {
             let mut band = 0u64;
             for d in 0..D {
                 let first = c[d] << log2_b;
@@ -220,6 +247,37 @@ where
                         Some(u) => {
                             apply_condition_moving(&mut v, &nrm, col.condition, col.friction, u)
                         }
+                    }
+                }
+            }
+            for &(bi, pose) in &near_bodies {
+                let mut xp = SVector::<f32, D>::zeros();
+                for d in 0..D {
+                    xp[d] = gi[d] as f32 * dx;
+                }
+                let (phi, nrm) = pose.sdf_normal(&xp);
+                if phi < reach {
+                    let u = pose.point_velocity(&xp);
+                    if (v - u).dot(&nrm) < 0.0 {
+                        let before = v;
+                        apply_condition_moving(
+                            &mut v,
+                            &nrm,
+                            BoundaryCondition::Separate,
+                            pose.friction,
+                            &u,
+                        );
+                        // the node's momentum change, returned to the body,
+                        // and its mass in the body's coupled mass matrix
+                        let r = xp - pose.center;
+                        sums[bi].add(&((before - v) * m), &r);
+                        sums[bi].add_coupled(m, &nrm, &r);
+                        coupled.push(Coupled {
+                            node: (oi * b.pow(D as u32) + l) as u32,
+                            body: bi as u32,
+                            n: std::array::from_fn(|d| if d < D { nrm[d] } else { 0.0 }),
+                            r: std::array::from_fn(|d| if d < D { r[d] } else { 0.0 }),
+                        });
                     }
                 }
             }

@@ -31,6 +31,7 @@
 //! identical for any number of threads.
 
 mod block_sort;
+mod bodies;
 mod cfl;
 mod frame;
 mod g2p;
@@ -44,6 +45,7 @@ pub use crate::material::sand::drucker_prager_project;
 
 use nalgebra::SVector;
 
+use crate::body::Bodies;
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
@@ -140,6 +142,8 @@ where
     /// collider only translates): where its particle projection can act
     /// ([`Collider::reach`]).
     shallow: Vec<Option<ShallowCells>>,
+    /// The rigid bodies (`solver/bodies.rs`, `crate::body`).
+    bodies: Bodies<D>,
     /// Particles in storage order: sorted by sparse block, then by id.
     particles: Vec<Particle<D>>,
     /// `ids[slot]`: the public index of the particle stored at `slot`.
@@ -254,6 +258,7 @@ where
             shallow,
             moves: vec![None; nc],
             collider_velocity: vec![None; nc],
+            bodies: Bodies::default(),
             particles: Vec::new(),
             ids: Vec::new(),
             ids_next: Vec::new(),

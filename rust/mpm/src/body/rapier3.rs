@@ -1,0 +1,85 @@
+//! [`RigidWorld`] in 3D, by rapier3d.
+
+use rapier3d::math::{Pose, Rotation, Vector};
+use rapier3d::prelude::*;
+
+use super::BodyState;
+use super::world::{RigidWorld, ShapeSpec, WorldSpec};
+
+pub(crate) struct World3 {
+    world: PhysicsWorld,
+    handles: Vec<RigidBodyHandle>,
+}
+
+impl World3 {
+    pub(crate) fn new(spec: &WorldSpec<'_>) -> Self {
+        let mut world = PhysicsWorld::new();
+        let g = spec.gravity;
+        world.gravity = Vector::new(g[0], g[1], g[2]);
+        world.integration_parameters.length_unit = spec.length_unit;
+        // the walls: six fixed boxes outside [lo, hi]³
+        let (lo, hi) = (spec.lo, spec.hi);
+        let t = 1.0;
+        let mid = 0.5 * (lo + hi);
+        for axis in 0..3 {
+            for c in [lo - t, hi + t] {
+                let mut centre = [mid; 3];
+                centre[axis] = c;
+                let mut h = [t + hi; 3];
+                h[axis] = t;
+                world.insert(
+                    RigidBodyBuilder::fixed().translation(Vector::from(centre)),
+                    ColliderBuilder::cuboid(h[0], h[1], h[2]),
+                );
+            }
+        }
+        let handles = spec
+            .bodies
+            .iter()
+            .zip(spec.states)
+            .map(|(&(shape, density), s)| {
+                let pose = Pose::from_parts(
+                    Vector::from(s.x),
+                    Rotation::from_xyzw(s.q[0], s.q[1], s.q[2], s.q[3]),
+                );
+                let body = RigidBodyBuilder::dynamic()
+                    .pose(pose)
+                    .linvel(Vector::from(s.v))
+                    .angvel(Vector::from(s.w))
+                    .can_sleep(false);
+                let collider = match shape {
+                    ShapeSpec::Box(h) => ColliderBuilder::cuboid(h[0], h[1], h[2]),
+                    ShapeSpec::Ball(r) => ColliderBuilder::ball(r),
+                };
+                world.insert(body, collider.density(density)).0
+            })
+            .collect();
+        World3 { world, handles }
+    }
+}
+
+impl RigidWorld for World3 {
+    fn state(&self, i: usize) -> BodyState {
+        let b = &self.world.bodies[self.handles[i]];
+        let (x, r, v, w) = (b.translation(), b.rotation(), b.linvel(), b.angvel());
+        BodyState {
+            x: x.to_array(),
+            q: [r.x, r.y, r.z, r.w],
+            v: v.to_array(),
+            w: w.to_array(),
+        }
+    }
+
+    fn add_velocity(&mut self, i: usize, dv: [f32; 3], dw: [f32; 3]) {
+        let b = &mut self.world.bodies[self.handles[i]];
+        let v = b.linvel() + Vector::from(dv);
+        let w = b.angvel() + Vector::from(dw);
+        b.set_linvel(v, true);
+        b.set_angvel(w, true);
+    }
+
+    fn step(&mut self, dt: f32) {
+        self.world.integration_parameters.dt = dt;
+        self.world.step();
+    }
+}

@@ -1,0 +1,55 @@
+//! The bodies' dynamics and contacts, by rapier (rapier2d / rapier3d, `f32`,
+//! `enhanced-determinism`), behind one small trait ([`RigidWorld`]) that
+//! speaks in plain arrays: the solver never sees rapier's types, and 2D and
+//! 3D differ only in `rapier2.rs` / `rapier3.rs`.
+//!
+//! A world is built from the bodies' exact state at the start of each frame
+//! attempt ([`build`]) and read back at its end: a frame that fails is
+//! retried from the same state, and a checkpoint (the state) restores the
+//! same bits as a run that never stopped. Contacts' warm-start impulses live
+//! within a frame only.
+
+use super::BodyState;
+
+/// A body's shape in rapier's terms (dimension-free: 2D reads `x, y`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum ShapeSpec {
+    Box([f32; 3]),
+    Ball(f32),
+}
+
+/// What a world is built from.
+pub(crate) struct WorldSpec<'a> {
+    /// Each body's shape and density [kg/m³].
+    pub bodies: &'a [(ShapeSpec, f32)],
+    /// Each body's state.
+    pub states: &'a [BodyState],
+    /// Gravity [m/s²] (2D: `x, y`).
+    pub gravity: [f32; 3],
+    /// The walls' inner faces: `lo` and `hi` [m] along every axis.
+    pub lo: f32,
+    pub hi: f32,
+    /// A length scale of the scene [m] (rapier's `length_unit`: its contact
+    /// tolerances scale with it).
+    pub length_unit: f32,
+}
+
+/// The rigid-body world of one frame attempt.
+pub(crate) trait RigidWorld: Send + Sync {
+    /// Body `i`'s state.
+    fn state(&self, i: usize) -> BodyState;
+    /// Adds `dv` [m/s] to body `i`'s velocity and `dw` [rad/s] to its
+    /// angular velocity (2D: lane 2).
+    fn add_velocity(&mut self, i: usize, dv: [f32; 3], dw: [f32; 3]);
+    /// Steps the world by `dt` seconds (gravity, contacts, integration).
+    fn step(&mut self, dt: f32);
+}
+
+/// The world of dimension `d` (2 or 3) built from `spec`.
+pub(crate) fn build(d: usize, spec: &WorldSpec<'_>) -> Box<dyn RigidWorld> {
+    if d == 2 {
+        Box::new(super::rapier2::World2::new(spec))
+    } else {
+        Box::new(super::rapier3::World3::new(spec))
+    }
+}

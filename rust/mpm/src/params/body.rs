@@ -1,0 +1,214 @@
+//! A rigid body as the parameter dict gives it ([`BodyParams`]), the same in
+//! 2D and 3D, and the [`Body`] it builds.
+
+use nalgebra::{SMatrix, SVector};
+
+use crate::body::{Body, BodyShape};
+use crate::error::{MpmError, Result};
+
+/// The shape of a body in the parameter dict: `"box"` or `"sphere"`
+/// (`"circle"` is a synonym).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
+pub enum BodyShapeKind {
+    Box,
+    #[cfg_attr(feature = "serde", serde(alias = "circle"))]
+    Sphere,
+}
+
+/// A rigid body as the parameter dict gives it, the same in 2D and 3D: the
+/// shape's fields flat (a box: `center`, `half_extents`, and `rotation` or,
+/// in 2D, `angle_deg`; a sphere: `center`, `radius`), its density or mass,
+/// initial velocity and angular velocity, and Coulomb friction against the
+/// fluid. [`BodyParams::build`] makes the [`Body`] of a `D`-dimensional solver.
+#[derive(Clone, Debug, Default, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct BodyParams {
+    /// Box or sphere (required).
+    pub shape: Option<BodyShapeKind>,
+    /// Centre [m], `D` numbers (required).
+    pub center: Option<Vec<f32>>,
+    /// Box half extents [m], `D` numbers (required for a box).
+    pub half_extents: Option<Vec<f32>>,
+    /// Sphere radius [m] (required for a sphere).
+    pub radius: Option<f32>,
+    /// Rotation [degrees] counter-clockwise, 2D only (`rotation` wins).
+    pub angle_deg: Option<f64>,
+    /// Rotation matrix, `D` rows of `D` numbers (columns: the body's axes in
+    /// world coordinates); identity when neither it nor `angle_deg` is given.
+    pub rotation: Option<Vec<Vec<f32>>>,
+    /// Density [kg/m³] (give it or `mass`).
+    pub density: Option<f32>,
+    /// Mass [kg; per unit depth in 2D, as the particles' masses] (instead of `density`).
+    pub mass: Option<f32>,
+    /// Initial velocity [m/s], `D` numbers (zero when not given).
+    pub velocity: Option<Vec<f32>>,
+    /// Initial angular velocity [rad/s]: 1 number in 2D (counter-clockwise),
+    /// 3 in 3D (zero when not given).
+    pub angular_velocity: Option<Vec<f32>>,
+    /// Coulomb friction coefficient μ against the fluid (≥ 0; default 0).
+    pub friction: Option<f32>,
+}
+
+impl BodyParams {
+    /// The body in `D` dimensions. Errors name the field under `field`
+    /// (e.g. `bodies[0].density`): a missing or malformed shape, centre,
+    /// size, density or mass, a vector of other than `D` numbers, a rotation
+    /// that is not a `D`×`D` rotation. Ranges against the grid are left to
+    /// [`Body::validate`].
+    pub fn build<const D: usize>(&self, field: &str) -> Result<Body<D>> {
+        let name = |key: &str| format!("{field}.{key}");
+        let missing = |key: &str| MpmError::invalid(name(key), "missing");
+        let numbers = |key: &str, v: &Option<Vec<f32>>, n: usize| -> Result<Option<Vec<f32>>> {
+            let Some(v) = v else { return Ok(None) };
+            if v.len() != n || !v.iter().all(|x| x.is_finite()) {
+                return Err(MpmError::invalid(
+                    name(key),
+                    format!("expected {n} finite numbers, got {v:?}"),
+                ));
+            }
+            Ok(Some(v.clone()))
+        };
+        let kind = self
+            .shape
+            .ok_or_else(|| MpmError::invalid(name("shape"), "missing ('box' or 'sphere')"))?;
+        let center = numbers("center", &self.center, D)?.ok_or_else(|| missing("center"))?;
+        let shape = match kind {
+            BodyShapeKind::Box => {
+                let h = numbers("half_extents", &self.half_extents, D)?
+                    .ok_or_else(|| missing("half_extents"))?;
+                if !h.iter().all(|&x| x > 0.0) {
+                    return Err(MpmError::invalid(
+                        name("half_extents"),
+                        format!("must be > 0, got {h:?}"),
+                    ));
+                }
+                BodyShape::Box {
+                    half_extents: SVector::from_column_slice(&h),
+                }
+            }
+            BodyShapeKind::Sphere => {
+                let r = self.radius.ok_or_else(|| missing("radius"))?;
+                if !(r.is_finite() && r > 0.0) {
+                    return Err(MpmError::invalid(
+                        name("radius"),
+                        format!("must be a finite number > 0, got {r}"),
+                    ));
+                }
+                BodyShape::Ball { radius: r }
+            }
+        };
+        let rotation = self.rotation_matrix::<D>(field)?;
+        let volume = shape.volume();
+        let density = match (self.density, self.mass) {
+            (Some(_), Some(_)) => {
+                return Err(MpmError::invalid(
+                    name("mass"),
+                    "give density or mass, not both",
+                ));
+            }
+            (Some(rho), None) => rho,
+            (None, Some(m)) => {
+                if !(m.is_finite() && m > 0.0) {
+                    return Err(MpmError::invalid(
+                        name("mass"),
+                        format!("must be a finite number > 0, got {m}"),
+                    ));
+                }
+                m / volume
+            }
+            (None, None) => return Err(missing("density")),
+        };
+        if !(density.is_finite() && density > 0.0) {
+            return Err(MpmError::invalid(
+                name("density"),
+                format!("must be a finite number > 0 kg/m^3, got {density}"),
+            ));
+        }
+        let velocity = numbers("velocity", &self.velocity, D)?.unwrap_or(vec![0.0; D]);
+        let n_ang = if D == 2 { 1 } else { 3 };
+        let w =
+            numbers("angular_velocity", &self.angular_velocity, n_ang)?.unwrap_or(vec![0.0; n_ang]);
+        let angular_velocity = if D == 2 {
+            [0.0, 0.0, w[0]]
+        } else {
+            [w[0], w[1], w[2]]
+        };
+        let friction = self.friction.unwrap_or(0.0);
+        if !(friction.is_finite() && friction >= 0.0) {
+            return Err(MpmError::invalid(
+                name("friction"),
+                format!("must be a finite number >= 0, got {friction}"),
+            ));
+        }
+        Ok(Body {
+            shape,
+            center: SVector::from_column_slice(&center),
+            rotation,
+            density,
+            velocity: SVector::from_column_slice(&velocity),
+            angular_velocity,
+            friction,
+        })
+    }
+
+    /// The rotation from `rotation` (checked orthonormal with determinant
+    /// 1) or, in 2D, `angle_deg`; identity when neither is given.
+    fn rotation_matrix<const D: usize>(&self, field: &str) -> Result<SMatrix<f32, D, D>> {
+        let mut r = SMatrix::<f32, D, D>::identity();
+        if let Some(rows) = &self.rotation {
+            let bad = |msg: String| MpmError::invalid(format!("{field}.rotation"), msg);
+            if rows.len() != D || rows.iter().any(|row| row.len() != D) {
+                return Err(bad(format!("expected a {D}x{D} nested list")));
+            }
+            r = SMatrix::from_fn(|i, j| rows[i][j]);
+            let err = (r.transpose() * r - SMatrix::<f32, D, D>::identity())
+                .abs()
+                .max();
+            if !(err < 1e-4 && det(&r) > 0.0) {
+                return Err(bad(
+                    "must be a rotation (orthonormal, determinant 1)".to_string()
+                ));
+            }
+        } else if let Some(a) = self.angle_deg {
+            if D != 2 {
+                return Err(MpmError::invalid(
+                    format!("{field}.angle_deg"),
+                    "only in 2D; give 'rotation' in 3D",
+                ));
+            }
+            if !a.is_finite() {
+                return Err(MpmError::invalid(
+                    format!("{field}.angle_deg"),
+                    format!("must be finite, got {a}"),
+                ));
+            }
+            let (s, c) = (a.to_radians() as f32).sin_cos();
+            r[(0, 0)] = c;
+            r[(0, 1)] = -s;
+            r[(1, 0)] = s;
+            r[(1, 1)] = c;
+        }
+        Ok(r)
+    }
+}
+
+/// Determinant of a 2×2 or 3×3 matrix.
+fn det<const D: usize>(r: &SMatrix<f32, D, D>) -> f32 {
+    if D == 2 {
+        r[(0, 0)] * r[(1, 1)] - r[(0, 1)] * r[(1, 0)]
+    } else {
+        let c = |i: usize, j: usize| r[(i, j)];
+        c(0, 0) * (c(1, 1) * c(2, 2) - c(1, 2) * c(2, 1))
+            - c(0, 1) * (c(1, 0) * c(2, 2) - c(1, 2) * c(2, 0))
+            + c(0, 2) * (c(1, 0) * c(2, 1) - c(1, 1) * c(2, 0))
+    }
+}
