@@ -286,6 +286,10 @@ class SessionBackend(Protocol[S]):
         """Move obstacle ``index`` of ``s`` over its next step; the session's frame."""
         ...
 
+    async def pour(self, s: S, block: dict[str, Any]) -> dict[str, Any]:
+        """Add a block of particles to ``s`` between frames (its facts follow); ``{"added", "num_particles", "frame", "facts"}``."""
+        ...
+
     # ------------------------------------------------------------ streams
     async def attach(self, s: S, v: Viewer) -> None:
         """A new viewer of ``s``: its :func:`meta_message` and the current frame first."""

@@ -161,6 +161,7 @@ class SessionCore:
         self.saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
         self.save_failure: tuple[int | None, str] | None = None  # (errno, message) of its last failed save; None after a save
         self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
+        self.poured = False  # particles were added (a reset then builds its simulator again)
         self.last_used = time.monotonic()
         self._record(sim.frame)
 
@@ -407,8 +408,16 @@ class SessionCore:
             self._show(self.sim.frame)
 
     def reset(self) -> None:
-        """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
+        """Back to the initial condition; the viewers get the frame and a ``reset`` event
+        (after a pour, a new simulator of the session's settings, and a ``particles`` event first)."""
         with self.lock:
+            if self.poured:
+                s = self.settings
+                self.sim = make_simulator(s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=self.threads, nn_threads=1, n_grid=s.n_grid)
+                self.facts, self.poured = SessionFacts.of(self.sim), False
+                f = self.facts
+                self.on_event({"type": "particles", "frame": 0, "added": 0, "num_particles": f.num_total, "num_fluid": f.num_fluid,
+                               "particle_type": [int(t) for t in f.particle_type]})  # fmt: skip
             self.sim.restore(self.initial)
             self._changed()
             with self._held:
@@ -428,6 +437,34 @@ class SessionCore:
             self._changed()  # a pending move is part of the state: saved like a step
         self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
         return frame
+
+    def pour(self, block: dict[str, Any]) -> dict[str, Any]:
+        """Add ``block`` (a scene file's block: ``material``, its parameters,
+        ``lo``, ``hi``, ``velocity``) between frames (:func:`hybridmpm.sim.pour.pour_block`;
+        its errors name the field and leave the session unchanged). The recent
+        trajectory starts again; the viewers get the frame and a ``particles``
+        event with the new count and particle types. Returns ``{"added",
+        "num_particles", "frame", "facts"}`` (``facts``: the session's new
+        :class:`SessionFacts` as a dict, for a front end that keeps a copy)."""
+        from hybridmpm.sim.pour import pour_block  # import time: loaded by a pour only
+
+        with self.lock:
+            self._open()
+            before = self.facts.num_total
+            pour_block(self.sim, block)
+            self.facts = SessionFacts.of(self.sim)
+            self.poured = True
+            self._changed()
+            with self._held:
+                self.recording.clear()
+            self._show(self.sim.frame)
+            frame, facts = self.frame_index, self.facts
+        added = facts.num_total - before
+        self.on_event(
+            {"type": "particles", "frame": frame, "added": added, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
+             "particle_type": [int(t) for t in facts.particle_type]}
+        )  # fmt: skip
+        return {"added": added, "num_particles": facts.num_total, "frame": frame, "facts": facts.to_dict()}
 
     # ------------------------------------------------------------ saves
     def snapshot(self) -> tuple[dict[str, Any], int, int] | None:

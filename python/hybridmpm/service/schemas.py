@@ -105,6 +105,33 @@ class ObstacleMove(Strict):
     )
 
 
+class BlockPour(Strict):
+    """A block poured into a session: a scene file's block (docs/materials.md)."""
+
+    material: str = Field(max_length=32, description="a model (water, sand, elastic, snow, viscoplastic) or a preset (jello, mud, ...)")
+    lo: list[Number] = Field(min_length=2, max_length=3, description="one corner [m], inside the walls' faces")
+    hi: list[Number] = Field(min_length=2, max_length=3, description="the opposite corner [m]")
+    velocity: list[Number] | None = Field(None, min_length=2, max_length=3, description="initial velocity [m/s] (default at rest)")
+    E: Number | None = Field(None, description="Young's modulus [Pa], > 0")
+    nu: Number | None = Field(None, description="Poisson's ratio, in [0, 0.5)")
+    density: Number | None = Field(None, description="rest density [kg/m^3], > 0")
+    model: str | None = Field(None, max_length=16, description="elastic: corotated or neohookean")
+    theta_c: Number | None = Field(None, description="snow: critical compression, in (0, 1)")
+    theta_s: Number | None = Field(None, description="snow: critical stretch, in (0, 1)")
+    hardening: Number | None = Field(None, description="snow: hardening coefficient, in [0, 50]")
+    yield_stress: Number | None = Field(None, description="viscoplastic: Bingham yield stress [Pa], >= 0")
+    viscosity: Number | None = Field(None, description="water or viscoplastic: viscosity [Pa s], >= 0")
+    bulk_modulus: Number | None = Field(None, description="water: bulk modulus [Pa]")
+    friction_angle_deg: Number | None = Field(None, description="sand: friction angle [deg]")
+    cohesion: Number | None = Field(None, description="sand: cohesion [Pa]")
+
+
+class BlockPoured(BaseModel):
+    added: int = Field(description="particles added")
+    num_particles: int = Field(description="the session's particles now (with boundary particles)")
+    frame: int = Field(description="the session's frame when the block was poured")
+
+
 class ObstacleMoved(BaseModel):
     index: int
     center: list[float]

@@ -488,6 +488,16 @@ class SessionManager:
     async def reset(self, s: LocalSession) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
         await self.on_core(s, self.core_of(s).reset)
+        s.facts = self.core_of(s).facts  # a session that was poured into has its scene's particles again
+
+    async def pour(self, s: LocalSession, block: dict[str, Any]) -> dict[str, Any]:
+        """Add ``block`` to ``s`` between frames (:meth:`SessionCore.pour
+        <hybridmpm.service.core.SessionCore.pour>`); every viewer gets a
+        ``particles`` event. Returns its answer."""
+        out = await self.on_core(s, self.core_of(s).pour, block)
+        s.facts = self.core_of(s).facts
+        s.touch()
+        return dict(out)
 
     async def move_obstacle(self, s: LocalSession, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` to ``center`` over its next step

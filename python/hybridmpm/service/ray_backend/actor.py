@@ -230,6 +230,16 @@ class SessionActor:
         self.core.reset()
 
     @_answer
+    def pour(self, block: dict[str, Any]) -> dict[str, Any]:
+        """Add a block between frames; the streams get a ``particles`` event."""
+        return self.core.pour(block)
+
+    @_answer
+    def facts(self) -> dict[str, Any]:
+        """The session's facts (its particles change with a pour and a reset after one)."""
+        return self.core.facts.to_dict()
+
+    @_answer
     def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` to ``center`` over the next step; the streams get an ``obstacle`` event."""
         return self.core.move_obstacle(index, center, velocity)

@@ -599,6 +599,12 @@ class RaySessionManager:
 
     async def reset(self, s: RaySession) -> None:
         await self._call(s, "reset")
+        s.facts = SessionFacts.from_dict(await self._call(s, "facts"))  # its scene's particles again after a pour
+
+    async def pour(self, s: RaySession, block: dict[str, Any]) -> dict[str, Any]:
+        out: dict[str, Any] = await self._call(s, "pour", block)
+        s.facts = SessionFacts.from_dict(out["facts"])
+        return out
 
     async def move_obstacle(self, s: RaySession, index: int, center: list[float], velocity: list[float] | None) -> int:
         frame: int = await self._call(s, "move_obstacle", index, center, velocity)
