@@ -214,6 +214,12 @@ function onEvent(msg) {
   } else if (msg.type === "reset") {
     setApplied(null);
     refreshObstacles(); // the obstacles are back where the scene put them
+  } else if (msg.type === "particles") {
+    // a block was poured (or a reset took it away): the frames' n changes, the particle types with it
+    if (session) {
+      Object.assign(session, { particle_type: msg.particle_type, num_particles: msg.num_particles, num_fluid: msg.num_fluid });
+      renderer.setSession(session); dirty = true;
+    }
   } else if (msg.type === "obstacle") {
     hook.obstacleEvents.push(msg); if (hook.obstacleEvents.length > 200) hook.obstacleEvents.shift();
     const ob = session && session.obstacles && session.obstacles[msg.index];
