@@ -101,6 +101,11 @@ class Viewer:
         self.events.append(msg)
         self.wake.set()
 
+    def opening(self, msg: dict[str, Any]) -> None:
+        """``msg`` (the ``meta`` message) first, before any event queued while it was made."""
+        self.events.appendleft(msg)
+        self.wake.set()
+
 
 async def close_ws(v: Viewer, code: int, reason: str) -> None:
     """Close viewer ``v``'s socket with ``code`` and ``reason`` (at most 2 s; a socket already gone is left)."""

@@ -38,6 +38,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedFrame, Recording
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
+from hybridmpm.service.schemas import clean
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
 from hybridmpm.sim import Frame, Rollout, Simulator, make_simulator, rollout
 
@@ -155,6 +156,7 @@ class SessionCore:
         self.has_viewers: Callable[[], bool] = _no_viewers
         self.playing = False
         self.controlling = False
+        self.running_control: dict[str, Any] | None = None  # the control a new viewer is told of (:meth:`info`)
         self.closed = False
         self.cancel = threading.Event()  # set: the running control stops within a frame
         self.dirty = False  # changed since its last save
@@ -225,7 +227,20 @@ class SessionCore:
             **scene_geometry(self.sim),
             "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
             "recorded_frames": len(self.recording),
+            "control": self.control_state(),
         }
+
+    def control_state(self) -> dict[str, Any] | None:
+        """The control running now, as a viewer that joins meanwhile needs it
+        to show what the others see: ``{"status": "running", "id", "method",
+        "frames", "start_frame", "sketch" (the sketch's JSON or None),
+        "plan" (the plan's summary once made, else None)}``; None when no
+        control runs. Set before the ``running`` event is emitted and cleared
+        before the control returns, so a stream opened at any moment learns of
+        a running control from its opening message, its events, or both."""
+        with self._held:
+            c = self.running_control
+            return None if c is None else {**c}
 
     # ------------------------------------------------------------ what it shows
     def _record(self, fr: Frame) -> None:
@@ -322,6 +337,7 @@ class SessionCore:
         cid: str,
         left: Callable[[], bool] | None = None,
         store: SessionStore | None = None,
+        share: Callable[[], None] | None = None,
     ) -> tuple[Rollout, dict[str, Any], dict[str, Any] | None, float | None]:
         """Plan and run control ``cid`` with ``method`` for ``frames`` frames
         of ``sketch`` (a :class:`~hybridmpm.control.Sketch` or None; the
@@ -334,7 +350,10 @@ class SessionCore:
         session in a control) and again once it ends, before it is answered
         (a control that answered is durable). It stops
         within a frame when ``left()`` turns true (its client left), when
-        :attr:`cancel` is set, or when the session closes. Returns
+        :attr:`cancel` is set, or when the session closes, and so does a plan
+        in progress (between its model rollouts' frames); ``share()`` (the
+        backend's hand-over of the compute this call holds to other work that
+        waits for it) is called between the same units of work. Returns
         ``(rollout, metrics, plan summary or None, time.perf_counter() of
         the first controlled frame or None)``. Raises :class:`BusyError`
         when a control is running and :class:`SessionGoneError` when the
@@ -353,18 +372,37 @@ class SessionCore:
                 self.save(store)
             with self.lock:
                 self._open()
-                self.on_event({"type": "control", "status": "running", "id": cid, "method": method})
+                running = {
+                    "status": "running",
+                    "id": cid,
+                    "method": method,
+                    "frames": int(frames),
+                    "start_frame": self.frame_index,
+                    "sketch": clean(sketch.to_json()) if sketch is not None else None,
+                }
+                with self._held:  # the state first, then the event: a viewer attached in between hears of it twice, never not
+                    self.running_control = {**running, "plan": None}
+                self.on_event({"type": "control", **running})
 
                 def stop() -> bool:
-                    return self.cancel.is_set() or (left is not None and left())
+                    return self.cancel.is_set() or self.closed or (left is not None and left())
 
-                out = run_episode(self.sim, sketch, controller, cid, self._show, self.on_event, stop)
+                def on_event(msg: dict[str, Any]) -> None:
+                    if msg.get("type") == "plan":
+                        with self._held:
+                            if self.running_control is not None:
+                                self.running_control["plan"] = {k: v for k, v in msg.items() if k not in ("type", "id")}
+                    self.on_event(msg)
+
+                out = run_episode(self.sim, sketch, controller, cid, self._show, on_event, stop, share)
                 self._changed()
             self._open()
             if store is not None:
                 self.save(store)
             return out
         finally:
+            with self._held:
+                self.running_control = None
             self.controlling = False
 
     def keep_control(self, c: Control) -> list[Control]:

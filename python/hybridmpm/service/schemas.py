@@ -61,6 +61,31 @@ class CreateSession(Strict):
     )
 
 
+class PlanInfo(BaseModel):
+    """Where the controller plans the fluid's centroid over the controlled horizon."""
+
+    method: str
+    frames: int = Field(description="the control horizon T_ctr [frames]")
+    stride: int = Field(description="control frames between consecutive points of centroid_path")
+    centroid_path: list[list[float]] = Field(
+        description="the planned centroid of the fluid [m] at control frames 0, stride, 2·stride, …, frames (the last point is where "
+        "the plan ends: the arrow's tip relative to the start centroid, or the oval's centre); D coordinates (in 3D z as planned)"
+    )
+    target: list[float] = Field(description="the centroid the sketch asks for [m], x–y (an arrow: start centroid + the arrow; an oval: its centre)")
+
+
+class RunningControl(BaseModel):
+    """A control running on a session: what its stream's ``control running`` event says, with the plan once made."""
+
+    status: Literal["running"] = "running"
+    id: str
+    method: str
+    frames: int = Field(description="the control horizon T_ctr [frames]")
+    start_frame: int = Field(description="the session's frame when the control started")
+    sketch: dict[str, Any] | None = Field(description="the sketch it follows (the request's sketch JSON, domain coordinates, y up); null for none")
+    plan: PlanInfo | None = Field(None, description="the plan's centroid path once the controller has made it; null before")
+
+
 class SessionInfo(BaseModel):
     id: str = Field(description="unguessable session id (192 bits, 32 URL-safe characters); the session's only credential")
     scene: str
@@ -92,6 +117,9 @@ class SessionInfo(BaseModel):
         default_factory=list, description="each obstacle's centre now [m] (moved by PUT .../obstacles/{index} or its scene's path)"
     )
     recorded_frames: int = Field(0, description="coarse steps of the session's recent trajectory held for download (GET .../trajectory)")
+    control: RunningControl | None = Field(
+        None, description="the control running on the session now (what a viewer that joins meanwhile shows); null when none runs"
+    )
 
 
 class StepRequest(Strict):
@@ -170,19 +198,6 @@ class ControlRequest(Strict):
         None, description="the control method (SceneInfo.methods); null: the scene's default (SceneInfo.default_method)"
     )
     frames: Integer = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
-
-
-class PlanInfo(BaseModel):
-    """Where the controller plans the fluid's centroid over the controlled horizon."""
-
-    method: str
-    frames: int = Field(description="the control horizon T_ctr [frames]")
-    stride: int = Field(description="control frames between consecutive points of centroid_path")
-    centroid_path: list[list[float]] = Field(
-        description="the planned centroid of the fluid [m] at control frames 0, stride, 2·stride, …, frames (the last point is where "
-        "the plan ends: the arrow's tip relative to the start centroid, or the oval's centre); D coordinates (in 3D z as planned)"
-    )
-    target: list[float] = Field(description="the centroid the sketch asks for [m], x–y (an arrow: start centroid + the arrow; an oval: its centre)")
 
 
 class ControlResponse(BaseModel):
