@@ -406,29 +406,14 @@ class MpmSolver:
         return state
 
     def _check_same_particles(self, state: bytes) -> None:
-        """Refuse a core state (the Rust part of :meth:`checkpoint`: magic,
-        u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
-        whose particles are not this solver's: count, dimension, material and
-        mass per particle."""
-        d = self.dim
-        if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
-            raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
-        tail = 3 if state[:8] == _CORE_MAGIC else 1
-        per = 4 * (3 * d + 3 * d * d + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
-        (dd,) = struct.unpack_from("<I", state, 8)
-        (n,) = struct.unpack_from("<Q", state, 12)
+        """Refuse a core state (the Rust part of :meth:`checkpoint`) whose
+        particles are not this solver's: count, dimension, material and mass
+        per particle."""
+        n = core_particle_count(state, self.dim)
         n_self = self.num_particles
-        if dd != d or n != n_self:
-            raise CheckpointError(f"checkpoint holds {n} particles in {dd}D, this solver {n_self} in {d}D")
-        if len(state) != _CORE_HEADER + n * per:
-            raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
-        rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
-        mass_at = 4 * (2 * d + 2 * d * d + 2)
-        masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
-        if not np.array_equal(rec[:, -tail], np.asarray(self.material).astype(np.uint8)):
-            raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
-        if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
-            raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
+        if n != n_self:
+            raise CheckpointError(f"checkpoint holds {n} particles in {self.dim}D, this solver {n_self} in {self.dim}D")
+        check_leading_particles(state, self.dim, np.asarray(self.material), np.asarray(self.masses, np.float32))
 
     @staticmethod
     def _split(blob: bytes) -> tuple[MpmParams, bytes, Any]:
@@ -445,6 +430,46 @@ class MpmSolver:
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
         return params, bytes(blob[16 + n :]), cs
+
+
+def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:
+    """A core state's (the Rust part of :meth:`MpmSolver.checkpoint`: magic,
+    u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
+    particle count, record size and trailing bytes per record (material, and
+    set in v3), checked against its length. Raises :class:`CheckpointError`."""
+    if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
+        raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
+    tail = 3 if state[:8] == _CORE_MAGIC else 1
+    per = 4 * (3 * dim + 3 * dim * dim + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
+    (dd,) = struct.unpack_from("<I", state, 8)
+    (n,) = struct.unpack_from("<Q", state, 12)
+    if dd != dim:
+        raise CheckpointError(f"checkpoint holds particles in {dd}D, this solver is {dim}D")
+    if len(state) != _CORE_HEADER + n * per:
+        raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
+    return int(n), per, tail
+
+
+def core_particle_count(state: bytes, dim: int) -> int:
+    """The particles a core state of a ``dim``-D solver holds (its format and length checked). Raises :class:`CheckpointError`."""
+    return _core_records(state, dim)[0]
+
+
+def check_leading_particles(state: bytes, dim: int, material: np.ndarray, masses: np.ndarray) -> None:
+    """Refuse a core state whose first ``len(material)`` particles are not
+    ones of this ``material`` (codes) and ``masses`` (float32), in order:
+    a solver's own particles, followed by any others. Raises :class:`CheckpointError`."""
+    n, per, tail = _core_records(state, dim)
+    m = len(material)
+    if n < m:
+        raise CheckpointError(f"checkpoint holds {n} particles, fewer than the {m} expected")
+    rec = np.frombuffer(state, np.uint8, m * per, _CORE_HEADER).reshape(m, per)
+    mass_at = 4 * (2 * dim + 2 * dim * dim + 2)
+    got = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
+    if not np.array_equal(rec[:, -tail], np.asarray(material).astype(np.uint8)):
+        raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
+    if not np.array_equal(got, np.asarray(masses, np.float32)):
+        raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
 
 
 def _initial_anchors(colliders: list[Collider], dim: int) -> np.ndarray:

@@ -163,7 +163,7 @@ class SessionCore:
         self.saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
         self.save_failure: tuple[int | None, str] | None = None  # (errno, message) of its last failed save; None after a save
         self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
-        self.poured = False  # particles were added (a reset then builds its simulator again)
+        self.poured = getattr(sim, "poured_particles", 0) > 0  # particles were added (a reset then builds its simulator again)
         self.last_used = time.monotonic()
         self._record(sim.frame)
 
@@ -436,14 +436,24 @@ class SessionCore:
         """Restore ``state``, all or nothing: the simulator's refusal
         (:class:`~hybridmpm.errors.InvalidInputError`,
         :class:`~hybridmpm.errors.CheckpointError`, or a ``KeyError``/``TypeError``/...
-        of a malformed tree) leaves it as it was. The recent trajectory starts again."""
+        of a malformed tree) leaves it as it was. The recent trajectory starts
+        again. A state taken before or after a pour brings its own particles
+        back (:meth:`hybridmpm.sim.MpmSimulator.restore`): the facts follow and
+        the viewers get a ``particles`` event when they changed."""
         with self.lock:
             self._open()
             self.sim.restore(state)
+            facts = SessionFacts.of(self.sim)
+            moved = not np.array_equal(facts.particle_type, self.facts.particle_type)
+            self.facts, self.poured = facts, getattr(self.sim, "poured_particles", 0) > 0
             self._changed()
             with self._held:
                 self.recording.clear()
             self._show(self.sim.frame)
+            frame = self.frame_index
+        if moved:
+            self.on_event({"type": "particles", "frame": frame, "added": 0, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
+                           "particle_type": [int(t) for t in facts.particle_type]})  # fmt: skip
 
     def reset(self) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event

@@ -557,6 +557,7 @@ class SessionManager:
         refusal (:class:`InvalidInputError`, :class:`CheckpointError`, or a
         ``KeyError``/``TypeError``/... of a malformed tree) leaves it as it was."""
         await self.on_core(s, self.core_of(s).restore, state)
+        s.facts = self.core_of(s).facts  # a state taken before or after a pour has its own particles
 
     async def reset(self, s: LocalSession) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event."""

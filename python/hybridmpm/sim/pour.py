@@ -23,7 +23,6 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.materials import material_from_block
 from hybridmpm.scenes.core import lattice, wall_face
 from hybridmpm.scenes.obstacles import collider_sdf
-from hybridmpm.scenes.particles import ParticleSet
 from hybridmpm.scenes.spec import BYTES_PER_PARTICLE, MAX_BLOCK_SPEED
 
 #: Most particles one pour adds.
@@ -138,26 +137,7 @@ def _with_params(solver: Any, params: Any) -> Any:
 
 def _commit(sim: Any, solver: Any) -> None:
     """Point ``sim`` at ``solver`` (its particles grown) and show the new frame."""
-    from hybridmpm.sim.base import Frame
-
-    old: ParticleSet = sim.particles
-    n = int(solver.num_particles)
-    material = np.asarray(solver.material, np.int32)
-    from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
-
-    fluid_types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)
-    sim.solver = solver
-    sim.particles = ParticleSet(
-        n,
-        old.boundary,
-        np.concatenate([fluid_types, np.asarray(old.particle_type)[old.num_fluid :]]),
-        material,
-        np.asarray(solver.masses, np.float32),
-        old.boundary_obstacle,
-    )
-    sim.scene = replace(sim.scene, params=solver.params)
-    f = sim.frame
-    sim._frame = Frame(f.step, f.frame_index, f.time, sim.positions, f.solver, obstacle_centers=f.obstacle_centers)  # noqa: SLF001
+    sim.adopt(solver)
 
 
 __all__ = ["MAX_OVERLAP_FRACTION", "MAX_POURED_TOTAL", "MAX_POUR_PARTICLES", "pour_block"]
