@@ -3,6 +3,7 @@
 
 import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
 import { encodeGif } from "./gif.js";
+import { Palette } from "./palette.js";
 import { LEVELS, QualityController, SOFTWARE_START, levelForScale } from "./quality.js";
 
 const HEADER_BYTES = 32;
@@ -523,8 +524,13 @@ async function refreshObstacles() {
   } catch { /* the session is gone: nothing to redraw */ }
 }
 
+const palette = new Palette($("palette"), {
+  api, session: () => session, is3D, setStatus, hook, domain: toDomain,
+  ray: (x, y, h) => { const r = inkCanvas.getBoundingClientRect(); return rayPlane(pixelRay(matrices(), x - r.left, y - r.top, r.width, r.height), [0, h, 0], [0, 1, 0]); },
+});
 inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
+  if (palette.armed && ev.button === 0 && session) { palette.drop(ev.clientX, ev.clientY); return; } // the palette's drop
   if (tool() === "drag" && session && (ev.button === 0 || !is3D())) { // 3D: the other buttons turn the camera (below)
     if (ev.button !== 0 || grab) return;
     const hit = is3D() ? obstacleHit(ev.clientX, ev.clientY) : { index: obstacleAt(toDomain(ev.clientX, ev.clientY)), point: toDomain(ev.clientX, ev.clientY) };
