@@ -5,12 +5,12 @@
 //! constants of every material that g2p, the stress refresh and the CFL
 //! condition read.
 //!
-//! Each update takes the trial `F* = (I + Δt·C)·F` and its singular value
-//! decomposition `F* = U·diag(σ)·Vᵀ` from the crate's one SVD
-//! ([`DimOps::svd`], tested against nalgebra's); with `R = U·Vᵀ`:
+//! Each update takes the trial `F* = (I + Δt·C)·F`; the models
+//! (`material/solid/update.rs`, without singular vectors, on one particle
+//! or sixteen SIMD lanes, [`SolidBatch`]):
 //!
-//! - fixed-corotated: `τ = 2μ(F − R)Fᵀ + λJ(J − 1)I = U·diag(2μ(σ − 1)σ + λJ(J − 1))·Uᵀ`;
-//! - neo-Hookean: `τ = μ(FFᵀ − I) + λ ln J · I` (no SVD);
+//! - fixed-corotated: `τ = 2μ(F − R)Fᵀ + λJ(J − 1)I = 2μ(B − √B) + λJ(J − 1)I`;
+//! - neo-Hookean: `τ = μ(FFᵀ − I) + λ ln J · I`;
 //! - snow: `σ` clamped to `[1 − θc, 1 + θs]`, `J_P ← J_P·Πσ / Πσ_clamped`
 //!   (the rest of the deformation goes to `F_P`), `F_E = U·diag(σ_clamped)·Vᵀ`,
 //!   the fixed-corotated stress with μ, λ scaled by `e^{ξ(1 − J_P)}`;
@@ -295,5 +295,7 @@ pub(crate) fn advance<const D: usize>(
     (finite, !(det(&p.f) > 0.0))
 }
 
+#[cfg(test)]
+mod lane_tests;
 #[cfg(test)]
 mod tests;
