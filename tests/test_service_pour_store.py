@@ -161,6 +161,12 @@ def _with_header(data: bytes, **changes) -> bytes:
     return ckpt.dumps(state, meta)
 
 
+def _with_state(data: bytes, **changes) -> bytes:
+    """``data`` (a checkpoint) with keys of its simulator's state changed."""
+    state, meta = ckpt.loads(data, 1 << 28)
+    return ckpt.dumps({**state, **changes}, meta)
+
+
 def test_a_checkpoint_that_is_not_this_scene_plus_blocks_is_refused(client, monkeypatch):
     s = _new(client)
     sid, n0 = s["id"], s["num_particles"]
@@ -173,6 +179,9 @@ def test_a_checkpoint_that_is_not_this_scene_plus_blocks_is_refused(client, monk
     bad = {
         "other physics": _with_header(poured, gravity=[g * 2 for g in gravity]),
         "other parameter sets": _with_header(poured, sets=[]),
+        "a record of the block one particle short": _with_state(poured, poured=[JELLY_N - 1]),
+        "no record of the block": _with_state(poured, poured=[]),
+        "a record that is not a list": _with_state(poured, poured={"0": JELLY_N}),
     }
     for why, data in bad.items():
         r = _put(client, sid, data)

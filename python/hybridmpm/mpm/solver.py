@@ -352,7 +352,7 @@ class MpmSolver:
     @classmethod
     def from_checkpoint(cls, blob: bytes) -> MpmSolver:
         """A new solver from :meth:`checkpoint` bytes. Raises :class:`CheckpointError`."""
-        params, state, cs = cls._split(blob)
+        params, state, cs = cls.split_checkpoint(blob)
         sim = cls(params)
         poses = sim._check_collider_state(cs)
         sim._core.restore(state)
@@ -368,7 +368,7 @@ class MpmSolver:
         (positions outside the domain, non-finite values, a truncated blob,
         other parameters or particles) and the solver is then unchanged."""
         state = self.check_restore(blob, same_particles=same_particles)
-        poses = self._check_collider_state(self._split(blob)[2])
+        poses = self._check_collider_state(self.split_checkpoint(blob)[2])
         self._core.restore(state)
         self._set_collider_state(poses)
 
@@ -381,7 +381,7 @@ class MpmSolver:
         match and the particles must be this solver's (count, materials,
         masses). The colliders stay where they are. Raises
         :class:`CheckpointError` and leaves the solver unchanged otherwise."""
-        params, state, _ = self._split(blob)
+        params, state, _ = self.split_checkpoint(blob)
         mine, theirs = self.params.to_dict(), params.to_dict()
         for d in (mine, theirs):
             d.pop("n_grid")
@@ -398,7 +398,7 @@ class MpmSolver:
         parameters, and with ``same_particles`` the particles' count,
         materials and masses), changing nothing; returns the core's part of
         the blob. Raises :class:`CheckpointError`."""
-        params, state, _ = self._split(blob)
+        params, state, _ = self.split_checkpoint(blob)
         if params.to_dict() != self.params.to_dict():
             raise CheckpointError("checkpoint was written with different parameters; use MpmSolver.from_checkpoint")
         if same_particles:
@@ -416,8 +416,10 @@ class MpmSolver:
         check_leading_particles(state, self.dim, np.asarray(self.material), np.asarray(self.masses, np.float32))
 
     @staticmethod
-    def _split(blob: bytes) -> tuple[MpmParams, bytes, Any]:
-        """A checkpoint's parameters, core state and collider state (None when absent)."""
+    def split_checkpoint(blob: bytes) -> tuple[MpmParams, bytes, Any]:
+        """A checkpoint's (:meth:`checkpoint`'s bytes) parameters, core state
+        and collider state (None when absent). Raises :class:`CheckpointError`
+        for bytes that are not one, a truncated or malformed header."""
         if not isinstance(blob, (bytes, bytearray)) or blob[:8] != _MAGIC or len(blob) < 16:
             raise CheckpointError("not a hybridmpm MpmSolver checkpoint")
         (n,) = struct.unpack("<Q", blob[8:16])
@@ -430,6 +432,18 @@ class MpmSolver:
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
         return params, bytes(blob[16 + n :]), cs
+
+    @staticmethod
+    def with_header(blob: bytes, updates: dict[str, Any]) -> bytes:
+        """The checkpoint ``blob`` with the keys of ``updates`` replaced in its
+        parameter header (the collider state and core state kept byte for
+        byte), for restoring it into a solver of other threads or further
+        parameter sets. Raises :class:`CheckpointError` as :meth:`split_checkpoint`."""
+        MpmSolver.split_checkpoint(blob)  # the header checked whole first
+        (n,) = struct.unpack("<Q", blob[8:16])
+        head = {**loads_json(blob[16 : 16 + n], "checkpoint"), **updates}
+        header = json.dumps(head).encode()
+        return bytes(blob[:8]) + struct.pack("<Q", len(header)) + header + bytes(blob[16 + n :])
 
 
 def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:
@@ -470,6 +484,23 @@ def check_leading_particles(state: bytes, dim: int, material: np.ndarray, masses
         raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
     if not np.array_equal(got, np.asarray(masses, np.float32)):
         raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
+
+
+def check_poured_blocks(state: bytes, dim: int, start: int, counts: list[int]) -> None:
+    """Refuse a core state whose particles from ``start`` on are not
+    ``counts`` blocks in order, each of one material and parameter set (a
+    block poured whole: :func:`hybridmpm.sim.pour.pour_block`), with none
+    left over. Raises :class:`CheckpointError`."""
+    n, per, tail = _core_records(state, dim)
+    if start + sum(counts) != n:
+        raise CheckpointError(f"checkpoint holds {n - start} particles after its scene's {start}, its record of poured blocks {sum(counts)}")
+    rec = np.frombuffer(state, np.uint8, (n - start) * per, _CORE_HEADER + start * per).reshape(n - start, per)
+    kind = rec[:, per - tail :].astype(np.int64) @ (256 ** np.arange(tail, dtype=np.int64))  # material and set in one key
+    at = 0
+    for k, c in enumerate(counts):
+        if c and not np.all(kind[at : at + c] == kind[at]):
+            raise CheckpointError(f"checkpoint's poured block {k} mixes materials or parameter sets")
+        at += c
 
 
 def _initial_anchors(colliders: list[Collider], dim: int) -> np.ndarray:

@@ -19,8 +19,6 @@ frames move with it (:attr:`MpmSimulator.obstacle_offsets`).
 
 from __future__ import annotations
 
-import json
-import struct
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -33,7 +31,7 @@ from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.mpm import MpmSolver, SampledSdf
 from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, check_velocity, path_center
 from hybridmpm.mpm.params import Collider
-from hybridmpm.mpm.solver import check_leading_particles, core_particle_count
+from hybridmpm.mpm.solver import check_leading_particles, check_poured_blocks, core_particle_count
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.obstacles import obstacle_center
@@ -130,6 +128,8 @@ class MpmSimulator:
         self.particles = self.scene.particles(self.solver.masses)
         #: the scene's own solver parameters and particles: a state with blocks poured after them restores (:meth:`restore`)
         self._scene_params, self._scene_particles = self.solver.params, self.particles
+        #: the particle count of each block poured into it, in order (:func:`hybridmpm.sim.pour.pour_block`)
+        self._pours: list[int] = []
         self.dt_frame = float(self.scene.dt_frame)
         self.dt_step = self.dt_frame * self.r_t
         self.step_index = 0
@@ -366,6 +366,7 @@ class MpmSimulator:
             "forcing": self._forcing.copy() if isinstance(self._forcing, np.ndarray) else None,
             "applied": self._applied,
             "obstacle_moves": [{"index": i, "center": c.tolist(), "velocity": None if v is None else v.tolist()} for i, (c, v) in self._moves.items()],
+            "poured": list(self._pours),
         }
 
     @serialised
@@ -404,9 +405,12 @@ class MpmSimulator:
             if not isinstance(blob, (bytes, bytearray)):
                 raise InvalidInputError("state.solver: must be the solver's checkpoint bytes", "state.solver")
             blob = bytes(blob)
-            grown = self._poured_solver(blob) if poured else None
+            pours = self._check_pours(state.get("poured", []))  # absent from states saved before blocks were poured
+            grown = self._poured_solver(blob, pours) if poured else None
             if grown is None:
                 self.solver.check_restore(blob, same_particles=True)
+                if pours != self._pours:
+                    raise CheckpointError(f"state.poured: records blocks of {pours} particles, this simulator holds {self._pours}")
             n_fluid = self.particles.num_fluid if grown is None else int(grown.num_particles)
             forcing = check_forcing(state["forcing"], n_fluid, self.particles.dim)
             moves = self._check_moves(state.get("obstacle_moves", {}))  # absent from states saved before obstacles moved
@@ -415,7 +419,7 @@ class MpmSimulator:
             if grown is None:
                 self.solver.restore(blob, same_particles=True)
             else:
-                self.adopt(grown)
+                self.adopt(grown, pours)
             self._moves = moves
             self.step_index = step
             self.stats = stats
@@ -425,10 +429,23 @@ class MpmSimulator:
 
         return commit
 
-    def _poured_solver(self, blob: bytes) -> MpmSolver | None:
+    def _check_pours(self, raw: Any) -> list[int]:
+        """A state's ``poured`` (the particle count of each block poured, in
+        order), checked: a list of at most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` ints,
+        each in [1, :data:`~hybridmpm.sim.pour.MAX_POUR_PARTICLES`]. Raises
+        :class:`InvalidInputError` naming ``state.poured``."""
+        from hybridmpm.sim.pour import MAX_POUR_PARTICLES, MAX_POURED_TOTAL
+
+        field = "state.poured"
+        if not isinstance(raw, (list, tuple)) or len(raw) > MAX_POURED_TOTAL:
+            raise InvalidInputError(f"{field}: must be a list of the particle counts of the blocks poured", field)
+        return [check_int(f"{field}[{k}]", c, 1, MAX_POUR_PARTICLES) for k, c in enumerate(raw)]
+
+    def _poured_solver(self, blob: bytes, pours: list[int]) -> MpmSolver | None:
         """None when ``blob`` holds this solver's particles and parameters
         (the plain restore); else a new solver restored from it when it is a
-        state of this scene with blocks poured after its particles, or of this
+        state of this scene with the blocks ``pours`` (their particle counts)
+        poured after its particles, each of one material and set, or of this
         scene alone while this simulator holds poured blocks: the scene's
         solver parameters with the scene's parameter sets followed by any
         others, the scene's particles first (count, materials, masses), at
@@ -437,10 +454,10 @@ class MpmSimulator:
         Raises :class:`~hybridmpm.errors.CheckpointError` otherwise."""
         from hybridmpm.sim.pour import MAX_POURED_TOTAL  # at call time: a test lowers the bound
 
-        params, core, _ = MpmSolver._split(blob)  # noqa: SLF001 - the solver's own checkpoint format
+        params, core, _ = MpmSolver.split_checkpoint(blob)
         d = self.particles.dim
         n = core_particle_count(core, d)
-        if n == self.solver.num_particles and params.to_dict() == self.solver.params.to_dict():
+        if n == self.solver.num_particles and params.to_dict() == self.solver.params.to_dict() and pours == self._pours:
             return None
         base = self._scene_params.to_dict()
         theirs = params.to_dict()
@@ -449,32 +466,37 @@ class MpmSimulator:
         theirs.pop("num_threads", None)
         if base != theirs or sets[: len(sets0)] != sets0:
             diff = sorted(k for k in set(base) | set(theirs) if base.get(k) != theirs.get(k)) or ["sets"]
-            raise CheckpointError(f"checkpoint was written with other physics ({', '.join(diff)})")
+            raise CheckpointError(f"checkpoint was written with other solver parameters ({', '.join(diff)})")
         scene = self._scene_particles
         most = max(MAX_POURED_TOTAL, scene.num_fluid)
         if n > most:
             raise CheckpointError(f"checkpoint holds {n} particles, more than the {most} a simulator of this scene holds with poured blocks")
         check_leading_particles(core, d, np.asarray(scene.material), np.asarray(scene.masses, np.float32))
+        check_poured_blocks(core, d, int(scene.num_fluid), pours)
         threads = int(self.solver.params.num_threads)
         if params.num_threads != threads:  # this simulator's threads (the same bits on any count): the header says so too
-            (h,) = struct.unpack("<Q", blob[8:16])
-            header = json.dumps({**json.loads(blob[16 : 16 + h]), "num_threads": threads}).encode()
-            blob = blob[:8] + struct.pack("<Q", len(header)) + header + blob[16 + h :]
-            params = MpmSolver._split(blob)[0]  # noqa: SLF001
+            blob = MpmSolver.with_header(blob, {"num_threads": threads})
+            params = MpmSolver.split_checkpoint(blob)[0]
         out = MpmSolver(params, memory_budget=self.solver.memory_budget)
         out.restore(blob)
         return out
+
+    @property
+    def pours(self) -> list[int]:
+        """The particle count of each block poured into it, in order."""
+        return list(self._pours)
 
     @property
     def poured_particles(self) -> int:
         """The particles it holds beyond its scene's own (blocks poured into it)."""
         return int(self.solver.num_particles) - int(self._scene_particles.num_fluid)
 
-    def adopt(self, solver: MpmSolver) -> None:
+    def adopt(self, solver: MpmSolver, pours: list[int]) -> None:
         """Run on ``solver`` from now on: this scene's particles followed by
-        poured ones (:func:`hybridmpm.sim.pour.pour_block`, :meth:`restore`),
-        in its parameter sets; the particle set, the scene's parameters and
-        the current frame follow. Between steps."""
+        the blocks poured, ``pours`` particles each (:func:`hybridmpm.sim.pour.pour_block`,
+        :meth:`restore`), in its parameter sets; the particle set, the scene's
+        parameters and the current frame follow. Between steps."""
+        self._pours = list(pours)
         old = self.particles
         material = np.asarray(solver.material, np.int32)
         fluid_types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)

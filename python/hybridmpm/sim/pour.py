@@ -11,8 +11,6 @@ it was.
 
 from __future__ import annotations
 
-import json
-import struct
 from dataclasses import replace
 from typing import Any
 
@@ -107,7 +105,7 @@ def pour_block(sim: Any, block: dict[str, Any]) -> int:
     set_index, new_params = _set_for(params, m)
     solver = sim.solver if new_params is None else _with_params(sim.solver, new_params)
     solver.add_particles(p, m.code, velocities=np.tile(vel.astype(np.float32), (len(p), 1)), material_set=set_index)
-    _commit(sim, solver)
+    sim.adopt(solver, [*sim.pours, len(p)])
     return int(solver.num_particles)
 
 
@@ -126,18 +124,10 @@ def _with_params(solver: Any, params: Any) -> Any:
     """A new solver of ``params`` (a further parameter set appended: every
     particle's set index keeps its meaning) holding ``solver``'s whole state
     (particles, clock, the colliders' poses and pending moves)."""
-    blob = solver.checkpoint()
-    (n,) = struct.unpack("<Q", blob[8:16])
-    head = {**json.loads(blob[16 : 16 + n]), **params.to_dict()}  # the collider state kept
-    header = json.dumps(head).encode()
+    blob = type(solver).with_header(solver.checkpoint(), params.to_dict())  # the collider state kept
     out = type(solver)(params, memory_budget=solver.memory_budget)
-    out.restore(blob[:8] + struct.pack("<Q", len(header)) + header + blob[16 + n :])
+    out.restore(blob)
     return out
-
-
-def _commit(sim: Any, solver: Any) -> None:
-    """Point ``sim`` at ``solver`` (its particles grown) and show the new frame."""
-    sim.adopt(solver)
 
 
 __all__ = ["MAX_OVERLAP_FRACTION", "MAX_POURED_TOTAL", "MAX_POUR_PARTICLES", "pour_block"]
