@@ -298,7 +298,7 @@ function drawFrame(now) {
   if (!dirty || !latest || !session) return false;
   dirty = false;
   const t0 = performance.now();
-  if (fresh) { renderer.setFrame(latest); fresh = false; }
+  if (fresh && renderer.setFrame(latest)) fresh = false; // else held until the 'particles' event names its count
   renderer.draw();
   if (syncDraw && renderer.gl) renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, syncPixel); // waits for the GPU
   const ms = performance.now() - t0;
