@@ -3,7 +3,8 @@ cluster of two node processes (a head and a second node, on this machine's
 loopback address, token authentication with a fresh token, Ray's files in a
 temporary directory) and two front ends on one store. A session created
 through one front end is stepped, controlled, checkpointed and streamed
-through the other, bit for bit as one uninterrupted local run; its actor's
+through the other, bit for bit as one uninterrupted local run (a jelly
+poured into it through one front end included); its actor's
 process killed with SIGKILL, the next step resumes from its last save and
 goes on bit for bit; the whole cluster and both front ends stopped and
 started again on the same store, the session is back; the second node's
@@ -45,12 +46,14 @@ from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.store import SessionStore
 from hybridmpm.service.testing import LiveServer, RayCluster, free_port, step_binary, wait_saved
 from hybridmpm.sim import make_simulator, rollout
+from hybridmpm.sim.pour import pour_block
 
 OCTET = {"Accept": "application/octet-stream"}
 #: Bounds on waiting (never a pass/fail threshold on time).
 WAIT_S = 180.0
 SCENE, SOLVER, SEED = "water2d", "mpm", 3
 ARROW = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.4]]}
+JELLY = {"material": "jello", "lo": [0.6, 0.75], "hi": [0.7, 0.85]}
 
 
 @pytest.fixture(scope="module")
@@ -117,6 +120,11 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             # stepped through B, then A: one uninterrupted run
             assert np.array_equal(step_binary(cb, sid, 5), rollout(ref, 5).positions[1:])
             assert np.array_equal(step_binary(ca, sid, 3), rollout(ref, 3).positions[1:])
+            # a jelly poured through A: B's facts and frames hold it, and the run goes on as a local one poured alike
+            r = ca.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+            assert r.status_code == 201, r.text
+            n = pour_block(ref, JELLY)
+            assert r.json()["num_particles"] == n and cb.get(f"/v1/sessions/{sid}").json()["num_particles"] == n
             # controlled through B, its trajectory fetched through A
             r = cb.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 20})
             assert r.status_code == 200, r.text
@@ -137,6 +145,7 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             assert info["frame"] == played[-1] or info["frame"] > played[-1]
             ref = make_simulator(SCENE, SOLVER, seed=SEED, threads=1, nn_threads=1)
             rollout(ref, 8)
+            pour_block(ref, JELLY)
             control_episode(ref, Sketch.from_json(ARROW), Controller.for_scene(SCENE, "constant", frames=20))
             rollout(ref, info["frame"] - 28)
             # its actor's process killed: the next request waits for it, resumed from the last save
@@ -149,7 +158,7 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             t0 = time.monotonic()
             after = step_binary(ca, sid, 4)
             back_s = time.monotonic() - t0
-            assert np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"
+            assert np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"  # the jelly in it
             info = cb.get(f"/v1/sessions/{sid}").json()
             assert info["restored_from_frame"] == saved and info["frame"] == saved + 4
             assert cluster.actor_pids() != pids

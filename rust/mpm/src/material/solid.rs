@@ -275,11 +275,36 @@ pub(crate) fn stress<const D: usize>(
     from_lanes(&stress_lanes::<f32, D>(m, &to_lanes(f), j))
 }
 
+/// A step that would invert a solid particle (`det F ≤ 0` after the
+/// update: compression past zero volume in one substep, as when a soft
+/// solid is driven into a wall at speed) keeps its `F` and `J_P` of the
+/// start of the substep and their stress: the compression beyond inversion
+/// is taken as plastic, so `det F > 0` always holds and the particle's
+/// stress pushes it back out. Lanes with `det F > 0` (and NaN, which the
+/// health check reports) are unchanged: the same bits as without it.
+#[inline(always)]
+pub(crate) fn keep_uninverted<R: Real, const D: usize>(
+    m: &Model,
+    (f0, j0): (&[R; 9], R),
+    (f, j, tau): ([R; 9], R, [R; 9]),
+) -> ([R; 9], R, [R; 9]) {
+    let inverted = update::det::<R, D>(&f).le(R::splat(0.0));
+    if !R::any(inverted) {
+        return (f, j, tau);
+    }
+    let tau0 = stress_lanes::<R, D>(m, f0, j0);
+    (
+        std::array::from_fn(|k| R::select(inverted, f0[k], f[k])),
+        R::select(inverted, j0, j),
+        std::array::from_fn(|k| R::select(inverted, tau0[k], tau[k])),
+    )
+}
+
 /// g2p update of a solid particle (elastic, snow, viscoplastic) with the new
 /// velocity gradient `c` over `dt`: its `f` (and `j` = `J_P` for snow) and
 /// stress, one particle ([`SolidBatch`] does sixteen, with the same bits
-/// per lane). Returns `(finite, inverted)`: whether F, J_P and τ are finite,
-/// and whether `det F ≤ 0` (or NaN). (g2p runs [`SolidBatch`]; the tests
+/// per lane; [`keep_uninverted`]). Returns `(finite, inverted)`: whether F,
+/// J_P and τ are finite, and whether `det F ≤ 0` (or NaN). (g2p runs [`SolidBatch`]; the tests
 /// this.)
 #[cfg_attr(not(test), allow(dead_code))]
 pub(crate) fn advance<const D: usize>(
@@ -288,8 +313,10 @@ pub(crate) fn advance<const D: usize>(
     dt: f32,
     c: &SMatrix<f32, D, D>,
 ) -> (bool, bool) {
-    let ft = trial::<f32, D>(&to_lanes(&p.f), &to_lanes(c), dt);
-    let (f, j, tau) = update_lanes::<f32, D>(m, &ft, p.j, dt);
+    let f0 = to_lanes(&p.f);
+    let ft = trial::<f32, D>(&f0, &to_lanes(c), dt);
+    let (f, j, tau) =
+        keep_uninverted::<f32, D>(m, (&f0, p.j), update_lanes::<f32, D>(m, &ft, p.j, dt));
     (p.f, p.j, p.tau) = (from_lanes(&f), j, from_lanes(&tau));
     let finite = p.f.iter().chain(p.tau.iter()).all(|a| a.is_finite()) && p.j.is_finite();
     (finite, !(det(&p.f) > 0.0))

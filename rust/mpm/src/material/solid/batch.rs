@@ -116,7 +116,11 @@ impl SolidBatch {
             }
         }
         let ft = trial::<FL, D>(&self.f, &self.c, dt);
-        let (f, j, tau) = update_lanes::<FL, D>(m, &ft, self.j, dt);
+        let (f, j, tau) = super::keep_uninverted::<FL, D>(
+            m,
+            (&self.f, self.j),
+            update_lanes::<FL, D>(m, &ft, self.j, dt),
+        );
         (self.f, self.j, self.tau) = (f, j, tau);
         let det = super::update::det::<FL, D>(&f);
         let mut probe = j.zero_if_finite();
