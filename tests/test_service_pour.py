@@ -135,3 +135,24 @@ def test_nan_density_and_the_budget_are_refused(client, monkeypatch):
 def test_only_mpm_sessions_take_a_pour(client):
     sid = _new(client, scene="water2d", solver="neural")["id"]
     assert client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "material": "water"}).status_code == 409
+
+
+def test_a_pour_is_charged_to_the_memory_budget_until_its_session_goes(client, monkeypatch):
+    from hybridmpm.scenes.core import BYTES_PER_PARTICLE
+    from hybridmpm.service.sessions import SESSION_STATE_COPIES
+
+    base = client.get("/healthz").json()["memory_used"]
+    sid = _new(client)["id"]
+    held = client.get("/healthz").json()["memory_used"]
+    r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+    assert r.status_code == 201, r.text
+    used = client.get("/healthz").json()["memory_used"]
+    assert used - held >= SESSION_STATE_COPIES * BYTES_PER_PARTICLE * r.json()["added"], (base, held, used)  # and its new frames
+    # a pour the budget cannot hold at its largest is refused (503, retry later) and changes nothing
+    before = _ckpt(client, sid)
+    monkeypatch.setattr(pour_module, "MAX_POUR_PARTICLES", 1 << 40)
+    r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "lo": [0.75, 0.6], "hi": [0.85, 0.7]})
+    assert r.status_code == 503 and r.headers["retry-after"], r.text
+    assert _ckpt(client, sid) == before and client.get("/healthz").json()["memory_used"] == used
+    assert client.delete(f"/v1/sessions/{sid}").status_code == 204
+    assert client.get("/healthz").json()["memory_used"] == base

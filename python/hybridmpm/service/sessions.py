@@ -568,7 +568,21 @@ class SessionManager:
         """Add ``block`` to ``s`` between frames (:meth:`SessionCore.pour
         <hybridmpm.service.core.SessionCore.pour>`); every viewer gets a
         ``particles`` event. Returns its answer."""
-        out = await self.on_core(s, self.core_of(s).pour, block)
+        from hybridmpm.scenes.core import BYTES_PER_PARTICLE
+        from hybridmpm.sim.pour import MAX_POUR_PARTICLES
+
+        # the most a pour can add taken from the service's budget first (a full budget refuses it, the session
+        # unchanged); what it did not add given back, what it added counted in the session's cost until it goes
+        per = SESSION_STATE_COPIES * BYTES_PER_PARTICLE
+        held = self.budget.take(per * MAX_POUR_PARTICLES, "a poured block")
+        try:
+            out = await self.on_core(s, self.core_of(s).pour, block)
+        except BaseException:
+            self.budget.give(held)
+            raise
+        used = min(held, per * int(out["added"]))
+        self.budget.give(held - used)
+        s.cost += used
         s.facts = self.core_of(s).facts
         s.touch()
         return dict(out)
