@@ -13,7 +13,7 @@ import hybridmpm as hm
 from hybridmpm.cli import main
 from hybridmpm.models import shipped_default
 from hybridmpm.scenes import DOMAINS, PAPER_FRAMES, make_scene
-from hybridmpm.scenes.material_scenes import MATERIAL_DOMAINS, SNOWBALL_SPEED
+from hybridmpm.scenes.material_scenes import SNOWBALL_SPEED, SOLID_SCENE_DOMAINS
 from hybridmpm.sim import default_settings
 
 SOLID = {"jelly_dam_break2d": ("elastic", 2), "jelly_dam_break3d": ("elastic", 2), "snowball2d": ("snow", 3), "mud_slump2d": ("viscoplastic", 4)}
@@ -23,7 +23,7 @@ def _extent(p: np.ndarray) -> np.ndarray:
     return p.max(0) - p.min(0)
 
 
-@pytest.mark.parametrize("name", sorted(MATERIAL_DOMAINS))
+@pytest.mark.parametrize("name", sorted(SOLID_SCENE_DOMAINS))
 def test_registered_with_water_and_their_solid_and_no_default(name):
     assert name in DOMAINS and PAPER_FRAMES[name] >= 200
     scene = make_scene(name, 0)

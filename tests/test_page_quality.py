@@ -217,9 +217,18 @@ def test_the_default_scene_playing_keeps_24_frames_drawn_with_its_water_a_surfac
     assert page.evaluate("[__hmpm.renderer, __hmpm.look, __hmpm.view.software]") == ["webgl2", "fluid", True]
     page.wait_for_function("window.__hmpm.lastFrame >= 60", timeout=60_000)  # the surge is on its way
     top, _, changes, _ = drawn_rate(page, 3.0)
+    # a CPU that draws the top level at 24 frames/s on this canvas gets a larger canvas (more pixels for every
+    # pass), until the top level is too slow there: what the page adapts to is the machine, and so does the test
+    for width, height in ((1500, 1090), (2000, 1450), (2700, 1960)):
+        if top < TARGET_FPS:
+            break
+        page.set_viewport_size({"width": width, "height": height})
+        n = page.evaluate("__hmpm.framesRendered")
+        page.wait_for_function(f"window.__hmpm.framesRendered > {n + 2}", timeout=30_000)
+        top, _, changes, _ = drawn_rate(page, 3.0)
     q = page.evaluate("__hmpm.quality")
     assert q["level"] == 6 and not q["auto"] and changes == 0
-    assert top < TARGET_FPS, f"the top level already draws {top:.1f} frames/s: nothing to adapt here"
+    assert top < TARGET_FPS, f"the top level still draws {top:.1f} frames/s on the largest canvas: nothing to adapt here"
 
     # auto: it steps down until it draws 24 frames/s, then holds
     page.select_option("#quality", "auto")
@@ -247,14 +256,14 @@ def test_the_default_scene_playing_keeps_24_frames_drawn_with_its_water_a_surfac
     assert surfaces == drawn > 0
     assert water_share(page) > 0.03
 
-    # a level the user fixes is kept, though the page draws under 24 frames/s there
+    # a level the user fixes is kept, though the page draws under 24 frames/s there (the top level, measured so above)
     n0 = page.evaluate("__hmpm.quality.changes.length")  # auto went on meanwhile
-    page.select_option("#quality", "6")
+    page.select_option("#quality", "7")
     time.sleep(1.0)
     fixed, _, _, _ = drawn_rate(page, 3.0)
     q = page.evaluate("__hmpm.quality")
-    assert q["level"] == 5 and not q["auto"] and [c["why"] for c in q["changes"][n0:]] == ["fixed"], q["changes"][n0:]
-    assert fixed < TARGET_FPS, f"level 6 draws {fixed:.1f} frames/s: the test shows nothing about keeping it"
-    assert page.locator("#r-quality").text_content().startswith("6/7 fixed")
+    assert q["level"] == 6 and not q["auto"] and [c["why"] for c in q["changes"][n0:]] == ["fixed"], q["changes"][n0:]
+    assert fixed < TARGET_FPS, f"level 7 draws {fixed:.1f} frames/s: the test shows nothing about keeping it"
+    assert page.locator("#r-quality").text_content().startswith("7/7 fixed")
     assert page.evaluate("__hmpm.errors") == [] and errors == [], errors
     page.close()

@@ -246,15 +246,17 @@ def test_3d_page_renders_turns_follows_an_arrow_and_hands_out_its_trajectory(ser
     yaw = page.evaluate("window.__hmpm.camera.yaw")
     box = page.locator("#ink").bounding_box()
     page.mouse.move(box["x"] + 300, box["y"] + 300)
+    n = page.evaluate("window.__hmpm.framesRendered")
     page.mouse.down(button="right")
     page.mouse.move(box["x"] + 420, box["y"] + 330, steps=8)
     page.mouse.up(button="right")
-    page.wait_for_timeout(400)
+    page.wait_for_function(f"window.__hmpm.framesRendered > {n}", timeout=10_000)  # drawn since the camera turned
     turned = shot(page, "#sim")
     assert page.evaluate("window.__hmpm.camera.yaw") != yaw
     assert np.abs(turned - full).mean() > 5 * np.abs(again - full).mean() + 1.0
+    n = page.evaluate("window.__hmpm.framesRendered")
     page.click("#view-reset")
-    page.wait_for_timeout(300)
+    page.wait_for_function(f"window.__hmpm.framesRendered > {n}", timeout=10_000)
     # obstacles are drawn as solids (the 3D scenes have none: two are handed to the view, a sphere and a turned box)
     obstacles = [
         {"shape": "sphere", "center": [0.5, 0.25, 0.5], "radius": 0.08},
@@ -347,6 +349,42 @@ def test_2d_page_draws_obstacles_and_keeps_the_sketch_through_the_horizon(server
     assert page.evaluate("window.__hmpm.strokeCss") == []
     assert page.evaluate("window.__hmpm.errors") == [] and errors == [], errors
     page.close()
+
+
+def test_a_page_that_joins_mid_control_shows_its_sketch_and_plan(server, browser):
+    """A page opened on a session (``?session=ID``: a second viewer, a reload) while a control runs there, started
+    by another client, learns it from its stream's opening message: it draws that control's sketch and plan as
+    the page that applied it does, says it runs, and sees it end. Leaving the page does not delete the session."""
+    import concurrent.futures
+
+    sketch = {"kind": "arrow", "points": [[0.25, 0.3], [0.45, 0.32], [0.65, 0.4]]}
+    frames = 1000
+    with httpx.Client(base_url=server.url, timeout=120) as c, concurrent.futures.ThreadPoolExecutor(1) as pool:
+        info = c.post("/v1/sessions", json={"scene": "water3d", "seed": 2, "solver": "mpm"}).json()
+        sid, start = info["id"], info["frame"]
+        long = pool.submit(c.post, f"/v1/sessions/{sid}/controls", json={"sketch": sketch, "method": "constant", "frames": frames})
+        deadline = time.monotonic() + 60
+        while (c.get(f"/v1/sessions/{sid}").json().get("control") is None) and not long.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        page, errors = new_page(browser, f"?session={sid}&gl=0&autoplay=0", server)
+        page.wait_for_function("window.__hmpm.streamFrame !== undefined", timeout=30_000)
+        mid = page.evaluate("window.__hmpm.streamFrame") < start + frames  # joined mid-control (8 s of MPM here: always, unless stalled)
+        if mid:
+            page.wait_for_function("window.__hmpm.applied && window.__hmpm.applied.plan && window.__hmpm.planCss.length > 1", timeout=30_000)
+            shown = page.evaluate("window.__hmpm.applied")
+            assert shown["kind"] == "arrow" and np.allclose(np.asarray(shown["stroke"])[:, :2], sketch["points"]), shown
+            assert shown["plan"]["frames"] == frames and "running" in page.evaluate("window.__hmpm.status")
+            page.wait_for_function("window.__hmpm.framesRendered >= 2", timeout=10_000)
+            assert near(shot(page), along(page.evaluate("window.__hmpm.strokeCss")), INK) >= 0.9
+        assert long.result().status_code == 200
+        if mid:  # it sees the control end, and keeps its sketch until cleared (as the page that applied it does)
+            page.wait_for_function("window.__hmpm.controlRunning === false && /done/.test(window.__hmpm.status)", timeout=30_000)
+            assert page.evaluate("window.__hmpm.applied.stroke.length") == len(sketch["points"])
+        assert page.evaluate("window.__hmpm.session.id") == sid
+        assert page.evaluate("window.__hmpm.errors") == [] and errors == [], errors
+        page.close()
+        assert c.get(f"/v1/sessions/{sid}").status_code == 200  # a joined session is another client's: still there
+        assert c.delete(f"/v1/sessions/{sid}").status_code == 204
 
 
 def test_canvas2d_fallback_draws_without_webgl(server, browser):
@@ -459,8 +497,9 @@ def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward
     page.wait_for_timeout(1500)  # still paused after the control
     assert session_frame(server, sid) == f0 + 100 and page.evaluate("window.__hmpm.lastFrame") == f0 + 100
     assert "paused" in page.evaluate("window.__hmpm.status")
+    n = page.evaluate("window.__hmpm.framesRendered")
     page.click("#clear")
-    page.wait_for_timeout(300)
+    page.wait_for_function(f"window.__hmpm.framesRendered > {n}", timeout=10_000)
     controlled = shot(page, "#sim")
 
     # the same frame without the control

@@ -3,7 +3,8 @@ cluster of two node processes (a head and a second node, on this machine's
 loopback address, token authentication with a fresh token, Ray's files in a
 temporary directory) and two front ends on one store. A session created
 through one front end is stepped, controlled, checkpointed and streamed
-through the other, bit for bit as one uninterrupted local run; its actor's
+through the other, bit for bit as one uninterrupted local run (a jelly
+poured into it through one front end included); its actor's
 process killed with SIGKILL, the next step resumes from its last save and
 goes on bit for bit; the whole cluster and both front ends stopped and
 started again on the same store, the session is back; the second node's
@@ -45,12 +46,14 @@ from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.store import SessionStore
 from hybridmpm.service.testing import LiveServer, RayCluster, free_port, step_binary, wait_saved
 from hybridmpm.sim import make_simulator, rollout
+from hybridmpm.sim.pour import pour_block
 
 OCTET = {"Accept": "application/octet-stream"}
 #: Bounds on waiting (never a pass/fail threshold on time).
 WAIT_S = 180.0
 SCENE, SOLVER, SEED = "water2d", "mpm", 3
 ARROW = {"kind": "arrow", "points": [[0.3, 0.3], [0.6, 0.4]]}
+JELLY = {"material": "jello", "lo": [0.6, 0.75], "hi": [0.7, 0.85]}
 
 
 @pytest.fixture(scope="module")
@@ -117,6 +120,11 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             # stepped through B, then A: one uninterrupted run
             assert np.array_equal(step_binary(cb, sid, 5), rollout(ref, 5).positions[1:])
             assert np.array_equal(step_binary(ca, sid, 3), rollout(ref, 3).positions[1:])
+            # a jelly poured through A: B's facts and frames hold it, and the run goes on as a local one poured alike
+            r = ca.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+            assert r.status_code == 201, r.text
+            n = pour_block(ref, JELLY)
+            assert r.json()["num_particles"] == n and cb.get(f"/v1/sessions/{sid}").json()["num_particles"] == n
             # controlled through B, its trajectory fetched through A
             r = cb.post(f"/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 20})
             assert r.status_code == 200, r.text
@@ -137,6 +145,7 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             assert info["frame"] == played[-1] or info["frame"] > played[-1]
             ref = make_simulator(SCENE, SOLVER, seed=SEED, threads=1, nn_threads=1)
             rollout(ref, 8)
+            pour_block(ref, JELLY)
             control_episode(ref, Sketch.from_json(ARROW), Controller.for_scene(SCENE, "constant", frames=20))
             rollout(ref, info["frame"] - 28)
             # its actor's process killed: the next request waits for it, resumed from the last save
@@ -149,7 +158,7 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
             t0 = time.monotonic()
             after = step_binary(ca, sid, 4)
             back_s = time.monotonic() - t0
-            assert np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"
+            assert len(after) == 4 and np.array_equal(after, rollout(ref, 4).positions[1:]), "the restored run differs"  # the jelly in it
             info = cb.get(f"/v1/sessions/{sid}").json()
             assert info["restored_from_frame"] == saved and info["frame"] == saved + 4
             assert cluster.actor_pids() != pids
@@ -173,37 +182,99 @@ def test_two_front_ends_serve_one_session_bitwise_and_survive_its_killed_actor(c
         b.stop()
 
 
+async def _opened(ws) -> dict[str, Any]:
+    """Read a stream's opening messages: its ``meta`` (returned), then up to the current frame. What a viewer can
+    rely on: once they are read, every later event of the session reaches it."""
+    meta = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
+    assert meta["type"] == "meta", meta
+    while not isinstance(await asyncio.wait_for(ws.recv(), WAIT_S), bytes):
+        pass
+    return meta
+
+
+def _controls(events: list[str]) -> list[dict[str, Any]]:
+    return [m for m in map(json.loads, events) if m.get("type") == "control"]
+
+
+async def _told_of(ws, control: dict[str, Any]) -> dict[str, Any]:
+    """What a viewer that joins while ``control`` (its ``running`` event) runs learns from its opening messages and
+    the events after them: ``{"meta": the meta's control, "plan": the plan (the meta's or a plan event's), "ended":
+    the control event that ended it, "frame": the meta's frame}``."""
+    meta = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
+    assert meta["type"] == "meta", meta
+    told: dict[str, Any] = {"meta": meta.get("control"), "frame": meta["frame"], "plan": (meta.get("control") or {}).get("plan"), "ended": None}
+    deadline = time.monotonic() + WAIT_S
+    while told["ended"] is None and time.monotonic() < deadline:
+        m = await asyncio.wait_for(ws.recv(), WAIT_S)
+        if isinstance(m, str):
+            e = json.loads(m)
+            if e.get("type") == "plan" and e.get("id") == control["id"]:
+                told["plan"] = told["plan"] or e
+            elif e.get("type") == "control" and e.get("id") == control["id"] and e["status"] != "running":
+                told["ended"] = e
+    return told
+
+
+def _check_told(told: dict[str, Any], control: dict[str, Any], start: int, frames: int) -> None:
+    """A viewer that joined before ``control`` (``frames`` frames from frame ``start``) ended (its meta's frame short
+    of the control's end) was told it runs, with its sketch, and got its plan and its end."""
+    assert told["ended"] is not None and told["ended"]["status"] == "done", told
+    if told["frame"] < start + frames:
+        c = told["meta"]
+        assert c is not None and c["status"] == "running" and c["id"] == control["id"] and c["method"] == "constant", told
+        assert c["sketch"]["kind"] == ARROW["kind"] and np.allclose(c["sketch"]["points"], ARROW["points"]), c
+        assert c["frames"] == frames and c["start_frame"] == start
+        plan = told["plan"]
+        assert plan is not None and plan["frames"] == frames and len(plan["centroid_path"]) >= 2, told
+
+
 def test_a_refused_control_tells_no_viewer_it_is_running(cluster, tmp_path):
     """A control runs through front end A; a second one sent through B is refused (409 from the actor). A viewer
-    on B sees one "running" event (A's, emitted by the actor once it starts) and then its end: none for the
-    refused one (B announced every control before the actor accepted it)."""
+    on B, attached before it (its opening messages read), sees one "running" event (A's, emitted by the actor
+    once it starts) and then its end: none for the refused one (B announced every control before the actor
+    accepted it). Viewers that join while it runs, on A (whose stream starts its feeder then) and on B (whose
+    feeder runs), are told by their opening messages that it runs, with its sketch and plan, and see it end."""
     a, b = _front_end(cluster, tmp_path / "store", tmp_path / "a.log"), _front_end(cluster, tmp_path / "store", tmp_path / "b.log")
 
-    async def go(sid: str) -> list[str]:
+    async def go(sid: str) -> tuple[list[str], list[dict[str, Any]], dict[str, Any], int]:
         events: list[str] = []
+
+        async def read(ws) -> None:  # read on throughout (a client that stops reading stalls its socket, pongs too)
+            while not any(e["status"] == "done" for e in _controls(events)):
+                m = await asyncio.wait_for(ws.recv(), WAIT_S)
+                if isinstance(m, str):
+                    events.append(m)
+
         async with websockets.connect(f"{b.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws, httpx.AsyncClient(timeout=WAIT_S) as c:
-            long = asyncio.create_task(c.post(f"{a.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 600}))
+            start = int((await _opened(ws))["frame"])
+            long = asyncio.create_task(c.post(f"{a.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 1000}))
+            reader = asyncio.create_task(read(ws))
             deadline = time.monotonic() + WAIT_S
-            while not any('"running"' in e for e in events) and time.monotonic() < deadline:
-                m = await asyncio.wait_for(ws.recv(), WAIT_S)
-                if isinstance(m, str):
-                    events.append(m)
-            refused = [await c.post(f"{b.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 5}) for _ in range(3)]
-            assert [r.status_code for r in refused] == [409] * 3, [r.text[:80] for r in refused]
-            assert (await long).status_code == 200
-            while not any('"done"' in e for e in events) and time.monotonic() < deadline:
-                m = await asyncio.wait_for(ws.recv(), WAIT_S)
-                if isinstance(m, str):
-                    events.append(m)
-        return events
+            while not _controls(events) and not reader.done() and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            running = _controls(events)[0]
+            assert running["status"] == "running", running
+            # late viewers, joined mid-control
+            async with (
+                websockets.connect(f"{a.ws_url}/v1/sessions/{sid}/stream", max_size=None) as la,
+                websockets.connect(f"{b.ws_url}/v1/sessions/{sid}/stream", max_size=None) as lb,
+            ):
+                late = [asyncio.create_task(_told_of(w, running)) for w in (la, lb)]
+                refused = [await c.post(f"{b.url}/v1/sessions/{sid}/controls", json={"sketch": ARROW, "method": "constant", "frames": 5}) for _ in range(3)]
+                assert [r.status_code for r in refused] == [409] * 3, [r.text[:80] for r in refused]
+                assert (await long).status_code == 200
+                await reader
+                told = [await t for t in late]
+        return events, told, running, start
 
     try:
         _start(a, b)
         with httpx.Client(base_url=a.url, timeout=WAIT_S) as ca:
             sid = ca.post("/v1/sessions", json={"scene": SCENE, "solver": SOLVER, "seed": SEED}).json()["id"]
-            events = asyncio.run(go(sid))
-            control = [json.loads(e) for e in events if '"control"' in e]
-            assert [e["status"] for e in control] == ["running", "done"], control
+            events, told, running, start = asyncio.run(go(sid))
+            for t in told:
+                _check_told(t, running, start, 1000)
+            assert [e["status"] for e in _controls(events)] == ["running", "done"], _controls(events)
             ca.delete(f"/v1/sessions/{sid}")
     finally:
         a.stop()

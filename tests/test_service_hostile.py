@@ -80,7 +80,7 @@ def split_blob(blob):
     d = struct.unpack("<I", core[8:12])[0]
     (n,) = struct.unpack("<Q", core[12:20])
     records = np.frombuffer(core[CORE_HEADER:], np.uint8).reshape(n, -1)
-    assert records.shape[1] == 4 * (3 * d + 3 * d * d + 4) + 1
+    assert records.shape[1] == 4 * (3 * d + 3 * d * d + 4) + 3  # f32 fields, material (u8), parameter set (u16)
     return head, core[:CORE_HEADER], records
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import json
 import os
 import socket
 import time
@@ -87,15 +88,80 @@ def test_second_concurrent_control_is_409(server):
             # sent once the stream announces the first running (no sleep that a loaded machine could outlast)
             body = {"sketch": {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]}, "method": "constant", "frames": 1000}
             async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws:
+                await opened(ws)  # attached: every later event reaches it
                 first = asyncio.create_task(client.post(f"/v1/sessions/{sid}/controls", json=body))
                 while True:
                     m = await asyncio.wait_for(ws.recv(), 60)
-                    if isinstance(m, str) and '"running"' in m:
+                    if isinstance(m, str) and json.loads(m).get("status") == "running":
                         break
-                second = await client.post(f"/v1/sessions/{sid}/controls", json=body)
-                return (await first).status_code, second.status_code
+            # the viewer closed: one that stops reading stalls its socket (the server's pings too)
+            second = await client.post(f"/v1/sessions/{sid}/controls", json=body)
+            return (await first).status_code, second.status_code
 
     assert asyncio.run(run()) == (200, 409)
+
+
+async def opened(ws) -> dict:
+    """Read a stream's opening messages: its ``meta`` (returned), then up to the current frame."""
+    meta = json.loads(await asyncio.wait_for(ws.recv(), 60))
+    assert meta["type"] == "meta", meta
+    while not isinstance(await asyncio.wait_for(ws.recv(), 60), bytes):
+        pass
+    return meta
+
+
+def test_a_viewer_that_joins_mid_control_is_told_it_runs_with_its_sketch_and_plan(server):
+    """A viewer that connects while a control runs (a second page, a reconnect) learns it from its opening
+    message: the meta's ``control`` (running, its id, method, horizon, start frame, sketch and, once made, plan),
+    as GET /v1/sessions/{id} says; then it sees the control end. Joined after the first viewer heard "running",
+    it never hears that event itself, so only the meta can tell it."""
+    sketch = {"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.35]]}
+    body = {"sketch": sketch, "method": "constant", "frames": 1000}
+
+    async def run():
+        async with httpx.AsyncClient(base_url=server.url, timeout=60) as client:
+            sid = (await client.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm"})).json()["id"]
+            before = (await client.get(f"/v1/sessions/{sid}")).json()
+            assert before.get("control") is None
+            async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", max_size=None) as ws:
+                assert (await opened(ws)).get("control") is None
+                long = asyncio.create_task(client.post(f"/v1/sessions/{sid}/controls", json=body))
+                while True:
+                    m = await asyncio.wait_for(ws.recv(), 60)
+                    if isinstance(m, str) and json.loads(m).get("status") == "running":
+                        running = json.loads(m)
+                        break
+            described = (await client.get(f"/v1/sessions/{sid}")).json()
+            async with websockets.connect(f"{server.ws_url}/v1/sessions/{sid}/stream", max_size=None) as late:
+                meta = json.loads(await asyncio.wait_for(late.recv(), 60))
+                plan, ended = (meta.get("control") or {}).get("plan"), None
+                while ended is None:
+                    m = await asyncio.wait_for(late.recv(), 60)
+                    if isinstance(m, str):
+                        e = json.loads(m)
+                        if e["type"] == "plan":
+                            plan = plan or e
+                        elif e["type"] == "control" and e["status"] != "running":
+                            ended = e
+            assert (await long).status_code == 200
+            return before["frame"], running, described, meta, plan, ended
+
+    start, running, described, meta, plan, ended = asyncio.run(run())
+    for d in (described, meta):
+        if d["frame"] < start + 1000:  # taken mid-control (2 s of MPM here: always, but on a stalled machine)
+            c = d.get("control")
+            assert c is not None, d
+            assert {k: c[k] for k in ("status", "id", "method", "frames", "start_frame")} == {
+                "status": "running",
+                "id": running["id"],
+                "method": "constant",
+                "frames": 1000,
+                "start_frame": start,
+            }
+            assert c["sketch"]["kind"] == "arrow" and c["sketch"]["points"] == sketch["points"]
+    assert running["sketch"]["points"] == sketch["points"] and running["frames"] == 1000 and running["start_frame"] == start
+    assert plan is not None and plan["frames"] == 1000 and len(plan["centroid_path"]) >= 2
+    assert ended["status"] == "done" and ended["id"] == running["id"]
 
 
 def _stalled_ws(server, path: str) -> socket.socket:
@@ -139,8 +205,10 @@ def test_stalled_client_does_not_grow_memory_nor_slow_another(server):
     rss0 = server.rss()
     stalled = _stalled_ws(server, path)
     try:
-        time.sleep(0.5)
         with httpx.Client(base_url=server.url) as c:
+            deadline = time.monotonic() + 30  # attached once the server has answered its handshake
+            while c.get(f"/v1/sessions/{sid}").json()["viewers"] < 1 and time.monotonic() < deadline:
+                time.sleep(0.05)
             assert c.get(f"/v1/sessions/{sid}").json()["viewers"] >= 1
         shared = asyncio.run(count_frames(5.0))
         rss1 = server.rss()

@@ -82,3 +82,32 @@ def test_wide_and_narrow_sessions_step_at_once_without_deadlock_and_bit_for_bit(
     for (scene, seed), pos in zip(specs, got):
         alone = rollout(make_simulator(scene, "mpm", seed=seed, threads=1), frames).positions[1:]
         assert np.array_equal(pos, alone), f"{scene} seed {seed} differs from a one-thread run alone"
+
+
+def test_an_mpc_plan_stops_within_two_seconds_of_a_cancel():
+    """The core a Ray actor runs: a 1000-frame MPC control on dam_break3d plans for many seconds; setting its
+    ``cancel`` (the actor's ``cancel_control``: its client left) 0.5 s in stops the plan between its model
+    rollouts' frames: the control returns a rollout of no frame (the session's state untouched) within 2 s."""
+    import threading
+    import time
+
+    from hybridmpm.control import Sketch
+    from hybridmpm.service.budget import MemoryBudget
+    from hybridmpm.service.core import SessionCore
+
+    core = SessionCore.build("k", SessionSettings("dam_break3d", 0, "mpm", 0.8), "test", MemoryBudget(1 << 30), threads=1)
+    p0, f0 = np.array(core.sim.positions), core.frame_index
+    sketch = Sketch.from_json({"kind": "arrow", "points": [[0.2, 0.3], [0.5, 0.3]]})
+    out: list[object] = []
+    worker = threading.Thread(target=lambda: out.append(core.control("mpc", 1000, sketch, "c1")))
+    worker.start()
+    time.sleep(0.5)  # into the plan (it runs for many seconds): what is measured is the time from the cancel on
+    t0 = time.monotonic()
+    core.cancel.set()
+    worker.join(60)
+    took = time.monotonic() - t0
+    assert not worker.is_alive() and took < 2.0, took
+    ro, metrics, plan, first = out[0]  # type: ignore[misc]
+    assert ro.frames_done == 0 and metrics["failure"] == "cancelled while planning" and plan is None and first is None
+    assert np.array_equal(core.sim.positions, p0) and core.frame_index == f0
+    assert core.control_state() is None and not core.controlling

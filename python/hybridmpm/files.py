@@ -1,5 +1,5 @@
-"""Reading user files safely: the one place scene files, sketch files and
-store records are opened.
+"""Reading user files safely: the one place scene files, sketch files, model
+files and store records are opened.
 
 :func:`read_regular_file` opens without blocking (a FIFO cannot hang it),
 refuses anything but a regular file (a device such as ``/dev/zero``, a FIFO,
@@ -35,6 +35,9 @@ from hybridmpm.limits import human
 MAX_NESTING = 32
 #: Most members an ``.npz`` archive read by :func:`npz_headers` may have.
 MAX_NPZ_MEMBERS = 10_000
+#: Largest model file (ONNX) the library reads [bytes]: 256 MiB, checked on the open file before it is read
+#: (:func:`read_model_file`; the shipped models are under 1 MB, protobuf itself stops at 2 GiB).
+MAX_MODEL_BYTES = 256 * 2**20
 
 #: What a path that is not a regular file is, by ``stat.S_IFMT`` (for messages).
 FILE_KINDS = {
@@ -46,11 +49,9 @@ FILE_KINDS = {
 }
 
 
-def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, what: str = "file") -> bytes:
-    """The bytes of the regular file ``path`` (links followed), at most
-    ``max_bytes``. Raises :class:`InvalidInputError` naming ``field`` for a
-    missing or unreadable path, anything that is not a regular file, or a
-    file over ``max_bytes`` (checked on the open file, before reading)."""
+def _open_regular(path: str | os.PathLike[str], max_bytes: int, field: str, what: str) -> int:
+    """A read-only descriptor of the regular file ``path`` (links followed; opened without blocking, so a FIFO
+    or a device is refused, not waited on) of at most ``max_bytes``; :class:`InvalidInputError` naming ``field``."""
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
         fd = os.open(path, flags)
@@ -63,6 +64,26 @@ def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, 
             raise InvalidInputError(f"{field}: {what} {path} is {kind}, not a regular file", field)
         if st.st_size > max_bytes:
             raise InvalidInputError(f"{field}: {what} {path} has {st.st_size} bytes, more than the {max_bytes} allowed", field)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def check_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, what: str = "file") -> None:
+    """Check, without reading it, that ``path`` is a regular file (links followed) of at most ``max_bytes``,
+    for a reader that opens it by name (onnxruntime). Raises :class:`InvalidInputError` naming ``field``
+    as :func:`read_regular_file` does."""
+    os.close(_open_regular(path, max_bytes, field, what))
+
+
+def read_regular_file(path: str | os.PathLike[str], max_bytes: int, field: str, what: str = "file") -> bytes:
+    """The bytes of the regular file ``path`` (links followed), at most
+    ``max_bytes``. Raises :class:`InvalidInputError` naming ``field`` for a
+    missing or unreadable path, anything that is not a regular file, or a
+    file over ``max_bytes`` (checked on the open file, before reading)."""
+    fd = _open_regular(path, max_bytes, field, what)
+    try:
         chunks: list[bytes] = []
         total = 0
         while True:
@@ -206,6 +227,22 @@ def read_npz_member(zf: zipfile.ZipFile, header: NpyHeader) -> np.ndarray:
         return np.asarray(np.lib.format.read_array(f, allow_pickle=False))
 
 
+def read_model_file(path: str | Path) -> bytes:
+    """The bytes of the model file ``path`` (ONNX): :func:`read_regular_file` with at most
+    :data:`MAX_MODEL_BYTES` (a FIFO, a device such as ``/dev/zero`` or a link to one refused without
+    blocking, the size checked on the open file before it is read). Raises
+    :class:`InvalidInputError` (field ``model``) for a missing or unreadable path, anything that is
+    not a regular file, or a larger file."""
+    return read_regular_file(path, MAX_MODEL_BYTES, "model", "model file")
+
+
+def check_model_file(path: str | Path) -> None:
+    """Check, without reading it, that the model file ``path`` is a regular file of at most
+    :data:`MAX_MODEL_BYTES` (:func:`check_regular_file`), before onnxruntime opens it by name.
+    Raises :class:`InvalidInputError` (field ``model``) as :func:`read_model_file` does."""
+    check_regular_file(path, MAX_MODEL_BYTES, "model", "model file")
+
+
 def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "file") -> str:
     """:func:`read_regular_file` decoded as UTF-8 (:class:`InvalidInputError` naming ``field`` if it is not)."""
     raw = read_regular_file(path, max_bytes, field, what)
@@ -217,13 +254,17 @@ def read_text_file(path: str | Path, max_bytes: int, field: str, what: str = "fi
 
 __all__ = [
     "FILE_KINDS",
+    "MAX_MODEL_BYTES",
     "MAX_NESTING",
     "MAX_NPZ_MEMBERS",
     "NpyHeader",
+    "check_model_file",
     "check_nesting",
+    "check_regular_file",
     "json_depth",
     "loads_json",
     "npz_headers",
+    "read_model_file",
     "read_npz_member",
     "read_regular_file",
     "read_text_file",

@@ -11,6 +11,7 @@ sessions should set it to its per-session share.
 
 from __future__ import annotations
 
+import numbers
 import os
 import re
 
@@ -25,6 +26,12 @@ DEFAULT_FRACTION = 0.5
 #: r_t``, and every counter of steps): int64 holds it and the simulated time
 #: ``frame · dt_frame`` stays exact in float64. Larger values are refused.
 MAX_FRAME_INDEX = 2**53
+
+#: Seeds are integers in [0, MAX_SEED) = [0, 2^63): what int64 and numpy's generators hold. A seed
+#: derived from another (a first seed plus a count, a trajectory's index) must stay in range too; a
+#: library whose seeds are narrower (scikit-learn's k-means: [0, 2^32)) gets one derived from it
+#: (:func:`hybridmpm.scenes.resolution.kmeans_seed`).
+MAX_SEED = 2**63
 
 _override: int | None = None
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
@@ -79,6 +86,14 @@ def human(nbytes: float) -> str:
     return f"{nbytes:.1f} PiB"  # pragma: no cover
 
 
+def check_seed(value: object, field: str = "seed") -> int:
+    """``value`` as a seed: an integer (not a bool) in [0, :data:`MAX_SEED`) = [0, 2^63).
+    Raises :class:`InvalidInputError` naming ``field`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= int(value) < MAX_SEED:
+        raise InvalidInputError(f"{field}: must be an integer in [0, 2^63), got {value!r}", field)
+    return int(value)
+
+
 def check_allocation(field: str, nbytes: float, what: str) -> None:
     """Refuse an allocation of ``nbytes`` for ``what`` beyond the budget:
     :class:`InvalidInputError` naming ``field`` and the size needed."""
@@ -90,4 +105,15 @@ def check_allocation(field: str, nbytes: float, what: str) -> None:
         )
 
 
-__all__ = ["DEFAULT_FRACTION", "ENV_VAR", "check_allocation", "human", "memory_budget", "parse_size", "physical_memory", "set_memory_budget"]
+__all__ = [
+    "DEFAULT_FRACTION",
+    "ENV_VAR",
+    "MAX_SEED",
+    "check_allocation",
+    "check_seed",
+    "human",
+    "memory_budget",
+    "parse_size",
+    "physical_memory",
+    "set_memory_budget",
+]

@@ -94,8 +94,15 @@ def neural_role(r_p: float, r_t: int) -> str:
     return _ROLE[(r_p >= 1.0, r_t == 1)]
 
 
-def _model_info(path: Path) -> tuple[float, int, int]:
-    m = open_model(path)
+def _model_info(path: Path, field: str = "model") -> tuple[float, int, int]:
+    """``(r_p, r_t, parameters)`` of the model file ``path``; a file :func:`~hybridmpm.neural.base.open_model`
+    refuses is an :class:`InvalidInputError` naming ``field`` (the argument that gave it)."""
+    try:
+        m = open_model(path)
+    except InvalidInputError as e:
+        if field == "model":
+            raise
+        raise InvalidInputError(f"{field}: {e}", field) from None
     params = int(m.meta.get("parameters", m.meta.get("params", 0)) or 0)
     return m.r_p, m.r_t, params
 
@@ -149,7 +156,9 @@ def methods_for(
     refuses on ``seed``'s initial condition are left out:
     :func:`mpm_grid_methods`; with the calibrated coarse material where one
     was fitted for the scene and grid, key ``mpm_g<n>_cal``). Raises
-    :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1].
+    :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1], ``model`` /
+    ``extra_models`` for a model file that is missing, not a regular file (a FIFO, ``/dev/zero``),
+    larger than :data:`~hybridmpm.files.MAX_MODEL_BYTES` or no model of hybridmpm.
     """
 
     for r in r_cs:
@@ -167,12 +176,12 @@ def methods_for(
         for m in mpm_grid_methods(scene, r_p, seed, grids)[0]
         if m.r_p == 1.0 and fit_name(scene, int(m.n_grid or 0)) in shipped_calibrations()
     ]
-    models: list[tuple[str, Path, str]] = []
+    models: list[tuple[str, Path, str, str]] = []
     if variants:
-        models += [(v["name"], v["path"], v["role"]) for v in variant_models(scene)]
-    models += [(Path(p).stem, Path(p), "") for p in extra_models]
-    for name, path, role in models:
-        vr_p, vr_t, vparams = _model_info(path)
+        models += [(v["name"], v["path"], v["role"], "model") for v in variant_models(scene)]
+    models += [(Path(p).stem, Path(p), "", "extra_models") for p in extra_models]
+    for name, path, role, field in models:
+        vr_p, vr_t, vparams = _model_info(path, field)
         role = role or neural_role(vr_p, vr_t)
         label = f"{ROLE_LABEL[role]} ({name})" if role in ROLE_LABEL else f"neural {name}"
         out.append(Method(f"neural_{name}", "neural", label, vr_p, vr_t, model=str(path), role=role, params=vparams))

@@ -7,8 +7,11 @@ import json
 import sys
 from typing import Any
 
-from hybridmpm.cli.common import out_dir, parse_seed
+from hybridmpm.cli.common import out_dir, out_file, parse_seed, seed_range
 from hybridmpm.errors import HybridMpmError
+
+#: Most seeds one ``bench`` or ``tune`` runs (``--seeds``): each is a whole benchmark of every method.
+MAX_SEEDS = 10_000
 
 
 def _bench_kwargs(args: argparse.Namespace) -> dict:
@@ -34,11 +37,10 @@ def _bench(args: argparse.Namespace) -> int:
     # import time: loaded by this command only
     from hybridmpm.bench import TEST_SEED0, bench
 
-    if args.seeds < 1:
-        raise HybridMpmError("seeds: must be >= 1")
-    seeds = [args.first_seed + i for i in range(args.seeds)] if args.first_seed is not None else [TEST_SEED0 + i for i in range(args.seeds)]
+    seeds = seed_range(TEST_SEED0 if args.first_seed is None else args.first_seed, args.seeds, "--first-seed", "--seeds", MAX_SEEDS)
+    out = out_dir(args.out if args.out is not None else f"runs/bench/{args.scene}")
     cmd = "hybridmpm " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else f"hybridmpm bench {args.scene}"
-    res = bench(args.scene, seeds=seeds, out=args.out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
+    res = bench(args.scene, seeds=seeds, out=out, command=cmd, progress=not args.quiet, **_bench_kwargs(args))
     if not args.quiet:
         for r in res["rows"]:
             print(
@@ -52,11 +54,13 @@ def _bench(args: argparse.Namespace) -> int:
 def _tune(args: argparse.Namespace) -> int:
     # import time: loaded by this command only
     from hybridmpm.bench import VALID_SEED0, tune
+    from hybridmpm.sim.config import tuned_path
 
-    if args.seeds < 1:
-        raise HybridMpmError("seeds: must be >= 1")
-    seeds = [VALID_SEED0 + i for i in range(args.seeds)]
-    doc = tune(args.scene, args.error_budget, seeds=seeds, metric=args.metric, out=args.out, work=args.work, progress=not args.quiet, **_bench_kwargs(args))
+    seeds = seed_range(VALID_SEED0, args.seeds, "--first-seed", "--seeds", MAX_SEEDS)
+    # before any work: --out a file it can write (an existing one given by --out is refused; the default tuned/SCENE.json is replaced), --work a folder
+    out_file(tuned_path(args.scene, args.out), "out", replace=args.out is None)
+    work = out_dir(args.work if args.work is not None else f"runs/tune/{args.scene}", "work")
+    doc = tune(args.scene, args.error_budget, seeds=seeds, metric=args.metric, out=args.out, work=work, progress=not args.quiet, **_bench_kwargs(args))
     if not args.quiet:
         c, m = doc["config"], doc["measured"]
         print(
@@ -127,8 +131,10 @@ def add_parsers(sub: Any) -> None:
 
     be = sub.add_parser("bench", help="error against latency for every method from the same held-out initial conditions; charts and report")
     bench_args(be)
-    be.add_argument("--seeds", type=int, default=3, help="number of held-out seeds (default 3: 1000, 1001, 1002)")
-    be.add_argument("--first-seed", type=int, default=None, help="first seed (default 1000, the held-out test seeds)")
+    be.add_argument("--seeds", type=int, default=3, help=f"number of held-out seeds, at most {MAX_SEEDS} (default 3: 1000, 1001, 1002)")
+    be.add_argument(
+        "--first-seed", type=parse_seed, default=None, help="first seed (default 1000, the held-out test seeds); the last, first + seeds - 1, below 2^63"
+    )
     be.add_argument("--out", default=None, help="output directory (default runs/bench/SCENE; resumes finished cells)")
     be.set_defaults(func=_bench)
 
@@ -139,7 +145,7 @@ def add_parsers(sub: Any) -> None:
         "--metric", default="error_mean", choices=list(ROLLOUT_METRICS),
         help="the score to hold within the budget: " + "; ".join(f"{k}: {v}" for k, v in ROLLOUT_METRICS.items()) + " (docs/benchmarks.md)",
     )  # fmt: skip
-    tu.add_argument("--seeds", type=int, default=2, help="number of validation seeds (default 2: 2000, 2001)")
-    tu.add_argument("--out", default=None, help="config file to write (default tuned/SCENE.json)")
+    tu.add_argument("--seeds", type=int, default=2, help=f"number of validation seeds, at most {MAX_SEEDS} (default 2: 2000, 2001)")
+    tu.add_argument("--out", default=None, help="config file to write, not an existing one (default tuned/SCENE.json, replaced)")
     tu.add_argument("--work", default=None, help="benchmark directory (default runs/tune/SCENE; resumes finished cells)")
     tu.set_defaults(func=_tune)

@@ -157,7 +157,7 @@ def add_parsers(sub: Any) -> None:
     tc.add_argument("--max-cases", type=int, default=None, help="use at most this many cases")
     tc.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints and validation (default 500)")
     tc.add_argument("--time-limit", type=float, default=None, help="stop (and export) after this many seconds; rerun to resume")
-    tc.add_argument("--seed", type=int, default=0)
+    tc.add_argument("--seed", type=parse_seed, default=0, help="seed of the initial weights and of the data order, in [0, 2^63)")
     tc.add_argument("--init-from", default=None, help="warm start from another run's ckpt.pt (same sizes; a new run only)")
     tc.add_argument("--prior", default="free_sketch", choices=["free_sketch", "sketch_ramp"], help="what plans are relative to (default free_sketch)")
     tc.add_argument("--batch", type=int, default=1, help="training pairs per step and process (default 1)")

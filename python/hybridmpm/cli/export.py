@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.cli.common import out_dir
+from hybridmpm.cli.common import out_dir, parse_seed
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import loads_json
 
@@ -168,7 +168,7 @@ def add_parsers(sub: Any) -> None:
     ex.add_argument(
         "--scene", default=None, help="for a trajectory without scene_params (older files): the scene (name or file) whose walls and obstacles to use"
     )
-    ex.add_argument("--seed", type=int, default=0, help="--scene: its seed (default 0)")
+    ex.add_argument("--seed", type=parse_seed, default=0, help="--scene: its seed (default 0)")
     ex.add_argument("--out", required=True, help="output directory")
     ex.add_argument("--quiet", action="store_true", help="no summary line")
     ex.set_defaults(func=_export)

@@ -13,7 +13,7 @@ import numpy as np
 
 from hybridmpm.cli.common import latency_ms, out_dir, parse_seed, write_json
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, AUDIT_TOL, R_C, RESIDUAL_TOL, SAFEGUARD, SAFEGUARDS
-from hybridmpm.errors import HybridMpmError, InvalidInputError
+from hybridmpm.errors import InvalidInputError
 from hybridmpm.trajectory import Trajectory
 
 
@@ -34,7 +34,10 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.solver == "auto":
         _apply_tuned(args, scene.name)
     elif args.solver == "default":
-        default = _apply_default(args, scene.name)
+        default = _apply_default(args, scene)
+    for key, value in _CONFIG_DEFAULTS.items():  # what the flags not given (None) mean
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     if frames < 1:
         raise InvalidInputError(f"frames: must be >= 1, got {frames}", "frames")
     exports = list(dict.fromkeys(args.export or []))
@@ -152,39 +155,47 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Settings that choose a solver's configuration: with the default configuration (chosen by the chart) they are refused.
+#: Settings that choose a solver's configuration: with the default configuration (chosen by the chart) each one given is refused,
+#: whatever its value. Their flags default to None (not given), so an explicit value equal to the default (``--r-p 1.0``) is seen.
 _CONFIG_FLAGS = (
-    ("model", None), ("r_c", R_C), ("r_p", 1.0), ("dwell", None), ("audit_every", None), ("audit_tol", None), ("safeguard", None),
-    ("residual_tol", None), ("audit_max", None), ("n_grid", None), ("particles_per_cell", None), ("cheap", "neural"), ("cheap_grid", None),
-    ("cheap_particles", None), ("calibrated", False), ("tuned", None),
+    "model", "r_c", "r_p", "dwell", "audit_every", "audit_tol", "safeguard", "residual_tol", "audit_max", "n_grid", "particles_per_cell", "cheap",
+    "cheap_grid", "cheap_particles", "calibrated", "tuned",
 )  # fmt: skip
+#: What a configuration flag not given means (the others mean None: the solver's default).
+_CONFIG_DEFAULTS: dict[str, Any] = {"r_c": R_C, "r_p": 1.0, "cheap": "neural", "calibrated": False}
 
 
-def _apply_default(args: argparse.Namespace, scene: str) -> dict[str, Any]:
-    """``--solver default`` (the default): take the scene's shipped default configuration
-    (:func:`hybridmpm.sim.default_settings`); returns its entry (empty for a scene without one:
-    plain MPM). A flag that sets another configuration is refused, naming it."""
+def _given(args: argparse.Namespace, keys: tuple[str, ...] = _CONFIG_FLAGS) -> list[str]:
+    """The configuration flags of ``keys`` given on the command line (whatever their value), as ``--flag``."""
+    return ["--" + key.replace("_", "-") for key in keys if getattr(args, key, None) is not None]
+
+
+def _apply_default(args: argparse.Namespace, scene: Any) -> dict[str, Any]:
+    """``--solver default`` (the default): take the shipped default configuration of ``scene``
+    (a :class:`~hybridmpm.scenes.Scene`) when it is a registered scene
+    (:func:`hybridmpm.sim.default_settings`); returns its entry (empty for a scene without one, a scene
+    file whatever its name: plain MPM as given). A configuration flag given (any value) is refused, naming it."""
     # import time: loaded by this command only
-    from hybridmpm.models import shipped_default
     from hybridmpm.sim import default_settings
+    from hybridmpm.sim.config import default_entry
 
-    for key, unset in _CONFIG_FLAGS:
-        if getattr(args, key) != unset:
-            flag = "--" + key.replace("_", "-")
-            raise InvalidInputError(
-                f'solver: {flag} sets a configuration of its own; the default of {scene} is chosen by the chart (docs/hybrid.md "Defaults per scene"): '
-                f"add --solver hybrid, mpm or neural to use {flag}",
-                "solver",
-            )
+    given = _given(args)
+    if given:
+        flag = given[0]
+        raise InvalidInputError(
+            f'solver: {flag} sets a configuration of its own; the default of {scene.name} is chosen by the chart (docs/hybrid.md "Defaults per scene"): '
+            f"add --solver hybrid, mpm or neural to use {flag}",
+            "solver",
+        )
     for key, value in default_settings(scene).items():
         setattr(args, key, value)
-    entry = shipped_default(scene)
+    entry = default_entry(scene)
     if not args.quiet:
         r = entry.get("ratios_to_mpm_rp", {})
         print(
             f"default: {entry['label']} (on validation seeds: {r.get('time')}x MPM at r_p's time, {r.get('error_mean')}x its error)"
             if entry
-            else f"default: no default was chosen for {scene}; plain MPM on the scene as given"
+            else f"default: no default was chosen for {scene.name}; plain MPM on the scene as given"
         )
     return entry
 
@@ -222,10 +233,9 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
     # import time: loaded by this command only
     from hybridmpm.sim import load_tuned, tuned_settings
 
-    if args.model is not None or args.r_p != 1.0 or args.n_grid is not None or args.particles_per_cell is not None or args.calibrated:
-        raise HybridMpmError(
-            "solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop --model/--r-p/--n-grid/--particles-per-cell/--calibrated"
-        )
+    given = _given(args, ("model", "r_p", "n_grid", "particles_per_cell", "calibrated"))
+    if given:
+        raise InvalidInputError(f"solver: --solver auto takes the model, r_p, grid and r_c from the tuned configuration; drop {'/'.join(given)}", "solver")
     doc = load_tuned(scene, args.tuned)
     for key, value in tuned_settings(doc).items():
         setattr(args, key, value)
@@ -239,9 +249,16 @@ def _apply_tuned(args: argparse.Namespace, scene: str) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    """``hybridmpm evaluate``: the comparison is sized from both files' headers (their positions'
+    shapes: at most the shorter one's frames are compared) against the memory budget before either
+    file is read (:func:`hybridmpm.metrics.check_evaluate_size`), then :func:`hybridmpm.metrics.evaluate`."""
     # import time: loaded by this command only
-    from hybridmpm.metrics import evaluate
+    from hybridmpm.metrics import check_evaluate_size, evaluate
+    from hybridmpm.trajectory import trajectory_headers
 
+    shapes = [h.shape for h in (trajectory_headers(p).get("positions") for p in (args.pred, args.ref)) if h is not None]
+    if len(shapes) == 2 and all(len(s) == 3 for s in shapes):  # anything else: Trajectory.load names what is wrong
+        check_evaluate_size(min(shapes[0][0], shapes[1][0]), shapes[0][1], shapes[1][1], shapes[1][2], f"{Path(args.pred).name} and {Path(args.ref).name}")
     pred = Trajectory.load(args.pred)
     ref = Trajectory.load(args.ref)
     geometry = None
@@ -295,7 +312,7 @@ def add_parsers(sub: Any) -> None:
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")
     sim.add_argument(
         "--cheap",
-        default="neural",
+        default=None,
         choices=["neural", "mpm-coarse"],
         help="hybrid: its cheap half, the network (default) or MPM on a coarser grid with the same particles (the classical twin)",
     )
@@ -304,7 +321,7 @@ def add_parsers(sub: Any) -> None:
         "--cheap-particles", default=None, choices=["network", "grid"],
         help="hybrid --cheap mpm-coarse: the particles its coarse grid carries, the network's r_p set (default) or the grid's own (merged and split at each handover)",
     )  # fmt: skip
-    sim.add_argument("--r-c", type=float, default=R_C, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
+    sim.add_argument("--r-c", type=float, default=None, help=f"hybrid threshold r_c (default {R_C:g}; 0 = no complexity trigger, > 1 = MPM only)")
     sim.add_argument("--dwell", type=int, default=None, help="hybrid: steps of s(t) >= r_c on MPM before the network takes over again")
     sim.add_argument("--audit-every", type=int, default=None, help=f"hybrid: network steps per MPM audit (default {AUDIT_EVERY}; 0 = no audit; docs/hybrid.md)")
     sim.add_argument("--audit-tol", type=float, default=None, help=f"hybrid: MPM audit tolerance in g (default {AUDIT_TOL:g})")
@@ -330,7 +347,7 @@ def add_parsers(sub: Any) -> None:
     sim.add_argument("--out", default="runs/out", help="output directory (default: runs/out)")
     sim.add_argument("--seed", type=parse_seed, default=0, help="seed of the scene's random initial condition")
     sim.add_argument("--threads", type=int, default=0, help="solver threads (0 = all cores)")
-    sim.add_argument("--r-p", type=float, default=1.0, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
+    sim.add_argument("--r-p", type=float, default=None, help="spatial downsampling r_p in (0, 1]: cluster the initial particles (default 1)")
     sim.add_argument(
         "--n-grid", type=int, default=None, help="--solver mpm: run on this grid of the same domain (same blocks, obstacles, wall faces; default: the scene's)"
     )
@@ -343,6 +360,7 @@ def add_parsers(sub: Any) -> None:
     sim.add_argument(
         "--calibrated",
         action="store_true",
+        default=None,
         help="--solver mpm --n-grid N: the calibrated coarse material fitted for the scene on that grid (docs/correction.md); refused where none was fitted",
     )
     sim.add_argument(

@@ -32,7 +32,7 @@ from hybridmpm.control.controller import METHODS, Controller, Plan, default_meth
 from hybridmpm.control.diffusion import ControlModel
 from hybridmpm.control.episode import Episode, control_episode
 from hybridmpm.control.metrics import control_metrics
-from hybridmpm.control.mpc import MpcSettings
+from hybridmpm.control.mpc import MpcSettings, PlanStopped
 from hybridmpm.control.reverse import A_MAX, clip_norm, reverse_kinematic, reverse_tracking, smooth
 from hybridmpm.control.sketch import KINDS, Sketch, render_sketch, sketch_from_image, sketch_from_png, sketch_from_trajectory
 from hybridmpm.control.targets import pd_targets
@@ -46,6 +46,7 @@ __all__ = [
     "Episode",
     "MpcSettings",
     "Plan",
+    "PlanStopped",
     "Sketch",
     "clip_norm",
     "control_episode",

@@ -375,19 +375,22 @@ class Controller:
             kw["model"] = _cached_model(shipped_control_model(scene))
         return cls(method, **kw)
 
-    def plan(self, sim: Simulator, sketch: Sketch | None) -> Plan:
+    def plan(self, sim: Simulator, sketch: Sketch | None, between: Callable[[], bool] | None = None) -> Plan:
         """A plan from ``sim``'s current state (positions, velocities, masses,
         gravity; any :class:`~hybridmpm.sim.Simulator`) and ``sketch`` (None:
         no control — for the diffusion method too, whose blank sketch is
         classifier-free guidance's unconditional branch inside the sampler,
         not a request to move the fluid). Raises :class:`InvalidInputError` naming ``sketch`` when
-        the method needs one and none is given."""
-        plan = self._plan(sim, sketch)
+        the method needs one and none is given. A long plan (``"mpc"``: its
+        model rollouts) calls ``between()`` as it goes: it may block while other
+        work uses the compute, and True stops the plan
+        (:class:`~hybridmpm.control.mpc.PlanStopped`, ``sim`` untouched)."""
+        plan = self._plan(sim, sketch, between)
         plan.origin = PlanOrigin.of(sim)
         plan.cap = min(plan.cap, self.cap)
         return plan
 
-    def _plan(self, sim: Simulator, sketch: Sketch | None) -> Plan:
+    def _plan(self, sim: Simulator, sketch: Sketch | None, between: Callable[[], bool] | None = None) -> Plan:
         t0 = time.perf_counter()
         p = sim.particles
         n, d = p.num_fluid, p.dim
@@ -449,7 +452,7 @@ class Controller:
             field_ = np.broadcast_to(a.astype(np.float32), (self.frames, n, d))
             return Plan("constant", start, self.frames, n, accelerations=field_, seconds=time.perf_counter() - t0, sketch=sketch)
         if self.method == "mpc":
-            best = mpc_plan(sim, sketch, self.frames, self.mpc)
+            best = mpc_plan(sim, sketch, self.frames, self.mpc, between)
             fb = field_feedback(best.theta, best.targets, self.frames, sim.dt_frame)
             plan = Plan("mpc", start, self.frames, n, feedback=fb, seconds=time.perf_counter() - t0, sketch=sketch)
             plan.model_centroids = best.centroids

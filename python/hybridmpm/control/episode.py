@@ -36,6 +36,7 @@ def control_episode(
     on_frame: Callable[[Frame], None] | None = None,
     on_plan: Callable[[Plan], None] | None = None,
     stop: StopRule | None = None,
+    between: Callable[[], bool] | None = None,
 ) -> Episode:
     """Plan with ``controller`` on ``sim``'s current state and ``sketch``, run
     the ``controller.frames`` frames with the plan as ``sim.forcing`` (cleared
@@ -45,13 +46,24 @@ def control_episode(
     controlled frame; a reason ends the episode early); ``on_plan`` gets the
     plan once it is made, before the first frame (it knows its own centroid
     path, :meth:`~hybridmpm.control.controller.Plan.centroid_path`). The
-    simulator continues from the controlled state."""
-    plan = controller.plan(sim, sketch)
+    simulator continues from the controlled state. ``between()`` is called
+    between units of work, inside a long plan (``"mpc"``'s model rollouts)
+    and after every controlled frame: it may block while other work uses the
+    compute (a server's other sessions), and True stops the episode: a plan
+    in progress raises :class:`~hybridmpm.control.mpc.PlanStopped` (``sim``
+    untouched), a run ends at that frame (failure ``"stopped"``)."""
+    plan = controller.plan(sim, sketch, between)
     if on_plan is not None:
         on_plan(plan)
+
+    def run_stop(fr: Frame, s: Simulator) -> str | None:
+        if between is not None and between():
+            return "stopped"
+        return stop(fr, s) if stop is not None else None
+
     sim.forcing = plan
     try:
-        ro = rollout(sim, controller.frames, progress=progress, on_frame=on_frame, stop=stop)
+        ro = rollout(sim, controller.frames, progress=progress, on_frame=on_frame, stop=run_stop if between is not None else stop)
     finally:
         sim.forcing = None
     fluid = ro.fluid_positions

@@ -49,6 +49,15 @@ from hybridmpm.control.targets import pd_targets
 from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
 
+#: Frames of a model rollout between two calls of a plan's ``between`` (its chance to share the compute or stop).
+BETWEEN_FRAMES = 10
+
+
+class PlanStopped(Exception):
+    """A plan stopped while it was made: its ``between`` callback answered True
+    (the control's session closed or its client left)."""
+
+
 #: Quarters of the horizon, and the field's numbers per quarter (push x, push y, pull, damping).
 QUARTERS = 4
 PER_QUARTER = 4
@@ -121,11 +130,22 @@ class FieldRollout:
     centroids: np.ndarray
 
 
-def roll_field(sim: Any, state: dict[str, Any], theta: np.ndarray, targets: np.ndarray, sketch: Sketch, frames: int, n_grid: int) -> FieldRollout:
+def roll_field(
+    sim: Any,
+    state: dict[str, Any],
+    theta: np.ndarray,
+    targets: np.ndarray,
+    sketch: Sketch,
+    frames: int,
+    n_grid: int,
+    between: Callable[[], bool] | None = None,
+) -> FieldRollout:
     """Restore ``sim`` (an :class:`~hybridmpm.sim.MpmSimulator`) to ``state``,
     apply the field ``theta`` toward ``targets`` for ``frames`` frames (clipped
     at ``A_MAX``), and measure (:func:`adherence` on ``n_grid``² cells). The
-    simulator is left at the end."""
+    simulator is left at the end. ``between()`` is called every
+    :data:`BETWEEN_FRAMES` frames (it may block while other work uses the
+    compute); True raises :class:`PlanStopped`."""
     sim.restore(state)
     fb = field_feedback(theta, targets, frames, sim.dt_frame)
     applied = AppliedStats()
@@ -143,7 +163,9 @@ def roll_field(sim: Any, state: dict[str, Any], theta: np.ndarray, targets: np.n
     cents = [x0.mean(0)]
     sim.forcing = forcing
     try:
-        for _ in range(frames):
+        for k in range(frames):
+            if between is not None and k % BETWEEN_FRAMES == 0 and between():
+                raise PlanStopped()
             sim.advance()
             cents.append(np.asarray(sim.fluid_positions, np.float64).mean(0))
     finally:
@@ -238,10 +260,13 @@ class MpcResult:
     seconds: float
 
 
-def mpc_plan(sim: Any, sketch: Sketch, frames: int, settings: MpcSettings) -> MpcResult:
+def mpc_plan(sim: Any, sketch: Sketch, frames: int, settings: MpcSettings, between: Callable[[], bool] | None = None) -> MpcResult:
     """Plan the field for ``sketch`` from ``sim``'s fluid now (any
     :class:`~hybridmpm.sim.Simulator`) by the cross-entropy method on the cheap
-    model (module doc), starting from PD's field."""
+    model (module doc), starting from PD's field. ``between()`` is called
+    within every model rollout (:func:`roll_field`): it may block while other
+    work uses the compute, and True stops the plan (:class:`PlanStopped`,
+    ``sim`` untouched: the rollouts run on the model's own simulator)."""
     t0 = time.perf_counter()
     p = sim.particles
     x = np.asarray(p.fluid(sim.positions), np.float64)
@@ -254,7 +279,7 @@ def mpc_plan(sim: Any, sketch: Sketch, frames: int, settings: MpcSettings) -> Mp
     best: dict[str, Any] = {}
 
     def objective(theta: np.ndarray) -> float:
-        ro = roll_field(model, state, theta, targets[idx], sketch, frames, n_grid)
+        ro = roll_field(model, state, theta, targets[idx], sketch, frames, n_grid, between)
         s = field_score(ro.adherence, ro.applied.effort()["effort_mean_g"], settings.effort_weight)
         if s > best.get("score", -math.inf):
             best.update(score=s, centroids=ro.centroids)
@@ -269,11 +294,13 @@ def mpc_plan(sim: Any, sketch: Sketch, frames: int, settings: MpcSettings) -> Mp
 
 
 __all__ = [
+    "BETWEEN_FRAMES",
     "EFFORT_WEIGHT",
     "FIELD_SIZE",
     "FieldRollout",
     "MpcResult",
     "MpcSettings",
+    "PlanStopped",
     "adherence",
     "cem",
     "field_feedback",

@@ -44,13 +44,22 @@ from hybridmpm.metrics.chaotic import (
     rollout_metrics,
     short_horizon_error,
 )
-from hybridmpm.metrics.compare import evaluate
+from hybridmpm.metrics.compare import check_evaluate_size, evaluate, evaluate_bytes
 from hybridmpm.metrics.core import align_frames, fluid_mask, grid_mass_error, kinetic_energy, position_mse, rollout_summary
-from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_FRAMES, SINKHORN_MAX_POINTS, sinkhorn_divergence, sinkhorn_frames, sinkhorn_series, subsample
+from hybridmpm.metrics.transport import (
+    SINKHORN_BLUR,
+    SINKHORN_FRAMES,
+    SINKHORN_MAX_POINTS,
+    bin_width,
+    binned_set,
+    sinkhorn_divergence,
+    sinkhorn_frames,
+    sinkhorn_series,
+)
 
 __all__ = [
     "DEFAULT_N_GRID", "KE_FLOOR", "ROLLOUT_METRICS", "SHORT_HORIZON_FRAMES", "SINKHORN_BLUR", "SINKHORN_FRAMES", "SINKHORN_MAX_POINTS",
-    "align_frames", "dam_break_front", "dam_break_geometry", "evaluate", "fluid_mask", "grid_mass_error", "json_scores", "kinetic_energy",
+    "align_frames", "bin_width", "binned_set", "check_evaluate_size", "dam_break_front", "dam_break_geometry", "evaluate", "evaluate_bytes", "fluid_mask", "grid_mass_error", "json_scores", "kinetic_energy",
     "kinetic_energy_error", "position_mse", "rollout_metrics", "rollout_summary", "short_horizon_error", "sinkhorn_divergence",
-    "sinkhorn_frames", "sinkhorn_series", "subsample",
+    "sinkhorn_frames", "sinkhorn_series",
 ]  # fmt: skip

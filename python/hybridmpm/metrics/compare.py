@@ -10,10 +10,40 @@ import numpy as np
 
 from hybridmpm.conventions import DEFAULT_N_GRID, GNS_KINEMATIC
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_allocation
 from hybridmpm.metrics.chaotic import KE_FLOOR, SHORT_HORIZON_FRAMES, json_scores, rollout_metrics
 from hybridmpm.metrics.core import align_frames, checked_n_grid, grid_mass_error, position_mse, rollout_summary
 from hybridmpm.metrics.transport import SINKHORN_BLUR, SINKHORN_MAX_POINTS
 from hybridmpm.trajectory import Trajectory
+
+#: What :func:`evaluate` and writing its result as JSON hold per compared frame, whatever the particles
+#: [bytes]: every per-frame series as Python floats (times, grid-mass errors, position MSEs, kinetic
+#: energies, the dam break's front) and their JSON text (~170 B a frame). Measured with tracemalloc at
+#: 1,234–1,238 B a frame (one particle, every series present); 1.24× that.
+EVALUATE_BYTES_PER_FRAME = 1536
+#: What :func:`evaluate` holds per position value of a compared frame, pred's and ref's, kinematic
+#: particles included [bytes]: the frames it pairs, their float64 copies and differences. Measured with
+#: tracemalloc at 14–18 B a value (2,000 and 20,000 particles); 1.33× that.
+EVALUATE_BYTES_PER_VALUE = 24
+
+
+def evaluate_bytes(frames: int, pred_particles: int, ref_particles: int, dim: int) -> float:
+    """What :func:`evaluate` of ``frames`` compared frames needs at its peak [bytes], its JSON text
+    included: ``frames · (EVALUATE_BYTES_PER_FRAME + EVALUATE_BYTES_PER_VALUE · (pred_particles +
+    ref_particles) · dim)`` (particles: every particle of each trajectory, kinematic ones included)."""
+    return float(frames) * (EVALUATE_BYTES_PER_FRAME + EVALUATE_BYTES_PER_VALUE * (int(pred_particles) + int(ref_particles)) * int(dim))
+
+
+def check_evaluate_size(frames: int, pred_particles: int, ref_particles: int, dim: int, what: str = "pred and ref") -> None:
+    """Refuse a comparison of ``frames`` frames of ``pred_particles`` and ``ref_particles``
+    particles in ``dim`` D whose :func:`evaluate_bytes` exceed the memory budget
+    (:func:`hybridmpm.limits.check_allocation`), before any frame is compared: raises
+    :class:`InvalidInputError` naming ``frames`` (``what`` names the trajectories in the message)."""
+    check_allocation(
+        "frames",
+        evaluate_bytes(frames, pred_particles, ref_particles, dim),
+        f"comparing {frames} frames of {what} ({pred_particles} and {ref_particles} particles) and writing their metrics",
+    )
 
 
 def _finite(x: float) -> float | None:
@@ -60,8 +90,12 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None, *, da
       ``kinematic_particles``; ``n_grid`` and ``dim``.
 
     The result holds only str, int, float, list, dict and None (JSON-ready).
+    Before any frame is compared, the work is sized against the memory budget
+    (:func:`check_evaluate_size`: the paired frames times
+    :func:`evaluate_bytes`' cost per frame and per position value).
     Raises :class:`InvalidInputError` for mismatched dimensions, a
-    non-integer frame-interval ratio, a bad ``n_grid``, no fluid particles or
+    non-integer frame-interval ratio (or one above 2^53), a bad ``n_grid``,
+    ``frames`` for a comparison beyond the memory budget, no fluid particles or
     a malformed ``one_step_positions``.
     """
     for name, tr in (("pred", pred), ("ref", ref)):
@@ -71,6 +105,7 @@ def evaluate(pred: Trajectory, ref: Trajectory, n_grid: int | None = None, *, da
         raise InvalidInputError(f"ref: dimension {ref.dim} differs from pred's {pred.dim}", "ref")
     n = checked_n_grid(n_grid if n_grid is not None else ref.n_grid if ref.n_grid is not None else DEFAULT_N_GRID[ref.dim])
     pi, ri, times = align_frames(pred.dt_frame, pred.num_frames, ref.dt_frame, ref.num_frames)
+    check_evaluate_size(len(pi), pred.positions.shape[1], ref.positions.shape[1], ref.dim)
     pm, rm = pred.fluid_mask(), ref.fluid_mask()
     for name, mask in (("pred", pm), ("ref", rm)):
         if not mask.any():

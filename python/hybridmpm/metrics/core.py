@@ -17,6 +17,9 @@ from hybridmpm.mpm import grid_mass
 
 #: Relative tolerance on "the ratio of the frame intervals is an integer".
 _RATIO_RTOL = 1e-5
+#: Largest ratio of two trajectories' frame intervals :func:`align_frames` pairs: 2^53 (beyond it a float
+#: holds no integer exactly, and frame index × ratio stays within int64 below it).
+MAX_INTERVAL_RATIO = float(2**53)
 
 
 def checked_frames(name: str, x: Any) -> np.ndarray:
@@ -201,7 +204,9 @@ def align_frames(pred_dt: float, pred_len: int, ref_dt: float, ref_len: int) -> 
     Returns ``(pred_idx, ref_idx, times)``: int64, int64 and float64 [F]
     (``times = ref_idx · ref_dt`` [s]), F >= 1 (frame 0 always pairs).
     Raises :class:`InvalidInputError` (``pred_dt``, ``ref_dt``, ``pred_len``,
-    ``ref_len``) for non-positive values or a non-integer interval ratio.
+    ``ref_len``) for non-positive or non-finite values, a non-integer interval
+    ratio or one above :data:`MAX_INTERVAL_RATIO` (2^53), checked before any
+    integer arithmetic.
     """
     pdt = _positive("pred_dt", pred_dt)
     rdt = _positive("ref_dt", ref_dt)
@@ -209,7 +214,12 @@ def align_frames(pred_dt: float, pred_len: int, ref_dt: float, ref_len: int) -> 
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise InvalidInputError(f"{name}: must be an integer >= 1, got {n!r}", name)
     ratio = pdt / rdt
-    big = max(ratio, 1.0 / ratio)
+    big = max(ratio, 1.0 / ratio) if ratio > 0 else math.inf  # the quotient of two finite positive floats may underflow to 0 or overflow
+    if not big <= MAX_INTERVAL_RATIO:  # before any integer arithmetic: a frame index times k must stay within int64
+        raise InvalidInputError(
+            f"pred_dt: the frame intervals {pdt:g} s (pred) and {rdt:g} s (ref) differ by a factor of {big:g}, more than {MAX_INTERVAL_RATIO:.0f} (2^53)",
+            "pred_dt",
+        )
     k = round(big)
     if k < 1 or abs(big - k) > _RATIO_RTOL * k:
         raise InvalidInputError(

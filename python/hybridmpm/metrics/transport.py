@@ -13,7 +13,8 @@ to 1) and the cost ``C(x, y) = |x − y|²`` [m²]:
   Sinkhorn divergence (Genevay, Peyré & Cuturi 2018; Feydy et al. 2019, AISTATS,
   "Interpolating between optimal transport and MMD using Sinkhorn divergences"):
   0 for identical distributions, symmetric, ≥ 0, and → ``W₂²(α, β)`` as ε → 0.
-  For a set and its translate by ``d`` it is ``|d|²`` exactly, for every ε.
+  For a set and its translate by ``d`` it is ``|d|²`` exactly, for every ε
+  (sets reduced on a lattice, which stays put as they move: to ~1e-5 of it).
 
 LagrangeBench (Toshev et al. 2023, arXiv 2309.16342) scores particle rollouts
 with it. Its settings live here and only here:
@@ -27,12 +28,31 @@ with it. Its settings live here and only here:
   On 2 cores a finer blur costs more than the rollout it scores: where water
   spreads over the floor, Sinkhorn at 1/32 needed ~10⁴ iterations
   (docs/benchmarks.md "Metrics for a chaotic flow").
-* at most :data:`SINKHORN_MAX_POINTS` particles per set: a larger set is
-  subsampled once per trajectory (the same particles in every frame) by a
-  fixed-seed draw without replacement (:func:`subsample`), and the drawn
-  particles' masses renormalised (an unbiased estimate of the mass
-  distribution; two sets of different sizes carry a sampling floor of
-  ~1e-5 m² at 300 particles, two of the same size none);
+* at most :data:`SINKHORN_MAX_POINTS` points per set: where either set of a
+  frame has more particles, both are reduced on one lattice ``h·Z^D``
+  (:func:`bin_width`: the finest ``h = blur·2^(k/2)``, ``k ≥ −12``, at which
+  each set occupies at most that many cells), every occupied cell becoming one
+  point at its particles' mass-weighted centroid, weighted by its mass share
+  (:func:`binned_set`). The rule reads positions and masses, never indices:
+  the particles are put in a canonical order (cell, position, mass) before any
+  sum, so the reduced sets are bit for bit the same for any order of the
+  particles: a set scores 0 against a permutation of itself, and against
+  itself plus a few particles it scores what they change, not which particles
+  a draw happened to pick. Sets within the limit are used whole. Measured
+  floors (``python benchmarks/sinkhorn_floor.py``;
+  ``benchmarks/results/sinkhorn_floor.md``): 2,000 particles against a
+  permutation of themselves score 0 (2D and 3D); a block of 2,000 against the
+  block plus 7 particles inside it 1.0-2.4e-7 m² in 2D and 1.4-1.9e-7 m² in 3D
+  (the whole sets: ~1e-13); MPM at ``r_p`` against full-resolution MPM on
+  water2d (400 frames, seeds 1000-1002) scores 4.5e-4 to 1.3e-3 m² (the
+  reference against itself permuted: < 1e-18), so the floor is under 1/1000 of
+  the signal (sand2d, which settles into nearly the same heap, scores 1.3e-5
+  m²: 50x the floor; ``benchmarks/results/metric_floor.md``), and the reduced
+  sets' value is that of the whole sets to 0.2% (seed 1000). A draw of 300
+  particle indices instead (the script's "index" column) scores a permutation
+  of the same 2,000 particles 4e-4 to 9e-4 m², the block plus 7 particles
+  1.8e-4 (2D) and 4.7e-4 m² (3D), and MPM at ``r_p`` on water2d 2.0e-3 to
+  3.1e-3 m²: a floor of the order of the signal;
 * :data:`SINKHORN_FRAMES` frames per rollout, evenly spaced
   (:func:`sinkhorn_frames`); the rollout's score is their mean.
 
@@ -45,8 +65,10 @@ already set): the metric runs on NumPy alone and importing
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -57,17 +79,21 @@ from hybridmpm.limits import check_allocation
 
 #: Blur of the Sinkhorn divergence [m] (ε = blur²): 1/16 of the unit domain's side.
 SINKHORN_BLUR = 1.0 / 16.0
-#: Particles per set at most (larger sets are subsampled, :func:`subsample`).
+#: Points per set at most (larger sets are reduced on a lattice, :func:`bin_width`, :func:`binned_set`).
 SINKHORN_MAX_POINTS = 300
 #: Frames of a rollout the divergence is computed on (evenly spaced, :func:`sinkhorn_frames`).
 SINKHORN_FRAMES = 8
-#: Seed of the subsampling draw: fixed, so a set's subsample depends on its size alone.
-_SUBSAMPLE_SEED = 0
+#: The finest lattice tried (:func:`bin_width`): ``blur·2^(_FINEST_LEVEL/2)`` = blur/64.
+_FINEST_LEVEL = -12
 #: ε-scaling (:func:`entropic_ot`): at most ``_MAX_ITER`` levels of at most ``_LEVEL_ITERS`` Sinkhorn iterations each;
 #: it stops when the coupling's marginals miss ``a`` and ``b`` by ``_STOP_THR`` (2-norm).
 _LEVEL_ITERS = 20
 _STOP_THR = 1e-7
 _MAX_ITER = 200
+#: A coupling whose marginals miss ``a`` and ``b`` by more than this (L1, of 2) is a failed solve, redone in the log
+#: domain (at most ``_LOG_MAX_ITER`` iterations). A level left unconverged misses by ~1e-3 at most on the scenes.
+_MARGINAL_FAIL = 1e-2
+_LOG_MAX_ITER = 10000
 
 
 def _ot() -> Any:
@@ -81,17 +107,76 @@ def _ot() -> Any:
     return ot
 
 
-def subsample(n: int, max_points: int = SINKHORN_MAX_POINTS) -> np.ndarray:
-    """Indices (int64, sorted) of the particles of an ``n``-particle set that the
-    divergence uses: all of them when ``n <= max_points``, else ``max_points``
-    drawn without replacement by a generator of fixed seed, so the same ``n``
-    always gives the same subsample. Raises :class:`InvalidInputError`
-    (``max_points``) unless it is an integer >= 1."""
+def _max_points(max_points: Any) -> int:
     if isinstance(max_points, bool) or not isinstance(max_points, (int, np.integer)) or max_points < 1:
         raise InvalidInputError(f"max_points: must be an integer >= 1, got {max_points!r}", "max_points")
-    if n <= max_points:
-        return np.arange(n, dtype=np.int64)
-    return np.sort(np.random.default_rng(_SUBSAMPLE_SEED).choice(n, int(max_points), replace=False)).astype(np.int64)
+    return int(max_points)
+
+
+def _cells(x: np.ndarray, width: float) -> np.ndarray:
+    """The lattice cell of every position, float64 [N, D] of integers (``floor(x / width)``; one cell for an infinite width)."""
+    return np.zeros_like(x) if math.isinf(width) else np.floor(x / width)
+
+
+def _count_cells(x: np.ndarray, width: float) -> int:
+    q = _cells(x, width)
+    if len(q) < 2:
+        return len(q)
+    q -= q.min(axis=0)
+    span = q.max(axis=0) + 1
+    if float(np.prod(span)) < 2.0**62:  # one integer key a cell (a 1D sort, ~10x faster than lexsort on D columns)
+        key = np.zeros(len(q), np.int64)
+        for j in range(q.shape[1]):
+            key = key * np.int64(span[j]) + q[:, j].astype(np.int64)
+        return len(np.unique(key))
+    q = q[np.lexsort(q.T[::-1])]
+    return 1 + int(np.count_nonzero(np.any(q[1:] != q[:-1], axis=1)))
+
+
+def bin_width(sets: Sequence[Any], max_points: int = SINKHORN_MAX_POINTS, blur: float = SINKHORN_BLUR) -> float:
+    """The width [m] of the lattice the sets in ``sets`` (float positions [N_k, D]) are reduced on together
+    (:func:`binned_set`): 0.0 (no reduction) when every set has at most ``max_points`` particles; else the
+    finest ``blur·2^(k/2)``, ``k = -12, -11, …`` (from ``blur``/64 up), at which every set occupies at most
+    ``max_points`` cells of the lattice ``width·Z^D``; ``inf`` (each set one point) where none does (``max_points``
+    below ``2^D`` and sets straddling a cell corner at every width). It depends on the sets' positions alone,
+    not on their order. Raises :class:`InvalidInputError` (``max_points``) unless it is an integer >= 1."""
+    cap = _max_points(max_points)
+    xs = [np.asarray(x, dtype=np.float64) for x in sets]
+    if all(len(x) <= cap for x in xs):
+        return 0.0
+    extent = max(float(np.abs(x).max()) for x in xs if len(x))
+    k = _FINEST_LEVEL
+    while True:
+        width = float(blur) * 2.0 ** (k / 2)
+        if all(_count_cells(x, width) <= cap for x in xs):
+            return width
+        if width > 2.0 * extent:  # every set already within the 2^D cells around the origin
+            return math.inf
+        k += 1
+
+
+def binned_set(x: Any, masses: Any, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted point set [m] the divergence sees for particles ``x`` (float [N, D]) of ``masses``
+    (real [N], >= 0, not all zero): every cell of the lattice ``width·Z^D`` that holds mass becomes one point
+    at its particles' mass-weighted centroid, weighted by its share of the mass (``width`` 0: every particle
+    with mass as it is; ``inf``: one point). Returns (points float64 [K, D], weights float64 [K] summing to 1),
+    sorted by cell, then position. The particles are put in a canonical order (cell, position, mass) before any
+    sum, so the result is bit for bit the same for every order of the particles."""
+    pos = np.asarray(x, dtype=np.float64)
+    m = np.asarray(masses, dtype=np.float64)
+    keep = m > 0
+    pos, m = pos[keep], m[keep]
+    if width == 0:
+        order = np.lexsort((m, *pos.T[::-1]))
+        w = m[order]
+        return pos[order], w / w.sum()
+    q = _cells(pos, width)
+    order = np.lexsort((m, *pos.T[::-1], *q.T[::-1]))
+    pos, m, q = pos[order], m[order], q[order]
+    starts = np.flatnonzero(np.concatenate([[True], np.any(q[1:] != q[:-1], axis=1)]))
+    mass = np.add.reduceat(m, starts)
+    centroids = np.add.reduceat(pos * m[:, None], starts, axis=0) / mass[:, None]
+    return centroids, mass / mass.sum()
 
 
 def sinkhorn_frames(frame_index: Any, count: int = SINKHORN_FRAMES) -> np.ndarray:
@@ -119,14 +204,14 @@ def _set(name: str, x: Any) -> np.ndarray:
 
 def _mass(name: str, w: Any, n: int) -> np.ndarray:
     if w is None:
-        return np.full(n, 1.0 / n)
+        return np.ones(n)
     arr = np.asarray(w)
     if arr.dtype.kind not in "fiu" or arr.shape != (n,):
         raise InvalidInputError(f"{name}: expected a real array of shape [{n}], got {arr.dtype} {list(arr.shape)}", name)
     arr = arr.astype(np.float64)
     if not (np.isfinite(arr) & (arr >= 0)).all() or not arr.sum() > 0:
         raise InvalidInputError(f"{name}: must be finite, >= 0 and not all zero", name)
-    return arr / arr.sum()
+    return arr  # normalised by binned_set, after its canonical order (a sum in the given order would depend on it)
 
 
 def entropic_ot(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray, eps: float) -> float:
@@ -142,7 +227,11 @@ def entropic_ot(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray, eps:
     returned coupling. Plain Sinkhorn needed thousands of iterations where water
     spreads over the domain (1.5e4 at blur 1/32); the scaling bounds the work. The
     log-domain solver (``method="sinkhorn_log"``) gives the same values to ~1e-6 m²
-    but spends its time in SciPy's ``logsumexp`` (3-4x slower here).
+    but spends its time in SciPy's ``logsumexp`` (3-4x slower here); it is the
+    fallback where the scaled solver's coupling misses the marginals by more than
+    :data:`_MARGINAL_FAIL` (L1): on the 1,885 particles of a settled sand2d frame
+    against themselves it returned a coupling of total mass ~1e-6 (a divergence
+    2,000x the true one), which the log-domain solver settles in ~40 iterations.
     """
     ot = _ot()
     cost = ot.dist(x, y)  # squared Euclidean [N, M]
@@ -151,6 +240,8 @@ def entropic_ot(x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray, eps:
         plan = ot.bregman.sinkhorn_epsilon_scaling(
             a, b, cost, eps, numItermax=_MAX_ITER, epsilon0=max(float(cost.max()), eps), numInnerItermax=_LEVEL_ITERS, stopThr=_STOP_THR
         )
+        if not np.abs(plan.sum(axis=1) - a).sum() + np.abs(plan.sum(axis=0) - b).sum() <= _MARGINAL_FAIL:
+            plan = ot.sinkhorn(a, b, cost, eps, method="sinkhorn_log", numItermax=_LOG_MAX_ITER, stopThr=_STOP_THR)
     nz = plan > 0
     kl = float(np.sum(plan[nz] * np.log(plan[nz] / np.outer(a, b)[nz])))
     return float(np.sum(plan * cost)) + eps * kl
@@ -187,8 +278,9 @@ def sinkhorn_divergence(
 
     ``x``, ``y``: positions [m], float [N, D] and [M, D] (N and M may differ);
     ``x_weights``, ``y_weights``: particle masses [N], [M] (any unit; default
-    equal masses), normalised to sum 1. Sets larger than ``max_points`` are
-    subsampled (:func:`subsample`). Returns a float >= 0 (clipped at 0 where
+    equal masses), normalised to sum 1. Where either set is larger than
+    ``max_points``, both are reduced on one lattice (:func:`bin_width`,
+    :func:`binned_set`): the value does not depend on the particles' order. Returns a float >= 0 (clipped at 0 where
     the solvers' tolerance leaves a few 1e-12 below it). Raises
     :class:`InvalidInputError` naming ``x``, ``y``, ``x_weights``,
     ``y_weights``, ``blur`` or ``max_points``.
@@ -207,8 +299,8 @@ def sinkhorn_series(
 ) -> np.ndarray:
     """:func:`sinkhorn_divergence` frame by frame, float64 [F] [m²], for
     ``pred`` float [F, N, D] and ``ref`` float [F, M, D] (the frames to compare:
-    pick them with :func:`sinkhorn_frames`), with one subsample of each set for
-    every frame. Raises :class:`InvalidInputError` as :func:`sinkhorn_divergence`."""
+    pick them with :func:`sinkhorn_frames`), each frame's pair reduced on its
+    own lattice (:func:`bin_width`: the water spreads, the cells grow with it). Raises :class:`InvalidInputError` as :func:`sinkhorn_divergence`."""
     p, r = np.asarray(pred), np.asarray(ref)
     for name, arr in (("x", p), ("y", r)):
         if arr.ndim != 3 or arr.shape[0] < 1:
@@ -221,24 +313,21 @@ def sinkhorn_series(
         b = float("nan")
     if not (np.isfinite(b) and b > 0):
         raise InvalidInputError(f"blur: must be a finite length > 0 [m], got {blur!r}", "blur")
-    ip, ir = subsample(p.shape[1], max_points), subsample(r.shape[1], max_points)
-    a = _mass("x_weights", pred_weights, p.shape[1])[ip]
-    c = _mass("y_weights", ref_weights, r.shape[1])[ir]
-    for name, w in (("x_weights", a), ("y_weights", c)):
-        if not w.sum() > 0:
-            raise InvalidInputError(f"{name}: the subsampled particles carry no mass", name)
-    ip, ir = ip[a > 0], ir[c > 0]  # massless particles hold no distribution (and no logarithm)
-    a, c = a[a > 0] / a.sum(), c[c > 0] / c.sum()
-    n, m = len(ip), len(ir)
+    cap = _max_points(max_points)
+    wp, wr = _mass("x_weights", pred_weights, p.shape[1]), _mass("y_weights", ref_weights, r.shape[1])
+    kp, kr = wp > 0, wr > 0  # massless particles hold no distribution (and no logarithm)
     # the cost matrix, the coupling and their products, float64, for the largest of the three problems
-    check_allocation("max_points", 4 * 8.0 * max(n, m) ** 2, f"Sinkhorn on {max(n, m)} particles")
+    n = min(max(int(kp.sum()), int(kr.sum())), cap)
+    check_allocation("max_points", 4 * 8.0 * n**2, f"Sinkhorn on {n} points")
     out = np.empty(p.shape[0], np.float64)
+    eps = b * b
     # one BLAS thread: Sinkhorn's products on a few hundred² are too small to share, and two threads on a busy
     # machine took 15-30x longer each
     with threadpool_limits(limits=1, user_api="blas"):
         for t in range(p.shape[0]):
-            xs, ys = _set("x", p[t][ip]), _set("y", r[t][ir])
-            eps = b * b
+            xt, yt = _set("x", p[t])[kp], _set("y", r[t])[kr]
+            width = bin_width((xt, yt), cap, b)
+            (xs, a), (ys, c) = binned_set(xt, wp[kp], width), binned_set(yt, wr[kr], width)
             s = entropic_ot(xs, ys, a, c, eps) - 0.5 * (self_ot(xs, a, eps) + self_ot(ys, c, eps))
             out[t] = max(s, 0.0)
     return out

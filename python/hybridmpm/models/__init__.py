@@ -57,12 +57,32 @@ def shipped_default(scene: str) -> dict:
     :data:`~hybridmpm.sim.config.CONFIG_KEYS`, a hybrid's ``rule`` and ``cheap``),
     ``label``, ``ratios_to_mpm_rp`` (time and scores against MPM at ``r_p`` on
     the validation seeds), ``cheap_share`` and the candidates it was chosen
-    among; empty where none was chosen for the scene (or the file is absent)."""
+    among; empty where none was chosen for the scene (or the file is absent).
+    The file is package data, checked when it is read: raises
+    :class:`InvalidInputError` (field ``defaults``, naming the file) when it is
+    not a JSON object of scene entries, or the scene's entry is not an object
+    whose ``config`` is an object with a ``kind`` of mpm, neural or hybrid."""
     path = resources.files("hybridmpm.models").joinpath("defaults.json")
     if not path.is_file():
         return {}
-    entry = json.loads(path.read_text()).get(scene, {})
-    return dict(entry) if isinstance(entry, dict) else {}
+
+    def corrupt(why: str) -> InvalidInputError:
+        return InvalidInputError(f"defaults: the package's default configurations {path} are corrupt ({why}); reinstall hybridmpm", "defaults")
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise corrupt(f"not readable JSON: {str(e)[:120]}") from None
+    if not isinstance(doc, dict):
+        raise corrupt(f"a JSON {type(doc).__name__}, not an object of scene entries")
+    entry = doc.get(scene, {})
+    if not isinstance(entry, dict):
+        raise corrupt(f"the entry of {scene!r} is a {type(entry).__name__}, not an object")
+    if entry:
+        config = entry.get("config")
+        if not isinstance(config, dict) or config.get("kind") not in ("mpm", "neural", "hybrid"):
+            raise corrupt(f"the entry of {scene!r} has no config with a kind of mpm, neural or hybrid")
+    return dict(entry)
 
 
 def variant_models(scene: str) -> list[dict]:

@@ -352,7 +352,7 @@ class MpmSolver:
     @classmethod
     def from_checkpoint(cls, blob: bytes) -> MpmSolver:
         """A new solver from :meth:`checkpoint` bytes. Raises :class:`CheckpointError`."""
-        params, state, cs = cls._split(blob)
+        params, state, cs = cls.split_checkpoint(blob)
         sim = cls(params)
         poses = sim._check_collider_state(cs)
         sim._core.restore(state)
@@ -368,7 +368,7 @@ class MpmSolver:
         (positions outside the domain, non-finite values, a truncated blob,
         other parameters or particles) and the solver is then unchanged."""
         state = self.check_restore(blob, same_particles=same_particles)
-        poses = self._check_collider_state(self._split(blob)[2])
+        poses = self._check_collider_state(self.split_checkpoint(blob)[2])
         self._core.restore(state)
         self._set_collider_state(poses)
 
@@ -381,7 +381,7 @@ class MpmSolver:
         match and the particles must be this solver's (count, materials,
         masses). The colliders stay where they are. Raises
         :class:`CheckpointError` and leaves the solver unchanged otherwise."""
-        params, state, _ = self._split(blob)
+        params, state, _ = self.split_checkpoint(blob)
         mine, theirs = self.params.to_dict(), params.to_dict()
         for d in (mine, theirs):
             d.pop("n_grid")
@@ -398,7 +398,7 @@ class MpmSolver:
         parameters, and with ``same_particles`` the particles' count,
         materials and masses), changing nothing; returns the core's part of
         the blob. Raises :class:`CheckpointError`."""
-        params, state, _ = self._split(blob)
+        params, state, _ = self.split_checkpoint(blob)
         if params.to_dict() != self.params.to_dict():
             raise CheckpointError("checkpoint was written with different parameters; use MpmSolver.from_checkpoint")
         if same_particles:
@@ -406,33 +406,20 @@ class MpmSolver:
         return state
 
     def _check_same_particles(self, state: bytes) -> None:
-        """Refuse a core state (the Rust part of :meth:`checkpoint`: magic,
-        u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
-        whose particles are not this solver's: count, dimension, material and
-        mass per particle."""
-        d = self.dim
-        if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
-            raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
-        tail = 3 if state[:8] == _CORE_MAGIC else 1
-        per = 4 * (3 * d + 3 * d * d + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
-        (dd,) = struct.unpack_from("<I", state, 8)
-        (n,) = struct.unpack_from("<Q", state, 12)
+        """Refuse a core state (the Rust part of :meth:`checkpoint`) whose
+        particles are not this solver's: count, dimension, material and mass
+        per particle."""
+        n = core_particle_count(state, self.dim)
         n_self = self.num_particles
-        if dd != d or n != n_self:
-            raise CheckpointError(f"checkpoint holds {n} particles in {dd}D, this solver {n_self} in {d}D")
-        if len(state) != _CORE_HEADER + n * per:
-            raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
-        rec = np.frombuffer(state, np.uint8, n * per, _CORE_HEADER).reshape(n, per)
-        mass_at = 4 * (2 * d + 2 * d * d + 2)
-        masses = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
-        if not np.array_equal(rec[:, -tail], np.asarray(self.material).astype(np.uint8)):
-            raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
-        if not np.array_equal(masses, np.asarray(self.masses, np.float32)):
-            raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
+        if n != n_self:
+            raise CheckpointError(f"checkpoint holds {n} particles in {self.dim}D, this solver {n_self} in {self.dim}D")
+        check_leading_particles(state, self.dim, np.asarray(self.material), np.asarray(self.masses, np.float32))
 
     @staticmethod
-    def _split(blob: bytes) -> tuple[MpmParams, bytes, Any]:
-        """A checkpoint's parameters, core state and collider state (None when absent)."""
+    def split_checkpoint(blob: bytes) -> tuple[MpmParams, bytes, Any]:
+        """A checkpoint's (:meth:`checkpoint`'s bytes) parameters, core state
+        and collider state (None when absent). Raises :class:`CheckpointError`
+        for bytes that are not one, a truncated or malformed header."""
         if not isinstance(blob, (bytes, bytearray)) or blob[:8] != _MAGIC or len(blob) < 16:
             raise CheckpointError("not a hybridmpm MpmSolver checkpoint")
         (n,) = struct.unpack("<Q", blob[8:16])
@@ -445,6 +432,75 @@ class MpmSolver:
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
         return params, bytes(blob[16 + n :]), cs
+
+    @staticmethod
+    def with_header(blob: bytes, updates: dict[str, Any]) -> bytes:
+        """The checkpoint ``blob`` with the keys of ``updates`` replaced in its
+        parameter header (the collider state and core state kept byte for
+        byte), for restoring it into a solver of other threads or further
+        parameter sets. Raises :class:`CheckpointError` as :meth:`split_checkpoint`."""
+        MpmSolver.split_checkpoint(blob)  # the header checked whole first
+        (n,) = struct.unpack("<Q", blob[8:16])
+        head = {**loads_json(blob[16 : 16 + n], "checkpoint"), **updates}
+        header = json.dumps(head).encode()
+        return bytes(blob[:8]) + struct.pack("<Q", len(header)) + header + bytes(blob[16 + n :])
+
+
+def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:
+    """A core state's (the Rust part of :meth:`MpmSolver.checkpoint`: magic,
+    u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
+    particle count, record size and trailing bytes per record (material, and
+    set in v3), checked against its length. Raises :class:`CheckpointError`."""
+    if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
+        raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
+    tail = 3 if state[:8] == _CORE_MAGIC else 1
+    per = 4 * (3 * dim + 3 * dim * dim + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
+    (dd,) = struct.unpack_from("<I", state, 8)
+    (n,) = struct.unpack_from("<Q", state, 12)
+    if dd != dim:
+        raise CheckpointError(f"checkpoint holds particles in {dd}D, this solver is {dim}D")
+    if len(state) != _CORE_HEADER + n * per:
+        raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
+    return int(n), per, tail
+
+
+def core_particle_count(state: bytes, dim: int) -> int:
+    """The particles a core state of a ``dim``-D solver holds (its format and length checked). Raises :class:`CheckpointError`."""
+    return _core_records(state, dim)[0]
+
+
+def check_leading_particles(state: bytes, dim: int, material: np.ndarray, masses: np.ndarray) -> None:
+    """Refuse a core state whose first ``len(material)`` particles are not
+    ones of this ``material`` (codes) and ``masses`` (float32), in order:
+    a solver's own particles, followed by any others. Raises :class:`CheckpointError`."""
+    n, per, tail = _core_records(state, dim)
+    m = len(material)
+    if n < m:
+        raise CheckpointError(f"checkpoint holds {n} particles, fewer than the {m} expected")
+    rec = np.frombuffer(state, np.uint8, m * per, _CORE_HEADER).reshape(m, per)
+    mass_at = 4 * (2 * dim + 2 * dim * dim + 2)
+    got = np.ascontiguousarray(rec[:, mass_at : mass_at + 4]).view("<f4")[:, 0]
+    if not np.array_equal(rec[:, -tail], np.asarray(material).astype(np.uint8)):
+        raise CheckpointError("checkpoint's particles are not this solver's (their materials differ)")
+    if not np.array_equal(got, np.asarray(masses, np.float32)):
+        raise CheckpointError("checkpoint's particles are not this solver's (their masses differ)")
+
+
+def check_poured_blocks(state: bytes, dim: int, start: int, counts: list[int]) -> None:
+    """Refuse a core state whose particles from ``start`` on are not
+    ``counts`` blocks in order, each of one material and parameter set (a
+    block poured whole: :func:`hybridmpm.sim.pour.pour_block`), with none
+    left over. Raises :class:`CheckpointError`."""
+    n, per, tail = _core_records(state, dim)
+    if start + sum(counts) != n:
+        raise CheckpointError(f"checkpoint holds {n - start} particles after its scene's {start}, its record of poured blocks {sum(counts)}")
+    rec = np.frombuffer(state, np.uint8, (n - start) * per, _CORE_HEADER + start * per).reshape(n - start, per)
+    kind = rec[:, per - tail :].astype(np.int64) @ (256 ** np.arange(tail, dtype=np.int64))  # material and set in one key
+    at = 0
+    for k, c in enumerate(counts):
+        if c and not np.all(kind[at : at + c] == kind[at]):
+            raise CheckpointError(f"checkpoint's poured block {k} mixes materials or parameter sets")
+        at += c
 
 
 def _initial_anchors(colliders: list[Collider], dim: int) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 
 from hybridmpm.conventions import T_IN
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.files import loads_json
+from hybridmpm.files import loads_json, read_model_file
 from hybridmpm.models import shipped_model
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid import GRID_KIND, GridRuntime
@@ -150,12 +150,11 @@ def _fields(buf: bytes) -> Iterator[tuple[int, Any]]:
 _METADATA_PROPS, _KEY, _VALUE = 14, 1, 2
 
 
-def file_metadata(path: str | Path) -> dict[str, Any] | None:
-    """The ``hybridmpm`` metadata of an ONNX file as a dict, read from the file's top-level
-    ``metadata_props`` (the protocol-buffer wire format; no onnxruntime session), or None when the
-    file is not a readable ONNX model or holds no such metadata as a JSON object."""
+def metadata_of(buf: bytes) -> dict[str, Any] | None:
+    """The ``hybridmpm`` metadata of the serialised ONNX model ``buf`` as a dict, read from its
+    top-level ``metadata_props`` (the protocol-buffer wire format; no onnxruntime session), or None
+    when ``buf`` is not a readable ONNX model or holds no such metadata as a JSON object."""
     try:
-        buf = Path(path).read_bytes()
         for number, value in _fields(buf):
             if number != _METADATA_PROPS:
                 continue
@@ -163,35 +162,47 @@ def file_metadata(path: str | Path) -> dict[str, Any] | None:
             if bytes(entry.get(_KEY, b"")) == METADATA_KEY.encode():
                 meta = loads_json(bytes(entry.get(_VALUE, b"")), "model")  # nesting checked: a deep one is unreadable (None)
                 return meta if isinstance(meta, dict) else None
-    except (OSError, ValueError, IndexError, UnicodeDecodeError):
+    except (ValueError, IndexError, UnicodeDecodeError):
         return None
     return None
 
 
+def file_metadata(path: str | Path) -> dict[str, Any] | None:
+    """The ``hybridmpm`` metadata of the ONNX file ``path`` (:func:`metadata_of` of its bytes), or
+    None when the file is not a readable ONNX model or holds no such metadata as a JSON object.
+    The file is read by :func:`hybridmpm.files.read_model_file`: raises :class:`InvalidInputError` (field ``model``)
+    for a path that is missing, not a regular file (a FIFO, ``/dev/zero``) or larger than
+    :data:`~hybridmpm.files.MAX_MODEL_BYTES`."""
+    return metadata_of(read_model_file(path))
+
+
+def _kind_of(meta: dict[str, Any] | None) -> str:
+    kind = (meta or {}).get("kind")
+    return kind if isinstance(kind, str) and kind in KINDS else GNS_KIND
+
+
 def model_kind(path: str | Path) -> str:
     """The kind of the model file at ``path``: its metadata's ``kind`` where :data:`KINDS` knows it,
-    else :data:`GNS_KIND` (a GNS has none; a file that cannot be read is left to the GNS loader to refuse)."""
-    meta = file_metadata(path) or {}
-    kind = meta.get("kind")
-    return kind if isinstance(kind, str) and kind in KINDS else GNS_KIND
+    else :data:`GNS_KIND` (a GNS has none; a file that is no ONNX model is left to the GNS loader to
+    refuse). Raises :class:`InvalidInputError` (field ``model``) as :func:`hybridmpm.files.read_model_file` does."""
+    return _kind_of(file_metadata(path))
 
 
 def read_header(model: Runtime | ModelHeader | str | Path | None, scene: str | None = None) -> ModelHeader:
     """The resolution of ``model`` (a run-time model, a header, an ``.onnx`` path, or None for the shipped
     model of ``scene``) without loading it. Raises :class:`InvalidInputError` (field ``model``) for a
-    file that is missing or has no ``hybridmpm`` metadata, ``model.<key>`` for ``r_p`` outside (0, 1],
+    file that is missing, not a regular file (a FIFO, a device such as ``/dev/zero``), larger than
+    :data:`~hybridmpm.files.MAX_MODEL_BYTES` or without ``hybridmpm`` metadata, ``model.<key>`` for ``r_p`` outside (0, 1],
     ``r_t`` or ``t_in`` not an integer >= 1 (>= 3)."""
     if isinstance(model, ModelHeader):
         return model
     if model is not None and not isinstance(model, (str, Path)):
         return ModelHeader(Path(model.path), model_kind(model.path), dict(model.meta), float(model.r_p), int(model.r_t), int(model.t_in))
     path = Path(_resolve(model, scene))
-    if not path.is_file():
-        raise InvalidInputError(f"model: no such file {path}", "model")
-    meta = file_metadata(path)
+    meta = metadata_of(read_model_file(path))
     if meta is None:
         raise InvalidInputError(f"model: {path} has no '{METADATA_KEY}' metadata (not an ONNX model exported by hybridmpm)", "model")
-    kind = model_kind(path)
+    kind = _kind_of(meta)
     grid = meta.get("grid_config")
     source: dict[str, Any] = grid if kind == GRID_KIND and isinstance(grid, dict) else meta
     r_p, r_t, t_in = meta.get("r_p", 1.0), source.get("r_t", 1), source.get("t_in", T_IN)
@@ -216,15 +227,17 @@ def open_model(model: Runtime | str | Path | None, scene: str | None = None, thr
     file at a path opened by its kind's class (:data:`KINDS`, chosen by :func:`model_kind`), or (None)
     the shipped model of ``scene``. ``threads`` onnxruntime intra-op threads (0: one per core).
     Raises :class:`InvalidInputError`: field ``nn_threads`` for ``threads`` outside [0, 256],
-    ``model`` for no model and no scene name, and as the kind's class does (a missing or foreign file,
+    ``model`` for no model and no scene name, a file that is missing, not a regular file (a FIFO, a
+    device such as ``/dev/zero``) or larger than :data:`~hybridmpm.files.MAX_MODEL_BYTES`,
+    and as the kind's class does (a missing or foreign file,
     metadata out of range)."""
     if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
         raise InvalidInputError(f"nn_threads: must be an integer in [0, 256], got {threads!r}", "nn_threads")
     if model is not None and not isinstance(model, (str, Path)):
         return model
     path = _resolve(model, scene)
-    runtime: Runtime = KINDS[model_kind(path)](path, threads=threads)
+    runtime: Runtime = KINDS[model_kind(path)](path, threads=threads)  # model_kind reads the file: refuses a FIFO, a device, a huge file
     return runtime
 
 
-__all__ = ["GNS_KIND", "KINDS", "ModelHeader", "Runtime", "file_metadata", "model_kind", "open_model", "read_header"]
+__all__ = ["GNS_KIND", "KINDS", "ModelHeader", "Runtime", "file_metadata", "metadata_of", "model_kind", "open_model", "read_header"]

@@ -30,6 +30,7 @@ import numpy as np
 from hybridmpm import _core
 from hybridmpm.conventions import CONNECTIVITY_RADIUS, GNS_KINEMATIC, GNS_SAND, GNS_WATER
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import check_model_file
 from hybridmpm.neural.constants import METADATA_KEY
 from hybridmpm.neural.grid_nodes import MASS_FLOOR, grid_geometry, wall_mask
 
@@ -59,8 +60,9 @@ class GridRuntime:
 
     ``path`` an ``.onnx`` file of :func:`hybridmpm.train.grid.export_grid`;
     ``threads`` onnxruntime intra-op threads (0: one per core). Raises
-    :class:`InvalidInputError` (field ``model``) for a missing file, another
-    kind of model or metadata out of range; (``threads``) for a count outside
+    :class:`InvalidInputError` (field ``model``) for a missing file, one that
+    is not a regular file (a FIFO, ``/dev/zero``) or larger than
+    :data:`~hybridmpm.files.MAX_MODEL_BYTES`, another kind of model or metadata out of range; (``threads``) for a count outside
     [0, 256]."""
 
     needs_graph = False
@@ -71,8 +73,7 @@ class GridRuntime:
         if isinstance(threads, bool) or not isinstance(threads, int) or not 0 <= threads <= 256:
             raise InvalidInputError(f"threads: must be an integer in [0, 256] (0: one per core), got {threads!r}", "threads")
         self.path = Path(path)
-        if not self.path.is_file():
-            raise InvalidInputError(f"model: no such file {self.path}", "model")
+        check_model_file(self.path)  # a regular file of at most MAX_MODEL_BYTES (a FIFO, /dev/zero refused without blocking), before onnxruntime reads it
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)
         opts.inter_op_num_threads = 1

@@ -20,6 +20,7 @@ import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC, T_IN
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import check_model_file
 from hybridmpm.graph import radius_graph
 from hybridmpm.neural import fused
 from hybridmpm.neural.constants import BRANCH_KEY, CONTEXT_INPUT, FEATURE_VERSION, GRAPH_LAYOUT, INPUT_NAMES, METADATA_KEY, NUM_TYPES
@@ -147,7 +148,9 @@ class GnsRuntime:
     ``dim``, ``radius`` R [m], ``r_p``, ``r_t``, ``t_in``, ``particle_types``,
     ``feature_version``, ``data_sha256``, architecture and errors.
     Raises :class:`InvalidInputError` (field ``model``) for a missing or
-    foreign file, a compiled graph of another layout or an incompatible
+    foreign file, one that is not a regular file (a FIFO, a device such as
+    ``/dev/zero``) or larger than
+    :data:`~hybridmpm.files.MAX_MODEL_BYTES`, a compiled graph of another layout or an incompatible
     feature version, (``fused``) for ``fused=True`` on a graph the fused
     kernels do not replace, (``model.<key>``) for
     metadata out of range (e.g. ``r_p`` NaN or outside (0, 1]), (``threads``)
@@ -173,8 +176,7 @@ class GnsRuntime:
         #: Whether onnxruntime's worker threads busy-wait (see the class doc).
         self.spinning = bool(threads != 1 if spinning is None else spinning)
         self.path = Path(path)
-        if not self.path.is_file():
-            raise InvalidInputError(f"model: no such file {self.path}", "model")
+        check_model_file(self.path)  # a regular file of at most MAX_MODEL_BYTES (a FIFO, /dev/zero refused without blocking), before onnxruntime reads it
         self._profile = profile
         self.session = self._session(threads)
         self._serial: Any = None

@@ -23,21 +23,23 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.limits import check_seed
 from hybridmpm.mpm import MpmParams, WallParams
 from hybridmpm.scenes.core import wall_face
 from hybridmpm.scenes.spec import Block, SceneSpec
 
 #: Frames per scene (2.5 ms each).
-MATERIAL_FRAMES = {"jelly_dam_break2d": 300, "jelly_dam_break3d": 300, "snowball2d": 240, "mud_slump2d": 400}
+SOLID_SCENE_FRAMES = {"jelly_dam_break2d": 300, "jelly_dam_break3d": 300, "snowball2d": 240, "mud_slump2d": 400}
 
 #: Throwing speed of ``snowball2d``'s snow toward the wall [m/s] (seed 0).
 SNOWBALL_SPEED = 4.0
 
 
 def _rng(name: str, seed: int) -> np.random.Generator:
+    """Per-scene stream; :class:`~hybridmpm.errors.InvalidInputError` (``seed``) for a seed outside [0, 2^63)."""
     import zlib
 
-    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
+    return np.random.default_rng([check_seed(seed), zlib.crc32(name.encode())])
 
 
 def _jitter(rng: np.random.Generator, seed: int, cells: int) -> int:
@@ -46,7 +48,7 @@ def _jitter(rng: np.random.Generator, seed: int, cells: int) -> int:
 
 
 def _spec(name: str, seed: int, params: MpmParams, blocks: list[Block], frames: int | None, **info: Any) -> SceneSpec:
-    return SceneSpec(name, params, blocks, frames=frames if frames is not None else MATERIAL_FRAMES[name], info={"seed": int(seed), **info})
+    return SceneSpec(name, params, blocks, frames=frames if frames is not None else SOLID_SCENE_FRAMES[name], info={"seed": int(seed), **info}, registered=True)
 
 
 def jelly_dam_break2d(seed: int = 0, frames: int | None = None, n_grid: int = 128) -> SceneSpec:
@@ -127,11 +129,11 @@ def mud_slump2d(seed: int = 0, frames: int | None = None, n_grid: int = 128) -> 
 
 
 #: The scenes of this module: name → seeded spec generator.
-MATERIAL_DOMAINS = {
+SOLID_SCENE_DOMAINS = {
     "jelly_dam_break2d": jelly_dam_break2d,
     "jelly_dam_break3d": jelly_dam_break3d,
     "snowball2d": snowball2d,
     "mud_slump2d": mud_slump2d,
 }
 
-__all__ = ["MATERIAL_DOMAINS", "MATERIAL_FRAMES", "SNOWBALL_SPEED", "jelly_dam_break2d", "jelly_dam_break3d", "mud_slump2d", "snowball2d"]
+__all__ = ["SOLID_SCENE_DOMAINS", "SOLID_SCENE_FRAMES", "SNOWBALL_SPEED", "jelly_dam_break2d", "jelly_dam_break3d", "mud_slump2d", "snowball2d"]

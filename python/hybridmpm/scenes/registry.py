@@ -38,9 +38,10 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_seed
 from hybridmpm.mpm import Box, MpmParams, SandParams, WallParams
 from hybridmpm.scenes.core import Scene, wall_face
-from hybridmpm.scenes.material_scenes import MATERIAL_DOMAINS, MATERIAL_FRAMES
+from hybridmpm.scenes.material_scenes import SOLID_SCENE_DOMAINS, SOLID_SCENE_FRAMES
 from hybridmpm.scenes.spec import Block, SceneSpec, collider_sdf
 
 #: Paper T (frames per trajectory) per domain, Table "Datasets".
@@ -60,7 +61,7 @@ PAPER_FRAMES = {
     # not in the paper: the page's default 3D scene, the same 0.75 s (the surge reaches the paddle at about 0.16 s)
     "paddle3d": 300,
     # not in the paper: each solid with water (hybridmpm.scenes.material_scenes)
-    **MATERIAL_FRAMES,
+    **SOLID_SCENE_FRAMES,
 }
 
 #: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
@@ -74,8 +75,9 @@ MAX_SPEED = 1.0
 
 
 def _rng(name: str, seed: int) -> np.random.Generator:
-    """Per-domain stream: the same seed gives unrelated layouts in different domains."""
-    return np.random.default_rng([int(seed), zlib.crc32(name.encode())])
+    """Per-domain stream: the same seed gives unrelated layouts in different domains. Raises
+    :class:`InvalidInputError` (``seed``) for a seed outside [0, 2^63)."""
+    return np.random.default_rng([check_seed(seed), zlib.crc32(name.encode())])
 
 
 def _params(dim: int, n_grid: int, rough: bool, friction_angle_deg: float = 30.0) -> MpmParams:
@@ -171,6 +173,7 @@ def _spec(name: str, seed: int, params: MpmParams, blocks: list[Block], frames: 
         frames=frames if frames is not None else PAPER_FRAMES[name],
         info={"seed": int(seed), **info},
         obstacle_clearance_cells=clearance_cells,
+        registered=True,
     )
 
 
@@ -385,7 +388,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "dam_break2d": dam_break2d_spec,
     "dam_break3d": dam_break3d_spec,
     "paddle3d": paddle3d_spec,
-    **MATERIAL_DOMAINS,
+    **SOLID_SCENE_DOMAINS,
 }
 
 
@@ -396,13 +399,30 @@ def scene_spec(
     ``particles_per_cell``, the same initial condition on another grid of the
     same domain (:meth:`SceneSpec.on_grid`). Raises :class:`InvalidInputError`
     for an unknown name (the message lists the available ones) or a grid too
-    coarse for the scene (naming the field)."""
+    coarse for the scene (naming the field), ``seed`` outside [0, 2^63)."""
     if name not in DOMAINS:
         raise InvalidInputError(f"scene: unknown scene {name!r} (available: {', '.join(sorted(DOMAINS))})", "scene")
+    check_seed(seed)
     if frames is not None and (not isinstance(frames, int) or frames < 1):
         raise InvalidInputError(f"frames: must be an integer >= 1, got {frames!r}", "frames")
     spec = DOMAINS[name](seed=seed, frames=frames, **kwargs)
     return _regrid(spec, n_grid, particles_per_cell)
+
+
+def registered_name(scene: Scene | SceneSpec | str) -> str | None:
+    """The name of the registered scene (:data:`DOMAINS`) that ``scene`` is, else None.
+
+    A name is one when :data:`DOMAINS` holds it (a path to a scene file is not); a
+    :class:`Scene` or :class:`SceneSpec` when the registry made it (:func:`scene_spec`,
+    :func:`make_scene` by name: ``SceneSpec.registered``) and its name is registered. A scene
+    file, a spec of your own or one moved to another grid is none, whatever its ``name``: what
+    belongs to a registered scene (its shipped default configuration) is looked up by this."""
+    if isinstance(scene, str):
+        return scene if scene in DOMAINS else None
+    spec = scene.spec if isinstance(scene, Scene) else scene
+    if isinstance(spec, SceneSpec) and spec.registered and spec.name == scene.name and scene.name in DOMAINS:
+        return scene.name
+    return None
 
 
 def _regrid(spec: SceneSpec, n_grid: int | None, particles_per_cell: int | None) -> SceneSpec:

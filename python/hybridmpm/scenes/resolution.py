@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_seed
 from hybridmpm.scenes.core import Clusters, Scene
 
 #: The paper's choice (Sec. 3.1.1, from its Fig. 5 ablation).
@@ -39,6 +40,19 @@ def check_r_t(r_t: int) -> int:
     return int(r_t)
 
 
+#: Seeds scikit-learn's k-means takes as its ``random_state``: [0, 2^32).
+KMEANS_SEEDS = 2**32
+
+
+def kmeans_seed(seed: int) -> int:
+    """The k-means ``random_state`` of ``seed`` (an integer in [0, 2^63)): the seed itself below
+    :data:`KMEANS_SEEDS` = 2^32 (so every such seed clusters as it always did), else one derived from it
+    by numpy's ``SeedSequence``, in [0, 2^32) (the same seed always gives the same one). Raises
+    :class:`InvalidInputError` (``seed``) for a seed outside [0, 2^63)."""
+    seed = check_seed(seed)
+    return seed if seed < KMEANS_SEEDS else int(np.random.SeedSequence(seed).generate_state(1, np.uint32)[0])
+
+
 def cluster_particles(
     positions: np.ndarray,
     r_p: float,
@@ -53,13 +67,15 @@ def cluster_particles(
     groups never share a cluster; default one group); ``weights`` [N] (k-means
     sample weights, e.g. masses). Each group of ``n`` particles becomes
     ``max(1, round(r_p·n))`` clusters (k-means, one k-means++ start seeded by
-    ``seed``, run single-threaded so that labels do not depend on the machine).
+    ``seed``, an integer in [0, 2^63) given to k-means through :func:`kmeans_seed`, run
+    single-threaded so that labels do not depend on the machine).
     Returns int64 labels [N] in ``[0, N_l)``, numbered group by group (in
     ascending group value) then by the lowest member index. ``r_p = 1`` returns
     ``arange(N)`` (the identity) without clustering.
-    Raises :class:`InvalidInputError` for a bad ``r_p`` or shapes.
+    Raises :class:`InvalidInputError` for a bad ``r_p``, ``seed`` or shapes.
     """
     r_p = check_r_p(r_p)
+    random_state = kmeans_seed(seed)
     x = np.asarray(positions, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] not in (2, 3):
         raise InvalidInputError(f"positions: expected shape [N, 2|3], got {x.shape}", "positions")
@@ -86,7 +102,7 @@ def cluster_particles(
             local = np.arange(len(idx))
         else:
             with threadpool_limits(1):
-                km = KMeans(n_clusters=k, n_init=1, random_state=seed).fit(x[idx], sample_weight=None if w is None else w[idx])
+                km = KMeans(n_clusters=k, n_init=1, random_state=random_state).fit(x[idx], sample_weight=None if w is None else w[idx])
             local = km.labels_.astype(np.int64)
         # renumber compactly by first appearance (drops any empty cluster)
         _, first, inv = np.unique(local, return_index=True, return_inverse=True)
@@ -352,6 +368,7 @@ def temporal_downsample(positions: np.ndarray, r_t: int) -> np.ndarray:
 
 
 __all__ = [
+    "KMEANS_SEEDS",
     "PAPER_R_P",
     "PAPER_R_T",
     "Downsampled",
@@ -364,6 +381,7 @@ __all__ = [
     "cluster_sums",
     "downsample_scene",
     "full_resolution",
+    "kmeans_seed",
     "on_grid",
     "temporal_downsample",
 ]

@@ -180,7 +180,11 @@ class SceneSpec:
     generator's seed, ...), kept on save; ``obstacle_clearance_cells``: a
     particle closer than this many grid cells to an obstacle's surface is
     dropped too (default 0: only particles inside, ``sdf < 0``; the registered
-    ramp domains keep their historical 0.5).
+    ramp domains keep their historical 0.5). ``registered`` is True only for a
+    spec the registry made (:func:`~hybridmpm.scenes.registry.scene_spec`): it
+    is never read from or written to a file or dict, and :meth:`on_grid` does
+    not keep it, so a scene file is never a registered scene, whatever its
+    ``name`` (:func:`~hybridmpm.scenes.registry.registered_name`).
     """
 
     name: str
@@ -192,6 +196,7 @@ class SceneSpec:
     connectivity_radius: float = DEFAULT_CONNECTIVITY_RADIUS
     info: dict[str, Any] = field(default_factory=dict)
     obstacle_clearance_cells: float = 0.0
+    registered: bool = field(default=False, compare=False, repr=False)
 
     @property
     def dim(self) -> int:

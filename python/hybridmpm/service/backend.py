@@ -101,6 +101,11 @@ class Viewer:
         self.events.append(msg)
         self.wake.set()
 
+    def opening(self, msg: dict[str, Any]) -> None:
+        """``msg`` (the ``meta`` message) first, before any event queued while it was made."""
+        self.events.appendleft(msg)
+        self.wake.set()
+
 
 async def close_ws(v: Viewer, code: int, reason: str) -> None:
     """Close viewer ``v``'s socket with ``code`` and ``reason`` (at most 2 s; a socket already gone is left)."""
@@ -284,6 +289,10 @@ class SessionBackend(Protocol[S]):
 
     async def move_obstacle(self, s: S, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` over its next step; the session's frame."""
+        ...
+
+    async def pour(self, s: S, block: dict[str, Any]) -> dict[str, Any]:
+        """Add a block of particles to ``s`` between frames (its facts follow); ``{"added", "num_particles", "frame", "facts"}``."""
         ...
 
     # ------------------------------------------------------------ streams

@@ -38,6 +38,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedFrame, Recording
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
+from hybridmpm.service.schemas import clean
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
 from hybridmpm.sim import Frame, Rollout, Simulator, make_simulator, rollout
 
@@ -155,12 +156,14 @@ class SessionCore:
         self.has_viewers: Callable[[], bool] = _no_viewers
         self.playing = False
         self.controlling = False
+        self.running_control: dict[str, Any] | None = None  # the control a new viewer is told of (:meth:`info`)
         self.closed = False
         self.cancel = threading.Event()  # set: the running control stops within a frame
         self.dirty = False  # changed since its last save
         self.saved_frame: int | None = None  # frame of its last save (None: no store, or not saved yet)
         self.save_failure: tuple[int | None, str] | None = None  # (errno, message) of its last failed save; None after a save
         self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
+        self.poured = getattr(sim, "poured_particles", 0) > 0  # particles were added (a reset then builds its simulator again)
         self.last_used = time.monotonic()
         self._record(sim.frame)
 
@@ -224,7 +227,20 @@ class SessionCore:
             **scene_geometry(self.sim),
             "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
             "recorded_frames": len(self.recording),
+            "control": self.control_state(),
         }
+
+    def control_state(self) -> dict[str, Any] | None:
+        """The control running now, as a viewer that joins meanwhile needs it
+        to show what the others see: ``{"status": "running", "id", "method",
+        "frames", "start_frame", "sketch" (the sketch's JSON or None),
+        "plan" (the plan's summary once made, else None)}``; None when no
+        control runs. Set before the ``running`` event is emitted and cleared
+        before the control returns, so a stream opened at any moment learns of
+        a running control from its opening message, its events, or both."""
+        with self._held:
+            c = self.running_control
+            return None if c is None else {**c}
 
     # ------------------------------------------------------------ what it shows
     def _record(self, fr: Frame) -> None:
@@ -321,6 +337,7 @@ class SessionCore:
         cid: str,
         left: Callable[[], bool] | None = None,
         store: SessionStore | None = None,
+        share: Callable[[], None] | None = None,
     ) -> tuple[Rollout, dict[str, Any], dict[str, Any] | None, float | None]:
         """Plan and run control ``cid`` with ``method`` for ``frames`` frames
         of ``sketch`` (a :class:`~hybridmpm.control.Sketch` or None; the
@@ -333,7 +350,10 @@ class SessionCore:
         session in a control) and again once it ends, before it is answered
         (a control that answered is durable). It stops
         within a frame when ``left()`` turns true (its client left), when
-        :attr:`cancel` is set, or when the session closes. Returns
+        :attr:`cancel` is set, or when the session closes, and so does a plan
+        in progress (between its model rollouts' frames); ``share()`` (the
+        backend's hand-over of the compute this call holds to other work that
+        waits for it) is called between the same units of work. Returns
         ``(rollout, metrics, plan summary or None, time.perf_counter() of
         the first controlled frame or None)``. Raises :class:`BusyError`
         when a control is running and :class:`SessionGoneError` when the
@@ -352,18 +372,37 @@ class SessionCore:
                 self.save(store)
             with self.lock:
                 self._open()
-                self.on_event({"type": "control", "status": "running", "id": cid, "method": method})
+                running = {
+                    "status": "running",
+                    "id": cid,
+                    "method": method,
+                    "frames": int(frames),
+                    "start_frame": self.frame_index,
+                    "sketch": clean(sketch.to_json()) if sketch is not None else None,
+                }
+                with self._held:  # the state first, then the event: a viewer attached in between hears of it twice, never not
+                    self.running_control = {**running, "plan": None}
+                self.on_event({"type": "control", **running})
 
                 def stop() -> bool:
-                    return self.cancel.is_set() or (left is not None and left())
+                    return self.cancel.is_set() or self.closed or (left is not None and left())
 
-                out = run_episode(self.sim, sketch, controller, cid, self._show, self.on_event, stop)
+                def on_event(msg: dict[str, Any]) -> None:
+                    if msg.get("type") == "plan":
+                        with self._held:
+                            if self.running_control is not None:
+                                self.running_control["plan"] = {k: v for k, v in msg.items() if k not in ("type", "id")}
+                    self.on_event(msg)
+
+                out = run_episode(self.sim, sketch, controller, cid, self._show, on_event, stop, share)
                 self._changed()
             self._open()
             if store is not None:
                 self.save(store)
             return out
         finally:
+            with self._held:
+                self.running_control = None
             self.controlling = False
 
     def keep_control(self, c: Control) -> list[Control]:
@@ -397,18 +436,36 @@ class SessionCore:
         """Restore ``state``, all or nothing: the simulator's refusal
         (:class:`~hybridmpm.errors.InvalidInputError`,
         :class:`~hybridmpm.errors.CheckpointError`, or a ``KeyError``/``TypeError``/...
-        of a malformed tree) leaves it as it was. The recent trajectory starts again."""
+        of a malformed tree) leaves it as it was. The recent trajectory starts
+        again. A state taken before or after a pour brings its own particles
+        back (:meth:`hybridmpm.sim.MpmSimulator.restore`): the facts follow and
+        the viewers get a ``particles`` event when they changed."""
         with self.lock:
             self._open()
             self.sim.restore(state)
+            facts = SessionFacts.of(self.sim)
+            moved = not np.array_equal(facts.particle_type, self.facts.particle_type)
+            self.facts, self.poured = facts, getattr(self.sim, "poured_particles", 0) > 0
             self._changed()
             with self._held:
                 self.recording.clear()
             self._show(self.sim.frame)
+            frame = self.frame_index
+        if moved:
+            self.on_event({"type": "particles", "frame": frame, "added": 0, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
+                           "particle_type": [int(t) for t in facts.particle_type]})  # fmt: skip
 
     def reset(self) -> None:
-        """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
+        """Back to the initial condition; the viewers get the frame and a ``reset`` event
+        (after a pour, a new simulator of the session's settings, and a ``particles`` event first)."""
         with self.lock:
+            if self.poured:
+                s = self.settings
+                self.sim = make_simulator(s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=self.threads, nn_threads=1, n_grid=s.n_grid)
+                self.facts, self.poured = SessionFacts.of(self.sim), False
+                f = self.facts
+                self.on_event({"type": "particles", "frame": 0, "added": 0, "num_particles": f.num_total, "num_fluid": f.num_fluid,
+                               "particle_type": [int(t) for t in f.particle_type]})  # fmt: skip
             self.sim.restore(self.initial)
             self._changed()
             with self._held:
@@ -428,6 +485,34 @@ class SessionCore:
             self._changed()  # a pending move is part of the state: saved like a step
         self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
         return frame
+
+    def pour(self, block: dict[str, Any]) -> dict[str, Any]:
+        """Add ``block`` (a scene file's block: ``material``, its parameters,
+        ``lo``, ``hi``, ``velocity``) between frames (:func:`hybridmpm.sim.pour.pour_block`;
+        its errors name the field and leave the session unchanged). The recent
+        trajectory starts again; the viewers get the frame and a ``particles``
+        event with the new count and particle types. Returns ``{"added",
+        "num_particles", "frame", "facts"}`` (``facts``: the session's new
+        :class:`SessionFacts` as a dict, for a front end that keeps a copy)."""
+        from hybridmpm.sim.pour import pour_block  # import time: loaded by a pour only
+
+        with self.lock:
+            self._open()
+            before = self.facts.num_total
+            pour_block(self.sim, block)
+            self.facts = SessionFacts.of(self.sim)
+            self.poured = True
+            self._changed()
+            with self._held:
+                self.recording.clear()
+            self._show(self.sim.frame)
+            frame, facts = self.frame_index, self.facts
+        added = facts.num_total - before
+        self.on_event(
+            {"type": "particles", "frame": frame, "added": added, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
+             "particle_type": [int(t) for t in facts.particle_type]}
+        )  # fmt: skip
+        return {"added": added, "num_particles": facts.num_total, "frame": frame, "facts": facts.to_dict()}
 
     # ------------------------------------------------------------ saves
     def snapshot(self) -> tuple[dict[str, Any], int, int] | None:

@@ -16,10 +16,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hybridmpm.control import Controller, Sketch, control_episode
+from hybridmpm.control import Controller, PlanStopped, Sketch, control_episode
 from hybridmpm.control.controller import Plan
 from hybridmpm.service.schemas import clean
-from hybridmpm.sim import Frame, Rollout, Simulator
+from hybridmpm.sim import Frame, Rollout, Simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
 
@@ -32,15 +32,20 @@ def run_episode(
     publish: Callable[[Frame, int], None],
     event: Callable[[dict[str, Any]], None],
     cancelled: Callable[[], bool],
+    share: Callable[[], None] | None = None,
 ) -> tuple[Rollout, dict[str, Any], dict[str, Any] | None, float | None]:
     """Plan and run control ``cid`` on ``sim`` (the caller holds the
     session's lock; this runs on a worker thread). ``event(msg)`` gets the
     ``plan`` event (the plan's :meth:`~hybridmpm.control.controller.Plan.summary`:
     its centroid path and target) once the plan is made, and
     ``publish(frame, control_frame)`` every controlled frame, both from this
-    thread; ``cancelled()`` true stops the episode within a frame. Returns
-    ``(rollout, metrics, plan summary or None, time.perf_counter() of the
-    first controlled frame or None)``."""
+    thread; ``cancelled()`` true stops the episode within a frame, or within
+    :data:`~hybridmpm.control.mpc.BETWEEN_FRAMES` frames of a model rollout
+    while it plans (a stopped plan answers a rollout of no frame, its metrics'
+    ``failure`` saying so). ``share()`` (a backend's hand-over of its compute
+    to work that waits for it) is called between the same units of work.
+    Returns ``(rollout, metrics, plan summary or None, time.perf_counter() of
+    the first controlled frame or None)``."""
     k0 = int(sim.frame.frame_index)
     first: list[float] = []
     planned: list[dict[str, Any] | None] = []
@@ -63,7 +68,16 @@ def run_episode(
     def client_left(fr: Frame, sim_: Any) -> str | None:
         return "cancelled: the client left" if cancelled() else None
 
-    ep = control_episode(sim, sketch, controller, on_frame=on_frame, on_plan=on_plan, stop=client_left)
+    def between() -> bool:
+        if share is not None:
+            share()
+        return cancelled()
+
+    try:
+        ep = control_episode(sim, sketch, controller, on_frame=on_frame, on_plan=on_plan, stop=client_left, between=between)
+    except PlanStopped:
+        log.info("control %s: stopped while it planned", cid)
+        return rollout(sim, 0), {"frames": 0, "failure": "cancelled while planning"}, None, None
     return ep.rollout, ep.metrics, (planned[0] if planned else None), (first[0] if first else None)
 
 

@@ -61,6 +61,31 @@ class CreateSession(Strict):
     )
 
 
+class PlanInfo(BaseModel):
+    """Where the controller plans the fluid's centroid over the controlled horizon."""
+
+    method: str
+    frames: int = Field(description="the control horizon T_ctr [frames]")
+    stride: int = Field(description="control frames between consecutive points of centroid_path")
+    centroid_path: list[list[float]] = Field(
+        description="the planned centroid of the fluid [m] at control frames 0, stride, 2·stride, …, frames (the last point is where "
+        "the plan ends: the arrow's tip relative to the start centroid, or the oval's centre); D coordinates (in 3D z as planned)"
+    )
+    target: list[float] = Field(description="the centroid the sketch asks for [m], x–y (an arrow: start centroid + the arrow; an oval: its centre)")
+
+
+class RunningControl(BaseModel):
+    """A control running on a session: what its stream's ``control running`` event says, with the plan once made."""
+
+    status: Literal["running"] = "running"
+    id: str
+    method: str
+    frames: int = Field(description="the control horizon T_ctr [frames]")
+    start_frame: int = Field(description="the session's frame when the control started")
+    sketch: dict[str, Any] | None = Field(description="the sketch it follows (the request's sketch JSON, domain coordinates, y up); null for none")
+    plan: PlanInfo | None = Field(None, description="the plan's centroid path once the controller has made it; null before")
+
+
 class SessionInfo(BaseModel):
     id: str = Field(description="unguessable session id (192 bits, 32 URL-safe characters); the session's only credential")
     scene: str
@@ -92,6 +117,9 @@ class SessionInfo(BaseModel):
         default_factory=list, description="each obstacle's centre now [m] (moved by PUT .../obstacles/{index} or its scene's path)"
     )
     recorded_frames: int = Field(0, description="coarse steps of the session's recent trajectory held for download (GET .../trajectory)")
+    control: RunningControl | None = Field(
+        None, description="the control running on the session now (what a viewer that joins meanwhile shows); null when none runs"
+    )
 
 
 class StepRequest(Strict):
@@ -103,6 +131,33 @@ class ObstacleMove(Strict):
     velocity: list[Number] | None = Field(
         None, min_length=2, max_length=3, description="the velocity it pushes the fluid with [m/s]; null: the move over the step's duration"
     )
+
+
+class BlockPour(Strict):
+    """A block poured into a session: a scene file's block (docs/materials.md)."""
+
+    material: str = Field(max_length=32, description="a model (water, sand, elastic, snow, viscoplastic) or a preset (jello, mud, ...)")
+    lo: list[Number] = Field(min_length=2, max_length=3, description="one corner [m], inside the walls' faces")
+    hi: list[Number] = Field(min_length=2, max_length=3, description="the opposite corner [m]")
+    velocity: list[Number] | None = Field(None, min_length=2, max_length=3, description="initial velocity [m/s] (default at rest)")
+    E: Number | None = Field(None, description="Young's modulus [Pa], > 0")
+    nu: Number | None = Field(None, description="Poisson's ratio, in [0, 0.5)")
+    density: Number | None = Field(None, description="rest density [kg/m^3], > 0")
+    model: str | None = Field(None, max_length=16, description="elastic: corotated or neohookean")
+    theta_c: Number | None = Field(None, description="snow: critical compression, in (0, 1)")
+    theta_s: Number | None = Field(None, description="snow: critical stretch, in (0, 1)")
+    hardening: Number | None = Field(None, description="snow: hardening coefficient, in [0, 50]")
+    yield_stress: Number | None = Field(None, description="viscoplastic: Bingham yield stress [Pa], >= 0")
+    viscosity: Number | None = Field(None, description="water or viscoplastic: viscosity [Pa s], >= 0")
+    bulk_modulus: Number | None = Field(None, description="water: bulk modulus [Pa]")
+    friction_angle_deg: Number | None = Field(None, description="sand: friction angle [deg]")
+    cohesion: Number | None = Field(None, description="sand: cohesion [Pa]")
+
+
+class BlockPoured(BaseModel):
+    added: int = Field(description="particles added")
+    num_particles: int = Field(description="the session's particles now (with boundary particles)")
+    frame: int = Field(description="the session's frame when the block was poured")
 
 
 class ObstacleMoved(BaseModel):
@@ -143,19 +198,6 @@ class ControlRequest(Strict):
         None, description="the control method (SceneInfo.methods); null: the scene's default (SceneInfo.default_method)"
     )
     frames: Integer = Field(T_CTR, ge=1, le=1000, description="control horizon T_ctr [frames]")
-
-
-class PlanInfo(BaseModel):
-    """Where the controller plans the fluid's centroid over the controlled horizon."""
-
-    method: str
-    frames: int = Field(description="the control horizon T_ctr [frames]")
-    stride: int = Field(description="control frames between consecutive points of centroid_path")
-    centroid_path: list[list[float]] = Field(
-        description="the planned centroid of the fluid [m] at control frames 0, stride, 2·stride, …, frames (the last point is where "
-        "the plan ends: the arrow's tip relative to the start centroid, or the oval's centre); D coordinates (in 3D z as planned)"
-    )
-    target: list[float] = Field(description="the centroid the sketch asks for [m], x–y (an arrow: start centroid + the arrow; an oval: its centre)")
 
 
 class ControlResponse(BaseModel):

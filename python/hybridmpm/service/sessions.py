@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import functools
 import logging
 import secrets
@@ -28,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import anyio
+import anyio.from_thread
 import anyio.to_thread
 
 from hybridmpm.errors import CheckpointError, InvalidInputError
@@ -57,6 +59,64 @@ from hybridmpm.sim import Frame, Rollout
 
 log = logging.getLogger("hybridmpm.service")
 T = TypeVar("T")
+#: A control gives the compute it holds to work that waits for it (another session's step) at most this often [s]:
+#: such work starts within about this (plus the control's unit of work: a frame, or 10 frames of an MPC model
+#: rollout), and the control pays one hand-over per period while others wait, none while nobody does.
+SHARE_EVERY_S = 0.05
+
+
+class ComputeShare:
+    """The compute tokens one long call holds (a control: as many of the
+    limiter's tokens as its session's MPM threads, taken as
+    :meth:`SessionManager.compute_wide` takes them), and the hand-over its
+    worker thread calls between units of work (:meth:`__call__`): when work
+    waits for the compute and :data:`SHARE_EVERY_S` has passed since the
+    last hand-over, it gives its tokens to the waiters (the limiter hands a
+    freed token to the first in line) and queues for them again behind them.
+    A control thus shares the cores with the other sessions instead of
+    holding them for its whole plan and run."""
+
+    def __init__(self, manager: SessionManager, width: int) -> None:
+        self.manager = manager
+        self.tokens = [object() for _ in range(max(1, int(width)))]
+        self.held = 0
+        self.last = time.monotonic()
+        self.handovers = 0
+
+    async def take(self) -> None:
+        """Take every token (a wide call's one wide call at a time); cancelled meanwhile, it gives back those it took."""
+        limiter = self.manager.limiter
+        async with self.manager._wide if len(self.tokens) > 1 else contextlib.nullcontext():
+            try:
+                for t in self.tokens[self.held :]:
+                    await limiter.acquire_on_behalf_of(t)
+                    self.held += 1
+            except BaseException:
+                self.give()
+                raise
+
+    def give(self) -> None:
+        """Give back the tokens it holds (event loop thread)."""
+        while self.held:
+            self.held -= 1
+            self.manager.limiter.release_on_behalf_of(self.tokens[self.held])
+
+    async def _hand_over(self) -> None:
+        self.give()
+        await self.take()
+
+    def __call__(self) -> None:
+        """From the worker thread between units of work: hand the compute over when work waits for it."""
+        now = time.monotonic()
+        if now - self.last < SHARE_EVERY_S:
+            return
+        self.last = now
+        if not self.manager.limiter.statistics().tasks_waiting:
+            return
+        anyio.from_thread.run(self._hand_over)
+        self.handovers += 1
+        self.last = time.monotonic()
+
 
 #: What a session costs beyond its state arrays (simulator objects, grids, buffers) [bytes], for the memory budget.
 SESSION_OVERHEAD = 4 << 20
@@ -463,12 +523,25 @@ class SessionManager:
         (:meth:`SessionCore.control <hybridmpm.service.core.SessionCore.control>`
         on a worker thread), its frames and plan offered to the viewers as
         they come; ``left`` (a :class:`threading.Event`) set stops it within
-        a frame, and so does closing ``s`` (a delete, an expiry). Appends the
+        a frame, and so does closing ``s`` (a delete, an expiry), a plan in
+        progress too (between its model rollouts' frames). It holds the
+        session's share of the compute (:class:`ComputeShare`) and hands it
+        to other sessions' work that waits for it, so a long control (an MPC
+        plan, a 1000-frame run) never stalls them. Appends the
         time of the first controlled frame to ``first``; returns ``(rollout,
         metrics, plan summary)``; :class:`SessionGoneError` when it was
         closed before or during the control. With a store the core saves it
         before the control is announced and after it ends (its save policy)."""
-        ro, metrics, plan, t_first = await self.on_core(s, self.core_of(s).control, method, frames, sketch, cid, left.is_set, self.store)
+        core = self.core_of(s)
+        async with s.lock:
+            if s.closed:
+                raise SessionGoneError()
+            share = ComputeShare(self, core.threads)
+            await share.take()
+            try:
+                ro, metrics, plan, t_first = await on_worker(self._unlimited, core.control, method, frames, sketch, cid, left.is_set, self.store, share)
+            finally:
+                share.give()
         if t_first is not None:
             first.append(t_first)
         return ro, metrics, plan
@@ -484,10 +557,35 @@ class SessionManager:
         refusal (:class:`InvalidInputError`, :class:`CheckpointError`, or a
         ``KeyError``/``TypeError``/... of a malformed tree) leaves it as it was."""
         await self.on_core(s, self.core_of(s).restore, state)
+        s.facts = self.core_of(s).facts  # a state taken before or after a pour has its own particles
 
     async def reset(self, s: LocalSession) -> None:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event."""
         await self.on_core(s, self.core_of(s).reset)
+        s.facts = self.core_of(s).facts  # a session that was poured into has its scene's particles again
+
+    async def pour(self, s: LocalSession, block: dict[str, Any]) -> dict[str, Any]:
+        """Add ``block`` to ``s`` between frames (:meth:`SessionCore.pour
+        <hybridmpm.service.core.SessionCore.pour>`); every viewer gets a
+        ``particles`` event. Returns its answer."""
+        from hybridmpm.scenes.core import BYTES_PER_PARTICLE
+        from hybridmpm.sim.pour import MAX_POUR_PARTICLES
+
+        # the most a pour can add taken from the service's budget first (a full budget refuses it, the session
+        # unchanged); what it did not add given back, what it added counted in the session's cost until it goes
+        per = SESSION_STATE_COPIES * BYTES_PER_PARTICLE
+        held = self.budget.take(per * MAX_POUR_PARTICLES, "a poured block")
+        try:
+            out = await self.on_core(s, self.core_of(s).pour, block)
+        except BaseException:
+            self.budget.give(held)
+            raise
+        used = min(held, per * int(out["added"]))
+        self.budget.give(held - used)
+        s.cost += used
+        s.facts = self.core_of(s).facts
+        s.touch()
+        return dict(out)
 
     async def move_obstacle(self, s: LocalSession, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` to ``center`` over its next step
@@ -498,10 +596,14 @@ class SessionManager:
         return frame
 
     async def attach(self, s: LocalSession, v: Viewer) -> None:
-        """A new viewer of ``s``: its ``meta`` message and the current frame are offered first."""
+        """A new viewer of ``s``: its ``meta`` message (the description, a
+        running control included) and the current frame are offered first,
+        then every event emitted after the description (the core sets a
+        control's state before it emits its ``running`` event: one in
+        between may come twice, never not at all)."""
         s.viewers.add(v)
         core = self.core_of(s)
-        v.event(meta_message(await self.info(s), core.playing))
+        v.opening(meta_message(await self.info(s), core.playing))
         v.offer(frame_message(core.sim.frame))
 
     async def detach(self, s: LocalSession, v: Viewer) -> None:

@@ -11,8 +11,10 @@ from typing import Any
 
 from hybridmpm.conventions import R_C
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_seed
 from hybridmpm.models import shipped_default
 from hybridmpm.scenes.core import Clusters, Scene
+from hybridmpm.scenes.registry import registered_name
 from hybridmpm.sim.base import Simulator
 from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
@@ -75,11 +77,18 @@ def make_simulator(
     merged and split at each handover; :data:`~hybridmpm.sim.hybrid.TWIN_PARTICLES`);
     ``calibrated`` runs MPM on ``n_grid`` with the calibrated coarse material
     of the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
+    ``seed`` an integer in [0, 2^63) (the scene's initial condition and the
+    k-means of the downsampling: :func:`~hybridmpm.scenes.resolution.kmeans_seed`).
+    "default" takes a registered scene's default; a scene file (or spec) of
+    your own has none, whatever its ``name`` (:func:`default_entry`), and runs
+    plain MPM as given.
     Raises :class:`InvalidInputError` naming the bad setting (``solver``,
-    ``r_p``, ``n_grid`` or ``particles_per_cell`` for a network solver: it
-    runs at its model's resolution)."""
+    ``seed`` outside [0, 2^63), checked before any work, ``r_p``, ``n_grid``
+    or ``particles_per_cell`` for a network solver: it runs at its model's
+    resolution)."""
     if solver not in SOLVERS:
         raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
+    check_seed(seed)  # before any work: every generator it reaches (the scene's, k-means') takes it
     if solver == "default":
         name = scene.name if isinstance(scene, Scene) else str(scene)
         for field, value, unset in (
@@ -94,7 +103,7 @@ def make_simulator(
                     f"name the solver (hybrid, mpm or neural) to set {field}",
                     field,
                 )
-        return make_simulator(scene, seed=seed, threads=threads, nn_threads=nn_threads, clusters=clusters, **default_settings(name))
+        return make_simulator(scene, seed=seed, threads=threads, nn_threads=nn_threads, clusters=clusters, **default_settings(scene))
     if solver != "mpm":
         for name, value, unset in (
             ("r_p", r_p, 1.0),
@@ -134,14 +143,34 @@ def make_simulator(
     )
 
 
-def default_settings(scene: str) -> dict[str, Any]:
+def default_entry(scene: Scene | str) -> dict[str, Any]:
+    """The shipped default of ``scene`` (:func:`hybridmpm.models.shipped_default`) when it is a
+    registered scene (:func:`hybridmpm.scenes.registered_name`: a registered name, or a scene the
+    registry built), else empty: a default belongs to a registered scene, not to a name, so a scene
+    file (or spec) of your own has none, whatever its ``name``."""
+    name = registered_name(scene)
+    return shipped_default(name) if name is not None else {}
+
+
+def default_settings(scene: Scene | str) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of ``scene``'s shipped default
     configuration (:func:`hybridmpm.models.shipped_default`, chosen on validation
     seeds by ``benchmarks/release/ship_defaults.py``: the fastest candidate within
     its error budget against MPM at ``r_p``); a scene without one (a scene file of
-    your own) runs plain MPM as given, ``{"solver": "mpm"}``."""
-    entry = shipped_default(scene)
-    return tuned_settings({"config": entry["config"]}) if entry else {"solver": "mpm"}
+    your own, whatever its ``name``: :func:`default_entry`) runs plain MPM as
+    given, ``{"solver": "mpm"}``. Raises :class:`InvalidInputError` (``defaults``)
+    when the package's ``models/defaults.json`` is corrupt."""
+    entry = default_entry(scene)
+    if not entry:
+        return {"solver": "mpm"}
+    try:
+        return tuned_settings({"config": entry["config"]})
+    except (KeyError, TypeError, ValueError) as e:  # package data (checked by shipped_default as far as its shape): a value it misses
+        raise InvalidInputError(
+            f"defaults: the default configuration of {registered_name(scene)} in the package's models/defaults.json is corrupt ({type(e).__name__}: {e}); "
+            "reinstall hybridmpm",
+            "defaults",
+        ) from None
 
 
 def tuned_path(scene: str, path: str | Path | None = None) -> Path:
@@ -200,4 +229,15 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-__all__ = ["CONFIG_KEYS", "RULE_KEYS", "SOLVERS", "TUNED_DIR", "default_settings", "load_tuned", "make_simulator", "tuned_path", "tuned_settings"]
+__all__ = [
+    "CONFIG_KEYS",
+    "RULE_KEYS",
+    "SOLVERS",
+    "TUNED_DIR",
+    "default_entry",
+    "default_settings",
+    "load_tuned",
+    "make_simulator",
+    "tuned_path",
+    "tuned_settings",
+]

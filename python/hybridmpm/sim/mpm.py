@@ -21,17 +21,21 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
+from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.mpm import MpmSolver, SampledSdf
 from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, check_velocity, path_center
 from hybridmpm.mpm.params import Collider
+from hybridmpm.mpm.solver import check_leading_particles, check_poured_blocks, core_particle_count
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.obstacles import obstacle_center
+from hybridmpm.scenes.particles import ParticleSet
 from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid
 from hybridmpm.sim.base import (
     MPM,
@@ -122,6 +126,10 @@ class MpmSimulator:
         self.scene = at_resolution(on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles, calibrated=calibrated), r_p, seed, clusters)
         self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
         self.particles = self.scene.particles(self.solver.masses)
+        #: the scene's own solver parameters and particles: a state with blocks poured after them restores (:meth:`restore`)
+        self._scene_params, self._scene_particles = self.solver.params, self.particles
+        #: the particle count of each block poured into it, in order (:func:`hybridmpm.sim.pour.pour_block`)
+        self._pours: list[int] = []
         self.dt_frame = float(self.scene.dt_frame)
         self.dt_step = self.dt_frame * self.r_t
         self.step_index = 0
@@ -358,30 +366,38 @@ class MpmSimulator:
             "forcing": self._forcing.copy() if isinstance(self._forcing, np.ndarray) else None,
             "applied": self._applied,
             "obstacle_moves": [{"index": i, "center": c.tolist(), "velocity": None if v is None else v.tolist()} for i, (c, v) in self._moves.items()],
+            "poured": list(self._pours),
         }
 
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state` of a simulator of the same scene.
-        The whole state is validated first (kind, version, the solver's
-        particles — count, materials, masses, finite values inside the
-        domain — ``step_index`` within :data:`~hybridmpm.limits.MAX_FRAME_INDEX`
-        frames, the forcing): raises :class:`InvalidInputError` (field
-        ``state``…) or :class:`~hybridmpm.errors.CheckpointError` for a foreign
-        or malformed state, and this simulator is then unchanged."""
-        self._prepare_restore(state)()
+        """Restore a :meth:`state` of a simulator of the same scene, taken
+        before or after blocks were poured into it
+        (:func:`hybridmpm.sim.pour.pour_block`): the simulator then holds the
+        state's particles, the scene's own followed by the poured ones, and
+        their parameter sets. The whole state is validated first (kind,
+        version, the solver's particles — the scene's own by count, material
+        and mass, at most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` in all,
+        finite values inside the domain, parameter sets — ``step_index``
+        within :data:`~hybridmpm.limits.MAX_FRAME_INDEX` frames, the
+        forcing): raises :class:`InvalidInputError` (field ``state``…) or
+        :class:`~hybridmpm.errors.CheckpointError` for a foreign or malformed
+        state, and this simulator is then unchanged."""
+        self._prepare_restore(state, poured=True)()
 
-    def _prepare_restore(self, state: dict[str, Any]) -> Callable[[], None]:
+    def _prepare_restore(self, state: dict[str, Any], poured: bool = False) -> Callable[[], None]:
         """Validate ``state`` whole without changing anything; returns the
-        commit. The commit's only step that can fail is the solver's restore,
-        which itself changes nothing unless it succeeds (so a commit that
-        raises has changed nothing)."""
+        commit. With ``poured`` a state whose particles are the scene's plus
+        poured blocks (or the scene's alone, after a pour) is accepted: a new
+        solver is made and restored here; without it (a simulator inside
+        another one) the particles must be the solver's own. The commit's only
+        step that can fail is the solver's restore, which itself changes
+        nothing unless it succeeds (so a commit that raises has changed nothing)."""
         with reading_state("MpmSimulator"):
             if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION:
                 raise InvalidInputError("state: not a state of an MpmSimulator of this version", "state")
             step = check_step_index("state.step_index", state["step_index"], self.r_t)
             stats = SimStats.from_dict(state["stats"])
-            forcing = check_forcing(state["forcing"], self.particles.num_fluid, self.particles.dim)
             applied = state.get("applied", False)
             if not isinstance(applied, bool):
                 raise InvalidInputError("state.applied: must be true or false", "state.applied")
@@ -389,11 +405,21 @@ class MpmSimulator:
             if not isinstance(blob, (bytes, bytearray)):
                 raise InvalidInputError("state.solver: must be the solver's checkpoint bytes", "state.solver")
             blob = bytes(blob)
-            self.solver.check_restore(blob, same_particles=True)
+            pours = self._check_pours(state.get("poured", []))  # absent from states saved before blocks were poured
+            grown = self._poured_solver(blob, pours) if poured else None
+            if grown is None:
+                self.solver.check_restore(blob, same_particles=True)
+                if pours != self._pours:
+                    raise CheckpointError(f"state.poured: records blocks of {pours} particles, this simulator holds {self._pours}")
+            n_fluid = self.particles.num_fluid if grown is None else int(grown.num_particles)
+            forcing = check_forcing(state["forcing"], n_fluid, self.particles.dim)
             moves = self._check_moves(state.get("obstacle_moves", {}))  # absent from states saved before obstacles moved
 
         def commit() -> None:
-            self.solver.restore(blob, same_particles=True)
+            if grown is None:
+                self.solver.restore(blob, same_particles=True)
+            else:
+                self.adopt(grown, pours)
             self._moves = moves
             self.step_index = step
             self.stats = stats
@@ -402,6 +428,90 @@ class MpmSimulator:
             self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM, obstacle_centers=self.frame_centers())
 
         return commit
+
+    def _check_pours(self, raw: Any) -> list[int]:
+        """A state's ``poured`` (the particle count of each block poured, in
+        order), checked: a list of at most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` ints,
+        each in [1, :data:`~hybridmpm.sim.pour.MAX_POUR_PARTICLES`]. Raises
+        :class:`InvalidInputError` naming ``state.poured``."""
+        from hybridmpm.sim.pour import MAX_POUR_PARTICLES, MAX_POURED_TOTAL
+
+        field = "state.poured"
+        if not isinstance(raw, (list, tuple)) or len(raw) > MAX_POURED_TOTAL:
+            raise InvalidInputError(f"{field}: must be a list of the particle counts of the blocks poured", field)
+        return [check_int(f"{field}[{k}]", c, 1, MAX_POUR_PARTICLES) for k, c in enumerate(raw)]
+
+    def _poured_solver(self, blob: bytes, pours: list[int]) -> MpmSolver | None:
+        """None when ``blob`` holds this solver's particles and parameters
+        (the plain restore); else a new solver restored from it when it is a
+        state of this scene with the blocks ``pours`` (their particle counts)
+        poured after its particles, each of one material and set, or of this
+        scene alone while this simulator holds poured blocks: the scene's
+        solver parameters with the scene's parameter sets followed by any
+        others, the scene's particles first (count, materials, masses), at
+        most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` particles (the
+        scene's own count where larger) within the solver's memory budget.
+        Raises :class:`~hybridmpm.errors.CheckpointError` otherwise."""
+        from hybridmpm.sim.pour import MAX_POURED_TOTAL  # at call time: a test lowers the bound
+
+        params, core, _ = MpmSolver.split_checkpoint(blob)
+        d = self.particles.dim
+        n = core_particle_count(core, d)
+        if n == self.solver.num_particles and params.to_dict() == self.solver.params.to_dict() and pours == self._pours:
+            return None
+        base = self._scene_params.to_dict()
+        theirs = params.to_dict()
+        sets0, sets = base.pop("sets", []), theirs.pop("sets", [])
+        base.pop("num_threads", None)
+        theirs.pop("num_threads", None)
+        if base != theirs or sets[: len(sets0)] != sets0:
+            diff = sorted(k for k in set(base) | set(theirs) if base.get(k) != theirs.get(k)) or ["sets"]
+            raise CheckpointError(f"checkpoint was written with other solver parameters ({', '.join(diff)})")
+        scene = self._scene_particles
+        most = max(MAX_POURED_TOTAL, scene.num_fluid)
+        if n > most:
+            raise CheckpointError(f"checkpoint holds {n} particles, more than the {most} a simulator of this scene holds with poured blocks")
+        check_leading_particles(core, d, np.asarray(scene.material), np.asarray(scene.masses, np.float32))
+        check_poured_blocks(core, d, int(scene.num_fluid), pours)
+        threads = int(self.solver.params.num_threads)
+        if params.num_threads != threads:  # this simulator's threads (the same bits on any count): the header says so too
+            blob = MpmSolver.with_header(blob, {"num_threads": threads})
+            params = MpmSolver.split_checkpoint(blob)[0]
+        out = MpmSolver(params, memory_budget=self.solver.memory_budget)
+        out.restore(blob)
+        return out
+
+    @property
+    def pours(self) -> list[int]:
+        """The particle count of each block poured into it, in order."""
+        return list(self._pours)
+
+    @property
+    def poured_particles(self) -> int:
+        """The particles it holds beyond its scene's own (blocks poured into it)."""
+        return int(self.solver.num_particles) - int(self._scene_particles.num_fluid)
+
+    def adopt(self, solver: MpmSolver, pours: list[int]) -> None:
+        """Run on ``solver`` from now on: this scene's particles followed by
+        the blocks poured, ``pours`` particles each (:func:`hybridmpm.sim.pour.pour_block`,
+        :meth:`restore`), in its parameter sets; the particle set, the scene's
+        parameters and the current frame follow. Between steps."""
+        self._pours = list(pours)
+        old = self.particles
+        material = np.asarray(solver.material, np.int32)
+        fluid_types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)
+        self.solver = solver
+        self.particles = ParticleSet(
+            int(solver.num_particles),
+            old.boundary,
+            np.concatenate([fluid_types, np.asarray(old.particle_type)[old.num_fluid :]]),
+            material,
+            np.asarray(solver.masses, np.float32),
+            old.boundary_obstacle,
+        )
+        self.scene = replace(self.scene, params=solver.params)
+        f = self._frame
+        self._frame = Frame(f.step, f.frame_index, f.time, self.positions, f.solver, obstacle_centers=f.obstacle_centers)
 
     def _check_moves(self, raw: Any) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """A state's pending obstacle moves (its ``obstacle_moves``, absent

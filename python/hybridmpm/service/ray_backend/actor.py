@@ -220,14 +220,28 @@ class SessionActor:
         return self.core.checkpoint()
 
     @_answer
-    def restore(self, state: dict[str, Any]) -> None:
-        """Restore ``state``, all or nothing (the simulator validates it whole first)."""
+    def restore(self, state: dict[str, Any]) -> dict[str, Any]:
+        """Restore ``state``, all or nothing (the simulator validates it whole first); the session's facts after it
+        (a state taken before or after a pour holds its own particles)."""
         self.core.restore(state)
+        return self.core.facts.to_dict()
 
     @_answer
-    def reset(self) -> None:
-        """Back to the initial condition; the streams get the frame and a ``reset`` event."""
+    def reset(self) -> dict[str, Any]:
+        """Back to the initial condition; the streams get the frame and a ``reset`` event. The session's facts after it
+        (its scene's particles again after a pour)."""
         self.core.reset()
+        return self.core.facts.to_dict()
+
+    @_answer
+    def pour(self, block: dict[str, Any]) -> dict[str, Any]:
+        """Add a block between frames; the streams get a ``particles`` event."""
+        return self.core.pour(block)
+
+    @_answer
+    def facts(self) -> dict[str, Any]:
+        """The session's facts (its particles change with a pour and a reset after one)."""
+        return self.core.facts.to_dict()
 
     @_answer
     def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
@@ -289,10 +303,20 @@ class SessionActor:
     @_answer
     def info(self, front: str, viewers: int) -> dict[str, Any]:
         """The session's description (``GET /v1/sessions/{id}``; ``id`` and
-        ``stream`` are the front end's), with the viewers of every front end."""
+        ``stream`` are the front end's), with the viewers of every front end,
+        and where the streams' events stood when it was taken (``_epoch``,
+        ``_event_seq``: a new stream polls from there, so no event after the
+        description, a control's ``running`` included, is missed)."""
         self._lease(front, viewers)
         self.core.touch()
-        return {**self.core.info(), "viewers": self._viewer_count(), "playing": self.core.playing}
+        with self.cond:  # the description and the event count together: an event either shows in it or comes after it
+            return {
+                **self.core.info(),
+                "viewers": self._viewer_count(),
+                "playing": self.core.playing,
+                "_epoch": self.epoch,
+                "_event_seq": self.event_seq,
+            }
 
     @_answer
     def set_playing(self, playing: bool, front: str, viewers: int) -> None:

@@ -529,11 +529,17 @@ class RaySessionManager:
     # ------------------------------------------------------------ the work of the routes, in the actors
     async def info(self, s: RaySession) -> dict[str, Any]:
         """``s``'s description, from its actor (the viewers of every front end counted)."""
+        d, _, _ = await self._described(s)
+        return d
+
+    async def _described(self, s: RaySession) -> tuple[dict[str, Any], str, int]:
+        """``s``'s description and where its actor's events stood when it was taken: ``(info, epoch, event seq)``."""
         d = dict(await self._call(s, "info", self.front_id, len(s.viewers)))
+        epoch, eseq = str(d.pop("_epoch", "")), int(d.pop("_event_seq", -1))
         d.update(id=s.id, stream=f"/v1/sessions/{s.id}/stream")
         s.at_frame = int(d["frame"])
         s.playing = bool(d.pop("playing", False))
-        return d
+        return d, epoch, eseq
 
     async def rollout(self, s: RaySession, frames: int) -> Rollout:
         ro: Rollout = await self._call(s, "rollout", frames)
@@ -595,10 +601,14 @@ class RaySessionManager:
         return data
 
     async def restore(self, s: RaySession, state: dict[str, Any]) -> None:
-        await self._call(s, "restore", state)
+        s.facts = SessionFacts.from_dict(await self._call(s, "restore", state))  # a state before or after a pour: its own particles
 
     async def reset(self, s: RaySession) -> None:
-        await self._call(s, "reset")
+        s.facts = SessionFacts.from_dict(await self._call(s, "reset"))  # its scene's particles again after a pour
+
+    async def pour(self, s: RaySession, block: dict[str, Any]) -> dict[str, Any]:
+        s.facts = SessionFacts.from_dict((out := await self._call(s, "pour", block))["facts"])
+        return dict(out)
 
     async def move_obstacle(self, s: RaySession, index: int, center: list[float], velocity: list[float] | None) -> int:
         frame: int = await self._call(s, "move_obstacle", index, center, velocity)
@@ -623,17 +633,23 @@ class RaySessionManager:
 
     # ------------------------------------------------------------ streams
     async def attach(self, s: RaySession, v: Viewer) -> None:
+        """A new viewer of ``s``: its ``meta`` message (the description, a
+        running control included) and the current frame first, then every
+        event the actor emits after that description: a feeder started here
+        polls from the description's event count, a running one delivers to
+        the viewer from now on (an event between the two may come twice,
+        never not at all)."""
         s.viewers.add(v)
         try:
-            info = await self.info(s)
-            v.event(meta_message(info, s.playing))
+            info, epoch, eseq = await self._described(s)
+            v.opening(meta_message(info, s.playing))
         except BaseException:
             s.viewers.discard(v)
             raise
         if s.last_frame is not None:
             v.offer(s.last_frame)
         if s.pump is None or s.pump.done():
-            s.pump = asyncio.get_running_loop().create_task(self._pump(s))
+            s.pump = asyncio.get_running_loop().create_task(self._pump(s, epoch, eseq))
 
     async def detach(self, s: RaySession, v: Viewer) -> None:
         s.viewers.discard(v)
@@ -642,12 +658,13 @@ class RaySessionManager:
         await self._call(s, "set_playing", playing, self.front_id, len(s.viewers))
         s.playing = playing
 
-    async def _pump(self, s: RaySession) -> None:
+    async def _pump(self, s: RaySession, epoch: str = "", eseq: int = -1) -> None:
         """Feed the viewers of ``s`` here: the actor's latest frame (at most
         ``max_fps`` a second; newer ones replace an unsent one in each
-        viewer's slot, the same bytes for all) and its events, until no
+        viewer's slot, the same bytes for all) and its events after event
+        ``eseq`` of the actor's ``epoch`` (an empty epoch: from now), until no
         viewer is left, the session closes (its code and reason) or it is gone (4004)."""
-        epoch, fseq, eseq = "", -1, -1
+        fseq = -1
         gap = 1.0 / float(self.config.max_fps)
         try:
             while s.viewers and not s.closed:

@@ -3,6 +3,7 @@
 
 import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
 import { encodeGif } from "./gif.js";
+import { Palette } from "./palette.js";
 import { LEVELS, QualityController, SOFTWARE_START, levelForScale } from "./quality.js";
 
 const HEADER_BYTES = 32;
@@ -150,18 +151,34 @@ function syncSolvers() {
   if (allowed.length > 0 && !allowed.includes(sel.value)) sel.value = allowed[0];
 }
 
-async function newSession() {
+function leaveSession() {
   closeStream();
-  if (session) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); }
+  if (session && session.owned) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); } // a joined one is another page's
   session = null; latest = null; hook.session = null; $("apply").disabled = true; resumeAfter = null;
   if (grab) finishGrab();
   history.length = 0; stroke = []; setApplied(null);
+}
+async function newSession() {
+  leaveSession();
   setStatus("creating session…");
   try {
     session = await api("POST", "/v1/sessions", {
       scene: $("scene").value, seed: Number($("seed").value) || 0, solver: $("solver").value,
     });
   } catch (e) { setStatus(`could not create a session: ${e.message}`); return; }
+  session.owned = true;
+  useSession();
+}
+// ?session=ID: watch (and draw on) a session another page or client made; leaving it does not delete it
+async function joinSession(id) {
+  leaveSession();
+  setStatus("joining session…");
+  try { session = await api("GET", `/v1/sessions/${encodeURIComponent(id)}`); } catch (e) { setStatus(`could not join the session: ${e.message}`); return; }
+  session.owned = false;
+  if (sceneSolvers[session.scene]) { $("scene").value = session.scene; syncSolvers(); }
+  useSession();
+}
+function useSession() {
   hook.session = session;
   renderer.setSession(session);
   hook.camera = renderer.camera;
@@ -204,16 +221,40 @@ function openStream() {
   ws.onopen = () => { setStatus("streaming"); if (playing) ws.send(JSON.stringify({ type: "play" })); };
   ws.onclose = (ev) => setStatus(ev.code === 4000 ? "session expired: start a new one" : `stream closed (${ev.code} ${ev.reason})`);
 }
+// A control this page did not apply (another viewer's, or one running when this page joined): shown as the
+// page that applied it shows it, its sketch in domain coordinates (3D: on the mid-depth plane) and its plan.
+function showOthersControl(c) {
+  const mine = applied && applied.running && (applied.id === null || applied.id === c.id);
+  if (mine) { applied.id = c.id; if (c.plan && !applied.plan) { applied.plan = c.plan; setApplied(applied); } return; }
+  if (!c.sketch || !Array.isArray(c.sketch.points)) return;
+  const stroke = c.sketch.points.map((p) => (is3D() ? [p[0], p[1], 0.5] : [p[0], p[1]]));
+  setApplied({ kind: c.sketch.kind === "oval" ? "oval" : "arrow", stroke, plan: c.plan || null, id: c.id, frames: c.frames, running: true });
+}
 function onEvent(msg) {
-  if (msg.type === "control") {
+  if (msg.type === "meta") {
+    hook.streamFrame = msg.frame; // the session's frame when this page's stream opened
+    if (msg.control && msg.control.status === "running") { // joined while a control runs: told so by the first message
+      hook.controlRunning = true;
+      showOthersControl(msg.control);
+      setStatus(`control ${msg.control.method} running…`);
+    }
+  } else if (msg.type === "control") {
     hook.controlRunning = msg.status === "running";
+    if (msg.status === "running") showOthersControl(msg);
+    else if (applied && applied.running && applied.id === msg.id && !hook.controls.some((c) => c.id === msg.id)) { applied.running = false; setApplied(applied); }
     setStatus(msg.status === "running" ? `control ${msg.method} running…`
       : msg.status === "done" ? `control done; ${playing ? "the simulation continues" : "paused (press play to go on)"}` : `control ${msg.status}`);
   } else if (msg.type === "plan") {
-    if (applied && applied.running && !applied.plan) { applied.plan = msg; hook.applied.plan = msg; drawInk(true); }
+    if (applied && applied.running && !applied.plan && (applied.id === null || applied.id === msg.id)) { applied.plan = msg; hook.applied.plan = msg; drawInk(true); }
   } else if (msg.type === "reset") {
     setApplied(null);
     refreshObstacles(); // the obstacles are back where the scene put them
+  } else if (msg.type === "particles") {
+    // a block was poured (or a reset took it away): the frames' n changes, the particle types with it
+    if (session) {
+      Object.assign(session, { particle_type: msg.particle_type, num_particles: msg.num_particles, num_fluid: msg.num_fluid });
+      renderer.setSession(session); dirty = true;
+    }
   } else if (msg.type === "obstacle") {
     hook.obstacleEvents.push(msg); if (hook.obstacleEvents.length > 200) hook.obstacleEvents.shift();
     const ob = session && session.obstacles && session.obstacles[msg.index];
@@ -257,7 +298,7 @@ function drawFrame(now) {
   if (!dirty || !latest || !session) return false;
   dirty = false;
   const t0 = performance.now();
-  if (fresh) { renderer.setFrame(latest); fresh = false; }
+  if (fresh && renderer.setFrame(latest)) fresh = false; // else held until the 'particles' event names its count
   renderer.draw();
   if (syncDraw && renderer.gl) renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, syncPixel); // waits for the GPU
   const ms = performance.now() - t0;
@@ -483,8 +524,13 @@ async function refreshObstacles() {
   } catch { /* the session is gone: nothing to redraw */ }
 }
 
+const palette = new Palette($("palette"), {
+  api, session: () => session, is3D, setStatus, hook, domain: toDomain,
+  ray: (x, y, h) => { const r = inkCanvas.getBoundingClientRect(); return rayPlane(pixelRay(matrices(), x - r.left, y - r.top, r.width, r.height), [0, h, 0], [0, 1, 0]); },
+});
 inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
+  if (palette.armed && ev.button === 0 && session) { palette.drop(ev.clientX, ev.clientY); return; } // the palette's drop
   if (tool() === "drag" && session && (ev.button === 0 || !is3D())) { // 3D: the other buttons turn the camera (below)
     if (ev.button !== 0 || grab) return;
     const hit = is3D() ? obstacleHit(ev.clientX, ev.clientY) : { index: obstacleAt(toDomain(ev.clientX, ev.clientY)), point: toDomain(ev.clientX, ev.clientY) };
@@ -700,4 +746,4 @@ window.addEventListener("resize", () => { dirty = true; });
 $("play").textContent = playing ? "pause" : "play";
 
 requestAnimationFrame(render);
-loadScenes().then(newSession).catch((e) => setStatus(`could not load scenes: ${e.message}`));
+loadScenes().then(() => (params.get("session") ? joinSession(params.get("session")) : newSession())).catch((e) => setStatus(`could not load scenes: ${e.message}`));

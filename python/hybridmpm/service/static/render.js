@@ -460,12 +460,16 @@ export class GLRenderer {
     this.hasJelly = s.particle_type.includes(JELLY);
   }
 
+  // A frame of the session's particles (false, and nothing changed, for one of another count: a frame after a
+  // pour can arrive before the stream's 'particles' event that grows the buffers)
   setFrame(f) {
+    if (f.n !== this.session.num_particles) return false;
     this.frame = f;
     const gl = this.gl;
     gl.bindBuffer(gl.ARRAY_BUFFER, this.posBuf);
     gl.bufferSubData(gl.ARRAY_BUFFER, 0, f.pos);
     if (this.cull) this.surface(f);
+    return true;
   }
 
   // The particles on the surface of the water and every other particle (cells.js): their indices, handed to the GPU.
@@ -936,7 +940,7 @@ export class Canvas2DRenderer {
   }
   get fluidAvailable() { return false; }
   setSession(s) { this.session = s; this.frame = null; this.camera = new Camera(2); }
-  setFrame(f) { this.frame = f; }
+  setFrame(f) { if (f.n !== this.session.num_particles) return false; this.frame = f; return true; }
   draw() {
     const c = this.canvas, ctx = this.ctx, r = c.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
     const w = Math.max(1, Math.round(r.width * dpr)), h = Math.max(1, Math.round(r.height * dpr));

@@ -5,12 +5,12 @@
 //! constants of every material that g2p, the stress refresh and the CFL
 //! condition read.
 //!
-//! Each update takes the trial `F* = (I + Δt·C)·F` and its singular value
-//! decomposition `F* = U·diag(σ)·Vᵀ` from the crate's one SVD
-//! ([`DimOps::svd`], tested against nalgebra's); with `R = U·Vᵀ`:
+//! Each update takes the trial `F* = (I + Δt·C)·F`; the models
+//! (`material/solid/update.rs`, without singular vectors, on one particle
+//! or sixteen SIMD lanes, [`SolidBatch`]):
 //!
-//! - fixed-corotated: `τ = 2μ(F − R)Fᵀ + λJ(J − 1)I = U·diag(2μ(σ − 1)σ + λJ(J − 1))·Uᵀ`;
-//! - neo-Hookean: `τ = μ(FFᵀ − I) + λ ln J · I` (no SVD);
+//! - fixed-corotated: `τ = 2μ(F − R)Fᵀ + λJ(J − 1)I = 2μ(B − √B) + λJ(J − 1)I`;
+//! - neo-Hookean: `τ = μ(FFᵀ − I) + λ ln J · I`;
 //! - snow: `σ` clamped to `[1 − θc, 1 + θs]`, `J_P ← J_P·Πσ / Πσ_clamped`
 //!   (the rest of the deformation goes to `F_P`), `F_E = U·diag(σ_clamped)·Vᵀ`,
 //!   the fixed-corotated stress with μ, λ scaled by `e^{ξ(1 − J_P)}`;
@@ -19,9 +19,15 @@
 //!   `‖s‖ = √2 τ_y + (‖s*‖ − √2 τ_y)·η/(η + μΔt)`; `F = U·diag(e^ε)·Vᵀ`,
 //!   `τ = U·diag(2μ ε + λ tr ε)·Uᵀ` (the Hencky stress, as sand's).
 
-use nalgebra::{SMatrix, SVector};
+mod batch;
+mod update;
 
-use super::sand::{SandModel, kirchhoff_stress};
+pub(crate) use batch::SolidBatch;
+
+use nalgebra::SMatrix;
+
+use super::lanes::Real;
+use super::sand::SandModel;
 use crate::dim::{Dim, DimOps};
 use crate::isa::Isa;
 use crate::params::{ElasticModel, MaterialParams, SnowParams, SolverParams, WaterParams};
@@ -63,6 +69,8 @@ pub(crate) enum Model {
 pub(crate) struct Models {
     pub(crate) params: Vec<MaterialParams>,
     pub(crate) models: Vec<Model>,
+    /// The compiled copy of the lanes' updates to run (`crate::isa`).
+    pub(crate) isa: Isa,
 }
 
 impl Models {
@@ -109,6 +117,7 @@ impl Models {
         Models {
             params: table,
             models,
+            isa,
         }
     }
 
@@ -138,6 +147,7 @@ impl Models {
 
     /// Points the sand sets at the frame loop's copy for `isa`.
     pub(crate) fn set_isa(&mut self, isa: Isa) {
+        self.isa = isa;
         for m in &mut self.models {
             if let Model::Sand(s) = m {
                 s.isa = isa;
@@ -146,204 +156,95 @@ impl Models {
     }
 }
 
-/// `U·diag(d)·Uᵀ`.
+/// Row-major `[R; 9]` of a `D × D` matrix (the first `D²` entries).
 #[inline(always)]
-fn spectral<const D: usize>(u: &SMatrix<f32, D, D>, d: &SVector<f32, D>) -> SMatrix<f32, D, D> {
-    u * SMatrix::<f32, D, D>::from_diagonal(d) * u.transpose()
-}
-
-/// Fixed-corotated Kirchhoff stress from the singular values `sigma` and
-/// left singular vectors `u` of F.
-#[inline(always)]
-fn corotated<const D: usize>(
-    u: &SMatrix<f32, D, D>,
-    sigma: &SVector<f32, D>,
-    mu: f32,
-    la: f32,
-) -> SMatrix<f32, D, D> {
-    let j = sigma.product();
-    let vol = la * j * (j - 1.0);
-    spectral(u, &sigma.map(|s| 2.0 * mu * (s - 1.0) * s + vol))
-}
-
-/// 2D fixed-corotated stress `2μ(F − R)Fᵀ + λJ(J − 1)I` with the polar
-/// rotation in closed form, `R = [c −s; s c]` with `(c, s) ∝ (F00 + F11,
-/// F10 − F01)` (the first step of `svd2`), without the symmetric
-/// eigenproblem: one square root and one division where the SVD's chain has
-/// three and two (elastic2d's frame 1.9× sand's with the SVD, 1.35× with this).
-#[inline(always)]
-fn corotated_2d<const D: usize>(f: &SMatrix<f32, D, D>, mu: f32, la: f32) -> SMatrix<f32, D, D> {
-    let (x, y) = (f[(0, 0)] + f[(1, 1)], f[(1, 0)] - f[(0, 1)]);
-    let r2 = x * x + y * y;
-    let (co, si) = if r2 > 1e-30 {
-        let inv = 1.0 / r2.sqrt();
-        (x * inv, y * inv)
-    } else {
-        (1.0, 0.0)
-    };
-    let mut r = SMatrix::<f32, D, D>::identity();
-    (r[(0, 0)], r[(0, 1)], r[(1, 0)], r[(1, 1)]) = (co, -si, si, co);
-    let jf = det(f);
-    (f - r) * f.transpose() * (2.0 * mu) + SMatrix::<f32, D, D>::identity() * (la * jf * (jf - 1.0))
-}
-
-/// 2D: whether the singular values of `f` all lie in `[lo, hi]`, from the
-/// eigenvalues of `B = F·Fᵀ` (`σ² = λ`, `λ2 = det(F)²/λ1`), without singular
-/// vectors.
-#[inline(always)]
-fn inside_2d<const D: usize>(f: &SMatrix<f32, D, D>, lo: f32, hi: f32) -> bool {
-    let (a, b, c, d) = (f[(0, 0)], f[(0, 1)], f[(1, 0)], f[(1, 1)]);
-    let (b11, b12, b22) = (a * a + b * b, a * c + b * d, c * c + d * d);
-    let half = 0.5 * (b11 - b22);
-    let l1 = 0.5 * (b11 + b22) + (half * half + b12 * b12).sqrt();
-    let jf = a * d - b * c;
-    jf > 0.0 && l1 <= hi * hi && jf * jf >= lo * lo * l1
-}
-
-/// 2D viscoplastic update without singular vectors (sand's `advance_2d`
-/// does the same for its cone): every quantity is an isotropic function of
-/// `B = F*·F*ᵀ` (eigenvalues `λ1 ≥ λ2`, `ε0_i = ½ ln λ_i`), and in 2D such a
-/// function is `g(B) = g(λ2)·I + (g(λ1) − g(λ2))/(λ1 − λ2)·(B − λ2·I)`.
-/// The return scales the deviatoric log strain by `scale` (1 inside the
-/// yield surface); then `τ = g(B)` with `g(λ_i) = 2μ ε_i + λ tr ε`, and
-/// `F = G·F*` with `G = g(B)`, `g(λ_i) = e^{ε_i − ε0_i}`. Divided differences
-/// become their limits when `λ1 − λ2 ≤ 1e-6·λ2`. `keep = η/(η + μΔt)`.
-/// Returns the new F and τ; `None` for `f` = F* itself (inside the surface).
-#[inline(always)]
-fn viscoplastic_2d<const D: usize>(
-    ft: &SMatrix<f32, D, D>,
-    mu: f32,
-    la: f32,
-    radius: f32,
-    keep: f32,
-) -> (Option<SMatrix<f32, D, D>>, SMatrix<f32, D, D>) {
-    let (a, b, c, d) = (ft[(0, 0)], ft[(0, 1)], ft[(1, 0)], ft[(1, 1)]);
-    let (b11, b12, b22) = (a * a + b * b, a * c + b * d, c * c + d * d);
-    let half = 0.5 * (b11 - b22);
-    let l1 = (0.5 * (b11 + b22) + (half * half + b12 * b12).sqrt()).max(1e-12);
-    let jf = a * d - b * c;
-    let l2 = (jf * jf / l1).max(1e-12);
-    let (e1, e2) = (0.5 * l1.ln(), 0.5 * l2.ln());
-    let mean = 0.5 * (e1 + e2);
-    // ‖s‖ = 2μ‖dev ε‖ = √2·μ·(ε1 − ε2)
-    let s_norm = std::f32::consts::SQRT_2 * mu * (e1 - e2);
-    let scale = if s_norm > radius {
-        (radius + (s_norm - radius) * keep) / s_norm
-    } else {
-        1.0
-    };
-    let dl = l1 - l2;
-    let near = dl <= 1e-6 * l2;
-    // g(B) from g(λ2) and the divided difference
-    let iso = |g2: f32, slope: f32| {
-        let mut m = SMatrix::<f32, D, D>::zeros();
-        m[(0, 0)] = g2 + slope * (b11 - l2);
-        m[(1, 1)] = g2 + slope * (b22 - l2);
-        m[(0, 1)] = slope * b12;
-        m[(1, 0)] = slope * b12;
-        m
-    };
-    // ε_i = mean ± scale·(ε1 − ε2)/2
-    let tau_slope = if near {
-        mu * scale / l2
-    } else {
-        2.0 * mu * scale * (e1 - e2) / dl
-    };
-    let e2_new = mean - 0.5 * scale * (e1 - e2);
-    let tau = iso(2.0 * mu * e2_new + la * 2.0 * mean, tau_slope);
-    if scale == 1.0 {
-        return (None, tau);
+fn to_lanes<const D: usize>(m: &SMatrix<f32, D, D>) -> [f32; 9] {
+    let mut a = [0.0; 9];
+    for r in 0..D {
+        for c in 0..D {
+            a[r * D + c] = m[(r, c)];
+        }
     }
-    // g_i = e^{(scale − 1)(ε_i − mean)}: g2 = e^{−x}, g1 − g2 = g2·(e^{2x} − 1)
-    let x = 0.5 * (scale - 1.0) * (e1 - e2);
-    let g2 = (-x).exp();
-    let g_slope = if near {
-        g2 * (scale - 1.0) / (2.0 * l2)
-    } else {
-        g2 * (2.0 * x).exp_m1() / dl
-    };
-    (Some(iso(g2, g_slope) * ft), tau)
+    a
 }
 
-/// The Kirchhoff stress [Pa] of a solid particle's state (`f`, and `j` =
-/// `J_P` for snow) under model `m`.
-pub(crate) fn stress<const D: usize>(
-    m: &Model,
-    f: &SMatrix<f32, D, D>,
-    j: f32,
-) -> SMatrix<f32, D, D>
-where
-    Dim<D>: DimOps<D>,
-{
+#[inline(always)]
+fn from_lanes<const D: usize>(a: &[f32; 9]) -> SMatrix<f32, D, D> {
+    SMatrix::<f32, D, D>::from_fn(|r, c| a[r * D + c])
+}
+
+/// The trial `F* = (I + Δt·C)·F` (row-major), summed as sand's lanes do.
+#[inline(always)]
+pub(crate) fn trial<R: Real, const D: usize>(f: &[R; 9], c: &[R; 9], dt: f32) -> [R; 9] {
+    let dtv = R::splat(dt);
+    let mut ft = [R::splat(0.0); 9];
+    for r in 0..D {
+        for k in 0..D {
+            let mut acc = R::splat(0.0);
+            for j in 0..D {
+                let a = c[r * D + j] * dtv;
+                let a = if r == j { R::splat(1.0) + a } else { a };
+                acc = if j == 0 {
+                    a * f[j * D + k]
+                } else {
+                    acc + a * f[j * D + k]
+                };
+            }
+            ft[r * D + k] = acc;
+        }
+    }
+    ft
+}
+
+/// The Kirchhoff stress [Pa] of a solid's state (`f` row-major, and `j` =
+/// `J_P` for snow) under model `m`, on lanes of `R`.
+#[inline(always)]
+pub(crate) fn stress_lanes<R: Real, const D: usize>(m: &Model, f: &[R; 9], j: R) -> [R; 9] {
+    let corot = |mu: R, la: R| {
+        if D == 2 {
+            update::corotated_2d(f, mu, la)
+        } else {
+            update::corotated_3d(f, mu, la)
+        }
+    };
     match *m {
-        Model::Elastic { mu, la, neo: true } => {
-            let jf = det(f);
-            SMatrix::<f32, D, D>::identity() * (la * jf.max(1e-6).ln() - mu)
-                + f * f.transpose() * mu
-        }
-        Model::Elastic { mu, la, neo: false } if D == 2 => corotated_2d(f, mu, la),
-        Model::Elastic { mu, la, neo: false } => {
-            let svd = Dim::<D>::svd(f);
-            corotated(&svd.u, &svd.sigma, mu, la)
-        }
-        Model::Snow { mu, la, xi, .. } if D == 2 => {
-            let h = (xi * (1.0 - j.clamp(JP_LO, JP_HI))).exp();
-            corotated_2d(f, mu * h, la * h)
-        }
+        Model::Elastic { mu, la, neo: true } => update::neo_hookean::<R, D>(f, mu, la),
+        Model::Elastic { mu, la, neo: false } => corot(R::splat(mu), R::splat(la)),
         Model::Snow { mu, la, xi, .. } => {
-            let h = (xi * (1.0 - j.clamp(JP_LO, JP_HI))).exp();
-            let svd = Dim::<D>::svd(f);
-            corotated(&svd.u, &svd.sigma, mu * h, la * h)
+            let h = update::hardening(j, xi, JP_LO, JP_HI);
+            corot(R::splat(mu) * h, R::splat(la) * h)
         }
         Model::Viscoplastic { mu, la, .. } if D == 2 => {
-            viscoplastic_2d(f, mu, la, f32::INFINITY, 1.0).1
+            update::viscoplastic_2d(f, mu, la, f32::INFINITY, 1.0).1
         }
         Model::Viscoplastic { mu, la, .. } => {
-            let svd = Dim::<D>::svd(f);
-            let eps = svd.sigma.map(|s| s.max(1e-6).ln());
-            kirchhoff_stress(&svd.u, &eps, mu, la)
+            update::viscoplastic_3d(f, mu, la, f32::INFINITY, 1.0).1
         }
-        Model::Water(_) | Model::Sand(_) => SMatrix::zeros(),
+        Model::Water(_) | Model::Sand(_) => [R::splat(0.0); 9],
     }
 }
 
-/// g2p update of a solid particle (elastic, snow, viscoplastic) with the new
-/// velocity gradient `c` over `dt`: its `f` (and `j` = `J_P` for snow) and
-/// stress. Returns `(finite, inverted)`: whether F, J_P and τ are finite,
-/// and whether `det F ≤ 0` (or NaN).
-#[inline(never)]
-pub(crate) fn advance<const D: usize>(
+/// The g2p update of a solid under model `m` on lanes of `R`, from the trial
+/// `ft` (row-major) and `j` (`J_P` for snow) over `dt`: the new F, `j` and
+/// Kirchhoff stress.
+#[inline(always)]
+pub(crate) fn update_lanes<R: Real, const D: usize>(
     m: &Model,
-    p: &mut Particle<D>,
+    ft: &[R; 9],
+    j: R,
     dt: f32,
-    c: &SMatrix<f32, D, D>,
-) -> (bool, bool)
-where
-    Dim<D>: DimOps<D>,
-{
-    let ft = (SMatrix::<f32, D, D>::identity() + c * dt) * p.f;
+) -> ([R; 9], R, [R; 9]) {
     match *m {
-        Model::Elastic { .. } => {
-            p.f = ft;
-            p.tau = stress(m, &ft, 1.0);
-        }
-        Model::Snow {
-            mu, la, lo, hi, xi, ..
-        } if D == 2 && inside_2d(&ft, lo, hi) => {
-            // no singular value is clamped: F_E = F*, J_P unchanged
-            p.f = ft;
-            let h = (xi * (1.0 - p.j.clamp(JP_LO, JP_HI))).exp();
-            p.tau = corotated_2d(&ft, mu * h, la * h);
-        }
+        Model::Elastic { .. } => (*ft, j, stress_lanes::<R, D>(m, ft, j)),
         Model::Snow {
             mu, la, lo, hi, xi, ..
         } => {
-            let svd = Dim::<D>::svd(&ft);
-            let clamped = svd.sigma.map(|s| s.clamp(lo, hi));
-            p.j *= svd.sigma.product() / clamped.product();
-            p.f = svd.u * SMatrix::<f32, D, D>::from_diagonal(&clamped) * svd.v.transpose();
-            let h = (xi * (1.0 - p.j.clamp(JP_LO, JP_HI))).exp();
-            p.tau = corotated(&svd.u, &clamped, mu * h, la * h);
+            let consts = (mu, la, lo, hi, xi);
+            if D == 2 {
+                update::snow_2d(ft, j, consts, (JP_LO, JP_HI))
+            } else {
+                update::snow_3d(ft, j, consts, (JP_LO, JP_HI))
+            }
         }
         Model::Viscoplastic {
             mu,
@@ -353,33 +254,75 @@ where
         } => {
             // η/(η + μΔt) = relax/(relax + Δt); 0 for η = 0
             let keep = relax / (relax + dt);
-            if D == 2 {
-                let (f, tau) = viscoplastic_2d(&ft, mu, la, radius, keep);
-                p.f = f.unwrap_or(ft);
-                p.tau = tau;
+            let (f, tau) = if D == 2 {
+                update::viscoplastic_2d(ft, mu, la, radius, keep)
             } else {
-                let svd = Dim::<D>::svd(&ft);
-                let mut eps = svd.sigma.map(|s| s.max(1e-6).ln());
-                let mean = eps.sum() / D as f32;
-                let dev = eps.add_scalar(-mean);
-                let s_norm = 2.0 * mu * dev.norm();
-                if s_norm > radius {
-                    let target = radius + (s_norm - radius) * keep;
-                    eps = (dev * (target / s_norm)).add_scalar(mean);
-                    p.f = svd.u
-                        * SMatrix::<f32, D, D>::from_diagonal(&eps.map(f32::exp))
-                        * svd.v.transpose();
-                } else {
-                    p.f = ft;
-                }
-                p.tau = kirchhoff_stress(&svd.u, &eps, mu, la);
-            }
+                update::viscoplastic_3d(ft, mu, la, radius, keep)
+            };
+            (f, j, tau)
         }
-        Model::Water(_) | Model::Sand(_) => {}
+        Model::Water(_) | Model::Sand(_) => (*ft, j, [R::splat(0.0); 9]),
     }
+}
+
+/// The Kirchhoff stress [Pa] of a solid particle's state (`f`, and `j` =
+/// `J_P` for snow) under model `m`.
+pub(crate) fn stress<const D: usize>(
+    m: &Model,
+    f: &SMatrix<f32, D, D>,
+    j: f32,
+) -> SMatrix<f32, D, D> {
+    from_lanes(&stress_lanes::<f32, D>(m, &to_lanes(f), j))
+}
+
+/// A step that would invert a solid particle (`det F ≤ 0` after the
+/// update: compression past zero volume in one substep, as when a soft
+/// solid is driven into a wall at speed) keeps its `F` and `J_P` of the
+/// start of the substep and their stress: the compression beyond inversion
+/// is taken as plastic, so `det F > 0` always holds and the particle's
+/// stress pushes it back out. Lanes with `det F > 0` (and NaN, which the
+/// health check reports) are unchanged: the same bits as without it.
+#[inline(always)]
+pub(crate) fn keep_uninverted<R: Real, const D: usize>(
+    m: &Model,
+    (f0, j0): (&[R; 9], R),
+    (f, j, tau): ([R; 9], R, [R; 9]),
+) -> ([R; 9], R, [R; 9]) {
+    let inverted = update::det::<R, D>(&f).le(R::splat(0.0));
+    if !R::any(inverted) {
+        return (f, j, tau);
+    }
+    let tau0 = stress_lanes::<R, D>(m, f0, j0);
+    (
+        std::array::from_fn(|k| R::select(inverted, f0[k], f[k])),
+        R::select(inverted, j0, j),
+        std::array::from_fn(|k| R::select(inverted, tau0[k], tau[k])),
+    )
+}
+
+/// g2p update of a solid particle (elastic, snow, viscoplastic) with the new
+/// velocity gradient `c` over `dt`: its `f` (and `j` = `J_P` for snow) and
+/// stress, one particle ([`SolidBatch`] does sixteen, with the same bits
+/// per lane; [`keep_uninverted`]). Returns `(finite, inverted)`: whether F,
+/// J_P and τ are finite, and whether `det F ≤ 0` (or NaN). (g2p runs [`SolidBatch`]; the tests
+/// this.)
+#[cfg_attr(not(test), allow(dead_code))]
+pub(crate) fn advance<const D: usize>(
+    m: &Model,
+    p: &mut Particle<D>,
+    dt: f32,
+    c: &SMatrix<f32, D, D>,
+) -> (bool, bool) {
+    let f0 = to_lanes(&p.f);
+    let ft = trial::<f32, D>(&f0, &to_lanes(c), dt);
+    let (f, j, tau) =
+        keep_uninverted::<f32, D>(m, (&f0, p.j), update_lanes::<f32, D>(m, &ft, p.j, dt));
+    (p.f, p.j, p.tau) = (from_lanes(&f), j, from_lanes(&tau));
     let finite = p.f.iter().chain(p.tau.iter()).all(|a| a.is_finite()) && p.j.is_finite();
     (finite, !(det(&p.f) > 0.0))
 }
 
+#[cfg(test)]
+mod lane_tests;
 #[cfg(test)]
 mod tests;

@@ -43,7 +43,7 @@ use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
 use crate::material::sand::{ParticleSink, SandBatch, SandHealth, SandModel};
-use crate::material::solid::{self, Models};
+use crate::material::solid::{Models, SolidBatch};
 use crate::material::water;
 use crate::particles::{Material, Particle};
 use crate::v4::V4;
@@ -122,7 +122,9 @@ where
         // (one parameter set per batch: a particle of another set flushes it)
         let mut batch = SandBatch::new();
         let mut batch_set = Material::Sand as u16;
-        let mut solid_ok = (true, false);
+        // the solids' likewise, one parameter set per batch
+        let mut solids = SolidBatch::new();
+        let mut solid_set = 0u16;
         let mut sink = Sink(dst);
         // the colliders that project particles (`Collider::project`), each
         // with the region where it can act (`Collider::reach`) and its
@@ -179,7 +181,7 @@ where
                     p.x[d] = p.x[d].max(lo).min(hi);
                 }
             }
-            let mut sand_full = false;
+            let (mut sand_full, mut solid_full) = (false, false);
             match p.material {
                 Material::Water => {
                     water::advance_volume_ratio(&mut p.j, dt, &new_c);
@@ -196,10 +198,20 @@ where
                     sand_full = batch.push(at as u32, &p.f, &new_c, p.vc);
                 }
                 Material::Elastic | Material::Snow | Material::Viscoplastic => {
-                    let (finite, inverted) =
-                        solid::advance(&models.models[p.set as usize], p, dt, &new_c);
-                    solid_ok.0 &= finite;
-                    solid_ok.1 |= inverted;
+                    if p.set != solid_set {
+                        if solids.len() > 0 {
+                            solid_flush(
+                                &mut solids,
+                                &mut sink,
+                                models,
+                                solid_set,
+                                dt,
+                                &mut sand_health,
+                            );
+                        }
+                        solid_set = p.set;
+                    }
+                    solid_full = solids.push(at as u32, &p.f, &new_c, p.j);
                 }
             };
             let ko = cell_of::<D>(
@@ -227,13 +239,32 @@ where
                 let sand = models.sand(batch_set);
                 sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
             }
+            if solid_full {
+                solid_flush(
+                    &mut solids,
+                    &mut sink,
+                    models,
+                    solid_set,
+                    dt,
+                    &mut sand_health,
+                );
+            }
         }
         if batch.len() > 0 {
             let sand = models.sand(batch_set);
             sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
         }
+        if solids.len() > 0 {
+            solid_flush(
+                &mut solids,
+                &mut sink,
+                models,
+                solid_set,
+                dt,
+                &mut sand_health,
+            );
+        }
         let SandHealth { finite, inverted } = sand_health;
-        let (finite, inverted) = (finite && solid_ok.0, inverted || solid_ok.1);
         // positions are clamped (NaN maps to the bound), so test the rest
         let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite) || nonpositive_j {
             Health::NonFinite
@@ -321,6 +352,27 @@ fn sand_flush<const D: usize>(
     Dim<D>: DimOps<D>,
 {
     let h = batch.run::<D>(sand, dt);
+    health.finite &= h.finite;
+    health.inverted |= h.inverted;
+    batch.write_lanes::<D>(outp);
+    batch.clear();
+}
+
+/// Runs the solid `batch` (parameter set `set` of `models`) as
+/// [`sand_flush`] runs sand's.
+// inlined into each compiled copy of the frame loop (`crate::isa`)
+#[inline(always)]
+fn solid_flush<const D: usize>(
+    batch: &mut SolidBatch,
+    outp: &mut impl ParticleSink<D>,
+    models: &Models,
+    set: u16,
+    dt: f32,
+    health: &mut SandHealth,
+) where
+    Dim<D>: DimOps<D>,
+{
+    let h = batch.run::<D>(&models.models[set as usize], models.isa, dt);
     health.finite &= h.finite;
     health.inverted |= h.inverted;
     batch.write_lanes::<D>(outp);

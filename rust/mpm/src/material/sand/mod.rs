@@ -31,7 +31,7 @@ mod return_map;
 #[cfg(test)]
 mod tests;
 mod update_2d;
-mod update_3d;
+pub(crate) mod update_3d;
 
 pub(crate) use batch::{ParticleSink, SandBatch, SandHealth};
 pub use return_map::drucker_prager_project;

@@ -18,7 +18,14 @@ use crate::material::vmath;
 /// with an error of about `p·√ε`; [`advance_3d`] only interpolates at these
 /// nodes, which makes that error second order (see there).
 #[inline(always)]
-fn sym3_eigenvalues<R: Real>(b00: R, b01: R, b02: R, b11: R, b12: R, b22: R) -> (R, R, R) {
+pub(crate) fn sym3_eigenvalues<R: Real>(
+    b00: R,
+    b01: R,
+    b02: R,
+    b11: R,
+    b12: R,
+    b22: R,
+) -> (R, R, R) {
     let q = (b00 + b11 + b22) / k(3.0);
     let (d0, d1, d2) = (b00 - q, b11 - q, b22 - q);
     let p2 =
@@ -52,7 +59,7 @@ fn sym3_eigenvalues<R: Real>(b00: R, b01: R, b02: R, b11: R, b12: R, b22: R) -> 
 /// of [`advance_3d`]. (A function, not a closure: a closure may be left out
 /// of line, outside the compiled copy of the frame loop it runs in.)
 #[inline(always)]
-fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R, g2: R) -> [R; 9] {
+pub(crate) fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R, g2: R) -> [R; 9] {
     let mut out = [g0; 9];
     for i in 0..3 {
         for j in 0..3 {
@@ -129,7 +136,7 @@ const SERIES_MAX_X: f32 = 0.03;
 /// The new elastic F of a 3D return mapping: `G·F_trial` (row-major) in the
 /// lanes where `plastic` holds, `F_trial` elsewhere.
 #[inline(always)]
-fn plastic_f<R: Real>(g: &[R; 9], ft: &[R; 9], plastic: R::Mask) -> [R; 9] {
+pub(crate) fn plastic_f<R: Real>(g: &[R; 9], ft: &[R; 9], plastic: R::Mask) -> [R; 9] {
     let mut f = *ft;
     for i in 0..3 {
         for j in 0..3 {

@@ -282,3 +282,59 @@ fn viscoplastic_2d_matches_the_svd_route() {
     }
     assert!(yielded > 200 && yielded < 1800, "{yielded} of 2000 yielded");
 }
+
+/// A substep that would invert a solid particle (`det(I + Δt·C) < 0`: one
+/// axis compressed past zero) keeps its F, `J_P` and their stress, bit for
+/// bit, and reports no inversion; a substep that does not invert it is
+/// applied as before.
+fn inversion_kept_out<const D: usize>()
+where
+    Dim<D>: DimOps<D>,
+{
+    let vp = ViscoplasticParams {
+        youngs_modulus: 1.0e5,
+        poisson_ratio: 0.3,
+        yield_stress: 200.0,
+        viscosity: 0.5,
+        ..Default::default()
+    };
+    let models = [
+        (
+            Material::Elastic,
+            MaterialParams::Elastic(ElasticParams::default()),
+        ),
+        (Material::Snow, MaterialParams::Snow(SnowParams::default())),
+        (Material::Viscoplastic, MaterialParams::Viscoplastic(vp)),
+    ];
+    let dt = 1e-4f32;
+    for (material, params) in models {
+        let m = model::<D>(params);
+        let mut f = SMatrix::<f32, D, D>::identity() * 0.9;
+        f[(0, 1)] = 0.05;
+        let mut p = particle::<D>(material, f);
+        p.j = 0.97;
+        // past zero along x in one substep: I + Δt·C = diag(−0.5, 1, …)
+        let mut c = SMatrix::<f32, D, D>::zeros();
+        c[(0, 0)] = -1.5 / dt;
+        let (f0, j0) = (p.f, p.j);
+        let (finite, inverted) = advance(&m, &mut p, dt, &c);
+        assert!(finite && !inverted, "{material:?}");
+        assert_eq!((p.f, p.j), (f0, j0), "{material:?}: F and J_P kept");
+        assert_eq!(
+            p.tau,
+            stress::<D>(&m, &f0, j0),
+            "{material:?}: their stress"
+        );
+        assert!(det(&p.f) > 0.0);
+        // a compression that does not invert it is applied
+        c[(0, 0)] = -0.2 / dt;
+        let (finite, inverted) = advance(&m, &mut p, dt, &c);
+        assert!(finite && !inverted && p.f != f0, "{material:?}");
+    }
+}
+
+#[test]
+fn a_substep_that_would_invert_a_solid_keeps_its_deformation() {
+    inversion_kept_out::<2>();
+    inversion_kept_out::<3>();
+}

@@ -1,0 +1,133 @@
+"""Pour a block into a running MPM simulator between frames (the service's
+``POST /v1/sessions/{id}/blocks``; docs/materials.md "Pouring").
+
+A block has the keys of a scene file's block (``material``, a model or a
+preset, and its parameters; ``lo``, ``hi``, optional ``velocity``). It is
+seeded on the scene's lattice and appended to the solver, in its own
+parameter set where its parameters are new to the run. Everything is checked
+before anything changes: a refused block leaves the simulator bit for bit as
+it was.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.conventions import MATERIALS
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.materials import material_from_block
+from hybridmpm.scenes.core import lattice, wall_face
+from hybridmpm.scenes.obstacles import collider_sdf
+from hybridmpm.scenes.spec import BYTES_PER_PARTICLE, MAX_BLOCK_SPEED
+
+#: Most particles one pour adds.
+MAX_POUR_PARTICLES = 16_384
+#: Most particles a session holds after pours (its scene's own count, if larger, is kept).
+MAX_POURED_TOTAL = 131_072
+#: Share of a block's lattice particles that may lie within half a lattice
+#: spacing of a particle already there (or inside an obstacle); those are
+#: dropped, a block with more is refused (field ``lo``).
+MAX_OVERLAP_FRACTION = 0.1
+#: The keys of a block besides its material's parameters.
+_PLACE_KEYS = ("material", "lo", "hi", "velocity")
+
+
+def _vec(name: str, v: Any, dim: int) -> np.ndarray:
+    if not isinstance(v, (list, tuple)) or len(v) != dim or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        raise InvalidInputError(f"{name}: expected {dim} numbers, got {v!r}", name)
+    a = np.asarray(v, np.float64)
+    if not np.isfinite(a).all():
+        raise InvalidInputError(f"{name}: must be finite, got {v!r}", name)
+    return a
+
+
+def pour_block(sim: Any, block: dict[str, Any]) -> int:
+    """Append ``block`` to the :class:`~hybridmpm.sim.MpmSimulator` ``sim``
+    (its particles, on the scene's lattice, at rest or at ``velocity``) and
+    return the new particle count. Raises :class:`InvalidInputError` naming
+    the field (``material``, a parameter such as ``E``, ``lo``, ``hi``,
+    ``velocity``) and leaves ``sim`` unchanged when the block is outside the
+    walls' faces, overlaps the particles there (or obstacles) beyond
+    :data:`MAX_OVERLAP_FRACTION`, exceeds :data:`MAX_POUR_PARTICLES`, the
+    session's :data:`MAX_POURED_TOTAL` or the solver's memory budget, or has a
+    bad parameter."""
+    if not isinstance(block, dict):
+        raise InvalidInputError("block: expected an object", "block")
+    dim = sim.particles.dim
+    keys = {k: v for k, v in block.items() if k not in _PLACE_KEYS and v is not None}
+    try:
+        m = material_from_block(block.get("material"), keys, "block")
+    except InvalidInputError as e:  # "block.E" -> "E": the body's own key
+        field = str(e.field or "material").removeprefix("block.")
+        raise InvalidInputError(str(e).removeprefix("block."), field) from None
+    lo, hi = _vec("lo", block.get("lo"), dim), _vec("hi", block.get("hi"), dim)
+    if np.any(hi <= lo):
+        raise InvalidInputError("hi: must exceed lo on every axis", "hi")
+    params = sim.solver.params
+    face = wall_face(params)
+    if lo.min() < face - 1e-9 or hi.max() > 1.0 - face + 1e-9:
+        raise InvalidInputError(
+            f"lo: the block must lie inside the walls' faces [{face:.4g}, {1 - face:.4g}] m on every axis", "lo" if lo.min() < face else "hi"
+        )
+    vel = np.zeros(dim)
+    if block.get("velocity") is not None:
+        vel = _vec("velocity", block["velocity"], dim)
+        if np.any(np.abs(vel) > MAX_BLOCK_SPEED):
+            raise InvalidInputError(f"velocity: at most {MAX_BLOCK_SPEED:g} m/s per axis", "velocity")
+    spacing = sim.scene.spec.spacing if sim.scene.spec is not None else 1.0 / (2 * params.resolved_n_grid())
+    counts = np.maximum(np.round((hi - lo) / spacing), 1)
+    lattice_n = int(np.prod(counts))
+    n0 = int(sim.solver.num_particles)
+    if lattice_n > MAX_POUR_PARTICLES:
+        raise InvalidInputError(f"hi: the block holds {lattice_n} particles, more than the {MAX_POUR_PARTICLES} one pour may add", "hi")
+    most = max(MAX_POURED_TOTAL, sim.particles.num_fluid if n0 > MAX_POURED_TOTAL else 0)
+    if n0 + lattice_n > most:
+        raise InvalidInputError(f"hi: {n0} + {lattice_n} particles exceed the {most} a session may hold", "hi")
+    budget = sim.solver.memory_budget
+    if budget is not None and (n0 + lattice_n) * BYTES_PER_PARTICLE > budget:
+        raise InvalidInputError(f"hi: {n0 + lattice_n} particles exceed the session's memory budget of {budget} bytes", "hi")
+    p = lattice(lo, hi, spacing)
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(np.asarray(sim.solver.positions, np.float64)).query(p, k=1, distance_upper_bound=0.5 * spacing)[0] < np.inf
+    for c in params.colliders:
+        near |= collider_sdf(c, p) < 0.0
+    if near.sum() > MAX_OVERLAP_FRACTION * len(p) or near.all():
+        raise InvalidInputError(
+            f"lo: {int(near.sum())} of the block's {len(p)} particles fall within half a lattice spacing of particles already there "
+            f"or inside an obstacle; at most {MAX_OVERLAP_FRACTION:.0%} may: move or shrink it",
+            "lo",
+        )
+    p = p[~near].astype(np.float32)
+    set_index, new_params = _set_for(params, m)
+    solver = sim.solver if new_params is None else _with_params(sim.solver, new_params)
+    solver.add_particles(p, m.code, velocities=np.tile(vel.astype(np.float32), (len(p), 1)), material_set=set_index)
+    sim.adopt(solver, [*sim.pours, len(p)])
+    return int(solver.num_particles)
+
+
+def _set_for(params: Any, m: Any) -> tuple[int, Any]:
+    """The parameter-set index of material ``m`` under ``params`` and the
+    parameters to run with (None: unchanged; else ``params`` with ``m``'s set appended)."""
+    ps = m.to_params()
+    if ps == getattr(params, m.name):
+        return int(m.code), None
+    if ps in params.sets:
+        return len(MATERIALS) + params.sets.index(ps), None
+    return len(MATERIALS) + len(params.sets), replace(params, sets=[*params.sets, ps])
+
+
+def _with_params(solver: Any, params: Any) -> Any:
+    """A new solver of ``params`` (a further parameter set appended: every
+    particle's set index keeps its meaning) holding ``solver``'s whole state
+    (particles, clock, the colliders' poses and pending moves)."""
+    blob = type(solver).with_header(solver.checkpoint(), params.to_dict())  # the collider state kept
+    out = type(solver)(params, memory_budget=solver.memory_budget)
+    out.restore(blob)
+    return out
+
+
+__all__ = ["MAX_OVERLAP_FRACTION", "MAX_POURED_TOTAL", "MAX_POUR_PARTICLES", "pour_block"]

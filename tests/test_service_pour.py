@@ -1,0 +1,158 @@
+"""POST /v1/sessions/{id}/blocks: a block poured between frames (test client).
+The added particles are the block's lattice in its material and parameter
+set, viewers are told the new count and types, every refusal is a 422 naming
+the field and leaves the session bit for bit as it was (its checkpoint bytes)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fastapi")
+pytest.importorskip("httpx")
+
+from fastapi.testclient import TestClient  # noqa: E402
+
+from hybridmpm.conventions import GNS_ELASTIC, GNS_WATER  # noqa: E402
+from hybridmpm.scenes import lattice  # noqa: E402
+from hybridmpm.service import ServiceConfig, create_app, decode_frame  # noqa: E402
+from hybridmpm.sim import pour as pour_module  # noqa: E402
+
+JELLY = {"material": "jello", "lo": [0.6, 0.6], "hi": [0.7, 0.7]}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app(ServiceConfig(max_sessions=50, max_sessions_per_client=50, idle_ttl_s=600))) as c:
+        yield c
+
+
+def _new(client, scene="dam_break2d", solver="mpm"):
+    r = client.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": 0})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _ckpt(client, sid) -> bytes:
+    r = client.get(f"/v1/sessions/{sid}/checkpoint")
+    assert r.status_code == 200
+    return r.content
+
+
+def test_a_poured_jelly_joins_the_run_and_viewers_get_its_particles(client):
+    s = _new(client)
+    sid, n0 = s["id"], s["num_particles"]
+    with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
+        assert json.loads(ws.receive_text())["type"] == "meta"
+        r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+        assert r.status_code == 201, r.text
+        out = r.json()
+        # the block's lattice: 0.1 m / (dx/2 = 1/256 m) = 25.6 -> 26 particles a side
+        assert out["added"] == 26 * 26 and out["num_particles"] == n0 + 26 * 26
+        event, header_n = None, None
+        while event is None or header_n != out["num_particles"]:
+            m = ws.receive()
+            if m.get("text") and json.loads(m["text"]).get("type") == "particles":
+                event = json.loads(m["text"])
+            elif m.get("bytes"):
+                header_n = decode_frame(m["bytes"])[0].n
+        assert event["num_particles"] == out["num_particles"] and event["added"] == out["added"]
+        assert event["particle_type"].count(GNS_ELASTIC) == out["added"] and event["particle_type"].count(GNS_WATER) == n0
+    info = client.get(f"/v1/sessions/{sid}").json()
+    assert info["num_particles"] == out["num_particles"] and len(info["particle_type"]) == out["num_particles"]
+    # it runs: a free-falling jelly keeps its shape (extents within 2 %) and falls g t^2 / 2
+    r = client.post(f"/v1/sessions/{sid}/step", json={"frames": 40})
+    assert r.status_code == 200, r.text
+    pos = np.asarray(r.json()["frames"][-1]["positions"])
+    jelly = pos[np.array(info["particle_type"]) == GNS_ELASTIC]
+    ext = jelly.max(0) - jelly.min(0)
+    assert np.all(np.abs(ext / (25 / 256) - 1) < 0.02), ext
+    t = 40 * 0.0025
+    y0 = lattice(np.array(JELLY["lo"]), np.array(JELLY["hi"]), 1 / 256)[:, 1].mean()
+    assert jelly[:, 1].mean() == pytest.approx(y0 - 9.8 * t * t / 2, abs=1e-3)
+    # a reset (the stream's message) brings the scene's own particles back, and tells the viewers
+    with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
+        assert json.loads(ws.receive_text())["num_particles"] == out["num_particles"]
+        ws.send_text(json.dumps({"type": "reset"}))
+        seen: dict[str, dict] = {}
+        while "reset" not in seen:
+            m = ws.receive()
+            if m.get("text"):
+                msg = json.loads(m["text"])
+                seen[msg["type"]] = msg
+    assert seen["particles"]["num_particles"] == n0
+    assert client.get(f"/v1/sessions/{sid}").json()["num_particles"] == n0
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"material": "lava"}, "material"),
+        ({"E": 0.0}, "E"),
+        ({"E": -5.0}, "E"),
+        ({"nu": 0.5}, "nu"),
+        ({"nu": -0.1}, "nu"),
+        ({"density": 0.0}, "density"),
+        ({"material": "mud", "yield_stress": -1.0}, "yield_stress"),
+        ({"material": "mud", "viscosity": -1.0}, "viscosity"),
+        ({"material": "snow", "theta_c": 0.0}, "theta_c"),
+        ({"material": "snow", "theta_s": 1.0}, "theta_s"),
+        ({"material": "water", "E": 1e5}, "E"),  # not a parameter of water
+        ({"E": "stiff"}, "E"),
+        ({"lo": [0.0, 0.6]}, "lo"),  # inside the wall band
+        ({"hi": [0.7, 1.2]}, "hi"),
+        ({"hi": [0.5, 0.7]}, "hi"),  # hi below lo
+        ({"lo": [0.05, 0.05], "hi": [0.15, 0.15]}, "lo"),  # in the water column
+        ({"lo": [0.1, 0.3], "hi": [0.9, 0.9]}, "hi"),  # more than one pour may add
+        ({"lo": [0.6, 0.6, 0.6], "hi": [0.7, 0.7, 0.7]}, "lo"),  # 3 numbers in 2D
+        ({"velocity": [1e9, 0.0]}, "velocity"),
+    ],
+)
+def test_refusals_name_the_field_and_change_nothing(client, change, field):
+    sid = _new(client)["id"]
+    before = _ckpt(client, sid)
+    assert _ckpt(client, sid) == before  # the bytes are the state's alone
+    r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, **change})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"][-1] == field, r.text
+    assert _ckpt(client, sid) == before
+
+
+def test_nan_density_and_the_budget_are_refused(client, monkeypatch):
+    sid = _new(client)["id"]
+    before = _ckpt(client, sid)
+    body = json.dumps(JELLY)[:-1] + ', "density": NaN}'
+    r = client.post(f"/v1/sessions/{sid}/blocks", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "density", r.text
+    monkeypatch.setattr(pour_module, "MAX_POURED_TOTAL", 5000)  # the session holds 4608
+    r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "hi" and "5000" in r.text, r.text
+    assert _ckpt(client, sid) == before
+
+
+def test_only_mpm_sessions_take_a_pour(client):
+    sid = _new(client, scene="water2d", solver="neural")["id"]
+    assert client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "material": "water"}).status_code == 409
+
+
+def test_a_pour_is_charged_to_the_memory_budget_until_its_session_goes(client, monkeypatch):
+    from hybridmpm.scenes.core import BYTES_PER_PARTICLE
+    from hybridmpm.service.sessions import SESSION_STATE_COPIES
+
+    base = client.get("/healthz").json()["memory_used"]
+    sid = _new(client)["id"]
+    held = client.get("/healthz").json()["memory_used"]
+    r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
+    assert r.status_code == 201, r.text
+    used = client.get("/healthz").json()["memory_used"]
+    assert used - held >= SESSION_STATE_COPIES * BYTES_PER_PARTICLE * r.json()["added"], (base, held, used)  # and its new frames
+    # a pour the budget cannot hold at its largest is refused (503, retry later) and changes nothing
+    before = _ckpt(client, sid)
+    monkeypatch.setattr(pour_module, "MAX_POUR_PARTICLES", 1 << 40)
+    r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "lo": [0.75, 0.6], "hi": [0.85, 0.7]})
+    assert r.status_code == 503 and r.headers["retry-after"], r.text
+    assert _ckpt(client, sid) == before and client.get("/healthz").json()["memory_used"] == used
+    assert client.delete(f"/v1/sessions/{sid}").status_code == 204
+    assert client.get("/healthz").json()["memory_used"] == base
