@@ -6,6 +6,7 @@
 use pyo3::prelude::*;
 
 mod args;
+mod bodies;
 mod errors;
 mod fields;
 mod graph;
@@ -21,6 +22,7 @@ mod transfer;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     solver::register(m)?;
+    bodies::register(m)?;
     grid_mass::register(m)?;
     params::register(m)?;
     graph::register(m)?;

@@ -17,7 +17,7 @@
 
 use std::fmt;
 
-use hybridmpm_mpm::{ColliderParams, SolverParams};
+use hybridmpm_mpm::{BodyParams, ColliderParams, SolverParams};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
 use serde::de::{self, DeserializeOwned, DeserializeSeed, Visitor};
@@ -132,27 +132,35 @@ pub fn read<T: DeserializeOwned>(obj: &Bound<'_, PyAny>, path: &str) -> Result<T
     T::deserialize(PyDe::new(obj.clone(), path.to_string())).map_err(|e| e.at(path))
 }
 
-/// The solver parameters (`SolverParams<D>`) and colliders of the dict
-/// `MpmSolver` takes; its `dim` key is the caller's to read. Raises
-/// `InvalidInputError` naming the field (`water.density`, `colliders[0].center`).
+/// The solver parameters (`SolverParams<D>`), colliders and bodies of the
+/// dict `MpmSolver` takes; its `dim` key is the caller's to read. Raises
+/// `InvalidInputError` naming the field (`water.density`, `colliders[0].center`,
+/// `bodies[1].density`).
 pub fn read_params<const D: usize>(
     d: &Bound<'_, PyDict>,
-) -> PyResult<(SolverParams<D>, Vec<ColliderParams>)> {
+) -> PyResult<(SolverParams<D>, Vec<ColliderParams>, Vec<BodyParams>)> {
     let py = d.py();
     let rest = d.copy()?;
     let colliders = rest.get_item("colliders")?;
-    for key in ["dim", "colliders"] {
+    let bodies = rest.get_item("bodies")?;
+    for key in ["dim", "colliders", "bodies"] {
         if rest.contains(key)? {
             rest.del_item(key)?;
         }
     }
-    let params = read::<SolverParams<D>>(rest.as_any(), "")
-        .map_err(|e| e.with_root_keys(&["dim"], &["colliders"]).into_py(py))?;
+    let params = read::<SolverParams<D>>(rest.as_any(), "").map_err(|e| {
+        e.with_root_keys(&["dim"], &["colliders", "bodies"])
+            .into_py(py)
+    })?;
     let colliders = match colliders {
         Some(c) if !c.is_none() => read(&c, "colliders").map_err(|e| e.into_py(py))?,
         _ => Vec::new(),
     };
-    Ok((params, colliders))
+    let bodies = match bodies {
+        Some(b) if !b.is_none() => read(&b, "bodies").map_err(|e| e.into_py(py))?,
+        _ => Vec::new(),
+    };
+    Ok((params, colliders, bodies))
 }
 
 /// The Python value of `x` as serialised by serde (f32 written shortest, so

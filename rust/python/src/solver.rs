@@ -2,7 +2,7 @@
 //! as a Python class behind a lock.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{Collider, Particle, Solver, SolverParams};
+use hybridmpm_mpm::{Body, Collider, Particle, Solver, SolverParams};
 use nalgebra::SVector;
 use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -14,20 +14,43 @@ use crate::errors::{invalid_input, to_py};
 use crate::fields::{self, Column, read_column, write_column};
 use crate::material::{Codes, expand_sets, material_codes, set_indices};
 
-/// The solver parameters and colliders of the dict `MpmSolver` takes, read
-/// by the core's types (`crate::params`); errors name the field.
+/// The solver parameters, colliders and bodies of the dict `MpmSolver`
+/// takes, read by the core's types (`crate::params`); errors name the field.
+#[allow(clippy::type_complexity)]
 fn parse_params<const D: usize>(
     d: &Bound<'_, PyDict>,
-) -> PyResult<(SolverParams<D>, Vec<Collider<D>>)> {
+) -> PyResult<(SolverParams<D>, Vec<Collider<D>>, Vec<Body<D>>)> {
     let py = d.py();
-    let (params, specs) = crate::params::read_params::<D>(d)?;
+    let (params, specs, body_specs) = crate::params::read_params::<D>(d)?;
     let colliders = specs
         .iter()
         .enumerate()
         .map(|(i, c)| c.build::<D>(&format!("colliders[{i}]")))
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| to_py(py, e))?;
-    Ok((params, colliders))
+    let bodies = body_specs
+        .iter()
+        .enumerate()
+        .map(|(i, b)| crate::bodies::build::<D>(py, b, &format!("bodies[{i}]")))
+        .collect::<PyResult<Vec<_>>>()?;
+    Ok((params, colliders, bodies))
+}
+
+/// A new solver with its bodies added (each checked against the grid).
+fn make_solver<const D: usize>(
+    p: SolverParams<D>,
+    c: Vec<Collider<D>>,
+    bodies: Vec<Body<D>>,
+    budget: Option<u64>,
+) -> core::Result<Solver<D>>
+where
+    core::Dim<D>: core::DimOps<D>,
+{
+    let mut s = Solver::with_memory_budget(p, c, budget)?;
+    for b in bodies {
+        s.add_body(b)?;
+    }
+    Ok(s)
 }
 
 enum Inner {
@@ -156,12 +179,12 @@ impl MpmSolver {
         // parse with the GIL, build (allocations, the thread pool) without it
         let inner = match dim {
             2 => {
-                let (p, c) = parse_params::<2>(params)?;
-                py.detach(|| Solver::with_memory_budget(p, c, budget).map(Inner::D2))
+                let (p, c, b) = parse_params::<2>(params)?;
+                py.detach(|| make_solver(p, c, b, budget).map(Inner::D2))
             }
             3 => {
-                let (p, c) = parse_params::<3>(params)?;
-                py.detach(|| Solver::with_memory_budget(p, c, budget).map(Inner::D3))
+                let (p, c, b) = parse_params::<3>(params)?;
+                py.detach(|| make_solver(p, c, b, budget).map(Inner::D3))
             }
             _ => {
                 return Err(invalid_input(
@@ -540,6 +563,60 @@ impl MpmSolver {
             ))
         })
         .map_err(|e| to_py(py, e))
+    }
+
+    /// The rigid bodies now (docs/bodies.md), a dict of arrays over the B
+    /// bodies in order: `center` float32 [B, D] [m], `rotation` [B, D, D]
+    /// (columns: the body's axes), `velocity` [B, D] [m/s],
+    /// `angular_velocity` [B, 1] in 2D (about z) or [B, 3] [rad/s], `mass`
+    /// [B] [kg; per unit depth in 2D], the fluid's mean `force` float64
+    /// [B, D] [N] and `torque` [B, 1 or 3] [N·m] over the last frame, and
+    /// `state` float32 [B, 13], each body's exact state (`set_body_state`).
+    fn bodies<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let snap = self.with(
+            py,
+            |inner| dispatch!(inner, s => crate::bodies::snapshot(s)),
+        );
+        snap.into_dict(py)
+    }
+
+    /// Add a rigid body between frames from its dict (`shape` 'box' or
+    /// 'sphere'/'circle', `center`, `half_extents` or `radius`, `rotation`
+    /// or `angle_deg`, `density` or `mass`, `velocity`, `angular_velocity`,
+    /// `friction`); returns its index. `InvalidInputError` names the field
+    /// (`bodies[i].density`, or `bodies` past `MAX_BODIES`); nothing changes then.
+    fn add_body(&self, py: Python<'_>, body: &Bound<'_, PyAny>) -> PyResult<usize> {
+        let i = self.with(py, |inner| dispatch!(inner, s => s.bodies().len()));
+        let field = format!("bodies[{i}]");
+        let p = crate::bodies::read(body, &field)?;
+        self.with(py, |inner| match inner {
+            Inner::D2(s) => p.build::<2>(&field).and_then(|b| s.add_body(b)),
+            Inner::D3(s) => p.build::<3>(&field).and_then(|b| s.add_body(b)),
+        })
+        .map_err(|e| to_py(py, e))
+    }
+
+    /// Remove body `index` (the later ones move down one). `InvalidInputError`
+    /// names `index`.
+    fn remove_body(&self, py: Python<'_>, index: &Bound<'_, PyAny>) -> PyResult<()> {
+        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
+        self.with(py, |inner| dispatch!(inner, s => s.remove_body(i)))
+            .map_err(|e| to_py(py, e))
+    }
+
+    /// Set body `index`'s exact state (float32 [13], a row of `bodies()["state"]`).
+    /// `InvalidInputError` names `index`, `state` or `bodies[i].state`.
+    fn set_body_state(
+        &self,
+        py: Python<'_>,
+        index: &Bound<'_, PyAny>,
+        state: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
+        let v = f32_vec(state, "state", &[Some(crate::bodies::STATE_LEN)])?;
+        let st = crate::bodies::unflat(&v);
+        self.with(py, |inner| dispatch!(inner, s => s.set_body_state(i, st)))
+            .map_err(|e| to_py(py, e))
     }
 
     /// Particle state and clock as bytes (parameters not included).

@@ -1,0 +1,175 @@
+//! The solver's rigid bodies from Python (`hybridmpm_mpm::body`,
+//! docs/bodies.md): a body's dict read by the core's own `BodyParams`
+//! (through [`crate::params::read`]: unknown keys refused, every error
+//! naming the field, e.g. `bodies[0].density`), the bodies' state and the
+//! fluid's force on them as arrays, and a body's exact state as 13 `f32`s
+//! (what a checkpoint carries).
+
+use hybridmpm_mpm as core;
+use hybridmpm_mpm::{Body, BodyParams, BodyState, Solver};
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use crate::errors::{invalid_input, to_py};
+
+/// Numbers in a body's exact state: centre (3), rotation (4: 2D `cos θ,
+/// sin θ, 0, 0`, 3D the quaternion `x, y, z, w`), velocity (3), angular
+/// velocity (3), all `f32` ([`BodyState`]).
+pub const STATE_LEN: usize = 13;
+
+/// A body's parameters from a dict, fields named under `field`.
+pub fn read(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<BodyParams> {
+    crate::params::read::<BodyParams>(obj, field).map_err(|e| e.into_py(obj.py()))
+}
+
+/// The body in `D` dimensions from its parameters, built (not yet checked
+/// against a grid), errors naming the field under `field`.
+pub fn build<const D: usize>(py: Python<'_>, p: &BodyParams, field: &str) -> PyResult<Body<D>> {
+    p.build::<D>(field).map_err(|e| to_py(py, e))
+}
+
+/// A state as its 13 numbers.
+pub fn flat(s: &BodyState) -> [f32; STATE_LEN] {
+    let mut out = [0.0; STATE_LEN];
+    out[..3].copy_from_slice(&s.x);
+    out[3..7].copy_from_slice(&s.q);
+    out[7..10].copy_from_slice(&s.v);
+    out[10..].copy_from_slice(&s.w);
+    out
+}
+
+/// A state from its 13 numbers.
+pub fn unflat(v: &[f32]) -> BodyState {
+    let mut s = BodyState::default();
+    s.x.copy_from_slice(&v[..3]);
+    s.q.copy_from_slice(&v[3..7]);
+    s.v.copy_from_slice(&v[7..10]);
+    s.w.copy_from_slice(&v[10..STATE_LEN]);
+    s
+}
+
+/// The bodies as plain numbers, read under the solver's lock.
+pub struct Snapshot {
+    n: usize,
+    dim: usize,
+    state: Vec<f32>,
+    center: Vec<f32>,
+    rotation: Vec<f32>,
+    velocity: Vec<f32>,
+    angular_velocity: Vec<f32>,
+    mass: Vec<f32>,
+    force: Vec<f64>,
+    torque: Vec<f64>,
+}
+
+/// The bodies of `s` now.
+pub fn snapshot<const D: usize>(s: &Solver<D>) -> Snapshot
+where
+    core::Dim<D>: core::DimOps<D>,
+{
+    let b = s.bodies();
+    let ang = if D == 2 { 2..3 } else { 0..3 };
+    let mut out = Snapshot {
+        n: b.len(),
+        dim: D,
+        state: Vec::new(),
+        center: Vec::new(),
+        rotation: Vec::new(),
+        velocity: Vec::new(),
+        angular_velocity: Vec::new(),
+        mass: b.bodies().iter().map(|x| x.mass()).collect(),
+        force: Vec::new(),
+        torque: Vec::new(),
+    };
+    for st in b.states() {
+        out.state.extend_from_slice(&flat(st));
+        out.center.extend_from_slice(&st.x[..D]);
+        let r = st.rotation::<D>();
+        out.rotation.extend((0..D * D).map(|k| r[(k / D, k % D)]));
+        out.velocity.extend_from_slice(&st.v[..D]);
+        out.angular_velocity.extend_from_slice(&st.w[ang.clone()]);
+    }
+    for f in b.last_force() {
+        out.force.extend_from_slice(&f[..D]);
+        out.torque.extend_from_slice(&f[3 + ang.start..3 + ang.end]);
+    }
+    out
+}
+
+impl Snapshot {
+    /// As a dict of numpy arrays (see `MpmSolver.bodies`).
+    pub fn into_dict(self, py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+        let (n, d) = (self.n, self.dim);
+        let w = if d == 2 { 1 } else { 3 };
+        let out = PyDict::new(py);
+        let f32s = |v: Vec<f32>, shape: Vec<usize>| PyArray1::from_vec(py, v).reshape(shape);
+        out.set_item("state", f32s(self.state, vec![n, STATE_LEN])?)?;
+        out.set_item("center", f32s(self.center, vec![n, d])?)?;
+        out.set_item("rotation", f32s(self.rotation, vec![n, d, d])?)?;
+        out.set_item("velocity", f32s(self.velocity, vec![n, d])?)?;
+        out.set_item("angular_velocity", f32s(self.angular_velocity, vec![n, w])?)?;
+        out.set_item("mass", PyArray1::from_vec(py, self.mass))?;
+        out.set_item(
+            "force",
+            PyArray1::from_vec(py, self.force).reshape(vec![n, d])?,
+        )?;
+        out.set_item(
+            "torque",
+            PyArray1::from_vec(py, self.torque).reshape(vec![n, w])?,
+        )?;
+        Ok(out)
+    }
+}
+
+/// Checks a body (a dict) as a `dim`-D solver of `n_grid` cells and walls
+/// `wall_cells` thick would when it is added as body `index` (its shape,
+/// size, density or mass, rotation, and that it lies inside the walls),
+/// without a solver. Raises `InvalidInputError` naming the field
+/// (`bodies[index].density`, ...). Returns its mass [kg; per unit depth in 2D].
+#[pyfunction]
+fn check_body(
+    py: Python<'_>,
+    body: &Bound<'_, PyAny>,
+    dim: usize,
+    n_grid: usize,
+    wall_cells: usize,
+    index: usize,
+) -> PyResult<f32> {
+    let field = format!("bodies[{index}]");
+    if index >= core::body::MAX_BODIES {
+        return Err(invalid_input(
+            py,
+            "bodies",
+            format!("at most {} bodies", core::body::MAX_BODIES),
+        ));
+    }
+    let p = read(body, &field)?;
+    let dx = 1.0 / n_grid.max(1) as f32;
+    match dim {
+        2 => {
+            let b = build::<2>(py, &p, &field)?;
+            b.validate(&field, dx, wall_cells)
+                .map_err(|e| to_py(py, e))?;
+            Ok(b.mass())
+        }
+        3 => {
+            let b = build::<3>(py, &p, &field)?;
+            b.validate(&field, dx, wall_cells)
+                .map_err(|e| to_py(py, e))?;
+            Ok(b.mass())
+        }
+        _ => Err(invalid_input(
+            py,
+            "dim",
+            format!("must be 2 or 3, got {dim}"),
+        )),
+    }
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("MAX_BODIES", core::body::MAX_BODIES)?;
+    m.add("BODY_STATE_LEN", STATE_LEN)?;
+    m.add_function(wrap_pyfunction!(check_body, m)?)?;
+    Ok(())
+}
