@@ -41,7 +41,7 @@ def test_python_defaults_are_the_rust_defaults(dim):
 
 def test_dataclass_fields_are_the_rust_keys():
     rust = _core.default_params(2)
-    assert fields(MpmParams) == list(rust)
+    assert fields(MpmParams) == [*rust, "bodies"]  # bodies: written only when there are some
     assert fields(WaterParams) == list(rust["water"])
     assert fields(SandParams) == list(rust["sand"])
     # faces: written only when some face is overridden
@@ -97,7 +97,7 @@ def test_an_unknown_key_is_refused_naming_it(params, field):
 def test_the_top_level_names_every_allowed_key():
     with pytest.raises(InvalidInputError) as e:
         _core.MpmSolver({"dim": 2, "wter": {}})
-    assert str(e.value) == "wter: unknown parameter (allowed: " + ", ".join(_core.default_params(2)) + ")"
+    assert str(e.value) == "wter: unknown parameter (allowed: " + ", ".join([*_core.default_params(2), "bodies"]) + ")"
 
 
 @pytest.mark.parametrize(

@@ -19,6 +19,11 @@ key                 dtype / shape   meaning
                     [T,C,D]         (optional: written when the scene has obstacles;
                                     without it the obstacles stand where the scene
                                     put them)
+``body_center``     float64         each rigid body's centre of mass [m] in every stored
+                    [T,B,D]         frame (optional: written when the scene has bodies)
+``body_rotation``   float64         each body's rotation (columns: its axes) per frame
+                    [T,B,D,D]
+``body_mass``       float64 [B]     each body's mass [kg; per unit depth in 2D, as ``masses``]
 anything else       any             kept in :attr:`Trajectory.extras`, saved as-is
 ==================  ==============  ======================================================
 """
@@ -41,7 +46,9 @@ from hybridmpm.files import NpyHeader, npz_headers, read_npz_member
 from hybridmpm.limits import check_allocation
 
 #: Keys with a meaning of their own; every other key of a file is an extra.
-RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material", "obstacle_centers")
+RESERVED_KEYS = ("positions", "particle_type", "dt_frame", "n_grid", "masses", "material", "obstacle_centers", "body_center", "body_rotation", "body_mass")
+#: The rigid bodies' arrays: all three or none.
+_BODY_KEYS = ("body_center", "body_rotation", "body_mass")
 _REQUIRED_KEYS = ("positions", "particle_type", "dt_frame")
 #: Largest velocity a trajectory's frames may imply [m/s]: ``|Δx| / dt_frame`` must stay a finite float32
 #: (what the point clouds and the USD file store), so no export holds an infinite value.
@@ -123,6 +130,10 @@ class Trajectory:
         centre in every stored frame (:attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`;
         the surfaces and the USD file place the obstacles there), or
         ``None``: the obstacles stand where the scene put them.
+    body_center, body_rotation, body_mass:
+        float64 [T, B, D] [m], [T, B, D, D] and [B] [kg; per unit depth in
+        2D], finite, the masses > 0: the scene's ``B`` rigid bodies in every
+        stored frame; all three or none (a scene without bodies).
 
     Construction validates and normalises every field and raises
     :class:`~hybridmpm.errors.InvalidInputError` naming the bad field.
@@ -136,6 +147,9 @@ class Trajectory:
     material: np.ndarray | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     obstacle_centers: np.ndarray | None = None
+    body_center: np.ndarray | None = None
+    body_rotation: np.ndarray | None = None
+    body_mass: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pos = np.asarray(self.positions)
@@ -198,6 +212,7 @@ class Trajectory:
                 raise InvalidInputError("obstacle_centers: contains NaN or inf", "obstacle_centers")
             self.obstacle_centers = oc
 
+        self._check_bodies(pos.shape[0], pos.shape[2])
         extras: dict[str, np.ndarray] = {}
         for key, value in dict(self.extras).items():
             if not isinstance(key, str) or not key or key in RESERVED_KEYS:
@@ -207,6 +222,23 @@ class Trajectory:
                 raise InvalidInputError(f"extras.{key}: object arrays cannot be saved without pickle", f"extras.{key}")
             extras[key] = arr
         self.extras = extras
+
+    def _check_bodies(self, t: int, d: int) -> None:
+        given = [k for k in _BODY_KEYS if getattr(self, k) is not None]
+        if not given:
+            return
+        if len(given) != 3:
+            k = next(k for k in _BODY_KEYS if k not in given)
+            raise InvalidInputError(f"{k}: missing ({', '.join(given)} given: the body arrays go together)", k)
+        b = np.asarray(self.body_mass).shape[0] if np.ndim(self.body_mass) == 1 else -1
+        for k, shape in (("body_center", (t, b, d)), ("body_rotation", (t, b, d, d)), ("body_mass", (b,))):
+            a = np.asarray(getattr(self, k))
+            if a.dtype.kind not in "fiu" or a.shape != shape or b < 0:
+                raise InvalidInputError(f"{k}: expected a real array {list(shape)} (T frames, B bodies, D = {d}), got {a.dtype} {list(a.shape)}", k)
+            a = np.ascontiguousarray(a, np.float64)
+            if not np.isfinite(a).all() or (k == "body_mass" and not (a > 0).all()):
+                raise InvalidInputError(f"{k}: must be finite{' and > 0 kg' if k == 'body_mass' else ''}", k)
+            setattr(self, k, a)
 
     # ------------------------------------------------------------------ info
     @property
@@ -249,6 +281,9 @@ class Trajectory:
             out["material"] = self.material
         if self.obstacle_centers is not None:
             out["obstacle_centers"] = self.obstacle_centers
+        for k in _BODY_KEYS:
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
         out.update(self.extras)
         return out
 
@@ -317,6 +352,9 @@ class Trajectory:
             masses=arrays.pop("masses", None),
             material=arrays.pop("material", None),
             obstacle_centers=arrays.pop("obstacle_centers", None),
+            body_center=arrays.pop("body_center", None),
+            body_rotation=arrays.pop("body_rotation", None),
+            body_mass=arrays.pop("body_mass", None),
             extras=arrays,
         )
 

@@ -58,6 +58,7 @@ from hybridmpm.control.sketch import Sketch
 from hybridmpm.control.targets import pd_targets
 from hybridmpm.conventions import T_CTR, G
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.bodies import refuse_bodies
 from hybridmpm.sim import Simulator
 
 #: Control methods.
@@ -411,6 +412,7 @@ class Controller:
             return Plan("diffusion", start, self.frames, n, seconds=time.perf_counter() - t0, sketch=None)
         if self.method == "diffusion":
             assert self.model is not None
+            refuse_bodies(len(sim.bodies) if hasattr(sim, "bodies") else len(sim.scene.params.bodies), "diffusion controller")
             if self.model.dim != d:
                 raise InvalidInputError(f"model: a {self.model.dim}D controller cannot drive a {d}D scene", "model")
             x, v = p.fluid(sim.positions), sim.velocities

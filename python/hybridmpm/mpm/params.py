@@ -13,6 +13,7 @@ import numpy as np
 
 from hybridmpm import _core
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.bodies import Body
 from hybridmpm.mpm.motion import Keyframe
 
 Condition = Literal["sticky", "slip", "separate"]
@@ -432,6 +433,7 @@ class MpmParams:
     sets: list[MaterialSet] = field(default_factory=list)
     walls: WallParams = field(default_factory=WallParams)
     colliders: list[Collider] = field(default_factory=list)
+    bodies: list[Body] = field(default_factory=list)
 
     def resolved_n_grid(self) -> int:
         self._check_int("n_grid", self.n_grid, optional=True)
@@ -503,13 +505,15 @@ class MpmParams:
         for i, c in enumerate(self.colliders):
             if not isinstance(c, (Box, Sphere, SampledSdf)):
                 raise InvalidInputError(f"colliders[{i}]: must be a Box, a Sphere or a SampledSdf, got {c!r}", f"colliders[{i}]")
+        if not isinstance(self.bodies, (list, tuple)) or not all(isinstance(b, Body) for b in self.bodies):
+            raise InvalidInputError(f"bodies: must be a list of Body, got {self.bodies!r}", "bodies")
 
     def to_dict(self) -> dict[str, Any]:
         """The plain dict the Rust binding takes (JSON-serialisable); validated
         first (:meth:`validate`)."""
         self.validate()
         gravity = list(self.gravity) if self.gravity is not None else _DEFAULTS[self.dim]["gravity"]
-        return {
+        out: dict[str, Any] = {
             "dim": int(self.dim),
             "n_grid": self.resolved_n_grid(),
             "gravity": [float(g) for g in gravity],
@@ -526,6 +530,9 @@ class MpmParams:
             "walls": self.walls.to_dict(self.dim),
             "colliders": [c.to_dict() for c in self.colliders],
         }
+        if self.bodies:  # absent without bodies: the dict (and a checkpoint's header) of a scene without them is unchanged
+            out["bodies"] = [b.to_dict() for b in self.bodies]
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MpmParams:
@@ -560,6 +567,10 @@ class MpmParams:
                 cols.append(SampledSdf.from_dict(f"colliders[{i}]", c))
             else:
                 raise InvalidInputError(f"colliders[{i}].shape: must be 'box', 'sphere' or 'sampled', got {shape!r}", f"colliders[{i}].shape")
+        raw_bodies = d.pop("bodies", []) or []
+        if not isinstance(raw_bodies, (list, tuple)):
+            raise InvalidInputError(f"bodies: expected a list, got {raw_bodies!r}", "bodies")
+        bodies = [Body.from_dict(b, f"bodies[{i}]") for i, b in enumerate(raw_bodies)]
         groups = {name: build(name, c, d.pop(name, {})) for name, c in SET_CLASSES.items()}
         raw_sets = d.pop("sets", []) or []
         if not isinstance(raw_sets, (list, tuple)):
@@ -571,11 +582,11 @@ class MpmParams:
             ((name, kwargs),) = entry.items()
             sets.append(build(f"sets[{i}].{name}", SET_CLASSES[name], kwargs))
         walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))
-        top = set(cls.__dataclass_fields__) - {*SET_CLASSES, "sets", "walls", "colliders"}
+        top = set(cls.__dataclass_fields__) - {*SET_CLASSES, "sets", "walls", "colliders", "bodies"}
         unknown = sorted(set(d) - top, key=str)
         if unknown:
             raise InvalidInputError(f"{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(top))})", str(unknown[0]))
-        params = cls(**groups, sets=sets, walls=walls, colliders=cols, **d)
+        params = cls(**groups, sets=sets, walls=walls, colliders=cols, bodies=bodies, **d)
         params.validate()
         return params
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from hybridmpm.errors import as_f32 as _as_f32
 from hybridmpm.files import loads_json
 from hybridmpm.limits import human, memory_budget
 from hybridmpm.limits import memory_budget as default_budget
+from hybridmpm.mpm.bodies import BODY_STATE_LEN, BodiesView, Body
 from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
 
 _MAGIC = b"HMPMPY01"
@@ -26,6 +28,8 @@ _CORE_MAGIC_V2 = b"HMPMCKP2"
 _CORE_HEADER = 36
 #: The checkpoint header's key for the colliders' poses and pending moves (absent while none has moved).
 _COLLIDER_STATE = "collider_state"
+#: The checkpoint header's key for the bodies' exact states (float32 [B, 13] as JSON numbers; absent without bodies).
+_BODY_STATE = "body_state"
 
 
 class MpmSolver:
@@ -338,14 +342,60 @@ class MpmSolver:
         for i, x, v in moves:
             self._core.move_collider(i, x, v)
 
+    # ------------------------------------------------------------- rigid bodies
+    @property
+    def bodies(self) -> BodiesView:
+        """The rigid bodies now (docs/bodies.md): poses, velocities, masses
+        and the fluid's force on each over the last frame (:class:`~hybridmpm.mpm.bodies.BodiesView`).
+        ``params.bodies`` holds each as it was given."""
+        return BodiesView.from_core(self._core.bodies(), self.dim)
+
+    def add_body(self, body: Body | dict[str, Any]) -> int:
+        """Add a rigid body (a :class:`~hybridmpm.mpm.bodies.Body` or its
+        dict) between frames; returns its index. Raises
+        :class:`~hybridmpm.errors.InvalidInputError` naming the field
+        (``bodies[i].density``, ``bodies[i].center``: outside the walls,
+        ``bodies[i].half_extents``: thinner than a cell, ``bodies`` past
+        :data:`~hybridmpm.mpm.bodies.MAX_BODIES`); nothing changes then."""
+        b = Body.from_dict(body, f"bodies[{len(self.params.bodies)}]")
+        i = int(self._core.add_body(b.to_dict()))
+        self.params = replace(self.params, bodies=[*self.params.bodies, b])
+        return i
+
+    def remove_body(self, index: int) -> None:
+        """Remove body ``index`` (the later ones move down one). Raises
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``index``."""
+        self._core.remove_body(index)
+        self.params = replace(self.params, bodies=[b for k, b in enumerate(self.params.bodies) if k != int(index)])
+
+    def _check_body_state(self, bs: Any, n: int) -> np.ndarray | None:
+        """A checkpoint's body states (None: the bodies as ``params`` gives them), float32 [n, 13]; raises :class:`CheckpointError`."""
+        if bs is None:
+            return None
+        try:
+            a = np.asarray(bs, np.float64)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"bad body state: {e}") from e
+        f = a.astype(np.float32)
+        if a.shape != (n, BODY_STATE_LEN) or not np.isfinite(a).all() or not np.array_equal(f.astype(np.float64), a):
+            raise CheckpointError(f"bad body state: expected the float32 states of {n} bodies, {BODY_STATE_LEN} numbers each")
+        return f
+
+    def _set_body_state(self, states: np.ndarray | None) -> None:
+        for i, row in enumerate([] if states is None else states):
+            self._core.set_body_state(i, np.ascontiguousarray(row))
+
     # ------------------------------------------------------------- checkpoint
     def checkpoint(self) -> bytes:
-        """The whole state (parameters, particles, clock, and the colliders'
-        poses and pending moves when any has moved) as bytes."""
+        """The whole state (parameters, particles, clock, the colliders'
+        poses and pending moves when any has moved, and the bodies' exact
+        states) as bytes."""
         head = self.params.to_dict()
         cs = self._collider_state()
         if cs is not None:
             head[_COLLIDER_STATE] = cs
+        if self.params.bodies:
+            head[_BODY_STATE] = [[float(v) for v in row] for row in self._core.bodies()["state"]]
         header = json.dumps(head).encode()
         return _MAGIC + struct.pack("<Q", len(header)) + header + self._core.checkpoint()
 
@@ -355,8 +405,10 @@ class MpmSolver:
         params, state, cs = cls.split_checkpoint(blob)
         sim = cls(params)
         poses = sim._check_collider_state(cs)
+        bodies = sim._check_body_state(_body_state(blob), len(params.bodies))
         sim._core.restore(state)
         sim._set_collider_state(poses)
+        sim._set_body_state(bodies)
         return sim
 
     def restore(self, blob: bytes, *, same_particles: bool = False) -> None:
@@ -369,8 +421,10 @@ class MpmSolver:
         other parameters or particles) and the solver is then unchanged."""
         state = self.check_restore(blob, same_particles=same_particles)
         poses = self._check_collider_state(self.split_checkpoint(blob)[2])
+        bodies = self._check_body_state(_body_state(blob), len(self.params.bodies))
         self._core.restore(state)
         self._set_collider_state(poses)
+        self._set_body_state(bodies)
 
     def restore_particles(self, blob: bytes) -> None:
         """Restore the particles of a :meth:`checkpoint` written by a solver
@@ -428,6 +482,8 @@ class MpmSolver:
         try:
             head = loads_json(blob[16 : 16 + n], "checkpoint")  # nesting checked before parsing
             cs = head.pop(_COLLIDER_STATE, None) if isinstance(head, dict) else None
+            if isinstance(head, dict):
+                head.pop(_BODY_STATE, None)  # read by _body_state
             params = MpmParams.from_dict(head)
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
@@ -444,6 +500,13 @@ class MpmSolver:
         head = {**loads_json(blob[16 : 16 + n], "checkpoint"), **updates}
         header = json.dumps(head).encode()
         return bytes(blob[:8]) + struct.pack("<Q", len(header)) + header + bytes(blob[16 + n :])
+
+
+def _body_state(blob: bytes) -> Any:
+    """The bodies' states in a checkpoint's header (None when absent); the header checked by :meth:`MpmSolver.split_checkpoint` first."""
+    (n,) = struct.unpack("<Q", blob[8:16])
+    head = loads_json(blob[16 : 16 + n], "checkpoint")
+    return head.get(_BODY_STATE) if isinstance(head, dict) else None
 
 
 def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:

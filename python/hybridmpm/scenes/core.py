@@ -17,6 +17,7 @@ import numpy as np
 
 from hybridmpm.conventions import CONNECTIVITY_RADIUS, DT_FRAME, GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIAL_WATER
 from hybridmpm.mpm import MpmParams, MpmSolver
+from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes.particles import ParticleSet, pad_boundary
 
 if TYPE_CHECKING:
@@ -87,6 +88,11 @@ class Scene:
     @property
     def dim(self) -> int:
         return int(self.positions.shape[1])
+
+    @property
+    def bodies(self) -> list[Body]:
+        """The rigid bodies the solver starts with (``params.bodies``; docs/bodies.md)."""
+        return list(self.params.bodies)
 
     @property
     def num_particles(self) -> int:

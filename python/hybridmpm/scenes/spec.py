@@ -37,6 +37,12 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     half_extents = [0.15, 0.012]
     angle_deg = -20.0
 
+    [[bodies]]              # a rigid body the fluid moves (docs/bodies.md)
+    shape = "box"           # or "sphere" / "circle" with radius
+    center = [0.5, 0.5]
+    half_extents = [0.06, 0.04]
+    density = 500.0         # kg/m³ (or mass, kg per unit depth in 2D)
+
 Obstacles (boxes, spheres, 3D triangle meshes, optionally on a keyframed
 path) are read, checked, written back and sampled by
 :mod:`hybridmpm.scenes.obstacles`, which this module imports (never the
@@ -95,6 +101,7 @@ from hybridmpm.files import check_nesting, loads_json, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.materials import block_keys, material_from_block
 from hybridmpm.mpm import DT_FRAME, MpmParams
+from hybridmpm.mpm.bodies import check_bodies
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 from hybridmpm.scenes.obstacles import (
     MAX_OBSTACLES,
@@ -303,6 +310,8 @@ class SceneSpec:
         }
         if p["substeps"] is not None:
             d["substeps"] = p["substeps"]
+        if "bodies" in p:
+            d["bodies"] = p["bodies"]
         if self.obstacle_clearance_cells:
             d["obstacle_clearance_cells"] = float(self.obstacle_clearance_cells)
         if self.info:
@@ -323,7 +332,7 @@ class SceneSpec:
         allowed = {
             "name", "dim", "n_grid", "dt_frame", "frames", "particles_per_cell", "connectivity_radius", "gravity",
             "cfl", "max_substeps", "substeps", "water", "sand", "walls", "blocks", "obstacles", "info",
-            "obstacle_clearance_cells",
+            "obstacle_clearance_cells", "bodies",
         }  # fmt: skip
         unknown = sorted(set(d) - allowed)
         if unknown:
@@ -337,6 +346,7 @@ class SceneSpec:
                 pd[k] = d[k]
         # a mesh obstacle is checked here and sampled once the grid is known; a path is set aside until then
         pd["colliders"], pending = read_obstacles(d.get("obstacles", []), dim, base_dir, confine)
+        pd["bodies"] = d.get("bodies", [])
         if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
             raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
         try:
@@ -350,6 +360,7 @@ class SceneSpec:
         if not isinstance(n_grid, int) or n_grid < 8:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
         place_obstacles(params, pending, n_grid, dim)
+        check_bodies(params.bodies, dim, n_grid, params.walls.cells)
         blocks_raw = d.get("blocks")
         if not isinstance(blocks_raw, list) or not blocks_raw:
             raise InvalidInputError("blocks: a scene needs at least one particle block", "blocks")
@@ -497,6 +508,8 @@ class SceneSpec:
             n_overlap = int(len(p) - keep.sum())
             for c in self.params.colliders:
                 keep &= collider_sdf(c, p) >= clearance
+            for body in self.params.bodies:  # counted as obstacles
+                keep &= body.sdf(p) >= clearance
             n_obstacle = int(len(p) - keep.sum()) - n_overlap
             if n_overlap or n_obstacle:
                 dropped.append({"block": i, "lattice": len(p), "earlier_blocks": n_overlap, "obstacles": n_obstacle})

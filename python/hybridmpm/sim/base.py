@@ -69,6 +69,9 @@ class Frame:
     frame's end (:attr:`~hybridmpm.sim.MpmSimulator.obstacle_centers`;
     None in a scene without obstacles, and from the network alone, whose
     obstacles stand where the scene put them).
+    ``body_center`` float64 [B, D] [m], ``body_rotation`` [B, D, D] and
+    ``body_mass`` [B] [kg; per unit depth in 2D]: the rigid bodies at the
+    frame's end (None in a scene without bodies).
     """
 
     step: int
@@ -84,6 +87,9 @@ class Frame:
     controlled: bool = False
     audit: float = float("nan")
     obstacle_centers: np.ndarray | None = None
+    body_center: np.ndarray | None = None
+    body_rotation: np.ndarray | None = None
+    body_mass: np.ndarray | None = None
 
 
 @dataclass

@@ -42,6 +42,7 @@ from hybridmpm.conventions import G
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.materials import refuse_untrained
 from hybridmpm.models import shipped_switching
+from hybridmpm.mpm.bodies import refuse_bodies
 from hybridmpm.neural.base import Runtime, open_model, read_header
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
@@ -170,6 +171,8 @@ class HybridSimulator:
             scene = make_scene(scene, seed=seed)
         if cheap == "neural":
             refuse_untrained(scene.material, "learned simulator")
+        # the network never saw a body, and the coarse grid's hand-over carries particles only
+        refuse_bodies(len(scene.params.bodies), "learned simulator" if cheap == "neural" else "hybrid's coarse half")
         ruled = _split(settings, set(SETTINGS) | {"safeguard"})
         if rule is None:
             rule = make_rule(shipped=shipped_switching(scene.name) if model is None and scene.name else None, **ruled)

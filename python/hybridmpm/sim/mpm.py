@@ -29,6 +29,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
 from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.mpm import MpmSolver, SampledSdf
+from hybridmpm.mpm.bodies import BodiesView, Body
 from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, check_velocity, path_center
 from hybridmpm.mpm.params import Collider
 from hybridmpm.mpm.solver import check_leading_particles, check_poured_blocks, core_particle_count
@@ -142,7 +143,7 @@ class MpmSimulator:
         #: obstacle index -> (target centre float64 [D], boundary velocity float64 [D] or None) for the next step
         self._moves: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self._anchors0 = self.solver.collider_positions.copy()
-        self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM, obstacle_centers=self.frame_centers())
+        self._frame = Frame(0, 0, 0.0, self.particles.pad(self.fluid_positions), MPM, obstacle_centers=self.frame_centers(), **self.frame_bodies())
 
     # ------------------------------------------------------------ state
     @property
@@ -295,6 +296,39 @@ class MpmSimulator:
             vel = (b - a) / self.dt_step if v is None else v
             self.solver.move_collider(i, end.astype(np.float32), vel.astype(np.float32))
 
+    # ------------------------------------------------------------ rigid bodies
+    @property
+    def bodies(self) -> BodiesView:
+        """The rigid bodies at the last frame's end (docs/bodies.md): centre,
+        rotation, velocity, angular velocity, mass and the fluid's force and
+        torque on each over the last frame (read-only arrays)."""
+        return self.solver.bodies
+
+    @serialised
+    def add_body(self, body: Body | dict[str, Any]) -> int:
+        """Add a rigid body (a :class:`~hybridmpm.mpm.bodies.Body` or its
+        dict, as a scene file's ``[[bodies]]`` table) between steps; returns
+        its index. Raises :class:`InvalidInputError` naming the field
+        (``bodies[i].density``, ``bodies`` past the cap); nothing changes then."""
+        i = self.solver.add_body(body)
+        self._frame = replace(self._frame, **self.frame_bodies())
+        return i
+
+    @serialised
+    def remove_body(self, index: int) -> None:
+        """Remove body ``index`` between steps (the later ones move down one).
+        Raises :class:`InvalidInputError` naming ``index``."""
+        self.solver.remove_body(index)
+        self._frame = replace(self._frame, **self.frame_bodies())
+
+    def frame_bodies(self) -> dict[str, np.ndarray]:
+        """What a :class:`Frame` records of the bodies (``body_center``,
+        ``body_rotation``, ``body_mass``, float64), or nothing without bodies."""
+        if not self.solver.params.bodies:
+            return {}
+        b = self.solver.bodies
+        return {"body_center": np.array(b.center), "body_rotation": np.array(b.rotation), "body_mass": np.array(b.mass)}
+
     # ------------------------------------------------------------ stepping
     @serialised
     def advance(self) -> Frame:
@@ -336,6 +370,7 @@ class MpmSimulator:
             substeps=substeps,
             controlled=controlled,
             obstacle_centers=self.frame_centers(),
+            **self.frame_bodies(),
         )
         return self._frame
 
@@ -425,7 +460,7 @@ class MpmSimulator:
             self.stats = stats
             self._forcing = forcing
             self._applied = applied
-            self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM, obstacle_centers=self.frame_centers())
+            self._frame = Frame(step, step * self.r_t, step * self.dt_step, self.positions, MPM, obstacle_centers=self.frame_centers(), **self.frame_bodies())
 
         return commit
 
@@ -462,8 +497,9 @@ class MpmSimulator:
         base = self._scene_params.to_dict()
         theirs = params.to_dict()
         sets0, sets = base.pop("sets", []), theirs.pop("sets", [])
-        base.pop("num_threads", None)
-        theirs.pop("num_threads", None)
+        for key in ("num_threads", "bodies"):  # bodies added or removed since the scene's: the checkpoint's
+            base.pop(key, None)
+            theirs.pop(key, None)
         if base != theirs or sets[: len(sets0)] != sets0:
             diff = sorted(k for k in set(base) | set(theirs) if base.get(k) != theirs.get(k)) or ["sets"]
             raise CheckpointError(f"checkpoint was written with other solver parameters ({', '.join(diff)})")
@@ -511,7 +547,7 @@ class MpmSimulator:
         )
         self.scene = replace(self.scene, params=solver.params)
         f = self._frame
-        self._frame = Frame(f.step, f.frame_index, f.time, self.positions, f.solver, obstacle_centers=f.obstacle_centers)
+        self._frame = Frame(f.step, f.frame_index, f.time, self.positions, f.solver, obstacle_centers=f.obstacle_centers, **self.frame_bodies())
 
     def _check_moves(self, raw: Any) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """A state's pending obstacle moves (its ``obstacle_moves``, absent

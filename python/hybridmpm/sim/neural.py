@@ -77,6 +77,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.graph import kernel_density, radius_graph, relax_then_graph
 from hybridmpm.materials import refuse_untrained
 from hybridmpm.mpm import MpmSolver
+from hybridmpm.mpm.bodies import refuse_bodies
 from hybridmpm.neural.base import Runtime, open_model
 from hybridmpm.neural.runtime import Graph
 from hybridmpm.scenes import make_scene
@@ -193,6 +194,7 @@ class NeuralSimulator:
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
         refuse_untrained(scene.material, "learned simulator")
+        refuse_bodies(len(scene.params.bodies), "learned simulator")
         self.model: Runtime = open_model(model, scene.name, check_int("nn_threads", nn_threads, 0))
         self.scene_full = scene
         self.scene = at_resolution(scene, self.model.r_p, seed, clusters)

@@ -95,6 +95,10 @@ def pour_block(sim: Any, block: dict[str, Any]) -> int:
     near = cKDTree(np.asarray(sim.solver.positions, np.float64)).query(p, k=1, distance_upper_bound=0.5 * spacing)[0] < np.inf
     for c in params.colliders:
         near |= collider_sdf(c, p) < 0.0
+    if params.bodies:  # counted as obstacles, each where it is now
+        now = sim.solver.bodies
+        for k, b in enumerate(params.bodies):
+            near |= b.sdf(p, now.center[k], now.rotation[k]) < 0.0
     if near.sum() > MAX_OVERLAP_FRACTION * len(p) or near.all():
         raise InvalidInputError(
             f"lo: {int(near.sum())} of the block's {len(p)} particles fall within half a lattice spacing of particles already there "

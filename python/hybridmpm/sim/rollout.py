@@ -43,7 +43,9 @@ class Rollout(Trajectory):
     ``score`` float64 [K + 1] safeguard s(t) (nan where not computed);
     ``substeps`` int64 [K + 1]; ``controlled`` bool [K + 1]; the
     trajectory's ``obstacle_centers`` float64 [K + 1, C, D] when the
-    simulator records them (a scene with obstacles). And ``events``
+    simulator records them (a scene with obstacles); ``body_center``
+    float64 [K + 1, B, D], ``body_rotation`` [K + 1, B, D, D] and
+    ``body_mass`` [B] when every entry has the same rigid bodies. And ``events``
     [(step, event)], ``failure`` (None, "nan", "mpm", a network failure mode
     or a stop rule's reason) and ``failure_detail`` (the error's message),
     ``stats`` (the simulator's counters),
@@ -156,6 +158,9 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     substeps = np.array([r.substeps for r in recs], np.int64)
     frame_index = np.array([r.frame_index for r in recs], np.int64)
     centers = [r.obstacle_centers for r in recs if r.obstacle_centers is not None]
+    # the bodies when every kept frame has the same ones (none added or removed during the rollout)
+    bodies = [(r.body_center, r.body_rotation, r.body_mass) for r in recs if r.body_center is not None]
+    same = len(bodies) == len(recs) and all(np.array_equal(b[2], bodies[0][2]) for b in bodies)
     extras = {
         "solver": (solver != MPM).astype(np.int8),  # 1: the cheap half (the network, or the coarse grid of the classical twin)
         "score": score,
@@ -166,6 +171,9 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     return Rollout(
         positions=np.stack([r.positions for r in recs]),
         obstacle_centers=np.stack(centers) if centers and len(centers) == len(recs) else None,
+        body_center=np.stack([b[0] for b in bodies]) if same else None,
+        body_rotation=np.stack([b[1] for b in bodies]) if same else None,
+        body_mass=bodies[0][2] if same else None,
         particle_type=p.particle_type,
         dt_frame=sim.dt_frame * sim.r_t,
         n_grid=sim.scene.params.resolved_n_grid(),

@@ -1,0 +1,257 @@
+"""Rigid bodies from Python (docs/bodies.md): scene files, the simulator's
+bodies, checkpoints, trajectories and bad input.
+
+The physics is checked against Archimedes' principle in the order it
+predicts (a body denser than water sinks to the floor; of two lighter ones,
+the lighter rides higher), the checkpoints against an uninterrupted run (the
+same bits), and the trajectory's masses against density × area."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.bodies import MAX_BODIES, Body
+from hybridmpm.scenes.spec import SceneSpec
+from hybridmpm.sim import MpmSimulator, rollout
+from hybridmpm.trajectory import Trajectory
+
+BOX = {"shape": "box", "center": [0.5, 0.35], "half_extents": [0.06, 0.04], "density": 500.0}
+
+
+def tank(bodies: list[dict], *, n_grid: int = 64, top: float = 0.35, width: tuple[float, float] = (0.05, 0.95)) -> dict:
+    """A water tank scene dict with ``bodies``."""
+    return {
+        "name": "tank",
+        "dim": 2,
+        "n_grid": n_grid,
+        "blocks": [{"material": "water", "lo": [width[0], 0.05], "hi": [width[1], top]}],
+        "bodies": bodies,
+    }
+
+
+def small_sim(threads: int = 1, **kw: object) -> MpmSimulator:
+    """A narrow tank (about 1,200 particles) with a box at the surface and a circle above it."""
+    bodies = [dict(BOX), {"shape": "circle", "center": [0.5, 0.55], "radius": 0.04, "density": 300.0, "angular_velocity": 2.0}]
+    return MpmSimulator(SceneSpec.from_dict(tank(bodies, top=0.3, width=(0.3, 0.7))).build(), threads=threads, **kw)
+
+
+def body_bits(sim: MpmSimulator) -> np.ndarray:
+    return np.asarray(sim.solver._core.bodies()["state"])
+
+
+def test_scene_file_builds_bodies_and_no_particle_inside(tmp_path):
+    text = """
+name = "two"
+dim = 2
+n_grid = 64
+[[blocks]]
+material = "water"
+lo = [0.05, 0.05]
+hi = [0.95, 0.5]
+[[bodies]]
+shape = "box"
+center = [0.3, 0.3]
+half_extents = [0.08, 0.05]
+angle_deg = 30.0
+density = 400.0
+velocity = [0.1, 0.0]
+friction = 0.2
+[[bodies]]
+shape = "circle"
+center = [0.7, 0.3]
+radius = 0.06
+mass = 3.0
+"""
+    path = tmp_path / "two.toml"
+    path.write_text(text)
+    spec = SceneSpec.load(path)
+    scene = spec.build()
+    assert [b.shape for b in scene.bodies] == ["box", "circle"]
+    for b in scene.bodies:
+        assert (b.sdf(scene.positions) >= 0).all()
+    assert scene.info["dropped_particles"][0]["obstacles"] > 0  # counted with the obstacles
+    sim = MpmSimulator(scene, threads=1)
+    view = sim.bodies
+    assert len(view) == 2 and view.center.dtype == np.float64
+    np.testing.assert_allclose(view.mass, [400.0 * 0.16 * 0.10, 3.0], rtol=1e-6)
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    np.testing.assert_allclose(view.rotation[0], [[c, -s], [s, c]], atol=1e-6)
+    np.testing.assert_allclose(view.velocity[0], [0.1, 0.0], atol=1e-7)
+    with pytest.raises(ValueError):
+        view.center[0, 0] = 1.0  # read-only
+    # written back and read again: the same bodies
+    again = SceneSpec.from_dict(spec.to_dict())
+    assert again.params.bodies == spec.params.bodies
+
+
+def test_heavy_sinks_light_floats_higher_and_trajectory_arrays(tmp_path):
+    # the dense box starts under water, the light ones at the surface (0.25 m)
+    bodies = [dict(BOX, center=[0.2, 0.12], density=2000.0), dict(BOX, center=[0.5, 0.25], density=250.0), dict(BOX, center=[0.8, 0.25], density=750.0)]
+    sim = MpmSimulator(SceneSpec.from_dict(tank(bodies, top=0.25)).build(), threads=1)
+    ro = rollout(sim, 120)
+    assert ro.failure is None
+    y = sim.bodies.center[:, 1]
+    dx = 1 / 64
+    assert y[0] - 0.04 < 3 * dx + dx, y  # the dense box on the floor (rapier's: the 3-cell wall band's face), within a cell
+    assert y[1] > y[2] + 0.02 > y[0], y  # 250 kg/m³ rides higher than 750 kg/m³ (Archimedes: 4 cm apart)
+    assert (np.abs(sim.bodies.force[:, 1]) > 0).all()  # the fluid pushes every body
+    # the trajectory's body arrays: shapes, dtypes, units
+    path = ro.save(tmp_path / "trajectory.npz")
+    with np.load(path) as f:
+        t = f["positions"].shape[0]
+        assert f["body_center"].shape == (t, 3, 2) and f["body_center"].dtype == np.float64
+        assert f["body_rotation"].shape == (t, 3, 2, 2) and f["body_rotation"].dtype == np.float64
+        assert f["body_mass"].shape == (3,) and f["body_mass"].dtype == np.float64
+        np.testing.assert_allclose(f["body_mass"], np.array([2000.0, 250.0, 750.0]) * 0.12 * 0.08, rtol=1e-6)  # kg per metre of depth
+        np.testing.assert_allclose(f["body_center"][0], [[0.2, 0.12], [0.5, 0.25], [0.8, 0.25]], atol=1e-7)
+        np.testing.assert_allclose(f["body_center"][-1], sim.bodies.center)
+    back = Trajectory.load(path)
+    assert back.body_center.shape == (t, 3, 2) and np.array_equal(back.body_mass, ro.body_mass)
+
+
+def test_checkpoint_restore_continues_bit_for_bit():
+    a = small_sim()
+    rollout(a, 15)
+    state = a.state()
+    rollout(a, 15)
+    b = small_sim()  # a fresh simulator of the same scene
+    b.restore(state)
+    assert np.array_equal(body_bits(b), np.asarray(state_bodies(state)))
+    rollout(b, 15)
+    assert np.array_equal(a.fluid_positions, b.fluid_positions)
+    assert np.array_equal(body_bits(a), body_bits(b))
+    assert not np.array_equal(body_bits(a)[:, 7:10], 0)  # the bodies moved
+
+
+def state_bodies(state: dict) -> list:
+    from hybridmpm.mpm.solver import _body_state
+
+    return _body_state(state["solver"])
+
+
+def test_added_body_in_checkpoint_and_old_checkpoint_without_bodies():
+    a = small_sim()
+    rollout(a, 5)
+    a.add_body({"shape": "sphere", "center": [0.6, 0.6], "radius": 0.03, "density": 800.0})
+    rollout(a, 5)
+    state = a.state()
+    rollout(a, 10)
+    b = small_sim()  # its scene has two bodies; the state three
+    b.restore(state)
+    assert len(b.bodies) == 3
+    rollout(b, 10)
+    assert np.array_equal(body_bits(a), body_bits(b)) and np.array_equal(a.fluid_positions, b.fluid_positions)
+    # a scene without bodies: no body key in its checkpoint header, and it restores as before
+    plain = MpmSimulator(SceneSpec.from_dict(tank([], top=0.3, width=(0.3, 0.7))).build(), threads=1)
+    assert b'"bod' not in plain.solver.checkpoint()[:4096]
+    plain.restore(plain.state())
+
+
+def test_one_and_two_threads_same_bits():
+    one, two = small_sim(threads=1), small_sim(threads=2)
+    rollout(one, 20)
+    rollout(two, 20)
+    assert np.array_equal(one.fluid_positions, two.fluid_positions)
+    assert np.array_equal(body_bits(one), body_bits(two))
+
+
+def test_add_and_remove_between_frames():
+    sim = small_sim()
+    rollout(sim, 3)
+    i = sim.add_body({"shape": "box", "center": [0.4, 0.7], "half_extents": [0.03, 0.03], "mass": 1.0, "angle_deg": 45.0})
+    assert i == 2 and len(sim.bodies) == 3
+    assert sim.frame.body_center.shape == (3, 2)
+    np.testing.assert_allclose(sim.bodies.mass[2], 1.0, rtol=1e-6)
+    rollout(sim, 3)
+    y_before = sim.bodies.center[2, 1]
+    sim.remove_body(0)
+    assert len(sim.bodies) == 2 and sim.bodies.center[1, 1] == y_before  # the later ones move down one
+    assert [b.shape for b in sim.solver.params.bodies] == ["circle", "box"]
+    ro = rollout(sim, 3)
+    assert ro.body_center.shape == (4, 2, 2)
+    with pytest.raises(InvalidInputError) as e:
+        sim.remove_body(5)
+    assert e.value.field == "index"
+
+
+BAD = [
+    ({"density": 0.0}, "bodies[{i}].density"),
+    ({"density": -1.0}, "bodies[{i}].density"),
+    ({"density": float("nan")}, "bodies[{i}].density"),
+    ({"mass": 0.0, "density": None}, "bodies[{i}].mass"),
+    ({"half_extents": [0.06, 0.005]}, "bodies[{i}].half_extents"),
+    ({"half_extents": [0.0, 0.04]}, "bodies[{i}].half_extents"),
+    ({"center": [0.97, 0.5]}, "bodies[{i}].center"),
+    ({"center": [0.5, float("nan")]}, "bodies[{i}].center"),
+    ({"colour": "red"}, "bodies[{i}].colour"),
+    ({"shape": None}, "bodies[{i}].shape"),
+    ({"shape": "cone"}, "bodies[{i}].shape"),
+    ({"rotation": [[1.0, 1.0], [0.0, 1.0]]}, "bodies[{i}].rotation"),
+]
+
+
+def _bad(change: dict) -> dict:
+    return {k: v for k, v in {**BOX, **change}.items() if v is not None}
+
+
+@pytest.mark.parametrize(("change", "field"), BAD)
+def test_bad_body_named_and_nothing_changes(change, field):
+    with pytest.raises(InvalidInputError) as e:
+        SceneSpec.from_dict(tank([dict(BOX, center=[0.3, 0.35]), _bad(change)]))
+    assert e.value.field == field.format(i=1)
+    sim = small_sim()
+    before = sim.solver.checkpoint()
+    with pytest.raises(InvalidInputError) as e:
+        sim.add_body(_bad(change))
+    assert e.value.field == field.format(i=2)
+    assert sim.solver.checkpoint() == before and len(sim.bodies) == 2
+
+
+def test_more_bodies_than_the_cap():
+    grid = [[0.1 + 0.1 * (k % 9), 0.1 + 0.1 * (k // 9)] for k in range(MAX_BODIES + 1)]
+    many = [{"shape": "circle", "center": c, "radius": 0.02, "density": 500.0} for c in grid]
+    with pytest.raises(InvalidInputError) as e:
+        SceneSpec.from_dict(tank(many))
+    assert e.value.field == "bodies"
+    from hybridmpm.mpm import MpmParams, MpmSolver
+
+    solver = MpmSolver(MpmParams(n_grid=64, bodies=[Body(**b) for b in many[:MAX_BODIES]]))
+    with pytest.raises(InvalidInputError) as e:
+        solver.add_body(many[-1])
+    assert e.value.field == "bodies" and len(solver.bodies) == MAX_BODIES
+
+
+def test_learned_simulators_and_diffusion_refuse_bodies():
+    from hybridmpm.control.controller import Controller
+    from hybridmpm.control.sketch import Sketch
+    from hybridmpm.sim import HybridSimulator, NeuralSimulator
+
+    scene = SceneSpec.from_dict(tank([dict(BOX)], top=0.3, width=(0.3, 0.7))).build()
+    for make in (lambda: NeuralSimulator(scene), lambda: HybridSimulator(scene), lambda: HybridSimulator(scene, cheap="mpm-coarse")):
+        with pytest.raises(InvalidInputError) as e:
+            make()
+        assert e.value.field == "bodies"
+    stand_in = types.SimpleNamespace(sample_steps=10, dim=2, needs_free=False)
+    ctl = Controller("diffusion", model=stand_in)  # type: ignore[arg-type]
+    with pytest.raises(InvalidInputError) as e:
+        ctl.plan(MpmSimulator(scene, threads=1), Sketch.arrow([0.4, 0.2], [0.6, 0.2]))
+    assert e.value.field == "bodies"
+
+
+def test_a_pour_seeds_no_particle_inside_a_body():
+    from hybridmpm.sim.pour import pour_block
+
+    sim = small_sim()
+    rollout(sim, 2)
+    sim.add_body({"shape": "box", "center": [0.35, 0.5], "half_extents": [0.02, 0.02], "density": 500.0})
+    n0 = sim.solver.num_particles
+    n = pour_block(sim, {"material": "water", "lo": [0.31, 0.44], "hi": [0.48, 0.62]})
+    new = sim.fluid_positions[n0:n]
+    now = sim.bodies
+    for k, b in enumerate(sim.solver.params.bodies):
+        assert (b.sdf(new, now.center[k], now.rotation[k]) >= 0).all()
+    assert len(sim.bodies) == 3  # the pour kept the bodies
