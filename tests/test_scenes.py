@@ -25,8 +25,9 @@ from hybridmpm.scenes.spec import MAX_OBSTACLE_DROP_FRACTION
 
 BUDGET = {"water_ramps2d": 3300, "sand_ramps2d": 3300, "dam_break2d": 4608, "water_columns2d": 4608, "dam_break3d": 60_000, "paddle3d": 60_000}
 BUDGET.update({"jelly_dam_break2d": 8192, "jelly_dam_break3d": 60_000, "snowball2d": 8192, "mud_slump2d": 8192})
+BUDGET.update({"crates2d": 25_000, "crates3d": 51_000})
 #: Grids other than the paper's (128² in 2D, 64³ in 3D).
-N_GRID = {"dam_break3d": 34, "paddle3d": 34, "jelly_dam_break3d": 34}
+N_GRID = {"dam_break3d": 34, "paddle3d": 34, "jelly_dam_break3d": 34, "crates3d": 32}
 #: Initial speeds above the random domains' 1 m/s per axis (a thrown snowball).
 SPEED = {"snowball2d": 5.0}
 DETERMINISTIC = ("dam_break2d", "dam_break3d", "paddle3d")

@@ -25,7 +25,8 @@ paddle3d        —      300   dam_break3d with a paddle the surge hits (ours, d
 
 and the scenes that show each solid with water
 (:mod:`hybridmpm.scenes.material_scenes`: ``jelly_dam_break2d``,
-``jelly_dam_break3d``, ``snowball2d``, ``mud_slump2d``).
+``jelly_dam_break3d``, ``snowball2d``, ``mud_slump2d``) and the tanks of
+rigid bodies (:mod:`hybridmpm.scenes.body_scenes`: ``crates2d``, ``crates3d``).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import numpy as np
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.limits import check_seed
 from hybridmpm.mpm import Box, MpmParams, SandParams, WallParams
+from hybridmpm.scenes.body_scenes import BODY_SCENE_DOMAINS, BODY_SCENE_FRAMES
 from hybridmpm.scenes.core import Scene, wall_face
 from hybridmpm.scenes.material_scenes import SOLID_SCENE_DOMAINS, SOLID_SCENE_FRAMES
 from hybridmpm.scenes.spec import Block, SceneSpec, collider_sdf
@@ -62,6 +64,8 @@ PAPER_FRAMES = {
     "paddle3d": 300,
     # not in the paper: each solid with water (hybridmpm.scenes.material_scenes)
     **SOLID_SCENE_FRAMES,
+    # not in the paper: rigid bodies in a tank (hybridmpm.scenes.body_scenes)
+    **BODY_SCENE_FRAMES,
 }
 
 #: Base of the dam-break column [grid cells] (Martin & Moyce's ``a``; height ``2a``).
@@ -389,6 +393,7 @@ DOMAINS: dict[str, Callable[..., SceneSpec]] = {
     "dam_break3d": dam_break3d_spec,
     "paddle3d": paddle3d_spec,
     **SOLID_SCENE_DOMAINS,
+    **BODY_SCENE_DOMAINS,
 }
 
 
