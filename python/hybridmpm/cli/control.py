@@ -63,7 +63,10 @@ def _control(args: argparse.Namespace) -> int:
     Image.fromarray(render_sketch(sketch, size=256)).save(out / "sketch.png")
     if not args.no_render:
         line = np.concatenate([sketch.points, sketch.points[:1]]) if sketch.kind == "oval" else sketch.points
-        render_gif(ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=f"{scene.name} ({args.method})", overlay=[line])
+        render_gif(
+            ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=f"{scene.name} ({args.method})", overlay=[line],
+            bodies=scene.params.bodies, body_center=ro.body_center, body_rotation=ro.body_rotation,
+        )  # fmt: skip
     if not args.quiet:
         m = ep.metrics
         adherence = (

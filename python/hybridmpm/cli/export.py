@@ -84,7 +84,10 @@ def write_exports(
 ) -> dict[str, Any]:
     """Write every export of ``kinds`` (:data:`EXPORTS`) for trajectory
     ``traj`` into ``out``: ``frame_#####.ply|vtu`` point clouds,
-    ``<material>_#####.<mesh_format>`` surface sequences, ``run.usd``.
+    ``<material>_#####.<mesh_format>`` surface sequences (and
+    ``body_<i>_#####.<mesh_format>``, each rigid body at its pose, when
+    ``params`` has bodies and ``traj`` their ``body_center`` /
+    ``body_rotation``), ``run.usd``.
     Surfaces are computed once for ``mesh`` and ``usd``; the obstacles of
     ``params`` stand in each frame where the trajectory's
     ``obstacle_centers`` put them (surfaces end on them there, the USD file
@@ -120,6 +123,7 @@ def write_exports(
             raise InvalidInputError(
                 f"obstacle_centers: the trajectory places {centers.shape[1]} obstacles, its scene has {len(settings['obstacles'])}", "obstacle_centers"
             )
+        poses = (params.bodies, traj.body_center, traj.body_rotation) if params.bodies and traj.body_center is not None else None
         surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t)) for t in range(traj.num_frames)]
         if "mesh" in kinds:
             count = 0
@@ -128,12 +132,17 @@ def write_exports(
                     write_surface(s, out / f"{s.material}_{t:05d}.{mesh_format}", mesh_format)
                     count += 1
             done["mesh"] = count
+            if poses is not None:
+                from hybridmpm.render.bodies import export_bodies  # import time: loaded by the commands that export only
+
+                done["body"] = len(export_bodies(out, *poses, fmt=mesh_format))
         if "usd" in kinds:
             from hybridmpm.render.usd import write_usd  # import time: loaded by the commands that export only
 
             path = write_usd(
                 out / "run.usd", traj.positions, traj.particle_type, traj.dt_frame, solver=tags, surfaces=surfaces,
                 obstacles=settings["obstacles"], obstacle_centers=centers, domain=settings["domain"], width=settings["dx"] / 2,
+                **({} if poses is None else {"bodies": poses[0], "body_center": poses[1], "body_rotation": poses[2]}),
             )  # fmt: skip
             done["usd"] = str(path)
     return done

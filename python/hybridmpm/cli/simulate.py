@@ -129,8 +129,9 @@ def _simulate(args: argparse.Namespace) -> int:
         plot_timeline(out / "timeline.png", ro.dt_frame, ro.solver, ro.score, args.r_c, err, title=title)
     if not args.no_render:
         render_gif(
-            ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None
-        )
+            ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None,
+            bodies=low.params.bodies, body_center=ro.body_center, body_rotation=ro.body_rotation,
+        )  # fmt: skip
     if exports:
         write_exports(out / "export", exports, ro, low.params, mesh_format=args.mesh_format, solver=ro.extras["solver"])
     if not args.quiet:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hybridmpm.conventions import GNS_ELASTIC, GNS_GOOP, GNS_KINEMATIC, GNS_SAND, GNS_SNOW, GNS_WATER
+from hybridmpm.render.bodies import check_poses, local_mesh, local_outline, place
 
 #: colours by GNS particle type: water blue, sand ochre, jelly (elastic) a translucent red, snow white,
 #: mud (viscoplastic) brown, obstacles grey
@@ -20,6 +23,9 @@ _COLOURS = {
 }
 #: opacity by GNS particle type (the rest opaque): jelly is translucent
 _ALPHA = {GNS_ELASTIC: 0.55}
+#: rigid bodies: a wood fill and a darker outline (docs/bodies.md "Pictures and exports")
+BODY_FILL = "#b07a3c"
+BODY_EDGE = "#5a3a17"
 #: background of a scene with snow (white snow on the default white would vanish)
 SNOW_BACKGROUND = "#c9d3df"
 
@@ -51,6 +57,9 @@ def render_gif(
     title: str = "",
     frame_solver: np.ndarray | None = None,
     overlay: list[np.ndarray] | None = None,
+    bodies: Sequence[Any] = (),
+    body_center: np.ndarray | None = None,
+    body_rotation: np.ndarray | None = None,
 ) -> Path:
     """Write ``positions`` [T, N, D] as an animated GIF at ``path``.
 
@@ -63,7 +72,11 @@ def render_gif(
     [T] of "mpm" / "neural" tints each frame by the solver that produced it
     (MPM: warm background, neural: cool) and names it in the title.
     ``overlay`` polylines [P, 2] (domain coordinates, e.g. a sketch) are drawn
-    over every frame. Returns the path.
+    over every frame. ``bodies`` (the scene's :class:`~hybridmpm.mpm.bodies.Body`
+    list) at ``body_center`` [T, B, D] and ``body_rotation`` [T, B, D, D] (a
+    trajectory's arrays) are drawn over the particles in :data:`BODY_FILL`:
+    in 2D their outline filled, in 3D their silhouette in the x–y projection;
+    without the arrays, none. Returns the path.
     """
     import imageio.v3 as iio
     import matplotlib
@@ -80,8 +93,8 @@ def render_gif(
     colours = particle_colours(types)
     materials = set(np.unique(types).tolist()) - {GNS_KINEMATIC}
     background = SNOW_BACKGROUND if GNS_SNOW in materials else "white"
-    dpi = 100
-    fig, ax = plt.subplots(figsize=(size_px / dpi, size_px / dpi), dpi=dpi)
+    poses = None if body_center is None or not len(bodies) else check_poses(bodies, body_center, body_rotation, t_count)
+    fig, ax = _figure(size_px)
     frames = []
     for i in idx:
         ax.clear()
@@ -98,13 +111,12 @@ def render_gif(
             shade = colours[order].copy()
             shade[:, :3] *= (1.0 - 0.45 * np.clip(p[order, 2], 0.0, 1.0))[:, None]
             ax.scatter(p[order, 0], p[order, 1], s=1.0, c=shade, linewidths=0)
+        if poses is not None:
+            for k, body in enumerate(bodies):
+                ax.fill(*_silhouette(body, poses[0][i, k], poses[1][i, k]).T, facecolor=BODY_FILL, edgecolor=BODY_EDGE, lw=0.8, zorder=3)
         for line in overlay or []:
             ax.plot(line[:, 0], line[:, 1], color="#d62728", lw=1.5, alpha=0.8)
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1)
-        ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
+        _frame_axes(ax)
         label = f"{title}  t = {i * dt_frame:.3f} s" + (f"  [{tag}]" if tag else "")
         ax.set_title(label, fontsize=8, color=_SOLVER_FG.get(tag or "", "black"))
         fig.canvas.draw()
@@ -113,3 +125,46 @@ def render_gif(
     path = Path(path)
     iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000 / fps, loop=0)
     return path
+
+
+def _figure(size_px: int) -> tuple[Any, Any]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dpi = 100
+    return plt.subplots(figsize=(size_px / dpi, size_px / dpi), dpi=dpi)
+
+
+def _frame_axes(ax: Any) -> None:
+    """The unit domain, square, no ticks: every frame's axes."""
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def frame_pixel(xy: Sequence[float], size_px: int = 360) -> tuple[int, int]:
+    """The (row, column) of domain point ``xy`` [m] (x, y) in a frame of :func:`render_gif` of ``size_px``."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = _figure(size_px)
+    _frame_axes(ax)
+    ax.set_title("t", fontsize=8)
+    fig.canvas.draw()
+    col, row_up = ax.transData.transform((float(xy[0]), float(xy[1])))
+    height = fig.canvas.get_width_height()[1]
+    plt.close(fig)
+    return int(round(height - row_up - 0.5)), int(round(col - 0.5))
+
+
+def _silhouette(body: Any, center: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """A body's outline in the x–y plane at its pose [K, 2]: its own in 2D, the convex hull of its mesh's projection in 3D."""
+    if len(center) == 2:
+        return place(local_outline(body), center, rotation)
+    from scipy.spatial import ConvexHull  # import time: scipy loads only when a 3D body is drawn
+
+    xy = place(local_mesh(body)[0], center, rotation)[:, :2]
+    return xy[ConvexHull(xy).vertices]

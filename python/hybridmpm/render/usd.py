@@ -22,6 +22,12 @@ prim                        type                  contents
                                                   zero level set; an obstacle that moves has an
                                                   ``xformOp:translate`` sampled per frame (its
                                                   centre; a mesh: its displacement)
+``/Run/Bodies/body_<i>``    ``Xform``             a rigid body: ``xformOp:translate`` (its centre of
+                                                  mass) and ``xformOp:orient`` (its rotation, a
+                                                  quaternion) sampled per frame; its child
+                                                  ``shape`` (``Mesh``) the body in its own frame: a
+                                                  box's 8 corners, a sphere's icosphere, a 2D
+                                                  body's outline extruded to z = ±``DEPTH_2D``
 ``/Run/Domain``             ``BasisCurves``       the edges of the fluid domain (the wall faces),
                                                   purpose ``guide``
 ==========================  ====================  ==================================================
@@ -43,6 +49,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
+from hybridmpm.render.bodies import body_prism, check_poses, local_mesh
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh
 from hybridmpm.render.surface_field import is_sampled
 from hybridmpm.scenes.obstacles import box_rotation, obstacle_center
@@ -81,6 +88,9 @@ def write_usd(
     obstacle_centers: Any = None,
     domain: tuple[Sequence[float], Sequence[float]] | None = None,
     width: float | None = None,
+    bodies: Sequence[Any] = (),
+    body_center: Any = None,
+    body_rotation: Any = None,
 ) -> Path:
     """Write a run as one USD stage at ``path`` (see the module doc for the prims).
 
@@ -95,13 +105,16 @@ def write_usd(
     scene's in float32 in some frame gets a translate op sampled at every
     frame, the others are written once; ``domain`` ``(lo, hi)`` [m] or
     None (no domain prim); ``width`` the points' display width [m] (default:
-    none written). Returns the path.
+    none written); ``bodies`` the scene's rigid bodies
+    (:class:`~hybridmpm.mpm.bodies.Body`) at ``body_center`` [T, B, D] and
+    ``body_rotation`` [T, B, D, D] (a trajectory's arrays; without them no
+    body is written). Returns the path.
 
     Raises :class:`InvalidInputError` naming ``path`` (suffix not one of
     :data:`USD_SUFFIXES`, folder missing or not writable), ``positions``,
     ``particle_type``, ``dt_frame`` (also when it makes a particle's velocity
     between frames overflow float32: :func:`~hybridmpm.trajectory.check_frame_velocities`),
-    ``solver``, ``surfaces``, ``obstacle_centers`` or ``usd``
+    ``solver``, ``surfaces``, ``obstacle_centers``, ``body_center``, ``body_rotation`` or ``usd``
     (``pxr`` not installed).
     """
     require_pxr()
@@ -136,6 +149,7 @@ def write_usd(
                 f"obstacle_centers: expected finite numbers [{t_count}, {len(obstacles)}, {dim}], got {oc.dtype} {list(oc.shape)}", "obstacle_centers"
             )
         oc = oc.astype(np.float64)
+    poses = None if body_center is None or not len(bodies) else check_poses(bodies, body_center, body_rotation, t_count)
 
     tmp = path.with_name(path.name + ".tmp" + path.suffix)
     stage = Usd.Stage.CreateNew(str(tmp))
@@ -177,6 +191,10 @@ def write_usd(
     for i, c in enumerate(obstacles):
         moved = oc is not None and not (oc[:, i].astype(np.float32) == obstacle_center(c).astype(np.float32)).all()
         _write_obstacle(stage, f"/Run/Obstacles/obstacle_{i}", c, dim, Gf, oc[:, i] if moved and oc is not None else None)
+    if poses is not None:
+        UsdGeom.Scope.Define(stage, "/Run/Bodies")
+        for i, b in enumerate(bodies):
+            _write_body(stage, f"/Run/Bodies/body_{i}", b, poses[0][:, i], poses[1][:, i])
     if domain is not None:
         lo, hi = (_vec3(np.asarray(b, np.float32)) for b in domain)
         _write_domain(stage, lo, hi, dim)
@@ -268,6 +286,50 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any, centers: 
     else:
         m[3, :3] = center
     cube.AddTransformOp().Set(gf.Matrix4d(*m.ravel().tolist()))
+
+
+def _quaternion(r: np.ndarray) -> list[float]:
+    """The unit quaternion (w, x, y, z) of rotation ``r`` [3, 3] (``x' = r x``), in float64
+    (Shepperd's method: Gf's matrix-to-rotation conversion rounds a rotation of 1e-5 rad to none)."""
+    tr = float(np.trace(r))
+    k = int(np.argmax([tr, r[0, 0], r[1, 1], r[2, 2]]))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    else:
+        i, j, m = k - 1, k % 3, (k + 1) % 3
+        s = 2.0 * np.sqrt(max(1.0 + r[i, i] - r[j, j] - r[m, m], 1e-300))
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[0] = (r[m, j] - r[j, m]) / s
+        q[1 + i] = s / 4
+        q[1 + j] = (r[j, i] + r[i, j]) / s
+        q[1 + m] = (r[m, i] + r[i, m]) / s
+    q = np.asarray(q) / np.linalg.norm(q)
+    return [float(v) for v in q]
+
+
+def _write_body(stage: Any, where: str, body: Any, centers: np.ndarray, rotations: np.ndarray) -> None:
+    """Body ``body`` at ``where``: an Xform whose translate and orient are sampled at every frame
+    (``centers`` float64 [T, D], ``rotations`` [T, D, D]), its mesh in its own frame as child ``shape``."""
+    from pxr import Gf, UsdGeom, Vt
+
+    dim = centers.shape[1]
+    xf = UsdGeom.Xform.Define(stage, where)
+    move = xf.AddTranslateOp(precision=UsdGeom.XformOp.PrecisionDouble)
+    turn = xf.AddOrientOp(precision=UsdGeom.XformOp.PrecisionDouble)
+    for t in range(len(centers)):
+        c3, r3 = np.zeros(3), np.eye(3)
+        c3[:dim], r3[:dim, :dim] = centers[t], rotations[t]
+        move.Set(Gf.Vec3d(*c3.tolist()), t)
+        w, *xyz = _quaternion(r3)
+        turn.Set(Gf.Quatd(w, Gf.Vec3d(*xyz)), t)
+    v, f = local_mesh(body) if dim == 3 else body_prism(body, DEPTH_2D)
+    mesh = UsdGeom.Mesh.Define(stage, where + "/shape")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(v, np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(f), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(f, np.int32).ravel()))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([v.min(axis=0), v.max(axis=0)]).astype(np.float32)))
 
 
 def _write_domain(stage: Any, lo: np.ndarray, hi: np.ndarray, dim: int) -> None:

@@ -1,0 +1,159 @@
+"""Rigid bodies in pictures and exports (docs/bodies.md "Pictures and exports").
+
+A body's shape (a :class:`~hybridmpm.mpm.bodies.Body`: box or sphere/circle)
+as geometry in its own frame, placed at a pose (``center`` [D], ``rotation``
+[D, D], columns its axes: a trajectory's ``body_center`` / ``body_rotation``)
+as ``x = center + rotation @ local``:
+
+- 3D: a box as its 8 corners and 12 triangles, a sphere as an icosphere
+  (:data:`ICO_LEVEL` subdivisions: 162 vertices, 320 triangles);
+- 2D: a closed outline (a box's 4 corners, a circle as :data:`CIRCLE_SEGMENTS`
+  points), written as the fluid's 2D outlines are (edges, z = 0);
+  :func:`body_prism` extrudes it along z for USD, as the 2D obstacles are.
+
+:func:`export_bodies` writes ``body_<i>_<t>.<fmt>`` per body per frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, write_surface
+
+#: Points of a circle's outline (2D).
+CIRCLE_SEGMENTS = 48
+#: Subdivisions of a sphere's icosahedron (3D).
+ICO_LEVEL = 2
+#: GNS-like code and name the body surfaces carry (not a particle type: bodies have no particles).
+BODY_TAG = -1
+
+
+@cache
+def icosphere(level: int = ICO_LEVEL) -> tuple[np.ndarray, np.ndarray]:
+    """A unit icosphere: vertices float64 [V, 3] on the unit sphere, faces int32 [F, 3] counter-clockwise seen from outside."""
+    g = (1.0 + 5.0**0.5) / 2.0
+    v = [[-1, g, 0], [1, g, 0], [-1, -g, 0], [1, -g, 0], [0, -1, g], [0, 1, g], [0, -1, -g], [0, 1, -g], [g, 0, -1], [g, 0, 1], [-g, 0, -1], [-g, 0, 1]]
+    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8]]
+    f += [[3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    verts = [np.asarray(p, np.float64) / np.linalg.norm(p) for p in v]
+    faces = f
+    for _ in range(level):
+        mid: dict[tuple[int, int], int] = {}
+        nxt = []
+        for a, b, c in faces:
+            ab, bc, ca = (_middle(verts, mid, p, q) for p, q in ((a, b), (b, c), (c, a)))
+            nxt += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        faces = nxt
+    out_v, out_f = np.array(verts), np.array(faces, np.int32)
+    out_v.flags.writeable = out_f.flags.writeable = False
+    return out_v, out_f
+
+
+def _middle(verts: list[np.ndarray], mid: dict[tuple[int, int], int], a: int, b: int) -> int:
+    """The index of the unit vector half way between vertices ``a`` and ``b``, added to ``verts`` once."""
+    key = (min(a, b), max(a, b))
+    if key not in mid:
+        m = verts[a] + verts[b]
+        verts.append(m / np.linalg.norm(m))
+        mid[key] = len(verts) - 1
+    return mid[key]
+
+
+#: A unit box's corners (bit k of the index: the sign of axis k) and its 12 triangles, outward.
+_BOX_CORNERS = np.array([[1.0 if (k >> a) & 1 else -1.0 for a in range(3)] for k in range(8)])
+_BOX_FACES = np.array(
+    [[0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6], [0, 1, 5], [0, 5, 4], [2, 6, 7], [2, 7, 3], [0, 4, 6], [0, 6, 2], [1, 3, 7], [1, 7, 5]], np.int32
+)
+
+
+def local_mesh(body: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A 3D body's mesh in its own frame (centre of mass at 0, its axes): vertices float64 [V, 3] [m], faces int32 [F, 3]."""
+    if body.shape == "box":
+        return _BOX_CORNERS * np.asarray(body.half_extents, np.float64), _BOX_FACES
+    v, f = icosphere()
+    return v * float(body.radius), f
+
+
+def local_outline(body: Any) -> np.ndarray:
+    """A 2D body's outline in its own frame, counter-clockwise, float64 [K, 2] [m] (not closed)."""
+    if body.shape == "box":
+        hx, hy = (float(h) for h in body.half_extents)
+        return np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+    a = np.linspace(0.0, 2.0 * np.pi, CIRCLE_SEGMENTS, endpoint=False)
+    return float(body.radius) * np.stack([np.cos(a), np.sin(a)], axis=1)
+
+
+def place(local: np.ndarray, center: Any, rotation: Any) -> np.ndarray:
+    """Points of a body's frame at its pose: ``center + rotation @ p`` for each row ``p``, float64."""
+    return np.asarray(local, np.float64) @ np.asarray(rotation, np.float64).T + np.asarray(center, np.float64)
+
+
+def body_prism(body: Any, half_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 2D body's outline extruded to z = ±``half_depth``, in its own frame: vertices [2K, 3], faces int32 [F, 3] (outward)."""
+    o = local_outline(body)
+    k = len(o)
+    v = np.concatenate([np.c_[o, np.full(k, -half_depth)], np.c_[o, np.full(k, half_depth)]])
+    i = np.arange(k)
+    j = (i + 1) % k
+    sides = np.concatenate([np.stack([i, j, j + k], 1), np.stack([i, j + k, i + k], 1)])
+    fan = np.arange(1, k - 1)
+    caps = np.concatenate([np.stack([np.zeros_like(fan), fan + 1, fan], 1), np.stack([np.full_like(fan, k), fan + k, fan + 1 + k], 1)])
+    return v, np.concatenate([sides, caps]).astype(np.int32)
+
+
+def body_surface(body: Any, center: Any, rotation: Any) -> SurfaceMesh | SurfaceContours:
+    """The body at a pose as :func:`~hybridmpm.render.surface.write_surface` writes it: a
+    :class:`SurfaceMesh` in 3D, a :class:`SurfaceContours` (one closed loop) in 2D."""
+    if len(center) == 2:
+        loop = place(local_outline(body), center, rotation)
+        return SurfaceContours((np.concatenate([loop, loop[:1]]),), "body", BODY_TAG, 0.0)
+    v, f = local_mesh(body)
+    return SurfaceMesh(place(v, center, rotation), np.asarray(f, np.int32), "body", BODY_TAG, 0.0)
+
+
+def check_poses(bodies: Sequence[Any], center: Any, rotation: Any, t_count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``center`` [T, B, D] and ``rotation`` [T, B, D, D] as float64 for ``bodies`` (B of them);
+    :class:`InvalidInputError` naming ``body_center`` or ``body_rotation`` otherwise."""
+    c, r = np.asarray(center, np.float64), np.asarray(rotation, np.float64)
+    b = len(bodies)
+    if c.ndim != 3 or c.shape[1] != b or c.shape[2] not in (2, 3) or (t_count is not None and c.shape[0] != t_count) or not np.isfinite(c).all():
+        raise InvalidInputError(f"body_center: expected finite [T, {b}, D] for the scene's {b} bodies, got {list(c.shape)}", "body_center")
+    if r.shape != c.shape + (c.shape[2],) or not np.isfinite(r).all():
+        raise InvalidInputError(f"body_rotation: expected finite {list(c.shape + (c.shape[2],))}, got {list(r.shape)}", "body_rotation")
+    return c, r
+
+
+def export_bodies(out_dir: str | Path, bodies: Sequence[Any], center: Any, rotation: Any, fmt: str = "ply", every: int = 1) -> list[Path]:
+    """Write each body at each ``every``-th frame as ``out_dir/body_<i>_<t>.<fmt>`` (``ply`` or
+    ``obj``; ``glb`` for 3D): :func:`body_surface` at the pose ``center[t, i]``,
+    ``rotation[t, i]``. Returns the paths. Raises :class:`InvalidInputError` naming
+    ``body_center``, ``body_rotation`` or ``fmt``."""
+    c, r = check_poses(bodies, center, rotation)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for t in range(0, c.shape[0], every):
+        for i, body in enumerate(bodies):
+            paths.append(write_surface(body_surface(body, c[t, i], r[t, i]), out / f"body_{i}_{t:05d}.{fmt}", fmt))
+    return paths
+
+
+__all__ = [
+    "BODY_TAG",
+    "CIRCLE_SEGMENTS",
+    "ICO_LEVEL",
+    "body_prism",
+    "body_surface",
+    "check_poses",
+    "export_bodies",
+    "icosphere",
+    "local_mesh",
+    "local_outline",
+    "place",
+]
