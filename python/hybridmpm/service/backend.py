@@ -295,6 +295,14 @@ class SessionBackend(Protocol[S]):
         """Add a block of particles to ``s`` between frames (its facts follow); ``{"added", "num_particles", "frame", "facts"}``."""
         ...
 
+    async def add_body(self, s: S, body: dict[str, Any]) -> dict[str, Any]:
+        """Add a rigid body to ``s`` between frames; ``{"index", "num_bodies", "frame", "facts"}``."""
+        ...
+
+    async def remove_body(self, s: S, index: int) -> dict[str, Any]:
+        """Remove rigid body ``index`` of ``s`` between frames; ``{"index", "num_bodies", "frame", "facts"}``."""
+        ...
+
     # ------------------------------------------------------------ streams
     async def attach(self, s: S, v: Viewer) -> None:
         """A new viewer of ``s``: its :func:`meta_message` and the current frame first."""

@@ -24,6 +24,7 @@ it is true).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -226,6 +227,7 @@ class SessionCore:
             "restored_from_frame": self.restored_from_frame,
             **scene_geometry(self.sim),
             "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
+            "bodies": self.bodies_now(),
             "recorded_frames": len(self.recording),
             "control": self.control_state(),
         }
@@ -442,6 +444,7 @@ class SessionCore:
         the viewers get a ``particles`` event when they changed."""
         with self.lock:
             self._open()
+            bodies = self.bodies_given()
             self.sim.restore(state)
             facts = SessionFacts.of(self.sim)
             moved = not np.array_equal(facts.particle_type, self.facts.particle_type)
@@ -451,6 +454,8 @@ class SessionCore:
                 self.recording.clear()
             self._show(self.sim.frame)
             frame = self.frame_index
+            if self.bodies_given() != bodies:  # a state taken before or after a body was added or removed
+                self._bodies_event(frame)
         if moved:
             self.on_event({"type": "particles", "frame": frame, "added": 0, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
                            "particle_type": [int(t) for t in facts.particle_type]})  # fmt: skip
@@ -459,6 +464,7 @@ class SessionCore:
         """Back to the initial condition; the viewers get the frame and a ``reset`` event
         (after a pour, a new simulator of the session's settings, and a ``particles`` event first)."""
         with self.lock:
+            bodies = self.bodies_given()
             if self.poured:
                 s = self.settings
                 self.sim = make_simulator(s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=self.threads, nn_threads=1, n_grid=s.n_grid)
@@ -471,6 +477,8 @@ class SessionCore:
             with self._held:
                 self.recording.clear()
             self._show(self.sim.frame)
+            if self.bodies_given() != bodies:  # the scene's own bodies again
+                self._bodies_event(self.frame_index)
             self.on_event({"type": "reset", "frame": self.frame_index})
 
     def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
@@ -513,6 +521,61 @@ class SessionCore:
              "particle_type": [int(t) for t in facts.particle_type]}
         )  # fmt: skip
         return {"added": added, "num_particles": facts.num_total, "frame": frame, "facts": facts.to_dict()}
+
+    # ------------------------------------------------------------ rigid bodies
+    def bodies_given(self) -> list[dict[str, Any]]:
+        """The session's rigid bodies as given (a scene file's ``[[bodies]]``
+        tables, added ones included, removed ones gone; docs/bodies.md), as
+        JSON values; ``[]`` for a simulator without bodies (the learned ones)."""
+        solver = getattr(self.sim, "solver", None)
+        given = getattr(getattr(solver, "params", None), "bodies", None) or []
+        return [clean({f.name: getattr(b, f.name) for f in dataclasses.fields(b) if getattr(b, f.name) is not None}) for b in given]
+
+    def bodies_now(self) -> list[dict[str, Any]]:
+        """Each body's shape and size as given (``half_extents`` or ``radius``),
+        its ``mass`` [kg; per unit depth in 2D] and its ``center``, ``rotation``,
+        ``velocity`` and ``angular_velocity`` at the current frame; ``[]`` without bodies."""
+        given = self.bodies_given()
+        if not given:
+            return []
+        b = self.sim.bodies  # type: ignore[attr-defined] # an MPM simulator: the others hold no bodies (bodies_given is empty)
+        out: list[dict[str, Any]] = []
+        for i, g in enumerate(given):
+            body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius") if k in g}, "mass": float(b.mass[i])}
+            for k in ("center", "rotation", "velocity", "angular_velocity"):
+                body[k] = clean(np.asarray(getattr(b, k)[i], np.float64).tolist())
+            out.append(body)
+        return out
+
+    def _bodies_event(self, frame: int) -> None:
+        self.on_event({"type": "bodies", "frame": frame, "bodies": self.bodies_given()})
+
+    def add_body(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Add rigid body ``body`` (a scene file's ``[[bodies]]`` table)
+        between frames (:meth:`hybridmpm.sim.MpmSimulator.add_body`; its
+        errors name the field, ``bodies[i].density``, and leave the session
+        unchanged); the viewers get a ``bodies`` event with every body as
+        given. Returns ``{"index", "num_bodies", "frame", "facts"}``."""
+        with self.lock:
+            self._open()
+            index = int(self.sim.add_body(body))  # type: ignore[attr-defined] # MPM only (the route refuses the others)
+            self._changed()
+            frame, num = self.frame_index, len(self.bodies_given())
+            self._bodies_event(frame)
+        return {"index": index, "num_bodies": num, "frame": frame, "facts": self.facts.to_dict()}
+
+    def remove_body(self, index: int) -> dict[str, Any]:
+        """Remove body ``index`` between frames (the later ones move down
+        one; :meth:`hybridmpm.sim.MpmSimulator.remove_body`, its error names
+        ``index``); the viewers get a ``bodies`` event. Returns ``{"index",
+        "num_bodies", "frame", "facts"}``."""
+        with self.lock:
+            self._open()
+            self.sim.remove_body(index)  # type: ignore[attr-defined] # MPM only (the route refuses the others)
+            self._changed()
+            frame, num = self.frame_index, len(self.bodies_given())
+            self._bodies_event(frame)
+        return {"index": int(index), "num_bodies": num, "frame": frame, "facts": self.facts.to_dict()}
 
     # ------------------------------------------------------------ saves
     def snapshot(self) -> tuple[dict[str, Any], int, int] | None:

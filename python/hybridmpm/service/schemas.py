@@ -116,6 +116,11 @@ class SessionInfo(BaseModel):
     obstacle_centers: list[list[float]] = Field(
         default_factory=list, description="each obstacle's centre now [m] (moved by PUT .../obstacles/{index} or its scene's path)"
     )
+    bodies: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="the session's rigid bodies (docs/bodies.md): {shape, half_extents or radius, mass [kg; per unit depth in 2D], center, "
+        "rotation (D×D), velocity, angular_velocity} at its current frame",
+    )
     recorded_frames: int = Field(0, description="coarse steps of the session's recent trajectory held for download (GET .../trajectory)")
     control: RunningControl | None = Field(
         None, description="the control running on the session now (what a viewer that joins meanwhile shows); null when none runs"
@@ -160,6 +165,28 @@ class BlockPoured(BaseModel):
     frame: int = Field(description="the session's frame when the block was poured")
 
 
+class BodyAdd(Strict):
+    """A rigid body added to a session: a scene file's ``[[bodies]]`` table (docs/bodies.md)."""
+
+    shape: Literal["box", "sphere", "circle"] = Field(description="box (half_extents) or sphere / circle (radius)")
+    center: list[Number] = Field(min_length=2, max_length=3, description="its centre of mass [m], inside the walls")
+    half_extents: list[Number] | None = Field(None, min_length=2, max_length=3, description="box: half its size along its axes [m], at least 1 cell")
+    radius: Number | None = Field(None, description="sphere / circle: its radius [m], at least 1 cell")
+    angle_deg: Number | None = Field(None, description="2D: its rotation, counter-clockwise [deg] (default 0)")
+    rotation: list[list[Number]] | None = Field(None, min_length=2, max_length=3, description="its rotation, D×D (columns: the body's axes)")
+    density: Number | None = Field(None, description="[kg/m^3], > 0; or mass")
+    mass: Number | None = Field(None, description="[kg; per unit depth in 2D], > 0; or density")
+    velocity: list[Number] | None = Field(None, min_length=2, max_length=3, description="[m/s] (default at rest)")
+    angular_velocity: Number | list[Number] | None = Field(None, description="[rad/s]: one number in 2D, three in 3D (default 0)")
+    friction: Number | None = Field(None, description="Coulomb friction against the fluid, >= 0 (default 0)")
+
+
+class BodyAdded(BaseModel):
+    index: int = Field(description="the body's index (its place in the session's bodies)")
+    num_bodies: int = Field(description="the session's bodies now")
+    frame: int = Field(description="the session's frame when the body was added or removed")
+
+
 class ObstacleMoved(BaseModel):
     index: int
     center: list[float]
@@ -174,6 +201,9 @@ class StepFrame(BaseModel):
     seconds: float = Field(description="wall time of the step [s]")
     controlled: bool
     positions: list[list[float]]
+    bodies: list[dict[str, Any]] | None = Field(
+        None, description="a session with rigid bodies: each body's {center, rotation (D×D)} at the frame's end; absent without bodies"
+    )
 
 
 class StepResponse(BaseModel):

@@ -588,6 +588,23 @@ class SessionManager:
         s.touch()
         return dict(out)
 
+    async def add_body(self, s: LocalSession, body: dict[str, Any]) -> dict[str, Any]:
+        """Add rigid body ``body`` to ``s`` between frames (:meth:`SessionCore.add_body
+        <hybridmpm.service.core.SessionCore.add_body>`); every viewer gets a ``bodies``
+        event. A body's state is a few hundred bytes: nothing is charged to the budget."""
+        out = await self.on_core(s, self.core_of(s).add_body, body)
+        s.facts = self.core_of(s).facts
+        s.touch()
+        return dict(out)
+
+    async def remove_body(self, s: LocalSession, index: int) -> dict[str, Any]:
+        """Remove rigid body ``index`` of ``s`` between frames (:meth:`SessionCore.remove_body
+        <hybridmpm.service.core.SessionCore.remove_body>`); every viewer gets a ``bodies`` event."""
+        out = await self.on_core(s, self.core_of(s).remove_body, index)
+        s.facts = self.core_of(s).facts
+        s.touch()
+        return dict(out)
+
     async def move_obstacle(self, s: LocalSession, index: int, center: list[float], velocity: list[float] | None) -> int:
         """Move obstacle ``index`` of ``s`` to ``center`` over its next step
         (:meth:`SessionCore.move_obstacle <hybridmpm.service.core.SessionCore.move_obstacle>`);

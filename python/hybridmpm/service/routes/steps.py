@@ -46,16 +46,28 @@ def json_floats(a: np.ndarray) -> str:
 
 
 def step_json(
-    pos: np.ndarray, frames: list[int], solvers: list[str], seconds: list[float], r_t: int, dt: float, failure: str | None, latency: float
+    pos: np.ndarray,
+    frames: list[int],
+    solvers: list[str],
+    seconds: list[float],
+    r_t: int,
+    dt: float,
+    failure: str | None,
+    latency: float,
+    bodies: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[bytes]:
     """The JSON answer of a step as its pieces (one per frame), encoded in a
     worker thread (:func:`json_floats`), which lets the event loop run in
-    between; sent one piece at a time, never joined into one buffer."""
+    between; sent one piece at a time, never joined into one buffer. With
+    ``bodies`` (centres [K, B, D] and rotations [K, B, D, D]) each frame
+    carries ``bodies: [{center, rotation}]``; without, no such key."""
     parts = [b'{"frames": [']
     for k in range(len(pos)):
         fr = frames[k]
         head = {"step": fr // r_t, "frame": fr, "time": fr * dt, "solver": solvers[k], "seconds": seconds[k], "controlled": False}
-        item = json.dumps(head, allow_nan=False)[:-1] + ', "positions": ' + json_floats(pos[k]) + "}"
+        if bodies is not None:
+            head["bodies"] = [{"center": c.tolist(), "rotation": r.tolist()} for c, r in zip(bodies[0][k], bodies[1][k], strict=True)]
+        item = json.dumps(clean(head), allow_nan=False)[:-1] + ', "positions": ' + json_floats(pos[k]) + "}"
         parts.append(((", " if k else "") + item).encode())
     parts.append(("], " + json.dumps({"failure": failure, "latency_ms": latency})[1:]).encode())
     return parts
@@ -87,6 +99,9 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
         seconds = [float(x) for x in np.asarray(ro.seconds)[1:]]
         frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
         failure = None if ro.failure is None else str(ro.failure)
+        bodies = None  # JSON frames only: the binary frame's format is unchanged
+        if ro.body_center is not None and ro.body_rotation is not None and ro.body_center.shape[1]:
+            bodies = (np.asarray(ro.body_center[1:], np.float64), np.asarray(ro.body_rotation[1:], np.float64))
         del ro
         if binary:
             headers = {
@@ -99,7 +114,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
             if failure:
                 headers["X-Failure"] = failure
             return Response(await manager.compute(lambda: np.ascontiguousarray(pos, "<f4").tobytes()), media_type=OCTET, headers=headers)
-        parts = await manager.compute(step_json, pos, frames_, solvers, seconds, s.facts.r_t, s.facts.dt_frame, failure, latency)
+        parts = await manager.compute(step_json, pos, frames_, solvers, seconds, s.facts.r_t, s.facts.dt_frame, failure, latency, bodies)
 
         async def pieces() -> AsyncIterator[bytes]:
             while parts:
