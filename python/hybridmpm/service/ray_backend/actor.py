@@ -239,6 +239,16 @@ class SessionActor:
         return self.core.pour(block)
 
     @_answer
+    def add_body(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Add a rigid body between frames; the streams get a ``bodies`` event."""
+        return self.core.add_body(body)
+
+    @_answer
+    def remove_body(self, index: int) -> dict[str, Any]:
+        """Remove rigid body ``index`` between frames; the streams get a ``bodies`` event."""
+        return self.core.remove_body(index)
+
+    @_answer
     def facts(self) -> dict[str, Any]:
         """The session's facts (its particles change with a pour and a reset after one)."""
         return self.core.facts.to_dict()

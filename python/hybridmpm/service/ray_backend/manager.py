@@ -131,12 +131,10 @@ def error_from(kind: str, message: str, name: str | None) -> Exception:
 
 @dataclass(eq=False)
 class RaySession:
-    """A session whose core runs in a Ray actor, as a front end's routes hold
-    it (a :class:`~hybridmpm.service.backend.Session`): its ``id``, store
-    ``key``, settings and facts (sent by the actor), the client address that
-    created it, the front end's handle of its actor (``actor``), the frame it
-    was last known at (``at_frame``), whether it plays, the viewers connected
-    here and the task that feeds them (``pump``)."""
+    """A session whose core runs in a Ray actor, as a front end's routes hold it (a :class:`~hybridmpm.service.backend.Session`):
+    its ``id``, store ``key``, settings and facts (sent by the actor), the client address that created it, the front end's handle
+    of its actor (``actor``), the frame it was last known at (``at_frame``), whether it plays, the viewers connected here and the
+    task that feeds them (``pump``)."""
 
     id: str
     key: str
@@ -181,11 +179,9 @@ class RaySession:
 
 
 class RaySessionManager:
-    """The session backend of a front end of a Ray cluster (module doc;
-    :class:`~hybridmpm.service.backend.SessionBackend` over
-    :class:`RaySession`). Raises :class:`InvalidInputError` naming
-    ``ray_address`` when it cannot join the cluster, ``store`` when the store
-    cannot be written."""
+    """The session backend of a front end of a Ray cluster (module doc; :class:`~hybridmpm.service.backend.SessionBackend` over
+    :class:`RaySession`). Raises :class:`InvalidInputError` naming ``ray_address`` when it cannot join the cluster, ``store`` when
+    the store cannot be written."""
 
     #: Sessions run in the cluster's actors, which save and expire themselves.
     remote = True
@@ -610,9 +606,16 @@ class RaySessionManager:
         s.facts = SessionFacts.from_dict((out := await self._call(s, "pour", block))["facts"])
         return dict(out)
 
+    async def add_body(self, s: RaySession, body: dict[str, Any]) -> dict[str, Any]:
+        s.facts = SessionFacts.from_dict((out := await self._call(s, "add_body", body))["facts"])
+        return dict(out)
+
+    async def remove_body(self, s: RaySession, index: int) -> dict[str, Any]:
+        s.facts = SessionFacts.from_dict((out := await self._call(s, "remove_body", index))["facts"])
+        return dict(out)
+
     async def move_obstacle(self, s: RaySession, index: int, center: list[float], velocity: list[float] | None) -> int:
-        frame: int = await self._call(s, "move_obstacle", index, center, velocity)
-        return frame
+        return int(await self._call(s, "move_obstacle", index, center, velocity))
 
     async def keep_control(self, s: RaySession, c: Control) -> None:
         """Kept by the actor (the last 8); its cost leaves this front end's budget."""
@@ -633,12 +636,9 @@ class RaySessionManager:
 
     # ------------------------------------------------------------ streams
     async def attach(self, s: RaySession, v: Viewer) -> None:
-        """A new viewer of ``s``: its ``meta`` message (the description, a
-        running control included) and the current frame first, then every
-        event the actor emits after that description: a feeder started here
-        polls from the description's event count, a running one delivers to
-        the viewer from now on (an event between the two may come twice,
-        never not at all)."""
+        """A new viewer of ``s``: its ``meta`` message (the description, a running control included) and the current frame first,
+        then every event the actor emits after that description: a feeder started here polls from the description's event count, a
+        running one delivers to the viewer from now on (an event between the two may come twice, never not at all)."""
         s.viewers.add(v)
         try:
             info, epoch, eseq = await self._described(s)
