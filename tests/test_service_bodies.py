@@ -201,3 +201,11 @@ def test_a_session_with_bodies_comes_back_after_a_restart_on_its_store(tmp_path)
         frames = _step(c, sid, 5)
     np.testing.assert_array_equal(np.asarray(frames[-1]["bodies"][0]["center"]), expected.body_center[-1, 0])
     np.testing.assert_array_equal(np.asarray(frames[-1]["positions"], np.float32), np.asarray(expected.positions[-1], np.float32))
+
+
+def test_a_scene_with_bodies_lists_them_and_takes_more_on_its_default_solver(client):
+    s = _new(client, scene="crates2d", solver="default")  # no shipped model: the default runs MPM
+    assert [b["shape"] for b in s["bodies"]] == ["box"] * 4
+    r = client.post(f"/v1/sessions/{s['id']}/bodies", json={**BOX, "center": [0.5, 0.8]})
+    assert r.status_code == 201 and r.json()["index"] == 4, r.text
+    assert len(_step(client, s["id"], 1)[-1]["bodies"]) == 5
