@@ -535,12 +535,15 @@ class SessionCore:
         """Each body's shape and size as given (``half_extents`` or ``radius``),
         its ``mass`` [kg; per unit depth in 2D] and its ``center``, ``rotation``,
         ``velocity`` and ``angular_velocity`` at the current frame; ``[]`` without bodies."""
-        given = self.bodies_given()
-        if not given:
-            return []
-        b = self.sim.bodies  # type: ignore[attr-defined] # an MPM simulator: the others hold no bodies (bodies_given is empty)
+        for _ in range(3):  # read without the session's lock (a description never waits for a step): a body added meanwhile reads again
+            given = self.bodies_given()
+            if not given:
+                return []
+            b = self.sim.bodies  # type: ignore[attr-defined] # an MPM simulator: the others hold no bodies (bodies_given is empty)
+            if len(b) == len(given) and self.bodies_given() == given:
+                break
         out: list[dict[str, Any]] = []
-        for i, g in enumerate(given):
+        for i, g in enumerate(given[: len(b)]):
             body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius") if k in g}, "mass": float(b.mass[i])}
             for k in ("center", "rotation", "velocity", "angular_velocity"):
                 body[k] = clean(np.asarray(getattr(b, k)[i], np.float64).tolist())
