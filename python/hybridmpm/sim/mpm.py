@@ -383,9 +383,9 @@ class MpmSimulator:
         forcing): raises :class:`InvalidInputError` (field ``state``…) or
         :class:`~hybridmpm.errors.CheckpointError` for a foreign or malformed
         state, and this simulator is then unchanged."""
-        self._prepare_restore(state, poured=True)()
+        self.prepare_restore(state, poured=True)()
 
-    def _prepare_restore(self, state: dict[str, Any], poured: bool = False) -> Callable[[], None]:
+    def prepare_restore(self, state: dict[str, Any], poured: bool = False) -> Callable[[], None]:
         """Validate ``state`` whole without changing anything; returns the
         commit. With ``poured`` a state whose particles are the scene's plus
         poured blocks (or the scene's alone, after a pour) is accepted: a new
@@ -434,7 +434,7 @@ class MpmSimulator:
         order), checked: a list of at most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` ints,
         each in [1, :data:`~hybridmpm.sim.pour.MAX_POUR_PARTICLES`]. Raises
         :class:`InvalidInputError` naming ``state.poured``."""
-        from hybridmpm.sim.pour import MAX_POUR_PARTICLES, MAX_POURED_TOTAL
+        from hybridmpm.sim.pour import MAX_POUR_PARTICLES, MAX_POURED_TOTAL  # at call time: a test lowers the bounds
 
         field = "state.poured"
         if not isinstance(raw, (list, tuple)) or len(raw) > MAX_POURED_TOTAL:
