@@ -6,8 +6,9 @@ the drop height's plane; the server holds its particles, the page draws them
 (the stream's ``particles`` event), the jelly keeps its shape (its particles
 within 5 % of its side, RMS, of a rigid motion of the cube after the water has reached it) while the
 water flows around it (almost none inside it), and the page still draws at
-least 24 frames/s (its own counter, ``?bench=1``, as tests/test_page_quality.py
-measures it) with the block in it."""
+least 24 frames/s (its own counter, ``?bench=1``, read once its quality
+holds, with tests/test_page_quality.py's measure and its allowance for the
+controller's reaction) with the block in it."""
 
 from __future__ import annotations
 
@@ -31,7 +32,6 @@ pytestmark = [
     pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
     pytest.mark.alone,
 ]
-TARGET_FPS = 24.0
 #: The share of the machine's CPU that jobs this test did not start may take before the frame rate is not held to 24.
 FOREIGN_MAX = 0.5
 SIDE = 0.12  # the cube's side [m]
@@ -53,7 +53,7 @@ def browser():
 
 
 def test_a_jelly_dropped_into_the_3d_scene_keeps_its_shape_and_the_page_its_frame_rate(server, browser):
-    from test_page_quality import cpu_split  # the frame-rate test's measure of other jobs' CPU
+    from test_page_quality import MEASURE_S, SETTLED_FPS, drawn_rate  # the frame-rate test's measure, and its bound
 
     page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
     errors: list[str] = []
@@ -130,15 +130,24 @@ def test_a_jelly_dropped_into_the_3d_scene_keeps_its_shape_and_the_page_its_fram
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(server.url + f"/?session={session['id']}&bench=1")
     page.wait_for_function(f"window.__hmpm.framesRendered >= 30 && window.__hmpm.session.num_particles === {drop['num_particles']}", timeout=60_000)
-    time.sleep(2.0)  # the quality controller's first steps
-    a, c0 = page.evaluate("[__hmpm.framesRendered, performance.now()]"), cpu_split()
-    time.sleep(3.0)
-    b, c1 = page.evaluate("[__hmpm.framesRendered, performance.now()]"), cpu_split()
-    fps = (b[0] - a[0]) * 1000.0 / (b[1] - a[1])
-    foreign = max(0.0, (c1[1] - c0[1]) - (c1[0] - c0[0])) / max(1e-9, c1[2] - c0[2])
-    said = f"{fps:.1f} frames/s drawn with the jelly in; others' CPU share {foreign:.0%}"
+    # as tests/test_page_quality.py reads the default scene's: once the quality holds for 3 s, over MEASURE_S with
+    # no change meanwhile, within the controller's reaction to a burst of other jobs (SETTLED_FPS)
+    deadline, settled = time.monotonic() + 90, None
+    while time.monotonic() < deadline:
+        n0 = page.evaluate("__hmpm.quality.changes.length")
+        time.sleep(3.0)
+        if page.evaluate("__hmpm.quality.changes.length") == n0:
+            fps, _, moved, foreign = drawn_rate(page, MEASURE_S)
+            if moved == 0:
+                settled = fps
+                break
+    q = page.evaluate("__hmpm.quality")
+    assert settled is not None, f"the quality did not settle in 90 s: {q['changes']}"
+    said = f"{settled:.1f} frames/s drawn with the jelly in at level {q['level'] + 1}/7; others' CPU share {foreign:.0%}"
     print(said)
     if foreign <= FOREIGN_MAX:
-        assert fps >= TARGET_FPS, said
+        assert settled >= SETTLED_FPS, said
+    else:  # a machine taken by other jobs: the page does what it can
+        assert settled >= SETTLED_FPS or q["level"] == 0, said
     assert page.evaluate("__hmpm.errors") == [] and errors == [], errors
     page.close()

@@ -568,7 +568,7 @@ class SessionManager:
         """Add ``block`` to ``s`` between frames (:meth:`SessionCore.pour
         <hybridmpm.service.core.SessionCore.pour>`); every viewer gets a
         ``particles`` event. Returns its answer."""
-        # at call time: a test lowers the pour's bounds (sim.pour's module constants)
+        # at call time: the simulators' modules load with the first pour, and a test lowers the bound
         from hybridmpm.scenes.core import BYTES_PER_PARTICLE
         from hybridmpm.sim.pour import MAX_POUR_PARTICLES
 
