@@ -158,7 +158,7 @@ def breakdown(scene: str, seed: int, steps: int, repeats: int, mpm_threads: int,
     proposal = sim.propose()
 
     def checks() -> None:
-        sim._failure(proposal.predicted)
+        sim.failure_of(proposal.predicted)
         np.concatenate([hist[1:], proposal.predicted[None]])
 
     domain = np.asarray(model.meta["bounds"], np.float32)  # what the simulator clips to

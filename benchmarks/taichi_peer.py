@@ -579,7 +579,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--bench-out", default=None, help="with --bench-scene: the bench directory (default runs/bench/SCENE)")
     ap.add_argument("--seed", type=int, default=1000, help="with --bench-scene: the scene's seed (default 1000, the first held-out seed)")
-    ap.add_argument("--_worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--_worker", dest="worker_config", default=None, help=argparse.SUPPRESS)  # internal: one measurement in a child process
     args = ap.parse_args(argv)
 
     if args.bench_scene is not None:
@@ -589,8 +589,8 @@ def main(argv=None) -> int:
         print(f"peer taichi: {res['ms_mean']:.2f} ms/frame against ours {res['ours_ms_mean']:.2f} -> {out}/peer_taichi.json")
         return 0
 
-    if args._worker is not None:
-        res = run_worker(json.loads(args._worker))
+    if args.worker_config is not None:
+        res = run_worker(json.loads(args.worker_config))
         print(WORKER_TAG + json.dumps(res), flush=True)
         return 0
 

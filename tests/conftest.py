@@ -69,6 +69,7 @@ _LONGEST_FILES = (
     "test_generate.py",
     "test_probe_obstacle_moves.py",
     "test_ddp.py",
+    "test_readme.py",
 )
 
 

@@ -120,13 +120,25 @@ BENCH_OWN_WRITES = {
 }
 #: Scripts not on the harness yet, and why (each must still need its entry: a converted script leaves the list).
 BENCH_NOT_YET: dict[str, str] = {}
+#: Files under benchmarks/ that are not runnable scripts (no ``__main__`` guard), so need not import the harness themselves,
+#: and why; they still write nothing past it. Packages' ``__init__.py`` files (markers, no code) need no entry.
+BENCH_MODULES = {
+    "experiments/learned_correction/features.py": "the learned correction's features, imported by go_no_go.py (which writes the results)",
+    "experiments/learned_correction/forcing.py": "the correction's forcing callables, imported by go_no_go.py and train.py",
+    "experiments/learned_correction/model.py": "the correction's numpy network, imported by go_no_go.py and train.py (its save is np.savez)",
+    "experiments/learned_correction/teacher.py": "the correction's teacher (a coarse state on the scene's grid), imported by forcing.py",
+}
 #: Calls that write a file, by the called attribute's name.
 _WRITING_METHODS = {"write_text", "write_bytes", "savefig"}
 
 
 def _bench_scripts() -> list[Path]:
-    bench = ROOT / "benchmarks"
-    return sorted([*bench.glob("*.py"), *(bench / "release").glob("*.py")])
+    """Every Python file under benchmarks/, at any depth (the release scripts, the experiments, the paper's reproduction)."""
+    return sorted((ROOT / "benchmarks").rglob("*.py"))
+
+
+def _runnable(text: str) -> bool:
+    return any(isinstance(n, ast.If) and ast.unparse(n.test).replace("'", '"') == '__name__ == "__main__"' for n in ast.parse(text).body)
 
 
 def _bench_offences(text: str) -> list[str]:
@@ -184,18 +196,22 @@ def _imports_the_harness(text: str) -> bool:
 
 
 def test_every_benchmark_script_writes_through_the_one_harness():
-    # The rule: every Python script in benchmarks/ and benchmarks/release/ imports hybridmpm.bench.harness (unless it writes
+    # The rule: every Python script under benchmarks/ (any depth) imports hybridmpm.bench.harness (unless it writes
     # no file: BENCH_WRITES_NOTHING), and none writes a file itself (.write_text, .write_bytes, .savefig, json.dump, open for
     # writing) or describes the machine itself (platform, hybridmpm.bench.env, os.getloadavg, /proc/cpuinfo, git rev-parse):
     # results go through write_results (their JSON with provenance, their Markdown under the command/machine/load header),
     # other files through write_file/write_json/save_figure, the load through load_average. Exceptions are named with their
     # reason (BENCH_OWN_WRITES by function, BENCH_NOT_YET by script).
+    # Files that are not runnable scripts (BENCH_MODULES, __init__.py) need not import it but write nothing themselves either.
     offenders, stale = [], []
     for p in _bench_scripts():
-        rel = str(p.relative_to(ROOT / "benchmarks"))
+        rel = p.relative_to(ROOT / "benchmarks").as_posix()
         text = p.read_text()
         found = [o for o in _bench_offences(text) if (rel, o.split(":", 1)[0]) not in BENCH_OWN_WRITES]
-        if not _imports_the_harness(text) and rel not in BENCH_WRITES_NOTHING:
+        module = p.name == "__init__.py" or rel in BENCH_MODULES
+        if module and _runnable(text):
+            found.append("runs as a script (a __main__ guard): it is no module, take it out of BENCH_MODULES")
+        if not _imports_the_harness(text) and rel not in BENCH_WRITES_NOTHING and not module:
             found.append("does not import hybridmpm.bench.harness")
         if rel in BENCH_NOT_YET:
             stale += [] if found else [rel]
@@ -203,6 +219,8 @@ def test_every_benchmark_script_writes_through_the_one_harness():
         offenders += [f"benchmarks/{rel}: {o}" for o in found]
     assert not offenders, "\n".join(offenders)
     assert not stale, f"on the harness now: remove {stale} from BENCH_NOT_YET"
+    gone = [m for m in BENCH_MODULES if not (ROOT / "benchmarks" / m).is_file()]
+    assert not gone, f"BENCH_MODULES names files that are gone: {gone}"
     used = {(s, f) for s, f in BENCH_OWN_WRITES if any(o.startswith(f"{f}:") for o in _bench_offences((ROOT / "benchmarks" / s).read_text()))}
     assert used == set(BENCH_OWN_WRITES), f"BENCH_OWN_WRITES entries no longer needed: {set(BENCH_OWN_WRITES) - used}"
 
@@ -505,43 +523,118 @@ def test_no_class_stands_in_for_a_simulator_in_the_service():
 _EXTENSION = "hybridmpm._core"
 
 
+def _bench_modules() -> set[str]:
+    """The names under which benchmark files import each other: the top-level
+    scripts by stem and the experiments' modules by dotted path (their scripts
+    put ``benchmarks/`` on ``sys.path``)."""
+    bench = ROOT / "benchmarks"
+    names = {p.stem for p in bench.glob("*.py")}
+    for p in (bench / "experiments").rglob("*.py"):
+        parts = list(p.relative_to(bench).with_suffix("").parts)
+        names.add(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return names
+
+
+def _private(dotted: str) -> bool:
+    return dotted != _EXTENSION and any(part.startswith("_") and not part.startswith("__") for part in dotted.split("."))
+
+
+def _private_imports(path: Path, modules: dict[str, Path], local: set[str]) -> list[str]:
+    """What ``path`` imports of another module's private names: ``from a import
+    _b``, ``import a._b`` or ``a._b`` through an imported module, where ``a`` is
+    a module of the package or one of ``local`` (in a function or not)."""
+
+    def ours(module: str) -> bool:
+        return module == "hybridmpm" or module.startswith("hybridmpm.") or module.split(".")[0] in {m.split(".")[0] for m in local}
+
+    found = []
+    tree = ast.parse(path.read_text())
+    aliases: dict[str, str] = {}  # local name -> module of ours it is bound to
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and ours(node.module):
+            for a in node.names:
+                full = f"{node.module}.{a.name}"
+                if _private(full):
+                    found.append(f"{node.lineno}: from {node.module} import {a.name}")
+                if full in modules or full == _EXTENSION or full in local:
+                    aliases[a.asname or a.name] = full
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if ours(a.name):
+                    if _private(a.name):
+                        found.append(f"{node.lineno}: import {a.name}")
+                    aliases[a.asname or a.name] = a.name
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            base = ast.unparse(node.value)
+            if base in aliases and _private(f"{aliases[base]}.{node.attr}"):
+                found.append(f"{node.lineno}: {base}.{node.attr}")
+    return found
+
+
 def test_no_private_name_is_imported_across_modules():
     """A name with a leading underscore is its module's own: no module of the
     package imports one from another (``from a import _b``, ``import a._b``,
-    or ``a._b`` through an imported module), in a function or not. What a
-    neighbour needs is public API of the module that owns it, documented there
-    (the surfaces: ``render/surface_field.py`` serves ``render/surface.py``
-    and ``render/usd.py``). There is no exception for modules of one package:
-    a pair that shares its privates is one concept cut in two. The one private
-    module imported across modules is the compiled extension ``hybridmpm._core``."""
-    modules = _modules()
+    or ``a._b`` through an imported module), in a function or not, and no
+    benchmark file imports one from the package or from another benchmark
+    file. What a neighbour needs is public API of the module that owns it,
+    documented there (the surfaces: ``render/surface_field.py`` serves
+    ``render/surface.py`` and ``render/usd.py``). There is no exception for
+    modules of one package: a pair that shares its privates is one concept
+    cut in two. The one private module imported across modules is the
+    compiled extension ``hybridmpm._core``."""
+    modules, local = _modules(), _bench_modules()
+    offenders = [f"{name}:{o}" for name, path in sorted(modules.items()) for o in _private_imports(path, modules, set())]
+    for path in sorted((ROOT / "benchmarks").rglob("*.py")):
+        offenders += [f"{path.relative_to(ROOT)}:{o}" for o in _private_imports(path, modules, local)]
+    assert not offenders, "\n".join(offenders)
 
-    def private(dotted: str) -> bool:
-        return dotted != _EXTENSION and any(part.startswith("_") and not part.startswith("__") for part in dotted.split("."))
 
-    offenders = []
-    for name, path in sorted(modules.items()):
-        tree = ast.parse(path.read_text())
-        aliases: dict[str, str] = {}  # local name -> module of the package it is bound to
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("hybridmpm"):
-                for a in node.names:
-                    full = f"{node.module}.{a.name}"
-                    if private(full):
-                        offenders.append(f"{name}:{node.lineno}: from {node.module} import {a.name}")
-                    if full in modules or full == _EXTENSION:
-                        aliases[a.asname or a.name] = full
-            elif isinstance(node, ast.Import):
-                for a in node.names:
-                    if a.name.startswith("hybridmpm"):
-                        if private(a.name):
-                            offenders.append(f"{name}:{node.lineno}: import {a.name}")
-                        aliases[a.asname or a.name] = a.name
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
-                base = ast.unparse(node.value)
-                if base in aliases and private(f"{aliases[base]}.{node.attr}"):
-                    offenders.append(f"{name}:{node.lineno}: {base}.{node.attr}")
+#: Underscore names that are public API by their owners' convention (namedtuple's methods and fields, ``os._exit``).
+_PUBLIC_UNDERSCORE = {"_replace", "_asdict", "_fields", "_field_defaults", "_make", "_exit"}
+
+
+def _own_private_names(tree: ast.AST) -> set[str]:
+    """The private names a module defines itself: functions, classes and
+    variables at any level (methods and class attributes included) and the
+    attributes it assigns (``x._a = ...``, ``self._a: T = ...``)."""
+    own: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            own.add(node.name)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            own.add(node.id)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            own.add(node.attr)
+    return {n for n in own if n.startswith("_")}
+
+
+def _private_attribute_reaches(path: Path) -> list[str]:
+    """Where ``path`` reads or calls ``obj._name`` (``obj`` not ``self`` or
+    ``cls``) for a private ``_name`` that it does not define itself: another
+    module's object reached through its privates."""
+    tree = ast.parse(path.read_text())
+    own = _own_private_names(tree) | _PUBLIC_UNDERSCORE
+    found = []
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+            and node.attr not in own
+            and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))
+        ):
+            found.append(f"{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_no_object_is_reached_through_another_modules_privates():
+    # obj._name where _name belongs to a class of another module (sim._prepare_restore, solver._get, a NeuralSimulator's
+    # _failure): the owner makes it public and documents it (MpmSimulator.prepare_restore, MpmSolver.field/set_field,
+    # NeuralSimulator.failure_of). A module may reach its own classes' privates on other instances (a classmethod's new
+    # object, a manager's lock); a private name it defines itself counts as its own. Benchmarks included.
+    files = [*PACKAGE.rglob("*.py"), *(ROOT / "benchmarks").rglob("*.py")]
+    offenders = [f"{p.relative_to(ROOT)}:{o}" for p in sorted(files) for o in _private_attribute_reaches(p)]
     assert not offenders, "\n".join(offenders)
 
 

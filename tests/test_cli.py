@@ -9,6 +9,7 @@ import sys
 import numpy as np
 
 from hybridmpm.cli import main
+from hybridmpm.models import shipped_default
 from hybridmpm.scenes import dam_break2d
 
 
@@ -83,9 +84,10 @@ def test_control_command_writes_its_outputs(tmp_path):
         == 0
     )
     s = json.loads((out / "summary.json").read_text())
-    assert s["frames"] == 20 and s["method"] == "constant" and s["cosine"] > 0.5
+    assert s["frames"] == 20 and s["method"] == "constant" and s["cosine"] > 0.5 and s["solver"] == "default"
     assert (out / "render.gif").read_bytes()[:3] == b"GIF" and (out / "sketch.png").read_bytes()[:4] == b"\x89PNG"
     traj = np.load(out / "trajectory.npz")
-    assert traj["positions"].shape[0] == 6  # 20 frames at the hybrid's r_t = 4, plus the start
+    r_t = shipped_default("water2d")["config"]["r_t"]  # the scene's default configuration runs without --solver
+    assert traj["positions"].shape[0] == 20 // r_t + 1  # 20 frames at the default's r_t, plus the start
     (tmp_path / "bad.json").write_text('{"kind": "spiral", "points": [[0, 0], [1, 1]]}')
     assert main(["control", "water2d", "--sketch", str(tmp_path / "bad.json"), "--out", str(out), "--quiet"]) == 2

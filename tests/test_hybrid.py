@@ -557,7 +557,7 @@ class _MirrorHalf:
         return {"mpm": self.sim.state()}
 
     def prepare_restore(self, state):
-        return self.sim._prepare_restore(state["mpm"])
+        return self.sim.prepare_restore(state["mpm"])
 
 
 def test_the_hybrid_drives_any_cheap_half_through_the_socket():

@@ -205,7 +205,7 @@ def test_the_escape_check_is_per_axis_and_per_side(water_model):
     rng = np.random.default_rng(0)
     base = (sim._lo + (sim._hi - sim._lo) * rng.random((n, 2))).astype(np.float32)
     sim._history = np.stack([base] * sim.t_in)  # no motion: no kinetic energy
-    assert sim._failure(base) is None
+    assert sim.failure_of(base) is None
     for axis in (0, 1):
         for side, edge in ((-1, sim._lo - margin), (1, sim._hi + margin)):
             for eps, verdict in ((-1e-3, None), (1e-3, "escaped")):
@@ -215,7 +215,7 @@ def test_the_escape_check_is_per_axis_and_per_side(water_model):
                 assert want == verdict
                 # only the position check can fire: undo the step's kinetic energy
                 sim._history = np.stack([x] * sim.t_in)
-                assert sim._failure(x) == verdict, (axis, side, eps)
+                assert sim.failure_of(x) == verdict, (axis, side, eps)
 
 
 def test_a_particle_carried_through_a_wall_by_its_own_speed_has_not_escaped(water_model):
@@ -236,7 +236,7 @@ def test_a_particle_carried_through_a_wall_by_its_own_speed_has_not_escaped(wate
             x = hist[-1].copy()
             x[0, 0] = sim._lo[0] - beyond * dx
             # the energy check alone would not fire: a single particle's kinetic energy
-            assert sim._failure(x) == verdict, (step_cells, beyond)
+            assert sim.failure_of(x) == verdict, (step_cells, beyond)
 
 
 def test_a_rejected_network_step_ends_the_network_alone_unchanged():

@@ -1,12 +1,19 @@
-"""hybridmpm: real-time hybrid neural / MLS-MPM fluid simulation.
+"""hybridmpm: real-time interactive MLS-MPM fluid simulation, with the hybrid
+neural / MPM simulator of arXiv 2505.18926 reproduced beside it.
 
 The main path (docs/design.md "Data flow")::
 
     scene (make_scene) ─► simulator (MpmSimulator | NeuralSimulator | HybridSimulator)
         ─► rollout ─► Rollout (a Trajectory) ─► grid_mass_error against reference()
 
+Each registered scene's default simulator (``make_simulator(scene, "default")``,
+what ``hybridmpm simulate SCENE`` runs) is the one the chart picked
+(``models/defaults.json``, docs/hybrid.md "Defaults per scene"); the paper's
+hybrid is :class:`HybridSimulator`:
+
 >>> import hybridmpm as hm
->>> sim = hm.HybridSimulator(hm.make_scene("dam_break2d"))   # shipped model, r_c = 0.8
+>>> sim = hm.make_simulator("dam_break2d", "default")         # the chart's default
+>>> sim = hm.HybridSimulator(hm.make_scene("dam_break2d"))   # the paper's hybrid: shipped model, r_c = 0.8
 >>> ro = hm.rollout(sim, 300)                                # positions [K + 1, N, 2], solver per step
 >>> err = hm.grid_mass_error(ro.fluid_positions, hm.reference(sim.scene_full, 300, stride=sim.r_t).fluid_positions, 128)
 

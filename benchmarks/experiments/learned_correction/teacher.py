@@ -49,7 +49,7 @@ def split_state(coarse: MpmSolver, fine_params: MpmParams, *, num_threads: int =
     fine.affine = rep(coarse.affine)
     fine.deformation_gradient = rep(coarse.deformation_gradient)
     fine.volume_ratio = rep(coarse.volume_ratio)
-    fine._set("volume_correction", rep(coarse._get("volume_correction")))
+    fine.set_field("volume_correction", rep(coarse.field("volume_correction")))
     return fine
 
 

@@ -19,7 +19,6 @@ MPM, at each of ``scales``); the best is kept (``model.npz``).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
@@ -33,6 +32,7 @@ from tqdm import tqdm
 from experiments.learned_correction.features import num_features
 from experiments.learned_correction.forcing import CorrectionForcing, LabelledForcing, coarse_simulator
 from experiments.learned_correction.model import Correction
+from hybridmpm.bench.harness import write_json
 from hybridmpm.metrics import grid_mass_error
 from hybridmpm.scenes import PAPER_R_P, make_scene
 from hybridmpm.sim import MpmSimulator, rollout
@@ -218,7 +218,7 @@ def train_correction(cfg: CorrectionTrainConfig, out: Path) -> dict[str, Any]:
         if means[sc] < best[0]:
             best, best_scale = (means[sc], r), sc
             model.save(out / "model.npz")
-        (out / "log.json").write_text(json.dumps(log, indent=1))
+        write_json(out / "log.json", log)
     return {"best_round": best[1], "best_val_error": best[0], "log": log}
 
 

@@ -133,7 +133,10 @@ def add_parsers(sub: Any) -> None:
         "--steps", type=int, default=None, help=f"DDIM steps of the diffusion controller (default: the model's control.json sample_steps, else {SAMPLE_STEPS})"
     )
     co.add_argument("--guidance", type=float, default=1.0, help="classifier-free guidance scale (default 1: no blank pass)")
-    co.add_argument("--solver", default="hybrid", choices=["hybrid", "mpm"], help="simulator (control always runs on its MPM; default hybrid)")
+    co.add_argument(
+        "--solver", default="default", choices=["default", "hybrid", "mpm"],
+        help="simulator before and after the control (it always runs on MPM; default: the scene's default configuration, chosen by the chart; hybrid: the paper's)",
+    )  # fmt: skip
     co.add_argument("--from-frame", type=int, default=40, help="frames simulated before the sketch applies (default 40)")
     co.add_argument("--frames", type=int, default=T_CTR, help=f"control horizon T_ctr in frames (default {T_CTR})")
     co.add_argument("--seed", type=parse_seed, default=0, help="seed of the scene's initial condition and of the diffusion noise")

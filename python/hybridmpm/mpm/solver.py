@@ -135,33 +135,42 @@ class MpmSolver:
         """Remove particles where the bool ``mask`` [N] is True; returns the new count."""
         return int(self._core.remove_particles(np.asarray(mask)))
 
-    def _get(self, name: str) -> np.ndarray:
+    def field(self, name: str) -> np.ndarray:
+        """A copy of the per-particle field ``name`` (``positions``,
+        ``velocities``, ``affine``, ``deformation_gradient``, ``volume_ratio``,
+        ``volume_correction``, ``masses``, ``volumes``, ``external_acceleration``,
+        ``stress``, ``material``, ``material_set``): what the properties below
+        read, by name, for code that moves several fields alike (state
+        conversion). Raises :class:`InvalidInputError` for an unknown name."""
         return self._core.get(name)  # type: ignore[no-any-return]
 
-    def _set(self, name: str, value: Any) -> None:
+    def set_field(self, name: str, value: Any) -> None:
+        """Set the float per-particle field ``name`` (as :meth:`field` names it)
+        to ``value`` (its shape, cast to float32). Raises
+        :class:`InvalidInputError` for an unknown name or a wrong shape."""
         self._core.set(name, _as_f32(name, value))
 
-    positions = property(lambda self: self._get("positions"), lambda self, v: self._set("positions", v), doc="float32 [N, D], m")
-    velocities = property(lambda self: self._get("velocities"), lambda self, v: self._set("velocities", v), doc="float32 [N, D], m/s")
-    affine = property(lambda self: self._get("affine"), lambda self, v: self._set("affine", v), doc="APIC C, float32 [N, D, D], 1/s")
+    positions = property(lambda self: self.field("positions"), lambda self, v: self.set_field("positions", v), doc="float32 [N, D], m")
+    velocities = property(lambda self: self.field("velocities"), lambda self, v: self.set_field("velocities", v), doc="float32 [N, D], m/s")
+    affine = property(lambda self: self.field("affine"), lambda self, v: self.set_field("affine", v), doc="APIC C, float32 [N, D, D], 1/s")
     deformation_gradient = property(
-        lambda self: self._get("deformation_gradient"), lambda self, v: self._set("deformation_gradient", v), doc="elastic F, float32 [N, D, D]"
+        lambda self: self.field("deformation_gradient"), lambda self, v: self.set_field("deformation_gradient", v), doc="elastic F, float32 [N, D, D]"
     )
-    volume_ratio = property(lambda self: self._get("volume_ratio"), lambda self, v: self._set("volume_ratio", v), doc="J, float32 [N]")
-    masses = property(lambda self: self._get("masses"), lambda self, v: self._set("masses", v), doc="float32 [N], kg")
-    volumes = property(lambda self: self._get("volumes"), lambda self, v: self._set("volumes", v), doc="rest volume, float32 [N], m^D")
+    volume_ratio = property(lambda self: self.field("volume_ratio"), lambda self, v: self.set_field("volume_ratio", v), doc="J, float32 [N]")
+    masses = property(lambda self: self.field("masses"), lambda self, v: self.set_field("masses", v), doc="float32 [N], kg")
+    volumes = property(lambda self: self.field("volumes"), lambda self, v: self.set_field("volumes", v), doc="rest volume, float32 [N], m^D")
     external_acceleration = property(
-        lambda self: self._get("external_acceleration"),
-        lambda self, v: self._set("external_acceleration", v),
+        lambda self: self.field("external_acceleration"),
+        lambda self, v: self.set_field("external_acceleration", v),
         doc="added to gravity, float32 [N, D], m/s²",
     )
-    stress = property(lambda self: self._get("stress"), doc="Kirchhoff stress τ, float32 [N, D, D], Pa (read-only)")
+    stress = property(lambda self: self.field("stress"), doc="Kirchhoff stress τ, float32 [N, D, D], Pa (read-only)")
 
     @property
     def material(self) -> np.ndarray:
         """int32 [N]: 0 water, 1 sand, 2 elastic, 3 snow, 4 viscoplastic
         (setting it puts each particle in its material's default set)."""
-        return self._get("material")
+        return self.field("material")
 
     @material.setter
     def material(self, value: Any) -> None:
@@ -171,7 +180,7 @@ class MpmSolver:
     def material_set(self) -> np.ndarray:
         """int32 [N]: each particle's parameter set (index into the table of
         the material defaults, by code, then ``params.sets``)."""
-        return self._get("material_set")
+        return self.field("material_set")
 
     @material_set.setter
     def material_set(self, value: Any) -> None:

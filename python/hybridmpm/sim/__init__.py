@@ -3,10 +3,14 @@
 * :class:`MpmSimulator` — the Rust MLS-MPM solver (at ``r_p``, ``r_t`` frames a step);
 * :class:`NeuralSimulator` — the GNS network alone, after an MPM warm-up
   (paper Sec. 2.2, 3.1.1);
-* :class:`HybridSimulator` — the network by default, MPM while the safeguard
-  ``s(t) < r_c`` or a forcing is set (paper Sec. 3.1.2, 3.2); its cheap half
-  is any :class:`CheapHalf` (the network, or MPM on a coarser grid), its
-  switching rule a :class:`SwitchingRule` (:mod:`hybridmpm.sim.switching`);
+* :class:`HybridSimulator` — the paper's method: its cheap half steps, MPM
+  while the safeguard ``s(t) < r_c`` or a forcing is set (paper Sec. 3.1.2,
+  3.2); the cheap half is any :class:`CheapHalf` (the network, or MPM on a
+  coarser grid), its switching rule a :class:`SwitchingRule`
+  (:mod:`hybridmpm.sim.switching`);
+* :func:`make_simulator` — a simulator by kind; ``"default"`` is the scene's
+  default configuration, chosen by the chart (``models/defaults.json``,
+  docs/hybrid.md "Defaults per scene");
 * :func:`rollout` — the one frame loop; :func:`reference` — full-resolution
   MPM, the reference of every error.
 

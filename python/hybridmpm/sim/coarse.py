@@ -151,7 +151,7 @@ class CoarseMpmHalf:
         with reading_state("CoarseMpmHalf"):
             if not isinstance(state, dict) or state.get("kind") != self.kind or state.get("version") != _STATE_VERSION or state.get("n_grid") != self.n_grid:
                 raise InvalidInputError("state: not a state of this coarse-grid half (kind, version or grid differ)", "state")
-            commit_mpm = self.sim._prepare_restore(state["mpm"])
+            commit_mpm = self.sim.prepare_restore(state["mpm"])
 
         def commit() -> None:
             commit_mpm()
@@ -257,7 +257,7 @@ class CoarseOwnHalf:
             offsets = np.asarray(state["offsets"], np.float64)
             if offsets.shape != self.offsets.shape or not np.isfinite(offsets).all():
                 raise InvalidInputError(f"state.offsets: expected finite [{len(self.offsets)}, {self.offsets.shape[1]}]", "state.offsets")
-            commit_mpm = self.sim._prepare_restore(state["mpm"])
+            commit_mpm = self.sim.prepare_restore(state["mpm"])
 
         def commit() -> None:
             commit_mpm()

@@ -243,13 +243,13 @@ def merge_state(fine: MpmSolver, coarse: MpmSolver, labels: np.ndarray) -> tuple
     x, v = np.asarray(fine.positions, np.float64), np.asarray(fine.velocities, np.float64)
     xc, vc = mean(x, m, msum), mean(v, m, msum)
     vol = np.asarray(fine.volumes, np.float64)
-    merged = {f: mean(fine._get(f), vol if f == "volume_ratio" else m, np.bincount(lab, vol if f == "volume_ratio" else m, minlength=k)) for f in _FIELDS}
+    merged = {f: mean(fine.field(f), vol if f == "volume_ratio" else m, np.bincount(lab, vol if f == "volume_ratio" else m, minlength=k)) for f in _FIELDS}
     offsets = x - xc[lab]
     lo, hi = coarse.domain_bounds
     coarse.positions = np.clip(xc, lo, hi).astype(np.float32)
     coarse.velocities = vc.astype(np.float32)
     for f, a in merged.items():
-        coarse._set(f, a.astype(np.float32))
+        coarse.set_field(f, a.astype(np.float32))
     carried = vc[lab] + np.einsum("nij,nj->ni", merged["affine"][lab], offsets)
     residual = float(np.sqrt((m * ((v - carried) ** 2).sum(1)).sum() / max(m.sum(), 1e-300)))
     return offsets, residual
@@ -265,7 +265,7 @@ def split_state(coarse: MpmSolver, fine: MpmSolver, labels: np.ndarray, offsets:
     fine.positions = np.clip(np.asarray(coarse.positions, np.float64)[lab] + offsets, lo, hi).astype(np.float32)
     fine.velocities = (np.asarray(coarse.velocities, np.float64)[lab] + np.einsum("nij,nj->ni", aff, offsets)).astype(np.float32)
     for f in _FIELDS:
-        fine._set(f, np.asarray(coarse._get(f))[lab])
+        fine.set_field(f, np.asarray(coarse.field(f))[lab])
 
 
 def mpm_history(current: np.ndarray, kept: np.ndarray, t_in: int) -> np.ndarray:

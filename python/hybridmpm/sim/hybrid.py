@@ -1,4 +1,4 @@
-"""The hybrid simulator: a cheap half by default, MPM when the flow gets complex or the cheap half is wrong.
+"""The hybrid simulator (the paper's method): the cheap half steps, MPM takes over when the flow gets complex or the cheap half is wrong.
 
 Paper Sec. 3.1.2, Eq. 1, Table 2; docs/hybrid.md. One *step* is one coarse step of the cheap half:
 ``r_t`` frames of ``dt_frame`` seconds, at its particle resolution ``r_p`` (the scene is clustered
@@ -478,7 +478,7 @@ class HybridSimulator:
             last_score = state["last_score"]
             if isinstance(last_score, bool) or not isinstance(last_score, (int, float)) or np.isinf(last_score):
                 raise InvalidInputError("state.last_score: must be a finite number (or NaN before the first score)", "state.last_score")
-            commit_mpm = self.mpm._prepare_restore(state["mpm"])
+            commit_mpm = self.mpm.prepare_restore(state["mpm"])
             commit_half = self.half.prepare_restore(state["neural"])
         commit_mpm()  # the one step that can fail, and it changes nothing then
         commit_half()

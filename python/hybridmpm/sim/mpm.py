@@ -418,9 +418,9 @@ class MpmSimulator:
         forcing): raises :class:`InvalidInputError` (field ``state``…) or
         :class:`~hybridmpm.errors.CheckpointError` for a foreign or malformed
         state, and this simulator is then unchanged."""
-        self._prepare_restore(state, poured=True)()
+        self.prepare_restore(state, poured=True)()
 
-    def _prepare_restore(self, state: dict[str, Any], poured: bool = False) -> Callable[[], None]:
+    def prepare_restore(self, state: dict[str, Any], poured: bool = False) -> Callable[[], None]:
         """Validate ``state`` whole without changing anything; returns the
         commit. With ``poured`` a state whose particles are the scene's plus
         poured blocks (or the scene's alone, after a pour) is accepted: a new

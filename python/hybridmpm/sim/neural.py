@@ -324,7 +324,13 @@ class NeuralSimulator:
         self._warmup = None
         self._warm = []
 
-    def _failure(self, nxt: np.ndarray, checks: FailureChecks | None = None) -> str | None:
+    def failure_of(self, nxt: np.ndarray, checks: FailureChecks | None = None) -> str | None:
+        """How the network's next positions ``nxt`` float32 [N, D] fail
+        ``checks`` (None: :attr:`checks`) after the current history: ``"nan"``,
+        ``"escaped"`` (beyond the model's bounds by more than the margin and the
+        particle's own last step) or ``"energy"`` (kinetic energy over its
+        budget); None when they pass. What :meth:`propose` runs on each
+        prediction; needs the history (after the warm-up)."""
         assert self._history is not None
         checks = self.checks if checks is None else checks
         n = self.particles.num_fluid
@@ -375,7 +381,7 @@ class NeuralSimulator:
         acc, nxt, used = self.model.predict(self._history, self.particles.particle_type, self.max_neighbors, graph=self._next_graph)
         self.last_edges = 0 if used is None else int(len(used[0]))
         self._next_graph = None
-        failure = self._failure(nxt, checks) if checks.detect_failures else None
+        failure = self.failure_of(nxt, checks) if checks.detect_failures else None
         if failure is not None:
             return Proposal(acc, nxt, None, None, failure)
         if self.model.needs_graph:
