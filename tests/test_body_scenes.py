@@ -6,6 +6,8 @@ writes their body arrays."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -97,3 +99,9 @@ def test_cli_simulate_writes_the_body_arrays(tmp_path):
     traj = hm.Trajectory.load(out / "trajectory.npz")
     assert traj.body_center.shape == (21, 4, 2) and traj.body_rotation.shape == (21, 4, 2, 2) and traj.body_mass.shape == (4,)
     np.testing.assert_allclose(traj.body_mass, np.array(CRATE_DENSITIES) * 0.12 * 0.08, rtol=1e-6)
+    # summary.json: each body as given, its mass, its centre at the first and last frame (the trajectory's)
+    summary = json.loads((out / "summary.json").read_text())
+    assert [b["density"] for b in summary["bodies"]] == list(CRATE_DENSITIES)
+    np.testing.assert_allclose([b["mass"] for b in summary["bodies"]], traj.body_mass)
+    np.testing.assert_array_equal([b["center_start"] for b in summary["bodies"]], traj.body_center[0])
+    np.testing.assert_array_equal([b["center_end"] for b in summary["bodies"]], traj.body_center[-1])

@@ -68,6 +68,11 @@ def _simulate(args: argparse.Namespace) -> int:
     }  # fmt: skip
     if ro.failure:
         summary["failure_detail"] = ro.failure_detail
+    if ro.body_center is not None:  # each rigid body: as given, its mass and its centre of mass at the first and last stored frame
+        summary["bodies"] = [
+            {"shape": b.shape, "density": b.density, "mass": float(m), "center_start": c[0].tolist(), "center_end": c[-1].tolist()}
+            for b, m, c in zip(low.params.bodies, ro.body_mass, np.moveaxis(ro.body_center, 1, 0))
+        ]
     # which cheap half ran and on what share of frames (a fallback to MPM counts as MPM); None: no cheap half
     cheap_kind = getattr(sim, "cheap_kind", None) if args.solver == "hybrid" else None
     summary["cheap_half"] = cheap_kind
@@ -147,6 +152,11 @@ def _simulate(args: argparse.Namespace) -> int:
             sc = summary["reference"]["metrics"]
             line += f"; grid-mass error vs full-res MPM mean {err.mean():.3f}, last {err[-1]:.3f}" + "".join(
                 f", {k} {sc[k]:.3g}" for k in ("short_error", "sinkhorn", "ke_error", "front_rms") if sc[k] is not None
+            )
+        if "bodies" in summary:
+            up = low.dim - 1  # gravity acts along the last axis
+            line += "; bodies' centre heights " + ", ".join(
+                f"{b['shape']} {b['density'] or b['mass']:g}{' kg/m^3' if b['density'] else ' kg'} {b['center_start'][up]:.3f} -> {b['center_end'][up]:.3f} m" for b in summary["bodies"]
             )
         if ro.failure:
             line += f"; broke off: {ro.failure} ({ro.failure_detail})"
