@@ -156,7 +156,8 @@ def _simulate(args: argparse.Namespace) -> int:
         if "bodies" in summary:
             up = low.dim - 1  # gravity acts along the last axis
             line += "; bodies' centre heights " + ", ".join(
-                f"{b['shape']} {b['density'] or b['mass']:g}{' kg/m^3' if b['density'] else ' kg'} {b['center_start'][up]:.3f} -> {b['center_end'][up]:.3f} m" for b in summary["bodies"]
+                f"{b['shape']} {b['density'] or b['mass']:g}{' kg/m^3' if b['density'] else ' kg'} {b['center_start'][up]:.3f} -> {b['center_end'][up]:.3f} m"
+                for b in summary["bodies"]
             )
         if ro.failure:
             line += f"; broke off: {ro.failure} ({ro.failure_detail})"
