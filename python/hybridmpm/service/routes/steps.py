@@ -1,5 +1,15 @@
 """Stepping a session: ``POST /v1/sessions/{sid}/step`` answers the frames as
-JSON (encoded a piece at a time) or raw float32."""
+JSON (encoded a piece at a time) or raw float32.
+
+The raw answer is the positions float32 [K, N, D] (``X-Shape``), the bytes
+every client reads whole. A session's rigid bodies (docs/bodies.md) are
+appended only when the client asks (``?bodies=1``): then, after the
+positions, float32 [K, B, D + D²] (``X-Bodies: K,B,D+D²``), each body's
+centre [m] and its rotation row-major at each frame's end, as the stream's
+binary frame carries them (:func:`hybridmpm.service.frames.body_poses`). A
+client that reads the whole answer as ``X-Shape`` (the docs' example) is
+never handed bytes it does not expect; without bodies ``?bodies=1`` changes
+nothing."""
 
 from __future__ import annotations
 
@@ -10,11 +20,12 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import FieldError
+from hybridmpm.service.frames import body_poses
 from hybridmpm.service.schemas import StepRequest, StepResponse, clean
 
 OCTET = "application/octet-stream"
@@ -79,12 +90,20 @@ def step_json(
     responses={
         200: {
             "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}},
-            "description": "JSON, or float32 [K, N, D] with Accept: application/octet-stream (X-Shape, X-Solvers, X-Seconds headers)",
+            "description": "JSON, or float32 [K, N, D] with Accept: application/octet-stream (X-Shape, X-Solvers, X-Seconds headers);"
+            " with ?bodies=1 and bodies in the session, float32 [K, B, D + D²] body poses after the positions (X-Bodies)",
         },
         404: {"description": "no such session"},
     },
 )
-async def step(s: SessionDep, body: StepRequest, request: Request, manager: ManagerDep, cfg: ConfigDep) -> Any:
+async def step(
+    s: SessionDep,
+    body: StepRequest,
+    request: Request,
+    manager: ManagerDep,
+    cfg: ConfigDep,
+    bodies_after: bool = Query(False, alias="bodies", description="binary answer: append the bodies' poses after the positions (X-Bodies)"),
+) -> Any:
     if body.frames > cfg.max_frames:
         raise FieldError(("body", "frames"), f"frames: at most {cfg.max_frames} per request")
     binary = OCTET in request.headers.get("accept", "")
@@ -99,7 +118,7 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
         seconds = [float(x) for x in np.asarray(ro.seconds)[1:]]
         frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
         failure = None if ro.failure is None else str(ro.failure)
-        bodies = None  # JSON frames only: the binary frame's format is unchanged
+        bodies = None
         if ro.body_center is not None and ro.body_rotation is not None and ro.body_center.shape[1]:
             bodies = (np.asarray(ro.body_center[1:], np.float64), np.asarray(ro.body_rotation[1:], np.float64))
         del ro
@@ -113,7 +132,19 @@ async def step(s: SessionDep, body: StepRequest, request: Request, manager: Mana
             }
             if failure:
                 headers["X-Failure"] = failure
-            return Response(await manager.compute(lambda: np.ascontiguousarray(pos, "<f4").tobytes()), media_type=OCTET, headers=headers)
+            poses = None
+            if bodies_after and bodies is not None:
+                k, b, d = bodies[0].shape
+                flat = body_poses(bodies[0].reshape(k * b, d), bodies[1].reshape(k * b, d, d), d)
+                if flat is not None:  # None: no frame stepped
+                    poses = flat.reshape(k, b, d + d * d)
+                    headers["X-Bodies"] = ",".join(str(x) for x in poses.shape)
+
+            def raw() -> bytes:
+                data = np.ascontiguousarray(pos, "<f4").tobytes()
+                return data if poses is None else data + poses.tobytes()
+
+            return Response(await manager.compute(raw), media_type=OCTET, headers=headers)
         parts = await manager.compute(step_json, pos, frames_, solvers, seconds, s.facts.r_t, s.facts.dt_frame, failure, latency, bodies)
 
         async def pieces() -> AsyncIterator[bytes]:
