@@ -465,3 +465,41 @@ def test_the_registry_holds_the_store_so_a_plain_server_is_refused_on_it(cluster
         assert e.value.field == "store" and "Ray registry" in str(e.value), e.value
     out = subprocess.run([sys.executable, "-m", "hybridmpm", "serve", "--store", str(store), "--port", "0"], capture_output=True, text=True, timeout=WAIT_S)
     assert out.returncode == 2 and "store" in out.stderr and "Ray registry" in out.stderr, out.stderr[-500:]
+
+
+def test_bodies_added_and_removed_through_two_front_ends_survive_a_killed_actor(cluster, tmp_path):
+    # crates2d's four boxes, a ball added through A and the first box removed through B: the session's bodies and frames
+    # are a local run's with the same changes, bit for bit, before and after its actor is killed (restored from the store)
+    store = tmp_path / "store"
+    ball = {"shape": "circle", "center": [0.3, 0.7], "radius": 0.04, "density": 700.0, "velocity": [0.5, 0.0]}
+    ref = make_simulator("crates2d", "mpm", seed=1, threads=1)
+    a, b = _front_end(cluster, store, tmp_path / "a.log"), _front_end(cluster, store, tmp_path / "b.log")
+    try:
+        _start(a, b)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as ca, httpx.Client(base_url=b.url, timeout=WAIT_S) as cb:
+            r = ca.post("/v1/sessions", json={"scene": "crates2d", "solver": "mpm", "seed": 1})
+            assert r.status_code == 201, r.text
+            sid = r.json()["id"]
+            assert np.array_equal(step_binary(cb, sid, 3), rollout(ref, 3).positions[1:])
+            r = ca.post(f"/v1/sessions/{sid}/bodies", json=ball)
+            assert r.status_code == 201 and r.json()["index"] == 4 and r.json()["num_bodies"] == 5, r.text
+            assert ref.add_body(ball) == 4
+            r = cb.delete(f"/v1/sessions/{sid}/bodies/0")
+            assert r.status_code == 200 and r.json()["num_bodies"] == 4, r.text
+            ref.remove_body(0)
+            assert np.array_equal(step_binary(ca, sid, 4), rollout(ref, 4).positions[1:])
+            info = cb.get(f"/v1/sessions/{sid}").json()
+            assert [x["shape"] for x in info["bodies"]] == ["box", "box", "box", "circle"], info["bodies"]
+            assert np.array_equal(np.array([x["center"] for x in info["bodies"]]), ref.bodies.center)
+            saved = wait_saved(ca, sid, WAIT_S)
+            rollout(ref, saved - info["frame"])
+            pids = cluster.actor_pids()
+            os.kill(pids[0], signal.SIGKILL)
+            after = step_binary(cb, sid, 3)
+            assert np.array_equal(after, rollout(ref, 3).positions[1:]), "the restored run differs"
+            info = ca.get(f"/v1/sessions/{sid}").json()
+            assert info["restored_from_frame"] == saved and len(info["bodies"]) == 4
+            assert np.array_equal(np.array([x["center"] for x in info["bodies"]]), ref.bodies.center)
+    finally:
+        a.stop()
+        b.stop()
