@@ -2,6 +2,7 @@
 // WebGL2 is missing), sketches with mouse or pen, downloads. No build step, no CDN. Test hook: window.__hmpm.
 
 import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
+import { BodyLayer, readBodies } from "./bodies.js";
 import { encodeGif } from "./gif.js";
 import { Palette } from "./palette.js";
 import { LEVELS, QualityController, SOFTWARE_START, levelForScale } from "./quality.js";
@@ -29,6 +30,8 @@ const hook = (window.__hmpm = {
   centroidCss: () => centroidCss(),
   toCss: (p) => toCss(p),             // world point -> CSS pixels of the sketch canvas
   view: null,                         // the renderer (tests and benchmarks)
+  // rigid bodies: the palette's POSTs (bodyDrops), what the last draw drew (bodiesDrawn), a body list drawn in place of the session's
+  showBodies: (list) => { if (session) { session.bodies = list; dirty = true; } },
 });
 window.addEventListener("error", (e) => hook.errors.push(String(e.message || e)));
 window.addEventListener("unhandledrejection", (e) => hook.errors.push(String(e.reason)));
@@ -45,6 +48,8 @@ try {
   console.info(`Canvas2D view: ${e.message}`);
 }
 hook.renderer = renderer.kind; hook.view = renderer;
+const bodyLayer = (renderer.bodies = new BodyLayer());
+Object.defineProperty(hook, "bodiesDrawn", { enumerable: true, get: () => bodyLayer.drawn });
 
 let session = null, ws = null, playing = params.get("autoplay") !== "0";
 let latest = null;           // {frame, n, dim, solver, controlled, cframe, time, pos}
@@ -260,14 +265,23 @@ function onEvent(msg) {
     const ob = session && session.obstacles && session.obstacles[msg.index];
     // drawn where the server moved it (every viewer), except the one this page is dragging: there the pointer leads
     if (ob && !(grab && grab.index === msg.index)) { ob.center = msg.center; dirty = true; }
+  } else if (msg.type === "bodies") { // added or removed: the shapes as given now, their poses at this frame once read
+    if (session) { session.bodies = msg.bodies; dirty = true; refreshBodies(); }
   } else if (msg.type === "error") setStatus(msg.message);
+}
+async function refreshBodies() {
+  const id = session && session.id;
+  try {
+    const s = await api("GET", `/v1/sessions/${id}`);
+    if (session && session.id === id && Array.isArray(s.bodies)) { session.bodies = s.bodies; dirty = true; }
+  } catch { /* the session is gone: nothing to redraw */ }
 }
 function onFrame(buf) {
   const dv = new DataView(buf);
   const dim = dv.getUint8(6), frame = dv.getUint32(8, true), n = dv.getUint32(12, true);
   const time = dv.getFloat64(16, true), solver = dv.getUint8(24), controlled = dv.getUint8(25), cframe = dv.getUint32(28, true);
   if (buf.byteLength < HEADER_BYTES + n * dim * 4) return;
-  latest = { frame, n, dim, solver, controlled, cframe, time, pos: new Float32Array(buf, HEADER_BYTES, n * dim) };
+  latest = { frame, n, dim, solver, controlled, cframe, time, pos: new Float32Array(buf, HEADER_BYTES, n * dim), bodies: readBodies(buf, n, dim) };
   history.push(latest); if (history.length > HISTORY) history.shift();
   hook.framesReceived += 1; hook.lastFrame = frame;
   if (controlled) hook.lastControlFrame = cframe;
@@ -530,7 +544,10 @@ const palette = new Palette($("palette"), {
 });
 inkCanvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
 inkCanvas.addEventListener("pointerdown", (ev) => {
-  if (palette.armed && ev.button === 0 && session) { palette.drop(ev.clientX, ev.clientY); return; } // the palette's drop
+  if (palette.armed && ev.button === 0 && session) { // the palette's drop (a body's: on release, a drag throws it)
+    if (palette.press(ev) && palette.gesture) inkCanvas.setPointerCapture(ev.pointerId);
+    return;
+  }
   if (tool() === "drag" && session && (ev.button === 0 || !is3D())) { // 3D: the other buttons turn the camera (below)
     if (ev.button !== 0 || grab) return;
     const hit = is3D() ? obstacleHit(ev.clientX, ev.clientY) : { index: obstacleAt(toDomain(ev.clientX, ev.clientY)), point: toDomain(ev.clientX, ev.clientY) };
@@ -557,12 +574,14 @@ inkCanvas.addEventListener("pointerdown", (ev) => {
 });
 inkCanvas.addEventListener("pointermove", (ev) => {
   if (grab) { moveGrab(ev); return; }
+  if (palette.gesture) { palette.move(ev); return; }
   if (orbiting) {
     renderer.camera.orbit(ev.clientX - orbiting[0], ev.clientY - orbiting[1]);
     orbiting = [ev.clientX, ev.clientY]; dirty = true;
   } else if (drawing) { addSamples(ev); drawInk(true); }
 });
 const endStroke = (ev) => {
+  if (palette.gesture) { if (ev.type === "pointerup") palette.release(ev); else palette.gesture = null; return; }
   if (grab) { if (!grab.released) { moveGrab(ev); endGrab(); } return; }
   if (orbiting) { orbiting = null; return; }
   if (!drawing) return;

@@ -408,17 +408,22 @@ export class GLRenderer {
       solid: prog(SOLID_VS, SOLID_FS), line: prog(SOLID_VS, LINE_FS),
     };
     this.meshes = {};
-    for (const [name, data] of Object.entries({ cube: cube(false), room: cube(true), sphere: sphere(), disc: disc(), square: SQUARE, edges: BOX_EDGES })) {
-      const vao = gl.createVertexArray(), buf = gl.createBuffer();
-      gl.bindVertexArray(vao); gl.bindBuffer(gl.ARRAY_BUFFER, buf);
-      gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
-      gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 24, 0);
-      gl.enableVertexAttribArray(1); gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 24, 12);
-      this.meshes[name] = { vao, count: data.length / 6 };
-    }
+    this.bodies = null; // the rigid bodies' layer (bodies.js), drawn with the obstacles
+    for (const [name, data] of Object.entries({ cube: cube(false), room: cube(true), sphere: sphere(), disc: disc(), square: SQUARE, edges: BOX_EDGES })) this.addMesh(name, data);
     this.pvao = gl.createVertexArray(); this.posBuf = gl.createBuffer(); this.infoBuf = gl.createBuffer();
     this.emptyVao = gl.createVertexArray();
     this.targets = null; this.posBytes = 0;
+  }
+
+  // a mesh of triangles (Float32Array of position, normal per vertex) under `name` for solid()
+  addMesh(name, data) {
+    const gl = this.gl, vao = gl.createVertexArray(), buf = gl.createBuffer();
+    gl.bindVertexArray(vao); gl.bindBuffer(gl.ARRAY_BUFFER, buf);
+    gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
+    gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 24, 0);
+    gl.enableVertexAttribArray(1); gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 24, 12);
+    gl.bindVertexArray(null);
+    this.meshes[name] = { vao, count: data.length / 6 };
   }
 
   get fluidAvailable() { return this.floatTargets; }
@@ -830,6 +835,7 @@ export class GLRenderer {
       }
     }
     gl.disable(gl.CULL_FACE);
+    if (this.bodies) this.bodies.draw(this, M, dim);
   }
 
   drawSolids(M, dim) {
@@ -937,6 +943,7 @@ export class Canvas2DRenderer {
   constructor(canvas) {
     this.canvas = canvas; this.ctx = canvas.getContext("2d"); this.kind = "canvas2d";
     this.look = "particles"; this.showParticles = true; this.session = null; this.frame = null; this.camera = new Camera(2);
+    this.bodies = null; // the rigid bodies' layer (bodies.js)
   }
   get fluidAvailable() { return false; }
   setSession(s) { this.session = s; this.frame = null; this.camera = new Camera(2); }
@@ -961,6 +968,7 @@ export class Canvas2DRenderer {
       }
     }
     ctx.globalAlpha = 1;
+    if (this.bodies) this.bodies.drawCanvas(ctx, s, f, (x, y) => [x * r.width, (1 - y) * r.height]);
     return M;
   }
   snapshot(width, height) {
