@@ -156,7 +156,10 @@ def test_a_crate_dropped_on_the_water_floats_and_the_page_draws_it_at_the_server
     assert cy - height / 2 > floor + 0.5 * dx, f"on the floor: {said}"
     assert np.linalg.norm(crate["velocity"]) < 0.5, f"not at rest: velocity {crate['velocity']} m/s; {said}"
     # the page drew it at the server's pose of that frame (the binary frame's float32 values)
-    page.wait_for_function(f"window.__hmpm.lastFrame === {PRE + AFTER} && window.__hmpm.bodiesDrawn.length === 1 && window.__hmpm.bodiesDrawn[0].frame === {PRE + AFTER}", timeout=60_000)
+    page.wait_for_function(
+        f"window.__hmpm.lastFrame === {PRE + AFTER} && window.__hmpm.bodiesDrawn.length === 1 && window.__hmpm.bodiesDrawn[0].frame === {PRE + AFTER}",
+        timeout=60_000,
+    )
     drawn = page.evaluate("window.__hmpm.bodiesDrawn[0]")
     assert drawn["from"] == "frame" and np.array_equal(np.float32(drawn["center"]), poses[0, :3]), (drawn, poses)
     assert np.array_equal(np.float32(drawn["rotation"]).ravel(), poses[0, 3:])
@@ -213,7 +216,11 @@ def test_a_drag_throws_a_ball_along_the_drag(server, browser):
 def test_capsules_meshes_and_2d_bodies_are_drawn_where_they_are(server, browser):
     errors: list[str] = []
     page = _open(browser, server.url + "/?solver=mpm&autoplay=0", errors)
-    tetra = {"shape": "mesh", "vertices": [[0.08, -0.05, 0.0], [-0.08, -0.05, 0.06], [-0.08, -0.05, -0.06], [0.0, 0.08, 0.0]], "faces": [[0, 1, 2], [0, 1, 3], [1, 2, 3], [2, 0, 3]]}
+    tetra = {
+        "shape": "mesh",
+        "vertices": [[0.08, -0.05, 0.0], [-0.08, -0.05, 0.06], [-0.08, -0.05, -0.06], [0.0, 0.08, 0.0]],
+        "faces": [[0, 1, 2], [0, 1, 3], [1, 2, 3], [2, 0, 3]],
+    }
     c, s = np.cos(0.5), np.sin(0.5)
     synthetic = [
         {"shape": "capsule", "radius": 0.04, "half_height": 0.06, "center": [0.3, 0.7, 0.5], "rotation": [[c, -s, 0], [s, c, 0], [0, 0, 1]]},
