@@ -249,5 +249,13 @@ def test_capsules_meshes_and_2d_bodies_are_drawn_where_they_are(server, browser)
         colour = _pixel(page, b["center"])
         assert np.abs(colour - WOOD).max() < 60, (b, colour)
     assert [d["from"] for d in page.evaluate("window.__hmpm.bodiesDrawn")] == ["frame"] * 4  # the stream's first frame carries them
+    # a 2D capsule (a stadium), turned 30° by its angle as given: brown along its local y axis, not across it
+    page.evaluate("window.__hmpm.showBodies([{shape: 'capsule', radius: 0.03, half_height: 0.05, center: [0.3, 0.8], angle_deg: 30}])")
+    page.wait_for_function("window.__hmpm.bodiesDrawn.length === 1 && window.__hmpm.bodiesDrawn[0].shape === 'capsule'", timeout=30_000)
+    a = np.radians(30.0)
+    along, across = np.array([-np.sin(a), np.cos(a)]), np.array([np.cos(a), np.sin(a)])
+    for p, brown in ((np.array([0.3, 0.8]), True), (np.array([0.3, 0.8]) + 0.07 * along, True), (np.array([0.3, 0.8]) + 0.07 * across, False)):
+        colour = _pixel(page, p)
+        assert (np.abs(colour - WOOD).max() < 30) == brown, (p, colour)
     assert page.evaluate("__hmpm.view.glError()") == 0 and page.evaluate("__hmpm.errors") == [] and errors == [], errors
     page.close()
