@@ -17,7 +17,8 @@
 //!   ([`crate::collider::apply_condition_moving`]);
 //! - bodies: nodes inside a body or less than `BODY_REACH_CELLS` outside
 //!   it get the `Separate` condition relative to the body's point velocity
-//!   `v + ω × r` (Coulomb friction on the rest), and the node's momentum
+//!   after the substep's gravity, `v + ω × r + Δt·g` (Coulomb friction on
+//!   the rest), and the node's momentum
 //!   change, sign flipped, is summed into the body's impulse and torque
 //!   (`crate::body::ImpulseSum`: integer sums, the same bits in any order);
 //! - domain walls: nodes within `walls.cells` of a face of the unit domain
@@ -257,7 +258,11 @@ where
                 }
                 let (phi, nrm) = pose.sdf_normal(&xp);
                 if phi < reach {
-                    let u = pose.point_velocity(&xp);
+                    // the body's point velocity after this substep's gravity
+                    // (rapier adds `Δt·g` before it moves the body): held
+                    // to the velocity the body had, a resting body would
+                    // sink into the water by `g Δt²` every substep
+                    let u = pose.point_velocity(&xp) + g_dt;
                     if (v - u).dot(&nrm) < 0.0 {
                         let before = v;
                         apply_condition_moving(
