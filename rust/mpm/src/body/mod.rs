@@ -5,6 +5,8 @@
 //!
 //! - `mod.rs`: a body's shape and initial state ([`Body`]) and its checks
 //!   against the grid;
+//! - `hull.rs`: a convex body in 3D ([`Hull`]): the hull of a mesh's points,
+//!   its face planes and mass properties;
 //! - `pose.rs`: a body where it is during a substep ([`BodyPose`]): its
 //!   signed distance, outward normal and point velocity `v + ω × r`, what the
 //!   grid update's collider pass reads, and the exact sums of the impulses
@@ -26,14 +28,18 @@
 //! the same bits in any order, for any thread count) and applied to rapier
 //! before it steps with the substep's `dt`.
 
+mod hull;
 mod pose;
 mod rapier2;
 mod rapier3;
 mod system;
 pub(crate) mod world;
 
+pub use hull::{Hull, MAX_HULL_POINTS, mass_properties};
 pub use pose::{BodyPose, Coupled, ImpulseSum, SUM_LANES};
 pub use system::{Bodies, BodyState};
+
+use std::sync::Arc;
 
 use nalgebra::{SMatrix, SVector};
 
@@ -53,25 +59,98 @@ pub const MAX_BODIES: usize = 64;
 pub const MIN_BODY_HALF_CELLS: f32 = 1.0;
 
 /// A body's shape, centred on its centre of mass, in its own frame.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum BodyShape<const D: usize> {
     /// A box of these half extents [m] along the body's axes.
     Box { half_extents: SVector<f32, D> },
     /// A sphere (a circle in 2D) of this radius [m].
     Ball { radius: f32 },
+    /// A capsule: the points within `radius` [m] of the segment from
+    /// `-half_height` to `half_height` [m] along the body's y axis.
+    Capsule { radius: f32, half_height: f32 },
+    /// A convex polyhedron (3D only).
+    Hull(Arc<Hull>),
 }
 
 impl<const D: usize> BodyShape<D> {
     /// Volume [m³] (area [m²] in 2D).
     pub fn volume(&self) -> f32 {
+        use std::f32::consts::PI;
         match self {
             BodyShape::Box { half_extents } => half_extents.iter().map(|h| 2.0 * h).product(),
             BodyShape::Ball { radius } => {
                 if D == 2 {
-                    std::f32::consts::PI * radius * radius
+                    PI * radius * radius
                 } else {
-                    4.0 / 3.0 * std::f32::consts::PI * radius.powi(3)
+                    4.0 / 3.0 * PI * radius.powi(3)
                 }
+            }
+            BodyShape::Capsule {
+                radius: r,
+                half_height: h,
+            } => {
+                if D == 2 {
+                    4.0 * r * h + PI * r * r
+                } else {
+                    PI * r * r * 2.0 * h + 4.0 / 3.0 * PI * r.powi(3)
+                }
+            }
+            BodyShape::Hull(hull) => hull.volume,
+        }
+    }
+
+    /// The inertia tensor about the centre of mass in the body's axes of a
+    /// body of mass `m` [kg] (2D: about z, entry (2, 2)) [kg·m²]: exact for
+    /// each shape (a capsule's: its cylinder, or rectangle, and its two
+    /// half balls, or half discs, moved to their centroids).
+    pub fn local_inertia(&self, m: f64) -> [[f64; 3]; 3] {
+        let diag = |d: [f64; 3]| {
+            std::array::from_fn(|i| std::array::from_fn(|j| if i == j { d[i] } else { 0.0 }))
+        };
+        match self {
+            BodyShape::Box { half_extents: h } => {
+                let h2: [f64; 3] =
+                    std::array::from_fn(|d| if d < D { (h[d] as f64).powi(2) } else { 0.0 });
+                diag([
+                    m / 3.0 * (h2[1] + h2[2]),
+                    m / 3.0 * (h2[0] + h2[2]),
+                    m / 3.0 * (h2[0] + h2[1]),
+                ])
+            }
+            BodyShape::Ball { radius } => {
+                let r2 = (*radius as f64).powi(2);
+                let k = if D == 2 { 0.5 } else { 0.4 };
+                diag([k * m * r2; 3])
+            }
+            BodyShape::Capsule {
+                radius,
+                half_height,
+            } => {
+                let (r, h) = (*radius as f64, *half_height as f64);
+                let pi = std::f64::consts::PI;
+                if D == 2 {
+                    // rectangle 2r × 2h and a disc split at y = ±h
+                    let (a_rect, a_disc) = (4.0 * r * h, pi * r * r);
+                    let (m_rect, m_disc) = (
+                        m * a_rect / (a_rect + a_disc),
+                        m * a_disc / (a_rect + a_disc),
+                    );
+                    let iz = m_rect * (r * r + h * h) / 3.0
+                        + m_disc * (0.5 * r * r + h * h + 8.0 * h * r / (3.0 * pi));
+                    diag([0.0, 0.0, iz])
+                } else {
+                    let (v_cyl, v_ball) = (pi * r * r * 2.0 * h, 4.0 / 3.0 * pi * r.powi(3));
+                    let (m_cyl, m_ball) =
+                        (m * v_cyl / (v_cyl + v_ball), m * v_ball / (v_cyl + v_ball));
+                    let iy = 0.5 * m_cyl * r * r + 0.4 * m_ball * r * r;
+                    let ix = m_cyl * (0.25 * r * r + h * h / 3.0)
+                        + m_ball * (0.4 * r * r + h * h + 0.75 * h * r);
+                    diag([ix, iy, ix])
+                }
+            }
+            BodyShape::Hull(hull) => {
+                let rho = m / hull.volume as f64;
+                hull.unit_inertia.map(|row| row.map(|x| rho * x))
             }
         }
     }
@@ -81,6 +160,11 @@ impl<const D: usize> BodyShape<D> {
         match self {
             BodyShape::Box { half_extents } => half_extents.norm(),
             BodyShape::Ball { radius } => *radius,
+            BodyShape::Capsule {
+                radius,
+                half_height,
+            } => radius + half_height,
+            BodyShape::Hull(hull) => hull.radius,
         }
     }
 
@@ -88,8 +172,26 @@ impl<const D: usize> BodyShape<D> {
     fn thinnest_half(&self) -> f32 {
         match self {
             BodyShape::Box { half_extents } => half_extents.min(),
-            BodyShape::Ball { radius } => *radius,
+            BodyShape::Ball { radius } | BodyShape::Capsule { radius, .. } => *radius,
+            BodyShape::Hull(hull) => hull.thinnest_half,
         }
+    }
+
+    /// The lowest and highest coordinate of the shape along world axis `d`,
+    /// relative to its centre of mass, when rotated by `rotation` [m].
+    pub fn span(&self, rotation: &SMatrix<f32, D, D>, d: usize) -> (f32, f32) {
+        let reach = match self {
+            BodyShape::Box { half_extents } => (0..D)
+                .map(|k| (rotation[(d, k)] * half_extents[k]).abs())
+                .sum(),
+            BodyShape::Ball { radius } => *radius,
+            BodyShape::Capsule {
+                radius,
+                half_height,
+            } => (rotation[(d, 1)] * half_height).abs() + radius,
+            BodyShape::Hull(hull) => return hull.span(|i, j| rotation[(i, j)], d),
+        };
+        (-reach, reach)
     }
 }
 
@@ -118,6 +220,31 @@ impl<const D: usize> Body<D> {
         self.density * self.shape.volume()
     }
 
+    /// The body in rapier's terms: a box or a ball by density (rapier's mass
+    /// properties equal ours), a capsule or a hull with ours
+    /// ([`BodyShape::local_inertia`]) given to rapier.
+    pub(crate) fn spec(&self) -> world::BodySpec {
+        let pad = |v: &SVector<f32, D>| std::array::from_fn(|d| if d < D { v[d] } else { 0.0 });
+        let shape = match &self.shape {
+            BodyShape::Box { half_extents } => world::ShapeSpec::Box(pad(half_extents)),
+            BodyShape::Ball { radius } => world::ShapeSpec::Ball(*radius),
+            BodyShape::Capsule {
+                radius,
+                half_height,
+            } => world::ShapeSpec::Capsule(*radius, *half_height),
+            BodyShape::Hull(hull) => world::ShapeSpec::Hull(hull.clone()),
+        };
+        let mass = match self.shape {
+            BodyShape::Box { .. } | BodyShape::Ball { .. } => None,
+            _ => Some((self.mass(), self.shape.local_inertia(self.mass() as f64))),
+        };
+        world::BodySpec {
+            shape,
+            density: self.density,
+            mass,
+        }
+    }
+
     /// Checks the body against a grid of spacing `dx` whose walls are
     /// `wall_cells` thick: thick enough for the grid (at least
     /// [`MIN_BODY_HALF_CELLS`] cells a half extent or radius, field
@@ -127,7 +254,8 @@ impl<const D: usize> Body<D> {
     pub fn validate(&self, field: &str, dx: f32, wall_cells: usize) -> Result<()> {
         let size_field = match self.shape {
             BodyShape::Box { .. } => "half_extents",
-            BodyShape::Ball { .. } => "radius",
+            BodyShape::Ball { .. } | BodyShape::Capsule { .. } => "radius",
+            BodyShape::Hull(ref hull) => hull.key,
         };
         let thin = self.shape.thinnest_half();
         if !(thin >= MIN_BODY_HALF_CELLS * dx) {
@@ -139,24 +267,30 @@ impl<const D: usize> Body<D> {
                 ),
             ));
         }
+        if let BodyShape::Capsule { half_height, .. } = self.shape
+            && !(half_height >= MIN_BODY_HALF_CELLS * dx)
+        {
+            return Err(MpmError::invalid(
+                format!("{field}.half_height"),
+                format!(
+                    "must be at least {MIN_BODY_HALF_CELLS} cell ({} m), got {half_height} m (a shorter capsule is a ball: give shape 'sphere')",
+                    MIN_BODY_HALF_CELLS * dx
+                ),
+            ));
+        }
         let lo = wall_cells as f32 * dx;
         let hi = 1.0 - lo;
-        // the body's extent along each axis (its rotated box's, or the ball's)
+        // the body's extent along each axis
         for d in 0..D {
-            let reach = match self.shape {
-                BodyShape::Box { half_extents } => (0..D)
-                    .map(|k| (self.rotation[(d, k)] * half_extents[k]).abs())
-                    .sum(),
-                BodyShape::Ball { radius } => radius,
-            };
+            let (a, b) = self.shape.span(&self.rotation, d);
             let c = self.center[d];
-            if !(c - reach >= lo && c + reach <= hi) {
+            if !(c + a >= lo && c + b <= hi) {
                 return Err(MpmError::invalid(
                     format!("{field}.center"),
                     format!(
                         "the body must lie inside the walls, [{lo}, {hi}] m along axis {d}: it spans [{}, {}]",
-                        c - reach,
-                        c + reach
+                        c + a,
+                        c + b
                     ),
                 ));
             }

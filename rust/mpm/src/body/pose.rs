@@ -7,7 +7,7 @@ use nalgebra::{SMatrix, SVector};
 use super::BodyShape;
 
 /// A body's pose and velocity for one substep, in `f32` for the grid update.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct BodyPose<const D: usize> {
     pub shape: BodyShape<D>,
     /// Centre of mass [m].
@@ -25,11 +25,34 @@ pub struct BodyPose<const D: usize> {
 impl<const D: usize> BodyPose<D> {
     /// Signed distance of `x` to the surface [m] (negative inside) and the
     /// outward unit normal there (of the nearest face; a ball's radial
-    /// direction, `+x` at its centre).
+    /// direction, `+x` at its centre; a capsule's from its segment, `+x` on
+    /// it; a hull's from the face plane it lies farthest outside of, exact
+    /// inside: [`super::Hull::sdf_normal`]).
     #[inline]
     pub fn sdf_normal(&self, x: &SVector<f32, D>) -> (f32, SVector<f32, D>) {
         let r = x - self.center;
-        match self.shape {
+        match &self.shape {
+            BodyShape::Capsule {
+                radius,
+                half_height,
+            } => {
+                let mut q = self.rotation.tr_mul(&r);
+                q[1] -= q[1].clamp(-half_height, *half_height);
+                let len = q.norm();
+                let local = if len > 0.0 {
+                    q / len
+                } else {
+                    SVector::from_fn(|d, _| if d == 0 { 1.0 } else { 0.0 })
+                };
+                (len - radius, self.rotation * local)
+            }
+            BodyShape::Hull(hull) => {
+                let q = self.rotation.tr_mul(&r);
+                let (dist, n) =
+                    hull.sdf_normal(std::array::from_fn(|d| if d < D { q[d] } else { 0.0 }));
+                let local = SVector::<f32, D>::from_fn(|d, _| n[d]);
+                (dist, self.rotation * local)
+            }
             BodyShape::Ball { radius } => {
                 let len = r.norm();
                 let n = if len > 0.0 {
@@ -37,7 +60,7 @@ impl<const D: usize> BodyPose<D> {
                 } else {
                     SVector::from_fn(|d, _| if d == 0 { 1.0 } else { 0.0 })
                 };
-                (len - radius, n)
+                (len - *radius, n)
             }
             BodyShape::Box { half_extents } => {
                 let q = self.rotation.tr_mul(&r);

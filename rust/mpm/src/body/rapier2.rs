@@ -35,7 +35,7 @@ impl World2 {
             .bodies
             .iter()
             .zip(spec.states)
-            .map(|(&(shape, density), s)| {
+            .map(|(b, s)| {
                 let pose = Pose::from_parts(
                     Vector::new(s.x[0], s.x[1]),
                     Rotation::from_cos_sin_unchecked(s.q[0], s.q[1]),
@@ -45,11 +45,21 @@ impl World2 {
                     .linvel(Vector::new(s.v[0], s.v[1]))
                     .angvel(s.w[2])
                     .can_sleep(false);
-                let collider = match shape {
+                let collider = match &b.shape {
                     ShapeSpec::Box(h) => ColliderBuilder::cuboid(h[0], h[1]),
-                    ShapeSpec::Ball(r) => ColliderBuilder::ball(r),
+                    ShapeSpec::Ball(r) => ColliderBuilder::ball(*r),
+                    ShapeSpec::Capsule(r, h) => ColliderBuilder::capsule_y(*h, *r),
+                    ShapeSpec::Hull(_) => unreachable!("hulls are 3D only (BodyParams::build)"),
                 };
-                world.insert(body, collider.density(density)).0
+                let collider = match b.mass {
+                    Some((m, i)) => collider.mass_properties(MassProperties::new(
+                        Vector::ZERO,
+                        m,
+                        i[2][2] as f32,
+                    )),
+                    None => collider.density(b.density),
+                };
+                world.insert(body, collider).0
             })
             .collect();
         World2 { world, handles }

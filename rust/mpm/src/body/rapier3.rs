@@ -37,7 +37,7 @@ impl World3 {
             .bodies
             .iter()
             .zip(spec.states)
-            .map(|(&(shape, density), s)| {
+            .map(|(b, s)| {
                 let pose = Pose::from_parts(
                     Vector::from(s.x),
                     Rotation::from_xyzw(s.q[0], s.q[1], s.q[2], s.q[3]),
@@ -47,11 +47,30 @@ impl World3 {
                     .linvel(Vector::from(s.v))
                     .angvel(Vector::from(s.w))
                     .can_sleep(false);
-                let collider = match shape {
+                let collider = match &b.shape {
                     ShapeSpec::Box(h) => ColliderBuilder::cuboid(h[0], h[1], h[2]),
-                    ShapeSpec::Ball(r) => ColliderBuilder::ball(r),
+                    ShapeSpec::Ball(r) => ColliderBuilder::ball(*r),
+                    ShapeSpec::Capsule(r, h) => ColliderBuilder::capsule_y(*h, *r),
+                    ShapeSpec::Hull(hull) => {
+                        let points = hull.vertices.iter().map(|p| Vector::from(*p)).collect();
+                        ColliderBuilder::convex_mesh(points, &hull.faces)
+                            .expect("a hull's own faces make a convex mesh (Hull::new)")
+                    }
                 };
-                world.insert(body, collider.density(density)).0
+                let collider = match b.mass {
+                    Some((m, i)) => {
+                        let cols = i.map(|row| Vector::from(row.map(|x| x as f32)));
+                        // symmetric: rows are columns
+                        let tensor = Matrix::from_cols(cols[0], cols[1], cols[2]);
+                        collider.mass_properties(MassProperties::with_inertia_matrix(
+                            Vector::ZERO,
+                            m,
+                            tensor,
+                        ))
+                    }
+                    None => collider.density(b.density),
+                };
+                world.insert(body, collider).0
             })
             .collect();
         World3 { world, handles }

@@ -6,8 +6,8 @@ use std::sync::Mutex;
 
 use nalgebra::{Matrix6, Quaternion, Rotation3, SMatrix, SVector, UnitQuaternion, Vector6};
 
-use super::world::{self, RigidWorld, ShapeSpec, WorldSpec};
-use super::{Body, BodyPose, BodyShape, Coupled, ImpulseSum};
+use super::world::{self, BodySpec, RigidWorld, WorldSpec};
+use super::{Body, BodyPose, Coupled, ImpulseSum};
 
 /// A body's exact state, rapier's own numbers: what a checkpoint carries.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -142,7 +142,7 @@ impl<const D: usize> Bodies<D> {
 
     fn pose_of(b: &Body<D>, s: &BodyState) -> BodyPose<D> {
         BodyPose {
-            shape: b.shape,
+            shape: b.shape.clone(),
             center: SVector::from_fn(|d, _| s.x[d]),
             rotation: s.rotation(),
             velocity: SVector::from_fn(|d, _| s.v[d]),
@@ -171,19 +171,7 @@ impl<const D: usize> Bodies<D> {
             self.world = None;
             return;
         }
-        let shapes: Vec<(ShapeSpec, f32)> = self
-            .bodies
-            .iter()
-            .map(|b| {
-                let s = match b.shape {
-                    BodyShape::Box { half_extents } => ShapeSpec::Box(std::array::from_fn(|d| {
-                        if d < D { half_extents[d] } else { 0.0 }
-                    })),
-                    BodyShape::Ball { radius } => ShapeSpec::Ball(radius),
-                };
-                (s, b.density)
-            })
-            .collect();
+        let shapes: Vec<BodySpec> = self.bodies.iter().map(Body::spec).collect();
         let spec = WorldSpec {
             bodies: &shapes,
             states: &self.states,
@@ -212,22 +200,7 @@ impl<const D: usize> Bodies<D> {
     fn inertia(&self, i: usize) -> (f64, [[f64; 3]; 3]) {
         let b = &self.bodies[i];
         let m = b.mass() as f64;
-        let local: [f64; 3] = match b.shape {
-            BodyShape::Box { half_extents: h } => {
-                let h2: [f64; 3] =
-                    std::array::from_fn(|d| if d < D { (h[d] as f64).powi(2) } else { 0.0 });
-                [
-                    m / 3.0 * (h2[1] + h2[2]),
-                    m / 3.0 * (h2[0] + h2[2]),
-                    m / 3.0 * (h2[0] + h2[1]),
-                ]
-            }
-            BodyShape::Ball { radius } => {
-                let r2 = (radius as f64).powi(2);
-                let k = if D == 2 { 0.5 } else { 0.4 };
-                [k * m * r2; 3]
-            }
-        };
+        let local = b.shape.local_inertia(m);
         let r = self.poses[i].rotation;
         let rot = |a: usize, k: usize| {
             if a < D && k < D {
@@ -239,7 +212,13 @@ impl<const D: usize> Bodies<D> {
         let mut out = [[0.0; 3]; 3];
         for a in 0..3 {
             for c in 0..3 {
-                out[a][c] = (0..3).map(|k| rot(a, k) * local[k] * rot(c, k)).sum();
+                out[a][c] = (0..3)
+                    .map(|k| {
+                        (0..3)
+                            .map(|l| rot(a, k) * local[k][l] * rot(c, l))
+                            .sum::<f64>()
+                    })
+                    .sum();
             }
         }
         (m, out)

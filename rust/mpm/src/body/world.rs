@@ -9,19 +9,38 @@
 //! same bits as a run that never stopped. Contacts' warm-start impulses live
 //! within a frame only.
 
-use super::BodyState;
+use std::sync::Arc;
+
+use super::{BodyState, Hull};
 
 /// A body's shape in rapier's terms (dimension-free: 2D reads `x, y`).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub(crate) enum ShapeSpec {
     Box([f32; 3]),
     Ball(f32),
+    /// Radius and half height along y.
+    Capsule(f32, f32),
+    /// 3D only.
+    Hull(Arc<Hull>),
+}
+
+/// A body in rapier's terms: its shape, density [kg/m³], and its mass
+/// [kg] and inertia tensor about the centre of mass in its axes [kg·m²]
+/// where rapier's own would differ from the coupling's (a capsule: parry's
+/// 2D capsule places its half discs' centroids as half balls', 3r/8 from
+/// the flat side instead of 4r/(3π); a hull: its tensor, as the coupling
+/// reads it); `None`: rapier's from the density.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct BodySpec {
+    pub shape: ShapeSpec,
+    pub density: f32,
+    pub mass: Option<(f32, [[f64; 3]; 3])>,
 }
 
 /// What a world is built from.
 pub(crate) struct WorldSpec<'a> {
-    /// Each body's shape and density [kg/m³].
-    pub bodies: &'a [(ShapeSpec, f32)],
+    /// Each body's shape and mass.
+    pub bodies: &'a [BodySpec],
     /// Each body's state.
     pub states: &'a [BodyState],
     /// Gravity [m/s²] (2D: `x, y`).

@@ -1,13 +1,16 @@
 //! A rigid body as the parameter dict gives it ([`BodyParams`]), the same in
 //! 2D and 3D, and the [`Body`] it builds.
 
+use std::sync::Arc;
+
 use nalgebra::{SMatrix, SVector};
 
-use crate::body::{Body, BodyShape};
+use crate::body::{Body, BodyShape, Hull};
 use crate::error::{MpmError, Result};
 
-/// The shape of a body in the parameter dict: `"box"` or `"sphere"`
-/// (`"circle"` is a synonym).
+/// The shape of a body in the parameter dict: `"box"`, `"sphere"`
+/// (`"circle"` is a synonym), `"capsule"`, or `"mesh"` (3D: the convex hull
+/// of `vertices`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(
     feature = "serde",
@@ -18,11 +21,14 @@ pub enum BodyShapeKind {
     Box,
     #[cfg_attr(feature = "serde", serde(alias = "circle"))]
     Sphere,
+    Capsule,
+    Mesh,
 }
 
 /// A rigid body as the parameter dict gives it, the same in 2D and 3D: the
 /// shape's fields flat (a box: `center`, `half_extents`, and `rotation` or,
-/// in 2D, `angle_deg`; a sphere: `center`, `radius`), its density or mass,
+/// in 2D, `angle_deg`; a sphere: `center`, `radius`; a capsule: `radius`
+/// and `half_height`; a mesh: `vertices`), its density or mass,
 /// initial velocity and angular velocity, and Coulomb friction against the
 /// fluid. [`BodyParams::build`] makes the [`Body`] of a `D`-dimensional solver.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -38,8 +44,19 @@ pub struct BodyParams {
     pub center: Option<Vec<f32>>,
     /// Box half extents [m], `D` numbers (required for a box).
     pub half_extents: Option<Vec<f32>>,
-    /// Sphere radius [m] (required for a sphere).
+    /// Sphere or capsule radius [m] (required for both).
     pub radius: Option<f32>,
+    /// Capsule: half the length of its segment along the body's y axis [m]
+    /// (required for a capsule).
+    pub half_height: Option<f32>,
+    /// Mesh (3D): the points whose convex hull is the body, `[x, y, z]` [m]
+    /// in the mesh's own frame; `center` is where that frame's origin goes,
+    /// and the body's centre of mass is the hull's (required for a mesh).
+    pub vertices: Option<Vec<Vec<f32>>>,
+    /// Mesh: the file the points were read from (by the Python side; only
+    /// the name of the field an error about the points gives: `path`
+    /// instead of `vertices`).
+    pub path: Option<String>,
     /// Rotation [degrees] counter-clockwise, 2D only (`rotation` wins).
     pub angle_deg: Option<f64>,
     /// Rotation matrix, `D` rows of `D` numbers (columns: the body's axes in
@@ -77,9 +94,12 @@ impl BodyParams {
             }
             Ok(Some(v.clone()))
         };
-        let kind = self
-            .shape
-            .ok_or_else(|| MpmError::invalid(name("shape"), "missing ('box' or 'sphere')"))?;
+        let kind = self.shape.ok_or_else(|| {
+            MpmError::invalid(
+                name("shape"),
+                "missing ('box', 'sphere', 'capsule' or 'mesh')",
+            )
+        })?;
         let center = numbers("center", &self.center, D)?.ok_or_else(|| missing("center"))?;
         let shape = match kind {
             BodyShapeKind::Box => {
@@ -95,15 +115,34 @@ impl BodyParams {
                     half_extents: SVector::from_column_slice(&h),
                 }
             }
-            BodyShapeKind::Sphere => {
-                let r = self.radius.ok_or_else(|| missing("radius"))?;
-                if !(r.is_finite() && r > 0.0) {
+            BodyShapeKind::Sphere => BodyShape::Ball {
+                radius: self.positive("radius", self.radius, field)?,
+            },
+            BodyShapeKind::Capsule => BodyShape::Capsule {
+                radius: self.positive("radius", self.radius, field)?,
+                half_height: self.positive("half_height", self.half_height, field)?,
+            },
+            BodyShapeKind::Mesh => {
+                if D != 3 {
                     return Err(MpmError::invalid(
-                        name("radius"),
-                        format!("must be a finite number > 0, got {r}"),
+                        name("shape"),
+                        format!("'mesh' bodies are 3D only (dim = 3); this solver has dim = {D}"),
                     ));
                 }
-                BodyShape::Ball { radius: r }
+                let key = if self.path.is_some() {
+                    "path"
+                } else {
+                    "vertices"
+                };
+                let v = self.vertices.as_ref().ok_or_else(|| missing(key))?;
+                if let Some(i) = v.iter().position(|p| p.len() != 3) {
+                    return Err(MpmError::invalid(
+                        name(key),
+                        format!("point {i}: expected 3 numbers, got {:?}", v[i]),
+                    ));
+                }
+                let points: Vec<[f32; 3]> = v.iter().map(|p| [p[0], p[1], p[2]]).collect();
+                BodyShape::Hull(Arc::new(Hull::new(&points, field, key)?))
             }
         };
         let rotation = self.rotation_matrix::<D>(field)?;
@@ -149,15 +188,33 @@ impl BodyParams {
                 format!("must be a finite number >= 0, got {friction}"),
             ));
         }
+        let mut center = SVector::<f32, D>::from_column_slice(&center);
+        if let BodyShape::Hull(hull) = &shape {
+            // `center` is where the points' origin goes: the centre of mass
+            // lies at the hull's offset from it, turned with the body
+            center += rotation * SVector::<f32, D>::from_fn(|d, _| hull.offset[d]);
+        }
         Ok(Body {
             shape,
-            center: SVector::from_column_slice(&center),
+            center,
             rotation,
             density,
             velocity: SVector::from_column_slice(&velocity),
             angular_velocity,
             friction,
         })
+    }
+
+    /// `value` (parameter `key`): present, finite and > 0 [m].
+    fn positive(&self, key: &str, value: Option<f32>, field: &str) -> Result<f32> {
+        let r = value.ok_or_else(|| MpmError::invalid(format!("{field}.{key}"), "missing"))?;
+        if !(r.is_finite() && r > 0.0) {
+            return Err(MpmError::invalid(
+                format!("{field}.{key}"),
+                format!("must be a finite number > 0, got {r}"),
+            ));
+        }
+        Ok(r)
     }
 
     /// The rotation from `rotation` (checked orthonormal with determinant
