@@ -113,7 +113,7 @@ def test_a_body_joins_the_run_viewers_hear_of_it_and_frames_carry_its_pose(clien
         ({"center": [0.01, 0.5]}, "center"),  # in the wall band
         ({"center": [0.5, 0.5, 0.5]}, "center"),
         ({"center": None}, "center"),
-        ({"shape": "capsule"}, "shape"),
+        ({"shape": "cylinder"}, "shape"),  # no such shape
         ({"colour": "red"}, "colour"),
         ({"velocity": [1.0]}, "velocity"),
     ],

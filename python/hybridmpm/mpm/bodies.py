@@ -2,11 +2,13 @@
 
 A :class:`Body` is what a scene file's ``[[bodies]]`` table and
 :meth:`~hybridmpm.sim.MpmSimulator.add_body` take: the Rust core's
-``BodyParams`` (``shape`` ``"box"`` or ``"sphere"`` / ``"circle"``,
-``center``, ``half_extents`` or ``radius``, ``rotation`` or, in 2D,
-``angle_deg``, ``density`` or ``mass``, ``velocity``, ``angular_velocity``,
-``friction``), checked there, every error naming the field
-(``bodies[0].density``). :class:`BodiesView` is the bodies' state between
+``BodyParams`` (``shape`` ``"box"``, ``"sphere"`` / ``"circle"``,
+``"capsule"`` or, in 3D, ``"mesh"``; ``center``, ``half_extents``,
+``radius`` and ``half_height``, or a mesh's ``path`` and ``scale`` (read as
+mesh obstacles are, kept as its convex hull's ``vertices``); ``rotation``
+or, in 2D, ``angle_deg``, ``density`` or ``mass``, ``velocity``,
+``angular_velocity``, ``friction``), checked there, every error naming the
+field (``bodies[0].density``). :class:`BodiesView` is the bodies' state between
 frames (:attr:`~hybridmpm.mpm.MpmSolver.bodies`).
 """
 
@@ -23,6 +25,10 @@ from hybridmpm.errors import InvalidInputError
 
 #: Most bodies a solver takes (the Rust core's ``MAX_BODIES``).
 MAX_BODIES: int = int(_core.MAX_BODIES)
+#: Shapes a body may have (``circle`` is ``sphere``; ``mesh`` is 3D only).
+SHAPES = ("box", "sphere", "circle", "capsule", "mesh")
+#: Most points a mesh body's hull is built from (the Rust core's ``MAX_HULL_POINTS``).
+MAX_HULL_POINTS: int = int(_core.MAX_HULL_POINTS)
 #: Numbers in a body's exact state (centre 3, rotation 4, velocity 3, angular velocity 3; float32).
 BODY_STATE_LEN: int = int(_core.BODY_STATE_LEN)
 
@@ -45,16 +51,26 @@ class Body:
     """A rigid body as given: its shape, pose, velocity, density (kg/m³) or
     mass (kg; per unit depth in 2D, as the particles' masses) and Coulomb
     ``friction`` against the fluid (default 0). ``center`` [m] is the centre
-    of mass; ``rotation`` a ``D``×``D`` rotation (columns: the body's axes)
-    or, in 2D, ``angle_deg`` counter-clockwise; ``velocity`` [m/s];
-    ``angular_velocity`` [rad/s], one number in 2D, three in 3D. A body
-    lies inside the walls and is at least 1 grid cell in every half extent
-    or radius; a solver takes at most :data:`MAX_BODIES`."""
+    of mass (a mesh's: where the mesh's origin goes; the centre of mass is
+    its hull's); ``rotation`` a ``D``×``D`` rotation (columns: the body's
+    axes) or, in 2D, ``angle_deg`` counter-clockwise; ``velocity`` [m/s];
+    ``angular_velocity`` [rad/s], one number in 2D, three in 3D. A capsule
+    is the points within ``radius`` of the segment from ``-half_height`` to
+    ``half_height`` [m] along the body's y axis. A mesh (3D) is the convex
+    hull of ``vertices`` [V, 3] [m] in the mesh's frame, read from ``path``
+    times ``scale`` (:func:`hybridmpm.scenes.body_mesh.resolve_mesh_body`;
+    ``path`` stays as the label its errors name). A body lies inside the walls and is at least 1
+    grid cell in every half extent, radius and half height (a hull: half its
+    thinnest width); a solver takes at most :data:`MAX_BODIES`."""
 
     shape: str
     center: Sequence[float]
     half_extents: Sequence[float] | None = None
     radius: float | None = None
+    half_height: float | None = None
+    path: str | None = None
+    scale: float | None = None
+    vertices: Sequence[Sequence[float]] | None = None
     angle_deg: float | None = None
     rotation: Sequence[Sequence[float]] | None = None
     density: float | None = None
@@ -72,14 +88,18 @@ class Body:
                 continue
             if f.name == "angular_velocity" and not isinstance(v, (Sequence, np.ndarray)):
                 v = [v]
-            d[f.name] = v if f.name == "shape" else _vec(v)
+            d[f.name] = v if f.name in ("shape", "path") else _vec(v)
         return d
 
     @classmethod
-    def from_dict(cls, d: Any, field: str = "bodies[0]") -> Body:
+    def from_dict(cls, d: Any, field: str = "bodies[0]", dim: int | None = None) -> Body:
         """A body from a dict (a scene file's table), refusing unknown keys
         and a missing ``shape`` or ``center`` with
-        :class:`InvalidInputError` naming ``field.key``; the values are checked by :func:`check_bodies`."""
+        :class:`InvalidInputError` naming ``field.key``, a mesh in 2D
+        (``dim``) naming ``field.shape`` and a mesh whose ``path`` was not
+        read into ``vertices`` yet naming ``field.path``
+        (:func:`hybridmpm.scenes.body_mesh.resolve_mesh_body` reads it). The
+        values are checked by :func:`check_bodies`."""
         if isinstance(d, Body):
             return d
         if not isinstance(d, dict):
@@ -90,8 +110,14 @@ class Body:
             raise InvalidInputError(f"{field}.{unknown[0]}: unknown body field (allowed: {', '.join(allowed)})", f"{field}.{unknown[0]}")
         for key in ("shape", "center"):
             if d.get(key) is None:
-                what = " ('box' or 'sphere')" if key == "shape" else ""
+                what = f" (one of {', '.join(SHAPES)})" if key == "shape" else ""
                 raise InvalidInputError(f"{field}.{key}: missing{what}", f"{field}.{key}")
+        if d.get("shape") == "mesh" and dim == 2:
+            raise InvalidInputError(f"{field}.shape: 'mesh' bodies are 3D only (dim = 3); this scene has dim = 2", f"{field}.shape")
+        if d.get("shape") == "mesh" and d.get("vertices") is None and d.get("path") is not None:
+            raise InvalidInputError(
+                f"{field}.path: not read yet: a scene file or MpmSimulator.add_body reads it (hybridmpm.scenes.body_mesh.resolve_mesh_body)", f"{field}.path"
+            )
         return cls(**d)
 
     def rotation_matrix(self, dim: int) -> np.ndarray:
@@ -104,18 +130,60 @@ class Body:
             r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
         return r
 
+    def hull(self) -> dict[str, np.ndarray]:
+        """A mesh body's convex hull (:func:`hybridmpm._core.body_hull`):
+        ``vertices`` float32 [V, 3] in the body's frame (centre of mass at 0)
+        [m], ``faces`` uint32 [F, 3] (outward), ``offset`` float32 [3] (the
+        centre of mass in the mesh's frame) and ``volume`` [m³]; computed
+        once. Raises :class:`InvalidInputError` naming ``vertices``."""
+        if self.shape != "mesh":
+            raise InvalidInputError(f"shape: only a mesh body has a hull, this is a {self.shape}", "shape")
+        cached = self.__dict__.get("_hull")
+        if cached is None:
+            cached = _core.body_hull(_vec(self.vertices), "path" if self.path is not None else "vertices")
+            object.__setattr__(self, "_hull", cached)  # frozen: the hull is derived, not a field
+        return cached
+
+    def center_of_mass(self, dim: int) -> np.ndarray:
+        """Where the body's centre of mass starts, float64 [D] [m]: ``center``,
+        or for a mesh ``center`` plus its rotated hull offset."""
+        c = np.asarray(self.center, np.float64)
+        if self.shape == "mesh":
+            c = c + self.rotation_matrix(dim) @ np.asarray(self.hull()["offset"], np.float64)
+        return c
+
     def sdf(self, points: np.ndarray, center: Any = None, rotation: Any = None) -> np.ndarray:
         """Signed distance [m] of ``points`` [N, D] to the body (negative
-        inside), float64 [N], where it is given or at ``center`` [D] and
-        ``rotation`` [D, D] (its pose now: :attr:`BodiesView.center`): what
-        keeps a scene's blocks and a pour from seeding particles inside it."""
+        inside), float64 [N], where it is given or with its centre of mass
+        at ``center`` [D] and ``rotation`` [D, D] (its pose now:
+        :attr:`BodiesView.center`): what keeps a scene's blocks and a pour
+        from seeding particles inside it. A hull's is the largest of its
+        face planes' (exact inside, a lower bound outside)."""
         p = np.asarray(points, np.float64)
-        rel = p - np.asarray(self.center if center is None else center, np.float64)
-        if self.shape != "box":
-            return np.linalg.norm(rel, axis=1) - float(self.radius or 0.0)
-        r = self.rotation_matrix(p.shape[1]) if rotation is None else np.asarray(rotation, np.float64)
-        q = np.abs(rel @ r) - np.asarray(self.half_extents, np.float64)
-        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+        dim = p.shape[1]
+        r = self.rotation_matrix(dim) if rotation is None else np.asarray(rotation, np.float64)
+        q = (p - (self.center_of_mass(dim) if center is None else np.asarray(center, np.float64))) @ r
+        if self.shape == "box":
+            e = np.abs(q) - np.asarray(self.half_extents, np.float64)
+            return np.linalg.norm(np.maximum(e, 0.0), axis=1) + np.minimum(e.max(axis=1), 0.0)
+        if self.shape == "capsule":
+            q = q.copy()
+            h = float(self.half_height or 0.0)
+            q[:, 1] -= np.clip(q[:, 1], -h, h)
+        if self.shape == "mesh":
+            n, off = hull_planes(self.hull())
+            return (q @ n.T - off).max(axis=1)
+        return np.linalg.norm(q, axis=1) - float(self.radius or 0.0)
+
+
+def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A hull's face planes (:meth:`Body.hull`): outward unit normals float64
+    [F, 3] and offsets [F] [m] (``n·x = offset`` on the face), one per triangle."""
+    v = np.asarray(hull["vertices"], np.float64)
+    t = v[np.asarray(hull["faces"], np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, np.einsum("fk,fk->f", n, t[:, 0])
 
 
 def check_bodies(bodies: Sequence[Body], dim: int, n_grid: int, wall_cells: int, start: int = 0) -> list[float]:
@@ -180,4 +248,14 @@ class BodiesView:
         )
 
 
-__all__ = ["BODY_STATE_LEN", "MAX_BODIES", "BodiesView", "Body", "check_bodies", "refuse_bodies"]
+__all__ = [
+    "BODY_STATE_LEN",
+    "MAX_BODIES",
+    "MAX_HULL_POINTS",
+    "SHAPES",
+    "BodiesView",
+    "Body",
+    "check_bodies",
+    "hull_planes",
+    "refuse_bodies",
+]

@@ -570,7 +570,7 @@ class MpmParams:
         raw_bodies = d.pop("bodies", []) or []
         if not isinstance(raw_bodies, (list, tuple)):
             raise InvalidInputError(f"bodies: expected a list, got {raw_bodies!r}", "bodies")
-        bodies = [Body.from_dict(b, f"bodies[{i}]") for i, b in enumerate(raw_bodies)]
+        bodies = [Body.from_dict(b, f"bodies[{i}]", d.get("dim", 2)) for i, b in enumerate(raw_bodies)]
         groups = {name: build(name, c, d.pop(name, {})) for name, c in SET_CLASSES.items()}
         raw_sets = d.pop("sets", []) or []
         if not isinstance(raw_sets, (list, tuple)):

@@ -366,7 +366,7 @@ class MpmSolver:
         (``bodies[i].density``, ``bodies[i].center``: outside the walls,
         ``bodies[i].half_extents``: thinner than a cell, ``bodies`` past
         :data:`~hybridmpm.mpm.bodies.MAX_BODIES`); nothing changes then."""
-        b = Body.from_dict(body, f"bodies[{len(self.params.bodies)}]")
+        b = Body.from_dict(body, f"bodies[{len(self.params.bodies)}]", self.dim)
         i = int(self._core.add_body(b.to_dict()))
         self.params = replace(self.params, bodies=[*self.params.bodies, b])
         return i

@@ -1,14 +1,17 @@
 """Rigid bodies in pictures and exports (docs/bodies.md "Pictures and exports").
 
-A body's shape (a :class:`~hybridmpm.mpm.bodies.Body`: box or sphere/circle)
-as geometry in its own frame, placed at a pose (``center`` [D], ``rotation``
+A body's shape (a :class:`~hybridmpm.mpm.bodies.Body`: box, sphere/circle,
+capsule, or a mesh's convex hull) as geometry in its own frame, placed at a pose (``center`` [D], ``rotation``
 [D, D], columns its axes: a trajectory's ``body_center`` / ``body_rotation``)
 as ``x = center + rotation @ local``:
 
 - 3D: a box as its 8 corners and 12 triangles, a sphere as an icosphere
-  (:data:`ICO_LEVEL` subdivisions: 162 vertices, 320 triangles);
+  (:data:`ICO_LEVEL` subdivisions: 162 vertices, 320 triangles), a capsule
+  as that icosphere cut at its equator and its halves moved to ±``half_height``
+  along y (joined by the cylinder between them), a mesh body as its hull;
 - 2D: a closed outline (a box's 4 corners, a circle as :data:`CIRCLE_SEGMENTS`
-  points), written as the fluid's 2D outlines are (edges, z = 0);
+  points, a capsule as two half circles of ``CIRCLE_SEGMENTS / 2 + 1`` points
+  each), written as the fluid's 2D outlines are (edges, z = 0);
   :func:`body_prism` extrudes it along z for USD, as the 2D obstacles are.
 
 :func:`export_bodies` writes ``body_<i>_<t>.<fmt>`` per body per frame.
@@ -28,6 +31,9 @@ from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, write_surface
 
 #: Points of a circle's outline (2D).
 CIRCLE_SEGMENTS = 48
+#: Points around a capsule's mesh (3D), and its rings of latitude on each half ball.
+CAPSULE_SEGMENTS = 32
+CAPSULE_RINGS = 8
 #: Subdivisions of a sphere's icosahedron (3D).
 ICO_LEVEL = 2
 #: GNS-like code and name the body surfaces carry (not a particle type: bodies have no particles).
@@ -76,8 +82,41 @@ def local_mesh(body: Any) -> tuple[np.ndarray, np.ndarray]:
     """A 3D body's mesh in its own frame (centre of mass at 0, its axes): vertices float64 [V, 3] [m], faces int32 [F, 3]."""
     if body.shape == "box":
         return _BOX_CORNERS * np.asarray(body.half_extents, np.float64), _BOX_FACES
+    if body.shape == "mesh":
+        h = body.hull()
+        return np.asarray(h["vertices"], np.float64), np.asarray(h["faces"], np.int32)
+    if body.shape == "capsule":
+        return capsule_mesh(float(body.radius), float(body.half_height))
     v, f = icosphere()
     return v * float(body.radius), f
+
+
+def capsule_mesh(radius: float, half_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """A capsule along y in its own frame: :data:`CAPSULE_SEGMENTS` points around, rings of latitude
+    every 90° / :data:`CAPSULE_RINGS` on each half ball (centred at ±``half_height``) and a pole at
+    each end; vertices float64 [V, 3] [m], faces int32 [F, 3] counter-clockwise seen from outside."""
+    k = CAPSULE_SEGMENTS
+    lon = np.linspace(0.0, 2.0 * np.pi, k, endpoint=False)
+    rings = []  # (latitude, centre height) from the bottom up, poles excluded
+    for i in range(1, CAPSULE_RINGS + 1):
+        rings.append((-np.pi / 2 + np.pi / 2 * i / CAPSULE_RINGS, -half_height))
+    for i in range(CAPSULE_RINGS):
+        rings.append((np.pi / 2 * i / CAPSULE_RINGS, half_height))
+    pts = [[0.0, -half_height - radius, 0.0]]
+    for lat, y0 in rings:
+        c = radius * np.cos(lat)
+        pts += np.stack([c * np.cos(lon), np.full(k, y0 + radius * np.sin(lat)), -c * np.sin(lon)], axis=1).tolist()
+    pts.append([0.0, half_height + radius, 0.0])
+    top, n = len(pts) - 1, len(rings)
+    j = np.arange(k)
+    nxt = (j + 1) % k
+    faces = [np.stack([np.zeros(k, int), 1 + nxt, 1 + j], 1)]
+    for r in range(n - 1):
+        a, b = 1 + r * k, 1 + (r + 1) * k
+        faces += [np.stack([a + j, a + nxt, b + nxt], 1), np.stack([a + j, b + nxt, b + j], 1)]
+    last = 1 + (n - 1) * k
+    faces.append(np.stack([np.full(k, top), last + j, last + nxt], 1))
+    return np.asarray(pts, np.float64), np.concatenate(faces).astype(np.int32)
 
 
 def local_outline(body: Any) -> np.ndarray:
@@ -85,8 +124,14 @@ def local_outline(body: Any) -> np.ndarray:
     if body.shape == "box":
         hx, hy = (float(h) for h in body.half_extents)
         return np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+    r = float(body.radius)
+    if body.shape == "capsule":
+        h = float(body.half_height)
+        a = np.linspace(0.0, np.pi, CIRCLE_SEGMENTS // 2 + 1)
+        top = np.stack([r * np.cos(a), h + r * np.sin(a)], axis=1)
+        return np.concatenate([top, -top])
     a = np.linspace(0.0, 2.0 * np.pi, CIRCLE_SEGMENTS, endpoint=False)
-    return float(body.radius) * np.stack([np.cos(a), np.sin(a)], axis=1)
+    return r * np.stack([np.cos(a), np.sin(a)], axis=1)
 
 
 def place(local: np.ndarray, center: Any, rotation: Any) -> np.ndarray:
@@ -146,10 +191,13 @@ def export_bodies(out_dir: str | Path, bodies: Sequence[Any], center: Any, rotat
 
 __all__ = [
     "BODY_TAG",
+    "CAPSULE_RINGS",
+    "CAPSULE_SEGMENTS",
     "CIRCLE_SEGMENTS",
     "ICO_LEVEL",
     "body_prism",
     "body_surface",
+    "capsule_mesh",
     "check_poses",
     "export_bodies",
     "icosphere",

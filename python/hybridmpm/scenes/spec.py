@@ -38,7 +38,7 @@ It loads from and saves to TOML or JSON (chosen by the file suffix)::
     angle_deg = -20.0
 
     [[bodies]]              # a rigid body the fluid moves (docs/bodies.md)
-    shape = "box"           # or "sphere" / "circle" with radius
+    shape = "box"           # or "sphere" / "circle" (radius), "capsule" (radius, half_height), "mesh" (3D: path)
     center = [0.5, 0.5]
     half_extents = [0.06, 0.04]
     density = 500.0         # kg/m³ (or mass, kg per unit depth in 2D)
@@ -102,6 +102,7 @@ from hybridmpm.limits import check_allocation
 from hybridmpm.materials import block_keys, material_from_block
 from hybridmpm.mpm import DT_FRAME, MpmParams
 from hybridmpm.mpm.bodies import check_bodies
+from hybridmpm.scenes.body_mesh import resolve_mesh_body
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 from hybridmpm.scenes.obstacles import (
     MAX_OBSTACLES,
@@ -346,7 +347,10 @@ class SceneSpec:
                 pd[k] = d[k]
         # a mesh obstacle is checked here and sampled once the grid is known; a path is set aside until then
         pd["colliders"], pending = read_obstacles(d.get("obstacles", []), dim, base_dir, confine)
-        pd["bodies"] = d.get("bodies", [])
+        raw_bodies = d.get("bodies", [])
+        if isinstance(raw_bodies, list):  # a mesh body's file is read against the scene's folder (MpmParams.from_dict names a non-list)
+            raw_bodies = [resolve_mesh_body(b, f"bodies[{i}]", dim, base_dir, confine) if isinstance(b, dict) else b for i, b in enumerate(raw_bodies)]
+        pd["bodies"] = raw_bodies
         if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
             raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
         try:

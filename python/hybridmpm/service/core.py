@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedFrame, Recording
@@ -532,9 +533,12 @@ class SessionCore:
         return [clean({f.name: getattr(b, f.name) for f in dataclasses.fields(b) if getattr(b, f.name) is not None}) for b in given]
 
     def bodies_now(self) -> list[dict[str, Any]]:
-        """Each body's shape and size as given (``half_extents`` or ``radius``),
-        its ``mass`` [kg; per unit depth in 2D] and its ``center``, ``rotation``,
-        ``velocity`` and ``angular_velocity`` at the current frame; ``[]`` without bodies."""
+        """Each body's shape and size as given (``half_extents``, ``radius``,
+        a capsule's ``radius`` and ``half_height``; a mesh's hull as
+        ``vertices`` [[x, y, z], ...] in the body's frame [m] and ``faces``
+        [[i, j, k], ...], outward), its ``mass`` [kg; per unit depth in 2D]
+        and its ``center`` (centre of mass), ``rotation``, ``velocity`` and
+        ``angular_velocity`` at the current frame; ``[]`` without bodies."""
         for _ in range(3):  # read without the session's lock (a description never waits for a step): a body added meanwhile reads again
             given = self.bodies_given()
             if not given:
@@ -544,7 +548,11 @@ class SessionCore:
                 break
         out: list[dict[str, Any]] = []
         for i, g in enumerate(given[: len(b)]):
-            body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius") if k in g}, "mass": float(b.mass[i])}
+            body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius", "half_height") if k in g}, "mass": float(b.mass[i])}
+            if g["shape"] == "mesh":
+                hull = Body.from_dict(g).hull()
+                body["vertices"] = clean(np.asarray(hull["vertices"], np.float64).tolist())
+                body["faces"] = np.asarray(hull["faces"], np.int64).tolist()
             for k in ("center", "rotation", "velocity", "angular_velocity"):
                 body[k] = clean(np.asarray(getattr(b, k)[i], np.float64).tolist())
             out.append(body)

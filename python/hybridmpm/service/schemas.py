@@ -165,13 +165,28 @@ class BlockPoured(BaseModel):
     frame: int = Field(description="the session's frame when the block was poured")
 
 
-class BodyAdd(Strict):
-    """A rigid body added to a session: a scene file's ``[[bodies]]`` table (docs/bodies.md)."""
+#: Most points a mesh body added over HTTP may give (``BodyAdd.vertices``).
+MAX_BODY_VERTICES = 4096
 
-    shape: Literal["box", "sphere", "circle"] = Field(description="box (half_extents) or sphere / circle (radius)")
-    center: list[Number] = Field(min_length=2, max_length=3, description="its centre of mass [m], inside the walls")
+
+class BodyAdd(Strict):
+    """A rigid body added to a session: a scene file's ``[[bodies]]`` table (docs/bodies.md). A mesh body
+    (3D) comes as its points inline (``vertices``, at most :data:`MAX_BODY_VERTICES`), never as a path: a
+    request names no file on the server's disk."""
+
+    shape: Literal["box", "sphere", "circle", "capsule", "mesh"] = Field(
+        description="box (half_extents), sphere / circle (radius), capsule (radius, half_height) or, in 3D, mesh (vertices: the body is their convex hull)"
+    )
+    center: list[Number] = Field(min_length=2, max_length=3, description="its centre of mass [m], inside the walls (a mesh: where its points' origin goes)")
     half_extents: list[Number] | None = Field(None, min_length=2, max_length=3, description="box: half its size along its axes [m], at least 1 cell")
-    radius: Number | None = Field(None, description="sphere / circle: its radius [m], at least 1 cell")
+    radius: Number | None = Field(None, description="sphere / circle / capsule: its radius [m], at least 1 cell")
+    half_height: Number | None = Field(None, description="capsule: half the length of its segment along the body's y axis [m], at least 1 cell")
+    vertices: list[tuple[Number, Number, Number]] | None = Field(
+        None,
+        min_length=4,
+        max_length=MAX_BODY_VERTICES,
+        description="mesh (3D): its points [[x, y, z], ...] [m]; the body is their convex hull, at least 2 cells thick",
+    )
     angle_deg: Number | None = Field(None, description="2D: its rotation, counter-clockwise [deg] (default 0)")
     rotation: list[list[Number]] | None = Field(None, min_length=2, max_length=3, description="its rotation, D×D (columns: the body's axes)")
     density: Number | None = Field(None, description="[kg/m^3], > 0; or mass")

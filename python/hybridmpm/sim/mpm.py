@@ -34,6 +34,7 @@ from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, che
 from hybridmpm.mpm.params import Collider
 from hybridmpm.mpm.solver import check_leading_particles, check_poured_blocks, core_particle_count
 from hybridmpm.scenes import make_scene
+from hybridmpm.scenes.body_mesh import resolve_mesh_body
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.obstacles import obstacle_center
 from hybridmpm.scenes.particles import ParticleSet
@@ -309,7 +310,10 @@ class MpmSimulator:
         """Add a rigid body (a :class:`~hybridmpm.mpm.bodies.Body` or its
         dict, as a scene file's ``[[bodies]]`` table) between steps; returns
         its index. Raises :class:`InvalidInputError` naming the field
-        (``bodies[i].density``, ``bodies`` past the cap); nothing changes then."""
+        (``bodies[i].density``, ``bodies`` past the cap); nothing changes then.
+        A mesh body's ``path`` is read relative to the working directory."""
+        if isinstance(body, dict):
+            body = resolve_mesh_body(body, f"bodies[{len(self.solver.params.bodies)}]", self.solver.dim)
         i = self.solver.add_body(body)
         self._frame = replace(self._frame, **self.frame_bodies())
         return i

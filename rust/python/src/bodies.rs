@@ -167,9 +167,60 @@ fn check_body(
     }
 }
 
+/// The convex hull of `points` (a list of `[x, y, z]`, metres), the body
+/// a `mesh` body of these points is (`hybridmpm_mpm::body::Hull`): a dict
+/// of `points` float32 [V, 3] (the hull's vertices, in the points' frame:
+/// what a body keeps), `vertices` float32 [V, 3] (the same, in the body's
+/// frame: centre of mass at 0), `faces` uint32 [F, 3] (outward), `offset`
+/// float32 [3] (the centre of mass in the points' frame) and `volume`
+/// [m³]. Raises `InvalidInputError` naming `field` (fewer than 4 points,
+/// a non-finite one, all on one plane, more than `MAX_HULL_POINTS`).
+#[pyfunction]
+fn body_hull<'py>(
+    py: Python<'py>,
+    points: Vec<Vec<f32>>,
+    field: &str,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (prefix, key) = match field.rsplit_once('.') {
+        Some((a, "path")) => (a, "path"),
+        Some((a, "vertices")) => (a, "vertices"),
+        _ => (field, "vertices"),
+    };
+    if let Some(i) = points.iter().position(|p| p.len() != 3) {
+        return Err(invalid_input(
+            py,
+            &format!("{prefix}.{key}"),
+            format!("point {i}: expected 3 numbers, got {:?}", points[i]),
+        ));
+    }
+    let pts: Vec<[f32; 3]> = points.iter().map(|p| [p[0], p[1], p[2]]).collect();
+    let hull = core::body::Hull::new(&pts, prefix, key).map_err(|e| to_py(py, e))?;
+    let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+    let n = hull.vertices.len();
+    let out = PyDict::new(py);
+    out.set_item(
+        "points",
+        PyArray1::from_vec(py, flat(&hull.source)).reshape(vec![n, 3])?,
+    )?;
+    out.set_item(
+        "vertices",
+        PyArray1::from_vec(py, flat(&hull.vertices)).reshape(vec![n, 3])?,
+    )?;
+    let faces: Vec<u32> = hull.faces.iter().flatten().copied().collect();
+    out.set_item(
+        "faces",
+        PyArray1::from_vec(py, faces).reshape(vec![hull.faces.len(), 3])?,
+    )?;
+    out.set_item("offset", PyArray1::from_vec(py, hull.offset.to_vec()))?;
+    out.set_item("volume", hull.volume)?;
+    Ok(out)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_BODIES", core::body::MAX_BODIES)?;
     m.add("BODY_STATE_LEN", STATE_LEN)?;
+    m.add("MAX_HULL_POINTS", core::body::MAX_HULL_POINTS)?;
     m.add_function(wrap_pyfunction!(check_body, m)?)?;
+    m.add_function(wrap_pyfunction!(body_hull, m)?)?;
     Ok(())
 }
