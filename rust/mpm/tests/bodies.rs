@@ -4,7 +4,9 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use hybridmpm_mpm::{Body, BodyParams, BodyShapeKind, Material, Particle, Solver, SolverParams};
+use hybridmpm_mpm::{
+    Body, BodyParams, BodyShape, BodyShapeKind, Material, Particle, Solver, SolverParams,
+};
 use nalgebra::SVector;
 
 const DT: f32 = 2.5e-3;
@@ -66,22 +68,24 @@ fn water<const D: usize>(
 /// Signed distance to a body as given (its initial pose).
 fn sdf<const D: usize>(b: &Body<D>, x: &SVector<f32, D>) -> f32 {
     let q = b.rotation.tr_mul(&(x - b.center));
-    match b.shape {
-        hybridmpm_mpm::BodyShape::Ball { radius } => q.norm() - radius,
-        hybridmpm_mpm::BodyShape::Box { half_extents } => {
+    match &b.shape {
+        BodyShape::Ball { radius } => q.norm() - radius,
+        BodyShape::Box { half_extents } => {
             let e = q.abs() - half_extents;
             let out = e.map(|v| v.max(0.0)).norm();
             out + e.max().min(0.0)
         }
+        _ => unimplemented!("boxes and balls only"),
     }
 }
 
 /// The water level [m] in the columns of `x` in `[x0, x1]`: the mean over
-/// its columns of a cell of the top particle (a quarter cell above the
-/// highest particle's centre).
+/// its columns of a quarter cell above the top particle's centre (the
+/// particles start half a cell apart, so the top one sits a quarter cell
+/// below the surface).
 fn level(s: &Solver<2>, x0: f32, x1: f32) -> f32 {
     let dx = s.params().dx();
-    let cols = ((x1 - x0) / dx).ceil() as usize;
+    let cols = ((x1 - x0) / dx).ceil().max(1.0) as usize;
     let mut top = vec![f32::MIN; cols];
     s.for_each_particle(|_, p| {
         if p.x[0] >= x0 && p.x[0] < x1 {
@@ -89,7 +93,17 @@ fn level(s: &Solver<2>, x0: f32, x1: f32) -> f32 {
             top[c] = top[c].max(p.x[1]);
         }
     });
-    top.iter().sum::<f32>() / cols as f32 + 0.25 * dx
+    let top: Vec<f32> = top.into_iter().filter(|&t| t > f32::MIN).collect();
+    top.iter().sum::<f32>() / top.len().max(1) as f32 + 0.25 * dx
+}
+
+/// The body's horizontal reach from its centre [m] at its current pose.
+fn half_width(s: &Solver<2>, i: usize) -> f32 {
+    let r = s.bodies().states()[i].rotation::<2>();
+    match &s.bodies().bodies()[i].shape {
+        BodyShape::Box { half_extents: h } => (r[(0, 0)] * h[0]).abs() + (r[(0, 1)] * h[1]).abs(),
+        shape => shape.bounding_radius(),
+    }
 }
 
 /// The water level [m] beside body `i`: in the columns from 1 to 4 cells
@@ -97,18 +111,90 @@ fn level(s: &Solver<2>, x0: f32, x1: f32) -> f32 {
 fn level_beside(s: &Solver<2>, i: usize) -> f32 {
     let dx = s.params().dx();
     let st = &s.bodies().states()[i];
-    let half = s.bodies().bodies()[i].shape.bounding_radius();
+    let half = half_width(s, i);
     let (a, b) = (st.x[0] - half, st.x[0] + half);
     0.5 * (level(s, a - 4.0 * dx, a - dx) + level(s, b + dx, b + 4.0 * dx))
 }
 
-/// The share of body `i`'s area (2D) below height `y`, by sampling.
-fn submerged_share(s: &Solver<2>, i: usize, y: f32) -> f32 {
+/// The hydrostatic level [m] beside body `i`: over the particles in the
+/// same columns as [`level_beside`] more than two cells below that level,
+/// the mean of `y + p / (ρ g)` (pressure `p = K (1 − J)`, density `ρ0 / J`).
+fn hydrostatic_level_beside(s: &Solver<2>, i: usize) -> f32 {
+    let p = s.params();
+    let dx = p.dx();
+    let g = -p.gravity[1];
+    let top = level_beside(s, i);
     let st = &s.bodies().states()[i];
-    let hybridmpm_mpm::BodyShape::Box { half_extents: h } = s.bodies().bodies()[i].shape else {
-        unreachable!()
-    };
+    let half = half_width(s, i);
+    let (a, b) = (st.x[0] - half, st.x[0] + half);
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    s.for_each_particle(|_, q| {
+        let x = q.x[0];
+        let beside = (x >= a - 4.0 * dx && x < a - dx) || (x >= b + dx && x < b + 4.0 * dx);
+        if beside && q.x[1] < top - 2.0 * dx {
+            let pr = p.water.bulk_modulus * (1.0 - q.j);
+            let rho = p.water.density / q.j;
+            sum += (q.x[1] + pr / (rho * g)) as f64;
+            n += 1;
+        }
+    });
+    (sum / n.max(1) as f64) as f32
+}
+
+/// The mean level [m] of the columns farther than 4 cells from every body.
+fn far_level(s: &Solver<2>) -> (f32, f32, f32) {
+    let dx = s.params().dx();
+    let lo = (s.params().walls.cells - 1) as f32 * dx;
+    let mut tops = Vec::new();
+    let mut x = lo;
+    while x + dx <= 1.0 - lo {
+        let c = x + 0.5 * dx;
+        let clear = (0..s.bodies().len()).all(|i| {
+            let st = &s.bodies().states()[i];
+            (c - st.x[0]).abs() > half_width(s, i) + 4.0 * dx
+        });
+        if clear {
+            tops.push(level(s, x, x + dx));
+        }
+        x += dx;
+    }
+    let mean = tops.iter().sum::<f32>() / tops.len().max(1) as f32;
+    let lo = tops.iter().cloned().fold(f32::MAX, f32::min);
+    let hi = tops.iter().cloned().fold(f32::MIN, f32::max);
+    (mean, lo, hi)
+}
+
+/// Mass of the water [kg per unit depth] lying on body `i`'s top face
+/// (within its width, up to 2 cells above it), as a share of the body's mass.
+fn water_on_top(s: &Solver<2>, i: usize) -> f32 {
+    let dx = s.params().dx();
+    let st = &s.bodies().states()[i];
     let r = st.rotation::<2>();
+    let BodyShape::Box { half_extents: h } = s.bodies().bodies()[i].shape.clone() else {
+        return 0.0;
+    };
+    let c = SVector::<f32, 2>::new(st.x[0], st.x[1]);
+    let mut m = 0.0;
+    s.for_each_particle(|_, p| {
+        let q = r.tr_mul(&(p.x - c));
+        // the face pointing most upwards: the body's axis closest to +y
+        for (axis, sign) in [(0usize, 1.0f32), (0, -1.0), (1, 1.0), (1, -1.0)] {
+            let up = sign * r[(1, axis)];
+            if up > 0.7 {
+                let o = 1 - axis;
+                let along = sign * q[axis] - h[axis];
+                if q[o].abs() < h[o] && along > 0.0 && along < 2.0 * dx {
+                    m += p.mass;
+                }
+            }
+        }
+    });
+    m / s.bodies().bodies()[i].mass()
+}
+
+/// The share of a box's area (2D) of half extents `h` at centre height `y0`,
+/// rotation `r`, below height `y`, by sampling.
+fn share_below(h: &SVector<f32, 2>, r: &nalgebra::Matrix2<f32>, y0: f32, y: f32) -> f32 {
     let k = 200;
     let mut below = 0;
     for a in 0..k {
@@ -117,8 +203,7 @@ fn submerged_share(s: &Solver<2>, i: usize, y: f32) -> f32 {
                 ((a as f32 + 0.5) / k as f32 * 2.0 - 1.0) * h[0],
                 ((b as f32 + 0.5) / k as f32 * 2.0 - 1.0) * h[1],
             );
-            let x = r * q;
-            if st.x[1] + x[1] < y {
+            if y0 + (r * q)[1] < y {
                 below += 1;
             }
         }
@@ -126,90 +211,347 @@ fn submerged_share(s: &Solver<2>, i: usize, y: f32) -> f32 {
     below as f32 / (k * k) as f32
 }
 
-/// Boxes of density 250, 500 and 750 kg/m³ in a 128² tank of water 0.4 m
-/// deep, placed at their Archimedes depth: over the last 400 of 1,200
-/// frames the share of each box's area below the water level stays within
-/// (one cell + 2 % of its height) / height of ρ_b / ρ_w. (61 s on 2 busy
-/// cores; measured: mean shares 0.2715 / 0.4764 / 0.8081, worst errors
-/// 0.041 / 0.060 / 0.1186 against 0.1177: the 750 box misses by 0.001.)
-#[test]
-#[ignore = "the 750 kg/m3 box's worst share error is 0.1186 against 0.1177 (docs/bodies.md)"]
-fn boxes_float_at_their_archimedes_depth_2d() {
+/// The share of body `i`'s area (2D) below height `y`.
+fn submerged_share(s: &Solver<2>, i: usize, y: f32) -> f32 {
+    let st = &s.bodies().states()[i];
+    let BodyShape::Box { half_extents: h } = s.bodies().bodies()[i].shape.clone() else {
+        unreachable!("boxes only")
+    };
+    share_below(&h, &st.rotation::<2>(), st.x[1], y)
+}
+
+/// One run of the floating boxes ([`float_boxes_2d`]).
+struct FloatCase {
+    n_grid: usize,
+    frames: usize,
+    /// Frames at the end over which the shares are measured.
+    last: usize,
+    /// Every box moved along x by this many cells.
+    shift_cells: f32,
+    /// Every box tilted by this angle [degrees].
+    tilt_deg: f64,
+}
+
+/// Per box: mean share below the level, worst error, expected share.
+struct Floated {
+    mean: Vec<f64>,
+    worst: Vec<f32>,
+    expected: Vec<f32>,
+    tol: f32,
+}
+
+/// Water 0.4 m deep in a tank of `c.n_grid`², at rest (its volume ratio
+/// `J` hydrostatic), and boxes of 0.12 × 0.08 m of 250, 500 and 750 kg/m³
+/// placed, tilted, with their share below the surface at ρ_b / ρ_w; the
+/// share of each box's area below the level beside it ([`level_beside`]),
+/// over the last `c.last` of `c.frames` frames.
+fn float_boxes_2d(c: &FloatCase) -> Floated {
     let p = SolverParams::<2> {
-        n_grid: 128,
+        n_grid: c.n_grid,
         num_threads: 2,
         ..Default::default()
     };
     let dx = p.dx();
-    let lo = p.walls.cells as f32 * dx;
-    let surface = lo + 0.4;
-    let h = [0.06f32, 0.04];
+    // the water rests a cell inside the wall band (`wall_face` in
+    // python/hybridmpm/scenes/core.py): it starts there, at rest
+    let lo = (p.walls.cells - 1) as f32 * dx;
+    // 0.4 m of water, rounded to the lattice's rows (dx/2 apart)
+    let surface = lo + (0.4 / (0.5 * dx)).round() * 0.5 * dx;
+    let h = SVector::<f32, 2>::new(0.06, 0.04);
     let rhos = [250.0f32, 500.0, 750.0];
     let xs = [0.3f32, 0.55, 0.8];
+    let rot = nalgebra::Rotation2::new(c.tilt_deg.to_radians() as f32).into_inner();
     let bodies: Vec<Body<2>> = rhos
         .iter()
         .zip(xs)
         .map(|(&rho, x)| {
-            let draft = rho / 1000.0 * 2.0 * h[1];
-            boxed::<2>(&[x, surface + h[1] - draft], &h, rho, 0.0)
+            // the centre height at which the share below the surface is ρ_b / ρ_w
+            let want = rho / p.water.density;
+            let (mut a, mut b) = (surface - h.norm(), surface + h.norm());
+            for _ in 0..40 {
+                let m = 0.5 * (a + b);
+                if share_below(&h, &rot, m, surface) > want {
+                    a = m;
+                } else {
+                    b = m;
+                }
+            }
+            let centre = [x + c.shift_cells * dx, 0.5 * (a + b)];
+            boxed::<2>(&centre, h.as_slice(), rho, c.tilt_deg)
         })
         .collect();
     let mut s = Solver::new(p.clone(), vec![]).unwrap();
     for b in &bodies {
         s.add_body(b.clone()).unwrap();
     }
-    s.set_particles(water([lo, lo], [1.0 - lo, surface], &p, &bodies, 0.0))
-        .unwrap();
-    let n = frames();
-    let mut worst = [0.0f32; 3];
-    let mut mean = [0.0f64; 3];
+    let mut ps = water([lo, lo], [1.0 - lo, surface], &p, &bodies, 0.0);
+    let g = -p.gravity[1];
+    for q in ps.iter_mut() {
+        // at rest: the pressure K (1 − J) of the water above
+        q.j = 1.0 - p.water.density * g * (surface - q.x[1]) / p.water.bulk_modulus;
+    }
+    s.set_particles(ps).unwrap();
+    let trace = std::env::var_os("BODIES_TRACE").is_some();
+    let nb = bodies.len();
+    let mut worst = vec![0.0f32; nb];
+    let mut mean = vec![0.0f64; nb];
     let mut counted = 0;
-    for f in 0..n {
+    for f in 0..c.frames {
         s.step_frame(DT).unwrap();
-        if std::env::var_os("BODIES_TRACE").is_some() && f % 20 == 0 {
-            for i in 0..3 {
+        if trace && f % 20 == 0 {
+            let (far, far_lo, far_hi) = far_level(&s);
+            eprintln!("f {f} far level {far:.4} [{far_lo:.4}, {far_hi:.4}]");
+            for i in 0..nb {
                 let y = level_beside(&s, i);
+                let yh = hydrostatic_level_beside(&s, i);
                 let st = &s.bodies().states()[i];
                 let m = s.bodies().bodies()[i].mass();
                 eprintln!(
-                    "f {f} body {i} level {y:.4} y {:.4} vy {:.4} w {:.3} share {:.3} F/mg {:.3}",
+                    "  body {i} level {y:.4} hydro {yh:.4} y {:.4} vy {:.4} tilt {:.2} share {:.3} hydro {:.3} far {:.3} on top {:.3} F/mg {:.3}",
                     st.x[1],
                     st.v[1],
-                    st.w[2],
+                    st.q[1].atan2(st.q[0]).to_degrees(),
                     submerged_share(&s, i, y),
-                    s.bodies().last_force()[i][1] / (m as f64 * 9.8)
+                    submerged_share(&s, i, yh),
+                    submerged_share(&s, i, far),
+                    water_on_top(&s, i),
+                    s.bodies().last_force()[i][1] / (m as f64 * g as f64)
                 );
             }
         }
-        if f + 400 >= n {
+        if f + c.last >= c.frames {
             counted += 1;
-            for i in 0..3 {
-                let y = level_beside(&s, i);
-                let share = submerged_share(&s, i, y);
-                let err = (share - rhos[i] / 1000.0).abs();
+            for i in 0..nb {
+                let share = submerged_share(&s, i, level_beside(&s, i));
+                let err = (share - rhos[i] / p.water.density).abs();
                 worst[i] = worst[i].max(err);
                 mean[i] += share as f64;
             }
         }
     }
     let tol = (dx + 0.02 * 2.0 * h[1]) / (2.0 * h[1]);
-    for i in 0..3 {
+    let expected: Vec<f32> = rhos.iter().map(|r| r / p.water.density).collect();
+    for i in 0..nb {
+        mean[i] /= counted as f64;
         eprintln!(
-            "density {}: mean share {:.4} (expected {:.3}), worst error {:.4} (tolerance {tol:.4})",
-            rhos[i],
-            mean[i] / counted as f64,
-            rhos[i] / 1000.0,
-            worst[i]
+            "n_grid {} shift {} cells tilt {}°: density {}: mean share {:.4} (expected {:.3}), worst error {:.4} (tolerance {tol:.4})",
+            c.n_grid, c.shift_cells, c.tilt_deg, rhos[i], mean[i], expected[i], worst[i]
         );
     }
-    for i in 0..3 {
+    Floated {
+        mean,
+        worst,
+        expected,
+        tol,
+    }
+}
+
+fn assert_floated(r: &Floated) {
+    for i in 0..r.worst.len() {
         assert!(
-            worst[i] <= tol,
-            "density {}: error {} > {tol}",
-            rhos[i],
-            worst[i]
+            r.worst[i] <= r.tol,
+            "box {i} (expected share {}): mean share {}, worst error {} > {}",
+            r.expected[i],
+            r.mean[i],
+            r.worst[i],
+            r.tol
         );
     }
+}
+
+/// The full run: 128², the last 400 of 1,200 frames (`BODIES_FRAMES`
+/// changes the length), untilted and unshifted or as `BODIES_SHIFT` cells
+/// and `BODIES_TILT` degrees say.
+#[test]
+#[ignore = "slow (about a minute): benchmarks/bodies/run.py runs it"]
+fn boxes_float_at_their_archimedes_depth_2d() {
+    let env = |k: &str, d: f64| {
+        std::env::var(k)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(d)
+    };
+    let r = float_boxes_2d(&FloatCase {
+        n_grid: 128,
+        frames: frames(),
+        last: 400.min(frames() / 3),
+        shift_cells: env("BODIES_SHIFT", 0.0) as f32,
+        tilt_deg: env("BODIES_TILT", 0.0),
+    });
+    assert_floated(&r);
+}
+
+/// The short run in the test suite: 128², the last 120 of 240 frames, the
+/// boxes shifted by 3 cells and tilted by 10° (the full runs, untilted and
+/// tilted, are benchmarks/bodies/run.py's).
+#[test]
+fn boxes_float_at_their_archimedes_depth_2d_short() {
+    let r = float_boxes_2d(&FloatCase {
+        n_grid: 128,
+        frames: 240,
+        last: 120,
+        shift_cells: 3.0,
+        tilt_deg: 10.0,
+    });
+    assert_floated(&r);
+}
+
+/// The share of a 3D box's volume of half extents `h`, centre height
+/// `y0`, rotation `r`, below height `y`, by sampling.
+fn share_below_3d(h: &SVector<f32, 3>, r: &nalgebra::Matrix3<f32>, y0: f32, y: f32) -> f32 {
+    let k = 40;
+    let mut below = 0;
+    for a in 0..k {
+        for b in 0..k {
+            for c in 0..k {
+                let t = |i: usize, d: usize| ((i as f32 + 0.5) / k as f32 * 2.0 - 1.0) * h[d];
+                let q = SVector::<f32, 3>::new(t(a, 0), t(b, 1), t(c, 2));
+                if y0 + (r * q)[1] < y {
+                    below += 1;
+                }
+            }
+        }
+    }
+    below as f32 / (k * k * k) as f32
+}
+
+/// The water level [m] beside body `i` in 3D: the mean over the columns
+/// (one cell square) from 1 to 4 cells beyond the body's extent in x or z
+/// of a quarter cell above the top particle's centre.
+fn level_beside_3d(s: &Solver<3>, i: usize) -> f32 {
+    let dx = s.params().dx();
+    let n = s.params().n_grid;
+    let st = &s.bodies().states()[i];
+    let r = st.rotation::<3>();
+    let BodyShape::Box { half_extents: h } = s.bodies().bodies()[i].shape.clone() else {
+        unreachable!("boxes only")
+    };
+    let ext = |d: usize| (0..3).map(|k| (r[(d, k)] * h[k]).abs()).sum::<f32>();
+    let (ex, ez) = (ext(0), ext(2));
+    let mut top = vec![f32::MIN; n * n];
+    s.for_each_particle(|_, p| {
+        let (cx, cz) = ((p.x[0] / dx) as usize, (p.x[2] / dx) as usize);
+        let t = &mut top[cx.min(n - 1) * n + cz.min(n - 1)];
+        *t = t.max(p.x[1]);
+    });
+    let (mut sum, mut cols) = (0.0f32, 0);
+    for cx in 0..n {
+        for cz in 0..n {
+            let x = (cx as f32 + 0.5) * dx - st.x[0];
+            let z = (cz as f32 + 0.5) * dx - st.x[2];
+            let away = ((x.abs() - ex).max(z.abs() - ez)) / dx;
+            let t = top[cx * n + cz];
+            if (1.0..=4.0).contains(&away) && t > f32::MIN {
+                sum += t;
+                cols += 1;
+            }
+        }
+    }
+    sum / cols.max(1) as f32 + 0.25 * dx
+}
+
+/// A cube of 500 kg/m³ (0.14 m a side) on a 32³ tank of water 0.25 m deep
+/// at rest, placed at its Archimedes depth: over the last `last` of
+/// `frames` frames the share of its volume below the level beside it stays
+/// within (one cell + 2 % of its height) / height of ρ_b / ρ_w. Returns
+/// (mean share, worst error, tolerance).
+fn float_cube_3d(frames: usize, last: usize, tilt_deg: f32) -> (f64, f32, f32) {
+    let p = SolverParams::<3> {
+        n_grid: 32,
+        num_threads: 2,
+        ..Default::default()
+    };
+    let dx = p.dx();
+    // the water rests a cell inside the wall band (`wall_face` in
+    // python/hybridmpm/scenes/core.py): it starts there, at rest
+    let lo = (p.walls.cells - 1) as f32 * dx;
+    let surface = lo + (0.25 / (0.5 * dx)).round() * 0.5 * dx;
+    let h = SVector::<f32, 3>::new(0.07, 0.07, 0.07);
+    let rho = 500.0;
+    let rot =
+        nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), tilt_deg.to_radians());
+    let want = rho / p.water.density;
+    let (mut a, mut b) = (surface - h.norm(), surface + h.norm());
+    for _ in 0..30 {
+        let m = 0.5 * (a + b);
+        if share_below_3d(&h, rot.matrix(), m, surface) > want {
+            a = m;
+        } else {
+            b = m;
+        }
+    }
+    let cube: Body<3> = BodyParams {
+        shape: Some(BodyShapeKind::Box),
+        center: Some(vec![0.45, 0.5 * (a + b), 0.55]),
+        half_extents: Some(h.as_slice().to_vec()),
+        rotation: Some(
+            (0..3)
+                .map(|c| (0..3).map(|k| rot[(k, c)]).collect())
+                .collect(),
+        ),
+        density: Some(rho),
+        ..Default::default()
+    }
+    .build::<3>("body")
+    .unwrap();
+    let mut s = Solver::new(p.clone(), vec![]).unwrap();
+    s.add_body(cube.clone()).unwrap();
+    let mut ps = water(
+        [lo, lo, lo],
+        [1.0 - lo, surface, 1.0 - lo],
+        &p,
+        &[cube],
+        0.0,
+    );
+    let g = -p.gravity[1];
+    for q in ps.iter_mut() {
+        q.j = 1.0 - p.water.density * g * (surface - q.x[1]) / p.water.bulk_modulus;
+    }
+    s.set_particles(ps).unwrap();
+    let (mut worst, mut mean, mut counted) = (0.0f32, 0.0f64, 0);
+    for f in 0..frames {
+        s.step_frame(DT).unwrap();
+        if f + last >= frames {
+            let st = &s.bodies().states()[0];
+            let share = share_below_3d(&h, &st.rotation::<3>(), st.x[1], level_beside_3d(&s, 0));
+            worst = worst.max((share - want).abs());
+            mean += share as f64;
+            counted += 1;
+        }
+    }
+    let tol = (dx + 0.02 * 2.0 * h[1]) / (2.0 * h[1]);
+    mean /= counted as f64;
+    eprintln!(
+        "cube 32³ tilt {tilt_deg}°: density {rho}: mean share {mean:.4} (expected {want:.3}), worst error {worst:.4} (tolerance {tol:.4})"
+    );
+    (mean, worst, tol)
+}
+
+/// The cube's short run in the test suite: the last 120 of 240 frames,
+/// tilted by 10° (the full run is benchmarks/bodies/run.py's).
+#[test]
+fn cube_floats_at_its_archimedes_depth_3d_short() {
+    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0);
+    assert!(
+        worst <= tol,
+        "mean share {mean}, worst error {worst} > {tol}"
+    );
+}
+
+/// The cube's full run: the last 400 of 1,200 frames (`BODIES_FRAMES`),
+/// tilted by `BODIES_TILT` degrees (default 0).
+#[test]
+#[ignore = "slow: benchmarks/bodies/run.py runs it"]
+fn cube_floats_at_its_archimedes_depth_3d() {
+    let tilt = std::env::var("BODIES_TILT")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0.0);
+    let (mean, worst, tol) = float_cube_3d(frames(), 400.min(frames() / 3), tilt);
+    assert!(
+        worst <= tol,
+        "mean share {mean}, worst error {worst} > {tol}"
+    );
 }
 
 /// Deepest a particle sits inside a body [m] (0: none inside).
