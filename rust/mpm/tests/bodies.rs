@@ -116,31 +116,6 @@ fn level_beside(s: &Solver<2>, i: usize) -> f32 {
     0.5 * (level(s, a - 4.0 * dx, a - dx) + level(s, b + dx, b + 4.0 * dx))
 }
 
-/// The hydrostatic level [m] beside body `i`: over the particles in the
-/// same columns as [`level_beside`] more than two cells below that level,
-/// the mean of `y + p / (ρ g)` (pressure `p = K (1 − J)`, density `ρ0 / J`).
-fn hydrostatic_level_beside(s: &Solver<2>, i: usize) -> f32 {
-    let p = s.params();
-    let dx = p.dx();
-    let g = -p.gravity[1];
-    let top = level_beside(s, i);
-    let st = &s.bodies().states()[i];
-    let half = half_width(s, i);
-    let (a, b) = (st.x[0] - half, st.x[0] + half);
-    let (mut sum, mut n) = (0.0f64, 0usize);
-    s.for_each_particle(|_, q| {
-        let x = q.x[0];
-        let beside = (x >= a - 4.0 * dx && x < a - dx) || (x >= b + dx && x < b + 4.0 * dx);
-        if beside && q.x[1] < top - 2.0 * dx {
-            let pr = p.water.bulk_modulus * (1.0 - q.j);
-            let rho = p.water.density / q.j;
-            sum += (q.x[1] + pr / (rho * g)) as f64;
-            n += 1;
-        }
-    });
-    (sum / n.max(1) as f64) as f32
-}
-
 /// The mean level [m] of the columns farther than 4 cells from every body.
 fn far_level(s: &Solver<2>) -> (f32, f32, f32) {
     let dx = s.params().dx();
@@ -303,16 +278,14 @@ fn float_boxes_2d(c: &FloatCase) -> Floated {
             eprintln!("f {f} far level {far:.4} [{far_lo:.4}, {far_hi:.4}]");
             for i in 0..nb {
                 let y = level_beside(&s, i);
-                let yh = hydrostatic_level_beside(&s, i);
                 let st = &s.bodies().states()[i];
                 let m = s.bodies().bodies()[i].mass();
                 eprintln!(
-                    "  body {i} level {y:.4} hydro {yh:.4} y {:.4} vy {:.4} tilt {:.2} share {:.3} hydro {:.3} far {:.3} on top {:.3} F/mg {:.3}",
+                    "  body {i} level {y:.4} y {:.4} vy {:.4} tilt {:.2} share {:.3} far {:.3} on top {:.3} F/mg {:.3}",
                     st.x[1],
                     st.v[1],
                     st.q[1].atan2(st.q[0]).to_degrees(),
                     submerged_share(&s, i, y),
-                    submerged_share(&s, i, yh),
                     submerged_share(&s, i, far),
                     water_on_top(&s, i),
                     s.bodies().last_force()[i][1] / (m as f64 * g as f64)
