@@ -132,8 +132,8 @@ def test_nan_too_many_a_missing_index_and_the_wrong_session_are_refused(client):
     from hybridmpm.mpm.bodies import MAX_BODIES
 
     sid = _new(client)["id"]
-    for _ in range(MAX_BODIES):
-        assert client.post(f"/v1/sessions/{sid}/bodies", json=BALL).status_code == 201
+    for k in range(MAX_BODIES):  # 8 × 8 apart: a body overlapping another is refused
+        assert client.post(f"/v1/sessions/{sid}/bodies", json={**BALL, "center": [0.12 + 0.1 * (k % 8), 0.12 + 0.1 * (k // 8)]}).status_code == 201
     before = _ckpt(client, sid)
     r = client.post(f"/v1/sessions/{sid}/bodies", json=BALL)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "bodies", r.text

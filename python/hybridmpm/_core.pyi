@@ -5,11 +5,12 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "MAX_BODIES", "MpmSolver", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
+__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "MAX_BODIES", "MAX_HULL_POINTS", "MpmSolver", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
 MAX_BODIES: int
+MAX_HULL_POINTS: int
 BODY_STATE_LEN: int
 
 @final
@@ -69,6 +70,8 @@ class MpmSolver:
 def default_params(dim: int) -> dict[str, Any]: ...
 def default_collider() -> dict[str, Any]: ...
 def check_body(body: dict[str, Any], dim: int, n_grid: int, wall_cells: int, index: int) -> float: ...
+def body_hull(points: list[list[float]], field: str) -> dict[str, Any]: ...
+def bodies_overlap(a: dict[str, Any], b: dict[str, Any], dim: int, ia: int, ib: int) -> bool: ...
 def grid_mass(
     positions: npt.NDArray[np.float32],
     n_grid: int,

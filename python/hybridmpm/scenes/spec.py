@@ -102,7 +102,7 @@ from hybridmpm.limits import check_allocation
 from hybridmpm.materials import block_keys, material_from_block
 from hybridmpm.mpm import DT_FRAME, MpmParams
 from hybridmpm.mpm.bodies import check_bodies
-from hybridmpm.scenes.body_mesh import resolve_mesh_body
+from hybridmpm.scenes.body_mesh import check_overlaps, resolve_mesh_body
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
 from hybridmpm.scenes.obstacles import (
     MAX_OBSTACLES,
@@ -365,6 +365,7 @@ class SceneSpec:
             raise InvalidInputError(f"n_grid: must be an integer >= 8, got {n_grid!r}", "n_grid")
         place_obstacles(params, pending, n_grid, dim)
         check_bodies(params.bodies, dim, n_grid, params.walls.cells)
+        check_overlaps(params.bodies, params.colliders, dim, n_grid)
         blocks_raw = d.get("blocks")
         if not isinstance(blocks_raw, list) or not blocks_raw:
             raise InvalidInputError("blocks: a scene needs at least one particle block", "blocks")

@@ -216,11 +216,44 @@ fn body_hull<'py>(
     Ok(out)
 }
 
+/// Whether bodies `a` and `b` (dicts, as given, in `dim` dimensions)
+/// overlap where they are given (parry's intersection test on rapier's
+/// shapes). Raises `InvalidInputError` naming a field of a bad body
+/// (`bodies[ia]` / `bodies[ib]`).
+#[pyfunction]
+fn bodies_overlap(
+    py: Python<'_>,
+    a: &Bound<'_, PyAny>,
+    b: &Bound<'_, PyAny>,
+    dim: usize,
+    ia: usize,
+    ib: usize,
+) -> PyResult<bool> {
+    let (fa, fb) = (format!("bodies[{ia}]"), format!("bodies[{ib}]"));
+    let (pa, pb) = (read(a, &fa)?, read(b, &fb)?);
+    match dim {
+        2 => {
+            let (x, y) = (build::<2>(py, &pa, &fa)?, build::<2>(py, &pb, &fb)?);
+            Ok(x.overlaps(&BodyState::of(&x), &y, &BodyState::of(&y)))
+        }
+        3 => {
+            let (x, y) = (build::<3>(py, &pa, &fa)?, build::<3>(py, &pb, &fb)?);
+            Ok(x.overlaps(&BodyState::of(&x), &y, &BodyState::of(&y)))
+        }
+        _ => Err(invalid_input(
+            py,
+            "dim",
+            format!("must be 2 or 3, got {dim}"),
+        )),
+    }
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_BODIES", core::body::MAX_BODIES)?;
     m.add("BODY_STATE_LEN", STATE_LEN)?;
     m.add("MAX_HULL_POINTS", core::body::MAX_HULL_POINTS)?;
     m.add_function(wrap_pyfunction!(check_body, m)?)?;
     m.add_function(wrap_pyfunction!(body_hull, m)?)?;
+    m.add_function(wrap_pyfunction!(bodies_overlap, m)?)?;
     Ok(())
 }

@@ -245,6 +245,16 @@ impl<const D: usize> Body<D> {
         }
     }
 
+    /// Whether this body at state `state` overlaps `other` at `other_state`
+    /// (parry's intersection test on rapier's shapes).
+    pub fn overlaps(&self, state: &BodyState, other: &Body<D>, other_state: &BodyState) -> bool {
+        world::overlap(
+            D,
+            (&self.spec().shape, state),
+            (&other.spec().shape, other_state),
+        )
+    }
+
     /// Checks the body against a grid of spacing `dx` whose walls are
     /// `wall_cells` thick: thick enough for the grid (at least
     /// [`MIN_BODY_HALF_CELLS`] cells a half extent or radius, field

@@ -36,21 +36,12 @@ impl World2 {
             .iter()
             .zip(spec.states)
             .map(|(b, s)| {
-                let pose = Pose::from_parts(
-                    Vector::new(s.x[0], s.x[1]),
-                    Rotation::from_cos_sin_unchecked(s.q[0], s.q[1]),
-                );
                 let body = RigidBodyBuilder::dynamic()
-                    .pose(pose)
+                    .pose(pose(s))
                     .linvel(Vector::new(s.v[0], s.v[1]))
                     .angvel(s.w[2])
                     .can_sleep(false);
-                let collider = match &b.shape {
-                    ShapeSpec::Box(h) => ColliderBuilder::cuboid(h[0], h[1]),
-                    ShapeSpec::Ball(r) => ColliderBuilder::ball(*r),
-                    ShapeSpec::Capsule(r, h) => ColliderBuilder::capsule_y(*h, *r),
-                    ShapeSpec::Hull(_) => unreachable!("hulls are 3D only (BodyParams::build)"),
-                };
+                let collider = ColliderBuilder::new(shared(&b.shape));
                 let collider = match b.mass {
                     Some((m, i)) => collider.mass_properties(MassProperties::new(
                         Vector::ZERO,
@@ -64,6 +55,29 @@ impl World2 {
             .collect();
         World2 { world, handles }
     }
+}
+
+fn pose(s: &BodyState) -> Pose {
+    Pose::from_parts(
+        Vector::new(s.x[0], s.x[1]),
+        Rotation::from_cos_sin_unchecked(s.q[0], s.q[1]),
+    )
+}
+
+fn shared(s: &ShapeSpec) -> SharedShape {
+    match s {
+        ShapeSpec::Box(h) => SharedShape::cuboid(h[0], h[1]),
+        ShapeSpec::Ball(r) => SharedShape::ball(*r),
+        ShapeSpec::Capsule(r, h) => SharedShape::capsule_y(*h, *r),
+        ShapeSpec::Hull(_) => unreachable!("hulls are 3D only (BodyParams::build)"),
+    }
+}
+
+/// [`super::world::overlap`] in 2D.
+pub(crate) fn overlap(a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
+    let (sa, sb) = (shared(a.0), shared(b.0));
+    rapier2d::parry::query::intersection_test(&pose(a.1), &*sa, &pose(b.1), &*sb)
+        .map_or(true, |r| r.intersecting)
 }
 
 impl RigidWorld for World2 {

@@ -38,25 +38,12 @@ impl World3 {
             .iter()
             .zip(spec.states)
             .map(|(b, s)| {
-                let pose = Pose::from_parts(
-                    Vector::from(s.x),
-                    Rotation::from_xyzw(s.q[0], s.q[1], s.q[2], s.q[3]),
-                );
                 let body = RigidBodyBuilder::dynamic()
-                    .pose(pose)
+                    .pose(pose(s))
                     .linvel(Vector::from(s.v))
                     .angvel(Vector::from(s.w))
                     .can_sleep(false);
-                let collider = match &b.shape {
-                    ShapeSpec::Box(h) => ColliderBuilder::cuboid(h[0], h[1], h[2]),
-                    ShapeSpec::Ball(r) => ColliderBuilder::ball(*r),
-                    ShapeSpec::Capsule(r, h) => ColliderBuilder::capsule_y(*h, *r),
-                    ShapeSpec::Hull(hull) => {
-                        let points = hull.vertices.iter().map(|p| Vector::from(*p)).collect();
-                        ColliderBuilder::convex_mesh(points, &hull.faces)
-                            .expect("a hull's own faces make a convex mesh (Hull::new)")
-                    }
-                };
+                let collider = ColliderBuilder::new(shared(&b.shape));
                 let collider = match b.mass {
                     Some((m, i)) => {
                         let cols = i.map(|row| Vector::from(row.map(|x| x as f32)));
@@ -75,6 +62,33 @@ impl World3 {
             .collect();
         World3 { world, handles }
     }
+}
+
+fn pose(s: &BodyState) -> Pose {
+    Pose::from_parts(
+        Vector::from(s.x),
+        Rotation::from_xyzw(s.q[0], s.q[1], s.q[2], s.q[3]),
+    )
+}
+
+fn shared(s: &ShapeSpec) -> SharedShape {
+    match s {
+        ShapeSpec::Box(h) => SharedShape::cuboid(h[0], h[1], h[2]),
+        ShapeSpec::Ball(r) => SharedShape::ball(*r),
+        ShapeSpec::Capsule(r, h) => SharedShape::capsule_y(*h, *r),
+        ShapeSpec::Hull(hull) => {
+            let points = hull.vertices.iter().map(|p| Vector::from(*p)).collect();
+            SharedShape::convex_mesh(points, &hull.faces)
+                .expect("a hull's own faces make a convex mesh (Hull::new)")
+        }
+    }
+}
+
+/// [`super::world::overlap`] in 3D.
+pub(crate) fn overlap(a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
+    let (sa, sb) = (shared(a.0), shared(b.0));
+    rapier3d::parry::query::intersection_test(&pose(a.1), &*sa, &pose(b.1), &*sb)
+        .map_or(true, |r| r.intersecting)
 }
 
 impl RigidWorld for World3 {

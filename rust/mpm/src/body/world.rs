@@ -64,6 +64,16 @@ pub(crate) trait RigidWorld: Send + Sync {
     fn step(&mut self, dt: f32);
 }
 
+/// Whether two bodies' shapes overlap at their states (parry's
+/// intersection test on rapier's shapes; in dimension `d`, 2 or 3).
+pub(crate) fn overlap(d: usize, a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
+    if d == 2 {
+        super::rapier2::overlap(a, b)
+    } else {
+        super::rapier3::overlap(a, b)
+    }
+}
+
 /// The world of dimension `d` (2 or 3) built from `spec`.
 pub(crate) fn build(d: usize, spec: &WorldSpec<'_>) -> Box<dyn RigidWorld> {
     if d == 2 {

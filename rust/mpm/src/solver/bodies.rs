@@ -1,8 +1,10 @@
 //! The solver's rigid bodies: adding, removing and reading them between
 //! frames, and their part in a frame ([`crate::body`], docs/bodies.md).
 
+use nalgebra::SVector;
+
 use super::Solver;
-use crate::body::{Bodies, Body, BodyState, MAX_BODIES};
+use crate::body::{Bodies, Body, BodyPose, BodyState, MAX_BODIES};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 
@@ -17,7 +19,9 @@ where
     }
 
     /// Adds a body (between frames); returns its index. Errors name the
-    /// field under `bodies[i]` ([`Body::validate`]), or `bodies` beyond
+    /// field under `bodies[i]` ([`Body::validate`]; `center` for a body
+    /// that overlaps another body where it is now, by parry's intersection
+    /// test, or an obstacle, at a grid node inside both), or `bodies` beyond
     /// [`MAX_BODIES`]; on error nothing changes.
     pub fn add_body(&mut self, body: Body<D>) -> Result<usize> {
         let i = self.bodies.len();
@@ -32,8 +36,87 @@ where
             self.params.dx(),
             self.params.walls.cells,
         )?;
+        self.check_overlap(&body, i)?;
         self.bodies.push(body);
         Ok(i)
+    }
+
+    /// Adds a body as a parameter set gives it (a scene's, or a
+    /// checkpoint's before its states are set): as [`Solver::add_body`],
+    /// but not checked for overlaps (a checkpoint's bodies were checked when
+    /// they were added, against where the others were then; a scene file's
+    /// are checked when it is read).
+    pub fn add_given_body(&mut self, body: Body<D>) -> Result<usize> {
+        let i = self.bodies.len();
+        if i >= MAX_BODIES {
+            return Err(MpmError::invalid(
+                "bodies",
+                format!("at most {MAX_BODIES} bodies, the solver has {i}"),
+            ));
+        }
+        body.validate(
+            &format!("bodies[{i}]"),
+            self.params.dx(),
+            self.params.walls.cells,
+        )?;
+        self.bodies.push(body);
+        Ok(i)
+    }
+
+    /// Refuses (field `bodies[i].center`) body `body`, to be body `i`, where
+    /// it overlaps a body (at that body's state now) or an obstacle.
+    fn check_overlap(&self, body: &Body<D>, i: usize) -> Result<()> {
+        let field = format!("bodies[{i}].center");
+        let state = BodyState::of(body);
+        for (j, (other, st)) in self
+            .bodies
+            .bodies()
+            .iter()
+            .zip(self.bodies.states())
+            .enumerate()
+        {
+            if body.overlaps(&state, other, st) {
+                return Err(MpmError::invalid(
+                    field,
+                    format!("the body overlaps body {j}"),
+                ));
+            }
+        }
+        if self.colliders.is_empty() {
+            return Ok(());
+        }
+        // the grid nodes inside the body: one inside an obstacle too is an overlap
+        let pose = BodyPose {
+            shape: body.shape.clone(),
+            center: body.center,
+            rotation: body.rotation,
+            velocity: SVector::zeros(),
+            angular_velocity: [0.0; 3],
+            friction: 0.0,
+        };
+        let dx = self.params.dx();
+        let r = body.shape.bounding_radius();
+        let lo: [usize; D] =
+            std::array::from_fn(|d| ((body.center[d] - r) / dx).floor().max(0.0) as usize);
+        let n: [usize; D] =
+            std::array::from_fn(|d| ((body.center[d] + r) / dx).ceil() as usize + 1 - lo[d]);
+        for mut k in 0..n.iter().product::<usize>() {
+            let mut x = SVector::<f32, D>::zeros();
+            for d in 0..D {
+                x[d] = (lo[d] + k % n[d]) as f32 * dx;
+                k /= n[d];
+            }
+            if pose.sdf_normal(&x).0 >= 0.0 {
+                continue;
+            }
+            if let Some(c) = self.colliders.iter().position(|c| c.shape.sdf(&x) < 0.0) {
+                return Err(MpmError::invalid(
+                    field,
+                    format!("the body overlaps obstacle {c} (grid node {x:?} is inside both)"),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Removes body `index` (between frames; the later ones move down one).
