@@ -9,6 +9,7 @@ use super::world::{RigidWorld, ShapeSpec, WorldSpec};
 pub(crate) struct World3 {
     world: PhysicsWorld,
     handles: Vec<RigidBodyHandle>,
+    obstacles: Vec<Option<RigidBodyHandle>>,
 }
 
 impl World3 {
@@ -60,7 +61,36 @@ impl World3 {
                 world.insert(body, collider).0
             })
             .collect();
-        World3 { world, handles }
+        let obstacles = spec
+            .obstacles
+            .iter()
+            .map(|o| {
+                if !o.solid {
+                    return None;
+                }
+                let state = BodyState {
+                    x: o.x,
+                    q: o.q,
+                    ..Default::default()
+                };
+                let body = if o.moving {
+                    RigidBodyBuilder::kinematic_position_based()
+                } else {
+                    RigidBodyBuilder::fixed()
+                };
+                let collider = if o.ball {
+                    ColliderBuilder::ball(o.half[0])
+                } else {
+                    ColliderBuilder::cuboid(o.half[0], o.half[1], o.half[2])
+                };
+                Some(world.insert(body.pose(pose(&state)), collider).0)
+            })
+            .collect();
+        World3 {
+            world,
+            handles,
+            obstacles,
+        }
     }
 }
 
@@ -109,6 +139,12 @@ impl RigidWorld for World3 {
         let w = b.angvel() + Vector::from(dw);
         b.set_linvel(v, true);
         b.set_angvel(w, true);
+    }
+
+    fn move_obstacle(&mut self, j: usize, x: [f32; 3]) {
+        let Some(h) = self.obstacles[j] else { return };
+        let b = &mut self.world.bodies[h];
+        b.set_next_kinematic_translation(Vector::from(x));
     }
 
     fn step(&mut self, dt: f32) {

@@ -6,7 +6,7 @@ use std::sync::Mutex;
 
 use nalgebra::{Matrix6, Quaternion, Rotation3, SMatrix, SVector, UnitQuaternion, Vector6};
 
-use super::world::{self, BodySpec, RigidWorld, WorldSpec};
+use super::world::{self, BodySpec, ObstacleSpec, RigidWorld, WorldSpec};
 use super::{Body, BodyPose, Coupled, ImpulseSum};
 
 /// A body's exact state, rapier's own numbers: what a checkpoint carries.
@@ -72,6 +72,8 @@ pub struct Bodies<const D: usize> {
     pub(crate) poses: Vec<BodyPose<D>>,
     /// The rigid-body world of the frame attempt under way.
     world: Option<Box<dyn RigidWorld>>,
+    /// The obstacles the next world holds ([`Bodies::set_obstacles`]).
+    obstacles: Vec<ObstacleSpec>,
     /// The impulses and coupled masses the team's members summed in this
     /// substep's grid update, and the nodes they held.
     sums: Mutex<(Vec<ImpulseSum>, Vec<Coupled>)>,
@@ -174,6 +176,7 @@ impl<const D: usize> Bodies<D> {
         let shapes: Vec<BodySpec> = self.bodies.iter().map(Body::spec).collect();
         let spec = WorldSpec {
             bodies: &shapes,
+            obstacles: &self.obstacles,
             states: &self.states,
             gravity: std::array::from_fn(|d| if d < D { gravity[d] } else { 0.0 }),
             lo,
@@ -181,6 +184,26 @@ impl<const D: usize> Bodies<D> {
             length_unit,
         };
         self.world = Some(world::build(D, &spec));
+    }
+
+    /// The obstacles (boxes and balls at the frame's start) the world of the
+    /// next frame attempt holds, for the bodies' contacts with them.
+    pub(crate) fn set_obstacles(&mut self, obstacles: Vec<ObstacleSpec>) {
+        self.obstacles = obstacles;
+    }
+
+    /// Where the moving obstacles are at the end of the substep under way:
+    /// `x[j]` for obstacle `j` (`None`: it does not move).
+    pub(crate) fn move_obstacles(&mut self, x: impl Iterator<Item = Option<[f32; 3]>>) {
+        if let Some(world) = self.world.as_mut() {
+            for (j, x) in x.enumerate() {
+                if let Some(x) = x
+                    && self.obstacles.get(j).is_some_and(|o| o.moving)
+                {
+                    world.move_obstacle(j, x);
+                }
+            }
+        }
     }
 
     /// A member's sums of this substep's grid update (any order: integer

@@ -37,10 +37,30 @@ pub(crate) struct BodySpec {
     pub mass: Option<(f32, [[f64; 3]; 3])>,
 }
 
+/// An obstacle in rapier's terms: a fixed collider, or a kinematic one
+/// (moved to each substep's pose) when it moves in the frame. Mesh
+/// obstacles (sampled distances) take no part.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct ObstacleSpec {
+    /// Half extents (a box) or `[r, 0, 0]` with `ball` (a ball) [m].
+    pub half: [f32; 3],
+    pub ball: bool,
+    /// False for a mesh obstacle: it takes no part (its place in the list
+    /// stays, so that obstacle `j` is collider `j`).
+    pub solid: bool,
+    /// Centre [m] and rotation (2D: `cos θ, sin θ, 0, 0`; 3D: quaternion
+    /// `x, y, z, w`) at the frame's start.
+    pub x: [f32; 3],
+    pub q: [f32; 4],
+    pub moving: bool,
+}
+
 /// What a world is built from.
 pub(crate) struct WorldSpec<'a> {
     /// Each body's shape and mass.
     pub bodies: &'a [BodySpec],
+    /// The obstacles (boxes and balls), after the bodies in the world.
+    pub obstacles: &'a [ObstacleSpec],
     /// Each body's state.
     pub states: &'a [BodyState],
     /// Gravity [m/s²] (2D: `x, y`).
@@ -60,6 +80,9 @@ pub(crate) trait RigidWorld: Send + Sync {
     /// Adds `dv` [m/s] to body `i`'s velocity and `dw` [rad/s] to its
     /// angular velocity (2D: lane 2).
     fn add_velocity(&mut self, i: usize, dv: [f32; 3], dw: [f32; 3]);
+    /// Sets where obstacle `j` (a moving one) is at the end of the next
+    /// step: its centre [m].
+    fn move_obstacle(&mut self, j: usize, x: [f32; 3]);
     /// Steps the world by `dt` seconds (gravity, contacts, integration).
     fn step(&mut self, dt: f32);
 }

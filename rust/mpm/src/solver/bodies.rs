@@ -4,7 +4,9 @@
 use nalgebra::SVector;
 
 use super::Solver;
+use crate::body::world::ObstacleSpec;
 use crate::body::{Bodies, Body, BodyPose, BodyState, MAX_BODIES};
+use crate::collider::Shape;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 
@@ -164,9 +166,62 @@ where
         if self.bodies.is_empty() {
             return;
         }
+        let obstacles = self
+            .colliders
+            .iter()
+            .zip(&self.moves)
+            .map(|(c, m)| obstacle_spec(&c.shape, m.is_some()))
+            .collect();
+        self.bodies.set_obstacles(obstacles);
         let dx = self.params.dx();
         let lo = self.params.walls.cells as f32 * dx;
         self.bodies
             .begin(&self.params.gravity, lo, 1.0 - lo, 8.0 * dx);
     }
+}
+
+/// An obstacle for the bodies' rigid world: a box or a ball where it is now,
+/// kinematic when it moves in the frame; a mesh obstacle (sampled
+/// distances) as none.
+fn obstacle_spec<const D: usize>(shape: &Shape<D>, moving: bool) -> ObstacleSpec {
+    let pad = |v: &SVector<f32, D>| std::array::from_fn(|d| if d < D { v[d] } else { 0.0 });
+    let mut o = ObstacleSpec {
+        half: [0.0; 3],
+        ball: false,
+        solid: true,
+        x: [0.0; 3],
+        q: if D == 2 {
+            [1.0, 0.0, 0.0, 0.0]
+        } else {
+            [0.0, 0.0, 0.0, 1.0]
+        },
+        moving,
+    };
+    match shape {
+        Shape::Box {
+            center,
+            half_extents,
+            rotation,
+        } => {
+            o.half = pad(half_extents);
+            o.x = pad(center);
+            let body = Body {
+                shape: crate::body::BodyShape::Ball { radius: 1.0 },
+                center: *center,
+                rotation: *rotation,
+                density: 1.0,
+                velocity: SVector::zeros(),
+                angular_velocity: [0.0; 3],
+                friction: 0.0,
+            };
+            o.q = BodyState::of(&body).q;
+        }
+        Shape::Sphere { center, radius } => {
+            o.half = [*radius, 0.0, 0.0];
+            o.ball = true;
+            o.x = pad(center);
+        }
+        Shape::Sampled { .. } => o.solid = false,
+    }
+    o
 }

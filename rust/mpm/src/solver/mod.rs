@@ -456,6 +456,16 @@ where
                 c.shape.set_anchor(m.anchor_after(k, n));
             }
         }
+        // the bodies' rigid world moves them there too (docs/bodies.md)
+        if !self.bodies.is_empty() {
+            let at = self.colliders.iter().zip(&self.moves).map(|(c, m)| {
+                m.map(|_| {
+                    let a = c.shape.anchor();
+                    std::array::from_fn(|d| if d < D { a[d] } else { 0.0 })
+                })
+            });
+            self.bodies.move_obstacles(at);
+        }
     }
 
     /// End of a frame: done, each moved collider rests where its move ended
