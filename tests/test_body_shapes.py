@@ -276,3 +276,31 @@ def test_overlapping_bodies_are_refused_and_a_restore_takes_them():
     other.restore(state)
     rollout(other, 5)
     assert np.array_equal(body_bits(sim), body_bits(other))
+
+
+@pytest.mark.parametrize("suffix", ["stl", "ply", "glb"])
+def test_a_mesh_body_from_each_file_kind_added_between_frames(tmp_path, suffix, monkeypatch):
+    import trimesh  # import time: only this test writes the other file kinds
+
+    path = tmp_path / f"box.{suffix}"
+    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(path)
+    sim = MpmSimulator(SceneSpec.from_dict(tank3([])).build(), threads=1)
+    monkeypatch.chdir(tmp_path)  # MpmSimulator.add_body reads a path relative to the working directory
+    i = sim.add_body({"shape": "mesh", "path": path.name, "scale": 0.05, "center": [0.5, 0.6, 0.5], "density": 300.0})
+    assert i == 0 and sim.bodies.mass[0] == pytest.approx(300.0 * 0.1**3, rel=1e-5)
+    assert len(sim.solver.params.bodies[0].vertices) == 8
+
+
+def test_a_body_rests_on_an_obstacle_in_a_scene():
+    scene = {
+        "name": "shelf",
+        "dim": 2,
+        "n_grid": 64,
+        "blocks": [{"material": "water", "lo": [0.8, 0.05], "hi": [0.9, 0.1]}],
+        "obstacles": [{"shape": "box", "center": [0.4, 0.3], "half_extents": [0.15, 0.03]}],
+        "bodies": [{**CAPSULE, "center": [0.4, 0.45], "density": 1500.0}],
+    }
+    sim = MpmSimulator(SceneSpec.from_dict(scene).build(), threads=1)
+    rollout(sim, 60)
+    # lying flat (its axis along x), its lowest point on the shelf's top (0.33 m)
+    assert sim.bodies.center[0][1] - 0.04 == pytest.approx(0.33, abs=0.1 / 64)
