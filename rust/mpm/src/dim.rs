@@ -18,6 +18,23 @@ pub struct Svd<const D: usize> {
     pub v: SMatrix<f32, D, D>,
 }
 
+/// `|v|`, nalgebra's `norm()` with the hardware square root. rapier's
+/// `enhanced-determinism` (the bodies, `crate::body`) turns on simba's
+/// `libm_force` for the whole build, which sends nalgebra's `norm()` and
+/// `abs()` through software libm: the same bits, but on `dam_break3d` the
+/// grid update took 5.7x as long. The engine's per-node and per-particle
+/// code uses [`norm`] and [`abs`] instead.
+#[inline(always)]
+pub fn norm<const D: usize>(v: &SVector<f32, D>) -> f32 {
+    v.norm_squared().sqrt()
+}
+
+/// Componentwise `|v|` with `f32::abs` (see [`norm`]).
+#[inline(always)]
+pub fn abs<const D: usize>(v: &SVector<f32, D>) -> SVector<f32, D> {
+    v.map(f32::abs)
+}
+
 /// Dimension-specific operations.
 pub trait DimOps<const D: usize> {
     /// log2 of the edge length (in cells) of a sparse grid block.

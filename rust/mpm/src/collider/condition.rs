@@ -24,7 +24,7 @@ pub fn apply_condition<const D: usize>(
             let vn = v.dot(n);
             if vn < 0.0 {
                 let vt = *v - n * vn;
-                let vt_len = vt.norm();
+                let vt_len = crate::dim::norm(&vt);
                 if friction > 0.0 && vt_len > 0.0 {
                     // Coulomb: the tangential speed drops by μ·|v_n|.
                     let scale = (vt_len + friction * vn).max(0.0) / vt_len;

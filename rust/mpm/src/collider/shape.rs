@@ -6,6 +6,7 @@ use std::sync::Arc;
 use nalgebra::{SMatrix, SVector};
 
 use super::sampled::{corner_node, corner0_estimate, floor_index, sampled_normal, sampled_sdf};
+use crate::dim::{abs, norm};
 
 /// A signed-distance shape in `D` dimensions.
 #[derive(Clone, Debug, PartialEq)]
@@ -67,12 +68,12 @@ impl<const D: usize> Shape<D> {
         let local = self.local(p);
         match self {
             Shape::Box { half_extents, .. } => {
-                let q = local.abs() - half_extents;
-                let outside = q.map(|x| x.max(0.0)).norm();
+                let q = abs(&local) - half_extents;
+                let outside = norm(&q.map(|x| x.max(0.0)));
                 let inside = q.max().min(0.0);
                 outside + inside
             }
-            Shape::Sphere { radius, .. } => local.norm() - radius,
+            Shape::Sphere { radius, .. } => norm(&local) - radius,
             Shape::Sampled {
                 cell, dims, values, ..
             } => sampled_sdf(*cell, dims, values, &local),
@@ -88,7 +89,7 @@ impl<const D: usize> Shape<D> {
                 ..
             } => {
                 let local = self.local(p);
-                let q = local.abs() - half_extents;
+                let q = abs(&local) - half_extents;
                 let mut n = SVector::<f32, D>::zeros();
                 if q.max() > 0.0 {
                     for d in 0..D {
@@ -100,12 +101,12 @@ impl<const D: usize> Shape<D> {
                     n[d] = local[d].signum();
                 }
                 let n = rotation * n;
-                let len = n.norm();
+                let len = norm(&n);
                 if len > 0.0 { n / len } else { n }
             }
             Shape::Sphere { .. } => {
                 let d = self.local(p);
-                let len = d.norm();
+                let len = norm(&d);
                 if len > 0.0 {
                     d / len
                 } else {
@@ -134,7 +135,7 @@ impl<const D: usize> Shape<D> {
                         n
                     }
                 };
-                let len = n.norm();
+                let len = norm(&n);
                 if len > 0.0 {
                     n / len
                 } else {
@@ -208,7 +209,7 @@ impl<const D: usize> Shape<D> {
                 }
                 let (phi, lin) = best;
                 let n = SVector::<f32, D>::from_fn(|d, _| normals[lin * D + d]);
-                let len = n.norm();
+                let len = norm(&n);
                 if len > 0.0 {
                     return (phi < -depth).then(|| (phi, n / len));
                 }
@@ -221,7 +222,7 @@ impl<const D: usize> Shape<D> {
     /// Radius of a ball around the shape's centre that contains it.
     pub fn bounding_radius(&self) -> f32 {
         match self {
-            Shape::Box { half_extents, .. } => half_extents.norm(),
+            Shape::Box { half_extents, .. } => norm(half_extents),
             Shape::Sphere { radius, .. } => *radius,
             Shape::Sampled { cell, dims, .. } => {
                 0.5 * cell

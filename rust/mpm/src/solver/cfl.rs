@@ -75,7 +75,7 @@ where
         if let Some(s) = self.params.substeps {
             return Ok(s);
         }
-        let speed = |p: &crate::particles::Particle<D>| p.v.norm();
+        let speed = |p: &crate::particles::Particle<D>| crate::dim::norm(&p.v);
         let vmax = if self.pool_pid == std::process::id()
             && self.particles.len() > SERIAL_SPEED_SCAN
             && self.pool.current_num_threads() > 1

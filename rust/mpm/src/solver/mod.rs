@@ -435,7 +435,7 @@ where
         self.moves
             .iter()
             .flatten()
-            .map(|m| m.velocity_over(dt_frame).norm())
+            .map(|m| crate::dim::norm(&m.velocity_over(dt_frame)))
             .reduce(f32::max)
     }
 
