@@ -546,6 +546,9 @@ class SessionCore:
             b = self.sim.bodies  # type: ignore[attr-defined] # an MPM simulator: the others hold no bodies (bodies_given is empty)
             if len(b) == len(given) and self.bodies_given() == given:
                 break
+        else:  # changed under every read (bodies added or removed meanwhile): read once more under the lock, after the step
+            with self.lock:
+                given, b = self.bodies_given(), self.sim.bodies  # type: ignore[attr-defined]
         out: list[dict[str, Any]] = []
         for i, g in enumerate(given[: len(b)]):
             body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius", "half_height") if k in g}, "mass": float(b.mass[i])}
