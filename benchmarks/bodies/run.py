@@ -45,8 +45,12 @@ ARCHIMEDES_CASES = [
     ("cube 3D tilted 10°", "cube_floats_at_its_archimedes_depth_3d", {"BODIES_TILT": "10"}),
 ]
 
-_SHARE = re.compile(r"density (?P<rho>[\d.]+): mean share (?P<mean>[\d.]+) \(expected (?P<exp>[\d.]+)\), worst error (?P<worst>[\d.]+) \(tolerance (?P<tol>[\d.]+)\)")
-_ENERGY = re.compile(r"(?P<name>[^:\n]+): (?P<frames>\d+) frames, energy at start (?P<e0>[\d.]+) J, largest rise (?P<rise>-?[\d.]+) %, at the end (?P<end>[\d.]+) % of the start, most retries in a frame (?P<retries>\d+)")
+_SHARE = re.compile(
+    r"density (?P<rho>[\d.]+): mean share (?P<mean>[\d.]+) \(expected (?P<exp>[\d.]+)\), worst error (?P<worst>[\d.]+) \(tolerance (?P<tol>[\d.]+)\)"
+)
+_ENERGY = re.compile(
+    r"(?P<name>[^:\n]+): (?P<frames>\d+) frames, energy at start (?P<e0>[\d.]+) J, largest rise (?P<rise>-?[\d.]+) %, at the end (?P<end>[\d.]+) % of the start, most retries in a frame (?P<retries>\d+)"
+)
 
 
 def cargo_test(test_file: str, name: str | None, env: dict[str, str], ignored: bool) -> tuple[str, bool, float]:
@@ -66,7 +70,17 @@ def archimedes() -> tuple[dict[str, Any], list[str]]:
         boxes = [{k: float(v) for k, v in m.groupdict().items()} for m in _SHARE.finditer(out)]
         rows.append({"case": label, "test": test, "env": env, "passed": ok, "seconds": round(secs, 1), "boxes": boxes})
         for b in boxes:
-            table.append([label, f"{b['rho']:g}", f"{b['mean']:.4f}", f"{b['exp']:.3f}", f"{b['worst']:.4f}", f"{b['tol']:.4f}", "yes" if b["worst"] <= b["tol"] else "**no**"])
+            table.append(
+                [
+                    label,
+                    f"{b['rho']:g}",
+                    f"{b['mean']:.4f}",
+                    f"{b['exp']:.3f}",
+                    f"{b['worst']:.4f}",
+                    f"{b['tol']:.4f}",
+                    "yes" if b["worst"] <= b["tol"] else "**no**",
+                ]
+            )
     lines += harness.table(["case", "ρ_b", "mean share", "ρ_b/ρ_w", "worst error", "tolerance", "within"], table)
     return {"cases": rows}, lines
 
@@ -74,19 +88,31 @@ def archimedes() -> tuple[dict[str, Any], list[str]]:
 def stability(frames: int) -> tuple[dict[str, Any], list[str]]:
     out, ok, secs = cargo_test("body_stability", None, {"BODY_STABILITY_FRAMES": str(frames)}, ignored=False)
     runs = [
-        {"case": m["name"].split("... ")[-1].strip(), "frames": int(m["frames"]), "energy_start_J": float(m["e0"]), "largest_rise_percent": float(m["rise"]), "end_percent": float(m["end"]), "most_retries": int(m["retries"])}
+        {
+            "case": m["name"].split("... ")[-1].strip(),
+            "frames": int(m["frames"]),
+            "energy_start_J": float(m["e0"]),
+            "largest_rise_percent": float(m["rise"]),
+            "end_percent": float(m["end"]),
+            "most_retries": int(m["retries"]),
+        }
         for m in _ENERGY.finditer(out)
     ]
     lines = ["# Bodies: stability over long runs", ""]
     lines += harness.table(
         ["case", "frames", "energy at start [J]", "largest rise over the start", "at the end", "most retries in a frame"],
-        [[r["case"], r["frames"], f"{r['energy_start_J']:.3f}", f"{r['largest_rise_percent']:.4f} %", f"{r['end_percent']:.2f} %", r["most_retries"]] for r in runs],
+        [
+            [r["case"], r["frames"], f"{r['energy_start_J']:.3f}", f"{r['largest_rise_percent']:.4f} %", f"{r['end_percent']:.2f} %", r["most_retries"]]
+            for r in runs
+        ],
     )
     lines += ["", f"All passed (no solver error, energy within 1 % of its start): {'yes' if ok else '**no**'} ({secs:.0f} s)."]
     return {"passed": ok, "seconds": round(secs, 1), "runs": runs}, lines
 
 
-_COST = re.compile(r"cost repeat (?P<rep>\d+) (?P<name>with|without) bodies: (?P<frames>\d+) frames, (?P<substeps>\d+) substeps, (?P<ms_frame>[\d.]+) ms per frame, (?P<ms_sub>[\d.]+) ms per substep")
+_COST = re.compile(
+    r"cost repeat (?P<rep>\d+) (?P<name>with|without) bodies: (?P<frames>\d+) frames, (?P<substeps>\d+) substeps, (?P<ms_frame>[\d.]+) ms per frame, (?P<ms_sub>[\d.]+) ms per substep"
+)
 
 
 def cost(repeats: int, frames: int) -> tuple[dict[str, Any], list[str]]:
