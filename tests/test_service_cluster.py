@@ -477,9 +477,12 @@ def test_bodies_added_and_removed_through_two_front_ends_survive_a_killed_actor(
     try:
         _start(a, b)
         with httpx.Client(base_url=a.url, timeout=WAIT_S) as ca, httpx.Client(base_url=b.url, timeout=WAIT_S) as cb:
+            before = set(cluster.actor_pids())  # earlier tests' sessions live on in the cluster
             r = ca.post("/v1/sessions", json={"scene": "crates2d", "solver": "mpm", "seed": 1})
             assert r.status_code == 201, r.text
             sid = r.json()["id"]
+            mine = set(cluster.actor_pids()) - before
+            assert len(mine) == 1, (before, mine)
             assert np.array_equal(step_binary(cb, sid, 3), rollout(ref, 3).positions[1:])
             r = ca.post(f"/v1/sessions/{sid}/bodies", json=ball)
             assert r.status_code == 201 and r.json()["index"] == 4 and r.json()["num_bodies"] == 5, r.text
@@ -493,8 +496,7 @@ def test_bodies_added_and_removed_through_two_front_ends_survive_a_killed_actor(
             assert np.array_equal(np.array([x["center"] for x in info["bodies"]]), ref.bodies.center)
             saved = wait_saved(ca, sid, WAIT_S)
             rollout(ref, saved - info["frame"])
-            pids = cluster.actor_pids()
-            os.kill(pids[0], signal.SIGKILL)
+            os.kill(mine.pop(), signal.SIGKILL)
             after = step_binary(cb, sid, 3)
             assert np.array_equal(after, rollout(ref, 3).positions[1:]), "the restored run differs"
             info = ca.get(f"/v1/sessions/{sid}").json()

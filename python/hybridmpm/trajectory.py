@@ -230,7 +230,7 @@ class Trajectory:
         if len(given) != 3:
             k = next(k for k in _BODY_KEYS if k not in given)
             raise InvalidInputError(f"{k}: missing ({', '.join(given)} given: the body arrays go together)", k)
-        b = np.asarray(self.body_mass).shape[0] if np.ndim(self.body_mass) == 1 else -1
+        b = np.asarray(self.body_mass).shape[0] if np.ndim(np.asarray(self.body_mass)) == 1 else -1
         for k, shape in (("body_center", (t, b, d)), ("body_rotation", (t, b, d, d)), ("body_mass", (b,))):
             a = np.asarray(getattr(self, k))
             if a.dtype.kind not in "fiu" or a.shape != shape or b < 0:

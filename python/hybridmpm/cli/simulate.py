@@ -68,7 +68,7 @@ def _simulate(args: argparse.Namespace) -> int:
     }  # fmt: skip
     if ro.failure:
         summary["failure_detail"] = ro.failure_detail
-    if ro.body_center is not None:  # each rigid body: as given, its mass and its centre of mass at the first and last stored frame
+    if ro.body_center is not None and ro.body_mass is not None:  # each rigid body: as given, its mass and its centre of mass at the first and last stored frame
         summary["bodies"] = [
             {"shape": b.shape, "density": b.density, "mass": float(m), "center_start": c[0].tolist(), "center_end": c[-1].tolist()}
             for b, m, c in zip(low.params.bodies, ro.body_mass, np.moveaxis(ro.body_center, 1, 0))

@@ -55,10 +55,10 @@ def bounding_radius(body: Body, dim: int) -> float:
     if body.shape == "box":
         return float(np.linalg.norm(np.asarray(body.half_extents, np.float64)))
     if body.shape == "capsule":
-        return float(body.radius) + float(body.half_height)
+        return float(body.radius or 0.0) + float(body.half_height or 0.0)  # both given for a capsule (Body.from_dict)
     if body.shape == "mesh":
         return float(np.linalg.norm(np.asarray(body.hull()["vertices"], np.float64), axis=1).max())
-    return float(body.radius)
+    return float(body.radius or 0.0)  # a sphere's (Body.from_dict requires it)
 
 
 def check_overlaps(bodies: list[Body], colliders: list[Collider], dim: int, n_grid: int) -> None:

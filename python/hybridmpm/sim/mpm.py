@@ -325,7 +325,7 @@ class MpmSimulator:
         self.solver.remove_body(index)
         self._frame = replace(self._frame, **self.frame_bodies())
 
-    def frame_bodies(self) -> dict[str, np.ndarray]:
+    def frame_bodies(self) -> dict[str, Any]:
         """What a :class:`Frame` records of the bodies (``body_center``,
         ``body_rotation``, ``body_mass``, float64), or nothing without bodies."""
         if not self.solver.params.bodies:

@@ -159,7 +159,9 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     frame_index = np.array([r.frame_index for r in recs], np.int64)
     centers = [r.obstacle_centers for r in recs if r.obstacle_centers is not None]
     # the bodies when every kept frame has the same ones (none added or removed during the rollout)
-    bodies = [(r.body_center, r.body_rotation, r.body_mass) for r in recs if r.body_center is not None]
+    bodies = [
+        (r.body_center, r.body_rotation, r.body_mass) for r in recs if r.body_center is not None and r.body_rotation is not None and r.body_mass is not None
+    ]
     same = len(bodies) == len(recs) and all(np.array_equal(b[2], bodies[0][2]) for b in bodies)
     extras = {
         "solver": (solver != MPM).astype(np.int8),  # 1: the cheap half (the network, or the coarse grid of the classical twin)
