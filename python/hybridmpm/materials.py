@@ -23,6 +23,7 @@ file's block takes a material by name or by preset
 
 from __future__ import annotations
 
+import abc
 import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, ClassVar
@@ -57,7 +58,7 @@ def _check(field: str, v: Any, ok: bool, want: str) -> None:
 
 
 @dataclass(frozen=True)
-class _Material:
+class _Material(abc.ABC):
     """Shared checks: ``density`` ρ [kg/m³] > 0 and finite."""
 
     name: ClassVar[str]
@@ -77,8 +78,9 @@ class _Material:
         _check(where + "E", e, e > 0, "> 0 Pa")
         _check(where + "nu", nu, 0 <= nu < 0.5, "in [0, 0.5)")
 
-    def to_params(self) -> Any:  # pragma: no cover - each model overrides
-        raise NotImplementedError
+    @abc.abstractmethod
+    def to_params(self) -> Any:
+        """The core's parameter set of this model (each model defines it)."""
 
 
 @dataclass(frozen=True)
