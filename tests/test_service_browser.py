@@ -584,7 +584,7 @@ def test_dragging_an_obstacle_through_the_water_pushes_it(server, browser):
     floor and dragged left through the water that has pooled there, slowly (one pointer move per ~60 ms: the page
     sends at most one move per coarse step, under the solver's speed limit). The page, paused, plays while dragging
     and pauses again after the last move; the server's obstacle ends at the drop point and every viewer got the
-    ``obstacle`` events; the water's centroid ends left of where the same session gets in as many frames without
+    ``obstacle`` events; the water's particles end elsewhere than the same session puts them in as many frames without
     the drag (reset, which puts the ramp back, then stepped over HTTP)."""
     page, errors = new_page(browser, "?scene=water_ramps2d&seed=0&solver=mpm&autoplay=0&scale=1", server)
     stepped(page, server, 300)  # the water falls and pools on the floor, left of the ramp
@@ -614,13 +614,19 @@ def test_dragging_an_obstacle_through_the_water_pushes_it(server, browser):
     assert len(moves) >= 10 and not [m for m in moves if "error" in m], moves
     # the server's ramp ends where it was dropped (the pointer's offset is 0); then the same number of frames without
     # the drag: reset (the ramp goes back), then stepped over HTTP
-    frames, _, dragged, free = replay_without_drag(page, server, sid, drop, c0, fluid_centroid)
-    print(f"after {frames} frames: water centroid dragged {dragged.round(4)}, free {free.round(4)}, at the grab {water0.round(4)}")
-    # the drag changed the flow: the same deterministic MPM without it ends elsewhere. How far, and which way, depends on
-    # how many frames the real-time drag took and on the sloshing's phase thousands of frames on (one run: 0.058 m further
-    # left, another 0.042 m right), so only a difference of at least 0.005 m (0.6 cells) is asserted; that a moving
-    # obstacle pushes the water ahead of it is asserted in tests/test_moving_obstacles.py.
-    assert np.abs(free - dragged).max() >= 0.005, (dragged, free)
+    frames, _, dragged, free = replay_without_drag(page, server, sid, drop, c0, fluid_positions)
+    moved = float(np.linalg.norm(free - dragged, axis=1).mean())
+    print(
+        f"after {frames} frames: water centroid dragged {dragged.mean(0).round(4)}, free {free.mean(0).round(4)}, at the grab "
+        f"{water0.round(4)}; particles moved {moved:.4f} m apart on average"
+    )
+    # the drag changed the flow: the same deterministic MPM without it puts the particles elsewhere. The centroids tell
+    # the flows apart only while the water still sloshes: the real-time drag takes as many frames as the machine plays
+    # in a few seconds (~500 here, ~4,500 on a faster one), after which both pools are near rest and their centroids can
+    # lie within a cell of each other. The particles themselves end 0.12-0.28 m (16-36 cells) apart on average, over
+    # drags of 3 to 77 frames a move (an HTTP replay of this drag), so 2 cells are asserted; that a moving obstacle
+    # pushes the water ahead of it is asserted in tests/test_moving_obstacles.py.
+    assert moved >= 2.0 / session["n_grid"], moved
     assert page.evaluate("window.__hmpm.errors") == [] and errors == [], errors
     page.close()
 
