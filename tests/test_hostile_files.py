@@ -21,6 +21,7 @@ import pytest
 
 from hybridmpm.control.sketch import Sketch
 from hybridmpm.errors import InvalidInputError
+from hybridmpm import files
 from hybridmpm.files import MAX_NESTING, check_nesting, read_regular_file
 from hybridmpm.scenes import SceneSpec
 from hybridmpm.scenes.spec import MAX_BLOCKS
@@ -83,6 +84,37 @@ def test_deeply_nested_scene_files_are_refused_without_a_traceback(tmp_path: Pat
     check_nesting("[" * MAX_NESTING + "]" * MAX_NESTING, "f")
     with pytest.raises(InvalidInputError):
         check_nesting("[" * (MAX_NESTING + 1) + "]" * (MAX_NESTING + 1), "f")
+
+
+def _depth_by_hand(raw: bytes) -> int:
+    """The nesting of ``raw`` read one byte at a time (the reference for the vectorised scan). A quote after an odd
+    run of backslashes is escaped; outside strings that text is no JSON (the parser stops there), and the scan reads
+    it the same way, so the reference does too."""
+    depth = deepest = run = 0
+    in_string = False
+    for ch in raw:
+        if ch == ord('"') and run % 2 == 0:
+            in_string = not in_string
+        elif not in_string and ch in b"[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif not in_string and ch in b"]}":
+            depth -= 1
+        run = run + 1 if ch == ord("\\") else 0
+    return deepest
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 3, 7, 64, 1 << 18])
+def test_json_depth_scans_chunks_as_one_text(monkeypatch, chunk: int):
+    """The nesting scan works on chunks; strings, escapes and brackets that straddle a chunk's end are read as in
+    one pass over the whole text (against a byte-at-a-time reading, on random texts of brackets, quotes, backslashes)."""
+    monkeypatch.setattr(files, "_DEPTH_CHUNK", chunk)
+    monkeypatch.setattr(files, "_CHUNK_INDEX", np.arange(chunk, dtype=np.int32))
+    rng = np.random.default_rng(7)
+    alphabet = np.frombuffer(b'[]{}"\\ a', np.uint8)
+    for n in [0, 1, 2, 5, 40, 300] * 60:
+        raw = rng.choice(alphabet, n).tobytes()
+        assert files.json_depth(raw) == _depth_by_hand(raw), raw
 
 
 def test_a_deeply_nested_json_sketch_is_refused():
