@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hybridmpm import files
 from hybridmpm.control.sketch import Sketch
 from hybridmpm.errors import InvalidInputError
-from hybridmpm import files
 from hybridmpm.files import MAX_NESTING, check_nesting, read_regular_file
 from hybridmpm.scenes import SceneSpec
 from hybridmpm.scenes.spec import MAX_BLOCKS
