@@ -51,7 +51,10 @@ def test_many_sessions_concurrently_bitwise_equal_to_solo(server):
         return sid, np.frombuffer(r.content, "<f4").reshape(shape), float(r.headers["x-latency-ms"])
 
     async def run():
-        limits = httpx.Limits(max_connections=N_SESSIONS)
+        # one connection per request: a pooled connection left idle past the server's 5 s keep-alive while the other
+        # sessions step (a loaded machine) can be closed as the next request is sent on it, an HTTP/1.1 race that
+        # httpx does not retry on a POST (seen here once as a ReadError)
+        limits = httpx.Limits(max_connections=N_SESSIONS, max_keepalive_connections=0)
         async with httpx.AsyncClient(base_url=server.url, timeout=120, limits=limits) as client:
             return await asyncio.gather(*(one(client, sc, sd) for sc, sd in specs))
 
