@@ -149,6 +149,31 @@ def test_mesh_box_ramp_follows_the_analytic_rotated_box(meshes: Path) -> None:
     assert _deepest(box, pm) <= 0.5 and _deepest(box, pa) <= 0.5, (_deepest(box, pm), _deepest(box, pa))
 
 
+def test_a_body_rests_on_a_mesh_shelf_as_on_the_box(tmp_path: Path) -> None:
+    """Bodies meet mesh obstacles in their rigid world, as voxels of the sampled distance (docs/bodies.md "Shapes"):
+    a heavy crate dropped on a mesh slab rests on it within half a cell of its top face, as on the same slab as a
+    box obstacle (without the contact it falls through to the floor)."""
+    trimesh.creation.box(extents=(0.4, 0.1, 0.4)).export(tmp_path / "slab.obj")
+    crate = {"shape": "box", "center": [0.5, 0.47, 0.5], "half_extents": [0.06, 0.06, 0.06], "density": 2000.0}
+
+    def bottom(shelf: dict[str, Any]) -> float:
+        d = {
+            "name": "shelf", "dim": 3, "n_grid": N, "frames": 60,
+            "blocks": [{"material": "water", "lo": [0.8, 0.1, 0.8], "hi": [0.9, 0.2, 0.9]}],
+            "obstacles": [shelf], "bodies": [crate],
+        }  # fmt: skip
+        sim = MpmSimulator(SceneSpec.from_dict(d, base_dir=tmp_path).build())
+        rollout(sim, 60)
+        return float(sim.bodies.center[0, 1]) - 0.06
+
+    top, dx = 0.35, 1.0 / N
+    box = bottom({"shape": "box", "center": [0.5, 0.3, 0.5], "half_extents": [0.2, 0.05, 0.2]})
+    mesh = bottom({"shape": "mesh", "path": "slab.obj", "center": [0.5, 0.3, 0.5]})
+    print(f"crate bottom on the box {box:.5f}, on the mesh {mesh:.5f} (top face {top}; cell {dx:.5f})")
+    assert abs(box - top) < 0.1 * dx, box
+    assert abs(mesh - top) < 0.6 * dx, mesh
+
+
 @pytest.mark.parametrize("condition", ["sticky", "slip"])
 def test_no_particle_ends_half_a_cell_inside_in_any_condition(meshes: Path, condition: str) -> None:
     """The sphere and the rotated box of the two tests above (which run ``separate``), mesh and analytic,

@@ -78,29 +78,110 @@ fn overlapping_bodies_are_refused_naming_the_centre() {
 }
 
 fn obstacle_box(center: [f32; 2], half: [f32; 2]) -> hybridmpm_mpm::Collider<2> {
+    collider(hybridmpm_mpm::Shape::Box {
+        center: SVector::from(center),
+        half_extents: SVector::from(half),
+        rotation: nalgebra::Matrix2::identity(),
+    })
+}
+
+fn collider(shape: hybridmpm_mpm::Shape<2>) -> hybridmpm_mpm::Collider<2> {
     hybridmpm_mpm::Collider {
-        shape: hybridmpm_mpm::Shape::Box {
-            center: SVector::from(center),
-            half_extents: SVector::from(half),
-            rotation: nalgebra::Matrix2::identity(),
-        },
+        shape,
         condition: hybridmpm_mpm::BoundaryCondition::Separate,
         friction: 0.0,
         project: false,
     }
 }
 
+/// The box `(center, half)` as a mesh obstacle gives it: its distance
+/// sampled `cell` apart from `origin` (3 cells round it), and the faces of
+/// the voxels the bodies' world makes of it (half a spacing past the last
+/// inside node on each side: `[x_lo, x_hi, y_lo, y_hi]`).
+fn sampled_box(
+    center: [f32; 2],
+    half: [f32; 2],
+    origin: [f32; 2],
+    cell: f32,
+) -> (hybridmpm_mpm::Collider<2>, [f32; 4]) {
+    let exact = obstacle_box(center, half).shape;
+    let dims: [usize; 2] =
+        std::array::from_fn(|d| ((center[d] + half[d] - origin[d]) / cell) as usize + 4);
+    let mut values = Vec::with_capacity(dims[0] * dims[1]);
+    let mut faces = [f32::MAX, f32::MIN, f32::MAX, f32::MIN];
+    for i in 0..dims[0] {
+        for j in 0..dims[1] {
+            let p =
+                SVector::<f32, 2>::new(origin[0] + cell * i as f32, origin[1] + cell * j as f32);
+            let v = exact.sdf(&p);
+            if v <= 0.0 {
+                faces = [
+                    faces[0].min(p[0] - 0.5 * cell),
+                    faces[1].max(p[0] + 0.5 * cell),
+                    faces[2].min(p[1] - 0.5 * cell),
+                    faces[3].max(p[1] + 0.5 * cell),
+                ];
+            }
+            values.push(v);
+        }
+    }
+    let shape = hybridmpm_mpm::Shape::Sampled {
+        origin: SVector::from(origin),
+        cell,
+        dims,
+        values: std::sync::Arc::from(values),
+        normals: None,
+    };
+    (collider(shape), faces)
+}
+
 /// Obstacles are in the bodies' rigid world: a heavy box dropped onto a
 /// shelf rests on it (without it, it falls to the floor), and a paddle
 /// moved into a ball on the floor pushes it ahead without overlapping it.
+/// The same with the shelf and the paddle as mesh obstacles (sampled
+/// distances, the grid's spacing apart, off the grid's nodes): the bodies
+/// meet their voxels, whose faces lie within half a spacing of the boxes'.
 #[test]
 fn bodies_rest_on_obstacles_and_moving_ones_push_them() {
+    let dx = 1.0 / 64.0;
+    let analytic = (
+        obstacle_box([0.5, 0.3], [0.2, 0.03]),
+        obstacle_box([0.2, 0.1], [0.03, 0.05]),
+    );
+    let (pushed, _) = rest_and_push(analytic, [0.3, 0.7, 0.27, 0.33], 0.0);
+    assert!(pushed > 0.2, "the capsule was not pushed ({pushed} m)");
+    // the mesh twins, their samples 0.37 spacings off the grid's nodes
+    let off = 0.37 * dx;
+    let (shelf, top) = sampled_box([0.5, 0.3], [0.2, 0.03], [0.27 + off, 0.24 + off], dx);
+    let (paddle, face) = sampled_box([0.2, 0.1], [0.03, 0.05], [0.14 + off, 0.02 + off], dx);
+    assert!((top[3] - 0.33).abs() <= 0.5 * dx && (face[1] - 0.23).abs() <= 0.5 * dx);
+    let (meshed, _) = rest_and_push(
+        (shelf, paddle),
+        [top[0], top[1], top[2], top[3]],
+        face[1] - 0.23,
+    );
+    assert!(
+        (meshed - pushed).abs() < 0.1 * pushed,
+        "the mesh paddle pushed the capsule {meshed} m, the box {pushed} m"
+    );
+}
+
+/// The crate dropped on `shelf` and the capsule pushed by `paddle` (moved
+/// from x = 0.2 at 0.5 m/s after frame 20), for 120 frames: checks every
+/// frame that the capsule lies outside the paddle (its right face
+/// `0.23 + face` when it starts) and at the end that the crate rests on the
+/// shelf's top face (`faces[3]`); returns how far the capsule moved and the
+/// crate's bottom.
+fn rest_and_push(
+    (shelf, paddle): (hybridmpm_mpm::Collider<2>, hybridmpm_mpm::Collider<2>),
+    faces: [f32; 4],
+    face: f32,
+) -> (f32, f32) {
     let p = SolverParams::<2> {
         n_grid: 64,
         ..Default::default()
     };
-    let shelf = obstacle_box([0.5, 0.3], [0.2, 0.03]);
-    let paddle = obstacle_box([0.2, 0.1], [0.03, 0.05]);
+    let anchor = paddle.shape.anchor();
     let mut s = Solver::new(p.clone(), vec![shelf, paddle]).unwrap();
     let crate_ = BodyParams {
         shape: Some(BodyShapeKind::Box),
@@ -126,44 +207,40 @@ fn bodies_rest_on_obstacles_and_moving_ones_push_them() {
         .collect();
     s.set_particles(ps).unwrap();
     let x0 = s.bodies().states()[1].x[0];
-    let mut paddle_x = 0.2f32;
+    let mut moved = 0.0f32;
     for f in 0..120 {
         if f >= 20 {
-            paddle_x += 0.5 * 0.01; // 0.5 m/s for frames of 10 ms
-            s.move_collider(1, SVector::<f32, 2>::new(paddle_x, 0.1), None)
+            moved += 0.5 * 0.01; // 0.5 m/s for frames of 10 ms
+            s.move_collider(1, anchor + SVector::<f32, 2>::new(moved, 0.0), None)
                 .unwrap();
         }
         s.step_frame(0.01).unwrap();
         let st = &s.bodies().states()[1];
         if std::env::var_os("SHAPES_TRACE").is_some() {
             eprintln!(
-                "f {f} crate y {} capsule x {} paddle {paddle_x}",
+                "f {f} crate y {} capsule x {} paddle moved {moved}",
                 s.bodies().states()[0].x[1],
                 st.x[0]
             );
         }
         // the ball's left end against the paddle's right face
         let left = st.x[0] - 0.06;
+        let right = 0.23 + face + moved;
         assert!(
-            left >= paddle_x + 0.03 - 0.1 * p.dx(),
-            "frame {f}: the capsule ({left}) inside the paddle ({})",
-            paddle_x + 0.03
+            left >= right - 0.1 * dx,
+            "frame {f}: the capsule ({left}) inside the paddle ({right})"
         );
     }
     let st = &s.bodies().states()[0];
-    let top = 0.33f32;
+    let (bottom, pushed) = (st.x[1] - 0.05, s.bodies().states()[1].x[0] - x0);
     eprintln!(
-        "crate bottom {} (shelf top {top}); capsule moved {} m",
-        st.x[1] - 0.05,
-        s.bodies().states()[1].x[0] - x0
+        "crate bottom {bottom} (shelf top {}); capsule moved {pushed} m",
+        faces[3]
     );
     assert!(
-        (st.x[1] - 0.05 - top).abs() < 0.1 * p.dx(),
-        "crate bottom {} vs shelf top {top}",
-        st.x[1] - 0.05
+        (bottom - faces[3]).abs() < 0.1 * dx,
+        "crate bottom {bottom} vs shelf top {}",
+        faces[3]
     );
-    assert!(
-        s.bodies().states()[1].x[0] - x0 > 0.2,
-        "the capsule was not pushed"
-    );
+    (pushed, bottom)
 }

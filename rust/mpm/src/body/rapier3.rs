@@ -4,12 +4,14 @@ use rapier3d::math::{Pose, Rotation, Vector};
 use rapier3d::prelude::*;
 
 use super::BodyState;
-use super::world::{RigidWorld, ShapeSpec, WorldSpec};
+use super::world::{ObstacleShape, RigidWorld, ShapeSpec, WorldSpec};
 
 pub(crate) struct World3 {
     world: PhysicsWorld,
     handles: Vec<RigidBodyHandle>,
-    obstacles: Vec<Option<RigidBodyHandle>>,
+    /// Each obstacle's body and the offset [m] of its collider's frame from
+    /// the obstacle's centre (a mesh obstacle's voxels: half a spacing down).
+    obstacles: Vec<Option<(RigidBodyHandle, [f32; 3])>>,
 }
 
 impl World3 {
@@ -65,11 +67,25 @@ impl World3 {
             .obstacles
             .iter()
             .map(|o| {
-                if !o.solid {
-                    return None;
-                }
+                let (collider, offset) = match &o.shape {
+                    ObstacleShape::Absent => return None,
+                    ObstacleShape::Ball(r) => (ColliderBuilder::ball(*r), [0.0; 3]),
+                    ObstacleShape::Box(h) => (ColliderBuilder::cuboid(h[0], h[1], h[2]), [0.0; 3]),
+                    ObstacleShape::Voxels(v) => {
+                        let shape = v.shape.get_or_init(|| {
+                            let keys: Vec<IVector> =
+                                v.keys.iter().map(|k| IVector::from(*k)).collect();
+                            Box::new(SharedShape::voxels(Vector::splat(v.size), &keys))
+                        });
+                        let shape = shape
+                            .downcast_ref::<SharedShape>()
+                            .expect("made by a 3D world")
+                            .clone();
+                        (ColliderBuilder::new(shape), [-0.5 * v.size; 3])
+                    }
+                };
                 let state = BodyState {
-                    x: o.x,
+                    x: std::array::from_fn(|d| o.x[d] + offset[d]),
                     q: o.q,
                     ..Default::default()
                 };
@@ -78,12 +94,7 @@ impl World3 {
                 } else {
                     RigidBodyBuilder::fixed()
                 };
-                let collider = if o.ball {
-                    ColliderBuilder::ball(o.half[0])
-                } else {
-                    ColliderBuilder::cuboid(o.half[0], o.half[1], o.half[2])
-                };
-                Some(world.insert(body.pose(pose(&state)), collider).0)
+                Some((world.insert(body.pose(pose(&state)), collider).0, offset))
             })
             .collect();
         World3 {
@@ -142,9 +153,11 @@ impl RigidWorld for World3 {
     }
 
     fn move_obstacle(&mut self, j: usize, x: [f32; 3]) {
-        let Some(h) = self.obstacles[j] else { return };
+        let Some((h, o)) = self.obstacles[j] else {
+            return;
+        };
         let b = &mut self.world.bodies[h];
-        b.set_next_kinematic_translation(Vector::from(x));
+        b.set_next_kinematic_translation(Vector::new(x[0] + o[0], x[1] + o[1], x[2] + o[2]));
     }
 
     fn step(&mut self, dt: f32) {

@@ -186,10 +186,16 @@ impl<const D: usize> Bodies<D> {
         self.world = Some(world::build(D, &spec));
     }
 
-    /// The obstacles (boxes and balls at the frame's start) the world of the
-    /// next frame attempt holds, for the bodies' contacts with them.
+    /// The obstacles (boxes, balls and mesh obstacles' voxels at the frame's
+    /// start) the world of the next frame attempt holds, for the bodies'
+    /// contacts with them.
     pub(crate) fn set_obstacles(&mut self, obstacles: Vec<ObstacleSpec>) {
         self.obstacles = obstacles;
+    }
+
+    /// The obstacles of the last [`Bodies::set_obstacles`].
+    pub(crate) fn obstacles(&self) -> &[ObstacleSpec] {
+        &self.obstacles
     }
 
     /// Where the moving obstacles are at the end of the substep under way:

@@ -9,7 +9,8 @@
 //! same bits as a run that never stopped. Contacts' warm-start impulses live
 //! within a frame only.
 
-use std::sync::Arc;
+use std::any::Any;
+use std::sync::{Arc, OnceLock};
 
 use super::{BodyState, Hull};
 
@@ -37,22 +38,96 @@ pub(crate) struct BodySpec {
     pub mass: Option<(f32, [[f64; 3]; 3])>,
 }
 
+/// An obstacle's shape in rapier's terms.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) enum ObstacleShape {
+    /// Half extents [m].
+    Box([f32; 3]),
+    /// Radius [m].
+    Ball(f32),
+    /// A mesh obstacle (sampled distances) as voxels.
+    Voxels(Arc<Voxelized>),
+    /// None in the world (a mesh obstacle past [`MAX_OBSTACLE_VOXELS`]): its
+    /// place in the list stays, so that obstacle `j` is collider `j`.
+    Absent,
+}
+
 /// An obstacle in rapier's terms: a fixed collider, or a kinematic one
-/// (moved to each substep's pose) when it moves in the frame. Mesh
-/// obstacles (sampled distances) take no part.
+/// (moved to each substep's pose) when it moves in the frame.
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct ObstacleSpec {
-    /// Half extents (a box) or `[r, 0, 0]` with `ball` (a ball) [m].
-    pub half: [f32; 3],
-    pub ball: bool,
-    /// False for a mesh obstacle: it takes no part (its place in the list
-    /// stays, so that obstacle `j` is collider `j`).
-    pub solid: bool,
-    /// Centre [m] and rotation (2D: `cos θ, sin θ, 0, 0`; 3D: quaternion
-    /// `x, y, z, w`) at the frame's start.
+    pub shape: ObstacleShape,
+    /// Centre [m] (a mesh obstacle: its anchor, the samples' first node) and
+    /// rotation (2D: `cos θ, sin θ, 0, 0`; 3D: quaternion `x, y, z, w`) at
+    /// the frame's start.
     pub x: [f32; 3],
     pub q: [f32; 4],
     pub moving: bool,
+}
+
+/// Most voxels a mesh obstacle takes in the bodies' world (the shell of
+/// [`Voxelized::SHELL_CELLS`] samples under the surface of a mesh filling
+/// the largest sampled grid is far below it); beyond, the obstacle meets the
+/// bodies through the fluid only.
+pub(crate) const MAX_OBSTACLE_VOXELS: usize = 1 << 21;
+
+/// A mesh obstacle's sampled distances as rapier voxels: one voxel of side
+/// `size` (the samples' spacing) centred on each node whose sample lies
+/// inside the surface, to [`Voxelized::SHELL_CELLS`] spacings deep. The
+/// voxels' faces lie within half a spacing of the surface (a staircase on a
+/// slope). `source` is the samples they were made from, so that a world of
+/// the next frame reuses them while the obstacle keeps its samples, and
+/// `shape` rapier's shape of them, made by the first world that holds them.
+#[derive(Debug)]
+pub(crate) struct Voxelized {
+    pub size: f32,
+    /// Each voxel's node `i` (2D: `i_0, i_1, 0`); voxel `i` spans
+    /// `[i, i + 1] · size` in the collider's frame, whose origin lies half a
+    /// spacing below the anchor on every axis (so that it is centred on node `i`).
+    pub keys: Vec<[i32; 3]>,
+    pub source: Arc<[f32]>,
+    /// rapier2d's or rapier3d's `SharedShape` of the voxels.
+    pub shape: OnceLock<Box<dyn Any + Send + Sync>>,
+}
+
+impl PartialEq for Voxelized {
+    fn eq(&self, other: &Self) -> bool {
+        self.size == other.size && self.keys == other.keys
+    }
+}
+
+impl Voxelized {
+    /// Depth [spacings] of the shell of inside nodes taken: thicker than the
+    /// distance a body moves into an obstacle in a substep.
+    pub const SHELL_CELLS: f32 = 3.0;
+
+    /// The voxels of the samples `values` (row-major over `dims`, the last
+    /// axis fastest, `cell` apart); `None` beyond [`MAX_OBSTACLE_VOXELS`] or
+    /// without an inside node.
+    pub fn of_samples(values: &Arc<[f32]>, dims: &[usize], cell: f32) -> Option<Self> {
+        let deepest = -Self::SHELL_CELLS * cell;
+        let mut keys = Vec::new();
+        for (lin, &v) in values.iter().enumerate() {
+            if v <= 0.0 && v > deepest {
+                if keys.len() == MAX_OBSTACLE_VOXELS {
+                    return None;
+                }
+                let mut key = [0i32; 3];
+                let mut rest = lin;
+                for d in (0..dims.len()).rev() {
+                    key[d] = (rest % dims[d]) as i32;
+                    rest /= dims[d];
+                }
+                keys.push(key);
+            }
+        }
+        (!keys.is_empty()).then(|| Voxelized {
+            size: cell,
+            keys,
+            source: Arc::clone(values),
+            shape: OnceLock::new(),
+        })
+    }
 }
 
 /// What a world is built from.

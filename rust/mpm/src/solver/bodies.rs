@@ -1,10 +1,12 @@
 //! The solver's rigid bodies: adding, removing and reading them between
 //! frames, and their part in a frame ([`crate::body`], docs/bodies.md).
 
+use std::sync::Arc;
+
 use nalgebra::SVector;
 
 use super::Solver;
-use crate::body::world::ObstacleSpec;
+use crate::body::world::{ObstacleShape, ObstacleSpec, Voxelized};
 use crate::body::{Bodies, Body, BodyPose, BodyState, MAX_BODIES};
 use crate::collider::Shape;
 use crate::dim::{Dim, DimOps};
@@ -170,7 +172,7 @@ where
             .colliders
             .iter()
             .zip(&self.moves)
-            .map(|(c, m)| obstacle_spec(&c.shape, m.is_some()))
+            .map(|(c, m)| obstacle_spec(&c.shape, m.is_some(), self.bodies.obstacles()))
             .collect();
         self.bodies.set_obstacles(obstacles);
         let dx = self.params.dx();
@@ -180,15 +182,18 @@ where
     }
 }
 
-/// An obstacle for the bodies' rigid world: a box or a ball where it is now,
-/// kinematic when it moves in the frame; a mesh obstacle (sampled
-/// distances) as none.
-fn obstacle_spec<const D: usize>(shape: &Shape<D>, moving: bool) -> ObstacleSpec {
+/// An obstacle for the bodies' rigid world: a box, a ball or a mesh
+/// obstacle's voxels where it is now, kinematic when it moves in the frame.
+/// A mesh obstacle's voxels are taken from `previous` (the last world's
+/// obstacles) while its samples are the same, else made from them.
+fn obstacle_spec<const D: usize>(
+    shape: &Shape<D>,
+    moving: bool,
+    previous: &[ObstacleSpec],
+) -> ObstacleSpec {
     let pad = |v: &SVector<f32, D>| std::array::from_fn(|d| if d < D { v[d] } else { 0.0 });
     let mut o = ObstacleSpec {
-        half: [0.0; 3],
-        ball: false,
-        solid: true,
+        shape: ObstacleShape::Absent,
         x: [0.0; 3],
         q: if D == 2 {
             [1.0, 0.0, 0.0, 0.0]
@@ -203,7 +208,7 @@ fn obstacle_spec<const D: usize>(shape: &Shape<D>, moving: bool) -> ObstacleSpec
             half_extents,
             rotation,
         } => {
-            o.half = pad(half_extents);
+            o.shape = ObstacleShape::Box(pad(half_extents));
             o.x = pad(center);
             let body = Body {
                 shape: crate::body::BodyShape::Ball { radius: 1.0 },
@@ -217,11 +222,27 @@ fn obstacle_spec<const D: usize>(shape: &Shape<D>, moving: bool) -> ObstacleSpec
             o.q = BodyState::of(&body).q;
         }
         Shape::Sphere { center, radius } => {
-            o.half = [*radius, 0.0, 0.0];
-            o.ball = true;
+            o.shape = ObstacleShape::Ball(*radius);
             o.x = pad(center);
         }
-        Shape::Sampled { .. } => o.solid = false,
+        Shape::Sampled {
+            origin,
+            cell,
+            dims,
+            values,
+            ..
+        } => {
+            o.x = pad(origin);
+            let kept = previous.iter().find_map(|p| match &p.shape {
+                ObstacleShape::Voxels(v) if Arc::ptr_eq(&v.source, values) => Some(Arc::clone(v)),
+                _ => None,
+            });
+            if let Some(v) =
+                kept.or_else(|| Voxelized::of_samples(values, dims, *cell).map(Arc::new))
+            {
+                o.shape = ObstacleShape::Voxels(v);
+            }
+        }
     }
     o
 }
