@@ -13,7 +13,7 @@ import types
 import numpy as np
 import pytest
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.errors import CheckpointError, InvalidInputError
 from hybridmpm.mpm.bodies import MAX_BODIES, Body
 from hybridmpm.scenes.spec import SceneSpec
 from hybridmpm.sim import MpmSimulator, rollout
@@ -117,10 +117,15 @@ def test_checkpoint_restore_continues_bit_for_bit():
     a = small_sim()
     rollout(a, 15)
     state = a.state()
+    force, torque = a.bodies.force.copy(), a.bodies.torque.copy()
     rollout(a, 15)
     b = small_sim()  # a fresh simulator of the same scene
     b.restore(state)
     assert np.array_equal(body_bits(b), np.asarray(state_bodies(state)))
+    # the fluid's force on each body over the frame before the checkpoint comes back with it (restore and from_checkpoint)
+    assert np.abs(force).max() > 0 and np.array_equal(b.bodies.force, force) and np.array_equal(b.bodies.torque, torque)
+    fresh = type(b.solver).from_checkpoint(a.solver.checkpoint())
+    assert np.array_equal(fresh.bodies.force, a.bodies.force) and np.array_equal(fresh.bodies.torque, a.bodies.torque)
     rollout(b, 15)
     assert np.array_equal(a.fluid_positions, b.fluid_positions)
     assert np.array_equal(body_bits(a), body_bits(b))
@@ -149,6 +154,30 @@ def test_added_body_in_checkpoint_and_old_checkpoint_without_bodies():
     plain = MpmSimulator(SceneSpec.from_dict(tank([], top=0.3, width=(0.3, 0.7))).build(), threads=1)
     assert b'"bod' not in plain.solver.checkpoint()[:4096]
     plain.restore(plain.state())
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("body_state", [[0.0] * 13]),  # one body's state for two bodies
+        ("body_state", [[float("nan")] * 13] * 2),
+        ("body_force", [[0.0] * 5] * 2),  # 5 lanes, not 6
+        ("body_force", [[1e309] * 6] * 2),  # inf
+        ("body_force", "much"),
+    ],
+)
+def test_a_checkpoint_with_broken_body_arrays_is_refused_and_nothing_changes(key, value):
+    a = small_sim()
+    rollout(a, 5)
+    blob = a.solver.checkpoint()
+    broken = a.solver.with_header(blob, {key: value})
+    before = (body_bits(a).copy(), a.bodies.force.copy(), a.fluid_positions.copy())
+    with pytest.raises(CheckpointError, match=key.replace("_", " ")):
+        a.solver.restore(broken)
+    with pytest.raises(CheckpointError, match=key.replace("_", " ")):
+        type(a.solver).from_checkpoint(broken)
+    after = (body_bits(a), a.bodies.force, a.fluid_positions)
+    assert all(np.array_equal(x, y) for x, y in zip(before, after))
 
 
 def test_one_and_two_threads_same_bits():

@@ -30,6 +30,7 @@ _CORE_HEADER = 36
 _COLLIDER_STATE = "collider_state"
 #: The checkpoint header's key for the bodies' exact states (float32 [B, 13] as JSON numbers; absent without bodies).
 _BODY_STATE = "body_state"
+_BODY_FORCE = "body_force"
 
 
 class MpmSolver:
@@ -394,6 +395,35 @@ class MpmSolver:
         for i, row in enumerate([] if states is None else states):
             self._core.set_body_state(i, np.ascontiguousarray(row))
 
+    def _body_force_lanes(self) -> list[list[float]]:
+        """The fluid's last force and torque on each body as a checkpoint keeps them: 6 lanes (force x, y, z,
+        torque x, y, z; 2D: force x, y and the torque in lane 5, the others 0)."""
+        b = self._core.bodies()
+        lanes = []
+        for f, t in zip(b["force"], b["torque"]):
+            row = [0.0] * 6
+            row[: self.dim] = [float(v) for v in f]
+            row[6 - len(t) :] = [float(v) for v in t]
+            lanes.append(row)
+        return lanes
+
+    def _check_body_force(self, bf: Any, n: int) -> np.ndarray:
+        """A checkpoint's last fluid forces on the bodies, float64 [n, 6] (zeros when absent: a checkpoint written
+        before they were kept); raises :class:`CheckpointError`."""
+        if bf is None:
+            return np.zeros((n, 6))
+        try:
+            a = np.asarray(bf, np.float64)
+        except (TypeError, ValueError) as e:
+            raise CheckpointError(f"bad body force: {e}") from e
+        if a.shape != (n, 6) or not np.isfinite(a).all():
+            raise CheckpointError(f"bad body force: expected the forces on {n} bodies, 6 finite numbers each")
+        return a
+
+    def _set_body_force(self, forces: np.ndarray) -> None:
+        for i, row in enumerate(forces):
+            self._core.set_body_force(i, [float(v) for v in row])
+
     # ------------------------------------------------------------- checkpoint
     def checkpoint(self) -> bytes:
         """The whole state (parameters, particles, clock, the colliders'
@@ -405,6 +435,7 @@ class MpmSolver:
             head[_COLLIDER_STATE] = cs
         if self.params.bodies:
             head[_BODY_STATE] = [[float(v) for v in row] for row in self._core.bodies()["state"]]
+            head[_BODY_FORCE] = self._body_force_lanes()
         header = json.dumps(head).encode()
         return _MAGIC + struct.pack("<Q", len(header)) + header + self._core.checkpoint()
 
@@ -415,9 +446,11 @@ class MpmSolver:
         sim = cls(params)
         poses = sim._check_collider_state(cs)
         bodies = sim._check_body_state(_body_state(blob), len(params.bodies))
+        forces = sim._check_body_force(_body_state(blob, _BODY_FORCE), len(params.bodies))
         sim._core.restore(state)
         sim._set_collider_state(poses)
         sim._set_body_state(bodies)
+        sim._set_body_force(forces)
         return sim
 
     def restore(self, blob: bytes, *, same_particles: bool = False) -> None:
@@ -431,9 +464,11 @@ class MpmSolver:
         state = self.check_restore(blob, same_particles=same_particles)
         poses = self._check_collider_state(self.split_checkpoint(blob)[2])
         bodies = self._check_body_state(_body_state(blob), len(self.params.bodies))
+        forces = self._check_body_force(_body_state(blob, _BODY_FORCE), len(self.params.bodies))
         self._core.restore(state)
         self._set_collider_state(poses)
         self._set_body_state(bodies)
+        self._set_body_force(forces)
 
     def restore_particles(self, blob: bytes) -> None:
         """Restore the particles of a :meth:`checkpoint` written by a solver
@@ -493,6 +528,7 @@ class MpmSolver:
             cs = head.pop(_COLLIDER_STATE, None) if isinstance(head, dict) else None
             if isinstance(head, dict):
                 head.pop(_BODY_STATE, None)  # read by _body_state
+                head.pop(_BODY_FORCE, None)
             params = MpmParams.from_dict(head)
         except (ValueError, TypeError) as e:
             raise CheckpointError(f"bad parameter header: {e}") from e
@@ -511,11 +547,12 @@ class MpmSolver:
         return bytes(blob[:8]) + struct.pack("<Q", len(header)) + header + bytes(blob[16 + n :])
 
 
-def _body_state(blob: bytes) -> Any:
-    """The bodies' states in a checkpoint's header (None when absent); the header checked by :meth:`MpmSolver.split_checkpoint` first."""
+def _body_state(blob: bytes, key: str = _BODY_STATE) -> Any:
+    """The bodies' states (``key`` ``body_force``: their last fluid forces) in a checkpoint's header (None when
+    absent); the header checked by :meth:`MpmSolver.split_checkpoint` first."""
     (n,) = struct.unpack("<Q", blob[8:16])
     head = loads_json(blob[16 : 16 + n], "checkpoint")
-    return head.get(_BODY_STATE) if isinstance(head, dict) else None
+    return head.get(key) if isinstance(head, dict) else None
 
 
 def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:

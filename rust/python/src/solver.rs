@@ -620,6 +620,28 @@ impl MpmSolver {
             .map_err(|e| to_py(py, e))
     }
 
+    /// Sets the fluid's last force and torque on body `index` (6 float64
+    /// lanes: force x, y, z, torque x, y, z; a 2D body's torque in lane 5),
+    /// as a checkpoint holds them. Raises `InvalidInputError` naming
+    /// `index`, `force` (not 6 numbers) or `bodies[i].force` (not finite).
+    fn set_body_force(
+        &self,
+        py: Python<'_>,
+        index: &Bound<'_, PyAny>,
+        force: Vec<f64>,
+    ) -> PyResult<()> {
+        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
+        let f: [f64; 6] = force.try_into().map_err(|_| {
+            invalid_input(
+                py,
+                "force",
+                "expected 6 numbers (force x, y, z, torque x, y, z)",
+            )
+        })?;
+        self.with(py, |inner| dispatch!(inner, s => s.set_body_force(i, f)))
+            .map_err(|e| to_py(py, e))
+    }
+
     /// Particle state and clock as bytes (parameters not included).
     fn checkpoint<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
         let blob = self.with(py, |inner| dispatch!(inner, s => s.checkpoint()));

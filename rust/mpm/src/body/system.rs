@@ -124,6 +124,12 @@ impl<const D: usize> Bodies<D> {
         self.refresh_poses();
     }
 
+    /// Sets the fluid's mean force and torque on body `i` over the last
+    /// frame (a checkpoint's; lanes as [`Bodies::last_force`]'s).
+    pub(crate) fn set_last_force(&mut self, i: usize, f: [f64; 6]) {
+        self.last_force[i] = f;
+    }
+
     /// Sets body `i`'s state (a checkpoint's).
     pub(crate) fn set_state(&mut self, i: usize, s: BodyState) {
         self.states[i] = s;

@@ -152,6 +152,23 @@ where
         Ok(())
     }
 
+    /// Sets the fluid's mean force [N] and torque [N·m] on body `index`
+    /// over the last frame, as a checkpoint holds them (lanes as
+    /// [`Bodies::last_force`]'s): a restored solver reads what the one that
+    /// wrote it read. Errors naming `index` (no such body) or
+    /// `bodies[index].force` (not finite); nothing changes then.
+    pub fn set_body_force(&mut self, index: usize, force: [f64; 6]) -> Result<()> {
+        self.check_body(index)?;
+        if !force.iter().all(|x| x.is_finite()) {
+            return Err(MpmError::invalid(
+                format!("bodies[{index}].force"),
+                "must be finite",
+            ));
+        }
+        self.bodies.set_last_force(index, force);
+        Ok(())
+    }
+
     fn check_body(&self, index: usize) -> Result<()> {
         if index >= self.bodies.len() {
             return Err(MpmError::invalid(
