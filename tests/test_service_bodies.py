@@ -209,3 +209,45 @@ def test_a_scene_with_bodies_lists_them_and_takes_more_on_its_default_solver(cli
     r = client.post(f"/v1/sessions/{s['id']}/bodies", json={**BOX, "center": [0.5, 0.8]})
     assert r.status_code == 201 and r.json()["index"] == 4, r.text
     assert len(_step(client, s["id"], 1)[-1]["bodies"]) == 5
+
+
+def test_the_trajectory_download_carries_the_bodies_of_the_frames_that_share_them(client, tmp_path):
+    """GET .../trajectory: the npz holds body_center / body_rotation / body_mass equal to a local rollout of the same
+    scene (MPM, bit for bit) over the frames whose bodies were the same; frames across an added body have none; the
+    mesh zip holds each body at each frame, at its pose (body_surface of the pose the npz gives)."""
+    import io
+    import zipfile
+
+    import trimesh
+
+    from hybridmpm.render.bodies import body_surface
+
+    sid = _new(client, "crates2d")["id"]
+    _step(client, sid, 6)
+    t = client.get(f"/v1/sessions/{sid}/trajectory?frames=6")
+    assert t.status_code == 200
+    with np.load(io.BytesIO(t.content), allow_pickle=False) as z:
+        center, rotation, mass = z["body_center"], z["body_rotation"], z["body_mass"]
+    sim = make_simulator("crates2d", "mpm", seed=0, threads=1)
+    ro = rollout(sim, 6)
+    assert center.shape == (6, len(sim.bodies), 2) and rotation.shape == (6, len(sim.bodies), 2, 2)
+    assert np.array_equal(center, ro.body_center[1:]) and np.array_equal(rotation, ro.body_rotation[1:]) and np.array_equal(mass, ro.body_mass)
+
+    z = zipfile.ZipFile(io.BytesIO(client.get(f"/v1/sessions/{sid}/trajectory?frames=2&format=mesh").content))
+    names = z.namelist()
+    assert {f"body_{i}_{k:05d}.ply" for i in range(len(sim.bodies)) for k in range(2)} <= set(names)
+    got = trimesh.load(io.BytesIO(z.read("body_1_00001.ply")), file_type="ply", process=False)
+    want = body_surface(sim.solver.params.bodies[1], center[-1, 1], rotation[-1, 1])
+    ring = np.concatenate([loop[:-1] for loop in want.loops])  # the outline's points (its last repeats its first)
+    v = np.asarray(got.vertices)[:, :2]
+    assert len(v) == len(ring) and np.abs(v[:, None] - ring[None]).max(-1).min(1).max() < 1e-6
+
+    # a body added: the frames before it and after it do not share their bodies
+    assert client.post(f"/v1/sessions/{sid}/bodies", json=BALL | {"center": [0.5, 0.8]}).status_code == 201
+    _step(client, sid, 2)
+    with np.load(io.BytesIO(client.get(f"/v1/sessions/{sid}/trajectory?frames=4").content), allow_pickle=False) as z:
+        assert "body_center" not in z.files and z["positions"].shape[0] == 4
+    with np.load(io.BytesIO(client.get(f"/v1/sessions/{sid}/trajectory?frames=2").content), allow_pickle=False) as z:
+        assert z["body_center"].shape == (2, len(sim.bodies) + 1, 2)
+    names = zipfile.ZipFile(io.BytesIO(client.get(f"/v1/sessions/{sid}/trajectory?frames=4&format=mesh").content)).namelist()
+    assert not [n for n in names if n.startswith("body_")] and [n for n in names if n.startswith("water_")]

@@ -96,9 +96,14 @@ def tree_nbytes(tree: Any) -> int:
     return 0
 
 
-#: A recorded frame: frame index, positions float32 [N + B, D] [m], solver, whether controlled, and the obstacles'
-#: centres float64 [C, D] [m] (:attr:`~hybridmpm.sim.base.Frame.obstacle_centers`; None in a scene without obstacles).
-RecordedFrame = tuple[int, np.ndarray, str, bool, np.ndarray | None]
+#: A recorded frame's rigid bodies: the bodies as given (the solver's ``params.bodies`` list itself: one object while
+#: no body is added or removed), their centres float64 [B, D] [m], rotations [B, D, D] and masses [B] [kg].
+RecordedBodies = tuple[list[Any], np.ndarray, np.ndarray, np.ndarray]
+
+#: A recorded frame: frame index, positions float32 [N + B, D] [m], solver, whether controlled, the obstacles'
+#: centres float64 [C, D] [m] (:attr:`~hybridmpm.sim.base.Frame.obstacle_centers`; None in a scene without obstacles)
+#: and its bodies (None in a scene without them).
+RecordedFrame = tuple[int, np.ndarray, str, bool, np.ndarray | None, RecordedBodies | None]
 
 
 class Recording:
@@ -122,7 +127,9 @@ class Recording:
     def clear(self) -> None:
         self.frames.clear()
 
-    def add(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None = None) -> None:
+    def add(
+        self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None = None, bodies: RecordedBodies | None = None
+    ) -> None:
         if self.capacity < 1:
             return
         k = int(frame_index)
@@ -140,7 +147,11 @@ class Recording:
                 if not self.frames:
                     return
                 self.frames.popleft()
-        self.frames.append((k, pos, str(solver), bool(controlled), None if centers is None else np.array(centers, np.float64)))
+        kept: RecordedBodies | None = None
+        if bodies is not None:
+            given, center, rotation, mass = bodies
+            kept = (given, np.array(center, np.float64), np.array(rotation, np.float64), np.array(mass, np.float64))
+        self.frames.append((k, pos, str(solver), bool(controlled), None if centers is None else np.array(centers, np.float64), kept))
 
     def last(self, count: int) -> list[RecordedFrame]:
         """The latest ``count`` frames recorded (fewer if fewer are held), oldest first."""
@@ -159,6 +170,7 @@ __all__ = [
     "SURFACE_PAD_NODES",
     "BudgetFullError",
     "MemoryBudget",
+    "RecordedBodies",
     "RecordedFrame",
     "Recording",
     "mesh_download_bytes",

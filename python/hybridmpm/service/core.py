@@ -37,7 +37,7 @@ import numpy as np
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
-from hybridmpm.service.budget import MemoryBudget, RecordedFrame, Recording
+from hybridmpm.service.budget import MemoryBudget, RecordedBodies, RecordedFrame, Recording
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
 from hybridmpm.service.schemas import clean
@@ -247,12 +247,23 @@ class SessionCore:
 
     # ------------------------------------------------------------ what it shows
     def _record(self, fr: Frame) -> None:
-        self._record_values(int(fr.frame_index), fr.positions, str(fr.solver), bool(fr.controlled), fr.obstacle_centers)
+        bodies = self._recorded_bodies(fr.body_center, fr.body_rotation, fr.body_mass)
+        self._record_values(int(fr.frame_index), fr.positions, str(fr.solver), bool(fr.controlled), fr.obstacle_centers, bodies)
 
-    def _record_values(self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None) -> None:
+    def _recorded_bodies(self, center: np.ndarray | None, rotation: np.ndarray | None, mass: np.ndarray | None) -> RecordedBodies | None:
+        """A frame's bodies as the recording keeps them: with the solver's list of the bodies as given (one object
+        until a body is added or removed, so a download knows which frames share their bodies); None without."""
+        given = getattr(getattr(getattr(self.sim, "solver", None), "params", None), "bodies", None)
+        if not given or center is None or rotation is None or mass is None:
+            return None
+        return given, center, rotation, mass
+
+    def _record_values(
+        self, frame_index: int, positions: np.ndarray, solver: str, controlled: bool, centers: np.ndarray | None, bodies: RecordedBodies | None = None
+    ) -> None:
         with self._held:
             if not self.closed:
-                self.recording.add(frame_index, positions, solver, controlled, centers)
+                self.recording.add(frame_index, positions, solver, controlled, centers, bodies)
 
     def _show(self, fr: Frame, control_frame: int = 0) -> None:
         """Record ``fr`` and hand it to the viewers."""
@@ -287,7 +298,9 @@ class SessionCore:
             self._changed()
             for k in range(1, len(ro.frame_index)):
                 centers = None if ro.obstacle_centers is None else ro.obstacle_centers[k]
-                self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False, centers)
+                c, r, m = ro.body_center, ro.body_rotation, ro.body_mass
+                poses = (None, None, None) if c is None or r is None or m is None else (c[k], r[k], m)
+                self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False, centers, self._recorded_bodies(*poses))
             if len(ro.frame_index) > 1:
                 self.on_frame(self.sim.frame, 0)
         return ro

@@ -20,6 +20,7 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from hybridmpm.render import export_points, export_surfaces
+from hybridmpm.render.bodies import export_bodies
 from hybridmpm.service.budget import mesh_download_bytes
 from hybridmpm.service.core import RECORD_STEPS
 from hybridmpm.service.deps import ManagerDep, SessionDep
@@ -36,12 +37,16 @@ PLY_BYTES_PER_VALUE = 40
 router = APIRouter()
 
 
-def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any]) -> bytes:
+def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any], bodies: list[Any] | None = None) -> bytes:
     """One binary PLY surface per frame and material (``water_00000.ply``, ``sand_00000.ply`` …; 2D: outlines), zipped;
-    the obstacles of ``settings`` placed in each frame at the trajectory's ``obstacle_centers`` (when it has them)."""
+    the obstacles of ``settings`` placed in each frame at the trajectory's ``obstacle_centers`` (when it has them); with
+    ``bodies`` (as given) and the trajectory's body poses, each body at each frame (``body_<i>_<t>.ply``,
+    :func:`hybridmpm.render.bodies.export_bodies`)."""
     buf = io.BytesIO()
     with tempfile.TemporaryDirectory(prefix="hybridmpm-mesh-") as tmp:
         paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, **settings)
+        if bodies and traj.body_center is not None and traj.body_rotation is not None:
+            paths += export_bodies(tmp, bodies, traj.body_center, traj.body_rotation, fmt="ply")
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for p in paths:
                 z.write(p, Path(p).name)
@@ -71,8 +76,9 @@ def trajectory_ply_zip(traj: Trajectory, solver: np.ndarray) -> bytes:
         200: {
             "content": {NPZ: {}, ZIP: {}},
             "description": "npz: positions [T, N, D], particle_type, dt_frame (between stored frames), n_grid, masses, material, "
-            "frame_index [T], solver [T] (0 MPM, 1 network), controlled [T], obstacle_centers [T, C, D] (a scene with obstacles); "
-            "or a zip of one PLY point cloud per frame",
+            "frame_index [T], solver [T] (0 MPM, 1 network), controlled [T], obstacle_centers [T, C, D] (a scene with obstacles), "
+            "body_center [T, B, D], body_rotation [T, B, D, D] and body_mass [B] (bodies, none added or removed in these frames); "
+            "or a zip of one PLY point cloud per frame, or of the surface meshes (and each body's)",
         },
         404: {"description": "no such session"},
         409: {"description": "no frame recorded (the memory budget was full)"},
@@ -103,11 +109,18 @@ async def get_session_trajectory(
     else:
         reserve = values * (PLY_BYTES_PER_VALUE if format == "ply" else 4 * FILE_COPIES)
     with manager.budget.hold(reserve, "the trajectory's file"):
+        # the bodies when every frame held has the same ones (none added or removed meanwhile: one list as given)
+        poses = [h[5] for h in held if h[5] is not None]
+        same = len(poses) == len(held) and all(b[0] is poses[0][0] for b in poses)
+        given = poses[0][0] if same else None
 
         def make() -> Trajectory:
             centers = [h[4] for h in held if h[4] is not None]
             return Trajectory(
                 obstacle_centers=np.stack(centers) if centers and len(centers) == len(held) else None,
+                body_center=np.stack([b[1] for b in poses]) if same else None,
+                body_rotation=np.stack([b[2] for b in poses]) if same else None,
+                body_mass=poses[0][3] if same else None,
                 positions=np.stack([h[1] for h in held]),
                 particle_type=ptype,
                 dt_frame=dt,
@@ -128,7 +141,7 @@ async def get_session_trajectory(
             data = await manager.compute(trajectory_ply_zip, traj, traj.extras["solver"])
             media, name = ZIP, name + "-ply.zip"
         elif format == "mesh":
-            data = await manager.compute(trajectory_mesh_zip, traj, f.surface)
+            data = await manager.compute(trajectory_mesh_zip, traj, f.surface, given)
             media, name = ZIP, name + "-mesh.zip"
         else:
             data = await manager.compute(trajectory_npz, traj)
