@@ -17,7 +17,7 @@ from hybridmpm.mpm.bodies import Body
 from hybridmpm.render import render_gif
 from hybridmpm.render.bodies import CIRCLE_SEGMENTS, body_prism, icosphere, local_mesh, local_outline, place
 from hybridmpm.render.gif import BODY_FILL, frame_pixel
-from hybridmpm.render.surface import _mesh_volume
+from hybridmpm.render.surface import _mesh_volume, frame_surfaces, surface_settings
 from hybridmpm.scenes import make_scene
 
 
@@ -71,6 +71,26 @@ def test_every_body_mesh_at_every_frame_is_its_shape_at_its_pose(exported):
             got = ply_vertices(path) if fmt == "ply" else obj_vertices(path)
             np.testing.assert_allclose(got, _expected(body, traj.body_center[t, i], traj.body_rotation[t, i]), atol=1e-6)
     assert not list((out / "export").glob(f"body_{len(bodies)}_*"))
+
+
+def test_the_water_surface_ends_on_the_bodies(exported):
+    """The exported water surface (3D triangles, 2D outlines) ends on each body at its pose, as on an obstacle: no
+    vertex lies deeper than 0.3 cell inside a body (linear interpolation across a box's edge cuts its corner by a
+    fraction of a cell); drawn without the bodies, the same frame's surface reaches 0.56-0.68 cell inside."""
+    name, out, fmt, traj = exported
+    params = make_scene(name).params
+    dx = 1.0 / params.resolved_n_grid()
+    t = traj.num_frames - 1
+    path = out / "export" / f"water_{t:05d}.{fmt}"
+    v = (ply_vertices(path) if fmt == "ply" else obj_vertices(path))[:, : traj.dim].astype(np.float64)
+    depth = [-b.sdf(v, traj.body_center[t, i], traj.body_rotation[t, i]).min() / dx for i, b in enumerate(params.bodies)]
+    touching = [int((np.abs(b.sdf(v, traj.body_center[t, i], traj.body_rotation[t, i])) < dx).sum()) for i, b in enumerate(params.bodies)]
+    print(f"{name}: deepest surface vertex inside each body {np.round(depth, 3)} cells; vertices within a cell of each {touching}")
+    assert max(depth) <= 0.3 and sum(touching) > 0, (depth, touching)
+    settings = surface_settings(params, traj.particle_type, traj.masses)
+    (bare,) = frame_surfaces(traj.positions[t], traj.particle_type, **settings)  # the same frame, the bodies left out
+    w = bare.vertices if traj.dim == 3 else np.concatenate(bare.loops)
+    assert max(-b.sdf(w, traj.body_center[t, i], traj.body_rotation[t, i]).min() / dx for i, b in enumerate(params.bodies)) > 0.4
 
 
 def test_usd_has_one_xform_per_body_sampled_at_the_trajectory_poses(exported):

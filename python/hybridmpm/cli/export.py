@@ -124,7 +124,7 @@ def write_exports(
                 f"obstacle_centers: the trajectory places {centers.shape[1]} obstacles, its scene has {len(settings['obstacles'])}", "obstacle_centers"
             )
         poses = (params.bodies, traj.body_center, traj.body_rotation) if params.bodies and traj.body_center is not None else None
-        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t)) for t in range(traj.num_frames)]
+        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t, poses)) for t in range(traj.num_frames)]
         if "mesh" in kinds:
             count = 0
             for t, frame in enumerate(surfaces):

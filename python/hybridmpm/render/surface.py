@@ -60,7 +60,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIALS, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
-from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, VolumeEstimate, bodies, closed, field, is_sampled
+from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, PosedBody, VolumeEstimate, bodies, closed, field, is_sampled
 from hybridmpm.scenes import wall_face
 from hybridmpm.scenes.obstacles import obstacles_at
 
@@ -180,8 +180,10 @@ def _check_common(
 def _check_obstacles(obstacles: Any) -> list[Any]:
     obs = list(obstacles or ())
     for i, c in enumerate(obs):
-        if not (isinstance(c, (Box, Sphere)) or is_sampled(c)):
-            raise InvalidInputError(f"obstacles[{i}]: must be a collider of hybridmpm.mpm (Box, Sphere, sampled SDF), got {c!r}", f"obstacles[{i}]")
+        if not (isinstance(c, (Box, Sphere, PosedBody)) or is_sampled(c)):
+            raise InvalidInputError(
+                f"obstacles[{i}]: must be a collider of hybridmpm.mpm (Box, Sphere, sampled SDF) or a PosedBody, got {c!r}", f"obstacles[{i}]"
+            )
     return obs
 
 
@@ -511,21 +513,36 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     return out
 
 
-def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int) -> dict[str, Any]:
+def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int, bodies: Any = None) -> dict[str, Any]:
     """``settings`` (:func:`surface_settings`) for frame ``t`` of a run whose
     obstacles move: its ``obstacles`` translated to ``obstacle_centers[t]``
     (float [T, C, D] [m], a trajectory's
     :attr:`~hybridmpm.trajectory.Trajectory.obstacle_centers`;
     :func:`~hybridmpm.scenes.obstacles.obstacles_at`), so that the surface
-    ends on each obstacle where it is in that frame. ``obstacle_centers``
-    None: ``settings`` as they are. Raises :class:`InvalidInputError` naming
-    ``obstacle_centers`` (not [T, C, D] for the settings' C obstacles, not finite)."""
-    if obstacle_centers is None:
-        return settings
-    oc = np.asarray(obstacle_centers)
-    if oc.ndim != 3 or not 0 <= t < oc.shape[0]:
-        raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
-    return {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
+    ends on each obstacle where it is in that frame; with ``bodies``
+    ``(bodies as given, body_center [T, B, D], body_rotation [T, B, D, D])``
+    (a trajectory's poses), each body at frame ``t`` added as a
+    :class:`~hybridmpm.render.surface_field.PosedBody`: the surface ends on it
+    too. ``obstacle_centers`` and ``bodies`` None: ``settings`` as they are.
+    Raises :class:`InvalidInputError` naming ``obstacle_centers`` (not
+    [T, C, D] for the settings' C obstacles, not finite) or ``body_center``
+    (:func:`hybridmpm.render.bodies.check_poses`)."""
+    out = settings
+    if obstacle_centers is not None:
+        oc = np.asarray(obstacle_centers)
+        if oc.ndim != 3 or not 0 <= t < oc.shape[0]:
+            raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
+        out = {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
+    if bodies is not None:
+        from hybridmpm.render.bodies import check_poses  # here: render.bodies writes its meshes with this module's writers
+
+        given, center, rotation = bodies
+        c, r = check_poses(given, center, rotation)
+        if not 0 <= t < c.shape[0]:
+            raise InvalidInputError(f"body_center: expected [T, B, D] with a row for frame {t}, got {list(c.shape)}", "body_center")
+        posed = [PosedBody(b, c[t, i], r[t, i]) for i, b in enumerate(given)]
+        out = {**out, "obstacles": [*out.get("obstacles", ()), *posed]}
+    return out
 
 
 def export_surfaces(
@@ -536,6 +553,7 @@ def export_surfaces(
     fmt: str = "ply",
     every: int = 1,
     obstacle_centers: Any = None,
+    bodies: Any = None,
     **settings: Any,
 ) -> list[Path]:
     """Write the surface of every ``every``-th frame of ``positions`` float
@@ -547,7 +565,9 @@ def export_surfaces(
     elements) or ``obj`` (``l`` lines). ``settings`` are passed to
     :func:`surface_mesh` / :func:`surface_contours` (``domain``, ``dx``, ...);
     ``obstacle_centers`` float [T, C, D] [m] places the obstacles in each
-    frame (:func:`posed_settings`; None: where ``settings`` put them).
+    frame (:func:`posed_settings`; None: where ``settings`` put them), and
+    ``bodies`` (bodies as given, ``body_center``, ``body_rotation``) the rigid
+    bodies the surfaces end on.
     Returns the paths in frame order, materials sorted by type within a
     frame. Raises :class:`InvalidInputError` naming ``fmt`` (unknown, or
     ``glb`` in 2D), ``positions``, ``every``, ``obstacle_centers`` or a setting."""
@@ -566,7 +586,7 @@ def export_surfaces(
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for t in range(0, p.shape[0], every):
-        surfaces = frame_surfaces(p[t], particle_type, **posed_settings(settings, obstacle_centers, t))
+        surfaces = frame_surfaces(p[t], particle_type, **posed_settings(settings, obstacle_centers, t, bodies))
         for s in surfaces:
             path = out / f"{s.material}_{t:05d}.{fmt}"
             write_surface(s, path, fmt)

@@ -177,12 +177,42 @@ def _binomial(a: np.ndarray, ax: int) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class PosedBody:
+    """A rigid body where one frame has it, for the surfaces to end on as on an
+    obstacle: ``body`` (:class:`hybridmpm.mpm.bodies.Body`), its centre of
+    mass ``center`` float64 [D] [m] and ``rotation`` [D, D] (a trajectory's
+    ``body_center[t, i]``, ``body_rotation[t, i]``)."""
+
+    body: Any
+    center: np.ndarray
+    rotation: np.ndarray
+
+    def sdf(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance [m] of ``points`` [N, D] to the body there (:meth:`hybridmpm.mpm.bodies.Body.sdf`)."""
+        return np.asarray(self.body.sdf(points, self.center, self.rotation))
+
+    def reach(self) -> float:
+        """The farthest point of the body from its centre of mass [m]."""
+        b = self.body
+        if b.shape == "box":
+            return float(np.linalg.norm(b.half_extents))
+        if b.shape == "capsule":
+            return float(b.radius) + float(b.half_height)
+        if b.shape == "mesh":
+            return float(np.linalg.norm(np.asarray(b.hull()["vertices"], np.float64), axis=1).max())
+        return float(b.radius)
+
+
 def _obstacle_sdf(out: tuple[np.ndarray, ...], c: Any, coords: list[np.ndarray], h: float) -> None:
-    """``a ← min(a, collider_sdf)`` in place for every ``a`` of ``out``, over the nodes near obstacle ``c``."""
+    """``a ← min(a, collider_sdf)`` in place for every ``a`` of ``out``, over the nodes near obstacle ``c`` (a
+    collider or a :class:`PosedBody`)."""
     dim = len(coords)
     if is_sampled(c):  # the sampled box (outside it the collider's distance is positive)
         b_lo = np.asarray(c.origin, np.float64)
         b_hi = b_lo + float(c.cell) * (np.asarray(np.shape(c.values)) - 1)
+    elif isinstance(c, PosedBody):
+        b_lo, b_hi = c.center - c.reach(), c.center + c.reach()
     else:
         center = np.asarray(c.center, np.float64)
         r = float(c.radius) if isinstance(c, Sphere) else float(np.linalg.norm(c.half_extents))
@@ -195,7 +225,8 @@ def _obstacle_sdf(out: tuple[np.ndarray, ...], c: Any, coords: list[np.ndarray],
             return
         sl.append(slice(i0, i1))
     grids = np.meshgrid(*[coords[k][sl[k]] for k in range(dim)], indexing="ij")
-    d = collider_sdf(c, np.stack([g.ravel() for g in grids], axis=1)).reshape(grids[0].shape)
+    points = np.stack([g.ravel() for g in grids], axis=1)
+    d = (c.sdf(points) if isinstance(c, PosedBody) else collider_sdf(c, points)).reshape(grids[0].shape)
     for a in out:
         a[tuple(sl)] = np.minimum(a[tuple(sl)], d)
 

@@ -44,9 +44,10 @@ def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any], bodies: list
     :func:`hybridmpm.render.bodies.export_bodies`)."""
     buf = io.BytesIO()
     with tempfile.TemporaryDirectory(prefix="hybridmpm-mesh-") as tmp:
-        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, **settings)
-        if bodies and traj.body_center is not None and traj.body_rotation is not None:
-            paths += export_bodies(tmp, bodies, traj.body_center, traj.body_rotation, fmt="ply")
+        poses = (bodies, traj.body_center, traj.body_rotation) if bodies and traj.body_center is not None and traj.body_rotation is not None else None
+        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, bodies=poses, **settings)
+        if poses is not None:
+            paths += export_bodies(tmp, *poses, fmt="ply")
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for p in paths:
                 z.write(p, Path(p).name)
