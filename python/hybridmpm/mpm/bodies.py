@@ -186,6 +186,19 @@ def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return n, np.einsum("fk,fk->f", n, t[:, 0])
 
 
+def check_poses(bodies: Sequence[Any], center: Any, rotation: Any, t_count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``center`` [T, B, D] [m] and ``rotation`` [T, B, D, D] (a trajectory's body poses) as float64 for ``bodies``
+    (B of them; ``t_count`` frames when given); :class:`InvalidInputError` naming ``body_center`` or ``body_rotation``
+    otherwise."""
+    c, r = np.asarray(center, np.float64), np.asarray(rotation, np.float64)
+    b = len(bodies)
+    if c.ndim != 3 or c.shape[1] != b or c.shape[2] not in (2, 3) or (t_count is not None and c.shape[0] != t_count) or not np.isfinite(c).all():
+        raise InvalidInputError(f"body_center: expected finite [T, {b}, D] for the scene's {b} bodies, got {list(c.shape)}", "body_center")
+    if r.shape != c.shape + (c.shape[2],) or not np.isfinite(r).all():
+        raise InvalidInputError(f"body_rotation: expected finite {list(c.shape + (c.shape[2],))}, got {list(r.shape)}", "body_rotation")
+    return c, r
+
+
 def check_bodies(bodies: Sequence[Body], dim: int, n_grid: int, wall_cells: int, start: int = 0) -> list[float]:
     """Check ``bodies`` as a ``dim``-D solver of ``n_grid`` cells and walls
     ``wall_cells`` thick would when they are added as bodies ``start``,
@@ -256,6 +269,7 @@ __all__ = [
     "BodiesView",
     "Body",
     "check_bodies",
+    "check_poses",
     "hull_planes",
     "refuse_bodies",
 ]

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.bodies import check_poses
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, write_surface
 
 #: Points of a circle's outline (2D).
@@ -160,18 +160,6 @@ def body_surface(body: Any, center: Any, rotation: Any) -> SurfaceMesh | Surface
         return SurfaceContours((np.concatenate([loop, loop[:1]]),), "body", BODY_TAG, 0.0)
     v, f = local_mesh(body)
     return SurfaceMesh(place(v, center, rotation), np.asarray(f, np.int32), "body", BODY_TAG, 0.0)
-
-
-def check_poses(bodies: Sequence[Any], center: Any, rotation: Any, t_count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``center`` [T, B, D] and ``rotation`` [T, B, D, D] as float64 for ``bodies`` (B of them);
-    :class:`InvalidInputError` naming ``body_center`` or ``body_rotation`` otherwise."""
-    c, r = np.asarray(center, np.float64), np.asarray(rotation, np.float64)
-    b = len(bodies)
-    if c.ndim != 3 or c.shape[1] != b or c.shape[2] not in (2, 3) or (t_count is not None and c.shape[0] != t_count) or not np.isfinite(c).all():
-        raise InvalidInputError(f"body_center: expected finite [T, {b}, D] for the scene's {b} bodies, got {list(c.shape)}", "body_center")
-    if r.shape != c.shape + (c.shape[2],) or not np.isfinite(r).all():
-        raise InvalidInputError(f"body_rotation: expected finite {list(c.shape + (c.shape[2],))}, got {list(r.shape)}", "body_rotation")
-    return c, r
 
 
 def export_bodies(out_dir: str | Path, bodies: Sequence[Any], center: Any, rotation: Any, fmt: str = "ply", every: int = 1) -> list[Path]:

@@ -60,6 +60,7 @@ import numpy as np
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIALS, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
+from hybridmpm.mpm.bodies import check_poses
 from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, PosedBody, VolumeEstimate, bodies, closed, field, is_sampled
 from hybridmpm.scenes import wall_face
 from hybridmpm.scenes.obstacles import obstacles_at
@@ -526,7 +527,7 @@ def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int, bodi
     too. ``obstacle_centers`` and ``bodies`` None: ``settings`` as they are.
     Raises :class:`InvalidInputError` naming ``obstacle_centers`` (not
     [T, C, D] for the settings' C obstacles, not finite) or ``body_center``
-    (:func:`hybridmpm.render.bodies.check_poses`)."""
+    (:func:`hybridmpm.mpm.bodies.check_poses`)."""
     out = settings
     if obstacle_centers is not None:
         oc = np.asarray(obstacle_centers)
@@ -534,8 +535,6 @@ def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int, bodi
             raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
         out = {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
     if bodies is not None:
-        from hybridmpm.render.bodies import check_poses  # here: render.bodies writes its meshes with this module's writers
-
         given, center, rotation = bodies
         c, r = check_poses(given, center, rotation)
         if not 0 <= t < c.shape[0]:
