@@ -156,7 +156,7 @@ def test_a_session_records_the_moved_boundary():
         c0 = np.asarray(core.sim.obstacle_centers[0])
         await m.move_obstacle(s, 0, (c0 + [0.02, 0.01]).tolist(), None)
         await m.rollout(s, 1)
-        ((_, pos, _, _, centers),) = await m.recorded(s, 1)
+        ((_, pos, _, _, centers, _),) = await m.recorded(s, 1)
         assert centers is not None and np.array_equal(centers, core.sim.obstacle_centers)
         return pos, core.sim.obstacle_centers[0] - c0, core.sim.scene.boundary_positions, core.sim.particles.num_fluid
 

@@ -339,6 +339,12 @@ def _start_service(service: dict[str, Any], workdir: Path) -> int:
     return port
 
 
+def test_the_readme_is_a_front_door_of_at_most_200_lines():
+    """The README says what runs and where to read on; the rest lives in docs/."""
+    lines = README.read_text().splitlines()
+    assert len(lines) <= 200, f"README.md has {len(lines)} lines"
+
+
 def test_the_readme_has_code_blocks_to_run():
     assert len(BLOCKS) - len(RUN) == 1, "README.md names `bash scripts/test.sh` in a block of its own, once"
     assert len(RUN) >= 6 and any(b.lang == "python" for b in RUN) and any("hybridmpm serve" in b.code for b in RUN)
