@@ -9,6 +9,9 @@ use hybridmpm_mpm::{
 };
 use nalgebra::SVector;
 
+mod common;
+use common::sdf;
+
 const DT: f32 = 2.5e-3;
 
 fn frames() -> usize {
@@ -63,20 +66,6 @@ fn water<const D: usize>(
         ));
     }
     out
-}
-
-/// Signed distance to a body as given (its initial pose).
-fn sdf<const D: usize>(b: &Body<D>, x: &SVector<f32, D>) -> f32 {
-    let q = b.rotation.tr_mul(&(x - b.center));
-    match &b.shape {
-        BodyShape::Ball { radius } => q.norm() - radius,
-        BodyShape::Box { half_extents } => {
-            let e = q.abs() - half_extents;
-            let out = e.map(|v| v.max(0.0)).norm();
-            out + e.max().min(0.0)
-        }
-        _ => unimplemented!("boxes and balls only"),
-    }
 }
 
 /// The water level [m] in the columns of `x` in `[x0, x1]`: the mean over

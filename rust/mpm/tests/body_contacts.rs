@@ -2,22 +2,11 @@
 //! a body overlapping another or an obstacle is refused naming its centre,
 //! a body rests on an obstacle, and a moving obstacle pushes a body.
 
-use hybridmpm_mpm::{Body, BodyParams, BodyShapeKind, Material, Particle, Solver, SolverParams};
+use hybridmpm_mpm::{BodyParams, BodyShapeKind, Material, Particle, Solver, SolverParams};
 use nalgebra::SVector;
 
-fn capsule<const D: usize>(center: &[f32], r: f32, h: f32, rho: f32, angle_deg: f64) -> Body<D> {
-    BodyParams {
-        shape: Some(BodyShapeKind::Capsule),
-        center: Some(center.to_vec()),
-        radius: Some(r),
-        half_height: Some(h),
-        angle_deg: (D == 2).then_some(angle_deg),
-        density: Some(rho),
-        ..Default::default()
-    }
-    .build::<D>("body")
-    .unwrap()
-}
+mod common;
+use common::capsule;
 
 /// A body overlapping another where that one is now, or an obstacle, is
 /// refused naming its centre, and nothing changes; as a checkpoint gives

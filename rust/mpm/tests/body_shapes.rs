@@ -13,21 +13,10 @@ use hybridmpm_mpm::{
 };
 use nalgebra::SVector;
 
-const DT: f32 = 2.5e-3;
+mod common;
+use common::capsule;
 
-fn capsule<const D: usize>(center: &[f32], r: f32, h: f32, rho: f32, angle_deg: f64) -> Body<D> {
-    BodyParams {
-        shape: Some(BodyShapeKind::Capsule),
-        center: Some(center.to_vec()),
-        radius: Some(r),
-        half_height: Some(h),
-        angle_deg: (D == 2).then_some(angle_deg),
-        density: Some(rho),
-        ..Default::default()
-    }
-    .build::<D>("body")
-    .unwrap()
-}
+const DT: f32 = 2.5e-3;
 
 fn mesh(center: &[f32], points: &[[f32; 3]], rho: f32) -> Body<3> {
     BodyParams {

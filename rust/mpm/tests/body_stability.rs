@@ -16,6 +16,9 @@ use hybridmpm_mpm::{
 };
 use nalgebra::SVector;
 
+mod common;
+use common::sdf;
+
 const DT: f32 = 2.5e-3;
 
 /// Allowed rise of the mechanical energy above its start, as a share of it.
@@ -54,19 +57,6 @@ fn body<const D: usize>(
     .unwrap()
 }
 
-/// Signed distance to a body as given (its initial pose).
-fn sdf<const D: usize>(b: &Body<D>, x: &SVector<f32, D>) -> f32 {
-    let q = b.rotation.tr_mul(&(x - b.center));
-    match &b.shape {
-        BodyShape::Ball { radius } => q.norm() - radius,
-        BodyShape::Box { half_extents } => {
-            let e = q.abs() - half_extents;
-            e.map(|v| v.max(0.0)).norm() + e.max().min(0.0)
-        }
-        _ => unimplemented!("boxes and balls only"),
-    }
-}
-
 /// Water at hydrostatic rest below `surface` (its volume ratio
 /// `J = 1 − ρ g (surface − y) / K`) on a lattice of spacing `dx/2` filling
 /// `[lo, hi)`, none inside the bodies.
@@ -98,9 +88,15 @@ fn water<const D: usize>(
     out
 }
 
-/// A body's moments of inertia about its own axes [kg·m²] (2D: about z, lane 2).
-fn inertia<const D: usize>(b: &Body<D>) -> [f64; 3] {
+/// A body's inertia tensor about its centre of mass in its own axes
+/// [kg·m²] (2D: about z, entry (2, 2)): a box's and a ball's from their
+/// formulas here (the shapes these runs build); any other shape's as the
+/// engine computes it.
+fn inertia<const D: usize>(b: &Body<D>) -> [[f64; 3]; 3] {
     let m = b.mass() as f64;
+    let diag = |d: [f64; 3]| {
+        std::array::from_fn(|i| std::array::from_fn(|j| if i == j { d[i] } else { 0.0 }))
+    };
     match &b.shape {
         BodyShape::Box { half_extents } => {
             let h2: [f64; 3] = std::array::from_fn(|d| {
@@ -110,17 +106,17 @@ fn inertia<const D: usize>(b: &Body<D>) -> [f64; 3] {
                     0.0
                 }
             });
-            [
+            diag([
                 m / 3.0 * (h2[1] + h2[2]),
                 m / 3.0 * (h2[0] + h2[2]),
                 m / 3.0 * (h2[0] + h2[1]),
-            ]
+            ])
         }
         BodyShape::Ball { radius } => {
             let k = if D == 2 { 0.5 } else { 0.4 };
-            [k * m * (*radius as f64).powi(2); 3]
+            diag([k * m * (*radius as f64).powi(2); 3])
         }
-        _ => unimplemented!("boxes and balls only"),
+        other => other.local_inertia(m),
     }
 }
 
@@ -155,7 +151,10 @@ where
             let r = st.rotation::<D>();
             std::array::from_fn(|a| (0..3).map(|c| r[(c, a)] as f64 * st.w[c] as f64).sum())
         };
-        let rot: f64 = (0..3).map(|a| i[a] * w_body[a].powi(2)).sum();
+        let rot: f64 = (0..3)
+            .flat_map(|a| (0..3).map(move |c| (a, c)))
+            .map(|(a, c)| w_body[a] * i[a][c] * w_body[c])
+            .sum();
         e += 0.5 * m * v2 + 0.5 * rot + m * g * (st.x[1] as f64 - lo);
     }
     e
