@@ -67,10 +67,10 @@ impl World3 {
             .obstacles
             .iter()
             .map(|o| {
-                let (collider, offset) = match &o.shape {
+                let collider = match &o.shape {
                     ObstacleShape::Absent => return None,
-                    ObstacleShape::Ball(r) => (ColliderBuilder::ball(*r), [0.0; 3]),
-                    ObstacleShape::Box(h) => (ColliderBuilder::cuboid(h[0], h[1], h[2]), [0.0; 3]),
+                    ObstacleShape::Ball(r) => ColliderBuilder::ball(*r),
+                    ObstacleShape::Box(h) => ColliderBuilder::cuboid(h[0], h[1], h[2]),
                     ObstacleShape::Voxels(v) => {
                         let shape = v.shape.get_or_init(|| {
                             let keys: Vec<IVector> =
@@ -81,14 +81,10 @@ impl World3 {
                             .downcast_ref::<SharedShape>()
                             .expect("made by a 3D world")
                             .clone();
-                        (ColliderBuilder::new(shape), [-0.5 * v.size; 3])
+                        ColliderBuilder::new(shape)
                     }
                 };
-                let state = BodyState {
-                    x: std::array::from_fn(|d| o.x[d] + offset[d]),
-                    q: o.q,
-                    ..Default::default()
-                };
+                let (offset, state) = o.collider_frame();
                 let body = if o.moving {
                     RigidBodyBuilder::kinematic_position_based()
                 } else {

@@ -65,6 +65,25 @@ pub(crate) struct ObstacleSpec {
     pub moving: bool,
 }
 
+impl ObstacleSpec {
+    /// Where its collider's frame lies: the offset [m] from the obstacle's
+    /// centre (a mesh obstacle's voxels: half a spacing down every axis, so
+    /// that voxel `i` is centred on node `i`; 2D reads `x, y`) and the pose
+    /// there at the frame's start.
+    pub fn collider_frame(&self) -> ([f32; 3], BodyState) {
+        let offset = match &self.shape {
+            ObstacleShape::Voxels(v) => [-0.5 * v.size; 3],
+            _ => [0.0; 3],
+        };
+        let state = BodyState {
+            x: std::array::from_fn(|d| self.x[d] + offset[d]),
+            q: self.q,
+            ..Default::default()
+        };
+        (offset, state)
+    }
+}
+
 /// Most voxels a mesh obstacle takes in the bodies' world (the shell of
 /// [`Voxelized::SHELL_CELLS`] samples under the surface of a mesh filling
 /// the largest sampled grid is far below it); beyond, the obstacle meets the
