@@ -82,6 +82,11 @@ class _Material(abc.ABC):
     def to_params(self) -> Any:
         """The core's parameter set of this model (each model defines it)."""
 
+    @classmethod
+    def from_params(cls, ps: Any) -> Any:
+        """The material of the core's parameter set ``ps`` (the inverse of :meth:`to_params`)."""
+        return cls(*(getattr(ps, f) for f in ps.__dataclass_fields__))
+
 
 @dataclass(frozen=True)
 class Water(_Material):
@@ -236,19 +241,38 @@ PRESET_SOURCES: dict[str, str] = {
 }
 
 
-def material_from_block(name: Any, keys: dict[str, Any], where: str) -> Material:
+def scene_bases(params: Any) -> dict[str, Material]:
+    """Each model's base material in a scene whose solver parameters are ``params``
+    (:class:`~hybridmpm.mpm.MpmParams`): the scene's own table of the model
+    (a scene file's ``[water]`` and ``[sand]``; ``MpmParams.water``, ``.sand``,
+    ``.elastic``, ``.snow``, ``.viscoplastic``), as a block naming the model starts from."""
+    return {name: cls.from_params(getattr(params, name)) for name, cls in MODELS.items()}
+
+
+def _base(name: Any, where: str, bases: dict[str, Material] | None) -> Material:
+    """The material a block's keys override: a preset's own parameters, or the model's
+    table in the scene (``bases``; the model's defaults without one)."""
+    if isinstance(name, str) and name in PRESETS:
+        return PRESETS[name]
+    if isinstance(name, str) and name in MODELS:
+        return bases[name] if bases is not None else MODELS[name]()
+    raise InvalidInputError(f"{where}.material: must be one of {sorted(MODELS)} or a preset {sorted(PRESETS)}, got {name!r}", f"{where}.material")
+
+
+def material_from_block(name: Any, keys: dict[str, Any], where: str, bases: dict[str, Material] | None = None) -> Material:
     """The material of a scene block: ``name`` a model (``"elastic"``) or a
     preset (``"jello"``), ``keys`` the block's overrides (``E``, ``nu``,
     ``density``, ``model``, ``theta_c``, ``theta_s``, ``hardening``,
     ``yield_stress``, ``viscosity``; those of the model only). ``where`` names
-    the block (``blocks[2]``). Raises :class:`InvalidInputError` naming the
-    field."""
-    if isinstance(name, str) and name in PRESETS:
-        base: Material = PRESETS[name]
-    elif isinstance(name, str) and name in MODELS:
-        base = MODELS[name]()
-    else:
-        raise InvalidInputError(f"{where}.material: must be one of {sorted(MODELS)} or a preset {sorted(PRESETS)}, got {name!r}", f"{where}.material")
+    the block (``blocks[2]``).
+
+    The rule for scene-level and block-level parameters: a block naming a
+    model starts from the scene's table of that model (``bases``, from
+    :func:`scene_bases`: a scene file's ``[water]`` or ``[sand]``; the model's
+    defaults when ``bases`` is None); a block naming a preset starts from the
+    preset; the block's own keys override either. Raises
+    :class:`InvalidInputError` naming the field."""
+    base = _base(name, where, bases)
     allowed = {f.name for f in fields(base)}
     for k in keys:
         if k not in allowed:
@@ -258,10 +282,10 @@ def material_from_block(name: Any, keys: dict[str, Any], where: str) -> Material
     return m
 
 
-def block_keys(m: Material, name: str) -> dict[str, Any]:
+def block_keys(m: Material, name: str, bases: dict[str, Material] | None = None) -> dict[str, Any]:
     """The keys a scene block writes for material ``m`` given as ``name`` (a
-    model or preset): the values that differ from that base."""
-    base = PRESETS[name] if name in PRESETS else MODELS[name]()
+    model or preset): the values that differ from its base (:func:`material_from_block`'s rule)."""
+    base = _base(name, "block", bases)
     return {k: v for k, v in asdict(m).items() if asdict(base)[k] != v}
 
 
@@ -298,4 +322,5 @@ __all__ = [
     "block_keys",
     "material_from_block",
     "refuse_untrained",
+    "scene_bases",
 ]

@@ -70,9 +70,12 @@ A block's material is a model (``water``, ``sand``, ``elastic``, ``snow``,
 ``plasticine``, ``honey``, ``soil``: :data:`hybridmpm.materials.PRESETS`),
 with the model's parameters as keys of the block (``E``, ``nu``, ``density``,
 ``model``, ``theta_c``, ``theta_s``, ``hardening``, ``yield_stress``,
-``viscosity``; :mod:`hybridmpm.materials`). Blocks of one model with
-different parameters become parameter sets of the solver
-(:attr:`~hybridmpm.mpm.MpmParams.sets`), one per distinct set.
+``viscosity``; :mod:`hybridmpm.materials`). A block naming a model starts
+from the scene's table of that model (``[water]``, ``[sand]``: the scene-level
+parameters), a block naming a preset from the preset, and the block's own keys
+override either. Blocks whose parameters differ from the scene's table become
+parameter sets of the solver (:attr:`~hybridmpm.mpm.MpmParams.sets`), one per
+distinct set.
 
 Walls (``[walls]``) take one ``condition`` (``sticky``, ``slip``,
 ``separate``) and Coulomb ``friction`` for every face, and optional per-face
@@ -99,7 +102,7 @@ from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, loads_json, read_text_file
 from hybridmpm.limits import check_allocation
-from hybridmpm.materials import block_keys, material_from_block
+from hybridmpm.materials import Material, block_keys, material_from_block, scene_bases
 from hybridmpm.mpm import DT_FRAME, MpmParams
 from hybridmpm.mpm.bodies import check_bodies
 from hybridmpm.scenes.body_mesh import check_overlaps, resolve_mesh_body
@@ -150,8 +153,10 @@ class Block:
     domain); ``velocity`` [m/s] (default 0); ``hydrostatic``: start water at
     hydrostatic rest below the block's top (only right for a block resting on
     the floor; see :func:`~hybridmpm.scenes.hydrostatic_volume_ratio`);
-    ``params``: the model's parameters that differ from the model's (or the
-    preset's) own (``{"E": 2e5}``).
+    ``params``: the block's own parameters (``{"E": 2e5}``), overriding its
+    base: the scene's table of its model (a scene file's ``[water]`` or
+    ``[sand]``; ``MpmParams.water``, ...) or its preset
+    (:func:`~hybridmpm.materials.material_from_block`).
     """
 
     material: str
@@ -161,13 +166,17 @@ class Block:
     hydrostatic: bool = False
     params: dict[str, Any] = field(default_factory=dict)
 
-    def resolved(self, where: str = "block") -> Any:
-        """The block's :data:`~hybridmpm.materials.Material` (model or preset
-        with ``params`` applied). Raises :class:`InvalidInputError` naming the field."""
-        return material_from_block(self.material, self.params, where)
+    def resolved(self, where: str = "block", bases: dict[str, Material] | None = None) -> Any:
+        """The block's :data:`~hybridmpm.materials.Material`: its base (the
+        scene's table of its model, ``bases`` from
+        :func:`~hybridmpm.materials.scene_bases`; the model's defaults without
+        it; or its preset) with ``params`` applied. Raises
+        :class:`InvalidInputError` naming the field."""
+        return material_from_block(self.material, self.params, where, bases)
 
-    def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"material": self.material, **block_keys(self.resolved(), self.material)}
+    def to_dict(self, bases: dict[str, Material] | None = None) -> dict[str, Any]:
+        """The block as a scene file writes it: its keys that differ from its base (``bases`` as for :meth:`resolved`)."""
+        d: dict[str, Any] = {"material": self.material, **block_keys(self.resolved(bases=bases), self.material, bases)}
         d["lo"], d["hi"] = [float(v) for v in self.lo], [float(v) for v in self.hi]
         if self.velocity is not None:
             d["velocity"] = [float(v) for v in self.velocity]
@@ -292,6 +301,7 @@ class SceneSpec:
     def to_dict(self) -> dict[str, Any]:
         """Plain, JSON/TOML-serialisable dict (no ``None`` values)."""
         p = self.params.to_dict()
+        bases = scene_bases(self.params)
         d: dict[str, Any] = {
             "name": self.name,
             "dim": p["dim"],
@@ -306,7 +316,7 @@ class SceneSpec:
             "water": p["water"],
             "sand": p["sand"],
             "walls": p["walls"],
-            "blocks": [b.to_dict() for b in self.blocks],
+            "blocks": [b.to_dict(bases) for b in self.blocks],
             "obstacles": [obstacle_dict(c, raw) for c, raw in zip(self.params.colliders, p["colliders"])],
         }
         if p["substeps"] is not None:
@@ -370,13 +380,14 @@ class SceneSpec:
         if not isinstance(blocks_raw, list) or not blocks_raw:
             raise InvalidInputError("blocks: a scene needs at least one particle block", "blocks")
         blocks = []
+        bases = scene_bases(params)  # a block naming a model starts from the scene's table of it
         for i, b in enumerate(blocks_raw):
             f = f"blocks[{i}]"
             if not isinstance(b, dict):
                 raise InvalidInputError(f"{f}: expected a table/object", f)
             mat = b.get("material")
             keys = {k: v for k, v in b.items() if k not in _BLOCK_KEYS}
-            material_from_block(mat, keys, f)  # the model or preset and its keys, each checked
+            material_from_block(mat, keys, f, bases)  # the model or preset and its keys, each checked
             lo = check_vec(f"{f}.lo", b.get("lo"), dim)
             hi = check_vec(f"{f}.hi", b.get("hi"), dim)
             if np.any(hi <= lo):
@@ -483,8 +494,8 @@ class SceneSpec:
         clearance = self.obstacle_clearance_cells * dx
         pos_l, mat_l, vel_l, j_l, set_l = [], [], [], [], []
         # each block's parameter set: its model's default (at the model's code) or one of `sets` (5, 6, ...)
-        defaults = {"water": self.params.water, "sand": self.params.sand, "elastic": self.params.elastic, "snow": self.params.snow}
-        defaults["viscoplastic"] = self.params.viscoplastic
+        defaults = {name: getattr(self.params, name) for name in MATERIALS}
+        bases = scene_bases(self.params)
         sets: list[Any] = list(self.params.sets)
         base = len(MATERIALS)
         dropped: list[dict[str, int]] = []
@@ -530,7 +541,7 @@ class SceneSpec:
             vol_l[-1] = vol_l[-1][keep]
             placed.append((lo, hi))
             pos_l.append(p)
-            m = b.resolved(f"blocks[{i}]")
+            m = b.resolved(f"blocks[{i}]", bases)
             mat_l.append(np.full(len(p), m.code, np.int32))
             ps = m.to_params()
             if ps == defaults[m.name]:

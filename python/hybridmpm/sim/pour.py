@@ -4,7 +4,9 @@
 A block has the keys of a scene file's block (``material``, a model or a
 preset, and its parameters; ``lo``, ``hi``, optional ``velocity``). It is
 seeded on the scene's lattice and appended to the solver, in its own
-parameter set where its parameters are new to the run. Everything is checked
+parameter set where its parameters are new to the run. A block naming a model
+starts from the scene's table of it (as a scene file's blocks do), a preset
+from the preset; the block's keys override either. Everything is checked
 before anything changes: a refused block leaves the simulator bit for bit as
 it was.
 """
@@ -18,7 +20,7 @@ import numpy as np
 
 from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.materials import material_from_block
+from hybridmpm.materials import material_from_block, scene_bases
 from hybridmpm.scenes.core import lattice, wall_face
 from hybridmpm.scenes.obstacles import collider_sdf
 from hybridmpm.scenes.spec import BYTES_PER_PARTICLE, MAX_BLOCK_SPEED
@@ -59,7 +61,7 @@ def pour_block(sim: Any, block: dict[str, Any]) -> int:
     dim = sim.particles.dim
     keys = {k: v for k, v in block.items() if k not in _PLACE_KEYS and v is not None}
     try:
-        m = material_from_block(block.get("material"), keys, "block")
+        m = material_from_block(block.get("material"), keys, "block", scene_bases(sim.solver.params))
     except InvalidInputError as e:  # "block.E" -> "E": the body's own key
         field = str(e.field or "material").removeprefix("block.")
         raise InvalidInputError(str(e).removeprefix("block."), field) from None
