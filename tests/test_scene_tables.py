@@ -122,7 +122,11 @@ def test_the_tables_and_overrides_survive_to_dict_save_and_load(tmp_path):
     d = scene_dict(
         water={"bulk_modulus": 4e4},
         sand={"friction_angle_deg": 10.0, "youngs_modulus": 1e5},
-        blocks=[dict(COLUMN), {"material": "sand", "lo": [0.5, 0.05], "hi": [0.6, 0.2], "cohesion": 50.0}, {"material": "water", "lo": [0.7, 0.05], "hi": [0.9, 0.2]}],
+        blocks=[
+            dict(COLUMN),
+            {"material": "sand", "lo": [0.5, 0.05], "hi": [0.6, 0.2], "cohesion": 50.0},
+            {"material": "water", "lo": [0.7, 0.05], "hi": [0.9, 0.2]},
+        ],
     )
     spec = SceneSpec.from_dict(d)
     back = spec.to_dict()
