@@ -265,7 +265,7 @@ def test_substeps_for_never_saturates():
 
 
 def test_a_frame_that_inverts_sand_is_retried_or_refused_never_kept():
-    """The minimal case a fuzz found (also rust/mpm/tests/state_fuzz.rs):
+    """The minimal case a fuzz found (also rust/mpm/tests/engine/state_fuzz.rs):
     sparse sand with φ = 0 and one fixed substep; the frame used to return
     with a sand particle's det F ≤ 0, and restore(checkpoint()) then failed
     with CheckpointError."""

@@ -2,13 +2,13 @@
 
 Three parts, each selectable by name (default: all):
 
-* ``archimedes``: the full-length floating checks of ``rust/mpm/tests/bodies.rs``
+* ``archimedes``: the full-length floating checks of ``rust/mpm/tests/engine/bodies.rs``
   (its ``#[ignore]``d tests, in the ``checks`` profile): boxes of 250 / 500 /
   750 kg/m³ on 128², the last 400 of 1,200 frames, as placed and in held-out
   variations (shifted by a few cells, tilted by 10°); the 500 kg/m³ cube on 32³.
   Per box: the mean share of its area below the level beside it, the worst
   error against ρ_b / ρ_w, the tolerance (one cell + 2 % of its height) / height.
-* ``stability``: ``rust/mpm/tests/body_stability.rs`` run for 2,000 frames (a light
+* ``stability``: ``rust/mpm/tests/engine/body_stability.rs`` run for 2,000 frames (a light
   body in a dam break, 20 bodies piled in a 3D tank): the mechanical energy's
   largest rise over its start and its end, as shares of the start.
 * ``cost``: ``dam_break3d`` (as the Python scene builds it) with 8 bodies in the
@@ -53,10 +53,10 @@ _ENERGY = re.compile(
 )
 
 
-def cargo_test(test_file: str, name: str | None, env: dict[str, str], ignored: bool) -> tuple[str, bool, float]:
-    """Runs one test (or a file's tests) in the checks profile; (output, passed, seconds)."""
-    cmd = ["cargo", "test", "-q", "-p", "hybridmpm-mpm", "--profile", "checks", "--test", test_file, "--"]
-    cmd += ["--nocapture", "--test-threads", "1"] + (["--ignored"] if ignored else []) + (["--exact", name] if name else [])
+def cargo_test(module: str, name: str | None, env: dict[str, str], ignored: bool) -> tuple[str, bool, float]:
+    """Runs one test (or a module's tests) of the engine's test binary in the checks profile; (output, passed, seconds)."""
+    cmd = ["cargo", "test", "-q", "-p", "hybridmpm-mpm", "--profile", "checks", "--test", "engine", "--"]
+    cmd += ["--nocapture", "--test-threads", "1"] + (["--ignored"] if ignored else []) + (["--exact", f"{module}::{name}"] if name else [f"{module}::"])
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, **env}, capture_output=True, text=True, check=False)
     return proc.stdout + proc.stderr, proc.returncode == 0, time.perf_counter() - t0
@@ -116,7 +116,7 @@ _COST = re.compile(
 
 
 def cost(repeats: int, frames: int) -> tuple[dict[str, Any], list[str]]:
-    """``cost_of_eight_bodies_in_dam_break3d`` (rust/mpm/tests/body_stability.rs): the scene
+    """``cost_of_eight_bodies_in_dam_break3d`` (rust/mpm/tests/engine/body_stability.rs): the scene
     without and with its 8 bodies, interleaved, paired, fresh solvers each repeat."""
     load_before = harness.load_average()
     env = {"BODY_COST_REPEATS": str(repeats), "BODY_COST_FRAMES": str(frames)}

@@ -16,8 +16,7 @@ use hybridmpm_mpm::{
 };
 use nalgebra::SVector;
 
-mod common;
-use common::sdf;
+use crate::common::sdf;
 
 const DT: f32 = 2.5e-3;
 

@@ -13,8 +13,7 @@ use hybridmpm_mpm::{
 };
 use nalgebra::SVector;
 
-mod common;
-use common::capsule;
+use crate::common::capsule;
 
 const DT: f32 = 2.5e-3;
 

@@ -1,7 +1,4 @@
-//! Helpers the bodies' test files share (each file is its own crate and
-//! uses some of them: `dead_code` is allowed here for the rest).
-
-#![allow(dead_code)]
+//! Helpers the bodies' test modules share.
 
 use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind};
 use nalgebra::SVector;

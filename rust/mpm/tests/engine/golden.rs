@@ -13,7 +13,7 @@
 //! This is not a physics test (the physics tests assert against analytic
 //! results): it proves that a restructuring is a pure restructuring. A
 //! deliberate change of the numerics must re-record the constants (run
-//! `cargo test --release -p hybridmpm-mpm --test golden -- --nocapture`,
+//! `cargo test --release -p hybridmpm-mpm --test engine golden:: -- --nocapture`,
 //! which prints the new values) and say so in the commit.
 //!
 //! Re-recorded: sand2d and mixed2d_colliders on 2026-11-23, when 2D sand's

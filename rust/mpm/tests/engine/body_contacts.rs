@@ -5,8 +5,7 @@
 use hybridmpm_mpm::{BodyParams, BodyShapeKind, Material, Particle, Solver, SolverParams};
 use nalgebra::SVector;
 
-mod common;
-use common::capsule;
+use crate::common::capsule;
 
 /// A body overlapping another where that one is now, or an obstacle, is
 /// refused naming its centre, and nothing changes; as a checkpoint gives
