@@ -33,6 +33,10 @@ simulation frames the session advanced per second while the page watched
 
     python benchmarks/bench_page.py [--seconds 5] [--dpr 1] [--cases 20,21] [--advance 300] [--no-sync] [--out benchmarks/results/page]
 
+``--pour jello`` pours a 0.12 m cube of a material (a model or a preset) behind
+the paddle before each case, as the page's palette drops one (the quality the
+page keeps with a jelly in: ``--pour jello --cases 20``).
+
 ``--ladder R`` measures the quality levels' costs instead (the ``cost`` of
 ``static/quality.js``'s levels): one paddle3d page, paused ``--advance``
 frames in, the levels taken in turn R times (interleaved, so that a shared
@@ -110,6 +114,9 @@ def machine_busy() -> tuple[float, float]:
     return (sum(v) - idle) / CLK_TCK, sum(v) / CLK_TCK
 
 
+#: Side of the cube ``--pour`` drops [m] (the palette test's jelly).
+POUR_SIDE = 0.12
+
 CASES = [
     # scene, seed, look, simulation playing, resolution (backing pixels per CSS pixel; software GL's default is 0.75)
     ("water3d", 26, "fluid", False, 0.75),
@@ -153,10 +160,34 @@ def settle(page) -> float:
     return time.monotonic() - t0
 
 
+def pour(url: str, page, material: str) -> None:
+    """Pour a cube of ``material`` (a model or preset, :data:`POUR_SIDE` a side) into the page's 3D session, on the
+    floor behind the paddle as the palette test drops its jelly, and wait until the page holds its particles."""
+    session = page.evaluate("window.__hmpm.session")
+    face, dim = session["wall_thickness"], session["dim"]
+    centre = [0.75, face + POUR_SIDE / 2 + 0.01, 0.5][:dim]
+    block = {"material": material, "lo": [c - POUR_SIDE / 2 for c in centre], "hi": [c + POUR_SIDE / 2 for c in centre]}
+    r = httpx.post(f"{url}/v1/sessions/{session['id']}/blocks", json=block, timeout=60)
+    r.raise_for_status()
+    page.wait_for_function(f"window.__hmpm.session.num_particles === {r.json()['num_particles']}", timeout=60_000)
+
+
 def run_case(
-    browser, url: str, scene: str, seed: int, look: str, playing: bool, preset: float | str, seconds: float, dpr: float, sync: bool, advance: int = 0
+    browser,
+    url: str,
+    scene: str,
+    seed: int,
+    look: str,
+    playing: bool,
+    preset: float | str,
+    seconds: float,
+    dpr: float,
+    sync: bool,
+    advance: int = 0,
+    material: str | None = None,
 ) -> dict:
-    """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…7``)."""
+    """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…7``); ``material``: a block of
+    it poured first (:func:`pour`)."""
     page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -166,6 +197,8 @@ def run_case(
     )
     page.goto(url + query)
     page.wait_for_function("window.__hmpm.framesRendered >= 10", timeout=60_000)
+    if material:
+        pour(url, page, material)
     if advance:  # paused while it steps; a playing case plays from there
         sid = page.evaluate("window.__hmpm.session.id")
         for left in range(advance, 0, -100):
@@ -277,6 +310,7 @@ def main() -> None:
     ap.add_argument("--advance", type=int, default=0, help="step the session this many frames first (paused; playing cases then play)")
     ap.add_argument("--no-sync", action="store_true", help="skip the second run that waits for the GPU (draw + GPU column)")
     ap.add_argument("--ladder", type=int, default=0, help="instead of the cases: the quality levels' costs on paddle3d, this many rounds")
+    ap.add_argument("--pour", default=None, help="pour a cube of this material (e.g. jello) behind the paddle before each case")
     args = ap.parse_args()
     chromium = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
     if args.ladder:
@@ -309,16 +343,16 @@ def main() -> None:
     with LiveServer(max_sessions=16, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
         for scene, seed, look, playing, preset in cases:
-            r = run_case(browser, srv.url, scene, seed, look, playing, preset, args.seconds, args.dpr, sync=False, advance=args.advance)
+            r = run_case(browser, srv.url, scene, seed, look, playing, preset, args.seconds, args.dpr, sync=False, advance=args.advance, material=args.pour)
             skip = args.no_sync or preset == "auto"  # an auto case would settle again, elsewhere
             r["draw_ms_gpu_median"] = (
                 float("nan")
                 if skip
-                else run_case(browser, srv.url, scene, seed, look, playing, preset, min(args.seconds, 3.0), args.dpr, sync=True, advance=args.advance)[
-                    "draw_ms_median"
-                ]
+                else run_case(
+                    browser, srv.url, scene, seed, look, playing, preset, min(args.seconds, 3.0), args.dpr, sync=True, advance=args.advance, material=args.pour
+                )["draw_ms_median"]
             )
-            r.update(scene=scene, seed=seed, playing=playing, preset=preset)
+            r.update(scene=scene, seed=seed, playing=playing, preset=preset, poured=args.pour)
             rows.append(r)
             print(json.dumps(r), flush=True)
             if args.out:  # after every case: a run cut short keeps what it measured
