@@ -215,7 +215,9 @@ def test_substeps_follow_the_cfl_condition():
     # more substeps than max_substeps: a SimulationError naming the speed, state unchanged
     capped = small(max_substeps=5)
     before = capped.checkpoint()
-    with pytest.raises(SimulationError, match=r"particles moving at up to 0 m/s \(wave speed 20 m/s\) need 16 substeps.*max_substeps = 5") as s:
+    with pytest.raises(
+        SimulationError, match=r"particles moving at up to 0 m/s and parameter set 0 \(water\) \(wave speed 20 m/s\) need 16 substeps.*max_substeps = 5"
+    ) as s:
         capped.step_frame()
     assert s.value.substep is None
     assert capped.checkpoint() == before

@@ -5,12 +5,15 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "MAX_BODIES", "MAX_HULL_POINTS", "MpmSolver", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
+__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
 MAX_BODIES: int
 MAX_HULL_POINTS: int
+MIN_BODY_DENSITY: float
+MAX_BODY_DENSITY: float
+MAX_BODY_SPEED: float
 BODY_STATE_LEN: int
 
 @final
@@ -64,6 +67,7 @@ class MpmSolver:
     def add_body(self, body: dict[str, Any]) -> int: ...
     def remove_body(self, index: int) -> None: ...
     def set_body_state(self, index: int, state: npt.NDArray[np.float32]) -> None: ...
+    def check_body_state(self, index: int, state: npt.NDArray[np.float32]) -> None: ...
     def set_body_force(self, index: int, force: list[float]) -> None: ...
     def checkpoint(self) -> bytes: ...
     def restore(self, blob: bytes) -> None: ...

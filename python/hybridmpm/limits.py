@@ -34,6 +34,23 @@ MAX_FRAME_INDEX = 2**53
 MAX_SEED = 2**63
 
 _override: int | None = None
+#: The largest float32 magnitude and the smallest normal one: the solver computes in float32, where a number past
+#: the first is infinite and one under the second loses its digits or becomes 0.
+F32_MAX = 3.4028234663852886e38
+F32_TINY = 1.1754943508222875e-38
+
+
+def check_float32(field: str, value: float) -> float:
+    """``value`` (the user's number for ``field``, finite) if float32 holds it as a normal number or 0; else
+    :class:`InvalidInputError` naming ``field`` with the value given (``density = 1e-300`` is 0 in float32, ``E =
+    1e39`` infinite)."""
+    if abs(value) > F32_MAX:
+        raise InvalidInputError(f"{field}: {value!r} is past float32's largest number ({F32_MAX:.4g}), the solver's precision", field)
+    if value != 0 and abs(value) < F32_TINY:
+        raise InvalidInputError(f"{field}: {value!r} is below float32's smallest normal number ({F32_TINY:.4g}), the solver's precision", field)
+    return value
+
+
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
 

@@ -41,6 +41,7 @@ from hybridmpm.conventions import (
     MATERIALS,
 )
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import check_float32
 from hybridmpm.mpm.params import ElasticParams, SandParams, SnowParams, ViscoplasticParams, WaterParams
 
 _W, _S, _E, _N, _V = WaterParams(), SandParams(), ElasticParams(), SnowParams(), ViscoplasticParams()
@@ -52,8 +53,16 @@ def _number(field: str, v: Any) -> float:
     return float(v)
 
 
-def _check(field: str, v: Any, ok: bool, want: str) -> None:
-    if not ok:
+def _check(field: str, v: Any, ok: Any, want: str) -> None:
+    """Refuse ``v`` (the user's value of ``field``) unless ``ok`` holds of it and of its float32 rounding, the
+    precision the solver computes in (``ok`` a predicate; a bool is taken as is): ``nu = 0.49999999`` is 0.5 there."""
+    if callable(ok):
+        f32 = float(np.float32(v)) if isinstance(v, float) else v
+        if not ok(v):
+            raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
+        if not ok(f32):
+            raise InvalidInputError(f"{field}: must be {want} in float32, the solver's precision, where {v!r} is {f32!r}", field)
+    elif not ok:
         raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
 
 
@@ -71,12 +80,12 @@ class _Material(abc.ABC):
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name != "model":
-                _number(where + f.name, v)
-        _check(where + "density", self.density, self.density > 0, "> 0 kg/m³")
+                check_float32(where + f.name, _number(where + f.name, v))
+        _check(where + "density", self.density, lambda v: v > 0, "> 0 kg/m³")
 
     def _elastic(self, where: str, e: float, nu: float) -> None:
-        _check(where + "E", e, e > 0, "> 0 Pa")
-        _check(where + "nu", nu, 0 <= nu < 0.5, "in [0, 0.5)")
+        _check(where + "E", e, lambda v: v > 0, "> 0 Pa")
+        _check(where + "nu", nu, lambda v: 0 <= v < 0.5, "in [0, 0.5)")
 
     @abc.abstractmethod
     def to_params(self) -> Any:
@@ -102,8 +111,8 @@ class Water(_Material):
 
     def validate(self, where: str = "") -> None:
         super().validate(where)
-        _check(where + "bulk_modulus", self.bulk_modulus, self.bulk_modulus > 0, "> 0 Pa")
-        _check(where + "viscosity", self.viscosity, self.viscosity >= 0, ">= 0 Pa·s")
+        _check(where + "bulk_modulus", self.bulk_modulus, lambda v: v > 0, "> 0 Pa")
+        _check(where + "viscosity", self.viscosity, lambda v: v >= 0, ">= 0 Pa·s")
 
     def to_params(self) -> WaterParams:
         return WaterParams(density=self.density, bulk_modulus=self.bulk_modulus, viscosity=self.viscosity)
@@ -126,8 +135,8 @@ class Sand(_Material):
     def validate(self, where: str = "") -> None:
         super().validate(where)
         self._elastic(where, self.E, self.nu)
-        _check(where + "friction_angle_deg", self.friction_angle_deg, 0 <= self.friction_angle_deg <= 80, "in [0, 80] degrees")
-        _check(where + "cohesion", self.cohesion, self.cohesion >= 0, ">= 0 Pa")
+        _check(where + "friction_angle_deg", self.friction_angle_deg, lambda v: 0 <= v <= 80, "in [0, 80] degrees")
+        _check(where + "cohesion", self.cohesion, lambda v: v >= 0, ">= 0 Pa")
 
     def to_params(self) -> SandParams:
         return SandParams(self.density, self.E, self.nu, self.friction_angle_deg, self.cohesion)
@@ -150,7 +159,7 @@ class Elastic(_Material):
     def validate(self, where: str = "") -> None:
         super().validate(where)
         self._elastic(where, self.E, self.nu)
-        _check(where + "model", self.model, self.model in ("corotated", "neohookean"), "'corotated' or 'neohookean'")
+        _check(where + "model", self.model, lambda v: v in ("corotated", "neohookean"), "'corotated' or 'neohookean'")
 
     def to_params(self) -> ElasticParams:
         return ElasticParams(self.density, self.E, self.nu, self.model)
@@ -178,8 +187,8 @@ class Snow(_Material):
         self._elastic(where, self.E, self.nu)
         for k in ("theta_c", "theta_s"):
             v = getattr(self, k)
-            _check(where + k, v, 0 < v < 1, "in (0, 1)")
-        _check(where + "hardening", self.hardening, 0 <= self.hardening <= 50, "in [0, 50]")
+            _check(where + k, v, lambda v: 0 < v < 1, "in (0, 1)")
+        _check(where + "hardening", self.hardening, lambda v: 0 <= v <= 50, "in [0, 50]")
 
     def to_params(self) -> SnowParams:
         return SnowParams(self.density, self.E, self.nu, self.theta_c, self.theta_s, self.hardening)
@@ -205,8 +214,8 @@ class Viscoplastic(_Material):
     def validate(self, where: str = "") -> None:
         super().validate(where)
         self._elastic(where, self.E, self.nu)
-        _check(where + "yield_stress", self.yield_stress, self.yield_stress >= 0, ">= 0 Pa")
-        _check(where + "viscosity", self.viscosity, self.viscosity >= 0, ">= 0 Pa·s")
+        _check(where + "yield_stress", self.yield_stress, lambda v: v >= 0, ">= 0 Pa")
+        _check(where + "viscosity", self.viscosity, lambda v: v >= 0, ">= 0 Pa·s")
 
     def to_params(self) -> ViscoplasticParams:
         return ViscoplasticParams(self.density, self.E, self.nu, self.yield_stress, self.viscosity)

@@ -55,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run a command; every :class:`HybridMpmError` (bad input, failed
-    simulation) ends as one line on stderr with exit status 2, an OS error
+    simulation, a rollout that made fewer frames than asked: ``simulate`` and
+    ``control`` write what was made first) ends as one line on stderr with exit status 2, an OS error
     (missing or unwritable file) with status 1, Ctrl-C with 130. ``--debug``
     shows the traceback instead."""
     parser = build_parser()

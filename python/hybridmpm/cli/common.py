@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.files import FILE_KINDS
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.limits import MAX_SEED
@@ -87,6 +87,20 @@ def write_json(path: Path, obj: Any) -> None:
     tmp.replace(path)
 
 
+def check_frames_made(command: str, made: int, asked: int, failure: str | None, detail: str | None, kept: str | None = None) -> None:
+    """Raise :class:`~hybridmpm.errors.SimulationError` (the command line's one line on stderr, exit
+    status 2) when a rollout made fewer frames (``made``) than were asked for (``asked``): it says how many
+    of how many, why it broke off (the rollout's ``failure`` and ``failure_detail``, on one line) and
+    ``kept``, where what was made is saved (None: nothing is). Called once the command has written its files."""
+    if made >= asked:
+        return
+    why = failure or "unknown"
+    if detail:
+        why += f" ({' '.join(str(detail).split())})"
+    where = f"; the {made} frames made are saved in {kept}" if kept else ""
+    raise SimulationError(f"{command}: made {made} of {asked} frames; broke off: {why}{where}")
+
+
 def latency_ms(seconds: np.ndarray) -> dict[str, float | None]:
     """Per-frame wall time [s] → median/p95/mean in ms (None for no frames)."""
     if len(seconds) == 0:
@@ -95,4 +109,4 @@ def latency_ms(seconds: np.ndarray) -> dict[str, float | None]:
     return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "mean": float(ms.mean())}
 
 
-__all__ = ["latency_ms", "out_dir", "out_file", "parse_seed", "seed_range", "write_json"]
+__all__ = ["check_frames_made", "latency_ms", "out_dir", "out_file", "parse_seed", "seed_range", "write_json"]

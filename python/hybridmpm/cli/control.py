@@ -10,14 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.cli.common import out_dir, parse_seed, write_json
+from hybridmpm.cli.common import check_frames_made, out_dir, parse_seed, write_json
 from hybridmpm.control.diffusion import SAMPLE_STEPS
 from hybridmpm.conventions import T_CTR
 from hybridmpm.errors import HybridMpmError, InvalidInputError
 
 
 def _control(args: argparse.Namespace) -> int:
-    """``hybridmpm control``: a sketch applied to a scene's fluid (:func:`hybridmpm.control.control_episode`)."""
+    """``hybridmpm control``: a sketch applied to a scene's fluid (:func:`hybridmpm.control.control_episode`).
+    Fewer frames made than asked (:func:`~hybridmpm.cli.common.check_frames_made`, exit status 2): before
+    the sketch, nothing is written; during the controlled frames, the files hold the frames made."""
     from PIL import Image
 
     # import time: loaded by this command only
@@ -51,7 +53,9 @@ def _control(args: argparse.Namespace) -> int:
     out = out_dir(args.out)
     scene = make_scene(args.scene, seed=args.seed)
     sim = make_simulator(scene, args.solver, seed=args.seed, threads=args.threads)
-    rollout(sim, args.from_frame, progress=None if args.quiet else f"{scene.name} [{args.solver}] to frame {args.from_frame}")
+    pre = rollout(sim, args.from_frame, progress=None if args.quiet else f"{scene.name} [{args.solver}] to frame {args.from_frame}")
+    # the sketch applies at --from-frame or not at all: a run that broke off before it writes nothing
+    check_frames_made("control: before the sketch", pre.frames_done, args.from_frame, pre.failure, pre.failure_detail)
     ep = control_episode(sim, sketch, controller, progress=None if args.quiet else f"{scene.name} [control: {args.method}]")
     ro = ep.rollout
     ro.save(out / "trajectory.npz")
@@ -76,6 +80,8 @@ def _control(args: argparse.Namespace) -> int:
             f"{scene.name}: {args.method} control over {ro.frames_done} frames from frame {args.from_frame}: {adherence}; "
             f"effort mean {m['effort_mean_g']:.1f} g; plan {m['plan_ms']:.1f} ms, episode {m['episode_ms']:.0f} ms -> {out}/"
         )
+    # fewer controlled frames than asked (the rollout broke off): what was made is written above, and the command fails
+    check_frames_made("control", ro.frames_done, args.frames, ro.failure, ro.failure_detail, kept=f"{out}/")
     return 0
 
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.cli.common import latency_ms, out_dir, parse_seed, write_json
+from hybridmpm.cli.common import check_frames_made, latency_ms, out_dir, parse_seed, write_json
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, AUDIT_TOL, R_C, RESIDUAL_TOL, SAFEGUARD, SAFEGUARDS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.trajectory import Trajectory
@@ -19,7 +19,9 @@ from hybridmpm.trajectory import Trajectory
 
 def _simulate(args: argparse.Namespace) -> int:
     """``hybridmpm simulate``: one simulator (:func:`hybridmpm.sim.make_simulator`),
-    one :func:`~hybridmpm.sim.rollout`, then the files."""
+    one :func:`~hybridmpm.sim.rollout`, then the files. A rollout that broke off before
+    the frames asked for still writes its files (the frames made), then fails
+    (:func:`~hybridmpm.cli.common.check_frames_made`: exit status 2, one line on stderr)."""
     # import time: loaded by this command only
     import hybridmpm
     from hybridmpm.cli.export import PARAMS_KEY, params_json, write_exports
@@ -164,6 +166,8 @@ def _simulate(args: argparse.Namespace) -> int:
         print(line + f" -> {out}/")
         if args.baseline:
             print(_baseline_line(summary, default))
+    # fewer frames than asked (the rollout broke off): what was made is written above, and the command fails
+    check_frames_made("simulate", ro.frames_done, frames, ro.failure, ro.failure_detail, kept=f"{out}/")
     return 0
 
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from hybridmpm import _core
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.limits import F32_MAX, F32_TINY, check_float32
 
 #: Most bodies a solver takes (the Rust core's ``MAX_BODIES``).
 MAX_BODIES: int = int(_core.MAX_BODIES)
@@ -31,6 +32,11 @@ SHAPES = ("box", "sphere", "circle", "capsule", "mesh")
 MAX_HULL_POINTS: int = int(_core.MAX_HULL_POINTS)
 #: Numbers in a body's exact state (centre 3, rotation 4, velocity 3, angular velocity 3; float32).
 BODY_STATE_LEN: int = int(_core.BODY_STATE_LEN)
+#: Most point-plane distances :meth:`Body.sdf` holds at once for a mesh body (2**22 float64 entries, 32 MiB):
+#: it evaluates ``points`` in chunks of ``SDF_CHUNK_ENTRIES // faces`` rows (at least one), so its memory stays
+#: bounded whatever the number of points and faces (an 81,920-triangle hull against the ~11,600 points a block
+#: asked about took 7 GiB at once), and every call that fits in one chunk is the single product it always was.
+SDF_CHUNK_ENTRIES: int = 1 << 22
 
 
 def _num(v: Any) -> Any:
@@ -46,6 +52,22 @@ def _vec(v: Any) -> Any:
     return [_vec(x) for x in v]
 
 
+def _float32_numbers(field: str, v: Any) -> None:
+    """Refuse (naming ``field`` and the value given) a finite number, or one in a nested list, that float32 (the
+    core's precision) holds as infinity or as a subnormal: ``density = 1e-300`` would be 0 there. Anything else is
+    left to the core's checks."""
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        return
+    if a.dtype != np.float64 or a.size == 0:
+        return
+    finite = a[np.isfinite(a)]
+    bad = finite[(np.abs(finite) > F32_MAX) | ((finite != 0) & (np.abs(finite) < F32_TINY))]
+    if bad.size:
+        check_float32(field, float(bad[0]))
+
+
 @dataclass(frozen=True)
 class Body:
     """A rigid body as given: its shape, pose, velocity, density (kg/m³) or
@@ -58,7 +80,9 @@ class Body:
     is the points within ``radius`` of the segment from ``-half_height`` to
     ``half_height`` [m] along the body's y axis. A mesh (3D) is the convex
     hull of ``vertices`` [V, 3] [m] in the mesh's frame, read from ``path``
-    times ``scale`` (:func:`hybridmpm.scenes.body_mesh.resolve_mesh_body`;
+    times ``scale`` (:func:`hybridmpm.scenes.body_mesh.resolve_mesh_body`,
+    which simplifies a hull of more than
+    :data:`~hybridmpm.scenes.body_mesh.MAX_HULL_FACES` triangles;
     ``path`` stays as the label its errors name). A body lies inside the walls and is at least 1
     grid cell in every half extent, radius and half height (a hull: half its
     thinnest width); a solver takes at most :data:`MAX_BODIES`."""
@@ -118,6 +142,9 @@ class Body:
             raise InvalidInputError(
                 f"{field}.path: not read yet: a scene file or MpmSimulator.add_body reads it (hybridmpm.scenes.body_mesh.resolve_mesh_body)", f"{field}.path"
             )
+        for key, v in d.items():
+            if key not in ("shape", "path", "angle_deg"):  # the core reads angle_deg in float64
+                _float32_numbers(f"{field}.{key}", v)
         return cls(**d)
 
     def rotation_matrix(self, dim: int) -> np.ndarray:
@@ -158,7 +185,12 @@ class Body:
         at ``center`` [D] and ``rotation`` [D, D] (its pose now:
         :attr:`BodiesView.center`): what keeps a scene's blocks and a pour
         from seeding particles inside it. A hull's is the largest of its
-        face planes' (exact inside, a lower bound outside)."""
+        face planes' (exact inside, a lower bound outside), evaluated
+        :data:`SDF_CHUNK_ENTRIES` point-plane distances at a time: its
+        memory is ``N·D`` plus at most 32 MiB, whatever ``N`` and the face
+        count (the chunks' rows are those of the one product ``q @ n.T -
+        offset`` when it fits; past that, BLAS may round a row's last bit as
+        it blocks the product, which the unchunked product did too)."""
         p = np.asarray(points, np.float64)
         dim = p.shape[1]
         r = self.rotation_matrix(dim) if rotation is None else np.asarray(rotation, np.float64)
@@ -172,8 +204,23 @@ class Body:
             q[:, 1] -= np.clip(q[:, 1], -h, h)
         if self.shape == "mesh":
             n, off = hull_planes(self.hull())
-            return (q @ n.T - off).max(axis=1)
+            return _max_plane_distance(q, n, off)
         return np.linalg.norm(q, axis=1) - float(self.radius or 0.0)
+
+
+def _max_plane_distance(q: np.ndarray, n: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """``(q @ n.T - off).max(axis=1)`` for points ``q`` [N, 3] and planes ``n`` [F, 3], ``off`` [F] (float64),
+    :data:`SDF_CHUNK_ENTRIES` entries at a time (float64 [N])."""
+    rows = max(1, SDF_CHUNK_ENTRIES // max(1, len(n)))
+    if len(q) <= rows:
+        return (q @ n.T - off).max(axis=1)
+    out = np.empty(len(q), np.float64)
+    for a in range(0, len(q), rows):
+        s = q[a : a + rows] @ n.T
+        s -= off  # in place: one [rows, F] block at a time
+        out[a : a + rows] = s.max(axis=1)
+        del s  # before the next block is made
+    return out
 
 
 def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -265,6 +312,7 @@ __all__ = [
     "BODY_STATE_LEN",
     "MAX_BODIES",
     "MAX_HULL_POINTS",
+    "SDF_CHUNK_ENTRIES",
     "SHAPES",
     "BodiesView",
     "Body",

@@ -389,6 +389,11 @@ class MpmSolver:
         f = a.astype(np.float32)
         if a.shape != (n, BODY_STATE_LEN) or not np.isfinite(a).all() or not np.array_equal(f.astype(np.float64), a):
             raise CheckpointError(f"bad body state: expected the float32 states of {n} bodies, {BODY_STATE_LEN} numbers each")
+        for i, row in enumerate(f):  # the pose inside the walls, a unit rotation, a speed a frame can simulate
+            try:
+                self._core.check_body_state(i, np.ascontiguousarray(row))
+            except InvalidInputError as e:
+                raise CheckpointError(f"bad body state: {e}") from None
         return f
 
     def _set_body_state(self, states: np.ndarray | None) -> None:

@@ -337,7 +337,15 @@ class SceneSpec:
         A mesh obstacle's ``path`` is relative to ``base_dir`` (the working
         directory when ``None``); ``confine=True`` refuses a path that leaves
         ``base_dir`` (absolute, ``..``, or a link out), naming
-        ``obstacles[i].path`` (:func:`~hybridmpm.scenes.obstacle_mesh.resolve_mesh_path`)."""
+        ``obstacles[i].path`` (:func:`~hybridmpm.scenes.obstacle_mesh.resolve_mesh_path`).
+
+        A mesh body whose convex hull has more than
+        :data:`~hybridmpm.scenes.body_mesh.MAX_HULL_FACES` triangles keeps a
+        simplified hull (:func:`~hybridmpm.scenes.body_mesh.simplify_hull`,
+        from a quarter of this scene's cell), each one reported in
+        ``info["simplified_body_hulls"]`` (its ``field``, ``faces_given``,
+        ``faces``, ``tolerance_m``: how far its surface moved inward at most
+        [m], and ``n_grid``)."""
         if not isinstance(d, dict):
             raise InvalidInputError("scene: expected a table/object at the top level", "scene")
         allowed = {
@@ -358,8 +366,14 @@ class SceneSpec:
         # a mesh obstacle is checked here and sampled once the grid is known; a path is set aside until then
         pd["colliders"], pending = read_obstacles(d.get("obstacles", []), dim, base_dir, confine)
         raw_bodies = d.get("bodies", [])
+        simplified: list[dict[str, Any]] = []  # mesh bodies whose hulls were cut to MAX_HULL_FACES (info["simplified_body_hulls"])
         if isinstance(raw_bodies, list):  # a mesh body's file is read against the scene's folder (MpmParams.from_dict names a non-list)
-            raw_bodies = [resolve_mesh_body(b, f"bodies[{i}]", dim, base_dir, confine) if isinstance(b, dict) else b for i, b in enumerate(raw_bodies)]
+            g = d.get("n_grid", MpmParams(dim=dim).resolved_n_grid())  # the grid a hull is simplified against (a bad one is named below)
+            g = g if isinstance(g, int) and not isinstance(g, bool) and 16 <= g <= 4096 else None
+            raw_bodies = [
+                resolve_mesh_body(b, f"bodies[{i}]", dim, base_dir, confine, n_grid=g, simplified=simplified) if isinstance(b, dict) else b
+                for i, b in enumerate(raw_bodies)
+            ]
         pd["bodies"] = raw_bodies
         if isinstance(d.get("blocks"), list) and len(d["blocks"]) > MAX_BLOCKS:
             raise InvalidInputError(f"blocks: {len(d['blocks'])} blocks, more than the {MAX_BLOCKS} a scene may have", "blocks")
@@ -427,7 +441,7 @@ class SceneSpec:
             frames=frames,
             particles_per_cell=ppc,
             connectivity_radius=float(radius),
-            info=dict(info),
+            info={**info, "simplified_body_hulls": simplified} if simplified else dict(info),
             obstacle_clearance_cells=float(clearance),
         )
 

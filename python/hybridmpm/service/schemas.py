@@ -165,8 +165,18 @@ class BlockPoured(BaseModel):
     frame: int = Field(description="the session's frame when the block was poured")
 
 
-#: Most points a mesh body added over HTTP may give (``BodyAdd.vertices``).
-MAX_BODY_VERTICES = 4096
+#: Longest JSON text of a float64 at full precision [characters]: its shortest round-trip form
+#: (Python's ``repr``, JavaScript's ``String``) is at most 24 characters, ``-2.2250738585072014e-308``.
+MAX_NUMBER_CHARS = 24
+#: Most bytes one point ``[x, y, z], `` of ``BodyAdd.vertices`` takes at full precision (``json.dumps``'
+#: separators ``", "``; ``JSON.stringify``'s take 4 fewer).
+VERTEX_JSON_BYTES = 3 * MAX_NUMBER_CHARS + 8
+#: Most points a mesh body added over HTTP may give (``BodyAdd.vertices``): so many that they fit in the
+#: JSON body cap (``ServiceConfig.max_json_bytes``, 64 KiB by default) at full float64 precision, so that a
+#: request with one point too many is answered 422 naming ``vertices``, never 413. 512 points take at most
+#: 512 × 80 B = 40 KiB, which leaves 24 KiB of the default cap to the other fields and whitespace (enough
+#: for ``json.dumps(..., indent=2)``). A larger hull comes in a scene file (``[[bodies]]`` ``path``).
+MAX_BODY_VERTICES = 512
 
 
 class BodyAdd(Strict):

@@ -27,14 +27,14 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL
-from hybridmpm.errors import CheckpointError, InvalidInputError
+from hybridmpm.errors import CheckpointError, InvalidInputError, SimulationError
 from hybridmpm.mpm import MpmSolver, SampledSdf
 from hybridmpm.mpm.bodies import BodiesView, Body
 from hybridmpm.mpm.motion import MAX_OBSTACLE_SPEED, Keyframe, check_center, check_velocity, path_center
 from hybridmpm.mpm.params import Collider
 from hybridmpm.mpm.solver import check_leading_particles, check_poured_blocks, core_particle_count
 from hybridmpm.scenes import make_scene
-from hybridmpm.scenes.body_mesh import resolve_mesh_body
+from hybridmpm.scenes.body_mesh import bounding_radius, resolve_mesh_body
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.obstacles import obstacle_center
 from hybridmpm.scenes.particles import ParticleSet
@@ -313,10 +313,30 @@ class MpmSimulator:
         (``bodies[i].density``, ``bodies`` past the cap); nothing changes then.
         A mesh body's ``path`` is read relative to the working directory."""
         if isinstance(body, dict):
-            body = resolve_mesh_body(body, f"bodies[{len(self.solver.params.bodies)}]", self.solver.dim)
+            body = resolve_mesh_body(body, f"bodies[{len(self.solver.params.bodies)}]", self.solver.dim, n_grid=self.solver.params.resolved_n_grid())
+        steppable = self._steppable()
         i = self.solver.add_body(body)
+        if steppable and not self._steppable():  # the body alone makes a frame need more than max_substeps
+            b = self.solver.bodies
+            speed = float(np.linalg.norm(b.velocity[i]))
+            spin = float(np.linalg.norm(b.angular_velocity[i])) * bounding_radius(self.solver.params.bodies[i], self.solver.dim)
+            key = f"bodies[{i}].{'velocity' if speed >= spin else 'angular_velocity'}"
+            try:
+                self.solver.substeps_for(self.dt_frame)
+            except SimulationError as e:
+                reason = str(e)
+            self.solver.remove_body(i)
+            raise InvalidInputError(f"{key}: the body is too fast for a frame on this grid: {reason}", key)
         self._frame = replace(self._frame, **self.frame_bodies())
         return i
+
+    def _steppable(self) -> bool:
+        """Whether the next frame needs at most ``max_substeps`` substeps (the CFL condition at the state now)."""
+        try:
+            self.solver.substeps_for(self.dt_frame)
+        except SimulationError:
+            return False
+        return True
 
     @serialised
     def remove_body(self, index: int) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import MATERIALS
-from hybridmpm.errors import InvalidInputError
+from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.materials import material_from_block, scene_bases
 from hybridmpm.scenes.core import lattice, wall_face
 from hybridmpm.scenes.obstacles import collider_sdf
@@ -108,11 +108,50 @@ def pour_block(sim: Any, block: dict[str, Any]) -> int:
             "lo",
         )
     p = p[~near].astype(np.float32)
-    set_index, new_params = _set_for(params, m)
-    solver = sim.solver if new_params is None else _with_params(sim.solver, new_params)
-    solver.add_particles(p, m.code, velocities=np.tile(vel.astype(np.float32), (len(p), 1)), material_set=set_index)
+    v = np.tile(vel.astype(np.float32), (len(p), 1))
+    steppable = _steppable(sim.solver, sim.dt_frame)
+    solver, reason = _poured(sim, m, p, v, steppable)
+    if reason is not None:
+        key = _culprit(sim, block, keys, p, v)
+        raise InvalidInputError(f"{key}: {block.get(key)!r} leaves a block the session cannot step: {reason}", key)
     sim.adopt(solver, [*sim.pours, len(p)])
     return int(solver.num_particles)
+
+
+def _steppable(solver: Any, dt_frame: float) -> str | None:
+    """None when the next frame of ``solver`` needs at most ``max_substeps`` substeps, else the reason."""
+    try:
+        solver.substeps_for(dt_frame)
+    except SimulationError as e:
+        return str(e)
+    return None
+
+
+def _poured(sim: Any, m: Any, p: np.ndarray, v: np.ndarray, before: str | None) -> tuple[Any, str | None]:
+    """A solver holding ``sim``'s state and the particles ``p`` [N, D] of material ``m`` at velocities ``v``
+    (``sim``'s own when no parameter set is added, changed only if the pour can run), and the reason the pour cannot
+    run: its next frame would need more than ``max_substeps`` substeps where it did not before (``before`` is None)."""
+    params = sim.solver.params
+    set_index, new_params = _set_for(params, m)
+    checked = before is None  # a state that could be stepped must stay one: the pour goes into a copy, checked
+    solver = _with_params(sim.solver, new_params or params) if new_params is not None or checked else sim.solver
+    solver.add_particles(p, m.code, velocities=v, material_set=set_index)
+    if checked and (reason := _steppable(solver, sim.dt_frame)) is not None:
+        return sim.solver, reason
+    return solver, None
+
+
+def _culprit(sim: Any, block: dict[str, Any], keys: dict[str, Any], p: np.ndarray, v: np.ndarray) -> str:
+    """The key of a refused pour to name: the first of the block's own material parameters whose default (the scene's
+    table or the preset) lets the pour run; ``velocity`` when the material's defaults alone do not."""
+    bases = scene_bases(sim.solver.params)
+    for k in keys:
+        if k == "material":
+            continue
+        m = material_from_block(block.get("material"), {q: x for q, x in keys.items() if q != k}, "block", bases)
+        if _poured(sim, m, p, v, None)[1] is None:
+            return k
+    return "velocity" if block.get("velocity") is not None else "material"
 
 
 def _set_for(params: Any, m: Any) -> tuple[int, Any]:

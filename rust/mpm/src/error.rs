@@ -55,11 +55,13 @@ pub enum MpmError {
         retries: usize,
     },
     /// The CFL condition asks for more than `max_substeps` substeps in the
-    /// frame (`needed`, possibly astronomically many): the particles move too
-    /// fast (`max_speed`, plus the materials' wave speed) for the grid. The
-    /// state is unchanged.
+    /// frame (`needed`, possibly astronomically many): the fastest speed
+    /// (`max_speed`, set by `speed_of`: the particles, a moving obstacle or
+    /// a body's fastest point) plus the largest wave speed (`wave_speed`,
+    /// of the parameter set `wave_of`) is too fast for the grid. The state
+    /// is unchanged.
     #[error(
-        "particles moving at up to {} m/s (wave speed {} m/s) need {} substeps of at most {} s (cfl·dx / (c + |v|max)) for a frame of {dt_frame} s, more than max_substeps = {max_substeps}; state unchanged",
+        "{speed_of} moving at up to {} m/s and {wave_of} (wave speed {} m/s) need {} substeps of at most {} s (cfl·dx / (c + |v|max)) for a frame of {dt_frame} s, more than max_substeps = {max_substeps}; state unchanged",
         num(*max_speed),
         num(*wave_speed as f64),
         count(*needed),
@@ -72,6 +74,12 @@ pub enum MpmError {
         wave_speed: f32,
         dt_max: f64,
         dt_frame: f32,
+        /// What moves fastest: `particles`, `a moving obstacle`, `body 2's
+        /// fastest point`.
+        speed_of: String,
+        /// The parameter set whose wave speed is the largest:
+        /// `parameter set 1 (elastic)`, or `no material` without particles.
+        wave_of: String,
     },
     /// A checkpoint blob could not be decoded.
     #[error("checkpoint: {0}")]

@@ -250,6 +250,9 @@ fn bodies_overlap(
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_BODIES", core::body::MAX_BODIES)?;
+    m.add("MIN_BODY_DENSITY", core::body::MIN_BODY_DENSITY)?;
+    m.add("MAX_BODY_DENSITY", core::body::MAX_BODY_DENSITY)?;
+    m.add("MAX_BODY_SPEED", core::body::MAX_BODY_SPEED)?;
     m.add("BODY_STATE_LEN", STATE_LEN)?;
     m.add("MAX_HULL_POINTS", core::body::MAX_HULL_POINTS)?;
     m.add_function(wrap_pyfunction!(check_body, m)?)?;

@@ -620,6 +620,26 @@ impl MpmSolver {
             .map_err(|e| to_py(py, e))
     }
 
+    /// Check a checkpoint's state for body `index` without setting it
+    /// (float32 [13]: finite, a unit rotation, the body inside the walls
+    /// within a cell, its points no faster than `MAX_BODY_SPEED`).
+    /// `InvalidInputError` names `index`, `state` or `body_state[i]`.
+    fn check_body_state(
+        &self,
+        py: Python<'_>,
+        index: &Bound<'_, PyAny>,
+        state: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
+        let v = f32_vec(state, "state", &[Some(crate::bodies::STATE_LEN)])?;
+        let st = crate::bodies::unflat(&v);
+        self.with(
+            py,
+            |inner| dispatch!(inner, s => s.check_body_state(i, &st)),
+        )
+        .map_err(|e| to_py(py, e))
+    }
+
     /// Sets the fluid's last force and torque on body `index` (6 float64
     /// lanes: force x, y, z, torque x, y, z; a 2D body's torque in lane 5),
     /// as a checkpoint holds them. Raises `InvalidInputError` naming

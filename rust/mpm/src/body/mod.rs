@@ -58,6 +58,31 @@ pub const MAX_BODIES: usize = 64;
 /// thin an obstacle is refused, since the fluid leaks through it.
 pub const MIN_BODY_HALF_CELLS: f32 = 1.0;
 
+/// The lightest body [kg/m³], about air's density. Below about 1e-4 kg/m³
+/// a body's mass and inertia are so small against the water it couples
+/// with that the coupled solve's round-off (a torque on a sphere, whose
+/// normals should all pass through its centre) spins and throws it: a
+/// 1e-6 kg/m³ ball at the surface flew at 24–133 m/s; at 1e-3 kg/m³ and
+/// above balls and boxes rise at the flow's pace (docs/bodies.md).
+pub const MIN_BODY_DENSITY: f32 = 1.0;
+
+/// The heaviest body [kg/m³], about four times osmium's. rapier integrates
+/// in `f32`: a body of more than about 1e20 kg does not fall at all (its
+/// velocity increment `g Δt` is lost), and in the unit domain a body under
+/// this density weighs at most 1e5 kg.
+pub const MAX_BODY_DENSITY: f32 = 1.0e5;
+
+/// The fastest a body's point may move [m/s] (`|v|` per axis and the rim
+/// speed `|ω| R`), as a block's velocity per axis (the scene files' bound);
+/// the simulator also refuses a body whose speed needs more than
+/// `max_substeps` substeps a frame.
+pub const MAX_BODY_SPEED: f32 = 1000.0;
+
+/// How far a restored body may lie past the walls' inner faces, in cells:
+/// rapier lets a resting body sink into a wall by a small fraction of a
+/// cell, so a checkpoint of a body on the floor is not exactly inside.
+pub const BODY_STATE_WALL_SLACK_CELLS: f32 = 1.0;
+
 /// A body's shape, centred on its centre of mass, in its own frame.
 #[derive(Clone, Debug, PartialEq)]
 pub enum BodyShape<const D: usize> {
@@ -288,12 +313,84 @@ impl<const D: usize> Body<D> {
                 ),
             ));
         }
-        let lo = wall_cells as f32 * dx;
-        let hi = 1.0 - lo;
+        self.check_pose(field, &self.center, &self.rotation, dx, wall_cells, 0.0)?;
+        self.check_density(field)?;
+        let speeds = |v: &[f32]| v.iter().all(|x| x.is_finite() && x.abs() <= MAX_BODY_SPEED);
+        if !speeds(self.velocity.as_slice()) {
+            return Err(MpmError::invalid(
+                format!("{field}.velocity"),
+                format!(
+                    "each component must be finite and at most {MAX_BODY_SPEED} m/s in size, got {:?}",
+                    self.velocity.as_slice()
+                ),
+            ));
+        }
+        let rim = rim_speed(&self.angular_velocity, self.shape.bounding_radius());
+        if !(rim <= MAX_BODY_SPEED) {
+            return Err(MpmError::invalid(
+                format!("{field}.angular_velocity"),
+                format!(
+                    "its rim moves at |ω|·R = {rim} m/s (ω = {:?} rad/s, R = {} m); at most {MAX_BODY_SPEED} m/s",
+                    if D == 2 {
+                        &self.angular_velocity[2..]
+                    } else {
+                        &self.angular_velocity[..]
+                    },
+                    self.shape.bounding_radius()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The density within [[`MIN_BODY_DENSITY`], [`MAX_BODY_DENSITY`]]
+    /// kg/m³, and the mass and inertia `f32` normal numbers, as the core
+    /// and rapier store them (field `density`).
+    pub fn check_density(&self, field: &str) -> Result<()> {
+        let rho = self.density;
+        if !(rho.is_finite() && (MIN_BODY_DENSITY..=MAX_BODY_DENSITY).contains(&rho)) {
+            return Err(MpmError::invalid(
+                format!("{field}.density"),
+                format!(
+                    "must be in [{MIN_BODY_DENSITY}, {MAX_BODY_DENSITY:e}] kg/m^3, got {rho:?}"
+                ),
+            ));
+        }
+        let m = self.mass();
+        let inertia = self.shape.local_inertia(m as f64);
+        let normal = |x: f64| (x as f32).is_normal() && x > 0.0;
+        let inertia_ok = (0..3)
+            .filter(|&k| D == 3 || k == 2)
+            .all(|k| normal(inertia[k][k]));
+        if !(m.is_normal() && m > 0.0 && inertia_ok) {
+            return Err(MpmError::invalid(
+                format!("{field}.density"),
+                format!(
+                    "gives a mass of {m} kg and an inertia that are not normal float32 numbers"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The body at centre `center` and rotation `rotation` inside the walls
+    /// (the inner faces of `wall_cells`-thick bands on a grid of spacing
+    /// `dx`), give or take `slack` [m]; field `center`.
+    pub fn check_pose(
+        &self,
+        field: &str,
+        center: &SVector<f32, D>,
+        rotation: &SMatrix<f32, D, D>,
+        dx: f32,
+        wall_cells: usize,
+        slack: f32,
+    ) -> Result<()> {
+        let lo = wall_cells as f32 * dx - slack;
+        let hi = 1.0 - wall_cells as f32 * dx + slack;
         // the body's extent along each axis
         for d in 0..D {
-            let (a, b) = self.shape.span(&self.rotation, d);
-            let c = self.center[d];
+            let (a, b) = self.shape.span(rotation, d);
+            let c = center[d];
             if !(c + a >= lo && c + b <= hi) {
                 return Err(MpmError::invalid(
                     format!("{field}.center"),
@@ -305,12 +402,65 @@ impl<const D: usize> Body<D> {
                 ));
             }
         }
-        if !(self.density.is_finite() && self.density > 0.0) {
+        Ok(())
+    }
+
+    /// A checkpoint's state for this body: finite, a unit rotation
+    /// (quaternion norm within 1e-3 of 1), the body inside the walls within
+    /// [`BODY_STATE_WALL_SLACK_CELLS`], its points no faster than
+    /// [`MAX_BODY_SPEED`]. Errors name `field` (e.g. `body_state[1]`).
+    pub fn check_state(
+        &self,
+        field: &str,
+        state: &BodyState,
+        dx: f32,
+        wall_cells: usize,
+    ) -> Result<()> {
+        let all = state
+            .x
+            .iter()
+            .chain(&state.q)
+            .chain(&state.v)
+            .chain(&state.w);
+        if !all.clone().all(|x| x.is_finite()) {
+            return Err(MpmError::invalid(field, "must be finite"));
+        }
+        let q = &state.q;
+        let qn = if D == 2 {
+            (q[0] * q[0] + q[1] * q[1]).sqrt()
+        } else {
+            q.iter().map(|x| x * x).sum::<f32>().sqrt()
+        };
+        if !((qn - 1.0).abs() <= 1e-3) {
             return Err(MpmError::invalid(
-                format!("{field}.density"),
-                format!("must be a finite number > 0, got {}", self.density),
+                field,
+                format!("the rotation is not a unit quaternion (norm {qn})"),
+            ));
+        }
+        let center = SVector::<f32, D>::from_fn(|d, _| state.x[d]);
+        self.check_pose(
+            field,
+            &center,
+            &state.rotation(),
+            dx,
+            wall_cells,
+            BODY_STATE_WALL_SLACK_CELLS * dx,
+        )?;
+        let v = (0..D).map(|d| state.v[d] * state.v[d]).sum::<f32>().sqrt();
+        let speed = v + rim_speed(&state.w, self.shape.bounding_radius());
+        if !(speed <= MAX_BODY_SPEED * (D as f32).sqrt() + MAX_BODY_SPEED) {
+            return Err(MpmError::invalid(
+                field,
+                format!(
+                    "the body's fastest point moves at {speed} m/s, past what a frame can simulate"
+                ),
             ));
         }
         Ok(())
     }
+}
+
+/// `|ω| R` [m/s].
+fn rim_speed(w: &[f32; 3], r: f32) -> f32 {
+    (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt() * r
 }

@@ -148,6 +148,19 @@ impl<const D: usize> Bodies<D> {
             .fold(0.0, f32::max)
     }
 
+    /// Each body's fastest point's speed [m/s] in `f64` (`|v| + |ω| R`):
+    /// what a CFL error names.
+    pub fn point_speeds(&self) -> Vec<f64> {
+        self.poses
+            .iter()
+            .map(|p| {
+                let norm = |v: &[f32]| v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+                norm(p.velocity.as_slice())
+                    + norm(&p.angular_velocity) * p.shape.bounding_radius() as f64
+            })
+            .collect()
+    }
+
     fn pose_of(b: &Body<D>, s: &BodyState) -> BodyPose<D> {
         BodyPose {
             shape: b.shape.clone(),

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use nalgebra::{SMatrix, SVector};
 
-use crate::body::{Body, BodyShape, Hull};
+use crate::body::{Body, BodyShape, Hull, MAX_BODY_DENSITY, MIN_BODY_DENSITY};
 use crate::error::{MpmError, Result};
 
 /// The shape of a body in the parameter dict: `"box"`, `"sphere"`
@@ -156,20 +156,27 @@ impl BodyParams {
             }
             (Some(rho), None) => rho,
             (None, Some(m)) => {
-                if !(m.is_finite() && m > 0.0) {
+                let rho = m / volume;
+                if !(m.is_finite() && (MIN_BODY_DENSITY..=MAX_BODY_DENSITY).contains(&rho)) {
                     return Err(MpmError::invalid(
                         name("mass"),
-                        format!("must be a finite number > 0, got {m}"),
+                        format!(
+                            "must give a density in [{MIN_BODY_DENSITY}, {MAX_BODY_DENSITY:e}] kg/m^3 for the body's volume {volume} (a mass in [{}, {}] kg), got {m:?} kg",
+                            MIN_BODY_DENSITY * volume,
+                            MAX_BODY_DENSITY * volume
+                        ),
                     ));
                 }
-                m / volume
+                rho
             }
             (None, None) => return Err(missing("density")),
         };
-        if !(density.is_finite() && density > 0.0) {
+        if !(density.is_finite() && (MIN_BODY_DENSITY..=MAX_BODY_DENSITY).contains(&density)) {
             return Err(MpmError::invalid(
                 name("density"),
-                format!("must be a finite number > 0 kg/m^3, got {density}"),
+                format!(
+                    "must be in [{MIN_BODY_DENSITY}, {MAX_BODY_DENSITY:e}] kg/m^3 (lighter bodies are thrown by the coupling's round-off, heavier ones are past rapier's f32 integration), got {density:?}"
+                ),
             ));
         }
         let velocity = numbers("velocity", &self.velocity, D)?.unwrap_or(vec![0.0; D]);
@@ -248,7 +255,9 @@ impl BodyParams {
                     format!("must be finite, got {a}"),
                 ));
             }
-            let (s, c) = (a.to_radians() as f32).sin_cos();
+            // the angle modulo a turn in f64 first: a huge angle (1e308°) is
+            // still a finite angle, and its radians in f32 would not be
+            let (s, c) = (a.rem_euclid(360.0).to_radians() as f32).sin_cos();
             r[(0, 0)] = c;
             r[(0, 1)] = -s;
             r[(1, 0)] = s;

@@ -131,23 +131,24 @@ where
         Ok(())
     }
 
-    /// Sets body `index`'s exact state (a checkpoint's). Errors name
-    /// `index`, or `bodies[i].state` for a non-finite state.
-    pub fn set_body_state(&mut self, index: usize, state: BodyState) -> Result<()> {
+    /// Checks a checkpoint's state for body `index` without setting it
+    /// ([`Body::check_state`]: finite, a unit rotation, inside the walls
+    /// within a cell, no faster than a frame can simulate). Errors name
+    /// `index`, or `body_state[index]`.
+    pub fn check_body_state(&self, index: usize, state: &BodyState) -> Result<()> {
         self.check_body(index)?;
-        let finite = state
-            .x
-            .iter()
-            .chain(&state.q)
-            .chain(&state.v)
-            .chain(&state.w)
-            .all(|x| x.is_finite());
-        if !finite {
-            return Err(MpmError::invalid(
-                format!("bodies[{index}].state"),
-                "must be finite",
-            ));
-        }
+        self.bodies.bodies()[index].check_state(
+            &format!("body_state[{index}]"),
+            state,
+            self.params.dx(),
+            self.params.walls.cells,
+        )
+    }
+
+    /// Sets body `index`'s exact state (a checkpoint's), checked as
+    /// [`Solver::check_body_state`] does; on error nothing changes.
+    pub fn set_body_state(&mut self, index: usize, state: BodyState) -> Result<()> {
+        self.check_body_state(index, &state)?;
         self.bodies.set_state(index, state);
         Ok(())
     }

@@ -22,9 +22,16 @@ where
     Dim<D>: DimOps<D>,
 {
     /// Largest wave speed among the parameter sets present [m/s]: water
-    /// `sqrt(K/ρ)`, the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
+    /// `sqrt(K/ρ)` (or, if larger, its viscous limit as a speed,
+    /// [`crate::params::WaterParams::viscous_speed`]), the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
     /// hardened by `e^{ξ(1 − J_P)}` at its smallest `J_P` present.
     fn wave_speed(&self) -> f32 {
+        self.wave_speed_of().0
+    }
+
+    /// [`Self::wave_speed`] and the parameter set that has it (`None`
+    /// without particles).
+    fn wave_speed_of(&self) -> (f32, Option<usize>) {
         let table = &self.models.params;
         let n = table.len();
         let mut has = vec![false; n];
@@ -46,19 +53,32 @@ where
             }
         }
         let mut c = 0.0f32;
+        let mut of = None;
         for (s, m) in table.iter().enumerate() {
             if !has[s] {
                 continue;
             }
-            c = c.max(match m {
-                MaterialParams::Water(w) => w.wave_speed(),
+            let cs = match m {
+                MaterialParams::Water(w) => {
+                    w.wave_speed()
+                        .max(w.viscous_speed(D, self.params.cfl, self.params.dx()))
+                }
                 MaterialParams::Sand(p) => p.wave_speed(),
                 MaterialParams::Elastic(p) => p.wave_speed(),
                 MaterialParams::Snow(p) => p.wave_speed(jp_min[s]),
                 MaterialParams::Viscoplastic(p) => p.wave_speed(),
-            });
+            };
+            // a NaN or larger speed names its set
+            if of.is_none() || !(cs <= c) {
+                c = if cs.is_nan() {
+                    f32::INFINITY
+                } else {
+                    cs.max(c)
+                };
+                of = Some(s);
+            }
         }
-        c
+        (c, of)
     }
 
     /// Substep count the CFL condition asks for over a frame of `dt_frame`
@@ -105,8 +125,9 @@ where
         let needed = (dt_frame / dt_max).ceil();
         // `needed` may be inf (dt_max = 0) or far beyond usize: compare before converting
         if !(needed as f64 <= self.params.max_substeps as f64) {
-            // the same in f64, where speeds up to f32::MAX do not overflow
-            let vmax64 = self
+            // the same in f64, where speeds up to f32::MAX do not overflow,
+            // naming what moves fastest and whose wave speed it is
+            let particles = self
                 .particles
                 .iter()
                 .map(|p| {
@@ -115,8 +136,29 @@ where
                         .sum::<f64>()
                         .sqrt()
                 })
-                .fold(0.0f64, f64::max)
-                .max(self.move_speed(dt_frame).unwrap_or(0.0) as f64);
+                .fold(0.0f64, f64::max);
+            let mut speed_of = "particles".to_string();
+            let mut vmax64 = particles;
+            if let Some(u) = self.move_speed(dt_frame)
+                && (u as f64) > vmax64
+            {
+                vmax64 = u as f64;
+                speed_of = "a moving obstacle".to_string();
+            }
+            for (i, u) in self.bodies.point_speeds().into_iter().enumerate() {
+                if u > vmax64 {
+                    vmax64 = u;
+                    speed_of = format!("body {i}'s fastest point (|v| + |ω|·R)");
+                }
+            }
+            let (c, set) = self.wave_speed_of();
+            let wave_of = match set {
+                Some(s) => format!(
+                    "parameter set {s} ({})",
+                    self.models.params[s].material().name()
+                ),
+                None => "no material".to_string(),
+            };
             let dt_max64 =
                 self.params.cfl as f64 * self.params.dx() as f64 / (c as f64 + vmax64).max(1e-6);
             return Err(MpmError::TooManySubsteps {
@@ -126,6 +168,8 @@ where
                 wave_speed: c,
                 dt_max: dt_max64,
                 dt_frame,
+                speed_of,
+                wave_of,
             });
         }
         Ok((needed as usize).max(1))
