@@ -156,7 +156,7 @@ def _simulate(args: argparse.Namespace) -> int:
                 f", {k} {sc[k]:.3g}" for k in ("short_error", "sinkhorn", "ke_error", "front_rms") if sc[k] is not None
             )
         if "bodies" in summary:
-            up = low.dim - 1  # gravity acts along the last axis
+            up = 1  # gravity acts along -y in 2D and 3D
             line += "; bodies' centre heights " + ", ".join(
                 f"{b['shape']} {b['density'] or b['mass']:g}{' kg/m^3' if b['density'] else ' kg'} {b['center_start'][up]:.3f} -> {b['center_end'][up]:.3f} m"
                 for b in summary["bodies"]
