@@ -11,7 +11,7 @@
 * :func:`make_simulator` — a simulator by kind; ``"default"`` is the scene's
   default configuration, chosen by the chart (``models/defaults.json``,
   docs/hybrid.md "Defaults per scene");
-* :func:`rollout` — the one frame loop; :func:`reference` — full-resolution
+* :func:`rollout` — the one frame loop (:func:`step_realtime`, a host loop's tick, runs its frames through it); :func:`reference` — full-resolution
   MPM, the reference of every error.
 
 >>> from hybridmpm.sim import HybridSimulator, rollout
@@ -27,7 +27,7 @@ from hybridmpm.sim.config import SOLVERS, default_settings, load_tuned, make_sim
 from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
-from hybridmpm.sim.rollout import Rollout, reference, rollout
+from hybridmpm.sim.rollout import RealtimeTick, Rollout, reference, rollout, step_realtime
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
 from hybridmpm.sim.switching import DWELL, AuditRule, ErrorRule, PaperRule, SwitchingRule, make_rule
 
@@ -50,6 +50,7 @@ __all__ = [
     "NeuralSimulator",
     "PaperRule",
     "Proposal",
+    "RealtimeTick",
     "Rollout",
     "SimStats",
     "Simulator",
@@ -61,6 +62,7 @@ __all__ = [
     "make_simulator",
     "reference",
     "rollout",
+    "step_realtime",
     "tuned_settings",
     "warmup_frames",
 ]

@@ -13,13 +13,15 @@ substeps, events, and why the rollout broke off, if it did.
 from __future__ import annotations
 
 import math
+import numbers
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from hybridmpm.errors import SimulationError
+from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.limits import check_allocation
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import full_resolution
@@ -213,4 +215,83 @@ def reference(scene: Scene, frames: int, *, stride: int = 1, threads: int = 0, p
     return ro
 
 
-__all__ = ["Rollout", "StopRule", "reference", "rollout"]
+#: The longest wall interval one :func:`step_realtime` call takes [s]: a host that paused longer (a hidden browser
+#: tab, a debugger) gets one ordinary tick, not a burst.
+MAX_WALL_DT = 1.0
+
+
+@dataclass(frozen=True)
+class RealtimeTick:
+    """What one :func:`step_realtime` call did. ``frames`` advanced (whole coarse steps of ``r_t``);
+    ``simulated_s`` the simulated time they cover [s]; ``wall_s`` the wall time spent stepping [s]; ``dropped_s``
+    simulated time the budget could not cover and that is not owed to the next tick [s]; ``owed_s`` the
+    remainder under one coarse step carried to the next tick [s]; ``realtime_factor`` ``simulated_s / wall_dt``
+    (1.0: real time; NaN for ``wall_dt`` 0); ``rollout`` the frames themselves (its ``failure`` says why a
+    tick broke off: as :func:`rollout`)."""
+
+    frames: int
+    simulated_s: float
+    wall_s: float
+    dropped_s: float
+    owed_s: float
+    realtime_factor: float
+    rollout: Rollout
+
+
+def step_realtime(sim: Simulator, wall_dt: float, *, owed_s: float = 0.0, budget_s: float | None = None) -> RealtimeTick:
+    """Advance ``sim`` by the frames ``wall_dt`` seconds of wall time cover, within a budget: the host loop's
+    tick (a game's update, the page's play loop) for an embedded simulator. Like :func:`rollout` it is a
+    function of the simulator, not a method: the simulators stay below the loop that drives them.
+
+    ``owed_s`` is the last tick's ``owed_s`` (the simulated time under one coarse step it could not take; 0 at
+    the start): the host passes it back, so the call holds no state. With ``wall_dt`` added, this call advances
+    the whole coarse steps (``r_t · dt_frame`` each) that time holds, through :func:`rollout` (the one frame loop),
+    stopping once it has spent ``budget_s`` of wall time (default ``wall_dt``: never more stepping than the
+    tick covers; at least one step is taken when one is due). What the budget did not cover is dropped, not
+    owed: a frame that ran late is not made up later, so a slow machine runs in slow motion instead of falling
+    ever further behind (the "spiral of death" of fixed-step game loops). ``wall_dt`` [s] is finite in
+    [0, :data:`MAX_WALL_DT`] (longer is taken as that); ``owed_s`` [s] finite in [0, one coarse step];
+    ``budget_s`` [s] finite > 0. Raises :class:`InvalidInputError` naming ``wall_dt``, ``owed_s`` or
+    ``budget_s``."""
+
+    def seconds(name: str, v: Any, positive: bool) -> float:
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v < 0 or (positive and v == 0):
+            raise InvalidInputError(f"{name}: must be a finite number of seconds {'>' if positive else '>='} 0, got {v!r}", name)
+        return float(v)
+
+    wall_dt = min(seconds("wall_dt", wall_dt, False), MAX_WALL_DT)
+    budget = wall_dt if budget_s is None else seconds("budget_s", budget_s, True)
+    step_s = sim.dt_frame * sim.r_t
+    owed = seconds("owed_s", owed_s, False)
+    if owed > step_s * (1 + 1e-9):
+        raise InvalidInputError(f"owed_s: at most one coarse step ({step_s} s), the last tick's owed_s; got {owed_s!r}", "owed_s")
+    owed += wall_dt
+    due = math.floor(owed / step_s + 1e-9)  # 0.0075 s of 2.5 ms frames is 3 of them, not 2.9999999999999996
+    t0 = time.perf_counter()
+
+    def deadline(frame: Frame, _sim: Any) -> str | None:
+        return "budget" if time.perf_counter() - t0 >= budget else None
+
+    ro = rollout(sim, due * sim.r_t, stop=deadline)
+    wall = time.perf_counter() - t0
+    done = ro.frames_done // sim.r_t
+    remainder = max(0.0, owed - due * step_s)  # under one step: owed to the next tick
+    if done == due:
+        dropped = 0.0
+    elif ro.failure == "budget":
+        dropped = (due - done) * step_s  # not owed: the next tick starts afresh
+    else:  # the simulator could not step (its rollout's failure says why): nothing is owed
+        dropped, remainder = (due - done) * step_s + remainder, 0.0
+    simulated = ro.frames_done * sim.dt_frame
+    return RealtimeTick(
+        frames=ro.frames_done,
+        simulated_s=simulated,
+        wall_s=wall,
+        dropped_s=dropped,
+        owed_s=remainder,
+        realtime_factor=simulated / wall_dt if wall_dt > 0 else math.nan,
+        rollout=ro,
+    )
+
+
+__all__ = ["MAX_WALL_DT", "RealtimeTick", "Rollout", "StopRule", "reference", "rollout", "step_realtime"]
