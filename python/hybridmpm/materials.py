@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, ClassVar
 
@@ -53,17 +54,14 @@ def _number(field: str, v: Any) -> float:
     return float(v)
 
 
-def _check(field: str, v: Any, ok: Any, want: str) -> None:
+def _check(field: str, v: Any, ok: Callable[[Any], bool], want: str) -> None:
     """Refuse ``v`` (the user's value of ``field``) unless ``ok`` holds of it and of its float32 rounding, the
-    precision the solver computes in (``ok`` a predicate; a bool is taken as is): ``nu = 0.49999999`` is 0.5 there."""
-    if callable(ok):
-        f32 = float(np.float32(v)) if isinstance(v, float) else v
-        if not ok(v):
-            raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
-        if not ok(f32):
-            raise InvalidInputError(f"{field}: must be {want} in float32, the solver's precision, where {v!r} is {f32!r}", field)
-    elif not ok:
+    precision the solver computes in: ``nu = 0.49999999`` is 0.5 there."""
+    if not ok(v):
         raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
+    f32 = float(np.float32(v)) if isinstance(v, float) else v
+    if not ok(f32):
+        raise InvalidInputError(f"{field}: must be {want} in float32, the solver's precision, where {v!r} is {f32!r}", field)
 
 
 @dataclass(frozen=True)

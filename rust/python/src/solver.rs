@@ -613,9 +613,7 @@ impl MpmSolver {
         index: &Bound<'_, PyAny>,
         state: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
-        let v = f32_vec(state, "state", &[Some(crate::bodies::STATE_LEN)])?;
-        let st = crate::bodies::unflat(&v);
+        let (i, st) = body_state_args(index, state)?;
         self.with(py, |inner| dispatch!(inner, s => s.set_body_state(i, st)))
             .map_err(|e| to_py(py, e))
     }
@@ -630,9 +628,7 @@ impl MpmSolver {
         index: &Bound<'_, PyAny>,
         state: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
-        let v = f32_vec(state, "state", &[Some(crate::bodies::STATE_LEN)])?;
-        let st = crate::bodies::unflat(&v);
+        let (i, st) = body_state_args(index, state)?;
         self.with(
             py,
             |inner| dispatch!(inner, s => s.check_body_state(i, &st)),
@@ -678,4 +674,15 @@ impl MpmSolver {
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<MpmSolver>()?;
     Ok(())
+}
+
+/// A body's index and exact state as `set_body_state` and
+/// `check_body_state` take them (an integer >= 0; float32 [13]).
+fn body_state_args(
+    index: &Bound<'_, PyAny>,
+    state: &Bound<'_, PyAny>,
+) -> PyResult<(usize, core::BodyState)> {
+    let i = extract_count(index, "index", "a body index (an integer >= 0)")?;
+    let v = f32_vec(state, "state", &[Some(crate::bodies::STATE_LEN)])?;
+    Ok((i, crate::bodies::unflat(&v)))
 }
