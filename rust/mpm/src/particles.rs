@@ -39,6 +39,16 @@ impl Material {
             .and_then(|c| Material::ALL.get(c).copied())
     }
 
+    /// Whether it is one of the solids (elastic, snow, viscoplastic): a body
+    /// whose `F` keeps its shape (sand's `F` is only the elastic part of a
+    /// granular flow; water has none).
+    pub fn is_solid(self) -> bool {
+        matches!(
+            self,
+            Material::Elastic | Material::Snow | Material::Viscoplastic
+        )
+    }
+
     /// The material's name in parameter dicts and scene files.
     pub fn name(self) -> &'static str {
         match self {

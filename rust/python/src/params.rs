@@ -210,6 +210,16 @@ fn default_collider(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(default_params, m)?)?;
     m.add_function(wrap_pyfunction!(default_collider, m)?)?;
+    // how deep [cells] a particle, and a solid's particle, may end a substep
+    // inside an obstacle that projects particles before it is put back
+    m.add(
+        "PROJECT_DEPTH_CELLS",
+        hybridmpm_mpm::collider::PROJECT_DEPTH_CELLS,
+    )?;
+    m.add(
+        "SOLID_PROJECT_DEPTH_CELLS",
+        hybridmpm_mpm::collider::SOLID_PROJECT_DEPTH_CELLS,
+    )?;
     Ok(())
 }
 

@@ -32,7 +32,7 @@ mod validate;
 
 pub use condition::apply_condition;
 pub use motion::apply_condition_moving;
-pub use projection::PROJECT_DEPTH_CELLS;
+pub use projection::{PROJECT_DEPTH_CELLS, SOLID_PROJECT_DEPTH_CELLS};
 pub use reach::{Reach, ShallowCells};
 pub use sampled::MAX_SAMPLED_NODES;
 pub use shape::Shape;

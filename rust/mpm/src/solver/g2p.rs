@@ -13,7 +13,9 @@
 //! it goes back onto its surface and loses its inward
 //! velocity relative to it ([`crate::Collider::project_particle`]: the grid
 //! condition holds nodes, not particles, which end up to about a cell inside
-//! without it); then the material update with the new velocity gradient `C_p`
+//! without it; a solid's particle goes back only from
+//! [`crate::collider::SOLID_PROJECT_DEPTH_CELLS`], above which it only loses
+//! its inward velocity); then the material update with the new velocity gradient `C_p`
 //! ([`crate::material`]: `J` for water, `F` and the Drucker–Prager return
 //! mapping for sand, `F` (and snow's `J_P`) for the solids; each particle
 //! with the constants of its parameter set) and the new Kirchhoff stress for
@@ -39,7 +41,7 @@ use super::block_sort::BlockMarks;
 use super::grid::{EMPTY, unflatten};
 use super::team::RawSlice;
 use super::{Health, Solver};
-use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach};
+use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, SOLID_PROJECT_DEPTH_CELLS};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
 use crate::material::sand::{ParticleSink, SandBatch, SandHealth, SandModel};
@@ -131,6 +133,7 @@ where
         // velocity in this frame (None: at rest), at their poses at this
         // substep's end
         let depth = PROJECT_DEPTH_CELLS * dx;
+        let solid_depth = SOLID_PROJECT_DEPTH_CELLS * dx;
         let projecting: Vec<_> = self
             .colliders
             .iter()
@@ -176,7 +179,14 @@ where
             for d in 0..D {
                 p.x[d] = p.x[d].max(lo).min(hi);
             }
-            if !projecting.is_empty() && project(&projecting, &mut p.x, &mut p.v) {
+            if !projecting.is_empty()
+                && project(
+                    &projecting,
+                    &mut p.x,
+                    &mut p.v,
+                    p.material.is_solid().then_some(solid_depth),
+                )
+            {
                 for d in 0..D {
                     p.x[d] = p.x[d].max(lo).min(hi);
                 }
@@ -321,7 +331,8 @@ where
 
 /// The particle projection of each collider of `projecting` (with its
 /// reach and velocity, [`crate::Collider::project_particle`]) in turn, at
-/// `x` with velocity `v`; returns whether any moved the particle. Kept out of
+/// `x` with velocity `v` (`keep_above`: a solid's depth, as there); returns
+/// whether any changed the particle. Kept out of
 /// the particle loop (one call per particle where a collider projects), whose
 /// code it would otherwise crowd for every scene.
 #[inline(never)]
@@ -329,10 +340,11 @@ fn project<const D: usize>(
     projecting: &[(&Collider<D>, Reach<'_, D>, Option<&SVector<f32, D>>)],
     x: &mut SVector<f32, D>,
     v: &mut SVector<f32, D>,
+    keep_above: Option<f32>,
 ) -> bool {
     let mut moved = false;
     for (col, reach, u) in projecting {
-        moved |= col.project_particle(reach, x, v, *u);
+        moved |= col.project_particle(reach, x, v, *u, keep_above);
     }
     moved
 }

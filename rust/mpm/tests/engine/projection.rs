@@ -3,9 +3,11 @@
 //! collider ends on its surface with no
 //! velocity into it (relative to the collider's), a particle far from every
 //! collider is untouched bit for bit, and a collider with `project: false`
-//! leaves the particle where the grid condition put it (inside).
+//! leaves the particle where the grid condition put it (inside). A solid's
+//! particle keeps its place down to `SOLID_PROJECT_DEPTH_CELLS`, losing only
+//! its inward velocity.
 
-use hybridmpm_mpm::collider::PROJECT_DEPTH_CELLS;
+use hybridmpm_mpm::collider::{PROJECT_DEPTH_CELLS, SOLID_PROJECT_DEPTH_CELLS};
 use hybridmpm_mpm::{BoundaryCondition, Collider, Material, Particle, Shape, Solver, SolverParams};
 use nalgebra::{SMatrix, SVector};
 
@@ -40,8 +42,12 @@ fn sphere() -> Shape<2> {
 }
 
 fn water(x: V2, v: V2, p: &SolverParams<2>) -> Particle<2> {
+    of(Material::Water, x, v, p)
+}
+
+fn of(material: Material, x: V2, v: V2, p: &SolverParams<2>) -> Particle<2> {
     let vol = (0.5 * p.dx()).powi(2);
-    let mut q = Particle::new(x, Material::Water, p.water.density * vol, vol);
+    let mut q = Particle::new(x, material, p.water.density * vol, vol);
     q.v = v;
     q
 }
@@ -57,9 +63,21 @@ fn inside(shape: &Shape<2>, depth: f32) -> V2 {
     V2::new(c[0] + 0.02, y)
 }
 
-/// Steps one substep with a particle `0.6` cells inside `shape` moving into
-/// it and one far away; returns both.
+/// Steps one substep with a water particle `0.6` cells inside `shape`
+/// moving into it and one far away; returns both.
 fn step_one(
+    shape: &Shape<2>,
+    condition: BoundaryCondition,
+    project: bool,
+    moving: Option<V2>,
+) -> (Particle<2>, Particle<2>, Collider<2>) {
+    step_one_of(Material::Water, 0.6, shape, condition, project, moving)
+}
+
+/// [`step_one`] with a particle of `material` `cells` cells inside.
+fn step_one_of(
+    material: Material,
+    cells: f32,
     shape: &Shape<2>,
     condition: BoundaryCondition,
     project: bool,
@@ -73,8 +91,8 @@ fn step_one(
         project,
     };
     let mut s = Solver::new(p.clone(), vec![col]).unwrap();
-    let x = inside(shape, 0.6 * p.dx());
-    let near = water(x, V2::new(0.4, -1.2), &p);
+    let x = inside(shape, cells * p.dx());
+    let near = of(material, x, V2::new(0.4, -1.2), &p);
     let far = water(V2::new(0.15, 0.85), V2::new(0.3, -0.7), &p);
     s.set_particles(vec![near, far]).unwrap();
     if let Some(u) = moving {
@@ -192,4 +210,62 @@ fn water_on_a_sphere_stays_out_of_it() {
     );
     assert!(off > 0.4, "{off} cells inside without it");
     assert_eq!(bits_on, deepest(true, 3).1);
+}
+
+/// An elastic particle 0.4 cells inside keeps its place (its `F` would not
+/// see the jump) and loses its inward velocity; one 0.8 cells inside, past
+/// `SOLID_PROJECT_DEPTH_CELLS`, goes onto the surface as water's does.
+#[test]
+fn a_solid_particle_is_put_back_only_from_half_a_cell() {
+    let dx = params().dx();
+    assert!(SOLID_PROJECT_DEPTH_CELLS > PROJECT_DEPTH_CELLS);
+    for shape in [rotated_box(), sphere()] {
+        for material in [Material::Elastic, Material::Snow, Material::Viscoplastic] {
+            let what = format!("{shape:?} {material:?}");
+            let (kept, _, col) = step_one_of(
+                material,
+                0.4,
+                &shape,
+                BoundaryCondition::Separate,
+                true,
+                None,
+            );
+            let phi = col.shape.sdf(&kept.x);
+            assert!(
+                phi < -PROJECT_DEPTH_CELLS * dx,
+                "{what}: {} cells inside",
+                -phi / dx
+            );
+            assert!(
+                phi >= -SOLID_PROJECT_DEPTH_CELLS * dx,
+                "{what}: {} cells inside",
+                -phi / dx
+            );
+            assert!(
+                kept.v.dot(&col.shape.normal(&kept.x)) >= -1e-6,
+                "{what}: v {}",
+                kept.v
+            );
+            let (back, _, _) = step_one_of(
+                material,
+                0.8,
+                &shape,
+                BoundaryCondition::Separate,
+                true,
+                None,
+            );
+            let phi = col.shape.sdf(&back.x);
+            assert!(phi.abs() <= 1e-3 * dx, "{what}: {phi} m from the surface");
+            // water as deep as the kept solid goes onto the surface
+            let (w, _, _) = step_one_of(
+                Material::Water,
+                0.4,
+                &shape,
+                BoundaryCondition::Separate,
+                true,
+                None,
+            );
+            assert!(col.shape.sdf(&w.x).abs() <= 1e-3 * dx, "{what}: water");
+        }
+    }
 }
