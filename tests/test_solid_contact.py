@@ -124,3 +124,21 @@ def test_a_jelly_pressed_against_an_obstacle_deforms_as_against_a_wall():
     first = wall[0, :, 0] < wall[0, :, 0].min() + 0.5 * dx
     assert wall[100:, first, 0].std(axis=1).max() < 0.3 * dx
     assert wall[100:, :, 0].min() > -0.25 * dx
+
+
+def test_a_stiff_jelly_dropped_onto_a_crate_keeps_its_shape_and_stays_on_it():
+    """A rigid body holds a solid through the grid (no particle is moved): the jelly lands on a heavy crate resting
+    on the floor, bounces, and keeps its shape within 1 % of its side, none of its particles inside the crate."""
+    side, dx = 0.12, 1.0 / 128
+    top = 3 * dx + 0.102  # the crate's upper face [m]
+    scene = _jelly_block([0.44, 0.30], side, bodies=[{"shape": "box", "center": [0.5, top - 0.05], "half_extents": [0.15, 0.05], "density": 3000.0}])
+    traj = hm.rollout(hm.make_simulator(scene, "mpm"), 400)
+    p = traj.positions[:, traj.material == 2].astype(np.float64)
+    lowest = p[:, :, 1].min(axis=1)
+    assert lowest.min() < top + 2 * dx  # it reached the crate
+    assert lowest.min() > top - 0.5 * dx, (top - lowest.min()) / dx
+    spacing = float(cKDTree(p[0]).query(p[0], k=2)[0][:, 1].max())
+    for frame in range(0, 400, 20):
+        off = _off_rigid(p[0], p[frame]) / side
+        assert np.sqrt(np.mean(off**2)) < 0.01, (frame, off)
+        assert _nearest_gap(p[frame]) < 1.1 * spacing
