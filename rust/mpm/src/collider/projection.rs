@@ -96,3 +96,6 @@ pub const PROJECT_DEPTH_CELLS: f32 = 0.25;
 /// calm, 3 s after), 3.2 % from half a cell, 1.8 % when never put back;
 /// the deepest particle reaches 0.25, 0.50 and 0.85 cells inside.
 pub const SOLID_PROJECT_DEPTH_CELLS: f32 = 0.5;
+
+// a solid's particle is put back from deeper than water's, never shallower
+const _: () = assert!(SOLID_PROJECT_DEPTH_CELLS > PROJECT_DEPTH_CELLS);

@@ -218,7 +218,6 @@ fn water_on_a_sphere_stays_out_of_it() {
 #[test]
 fn a_solid_particle_is_put_back_only_from_half_a_cell() {
     let dx = params().dx();
-    assert!(SOLID_PROJECT_DEPTH_CELLS > PROJECT_DEPTH_CELLS);
     for shape in [rotated_box(), sphere()] {
         for material in [Material::Elastic, Material::Snow, Material::Viscoplastic] {
             let what = format!("{shape:?} {material:?}");
