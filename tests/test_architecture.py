@@ -11,6 +11,8 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -775,3 +777,58 @@ def test_each_rule_of_a_session_is_written_once():
     actor = ast.parse((SERVICE / "ray_backend" / "actor.py").read_text())
     (run_control,) = [n for n in ast.walk(actor) if isinstance(n, ast.FunctionDef) and n.name == "run_control"]
     assert not [c for c in ast.walk(run_control) if isinstance(c, ast.Call) and ast.unparse(c.func).endswith(".save")]
+
+
+# ------------------------------------------------------------------ the page
+STATIC = SERVICE / "static"
+
+
+def test_no_javascript_file_of_the_page_is_over_700_lines():
+    # the page's ES modules keep the cap of the Python and Rust sources: a concept too big for a file becomes modules
+    scripts = list(STATIC.rglob("*.js"))
+    assert len(scripts) > 5, "the page's scripts were not found"
+    big = {str(p.relative_to(ROOT)): n for p in scripts if (n := len(p.read_text().splitlines())) > 700}
+    assert not big, big
+
+
+def test_the_page_takes_the_particle_type_codes_from_the_conventions():
+    # static/*.js write no GNS particle-type code, neither as a constant (WATER = 5) nor compared by hand (types[i] === 3,
+    # GLSL's t == 5.0): they import the names from /codes.js, which the service makes from hybridmpm.conventions
+    from hybridmpm import conventions
+
+    codes = {
+        "WALL": conventions.GNS_KINEMATIC,
+        "WATER": conventions.GNS_WATER,
+        "SAND": conventions.GNS_SAND,
+        "MUD": conventions.GNS_GOOP,
+        "JELLY": conventions.GNS_ELASTIC,
+        "SNOW": conventions.GNS_SNOW,
+    }
+    numbers = "|".join(str(c) for c in sorted(set(codes.values())))
+    by_hand = re.compile(
+        rf"\b(WATER|SAND|WALL|KINEMATIC|MUD|GOOP|JELLY|ELASTIC|SNOW)\s*[:=]\s*\d|(?<![.\w])(t|v_type|types\[\w+\]|particle_type\[\w+\])\s*[!=]==?\s*({numbers})(\.0)?\b"
+    )
+    offenders, imported = [], {}
+    for p in sorted(STATIC.rglob("*.js")):
+        for i, line in enumerate(p.read_text().splitlines(), 1):
+            if by_hand.search(line.split("//", 1)[0]):
+                offenders.append(f"{p.relative_to(ROOT)}:{i}: {line.strip()}")
+            if m := re.match(r'import \{([^}]*)\} from "/codes\.js";', line):
+                imported[p.name] = {n.strip() for n in m.group(1).split(",")}
+    assert not offenders, "\n".join(offenders)
+    assert {"render.js", "shaders.js", "cells.js", "colors.js", "app.js"} <= set(imported), imported
+
+    pytest.importorskip("fastapi")
+    pytest.importorskip("httpx")
+    from fastapi.testclient import TestClient
+
+    from hybridmpm.service import ServiceConfig, create_app
+
+    with TestClient(create_app(ServiceConfig())) as client:
+        r = client.get("/codes.js")
+        assert client.post("/codes.js").status_code == 405
+    # a module script needs a JavaScript type
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript"), (r.status_code, r.headers)
+    served = {name: int(code) for name, code in re.findall(r"^export const (\w+) = (\d+);$", r.text, re.M)}
+    assert served == codes, r.text
+    assert all(names <= set(served) for names in imported.values()), imported

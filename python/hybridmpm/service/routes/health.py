@@ -1,4 +1,4 @@
-"""The page at ``/``, ``/healthz`` and the scene list."""
+"""The page at ``/`` (and its particle-type codes, ``/codes.js``), ``/healthz`` and the scene list."""
 
 from __future__ import annotations
 
@@ -6,10 +6,11 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, Request
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 
 from hybridmpm import __version__
 from hybridmpm.control.controller import scene_methods
+from hybridmpm.conventions import GNS_ELASTIC, GNS_GOOP, GNS_KINEMATIC, GNS_SAND, GNS_SNOW, GNS_WATER
 from hybridmpm.models import shipped_default, shipped_models
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.deps import ConfigDep, ManagerDep
@@ -17,6 +18,13 @@ from hybridmpm.service.schemas import Health, SceneInfo
 
 STATIC = Path(__file__).parent.parent / "static"
 CSP = "default-src 'self'; img-src 'self' data:; connect-src 'self'; style-src 'self'; script-src 'self'; object-src 'none'; base-uri 'none'"
+
+#: The page's names of the GNS particle-type codes: ``static/*.js`` import them from ``/codes.js``, made here from
+#: :mod:`hybridmpm.conventions` (the page writes no number of its own)
+PAGE_CODES = {"WALL": GNS_KINEMATIC, "WATER": GNS_WATER, "SAND": GNS_SAND, "MUD": GNS_GOOP, "JELLY": GNS_ELASTIC, "SNOW": GNS_SNOW}
+CODES_JS = "// the GNS particle-type codes of hybridmpm.conventions, as the page names them\n" + "".join(
+    f"export const {name} = {code};\n" for name, code in PAGE_CODES.items()
+)
 
 router = APIRouter()
 
@@ -50,6 +58,11 @@ def scene_list() -> list[dict[str, Any]]:
 @router.get("/", include_in_schema=False)
 async def page() -> FileResponse:
     return FileResponse(STATIC / "index.html", headers={"Content-Security-Policy": CSP, "Cache-Control": "no-cache"})
+
+
+@router.get("/codes.js", include_in_schema=False)
+async def codes() -> Response:
+    return Response(CODES_JS, media_type="text/javascript", headers={"Cache-Control": "no-cache"})
 
 
 @router.get("/healthz", response_model=Health)

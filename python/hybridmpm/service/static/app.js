@@ -1,18 +1,21 @@
-// hybridmpm page: live particles over a binary WebSocket drawn with WebGL2 (render.js; Canvas2D where
+// hybridmpm page: live particles over a binary WebSocket (frames.js) drawn with WebGL2 (render.js; canvas2d.js where
 // WebGL2 is missing), sketches with mouse or pen, downloads. No build step, no CDN. Test hook: window.__hmpm.
 
-import { Canvas2DRenderer, GLRenderer, pixelRay, project, rayObstacle, rayPlane } from "./render.js";
-import { BodyLayer, readBodies } from "./bodies.js";
+import { BodyLayer } from "./bodies.js";
+import { Canvas2DRenderer } from "./canvas2d.js";
+import { FrameStream, readFrame } from "./frames.js";
 import { encodeGif } from "./gif.js";
+import { ObstacleGrab } from "./grab.js";
 import { Palette } from "./palette.js";
+import { pixelRay, project, rayPlane } from "./picking.js";
 import { LEVELS, QualityController, SOFTWARE_START, levelForScale } from "./quality.js";
+import { GLRenderer } from "./render.js";
+import { simplify, sketchBody } from "./sketch.js";
+import { WALL } from "/codes.js"; // the particle-type codes, served from hybridmpm.conventions
 
-const HEADER_BYTES = 32;
 const MAX_POINTS = 512;
 const HISTORY = 120;                 // frames kept for the GIF
 const GIF_SIZE = 320;                // pixels
-// a 3D arrow's depth travels as its width (control/sketch.py: wider = nearer the viewer, +z)
-const WIDTH_MIN = 0.006, WIDTH_MAX = 0.024, WIDTH_FLAT = 0.015, DEPTH_FLAT = 0.005;
 const INK = "#d1245a", PLAN = "#0b7a4b";
 const DEFAULT_3D = "paddle3d";         // the page's scene where WebGL2 draws 3D (the dam break's 23,520 particles, a paddle to drag)
 
@@ -70,7 +73,7 @@ const is3D = () => !!session && session.dim === 3 && renderer.kind === "webgl2";
 // ---------------------------------------------------------------- coordinates (the one place)
 // CSS pixels of the sketch canvas <-> the domain. 2D (and the Canvas2D view): the domain's x–y fills the
 // canvas, the y axis flipped exactly here (the canvas grows downwards, the domain upwards). 3D: the
-// camera's rays (render.js pixelRay) meet the sketch plane.
+// camera's rays (picking.js pixelRay) meet the sketch plane.
 function bounds() { return session ? session.bounds : [[0, 0], [1, 1]]; }
 function toDomain(clientX, clientY) {
   const r = inkCanvas.getBoundingClientRect(), [lo, hi] = bounds();
@@ -92,7 +95,7 @@ function fluidCentroid() {
   const { n, dim, pos } = latest, types = session.particle_type, c = [0, 0, 0];
   let k = 0;
   for (let i = 0; i < n; i++) {
-    if (types[i] === 3) continue;
+    if (types[i] === WALL) continue;
     for (let d = 0; d < dim; d++) c[d] += pos[i * dim + d];
     k++;
   }
@@ -159,8 +162,8 @@ function syncSolvers() {
 function leaveSession() {
   closeStream();
   if (session && session.owned) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); } // a joined one is another page's
-  session = null; latest = null; hook.session = null; $("apply").disabled = true; resumeAfter = null;
-  if (grab) finishGrab();
+  session = null; latest = null; hook.session = null; $("apply").disabled = true;
+  dragTool.leave();
   history.length = 0; stroke = []; setApplied(null);
 }
 async function newSession() {
@@ -199,30 +202,11 @@ function useSession() {
 }
 
 // ---------------------------------------------------------------- stream
-// The WebSocket lives in a worker (stream.js) that keeps only the latest frame and hands it over when the page
-// asks. Read here, frames the page was too busy to take queued in the browser: a page drawing 2 frames/s
-// showed frames hundreds behind the server's (a paused session seemed to jump when it moved again).
-class FrameStream {
-  constructor(url) {
-    this.readyState = 0; this.onopen = null; this.onclose = null;
-    this.worker = new Worker("/static/stream.js");
-    this.worker.onmessage = (ev) => {
-      const m = ev.data;
-      if (m.type === "frame") { this.worker.postMessage({ type: "next" }); onFrame(m.data); }
-      else if (m.type === "event") onEvent(JSON.parse(m.data));
-      else if (m.type === "open") { this.readyState = 1; this.worker.postMessage({ type: "next" }); if (this.onopen) this.onopen(); }
-      else if (m.type === "close") { this.readyState = 3; if (this.onclose) this.onclose(m); }
-    };
-    this.worker.onerror = (e) => hook.errors.push(`stream worker: ${e.message}`);
-    this.worker.postMessage({ type: "open", url });
-  }
-  send(text) { this.worker.postMessage({ type: "send", data: text }); }
-  close() { this.readyState = 3; this.worker.onmessage = null; this.worker.postMessage({ type: "close" }); } // nothing more from it
-}
+// The WebSocket lives in a worker (frames.js FrameStream): frames and events come to onFrame and onEvent.
 function closeStream() { if (ws) { ws.onclose = null; ws.close(); ws = null; } }
 function openStream() {
   const proto = location.protocol === "https:" ? "wss" : "ws";
-  ws = new FrameStream(`${proto}://${location.host}${session.stream}`);
+  ws = new FrameStream(`${proto}://${location.host}${session.stream}`, { frame: onFrame, event: onEvent, error: (text) => hook.errors.push(text) });
   ws.onopen = () => { setStatus("streaming"); if (playing) ws.send(JSON.stringify({ type: "play" })); };
   ws.onclose = (ev) => setStatus(ev.code === 4000 ? "session expired: start a new one" : `stream closed (${ev.code} ${ev.reason})`);
 }
@@ -264,7 +248,7 @@ function onEvent(msg) {
     hook.obstacleEvents.push(msg); if (hook.obstacleEvents.length > 200) hook.obstacleEvents.shift();
     const ob = session && session.obstacles && session.obstacles[msg.index];
     // drawn where the server moved it (every viewer), except the one this page is dragging: there the pointer leads
-    if (ob && !(grab && grab.index === msg.index)) { ob.center = msg.center; dirty = true; }
+    if (ob && !dragTool.holds(msg.index)) { ob.center = msg.center; dirty = true; }
   } else if (msg.type === "bodies") { // added or removed: the shapes as given now, their poses at this frame once read
     if (session) { session.bodies = msg.bodies; dirty = true; refreshBodies(); }
   } else if (msg.type === "error") setStatus(msg.message);
@@ -277,11 +261,10 @@ async function refreshBodies() {
   } catch { /* the session is gone: nothing to redraw */ }
 }
 function onFrame(buf) {
-  const dv = new DataView(buf);
-  const dim = dv.getUint8(6), frame = dv.getUint32(8, true), n = dv.getUint32(12, true);
-  const time = dv.getFloat64(16, true), solver = dv.getUint8(24), controlled = dv.getUint8(25), cframe = dv.getUint32(28, true);
-  if (buf.byteLength < HEADER_BYTES + n * dim * 4) return;
-  latest = { frame, n, dim, solver, controlled, cframe, time, pos: new Float32Array(buf, HEADER_BYTES, n * dim), bodies: readBodies(buf, n, dim) };
+  const f = readFrame(buf);
+  if (!f) return;
+  latest = f;
+  const { frame, solver, controlled, cframe } = f;
   history.push(latest); if (history.length > HISTORY) history.shift();
   hook.framesReceived += 1; hook.lastFrame = frame;
   if (controlled) hook.lastControlFrame = cframe;
@@ -290,11 +273,7 @@ function onFrame(buf) {
   lastArrival = now;
   recentSolvers.push(solver); if (recentSolvers.length > 200) recentSolvers.shift();
   fresh = dirty = true;
-  // a drag on a paused session: it played so the fluid answers the moves; paused again once the last move is stepped
-  if (resumeAfter !== null && !grab && !moveInFlight && frame > resumeAfter) {
-    resumeAfter = null;
-    if (!playing && ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "pause" }));
-  }
+  dragTool.frame(frame); // a drag on a paused session played it: paused again once the last move is stepped
 }
 
 // ---------------------------------------------------------------- drawing
@@ -423,110 +402,11 @@ function addSamples(ev) {
   const evs = typeof ev.getCoalescedEvents === "function" ? ev.getCoalescedEvents() : []; // secure contexts only
   for (const e of evs.length ? evs : [ev]) { const p = toWorld(e.clientX, e.clientY); if (p) stroke.push(p); }
 }
-// ---------------------------------------------------------------- the drag tool: move an obstacle through the fluid
-// Pointer down on an obstacle (boxes and spheres, a few pixels of slack; 2D: inside its outline, 3D: the first one
-// the pointer's ray from the camera meets) grabs it. The pointer's moves move it in a plane: 2D the domain's x–y,
-// 3D the horizontal plane through the point grabbed (its y stays). They go to the server as
-// PUT /v1/sessions/{id}/obstacles/{i} with the new centre, at most one every MOVE_EVERY_MS and one at a time (the
-// latest position wins: each reaches the centre over the next coarse step); pointer up sends the last one and lets
-// go. The session plays while dragging (a paused one pauses again after).
-const MOVE_EVERY_MS = 50, GRAB_SLACK_PX = 6, OBSTACLE_SPEED_MAX = 50; // m/s, the solver's limit (mpm/motion.py)
-let grab = null;             // {index, axes, y, offset: centre − pointer, target, sent, timer}
-let moveInFlight = false;
-let resumeAfter = null;      // frame after which a session paused before the drag is paused again
-
-function obstacleAt(p) {
-  const obs = (session && session.obstacles) || [], r = inkCanvas.getBoundingClientRect(), [lo, hi] = bounds();
-  const slack = (GRAB_SLACK_PX * (hi[0] - lo[0])) / Math.max(1, r.width);
-  for (let i = obs.length - 1; i >= 0; i--) { // the one drawn last (on top) first
-    const ob = obs[i], dx = p[0] - ob.center[0], dy = p[1] - ob.center[1];
-    if (ob.shape === "sphere") { if (Math.hypot(dx, dy) <= ob.radius + slack) return i; continue; }
-    if (ob.shape !== "box") continue; // meshes are not draggable
-    let c = 1, s = 0;
-    if (ob.rotation) { c = ob.rotation[0][0]; s = ob.rotation[1][0]; } // columns: the box's axes
-    else { const a = ((ob.angle_deg || 0) * Math.PI) / 180; c = Math.cos(a); s = Math.sin(a); }
-    const u = c * dx + s * dy, v = -s * dx + c * dy, e = ob.half_extents; // Rᵀ (p − centre)
-    if (Math.abs(u) <= e[0] + slack && Math.abs(v) <= e[1] + slack) return i;
-  }
-  return -1;
-}
-// 3D: the obstacle the pointer's ray meets first, and where ({index, point}), or null
-function obstacleHit(clientX, clientY) {
-  const obs = (session && session.obstacles) || [], r = inkCanvas.getBoundingClientRect(), M = matrices();
-  const ray = pixelRay(M, clientX - r.left, clientY - r.top, r.width, r.height);
-  let best = null;
-  obs.forEach((ob, i) => {
-    if (ob.shape !== "box" && ob.shape !== "sphere") return; // meshes are not draggable
-    const far = Math.hypot(...[0, 1, 2].map((d) => ob.center[d] - M.eye[d]));
-    const slack = (2 * GRAB_SLACK_PX * far) / (M.proj[5] * Math.max(1, r.height)); // the pixels' size at its distance
-    const t = rayObstacle(ray, ob, slack);
-    if (t !== null && (!best || t < best.t)) best = { index: i, t, point: ray.origin.map((o, d) => o + t * ray.dir[d]) };
-  });
-  return best;
-}
-// Where the pointer is in the grab's plane: 2D the domain's x–y; 3D on the horizontal plane at height y (null where
-// its ray misses the plane: above the horizon)
-function grabPointer(ev, y) {
-  if (!is3D()) return toDomain(ev.clientX, ev.clientY);
-  const r = inkCanvas.getBoundingClientRect();
-  return rayPlane(pixelRay(matrices(), ev.clientX - r.left, ev.clientY - r.top, r.width, r.height), [0, y, 0], [0, 1, 0]);
-}
-function clampCenter(c, axes) { // the moved axes inside the walls: the server refuses a centre out of the domain
-  const [lo, hi] = bounds(), t = (session && session.wall_thickness) || 0;
-  return c.map((x, d) => (axes.includes(d) ? Math.max(lo[d] + t, Math.min(hi[d] - t, x)) : x));
-}
-async function sendMove() {
-  if (!grab || moveInFlight || !session) return;
-  if (!grab.target || grab.target === grab.sent) { if (grab.released) finishGrab(); return; }
-  if (latest && latest.frame <= grab.waitFrame) return; // at most one move per coarse step (the last one not stepped yet)
-  // one request moves it over one coarse step: a far pointer is followed in steps under the server's speed limit
-  const g = grab, index = g.index, sid = session.id, from = g.at, to = g.target;
-  const maxStep = 0.5 * OBSTACLE_SPEED_MAX * (session.r_t || 1) * (session.dt_frame || 0.0025);
-  const dist = Math.hypot(...to.map((x, d) => x - from[d])), f = dist > maxStep ? maxStep / dist : 1;
-  const center = f < 1 ? to.map((x, d) => from[d] + f * (x - from[d])) : to;
-  g.sent = f < 1 ? null : to; moveInFlight = true;
-  try {
-    const res = await api("PUT", `/v1/sessions/${sid}/obstacles/${index}`, { center, velocity: null });
-    hook.obstacleMoves.push(res);
-    g.at = center; g.waitFrame = res.frame;
-    if (resumeAfter !== null) resumeAfter = Math.max(resumeAfter, res.frame);
-  } catch (e) {
-    hook.obstacleMoves.push({ index, center, error: e.message });
-    setStatus(`obstacle move refused: ${e.message}`);
-    g.sent = g.target; // not again; the next pointer move tries from where the server has it
-    if (/^409/.test(e.message)) { g.released = true; g.target = null; } // a control runs, or the network alone steps
-  } finally { moveInFlight = false; }
-}
-function finishGrab() { clearInterval(grab.timer); grab = null; hook.grabbed = null; }
-function startGrab(ev, index, point) { // point: where it was grabbed (the pointer, in 2D; the ray's hit, in 3D)
-  const ob = session.obstacles[index], axes = is3D() ? [0, 2] : [0, 1];
-  inkCanvas.setPointerCapture(ev.pointerId);
-  grab = { index, axes, y: point[1], offset: axes.map((d) => ob.center[d] - point[d]), at: ob.center.slice(), target: null,
-    sent: null, waitFrame: -1, released: false, timer: setInterval(sendMove, MOVE_EVERY_MS / 5) };
-  hook.grabbed = index;
-  if (!playing && ws && ws.readyState === 1) { ws.send(JSON.stringify({ type: "play" })); resumeAfter = latest ? latest.frame : 0; }
-  setStatus(`dragging obstacle ${index}${playing ? "" : " (playing while you drag)"}`);
-}
-function moveGrab(ev) {
-  if (grab.released) return;
-  const now = performance.now(), p = grabPointer(ev, grab.y), ob = session.obstacles[grab.index];
-  if (!p) return; // the ray misses the drag plane: the obstacle stays where it was last drawn
-  const c = ob.center.slice();
-  grab.axes.forEach((d, k) => { c[d] = p[d] + grab.offset[k]; });
-  ob.center = clampCenter(c, grab.axes); dirty = true; // drawn under the pointer at once; the server follows
-  grab.pending = ob.center;
-  if (!grab.lastTake || now - grab.lastTake >= MOVE_EVERY_MS) { grab.target = ob.center; grab.lastTake = now; } // throttled, latest wins
-  else {
-    clearTimeout(grab.take);
-    grab.take = setTimeout(() => { if (grab && !grab.released) { grab.target = grab.pending; grab.lastTake = performance.now(); } }, MOVE_EVERY_MS);
-  }
-}
-function endGrab() {
-  clearTimeout(grab.take);
-  if (grab.pending) grab.target = grab.pending; // the drop point goes last
-  grab.released = true; // the timer sends what is left, then lets go
-  setStatus(`obstacle ${grab.index} let go${playing ? "" : "; paused after its last move"}`);
-}
+// ---------------------------------------------------------------- the drag tool: move an obstacle through the fluid (grab.js)
+const dragTool = new ObstacleGrab({
+  api, session: () => session, latest: () => latest, playing: () => playing, ws: () => ws, is3D, setStatus, hook,
+  canvas: inkCanvas, domain: toDomain, bounds, matrices, redraw: () => { dirty = true; },
+});
 
 async function refreshObstacles() {
   if (!session) return;
@@ -549,10 +429,7 @@ inkCanvas.addEventListener("pointerdown", (ev) => {
     return;
   }
   if (tool() === "drag" && session && (ev.button === 0 || !is3D())) { // 3D: the other buttons turn the camera (below)
-    if (ev.button !== 0 || grab) return;
-    const hit = is3D() ? obstacleHit(ev.clientX, ev.clientY) : { index: obstacleAt(toDomain(ev.clientX, ev.clientY)), point: toDomain(ev.clientX, ev.clientY) };
-    if (hit && hit.index >= 0) startGrab(ev, hit.index, hit.point);
-    else setStatus((session.obstacles || []).length ? "no obstacle here: press on a box or a ball to drag it" : "this scene has no obstacle to drag");
+    dragTool.press(ev);
     return;
   }
   if (is3D() && (ev.button === 1 || ev.button === 2 || (ev.button === 0 && tool() === "turn"))) {
@@ -573,7 +450,7 @@ inkCanvas.addEventListener("pointerdown", (ev) => {
   drawInk(true);
 });
 inkCanvas.addEventListener("pointermove", (ev) => {
-  if (grab) { moveGrab(ev); return; }
+  if (dragTool.active) { dragTool.move(ev); return; }
   if (palette.gesture) { palette.move(ev); return; }
   if (orbiting) {
     renderer.camera.orbit(ev.clientX - orbiting[0], ev.clientY - orbiting[1]);
@@ -582,7 +459,7 @@ inkCanvas.addEventListener("pointermove", (ev) => {
 });
 const endStroke = (ev) => {
   if (palette.gesture) { if (ev.type === "pointerup") palette.release(ev); else palette.gesture = null; return; }
-  if (grab) { if (!grab.released) { moveGrab(ev); endGrab(); } return; }
+  if (dragTool.active) { dragTool.release(ev); return; }
   if (orbiting) { orbiting = null; return; }
   if (!drawing) return;
   drawing = false; addSamples(ev); stroke = simplify(stroke, MAX_POINTS);
@@ -596,46 +473,12 @@ inkCanvas.addEventListener("wheel", (ev) => {
   renderer.camera.zoom(ev.deltaY); dirty = true;
 }, { passive: false });
 
-// Ramer–Douglas–Peucker (3D distances), then uniform thinning, to at most `max` points.
-function simplify(pts, max) {
-  if (pts.length <= 2) return pts;
-  const keep = new Uint8Array(pts.length); keep[0] = keep[pts.length - 1] = 1;
-  const eps = 1e-3, stack = [[0, pts.length - 1]];
-  while (stack.length) {
-    const [a, b] = stack.pop();
-    const A = pts[a], B = pts[b], d = [B[0] - A[0], B[1] - A[1], B[2] - A[2]], l2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] || 1e-24;
-    let best = -1, bi = -1;
-    for (let i = a + 1; i < b; i++) {
-      const q = [pts[i][0] - A[0], pts[i][1] - A[1], pts[i][2] - A[2]];
-      const t = (q[0] * d[0] + q[1] * d[1] + q[2] * d[2]) / l2;
-      const e = Math.hypot(q[0] - t * d[0], q[1] - t * d[1], q[2] - t * d[2]);
-      if (e > best) { best = e; bi = i; }
-    }
-    if (best > eps) { keep[bi] = 1; stack.push([a, bi], [bi, b]); }
-  }
-  let out = pts.filter((_, i) => keep[i]);
-  if (out.length > max) { const step = (out.length - 1) / (max - 1); out = Array.from({ length: max }, (_, i) => out[Math.round(i * step)]); }
-  return out;
-}
-
-// The sketch as the controller reads it: x–y points (the front view); in 3D an arrow's depth z as its
-// width, the stroke's depth range spanning WIDTH_MIN … WIDTH_MAX, wider = nearer (+z), constant when flat.
-function sketchBody(kind, pts) {
-  const clamp = (v) => Math.max(-0.99, Math.min(1.99, v));
-  const sketch = { kind, points: pts.map((p) => [clamp(p[0]), clamp(p[1])]) };
-  if (session.dim === 3 && kind === "arrow") {
-    const zs = pts.map((p) => p[2]), lo = Math.min(...zs), hi = Math.max(...zs);
-    sketch.width = zs.map((z) => (hi - lo < DEPTH_FLAT ? WIDTH_FLAT : WIDTH_MIN + ((z - lo) / (hi - lo)) * (WIDTH_MAX - WIDTH_MIN)));
-  }
-  return sketch;
-}
-
 async function applySketch() {
   if (!session || stroke.length < 2) { setStatus("draw an arrow or an oval first"); return; }
   const frames = Number($("frames").value);
   if (!Number.isInteger(frames) || frames < 1 || frames > 1000) { setStatus("frames: the control horizon must be an integer in [1, 1000]"); return; }
   const kind = tool() === "oval" ? "oval" : "arrow";
-  const body = { sketch: sketchBody(kind, stroke), method: $("method").value, frames };
+  const body = { sketch: sketchBody(kind, stroke, session.dim), method: $("method").value, frames };
   hook.lastSketch = body.sketch;
   const xy = body.sketch.points, span = Math.hypot(xy.at(-1)[0] - xy[0][0], xy.at(-1)[1] - xy[0][1]);
   const len3 = Math.hypot(...[0, 1, 2].map((d) => stroke.at(-1)[d] - stroke[0][d]));

@@ -1,4 +1,4 @@
-// The water of a 3D frame binned on the grid's cells (render.js draws what these return; no WebGL here).
+// The water of a 3D frame binned on the grid's cells (render.js and fluid.js draw what these return; no WebGL here).
 // A cell of the grid (dx = 1 / n_grid) holds 2³ particles at rest: the particle spacing is dx / 2.
 //  * surfaceIndices: the particles that can be seen: every particle but the water inside the body.
 //  * cellSplats: one splat per cell of c × c × c grid cells at the mean of its water particles (the
@@ -8,7 +8,8 @@
 // particles leave their lattice nearly every such cell has an empty neighbour, and nearly every particle was
 // drawn: 24,600 of 25,304 while the default scene plays.)
 
-const WATER = 5;
+import { WATER } from "/codes.js"; // the particle-type codes, served from hybridmpm.conventions
+
 export const PER_CELL = 8; // particles in a grid cell at rest
 
 // Scratch space for a lattice of cells of `c` grid cells over [0, 1]³ with a ring of empty ones around.
