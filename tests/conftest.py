@@ -24,12 +24,23 @@
   on the workers: a skipped test's report is failed before it leaves the
   worker, and a module skipped while collected is reported to the
   controller, which fails the run.
+* The browser tests (``test_page_*.py``, ``test_service_browser.py``) drive
+  Debian's chromium through Playwright's executable path (never a downloaded
+  browser; ``HYBRIDMPM_CHROMIUM`` names another binary): each marks its
+  module ``needs_chromium`` (a skip where the binary is missing, which CI
+  fails as above) and ``alone``, takes the module-scoped ``browser`` fixture
+  (one headless chromium a file: a page a test left open dies with its file,
+  so it draws nothing while another file measures frame rates), and opens its
+  pages with ``watched_page``, which collects their errors.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 from collections import Counter
+from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -118,3 +129,29 @@ def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Co
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     if _COLLECTION_SKIPS and session.exitstatus == 0:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+needs_chromium = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)")
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Headless chromium (``CHROMIUM``) through Playwright, one a test module."""
+    from playwright.sync_api import sync_playwright  # the browser tests' modules importorskip it while collected
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
+        yield b
+        b.close()
+
+
+def watched_page(browser: Any, errors: list[str], dpr: float = 1, console: bool = True) -> Any:
+    """A new 1100 × 800 page of ``browser`` (``dpr`` device pixels a CSS pixel) whose uncaught exceptions, and its
+    console's errors unless ``console`` is false, are appended to ``errors``. The page's CSP forbids eval; the tests'
+    hooks need it (``bypass_csp``)."""
+    page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
+    if console:
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    return page

@@ -16,27 +16,22 @@ where they are, in wood brown."""
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 from io import BytesIO
 
 import numpy as np
 import pytest
+from conftest import needs_chromium, watched_page
 
 pytest.importorskip("fastapi")
 httpx = pytest.importorskip("httpx")
-sync_api = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 Image = pytest.importorskip("PIL.Image")
 
 from hybridmpm.conventions import GNS_WATER  # noqa: E402
 from hybridmpm.service.testing import LiveServer  # noqa: E402
 
-CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = [
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
-    pytest.mark.alone,
-]
+pytestmark = [needs_chromium, pytest.mark.alone]
 SIDE = 0.09  # the crate's edge [m]: 3 cells of paddle3d's 34³ grid, its draft (half of it) in the 8 cm the surge leaves
 PRE = 400  # frames stepped before the drop: the surge has spread into a layer over the floor
 AFTER = 200  # frames stepped after it, when the crate's pose is read
@@ -51,18 +46,8 @@ def server(tmp_path_factory):
         yield s
 
 
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
-        yield b
-        b.close()
-
-
 def _open(browser, url: str, errors: list[str]):
-    page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors)
     page.goto(url)
     page.wait_for_function("window.__hmpm.framesRendered >= 1 && window.__hmpm.session", timeout=60_000)
     return page

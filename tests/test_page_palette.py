@@ -15,26 +15,21 @@ decides which, the test asserts no speed."""
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
 
 import numpy as np
 import pytest
+from conftest import needs_chromium, watched_page
 from scipy.spatial.transform import Rotation
 
 pytest.importorskip("fastapi")
 httpx = pytest.importorskip("httpx")
-sync_api = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 
 from hybridmpm.conventions import GNS_ELASTIC, GNS_WATER  # noqa: E402
 from hybridmpm.service.testing import LiveServer  # noqa: E402
 
-CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = [
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
-    pytest.mark.alone,
-]
+pytestmark = [needs_chromium, pytest.mark.alone]
 SIDE = 0.12  # the cube's side [m]
 FRAMES_AFTER = 240  # frames after the drop when its shape is read: the surge has reached it, it has not reached the paddle
 STEP_FRAMES = 20  # frames a step request asks for
@@ -46,21 +41,11 @@ def server(tmp_path_factory):
         yield s
 
 
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
-        yield b
-        b.close()
-
-
 def test_a_jelly_dropped_into_the_3d_scene_keeps_its_shape_and_the_page_its_frame_rate(server, browser):
     from test_page_quality import MEASURE_S, SETTLED_FPS, drawn_rate  # the frame-rate test's measure, and its bound
 
-    page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
     errors: list[str] = []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors)
     page.goto(server.url + "/?solver=mpm&autoplay=0")  # its camera still: the click lands where the test projects
     page.wait_for_function("window.__hmpm.framesRendered >= 1 && window.__hmpm.session", timeout=60_000)
     session = page.evaluate("window.__hmpm.session")
@@ -129,8 +114,7 @@ def test_a_jelly_dropped_into_the_3d_scene_keeps_its_shape_and_the_page_its_fram
     page.close()
     # the page's frame rate with the block in it: a page joining the session that draws every animation frame
     # (?bench=1, its camera turning), playing, over 3 s, with the share of the CPU other jobs took meanwhile
-    page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors, console=False)
     page.goto(server.url + f"/?session={session['id']}&bench=1")
     page.wait_for_function(f"window.__hmpm.framesRendered >= 30 && window.__hmpm.session.num_particles === {drop['num_particles']}", timeout=60_000)
     # as tests/test_page_quality.py reads the default scene's: once the quality holds for 3 s, over MEASURE_S with

@@ -28,23 +28,19 @@ CPU renderer, on the machine that runs the server).
 from __future__ import annotations
 
 import os
-import shutil
 import time
 
 import numpy as np
 import pytest
+from conftest import needs_chromium, watched_page
 
 pytest.importorskip("fastapi")
-sync_api = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 
 from hybridmpm.service.testing import LiveServer  # noqa: E402
 
-CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 # alone: frame rates and real-time drags on Chromium's CPU renderer; scripts/test.sh runs these after the parallel phase
-pytestmark = [
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
-    pytest.mark.alone,
-]
+pytestmark = [needs_chromium, pytest.mark.alone]
 
 TARGET_FPS = 24.0  # quality.js TARGET_FPS
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -62,19 +58,9 @@ def server(tmp_path_factory):
         yield s
 
 
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
-        yield b
-        b.close()
-
-
 def open_page(browser, url):
-    page = browser.new_page(viewport={"width": 1100, "height": 800}, bypass_csp=True)
     errors: list[str] = []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors)
     page.route("**/favicon.ico", lambda route: route.fulfill(status=204))  # a bare file's page asks for one
     page.goto(url)
     return page, errors

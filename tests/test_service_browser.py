@@ -18,43 +18,31 @@ from __future__ import annotations
 
 import io
 import os
-import shutil
 import time
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import needs_chromium, watched_page
 
 pytest.importorskip("fastapi")
 httpx = pytest.importorskip("httpx")
-sync_api = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 
 from hybridmpm.service.testing import LiveServer, step_binary  # noqa: E402
 
-CHROMIUM = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 SCREENSHOTS = os.environ.get("HYBRIDMPM_PAGE_SCREENSHOTS")
 INK = np.array([209, 36, 90])  # the page's sketch colour
 PLAN = np.array([11, 122, 75])  # the plan's centroid path
 # alone: frame rates and real-time drags on Chromium's CPU renderer; scripts/test.sh runs these after the parallel phase
-pytestmark = [
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"no chromium binary at {CHROMIUM} (apt-get install chromium; CI installs it)"),
-    pytest.mark.alone,
-]
+pytestmark = [needs_chromium, pytest.mark.alone]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     with LiveServer(max_sessions=10, log=tmp_path_factory.mktemp("browser") / "server.log") as s:
         yield s
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox"])
-        yield b
-        b.close()
 
 
 def drag(page, a, b, steps=20):
@@ -85,12 +73,8 @@ def control_displacement(server, page, timeout=30_000):
 
 
 def test_page_end_to_end(server, browser, tmp_path):
-    page = browser.new_page(
-        viewport={"width": 1100, "height": 800}, device_scale_factor=2, bypass_csp=True
-    )  # the page's CSP forbids eval; the test hooks need it
     errors: list[str] = []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors, dpr=2)
     page.goto(server.url + "/?scene=dam_break2d&solver=mpm&method=constant")
     page.wait_for_function("window.__hmpm.framesRendered >= 30", timeout=20_000)
     shot = tmp_path / "page.png"
@@ -144,10 +128,8 @@ def test_page_end_to_end(server, browser, tmp_path):
 
 # ---------------------------------------------------------------- helpers of the WebGL tests
 def new_page(browser, query, server, dpr=1):
-    page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
     errors: list[str] = []
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page = watched_page(browser, errors, dpr)
     page.goto(server.url + "/" + query)
     page.wait_for_function("window.__hmpm.framesRendered >= 1", timeout=30_000)
     return page, errors
