@@ -97,7 +97,8 @@ def write_exports(
     ``export`` (unknown kind, or ``usd`` without ``pxr``) or ``mesh_format``."""
     # import time: loaded by the commands that export only
     from hybridmpm.render import export_points
-    from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, posed_settings, surface_settings, write_surface
+    from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, write_surface
+    from hybridmpm.render.surface_scene import posed_settings, surface_settings
 
     bad = [k for k in kinds if k not in EXPORTS]
     if bad:

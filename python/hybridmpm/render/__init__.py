@@ -17,9 +17,9 @@ from hybridmpm.render.surface import (
     export_surfaces,
     surface_contours,
     surface_mesh,
-    surface_settings,
     write_surface,
 )
+from hybridmpm.render.surface_scene import surface_settings
 from hybridmpm.render.timeline import mpm_spans, plot_timeline
 from hybridmpm.render.usd import write_usd
 

@@ -28,12 +28,16 @@ The surface of one material (water, sand) in one frame is built in four steps:
    but edges and corners are rounded inwards. ``iso="volume"`` (the default)
    therefore matches the enclosed volume to the particles' volume per body
    (a 26-connected component of ``φ > BODY_MIN``; a film on the floor and a
-   falling block are two): each body at the level in [:data:`ISO_MIN`,
-   :data:`ISO_MAX`] whose volume, estimated from the field cell by cell
-   (:class:`VolumeEstimate`, no surface drawn), is its particles' volume;
-   marching cubes there, and once more (the level moved by the estimate's
-   error) if the body's surface is off by more than :data:`VOLUME_TOL`
-   (docs/mesh.md); a number fixes ``c`` for all. Vertices that marching
+   falling block are two): each body at the level in
+   [:data:`~hybridmpm.render.surface_field.ISO_MIN`,
+   :data:`~hybridmpm.render.surface_field.ISO_MAX`] whose volume, estimated
+   from the field cell by cell
+   (:class:`~hybridmpm.render.surface_field.VolumeEstimate`, no surface
+   drawn), is its particles' volume; marching cubes there, and once more (the
+   level moved by the estimate's error) if the body's surface is off by more
+   than :data:`VOLUME_TOL` (docs/mesh.md;
+   :func:`~hybridmpm.render.surface_levels.material_surface`); a number
+   fixes ``c`` for all. Vertices that marching
    cubes puts on one node (at an edge of the domain) are merged, so no face
    is degenerate or doubled.
 
@@ -45,6 +49,13 @@ the p2g is exact in float64 (while a node's value stays below 2^8, i.e.
 unless the fluid is compressed 256-fold): the field, and so the mesh and the
 files, have the same bits whatever the order of the particles. Output is
 sorted by particle type.
+
+**Modules.** The field and its closure (steps 1-3) are
+:mod:`hybridmpm.render.surface_field`'s, the volume matching
+:mod:`hybridmpm.render.surface_levels`', a scene's settings
+(:func:`surface_settings`, :func:`posed_settings`)
+:mod:`hybridmpm.render.surface_scene`'s; this module checks the input, draws
+the iso-surfaces and writes the files.
 """
 
 from __future__ import annotations
@@ -57,20 +68,18 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIALS, NAME_OF_GNS_TYPE
+from hybridmpm.conventions import GNS_KINEMATIC, NAME_OF_GNS_TYPE
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Box, Sphere
-from hybridmpm.mpm.bodies import check_poses
-from hybridmpm.render.surface_field import ISO_BULK, ISO_MAX, ISO_MIN, MARGIN, Field, PosedBody, VolumeEstimate, bodies, closed, field, is_sampled
-from hybridmpm.scenes import wall_face
-from hybridmpm.scenes.obstacles import obstacles_at
+from hybridmpm.render.surface_field import MARGIN, Field, PosedBody, is_sampled
+from hybridmpm.render.surface_levels import VOLUME_TOL as VOLUME_TOL
+from hybridmpm.render.surface_levels import material_surface
+from hybridmpm.render.surface_scene import posed_settings, rest_densities, surface_settings
 
 #: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
 MAX_GRID_NODES = 512**3
 #: Formats of :func:`export_surfaces`.
 MESH_FORMATS = ("ply", "obj", "glb")
-#: ``iso="volume"`` draws the surface a second time when its volume is off by more than this (relative).
-VOLUME_TOL = 0.005
 #: Finest surface grid per simulation cell.
 MAX_REFINE = 8
 #: Field values within this of the level are moved this far from it before marching cubes (:func:`_off_level`).
@@ -281,13 +290,13 @@ def _per_material(
     """The arguments of :func:`surface_mesh` (``dim`` 3, ``measure``
     :func:`_mc_measure`) or :func:`surface_contours` (2, :func:`_contour_measure`)
     checked, then ``(type, level, geometry or None)`` of each fluid type
-    present, sorted by type (:func:`_surfaces`)."""
+    present, sorted by type (:func:`~hybridmpm.render.surface_levels.material_surface`)."""
     p, pt, lo, hi, h, v = _check_common(positions, particle_type, domain, dx, refine, iso, smooth, volumes, dim)
     obs = _check_obstacles(obstacles)
     out = []
     for code in _fluid_types(pt):
         sel = pt == code
-        level, geom = _surfaces(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, measure)
+        level, geom = material_surface(_select(p, sel), _select(v, sel), lo, hi, h, smooth, obs, iso, measure)
         out.append((int(code), level, geom))
     return out
 
@@ -301,88 +310,6 @@ def _fluid_types(pt: np.ndarray) -> list[int]:
 
 def _select(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return a if mask.all() else a[mask]
-
-
-def _surfaces(p: np.ndarray, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, h: float, smooth: int, obs: list[Any], iso: Any, measure: Any) -> tuple[float, Any]:
-    """(level, geometry) of one material. ``measure(closed_field, level,
-    origin, field)`` → (geometry, enclosed volume). ``iso="volume"``: each
-    body (:func:`bodies`) at the level in [ISO_MIN, ISO_MAX] at which the
-    field's estimated enclosed volume (:class:`VolumeEstimate`) is its
-    particles' volume (the estimate covers the levels from ISO_BULK up
-    first, all of them when a body needs less); a body whose surface is off
-    by more than VOLUME_TOL is drawn once more, its level moved by the
-    estimate's own error there. The level returned is that of the body with
-    the most volume."""
-    f = field(p, v, lo, hi, h, smooth, obs)
-    if f is None:
-        return (0.5 if iso == "volume" else float(iso)), None
-    if iso != "volume":
-        return float(iso), _draw(f, measure, _level32(float(iso)))[0]
-    labels, n, targets = bodies(f)
-    if not (targets > 0).any():
-        return 0.5, None
-    est = VolumeEstimate(f.phi, f.sdf, h, labels, n, low=ISO_BULK)
-    c = est.levels(targets)
-    if ((c == ISO_BULK) & (est.volumes(ISO_BULK) < targets)).any():  # a body thinner than bulk water: all levels
-        est = VolumeEstimate(f.phi, f.sdf, h, labels, n)
-        c = est.levels(targets)
-    boxes = _boxes(labels) if n > 1 else [None]
-    drawable = (targets > 0) & (est.volumes(ISO_MIN) > 0)  # a body whose field stays below ISO_MIN has no surface
-    drawn = [_draw(f, measure, _level32(c[k]), labels, k + 1, boxes[k]) if drawable[k] else (None, 0.0) for k in range(n)]
-    got = np.array([d[1] for d in drawn])
-    off = (np.abs(got - targets) > VOLUME_TOL * targets) & ~((c == ISO_MIN) & (got < targets)) & ~((c == ISO_MAX) & (got > targets))
-    if off.any():
-        want = targets + est.volumes(c) - got  # the estimate's error at c taken as constant near it
-        if est.low > ISO_MIN and (off & (est.volumes(est.low) < want)).any():
-            est = VolumeEstimate(f.phi, f.sdf, h, labels, n)
-        c2 = est.levels(want)
-        for k in np.flatnonzero(off & (c2 != c)):
-            c[k] = c2[k]
-            drawn[k] = _draw(f, measure, _level32(c[k]), labels, int(k) + 1, boxes[k])
-    return _level32(c[int(np.argmax(targets))]), _join([d[0] for d in drawn if d[0] is not None])
-
-
-def _join(parts: list[Any]) -> Any:
-    """The bodies' geometries as one: meshes ``(vertices, faces)`` concatenated,
-    outlines (tuples of loops) chained; None when there are none."""
-    if len(parts) <= 1:
-        return parts[0] if parts else None
-    if isinstance(parts[0], tuple) and len(parts[0]) == 2 and parts[0][0].shape[1:] == (3,) and parts[0][1].dtype == np.int32:
-        offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
-        return np.concatenate([v for v, _ in parts]), np.concatenate([fs + np.int32(o) for (_, fs), o in zip(parts, offsets)])
-    return tuple(loop for part in parts for loop in part)
-
-
-def _boxes(labels: np.ndarray) -> list[Any]:
-    """The slices of each body's bounding box (``scipy.ndimage.find_objects``)."""
-    from scipy import ndimage  # here: scipy.ndimage takes half a second to import, and only volume-matched surfaces need it
-
-    return list(ndimage.find_objects(labels))
-
-
-def _level32(c: float) -> float:
-    """``c`` rounded to float32: marching cubes compares the float32 field with
-    the level, so a node clipped to exactly the level (on an obstacle face) is
-    then outside, as a node below the level."""
-    return float(np.float32(c))
-
-
-def _draw(f: Field, measure: Any, c: float, labels: np.ndarray | None = None, body: int = 0, box: Any = None) -> tuple[Any, float]:
-    """(geometry, enclosed volume) of the field closed at level ``c``; with
-    ``box`` (a body's slices) the body ``body`` of ``labels`` alone, the
-    other bodies' nodes zeroed."""
-    if box is None or labels is None:
-        grid, clip, origin = f.phi, f.clip, f.origin
-    else:
-        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
-        lab = labels[box]
-        grid = np.where((lab == body) | (lab == 0), f.phi[box], 0.0)
-        clip = None if f.clip is None else f.clip[box]
-        origin = f.origin + np.array([b.start for b in box])
-    shut = closed(grid, clip, f.h, c)
-    if not shut.max() > c:
-        return None, 0.0
-    return measure(shut, c, origin, f)
 
 
 def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field) -> tuple[tuple[np.ndarray, np.ndarray], float]:
@@ -471,79 +398,7 @@ def _contour_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field
     return tuple(loops), float(sum(_signed_area(lp) for lp in loops))
 
 
-# ---------------------------------------------------------------------- scenes and trajectories
-def rest_densities(params: Any, particle_type: Any) -> np.ndarray:
-    """The rest density [kg/m³] of each particle of GNS type ``particle_type``
-    int [N] under a scene's :class:`~hybridmpm.mpm.MpmParams`: its material's
-    parameter set where the scene holds exactly one further set of that
-    material (a preset block: a jelly of ``jello``, ``mud``, ...), else the
-    material's default set (with several further sets of one material, the
-    default too: a trajectory does not carry each particle's set); 1 for
-    kinematic particles."""
-    pt = np.asarray(particle_type)
-    rho = np.ones(len(pt), np.float64)
-    for name, code in MATERIALS.items():
-        group = getattr(params, name)
-        own = [g for g in params.sets if type(g) is type(group)]
-        density = float((own[0] if len(own) == 1 else group).density)
-        rho[pt == GNS_TYPE_OF_MATERIAL[code]] = density
-    return rho
-
-
-def surface_settings(params: Any, particle_type: Any = None, masses: Any = None) -> dict[str, Any]:
-    """The keyword arguments of :func:`surface_mesh` / :func:`surface_contours`
-    for a scene's :class:`~hybridmpm.mpm.MpmParams`: ``domain`` (the wall faces
-    ``(cells − 1)·dx`` in from every side, :func:`~hybridmpm.scenes.wall_face`),
-    ``dx`` = 1/n_grid, ``obstacles`` (the colliders where the scene puts
-    them; a frame of a run whose obstacles move: :func:`posed_settings`) and, given
-    ``particle_type`` int [N] and ``masses`` float [N] [kg], ``volumes`` =
-    mass / rest density of the particle's material (:func:`rest_densities`;
-    0 for kinematic particles)."""
-    n = params.resolved_n_grid()
-    face = wall_face(params)
-    out: dict[str, Any] = {
-        "domain": ([face] * params.dim, [1.0 - face] * params.dim),
-        "dx": 1.0 / n,
-        "obstacles": list(params.colliders),
-    }
-    if particle_type is not None and masses is not None:
-        pt = np.asarray(particle_type)
-        m = np.asarray(masses, np.float64)
-        rho = rest_densities(params, pt)
-        out["volumes"] = np.where(pt == GNS_KINEMATIC, 0.0, m / rho)
-    return out
-
-
-def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int, bodies: Any = None) -> dict[str, Any]:
-    """``settings`` (:func:`surface_settings`) for frame ``t`` of a run whose
-    obstacles move: its ``obstacles`` translated to ``obstacle_centers[t]``
-    (float [T, C, D] [m], a trajectory's
-    :attr:`~hybridmpm.trajectory.Trajectory.obstacle_centers`;
-    :func:`~hybridmpm.scenes.obstacles.obstacles_at`), so that the surface
-    ends on each obstacle where it is in that frame; with ``bodies``
-    ``(bodies as given, body_center [T, B, D], body_rotation [T, B, D, D])``
-    (a trajectory's poses), each body at frame ``t`` added as a
-    :class:`~hybridmpm.render.surface_field.PosedBody`: the surface ends on it
-    too. ``obstacle_centers`` and ``bodies`` None: ``settings`` as they are.
-    Raises :class:`InvalidInputError` naming ``obstacle_centers`` (not
-    [T, C, D] for the settings' C obstacles, not finite) or ``body_center``
-    (:func:`hybridmpm.mpm.bodies.check_poses`)."""
-    out = settings
-    if obstacle_centers is not None:
-        oc = np.asarray(obstacle_centers)
-        if oc.ndim != 3 or not 0 <= t < oc.shape[0]:
-            raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
-        out = {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
-    if bodies is not None:
-        given, center, rotation = bodies
-        c, r = check_poses(given, center, rotation)
-        if not 0 <= t < c.shape[0]:
-            raise InvalidInputError(f"body_center: expected [T, B, D] with a row for frame {t}, got {list(c.shape)}", "body_center")
-        posed = [PosedBody(b, c[t, i], r[t, i]) for i, b in enumerate(given)]
-        out = {**out, "obstacles": [*out.get("obstacles", ()), *posed]}
-    return out
-
-
+# ---------------------------------------------------------------------- trajectories and files
 def export_surfaces(
     positions: Any,
     particle_type: Any,

@@ -4,8 +4,11 @@ A session is one simulator and what the service keeps around it: the lock
 its work takes in turn, the recording of its recent frames, the controls it
 keeps, the play loop (real time, catching up at most :data:`PLAY_LAG_S`),
 its saves to the store (a snapshot at a step boundary, the record written
-after), its idle clock (expiry) and the control episode. The core is
-synchronous and thread-safe; the backends run it in place:
+after), its idle clock (expiry) and the control episode; the edits of a
+running session (pours, obstacle moves, rigid bodies) are its methods too,
+written in :mod:`hybridmpm.service.edits` (:class:`~hybridmpm.service.edits.SessionEdits`,
+its base class). The core is synchronous and thread-safe; the backends run
+it in place:
 
 - the local backend (:class:`~hybridmpm.service.sessions.SessionManager`)
   calls its methods on worker threads, each behind the session's ``asyncio``
@@ -24,7 +27,6 @@ it is true).
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import threading
 import time
@@ -34,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes import scene_spec
 from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedBodies, RecordedFrame, Recording
+from hybridmpm.service.edits import SessionEdits
 from hybridmpm.service.episode import run_episode
 from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
 from hybridmpm.service.schemas import clean
@@ -122,7 +124,7 @@ def _no_viewers() -> bool:
     return False
 
 
-class SessionCore:
+class SessionCore(SessionEdits):
     """One session: its simulator ``sim`` (at ``settings``, from ``initial``,
     the state a reset goes back to, stepping on ``threads`` MPM threads),
     created by the client address ``client``, named ``key`` in the store;
@@ -494,115 +496,6 @@ class SessionCore:
             if self.bodies_given() != bodies:  # the scene's own bodies again
                 self._bodies_event(self.frame_index)
             self.on_event({"type": "reset", "frame": self.frame_index})
-
-    def move_obstacle(self, index: int, center: list[float], velocity: list[float] | None) -> int:
-        """Move obstacle ``index`` to ``center`` over the next step
-        (:meth:`hybridmpm.sim.MpmSimulator.move_obstacle`; its errors name
-        ``index``, ``center``, ``velocity``); the viewers get an ``obstacle``
-        event. Returns the session's frame."""
-        with self.lock:
-            self._open()
-            self.sim.move_obstacle(index, center, velocity)  # type: ignore[attr-defined] # MPM and hybrid (the route refuses the network alone)
-            frame = self.frame_index
-            self._changed()  # a pending move is part of the state: saved like a step
-        self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
-        return frame
-
-    def pour(self, block: dict[str, Any]) -> dict[str, Any]:
-        """Add ``block`` (a scene file's block: ``material``, its parameters,
-        ``lo``, ``hi``, ``velocity``) between frames (:func:`hybridmpm.sim.pour.pour_block`;
-        its errors name the field and leave the session unchanged). The recent
-        trajectory starts again; the viewers get the frame and a ``particles``
-        event with the new count and particle types. Returns ``{"added",
-        "num_particles", "frame", "facts"}`` (``facts``: the session's new
-        :class:`SessionFacts` as a dict, for a front end that keeps a copy)."""
-        from hybridmpm.sim.pour import pour_block  # import time: loaded by a pour only
-
-        with self.lock:
-            self._open()
-            before = self.facts.num_total
-            pour_block(self.sim, block)
-            self.facts = SessionFacts.of(self.sim)
-            self.poured = True
-            self._changed()
-            with self._held:
-                self.recording.clear()
-            self._show(self.sim.frame)
-            frame, facts = self.frame_index, self.facts
-        added = facts.num_total - before
-        self.on_event(
-            {"type": "particles", "frame": frame, "added": added, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
-             "particle_type": [int(t) for t in facts.particle_type]}
-        )  # fmt: skip
-        return {"added": added, "num_particles": facts.num_total, "frame": frame, "facts": facts.to_dict()}
-
-    # ------------------------------------------------------------ rigid bodies
-    def bodies_given(self) -> list[dict[str, Any]]:
-        """The session's rigid bodies as given (a scene file's ``[[bodies]]``
-        tables, added ones included, removed ones gone; docs/bodies.md), as
-        JSON values; ``[]`` for a simulator without bodies (the learned ones)."""
-        solver = getattr(self.sim, "solver", None)
-        given = getattr(getattr(solver, "params", None), "bodies", None) or []
-        return [clean({f.name: getattr(b, f.name) for f in dataclasses.fields(b) if getattr(b, f.name) is not None}) for b in given]
-
-    def bodies_now(self) -> list[dict[str, Any]]:
-        """Each body's shape and size as given (``half_extents``, ``radius``,
-        a capsule's ``radius`` and ``half_height``; a mesh's hull as
-        ``vertices`` [[x, y, z], ...] in the body's frame [m] and ``faces``
-        [[i, j, k], ...], outward), its ``mass`` [kg; per unit depth in 2D]
-        and its ``center`` (centre of mass), ``rotation``, ``velocity`` and
-        ``angular_velocity`` at the current frame; ``[]`` without bodies."""
-        for _ in range(3):  # read without the session's lock (a description never waits for a step): a body added meanwhile reads again
-            given = self.bodies_given()
-            if not given:
-                return []
-            b = self.sim.bodies  # type: ignore[attr-defined] # an MPM simulator: the others hold no bodies (bodies_given is empty)
-            if len(b) == len(given) and self.bodies_given() == given:
-                break
-        else:  # changed under every read (bodies added or removed meanwhile): read once more under the lock, after the step
-            with self.lock:
-                given, b = self.bodies_given(), self.sim.bodies  # type: ignore[attr-defined]
-        out: list[dict[str, Any]] = []
-        for i, g in enumerate(given[: len(b)]):
-            body: dict[str, Any] = {"shape": g["shape"], **{k: g[k] for k in ("half_extents", "radius", "half_height") if k in g}, "mass": float(b.mass[i])}
-            if g["shape"] == "mesh":
-                hull = Body.from_dict(g).hull()
-                body["vertices"] = clean(np.asarray(hull["vertices"], np.float64).tolist())
-                body["faces"] = np.asarray(hull["faces"], np.int64).tolist()
-            for k in ("center", "rotation", "velocity", "angular_velocity"):
-                body[k] = clean(np.asarray(getattr(b, k)[i], np.float64).tolist())
-            out.append(body)
-        return out
-
-    def _bodies_event(self, frame: int) -> None:
-        self.on_event({"type": "bodies", "frame": frame, "bodies": self.bodies_given()})
-
-    def add_body(self, body: dict[str, Any]) -> dict[str, Any]:
-        """Add rigid body ``body`` (a scene file's ``[[bodies]]`` table)
-        between frames (:meth:`hybridmpm.sim.MpmSimulator.add_body`; its
-        errors name the field, ``bodies[i].density``, and leave the session
-        unchanged); the viewers get a ``bodies`` event with every body as
-        given. Returns ``{"index", "num_bodies", "frame", "facts"}``."""
-        with self.lock:
-            self._open()
-            index = int(self.sim.add_body(body))  # type: ignore[attr-defined] # MPM only (the route refuses the others)
-            self._changed()
-            frame, num = self.frame_index, len(self.bodies_given())
-            self._bodies_event(frame)
-        return {"index": index, "num_bodies": num, "frame": frame, "facts": self.facts.to_dict()}
-
-    def remove_body(self, index: int) -> dict[str, Any]:
-        """Remove body ``index`` between frames (the later ones move down
-        one; :meth:`hybridmpm.sim.MpmSimulator.remove_body`, its error names
-        ``index``); the viewers get a ``bodies`` event. Returns ``{"index",
-        "num_bodies", "frame", "facts"}``."""
-        with self.lock:
-            self._open()
-            self.sim.remove_body(index)  # type: ignore[attr-defined] # MPM only (the route refuses the others)
-            self._changed()
-            frame, num = self.frame_index, len(self.bodies_given())
-            self._bodies_event(frame)
-        return {"index": int(index), "num_bodies": num, "frame": frame, "facts": self.facts.to_dict()}
 
     # ------------------------------------------------------------ saves
     def snapshot(self) -> tuple[dict[str, Any], int, int] | None:

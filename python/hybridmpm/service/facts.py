@@ -17,7 +17,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import SampledSdf
-from hybridmpm.render.surface import surface_settings
+from hybridmpm.render.surface_scene import surface_settings
 from hybridmpm.scenes import scene_spec
 from hybridmpm.sim import Simulator
 
@@ -52,7 +52,7 @@ class SessionFacts:
     int [num_total] (GNS codes), ``masses`` float32 [num_total] [kg] and
     ``material`` int [num_total] (the trajectory file's), ``r_t`` frames per
     coarse step, ``dt_frame`` [s] between frames, and ``surface`` the
-    settings of its fluid surfaces (:func:`~hybridmpm.render.surface.surface_settings`:
+    settings of its fluid surfaces (:func:`~hybridmpm.render.surface_scene.surface_settings`:
     the wall faces, the grid, the obstacles, each particle's volume)."""
 
     scene_name: str

@@ -7,7 +7,7 @@ actor; this module imports no web framework, so that an actor starts quickly.
 Every method answers a tuple instead of raising (Ray would wrap an error and
 lose its field): ``("ok", value)``, ``("err", kind, message, field)`` for a
 refusal the front end raises again as the same error
-(:func:`hybridmpm.service.ray_backend.manager.error_from`), ``("gone",
+(:func:`hybridmpm.service.ray_backend.front.error_from`), ``("gone",
 reason)`` for a session deleted, expired or that could not be restored,
 ``("busy",)`` for a second control. Calls run at once in the actor's threads
 (:data:`ACTOR_THREADS`); the simulation work takes the core's lock in turn,

@@ -14,7 +14,9 @@ session's actor by name and running the routes' work there (a step, a
 control episode, a checkpoint, a restore, a reset), so any number of front
 ends serve every session. The session cap and the per-client quota count the
 whole cluster (:class:`~hybridmpm.service.ray_backend.registry.Registry`); a session that
-does not fit on the cluster's CPUs answers 503 with ``Retry-After``.
+does not fit on the cluster's CPUs answers 503 with ``Retry-After``. The
+handles, joining the cluster (:func:`connect`) and an actor's refusal raised
+again (:func:`error_from`) are :mod:`~hybridmpm.service.ray_backend.front`'s.
 
 Streams: for each session with viewers here, one task pulls the actor's
 latest frame (at most ``max_fps`` a second, long polls) and its events, and
@@ -35,12 +37,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import secrets
-import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 import anyio
@@ -49,11 +48,10 @@ import ray
 import ray.exceptions
 
 from hybridmpm.control import Sketch
-from hybridmpm.errors import CheckpointError, HybridMpmError, InvalidInputError, SimulationError
+from hybridmpm.errors import HybridMpmError, InvalidInputError
 from hybridmpm.service.backend import (
     QuotaError,
     SessionCapError,
-    StoreSaveError,
     Viewer,
     close_viewers,
     every,
@@ -66,10 +64,11 @@ from hybridmpm.service.backend import (
 from hybridmpm.service.budget import MemoryBudget, RecordedFrame
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionGoneError
-from hybridmpm.service.errors import ApiError, tidy
+from hybridmpm.service.errors import ApiError
 from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.ray_backend.actor import ACTOR_THREADS, SessionActor
+from hybridmpm.service.ray_backend.front import BUILTIN_ERRORS, RaySession, connect, error_from
 from hybridmpm.service.ray_backend.registry import ACTOR_PREFIX, REGISTRY_NAME, Registry
 from hybridmpm.service.store import SHOWN_KEY_CHARS, StoredSession, load_unexpired, session_key
 from hybridmpm.sim import Rollout
@@ -81,101 +80,12 @@ T = TypeVar("T")
 PLACE_TIMEOUT_S = 120.0
 #: How long a request waits for a session's actor to come back after its process died [s] (then 503).
 REVIVE_TIMEOUT_S = 60.0
-#: How long joining the cluster waits for its head's port to answer [s].
-CONNECT_TIMEOUT_S = 5.0
 #: Longest wait of one poll of a session's frames and events [s].
 POLL_WAIT_S = 1.0
 #: ``Retry-After`` of a 503 for a cluster without room or a session not back yet [s].
 RETRY_S = 5
 #: A session's description in this front end is dropped after this long unused (its actor stays) [s].
 FORGET_AFTER_S = 600.0
-_BUILTIN_ERRORS = {c.__name__: c for c in (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError)}
-
-
-def connect(config: ServiceConfig) -> None:
-    """Join the Ray cluster at ``config.ray_address`` as a driver in
-    ``config.ray_namespace``; :class:`InvalidInputError` naming
-    ``ray_address`` when there is none (or its token is refused)."""
-    os.environ.setdefault("RAY_IGNORE_UNHANDLED_ERRORS", "1")  # events are sent without waiting for their answer
-    if ray.is_initialized():
-        return
-    hint = "start one with `ray start --head` (and set RAY_AUTH_MODE=token with the cluster's token where it has one)"
-    if config.ray_address != "auto":  # Ray itself retries a closed port for minutes
-        host, port = config.ray_address.rsplit(":", 1)
-        try:
-            socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
-        except OSError as e:
-            raise InvalidInputError(
-                f"ray_address: no Ray cluster answers at {config.ray_address} ({e.strerror or type(e).__name__}); {hint}", "ray_address"
-            ) from None
-    try:
-        ray.init(address=config.ray_address, namespace=config.ray_namespace, logging_level=logging.WARNING, log_to_driver=False)
-    except Exception as e:  # noqa: BLE001 - ray raises ConnectionError, RuntimeError, ValueError, AuthenticationError...
-        raise InvalidInputError(f"ray_address: no Ray cluster at {config.ray_address!r}: {tidy(str(e), 160)}; {hint}", "ray_address") from None
-
-
-def error_from(kind: str, message: str, name: str | None) -> Exception:
-    """The error an actor answered (``("err", kind, message, field)``), raised again here as its type."""
-    if kind == "InvalidInputError":
-        return InvalidInputError(message, name)
-    if kind == "CheckpointError":
-        return CheckpointError(message)
-    if kind == "SimulationError":
-        return SimulationError(message)
-    if kind == "StoreSaveError":  # the new session's first save failed; ``name`` carries the errno
-        return StoreSaveError((int(name) if name and name.lstrip("-").isdigit() else None, message))
-    if kind in _BUILTIN_ERRORS:
-        return _BUILTIN_ERRORS[kind](message)
-    return HybridMpmError(message)
-
-
-@dataclass(eq=False)
-class RaySession:
-    """A session whose core runs in a Ray actor, as a front end's routes hold it (a :class:`~hybridmpm.service.backend.Session`):
-    its ``id``, store ``key``, settings and facts (sent by the actor), the client address that created it, the front end's handle
-    of its actor (``actor``), the frame it was last known at (``at_frame``), whether it plays, the viewers connected here and the
-    task that feeds them (``pump``)."""
-
-    id: str
-    key: str
-    settings: SessionSettings
-    facts: SessionFacts
-    client: str = ""
-    actor: Any = None
-    playing: bool = False
-    at_frame: int = 0
-    name: str = ""
-    state_nbytes: int = 0
-    last_frame: bytes | None = None
-    pump: asyncio.Task[None] | None = None
-    last_used: float = field(default_factory=time.monotonic)
-    touched_remote: float = 0.0
-    viewers: set[Viewer] = field(default_factory=set)
-    controlling: bool = False  # a control admitted here is running (the route's 409; the actor refuses a second from any front end)
-    closed: bool = False
-
-    @property
-    def frame_index(self) -> int:
-        return self.at_frame
-
-    def republish(self) -> None:
-        """Nothing: the actor publishes its frames to every front end's stream."""
-
-    def broadcast(self, msg: dict[str, Any]) -> None:
-        """An event for the viewers of every front end (through the actor; not awaited)."""
-        with contextlib.suppress(Exception):
-            self.actor.event.remote(msg)
-
-    def deliver(self, msg: dict[str, Any]) -> None:
-        for v in list(self.viewers):
-            v.event(msg)
-
-    def touch(self) -> None:
-        self.last_used = time.monotonic()
-        if self.last_used - self.touched_remote > 1.0:  # the actor's idle clock (expiry), at most once a second
-            self.touched_remote = self.last_used
-            with contextlib.suppress(Exception):
-                self.actor.touch.remote()
 
 
 class RaySessionManager:
@@ -443,7 +353,7 @@ class RaySessionManager:
             facts = await self._ready(actor, REVIVE_TIMEOUT_S)
         except SessionGoneError:
             return None
-        except (HybridMpmError, *_BUILTIN_ERRORS.values()) as e:  # its record could not be restored
+        except (HybridMpmError, *BUILTIN_ERRORS.values()) as e:  # its record could not be restored
             log.warning("session %s… cannot be restored: %s", sid[:SHOWN_ID_CHARS], e)
             await self._end(key, actor)
             return None
@@ -514,7 +424,7 @@ class RaySessionManager:
         for key, actor in pending:
             try:
                 facts = await self._ready(actor, PLACE_TIMEOUT_S)
-            except (SessionGoneError, HybridMpmError, *_BUILTIN_ERRORS.values()) as e:
+            except (SessionGoneError, HybridMpmError, *BUILTIN_ERRORS.values()) as e:
                 log.warning("store: session %s… not restored: %s", key[:SHOWN_KEY_CHARS], e or "its actor did not start")
                 await self._end(key, actor)
                 continue
