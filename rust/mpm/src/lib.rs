@@ -18,7 +18,8 @@
 //! grid, p2g, grid_update, g2p, and the CFL frame loop), `checkpoint`;
 //! outside the solver, on the same kernel: `grid_mass` (the accuracy
 //! metric's field), `transfer` (the grid model's transfers), `surface` (the
-//! fluid surfaces' p2g).
+//! fluid surfaces' p2g); `projection` (incompressible APIC water on a MAC
+//! grid with a pressure projection: the large step, docs/engine.md).
 
 // Numeric kernels index several small arrays with one loop variable (`for d
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.
@@ -37,6 +38,7 @@ mod material;
 pub mod params;
 pub mod particles;
 pub mod pool;
+pub mod projection;
 pub mod solver;
 pub mod surface;
 pub mod transfer;
@@ -54,7 +56,7 @@ pub use params::{
     MaterialSet, SandParams, ShapeKind, SnowParams, SolverParams, ViscoplasticParams, WallFace,
     WallParams, WaterParams,
 };
-pub use particles::{Material, Particle, lattice};
+pub use particles::{Material, Particle, lattice, lattice_box};
 pub use pool::shared_pool;
 pub use solver::{FrameStats, Solver};
 pub use surface::surface_p2g;

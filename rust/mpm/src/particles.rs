@@ -209,13 +209,26 @@ pub fn lattice<const D: usize>(
     material: Material,
     density: f32,
 ) -> Vec<Particle<D>> {
+    lattice_box(origin, [side; D], spacing, material, density)
+}
+
+/// Particles at rest on a box lattice: `counts[d]` points along axis `d` at
+/// `origin + (i + 1/2)·spacing` (the last axis fastest), each with volume
+/// `spacing^D` and mass `density·spacing^D`.
+pub fn lattice_box<const D: usize>(
+    origin: [f32; D],
+    counts: [usize; D],
+    spacing: f32,
+    material: Material,
+    density: f32,
+) -> Vec<Particle<D>> {
     let vol = spacing.powi(D as i32);
-    (0..side.pow(D as u32))
+    (0..counts.iter().product::<usize>())
         .map(|mut i| {
             let mut x = SVector::<f32, D>::zeros();
             for d in (0..D).rev() {
-                x[d] = origin[d] + ((i % side) as f32 + 0.5) * spacing;
-                i /= side;
+                x[d] = origin[d] + ((i % counts[d]) as f32 + 0.5) * spacing;
+                i /= counts[d];
             }
             Particle::new(x, material, density * vol, vol)
         })
