@@ -116,22 +116,35 @@ impl<const D: usize> Stencil<D> {
         st
     }
 
-    /// Calls `f(flat index, weight, offset)` for each of the 3^D nodes, in a fixed order.
+    /// Calls `f(flat index, weight, offset)` for each of the 3^D nodes, in a fixed order (the last axis
+    /// fastest), stepping an odometer over the axes rather than dividing a node number.
     #[inline(always)]
     fn each(&self, stride: &[usize; D], mut f: impl FnMut(usize, f32, SVector<f32, D>)) {
-        for k in 0..3usize.pow(D as u32) {
-            let mut idx = 0;
+        let idx: [[usize; 3]; D] =
+            std::array::from_fn(|d| std::array::from_fn(|k| (self.base[d] + k) * stride[d]));
+        let mut k = [0usize; D];
+        loop {
+            let mut i = 0;
             let mut w = 1.0;
             let mut off = SVector::<f32, D>::zeros();
-            let mut r = k;
-            for d in (0..D).rev() {
-                let kd = r % 3;
-                r /= 3;
-                idx += (self.base[d] + kd) * stride[d];
-                w *= self.w[d][kd];
-                off[d] = self.off[d][kd];
+            for d in 0..D {
+                i += idx[d][k[d]];
+                w *= self.w[d][k[d]];
+                off[d] = self.off[d][k[d]];
             }
-            f(idx, w, off);
+            f(i, w, off);
+            let mut d = D;
+            loop {
+                if d == 0 {
+                    return;
+                }
+                d -= 1;
+                k[d] += 1;
+                if k[d] < 3 {
+                    break;
+                }
+                k[d] = 0;
+            }
         }
     }
 }
