@@ -38,7 +38,7 @@ The checks (``--checks``):
 
     python benchmarks/large_step.py --out benchmarks/results/large_step
 
-docs/engine.md ("Large steps") quotes its figures. Times are whole frames on
+docs/large-step.md quotes its figures. Times are whole frames on
 this machine; the prototype's are numpy's, so its steps per frame and CG
 iterations, not its milliseconds, are what carries over to the engine.
 """

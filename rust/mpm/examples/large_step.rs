@@ -4,7 +4,7 @@
 //! (dimension `2d` or `3d`, the explicit solver's threads, frames timed
 //! after 15). The column is `dam_break2d`'s (128², base 24 cells) or
 //! `dam_break3d`'s (34³, base 7 cells, wall to wall in z), at 2 particles per
-//! cell per axis. The projection runs on one thread. docs/engine.md ("Large
+//! cell per axis. The projection runs on one thread. docs/large-step.md ("Large
 //! steps") quotes it.
 use hybridmpm_mpm::particles::lattice_box;
 use hybridmpm_mpm::projection::{Projection, ProjectionStats};

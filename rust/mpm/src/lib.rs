@@ -19,7 +19,7 @@
 //! outside the solver, on the same kernel: `grid_mass` (the accuracy
 //! metric's field), `transfer` (the grid model's transfers), `surface` (the
 //! fluid surfaces' p2g); `projection` (incompressible APIC water on a MAC
-//! grid with a pressure projection: the large step, docs/engine.md).
+//! grid with a pressure projection: the large step, docs/large-step.md).
 
 // Numeric kernels index several small arrays with one loop variable (`for d
 // in 0..D`), and `!(x > 0.0)` deliberately also rejects NaN.

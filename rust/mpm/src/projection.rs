@@ -26,8 +26,7 @@
 //!
 //! Everything runs on one thread in a fixed order (the CG's sums in f64), so
 //! a step is the same bits whatever the pool. `benchmarks/large_step.py`
-//! holds the prototype this module follows and its checks (docs/engine.md,
-//! "Large steps").
+//! holds the prototype this module follows and its checks (docs/large-step.md).
 
 use nalgebra::SVector;
 
