@@ -21,6 +21,11 @@ flow's pace are measured here, in 2D, with the checks the engine's water meets:
   bounded by advection only: ``dt <= cfl·dx/(|v|max + sqrt(g·dx))``, at most a
   frame. The Poisson solve is scipy's CG with a Jacobi preconditioner
   (its iterations are reported; the engine would use a stronger one).
+- ``engine``: the engine's own projection step (``integrator = "projection"``,
+  ``rust/mpm/src/projection/``: the same method, in Rust, through
+  :class:`~hybridmpm.sim.MpmSimulator` and :func:`~hybridmpm.sim.rollout` as
+  every scene runs). Its pressure is not read out (the column at rest reports
+  its volume; the Rust tests check its pressure against ρgh).
 
 The checks (``--checks``):
 
@@ -242,20 +247,23 @@ class ApicProjection:
 
 
 class Explicit:
-    """The engine (explicit MLS-MPM, through :class:`~hybridmpm.sim.MpmSimulator` and
+    """The engine (through :class:`~hybridmpm.sim.MpmSimulator` and
     :func:`~hybridmpm.sim.rollout`) with ``params`` but water of bulk modulus ``k``
-    [Pa], on the particles ``x`` [N, D] at hydrostatic rest below ``surface`` [N] [m]."""
+    [Pa], on the particles ``x`` [N, D] at hydrostatic rest below ``surface`` [N] [m]:
+    explicit MLS-MPM, or with ``integrator="projection"`` the engine's projection step
+    (incompressible: the particles start at rest uncompressed, ``k`` unused)."""
 
-    def __init__(self, params: MpmParams, x: np.ndarray, surface: np.ndarray, k: float) -> None:
-        self.k = k
+    def __init__(self, params: MpmParams, x: np.ndarray, surface: np.ndarray, k: float, integrator: str = "explicit") -> None:
+        self.k = k if integrator == "explicit" else math.nan
         d = params.to_dict()
+        compressed = np.clip(1.0 - RHO * 9.8 * np.clip(surface - x[:, 1], 0.0, None) / k, 0.5, 1.0)
         scene = Scene(
             "large_step",
-            MpmParams.from_dict({**d, "water": {**d["water"], "bulk_modulus": k}}),
+            MpmParams.from_dict({**d, "water": {**d["water"], "bulk_modulus": k}, "integrator": integrator}),
             x.astype(np.float32),
             np.full(len(x), MATERIAL_WATER, np.int32),
             np.zeros(x.shape, np.float32),
-            volume_ratio=np.clip(1.0 - RHO * 9.8 * np.clip(surface - x[:, 1], 0.0, None) / k, 0.5, 1.0).astype(np.float32),
+            volume_ratio=(compressed if integrator == "explicit" else np.ones(len(x))).astype(np.float32),
         )
         self.sim = MpmSimulator(scene)
         self.solver = self.sim.solver
@@ -275,10 +283,13 @@ class Explicit:
 
 
 def _make(method: str, params: MpmParams, x: np.ndarray, surface: np.ndarray) -> Any:
-    """The method on the grid and walls of ``params``: ``explicit K=...``, or ``projection`` with optional
-    ``cfl=``, ``kappa=`` and ``ghost=0`` (a first-order free surface: p = 0 at the air cell's centre)."""
+    """The method on the grid and walls of ``params``: ``explicit K=...``, ``projection`` with optional
+    ``cfl=``, ``kappa=`` and ``ghost=0`` (a first-order free surface: p = 0 at the air cell's centre), or
+    ``engine`` (the engine's projection step)."""
     name, *options = method.split()
     keys = dict(o.split("=", 1) for o in options)
+    if name == "engine":
+        return Explicit(params, x, surface, params.water.bulk_modulus, integrator="projection")
     if name == "projection":
         return ApicProjection(
             params.resolved_n_grid(),
@@ -438,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--methods",
         default=",".join([f"explicit K={k:g}" for k in BULK_MODULI] + ["projection"]),
-        help="comma-separated: explicit K=PA, or projection [cfl=C] [kappa=K] [ghost=0]",
+        help="comma-separated: explicit K=PA, projection [cfl=C] [kappa=K] [ghost=0], or engine",
     )
     ap.add_argument("--out", required=True, help="output folder")
     args = ap.parse_args(argv)

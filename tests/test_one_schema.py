@@ -41,7 +41,9 @@ def test_python_defaults_are_the_rust_defaults(dim):
 
 def test_dataclass_fields_are_the_rust_keys():
     rust = _core.default_params(2)
-    assert fields(MpmParams) == [*rust, "bodies"]  # bodies: written only when there are some
+    # bodies: written only when there are some; integrator: only when not the default
+    assert fields(MpmParams) == [*rust, "bodies", "integrator"]
+    assert "integrator" not in rust and MpmParams().integrator == _core.INTEGRATORS[0]
     assert fields(WaterParams) == list(rust["water"])
     assert fields(SandParams) == list(rust["sand"])
     # faces: written only when some face is overridden
@@ -97,7 +99,8 @@ def test_an_unknown_key_is_refused_naming_it(params, field):
 def test_the_top_level_names_every_allowed_key():
     with pytest.raises(InvalidInputError) as e:
         _core.MpmSolver({"dim": 2, "wter": {}})
-    assert str(e.value) == "wter: unknown parameter (allowed: " + ", ".join([*_core.default_params(2), "bodies"]) + ")"
+    keys = [k for k in _core.default_params(2) if k != "colliders"]
+    assert str(e.value) == "wter: unknown parameter (allowed: " + ", ".join([*keys, "integrator", "colliders", "bodies"]) + ")"
 
 
 @pytest.mark.parametrize(

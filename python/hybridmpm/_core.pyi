@@ -5,10 +5,11 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
+__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "INTEGRATORS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
+INTEGRATORS: tuple[str, ...]
 MAX_BODIES: int
 MAX_HULL_POINTS: int
 MIN_BODY_DENSITY: float

@@ -14,6 +14,7 @@ import numpy as np
 from hybridmpm.cli.common import check_frames_made, latency_ms, out_dir, parse_seed, write_json
 from hybridmpm.conventions import AUDIT_EVERY, AUDIT_MAX, AUDIT_TOL, R_C, RESIDUAL_TOL, SAFEGUARD, SAFEGUARDS
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.params import INTEGRATORS
 from hybridmpm.trajectory import Trajectory
 
 
@@ -52,7 +53,7 @@ def _simulate(args: argparse.Namespace) -> int:
         scene, args.solver, model=args.model, r_c=args.r_c, r_p=args.r_p, dwell=args.dwell, audit_every=args.audit_every, audit_tol=args.audit_tol,
         safeguard=args.safeguard, residual_tol=args.residual_tol, audit_max=args.audit_max, seed=args.seed, threads=args.threads,
         nn_threads=max(1, args.threads) if args.solver == "neural" else 1, n_grid=args.n_grid, particles_per_cell=args.particles_per_cell,
-        calibrated=args.calibrated, **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}), cheap_particles=args.cheap_particles,
+        calibrated=args.calibrated, integrator=args.integrator, **({"cheap": args.cheap, "cheap_grid": args.cheap_grid} if args.solver == "hybrid" else {}), cheap_particles=args.cheap_particles,
     )  # fmt: skip
     label = f"{scene.name} [{args.solver}" + (f" r_c={args.r_c:g}]" if args.solver == "hybrid" else "]")
     ro = rollout(sim, frames, progress=None if args.quiet else label)
@@ -63,7 +64,7 @@ def _simulate(args: argparse.Namespace) -> int:
     summary: dict = {
         "scene": scene.name, "solver": args.solver, "seed": args.seed, "frames": ro.frames_done, "frames_asked": frames,
         "particles": low.num_particles, "particles_full_resolution": scene.num_particles, "boundary_particles": low.num_boundary,
-        "dim": low.dim, "n_grid": low.params.resolved_n_grid(), "dt_frame": low.dt_frame, "r_p": float(low.info.get("r_p", 1.0)), "r_t": sim.r_t,
+        "dim": low.dim, "n_grid": low.params.resolved_n_grid(), "integrator": low.params.integrator, "dt_frame": low.dt_frame, "r_p": float(low.info.get("r_p", 1.0)), "r_t": sim.r_t,
         "wall_ms_per_frame": latency_ms(per_frame), "share_of_frames": {k: v / total for k, v in steps.items()}, **ro.stats,
         "failure": ro.failure, "events": [{"step": k, "frame": k * sim.r_t, "event": e} for k, e in ro.events],
         "threads": args.threads, "version": hybridmpm.__version__, "python": platform.python_version(), "machine": platform.machine(),
@@ -175,7 +176,7 @@ def _simulate(args: argparse.Namespace) -> int:
 #: whatever its value. Their flags default to None (not given), so an explicit value equal to the default (``--r-p 1.0``) is seen.
 _CONFIG_FLAGS = (
     "model", "r_c", "r_p", "dwell", "audit_every", "audit_tol", "safeguard", "residual_tol", "audit_max", "n_grid", "particles_per_cell", "cheap",
-    "cheap_grid", "cheap_particles", "calibrated", "tuned",
+    "cheap_grid", "cheap_particles", "calibrated", "tuned", "integrator",
 )  # fmt: skip
 #: What a configuration flag not given means (the others mean None: the solver's default).
 _CONFIG_DEFAULTS: dict[str, Any] = {"r_c": R_C, "r_p": 1.0, "cheap": "neural", "calibrated": False}
@@ -378,6 +379,13 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         default=None,
         help="--solver mpm --n-grid N: the calibrated coarse material fitted for the scene on that grid (docs/correction.md); refused where none was fitted",
+    )
+    sim.add_argument(
+        "--integrator",
+        default=None,
+        choices=list(INTEGRATORS),
+        help="--solver mpm: how a frame advances: explicit MLS-MPM substeps, or projection: incompressible APIC water at the flow's pace "
+        "(water in the box walls only; docs/large-step.md; default: the scene's)",
     )
     sim.add_argument(
         "--baseline", action="store_true",

@@ -27,6 +27,7 @@ one frame loop), which call :meth:`MpmSolver.step_frame`.
 
 from hybridmpm.conventions import DT_FRAME
 from hybridmpm.mpm.params import (
+    INTEGRATORS,
     WALL_FACES,
     Box,
     Collider,
@@ -47,6 +48,7 @@ from hybridmpm.mpm.solver import MpmSolver, grid_mass
 
 __all__ = [
     "DT_FRAME",
+    "INTEGRATORS",
     "Box",
     "Collider",
     "Condition",

@@ -29,6 +29,12 @@ _SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_sc
 _WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
 _ELASTIC, _SNOW, _VISCO = _SOLVER["elastic"], _SOLVER["snow"], _SOLVER["viscoplastic"]
 
+#: How the solver advances a frame (the Rust ``Integrator``), the default
+#: first: ``"explicit"`` MLS-MPM substeps at the materials' wave speeds, or
+#: ``"projection"``, incompressible APIC water with a pressure projection at
+#: the flow's pace (docs/large-step.md).
+INTEGRATORS: tuple[str, ...] = tuple(_core.INTEGRATORS)
+
 
 @dataclass
 class WaterParams:
@@ -416,6 +422,12 @@ class MpmParams:
     (entries 0 to 4 of the table particles index, by material code);
     ``sets`` holds further sets (entries 5, 6, ...), e.g. a second jelly of
     another stiffness: a particle's ``material_set`` names its entry.
+
+    ``integrator`` is one of :data:`INTEGRATORS`: ``"explicit"`` (MLS-MPM
+    substeps at the CFL bound of the materials' wave speeds) or
+    ``"projection"`` (incompressible APIC water, one step per cell the flow
+    crosses; water in the box walls only: a solver with colliders, bodies,
+    sand or solids refuses its frames naming ``integrator``).
     """
 
     dim: int = 2
@@ -434,6 +446,7 @@ class MpmParams:
     walls: WallParams = field(default_factory=WallParams)
     colliders: list[Collider] = field(default_factory=list)
     bodies: list[Body] = field(default_factory=list)
+    integrator: str = INTEGRATORS[0]
 
     def resolved_n_grid(self) -> int:
         self._check_int("n_grid", self.n_grid, optional=True)
@@ -476,6 +489,8 @@ class MpmParams:
         self._check_int("max_substeps", self.max_substeps)
         self._check_int("num_threads", self.num_threads)
         self._check_number("cfl", self.cfl)
+        if not isinstance(self.integrator, str) or self.integrator not in INTEGRATORS:
+            raise InvalidInputError(f"integrator: must be one of {', '.join(map(repr, INTEGRATORS))}, got {self.integrator!r}", "integrator")
         if self.gravity is not None:
             if isinstance(self.gravity, (str, bytes, dict)) or not isinstance(self.gravity, (Sequence, np.ndarray)) or len(self.gravity) != self.dim:
                 raise InvalidInputError(f"gravity: must be a list of {self.dim} numbers, got {self.gravity!r}", "gravity")
@@ -507,6 +522,12 @@ class MpmParams:
                 raise InvalidInputError(f"colliders[{i}]: must be a Box, a Sphere or a SampledSdf, got {c!r}", f"colliders[{i}]")
         if not isinstance(self.bodies, (list, tuple)) or not all(isinstance(b, Body) for b in self.bodies):
             raise InvalidInputError(f"bodies: must be a list of Body, got {self.bodies!r}", "bodies")
+        if self.integrator != INTEGRATORS[0] and (self.colliders or self.bodies):
+            what = f"{len(self.colliders)} collider(s)" if self.colliders else f"{len(self.bodies)} rigid body(ies)"
+            raise InvalidInputError(
+                f"integrator: the {self.integrator} integrator steps water in the box walls only, and these parameters have {what}: use integrator 'explicit'",
+                "integrator",
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """The plain dict the Rust binding takes (JSON-serialisable); validated
@@ -530,6 +551,8 @@ class MpmParams:
             "walls": self.walls.to_dict(self.dim),
             "colliders": [c.to_dict() for c in self.colliders],
         }
+        if self.integrator != INTEGRATORS[0]:  # absent when explicit, as the Rust dict leaves it out: headers unchanged
+            out["integrator"] = self.integrator
         if self.bodies:  # absent without bodies: the dict (and a checkpoint's header) of a scene without them is unchanged
             out["bodies"] = [b.to_dict() for b in self.bodies]
         return out

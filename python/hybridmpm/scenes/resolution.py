@@ -17,8 +17,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hybridmpm.conventions import MATERIAL_WATER, MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.limits import check_seed
+from hybridmpm.mpm.params import INTEGRATORS
 from hybridmpm.scenes.core import Clusters, Scene
 
 #: The paper's choice (Sec. 3.1.1, from its Fig. 5 ablation).
@@ -342,6 +344,28 @@ def _on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None, k
     return new
 
 
+def with_integrator(scene: Scene, integrator: str | None) -> Scene:
+    """``scene`` stepped by ``integrator`` (one of
+    :data:`hybridmpm.mpm.params.INTEGRATORS`; None: the scene's own). Its
+    spec, the full-resolution reference (:func:`full_resolution`), keeps the
+    scene's own. The projection steps water in the box walls only: a scene
+    with obstacles, bodies or another material is refused. Raises
+    :class:`InvalidInputError` naming ``integrator`` (docs/large-step.md)."""
+    if integrator is None or integrator == scene.params.integrator:
+        return scene
+    params = replace(scene.params, integrator=integrator)
+    params.validate()  # the name, and no obstacles or bodies for the projection
+    if integrator != INTEGRATORS[0]:
+        other = np.flatnonzero(np.asarray(scene.material) != MATERIAL_WATER)
+        if other.size:
+            name = {code: n for n, code in MATERIALS.items()}.get(int(scene.material[other[0]]), "another material")
+            raise InvalidInputError(
+                f"integrator: the {integrator} integrator steps water only, and {scene.name} holds {other.size} particles of {name}: use integrator 'explicit'",
+                "integrator",
+            )
+    return replace(scene, params=params, info={**scene.info, "integrator": integrator})
+
+
 def full_resolution(scene: Scene) -> Scene:
     """The full-resolution scene ``scene`` stands for: itself, unless it was
     clustered to ``r_p < 1`` or moved to another grid than the one it was
@@ -384,4 +408,5 @@ __all__ = [
     "kmeans_seed",
     "on_grid",
     "temporal_downsample",
+    "with_integrator",
 ]

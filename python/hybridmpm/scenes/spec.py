@@ -103,7 +103,7 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import check_nesting, loads_json, read_text_file
 from hybridmpm.limits import check_allocation
 from hybridmpm.materials import Material, block_keys, material_from_block, scene_bases
-from hybridmpm.mpm import DT_FRAME, MpmParams
+from hybridmpm.mpm import DT_FRAME, INTEGRATORS, MpmParams
 from hybridmpm.mpm.bodies import check_bodies
 from hybridmpm.scenes.body_mesh import check_overlaps, resolve_mesh_body
 from hybridmpm.scenes.core import BYTES_PER_PARTICLE, Scene, hydrostatic_volume_ratio, lattice, wall_cells_for, wall_face
@@ -313,6 +313,7 @@ class SceneSpec:
             "gravity": p["gravity"],
             "cfl": p["cfl"],
             "max_substeps": p["max_substeps"],
+            **({"integrator": p["integrator"]} if "integrator" in p else {}),
             "water": p["water"],
             "sand": p["sand"],
             "walls": p["walls"],
@@ -351,7 +352,7 @@ class SceneSpec:
         allowed = {
             "name", "dim", "n_grid", "dt_frame", "frames", "particles_per_cell", "connectivity_radius", "gravity",
             "cfl", "max_substeps", "substeps", "water", "sand", "walls", "blocks", "obstacles", "info",
-            "obstacle_clearance_cells", "bodies",
+            "obstacle_clearance_cells", "bodies", "integrator",
         }  # fmt: skip
         unknown = sorted(set(d) - allowed)
         if unknown:
@@ -360,7 +361,7 @@ class SceneSpec:
         if dim not in (2, 3):
             raise InvalidInputError(f"dim: must be 2 or 3, got {dim!r}", "dim")
         pd: dict[str, Any] = {"dim": dim}
-        for k in ("n_grid", "gravity", "cfl", "max_substeps", "substeps", "water", "sand", "walls"):
+        for k in ("n_grid", "gravity", "cfl", "max_substeps", "substeps", "water", "sand", "walls", "integrator"):
             if k in d:
                 pd[k] = d[k]
         # a mesh obstacle is checked here and sampled once the grid is known; a path is set aside until then
@@ -401,7 +402,12 @@ class SceneSpec:
                 raise InvalidInputError(f"{f}: expected a table/object", f)
             mat = b.get("material")
             keys = {k: v for k, v in b.items() if k not in _BLOCK_KEYS}
-            material_from_block(mat, keys, f, bases)  # the model or preset and its keys, each checked
+            resolved = material_from_block(mat, keys, f, bases)  # the model or preset and its keys, each checked
+            if params.integrator != INTEGRATORS[0] and resolved.name != "water":
+                raise InvalidInputError(
+                    f"integrator: the {params.integrator} integrator steps water only, and {f} is {resolved.name} ({mat}): use integrator 'explicit'",
+                    "integrator",
+                )
             lo = check_vec(f"{f}.lo", b.get("lo"), dim)
             hi = check_vec(f"{f}.hi", b.get("hi"), dim)
             if np.any(hi <= lo):
@@ -617,6 +623,8 @@ def _guess_field(pd: dict[str, Any]) -> str:
         if k == "gravity" and not (isinstance(v, list) and all(is_number(x) for x in v)):
             return k
         if k in ("cfl", "n_grid", "max_substeps", "substeps") and v is not None and not is_number(v):
+            return k
+        if k == "integrator" and not isinstance(v, str):
             return k
         if isinstance(v, dict):
             for key, val in v.items():

@@ -226,8 +226,9 @@ class SessionBackend(Protocol[S]):
         ...
 
     # ------------------------------------------------------------ lifecycle
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> S:
-        """A new session for ``client``: :class:`SessionCapError`, :class:`QuotaError`,
+    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None) -> S:
+        """A new session for ``client`` (``n_grid``, ``integrator``: its MPM's, None: the scene's):
+        :class:`SessionCapError`, :class:`QuotaError`,
         :class:`~hybridmpm.service.budget.BudgetFullError`, :class:`StoreSaveError`, the simulator's refusal."""
         ...
 

@@ -41,7 +41,7 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedBodies, RecordedFrame, Recording
 from hybridmpm.service.edits import SessionEdits
 from hybridmpm.service.episode import run_episode
-from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry
+from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry, session_integrator
 from hybridmpm.service.schemas import clean
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
 from hybridmpm.sim import Frame, Rollout, Simulator, make_simulator, rollout
@@ -177,7 +177,8 @@ class SessionCore(SessionEdits):
         """A new session (:func:`hybridmpm.sim.make_simulator` with ``threads``
         MPM threads and one network thread). Blocks; raises the simulator's
         :class:`~hybridmpm.errors.InvalidInputError` for bad settings."""
-        sim = make_simulator(settings.scene, settings.solver, r_c=settings.r_c, seed=settings.seed, threads=threads, nn_threads=1, n_grid=settings.n_grid)
+        s = settings
+        sim = make_simulator(s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=threads, nn_threads=1, n_grid=s.n_grid, integrator=s.integrator)
         return cls(key, settings, sim, sim.state(), client, budget, threads)
 
     @classmethod
@@ -186,7 +187,7 @@ class SessionCore(SessionEdits):
         as the record says, on :func:`session_threads` MPM threads (at most
         ``most_threads``; :func:`~hybridmpm.service.store.rebuild`; raises
         what it raises). Blocks."""
-        settings = SessionSettings(rec.scene, rec.seed, rec.solver, rec.r_c, rec.n_grid)
+        settings = SessionSettings(rec.scene, rec.seed, rec.solver, rec.r_c, rec.n_grid, rec.integrator)
         threads = session_threads(settings, most_threads)
         sim, initial = rebuild(rec, threads)
         core = cls(rec.key, settings, sim, initial, rec.client, budget, threads)
@@ -229,6 +230,7 @@ class SessionCore(SessionEdits):
             "saved_frame": self.saved_frame,
             "restored_from_frame": self.restored_from_frame,
             **scene_geometry(self.sim),
+            "integrator": session_integrator(self.sim),  # what runs (the settings' meta holds it only when asked)
             "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
             "bodies": self.bodies_now(),
             "recorded_frames": len(self.recording),
@@ -483,7 +485,9 @@ class SessionCore(SessionEdits):
             bodies = self.bodies_given()
             if self.poured:
                 s = self.settings
-                self.sim = make_simulator(s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=self.threads, nn_threads=1, n_grid=s.n_grid)
+                self.sim = make_simulator(
+                    s.scene, s.solver, r_c=s.r_c, seed=s.seed, threads=self.threads, nn_threads=1, n_grid=s.n_grid, integrator=s.integrator
+                )
                 self.facts, self.poured = SessionFacts.of(self.sim), False
                 f = self.facts
                 self.on_event({"type": "particles", "frame": 0, "added": 0, "num_particles": f.num_total, "num_fluid": f.num_fluid,

@@ -19,9 +19,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.service.budget import Recording
-from hybridmpm.service.facts import SessionFacts
+from hybridmpm.service.facts import SessionFacts, session_integrator
 from hybridmpm.service.schemas import clean
 from hybridmpm.sim import Frame, Simulator
 
@@ -63,10 +65,23 @@ class SessionEdits:
         self.on_event({"type": "obstacle", "index": int(index), "center": [float(x) for x in center]})
         return frame
 
+    def _water_only(self, what: str) -> None:
+        """Refuse ``what`` (an edit that would put something besides water in the box) on a session whose MPM
+        is not the explicit one: the projection steps water in the box walls only, so every later step would be
+        refused. :class:`InvalidInputError` naming ``integrator``; the session unchanged."""
+        integrator = session_integrator(self.sim)
+        if integrator != INTEGRATORS[0]:
+            raise InvalidInputError(
+                f"integrator: this session's {integrator} integrator steps water in the box walls only, so it takes no {what}; "
+                f"create the session with integrator '{INTEGRATORS[0]}'",
+                "integrator",
+            )
+
     def pour(self, block: dict[str, Any]) -> dict[str, Any]:
         """Add ``block`` (a scene file's block: ``material``, its parameters,
         ``lo``, ``hi``, ``velocity``) between frames (:func:`hybridmpm.sim.pour.pour_block`;
-        its errors name the field and leave the session unchanged). The recent
+        its errors name the field and leave the session unchanged; a session on
+        the projection takes water only, :meth:`_water_only`). The recent
         trajectory starts again; the viewers get the frame and a ``particles``
         event with the new count and particle types. Returns ``{"added",
         "num_particles", "frame", "facts"}`` (``facts``: the session's new
@@ -75,6 +90,8 @@ class SessionEdits:
 
         with self.lock:
             self._open()
+            if block.get("material") != "water":
+                self._water_only(f"block of {block.get('material')!r}")
             before = self.facts.num_total
             pour_block(self.sim, block)
             self.facts = SessionFacts.of(self.sim)
@@ -136,10 +153,11 @@ class SessionEdits:
         """Add rigid body ``body`` (a scene file's ``[[bodies]]`` table)
         between frames (:meth:`hybridmpm.sim.MpmSimulator.add_body`; its
         errors name the field, ``bodies[i].density``, and leave the session
-        unchanged); the viewers get a ``bodies`` event with every body as
+        unchanged; a session on the projection takes none, :meth:`_water_only`); the viewers get a ``bodies`` event with every body as
         given. Returns ``{"index", "num_bodies", "frame", "facts"}``."""
         with self.lock:
             self._open()
+            self._water_only("rigid bodies")
             index = int(self.sim.add_body(body))  # type: ignore[attr-defined] # MPM only (the route refuses the others)
             self._changed()
             frame, num = self.frame_index, len(self.bodies_given())

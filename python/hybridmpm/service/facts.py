@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.mpm import SampledSdf
+from hybridmpm.mpm import INTEGRATORS, SampledSdf
 from hybridmpm.render.surface_scene import surface_settings
 from hybridmpm.scenes import scene_spec
 from hybridmpm.sim import Simulator
@@ -27,19 +27,24 @@ class SessionSettings:
     """What a session was created with, and what rebuilds it: ``scene``
     (its registered name), ``seed``, ``solver`` (``mpm``, ``hybrid``,
     ``neural``), ``r_c`` (the coarsening ratio of a learned solver) and
-    ``n_grid`` (MPM on a coarser grid of the scene; None: the scene's own)."""
+    ``n_grid`` (MPM on a coarser grid of the scene; None: the scene's own)
+    and ``integrator`` (what MPM steps with, one of
+    :data:`hybridmpm.mpm.INTEGRATORS`; None: the scene's own)."""
 
     scene: str
     seed: int
     solver: str
     r_c: float
     n_grid: int | None = None
+    integrator: str | None = None
 
     def meta(self) -> dict[str, Any]:
-        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c``, and ``n_grid`` when asked."""
+        """What a checkpoint of the session is written for (its ``meta``): scene, seed, solver, ``r_c``, and ``n_grid`` and ``integrator`` when asked."""
         d: dict[str, Any] = {"scene": self.scene, "seed": self.seed, "solver": self.solver, "r_c": self.r_c}
         if self.n_grid is not None:
             d["n_grid"] = self.n_grid
+        if self.integrator is not None:
+            d["integrator"] = self.integrator
         return d
 
 
@@ -122,6 +127,28 @@ def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
     return int(n_grid)
 
 
+def checked_integrator(solver: str, integrator: str | None) -> str | None:
+    """A session's ``integrator`` as asked: None, or one of
+    :data:`hybridmpm.mpm.INTEGRATORS` for the ``mpm`` solver (whether the
+    scene takes it — water in the box walls only — the simulator checks when
+    it is built). Raises :class:`InvalidInputError` naming ``integrator``."""
+    if integrator is None:
+        return None
+    if integrator not in INTEGRATORS:
+        raise InvalidInputError(f"integrator: must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}", "integrator")
+    if solver == "default":
+        raise InvalidInputError("integrator: applies to the mpm solver; the default solver runs the configuration the chart chose for the scene", "integrator")
+    if solver != "mpm":
+        raise InvalidInputError(f"integrator: applies to the mpm solver; the {solver} solver's MPM part runs its scene's integrator", "integrator")
+    return str(integrator)
+
+
+def session_integrator(sim: Simulator) -> str:
+    """What ``sim``'s MPM steps with (:data:`hybridmpm.mpm.INTEGRATORS`): an
+    MPM session's own, a hybrid or neural one's MPM part's (its scene's)."""
+    return str(getattr(sim.scene.params, "integrator", INTEGRATORS[0]))
+
+
 def scene_geometry(sim: Simulator) -> dict[str, Any]:
     """What a viewer draws besides the particles: the grid size, the walls'
     thickness [m] and the obstacles (the MPM colliders, as their ``to_dict``;
@@ -144,4 +171,4 @@ def _drawn(c: Any) -> dict[str, Any]:
     return dict(c.to_dict())
 
 
-__all__ = ["SessionFacts", "SessionSettings", "checked_n_grid", "scene_geometry"]
+__all__ = ["SessionFacts", "SessionSettings", "checked_integrator", "checked_n_grid", "scene_geometry", "session_integrator"]

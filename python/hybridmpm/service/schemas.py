@@ -10,6 +10,7 @@ from pydantic import Strict as StrictType
 
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
+from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.scenes import DOMAINS
 
 #: Most points of a sketch stroke accepted over HTTP (the page simplifies to ≤ 512).
@@ -23,6 +24,8 @@ Number = Annotated[float, StrictType()]
 Integer = Annotated[int, StrictType()]
 
 SceneName = Enum("SceneName", {name: name for name in sorted(DOMAINS)}, type=str)  # type: ignore[misc]
+#: An MPM integrator's name (:data:`hybridmpm.mpm.INTEGRATORS`, spelled once there; the default first).
+IntegratorName = Literal[INTEGRATORS]  # type: ignore[valid-type]
 
 
 class Strict(BaseModel):
@@ -58,6 +61,11 @@ class CreateSession(Strict):
         le=4096,
         description="solver mpm: run on a coarser grid of the scene's domain (the same blocks, obstacles and wall faces; "
         "at most the scene's own grid); null: the scene's grid",
+    )
+    integrator: IntegratorName | None = Field(
+        None,
+        description="solver mpm: how a frame advances (explicit MLS-MPM substeps, or projection: incompressible water at the flow's pace; "
+        "water scenes without obstacles or bodies only); null: the scene's",
     )
 
 
@@ -107,6 +115,10 @@ class SessionInfo(BaseModel):
         None, description="the frame the session resumed from when a restarted server restored it from its store; null if it was not restored"
     )
     n_grid: int | None = Field(None, description="grid cells per dimension of the scene's MPM grid")
+    integrator: str = Field(
+        description="what the session's MPM steps with (hybridmpm.mpm.INTEGRATORS: explicit MLS-MPM substeps, or the incompressible "
+        "projection); a hybrid or neural session's MPM part runs its scene's"
+    )
     wall_thickness: float = Field(0.0, description="thickness of the domain's walls [m]: the fluid stays within [t, 1 - t] on every axis")
     obstacles: list[dict[str, Any]] = Field(
         default_factory=list,

@@ -228,9 +228,12 @@ class SessionManager:
         held = sum(1 for s in (*self.sessions.values(), *self.unclaimed.values()) if s.client == client)
         return held + self.reserved_by[client]
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> LocalSession:
+    async def create(
+        self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None
+    ) -> LocalSession:
         """Build a session for the client address ``client`` (``n_grid``: MPM
-        on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`).
+        on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`;
+        ``integrator``: what its MPM steps with, :func:`~hybridmpm.service.facts.checked_integrator`).
         With a store the session is saved before it is answered; when that
         save fails the session is dropped and :class:`StoreSaveError` raised
         (nothing already saved changes).
@@ -248,7 +251,7 @@ class SessionManager:
         self.reserved_by[client] += 1
         try:
             sid = secrets.token_urlsafe(24)  # 192 bits
-            settings = SessionSettings(scene, int(seed), solver, float(r_c), n_grid)
+            settings = SessionSettings(scene, int(seed), solver, float(r_c), n_grid, integrator)
             with self.budget.hold(SESSION_OVERHEAD, "a new session"):
                 threads = await self.compute(session_threads, settings, self.config.compute_threads)
                 core = await self.compute(functools.partial(SessionCore.build, session_key(sid), settings, client, self.budget, threads))

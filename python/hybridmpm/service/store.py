@@ -45,6 +45,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import FILE_KINDS, read_regular_file
+from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.scenes.core import Clusters
 from hybridmpm.service import checkpoint as ckpt
 
@@ -82,6 +83,7 @@ class StoredSession:
     state: dict[str, Any]
     nbytes: int
     n_grid: int | None = None
+    integrator: str | None = None
 
     def expired(self, ttl: float) -> bool:
         """Idle for more than ``ttl`` seconds of wall time since its last use
@@ -113,6 +115,9 @@ def parse_record(key: str, data: bytes, max_bytes: int) -> StoredSession:
     n_grid = meta.get("n_grid")  # records of sessions on the scene's grid (and older records) have none
     if n_grid is not None and (isinstance(n_grid, bool) or not isinstance(n_grid, int) or not 16 <= n_grid <= 4096):
         raise _bad(key, f"meta.n_grid: not an integer in [16, 4096] (got {n_grid!r})")
+    integrator = meta.get("integrator")  # records of sessions on the scene's integrator (and older records) have none
+    if integrator is not None and integrator not in INTEGRATORS:
+        raise _bad(key, f"meta.integrator: not one of {', '.join(map(repr, INTEGRATORS))} (got {integrator!r})")
     return StoredSession(
         key,
         meta["scene"],
@@ -124,6 +129,7 @@ def parse_record(key: str, data: bytes, max_bytes: int) -> StoredSession:
         state,
         len(data),
         n_grid,
+        integrator,
     )
 
 
@@ -154,7 +160,9 @@ def rebuild(rec: StoredSession, threads: int = 1) -> tuple[Any, dict[str, Any]]:
         if not isinstance(raw, dict) or set(raw) != {"labels", "boundary_labels"}:
             raise InvalidInputError(f"store: session {rec.key[:SHOWN_KEY_CHARS]}…: {CLUSTERS_KEY} must hold labels and boundary_labels", "checkpoint")
         clusters = Clusters(np.asarray(raw["labels"]), np.asarray(raw["boundary_labels"]))
-    sim = make_simulator(rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=threads, nn_threads=1, clusters=clusters, n_grid=rec.n_grid)
+    sim = make_simulator(
+        rec.scene, rec.solver, r_c=rec.r_c, seed=rec.seed, threads=threads, nn_threads=1, clusters=clusters, n_grid=rec.n_grid, integrator=rec.integrator
+    )
     initial = sim.state()
     sim.restore(state)
     return sim, initial

@@ -56,6 +56,7 @@ def make_simulator(
     cheap_grid: int | None = None,
     cheap_particles: str | None = None,
     calibrated: bool = False,
+    integrator: str | None = None,
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "default" (the scene's shipped default
     configuration, :func:`default_settings`; only ``seed``, ``threads``,
@@ -76,7 +77,10 @@ def make_simulator(
     the network's ``r_p`` set, the default; "grid": the grid's own set,
     merged and split at each handover; :data:`~hybridmpm.sim.hybrid.TWIN_PARTICLES`);
     ``calibrated`` runs MPM on ``n_grid`` with the calibrated coarse material
-    of the scene (:func:`~hybridmpm.scenes.resolution.calibrate`).
+    of the scene (:func:`~hybridmpm.scenes.resolution.calibrate`);
+    ``integrator`` steps MPM with "explicit" substeps or the incompressible
+    "projection" (:func:`~hybridmpm.scenes.resolution.with_integrator`,
+    docs/large-step.md; None: the scene's).
     ``seed`` an integer in [0, 2^63) (the scene's initial condition and the
     k-means of the downsampling: :func:`~hybridmpm.scenes.resolution.kmeans_seed`).
     "default" takes a registered scene's default; a scene file (or spec) of
@@ -95,7 +99,7 @@ def make_simulator(
             ("model", model, None), ("r_c", r_c, R_C), ("r_p", r_p, 1.0), ("dwell", dwell, None), ("audit_every", audit_every, None),
             ("audit_tol", audit_tol, None), ("safeguard", safeguard, None), ("residual_tol", residual_tol, None), ("audit_max", audit_max, None),
             ("n_grid", n_grid, None), ("particles_per_cell", particles_per_cell, None), ("cheap", cheap, "neural"), ("cheap_grid", cheap_grid, None),
-            ("cheap_particles", cheap_particles, None), ("calibrated", calibrated, False),
+            ("cheap_particles", cheap_particles, None), ("calibrated", calibrated, False), ("integrator", integrator, None),
         ):  # fmt: skip
             if value != unset:
                 raise InvalidInputError(
@@ -110,6 +114,7 @@ def make_simulator(
             ("n_grid", n_grid, None),
             ("particles_per_cell", particles_per_cell, None),
             ("calibrated", calibrated, False),
+            ("integrator", integrator, None),
         ):
             if value != unset:
                 raise InvalidInputError(f"{name}: applies to the mpm solver; the {solver} solver runs at its model's resolution", name)
@@ -118,7 +123,15 @@ def make_simulator(
     twin: dict[str, Any] = {} if cheap_particles is None else {"cheap_particles": cheap_particles}
     if solver == "mpm":
         return MpmSimulator(
-            scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters, n_grid=n_grid, particles_per_cell=particles_per_cell, calibrated=calibrated
+            scene,
+            r_p=r_p,
+            seed=seed,
+            threads=threads,
+            clusters=clusters,
+            n_grid=n_grid,
+            particles_per_cell=particles_per_cell,
+            calibrated=calibrated,
+            integrator=integrator,
         )
     if solver == "neural":
         return NeuralSimulator(scene, model, seed=seed, mpm_threads=threads, nn_threads=nn_threads, clusters=clusters)

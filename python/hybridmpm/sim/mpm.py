@@ -38,7 +38,7 @@ from hybridmpm.scenes.body_mesh import bounding_radius, resolve_mesh_body
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.scenes.obstacles import obstacle_center
 from hybridmpm.scenes.particles import ParticleSet
-from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid
+from hybridmpm.scenes.resolution import at_resolution, check_r_t, on_grid, with_integrator
 from hybridmpm.sim.base import (
     MPM,
     Forcing,
@@ -98,6 +98,11 @@ class MpmSimulator:
         Run the calibrated coarse material of the scene on ``n_grid``
         (:func:`~hybridmpm.scenes.resolution.calibrate`; docs/correction.md);
         refused (field ``calibrated``) where no fit exists.
+    integrator:
+        ``"explicit"`` or ``"projection"`` (:data:`hybridmpm.mpm.INTEGRATORS`;
+        :func:`~hybridmpm.scenes.resolution.with_integrator`); None: the
+        scene's. The projection steps water in the box walls only (field
+        ``integrator`` otherwise; docs/large-step.md).
 
     ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
     :class:`InvalidInputError` naming the bad parameter.
@@ -118,6 +123,7 @@ class MpmSimulator:
         particles_per_cell: int | None = None,
         keep_particles: bool = False,
         calibrated: bool = False,
+        integrator: str | None = None,
     ) -> None:
         self._lock = new_lock()
         if isinstance(scene, str):
@@ -125,7 +131,8 @@ class MpmSimulator:
         self.r_t = check_r_t(r_t)
         threads = check_int("threads", threads, 0)
         self.scene_full = scene
-        self.scene = at_resolution(on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles, calibrated=calibrated), r_p, seed, clusters)
+        scene_on_grid = on_grid(scene, n_grid, particles_per_cell, keep_particles=keep_particles, calibrated=calibrated)
+        self.scene = at_resolution(with_integrator(scene_on_grid, integrator), r_p, seed, clusters)
         self.solver: MpmSolver = self.scene.make_solver(num_threads=threads)
         self.particles = self.scene.particles(self.solver.masses)
         #: the scene's own solver parameters and particles: a state with blocks poured after them restores (:meth:`restore`)

@@ -1,15 +1,12 @@
-//! Frame time of the dam break under the explicit step and under the
-//! projection step (`hybridmpm_mpm::projection`), on the same particles:
+//! Frame time of the dam break under each integrator, on the same
+//! particles and the same threads:
 //! `CARGO_TARGET_DIR=target/checks cargo run --profile checks -p hybridmpm-mpm --example large_step -- 3d 2 150`
-//! (dimension `2d` or `3d`, the explicit solver's threads, frames timed
-//! after 15). The column is `dam_break2d`'s (128², base 24 cells) or
-//! `dam_break3d`'s (34³, base 7 cells, wall to wall in z), at 2 particles per
-//! cell per axis. The projection runs on one thread. docs/large-step.md ("Large
-//! steps") quotes it.
+//! (dimension `2d` or `3d`, threads, frames timed after 15). The column is
+//! `dam_break2d`'s (128², base 24 cells) or `dam_break3d`'s (34³, base 7
+//! cells, wall to wall in z), at 2 particles per cell per axis.
+//! docs/large-step.md quotes it.
 use hybridmpm_mpm::particles::lattice_box;
-use hybridmpm_mpm::projection::{Projection, ProjectionStats};
-use hybridmpm_mpm::{Dim, DimOps, Material, Particle, Solver, SolverParams};
-use nalgebra::SVector;
+use hybridmpm_mpm::{Dim, DimOps, Integrator, Material, Particle, Solver, SolverParams};
 use std::time::Instant;
 
 fn column<const D: usize>(n: usize, a_cells: usize) -> Vec<Particle<D>> {
@@ -29,55 +26,36 @@ where
     Dim<D>: DimOps<D>,
 {
     let ps = column::<D>(n, a_cells);
-    let params = SolverParams::<D> {
-        n_grid: n,
-        num_threads: threads,
-        ..Default::default()
-    };
-    let mut gravity = SVector::<f32, D>::zeros();
-    gravity[1] = params.gravity[1];
-    let mut solver = Solver::new(params, vec![]).unwrap();
-    solver.set_particles(ps.clone()).unwrap();
-    let (mut explicit_ms, mut substeps) = (0.0, 0);
-    for f in 0..15 + frames {
-        let t = Instant::now();
-        let stats = solver.step_frame(2.5e-3).unwrap();
-        if f >= 15 {
-            explicit_ms += t.elapsed().as_secs_f64() * 1e3;
-            substeps += stats.substeps;
-        }
-    }
-    let mut particles = ps;
-    let mut projection = Projection::<D>::new(n, 3);
-    let (mut projection_ms, mut steps, mut iterations, mut cells) = (0.0, 0, 0, 0);
-    for f in 0..15 + frames {
-        let t = Instant::now();
-        let k = projection.steps_for(&particles, &gravity, 2.5e-3);
-        let mut last = ProjectionStats::default();
-        for _ in 0..k {
-            last = projection.step(&mut particles, 2.5e-3 / k as f32, &gravity, 1000.0);
+    let mut ms = Vec::new();
+    for integrator in Integrator::ALL {
+        let params = SolverParams::<D> {
+            n_grid: n,
+            num_threads: threads,
+            integrator,
+            ..Default::default()
+        };
+        let mut solver = Solver::new(params, vec![]).unwrap();
+        solver.set_particles(ps.clone()).unwrap();
+        let (mut wall, mut steps) = (0.0, 0);
+        for f in 0..15 + frames {
+            let t = Instant::now();
+            let stats = solver.step_frame(2.5e-3).unwrap();
             if f >= 15 {
-                iterations += last.iterations;
+                wall += t.elapsed().as_secs_f64() * 1e3;
+                steps += stats.substeps;
             }
         }
-        if f >= 15 {
-            projection_ms += t.elapsed().as_secs_f64() * 1e3;
-            steps += k;
-            cells += last.fluid_cells;
-        }
+        let nf = frames as f64;
+        println!(
+            "{D}D {n} grid, {} particles, {threads} threads: {} {:.2} ms/frame ({:.2} steps a frame)",
+            ps.len(),
+            integrator.name(),
+            wall / nf,
+            steps as f64 / nf,
+        );
+        ms.push(wall);
     }
-    let nf = frames as f64;
-    println!(
-        "{D}D {n} grid, {} particles: explicit {:.2} ms/frame ({:.2} substeps, {threads} threads); projection {:.2} ms/frame ({:.2} steps, {:.0} CG iterations a step, {:.0} fluid cells, 1 thread); ratio {:.2}",
-        particles.len(),
-        explicit_ms / nf,
-        substeps as f64 / nf,
-        projection_ms / nf,
-        steps as f64 / nf,
-        iterations as f64 / steps as f64,
-        cells as f64 / nf,
-        projection_ms / explicit_ms,
-    );
+    println!("projection / explicit: {:.2}", ms[1] / ms[0]);
 }
 
 fn main() {

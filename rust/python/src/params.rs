@@ -220,6 +220,12 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
         "SOLID_PROJECT_DEPTH_CELLS",
         hybridmpm_mpm::collider::SOLID_PROJECT_DEPTH_CELLS,
     )?;
+    // the names `integrator` takes, the default first
+    let names: Vec<&str> = hybridmpm_mpm::Integrator::ALL
+        .iter()
+        .map(|i| i.name())
+        .collect();
+    m.add("INTEGRATORS", pyo3::types::PyTuple::new(m.py(), names)?)?;
     Ok(())
 }
 

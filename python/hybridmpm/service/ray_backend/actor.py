@@ -87,7 +87,7 @@ def _answer(method: _F) -> _F:
 class SessionActor:
     """One session in a Ray actor (named ``ACTOR_PREFIX`` + ``key``).
 
-    Built from ``scene``, ``seed``, ``solver``, ``r_c``, ``n_grid`` for the
+    Built from ``scene``, ``seed``, ``solver``, ``r_c``, ``n_grid``, ``integrator`` for the
     client address ``client`` — or, with ``restore`` or when Ray restarts
     the actor after its process died, from its last save in the store.
     ``settings``: ``store`` (URL or None), ``save_every_s``, ``idle_ttl_s``,
@@ -114,6 +114,7 @@ class SessionActor:
         settings: dict[str, Any],
         restore: bool = False,
         n_grid: int | None = None,
+        integrator: str | None = None,
     ) -> None:
         self.key = key
         self.settings = dict(settings)
@@ -142,7 +143,7 @@ class SessionActor:
                 core = SessionCore.load(self.store.load(key, int(self.settings["max_checkpoint_bytes"])), budget)
                 log.info("store: session %s… restored at frame %d (pid %d)", key[:SHOWN_KEY_CHARS], core.frame_index, os.getpid())
             else:
-                core = SessionCore.build(key, SessionSettings(scene, int(seed), solver, float(r_c), n_grid), client, budget)
+                core = SessionCore.build(key, SessionSettings(scene, int(seed), solver, float(r_c), n_grid, integrator), client, budget)
         except _REFUSALS as e:
             self.failed = (type(e).__name__, str(e), getattr(e, "field", None))
             log.warning("session %s…: %s", key[:SHOWN_KEY_CHARS], e)

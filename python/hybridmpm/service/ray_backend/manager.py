@@ -144,7 +144,9 @@ class RaySessionManager:
                 raise InvalidInputError(str(refused), "store")
 
     # ------------------------------------------------------------ actors
-    def _spawn(self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool, n_grid: int | None = None) -> Any:
+    def _spawn(
+        self, key: str, scene: str, seed: int, solver: str, r_c: float, client: str, restore: bool, n_grid: int | None = None, integrator: str | None = None
+    ) -> Any:
         """The session actor of ``key`` (created, or the one already there). Blocks: call it off the event loop."""
         return self.actor_class.options(
             name=ACTOR_PREFIX + key,
@@ -156,7 +158,7 @@ class RaySessionManager:
             max_task_retries=0,
             max_concurrency=ACTOR_THREADS,
             scheduling_strategy="SPREAD",
-        ).remote(key, scene, seed, solver, r_c, client, self.settings, restore, n_grid)
+        ).remote(key, scene, seed, solver, r_c, client, self.settings, restore, n_grid, integrator)
 
     def _lookup(self, key: str) -> Any:
         """The live actor of ``key``, or None. Blocks."""
@@ -240,7 +242,7 @@ class RaySessionManager:
             return None
         await self._reserve(key, rec.client, restoring=True)
         try:
-            return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True, rec.n_grid)
+            return await anyio.to_thread.run_sync(self._spawn, key, rec.scene, rec.seed, rec.solver, rec.r_c, rec.client, True, rec.n_grid, rec.integrator)
         except Exception:
             await self._end(key, None)
             raise
@@ -311,7 +313,9 @@ class RaySessionManager:
         """Sessions of the whole cluster (the registry's count)."""
         return int(await self.registry.count.remote())
 
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None) -> RaySession:
+    async def create(
+        self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None
+    ) -> RaySession:
         """A new session in its own actor. Raises :class:`SessionCapError` /
         :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
         when the cluster has no CPU for it, and the simulator's
@@ -322,7 +326,7 @@ class RaySessionManager:
         actor = None
         try:
             await self._room()
-            actor = await anyio.to_thread.run_sync(self._spawn, key, scene, seed, solver, r_c, client, False, n_grid)
+            actor = await anyio.to_thread.run_sync(self._spawn, key, scene, seed, solver, r_c, client, False, n_grid, integrator)
             try:
                 facts = await self._ready(actor, PLACE_TIMEOUT_S)
             except SessionGoneError:

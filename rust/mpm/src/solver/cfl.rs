@@ -25,7 +25,7 @@ where
     /// `sqrt(K/ρ)` (or, if larger, its viscous limit as a speed,
     /// [`crate::params::WaterParams::viscous_speed`]), the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
     /// hardened by `e^{ξ(1 − J_P)}` at its smallest `J_P` present.
-    fn wave_speed(&self) -> f32 {
+    pub(super) fn wave_speed(&self) -> f32 {
         self.wave_speed_of().0
     }
 
@@ -120,8 +120,8 @@ where
         };
         // and so does a body's fastest point
         let vmax = vmax.max(self.bodies.max_speed());
-        let c = self.wave_speed();
-        let dt_max = self.params.cfl * self.params.dx() / (c + vmax).max(1e-6);
+        let (cfl, c) = self.step_bound();
+        let dt_max = cfl * self.params.dx() / (c + vmax).max(1e-6);
         let needed = (dt_frame / dt_max).ceil();
         // `needed` may be inf (dt_max = 0) or far beyond usize: compare before converting
         if !(needed as f64 <= self.params.max_substeps as f64) {
@@ -153,14 +153,19 @@ where
             }
             let (c, set) = self.wave_speed_of();
             let wave_of = match set {
+                _ if !self.params.integrator.is_explicit() => "the projection (√(|g|·dx))".into(),
                 Some(s) => format!(
                     "parameter set {s} ({})",
                     self.models.params[s].material().name()
                 ),
                 None => "no material".to_string(),
             };
-            let dt_max64 =
-                self.params.cfl as f64 * self.params.dx() as f64 / (c as f64 + vmax64).max(1e-6);
+            let c = if self.params.integrator.is_explicit() {
+                c
+            } else {
+                self.step_bound().1
+            };
+            let dt_max64 = cfl as f64 * self.params.dx() as f64 / (c as f64 + vmax64).max(1e-6);
             return Err(MpmError::TooManySubsteps {
                 needed: (dt_frame as f64 / dt_max64).ceil(),
                 max_substeps: self.params.max_substeps,
@@ -200,6 +205,9 @@ where
             self.pool_pid = std::process::id();
         }
         let n_sub = self.substeps_for(dt_frame)?;
+        if !self.params.integrator.is_explicit() {
+            return self.step_frame_projection(dt_frame, n_sub);
+        }
         self.begin_moves(dt_frame);
         if self.particles.is_empty() {
             self.end_moves(true);

@@ -37,6 +37,7 @@ mod frame;
 mod g2p;
 mod grid;
 mod grid_update;
+mod large_step;
 mod mode;
 mod p2g;
 mod team;
@@ -192,6 +193,8 @@ where
     /// Memory budget [bytes] for what the inputs make the solver allocate
     /// (`None`: unlimited); see [`Solver::with_memory_budget`].
     memory_budget: Option<u64>,
+    /// The projection integrator's grids (`large_step.rs`), made by its first frame.
+    large_step: Option<Box<crate::projection::Projection<D>>>,
 }
 
 impl<const D: usize> Solver<D>
@@ -278,6 +281,7 @@ where
             profile: std::env::var_os("HYBRIDMPM_PROFILE").is_some(),
             isa,
             memory_budget,
+            large_step: None,
         })
     }
 

@@ -11,6 +11,7 @@ mod body_shapes;
 mod body_stability;
 mod common;
 mod golden;
+mod large_step;
 mod limits;
 mod material_checks;
 mod materials;

@@ -6,7 +6,7 @@
 //! 1. p2g: each velocity component lives on its own face grid (component
 //!    `a` at `(i + ½ − ½·e_a)·dx`); a particle spreads its mass and its
 //!    affine momentum `m·(v_a + c_a·(x_i − x_p))` there with quadratic
-//!    B-spline weights ([`quadratic_weights`]), its external acceleration as
+//!    B-spline weights (`crate::kernel::quadratic_weights`), its external acceleration as
 //!    momentum `m·a·dt`;
 //! 2. gravity on the face velocities;
 //! 3. the projection: the cells holding a particle (away from the walls) are
@@ -24,14 +24,21 @@
 //! tangential components inside a wall copy the fluid's next to it. The
 //! step is bounded by advection only ([`Projection::steps_for`]).
 //!
-//! Everything runs on one thread in a fixed order (the CG's sums in f64), so
-//! a step is the same bits whatever the pool. `benchmarks/large_step.py`
+//! A step is the same bits whatever the threads: p2g runs in two parts of
+//! the particles fixed by their count (`transfer.rs`), summed in one order;
+//! g2p gives each particle its own; the pressure solve is serial, its sums
+//! in f64, and starts from zero, so a step reads nothing but the particles.
+//! It runs on the pool it is called in (the solver's:
+//! `solver/large_step.rs`). `benchmarks/large_step.py`
 //! holds the prototype this module follows and its checks (docs/large-step.md).
 
 use nalgebra::SVector;
+use rayon::prelude::*;
 
-use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
+use transfer::{Kernel, Part, for_each_node, kinds};
+
+mod transfer;
 
 /// The volume correction's rate `κ` (per step, of the relative excess density).
 pub const VOLUME_CORRECTION: f32 = 0.1;
@@ -71,7 +78,13 @@ pub struct Projection<const D: usize> {
     index: Vec<u32>,
     pressure: Vec<f64>,
     fluid: Vec<usize>,
+    /// The two parts of the p2g ([`Part`]) and the cells holding a particle (scratch).
+    parts: [Part; 2],
+    marked: Vec<bool>,
 }
+
+/// Particles a g2p task takes at once.
+const G2P_CHUNK: usize = 1024;
 
 /// A face grid's shape: `n` cells a side, `n + 1` nodes along `axis` (`None`: the cell centres).
 fn shape<const D: usize>(n: usize, axis: Option<usize>) -> [usize; D] {
@@ -84,68 +97,6 @@ fn strides<const D: usize>(s: &[usize; D]) -> [usize; D] {
         st[d] = st[d + 1] * s[d + 1];
     }
     st
-}
-
-/// A particle's 3^D stencil on a grid of nodes at `(i + shift_d)·dx`: per axis the first node
-/// (clamped so the stencil stays on the grid) and the weights and offsets `x_i − x_p` [m].
-struct Stencil<const D: usize> {
-    base: [usize; D],
-    w: [[f32; 3]; D],
-    off: [[f32; 3]; D],
-}
-
-impl<const D: usize> Stencil<D> {
-    fn new(x: &SVector<f32, D>, dx: f32, axis: Option<usize>, s: &[usize; D]) -> Self {
-        let mut st = Stencil {
-            base: [0; D],
-            w: [[0.0; 3]; D],
-            off: [[0.0; 3]; D],
-        };
-        for d in 0..D {
-            let shift = if Some(d) == axis { 0.0 } else { 0.5 };
-            let g = x[d] / dx - shift;
-            let b = (g - 0.5).floor();
-            st.w[d] = quadratic_weights(g - b);
-            let b = (b.max(0.0) as usize).min(s[d] - 3);
-            st.base[d] = b;
-            for k in 0..3 {
-                st.off[d][k] = ((b + k) as f32 + shift) * dx - x[d];
-            }
-        }
-        st
-    }
-
-    /// Calls `f(flat index, weight, offset)` for each of the 3^D nodes, in a fixed order (the last axis
-    /// fastest), stepping an odometer over the axes rather than dividing a node number.
-    #[inline(always)]
-    fn each(&self, stride: &[usize; D], mut f: impl FnMut(usize, f32, SVector<f32, D>)) {
-        let idx: [[usize; 3]; D] =
-            std::array::from_fn(|d| std::array::from_fn(|k| (self.base[d] + k) * stride[d]));
-        let mut k = [0usize; D];
-        loop {
-            let mut i = 0;
-            let mut w = 1.0;
-            let mut off = SVector::<f32, D>::zeros();
-            for d in 0..D {
-                i += idx[d][k[d]];
-                w *= self.w[d][k[d]];
-                off[d] = self.off[d][k[d]];
-            }
-            f(i, w, off);
-            let mut d = D;
-            loop {
-                if d == 0 {
-                    return;
-                }
-                d -= 1;
-                k[d] += 1;
-                if k[d] < 3 {
-                    break;
-                }
-                k[d] = 0;
-            }
-        }
-    }
 }
 
 impl<const D: usize> Projection<D> {
@@ -167,6 +118,8 @@ impl<const D: usize> Projection<D> {
             index: vec![u32::MAX; cells],
             pressure: vec![0.0; cells],
             fluid: Vec::new(),
+            parts: Default::default(),
+            marked: Vec::new(),
         }
     }
 
@@ -196,7 +149,7 @@ impl<const D: usize> Projection<D> {
         gravity: &SVector<f32, D>,
         rho: f32,
     ) -> ProjectionStats {
-        self.p2g(particles, dt);
+        self.p2g(particles, dt, rho);
         for a in 0..D {
             if gravity[a] != 0.0 {
                 for (u, m) in self.vel[a].iter_mut().zip(&self.mass[a]) {
@@ -207,7 +160,7 @@ impl<const D: usize> Projection<D> {
             }
         }
         self.walls();
-        self.mark_fluid(particles, rho);
+        self.mark_fluid(particles);
         let stats = self.solve(dt, rho);
         self.subtract_gradient(dt, rho);
         self.walls();
@@ -215,25 +168,29 @@ impl<const D: usize> Projection<D> {
         stats
     }
 
-    fn p2g(&mut self, particles: &[Particle<D>], dt: f32) {
+    /// p2g in two fixed parts of the particles (in parallel on the calling
+    /// pool), summed in one order; then the face velocities and each cell's
+    /// smoothed density over `rho`.
+    fn p2g(&mut self, particles: &[Particle<D>], dt: f32, rho: f32) {
         let (n, dx) = (self.n, self.dx);
+        let (first, second) = particles.split_at(particles.len() / 2);
+        let (p0, p1) = self.parts.split_at_mut(1);
+        rayon::join(
+            || p0[0].scatter(first, n, dx, dt),
+            || p1[0].scatter(second, n, dx, dt),
+        );
+        let (p0, p1) = (&self.parts[0], &self.parts[1]);
         for a in 0..D {
-            let s = shape::<D>(n, Some(a));
-            let stride = strides(&s);
             let (vel, mass) = (&mut self.vel[a], &mut self.mass[a]);
-            vel.iter_mut().for_each(|v| *v = 0.0);
-            mass.iter_mut().for_each(|m| *m = 0.0);
-            for p in particles {
-                let va = p.v[a] + dt * p.ext[a];
-                let ca = p.c.row(a).transpose();
-                Stencil::new(&p.x, dx, Some(a), &s).each(&stride, |i, w, off| {
-                    mass[i] += p.mass * w;
-                    vel[i] += p.mass * w * (va + ca.dot(&off));
-                });
+            for (i, (f0, f1)) in p0.faces[a].iter().zip(&p1.faces[a]).enumerate() {
+                let m = f0[0] + f1[0];
+                mass[i] = m;
+                vel[i] = if m > 0.0 { (f0[1] + f1[1]) / m } else { 0.0 };
             }
-            for (v, m) in vel.iter_mut().zip(mass.iter()) {
-                *v = if *m > 0.0 { *v / *m } else { 0.0 };
-            }
+        }
+        let scale = 1.0 / (dx.powi(D as i32) * rho);
+        for (c, d) in self.density.iter_mut().enumerate() {
+            *d = (p0.cell[c] + p1.cell[c]) * scale;
         }
     }
 
@@ -244,32 +201,23 @@ impl<const D: usize> Projection<D> {
             let s = shape::<D>(n, Some(a));
             let stride = strides(&s);
             let vel = &mut self.vel[a];
-            let total = vel.len();
-            for flat in 0..total {
-                let mut r = flat;
-                let mut idx = [0usize; D];
-                for d in 0..D {
-                    idx[d] = r / stride[d];
-                    r %= stride[d];
-                }
+            for_each_node(&s, |flat, idx| {
                 if idx[a] <= ws || idx[a] >= n - ws {
                     vel[flat] = 0.0;
-                    continue;
+                    return;
                 }
                 // the nearest face inside the fluid region along each tangential axis
                 let mut src = flat;
                 for b in 0..D {
-                    if b == a {
-                        continue;
+                    if b != a {
+                        let j = idx[b].clamp(ws, n - ws - 1);
+                        src = src - idx[b] * stride[b] + j * stride[b];
                     }
-                    let i = idx[b];
-                    let j = i.clamp(ws, n - ws - 1);
-                    src = src - i * stride[b] + j * stride[b];
                 }
                 if src != flat {
                     vel[flat] = vel[src];
                 }
-            }
+            });
         }
     }
 
@@ -277,19 +225,14 @@ impl<const D: usize> Projection<D> {
         idx.iter().any(|&i| i < self.ws || i >= self.n - self.ws)
     }
 
-    fn mark_fluid(&mut self, particles: &[Particle<D>], rho: f32) {
+    /// The fluid cells: those holding a particle, away from the walls.
+    fn mark_fluid(&mut self, particles: &[Particle<D>]) {
         let (n, dx) = (self.n, self.dx);
-        let s = shape::<D>(n, None);
-        let stride = strides(&s);
-        self.density.iter_mut().for_each(|d| *d = 0.0);
-        self.index.iter_mut().for_each(|i| *i = u32::MAX);
-        let scale = 1.0 / (dx.powi(D as i32) * rho);
-        let density = &mut self.density;
-        for p in particles {
-            Stencil::new(&p.x, dx, None, &s)
-                .each(&stride, |i, w, _| density[i] += p.mass * w * scale);
-        }
-        let mut marked = vec![false; self.index.len()];
+        let stride = strides(&shape::<D>(n, None));
+        self.index.fill(u32::MAX);
+        let mut marked = std::mem::take(&mut self.marked);
+        marked.clear();
+        marked.resize(self.index.len(), false);
         for p in particles {
             let idx: [usize; D] = std::array::from_fn(|d| ((p.x[d] / dx) as usize).min(n - 1));
             if !self.is_solid(&idx) {
@@ -303,6 +246,7 @@ impl<const D: usize> Projection<D> {
                 self.fluid.push(c);
             }
         }
+        self.marked = marked;
     }
 
     fn unflat(&self, c: usize) -> [usize; D] {
@@ -369,7 +313,9 @@ impl<const D: usize> Projection<D> {
                 }
             }
         }
-        let mut x: Vec<f64> = self.fluid.iter().map(|&c| self.pressure[c]).collect();
+        // from zero, not the last step's pressure: a step reads nothing but the particles (a restored
+        // checkpoint steps the same bits)
+        let mut x = vec![0.0f64; m];
         let apply = |v: &[f64], out: &mut [f64]| {
             for r in 0..m {
                 let mut s = diag[r] * v[r];
@@ -424,190 +370,68 @@ impl<const D: usize> Projection<D> {
         }
     }
 
-    /// `u ← u − (dt/ρ)·∇p` on every face beside a fluid cell (the ghost pressure on a face to the air).
+    /// `u ← u − (dt/ρ)·∇p` on every face beside a fluid cell (the ghost pressure on a face to the air);
+    /// the faces beside a wall keep what the wall condition sets.
     fn subtract_gradient(&mut self, dt: f32, rho: f32) {
-        let (n, dx) = (self.n, self.dx);
+        let n = self.n;
         let stride_c = strides(&shape::<D>(n, None));
-        let k = dt / (rho * dx);
+        let k = dt / (rho * self.dx);
         for a in 0..D {
             let st = strides(&shape::<D>(n, Some(a)));
-            for ci in 0..self.index.len() {
-                // the face on the low side of cell `ci` along a, between cells ci − e_a and ci
-                let idx = self.unflat(ci);
-                if idx[a] == 0 {
-                    continue;
-                }
-                let lo_c = ci - stride_c[a];
-                let (fl, fr) = (self.index[lo_c] != u32::MAX, self.index[ci] != u32::MAX);
-                if !fl && !fr {
-                    continue;
-                }
+            for &c in &self.fluid {
+                let idx = self.unflat(c);
+                let low_face: usize = (0..D).map(|d| idx[d] * st[d]).sum();
+                let pc = self.pressure[c] as f32;
+                // the face between c − e_a and c
+                let lo = c - stride_c[a];
                 let mut lo_idx = idx;
                 lo_idx[a] -= 1;
-                let (sl, sr) = (self.is_solid(&lo_idx), self.is_solid(&idx));
-                let face: usize = (0..D).map(|d| idx[d] * st[d]).sum();
-                let (pl, pr) = (self.pressure[lo_c] as f32, self.pressure[ci] as f32);
-                let grad_dx = if fl && fr {
-                    pr - pl
-                } else if fl && !sr {
-                    -pl / self.theta(lo_c, ci)
-                } else if fr && !sl {
-                    pr / self.theta(ci, lo_c)
+                let grad_dx = if self.index[lo] != u32::MAX {
+                    Some(pc - self.pressure[lo] as f32)
+                } else if !self.is_solid(&lo_idx) {
+                    Some(pc / self.theta(c, lo))
                 } else {
-                    continue; // beside a wall: the wall condition sets it
+                    None
                 };
-                self.vel[a][face] -= k * grad_dx;
+                if let Some(g) = grad_dx {
+                    self.vel[a][low_face] -= k * g;
+                }
+                // the face between c and c + e_a, when c + e_a is air (a fluid neighbour has it as its low face)
+                let hi = c + stride_c[a];
+                let mut hi_idx = idx;
+                hi_idx[a] += 1;
+                if self.index[hi] == u32::MAX && !self.is_solid(&hi_idx) {
+                    self.vel[a][low_face + st[a]] -= k * (-pc / self.theta(c, hi));
+                }
             }
         }
     }
 
+    /// g2p (APIC) and the move, per particle: in parallel on the calling pool, each particle its own.
     fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32) {
         let (n, dx) = (self.n, self.dx);
         let apic = 4.0 / (dx * dx);
-        let strides_a: Vec<([usize; D], [usize; D])> = (0..D)
-            .map(|a| {
-                let s = shape::<D>(n, Some(a));
-                (s, strides(&s))
-            })
-            .collect();
+        let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
         let lo = (self.ws as f32 + 1e-3) * dx;
         let hi = 1.0 - lo;
-        for p in particles.iter_mut() {
-            for a in 0..D {
-                let (s, stride) = &strides_a[a];
-                let vel = &self.vel[a];
-                let mut va = 0.0f32;
-                let mut ca = SVector::<f32, D>::zeros();
-                Stencil::new(&p.x, dx, Some(a), s).each(stride, |i, w, off| {
-                    va += w * vel[i];
-                    ca += off * (w * vel[i]);
-                });
-                p.v[a] = va;
+        let vel = &self.vel;
+        particles.par_chunks_mut(G2P_CHUNK).for_each(|chunk| {
+            for p in chunk {
+                let k = Kernel::new(&p.x, dx, n);
+                for a in 0..D {
+                    let (va, ca) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
+                    p.v[a] = va;
+                    for d in 0..D {
+                        p.c[(a, d)] = apic * ca[d];
+                    }
+                }
                 for d in 0..D {
-                    p.c[(a, d)] = apic * ca[d];
+                    p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
                 }
             }
-            for d in 0..D {
-                p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-            }
-        }
+        });
     }
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::particles::{Material, lattice_box};
-
-    const RHO: f32 = 1000.0;
-
-    /// Water filling the box between its walls to `depth` [m] above the floor face, 2 particles per cell per axis.
-    fn tank<const D: usize>(n: usize, wall_cells: usize, depth: f32) -> Vec<Particle<D>> {
-        let dx = 1.0 / n as f32;
-        let face = (wall_cells - 1) as f32 * dx;
-        let sp = dx / 2.0;
-        let counts: [usize; D] = std::array::from_fn(|d| {
-            let extent = if d == 1 { depth } else { 1.0 - 2.0 * face };
-            (extent / sp).round() as usize
-        });
-        lattice_box([face; D], counts, sp, Material::Water, RHO)
-    }
-
-    fn gravity<const D: usize>() -> SVector<f32, D> {
-        let mut g = SVector::zeros();
-        g[1] = -9.8;
-        g
-    }
-
-    #[test]
-    fn a_column_at_rest_keeps_its_volume_and_the_hydrostatic_pressure() {
-        let (n, wc, depth) = (64, 3, 0.4);
-        let mut ps = tank::<2>(n, wc, depth);
-        let mut pr = Projection::<2>::new(n, wc);
-        let g = gravity::<2>();
-        let mut last = ProjectionStats::default();
-        for _ in 0..400 {
-            let k = pr.steps_for(&ps, &g, 2.5e-3);
-            for _ in 0..k {
-                last = pr.step(&mut ps, 2.5e-3 / k as f32, &g, RHO);
-            }
-        }
-        assert!(last.residual <= CG_TOLERANCE, "{last:?}");
-        let vmax = ps.iter().map(|p| p.v.amax()).fold(0.0f32, f32::max);
-        assert!(vmax < 0.01, "still moving at {vmax} m/s");
-        // the pressure of the bottom fluid row (cell centres half a cell above the floor face) against ρ·g·depth
-        let ws = wc - 1;
-        let dx = 1.0 / n as f32;
-        let row: Vec<f64> = (ws + 8..n - ws - 8)
-            .map(|i| pr.pressure()[i * n + ws])
-            .collect();
-        let mean = row.iter().sum::<f64>() / row.len() as f64;
-        let top = ps.iter().map(|p| p.x[1]).fold(0.0f32, f32::max) + dx / 4.0;
-        let expected = RHO as f64 * 9.8 * (top - (ws as f32 + 0.5) * dx) as f64;
-        assert!(
-            (mean / expected - 1.0).abs() < 0.02,
-            "pressure {mean} Pa against {expected} Pa"
-        );
-        let face = ws as f32 * dx;
-        assert!(
-            ((top - face) / depth - 1.0).abs() < 0.01,
-            "surface at {} m above the floor, {depth} m at rest",
-            top - face
-        );
-    }
-
-    #[test]
-    fn the_projection_leaves_no_divergence_on_the_fluid_cells() {
-        let (n, wc) = (32, 3);
-        let mut ps = tank::<3>(n, wc, 0.3);
-        for p in ps.iter_mut() {
-            p.v[0] = (7.0 * p.x[1]).sin();
-            p.v[2] = (5.0 * p.x[0]).cos();
-        }
-        let mut pr = Projection::<3>::new(n, wc);
-        let stats = pr.step(&mut ps, 2.5e-3, &gravity::<3>(), RHO);
-        assert!(
-            stats.residual <= CG_TOLERANCE && stats.fluid_cells > 1000,
-            "{stats:?}"
-        );
-        // interior fluid cells (no air neighbour): the discrete divergence is the volume correction's alone, ~0
-        let dx = 1.0 / n as f32;
-        let mut worst = 0.0f32;
-        for &c in &pr.fluid {
-            if pr.neighbours(c)[..6]
-                .iter()
-                .any(|&nb| nb != usize::MAX && pr.index[nb] == u32::MAX)
-                || pr.density[c] > 1.0
-            {
-                continue;
-            }
-            let idx = pr.unflat(c);
-            let mut div = 0.0;
-            for a in 0..3 {
-                let st = strides(&shape::<3>(n, Some(a)));
-                let lo: usize = (0..3).map(|d| idx[d] * st[d]).sum();
-                div += pr.vel[a][lo + st[a]] - pr.vel[a][lo];
-            }
-            worst = worst.max((div / dx).abs());
-        }
-        assert!(worst < 1e-2, "divergence {worst} 1/s");
-    }
-
-    #[test]
-    fn a_step_is_the_same_bits_each_time() {
-        let run = || {
-            let mut ps = tank::<2>(48, 3, 0.3);
-            for p in ps.iter_mut().filter(|p| p.x[0] > 0.5) {
-                p.v[0] = -1.0;
-            }
-            let mut pr = Projection::<2>::new(48, 3);
-            for _ in 0..20 {
-                pr.step(&mut ps, 2.5e-3, &gravity::<2>(), RHO);
-            }
-            ps.iter()
-                .flat_map(|p| [p.x[0].to_bits(), p.x[1].to_bits(), p.v[0].to_bits()])
-                .collect::<Vec<u32>>()
-        };
-        assert_eq!(run(), run());
-    }
-}
+mod tests;

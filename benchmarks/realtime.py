@@ -1,0 +1,83 @@
+"""Real-time factor of every registered scene, as a session runs it, under each integrator that steps it.
+
+For each scene: ``make_simulator(scene, "default")`` (what a session and the
+page run, the chart's choice), and, where the scene holds only water in the
+box walls, ``make_simulator(scene, "mpm", integrator="projection")`` (the
+large step; docs/large-step.md). Each runs ``--warmup`` frames, then
+``--frames`` frames timed through :func:`~hybridmpm.sim.rollout` on both
+threads. The real-time factor is simulated seconds per wall second,
+``frames · dt_frame / wall`` (a frame is 2.5 ms: real time is 400 frames a
+wall second). Steps per frame are the solver's (substeps for the explicit
+step). Run it on a quiet machine: its absolute times move with the CPU and
+the load; the ratio of the two integrators in one run is what carries over.
+
+    python benchmarks/realtime.py --out benchmarks/results/realtime
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+from hybridmpm.bench.harness import script_argv, table, write_results
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes.registry import DOMAINS
+from hybridmpm.sim import make_simulator, rollout
+
+
+def measure(scene: str, solver: str, integrator: str | None, frames: int, warmup: int) -> dict[str, Any] | None:
+    """One run's figures, or None where the integrator does not step the scene (refused, naming ``integrator``)."""
+    try:
+        sim = make_simulator(scene, solver, **({} if integrator is None else {"integrator": integrator}))
+    except InvalidInputError as e:
+        if e.field == "integrator":
+            return None
+        raise
+    rollout(sim, warmup)
+    solver_core = getattr(sim, "solver", None)
+    t0 = time.perf_counter()
+    steps = 0
+    for _ in range(frames):
+        if solver_core is not None:
+            steps += solver_core.substeps_for(sim.dt_frame)
+        rollout(sim, 1)
+    wall = time.perf_counter() - t0
+    ms = 1e3 * wall / frames
+    return {
+        "scene": scene,
+        "run": solver if integrator is None else f"mpm {integrator}",
+        "particles": int(sim.scene.num_particles),
+        "steps_per_frame": steps / frames if solver_core is not None else float("nan"),
+        "ms_per_frame": ms,
+        "rtf": frames * sim.dt_frame / wall,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default=",".join(DOMAINS), help="comma-separated registered scenes (default: all)")
+    ap.add_argument("--frames", type=int, default=150, help="frames timed (default 150)")
+    ap.add_argument("--warmup", type=int, default=15, help="frames before the timing (default 15)")
+    ap.add_argument("--out", required=True, help="output folder")
+    args = ap.parse_args(argv)
+    rows: list[dict[str, Any]] = []
+    for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
+        if scene not in DOMAINS:
+            ap.error(f"--scenes: unknown scene {scene!r}; choose from {', '.join(DOMAINS)}")
+        for solver, integrator in (("default", None), ("mpm", "projection")):
+            r = measure(scene, solver, integrator, args.frames, args.warmup)
+            if r is not None:
+                rows.append(r)
+                print(r, flush=True)
+    keys = ["scene", "run", "particles", "steps_per_frame", "ms_per_frame", "rtf"]
+    lines = [
+        "# Real-time factor per scene (both threads; a frame is 2.5 ms, real time is RTF >= 1)",
+        "\n".join(table(keys, [[f"{r[k]:.3g}" if isinstance(r[k], float) else str(r[k]) for k in keys] for r in rows])),
+    ]
+    write_results(args.out, "realtime", doc={"rows": rows}, markdown=lines, argv=script_argv("realtime.py", argv))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,116 @@
+//! The projection step's checks: a column at rest, no divergence left, the same bits each time.
+
+use super::*;
+use crate::particles::{Material, lattice_box};
+
+const RHO: f32 = 1000.0;
+
+/// Water filling the box between its walls to `depth` [m] above the floor face, 2 particles per cell per axis.
+fn tank<const D: usize>(n: usize, wall_cells: usize, depth: f32) -> Vec<Particle<D>> {
+    let dx = 1.0 / n as f32;
+    let face = (wall_cells - 1) as f32 * dx;
+    let sp = dx / 2.0;
+    let counts: [usize; D] = std::array::from_fn(|d| {
+        let extent = if d == 1 { depth } else { 1.0 - 2.0 * face };
+        (extent / sp).round() as usize
+    });
+    lattice_box([face; D], counts, sp, Material::Water, RHO)
+}
+
+fn gravity<const D: usize>() -> SVector<f32, D> {
+    let mut g = SVector::zeros();
+    g[1] = -9.8;
+    g
+}
+
+#[test]
+fn a_column_at_rest_keeps_its_volume_and_the_hydrostatic_pressure() {
+    let (n, wc, depth) = (64, 3, 0.4);
+    let mut ps = tank::<2>(n, wc, depth);
+    let mut pr = Projection::<2>::new(n, wc);
+    let g = gravity::<2>();
+    let mut last = ProjectionStats::default();
+    for _ in 0..400 {
+        let k = pr.steps_for(&ps, &g, 2.5e-3);
+        for _ in 0..k {
+            last = pr.step(&mut ps, 2.5e-3 / k as f32, &g, RHO);
+        }
+    }
+    assert!(last.residual <= CG_TOLERANCE, "{last:?}");
+    let vmax = ps.iter().map(|p| p.v.amax()).fold(0.0f32, f32::max);
+    assert!(vmax < 0.01, "still moving at {vmax} m/s");
+    // the pressure of the bottom fluid row (cell centres half a cell above the floor face) against ρ·g·depth
+    let ws = wc - 1;
+    let dx = 1.0 / n as f32;
+    let row: Vec<f64> = (ws + 8..n - ws - 8)
+        .map(|i| pr.pressure()[i * n + ws])
+        .collect();
+    let mean = row.iter().sum::<f64>() / row.len() as f64;
+    let top = ps.iter().map(|p| p.x[1]).fold(0.0f32, f32::max) + dx / 4.0;
+    let expected = RHO as f64 * 9.8 * (top - (ws as f32 + 0.5) * dx) as f64;
+    assert!(
+        (mean / expected - 1.0).abs() < 0.02,
+        "pressure {mean} Pa against {expected} Pa"
+    );
+    let face = ws as f32 * dx;
+    assert!(
+        ((top - face) / depth - 1.0).abs() < 0.01,
+        "surface at {} m above the floor, {depth} m at rest",
+        top - face
+    );
+}
+
+#[test]
+fn the_projection_leaves_no_divergence_on_the_fluid_cells() {
+    let (n, wc) = (32, 3);
+    let mut ps = tank::<3>(n, wc, 0.3);
+    for p in ps.iter_mut() {
+        p.v[0] = (7.0 * p.x[1]).sin();
+        p.v[2] = (5.0 * p.x[0]).cos();
+    }
+    let mut pr = Projection::<3>::new(n, wc);
+    let stats = pr.step(&mut ps, 2.5e-3, &gravity::<3>(), RHO);
+    assert!(
+        stats.residual <= CG_TOLERANCE && stats.fluid_cells > 1000,
+        "{stats:?}"
+    );
+    // interior fluid cells (no air neighbour): the discrete divergence is the volume correction's alone, ~0
+    let dx = 1.0 / n as f32;
+    let mut worst = 0.0f32;
+    for &c in &pr.fluid {
+        if pr.neighbours(c)[..6]
+            .iter()
+            .any(|&nb| nb != usize::MAX && pr.index[nb] == u32::MAX)
+            || pr.density[c] > 1.0
+        {
+            continue;
+        }
+        let idx = pr.unflat(c);
+        let mut div = 0.0;
+        for a in 0..3 {
+            let st = strides(&shape::<3>(n, Some(a)));
+            let lo: usize = (0..3).map(|d| idx[d] * st[d]).sum();
+            div += pr.vel[a][lo + st[a]] - pr.vel[a][lo];
+        }
+        worst = worst.max((div / dx).abs());
+    }
+    assert!(worst < 1e-2, "divergence {worst} 1/s");
+}
+
+#[test]
+fn a_step_is_the_same_bits_each_time() {
+    let run = || {
+        let mut ps = tank::<2>(48, 3, 0.3);
+        for p in ps.iter_mut().filter(|p| p.x[0] > 0.5) {
+            p.v[0] = -1.0;
+        }
+        let mut pr = Projection::<2>::new(48, 3);
+        for _ in 0..20 {
+            pr.step(&mut ps, 2.5e-3, &gravity::<2>(), RHO);
+        }
+        ps.iter()
+            .flat_map(|p| [p.x[0].to_bits(), p.x[1].to_bits(), p.v[0].to_bits()])
+            .collect::<Vec<u32>>()
+    };
+    assert_eq!(run(), run());
+}

@@ -1,0 +1,147 @@
+//! The projection integrator as a solver option (`integrator = "projection"`,
+//! `solver/large_step.rs`): a dam break's frames are the same bits on one
+//! thread and two, a checkpoint restores them bitwise, the step follows the
+//! flow (one step a frame where explicit MLS-MPM takes many), the water keeps
+//! its volume, and what the projection cannot step is refused naming the
+//! field, with the state unchanged.
+
+use hybridmpm_mpm::particles::lattice_box;
+use hybridmpm_mpm::{
+    BoundaryCondition, Collider, Integrator, Material, MpmError, Particle, Shape, Solver,
+    SolverParams,
+};
+use nalgebra::SVector;
+
+const DT_FRAME: f32 = 2.5e-3;
+
+/// `dam_break2d`'s column on a 64² grid: 12 × 24 cells at 2 particles per cell per axis.
+fn column() -> Vec<Particle<2>> {
+    let dx = 1.0 / 64.0;
+    lattice_box([2.0 * dx; 2], [24, 48], dx / 2.0, Material::Water, 1000.0)
+}
+
+fn params(integrator: Integrator, threads: usize) -> SolverParams<2> {
+    SolverParams {
+        n_grid: 64,
+        num_threads: threads,
+        integrator,
+        ..Default::default()
+    }
+}
+
+fn solver(integrator: Integrator, threads: usize) -> Solver<2> {
+    let mut s = Solver::new(params(integrator, threads), vec![]).unwrap();
+    s.set_particles(column()).unwrap();
+    s
+}
+
+#[test]
+fn a_dam_break_is_the_same_bits_on_one_thread_and_two_and_after_a_restore() {
+    let (mut one, mut two) = (
+        solver(Integrator::Projection, 1),
+        solver(Integrator::Projection, 2),
+    );
+    for _ in 0..30 {
+        one.step_frame(DT_FRAME).unwrap();
+        two.step_frame(DT_FRAME).unwrap();
+    }
+    assert!(
+        one.checkpoint() == two.checkpoint(),
+        "1 and 2 threads differ"
+    );
+    let saved = one.checkpoint();
+    for _ in 0..30 {
+        one.step_frame(DT_FRAME).unwrap();
+    }
+    let mut again = solver(Integrator::Projection, 2);
+    again.restore(&saved).unwrap();
+    for _ in 0..30 {
+        again.step_frame(DT_FRAME).unwrap();
+    }
+    assert_eq!(
+        one.checkpoint(),
+        again.checkpoint(),
+        "a restored run differs"
+    );
+    assert_eq!(one.frame(), 60);
+}
+
+#[test]
+fn the_projection_steps_at_the_flows_pace_and_keeps_the_volume() {
+    let (mut explicit, mut projection) = (
+        solver(Integrator::Explicit, 0),
+        solver(Integrator::Projection, 0),
+    );
+    let (mut sub_e, mut sub_p) = (0, 0);
+    for _ in 0..120 {
+        sub_e += explicit.step_frame(DT_FRAME).unwrap().substeps;
+        sub_p += projection.step_frame(DT_FRAME).unwrap().substeps;
+    }
+    // explicit: the sound speed (20 m/s) binds; the projection: the flow (< 2 m/s at 0.3 s)
+    assert!(sub_e >= 4 * 120, "explicit took {sub_e} substeps");
+    assert!(sub_p <= 2 * 120, "projection took {sub_p} steps");
+    // the fronts agree (the surge's toe, as the dam-break check reads it)
+    let toe = |s: &Solver<2>| s.particles().iter().map(|p| p.x[0]).fold(0.0f32, f32::max);
+    let (te, tp) = (toe(&explicit), toe(&projection));
+    assert!(
+        (te - tp).abs() < 0.05,
+        "toe at {te} m (explicit) and {tp} m (projection)"
+    );
+    // incompressible: the occupied area, cells holding a particle, within 5 % of the column's 12 × 24 cells
+    let mut cells = std::collections::HashSet::new();
+    for p in projection.particles() {
+        cells.insert(((p.x[0] * 64.0) as i32, (p.x[1] * 64.0) as i32));
+    }
+    let area = cells.len() as f32 / (12.0 * 24.0);
+    assert!(
+        area > 0.95 && area < 1.25,
+        "occupied cells {} against 288",
+        cells.len()
+    );
+}
+
+fn field_of(e: MpmError) -> String {
+    match e {
+        MpmError::InvalidInput { field, .. } => field,
+        other => panic!("expected InvalidInput, got {other:?}"),
+    }
+}
+
+#[test]
+fn what_the_projection_cannot_step_is_refused_naming_the_field() {
+    // sand
+    let mut s = solver(Integrator::Projection, 1);
+    let mut ps = column();
+    ps[7].material = Material::Sand;
+    ps[7].set = 1;
+    s.set_particles(ps).unwrap();
+    assert_eq!(field_of(s.step_frame(DT_FRAME).unwrap_err()), "integrator");
+    assert_eq!(s.frame(), 0);
+    // a collider
+    let c = Collider {
+        shape: Shape::Sphere {
+            center: SVector::from([0.7, 0.2]),
+            radius: 0.05,
+        },
+        condition: BoundaryCondition::Slip,
+        friction: 0.0,
+        project: false,
+    };
+    let mut s = Solver::new(params(Integrator::Projection, 1), vec![c]).unwrap();
+    s.set_particles(column()).unwrap();
+    let before = s.checkpoint();
+    assert_eq!(field_of(s.step_frame(DT_FRAME).unwrap_err()), "integrator");
+    assert!(
+        s.checkpoint() == before,
+        "a refused frame changed the state"
+    );
+    // sticky walls
+    let mut p = params(Integrator::Projection, 1);
+    p.walls.condition = BoundaryCondition::Sticky;
+    let mut s = Solver::new(p, vec![]).unwrap();
+    s.set_particles(column()).unwrap();
+    assert_eq!(
+        field_of(s.step_frame(DT_FRAME).unwrap_err()),
+        "walls.condition"
+    );
+}
