@@ -80,6 +80,7 @@ def test_a_projection_run_restores_bitwise():
     sim = make_simulator(SceneSpec.from_dict(scene_dict()).build(), "mpm", integrator="projection")
     rollout(sim, 10)
     saved = sim.state()
+    assert b"HMPMCKP4" in bytes(saved["solver"])  # inside a step that spans frames: the state keeps the frames left
     a = rollout(sim, 15).positions[-1]
     again = make_simulator(SceneSpec.from_dict(scene_dict()).build(), "mpm", integrator="projection")
     again.restore(saved)

@@ -25,6 +25,8 @@ _MAGIC = b"HMPMPY01"
 _CORE_MAGIC = b"HMPMCKP3"
 #: The core format before parameter sets (no per-particle set; still restored).
 _CORE_MAGIC_V2 = b"HMPMCKP2"
+#: A projection solver inside a step that spans frames: v3's records, then the frames left in the step (u32).
+_CORE_MAGIC_V4 = b"HMPMCKP4"
 _CORE_HEADER = 36
 #: The checkpoint header's key for the colliders' poses and pending moves (absent while none has moved).
 _COLLIDER_STATE = "collider_state"
@@ -564,17 +566,19 @@ def _core_records(state: bytes, dim: int) -> tuple[int, int, int]:
     """A core state's (the Rust part of :meth:`MpmSolver.checkpoint`: magic,
     u32 D, u64 N, f64 time, u64 frame, then fixed-size particle records)
     particle count, record size and trailing bytes per record (material, and
-    set in v3), checked against its length. Raises :class:`CheckpointError`."""
-    if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2):
+    set from v3; v4 ends with the frames left in a projection step), checked
+    against its length. Raises :class:`CheckpointError`."""
+    if len(state) < _CORE_HEADER or state[:8] not in (_CORE_MAGIC, _CORE_MAGIC_V2, _CORE_MAGIC_V4):
         raise CheckpointError("not a hybridmpm MPM checkpoint (bad magic)")
-    tail = 3 if state[:8] == _CORE_MAGIC else 1
+    tail = 1 if state[:8] == _CORE_MAGIC_V2 else 3
+    trailer = 4 if state[:8] == _CORE_MAGIC_V4 else 0  # the frames left in a projection step
     per = 4 * (3 * dim + 3 * dim * dim + 4) + tail  # x, v, C, F, (J, vc, mass, volume), ext, τ (f32), material (u8), set (u16; not in v2)
     (dd,) = struct.unpack_from("<I", state, 8)
     (n,) = struct.unpack_from("<Q", state, 12)
     if dd != dim:
         raise CheckpointError(f"checkpoint holds particles in {dd}D, this solver is {dim}D")
-    if len(state) != _CORE_HEADER + n * per:
-        raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER} bytes of them")
+    if len(state) != _CORE_HEADER + n * per + trailer:
+        raise CheckpointError(f"checkpoint declares {n} particles but holds {len(state) - _CORE_HEADER - trailer} bytes of them")
     return int(n), per, tail
 
 

@@ -17,6 +17,9 @@ use crate::solver::Solver;
 
 const MAGIC: &[u8; 8] = b"HMPMCKP3";
 const MAGIC_V2: &[u8; 8] = b"HMPMCKP2";
+/// The format of a projection solver inside a step that spans frames: `MAGIC`'s, then the frames
+/// left in the step (u32).
+const MAGIC_V4: &[u8; 8] = b"HMPMCKP4";
 
 fn put(out: &mut Vec<u8>, xs: &[f32]) {
     for x in xs {
@@ -71,7 +74,11 @@ where
     pub fn checkpoint(&self) -> Vec<u8> {
         let ps = self.particles();
         let mut out = Vec::with_capacity(40 + ps.len() * (4 * (3 * D + 3 * D * D + 4) + 3));
-        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(if self.drift_frames() > 0 {
+            MAGIC_V4
+        } else {
+            MAGIC
+        });
         out.extend_from_slice(&(D as u32).to_le_bytes());
         out.extend_from_slice(&(ps.len() as u64).to_le_bytes());
         out.extend_from_slice(&self.time().to_le_bytes());
@@ -87,6 +94,9 @@ where
             out.push(p.material as u8);
             out.extend_from_slice(&p.set.to_le_bytes());
         }
+        if self.drift_frames() > 0 {
+            out.extend_from_slice(&self.drift_frames().to_le_bytes());
+        }
         out
     }
 
@@ -94,7 +104,8 @@ where
     pub fn restore(&mut self, blob: &[u8]) -> Result<()> {
         let mut r = Reader { buf: blob, pos: 0 };
         let magic = r.take(8)?;
-        let with_set = magic == MAGIC;
+        let drift = magic == MAGIC_V4;
+        let with_set = magic == MAGIC || drift;
         if !with_set && magic != MAGIC_V2 {
             return Err(MpmError::Checkpoint(
                 "not a hybridmpm MPM checkpoint (bad magic)".into(),
@@ -141,6 +152,11 @@ where
             p.tau = tau;
             ps.push(p);
         }
+        let drift_frames = if drift {
+            u32::from_le_bytes(r.take(4)?.try_into().unwrap())
+        } else {
+            0
+        };
         if r.pos != blob.len() {
             return Err(MpmError::Checkpoint(format!(
                 "{} trailing bytes",
@@ -150,9 +166,13 @@ where
         if !time.is_finite() {
             return Err(MpmError::Checkpoint("non-finite time".into()));
         }
+        let before = self.drift_frames();
+        self.set_drift_frames(drift_frames)?;
+        self.set_drift_frames(before)?; // checked first: on error the solver is unchanged
         self.set_particles_keep_stress(ps)
             .map_err(|e| MpmError::Checkpoint(e.to_string()))?;
         self.set_clock(time, frame);
+        self.set_drift_frames(drift_frames)?;
         Ok(())
     }
 }

@@ -149,6 +149,19 @@ impl<const D: usize> Projection<D> {
         gravity: &SVector<f32, D>,
         rho: f32,
     ) -> ProjectionStats {
+        self.step_advancing(particles, dt, dt, gravity, rho)
+    }
+
+    /// One step of `dt` [s] that moves the particles by `advance·v` [s] (a step spanning several
+    /// frames moves them one frame's worth; the frames after it move them on at `v`).
+    pub fn step_advancing(
+        &mut self,
+        particles: &mut [Particle<D>],
+        dt: f32,
+        advance: f32,
+        gravity: &SVector<f32, D>,
+        rho: f32,
+    ) -> ProjectionStats {
         self.p2g(particles, dt, rho);
         for a in 0..D {
             if gravity[a] != 0.0 {
@@ -164,7 +177,7 @@ impl<const D: usize> Projection<D> {
         let stats = self.solve(dt, rho);
         self.subtract_gradient(dt, rho);
         self.walls();
-        self.g2p(particles, dt);
+        self.g2p(particles, advance);
         stats
     }
 
@@ -403,6 +416,18 @@ impl<const D: usize> Projection<D> {
                 if self.index[hi] == u32::MAX && !self.is_solid(&hi_idx) {
                     self.vel[a][low_face + st[a]] -= k * (-pc / self.theta(c, hi));
                 }
+            }
+        }
+    }
+
+    /// The particles move on at their velocity for `dt` [s], kept inside the walls as g2p keeps them
+    /// (a frame inside a step that spans several).
+    pub fn drift(&self, particles: &mut [Particle<D>], dt: f32) {
+        let lo = (self.ws as f32 + 1e-3) * self.dx;
+        let hi = 1.0 - lo;
+        for p in particles.iter_mut() {
+            for d in 0..D {
+                p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
             }
         }
     }

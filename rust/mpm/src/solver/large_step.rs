@@ -8,6 +8,17 @@
 //! naming the field (`integrator`, or `walls.condition` for walls that are
 //! not free slip), and its state is unchanged.
 //!
+//! A step may span up to [`MAX_FRAMES_PER_STEP`] frames where the flow
+//! allows it (one cell a step: `dt = dx/(|v|max + √(|g|·dx))`): the step
+//! takes the velocity over all of them (gravity and the pressure for `k`
+//! frames) and moves the particles one frame's worth; each following frame
+//! of the step moves them on at that velocity (`Projection::drift`, no
+//! grid), so the frames show the step's motion evenly, and the particles
+//! are where one step of `k` frames puts them. The frames left in the step
+//! are the solver's state: a checkpoint keeps them, and any change to the
+//! particles between frames ends the step (the next frame steps the new
+//! state).
+//!
 //! Its promises are the explicit frame's: the same bits on any number of
 //! threads (the step runs on the solver's pool, its p2g in two parts fixed
 //! by the particle count and summed in one order), a
@@ -30,6 +41,9 @@ use crate::projection::{ADVECTIVE_CFL, Projection};
 /// The most cells a particle may cross in one projection step before the
 /// frame is retried with smaller steps (the step is chosen for one).
 pub const MAX_TRAVEL_CELLS: f32 = 2.0;
+
+/// The most frames one projection step spans.
+pub const MAX_FRAMES_PER_STEP: u32 = 4;
 
 impl<const D: usize> Solver<D>
 where
@@ -114,86 +128,154 @@ where
         Ok(rho.unwrap_or(self.params.water.density))
     }
 
-    /// One frame of `n_sub` projection steps ([`Solver::step_frame`] with
-    /// `integrator = "projection"`), with rollback and retry.
+    /// The frames the current projection step still spans (0: the next frame steps).
+    pub fn drift_frames(&self) -> u32 {
+        self.drift_frames
+    }
+
+    /// Sets what [`Solver::drift_frames`] reads (checkpoint restore): at most
+    /// [`MAX_FRAMES_PER_STEP`] − 1, and only for the projection.
+    pub(crate) fn set_drift_frames(&mut self, frames: u32) -> Result<()> {
+        if frames > 0 && (self.params.integrator.is_explicit() || frames >= MAX_FRAMES_PER_STEP) {
+            return Err(MpmError::Checkpoint(format!(
+                "{frames} frames left in a projection step, for a solver of integrator '{}' (at most {})",
+                self.params.integrator.name(),
+                MAX_FRAMES_PER_STEP - 1
+            )));
+        }
+        self.drift_frames = frames;
+        Ok(())
+    }
+
+    /// One frame of the projection ([`Solver::step_frame`] with
+    /// `integrator = "projection"`): a frame inside the last step moves the
+    /// particles on; otherwise one step spanning `k` frames where `n_sub`
+    /// is 1 and the flow allows `k` > 1, else `n_sub` steps; with rollback
+    /// and retry.
     pub(super) fn step_frame_projection(
         &mut self,
         dt_frame: f32,
         n_sub: usize,
     ) -> Result<FrameStats> {
         let rho = self.projection_density()?;
-        let gravity = SVector::<f32, D>::from_fn(|d, _| self.params.gravity[d]);
         let mut projection = self.large_step.take().unwrap_or_else(|| {
             Box::new(Projection::new(self.params.n_grid, self.params.walls.cells))
         });
-        self.rollback.2.clone_from(&self.particles);
-        let dx = self.params.dx();
-        let (mut n_sub, mut retries) = (n_sub, 0);
-        let result =
-            loop {
-                let dt = dt_frame / n_sub as f32;
-                let mut failed = None;
-                for k in 0..n_sub {
-                    let particles = &mut self.particles;
-                    self.pool
-                        .install(|| projection.step(particles, dt, &gravity, rho));
-                    let vmax = self.particles.iter().map(|p| crate::dim::norm(&p.v)).fold(
-                        0.0f32,
-                        |a, b| if b.is_nan() { f32::INFINITY } else { a.max(b) },
-                    );
-                    if !vmax.is_finite()
-                        || self
-                            .particles
-                            .iter()
-                            .any(|p| !p.x.iter().all(|x| x.is_finite()))
-                    {
-                        failed = Some(MpmError::NonFinite {
-                            substep: k + 1,
-                            substeps: n_sub,
-                            retries,
-                        });
-                        break;
-                    }
-                    if vmax * dt > MAX_TRAVEL_CELLS * dx {
-                        failed = Some(MpmError::CflViolation {
-                            substep: k + 1,
-                            substeps: n_sub,
-                            max_speed: vmax,
-                            retries,
-                        });
-                        break;
-                    }
-                }
-                match failed {
-                    None => {
-                        let max_speed = self
-                            .particles
-                            .iter()
-                            .map(|p| crate::dim::norm(&p.v))
-                            .fold(0.0f32, f32::max);
-                        break Ok(FrameStats {
-                            substeps: n_sub,
-                            dt,
-                            max_speed,
-                            active_blocks: 0,
-                            retries,
-                        });
-                    }
-                    Some(e) => {
-                        self.particles.clone_from(&self.rollback.2);
-                        if 2 * n_sub > self.params.max_substeps {
-                            break Err(e);
-                        }
-                        n_sub *= 2;
-                        retries += 1;
-                    }
-                }
-            };
+        let result = if self.drift_frames > 0 {
+            projection.drift(&mut self.particles, dt_frame);
+            self.drift_frames -= 1;
+            Ok(FrameStats {
+                substeps: 0,
+                dt: 0.0,
+                max_speed: self.max_particle_speed(),
+                active_blocks: 0,
+                retries: 0,
+            })
+        } else {
+            self.projection_steps(&mut projection, dt_frame, n_sub, rho)
+        };
         self.large_step = Some(projection);
         if result.is_ok() {
             self.time += dt_frame as f64;
             self.frame += 1;
         }
         result
+    }
+
+    fn max_particle_speed(&self) -> f32 {
+        self.particles
+            .iter()
+            .map(|p| crate::dim::norm(&p.v))
+            .fold(
+                0.0f32,
+                |a, b| if b.is_nan() { f32::INFINITY } else { a.max(b) },
+            )
+    }
+
+    /// The frames one step may span from the state now: `⌊dt / dt_frame⌋` for the step bound's
+    /// `dt`, in [1, [`MAX_FRAMES_PER_STEP`]]; 1 with a fixed step count (`params.substeps`).
+    fn frames_per_step(&self, dt_frame: f32) -> u32 {
+        if self.params.substeps.is_some() {
+            return 1;
+        }
+        let (cfl, c) = self.step_bound();
+        let dt = cfl * self.params.dx() / (self.max_particle_speed() + c);
+        ((dt / dt_frame).floor() as u32).clamp(1, MAX_FRAMES_PER_STEP)
+    }
+
+    /// The steps of one frame: one spanning `k` frames, or `n_sub` within it; on failure the frame
+    /// rolls back and retries with one frame a step and twice the steps.
+    fn projection_steps(
+        &mut self,
+        projection: &mut Projection<D>,
+        dt_frame: f32,
+        n_sub: usize,
+        rho: f32,
+    ) -> Result<FrameStats> {
+        let gravity = SVector::<f32, D>::from_fn(|d, _| self.params.gravity[d]);
+        self.rollback.2.clone_from(&self.particles);
+        let dx = self.params.dx();
+        let mut frames = if n_sub == 1 {
+            self.frames_per_step(dt_frame)
+        } else {
+            1
+        };
+        let (mut n_sub, mut retries) = (n_sub, 0);
+        loop {
+            let dt = frames as f32 * dt_frame / n_sub as f32;
+            let advance = dt / frames as f32;
+            let mut failed = None;
+            for k in 0..n_sub {
+                let particles = &mut self.particles;
+                self.pool
+                    .install(|| projection.step_advancing(particles, dt, advance, &gravity, rho));
+                let vmax = self.max_particle_speed();
+                if !vmax.is_finite()
+                    || self
+                        .particles
+                        .iter()
+                        .any(|p| !p.x.iter().all(|x| x.is_finite()))
+                {
+                    failed = Some(MpmError::NonFinite {
+                        substep: k + 1,
+                        substeps: n_sub,
+                        retries,
+                    });
+                    break;
+                }
+                if vmax * dt > MAX_TRAVEL_CELLS * dx {
+                    failed = Some(MpmError::CflViolation {
+                        substep: k + 1,
+                        substeps: n_sub,
+                        max_speed: vmax,
+                        retries,
+                    });
+                    break;
+                }
+            }
+            match failed {
+                None => {
+                    self.drift_frames = frames - 1;
+                    return Ok(FrameStats {
+                        substeps: n_sub,
+                        dt,
+                        max_speed: self.max_particle_speed(),
+                        active_blocks: 0,
+                        retries,
+                    });
+                }
+                Some(e) => {
+                    self.particles.clone_from(&self.rollback.2);
+                    if frames > 1 {
+                        frames = 1;
+                    } else if 2 * n_sub > self.params.max_substeps {
+                        return Err(e);
+                    } else {
+                        n_sub *= 2;
+                    }
+                    retries += 1;
+                }
+            }
+        }
     }
 }

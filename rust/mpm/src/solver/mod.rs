@@ -22,7 +22,11 @@
 //! that is faster (a busy machine): `mode.rs` measures both and chooses.
 //!
 //! `cfl.rs` chooses the substep size and drives the frame, with rollback
-//! and retry. The B-spline weights live in `kernel.rs`.
+//! and retry. The B-spline weights live in `kernel.rs`. `particles.rs`
+//! changes the particles between frames; `bodies.rs` the rigid bodies.
+//! `large_step.rs` drives the frame of the other integrator,
+//! `integrator = "projection"` (`crate::projection`: incompressible water
+//! that steps at the flow's pace).
 //!
 //! Grid work touches only blocks that contain particles and their `+1`
 //! neighbours (the B-spline stencil reaches 2 nodes ahead), so the cost follows
@@ -40,6 +44,7 @@ mod grid_update;
 mod large_step;
 mod mode;
 mod p2g;
+mod particles;
 mod team;
 
 pub use crate::material::sand::drucker_prager_project;
@@ -51,10 +56,9 @@ use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
 use crate::isa::Isa;
-use crate::material::solid::{self, Models};
-use crate::material::{sand, water};
+use crate::material::solid::Models;
 use crate::params::SolverParams;
-use crate::particles::{Material, Particle};
+use crate::particles::Particle;
 use grid::{SparseGrid, Stencil};
 
 /// A pending move of a collider over the next frame
@@ -193,8 +197,10 @@ where
     /// Memory budget [bytes] for what the inputs make the solver allocate
     /// (`None`: unlimited); see [`Solver::with_memory_budget`].
     memory_budget: Option<u64>,
-    /// The projection integrator's grids (`large_step.rs`), made by its first frame.
+    /// The projection integrator's grids (`large_step.rs`), made by its first
+    /// frame, and the frames its last step still spans (checkpointed).
     large_step: Option<Box<crate::projection::Projection<D>>>,
+    drift_frames: u32,
 }
 
 impl<const D: usize> Solver<D>
@@ -282,6 +288,7 @@ where
             isa,
             memory_budget,
             large_step: None,
+            drift_frames: 0,
         })
     }
 
@@ -502,12 +509,6 @@ where
         }
     }
 
-    fn reset_order(&mut self) {
-        let n = self.particles.len() as u32;
-        self.ids = (0..n).collect();
-        self.slot_of = (0..n).collect();
-    }
-
     pub fn num_particles(&self) -> usize {
         self.particles.len()
     }
@@ -535,163 +536,5 @@ where
     pub fn domain_bounds(&self) -> (f32, f32) {
         let dx = self.params.dx();
         (dx, 1.0 - dx)
-    }
-
-    /// Replace all particles (validated; derived stress recomputed).
-    pub fn set_particles(&mut self, mut particles: Vec<Particle<D>>) -> Result<()> {
-        self.check_particle_budget(particles.len())?;
-        let (lo, hi) = self.domain_bounds();
-        for (i, p) in particles.iter().enumerate() {
-            p.validate(i, lo, hi)?;
-            self.check_set(i, p)?;
-        }
-        for p in particles.iter_mut() {
-            self.refresh_stress(p);
-        }
-        self.particles = particles;
-        self.reset_order();
-        Ok(())
-    }
-
-    /// Replace all particles keeping their stored stress (checkpoint restore).
-    pub(crate) fn set_particles_keep_stress(&mut self, particles: Vec<Particle<D>>) -> Result<()> {
-        self.check_particle_budget(particles.len())?;
-        let (lo, hi) = self.domain_bounds();
-        for (i, p) in particles.iter().enumerate() {
-            p.validate(i, lo, hi)?;
-            self.check_set(i, p)?;
-            if !p.tau.iter().all(|a| a.is_finite()) {
-                return Err(MpmError::invalid(
-                    "stress",
-                    format!("particle {i} has a non-finite stress"),
-                ));
-            }
-        }
-        self.particles = particles;
-        self.reset_order();
-        Ok(())
-    }
-
-    /// Modify particles in place through `f(id, particle)` (public order),
-    /// then validate; `refresh_stress` recomputes τ (needed after changing
-    /// `F`, `J` or `C`). On error nothing changes.
-    pub fn modify_particles(
-        &mut self,
-        refresh_stress: bool,
-        mut f: impl FnMut(usize, &mut Particle<D>),
-    ) -> Result<()> {
-        let mut ps = self.particles.clone();
-        for (id, &slot) in self.slot_of.iter().enumerate() {
-            f(id, &mut ps[slot as usize]);
-        }
-        let (lo, hi) = self.domain_bounds();
-        for (id, &slot) in self.slot_of.iter().enumerate() {
-            ps[slot as usize].validate(id, lo, hi)?;
-            self.check_set(id, &ps[slot as usize])?;
-        }
-        if refresh_stress {
-            for p in ps.iter_mut() {
-                self.refresh_stress(p);
-            }
-        }
-        self.particles = ps;
-        Ok(())
-    }
-
-    /// Append particles (validated). Returns the new particle count.
-    pub fn add_particles(&mut self, new: Vec<Particle<D>>) -> Result<usize> {
-        let (lo, hi) = self.domain_bounds();
-        let n0 = self.particles.len();
-        self.check_particle_budget(n0.saturating_add(new.len()))?;
-        if n0.saturating_add(new.len()) > u32::MAX as usize {
-            return Err(MpmError::invalid(
-                "positions",
-                format!("at most {} particles are supported", u32::MAX),
-            ));
-        }
-        for (i, p) in new.iter().enumerate() {
-            p.validate(n0 + i, lo, hi)?;
-            self.check_set(n0 + i, p)?;
-        }
-        for mut p in new {
-            self.refresh_stress(&mut p);
-            self.ids.push(self.particles.len() as u32);
-            self.slot_of.push(self.particles.len() as u32);
-            self.particles.push(p);
-        }
-        Ok(self.particles.len())
-    }
-
-    /// Remove the particles whose `keep[i]` is false (order of the rest kept).
-    pub fn retain_particles(&mut self, keep: &[bool]) -> Result<usize> {
-        if keep.len() != self.particles.len() {
-            return Err(MpmError::invalid(
-                "mask",
-                format!(
-                    "length {} != particle count {}",
-                    keep.len(),
-                    self.particles.len()
-                ),
-            ));
-        }
-        let kept: Vec<Particle<D>> = self
-            .particles()
-            .into_iter()
-            .zip(keep.iter())
-            .filter(|(_, k)| **k)
-            .map(|(p, _)| p)
-            .collect();
-        self.particles = kept;
-        self.reset_order();
-        Ok(self.particles.len())
-    }
-
-    /// Set simulated time and frame counter (used by checkpoint restore).
-    pub fn set_clock(&mut self, time: f64, frame: u64) {
-        self.time = time;
-        self.frame = frame;
-    }
-
-    /// Recompute the derived stress τ from the particle's state.
-    fn refresh_stress(&self, p: &mut Particle<D>) {
-        p.tau = match p.material {
-            Material::Water => water::kirchhoff_stress(self.models.water(p.set), p.j, &p.c),
-            Material::Sand => {
-                let m = self.models.sand(p.set);
-                sand::stress_of(&p.f, m.mu, m.la)
-            }
-            _ => solid::stress(&self.models.models[p.set as usize], &p.f, p.j),
-        };
-    }
-
-    /// The table of parameter sets particles index (`Particle::set`): the
-    /// default set of each material at its code, then `params.sets`.
-    pub fn material_table(&self) -> &[crate::params::MaterialParams] {
-        &self.models.params
-    }
-
-    /// Checks that particle `index`'s parameter set exists and is of its
-    /// material (field `material_set`).
-    fn check_set(&self, index: usize, p: &Particle<D>) -> Result<()> {
-        match self.models.params.get(p.set as usize) {
-            Some(set) if set.material() == p.material => Ok(()),
-            Some(set) => Err(MpmError::invalid(
-                "material_set",
-                format!(
-                    "particle {index} is {} but its parameter set {} is {}",
-                    p.material.name(),
-                    p.set,
-                    set.material().name()
-                ),
-            )),
-            None => Err(MpmError::invalid(
-                "material_set",
-                format!(
-                    "particle {index}: parameter set {} does not exist (the table has {})",
-                    p.set,
-                    self.models.params.len()
-                ),
-            )),
-        }
     }
 }

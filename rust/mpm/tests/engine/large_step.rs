@@ -49,21 +49,60 @@ fn a_dam_break_is_the_same_bits_on_one_thread_and_two_and_after_a_restore() {
         one.checkpoint() == two.checkpoint(),
         "1 and 2 threads differ"
     );
-    let saved = one.checkpoint();
+    // a checkpoint inside a step that spans frames keeps the frames left
+    while one.drift_frames() == 0 {
+        one.step_frame(DT_FRAME).unwrap();
+    }
+    let (saved, left, frame) = (one.checkpoint(), one.drift_frames(), one.frame());
     for _ in 0..30 {
         one.step_frame(DT_FRAME).unwrap();
     }
     let mut again = solver(Integrator::Projection, 2);
     again.restore(&saved).unwrap();
+    assert_eq!(again.drift_frames(), left);
     for _ in 0..30 {
         again.step_frame(DT_FRAME).unwrap();
     }
-    assert_eq!(
-        one.checkpoint(),
-        again.checkpoint(),
+    assert!(
+        one.checkpoint() == again.checkpoint(),
         "a restored run differs"
     );
-    assert_eq!(one.frame(), 60);
+    assert_eq!(again.frame(), frame + 30);
+    // an explicit solver refuses it and is unchanged
+    let mut explicit = solver(Integrator::Explicit, 1);
+    let before = explicit.checkpoint();
+    assert!(explicit.restore(&saved).is_err());
+    assert!(explicit.checkpoint() == before);
+}
+
+#[test]
+fn a_step_spans_frames_where_the_flow_allows_and_each_frame_moves_the_particles() {
+    let mut s = solver(Integrator::Projection, 0);
+    let (mut steps, mut inside) = (0, 0);
+    let mut last = s.particles();
+    for _ in 0..200 {
+        let drifting = s.drift_frames() > 0;
+        assert_eq!(s.substeps_for(DT_FRAME).unwrap() == 0, drifting);
+        let stats = s.step_frame(DT_FRAME).unwrap();
+        steps += stats.substeps;
+        inside += usize::from(drifting);
+        assert_eq!(stats.substeps == 0, drifting);
+        // every frame moves the falling column: no frame repeats the last one's positions
+        let now = s.particles();
+        assert!(now.iter().zip(&last).any(|(a, b)| a.x != b.x));
+        last = now;
+    }
+    assert!(
+        inside > 0 && steps < 200,
+        "{steps} steps, {inside} frames inside a step"
+    );
+    // a change to the particles ends the step: the next frame steps
+    while s.drift_frames() == 0 {
+        s.step_frame(DT_FRAME).unwrap();
+    }
+    s.modify_particles(false, |_, p| p.v[0] += 0.1).unwrap();
+    assert_eq!(s.drift_frames(), 0);
+    assert!(s.step_frame(DT_FRAME).unwrap().substeps >= 1);
 }
 
 #[test]
