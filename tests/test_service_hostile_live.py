@@ -294,6 +294,9 @@ def peak_budget_during(url: str, request: Callable[[], httpx.Response]) -> tuple
         watcher.join()
 
 
+# alone: a peak of the server's resident memory reads the machine's load too (the same control grew it 1.05-1.11x
+# its reservation on a quiet machine, 1.50x beside the parallel phase's other tests)
+@pytest.mark.alone
 def test_peak_rss_of_the_largest_control_stays_within_1_5x_of_what_the_budget_reserved():
     """The memory budget counts a control's real peak: for the largest control a request may ask (1000 frames,
     the diffusion controller, on 3D sessions: hybrid, whose network runs at r_p, and plain MPM at full
