@@ -8,6 +8,9 @@ use super::{shape, strides};
 use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
 
+/// Per axis of a 3^D stencil: the nodes' parts of the flat index, weights, offsets [m]; the last axis' node count.
+type Axes = ([[usize; 3]; 3], [[f32; 3]; 3], [[f32; 3]; 3], usize);
+
 /// A particle's quadratic B-spline weights on the two grids of each axis:
 /// kind 0, the cell centres `(i + ½)·dx`; kind 1, the nodes `i·dx` (a
 /// velocity component's own axis on its face grid). Per axis and kind: the
@@ -53,36 +56,36 @@ impl<const D: usize> Kernel<D> {
         stride: &[usize; D],
         mut f: impl FnMut(usize, f32, [f32; D]),
     ) {
-        let axis = |d: usize| {
-            let k = kinds[d];
-            let i: [usize; 3] = std::array::from_fn(|j| (self.base[d][k] + j) * stride[d]);
-            (i, self.w[d][k], self.off[d][k])
-        };
-        let (i0, w0, o0) = axis(0);
-        let (i1, w1, o1) = axis(1);
+        let ([i0, i1, i2], [w0, w1, w2], [o0, o1, o2], last) = self.axes(kinds, stride);
         let mut off = [0.0f32; D];
-        if D == 3 {
-            let (i2, w2, o2) = axis(D - 1);
-            for a in 0..3 {
-                off[0] = o0[a];
-                for b in 0..3 {
-                    off[1] = o1[b];
-                    let (wab, iab) = (w0[a] * w1[b], i0[a] + i1[b]);
-                    for c in 0..3 {
+        for a in 0..3 {
+            off[0] = o0[a];
+            for b in 0..3 {
+                off[1] = o1[b];
+                let (wab, iab) = (w0[a] * w1[b], i0[a] + i1[b]);
+                for c in 0..last {
+                    if D == 3 {
                         off[D - 1] = o2[c];
-                        f(iab + i2[c], wab * w2[c], off);
                     }
-                }
-            }
-        } else {
-            for a in 0..3 {
-                off[0] = o0[a];
-                for b in 0..3 {
-                    off[1] = o1[b];
-                    f(i0[a] + i1[b], w0[a] * w1[b], off);
+                    f(iab + i2[c], wab * w2[c], off);
                 }
             }
         }
+    }
+
+    /// Per axis on the grid of `kinds` and `stride`: the 3 nodes' parts of the flat index, their
+    /// weights and offsets [m], and the nodes the last axis has (in 2D a third axis of one node,
+    /// weight 1, offset 0, so one loop serves both).
+    #[inline(always)]
+    fn axes(&self, kinds: [usize; D], stride: &[usize; D]) -> Axes {
+        let (mut i, mut w, mut o) = ([[0usize; 3]; 3], [[1.0f32, 0.0, 0.0]; 3], [[0.0f32; 3]; 3]);
+        for d in 0..D {
+            let k = kinds[d];
+            i[d] = std::array::from_fn(|j| (self.base[d][k] + j) * stride[d]);
+            w[d] = self.w[d][k];
+            o[d] = self.off[d][k];
+        }
+        (i, w, o, if D == 3 { 3 } else { 1 })
     }
 }
 
@@ -100,20 +103,11 @@ impl<const D: usize> Kernel<D> {
         c: &[f32; D],
         grid: &mut [[f32; 2]],
     ) {
-        let axis = |d: usize| {
-            let k = kinds[d];
-            let i: [usize; 3] = std::array::from_fn(|j| (self.base[d][k] + j) * stride[d]);
-            let t: [f32; 3] = std::array::from_fn(|j| c[d] * self.off[d][k][j]);
-            (i, self.w[d][k], t)
-        };
-        let (i0, w0, t0) = axis(0);
-        let (i1, w1, t1) = axis(1);
-        let (i2, w2, t2) = if D == 3 {
-            axis(D - 1)
-        } else {
-            ([0; 3], [1.0, 0.0, 0.0], [0.0; 3])
-        };
-        let last = if D == 3 { 3 } else { 1 };
+        let ([i0, i1, i2], [w0, w1, w2], o, last) = self.axes(kinds, stride);
+        // the affine term's part per axis and node: c_d·(x_i − x_p)_d
+        let [t0, t1, t2]: [[f32; 3]; 3] = std::array::from_fn(|d| {
+            std::array::from_fn(|j| if d < D { c[d] * o[d][j] } else { 0.0 })
+        });
         for a in 0..3 {
             let (mw0, u0) = (m * w0[a], u + t0[a]);
             for b in 0..3 {
@@ -136,19 +130,7 @@ impl<const D: usize> Kernel<D> {
         stride: &[usize; D],
         grid: &[f32],
     ) -> (f32, [f32; D]) {
-        let axis = |d: usize| {
-            let k = kinds[d];
-            let i: [usize; 3] = std::array::from_fn(|j| (self.base[d][k] + j) * stride[d]);
-            (i, self.w[d][k], self.off[d][k])
-        };
-        let (i0, w0, o0) = axis(0);
-        let (i1, w1, o1) = axis(1);
-        let (i2, w2, o2) = if D == 3 {
-            axis(D - 1)
-        } else {
-            ([0; 3], [1.0, 0.0, 0.0], [0.0; 3])
-        };
-        let last = if D == 3 { 3 } else { 1 };
+        let ([i0, i1, i2], [w0, w1, w2], [o0, o1, o2], last) = self.axes(kinds, stride);
         let (mut v, mut c) = (0.0f32, [0.0f32; D]);
         for a in 0..3 {
             // over the second and last axes: Σ w u, Σ w u o1, Σ w u o2
