@@ -1,4 +1,5 @@
-"""Real-time factor of every registered scene, as a session runs it, under each integrator that steps it.
+"""Real-time factor of every registered scene, as a session runs it, under each integrator that steps it, and in
+real-time mode.
 
 For each scene: ``make_simulator(scene, "default")`` (what a session and the
 page run, the chart's choice), and, where the scene holds only water in the
@@ -10,6 +11,10 @@ threads. The real-time factor is simulated seconds per wall second,
 wall second). Steps per frame are the MPM solver's (substeps for the explicit step; a
 projection step spanning frames counts on its first). Run it on a quiet machine: its absolute times move with the CPU and
 the load; the ratio of the two integrators in one run is what carries over.
+
+With ``--realtime`` each scene also runs ``make_simulator(scene, "realtime")`` (docs/realtime.md): ``--settle``
+seconds of wall time to pick its rung, then ``--frames`` frames timed as above; the row names the rung it ran
+and how often it changed.
 
     python benchmarks/realtime.py --out benchmarks/results/realtime
 """
@@ -27,6 +32,29 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import make_simulator, rollout
 from hybridmpm.sim.config import default_settings
+
+
+def measure_realtime(scene: str, frames: int, settle_s: float) -> dict[str, Any]:
+    """Real-time mode's figures: its rung after ``settle_s`` seconds of stepping, then ``frames`` frames timed."""
+    sim = make_simulator(scene, "realtime")
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < settle_s:
+        sim.advance()
+    settled = len(sim.changes)
+    t0 = time.perf_counter()
+    ro = rollout(sim, frames)
+    wall = time.perf_counter() - t0
+    if ro.failure is not None:
+        raise RuntimeError(f"{scene} (realtime): the rollout broke off: {ro.failure} {ro.failure_detail}")
+    info = sim.realtime_info()
+    return {
+        "scene": scene,
+        "run": f"realtime: {info['rung']} ({settled} changes settling, {len(sim.changes) - settled} timed)",
+        "particles": int(sim.solver.num_particles),
+        "steps_per_frame": float(np.asarray(ro.substeps)[1:].sum()) / frames,
+        "ms_per_frame": 1e3 * wall / frames,
+        "rtf": frames * sim.dt_frame / wall,
+    }
 
 
 def measure(scene: str, integrator: str | None, frames: int, warmup: int) -> dict[str, Any] | None:
@@ -67,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default=",".join(DOMAINS), help="comma-separated registered scenes (default: all)")
     ap.add_argument("--frames", type=int, default=150, help="frames timed (default 150)")
     ap.add_argument("--warmup", type=int, default=15, help="frames before the timing (default 15)")
+    ap.add_argument("--realtime", action="store_true", help="also run real-time mode (docs/realtime.md)")
+    ap.add_argument("--settle", type=float, default=10.0, help="with --realtime: seconds it steps before the timing (default 10)")
     ap.add_argument("--out", required=True, help="output folder")
     args = ap.parse_args(argv)
     rows: list[dict[str, Any]] = []
@@ -78,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
             if r is not None:
                 rows.append(r)
                 print(r, flush=True)
+        if args.realtime:
+            rows.append(measure_realtime(scene, args.frames, args.settle))
+            print(rows[-1], flush=True)
     keys = ["scene", "run", "particles", "steps_per_frame", "ms_per_frame", "rtf"]
     lines = [
         "# Real-time factor per scene (both threads; a frame is 2.5 ms, real time is RTF >= 1)",

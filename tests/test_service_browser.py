@@ -6,8 +6,9 @@ up (the y flip); a 3D scene renders and turns with the camera, an arrow drawn
 in 3D moves the fluid's centroid along it, the sketch and the plan's centroid
 path stay on the canvas through the controlled horizon; the downloads (the
 session's trajectory, PLY frames, the control's trajectory, a GIF) read back;
-the Canvas2D fallback draws; the page opened bare shows the 3D dam break with its
-paddle as a body of water, holds the frame while paused, advances exactly T frames
+the Canvas2D fallback draws; the page on its default scene (``?solver=default``: the
+scene's fixed configuration, not the page's default real-time session, whose grid may change while it plays) shows
+the 3D dam break with its paddle as a body of water, holds the frame while paused, advances exactly T frames
 over a T-frame control, and a rightward arrow moves the water's pixels right; the
 drag tool drags an obstacle through the water, in 2D and in 3D. With ``HYBRIDMPM_PAGE_SCREENSHOTS=DIR`` the 2D and
 3D pages with a sketch applied are saved as ``DIR/page_2d.png``, ``DIR/page_3d.png``,
@@ -427,12 +428,14 @@ def session_frame(server, sid):
 
 
 def test_default_3d_scene_is_a_body_of_water_that_pauses_and_follows_a_rightward_arrow(server, browser):
-    """The page opened bare: the 3D dam break with its paddle (WebGL2), tens of thousands of particles drawn as one
-    body of water.
+    """The page on its default scene (WebGL2): the 3D dam break with its paddle, tens of thousands of particles drawn
+    as one body of water. ``?solver=default``: the scene's fixed configuration (the page's default real-time session may
+    change its grid while it plays, and the frame reached with the control is compared with the same frame replayed
+    without it).
     Paused, the frame holds; a 100-frame control advances exactly 100 frames and the page stays paused after it.
     A rightward arrow (from frame 80) moves the water's pixels right on the screen (fixed camera): against the same
     frame reached without the control (reset, then stepped over HTTP), since the dam break flows right by itself."""
-    page, errors = new_page(browser, "?scale=1", server)
+    page, errors = new_page(browser, "?solver=default&scale=1", server)
     session = page.evaluate("window.__hmpm.session")
     assert session["scene"] == "paddle3d" and session["dim"] == 3 and session["solver"] == "default"  # the scene's default: plain MPM
     assert [ob["shape"] for ob in session["obstacles"]] == ["box"]  # the paddle
@@ -621,8 +624,9 @@ def test_dragging_the_paddle_through_the_water_in_3d(server, browser):
     pauses again after the last move; the server's paddle ends where it was dropped and the page draws it there; the
     ``obstacle`` events arrived; against the same session stepped as many frames without the drag (reset, which puts
     the paddle back, then stepped over HTTP), the water ends elsewhere and out of the place the paddle was dropped
-    in, which it fills without the drag."""
-    page, errors = new_page(browser, "?autoplay=0&scale=1", server)
+    in, which it fills without the drag. ``?solver=default``: the scene's fixed configuration (the replay must run the
+    drag's grid; the page's default real-time session may change its grid while it plays)."""
+    page, errors = new_page(browser, "?solver=default&autoplay=0&scale=1", server)
     session = page.evaluate("window.__hmpm.session")
     assert session["scene"] == "paddle3d" and session["dim"] == 3 and page.evaluate("window.__hmpm.renderer") == "webgl2"
     sid, ob = session["id"], session["obstacles"][0]

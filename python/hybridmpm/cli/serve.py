@@ -30,13 +30,15 @@ def _serve(args: argparse.Namespace) -> int:
         ray_address=args.ray_address,
         ray_namespace=args.ray_namespace,
         ray_num_cpus=args.ray_num_cpus,
+        realtime=args.realtime,
     )
     app = create_app(cfg)  # opens the store, joins the Ray cluster of --backend ray (a clear error if it cannot)
     print(
         f"hybridmpm: serving on http://{args.host}:{args.port}/ (max {cfg.max_sessions} sessions, {cfg.max_sessions_per_client} per client, "
         f"idle TTL {cfg.idle_ttl_s:g} s, hosts {', '.join(cfg.allowed_hosts) or 'loopback names on loopback addresses'}"
         f"{f', store {cfg.store}, saved every {cfg.save_every_s:g} s' if cfg.store else ''}"
-        f"{f', sessions in the Ray cluster at {cfg.ray_address}' if cfg.backend == 'ray' else ('' if cfg.store else ', sessions in memory only')})",
+        f"{f', sessions in the Ray cluster at {cfg.ray_address}' if cfg.backend == 'ray' else ('' if cfg.store else ', sessions in memory only')}"
+        f"{', sessions in real-time mode by default' if cfg.realtime else ''})",
         file=sys.stderr,
         flush=True,
     )
@@ -75,5 +77,9 @@ def add_parsers(sub: Any) -> None:
     sv.add_argument("--ray-address", default=None, help="with --backend ray: 'auto' (the cluster `ray start` made here; default) or HOST:PORT of its head")
     sv.add_argument("--ray-namespace", default=None, help="with --backend ray: the Ray namespace of the sessions' actors (default hybridmpm)")
     sv.add_argument("--ray-num-cpus", type=float, default=None, help="with --backend ray: CPUs Ray reserves for each session's actor (default 0.25)")
+    sv.add_argument(
+        "--realtime", action="store_const", const=True, default=None,
+        help="sessions created without 'realtime' run in real-time mode (those of the default solver; docs/service.md; env HYBRIDMPM_REALTIME=1)",
+    )  # fmt: skip
     sv.add_argument("--log-level", default="warning", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn log level")
     sv.set_defaults(func=_serve)

@@ -38,6 +38,12 @@ def _simulate(args: argparse.Namespace) -> int:
         _apply_tuned(args, scene.name)
     elif args.solver == "default":
         default = _apply_default(args, scene)
+    elif args.solver == "realtime" and _given(args):
+        raise InvalidInputError(
+            f"solver: {_given(args)[0]} sets a configuration of its own; real-time mode picks its grid and integrator from the scene's "
+            "real-time chart (docs/realtime.md): add --solver mpm to set it",
+            "solver",
+        )
     for key, value in _CONFIG_DEFAULTS.items():  # what the flags not given (None) mean
         if getattr(args, key) is None:
             setattr(args, key, value)
@@ -85,7 +91,9 @@ def _simulate(args: argparse.Namespace) -> int:
         summary["default"] = (
             {k: default.get(k) for k in ("label", "config", "ratios_to_mpm_rp", "cheap_share", "validation_seeds", "budget")} if default else None
         )
-    if args.solver == "mpm":
+    if args.solver == "realtime":  # the rung it ended on and every change of rung
+        summary["realtime"] = {**sim.realtime_info(), "history": list(sim.changes)}  # type: ignore[attr-defined]
+    if args.solver in ("mpm", "realtime"):
         subs = ro.substeps[1:]
         summary["substeps_total"] = int(subs.sum())
         summary["substeps_per_frame"] = {"min": int(subs.min()), "median": float(np.median(subs)), "max": int(subs.max())} if len(subs) else None
@@ -321,9 +329,10 @@ def add_parsers(sub: Any) -> None:
         "scene", nargs="?", default="dam_break2d", help=f"a scene ({', '.join(sorted(DOMAINS))}) or a scene file (.toml/.json); default dam_break2d"
     )
     sim.add_argument(
-        "--solver", default="default", choices=["default", "hybrid", "mpm", "neural", "auto"],
+        "--solver", default="default", choices=["default", "hybrid", "mpm", "neural", "realtime", "auto"],
         help="solver (default: the scene's default configuration, chosen by the chart: docs/hybrid.md \"Defaults per scene\"; hybrid: the paper's, "
-        "neural, MPM while s(t) < r_c; auto: the configuration hybridmpm tune chose)",
+        "neural, MPM while s(t) < r_c; realtime: MPM on the grid and integrator of its real-time chart that keep real time here, "
+        "docs/realtime.md; auto: the configuration hybridmpm tune chose)",
     )  # fmt: skip
     sim.add_argument("--tuned", default=None, help="--solver auto: tuned configuration (default tuned/SCENE.json)")
     sim.add_argument("--model", default=None, help="ONNX model for --solver neural|hybrid (default: the shipped model for the scene)")

@@ -330,7 +330,8 @@ def _on_grid(scene: Scene, n_grid: int | None, particles_per_cell: int | None, k
         info = {**scene.info, "base_n_grid": int(scene.info.get("base_n_grid", n0)), "kept_particles": True}
         return replace(
             scene,
-            params=spec.params,
+            # the scene's own parameters (a block's parameter set is the built scene's, not the spec's) on the new grid
+            params=replace(scene.params, n_grid=spec.params.n_grid, walls=spec.params.walls, colliders=spec.params.colliders),
             masses=np.asarray(solver.masses, np.float32),
             volumes=np.asarray(solver.volumes, np.float32),
             info=info,

@@ -227,7 +227,8 @@ class SessionBackend(Protocol[S]):
 
     # ------------------------------------------------------------ lifecycle
     async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None) -> S:
-        """A new session for ``client`` (``n_grid``, ``integrator``: its MPM's, None: the scene's):
+        """A new session for ``client`` (``n_grid``, ``integrator``: its MPM's, None: the scene's; ``solver``
+        ``realtime``: real-time mode, the request's ``realtime`` resolved by the route):
         :class:`SessionCapError`, :class:`QuotaError`,
         :class:`~hybridmpm.service.budget.BudgetFullError`, :class:`StoreSaveError`, the simulator's refusal."""
         ...

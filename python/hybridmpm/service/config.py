@@ -25,6 +25,9 @@ _HOST_PORT = re.compile(r"^(?:[A-Za-z0-9.-]{1,253}|\[[0-9A-Fa-f:.]{2,45}\]):\d{1
 _NAMESPACE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _TUPLES = ("allowed_origins", "allowed_hosts")
 _STRINGS = ("store", "backend", "ray_address", "ray_namespace")
+_BOOLS = ("realtime",)
+#: How an environment variable spells a boolean setting (``HYBRIDMPM_REALTIME=1``), case-insensitive.
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 _FLOATS = ("ray_num_cpus", "save_every_s", "idle_ttl_s", "reap_interval_s", "send_timeout_s", "max_fps", "header_timeout_s", "keep_alive_s", "body_timeout_s")
 
 
@@ -80,6 +83,11 @@ class ServiceConfig:
     ``ray_num_cpus`` the CPUs Ray reserves for each session's actor (its
     share of a core: the cluster's capacity is its CPUs divided by this).
 
+    ``realtime`` (``serve --realtime``) sessions created without ``realtime``
+    (null) run in real-time mode when they ask for the default solver with no
+    ``n_grid`` or ``integrator`` (:func:`~hybridmpm.service.facts.checked_realtime`;
+    docs/service.md "Real-time sessions"); off by default.
+
     Raises :class:`InvalidInputError` naming the field of a bad setting.
     """
 
@@ -108,6 +116,7 @@ class ServiceConfig:
     ray_address: str = "auto"
     ray_namespace: str = "hybridmpm"
     ray_num_cpus: float = 0.25
+    realtime: bool = False
 
     def __post_init__(self) -> None:
         from hybridmpm.limits import memory_budget, parse_size
@@ -141,6 +150,8 @@ class ServiceConfig:
         if isinstance(v, bool) or not (isinstance(v, (int, float)) and 0.0001 <= float(v) <= 1024):
             raise InvalidInputError(f"ray_num_cpus: must be a number in [0.0001, 1024], got {v!r}", "ray_num_cpus")
         self.ray_num_cpus = float(v)
+        if not isinstance(self.realtime, bool):
+            raise InvalidInputError(f"realtime: must be true or false, got {self.realtime!r}", "realtime")
         if self.backend == "ray" and self.store is not None and self.store.startswith("memory:"):
             raise InvalidInputError(
                 "store: memory:// lives in one process; the ray backend needs a store every node reaches (a shared directory or an object store URL)", "store"
@@ -156,11 +167,18 @@ class ServiceConfig:
     def from_env(cls, **overrides: object) -> ServiceConfig:
         """Defaults, then :func:`env_name` environment variables
         (``HYBRIDMPM_ALLOWED_ORIGINS``, ``HYBRIDMPM_ALLOWED_HOSTS`` comma-separated,
-        ``HYBRIDMPM_SERVICE_MEMORY_BUDGET`` a size such as ``8G``), then ``overrides`` (None ignored)."""
+        ``HYBRIDMPM_SERVICE_MEMORY_BUDGET`` a size such as ``8G``, ``HYBRIDMPM_REALTIME``
+        ``1``/``0``, ``true``/``false``, ``yes``/``no`` or ``on``/``off``), then ``overrides`` (None ignored)."""
         kw: dict[str, object] = {}
         for f in fields(cls):
             raw = os.environ.get(env_name(f.name))
             if raw is None or raw == "":
+                continue
+            if f.name in _BOOLS:
+                word = raw.strip().lower()
+                if word not in (*_TRUE, *_FALSE):
+                    raise InvalidInputError(f"{f.name}: {env_name(f.name)}={raw!r} is not 1/0, true/false, yes/no or on/off", f.name)
+                kw[f.name] = word in _TRUE
                 continue
             try:
                 if f.name in _STRINGS:

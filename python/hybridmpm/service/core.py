@@ -2,7 +2,9 @@
 
 A session is one simulator and what the service keeps around it: the lock
 its work takes in turn, the recording of its recent frames, the controls it
-keeps, the play loop (real time, catching up at most :data:`PLAY_LAG_S`),
+keeps, the play loop (real time, catching up at most :data:`PLAY_LAG_S`;
+a real-time session, never), the ``realtime`` event of a real-time session
+whose rung changed,
 its saves to the store (a snapshot at a step boundary, the record written
 after), its idle clock (expiry) and the control episode; the edits of a
 running session (pours, obstacle moves, rigid bodies) are its methods too,
@@ -41,10 +43,10 @@ from hybridmpm.service import checkpoint as ckpt
 from hybridmpm.service.budget import MemoryBudget, RecordedBodies, RecordedFrame, Recording
 from hybridmpm.service.edits import SessionEdits
 from hybridmpm.service.episode import run_episode
-from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry, session_integrator
+from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometry, session_integrator, session_realtime
 from hybridmpm.service.schemas import clean
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
-from hybridmpm.sim import Frame, Rollout, Simulator, make_simulator, rollout
+from hybridmpm.sim import Frame, RealtimeSimulator, Rollout, Simulator, make_simulator, rollout
 
 log = logging.getLogger("hybridmpm.service")
 
@@ -91,15 +93,18 @@ class Pacer:
     """Real-time pacing of a playing session: one coarse step (``period``
     seconds of simulated time) per ``period`` seconds of wall time;
     :meth:`delay` after each step says how long to wait before the next.
-    A session that falls behind catches up at most :data:`PLAY_LAG_S`."""
+    A session that falls behind catches up at most ``lag`` seconds
+    (:data:`PLAY_LAG_S`; 0 for a real-time session: a frame that ran late is
+    not owed, the next one is due a period after it)."""
 
-    def __init__(self, period: float) -> None:
+    def __init__(self, period: float, lag: float = PLAY_LAG_S) -> None:
         self.period = float(period)
+        self.lag = max(0.0, float(lag))
         self.next_t = time.monotonic()
 
     def delay(self) -> float:
         """Seconds to wait before the next step [s], ≥ 0."""
-        self.next_t = max(self.next_t + self.period, time.monotonic() - PLAY_LAG_S)
+        self.next_t = max(self.next_t + self.period, time.monotonic() - self.lag)
         return max(0.0, self.next_t - time.monotonic())
 
 
@@ -169,6 +174,7 @@ class SessionCore(SessionEdits):
         self.restored_from_frame: int | None = None  # the frame it resumed from after a restart
         self.poured = getattr(sim, "poured_particles", 0) > 0  # particles were added (a reset then builds its simulator again)
         self.last_used = time.monotonic()
+        self._realtime_seen = self._realtime_mark()  # (rung, changes) the viewers were last told of
         self._record(sim.frame)
 
     # ------------------------------------------------------------ building
@@ -231,11 +237,36 @@ class SessionCore(SessionEdits):
             "restored_from_frame": self.restored_from_frame,
             **scene_geometry(self.sim),
             "integrator": session_integrator(self.sim),  # what runs (the settings' meta holds it only when asked)
+            "realtime": self.realtime_info(),
             "obstacle_centers": np.round(np.asarray(getattr(self.sim, "obstacle_centers", np.zeros((0, d))), np.float64), 7).tolist(),
             "bodies": self.bodies_now(),
             "recorded_frames": len(self.recording),
             "control": self.control_state(),
         }
+
+    def realtime_info(self) -> dict[str, Any] | None:
+        """A real-time session's :meth:`~hybridmpm.sim.RealtimeSimulator.realtime_info` (its rung, frame time,
+        real-time factor, ...; plain JSON values); None for any other session."""
+        return session_realtime(self.sim)
+
+    def _realtime_mark(self) -> tuple[str, int] | None:
+        sim = self.sim
+        return (sim.rung, len(sim.changes)) if isinstance(sim, RealtimeSimulator) else None
+
+    def _realtime_news(self) -> None:
+        """After steps, a restore or a reset: a real-time session whose rung changed since the viewers were last
+        told (:attr:`~hybridmpm.sim.RealtimeSimulator.changes` grew, or a state moved it) emits
+        ``{"type": "realtime", **realtime_info()}``."""
+        mark = self._realtime_mark()
+        info = session_realtime(self.sim) if mark is not None and mark != self._realtime_seen else None
+        if info is not None:
+            self._realtime_seen = mark
+            self.on_event({"type": "realtime", **info})
+
+    def pacer(self) -> Pacer:
+        """The play loop's :class:`Pacer`: one coarse step per its simulated time, catching up at most
+        :data:`PLAY_LAG_S`; a real-time session never catches up (lag 0)."""
+        return Pacer(float(self.sim.dt_frame) * int(self.sim.r_t), 0.0 if isinstance(self.sim, RealtimeSimulator) else PLAY_LAG_S)
 
     def control_state(self) -> dict[str, Any] | None:
         """The control running now, as a viewer that joins meanwhile needs it
@@ -307,6 +338,7 @@ class SessionCore(SessionEdits):
                 self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False, centers, self._recorded_bodies(*poses))
             if len(ro.frame_index) > 1:
                 self.on_frame(self.sim.frame, 0)
+            self._realtime_news()
         return ro
 
     def play(self) -> Iterator[float]:
@@ -321,7 +353,7 @@ class SessionCore(SessionEdits):
         call on a worker). :attr:`lock` is taken per step; the local
         backend queues a session's requests behind a whole call (about a
         tick)."""
-        pacer = Pacer(float(self.sim.dt_frame) * int(self.sim.r_t))
+        pacer = self.pacer()
         while self.playing and not self.closed and self.has_viewers():
             start, delay = time.monotonic(), 0.0
             last: Frame | None = None  # the call's latest step: the viewers get it when the call ends
@@ -337,6 +369,7 @@ class SessionCore(SessionEdits):
                         else:
                             self._changed()
                             self._record(last)
+                            self._realtime_news()
                             delay = pacer.delay()
                     ends = not going or delay > 0 or time.monotonic() - start >= PLAY_TICK_S or not (self.playing and self.has_viewers())
                     if ends and last is not None:
@@ -414,7 +447,10 @@ class SessionCore(SessionEdits):
                                 self.running_control["plan"] = {k: v for k, v in msg.items() if k not in ("type", "id")}
                     self.on_event(msg)
 
-                out = run_episode(self.sim, sketch, controller, cid, self._show, on_event, stop, share)
+                try:
+                    out = run_episode(self.sim, sketch, controller, cid, self._show, on_event, stop, share)
+                finally:
+                    self._realtime_news()  # a control's frames may have moved a real-time session's rung
                 self._changed()
             self._open()
             if store is not None:
@@ -474,6 +510,7 @@ class SessionCore(SessionEdits):
             frame = self.frame_index
             if self.bodies_given() != bodies:  # a state taken before or after a body was added or removed
                 self._bodies_event(frame)
+            self._realtime_news()  # a real-time state brings its rung back
         if moved:
             self.on_event({"type": "particles", "frame": frame, "added": 0, "num_particles": facts.num_total, "num_fluid": facts.num_fluid,
                            "particle_type": [int(t) for t in facts.particle_type]})  # fmt: skip
@@ -499,6 +536,7 @@ class SessionCore(SessionEdits):
             self._show(self.sim.frame)
             if self.bodies_given() != bodies:  # the scene's own bodies again
                 self._bodies_event(self.frame_index)
+            self._realtime_news()
             self.on_event({"type": "reset", "frame": self.frame_index})
 
     # ------------------------------------------------------------ saves

@@ -25,7 +25,7 @@ from hybridmpm.mpm.bodies import Body
 from hybridmpm.service.budget import Recording
 from hybridmpm.service.facts import SessionFacts, session_integrator
 from hybridmpm.service.schemas import clean
-from hybridmpm.sim import Frame, Simulator
+from hybridmpm.sim import Frame, RealtimeSimulator, Simulator
 
 
 class SessionEdits:
@@ -68,9 +68,10 @@ class SessionEdits:
     def _water_only(self, what: str) -> None:
         """Refuse ``what`` (an edit that would put something besides water in the box) on a session whose MPM
         is not the explicit one: the projection steps water in the box walls only, so every later step would be
-        refused. :class:`InvalidInputError` naming ``integrator``; the session unchanged."""
+        refused. :class:`InvalidInputError` naming ``integrator``; the session unchanged. A real-time session
+        takes it: its simulator moves to the explicit step (:class:`~hybridmpm.sim.RealtimeSimulator`)."""
         integrator = session_integrator(self.sim)
-        if integrator != INTEGRATORS[0]:
+        if integrator != INTEGRATORS[0] and not isinstance(self.sim, RealtimeSimulator):
             raise InvalidInputError(
                 f"integrator: this session's {integrator} integrator steps water in the box walls only, so it takes no {what}; "
                 f"create the session with integrator '{INTEGRATORS[0]}'",

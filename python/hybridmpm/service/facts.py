@@ -19,14 +19,17 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import INTEGRATORS, SampledSdf
 from hybridmpm.render.surface_scene import surface_settings
 from hybridmpm.scenes import scene_spec
-from hybridmpm.sim import Simulator
+from hybridmpm.sim import RealtimeSimulator, Simulator
+
+#: The solver of a session in real-time mode (one of :data:`hybridmpm.sim.SOLVERS`).
+REALTIME = "realtime"
 
 
 @dataclass(frozen=True)
 class SessionSettings:
     """What a session was created with, and what rebuilds it: ``scene``
-    (its registered name), ``seed``, ``solver`` (``mpm``, ``hybrid``,
-    ``neural``), ``r_c`` (the coarsening ratio of a learned solver) and
+    (its registered name), ``seed``, ``solver`` (``default``, ``mpm``, ``hybrid``,
+    ``neural`` or ``realtime``: :data:`hybridmpm.sim.SOLVERS`), ``r_c`` (the coarsening ratio of a learned solver) and
     ``n_grid`` (MPM on a coarser grid of the scene; None: the scene's own)
     and ``integrator`` (what MPM steps with, one of
     :data:`hybridmpm.mpm.INTEGRATORS`; None: the scene's own)."""
@@ -119,6 +122,8 @@ def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
         return None
     if solver == "default":
         raise InvalidInputError("n_grid: applies to the mpm solver; the default solver runs the grid the chart chose for the scene", "n_grid")
+    if solver == REALTIME:
+        raise InvalidInputError("n_grid: applies to the mpm solver; the realtime solver picks its grid from its real-time ladder as it runs", "n_grid")
     if solver != "mpm":
         raise InvalidInputError(f"n_grid: applies to the mpm solver; the {solver} solver runs at its model's resolution", "n_grid")
     own = scene_spec(scene).params.resolved_n_grid()
@@ -138,9 +143,43 @@ def checked_integrator(solver: str, integrator: str | None) -> str | None:
         raise InvalidInputError(f"integrator: must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}", "integrator")
     if solver == "default":
         raise InvalidInputError("integrator: applies to the mpm solver; the default solver runs the configuration the chart chose for the scene", "integrator")
+    if solver == REALTIME:
+        raise InvalidInputError("integrator: applies to the mpm solver; the realtime solver picks its integrator from its real-time ladder", "integrator")
     if solver != "mpm":
         raise InvalidInputError(f"integrator: applies to the mpm solver; the {solver} solver's MPM part runs its scene's integrator", "integrator")
     return str(integrator)
+
+
+def checked_realtime(solver: str, realtime: bool | None, n_grid: int | None, integrator: str | None, default: bool = False) -> str:
+    """The solver a session of ``solver`` runs given ``realtime`` (the request's; None: ``default``, the server's
+    ``serve --realtime``): :data:`REALTIME` for ``realtime`` true (with the ``default`` solver, or ``realtime``
+    itself, and no ``n_grid`` or ``integrator``: real-time mode picks its own grid and integrator), ``solver``
+    for false. With None the server's default applies to a session of the ``default`` solver with neither
+    ``n_grid`` nor ``integrator`` (a solver named, or a grid or integrator asked, runs as asked). Raises
+    :class:`InvalidInputError` naming ``realtime`` for true with another solver, ``n_grid`` or ``integrator``,
+    and for false with the ``realtime`` solver."""
+    if realtime is None:
+        return REALTIME if default and solver == "default" and n_grid is None and integrator is None else solver
+    if not realtime:
+        if solver == REALTIME:
+            raise InvalidInputError("realtime: false contradicts solver 'realtime'; name another solver, or leave realtime out", "realtime")
+        return solver
+    if solver not in ("default", REALTIME):
+        raise InvalidInputError(
+            f"realtime: real-time mode is a solver of its own (MPM on the scene's default particles); it does not apply to the {solver} "
+            "solver: leave solver out (or 'default')",
+            "realtime",
+        )
+    for name, value in (("n_grid", n_grid), ("integrator", integrator)):
+        if value is not None:
+            raise InvalidInputError(f"realtime: real-time mode picks its own grid and integrator from its ladder; leave {name} out", "realtime")
+    return REALTIME
+
+
+def session_realtime(sim: Simulator) -> dict[str, Any] | None:
+    """What a real-time session's simulator is doing (:meth:`hybridmpm.sim.RealtimeSimulator.realtime_info`,
+    plain JSON values); None for any other simulator."""
+    return dict(sim.realtime_info()) if isinstance(sim, RealtimeSimulator) else None
 
 
 def session_integrator(sim: Simulator) -> str:
@@ -171,4 +210,14 @@ def _drawn(c: Any) -> dict[str, Any]:
     return dict(c.to_dict())
 
 
-__all__ = ["SessionFacts", "SessionSettings", "checked_integrator", "checked_n_grid", "scene_geometry", "session_integrator"]
+__all__ = [
+    "REALTIME",
+    "SessionFacts",
+    "SessionSettings",
+    "checked_integrator",
+    "checked_n_grid",
+    "checked_realtime",
+    "scene_geometry",
+    "session_integrator",
+    "session_realtime",
+]

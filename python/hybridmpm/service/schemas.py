@@ -12,6 +12,7 @@ from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.scenes import DOMAINS
+from hybridmpm.sim import SOLVERS
 
 #: Most points of a sketch stroke accepted over HTTP (the page simplifies to ≤ 512).
 MAX_SKETCH_POINTS = 2048
@@ -26,6 +27,10 @@ Integer = Annotated[int, StrictType()]
 SceneName = Enum("SceneName", {name: name for name in sorted(DOMAINS)}, type=str)  # type: ignore[misc]
 #: An MPM integrator's name (:data:`hybridmpm.mpm.INTEGRATORS`, spelled once there; the default first).
 IntegratorName = Literal[INTEGRATORS]  # type: ignore[valid-type]
+#: A solver kind's name (:data:`hybridmpm.sim.SOLVERS`, spelled once there; "default" first).
+SolverName = Literal[SOLVERS]  # type: ignore[valid-type]
+#: A boolean that must be a JSON boolean (``1``, ``"true"`` refused).
+Flag = Annotated[bool, StrictType()]
 
 
 class Strict(BaseModel):
@@ -41,7 +46,9 @@ class SceneInfo(BaseModel):
     frames: int = Field(description="the scene's default rollout length [frames]")
     seeded: bool = Field(description="whether the seed changes the initial condition")
     doc: str
-    solvers: list[str] = Field(description='the solvers a session of the scene takes; "default" (first) is the scene\'s default configuration')
+    solvers: list[str] = Field(
+        description='the solvers a session of the scene takes; "default" (first) is the scene\'s default configuration, "realtime" its real-time mode'
+    )
     default_configuration: str = Field(description='what the default solver runs for the scene (docs/hybrid.md "Defaults per scene")')
     model: bool = Field(description="whether a trained network ships for the scene (hybrid and neural solvers)")
     methods: list[str] = Field(description="the control methods a session of the scene takes (diffusion: where its controller ships)")
@@ -51,8 +58,10 @@ class SceneInfo(BaseModel):
 class CreateSession(Strict):
     scene: SceneName = Field(description="a registered scene name (GET /v1/scenes); never a path")  # type: ignore[valid-type]
     seed: Integer = Field(0, ge=0, le=MAX_SEED)
-    solver: Literal["default", "hybrid", "mpm", "neural"] = Field(
-        "default", description="default: the scene's default configuration, chosen by the chart (SceneInfo.default_configuration); hybrid: the paper's"
+    solver: SolverName = Field(
+        "default",
+        description="default: the scene's default configuration, chosen by the chart (SceneInfo.default_configuration); hybrid: the paper's; "
+        "realtime: MPM that keeps real time, moving between grids and integrators of the same particles (what realtime: true asks)",
     )
     r_c: Number = Field(R_C, ge=-1.0, le=1.0, description="safeguard threshold of the hybrid (higher: more MPM)")
     n_grid: Integer | None = Field(
@@ -66,6 +75,12 @@ class CreateSession(Strict):
         None,
         description="solver mpm: how a frame advances (explicit MLS-MPM substeps, or projection: incompressible water at the flow's pace; "
         "water scenes without obstacles or bodies only); null: the scene's",
+    )
+    realtime: Flag | None = Field(
+        None,
+        description="true: run in real-time mode (solver realtime: the most accurate grid and integrator whose frame keeps real time on the "
+        "server, changed as its pace changes); with solver default or realtime only, no n_grid or integrator; false: not; "
+        "null: the server's default (serve --realtime makes a session of the default solver real-time)",
     )
 
 
@@ -94,6 +109,23 @@ class RunningControl(BaseModel):
     plan: PlanInfo | None = Field(None, description="the plan's centroid path once the controller has made it; null before")
 
 
+class RealtimeInfo(BaseModel):
+    """What a real-time session is doing (:meth:`hybridmpm.sim.RealtimeSimulator.realtime_info`; its stream's
+    ``realtime`` events carry the same keys)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rung: str = Field(description="the configuration in use, g{n_grid}-{integrator} (e.g. g96-explicit): one of ladder")
+    label: str = Field(description='the rung for people, e.g. "MPM 96² explicit"')
+    frame_ms: float | None = Field(description="its measured wall time per frame [ms] (a running average); null before it was timed")
+    budget_ms: float = Field(description="a frame's wall-time budget [ms]: the simulated time a frame covers, less a margin for the rest of the host")
+    realtime_factor: float | None = Field(
+        description="simulated seconds a wall second of stepping covers on this rung (1.0: real time; above: faster); null before it was timed"
+    )
+    changes: int = Field(description="changes of rung so far")
+    ladder: list[str] = Field(description="the rungs it moves between, most accurate first")
+
+
 class SessionInfo(BaseModel):
     id: str = Field(description="unguessable session id (192 bits, 32 URL-safe characters); the session's only credential")
     scene: str
@@ -119,6 +151,7 @@ class SessionInfo(BaseModel):
         description="what the session's MPM steps with (hybridmpm.mpm.INTEGRATORS: explicit MLS-MPM substeps, or the incompressible "
         "projection); a hybrid or neural session's MPM part runs its scene's"
     )
+    realtime: RealtimeInfo | None = Field(None, description="a real-time session (solver realtime): what real-time mode is doing; null for any other")
     wall_thickness: float = Field(0.0, description="thickness of the domain's walls [m]: the fluid stays within [t, 1 - t] on every axis")
     obstacles: list[dict[str, Any]] = Field(
         default_factory=list,
@@ -290,6 +323,8 @@ class Health(BaseModel):
     memory_used: int = Field(description="bytes of the memory budget held by sessions, kept controls and requests in flight")
     memory_budget: int = Field(description="the process's memory budget [bytes]")
     version: str
+    solvers: list[str] = Field(description="the solver kinds a session may ask for (hybridmpm.sim.SOLVERS; a scene's own in GET /v1/scenes)")
+    realtime_default: bool = Field(description="whether a session created without realtime runs in real-time mode (serve --realtime)")
 
 
 def clean(obj: Any) -> Any:

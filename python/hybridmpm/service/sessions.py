@@ -159,10 +159,11 @@ class LocalSession:
         """Offer the current frame to the viewers again (after a control that stopped early)."""
         self.core.republish()
 
-    def offer(self, fr: Frame, control_frame: int = 0) -> None:
-        """Offer a frame to every viewer (event loop thread only)."""
+    def offer(self, fr: Frame, control_frame: int = 0, realtime: dict[str, Any] | None = None) -> None:
+        """Offer a frame to every viewer (event loop thread only); ``realtime``: a real-time session's
+        :meth:`~hybridmpm.service.core.SessionCore.realtime_info` when the frame was made (its header's factor)."""
         if self.viewers:
-            offer_all(self.viewers, frame_message(fr, control_frame))
+            offer_all(self.viewers, frame_message(fr, control_frame, realtime))
 
     def broadcast(self, msg: dict[str, Any]) -> None:
         """An event for every viewer (event loop thread only)."""
@@ -173,7 +174,8 @@ class LocalSession:
         """Hand the core's frames and events to this process's viewers, on ``loop``."""
 
         def on_frame(fr: Frame, control_frame: int) -> None:
-            loop.call_soon_threadsafe(self.offer, fr, control_frame)
+            # read here, under the core's lock in the thread that stepped it: the factor of the frame's own step
+            loop.call_soon_threadsafe(self.offer, fr, control_frame, self.core.realtime_info())
 
         def on_event(msg: dict[str, Any]) -> None:
             loop.call_soon_threadsafe(self.broadcast, msg)
@@ -233,7 +235,8 @@ class SessionManager:
     ) -> LocalSession:
         """Build a session for the client address ``client`` (``n_grid``: MPM
         on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`;
-        ``integrator``: what its MPM steps with, :func:`~hybridmpm.service.facts.checked_integrator`).
+        ``integrator``: what its MPM steps with, :func:`~hybridmpm.service.facts.checked_integrator`;
+        ``solver`` ``realtime``: real-time mode, :func:`~hybridmpm.service.facts.checked_realtime`).
         With a store the session is saved before it is answered; when that
         save fails the session is dropped and :class:`StoreSaveError` raised
         (nothing already saved changes).
@@ -625,7 +628,7 @@ class SessionManager:
         s.viewers.add(v)
         core = self.core_of(s)
         v.opening(meta_message(await self.info(s), core.playing))
-        v.offer(frame_message(core.sim.frame))
+        v.offer(frame_message(core.sim.frame, 0, core.realtime_info()))
 
     async def detach(self, s: LocalSession, v: Viewer) -> None:
         s.viewers.discard(v)

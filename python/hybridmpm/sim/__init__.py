@@ -10,7 +10,9 @@
   (:mod:`hybridmpm.sim.switching`);
 * :func:`make_simulator` — a simulator by kind; ``"default"`` is the scene's
   default configuration, chosen by the chart (``models/defaults.json``,
-  docs/hybrid.md "Defaults per scene");
+  docs/hybrid.md "Defaults per scene"); ``"realtime"`` a
+  :class:`RealtimeSimulator`, the most accurate configuration of its real-time
+  chart that fits real time on this machine (docs/realtime.md);
 * :func:`rollout` — the one frame loop (:func:`step_realtime`, a host loop's tick, runs its frames through it); :func:`reference` — full-resolution
   MPM, the reference of every error.
 
@@ -27,6 +29,7 @@ from hybridmpm.sim.config import SOLVERS, default_settings, load_tuned, make_sim
 from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator, warmup_frames
+from hybridmpm.sim.realtime import RealtimeSimulator
 from hybridmpm.sim.rollout import RealtimeTick, Rollout, reference, rollout, step_realtime
 from hybridmpm.sim.safeguard import ACCEL_FLOOR, complexity_score
 from hybridmpm.sim.switching import DWELL, AuditRule, ErrorRule, PaperRule, SwitchingRule, make_rule
@@ -50,6 +53,7 @@ __all__ = [
     "NeuralSimulator",
     "PaperRule",
     "Proposal",
+    "RealtimeSimulator",
     "RealtimeTick",
     "Rollout",
     "SimStats",

@@ -19,11 +19,13 @@ from hybridmpm.sim.base import Simulator
 from hybridmpm.sim.hybrid import HybridSimulator
 from hybridmpm.sim.mpm import MpmSimulator
 from hybridmpm.sim.neural import NeuralSimulator
+from hybridmpm.sim.realtime import RealtimeSimulator
 from hybridmpm.sim.switching import SwitchingRule
 
 #: Solver kinds :func:`make_simulator` builds; "default" is the scene's shipped default configuration
-#: (:func:`default_settings`: one of the other three, chosen by the chart).
-SOLVERS = ("default", "hybrid", "mpm", "neural")
+#: (:func:`default_settings`: one of "hybrid", "mpm" and "neural", chosen by the chart); "realtime" the scene's
+#: default particles on the real-time ladder (:class:`~hybridmpm.sim.realtime.RealtimeSimulator`).
+SOLVERS = ("default", "hybrid", "mpm", "neural", "realtime")
 #: Default location of a tuned configuration, relative to the working directory.
 TUNED_DIR = Path("tuned")
 #: The rule settings :func:`make_simulator` takes (the rest of a rule's
@@ -60,7 +62,11 @@ def make_simulator(
 ) -> Simulator:
     """A simulator of ``scene`` by kind: "default" (the scene's shipped default
     configuration, :func:`default_settings`; only ``seed``, ``threads``,
-    ``nn_threads`` and ``clusters`` may be given with it), "hybrid" (model, ``r_c``, ``dwell``,
+    ``nn_threads`` and ``clusters`` may be given with it), "realtime" (MPM on the
+    default's particles that picks, from the scene's real-time chart, the most
+    accurate grid and integrator whose frame fits real time on this machine:
+    :class:`~hybridmpm.sim.realtime.RealtimeSimulator`, docs/realtime.md; the
+    same settings as "default"), "hybrid" (model, ``r_c``, ``dwell``,
     the MPM audit's ``audit_every`` and ``audit_tol``, the switching rule
     ``safeguard`` and the "error" rule's ``residual_tol`` and ``audit_max``;
     None: the defaults),
@@ -93,7 +99,7 @@ def make_simulator(
     if solver not in SOLVERS:
         raise InvalidInputError(f"solver: must be one of {', '.join(SOLVERS)}, got {solver!r}", "solver")
     check_seed(seed)  # before any work: every generator it reaches (the scene's, k-means') takes it
-    if solver == "default":
+    if solver in ("default", "realtime"):
         name = scene.name if isinstance(scene, Scene) else str(scene)
         for field, value, unset in (
             ("model", model, None), ("r_c", r_c, R_C), ("r_p", r_p, 1.0), ("dwell", dwell, None), ("audit_every", audit_every, None),
@@ -102,11 +108,15 @@ def make_simulator(
             ("cheap_particles", cheap_particles, None), ("calibrated", calibrated, False), ("integrator", integrator, None),
         ):  # fmt: skip
             if value != unset:
+                chart = 'the chart (docs/hybrid.md "Defaults per scene")' if solver == "default" else "its real-time chart (docs/realtime.md)"
                 raise InvalidInputError(
-                    f'{field}: the default configuration of {name} is chosen by the chart (docs/hybrid.md "Defaults per scene"); '
-                    f"name the solver (hybrid, mpm or neural) to set {field}",
+                    f"{field}: the {solver} configuration of {name} is chosen by {chart}; name the solver (hybrid, mpm or neural) to set {field}",
                     field,
                 )
+        if solver == "realtime":
+            settings = default_settings(scene)
+            r_p = float(settings.get("r_p", 1.0)) if settings.get("solver") == "mpm" else 1.0
+            return RealtimeSimulator(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
         return make_simulator(scene, seed=seed, threads=threads, nn_threads=nn_threads, clusters=clusters, **default_settings(scene))
     if solver != "mpm":
         for name, value, unset in (

@@ -163,8 +163,9 @@ class SessionActor:
 
     # ------------------------------------------------------------ frames and events
     def _publish(self, fr: Frame, control_frame: int = 0) -> None:
-        """Make ``fr`` the latest frame of every front end's stream (the core records it)."""
-        data = frame_message(fr, control_frame)
+        """Make ``fr`` the latest frame of every front end's stream (the core records it; a real-time
+        session's frame carries its real-time factor)."""
+        data = frame_message(fr, control_frame, self.core.realtime_info())
         with self.cond:
             self.frame_seq += 1
             self.frame_bytes = data

@@ -36,8 +36,8 @@ async def pour_block(s: SessionDep, body: BlockPour, manager: ManagerDep) -> dic
     new count and particle types. A refused block changes nothing."""
     if s.controlling:
         raise ApiError(409, "a control is running on this session; pour after it")
-    if s.settings.solver != "mpm":
-        raise ApiError(409, f"this session's solver is {s.settings.solver!r}; only MPM runs every material: create the session with solver 'mpm'")
+    if s.settings.solver not in ("mpm", "realtime"):
+        raise ApiError(409, f"this session's solver is {s.settings.solver!r}; only MPM runs every material: create the session with solver 'mpm' or 'realtime'")
     d = s.facts.dim
     for name in ("lo", "hi", "velocity"):
         v = getattr(body, name)

@@ -1,4 +1,5 @@
-"""The page at ``/`` (and its particle-type codes, ``/codes.js``), ``/healthz`` and the scene list."""
+"""The page at ``/`` (and its particle-type codes, ``/codes.js``), ``/healthz`` (with the solvers a session
+may ask for and whether sessions default to real-time mode, ``serve --realtime``) and the scene list."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from hybridmpm.models import shipped_default, shipped_models
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.deps import ConfigDep, ManagerDep
 from hybridmpm.service.schemas import Health, SceneInfo
+from hybridmpm.sim import SOLVERS
 
 STATIC = Path(__file__).parent.parent / "static"
 CSP = "default-src 'self'; img-src 'self' data:; connect-src 'self'; style-src 'self'; script-src 'self'; object-src 'none'; base-uri 'none'"
@@ -45,7 +47,7 @@ def scene_list() -> list[dict[str, Any]]:
                 "frames": int(spec.frames),
                 "seeded": spec.blocks != gen(seed=1).blocks,  # whether two seeds differ, not a list of names
                 "doc": " ".join(doc.split()),
-                "solvers": ["default", "hybrid", "mpm", "neural"] if has else ["default", "mpm"],
+                "solvers": [x for x in SOLVERS if has or x in ("default", "mpm", "realtime")],  # real-time mode: MPM, on every scene
                 "default_configuration": default.get("label") or "MPM on the scene as given",
                 "model": has,
                 "methods": offered["methods"],
@@ -74,6 +76,8 @@ async def healthz(manager: ManagerDep, cfg: ConfigDep) -> dict[str, Any]:
         "memory_used": manager.budget.used,
         "memory_budget": manager.budget.total,
         "version": __version__,
+        "solvers": list(SOLVERS),
+        "realtime_default": cfg.realtime,
     }
 
 

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Request, Response
 from hybridmpm.service.backend import RETRY_AFTER_S, QuotaError, SessionCapError, StoreSaveError
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import NO_SESSION, ApiError
-from hybridmpm.service.facts import checked_integrator, checked_n_grid
+from hybridmpm.service.facts import checked_integrator, checked_n_grid, checked_realtime
 from hybridmpm.service.schemas import CreateSession, SessionInfo
 
 router = APIRouter()
@@ -29,8 +29,9 @@ async def create_session(body: CreateSession, request: Request, manager: Manager
     scene = body.scene.value if hasattr(body.scene, "value") else str(body.scene)
     client = request.client.host if request.client is not None else ""
     try:
-        n_grid, integrator = checked_n_grid(scene, body.solver, body.n_grid), checked_integrator(body.solver, body.integrator)
-        s = await manager.create(scene, body.seed, body.solver, body.r_c, client, n_grid=n_grid, integrator=integrator)
+        solver = checked_realtime(body.solver, body.realtime, body.n_grid, body.integrator, cfg.realtime)  # null: the server's default
+        n_grid, integrator = checked_n_grid(scene, solver, body.n_grid), checked_integrator(solver, body.integrator)
+        s = await manager.create(scene, body.seed, solver, body.r_c, client, n_grid=n_grid, integrator=integrator)
     except SessionCapError:
         raise ApiError(503, f"the server holds its maximum of {cfg.max_sessions} sessions; retry later", {"Retry-After": "30"}) from None
     except QuotaError:

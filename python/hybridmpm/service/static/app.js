@@ -29,6 +29,7 @@ const hook = (window.__hmpm = {
   session: null, status: "", lastFrame: -1, lastSketch: null, renderer: "", look: "",
   applied: null, strokeCss: [], planCss: [], lastControlFrame: 0, controlRunning: false, gif: null, camera: null,
   obstacleMoves: [], obstacleEvents: [], grabbed: null, // the drag tool: the PUTs it sent (answers), the stream's events
+  realtimeFactor: null, realtimeLabel: null, // a real-time session's: the latest frame's factor (null: not measured), its configuration
   showParticles: (on) => { renderer.showParticles = !!on; dirty = true; },
   centroidCss: () => centroidCss(),
   toCss: (p) => toCss(p),             // world point -> CSS pixels of the sketch canvas
@@ -134,7 +135,8 @@ async function loadScenes() {
   const fallback = renderer.kind === "webgl2" && sceneSolvers[DEFAULT_3D] ? DEFAULT_3D : "water2d";
   sel.value = params.get("scene") || fallback;
   $("seed").value = params.get("seed") || "0";
-  $("solver").value = params.get("solver") || "default";
+  // a real-time session where the scene offers one (?solver= chooses another: ?solver=default the chart's choice)
+  $("solver").value = params.get("solver") || ((sceneSolvers[sel.value] || []).includes("realtime") ? "realtime" : "default");
   syncSolvers();
   if (params.get("method")) $("method").value = params.get("method");
   if (params.get("frames")) $("frames").value = params.get("frames");
@@ -163,6 +165,7 @@ function leaveSession() {
   closeStream();
   if (session && session.owned) { api("DELETE", `/v1/sessions/${session.id}`).catch(() => {}); } // a joined one is another page's
   session = null; latest = null; hook.session = null; $("apply").disabled = true;
+  showRealtime(null); hook.realtimeFactor = null;
   dragTool.leave();
   history.length = 0; stroke = []; setApplied(null);
 }
@@ -170,8 +173,9 @@ async function newSession() {
   leaveSession();
   setStatus("creating session…");
   try {
+    const solver = $("solver").value; // realtime: what the page asks, not the server's default (serve --realtime)
     session = await api("POST", "/v1/sessions", {
-      scene: $("scene").value, seed: Number($("seed").value) || 0, solver: $("solver").value,
+      scene: $("scene").value, seed: Number($("seed").value) || 0, solver, realtime: solver === "realtime",
     });
   } catch (e) { setStatus(`could not create a session: ${e.message}`); return; }
   session.owned = true;
@@ -198,7 +202,22 @@ function useSession() {
   $("dl-npz").href = `/v1/sessions/${session.id}/trajectory`;
   $("dl-ply").href = `/v1/sessions/${session.id}/trajectory?format=ply`;
   $("dl-control").hidden = true;
+  showRealtime(session.realtime);
   openStream();
+}
+// A real-time session's configuration (its description's `realtime`, then the stream's "realtime" events): the label
+// beside the frames/s readout, with the real-time factor of the latest frame (onFrame); both hidden otherwise
+function showRealtime(rt) {
+  if (session) session.realtime = rt || null;
+  hook.realtimeLabel = rt ? rt.label : null;
+  for (const el of document.querySelectorAll(".only-rt")) el.hidden = !rt;
+  $("r-rung").textContent = rt ? rt.label : "–";
+  $("r-rung").title = rt ? `${rt.rung}, ${rt.changes} changes so far; the ladder, most accurate first: ${(rt.ladder || []).join(", ")}` : "";
+  showFactor();
+}
+function showFactor() {
+  const f = hook.realtimeFactor;
+  $("r-rtf").textContent = f === null ? "measuring…" : `sim ${f.toFixed(2)}× real time`;
 }
 
 // ---------------------------------------------------------------- stream
@@ -251,6 +270,10 @@ function onEvent(msg) {
     if (ob && !dragTool.holds(msg.index)) { ob.center = msg.center; dirty = true; }
   } else if (msg.type === "bodies") { // added or removed: the shapes as given now, their poses at this frame once read
     if (session) { session.bodies = msg.bodies; dirty = true; refreshBodies(); }
+  } else if (msg.type === "realtime") {
+    const rt = { ...msg };
+    delete rt.type;
+    if (session) showRealtime(rt);
   } else if (msg.type === "error") setStatus(msg.message);
 }
 async function refreshBodies() {
@@ -266,7 +289,7 @@ function onFrame(buf) {
   latest = f;
   const { frame, solver, controlled, cframe } = f;
   history.push(latest); if (history.length > HISTORY) history.shift();
-  hook.framesReceived += 1; hook.lastFrame = frame;
+  hook.framesReceived += 1; hook.lastFrame = frame; hook.realtimeFactor = f.realtimeFactor;
   if (controlled) hook.lastControlFrame = cframe;
   const now = performance.now();
   if (lastArrival) interval = 0.9 * interval + 0.1 * (now - lastArrival);
@@ -313,6 +336,7 @@ function drawFrame(now) {
     const med = [...hook.drawMs].sort((a, b) => a - b)[hook.drawMs.length >> 1];
     $("r-draw").textContent = `${ms.toFixed(1)} ms (median ${med.toFixed(1)})${syncDraw ? ", GPU included" : ", CPU"}`;
     $("r-fps").textContent = `${hook.fps.toFixed(0)} frames/s`;
+    if (session.realtime) showFactor();
     const share = recentSolvers.reduce((a, b) => a + b, 0) / Math.max(1, recentSolvers.length);
     $("r-share").textContent = `${(100 * share).toFixed(0)} %`;
     showQuality();

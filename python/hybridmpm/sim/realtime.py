@@ -1,0 +1,477 @@
+"""Real-time mode: MPM that picks, from its scene's real-time chart, the most accurate configuration whose frame
+fits real time on this machine, and changes it as the machine's pace changes (docs/realtime.md).
+
+A *rung* is one configuration of the scene's MPM on the same particles: a grid (the scene's, or ¾ or ½ of it
+where the walls' faces stay where they are)
+and an integrator (the explicit MLS-MPM substeps, or the incompressible projection where the scene is water in
+the box walls only; docs/large-step.md). The ladder orders the rungs by their error against the scene's
+full-resolution reference, measured once by ``benchmarks/realtime_chart.py`` and shipped in
+``models/realtime.json`` with each rung's time relative to the first; a rung that is slower and no more accurate
+than another is dropped. A scene without a chart (a scene file of your own) gets the rungs by their time priors,
+costliest first, and the measured times correct the priors.
+
+:class:`RealtimeSimulator` is an :class:`~hybridmpm.sim.mpm.MpmSimulator` that times its own frames (an
+exponential average of the wall time per frame) and, between frames, moves to another rung:
+
+* down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``: to the most accurate rung
+  predicted to fit (the current rung's measured time scaled by the chart's time ratios, corrected by the ratios
+  measured here as rungs are visited), or the fastest;
+* up when a more accurate rung is predicted to fit the budget divided by :data:`HYSTERESIS`;
+* at most once every :data:`DWELL_S` seconds of wall time, after :data:`MIN_SAMPLES` timed frames.
+
+A change keeps the particles: positions, velocities, APIC matrices, deformation, bodies and obstacles move onto
+the new grid bit for bit (:meth:`~hybridmpm.mpm.MpmSolver.restore_particles`'s rule: only the grid, its wall
+band and the integrator differ), so mass and momentum are conserved exactly; the one exception is a particle
+a splash put closer to the domain's edge than one cell of a coarser grid, which moves onto that edge (its
+velocity kept). A projection step that spans
+frames is finished before a change. The simulator never catches up: a frame is a frame whatever it cost
+(:func:`~hybridmpm.sim.rollout.step_realtime` drops what a host's budget did not cover). Its :meth:`state`
+records the rung, so a checkpoint taken after a change restores bitwise.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from functools import cache
+from importlib import resources
+from typing import Any
+
+import numpy as np
+
+from hybridmpm.conventions import MATERIAL_WATER
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import MpmSolver
+from hybridmpm.mpm.params import INTEGRATORS, MpmParams
+from hybridmpm.scenes import make_scene
+from hybridmpm.scenes.core import Clusters, Scene, wall_face
+from hybridmpm.scenes.registry import registered_name
+from hybridmpm.sim.base import serialised
+from hybridmpm.sim.mpm import MpmSimulator
+
+#: A frame's budget is ``dt_frame · r_t / REALTIME_MARGIN`` of wall time: a fifth of real time is kept for the
+#: rest of the host's frame (serving it, drawing it).
+REALTIME_MARGIN = 1.25
+#: A more accurate rung is taken only when predicted to fit the budget divided by this (no flapping).
+HYSTERESIS = 1.3
+#: The least wall time between two changes of rung [s].
+DWELL_S = 3.0
+#: Frames after a change that are not timed (caches, the first projection step).
+WARMUP_FRAMES = 3
+#: Timed frames a rung needs before a change is considered.
+MIN_SAMPLES = 10
+#: Weight of the newest frame in the exponential average of the time per frame.
+EMA_ALPHA = 0.2
+#: The grids of the ladder, as fractions of the scene's grid (those that keep the walls' faces: :func:`grid_holds`).
+GRID_FRACTIONS = (1.0, 0.75, 0.5)
+#: How long a rung's measured time per frame stands in for its prediction [s]; older, the chart's ratio scaled
+#: by the current rung's time does (the machine's load moves).
+MEASURED_TTL_S = 30.0
+#: The smallest grid a rung runs on (the solver's own lower bound).
+MIN_GRID = 16
+#: The shipped real-time charts (``benchmarks/realtime_chart.py``), in the package's ``models``.
+CHART_FILE = "realtime.json"
+#: Time priors for a scene without a chart: the projection's time as a fraction of the explicit step's on its grid.
+PROJECTION_PRIOR = 0.6
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One configuration of the ladder: MPM on ``n_grid`` (cells per axis) stepped by ``integrator``, on the
+    simulator's own particles. ``error`` its chart error (grid-mass error against the full-resolution
+    reference, mean over the chart's frames; None without a chart) and ``time_ratio`` its chart time per frame
+    relative to the ladder's first rung."""
+
+    n_grid: int
+    integrator: str
+    error: float | None
+    time_ratio: float
+
+    @property
+    def key(self) -> str:
+        """``g{n_grid}-{integrator}``, e.g. ``g96-explicit``: the name the chart, the state and the service use."""
+        return rung_key(self.n_grid, self.integrator)
+
+
+def rung_key(n_grid: int, integrator: str) -> str:
+    """The key of the rung on ``n_grid`` stepped by ``integrator``."""
+    return f"g{int(n_grid)}-{integrator}"
+
+
+def rung_label(key: str, dim: int) -> str:
+    """A rung's key for people: ``g96-explicit`` in 2D is "MPM 96² explicit"."""
+    grid, integrator = key[1:].split("-", 1)
+    return f"MPM {grid}{'²' if dim == 2 else '³'} {integrator}"
+
+
+def ladder_grids(n_grid: int) -> list[int]:
+    """The grids of the ladder for a scene on ``n_grid``: :data:`GRID_FRACTIONS` of it, at least
+    :data:`MIN_GRID`, without repeats, finest first."""
+    out: list[int] = []
+    for f in GRID_FRACTIONS:
+        n = max(MIN_GRID, int(round(n_grid * f)))
+        if n not in out and n <= n_grid:
+            out.append(n)
+    return out
+
+
+def projection_allowed(scene: Scene) -> bool:
+    """Whether the projection steps ``scene``: water only, in the box walls only (no obstacles or bodies; the
+    solver's own checks, :func:`~hybridmpm.scenes.resolution.with_integrator`)."""
+    if np.any(np.asarray(scene.material) != MATERIAL_WATER):
+        return False
+    try:
+        MpmSolver(replace(scene.params, integrator=INTEGRATORS[1]))
+    except InvalidInputError:
+        return False
+    return True
+
+
+def grid_holds(scene: Scene, n_grid: int) -> bool:
+    """Whether ``scene`` moves onto ``n_grid`` as it is: the walls' faces exactly where they are (``face ·
+    n_grid`` a whole number of cells, :func:`~hybridmpm.scenes.core.wall_cells_for`; elsewhere the box would
+    shrink under the particles) and its spec's checks (obstacles at least two cells thick); a scene without a
+    spec stays on its own grid."""
+    if scene.spec is None:
+        return n_grid == scene.params.resolved_n_grid()
+    cells = wall_face(scene.params) * n_grid
+    if abs(cells - round(cells)) > 1e-6 or round(cells) < 1:
+        return False
+    try:
+        scene.spec.on_grid(n_grid)
+    except InvalidInputError:
+        return False
+    return True
+
+
+@cache
+def _charts() -> dict[str, Any]:
+    try:
+        text = resources.files("hybridmpm.models").joinpath(CHART_FILE).read_text()
+    except FileNotFoundError:
+        return {}
+    try:
+        doc = json.loads(text)
+    except ValueError as e:
+        raise InvalidInputError(f"realtime: the package's models/{CHART_FILE} is corrupt ({e}); reinstall hybridmpm", "realtime") from None
+    return doc.get("scenes", {}) if isinstance(doc, dict) else {}
+
+
+def realtime_chart(scene: Scene | str) -> dict[str, Any] | None:
+    """The shipped real-time chart of a registered scene (``models/realtime.json``): ``{"rungs": [{"key",
+    "n_grid", "integrator", "error", "ms", "time_ratio"}...], "frames", ...}``, or None (a scene of your own)."""
+    name = registered_name(scene)
+    return _charts().get(name) if name is not None else None
+
+
+def pareto(rungs: list[Rung]) -> list[Rung]:
+    """``rungs`` ordered most accurate first (by chart error, then time), keeping only those faster than every
+    more accurate one: each step down the ladder buys time."""
+    ordered = sorted(rungs, key=lambda r: (math.inf if r.error is None else r.error, r.time_ratio))
+    out: list[Rung] = []
+    for r in ordered:
+        if not out or r.time_ratio < min(o.time_ratio for o in out):
+            out.append(r)
+    return out
+
+
+def candidate_rungs(scene: Scene) -> list[Rung]:
+    """Every rung ``scene`` can run (its grid, ¾ and ½ of it where its walls and obstacles stay as they are,
+    :func:`grid_holds`;
+    explicit, and projection where allowed), finer grids first, explicit before projection, with time priors
+    (explicit: the grid's share of the substeps, ``n / n_scene``; projection: :data:`PROJECTION_PRIOR` of that)
+    and no error."""
+    n0 = scene.params.resolved_n_grid()
+    integrators = [INTEGRATORS[0]] + ([INTEGRATORS[1]] if projection_allowed(scene) else [])
+    return [
+        Rung(n, i, None, n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)) for n in ladder_grids(n0) if grid_holds(scene, n) for i in integrators
+    ]
+
+
+def charted_rungs(scene: Scene) -> list[Rung]:
+    """Every :func:`candidate_rungs` of ``scene`` with its chart error and time ratio where the shipped chart
+    (:func:`realtime_chart`) has the rung, else its priors (error None), in the candidates' order."""
+    chart = realtime_chart(scene) or {}
+    charted = {r.get("key"): r for r in chart.get("rungs", []) if r.get("error") is not None and r.get("time_ratio")}
+    out = []
+    for r in candidate_rungs(scene):
+        c = charted.get(r.key)
+        out.append(r if c is None else Rung(r.n_grid, r.integrator, float(c["error"]), float(c["time_ratio"])))
+    return out
+
+
+def make_ladder(scene: Scene) -> list[Rung]:
+    """The ladder of ``scene``, most accurate first: its :func:`charted_rungs` Pareto-ordered by :func:`pareto`
+    where the chart has them all, else by their time priors, costliest first (a finer grid, the explicit step:
+    the more accurate, as a rule)."""
+    rungs = charted_rungs(scene)
+    if all(r.error is not None for r in rungs):
+        return pareto(rungs)
+    return sorted(rungs, key=lambda r: -r.time_ratio)
+
+
+class RealtimeSimulator(MpmSimulator):
+    """MPM in real-time mode (module docstring; docs/realtime.md): the scene's default particles (its chart's
+    ``r_p``) on the ladder's rungs, the most accurate that fits real time here.
+
+    ``scene``, ``r_p``, ``seed``, ``threads``, ``clusters`` as :class:`~hybridmpm.sim.mpm.MpmSimulator` (one frame
+    a step). ``rung`` the key to start on (None: the ladder's most accurate); ``adaptive`` False keeps it there
+    (timed and reported, never changed: a host's fixed choice, the chart's runs). ``clock`` the wall clock
+    [s] the frames are timed with (a test's fake one; default :func:`time.perf_counter`). Raises
+    :class:`InvalidInputError` naming ``rung`` for a key not on the ladder, or as ``MpmSimulator``."""
+
+    def __init__(
+        self,
+        scene: Scene | str,
+        *,
+        r_p: float = 1.0,
+        seed: int = 0,
+        threads: int = 0,
+        clusters: Clusters | None = None,
+        rung: str | None = None,
+        adaptive: bool = True,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if isinstance(scene, str):
+            scene = make_scene(scene, seed=seed)
+        super().__init__(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
+        self.ladder = make_ladder(self.scene)
+        self._clock = clock
+        self.adaptive = bool(adaptive)
+        #: rung key -> the scene's own solver parameters on that rung (the particles' parameter sets kept)
+        #: every rung it can run (the ladder's, and the explicit ones a body or another material falls back on)
+        rungs = charted_rungs(self.scene)
+        self._rung_params = {r.key: self._params_on(r) for r in rungs}
+        self._chart_ratios = {r.key: r.time_ratio for r in rungs}
+        #: rung key -> (its measured wall time per frame [s], when): this machine's times of the rungs visited
+        self._measured: dict[str, tuple[float, float]] = {}
+        here = rung_key(self.solver.params.resolved_n_grid(), self.solver.params.integrator)
+        self._rung = here
+        self._ema: float | None = None
+        self._samples = 0
+        self._since_change = 0
+        self._last_change = clock()
+        self.changes: list[dict[str, Any]] = []
+        if rung is None and here not in {r.key for r in self.ladder}:  # the scene's own configuration is off the ladder
+            self._switch(self.ladder[0].key)
+        if rung is not None:
+            if rung not in self._rung_params:
+                raise InvalidInputError(f"rung: must be one of {', '.join(self._rung_params)}, got {rung!r}", "rung")
+            self._switch(rung)
+
+    # ------------------------------------------------------------ rungs
+    def _params_on(self, rung: Rung) -> MpmParams:
+        """The scene's own solver parameters (its parameter sets and bodies) with ``rung``'s grid, wall band,
+        obstacles and integrator."""
+        spec = self.scene_full.spec
+        if spec is None:
+            raise InvalidInputError("scene: real-time mode moves a scene between grids; it needs a scene built from a spec", "scene")
+        grid = spec.on_grid(rung.n_grid).params  # the obstacles' sampled distances on the new grid
+        return replace(self._scene_params, n_grid=grid.n_grid, walls=grid.walls, colliders=grid.colliders, integrator=rung.integrator)
+
+    @property
+    def rung(self) -> str:
+        """The key of the rung in use (:func:`rung_key`)."""
+        return self._rung
+
+    def projection_ok(self) -> bool:
+        """Whether the projection steps what the simulator holds now: water only (poured blocks included), no
+        obstacles, no bodies (added ones included)."""
+        p = self.solver.params
+        return not p.bodies and not p.colliders and bool(np.all(np.asarray(self.solver.material) == MATERIAL_WATER))
+
+    def _available(self, key: str) -> bool:
+        return self._rung_params[key].integrator == INTEGRATORS[0] or self.projection_ok()
+
+    def _switch(self, key: str) -> bool:
+        """Move the particles onto rung ``key`` (between frames); False (and nothing changed) while a projection
+        step still spans frames."""
+        if self.solver.params.integrator != INTEGRATORS[0] and self.solver.substeps_for(self.dt_frame) == 0:
+            return False  # mid-step: the step's frames are finished on its own grid first
+        target = self._rung_params[key]
+        self._inside(target.resolved_n_grid())
+        updates = {k: v for k, v in target.to_dict().items() if k in ("n_grid", "walls", "colliders")}
+        updates["integrator"] = target.integrator
+        blob = MpmSolver.with_header(self.solver.checkpoint(), updates)
+        self.adopt(MpmSolver.from_checkpoint(blob), self._pours)
+        self._scene_params = target
+        self._rung = key
+        self._since_change = 0
+        self._samples = 0
+        self._last_change = self._clock()
+        return True
+
+    def _inside(self, n_grid: int) -> None:
+        """Move the particles that a splash put deeper into the wall band than one cell of ``n_grid`` from the
+        domain's edge (where a coarser grid's stencil cannot reach) onto that edge: positions only, so mass and
+        momentum stay as they are. Usually none."""
+        x = np.asarray(self.solver.positions, np.float32)
+        lo = np.nextafter(np.float32(1.0 / n_grid), np.float32(1.0))
+        hi = np.nextafter(np.float32(1.0) - np.float32(1.0 / n_grid), np.float32(0.0))
+        if (x < lo).any() or (x > hi).any():
+            self.solver.set_field("positions", np.clip(x, lo, hi))
+
+    def set_rung(self, key: str) -> None:
+        """Move to rung ``key`` now (a host's or a test's choice; the timing restarts). Raises
+        :class:`InvalidInputError` naming ``rung`` for a key not on the ladder, or while a projection step
+        spans frames (advance a frame and ask again)."""
+        if key not in self._rung_params:
+            raise InvalidInputError(f"rung: must be one of {', '.join(self._rung_params)}, got {key!r}", "rung")
+        if not self._available(key):
+            raise InvalidInputError(f"rung: {key} steps water in the box walls only, and this simulator holds bodies or another material", "rung")
+        if key != self._rung and not self._switch(key):
+            raise InvalidInputError("rung: a projection step spans this frame; advance a frame and ask again", "rung")
+
+    def predicted_s(self, key: str) -> float | None:
+        """The predicted wall time of a frame on rung ``key`` [s]: its own measured average where it was timed in
+        the last :data:`MEASURED_TTL_S` seconds (the current rung's is its running average), else the current
+        rung's average scaled by the chart's time ratios; None before the current rung has been timed."""
+        if self._ema is None or self._samples < 1:
+            return None
+        if key == self._rung:
+            return self._ema
+        seen = self._measured.get(key)
+        if seen is not None and self._clock() - seen[1] <= MEASURED_TTL_S:
+            return seen[0]
+        return self._ema * self._chart_ratios[key] / self._chart_ratios[self._rung]
+
+    def budget_s(self) -> float:
+        """A frame's wall-time budget [s]: ``dt_frame · r_t /`` :data:`REALTIME_MARGIN`."""
+        return self.dt_step / REALTIME_MARGIN
+
+    def _choose(self) -> str | None:
+        """The rung to move to now, or None to stay (module docstring)."""
+        if not self.adaptive or self._samples < MIN_SAMPLES or self._clock() - self._last_change < DWELL_S or self._ema is None:
+            return None
+        budget, ratio = self.budget_s(), self._chart_ratios[self._rung]
+        ladder = [r for r in self.ladder if self._available(r.key)]
+        if self._ema > budget:
+            faster = [r for r in ladder if r.time_ratio < ratio]
+            for r in faster:
+                p = self.predicted_s(r.key)
+                if p is not None and p <= budget:
+                    return r.key
+            return faster[-1].key if faster else None
+        for r in ladder:  # most accurate first
+            if r.time_ratio <= ratio:
+                break
+            p = self.predicted_s(r.key)
+            if p is not None and p <= budget / HYSTERESIS:
+                return r.key
+        return None
+
+    def _fall_back(self) -> None:
+        """Leave a projection rung that no longer steps what the simulator holds (another material poured)."""
+        if not self.projection_ok():
+            self._to_explicit()
+
+    def _to_explicit(self) -> None:
+        """From a projection rung to the explicit rung on the same grid, at once (a step spanning frames ends
+        where it is); nothing on an explicit rung."""
+        if self._rung_params[self._rung].integrator == INTEGRATORS[0]:
+            return
+        if self.solver.substeps_for(self.dt_frame) == 0:  # mid-step: a particle edit ends it (docs/large-step.md)
+            self.solver.set_field("positions", np.asarray(self.solver.positions, np.float32))
+        before, key = self._rung, rung_key(self._rung_params[self._rung].resolved_n_grid(), INTEGRATORS[0])
+        self._switch(key)
+        self.changes.append({"frame": self.frame.frame_index, "from": before, "to": key, "frame_ms": None})
+
+    def add_body(self, body: Any) -> int:
+        """:meth:`MpmSimulator.add_body`, on the explicit rung of the current grid when a projection rung runs
+        (the projection steps water in the box walls only); the projection rungs stay off while it holds bodies."""
+        self._to_explicit()
+        return super().add_body(body)
+
+    # ------------------------------------------------------------ stepping
+    def advance(self) -> Any:
+        """One frame on the current rung (:meth:`MpmSimulator.advance`), timed; then a change of rung when the
+        measured times ask for one (module docstring)."""
+        self._fall_back()
+        t0 = self._clock()
+        frame = super().advance()
+        wall = self._clock() - t0
+        self._since_change += 1
+        if self._since_change > WARMUP_FRAMES:
+            per = wall
+            self._ema = per if self._ema is None or self._samples == 0 else (1 - EMA_ALPHA) * self._ema + EMA_ALPHA * per
+            self._samples += 1
+        before = self._rung
+        target = self._choose()
+        if target is not None and target != before:
+            ema = self._ema
+            if self._switch(target):
+                self.changes.append({"frame": frame.frame_index, "from": before, "to": target, "frame_ms": None if ema is None else ema * 1e3})
+                if ema is not None:
+                    self._measured[before] = (ema, self._clock())
+        return frame
+
+    def realtime_info(self) -> dict[str, Any]:
+        """What real-time mode is doing (plain JSON values): ``rung`` and ``label`` of the configuration in use,
+        ``frame_ms`` its measured wall time per frame (the running average; None before it was timed),
+        ``budget_ms`` a frame's budget, ``realtime_factor`` the simulated time a wall second of stepping covers on
+        this rung (``dt_frame · r_t / frame``: 1.0 is real time; None before it was timed), ``changes`` the
+        number of changes of rung so far, and the ``ladder``'s keys, most accurate first."""
+        return {
+            "rung": self._rung,
+            "label": rung_label(self._rung, self.particles.dim),
+            "frame_ms": None if self._ema is None else round(self._ema * 1e3, 3),
+            "budget_ms": round(self.budget_s() * 1e3, 3),
+            "realtime_factor": None if not self._ema else round(self.dt_step / self._ema, 3),
+            "changes": len(self.changes),
+            "ladder": [r.key for r in self.ladder],
+        }
+
+    # ------------------------------------------------------------ checkpoint
+    @serialised
+    def state(self) -> dict[str, Any]:
+        """:meth:`MpmSimulator.state` with the ``rung`` it was taken on."""
+        return {**super().state(), "rung": self._rung}
+
+    @serialised
+    def restore(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state`: move to its rung first (its particles and grid), then restore as
+        :meth:`MpmSimulator.restore`; a state of a plain ``MpmSimulator`` of the scene restores onto the
+        scene's own grid and integrator. Raises :class:`InvalidInputError` naming ``state.rung`` for a rung
+        not on this ladder, or as ``MpmSimulator.restore``; on an error the simulator keeps its rung and state."""
+        if not isinstance(state, dict):
+            raise InvalidInputError("state: not a state of an MpmSimulator of this version", "state")
+        key = state.get("rung", self.ladder[0].key)
+        if not isinstance(key, str) or key not in self._rung_params:
+            raise InvalidInputError(f"state.rung: must be one of {', '.join(self._rung_params)}, got {key!r}", "state.rung")
+        plain = {k: v for k, v in state.items() if k != "rung"}
+        if key == self._rung:
+            super().restore(plain)
+            return
+        keep_solver, keep_params, keep_rung, keep_scene = self.solver, self._scene_params, self._rung, self.scene
+        try:
+            target = self._rung_params[key]
+            self.solver = MpmSolver(replace(target, num_threads=keep_solver.params.num_threads), memory_budget=keep_solver.memory_budget)
+            self._scene_params = target
+            self.scene = replace(self.scene, params=target)
+            self._rung = key
+            super().restore(plain)
+        except BaseException:
+            self.solver, self._scene_params, self._rung, self.scene = keep_solver, keep_params, keep_rung, keep_scene
+            raise
+        self._since_change = self._samples = 0
+        self._last_change = self._clock()
+
+
+__all__ = [
+    "DWELL_S",
+    "grid_holds",
+    "HYSTERESIS",
+    "MEASURED_TTL_S",
+    "REALTIME_MARGIN",
+    "RealtimeSimulator",
+    "Rung",
+    "candidate_rungs",
+    "make_ladder",
+    "projection_allowed",
+    "realtime_chart",
+    "rung_key",
+    "rung_label",
+]

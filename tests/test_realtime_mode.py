@@ -1,0 +1,276 @@
+"""Real-time mode (hybridmpm.sim.realtime, docs/realtime.md): the ladder, the change of rung (mass, momentum,
+bodies and pours carried bit for bit), bitwise checkpoints across a change, and the choice with hysteresis on a
+fake clock (a test never asserts a speed: the clock is the test's)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hybridmpm.conventions import MATERIAL_WATER
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.scenes import make_scene
+from hybridmpm.scenes.registry import DOMAINS
+from hybridmpm.sim import MpmSimulator, make_simulator, step_realtime
+from hybridmpm.sim import realtime as rt
+from hybridmpm.sim.pour import pour_block
+from hybridmpm.sim.realtime import RealtimeSimulator, candidate_rungs, make_ladder, pareto
+
+
+def _momentum(sim: MpmSimulator) -> tuple[float, np.ndarray]:
+    m = np.asarray(sim.solver.masses, np.float64)
+    v = np.asarray(sim.solver.velocities, np.float64)
+    return float(m.sum()), (m[:, None] * v).sum(0)
+
+
+@pytest.mark.parametrize("name", sorted(DOMAINS))
+def test_every_scene_has_a_ladder_whose_steps_down_buy_time_and_the_projection_only_where_it_steps(name: str) -> None:
+    scene = make_scene(name)
+    ladder = make_ladder(scene)
+    assert ladder, name
+    ratios = [r.time_ratio for r in ladder]
+    assert all(b < a for a, b in zip(ratios, ratios[1:])), (name, ratios)  # each step down is faster (chart or priors)
+    errors = [r.error for r in ladder]
+    if all(e is not None for e in errors):
+        assert errors == sorted(errors), (name, errors)  # and the most accurate first
+    water_only = bool(np.all(np.asarray(scene.material) == MATERIAL_WATER))
+    boxed = not scene.params.colliders and not scene.params.bodies
+    projection = any(r.integrator == "projection" for r in candidate_rungs(scene))
+    assert projection == (water_only and boxed), name
+    assert all(r.n_grid <= scene.params.resolved_n_grid() for r in ladder)
+
+
+def test_pareto_keeps_only_rungs_that_buy_time() -> None:
+    R = rt.Rung
+    rungs = [R(64, "explicit", 0.3, 0.5), R(128, "explicit", 0.1, 1.0), R(96, "explicit", 0.2, 1.2), R(64, "projection", 0.4, 0.2)]
+    assert [r.key for r in pareto(rungs)] == ["g128-explicit", "g64-explicit", "g64-projection"]  # 96 is slower than 128
+
+
+@pytest.mark.parametrize(("name", "rung"), [("dam_break2d", "g64-projection"), ("jelly_dam_break2d", "g64-explicit"), ("water3d", "g32-projection")])
+def test_a_change_of_rung_keeps_the_particles_bit_for_bit_so_mass_and_momentum_are_conserved(name: str, rung: str) -> None:
+    sim = make_simulator(name, "realtime")
+    assert isinstance(sim, RealtimeSimulator)
+    for _ in range(25):
+        sim.advance()
+    m0, p0 = _momentum(sim)
+    x0, v0 = np.array(sim.solver.positions), np.array(sim.solver.velocities)
+    sim.set_rung(rung)
+    assert sim.rung == rung and sim.solver.params.resolved_n_grid() == int(rung[1:].split("-")[0])
+    assert sim.solver.params.integrator == rung.split("-")[1]
+    m1, p1 = _momentum(sim)
+    assert m1 == m0  # the same particles: exactly
+    assert np.abs(p1 - p0).max() <= 1e-6 * max(1.0, float(np.abs(p0).max()))
+    assert np.array_equal(sim.solver.positions, x0) and np.array_equal(sim.solver.velocities, v0)
+    fr = sim.advance()  # and it steps on
+    assert np.isfinite(fr.positions).all() and fr.frame_index == 26
+
+
+def test_a_checkpoint_taken_after_a_change_restores_bitwise_into_a_fresh_session() -> None:
+    sim = make_simulator("dam_break2d", "realtime")
+    for _ in range(10):
+        sim.advance()
+    sim.set_rung("g64-projection")
+    for _ in range(7):  # a projection step may span frames: the state holds them
+        sim.advance()
+    state = sim.state()
+    assert state["rung"] == "g64-projection"
+    for _ in range(15):
+        sim.advance()
+    other = make_simulator("dam_break2d", "realtime")
+    other.restore(state)
+    assert other.rung == "g64-projection"
+    for _ in range(15):
+        other.advance()
+    assert other.solver.checkpoint() == sim.solver.checkpoint()
+
+
+def test_a_restore_refuses_a_foreign_rung_and_leaves_the_simulator_as_it_was() -> None:
+    sim = make_simulator("water2d", "realtime")
+    sim.advance()
+    state = sim.state()
+    before = sim.solver.checkpoint()
+    with pytest.raises(InvalidInputError) as e:
+        sim.restore({**state, "rung": "g7-explicit"})
+    assert e.value.field == "state.rung"
+    broken = {**state, "rung": "g64-explicit", "solver": b"not a checkpoint"}
+    with pytest.raises(InvalidInputError, match="not a hybridmpm MpmSolver checkpoint"):
+        sim.restore(broken)
+    assert sim.rung == "g128-explicit" and sim.solver.checkpoint() == before
+
+
+def test_bodies_and_poured_blocks_cross_a_change_of_grid() -> None:
+    sim = make_simulator("crates2d", "realtime")
+    assert [r.key for r in sim.ladder][:1] == ["g128-explicit"]
+    for _ in range(5):
+        sim.advance()
+    own = sim.solver.num_particles
+    n = pour_block(sim, {"material": "water", "lo": [0.6, 0.7], "hi": [0.7, 0.8]})
+    assert n == sim.solver.num_particles > own and sim.pours == [n - own]
+    m0, p0 = _momentum(sim)
+    core0 = sim.solver._core.bodies()["state"].copy()
+    sim.set_rung(sim.ladder[-1].key)
+    m1, p1 = _momentum(sim)
+    assert m1 == m0 and np.abs(p1 - p0).max() <= 1e-6 * max(1.0, float(np.abs(p0).max()))
+    assert np.array_equal(sim.solver._core.bodies()["state"], core0)  # the bodies' exact states
+    assert sim.solver.num_particles == n and sim.pours == [n - own]
+    state = sim.state()
+    for _ in range(5):
+        sim.advance()
+    again = make_simulator("crates2d", "realtime")
+    again.restore(state)
+    for _ in range(5):
+        again.advance()
+    assert again.solver.checkpoint() == sim.solver.checkpoint()
+
+
+def test_realtime_takes_the_settings_default_takes_and_refuses_the_rest_naming_them() -> None:
+    with pytest.raises(InvalidInputError) as e:
+        make_simulator("dam_break2d", "realtime", n_grid=64)
+    assert e.value.field == "n_grid"
+    with pytest.raises(InvalidInputError) as e:
+        make_simulator("dam_break2d", "realtime", integrator="projection")
+    assert e.value.field == "integrator"
+    with pytest.raises(InvalidInputError) as e:
+        RealtimeSimulator("dam_break2d", rung="g100-explicit")
+    assert e.value.field == "rung"
+
+
+class _Machine:
+    """A fake machine: ``cost[key]`` wall seconds per frame on each rung; the clock moves only by frames."""
+
+    def __init__(self, cost: dict[str, float]) -> None:
+        self.cost = cost
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def machine(monkeypatch: pytest.MonkeyPatch) -> Any:
+    def make(sim_cost: dict[str, float]) -> _Machine:
+        m = _Machine(sim_cost)
+        real = MpmSimulator.advance
+
+        def timed(self: MpmSimulator) -> Any:
+            if isinstance(self, RealtimeSimulator):
+                m.t += m.cost[self.rung]
+            return real(self)
+
+        monkeypatch.setattr(MpmSimulator, "advance", timed)
+        return m
+
+    return make
+
+
+def _run(sim: RealtimeSimulator, frames: int) -> list[str]:
+    seen = []
+    for _ in range(frames):
+        sim.advance()
+        seen.append(sim.rung)
+    return seen
+
+
+def test_a_slow_machine_steps_down_to_the_most_accurate_rung_that_fits_and_stays(machine: Any) -> None:
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    # the first rung takes three budgets; every rung in proportion to its chart ratio (the prediction is exact)
+    cost = {r.key: 3.0 * budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    fits = [r.key for r in ladder if cost[r.key] <= budget]
+    m = machine(cost)
+    sim = RealtimeSimulator(scene, clock=m)
+    seen = _run(sim, 1500)  # 9 s of its wall time: past the dwell
+    expect = fits[0] if fits else ladder[-1].key
+    assert seen[-1] == expect
+    assert len(sim.changes) == 1  # straight there, and no flapping
+    assert sim.realtime_info()["realtime_factor"] == pytest.approx(2.5e-3 / cost[expect], abs=1e-3)  # rounded to 3 places
+
+
+def test_a_fast_machine_climbs_to_the_most_accurate_rung_with_hysteresis_and_dwell(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(rt, "DWELL_S", 0.5)  # fewer frames a dwell: the rule is the same
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    cost = {r.key: 0.5 * budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(cost)
+    sim = RealtimeSimulator(scene, clock=m, rung=ladder[-1].key)
+    stamps = []
+    for _ in range(20000):
+        before = len(sim.changes)
+        sim.advance()
+        if len(sim.changes) > before:
+            stamps.append(m.t)
+        if sim.rung == ladder[0].key:
+            break
+    assert sim.rung == ladder[0].key
+    assert (np.diff([0.0, *stamps]) >= rt.DWELL_S - 1e-9).all(), stamps  # one change per dwell at most
+    assert len(stamps) <= len(ladder) - 1
+
+
+def test_a_rung_at_the_edge_of_the_budget_does_not_flap(machine: Any) -> None:
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    assert len(ladder) >= 2
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    # the first rung just over the budget, the second well inside it but not inside budget / HYSTERESIS after scaling
+    cost = {r.key: budget * 1.05 * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(cost)
+    sim = RealtimeSimulator(scene, clock=m)
+    _run(sim, 3000)
+    assert len(sim.changes) == 1  # down once; the way back up asks for HYSTERESIS of headroom
+    assert m.t >= 3000 * min(cost.values())
+
+
+def test_changes_are_at_least_the_dwell_apart_in_wall_time(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(rt, "DWELL_S", 0.5)  # fewer frames a dwell: the rule is the same
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    # a machine whose load alternates every 0.2 s of wall time between ten times slow and fast: it would flap
+    base = {r.key: budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(dict(base))
+    sim = RealtimeSimulator(scene, clock=m)
+    stamps = []
+    for _ in range(3000):
+        load = 10.0 if int(m.t / 0.2) % 2 == 0 else 0.6
+        m.cost = {k: v * load for k, v in base.items()}
+        before = len(sim.changes)
+        sim.advance()
+        if len(sim.changes) > before:
+            stamps.append(m.t)
+    assert len(stamps) >= 2, "the load moved ten-fold: it should have changed down and up"
+    gaps = np.diff([0.0, *stamps])
+    assert (gaps >= rt.DWELL_S - 1e-9).all(), gaps
+
+
+def test_step_realtime_drives_a_realtime_simulator_and_owes_nothing_a_slow_tick_dropped() -> None:
+    sim = make_simulator("water2d", "realtime")
+    tick = step_realtime(sim, 0.0125, budget_s=1e-9)  # five frames due, a budget that covers one
+    assert tick.frames == 1 and tick.dropped_s == pytest.approx(4 * 2.5e-3) and tick.owed_s == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_body_added_on_a_projection_rung_moves_it_to_the_explicit_step_and_keeps_the_projection_off() -> None:
+    sim = RealtimeSimulator("water2d", rung="g64-projection")
+    for _ in range(5):
+        sim.advance()
+    m0, _ = _momentum(sim)
+    sim.add_body({"shape": "box", "center": [0.5, 0.8], "half_extents": [0.04, 0.04], "density": 500.0})
+    assert sim.rung == "g64-explicit" and sim.changes[-1]["to"] == "g64-explicit"
+    assert _momentum(sim)[0] == m0
+    with pytest.raises(InvalidInputError) as e:
+        sim.set_rung("g128-projection")
+    assert e.value.field == "rung"
+    for _ in range(5):
+        fr = sim.advance()
+    assert np.isfinite(fr.positions).all() and sim.rung.endswith("explicit")
+
+
+def test_a_sand_block_poured_on_a_projection_rung_falls_back_to_the_explicit_step() -> None:
+    sim = RealtimeSimulator("water2d", rung="g128-projection")
+    sim.advance()
+    pour_block(sim, {"material": "sand", "lo": [0.6, 0.6], "hi": [0.7, 0.7]})
+    fr = sim.advance()
+    assert sim.rung == "g128-explicit" and np.isfinite(fr.positions).all()
