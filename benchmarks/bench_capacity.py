@@ -36,6 +36,7 @@ repeats: the frames/s it steps (the page's 3D scene).
 
     python benchmarks/bench_capacity.py [--seconds 4] [--warmup 1.5] [--repeats 3] [--out-dir benchmarks/results]
     python benchmarks/bench_capacity.py --quick --out-dir /tmp/cap   # seconds, tiny settings
+    python benchmarks/bench_capacity.py --realtime --warmup 8 --repeats 1 --out-dir benchmarks/results/capacity_realtime
 """
 
 from __future__ import annotations
@@ -164,12 +165,14 @@ async def watch(ws_url: str, sid: str, seen: list[tuple[float, int]], playing: a
                 seen.append((time.monotonic(), decode_frame(m)[0].frame))
 
 
-async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seconds: float, probe_gap: float | None) -> dict[str, Any]:
-    """``n`` sessions of ``scene`` (default solver) playing at once, one viewer
+async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seconds: float, probe_gap: float | None, realtime: bool = False) -> dict[str, Any]:
+    """``n`` sessions of ``scene`` (default solver; with ``realtime`` real-time mode, started coarser when the
+    server's real time is full: docs/realtime.md) playing at once, one viewer
     each, measured for ``seconds`` after ``warmup``; with ``probe_gap`` one more
     session of ``scene`` stepped one frame at a time that often (step latency)."""
+    extra = {"realtime": True, "when_full": "coarser"} if realtime else {}
     async with httpx.AsyncClient(base_url=srv.url, timeout=120, limits=httpx.Limits(max_connections=n + 4)) as c:
-        made = [await c.post("/v1/sessions", json={"scene": scene, "seed": i}) for i in range(n + (probe_gap is not None))]
+        made = [await c.post("/v1/sessions", json={"scene": scene, "seed": i, **extra}) for i in range(n + (probe_gap is not None))]
         bad = [r for r in made if r.status_code != 201]
         if bad:
             raise RuntimeError(f"creating a {scene} session: {bad[0].status_code} {bad[0].text[:200]}")
@@ -250,7 +253,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with LiveServer(max_sessions=args.most + 4, log=log) as srv:
 
         def rung(n: int) -> bool:
-            r = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap)))
+            r = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap, args.realtime)))
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k != "rates"}), flush=True)
             return bool(r["all_real_time"])
@@ -262,7 +265,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     if not rung(k):
                         break
                 break
-        three = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, args.scene3d, 1, args.warmup, args.seconds, None))) if args.scene3d else None
+        three = (
+            best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, args.scene3d, 1, args.warmup, args.seconds, None, args.realtime)))
+            if args.scene3d
+            else None
+        )
         if three:
             print(json.dumps(three), flush=True)
     frames = round((args.warmup + args.seconds) / rows[0]["dt_frame"]) if args.engine_frames is None else args.engine_frames
@@ -374,6 +381,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--engine-seeds", type=int, default=8, help="seeds of the engine alone at least (the engine's bound on the count is read from them)")
     ap.add_argument("--probe-gap", type=float, default=0.05, help="seconds between the probe's one-frame steps")
     ap.add_argument("--scene3d", default="dam_break3d", help='the 3D scene of the last figure ("" to skip)')
+    ap.add_argument(
+        "--realtime", action="store_true", help="the sessions in real-time mode (when_full coarser; give --warmup 8 or more: it settles in seconds)"
+    )
     ap.add_argument("--quick", action="store_true", help="tiny settings (1 and 2 sessions, short windows, no 3D): a check that it runs")
     ap.add_argument("--out-dir", default=str(REPO_ROOT / "benchmarks" / "results"), help="capacity.md and capacity.json go here")
     ap.add_argument("--server-log", default=None, help="write the server's output here")

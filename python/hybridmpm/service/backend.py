@@ -226,10 +226,22 @@ class SessionBackend(Protocol[S]):
         ...
 
     # ------------------------------------------------------------ lifecycle
-    async def create(self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None) -> S:
+    async def create(
+        self,
+        scene: str,
+        seed: int,
+        solver: str,
+        r_c: float,
+        client: str = "",
+        *,
+        n_grid: int | None = None,
+        integrator: str | None = None,
+        when_full: str = "refuse",
+    ) -> S:
         """A new session for ``client`` (``n_grid``, ``integrator``: its MPM's, None: the scene's; ``solver``
-        ``realtime``: real-time mode, the request's ``realtime`` resolved by the route):
-        :class:`SessionCapError`, :class:`QuotaError`,
+        ``realtime``: real-time mode, the request's ``realtime`` resolved by the route, ``when_full`` what a
+        server whose real time is full does, :mod:`hybridmpm.service.capacity`):
+        :class:`SessionCapError`, :class:`QuotaError`, :class:`~hybridmpm.service.capacity.RealtimeFullError`,
         :class:`~hybridmpm.service.budget.BudgetFullError`, :class:`StoreSaveError`, the simulator's refusal."""
         ...
 

@@ -12,6 +12,7 @@ from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.scenes import DOMAINS
+from hybridmpm.service.capacity import WHEN_FULL
 from hybridmpm.sim import SOLVERS
 
 #: Most points of a sketch stroke accepted over HTTP (the page simplifies to ≤ 512).
@@ -81,6 +82,11 @@ class CreateSession(Strict):
         description="true: run in real-time mode (solver realtime: the most accurate grid and integrator whose frame keeps real time on the "
         "server, changed as its pace changes); with solver default or realtime only, no n_grid or integrator; false: not; "
         "null: the server's default (serve --realtime makes a session of the default solver real-time)",
+    )
+    when_full: Literal[WHEN_FULL] = Field(  # type: ignore[valid-type]
+        WHEN_FULL[0],
+        description="a real-time session on a server whose real time is full (the playing real-time sessions fill its cores): refuse, a 503 "
+        "saying how many play and at what cost; coarser, start at the most accurate configuration that fits (a 503 when none does)",
     )
 
 

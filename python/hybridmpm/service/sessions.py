@@ -49,6 +49,7 @@ from hybridmpm.service.backend import (
     stop_task,
 )
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget, RecordedFrame, tree_nbytes
+from hybridmpm.service.capacity import RealtimeFullError, admit_session
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionCore, SessionGoneError, session_threads
 from hybridmpm.service.facts import SessionFacts, SessionSettings
@@ -231,16 +232,28 @@ class SessionManager:
         return held + self.reserved_by[client]
 
     async def create(
-        self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None
+        self,
+        scene: str,
+        seed: int,
+        solver: str,
+        r_c: float,
+        client: str = "",
+        *,
+        n_grid: int | None = None,
+        integrator: str | None = None,
+        when_full: str = "refuse",
     ) -> LocalSession:
         """Build a session for the client address ``client`` (``n_grid``: MPM
         on a coarser grid of the scene, :func:`~hybridmpm.service.facts.checked_n_grid`;
         ``integrator``: what its MPM steps with, :func:`~hybridmpm.service.facts.checked_integrator`;
-        ``solver`` ``realtime``: real-time mode, :func:`~hybridmpm.service.facts.checked_realtime`).
+        ``solver`` ``realtime``: real-time mode, :func:`~hybridmpm.service.facts.checked_realtime`, admitted
+        at the rung the playing ones leave room for, ``when_full`` saying what a full server does:
+        :func:`~hybridmpm.service.capacity.admit`).
         With a store the session is saved before it is answered; when that
         save fails the session is dropped and :class:`StoreSaveError` raised
         (nothing already saved changes).
         Raises :class:`SessionCapError` when the server is full,
+        :class:`~hybridmpm.service.capacity.RealtimeFullError` when real time is,
         :class:`QuotaError` when the client holds its quota,
         :class:`BudgetFullError` when the memory budget cannot hold it (its
         cost: :data:`SESSION_STATE_COPIES` × its state + :data:`SESSION_OVERHEAD`,
@@ -258,6 +271,11 @@ class SessionManager:
             with self.budget.hold(SESSION_OVERHEAD, "a new session"):
                 threads = await self.compute(session_threads, settings, self.config.compute_threads)
                 core = await self.compute(functools.partial(SessionCore.build, session_key(sid), settings, client, self.budget, threads))
+            try:  # a real-time session: the rung it starts on, or the 503
+                admit_session(core, [x.core for x in self.sessions.values()], self.config.compute_threads, when_full)
+            except RealtimeFullError:
+                core.close()
+                raise
             try:
                 cost = self.budget.take(SESSION_STATE_COPIES * tree_nbytes(core.initial) + SESSION_OVERHEAD, "a new session")
             except BudgetFullError:

@@ -31,7 +31,6 @@ records the rung, so a checkpoint taken after a change restores bitwise.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -44,6 +43,7 @@ import numpy as np
 
 from hybridmpm.conventions import MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.files import loads_json
 from hybridmpm.mpm import MpmSolver
 from hybridmpm.mpm.params import INTEGRATORS, MpmParams
 from hybridmpm.scenes import make_scene
@@ -154,8 +154,8 @@ def _charts() -> dict[str, Any]:
     except FileNotFoundError:
         return {}
     try:
-        doc = json.loads(text)
-    except ValueError as e:
+        doc = loads_json(text, "realtime")
+    except InvalidInputError as e:
         raise InvalidInputError(f"realtime: the package's models/{CHART_FILE} is corrupt ({e}); reinstall hybridmpm", "realtime") from None
     return doc.get("scenes", {}) if isinstance(doc, dict) else {}
 
@@ -239,6 +239,8 @@ class RealtimeSimulator(MpmSimulator):
             scene = make_scene(scene, seed=seed)
         super().__init__(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
         self.ladder = make_ladder(self.scene)
+        #: the scene's shipped real-time chart (:func:`realtime_chart`; None: a scene of your own)
+        self.chart = realtime_chart(self.scene)
         self._clock = clock
         self.adaptive = bool(adaptive)
         #: rung key -> the scene's own solver parameters on that rung (the particles' parameter sets kept)

@@ -314,11 +314,21 @@ class RaySessionManager:
         return int(await self.registry.count.remote())
 
     async def create(
-        self, scene: str, seed: int, solver: str, r_c: float, client: str = "", *, n_grid: int | None = None, integrator: str | None = None
+        self,
+        scene: str,
+        seed: int,
+        solver: str,
+        r_c: float,
+        client: str = "",
+        *,
+        n_grid: int | None = None,
+        integrator: str | None = None,
+        when_full: str = "refuse",
     ) -> RaySession:
         """A new session in its own actor (``solver`` ``realtime``: real-time mode, as the route resolved the
         request's ``realtime``, :func:`~hybridmpm.service.facts.checked_realtime`; the actor's frames and events
-        carry it). Raises :class:`SessionCapError` /
+        carry it; ``when_full`` is not used: the cluster does not count real-time capacity, each actor's mode
+        adapts to its node). Raises :class:`SessionCapError` /
         :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
         when the cluster has no CPU for it, and the simulator's
         :class:`InvalidInputError` for bad settings."""

@@ -7,6 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 
 from hybridmpm.service.backend import RETRY_AFTER_S, QuotaError, SessionCapError, StoreSaveError
+from hybridmpm.service.capacity import RealtimeFullError
 from hybridmpm.service.deps import ConfigDep, ManagerDep, SessionDep
 from hybridmpm.service.errors import NO_SESSION, ApiError
 from hybridmpm.service.facts import checked_integrator, checked_n_grid, checked_realtime
@@ -21,7 +22,10 @@ router = APIRouter()
     response_model=SessionInfo,
     responses={
         429: {"description": "this client address holds its quota of sessions (Retry-After)"},
-        503: {"description": "session cap reached, memory budget full, or the store could not save the new session (Retry-After)"},
+        503: {
+            "description": "session cap reached, memory budget full, real time full for a real-time session (how many play, at what cost), "
+            "or the store could not save the new session (Retry-After)"
+        },
         507: {"description": "the store is full: the new session could not be saved, and nothing was created"},
     },
 )
@@ -31,7 +35,9 @@ async def create_session(body: CreateSession, request: Request, manager: Manager
     try:
         solver = checked_realtime(body.solver, body.realtime, body.n_grid, body.integrator, cfg.realtime)  # null: the server's default
         n_grid, integrator = checked_n_grid(scene, solver, body.n_grid), checked_integrator(solver, body.integrator)
-        s = await manager.create(scene, body.seed, solver, body.r_c, client, n_grid=n_grid, integrator=integrator)
+        s = await manager.create(scene, body.seed, solver, body.r_c, client, n_grid=n_grid, integrator=integrator, when_full=body.when_full)
+    except RealtimeFullError as e:
+        raise ApiError(503, str(e), {"Retry-After": str(RETRY_AFTER_S)}) from None
     except SessionCapError:
         raise ApiError(503, f"the server holds its maximum of {cfg.max_sessions} sessions; retry later", {"Retry-After": "30"}) from None
     except QuotaError:

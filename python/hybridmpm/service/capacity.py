@@ -1,0 +1,104 @@
+"""Real-time capacity: how many real-time sessions a server holds (docs/service.md, "Real-time sessions").
+
+A real-time session that plays steps ``dt_frame`` of simulated time per ``dt_frame`` of wall time, so it keeps
+``frame / dt_frame`` of each of its MPM threads busy: its **cores**, measured by its own frame timing
+(:meth:`~hybridmpm.sim.RealtimeSimulator.realtime_info`). The server's real-time capacity is
+:data:`REALTIME_SHARE` of its compute threads. A new real-time session is admitted when its estimated cores fit
+what the playing ones leave:
+
+* at its most accurate rung when that fits;
+* else, when the request says ``"when_full": "coarser"``, at the most accurate rung that fits;
+* else refused (503), the message saying how many run and at what cost.
+
+A rung's estimate is its chart time (``models/realtime.json``) scaled by this machine's pace: the median, over
+the playing real-time sessions, of their measured time a frame over their rung's chart time (1 while none
+plays). Sessions that do not play take no cores here: a session that starts playing later is not refused (its
+own mode then steps down; all of them do as the machine fills).
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from hybridmpm.sim import RealtimeSimulator
+
+#: The share of the compute threads real-time sessions may fill (the rest: serving, the event loop, the page).
+REALTIME_SHARE = 0.9
+#: What a real-time session asks when the server is full: a 503, or a coarser rung that fits.
+WHEN_FULL = ("refuse", "coarser")
+
+
+class RealtimeFullError(Exception):
+    """No room at real time for another real-time session (→ 503 with this message)."""
+
+
+@dataclass(frozen=True)
+class Playing:
+    """One playing real-time session as capacity sees it: ``cores`` it keeps busy at real time, and
+    ``pace`` its measured time a frame over its rung's chart time (None without a chart entry)."""
+
+    cores: float
+    pace: float | None
+
+
+def chart_ms(sim: RealtimeSimulator, key: str) -> float | None:
+    """The chart's time a frame of ``sim``'s scene on rung ``key`` [ms] (this chart's machine), or None."""
+    chart = getattr(sim, "chart", None)
+    if not chart:
+        return None
+    return next((float(r["ms"]) for r in chart.get("rungs", []) if r.get("key") == key and r.get("ms")), None)
+
+
+def playing(sim: Any, threads: int) -> Playing | None:
+    """``sim``'s load when it is a real-time simulator that has timed its frames, else None."""
+    if not isinstance(sim, RealtimeSimulator):
+        return None
+    info = sim.realtime_info()
+    if info["frame_ms"] is None:
+        return None
+    cores = min(float(threads), info["frame_ms"] / (sim.dt_step * 1e3) * threads)
+    ref = chart_ms(sim, info["rung"])
+    return Playing(cores, None if not ref else info["frame_ms"] / ref)
+
+
+def admit(sim: RealtimeSimulator, threads: int, others: Iterable[Playing], compute_threads: int, when_full: str) -> str:
+    """The rung a new real-time session ``sim`` (built, not yet stepped; ``threads`` MPM threads) starts on, given
+    the ``others`` playing; raises :class:`RealtimeFullError` when none fits (``when_full`` "refuse": its most
+    accurate rung must fit; "coarser": any rung)."""
+    others = list(others)
+    used = sum(p.cores for p in others)
+    capacity = REALTIME_SHARE * compute_threads
+    paces = [p.pace for p in others if p.pace is not None]
+    pace = statistics.median(paces) if paces else 1.0
+    needs = []
+    for r in sim.ladder:
+        ms = chart_ms(sim, r.key)
+        needs.append((r.key, None if ms is None else min(float(threads), ms * pace / (sim.dt_step * 1e3) * threads)))
+    allowed = needs[:1] if when_full == "refuse" else needs
+    for key, need in allowed:
+        if need is None or used + need <= capacity:
+            return key
+    best, least = needs[0][1] or 0.0, needs[-1][1] or 0.0
+    raise RealtimeFullError(
+        f"real time is full here: {len(others)} real-time sessions play, using {used:.2f} of the {capacity:.2f} cores real time may take "
+        f"({REALTIME_SHARE:.0%} of {compute_threads}); this one needs about {best:.2f} at its most accurate configuration "
+        f"and {least:.2f} at its coarsest" + ("; ask with when_full 'coarser' to start coarser, or retry later" if when_full == "refuse" else "; retry later")
+    )
+
+
+def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_full: str) -> None:
+    """Admit a new session ``core`` (a :class:`~hybridmpm.service.core.SessionCore`, built, not yet stepped) beside
+    the sessions ``held`` (theirs): a real-time one moves to the rung :func:`admit` gives for the playing ones (and a
+    reset starts there), or :class:`RealtimeFullError` is raised; any other session is admitted as it is."""
+    sim = core.sim
+    if not isinstance(sim, RealtimeSimulator):
+        return
+    others = [playing(c.sim, c.threads) for c in held if c.playing]
+    sim.set_rung(admit(sim, core.threads, [p for p in others if p is not None], compute_threads, when_full))
+    core.initial = sim.state()
+
+
+__all__ = ["REALTIME_SHARE", "WHEN_FULL", "Playing", "RealtimeFullError", "admit", "admit_session", "chart_ms", "playing"]
