@@ -50,6 +50,8 @@ def test_admit_takes_the_most_accurate_rung_that_fits_what_the_playing_sessions_
             admit(sim, 1, slow, 2, "coarser")
     with pytest.raises(RealtimeFullError, match="retry later"):
         admit(sim, 1, [Playing(capacity, 1.0)], 2, "coarser")  # nothing fits
+    # alone, a session is admitted at its best even where its best cannot keep real time here
+    assert admit(sim, 2, [], 1, "refuse") == best
 
 
 def test_a_server_refuses_or_coarsens_a_realtime_session_once_the_playing_ones_fill_its_cores() -> None:
@@ -71,7 +73,8 @@ def test_a_server_refuses_or_coarsens_a_realtime_session_once_the_playing_ones_f
         # a's cores u: too many for b at its best rung (u + u > capacity), room for b at its coarsest
         u = (capacity / 2 + capacity / (1 + min(ratio.values()))) / 2
         sim._ema, sim._samples = u * DT_MS * 1e-3, 1  # its measured frame [s]
-        core.playing = True
+        core.playing, watched = True, core.has_viewers
+        core.has_viewers = lambda: True  # a viewer watches it play (its play loop runs only then)
         r = new()
         assert r.status_code == 503, r.text
         assert "1 real-time sessions play" in r.json()["detail"] and r.headers.get("retry-after")
@@ -80,5 +83,5 @@ def test_a_server_refuses_or_coarsens_a_realtime_session_once_the_playing_ones_f
         assert r.status_code == 201, r.text
         expect = next(r.key for r in sim.ladder if u * (1 + ratio[r.key]) <= capacity + 1e-9)
         assert r.json()["realtime"]["rung"] == expect != best
-        core.playing = False  # a session that does not play takes no cores: the next starts at its best
+        core.has_viewers = watched  # nobody watches: its play loop waits and takes no cores, the next starts at its best
         assert new().json()["realtime"]["rung"] == best

@@ -6,13 +6,14 @@ A real-time session that plays steps ``dt_frame`` of simulated time per ``dt_fra
 :data:`REALTIME_SHARE` of its compute threads. A new real-time session is admitted when its estimated cores fit
 what the playing ones leave:
 
-* at its most accurate rung when that fits;
+* at its most accurate rung when that fits, or when no other real-time session plays (a session alone is
+  never refused: its own mode finds the rung the machine holds);
 * else, when the request says ``"when_full": "coarser"``, at the most accurate rung that fits;
 * else refused (503), the message saying how many run and at what cost.
 
 A rung's estimate is its chart time (``models/realtime.json``) scaled by this machine's pace: the median, over
 the playing real-time sessions, of their measured time a frame over their rung's chart time (1 while none
-plays). Sessions that do not play take no cores here: a session that starts playing later is not refused (its
+plays). Sessions that do not play (or that nobody watches: their play loop waits) take no cores here: a session that starts playing later is not refused (its
 own mode then steps down; all of them do as the machine fills).
 """
 
@@ -69,6 +70,8 @@ def admit(sim: RealtimeSimulator, threads: int, others: Iterable[Playing], compu
     the ``others`` playing; raises :class:`RealtimeFullError` when none fits (``when_full`` "refuse": its most
     accurate rung must fit; "coarser": any rung)."""
     others = list(others)
+    if not others:  # alone it is always admitted, at its best: its own mode then finds the rung this machine holds
+        return sim.ladder[0].key
     used = sum(p.cores for p in others)
     capacity = REALTIME_SHARE * compute_threads
     paces = [p.pace for p in others if p.pace is not None]
@@ -96,7 +99,7 @@ def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_ful
     sim = core.sim
     if not isinstance(sim, RealtimeSimulator):
         return
-    others = [playing(c.sim, c.threads) for c in held if c.playing]
+    others = [playing(c.sim, c.threads) for c in held if c.playing and c.has_viewers()]  # a play loop runs only while watched
     sim.set_rung(admit(sim, core.threads, [p for p in others if p is not None], compute_threads, when_full))
     core.initial = sim.state()
 

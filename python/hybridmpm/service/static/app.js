@@ -176,6 +176,7 @@ async function newSession() {
     const solver = $("solver").value; // realtime: what the page asks, not the server's default (serve --realtime)
     session = await api("POST", "/v1/sessions", {
       scene: $("scene").value, seed: Number($("seed").value) || 0, solver, realtime: solver === "realtime",
+      when_full: "coarser", // a full server starts a real-time session coarser rather than refusing it
     });
   } catch (e) { setStatus(`could not create a session: ${e.message}`); return; }
   session.owned = true;
