@@ -349,7 +349,8 @@ class RealtimeSimulator(MpmSimulator):
         if not self.adaptive or self._samples < MIN_SAMPLES or self._clock() - self._last_change < DWELL_S or self._ema is None:
             return None
         budget, ratio = self.budget_s(), self._chart_ratios[self._rung]
-        ladder = [r for r in self.ladder if self._available(r.key)]
+        projection = self.projection_ok()  # once a decision, not once a rung
+        ladder = [r for r in self.ladder if projection or r.integrator == INTEGRATORS[0]]
         if self._ema > budget:
             faster = [r for r in ladder if r.time_ratio < ratio]
             for r in faster:
@@ -366,8 +367,9 @@ class RealtimeSimulator(MpmSimulator):
         return None
 
     def _fall_back(self) -> None:
-        """Leave a projection rung that no longer steps what the simulator holds (another material poured)."""
-        if not self.projection_ok():
+        """Leave a projection rung that no longer steps what the simulator holds (another material poured); on an
+        explicit rung nothing is read."""
+        if self._rung_params[self._rung].integrator != INTEGRATORS[0] and not self.projection_ok():
             self._to_explicit()
 
     def _to_explicit(self) -> None:
