@@ -27,7 +27,8 @@ from hybridmpm.errors import InvalidInputError  # noqa: E402
 from hybridmpm.scenes import DOMAINS  # noqa: E402
 from hybridmpm.service import ServiceConfig, create_app, decode_frame  # noqa: E402
 from hybridmpm.service import checkpoint as ckpt  # noqa: E402
-from hybridmpm.service.core import PLAY_LAG_S, Pacer  # noqa: E402
+from hybridmpm.service import core as core_module  # noqa: E402
+from hybridmpm.service.core import PLAY_LAG_S, PLAY_TICK_S, REALTIME_LAG_S, Pacer  # noqa: E402
 from hybridmpm.service.frames import FLAG_REALTIME, FLAGS_KNOWN, encode_frame, realtime_code  # noqa: E402
 from hybridmpm.service.testing import step_binary  # noqa: E402
 from hybridmpm.sim import SOLVERS, make_simulator, rollout  # noqa: E402
@@ -301,16 +302,33 @@ def test_the_realtime_setting_comes_from_the_environment_and_the_command_line(mo
     assert ap.parse_args(["serve"]).realtime is None  # absent: the environment's, else off
 
 
-def test_a_realtime_session_never_catches_up(client):
+def test_a_realtime_session_steps_what_fell_due_in_a_tick_and_owes_nothing_older(client, monkeypatch):
+    """The play loop sleeps out a tick (``PLAY_TICK_S``) between its calls: a real-time session steps on waking the
+    frames that fell due meanwhile (so it can play at 1/dt_frame, as water2d's 400 frames/s), but a frame later than
+    ``REALTIME_LAG_S`` (two ticks) is not owed; a plain session catches up ``PLAY_LAG_S``. A clock of our own."""
     rt, plain = new(client, realtime=True)["id"], new(client, solver="mpm")["id"]
     sessions = client.app.state.manager.sessions
-    assert sessions[rt].core.pacer().lag == 0.0 and sessions[plain].core.pacer().lag == PLAY_LAG_S
-    owed, free = Pacer(1.0, lag=5.0), Pacer(1.0, lag=0.0)
-    for p in (owed, free):
-        p.next_t -= 100.0  # a step that ran 100 s late
-        assert p.delay() == 0.0
-    assert owed.delay() == 0.0  # the one that catches up owes the next steps at once
-    assert free.delay() > 0.5  # the one that does not waits a period from now
+    assert sessions[rt].core.pacer().lag == REALTIME_LAG_S and sessions[plain].core.pacer().lag == PLAY_LAG_S
+    assert PLAY_TICK_S < REALTIME_LAG_S < PLAY_LAG_S
+    now = [1000.0]
+    monkeypatch.setattr(core_module.time, "monotonic", lambda: now[0])
+    period = 0.0025
+
+    def steps_on_waking(lag: float, late: float) -> int:  # a frame stepped at t, the loop wakes `late` s on and steps
+        p = Pacer(period, lag=lag)
+        assert p.delay() == pytest.approx(period)  # on time: the next frame a period on
+        now[0] += late
+        n = 1  # on waking it steps; then again while the next one is due (no wait)
+        while p.delay() == 0.0:
+            n += 1
+        return n
+
+    tick = round(PLAY_TICK_S / period)  # 4 frames of 2.5 ms in a tick
+    assert steps_on_waking(REALTIME_LAG_S, PLAY_TICK_S + period / 2) == tick  # the frames of a tick's sleep
+    assert steps_on_waking(REALTIME_LAG_S, PLAY_TICK_S + period * 1.5) == tick + 1  # and of the timer's lateness
+    assert steps_on_waking(0.0, PLAY_TICK_S + period / 2) == 2  # with no lag, two of the four: 200 frames/s at best
+    for lag in (REALTIME_LAG_S, PLAY_LAG_S):  # a 100 s stall: a real-time session owes two ticks, a plain one 0.25 s
+        assert lag / period <= steps_on_waking(lag, 100.0) <= lag / period + 2
 
 
 def test_a_realtime_session_takes_a_poured_block_and_an_added_body_and_steps_on(client):

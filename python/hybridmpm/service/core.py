@@ -57,6 +57,11 @@ PLAY_LAG_S = 0.25
 #: to a worker, the timer and the frame's encoding cost once per tick instead of once per frame (water2d
 #: plays 400 frames/s; a viewer's stream sends at most 60 a second, the newest).
 PLAY_TICK_S = 0.01
+#: How far a real-time session may fall behind before it stops catching up [s]: two ticks, so the frames that
+#: fell due while the loop slept out its tick (and the timer's lateness) are stepped on waking, and no frame
+#: later than that is owed. With no lag at all the loop stepped one frame a tick: water2d played 168 frames/s
+#: of its 400 (``python benchmarks/bench_capacity.py --realtime``), whatever the machine had to spare.
+REALTIME_LAG_S = 2 * PLAY_TICK_S
 #: Controls kept per session (their trajectories can be fetched).
 KEEP_CONTROLS = 8
 #: Coarse steps of its recent trajectory a session keeps for download (``GET .../trajectory``).
@@ -94,8 +99,9 @@ class Pacer:
     seconds of simulated time) per ``period`` seconds of wall time;
     :meth:`delay` after each step says how long to wait before the next.
     A session that falls behind catches up at most ``lag`` seconds
-    (:data:`PLAY_LAG_S`; 0 for a real-time session: a frame that ran late is
-    not owed, the next one is due a period after it)."""
+    (:data:`PLAY_LAG_S`; :data:`REALTIME_LAG_S`, two play ticks, for a
+    real-time session: a frame later than that is not owed, the next one is
+    due a period after it)."""
 
     def __init__(self, period: float, lag: float = PLAY_LAG_S) -> None:
         self.period = float(period)
@@ -265,8 +271,8 @@ class SessionCore(SessionEdits):
 
     def pacer(self) -> Pacer:
         """The play loop's :class:`Pacer`: one coarse step per its simulated time, catching up at most
-        :data:`PLAY_LAG_S`; a real-time session never catches up (lag 0)."""
-        return Pacer(float(self.sim.dt_frame) * int(self.sim.r_t), 0.0 if isinstance(self.sim, RealtimeSimulator) else PLAY_LAG_S)
+        :data:`PLAY_LAG_S`; a real-time session only the frames due within two play ticks (:data:`REALTIME_LAG_S`)."""
+        return Pacer(float(self.sim.dt_frame) * int(self.sim.r_t), REALTIME_LAG_S if isinstance(self.sim, RealtimeSimulator) else PLAY_LAG_S)
 
     def control_state(self) -> dict[str, Any] | None:
         """The control running now, as a viewer that joins meanwhile needs it
@@ -615,6 +621,7 @@ __all__ = [
     "KEEP_CONTROLS",
     "PLAY_LAG_S",
     "PLAY_TICK_S",
+    "REALTIME_LAG_S",
     "RECORD_STEPS",
     "BusyError",
     "Control",
