@@ -22,8 +22,8 @@ water and a paddle; cases 16-19). Cases 0-19 fix a quality level by its
 resolution (``?scale=``: the highest level drawn at it, every particle
 splatted, ``static/quality.js``); cases 20-21 let the page choose
 (``?quality=auto``: it steps down while it draws under 24 frames/s), and are
-measured once no level has changed for 3 s (at most 60 s); cases 22-28 fix
-each of the seven levels in turn (``?quality=N``), playing, and 29-35 paused.
+measured once no level has changed for 3 s (at most 60 s); cases 22-29 fix
+each of the eight levels in turn (``?quality=N``), playing, and 30-37 paused.
 With ``--advance N`` a case starts N frames in (stepped over HTTP first,
 paused: the water spread over the floor, the costly case for the splats; a
 playing case then plays from there). The
@@ -117,6 +117,8 @@ def machine_busy() -> tuple[float, float]:
 #: Side of the cube ``--pour`` drops [m] (the palette test's jelly).
 POUR_SIDE = 0.12
 
+#: static/quality.js's LEVELS: how many quality levels the page has (1 the cheapest)
+QUALITY_LEVELS = 8
 CASES = [
     # scene, seed, look, simulation playing, resolution (backing pixels per CSS pixel; software GL's default is 0.75)
     ("water3d", 26, "fluid", False, 0.75),
@@ -144,8 +146,8 @@ CASES = [
     # the quality the page keeps: auto, then each level fixed (static/quality.js LEVELS, 1 the cheapest)
     ("paddle3d", 0, "fluid", True, "auto"),
     ("paddle3d", 0, "fluid", False, "auto"),
-    *[("paddle3d", 0, "fluid", True, str(q)) for q in range(1, 8)],
-    *[("paddle3d", 0, "fluid", False, str(q)) for q in range(1, 8)],
+    *[("paddle3d", 0, "fluid", True, str(q)) for q in range(1, QUALITY_LEVELS + 1)],
+    *[("paddle3d", 0, "fluid", False, str(q)) for q in range(1, QUALITY_LEVELS + 1)],
 ]
 
 
@@ -186,7 +188,7 @@ def run_case(
     advance: int = 0,
     material: str | None = None,
 ) -> dict:
-    """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…7``); ``material``: a block of
+    """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…8``); ``material``: a block of
     it poured first (:func:`pour`)."""
     page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
     errors: list[str] = []
@@ -391,7 +393,7 @@ def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, c
         preset = f"quality={r['preset']}" if isinstance(r["preset"], str) else f"scale={r['preset']:g}"
         lines.append(
             f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {preset} | "
-            f"{r['quality_level']}/7 | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
+            f"{r['quality_level']}/{QUALITY_LEVELS} | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
             f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
             f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
         )

@@ -130,7 +130,7 @@ def test_a_jelly_dropped_into_the_3d_scene_keeps_its_shape_and_the_page_its_fram
                 break
     q = page.evaluate("__hmpm.quality")
     assert settled is not None, f"the quality did not settle in 90 s: {q['changes']}"
-    said = f"{settled:.1f} frames/s drawn with the jelly in at level {q['level'] + 1}/7; others' CPU share {foreign:.0%}"
+    said = f"{settled:.1f} frames/s drawn with the jelly in at level {q['level'] + 1}/{q['levels']}; others' CPU share {foreign:.0%}"
     print(said)
     # what holds on any CPU: the controller stepped down until the page draws 24 frames/s or it has no cheaper level
     # (a 2-core Zen 3 draws ~16 frames/s at the lowest level with the jelly in; the rate itself is a benchmark's,
