@@ -6,7 +6,7 @@ page run, the chart's choice), and, where the scene holds only water in the
 box walls, the same configuration (its ``r_p``, its grid) stepped by the
 projection, ``integrator="projection"`` (the large step; docs/large-step.md). Each runs ``--warmup`` frames, then
 ``--frames`` frames timed through :func:`~hybridmpm.sim.rollout` on both
-threads. The real-time factor is simulated seconds per wall second,
+threads; with ``--repeats N`` each scene's runs are repeated N times, interleaved, and each row is their median. The real-time factor is simulated seconds per wall second,
 ``frames · dt_frame / wall`` (a frame is 2.5 ms: real time is 400 frames a
 wall second). Steps per frame are the MPM solver's (substeps for the explicit step; a
 projection step spanning frames counts on its first). Run it on a quiet machine: its absolute times move with the CPU and
@@ -90,24 +90,40 @@ def measure(scene: str, integrator: str | None, frames: int, warmup: int) -> dic
     }
 
 
+def median_row(rs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration's runs as one row: the median of each time (the steps are the same bits each run)."""
+    row = dict(rs[0])
+    for k in ("ms_per_frame", "rtf"):
+        row[k] = float(np.median([r[k] for r in rs]))
+    row["runs"] = len(rs)
+    return row
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default=",".join(DOMAINS), help="comma-separated registered scenes (default: all)")
     ap.add_argument("--frames", type=int, default=150, help="frames timed (default 150)")
     ap.add_argument("--warmup", type=int, default=15, help="frames before the timing (default 15)")
+    ap.add_argument("--repeats", type=int, default=1, help="runs of each scene's configurations, interleaved; the row is their median (default 1)")
     ap.add_argument("--realtime", action="store_true", help="also run real-time mode (docs/realtime.md)")
     ap.add_argument("--settle", type=float, default=10.0, help="with --realtime: seconds it steps before the timing (default 10)")
     ap.add_argument("--out", required=True, help="output folder")
     args = ap.parse_args(argv)
+    if not 1 <= args.repeats <= 20:
+        ap.error(f"--repeats: got {args.repeats}; choose 1 to 20")
     rows: list[dict[str, Any]] = []
     for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         if scene not in DOMAINS:
             ap.error(f"--scenes: unknown scene {scene!r}; choose from {', '.join(DOMAINS)}")
-        for integrator in (None, "projection"):
-            r = measure(scene, integrator, args.frames, args.warmup)
-            if r is not None:
-                rows.append(r)
-                print(r, flush=True)
+        runs: dict[str | None, list[dict[str, Any]]] = {}
+        for _ in range(args.repeats):  # interleaved, so a slow spell of the machine falls on both integrators
+            for integrator in (None, "projection"):
+                r = measure(scene, integrator, args.frames, args.warmup)
+                if r is not None:
+                    runs.setdefault(integrator, []).append(r)
+        for rs in runs.values():
+            rows.append(median_row(rs))
+            print(rows[-1], flush=True)
         if args.realtime:
             rows.append(measure_realtime(scene, args.frames, args.settle))
             print(rows[-1], flush=True)

@@ -28,6 +28,8 @@
 //! the particles fixed by their count (`transfer.rs`), summed in one order;
 //! g2p gives each particle its own; the pressure solve is serial, its sums
 //! in f64, and starts from zero, so a step reads nothing but the particles.
+//! The transfers run in the compiled copy the solver chose ([`crate::isa`]:
+//! the x86-64-v3 one where the CPU has it; the same bits either way).
 //! It runs on the pool it is called in (the solver's:
 //! `solver/large_step.rs`). `benchmarks/large_step.py`
 //! holds the prototype this module follows and its checks (docs/large-step.md).
@@ -35,8 +37,9 @@
 use nalgebra::SVector;
 use rayon::prelude::*;
 
+use crate::isa::Isa;
 use crate::particles::Particle;
-use transfer::{Kernel, Part, for_each_node, kinds};
+use transfer::{Part, for_each_node, g2p_chunk};
 
 mod transfer;
 
@@ -78,13 +81,16 @@ pub struct Projection<const D: usize> {
     index: Vec<u32>,
     pressure: Vec<f64>,
     fluid: Vec<usize>,
-    /// The two parts of the p2g ([`Part`]) and the cells holding a particle (scratch).
+    /// The two parts of the p2g ([`Part`]).
     parts: [Part; 2],
-    marked: Vec<bool>,
+    /// The compiled copy of the transfers that runs ([`crate::isa`]; the same bits either way).
+    isa: Isa,
 }
 
 /// Particles a g2p task takes at once.
 const G2P_CHUNK: usize = 1024;
+/// Faces or cells a task of the p2g's sum takes at once.
+const MERGE_CHUNK: usize = 8192;
 
 /// A face grid's shape: `n` cells a side, `n + 1` nodes along `axis` (`None`: the cell centres).
 fn shape<const D: usize>(n: usize, axis: Option<usize>) -> [usize; D] {
@@ -97,6 +103,34 @@ fn strides<const D: usize>(s: &[usize; D]) -> [usize; D] {
         st[d] = st[d + 1] * s[d + 1];
     }
     st
+}
+
+/// The wall condition on one face of component `a` (flat index `flat`, index `idx`): zero in and on the
+/// walls along `a`; a face inside a wall along another axis copies the nearest face inside the fluid region.
+#[inline(always)]
+fn wall_face<const D: usize>(
+    vel: &mut [f32],
+    a: usize,
+    n: usize,
+    ws: usize,
+    stride: &[usize; D],
+    flat: usize,
+    idx: &[usize; D],
+) {
+    if idx[a] <= ws || idx[a] >= n - ws {
+        vel[flat] = 0.0;
+        return;
+    }
+    let mut src = flat;
+    for b in 0..D {
+        if b != a {
+            let j = idx[b].clamp(ws, n - ws - 1);
+            src = src - idx[b] * stride[b] + j * stride[b];
+        }
+    }
+    if src != flat {
+        vel[flat] = vel[src];
+    }
 }
 
 impl<const D: usize> Projection<D> {
@@ -119,8 +153,14 @@ impl<const D: usize> Projection<D> {
             pressure: vec![0.0; cells],
             fluid: Vec::new(),
             parts: Default::default(),
-            marked: Vec::new(),
+            isa: Isa::detect(),
         }
+    }
+
+    /// Runs the transfers with `isa` ([`crate::Solver::set_isa`] passes its choice on). Call it only
+    /// with a variant the CPU has ([`Isa::available`]).
+    pub fn set_isa(&mut self, isa: Isa) {
+        self.isa = isa;
     }
 
     /// The cell pressures [Pa] of the last step, row-major (`x` slowest), 0 off the fluid.
@@ -173,7 +213,7 @@ impl<const D: usize> Projection<D> {
             }
         }
         self.walls();
-        self.mark_fluid(particles);
+        self.mark_fluid();
         let stats = self.solve(dt, rho);
         self.subtract_gradient(dt, rho);
         self.walls();
@@ -185,50 +225,72 @@ impl<const D: usize> Projection<D> {
     /// pool), summed in one order; then the face velocities and each cell's
     /// smoothed density over `rho`.
     fn p2g(&mut self, particles: &[Particle<D>], dt: f32, rho: f32) {
-        let (n, dx) = (self.n, self.dx);
+        let (n, ws, dx, isa) = (self.n, self.ws, self.dx, self.isa);
         let (first, second) = particles.split_at(particles.len() / 2);
         let (p0, p1) = self.parts.split_at_mut(1);
         rayon::join(
-            || p0[0].scatter(first, n, dx, dt),
-            || p1[0].scatter(second, n, dx, dt),
+            || p0[0].scatter(isa, first, n, ws, dx, dt),
+            || p1[0].scatter(isa, second, n, ws, dx, dt),
         );
+        // the sums, face by face (in parallel: each face its own)
         let (p0, p1) = (&self.parts[0], &self.parts[1]);
         for a in 0..D {
-            let (vel, mass) = (&mut self.vel[a], &mut self.mass[a]);
-            for (i, (f0, f1)) in p0.faces[a].iter().zip(&p1.faces[a]).enumerate() {
-                let m = f0[0] + f1[0];
-                mass[i] = m;
-                vel[i] = if m > 0.0 { (f0[1] + f1[1]) / m } else { 0.0 };
-            }
+            let (f0, f1) = (&p0.faces[a], &p1.faces[a]);
+            self.vel[a]
+                .par_chunks_mut(MERGE_CHUNK)
+                .zip(self.mass[a].par_chunks_mut(MERGE_CHUNK))
+                .enumerate()
+                .for_each(|(k, (vel, mass))| {
+                    let at = k * MERGE_CHUNK;
+                    for i in 0..vel.len() {
+                        let (g0, g1) = (f0[at + i], f1[at + i]);
+                        let m = g0[0] + g1[0];
+                        mass[i] = m;
+                        vel[i] = if m > 0.0 { (g0[1] + g1[1]) / m } else { 0.0 };
+                    }
+                });
         }
         let scale = 1.0 / (dx.powi(D as i32) * rho);
-        for (c, d) in self.density.iter_mut().enumerate() {
-            *d = (p0.cell[c] + p1.cell[c]) * scale;
-        }
+        let (c0, c1) = (&p0.cell, &p1.cell);
+        self.density
+            .par_chunks_mut(MERGE_CHUNK)
+            .enumerate()
+            .for_each(|(k, d)| {
+                let at = k * MERGE_CHUNK;
+                for (i, d) in d.iter_mut().enumerate() {
+                    *d = (c0[at + i] + c1[at + i]) * scale;
+                }
+            });
     }
 
     /// Free slip: zero the normal faces in and on the walls; inside a wall the tangential components copy the fluid's.
+    /// Only the faces in the walls' band are visited: a row of the last axis away from the walls has its
+    /// two ends in the band, the rest of it is left as it is.
     fn walls(&mut self) {
         let (n, ws) = (self.n, self.ws);
         for a in 0..D {
             let s = shape::<D>(n, Some(a));
             let stride = strides(&s);
             let vel = &mut self.vel[a];
-            for_each_node(&s, |flat, idx| {
-                if idx[a] <= ws || idx[a] >= n - ws {
-                    vel[flat] = 0.0;
-                    return;
-                }
-                // the nearest face inside the fluid region along each tangential axis
-                let mut src = flat;
-                for b in 0..D {
-                    if b != a {
-                        let j = idx[b].clamp(ws, n - ws - 1);
-                        src = src - idx[b] * stride[b] + j * stride[b];
-                    }
-                }
-                if src != flat {
-                    vel[flat] = vel[src];
+            // the band of an axis: below `lo[d]` or above `hi[d]` (the normal axis zeroes in and on the
+            // walls, a tangential axis copies the fluid's inside them)
+            let lo: [usize; D] = std::array::from_fn(|d| if d == a { ws + 1 } else { ws });
+            let hi = [n - ws - 1; D];
+            let last = D - 1;
+            let rows: [usize; D] = std::array::from_fn(|d| if d == last { 1 } else { s[d] });
+            for_each_node(&rows, |_, outer| {
+                let start: usize = (0..last).map(|d| outer[d] * stride[d]).sum();
+                let interior = (0..last).all(|d| outer[d] >= lo[d] && outer[d] <= hi[d]);
+                let mut idx = *outer;
+                let mut visit = |k: usize| {
+                    idx[last] = k;
+                    wall_face(vel, a, n, ws, &stride, start + k, &idx);
+                };
+                if interior {
+                    (0..lo[last]).for_each(&mut visit);
+                    (hi[last] + 1..s[last]).for_each(&mut visit);
+                } else {
+                    (0..s[last]).for_each(&mut visit);
                 }
             });
         }
@@ -238,28 +300,17 @@ impl<const D: usize> Projection<D> {
         idx.iter().any(|&i| i < self.ws || i >= self.n - self.ws)
     }
 
-    /// The fluid cells: those holding a particle, away from the walls.
-    fn mark_fluid(&mut self, particles: &[Particle<D>]) {
-        let (n, dx) = (self.n, self.dx);
-        let stride = strides(&shape::<D>(n, None));
+    /// The fluid cells: those holding a particle, away from the walls (the p2g's parts found them).
+    fn mark_fluid(&mut self) {
         self.index.fill(u32::MAX);
-        let mut marked = std::mem::take(&mut self.marked);
-        marked.clear();
-        marked.resize(self.index.len(), false);
-        for p in particles {
-            let idx: [usize; D] = std::array::from_fn(|d| ((p.x[d] / dx) as usize).min(n - 1));
-            if !self.is_solid(&idx) {
-                marked[(0..D).map(|d| idx[d] * stride[d]).sum::<usize>()] = true;
-            }
-        }
         self.fluid.clear();
-        for (c, m) in marked.iter().enumerate() {
-            if *m {
+        let (h0, h1) = (&self.parts[0].held, &self.parts[1].held);
+        for (c, (a, b)) in h0.iter().zip(h1).enumerate() {
+            if *a || *b {
                 self.index[c] = self.fluid.len() as u32;
                 self.fluid.push(c);
             }
         }
-        self.marked = marked;
     }
 
     fn unflat(&self, c: usize) -> [usize; D] {
@@ -326,51 +377,55 @@ impl<const D: usize> Projection<D> {
                 }
             }
         }
-        // from zero, not the last step's pressure: a step reads nothing but the particles (a restored
-        // checkpoint steps the same bits)
-        let mut x = vec![0.0f64; m];
-        let apply = |v: &[f64], out: &mut [f64]| {
-            for r in 0..m {
-                let mut s = diag[r] * v[r];
-                for &k in &nbr[r][..2 * D] {
-                    if k != u32::MAX {
-                        s -= v[k as usize];
-                    }
+        // a missing neighbour reads the zero kept past the end of the vector the matrix is applied to
+        // (`s − 0.0` is `s`: the same bits as skipping it)
+        for row in nbr.iter_mut() {
+            for k in row.iter_mut() {
+                if *k == u32::MAX {
+                    *k = m as u32;
                 }
-                out[r] = s;
             }
-        };
-        let dot = |u: &[f64], v: &[f64]| u.iter().zip(v).map(|(a, b)| a * b).sum::<f64>();
-        let mut r = vec![0.0; m];
-        apply(&x, &mut r);
-        for i in 0..m {
-            r[i] = b[i] - r[i];
         }
-        let bnorm = dot(&b, &b).sqrt().max(1e-300);
-        let mut z: Vec<f64> = r.iter().zip(&diag).map(|(r, d)| r / d.max(1.0)).collect();
+        let precond: Vec<f64> = diag.iter().map(|d| d.max(1.0)).collect();
+        // CG (Jacobi-preconditioned) from zero, not the last step's pressure: a step reads nothing but
+        // the particles (a restored checkpoint steps the same bits). Every sum runs in row order.
+        let mut x = vec![0.0f64; m];
+        let mut r = b.clone(); // b − A·0
+        let bnorm = b.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
+        let mut z: Vec<f64> = r.iter().zip(&precond).map(|(r, d)| r / d).collect();
         let mut p = z.clone();
+        p.push(0.0);
         let mut q = vec![0.0; m];
-        let mut rz = dot(&r, &z);
+        let mut rz = r.iter().zip(&z).map(|(a, b)| a * b).sum::<f64>();
         let mut iterations = 0;
-        let mut residual = dot(&r, &r).sqrt() / bnorm;
+        let mut residual = r.iter().map(|v| v * v).sum::<f64>().sqrt() / bnorm;
         while residual > CG_TOLERANCE && iterations < CG_MAX_ITERATIONS {
-            apply(&p, &mut q);
-            let alpha = rz / dot(&p, &q);
+            // q = A·p and p·q in one pass
+            let mut pq = 0.0f64;
+            for (row, (qr, (nb, d))) in q.iter_mut().zip(nbr.iter().zip(&diag)).enumerate() {
+                let mut s = d * p[row];
+                for &k in &nb[..2 * D] {
+                    s -= p[k as usize];
+                }
+                *qr = s;
+                pq += p[row] * s;
+            }
+            let alpha = rz / pq;
+            let (mut rz_new, mut rr) = (0.0f64, 0.0f64);
             for i in 0..m {
                 x[i] += alpha * p[i];
                 r[i] -= alpha * q[i];
+                z[i] = r[i] / precond[i];
+                rz_new += r[i] * z[i];
+                rr += r[i] * r[i];
             }
-            for i in 0..m {
-                z[i] = r[i] / diag[i].max(1.0);
-            }
-            let rz_new = dot(&r, &z);
             let beta = rz_new / rz;
             rz = rz_new;
             for i in 0..m {
                 p[i] = z[i] + beta * p[i];
             }
             iterations += 1;
-            residual = dot(&r, &r).sqrt() / bnorm;
+            residual = rr.sqrt() / bnorm;
         }
         self.pressure.iter_mut().for_each(|v| *v = 0.0);
         for (k, &c) in self.fluid.iter().enumerate() {
@@ -421,40 +476,29 @@ impl<const D: usize> Projection<D> {
     }
 
     /// The particles move on at their velocity for `dt` [s], kept inside the walls as g2p keeps them
-    /// (a frame inside a step that spans several).
-    pub fn drift(&self, particles: &mut [Particle<D>], dt: f32) {
+    /// (a frame inside a step that spans several); returns the fastest one's speed [m/s].
+    pub fn drift(&self, particles: &mut [Particle<D>], dt: f32) -> f32 {
         let lo = (self.ws as f32 + 1e-3) * self.dx;
         let hi = 1.0 - lo;
+        let mut vmax = 0.0f32;
         for p in particles.iter_mut() {
             for d in 0..D {
                 p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
             }
+            vmax = vmax.max(crate::dim::norm(&p.v));
         }
+        vmax
     }
 
     /// g2p (APIC) and the move, per particle: in parallel on the calling pool, each particle its own.
     fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32) {
-        let (n, dx) = (self.n, self.dx);
-        let apic = 4.0 / (dx * dx);
-        let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
+        let (n, dx, isa) = (self.n, self.dx, self.isa);
         let lo = (self.ws as f32 + 1e-3) * dx;
         let hi = 1.0 - lo;
         let vel = &self.vel;
-        particles.par_chunks_mut(G2P_CHUNK).for_each(|chunk| {
-            for p in chunk {
-                let k = Kernel::new(&p.x, dx, n);
-                for a in 0..D {
-                    let (va, ca) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
-                    p.v[a] = va;
-                    for d in 0..D {
-                        p.c[(a, d)] = apic * ca[d];
-                    }
-                }
-                for d in 0..D {
-                    p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-                }
-            }
-        });
+        particles
+            .par_chunks_mut(G2P_CHUNK)
+            .for_each(|chunk| g2p_chunk(isa, chunk, vel, n, dx, dt, lo, hi));
     }
 }
 

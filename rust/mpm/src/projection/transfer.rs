@@ -5,8 +5,13 @@
 use nalgebra::SVector;
 
 use super::{shape, strides};
+use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
+
+/// A stencil's rows along its last axis: per row the first node's flat index, the other axes' weight
+/// product and affine sum; the row count; the last axis' weights and affine terms.
+type Rows = ([(usize, f32, f32); 9], usize, [f32; 3], [f32; 3]);
 
 /// Per axis of a 3^D stencil: the nodes' parts of the flat index, weights, offsets [m]; the last axis' node count.
 type Axes = ([[usize; 3]; 3], [[f32; 3]; 3], [[f32; 3]; 3], usize);
@@ -46,33 +51,6 @@ impl<const D: usize> Kernel<D> {
         k
     }
 
-    /// Calls `f(flat index, weight, offsets)` for the 3^D nodes of the grid
-    /// whose axis `d` is of kind `kinds[d]` and whose strides are `stride`,
-    /// in a fixed order (the last axis fastest).
-    #[inline(always)]
-    pub(super) fn each(
-        &self,
-        kinds: [usize; D],
-        stride: &[usize; D],
-        mut f: impl FnMut(usize, f32, [f32; D]),
-    ) {
-        let ([i0, i1, i2], [w0, w1, w2], [o0, o1, o2], last) = self.axes(kinds, stride);
-        let mut off = [0.0f32; D];
-        for a in 0..3 {
-            off[0] = o0[a];
-            for b in 0..3 {
-                off[1] = o1[b];
-                let (wab, iab) = (w0[a] * w1[b], i0[a] + i1[b]);
-                for c in 0..last {
-                    if D == 3 {
-                        off[D - 1] = o2[c];
-                    }
-                    f(iab + i2[c], wab * w2[c], off);
-                }
-            }
-        }
-    }
-
     /// Per axis on the grid of `kinds` and `stride`: the 3 nodes' parts of the flat index, their
     /// weights and offsets [m], and the nodes the last axis has (in 2D a third axis of one node,
     /// weight 1, offset 0, so one loop serves both).
@@ -90,9 +68,54 @@ impl<const D: usize> Kernel<D> {
 }
 
 impl<const D: usize> Kernel<D> {
+    /// The stencil's rows along the last axis (whose three nodes are contiguous, stride 1): per row its
+    /// first node's flat index, the product of the other axes' weights (times `scale`) and the sum of
+    /// their affine terms `t` (added to `u`), in a fixed order; and the last axis' weights and affine terms.
+    #[inline(always)]
+    fn rows(
+        &self,
+        kinds: [usize; D],
+        stride: &[usize; D],
+        scale: f32,
+        u: f32,
+        t: &[[f32; 3]; 3],
+    ) -> Rows {
+        let ([i0, i1, i2], [w0, w1, w2], _, _) = self.axes(kinds, stride);
+        let mut rows = [(0usize, 0.0f32, 0.0f32); 9];
+        if D == 3 {
+            for a in 0..3 {
+                let (mw0, u0) = (scale * w0[a], u + t[0][a]);
+                for b in 0..3 {
+                    rows[3 * a + b] = (i0[a] + i1[b] + i2[0], mw0 * w1[b], u0 + t[1][b]);
+                }
+            }
+            (rows, 9, w2, t[2])
+        } else {
+            for a in 0..3 {
+                rows[a] = (i0[a] + i1[0], scale * w0[a], u + t[0][a]);
+            }
+            (rows, 3, w1, t[1])
+        }
+    }
+
+    /// The cell-centred masses' p2g of one particle of mass `m` [kg], row by row of the stencil.
+    #[inline(always)]
+    fn scatter_cells(&self, stride: &[usize; D], m: f32, cell: &mut [f32]) {
+        let zero = [[0.0f32; 3]; 3];
+        let (rows, count, wl, _) = self.rows(kinds(None), stride, 1.0, 0.0, &zero);
+        for &(start, rw, _) in &rows[..count] {
+            let dst: &mut [f32; 3] = (&mut cell[start..start + 3]).try_into().unwrap();
+            for j in 0..3 {
+                dst[j] += m * (rw * wl[j]);
+            }
+        }
+    }
+
     /// p2g of one particle on one grid: adds `m·w` and `m·w·(u + Σ_d c_d·(x_i − x_p)_d)` to each of its
     /// 3^D nodes' `[mass, momentum]` (the affine term summed per axis, the mass folded into the first
-    /// axis' weights).
+    /// axis' weights), row by row of the stencil along the last axis. (Adding a row as one 8-float
+    /// vector was measured slower: a particle's wide store and its neighbour's overlapping load defeat
+    /// the store-to-load forwarding.)
     #[inline(always)]
     fn scatter(
         &self,
@@ -103,21 +126,18 @@ impl<const D: usize> Kernel<D> {
         c: &[f32; D],
         grid: &mut [[f32; 2]],
     ) {
-        let ([i0, i1, i2], [w0, w1, w2], o, last) = self.axes(kinds, stride);
+        let (_, _, o, _) = self.axes(kinds, stride);
         // the affine term's part per axis and node: c_d·(x_i − x_p)_d
-        let [t0, t1, t2]: [[f32; 3]; 3] = std::array::from_fn(|d| {
+        let t: [[f32; 3]; 3] = std::array::from_fn(|d| {
             std::array::from_fn(|j| if d < D { c[d] * o[d][j] } else { 0.0 })
         });
-        for a in 0..3 {
-            let (mw0, u0) = (m * w0[a], u + t0[a]);
-            for b in 0..3 {
-                let (wab, uab, iab) = (mw0 * w1[b], u0 + t1[b], i0[a] + i1[b]);
-                for c in 0..last {
-                    let w = wab * w2[c];
-                    let f = &mut grid[iab + i2[c]];
-                    f[0] += w;
-                    f[1] += w * (uab + t2[c]);
-                }
+        let (rows, count, wl, tl) = self.rows(kinds, stride, m, u, &t);
+        for &(start, rw, ru) in &rows[..count] {
+            let dst: &mut [[f32; 2]; 3] = (&mut grid[start..start + 3]).try_into().unwrap();
+            for j in 0..3 {
+                let w = rw * wl[j];
+                dst[j][0] += w;
+                dst[j][1] += w * (ru + tl[j]);
             }
         }
     }
@@ -191,13 +211,55 @@ pub(super) struct Part {
     /// Per component, per face: `[mass, momentum]` (one cache line holds both).
     pub(super) faces: Vec<Vec<[f32; 2]>>,
     pub(super) cell: Vec<f32>,
+    /// Per cell: whether a particle of the part is in it (cells in the walls, `ws` thick, left out).
+    pub(super) held: Vec<bool>,
 }
 
 impl Part {
+    /// p2g of `particles` into this part's grids (zeroed first), and the cells they are in (away from
+    /// the walls, `ws` cells thick), with the compiled copy `isa` names ([`crate::isa`]: the same bits
+    /// either way).
     pub(super) fn scatter<const D: usize>(
+        &mut self,
+        isa: Isa,
+        particles: &[Particle<D>],
+        n: usize,
+        ws: usize,
+        dx: f32,
+        dt: f32,
+    ) {
+        // SAFETY: the solver chooses X86_64V3 only on a CPU that has its features
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::X86_64V3 {
+            return unsafe { self.scatter_v3(particles, n, ws, dx, dt) };
+        }
+        let _ = isa;
+        self.scatter_body(particles, n, ws, dx, dt);
+    }
+
+    x86_64_v3! {
+        /// [`Self::scatter_body`] compiled for x86-64-v3.
+        ///
+        /// # Safety
+        /// On a CPU with the x86-64-v3 features only.
+        unsafe fn scatter_v3<const D: usize>(
+            &mut self,
+            particles: &[Particle<D>],
+            n: usize,
+            ws: usize,
+            dx: f32,
+            dt: f32,
+        ) {
+            self.scatter_body(particles, n, ws, dx, dt);
+        }
+    }
+
+    #[inline(always)]
+    fn scatter_body<const D: usize>(
         &mut self,
         particles: &[Particle<D>],
         n: usize,
+        ws: usize,
         dx: f32,
         dt: f32,
     ) {
@@ -207,20 +269,93 @@ impl Part {
                 .map(|a| vec![[0.0; 2]; shape::<D>(n, Some(a)).iter().product()])
                 .collect();
             self.cell = vec![0.0; cells];
+            self.held = vec![false; cells];
         }
         self.faces.iter_mut().for_each(|g| g.fill([0.0; 2]));
         self.cell.fill(0.0);
+        self.held.fill(false);
         let st_c = strides(&shape::<D>(n, None));
         let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
         for p in particles {
+            let idx: [usize; D] = std::array::from_fn(|d| ((p.x[d] / dx) as usize).min(n - 1));
+            if idx.iter().all(|&i| i >= ws && i < n - ws) {
+                self.held[(0..D).map(|d| idx[d] * st_c[d]).sum::<usize>()] = true;
+            }
             let k = Kernel::new(&p.x, dx, n);
-            let cell = &mut self.cell;
-            k.each(kinds(None), &st_c, |i, w, _| cell[i] += p.mass * w);
+            k.scatter_cells(&st_c, p.mass, &mut self.cell);
             for a in 0..D {
                 let u = p.v[a] + dt * p.ext[a];
                 let c: [f32; D] = std::array::from_fn(|d| p.c[(a, d)]);
                 k.scatter(kinds(Some(a)), &st_f[a], p.mass, u, &c, &mut self.faces[a]);
             }
+        }
+    }
+}
+
+/// g2p (APIC) and the move of a chunk of particles from the face velocities `vel`, with the compiled copy
+/// `isa` names ([`crate::isa`]: the same bits either way): `v_a = Σ w u_a`, `c_a = (4/dx²)·Σ w u_a (x_i − x_p)`,
+/// `x ← clamp(x + dt·v, lo, hi)`.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn g2p_chunk<const D: usize>(
+    isa: Isa,
+    chunk: &mut [Particle<D>],
+    vel: &[Vec<f32>],
+    n: usize,
+    dx: f32,
+    dt: f32,
+    lo: f32,
+    hi: f32,
+) {
+    // SAFETY: the solver chooses X86_64V3 only on a CPU that has its features
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::X86_64V3 {
+        return unsafe { g2p_chunk_v3(chunk, vel, n, dx, dt, lo, hi) };
+    }
+    let _ = isa;
+    g2p_chunk_body(chunk, vel, n, dx, dt, lo, hi);
+}
+
+x86_64_v3! {
+    /// [`g2p_chunk_body`] compiled for x86-64-v3.
+    ///
+    /// # Safety
+    /// On a CPU with the x86-64-v3 features only.
+    unsafe fn g2p_chunk_v3<const D: usize>(
+        chunk: &mut [Particle<D>],
+        vel: &[Vec<f32>],
+        n: usize,
+        dx: f32,
+        dt: f32,
+        lo: f32,
+        hi: f32,
+    ) {
+        g2p_chunk_body(chunk, vel, n, dx, dt, lo, hi);
+    }
+}
+
+#[inline(always)]
+fn g2p_chunk_body<const D: usize>(
+    chunk: &mut [Particle<D>],
+    vel: &[Vec<f32>],
+    n: usize,
+    dx: f32,
+    dt: f32,
+    lo: f32,
+    hi: f32,
+) {
+    let apic = 4.0 / (dx * dx);
+    let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
+    for p in chunk {
+        let k = Kernel::new(&p.x, dx, n);
+        for a in 0..D {
+            let (va, ca) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
+            p.v[a] = va;
+            for d in 0..D {
+                p.c[(a, d)] = apic * ca[d];
+            }
+        }
+        for d in 0..D {
+            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
         }
     }
 }

@@ -157,22 +157,27 @@ where
         dt_frame: f32,
         n_sub: usize,
     ) -> Result<FrameStats> {
-        let rho = self.projection_density()?;
         let mut projection = self.large_step.take().unwrap_or_else(|| {
             Box::new(Projection::new(self.params.n_grid, self.params.walls.cells))
         });
+        projection.set_isa(self.isa);
         let result = if self.drift_frames > 0 {
-            projection.drift(&mut self.particles, dt_frame);
+            // a frame inside the last step: the particles are the ones that step checked (any change
+            // between frames ends the step), and their velocities are the step's
+            let max_speed = projection.drift(&mut self.particles, dt_frame);
             self.drift_frames -= 1;
             Ok(FrameStats {
                 substeps: 0,
                 dt: 0.0,
-                max_speed: self.max_particle_speed(),
+                max_speed,
                 active_blocks: 0,
                 retries: 0,
             })
         } else {
-            self.projection_steps(&mut projection, dt_frame, n_sub, rho)
+            match self.projection_density() {
+                Ok(rho) => self.projection_steps(&mut projection, dt_frame, n_sub, rho),
+                Err(e) => Err(e),
+            }
         };
         self.large_step = Some(projection);
         if result.is_ok() {
@@ -180,6 +185,19 @@ where
             self.frame += 1;
         }
         result
+    }
+
+    /// The fastest particle's speed [m/s]: infinite where a particle's position or velocity is not
+    /// finite (one scan for the step's check and its report).
+    fn checked_max_speed(&self) -> f32 {
+        self.particles.iter().fold(0.0f32, |a, p| {
+            let s = crate::dim::norm(&p.v);
+            if s.is_nan() || !p.x.iter().all(|x| x.is_finite()) {
+                f32::INFINITY
+            } else {
+                a.max(s)
+            }
+        })
     }
 
     fn max_particle_speed(&self) -> f32 {
@@ -224,18 +242,13 @@ where
         loop {
             let dt = frames as f32 * dt_frame / n_sub as f32;
             let advance = dt / frames as f32;
-            let mut failed = None;
+            let (mut failed, mut vmax) = (None, 0.0f32);
             for k in 0..n_sub {
                 let particles = &mut self.particles;
                 self.pool
                     .install(|| projection.step_advancing(particles, dt, advance, &gravity, rho));
-                let vmax = self.max_particle_speed();
-                if !vmax.is_finite()
-                    || self
-                        .particles
-                        .iter()
-                        .any(|p| !p.x.iter().all(|x| x.is_finite()))
-                {
+                vmax = self.checked_max_speed();
+                if !vmax.is_finite() {
                     failed = Some(MpmError::NonFinite {
                         substep: k + 1,
                         substeps: n_sub,
@@ -259,7 +272,7 @@ where
                     return Ok(FrameStats {
                         substeps: n_sub,
                         dt,
-                        max_speed: self.max_particle_speed(),
+                        max_speed: vmax,
                         active_blocks: 0,
                         retries,
                     });
