@@ -11,7 +11,7 @@ import pytest
 
 from hybridmpm.conventions import MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.scenes import make_scene
+from hybridmpm.scenes import SceneSpec, make_scene
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import MpmSimulator, make_simulator, step_realtime
 from hybridmpm.sim import realtime as rt
@@ -244,6 +244,37 @@ def test_changes_are_at_least_the_dwell_apart_in_wall_time(machine: Any, monkeyp
     assert len(stamps) >= 2, "the load moved ten-fold: it should have changed down and up"
     gaps = np.diff([0.0, *stamps])
     assert (gaps >= rt.DWELL_S - 1e-9).all(), gaps
+
+
+def test_a_projection_rung_is_timed_by_its_steps_mean_not_by_the_frame_that_steps(monkeypatch: pytest.MonkeyPatch) -> None:
+    # water at rest in a 64² tank: on the projection a step spans four frames (the most it may); the frame that
+    # steps costs 3.6 budgets, the frames inside the step almost nothing, so their mean fits (0.92 budgets). Timed
+    # frame by frame, the average would swing with the step, up to a third of a step's cost (1.2 budgets) just
+    # after it, and read neither the mean nor a steady rung.
+    monkeypatch.setattr(rt, "DWELL_S", 0.2)
+    scene = SceneSpec.from_dict({"name": "tank", "dim": 2, "n_grid": 64, "blocks": [{"material": "water", "lo": [0.04, 0.04], "hi": [0.96, 0.3]}]}).build()
+    key = rt.rung_key(64, "projection")
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    clock = [0.0]
+    real = MpmSimulator.advance
+    steps = []
+
+    def timed(self: MpmSimulator) -> Any:
+        if isinstance(self, RealtimeSimulator):
+            stepping = self.solver.substeps_for(self.dt_frame) > 0
+            steps.append(stepping)
+            clock[0] += (3.6 if stepping else 0.02) * budget
+        return real(self)
+
+    monkeypatch.setattr(MpmSimulator, "advance", timed)
+    sim = RealtimeSimulator(scene, clock=lambda: clock[0], rung=key)
+    for _ in range(800):
+        sim.advance()
+    assert sim.changes == [] and sim.rung == key
+    k = len(steps) / sum(steps)  # frames a step spans, on average
+    assert k >= 3.9, k
+    mean = clock[0] / len(steps)
+    assert sim.realtime_info()["frame_ms"] == pytest.approx(1e3 * mean, rel=0.1)
 
 
 def test_step_realtime_drives_a_realtime_simulator_and_owes_nothing_a_slow_tick_dropped() -> None:

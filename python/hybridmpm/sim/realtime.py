@@ -11,7 +11,9 @@ than another is dropped. A scene without a chart (a scene file of your own) gets
 costliest first, and the measured times correct the priors.
 
 :class:`RealtimeSimulator` is an :class:`~hybridmpm.sim.mpm.MpmSimulator` that times its own frames (an
-exponential average of the wall time per frame) and, between frames, moves to another rung:
+exponential average of the wall time per frame; on a projection rung, whose step spans frames, a step's
+frames count as one sample, their mean, so the frame that steps does not read as a slow machine) and, between
+frames, moves to another rung:
 
 * down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``: to the most accurate rung
   predicted to fit (the current rung's measured time scaled by the chart's time ratios, corrected by the ratios
@@ -255,6 +257,8 @@ class RealtimeSimulator(MpmSimulator):
         self._ema: float | None = None
         self._samples = 0
         self._since_change = 0
+        #: the wall time [s] and the frames of the step under way (a projection step spans frames)
+        self._cycle = (0.0, 0)
         self._last_change = clock()
         self.changes: list[dict[str, Any]] = []
         if rung is None and here not in {r.key for r in self.ladder}:  # the scene's own configuration is off the ladder
@@ -303,6 +307,7 @@ class RealtimeSimulator(MpmSimulator):
         self._rung = key
         self._since_change = 0
         self._samples = 0
+        self._cycle = (0.0, 0)
         self._last_change = self._clock()
         return True
 
@@ -399,9 +404,7 @@ class RealtimeSimulator(MpmSimulator):
         wall = self._clock() - t0
         self._since_change += 1
         if self._since_change > WARMUP_FRAMES:
-            per = wall
-            self._ema = per if self._ema is None or self._samples == 0 else (1 - EMA_ALPHA) * self._ema + EMA_ALPHA * per
-            self._samples += 1
+            self._time(wall, stepped=frame.substeps > 0)
         before = self._rung
         target = self._choose()
         if target is not None and target != before:
@@ -411,6 +414,27 @@ class RealtimeSimulator(MpmSimulator):
                 if ema is not None:
                     self._measured[before] = (ema, self._clock())
         return frame
+
+    def _time(self, wall: float, stepped: bool) -> None:
+        """Fold a timed frame of ``wall`` seconds into the average. On the explicit step each frame is a sample.
+        On the projection a step's frames are one (their mean, weighted as that many frames): the sample ends
+        where the next step begins (``stepped``: the frame took a step)."""
+        explicit = self._rung_params[self._rung].integrator == INTEGRATORS[0]
+        total, frames = self._cycle
+        if not explicit and not (stepped and frames):
+            self._cycle = (total + wall, frames + 1)
+            return
+        if explicit:
+            per, k = wall, 1
+        else:  # this frame begins the next step: the last step's frames are the sample
+            per, k = total / frames, frames
+            self._cycle = (wall, 1)
+        if self._ema is None or self._samples == 0:
+            self._ema = per
+        else:
+            keep = (1 - EMA_ALPHA) ** k
+            self._ema = keep * self._ema + (1 - keep) * per
+        self._samples += k
 
     def realtime_info(self) -> dict[str, Any]:
         """What real-time mode is doing (plain JSON values): ``rung`` and ``label`` of the configuration in use,
