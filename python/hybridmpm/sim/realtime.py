@@ -371,12 +371,6 @@ class RealtimeSimulator(MpmSimulator):
                 return r.key
         return None
 
-    def _fall_back(self) -> None:
-        """Leave a projection rung that no longer steps what the simulator holds (another material poured); on an
-        explicit rung nothing is read."""
-        if self._rung_params[self._rung].integrator != INTEGRATORS[0] and not self.projection_ok():
-            self._to_explicit()
-
     def _to_explicit(self) -> None:
         """From a projection rung to the explicit rung on the same grid, at once (a step spanning frames ends
         where it is); nothing on an explicit rung."""
@@ -398,9 +392,17 @@ class RealtimeSimulator(MpmSimulator):
     def advance(self) -> Any:
         """One frame on the current rung (:meth:`MpmSimulator.advance`), timed; then a change of rung when the
         measured times ask for one (module docstring)."""
-        self._fall_back()
         t0 = self._clock()
-        frame = super().advance()
+        try:
+            frame = super().advance()
+        except InvalidInputError as e:
+            # the projection refuses a frame of what it does not step (another material poured), leaving the
+            # state as it was: that frame runs on the explicit step of the same grid (the solver checks what it
+            # holds each step, so nothing is read here on the frames that step)
+            if e.field != "integrator" or self._rung_params[self._rung].integrator == INTEGRATORS[0]:
+                raise
+            self._to_explicit()
+            frame = super().advance()
         wall = self._clock() - t0
         self._since_change += 1
         if self._since_change > WARMUP_FRAMES:
