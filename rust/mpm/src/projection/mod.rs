@@ -136,7 +136,39 @@ fn wall_face<const D: usize>(
     }
 }
 
+/// The grid's geometry the transfers read: `n` cells a side of `dx` [m], walls `ws` cells thick.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Grid {
+    pub(super) n: usize,
+    pub(super) ws: usize,
+    pub(super) dx: f32,
+}
+
+impl Grid {
+    /// Whether cell `idx` lies in the walls.
+    #[inline(always)]
+    pub(super) fn in_walls<const D: usize>(&self, idx: &[usize; D]) -> bool {
+        idx.iter().any(|&i| i < self.ws || i >= self.n - self.ws)
+    }
+
+    /// The bounds [m] a particle is kept within on every axis: a thousandth of a cell inside the walls' faces.
+    #[inline(always)]
+    pub(super) fn inside(&self) -> (f32, f32) {
+        let lo = (self.ws as f32 + 1e-3) * self.dx;
+        (lo, 1.0 - lo)
+    }
+}
+
 impl<const D: usize> Projection<D> {
+    /// The grid's geometry.
+    fn grid(&self) -> Grid {
+        Grid {
+            n: self.n,
+            ws: self.ws,
+            dx: self.dx,
+        }
+    }
+
     /// The grids for `n_grid` cells a side and walls of `wall_cells` nodes (the engine's `walls.cells`, at least 2).
     pub fn new(n_grid: usize, wall_cells: usize) -> Self {
         let n = n_grid;
@@ -228,12 +260,12 @@ impl<const D: usize> Projection<D> {
     /// pool), summed in one order; then the face velocities and each cell's
     /// smoothed density over `rho`.
     fn p2g(&mut self, particles: &[Particle<D>], dt: f32, rho: f32) {
-        let (n, ws, dx, isa) = (self.n, self.ws, self.dx, self.isa);
+        let (g, isa) = (self.grid(), self.isa);
         let (first, second) = particles.split_at(particles.len() / 2);
         let (p0, p1) = self.parts.split_at_mut(1);
         rayon::join(
-            || p0[0].scatter(isa, first, n, ws, dx, dt),
-            || p1[0].scatter(isa, second, n, ws, dx, dt),
+            || p0[0].scatter(isa, first, g, dt),
+            || p1[0].scatter(isa, second, g, dt),
         );
         // the sums, face by face (in parallel: each face its own)
         let (p0, p1) = (&self.parts[0], &self.parts[1]);
@@ -253,7 +285,7 @@ impl<const D: usize> Projection<D> {
                     }
                 });
         }
-        let scale = 1.0 / (dx.powi(D as i32) * rho);
+        let scale = 1.0 / (g.dx.powi(D as i32) * rho);
         let (c0, c1) = (&p0.cell, &p1.cell);
         self.density
             .par_chunks_mut(MERGE_CHUNK)
@@ -300,7 +332,7 @@ impl<const D: usize> Projection<D> {
     }
 
     fn is_solid(&self, idx: &[usize; D]) -> bool {
-        idx.iter().any(|&i| i < self.ws || i >= self.n - self.ws)
+        self.grid().in_walls(idx)
     }
 
     /// The fluid cells: those holding a particle, away from the walls (the p2g's parts found them).
@@ -354,7 +386,9 @@ impl<const D: usize> Projection<D> {
         let (n, dx) = (self.n, self.dx);
         // the matrix: per row the diagonal and up to 2·D fluid neighbours
         let mut diag = vec![0.0f64; m];
-        let mut nbr = vec![[u32::MAX; 6]; m];
+        // a missing neighbour reads the zero kept past the end of the vector the matrix is applied to
+        // (`s − 0.0` is `s`: the same bits as skipping it)
+        let mut nbr = vec![[m as u32; 6]; m];
         let mut b = vec![0.0f64; m];
         for (r, &c) in self.fluid.iter().enumerate() {
             let idx = self.unflat(c);
@@ -377,15 +411,6 @@ impl<const D: usize> Projection<D> {
                     nbr[r][k] = self.index[nb];
                 } else {
                     diag[r] += 1.0 / self.theta(c, nb) as f64;
-                }
-            }
-        }
-        // a missing neighbour reads the zero kept past the end of the vector the matrix is applied to
-        // (`s − 0.0` is `s`: the same bits as skipping it)
-        for row in nbr.iter_mut() {
-            for k in row.iter_mut() {
-                if *k == u32::MAX {
-                    *k = m as u32;
                 }
             }
         }
@@ -481,8 +506,7 @@ impl<const D: usize> Projection<D> {
     /// The particles move on at their velocity for `dt` [s], kept inside the walls as g2p keeps them
     /// (a frame inside a step that spans several); returns the fastest one's speed [m/s].
     pub fn drift(&self, particles: &mut [Particle<D>], dt: f32) -> f32 {
-        let lo = (self.ws as f32 + 1e-3) * self.dx;
-        let hi = 1.0 - lo;
+        let (lo, hi) = self.grid().inside();
         let mut vmax = 0.0f32;
         for p in particles.iter_mut() {
             for d in 0..D {
@@ -495,13 +519,10 @@ impl<const D: usize> Projection<D> {
 
     /// g2p (APIC) and the move, per particle: in parallel on the calling pool, each particle its own.
     fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32) {
-        let (n, dx, isa) = (self.n, self.dx, self.isa);
-        let lo = (self.ws as f32 + 1e-3) * dx;
-        let hi = 1.0 - lo;
-        let vel = &self.vel;
+        let (g, isa, vel) = (self.grid(), self.isa, &self.vel);
         particles
             .par_chunks_mut(G2P_CHUNK)
-            .for_each(|chunk| g2p_chunk(isa, chunk, vel, n, dx, dt, lo, hi));
+            .for_each(|chunk| g2p_chunk(isa, chunk, vel, g, dt));
     }
 }
 

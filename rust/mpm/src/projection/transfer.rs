@@ -4,7 +4,7 @@
 
 use nalgebra::SVector;
 
-use super::{shape, strides};
+use super::{Grid, shape, strides};
 use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
@@ -211,30 +211,27 @@ pub(super) struct Part {
     /// Per component, per face: `[mass, momentum]` (one cache line holds both).
     pub(super) faces: Vec<Vec<[f32; 2]>>,
     pub(super) cell: Vec<f32>,
-    /// Per cell: whether a particle of the part is in it (cells in the walls, `ws` thick, left out).
+    /// Per cell: whether a particle of the part is in it (cells in the walls left out).
     pub(super) held: Vec<bool>,
 }
 
 impl Part {
     /// p2g of `particles` into this part's grids (zeroed first), and the cells they are in (away from
-    /// the walls, `ws` cells thick), with the compiled copy `isa` names ([`crate::isa`]: the same bits
-    /// either way).
+    /// the walls), with the compiled copy `isa` names ([`crate::isa`]: the same bits either way).
     pub(super) fn scatter<const D: usize>(
         &mut self,
         isa: Isa,
         particles: &[Particle<D>],
-        n: usize,
-        ws: usize,
-        dx: f32,
+        g: Grid,
         dt: f32,
     ) {
         // SAFETY: the solver chooses X86_64V3 only on a CPU that has its features
         #[cfg(target_arch = "x86_64")]
         if isa == Isa::X86_64V3 {
-            return unsafe { self.scatter_v3(particles, n, ws, dx, dt) };
+            return unsafe { self.scatter_v3(particles, g, dt) };
         }
         let _ = isa;
-        self.scatter_body(particles, n, ws, dx, dt);
+        self.scatter_body(particles, g, dt);
     }
 
     x86_64_v3! {
@@ -242,27 +239,14 @@ impl Part {
         ///
         /// # Safety
         /// On a CPU with the x86-64-v3 features only.
-        unsafe fn scatter_v3<const D: usize>(
-            &mut self,
-            particles: &[Particle<D>],
-            n: usize,
-            ws: usize,
-            dx: f32,
-            dt: f32,
-        ) {
-            self.scatter_body(particles, n, ws, dx, dt);
+        unsafe fn scatter_v3<const D: usize>(&mut self, particles: &[Particle<D>], g: Grid, dt: f32) {
+            self.scatter_body(particles, g, dt);
         }
     }
 
     #[inline(always)]
-    fn scatter_body<const D: usize>(
-        &mut self,
-        particles: &[Particle<D>],
-        n: usize,
-        ws: usize,
-        dx: f32,
-        dt: f32,
-    ) {
+    fn scatter_body<const D: usize>(&mut self, particles: &[Particle<D>], g: Grid, dt: f32) {
+        let Grid { n, dx, .. } = g;
         let cells = n.pow(D as u32);
         if self.cell.len() != cells {
             self.faces = (0..D)
@@ -278,7 +262,7 @@ impl Part {
         let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
         for p in particles {
             let idx: [usize; D] = std::array::from_fn(|d| ((p.x[d] / dx) as usize).min(n - 1));
-            if idx.iter().all(|&i| i >= ws && i < n - ws) {
+            if !g.in_walls(&idx) {
                 self.held[(0..D).map(|d| idx[d] * st_c[d]).sum::<usize>()] = true;
             }
             let k = Kernel::new(&p.x, dx, n);
@@ -292,27 +276,23 @@ impl Part {
     }
 }
 
-/// g2p (APIC) and the move of a chunk of particles from the face velocities `vel`, with the compiled copy
-/// `isa` names ([`crate::isa`]: the same bits either way): `v_a = Σ w u_a`, `c_a = (4/dx²)·Σ w u_a (x_i − x_p)`,
-/// `x ← clamp(x + dt·v, lo, hi)`.
-#[allow(clippy::too_many_arguments)]
+/// g2p (APIC) and the move of a chunk of particles from the face velocities `vel` of the grid `g`, with
+/// the compiled copy `isa` names ([`crate::isa`]: the same bits either way): `v_a = Σ w u_a`,
+/// `c_a = (4/dx²)·Σ w u_a (x_i − x_p)`, `x ← x + dt·v` kept inside the walls ([`Grid::inside`]).
 pub(super) fn g2p_chunk<const D: usize>(
     isa: Isa,
     chunk: &mut [Particle<D>],
     vel: &[Vec<f32>],
-    n: usize,
-    dx: f32,
+    g: Grid,
     dt: f32,
-    lo: f32,
-    hi: f32,
 ) {
     // SAFETY: the solver chooses X86_64V3 only on a CPU that has its features
     #[cfg(target_arch = "x86_64")]
     if isa == Isa::X86_64V3 {
-        return unsafe { g2p_chunk_v3(chunk, vel, n, dx, dt, lo, hi) };
+        return unsafe { g2p_chunk_v3(chunk, vel, g, dt) };
     }
     let _ = isa;
-    g2p_chunk_body(chunk, vel, n, dx, dt, lo, hi);
+    g2p_chunk_body(chunk, vel, g, dt);
 }
 
 x86_64_v3! {
@@ -320,29 +300,15 @@ x86_64_v3! {
     ///
     /// # Safety
     /// On a CPU with the x86-64-v3 features only.
-    unsafe fn g2p_chunk_v3<const D: usize>(
-        chunk: &mut [Particle<D>],
-        vel: &[Vec<f32>],
-        n: usize,
-        dx: f32,
-        dt: f32,
-        lo: f32,
-        hi: f32,
-    ) {
-        g2p_chunk_body(chunk, vel, n, dx, dt, lo, hi);
+    unsafe fn g2p_chunk_v3<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g: Grid, dt: f32) {
+        g2p_chunk_body(chunk, vel, g, dt);
     }
 }
 
 #[inline(always)]
-fn g2p_chunk_body<const D: usize>(
-    chunk: &mut [Particle<D>],
-    vel: &[Vec<f32>],
-    n: usize,
-    dx: f32,
-    dt: f32,
-    lo: f32,
-    hi: f32,
-) {
+fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g: Grid, dt: f32) {
+    let Grid { n, dx, .. } = g;
+    let (lo, hi) = g.inside();
     let apic = 4.0 / (dx * dx);
     let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
     for p in chunk {

@@ -204,16 +204,6 @@ where
         })
     }
 
-    fn max_particle_speed(&self) -> f32 {
-        self.particles
-            .iter()
-            .map(|p| crate::dim::norm(&p.v))
-            .fold(
-                0.0f32,
-                |a, b| if b.is_nan() { f32::INFINITY } else { a.max(b) },
-            )
-    }
-
     /// The frames one step may span from the state now: `⌊dt / dt_frame⌋` for the step bound's
     /// `dt`, in [1, [`MAX_FRAMES_PER_STEP`]]; 1 with a fixed step count (`params.substeps`).
     fn frames_per_step(&self, dt_frame: f32) -> u32 {
@@ -221,7 +211,7 @@ where
             return 1;
         }
         let (cfl, c) = self.step_bound();
-        let dt = cfl * self.params.dx() / (self.max_particle_speed() + c);
+        let dt = cfl * self.params.dx() / (self.checked_max_speed() + c);
         ((dt / dt_frame).floor() as u32).clamp(1, MAX_FRAMES_PER_STEP)
     }
 
