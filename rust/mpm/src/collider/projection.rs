@@ -89,13 +89,17 @@ pub const PROJECT_DEPTH_CELLS: f32 = 0.25;
 /// those whose `F` is their shape) may end a substep inside a collider that
 /// projects particles before it goes back onto the surface; from
 /// [`PROJECT_DEPTH_CELLS`] to this depth it only loses its inward velocity
-/// and the body's own stress pushes it out. Measured (docs/materials.md,
-/// Limits): a 0.12 m jello cube pressed by the surge against `paddle3d`'s
-/// paddle keeps a strain it cannot lose when its particles are put back
-/// from a quarter cell (RMS 6.7 % of its side off a rigid motion, the water
-/// calm, 3 s after), 3.2 % from half a cell, 1.8 % when never put back;
-/// the deepest particle reaches 0.25, 0.50 and 0.85 cells inside.
-pub const SOLID_PROJECT_DEPTH_CELLS: f32 = 0.5;
+/// and the body's own stress pushes it out. A particle put back moves
+/// without its `F` seeing it: a strain the body keeps. Measured
+/// (docs/materials.md, Limits; `benchmarks/solid_contact.py`): a 0.12 m
+/// jello cube pressed by the surge against `paddle3d`'s paddle keeps, at
+/// frame 1200 (RMS off a rigid motion, in fractions of its side), for
+/// E 10 / 20 / 40 kPa: 6.4 / 3.2 / 1.5 % from half a cell, 5.3 / 3.0 /
+/// 1.2 % from 0.625, 4.8 / 2.5 / 1.2 % from three quarters; 6.7 % (20 kPa)
+/// from a quarter cell, 1.8 % when never put back. The deepest particle
+/// reaches the depth (0.85 cells when never put back). Three quarters keeps
+/// the 20 kPa cube within 3 % of its side at the least depth measured.
+pub const SOLID_PROJECT_DEPTH_CELLS: f32 = 0.75;
 
 // a solid's particle is put back from deeper than water's, never shallower
 const _: () = assert!(SOLID_PROJECT_DEPTH_CELLS > PROJECT_DEPTH_CELLS);
