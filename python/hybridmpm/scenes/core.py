@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -19,9 +19,6 @@ from hybridmpm.conventions import CONNECTIVITY_RADIUS, DT_FRAME, GNS_KINEMATIC, 
 from hybridmpm.mpm import MpmParams, MpmSolver
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes.particles import ParticleSet, pad_boundary
-
-if TYPE_CHECKING:
-    from hybridmpm.scenes.spec import SceneSpec
 
 #: Memory a particle costs while a scene is built and simulated [bytes], an
 #: upper bound of the lattice and selection arrays (float64 temporaries), the
@@ -41,6 +38,30 @@ class Clusters:
 
     labels: np.ndarray
     boundary_labels: np.ndarray
+
+
+class SceneSource(Protocol):
+    """What a scene was built from, as the scene keeps it to rebuild itself on another grid:
+    :class:`hybridmpm.scenes.spec.SceneSpec`, the one implementation (named here by what the scene uses of it,
+    so that this module imports nothing of the spec's, which imports this one)."""
+
+    name: str
+    params: MpmParams
+    particles_per_cell: int
+    info: dict[str, Any]
+
+    @property
+    def spacing(self) -> float:
+        """The particles' initial spacing [m]."""
+        ...
+
+    def on_grid(self, n_grid: int, particles_per_cell: int | None = None) -> SceneSource:
+        """The same scene on an ``n_grid`` grid (and ``particles_per_cell``)."""
+        ...
+
+    def build(self) -> Scene:
+        """The scene: its solver parameters and particles."""
+        ...
 
 
 @dataclass
@@ -80,7 +101,7 @@ class Scene:
     masses: np.ndarray | None = None
     volumes: np.ndarray | None = None
     connectivity_radius: float = CONNECTIVITY_RADIUS
-    spec: SceneSpec | None = None
+    spec: SceneSource | None = None
     clusters: Clusters | None = None
     boundary_obstacle: np.ndarray | None = None
     material_set: np.ndarray | None = None

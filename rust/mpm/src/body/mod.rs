@@ -11,9 +11,10 @@
 //!   signed distance, outward normal and point velocity `v + ω × r`, what the
 //!   grid update's collider pass reads, and the exact sums of the impulses
 //!   it writes ([`ImpulseSum`]);
-//! - `world.rs`: the bodies' dynamics and contacts, by rapier behind one
-//!   small trait ([`world::RigidWorld`]); the only file that names rapier's
-//!   types besides `rapier2.rs` / `rapier3.rs`;
+//! - `world.rs`: the bodies' dynamics and contacts behind one small trait
+//!   ([`world::RigidWorld`]) and the plain specs it speaks; `rapier2.rs` /
+//!   `rapier3.rs` implement it with rapier (the only files that name its
+//!   types), and `rapier.rs` picks one by dimension;
 //! - `system.rs`: the solver's bodies between substeps ([`Bodies`]): their
 //!   exact state (what a checkpoint carries), the poses of the substep under
 //!   way, the impulses summed, the rapier step.
@@ -30,6 +31,7 @@
 
 mod hull;
 mod pose;
+mod rapier;
 mod rapier2;
 mod rapier3;
 mod system;
@@ -273,7 +275,7 @@ impl<const D: usize> Body<D> {
     /// Whether this body at state `state` overlaps `other` at `other_state`
     /// (parry's intersection test on rapier's shapes).
     pub fn overlaps(&self, state: &BodyState, other: &Body<D>, other_state: &BodyState) -> bool {
-        world::overlap(
+        rapier::overlap(
             D,
             (&self.spec().shape, state),
             (&other.spec().shape, other_state),

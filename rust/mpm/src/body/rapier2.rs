@@ -110,7 +110,7 @@ fn shared(s: &ShapeSpec) -> SharedShape {
     }
 }
 
-/// [`super::world::overlap`] in 2D.
+/// [`super::rapier::overlap`] in 2D.
 pub(crate) fn overlap(a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
     let (sa, sb) = (shared(a.0), shared(b.0));
     rapier2d::parry::query::intersection_test(&pose(a.1), &*sa, &pose(b.1), &*sb)

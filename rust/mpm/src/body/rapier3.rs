@@ -121,7 +121,7 @@ fn shared(s: &ShapeSpec) -> SharedShape {
     }
 }
 
-/// [`super::world::overlap`] in 3D.
+/// [`super::rapier::overlap`] in 3D.
 pub(crate) fn overlap(a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
     let (sa, sb) = (shared(a.0), shared(b.0));
     rapier3d::parry::query::intersection_test(&pose(a.1), &*sa, &pose(b.1), &*sb)

@@ -6,7 +6,7 @@ use std::sync::Mutex;
 
 use nalgebra::{Matrix6, Quaternion, Rotation3, SMatrix, SVector, UnitQuaternion, Vector6};
 
-use super::world::{self, BodySpec, ObstacleSpec, RigidWorld, WorldSpec};
+use super::world::{BodySpec, ObstacleSpec, RigidWorld, WorldSpec};
 use super::{Body, BodyPose, Coupled, ImpulseSum};
 
 /// A body's exact state, rapier's own numbers: what a checkpoint carries.
@@ -202,7 +202,7 @@ impl<const D: usize> Bodies<D> {
             hi,
             length_unit,
         };
-        self.world = Some(world::build(D, &spec));
+        self.world = Some(super::rapier::build(D, &spec));
     }
 
     /// The obstacles (boxes, balls and mesh obstacles' voxels at the frame's

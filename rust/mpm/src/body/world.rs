@@ -4,7 +4,7 @@
 //! 3D differ only in `rapier2.rs` / `rapier3.rs`.
 //!
 //! A world is built from the bodies' exact state at the start of each frame
-//! attempt ([`build`]) and read back at its end: a frame that fails is
+//! attempt (`rapier::build`) and read back at its end: a frame that fails is
 //! retried from the same state, and a checkpoint (the state) restores the
 //! same bits as a run that never stopped. Contacts' warm-start impulses live
 //! within a frame only.
@@ -179,23 +179,4 @@ pub(crate) trait RigidWorld: Send + Sync {
     fn move_obstacle(&mut self, j: usize, x: [f32; 3]);
     /// Steps the world by `dt` seconds (gravity, contacts, integration).
     fn step(&mut self, dt: f32);
-}
-
-/// Whether two bodies' shapes overlap at their states (parry's
-/// intersection test on rapier's shapes; in dimension `d`, 2 or 3).
-pub(crate) fn overlap(d: usize, a: (&ShapeSpec, &BodyState), b: (&ShapeSpec, &BodyState)) -> bool {
-    if d == 2 {
-        super::rapier2::overlap(a, b)
-    } else {
-        super::rapier3::overlap(a, b)
-    }
-}
-
-/// The world of dimension `d` (2 or 3) built from `spec`.
-pub(crate) fn build(d: usize, spec: &WorldSpec<'_>) -> Box<dyn RigidWorld> {
-    if d == 2 {
-        Box::new(super::rapier2::World2::new(spec))
-    } else {
-        Box::new(super::rapier3::World3::new(spec))
-    }
 }
