@@ -102,6 +102,35 @@ def test_checkpoints_keep_the_sets_bit_for_bit():
     assert other.checkpoint() == end
 
 
+def test_a_set_appended_in_place_steps_as_one_given_at_the_start_and_a_bad_one_changes_nothing():
+    rng = np.random.default_rng(1)
+    sim = MpmSolver(MpmParams(n_grid=64))
+    sim.add_particles(rng.uniform(0.1, 0.3, (300, 2)).astype(np.float32), 0)
+    for _ in range(5):
+        sim.step_frame()
+    mid = sim.checkpoint()
+    before = sim.params
+    with pytest.raises(hm.InvalidInputError) as e:
+        sim.add_parameter_set(hm.mpm.ElasticParams(youngs_modulus=-1.0))
+    assert e.value.field == "sets[0].elastic.youngs_modulus"
+    with pytest.raises(hm.InvalidInputError) as e:  # the core refuses what the Python check would pass on
+        sim._core.add_parameter_set({"elastic": {"youngs": 1.0}})
+    assert e.value.field == "sets[0].elastic.youngs"
+    assert sim.params == before and sim.checkpoint() == mid
+    jelly = hm.mpm.ElasticParams(youngs_modulus=5e4)
+    assert sim.add_parameter_set(jelly) == len(MATERIALS)
+    # a solver given the set from the start, restored from the same state
+    other = MpmSolver(MpmParams(n_grid=64, sets=[jelly]))
+    other.restore(MpmSolver.with_header(mid, {"sets": other.params.to_dict()["sets"]}))
+    assert sim.params == other.params
+    block = rng.uniform(0.5, 0.6, (100, 2)).astype(np.float32)
+    for s in (sim, other):
+        s.add_particles(block, 2, material_set=len(MATERIALS))
+        for _ in range(10):
+            s.step_frame()
+    assert sim.checkpoint() == other.checkpoint()
+
+
 def test_learned_solvers_refuse_new_materials_and_mpm_runs_them():
     scene = _spec(
         {"material": "water", "lo": [0.05, 0.05], "hi": [0.3, 0.3]},

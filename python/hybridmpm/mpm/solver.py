@@ -18,7 +18,7 @@ from hybridmpm.files import loads_json
 from hybridmpm.limits import human, memory_budget
 from hybridmpm.limits import memory_budget as default_budget
 from hybridmpm.mpm.bodies import BODY_STATE_LEN, BodiesView, Body
-from hybridmpm.mpm.params import Collider, MpmParams, SampledSdf
+from hybridmpm.mpm.params import Collider, MaterialSet, MpmParams, SampledSdf
 
 _MAGIC = b"HMPMPY01"
 #: The Rust core's checkpoint: magic, u32 D, u64 N, f64 time, u64 frame (36 bytes), then the particles.
@@ -88,6 +88,18 @@ class MpmSolver:
     def bytes_per_particle(self) -> int:
         """Estimated bytes the solver allocates per particle (the budget's unit for ``positions``)."""
         return int(self._core.bytes_per_particle)
+
+    def add_parameter_set(self, group: MaterialSet) -> int:
+        """Append ``group`` (a material's parameters: :class:`~hybridmpm.mpm.ElasticParams`, ...) to the table of
+        parameter sets, in place: the particles, the clock and every other parameter are kept, and so is each
+        particle's set index. Returns the new set's index in the table (a particle's ``material_set``: the five
+        defaults, then ``params.sets``; a pour adds its block's set so, docs/materials.md). Raises
+        :class:`~hybridmpm.errors.InvalidInputError` naming ``sets[k]``'s key, or ``sets`` beyond the table's
+        size; the solver is then unchanged."""
+        params = replace(self.params, sets=[*self.params.sets, group])  # the set checked, as a scene's sets are
+        index = int(self._core.add_parameter_set(params.to_dict()["sets"][-1]))
+        self.params = params
+        return index
 
     # ------------------------------------------------------------- particles
     def add_particles(

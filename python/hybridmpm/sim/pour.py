@@ -13,7 +13,6 @@ it was.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -129,13 +128,12 @@ def _steppable(solver: Any, dt_frame: float) -> str | None:
 
 def _poured(sim: Any, m: Any, p: np.ndarray, v: np.ndarray, before: str | None) -> tuple[Any, str | None]:
     """A solver holding ``sim``'s state and the particles ``p`` [N, D] of material ``m`` at velocities ``v``
-    (``sim``'s own when no parameter set is added, changed only if the pour can run), and the reason the pour cannot
-    run: its next frame would need more than ``max_substeps`` substeps where it did not before (``before`` is None)."""
-    params = sim.solver.params
-    set_index, new_params = _set_for(params, m)
+    (``sim``'s own, changed in place, when its state could not be stepped before either), and the reason the pour
+    cannot run: its next frame would need more than ``max_substeps`` substeps where it did not before (``before``
+    is None; then the pour goes into a copy, and ``sim`` is unchanged when it cannot run)."""
     checked = before is None  # a state that could be stepped must stay one: the pour goes into a copy, checked
-    solver = _with_params(sim.solver, new_params or params) if new_params is not None or checked else sim.solver
-    solver.add_particles(p, m.code, velocities=v, material_set=set_index)
+    solver = _copy(sim.solver) if checked else sim.solver
+    solver.add_particles(p, m.code, velocities=v, material_set=_set_for(solver, m))
     if checked and (reason := _steppable(solver, sim.dt_frame)) is not None:
         return sim.solver, reason
     return solver, None
@@ -154,24 +152,23 @@ def _culprit(sim: Any, block: dict[str, Any], keys: dict[str, Any], p: np.ndarra
     return "velocity" if block.get("velocity") is not None else "material"
 
 
-def _set_for(params: Any, m: Any) -> tuple[int, Any]:
-    """The parameter-set index of material ``m`` under ``params`` and the
-    parameters to run with (None: unchanged; else ``params`` with ``m``'s set appended)."""
+def _set_for(solver: Any, m: Any) -> int:
+    """The parameter-set index of material ``m`` in ``solver``'s table: its material's default, a set already
+    there, or ``m``'s set appended in place (:meth:`~hybridmpm.mpm.MpmSolver.add_parameter_set`)."""
     ps = m.to_params()
+    params = solver.params
     if ps == getattr(params, m.name):
-        return int(m.code), None
+        return int(m.code)
     if ps in params.sets:
-        return len(MATERIALS) + params.sets.index(ps), None
-    return len(MATERIALS) + len(params.sets), replace(params, sets=[*params.sets, ps])
+        return len(MATERIALS) + params.sets.index(ps)
+    return int(solver.add_parameter_set(ps))
 
 
-def _with_params(solver: Any, params: Any) -> Any:
-    """A new solver of ``params`` (a further parameter set appended: every
-    particle's set index keeps its meaning) holding ``solver``'s whole state
-    (particles, clock, the colliders' poses and pending moves)."""
-    blob = type(solver).with_header(solver.checkpoint(), params.to_dict())  # the collider state kept
-    out = type(solver)(params, memory_budget=solver.memory_budget)
-    out.restore(blob)
+def _copy(solver: Any) -> Any:
+    """A new solver of ``solver``'s parameters holding its whole state (particles, clock, the colliders' poses
+    and pending moves, the bodies)."""
+    out = type(solver)(solver.params, memory_budget=solver.memory_budget)
+    out.restore(solver.checkpoint())
     return out
 
 

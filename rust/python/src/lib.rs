@@ -14,6 +14,7 @@ mod grid_mass;
 mod material;
 mod ort_ops;
 mod params;
+mod particles;
 mod pool;
 mod solver;
 mod transfer;

@@ -2,7 +2,7 @@
 //! as a Python class behind a lock.
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{Body, Collider, Particle, Solver, SolverParams};
+use hybridmpm_mpm::{Body, Collider, Solver, SolverParams};
 use nalgebra::SVector;
 use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -12,7 +12,8 @@ use std::sync::Mutex;
 use crate::args::{extract_budget, extract_count, f32_array, f32_vec};
 use crate::errors::{invalid_input, to_py};
 use crate::fields::{self, Column, read_column, write_column};
-use crate::material::{Codes, expand_sets, material_codes, set_indices};
+use crate::material::{expand_sets, material_codes, set_indices};
+use crate::particles::{NewParticles, add_particles_impl};
 
 /// The solver parameters, colliders and bodies of the dict `MpmSolver`
 /// takes, read by the core's types (`crate::params`); errors name the field.
@@ -106,52 +107,6 @@ impl MpmSolver {
             f(&mut guard)
         })
     }
-}
-
-/// New particles, read from Python before the solver's lock is taken.
-struct NewParticles {
-    n: usize,
-    x: Vec<f32>,
-    mats: Codes,
-    /// Parameter-set indices (one for all when `sets_scalar`), or `None`:
-    /// each material's default set.
-    sets: Option<(Vec<u16>, bool)>,
-    v: Option<Vec<f32>>,
-    m: Option<Vec<f32>>,
-    vol: Option<Vec<f32>>,
-}
-
-fn add_particles_impl<const D: usize>(s: &mut Solver<D>, new: &NewParticles) -> core::Result<usize>
-where
-    core::Dim<D>: core::DimOps<D>,
-{
-    let n = new.n;
-    s.check_particle_budget(s.num_particles().saturating_add(n))?;
-    let mats = new.mats.expand(n)?;
-    let sets = match &new.sets {
-        Some((v, scalar)) => Some(expand_sets(v, n, *scalar)?),
-        None => None,
-    };
-    let table = s.material_table();
-    let params = s.params();
-    // default: 2 particles per cell per dimension
-    let default_vol = (0.5 * params.dx()).powi(D as i32);
-    let mut ps = Vec::with_capacity(n);
-    for i in 0..n {
-        let xi = SVector::<f32, D>::from_column_slice(&new.x[i * D..(i + 1) * D]);
-        let volume = new.vol.as_ref().map_or(default_vol, |a| a[i]);
-        let set = sets.as_ref().map_or(mats[i] as u16, |v| v[i]);
-        // a missing set is refused by `add_particles` (field `material_set`)
-        let rho = table.get(set as usize).map_or(1.0, |t| t.density());
-        let mass = new.m.as_ref().map_or(rho * volume, |a| a[i]);
-        let mut p = Particle::new(xi, mats[i], mass, volume);
-        p.set = set;
-        if let Some(v) = &new.v {
-            p.v = SVector::<f32, D>::from_column_slice(&v[i * D..(i + 1) * D]);
-        }
-        ps.push(p);
-    }
-    s.add_particles(ps)
 }
 
 fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py, PyDict>> {
@@ -296,6 +251,21 @@ impl MpmSolver {
     #[getter]
     fn domain_bounds(&self) -> (f32, f32) {
         self.bounds
+    }
+
+    /// Append a parameter set (a dict naming one material, as an entry of
+    /// `params["sets"]`: `{"elastic": {"youngs_modulus": 5e4, ...}}`) to the
+    /// table, in place: the particles, the clock and every other parameter
+    /// are kept. Returns its index in the table (a particle's
+    /// `material_set`). Raises `InvalidInputError` naming `sets[k]`'s key
+    /// (k: the new set's place in `params["sets"]`); the solver is then
+    /// unchanged.
+    fn add_parameter_set(&self, py: Python<'_>, set: &Bound<'_, PyAny>) -> PyResult<u16> {
+        let k = self.with(py, |inner| dispatch!(inner, s => s.params().sets.len()));
+        let set: core::MaterialSet =
+            crate::params::read(set, &format!("sets[{k}]")).map_err(|e| e.into_py(py))?;
+        self.with(py, |inner| dispatch!(inner, s => s.add_parameter_set(set)))
+            .map_err(|e| to_py(py, e))
     }
 
     /// Append particles. `positions` float32 [N, D] in [dx, 1 - dx]; `material`

@@ -157,6 +157,21 @@ where
         &self.models.params
     }
 
+    /// Appends `set` to the table of parameter sets, in place: the particles,
+    /// the clock and every other parameter are kept, and each particle's set
+    /// index keeps its meaning. Returns the new set's index in the table
+    /// (what `Particle::set` names it by: after the five defaults and the
+    /// earlier `params.sets`). Errors (the solver unchanged) name
+    /// `sets[k]`'s bad key, or `sets` beyond [`crate::params::MAX_SETS`].
+    pub fn add_parameter_set(&mut self, set: crate::params::MaterialSet) -> Result<u16> {
+        let mut params = self.params.clone();
+        params.sets.push(set);
+        params.validate()?;
+        self.models = crate::material::solid::Models::new(&params, self.isa);
+        self.params = params;
+        Ok((self.models.params.len() - 1) as u16)
+    }
+
     /// Checks that particle `index`'s parameter set exists and is of its
     /// material (field `material_set`).
     fn check_set(&self, index: usize, p: &Particle<D>) -> Result<()> {

@@ -317,6 +317,60 @@ fn parameter_sets_are_deterministic_and_checkpoint_bitwise() {
     assert_ne!(mid1, end1);
 }
 
+/// A parameter set appended in place mid-run (`add_parameter_set`, what a
+/// pour does) steps on bit for bit as a solver made with the set from the
+/// start and restored from the same state; a bad set is refused naming its
+/// key, the table unchanged.
+#[test]
+fn a_parameter_set_appended_in_place_steps_as_one_given_at_the_start() {
+    let jelly: hybridmpm_mpm::MaterialSet = MaterialParams::Elastic(ElasticParams {
+        youngs_modulus: 5.0e4,
+        ..Default::default()
+    })
+    .into();
+    let params = SolverParams::<2> {
+        n_grid: 64,
+        ..Default::default()
+    };
+    let dx = params.dx();
+    let mut a = solver(
+        params.clone(),
+        block([0.1, 0.1], 12, dx, Material::Water, 0, 1000.0),
+    );
+    for _ in 0..10 {
+        a.step_frame(2.5e-3).unwrap();
+    }
+    let mid = a.checkpoint();
+    let mut b = Solver::<2>::new(
+        SolverParams {
+            sets: vec![jelly.clone()],
+            ..params
+        },
+        Vec::new(),
+    )
+    .unwrap();
+    b.restore(&mid).unwrap();
+    let mut bad = jelly.clone();
+    bad.elastic.as_mut().unwrap().youngs_modulus = -1.0;
+    match a.add_parameter_set(bad) {
+        Err(MpmError::InvalidInput { field, .. }) => {
+            assert!(field.starts_with("sets[0]."), "{field}")
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(a.material_table().len(), 5);
+    assert_eq!(a.add_parameter_set(jelly).unwrap(), 5);
+    assert_eq!(a.material_table(), b.material_table());
+    for s in [&mut a, &mut b] {
+        s.add_particles(block([0.5, 0.3], 8, dx, Material::Elastic, 5, 1000.0))
+            .unwrap();
+        for _ in 0..20 {
+            s.step_frame(2.5e-3).unwrap();
+        }
+    }
+    assert_eq!(a.checkpoint(), b.checkpoint());
+}
+
 /// A particle whose set is not of its material, or past the table, is
 /// refused naming `material_set`; the solver keeps its particles.
 #[test]
