@@ -12,6 +12,7 @@ from typing import Any, Literal
 import numpy as np
 
 from hybridmpm import _core
+from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.mpm.motion import Keyframe
@@ -447,6 +448,18 @@ class MpmParams:
     colliders: list[Collider] = field(default_factory=list)
     bodies: list[Body] = field(default_factory=list)
     integrator: str = INTEGRATORS[0]
+
+    def set_index(self, group: MaterialSet, sets: Sequence[MaterialSet] | None = None) -> int | None:
+        """The index in the table of parameter sets (what a particle's ``material_set`` names) of a particle with
+        ``group``'s parameters: its material's code where ``group`` is that material's default set (``self.water``,
+        ...), ``len(MATERIALS) + k`` where it is ``sets[k]`` (``sets``: ``self.sets`` unless given: a table being
+        built), None where the table lacks it (appended, it is ``len(MATERIALS) + len(sets)``). The one rule for
+        scenes' blocks and pours (docs/materials.md)."""
+        name = _SET_NAMES[type(group)]
+        if group == getattr(self, name):
+            return MATERIALS[name]
+        table = self.sets if sets is None else sets
+        return len(MATERIALS) + list(table).index(group) if group in table else None
 
     def resolved_n_grid(self) -> int:
         self._check_int("n_grid", self.n_grid, optional=True)

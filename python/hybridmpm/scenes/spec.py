@@ -514,10 +514,8 @@ class SceneSpec:
         clearance = self.obstacle_clearance_cells * dx
         pos_l, mat_l, vel_l, j_l, set_l = [], [], [], [], []
         # each block's parameter set: its model's default (at the model's code) or one of `sets` (5, 6, ...)
-        defaults = {name: getattr(self.params, name) for name in MATERIALS}
         bases = scene_bases(self.params)
         sets: list[Any] = list(self.params.sets)
-        base = len(MATERIALS)
         dropped: list[dict[str, int]] = []
         placed: list[tuple[np.ndarray, np.ndarray]] = []
         index: dict[tuple[int, ...], list[int]] = {}  # cell of a coarse index grid -> earlier blocks overlapping it
@@ -564,12 +562,9 @@ class SceneSpec:
             m = b.resolved(f"blocks[{i}]", bases)
             mat_l.append(np.full(len(p), m.code, np.int32))
             ps = m.to_params()
-            if ps == defaults[m.name]:
-                set_l.append(np.full(len(p), m.code, np.int32))
-            else:
-                if ps not in sets:
-                    sets.append(ps)
-                set_l.append(np.full(len(p), base + sets.index(ps), np.int32))
+            if self.params.set_index(ps, sets) is None:
+                sets.append(ps)
+            set_l.append(np.full(len(p), self.params.set_index(ps, sets), np.int32))
             v = np.zeros(dim) if b.velocity is None else np.asarray(b.velocity, np.float64)
             vel_l.append(np.tile(v.astype(np.float32), (len(p), 1)))
             if b.hydrostatic and m.name == "water":

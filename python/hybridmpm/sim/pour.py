@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.materials import material_from_block, scene_bases
 from hybridmpm.scenes.core import lattice, wall_face
@@ -153,15 +152,11 @@ def _culprit(sim: Any, block: dict[str, Any], keys: dict[str, Any], p: np.ndarra
 
 
 def _set_for(solver: Any, m: Any) -> int:
-    """The parameter-set index of material ``m`` in ``solver``'s table: its material's default, a set already
-    there, or ``m``'s set appended in place (:meth:`~hybridmpm.mpm.MpmSolver.add_parameter_set`)."""
+    """The parameter-set index of material ``m`` in ``solver``'s table (:meth:`~hybridmpm.mpm.MpmParams.set_index`),
+    ``m``'s set appended in place where the table lacks it (:meth:`~hybridmpm.mpm.MpmSolver.add_parameter_set`)."""
     ps = m.to_params()
-    params = solver.params
-    if ps == getattr(params, m.name):
-        return int(m.code)
-    if ps in params.sets:
-        return len(MATERIALS) + params.sets.index(ps)
-    return int(solver.add_parameter_set(ps))
+    index = solver.params.set_index(ps)
+    return int(solver.add_parameter_set(ps)) if index is None else index
 
 
 def _copy(solver: Any) -> Any:
