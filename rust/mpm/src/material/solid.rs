@@ -34,7 +34,10 @@ use crate::params::{ElasticModel, MaterialParams, SnowParams, SolverParams, Wate
 
 const JP_LO: f32 = SnowParams::JP_RANGE.0;
 const JP_HI: f32 = SnowParams::JP_RANGE.1;
-use crate::particles::{Material, Particle, det};
+use crate::particles::Material;
+// the one-particle reference's (test builds only)
+#[cfg(test)]
+use crate::particles::{Particle, det};
 
 /// The constants of one parameter set, derived once per solver.
 #[derive(Clone, Debug)]
@@ -304,9 +307,10 @@ pub(crate) fn keep_uninverted<R: Real, const D: usize>(
 /// velocity gradient `c` over `dt`: its `f` (and `j` = `J_P` for snow) and
 /// stress, one particle ([`SolidBatch`] does sixteen, with the same bits
 /// per lane; [`keep_uninverted`]). Returns `(finite, inverted)`: whether F,
-/// J_P and τ are finite, and whether `det F ≤ 0` (or NaN). (g2p runs [`SolidBatch`]; the tests
-/// this.)
-#[cfg_attr(not(test), allow(dead_code))]
+/// J_P and τ are finite, and whether `det F ≤ 0` (or NaN). The reference
+/// the lane tests compare [`SolidBatch`] with (g2p runs the batch); compiled
+/// for the tests only.
+#[cfg(test)]
 pub(crate) fn advance<const D: usize>(
     m: &Model,
     p: &mut Particle<D>,

@@ -4,12 +4,10 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use hybridmpm_mpm::{
-    Body, BodyParams, BodyShape, BodyShapeKind, Material, Particle, Solver, SolverParams,
-};
+use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind, Solver, SolverParams};
 use nalgebra::SVector;
 
-use crate::common::sdf;
+use crate::common::{sdf, water};
 
 const DT: f32 = 2.5e-3;
 
@@ -32,39 +30,6 @@ fn boxed<const D: usize>(center: &[f32], h: &[f32], rho: f32, angle_deg: f64) ->
     }
     .build::<D>("body")
     .unwrap()
-}
-
-/// Water particles on a lattice of spacing `dx/2` filling `[lo, hi)`,
-/// none inside the bodies (or within `gap` of them).
-fn water<const D: usize>(
-    lo: [f32; D],
-    hi: [f32; D],
-    p: &SolverParams<D>,
-    bodies: &[Body<D>],
-    gap: f32,
-) -> Vec<Particle<D>> {
-    let s = p.dx() / 2.0;
-    let vol = s.powi(D as i32);
-    let n: [usize; D] = std::array::from_fn(|d| ((hi[d] - lo[d]) / s).round() as usize);
-    let total: usize = n.iter().product();
-    let mut out = Vec::new();
-    for mut i in 0..total {
-        let mut x = SVector::<f32, D>::zeros();
-        for d in 0..D {
-            x[d] = lo[d] + ((i % n[d]) as f32 + 0.5) * s;
-            i /= n[d];
-        }
-        if bodies.iter().any(|b| sdf(b, &x) < gap) {
-            continue;
-        }
-        out.push(Particle::new(
-            x,
-            Material::Water,
-            p.water.density * vol,
-            vol,
-        ));
-    }
-    out
 }
 
 /// The water level [m] in the columns of `x` in `[x0, x1]`: the mean over
@@ -247,7 +212,7 @@ fn float_boxes_2d(c: &FloatCase) -> Floated {
     for b in &bodies {
         s.add_body(b.clone()).unwrap();
     }
-    let mut ps = water([lo, lo], [1.0 - lo, surface], &p, &bodies, 0.0);
+    let mut ps = water([lo, lo], [1.0 - lo, surface], &p, &bodies, 0.0, false);
     let g = -p.gravity[1];
     for q in ps.iter_mut() {
         // at rest: the pressure K (1 − J) of the water above
@@ -463,6 +428,7 @@ fn float_cube_3d(frames: usize, last: usize, tilt_deg: f32) -> (f64, f32, f32) {
         &p,
         &[cube],
         0.0,
+        false,
     );
     let g = -p.gravity[1];
     for q in ps.iter_mut() {
@@ -563,7 +529,7 @@ fn water_hitting_a_free_box_conserves_momentum() {
     let body = boxed::<2>(&[0.55, 0.5], &[0.04, 0.06], 500.0, 0.0);
     let mut s = Solver::new(p.clone(), vec![]).unwrap();
     s.add_body(body.clone()).unwrap();
-    let mut ps = water([0.2, 0.42], [0.4, 0.58], &p, &[], 0.0);
+    let mut ps = water([0.2, 0.42], [0.4, 0.58], &p, &[], 0.0, false);
     for q in ps.iter_mut() {
         q.v[0] = 1.0;
     }
@@ -607,8 +573,15 @@ fn heavy_box_sinks_to_the_floor() {
     let body = boxed::<2>(&[0.5, lo + 0.3], &h, 2000.0, 0.0);
     let mut s = Solver::new(p.clone(), vec![]).unwrap();
     s.add_body(body.clone()).unwrap();
-    s.set_particles(water([lo, lo], [1.0 - lo, lo + 0.35], &p, &[body], 0.0))
-        .unwrap();
+    s.set_particles(water(
+        [lo, lo],
+        [1.0 - lo, lo + 0.35],
+        &p,
+        &[body],
+        0.0,
+        false,
+    ))
+    .unwrap();
     for _ in 0..400 {
         s.step_frame(DT).unwrap();
     }
@@ -640,7 +613,7 @@ fn one_and_two_threads_same_bits_with_bodies() {
         for b in &bodies {
             s.add_body(b.clone()).unwrap();
         }
-        s.set_particles(water([lo, lo], [0.45, 0.6], &p, &bodies, 0.0))
+        s.set_particles(water([lo, lo], [0.45, 0.6], &p, &bodies, 0.0, false))
             .unwrap();
         for _ in 0..60 {
             s.step_frame(DT).unwrap();

@@ -11,12 +11,10 @@
 #![allow(clippy::needless_range_loop)]
 
 use hybridmpm_mpm::{
-    Body, BodyParams, BodyShape, BodyShapeKind, Dim, DimOps, Material, Particle, Solver,
-    SolverParams,
+    Body, BodyParams, BodyShape, BodyShapeKind, Dim, DimOps, Material, Solver, SolverParams,
 };
-use nalgebra::SVector;
 
-use crate::common::sdf;
+use crate::common::water;
 
 const DT: f32 = 2.5e-3;
 
@@ -54,37 +52,6 @@ fn body<const D: usize>(
     }
     .build::<D>("body")
     .unwrap()
-}
-
-/// Water at hydrostatic rest below `surface` (its volume ratio
-/// `J = 1 − ρ g (surface − y) / K`) on a lattice of spacing `dx/2` filling
-/// `[lo, hi)`, none inside the bodies.
-fn water<const D: usize>(
-    lo: [f32; D],
-    hi: [f32; D],
-    p: &SolverParams<D>,
-    bodies: &[Body<D>],
-) -> Vec<Particle<D>> {
-    let s = p.dx() / 2.0;
-    let vol = s.powi(D as i32);
-    let g = -p.gravity[1];
-    let n: [usize; D] = std::array::from_fn(|d| ((hi[d] - lo[d]) / s).round() as usize);
-    let total: usize = n.iter().product();
-    let mut out = Vec::new();
-    for mut i in 0..total {
-        let mut x = SVector::<f32, D>::zeros();
-        for d in 0..D {
-            x[d] = lo[d] + ((i % n[d]) as f32 + 0.5) * s;
-            i /= n[d];
-        }
-        if bodies.iter().any(|b| sdf(b, &x) < 0.0) {
-            continue;
-        }
-        let mut q = Particle::new(x, Material::Water, p.water.density * vol, vol);
-        q.j = 1.0 - p.water.density * g * (hi[1] - x[1]) / p.water.bulk_modulus;
-        out.push(q);
-    }
-    out
 }
 
 /// A body's inertia tensor about its centre of mass in its own axes
@@ -239,7 +206,7 @@ fn light_body_in_a_dam_break() {
     );
     let mut s = Solver::new(p.clone(), vec![]).unwrap();
     s.add_body(b).unwrap();
-    s.set_particles(water([lo, lo], [lo + a, lo + 2.0 * a], &p, &[]))
+    s.set_particles(water([lo, lo], [lo + a, lo + 2.0 * a], &p, &[], 0.0, true))
         .unwrap();
     let r = run("light body in a dam break", &mut s, frames(300));
     check("light body in a dam break", &r);
@@ -298,6 +265,8 @@ fn twenty_bodies_piled_in_a_3d_tank() {
         [1.0 - lo, lo + 0.25, 1.0 - lo],
         &p,
         &bodies,
+        0.0,
+        true,
     ))
     .unwrap();
     let r = run("20 bodies piled in a 3D tank", &mut s, frames(120));
@@ -325,6 +294,8 @@ fn dam_break3d(bodies: &[Body<3>]) -> Solver<3> {
         [lo + a, lo + 2.0 * a, 1.0 - lo],
         &p,
         bodies,
+        0.0,
+        true,
     ))
     .unwrap();
     s

@@ -1,6 +1,7 @@
-//! Helpers the bodies' test modules share.
+//! Helpers the bodies' test modules share: the bodies they build, their
+//! signed distance, and the water around them.
 
-use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind};
+use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind, Material, Particle, SolverParams};
 use nalgebra::SVector;
 
 /// A capsule body of radius `r` and half height `h` [m], density `rho`
@@ -49,4 +50,40 @@ pub fn sdf<const D: usize>(b: &Body<D>, x: &SVector<f32, D>) -> f32 {
             hull.sdf_normal(p).0
         }
     }
+}
+
+/// Water particles on a lattice of spacing `dx/2` filling `[lo, hi)`, none
+/// inside the bodies or within `gap` [m] of them; with `hydrostatic`, each
+/// at the volume ratio of water at rest below `hi[1]`
+/// (`J = 1 − ρ g (hi[1] − y) / K`), else `J = 1`.
+pub fn water<const D: usize>(
+    lo: [f32; D],
+    hi: [f32; D],
+    p: &SolverParams<D>,
+    bodies: &[Body<D>],
+    gap: f32,
+    hydrostatic: bool,
+) -> Vec<Particle<D>> {
+    let s = p.dx() / 2.0;
+    let vol = s.powi(D as i32);
+    let g = -p.gravity[1];
+    let n: [usize; D] = std::array::from_fn(|d| ((hi[d] - lo[d]) / s).round() as usize);
+    let total: usize = n.iter().product();
+    let mut out = Vec::new();
+    for mut i in 0..total {
+        let mut x = SVector::<f32, D>::zeros();
+        for d in 0..D {
+            x[d] = lo[d] + ((i % n[d]) as f32 + 0.5) * s;
+            i /= n[d];
+        }
+        if bodies.iter().any(|b| sdf(b, &x) < gap) {
+            continue;
+        }
+        let mut q = Particle::new(x, Material::Water, p.water.density * vol, vol);
+        if hydrostatic {
+            q.j = 1.0 - p.water.density * g * (hi[1] - x[1]) / p.water.bulk_modulus;
+        }
+        out.push(q);
+    }
+    out
 }

@@ -1,19 +1,25 @@
 //! The Drucker–Prager return mapping on the principal log strains
 //! ([`drucker_prager_project`]; [`project_lanes`] on SIMD lanes) and the
 //! update through the SVD of the trial F that applies it ([`advance_svd`],
-//! the tests' reference).
+//! the tests' reference, compiled for them only).
 
-use nalgebra::{SMatrix, SVector};
+use nalgebra::SVector;
 
-use super::{SandModel, k, kirchhoff_stress, sum};
-use crate::dim::{Dim, DimOps};
+use super::{k, sum};
 use crate::material::lanes::Real;
+// the reference route's (test builds only)
+#[cfg(test)]
+use super::{SandModel, kirchhoff_stress};
+#[cfg(test)]
+use crate::dim::{Dim, DimOps};
+#[cfg(test)]
+use nalgebra::SMatrix;
 
 /// The sand update through the SVD of the trial `F`: the reference route, which
 /// [`advance_2d`](super::update_2d::advance_2d) and
 /// [`advance_3d`](super::update_3d::advance_3d) replace (the tests compare
 /// them).
-#[cfg_attr(not(test), allow(dead_code))]
+#[cfg(test)]
 #[inline(always)]
 pub(super) fn advance_svd<const D: usize>(
     f: &mut SMatrix<f32, D, D>,
