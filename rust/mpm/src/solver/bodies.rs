@@ -28,21 +28,7 @@ where
     /// test, or an obstacle, at a grid node inside both), or `bodies` beyond
     /// [`MAX_BODIES`]; on error nothing changes.
     pub fn add_body(&mut self, body: Body<D>) -> Result<usize> {
-        let i = self.bodies.len();
-        if i >= MAX_BODIES {
-            return Err(MpmError::invalid(
-                "bodies",
-                format!("at most {MAX_BODIES} bodies, the solver has {i}"),
-            ));
-        }
-        body.validate(
-            &format!("bodies[{i}]"),
-            self.params.dx(),
-            self.params.walls.cells,
-        )?;
-        self.check_overlap(&body, i)?;
-        self.bodies.push(body);
-        Ok(i)
+        self.push_checked(body, true)
     }
 
     /// Adds a body as a parameter set gives it (a scene's, or a
@@ -51,6 +37,13 @@ where
     /// they were added, against where the others were then; a scene file's
     /// are checked when it is read).
     pub fn add_given_body(&mut self, body: Body<D>) -> Result<usize> {
+        self.push_checked(body, false)
+    }
+
+    /// The checks of [`Solver::add_body`] (the count, [`Body::validate`]
+    /// and, with `overlaps`, [`Self::check_overlap`]), then the body; on
+    /// error nothing changes.
+    fn push_checked(&mut self, body: Body<D>, overlaps: bool) -> Result<usize> {
         let i = self.bodies.len();
         if i >= MAX_BODIES {
             return Err(MpmError::invalid(
@@ -63,6 +56,9 @@ where
             self.params.dx(),
             self.params.walls.cells,
         )?;
+        if overlaps {
+            self.check_overlap(&body, i)?;
+        }
         self.bodies.push(body);
         Ok(i)
     }

@@ -35,8 +35,8 @@ use nalgebra::SVector;
 
 use super::Solver;
 use super::grid::{EMPTY, unflatten, unflatten_pow2};
-use crate::BoundaryCondition;
 use crate::body::{BODY_REACH_CELLS, BodyPose, Coupled, ImpulseSum};
+use crate::boundary::BoundaryCondition;
 use crate::collider::{Collider, apply_condition, apply_condition_moving};
 use crate::dim::{Dim, DimOps};
 use crate::params::WallFace;
