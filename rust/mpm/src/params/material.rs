@@ -1,7 +1,7 @@
 //! The materials' parameters: weakly compressible water and
 //! Drucker–Prager sand.
 
-use super::{finite, positive};
+use super::{finite, lame, positive};
 use crate::error::{MpmError, Result};
 
 /// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
@@ -139,11 +139,7 @@ impl SandParams {
 
     /// Lamé parameters (μ, λ) [Pa].
     pub fn lame(&self) -> (f32, f32) {
-        let (e, nu) = (self.youngs_modulus, self.poisson_ratio);
-        (
-            e / (2.0 * (1.0 + nu)),
-            e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
-        )
+        lame(self.youngs_modulus, self.poisson_ratio)
     }
 
     /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].

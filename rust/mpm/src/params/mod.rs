@@ -26,11 +26,19 @@ pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
 pub use solid::{
-    ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams, lame,
+    ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams,
 };
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
+
+/// Lamé parameters (μ, λ) [Pa] of Young's modulus `e` and Poisson's ratio `nu`.
+pub fn lame(e: f32, nu: f32) -> (f32, f32) {
+    (
+        e / (2.0 * (1.0 + nu)),
+        e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+    )
+}
 
 fn finite(field: &str, x: f32) -> Result<()> {
     if x.is_finite() {

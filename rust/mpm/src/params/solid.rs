@@ -6,17 +6,9 @@
 //! from Young's modulus E and Poisson's ratio ν:
 //! `μ = E / (2(1 + ν))`, `λ = E ν / ((1 + ν)(1 − 2ν))`.
 
-use super::{SandParams, WaterParams, finite, non_negative, positive};
+use super::{SandParams, WaterParams, finite, lame, non_negative, positive};
 use crate::error::{MpmError, Result};
 use crate::particles::Material;
-
-/// Lamé parameters (μ, λ) [Pa] of Young's modulus `e` and Poisson's ratio `nu`.
-pub fn lame(e: f32, nu: f32) -> (f32, f32) {
-    (
-        e / (2.0 * (1.0 + nu)),
-        e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
-    )
-}
 
 /// `E > 0` finite, `0 ≤ ν < 0.5`, `ρ > 0` finite, each named under `prefix`.
 fn check_elastic(prefix: &str, density: f32, e: f32, nu: f32) -> Result<()> {
