@@ -8,7 +8,7 @@ use hybridmpm_gnn::{
 };
 
 use crate::api::{FLOAT, INT64, ORT_INVALID_ARGUMENT, Status, status};
-use crate::op::{Kernel, Which};
+use crate::kernel::{Kernel, Which};
 use crate::parallel::OrtParallel;
 use crate::tensor::{Tensor, first_dim, input, output};
 

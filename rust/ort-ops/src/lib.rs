@@ -50,6 +50,7 @@
 
 mod api;
 mod compute;
+mod kernel;
 mod op;
 mod parallel;
 mod tensor;

@@ -2,11 +2,12 @@
 //! (its name, input and output types), and the kernel it creates, whose
 //! compute runs [`crate::compute::compute`] under `catch_unwind`.
 
-use std::ffi::{CStr, c_char, c_int, c_void};
+use std::ffi::{c_char, c_int, c_void};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use crate::api::{Api, FLOAT, INT64, ORT_FAIL, Status, api_fn, idx, status};
 use crate::compute::compute;
+use crate::kernel::{Kernel, Which};
 
 type Fp = Option<unsafe extern "C" fn()>;
 
@@ -44,41 +45,12 @@ pub(crate) struct OrtCustomOp {
     release_alias_map: Fp,
 }
 
-/// Which operator a kernel computes.
-#[derive(Clone, Copy, PartialEq, Eq)]
-#[repr(u32)]
-pub(crate) enum Which {
-    Encoder,
-    Block,
-    Node,
-    NodeEncoder,
-    Decoder,
-}
-
 /// One `OrtCustomOp` per operator; `which` recovers the operator from the
 /// pointer onnxruntime passes back.
 #[repr(C)]
 pub(crate) struct Op {
     pub(crate) ort: OrtCustomOp,
     which: Which,
-}
-
-pub(crate) struct Kernel {
-    pub(crate) api: Api,
-    pub(crate) which: Which,
-}
-
-impl Which {
-    /// The operator's name in the graph.
-    pub(crate) fn name(self) -> &'static CStr {
-        match self {
-            Which::Encoder => c"HmpmEdgeEncoder",
-            Which::Block => c"HmpmEdgeBlock",
-            Which::Node => c"HmpmNodeBlock",
-            Which::NodeEncoder => c"HmpmNodeEncoder",
-            Which::Decoder => c"HmpmDecoder",
-        }
-    }
 }
 
 const fn op(which: Which) -> Op {
