@@ -121,7 +121,10 @@ def test_checkpoint_restore_continues_bit_for_bit():
     rollout(a, 15)
     b = small_sim()  # a fresh simulator of the same scene
     b.restore(state)
-    assert np.array_equal(body_bits(b), np.asarray(state_bodies(state)))
+    # the bodies restored are the checkpoint's, as a solver made from it holds them
+    held = type(b.solver).from_checkpoint(state["solver"]).bodies
+    for key in ("center", "rotation", "velocity", "angular_velocity", "mass"):
+        assert np.array_equal(getattr(b.bodies, key), getattr(held, key)), key
     # the fluid's force on each body over the frame before the checkpoint comes back with it (restore and from_checkpoint)
     assert np.abs(force).max() > 0 and np.array_equal(b.bodies.force, force) and np.array_equal(b.bodies.torque, torque)
     fresh = type(b.solver).from_checkpoint(a.solver.checkpoint())
@@ -130,12 +133,6 @@ def test_checkpoint_restore_continues_bit_for_bit():
     assert np.array_equal(a.fluid_positions, b.fluid_positions)
     assert np.array_equal(body_bits(a), body_bits(b))
     assert not np.array_equal(body_bits(a)[:, 7:10], 0)  # the bodies moved
-
-
-def state_bodies(state: dict) -> list:
-    from hybridmpm.mpm.solver import _body_state
-
-    return _body_state(state["solver"])
 
 
 def test_added_body_in_checkpoint_and_old_checkpoint_without_bodies():

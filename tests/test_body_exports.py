@@ -17,7 +17,7 @@ from hybridmpm.mpm.bodies import Body
 from hybridmpm.render import render_gif
 from hybridmpm.render.bodies import CIRCLE_SEGMENTS, body_prism, icosphere, local_mesh, local_outline, place
 from hybridmpm.render.gif import BODY_FILL, frame_pixel
-from hybridmpm.render.surface import _mesh_volume, frame_surfaces, surface_settings
+from hybridmpm.render.surface import frame_surfaces, mesh_volume, surface_settings
 from hybridmpm.scenes import make_scene
 
 
@@ -148,13 +148,13 @@ def test_the_gif_draws_each_body_at_its_pose(tmp_path):
 def test_the_shapes_are_closed_and_outward():
     v, f = icosphere()
     assert len(v) == 162 and len(f) == 320 and np.allclose(np.linalg.norm(v, axis=1), 1.0)
-    assert 0.95 * 4 / 3 * np.pi < _mesh_volume(v, f) < 4 / 3 * np.pi
+    assert 0.95 * 4 / 3 * np.pi < mesh_volume(v, f) < 4 / 3 * np.pi
     box = Body(shape="box", center=[0.5, 0.5, 0.5], half_extents=[0.1, 0.2, 0.3], density=500.0)
-    assert _mesh_volume(*local_mesh(box)) == pytest.approx(0.2 * 0.4 * 0.6)
+    assert mesh_volume(*local_mesh(box)) == pytest.approx(0.2 * 0.4 * 0.6)
     square = Body(shape="box", center=[0.5, 0.5], half_extents=[0.1, 0.2], density=500.0)
-    assert _mesh_volume(*body_prism(square, 0.05)) == pytest.approx(0.2 * 0.4 * 0.1)
+    assert mesh_volume(*body_prism(square, 0.05)) == pytest.approx(0.2 * 0.4 * 0.1)
     circle = Body(shape="circle", center=[0.5, 0.5], radius=0.1, density=500.0)
-    assert len(local_outline(circle)) == CIRCLE_SEGMENTS and _mesh_volume(*body_prism(circle, 0.05)) > 0
+    assert len(local_outline(circle)) == CIRCLE_SEGMENTS and mesh_volume(*body_prism(circle, 0.05)) > 0
 
 
 def test_poses_for_other_bodies_are_refused(tmp_path):
@@ -172,11 +172,11 @@ def test_poses_for_other_bodies_are_refused(tmp_path):
 def test_the_usd_quaternion_of_any_rotation():
     from scipy.spatial.transform import Rotation
 
-    from hybridmpm.render.usd import _quaternion
+    from hybridmpm.render.usd import quaternion
 
     rots = list(Rotation.random(50, random_state=1).as_matrix()) + [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
     for r in rots:
-        w, x, y, z = _quaternion(r)
+        w, x, y, z = quaternion(r)
         back = np.array(
             [
                 [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

@@ -111,7 +111,7 @@ class SurfaceMesh:
     @property
     def volume(self) -> float:
         """Enclosed volume [m³] (divergence theorem over the faces; exact for a closed mesh)."""
-        return _mesh_volume(self.vertices, self.faces)
+        return mesh_volume(self.vertices, self.faces)
 
 
 @dataclass(frozen=True)
@@ -324,7 +324,7 @@ def _mc_measure(phi: np.ndarray, level: float, origin: np.ndarray, f: Field) -> 
     verts = (vs.astype(np.float64) + origin) * f.h
     # skimage's faces are clockwise seen from the low side (outside here): reverse them for outward normals
     faces = np.ascontiguousarray(fs[:, ::-1], dtype=np.int32)
-    return (verts, faces), _mesh_volume(verts, faces)
+    return (verts, faces), mesh_volume(verts, faces)
 
 
 def _off_level(phi: np.ndarray, level: float) -> np.ndarray:
@@ -374,8 +374,9 @@ def _weld(vs: np.ndarray, fs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vs[used], (np.cumsum(used) - 1)[fs]
 
 
-def _mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
-    """Enclosed volume [m³] of a closed mesh (divergence theorem over the faces)."""
+def mesh_volume(verts: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume [m³] of a closed mesh, ``verts`` [V, 3] [m] and ``faces`` [F, 3] (vertex indices, outward
+    counter-clockwise): the divergence theorem over the faces, float64. 0 for no face."""
     if len(faces) == 0:
         return 0.0
     a, b, c = (verts[faces[:, k]] for k in range(3))
@@ -528,6 +529,7 @@ __all__ = [
     "MAX_GRID_NODES",
     "MESH_FORMATS",
     "SurfaceContours",
+    "mesh_volume",
     "SurfaceMesh",
     "export_surfaces",
     "frame_surfaces",

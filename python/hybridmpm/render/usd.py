@@ -288,7 +288,7 @@ def _write_obstacle(stage: Any, where: str, c: Any, dim: int, gf: Any, centers: 
     cube.AddTransformOp().Set(gf.Matrix4d(*m.ravel().tolist()))
 
 
-def _quaternion(r: np.ndarray) -> list[float]:
+def quaternion(r: np.ndarray) -> list[float]:
     """The unit quaternion (w, x, y, z) of rotation ``r`` [3, 3] (``x' = r x``), in float64
     (Shepperd's method: Gf's matrix-to-rotation conversion rounds a rotation of 1e-5 rad to none)."""
     tr = float(np.trace(r))
@@ -321,7 +321,7 @@ def _write_body(stage: Any, where: str, body: Any, centers: np.ndarray, rotation
         c3, r3 = np.zeros(3), np.eye(3)
         c3[:dim], r3[:dim, :dim] = centers[t], rotations[t]
         move.Set(Gf.Vec3d(*c3.tolist()), t)
-        w, *xyz = _quaternion(r3)
+        w, *xyz = quaternion(r3)
         turn.Set(Gf.Quatd(w, Gf.Vec3d(*xyz)), t)
     v, f = local_mesh(body) if dim == 3 else body_prism(body, DEPTH_2D)
     mesh = UsdGeom.Mesh.Define(stage, where + "/shape")
@@ -353,4 +353,4 @@ def _write_domain(stage: Any, lo: np.ndarray, hi: np.ndarray, dim: int) -> None:
     curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
 
 
-__all__ = ["DEPTH_2D", "USD_SUFFIXES", "require_pxr", "write_usd"]
+__all__ = ["DEPTH_2D", "USD_SUFFIXES", "quaternion", "require_pxr", "write_usd"]
