@@ -562,9 +562,10 @@ class SceneSpec:
             m = b.resolved(f"blocks[{i}]", bases)
             mat_l.append(np.full(len(p), m.code, np.int32))
             ps = m.to_params()
-            if self.params.set_index(ps, sets) is None:
+            if (k := self.params.set_index(ps, sets)) is None:
                 sets.append(ps)
-            set_l.append(np.full(len(p), self.params.set_index(ps, sets), np.int32))
+                k = self.params.set_index(ps, sets)
+            set_l.append(np.full(len(p), k, np.int32))
             v = np.zeros(dim) if b.velocity is None else np.asarray(b.velocity, np.float64)
             vel_l.append(np.tile(v.astype(np.float32), (len(p), 1)))
             if b.hydrostatic and m.name == "water":

@@ -127,11 +127,14 @@ def _steppable(solver: Any, dt_frame: float) -> str | None:
 
 def _poured(sim: Any, m: Any, p: np.ndarray, v: np.ndarray, before: str | None) -> tuple[Any, str | None]:
     """A solver holding ``sim``'s state and the particles ``p`` [N, D] of material ``m`` at velocities ``v``
-    (``sim``'s own, changed in place, when its state could not be stepped before either), and the reason the pour
+    (``sim``'s own, changed in place, when its state could not be stepped before either and the block's set is
+    already in its table; else a copy, so that ``sim`` is unchanged when the pour fails), and the reason the pour
     cannot run: its next frame would need more than ``max_substeps`` substeps where it did not before (``before``
-    is None; then the pour goes into a copy, and ``sim`` is unchanged when it cannot run)."""
-    checked = before is None  # a state that could be stepped must stay one: the pour goes into a copy, checked
-    solver = _copy(sim.solver) if checked else sim.solver
+    is None)."""
+    # a state that could be stepped must stay one: the pour goes into a copy, checked; so does a pour that adds a
+    # parameter set, so that a refused block leaves no set behind
+    checked = before is None
+    solver = _copy(sim.solver) if checked or sim.solver.params.set_index(m.to_params()) is None else sim.solver
     solver.add_particles(p, m.code, velocities=v, material_set=_set_for(solver, m))
     if checked and (reason := _steppable(solver, sim.dt_frame)) is not None:
         return sim.solver, reason
