@@ -120,3 +120,25 @@ def test_the_cli_runs_the_integrator_it_is_given(tmp_path):
     assert main(["simulate", "dam_break2d", "--solver", "mpm", "--integrator", "projection", "--frames", "4", "--out", str(out), "--quiet", "--no-render"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["integrator"] == "projection"
+
+
+def test_the_large_step_is_on_the_chart_where_the_scene_allows_it_and_a_chosen_one_runs_as_the_default():
+    from hybridmpm.bench.methods import large_step_methods, methods_for
+    from hybridmpm.bench.run import BenchConfig, method_simulator
+    from hybridmpm.sim.config import tuned_settings
+
+    ms, refused = large_step_methods("water2d", 0.5, 0, (0.5,))
+    assert [m.key for m in ms] == ["mpm_projection", "mpm_rp_projection", "mpm_g64_projection"] and refused == {}
+    assert {m.integrator for m in ms} == {"projection"} and {m.role for m in ms} == {"large_step"} and ms[2].n_grid == 64
+    none, refused = large_step_methods("sand2d", 0.5, 0, (0.5,))
+    assert none == [] and refused["projection"].startswith("integrator:")  # sand keeps its own CFL: not on its chart
+    assert {"mpm_rp_projection", "mpm_g64_projection"} <= {m.key for m in methods_for("water2d", r_cs=(), error_tols=(), variants=False)}
+    assert not any(m.integrator for m in methods_for("water2d", r_cs=(), error_tols=(), variants=False, large_step=False))
+    # the bench steps what the method names, and a default chosen among them runs it (defaults.json's config)
+    cfg = BenchConfig("water2d", (0,), 10, 2, 1, 1, 1)
+    sim = method_simulator(ms[1], make_scene("water2d"), 0, cfg)
+    assert sim.scene.params.integrator == "projection" and sim.scene.info["r_p"] == 0.5
+    settings = tuned_settings({"config": ms[1].config()})
+    assert settings["integrator"] == "projection" and settings["r_p"] == 0.5
+    assert make_simulator("water2d", **settings).scene.params.integrator == "projection"
+    assert "integrator" not in tuned_settings({"config": {"kind": "mpm", "r_p": 1.0}})  # chosen before large steps: the scene's

@@ -58,9 +58,9 @@ FIRST_SCREEN_LINES = 40
 
 
 def solver_text(scene: str, config: dict[str, Any]) -> str:
-    """The table's text for a default configuration: "MPM at `r_p` = 0.5714",
-    "MPM on 96²", "MPM on 48³ at `r_p` = 0.5714, calibrated"; any other kind
-    (a hybrid) by the label ``defaults.json`` gives it."""
+    """The table's text for a default configuration: "MPM at `r_p` = 0.5714, explicit",
+    "MPM on 96², projection", "MPM on 48³ at `r_p` = 0.5714, explicit, calibrated" (the integrator
+    that steps it: docs/large-step.md); any other kind (a hybrid) by the label ``defaults.json`` gives it."""
     if config["kind"] != "mpm":
         return str(config["label"])
     text = "MPM"
@@ -68,6 +68,7 @@ def solver_text(scene: str, config: dict[str, Any]) -> str:
         text += f" on {config['n_grid']}{'³' if scene.endswith('3d') else '²'}"
     if config.get("r_p", 1.0) != 1.0:
         text += f" at `r_p` = {config['r_p']:g}"
+    text += f", {config.get('integrator') or 'explicit'}"  # configurations chosen before the large step ran the explicit one
     return text + (", calibrated" if config.get("calibrated") else "")
 
 

@@ -18,8 +18,10 @@ from hybridmpm.conventions import AUDIT_TOL, R_C, SAFEGUARD
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.models import shipped_default, shipped_model, shipped_switching, variant_models
 from hybridmpm.models.calibrated import fit_name, shipped_calibrations
+from hybridmpm.mpm.params import INTEGRATORS
 from hybridmpm.neural.base import open_model
 from hybridmpm.scenes import scene_spec
+from hybridmpm.scenes.resolution import with_integrator
 
 #: Hybrid thresholds of the sweep (paper Table 2).
 R_C_SWEEP = tuple(round(0.1 * i, 1) for i in range(10))
@@ -65,7 +67,9 @@ class Method:
     the scene (:func:`~hybridmpm.scenes.resolution.calibrate`);
     ``cheap_particles`` what the classical twin's coarse grid carries (None:
     the hybrid's particle set; "grid": its own, two per cell per axis,
-    :class:`~hybridmpm.sim.coarse.CoarseOwnHalf`).
+    :class:`~hybridmpm.sim.coarse.CoarseOwnHalf`); ``integrator`` what steps
+    plain MPM (None: the scene's, the explicit step; "projection": the large
+    step of docs/large-step.md, role "large_step").
     """
 
     key: str
@@ -83,6 +87,7 @@ class Method:
     cheap: str = "neural"
     calibrated: bool = False
     cheap_particles: str | None = None
+    integrator: str | None = None
 
     def config(self) -> dict[str, Any]:
         """The configuration as a plain dict (``hybridmpm tune`` writes it)."""
@@ -129,6 +134,36 @@ def mpm_grid_methods(scene: str, r_p: float, seed: int = 0, fractions: tuple[flo
     return out, refused
 
 
+def large_step_methods(scene: str, r_p: float, seed: int = 0, fractions: tuple[float, ...] = GRID_FRACTIONS) -> tuple[list[Method], dict[str, str]]:
+    """Plain MPM stepped by each large-step integrator (every one of
+    :data:`~hybridmpm.mpm.params.INTEGRATORS` but the explicit step; today the
+    pressure projection, docs/large-step.md) where ``scene`` allows it: on the
+    scene's grid at ``r_p = 1`` (key ``mpm_projection``) and at ``r_p``
+    (``mpm_rp_projection``), and on each coarser grid of ``fractions`` the
+    scene holds at ``r_p = 1`` (``mpm_g<n>_projection``), all of role
+    "large_step". Returns the methods, and per integrator the scene refuses
+    (checked on ``seed``'s initial condition: obstacles, bodies, another
+    material) the reason."""
+    spec = scene_spec(scene, seed=seed)
+    built = spec.build()
+    grids = [m.n_grid for m in mpm_grid_methods(scene, 1.0, seed, fractions)[0]]
+    out: list[Method] = []
+    refused: dict[str, str] = {}
+    for integrator in INTEGRATORS[1:]:
+        try:
+            with_integrator(built, integrator)
+        except InvalidInputError as e:
+            refused[integrator] = str(e)
+            continue
+        role = "large_step"
+        out.append(Method(f"mpm_{integrator}", "mpm", f"MPM full resolution, {integrator}", role=role, integrator=integrator))
+        if r_p < 1.0:
+            out.append(Method(f"mpm_rp_{integrator}", "mpm", f"MPM r_p = {r_p:.3g}, {integrator}", r_p, role=role, integrator=integrator))
+        for n in grids:
+            out.append(Method(f"mpm_g{n}_{integrator}", "mpm", f"MPM {n}^{spec.dim}, {integrator}", role=role, n_grid=n, integrator=integrator))
+    return out, refused
+
+
 def methods_for(
     scene: str,
     *,
@@ -139,6 +174,7 @@ def methods_for(
     error_tols: tuple[float, ...] = ERROR_TOL_SWEEP,
     grids: tuple[float, ...] = GRID_FRACTIONS,
     seed: int = 0,
+    large_step: bool = True,
 ) -> list[Method]:
     """The methods of a benchmark of registered scene ``scene``.
 
@@ -155,7 +191,10 @@ def methods_for(
     the scene's grid, at r_p = 1 and at the model's r_p; grids the scene
     refuses on ``seed``'s initial condition are left out:
     :func:`mpm_grid_methods`; with the calibrated coarse material where one
-    was fitted for the scene and grid, key ``mpm_g<n>_cal``). Raises
+    was fitted for the scene and grid, key ``mpm_g<n>_cal``); with
+    ``large_step``, plain MPM stepped by each large-step integrator the scene
+    allows, on its grid and the same coarser grids (:func:`large_step_methods`).
+    Raises
     :class:`InvalidInputError` (field ``r_c``) for thresholds outside [0, 1], ``model`` /
     ``extra_models`` for a model file that is missing, not a regular file (a FIFO, ``/dev/zero``),
     larger than :data:`~hybridmpm.files.MAX_MODEL_BYTES` or no model of hybridmpm.
@@ -176,6 +215,8 @@ def methods_for(
         for m in mpm_grid_methods(scene, r_p, seed, grids)[0]
         if m.r_p == 1.0 and fit_name(scene, int(m.n_grid or 0)) in shipped_calibrations()
     ]
+    if large_step:
+        out += large_step_methods(scene, r_p, seed, grids)[0]
     models: list[tuple[str, Path, str, str]] = []
     if variants:
         models += [(v["name"], v["path"], v["role"], "model") for v in variant_models(scene)]

@@ -191,6 +191,7 @@ _STYLE = {
     "reference": ("*", "black"),
     "mpm_rp": ("s", "tab:gray"),
     "mpm_grid": ("h", "dimgray"),
+    "large_step": ("P", "tab:cyan"),
     "lowres": ("^", "tab:red"),
     "full": ("v", "tab:purple"),
     "spatial": ("<", "tab:brown"),

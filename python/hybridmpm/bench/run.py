@@ -146,7 +146,9 @@ def method_simulator(method: Method, scene: Any, seed: int, cfg: BenchConfig) ->
     """The simulator of a benchmarked method (the network alone without the
     hybrid's failure checks: it breaks off at :data:`COLLAPSE_FACTOR` instead)."""
     if method.kind == "mpm":
-        return MpmSimulator(scene, r_p=method.r_p, seed=seed, threads=cfg.mpm_threads, n_grid=method.n_grid, calibrated=method.calibrated)
+        return MpmSimulator(
+            scene, r_p=method.r_p, seed=seed, threads=cfg.mpm_threads, n_grid=method.n_grid, calibrated=method.calibrated, integrator=method.integrator
+        )
     if method.kind == "neural":
         return NeuralSimulator(scene, method.model, seed=seed, detect_failures=False, mpm_threads=cfg.mpm_threads, nn_threads=cfg.nn_alone_threads)
     rule: dict[str, Any] = {} if method.safeguard is None else {"safeguard": method.safeguard}

@@ -32,7 +32,7 @@ TUNED_DIR = Path("tuned")
 #: :meth:`~hybridmpm.sim.switching.SwitchingRule.to_dict` are the defaults).
 RULE_KEYS = ("safeguard", "r_c", "dwell", "audit_every", "audit_tol", "residual_tol", "audit_max")
 #: Keys of a configuration (the chosen method) in the tuned file.
-CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid", "calibrated")
+CONFIG_KEYS = ("key", "kind", "label", "r_p", "r_t", "r_c", "model", "role", "params", "safeguard", "audit_tol", "n_grid", "calibrated", "integrator")
 
 
 def make_simulator(
@@ -225,7 +225,7 @@ def load_tuned(scene: str, path: str | Path | None = None) -> dict[str, Any]:
 
 def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     """The :func:`make_simulator` keyword arguments of a tuned configuration
-    (``solver``, and ``r_p``, ``n_grid`` and ``calibrated`` where set, or ``model`` and ``r_c``, and the hybrid's
+    (``solver``, and ``r_p``, ``n_grid``, ``integrator`` and ``calibrated`` where set, or ``model`` and ``r_c``, and the hybrid's
     rule: its ``rule`` (a :meth:`~hybridmpm.sim.switching.SwitchingRule.to_dict`), or in
     configurations tuned before that was written, ``safeguard`` and ``audit_tol`` where set).
     Raises :class:`InvalidInputError` naming a bad rule setting."""
@@ -233,6 +233,8 @@ def tuned_settings(doc: dict[str, Any]) -> dict[str, Any]:
     if cfg["kind"] == "mpm":
         # configurations tuned before grids were a knob ran on the scene's grid
         mpm: dict[str, Any] = {"solver": "mpm", "r_p": float(cfg["r_p"]), "n_grid": None if cfg.get("n_grid") is None else int(cfg["n_grid"])}
+        if cfg.get("integrator"):  # a large step (docs/large-step.md); configurations chosen before it ran the scene's
+            mpm["integrator"] = str(cfg["integrator"])
         return {**mpm, "calibrated": True} if cfg.get("calibrated") else mpm  # a calibrated coarse material (docs/correction.md)
     out: dict[str, Any] = {"solver": cfg["kind"], "model": cfg["model"]}
     if cfg["kind"] == "hybrid" and cfg.get("cheap", "neural") != "neural":
