@@ -314,3 +314,137 @@ def test_3d_bodies_rotate_and_restore_bit_for_bit():
     with pytest.raises(InvalidInputError) as e:
         b.add_body({"shape": "box", "center": [0.5, 0.7, 0.5], "half_extents": [0.05, 0.05, 0.05], "density": 500.0, "angle_deg": 10.0})
     assert e.value.field == "bodies[2].angle_deg"  # 2D only
+
+
+# ------------------------------------------------------------------ the bodies over a run: one BodyTrack
+SQUARE = Body(shape="box", center=[0.5, 0.5], half_extents=[0.05, 0.05], density=500.0)
+DISC = Body(shape="circle", center=[0.3, 0.6], radius=0.04, density=300.0)
+
+
+def _poses(t: int = 3, b: int = 2, d: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Good poses: ``t`` frames of ``b`` bodies in ``d``-D (centres [T, B, D], identity rotations [T, B, D, D])."""
+    return np.full((t, b, d), 0.5), np.broadcast_to(np.eye(d), (t, b, d, d)).copy()
+
+
+def _nan_at(a: np.ndarray, index: tuple[int, ...]) -> np.ndarray:
+    a = a.copy()
+    a[index] = np.nan
+    return a
+
+
+BAD_TRACKS = [
+    ("a center for 3 bodies", lambda c, r: {"center": np.zeros((3, 3, 2))}, "body_center"),
+    ("a center without frames", lambda c, r: {"center": c[0]}, "body_center"),
+    ("a center in 4D", lambda c, r: {"center": np.zeros((3, 2, 4))}, "body_center"),
+    ("a NaN center", lambda c, r: {"center": _nan_at(c, (1, 0, 1))}, "body_center"),
+    ("text for a center", lambda c, r: {"center": np.full((3, 2, 2), "x")}, "body_center"),
+    ("a ragged center", lambda c, r: {"center": [[[0.5, 0.5], [0.5]]]}, "body_center"),
+    ("no center", lambda c, r: {"center": None}, "body_center"),
+    ("4 frames where 3 are stored", lambda c, r: {"center": np.full((4, 2, 2), 0.5), "rotation": np.broadcast_to(np.eye(2), (4, 2, 2, 2))}, "body_center"),
+    ("a 3D rotation of 2D poses", lambda c, r: {"rotation": np.broadcast_to(np.eye(3), (3, 2, 3, 3))}, "body_rotation"),
+    ("a rotation with one frame less", lambda c, r: {"rotation": r[:2]}, "body_rotation"),
+    ("an infinite rotation", lambda c, r: {"rotation": np.where(np.arange(2) == 1, np.inf, r)}, "body_rotation"),
+    ("no rotation", lambda c, r: {"rotation": None}, "body_rotation"),
+    ("a mass per frame", lambda c, r: {"mass": np.ones((3, 2))}, "body_mass"),
+    ("a zero mass", lambda c, r: {"mass": [1.0, 0.0]}, "body_mass"),
+    ("a NaN mass", lambda c, r: {"mass": [1.0, np.nan]}, "body_mass"),
+    ("no list of bodies", lambda c, r: {"shapes": None}, "bodies"),
+]
+
+
+@pytest.mark.parametrize(("what", "change", "field"), BAD_TRACKS, ids=[b[0] for b in BAD_TRACKS])
+def test_a_body_track_is_checked_when_made_and_names_the_field(what, change, field):
+    from hybridmpm.mpm.bodies import BodyTrack, check_poses
+
+    center, rotation = _poses()
+    given = {"shapes": [SQUARE, DISC], "center": center, "rotation": rotation, "mass": [1.0, 2.0], **change(center, rotation)}
+    with pytest.raises(InvalidInputError) as e:
+        BodyTrack.make(given["shapes"], given["center"], given["rotation"], given["mass"], t_count=3)
+    assert e.value.field == field, (what, e.value)
+    assert str(e.value).startswith(field + ":"), str(e.value)
+    if field in ("body_center", "body_rotation") and given["shapes"] is not None:  # the old entry point says the same
+        with pytest.raises(InvalidInputError) as e:
+            check_poses(given["shapes"], given["center"], given["rotation"], 3)
+        assert e.value.field == field
+
+
+def test_a_body_track_holds_its_own_read_only_float64_arrays():
+    from hybridmpm.mpm.bodies import BodyTrack, as_body_track, check_poses
+
+    center, rotation = _poses()
+    track = BodyTrack.make([SQUARE, DISC], center.astype(np.float32), rotation, [1, 2], t_count=3)
+    assert track.shapes == (SQUARE, DISC) and (track.num_frames, track.dim) == (3, 2)
+    for a, shape in ((track.center, (3, 2, 2)), (track.rotation, (3, 2, 2, 2)), (track.mass, (2,))):
+        assert a is not None and a.dtype == np.float64 and a.shape == shape and not a.flags.writeable
+    center[0, 0, 0] = 9.0  # the caller's array is not the track's
+    assert track.center[0, 0, 0] == 0.5
+    with pytest.raises(ValueError):
+        track.center[0, 0, 0] = 1.0
+    # the public entry points' rule: a track as it is, loose arrays made into one, nothing without poses or bodies
+    assert as_body_track(track, t_count=3) is track
+    assert as_body_track([SQUARE, DISC], None, None) is None and as_body_track([], center, rotation) is None and as_body_track(None) is None
+    for bad in ({"t_count": 4}, {"center": center}):
+        with pytest.raises(InvalidInputError) as e:
+            as_body_track(track, **bad)
+        assert e.value.field == "body_center"
+    c, r = check_poses([SQUARE, DISC], center, rotation, 3)
+    assert np.array_equal(c, center) and np.array_equal(r, rotation)
+
+
+def _run_recorded(sim: MpmSimulator, frames: int, add_after: int | None = None):
+    """``rollout(sim, frames)`` and the records of the same frames as a session's recording keeps them
+    (:class:`hybridmpm.service.budget.Recording`, the solver's bodies as given), a body added after the
+    ``add_after``-th frame when given."""
+    from hybridmpm.service.budget import MemoryBudget, Recording
+    from hybridmpm.sim.rollout import given_bodies
+
+    recording = Recording(MemoryBudget(1 << 30), 100, sim.r_t)
+
+    def record(fr) -> None:
+        given = given_bodies(sim)
+        recording.add(fr.frame_index, fr.positions, fr.solver, fr.controlled, None, (given, fr.body_center, fr.body_rotation, fr.body_mass))
+
+    seen: list[int] = []
+
+    def on_frame(fr) -> None:
+        record(fr)
+        seen.append(fr.frame_index)
+        if add_after is not None and len(seen) == add_after:
+            sim.add_body({"shape": "box", "center": [0.4, 0.7], "half_extents": [0.03, 0.03], "mass": 1.0})
+
+    record(sim.frame)
+    ro = rollout(sim, frames, on_frame=on_frame)
+    return ro, recording.last(len(recording))
+
+
+def test_the_rollout_and_the_session_download_stack_the_bodies_by_one_rule():
+    """BodyTrack.stack: the rollout's bodies and a session's recent trajectory (service/routes/trajectory.py) of the
+    same frames are the same arrays; a body added mid-run leaves both without bodies, and the frames after it have
+    them again."""
+    from hybridmpm.mpm.bodies import BodyTrack
+    from hybridmpm.service.routes.trajectory import recorded_bodies
+    from hybridmpm.sim.rollout import body_frame
+
+    sim = small_sim()
+    ro, held = _run_recorded(sim, 4)
+    track, served = ro.bodies, recorded_bodies(held)
+    assert track is not None and served is not None and len(held) == 5
+    assert track.shapes == served.shapes == tuple(sim.solver.params.bodies)
+    for got in (track, served):
+        assert np.array_equal(got.center, ro.body_center) and np.array_equal(got.rotation, ro.body_rotation) and np.array_equal(got.mass, ro.body_mass)
+    assert ro.body_center.shape == (5, 2, 2) and np.array_equal(ro.body_center[-1], sim.bodies.center)
+    # the rule itself, on frame records (the rollout's own maker of them)
+    frames = [body_frame(sim.frame, sim.solver.params.bodies)] * 2
+    assert BodyTrack.stack(frames).center.shape == (2, 2, 2)
+    assert BodyTrack.stack([]) is None and BodyTrack.stack([*frames, None]) is None
+    other_masses = (frames[0][0], frames[0][1], frames[0][2], frames[0][3] * 2)
+    assert BodyTrack.stack([*frames, other_masses]) is None
+
+    ro, held = _run_recorded(sim, 4, add_after=2)  # a body joins after the second frame
+    assert ro.bodies is None and ro.body_center is None and ro.body_rotation is None and ro.body_mass is None
+    assert recorded_bodies(held) is None
+    after = recorded_bodies(held[3:])  # the frames since it joined share their bodies
+    assert after is not None and after.center.shape == (2, 3, 2) and np.array_equal(after.center[-1], sim.bodies.center)
+    ro, held = _run_recorded(sim, 2)
+    assert ro.bodies is not None and ro.bodies.center.shape == (3, 3, 2)
+    assert np.array_equal(recorded_bodies(held).center, ro.bodies.center)

@@ -185,3 +185,69 @@ def test_the_usd_quaternion_of_any_rotation():
             ]
         )
         np.testing.assert_allclose(back, r, atol=1e-12)
+
+
+def test_each_entry_point_checks_the_bodies_once_and_a_track_not_again(tmp_path, monkeypatch):
+    """The bodies travel as one BodyTrack: a public entry point given the loose arrays makes one at its top (one
+    check, however many frames it draws), one given a rollout's track checks nothing, and both write the same;
+    nothing below them (the frame loop, posed_settings, the body meshes) checks the poses again."""
+    from hybridmpm.cli.export import write_exports
+    from hybridmpm.mpm.bodies import BodyTrack
+    from hybridmpm.render.bodies import export_bodies
+    from hybridmpm.render.surface import export_surfaces
+    from hybridmpm.render.surface_scene import posed_settings
+
+    scene = make_scene("crates2d")
+    ro = hm.rollout(hm.make_simulator(scene, "mpm", threads=1), 3)
+    track, shapes = ro.bodies, scene.params.bodies
+    assert track is not None and track.num_frames == 4
+    settings = surface_settings(scene.params, ro.particle_type, ro.masses)
+    checks: list[BodyTrack] = []
+    check = BodyTrack.__post_init__
+
+    def counted(self: BodyTrack) -> None:
+        checks.append(self)
+        check(self)
+
+    monkeypatch.setattr(BodyTrack, "__post_init__", counted)
+    loose = {"bodies": shapes, "body_center": ro.body_center, "body_rotation": ro.body_rotation}
+    entry_points = {
+        "render_gif": lambda kw, out: render_gif(ro.positions, ro.particle_type, out / "run.gif", dt_frame=ro.dt_frame, max_frames=2, **kw),
+        "export_surfaces": lambda kw, out: export_surfaces(ro.positions, ro.particle_type, out, bodies=_tuple(kw), **settings),
+        "export_bodies": lambda kw, out: export_bodies(out, *_tuple(kw)) if "body_center" in kw else export_bodies(out, kw["bodies"]),
+        "posed_settings": lambda kw, out: posed_settings(settings, None, 3, _tuple(kw)),  # one frame's settings
+    }
+    if _has_pxr():
+        from hybridmpm.render.usd import write_usd
+
+        entry_points["write_usd"] = lambda kw, out: write_usd(out / "run.usda", ro.positions, ro.particle_type, ro.dt_frame, **kw)
+    for name, call in entry_points.items():
+        a, b = tmp_path / name / "loose", tmp_path / name / "track"
+        a.mkdir(parents=True)
+        b.mkdir(parents=True)
+        checks.clear()
+        got_loose = call(loose, a)
+        assert len(checks) == 1, (name, len(checks))
+        checks.clear()
+        got_track = call({"bodies": track}, b)
+        assert not checks, name
+        if name == "posed_settings":  # the bodies at frame 3, where the surfaces end
+            posed = [[o for o in got["obstacles"] if hasattr(o, "body")] for got in (got_loose, got_track)]
+            assert len(posed[0]) == len(posed[1]) == len(shapes)
+            for i, (x, y) in enumerate(zip(*posed)):
+                assert x.body == y.body == shapes[i] and np.array_equal(x.center, y.center) and np.array_equal(x.rotation, y.rotation)
+                assert np.array_equal(y.center, ro.body_center[3, i]) and np.array_equal(y.rotation, ro.body_rotation[3, i])
+        files = sorted(p.name for p in a.iterdir())
+        assert files == sorted(p.name for p in b.iterdir()), name
+        if name in ("export_bodies", "export_surfaces", "render_gif"):
+            assert files and all((a / f).read_bytes() == (b / f).read_bytes() for f in files), name
+    # a saved trajectory's exports: the scene's bodies at its poses, made into one track once for the meshes and USD
+    saved = hm.Trajectory.load(ro.save(tmp_path / "trajectory.npz"))
+    checks.clear()
+    done = write_exports(tmp_path / "exports", ["mesh"] + (["usd"] if _has_pxr() else []), saved, scene.params)
+    assert len(checks) == 1 and done["body"] == 4 * len(shapes)
+
+
+def _tuple(kw: dict) -> tuple | object:
+    """An entry point's ``bodies`` argument: ``(bodies as given, body_center, body_rotation)`` for loose arrays, else the track."""
+    return (kw["bodies"], kw["body_center"], kw["body_rotation"]) if "body_center" in kw else kw["bodies"]

@@ -69,7 +69,7 @@ def _control(args: argparse.Namespace) -> int:
         line = np.concatenate([sketch.points, sketch.points[:1]]) if sketch.kind == "oval" else sketch.points
         render_gif(
             ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=f"{scene.name} ({args.method})", overlay=[line],
-            bodies=scene.params.bodies, body_center=ro.body_center, body_rotation=ro.body_rotation,
+            bodies=ro.bodies,
         )  # fmt: skip
     if not args.quiet:
         m = ep.metrics

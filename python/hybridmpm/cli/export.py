@@ -94,8 +94,12 @@ def write_exports(
     samples their translation), or where ``params`` put them when it has
     none. Returns a summary
     {kind: file count or path}. Raises :class:`InvalidInputError` naming
-    ``export`` (unknown kind, or ``usd`` without ``pxr``) or ``mesh_format``."""
+    ``export`` (unknown kind, or ``usd`` without ``pxr``), ``mesh_format``, or
+    ``body_center`` / ``body_rotation`` (for ``mesh`` and ``usd``: the
+    trajectory's poses are not those of ``params``' bodies,
+    :func:`~hybridmpm.mpm.bodies.as_body_track`)."""
     # import time: loaded by the commands that export only
+    from hybridmpm.mpm.bodies import as_body_track
     from hybridmpm.render import export_points
     from hybridmpm.render.surface import MESH_FORMATS, frame_surfaces, write_surface
     from hybridmpm.render.surface_scene import posed_settings, surface_settings
@@ -124,8 +128,9 @@ def write_exports(
             raise InvalidInputError(
                 f"obstacle_centers: the trajectory places {centers.shape[1]} obstacles, its scene has {len(settings['obstacles'])}", "obstacle_centers"
             )
-        poses = (params.bodies, traj.body_center, traj.body_rotation) if params.bodies and traj.body_center is not None else None
-        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t, poses)) for t in range(traj.num_frames)]
+        # the scene's bodies at the trajectory's poses as one track, checked once here (None: no bodies to draw)
+        track = as_body_track(params.bodies, traj.body_center, traj.body_rotation, mass=traj.body_mass, t_count=traj.num_frames)
+        surfaces = [frame_surfaces(traj.positions[t], traj.particle_type, **posed_settings(settings, centers, t, track)) for t in range(traj.num_frames)]
         if "mesh" in kinds:
             count = 0
             for t, frame in enumerate(surfaces):
@@ -133,17 +138,16 @@ def write_exports(
                     write_surface(s, out / f"{s.material}_{t:05d}.{mesh_format}", mesh_format)
                     count += 1
             done["mesh"] = count
-            if poses is not None:
+            if track is not None:
                 from hybridmpm.render.bodies import export_bodies  # import time: loaded by the commands that export only
 
-                done["body"] = len(export_bodies(out, *poses, fmt=mesh_format))
+                done["body"] = len(export_bodies(out, track, fmt=mesh_format))
         if "usd" in kinds:
             from hybridmpm.render.usd import write_usd  # import time: loaded by the commands that export only
 
             path = write_usd(
                 out / "run.usd", traj.positions, traj.particle_type, traj.dt_frame, solver=tags, surfaces=surfaces,
-                obstacles=settings["obstacles"], obstacle_centers=centers, domain=settings["domain"], width=settings["dx"] / 2,
-                **({} if poses is None else {"bodies": poses[0], "body_center": poses[1], "body_rotation": poses[2]}),
+                obstacles=settings["obstacles"], obstacle_centers=centers, domain=settings["domain"], width=settings["dx"] / 2, bodies=track,
             )  # fmt: skip
             done["usd"] = str(path)
     return done

@@ -77,10 +77,11 @@ def _simulate(args: argparse.Namespace) -> int:
     }  # fmt: skip
     if ro.failure:
         summary["failure_detail"] = ro.failure_detail
-    if ro.body_center is not None and ro.body_mass is not None:  # each rigid body: as given, its mass and its centre of mass at the first and last stored frame
+    track = ro.bodies
+    if track is not None and track.mass is not None:  # each rigid body: as given, its mass and its centre of mass at the first and last stored frame
         summary["bodies"] = [
             {"shape": b.shape, "density": b.density, "mass": float(m), "center_start": c[0].tolist(), "center_end": c[-1].tolist()}
-            for b, m, c in zip(low.params.bodies, ro.body_mass, np.moveaxis(ro.body_center, 1, 0))
+            for b, m, c in zip(track.shapes, track.mass, np.moveaxis(track.center, 1, 0))
         ]
     # which cheap half ran and on what share of frames (a fallback to MPM counts as MPM); None: no cheap half
     cheap_kind = getattr(sim, "cheap_kind", None) if args.solver == "hybrid" else None
@@ -146,7 +147,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if not args.no_render:
         render_gif(
             ro.positions, ro.particle_type, out / "render.gif", dt_frame=ro.dt_frame, title=title, frame_solver=ro.solver if args.solver == "hybrid" else None,
-            bodies=low.params.bodies, body_center=ro.body_center, body_rotation=ro.body_rotation,
+            bodies=ro.bodies,
         )  # fmt: skip
     if exports:
         write_exports(out / "export", exports, ro, low.params, mesh_format=args.mesh_format, solver=ro.extras["solver"])

@@ -233,17 +233,161 @@ def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return n, np.einsum("fk,fk->f", n, t[:, 0])
 
 
+#: One frame's rigid bodies as :meth:`BodyTrack.stack` takes them: the bodies as given (a solver's ``params.bodies``),
+#: their centres of mass float [B, D] [m], rotations [B, D, D] (columns: the body's axes) and masses [B] [kg; per unit
+#: depth in 2D] (or None). A frame without bodies is None.
+BodyFrame = tuple[Sequence[Any], Any, Any, Any]
+
+
+def _real(field: str, v: Any) -> np.ndarray:
+    """``v`` as a float64 array, or :class:`InvalidInputError` naming ``field`` when it holds no real numbers."""
+    try:
+        a = np.asarray(v)
+    except (TypeError, ValueError) as e:  # ragged nested lists
+        raise InvalidInputError(f"{field}: expected an array of real numbers ({e})", field) from e
+    if a.dtype.kind not in "biuf":
+        raise InvalidInputError(f"{field}: expected real numbers, got dtype {a.dtype}", field)
+    out = np.array(a, np.float64)  # a copy: the track's arrays are its own, read-only
+    out.flags.writeable = False
+    return out
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class BodyTrack:
+    """The rigid bodies of a run over its stored frames, as one checked value:
+    what a rollout, a trajectory file and a session's recording hand to the
+    pictures and exports (the GIF, the mesh sequences, the surfaces that end on
+    the bodies, USD).
+
+    ``shapes`` the ``B`` bodies as given (:class:`Body`, a scene's
+    ``params.bodies``), a tuple; ``center`` float64 [T, B, D] [m] each body's
+    centre of mass in each of the ``T`` frames (D 2 or 3); ``rotation``
+    float64 [T, B, D, D] its rotation there (columns: the body's axes, ``x =
+    center + rotation @ local``); ``mass`` float64 [B] [kg; per unit depth in
+    2D], or None where the poses came without masses (a picture's arguments).
+    The arrays are the track's own copies, read-only and finite.
+
+    Constructing one (:meth:`make`, :meth:`stack` or the class itself) checks
+    it once; its users check nothing again. Raises :class:`InvalidInputError`
+    naming ``bodies`` (not a list), ``body_center`` (not real numbers, not [T, B, D] for the ``B``
+    shapes with D 2 or 3, not finite), ``body_rotation`` (not real numbers,
+    not [T, B, D, D], not finite) or ``body_mass`` (not [B], not finite and
+    > 0). The rotations' orthonormality is not checked (the solver keeps
+    them so; a picture draws what it is given)."""
+
+    shapes: Sequence[Any]  # kept as a tuple
+    center: np.ndarray
+    rotation: np.ndarray
+    mass: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.shapes, (str, bytes, dict)) or not isinstance(self.shapes, (Sequence, np.ndarray)):
+            raise InvalidInputError(f"bodies: expected the bodies as given (a list), got {type(self.shapes).__name__}", "bodies")
+        b = len(self.shapes)
+        c = _real("body_center", self.center)
+        if c.ndim != 3 or c.shape[1] != b or c.shape[2] not in (2, 3) or not np.isfinite(c).all():
+            raise InvalidInputError(f"body_center: expected finite [T, {b}, D] for the scene's {b} bodies, got {list(c.shape)}", "body_center")
+        r = _real("body_rotation", self.rotation)
+        if r.shape != c.shape + (c.shape[2],) or not np.isfinite(r).all():
+            raise InvalidInputError(f"body_rotation: expected finite {list(c.shape + (c.shape[2],))}, got {list(r.shape)}", "body_rotation")
+        m = None if self.mass is None else _real("body_mass", self.mass)
+        if m is not None and (m.shape != (b,) or not np.isfinite(m).all() or not (m > 0).all()):
+            raise InvalidInputError(f"body_mass: expected [{b}] finite masses > 0 [kg], got {list(m.shape)}", "body_mass")
+        object.__setattr__(self, "shapes", tuple(self.shapes))
+        object.__setattr__(self, "center", c)
+        object.__setattr__(self, "rotation", r)
+        object.__setattr__(self, "mass", m)
+
+    @classmethod
+    def make(cls, shapes: Sequence[Any], center: Any, rotation: Any, mass: Any = None, t_count: int | None = None) -> BodyTrack:
+        """The track of ``shapes`` (B bodies as given) at ``center`` [T, B, D] [m] and ``rotation`` [T, B, D, D],
+        with ``mass`` [B] [kg] or None, checked (the class's errors); with ``t_count``, ``T`` must be it (else
+        :class:`InvalidInputError` naming ``body_center``)."""
+        track = cls(shapes, center, rotation, mass)
+        if t_count is not None and track.num_frames != t_count:
+            b = len(track.shapes)
+            raise InvalidInputError(
+                f"body_center: expected finite [{t_count}, {b}, D] for the scene's {b} bodies in {t_count} frames, got {list(track.center.shape)}",
+                "body_center",
+            )
+        return track
+
+    @classmethod
+    def stack(cls, frames: Sequence[BodyFrame | None]) -> BodyTrack | None:
+        """The one rule that makes a track of per-frame records (:data:`BodyFrame`, oldest first): their poses
+        stacked, float64 [T, B, D] and [T, B, D, D], with the first frame's shapes and masses, when every frame has
+        the same bodies; None when there is no frame, a frame has no bodies (None, or no shapes), or the frames
+        disagree on them (a body added or removed: another count, another body at an index — not the same object
+        nor an equal :class:`Body` — or other masses). What a rollout (:func:`hybridmpm.sim.rollout`) and a
+        session's recent trajectory keep. Raises :class:`InvalidInputError` as :meth:`make` for bad poses."""
+        recs = [f for f in frames if f is not None and f[0] is not None and len(f[0])]
+        if not recs or len(recs) != len(frames):
+            return None
+        first = recs[0]
+        if not all(_same_shapes(f[0], first[0]) and _same_masses(f[3], first[3]) for f in recs[1:]):
+            return None
+        try:
+            center, rotation = np.stack([np.asarray(f[1]) for f in recs]), np.stack([np.asarray(f[2]) for f in recs])
+        except ValueError as e:
+            raise InvalidInputError(f"body_center: the frames' poses do not stack ({e})", "body_center") from e
+        return cls.make(first[0], center, rotation, first[3])
+
+    @property
+    def num_frames(self) -> int:
+        """T."""
+        return int(self.center.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """D, 2 or 3."""
+        return int(self.center.shape[2])
+
+    def __repr__(self) -> str:
+        kinds = ", ".join(str(getattr(b, "shape", type(b).__name__)) for b in self.shapes)
+        mass = "with masses" if self.mass is not None else "no masses"
+        return f"BodyTrack([{kinds}], {self.num_frames} frames, {self.dim}D, {mass})"
+
+
+def _same_shapes(a: Sequence[Any], b: Sequence[Any]) -> bool:
+    """Whether two frames' bodies as given are the same: as many, each the same object or an equal :class:`Body`."""
+    if len(a) != len(b):
+        return False
+    return all(x is y or (isinstance(x, Body) and isinstance(y, Body) and x.to_dict() == y.to_dict()) for x, y in zip(a, b))
+
+
+def _same_masses(a: Any, b: Any) -> bool:
+    """Whether two frames' masses are equal (both None, or the same numbers)."""
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.array_equal(np.asarray(a, np.float64), np.asarray(b, np.float64)))
+
+
+def as_body_track(bodies: Any, center: Any = None, rotation: Any = None, *, mass: Any = None, t_count: int | None = None) -> BodyTrack | None:
+    """What a public entry point was given of the bodies, as one :class:`BodyTrack` made once at its top:
+    ``bodies`` a track already (then ``center`` and ``rotation`` stay None), or the bodies as given with their
+    loose arrays ``center`` [T, B, D] [m] and ``rotation`` [T, B, D, D] (and ``mass`` [B] [kg]: :meth:`BodyTrack.make`).
+    None (no bodies drawn or written) when ``bodies`` is None or empty or ``center`` is None. ``t_count``: the
+    frames the track must have. Raises :class:`InvalidInputError` naming ``body_center`` (also for a track given
+    with arrays beside it, or of another frame count), ``body_rotation`` or ``body_mass``."""
+    if isinstance(bodies, BodyTrack):
+        if center is not None or rotation is not None:
+            raise InvalidInputError("body_center: give the poses either in the BodyTrack or as arrays, not both", "body_center")
+        if t_count is not None and bodies.num_frames != t_count:
+            b = len(bodies.shapes)
+            raise InvalidInputError(f"body_center: expected [{t_count}, {b}, D] (a pose per frame), got {list(bodies.center.shape)}", "body_center")
+        return bodies
+    if bodies is None or not len(bodies) or center is None:
+        return None
+    return BodyTrack.make(bodies, center, rotation, mass, t_count)
+
+
 def check_poses(bodies: Sequence[Any], center: Any, rotation: Any, t_count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``center`` [T, B, D] [m] and ``rotation`` [T, B, D, D] (a trajectory's body poses) as float64 for ``bodies``
-    (B of them; ``t_count`` frames when given); :class:`InvalidInputError` naming ``body_center`` or ``body_rotation``
-    otherwise."""
-    c, r = np.asarray(center, np.float64), np.asarray(rotation, np.float64)
-    b = len(bodies)
-    if c.ndim != 3 or c.shape[1] != b or c.shape[2] not in (2, 3) or (t_count is not None and c.shape[0] != t_count) or not np.isfinite(c).all():
-        raise InvalidInputError(f"body_center: expected finite [T, {b}, D] for the scene's {b} bodies, got {list(c.shape)}", "body_center")
-    if r.shape != c.shape + (c.shape[2],) or not np.isfinite(r).all():
-        raise InvalidInputError(f"body_rotation: expected finite {list(c.shape + (c.shape[2],))}, got {list(r.shape)}", "body_rotation")
-    return c, r
+    """``center`` [T, B, D] [m] and ``rotation`` [T, B, D, D] for ``bodies`` (B of them; ``t_count`` frames when
+    given), checked as :meth:`BodyTrack.make` checks them, as read-only float64 arrays: the track's poses for a
+    caller that wants the arrays alone. Raises :class:`InvalidInputError` naming ``body_center`` or
+    ``body_rotation``."""
+    track = BodyTrack.make(bodies, center, rotation, t_count=t_count)
+    return track.center, track.rotation
 
 
 def check_bodies(bodies: Sequence[Body], dim: int, n_grid: int, wall_cells: int, start: int = 0) -> list[float]:
@@ -316,6 +460,9 @@ __all__ = [
     "SHAPES",
     "BodiesView",
     "Body",
+    "BodyFrame",
+    "BodyTrack",
+    "as_body_track",
     "check_bodies",
     "check_poses",
     "hull_planes",

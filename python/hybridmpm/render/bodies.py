@@ -22,11 +22,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from hybridmpm.mpm.bodies import check_poses
+from hybridmpm.mpm.bodies import BodyTrack, as_body_track, check_poses
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh, write_surface
 
 #: Points of a circle's outline (2D).
@@ -162,18 +162,26 @@ def body_surface(body: Any, center: Any, rotation: Any) -> SurfaceMesh | Surface
     return SurfaceMesh(place(v, center, rotation), np.asarray(f, np.int32), "body", BODY_TAG, 0.0)
 
 
-def export_bodies(out_dir: str | Path, bodies: Sequence[Any], center: Any, rotation: Any, fmt: str = "ply", every: int = 1) -> list[Path]:
+def export_bodies(
+    out_dir: str | Path, bodies: BodyTrack | Sequence[Any], center: Any = None, rotation: Any = None, fmt: str = "ply", every: int = 1
+) -> list[Path]:
     """Write each body at each ``every``-th frame as ``out_dir/body_<i>_<t>.<fmt>`` (``ply`` or
     ``obj``; ``glb`` for 3D): :func:`body_surface` at the pose ``center[t, i]``,
-    ``rotation[t, i]``. Returns the paths. Raises :class:`InvalidInputError` naming
-    ``body_center``, ``body_rotation`` or ``fmt``."""
-    c, r = check_poses(bodies, center, rotation)
+    ``rotation[t, i]``. ``bodies`` a :class:`~hybridmpm.mpm.bodies.BodyTrack` (then
+    ``center`` and ``rotation`` stay None), or the bodies as given with ``center``
+    float [T, B, D] [m] and ``rotation`` [T, B, D, D], made into one once here
+    (:meth:`~hybridmpm.mpm.bodies.BodyTrack.make`). Returns the paths. Raises
+    :class:`InvalidInputError` naming ``body_center`` (also: a track with arrays
+    beside it), ``body_rotation`` or ``fmt``."""
+    made = as_body_track(bodies, center, rotation)  # a track as it is (no arrays beside it), or made of the arrays
+    # none made (no bodies, or no centres): the arrays as they are, for their errors (or no body)
+    track = made if made is not None else BodyTrack.make(cast(Sequence[Any], bodies), center, rotation)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for t in range(0, c.shape[0], every):
-        for i, body in enumerate(bodies):
-            paths.append(write_surface(body_surface(body, c[t, i], r[t, i]), out / f"body_{i}_{t:05d}.{fmt}", fmt))
+    for t in range(0, track.num_frames, every):
+        for i, body in enumerate(track.shapes):
+            paths.append(write_surface(body_surface(body, track.center[t, i], track.rotation[t, i]), out / f"body_{i}_{t:05d}.{fmt}", fmt))
     return paths
 
 
@@ -186,7 +194,7 @@ __all__ = [
     "body_prism",
     "body_surface",
     "capsule_mesh",
-    "check_poses",
+    "check_poses",  # re-exported: hybridmpm.mpm.bodies.check_poses, a thin wrapper of BodyTrack.make
     "export_bodies",
     "icosphere",
     "local_mesh",

@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.conventions import GNS_ELASTIC, GNS_GOOP, GNS_KINEMATIC, GNS_SAND, GNS_SNOW, GNS_WATER
-from hybridmpm.render.bodies import check_poses, local_mesh, local_outline, place
+from hybridmpm.mpm.bodies import BodyTrack, as_body_track
+from hybridmpm.render.bodies import local_mesh, local_outline, place
 
 #: colours by GNS particle type: water blue, sand ochre, jelly (elastic) a translucent red, snow white,
 #: mud (viscoplastic) brown, obstacles grey
@@ -57,7 +58,7 @@ def render_gif(
     title: str = "",
     frame_solver: np.ndarray | None = None,
     overlay: list[np.ndarray] | None = None,
-    bodies: Sequence[Any] = (),
+    bodies: BodyTrack | Sequence[Any] | None = (),
     body_center: np.ndarray | None = None,
     body_rotation: np.ndarray | None = None,
 ) -> Path:
@@ -72,11 +73,18 @@ def render_gif(
     [T] of "mpm" / "neural" tints each frame by the solver that produced it
     (MPM: warm background, neural: cool) and names it in the title.
     ``overlay`` polylines [P, 2] (domain coordinates, e.g. a sketch) are drawn
-    over every frame. ``bodies`` (the scene's :class:`~hybridmpm.mpm.bodies.Body`
-    list) at ``body_center`` [T, B, D] and ``body_rotation`` [T, B, D, D] (a
-    trajectory's arrays) are drawn over the particles in :data:`BODY_FILL`:
-    in 2D their outline filled, in 3D their silhouette in the x–y projection;
-    without the arrays, none. Returns the path.
+    over every frame. ``bodies`` (a :class:`~hybridmpm.mpm.bodies.BodyTrack`
+    of T frames, a rollout's :attr:`~hybridmpm.sim.Rollout.bodies`; or the
+    scene's :class:`~hybridmpm.mpm.bodies.Body` list at ``body_center``
+    float [T, B, D] [m] and ``body_rotation`` [T, B, D, D], a trajectory's
+    arrays, made into a track once here: :func:`~hybridmpm.mpm.bodies.as_body_track`)
+    are drawn over the particles in :data:`BODY_FILL`: in 2D their outline
+    filled, in 3D their silhouette in the x–y projection; without the arrays
+    (or with ``bodies`` None), none. Returns the path.
+
+    Raises :class:`ValueError` for ``positions`` not [T, N, 2|3] and
+    :class:`~hybridmpm.errors.InvalidInputError` naming ``body_center`` or
+    ``body_rotation`` for poses that are not the bodies' over the T frames.
     """
     import imageio.v3 as iio
     import matplotlib
@@ -93,7 +101,7 @@ def render_gif(
     colours = particle_colours(types)
     materials = set(np.unique(types).tolist()) - {GNS_KINEMATIC}
     background = SNOW_BACKGROUND if GNS_SNOW in materials else "white"
-    poses = None if body_center is None or not len(bodies) else check_poses(bodies, body_center, body_rotation, t_count)
+    track = as_body_track(bodies, body_center, body_rotation, t_count=t_count)
     fig, ax = _figure(size_px)
     frames = []
     for i in idx:
@@ -111,9 +119,9 @@ def render_gif(
             shade = colours[order].copy()
             shade[:, :3] *= (1.0 - 0.45 * np.clip(p[order, 2], 0.0, 1.0))[:, None]
             ax.scatter(p[order, 0], p[order, 1], s=1.0, c=shade, linewidths=0)
-        if poses is not None:
-            for k, body in enumerate(bodies):
-                ax.fill(*_silhouette(body, poses[0][i, k], poses[1][i, k]).T, facecolor=BODY_FILL, edgecolor=BODY_EDGE, lw=0.8, zorder=3)
+        if track is not None:
+            for k, body in enumerate(track.shapes):
+                ax.fill(*_silhouette(body, track.center[i, k], track.rotation[i, k]).T, facecolor=BODY_FILL, edgecolor=BODY_EDGE, lw=0.8, zorder=3)
         for line in overlay or []:
             ax.plot(line[:, 0], line[:, 1], color="#d62728", lw=1.5, alpha=0.8)
         _frame_axes(ax)

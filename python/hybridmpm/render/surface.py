@@ -74,7 +74,7 @@ from hybridmpm.mpm import Box, Sphere
 from hybridmpm.render.surface_field import MARGIN, Field, PosedBody, is_sampled
 from hybridmpm.render.surface_levels import VOLUME_TOL as VOLUME_TOL
 from hybridmpm.render.surface_levels import material_surface
-from hybridmpm.render.surface_scene import posed_settings, rest_densities, surface_settings
+from hybridmpm.render.surface_scene import pose_track, posed_settings, rest_densities, surface_settings
 
 #: Largest surface grid: nodes of the domain at spacing ``dx / refine`` (512³).
 MAX_GRID_NODES = 512**3
@@ -421,11 +421,14 @@ def export_surfaces(
     :func:`surface_mesh` / :func:`surface_contours` (``domain``, ``dx``, ...);
     ``obstacle_centers`` float [T, C, D] [m] places the obstacles in each
     frame (:func:`posed_settings`; None: where ``settings`` put them), and
-    ``bodies`` (bodies as given, ``body_center``, ``body_rotation``) the rigid
-    bodies the surfaces end on.
+    ``bodies`` the rigid bodies the surfaces end on: a
+    :class:`~hybridmpm.mpm.bodies.BodyTrack`, or ``(bodies as given,
+    body_center, body_rotation)`` made into one once here
+    (:func:`~hybridmpm.render.surface_scene.pose_track`).
     Returns the paths in frame order, materials sorted by type within a
     frame. Raises :class:`InvalidInputError` naming ``fmt`` (unknown, or
-    ``glb`` in 2D), ``positions``, ``every``, ``obstacle_centers`` or a setting."""
+    ``glb`` in 2D), ``positions``, ``every``, ``obstacle_centers``, ``bodies``,
+    ``body_center`` (also: not one pose per frame), ``body_rotation`` or a setting."""
     if fmt not in MESH_FORMATS:
         raise InvalidInputError(f"fmt: must be one of {', '.join(MESH_FORMATS)}, got {fmt!r}", "fmt")
     p = np.asarray(positions)
@@ -437,11 +440,14 @@ def export_surfaces(
         raise InvalidInputError(f"every: must be an integer >= 1, got {every!r}", "every")
     if obstacle_centers is not None and np.shape(obstacle_centers)[:1] != p.shape[:1]:
         raise InvalidInputError(f"obstacle_centers: expected one row per frame ({p.shape[0]}), got {list(np.shape(obstacle_centers))}", "obstacle_centers")
+    track = pose_track(bodies)  # checked once, not per frame
+    if track is not None and track.num_frames != p.shape[0]:
+        raise InvalidInputError(f"body_center: expected one pose per frame ({p.shape[0]}), got {list(track.center.shape)}", "body_center")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for t in range(0, p.shape[0], every):
-        surfaces = frame_surfaces(p[t], particle_type, **posed_settings(settings, obstacle_centers, t, bodies))
+        surfaces = frame_surfaces(p[t], particle_type, **posed_settings(settings, obstacle_centers, t, track))
         for s in surfaces:
             path = out / f"{s.material}_{t:05d}.{fmt}"
             write_surface(s, path, fmt)

@@ -13,7 +13,7 @@ import numpy as np
 
 from hybridmpm.conventions import GNS_KINEMATIC, GNS_TYPE_OF_MATERIAL, MATERIALS
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.mpm.bodies import check_poses
+from hybridmpm.mpm.bodies import BodyTrack, as_body_track
 from hybridmpm.render.surface_field import PosedBody
 from hybridmpm.scenes import wall_face
 from hybridmpm.scenes.obstacles import obstacles_at
@@ -61,34 +61,51 @@ def surface_settings(params: Any, particle_type: Any = None, masses: Any = None)
     return out
 
 
+def pose_track(bodies: Any) -> BodyTrack | None:
+    """The ``bodies`` argument of :func:`posed_settings` and
+    :func:`~hybridmpm.render.surface.export_surfaces` as one checked
+    :class:`~hybridmpm.mpm.bodies.BodyTrack`: a track as it is; ``(bodies as
+    given, body_center [T, B, D] [m], body_rotation [T, B, D, D])`` made into
+    one (:func:`~hybridmpm.mpm.bodies.as_body_track`); None (or no bodies, or
+    no centres) None. A caller that goes over many frames calls it once and
+    hands the track on. Raises :class:`InvalidInputError` naming ``bodies``
+    (neither), ``body_center`` or ``body_rotation``."""
+    if bodies is None or isinstance(bodies, BodyTrack):
+        return bodies
+    if not isinstance(bodies, (tuple, list)) or len(bodies) != 3:
+        raise InvalidInputError(f"bodies: expected a BodyTrack or (bodies as given, body_center, body_rotation), got {type(bodies).__name__}", "bodies")
+    return as_body_track(*bodies)
+
+
 def posed_settings(settings: dict[str, Any], obstacle_centers: Any, t: int, bodies: Any = None) -> dict[str, Any]:
     """``settings`` (:func:`surface_settings`) for frame ``t`` of a run whose
     obstacles move: its ``obstacles`` translated to ``obstacle_centers[t]``
     (float [T, C, D] [m], a trajectory's
     :attr:`~hybridmpm.trajectory.Trajectory.obstacle_centers`;
     :func:`~hybridmpm.scenes.obstacles.obstacles_at`), so that the surface
-    ends on each obstacle where it is in that frame; with ``bodies``
-    ``(bodies as given, body_center [T, B, D], body_rotation [T, B, D, D])``
-    (a trajectory's poses), each body at frame ``t`` added as a
+    ends on each obstacle where it is in that frame; with ``bodies`` (a
+    :class:`~hybridmpm.mpm.bodies.BodyTrack`, or ``(bodies as given,
+    body_center [T, B, D], body_rotation [T, B, D, D])``: :func:`pose_track`)
+    each body at frame ``t`` added as a
     :class:`~hybridmpm.render.surface_field.PosedBody`: the surface ends on it
     too. ``obstacle_centers`` and ``bodies`` None: ``settings`` as they are.
     Raises :class:`InvalidInputError` naming ``obstacle_centers`` (not
-    [T, C, D] for the settings' C obstacles, not finite) or ``body_center``
-    (:func:`hybridmpm.mpm.bodies.check_poses`)."""
+    [T, C, D] for the settings' C obstacles, not finite), ``bodies``,
+    ``body_center`` (no row for frame ``t``) or ``body_rotation``
+    (:func:`pose_track`)."""
     out = settings
     if obstacle_centers is not None:
         oc = np.asarray(obstacle_centers)
         if oc.ndim != 3 or not 0 <= t < oc.shape[0]:
             raise InvalidInputError(f"obstacle_centers: expected [T, C, D] with a row for frame {t}, got {list(oc.shape)}", "obstacle_centers")
         out = {**settings, "obstacles": obstacles_at(settings.get("obstacles", ()), oc[t])}
-    if bodies is not None:
-        given, center, rotation = bodies
-        c, r = check_poses(given, center, rotation)
-        if not 0 <= t < c.shape[0]:
-            raise InvalidInputError(f"body_center: expected [T, B, D] with a row for frame {t}, got {list(c.shape)}", "body_center")
-        posed = [PosedBody(b, c[t, i], r[t, i]) for i, b in enumerate(given)]
+    track = pose_track(bodies)
+    if track is not None:
+        if not 0 <= t < track.num_frames:
+            raise InvalidInputError(f"body_center: expected [T, B, D] with a row for frame {t}, got {list(track.center.shape)}", "body_center")
+        posed = [PosedBody(b, track.center[t, i], track.rotation[t, i]) for i, b in enumerate(track.shapes)]
         out = {**out, "obstacles": [*out.get("obstacles", ()), *posed]}
     return out
 
 
-__all__ = ["posed_settings", "rest_densities", "surface_settings"]
+__all__ = ["pose_track", "posed_settings", "rest_densities", "surface_settings"]

@@ -49,7 +49,8 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import Sphere
-from hybridmpm.render.bodies import body_prism, check_poses, local_mesh
+from hybridmpm.mpm.bodies import BodyTrack, as_body_track
+from hybridmpm.render.bodies import body_prism, local_mesh
 from hybridmpm.render.surface import SurfaceContours, SurfaceMesh
 from hybridmpm.render.surface_field import is_sampled
 from hybridmpm.scenes.obstacles import box_rotation, obstacle_center
@@ -88,7 +89,7 @@ def write_usd(
     obstacle_centers: Any = None,
     domain: tuple[Sequence[float], Sequence[float]] | None = None,
     width: float | None = None,
-    bodies: Sequence[Any] = (),
+    bodies: BodyTrack | Sequence[Any] | None = (),
     body_center: Any = None,
     body_rotation: Any = None,
 ) -> Path:
@@ -105,10 +106,13 @@ def write_usd(
     scene's in float32 in some frame gets a translate op sampled at every
     frame, the others are written once; ``domain`` ``(lo, hi)`` [m] or
     None (no domain prim); ``width`` the points' display width [m] (default:
-    none written); ``bodies`` the scene's rigid bodies
-    (:class:`~hybridmpm.mpm.bodies.Body`) at ``body_center`` [T, B, D] and
-    ``body_rotation`` [T, B, D, D] (a trajectory's arrays; without them no
-    body is written). Returns the path.
+    none written); ``bodies`` the rigid bodies over the T frames: a
+    :class:`~hybridmpm.mpm.bodies.BodyTrack` (a rollout's
+    :attr:`~hybridmpm.sim.Rollout.bodies`), or the scene's
+    :class:`~hybridmpm.mpm.bodies.Body` list at ``body_center`` float
+    [T, B, D] [m] and ``body_rotation`` [T, B, D, D] (a trajectory's arrays,
+    made into a track once here: :func:`~hybridmpm.mpm.bodies.as_body_track`;
+    without them no body is written). Returns the path.
 
     Raises :class:`InvalidInputError` naming ``path`` (suffix not one of
     :data:`USD_SUFFIXES`, folder missing or not writable), ``positions``,
@@ -149,7 +153,7 @@ def write_usd(
                 f"obstacle_centers: expected finite numbers [{t_count}, {len(obstacles)}, {dim}], got {oc.dtype} {list(oc.shape)}", "obstacle_centers"
             )
         oc = oc.astype(np.float64)
-    poses = None if body_center is None or not len(bodies) else check_poses(bodies, body_center, body_rotation, t_count)
+    track = as_body_track(bodies, body_center, body_rotation, t_count=t_count)
 
     tmp = path.with_name(path.name + ".tmp" + path.suffix)
     stage = Usd.Stage.CreateNew(str(tmp))
@@ -191,10 +195,10 @@ def write_usd(
     for i, c in enumerate(obstacles):
         moved = oc is not None and not (oc[:, i].astype(np.float32) == obstacle_center(c).astype(np.float32)).all()
         _write_obstacle(stage, f"/Run/Obstacles/obstacle_{i}", c, dim, Gf, oc[:, i] if moved and oc is not None else None)
-    if poses is not None:
+    if track is not None:
         UsdGeom.Scope.Define(stage, "/Run/Bodies")
-        for i, b in enumerate(bodies):
-            _write_body(stage, f"/Run/Bodies/body_{i}", b, poses[0][:, i], poses[1][:, i])
+        for i, b in enumerate(track.shapes):
+            _write_body(stage, f"/Run/Bodies/body_{i}", b, track.center[:, i], track.rotation[:, i])
     if domain is not None:
         lo, hi = (_vec3(np.asarray(b, np.float32)) for b in domain)
         _write_domain(stage, lo, hi, dim)

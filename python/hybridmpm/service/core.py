@@ -47,6 +47,7 @@ from hybridmpm.service.facts import SessionFacts, SessionSettings, scene_geometr
 from hybridmpm.service.schemas import clean
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, StoredSession, rebuild, record_state
 from hybridmpm.sim import Frame, RealtimeSimulator, Rollout, Simulator, make_simulator, rollout
+from hybridmpm.sim.rollout import given_bodies
 
 log = logging.getLogger("hybridmpm.service")
 
@@ -294,7 +295,7 @@ class SessionCore(SessionEdits):
     def _recorded_bodies(self, center: np.ndarray | None, rotation: np.ndarray | None, mass: np.ndarray | None) -> RecordedBodies | None:
         """A frame's bodies as the recording keeps them: with the solver's list of the bodies as given (one object
         until a body is added or removed, so a download knows which frames share their bodies); None without."""
-        given = getattr(getattr(getattr(self.sim, "solver", None), "params", None), "bodies", None)
+        given = given_bodies(self.sim)
         if not given or center is None or rotation is None or mass is None:
             return None
         return given, center, rotation, mass
@@ -339,8 +340,8 @@ class SessionCore(SessionEdits):
             self._changed()
             for k in range(1, len(ro.frame_index)):
                 centers = None if ro.obstacle_centers is None else ro.obstacle_centers[k]
-                c, r, m = ro.body_center, ro.body_rotation, ro.body_mass
-                poses = (None, None, None) if c is None or r is None or m is None else (c[k], r[k], m)
+                track = ro.bodies  # the rollout's bodies when its frames share them
+                poses = (None, None, None) if track is None else (track.center[k], track.rotation[k], track.mass)
                 self._record_values(int(ro.frame_index[k]), ro.positions[k], str(ro.solver[k]), False, centers, self._recorded_bodies(*poses))
             if len(ro.frame_index) > 1:
                 self.on_frame(self.sim.frame, 0)

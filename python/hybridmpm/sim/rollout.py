@@ -23,6 +23,7 @@ import numpy as np
 
 from hybridmpm.errors import InvalidInputError, SimulationError
 from hybridmpm.limits import check_allocation
+from hybridmpm.mpm.bodies import BodyFrame, BodyTrack
 from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import full_resolution
 from hybridmpm.sim.base import MPM, NEURAL, Frame, NetworkFailure, Simulator, check_int
@@ -45,9 +46,13 @@ class Rollout(Trajectory):
     ``score`` float64 [K + 1] safeguard s(t) (nan where not computed);
     ``substeps`` int64 [K + 1]; ``controlled`` bool [K + 1]; the
     trajectory's ``obstacle_centers`` float64 [K + 1, C, D] when the
-    simulator records them (a scene with obstacles); ``body_center``
-    float64 [K + 1, B, D], ``body_rotation`` [K + 1, B, D, D] and
-    ``body_mass`` [B] when every entry has the same rigid bodies. And ``events``
+    simulator records them (a scene with obstacles); ``bodies`` the rigid
+    bodies as one :class:`~hybridmpm.mpm.bodies.BodyTrack` (the bodies as
+    given, ``center`` float64 [K + 1, B, D] [m], ``rotation``
+    [K + 1, B, D, D], ``mass`` [B] [kg]) when every entry has the same
+    bodies (:meth:`~hybridmpm.mpm.bodies.BodyTrack.stack`), else None, and
+    the trajectory's ``body_center``, ``body_rotation`` and ``body_mass``
+    its arrays (kept for the file and for older callers). And ``events``
     [(step, event)], ``failure`` (None, "nan", "mpm", a network failure mode
     or a stop rule's reason) and ``failure_detail`` (the error's message),
     ``stats`` (the simulator's counters),
@@ -67,6 +72,7 @@ class Rollout(Trajectory):
     stats: dict[str, Any] = field(default_factory=dict)
     num_fluid: int = 0
     r_t: int = 1
+    bodies: BodyTrack | None = None
 
     @property
     def fluid_positions(self) -> np.ndarray:
@@ -120,6 +126,7 @@ def rollout(
     start = sim.frame
     target = start.frame_index + frames
     recs: list[Frame] = [start]
+    shapes: list[Any] = [given_bodies(sim)]  # each kept frame's bodies as given (a callback may add or remove one)
     failure: str | None = None
     detail: str | None = None
     bar = tqdm(total=steps, desc=progress, unit="step", disable=progress is None)
@@ -137,6 +144,7 @@ def rollout(
                 failure = "nan"
                 break
             recs.append(fr)
+            shapes.append(given_bodies(sim))
             bar.update()
             if fr.solver != MPM or not math.isnan(fr.score):
                 bar.set_postfix_str(f"{fr.solver} s={fr.score:.2f}", refresh=False)
@@ -149,10 +157,24 @@ def rollout(
                     break
     finally:
         bar.close()
-    return _collect(sim, recs, failure, detail)
+    return _collect(sim, recs, shapes, failure, detail)
 
 
-def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str | None) -> Rollout:
+def given_bodies(sim: Any) -> list[Any] | None:
+    """The rigid bodies ``sim`` holds now, as given (its MPM solver's ``params.bodies``: one list object until a
+    body is added or removed); None for a simulator without them (the learned and hybrid ones refuse bodies)."""
+    return getattr(getattr(getattr(sim, "solver", None), "params", None), "bodies", None)
+
+
+def body_frame(frame: Frame, shapes: Any) -> BodyFrame | None:
+    """A frame's bodies as :meth:`~hybridmpm.mpm.bodies.BodyTrack.stack` takes them: ``shapes`` (the bodies as
+    given when it was made) with its ``body_center``, ``body_rotation`` and ``body_mass``; None without."""
+    if not shapes or frame.body_center is None or frame.body_rotation is None or frame.body_mass is None:
+        return None
+    return shapes, frame.body_center, frame.body_rotation, frame.body_mass
+
+
+def _collect(sim: Simulator, recs: list[Frame], shapes: list[Any], failure: str | None, detail: str | None) -> Rollout:
     p = sim.particles
     solver = np.array([r.solver for r in recs])
     seconds = np.array([0.0] + [r.seconds for r in recs[1:]])
@@ -161,10 +183,7 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     frame_index = np.array([r.frame_index for r in recs], np.int64)
     centers = [r.obstacle_centers for r in recs if r.obstacle_centers is not None]
     # the bodies when every kept frame has the same ones (none added or removed during the rollout)
-    bodies = [
-        (r.body_center, r.body_rotation, r.body_mass) for r in recs if r.body_center is not None and r.body_rotation is not None and r.body_mass is not None
-    ]
-    same = len(bodies) == len(recs) and all(np.array_equal(b[2], bodies[0][2]) for b in bodies)
+    track = BodyTrack.stack([body_frame(r, g) for r, g in zip(recs, shapes)])
     extras = {
         "solver": (solver != MPM).astype(np.int8),  # 1: the cheap half (the network, or the coarse grid of the classical twin)
         "score": score,
@@ -175,9 +194,10 @@ def _collect(sim: Simulator, recs: list[Frame], failure: str | None, detail: str
     return Rollout(
         positions=np.stack([r.positions for r in recs]),
         obstacle_centers=np.stack(centers) if centers and len(centers) == len(recs) else None,
-        body_center=np.stack([b[0] for b in bodies]) if same else None,
-        body_rotation=np.stack([b[1] for b in bodies]) if same else None,
-        body_mass=bodies[0][2] if same else None,
+        body_center=None if track is None else track.center,
+        body_rotation=None if track is None else track.rotation,
+        body_mass=None if track is None else track.mass,
+        bodies=track,
         particle_type=p.particle_type,
         dt_frame=sim.dt_frame * sim.r_t,
         n_grid=sim.scene.params.resolved_n_grid(),
@@ -294,4 +314,4 @@ def step_realtime(sim: Simulator, wall_dt: float, *, owed_s: float = 0.0, budget
     )
 
 
-__all__ = ["MAX_WALL_DT", "RealtimeTick", "Rollout", "StopRule", "reference", "rollout", "step_realtime"]
+__all__ = ["MAX_WALL_DT", "RealtimeTick", "Rollout", "StopRule", "body_frame", "given_bodies", "reference", "rollout", "step_realtime"]

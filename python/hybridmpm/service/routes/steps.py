@@ -119,8 +119,8 @@ async def step(
         frames_ = [int(x) for x in np.asarray(ro.frame_index)[1:]]
         failure = None if ro.failure is None else str(ro.failure)
         bodies = None
-        if ro.body_center is not None and ro.body_rotation is not None and ro.body_center.shape[1]:
-            bodies = (np.asarray(ro.body_center[1:], np.float64), np.asarray(ro.body_rotation[1:], np.float64))
+        if ro.bodies is not None:  # the rollout's bodies (its frames share them), the first entry (the start) left out
+            bodies = (ro.bodies.center[1:], ro.bodies.rotation[1:])
         del ro
         if binary:
             headers = {

@@ -19,9 +19,10 @@ import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
+from hybridmpm.mpm.bodies import BodyTrack
 from hybridmpm.render import export_points, export_surfaces
 from hybridmpm.render.bodies import export_bodies
-from hybridmpm.service.budget import mesh_download_bytes
+from hybridmpm.service.budget import RecordedFrame, mesh_download_bytes
 from hybridmpm.service.core import RECORD_STEPS
 from hybridmpm.service.deps import ManagerDep, SessionDep
 from hybridmpm.service.errors import ApiError, FieldError
@@ -37,21 +38,27 @@ PLY_BYTES_PER_VALUE = 40
 router = APIRouter()
 
 
-def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any], bodies: list[Any] | None = None) -> bytes:
+def trajectory_mesh_zip(traj: Trajectory, settings: dict[str, Any], bodies: BodyTrack | None = None) -> bytes:
     """One binary PLY surface per frame and material (``water_00000.ply``, ``sand_00000.ply`` …; 2D: outlines), zipped;
     the obstacles of ``settings`` placed in each frame at the trajectory's ``obstacle_centers`` (when it has them); with
-    ``bodies`` (as given) and the trajectory's body poses, each body at each frame (``body_<i>_<t>.ply``,
-    :func:`hybridmpm.render.bodies.export_bodies`)."""
+    ``bodies`` (the frames' :class:`~hybridmpm.mpm.bodies.BodyTrack`: :func:`recorded_bodies`), each body at each frame
+    (``body_<i>_<t>.ply``, :func:`hybridmpm.render.bodies.export_bodies`) and the surfaces ending on it."""
     buf = io.BytesIO()
     with tempfile.TemporaryDirectory(prefix="hybridmpm-mesh-") as tmp:
-        poses = (bodies, traj.body_center, traj.body_rotation) if bodies and traj.body_center is not None and traj.body_rotation is not None else None
-        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, bodies=poses, **settings)
-        if poses is not None:
-            paths += export_bodies(tmp, *poses, fmt="ply")
+        paths = export_surfaces(traj.positions, traj.particle_type, tmp, fmt="ply", obstacle_centers=traj.obstacle_centers, bodies=bodies, **settings)
+        if bodies is not None:
+            paths += export_bodies(tmp, bodies, fmt="ply")
         with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
             for p in paths:
                 z.write(p, Path(p).name)
     return buf.getvalue()
+
+
+def recorded_bodies(held: list[RecordedFrame]) -> BodyTrack | None:
+    """The bodies of a session's recorded frames (oldest first) as one track, when every frame has the same ones
+    (none added or removed meanwhile): :meth:`~hybridmpm.mpm.bodies.BodyTrack.stack`, the rule a rollout keeps
+    its bodies by; else None."""
+    return BodyTrack.stack([h[5] for h in held])
 
 
 def trajectory_npz(traj: Trajectory) -> bytes:
@@ -110,18 +117,15 @@ async def get_session_trajectory(
     else:
         reserve = values * (PLY_BYTES_PER_VALUE if format == "ply" else 4 * FILE_COPIES)
     with manager.budget.hold(reserve, "the trajectory's file"):
-        # the bodies when every frame held has the same ones (none added or removed meanwhile: one list as given)
-        poses = [h[5] for h in held if h[5] is not None]
-        same = len(poses) == len(held) and all(b[0] is poses[0][0] for b in poses)
-        given = poses[0][0] if same else None
+        track = recorded_bodies(held)  # the bodies when every frame held has the same ones
 
         def make() -> Trajectory:
             centers = [h[4] for h in held if h[4] is not None]
             return Trajectory(
                 obstacle_centers=np.stack(centers) if centers and len(centers) == len(held) else None,
-                body_center=np.stack([b[1] for b in poses]) if same else None,
-                body_rotation=np.stack([b[2] for b in poses]) if same else None,
-                body_mass=poses[0][3] if same else None,
+                body_center=None if track is None else track.center,
+                body_rotation=None if track is None else track.rotation,
+                body_mass=None if track is None else track.mass,
                 positions=np.stack([h[1] for h in held]),
                 particle_type=ptype,
                 dt_frame=dt,
@@ -142,7 +146,7 @@ async def get_session_trajectory(
             data = await manager.compute(trajectory_ply_zip, traj, traj.extras["solver"])
             media, name = ZIP, name + "-ply.zip"
         elif format == "mesh":
-            data = await manager.compute(trajectory_mesh_zip, traj, f.surface, given)
+            data = await manager.compute(trajectory_mesh_zip, traj, f.surface, track)
             media, name = ZIP, name + "-mesh.zip"
         else:
             data = await manager.compute(trajectory_npz, traj)
