@@ -2,7 +2,7 @@
 
 A rung is the scene's default particles (its chart's ``r_p``) on one grid (the scene's, ¾ or ½ of it where the
 walls' faces stay put) stepped by
-one integrator (explicit; the projection where the scene is water in the box walls only):
+one integrator (explicit; the projection where the scene is water round free-slip obstacles):
 :func:`hybridmpm.sim.realtime.candidate_rungs`. Each rung runs ``--frames`` frames from the scene's initial
 condition on both threads. Its error is the grid-mass error against the scene's full-resolution MPM reference
 (:func:`hybridmpm.sim.reference`, paper Sec. 3.1.1's ``RMSE_m̃``, mass-weighted), averaged over the frames; its
@@ -10,7 +10,8 @@ time the mean wall time per frame after ``--warmup`` frames, and its ``time_rati
 in the same run (ratios carry over between machines; milliseconds do not).
 
 Real-time mode (docs/realtime.md) orders the rungs by error and keeps those that buy time; ``--ship`` writes the
-chart into the package (``python/hybridmpm/models/realtime.json``), which the mode reads. The figure marks, per
+charted scenes into the package's chart (``python/hybridmpm/models/realtime.json``, the other scenes kept), which
+the mode reads. The figure marks, per
 scene, the rung this machine picks: the most accurate whose frame fits the budget (2.5 ms / 1.25).
 
     python benchmarks/realtime_chart.py --out benchmarks/results/realtime_chart --ship
@@ -19,6 +20,7 @@ scene, the rung this machine picks: the most accurate whose frame fits the budge
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -136,12 +138,12 @@ def main(argv: list[str] | None = None) -> int:
     ]
     figures = {"realtime_chart.png": plot(charts, budget_ms)}
     write_results(args.out, "realtime_chart", doc={"scenes": charts}, markdown=lines, figures=figures, argv=script_argv("realtime_chart.py", argv), dpi=110)
-    if args.ship:
-        shipped = {
-            "made_by": "benchmarks/realtime_chart.py",
-            "frames": args.frames,
-            "scenes": {n: {k: v for k, v in c.items() if k != "pick"} for n, c in charts.items()},
-        }
+    if args.ship:  # the charted scenes replace theirs in the shipped chart; the others are kept (each scene's ratios are its own run's)
+        before = json.loads(SHIP.read_text()) if SHIP.is_file() else {}
+        if before.get("frames", args.frames) != args.frames:
+            ap.error(f"--frames: the shipped chart was made with {before['frames']} frames a rung; chart every scene to change it")
+        scenes = {**before.get("scenes", {}), **{n: {k: v for k, v in c.items() if k != "pick"} for n, c in charts.items()}}
+        shipped = {"made_by": "benchmarks/realtime_chart.py", "frames": args.frames, "scenes": {n: scenes[n] for n in DOMAINS if n in scenes}}
         write_json(SHIP, shipped)
         print(f"wrote {SHIP}")
     print(f"{time.perf_counter() - t_start:.0f} s")

@@ -84,8 +84,7 @@ def test_an_explicit_session_and_the_scenes_own_say_explicit(client):
 @pytest.mark.parametrize(
     "body",
     [
-        {"scene": "water_ramps2d", "solver": "mpm", "integrator": "projection"},  # obstacles
-        {"scene": "paddle3d", "solver": "mpm", "integrator": "projection"},  # an obstacle (the brief's example)
+        {"scene": "crates2d", "solver": "mpm", "integrator": "projection"},  # rigid bodies
         {"scene": "water_sand2d", "solver": "mpm", "integrator": "projection"},  # sand
         {"scene": "dam_break2d", "solver": "mpm", "integrator": "bogus"},
         {"scene": "dam_break2d", "solver": "mpm", "integrator": 1},
@@ -100,6 +99,15 @@ def test_a_refused_integrator_is_a_422_naming_it(client, body):
     before = client.get("/healthz").json()["sessions"]
     assert field_of(client.post("/v1/sessions", json=body)) == "integrator", body
     assert client.get("/healthz").json()["sessions"] == before  # nothing was created
+
+
+def test_a_scene_with_free_slip_obstacles_runs_on_the_projection(client):
+    r = client.post("/v1/sessions", json={"scene": "water_ramps2d", "solver": "mpm", "integrator": "projection"})
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    assert r.json()["integrator"] == "projection"
+    assert client.post(f"/v1/sessions/{sid}/step", json={"frames": 8}).status_code == 200
+    client.delete(f"/v1/sessions/{sid}")
 
 
 def test_the_schema_lists_the_integrators(client):

@@ -409,6 +409,12 @@ class SampledSdf:
 Collider = Box | Sphere | SampledSdf
 
 
+def free_slip(collider: Box | Sphere | SampledSdf) -> bool:
+    """Whether ``collider`` is free slip (not ``sticky``, no friction): the obstacles the projection
+    integrator steps round (docs/large-step.md)."""
+    return collider.condition != "sticky" and float(collider.friction) == 0.0
+
+
 @dataclass
 class MpmParams:
     """All solver parameters (see the Rust ``SolverParams`` for the ranges).
@@ -426,9 +432,11 @@ class MpmParams:
 
     ``integrator`` is one of :data:`INTEGRATORS`: ``"explicit"`` (MLS-MPM
     substeps at the CFL bound of the materials' wave speeds) or
-    ``"projection"`` (incompressible APIC water, one step per cell the flow
-    crosses; water in the box walls only: a solver with colliders, bodies,
-    sand or solids refuses its frames naming ``integrator``).
+    ``"projection"`` (incompressible APIC water, one step per two cells the
+    flow crosses; water in the box walls and around free-slip colliders, at
+    rest or moving: a solver with bodies, sand or solids refuses its frames
+    naming ``integrator``, a collider with friction or a sticky one is
+    refused naming ``colliders[i].friction`` / ``.condition``).
     """
 
     dim: int = 2
@@ -535,12 +543,21 @@ class MpmParams:
                 raise InvalidInputError(f"colliders[{i}]: must be a Box, a Sphere or a SampledSdf, got {c!r}", f"colliders[{i}]")
         if not isinstance(self.bodies, (list, tuple)) or not all(isinstance(b, Body) for b in self.bodies):
             raise InvalidInputError(f"bodies: must be a list of Body, got {self.bodies!r}", "bodies")
-        if self.integrator != INTEGRATORS[0] and (self.colliders or self.bodies):
-            what = f"{len(self.colliders)} collider(s)" if self.colliders else f"{len(self.bodies)} rigid body(ies)"
+        if self.integrator != INTEGRATORS[0] and self.bodies:
             raise InvalidInputError(
-                f"integrator: the {self.integrator} integrator steps water in the box walls only, and these parameters have {what}: use integrator 'explicit'",
+                f"integrator: the {self.integrator} integrator steps water in the box walls and around obstacles only, and these parameters have "
+                f"{len(self.bodies)} rigid body(ies): use integrator 'explicit'",
                 "integrator",
             )
+        if self.integrator != INTEGRATORS[0]:
+            for i, c in enumerate(self.colliders):  # the projection's obstacles are free slip (docs/large-step.md)
+                if not free_slip(c):
+                    field_ = f"colliders[{i}].{'condition' if c.condition == 'sticky' else 'friction'}"
+                    raise InvalidInputError(
+                        f"{field_}: the {self.integrator} integrator has free-slip obstacles, and this one is {c.condition!r} with friction "
+                        f"{c.friction!r} (use 'slip' or 'separate' without friction, or integrator 'explicit')",
+                        field_,
+                    )
 
     def to_dict(self) -> dict[str, Any]:
         """The plain dict the Rust binding takes (JSON-serialisable); validated

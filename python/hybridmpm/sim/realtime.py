@@ -3,8 +3,8 @@ fits real time on this machine, and changes it as the machine's pace changes (do
 
 A *rung* is one configuration of the scene's MPM on the same particles: a grid (the scene's, or ¾ or ½ of it
 where the walls' faces stay where they are)
-and an integrator (the explicit MLS-MPM substeps, or the incompressible projection where the scene is water in
-the box walls only; docs/large-step.md). The ladder orders the rungs by their error against the scene's
+and an integrator (the explicit MLS-MPM substeps, or the incompressible projection where the scene is water
+round free-slip obstacles; docs/large-step.md). The ladder orders the rungs by their error against the scene's
 full-resolution reference, measured once by ``benchmarks/realtime_chart.py`` and shipped in
 ``models/realtime.json`` with each rung's time relative to the first; a rung that is slower and no more accurate
 than another is dropped. A scene without a chart (a scene file of your own) gets the rungs by their time priors,
@@ -47,7 +47,7 @@ from hybridmpm.conventions import MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import loads_json
 from hybridmpm.mpm import MpmSolver
-from hybridmpm.mpm.params import INTEGRATORS, MpmParams
+from hybridmpm.mpm.params import INTEGRATORS, MpmParams, free_slip
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene, wall_face
 from hybridmpm.scenes.registry import registered_name
@@ -121,8 +121,8 @@ def ladder_grids(n_grid: int) -> list[int]:
 
 
 def projection_allowed(scene: Scene) -> bool:
-    """Whether the projection steps ``scene``: water only, in the box walls only (no obstacles or bodies; the
-    solver's own checks, :func:`~hybridmpm.scenes.resolution.with_integrator`)."""
+    """Whether the projection steps ``scene``: water only, in the box walls and round free-slip obstacles (no
+    bodies; the solver's own checks, :func:`~hybridmpm.scenes.resolution.with_integrator`)."""
     if np.any(np.asarray(scene.material) != MATERIAL_WATER):
         return False
     try:
@@ -284,10 +284,10 @@ class RealtimeSimulator(MpmSimulator):
         return self._rung
 
     def projection_ok(self) -> bool:
-        """Whether the projection steps what the simulator holds now: water only (poured blocks included), no
-        obstacles, no bodies (added ones included)."""
+        """Whether the projection steps what the simulator holds now: water only (poured blocks included), free-slip
+        obstacles only, no bodies (added ones included)."""
         p = self.solver.params
-        return not p.bodies and not p.colliders and bool(np.all(np.asarray(self.solver.material) == MATERIAL_WATER))
+        return not p.bodies and all(map(free_slip, p.colliders)) and bool(np.all(np.asarray(self.solver.material) == MATERIAL_WATER))
 
     def _available(self, key: str) -> bool:
         return self._rung_params[key].integrator == INTEGRATORS[0] or self.projection_ok()

@@ -21,8 +21,10 @@
 //!    `x ← x + dt·v`, kept inside the walls.
 //!
 //! The box walls are free slip: no normal flow through a wall face, and the
-//! tangential components inside a wall copy the fluid's next to it. The
-//! step is bounded by advection only ([`Projection::steps_for`]).
+//! tangential components inside a wall copy the fluid's next to it.
+//! Colliders, at rest or moving, are solid cells with their own velocity
+//! (`obstacles.rs`). The step is bounded by advection only
+//! ([`Projection::steps_for`]).
 //!
 //! A step is the same bits whatever the threads: p2g runs in two parts of
 //! the particles fixed by their count (`transfer.rs`), summed in one order;
@@ -39,8 +41,10 @@ use rayon::prelude::*;
 
 use crate::isa::Isa;
 use crate::particles::Particle;
+pub use obstacles::StepColliders;
 use transfer::{Part, for_each_node, g2p_chunk};
 
+mod obstacles;
 mod transfer;
 
 /// The volume correction's rate `κ` (per step, of the relative excess density).
@@ -84,6 +88,11 @@ pub struct Projection<const D: usize> {
     index: Vec<u32>,
     pressure: Vec<f64>,
     fluid: Vec<usize>,
+    /// Per cell: the collider whose solid cell it is (index + 1; 0: none), the solid cells, and each
+    /// collider's velocity [m/s] in the step (`obstacles.rs`).
+    solid: Vec<u16>,
+    solid_cells: Vec<usize>,
+    obstacle_velocity: Vec<SVector<f32, D>>,
     /// The two parts of the p2g ([`Part`]).
     parts: [Part; 2],
     /// The compiled copy of the transfers that runs ([`crate::isa`]; the same bits either way).
@@ -187,6 +196,9 @@ impl<const D: usize> Projection<D> {
             index: vec![u32::MAX; cells],
             pressure: vec![0.0; cells],
             fluid: Vec::new(),
+            solid: vec![0; cells],
+            solid_cells: Vec::new(),
+            obstacle_velocity: Vec::new(),
             parts: Default::default(),
             isa: Isa::detect(),
         }
@@ -216,7 +228,7 @@ impl<const D: usize> Projection<D> {
         ((dt_frame / dt - 1e-6).ceil() as usize).max(1)
     }
 
-    /// One step of `dt` [s] for water particles of rest density `rho` [kg/m³].
+    /// One step of `dt` [s] for water particles of rest density `rho` [kg/m³] in the box walls.
     pub fn step(
         &mut self,
         particles: &mut [Particle<D>],
@@ -224,11 +236,12 @@ impl<const D: usize> Projection<D> {
         gravity: &SVector<f32, D>,
         rho: f32,
     ) -> ProjectionStats {
-        self.step_advancing(particles, dt, dt, gravity, rho)
+        self.step_advancing(particles, dt, dt, gravity, rho, &StepColliders::none())
     }
 
     /// One step of `dt` [s] that moves the particles by `advance·v` [s] (a step spanning several
-    /// frames moves them one frame's worth; the frames after it move them on at `v`).
+    /// frames moves them one frame's worth; the frames after it move them on at `v`), with the
+    /// colliders `cols` at their poses for the step as solid cells (`obstacles.rs`).
     pub fn step_advancing(
         &mut self,
         particles: &mut [Particle<D>],
@@ -236,6 +249,7 @@ impl<const D: usize> Projection<D> {
         advance: f32,
         gravity: &SVector<f32, D>,
         rho: f32,
+        cols: &StepColliders<'_, D>,
     ) -> ProjectionStats {
         self.p2g(particles, dt, rho);
         for a in 0..D {
@@ -247,12 +261,15 @@ impl<const D: usize> Projection<D> {
                 }
             }
         }
+        self.mark_solid(cols);
         self.walls();
+        self.obstacle_faces(cols, false);
         self.mark_fluid();
         let stats = self.solve(dt, rho);
         self.subtract_gradient(dt, rho);
         self.walls();
-        self.g2p(particles, advance);
+        self.obstacle_faces(cols, true);
+        self.g2p(particles, advance, cols);
         stats
     }
 
@@ -331,17 +348,19 @@ impl<const D: usize> Projection<D> {
         }
     }
 
-    fn is_solid(&self, idx: &[usize; D]) -> bool {
-        self.grid().in_walls(idx)
+    /// Whether cell `c` (index `idx`) is solid: a wall's or a collider's.
+    fn is_solid(&self, idx: &[usize; D], c: usize) -> bool {
+        self.grid().in_walls(idx) || self.in_obstacle(c)
     }
 
-    /// The fluid cells: those holding a particle, away from the walls (the p2g's parts found them).
+    /// The fluid cells: those holding a particle, away from the walls (the p2g's parts found them) and
+    /// the colliders.
     fn mark_fluid(&mut self) {
         self.index.fill(u32::MAX);
         self.fluid.clear();
         let (h0, h1) = (&self.parts[0].held, &self.parts[1].held);
         for (c, (a, b)) in h0.iter().zip(h1).enumerate() {
-            if *a || *b {
+            if (*a || *b) && self.solid[c] == 0 {
                 self.index[c] = self.fluid.len() as u32;
                 self.fluid.push(c);
             }
@@ -373,8 +392,9 @@ impl<const D: usize> Projection<D> {
             for (k, up) in [(2 * a, true), (2 * a + 1, false)] {
                 let mut j = idx;
                 j[a] = if up { idx[a] + 1 } else { idx[a] - 1 };
-                if !self.is_solid(&j) {
-                    out[k] = if up { c + stride[a] } else { c - stride[a] };
+                let nb = if up { c + stride[a] } else { c - stride[a] };
+                if !self.is_solid(&j, nb) {
+                    out[k] = nb;
                 }
             }
         }
@@ -484,7 +504,7 @@ impl<const D: usize> Projection<D> {
                 lo_idx[a] -= 1;
                 let grad_dx = if self.index[lo] != u32::MAX {
                     Some(pc - self.pressure[lo] as f32)
-                } else if !self.is_solid(&lo_idx) {
+                } else if !self.is_solid(&lo_idx, lo) {
                     Some(pc / self.theta(c, lo))
                 } else {
                     None
@@ -496,7 +516,7 @@ impl<const D: usize> Projection<D> {
                 let hi = c + stride_c[a];
                 let mut hi_idx = idx;
                 hi_idx[a] += 1;
-                if self.index[hi] == u32::MAX && !self.is_solid(&hi_idx) {
+                if self.index[hi] == u32::MAX && !self.is_solid(&hi_idx, hi) {
                     self.vel[a][low_face + st[a]] -= k * (-pc / self.theta(c, hi));
                 }
             }
@@ -504,25 +524,39 @@ impl<const D: usize> Projection<D> {
     }
 
     /// The particles move on at their velocity for `dt` [s], kept inside the walls as g2p keeps them
-    /// (a frame inside a step that spans several); returns the fastest one's speed [m/s].
-    pub fn drift(&self, particles: &mut [Particle<D>], dt: f32) -> f32 {
+    /// and out of the colliders `cols` (a frame inside a step that spans several); returns the fastest
+    /// one's speed [m/s].
+    pub fn drift(
+        &self,
+        particles: &mut [Particle<D>],
+        dt: f32,
+        cols: &StepColliders<'_, D>,
+    ) -> f32 {
         let (lo, hi) = self.grid().inside();
         let mut vmax = 0.0f32;
         for p in particles.iter_mut() {
             for d in 0..D {
                 p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
             }
+            if !cols.colliders.is_empty() {
+                cols.project(p, self.dx, (lo, hi));
+            }
             vmax = vmax.max(crate::dim::norm(&p.v));
         }
         vmax
     }
 
-    /// g2p (APIC) and the move, per particle: in parallel on the calling pool, each particle its own.
-    fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32) {
+    /// g2p (APIC) and the move, per particle, then out of the colliders: in parallel on the calling
+    /// pool, each particle its own.
+    fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32, cols: &StepColliders<'_, D>) {
         let (g, isa, vel) = (self.grid(), self.isa, &self.vel);
-        particles
-            .par_chunks_mut(G2P_CHUNK)
-            .for_each(|chunk| g2p_chunk(isa, chunk, vel, g, dt));
+        let bounds = g.inside();
+        particles.par_chunks_mut(G2P_CHUNK).for_each(|chunk| {
+            g2p_chunk(isa, chunk, vel, g, dt);
+            if !cols.colliders.is_empty() {
+                chunk.iter_mut().for_each(|p| cols.project(p, g.dx, bounds));
+            }
+        });
     }
 }
 

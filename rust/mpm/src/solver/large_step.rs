@@ -2,11 +2,17 @@
 //! [`crate::projection`]): incompressible APIC water that steps at the
 //! flow's pace (docs/large-step.md).
 //!
-//! What it steps: water particles in the box walls. Colliders, rigid
-//! bodies, sand and the solids need the explicit substeps; a solver that
-//! holds any of them refuses a projection frame with an `InvalidInput`
-//! naming the field (`integrator`, or `walls.condition` for walls that are
-//! not free slip), and its state is unchanged.
+//! What it steps: water particles in the box walls and around colliders,
+//! at rest or moving, as solid boundaries with their own velocity
+//! (`crate::projection`'s `obstacles.rs`). Rigid bodies, sand and the
+//! solids need the explicit substeps; a solver that holds any of them, or
+//! walls or colliders that are not free slip, refuses a projection frame
+//! with an `InvalidInput` naming the field (`integrator`, `walls.condition`
+//! or `colliders`), and its state is unchanged.
+//!
+//! A frame in which a collider moves takes at most one frame a step, and
+//! each step sees the colliders at their poses at its end (as each
+//! explicit substep does); setting a move ends a step that spans frames.
 //!
 //! A step may span up to [`MAX_FRAMES_PER_STEP`] frames where the flow
 //! allows it (two cells a step: `dt = 2·dx/(|v|max + √(|g|·dx))`): the step
@@ -36,7 +42,7 @@ use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::params::{MaterialParams, WallParams};
 use crate::particles::Material;
-use crate::projection::{ADVECTIVE_CFL, Projection};
+use crate::projection::{ADVECTIVE_CFL, Projection, StepColliders};
 
 /// The most cells a particle may cross in one projection step before the
 /// frame is retried with smaller steps (the step is chosen for
@@ -78,11 +84,18 @@ where
                 ),
             ))
         };
-        if !self.colliders.is_empty() {
-            return refuse(format!(
-                "this scene has {} collider(s)",
-                self.colliders.len()
-            ));
+        for (i, c) in self.colliders.iter().enumerate() {
+            if c.condition == BoundaryCondition::Sticky || c.friction != 0.0 {
+                return Err(MpmError::invalid(
+                    "colliders",
+                    format!(
+                        "the projection integrator has free-slip obstacles: collider {i} is {:?} \
+                         with friction {} (use 'slip' or 'separate' without friction, or \
+                         integrator 'explicit')",
+                        c.condition, c.friction
+                    ),
+                ));
+            }
         }
         if !self.bodies.is_empty() {
             return refuse(format!(
@@ -167,8 +180,13 @@ where
         projection.set_isa(self.isa);
         let result = if self.drift_frames > 0 {
             // a frame inside the last step: the particles are the ones that step checked (any change
-            // between frames ends the step), and their velocities are the step's
-            let max_speed = projection.drift(&mut self.particles, dt_frame);
+            // between frames ends the step, a collider's move too), and their velocities are the step's
+            let cols = StepColliders {
+                colliders: &self.colliders,
+                velocity: &self.collider_velocity,
+                shallow: &self.shallow,
+            };
+            let max_speed = projection.drift(&mut self.particles, dt_frame, &cols);
             self.drift_frames -= 1;
             Ok(FrameStats {
                 substeps: 0,
@@ -207,7 +225,7 @@ where
     /// The frames one step may span from the state now: `⌊dt / dt_frame⌋` for the step bound's
     /// `dt`, in [1, [`MAX_FRAMES_PER_STEP`]]; 1 with a fixed step count (`params.substeps`).
     fn frames_per_step(&self, dt_frame: f32) -> u32 {
-        if self.params.substeps.is_some() {
+        if self.params.substeps.is_some() || self.moves.iter().any(Option::is_some) {
             return 1;
         }
         let (cfl, c) = self.step_bound();
@@ -226,6 +244,7 @@ where
     ) -> Result<FrameStats> {
         let gravity = SVector::<f32, D>::from_fn(|d, _| self.params.gravity[d]);
         self.rollback.2.clone_from(&self.particles);
+        self.begin_moves(dt_frame);
         let dx = self.params.dx();
         let mut frames = if n_sub == 1 {
             self.frames_per_step(dt_frame)
@@ -238,9 +257,16 @@ where
             let advance = dt / frames as f32;
             let (mut failed, mut vmax) = (None, 0.0f32);
             for k in 0..n_sub {
+                self.pose_colliders(k + 1, n_sub);
                 let particles = &mut self.particles;
-                self.pool
-                    .install(|| projection.step_advancing(particles, dt, advance, &gravity, rho));
+                let cols = StepColliders {
+                    colliders: &self.colliders,
+                    velocity: &self.collider_velocity,
+                    shallow: &self.shallow,
+                };
+                self.pool.install(|| {
+                    projection.step_advancing(particles, dt, advance, &gravity, rho, &cols)
+                });
                 vmax = self.checked_max_speed();
                 if !vmax.is_finite() {
                     failed = Some(MpmError::NonFinite {
@@ -262,6 +288,7 @@ where
             }
             match failed {
                 None => {
+                    self.end_moves(true);
                     self.drift_frames = frames - 1;
                     return Ok(FrameStats {
                         substeps: n_sub,
@@ -276,6 +303,7 @@ where
                     if frames > 1 {
                         frames = 1;
                     } else if 2 * n_sub > self.params.max_substeps {
+                        self.end_moves(false);
                         return Err(e);
                     } else {
                         n_sub *= 2;

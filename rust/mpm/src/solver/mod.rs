@@ -427,6 +427,7 @@ where
             Self::check_vector("velocity", v, f32::MAX)?;
         }
         let start = self.colliders[index].shape.anchor();
+        self.drift_frames = 0; // a projection step spanning frames ends: the next frame steps the move
         self.moves[index] = Some(ColliderMove {
             start,
             end,

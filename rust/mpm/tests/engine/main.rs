@@ -12,6 +12,7 @@ mod body_stability;
 mod common;
 mod golden;
 mod large_step;
+mod large_step_obstacles;
 mod limits;
 mod material_checks;
 mod materials;
