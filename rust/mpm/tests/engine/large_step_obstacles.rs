@@ -128,8 +128,8 @@ fn a_tall_box_turns_a_dam_break_up_its_face_as_the_explicit_engine_does() {
         runs.push((steps, hit.unwrap_or(usize::MAX), beyond, run_up, deep));
     }
     let ((se, he, be, ye, de), (sp, hp, bp, yp, dp)) = (runs[0], runs[1]);
-    // the box holds the surge on the projection: nothing gets through it (the explicit engine's particles
-    // hug its face and a few slip past), and the particles stay out of it
+    // the box holds the surge on the projection: nothing passes it (a few of the explicit engine's particles
+    // slip under it along the floor), and the particles stay out of it
     assert_eq!(
         bp, 0,
         "particles past the box: {bp} projection ({be} explicit)"
