@@ -189,6 +189,26 @@ def test_a_slow_machine_steps_down_to_the_most_accurate_rung_that_fits_and_stays
     assert sim.realtime_info()["realtime_factor"] == pytest.approx(2.5e-3 / cost[expect], abs=1e-3)  # rounded to 3 places
 
 
+def test_a_share_of_the_machine_shrinks_the_budget_so_a_session_steps_down_to_what_fits_its_share(machine: Any) -> None:
+    """A server's playing real-time sessions each get a share of its cores (service/capacity.py): on a machine
+    where the first rung fits a whole budget, a session given a quarter of it steps down to the most accurate
+    rung that fits a quarter (its own frame times, each frame alone on its threads, would never ask for it)."""
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    cost = {r.key: 0.6 * budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    alone, shared = RealtimeSimulator(scene, clock=machine(cost)), RealtimeSimulator(scene, clock=machine(cost))
+    shared.set_share(0.25)
+    assert shared.budget_s() == pytest.approx(0.25 * alone.budget_s())
+    assert _run(alone, 1500)[-1] == ladder[0].key  # alone it keeps the most accurate rung
+    fits = [r.key for r in ladder if cost[r.key] <= 0.25 * budget]
+    assert _run(shared, 1500)[-1] == (fits[0] if fits else ladder[-1].key)
+    for bad in (0, -0.5, 1.5, float("nan"), True, "1"):
+        with pytest.raises(InvalidInputError) as e:
+            shared.set_share(bad)
+        assert e.value.field == "share"
+
+
 def test_a_fast_machine_climbs_to_the_most_accurate_rung_with_hysteresis_and_dwell(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(rt, "DWELL_S", 0.5)  # fewer frames a dwell: the rule is the same
     scene = make_scene("water2d")

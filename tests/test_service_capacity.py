@@ -85,3 +85,24 @@ def test_a_server_refuses_or_coarsens_a_realtime_session_once_the_playing_ones_f
         assert r.json()["realtime"]["rung"] == expect != best
         core.has_viewers = watched  # nobody watches: its play loop waits and takes no cores, the next starts at its best
         assert new().json()["realtime"]["rung"] == best
+
+
+def test_the_playing_real_time_sessions_share_the_real_time_capacity() -> None:
+    from types import SimpleNamespace
+    from typing import Any
+
+    from hybridmpm.service.capacity import REALTIME_SHARE, realtime_share
+
+    rt_sim = RealtimeSimulator("water2d")
+
+    def core(playing: bool = True, viewers: bool = True, threads: int = 1, sim: Any = rt_sim) -> Any:
+        return SimpleNamespace(sim=sim, playing=playing, has_viewers=lambda: viewers, threads=threads)
+
+    assert realtime_share([], 2) == 1.0
+    assert realtime_share([core()], 2) == 1.0  # alone: all of its thread
+    assert realtime_share([core(), core()], 2) == pytest.approx(REALTIME_SHARE)  # real time takes 90 % of the threads
+    assert realtime_share([core() for _ in range(8)], 2) == pytest.approx(REALTIME_SHARE * 2 / 8)
+    assert realtime_share([core(threads=2) for _ in range(3)], 2) == pytest.approx(REALTIME_SHARE * 2 / 6)
+    # paused, unwatched and plain sessions take no share
+    idle = [core(playing=False), core(viewers=False), core(sim=object())]
+    assert realtime_share([core() for _ in range(4)] + idle, 2) == pytest.approx(REALTIME_SHARE * 2 / 4)

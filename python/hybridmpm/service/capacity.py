@@ -13,8 +13,9 @@ what the playing ones leave:
 
 A rung's estimate is its chart time (``models/realtime.json``) scaled by this machine's pace: the median, over
 the playing real-time sessions, of their measured time a frame over their rung's chart time (1 while none
-plays). Sessions that do not play (or that nobody watches: their play loop waits) take no cores here: a session that starts playing later is not refused (its
-own mode then steps down; all of them do as the machine fills).
+plays). Sessions that do not play (or that nobody watches: their play loop waits) take no cores here: a session that
+starts playing later is not refused. While they play, each real-time session's frame budget is its share of the
+capacity (:func:`realtime_share`), so all of them step down as the machine fills.
 """
 
 from __future__ import annotations
@@ -92,6 +93,16 @@ def admit(sim: RealtimeSimulator, threads: int, others: Iterable[Playing], compu
     )
 
 
+def realtime_share(held: Iterable[Any], compute_threads: int) -> float:
+    """The share of its threads' time each playing real-time session of ``held`` (session cores) may spend:
+    :data:`REALTIME_SHARE` of ``compute_threads`` over the threads they step on, at most 1. A session's frames run
+    one at a time on its threads (the compute limiter), so its own frame times do not see the others; with the
+    share in its budget (:meth:`~hybridmpm.sim.RealtimeSimulator.set_share`) each steps down to a rung that fits
+    its part of the machine."""
+    threads = sum(c.threads for c in held if isinstance(c.sim, RealtimeSimulator) and c.playing and c.has_viewers())
+    return 1.0 if threads <= 0 else min(1.0, REALTIME_SHARE * compute_threads / threads)
+
+
 def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_full: str) -> None:
     """Admit a new session ``core`` (a :class:`~hybridmpm.service.core.SessionCore`, built, not yet stepped) beside
     the sessions ``held`` (theirs): a real-time one moves to the rung :func:`admit` gives for the playing ones (and a
@@ -104,4 +115,4 @@ def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_ful
     core.initial = sim.state()
 
 
-__all__ = ["REALTIME_SHARE", "WHEN_FULL", "Playing", "RealtimeFullError", "admit", "admit_session", "chart_ms", "playing"]
+__all__ = ["REALTIME_SHARE", "WHEN_FULL", "Playing", "RealtimeFullError", "admit", "admit_session", "chart_ms", "playing", "realtime_share"]

@@ -49,14 +49,14 @@ from hybridmpm.service.backend import (
     stop_task,
 )
 from hybridmpm.service.budget import BudgetFullError, MemoryBudget, RecordedFrame, tree_nbytes
-from hybridmpm.service.capacity import RealtimeFullError, admit_session
+from hybridmpm.service.capacity import RealtimeFullError, admit_session, realtime_share
 from hybridmpm.service.config import ServiceConfig
 from hybridmpm.service.core import Control, SessionCore, SessionGoneError, session_threads
 from hybridmpm.service.facts import SessionFacts, SessionSettings
 from hybridmpm.service.frames import frame_message
 from hybridmpm.service.logs import SHOWN_ID_CHARS
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore, load_unexpired, session_key
-from hybridmpm.sim import Frame, Rollout
+from hybridmpm.sim import Frame, RealtimeSimulator, Rollout
 
 log = logging.getLogger("hybridmpm.service")
 T = TypeVar("T")
@@ -671,7 +671,10 @@ class SessionManager:
                 async with s.lock:
                     if s.closed:
                         break
-                    delay = await self.compute_wide(self.core_of(s).threads, next, steps, None)
+                    core = self.core_of(s)
+                    if isinstance(core.sim, RealtimeSimulator):  # its part of the machine's real time (capacity.py)
+                        core.sim.set_share(realtime_share([x.core for x in self.sessions.values()], self.config.compute_threads))
+                    delay = await self.compute_wide(core.threads, next, steps, None)
                 if delay is None:
                     break
                 await asyncio.sleep(delay)

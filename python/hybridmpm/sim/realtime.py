@@ -260,6 +260,8 @@ class RealtimeSimulator(MpmSimulator):
         #: the wall time [s] and the frames of the step under way (a projection step spans frames)
         self._cycle = (0.0, 0)
         self._last_change = clock()
+        #: the share of its threads' time this simulator may spend (:meth:`set_share`; 1: alone)
+        self._share = 1.0
         self.changes: list[dict[str, Any]] = []
         if rung is None and here not in {r.key for r in self.ladder}:  # the scene's own configuration is off the ladder
             self._switch(self.ladder[0].key)
@@ -346,8 +348,19 @@ class RealtimeSimulator(MpmSimulator):
         return self._ema * self._chart_ratios[key] / self._chart_ratios[self._rung]
 
     def budget_s(self) -> float:
-        """A frame's wall-time budget [s]: ``dt_frame · r_t /`` :data:`REALTIME_MARGIN`."""
-        return self.dt_step / REALTIME_MARGIN
+        """A frame's wall-time budget [s]: ``dt_frame · r_t /`` :data:`REALTIME_MARGIN`, times its share
+        (:meth:`set_share`)."""
+        return self.dt_step / REALTIME_MARGIN * self._share
+
+    def set_share(self, share: float) -> None:
+        """The share of its threads' time this simulator may spend, in (0, 1] (1, the default: all of it).
+        A server whose playing real-time sessions need more than its cores gives each a share
+        (:func:`hybridmpm.service.capacity.realtime_share`): a frame's budget shrinks with it, so the mode
+        steps down to a rung that fits, where its own frame times (each frame runs alone on its threads)
+        would not see the others. Raises :class:`InvalidInputError` (field ``share``) outside (0, 1]."""
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not (0.0 < float(share) <= 1.0):
+            raise InvalidInputError(f"share: must be a number in (0, 1], got {share!r}", "share")
+        self._share = float(share)
 
     def _choose(self) -> str | None:
         """The rung to move to now, or None to stay (module docstring)."""
