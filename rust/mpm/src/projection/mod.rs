@@ -533,13 +533,14 @@ impl<const D: usize> Projection<D> {
         cols: &StepColliders<'_, D>,
     ) -> f32 {
         let (lo, hi) = self.grid().inside();
+        let projecting = cols.projecting(self.dx);
         let mut vmax = 0.0f32;
         for p in particles.iter_mut() {
             for d in 0..D {
                 p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
             }
-            if !cols.colliders.is_empty() {
-                cols.project(p, self.dx, (lo, hi));
+            if !projecting.is_empty() {
+                obstacles::project(&projecting, p, (lo, hi));
             }
             vmax = vmax.max(crate::dim::norm(&p.v));
         }
@@ -550,11 +551,13 @@ impl<const D: usize> Projection<D> {
     /// pool, each particle its own.
     fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32, cols: &StepColliders<'_, D>) {
         let (g, isa, vel) = (self.grid(), self.isa, &self.vel);
-        let bounds = g.inside();
+        let (bounds, projecting) = (g.inside(), cols.projecting(g.dx));
         particles.par_chunks_mut(G2P_CHUNK).for_each(|chunk| {
             g2p_chunk(isa, chunk, vel, g, dt);
-            if !cols.colliders.is_empty() {
-                chunk.iter_mut().for_each(|p| cols.project(p, g.dx, bounds));
+            if !projecting.is_empty() {
+                chunk
+                    .iter_mut()
+                    .for_each(|p| obstacles::project(&projecting, p, bounds));
             }
         });
     }

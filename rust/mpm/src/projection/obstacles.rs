@@ -28,7 +28,7 @@
 use nalgebra::SVector;
 
 use super::{Projection, shape, strides};
-use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
+use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, ShallowCells};
 use crate::particles::Particle;
 
 /// The colliders a projection step sees: each at its pose for the step,
@@ -60,24 +60,45 @@ impl<const D: usize> StepColliders<'_, D> {
             .unwrap_or_else(SVector::zeros)
     }
 
-    /// Puts a particle deeper than [`PROJECT_DEPTH_CELLS`] inside a
-    /// projecting collider back onto its surface, then within `(lo, hi)`.
-    pub(super) fn project(&self, p: &mut Particle<D>, dx: f32, (lo, hi): (f32, f32)) {
+    /// The colliders that project particles, each with where it can act ([`Collider::reach`], made once a
+    /// step, not once a particle) and its velocity: what [`project`] reads.
+    pub(super) fn projecting(&self, dx: f32) -> Vec<Projecting<'_, D>> {
         let depth = PROJECT_DEPTH_CELLS * dx;
-        let mut moved = false;
-        for (k, col) in self.colliders.iter().enumerate() {
-            if !col.project {
-                continue;
-            }
-            let shallow = self.shallow.get(k).and_then(Option::as_ref);
-            let reach = col.reach(depth, shallow);
-            let u = self.velocity.get(k).and_then(Option::as_ref);
-            moved |= col.project_particle(&reach, &mut p.x, &mut p.v, u, None);
-        }
-        if moved {
-            for d in 0..D {
-                p.x[d] = p.x[d].clamp(lo, hi);
-            }
+        self.colliders
+            .iter()
+            .enumerate()
+            .filter(|(_, col)| col.project)
+            .map(|(k, col)| {
+                let shallow = self.shallow.get(k).and_then(Option::as_ref);
+                (
+                    col,
+                    col.reach(depth, shallow),
+                    self.velocity.get(k).and_then(Option::as_ref),
+                )
+            })
+            .collect()
+    }
+}
+
+/// A projecting collider, where it can act and its velocity (None: at rest).
+pub(super) type Projecting<'a, const D: usize> =
+    (&'a Collider<D>, Reach<'a, D>, Option<&'a SVector<f32, D>>);
+
+/// Puts a particle deeper than [`PROJECT_DEPTH_CELLS`] inside a collider of `projecting` back onto its surface,
+/// then within `(lo, hi)`.
+#[inline]
+pub(super) fn project<const D: usize>(
+    projecting: &[Projecting<'_, D>],
+    p: &mut Particle<D>,
+    (lo, hi): (f32, f32),
+) {
+    let mut moved = false;
+    for (col, reach, u) in projecting {
+        moved |= col.project_particle(reach, &mut p.x, &mut p.v, *u, None);
+    }
+    if moved {
+        for d in 0..D {
+            p.x[d] = p.x[d].clamp(lo, hi);
         }
     }
 }
