@@ -17,9 +17,10 @@
 //! either path), and every sum keeps its order. The tests step the same
 //! scenes on both and compare the bits (`solver::frame::tests`).
 //!
-//! The sand update is compiled twice too, as its own functions
-//! (`material::sand::SandBatch::run`): it updates sixteen particles at once
-//! in SIMD lanes, and the frame loop calls it once per sixteen sand particles.
+//! The material updates are compiled twice too, as their own functions
+//! (`material::Batch::run`, one per model): each updates sixteen particles
+//! of one parameter set at once in SIMD lanes, and the frame loop calls it
+//! once per sixteen such particles.
 //! The crate-private macro `x86_64_v3!` marks a function as the x86-64-v3 copy.
 //!
 //! The environment variable `HYBRIDMPM_ISA` (read when a solver is made, in

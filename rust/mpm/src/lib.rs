@@ -10,7 +10,8 @@
 //! particles are touched. Deterministic for any thread count.
 //!
 //! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`,
-//! `transfer` and `surface`), `material` (water, sand, solid), `boundary`,
+//! `transfer` and `surface`), `material` (a file per constitutive model:
+//! water, sand, elastic, snow, viscoplastic, behind one trait), `boundary`,
 //! `collider/` (a file per concept: shape, sampled signed distance, motion,
 //! validation, particle projection and its reach, boundary condition) and
 //! `params/` (boundary conditions, obstacles and parameters; `params` uses

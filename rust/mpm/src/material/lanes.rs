@@ -1,7 +1,7 @@
-//! One number or sixteen at once: the arithmetic the sand update is written in
-//! ([`Real`]), so that the same source runs on one particle (`f32`, the
-//! tests) and on sixteen particles in SIMD registers ([`FL`], g2p's
-//! [`super::sand::SandBatch`]).
+//! One number or sixteen at once: the arithmetic the material updates are
+//! written in ([`Real`]), so that the same source runs on one particle
+//! (`f32`, the tests) and on sixteen particles in SIMD registers ([`FL`],
+//! g2p's [`super::batch::Batch`]).
 //!
 //! [`FL`]'s operations are loops over its sixteen lanes that the compiler
 //! turns into SIMD instructions (two AVX2 ones in the x86-64-v3 copy of the

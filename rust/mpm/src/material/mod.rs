@@ -2,19 +2,217 @@
 //!
 //! A particle carries its Kirchhoff stress `τ` (derived from its state); p2g
 //! turns it into grid forces, and g2p updates the material state from the new
-//! velocity gradient `C` and recomputes `τ`:
+//! velocity gradient `C` and recomputes `τ`. A model is one file behind one
+//! trait, [`Constitutive`]:
 //!
 //! - [`water`]: weakly compressible water, state `J` (Hu et al. 2018, mpm88).
 //! - [`sand`]: Drucker–Prager elastoplasticity in Hencky strain, state `F`
 //!   and the volume correction (Klár et al. 2016; Tampubolon et al. 2017).
-//! - [`solid`]: the elastic solid (fixed-corotated, Stomakhin et al. 2012, or
-//!   neo-Hookean), snow (Stomakhin et al. 2013) and the viscoplastic solid
-//!   (von Mises on the Hencky strain with viscous relaxation), state `F`
-//!   (and `J_P` for snow); and the per-set constants of every material
-//!   ([`solid::Models`]).
+//! - [`elastic`]: the elastic solid, fixed-corotated (Stomakhin et al. 2012)
+//!   or neo-Hookean, state `F`.
+//! - [`snow`]: Stomakhin et al. 2013, state `F_E` and `J_P`.
+//! - [`viscoplastic`]: von Mises on the Hencky strain with viscous
+//!   relaxation, state the elastic `F`.
+//!
+//! Beside them: [`Models`], each parameter set's [`Model`] (the table
+//! particles index by `Particle::set`), which g2p, the stress refresh and
+//! the CFL condition go through; `batch.rs`, the update of sixteen
+//! particles of one set at once in SIMD lanes; `spectral.rs`, the matrix
+//! tools on lanes several models share; `lanes.rs` and `vmath.rs`, the
+//! arithmetic they are written in.
 
+mod batch;
+mod elastic;
 mod lanes;
 pub mod sand;
-pub(crate) mod solid;
+mod snow;
+mod spectral;
+mod viscoplastic;
 mod vmath;
-pub mod water;
+mod water;
+
+#[cfg(test)]
+mod solid_lane_tests;
+#[cfg(test)]
+mod solid_tests;
+
+pub(crate) use batch::{Batch, LaneHealth, ParticleSink, State};
+
+use nalgebra::SMatrix;
+
+use crate::dim::{Dim, DimOps};
+use crate::isa::Isa;
+use crate::params::{MaterialParams, SolverParams};
+use crate::particles::Particle;
+use elastic::Elastic;
+use lanes::Real;
+use sand::Sand;
+use snow::Snow;
+use viscoplastic::Viscoplastic;
+use water::Water;
+
+/// One constitutive model: a parameter set's constants (derived once per
+/// solver) and what the solver asks of them. Static dispatch: [`Model`]
+/// forwards to the implementations, and g2p runs one [`Batch`] per set.
+pub(crate) trait Constitutive {
+    /// Whether the particle carries a deformation gradient F, which g2p
+    /// updates and whose `det F > 0` it checks (every model but water).
+    const HAS_F: bool;
+
+    /// Whether [`wave_speed`](Self::wave_speed) reads `jp_min`, the
+    /// smallest `J` of the set's particles (snow's `J_P`).
+    const WAVE_READS_J: bool = false;
+
+    /// The fastest wave speed [m/s] of the set, for the CFL condition
+    /// `Δt ≤ cfl·Δx / (c + |v|max)` (`cfl`, `dx` [m]: water's viscous limit
+    /// as a speed; `jp_min`: see [`WAVE_READS_J`](Self::WAVE_READS_J),
+    /// `+∞` where it is not).
+    fn wave_speed<const D: usize>(&self, cfl: f32, dx: f32, jp_min: f32) -> f32;
+
+    /// g2p's update on lanes of `R` (one particle or sixteen): from the
+    /// state `s` at the start of the substep and the new velocity gradient
+    /// `c` [1/s] (row-major) over `dt` [s], the new state and its Kirchhoff
+    /// stress in `s`.
+    fn update_lanes<R: Real, const D: usize>(&self, s: &mut State<R>, c: &[R; 9], dt: f32);
+
+    /// The Kirchhoff stress [Pa] of a particle's state, as set, restored or
+    /// changed between frames.
+    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    where
+        Dim<D>: DimOps<D>;
+}
+
+/// The constants of one parameter set: one model of each material.
+#[derive(Clone, Debug)]
+pub(crate) enum Model {
+    Water(Water),
+    Sand(Sand),
+    Elastic(Elastic),
+    Snow(Snow),
+    Viscoplastic(Viscoplastic),
+}
+
+/// `$body` with `$m` bound to the [`Constitutive`] model inside `$model`
+/// (a [`Model`]), or `$ty` to its type.
+macro_rules! each_model {
+    ($model:expr, $m:ident => $body:expr) => {
+        match $model {
+            Model::Water($m) => $body,
+            Model::Sand($m) => $body,
+            Model::Elastic($m) => $body,
+            Model::Snow($m) => $body,
+            Model::Viscoplastic($m) => $body,
+        }
+    };
+    ($model:expr, type $ty:ident => $body:expr) => {
+        match $model {
+            Model::Water(_) => {
+                type $ty = Water;
+                $body
+            }
+            Model::Sand(_) => {
+                type $ty = Sand;
+                $body
+            }
+            Model::Elastic(_) => {
+                type $ty = Elastic;
+                $body
+            }
+            Model::Snow(_) => {
+                type $ty = Snow;
+                $body
+            }
+            Model::Viscoplastic(_) => {
+                type $ty = Viscoplastic;
+                $body
+            }
+        }
+    };
+}
+
+impl Model {
+    /// The model of `params` in `D` dimensions.
+    pub(crate) fn new<const D: usize>(params: &MaterialParams) -> Self
+    where
+        Dim<D>: DimOps<D>,
+    {
+        match params {
+            MaterialParams::Water(w) => Model::Water(Water::new(w)),
+            MaterialParams::Sand(s) => Model::Sand(Sand::new::<D>(s)),
+            MaterialParams::Elastic(e) => Model::Elastic(Elastic::new(e)),
+            MaterialParams::Snow(s) => Model::Snow(Snow::new(s)),
+            MaterialParams::Viscoplastic(v) => Model::Viscoplastic(Viscoplastic::new(v)),
+        }
+    }
+
+    /// [`Constitutive::HAS_F`].
+    pub(crate) fn has_f(&self) -> bool {
+        each_model!(self, type M => M::HAS_F)
+    }
+
+    /// [`Constitutive::WAVE_READS_J`].
+    pub(crate) fn wave_reads_j(&self) -> bool {
+        each_model!(self, type M => M::WAVE_READS_J)
+    }
+
+    /// [`Constitutive::wave_speed`].
+    pub(crate) fn wave_speed<const D: usize>(&self, cfl: f32, dx: f32, jp_min: f32) -> f32 {
+        each_model!(self, m => m.wave_speed::<D>(cfl, dx, jp_min))
+    }
+
+    /// [`Constitutive::stress`].
+    pub(crate) fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    where
+        Dim<D>: DimOps<D>,
+    {
+        each_model!(self, m => m.stress(p))
+    }
+
+    /// [`Batch::run`] under this model, in the copy compiled for `isa`.
+    pub(crate) fn run<const D: usize>(&self, batch: &mut Batch, isa: Isa, dt: f32) -> LaneHealth {
+        each_model!(self, m => batch.run::<D, _>(m, isa, dt))
+    }
+
+    /// [`Constitutive::update_lanes`] (the tests' one particle at a time).
+    #[cfg(test)]
+    pub(crate) fn update_lanes<R: Real, const D: usize>(
+        &self,
+        s: &mut State<R>,
+        c: &[R; 9],
+        dt: f32,
+    ) {
+        each_model!(self, m => m.update_lanes::<R, D>(s, c, dt))
+    }
+}
+
+/// The table of parameter sets (`SolverParams::table`) and each set's
+/// [`Model`], indexed by `Particle::set`.
+#[derive(Clone, Debug)]
+pub(crate) struct Models {
+    pub(crate) params: Vec<MaterialParams>,
+    pub(crate) models: Vec<Model>,
+    /// The compiled copy of the lanes' updates to run (`crate::isa`).
+    pub(crate) isa: Isa,
+}
+
+impl Models {
+    /// The table of `params` (validated); `isa` must be
+    /// [`available`](Isa::available).
+    pub(crate) fn new<const D: usize>(params: &SolverParams<D>, isa: Isa) -> Self
+    where
+        Dim<D>: DimOps<D>,
+    {
+        let table = params.table();
+        let models = table.iter().map(Model::new::<D>).collect();
+        Models {
+            params: table,
+            models,
+            isa,
+        }
+    }
+
+    /// Runs the lanes' updates in the copy for `isa` from now on.
+    pub(crate) fn set_isa(&mut self, isa: Isa) {
+        self.isa = isa;
+    }
+}

@@ -1,5 +1,5 @@
-//! Branch-free f32 elementary functions for the sand update across a batch
-//! of particles ([`super::sand::SandBatch`]).
+//! Branch-free f32 elementary functions for the material updates across a
+//! batch of particles ([`super::batch::Batch`]).
 //!
 //! libm's `lnf`, `expf`, `acosf`, … are calls the compiler cannot vectorise;
 //! they were about a fifth of a sand3d frame, one particle at a time. These

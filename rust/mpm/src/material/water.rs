@@ -3,28 +3,84 @@
 //! The particle carries the volume ratio `J = V/V0` only. Kirchhoff stress
 //! `τ = K·J·(J − 1)·I + η·J·(C + Cᵀ)` (pressure from the equation of state
 //! `p = K·(1 − J)`, plus Newtonian viscosity with `C ≈ ∇v`); g2p advances
-//! `J ← J·(1 + Δt·tr C)` (the discrete `J̇ = J ∇·v`).
+//! `J ← J·(1 + Δt·tr C)` (the discrete `J̇ = J ∇·v`). The CFL condition takes
+//! the sound speed `sqrt(K/ρ)`, or the viscous limit as a speed if larger
+//! ([`WaterParams::viscous_speed`]).
 
 use nalgebra::SMatrix;
 
+use super::Constitutive;
+use super::batch::State;
+use super::lanes::Real;
+use super::spectral::{from_lanes, to_lanes};
+use crate::dim::{Dim, DimOps};
 use crate::params::WaterParams;
+use crate::particles::Particle;
 
-/// Kirchhoff stress `τ` [Pa] of water at volume ratio `j` with velocity gradient `c`.
-#[inline(always)]
-pub(crate) fn kirchhoff_stress<const D: usize>(
-    w: &WaterParams,
-    j: f32,
-    c: &SMatrix<f32, D, D>,
-) -> SMatrix<f32, D, D> {
-    let mut tau = SMatrix::<f32, D, D>::identity() * (w.bulk_modulus * j * (j - 1.0));
-    if w.viscosity > 0.0 {
-        tau += (c + c.transpose()) * (w.viscosity * j);
-    }
-    tau
+/// A water set's parameters (its constants: `K`, `η`).
+#[derive(Clone, Debug)]
+pub(crate) struct Water {
+    pub(crate) params: WaterParams,
 }
 
-/// g2p update: advance `j` over `dt` with the new velocity gradient `c`.
-#[inline(always)]
-pub(crate) fn advance_volume_ratio<const D: usize>(j: &mut f32, dt: f32, c: &SMatrix<f32, D, D>) {
-    *j *= 1.0 + dt * c.trace();
+impl Water {
+    pub(crate) fn new(params: &WaterParams) -> Self {
+        Water {
+            params: params.clone(),
+        }
+    }
+
+    /// Kirchhoff stress `τ` [Pa] at volume ratio `j` with velocity gradient
+    /// `c` (row-major) on lanes of `R`: entry by entry the operations of
+    /// `K·J·(J − 1)·I`, then `+ (C + Cᵀ)·(η·J)` when `η > 0`.
+    #[inline(always)]
+    fn stress_lanes<R: Real, const D: usize>(&self, j: R, c: &[R; 9]) -> [R; 9] {
+        let w = &self.params;
+        let p = R::splat(w.bulk_modulus) * j * (j - R::splat(1.0));
+        let mut tau = [R::splat(0.0); 9];
+        for r in 0..D {
+            for col in 0..D {
+                let eye = if r == col { 1.0 } else { 0.0 };
+                tau[r * D + col] = R::splat(eye) * p;
+            }
+        }
+        if w.viscosity > 0.0 {
+            let ej = R::splat(w.viscosity) * j;
+            for r in 0..D {
+                for col in 0..D {
+                    tau[r * D + col] = tau[r * D + col] + (c[r * D + col] + c[col * D + r]) * ej;
+                }
+            }
+        }
+        tau
+    }
+}
+
+impl Constitutive for Water {
+    const HAS_F: bool = false;
+
+    /// The sound speed `sqrt(K/ρ)` or, if larger, the viscous limit as a speed.
+    fn wave_speed<const D: usize>(&self, cfl: f32, dx: f32, _jp_min: f32) -> f32 {
+        let w = &self.params;
+        w.wave_speed().max(w.viscous_speed(D, cfl, dx))
+    }
+
+    /// `J ← J·(1 + Δt·tr C)` (`tr C` summed from 0, as nalgebra's `trace`),
+    /// then the stress at the new `J`.
+    #[inline(always)]
+    fn update_lanes<R: Real, const D: usize>(&self, s: &mut State<R>, c: &[R; 9], dt: f32) {
+        let mut tr = R::splat(0.0);
+        for i in 0..D {
+            tr = tr + c[i * D + i];
+        }
+        s.j = s.j * (R::splat(1.0) + R::splat(dt) * tr);
+        s.tau = self.stress_lanes::<R, D>(s.j, c);
+    }
+
+    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    where
+        Dim<D>: DimOps<D>,
+    {
+        from_lanes(&self.stress_lanes::<f32, D>(p.j, &to_lanes(&p.c)))
+    }
 }

@@ -83,7 +83,7 @@ impl BlockMarks<'_> {
 /// of the block's velocity patch) ...
 const ITEMS_PER_MEMBER: usize = 8;
 /// ... and the fewest particles a piece of a block holds (a multiple of the
-/// sand lanes' batch, [`crate::material::sand::SandBatch`]).
+/// material lanes' batch, [`crate::material::Batch`]).
 const MIN_ITEM: usize = 32;
 
 impl<const D: usize> Solver<D>

@@ -13,8 +13,6 @@ use rayon::prelude::*;
 use super::{FrameStats, Solver};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::params::MaterialParams;
-use crate::particles::Material;
 use crate::pool::shared_pool;
 
 impl<const D: usize> Solver<D>
@@ -32,11 +30,12 @@ where
     /// [`Self::wave_speed`] and the parameter set that has it (`None`
     /// without particles).
     fn wave_speed_of(&self) -> (f32, Option<usize>) {
-        let table = &self.models.params;
-        let n = table.len();
+        let models = &self.models.models;
+        let n = models.len();
         let mut has = vec![false; n];
         let mut jp_min = vec![f32::INFINITY; n];
-        let any_snow = table.iter().any(|m| matches!(m, MaterialParams::Snow(_)));
+        let reads_j: Vec<bool> = models.iter().map(|m| m.wave_reads_j()).collect();
+        let any_reads_j = reads_j.iter().any(|&r| r);
         let mut found = 0;
         for p in &self.particles {
             let s = p.set as usize;
@@ -44,8 +43,8 @@ where
                 has[s] = true;
                 found += 1;
             }
-            if any_snow {
-                if p.material == Material::Snow {
+            if any_reads_j {
+                if reads_j[s] {
                     jp_min[s] = jp_min[s].min(p.j);
                 }
             } else if found == n {
@@ -54,20 +53,12 @@ where
         }
         let mut c = 0.0f32;
         let mut of = None;
-        for (s, m) in table.iter().enumerate() {
+        let (cfl, dx) = (self.params.cfl, self.params.dx());
+        for (s, m) in models.iter().enumerate() {
             if !has[s] {
                 continue;
             }
-            let cs = match m {
-                MaterialParams::Water(w) => {
-                    w.wave_speed()
-                        .max(w.viscous_speed(D, self.params.cfl, self.params.dx()))
-                }
-                MaterialParams::Sand(p) => p.wave_speed(),
-                MaterialParams::Elastic(p) => p.wave_speed(),
-                MaterialParams::Snow(p) => p.wave_speed(jp_min[s]),
-                MaterialParams::Viscoplastic(p) => p.wave_speed(),
-            };
+            let cs = m.wave_speed::<D>(cfl, dx, jp_min[s]);
             // a NaN or larger speed names its set
             if of.is_none() || !(cs <= c) {
                 c = if cs.is_nan() {

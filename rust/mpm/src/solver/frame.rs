@@ -22,7 +22,7 @@
 use std::sync::Mutex;
 
 use super::block_sort::BlockMarks;
-use super::g2p::G2pOut;
+use super::g2p::{Batches, G2pOut};
 use super::team::{KEYS, OWN_G2P, OWN_GRID, OWN_P2G, RawSlice, SORT_COUNT, SORT_SCATTER, Team};
 use super::{Health, Solver};
 use crate::body::ImpulseSum;
@@ -272,6 +272,7 @@ where
             marks.finish_into(touched);
         }
         let mut patch = Vec::new();
+        let mut batches = Batches::new();
         let mut acc = Vec::new();
         // this member's sums of the bodies' impulses in a grid update
         let mut sums = vec![ImpulseSum::default(); unsafe { (*sp.0).bodies.len() }];
@@ -428,9 +429,25 @@ where
                         key_by_id: view.key_by_id,
                     };
                     if reorders(sub, members, sort_chunks) {
-                        s.g2p_block::<true>(lo..lo + len, &patch, out, dt, models, &mut marks)
+                        s.g2p_block::<true>(
+                            lo..lo + len,
+                            &patch,
+                            out,
+                            dt,
+                            models,
+                            &mut marks,
+                            &mut batches,
+                        )
                     } else {
-                        s.g2p_block::<false>(lo..lo + len, &patch, out, dt, models, &mut marks)
+                        s.g2p_block::<false>(
+                            lo..lo + len,
+                            &patch,
+                            out,
+                            dt,
+                            models,
+                            &mut marks,
+                            &mut batches,
+                        )
                     }
                 };
                 health = health.max(h);

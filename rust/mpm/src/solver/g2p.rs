@@ -18,8 +18,8 @@
 //! its inward velocity); then the material update with the new velocity gradient `C_p`
 //! ([`crate::material`]: `J` for water, `F` and the Drucker–Prager return
 //! mapping for sand, `F` (and snow's `J_P`) for the solids; each particle
-//! with the constants of its parameter set) and the new Kirchhoff stress for
-//! the next p2g.
+//! with the model of its parameter set, sixteen particles of one set at a
+//! time) and the new Kirchhoff stress for the next p2g.
 //!
 //! Blocks are processed in parallel: each source block gathers its padded
 //! velocity patch once and its particles read it with fixed strides. A
@@ -44,9 +44,7 @@ use super::{Health, Solver};
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, SOLID_PROJECT_DEPTH_CELLS};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
-use crate::material::sand::{ParticleSink, SandBatch, SandHealth, SandModel};
-use crate::material::solid::{Models, SolidBatch};
-use crate::material::water;
+use crate::material::{Batch, LaneHealth, Models, ParticleSink};
 use crate::particles::{Material, Particle};
 use crate::v4::V4;
 
@@ -80,6 +78,7 @@ where
     /// and `key_by_id` at its ids (each id is in the one block that holds it).
     // inlined into each compiled copy of the frame loop (`crate::isa`)
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)] // the item and its patch, the buffers, the step, the worker's scratch
     pub(super) unsafe fn g2p_block<const REORDER: bool>(
         &self,
         places: std::ops::Range<usize>,
@@ -88,6 +87,7 @@ where
         dt: f32,
         models: &Models,
         marks: &mut BlockMarks<'_>,
+        batches: &mut Batches,
     ) -> (Health, f32) {
         let G2pOut {
             particles,
@@ -114,19 +114,10 @@ where
         let sorted = &self.grid.sorted[places];
         let mut nan_probe = 0.0f32;
         let mut nonpositive_j = false;
-        let mut sand_health = SandHealth {
-            finite: true,
-            inverted: false,
-        };
+        let mut lane_health = LaneHealth::OK;
         let mut vmax2 = 0.0f32;
-        // sand particles' material updates wait in `batch` and run sixteen at a
-        // time (SIMD across particles, see `SandBatch`)
-        // (one parameter set per batch: a particle of another set flushes it)
-        let mut batch = SandBatch::new();
-        let mut batch_set = Material::Sand as u16;
-        // the solids' likewise, one parameter set per batch
-        let mut solids = SolidBatch::new();
-        let mut solid_set = 0u16;
+        // the particles' material updates wait in `batches` and run sixteen
+        // at a time (SIMD across particles, see `Batch`)
         let mut sink = Sink(dst);
         // the colliders that project particles (`Collider::project`), each
         // with the region where it can act (`Collider::reach`) and its
@@ -152,7 +143,7 @@ where
             // out); reordering, a copy at its new place
             // SAFETY: the slot and the place `at` are this item's alone
             // (caller); `p` is the only reference to it until the next
-            // particle (the sand lanes write it after the loop's body)
+            // particle (its batch writes it after the loop's body)
             let (p, cell) = unsafe {
                 let p = if REORDER {
                     dst.write(at, particles.read(slot));
@@ -191,39 +182,17 @@ where
                     p.x[d] = p.x[d].max(lo).min(hi);
                 }
             }
-            let (mut sand_full, mut solid_full) = (false, false);
-            match p.material {
-                Material::Water => {
-                    water::advance_volume_ratio(&mut p.j, dt, &new_c);
-                    p.tau = water::kirchhoff_stress(models.water(p.set), p.j, &new_c);
+            // the particle's update waits in its material's batch, one
+            // parameter set per batch: a particle of another set flushes it
+            let slot = p.material as usize;
+            let batch = &mut batches.0[slot];
+            if p.set != batch.set {
+                if batch.len() > 0 {
+                    flush(batch, &mut sink, models, dt, &mut lane_health);
                 }
-                Material::Sand => {
-                    if p.set != batch_set {
-                        if batch.len() > 0 {
-                            let sand = models.sand(batch_set);
-                            sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
-                        }
-                        batch_set = p.set;
-                    }
-                    sand_full = batch.push(at as u32, &p.f, &new_c, p.vc);
-                }
-                Material::Elastic | Material::Snow | Material::Viscoplastic => {
-                    if p.set != solid_set {
-                        if solids.len() > 0 {
-                            solid_flush(
-                                &mut solids,
-                                &mut sink,
-                                models,
-                                solid_set,
-                                dt,
-                                &mut sand_health,
-                            );
-                        }
-                        solid_set = p.set;
-                    }
-                    solid_full = solids.push(at as u32, &p.f, &new_c, p.j);
-                }
-            };
+                batch.set = p.set;
+            }
+            let full = batch.push(at as u32, (&p.f, p.j, p.vc), &new_c);
             let ko = cell_of::<D>(
                 &p.x,
                 inv_dx,
@@ -242,39 +211,26 @@ where
             }
             marks.mark(ko.key);
             // NaN/inf propagate through the sum; J ≤ 0 is a blow-up too
+            // (the new J, F and τ are checked in the batch, `LaneHealth`)
             nan_probe += p.v.sum() + p.c.sum() + p.tau.sum() + p.j;
             nonpositive_j |= p.j <= 0.0;
             vmax2 = vmax2.max(p.v.norm_squared());
-            if sand_full {
-                let sand = models.sand(batch_set);
-                sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
-            }
-            if solid_full {
-                solid_flush(
-                    &mut solids,
+            if full {
+                flush(
+                    &mut batches.0[slot],
                     &mut sink,
                     models,
-                    solid_set,
                     dt,
-                    &mut sand_health,
+                    &mut lane_health,
                 );
             }
         }
-        if batch.len() > 0 {
-            let sand = models.sand(batch_set);
-            sand_flush(&mut batch, &mut sink, sand, dt, &mut sand_health);
+        for batch in &mut batches.0 {
+            if batch.len() > 0 {
+                flush(batch, &mut sink, models, dt, &mut lane_health);
+            }
         }
-        if solids.len() > 0 {
-            solid_flush(
-                &mut solids,
-                &mut sink,
-                models,
-                solid_set,
-                dt,
-                &mut sand_health,
-            );
-        }
-        let SandHealth { finite, inverted } = sand_health;
+        let LaneHealth { finite, inverted } = lane_health;
         // positions are clamped (NaN maps to the bound), so test the rest
         let health = if !(nan_probe.is_finite() && vmax2.is_finite() && finite) || nonpositive_j {
             Health::NonFinite
@@ -349,45 +305,36 @@ fn project<const D: usize>(
     moved
 }
 
-/// Runs the sand `batch` with time step `dt`, writes its lanes into `outp`
-/// (at the indices pushed with them), adds its health to `health` and empties
-/// it.
-// inlined into each compiled copy of the frame loop (`crate::isa`)
-#[inline(always)]
-fn sand_flush<const D: usize>(
-    batch: &mut SandBatch,
-    outp: &mut impl ParticleSink<D>,
-    sand: &SandModel,
-    dt: f32,
-    health: &mut SandHealth,
-) where
-    Dim<D>: DimOps<D>,
-{
-    let h = batch.run::<D>(sand, dt);
-    health.finite &= h.finite;
-    health.inverted |= h.inverted;
-    batch.write_lanes::<D>(outp);
-    batch.clear();
+/// One open [`Batch`] per material code (`Particle::material`), so that
+/// particles of other materials between them do not cut a batch (sand's 3D
+/// route depends on its batch mates, `material/sand/update_3d.rs`): a
+/// batch holds the particles of one parameter set, consecutive in the
+/// block's order among those of its material. One per worker, reused.
+pub(super) struct Batches([Batch; Material::ALL.len()]);
+
+impl Batches {
+    pub(super) fn new() -> Self {
+        Batches(std::array::from_fn(|m| Batch::new(m as u16)))
+    }
 }
 
-/// Runs the solid `batch` (parameter set `set` of `models`) as
-/// [`sand_flush`] runs sand's.
+/// Runs `batch` under its set's model with time step `dt`, writes its
+/// lanes into `outp` (at the indices pushed with them), adds its health to
+/// `health` and empties it.
 // inlined into each compiled copy of the frame loop (`crate::isa`)
 #[inline(always)]
-fn solid_flush<const D: usize>(
-    batch: &mut SolidBatch,
+fn flush<const D: usize>(
+    batch: &mut Batch,
     outp: &mut impl ParticleSink<D>,
     models: &Models,
-    set: u16,
     dt: f32,
-    health: &mut SandHealth,
+    health: &mut LaneHealth,
 ) where
     Dim<D>: DimOps<D>,
 {
-    let h = batch.run::<D>(&models.models[set as usize], models.isa, dt);
-    health.finite &= h.finite;
-    health.inverted |= h.inverted;
-    batch.write_lanes::<D>(outp);
+    let m = &models.models[batch.set as usize];
+    health.and(m.run::<D>(batch, models.isa, dt));
+    batch.write_lanes::<D>(outp, m.has_f());
     batch.clear();
 }
 
@@ -406,7 +353,7 @@ pub(super) struct G2pOut<const D: usize> {
     pub(super) key_by_id: RawSlice<u32>,
 }
 
-/// g2p's view of the storage it writes, for the sand lanes' write-back.
+/// g2p's view of the storage it writes, for the batches' write-back.
 struct Sink<const D: usize>(RawSlice<Particle<D>>);
 
 impl<const D: usize> ParticleSink<D> for Sink<D> {

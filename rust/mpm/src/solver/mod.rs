@@ -12,8 +12,8 @@
 //! 3. `grid_update.rs`: per output block, gather the overlapping padded
 //!    buffers in a fixed order, add gravity, apply walls and colliders;
 //! 4. `g2p.rs`: per particle, new `v`, `C`, position, the material update
-//!    (`material/water.rs`, `material/sand/`, `material/solid.rs`, each
-//!    particle with its parameter set) and the stress, and the
+//!    (`crate::material`: each particle under the model of its parameter
+//!    set, sixteen of one set at a time) and the stress, and the
 //!    particle's block key for the next substep.
 //!
 //! `frame.rs` runs a frame's substeps on a persistent team of threads
@@ -56,7 +56,7 @@ use crate::collider::{Collider, PROJECT_DEPTH_CELLS, ShallowCells};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, check_budget};
 use crate::isa::Isa;
-use crate::material::solid::Models;
+use crate::material::Models;
 use crate::params::SolverParams;
 use crate::particles::Particle;
 use grid::{SparseGrid, Stencil};

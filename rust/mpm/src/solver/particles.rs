@@ -6,9 +6,8 @@
 use super::Solver;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::material::solid;
-use crate::material::{sand, water};
-use crate::particles::{Material, Particle};
+use crate::material::Models;
+use crate::particles::Particle;
 
 impl<const D: usize> Solver<D>
 where
@@ -139,16 +138,10 @@ where
         self.frame = frame;
     }
 
-    /// Recompute the derived stress τ from the particle's state.
+    /// Recompute the derived stress τ from the particle's state, under the
+    /// model of its parameter set (checked first, `check_set`).
     fn refresh_stress(&self, p: &mut Particle<D>) {
-        p.tau = match p.material {
-            Material::Water => water::kirchhoff_stress(self.models.water(p.set), p.j, &p.c),
-            Material::Sand => {
-                let m = self.models.sand(p.set);
-                sand::stress_of(&p.f, m.mu, m.la)
-            }
-            _ => solid::stress(&self.models.models[p.set as usize], &p.f, p.j),
-        };
+        p.tau = self.models.models[p.set as usize].stress(p);
     }
 
     /// The table of parameter sets particles index (`Particle::set`): the
@@ -167,7 +160,7 @@ where
         let mut params = self.params.clone();
         params.sets.push(set);
         params.validate()?;
-        self.models = crate::material::solid::Models::new(&params, self.isa);
+        self.models = Models::new(&params, self.isa);
         self.params = params;
         Ok((self.models.params.len() - 1) as u16)
     }

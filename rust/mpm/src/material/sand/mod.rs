@@ -17,35 +17,42 @@
 //! deviatoric strain is small), which is faster and closer to an f64 SVD
 //! reference than the f32 SVD route
 //! ([`advance_svd`](return_map::advance_svd), kept as the tests'
-//! comparison), and sixteen particles at a time in SIMD lanes
-//! ([`SandBatch`]).
+//! comparison), and sixteen particles at a time in SIMD lanes (g2p's
+//! [`Batch`](super::batch::Batch)). The stress of a particle's state (set,
+//! restored or changed between frames) is that of the SVD route
+//! ([`stress_of`]).
 //!
-//! Files: `return_map.rs` (the projection onto the cone, on one particle and
-//! on SIMD lanes, and the SVD route), `update_2d.rs` and `update_3d.rs` (the
-//! g2p update without singular vectors), `batch.rs` ([`SandBatch`]),
-//! `tests.rs` (every route against an f64 SVD reference, the batch against
-//! one particle at a time).
+//! Files: this one (the model: [`Sand`]), `return_map.rs` (the projection
+//! onto the cone, on one particle and on SIMD lanes, and the SVD route),
+//! `update_2d.rs` and `update_3d.rs` (the g2p update without singular
+//! vectors), `tests.rs` (every route against an f64 SVD reference, the batch
+//! against one particle at a time).
 
-mod batch;
 mod return_map;
 #[cfg(test)]
 mod tests;
 mod update_2d;
-pub(crate) mod update_3d;
+mod update_3d;
 
-pub(crate) use batch::{ParticleSink, SandBatch, SandHealth};
 pub use return_map::drucker_prager_project;
 
 use nalgebra::{SMatrix, SVector};
 
+use super::Constitutive;
+use super::batch::State;
 use super::lanes::Real;
+use super::spectral::trial;
 use crate::dim::{Dim, DimOps};
-use crate::isa::Isa;
 use crate::params::SandParams;
+use crate::particles::Particle;
+use update_2d::advance_2d;
+use update_3d::advance_3d;
 
-/// The constants of the sand model derived from [`SandParams`] once per substep.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct SandModel {
+/// A sand set's parameters and the constants of the model derived from
+/// them once per solver.
+#[derive(Clone, Debug)]
+pub(crate) struct Sand {
+    pub(crate) params: SandParams,
     /// Lamé parameters μ, λ [Pa].
     pub(crate) mu: f32,
     pub(crate) la: f32,
@@ -53,13 +60,11 @@ pub(crate) struct SandModel {
     pub(crate) alpha: f32,
     /// Trace of the log strain at the cone apex (0 without cohesion).
     pub(crate) tr_apex: f32,
-    /// The compiled copy of [`SandBatch::run`] to use (`crate::isa`).
-    pub(crate) isa: Isa,
 }
 
-impl SandModel {
-    /// The constants for `sand`; `isa` must be [`available`](Isa::available).
-    pub(crate) fn new<const D: usize>(sand: &SandParams, isa: Isa) -> Self
+impl Sand {
+    /// The constants for `sand` in `D` dimensions.
+    pub(crate) fn new<const D: usize>(sand: &SandParams) -> Self
     where
         Dim<D>: DimOps<D>,
     {
@@ -71,13 +76,46 @@ impl SandModel {
         } else {
             0.0
         };
-        SandModel {
+        Sand {
+            params: sand.clone(),
             mu,
             la,
             alpha,
             tr_apex,
-            isa,
         }
+    }
+}
+
+impl Constitutive for Sand {
+    const HAS_F: bool = true;
+
+    /// The P-wave speed `sqrt((λ + 2μ)/ρ)`.
+    fn wave_speed<const D: usize>(&self, _cfl: f32, _dx: f32, _jp_min: f32) -> f32 {
+        self.params.wave_speed()
+    }
+
+    /// The elastic predictor `F* = (I + Δt·C)·F`, then the return mapping
+    /// (Klár et al. 2016, Sec. 7; [`advance_2d`], [`advance_3d`]): the new
+    /// F, `vc` and stress.
+    #[inline(always)]
+    fn update_lanes<R: Real, const D: usize>(&self, s: &mut State<R>, c: &[R; 9], dt: f32) {
+        let ft = trial::<R, D>(&s.f, c, dt);
+        if D == 2 {
+            let (f, vc, tau) = advance_2d(&ft, s.vc, self);
+            s.f[..4].copy_from_slice(&f);
+            s.tau[..4].copy_from_slice(&tau);
+            s.vc = vc;
+        } else {
+            (s.f, s.vc, s.tau) = advance_3d(&ft, s.vc, self);
+        }
+    }
+
+    /// The stress of the SVD route ([`stress_of`]).
+    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    where
+        Dim<D>: DimOps<D>,
+    {
+        stress_of(&p.f, self.mu, self.la)
     }
 }
 
@@ -108,11 +146,6 @@ where
     let svd = Dim::<D>::svd(f);
     let eps = svd.sigma.map(|s| s.max(1e-6).ln());
     kirchhoff_stress(&svd.u, &eps, mu, la)
-}
-
-#[inline(always)]
-fn k<R: Real>(x: f32) -> R {
-    R::splat(x)
 }
 
 #[inline(always)]

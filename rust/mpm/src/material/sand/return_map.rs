@@ -5,11 +5,12 @@
 
 use nalgebra::SVector;
 
-use super::{k, sum};
+use super::sum;
 use crate::material::lanes::Real;
+use crate::material::spectral::k;
 // the reference route's (test builds only)
 #[cfg(test)]
-use super::{SandModel, kirchhoff_stress};
+use super::{Sand, kirchhoff_stress};
 #[cfg(test)]
 use crate::dim::{Dim, DimOps};
 #[cfg(test)]
@@ -25,7 +26,7 @@ pub(super) fn advance_svd<const D: usize>(
     f: &mut SMatrix<f32, D, D>,
     vc: &mut f32,
     f_trial: &SMatrix<f32, D, D>,
-    m: &SandModel,
+    m: &Sand,
 ) -> SMatrix<f32, D, D>
 where
     Dim<D>: DimOps<D>,

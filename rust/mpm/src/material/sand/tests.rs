@@ -4,13 +4,14 @@
 
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 
+use super::Sand;
 use super::return_map::{advance_svd, project_with_scale};
 use super::update_2d::advance_2d;
 use super::update_3d::{advance_3d, advance_3d_eigen, advance_3d_series, strain_3d};
-use super::{SandBatch, SandHealth, SandModel};
 use crate::dim::{Dim, DimOps};
 use crate::isa::Isa;
 use crate::material::lanes::LANES;
+use crate::material::{Batch, LaneHealth};
 use crate::params::SandParams;
 use crate::particles::{Material, Particle};
 
@@ -21,7 +22,7 @@ use crate::particles::{Material, Particle};
 fn reference<const D: usize>(
     ft: &SMatrix<f32, D, D>,
     vc: f32,
-    m: &SandModel,
+    m: &Sand,
 ) -> (DMatrix<f64>, DMatrix<f64>, f64, f64) {
     let (u, sigma, vt) = svd_f64(ft);
     let (mu, la, alpha, dd) = (m.mu as f64, m.la as f64, m.alpha as f64, D as f64);
@@ -96,7 +97,7 @@ fn one_particle<const D: usize>(
     f: &mut SMatrix<f32, D, D>,
     vc: &mut f32,
     f_trial: &SMatrix<f32, D, D>,
-    m: &SandModel,
+    m: &Sand,
 ) -> SMatrix<f32, D, D> {
     one_particle_route(f, vc, f_trial, m, None)
 }
@@ -107,7 +108,7 @@ fn one_particle_route<const D: usize>(
     f: &mut SMatrix<f32, D, D>,
     vc: &mut f32,
     f_trial: &SMatrix<f32, D, D>,
-    m: &SandModel,
+    m: &Sand,
     series: Option<bool>,
 ) -> SMatrix<f32, D, D> {
     let mut ft = [0.0f32; 9];
@@ -117,7 +118,7 @@ fn one_particle_route<const D: usize>(
         }
     }
     let (f_new, vc_new, tau) = if D == 2 {
-        let (f4, v, t4) = advance_2d(&[ft[0], ft[1], ft[2], ft[3]], *vc, m);
+        let (f4, v, t4) = advance_2d(&ft, *vc, m);
         let mut f9 = [0.0; 9];
         let mut t9 = [0.0; 9];
         f9[..4].copy_from_slice(&f4);
@@ -143,7 +144,7 @@ fn one_particle_route<const D: usize>(
 const EDGE: f64 = 1e-6;
 
 type Update<const D: usize> =
-    fn(&mut SMatrix<f32, D, D>, &mut f32, &SMatrix<f32, D, D>, &SandModel) -> SMatrix<f32, D, D>;
+    fn(&mut SMatrix<f32, D, D>, &mut f32, &SMatrix<f32, D, D>, &Sand) -> SMatrix<f32, D, D>;
 
 /// Run the closed form `update` and the f32 SVD route on the trial F that
 /// `trial(i, rnd)` makes (20 000 per cohesion, 0 and 200 Pa) against
@@ -165,13 +166,10 @@ where
     let mut at_edge = 0;
     let (mut worst, mut worst_svd, mut worst_f) = (0.0f64, 0.0f64, 0.0f64);
     for cohesion in [0.0, 200.0] {
-        let m = SandModel::new::<D>(
-            &SandParams {
-                cohesion,
-                ..Default::default()
-            },
-            Isa::Baseline,
-        );
+        let m = Sand::new::<D>(&SandParams {
+            cohesion,
+            ..Default::default()
+        });
         for i in 0..20_000 {
             let ft = trial(i, &mut rnd);
             let vc0 = 0.01 * rnd();
@@ -240,8 +238,8 @@ where
     let mut rnd = stream(99 + D as u64);
     let dt = 2e-4;
     for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
-        let m = SandModel::new::<D>(&SandParams::default(), isa);
-        let mut batch = SandBatch::new();
+        let m = Sand::new::<D>(&SandParams::default());
+        let mut batch = Batch::new(1);
         let mut pending = Vec::new();
         let (mut lanes, mut routes) = (0, [0; 2]);
         // 50 batches, the last partial
@@ -257,7 +255,7 @@ where
             let c = SMatrix::<f32, D, D>::from_fn(|_, _| 2000.0 * amp * rnd());
             let vc = 0.01 * rnd();
             let at = 1000 + round as u32;
-            let full = batch.push::<D>(at, &f, &c, vc);
+            let full = batch.push::<D>(at, (&f, 1.0, vc), &c);
             // the batch's predictor, one particle at a time
             let a = SMatrix::<f32, D, D>::from_fn(|r, j| {
                 let x = c[(r, j)] * dt;
@@ -280,18 +278,14 @@ where
                         strain_3d::<f32>(&ft).3
                     });
                 routes[series as usize] += 1;
-                let h = batch.run::<D>(&m, dt);
-                let ok = SandHealth {
-                    finite: true,
-                    inverted: false,
-                };
-                assert_eq!(h, ok, "{isa:?}");
+                let h = batch.run::<D, Sand>(&m, isa, dt);
+                assert_eq!(h, LaneHealth::OK, "{isa:?}");
                 assert_eq!(batch.len(), pending.len());
                 let bits = |x: &SMatrix<f32, D, D>| x.map(f32::to_bits);
                 for (l, (at1, ft, vc0)) in pending.drain(..).enumerate() {
                     let (mut f1, mut vc1) = (SMatrix::<f32, D, D>::zeros(), vc0);
                     let tau1 = one_particle_route(&mut f1, &mut vc1, &ft, &m, Some(series));
-                    let (at, f, vc, tau) = batch.lane::<D>(l);
+                    let (at, f, _, vc, tau) = batch.lane::<D>(l);
                     assert_eq!(at, at1);
                     assert_eq!(bits(&f), bits(&f1), "{isa:?} F, particle {at}");
                     assert_eq!(bits(&tau), bits(&tau1), "{isa:?} τ, particle {at}");
@@ -307,22 +301,22 @@ where
         }
         // health: a NaN velocity gradient, an inverting one, and the same
         // left over in lanes past `len` (not counted)
-        let mut batch = SandBatch::new();
+        let mut batch = Batch::new(1);
         let id = SMatrix::<f32, D, D>::identity();
         let mut c_nan = SMatrix::<f32, D, D>::zeros();
         c_nan[(0, 0)] = f32::NAN;
         let mut c_flip = SMatrix::<f32, D, D>::zeros();
         c_flip[(0, 0)] = -2.0 / dt; // (I + Δt·C) = diag(−1, 1, …)
-        batch.push::<D>(0, &id, &c_nan, 0.0);
-        let h = batch.run::<D>(&m, dt);
+        batch.push::<D>(0, (&id, 1.0, 0.0), &c_nan);
+        let h = batch.run::<D, Sand>(&m, isa, dt);
         assert!(!h.finite, "{isa:?}");
         batch.clear();
-        batch.push::<D>(0, &id, &c_flip, 0.0);
-        let h = batch.run::<D>(&m, dt);
+        batch.push::<D>(0, (&id, 1.0, 0.0), &c_flip);
+        let h = batch.run::<D, Sand>(&m, isa, dt);
         assert!(h.finite && h.inverted, "{isa:?} {h:?}");
         batch.clear();
-        batch.push::<D>(0, &id, &SMatrix::zeros(), 0.0);
-        let h = batch.run::<D>(&m, dt);
+        batch.push::<D>(0, (&id, 1.0, 0.0), &SMatrix::zeros());
+        let h = batch.run::<D, Sand>(&m, isa, dt);
         assert!(
             h.finite && !h.inverted,
             "{isa:?}: leftover lanes counted ({h:?})"
@@ -340,7 +334,7 @@ fn series_route_matches_an_f64_svd_reference() {
         f: &mut Matrix3<f32>,
         vc: &mut f32,
         f_trial: &Matrix3<f32>,
-        m: &SandModel,
+        m: &Sand,
     ) -> Matrix3<f32> {
         let ft: [f32; 9] = std::array::from_fn(|i| f_trial[(i / 3, i % 3)]);
         assert!(
@@ -377,7 +371,7 @@ fn series_route_matches_an_f64_svd_reference() {
 /// volume) is a blow-up's, not a simulation's.
 #[test]
 fn compressed_below_the_clamp_is_clamped_as_the_reference() {
-    let m = SandModel::new::<3>(&SandParams::default(), Isa::Baseline);
+    let m = Sand::new::<3>(&SandParams::default());
     for s in [1e-7f32, 5e-7] {
         let ft = Matrix3::from_diagonal_element(s);
         let a: [f32; 9] = std::array::from_fn(|i| ft[(i / 3, i % 3)]);
@@ -410,9 +404,9 @@ where
     Dim<D>: DimOps<D>,
 {
     let mut rnd = stream(5 + D as u64);
-    let m = SandModel::new::<D>(&SandParams::default(), Isa::detect());
+    let m = Sand::new::<D>(&SandParams::default());
     for len in 0..=LANES {
-        let mut batch = SandBatch::new();
+        let mut batch = Batch::new(1);
         // particles pushed in a scrambled order of 40 slots
         let at: Vec<u32> = (0..len as u32).map(|l| (l * 7 + 3) % 40).collect();
         for &a in &at {
@@ -420,15 +414,15 @@ where
                 (if r == c { 1.0 } else { 0.0 }) + 0.02 * rnd()
             });
             let c = SMatrix::<f32, D, D>::from_fn(|_, _| 50.0 * rnd());
-            batch.push::<D>(a, &f, &c, 0.01 * rnd());
+            batch.push::<D>(a, (&f, 1.0, 0.01 * rnd()), &c);
         }
-        batch.run::<D>(&m, 2e-4);
+        batch.run::<D, Sand>(&m, Isa::detect(), 2e-4);
         let blank = Particle::<D>::new(SVector::zeros(), Material::Sand, 1.0, 1.0);
         let mut outp = [blank; 40];
-        batch.write_lanes::<D>(&mut outp[..]);
+        batch.write_lanes::<D>(&mut outp[..], true);
         let mut expected = vec![blank; 40];
         for l in 0..len {
-            let (a, f, vc, tau) = batch.lane::<D>(l);
+            let (a, f, _, vc, tau) = batch.lane::<D>(l);
             let p = &mut expected[a as usize];
             (p.f, p.vc, p.tau) = (f, vc, tau);
         }

@@ -1,13 +1,14 @@
 //! The 2D sand update of g2p without singular vectors ([`advance_2d`]).
 
+use super::Sand;
 use super::return_map::project_lanes;
-use super::{SandModel, k};
 use crate::material::lanes::Real;
+use crate::material::spectral::{eig_2d, k};
 use crate::material::vmath;
 
-/// The 2D sand update of g2p ([`SandBatch`](super::SandBatch)) without singular vectors, on
-/// lanes of `R` (one particle or sixteen): trial F row-major and `vc` in, new F,
-/// `vc` and Kirchhoff stress out. Every
+/// The 2D sand update of g2p ([`Sand`]'s lanes) without singular vectors, on
+/// lanes of `R` (one particle or sixteen): trial F row-major (the first four
+/// entries) and `vc` in, new F, `vc` and Kirchhoff stress out. Every
 /// quantity it needs is an isotropic function of the trial `F`, and in 2D
 /// such a function of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2`, `σ_i = √λ_i`) is
 /// `g(B) = g(λ2)·I + (g(λ1) − g(λ2))/(λ1 − λ2)·(B − λ2·I)`. So with the
@@ -28,16 +29,12 @@ use crate::material::vmath;
 ///
 /// [`Svd`]: crate::dim::Svd
 #[inline(always)]
-pub(crate) fn advance_2d<R: Real>(ft: &[R; 4], vc: R, m: &SandModel) -> ([R; 4], R, [R; 4]) {
-    let [a, b, c, d] = *ft;
-    let (b11, b12, b22) = (a * a + b * b, a * c + b * d, c * c + d * d);
-    let det = a * d - b * c;
-    let half = k::<R>(0.5) * (b11 - b22);
-    let rad = (half * half + b12 * b12).sqrt();
-    // σ clamped to 1e-6 as in the SVD route (λ = σ² to 1e-12)
-    let l1 = (k::<R>(0.5) * (b11 + b22) + rad).max(k(1e-12));
-    // λ2 = det(B)/λ1 = det(F)²/λ1: no cancellation when F is nearly singular
-    let l2 = (det * det / l1).max(k(1e-12));
+pub(crate) fn advance_2d<R: Real>(ft: &[R; 9], vc: R, m: &Sand) -> ([R; 4], R, [R; 4]) {
+    let [a, b, c, d] = [ft[0], ft[1], ft[2], ft[3]];
+    // B = F·Fᵀ and its eigenvalues: σ clamped to 1e-6 as in the SVD route
+    // (λ = σ² to 1e-12); λ2 = det(F)²/λ1, no cancellation when F is nearly
+    // singular
+    let ([b11, b12, b22], l1, l2, _) = eig_2d(ft);
     let e0 = [k::<R>(0.5) * vmath::ln(l1), k::<R>(0.5) * vmath::ln(l2)];
     let (e_new, scale, vc) = project_lanes(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
     let dl = l1 - l2;
@@ -50,7 +47,7 @@ pub(crate) fn advance_2d<R: Real>(ft: &[R; 4], vc: R, m: &SandModel) -> ([R; 4],
     // g_i = e^{ε_i − ε0_i}; inside the cone F = F_trial
     // (skipped if no lane is plastic)
     let plastic = scale.ne(k(1.0));
-    let mut f = *ft;
+    let mut f = [a, b, c, d];
     if R::any(plastic) {
         let (d1, d2) = (e_new[0] - e0[0], e_new[1] - e0[1]);
         let g2 = vmath::exp(d2);

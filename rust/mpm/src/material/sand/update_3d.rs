@@ -1,76 +1,15 @@
 //! The 3D sand update of g2p without singular vectors ([`advance_3d`]): a
 //! matrix-series route for small deviatoric strain
 //! ([`advance_3d_series`]), an eigenvalue route otherwise
-//! ([`advance_3d_eigen`]).
+//! ([`advance_3d_eigen`], on the spectral tools of `material/spectral.rs`).
 
+use super::Sand;
 use super::return_map::project_lanes;
-use super::{SandModel, k};
 use crate::material::lanes::Real;
+use crate::material::spectral::{Spectral3, gram_3, k, plastic_f};
 use crate::material::vmath;
 
-/// Eigenvalues `λ1 ≥ λ2 ≥ λ3` (each at least `1e-12`) of the symmetric 3×3
-/// matrix `[[b00, b01, b02], [b01, b11, b12], [b02, b12, b22]]` in closed form
-/// (the trigonometric solution of the characteristic cubic, Smith 1961):
-/// `q = tr B / 3`, `p² = ‖B − qI‖²_F / 6`, `r = det(B − qI) / (2p³)`,
-/// `φ = acos(r) / 3`, `λ1 = q + 2p cos φ`, `λ3 = q + 2p cos(φ + 2π/3)`
-/// (both cosines through [`vmath::cos_two_thirds_acos`]),
-/// `λ2 = 3q − λ1 − λ3`. Near a double eigenvalue (`r → ±1`) the pair comes out
-/// with an error of about `p·√ε`; [`advance_3d`] only interpolates at these
-/// nodes, which makes that error second order (see there).
-#[inline(always)]
-pub(crate) fn sym3_eigenvalues<R: Real>(
-    b00: R,
-    b01: R,
-    b02: R,
-    b11: R,
-    b12: R,
-    b22: R,
-) -> (R, R, R) {
-    let q = (b00 + b11 + b22) / k(3.0);
-    let (d0, d1, d2) = (b00 - q, b11 - q, b22 - q);
-    let p2 =
-        (d0 * d0 + d1 * d1 + d2 * d2 + k::<R>(2.0) * (b01 * b01 + b02 * b02 + b12 * b12)) / k(6.0);
-    // isotropic to f32 rounding (and p³ below would underflow): λ1 = λ2 = λ3 = q
-    let iso = p2.le(k::<R>(1e-14) * q * q);
-    let p = p2.sqrt();
-    let det =
-        d0 * (d1 * d2 - b12 * b12) - b01 * (b01 * d2 - b12 * b02) + b02 * (b01 * b12 - d1 * b02);
-    let r = det / (k::<R>(2.0) * p2 * p);
-    // clamp to [−1, 1]; NaN stays NaN (a blow-up the frame reports)
-    let r = R::select(r.lt(k(-1.0)), k(-1.0), R::select(r.gt(k(1.0)), k(1.0), r));
-    // cos(acos(r)/3) = C(√((1 + r)/2)) and cos(acos(r)/3 + 2π/3) =
-    // −cos(acos(−r)/3) = −C(√((1 − r)/2)), C = `vmath::cos_two_thirds_acos`
-    let half = k::<R>(0.5);
-    let c1 = vmath::cos_two_thirds_acos(((k::<R>(1.0) + r) * half).sqrt());
-    let c3 = vmath::cos_two_thirds_acos(((k::<R>(1.0) - r) * half).sqrt());
-    let two_p = k::<R>(2.0) * p;
-    let l1 = q + two_p * c1;
-    let l3 = q - two_p * c3;
-    let l2 = (k::<R>(3.0) * q - l1 - l3).min(l1).max(l3);
-    let (qc, tiny) = (q.max(k(1e-12)), k::<R>(1e-12));
-    (
-        R::select(iso, qc, l1.max(tiny)),
-        R::select(iso, qc, l2.max(tiny)),
-        R::select(iso, qc, l3.max(tiny)),
-    )
-}
-
-/// `g0·I + g1·M3 + g2·P` (row-major) for symmetric `M3`, `P`: the Newton form
-/// of [`advance_3d`]. (A function, not a closure: a closure may be left out
-/// of line, outside the compiled copy of the frame loop it runs in.)
-#[inline(always)]
-pub(crate) fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R, g2: R) -> [R; 9] {
-    let mut out = [g0; 9];
-    for i in 0..3 {
-        for j in 0..3 {
-            let x = g1 * m3[i][j] + g2 * pr[i][j];
-            out[3 * i + j] = if i == j { g0 + x } else { x };
-        }
-    }
-    out
-}
-
-/// The 3D sand update of g2p ([`SandBatch`](super::SandBatch)) without singular vectors, on
+/// The 3D sand update of g2p ([`Sand`]'s lanes) without singular vectors, on
 /// lanes of `R` (one particle or sixteen): trial F row-major and `vc` in, new
 /// F, `vc` and Kirchhoff stress out. With `B = F·Fᵀ = q·(I + X)`
 /// ([`strain_3d`]) it takes the series route ([`advance_3d_series`]) when
@@ -81,7 +20,7 @@ pub(crate) fn newton_3<R: Real>(m3: &[[R; 3]; 3], pr: &[[R; 3]; 3], g0: R, g1: R
 /// in storage order, the same for any thread count, so the frame stays
 /// deterministic.
 #[inline(always)]
-pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &SandModel) -> ([R; 9], R, [R; 9]) {
+pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &Sand) -> ([R; 9], R, [R; 9]) {
     let (b, q, x, small) = strain_3d(ft);
     if R::all(small) {
         advance_3d_series(ft, vc, m, q, &x)
@@ -95,17 +34,7 @@ pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &SandModel) -> ([R; 9],
 /// [`SERIES_MAX_X`] (false for NaN and for `q = 0`), per lane.
 #[inline(always)]
 pub(super) fn strain_3d<R: Real>(ft: &[R; 9]) -> ([R; 6], R, [R; 6], R::Mask) {
-    let row = |i: usize| [ft[3 * i], ft[3 * i + 1], ft[3 * i + 2]];
-    let (r0, r1, r2) = (row(0), row(1), row(2));
-    let dot = |a: [R; 3], b: [R; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let b = [
-        dot(r0, r0),
-        dot(r0, r1),
-        dot(r0, r2),
-        dot(r1, r1),
-        dot(r1, r2),
-        dot(r2, r2),
-    ];
+    let b = gram_3(ft);
     let q = (b[0] + b[3] + b[5]) * k(1.0 / 3.0);
     let inv_q = k::<R>(1.0) / q;
     let mut x = [k::<R>(0.0); 6];
@@ -132,20 +61,6 @@ pub(super) fn strain_3d<R: Real>(ft: &[R; 9]) -> ([R; 6], R, [R; 6], R::Mask) {
 /// qualifies (98% of sand3d's batches of eight had ‖X‖ ≤ 0.03 in every
 /// lane). (0.05 with one more term of each series: 2% slower on sand3d.)
 const SERIES_MAX_X: f32 = 0.03;
-
-/// The new elastic F of a 3D return mapping: `G·F_trial` (row-major) in the
-/// lanes where `plastic` holds, `F_trial` elsewhere.
-#[inline(always)]
-pub(crate) fn plastic_f<R: Real>(g: &[R; 9], ft: &[R; 9], plastic: R::Mask) -> [R; 9] {
-    let mut f = *ft;
-    for i in 0..3 {
-        for j in 0..3 {
-            let gf = g[3 * i] * ft[j] + g[3 * i + 1] * ft[3 + j] + g[3 * i + 2] * ft[6 + j];
-            f[3 * i + j] = R::select(plastic, gf, ft[3 * i + j]);
-        }
-    }
-    f
-}
 
 /// Product of two commuting symmetric 3×3 matrices (upper triangles
 /// `[00, 01, 02, 11, 12, 22]`), which is symmetric.
@@ -192,7 +107,7 @@ fn sym_axpi<R: Real>(a: &[R; 6], s: R, d: R) -> [R; 6] {
 pub(super) fn advance_3d_series<R: Real>(
     ft: &[R; 9],
     vc: R,
-    m: &SandModel,
+    m: &Sand,
     q: R,
     x: &[R; 6],
 ) -> ([R; 9], R, [R; 9]) {
@@ -251,7 +166,8 @@ pub(super) fn advance_3d_series<R: Real>(
 /// The 3D sand update of [`advance_3d`] through the eigenvalues of `B`
 /// (upper triangle `b`), without singular vectors, as
 /// [`advance_2d`](super::update_2d::advance_2d) does in 2D: every quantity it needs is an isotropic function
-/// of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2 ≥ λ3` from [`sym3_eigenvalues`],
+/// of `B = F·Fᵀ` (eigenvalues `λ1 ≥ λ2 ≥ λ3` from
+/// [`sym3_eigenvalues`](crate::material::spectral::sym3_eigenvalues),
 /// `σ_i = √λ_i`), and for a symmetric 3×3 `B` such a function is its Newton
 /// interpolation at the eigenvalues,
 /// `g(B) = g[λ3]·I + g[λ3,λ2]·M3 + g[λ3,λ2,λ1]·M3·M2`, `M_i = B − λ_i·I`,
@@ -277,11 +193,12 @@ pub(super) fn advance_3d_series<R: Real>(
 pub(super) fn advance_3d_eigen<R: Real>(
     ft: &[R; 9],
     vc: R,
-    m: &SandModel,
+    m: &Sand,
     b: &[R; 6],
 ) -> ([R; 9], R, [R; 9]) {
-    let [b00, b01, b02, b11, b12, b22] = *b;
-    let (l1, l2, l3) = sym3_eigenvalues(b00, b01, b02, b11, b12, b22);
+    // the eigenvalues of B, M3 = B − λ3 I and P = M3·M2
+    let sp = Spectral3::of_b(b);
+    let [l1, l2, l3] = sp.l;
     let half = k::<R>(0.5);
     let e0 = [
         half * vmath::ln(l1),
@@ -298,24 +215,6 @@ pub(super) fn advance_3d_eigen<R: Real>(
     let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
     let near = (l1 - l3).le(k::<R>(1e-4) * l3);
     let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
-    // M3 = B − λ3 I and P = M3·M2 (symmetric: both are polynomials in B)
-    let m3 = [
-        [b00 - l3, b01, b02],
-        [b01, b11 - l3, b12],
-        [b02, b12, b22 - l3],
-    ];
-    let m2 = [
-        [b00 - l2, b01, b02],
-        [b01, b11 - l2, b12],
-        [b02, b12, b22 - l2],
-    ];
-    let pm = |i: usize, j: usize| m3[i][0] * m2[0][j] + m3[i][1] * m2[1][j] + m3[i][2] * m2[2][j];
-    let pr = [
-        [pm(0, 0), pm(0, 1), pm(0, 2)],
-        [pm(0, 1), pm(1, 1), pm(1, 2)],
-        [pm(0, 2), pm(1, 2), pm(2, 2)],
-    ];
-    let func = |g0: R, g1: R, g2: R| newton_3(&m3, &pr, g0, g1, g2);
     // plastic (s ≠ 1): G = g(B), g(λ) = e^{ε_i − ε0_i} = e^c·λ^pw, F =
     // G·F_trial; inside the cone F = F_trial (skipped if no lane is plastic)
     let plastic = scale.ne(k(1.0));
@@ -332,9 +231,9 @@ pub(super) fn advance_3d_eigen<R: Real>(
             d21 - d32,
             l1 - l3,
         );
-        f = plastic_f(&func(g3, d32, d321), ft, plastic);
+        f = plastic_f(&sp.newton(g3, d32, d321), ft, plastic);
     }
     let h3 = k::<R>(2.0 * m.mu) * e_new[2] + k::<R>(m.la) * (e_new[0] + e_new[1] + e_new[2]);
     let ms = k::<R>(m.mu) * scale;
-    (f, vc, func(h3, ms * ln32, ms * ln321))
+    (f, vc, sp.newton(h3, ms * ln32, ms * ln321))
 }

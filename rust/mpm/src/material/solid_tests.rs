@@ -1,10 +1,51 @@
-//! The solid updates against their definitions, one particle at a time, in
-//! f64 where a reference is computed (nalgebra's SVD).
+//! The solids' updates (elastic, snow, viscoplastic) against their
+//! definitions, one particle at a time ([`advance`], the reference the lane
+//! tests compare g2p's batch with), in f64 where a reference is computed
+//! (nalgebra's SVD).
 
 use nalgebra::{DMatrix, SMatrix, SVector};
 
-use super::*;
-use crate::params::{ElasticParams, SnowParams, ViscoplasticParams};
+use super::spectral::{from_lanes, to_lanes};
+use super::{Model, Models, State};
+use crate::dim::{Dim, DimOps};
+use crate::isa::Isa;
+use crate::params::{
+    ElasticModel, ElasticParams, MaterialParams, SnowParams, SolverParams, ViscoplasticParams,
+};
+use crate::particles::{Material, Particle, det};
+
+/// g2p's update of a solid particle under model `m` with the new velocity
+/// gradient `c` over `dt`: its `f` (and `j` = `J_P` for snow) and stress,
+/// one particle (g2p's batch does sixteen, with the same bits per lane).
+/// Returns `(finite, inverted)`: whether F, J_P and τ are finite, and
+/// whether `det F ≤ 0` (or NaN).
+pub(super) fn advance<const D: usize>(
+    m: &Model,
+    p: &mut Particle<D>,
+    dt: f32,
+    c: &SMatrix<f32, D, D>,
+) -> (bool, bool) {
+    let mut s = State {
+        f: to_lanes(&p.f),
+        j: p.j,
+        vc: p.vc,
+        tau: [0.0; 9],
+    };
+    m.update_lanes::<f32, D>(&mut s, &to_lanes(c), dt);
+    (p.f, p.j, p.tau) = (from_lanes(&s.f), s.j, from_lanes(&s.tau));
+    let finite = p.f.iter().chain(p.tau.iter()).all(|a| a.is_finite()) && p.j.is_finite();
+    (finite, !(det(&p.f) > 0.0))
+}
+
+/// The stress of model `m` at F = `f`, `J` = `j` (the refresh's).
+fn stress<const D: usize>(m: &Model, f: &SMatrix<f32, D, D>, j: f32) -> SMatrix<f32, D, D>
+where
+    Dim<D>: DimOps<D>,
+{
+    let mut p = Particle::new(SVector::from_element(0.5), Material::Elastic, 1.0, 1.0);
+    (p.f, p.j) = (*f, j);
+    m.stress(&p)
+}
 
 /// `m` in f64, dynamically sized (nalgebra's SVD and determinant need a
 /// known size).

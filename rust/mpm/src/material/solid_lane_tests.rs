@@ -1,12 +1,22 @@
-//! The solids' updates without singular vectors (`update.rs`) against the
-//! SVD route in f64 (nalgebra's), 2D and 3D, on random and on
-//! near-degenerate deformations; and [`SolidBatch`]'s lanes against one
-//! particle at a time, bit for bit.
+//! The solids' updates without singular vectors (`elastic.rs`, `snow.rs`,
+//! `viscoplastic.rs`) against the SVD route in f64 (nalgebra's), 2D and 3D,
+//! on random and on near-degenerate deformations; and g2p's [`Batch`]'s
+//! lanes against one particle at a time, bit for bit.
 
 use nalgebra::{DMatrix, DVector, SMatrix, SVector};
 
-use super::*;
-use crate::params::{ElasticParams, SnowParams, ViscoplasticParams};
+use super::snow::{snow_2d, snow_3d};
+use super::solid_tests::advance;
+use super::spectral::to_lanes;
+use super::viscoplastic::{viscoplastic_2d, viscoplastic_3d};
+use super::{Batch, Model, Models};
+use crate::dim::{Dim, DimOps};
+use crate::isa::Isa;
+use crate::params::{ElasticParams, MaterialParams, SnowParams, SolverParams, ViscoplasticParams};
+use crate::particles::{Material, Particle};
+
+const JP_LO: f32 = SnowParams::JP_RANGE.0;
+const JP_HI: f32 = SnowParams::JP_RANGE.1;
 
 fn rnd(seed: &mut u64) -> f64 {
     *seed = seed
@@ -112,12 +122,13 @@ fn reference<const D: usize>(
         let j = f.determinant();
         (f - &u * &vt) * f.transpose() * (2.0 * mu) + &id * (la * j * (j - 1.0))
     };
-    match *m {
-        Model::Elastic { mu, la, .. } => {
-            let tau = corot(&f, mu as f64, la as f64);
+    match m {
+        Model::Elastic(e) => {
+            let tau = corot(&f, e.mu as f64, e.la as f64);
             (f, j, tau)
         }
-        Model::Snow { mu, la, lo, hi, xi } => {
+        Model::Snow(sn) => {
+            let (mu, la, lo, hi, xi) = (sn.mu, sn.la, sn.lo, sn.hi, sn.xi);
             let c: Vec<f64> = s.iter().map(|x| x.clamp(lo as f64, hi as f64)).collect();
             let jp = j * s.product() / c.iter().product::<f64>();
             let fe = &u * diag(c) * &vt;
@@ -125,12 +136,8 @@ fn reference<const D: usize>(
             let tau = corot(&fe, mu as f64 * h, la as f64 * h);
             (fe, jp, tau)
         }
-        Model::Viscoplastic {
-            mu,
-            la,
-            radius,
-            relax,
-        } => {
+        Model::Viscoplastic(v) => {
+            let (mu, la, radius, relax) = (v.mu, v.la, v.radius, v.relax);
             let (mu, la) = (mu as f64, la as f64);
             let keep = relax as f64 / (relax as f64 + dt);
             let mut eps: Vec<f64> = s.iter().map(|x| x.ln()).collect();
@@ -148,6 +155,37 @@ fn reference<const D: usize>(
             let tau =
                 &u * diag(eps.iter().map(|e| 2.0 * mu * e + la * tr).collect()) * u.transpose();
             (fe, j, tau)
+        }
+        Model::Water(_) | Model::Sand(_) => unreachable!(),
+    }
+}
+
+/// A solid's update on one particle from the trial `ft` and `j` over `dt`,
+/// without the guard against inversion: `(F, J, τ)`.
+fn update_trial<const D: usize>(
+    m: &Model,
+    ft: &[f32; 9],
+    j: f32,
+    dt: f32,
+) -> ([f32; 9], f32, [f32; 9]) {
+    match m {
+        Model::Elastic(e) => (*ft, j, e.stress_lanes::<f32, D>(ft)),
+        Model::Snow(s) => {
+            let consts = (s.mu, s.la, s.lo, s.hi, s.xi);
+            if D == 2 {
+                snow_2d(ft, j, consts, (JP_LO, JP_HI))
+            } else {
+                snow_3d(ft, j, consts, (JP_LO, JP_HI))
+            }
+        }
+        Model::Viscoplastic(v) => {
+            let keep = v.relax / (v.relax + dt);
+            let (f, tau) = if D == 2 {
+                viscoplastic_2d(ft, v.mu, v.la, v.radius, keep)
+            } else {
+                viscoplastic_3d(ft, v.mu, v.la, v.radius, keep)
+            };
+            (f, j, tau)
         }
         Model::Water(_) | Model::Sand(_) => unreachable!(),
     }
@@ -192,24 +230,24 @@ where
     let dt = 1e-4;
     let mut seed = 17u64;
     for (name, m, j) in models::<D>() {
-        let (mu, lame_la) = match m {
-            Model::Elastic { mu, la, .. }
-            | Model::Snow { mu, la, .. }
-            | Model::Viscoplastic { mu, la, .. } => (mu as f64, la as f64),
+        let (mu, lame_la) = match &m {
+            Model::Elastic(e) => (e.mu as f64, e.la as f64),
+            Model::Snow(s) => (s.mu as f64, s.la as f64),
+            Model::Viscoplastic(v) => (v.mu as f64, v.la as f64),
             _ => unreachable!(),
         };
         let (mut worst_f, mut worst_tau, mut at) = (0.0f64, 0.0f64, [0.0f64; 3]);
         for sigma in sigma_cases(&mut seed) {
             let ft = with_singular_values::<D>(&sigma, &mut seed);
             let (want_f, want_j, want_tau) = reference::<D>(&m, &ft, j, dt);
-            let (f, jn, tau) = update_lanes::<f32, D>(&m, &to_lanes(&ft), j as f32, dt as f32);
+            let (f, jn, tau) = update_trial::<D>(&m, &to_lanes(&ft), j as f32, dt as f32);
             let got_f = DMatrix::from_fn(D, D, |r, c| f[r * D + c] as f64);
             let got_tau = DMatrix::from_fn(D, D, |r, c| tau[r * D + c] as f64);
             // B's small eigenvalues lose their relative accuracy in f32:
             // snow and the viscoplastic solid (logarithms of them) are held
             // to their accuracy for σ in [0.5, 2] (snow's trial σ lie near
             // its clamp bounds), to finite results beyond
-            if !matches!(m, Model::Elastic { .. })
+            if !matches!(m, Model::Elastic(_))
                 && sigma[..D].iter().any(|&x| !(0.5..=2.0).contains(&x))
             {
                 assert!(f.iter().chain(&tau).all(|x| x.is_finite()) && jn.is_finite());
@@ -250,7 +288,7 @@ where
                 * DMatrix::from_diagonal(&DVector::from_row_slice(&s[..D]))
                 * rotation(D, &mut seed);
             let ft = SMatrix::<f32, D, D>::from_fn(|r, c| f[(r, c)] as f32);
-            let (f, jn, tau) = update_lanes::<f32, D>(&m, &to_lanes(&ft), j as f32, dt as f32);
+            let (f, jn, tau) = update_trial::<D>(&m, &to_lanes(&ft), j as f32, dt as f32);
             assert!(
                 f.iter().chain(&tau).all(|x| x.is_finite()) && jn.is_finite(),
                 "{name}: reflection σ {s:?} gives {f:?} {tau:?}"
@@ -265,7 +303,7 @@ fn the_updates_match_the_svd_route_in_f64() {
     against_the_svd_route::<3>();
 }
 
-/// `SolidBatch` (each compiled copy, full and partly filled) gives each
+/// g2p's `Batch` (each compiled copy, full and partly filled) gives each
 /// particle the bits of `advance` on it alone.
 fn batch_is_one_particle_at_a_time<const D: usize>()
 where
@@ -287,13 +325,13 @@ where
                     })
                     .collect();
                 let dt = 1e-4;
-                let mut batch = SolidBatch::new();
+                let mut batch = Batch::new(0);
                 for (i, p) in ps.iter().enumerate() {
-                    batch.push::<D>(i as u32, &p.f, &p.c, p.j);
+                    batch.push::<D>(i as u32, (&p.f, p.j, p.vc), &p.c);
                 }
-                let health = batch.run::<D>(&m, isa, dt);
+                let health = m.run::<D>(&mut batch, isa, dt);
                 let mut out = ps.clone();
-                batch.write_lanes::<D>(out.as_mut_slice());
+                batch.write_lanes::<D>(out.as_mut_slice(), true);
                 assert!(health.finite && !health.inverted);
                 for (p, q) in ps.iter_mut().zip(&out) {
                     let c = p.c;
