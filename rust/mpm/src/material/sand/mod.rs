@@ -12,15 +12,13 @@
 //! `τ = U·diag(2μ·ε + λ·tr ε)·Uᵀ`.
 //!
 //! That is the model; g2p computes it without singular vectors, as isotropic
-//! functions of `B = F*·F*ᵀ` ([`advance_2d`](update_2d::advance_2d),
-//! [`advance_3d`](update_3d::advance_3d); in 3D as matrix series when the
-//! deviatoric strain is small), which is faster and closer to an f64 SVD
-//! reference than the f32 SVD route
-//! ([`advance_svd`](return_map::advance_svd), kept as the tests'
-//! comparison), and sixteen particles at a time in SIMD lanes (g2p's
-//! [`Batch`](super::batch::Batch)). The stress of a particle's state (set,
-//! restored or changed between frames) is that of the SVD route
-//! ([`stress_of`]).
+//! functions of `B = F*·F*ᵀ` ([`advance_2d`], [`advance_3d`]; in 3D as
+//! matrix series when the deviatoric strain is small), which is faster and
+//! closer to an f64 SVD reference than the f32 SVD route (`advance_svd` in
+//! `return_map.rs`, kept as the tests' comparison), and sixteen particles
+//! at a time in SIMD lanes (g2p's [`Batch`](super::batch::Batch)). The
+//! stress of a particle's state (set, restored or changed between frames)
+//! is that of the SVD route ([`stress_of`]).
 //!
 //! Files: this one (the model: [`Sand`]), `return_map.rs` (the projection
 //! onto the cone, on one particle and on SIMD lanes, and the SVD route),
