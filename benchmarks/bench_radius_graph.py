@@ -8,7 +8,7 @@ receiver then sender (int64), displacement p[sender] - p[receiver] (float32,
     + both directions + self edges (np.concatenate), np.lexsort by (receiver, sender)
     + displacement / distance with numpy.
 
-Cases (as the criterion bench rust/neighbors/benches/radius_graph.rs):
+Cases (as the criterion bench rust/bench/benches/radius_graph.rs):
   2D: 64x64 lattice, spacing 0.005, deterministic jitter, R = 0.015 (4096 particles)
   3D: 32^3 lattice, spacing 0.5/64, deterministic jitter, R = 2.5 spacing (32768)
   3D shuffled: the 3D cloud in a random particle order
@@ -196,7 +196,7 @@ the allocation and first touch of the output arrays, for scipy the tree
 build. On a shared machine (see the load average) repeated runs vary; the
 "min" column compares the least disturbed repeats.
 
-Cases (as `rust/neighbors/benches/radius_graph.rs`): 2D = 64x64 lattice,
+Cases (as `rust/bench/benches/radius_graph.rs`): 2D = 64x64 lattice,
 spacing 0.005, jitter +-0.1 spacing, R = 0.015; 3D = 32^3 lattice, spacing
 0.5/64, jitter +-0.1 spacing, R = 2.5 spacing; "3D shuffled" = the 3D cloud
 in a random particle order (indices no longer spatially coherent).

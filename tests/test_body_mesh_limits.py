@@ -1,5 +1,5 @@
-"""Mesh bodies from big meshes (docs/bodies.md "Shapes"): ``Body.sdf`` holds
-at most ``SDF_CHUNK_ENTRIES`` point-plane distances at once, and a hull of
+"""Mesh bodies from big meshes (docs/bodies.md "Shapes"): ``Body.sdf`` (the
+core's distance) holds only its ``N`` distances, and a hull of
 more than ``MAX_HULL_FACES`` triangles is cut to a lattice's cubes
 (``simplify_hull``): an 81,920-triangle icosphere STL in a 24³ tank builds
 and runs in a few seconds and a few tens of MB (it asked for 7-11 GiB and
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from hybridmpm.mpm import bodies as bodies_mod
-from hybridmpm.mpm.bodies import Body, hull_planes
+from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm.bodies import Body
 from hybridmpm.scenes.body_mesh import HULL_LATTICE_CELLS, MAX_HULL_FACES, resolve_mesh_body, simplify_hull
 from hybridmpm.scenes.spec import SceneSpec
 from hybridmpm.sim import MpmSimulator, rollout
@@ -61,8 +61,17 @@ density = 500.0
     return d, np.asarray(mesh.vertices, np.float32)
 
 
-def test_sdf_of_a_big_hull_at_many_points_holds_a_bounded_chunk():
-    # a hull of 4,096 faces at 32,768 points: 134 M distances, 1 GiB a product (2 GiB at once) unchunked
+def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A hull's face planes, independently of the core: outward unit normals float64 [F, 3] and offsets [F] [m]."""
+    v = np.asarray(hull["vertices"], np.float64)
+    t = v[np.asarray(hull["faces"], np.int64)]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, np.einsum("fk,fk->f", n, t[:, 0])
+
+
+def test_sdf_of_a_big_hull_at_many_points_holds_only_its_distances():
+    # a hull of 4,096 faces at 32,768 points: 134 M point-plane distances, 1 GiB as one numpy product
     body = Body(shape="mesh", center=[0.5, 0.5, 0.5], vertices=fibonacci_sphere(2050, 0.2).tolist(), density=500.0)
     assert len(body.hull()["faces"]) == 4096
     p = np.random.default_rng(0).uniform(0.2, 0.8, (32_768, 3))
@@ -74,31 +83,51 @@ def test_sdf_of_a_big_hull_at_many_points_holds_a_bounded_chunk():
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()
-    assert peak < 10 * bodies_mod.SDF_CHUNK_ENTRIES + 16 * p.nbytes, f"{peak / 2**20:.0f} MiB"  # one chunk (8 bytes an entry) and the points' copies
+    assert peak < 4 * p.nbytes, f"{peak / 2**20:.1f} MiB"  # the distances and the points' copies, no [N, F] block
     r = np.linalg.norm(p - body.center_of_mass(3), axis=1)
     inside = r < 0.19  # the hull's faces lie within 0.2 m and, with 4,096 of them, outside 0.19 m
     assert (d[inside] < 0).all() and (d[r > 0.2] > 0).all()
 
 
-@pytest.mark.parametrize("chunk", [1, 50, 1 << 22])
-def test_sdf_in_chunks_is_the_one_product(monkeypatch, chunk):
+def test_sdf_of_a_hull_is_its_largest_face_plane_distance():
     body = Body(shape="mesh", center=[0.4, 0.5, 0.45], vertices=fibonacci_sphere(40, 0.1).tolist(), density=500.0, rotation=[[0, -1, 0], [1, 0, 0], [0, 0, 1]])
     p = np.random.default_rng(1).uniform(0.2, 0.7, (97, 3))
     c, rot = np.array([0.41, 0.52, 0.46]), np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
-    monkeypatch.setattr(bodies_mod, "SDF_CHUNK_ENTRIES", chunk)  # 1: a point a chunk; 50: 0 rows, so one
+    n, off = hull_planes(body.hull())
     for args in ((), (c, rot)):
         got = body.sdf(p, *args)
-        # the unchunked formula, and a brute force over the planes point by point
-        n, off = hull_planes(body.hull())
+        # a brute force over the planes point by point, in float64 (the core's distance is float32)
         q = (p - (body.center_of_mass(3) if not args else c)) @ (body.rotation_matrix(3) if not args else rot)
-        want = (q @ n.T - off).max(axis=1)
         brute = np.array([max(float(np.dot(nk, x)) - ok for nk, ok in zip(n, off)) for x in q])
         assert got.dtype == np.float64 and got.shape == (97,)
-        np.testing.assert_allclose(got, brute, rtol=0, atol=1e-15)
-        if chunk == 1 << 22:  # one chunk: the same bits as ever
-            assert np.array_equal(got, want)
-        else:
-            np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(got, brute, rtol=0, atol=2e-7)
+
+
+def test_sdf_of_the_primitive_shapes_matches_their_closed_forms():
+    rng = np.random.default_rng(2)
+    theta = 0.7
+    rot2 = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    p2 = rng.uniform(0.0, 1.0, (200, 2))
+    box = Body(shape="box", center=[0.5, 0.4], half_extents=[0.2, 0.1], angle_deg=float(np.degrees(theta)), density=500.0)
+    q = (p2 - [0.5, 0.4]) @ rot2
+    e = np.abs(q) - [0.2, 0.1]
+    want = np.linalg.norm(np.maximum(e, 0.0), axis=1) + np.minimum(e.max(axis=1), 0.0)
+    np.testing.assert_allclose(box.sdf(p2), want, rtol=0, atol=3e-7)
+    p3 = rng.uniform(0.0, 1.0, (200, 3))
+    ball = Body(shape="sphere", center=[0.5, 0.5, 0.5], radius=0.15, density=500.0)
+    np.testing.assert_allclose(ball.sdf(p3), np.linalg.norm(p3 - 0.5, axis=1) - 0.15, rtol=0, atol=3e-7)
+    cap = Body(shape="capsule", center=[0.5, 0.5, 0.5], radius=0.1, half_height=0.2, density=500.0)
+    q3 = p3 - 0.5
+    q3[:, 1] -= np.clip(q3[:, 1], -0.2, 0.2)
+    np.testing.assert_allclose(cap.sdf(p3), np.linalg.norm(q3, axis=1) - 0.1, rtol=0, atol=3e-7)
+    # moved and turned: the same distances of the points moved with it
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(cap.sdf(0.5 + (p3 - 0.5) @ turn.T + 0.05, [0.55, 0.55, 0.55], turn), cap.sdf(p3), rtol=0, atol=3e-7)
+    for bad, field in (([[0.1, 0.2, 0.3, 0.4]], "points"), ([[np.nan, 0.2, 0.3]], "points")):
+        with pytest.raises(InvalidInputError, match=field):
+            ball.sdf(np.array(bad))
+    with pytest.raises(InvalidInputError, match="center"):
+        ball.sdf(p3, [0.5, 0.5], np.eye(3))
 
 
 def test_an_81920_triangle_icosphere_builds_and_runs_in_bounded_memory_and_time(ico):

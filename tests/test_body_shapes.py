@@ -72,7 +72,7 @@ def test_capsule_scene_mass_outline_and_checkpoint_bit_for_bit():
     # no particle seeded inside it; its outline lies on its surface
     assert (body.sdf(a.fluid_positions) >= 0).all()
     pose = (a.bodies.center[0], a.bodies.rotation[0])
-    assert np.abs(body.sdf(body_surface(body, *pose).loops[0], *pose)).max() < 1e-9
+    assert np.abs(body.sdf(body_surface(body, *pose).loops[0], *pose)).max() < 1e-6  # the core's distance is float32
     rollout(a, 10)
     state = a.state()
     rollout(a, 10)
@@ -209,12 +209,12 @@ def test_mesh_and_capsule_in_3d_restore_bit_for_bit_and_keep_water_out(tmp_path)
 def test_capsule_meshes_and_outlines_lie_on_the_surface():
     c3 = Body.from_dict({**CAPSULE, "center": [0.5, 0.5, 0.5], "angle_deg": None, "radius": 0.05, "half_height": 0.08})
     v, f = local_mesh(c3)
-    assert np.abs(c3.sdf(v, np.zeros(3), np.eye(3))).max() < 1e-12 and f.max() == len(v) - 1
+    assert np.abs(c3.sdf(v, np.zeros(3), np.eye(3))).max() < 1e-6 and f.max() == len(v) - 1
     tri = v[f]
     vol = np.einsum("fi,fi->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
     assert 0.98 < vol / (np.pi * 0.05**2 * 0.16 + 4 / 3 * np.pi * 0.05**3) < 1.0  # outward, inscribed
     o = local_outline(Body.from_dict(CAPSULE))
-    assert np.abs(Body.from_dict(CAPSULE).sdf(o, np.zeros(2), np.eye(2))).max() < 1e-12
+    assert np.abs(Body.from_dict(CAPSULE).sdf(o, np.zeros(2), np.eye(2))).max() < 1e-6
 
 
 def test_service_schema_takes_capsules_and_inline_vertices_only():

@@ -5,7 +5,7 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "INTEGRATORS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
+__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "INTEGRATORS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "body_sdf", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
@@ -81,6 +81,12 @@ def default_collider() -> dict[str, Any]: ...
 def check_body(body: dict[str, Any], dim: int, n_grid: int, wall_cells: int, index: int) -> float: ...
 def body_hull(points: list[list[float]], field: str) -> dict[str, Any]: ...
 def bodies_overlap(a: dict[str, Any], b: dict[str, Any], dim: int, ia: int, ib: int) -> bool: ...
+def body_sdf(
+    body: dict[str, Any],
+    points: npt.NDArray[np.float64],
+    center: list[float] | None = None,
+    rotation: list[list[float]] | None = None,
+) -> npt.NDArray[np.float64]: ...
 def grid_mass(
     positions: npt.NDArray[np.float32],
     n_grid: int,

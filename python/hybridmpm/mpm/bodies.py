@@ -32,11 +32,6 @@ SHAPES = ("box", "sphere", "circle", "capsule", "mesh")
 MAX_HULL_POINTS: int = int(_core.MAX_HULL_POINTS)
 #: Numbers in a body's exact state (centre 3, rotation 4, velocity 3, angular velocity 3; float32).
 BODY_STATE_LEN: int = int(_core.BODY_STATE_LEN)
-#: Most point-plane distances :meth:`Body.sdf` holds at once for a mesh body (2**22 float64 entries, 32 MiB):
-#: it evaluates ``points`` in chunks of ``SDF_CHUNK_ENTRIES // faces`` rows (at least one), so its memory stays
-#: bounded whatever the number of points and faces (an 81,920-triangle hull against the ~11,600 points a block
-#: asked about took 7 GiB at once), and every call that fits in one chunk is the single product it always was.
-SDF_CHUNK_ENTRIES: int = 1 << 22
 
 
 def _num(v: Any) -> Any:
@@ -184,53 +179,18 @@ class Body:
         inside), float64 [N], where it is given or with its centre of mass
         at ``center`` [D] and ``rotation`` [D, D] (its pose now:
         :attr:`BodiesView.center`): what keeps a scene's blocks and a pour
-        from seeding particles inside it. A hull's is the largest of its
-        face planes' (exact inside, a lower bound outside), evaluated
-        :data:`SDF_CHUNK_ENTRIES` point-plane distances at a time: its
-        memory is ``N·D`` plus at most 32 MiB, whatever ``N`` and the face
-        count (the chunks' rows are those of the one product ``q @ n.T -
-        offset`` when it fits; past that, BLAS may round a row's last bit as
-        it blocks the product, which the unchunked product did too)."""
-        p = np.asarray(points, np.float64)
-        dim = p.shape[1]
-        r = self.rotation_matrix(dim) if rotation is None else np.asarray(rotation, np.float64)
-        q = (p - (self.center_of_mass(dim) if center is None else np.asarray(center, np.float64))) @ r
-        if self.shape == "box":
-            e = np.abs(q) - np.asarray(self.half_extents, np.float64)
-            return np.linalg.norm(np.maximum(e, 0.0), axis=1) + np.minimum(e.max(axis=1), 0.0)
-        if self.shape == "capsule":
-            q = q.copy()
-            h = float(self.half_height or 0.0)
-            q[:, 1] -= np.clip(q[:, 1], -h, h)
-        if self.shape == "mesh":
-            n, off = hull_planes(self.hull())
-            return _max_plane_distance(q, n, off)
-        return np.linalg.norm(q, axis=1) - float(self.radius or 0.0)
-
-
-def _max_plane_distance(q: np.ndarray, n: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """``(q @ n.T - off).max(axis=1)`` for points ``q`` [N, 3] and planes ``n`` [F, 3], ``off`` [F] (float64),
-    :data:`SDF_CHUNK_ENTRIES` entries at a time (float64 [N])."""
-    rows = max(1, SDF_CHUNK_ENTRIES // max(1, len(n)))
-    if len(q) <= rows:
-        return (q @ n.T - off).max(axis=1)
-    out = np.empty(len(q), np.float64)
-    for a in range(0, len(q), rows):
-        s = q[a : a + rows] @ n.T
-        s -= off  # in place: one [rows, F] block at a time
-        out[a : a + rows] = s.max(axis=1)
-        del s  # before the next block is made
-    return out
-
-
-def hull_planes(hull: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """A hull's face planes (:meth:`Body.hull`): outward unit normals float64
-    [F, 3] and offsets [F] [m] (``n·x = offset`` on the face), one per triangle."""
-    v = np.asarray(hull["vertices"], np.float64)
-    t = v[np.asarray(hull["faces"], np.int64)]
-    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return n, np.einsum("fk,fk->f", n, t[:, 0])
+        from seeding particles inside it. The solver's own distance, from
+        the Rust core (:func:`hybridmpm._core.body_sdf`, float32 inside):
+        a hull's is the largest of its face planes' (exact inside, a lower
+        bound outside). Memory: the ``N`` distances, whatever the face
+        count. Raises :class:`InvalidInputError` naming ``points``,
+        ``center`` or ``rotation``."""
+        p = np.ascontiguousarray(points, np.float64)
+        if p.ndim != 2:
+            raise InvalidInputError(f"points: expected [N, 2] or [N, 3], got shape {p.shape}", "points")
+        c = None if center is None else np.asarray(center, np.float64).ravel().tolist()
+        r = None if rotation is None else np.asarray(rotation, np.float64).tolist()
+        return np.asarray(_core.body_sdf(self.to_dict(), p, c, r))
 
 
 #: One frame's rigid bodies as :meth:`BodyTrack.stack` takes them: the bodies as given (a solver's ``params.bodies``),
@@ -456,7 +416,6 @@ __all__ = [
     "BODY_STATE_LEN",
     "MAX_BODIES",
     "MAX_HULL_POINTS",
-    "SDF_CHUNK_ENTRIES",
     "SHAPES",
     "BodiesView",
     "Body",
@@ -465,6 +424,5 @@ __all__ = [
     "as_body_track",
     "check_bodies",
     "check_poses",
-    "hull_planes",
     "refuse_bodies",
 ]

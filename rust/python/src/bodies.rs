@@ -6,10 +6,13 @@
 //! (what a checkpoint carries).
 
 use hybridmpm_mpm as core;
-use hybridmpm_mpm::{Body, BodyParams, BodyState, Solver};
-use numpy::{PyArray1, PyArrayMethods};
+use hybridmpm_mpm::body::BodyPose;
+use hybridmpm_mpm::{Body, BodyParams, BodyState, Dim, DimOps, Solver};
+use nalgebra::{SMatrix, SVector};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use rayon::prelude::*;
 
 use crate::errors::{invalid_input, to_py};
 
@@ -248,6 +251,112 @@ fn bodies_overlap(
     }
 }
 
+/// Points per rayon task of [`body_sdf`]: a hull of 4,096 faces costs about
+/// 2 ms a chunk, a box or a ball microseconds.
+const SDF_CHUNK: usize = 1024;
+
+/// The signed distance [m] of `points` (float64 [N, D], metres) to a body
+/// (a dict, as given; D = 2 or 3), negative inside, as float64 [N]: the
+/// solver's own distance (`BodyPose::sdf_normal`, in float32), with the
+/// body's centre of mass at `center` (float [D]) and rotation `rotation`
+/// (float [D, D], columns the body's axes), or where it is given. A hull's
+/// is the largest of its face planes' (exact inside, a lower bound
+/// outside). Memory: the N distances. Raises `InvalidInputError` naming
+/// `points`, `center` or `rotation` (shape, a non-finite number) or a
+/// field of the body (`body.density`, ...).
+#[pyfunction]
+#[pyo3(signature = (body, points, center=None, rotation=None))]
+fn body_sdf<'py>(
+    py: Python<'py>,
+    body: &Bound<'_, PyAny>,
+    points: PyReadonlyArray2<'py, f64>,
+    center: Option<Vec<f64>>,
+    rotation: Option<Vec<Vec<f64>>>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let [n, dim] = [points.shape()[0], points.shape()[1]];
+    let p = read(body, "body")?;
+    let pts = points
+        .as_slice()
+        .map_err(|_| invalid_input(py, "points", "expected a C-contiguous float64 [N, D] array"))?;
+    if pts.iter().any(|v| !v.is_finite()) {
+        return Err(invalid_input(py, "points", "expected finite numbers"));
+    }
+    let out = match dim {
+        2 => sdf_of::<2>(py, &p, pts, center, rotation)?,
+        3 => sdf_of::<3>(py, &p, pts, center, rotation)?,
+        _ => {
+            return Err(invalid_input(
+                py,
+                "points",
+                format!("expected [N, 2] or [N, 3], got [{n}, {dim}]"),
+            ));
+        }
+    };
+    Ok(PyArray1::from_vec(py, out))
+}
+
+/// [`body_sdf`] in `D` dimensions.
+fn sdf_of<const D: usize>(
+    py: Python<'_>,
+    p: &BodyParams,
+    pts: &[f64],
+    center: Option<Vec<f64>>,
+    rotation: Option<Vec<Vec<f64>>>,
+) -> PyResult<Vec<f64>>
+where
+    Dim<D>: DimOps<D>,
+{
+    let b: Body<D> = build::<D>(py, p, "body")?;
+    let finite = |field: &str, v: &[f64]| {
+        if v.iter().all(|x| x.is_finite()) {
+            Ok(())
+        } else {
+            Err(invalid_input(py, field, "expected finite numbers"))
+        }
+    };
+    let c = match center {
+        None => b.center,
+        Some(c) if c.len() == D => {
+            finite("center", &c)?;
+            SVector::from_fn(|d, _| c[d] as f32)
+        }
+        Some(c) => {
+            let msg = format!("expected {D} numbers, got {}", c.len());
+            return Err(invalid_input(py, "center", msg));
+        }
+    };
+    let r = match rotation {
+        None => b.rotation,
+        Some(r) if r.len() == D && r.iter().all(|row| row.len() == D) => {
+            finite("rotation", &r.concat())?;
+            SMatrix::from_fn(|i, j| r[i][j] as f32)
+        }
+        Some(_) => {
+            return Err(invalid_input(
+                py,
+                "rotation",
+                format!("expected [{D}, {D}]"),
+            ));
+        }
+    };
+    let pose = BodyPose {
+        shape: b.shape.clone(),
+        center: c,
+        rotation: r,
+        velocity: SVector::zeros(),
+        angular_velocity: [0.0; 3],
+        friction: 0.0,
+    };
+    let one = |x: &[f64]| pose.sdf_normal(&SVector::from_fn(|d, _| x[d] as f32)).0 as f64;
+    Ok(py.detach(|| {
+        crate::pool::install(|| {
+            pts.par_chunks(SDF_CHUNK * D)
+                .flat_map_iter(|chunk| chunk.chunks_exact(D).map(one))
+                .collect()
+        })
+    }))
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MAX_BODIES", core::body::MAX_BODIES)?;
     m.add("MIN_BODY_DENSITY", core::body::MIN_BODY_DENSITY)?;
@@ -258,5 +367,6 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check_body, m)?)?;
     m.add_function(wrap_pyfunction!(body_hull, m)?)?;
     m.add_function(wrap_pyfunction!(bodies_overlap, m)?)?;
+    m.add_function(wrap_pyfunction!(body_sdf, m)?)?;
     Ok(())
 }

@@ -2,7 +2,7 @@
 //! 4096 particles in 2D (64x64 lattice, spacing 0.005, jitter, R = 0.015) and
 //! 32768 in 3D (32^3 lattice, spacing 0.5/64, R = 2.5 spacing).
 //!
-//! `cargo bench -p hybridmpm-neighbors` (thread count: `RAYON_NUM_THREADS`).
+//! `cargo bench -p hybridmpm-bench --bench radius_graph` (thread count: `RAYON_NUM_THREADS`).
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use hybridmpm_neighbors::{GraphParams, radius_graph};

@@ -1,7 +1,7 @@
 //! criterion benches: one 2.5 ms frame of the standard benchmark scenes
 //! (particles on a lattice at spacing dx/2, released as a dam break).
 //!
-//! Run: `cargo bench -p hybridmpm-mpm --bench substep`
+//! Run: `cargo bench -p hybridmpm-bench --bench substep`
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use hybridmpm_mpm::{Dim, DimOps, Material, Solver, SolverParams, lattice};
