@@ -1,11 +1,13 @@
 """A material's parameters are declared once, in the Rust core's schema (``params/schema.rs``, exported as
-``_core.material_schema()``): Python's materials and the parameter-dict dataclasses follow it, and every
-range is checked from it, as the user's value in float64
+``_core.material_schema()``): Python's materials, the parameter-dict dataclasses, the HTTP pour body and the
+tables of docs/materials.md follow it, and every range is checked from it, as the user's value in float64
 and then in float32, so that what Python accepts the core accepts."""
 
 from __future__ import annotations
 
 import dataclasses
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,8 @@ from hybridmpm.materials import MODELS, material_from_block
 from hybridmpm.mpm import MpmParams
 from hybridmpm.mpm.params import SET_CLASSES, ElasticParams
 from hybridmpm.mpm.schema import SCHEMA, Param
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "materials.md"
 
 
 def test_the_schema_lists_every_model_and_its_structs_fields_and_defaults():
@@ -100,3 +104,35 @@ def test_just_outside_each_bound_python_refuses_naming_the_users_key_and_just_in
 def test_every_model_has_bounds_to_check():
     assert {m for m, _, _ in _bounds()} == set(SCHEMA)
     assert len(_bounds()) >= 20
+
+
+def _doc_tables() -> dict[str, list[list[str]]]:
+    """Each model's parameter table in docs/materials.md (``| key | symbol | unit | default | range |``), by
+    the ``material = "..."`` of the heading above it (a heading naming two models: its tables in order)."""
+    tables: dict[str, list[list[str]]] = {}
+    models: list[str] = []
+    rows: list[list[str]] | None = None
+    for line in DOCS.read_text().splitlines() + [""]:
+        if line.startswith("#"):
+            models = re.findall(r'material = "(\w+)"', line)
+        elif line.startswith("| key | symbol | unit | default"):
+            rows = []
+        elif rows is not None and line.startswith("|") and not line.startswith("|---"):
+            rows.append([c.strip().strip("`") for c in line.strip("|").split("|")])
+        elif rows is not None and not line.startswith("|"):
+            tables[models.pop(0)] = rows
+            rows = None
+    return tables
+
+
+def test_the_docs_parameter_tables_are_the_schema():
+    tables = _doc_tables()
+    assert set(tables) == set(SCHEMA)
+    for model, params in SCHEMA.items():
+        rows = {r[0]: r for r in tables[model]}
+        assert list(rows) == [p.key for p in params], model
+        for p in params:
+            key, _symbol, unit, default, rng = rows[p.key]
+            assert unit == p.unit, (model, key)
+            assert rng == p.range, (model, key)
+            assert (default if p.choices else float(default)) == p.default, (model, key)
