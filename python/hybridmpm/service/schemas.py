@@ -205,9 +205,9 @@ class _BlockPlace(Strict):
     params: dict[Annotated[str, Field(max_length=32)], Number | Annotated[str, Field(max_length=16)]] | None = Field(
         None,
         max_length=MAX_POUR_PARAMS,
-        description="the material's parameters by the user's key ({'E': 5e4, 'nu': 0.3}; GET a model's keys, units, ranges and defaults "
-        "from docs/materials.md): each overrides the model's table in the scene or the preset's value; a key the chosen model "
-        "lacks, or one also given flat, is a 422 naming it",
+        description="the material's parameters by the user's key ({'E': 5e4, 'nu': 0.3}; each model's keys, units, ranges and defaults "
+        "are the flat keys' descriptions and docs/materials.md's tables): each overrides the model's table in the scene or the "
+        "preset's value; a key the chosen model lacks, or one also given flat, is a 422 naming it",
     )
 
 
