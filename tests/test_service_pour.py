@@ -156,3 +156,39 @@ def test_a_pour_is_charged_to_the_memory_budget_until_its_session_goes(client, m
     assert _ckpt(client, sid) == before and client.get("/healthz").json()["memory_used"] == used
     assert client.delete(f"/v1/sessions/{sid}").status_code == 204
     assert client.get("/healthz").json()["memory_used"] == base
+
+
+def test_parameters_in_params_pour_as_the_flat_keys_do_and_a_key_the_model_lacks_is_named(client):
+    """``params`` (the schema's keys of the chosen model) and the flat keys pour the same block; a key the
+    model lacks, one given both ways, or a place key in ``params`` is a 422 naming it under ``params``."""
+    flat, nested = _new(client)["id"], _new(client)["id"]
+    r1 = client.post(f"/v1/sessions/{flat}/blocks", json={**JELLY, "E": 5e4, "nu": 0.4})
+    r2 = client.post(f"/v1/sessions/{nested}/blocks", json={**JELLY, "params": {"E": 5e4, "nu": 0.4}})
+    assert r1.status_code == r2.status_code == 201, (r1.text, r2.text)
+    assert r1.json() == r2.json()
+    assert _ckpt(client, flat) == _ckpt(client, nested)
+    sid = _new(client)["id"]
+    before = _ckpt(client, sid)
+    for params, extra, key, says in [
+        ({"theta_c": 0.1}, {}, "theta_c", "not a parameter of elastic"),  # snow's, not jello's (elastic)
+        ({"nu": 0.49999999}, {}, "nu", "got 0.49999999"),  # 0.5 in float32
+        ({"E": -1.0}, {}, "E", "got -1.0"),
+        ({"model": "stiff"}, {}, "model", "'stiff'"),
+        ({"E": 5e4}, {"E": 6e4}, "E", "given twice"),
+        ({"velocity": 1.0}, {}, "velocity", "not a material parameter"),
+    ]:
+        r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, **extra, "params": params})
+        assert r.status_code == 422, r.text
+        assert r.json()["detail"][0]["loc"] == ["body", "params", key], r.text
+        assert says in r.json()["detail"][0]["msg"], r.text
+    assert _ckpt(client, sid) == before
+
+
+def test_the_pour_bodys_flat_keys_are_the_schemas():
+    from hybridmpm.mpm.schema import SCHEMA
+    from hybridmpm.service.schemas import BlockPour
+
+    keys = {p.key for params in SCHEMA.values() for p in params}
+    assert set(BlockPour.model_fields) == keys | {"material", "lo", "hi", "velocity", "params"}
+    nu = BlockPour.model_fields["nu"].description
+    assert "in (-1, 0.5)" in nu and "in [0, 0.5)" in nu, nu  # sand's range and the solids'

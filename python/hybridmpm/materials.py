@@ -2,7 +2,10 @@
 standard terms, and presets named as artists know them (docs/materials.md).
 
 Each class is one model with its parameters in SI units, named as a scene
-file's block names them (``E``, ``nu``, ``density``, ...); ``to_params()``
+file's block names them (``E``, ``nu``, ``density``, ...); their ranges,
+defaults and these user keys are the core's one schema
+(:data:`hybridmpm.mpm.schema.SCHEMA`), which each class's fields follow in
+name and order (tests/test_material_schema.py); ``to_params()``
 gives the solver's parameter set (:mod:`hybridmpm.mpm.params`), ``code`` the
 solver material code (:data:`~hybridmpm.conventions.MATERIALS`). A scene
 file's block takes a material by name or by preset
@@ -24,8 +27,6 @@ file's block takes a material by name or by preset
 from __future__ import annotations
 
 import abc
-import math
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, ClassVar
 
@@ -42,57 +43,36 @@ from hybridmpm.conventions import (
     MATERIALS,
 )
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.limits import check_float32
-from hybridmpm.mpm.params import ElasticParams, SandParams, SnowParams, ViscoplasticParams, WaterParams
+from hybridmpm.mpm.params import SET_CLASSES
+from hybridmpm.mpm.schema import SCHEMA, check_set
 
-_W, _S, _E, _N, _V = WaterParams(), SandParams(), ElasticParams(), SnowParams(), ViscoplasticParams()
-
-
-def _number(field: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-        raise InvalidInputError(f"{field}: must be a finite number, got {v!r}", field)
-    return float(v)
-
-
-def _check(field: str, v: Any, ok: Callable[[Any], bool], want: str) -> None:
-    """Refuse ``v`` (the user's value of ``field``) unless ``ok`` holds of it and of its float32 rounding, the
-    precision the solver computes in: ``nu = 0.49999999`` is 0.5 there."""
-    if not ok(v):
-        raise InvalidInputError(f"{field}: must be {want}, got {v!r}", field)
-    f32 = float(np.float32(v)) if isinstance(v, float) else v
-    if not ok(f32):
-        raise InvalidInputError(f"{field}: must be {want} in float32, the solver's precision, where {v!r} is {f32!r}", field)
+#: Each model's defaults by the user's key (``E``, ``nu``, ...): the core's (``_core.material_schema()``).
+_D: dict[str, dict[str, Any]] = {model: {p.key: p.default for p in params} for model, params in SCHEMA.items()}
 
 
 @dataclass(frozen=True)
 class _Material(abc.ABC):
-    """Shared checks: ``density`` ρ [kg/m³] > 0 and finite."""
+    """A material of one model. Its fields are the model's parameters by the user's key, in the core's
+    order (:data:`hybridmpm.mpm.schema.SCHEMA`, which gives their ranges and defaults too)."""
 
     name: ClassVar[str]
     code: ClassVar[int]
     density: float
 
     def validate(self, where: str = "") -> None:
-        """Raises :class:`InvalidInputError` naming the bad field (``where`` is
-        prepended, e.g. ``blocks[2].``)."""
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name != "model":
-                check_float32(where + f.name, _number(where + f.name, v))
-        _check(where + "density", self.density, lambda v: v > 0, "> 0 kg/m³")
+        """Check every parameter against the core's range in float64 and in float32; raises
+        :class:`InvalidInputError` naming the user's key with the value given (``where`` is prepended,
+        e.g. ``blocks[2].``)."""
+        check_set(where, self.name, asdict(self), by_key=True)
 
-    def _elastic(self, where: str, e: float, nu: float) -> None:
-        _check(where + "E", e, lambda v: v > 0, "> 0 Pa")
-        _check(where + "nu", nu, lambda v: 0 <= v < 0.5, "in [0, 0.5)")
-
-    @abc.abstractmethod
     def to_params(self) -> Any:
-        """The core's parameter set of this model (each model defines it)."""
+        """The core's parameter set of this material (:mod:`hybridmpm.mpm.params`, e.g. ``ElasticParams``)."""
+        return SET_CLASSES[self.name](**{p.name: getattr(self, p.key) for p in SCHEMA[self.name]})
 
     @classmethod
     def from_params(cls, ps: Any) -> Any:
         """The material of the core's parameter set ``ps`` (the inverse of :meth:`to_params`)."""
-        return cls(*(getattr(ps, f) for f in ps.__dataclass_fields__))
+        return cls(**{p.key: getattr(ps, p.name) for p in SCHEMA[cls.name]})
 
 
 @dataclass(frozen=True)
@@ -103,17 +83,9 @@ class Water(_Material):
 
     name: ClassVar[str] = "water"
     code: ClassVar[int] = MATERIAL_WATER
-    density: float = _W.density
-    bulk_modulus: float = _W.bulk_modulus
-    viscosity: float = _W.viscosity
-
-    def validate(self, where: str = "") -> None:
-        super().validate(where)
-        _check(where + "bulk_modulus", self.bulk_modulus, lambda v: v > 0, "> 0 Pa")
-        _check(where + "viscosity", self.viscosity, lambda v: v >= 0, ">= 0 Pa·s")
-
-    def to_params(self) -> WaterParams:
-        return WaterParams(density=self.density, bulk_modulus=self.bulk_modulus, viscosity=self.viscosity)
+    density: float = _D["water"]["density"]
+    bulk_modulus: float = _D["water"]["bulk_modulus"]
+    viscosity: float = _D["water"]["viscosity"]
 
 
 @dataclass(frozen=True)
@@ -124,43 +96,26 @@ class Sand(_Material):
 
     name: ClassVar[str] = "sand"
     code: ClassVar[int] = MATERIAL_SAND
-    density: float = _S.density
-    E: float = _S.youngs_modulus
-    nu: float = _S.poisson_ratio
-    friction_angle_deg: float = _S.friction_angle_deg
-    cohesion: float = _S.cohesion
-
-    def validate(self, where: str = "") -> None:
-        super().validate(where)
-        self._elastic(where, self.E, self.nu)
-        _check(where + "friction_angle_deg", self.friction_angle_deg, lambda v: 0 <= v <= 80, "in [0, 80] degrees")
-        _check(where + "cohesion", self.cohesion, lambda v: v >= 0, ">= 0 Pa")
-
-    def to_params(self) -> SandParams:
-        return SandParams(self.density, self.E, self.nu, self.friction_angle_deg, self.cohesion)
+    density: float = _D["sand"]["density"]
+    E: float = _D["sand"]["E"]
+    nu: float = _D["sand"]["nu"]
+    friction_angle_deg: float = _D["sand"]["friction_angle_deg"]
+    cohesion: float = _D["sand"]["cohesion"]
 
 
 @dataclass(frozen=True)
 class Elastic(_Material):
     """Elastic solid ("jelly"). ``E`` Young's modulus [Pa], ``nu`` Poisson's
-    ratio in [0, 0.5), ``density`` ρ [kg/m³], ``model``: ``"corotated"``
+    ratio, ``density`` ρ [kg/m³], ``model``: ``"corotated"``
     (fixed-corotated, Stomakhin et al. 2012: τ = 2μ(F − R)Fᵀ + λJ(J − 1)I) or
     ``"neohookean"`` (τ = μ(FFᵀ − I) + λ ln J·I)."""
 
     name: ClassVar[str] = "elastic"
     code: ClassVar[int] = MATERIAL_ELASTIC
-    density: float = _E.density
-    E: float = _E.youngs_modulus
-    nu: float = _E.poisson_ratio
-    model: str = _E.model
-
-    def validate(self, where: str = "") -> None:
-        super().validate(where)
-        self._elastic(where, self.E, self.nu)
-        _check(where + "model", self.model, lambda v: v in ("corotated", "neohookean"), "'corotated' or 'neohookean'")
-
-    def to_params(self) -> ElasticParams:
-        return ElasticParams(self.density, self.E, self.nu, self.model)
+    density: float = _D["elastic"]["density"]
+    E: float = _D["elastic"]["E"]
+    nu: float = _D["elastic"]["nu"]
+    model: str = _D["elastic"]["model"]
 
 
 @dataclass(frozen=True)
@@ -168,28 +123,17 @@ class Snow(_Material):
     """Snow (Stomakhin et al. 2013, "A material point method for snow
     simulation"): fixed-corotated elasticity on F_E, singular values clamped
     to [1 − θc, 1 + θs], Lamé parameters hardened by e^{ξ(1 − J_P)}.
-    ``E`` E₀ [Pa], ``nu`` [-], ``theta_c`` θc and ``theta_s`` θs in (0, 1),
+    ``E`` E₀ [Pa], ``nu`` [-], ``theta_c`` θc and ``theta_s`` θs,
     ``hardening`` ξ [-], ``density`` ρ [kg/m³]. Defaults: the paper's."""
 
     name: ClassVar[str] = "snow"
     code: ClassVar[int] = MATERIAL_SNOW
-    density: float = _N.density
-    E: float = _N.youngs_modulus
-    nu: float = _N.poisson_ratio
-    theta_c: float = _N.theta_c
-    theta_s: float = _N.theta_s
-    hardening: float = _N.hardening
-
-    def validate(self, where: str = "") -> None:
-        super().validate(where)
-        self._elastic(where, self.E, self.nu)
-        for k in ("theta_c", "theta_s"):
-            v = getattr(self, k)
-            _check(where + k, v, lambda v: 0 < v < 1, "in (0, 1)")
-        _check(where + "hardening", self.hardening, lambda v: 0 <= v <= 50, "in [0, 50]")
-
-    def to_params(self) -> SnowParams:
-        return SnowParams(self.density, self.E, self.nu, self.theta_c, self.theta_s, self.hardening)
+    density: float = _D["snow"]["density"]
+    E: float = _D["snow"]["E"]
+    nu: float = _D["snow"]["nu"]
+    theta_c: float = _D["snow"]["theta_c"]
+    theta_s: float = _D["snow"]["theta_s"]
+    hardening: float = _D["snow"]["hardening"]
 
 
 @dataclass(frozen=True)
@@ -203,20 +147,11 @@ class Viscoplastic(_Material):
 
     name: ClassVar[str] = "viscoplastic"
     code: ClassVar[int] = MATERIAL_VISCOPLASTIC
-    density: float = _V.density
-    E: float = _V.youngs_modulus
-    nu: float = _V.poisson_ratio
-    yield_stress: float = _V.yield_stress
-    viscosity: float = _V.viscosity
-
-    def validate(self, where: str = "") -> None:
-        super().validate(where)
-        self._elastic(where, self.E, self.nu)
-        _check(where + "yield_stress", self.yield_stress, lambda v: v >= 0, ">= 0 Pa")
-        _check(where + "viscosity", self.viscosity, lambda v: v >= 0, ">= 0 Pa·s")
-
-    def to_params(self) -> ViscoplasticParams:
-        return ViscoplasticParams(self.density, self.E, self.nu, self.yield_stress, self.viscosity)
+    density: float = _D["viscoplastic"]["density"]
+    E: float = _D["viscoplastic"]["E"]
+    nu: float = _D["viscoplastic"]["nu"]
+    yield_stress: float = _D["viscoplastic"]["yield_stress"]
+    viscosity: float = _D["viscoplastic"]["viscosity"]
 
 
 #: A material of any model.

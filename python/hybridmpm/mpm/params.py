@@ -16,6 +16,7 @@ from hybridmpm.conventions import MATERIALS
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.mpm.motion import Keyframe
+from hybridmpm.mpm.schema import check_set
 
 Condition = Literal["sticky", "slip", "separate"]
 
@@ -500,9 +501,11 @@ class MpmParams:
         ``n_grid``, ``substeps``, ``max_substeps``, ``num_threads``,
         ``walls.cells``) must be integers — ``64.5``, ``64.0``, ``"64"`` and
         ``True`` are refused, not coerced — and real parameters numbers.
-        Raises :class:`InvalidInputError` naming the field. Ranges (``n_grid``
-        in [16, 4096], ``cfl`` in (0, 1], ...) are checked by the solver,
-        which names the field too."""
+        The materials' parameters are checked against the core's ranges
+        (:mod:`hybridmpm.mpm.schema`) as given, in float64, and in float32.
+        Raises :class:`InvalidInputError` naming the field. The other ranges
+        (``n_grid`` in [16, 4096], ``cfl`` in (0, 1], ...) are checked by the
+        solver, which names the field too."""
         if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim not in (2, 3):
             raise InvalidInputError(f"dim: must be 2 or 3, got {self.dim!r}", "dim")
         self._check_int("n_grid", self.n_grid, optional=True)
@@ -527,12 +530,7 @@ class MpmParams:
         for name, group, cls in groups:
             if not isinstance(group, cls):
                 raise InvalidInputError(f"{name}: must be a {cls.__name__}, got {group!r}", name)
-            for key, value in asdict(group).items():
-                if key == "model":
-                    if value not in ("corotated", "neohookean"):
-                        raise InvalidInputError(f"{name}.model: must be 'corotated' or 'neohookean', got {value!r}", f"{name}.model")
-                    continue
-                self._check_number(f"{name}.{key}", value)
+            check_set(f"{name}.", _SET_NAMES[cls], asdict(group), by_key=False)
         if not isinstance(self.walls, WallParams):
             raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
         self.walls.validate(self.dim)

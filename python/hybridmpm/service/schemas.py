@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from enum import Enum
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 from pydantic import Strict as StrictType
 
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.mpm import INTEGRATORS
+from hybridmpm.mpm.schema import SCHEMA
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.capacity import WHEN_FULL
 from hybridmpm.sim import SOLVERS
@@ -189,25 +190,54 @@ class ObstacleMove(Strict):
     )
 
 
-class BlockPour(Strict):
-    """A block poured into a session: a scene file's block (docs/materials.md)."""
+#: The most parameters a pour body's ``params`` may give (every model has fewer).
+MAX_POUR_PARAMS = 16
+
+
+class _BlockPlace(Strict):
+    """Where a block goes, what it is, and its parameters in ``params``; :data:`BlockPour` adds each
+    parameter as a flat key too."""
 
     material: str = Field(max_length=32, description="a model (water, sand, elastic, snow, viscoplastic) or a preset (jello, mud, ...)")
     lo: list[Number] = Field(min_length=2, max_length=3, description="one corner [m], inside the walls' faces")
     hi: list[Number] = Field(min_length=2, max_length=3, description="the opposite corner [m]")
     velocity: list[Number] | None = Field(None, min_length=2, max_length=3, description="initial velocity [m/s] (default at rest)")
-    E: Number | None = Field(None, description="Young's modulus [Pa], > 0")
-    nu: Number | None = Field(None, description="Poisson's ratio, in [0, 0.5)")
-    density: Number | None = Field(None, description="rest density [kg/m^3], > 0")
-    model: str | None = Field(None, max_length=16, description="elastic: corotated or neohookean")
-    theta_c: Number | None = Field(None, description="snow: critical compression, in (0, 1)")
-    theta_s: Number | None = Field(None, description="snow: critical stretch, in (0, 1)")
-    hardening: Number | None = Field(None, description="snow: hardening coefficient, in [0, 50]")
-    yield_stress: Number | None = Field(None, description="viscoplastic: Bingham yield stress [Pa], >= 0")
-    viscosity: Number | None = Field(None, description="water or viscoplastic: viscosity [Pa s], >= 0")
-    bulk_modulus: Number | None = Field(None, description="water: bulk modulus [Pa]")
-    friction_angle_deg: Number | None = Field(None, description="sand: friction angle [deg]")
-    cohesion: Number | None = Field(None, description="sand: cohesion [Pa]")
+    params: dict[Annotated[str, Field(max_length=32)], Number | Annotated[str, Field(max_length=16)]] | None = Field(
+        None,
+        max_length=MAX_POUR_PARAMS,
+        description="the material's parameters by the user's key ({'E': 5e4, 'nu': 0.3}; each model's keys, units, ranges and defaults "
+        "are the flat keys' descriptions and docs/materials.md's tables): each overrides the model's table in the scene or the "
+        "preset's value; a key the chosen model lacks, or one also given flat, is a 422 naming it",
+    )
+
+
+def _flat_field(key: str) -> Any:
+    """A flat pour key (``E``) as a pydantic field, described from every model's schema row of it."""
+    rows: dict[tuple[str, str, str], list[str]] = {}
+    for model, params in SCHEMA.items():
+        for p in params:
+            if p.key == key:
+                rows.setdefault((p.description, p.unit, p.range), []).append(model)
+    text = "; ".join(f"{', '.join(models)}: {desc} [{unit}], {rng}" for (desc, unit, rng), models in rows.items())
+    choices = next(p.choices for params in SCHEMA.values() for p in params if p.key == key)
+    kind: Any = Annotated[str, Field(max_length=16)] if choices else Number
+    return (kind | None, Field(None, description=text))
+
+
+_FLAT_KEYS = list(dict.fromkeys(p.key for params in SCHEMA.values() for p in params))
+
+if TYPE_CHECKING:
+    BlockPour = _BlockPlace
+else:
+    #: A block poured into a session: a scene file's block (docs/materials.md): ``material``, ``lo``, ``hi``,
+    #: ``velocity``, and the material's parameters in ``params`` or as flat keys (the page sends the flat
+    #: form); the flat keys are every model's parameters by the user's key (:data:`hybridmpm.mpm.schema.SCHEMA`).
+    BlockPour = create_model(
+        "BlockPour",
+        __base__=_BlockPlace,
+        __doc__="A block poured into a session: a scene file's block (docs/materials.md), its parameters in params or flat.",
+        **{k: _flat_field(k) for k in _FLAT_KEYS},
+    )
 
 
 class BlockPoured(BaseModel):

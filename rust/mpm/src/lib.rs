@@ -53,9 +53,10 @@ pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
 pub use params::{
-    BodyParams, BodyShapeKind, ColliderParams, ElasticModel, ElasticParams, Integrator,
-    MaterialParams, MaterialSet, SandParams, ShapeKind, SnowParams, SolverParams,
-    ViscoplasticParams, WallFace, WallParams, WaterParams,
+    BodyParams, BodyShapeKind, ColliderParams, ElasticModel, ElasticParams, Integrator, Limit,
+    MaterialParams, MaterialSchema, MaterialSet, Param, ParamValue, SandParams, ShapeKind,
+    SnowParams, SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams,
+    material_schema,
 };
 pub use particles::{Material, Particle, lattice, lattice_box};
 pub use pool::shared_pool;

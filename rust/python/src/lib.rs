@@ -16,6 +16,7 @@ mod ort_ops;
 mod params;
 mod particles;
 mod pool;
+mod schema;
 mod solver;
 mod transfer;
 
@@ -26,6 +27,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     bodies::register(m)?;
     grid_mass::register(m)?;
     params::register(m)?;
+    schema::register(m)?;
     graph::register(m)?;
     transfer::register(m)?;
     Ok(())

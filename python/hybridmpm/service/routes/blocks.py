@@ -31,7 +31,8 @@ router = APIRouter()
 )
 async def pour_block(s: SessionDep, body: BlockPour, manager: ManagerDep) -> dict[str, Any]:
     """Add a block of particles (a scene file's block: ``material``, a model or
-    a preset, and its parameters, ``lo``, ``hi``, ``velocity``) at the
+    a preset, and its parameters, in ``params`` or as flat keys, ``lo``, ``hi``,
+    ``velocity``) at the
     session's current frame. Every viewer gets a ``particles`` event with the
     new count and particle types. A refused block changes nothing."""
     if s.controlling:
@@ -43,8 +44,15 @@ async def pour_block(s: SessionDep, body: BlockPour, manager: ManagerDep) -> dic
         v = getattr(body, name)
         if v is not None and len(v) != d:
             raise FieldError(("body", name), f"{name}: expected {d} numbers (the session is {d}D)")
+    block = body.model_dump(exclude_none=True)
+    params = block.pop("params", {})
+    for k in params:
+        if k in ("material", "lo", "hi", "velocity"):
+            raise FieldError(("body", "params", k), f"params.{k}: not a material parameter (give {k} beside params)")
+        if k in block:
+            raise FieldError(("body", "params", k), f"params.{k}: given twice, in params and as the flat key {k}")
     try:
-        out = await manager.pour(s, body.model_dump(exclude_none=True))
-    except InvalidInputError as e:
-        raise field_error(e, ("body",)) from None
+        out = await manager.pour(s, {**block, **params})
+    except InvalidInputError as e:  # a parameter given in params is named there
+        raise field_error(e, ("body", "params") if e.field in params else ("body",)) from None
     return {k: out[k] for k in ("added", "num_particles", "frame")}

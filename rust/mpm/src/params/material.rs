@@ -1,7 +1,8 @@
 //! The materials' parameters: weakly compressible water and
 //! Drucker–Prager sand.
 
-use super::{finite, lame, positive};
+use super::lame;
+use super::schema::MaterialSchema;
 use crate::error::{MpmError, Result};
 
 /// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
@@ -33,17 +34,14 @@ impl Default for WaterParams {
 }
 
 impl WaterParams {
+    /// Checks every field against its range ([`MaterialSchema::PARAMS`]),
+    /// naming the bad one (`water.viscosity`).
     pub fn validate(&self) -> Result<()> {
-        positive("water.density", self.density)?;
-        positive("water.bulk_modulus", self.bulk_modulus)?;
-        finite("water.viscosity", self.viscosity)?;
-        if self.viscosity < 0.0 {
-            return Err(MpmError::invalid(
-                "water.viscosity",
-                format!("must be >= 0, got {}", self.viscosity),
-            ));
-        }
-        Ok(())
+        self.validate_at("water")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
     }
 
     /// Longitudinal wave speed [m/s].
@@ -101,36 +99,17 @@ impl Default for SandParams {
 }
 
 impl SandParams {
+    /// Checks every field against its range ([`MaterialSchema::PARAMS`])
+    /// and that cohesion comes with friction, naming the bad field (`sand.cohesion`).
     pub fn validate(&self) -> Result<()> {
-        positive("sand.density", self.density)?;
-        positive("sand.youngs_modulus", self.youngs_modulus)?;
-        finite("sand.poisson_ratio", self.poisson_ratio)?;
-        if !(self.poisson_ratio > -1.0 && self.poisson_ratio < 0.5) {
-            return Err(MpmError::invalid(
-                "sand.poisson_ratio",
-                format!("must be in (-1, 0.5), got {}", self.poisson_ratio),
-            ));
-        }
-        finite("sand.friction_angle_deg", self.friction_angle_deg)?;
-        if !(0.0..=80.0).contains(&self.friction_angle_deg) {
-            return Err(MpmError::invalid(
-                "sand.friction_angle_deg",
-                format!(
-                    "must be in [0, 80] degrees, got {}",
-                    self.friction_angle_deg
-                ),
-            ));
-        }
-        finite("sand.cohesion", self.cohesion)?;
-        if self.cohesion < 0.0 {
-            return Err(MpmError::invalid(
-                "sand.cohesion",
-                format!("must be >= 0, got {}", self.cohesion),
-            ));
-        }
+        self.validate_at("sand")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)?;
         if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
             return Err(MpmError::invalid(
-                "sand.cohesion",
+                format!("{prefix}.cohesion"),
                 "cohesion needs a friction angle > 0",
             ));
         }

@@ -9,13 +9,18 @@
 //!
 //! Here the solver-wide [`SolverParams`] and the checks every part shares;
 //! `material.rs` the water and the sand, `solid.rs` the elastic solid, snow,
-//! the viscoplastic solid and the table of parameter sets, `walls.rs` the domain's walls (and
+//! the viscoplastic solid and the table of parameter sets, `schema.rs` the
+//! materials' parameter tables (names, aliases, units, ranges) that their
+//! `validate()` checks through, `walls.rs` the domain's walls (and
 //! their faces by name in the dict), `collider.rs` a collider as the dict
 //! gives it.
 
 mod body;
 mod collider;
 mod material;
+pub mod schema;
+#[cfg(all(test, feature = "serde"))]
+mod schema_tests;
 mod solid;
 #[cfg(all(test, feature = "serde"))]
 mod tests;
@@ -25,6 +30,7 @@ pub use crate::boundary::BoundaryCondition;
 pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
+pub use schema::{Limit, MaterialSchema, Param, ParamValue, material_schema};
 pub use solid::{
     ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams,
 };

@@ -6,23 +6,10 @@
 //! from Young's modulus E and Poisson's ratio ν:
 //! `μ = E / (2(1 + ν))`, `λ = E ν / ((1 + ν)(1 − 2ν))`.
 
-use super::{SandParams, WaterParams, finite, lame, non_negative, positive};
+use super::schema::MaterialSchema;
+use super::{SandParams, WaterParams, lame};
 use crate::error::{MpmError, Result};
 use crate::particles::Material;
-
-/// `E > 0` finite, `0 ≤ ν < 0.5`, `ρ > 0` finite, each named under `prefix`.
-fn check_elastic(prefix: &str, density: f32, e: f32, nu: f32) -> Result<()> {
-    positive(&format!("{prefix}.density"), density)?;
-    positive(&format!("{prefix}.youngs_modulus"), e)?;
-    finite(&format!("{prefix}.poisson_ratio"), nu)?;
-    if !(0.0..0.5).contains(&nu) {
-        return Err(MpmError::invalid(
-            format!("{prefix}.poisson_ratio"),
-            format!("must be in [0, 0.5), got {nu}"),
-        ));
-    }
-    Ok(())
-}
 
 /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s] scaled by `sqrt(stiffen)`.
 fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
@@ -44,6 +31,16 @@ pub enum ElasticModel {
     Corotated,
     /// Compressible neo-Hookean (e.g. Bonet & Wood 2008): `τ = μ(FFᵀ − I) + λ ln J · I`.
     Neohookean,
+}
+
+impl ElasticModel {
+    /// Its name in the parameter dict (`corotated`, `neohookean`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ElasticModel::Corotated => "corotated",
+            ElasticModel::Neohookean => "neohookean",
+        }
+    }
 }
 
 /// Elastic solid ("jelly"): the particle carries its deformation gradient F.
@@ -82,12 +79,7 @@ impl ElasticParams {
     }
 
     fn validate_at(&self, prefix: &str) -> Result<()> {
-        check_elastic(
-            prefix,
-            self.density,
-            self.youngs_modulus,
-            self.poisson_ratio,
-        )
+        self.check_ranges(prefix)
     }
 
     /// Lamé parameters (μ, λ) [Pa].
@@ -152,30 +144,7 @@ impl SnowParams {
     }
 
     fn validate_at(&self, prefix: &str) -> Result<()> {
-        check_elastic(
-            prefix,
-            self.density,
-            self.youngs_modulus,
-            self.poisson_ratio,
-        )?;
-        for (name, t) in [("theta_c", self.theta_c), ("theta_s", self.theta_s)] {
-            let field = format!("{prefix}.{name}");
-            finite(&field, t)?;
-            if !(t > 0.0 && t < 1.0) {
-                return Err(MpmError::invalid(
-                    field,
-                    format!("must be in (0, 1), got {t}"),
-                ));
-            }
-        }
-        non_negative(&format!("{prefix}.hardening"), self.hardening)?;
-        if self.hardening > 50.0 {
-            return Err(MpmError::invalid(
-                format!("{prefix}.hardening"),
-                format!("must be in [0, 50], got {}", self.hardening),
-            ));
-        }
-        Ok(())
+        self.check_ranges(prefix)
     }
 
     /// Lamé parameters (μ₀, λ₀) [Pa] before hardening.
@@ -247,15 +216,7 @@ impl ViscoplasticParams {
     }
 
     fn validate_at(&self, prefix: &str) -> Result<()> {
-        check_elastic(
-            prefix,
-            self.density,
-            self.youngs_modulus,
-            self.poisson_ratio,
-        )?;
-        non_negative(&format!("{prefix}.yield_stress"), self.yield_stress)?;
-        non_negative(&format!("{prefix}.viscosity"), self.viscosity)?;
-        Ok(())
+        self.check_ranges(prefix)
     }
 
     /// Lamé parameters (μ, λ) [Pa].
@@ -304,18 +265,9 @@ impl MaterialParams {
 
     /// Validates the set, naming a bad field under `prefix`.
     fn validate_at(&self, prefix: &str) -> Result<()> {
-        let renamed = |r: Result<()>, name: &str| {
-            r.map_err(|e| match e {
-                MpmError::InvalidInput { field, msg } => MpmError::InvalidInput {
-                    field: field.replacen(name, prefix, 1),
-                    msg,
-                },
-                e => e,
-            })
-        };
         match self {
-            MaterialParams::Water(p) => renamed(p.validate(), "water"),
-            MaterialParams::Sand(p) => renamed(p.validate(), "sand"),
+            MaterialParams::Water(p) => p.validate_at(prefix),
+            MaterialParams::Sand(p) => p.validate_at(prefix),
             MaterialParams::Elastic(p) => p.validate_at(prefix),
             MaterialParams::Snow(p) => p.validate_at(prefix),
             MaterialParams::Viscoplastic(p) => p.validate_at(prefix),

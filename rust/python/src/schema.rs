@@ -1,0 +1,57 @@
+//! `material_schema()`: each model's parameter table (the core's
+//! `params::schema`) as Python dicts, from which `hybridmpm.materials`
+//! builds its range checks, user aliases and defaults.
+
+use hybridmpm_mpm::{Param, ParamValue};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+/// An f32 as the f64 of its shortest decimal (`0.3`, not `0.30000001192092896`),
+/// as `default_params` gives the defaults.
+fn decimal(x: f32) -> f64 {
+    format!("{x}").parse().unwrap_or(f64::from(x))
+}
+
+/// One parameter as a dict (keys documented on `material_schema`).
+fn param<'py>(py: Python<'py>, p: &Param, default: ParamValue) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("name", p.name)?;
+    d.set_item("key", p.key())?;
+    d.set_item("unit", p.unit)?;
+    d.set_item("lower", p.lower.map(|l| l.value))?;
+    d.set_item("lower_inclusive", p.lower.map(|l| l.inclusive))?;
+    d.set_item("upper", p.upper.map(|u| u.value))?;
+    d.set_item("upper_inclusive", p.upper.map(|u| u.inclusive))?;
+    d.set_item("choices", p.choices.to_vec())?;
+    d.set_item("range", p.range_text())?;
+    match default {
+        ParamValue::Number(x) => d.set_item("default", decimal(x))?,
+        ParamValue::Name(n) => d.set_item("default", n)?,
+    }
+    d.set_item("description", p.description)?;
+    d.set_item("source", p.source)?;
+    Ok(d)
+}
+
+/// `{model: [param, ...]}` for water, sand, elastic, snow, viscoplastic, each
+/// param `{name, key (the user's name: "E" for youngs_modulus), unit, lower,
+/// lower_inclusive, upper, upper_inclusive (None when unbounded), choices
+/// (names a named parameter takes; [] for a number), range (the words every
+/// refusal uses: "in [0, 0.5)"), default, description, source}`, in the
+/// parameter struct's field order.
+#[pyfunction]
+fn material_schema(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let out = PyDict::new(py);
+    for (material, params, defaults) in hybridmpm_mpm::material_schema() {
+        let list = PyList::empty(py);
+        for (p, d) in params.iter().zip(defaults) {
+            list.append(param(py, p, d)?)?;
+        }
+        out.set_item(material.name(), list)?;
+    }
+    Ok(out)
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(material_schema, m)?)
+}
