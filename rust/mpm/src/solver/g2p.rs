@@ -137,12 +137,8 @@ where
         for (j, &slot) in sorted.iter().enumerate() {
             // a window of the block starts here (this item starts one):
             // the batches whose lanes share a route end
-            if j > 0 && j % G2P_WINDOW == 0 {
-                for batch in &mut batches.0 {
-                    if batch.len() > 0 && models.models[batch.set as usize].shares_route::<D>() {
-                        flush(batch, &mut sink, models, dt, &mut lane_health);
-                    }
-                }
+            if j > 0 && j % G2P_WINDOW == 0 && batches.0.iter().any(|b| b.len() > 0) {
+                end_window(batches, &mut sink, models, dt, &mut lane_health);
             }
             let slot = slot as usize;
             let id = self.ids[slot];
@@ -337,6 +333,29 @@ pub(super) struct Batches([Batch; Material::ALL.len()]);
 impl Batches {
     pub(super) fn new() -> Self {
         Batches(std::array::from_fn(|m| Batch::new(m as u16)))
+    }
+}
+
+/// At a window's end ([`G2P_WINDOW`]): [`flush`]es each batch of
+/// `batches` that holds particles and whose lanes share a route. Not
+/// inlined (the particle loop keeps one inlined copy of a batch's run and
+/// write-back), and called only where some batch holds particles: in a
+/// block of one set none does at a window's end (sixteen particles filled
+/// the batch and it ran).
+#[inline(never)]
+fn end_window<const D: usize>(
+    batches: &mut Batches,
+    outp: &mut impl ParticleSink<D>,
+    models: &Models,
+    dt: f32,
+    health: &mut LaneHealth,
+) where
+    Dim<D>: DimOps<D>,
+{
+    for batch in &mut batches.0 {
+        if batch.len() > 0 && models.models[batch.set as usize].shares_route::<D>() {
+            flush(batch, outp, models, dt, health);
+        }
     }
 }
 
