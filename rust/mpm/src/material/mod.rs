@@ -37,6 +37,7 @@ mod solid_lane_tests;
 mod solid_tests;
 
 pub(crate) use batch::{Batch, LaneHealth, ParticleSink, State};
+pub(crate) use lanes::LANES;
 
 use nalgebra::SMatrix;
 
@@ -62,6 +63,15 @@ pub(crate) trait Constitutive {
     /// Whether [`wave_speed`](Self::wave_speed) reads `jp_min`, the
     /// smallest `J` of the set's particles (snow's `J_P`).
     const WAVE_READS_J: bool = false;
+
+    /// Whether in `D` dimensions a lane's result depends on its batch mates
+    /// ([`update_lanes`](Self::update_lanes) takes one route for the whole
+    /// batch: sand's in 3D, `sand/update_3d.rs`); g2p then ends such a
+    /// batch at every window of its block (`solver/g2p.rs`, `G2P_WINDOW`),
+    /// so that its batches are the same for any thread count.
+    fn shares_route<const D: usize>() -> bool {
+        false
+    }
 
     /// The fastest wave speed [m/s] of the set, for the CFL condition
     /// `Δt ≤ cfl·Δx / (c + |v|max)` (`cfl`, `dx` [m]: water's viscous limit
@@ -148,6 +158,12 @@ impl Model {
     /// [`Constitutive::HAS_F`].
     pub(crate) fn has_f(&self) -> bool {
         each_model!(self, type M => M::HAS_F)
+    }
+
+    /// [`Constitutive::shares_route`].
+    #[inline(always)]
+    pub(crate) fn shares_route<const D: usize>(&self) -> bool {
+        each_model!(self, type M => M::shares_route::<D>())
     }
 
     /// [`Constitutive::WAVE_READS_J`].

@@ -10,6 +10,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use super::Solver;
+use super::g2p::G2P_WINDOW;
 use super::grid::{EMPTY, G2pItem, unflatten};
 use super::team::RawSlice;
 use crate::dim::{Dim, DimOps};
@@ -82,9 +83,10 @@ impl BlockMarks<'_> {
 /// loads better, each costs a claim and, for a piece of a block, a gather
 /// of the block's velocity patch) ...
 const ITEMS_PER_MEMBER: usize = 8;
-/// ... and the fewest particles a piece of a block holds (a multiple of the
-/// material lanes' batch, [`crate::material::Batch`]).
+/// ... and the fewest particles a piece of a block holds (a multiple of
+/// g2p's window, [`G2P_WINDOW`]).
 const MIN_ITEM: usize = 32;
+const _: () = assert!(MIN_ITEM.is_multiple_of(G2P_WINDOW));
 
 impl<const D: usize> Solver<D>
 where
@@ -269,7 +271,8 @@ where
     /// blocks and g2p's items come largest first (the last items claimed
     /// are the small ones, so the members end close together), g2p's
     /// blocks cut into pieces of about `n / (members · ITEMS_PER_MEMBER)`
-    /// particles (at least `MIN_ITEM`): a small frame has few blocks, and
+    /// particles (at least `MIN_ITEM`), only where one of g2p's windows
+    /// starts ([`G2P_WINDOW`]): a small frame has few blocks, and
     /// one large block claimed last kept the other member waiting. Which
     /// member runs which item changes no result: each block's p2g writes its
     /// own buffer, each output block its own nodes, and each particle's g2p
@@ -304,7 +307,7 @@ where
         };
         let target = (n as usize / (members * ITEMS_PER_MEMBER))
             .max(MIN_ITEM)
-            .next_multiple_of(16) as u32;
+            .next_multiple_of(G2P_WINDOW) as u32;
         let lat = self.stencil.lat_stride;
         let nb = g.nb;
         // the output blocks numbered so far (`sort_end` numbers them in the
@@ -317,8 +320,9 @@ where
             while b < n_src && owner(b) == m {
                 let (first, total) = (g.src_offsets[b], len(b));
                 let pieces = total.div_ceil(target).max(1);
-                // near-equal pieces, each a multiple of 16 but the last
-                let step = total.div_ceil(pieces).next_multiple_of(16);
+                // near-equal pieces, each whole windows of g2p but the last
+                // (a piece so starts at a window: `G2P_WINDOW`)
+                let step = total.div_ceil(pieces).next_multiple_of(G2P_WINDOW as u32);
                 let mut at = 0;
                 while at < total {
                     let l = step.min(total - at);

@@ -19,7 +19,8 @@
 //! ([`crate::material`]: `J` for water, `F` and the Drucker–Prager return
 //! mapping for sand, `F` (and snow's `J_P`) for the solids; each particle
 //! with the model of its parameter set, sixteen particles of one set at a
-//! time) and the new Kirchhoff stress for the next p2g.
+//! time, within one window of the block where the lanes share a route:
+//! [`G2P_WINDOW`]) and the new Kirchhoff stress for the next p2g.
 //!
 //! Blocks are processed in parallel: each source block gathers its padded
 //! velocity patch once and its particles read it with fixed strides. A
@@ -44,7 +45,7 @@ use super::{Health, Solver};
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, SOLID_PROJECT_DEPTH_CELLS};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
-use crate::material::{Batch, LaneHealth, Models, ParticleSink};
+use crate::material::{Batch, LANES, LaneHealth, Models, ParticleSink};
 use crate::particles::{Material, Particle};
 use crate::v4::V4;
 
@@ -134,6 +135,11 @@ where
             .map(|((col, u), shallow)| (col, col.reach(depth, shallow.as_ref()), u.as_ref()))
             .collect();
         for (j, &slot) in sorted.iter().enumerate() {
+            // a window of the block starts here (this item starts one):
+            // the batches whose lanes share a route end
+            if j > 0 && j % G2P_WINDOW == 0 && batches.0.iter().any(|b| b.len() > 0) {
+                end_window(batches, &mut sink, models, dt, &mut lane_health);
+            }
             let slot = slot as usize;
             let id = self.ids[slot];
             // its place in the storage this substep leaves
@@ -305,16 +311,51 @@ fn project<const D: usize>(
     moved
 }
 
+/// The windows of g2p's batches: a source block's places in the sorted
+/// order, `G2P_WINDOW` at a time from its first. g2p's items start at a
+/// window (`Solver::schedule` cuts a block only there), and a batch whose
+/// lanes share a route (sand's in 3D, `Constitutive::shares_route`) ends at
+/// every window as well as at the item's end: it so holds particles of one
+/// window only, consecutive among those of its set, whichever members run
+/// which pieces of the block, and a particle's bits are the same for any
+/// thread count. In a block of one set the batches end there anyway
+/// (sixteen particles fill one); where other materials or sets come between,
+/// the batch runs with fewer lanes in use.
+pub(super) const G2P_WINDOW: usize = LANES;
+
 /// One open [`Batch`] per material code (`Particle::material`), so that
-/// particles of other materials between them do not cut a batch (sand's 3D
-/// route depends on its batch mates, `material/sand/update_3d.rs`): a
-/// batch holds the particles of one parameter set, consecutive in the
-/// block's order among those of its material. One per worker, reused.
+/// particles of other materials between them do not cut a batch: a batch
+/// holds the particles of one parameter set, consecutive in the item's
+/// order among those of its material (and of one window, [`G2P_WINDOW`],
+/// where its lanes share a route). One per worker, reused.
 pub(super) struct Batches([Batch; Material::ALL.len()]);
 
 impl Batches {
     pub(super) fn new() -> Self {
         Batches(std::array::from_fn(|m| Batch::new(m as u16)))
+    }
+}
+
+/// At a window's end ([`G2P_WINDOW`]): [`flush`]es each batch of
+/// `batches` that holds particles and whose lanes share a route. Not
+/// inlined (the particle loop keeps one inlined copy of a batch's run and
+/// write-back), and called only where some batch holds particles: in a
+/// block of one set none does at a window's end (sixteen particles filled
+/// the batch and it ran).
+#[inline(never)]
+fn end_window<const D: usize>(
+    batches: &mut Batches,
+    outp: &mut impl ParticleSink<D>,
+    models: &Models,
+    dt: f32,
+    health: &mut LaneHealth,
+) where
+    Dim<D>: DimOps<D>,
+{
+    for batch in &mut batches.0 {
+        if batch.len() > 0 && models.models[batch.set as usize].shares_route::<D>() {
+            flush(batch, outp, models, dt, health);
+        }
     }
 }
 

@@ -87,6 +87,11 @@ impl Sand {
 impl Constitutive for Sand {
     const HAS_F: bool = true;
 
+    /// In 3D: one route per batch, matrix series or eigenvalues ([`advance_3d`]).
+    fn shares_route<const D: usize>() -> bool {
+        D == 3
+    }
+
     /// The P-wave speed `sqrt((λ + 2μ)/ρ)`.
     fn wave_speed<const D: usize>(&self, _cfl: f32, _dx: f32, _jp_min: f32) -> f32 {
         self.params.wave_speed()

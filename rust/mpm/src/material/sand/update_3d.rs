@@ -16,9 +16,14 @@ use crate::material::vmath;
 /// `‖X‖_F ≤` [`SERIES_MAX_X`] in every lane, else the eigenvalue route
 /// ([`advance_3d_eigen`]): the same model, both within about 1e-6·μ of an
 /// f64 SVD (tests). So in a batch a particle's bits depend on its batch
-/// mates through that choice; batches are a source block's sand particles
-/// in storage order, the same for any thread count, so the frame stays
-/// deterministic.
+/// mates through that choice ([`Sand`]'s `shares_route` in 3D). g2p's
+/// batches of one set are the same for any thread count: consecutive
+/// particles of that set, in the sorted order (by block, then id), within
+/// one window of sixteen places of their source block (`solver/g2p.rs`,
+/// `G2P_WINDOW`; a team cuts a block only at a window), and the frame stays
+/// deterministic. Where particles of other materials or sets share a
+/// window, the batch holds fewer particles, and its route is chosen by
+/// those alone (the unused lanes repeat the first).
 #[inline(always)]
 pub(crate) fn advance_3d<R: Real>(ft: &[R; 9], vc: R, m: &Sand) -> ([R; 9], R, [R; 9]) {
     let (b, q, x, small) = strain_3d(ft);
