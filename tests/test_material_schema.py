@@ -61,6 +61,22 @@ def test_nu_just_below_a_half_that_float32_rounds_to_a_half_is_refused_naming_th
     _core.MpmSolver(MpmParams(n_grid=16, sets=[ElasticParams(poisson_ratio=below)]).to_dict())
 
 
+def test_a_number_float32_rounds_to_zero_or_past_its_range_is_judged_by_its_rounding():
+    """``nu = 1e-110`` is 0 in float32, inside [0, 0.5): accepted by Python and the core alike (a hypothesis
+    draw of the limits tests found Python refusing it once); ``density = 1e-300`` is 0 there, outside
+    ``> 0``; ``E = 1e39`` is infinite there: both refused naming the user's key and value."""
+    from hybridmpm.mpm.params import SandParams
+
+    assert material_from_block("sand", {"nu": 1e-110}, "blocks[0]") is not None
+    params = MpmParams(n_grid=16, sand=SandParams(poisson_ratio=1e-110), sets=[ElasticParams(poisson_ratio=1e-300)])
+    params.validate()
+    _core.MpmSolver(params.to_dict())
+    for key, value, words in (("density", 1e-300, "0.0 in float32"), ("E", 1e39, "past float32's largest number")):
+        with pytest.raises(InvalidInputError) as e:
+            material_from_block("jello", {key: value}, "blocks[1]")
+        assert e.value.field == f"blocks[1].{key}" and repr(value) in str(e.value) and words in str(e.value), e.value
+
+
 def _bounds() -> list[tuple[str, Param, str]]:
     return [(m, p, side) for m, ps in SCHEMA.items() for p in ps for side in ("lower", "upper") if getattr(p, side) is not None]
 

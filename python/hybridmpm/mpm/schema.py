@@ -21,7 +21,7 @@ import numpy as np
 
 from hybridmpm import _core
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.limits import check_float32
+from hybridmpm.limits import F32_MAX
 
 
 @dataclass(frozen=True)
@@ -55,8 +55,9 @@ class Param:
 
     def check(self, field: str, value: Any) -> Any:
         """``value`` (the user's, for ``field``: ``blocks[2].nu``) if it is in the range in float64 and
-        in float32 (the solver's precision), or one of ``choices``; else :class:`InvalidInputError`
-        naming ``field`` with the value as given."""
+        so is its float32 rounding (the solver's precision: ``E = 1e39`` is infinite there, ``density =
+        1e-300`` is 0, both refused; ``nu = 1e-110`` is 0, accepted), or one of ``choices``; else
+        :class:`InvalidInputError` naming ``field`` with the value as given."""
         if self.choices:
             if not (isinstance(value, str) and value in self.choices):
                 raise InvalidInputError(f"{field}: must be {self.range}, got {value!r}", field)
@@ -66,8 +67,10 @@ class Param:
             raise InvalidInputError(f"{field}: must be a finite number, got {value!r}", field)
         if not self.contains(float(value)):
             raise InvalidInputError(f"{field}: must be {self.range}, got {value!r}", field)
-        check_float32(field, float(value))
-        f32 = float(np.float32(value))
+        with np.errstate(over="ignore"):  # past float32's range: inf, refused just below
+            f32 = float(np.float32(value))
+        if not math.isfinite(f32):
+            raise InvalidInputError(f"{field}: {value!r} is past float32's largest number ({F32_MAX:.4g}), the solver's precision", field)
         if not self.contains(f32):
             raise InvalidInputError(f"{field}: must be {self.range}, got {value!r} ({f32!r} in float32, the precision the solver computes in)", field)
         return value
