@@ -512,6 +512,14 @@ def test_no_rust_source_file_is_over_700_lines():
     assert not big, big
 
 
+def test_no_docs_page_is_over_500_lines():
+    # a page is a reference a user acts on; dated rounds of experiments go to docs/history/
+    pages = list((ROOT / "docs").glob("*.md"))
+    assert len(pages) > 10, "the docs pages were not found"
+    big = {str(p.relative_to(ROOT)): n for p in pages if (n := len(p.read_text().splitlines())) > 500}
+    assert not big, big
+
+
 def test_no_class_stands_in_for_a_simulator_in_the_service():
     # the service holds real simulators (local sessions, actors) or none (a Ray front end's session has sim=None)
     offenders = []
