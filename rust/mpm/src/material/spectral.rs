@@ -311,3 +311,81 @@ pub(crate) fn plastic_f<R: Real>(g: &[R; 9], ft: &[R; 9], plastic: R::Mask) -> [
     }
     f
 }
+
+/// The divided differences of `ln` and of a power map at the eigenvalues
+/// `λ1 ≥ λ2 ≥ λ3 > 0` of `B = F·Fᵀ`, what a 3D return mapping in Hencky
+/// strain needs for `sp.newton` (sand and viscoplastic): `ln[λ3, λ2]`,
+/// `ln[λ2, λ1]`, `ln[λ3, λ2, λ1]`, with the derivative where eigenvalues
+/// meet (`near`: `λ1 − λ3 ≤ 1e-4·λ3`).
+#[derive(Clone, Copy)]
+pub(crate) struct LnDiffs<R: Real> {
+    l: [R; 3],
+    g32: R,
+    g21: R,
+    lp32: R,
+    lp21: R,
+    gap32: R::Mask,
+    gap21: R::Mask,
+    near: R::Mask,
+    /// `ln[λ3, λ2]`.
+    pub(crate) ln32: R,
+    /// `ln[λ3, λ2, λ1]`.
+    pub(crate) ln321: R,
+}
+
+impl<R: Real> LnDiffs<R> {
+    /// The differences at `l = [λ1, λ2, λ3]`.
+    #[inline(always)]
+    pub(crate) fn new(l: [R; 3]) -> Self {
+        let [l1, l2, l3] = l;
+        let zero = k::<R>(0.0);
+        let (g32, g21) = (l2 - l3, l1 - l2);
+        let (lp32, lp21) = (vmath::ln_1p(g32 / l3), vmath::ln_1p(g21 / l2));
+        let (gap32, gap21) = (g32.gt(zero), g21.gt(zero));
+        let ln32 = R::select_div(gap32, lp32, g32, k(1.0), l3);
+        let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
+        let near = (l1 - l3).le(k::<R>(1e-4) * l3);
+        let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
+        LnDiffs {
+            l,
+            g32,
+            g21,
+            lp32,
+            lp21,
+            gap32,
+            gap21,
+            near,
+            ln32,
+            ln321,
+        }
+    }
+
+    /// `(g[λ3, λ2], g[λ3, λ2, λ1])` of the plastic map `g(λ) = e^c·λ^pw`,
+    /// given its values `g2 = g(λ2)`, `g3 = g(λ3)`.
+    #[inline(always)]
+    pub(crate) fn power(&self, pw: R, g2: R, g3: R) -> (R, R) {
+        let ([l1, l2, l3], half) = (self.l, k::<R>(0.5));
+        let d32 = R::select_div(
+            self.gap32,
+            g3 * vmath::exp_m1(pw * self.lp32),
+            self.g32,
+            pw * g3,
+            l3,
+        );
+        let d21 = R::select_div(
+            self.gap21,
+            g2 * vmath::exp_m1(pw * self.lp21),
+            self.g21,
+            pw * g2,
+            l2,
+        );
+        let d321 = R::select_div(
+            self.near,
+            half * pw * (pw - k(1.0)) * g2,
+            l2 * l2,
+            d21 - d32,
+            l1 - l3,
+        );
+        (d32, d321)
+    }
+}

@@ -18,8 +18,8 @@ use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
 use super::spectral::{
-    Spectral3, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, plastic_f, to_lanes,
-    trial,
+    LnDiffs, Spectral3, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, plastic_f,
+    to_lanes, trial,
 };
 use super::vmath;
 use crate::dim::{Dim, DimOps};
@@ -196,14 +196,7 @@ pub(crate) fn viscoplastic_3d<R: Real>(
     let s_norm = k::<R>(2.0 * mu) * (dev[0] * dev[0] + dev[1] * dev[1] + dev[2] * dev[2]).sqrt();
     let scale = return_scale(s_norm, radius, keep);
     // divided differences of ln at λ3, λ2, λ1
-    let zero = k::<R>(0.0);
-    let (g32, g21) = (l2 - l3, l1 - l2);
-    let (lp32, lp21) = (vmath::ln_1p(g32 / l3), vmath::ln_1p(g21 / l2));
-    let (gap32, gap21) = (g32.gt(zero), g21.gt(zero));
-    let ln32 = R::select_div(gap32, lp32, g32, k(1.0), l3);
-    let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
-    let near = (l1 - l3).le(k::<R>(1e-4) * l3);
-    let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
+    let dl = LnDiffs::new(sp.l);
     let plastic = scale.ne(k(1.0));
     let mut f = *ft;
     if R::any(plastic) {
@@ -213,19 +206,11 @@ pub(crate) fn viscoplastic_3d<R: Real>(
             vmath::exp(k::<R>(2.0) * pw * dev[1]),
             vmath::exp(k::<R>(2.0) * pw * dev[2]),
         );
-        let d32 = R::select_div(gap32, g3 * vmath::exp_m1(pw * lp32), g32, pw * g3, l3);
-        let d21 = R::select_div(gap21, g2 * vmath::exp_m1(pw * lp21), g21, pw * g2, l2);
-        let d321 = R::select_div(
-            near,
-            half * pw * (pw - k(1.0)) * g2,
-            l2 * l2,
-            d21 - d32,
-            l1 - l3,
-        );
+        let (d32, d321) = dl.power(pw, g2, g3);
         f = plastic_f(&sp.newton(g3, d32, d321), ft, plastic);
     }
     let e3 = mean + scale * dev[2];
     let h3 = k::<R>(2.0 * mu) * e3 + k::<R>(3.0 * la) * mean;
     let ms = k::<R>(mu) * scale;
-    (f, sp.newton(h3, ms * ln32, ms * ln321))
+    (f, sp.newton(h3, ms * dl.ln32, ms * dl.ln321))
 }

@@ -6,7 +6,7 @@
 use super::Sand;
 use super::return_map::project_lanes;
 use crate::material::lanes::Real;
-use crate::material::spectral::{Spectral3, gram_3, k, plastic_f};
+use crate::material::spectral::{LnDiffs, Spectral3, gram_3, k, plastic_f};
 use crate::material::vmath;
 
 /// The 3D sand update of g2p ([`Sand`]'s lanes) without singular vectors, on
@@ -212,14 +212,7 @@ pub(super) fn advance_3d_eigen<R: Real>(
     ];
     let (e_new, scale, vc) = project_lanes(&e0, vc, m.alpha, m.mu, m.la, m.tr_apex);
     // divided differences of ln at λ3, λ2, λ1
-    let zero = k::<R>(0.0);
-    let (g32, g21) = (l2 - l3, l1 - l2);
-    let (lp32, lp21) = (vmath::ln_1p(g32 / l3), vmath::ln_1p(g21 / l2));
-    let (gap32, gap21) = (g32.gt(zero), g21.gt(zero));
-    let ln32 = R::select_div(gap32, lp32, g32, k(1.0), l3);
-    let ln21 = R::select_div(gap21, lp21, g21, k(1.0), l2);
-    let near = (l1 - l3).le(k::<R>(1e-4) * l3);
-    let ln321 = R::select_div(near, k(-0.5), l2 * l2, ln21 - ln32, l1 - l3);
+    let dl = LnDiffs::new(sp.l);
     // plastic (s ≠ 1): G = g(B), g(λ) = e^{ε_i − ε0_i} = e^c·λ^pw, F =
     // G·F_trial; inside the cone F = F_trial (skipped if no lane is plastic)
     let plastic = scale.ne(k(1.0));
@@ -227,18 +220,10 @@ pub(super) fn advance_3d_eigen<R: Real>(
     if R::any(plastic) {
         let pw = half * (scale - k(1.0));
         let (g2, g3) = (vmath::exp(e_new[1] - e0[1]), vmath::exp(e_new[2] - e0[2]));
-        let d32 = R::select_div(gap32, g3 * vmath::exp_m1(pw * lp32), g32, pw * g3, l3);
-        let d21 = R::select_div(gap21, g2 * vmath::exp_m1(pw * lp21), g21, pw * g2, l2);
-        let d321 = R::select_div(
-            near,
-            half * pw * (pw - k(1.0)) * g2,
-            l2 * l2,
-            d21 - d32,
-            l1 - l3,
-        );
+        let (d32, d321) = dl.power(pw, g2, g3);
         f = plastic_f(&sp.newton(g3, d32, d321), ft, plastic);
     }
     let h3 = k::<R>(2.0 * m.mu) * e_new[2] + k::<R>(m.la) * (e_new[0] + e_new[1] + e_new[2]);
     let ms = k::<R>(m.mu) * scale;
-    (f, vc, sp.newton(h3, ms * ln32, ms * ln321))
+    (f, vc, sp.newton(h3, ms * dl.ln32, ms * dl.ln321))
 }
