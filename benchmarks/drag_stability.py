@@ -1,14 +1,16 @@
 #!/usr/bin/env python3
-"""Stability of a dragged obstacle: the page's paddle pulled through the water at a given speed, per integrator.
+"""Stability of a dragged obstacle and of the largest control push, per integrator.
 
 The paddle of ``paddle3d`` (or the first obstacle of ``--scene``) is dragged for ``--frames`` frames: every 20
 frames it takes a new random direction (mostly horizontal; ``--seed``), it moves for 30 frames of every 40 at
-``--speed`` m/s and rests for 10, kept inside a box of the domain. Per speed and integrator: the frames rolled
+``--speed`` m/s and rests for 10, kept inside a box of the domain. The page lets a drag reach the solver's limit,
+50 m/s (``hybridmpm.mpm.motion.MAX_OBSTACLE_SPEED``). ``--push`` adds a run per integrator in which the paddle
+rests and the water is pushed instead: the controls' largest acceleration (``hybridmpm.control.reverse.A_MAX``,
+50 g) on every particle, in the same pattern of directions and pauses. Per case and integrator: the frames rolled
 back and retried (``SimStats.mpm_retries``; the target is at most 1 in 100), the steps a frame, whether the run
-ended early (a non-finite particle, or a frame MPM could not finish) and the wall time a frame. The page lets a
-drag reach the solver's limit, 50 m/s (``hybridmpm.mpm.motion.MAX_OBSTACLE_SPEED``).
+ended early (a non-finite particle, or a frame MPM could not finish) and the wall time a frame.
 
-    python benchmarks/drag_stability.py --speeds 5,20,50 --out benchmarks/results/drag_stability
+    python benchmarks/drag_stability.py --speeds 5,20,50 --push --out benchmarks/results/drag_stability
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from hybridmpm.bench.harness import script_argv, table, write_results
+from hybridmpm.control.reverse import A_MAX
 from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.sim import make_simulator, rollout
 
@@ -27,8 +30,8 @@ from hybridmpm.sim import make_simulator, rollout
 REACH = (np.array([0.1, 0.25, 0.25]), np.array([0.9, 0.3, 0.75]))
 
 
-def drag_run(scene: str, integrator: str, speed: float, frames: int, seed: int) -> dict[str, Any]:
-    """One dragged run (module docstring)."""
+def drag_run(scene: str, integrator: str, speed: float, frames: int, seed: int, push: bool = False) -> dict[str, Any]:
+    """One dragged run at ``speed`` [m/s], or with ``push`` one pushed at ``A_MAX`` (module docstring)."""
     sim = make_simulator(scene, "mpm", integrator=integrator)
     rng = np.random.default_rng(seed)
     dim = sim.particles.dim
@@ -41,7 +44,10 @@ def drag_run(scene: str, integrator: str, speed: float, frames: int, seed: int) 
             d = rng.normal(size=dim)
             d[1] *= 0.3  # mostly horizontal
             state["dir"] = d / np.linalg.norm(d)
-        if k % 40 < 30:
+        on = k % 40 < 30
+        if push:
+            sim.forcing = np.broadcast_to(np.float32(A_MAX * on) * state["dir"].astype(np.float32), (sim.velocities.shape[0], dim))
+        elif on:
             c = sim.solver.collider_positions[0]
             sim.move_obstacle(0, np.clip(c + speed * sim.dt_frame * state["dir"], lo, hi))
         state["k"] = k + 1
@@ -54,7 +60,8 @@ def drag_run(scene: str, integrator: str, speed: float, frames: int, seed: int) 
     return {
         "scene": scene,
         "integrator": integrator,
-        "speed": speed,
+        "case": f"push {A_MAX / 9.81:.0f} g" if push else f"drag {speed:g} m/s",
+        "speed": 0.0 if push else speed,
         "frames": done,
         "retries": int(sim.stats.mpm_retries),
         "retries_per_100": 100.0 * sim.stats.mpm_retries / max(done, 1),
@@ -71,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--integrators", default=",".join(INTEGRATORS), help="integrators, comma-separated")
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--seed", type=int, default=1, help="the drag's directions")
+    ap.add_argument("--push", action="store_true", help="also push the water at the controls' largest acceleration")
     ap.add_argument("--out", required=True, help="output folder")
     a = ap.parse_args(argv)
     rows = []
@@ -79,9 +87,13 @@ def main(argv: list[str] | None = None) -> int:
             r = drag_run(a.scene, integrator, speed, a.frames, a.seed)
             print(r)
             rows.append(r)
-    keys = ["integrator", "speed", "frames", "retries", "retries_per_100", "steps_per_frame", "failure", "ms_per_frame"]
+    for integrator in [s.strip() for s in a.integrators.split(",") if s.strip()] if a.push else []:
+        r = drag_run(a.scene, integrator, 0.0, a.frames, a.seed, push=True)
+        print(r)
+        rows.append(r)
+    keys = ["integrator", "case", "frames", "retries", "retries_per_100", "steps_per_frame", "failure", "ms_per_frame"]
     lines = [
-        f"# A dragged obstacle: {a.scene}, {a.frames} frames a run, seed {a.seed}",
+        f"# A dragged obstacle{' and a pushed fluid' if a.push else ''}: {a.scene}, {a.frames} frames a run, seed {a.seed}",
         "\n".join(table(keys, [[r[k] if not isinstance(r[k], float) else f"{r[k]:.2f}" for k in keys] for r in rows])),
     ]
     write_results(a.out, "drag_stability", doc={"runs": rows}, markdown=lines, argv=script_argv("drag_stability.py", argv))
