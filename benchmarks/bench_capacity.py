@@ -37,16 +37,27 @@ repeats: the frames/s it steps (the page's 3D scene).
     python benchmarks/bench_capacity.py [--seconds 4] [--warmup 1.5] [--repeats 3] [--out-dir benchmarks/results]
     python benchmarks/bench_capacity.py --quick --out-dir /tmp/cap   # seconds, tiny settings
     python benchmarks/bench_capacity.py --realtime --warmup 8 --repeats 1 --out-dir benchmarks/results/capacity_realtime
+
+``--backend ray`` serves the sessions from a Ray cluster of one node on this machine (``RayCluster``: as many
+CPUs as the machine's cores, each session an actor process reserving ``ray_num_cpus`` of one): the sessions'
+frames then share the cores through the operating system, not through the server's compute limiter, and
+"server CPU" is the front end's alone (the sessions' work is in "machine").
+
+    python benchmarks/bench_capacity.py --backend ray --realtime --warmup 8 --repeats 1 --scene3d "" --out-dir benchmarks/results/capacity_ray
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import itertools
 import json
 import os
+import secrets
+import shutil
 import statistics
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -59,7 +70,7 @@ import websockets
 from hybridmpm.bench.harness import REPO_ROOT, load_average, script_argv, table, write_results
 from hybridmpm.service import decode_frame
 from hybridmpm.service.core import PLAY_LAG_S, PLAY_TICK_S
-from hybridmpm.service.testing import LiveServer, cpu_seconds, thread_cpu_seconds
+from hybridmpm.service.testing import LiveServer, RayCluster, cpu_seconds, thread_cpu_seconds
 
 OCTET = {"Accept": "application/octet-stream"}
 #: A session holds real time when it steps at least this share of 1/dt_frame frames/s.
@@ -247,10 +258,30 @@ async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seco
     return out
 
 
+@contextlib.contextmanager
+def serving(backend: str, most: int, log: Path | None) -> Any:
+    """A live server for ``most`` sessions and more: the local backend, or a front end on a one-node Ray cluster
+    of this machine's cores (stopped, and its files removed, on the way out)."""
+    if backend == "local":
+        with LiveServer(max_sessions=most + 4, log=log) as srv:
+            yield srv
+        return
+    root = Path(tempfile.mkdtemp(prefix="hmcap", dir="/tmp"))  # short: Ray's socket paths live under it
+    cluster = RayCluster(root, secrets.token_hex(16), nodes=1, num_cpus=os.cpu_count() or 1)
+    try:
+        cluster.start()
+        args = ["--backend", "ray", "--ray-address", cluster.address]
+        with LiveServer(max_sessions=most + 4, log=log, args=args, env={"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": cluster.token}) as srv:
+            yield srv
+    finally:
+        cluster.stop()
+        shutil.rmtree(root, ignore_errors=True)
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     log = Path(args.server_log) if args.server_log else None
-    with LiveServer(max_sessions=args.most + 4, log=log) as srv:
+    with serving(args.backend, args.most, log) as srv:
 
         def rung(n: int) -> bool:
             r = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap, args.realtime)))
@@ -279,6 +310,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "engine_frames": frames,
         "real_time_share": REAL_TIME_SHARE,
         "repeats": args.repeats,
+        "backend": args.backend,
         "scene3d": three,
     }
     if frames:  # the engine alone, one seed at a time: the CPU each rung's sessions need at real time
@@ -298,7 +330,8 @@ def markdown(doc: dict[str, Any]) -> str:
     rows = doc["rows"]
     r0 = rows[0]
     lines = [
-        "# Capacity: real-time water2d sessions on one server",
+        "# Capacity: real-time water2d sessions on one server"
+        + (" (the Ray backend: one node of this machine's cores, a session an actor process)" if doc.get("backend") == "ray" else ""),
         "",
         f"water2d, solver `{r0['solver']}` ({r0['configuration'] or 'the scene default'}), session i of a rung on seed i "
         f"({min(min(r['particles']) for r in rows)} to {max(max(r['particles']) for r in rows)} particles: the scene's random blocks), real time = {1 / r0['dt_frame']:.0f} frames/s (dt_frame {r0['dt_frame'] * 1e3:g} ms); a session holds it at >= "
@@ -387,6 +420,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--quick", action="store_true", help="tiny settings (1 and 2 sessions, short windows, no 3D): a check that it runs")
     ap.add_argument("--out-dir", default=str(REPO_ROOT / "benchmarks" / "results"), help="capacity.md and capacity.json go here")
     ap.add_argument("--server-log", default=None, help="write the server's output here")
+    ap.add_argument("--backend", choices=("local", "ray"), default="local", help="the sessions in the server's process, or actors of a one-node Ray cluster")
     args = ap.parse_args(argv)
     if args.quick:
         args.seconds, args.warmup, args.most, args.repeats, args.scene3d, args.engine_frames, args.engine_seeds = 1.0, 0.5, 2, 1, "", 20, 2
