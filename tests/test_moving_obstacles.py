@@ -315,3 +315,11 @@ def test_an_obstacle_is_not_moved_faster_than_the_cap():
     with pytest.raises(InvalidInputError) as e:
         sim.move_obstacle(0, far.tolist())
     assert e.value.field == "center"
+    # at the cap exactly, from the centre the simulator reports, in any direction: accepted (the float32
+    # centres' rounding once refused such a drag as "50 m/s ... at most 50 m/s")
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        d = rng.normal(size=2)
+        sim.move_obstacle(0, (c + MAX_OBSTACLE_SPEED * step_s * d / np.linalg.norm(d)).tolist())
+    with pytest.raises(InvalidInputError):
+        sim.move_obstacle(0, (c + [MAX_OBSTACLE_SPEED * step_s * 1.001, 0.0]).tolist())
