@@ -407,19 +407,48 @@ impl<'de, 'py> de::Deserializer<'de> for PyDe<'py> {
         self.map(visitor, Some(fields))
     }
 
-    /// Unit variants only, named by a string (`"sticky"`, `"box"`).
+    /// An enum in serde's externally tagged form: a string names a unit
+    /// variant (`"sticky"`, `"box"`); a dict of one key names a variant
+    /// with data, the key's value its data (`{"elastic": {...}}`, read at
+    /// `path.elastic`). Anything else, and a dict of no key or several, is
+    /// refused at `path`, listing the variants.
     fn deserialize_enum<V: Visitor<'de>>(
         self,
         _name: &'static str,
-        _variants: &'static [&'static str],
+        variants: &'static [&'static str],
         visitor: V,
     ) -> Result<V::Value, Error> {
-        let name = self.string()?;
+        let quoted: Vec<String> = variants.iter().map(|v| format!("'{v}'")).collect();
+        let names = quoted.join(", ");
+        let (name, value) = if let Ok(d) = self.obj.cast::<PyDict>() {
+            let mut entries: Vec<Entry<'py>> = d.iter().collect();
+            if entries.len() != 1 {
+                let keys: Vec<String> = entries.iter().map(|(k, _)| repr(k)).collect();
+                let got = match keys.len() {
+                    0 => "an empty dict".to_string(),
+                    n => format!("{n} keys: {}", keys.join(", ")),
+                };
+                return Err(Error::new(
+                    Some(self.path),
+                    format!("expected a dict naming exactly one of {names}, got {got}"),
+                ));
+            }
+            let (key, value) = entries.pop().expect("one entry");
+            let Ok(name) = key.cast::<PyString>().map(|k| k.to_string()) else {
+                return Err(Error::new(
+                    Some(self.path),
+                    format!("keys must be strings, got {}", repr(&key)),
+                ));
+            };
+            (name, Some(value))
+        } else if self.obj.is_instance_of::<PyString>() {
+            (self.string()?, None)
+        } else {
+            return Err(self.expected(&format!("one of {names}")));
+        };
+        let path = self.path.clone();
         visitor
-            .visit_enum(NameDe {
-                name,
-                path: self.path.clone(),
-            })
+            .visit_enum(VariantDe { name, value, path })
             .map_err(|e: Error| e.at(&self.path))
     }
 
@@ -538,51 +567,71 @@ impl<'de> de::Deserializer<'de> for NameDe {
     }
 }
 
-impl<'de> de::EnumAccess<'de> for NameDe {
-    type Error = Error;
-    type Variant = UnitOnly;
-
-    fn variant_seed<T: DeserializeSeed<'de>>(self, seed: T) -> Result<(T::Value, UnitOnly), Error> {
-        let path = self.path.clone();
-        let v = seed.deserialize(self)?;
-        Ok((v, UnitOnly { path }))
-    }
-}
-
-/// The variant of an enum named by a string: a unit variant only.
-struct UnitOnly {
+/// The variant an enum's value names (`name`, read at `path`) and, in the
+/// dict form, the data under it (read at `path.name`).
+struct VariantDe<'py> {
+    name: String,
+    value: Option<Bound<'py, PyAny>>,
     path: String,
 }
 
-impl UnitOnly {
-    fn refuse(&self) -> Error {
-        Error::new(
-            Some(self.path.clone()),
-            "expected a name, not a value".into(),
-        )
+impl<'py> VariantDe<'py> {
+    /// The data of a variant that has some: the dict form's value.
+    fn data(self) -> Result<PyDe<'py>, Error> {
+        match self.value {
+            Some(v) => Ok(PyDe::new(v, join(&self.path, &self.name))),
+            None => Err(Error::new(
+                Some(self.path),
+                format!(
+                    "'{0}' takes parameters: expected a dict {{'{0}': {{...}}}}, got '{0}'",
+                    self.name
+                ),
+            )),
+        }
     }
 }
 
-impl<'de> de::VariantAccess<'de> for UnitOnly {
+impl<'de, 'py> de::EnumAccess<'de> for VariantDe<'py> {
+    type Error = Error;
+    type Variant = Self;
+
+    fn variant_seed<T: DeserializeSeed<'de>>(self, seed: T) -> Result<(T::Value, Self), Error> {
+        let v = seed.deserialize(NameDe {
+            name: self.name.clone(),
+            path: self.path.clone(),
+        })?;
+        Ok((v, self))
+    }
+}
+
+impl<'de, 'py> de::VariantAccess<'de> for VariantDe<'py> {
     type Error = Error;
 
     fn unit_variant(self) -> Result<(), Error> {
-        Ok(())
+        match self.value {
+            None => Ok(()),
+            Some(_) => Err(Error::new(
+                Some(self.path),
+                format!("expected the name '{}' alone, not a dict", self.name),
+            )),
+        }
     }
 
-    fn newtype_variant_seed<T: DeserializeSeed<'de>>(self, _seed: T) -> Result<T::Value, Error> {
-        Err(self.refuse())
+    fn newtype_variant_seed<T: DeserializeSeed<'de>>(self, seed: T) -> Result<T::Value, Error> {
+        let de = self.data()?;
+        let path = de.path.clone();
+        seed.deserialize(de).map_err(|e| e.at(&path))
     }
 
-    fn tuple_variant<V: Visitor<'de>>(self, _len: usize, _visitor: V) -> Result<V::Value, Error> {
-        Err(self.refuse())
+    fn tuple_variant<V: Visitor<'de>>(self, _len: usize, visitor: V) -> Result<V::Value, Error> {
+        de::Deserializer::deserialize_seq(self.data()?, visitor)
     }
 
     fn struct_variant<V: Visitor<'de>>(
         self,
-        _fields: &'static [&'static str],
-        _visitor: V,
+        fields: &'static [&'static str],
+        visitor: V,
     ) -> Result<V::Value, Error> {
-        Err(self.refuse())
+        self.data()?.map(visitor, Some(fields))
     }
 }

@@ -262,7 +262,7 @@ impl MpmSolver {
     /// unchanged.
     fn add_parameter_set(&self, py: Python<'_>, set: &Bound<'_, PyAny>) -> PyResult<u16> {
         let k = self.with(py, |inner| dispatch!(inner, s => s.params().sets.len()));
-        let set: core::MaterialSet =
+        let set: core::MaterialParams =
             crate::pyde::read(set, &format!("sets[{k}]")).map_err(|e| e.into_py(py))?;
         self.with(py, |inner| dispatch!(inner, s => s.add_parameter_set(set)))
             .map_err(|e| to_py(py, e))

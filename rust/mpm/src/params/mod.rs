@@ -31,9 +31,7 @@ pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
 pub use schema::{Limit, MaterialSchema, Param, ParamValue, material_schema};
-pub use solid::{
-    ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams,
-};
+pub use solid::{ElasticModel, ElasticParams, MaterialParams, SnowParams, ViscoplasticParams};
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
@@ -112,7 +110,7 @@ pub struct SolverParams<const D: usize> {
     /// Further parameter sets (table entries 5, 6, ...): a scene's blocks
     /// of one material with different parameters (two jellies of different
     /// stiffness). At most [`MAX_SETS`] entries in all.
-    pub sets: Vec<MaterialSet>,
+    pub sets: Vec<MaterialParams>,
     pub walls: WallParams,
     /// How a frame advances: the explicit MLS-MPM substeps, or the
     /// incompressible projection step ([`Integrator`]). Left out of the dict
@@ -263,8 +261,7 @@ impl<const D: usize> SolverParams<D> {
     }
 
     /// The table of parameter sets particles index: the five defaults by
-    /// material code, then [`Self::sets`]. Call after [`Self::validate`]
-    /// (a malformed extra set is left out).
+    /// material code, then [`Self::sets`]. Call after [`Self::validate`].
     pub fn table(&self) -> Vec<MaterialParams> {
         let mut t = vec![
             MaterialParams::Water(self.water.clone()),
@@ -273,7 +270,7 @@ impl<const D: usize> SolverParams<D> {
             MaterialParams::Snow(self.snow.clone()),
             MaterialParams::Viscoplastic(self.viscoplastic.clone()),
         ];
-        t.extend(self.sets.iter().filter_map(|s| s.params("sets").ok()));
+        t.extend(self.sets.iter().cloned());
         t
     }
 
