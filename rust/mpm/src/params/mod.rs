@@ -44,6 +44,15 @@ pub fn lame(e: f32, nu: f32) -> (f32, f32) {
     )
 }
 
+/// P-wave speed `sqrt((λ + 2μ)·stiffen/ρ)` [m/s] of Young's modulus `e`
+/// [Pa], Poisson's ratio `nu` and density `density` [kg/m³], the moduli
+/// scaled by `stiffen` (snow's hardening; 1 for the others, which leaves
+/// the bits of `sqrt((λ + 2μ)/ρ)`).
+fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
+    let (mu, la) = lame(e, nu);
+    ((la + 2.0 * mu) * stiffen / density).sqrt()
+}
+
 fn finite(field: &str, x: f32) -> Result<()> {
     if x.is_finite() {
         Ok(())

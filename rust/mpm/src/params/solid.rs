@@ -6,15 +6,9 @@
 //! `μ = E / (2(1 + ν))`, `λ = E ν / ((1 + ν)(1 − 2ν))`.
 
 use super::schema::MaterialSchema;
-use super::{SandParams, WaterParams, lame};
+use super::{SandParams, WaterParams, lame, p_wave};
 use crate::error::Result;
 use crate::particles::Material;
-
-/// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s] scaled by `sqrt(stiffen)`.
-fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
-    let (mu, la) = lame(e, nu);
-    ((la + 2.0 * mu) * stiffen / density).sqrt()
-}
 
 /// The hyperelastic energy of an [`ElasticParams`] set.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
