@@ -23,12 +23,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
-from hybridmpm.conventions import GNS_KINEMATIC, GNS_WATER, T_CTR  # noqa: E402
+from training_data import control_cases, drag_dataset, gns_config  # noqa: E402
+
 from hybridmpm.errors import InvalidInputError  # noqa: E402
 from hybridmpm.train import distributed  # noqa: E402
 from hybridmpm.train.distributed import Ranks, launch  # noqa: E402
@@ -38,52 +38,9 @@ from hybridmpm.train.gns.train import TrainConfig, train  # noqa: E402
 RTOL, ATOL = 1e-4, 1e-6
 
 
-def _dataset(directory: Path) -> None:
-    """Particles under gravity and drag, trajectories of different sizes, some
-    with kinematic particles: the windows of a batch differ in how many
-    particles the loss counts, so a rank's loss must be weighed by the global
-    batch's particles, not averaged over its own."""
-    from hybridmpm.data import compute_statistics, write_metadata, write_split
-
-    rng = np.random.default_rng(0)
-    g = np.array([0.0, -2e-5])
-    splits: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {"train": {}, "valid": {}, "test": {}}
-    sizes = {"train": [18, 30, 24, 40], "valid": [20], "test": [20]}
-    i = 0
-    for split, ns in sizes.items():
-        for n in ns:
-            x = np.empty((21, n, 2))
-            x[0] = rng.uniform(0.3, 0.7, (n, 2))
-            v = rng.normal(0, 3e-3, (n, 2))
-            ptype = np.full(n, GNS_WATER, np.int64)
-            ptype[: n // 6] = GNS_KINEMATIC  # held in place
-            v[ptype == GNS_KINEMATIC] = 0.0
-            for t in range(20):
-                v = np.where((ptype == GNS_KINEMATIC)[:, None], 0.0, v + g - 0.2 * v)
-                x[t + 1] = x[t] + v
-            splits[split][f"simulation_trajectory_{i:05d}"] = (x.astype(np.float32), ptype)
-            i += 1
-    for split, trajs in splits.items():
-        write_split(directory / f"{split}.npz", trajs)
-    stats = compute_statistics(splits["train"], exclude_types=(GNS_KINEMATIC,))
-    meta = {"bounds": [[0.02, 0.98]] * 2, "sequence_length": 20, "default_connectivity_radius": 0.06, "dim": 2, "dt": 2.5e-3, "r_t": 1, "n_grid": 64}
-    write_metadata(directory / "metadata.json", {**meta, **stats})
-
-
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("ddp") / "drag"
-    d.mkdir()
-    _dataset(d)
-    return d
-
-
-def _config(data: Path, out: Path, **kw: object) -> TrainConfig:
-    base = dict(
-        scene="drag", data=str(data), out=str(out), latent=8, layers=1, r_t=1, steps=50, lr=3e-3, lr_final=3e-4, noise_std=3e-4,
-        val_every=50, val_windows=2, rollout_steps=3, threads=1, snapshots=False, pushforward=0.3, pushforward_after=0.5,
-    )  # fmt: skip
-    return TrainConfig(**{**base, **kw})  # type: ignore[arg-type]
+    return drag_dataset(tmp_path_factory.mktemp("ddp") / "drag")
 
 
 def _weights(out: Path) -> dict[str, torch.Tensor]:
@@ -113,8 +70,8 @@ def _no_averaging(ranks: Ranks, config: TrainConfig, progress: bool) -> dict:
 
 def test_two_ranks_train_the_weights_of_one_process_of_twice_the_batch(data: Path, tmp_path: Path) -> None:
     # plain windows for the first half, pushforward windows (the model's own step, drawn by one rank) after it
-    one = _config(data, tmp_path / "one", batch=4)
-    two = _config(data, tmp_path / "two", batch=2, nproc=2)
+    one = gns_config(data, tmp_path / "one", batch=4)
+    two = gns_config(data, tmp_path / "two", batch=2, nproc=2)
     train(one, progress=False)
     summary = train(two, progress=False)
     a, b = _weights(tmp_path / "one"), _weights(tmp_path / "two")
@@ -146,42 +103,12 @@ def test_two_ranks_train_the_weights_of_one_process_of_twice_the_batch(data: Pat
         assert _gap(a, _weights(out)) > 100 * ATOL, (mutation.__name__, _gap(a, _weights(out)))
 
 
-def _control_cases(root: Path, cases: int = 4, n: int = 24) -> None:
-    """Small synthetic control cases of water2d in the case-file layout
-    (hybridmpm.train.control.cases): a blob pushed along a straight path,
-    its free motion a fall; enough to train on, cheap to make."""
-    from hybridmpm.control.sketch import sketch_from_trajectory
-
-    rng = np.random.default_rng(1)
-    (root / "water2d").mkdir(parents=True)
-    s = np.linspace(0.0, 1.0, T_CTR)[:, None, None]
-    for seed in range(cases):
-        x0 = rng.uniform(0.35, 0.5, (n, 2))
-        shift = rng.uniform(-0.15, 0.15, 2)
-        path = x0[None] + s * shift + rng.normal(0, 1e-3, (T_CTR, n, 2))
-        free = x0[None] - 0.1 * s**2 * np.array([0.0, 1.0])
-        sketch = sketch_from_trajectory(path[0], path[-1], "arrow" if seed % 2 == 0 else "oval")
-        arrays = {
-            "positions": path[0], "velocities": rng.normal(0, 0.1, (n, 2)), "target": path[-1],
-            "tracking": np.zeros((0, n, 2)), "kinematic": np.zeros((T_CTR - 1, n, 2)), "path": path, "free_path": free,
-        }  # fmt: skip
-        info = {"scene": "water2d", "seed": seed, "kind": "arrow", "preroll": 20, "r_p": 0.5714, "dt_frame": 2.5e-3}
-        np.savez(
-            root / "water2d" / f"case_{seed:05d}.npz",
-            **{k: np.asarray(v, np.float32) for k, v in arrays.items()},
-            particle_type=np.full(n, GNS_WATER, np.int64),
-            gravity=np.array([0.0, -9.8], np.float32),
-            sketch=np.array(json.dumps(sketch.to_json())),
-            info=np.array(json.dumps(info)),
-        )
-
-
 def test_train_control_on_two_ranks_trains_the_weights_of_one_process_of_twice_the_batch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from hybridmpm.control.diffusion import ControlModel
     from hybridmpm.train.control import train as control_train
     from hybridmpm.train.control.train import train_control
 
-    _control_cases(tmp_path / "cases")
+    control_cases(tmp_path / "cases")
     kw = dict(steps=12, lr=3e-3, latent_state=8, latent_head=8, valid_fraction=0.25, checkpoint_every=100, prior="sketch_ramp", progress=False)
     with monkeypatch.context() as m:  # the reference run's export is not looked at (the ONNX export is most of the time)
         m.setattr(control_train, "export_control", lambda *a, **k: None)
@@ -220,7 +147,7 @@ def test_train_grid_on_two_ranks_trains_the_weights_of_one_process_of_twice_the_
 def test_bad_process_counts_and_half_a_torchrun_environment_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     for v in TORCHRUN:
         monkeypatch.delenv(v, raising=False)
-    cfg = _config(tmp_path / "nowhere", tmp_path / "out", batch=2)
+    cfg = gns_config(tmp_path / "nowhere", tmp_path / "out", batch=2)
     for bad in (0, -1, distributed.max_local_processes() + 1, 10**6, 1.5, True):
         with pytest.raises(InvalidInputError) as e:
             train(replace(cfg, nproc=bad), progress=False)  # type: ignore[arg-type]

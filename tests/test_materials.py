@@ -83,6 +83,31 @@ def test_the_engine_names_a_bad_set_and_a_foreign_set_index():
     assert sim.num_particles == 0
 
 
+_NAMES = "'water', 'sand', 'elastic', 'snow', 'viscoplastic'"
+
+
+@pytest.mark.parametrize(
+    ("entry", "field", "message"),
+    [
+        ({}, "sets[1]", f"expected a dict naming exactly one of {_NAMES}, got an empty dict"),
+        ({"water": {}, "sand": {}}, "sets[1]", f"expected a dict naming exactly one of {_NAMES}, got 2 keys: 'water', 'sand'"),
+        ({"jelly": {}}, "sets[1]", f"must be one of {_NAMES}, got 'jelly'"),
+        ("elastic", "sets[1]", "'elastic' takes parameters: expected a dict {'elastic': {...}}, got 'elastic'"),
+        ({"elastic": {"youngs": 1.0}}, "sets[1].elastic.youngs", "unknown parameter (allowed: density, youngs_modulus, poisson_ratio, model)"),
+    ],
+)
+def test_the_core_reads_a_set_as_a_dict_of_one_material_naming_the_entry(entry, field, message):
+    d = MpmParams(n_grid=16, sets=[hm.mpm.ElasticParams()]).to_dict()
+    d["sets"].append(entry)
+    with pytest.raises(hm.InvalidInputError) as e:
+        hm._core.MpmSolver(d)
+    assert (e.value.field, str(e.value)) == (field, f"{field}: {message}")
+    sim = MpmSolver(MpmParams(n_grid=16, sets=[hm.mpm.ElasticParams()]))
+    with pytest.raises(hm.InvalidInputError) as e:
+        sim._core.add_parameter_set(entry)
+    assert (e.value.field, str(e.value)) == (field, f"{field}: {message}")
+
+
 def test_checkpoints_keep_the_sets_bit_for_bit():
     params = MpmParams(n_grid=64, sets=[hm.mpm.ElasticParams(youngs_modulus=3e4), hm.mpm.SnowParams(hardening=5.0)])
     sim = MpmSolver(params)

@@ -192,3 +192,36 @@ def test_the_pour_bodys_flat_keys_are_the_schemas():
     assert set(BlockPour.model_fields) == keys | {"material", "lo", "hi", "velocity", "params"}
     nu = BlockPour.model_fields["nu"].description
     assert "in (-1, 0.5)" in nu and "in [0, 0.5)" in nu, nu  # sand's range and the solids'
+
+
+def test_get_materials_gives_the_one_schema_and_the_presets_a_pour_takes(client):
+    """``GET /v1/materials``: each model's rows are :data:`~hybridmpm.mpm.schema.SCHEMA`'s, the presets
+    :data:`~hybridmpm.materials.PRESETS`; a pour of each model's defaults as reported is accepted, and a
+    pour at a bound the report calls exclusive (``nu`` = 0.5) is refused naming the key and the range."""
+    from dataclasses import asdict
+
+    from hybridmpm.materials import PRESET_SOURCES, PRESETS
+    from hybridmpm.mpm.schema import SCHEMA
+
+    r = client.get("/v1/materials")
+    assert r.status_code == 200, r.text
+    models, presets = r.json()["models"], r.json()["presets"]
+    assert models == {m: [{**asdict(p), "choices": list(p.choices)} for p in params] for m, params in SCHEMA.items()}
+    assert presets == {name: {"model": m.name, "params": asdict(m), "source": PRESET_SOURCES[name]} for name, m in PRESETS.items()}
+    sid = _new(client)["id"]
+    for i, (model, rows) in enumerate(models.items()):
+        block = {"material": model, "lo": [0.30 + 0.12 * i, 0.7], "hi": [0.36 + 0.12 * i, 0.76]}
+        r = client.post(f"/v1/sessions/{sid}/blocks", json={**block, "params": {p["key"]: p["default"] for p in rows}})
+        assert r.status_code == 201, (model, r.text)
+    before, refused = _ckpt(client, sid), []
+    for model, rows in models.items():
+        for p in rows:
+            for bound in ("lower", "upper"):
+                if p[bound] is not None and p[f"{bound}_inclusive"] is False:
+                    r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "material": model, "params": {p["key"]: p[bound]}})
+                    assert r.status_code == 422, r.text
+                    assert r.json()["detail"][0]["loc"] == ["body", "params", p["key"]], r.text
+                    assert p["range"] in r.json()["detail"][0]["msg"], r.text
+                    refused.append((model, p["key"], p[bound]))
+    assert {(m, 0.5) for m in models if m != "water"} <= {(m, x) for m, k, x in refused if k == "nu"}, refused
+    assert _ckpt(client, sid) == before

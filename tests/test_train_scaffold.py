@@ -23,6 +23,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from training_data import control_cases, drag_dataset, gns_config  # noqa: E402
+
 from hybridmpm.errors import InvalidInputError  # noqa: E402
 from hybridmpm.train.scaffold import (  # noqa: E402
     CURVE_FILE,
@@ -47,31 +49,20 @@ class _Killed(Exception):
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from test_ddp import _dataset
-
-    d = tmp_path_factory.mktemp("scaffold") / "drag"
-    d.mkdir()
-    _dataset(d)
-    return d
+    return drag_dataset(tmp_path_factory.mktemp("scaffold") / "drag")
 
 
 @pytest.fixture(scope="module")
 def cases(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from test_ddp import _control_cases
-
-    root = tmp_path_factory.mktemp("scaffold") / "cases"
-    _control_cases(root)
-    return root
+    return control_cases(tmp_path_factory.mktemp("scaffold") / "cases")
 
 
 # Each family's tiny run: (train(out), checkpoint file name, step to kill at, the curve's non-timing columns).
 def _gns(data: Path, cases: Path, **kw: Any) -> tuple[Any, str, int, tuple[str, ...]]:
-    from test_ddp import _config
-
     from hybridmpm.train.gns.train import train
 
     def run(out: Path) -> None:
-        train(_config(data, out, batch=2, steps=12, val_every=4, **kw), progress=False)
+        train(gns_config(data, out, batch=2, steps=12, val_every=4, **kw), progress=False)
 
     return run, "checkpoint.pt", 8, ("step", "lr", "train_loss", "val_one_step", "val_rollout_mse")
 

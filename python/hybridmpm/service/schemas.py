@@ -206,7 +206,7 @@ class _BlockPlace(Strict):
         None,
         max_length=MAX_POUR_PARAMS,
         description="the material's parameters by the user's key ({'E': 5e4, 'nu': 0.3}; each model's keys, units, ranges and defaults "
-        "are the flat keys' descriptions and docs/materials.md's tables): each overrides the model's table in the scene or the "
+        "are GET /v1/materials', the flat keys' descriptions and docs/materials.md's tables): each overrides the model's table in the scene or the "
         "preset's value; a key the chosen model lacks, or one also given flat, is a 422 naming it",
     )
 
@@ -238,6 +238,34 @@ else:
         __doc__="A block poured into a session: a scene file's block (docs/materials.md), its parameters in params or flat.",
         **{k: _flat_field(k) for k in _FLAT_KEYS},
     )
+
+
+class MaterialParam(BaseModel):
+    """One parameter of a model, a row of the core's one schema (:class:`hybridmpm.mpm.schema.Param`)."""
+
+    name: str = Field(description="its key in the solver's parameter set (youngs_modulus)")
+    key: str = Field(description="the user's key, which a pour's params and flat keys and a scene file's block take (E)")
+    unit: str = Field(description="SI unit; '-' dimensionless")
+    lower: float | None = Field(description="the lower bound; null: none (and for a named parameter)")
+    lower_inclusive: bool | None = Field(description="whether lower is allowed; null where there is no lower bound")
+    upper: float | None = Field(description="the upper bound; null: none")
+    upper_inclusive: bool | None = Field(description="whether upper is allowed; null where there is no upper bound")
+    choices: list[str] = Field(description="the names a named parameter takes; empty for a number")
+    range: str = Field(description="the range in the words a refusal uses ('in [0, 0.5)')")
+    default: float | str = Field(description="the core's default")
+    description: str
+    source: str = Field(description="where the model or the value comes from")
+
+
+class MaterialPreset(BaseModel):
+    model: str = Field(description="the model the preset is a parameter set of")
+    params: dict[str, float | str] = Field(description="every parameter of the model by the user's key")
+    source: str = Field(description="where its numbers come from")
+
+
+class MaterialsInfo(BaseModel):
+    models: dict[str, list[MaterialParam]] = Field(description="each model's parameters, in the order of the core's parameter set")
+    presets: dict[str, MaterialPreset] = Field(description="the presets a pour's material names (hybridmpm.materials.PRESETS)")
 
 
 class BlockPoured(BaseModel):

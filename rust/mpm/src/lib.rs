@@ -54,9 +54,8 @@ pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
 pub use params::{
     BodyParams, BodyShapeKind, ColliderParams, ElasticModel, ElasticParams, Integrator, Limit,
-    MaterialParams, MaterialSchema, MaterialSet, Param, ParamValue, SandParams, ShapeKind,
-    SnowParams, SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams,
-    material_schema,
+    MaterialParams, MaterialSchema, Param, ParamValue, SandParams, ShapeKind, SnowParams,
+    SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams, material_schema,
 };
 pub use particles::{Material, Particle, lattice, lattice_box};
 pub use pool::shared_pool;

@@ -1,6 +1,6 @@
 //! The solver's rigid bodies from Python (`hybridmpm_mpm::body`,
 //! docs/bodies.md): a body's dict read by the core's own `BodyParams`
-//! (through [`crate::params::read`]: unknown keys refused, every error
+//! (through [`crate::pyde::read`]: unknown keys refused, every error
 //! naming the field, e.g. `bodies[0].density`), the bodies' state and the
 //! fluid's force on them as arrays, and a body's exact state as 13 `f32`s
 //! (what a checkpoint carries).
@@ -23,7 +23,7 @@ pub const STATE_LEN: usize = 13;
 
 /// A body's parameters from a dict, fields named under `field`.
 pub fn read(obj: &Bound<'_, PyAny>, field: &str) -> PyResult<BodyParams> {
-    crate::params::read::<BodyParams>(obj, field).map_err(|e| e.into_py(obj.py()))
+    crate::pyde::read::<BodyParams>(obj, field).map_err(|e| e.into_py(obj.py()))
 }
 
 /// The body in `D` dimensions from its parameters, built (not yet checked

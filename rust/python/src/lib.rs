@@ -16,6 +16,7 @@ mod ort_ops;
 mod params;
 mod particles;
 mod pool;
+mod pyde;
 mod schema;
 mod solver;
 mod transfer;

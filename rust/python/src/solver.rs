@@ -128,7 +128,7 @@ impl MpmSolver {
         let budget = extract_budget(memory_budget)?;
         let dim = match params.get_item("dim")? {
             Some(v) if !v.is_none() => {
-                crate::params::read::<usize>(&v, "dim").map_err(|e| e.into_py(py))?
+                crate::pyde::read::<usize>(&v, "dim").map_err(|e| e.into_py(py))?
             }
             _ => 2,
         };
@@ -262,8 +262,8 @@ impl MpmSolver {
     /// unchanged.
     fn add_parameter_set(&self, py: Python<'_>, set: &Bound<'_, PyAny>) -> PyResult<u16> {
         let k = self.with(py, |inner| dispatch!(inner, s => s.params().sets.len()));
-        let set: core::MaterialSet =
-            crate::params::read(set, &format!("sets[{k}]")).map_err(|e| e.into_py(py))?;
+        let set: core::MaterialParams =
+            crate::pyde::read(set, &format!("sets[{k}]")).map_err(|e| e.into_py(py))?;
         self.with(py, |inner| dispatch!(inner, s => s.add_parameter_set(set)))
             .map_err(|e| to_py(py, e))
     }

@@ -30,7 +30,7 @@ where
     Dim<D>: DimOps<D>,
 {
     let p = SolverParams::<D> {
-        sets: vec![m.into()],
+        sets: vec![m],
         ..Default::default()
     };
     Models::new(&p, Isa::detect()).models.pop().unwrap()

@@ -1,8 +1,8 @@
 //! The materials' parameters: weakly compressible water and
 //! Drucker–Prager sand.
 
-use super::lame;
 use super::schema::MaterialSchema;
+use super::{lame, p_wave};
 use crate::error::{MpmError, Result};
 
 /// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
@@ -123,7 +123,6 @@ impl SandParams {
 
     /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
     pub fn wave_speed(&self) -> f32 {
-        let (mu, la) = self.lame();
-        ((la + 2.0 * mu) / self.density).sqrt()
+        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
     }
 }

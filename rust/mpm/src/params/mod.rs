@@ -31,9 +31,7 @@ pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use material::{SandParams, WaterParams};
 pub use schema::{Limit, MaterialSchema, Param, ParamValue, material_schema};
-pub use solid::{
-    ElasticModel, ElasticParams, MaterialParams, MaterialSet, SnowParams, ViscoplasticParams,
-};
+pub use solid::{ElasticModel, ElasticParams, MaterialParams, SnowParams, ViscoplasticParams};
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
@@ -44,6 +42,15 @@ pub fn lame(e: f32, nu: f32) -> (f32, f32) {
         e / (2.0 * (1.0 + nu)),
         e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
     )
+}
+
+/// P-wave speed `sqrt((λ + 2μ)·stiffen/ρ)` [m/s] of Young's modulus `e`
+/// [Pa], Poisson's ratio `nu` and density `density` [kg/m³], the moduli
+/// scaled by `stiffen` (snow's hardening; 1 for the others, which leaves
+/// the bits of `sqrt((λ + 2μ)/ρ)`).
+fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
+    let (mu, la) = lame(e, nu);
+    ((la + 2.0 * mu) * stiffen / density).sqrt()
 }
 
 fn finite(field: &str, x: f32) -> Result<()> {
@@ -112,7 +119,7 @@ pub struct SolverParams<const D: usize> {
     /// Further parameter sets (table entries 5, 6, ...): a scene's blocks
     /// of one material with different parameters (two jellies of different
     /// stiffness). At most [`MAX_SETS`] entries in all.
-    pub sets: Vec<MaterialSet>,
+    pub sets: Vec<MaterialParams>,
     pub walls: WallParams,
     /// How a frame advances: the explicit MLS-MPM substeps, or the
     /// incompressible projection step ([`Integrator`]). Left out of the dict
@@ -263,8 +270,7 @@ impl<const D: usize> SolverParams<D> {
     }
 
     /// The table of parameter sets particles index: the five defaults by
-    /// material code, then [`Self::sets`]. Call after [`Self::validate`]
-    /// (a malformed extra set is left out).
+    /// material code, then [`Self::sets`]. Call after [`Self::validate`].
     pub fn table(&self) -> Vec<MaterialParams> {
         let mut t = vec![
             MaterialParams::Water(self.water.clone()),
@@ -273,7 +279,7 @@ impl<const D: usize> SolverParams<D> {
             MaterialParams::Snow(self.snow.clone()),
             MaterialParams::Viscoplastic(self.viscoplastic.clone()),
         ];
-        t.extend(self.sets.iter().filter_map(|s| s.params("sets").ok()));
+        t.extend(self.sets.iter().cloned());
         t
     }
 

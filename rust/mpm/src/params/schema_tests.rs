@@ -6,7 +6,7 @@ use super::schema::{Limit, Param, material_schema};
 use super::*;
 
 /// A parameter set of `model` with `name` set to `value` (the rest default).
-fn set_with(model: &str, name: &str, value: f32) -> MaterialSet {
+fn set_with(model: &str, name: &str, value: f32) -> MaterialParams {
     let json = serde_json::json!({ model: { name: value } });
     serde_json::from_value(json).unwrap()
 }
@@ -15,7 +15,7 @@ fn set_with(model: &str, name: &str, value: f32) -> MaterialSet {
 fn each_table_lists_its_structs_fields_in_order() {
     for (material, params, defaults) in material_schema() {
         let default = SolverParams::<2>::default().table()[material as usize].clone();
-        let text = serde_json::to_string(&MaterialSet::from(default)).unwrap();
+        let text = serde_json::to_string(&default).unwrap();
         let set: serde_json::Value = serde_json::from_str(&text).unwrap();
         let mut keys: Vec<&String> = set[material.name()].as_object().unwrap().keys().collect();
         // the keys in the order serde writes them, the struct's

@@ -1,21 +1,14 @@
 //! The parameters of the solid materials (elastic, snow, viscoplastic) and
-//! the table of parameter sets that particles index ([`MaterialSet`],
-//! [`MaterialParams`]).
+//! a parameter set of the table that particles index ([`MaterialParams`]).
 //!
 //! Moduli in Pa, densities in kg/m³, viscosities in Pa·s. Lamé parameters
 //! from Young's modulus E and Poisson's ratio ν:
 //! `μ = E / (2(1 + ν))`, `λ = E ν / ((1 + ν)(1 − 2ν))`.
 
 use super::schema::MaterialSchema;
-use super::{SandParams, WaterParams, lame};
-use crate::error::{MpmError, Result};
+use super::{SandParams, WaterParams, lame, p_wave};
+use crate::error::Result;
 use crate::particles::Material;
-
-/// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s] scaled by `sqrt(stiffen)`.
-fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
-    let (mu, la) = lame(e, nu);
-    ((la + 2.0 * mu) * stiffen / density).sqrt()
-}
 
 /// The hyperelastic energy of an [`ElasticParams`] set.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -230,8 +223,17 @@ impl ViscoplasticParams {
     }
 }
 
-/// One parameter set of the table particles index (`Particle::set`).
+/// One parameter set of the table particles index (`Particle::set`). The
+/// parameter dict names it by its material, the one key of a dict
+/// (`{"elastic": {"youngs_modulus": 1e6}}`, serde's externally tagged form;
+/// the keys inside as each struct's, unknown ones refused);
+/// [`super::SolverParams::sets`] lists them.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
 pub enum MaterialParams {
     Water(WaterParams),
     Sand(SandParams),
@@ -263,90 +265,16 @@ impl MaterialParams {
         }
     }
 
-    /// Validates the set, naming a bad field under `prefix`.
-    fn validate_at(&self, prefix: &str) -> Result<()> {
-        match self {
-            MaterialParams::Water(p) => p.validate_at(prefix),
-            MaterialParams::Sand(p) => p.validate_at(prefix),
-            MaterialParams::Elastic(p) => p.validate_at(prefix),
-            MaterialParams::Snow(p) => p.validate_at(prefix),
-            MaterialParams::Viscoplastic(p) => p.validate_at(prefix),
-        }
-    }
-}
-
-/// A parameter set as the parameter dict gives it: exactly one of the
-/// fields, named by its material (`{"elastic": {"youngs_modulus": 1e6}}`).
-/// [`super::SolverParams::sets`] lists them; [`MaterialSet::params`] gives
-/// the [`MaterialParams`].
-#[derive(Clone, Debug, PartialEq, Default)]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(default, deny_unknown_fields)
-)]
-pub struct MaterialSet {
-    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
-    pub water: Option<WaterParams>,
-    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
-    pub sand: Option<SandParams>,
-    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
-    pub elastic: Option<ElasticParams>,
-    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
-    pub snow: Option<SnowParams>,
-    #[cfg_attr(feature = "serde", serde(skip_serializing_if = "Option::is_none"))]
-    pub viscoplastic: Option<ViscoplasticParams>,
-}
-
-impl From<MaterialParams> for MaterialSet {
-    fn from(p: MaterialParams) -> Self {
-        let mut s = MaterialSet::default();
-        match p {
-            MaterialParams::Water(p) => s.water = Some(p),
-            MaterialParams::Sand(p) => s.sand = Some(p),
-            MaterialParams::Elastic(p) => s.elastic = Some(p),
-            MaterialParams::Snow(p) => s.snow = Some(p),
-            MaterialParams::Viscoplastic(p) => s.viscoplastic = Some(p),
-        }
-        s
-    }
-}
-
-impl MaterialSet {
-    /// The one set given; errors (field `field`) when none or several are.
-    pub fn params(&self, field: &str) -> Result<MaterialParams> {
-        let mut found = Vec::new();
-        if let Some(p) = &self.water {
-            found.push(MaterialParams::Water(p.clone()));
-        }
-        if let Some(p) = &self.sand {
-            found.push(MaterialParams::Sand(p.clone()));
-        }
-        if let Some(p) = &self.elastic {
-            found.push(MaterialParams::Elastic(p.clone()));
-        }
-        if let Some(p) = &self.snow {
-            found.push(MaterialParams::Snow(p.clone()));
-        }
-        if let Some(p) = &self.viscoplastic {
-            found.push(MaterialParams::Viscoplastic(p.clone()));
-        }
-        if found.len() != 1 {
-            return Err(MpmError::invalid(
-                field,
-                format!(
-                    "a parameter set names exactly one material (water, sand, elastic, snow, viscoplastic), got {}",
-                    found.len()
-                ),
-            ));
-        }
-        Ok(found.remove(0))
-    }
-
-    /// Validates the set, naming a bad field under `field`
-    /// (`sets[2].elastic.youngs_modulus`).
+    /// Validates the set at `field` (`sets[2]`), naming a bad key under it
+    /// and its material (`sets[2].elastic.youngs_modulus`).
     pub fn validate(&self, field: &str) -> Result<()> {
-        let p = self.params(field)?;
-        p.validate_at(&format!("{field}.{}", p.material().name()))
+        let prefix = format!("{field}.{}", self.material().name());
+        match self {
+            MaterialParams::Water(p) => p.validate_at(&prefix),
+            MaterialParams::Sand(p) => p.validate_at(&prefix),
+            MaterialParams::Elastic(p) => p.validate_at(&prefix),
+            MaterialParams::Snow(p) => p.validate_at(&prefix),
+            MaterialParams::Viscoplastic(p) => p.validate_at(&prefix),
+        }
     }
 }

@@ -72,3 +72,64 @@ fn colliders_build_in_their_dimension() {
         r#"{"condition":"separate","friction":0.0,"project":true}"#
     );
 }
+
+/// A parameter set is named by its material, the one key of a dict (serde's
+/// externally tagged form, what Python's `MpmParams.to_dict` writes);
+/// unknown keys inside it, an unknown material, and a dict of no material
+/// or of two are refused.
+#[test]
+fn a_set_is_a_dict_of_one_material() {
+    let jelly = MaterialParams::Elastic(ElasticParams {
+        youngs_modulus: 5.0e4,
+        ..Default::default()
+    });
+    let p = SolverParams::<2> {
+        sets: vec![jelly, MaterialParams::Water(WaterParams::default())],
+        ..Default::default()
+    };
+    let json = serde_json::to_value(&p).unwrap();
+    assert_eq!(
+        json["sets"],
+        serde_json::json!([
+            {"elastic": {"density": 1000.0, "youngs_modulus": 5.0e4, "poisson_ratio": 0.3f32, "model": "corotated"}},
+            {"water": {"density": 1000.0, "bulk_modulus": 4.0e5, "viscosity": 0.0}},
+        ])
+    );
+    assert_eq!(serde_json::from_value::<SolverParams<2>>(json).unwrap(), p);
+    for (json, word) in [
+        (r#"{"sets": [{"elastic": {"youngs": 1}}]}"#, "youngs"),
+        (r#"{"sets": [{"jelly": {}}]}"#, "jelly"),
+        (r#"{"sets": [{}]}"#, ""),
+        (r#"{"sets": [{"water": {}, "sand": {}}]}"#, ""),
+    ] {
+        assert!(
+            serde_json::from_str::<SolverParams<2>>(json)
+                .unwrap_err()
+                .to_string()
+                .contains(word)
+        );
+    }
+}
+
+/// The shared P-wave speed at `stiffen = 1` gives the bits of
+/// `sqrt((λ + 2μ)/ρ)` (`x·1 = x` exactly), so sand's CFL bound is unchanged.
+#[test]
+fn the_p_wave_speed_unstiffened_is_the_plain_formula_to_the_bit() {
+    let mut seed = 0x9e37_79b9_u32;
+    let mut next = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 17;
+        seed ^= seed << 5;
+        seed as f32 / u32::MAX as f32
+    };
+    for _ in 0..10_000 {
+        let (e, nu, rho) = (
+            10f32.powf(9.0 * next()),
+            0.499 * next(),
+            1.0 + 3000.0 * next(),
+        );
+        let (mu, la) = lame(e, nu);
+        let plain = ((la + 2.0 * mu) / rho).sqrt();
+        assert_eq!(p_wave(e, nu, rho, 1.0).to_bits(), plain.to_bits());
+    }
+}

@@ -90,14 +90,11 @@ fn interleaved_materials_keep_one_threads_bits_on_a_team_in_3d() {
         let params = SolverParams::<3> {
             n_grid: 32,
             num_threads: threads,
-            sets: vec![
-                MaterialParams::Sand(SandParams {
-                    friction_angle_deg: 40.0,
-                    youngs_modulus: 2.0e4,
-                    ..Default::default()
-                })
-                .into(),
-            ],
+            sets: vec![MaterialParams::Sand(SandParams {
+                friction_angle_deg: 40.0,
+                youngs_modulus: 2.0e4,
+                ..Default::default()
+            })],
             ..Default::default()
         };
         let dx = params.dx();

@@ -7,6 +7,7 @@ use super::Solver;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::material::Models;
+use crate::params::MaterialParams;
 use crate::particles::Particle;
 
 impl<const D: usize> Solver<D>
@@ -146,7 +147,7 @@ where
 
     /// The table of parameter sets particles index (`Particle::set`): the
     /// default set of each material at its code, then `params.sets`.
-    pub fn material_table(&self) -> &[crate::params::MaterialParams] {
+    pub fn material_table(&self) -> &[MaterialParams] {
         &self.models.params
     }
 
@@ -156,7 +157,7 @@ where
     /// (what `Particle::set` names it by: after the five defaults and the
     /// earlier `params.sets`). Errors (the solver unchanged) name
     /// `sets[k]`'s bad key, or `sets` beyond [`crate::params::MAX_SETS`].
-    pub fn add_parameter_set(&mut self, set: crate::params::MaterialSet) -> Result<u16> {
+    pub fn add_parameter_set(&mut self, set: MaterialParams) -> Result<u16> {
         let mut params = self.params.clone();
         params.sets.push(set);
         params.validate()?;

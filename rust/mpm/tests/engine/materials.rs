@@ -270,14 +270,12 @@ fn parameter_sets_are_deterministic_and_checkpoint_bitwise() {
                 MaterialParams::Elastic(ElasticParams {
                     youngs_modulus: 3.0e4,
                     ..Default::default()
-                })
-                .into(),
+                }),
                 MaterialParams::Sand(hybridmpm_mpm::SandParams {
                     friction_angle_deg: 40.0,
                     ..Default::default()
-                })
-                .into(),
-                MaterialParams::Snow(SnowParams::default()).into(),
+                }),
+                MaterialParams::Snow(SnowParams::default()),
             ],
             ..Default::default()
         };
@@ -324,11 +322,11 @@ fn parameter_sets_are_deterministic_and_checkpoint_bitwise() {
 /// key, the table unchanged.
 #[test]
 fn a_parameter_set_appended_in_place_steps_as_one_given_at_the_start() {
-    let jelly: hybridmpm_mpm::MaterialSet = MaterialParams::Elastic(ElasticParams {
+    let elastic = ElasticParams {
         youngs_modulus: 5.0e4,
         ..Default::default()
-    })
-    .into();
+    };
+    let jelly = MaterialParams::Elastic(elastic.clone());
     let params = SolverParams::<2> {
         n_grid: 64,
         ..Default::default()
@@ -351,8 +349,10 @@ fn a_parameter_set_appended_in_place_steps_as_one_given_at_the_start() {
     )
     .unwrap();
     b.restore(&mid).unwrap();
-    let mut bad = jelly.clone();
-    bad.elastic.as_mut().unwrap().youngs_modulus = -1.0;
+    let bad = MaterialParams::Elastic(ElasticParams {
+        youngs_modulus: -1.0,
+        ..elastic
+    });
     match a.add_parameter_set(bad) {
         Err(MpmError::InvalidInput { field, .. }) => {
             assert!(field.starts_with("sets[0]."), "{field}")
@@ -388,13 +388,10 @@ fn a_particle_of_a_foreign_set_is_refused() {
         assert_eq!(s.num_particles(), 16);
     }
     let bad_e = SolverParams::<2> {
-        sets: vec![
-            MaterialParams::Viscoplastic(ViscoplasticParams {
-                yield_stress: -1.0,
-                ..Default::default()
-            })
-            .into(),
-        ],
+        sets: vec![MaterialParams::Viscoplastic(ViscoplasticParams {
+            yield_stress: -1.0,
+            ..Default::default()
+        })],
         ..Default::default()
     };
     match Solver::new(bad_e, vec![]) {
@@ -417,14 +414,11 @@ fn interleaved_water_and_sand_sets_give_one_threads_bits_in_3d() {
         let params = SolverParams::<3> {
             n_grid: 32,
             num_threads: threads,
-            sets: vec![
-                MaterialParams::Sand(hybridmpm_mpm::SandParams {
-                    friction_angle_deg: 40.0,
-                    youngs_modulus: 2.0e4,
-                    ..Default::default()
-                })
-                .into(),
-            ],
+            sets: vec![MaterialParams::Sand(hybridmpm_mpm::SandParams {
+                friction_angle_deg: 40.0,
+                youngs_modulus: 2.0e4,
+                ..Default::default()
+            })],
             ..Default::default()
         };
         let dx = params.dx();
