@@ -72,7 +72,7 @@ impl LaneHealth {
 /// on one `f32` particle, except that sand's 3D route (matrix series or
 /// eigenvalues) is chosen for the whole batch (`sand/update_3d.rs`; g2p
 /// then keeps a batch within one window of its block, so that the batches
-/// are the same for any thread count: `solver/g2p.rs`, `G2P_WINDOW`).
+/// are the same for any thread count: `solver/grid.rs`, `G2P_WINDOW`).
 ///
 /// Use: [`push`](Self::push) each particle's state and new C with an index
 /// of the caller's (one set per batch: [`set`](Self::set)); when it reports

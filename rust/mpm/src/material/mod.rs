@@ -67,7 +67,7 @@ pub(crate) trait Constitutive {
     /// Whether in `D` dimensions a lane's result depends on its batch mates
     /// ([`update_lanes`](Self::update_lanes) takes one route for the whole
     /// batch: sand's in 3D, `sand/update_3d.rs`); g2p then ends such a
-    /// batch at every window of its block (`solver/g2p.rs`, `G2P_WINDOW`),
+    /// batch at every window of its block (`solver/grid.rs`, `G2P_WINDOW`),
     /// so that its batches are the same for any thread count.
     fn shares_route<const D: usize>() -> bool {
         false

@@ -10,8 +10,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use super::Solver;
-use super::g2p::G2P_WINDOW;
-use super::grid::{EMPTY, G2pItem, unflatten};
+use super::grid::{EMPTY, G2P_WINDOW, G2pItem, unflatten};
 use super::team::RawSlice;
 use crate::dim::{Dim, DimOps};
 

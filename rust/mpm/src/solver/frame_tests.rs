@@ -1,7 +1,7 @@
 //! Tests of the frame loop (`frame.rs`): the team, the compiled copies, the
 //! block sort's two ways and g2p's items give the bits of one thread.
 use super::super::Solver;
-use super::super::g2p::G2P_WINDOW;
+use super::super::grid::G2P_WINDOW;
 use crate::dim::{Dim, DimOps};
 use crate::isa::Isa;
 use crate::params::SolverParams;

@@ -39,13 +39,13 @@
 use nalgebra::{SMatrix, SVector};
 
 use super::block_sort::BlockMarks;
-use super::grid::{EMPTY, unflatten};
+use super::grid::{EMPTY, G2P_WINDOW, unflatten};
 use super::team::RawSlice;
 use super::{Health, Solver};
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, SOLID_PROJECT_DEPTH_CELLS};
 use crate::dim::{Dim, DimOps};
 use crate::kernel::{Cell, cell_of, weights};
-use crate::material::{Batch, LANES, LaneHealth, Models, ParticleSink};
+use crate::material::{Batch, LaneHealth, Models, ParticleSink};
 use crate::particles::{Material, Particle};
 use crate::v4::V4;
 
@@ -310,18 +310,6 @@ fn project<const D: usize>(
     }
     moved
 }
-
-/// The windows of g2p's batches: a source block's places in the sorted
-/// order, `G2P_WINDOW` at a time from its first. g2p's items start at a
-/// window (`Solver::schedule` cuts a block only there), and a batch whose
-/// lanes share a route (sand's in 3D, `Constitutive::shares_route`) ends at
-/// every window as well as at the item's end: it so holds particles of one
-/// window only, consecutive among those of its set, whichever members run
-/// which pieces of the block, and a particle's bits are the same for any
-/// thread count. In a block of one set the batches end there anyway
-/// (sixteen particles fill one); where other materials or sets come between,
-/// the batch runs with fewer lanes in use.
-pub(super) const G2P_WINDOW: usize = LANES;
 
 /// One open [`Batch`] per material code (`Particle::material`), so that
 /// particles of other materials between them do not cut a batch: a batch

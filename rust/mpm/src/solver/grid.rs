@@ -11,6 +11,7 @@
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result, human_bytes};
 use crate::kernel::Cell;
+use crate::material::LANES;
 use crate::particles::Particle;
 
 /// Marks an unused entry of the block lattice maps, which store `index + 1`
@@ -63,6 +64,18 @@ pub(super) struct G2pItem {
     pub(super) first: u32,
     pub(super) len: u32,
 }
+
+/// The windows of g2p's batches: a source block's places in the sorted
+/// order, `G2P_WINDOW` at a time from its first. g2p's items start at a
+/// window (`Solver::schedule` cuts a block only there), and a batch whose
+/// lanes share a route (sand's in 3D, `Constitutive::shares_route`) ends at
+/// every window as well as at the item's end: it so holds particles of one
+/// window only, consecutive among those of its set, whichever members run
+/// which pieces of the block, and a particle's bits are the same for any
+/// thread count. In a block of one set the batches end there anyway
+/// (sixteen particles fill one); where other materials or sets come between,
+/// the batch runs with fewer lanes in use.
+pub(super) const G2P_WINDOW: usize = LANES;
 
 /// Precomputed stencil offsets.
 pub(super) struct Stencil<const D: usize> {

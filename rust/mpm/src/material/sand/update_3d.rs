@@ -19,7 +19,7 @@ use crate::material::vmath;
 /// mates through that choice ([`Sand`]'s `shares_route` in 3D). g2p's
 /// batches of one set are the same for any thread count: consecutive
 /// particles of that set, in the sorted order (by block, then id), within
-/// one window of sixteen places of their source block (`solver/g2p.rs`,
+/// one window of sixteen places of their source block (`solver/grid.rs`,
 /// `G2P_WINDOW`; a team cuts a block only at a window), and the frame stays
 /// deterministic. Where particles of other materials or sets share a
 /// window, the batch holds fewer particles, and its route is chosen by
