@@ -178,6 +178,7 @@ where
             Box::new(Projection::new(self.params.n_grid, self.params.walls.cells))
         });
         projection.set_isa(self.isa);
+        projection.set_correction_time(dt_frame);
         let result = if self.drift_frames > 0 {
             // a frame inside the last step: the particles are the ones that step checked (any change
             // between frames ends the step, a collider's move too), and their velocities are the step's
