@@ -43,7 +43,7 @@ CPUs as the machine's cores, each session an actor process reserving ``ray_num_c
 frames then share the cores through the operating system, not through the server's compute limiter, and
 "server CPU" is the front end's alone (the sessions' work is in "machine").
 
-    python benchmarks/bench_capacity.py --backend ray --realtime --warmup 8 --repeats 1 --scene3d "" --out-dir benchmarks/results/capacity_ray
+    python benchmarks/bench_capacity.py --backend ray --ray-num-cpus 0.1 --realtime --warmup 8 --repeats 1 --scene3d "" --out-dir benchmarks/results/capacity_ray
 """
 
 from __future__ import annotations
@@ -259,9 +259,10 @@ async def play_sessions(srv: LiveServer, scene: str, n: int, warmup: float, seco
 
 
 @contextlib.contextmanager
-def serving(backend: str, most: int, log: Path | None) -> Any:
+def serving(backend: str, most: int, log: Path | None, ray_num_cpus: float | None = None) -> Any:
     """A live server for ``most`` sessions and more: the local backend, or a front end on a one-node Ray cluster
-    of this machine's cores (stopped, and its files removed, on the way out)."""
+    of this machine's cores, each session's actor reserving ``ray_num_cpus`` (None: the service's default),
+    stopped and its files removed on the way out."""
     if backend == "local":
         with LiveServer(max_sessions=most + 4, log=log) as srv:
             yield srv
@@ -271,6 +272,7 @@ def serving(backend: str, most: int, log: Path | None) -> Any:
     try:
         cluster.start()
         args = ["--backend", "ray", "--ray-address", cluster.address]
+        args += [] if ray_num_cpus is None else ["--ray-num-cpus", str(ray_num_cpus)]
         with LiveServer(max_sessions=most + 4, log=log, args=args, env={"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": cluster.token}) as srv:
             yield srv
     finally:
@@ -281,7 +283,7 @@ def serving(backend: str, most: int, log: Path | None) -> Any:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     log = Path(args.server_log) if args.server_log else None
-    with serving(args.backend, args.most, log) as srv:
+    with serving(args.backend, args.most, log, args.ray_num_cpus) as srv:
 
         def rung(n: int) -> bool:
             r = best_of(args.repeats, lambda: asyncio.run(play_sessions(srv, "water2d", n, args.warmup, args.seconds, args.probe_gap, args.realtime)))
@@ -421,6 +423,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--out-dir", default=str(REPO_ROOT / "benchmarks" / "results"), help="capacity.md and capacity.json go here")
     ap.add_argument("--server-log", default=None, help="write the server's output here")
     ap.add_argument("--backend", choices=("local", "ray"), default="local", help="the sessions in the server's process, or actors of a one-node Ray cluster")
+    ap.add_argument(
+        "--ray-num-cpus", type=float, default=None, help="with --backend ray: the CPU each session's actor reserves (the service's default: 0.25, 8 on 2 cores)"
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.seconds, args.warmup, args.most, args.repeats, args.scene3d, args.engine_frames, args.engine_seeds = 1.0, 0.5, 2, 1, "", 20, 2
