@@ -81,16 +81,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--push", action="store_true", help="also push the water at the controls' largest acceleration")
     ap.add_argument("--out", required=True, help="output folder")
     a = ap.parse_args(argv)
+    integrators = [s.strip() for s in a.integrators.split(",") if s.strip()]
+    # (speed, push) per case: each drag speed, then the push
+    cases = [(float(s), False) for s in a.speeds.split(",") if s.strip()] + ([(0.0, True)] if a.push else [])
     rows = []
-    for speed in [float(s) for s in a.speeds.split(",") if s.strip()]:
-        for integrator in [s.strip() for s in a.integrators.split(",") if s.strip()]:
-            r = drag_run(a.scene, integrator, speed, a.frames, a.seed)
+    for speed, push in cases:
+        for integrator in integrators:
+            r = drag_run(a.scene, integrator, speed, a.frames, a.seed, push=push)
             print(r)
             rows.append(r)
-    for integrator in [s.strip() for s in a.integrators.split(",") if s.strip()] if a.push else []:
-        r = drag_run(a.scene, integrator, 0.0, a.frames, a.seed, push=True)
-        print(r)
-        rows.append(r)
     keys = ["integrator", "case", "frames", "retries", "retries_per_100", "steps_per_frame", "failure", "ms_per_frame"]
     lines = [
         f"# A dragged obstacle{' and a pushed fluid' if a.push else ''}: {a.scene}, {a.frames} frames a run, seed {a.seed}",
