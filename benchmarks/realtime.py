@@ -29,9 +29,12 @@ import numpy as np
 
 from hybridmpm.bench.harness import script_argv, table, write_results
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.mpm import INTEGRATORS
+from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import make_simulator, rollout
 from hybridmpm.sim.config import default_settings
+from hybridmpm.sim.realtime import projection_allowed
 
 
 def measure_realtime(scene: str, frames: int, settle_s: float) -> dict[str, Any]:
@@ -65,8 +68,8 @@ def measure(scene: str, integrator: str | None, frames: int, warmup: int) -> dic
             sim = make_simulator(scene, "default")
         else:
             settings = default_settings(scene)
-            if settings.get("solver") != "mpm":
-                return None
+            if settings.get("solver") != "mpm" or (integrator == INTEGRATORS[1] and not projection_allowed(make_scene(scene))):
+                return None  # the projection steps water in free-slip walls and obstacles only (it refuses the rest)
             sim = make_simulator(scene, **settings, integrator=integrator)
     except InvalidInputError as e:
         if e.field == "integrator":
