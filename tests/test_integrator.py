@@ -94,11 +94,10 @@ def test_a_projection_run_restores_bitwise():
         ({"blocks": [dict(COLUMN), {"material": "sand", "lo": [0.6, 0.05], "hi": [0.7, 0.15]}]}, "integrator"),
         ({"obstacles": [{"shape": "sphere", "center": [0.7, 0.2], "radius": 0.05, "friction": 0.3}]}, "obstacles[0].friction"),
         ({"obstacles": [{"shape": "sphere", "center": [0.7, 0.2], "radius": 0.05, "condition": "sticky"}]}, "obstacles[0].condition"),
-        ({"bodies": [{"shape": "box", "center": [0.7, 0.3], "half_extents": [0.04, 0.04], "density": 500.0}]}, "integrator"),
         ({"integrator": "implicit"}, "integrator"),
         ({"integrator": 1}, "integrator"),
     ],
-    ids=["sand", "obstacle-friction", "obstacle-sticky", "body", "unknown", "not-a-name"],
+    ids=["sand", "obstacle-friction", "obstacle-sticky", "unknown", "not-a-name"],
 )
 def test_what_the_projection_cannot_step_is_refused_naming_the_field(extra, field):
     d = {**scene_dict(), "integrator": "projection", **extra}

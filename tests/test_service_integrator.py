@@ -84,7 +84,6 @@ def test_an_explicit_session_and_the_scenes_own_say_explicit(client):
 @pytest.mark.parametrize(
     "body",
     [
-        {"scene": "crates2d", "solver": "mpm", "integrator": "projection"},  # rigid bodies
         {"scene": "water_sand2d", "solver": "mpm", "integrator": "projection"},  # sand
         {"scene": "dam_break2d", "solver": "mpm", "integrator": "bogus"},
         {"scene": "dam_break2d", "solver": "mpm", "integrator": 1},
@@ -166,17 +165,19 @@ def test_a_record_keeps_its_integrator_and_older_records_have_none():
             parse_record("0" * 64, ckpt.dumps(record_state(sim), {**meta, "integrator": bad}), 1 << 28)
 
 
-def test_a_projection_session_takes_water_only(client):
-    """What the projection cannot step (sand, a rigid body) is refused when it is added, naming the integrator,
-    so the session is never left refusing every step; water still pours in, and it steps on."""
+def test_a_projection_session_takes_water_and_bodies_only(client):
+    """What the projection cannot step (sand) is refused when it is added, naming the integrator, so the session
+    is never left refusing every step; a rigid body joins (the projection couples it in its pressure solve, and
+    the session's crates scene opens on it); water still pours in, and it steps on."""
+    assert new(client, scene="crates2d", integrator="projection")["integrator"] == "projection"
     s = new(client, integrator="projection")
     sid = s["id"]
     r = client.post(f"/v1/sessions/{sid}/blocks", json={"material": "sand", "lo": [0.6, 0.1], "hi": [0.7, 0.2]})
     assert field_of(r) == "integrator"
     r = client.post(f"/v1/sessions/{sid}/bodies", json={"shape": "box", "center": [0.65, 0.65], "half_extents": [0.04, 0.03], "density": 500.0})
-    assert field_of(r) == "integrator"
+    assert r.status_code == 201, r.text
     info = client.get(f"/v1/sessions/{sid}").json()
-    assert info["num_particles"] == s["num_particles"] and info["bodies"] == []
+    assert info["num_particles"] == s["num_particles"] and len(info["bodies"]) == 1 and info["integrator"] == "projection"
     r = client.post(f"/v1/sessions/{sid}/blocks", json={"material": "water", "lo": [0.6, 0.1], "hi": [0.7, 0.2]})
     assert r.status_code == 201 and r.json()["num_particles"] > s["num_particles"], r.text
     assert step_binary(client, sid, 2).shape[1] == r.json()["num_particles"]

@@ -332,9 +332,9 @@ def test_a_realtime_session_steps_what_fell_due_in_a_tick_and_owes_nothing_older
 
 
 def test_a_realtime_session_takes_a_poured_block_and_an_added_body_and_steps_on(client):
-    """A block or a body joins a real-time session as it joins an MPM one; on a projection rung the simulator
-    moves to the explicit step (the projection steps water in the box walls only) and its ladder keeps the
-    projection off while they are in."""
+    """A block or a body joins a real-time session as it joins an MPM one; a sand block moves a projection rung
+    to the explicit step (the projection steps water only) and its ladder keeps the projection off while the
+    sand is in; the body joins whatever runs."""
     s = new(client, realtime=True)
     sid = s["id"]
     r = client.post(f"/v1/sessions/{sid}/blocks", json={"material": "sand", "lo": [0.6, 0.1], "hi": [0.7, 0.2]})

@@ -395,7 +395,7 @@ def add_parsers(sub: Any) -> None:
         default=None,
         choices=list(INTEGRATORS),
         help="--solver mpm: how a frame advances: explicit MLS-MPM substeps, or projection: incompressible APIC water at the flow's pace "
-        "(water in the box walls only; docs/large-step.md; default: the scene's)",
+        "(water only, round free-slip obstacles and rigid bodies; docs/large-step.md; default: the scene's)",
     )
     sim.add_argument(
         "--baseline", action="store_true",

@@ -541,12 +541,6 @@ class MpmParams:
                 raise InvalidInputError(f"colliders[{i}]: must be a Box, a Sphere or a SampledSdf, got {c!r}", f"colliders[{i}]")
         if not isinstance(self.bodies, (list, tuple)) or not all(isinstance(b, Body) for b in self.bodies):
             raise InvalidInputError(f"bodies: must be a list of Body, got {self.bodies!r}", "bodies")
-        if self.integrator != INTEGRATORS[0] and self.bodies:
-            raise InvalidInputError(
-                f"integrator: the {self.integrator} integrator steps water in the box walls and around obstacles only, and these parameters have "
-                f"{len(self.bodies)} rigid body(ies): use integrator 'explicit'",
-                "integrator",
-            )
         if self.integrator != INTEGRATORS[0]:
             for i, c in enumerate(self.colliders):  # the projection's obstacles are free slip (docs/large-step.md)
                 if not free_slip(c):

@@ -350,13 +350,13 @@ def with_integrator(scene: Scene, integrator: str | None) -> Scene:
     :data:`hybridmpm.mpm.params.INTEGRATORS`; None: the scene's own). Its
     spec, the full-resolution reference (:func:`full_resolution`), keeps the
     scene's own. The projection steps water in the box walls and around
-    free-slip obstacles: a scene with bodies, another material or an obstacle
-    with friction is refused. Raises
+    free-slip obstacles, with rigid bodies: a scene with another material or an
+    obstacle with friction is refused. Raises
     :class:`InvalidInputError` naming ``integrator`` (docs/large-step.md)."""
     if integrator is None or integrator == scene.params.integrator:
         return scene
     params = replace(scene.params, integrator=integrator)
-    params.validate()  # the name, and no bodies or obstacles with friction for the projection
+    params.validate()  # the name, and no obstacles with friction for the projection
     if integrator != INTEGRATORS[0]:
         other = np.flatnonzero(np.asarray(scene.material) != MATERIAL_WATER)
         if other.size:

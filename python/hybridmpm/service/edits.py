@@ -67,13 +67,13 @@ class SessionEdits:
 
     def _water_only(self, what: str) -> None:
         """Refuse ``what`` (an edit that would put something besides water in the box) on a session whose MPM
-        is not the explicit one: the projection steps water in the box walls only, so every later step would be
+        is not the explicit one: the projection steps water only, so every later step would be
         refused. :class:`InvalidInputError` naming ``integrator``; the session unchanged. A real-time session
         takes it: its simulator moves to the explicit step (:class:`~hybridmpm.sim.RealtimeSimulator`)."""
         integrator = session_integrator(self.sim)
         if integrator != INTEGRATORS[0] and not isinstance(self.sim, RealtimeSimulator):
             raise InvalidInputError(
-                f"integrator: this session's {integrator} integrator steps water in the box walls only, so it takes no {what}; "
+                f"integrator: this session's {integrator} integrator steps water only, so it takes no {what}; "
                 f"create the session with integrator '{INTEGRATORS[0]}'",
                 "integrator",
             )
@@ -154,11 +154,10 @@ class SessionEdits:
         """Add rigid body ``body`` (a scene file's ``[[bodies]]`` table)
         between frames (:meth:`hybridmpm.sim.MpmSimulator.add_body`; its
         errors name the field, ``bodies[i].density``, and leave the session
-        unchanged; a session on the projection takes none, :meth:`_water_only`); the viewers get a ``bodies`` event with every body as
+        unchanged; the projection steps them too, docs/large-step.md); the viewers get a ``bodies`` event with every body as
         given. Returns ``{"index", "num_bodies", "frame", "facts"}``."""
         with self.lock:
             self._open()
-            self._water_only("rigid bodies")
             index = int(self.sim.add_body(body))  # type: ignore[attr-defined] # MPM only (the route refuses the others)
             self._changed()
             frame, num = self.frame_index, len(self.bodies_given())

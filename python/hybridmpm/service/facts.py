@@ -135,7 +135,7 @@ def checked_n_grid(scene: str, solver: str, n_grid: int | None) -> int | None:
 def checked_integrator(solver: str, integrator: str | None) -> str | None:
     """A session's ``integrator`` as asked: None, or one of
     :data:`hybridmpm.mpm.INTEGRATORS` for the ``mpm`` solver (whether the
-    scene takes it — water in the box walls only — the simulator checks when
+    scene takes it — water only, free-slip obstacles — the simulator checks when
     it is built). Raises :class:`InvalidInputError` naming ``integrator``."""
     if integrator is None:
         return None

@@ -101,8 +101,8 @@ class MpmSimulator:
     integrator:
         ``"explicit"`` or ``"projection"`` (:data:`hybridmpm.mpm.INTEGRATORS`;
         :func:`~hybridmpm.scenes.resolution.with_integrator`); None: the
-        scene's. The projection steps water in the box walls only (field
-        ``integrator`` otherwise; docs/large-step.md).
+        scene's. The projection steps water only, round free-slip obstacles
+        and rigid bodies (field ``integrator`` otherwise; docs/large-step.md).
 
     ``solver`` is the underlying :class:`~hybridmpm.mpm.MpmSolver`. Raises
     :class:`InvalidInputError` naming the bad parameter.

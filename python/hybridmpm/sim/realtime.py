@@ -121,8 +121,8 @@ def ladder_grids(n_grid: int) -> list[int]:
 
 
 def projection_allowed(scene: Scene) -> bool:
-    """Whether the projection steps ``scene``: water only, in the box walls and round free-slip obstacles (no
-    bodies; the solver's own checks, :func:`~hybridmpm.scenes.resolution.with_integrator`)."""
+    """Whether the projection steps ``scene``: water only, in the box walls, round free-slip obstacles and rigid
+    bodies (the solver's own checks, :func:`~hybridmpm.scenes.resolution.with_integrator`)."""
     if np.any(np.asarray(scene.material) != MATERIAL_WATER):
         return False
     try:
@@ -286,10 +286,10 @@ class RealtimeSimulator(MpmSimulator):
         return self._rung
 
     def projection_ok(self) -> bool:
-        """Whether the projection steps what the simulator holds now: water only (poured blocks included), free-slip
-        obstacles only, no bodies (added ones included)."""
+        """Whether the projection steps what the simulator holds now: water only (poured blocks included) and
+        free-slip obstacles only (bodies it steps, docs/large-step.md)."""
         p = self.solver.params
-        return not p.bodies and all(map(free_slip, p.colliders)) and bool(np.all(np.asarray(self.solver.material) == MATERIAL_WATER))
+        return all(map(free_slip, p.colliders)) and bool(np.all(np.asarray(self.solver.material) == MATERIAL_WATER))
 
     def _available(self, key: str) -> bool:
         return self._rung_params[key].integrator == INTEGRATORS[0] or self.projection_ok()
@@ -330,7 +330,7 @@ class RealtimeSimulator(MpmSimulator):
         if key not in self._rung_params:
             raise InvalidInputError(f"rung: must be one of {', '.join(self._rung_params)}, got {key!r}", "rung")
         if not self._available(key):
-            raise InvalidInputError(f"rung: {key} steps water in the box walls only, and this simulator holds bodies or another material", "rung")
+            raise InvalidInputError(f"rung: {key} steps water only, and this simulator holds another material", "rung")
         if key != self._rung and not self._switch(key):
             raise InvalidInputError("rung: a projection step spans this frame; advance a frame and ask again", "rung")
 
@@ -394,12 +394,6 @@ class RealtimeSimulator(MpmSimulator):
         before, key = self._rung, rung_key(self._rung_params[self._rung].resolved_n_grid(), INTEGRATORS[0])
         self._switch(key)
         self.changes.append({"frame": self.frame.frame_index, "from": before, "to": key, "frame_ms": None})
-
-    def add_body(self, body: Any) -> int:
-        """:meth:`MpmSimulator.add_body`, on the explicit rung of the current grid when a projection rung runs
-        (the projection steps water in the box walls only); the projection rungs stay off while it holds bodies."""
-        self._to_explicit()
-        return super().add_body(body)
 
     # ------------------------------------------------------------ stepping
     def advance(self) -> Any:

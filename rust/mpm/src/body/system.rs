@@ -4,7 +4,9 @@
 
 use std::sync::Mutex;
 
-use nalgebra::{Matrix6, Quaternion, Rotation3, SMatrix, SVector, UnitQuaternion, Vector6};
+use nalgebra::{
+    Matrix3, Matrix6, Quaternion, Rotation3, SMatrix, SVector, UnitQuaternion, Vector6,
+};
 
 use super::world::{BodySpec, ObstacleSpec, RigidWorld, WorldSpec};
 use super::{Body, BodyPose, Coupled, ImpulseSum};
@@ -270,6 +272,45 @@ impl<const D: usize> Bodies<D> {
             }
         }
         (m, out)
+    }
+
+    /// Body `i`'s inverse mass [1/kg] and inverse inertia tensor in world
+    /// axes [1/(kg·m²)] at its pose now (2D: only the entry (2, 2), about
+    /// z): what a projection step couples it with.
+    pub(crate) fn inverse_mass(&self, i: usize) -> (f64, [[f64; 3]; 3]) {
+        let (m, inertia) = self.inertia(i);
+        let mut inv = [[0.0; 3]; 3];
+        if D == 2 {
+            inv[2][2] = 1.0 / inertia[2][2];
+        } else if let Some(t) = Matrix3::<f64>::from_fn(|r, c| inertia[r][c]).try_inverse() {
+            inv = std::array::from_fn(|r| std::array::from_fn(|c| t[(r, c)]));
+        }
+        (1.0 / m, inv)
+    }
+
+    /// After a projection step of `dt` [s]: each body's velocity change
+    /// `delta` from the fluid's pressure impulse `impulse` (lanes as
+    /// [`ImpulseSum`]'s), then the world stepped by `dt` (gravity,
+    /// contacts) and the poses of the next step.
+    pub(crate) fn projection_step(&mut self, steps: &[([f64; 6], [f64; 6])], dt: f32) {
+        let Some(world) = self.world.as_mut() else {
+            return;
+        };
+        for (i, (impulse, delta)) in steps.iter().enumerate() {
+            let f = &mut self.frame_impulse[i];
+            for k in 0..6 {
+                f[k] += impulse[k];
+            }
+            world.add_velocity(
+                i,
+                [delta[0], delta[1], delta[2]].map(|x| x as f32),
+                [delta[3], delta[4], delta[5]].map(|x| x as f32),
+            );
+        }
+        world.step(dt);
+        for (i, (p, b)) in self.poses.iter_mut().zip(&self.bodies).enumerate() {
+            *p = Self::pose_of(b, &world.state(i));
+        }
     }
 
     /// After a substep's grid update: each body's velocity change from the

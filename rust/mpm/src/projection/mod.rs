@@ -41,10 +41,13 @@ use rayon::prelude::*;
 
 use crate::isa::Isa;
 use crate::particles::Particle;
+pub use bodies::{BodyStep, StepBody, push_out_of_bodies};
 pub use obstacles::StepColliders;
 use transfer::{Part, for_each_node, g2p_chunk};
 
+mod bodies;
 mod obstacles;
+mod precond;
 mod transfer;
 
 /// The volume correction's rate `κ` (per step, of the relative excess density).
@@ -93,6 +96,12 @@ pub struct Projection<const D: usize> {
     solid: Vec<u16>,
     solid_cells: Vec<usize>,
     obstacle_velocity: Vec<SVector<f32, D>>,
+    /// The faces between fluid cells and bodies' solid cells, each body's velocity in the step
+    /// (`[v, ω]`) and what the step did to it (`bodies.rs`).
+    body_faces: Vec<bodies::BodyFace>,
+    body_velocity: Vec<[f64; 6]>,
+    body_force: Vec<[f64; 6]>,
+    body_steps: Vec<BodyStep>,
     /// The two parts of the p2g ([`Part`]).
     parts: [Part; 2],
     /// The compiled copy of the transfers that runs ([`crate::isa`]; the same bits either way).
@@ -202,6 +211,10 @@ impl<const D: usize> Projection<D> {
             solid: vec![0; cells],
             solid_cells: Vec::new(),
             obstacle_velocity: Vec::new(),
+            body_faces: Vec::new(),
+            body_velocity: Vec::new(),
+            body_force: Vec::new(),
+            body_steps: Vec::new(),
             parts: Default::default(),
             isa: Isa::detect(),
             correction_time: 0.0,
@@ -223,6 +236,12 @@ impl<const D: usize> Projection<D> {
     /// with a variant the CPU has ([`Isa::available`]).
     pub fn set_isa(&mut self, isa: Isa) {
         self.isa = isa;
+    }
+
+    /// The bounds [m] the step keeps a particle within on every axis (a thousandth of a cell inside
+    /// the walls' faces).
+    pub fn bounds(&self) -> (f32, f32) {
+        self.grid().inside()
     }
 
     /// The cell pressures [Pa] of the last step, row-major (`x` slowest), 0 off the fluid.
@@ -256,7 +275,8 @@ impl<const D: usize> Projection<D> {
 
     /// One step of `dt` [s] that moves the particles by `advance·v` [s] (a step spanning several
     /// frames moves them one frame's worth; the frames after it move them on at `v`), with the
-    /// colliders `cols` at their poses for the step as solid cells (`obstacles.rs`).
+    /// colliders `cols` at their poses for the step as solid cells (`obstacles.rs`) and its bodies
+    /// coupled in the solve (`bodies.rs`; what it did to them: [`Projection::body_steps`]).
     pub fn step_advancing(
         &mut self,
         particles: &mut [Particle<D>],
@@ -277,10 +297,13 @@ impl<const D: usize> Projection<D> {
             }
         }
         self.mark_solid(cols);
+        self.mark_fluid();
+        self.start_bodies(cols.bodies);
+        self.couple_bodies(cols.bodies, cols.colliders.len(), (dt, rho, gravity));
         self.walls();
         self.obstacle_faces(cols, false);
-        self.mark_fluid();
-        let stats = self.solve(dt, rho);
+        let stats = self.solve(dt, rho, cols.bodies);
+        self.finish_bodies(cols.bodies, dt);
         self.subtract_gradient(dt, rho);
         self.walls();
         self.obstacle_faces(cols, true);
@@ -416,7 +439,7 @@ impl<const D: usize> Projection<D> {
         out
     }
 
-    fn solve(&mut self, dt: f32, rho: f32) -> ProjectionStats {
+    fn solve(&mut self, dt: f32, rho: f32, bodies: &[StepBody<D>]) -> ProjectionStats {
         let m = self.fluid.len();
         let tc = if self.correction_time > dt {
             self.correction_time
@@ -454,13 +477,20 @@ impl<const D: usize> Projection<D> {
                 }
             }
         }
-        let precond: Vec<f64> = diag.iter().map(|d| d.max(1.0)).collect();
-        // CG (Jacobi-preconditioned) from zero, not the last step's pressure: a step reads nothing but
-        // the particles (a restored checkpoint steps the same bits). Every sum runs in row order.
+        // the bodies' part, `w·J M⁻¹ Jᵀ` (`bodies.rs`), with its diagonal in the preconditioner
+        let w = rho as f64 * (dx as f64).powi(D as i32);
+        let mut pre_diag = diag.clone();
+        self.body_diagonal(bodies, w, &mut pre_diag);
+        pre_diag.iter_mut().for_each(|d| *d = d.max(1.0));
+        let precon = precond::mic0(&pre_diag, &nbr, D);
+        // CG (MIC(0)-preconditioned, `precond.rs`) from zero, not the last step's pressure: a step
+        // reads nothing but the particles (a restored checkpoint steps the same bits). Every sum runs
+        // in row order.
         let mut x = vec![0.0f64; m];
         let mut r = b.clone(); // b − A·0
         let bnorm = b.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
-        let mut z: Vec<f64> = r.iter().zip(&precond).map(|(r, d)| r / d).collect();
+        let (mut z, mut scratch) = (vec![0.0f64; m], vec![0.0f64; m]);
+        precond::apply(&precon, &nbr, D, &r, &mut scratch, &mut z);
         let mut p = z.clone();
         p.push(0.0);
         let mut q = vec![0.0; m];
@@ -478,14 +508,17 @@ impl<const D: usize> Projection<D> {
                 *qr = s;
                 pq += p[row] * s;
             }
+            pq += self.body_apply(bodies, w, &p, &mut q);
             let alpha = rz / pq;
             let (mut rz_new, mut rr) = (0.0f64, 0.0f64);
             for i in 0..m {
                 x[i] += alpha * p[i];
                 r[i] -= alpha * q[i];
-                z[i] = r[i] / precond[i];
-                rz_new += r[i] * z[i];
                 rr += r[i] * r[i];
+            }
+            precond::apply(&precon, &nbr, D, &r, &mut scratch, &mut z);
+            for i in 0..m {
+                rz_new += r[i] * z[i];
             }
             let beta = rz_new / rz;
             rz = rz_new;

@@ -27,6 +27,7 @@
 
 use nalgebra::SVector;
 
+use super::bodies::StepBody;
 use super::{Projection, shape, strides};
 use crate::collider::{Collider, PROJECT_DEPTH_CELLS, Reach, ShallowCells};
 use crate::particles::Particle;
@@ -39,6 +40,8 @@ pub struct StepColliders<'a, const D: usize> {
     pub colliders: &'a [Collider<D>],
     pub velocity: &'a [Option<SVector<f32, D>>],
     pub shallow: &'a [Option<ShallowCells>],
+    /// The rigid bodies, solid cells after the colliders' (`bodies.rs`).
+    pub bodies: &'a [StepBody<D>],
 }
 
 impl<const D: usize> StepColliders<'_, D> {
@@ -48,6 +51,7 @@ impl<const D: usize> StepColliders<'_, D> {
             colliders: &[],
             velocity: &[],
             shallow: &[],
+            bodies: &[],
         }
     }
 
@@ -104,45 +108,64 @@ pub(super) fn project<const D: usize>(
 }
 
 impl<const D: usize> Projection<D> {
-    /// Marks the solid cells of `cols` (a cell is solid where its centre lies inside a collider; the
-    /// first collider that holds it names it) inside the walls, and keeps each collider's velocity.
+    /// Marks the solid cells of `cols` (a cell is solid where its centre lies inside a collider or a
+    /// body; the first that holds it names it, colliders first) inside the walls, and keeps each
+    /// collider's velocity.
     pub(super) fn mark_solid(&mut self, cols: &StepColliders<'_, D>) {
         for &c in &self.solid_cells {
             self.solid[c] = 0;
         }
         self.solid_cells.clear();
         self.obstacle_velocity.clear();
-        let (n, ws, dx) = (self.n, self.ws, self.dx);
-        let stride = strides(&shape::<D>(n, None));
         for (k, col) in cols.colliders.iter().enumerate() {
             self.obstacle_velocity.push(cols.velocity_of(k));
             let (centre, r) = (col.shape.center(), col.shape.bounding_radius());
-            // the cells whose centres the bounding sphere may hold, inside the walls
-            let lo: [usize; D] = std::array::from_fn(|d| {
-                let i = ((centre[d] - r) / dx - 0.5).floor().max(ws as f32);
-                (i as usize).min(n - ws)
-            });
-            let hi: [usize; D] = std::array::from_fn(|d| {
-                let i = ((centre[d] + r) / dx - 0.5).ceil().max(0.0);
-                (i as usize).min(n - ws - 1)
-            });
-            if (0..D).any(|d| lo[d] > hi[d]) {
-                continue;
-            }
-            let count: [usize; D] = std::array::from_fn(|d| hi[d] - lo[d] + 1);
-            super::transfer::for_each_node(&count, |_, off| {
-                let idx: [usize; D] = std::array::from_fn(|d| lo[d] + off[d]);
-                let c: usize = (0..D).map(|d| idx[d] * stride[d]).sum();
-                if self.solid[c] != 0 {
-                    return;
-                }
-                let x = SVector::<f32, D>::from_fn(|d, _| (idx[d] as f32 + 0.5) * dx);
-                if col.shape.sdf(&x) < 0.0 {
-                    self.solid[c] = (k + 1) as u16;
-                    self.solid_cells.push(c);
-                }
-            });
+            self.mark_inside(k, centre, r, |x| col.shape.sdf(x));
         }
+        let first = cols.colliders.len();
+        for (b, body) in cols.bodies.iter().enumerate() {
+            let pose = &body.pose;
+            let r = pose.shape.bounding_radius();
+            self.mark_inside(first + b, pose.center, r, |x| pose.sdf_normal(x).0);
+        }
+    }
+
+    /// Marks the cells not yet solid whose centres lie within `r` of `centre` and where `sdf` is
+    /// negative as solid `k`'s (collider `k`, or body `k − colliders`), inside the walls.
+    fn mark_inside(
+        &mut self,
+        k: usize,
+        centre: SVector<f32, D>,
+        r: f32,
+        sdf: impl Fn(&SVector<f32, D>) -> f32,
+    ) {
+        let (n, ws, dx) = (self.n, self.ws, self.dx);
+        let stride = strides(&shape::<D>(n, None));
+        // the cells whose centres the bounding sphere may hold, inside the walls
+        let lo: [usize; D] = std::array::from_fn(|d| {
+            let i = ((centre[d] - r) / dx - 0.5).floor().max(ws as f32);
+            (i as usize).min(n - ws)
+        });
+        let hi: [usize; D] = std::array::from_fn(|d| {
+            let i = ((centre[d] + r) / dx - 0.5).ceil().max(0.0);
+            (i as usize).min(n - ws - 1)
+        });
+        if (0..D).any(|d| lo[d] > hi[d]) {
+            return;
+        }
+        let count: [usize; D] = std::array::from_fn(|d| hi[d] - lo[d] + 1);
+        super::transfer::for_each_node(&count, |_, off| {
+            let idx: [usize; D] = std::array::from_fn(|d| lo[d] + off[d]);
+            let c: usize = (0..D).map(|d| idx[d] * stride[d]).sum();
+            if self.solid[c] != 0 {
+                return;
+            }
+            let x = SVector::<f32, D>::from_fn(|d, _| (idx[d] as f32 + 0.5) * dx);
+            if sdf(&x) < 0.0 {
+                self.solid[c] = (k + 1) as u16;
+                self.solid_cells.push(c);
+            }
+        });
     }
 
     /// Whether cell `c` (index `idx`) is a collider's solid cell.
@@ -152,7 +175,7 @@ impl<const D: usize> Projection<D> {
     }
 
     /// The faces of the solid cells (module docs): a face to a fluid or air cell takes the collider's
-    /// velocity along its axis. With `inside`, after the solve, so do the faces inside the collider
+    /// velocity along its axis (a body's: its point velocity at the face's centre, `bodies.rs`). With `inside`, after the solve, so do the faces inside the collider
     /// whose axis is the normal's (the largest component of the outward normal at the face), and one
     /// whose axis is tangential takes the velocity of the first face out along the normal that is not
     /// inside (up to [`MAX_EXTRAPOLATION_CELLS`] cells; the collider's where there is none): free slip,
@@ -165,10 +188,10 @@ impl<const D: usize> Projection<D> {
         let (n, dx) = (self.n, self.dx);
         let g = self.grid();
         let stride_c = strides(&shape::<D>(n, None));
+        let first = cols.colliders.len();
         for i in 0..self.solid_cells.len() {
             let s = self.solid_cells[i];
             let k = self.solid[s] as usize - 1;
-            let v_obs = self.obstacle_velocity[k];
             let idx = self.unflat(s);
             for a in 0..D {
                 let st = strides(&shape::<D>(n, Some(a)));
@@ -182,23 +205,40 @@ impl<const D: usize> Projection<D> {
                     if g.in_walls(&j) {
                         continue; // the walls' condition holds there
                     }
-                    if !self.in_obstacle(other) {
-                        self.vel[a][face] = v_obs[a];
-                    } else if inside && face == low_face {
-                        // inside the collider: visited once, as the upper cell's low face
-                        let x = SVector::<f32, D>::from_fn(|d, _| {
-                            let shift = if d == a { 0.0 } else { 0.5 };
-                            (idx[d] as f32 + shift) * dx
-                        });
-                        let nrm = cols.colliders[k].shape.normal(&x);
-                        let b = nrm.iamax();
-                        self.vel[a][face] = if b == a {
-                            v_obs[a]
-                        } else {
-                            self.outside_face(a, idx, b, nrm[b] > 0.0)
-                                .unwrap_or(v_obs[a])
-                        };
+                    let to_fluid = !self.in_obstacle(other);
+                    if !(to_fluid || inside && face == low_face) {
+                        continue; // inside: visited once, as the upper cell's low face
                     }
+                    // the face's centre
+                    let x = SVector::<f32, D>::from_fn(|d, _| {
+                        let shift = if d != a {
+                            0.5
+                        } else if face == low_face {
+                            0.0
+                        } else {
+                            1.0
+                        };
+                        (idx[d] as f32 + shift) * dx
+                    });
+                    let v_solid = match k.checked_sub(first) {
+                        None => self.obstacle_velocity[k][a],
+                        Some(b) => self.body_point_velocity(cols.bodies, b, &x)[a],
+                    };
+                    if to_fluid {
+                        self.vel[a][face] = v_solid;
+                        continue;
+                    }
+                    let nrm = match k.checked_sub(first) {
+                        None => cols.colliders[k].shape.normal(&x),
+                        Some(b) => cols.bodies[b].pose.sdf_normal(&x).1,
+                    };
+                    let b = nrm.iamax();
+                    self.vel[a][face] = if b == a {
+                        v_solid
+                    } else {
+                        self.outside_face(a, idx, b, nrm[b] > 0.0)
+                            .unwrap_or(v_solid)
+                    };
                 }
             }
         }

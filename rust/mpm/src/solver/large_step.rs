@@ -2,9 +2,14 @@
 //! [`crate::projection`]): incompressible APIC water that steps at the
 //! flow's pace (docs/large-step.md).
 //!
-//! What it steps: water particles in the box walls and around colliders,
-//! at rest or moving, as solid boundaries with their own velocity
-//! (`crate::projection`'s `obstacles.rs`). Rigid bodies, sand and the
+//! What it steps: water particles in the box walls, around colliders, at
+//! rest or moving, as solid boundaries with their own velocity
+//! (`crate::projection`'s `obstacles.rs`), and around rigid bodies coupled
+//! both ways in the pressure solve (its `bodies.rs`): each step applies the
+//! pressure impulse to the bodies' rigid world, steps it by the step's `dt`
+//! (gravity, contacts) and puts the particles that ended deeper than
+//! [`PROJECT_DEPTH_CELLS`] inside a body back onto its surface. A frame
+//! with bodies steps within itself (no step spans frames). Sand and the
 //! solids need the explicit substeps; a solver that holds any of them, or
 //! walls or colliders that are not free slip, refuses a projection frame
 //! with an `InvalidInput` naming the field (`integrator`, `walls.condition`
@@ -38,11 +43,12 @@ use nalgebra::SVector;
 
 use super::{FrameStats, Solver};
 use crate::boundary::BoundaryCondition;
+use crate::collider::PROJECT_DEPTH_CELLS;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::params::{MaterialParams, WallParams};
 use crate::particles::Material;
-use crate::projection::{ADVECTIVE_CFL, Projection, StepColliders};
+use crate::projection::{ADVECTIVE_CFL, Projection, StepBody, StepColliders, push_out_of_bodies};
 
 /// The most cells a particle may cross in one projection step before the
 /// frame is retried with smaller steps (the step is chosen for
@@ -96,12 +102,6 @@ where
                     ),
                 ));
             }
-        }
-        if !self.bodies.is_empty() {
-            return refuse(format!(
-                "this scene has {} rigid body(ies)",
-                self.bodies.len()
-            ));
         }
         for axis in 0..D {
             for side in 0..2 {
@@ -179,6 +179,9 @@ where
         });
         projection.set_isa(self.isa);
         projection.set_correction_time(dt_frame);
+        if !self.bodies.is_empty() {
+            self.drift_frames = 0; // a body added between the frames of a step ends it
+        }
         let result = if self.drift_frames > 0 {
             // a frame inside the last step: the particles are the ones that step checked (any change
             // between frames ends the step, a collider's move too), and their velocities are the step's
@@ -186,6 +189,7 @@ where
                 colliders: &self.colliders,
                 velocity: &self.collider_velocity,
                 shallow: &self.shallow,
+                bodies: &[],
             };
             let max_speed = projection.drift(&mut self.particles, dt_frame, &cols);
             self.drift_frames -= 1;
@@ -223,10 +227,32 @@ where
         })
     }
 
+    /// The bodies as a projection step of `dt` [s] sees them: at their poses now, with the step's
+    /// gravity in their velocity, and their inverse masses.
+    fn step_bodies(&self, dt: f32) -> Vec<StepBody<D>> {
+        (0..self.bodies.len())
+            .map(|i| {
+                let mut pose = self.bodies.poses[i].clone();
+                for d in 0..D {
+                    pose.velocity[d] += dt * self.params.gravity[d];
+                }
+                let (inv_mass, inv_inertia) = self.bodies.inverse_mass(i);
+                StepBody {
+                    pose,
+                    inv_mass,
+                    inv_inertia,
+                }
+            })
+            .collect()
+    }
+
     /// The frames one step may span from the state now: `⌊dt / dt_frame⌋` for the step bound's
     /// `dt`, in [1, [`MAX_FRAMES_PER_STEP`]]; 1 with a fixed step count (`params.substeps`).
     fn frames_per_step(&self, dt_frame: f32) -> u32 {
-        if self.params.substeps.is_some() || self.moves.iter().any(Option::is_some) {
+        if self.params.substeps.is_some()
+            || self.moves.iter().any(Option::is_some)
+            || !self.bodies.is_empty()
+        {
             return 1;
         }
         let (cfl, c) = self.step_bound();
@@ -257,17 +283,32 @@ where
             let dt = frames as f32 * dt_frame / n_sub as f32;
             let advance = dt / frames as f32;
             let (mut failed, mut vmax) = (None, 0.0f32);
+            self.begin_bodies();
             for k in 0..n_sub {
                 self.pose_colliders(k + 1, n_sub);
+                let bodies = self.step_bodies(dt);
                 let particles = &mut self.particles;
                 let cols = StepColliders {
                     colliders: &self.colliders,
                     velocity: &self.collider_velocity,
                     shallow: &self.shallow,
+                    bodies: &bodies,
                 };
                 self.pool.install(|| {
                     projection.step_advancing(particles, dt, advance, &gravity, rho, &cols)
                 });
+                if !bodies.is_empty() {
+                    let steps: Vec<_> = projection
+                        .body_steps()
+                        .iter()
+                        .map(|s| (s.impulse, s.delta))
+                        .collect();
+                    self.bodies.projection_step(&steps, dt);
+                    let (poses, particles) = (&self.bodies.poses, &mut self.particles);
+                    let (depth, bounds) = (PROJECT_DEPTH_CELLS * dx, projection.bounds());
+                    self.pool
+                        .install(|| push_out_of_bodies(particles, poses, depth, bounds));
+                }
                 vmax = self.checked_max_speed();
                 if !vmax.is_finite() {
                     failed = Some(MpmError::NonFinite {
@@ -287,6 +328,7 @@ where
                     break;
                 }
             }
+            self.bodies.end(failed.is_none(), dt_frame);
             match failed {
                 None => {
                     self.end_moves(true);

@@ -4,7 +4,7 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind, Solver, SolverParams};
+use hybridmpm_mpm::{Body, BodyParams, BodyShape, BodyShapeKind, Integrator, Solver, SolverParams};
 use nalgebra::SVector;
 
 use crate::common::{sdf, water};
@@ -158,6 +158,8 @@ struct FloatCase {
     shift_cells: f32,
     /// Every box tilted by this angle [degrees].
     tilt_deg: f64,
+    /// The explicit substeps or the projection (its bodies coupled in the pressure solve).
+    integrator: Integrator,
 }
 
 /// Per box: mean share below the level, worst error, expected share.
@@ -177,6 +179,7 @@ fn float_boxes_2d(c: &FloatCase) -> Floated {
     let p = SolverParams::<2> {
         n_grid: c.n_grid,
         num_threads: 2,
+        integrator: c.integrator,
         ..Default::default()
     };
     let dx = p.dx();
@@ -303,6 +306,7 @@ fn boxes_float_at_their_archimedes_depth_2d() {
         last: 400.min(frames() / 3),
         shift_cells: env("BODIES_SHIFT", 0.0) as f32,
         tilt_deg: env("BODIES_TILT", 0.0),
+        integrator: integrator(),
     });
     assert_floated(&r);
 }
@@ -318,8 +322,32 @@ fn boxes_float_at_their_archimedes_depth_2d_short() {
         last: 120,
         shift_cells: 3.0,
         tilt_deg: 10.0,
+        integrator: Integrator::Explicit,
     });
     assert_floated(&r);
+}
+
+/// The short run on the projection: its pressure solve holds the boxes up
+/// (`crate::projection`'s `bodies.rs`), within the explicit run's tolerance.
+#[test]
+fn boxes_float_at_their_archimedes_depth_2d_short_projection() {
+    let r = float_boxes_2d(&FloatCase {
+        n_grid: 128,
+        frames: 240,
+        last: 120,
+        shift_cells: 3.0,
+        tilt_deg: 10.0,
+        integrator: Integrator::Projection,
+    });
+    assert_floated(&r);
+}
+
+/// `BODIES_INTEGRATOR=projection` runs the full checks on the projection.
+fn integrator() -> Integrator {
+    match std::env::var("BODIES_INTEGRATOR").as_deref() {
+        Ok("projection") => Integrator::Projection,
+        _ => Integrator::Explicit,
+    }
 }
 
 /// The share of a 3D box's volume of half extents `h`, centre height
@@ -381,10 +409,16 @@ fn level_beside_3d(s: &Solver<3>, i: usize) -> f32 {
 /// `frames` frames the share of its volume below the level beside it stays
 /// within (one cell + 2 % of its height) / height of ρ_b / ρ_w. Returns
 /// (mean share, worst error, tolerance).
-fn float_cube_3d(frames: usize, last: usize, tilt_deg: f32) -> (f64, f32, f32) {
+fn float_cube_3d(
+    frames: usize,
+    last: usize,
+    tilt_deg: f32,
+    integrator: Integrator,
+) -> (f64, f32, f32) {
     let p = SolverParams::<3> {
         n_grid: 32,
         num_threads: 2,
+        integrator,
         ..Default::default()
     };
     let dx = p.dx();
@@ -458,7 +492,17 @@ fn float_cube_3d(frames: usize, last: usize, tilt_deg: f32) -> (f64, f32, f32) {
 /// tilted by 10° (the full run is benchmarks/bodies/run.py's).
 #[test]
 fn cube_floats_at_its_archimedes_depth_3d_short() {
-    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0);
+    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0, Integrator::Explicit);
+    assert!(
+        worst <= tol,
+        "mean share {mean}, worst error {worst} > {tol}"
+    );
+}
+
+/// The cube's short run on the projection.
+#[test]
+fn cube_floats_at_its_archimedes_depth_3d_short_projection() {
+    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0, Integrator::Projection);
     assert!(
         worst <= tol,
         "mean share {mean}, worst error {worst} > {tol}"
@@ -474,7 +518,7 @@ fn cube_floats_at_its_archimedes_depth_3d() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(0.0);
-    let (mean, worst, tol) = float_cube_3d(frames(), 400.min(frames() / 3), tilt);
+    let (mean, worst, tol) = float_cube_3d(frames(), 400.min(frames() / 3), tilt, integrator());
     assert!(
         worst <= tol,
         "mean share {mean}, worst error {worst} > {tol}"

@@ -11,7 +11,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use hybridmpm_mpm::{
-    Body, BodyParams, BodyShape, BodyShapeKind, Dim, DimOps, Material, Solver, SolverParams,
+    Body, BodyParams, BodyShape, BodyShapeKind, Dim, DimOps, Integrator, Material, Solver,
+    SolverParams,
 };
 
 use crate::common::water;
@@ -184,9 +185,23 @@ fn check(name: &str, r: &Run) {
 /// box of 100 kg/m³ (0.08 × 0.05 m) resting on the floor in its path.
 #[test]
 fn light_body_in_a_dam_break() {
+    light_body_in_a_dam_break_on(Integrator::Explicit, "light body in a dam break");
+}
+
+/// The same on the projection: the body coupled in the pressure solve.
+#[test]
+fn light_body_in_a_dam_break_projection() {
+    light_body_in_a_dam_break_on(
+        Integrator::Projection,
+        "light body in a dam break (projection)",
+    );
+}
+
+fn light_body_in_a_dam_break_on(integrator: Integrator, name: &str) {
     let p = SolverParams::<2> {
         n_grid: 128,
         num_threads: 2,
+        integrator,
         ..Default::default()
     };
     let dx = p.dx();
@@ -208,8 +223,8 @@ fn light_body_in_a_dam_break() {
     s.add_body(b).unwrap();
     s.set_particles(water([lo, lo], [lo + a, lo + 2.0 * a], &p, &[], 0.0, true))
         .unwrap();
-    let r = run("light body in a dam break", &mut s, frames(300));
-    check("light body in a dam break", &r);
+    let r = run(name, &mut s, frames(300));
+    check(name, &r);
 }
 
 /// A rotation about axis `a` (unit) by `deg` degrees, as columns.
@@ -228,9 +243,23 @@ fn rotation3(a: [f32; 3], deg: f32) -> Vec<Vec<f32>> {
 /// deep, released at rest: they fall, float, sink and pile on each other.
 #[test]
 fn twenty_bodies_piled_in_a_3d_tank() {
+    twenty_bodies_on(Integrator::Explicit, "20 bodies piled in a 3D tank");
+}
+
+/// The same on the projection.
+#[test]
+fn twenty_bodies_piled_in_a_3d_tank_projection() {
+    twenty_bodies_on(
+        Integrator::Projection,
+        "20 bodies piled in a 3D tank (projection)",
+    );
+}
+
+fn twenty_bodies_on(integrator: Integrator, name: &str) {
     let p = SolverParams::<3> {
         n_grid: 32,
         num_threads: 2,
+        integrator,
         ..Default::default()
     };
     let dx = p.dx();
@@ -269,8 +298,8 @@ fn twenty_bodies_piled_in_a_3d_tank() {
         true,
     ))
     .unwrap();
-    let r = run("20 bodies piled in a 3D tank", &mut s, frames(120));
-    check("20 bodies piled in a 3D tank", &r);
+    let r = run(name, &mut s, frames(120));
+    check(name, &r);
 }
 
 /// `dam_break3d` as the Python scene builds it (34³, walls 2 cells, a

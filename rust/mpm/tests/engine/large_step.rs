@@ -7,8 +7,8 @@
 
 use hybridmpm_mpm::particles::lattice_box;
 use hybridmpm_mpm::{
-    BoundaryCondition, Collider, Integrator, Material, MpmError, Particle, Shape, Solver,
-    SolverParams,
+    BodyParams, BodyShapeKind, BoundaryCondition, Collider, Integrator, Material, MpmError,
+    Particle, Shape, Solver, SolverParams,
 };
 use nalgebra::SVector;
 
@@ -73,6 +73,77 @@ fn a_dam_break_is_the_same_bits_on_one_thread_and_two_and_after_a_restore() {
     let before = explicit.checkpoint();
     assert!(explicit.restore(&saved).is_err());
     assert!(explicit.checkpoint() == before);
+}
+
+/// The column with a light box (50 kg/m³) and a heavy ball (2,000 kg/m³) on the floor in its path.
+fn with_bodies(threads: usize) -> Solver<2> {
+    let mut s = solver(Integrator::Projection, threads);
+    for (shape, center, size, density) in [
+        (BodyShapeKind::Box, [0.5, 0.08], 0.04, 50.0),
+        (BodyShapeKind::Sphere, [0.75, 0.1], 0.05, 2000.0),
+    ] {
+        let body = BodyParams {
+            shape: Some(shape),
+            center: Some(center.to_vec()),
+            half_extents: (shape == BodyShapeKind::Box).then(|| vec![size, 0.75 * size]),
+            radius: (shape == BodyShapeKind::Sphere).then_some(size),
+            density: Some(density),
+            ..Default::default()
+        };
+        s.add_body(body.build::<2>("body").unwrap()).unwrap();
+    }
+    s
+}
+
+#[test]
+fn bodies_in_the_projection_are_the_same_bits_on_one_thread_and_two_and_after_a_restore() {
+    let (mut one, mut two) = (with_bodies(1), with_bodies(2));
+    for _ in 0..40 {
+        one.step_frame(DT_FRAME).unwrap();
+        two.step_frame(DT_FRAME).unwrap();
+        // a frame with bodies steps within itself
+        assert_eq!(one.drift_frames(), 0);
+    }
+    assert!(
+        one.checkpoint() == two.checkpoint() && one.bodies().states() == two.bodies().states(),
+        "1 and 2 threads differ"
+    );
+    // a checkpoint: the particles' (`checkpoint`) and the bodies' exact states and last forces
+    let saved = (
+        one.checkpoint(),
+        one.bodies().states().to_vec(),
+        one.bodies().last_force().to_vec(),
+    );
+    for _ in 0..40 {
+        one.step_frame(DT_FRAME).unwrap();
+    }
+    let mut again = with_bodies(2);
+    again.restore(&saved.0).unwrap();
+    for (i, (st, f)) in saved.1.iter().zip(&saved.2).enumerate() {
+        again.set_body_state(i, *st).unwrap();
+        again.set_body_force(i, *f).unwrap();
+    }
+    for _ in 0..40 {
+        again.step_frame(DT_FRAME).unwrap();
+    }
+    assert!(
+        one.checkpoint() == again.checkpoint() && one.bodies().states() == again.bodies().states(),
+        "a restored run differs"
+    );
+    // the surge carries the light box along +x; the heavy ball rests on the floor; nothing runs away
+    let states = one.bodies().states();
+    assert!(
+        states[0].x[0] > 0.505 && states[0].v[0] > 0.1,
+        "{:?}",
+        states[0]
+    );
+    assert!((states[1].x[1] - 0.1).abs() < 0.01, "{:?}", states[1]);
+    for st in states {
+        assert!(
+            st.v.iter().all(|v| v.is_finite() && v.abs() < 5.0),
+            "{st:?}"
+        );
+    }
 }
 
 #[test]
