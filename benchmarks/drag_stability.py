@@ -7,7 +7,8 @@ frames it takes a new random direction (mostly horizontal; ``--seed``), it moves
 50 m/s (``hybridmpm.mpm.motion.MAX_OBSTACLE_SPEED``). ``--push`` adds a run per integrator in which the paddle
 rests and the water is pushed instead: the controls' largest acceleration (``hybridmpm.control.reverse.A_MAX``,
 50 g) on every particle, in the same pattern of directions and pauses. Per case and integrator: the frames rolled
-back and retried (``SimStats.mpm_retries``; the target is at most 1 in 100), the steps a frame, whether the run
+back and retried (``SimStats.mpm_retries``; the target is at most 1 in 100), the projection's steps replanned
+shorter before their particles moved (``SimStats.mpm_replans``: no rollback, one solve redone), the steps a frame, whether the run
 ended early (a non-finite particle, or a frame MPM could not finish) and the wall time a frame.
 
     python benchmarks/drag_stability.py --speeds 5,20,50 --push --out benchmarks/results/drag_stability
@@ -65,6 +66,7 @@ def drag_run(scene: str, integrator: str, speed: float, frames: int, seed: int, 
         "frames": done,
         "retries": int(sim.stats.mpm_retries),
         "retries_per_100": 100.0 * sim.stats.mpm_retries / max(done, 1),
+        "replans_per_100": 100.0 * sim.stats.mpm_replans / max(done, 1),
         "steps_per_frame": float(np.sum(ro.substeps[1:]) / max(done, 1)),
         "failure": ro.failure,
         "ms_per_frame": 1e3 * wall / max(done, 1),
@@ -90,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             r = drag_run(a.scene, integrator, speed, a.frames, a.seed, push=push)
             print(r)
             rows.append(r)
-    keys = ["integrator", "case", "frames", "retries", "retries_per_100", "steps_per_frame", "failure", "ms_per_frame"]
+    keys = ["integrator", "case", "frames", "retries", "retries_per_100", "replans_per_100", "steps_per_frame", "failure", "ms_per_frame"]
     lines = [
         f"# A dragged obstacle{' and a pushed fluid' if a.push else ''}: {a.scene}, {a.frames} frames a run, seed {a.seed}",
         "\n".join(table(keys, [[r[k] if not isinstance(r[k], float) else f"{r[k]:.2f}" for k in keys] for r in rows])),

@@ -96,8 +96,9 @@ class Frame:
 class SimStats:
     """Counters of a run: coarse ``steps`` per solver, solver ``switches``,
     network ``fallbacks`` per failure mode, MPM substep halvings
-    ``mpm_retries``, MPM ``audits`` of network steps run and the wall
-    ``audit_seconds`` they took."""
+    ``mpm_retries``, projection steps replanned shorter before their
+    particles moved ``mpm_replans`` (docs/large-step.md), MPM ``audits`` of
+    network steps run and the wall ``audit_seconds`` they took."""
 
     steps: dict[str, int] = field(default_factory=lambda: {MPM: 0, NEURAL: 0})
     switches: int = 0
@@ -105,6 +106,7 @@ class SimStats:
     mpm_retries: int = 0
     audits: int = 0
     audit_seconds: float = 0.0
+    mpm_replans: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -114,6 +116,7 @@ class SimStats:
             "mpm_retries": self.mpm_retries,
             "audits": self.audits,
             "audit_seconds": self.audit_seconds,
+            "mpm_replans": self.mpm_replans,
         }
 
     @classmethod
@@ -138,6 +141,7 @@ class SimStats:
             check_count("state.stats.mpm_retries", d["mpm_retries"]),
             check_count("state.stats.audits", d.get("audits", 0)),  # states saved before the audit existed have none
             float(secs),
+            check_count("state.stats.mpm_replans", d.get("mpm_replans", 0)),  # nor before replanning
         )
 
 

@@ -371,7 +371,7 @@ class MpmSimulator:
         finished even with the smallest substep (the state is then that of
         the failing frame's start)."""
         t0 = time.perf_counter()
-        retries = substeps = 0
+        retries = replans = substeps = 0
         controlled = False
         n, d = self.particles.num_fluid, self.particles.dim
         start = self.solver.collider_positions
@@ -387,12 +387,14 @@ class MpmSimulator:
                     self._clear_forcing()
             st = self.solver.step_frame(self.dt_frame)
             retries += int(st.get("retries", 0))
+            replans += int(st.get("replans", 0))
             substeps += int(st["substeps"])
         pos = self.fluid_positions
         self._moves.clear()
         self.step_index += 1
         self.stats.steps[MPM] += 1
         self.stats.mpm_retries += retries
+        self.stats.mpm_replans += replans
         self._frame = Frame(
             self.step_index,
             self.step_index * self.r_t,

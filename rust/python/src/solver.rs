@@ -116,6 +116,7 @@ fn stats_dict<'py>(py: Python<'py>, st: core::FrameStats) -> PyResult<Bound<'py,
     d.set_item("max_speed", st.max_speed)?;
     d.set_item("active_blocks", st.active_blocks)?;
     d.set_item("retries", st.retries)?;
+    d.set_item("replans", st.replans)?;
     Ok(d)
 }
 
@@ -438,9 +439,11 @@ impl MpmSolver {
     }
 
     /// Advance one frame (default 2.5 ms). Returns {substeps, dt, max_speed,
-    /// active_blocks, retries}. A substep that leaves a non-finite state,
+    /// active_blocks, retries, replans}. A substep that leaves a non-finite state,
     /// inverts a sand particle (det F <= 0) or violates the CFL condition
-    /// restarts the frame with the substep halved (`retries` counts them).
+    /// restarts the frame with the substep halved (`retries` counts them);
+    /// a projection step stopped before its particles moved, too fast for
+    /// its length, shortens the frame's remaining steps (`replans`).
     /// Raises `SimulationError` (with `.substep`) if even `max_substeps`
     /// fail, and (naming the particles' speed) if the CFL condition asks for
     /// more than `max_substeps`: the state is then that of the frame's start.

@@ -73,6 +73,10 @@ pub struct ProjectionStats {
     pub iterations: usize,
     /// The residual's norm over the right-hand side's at the end.
     pub residual: f64,
+    /// Where the step stopped before moving the particles: the bound on their speed [m/s] its solved
+    /// velocity gives, which would carry them farther than the travel limit in the step
+    /// ([`Projection::set_travel_limit`]).
+    pub stopped: Option<f32>,
 }
 
 /// The grids of the projection step on the unit box: `n` cells a side,
@@ -109,6 +113,8 @@ pub struct Projection<const D: usize> {
     /// The volume correction's time scale [s] when it is longer than the step
     /// ([`Projection::set_correction_time`]; 0: the step's own).
     correction_time: f32,
+    /// The farthest [m] a step's solved velocity may carry a particle (infinite: no limit).
+    travel_limit: f32,
 }
 
 /// Particles a g2p task takes at once.
@@ -218,6 +224,7 @@ impl<const D: usize> Projection<D> {
             parts: Default::default(),
             isa: Isa::detect(),
             correction_time: 0.0,
+            travel_limit: f32::INFINITY,
         }
     }
 
@@ -230,6 +237,16 @@ impl<const D: usize> Projection<D> {
     /// a frame however many steps it takes; a step spanning frames is unchanged.
     pub fn set_correction_time(&mut self, t: f32) {
         self.correction_time = t;
+    }
+
+    /// A step stops before it moves the particles where its solved velocity would carry one farther
+    /// than `limit` [m] in the step (`ProjectionStats::stopped`, with the particles and the bodies as
+    /// they were): the caller steps again with a shorter `dt`. The bound on a particle's speed is
+    /// the norm of the largest face speed along each axis over the faces of the fluid cells, where
+    /// the solve changed the velocity (a particle's velocity interpolates the faces with positive
+    /// weights). Infinite, the default: no limit.
+    pub fn set_travel_limit(&mut self, limit: f32) {
+        self.travel_limit = limit;
     }
 
     /// Runs the transfers with `isa` ([`crate::Solver::set_isa`] passes its choice on). Call it only
@@ -303,12 +320,38 @@ impl<const D: usize> Projection<D> {
         self.walls();
         self.obstacle_faces(cols, false);
         let stats = self.solve(dt, rho, cols.bodies);
-        self.finish_bodies(cols.bodies, dt);
         self.subtract_gradient(dt, rho);
         self.walls();
+        if self.travel_limit.is_finite() {
+            let bound = self.fluid_face_speed();
+            if bound * dt > self.travel_limit {
+                return ProjectionStats {
+                    stopped: Some(bound),
+                    ..stats
+                };
+            }
+        }
+        self.finish_bodies(cols.bodies, dt);
         self.obstacle_faces(cols, true);
         self.g2p(particles, advance, cols);
         stats
+    }
+
+    /// The norm of the largest face speed along each axis over the faces of the fluid cells [m/s].
+    fn fluid_face_speed(&self) -> f32 {
+        let n = self.n;
+        let st: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
+        let mut top = [0.0f32; D];
+        for &c in &self.fluid {
+            let idx = self.unflat(c);
+            for a in 0..D {
+                let low: usize = (0..D).map(|d| idx[d] * st[a][d]).sum();
+                top[a] = top[a]
+                    .max(self.vel[a][low].abs())
+                    .max(self.vel[a][low + st[a][a]].abs());
+            }
+        }
+        top.iter().map(|t| t * t).sum::<f32>().sqrt()
     }
 
     /// p2g in two fixed parts of the particles (in parallel on the calling
@@ -536,6 +579,7 @@ impl<const D: usize> Projection<D> {
             fluid_cells: m,
             iterations,
             residual,
+            stopped: None,
         }
     }
 

@@ -264,3 +264,26 @@ fn the_preconditioned_solve_converges_a_collapsing_column_in_few_iterations() {
     assert!(column_iterations::<2>(128) < 60.0);
     assert!(column_iterations::<3>(34) < 25.0);
 }
+
+/// A step whose solved velocity would carry a particle farther than the travel limit stops before the
+/// particles move: they stay as they were, bit for bit, and the bound it reports exceeds the limit.
+#[test]
+fn a_step_past_its_travel_limit_stops_before_the_particles_move() {
+    let mut ps = tank::<2>(64, 3, 0.3);
+    ps.iter_mut().for_each(|p| p.v[0] = 1.0);
+    let before = ps.clone();
+    let mut pr = Projection::<2>::new(64, 3);
+    let dt = 2.5e-3;
+    pr.set_travel_limit(0.5 * dt); // half a metre a second's worth
+    let st = pr.step(&mut ps, dt, &gravity::<2>(), RHO);
+    let bound = st.stopped.expect("the step stops");
+    assert!(bound * dt > 0.5 * dt && bound.is_finite(), "{bound}");
+    assert!(
+        ps.iter()
+            .zip(&before)
+            .all(|(a, b)| a.x == b.x && a.v == b.v)
+    );
+    pr.set_travel_limit(f32::INFINITY);
+    assert!(pr.step(&mut ps, dt, &gravity::<2>(), RHO).stopped.is_none());
+    assert!(ps.iter().zip(&before).any(|(a, b)| a.x != b.x));
+}

@@ -214,6 +214,7 @@ where
                 max_speed: 0.0,
                 active_blocks: 0,
                 retries: 0,
+                replans: 0,
             });
         }
         // the frame's start, to roll back to (buffers kept across frames:
@@ -242,6 +243,7 @@ where
                         max_speed: vmax,
                         active_blocks,
                         retries,
+                        replans: 0,
                     });
                 }
                 Err(e) => {

@@ -199,6 +199,7 @@ where
                 max_speed,
                 active_blocks: 0,
                 retries: 0,
+                replans: 0,
             })
         } else {
             match self.projection_density() {
@@ -278,14 +279,16 @@ where
         } else {
             1
         };
-        let (mut n_sub, mut retries) = (n_sub, 0);
+        let (mut n_sub, mut retries, mut replans) = (n_sub, 0, 0);
+        projection.set_travel_limit(MAX_TRAVEL_CELLS * dx);
         loop {
-            let dt = frames as f32 * dt_frame / n_sub as f32;
-            let advance = dt / frames as f32;
+            let mut dt = frames as f32 * dt_frame / n_sub as f32;
+            let mut advance = dt / frames as f32;
             let (mut failed, mut vmax) = (None, 0.0f32);
+            let (mut k, mut steps, mut spanning, mut taken) = (0, n_sub, false, 0);
             self.begin_bodies();
-            for k in 0..n_sub {
-                self.pose_colliders(k + 1, n_sub);
+            while k < steps {
+                self.pose_colliders(k + 1, steps);
                 let bodies = self.step_bodies(dt);
                 let particles = &mut self.particles;
                 let cols = StepColliders {
@@ -294,16 +297,39 @@ where
                     shallow: &self.shallow,
                     bodies: &bodies,
                 };
-                self.pool.install(|| {
+                let stats = self.pool.install(|| {
                     projection.step_advancing(particles, dt, advance, &gravity, rho, &cols)
                 });
+                if let Some(bound) = stats.stopped {
+                    // nothing moved: the rest of the frame in steps short enough for the velocity the
+                    // solve gave (a step spanning frames is replanned as one frame a step)
+                    replans += 1;
+                    if frames > 1 {
+                        spanning = true;
+                        break;
+                    }
+                    let m = ((bound * dt / (ADVECTIVE_CFL * dx)).ceil() as usize).max(2);
+                    if steps * m > self.params.max_substeps {
+                        failed = Some(MpmError::CflViolation {
+                            substep: k + 1,
+                            substeps: steps,
+                            max_speed: bound,
+                            retries,
+                        });
+                        break;
+                    }
+                    (k, steps) = (k * m, steps * m);
+                    dt /= m as f32;
+                    advance = dt;
+                    continue;
+                }
                 if !bodies.is_empty() {
-                    let steps: Vec<_> = projection
+                    let body_steps: Vec<_> = projection
                         .body_steps()
                         .iter()
                         .map(|s| (s.impulse, s.delta))
                         .collect();
-                    self.bodies.projection_step(&steps, dt);
+                    self.bodies.projection_step(&body_steps, dt);
                     let (poses, particles) = (&self.bodies.poses, &mut self.particles);
                     let (depth, bounds) = (PROJECT_DEPTH_CELLS * dx, projection.bounds());
                     self.pool
@@ -313,7 +339,7 @@ where
                 if !vmax.is_finite() {
                     failed = Some(MpmError::NonFinite {
                         substep: k + 1,
-                        substeps: n_sub,
+                        substeps: steps,
                         retries,
                     });
                     break;
@@ -321,24 +347,30 @@ where
                 if vmax * dt > MAX_TRAVEL_CELLS * dx {
                     failed = Some(MpmError::CflViolation {
                         substep: k + 1,
-                        substeps: n_sub,
+                        substeps: steps,
                         max_speed: vmax,
                         retries,
                     });
                     break;
                 }
+                (k, taken) = (k + 1, taken + 1);
             }
-            self.bodies.end(failed.is_none(), dt_frame);
+            self.bodies.end(failed.is_none() && !spanning, dt_frame);
+            if spanning {
+                frames = 1; // nothing moved: not a rollback
+                continue;
+            }
             match failed {
                 None => {
                     self.end_moves(true);
                     self.drift_frames = frames - 1;
                     return Ok(FrameStats {
-                        substeps: n_sub,
+                        substeps: taken,
                         dt,
                         max_speed: vmax,
                         active_blocks: 0,
                         retries,
+                        replans,
                     });
                 }
                 Some(e) => {

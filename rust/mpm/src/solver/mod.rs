@@ -116,6 +116,11 @@ pub struct FrameStats {
     /// Times the frame was restarted with the substep halved (after a
     /// non-finite state or a CFL violation).
     pub retries: usize,
+    /// Projection steps whose solved velocity would have carried water
+    /// farther than a step may, stopped before the particles moved: the
+    /// rest of the frame takes shorter steps, and nothing rolls back
+    /// (`solver/large_step.rs`; 0 on the explicit step).
+    pub replans: usize,
 }
 
 /// What a substep left behind (checked in g2p, particle by particle).
