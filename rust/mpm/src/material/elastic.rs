@@ -12,7 +12,8 @@
 //!
 //! Snow's stress is the fixed-corotated one with hardened Lamé parameters
 //! (`snow.rs`). A step that would invert the solid is kept out
-//! ([`inverted`]).
+//! ([`inverted`]). Here its parameters ([`ElasticParams`], [`ElasticModel`])
+//! and their schema table too.
 
 use nalgebra::SMatrix;
 

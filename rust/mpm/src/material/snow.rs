@@ -10,7 +10,8 @@
 //! `τ` is the fixed-corotated stress of `F_E` with μ, λ hardened by
 //! `e^{ξ(1 − J_P)}`: a function of `B` with the values
 //! `2μh(ĉ² − ĉ) + λh J_E(J_E − 1)`. A step that would invert the solid is
-//! kept out (`spectral::inverted`).
+//! kept out (`spectral::inverted`). Here its parameters ([`SnowParams`])
+//! and their schema table too.
 
 use nalgebra::SMatrix;
 

@@ -1,7 +1,7 @@
 //! The viscoplastic solid (mud, plasticine): von Mises plasticity on the
 //! Hencky strain with viscous relaxation (a Bingham material; a
-//! Perzyna-type overstress, `params/solid.rs`). The particle carries the
-//! elastic F.
+//! Perzyna-type overstress, [`ViscoplasticParams`]). The particle carries the
+//! elastic F. Here its parameters and their schema table too.
 //!
 //! g2p, from the trial `F* = (I + Δt·C)·F`, without singular vectors (an
 //! isotropic function of `B = F*·F*ᵀ`, `spectral.rs`): `ε0 = ½ ln λ` (the

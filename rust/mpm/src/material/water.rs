@@ -6,6 +6,7 @@
 //! `J ← J·(1 + Δt·tr C)` (the discrete `J̇ = J ∇·v`), held at or above
 //! [`J_FLOOR`]. The CFL condition takes the sound speed `sqrt(K/ρ)`, or the
 //! viscous limit as a speed if larger ([`WaterParams::viscous_speed`]).
+//! Here its parameters ([`WaterParams`]) and their schema table too.
 
 use nalgebra::SMatrix;
 

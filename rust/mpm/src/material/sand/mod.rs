@@ -20,7 +20,8 @@
 //! stress of a particle's state (set, restored or changed between frames)
 //! is that of the SVD route ([`stress_of`]).
 //!
-//! Files: this one (the model: [`Sand`]), `return_map.rs` (the projection
+//! Files: this one (the model: [`SandParams`], its schema table and the
+//! constants derived from it, [`Sand`]), `return_map.rs` (the projection
 //! onto the cone, on one particle and on SIMD lanes, and the SVD route),
 //! `update_2d.rs` and `update_3d.rs` (the g2p update without singular
 //! vectors), `tests.rs` (every route against an f64 SVD reference, the batch
