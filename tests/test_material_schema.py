@@ -1,4 +1,4 @@
-"""A material's parameters are declared once, in the Rust core's schema (``params/schema.rs``, exported as
+"""A material's parameters are declared once, in the Rust core's schema (each model's file in ``rust/mpm/src/material/``, exported as
 ``_core.material_schema()``): Python's materials, the parameter-dict dataclasses, the HTTP pour body and the
 tables of docs/materials.md follow it, and every range is checked from it, as the user's value in float64
 and then in float32, so that what Python accepts the core accepts."""

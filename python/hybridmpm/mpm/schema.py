@@ -1,4 +1,4 @@
-"""The materials' parameters as the Rust core declares them (``params/schema.rs``, exported as
+"""The materials' parameters as the Rust core declares them (each model's file in ``rust/mpm/src/material/``, exported as
 :func:`hybridmpm._core.material_schema`): per model, each parameter's name, the user's key (``E`` for
 ``youngs_modulus``, ``nu`` for ``poisson_ratio``), unit, range, default, description and source.
 

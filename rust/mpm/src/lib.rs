@@ -11,10 +11,12 @@
 //!
 //! Layout: `kernel` (quadratic B-spline weights, shared with `grid_mass`,
 //! `transfer` and `surface`), `material` (a file per constitutive model:
-//! water, sand, elastic, snow, viscoplastic, behind one trait), `boundary`,
+//! water, sand, elastic, snow, viscoplastic, behind one trait, each with
+//! its parameters and their schema), `boundary`,
 //! `collider/` (a file per concept: shape, sampled signed distance, motion,
 //! validation, particle projection and its reach, boundary condition) and
-//! `params/` (boundary conditions, obstacles and parameters; `params` uses
+//! `params/` (the solver-wide parameters, walls, obstacles and bodies, and
+//! the materials' parameters re-exported; `params` uses `material` and
 //! `collider`, both use `boundary`), `solver` (one file per substep stage:
 //! grid, p2g, grid_update, g2p, and the CFL frame loop), `checkpoint`;
 //! outside the solver, on the same kernel: `grid_mass` (the accuracy
@@ -52,10 +54,14 @@ pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
+pub use material::schema::{Limit, MaterialSchema, Param, ParamValue};
+pub use material::{
+    ElasticModel, ElasticParams, MaterialParams, SandParams, SnowParams, ViscoplasticParams,
+    WaterParams, material_schema,
+};
 pub use params::{
-    BodyParams, BodyShapeKind, ColliderParams, ElasticModel, ElasticParams, Integrator, Limit,
-    MaterialParams, MaterialSchema, Param, ParamValue, SandParams, ShapeKind, SnowParams,
-    SolverParams, ViscoplasticParams, WallFace, WallParams, WaterParams, material_schema,
+    BodyParams, BodyShapeKind, ColliderParams, Integrator, ShapeKind, SolverParams, WallFace,
+    WallParams,
 };
 pub use particles::{Material, Particle, lattice, lattice_box};
 pub use pool::shared_pool;

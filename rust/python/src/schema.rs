@@ -1,5 +1,5 @@
 //! `material_schema()`: each model's parameter table (the core's
-//! `params::schema`) as Python dicts, from which `hybridmpm.materials`
+//! `material_schema`, beside each model in `rust/mpm/src/material/`) as Python dicts, from which `hybridmpm.materials`
 //! builds its range checks, user aliases and defaults.
 
 use hybridmpm_mpm::{Param, ParamValue};

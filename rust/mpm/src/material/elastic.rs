@@ -12,19 +12,125 @@
 //!
 //! Snow's stress is the fixed-corotated one with hardened Lamé parameters
 //! (`snow.rs`). A step that would invert the solid is kept out
-//! ([`inverted`]).
+//! ([`inverted`]). Here its parameters ([`ElasticParams`], [`ElasticModel`])
+//! and their schema table too.
 
 use nalgebra::SMatrix;
 
-use super::Constitutive;
 use super::lanes::Real;
+use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS};
 use super::spectral::{Spectral3, det, from_lanes, inverted, k, keep_where, to_lanes};
 use super::vmath;
+use super::{Constitutive, lame, p_wave};
 use crate::dim::{Dim, DimOps};
-use crate::params::{ElasticModel, ElasticParams};
-use crate::particles::Particle;
+use crate::error::Result;
+use crate::particles::{Material, Particle};
 
 use super::batch::State;
+
+/// The hyperelastic energy of an [`ElasticParams`] set.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
+pub enum ElasticModel {
+    /// Fixed-corotated (Stomakhin et al. 2012):
+    /// `τ = 2μ(F − R)Fᵀ + λJ(J − 1)I`, `R` the rotation of `F`'s polar decomposition.
+    #[default]
+    Corotated,
+    /// Compressible neo-Hookean (e.g. Bonet & Wood 2008): `τ = μ(FFᵀ − I) + λ ln J · I`.
+    Neohookean,
+}
+
+impl ElasticModel {
+    /// Its name in the parameter dict (`corotated`, `neohookean`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ElasticModel::Corotated => "corotated",
+            ElasticModel::Neohookean => "neohookean",
+        }
+    }
+}
+
+/// Elastic solid ("jelly"): the particle carries its deformation gradient F.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct ElasticParams {
+    /// Density ρ [kg/m³].
+    pub density: f32,
+    /// Young's modulus E [Pa].
+    pub youngs_modulus: f32,
+    /// Poisson's ratio ν [-], in [0, 0.5).
+    pub poisson_ratio: f32,
+    /// The energy: fixed-corotated or neo-Hookean.
+    pub model: ElasticModel,
+}
+
+impl Default for ElasticParams {
+    fn default() -> Self {
+        // a stiff jelly: E = 1e5 Pa (wave speed 11.6 m/s at ν = 0.3)
+        ElasticParams {
+            density: 1000.0,
+            youngs_modulus: 1.0e5,
+            poisson_ratio: 0.3,
+            model: ElasticModel::Corotated,
+        }
+    }
+}
+
+impl ElasticParams {
+    pub fn validate(&self) -> Result<()> {
+        self.validate_at("elastic")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
+    }
+
+    /// Lamé parameters (μ, λ) [Pa].
+    pub fn lame(&self) -> (f32, f32) {
+        lame(self.youngs_modulus, self.poisson_ratio)
+    }
+
+    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
+    }
+}
+
+impl MaterialSchema for ElasticParams {
+    const MATERIAL: Material = Material::Elastic;
+    const PARAMS: &'static [Param] = &[
+        DENSITY,
+        YOUNGS,
+        POISSON,
+        Param {
+            name: "model",
+            alias: None,
+            unit: "-",
+            lower: None,
+            upper: None,
+            choices: &["corotated", "neohookean"],
+            description: "the energy: fixed-corotated or compressible neo-Hookean",
+            source: "Stomakhin et al. 2012 (corotated); Bonet & Wood 2008 (neo-Hookean)",
+        },
+    ];
+    fn values(&self) -> Vec<ParamValue> {
+        use ParamValue::Number as N;
+        vec![
+            N(self.density),
+            N(self.youngs_modulus),
+            N(self.poisson_ratio),
+            ParamValue::Name(self.model.name()),
+        ]
+    }
+}
 
 /// An elastic set's parameters and Lamé constants.
 #[derive(Clone, Debug)]

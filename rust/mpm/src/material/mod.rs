@@ -14,6 +14,12 @@
 //! - [`viscoplastic`]: von Mises on the Hencky strain with viscous
 //!   relaxation, state the elastic `F`.
 //!
+//! Each model's file declares its parameters too: the params struct (serde,
+//! `Default`, `validate()`), the constants derived from it and its table of
+//! the schema (`impl MaterialSchema`; the row type and the shared rows in
+//! `schema.rs`). Here the registration: [`MaterialParams`], one parameter
+//! set of any model, and [`material_schema`], every model's table.
+//!
 //! Beside them: [`Models`], each parameter set's [`Model`] (the table
 //! particles index by `Particle::set`), which g2p, the stress refresh and
 //! the CFL condition go through; `batch.rs`, the update of sixteen
@@ -25,6 +31,9 @@ mod batch;
 mod elastic;
 mod lanes;
 pub mod sand;
+pub mod schema;
+#[cfg(all(test, feature = "serde"))]
+mod schema_tests;
 mod snow;
 mod spectral;
 mod viscoplastic;
@@ -37,20 +46,114 @@ mod solid_lane_tests;
 mod solid_tests;
 
 pub(crate) use batch::{Batch, LaneHealth, ParticleSink, State};
+pub use elastic::{ElasticModel, ElasticParams};
 pub(crate) use lanes::LANES;
+pub use sand::SandParams;
+pub use snow::SnowParams;
+pub use viscoplastic::ViscoplasticParams;
+pub use water::WaterParams;
 
 use nalgebra::SMatrix;
 
 use crate::dim::{Dim, DimOps};
+use crate::error::Result;
 use crate::isa::Isa;
-use crate::params::{MaterialParams, SolverParams};
-use crate::particles::Particle;
+use crate::particles::{Material, Particle};
 use elastic::Elastic;
 use lanes::Real;
 use sand::Sand;
+use schema::{MaterialSchema, Param, ParamValue};
 use snow::Snow;
 use viscoplastic::Viscoplastic;
 use water::Water;
+
+/// One parameter set of the table particles index (`Particle::set`). The
+/// parameter dict names it by its material, the one key of a dict
+/// (`{"elastic": {"youngs_modulus": 1e6}}`, serde's externally tagged form;
+/// the keys inside as each struct's, unknown ones refused);
+/// `SolverParams::sets` (`crate::params`) lists them.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "lowercase")
+)]
+pub enum MaterialParams {
+    Water(WaterParams),
+    Sand(SandParams),
+    Elastic(ElasticParams),
+    Snow(SnowParams),
+    Viscoplastic(ViscoplasticParams),
+}
+
+impl MaterialParams {
+    /// The material code this set belongs to.
+    pub fn material(&self) -> Material {
+        match self {
+            MaterialParams::Water(_) => Material::Water,
+            MaterialParams::Sand(_) => Material::Sand,
+            MaterialParams::Elastic(_) => Material::Elastic,
+            MaterialParams::Snow(_) => Material::Snow,
+            MaterialParams::Viscoplastic(_) => Material::Viscoplastic,
+        }
+    }
+
+    /// Density ρ [kg/m³].
+    pub fn density(&self) -> f32 {
+        match self {
+            MaterialParams::Water(p) => p.density,
+            MaterialParams::Sand(p) => p.density,
+            MaterialParams::Elastic(p) => p.density,
+            MaterialParams::Snow(p) => p.density,
+            MaterialParams::Viscoplastic(p) => p.density,
+        }
+    }
+
+    /// Validates the set at `field` (`sets[2]`), naming a bad key under it
+    /// and its material (`sets[2].elastic.youngs_modulus`).
+    pub fn validate(&self, field: &str) -> Result<()> {
+        let prefix = format!("{field}.{}", self.material().name());
+        match self {
+            MaterialParams::Water(p) => p.validate_at(&prefix),
+            MaterialParams::Sand(p) => p.validate_at(&prefix),
+            MaterialParams::Elastic(p) => p.validate_at(&prefix),
+            MaterialParams::Snow(p) => p.validate_at(&prefix),
+            MaterialParams::Viscoplastic(p) => p.validate_at(&prefix),
+        }
+    }
+}
+
+/// Every model's table and defaults (the struct's `Default`, in table order).
+pub fn material_schema() -> Vec<(Material, &'static [Param], Vec<ParamValue>)> {
+    fn row<T: MaterialSchema>() -> (Material, &'static [Param], Vec<ParamValue>) {
+        (T::MATERIAL, T::PARAMS, T::default().values())
+    }
+    vec![
+        row::<WaterParams>(),
+        row::<SandParams>(),
+        row::<ElasticParams>(),
+        row::<SnowParams>(),
+        row::<ViscoplasticParams>(),
+    ]
+}
+
+/// Lamé parameters (μ, λ) [Pa] of Young's modulus `e` and Poisson's ratio `nu`:
+/// `μ = E / (2(1 + ν))`, `λ = E ν / ((1 + ν)(1 − 2ν))`.
+pub fn lame(e: f32, nu: f32) -> (f32, f32) {
+    (
+        e / (2.0 * (1.0 + nu)),
+        e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+    )
+}
+
+/// P-wave speed `sqrt((λ + 2μ)·stiffen/ρ)` [m/s] of Young's modulus `e`
+/// [Pa], Poisson's ratio `nu` and density `density` [kg/m³], the moduli
+/// scaled by `stiffen` (snow's hardening; 1 for the others, which leaves
+/// the bits of `sqrt((λ + 2μ)/ρ)`).
+fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
+    let (mu, la) = lame(e, nu);
+    ((la + 2.0 * mu) * stiffen / density).sqrt()
+}
 
 /// One constitutive model: a parameter set's constants (derived once per
 /// solver) and what the solver asks of them. Static dispatch: [`Model`]
@@ -201,7 +304,7 @@ impl Model {
     }
 }
 
-/// The table of parameter sets (`SolverParams::table`) and each set's
+/// The table of parameter sets (`SolverParams::table`, `crate::params`) and each set's
 /// [`Model`], indexed by `Particle::set`.
 #[derive(Clone, Debug)]
 pub(crate) struct Models {
@@ -212,13 +315,12 @@ pub(crate) struct Models {
 }
 
 impl Models {
-    /// The table of `params` (validated); `isa` must be
+    /// The models of `table` (validated) in `D` dimensions; `isa` must be
     /// [`available`](Isa::available).
-    pub(crate) fn new<const D: usize>(params: &SolverParams<D>, isa: Isa) -> Self
+    pub(crate) fn new<const D: usize>(table: Vec<MaterialParams>, isa: Isa) -> Self
     where
         Dim<D>: DimOps<D>,
     {
-        let table = params.table();
         let models = table.iter().map(Model::new::<D>).collect();
         Models {
             params: table,

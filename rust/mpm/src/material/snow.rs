@@ -10,25 +10,157 @@
 //! `τ` is the fixed-corotated stress of `F_E` with μ, λ hardened by
 //! `e^{ξ(1 − J_P)}`: a function of `B` with the values
 //! `2μh(ĉ² − ĉ) + λh J_E(J_E − 1)`. A step that would invert the solid is
-//! kept out (`spectral::inverted`).
+//! kept out (`spectral::inverted`). Here its parameters ([`SnowParams`])
+//! and their schema table too.
 
 use nalgebra::SMatrix;
 
-use super::Constitutive;
 use super::batch::State;
 use super::elastic::{corotated, corotated_2d};
 use super::lanes::Real;
+use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, ge, gt, le, lt};
 use super::spectral::{
     Spectral3, abs, det, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, or,
     plastic_f, quotient, to_lanes, trial,
 };
 use super::vmath;
+use super::{Constitutive, lame, p_wave};
 use crate::dim::{Dim, DimOps};
-use crate::params::SnowParams;
-use crate::particles::Particle;
+use crate::error::Result;
+use crate::particles::{Material, Particle};
 
 const JP_LO: f32 = SnowParams::JP_RANGE.0;
 const JP_HI: f32 = SnowParams::JP_RANGE.1;
+
+/// Snow (Stomakhin et al. 2013, "A material point method for snow
+/// simulation"): fixed-corotated elasticity on the elastic part `F_E` of
+/// `F = F_E F_P`; after each update the singular values of `F_E` are clamped
+/// to `[1 − θc, 1 + θs]` and the rest goes to `F_P`; the Lamé parameters are
+/// hardened by `e^{ξ(1 − J_P)}`, `J_P = det F_P`. The particle carries `F_E`
+/// (in `f`) and `J_P` (in `j`).
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct SnowParams {
+    /// Density ρ [kg/m³] (Stomakhin et al. 2013: 400).
+    pub density: f32,
+    /// Initial Young's modulus E₀ [Pa] (1.4e5).
+    pub youngs_modulus: f32,
+    /// Poisson's ratio ν [-] (0.2), in [0, 0.5).
+    pub poisson_ratio: f32,
+    /// Critical compression θc [-] (2.5e-2), in (0, 1).
+    pub theta_c: f32,
+    /// Critical stretch θs [-] (7.5e-3), in (0, 1).
+    pub theta_s: f32,
+    /// Hardening coefficient ξ [-] (10), ≥ 0.
+    pub hardening: f32,
+}
+
+impl Default for SnowParams {
+    fn default() -> Self {
+        SnowParams {
+            density: 400.0,
+            youngs_modulus: 1.4e5,
+            poisson_ratio: 0.2,
+            theta_c: 2.5e-2,
+            theta_s: 7.5e-3,
+            hardening: 10.0,
+        }
+    }
+}
+
+impl SnowParams {
+    /// The range of `J_P` that enters the hardening exponent (the MLS-MPM
+    /// reference code's clamp): `J_P` itself is kept unclamped, so that
+    /// `J_P · det F_E = det F` holds, and the stiffness stays bounded.
+    pub const JP_RANGE: (f32, f32) = (0.6, 20.0);
+
+    pub fn validate(&self) -> Result<()> {
+        self.validate_at("snow")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
+    }
+
+    /// Lamé parameters (μ₀, λ₀) [Pa] before hardening.
+    pub fn lame(&self) -> (f32, f32) {
+        lame(self.youngs_modulus, self.poisson_ratio)
+    }
+
+    /// Hardening factor `e^{ξ(1 − J_P)}` with `J_P` clamped to [`Self::JP_RANGE`].
+    pub fn hardening_factor(&self, jp: f32) -> f32 {
+        let jp = jp.clamp(Self::JP_RANGE.0, Self::JP_RANGE.1);
+        (self.hardening * (1.0 - jp)).exp()
+    }
+
+    /// P-wave speed [m/s] of snow whose smallest `J_P` is `jp_min`.
+    pub fn wave_speed(&self, jp_min: f32) -> f32 {
+        p_wave(
+            self.youngs_modulus,
+            self.poisson_ratio,
+            self.density,
+            self.hardening_factor(jp_min),
+        )
+    }
+}
+
+const fn theta(name: &'static str, description: &'static str) -> Param {
+    Param {
+        name,
+        alias: None,
+        unit: "-",
+        lower: gt(0.0),
+        upper: lt(1.0),
+        choices: &[],
+        description,
+        source: "Stomakhin et al. 2013, Table 2 (θc = 2.5e-2, θs = 7.5e-3)",
+    }
+}
+
+impl MaterialSchema for SnowParams {
+    const MATERIAL: Material = Material::Snow;
+    const PARAMS: &'static [Param] = &[
+        DENSITY,
+        Param {
+            description: "initial Young's modulus E₀",
+            ..YOUNGS
+        },
+        POISSON,
+        theta(
+            "theta_c",
+            "critical compression θc: singular values of F_E ≥ 1 − θc",
+        ),
+        theta(
+            "theta_s",
+            "critical stretch θs: singular values of F_E ≤ 1 + θs",
+        ),
+        Param {
+            name: "hardening",
+            alias: None,
+            unit: "-",
+            lower: ge(0.0),
+            upper: le(50.0),
+            choices: &[],
+            description: "hardening coefficient ξ: the Lamé parameters scale by e^{ξ(1 − J_P)}",
+            source: "Stomakhin et al. 2013 (ξ = 10); 50 caps the factor e^{0.4ξ} at J_P = 0.6 near 5e8",
+        },
+    ];
+    fn values(&self) -> Vec<ParamValue> {
+        use ParamValue::Number as N;
+        vec![
+            N(self.density),
+            N(self.youngs_modulus),
+            N(self.poisson_ratio),
+            N(self.theta_c),
+            N(self.theta_s),
+            N(self.hardening),
+        ]
+    }
+}
 
 /// A snow set's parameters and constants.
 #[derive(Clone, Debug)]

@@ -9,10 +9,10 @@ use super::snow::{snow_2d, snow_3d};
 use super::solid_tests::advance;
 use super::spectral::to_lanes;
 use super::viscoplastic::{viscoplastic_2d, viscoplastic_3d};
-use super::{Batch, Model, Models};
+use super::{Batch, Model};
+use super::{ElasticParams, MaterialParams, SnowParams, ViscoplasticParams};
 use crate::dim::{Dim, DimOps};
 use crate::isa::Isa;
-use crate::params::{ElasticParams, MaterialParams, SnowParams, SolverParams, ViscoplasticParams};
 use crate::particles::{Material, Particle};
 
 const JP_LO: f32 = SnowParams::JP_RANGE.0;
@@ -29,11 +29,7 @@ fn model<const D: usize>(m: MaterialParams) -> Model
 where
     Dim<D>: DimOps<D>,
 {
-    let p = SolverParams::<D> {
-        sets: vec![m],
-        ..Default::default()
-    };
-    Models::new(&p, Isa::detect()).models.pop().unwrap()
+    Model::new::<D>(&m)
 }
 
 /// A random rotation (QR of a random matrix, det +1).

@@ -6,12 +6,9 @@
 use nalgebra::{DMatrix, SMatrix, SVector};
 
 use super::spectral::{from_lanes, to_lanes};
-use super::{Model, Models, State};
+use super::{ElasticModel, ElasticParams, MaterialParams, SnowParams, ViscoplasticParams};
+use super::{Model, State};
 use crate::dim::{Dim, DimOps};
-use crate::isa::Isa;
-use crate::params::{
-    ElasticModel, ElasticParams, MaterialParams, SnowParams, SolverParams, ViscoplasticParams,
-};
 use crate::particles::{Material, Particle, det};
 
 /// g2p's update of a solid particle under model `m` with the new velocity
@@ -64,11 +61,7 @@ fn model<const D: usize>(m: MaterialParams) -> Model
 where
     Dim<D>: DimOps<D>,
 {
-    let p = SolverParams::<D> {
-        sets: vec![m],
-        ..Default::default()
-    };
-    Models::new(&p, Isa::detect()).models.pop().unwrap()
+    Model::new::<D>(&m)
 }
 
 fn particle<const D: usize>(material: Material, f: SMatrix<f32, D, D>) -> Particle<D> {

@@ -1,7 +1,7 @@
 //! The viscoplastic solid (mud, plasticine): von Mises plasticity on the
 //! Hencky strain with viscous relaxation (a Bingham material; a
-//! Perzyna-type overstress, `params/solid.rs`). The particle carries the
-//! elastic F.
+//! Perzyna-type overstress, [`ViscoplasticParams`]). The particle carries the
+//! elastic F. Here its parameters and their schema table too.
 //!
 //! g2p, from the trial `F* = (I + Δt·C)·F`, without singular vectors (an
 //! isotropic function of `B = F*·F*ᵀ`, `spectral.rs`): `ε0 = ½ ln λ` (the
@@ -14,17 +14,110 @@
 
 use nalgebra::SMatrix;
 
-use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
+use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, at_least_zero};
 use super::spectral::{
     LnDiffs, Spectral3, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, plastic_f,
     to_lanes, trial,
 };
 use super::vmath;
+use super::{Constitutive, lame, p_wave};
 use crate::dim::{Dim, DimOps};
-use crate::params::ViscoplasticParams;
-use crate::particles::Particle;
+use crate::error::Result;
+use crate::particles::{Material, Particle};
+
+/// Viscoplastic solid (mud, plasticine): von Mises plasticity on the Hencky
+/// strain with viscous relaxation (a Bingham material; Perzyna-type
+/// overstress). With `ε = ln σ` the principal log strains of the trial
+/// elastic F and `s = 2μ·dev ε` the deviatoric Kirchhoff stress, the material
+/// flows when `√J₂ = ‖s‖/√2 > τ_y`, and then
+/// `‖s‖ ← √2 τ_y + (‖s_trial‖ − √2 τ_y) / (1 + μΔt/η)` (backward Euler of
+/// `ṡ = 2μ(D − D_p)`, `D_p = (‖s‖ − √2 τ_y)/(2η) · s/‖s‖`): in steady simple
+/// shear at rate γ̇ the shear stress is `τ_y + η γ̇`. `η = 0`: perfect
+/// plasticity (plasticine). The particle carries the elastic F.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct ViscoplasticParams {
+    /// Density ρ [kg/m³].
+    pub density: f32,
+    /// Young's modulus E [Pa] of the elastic part.
+    pub youngs_modulus: f32,
+    /// Poisson's ratio ν [-], in [0, 0.5).
+    pub poisson_ratio: f32,
+    /// Bingham yield stress in simple shear τ_y [Pa] (flow when `√J₂ > τ_y`), ≥ 0.
+    pub yield_stress: f32,
+    /// Plastic (Bingham) viscosity η [Pa·s], ≥ 0.
+    pub viscosity: f32,
+}
+
+impl Default for ViscoplasticParams {
+    fn default() -> Self {
+        // a mud: τ_y = 100 Pa, η = 10 Pa·s
+        ViscoplasticParams {
+            density: 1500.0,
+            youngs_modulus: 1.0e6,
+            poisson_ratio: 0.3,
+            yield_stress: 100.0,
+            viscosity: 10.0,
+        }
+    }
+}
+
+impl ViscoplasticParams {
+    pub fn validate(&self) -> Result<()> {
+        self.validate_at("viscoplastic")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
+    }
+
+    /// Lamé parameters (μ, λ) [Pa].
+    pub fn lame(&self) -> (f32, f32) {
+        lame(self.youngs_modulus, self.poisson_ratio)
+    }
+
+    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
+    }
+}
+
+impl MaterialSchema for ViscoplasticParams {
+    const MATERIAL: Material = Material::Viscoplastic;
+    const PARAMS: &'static [Param] = &[
+        DENSITY,
+        YOUNGS,
+        POISSON,
+        at_least_zero(
+            "yield_stress",
+            "Pa",
+            "Bingham yield stress τ_y in simple shear (flow when √J₂ > τ_y)",
+            "mudflow rheology (Coussot 1997): 10-1000 Pa",
+        ),
+        at_least_zero(
+            "viscosity",
+            "Pa·s",
+            "plastic (Bingham) viscosity η; 0: perfect plasticity",
+            "mudflow rheology (Coussot 1997): 1-100 Pa·s",
+        ),
+    ];
+    fn values(&self) -> Vec<ParamValue> {
+        use ParamValue::Number as N;
+        vec![
+            N(self.density),
+            N(self.youngs_modulus),
+            N(self.poisson_ratio),
+            N(self.yield_stress),
+            N(self.viscosity),
+        ]
+    }
+}
 
 /// A viscoplastic set's parameters and constants.
 #[derive(Clone, Debug)]

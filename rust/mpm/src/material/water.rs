@@ -6,16 +6,18 @@
 //! `J ← J·(1 + Δt·tr C)` (the discrete `J̇ = J ∇·v`), held at or above
 //! [`J_FLOOR`]. The CFL condition takes the sound speed `sqrt(K/ρ)`, or the
 //! viscous limit as a speed if larger ([`WaterParams::viscous_speed`]).
+//! Here its parameters ([`WaterParams`]) and their schema table too.
 
 use nalgebra::SMatrix;
 
 use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
+use super::schema::{DENSITY, MaterialSchema, Param, ParamValue, at_least_zero, gt};
 use super::spectral::{from_lanes, to_lanes};
 use crate::dim::{Dim, DimOps};
-use crate::params::WaterParams;
-use crate::particles::Particle;
+use crate::error::Result;
+use crate::particles::{Material, Particle};
 
 /// The least volume ratio a water particle keeps. The force a particle puts
 /// on the grid is its current volume times its pressure, `V0·K·J·(1 − J)`:
@@ -28,6 +30,93 @@ use crate::particles::Particle;
 /// thrown at 4 m/s into a corner reaches 0.46 at its most compressed
 /// particle (the golden `water2d` run, unchanged).
 pub(crate) const J_FLOOR: f32 = 0.25;
+
+/// Weakly compressible water (mpm88 style, Hu et al. 2018): the particle
+/// carries `J` only; Kirchhoff stress `τ = K·J·(J − 1)·I + η·J·(C + Cᵀ)`.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct WaterParams {
+    /// Rest density ρ [kg/m³].
+    pub density: f32,
+    /// Bulk modulus K [Pa]; the sound speed is `sqrt(K/ρ)`.
+    pub bulk_modulus: f32,
+    /// Dynamic viscosity η [Pa·s] (0 = inviscid).
+    pub viscosity: f32,
+}
+
+impl Default for WaterParams {
+    fn default() -> Self {
+        // K/ρ = 400 m²/s²: sound speed 20 m/s, the usual weakly compressible choice.
+        WaterParams {
+            density: 1000.0,
+            bulk_modulus: 4.0e5,
+            viscosity: 0.0,
+        }
+    }
+}
+
+impl WaterParams {
+    /// Checks every field against its range ([`MaterialSchema::PARAMS`]),
+    /// naming the bad one (`water.viscosity`).
+    pub fn validate(&self) -> Result<()> {
+        self.validate_at("water")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
+    }
+
+    /// Longitudinal wave speed [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        (self.bulk_modulus / self.density).sqrt()
+    }
+
+    /// The explicit viscous limit `Δt ≤ ρ Δx² / (2 D η)` (the diffusion
+    /// number of `ν = η/ρ` at most 1/(2D); measured in 2D, a block of
+    /// honey landing on water ran at 0.36 and 0.29 and went non-finite at
+    /// 0.72 and 0.58) written as the speed that gives the same step in the
+    /// CFL condition `Δt ≤ cfl·Δx / c`: `2 D cfl η / (ρ Δx)` [m/s] (0 when
+    /// inviscid). Honey (η = 10 Pa·s) on a 128² grid: 1.4 m/s, under the
+    /// sound speed; 2e3 Pa·s there: 290 m/s, about 230 substeps a frame.
+    pub fn viscous_speed(&self, dim: usize, cfl: f32, dx: f32) -> f32 {
+        if self.viscosity > 0.0 {
+            2.0 * dim as f32 * cfl * self.viscosity / (self.density * dx)
+        } else {
+            0.0
+        }
+    }
+}
+
+impl MaterialSchema for WaterParams {
+    const MATERIAL: Material = Material::Water;
+    const PARAMS: &'static [Param] = &[
+        DENSITY,
+        Param {
+            name: "bulk_modulus",
+            alias: None,
+            unit: "Pa",
+            lower: gt(0.0),
+            upper: None,
+            choices: &[],
+            description: "bulk modulus K: the sound speed is √(K/ρ)",
+            source: "mpm88 (Hu et al. 2018): K/ρ = 400 m²/s², a 20 m/s sound speed",
+        },
+        at_least_zero(
+            "viscosity",
+            "Pa·s",
+            "dynamic viscosity η (0: inviscid)",
+            "Newtonian water: η ≥ 0",
+        ),
+    ];
+    fn values(&self) -> Vec<ParamValue> {
+        use ParamValue::Number as N;
+        vec![N(self.density), N(self.bulk_modulus), N(self.viscosity)]
+    }
+}
 
 /// A water set's parameters (its constants: `K`, `η`).
 #[derive(Clone, Debug)]

@@ -8,50 +8,30 @@
 //! binding reads its dict with them and gives Python the defaults from them.
 //!
 //! Here the solver-wide [`SolverParams`] and the checks every part shares;
-//! `material.rs` the water and the sand, `solid.rs` the elastic solid, snow,
-//! the viscoplastic solid and the table of parameter sets, `schema.rs` the
-//! materials' parameter tables (names, aliases, units, ranges) that their
-//! `validate()` checks through, `walls.rs` the domain's walls (and
-//! their faces by name in the dict), `collider.rs` a collider as the dict
-//! gives it.
+//! `walls.rs` the domain's walls (and their faces by name in the dict),
+//! `collider.rs` a collider as the dict gives it, `body.rs` a rigid body.
+//! Each material's parameters ([`WaterParams`], ..., [`MaterialParams`], one
+//! set of any of them) and their schema live with the model, in
+//! `crate::material`; they are re-exported here, so that the parameter
+//! dict's parts are all named under `params`.
 
 mod body;
 mod collider;
-mod material;
-pub mod schema;
-#[cfg(all(test, feature = "serde"))]
-mod schema_tests;
-mod solid;
 #[cfg(all(test, feature = "serde"))]
 mod tests;
 mod walls;
 
 pub use crate::boundary::BoundaryCondition;
+pub use crate::material::schema::{self, Limit, MaterialSchema, Param, ParamValue};
+pub use crate::material::{
+    ElasticModel, ElasticParams, MaterialParams, SandParams, SnowParams, ViscoplasticParams,
+    WaterParams, lame, material_schema,
+};
 pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
-pub use material::{SandParams, WaterParams};
-pub use schema::{Limit, MaterialSchema, Param, ParamValue, material_schema};
-pub use solid::{ElasticModel, ElasticParams, MaterialParams, SnowParams, ViscoplasticParams};
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
-
-/// Lamé parameters (μ, λ) [Pa] of Young's modulus `e` and Poisson's ratio `nu`.
-pub fn lame(e: f32, nu: f32) -> (f32, f32) {
-    (
-        e / (2.0 * (1.0 + nu)),
-        e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
-    )
-}
-
-/// P-wave speed `sqrt((λ + 2μ)·stiffen/ρ)` [m/s] of Young's modulus `e`
-/// [Pa], Poisson's ratio `nu` and density `density` [kg/m³], the moduli
-/// scaled by `stiffen` (snow's hardening; 1 for the others, which leaves
-/// the bits of `sqrt((λ + 2μ)/ρ)`).
-fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
-    let (mu, la) = lame(e, nu);
-    ((la + 2.0 * mu) * stiffen / density).sqrt()
-}
 
 fn finite(field: &str, x: f32) -> Result<()> {
     if x.is_finite() {

@@ -21,7 +21,7 @@ where
 {
     /// Largest wave speed among the parameter sets present [m/s]: water
     /// `sqrt(K/ρ)` (or, if larger, its viscous limit as a speed,
-    /// [`crate::params::WaterParams::viscous_speed`]), the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
+    /// [`crate::material::WaterParams::viscous_speed`]), the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
     /// hardened by `e^{ξ(1 − J_P)}` at its smallest `J_P` present.
     pub(super) fn wave_speed(&self) -> f32 {
         self.wave_speed_of().0

@@ -84,7 +84,7 @@ fn team_is_bitwise_identical_to_one_thread() {
 /// bits of one thread (g2p's batches end at its windows, `G2P_WINDOW`).
 #[test]
 fn interleaved_materials_keep_one_threads_bits_on_a_team_in_3d() {
-    use crate::params::{MaterialParams, SandParams};
+    use crate::material::{MaterialParams, SandParams};
     use nalgebra::SVector;
     let run = |threads: usize, team: bool| {
         let params = SolverParams::<3> {

@@ -46,7 +46,8 @@ use crate::boundary::BoundaryCondition;
 use crate::collider::PROJECT_DEPTH_CELLS;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::params::{MaterialParams, WallParams};
+use crate::material::MaterialParams;
+use crate::params::WallParams;
 use crate::particles::Material;
 use crate::projection::{ADVECTIVE_CFL, Projection, StepBody, StepColliders, push_out_of_bodies};
 

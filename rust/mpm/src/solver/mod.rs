@@ -264,7 +264,7 @@ where
             })
             .collect();
         let isa = Isa::detect();
-        let models = Models::new(&params, isa);
+        let models = Models::new::<D>(params.table(), isa);
         Ok(Solver {
             models,
             params,

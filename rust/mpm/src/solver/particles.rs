@@ -6,8 +6,7 @@
 use super::Solver;
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::material::Models;
-use crate::params::MaterialParams;
+use crate::material::{MaterialParams, Models};
 use crate::particles::Particle;
 
 impl<const D: usize> Solver<D>
@@ -161,7 +160,7 @@ where
         let mut params = self.params.clone();
         params.sets.push(set);
         params.validate()?;
-        self.models = Models::new(&params, self.isa);
+        self.models = Models::new::<D>(params.table(), self.isa);
         self.params = params;
         Ok((self.models.params.len() - 1) as u16)
     }

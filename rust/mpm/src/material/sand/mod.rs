@@ -20,7 +20,8 @@
 //! stress of a particle's state (set, restored or changed between frames)
 //! is that of the SVD route ([`stress_of`]).
 //!
-//! Files: this one (the model: [`Sand`]), `return_map.rs` (the projection
+//! Files: this one (the model: [`SandParams`], its schema table and the
+//! constants derived from it, [`Sand`]), `return_map.rs` (the projection
 //! onto the cone, on one particle and on SIMD lanes, and the SVD route),
 //! `update_2d.rs` and `update_3d.rs` (the g2p update without singular
 //! vectors), `tests.rs` (every route against an f64 SVD reference, the batch
@@ -36,15 +37,119 @@ pub use return_map::drucker_prager_project;
 
 use nalgebra::{SMatrix, SVector};
 
-use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
+use super::schema::{
+    DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, at_least_zero, ge, gt, le,
+};
 use super::spectral::trial;
+use super::{Constitutive, lame, p_wave};
 use crate::dim::{Dim, DimOps};
-use crate::params::SandParams;
-use crate::particles::Particle;
+use crate::error::{MpmError, Result};
+use crate::particles::{Material, Particle};
 use update_2d::advance_2d;
 use update_3d::advance_3d;
+
+/// Sand: Drucker–Prager elastoplasticity in Hencky strain with SVD return
+/// mapping (Klár et al. 2016) and the volume correction of Tampubolon et al. 2017.
+#[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(default, deny_unknown_fields)
+)]
+pub struct SandParams {
+    /// Density ρ [kg/m³].
+    pub density: f32,
+    /// Young's modulus E [Pa].
+    pub youngs_modulus: f32,
+    /// Poisson's ratio ν [-], in (−1, 0.5).
+    pub poisson_ratio: f32,
+    /// Internal friction angle φ [degrees], in [0, 80].
+    pub friction_angle_deg: f32,
+    /// Cohesion c [Pa] (≥ 0): shifts the cone apex to the tensile mean stress `c / tan φ`.
+    pub cohesion: f32,
+}
+
+impl Default for SandParams {
+    fn default() -> Self {
+        SandParams {
+            density: 1000.0,
+            youngs_modulus: 3.5e5,
+            poisson_ratio: 0.3,
+            friction_angle_deg: 30.0,
+            cohesion: 0.0,
+        }
+    }
+}
+
+impl SandParams {
+    /// Checks every field against its range ([`MaterialSchema::PARAMS`])
+    /// and that cohesion comes with friction, naming the bad field (`sand.cohesion`).
+    pub fn validate(&self) -> Result<()> {
+        self.validate_at("sand")
+    }
+
+    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)?;
+        if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
+            return Err(MpmError::invalid(
+                format!("{prefix}.cohesion"),
+                "cohesion needs a friction angle > 0",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Lamé parameters (μ, λ) [Pa].
+    pub fn lame(&self) -> (f32, f32) {
+        lame(self.youngs_modulus, self.poisson_ratio)
+    }
+
+    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
+    pub fn wave_speed(&self) -> f32 {
+        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
+    }
+}
+
+impl MaterialSchema for SandParams {
+    const MATERIAL: Material = Material::Sand;
+    const PARAMS: &'static [Param] = &[
+        DENSITY,
+        YOUNGS,
+        Param {
+            lower: gt(-1.0),
+            source: "μ = E/(2(1 + ν)) > 0 and λ finite for ν in (−1, 0.5)",
+            ..POISSON
+        },
+        Param {
+            name: "friction_angle_deg",
+            alias: None,
+            unit: "deg",
+            lower: ge(0.0),
+            upper: le(80.0),
+            choices: &[],
+            description: "internal friction angle φ of the Drucker–Prager cone",
+            source: "Klár et al. 2016 (dry sand about 30°); the cone closes at 90°",
+        },
+        at_least_zero(
+            "cohesion",
+            "Pa",
+            "cohesion c: the cone's apex at the tensile mean stress c / tan φ",
+            "Tampubolon et al. 2017; c > 0 needs φ > 0",
+        ),
+    ];
+    fn values(&self) -> Vec<ParamValue> {
+        use ParamValue::Number as N;
+        vec![
+            N(self.density),
+            N(self.youngs_modulus),
+            N(self.poisson_ratio),
+            N(self.friction_angle_deg),
+            N(self.cohesion),
+        ]
+    }
+}
 
 /// A sand set's parameters and the constants of the model derived from
 /// them once per solver.

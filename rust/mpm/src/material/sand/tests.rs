@@ -5,6 +5,7 @@
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 
 use super::Sand;
+use super::SandParams;
 use super::return_map::{advance_svd, project_with_scale};
 use super::update_2d::advance_2d;
 use super::update_3d::{advance_3d, advance_3d_eigen, advance_3d_series, strain_3d};
@@ -12,7 +13,6 @@ use crate::dim::{Dim, DimOps};
 use crate::isa::Isa;
 use crate::material::lanes::LANES;
 use crate::material::{Batch, LaneHealth};
-use crate::params::SandParams;
 use crate::particles::{Material, Particle};
 
 /// The reference: the same model in f64 through nalgebra's SVD (any D):
