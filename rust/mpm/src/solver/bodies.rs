@@ -60,6 +60,7 @@ where
             self.check_overlap(&body, i)?;
         }
         self.bodies.push(body);
+        self.drift_frames = 0; // a projection step spanning frames ends: the next frame steps the body
         Ok(i)
     }
 
@@ -124,6 +125,7 @@ where
     pub fn remove_body(&mut self, index: usize) -> Result<()> {
         self.check_body(index)?;
         self.bodies.remove(index);
+        self.drift_frames = 0; // as for an added body
         Ok(())
     }
 

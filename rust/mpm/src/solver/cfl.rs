@@ -83,7 +83,7 @@ where
     /// here as in [`Solver::step_frame`].
     pub fn substeps_for(&self, dt_frame: f32) -> Result<usize> {
         check_dt_frame(dt_frame)?;
-        if self.drift_frames > 0 {
+        if self.drift_frames > 0 && self.bodies.is_empty() {
             return Ok(0); // a frame inside the projection's last step (`large_step.rs`)
         }
         if let Some(s) = self.params.substeps {

@@ -181,7 +181,9 @@ where
         projection.set_isa(self.isa);
         projection.set_correction_time(dt_frame);
         if !self.bodies.is_empty() {
-            self.drift_frames = 0; // a body added between the frames of a step ends it
+            // a step spans no frames with bodies (adding one ends a step; a checkpoint's frames left
+            // from before it was added are stepped anew: `substeps_for` counts this frame's steps)
+            self.drift_frames = 0;
         }
         let result = if self.drift_frames > 0 {
             // a frame inside the last step: the particles are the ones that step checked (any change

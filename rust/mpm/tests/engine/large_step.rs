@@ -147,6 +147,29 @@ fn bodies_in_the_projection_are_the_same_bits_on_one_thread_and_two_and_after_a_
 }
 
 #[test]
+fn a_body_added_inside_a_step_that_spans_frames_ends_it_and_the_next_frame_steps() {
+    let mut s = solver(Integrator::Projection, 0);
+    while s.drift_frames() == 0 {
+        s.step_frame(DT_FRAME).unwrap();
+    }
+    let body = BodyParams {
+        shape: Some(BodyShapeKind::Box),
+        center: Some(vec![0.6, 0.1]),
+        half_extents: Some(vec![0.04, 0.03]),
+        density: Some(500.0),
+        ..Default::default()
+    };
+    s.add_body(body.build::<2>("body").unwrap()).unwrap();
+    assert_eq!(s.drift_frames(), 0);
+    assert!(s.substeps_for(DT_FRAME).unwrap() >= 1);
+    let before = s.particles();
+    let stats = s.step_frame(DT_FRAME).unwrap();
+    assert!(stats.substeps >= 1 && stats.dt.is_finite(), "{stats:?}");
+    assert!(s.particles().iter().zip(&before).any(|(a, b)| a.x != b.x));
+    assert!(s.bodies().states()[0].v[1] < 0.0, "the body falls");
+}
+
+#[test]
 fn a_step_spans_frames_where_the_flow_allows_and_each_frame_moves_the_particles() {
     let mut s = solver(Integrator::Projection, 0);
     let (mut steps, mut inside) = (0, 0);
