@@ -782,6 +782,10 @@ def test_each_rule_of_a_session_is_written_once():
     # kill-the-actor-and-release-the-registry: once in the front end (RaySessionManager._end)
     manager = SERVICE / "ray_backend" / "manager.py"
     assert len(_calls(manager, "kill")) == 1 and len([n for n in _calls(manager, "remote") if "release.remote" in manager.read_text().splitlines()[n - 1]]) == 1
+    # a real-time session's share: capacity.share_of, called by the local rule (realtime_share) and a Ray actor's reporter
+    shares = {str(p.relative_to(SERVICE)): n for p in SERVICE.rglob("*.py") if (n := len(_calls(p, "share_of")))}
+    assert shares == {"capacity.py": 1, "ray_backend/shares.py": 1}, shares
+    assert "REALTIME_SHARE * compute_threads / threads" in (SERVICE / "capacity.py").read_text()
     # the save policy around a control: the core's (SessionCore.control); the control runner and the actor save nothing themselves
     runner = ast.parse((SERVICE / "controls.py").read_text())
     assert not [c.lineno for c in ast.walk(runner) if isinstance(c, ast.Call) and ast.unparse(c.func).startswith(("manager.save", "s.save"))]

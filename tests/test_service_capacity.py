@@ -106,3 +106,17 @@ def test_the_playing_real_time_sessions_share_the_real_time_capacity() -> None:
     # paused, unwatched and plain sessions take no share
     idle = [core(playing=False), core(viewers=False), core(sim=object())]
     assert realtime_share([core() for _ in range(4)] + idle, 2) == pytest.approx(REALTIME_SHARE * 2 / 4)
+
+
+def test_the_share_rule_is_a_function_of_the_playing_threads_and_the_compute_threads() -> None:
+    # the one rule of both backends: the local server's sessions, a Ray node's actors
+    from hybridmpm.service.capacity import share_of
+
+    assert share_of(0, 2) == share_of(-1, 2) == 1.0  # none plays
+    assert share_of(1, 2) == 1.0 and share_of(2, 2) == pytest.approx(REALTIME_SHARE)
+    assert share_of(17, 2) == pytest.approx(REALTIME_SHARE * 2 / 17)
+    assert share_of(1, 1) == pytest.approx(REALTIME_SHARE)  # a node of one CPU keeps a tenth back even for one
+    assert share_of(3, 0.5) == pytest.approx(REALTIME_SHARE * 0.5 / 3)
+    for bad in (0, -1.0):
+        with pytest.raises(ValueError, match="compute_threads"):
+            share_of(1, bad)

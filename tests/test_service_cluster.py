@@ -402,6 +402,58 @@ def test_a_dead_node_s_sessions_come_back_on_a_live_node(cluster, tmp_path):
         cluster.start()
 
 
+def test_node_loads_count_the_fresh_reports_of_a_node_and_expire_the_silent_ones():
+    from hybridmpm.service.ray_backend.shares import NodeLoads
+
+    now = [0.0]
+    loads = NodeLoads(clock=lambda: now[0], expire_s=3.0)
+    assert loads.report("n1", "a", 1) == 1 and loads.report("n1", "b", 2) == 3 and loads.report("n2", "c", 1) == 1
+    now[0] = 2.0
+    assert loads.report("n1", "a", 1) == 3  # b's report is 2 s old: it counts
+    now[0] = 4.0
+    assert loads.report("n1", "a", 1) == 1  # b's is 4 s old (its actor died): gone; a's renewed at 2 s counts
+    assert loads.report("n1", "a", 0) == 0 and "n1" not in loads.nodes  # a stopped
+    assert loads.report("n2", "d", 1) == 1 and "c" not in loads.nodes["n2"]  # c's (at 0 s) expired meanwhile
+    loads.drop("d")  # deleted: gone from its node at once
+    assert loads.nodes == {}
+
+
+def test_a_share_reporter_never_waits_and_reports_at_most_every_refresh():
+    from concurrent.futures import Future
+
+    from hybridmpm.service.capacity import share_of
+    from hybridmpm.service.ray_backend.shares import SHARE_REFRESH_S, ShareReporter
+
+    sent: list[tuple[str, str, int]] = []
+    futures: list[Future] = []
+
+    class Call:
+        def remote(self, *args):
+            sent.append(args)
+            f: Future = Future()
+            futures.append(f)
+            return type("Ref", (), {"future": lambda _: f})()
+
+    registry = type("Registry", (), {"realtime": Call()})()
+    now, shares = [0.0], []
+    r = ShareReporter(registry, "n1", "k" * 64, 1, shares.append, clock=lambda: now[0])
+    r.tick()
+    r.tick()  # unanswered and too soon: nothing sent
+    assert sent == [("n1", "k" * 64, 1)] and shares == []
+    now[0] = 2 * SHARE_REFRESH_S
+    r.tick()  # still unanswered: no second report piles up
+    assert len(sent) == 1
+    futures[0].set_result((4, 2.0))  # 4 threads play on a node of 2 CPUs
+    assert shares == [share_of(4, 2.0)]
+    r.tick()
+    futures[1].set_result((1, None))  # a node the cluster does not know: the share stays
+    now[0] += SHARE_REFRESH_S / 2
+    r.tick()
+    assert len(sent) == 2 and shares == [share_of(4, 2.0)]
+    r.stop()
+    assert sent[-1] == ("n1", "k" * 64, 0)
+
+
 # Stands in for an environment without Ray: the local backend needs none, the ray backend says what is missing.
 _NO_RAY = """
 import sys
@@ -505,3 +557,61 @@ def test_bodies_added_and_removed_through_two_front_ends_survive_a_killed_actor(
     finally:
         a.stop()
         b.stop()
+
+
+def test_real_time_actors_share_their_node_s_cpus_by_the_local_rule(cluster, tmp_path):
+    """Three real-time sessions play, one viewer each: each actor's share (its description's ``realtime.share``)
+    is the local backend's rule for the real-time sessions playing on its node (``share_of(k, 1)``: each node
+    offers one CPU). One session of the fullest node left playing alone (one paused, one deleted), its share is
+    the rule's for one alone."""
+    from hybridmpm.service.capacity import share_of
+    from hybridmpm.service.testing import descendants
+
+    a = _front_end(cluster, tmp_path / "store", tmp_path / "a.log")
+
+    async def shares_become(c: httpx.AsyncClient, want: dict[str, float]) -> None:
+        got: dict[str, float] = {}
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            got = {sid: (await c.get(f"{a.url}/v1/sessions/{sid}")).json()["realtime"]["share"] for sid in want}
+            if all(got[sid] == pytest.approx(v, abs=1e-3) for sid, v in want.items()):
+                return
+            await asyncio.sleep(0.2)
+        raise AssertionError(f"shares {got}, the rule's {want}")
+
+    async def go(node_of: dict[str, int]) -> None:
+        async def drain(ws) -> None:  # a viewer that stops reading stalls its socket
+            with contextlib.suppress(websockets.exceptions.ConnectionClosed):
+                while True:
+                    await ws.recv()
+
+        async with contextlib.AsyncExitStack() as stack, httpx.AsyncClient(timeout=WAIT_S) as c:
+            socks = {}
+            for sid in node_of:
+                ws = socks[sid] = await stack.enter_async_context(websockets.connect(f"{a.ws_url}/v1/sessions/{sid}/stream", max_size=None))
+                await _opened(ws)
+                await ws.send('{"type": "play"}')
+            readers = [asyncio.create_task(drain(ws)) for ws in socks.values()]
+            on = {n: [s for s in node_of if node_of[s] == n] for n in set(node_of.values())}
+            await shares_become(c, {sid: share_of(len(on[n]), 1) for sid, n in node_of.items()})
+            alone, *others = max(on.values(), key=len)  # at least two: three sessions on two nodes
+            await socks[others[0]].send('{"type": "pause"}')
+            for sid in [*others[1:], *(s for s in node_of if node_of[s] != node_of[alone])]:
+                assert (await c.delete(f"{a.url}/v1/sessions/{sid}")).status_code == 204
+            await shares_become(c, {alone: share_of(1, 1)})
+            for t in readers:
+                t.cancel()
+
+    try:
+        _start(a)
+        with httpx.Client(base_url=a.url, timeout=WAIT_S) as c:
+            node_of = {}  # session id -> the node its actor runs on
+            for seed in range(3):
+                before = set(cluster.actor_pids())
+                r = c.post("/v1/sessions", json={"scene": SCENE, "realtime": True, "seed": seed})
+                assert r.status_code == 201, r.text
+                (pid,) = set(cluster.actor_pids()) - before
+                node_of[r.json()["id"]] = next(i for i, p in enumerate(cluster.procs) if pid in descendants([p.pid]))
+            asyncio.run(go(node_of))
+    finally:
+        a.stop()

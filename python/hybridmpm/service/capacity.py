@@ -15,7 +15,9 @@ A rung's estimate is its chart time (``models/realtime.json``) scaled by this ma
 the playing real-time sessions, of their measured time a frame over their rung's chart time (1 while none
 plays). Sessions that do not play (or that nobody watches: their play loop waits) take no cores here: a session that
 starts playing later is not refused. While they play, each real-time session's frame budget is its share of the
-capacity (:func:`realtime_share`), so all of them step down as the machine fills.
+capacity (:func:`realtime_share`), so all of them step down as the machine fills. On the Ray backend each actor
+takes the same rule (:func:`share_of`) over the real-time sessions playing on its node
+(:mod:`hybridmpm.service.ray_backend.shares`).
 """
 
 from __future__ import annotations
@@ -93,14 +95,24 @@ def admit(sim: RealtimeSimulator, threads: int, others: Iterable[Playing], compu
     )
 
 
+def share_of(threads: float, compute_threads: float) -> float:
+    """The share of its threads' time each playing real-time session may spend (in (0, 1]) where the playing
+    real-time sessions step on ``threads`` MPM threads in all (0 or less: none plays) on a machine (or Ray node) of
+    ``compute_threads`` threads (its cores, or the CPUs the node offers): :data:`REALTIME_SHARE` of
+    ``compute_threads`` over ``threads``, at most 1. The one rule of both backends (:func:`realtime_share`,
+    :mod:`hybridmpm.service.ray_backend.shares`). Raises ValueError when ``compute_threads`` is not positive."""
+    if not compute_threads > 0:
+        raise ValueError(f"compute_threads: must be positive, got {compute_threads!r}")
+    return 1.0 if threads <= 0 else min(1.0, REALTIME_SHARE * compute_threads / threads)
+
+
 def realtime_share(held: Iterable[Any], compute_threads: int) -> float:
-    """The share of its threads' time each playing real-time session of ``held`` (session cores) may spend:
-    :data:`REALTIME_SHARE` of ``compute_threads`` over the threads they step on, at most 1. A session's frames run
+    """The share of its threads' time each playing real-time session of ``held`` (session cores) may spend
+    (:func:`share_of` the threads of those that play with viewers, ``compute_threads``). A session's frames run
     one at a time on its threads (the compute limiter), so its own frame times do not see the others; with the
     share in its budget (:meth:`~hybridmpm.sim.RealtimeSimulator.set_share`) each steps down to a rung that fits
-    its part of the machine."""
-    threads = sum(c.threads for c in held if isinstance(c.sim, RealtimeSimulator) and c.playing and c.has_viewers())
-    return 1.0 if threads <= 0 else min(1.0, REALTIME_SHARE * compute_threads / threads)
+    its part of the machine. Raises ValueError when ``compute_threads`` is not positive."""
+    return share_of(sum(c.threads for c in held if isinstance(c.sim, RealtimeSimulator) and c.playing and c.has_viewers()), compute_threads)
 
 
 def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_full: str) -> None:
@@ -115,4 +127,4 @@ def admit_session(core: Any, held: Iterable[Any], compute_threads: int, when_ful
     core.initial = sim.state()
 
 
-__all__ = ["REALTIME_SHARE", "WHEN_FULL", "Playing", "RealtimeFullError", "admit", "admit_session", "chart_ms", "playing", "realtime_share"]
+__all__ = ["REALTIME_SHARE", "WHEN_FULL", "Playing", "RealtimeFullError", "admit", "admit_session", "chart_ms", "playing", "realtime_share", "share_of"]

@@ -131,6 +131,7 @@ class RealtimeInfo(BaseModel):
     )
     changes: int = Field(description="changes of rung so far")
     ladder: list[str] = Field(description="the rungs it moves between, most accurate first")
+    share: float = Field(1.0, description="the share of its threads' time it may spend, in (0, 1]: below 1 while real time fills its machine (Ray: node)")
 
 
 class SessionInfo(BaseModel):

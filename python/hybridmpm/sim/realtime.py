@@ -450,7 +450,8 @@ class RealtimeSimulator(MpmSimulator):
         ``frame_ms`` its measured wall time per frame (the running average; None before it was timed),
         ``budget_ms`` a frame's budget, ``realtime_factor`` the simulated time a wall second of stepping covers on
         this rung (``dt_frame · r_t / frame``: 1.0 is real time; None before it was timed), ``changes`` the
-        number of changes of rung so far, and the ``ladder``'s keys, most accurate first."""
+        number of changes of rung so far, the ``ladder``'s keys, most accurate first, and ``share`` the share of
+        its threads' time it may spend (:meth:`set_share`, in (0, 1]; 1: alone)."""
         return {
             "rung": self._rung,
             "label": rung_label(self._rung, self.particles.dim),
@@ -459,6 +460,7 @@ class RealtimeSimulator(MpmSimulator):
             "realtime_factor": None if not self._ema else round(self.dt_step / self._ema, 3),
             "changes": len(self.changes),
             "ladder": [r.key for r in self.ladder],
+            "share": round(self._share, 4),
         }
 
     # ------------------------------------------------------------ checkpoint

@@ -38,8 +38,9 @@ from hybridmpm.service.core import BusyError, Control, SessionCore, SessionGoneE
 from hybridmpm.service.facts import SessionSettings
 from hybridmpm.service.frames import frame_message
 from hybridmpm.service.ray_backend.registry import REGISTRY_NAME
+from hybridmpm.service.ray_backend.shares import ShareReporter
 from hybridmpm.service.store import SHOWN_KEY_CHARS, SessionStore
-from hybridmpm.sim import Frame, Rollout
+from hybridmpm.sim import Frame, RealtimeSimulator, Rollout
 
 log = logging.getLogger("hybridmpm.service")
 _F = TypeVar("_F", bound=Callable[..., Any])
@@ -367,9 +368,33 @@ class SessionActor:
 
     # ------------------------------------------------------------ threads
     def _play(self) -> None:
-        """The core's play loop (:meth:`SessionCore.play <hybridmpm.service.core.SessionCore.play>`), waiting in this thread."""
-        for delay in self.core.play():
-            time.sleep(delay)
+        """The core's play loop (:meth:`SessionCore.play <hybridmpm.service.core.SessionCore.play>`), waiting in this thread;
+        a real-time session's share of its node meanwhile (:class:`~hybridmpm.service.ray_backend.shares.ShareReporter`)."""
+        shares = self._shares()
+        try:
+            for delay in self.core.play():
+                if shares is not None:
+                    shares.tick()
+                time.sleep(delay)
+        finally:
+            if shares is not None:
+                shares.stop()
+
+    def _shares(self) -> ShareReporter | None:
+        """The reporter of a real-time session's play to the registry, or None (another solver, or no registry)."""
+        if not isinstance(self.core.sim, RealtimeSimulator):
+            return None
+
+        def apply(share: float) -> None:
+            sim = self.core.sim  # a reset may have built another
+            if isinstance(sim, RealtimeSimulator):
+                sim.set_share(share)
+
+        try:
+            registry = ray.get_actor(REGISTRY_NAME, namespace=self.settings["namespace"])
+        except Exception:  # noqa: BLE001 - no registry (yet): it plays on its own frame times
+            return None
+        return ShareReporter(registry, ray.get_runtime_context().get_node_id(), self.key, self.core.threads, apply)
 
     def _keeper(self) -> None:
         """Save at most every ``save_every_s``; end the session once idle for ``idle_ttl_s``."""

@@ -327,8 +327,8 @@ class RaySessionManager:
     ) -> RaySession:
         """A new session in its own actor (``solver`` ``realtime``: real-time mode, as the route resolved the
         request's ``realtime``, :func:`~hybridmpm.service.facts.checked_realtime`; the actor's frames and events
-        carry it; ``when_full`` is not used: the cluster does not count real-time capacity, each actor's mode
-        adapts to its node). Raises :class:`SessionCapError` /
+        carry it; ``when_full`` is not used: the cluster admits no real-time session by capacity, each playing one
+        takes its share of its node, :mod:`~hybridmpm.service.ray_backend.shares`). Raises :class:`SessionCapError` /
         :class:`QuotaError` (counted over the cluster), :class:`ApiError` 503
         when the cluster has no CPU for it, and the simulator's
         :class:`InvalidInputError` for bad settings."""

@@ -1,6 +1,7 @@
 """The registry of a Ray cluster's sessions (one actor per namespace): the
-session cap and the per-client quota over every front end, and the lock of
-the cluster's local store."""
+session cap and the per-client quota over every front end, the lock of
+the cluster's local store, and the real-time sessions playing on each node
+(their shares, :mod:`~hybridmpm.service.ray_backend.shares`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import Any
 import ray
 
 from hybridmpm.errors import InvalidInputError
+from hybridmpm.service.ray_backend.shares import NodeLoads, node_cpus
 from hybridmpm.service.store import SessionStore
 
 #: A session's actor is named this + its store key (the SHA-256 of its id: the id is no actor name).
@@ -35,12 +37,17 @@ class Registry:
     :meth:`claim_store`): the store's lock (:meth:`SessionStore.claim`) is the
     registry's, taken again when Ray restarts it, so a plain server (or
     another cluster's front end) started on that store is refused while the
-    cluster lives, and the cluster's front ends share it."""
+    cluster lives, and the cluster's front ends share it.
+
+    Real-time sessions report to it while they play (:meth:`realtime`); that soft state is not rebuilt after a
+    restart: the reports renew it within :data:`~hybridmpm.service.ray_backend.shares.SHARE_REFRESH_S`."""
 
     def __init__(self, store: str | None = None, namespace: str = "") -> None:
         self.held: dict[str, tuple[str, float]] = {}
         self.namespace = namespace
         self.stores: dict[str, SessionStore] = {}
+        self.loads = NodeLoads()
+        self.cpus: dict[str, float] = {}  # node id -> the CPUs it offers (asked of the cluster for a node not seen yet)
         if store is not None:
             self.claim_store(store)  # refused: the front end's own call says why
         now = time.monotonic()
@@ -69,7 +76,20 @@ class Registry:
         return None
 
     def release(self, key: str) -> None:
+        """``key`` leaves the cluster: no longer counted, nor its real-time report."""
         self.held.pop(key, None)
+        self.loads.drop(key)
+
+    def realtime(self, node: str, key: str, threads: int) -> tuple[int, float | None]:
+        """Session ``key`` plays real time on ``node`` (a node id) with ``threads`` MPM threads (0: it stopped,
+        :meth:`NodeLoads.report <hybridmpm.service.ray_backend.shares.NodeLoads.report>`): ``(the threads the
+        node's playing real-time sessions step on, the CPUs the node offers, or None when the cluster does not
+        know it)``."""
+        total = self.loads.report(node, key, threads)
+        if node not in self.cpus:
+            with contextlib.suppress(Exception):
+                self.cpus = node_cpus()
+        return total, self.cpus.get(node)
 
     def claim_store(self, url: str) -> str | None:
         """Hold the store at ``url`` for this cluster (a no-op for a store
