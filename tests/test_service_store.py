@@ -89,7 +89,10 @@ def test_torn_save_leaves_the_previous_one(tmp_path):
     try:
         with httpx.Client(base_url=server.url, timeout=WAIT_S) as c:
             sid = c.post("/v1/sessions", json={"scene": "water2d", "solver": "mpm", "seed": 4}).json()["id"]
-            step_binary(c, sid, 5)
+            try:
+                step_binary(c, sid, 5)
+            except httpx.RemoteProtocolError:
+                pass  # the saver runs beside the request: on a loaded machine the process may die before its answer goes out
         assert server.proc.wait(WAIT_S) == -9
     finally:
         server.stop()
