@@ -30,7 +30,7 @@
 //! before it steps with the substep's `dt`.
 
 mod hull;
-mod pose;
+pub(crate) mod pose;
 mod rapier;
 mod rapier2;
 mod rapier3;

@@ -94,18 +94,7 @@ impl<const D: usize> BodyPose<D> {
     /// The body's velocity at point `x`: `v + ω × (x − c)` [m/s].
     #[inline]
     pub fn point_velocity(&self, x: &SVector<f32, D>) -> SVector<f32, D> {
-        let r = x - self.center;
-        let w = &self.angular_velocity;
-        let mut u = self.velocity;
-        if D == 2 {
-            u[0] -= w[2] * r[1];
-            u[1] += w[2] * r[0];
-        } else {
-            u[0] += w[1] * r[2] - w[2] * r[1];
-            u[1] += w[2] * r[0] - w[0] * r[2];
-            u[2] += w[0] * r[1] - w[1] * r[0];
-        }
-        u
+        point_velocity(&self.center, &self.velocity, &self.angular_velocity, x)
     }
 
     /// Whether the shape, grown by `margin` [m], may reach the ball of
@@ -114,6 +103,28 @@ impl<const D: usize> BodyPose<D> {
     pub fn near(&self, centre: &SVector<f32, D>, radius: f32, margin: f32) -> bool {
         (centre - self.center).norm() < self.shape.bounding_radius() + radius + margin
     }
+}
+
+/// A rigid body's velocity at point `x`: `v + ω × (x − c)` [m/s], for centre of mass `c`, velocity
+/// `v` and angular velocity `w` [rad/s] (2D: about z, the last component).
+#[inline]
+pub fn point_velocity<const D: usize>(
+    c: &SVector<f32, D>,
+    v: &SVector<f32, D>,
+    w: &[f32; 3],
+    x: &SVector<f32, D>,
+) -> SVector<f32, D> {
+    let r = x - c;
+    let mut u = *v;
+    if D == 2 {
+        u[0] -= w[2] * r[1];
+        u[1] += w[2] * r[0];
+    } else {
+        u[0] += w[1] * r[2] - w[2] * r[1];
+        u[1] += w[2] * r[0] - w[0] * r[2];
+        u[2] += w[0] * r[1] - w[1] * r[0];
+    }
+    u
 }
 
 /// Fixed-point scale of [`ImpulseSum`]: 2⁻⁴⁸ units (≈ 3.6e-15).

@@ -35,6 +35,7 @@ use rayon::prelude::*;
 
 use super::{Projection, shape, strides};
 use crate::body::BodyPose;
+use crate::body::pose::point_velocity;
 use crate::particles::Particle;
 
 /// A body as one projection step sees it.
@@ -259,11 +260,10 @@ impl<const D: usize> Projection<D> {
         b: usize,
         x: &SVector<f32, D>,
     ) -> SVector<f32, D> {
-        let mut pose = bodies[b].pose.clone();
         let v = &self.body_velocity[b];
-        pose.velocity = SVector::from_fn(|d, _| v[d] as f32);
-        pose.angular_velocity = [v[3] as f32, v[4] as f32, v[5] as f32];
-        pose.point_velocity(x)
+        let linear = SVector::from_fn(|d, _| v[d] as f32);
+        let w = [v[3] as f32, v[4] as f32, v[5] as f32];
+        point_velocity(&bodies[b].pose.center, &linear, &w, x)
     }
 }
 

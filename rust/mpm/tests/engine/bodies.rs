@@ -316,30 +316,25 @@ fn boxes_float_at_their_archimedes_depth_2d() {
 /// tilted, are benchmarks/bodies/run.py's).
 #[test]
 fn boxes_float_at_their_archimedes_depth_2d_short() {
-    let r = float_boxes_2d(&FloatCase {
-        n_grid: 128,
-        frames: 240,
-        last: 120,
-        shift_cells: 3.0,
-        tilt_deg: 10.0,
-        integrator: Integrator::Explicit,
-    });
-    assert_floated(&r);
+    boxes_float_short(Integrator::Explicit);
 }
 
 /// The short run on the projection: its pressure solve holds the boxes up
 /// (`crate::projection`'s `bodies.rs`), within the explicit run's tolerance.
 #[test]
 fn boxes_float_at_their_archimedes_depth_2d_short_projection() {
-    let r = float_boxes_2d(&FloatCase {
+    boxes_float_short(Integrator::Projection);
+}
+
+fn boxes_float_short(integrator: Integrator) {
+    assert_floated(&float_boxes_2d(&FloatCase {
         n_grid: 128,
         frames: 240,
         last: 120,
         shift_cells: 3.0,
         tilt_deg: 10.0,
-        integrator: Integrator::Projection,
-    });
-    assert_floated(&r);
+        integrator,
+    }));
 }
 
 /// `BODIES_INTEGRATOR=projection` runs the full checks on the projection.
@@ -492,17 +487,17 @@ fn float_cube_3d(
 /// tilted by 10° (the full run is benchmarks/bodies/run.py's).
 #[test]
 fn cube_floats_at_its_archimedes_depth_3d_short() {
-    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0, Integrator::Explicit);
-    assert!(
-        worst <= tol,
-        "mean share {mean}, worst error {worst} > {tol}"
-    );
+    cube_floats_short(Integrator::Explicit);
 }
 
 /// The cube's short run on the projection.
 #[test]
 fn cube_floats_at_its_archimedes_depth_3d_short_projection() {
-    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0, Integrator::Projection);
+    cube_floats_short(Integrator::Projection);
+}
+
+fn cube_floats_short(integrator: Integrator) {
+    let (mean, worst, tol) = float_cube_3d(240, 120, 10.0, integrator);
     assert!(
         worst <= tol,
         "mean share {mean}, worst error {worst} > {tol}"
