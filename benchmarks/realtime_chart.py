@@ -1,8 +1,8 @@
 """The real-time chart of every registered scene: each rung of real-time mode, its error and its time.
 
-A rung is the scene's default particles (its chart's ``r_p``) on one grid (the scene's, ¾ or ½ of it where the
-walls' faces stay put) stepped by
-one integrator (explicit; the projection where the scene is water round free-slip obstacles):
+A rung is one grid (the scene's, ¾ or ½ of it where the walls' faces stay put), stepped by one integrator
+(explicit; the projection where the scene is water round free-slip obstacles), on the scene's default particles
+(its chart's ``r_p``) or, on a coarser grid, those merged to the scene's density per cell:
 :func:`hybridmpm.sim.realtime.candidate_rungs`. Each rung runs ``--frames`` frames from the scene's initial
 condition on both threads. Its error is the grid-mass error against the scene's full-resolution MPM reference
 (:func:`hybridmpm.sim.reference`, paper Sec. 3.1.1's ``RMSE_m̃``, mass-weighted), averaged over the frames; its
@@ -57,20 +57,20 @@ def chart_scene(name: str, frames: int, warmup: int) -> dict[str, Any]:
         ms = 1e3 * float(np.mean(seconds))  # the mean: a projection step spanning frames puts its cost on one of them
         m = evaluate(ro, ref, scene.params.resolved_n_grid())
         err = m.get("grid_mass_error_mass_weighted") or m["grid_mass_error"]
-        rows.append({"key": rung.key, "n_grid": rung.n_grid, "integrator": rung.integrator, "error": float(err["mean"]), "ms": ms})
+        rows.append({"key": rung.key, "n_grid": rung.n_grid, "integrator": rung.integrator, "r_p": rung.r_p, "error": float(err["mean"]), "ms": ms})
         print(name, rows[-1], flush=True)
     t0 = rows[0]["ms"]
     for r in rows:
         r["time_ratio"] = round(r["ms"] / t0, 4)
         r["ms"] = round(r["ms"], 4)
         r["error"] = round(r["error"], 6)
-    return {"r_p": r_p, "frames": frames, "particles": int(sim.solver.num_particles), "dim": scene.dim, "rungs": rows}
+    return {"r_p": r_p, "frames": frames, "particles": int(sim.particles.num_fluid), "dim": scene.dim, "rungs": rows}
 
 
 def pick(chart: dict[str, Any], budget_ms: float) -> str:
     """The rung this machine picks from ``chart``: the most accurate on the Pareto ladder whose measured frame
     fits ``budget_ms``, else the fastest."""
-    ladder = pareto([Rung(r["n_grid"], r["integrator"], r["error"], r["time_ratio"]) for r in chart["rungs"]])
+    ladder = pareto([Rung(r["n_grid"], r["integrator"], r["error"], r["time_ratio"], r.get("r_p", 1.0)) for r in chart["rungs"]])
     ms = {r["key"]: r["ms"] for r in chart["rungs"]}
     return next((r.key for r in ladder if ms[r.key] <= budget_ms), ladder[-1].key)
 

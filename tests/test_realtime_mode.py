@@ -110,7 +110,7 @@ def test_bodies_and_poured_blocks_cross_a_change_of_grid() -> None:
     assert n == sim.solver.num_particles > own and sim.pours == [n - own]
     m0, p0 = _momentum(sim)
     core0 = sim.solver._core.bodies()["state"].copy()
-    sim.set_rung(sim.ladder[-1].key)
+    sim.set_rung(min((r for r in sim.ladder if r.r_p == 1.0), key=lambda r: r.time_ratio).key)
     m1, p1 = _momentum(sim)
     assert m1 == m0 and np.abs(p1 - p0).max() <= 1e-6 * max(1.0, float(np.abs(p0).max()))
     assert np.array_equal(sim.solver._core.bodies()["state"], core0)  # the bodies' exact states
@@ -122,6 +122,97 @@ def test_bodies_and_poured_blocks_cross_a_change_of_grid() -> None:
     again.restore(state)
     for _ in range(5):
         again.advance()
+    assert again.solver.checkpoint() == sim.solver.checkpoint()
+
+
+def _totals(sim: RealtimeSimulator) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass, momentum and first moment of mass of what the solver steps."""
+    m = np.asarray(sim.solver.masses, np.float64)
+    return (
+        float(m.sum()),
+        (m[:, None] * np.asarray(sim.solver.velocities, np.float64)).sum(0),
+        (m[:, None] * np.asarray(sim.solver.positions, np.float64)).sum(0),
+    )
+
+
+def test_merged_particles_conserve_mass_momentum_and_force_and_split_back_to_the_scene_s_own() -> None:
+    sim = make_simulator("dam_break2d", "realtime")
+    assert isinstance(sim, RealtimeSimulator)
+    scene_masses = np.array(sim.solver.masses)
+    n = sim.particles.num_fluid
+    for _ in range(20):
+        sim.advance()
+    m0, p0, c0 = _totals(sim)
+    sim.set_rung("g64-explicit-rp0.25")
+    m1, p1, c1 = _totals(sim)
+    k = sim.solver.num_particles
+    assert n / 4 <= k < n / 2  # at most 2 x 2 of the lattice a group (the scene's default is clustered already)
+    assert sim.realtime_info()["particles"] == k and sim.realtime_info()["label"] == "MPM 64² explicit, r_p 0.25"
+    assert m1 == m0  # each group's mass is its members' (registered scenes' masses sum exactly in float32)
+    tol = 1e-6 * max(1.0, float(np.abs(p0).max()))
+    assert np.abs(p1 - p0).max() <= tol and np.abs(c1 - c0).max() <= 1e-6 * float(np.abs(c0).max())
+    # what it shows is still the scene's particles: the frame, the velocities and a forcing keep their count
+    assert sim.frame.positions.shape[0] == sim.particles.num_total and sim.particles.num_fluid == n
+    assert np.array_equal(sim.particles.masses, scene_masses)
+    acc = np.random.default_rng(0).normal(size=(n, 2)).astype(np.float32)
+    sim.forcing = acc
+    sim.advance()
+    force = (scene_masses[:, None].astype(np.float64) * acc).sum(0)
+    applied = (np.asarray(sim.solver.masses, np.float64)[:, None] * sim.solver.external_acceleration).sum(0)
+    assert np.abs(applied - force).max() <= 1e-5 * float(np.abs(force).max())  # the groups push as hard as their members
+    sim.forcing = None
+    for _ in range(10):
+        sim.advance()
+    m2, p2, _ = _totals(sim)
+    shown = sim.velocities
+    sim.set_rung("g128-explicit")  # split back: the scene's own particles, their own masses
+    m3, p3, _ = _totals(sim)
+    assert sim.solver.num_particles == n and np.array_equal(sim.solver.masses, scene_masses)
+    assert m3 == m2 and np.abs(p3 - p2).max() <= 1e-6 * max(1.0, float(np.abs(p2).max()))
+    assert np.array_equal(sim.solver.velocities, shown)  # each at its group's affine velocity, as shown before
+    assert np.isfinite(sim.advance().positions).all()
+
+
+def test_a_merged_state_restores_bitwise_through_a_pour_and_a_split_and_a_forged_one_is_refused() -> None:
+    sim = make_simulator("crates2d", "realtime")
+    for _ in range(3):
+        sim.advance()
+    own = sim.solver.num_particles
+    poured = pour_block(sim, {"material": "water", "lo": [0.6, 0.7], "hi": [0.7, 0.8]}) - own
+    block = {f: np.array(sim.solver.field(f))[own:] for f in ("positions", "velocities", "masses")}
+    bodies = sim.solver._core.bodies()["state"].copy()
+    merged = next(r.key for r in sim.ladder if r.r_p < 1.0 and r.integrator == "explicit")
+    sim.set_rung(merged)
+    k = sim.solver.num_particles - poured
+    assert k < own / 2 and sim.pours == [poured] and sim.poured_particles == poured
+    for f, a in block.items():  # the poured block stays whole after the groups
+        assert np.array_equal(np.array(sim.solver.field(f))[k:], a), f
+    assert np.array_equal(sim.solver._core.bodies()["state"], bodies)
+    for _ in range(3):
+        sim.advance()
+    state = sim.state()
+    assert state["rung"] == merged and state["merge"]["labels"].shape == (own,)
+    before = sim.solver.checkpoint()
+    with pytest.raises(InvalidInputError) as e:
+        sim.restore({**state, "merge": {**state["merge"], "labels": state["merge"]["labels"] + 1}})  # no group 0
+    assert e.value.field == "state.merge.labels" and sim.solver.checkpoint() == before and sim.rung == merged
+    with pytest.raises(InvalidInputError):  # one group of all: its mass is not the checkpoint's first particle's
+        sim.restore({**state, "merge": {**state["merge"], "labels": np.zeros(own, np.int32)}})
+    assert sim.solver.checkpoint() == before
+    with pytest.raises(InvalidInputError) as e:
+        sim.restore({**state, "merge": None})
+    assert e.value.field == "state.merge"
+    for _ in range(3):
+        sim.advance()
+    sim.set_rung(sim.ladder[0].key)  # split back, then on
+    sim.advance()
+    again = make_simulator("crates2d", "realtime")
+    again.restore(state)
+    assert again.rung == merged and again.particles.num_fluid == sim.particles.num_fluid
+    for _ in range(3):
+        again.advance()
+    again.set_rung(again.ladder[0].key)
+    again.advance()
     assert again.solver.checkpoint() == sim.solver.checkpoint()
 
 

@@ -217,55 +217,130 @@ def neural_to_mpm(
 
 #: The per-particle fields of MPM's state that a merge averages and a split copies (``volume_correction``: sand's log-volume correction).
 _FIELDS = ("affine", "deformation_gradient", "volume_ratio", "volume_correction")
+#: Every per-particle field a solver holds (:meth:`~hybridmpm.mpm.MpmSolver.field`'s names, ``stress`` derived).
+PARTICLE_FIELDS = ("positions", "velocities", "masses", "volumes", "material", "material_set", *_FIELDS, "external_acceleration")
+#: The fields a particle's group shares as it is split: its material and parameter set, and each member's own mass and rest volume.
+STATIC_FIELDS = ("masses", "volumes", "material", "material_set")
+
+
+def _group_mean(a: np.ndarray, lab: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:
+    """The ``w``-weighted mean of ``a`` [N, ...] over the groups ``lab`` (int64 [N], ``0 .. k − 1``), float64 [k, ...]."""
+    flat = np.asarray(a, np.float64).reshape(len(lab), -1) * w[:, None]
+    out = np.zeros((k, flat.shape[1]))
+    np.add.at(out, lab, flat)
+    return (out / np.bincount(lab, w, minlength=k)[:, None]).reshape((k,) + np.shape(a)[1:])
+
+
+def merge_arrays(fields: dict[str, np.ndarray], labels: np.ndarray, k: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Merge particles into groups: ``fields`` every :data:`PARTICLE_FIELDS` array of N particles (as
+    :meth:`~hybridmpm.mpm.MpmSolver.field` reads them; any other float array [N, ...] given, such as a
+    simulator's forcing, is merged as the velocities are), particle ``i`` in group ``labels[i]`` (int [N], values
+    ``0 .. k − 1``, each group non-empty and of one parameter set). The group is one particle (paper Sec. 3.1.1's
+    ``r_p`` clustering): its mass and rest volume the sums (float32 of the float64 sum), its position, velocity,
+    APIC ``C``, ``F``, sand's log-volume correction and external acceleration the mass-weighted means (mass,
+    centre of mass, momentum and the applied force conserved), water's ``J`` the rest-volume-weighted mean, its
+    material and set its members'. Returns the k merged particles' arrays (float32; int32 codes) and each
+    particle's offset from its group's centre, float64 [N, D] (what :func:`split_arrays` puts back)."""
+    lab = np.asarray(labels, np.int64)
+    m = np.asarray(fields["masses"], np.float64)
+    vol = np.asarray(fields["volumes"], np.float64)
+    means = [f for f in fields if f not in (*STATIC_FIELDS, "positions")]
+    out: dict[str, np.ndarray] = {f: _group_mean(fields[f], lab, vol if f == "volume_ratio" else m, k).astype(np.float32) for f in means}
+    x = np.asarray(fields["positions"], np.float64)
+    xc = _group_mean(x, lab, m, k)
+    out["positions"] = xc.astype(np.float32)
+    out["masses"] = np.bincount(lab, m, minlength=k).astype(np.float32)
+    out["volumes"] = np.bincount(lab, vol, minlength=k).astype(np.float32)
+    first = np.full(k, len(lab), np.int64)
+    np.minimum.at(first, lab, np.arange(len(lab)))
+    for f in ("material", "material_set"):
+        out[f] = np.asarray(fields[f], np.int32)[first]
+    return out, x - xc[lab]
+
+
+def split_arrays(
+    merged: dict[str, np.ndarray], labels: np.ndarray, offsets: np.ndarray, members: dict[str, np.ndarray], bounds: tuple[float, float]
+) -> dict[str, np.ndarray]:
+    """The inverse of :func:`merge_arrays`: each particle ``i`` at its group's position plus ``offsets[i]``
+    (clipped to ``bounds`` [m]), with the group's affine velocity ``v + C·offset`` and its ``C``, ``F``, ``J``,
+    log-volume correction, external acceleration (and any other merged array); ``members`` the particles' own
+    ``masses``, ``volumes``, ``material`` and ``material_set`` [N]. Mass is the members' again, and momentum the
+    group's (the offsets are about the group's centre of mass). Returns the N particles' arrays."""
+    lab = np.asarray(labels, np.int64)
+    off = np.asarray(offsets, np.float64)
+    aff = np.asarray(merged["affine"], np.float64)[lab]
+    lo, hi = bounds
+    out = {f: np.asarray(a)[lab] for f, a in merged.items() if f not in (*STATIC_FIELDS, "positions", "velocities")}
+    out["positions"] = np.clip(np.asarray(merged["positions"], np.float64)[lab] + off, lo, hi).astype(np.float32)
+    out["velocities"] = (np.asarray(merged["velocities"], np.float64)[lab] + np.einsum("nij,nj->ni", aff, off)).astype(np.float32)
+    out.update({f: np.asarray(members[f]) for f in STATIC_FIELDS})
+    return out
+
+
+def bin_groups(positions: np.ndarray, sets: np.ndarray, size: float) -> tuple[np.ndarray, int]:
+    """Group particles by parameter set and by cube of side ``size`` [m] on a lattice from the origin: the
+    labels, int64 [N] (groups numbered in the order of their first particle, so the same particles give the same
+    labels), and the number of groups. ``positions`` float [N, D], ``sets`` int [N]."""
+    cells = np.floor(np.asarray(positions, np.float64) / size).astype(np.int64)
+    keys = np.concatenate([np.asarray(sets, np.int64)[:, None], cells], axis=1)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    rank = np.empty(len(first), np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    return rank[inverse.ravel()], len(first)
 
 
 def merge_state(fine: MpmSolver, coarse: MpmSolver, labels: np.ndarray) -> tuple[np.ndarray, float]:
     """Merge the particles of ``fine`` into those of ``coarse`` (MPM on another grid): particle ``i``
     of ``fine`` belongs to particle ``labels[i]`` of ``coarse`` (int64 [N_f], values ``0 .. N_c − 1``,
-    every group one material; ``coarse``'s masses and rest volumes are the groups' sums). The group's
-    position and velocity are the mass-weighted means (mass, centre of mass and momentum conserved,
-    as the ``r_p`` clustering does, paper Sec. 3.1.1), its APIC ``C``, elastic ``F`` and sand's
-    log-volume correction the mass-weighted means, water's ``J`` the rest-volume-weighted mean.
+    every group one material; ``coarse``'s masses and rest volumes are the groups' sums), as
+    :func:`merge_arrays` merges them (its masses and rest volumes are ``coarse``'s own).
     Returns each fine particle's offset from its group's centre float64 [N_f, D] (what
     :func:`split_state` puts back) and the merge's error: the mass-weighted RMS [m/s] of the fine
     velocities the group's affine field ``v + C·offset`` does not carry."""
     lab = np.asarray(labels, np.int64)
-    k = coarse.num_particles
-    m = np.asarray(fine.masses, np.float64)
-    msum = np.bincount(lab, m, minlength=k)
-
-    def mean(a: np.ndarray, w: np.ndarray, wsum: np.ndarray) -> np.ndarray:
-        flat = np.asarray(a, np.float64).reshape(len(lab), -1) * w[:, None]
-        out = np.zeros((k, flat.shape[1]))
-        np.add.at(out, lab, flat)
-        return (out / wsum[:, None]).reshape((k,) + np.shape(a)[1:])
-
-    x, v = np.asarray(fine.positions, np.float64), np.asarray(fine.velocities, np.float64)
-    xc, vc = mean(x, m, msum), mean(v, m, msum)
-    vol = np.asarray(fine.volumes, np.float64)
-    merged = {f: mean(fine.field(f), vol if f == "volume_ratio" else m, np.bincount(lab, vol if f == "volume_ratio" else m, minlength=k)) for f in _FIELDS}
-    offsets = x - xc[lab]
+    merged, offsets = merge_arrays({f: fine.field(f) for f in PARTICLE_FIELDS}, lab, coarse.num_particles)
     lo, hi = coarse.domain_bounds
-    coarse.positions = np.clip(xc, lo, hi).astype(np.float32)
-    coarse.velocities = vc.astype(np.float32)
-    for f, a in merged.items():
-        coarse.set_field(f, a.astype(np.float32))
-    carried = vc[lab] + np.einsum("nij,nj->ni", merged["affine"][lab], offsets)
-    residual = float(np.sqrt((m * ((v - carried) ** 2).sum(1)).sum() / max(m.sum(), 1e-300)))
+    coarse.positions = np.clip(merged["positions"], lo, hi)
+    coarse.velocities = merged["velocities"]
+    for f in _FIELDS:
+        coarse.set_field(f, merged[f])
+    m = np.asarray(fine.masses, np.float64)
+    carried = np.asarray(merged["velocities"], np.float64)[lab] + np.einsum("nij,nj->ni", np.asarray(merged["affine"], np.float64)[lab], offsets)
+    residual = float(np.sqrt((m * ((np.asarray(fine.velocities, np.float64) - carried) ** 2).sum(1)).sum() / max(m.sum(), 1e-300)))
     return offsets, residual
 
 
 def split_state(coarse: MpmSolver, fine: MpmSolver, labels: np.ndarray, offsets: np.ndarray) -> None:
     """The inverse of :func:`merge_state`: each fine particle ``i`` at its group's position plus
     ``offsets[i]`` (clipped to ``fine``'s domain), with the group's affine velocity ``v + C·offset``
-    and its ``C``, ``F``, ``J`` and log-volume correction."""
-    lab = np.asarray(labels, np.int64)
-    aff = np.asarray(coarse.affine, np.float64)[lab]
-    lo, hi = fine.domain_bounds
-    fine.positions = np.clip(np.asarray(coarse.positions, np.float64)[lab] + offsets, lo, hi).astype(np.float32)
-    fine.velocities = (np.asarray(coarse.velocities, np.float64)[lab] + np.einsum("nij,nj->ni", aff, offsets)).astype(np.float32)
+    and its ``C``, ``F``, ``J`` and log-volume correction (:func:`split_arrays`)."""
+    members = {f: fine.field(f) for f in STATIC_FIELDS}
+    out = split_arrays({f: coarse.field(f) for f in PARTICLE_FIELDS}, labels, offsets, members, fine.domain_bounds)
+    fine.positions = out["positions"]
+    fine.velocities = out["velocities"]
     for f in _FIELDS:
-        fine.set_field(f, np.asarray(coarse.field(f))[lab])
+        fine.set_field(f, out[f])
+
+
+def replace_particles(solver: MpmSolver, fields: dict[str, np.ndarray]) -> None:
+    """Make ``solver`` hold exactly the particles ``fields`` (every :data:`PARTICLE_FIELDS` array, in order),
+    in place: its clock, grid, bodies, obstacles and parameter sets are kept. The new particles are appended
+    and checked before the old ones go, so a refusal (:class:`InvalidInputError` naming the field) removes the
+    ones it appended and leaves the old ones."""
+    n_old = solver.num_particles
+    solver.add_particles(
+        fields["positions"], np.asarray(fields["material"], np.int32), velocities=fields["velocities"], masses=fields["masses"],
+        volumes=fields["volumes"], material_set=np.asarray(fields["material_set"], np.int32),
+    )  # fmt: skip
+    old = np.zeros(solver.num_particles, bool)
+    old[:n_old] = True
+    try:
+        for f in (*_FIELDS, "external_acceleration"):
+            solver.set_field(f, np.concatenate([solver.field(f)[:n_old], np.asarray(fields[f], np.float32)]))
+    except BaseException:
+        solver.remove_particles(~old)
+        raise
+    solver.remove_particles(old)
 
 
 def mpm_history(current: np.ndarray, kept: np.ndarray, t_in: int) -> np.ndarray:
@@ -287,10 +362,16 @@ __all__ = [
     "estimate_volume_ratio",
     "fit_affine",
     "hydrostatic_j_min",
+    "PARTICLE_FIELDS",
+    "STATIC_FIELDS",
+    "bin_groups",
+    "merge_arrays",
     "merge_state",
     "mpm_history",
     "neural_to_mpm",
     "particle_density",
+    "replace_particles",
+    "split_arrays",
     "split_state",
     "velocities_from_history",
 ]

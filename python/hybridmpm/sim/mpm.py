@@ -194,8 +194,12 @@ class MpmSimulator:
         return self.fluid_positions, self.velocities
 
     def _clear_forcing(self) -> None:
-        self.solver.external_acceleration = np.zeros((self.particles.num_fluid, self.particles.dim), np.float32)
+        self.solver.external_acceleration = np.zeros((self.solver.num_particles, self.particles.dim), np.float32)
         self._applied = False
+
+    def _apply_acceleration(self, acc: np.ndarray) -> None:
+        """Write a resolved forcing, float32 [N, D] of the particles :attr:`particles` counts, into the solver."""
+        self.solver.external_acceleration = acc
 
     # ------------------------------------------------------------ obstacles
     @property
@@ -381,7 +385,7 @@ class MpmSimulator:
             if self._forcing is not None:
                 acc = resolve_forcing(self._forcing, self.step_index * self.r_t + k, n, d, self._fluid_state)
                 if acc is not None:
-                    self.solver.external_acceleration = acc
+                    self._apply_acceleration(acc)
                     self._applied = controlled = True
                 elif self._applied:
                     self._clear_forcing()
@@ -482,7 +486,7 @@ class MpmSimulator:
                 self.solver.check_restore(blob, same_particles=True)
                 if pours != self._pours:
                     raise CheckpointError(f"state.poured: records blocks of {pours} particles, this simulator holds {self._pours}")
-            n_fluid = self.particles.num_fluid if grown is None else int(grown.num_particles)
+            n_fluid = self.particles.num_fluid if grown is None else self._presented(int(grown.num_particles))
             forcing = check_forcing(state["forcing"], n_fluid, self.particles.dim)
             moves = self._check_moves(state.get("obstacle_moves", {}))  # absent from states saved before obstacles moved
 
@@ -523,13 +527,30 @@ class MpmSimulator:
         most :data:`~hybridmpm.sim.pour.MAX_POURED_TOTAL` particles (the
         scene's own count where larger) within the solver's memory budget.
         Raises :class:`~hybridmpm.errors.CheckpointError` otherwise."""
+        params, core, _ = MpmSolver.split_checkpoint(blob)
+        n = core_particle_count(core, self.particles.dim)
+        if n == self.solver.num_particles and params.to_dict() == self.solver.params.to_dict() and pours == self._pours and self._own_base():
+            return None
+        return self._grown_solver(blob, pours)
+
+    def _presented(self, n_solver: int) -> int:
+        """The particles :attr:`particles` counts for a solver of ``n_solver`` particles (the same, here)."""
+        return n_solver
+
+    def _own_base(self) -> bool:
+        """Whether a state of this solver's particle count and parameters holds its particles, so that the plain
+        restore checks it against them (a real-time simulator on merged particles says no: a state's groups are
+        checked against the state's own base)."""
+        return True
+
+    def _grown_solver(self, blob: bytes, pours: list[int]) -> MpmSolver:
+        """A new solver restored from ``blob`` after the checks of :meth:`_poured_solver` (the scene's
+        parameters and particles, ``pours`` after them). Raises :class:`~hybridmpm.errors.CheckpointError`."""
         from hybridmpm.sim.pour import MAX_POURED_TOTAL  # at call time: a test lowers the bound
 
         params, core, _ = MpmSolver.split_checkpoint(blob)
         d = self.particles.dim
         n = core_particle_count(core, d)
-        if n == self.solver.num_particles and params.to_dict() == self.solver.params.to_dict() and pours == self._pours:
-            return None
         base = self._scene_params.to_dict()
         theirs = params.to_dict()
         sets0, sets = base.pop("sets", []), theirs.pop("sets", [])
@@ -569,11 +590,17 @@ class MpmSimulator:
         :meth:`restore`), in its parameter sets; the particle set, the scene's
         parameters and the current frame follow. Between steps."""
         self._pours = list(pours)
-        old = self.particles
+        self.solver = solver
+        self.particles = self._particle_set(solver, self.particles)
+        self.scene = replace(self.scene, params=solver.params)
+        f = self._frame
+        self._frame = Frame(f.step, f.frame_index, f.time, self.positions, f.solver, obstacle_centers=f.obstacle_centers, **self.frame_bodies())
+
+    def _particle_set(self, solver: MpmSolver, old: ParticleSet) -> ParticleSet:
+        """The particle set of ``solver``'s particles, with ``old``'s boundary particles."""
         material = np.asarray(solver.material, np.int32)
         fluid_types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)
-        self.solver = solver
-        self.particles = ParticleSet(
+        return ParticleSet(
             int(solver.num_particles),
             old.boundary,
             np.concatenate([fluid_types, np.asarray(old.particle_type)[old.num_fluid :]]),
@@ -581,9 +608,6 @@ class MpmSimulator:
             np.asarray(solver.masses, np.float32),
             old.boundary_obstacle,
         )
-        self.scene = replace(self.scene, params=solver.params)
-        f = self._frame
-        self._frame = Frame(f.step, f.frame_index, f.time, self.positions, f.solver, obstacle_centers=f.obstacle_centers, **self.frame_bodies())
 
     def _check_moves(self, raw: Any) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """A state's pending obstacle moves (its ``obstacle_moves``, absent

@@ -1,10 +1,11 @@
 """Real-time mode: MPM that picks, from its scene's real-time chart, the most accurate configuration whose frame
 fits real time on this machine, and changes it as the machine's pace changes (docs/realtime.md).
 
-A *rung* is one configuration of the scene's MPM on the same particles: a grid (the scene's, or ¾ or ½ of it
-where the walls' faces stay where they are)
-and an integrator (the explicit MLS-MPM substeps, or the incompressible projection where the scene is water
-round free-slip obstacles; docs/large-step.md). The ladder orders the rungs by their error against the scene's
+A *rung* is one configuration of the scene's MPM: a grid (the scene's, or ¾ or ½ of it where the walls' faces
+stay where they are), an integrator (the explicit MLS-MPM substeps, or the incompressible projection where the
+scene is water round free-slip obstacles; docs/large-step.md) and its particles: the scene's own, or on a coarser
+grid as many as the scene has per cell of its own grid (``r_p`` = the grids' ratio to the power D: the scene's
+particles merged by parameter set in cubes of the coarser lattice's spacing, :func:`~hybridmpm.sim.convert.bin_groups`). The ladder orders the rungs by their error against the scene's
 full-resolution reference, measured once by ``benchmarks/realtime_chart.py`` and shipped in
 ``models/realtime.json`` with each rung's time relative to the first; a rung that is slower and no more accurate
 than another is dropped. A scene without a chart (a scene file of your own) gets the rungs by their time priors,
@@ -21,11 +22,15 @@ frames, moves to another rung:
 * up when a more accurate rung is predicted to fit the budget divided by :data:`HYSTERESIS`;
 * at most once every :data:`DWELL_S` seconds of wall time, after :data:`MIN_SAMPLES` timed frames.
 
-A change keeps the particles: positions, velocities, APIC matrices, deformation, bodies and obstacles move onto
-the new grid bit for bit (:meth:`~hybridmpm.mpm.MpmSolver.restore_particles`'s rule: only the grid, its wall
-band and the integrator differ), so mass and momentum are conserved exactly; the one exception is a particle
-a splash put closer to the domain's edge than one cell of a coarser grid, which moves onto that edge (its
-velocity kept). A projection step that spans
+A change of grid or integrator keeps the particles: positions, velocities, APIC matrices, deformation, bodies
+and obstacles move onto the new grid bit for bit (:meth:`~hybridmpm.mpm.MpmSolver.restore_particles`'s rule: only
+the grid, its wall band and the integrator differ), so mass and momentum are conserved exactly; the one exception
+is a particle a splash put closer to the domain's edge than one cell of a coarser grid, which moves onto that
+edge (its velocity kept). A change to merged particles merges each group into one particle (mass, centre of mass
+and momentum conserved, :func:`~hybridmpm.sim.convert.merge_arrays`) and remembers each particle's offset from
+its group's centre; a change back splits the groups so (each particle at its group's centre plus its offset, with
+the group's affine velocity: its own mass again, momentum kept, :func:`~hybridmpm.sim.convert.split_arrays`).
+Blocks poured since stay whole either way, bodies and obstacles are not particles. A projection step that spans
 frames is finished before a change. The simulator never catches up: a frame is a frame whatever it cost
 (:func:`~hybridmpm.sim.rollout.step_realtime` drops what a host's budget did not cover). Its :meth:`state`
 records the rung, so a checkpoint taken after a change restores bitwise.
@@ -43,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from hybridmpm.conventions import MATERIAL_WATER
+from hybridmpm.conventions import GNS_TYPE_OF_MATERIAL, MATERIAL_WATER
 from hybridmpm.errors import InvalidInputError
 from hybridmpm.files import loads_json
 from hybridmpm.mpm import MpmSolver
@@ -52,6 +57,7 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene, wall_face
 from hybridmpm.scenes.registry import registered_name
 from hybridmpm.sim.base import serialised
+from hybridmpm.sim.convert import PARTICLE_FIELDS, STATIC_FIELDS, bin_groups, merge_arrays, replace_particles, split_arrays
 from hybridmpm.sim.mpm import MpmSimulator
 
 #: A frame's budget is ``dt_frame · r_t / REALTIME_MARGIN`` of wall time: a fifth of real time is kept for the
@@ -83,30 +89,34 @@ PROJECTION_PRIOR = 0.6
 @dataclass(frozen=True)
 class Rung:
     """One configuration of the ladder: MPM on ``n_grid`` (cells per axis) stepped by ``integrator``, on the
-    simulator's own particles. ``error`` its chart error (grid-mass error against the full-resolution
-    reference, mean over the chart's frames; None without a chart) and ``time_ratio`` its chart time per frame
-    relative to the ladder's first rung."""
+    simulator's own particles (``r_p`` 1) or those merged to the scene's density per cell of ``n_grid`` (``r_p``
+    < 1: the nominal share of particles kept, ``(n_grid / n_scene)^D``). ``error`` its chart error (grid-mass
+    error against the full-resolution reference, mean over the chart's frames; None without a chart) and
+    ``time_ratio`` its chart time per frame relative to the ladder's first rung."""
 
     n_grid: int
     integrator: str
     error: float | None
     time_ratio: float
+    r_p: float = 1.0
 
     @property
     def key(self) -> str:
-        """``g{n_grid}-{integrator}``, e.g. ``g96-explicit``: the name the chart, the state and the service use."""
-        return rung_key(self.n_grid, self.integrator)
+        """``g{n_grid}-{integrator}``, e.g. ``g96-explicit``, with ``-rp{r_p}`` for merged particles
+        (``g64-explicit-rp0.25``): the name the chart, the state and the service use."""
+        return rung_key(self.n_grid, self.integrator, self.r_p)
 
 
-def rung_key(n_grid: int, integrator: str) -> str:
-    """The key of the rung on ``n_grid`` stepped by ``integrator``."""
-    return f"g{int(n_grid)}-{integrator}"
+def rung_key(n_grid: int, integrator: str, r_p: float = 1.0) -> str:
+    """The key of the rung on ``n_grid`` stepped by ``integrator`` with particles ``r_p`` (:class:`Rung`)."""
+    return f"g{int(n_grid)}-{integrator}" + (f"-rp{r_p:.3g}" if r_p < 1.0 else "")
 
 
 def rung_label(key: str, dim: int) -> str:
-    """A rung's key for people: ``g96-explicit`` in 2D is "MPM 96² explicit"."""
-    grid, integrator = key[1:].split("-", 1)
-    return f"MPM {grid}{'²' if dim == 2 else '³'} {integrator}"
+    """A rung's key for people: ``g96-explicit`` in 2D is "MPM 96² explicit", ``g64-explicit-rp0.25``
+    "MPM 64² explicit, r_p 0.25"."""
+    grid, integrator, *rp = key[1:].split("-")
+    return f"MPM {grid}{'²' if dim == 2 else '³'} {integrator}" + (f", r_p {rp[0][2:]}" if rp else "")
 
 
 def ladder_grids(n_grid: int) -> list[int]:
@@ -182,15 +192,20 @@ def pareto(rungs: list[Rung]) -> list[Rung]:
 
 def candidate_rungs(scene: Scene) -> list[Rung]:
     """Every rung ``scene`` can run (its grid, ¾ and ½ of it where its walls and obstacles stay as they are,
-    :func:`grid_holds`;
-    explicit, and projection where allowed), finer grids first, explicit before projection, with time priors
-    (explicit: the grid's share of the substeps, ``n / n_scene``; projection: :data:`PROJECTION_PRIOR` of that)
-    and no error."""
+    :func:`grid_holds`; explicit, and projection where allowed; on a coarser grid the scene's particles and
+    those merged to its density, ``r_p = (n / n_scene)^D``), finer grids first, explicit before projection, the
+    scene's particles before merged ones, with time priors (explicit: the grid's share of the substeps, ``n /
+    n_scene``; projection: :data:`PROJECTION_PRIOR` of that; merged: times ``r_p``) and no error."""
     n0 = scene.params.resolved_n_grid()
     integrators = [INTEGRATORS[0]] + ([INTEGRATORS[1]] if projection_allowed(scene) else [])
-    return [
-        Rung(n, i, None, n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)) for n in ladder_grids(n0) if grid_holds(scene, n) for i in integrators
-    ]
+    out = []
+    for n in ladder_grids(n0):
+        if not grid_holds(scene, n):
+            continue
+        for i in integrators:
+            prior = n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)
+            out += [Rung(n, i, None, prior)] + ([Rung(n, i, None, prior * (n / n0) ** scene.dim, (n / n0) ** scene.dim)] if n < n0 else [])
+    return out
 
 
 def charted_rungs(scene: Scene) -> list[Rung]:
@@ -201,7 +216,7 @@ def charted_rungs(scene: Scene) -> list[Rung]:
     out = []
     for r in candidate_rungs(scene):
         c = charted.get(r.key)
-        out.append(r if c is None else Rung(r.n_grid, r.integrator, float(c["error"]), float(c["time_ratio"])))
+        out.append(r if c is None else replace(r, error=float(c["error"]), time_ratio=float(c["time_ratio"])))
     return out
 
 
@@ -239,6 +254,9 @@ class RealtimeSimulator(MpmSimulator):
     ) -> None:
         if isinstance(scene, str):
             scene = make_scene(scene, seed=seed)
+        #: on a merged rung: each scene particle's group (int64 [N]), its offset from the group's centre (float64
+        #: [N, D]) and the groups' lattice spacing [m]; None on the scene's particles
+        self._merge: tuple[np.ndarray, np.ndarray, float] | None = None
         super().__init__(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
         self.ladder = make_ladder(self.scene)
         #: the scene's shipped real-time chart (:func:`realtime_chart`; None: a scene of your own)
@@ -248,7 +266,12 @@ class RealtimeSimulator(MpmSimulator):
         #: rung key -> the scene's own solver parameters on that rung (the particles' parameter sets kept)
         #: every rung it can run (the ladder's, and the explicit ones a body or another material falls back on)
         rungs = charted_rungs(self.scene)
+        self._rungs = {r.key: r for r in rungs}
         self._rung_params = {r.key: self._params_on(r) for r in rungs}
+        #: the scene's own particles (a merged rung's base is its groups, :meth:`_merged_base`), and their masses,
+        #: rest volumes, materials and sets: what a split gives back
+        self._fine_particles = self._scene_particles
+        self._members = {f: np.asarray(self.solver.field(f)) for f in STATIC_FIELDS}
         self._chart_ratios = {r.key: r.time_ratio for r in rungs}
         #: rung key -> (its measured wall time per frame [s], when): this machine's times of the rungs visited
         self._measured: dict[str, tuple[float, float]] = {}
@@ -280,6 +303,111 @@ class RealtimeSimulator(MpmSimulator):
         grid = spec.on_grid(rung.n_grid).params  # the obstacles' sampled distances on the new grid
         return replace(self._scene_params, n_grid=grid.n_grid, walls=grid.walls, colliders=grid.colliders, integrator=rung.integrator)
 
+    def _own_base(self) -> bool:
+        """On merged particles a state is always checked against its own groups (:meth:`restore`)."""
+        return self._merge is None
+
+    def _bin_size(self, rung: Rung) -> float:
+        """The side [m] of the cubes a merged ``rung`` groups the particles in: the scene's lattice spacing on
+        the rung's grid (``1 / (n_grid · particles_per_cell)``)."""
+        spec = self.scene_full.spec
+        ppc = spec.particles_per_cell if spec is not None else 2
+        return 1.0 / (rung.n_grid * ppc)
+
+    def _merged_base(self, labels: np.ndarray, k: int) -> Any:
+        """The particle set of the scene merged into the groups ``labels``: ``k`` particles, each of its group's
+        material and summed mass (float32 of the float64 sum, as :func:`~hybridmpm.sim.convert.merge_arrays` sums)."""
+        fine, lab = self._fine_particles, np.asarray(labels, np.int64)
+        first = np.full(k, len(lab), np.int64)
+        np.minimum.at(first, lab, np.arange(len(lab)))
+        material = np.asarray(self._members["material"], np.int32)[first]
+        types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)
+        masses = np.bincount(lab, np.asarray(self._members["masses"], np.float64), minlength=k).astype(np.float32)
+        return replace(
+            fine, num_fluid=k, particle_type=np.concatenate([types, np.asarray(fine.particle_type)[fine.num_fluid :]]), material=material, masses=masses
+        )
+
+    def _resample(self, rung: Rung) -> None:
+        """Make the particles those of ``rung``: split a merge that ``rung`` does not keep, then merge into
+        ``rung``'s groups (module docstring). Poured blocks stay whole after the scene's particles, as does an
+        array forcing's share of them."""
+        size = self._bin_size(rung) if rung.r_p < 1.0 else None
+        if (self._merge is None and size is None) or (self._merge is not None and self._merge[2] == size):
+            return
+        fields = {f: np.asarray(self.solver.field(f)) for f in PARTICLE_FIELDS}
+        head = self._scene_particles.num_fluid
+        scene = {f: a[:head] for f, a in fields.items()}
+        if self._merge is not None:
+            labels, offsets, _ = self._merge
+            scene = split_arrays(scene, labels, offsets, self._members, self.solver.domain_bounds)
+        merge = None
+        if size is not None:
+            labels, k = bin_groups(scene["positions"], scene["material_set"], size)
+            scene, offsets = merge_arrays(scene, labels, k)
+            merge = (labels, offsets, size)
+        replace_particles(self.solver, {f: np.concatenate([scene[f], a[head:]]) for f, a in fields.items()})
+        self._merge = merge
+        self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge[0], int(merge[0].max()) + 1)
+        self.adopt(self.solver, self._pours)
+
+    # ------------------------------------------------------------ the particles shown
+    # On merged particles the simulator still shows the scene's own (each at its group's centre plus its
+    # offset): frames, rollouts, recordings, forcings and a session's facts keep the scene's particle count.
+    def _particle_set(self, solver: MpmSolver, old: Any) -> Any:
+        own = super()._particle_set(solver, old)
+        if self._merge is None:
+            return own
+        fine, k = self._fine_particles, self._scene_particles.num_fluid
+        n = fine.num_fluid
+        return replace(
+            own,
+            num_fluid=n + own.num_fluid - k,
+            particle_type=np.concatenate([np.asarray(fine.particle_type)[:n], np.asarray(own.particle_type)[k:]]),
+            material=np.concatenate([np.asarray(fine.material), np.asarray(own.material)[k:]]),
+            masses=np.concatenate([np.asarray(fine.masses, np.float32), np.asarray(own.masses)[k:]]),
+        )
+
+    def _presented(self, n_solver: int) -> int:
+        return n_solver if self._merge is None else n_solver - int(self._merge[0].max()) - 1 + len(self._merge[0])
+
+    @property
+    def fluid_positions(self) -> np.ndarray:
+        """The particles' positions, float32 [N, D] (a copy): on merged particles each of the scene's at its
+        group's centre plus its offset (inside the domain), the poured ones as they are."""
+        x = np.asarray(self.solver.positions, np.float32)
+        if self._merge is None:
+            return x.copy()
+        labels, offsets, _ = self._merge
+        k = int(labels.max()) + 1
+        lo, hi = self.solver.domain_bounds
+        own = np.clip(x[:k][labels] + offsets, lo, hi).astype(np.float32)
+        return np.concatenate([own, x[k:]])
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """The particles' velocities [m/s], float32 [N, D]: on merged particles each of the scene's its group's
+        affine velocity ``v + C·offset``."""
+        v = np.asarray(self.solver.velocities, np.float32)
+        if self._merge is None:
+            return v.copy()
+        labels, offsets, _ = self._merge
+        k = int(labels.max()) + 1
+        own = np.asarray(v[:k], np.float64)[labels] + np.einsum("nij,nj->ni", np.asarray(self.solver.affine[:k], np.float64)[labels], offsets)
+        return np.concatenate([own.astype(np.float32), v[k:]])
+
+    def _apply_acceleration(self, acc: np.ndarray) -> None:
+        """On merged particles a group takes its members' mass-weighted mean acceleration (their force)."""
+        if self._merge is None:
+            super()._apply_acceleration(acc)
+            return
+        labels = self._merge[0]
+        k = int(labels.max()) + 1
+        m = np.asarray(self._members["masses"], np.float64)
+        own = np.zeros((k, acc.shape[1]))
+        np.add.at(own, labels, np.asarray(acc[: len(labels)], np.float64) * m[:, None])
+        own /= np.bincount(labels, m, minlength=k)[:, None]
+        self.solver.external_acceleration = np.concatenate([own.astype(np.float32), acc[len(labels) :]])
+
     @property
     def rung(self) -> str:
         """The key of the rung in use (:func:`rung_key`)."""
@@ -305,6 +433,7 @@ class RealtimeSimulator(MpmSimulator):
         updates["integrator"] = target.integrator
         blob = MpmSolver.with_header(self.solver.checkpoint(), updates)
         self.adopt(MpmSolver.from_checkpoint(blob), self._pours)
+        self._resample(self._rungs[key])
         self._scene_params = target
         self._rung = key
         self._since_change = 0
@@ -450,8 +579,9 @@ class RealtimeSimulator(MpmSimulator):
         ``frame_ms`` its measured wall time per frame (the running average; None before it was timed),
         ``budget_ms`` a frame's budget, ``realtime_factor`` the simulated time a wall second of stepping covers on
         this rung (``dt_frame · r_t / frame``: 1.0 is real time; None before it was timed), ``changes`` the
-        number of changes of rung so far, the ``ladder``'s keys, most accurate first, and ``share`` the share of
-        its threads' time it may spend (:meth:`set_share`, in (0, 1]; 1: alone)."""
+        number of changes of rung so far, the ``ladder``'s keys, most accurate first, ``share`` the share of
+        its threads' time it may spend (:meth:`set_share`, in (0, 1]; 1: alone), and ``particles`` the particles
+        it steps (fewer than it shows on a merged rung)."""
         return {
             "rung": self._rung,
             "label": rung_label(self._rung, self.particles.dim),
@@ -461,13 +591,45 @@ class RealtimeSimulator(MpmSimulator):
             "changes": len(self.changes),
             "ladder": [r.key for r in self.ladder],
             "share": round(self._share, 4),
+            "particles": int(self.solver.num_particles),
         }
 
     # ------------------------------------------------------------ checkpoint
     @serialised
     def state(self) -> dict[str, Any]:
-        """:meth:`MpmSimulator.state` with the ``rung`` it was taken on."""
-        return {**super().state(), "rung": self._rung}
+        """:meth:`MpmSimulator.state` with the ``rung`` it was taken on and, on merged particles, ``merge``: each
+        scene particle's group ``labels`` (int32 [N]) and its ``offsets`` from the group's centre (float64 [N, D]),
+        what a later split puts back."""
+        merge = None if self._merge is None else {"labels": self._merge[0].astype(np.int32), "offsets": self._merge[1].copy()}
+        return {**super().state(), "rung": self._rung, "merge": merge}
+
+    def _check_merge(self, raw: Any, rung: Rung) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """A state's ``merge`` for ``rung``, checked: None on the scene's particles; on merged ones the labels
+        of the scene's N particles (integers, every group from 0 up non-empty and of one parameter set) and
+        their offsets (finite, [N, D], at most the domain's size). Raises :class:`InvalidInputError` naming
+        ``state.merge``."""
+        field = "state.merge"
+        if rung.r_p >= 1.0:
+            if raw is not None:
+                raise InvalidInputError(f"{field}: rung {rung.key} holds the scene's own particles; expected none", field)
+            return None
+        if not isinstance(raw, dict) or not isinstance(raw.get("labels"), np.ndarray) or not isinstance(raw.get("offsets"), np.ndarray):
+            raise InvalidInputError(f"{field}: rung {rung.key} merges particles; expected its labels and offsets arrays", field)
+        n, d = len(self._members["masses"]), self.particles.dim
+        labels, offsets = raw["labels"], raw["offsets"]
+        if labels.shape != (n,) or labels.dtype.kind not in "iu" or offsets.shape != (n, d) or offsets.dtype.kind != "f":
+            raise InvalidInputError(f"{field}: expected labels int [{n}] and offsets float [{n}, {d}]", field)
+        lab = labels.astype(np.int64)
+        if n and (lab.min() < 0 or lab.max() >= n):
+            raise InvalidInputError(f"{field}.labels: must lie in [0, {n})", f"{field}.labels")
+        k = int(lab.max()) + 1 if n else 0
+        sets = np.unique(np.stack([lab, np.asarray(self._members["material_set"], np.int64)], 1), axis=0)
+        if np.any(np.bincount(lab, minlength=k) == 0) or len(sets) != k:
+            raise InvalidInputError(f"{field}.labels: every group from 0 up must hold particles of one parameter set", f"{field}.labels")
+        off = offsets.astype(np.float64)
+        if not np.isfinite(off).all() or np.abs(off).max(initial=0.0) > 1.0:
+            raise InvalidInputError(f"{field}.offsets: must be finite and within the domain's size", f"{field}.offsets")
+        return lab, off, self._bin_size(rung)
 
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
@@ -480,21 +642,27 @@ class RealtimeSimulator(MpmSimulator):
         key = state.get("rung", self.ladder[0].key)
         if not isinstance(key, str) or key not in self._rung_params:
             raise InvalidInputError(f"state.rung: must be one of {', '.join(self._rung_params)}, got {key!r}", "state.rung")
-        plain = {k: v for k, v in state.items() if k != "rung"}
-        if key == self._rung:
-            super().restore(plain)
-            return
+        merge = self._check_merge(state.get("merge"), self._rungs[key])
+        plain = {k: v for k, v in state.items() if k not in ("rung", "merge")}
         keep_solver, keep_params, keep_rung, keep_scene = self.solver, self._scene_params, self._rung, self.scene
+        keep_merge, keep_base = self._merge, self._scene_particles
         try:
-            target = self._rung_params[key]
-            self.solver = MpmSolver(replace(target, num_threads=keep_solver.params.num_threads), memory_budget=keep_solver.memory_budget)
-            self._scene_params = target
-            self.scene = replace(self.scene, params=target)
-            self._rung = key
+            # the state's particles are checked against its own base: the scene's, or its groups
+            self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge[0], int(merge[0].max()) + 1)
+            self._merge = merge
+            if key != self._rung:
+                target = self._rung_params[key]
+                self.solver = MpmSolver(replace(target, num_threads=keep_solver.params.num_threads), memory_budget=keep_solver.memory_budget)
+                self._scene_params = target
+                self.scene = replace(self.scene, params=target)
+                self._rung = key
             super().restore(plain)
         except BaseException:
             self.solver, self._scene_params, self._rung, self.scene = keep_solver, keep_params, keep_rung, keep_scene
+            self._merge, self._scene_particles = keep_merge, keep_base
             raise
+        if key == keep_rung and merge is None and keep_merge is None:
+            return
         self._since_change = self._samples = 0
         self._last_change = self._clock()
 
