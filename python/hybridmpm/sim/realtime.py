@@ -193,18 +193,20 @@ def pareto(rungs: list[Rung]) -> list[Rung]:
 def candidate_rungs(scene: Scene) -> list[Rung]:
     """Every rung ``scene`` can run (its grid, ¾ and ½ of it where its walls and obstacles stay as they are,
     :func:`grid_holds`; explicit, and projection where allowed; on a coarser grid the scene's particles and
-    those merged to its density, ``r_p = (n / n_scene)^D``), finer grids first, explicit before projection, the
+    those merged to its density, ``r_p = (n / n_scene)^D``, and where the scene's grid is the only one, its
+    particles and those merged to half its density per axis, ``r_p = 2^−D``), finer grids first, explicit before projection, the
     scene's particles before merged ones, with time priors (explicit: the grid's share of the substeps, ``n /
     n_scene``; projection: :data:`PROJECTION_PRIOR` of that; merged: times ``r_p``) and no error."""
     n0 = scene.params.resolved_n_grid()
     integrators = [INTEGRATORS[0]] + ([INTEGRATORS[1]] if projection_allowed(scene) else [])
+    grids = [n for n in ladder_grids(n0) if grid_holds(scene, n)]
     out = []
-    for n in ladder_grids(n0):
-        if not grid_holds(scene, n):
-            continue
+    for n in grids:
+        # merged: the scene's density on a coarser grid; where the scene's grid is the only one, half of it per axis
+        r_p = (n / n0) ** scene.dim if n < n0 else (0.5**scene.dim if len(grids) == 1 else 1.0)
         for i in integrators:
             prior = n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)
-            out += [Rung(n, i, None, prior)] + ([Rung(n, i, None, prior * (n / n0) ** scene.dim, (n / n0) ** scene.dim)] if n < n0 else [])
+            out += [Rung(n, i, None, prior)] + ([Rung(n, i, None, prior * r_p, r_p)] if r_p < 1.0 else [])
     return out
 
 
@@ -266,6 +268,7 @@ class RealtimeSimulator(MpmSimulator):
         #: rung key -> the scene's own solver parameters on that rung (the particles' parameter sets kept)
         #: every rung it can run (the ladder's, and the explicit ones a body or another material falls back on)
         rungs = charted_rungs(self.scene)
+        self._n_scene_grid = self.scene.params.resolved_n_grid()
         self._rungs = {r.key: r for r in rungs}
         self._rung_params = {r.key: self._params_on(r) for r in rungs}
         #: the scene's own particles (a merged rung's base is its groups, :meth:`_merged_base`), and their masses,
@@ -309,10 +312,11 @@ class RealtimeSimulator(MpmSimulator):
 
     def _bin_size(self, rung: Rung) -> float:
         """The side [m] of the cubes a merged ``rung`` groups the particles in: the scene's lattice spacing on
-        the rung's grid (``1 / (n_grid · particles_per_cell)``)."""
+        the rung's grid (``1 / (n_grid · particles_per_cell)``), twice it on the scene's own grid."""
         spec = self.scene_full.spec
         ppc = spec.particles_per_cell if spec is not None else 2
-        return 1.0 / (rung.n_grid * ppc)
+        own = rung.n_grid >= self._n_scene_grid
+        return (2.0 if own else 1.0) / (rung.n_grid * ppc)
 
     def _merged_base(self, labels: np.ndarray, k: int) -> Any:
         """The particle set of the scene merged into the groups ``labels``: ``k`` particles, each of its group's
