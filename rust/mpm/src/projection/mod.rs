@@ -36,9 +36,10 @@
 //! `solver/large_step.rs`). `benchmarks/large_step.py`
 //! holds the prototype this module follows and its checks (docs/large-step.md).
 
-use nalgebra::SVector;
+use nalgebra::{SMatrix, SVector};
 use rayon::prelude::*;
 
+use crate::collider::PROJECT_DEPTH_CELLS;
 use crate::isa::Isa;
 use crate::particles::Particle;
 pub use bodies::{BodyStep, StepBody, push_out_of_bodies};
@@ -649,8 +650,41 @@ impl<const D: usize> Projection<D> {
     fn g2p(&mut self, particles: &mut [Particle<D>], dt: f32, cols: &StepColliders<'_, D>) {
         let (g, isa, vel) = (self.grid(), self.isa, &self.vel);
         let (bounds, projecting) = (g.inside(), cols.projecting(g.dx));
+        let (solid, moving, shapes) = (&self.solid, &self.obstacle_velocity, cols.colliders);
+        let colliders = shapes.len();
+        let stride = strides(&shape::<D>(self.n, None));
+        let (n, dx) = (self.n, self.dx);
+        let deep = 2.0 * PROJECT_DEPTH_CELLS * dx;
         particles.par_chunks_mut(G2P_CHUNK).for_each(|chunk| {
+            // a particle deeper inside an obstacle than its projection reaches, in its cells (a fast
+            // obstacle overtook it), is in no fluid cell, so its velocity was never projected: it
+            // moves with the obstacle until the projection below can put it back on the surface,
+            // rather than reading back the faces its own p2g set
+            let inside: Vec<(usize, SVector<f32, D>, usize)> = if colliders == 0 {
+                Vec::new()
+            } else {
+                chunk
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, p)| {
+                        let c: usize = (0..D)
+                            .map(|d| ((p.x[d] / dx) as usize).min(n - 1) * stride[d])
+                            .sum();
+                        let k = solid[c] as usize;
+                        (k >= 1 && k <= colliders && shapes[k - 1].shape.sdf(&p.x) < -deep)
+                            .then_some((i, p.x, k - 1))
+                    })
+                    .collect()
+            };
             g2p_chunk(isa, chunk, vel, g, dt);
+            for (i, x, k) in inside {
+                let p = &mut chunk[i];
+                p.v = moving[k];
+                p.c = SMatrix::zeros();
+                for d in 0..D {
+                    p.x[d] = (x[d] + dt * p.v[d]).clamp(bounds.0, bounds.1);
+                }
+            }
             if !projecting.is_empty() {
                 chunk
                     .iter_mut()
