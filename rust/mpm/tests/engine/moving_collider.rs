@@ -375,7 +375,7 @@ fn a_paddle_dragged_fast_through_the_water_on_the_projection_carries_what_it_ove
         retries, 0,
         "frames rolled back while the paddle was dragged"
     );
-    // 148.6 m/s here (the paddle throws water ahead of it); 173.7 when the overtaken particles read
+    // 155.9 m/s here (the paddle throws water ahead of it); 173.7 when the overtaken particles read
     // back their own faces
     assert!(fastest < 3.2 * speed, "a particle reached {fastest} m/s");
 }
