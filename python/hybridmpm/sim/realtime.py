@@ -44,7 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cache
 from importlib import resources
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -84,6 +84,16 @@ MIN_GRID = 16
 CHART_FILE = "realtime.json"
 #: Time priors for a scene without a chart: the projection's time as a fraction of the explicit step's on its grid.
 PROJECTION_PRIOR = 0.6
+
+
+class Merge(NamedTuple):
+    """The particles of a merged rung: each scene particle's group ``labels`` (int64 [N]), its ``offsets`` from
+    the group's centre (float64 [N, D]), the cubes' side ``size`` [m] and the number of ``groups``."""
+
+    labels: np.ndarray
+    offsets: np.ndarray
+    size: float
+    groups: int
 
 
 @dataclass(frozen=True)
@@ -258,7 +268,7 @@ class RealtimeSimulator(MpmSimulator):
             scene = make_scene(scene, seed=seed)
         #: on a merged rung: each scene particle's group (int64 [N]), its offset from the group's centre (float64
         #: [N, D]) and the groups' lattice spacing [m]; None on the scene's particles
-        self._merge: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._merge: Merge | None = None
         super().__init__(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
         self.ladder = make_ladder(self.scene)
         #: the scene's shipped real-time chart (:func:`realtime_chart`; None: a scene of your own)
@@ -333,25 +343,23 @@ class RealtimeSimulator(MpmSimulator):
 
     def _resample(self, rung: Rung) -> None:
         """Make the particles those of ``rung``: split a merge that ``rung`` does not keep, then merge into
-        ``rung``'s groups (module docstring). Poured blocks stay whole after the scene's particles, as does an
-        array forcing's share of them."""
+        ``rung``'s groups (module docstring). Poured blocks stay whole after the scene's particles."""
         size = self._bin_size(rung) if rung.r_p < 1.0 else None
-        if (self._merge is None and size is None) or (self._merge is not None and self._merge[2] == size):
+        if (self._merge is None and size is None) or (self._merge is not None and self._merge.size == size):
             return
         fields = {f: np.asarray(self.solver.field(f)) for f in PARTICLE_FIELDS}
         head = self._scene_particles.num_fluid
         scene = {f: a[:head] for f, a in fields.items()}
         if self._merge is not None:
-            labels, offsets, _ = self._merge
-            scene = split_arrays(scene, labels, offsets, self._members, self.solver.domain_bounds)
+            scene = split_arrays(scene, self._merge.labels, self._merge.offsets, self._members, self.solver.domain_bounds)
         merge = None
         if size is not None:
             labels, k = bin_groups(scene["positions"], scene["material_set"], size)
             scene, offsets = merge_arrays(scene, labels, k)
-            merge = (labels, offsets, size)
+            merge = Merge(labels, offsets, size, k)
         replace_particles(self.solver, {f: np.concatenate([scene[f], a[head:]]) for f, a in fields.items()})
         self._merge = merge
-        self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge[0], int(merge[0].max()) + 1)
+        self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge.labels, merge.groups)
         self.adopt(self.solver, self._pours)
 
     # ------------------------------------------------------------ the particles shown
@@ -372,7 +380,7 @@ class RealtimeSimulator(MpmSimulator):
         )
 
     def _presented(self, n_solver: int) -> int:
-        return n_solver if self._merge is None else n_solver - int(self._merge[0].max()) - 1 + len(self._merge[0])
+        return n_solver if self._merge is None else n_solver - self._merge.groups + len(self._merge.labels)
 
     @property
     def fluid_positions(self) -> np.ndarray:
@@ -381,8 +389,7 @@ class RealtimeSimulator(MpmSimulator):
         x = np.asarray(self.solver.positions, np.float32)
         if self._merge is None:
             return x.copy()
-        labels, offsets, _ = self._merge
-        k = int(labels.max()) + 1
+        labels, offsets, _, k = self._merge
         lo, hi = self.solver.domain_bounds
         own = np.clip(x[:k][labels] + offsets, lo, hi).astype(np.float32)
         return np.concatenate([own, x[k:]])
@@ -394,8 +401,7 @@ class RealtimeSimulator(MpmSimulator):
         v = np.asarray(self.solver.velocities, np.float32)
         if self._merge is None:
             return v.copy()
-        labels, offsets, _ = self._merge
-        k = int(labels.max()) + 1
+        labels, offsets, _, k = self._merge
         own = np.asarray(v[:k], np.float64)[labels] + np.einsum("nij,nj->ni", np.asarray(self.solver.affine[:k], np.float64)[labels], offsets)
         return np.concatenate([own.astype(np.float32), v[k:]])
 
@@ -404,8 +410,7 @@ class RealtimeSimulator(MpmSimulator):
         if self._merge is None:
             super()._apply_acceleration(acc)
             return
-        labels = self._merge[0]
-        k = int(labels.max()) + 1
+        labels, _, _, k = self._merge
         m = np.asarray(self._members["masses"], np.float64)
         own = np.zeros((k, acc.shape[1]))
         np.add.at(own, labels, np.asarray(acc[: len(labels)], np.float64) * m[:, None])
@@ -604,10 +609,10 @@ class RealtimeSimulator(MpmSimulator):
         """:meth:`MpmSimulator.state` with the ``rung`` it was taken on and, on merged particles, ``merge``: each
         scene particle's group ``labels`` (int32 [N]) and its ``offsets`` from the group's centre (float64 [N, D]),
         what a later split puts back."""
-        merge = None if self._merge is None else {"labels": self._merge[0].astype(np.int32), "offsets": self._merge[1].copy()}
+        merge = None if self._merge is None else {"labels": self._merge.labels.astype(np.int32), "offsets": self._merge.offsets.copy()}
         return {**super().state(), "rung": self._rung, "merge": merge}
 
-    def _check_merge(self, raw: Any, rung: Rung) -> tuple[np.ndarray, np.ndarray, float] | None:
+    def _check_merge(self, raw: Any, rung: Rung) -> Merge | None:
         """A state's ``merge`` for ``rung``, checked: None on the scene's particles; on merged ones the labels
         of the scene's N particles (integers, every group from 0 up non-empty and of one parameter set) and
         their offsets (finite, [N, D], at most the domain's size). Raises :class:`InvalidInputError` naming
@@ -633,7 +638,7 @@ class RealtimeSimulator(MpmSimulator):
         off = offsets.astype(np.float64)
         if not np.isfinite(off).all() or np.abs(off).max(initial=0.0) > 1.0:
             raise InvalidInputError(f"{field}.offsets: must be finite and within the domain's size", f"{field}.offsets")
-        return lab, off, self._bin_size(rung)
+        return Merge(lab, off, self._bin_size(rung), k)
 
     @serialised
     def restore(self, state: dict[str, Any]) -> None:
@@ -652,7 +657,7 @@ class RealtimeSimulator(MpmSimulator):
         keep_merge, keep_base = self._merge, self._scene_particles
         try:
             # the state's particles are checked against its own base: the scene's, or its groups
-            self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge[0], int(merge[0].max()) + 1)
+            self._scene_particles = self._fine_particles if merge is None else self._merged_base(merge.labels, merge.groups)
             self._merge = merge
             if key != self._rung:
                 target = self._rung_params[key]
