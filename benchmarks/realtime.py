@@ -34,7 +34,7 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import make_simulator, rollout
 from hybridmpm.sim.config import default_settings
-from hybridmpm.sim.realtime import projection_allowed
+from hybridmpm.sim.ladder import projection_allowed
 
 
 def measure_realtime(scene: str, frames: int, settle_s: float) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 A rung is one grid (the scene's, ¾ or ½ of it where the walls' faces stay put), stepped by one integrator
 (explicit; the projection where the scene is water round free-slip obstacles), on the scene's default particles
 (its chart's ``r_p``) or, on a coarser grid, those merged to the scene's density per cell:
-:func:`hybridmpm.sim.realtime.candidate_rungs`. Each rung runs ``--frames`` frames from the scene's initial
+:func:`hybridmpm.sim.ladder.candidate_rungs`. Each rung runs ``--frames`` frames from the scene's initial
 condition on both threads. Its error is the grid-mass error against the scene's full-resolution MPM reference
 (:func:`hybridmpm.sim.reference`, paper Sec. 3.1.1's ``RMSE_m̃``, mass-weighted), averaged over the frames; its
 time the mean wall time per frame after ``--warmup`` frames, and its ``time_ratio`` that over the first rung's
@@ -33,7 +33,8 @@ from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import RealtimeSimulator, reference, rollout
 from hybridmpm.sim.config import default_settings
-from hybridmpm.sim.realtime import CHART_FILE, REALTIME_MARGIN, Rung, candidate_rungs, pareto
+from hybridmpm.sim.ladder import CHART_FILE, Rung, candidate_rungs, pareto
+from hybridmpm.sim.realtime import REALTIME_MARGIN
 
 SHIP = Path(__file__).resolve().parent.parent / "python" / "hybridmpm" / "models" / CHART_FILE
 

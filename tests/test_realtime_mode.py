@@ -14,9 +14,11 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.scenes import SceneSpec, make_scene
 from hybridmpm.scenes.registry import DOMAINS
 from hybridmpm.sim import MpmSimulator, make_simulator, step_realtime
+from hybridmpm.sim import ladder as rl
 from hybridmpm.sim import realtime as rt
+from hybridmpm.sim.ladder import candidate_rungs, make_ladder, pareto
 from hybridmpm.sim.pour import pour_block
-from hybridmpm.sim.realtime import RealtimeSimulator, candidate_rungs, make_ladder, pareto
+from hybridmpm.sim.realtime import RealtimeSimulator
 
 
 def _momentum(sim: MpmSimulator) -> tuple[float, np.ndarray]:
@@ -43,7 +45,7 @@ def test_every_scene_has_a_ladder_whose_steps_down_buy_time_and_the_projection_o
 
 
 def test_pareto_keeps_only_rungs_that_buy_time() -> None:
-    R = rt.Rung
+    R = rl.Rung
     rungs = [R(64, "explicit", 0.3, 0.5), R(128, "explicit", 0.1, 1.0), R(96, "explicit", 0.2, 1.2), R(64, "projection", 0.4, 0.2)]
     assert [r.key for r in pareto(rungs)] == ["g128-explicit", "g64-explicit", "g64-projection"]  # 96 is slower than 128
 
@@ -364,7 +366,7 @@ def test_a_projection_rung_is_timed_by_its_steps_mean_not_by_the_frame_that_step
     # after it, and read neither the mean nor a steady rung.
     monkeypatch.setattr(rt, "DWELL_S", 0.2)
     scene = SceneSpec.from_dict({"name": "tank", "dim": 2, "n_grid": 64, "blocks": [{"material": "water", "lo": [0.04, 0.04], "hi": [0.96, 0.3]}]}).build()
-    key = rt.rung_key(64, "projection")
+    key = rl.rung_key(64, "projection")
     budget = 2.5e-3 / rt.REALTIME_MARGIN
     clock = [0.0]
     real = MpmSimulator.advance
