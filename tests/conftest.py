@@ -18,7 +18,10 @@
   with ``--no-loadscope-reorder``), so that no worker ends the run alone on
   one of them. Tests marked ``alone`` assert rates on this machine's cores (the
   page's frame rates, real-time drags in the browser); they run after the
-  parallel phase, with no other test beside them. Tests that share a node id
+  parallel phase, with no other test beside them. The workers write the files
+  that hold them to ``HYBRIDMPM_ALONE_FILES`` when it is set, so that the
+  ``alone`` phase collects those files only (the whole suite takes about 20 s
+  of one core to collect). Tests that share a node id
   (schemathesis's one test per API operation: its items are named
   ``test[GET /path]`` but keep the function's node id under pytest 9) are
   given their names as node ids, so that pytest-xdist tells them apart and
@@ -101,8 +104,9 @@ def _rename(item: pytest.Item, nodeid: str) -> None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Tests that share a node id (schemathesis's one test per API operation) get their names as node ids
     (pytest-xdist hands out tests by node id: all but one of a shared id would never run on a worker); any whose id
-    is still shared is marked ``alone``. On a pytest-xdist worker, the longest files first (a stable sort, so each
-    file keeps its tests' order)."""
+    is still shared is marked ``alone``. On a pytest-xdist worker, the files holding ``alone`` tests are written to
+    ``HYBRIDMPM_ALONE_FILES`` (when set), and the longest files come first (a stable sort, so each file keeps its
+    tests' order)."""
     counts = Counter(item.nodeid for item in items)
     for item in items:
         if counts[item.nodeid] > 1 and "::" in item.nodeid:
@@ -113,6 +117,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.alone)
     if not hasattr(config, "workerinput"):
         return
+    listing = os.environ.get("HYBRIDMPM_ALONE_FILES")
+    if listing:
+        files = sorted({str(item.path) for item in items if item.get_closest_marker("alone") is not None})
+        part = f"{listing}.{os.getpid()}"  # both workers write the same list: each whole, then renamed over it
+        with open(part, "w") as fh:
+            fh.write("".join(f"{f}\n" for f in files))
+        os.replace(part, listing)
     rank = {name: i for i, name in enumerate(_LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
