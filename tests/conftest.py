@@ -17,10 +17,16 @@
   run. The files that take longest are handed out first (``_LONGEST_FILES``
   with ``--no-loadscope-reorder``), so that no worker ends the run alone on
   one of them. Tests marked ``alone`` assert rates on this machine's cores (the
-  page's frame rates, real-time drags in the browser) or share a node id with
-  another test (schemathesis's one test per API operation, which pytest-xdist
-  would run once); they run after the parallel phase, with no other test
-  beside them. The skip rule above holds
+  page's frame rates, real-time drags in the browser); they run after the
+  parallel phase, with no other test beside them. The workers write the files
+  that hold them to ``HYBRIDMPM_ALONE_FILES`` when it is set, so that the
+  ``alone`` phase collects those files only (the whole suite takes about 20 s
+  of one core to collect). Tests that share a node id
+  (schemathesis's one test per API operation: its items are named
+  ``test[GET /path]`` but keep the function's node id under pytest 9) are
+  given their names as node ids, so that pytest-xdist tells them apart and
+  runs them on a worker; any still shared are marked ``alone`` (pytest-xdist
+  would run one of them). The skip rule above holds
   on the workers: a skipped test's report is failed before it leaves the
   worker, and a module skipped while collected is reported to the
   controller, which fails the run.
@@ -84,17 +90,40 @@ _LONGEST_FILES = (
 )
 
 
+def _rename(item: pytest.Item, nodeid: str) -> None:
+    """Give ``item`` the node id ``nodeid``: pytest 9 keeps it structured (``_id``), pytest 8 as a string."""
+    if hasattr(item, "_id"):
+        from _pytest.nodes import coerce_node_id
+
+        item._id = coerce_node_id(nodeid)
+    else:
+        item._nodeid = nodeid
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m deselects: the marks added here count
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests that share a node id (schemathesis's one test per API operation) are marked ``alone``: pytest-xdist
-    hands out tests by node id, so all but one of them would never run on a worker. On a pytest-xdist worker, the
-    longest files first (a stable sort, so each file keeps its tests' order)."""
+    """Tests that share a node id (schemathesis's one test per API operation) get their names as node ids
+    (pytest-xdist hands out tests by node id: all but one of a shared id would never run on a worker); any whose id
+    is still shared is marked ``alone``. On a pytest-xdist worker, the files holding ``alone`` tests are written to
+    ``HYBRIDMPM_ALONE_FILES`` (when set), and the longest files come first (a stable sort, so each file keeps its
+    tests' order)."""
+    counts = Counter(item.nodeid for item in items)
+    for item in items:
+        if counts[item.nodeid] > 1 and "::" in item.nodeid:
+            _rename(item, f"{item.nodeid.rsplit('::', 1)[0]}::{item.name}")  # what pytest names any other item
     counts = Counter(item.nodeid for item in items)
     for item in items:
         if counts[item.nodeid] > 1:
             item.add_marker(pytest.mark.alone)
     if not hasattr(config, "workerinput"):
         return
+    listing = os.environ.get("HYBRIDMPM_ALONE_FILES")
+    if listing:
+        files = sorted({str(item.path) for item in items if item.get_closest_marker("alone") is not None})
+        part = f"{listing}.{os.getpid()}"  # both workers write the same list: each whole, then renamed over it
+        with open(part, "w") as fh:
+            fh.write("".join(f"{f}\n" for f in files))
+        os.replace(part, listing)
     rank = {name: i for i, name in enumerate(_LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
