@@ -91,12 +91,15 @@ _LONGEST_FILES = (
 
 
 def _rename(item: pytest.Item, nodeid: str) -> None:
-    """Give ``item`` the node id ``nodeid``: pytest 9 keeps it structured (``_id``), pytest 8 as a string."""
+    """Give ``item`` the node id ``nodeid``: pytest 9 keeps it structured (``_id``), pytest 8 as a string. Private
+    to pytest: where neither holds (another version), the item keeps its id and the shared ids run ``alone``."""
     if hasattr(item, "_id"):
-        from _pytest.nodes import coerce_node_id
-
+        try:
+            from _pytest.nodes import coerce_node_id
+        except ImportError:
+            return
         item._id = coerce_node_id(nodeid)
-    else:
+    elif hasattr(item, "_nodeid"):
         item._nodeid = nodeid
 
 
