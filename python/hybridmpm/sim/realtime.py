@@ -259,7 +259,7 @@ class RealtimeSimulator(MpmSimulator):
         labels, k = self._merge.labels, self._merge.groups
         m = np.asarray(self._members["masses"], np.float64)
         force = np.asarray(acc[: len(labels)], np.float64) * m[:, None]
-        own = np.stack([np.bincount(labels, force[:, d], minlength=k) for d in range(acc.shape[1])], axis=1)
+        own = np.stack([np.bincount(labels, force[:, d], minlength=k) for d in range(acc.shape[1])], axis=1).astype(np.float64)
         own /= np.bincount(labels, m, minlength=k)[:, None]
         self.solver.external_acceleration = np.concatenate([own.astype(np.float32), acc[len(labels) :]])
 
