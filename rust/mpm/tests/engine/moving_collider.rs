@@ -3,7 +3,9 @@
 //! move exactly, and a collider that does not move is the static one bit
 //! for bit.
 
-use hybridmpm_mpm::{BoundaryCondition, Collider, Material, Particle, Shape, Solver, SolverParams};
+use hybridmpm_mpm::{
+    BoundaryCondition, Collider, Integrator, Material, Particle, Shape, Solver, SolverParams,
+};
 use nalgebra::{SMatrix, SVector};
 
 const DT: f32 = 2.5e-3;
@@ -54,15 +56,25 @@ fn water(
 }
 
 fn tank(paddle_col: &Collider<2>) -> (SolverParams<2>, Solver<2>) {
+    tank_of(paddle_col, Integrator::Explicit, 0.25)
+}
+
+/// A 64² tank around `paddle_col`, stepped by `integrator`, water from 0.05 m up to `top`.
+fn tank_of(
+    paddle_col: &Collider<2>,
+    integrator: Integrator,
+    top: f32,
+) -> (SolverParams<2>, Solver<2>) {
     let params = SolverParams::<2> {
         n_grid: 64,
         num_threads: 1,
+        integrator,
         ..Default::default()
     };
     let mut s = Solver::new(params.clone(), vec![paddle_col.clone()]).unwrap();
     let ps = water(
         [0.05, 0.05],
-        [0.95, 0.25],
+        [0.95, top],
         params.dx() / 2.0,
         &params,
         Some(paddle_col),
@@ -292,22 +304,8 @@ fn water_squeezed_against_a_wall_by_a_fast_paddle_keeps_a_quarter_of_its_volume_
 #[test]
 fn water_squeezed_by_a_fast_paddle_on_the_projection_replans_its_steps_and_needs_no_retry() {
     let col = paddle([0.3, 0.25], BoundaryCondition::Separate);
-    let params = SolverParams::<2> {
-        n_grid: 64,
-        num_threads: 1,
-        integrator: hybridmpm_mpm::Integrator::Projection,
-        ..Default::default()
-    };
-    let mut s = Solver::new(params.clone(), vec![col.clone()]).unwrap();
+    let (params, mut s) = tank_of(&col, Integrator::Projection, 0.25);
     let dx = params.dx();
-    s.set_particles(water(
-        [0.05, 0.05],
-        [0.95, 0.25],
-        dx / 2.0,
-        &params,
-        Some(&col),
-    ))
-    .unwrap();
     let wall = params.walls.cells as f32 * dx;
     let stop = wall + dx + 0.03;
     let speed = 40.0f32;
@@ -340,22 +338,7 @@ fn water_squeezed_by_a_fast_paddle_on_the_projection_replans_its_steps_and_needs
 #[test]
 fn a_paddle_dragged_fast_through_the_water_on_the_projection_carries_what_it_overtakes() {
     let col = paddle([0.2, 0.17], BoundaryCondition::Separate);
-    let params = SolverParams::<2> {
-        n_grid: 64,
-        num_threads: 1,
-        integrator: hybridmpm_mpm::Integrator::Projection,
-        ..Default::default()
-    };
-    let mut s = Solver::new(params.clone(), vec![col.clone()]).unwrap();
-    let dx = params.dx();
-    s.set_particles(water(
-        [0.05, 0.05],
-        [0.95, 0.35],
-        dx / 2.0,
-        &params,
-        Some(&col),
-    ))
-    .unwrap();
+    let (_, mut s) = tank_of(&col, Integrator::Projection, 0.35);
     let speed = 50.0f32;
     let (mut retries, mut fastest, mut direction) = (0, 0.0f32, 1.0f32);
     for _ in 0..120 {
