@@ -223,12 +223,19 @@ PARTICLE_FIELDS = ("positions", "velocities", "masses", "volumes", "material", "
 STATIC_FIELDS = ("masses", "volumes", "material", "material_set")
 
 
-def _group_mean(a: np.ndarray, lab: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:
-    """The ``w``-weighted mean of ``a`` [N, ...] over the groups ``lab`` (int64 [N], ``0 .. k − 1``), float64 [k, ...]."""
-    flat = np.asarray(a, np.float64).reshape(len(lab), -1) * w[:, None]
-    out = np.zeros((k, flat.shape[1]))
-    np.add.at(out, lab, flat)
-    return (out / np.bincount(lab, w, minlength=k)[:, None]).reshape((k,) + np.shape(a)[1:])
+def group_mean(a: np.ndarray, labels: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:
+    """The ``w``-weighted mean of ``a`` [N, ...] over the groups ``labels`` (int64 [N], ``0 .. k − 1``, each
+    non-empty), float64 [k, ...]: per group ``Σ w·a / Σ w``, summed in particle order."""
+    flat = np.asarray(a, np.float64).reshape(len(labels), -1) * w[:, None]
+    out = np.stack([np.bincount(labels, flat[:, j], minlength=k) for j in range(flat.shape[1])], axis=1)
+    return (out / np.bincount(labels, w, minlength=k)[:, None]).reshape((k,) + np.shape(a)[1:])
+
+
+def group_firsts(labels: np.ndarray, k: int) -> np.ndarray:
+    """The index of each group's first particle, int64 [k] (``labels`` int [N], ``0 .. k − 1``)."""
+    first = np.full(k, len(labels), np.int64)
+    np.minimum.at(first, np.asarray(labels, np.int64), np.arange(len(labels)))
+    return first
 
 
 def merge_arrays(fields: dict[str, np.ndarray], labels: np.ndarray, k: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -245,14 +252,13 @@ def merge_arrays(fields: dict[str, np.ndarray], labels: np.ndarray, k: int) -> t
     m = np.asarray(fields["masses"], np.float64)
     vol = np.asarray(fields["volumes"], np.float64)
     means = [f for f in fields if f not in (*STATIC_FIELDS, "positions")]
-    out: dict[str, np.ndarray] = {f: _group_mean(fields[f], lab, vol if f == "volume_ratio" else m, k).astype(np.float32) for f in means}
+    out: dict[str, np.ndarray] = {f: group_mean(fields[f], lab, vol if f == "volume_ratio" else m, k).astype(np.float32) for f in means}
     x = np.asarray(fields["positions"], np.float64)
-    xc = _group_mean(x, lab, m, k)
+    xc = group_mean(x, lab, m, k)
     out["positions"] = xc.astype(np.float32)
     out["masses"] = np.bincount(lab, m, minlength=k).astype(np.float32)
     out["volumes"] = np.bincount(lab, vol, minlength=k).astype(np.float32)
-    first = np.full(k, len(lab), np.int64)
-    np.minimum.at(first, lab, np.arange(len(lab)))
+    first = group_firsts(lab, k)
     for f in ("material", "material_set"):
         out[f] = np.asarray(fields[f], np.int32)[first]
     return out, x - xc[lab]
@@ -361,6 +367,8 @@ __all__ = [
     "bspline_weights",
     "estimate_volume_ratio",
     "fit_affine",
+    "group_firsts",
+    "group_mean",
     "hydrostatic_j_min",
     "PARTICLE_FIELDS",
     "STATIC_FIELDS",

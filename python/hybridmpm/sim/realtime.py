@@ -45,7 +45,16 @@ from hybridmpm.mpm.params import INTEGRATORS, MpmParams, free_slip
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.core import Clusters, Scene
 from hybridmpm.sim.base import serialised
-from hybridmpm.sim.convert import PARTICLE_FIELDS, STATIC_FIELDS, bin_groups, merge_arrays, replace_particles, split_arrays
+from hybridmpm.sim.convert import (
+    PARTICLE_FIELDS,
+    STATIC_FIELDS,
+    bin_groups,
+    group_firsts,
+    group_mean,
+    merge_arrays,
+    replace_particles,
+    split_arrays,
+)
 from hybridmpm.sim.ladder import (
     Rung,
     charted_rungs,
@@ -176,8 +185,7 @@ class RealtimeSimulator(MpmSimulator):
         """The particle set of the scene merged into the groups ``labels``: ``k`` particles, each of its group's
         material and summed mass (float32 of the float64 sum, as :func:`~hybridmpm.sim.convert.merge_arrays` sums)."""
         fine, lab = self._fine_particles, np.asarray(labels, np.int64)
-        first = np.full(k, len(lab), np.int64)
-        np.minimum.at(first, lab, np.arange(len(lab)))
+        first = group_firsts(lab, k)
         material = np.asarray(self._members["material"], np.int32)[first]
         types = np.array([GNS_TYPE_OF_MATERIAL[int(c)] for c in material], np.int64)
         masses = np.bincount(lab, np.asarray(self._members["masses"], np.float64), minlength=k).astype(np.float32)
@@ -257,10 +265,7 @@ class RealtimeSimulator(MpmSimulator):
             super()._apply_acceleration(acc)
             return
         labels, k = self._merge.labels, self._merge.groups
-        m = np.asarray(self._members["masses"], np.float64)
-        force = np.asarray(acc[: len(labels)], np.float64) * m[:, None]
-        own = np.stack([np.bincount(labels, force[:, d], minlength=k) for d in range(acc.shape[1])], axis=1).astype(np.float64)
-        own /= np.bincount(labels, m, minlength=k)[:, None]
+        own = group_mean(acc[: len(labels)], labels, np.asarray(self._members["masses"], np.float64), k)
         self.solver.external_acceleration = np.concatenate([own.astype(np.float32), acc[len(labels) :]])
 
     @property
