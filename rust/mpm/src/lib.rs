@@ -54,11 +54,9 @@ pub use dim::{Dim, DimOps};
 pub use error::{MpmError, Result, human_bytes};
 pub use grid_mass::{grid_mass, grid_mass_bytes, grid_mass_with_budget};
 pub use isa::Isa;
+pub use material::param_structs::*;
 pub use material::schema::{Limit, MaterialSchema, Param, ParamValue};
-pub use material::{
-    ElasticModel, ElasticParams, MaterialParams, SandParams, SnowParams, ViscoplasticParams,
-    WaterParams, material_schema,
-};
+pub use material::{ElasticModel, MaterialParams, material_schema};
 pub use params::{
     BodyParams, BodyShapeKind, ColliderParams, Integrator, ShapeKind, SolverParams, WallFace,
     WallParams,

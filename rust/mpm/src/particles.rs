@@ -1,63 +1,19 @@
-//! Particle state (array of structs: MPM touches all fields of a particle together).
+//! Particle state (array of structs: MPM touches all fields of a particle
+//! together). [`Material`], a particle's material code, is made from the
+//! registry of the constitutive models (`material/mod.rs`).
 
 use nalgebra::{SMatrix, SVector};
 
 use crate::error::{MpmError, Result};
 
-/// Material of a particle. The numeric codes are the public API (`material`
-/// arrays on the Python side).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-#[repr(u8)]
-pub enum Material {
-    /// Weakly compressible water (carries `J`).
-    Water = 0,
-    /// Drucker–Prager sand (carries the elastic deformation gradient `F`).
-    Sand = 1,
-    /// Elastic solid, fixed-corotated or neo-Hookean (carries `F`).
-    Elastic = 2,
-    /// Snow, Stomakhin et al. 2013 (carries the elastic `F_E` in `f` and
-    /// the plastic volume ratio `J_P` in `j`).
-    Snow = 3,
-    /// Viscoplastic solid: von Mises with viscous relaxation (carries the
-    /// elastic `F`).
-    Viscoplastic = 4,
-}
+pub use crate::material::Material;
 
 impl Material {
-    /// Every material, by code.
-    pub const ALL: [Material; 5] = [
-        Material::Water,
-        Material::Sand,
-        Material::Elastic,
-        Material::Snow,
-        Material::Viscoplastic,
-    ];
-
+    /// The material of `code` (`None` for an unknown one).
     pub fn from_code(code: i64) -> Option<Material> {
         usize::try_from(code)
             .ok()
             .and_then(|c| Material::ALL.get(c).copied())
-    }
-
-    /// Whether it is one of the solids (elastic, snow, viscoplastic): a body
-    /// whose `F` keeps its shape (sand's `F` is only the elastic part of a
-    /// granular flow; water has none).
-    pub fn is_solid(self) -> bool {
-        matches!(
-            self,
-            Material::Elastic | Material::Snow | Material::Viscoplastic
-        )
-    }
-
-    /// The material's name in parameter dicts and scene files.
-    pub fn name(self) -> &'static str {
-        match self {
-            Material::Water => "water",
-            Material::Sand => "sand",
-            Material::Elastic => "elastic",
-            Material::Snow => "snow",
-            Material::Viscoplastic => "viscoplastic",
-        }
     }
 }
 

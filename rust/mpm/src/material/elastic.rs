@@ -15,16 +15,12 @@
 //! ([`inverted`]). Here its parameters ([`ElasticParams`], [`ElasticModel`])
 //! and their schema table too.
 
-use nalgebra::SMatrix;
-
+use super::Constitutive;
 use super::lanes::Real;
 use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS};
-use super::spectral::{Spectral3, det, from_lanes, inverted, k, keep_where, to_lanes};
+use super::spectral::{Spectral3, det, inverted, k, keep_where};
 use super::vmath;
-use super::{Constitutive, lame, p_wave};
-use crate::dim::{Dim, DimOps};
-use crate::error::Result;
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 
 use super::batch::State;
 
@@ -84,25 +80,7 @@ impl Default for ElasticParams {
     }
 }
 
-impl ElasticParams {
-    pub fn validate(&self) -> Result<()> {
-        self.validate_at("elastic")
-    }
-
-    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
-        self.check_ranges(prefix)
-    }
-
-    /// Lamé parameters (μ, λ) [Pa].
-    pub fn lame(&self) -> (f32, f32) {
-        lame(self.youngs_modulus, self.poisson_ratio)
-    }
-
-    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
-    pub fn wave_speed(&self) -> f32 {
-        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
-    }
-}
+super::isotropic_moduli!(ElasticParams);
 
 impl MaterialSchema for ElasticParams {
     const MATERIAL: Material = Material::Elastic;
@@ -144,7 +122,7 @@ pub(crate) struct Elastic {
 }
 
 impl Elastic {
-    pub(crate) fn new(params: &ElasticParams) -> Self {
+    pub(crate) fn new<const D: usize>(params: &ElasticParams) -> Self {
         let (mu, la) = params.lame();
         Elastic {
             params: params.clone(),
@@ -167,6 +145,7 @@ impl Elastic {
 
 impl Constitutive for Elastic {
     const HAS_F: bool = true;
+    const SOLID: bool = true;
 
     /// The P-wave speed `sqrt((λ + 2μ)/ρ)`.
     fn wave_speed<const D: usize>(&self, _cfl: f32, _dx: f32, _jp_min: f32) -> f32 {
@@ -183,11 +162,9 @@ impl Constitutive for Elastic {
         };
     }
 
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        from_lanes(&self.stress_lanes::<f32, D>(&to_lanes(&p.f)))
+    /// The stress of F.
+    fn state_stress<const D: usize>(&self, f: &[f32; 9], _j: f32, _c: &[f32; 9]) -> [f32; 9] {
+        self.stress_lanes::<f32, D>(f)
     }
 }
 

@@ -15,10 +15,13 @@
 //!   relaxation, state the elastic `F`.
 //!
 //! Each model's file declares its parameters too: the params struct (serde,
-//! `Default`, `validate()`), the constants derived from it and its table of
-//! the schema (`impl MaterialSchema`; the row type and the shared rows in
-//! `schema.rs`). Here the registration: [`MaterialParams`], one parameter
-//! set of any model, and [`material_schema`], every model's table.
+//! `Default`), the constants derived from it and its table of the schema
+//! (`impl MaterialSchema`, which gives it `validate()`; the row type and
+//! the shared rows in `schema.rs`). Here the registration, one list
+//! (`materials!`, a line per model), from which `registry.rs` makes
+//! [`Material`] (the codes), [`MaterialParams`] (one parameter set of any
+//! model), [`Model`] and [`material_schema`] (every model's table), and
+//! `params` the default sets of `SolverParams`.
 //!
 //! Beside them: [`Models`], each parameter set's [`Model`] (the table
 //! particles index by `Particle::set`), which g2p, the stress refresh and
@@ -30,6 +33,7 @@
 mod batch;
 mod elastic;
 mod lanes;
+mod registry;
 pub mod sand;
 pub mod schema;
 #[cfg(all(test, feature = "serde"))]
@@ -46,95 +50,67 @@ mod solid_lane_tests;
 mod solid_tests;
 
 pub(crate) use batch::{Batch, LaneHealth, ParticleSink, State};
-pub use elastic::{ElasticModel, ElasticParams};
+pub use elastic::ElasticModel;
 pub(crate) use lanes::LANES;
-pub use sand::SandParams;
-pub use snow::SnowParams;
-pub use viscoplastic::ViscoplasticParams;
-pub use water::WaterParams;
 
 use nalgebra::SMatrix;
 
 use crate::dim::{Dim, DimOps};
 use crate::error::Result;
 use crate::isa::Isa;
-use crate::particles::{Material, Particle};
-use elastic::Elastic;
+use crate::particles::Particle;
 use lanes::Real;
-use sand::Sand;
+use registry::register;
 use schema::{MaterialSchema, Param, ParamValue};
-use snow::Snow;
-use viscoplastic::Viscoplastic;
-use water::Water;
+use spectral::{from_lanes, to_lanes};
 
-/// One parameter set of the table particles index (`Particle::set`). The
-/// parameter dict names it by its material, the one key of a dict
-/// (`{"elastic": {"youngs_modulus": 1e6}}`, serde's externally tagged form;
-/// the keys inside as each struct's, unknown ones refused);
-/// `SolverParams::sets` (`crate::params`) lists them.
-#[derive(Clone, Debug, PartialEq)]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(rename_all = "lowercase")
-)]
-pub enum MaterialParams {
-    Water(WaterParams),
-    Sand(SandParams),
-    Elastic(ElasticParams),
-    Snow(SnowParams),
-    Viscoplastic(ViscoplasticParams),
+/// The registry: every constitutive model, one line each, in code order
+/// (`Variant = code => module::{ParamsStruct, Model}`; the module's name
+/// is the material's name in parameter dicts and scene files, and the
+/// field of its default set in `SolverParams`). `materials!(then)` hands
+/// the list to the macro `then`: here `register!` (`registry.rs`) makes of
+/// it [`Material`], [`MaterialParams`], [`Model`] and their dispatch and
+/// [`material_schema`]; `params` makes of it the default sets of
+/// `SolverParams` and its table.
+macro_rules! materials {
+    ($then:ident) => {
+        $then! { ($)
+            /// Weakly compressible water (carries `J`).
+            Water = 0 => water::{WaterParams, Water},
+            /// Drucker–Prager sand (carries the elastic deformation gradient `F`).
+            Sand = 1 => sand::{SandParams, Sand},
+            /// Elastic solid, fixed-corotated or neo-Hookean (carries `F`).
+            Elastic = 2 => elastic::{ElasticParams, Elastic},
+            /// Snow, Stomakhin et al. 2013 (carries the elastic `F_E` in `f` and
+            /// the plastic volume ratio `J_P` in `j`).
+            Snow = 3 => snow::{SnowParams, Snow},
+            /// Viscoplastic solid: von Mises with viscous relaxation (carries the
+            /// elastic `F`).
+            Viscoplastic = 4 => viscoplastic::{ViscoplasticParams, Viscoplastic},
+        }
+    };
 }
+pub(crate) use materials;
+
+materials!(register);
 
 impl MaterialParams {
     /// The material code this set belongs to.
     pub fn material(&self) -> Material {
-        match self {
-            MaterialParams::Water(_) => Material::Water,
-            MaterialParams::Sand(_) => Material::Sand,
-            MaterialParams::Elastic(_) => Material::Elastic,
-            MaterialParams::Snow(_) => Material::Snow,
-            MaterialParams::Viscoplastic(_) => Material::Viscoplastic,
-        }
+        each_set!(self, type M => <M as MaterialSchema>::MATERIAL)
     }
 
     /// Density ρ [kg/m³].
     pub fn density(&self) -> f32 {
-        match self {
-            MaterialParams::Water(p) => p.density,
-            MaterialParams::Sand(p) => p.density,
-            MaterialParams::Elastic(p) => p.density,
-            MaterialParams::Snow(p) => p.density,
-            MaterialParams::Viscoplastic(p) => p.density,
-        }
+        each_set!(self, p => p.density)
     }
 
     /// Validates the set at `field` (`sets[2]`), naming a bad key under it
     /// and its material (`sets[2].elastic.youngs_modulus`).
     pub fn validate(&self, field: &str) -> Result<()> {
         let prefix = format!("{field}.{}", self.material().name());
-        match self {
-            MaterialParams::Water(p) => p.validate_at(&prefix),
-            MaterialParams::Sand(p) => p.validate_at(&prefix),
-            MaterialParams::Elastic(p) => p.validate_at(&prefix),
-            MaterialParams::Snow(p) => p.validate_at(&prefix),
-            MaterialParams::Viscoplastic(p) => p.validate_at(&prefix),
-        }
+        each_set!(self, p => p.validate_at(&prefix))
     }
-}
-
-/// Every model's table and defaults (the struct's `Default`, in table order).
-pub fn material_schema() -> Vec<(Material, &'static [Param], Vec<ParamValue>)> {
-    fn row<T: MaterialSchema>() -> (Material, &'static [Param], Vec<ParamValue>) {
-        (T::MATERIAL, T::PARAMS, T::default().values())
-    }
-    vec![
-        row::<WaterParams>(),
-        row::<SandParams>(),
-        row::<ElasticParams>(),
-        row::<SnowParams>(),
-        row::<ViscoplasticParams>(),
-    ]
 }
 
 /// Lamé parameters (μ, λ) [Pa] of Young's modulus `e` and Poisson's ratio `nu`:
@@ -155,13 +131,42 @@ fn p_wave(e: f32, nu: f32, density: f32, stiffen: f32) -> f32 {
     ((la + 2.0 * mu) * stiffen / density).sqrt()
 }
 
+/// `lame()` and `wave_speed()` (the P-wave speed) of a params struct with
+/// the fields `density`, `youngs_modulus` and `poisson_ratio`: the
+/// inherent methods sand, the elastic solid and the viscoplastic solid
+/// share.
+macro_rules! isotropic_moduli {
+    ($params:ty) => {
+        impl $params {
+            /// Lamé parameters (μ, λ) [Pa].
+            pub fn lame(&self) -> (f32, f32) {
+                $crate::material::lame(self.youngs_modulus, self.poisson_ratio)
+            }
+
+            /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
+            pub fn wave_speed(&self) -> f32 {
+                let (e, nu, rho) = (self.youngs_modulus, self.poisson_ratio, self.density);
+                $crate::material::p_wave(e, nu, rho, 1.0)
+            }
+        }
+    };
+}
+use isotropic_moduli;
+
 /// One constitutive model: a parameter set's constants (derived once per
-/// solver) and what the solver asks of them. Static dispatch: [`Model`]
-/// forwards to the implementations, and g2p runs one [`Batch`] per set.
+/// solver, by the model's `new::<D>(&params)`, which `Model::new` calls;
+/// `D` for sand's cone) and what the solver asks of them. Static dispatch:
+/// [`Model`] forwards to the implementations, and g2p runs one [`Batch`]
+/// per set.
 pub(crate) trait Constitutive {
     /// Whether the particle carries a deformation gradient F, which g2p
     /// updates and whose `det F > 0` it checks (every model but water).
     const HAS_F: bool;
+
+    /// Whether it is a solid: a body whose `F` keeps its shape
+    /// ([`Material::is_solid`]; sand's `F` is only the elastic part of a
+    /// granular flow).
+    const SOLID: bool;
 
     /// Whether [`wave_speed`](Self::wave_speed) reads `jp_min`, the
     /// smallest `J` of the set's particles (snow's `J_P`).
@@ -188,76 +193,26 @@ pub(crate) trait Constitutive {
     /// stress in `s`.
     fn update_lanes<R: Real, const D: usize>(&self, s: &mut State<R>, c: &[R; 9], dt: f32);
 
-    /// The Kirchhoff stress [Pa] of a particle's state, as set, restored or
-    /// changed between frames.
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    /// The Kirchhoff stress [Pa] of one particle's state, row-major: of its
+    /// F (`f`), `J` (`j`: water's volume ratio, snow's `J_P`) and velocity
+    /// gradient `c` (water's viscous stress reads it), each model reading
+    /// what its stress depends on.
+    fn state_stress<const D: usize>(&self, f: &[f32; 9], j: f32, c: &[f32; 9]) -> [f32; 9]
     where
         Dim<D>: DimOps<D>;
-}
 
-/// The constants of one parameter set: one model of each material.
-#[derive(Clone, Debug)]
-pub(crate) enum Model {
-    Water(Water),
-    Sand(Sand),
-    Elastic(Elastic),
-    Snow(Snow),
-    Viscoplastic(Viscoplastic),
-}
-
-/// `$body` with `$m` bound to the [`Constitutive`] model inside `$model`
-/// (a [`Model`]), or `$ty` to its type.
-macro_rules! each_model {
-    ($model:expr, $m:ident => $body:expr) => {
-        match $model {
-            Model::Water($m) => $body,
-            Model::Sand($m) => $body,
-            Model::Elastic($m) => $body,
-            Model::Snow($m) => $body,
-            Model::Viscoplastic($m) => $body,
-        }
-    };
-    ($model:expr, type $ty:ident => $body:expr) => {
-        match $model {
-            Model::Water(_) => {
-                type $ty = Water;
-                $body
-            }
-            Model::Sand(_) => {
-                type $ty = Sand;
-                $body
-            }
-            Model::Elastic(_) => {
-                type $ty = Elastic;
-                $body
-            }
-            Model::Snow(_) => {
-                type $ty = Snow;
-                $body
-            }
-            Model::Viscoplastic(_) => {
-                type $ty = Viscoplastic;
-                $body
-            }
-        }
-    };
-}
-
-impl Model {
-    /// The model of `params` in `D` dimensions.
-    pub(crate) fn new<const D: usize>(params: &MaterialParams) -> Self
+    /// The Kirchhoff stress [Pa] of a particle's state, as set, restored or
+    /// changed between frames: [`state_stress`](Self::state_stress) of its
+    /// `F`, `J` and `C`.
+    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
     where
         Dim<D>: DimOps<D>,
     {
-        match params {
-            MaterialParams::Water(w) => Model::Water(Water::new(w)),
-            MaterialParams::Sand(s) => Model::Sand(Sand::new::<D>(s)),
-            MaterialParams::Elastic(e) => Model::Elastic(Elastic::new(e)),
-            MaterialParams::Snow(s) => Model::Snow(Snow::new(s)),
-            MaterialParams::Viscoplastic(v) => Model::Viscoplastic(Viscoplastic::new(v)),
-        }
+        from_lanes(&self.state_stress::<D>(&to_lanes(&p.f), p.j, &to_lanes(&p.c)))
     }
+}
 
+impl Model {
     /// [`Constitutive::HAS_F`].
     pub(crate) fn has_f(&self) -> bool {
         each_model!(self, type M => M::HAS_F)

@@ -1,8 +1,8 @@
 //! The one schema of the materials' parameters: the row of a table
 //! ([`Param`]: name, the user's alias, unit, range, choices, description,
 //! source), the trait a params struct declares its table with
-//! ([`MaterialSchema`]), the one range checker every `validate()` calls
-//! ([`check`]) and the rows several models share (density, E, ν). Each
+//! ([`MaterialSchema`], whose `validate()` every model shares), the one
+//! range checker it calls ([`check`]) and the rows several models share (density, E, ν). Each
 //! model declares its own table beside its update (`water.rs`,
 //! `sand/mod.rs`, ...); `material_schema` (`mod.rs`) lists them all.
 //!
@@ -144,6 +144,19 @@ pub trait MaterialSchema: Default {
     /// `{prefix}.{name}`.
     fn check_ranges(&self, prefix: &str) -> Result<()> {
         check(prefix, Self::PARAMS, &self.values())
+    }
+
+    /// Checks the set, naming the first bad field `{prefix}.{name}`: its
+    /// ranges ([`Self::check_ranges`]), and what else a model asks (sand:
+    /// cohesion needs friction).
+    fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)
+    }
+
+    /// Checks the set, naming the first bad field under the material's
+    /// name (`water.viscosity`).
+    fn validate(&self) -> Result<()> {
+        self.validate_at(Self::MATERIAL.name())
     }
 }
 

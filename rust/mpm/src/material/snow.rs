@@ -13,21 +13,17 @@
 //! kept out (`spectral::inverted`). Here its parameters ([`SnowParams`])
 //! and their schema table too.
 
-use nalgebra::SMatrix;
-
 use super::batch::State;
 use super::elastic::{corotated, corotated_2d};
 use super::lanes::Real;
 use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, ge, gt, le, lt};
 use super::spectral::{
-    Spectral3, abs, det, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, or,
-    plastic_f, quotient, to_lanes, trial,
+    Spectral3, abs, det, eig_2d, inverted, iso_2d, k, keep_where, mul_2d, or, plastic_f, quotient,
+    trial,
 };
 use super::vmath;
 use super::{Constitutive, lame, p_wave};
-use crate::dim::{Dim, DimOps};
-use crate::error::Result;
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 
 const JP_LO: f32 = SnowParams::JP_RANGE.0;
 const JP_HI: f32 = SnowParams::JP_RANGE.1;
@@ -77,14 +73,6 @@ impl SnowParams {
     /// reference code's clamp): `J_P` itself is kept unclamped, so that
     /// `J_P · det F_E = det F` holds, and the stiffness stays bounded.
     pub const JP_RANGE: (f32, f32) = (0.6, 20.0);
-
-    pub fn validate(&self) -> Result<()> {
-        self.validate_at("snow")
-    }
-
-    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
-        self.check_ranges(prefix)
-    }
 
     /// Lamé parameters (μ₀, λ₀) [Pa] before hardening.
     pub fn lame(&self) -> (f32, f32) {
@@ -177,7 +165,7 @@ pub(crate) struct Snow {
 }
 
 impl Snow {
-    pub(crate) fn new(params: &SnowParams) -> Self {
+    pub(crate) fn new<const D: usize>(params: &SnowParams) -> Self {
         let (mu, la) = params.lame();
         Snow {
             params: params.clone(),
@@ -200,6 +188,7 @@ impl Snow {
 
 impl Constitutive for Snow {
     const HAS_F: bool = true;
+    const SOLID: bool = true;
 
     /// The P-wave speed hardened at the set's smallest `J_P` present.
     fn wave_speed<const D: usize>(&self, _cfl: f32, _dx: f32, jp_min: f32) -> f32 {
@@ -223,11 +212,9 @@ impl Constitutive for Snow {
         };
     }
 
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        from_lanes(&self.stress_lanes::<f32, D>(&to_lanes(&p.f), p.j))
+    /// The stress of `F_E` at `J_P`.
+    fn state_stress<const D: usize>(&self, f: &[f32; 9], j: f32, _c: &[f32; 9]) -> [f32; 9] {
+        self.stress_lanes::<f32, D>(f, j)
     }
 }
 

@@ -12,20 +12,15 @@
 //! (as sand's). A step that would invert the solid is kept out
 //! (`spectral::inverted`).
 
-use nalgebra::SMatrix;
-
+use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
 use super::schema::{DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, at_least_zero};
 use super::spectral::{
-    LnDiffs, Spectral3, eig_2d, from_lanes, inverted, iso_2d, k, keep_where, mul_2d, plastic_f,
-    to_lanes, trial,
+    LnDiffs, Spectral3, eig_2d, inverted, iso_2d, k, keep_where, mul_2d, plastic_f, trial,
 };
 use super::vmath;
-use super::{Constitutive, lame, p_wave};
-use crate::dim::{Dim, DimOps};
-use crate::error::Result;
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 
 /// Viscoplastic solid (mud, plasticine): von Mises plasticity on the Hencky
 /// strain with viscous relaxation (a Bingham material; Perzyna-type
@@ -68,25 +63,7 @@ impl Default for ViscoplasticParams {
     }
 }
 
-impl ViscoplasticParams {
-    pub fn validate(&self) -> Result<()> {
-        self.validate_at("viscoplastic")
-    }
-
-    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
-        self.check_ranges(prefix)
-    }
-
-    /// Lamé parameters (μ, λ) [Pa].
-    pub fn lame(&self) -> (f32, f32) {
-        lame(self.youngs_modulus, self.poisson_ratio)
-    }
-
-    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
-    pub fn wave_speed(&self) -> f32 {
-        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
-    }
-}
+super::isotropic_moduli!(ViscoplasticParams);
 
 impl MaterialSchema for ViscoplasticParams {
     const MATERIAL: Material = Material::Viscoplastic;
@@ -133,7 +110,7 @@ pub(crate) struct Viscoplastic {
 }
 
 impl Viscoplastic {
-    pub(crate) fn new(params: &ViscoplasticParams) -> Self {
+    pub(crate) fn new<const D: usize>(params: &ViscoplasticParams) -> Self {
         let (mu, la) = params.lame();
         Viscoplastic {
             params: params.clone(),
@@ -158,6 +135,7 @@ impl Viscoplastic {
 
 impl Constitutive for Viscoplastic {
     const HAS_F: bool = true;
+    const SOLID: bool = true;
 
     /// The P-wave speed `sqrt((λ + 2μ)/ρ)`.
     fn wave_speed<const D: usize>(&self, _cfl: f32, _dx: f32, _jp_min: f32) -> f32 {
@@ -182,11 +160,9 @@ impl Constitutive for Viscoplastic {
         };
     }
 
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        from_lanes(&self.stress_lanes::<f32, D>(&to_lanes(&p.f)))
+    /// The stress of the elastic F.
+    fn state_stress<const D: usize>(&self, f: &[f32; 9], _j: f32, _c: &[f32; 9]) -> [f32; 9] {
+        self.stress_lanes::<f32, D>(f)
     }
 }
 

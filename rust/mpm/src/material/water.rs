@@ -8,16 +8,11 @@
 //! viscous limit as a speed if larger ([`WaterParams::viscous_speed`]).
 //! Here its parameters ([`WaterParams`]) and their schema table too.
 
-use nalgebra::SMatrix;
-
 use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
 use super::schema::{DENSITY, MaterialSchema, Param, ParamValue, at_least_zero, gt};
-use super::spectral::{from_lanes, to_lanes};
-use crate::dim::{Dim, DimOps};
-use crate::error::Result;
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 
 /// The least volume ratio a water particle keeps. The force a particle puts
 /// on the grid is its current volume times its pressure, `V0·K·J·(1 − J)`:
@@ -60,16 +55,6 @@ impl Default for WaterParams {
 }
 
 impl WaterParams {
-    /// Checks every field against its range ([`MaterialSchema::PARAMS`]),
-    /// naming the bad one (`water.viscosity`).
-    pub fn validate(&self) -> Result<()> {
-        self.validate_at("water")
-    }
-
-    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
-        self.check_ranges(prefix)
-    }
-
     /// Longitudinal wave speed [m/s].
     pub fn wave_speed(&self) -> f32 {
         (self.bulk_modulus / self.density).sqrt()
@@ -125,7 +110,7 @@ pub(crate) struct Water {
 }
 
 impl Water {
-    pub(crate) fn new(params: &WaterParams) -> Self {
+    pub(crate) fn new<const D: usize>(params: &WaterParams) -> Self {
         Water {
             params: params.clone(),
         }
@@ -159,6 +144,7 @@ impl Water {
 
 impl Constitutive for Water {
     const HAS_F: bool = false;
+    const SOLID: bool = false;
 
     /// The sound speed `sqrt(K/ρ)` or, if larger, the viscous limit as a speed.
     fn wave_speed<const D: usize>(&self, cfl: f32, dx: f32, _jp_min: f32) -> f32 {
@@ -181,10 +167,8 @@ impl Constitutive for Water {
         s.tau = self.stress_lanes::<R, D>(s.j, c);
     }
 
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
-    where
-        Dim<D>: DimOps<D>,
-    {
-        from_lanes(&self.stress_lanes::<f32, D>(p.j, &to_lanes(&p.c)))
+    /// The stress at `J` with the velocity gradient `C`.
+    fn state_stress<const D: usize>(&self, _f: &[f32; 9], j: f32, c: &[f32; 9]) -> [f32; 9] {
+        self.stress_lanes::<f32, D>(j, c)
     }
 }

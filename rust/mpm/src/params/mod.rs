@@ -22,16 +22,15 @@ mod tests;
 mod walls;
 
 pub use crate::boundary::BoundaryCondition;
+pub use crate::material::param_structs::*;
 pub use crate::material::schema::{self, Limit, MaterialSchema, Param, ParamValue};
-pub use crate::material::{
-    ElasticModel, ElasticParams, MaterialParams, SandParams, SnowParams, ViscoplasticParams,
-    WaterParams, lame, material_schema,
-};
+pub use crate::material::{ElasticModel, MaterialParams, lame, material_schema};
 pub use body::{BodyParams, BodyShapeKind};
 pub use collider::{ColliderParams, ShapeKind};
 pub use walls::{WallFace, WallParams};
 
 use crate::error::{MpmError, Result};
+use crate::particles::Material;
 
 fn finite(field: &str, x: f32) -> Result<()> {
     if x.is_finite() {
@@ -61,55 +60,101 @@ fn non_negative(field: &str, x: f32) -> Result<()> {
 /// Largest `max_substeps`: a million substeps make a frame of minutes.
 pub const MAX_SUBSTEPS: usize = 1_000_000;
 
-/// Solver-wide parameters.
-///
-/// (`serde` feature: the empty `bound` spares serde's derive the bound
-/// `SolverParams<D>: Default` it would write for `default`, which it cannot
-/// write for a struct generic over a const; the `Default` below holds for
-/// every `D`.)
-#[derive(Clone, Debug, PartialEq)]
-#[cfg_attr(
-    feature = "serde",
-    derive(serde::Serialize, serde::Deserialize),
-    serde(default, deny_unknown_fields, bound(deserialize = ""))
-)]
-pub struct SolverParams<const D: usize> {
-    /// Grid cells per dimension over the unit domain (dx = 1 / n_grid), in [16, 4096].
-    pub n_grid: usize,
-    /// Gravity [m/s²] (a list of `D` numbers in the parameter dict).
-    #[cfg_attr(feature = "serde", serde(with = "array"))]
-    pub gravity: [f32; D],
-    /// CFL number: substep `dt ≤ cfl·dx / (c_max + |v|_max)`, in (0, 1].
-    pub cfl: f32,
-    /// Fixed substep count per frame (overrides the CFL choice), or `None`.
-    pub substeps: Option<usize>,
-    /// Upper bound on substeps per frame, in [1, 10^6] ([`MAX_SUBSTEPS`]);
-    /// a frame that needs more is an error.
-    pub max_substeps: usize,
-    /// Worker threads (0 = all cores).
-    pub num_threads: usize,
-    /// The default parameter set of each material (table entries 0 to 4,
-    /// by material code: a particle's `set` is its code unless it names one
-    /// of `sets`).
-    pub water: WaterParams,
-    pub sand: SandParams,
-    pub elastic: ElasticParams,
-    pub snow: SnowParams,
-    pub viscoplastic: ViscoplasticParams,
-    /// Further parameter sets (table entries 5, 6, ...): a scene's blocks
-    /// of one material with different parameters (two jellies of different
-    /// stiffness). At most [`MAX_SETS`] entries in all.
-    pub sets: Vec<MaterialParams>,
-    pub walls: WallParams,
-    /// How a frame advances: the explicit MLS-MPM substeps, or the
-    /// incompressible projection step ([`Integrator`]). Left out of the dict
-    /// when explicit, so a scene without it serialises as before.
-    #[cfg_attr(
-        feature = "serde",
-        serde(skip_serializing_if = "Integrator::is_explicit")
-    )]
-    pub integrator: Integrator,
+/// `SolverParams`, its `Default` and its default parameter sets, one field
+/// per material in the registry's order (`material::materials!`), named as
+/// the material: the dict's keys and their order are those of the fields
+/// written out.
+macro_rules! solver_params {
+    (($d:tt) $(
+        $(#[$doc:meta])*
+        $name:ident = $code:literal => $module:ident::{$params:ident, $model:ident},
+    )*) => {
+        /// Solver-wide parameters.
+        ///
+        /// (`serde` feature: the empty `bound` spares serde's derive the bound
+        /// `SolverParams<D>: Default` it would write for `default`, which it cannot
+        /// write for a struct generic over a const; the `Default` below holds for
+        /// every `D`.)
+        #[derive(Clone, Debug, PartialEq)]
+        #[cfg_attr(
+            feature = "serde",
+            derive(serde::Serialize, serde::Deserialize),
+            serde(default, deny_unknown_fields, bound(deserialize = ""))
+        )]
+        pub struct SolverParams<const D: usize> {
+            /// Grid cells per dimension over the unit domain (dx = 1 / n_grid), in [16, 4096].
+            pub n_grid: usize,
+            /// Gravity [m/s²] (a list of `D` numbers in the parameter dict).
+            #[cfg_attr(feature = "serde", serde(with = "array"))]
+            pub gravity: [f32; D],
+            /// CFL number: substep `dt ≤ cfl·dx / (c_max + |v|_max)`, in (0, 1].
+            pub cfl: f32,
+            /// Fixed substep count per frame (overrides the CFL choice), or `None`.
+            pub substeps: Option<usize>,
+            /// Upper bound on substeps per frame, in [1, 10^6] ([`MAX_SUBSTEPS`]);
+            /// a frame that needs more is an error.
+            pub max_substeps: usize,
+            /// Worker threads (0 = all cores).
+            pub num_threads: usize,
+            $(
+                #[doc = concat!(
+                    "The default ", stringify!($module), " parameter set: table entry ",
+                    stringify!($code), ", its material code (a particle's `set` is its ",
+                    "code unless it names one of `sets`)."
+                )]
+                pub $module: $params,
+            )*
+            /// Further parameter sets (table entries [`BASE_SETS`], ... on): a
+            /// scene's blocks of one material with different parameters (two
+            /// jellies of different stiffness). At most [`MAX_SETS`] entries in all.
+            pub sets: Vec<MaterialParams>,
+            pub walls: WallParams,
+            /// How a frame advances: the explicit MLS-MPM substeps, or the
+            /// incompressible projection step ([`Integrator`]). Left out of the dict
+            /// when explicit, so a scene without it serialises as before.
+            #[cfg_attr(
+                feature = "serde",
+                serde(skip_serializing_if = "Integrator::is_explicit")
+            )]
+            pub integrator: Integrator,
+        }
+
+        impl<const D: usize> Default for SolverParams<D> {
+            fn default() -> Self {
+                let mut gravity = [0.0; D];
+                gravity[1] = -9.8;
+                SolverParams {
+                    n_grid: if D == 2 { 128 } else { 64 },
+                    gravity,
+                    cfl: 0.4,
+                    substeps: None,
+                    max_substeps: 1000,
+                    num_threads: 0,
+                    $($module: $params::default(),)*
+                    sets: Vec::new(),
+                    walls: WallParams::default(),
+                    integrator: Integrator::Explicit,
+                }
+            }
+        }
+
+        impl<const D: usize> SolverParams<D> {
+            /// The default set of each material, by code.
+            fn default_sets(&self) -> [MaterialParams; BASE_SETS] {
+                [$(MaterialParams::$name(self.$module.clone()),)*]
+            }
+
+            /// Validates each default set, naming a bad field under its
+            /// material (`water.viscosity`).
+            fn validate_default_sets(&self) -> Result<()> {
+                $(self.$module.validate()?;)*
+                Ok(())
+            }
+        }
+    };
 }
+
+crate::material::materials!(solver_params);
 
 /// How the solver advances a frame (named `"explicit"` or `"projection"`
 /// in the parameter dict).
@@ -151,30 +196,7 @@ impl Integrator {
 pub const MAX_SETS: usize = 1 << 16;
 
 /// Table entries before [`SolverParams::sets`]: one default per material code.
-pub const BASE_SETS: usize = 5;
-
-impl<const D: usize> Default for SolverParams<D> {
-    fn default() -> Self {
-        let mut gravity = [0.0; D];
-        gravity[1] = -9.8;
-        SolverParams {
-            n_grid: if D == 2 { 128 } else { 64 },
-            gravity,
-            cfl: 0.4,
-            substeps: None,
-            max_substeps: 1000,
-            num_threads: 0,
-            water: WaterParams::default(),
-            sand: SandParams::default(),
-            elastic: ElasticParams::default(),
-            snow: SnowParams::default(),
-            viscoplastic: ViscoplasticParams::default(),
-            sets: Vec::new(),
-            walls: WallParams::default(),
-            integrator: Integrator::Explicit,
-        }
-    }
-}
+pub const BASE_SETS: usize = Material::ALL.len();
 
 impl<const D: usize> SolverParams<D> {
     pub fn validate(&self) -> Result<()> {
@@ -217,11 +239,7 @@ impl<const D: usize> SolverParams<D> {
                 format!("must be in [0, 1024], got {}", self.num_threads),
             ));
         }
-        self.water.validate()?;
-        self.sand.validate()?;
-        self.elastic.validate()?;
-        self.snow.validate()?;
-        self.viscoplastic.validate()?;
+        self.validate_default_sets()?;
         if BASE_SETS + self.sets.len() > MAX_SETS {
             return Err(MpmError::invalid(
                 "sets",
@@ -249,16 +267,10 @@ impl<const D: usize> SolverParams<D> {
         Ok(())
     }
 
-    /// The table of parameter sets particles index: the five defaults by
-    /// material code, then [`Self::sets`]. Call after [`Self::validate`].
+    /// The table of parameter sets particles index: the default set of each
+    /// material by code, then [`Self::sets`]. Call after [`Self::validate`].
     pub fn table(&self) -> Vec<MaterialParams> {
-        let mut t = vec![
-            MaterialParams::Water(self.water.clone()),
-            MaterialParams::Sand(self.sand.clone()),
-            MaterialParams::Elastic(self.elastic.clone()),
-            MaterialParams::Snow(self.snow.clone()),
-            MaterialParams::Viscoplastic(self.viscoplastic.clone()),
-        ];
+        let mut t = Vec::from(self.default_sets());
         t.extend(self.sets.iter().cloned());
         t
     }

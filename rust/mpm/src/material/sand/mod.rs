@@ -37,16 +37,16 @@ pub use return_map::drucker_prager_project;
 
 use nalgebra::{SMatrix, SVector};
 
+use super::Constitutive;
 use super::batch::State;
 use super::lanes::Real;
 use super::schema::{
     DENSITY, MaterialSchema, POISSON, Param, ParamValue, YOUNGS, at_least_zero, ge, gt, le,
 };
-use super::spectral::trial;
-use super::{Constitutive, lame, p_wave};
+use super::spectral::{from_lanes, to_lanes, trial};
 use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 use update_2d::advance_2d;
 use update_3d::advance_3d;
 
@@ -83,34 +83,7 @@ impl Default for SandParams {
     }
 }
 
-impl SandParams {
-    /// Checks every field against its range ([`MaterialSchema::PARAMS`])
-    /// and that cohesion comes with friction, naming the bad field (`sand.cohesion`).
-    pub fn validate(&self) -> Result<()> {
-        self.validate_at("sand")
-    }
-
-    pub(super) fn validate_at(&self, prefix: &str) -> Result<()> {
-        self.check_ranges(prefix)?;
-        if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
-            return Err(MpmError::invalid(
-                format!("{prefix}.cohesion"),
-                "cohesion needs a friction angle > 0",
-            ));
-        }
-        Ok(())
-    }
-
-    /// Lamé parameters (μ, λ) [Pa].
-    pub fn lame(&self) -> (f32, f32) {
-        lame(self.youngs_modulus, self.poisson_ratio)
-    }
-
-    /// P-wave speed `sqrt((λ + 2μ)/ρ)` [m/s].
-    pub fn wave_speed(&self) -> f32 {
-        p_wave(self.youngs_modulus, self.poisson_ratio, self.density, 1.0)
-    }
-}
+super::isotropic_moduli!(SandParams);
 
 impl MaterialSchema for SandParams {
     const MATERIAL: Material = Material::Sand;
@@ -148,6 +121,18 @@ impl MaterialSchema for SandParams {
             N(self.friction_angle_deg),
             N(self.cohesion),
         ]
+    }
+
+    /// The ranges, and that cohesion comes with friction (`sand.cohesion`).
+    fn validate_at(&self, prefix: &str) -> Result<()> {
+        self.check_ranges(prefix)?;
+        if self.cohesion > 0.0 && self.friction_angle_deg <= 0.0 {
+            return Err(MpmError::invalid(
+                format!("{prefix}.cohesion"),
+                "cohesion needs a friction angle > 0",
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -191,6 +176,7 @@ impl Sand {
 
 impl Constitutive for Sand {
     const HAS_F: bool = true;
+    const SOLID: bool = false;
 
     /// In 3D: one route per batch, matrix series or eigenvalues ([`advance_3d`]).
     fn shares_route<const D: usize>() -> bool {
@@ -218,12 +204,12 @@ impl Constitutive for Sand {
         }
     }
 
-    /// The stress of the SVD route ([`stress_of`]).
-    fn stress<const D: usize>(&self, p: &Particle<D>) -> SMatrix<f32, D, D>
+    /// The stress of the SVD route ([`stress_of`]) of F.
+    fn state_stress<const D: usize>(&self, f: &[f32; 9], _j: f32, _c: &[f32; 9]) -> [f32; 9]
     where
         Dim<D>: DimOps<D>,
     {
-        stress_of(&p.f, self.mu, self.la)
+        to_lanes(&stress_of::<D>(&from_lanes(f), self.mu, self.la))
     }
 }
 

@@ -1,0 +1,151 @@
+//! What the registry (`materials!` in `mod.rs`, one line per model) makes:
+//! `register!` turns the list into the material codes ([`Material`]), one
+//! parameter set of any model ([`MaterialParams`]), one model's constants
+//! ([`Model`]), the dispatch over each (`each_set!`, `each_model!`) and
+//! every model's schema table ([`material_schema`]). At compile time it
+//! checks that the codes are `0..n` in the list's order and that each
+//! params struct's `MaterialSchema::MATERIAL` is its own line's code.
+//!
+//! [`Material`]: super::Material
+//! [`MaterialParams`]: super::MaterialParams
+//! [`Model`]: super::Model
+//! [`material_schema`]: super::material_schema
+
+/// The items of the registry's list (see the module's doc); `$d` is `$`,
+/// for the dispatch macros it defines.
+macro_rules! register {
+    (($d:tt) $(
+        $(#[$doc:meta])*
+        $name:ident = $code:literal => $module:ident::{$params:ident, $model:ident},
+    )*) => {
+        /// Every model's parameter struct, re-exported here, by `params`
+        /// and at the crate's root.
+        pub mod param_structs {
+            $(pub use super::$module::$params;)*
+        }
+        pub use param_structs::*;
+
+        /// Material of a particle. The numeric codes are the public API
+        /// (`material` arrays on the Python side).
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+        #[repr(u8)]
+        pub enum Material {
+            $($(#[$doc])* $name = $code,)*
+        }
+
+        impl Material {
+            /// Every material, by code.
+            pub const ALL: [Material; [$(Material::$name),*].len()] = [$(Material::$name),*];
+
+            /// The material's name in parameter dicts and scene files.
+            pub fn name(self) -> &'static str {
+                match self {
+                    $(Material::$name => stringify!($module),)*
+                }
+            }
+
+            /// Whether it is one of the solids (elastic, snow, viscoplastic):
+            /// a body whose `F` keeps its shape (sand's `F` is only the
+            /// elastic part of a granular flow; water has none).
+            pub fn is_solid(self) -> bool {
+                match self {
+                    $(Material::$name => <$module::$model as Constitutive>::SOLID,)*
+                }
+            }
+        }
+
+        // The codes are `0..n` in the list's order (`Material::from_code`
+        // indexes `ALL`), and each struct's schema names its own line.
+        const _: () = {
+            let mut i = 0;
+            while i < Material::ALL.len() {
+                assert!(Material::ALL[i] as usize == i, "material codes are 0..n in order");
+                i += 1;
+            }
+            $(assert!(
+                <$params as MaterialSchema>::MATERIAL as u8 == Material::$name as u8,
+                concat!(stringify!($params), "::MATERIAL is not Material::", stringify!($name)),
+            );)*
+        };
+
+        /// One parameter set of the table particles index (`Particle::set`).
+        /// The parameter dict names it by its material, the one key of a dict
+        /// (`{"elastic": {"youngs_modulus": 1e6}}`, serde's externally tagged
+        /// form; the keys inside as each struct's, unknown ones refused);
+        /// `SolverParams::sets` (`crate::params`) lists them.
+        #[derive(Clone, Debug, PartialEq)]
+        #[cfg_attr(
+            feature = "serde",
+            derive(serde::Serialize, serde::Deserialize),
+            serde(rename_all = "lowercase")
+        )]
+        pub enum MaterialParams {
+            $($name($params),)*
+        }
+
+        /// `$body` with `$p` bound to the params struct inside `$set` (a
+        /// [`MaterialParams`]), or `$ty` to its type.
+        macro_rules! each_set {
+            ($d set:expr, $d p:ident => $d body:expr) => {
+                match $d set {
+                    $(MaterialParams::$name($d p) => $d body,)*
+                }
+            };
+            ($d set:expr, type $d ty:ident => $d body:expr) => {
+                match $d set {
+                    $(MaterialParams::$name(_) => {
+                        type $d ty = $params;
+                        $d body
+                    })*
+                }
+            };
+        }
+
+        /// Every model's table and defaults (the struct's `Default`, in
+        /// table order).
+        pub fn material_schema() -> Vec<(Material, &'static [Param], Vec<ParamValue>)> {
+            fn row<T: MaterialSchema>() -> (Material, &'static [Param], Vec<ParamValue>) {
+                (T::MATERIAL, T::PARAMS, T::default().values())
+            }
+            vec![$(row::<$params>(),)*]
+        }
+
+        /// The constants of one parameter set: one model of each material.
+        #[derive(Clone, Debug)]
+        pub(crate) enum Model {
+            $($name($module::$model),)*
+        }
+
+        /// `$body` with `$m` bound to the [`Constitutive`] model inside
+        /// `$model` (a [`Model`]), or `$ty` to its type.
+        macro_rules! each_model {
+            ($d model:expr, $d m:ident => $d body:expr) => {
+                match $d model {
+                    $(Model::$name($d m) => $d body,)*
+                }
+            };
+            ($d model:expr, type $d ty:ident => $d body:expr) => {
+                match $d model {
+                    $(Model::$name(_) => {
+                        type $d ty = $module::$model;
+                        $d body
+                    })*
+                }
+            };
+        }
+
+        impl Model {
+            /// The model of `params` in `D` dimensions.
+            pub(crate) fn new<const D: usize>(params: &MaterialParams) -> Self
+            where
+                Dim<D>: DimOps<D>,
+            {
+                match params {
+                    $(MaterialParams::$name(p) => Model::$name($module::$model::new::<D>(p)),)*
+                }
+            }
+        }
+    };
+}
+
+pub(super) use register;
