@@ -45,6 +45,8 @@ mod vmath;
 mod water;
 
 #[cfg(test)]
+mod registry_tests;
+#[cfg(test)]
 mod solid_lane_tests;
 #[cfg(test)]
 mod solid_tests;
