@@ -1,12 +1,12 @@
 //! Particle state (array of structs: MPM touches all fields of a particle
 //! together). [`Material`], a particle's material code, is made from the
-//! registry of the constitutive models (`material/mod.rs`).
+//! registry's list of the constitutive models (`material/codes.rs`).
 
 use nalgebra::{SMatrix, SVector};
 
 use crate::error::{MpmError, Result};
 
-pub use crate::material::Material;
+pub use crate::material::codes::Material;
 
 impl Material {
     /// The material of `code` (`None` for an unknown one).

@@ -31,6 +31,7 @@
 //! arithmetic they are written in.
 
 mod batch;
+pub(crate) mod codes;
 mod elastic;
 mod lanes;
 mod registry;
@@ -66,33 +67,8 @@ use registry::register;
 use schema::{MaterialSchema, Param, ParamValue};
 use spectral::{from_lanes, to_lanes};
 
-/// The registry: every constitutive model, one line each, in code order
-/// (`Variant = code => module::{ParamsStruct, Model}`; the module's name
-/// is the material's name in parameter dicts and scene files, and the
-/// field of its default set in `SolverParams`). `materials!(then)` hands
-/// the list to the macro `then`: here `register!` (`registry.rs`) makes of
-/// it [`Material`], [`MaterialParams`], [`Model`] and their dispatch and
-/// [`material_schema`]; `params` makes of it the default sets of
-/// `SolverParams` and its table.
-macro_rules! materials {
-    ($then:ident) => {
-        $then! { ($)
-            /// Weakly compressible water (carries `J`).
-            Water = 0 => water::{WaterParams, Water},
-            /// Drucker–Prager sand (carries the elastic deformation gradient `F`).
-            Sand = 1 => sand::{SandParams, Sand},
-            /// Elastic solid, fixed-corotated or neo-Hookean (carries `F`).
-            Elastic = 2 => elastic::{ElasticParams, Elastic},
-            /// Snow, Stomakhin et al. 2013 (carries the elastic `F_E` in `f` and
-            /// the plastic volume ratio `J_P` in `j`).
-            Snow = 3 => snow::{SnowParams, Snow},
-            /// Viscoplastic solid: von Mises with viscous relaxation (carries the
-            /// elastic `F`).
-            Viscoplastic = 4 => viscoplastic::{ViscoplasticParams, Viscoplastic},
-        }
-    };
-}
-pub(crate) use materials;
+pub use codes::Material;
+pub(crate) use codes::materials;
 
 materials!(register);
 

@@ -1,12 +1,13 @@
-//! What the registry (`materials!` in `mod.rs`, one line per model) makes:
-//! `register!` turns the list into the material codes ([`Material`]), one
-//! parameter set of any model ([`MaterialParams`]), one model's constants
-//! ([`Model`]), the dispatch over each (`each_set!`, `each_model!`) and
-//! every model's schema table ([`material_schema`]). At compile time it
-//! checks that the codes are `0..n` in the list's order and that each
-//! params struct's `MaterialSchema::MATERIAL` is its own line's code.
+//! What the registry (`materials!` in `codes.rs`, one line per model) makes
+//! of the models: `register!` turns the list into [`Material::is_solid`],
+//! one parameter set of any model ([`MaterialParams`]), one model's
+//! constants ([`Model`]), the dispatch over each (`each_set!`,
+//! `each_model!`) and every model's schema table ([`material_schema`]).
+//! At compile time it checks that each params struct's
+//! `MaterialSchema::MATERIAL` is its own line's code (`codes.rs` checks
+//! that the codes are `0..n` in the list's order).
 //!
-//! [`Material`]: super::Material
+//! [`Material::is_solid`]: super::Material::is_solid
 //! [`MaterialParams`]: super::MaterialParams
 //! [`Model`]: super::Model
 //! [`material_schema`]: super::material_schema
@@ -25,25 +26,7 @@ macro_rules! register {
         }
         pub use param_structs::*;
 
-        /// Material of a particle. The numeric codes are the public API
-        /// (`material` arrays on the Python side).
-        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-        #[repr(u8)]
-        pub enum Material {
-            $($(#[$doc])* $name = $code,)*
-        }
-
         impl Material {
-            /// Every material, by code.
-            pub const ALL: [Material; [$(Material::$name),*].len()] = [$(Material::$name),*];
-
-            /// The material's name in parameter dicts and scene files.
-            pub fn name(self) -> &'static str {
-                match self {
-                    $(Material::$name => stringify!($module),)*
-                }
-            }
-
             /// Whether it is one of the solids (elastic, snow, viscoplastic):
             /// a body whose `F` keeps its shape (sand's `F` is only the
             /// elastic part of a granular flow; water has none).
@@ -54,14 +37,8 @@ macro_rules! register {
             }
         }
 
-        // The codes are `0..n` in the list's order (`Material::from_code`
-        // indexes `ALL`), and each struct's schema names its own line.
+        // Each struct's schema names its own line.
         const _: () = {
-            let mut i = 0;
-            while i < Material::ALL.len() {
-                assert!(Material::ALL[i] as usize == i, "material codes are 0..n in order");
-                i += 1;
-            }
             $(assert!(
                 <$params as MaterialSchema>::MATERIAL as u8 == Material::$name as u8,
                 concat!(stringify!($params), "::MATERIAL is not Material::", stringify!($name)),
