@@ -427,3 +427,22 @@ def test_a_sand_block_poured_on_a_projection_rung_falls_back_to_the_explicit_ste
     pour_block(sim, {"material": "sand", "lo": [0.6, 0.6], "hi": [0.7, 0.7]})
     fr = sim.advance()
     assert sim.rung == "g128-explicit" and np.isfinite(fr.positions).all()
+
+
+def test_a_lone_slow_frame_is_not_a_slow_machine(machine: Any) -> None:
+    """A frame now and then takes many budgets (a garbage collection, the OS taking the core): the mode keeps
+    its rung. The same slowness held for a few frames in a row is the machine's pace, and it steps down."""
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    cost = {r.key: 0.3 * budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(dict(cost))
+    sim = RealtimeSimulator(scene, clock=m)
+    for i in range(3000):
+        m.cost = {k: v * (100.0 if i % 97 == 50 else 1.0) for k, v in cost.items()}  # one frame in 97 takes 30 budgets
+        sim.advance()
+    assert sim.rung == ladder[0].key and sim.changes == []
+    for _ in range(1500):  # the machine slows ten-fold and stays so
+        m.cost = {k: 10.0 * v for k, v in cost.items()}
+        sim.advance()
+    assert sim.rung != ladder[0].key

@@ -5,8 +5,9 @@ Its configurations, the *rungs*, and their *ladder* (most accurate first, each s
 :mod:`hybridmpm.sim.ladder`'s.
 
 :class:`RealtimeSimulator` is an :class:`~hybridmpm.sim.mpm.MpmSimulator` that times its own frames (an
-exponential average of the wall time per frame; on a projection rung, whose step spans frames, a step's
-frames count as one sample, their mean, so the frame that steps does not read as a slow machine) and, between
+exponential average of the median of the last :data:`MEDIAN_SAMPLES` frames' wall times, so that one slow
+frame does not read as a slow machine; on a projection rung, whose step spans frames, a step's frames count as
+one sample, their mean, so the frame that steps does not either) and, between
 frames, moves to another rung:
 
 * down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``: to the most accurate rung
@@ -32,6 +33,7 @@ records the rung, so a checkpoint taken after a change restores bitwise.
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, NamedTuple
@@ -76,8 +78,11 @@ DWELL_S = 3.0
 WARMUP_FRAMES = 3
 #: Timed frames a rung needs before a change is considered.
 MIN_SAMPLES = 10
-#: Weight of the newest frame in the exponential average of the time per frame.
+#: Weight of the newest sample in the exponential average of the time per frame.
 EMA_ALPHA = 0.2
+#: The average takes the median of the last this many samples, not the newest alone: a lone slow frame (a
+#: garbage collection, the OS taking the core) moves it no more than a fast one, a slower machine within frames.
+MEDIAN_SAMPLES = 5
 #: How long a rung's measured time per frame stands in for its prediction [s]; older, the chart's ratio scaled
 #: by the current rung's time does (the machine's load moves).
 MEASURED_TTL_S = 30.0
@@ -145,6 +150,8 @@ class RealtimeSimulator(MpmSimulator):
         self._rung = here
         self._ema: float | None = None
         self._samples = 0
+        #: the last :data:`MEDIAN_SAMPLES` samples [s a frame] on the current rung
+        self._recent: deque[float] = deque(maxlen=MEDIAN_SAMPLES)
         self._since_change = 0
         #: the wall time [s] and the frames of the step under way (a projection step spans frames)
         self._cycle = (0.0, 0)
@@ -298,6 +305,7 @@ class RealtimeSimulator(MpmSimulator):
         self._rung = key
         self._since_change = 0
         self._samples = 0
+        self._recent.clear()
         self._cycle = (0.0, 0)
         self._last_change = self._clock()
         return True
@@ -427,6 +435,8 @@ class RealtimeSimulator(MpmSimulator):
         else:  # this frame begins the next step: the last step's frames are the sample
             per, k = total / frames, frames
             self._cycle = (wall, 1)
+        self._recent.append(per)
+        per = float(np.median(self._recent))  # a lone slow frame is not the machine's pace (MEDIAN_SAMPLES)
         if self._ema is None or self._samples == 0:
             self._ema = per
         else:
@@ -524,6 +534,7 @@ class RealtimeSimulator(MpmSimulator):
         if key == keep_rung and merge is None and keep_merge is None:
             return
         self._since_change = self._samples = 0
+        self._recent.clear()
         self._last_change = self._clock()
 
 
@@ -531,6 +542,7 @@ __all__ = [
     "DWELL_S",
     "HYSTERESIS",
     "MEASURED_TTL_S",
+    "MEDIAN_SAMPLES",
     "REALTIME_MARGIN",
     "Merge",
     "RealtimeSimulator",
