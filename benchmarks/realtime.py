@@ -12,9 +12,13 @@ wall second). Steps per frame are the MPM solver's (substeps for the explicit st
 projection step spanning frames counts on its first). Run it on a quiet machine: its absolute times move with the CPU and
 the load; the ratio of the two integrators in one run is what carries over.
 
-With ``--realtime`` each scene also runs ``make_simulator(scene, "realtime")`` (docs/realtime.md): ``--settle``
-seconds of wall time to pick its rung, then ``--frames`` frames timed as above; the row names the rung it ran
-and how often it changed.
+With ``--realtime`` each scene also runs ``make_simulator(scene, "realtime")`` (docs/realtime.md) as a host
+runs it: a loop ticking ``--tick-hz`` times a second, each tick a :func:`~hybridmpm.sim.step_realtime` call
+with the wall time since the last (what a tick cannot step in its time is dropped, never owed), sleeping to
+the next tick. ``--settle`` seconds pick its rung, then ``--hold`` seconds are timed. Its row names the rung
+it ended on and how often it changed; ``held`` is the simulated time over the elapsed wall time (1.0: it kept
+real time, the most a host gets), ``worst_held`` the same over the worst 5 s, and ``rtf`` the simulated time
+over the wall time spent stepping (what its pace would allow).
 
     python benchmarks/realtime.py --out benchmarks/results/realtime
 """
@@ -32,31 +36,63 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm import INTEGRATORS
 from hybridmpm.scenes import make_scene
 from hybridmpm.scenes.registry import DOMAINS
-from hybridmpm.sim import make_simulator, rollout
+from hybridmpm.sim import make_simulator, rollout, step_realtime
 from hybridmpm.sim.config import default_settings
 from hybridmpm.sim.ladder import projection_allowed
 
+#: The window [s] over which the worst share of real time held is read.
+WINDOW_S = 5.0
 
-def measure_realtime(scene: str, frames: int, settle_s: float) -> dict[str, Any]:
-    """Real-time mode's figures: its rung after ``settle_s`` seconds of stepping, then ``frames`` frames timed."""
+
+def host_loop(sim: Any, seconds: float, tick_hz: float) -> dict[str, float]:
+    """Drive ``sim`` for ``seconds`` of wall time as a host does: a tick every ``1 / tick_hz`` s, each
+    :func:`~hybridmpm.sim.step_realtime` with the wall time since the last tick (what it could not step in that
+    time is dropped, not owed), sleeping to the next tick. Returns the frames, the simulated time, the wall
+    time spent stepping (``busy``), the elapsed wall time, and the worst :data:`WINDOW_S` window's share of
+    real time held."""
+    start = last = time.perf_counter()
+    owed = simulated = busy = 0.0
+    frames, steps, marks = 0, 0.0, [(start, 0.0)]
+    while (now := time.perf_counter()) - start < seconds:
+        tick = step_realtime(sim, now - last, owed_s=owed)
+        if tick.rollout.failure not in (None, "budget"):
+            raise RuntimeError(f"the host loop broke off: {tick.rollout.failure} {tick.rollout.failure_detail}")
+        last, owed = now, tick.owed_s
+        frames, simulated, busy = frames + tick.frames, simulated + tick.simulated_s, busy + tick.wall_s
+        steps += float(np.asarray(tick.rollout.substeps)[1:].sum())
+        marks.append((time.perf_counter(), simulated))
+        time.sleep(max(0.0, now + 1.0 / tick_hz - time.perf_counter()))
+    elapsed = time.perf_counter() - start
+    t, s = np.array(marks).T
+    ends = np.searchsorted(t, t + WINDOW_S)  # each window from a tick to the first tick WINDOW_S later
+    ok = ends < len(t)
+    worst = float(np.min((s[ends[ok]] - s[ok]) / (t[ends[ok]] - t[ok]))) if ok.any() else simulated / elapsed
+    return {"frames": frames, "steps": steps, "simulated": simulated, "busy": busy, "elapsed": elapsed, "worst": worst}
+
+
+def measure_realtime(scene: str, settle_s: float, hold_s: float, tick_hz: float) -> dict[str, Any]:
+    """Real-time mode's figures as a host runs it (:func:`host_loop`): ``settle_s`` seconds to pick its rung,
+    then ``hold_s`` seconds timed. ``held`` is the simulated time over the elapsed wall time (1.0: it kept real
+    time; a host never gets more), ``worst_held`` the same over the worst :data:`WINDOW_S` window, and ``rtf``
+    the simulated time over the wall time spent stepping (what its frame pace would allow)."""
     sim = make_simulator(scene, "realtime")
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < settle_s:
-        sim.advance()
+    host_loop(sim, settle_s, tick_hz)
     settled = len(sim.changes)
-    t0 = time.perf_counter()
-    ro = rollout(sim, frames)
-    wall = time.perf_counter() - t0
-    if ro.failure is not None:
-        raise RuntimeError(f"{scene} (realtime): the rollout broke off: {ro.failure} {ro.failure_detail}")
+    rungs = {sim.realtime_info()["rung"]}
+    seen = len(sim.changes)
+    h = host_loop(sim, hold_s, tick_hz)
+    rungs |= {c["to"] for c in sim.changes[seen:]}
     info = sim.realtime_info()
     return {
         "scene": scene,
         "run": f"realtime: {info['rung']} ({settled} changes settling, {len(sim.changes) - settled} timed)",
         "particles": int(sim.solver.num_particles),
-        "steps_per_frame": float(np.asarray(ro.substeps)[1:].sum()) / frames,
-        "ms_per_frame": 1e3 * wall / frames,
-        "rtf": frames * sim.dt_frame / wall,
+        "steps_per_frame": h["steps"] / max(h["frames"], 1),
+        "ms_per_frame": 1e3 * h["busy"] / max(h["frames"], 1),
+        "rtf": h["simulated"] / h["busy"] if h["busy"] else float("nan"),
+        "held": h["simulated"] / h["elapsed"],
+        "worst_held": h["worst"],
+        "rungs": sorted(rungs),
     }
 
 
@@ -109,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=15, help="frames before the timing (default 15)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each scene's configurations, interleaved; the row is their median (default 1)")
     ap.add_argument("--realtime", action="store_true", help="also run real-time mode (docs/realtime.md)")
-    ap.add_argument("--settle", type=float, default=10.0, help="with --realtime: seconds it steps before the timing (default 10)")
+    ap.add_argument("--settle", type=float, default=10.0, help="with --realtime: seconds of the host loop before the timing (default 10)")
+    ap.add_argument("--hold", type=float, default=60.0, help="with --realtime: seconds of the host loop timed (default 60)")
+    ap.add_argument("--tick-hz", type=float, default=60.0, help="with --realtime: the host loop's ticks a second (default 60)")
     ap.add_argument("--out", required=True, help="output folder")
     args = ap.parse_args(argv)
     if not 1 <= args.repeats <= 20:
@@ -128,12 +166,16 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(median_row(rs))
             print(rows[-1], flush=True)
         if args.realtime:
-            rows.append(measure_realtime(scene, args.frames, args.settle))
+            rows.append(measure_realtime(scene, args.settle, args.hold, args.tick_hz))
             print(rows[-1], flush=True)
-    keys = ["scene", "run", "particles", "steps_per_frame", "ms_per_frame", "rtf"]
+    keys = ["scene", "run", "particles", "steps_per_frame", "ms_per_frame", "rtf", "held", "worst_held"]
+
+    def cell(v: Any) -> str:
+        return "" if v is None else f"{v:.3g}" if isinstance(v, float) else str(v)
+
     lines = [
         "# Real-time factor per scene (both threads; a frame is 2.5 ms, real time is RTF >= 1)",
-        "\n".join(table(keys, [[f"{r[k]:.3g}" if isinstance(r[k], float) else str(r[k]) for k in keys] for r in rows])),
+        "\n".join(table(keys, [[cell(r.get(k)) for k in keys] for r in rows])),
     ]
     write_results(args.out, "realtime", doc={"rows": rows}, markdown=lines, argv=script_argv("realtime.py", argv))
     return 0

@@ -32,6 +32,7 @@ records the rung, so a checkpoint taken after a change restores bitwise.
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections import deque
 from collections.abc import Callable
@@ -436,7 +437,7 @@ class RealtimeSimulator(MpmSimulator):
             per, k = total / frames, frames
             self._cycle = (wall, 1)
         self._recent.append(per)
-        per = float(np.median(self._recent))  # a lone slow frame is not the machine's pace (MEDIAN_SAMPLES)
+        per = statistics.median(self._recent)  # a lone slow frame is not the machine's pace (MEDIAN_SAMPLES)
         if self._ema is None or self._samples == 0:
             self._ema = per
         else:
