@@ -187,15 +187,18 @@ def run_case(
     sync: bool,
     advance: int = 0,
     material: str | None = None,
+    solver: str = "mpm",
 ) -> dict:
     """One case: ``preset`` a resolution (``?scale=``) or a quality (``?quality=auto|1…8``); ``material``: a block of
-    it poured first (:func:`pour`)."""
+    it poured first (:func:`pour`); ``solver`` the session's (``realtime``: the page's default, real-time mode)."""
     page = browser.new_page(viewport={"width": 1100, "height": 800}, device_scale_factor=dpr, bypass_csp=True)
     errors: list[str] = []
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     fix = f"quality={preset}" if isinstance(preset, str) else f"scale={preset:g}"
     query = (
-        f"/?scene={scene}&seed={seed}&solver=mpm&look={look}&{fix}&bench=1" + ("" if playing and not advance else "&autoplay=0") + ("&sync=1" if sync else "")
+        f"/?scene={scene}&seed={seed}&solver={solver}&look={look}&{fix}&bench=1"
+        + ("" if playing and not advance else "&autoplay=0")
+        + ("&sync=1" if sync else "")
     )
     page.goto(url + query)
     page.wait_for_function("window.__hmpm.framesRendered >= 10", timeout=60_000)
@@ -217,7 +220,9 @@ def run_case(
     cpu0, (busy0, all0), load0 = cpu_seconds(pids), machine_busy(), load_average()[0]
     time.sleep(seconds)
     end = page.evaluate("[window.__hmpm.framesRendered, performance.now(), window.__hmpm.view.surfacesDrawn, window.__hmpm.quality.changes.length]")
-    frame1, t1 = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()["frame"], time.monotonic()
+    described = httpx.get(f"{url}/v1/sessions/{sid}", timeout=30).json()
+    frame1, t1 = described["frame"], time.monotonic()
+    realtime = described.get("realtime") or {}
     cpu1, (busy1, all1), load1 = cpu_seconds(pids), machine_busy(), load_average()[0]
     hook = page.evaluate(
         "({drawMs: __hmpm.drawMs, look: __hmpm.look, renderer: __hmpm.renderer, n: __hmpm.session.num_particles, received: __hmpm.framesReceived,"
@@ -232,6 +237,9 @@ def run_case(
     return {
         "fps": (end[0] - start[0]) * 1000.0 / (end[1] - start[1]),
         "sim_fps": (frame1 - frame0) / (t1 - t0),
+        "solver": solver,
+        "rung": realtime.get("rung"),
+        "session_realtime_factor": realtime.get("realtime_factor"),
         "browser_cpu_ms_per_frame": 1000.0 * browser_cpu / drawn,
         "load_average": 0.5 * (load0 + load1),
         "others_cpu_share": max(0.0, (busy1 - busy0) - browser_cpu) / max(1e-9, all1 - all0),
@@ -312,6 +320,7 @@ def main() -> None:
     ap.add_argument("--advance", type=int, default=0, help="step the session this many frames first (paused; playing cases then play)")
     ap.add_argument("--no-sync", action="store_true", help="skip the second run that waits for the GPU (draw + GPU column)")
     ap.add_argument("--ladder", type=int, default=0, help="instead of the cases: the quality levels' costs on paddle3d, this many rounds")
+    ap.add_argument("--solver", default="mpm", help="the sessions' solver: mpm (one fixed configuration) or realtime (the page's default)")
     ap.add_argument("--pour", default=None, help="pour a cube of this material (e.g. jello) behind the paddle before each case")
     args = ap.parse_args()
     chromium = os.environ.get("HYBRIDMPM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -345,13 +354,39 @@ def main() -> None:
     with LiveServer(max_sessions=16, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
         for scene, seed, look, playing, preset in cases:
-            r = run_case(browser, srv.url, scene, seed, look, playing, preset, args.seconds, args.dpr, sync=False, advance=args.advance, material=args.pour)
+            r = run_case(
+                browser,
+                srv.url,
+                scene,
+                seed,
+                look,
+                playing,
+                preset,
+                args.seconds,
+                args.dpr,
+                sync=False,
+                advance=args.advance,
+                material=args.pour,
+                solver=args.solver,
+            )
             skip = args.no_sync or preset == "auto"  # an auto case would settle again, elsewhere
             r["draw_ms_gpu_median"] = (
                 float("nan")
                 if skip
                 else run_case(
-                    browser, srv.url, scene, seed, look, playing, preset, min(args.seconds, 3.0), args.dpr, sync=True, advance=args.advance, material=args.pour
+                    browser,
+                    srv.url,
+                    scene,
+                    seed,
+                    look,
+                    playing,
+                    preset,
+                    min(args.seconds, 3.0),
+                    args.dpr,
+                    sync=True,
+                    advance=args.advance,
+                    material=args.pour,
+                    solver=args.solver,
                 )["draw_ms_median"]
             )
             r.update(scene=scene, seed=seed, playing=playing, preset=preset, poured=args.pour)
@@ -383,11 +418,13 @@ def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, c
         "browser CPU / frame: CPU time of all the browser's processes (SwiftShader draws in the GPU process) per frame drawn;",
         "load: the machine's 1-minute load average; others: the share of the machine's CPU time taken by processes other than",
         "the browser meanwhile (the server included). quality: the level drawn (static/quality.js; `auto`: the level the page",
-        "settled on); surfaces: the share of the frames drawn whose water went through the fluid passes.",
+        "settled on); surfaces: the share of the frames drawn whose water went through the fluid passes; simulation frames/s:",
+        "the frames the session advanced while the page watched (400 a second is real time); rung: a real-time session's",
+        "configuration at the end (`--solver realtime`), and the real-time factor the session measured of its own frames.",
         "",
         "| scene | particles | look | simulation | preset | quality | canvas [px] | frames/s | draw median [ms] | draw p95 [ms] | draw + GPU median [ms] "
-        "| browser CPU / frame [ms] | load | others | simulation frames/s | frame | surfaces |",
-        "|---|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| browser CPU / frame [ms] | load | others | simulation frames/s | frame | surfaces | rung | session RTF |",
+        "|---|---:|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|",
     ]
     for r in rows:
         preset = f"quality={r['preset']}" if isinstance(r["preset"], str) else f"scale={r['preset']:g}"
@@ -395,7 +432,7 @@ def write(out: Path, rows: list[dict], args: argparse.Namespace, version: str, c
             f"| {r['scene']} (seed {r['seed']}) | {r['particles']} | {r['look']} | {'playing' if r['playing'] else 'paused'} | {preset} | "
             f"{r['quality_level']}/{QUALITY_LEVELS} | {r['canvas_px'][0]}×{r['canvas_px'][1]} | {r['fps']:.1f} | {r['draw_ms_median']:.1f} | {r['draw_ms_p95']:.1f} "
             f"| {r['draw_ms_gpu_median']:.1f} | {r['browser_cpu_ms_per_frame']:.1f} | {r['load_average']:.1f} | {100 * r['others_cpu_share']:.0f} % "
-            f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % |"
+            f"| {r['sim_fps']:.0f} | {r['frame']} | {100 * r['surfaces_per_frame']:.0f} % | {r.get('rung') or ''} | {r.get('session_realtime_factor') or ''} |"
         )
     write_results(out.parent, out.stem, doc=res, markdown="\n".join(lines))  # the harness's header: the command, the machine, the load
 
