@@ -446,3 +446,33 @@ def test_a_lone_slow_frame_is_not_a_slow_machine(machine: Any) -> None:
         m.cost = {k: 10.0 * v for k, v in cost.items()}
         sim.advance()
     assert sim.rung != ladder[0].key
+
+
+def test_the_coarsest_grid_also_merges_to_half_its_density_per_axis_and_back_conserving_mass_and_momentum() -> None:
+    """The ladder's last resort: on its coarsest grid the particles merged in cubes of twice the side (r_p a
+    further 2^-D). Reached from the merged rung it splits back to the scene's particles and merges anew."""
+    scene = make_scene("dam_break2d")
+    assert "g64-explicit-rp0.0625" in [r.key for r in candidate_rungs(scene)]
+    assert not any(r.r_p < 0.25 and r.n_grid == 128 for r in candidate_rungs(scene))  # the coarsest grid only
+    sim = make_simulator("dam_break2d", "realtime")
+    assert isinstance(sim, RealtimeSimulator)
+    scene_masses = np.array(sim.solver.masses)
+    for _ in range(20):
+        sim.advance()
+    sim.set_rung("g64-explicit-rp0.25")
+    k4 = sim.solver.num_particles
+    m0, p0, _ = _totals(sim)
+    sim.set_rung("g64-explicit-rp0.0625")
+    m1, p1, _ = _totals(sim)
+    k16 = sim.solver.num_particles
+    assert k4 / 4 <= k16 < k4 / 2  # groups of at most 4 x 4 of the lattice: fewer than half the 2 x 2 groups
+    assert m1 == m0 and np.abs(p1 - p0).max() <= 1e-6 * max(1.0, float(np.abs(p0).max()))
+    assert sim.realtime_info()["label"] == "MPM 64² explicit, r_p 0.0625"
+    for _ in range(10):
+        sim.advance()
+    m2, p2, _ = _totals(sim)
+    sim.set_rung("g128-explicit")
+    m3, p3, _ = _totals(sim)
+    assert np.array_equal(sim.solver.masses, scene_masses)
+    assert m3 == m2 and np.abs(p3 - p2).max() <= 1e-6 * max(1.0, float(np.abs(p2).max()))
+    assert np.isfinite(sim.advance().positions).all()

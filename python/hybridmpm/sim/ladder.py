@@ -147,7 +147,8 @@ def pareto(rungs: list[Rung]) -> list[Rung]:
 def candidate_rungs(scene: Scene) -> list[Rung]:
     """Every rung ``scene`` can run (its grid, ¾ and ½ of it where its walls and obstacles stay as they are,
     :func:`grid_holds`; explicit, and projection where allowed; on a coarser grid the scene's particles and
-    those merged to its density, ``r_p = (n / n_scene)^D``, and where the scene's grid is the only one, its
+    those merged to its density, ``r_p = (n / n_scene)^D``, on the coarsest also to half that per axis (``r_p =
+    (n / 2n_scene)^D``: the ladder's last resort), and where the scene's grid is the only one, its
     particles and those merged to half its density per axis, ``r_p = 2^−D``), finer grids first, explicit before projection, the
     scene's particles before merged ones, with time priors (explicit: the grid's share of the substeps, ``n /
     n_scene``; projection: :data:`PROJECTION_PRIOR` of that; merged: times ``r_p``) and no error."""
@@ -156,11 +157,15 @@ def candidate_rungs(scene: Scene) -> list[Rung]:
     grids = [n for n in ladder_grids(n0) if grid_holds(scene, n)]
     out = []
     for n in grids:
-        # merged: the scene's density on a coarser grid; where the scene's grid is the only one, half of it per axis
+        # merged: the scene's density on a coarser grid, and on the coarsest half of it per axis too; where the
+        # scene's grid is the only one, half of it per axis
         r_p = (n / n0) ** scene.dim if n < n0 else (0.5**scene.dim if len(grids) == 1 else 1.0)
+        merged = [r_p] if r_p < 1.0 else []
+        if n < n0 and n == grids[-1]:
+            merged.append(r_p * 0.5**scene.dim)
         for i in integrators:
             prior = n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)
-            out += [Rung(n, i, None, prior)] + ([Rung(n, i, None, prior * r_p, r_p)] if r_p < 1.0 else [])
+            out += [Rung(n, i, None, prior)] + [Rung(n, i, None, prior * m, m) for m in merged]
     return out
 
 

@@ -182,12 +182,14 @@ class RealtimeSimulator(MpmSimulator):
         return self._merge is None
 
     def _bin_size(self, rung: Rung) -> float:
-        """The side [m] of the cubes a merged ``rung`` groups the particles in: the scene's lattice spacing on
-        the rung's grid (``1 / (n_grid · particles_per_cell)``), twice it on the scene's own grid."""
+        """The side [m] of the cubes a merged ``rung`` groups the particles in: ``f / (n_grid · particles_per_cell)``,
+        the lattice spacing of the scene's density on the rung's grid times ``f = (r_p at that density / r_p)^(1/D)``
+        (1 on a coarser grid at the scene's density, 2 at half of it per axis)."""
         spec = self.scene_full.spec
         ppc = spec.particles_per_cell if spec is not None else 2
-        own = rung.n_grid >= self._n_scene_grid
-        return (2.0 if own else 1.0) / (rung.n_grid * ppc)
+        at_density = min(1.0, rung.n_grid / self._n_scene_grid) ** self.particles.dim
+        f = round((at_density / rung.r_p) ** (1.0 / self.particles.dim))
+        return f / (rung.n_grid * ppc)
 
     def _merged_base(self, labels: np.ndarray, k: int) -> Any:
         """The particle set of the scene merged into the groups ``labels``: ``k`` particles, each of its group's
