@@ -476,3 +476,23 @@ def test_the_coarsest_grid_also_merges_to_half_its_density_per_axis_and_back_con
     assert np.array_equal(sim.solver.masses, scene_masses)
     assert m3 == m2 and np.abs(p3 - p2).max() <= 1e-6 * max(1.0, float(np.abs(p2).max()))
     assert np.isfinite(sim.advance().positions).all()
+
+
+def test_a_rung_that_keeps_failing_is_retried_ever_more_rarely(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first rung takes 1.5 budgets, but the chart's ratios, scaled by the fast rungs' times, keep predicting
+    that it fits: each time its measured time expires the mode climbs back and fails again. Each failure keeps
+    the measured time twice as long (MAX_BACKOFF doublings), so over 20 times the TTL it retries a handful of
+    times, not once a TTL."""
+    monkeypatch.setattr(rt, "DWELL_S", 0.05)
+    monkeypatch.setattr(rt, "MEASURED_TTL_S", 0.5)  # the same rule on a shorter clock
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    cost = {r.key: 0.3 * budget for r in ladder}
+    cost[ladder[0].key] = 1.5 * budget
+    m = machine(cost)
+    sim = RealtimeSimulator(scene, clock=m)
+    while m.t < 10.0:
+        sim.advance()
+    ups = [c for c in sim.changes if c["to"] == ladder[0].key]
+    assert 2 <= len(ups) <= 6, sim.changes  # once a TTL (0.5 s) without the backoff: about 20

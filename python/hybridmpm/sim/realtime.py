@@ -85,8 +85,13 @@ EMA_ALPHA = 0.2
 #: garbage collection, the OS taking the core) moves it no more than a fast one, a slower machine within frames.
 MEDIAN_SAMPLES = 5
 #: How long a rung's measured time per frame stands in for its prediction [s]; older, the chart's ratio scaled
-#: by the current rung's time does (the machine's load moves).
+#: by the current rung's time does (the machine's load moves). A rung left for being too slow again and again,
+#: each time within this long of taking it, keeps its measured time twice as long each time, up to
+#: :data:`MAX_BACKOFF` doublings (no flapping back to a rung the chart's ratios keep predicting to fit); a rung
+#: that held longer, or was left for a more accurate one, starts afresh.
 MEASURED_TTL_S = 30.0
+#: The most doublings of :data:`MEASURED_TTL_S` for a rung left for being too slow.
+MAX_BACKOFF = 3
 
 
 class Merge(NamedTuple):
@@ -147,6 +152,8 @@ class RealtimeSimulator(MpmSimulator):
         self._chart_ratios = {r.key: r.time_ratio for r in rungs}
         #: rung key -> (its measured wall time per frame [s], when): this machine's times of the rungs visited
         self._measured: dict[str, tuple[float, float]] = {}
+        #: rung key -> how often in a row it was left for being too slow (:data:`MEASURED_TTL_S`)
+        self._strikes: dict[str, int] = {}
         here = rung_key(self.solver.params.resolved_n_grid(), self.solver.params.integrator)
         self._rung = here
         self._ema: float | None = None
@@ -336,14 +343,16 @@ class RealtimeSimulator(MpmSimulator):
 
     def predicted_s(self, key: str) -> float | None:
         """The predicted wall time of a frame on rung ``key`` [s]: its own measured average where it was timed in
-        the last :data:`MEASURED_TTL_S` seconds (the current rung's is its running average), else the current
-        rung's average scaled by the chart's time ratios; None before the current rung has been timed."""
+        the last :data:`MEASURED_TTL_S` seconds, longer after repeated failures (the current rung's is its running
+        average), else the current rung's average scaled by the chart's time ratios; None before the current rung
+        has been timed."""
         if self._ema is None or self._samples < 1:
             return None
         if key == self._rung:
             return self._ema
         seen = self._measured.get(key)
-        if seen is not None and self._clock() - seen[1] <= MEASURED_TTL_S:
+        ttl = MEASURED_TTL_S * 2 ** min(max(self._strikes.get(key, 0) - 1, 0), MAX_BACKOFF)
+        if seen is not None and self._clock() - seen[1] <= ttl:
             return seen[0]
         return self._ema * self._chart_ratios[key] / self._chart_ratios[self._rung]
 
@@ -417,11 +426,16 @@ class RealtimeSimulator(MpmSimulator):
         before = self._rung
         target = self._choose()
         if target is not None and target != before:
-            ema = self._ema
+            ema, entered = self._ema, self._last_change
             if self._switch(target):
                 self.changes.append({"frame": frame.frame_index, "from": before, "to": target, "frame_ms": None if ema is None else ema * 1e3})
                 if ema is not None:
                     self._measured[before] = (ema, self._clock())
+                # left for a faster rung soon after it was taken (a bounce): one more strike; after a long
+                # stay the failure is the machine's new pace, a first strike
+                bounce = self._clock() - entered < MEASURED_TTL_S
+                down = self._chart_ratios[target] < self._chart_ratios[before]
+                self._strikes[before] = (self._strikes.get(before, 0) + 1 if bounce else 1) if down else 0
         return frame
 
     def _time(self, wall: float, stepped: bool) -> None:
@@ -544,6 +558,7 @@ class RealtimeSimulator(MpmSimulator):
 __all__ = [
     "DWELL_S",
     "HYSTERESIS",
+    "MAX_BACKOFF",
     "MEASURED_TTL_S",
     "MEDIAN_SAMPLES",
     "REALTIME_MARGIN",
