@@ -46,6 +46,7 @@ machine's load falls on each alike), the median browser CPU per frame each.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shutil
@@ -354,41 +355,13 @@ def main() -> None:
     with LiveServer(max_sessions=16, log=Path(tempfile.mkdtemp()) / "server.log") as srv, sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium, headless=True, args=["--no-sandbox"])
         for scene, seed, look, playing, preset in cases:
-            r = run_case(
-                browser,
-                srv.url,
-                scene,
-                seed,
-                look,
-                playing,
-                preset,
-                args.seconds,
-                args.dpr,
-                sync=False,
-                advance=args.advance,
-                material=args.pour,
-                solver=args.solver,
+            # one case, drawn for `seconds` without (or with, `sync`) waiting for the GPU
+            case = functools.partial(
+                run_case, browser, srv.url, scene, seed, look, playing, preset, dpr=args.dpr, advance=args.advance, material=args.pour, solver=args.solver
             )
+            r = case(seconds=args.seconds, sync=False)
             skip = args.no_sync or preset == "auto"  # an auto case would settle again, elsewhere
-            r["draw_ms_gpu_median"] = (
-                float("nan")
-                if skip
-                else run_case(
-                    browser,
-                    srv.url,
-                    scene,
-                    seed,
-                    look,
-                    playing,
-                    preset,
-                    min(args.seconds, 3.0),
-                    args.dpr,
-                    sync=True,
-                    advance=args.advance,
-                    material=args.pour,
-                    solver=args.solver,
-                )["draw_ms_median"]
-            )
+            r["draw_ms_gpu_median"] = float("nan") if skip else case(seconds=min(args.seconds, 3.0), sync=True)["draw_ms_median"]
             r.update(scene=scene, seed=seed, playing=playing, preset=preset, poured=args.pour)
             rows.append(r)
             print(json.dumps(r), flush=True)
