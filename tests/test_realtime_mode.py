@@ -496,3 +496,60 @@ def test_a_rung_that_keeps_failing_is_retried_ever_more_rarely(machine: Any, mon
         sim.advance()
     ups = [c for c in sim.changes if c["to"] == ladder[0].key]
     assert 2 <= len(ups) <= 6, sim.changes  # once a TTL (0.5 s) without the backoff: about 20
+
+
+def test_a_scene_on_its_own_grid_only_has_a_last_resort_merged_four_times_the_lattice_spacing() -> None:
+    """paddle3d's grid is its only one: its merged rung (cubes of twice the lattice spacing, r_p 2^-3) and the last
+    resort (four times, r_p 4^-3) keep mass exactly and momentum, and the last resort holds at most an eighth of
+    the merged rung's particles plus the cubes cut by the block's edges."""
+    assert [r.key for r in candidate_rungs(make_scene("paddle3d")) if r.integrator == "explicit"] == [
+        "g34-explicit",
+        "g34-explicit-rp0.125",
+        "g34-explicit-rp0.0156",
+    ]
+    sim = RealtimeSimulator("paddle3d", rung="g34-explicit-rp0.125", adaptive=False)
+    for _ in range(5):
+        sim.advance()
+    k8 = sim.solver.num_particles
+    m0, p0, _ = _totals(sim)
+    sim.set_rung("g34-explicit-rp0.0156")
+    m1, p1, _ = _totals(sim)
+    k64 = sim.solver.num_particles
+    assert k8 / 8 <= k64 < k8 / 4
+    assert m1 == m0 and np.abs(p1 - p0).max() <= 1e-6 * max(1.0, float(np.abs(p0).max()))
+    assert np.isfinite(sim.advance().positions).all()
+
+
+def test_a_block_poured_on_a_merged_projection_rung_keeps_the_merge_on_the_explicit_step() -> None:
+    """The projection steps water only: a sand block poured on ``g64-projection-rp0.25`` moves the simulator to
+    the explicit rung of the same grid and the same merged particles (not back to the scene's own)."""
+    sim = RealtimeSimulator("water2d", rung="g64-projection-rp0.25", adaptive=False)
+    sim.advance()
+    k = sim.solver.num_particles
+    added = pour_block(sim, {"material": "sand", "lo": [0.6, 0.6], "hi": [0.7, 0.7]}) - k
+    fr = sim.advance()
+    assert sim.rung == "g64-explicit-rp0.25" and sim.solver.num_particles == k + added
+    assert np.isfinite(fr.positions).all()
+
+
+def test_with_another_material_poured_the_mode_steps_down_the_explicit_rungs_own_ladder(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A projection rung that is more accurate and faster than an explicit one drops it from the ladder. Once sand
+    is poured into the water the projection steps nothing, and the explicit rungs are ranked among themselves:
+    the mode takes the most accurate explicit rung that fits (here ``g64-explicit``, which the whole ladder
+    dropped), not the next explicit rung the whole ladder kept."""
+    errors = {"g128-explicit": 0.0, "g128-projection": 0.05, "g64-explicit": 0.10, "g64-projection": 0.12}
+    errors |= {"g64-explicit-rp0.25": 0.2, "g64-projection-rp0.25": 0.25, "g64-explicit-rp0.0625": 0.3, "g64-projection-rp0.0625": 0.35}
+    ratios = {"g128-explicit": 1.0, "g128-projection": 0.3, "g64-explicit": 0.5, "g64-projection": 0.15}
+    ratios |= {"g64-explicit-rp0.25": 0.12, "g64-projection-rp0.25": 0.05, "g64-explicit-rp0.0625": 0.04, "g64-projection-rp0.0625": 0.02}
+    chart = {"rungs": [{"key": k, "error": e, "time_ratio": ratios[k]} for k, e in errors.items()]}
+    monkeypatch.setattr(rl, "realtime_chart", lambda scene: chart)
+    scene = make_scene("water2d")
+    assert "g64-explicit" not in [r.key for r in make_ladder(scene)]  # dominated by g128-projection
+    assert [r.key for r in make_ladder(scene, ("explicit",))][:2] == ["g128-explicit", "g64-explicit"]
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    m = machine({k: budget * (1.5 if k == "g128-explicit" else 0.75 * r / 0.5 if k == "g64-explicit" else 0.2) for k, r in ratios.items()})
+    sim = RealtimeSimulator(scene, clock=m, rung="g128-projection")
+    sim.advance()
+    pour_block(sim, {"material": "sand", "lo": [0.6, 0.6], "hi": [0.7, 0.7]})
+    seen = _run(sim, 1500)
+    assert seen[0] == "g128-explicit" and seen[-1] == "g64-explicit", sim.changes

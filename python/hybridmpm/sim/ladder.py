@@ -147,21 +147,22 @@ def pareto(rungs: list[Rung]) -> list[Rung]:
 def candidate_rungs(scene: Scene) -> list[Rung]:
     """Every rung ``scene`` can run (its grid, ¾ and ½ of it where its walls and obstacles stay as they are,
     :func:`grid_holds`; explicit, and projection where allowed; on a coarser grid the scene's particles and
-    those merged to its density, ``r_p = (n / n_scene)^D``, on the coarsest also to half that per axis (``r_p =
-    (n / 2n_scene)^D``: the ladder's last resort), and where the scene's grid is the only one, its
-    particles and those merged to half its density per axis, ``r_p = 2^−D``), finer grids first, explicit before projection, the
-    scene's particles before merged ones, with time priors (explicit: the grid's share of the substeps, ``n /
-    n_scene``; projection: :data:`PROJECTION_PRIOR` of that; merged: times ``r_p``) and no error."""
+    those merged to its density, ``r_p = (n / n_scene)^D``; where the scene's grid is the only one, its particles
+    and those merged to half its density per axis, ``r_p = 2^−D``; on the coarsest grid the merged particles also
+    at half that density per axis, a further ``2^−D``: the ladder's last resort), finer grids first, explicit
+    before projection, the scene's particles before merged ones, with time priors (explicit: the grid's share of
+    the substeps, ``n / n_scene``; projection: :data:`PROJECTION_PRIOR` of that; merged: times ``r_p``) and no
+    error."""
     n0 = scene.params.resolved_n_grid()
     integrators = [INTEGRATORS[0]] + ([INTEGRATORS[1]] if projection_allowed(scene) else [])
     grids = [n for n in ladder_grids(n0) if grid_holds(scene, n)]
     out = []
     for n in grids:
-        # merged: the scene's density on a coarser grid, and on the coarsest half of it per axis too; where the
-        # scene's grid is the only one, half of it per axis
+        # merged: the scene's density on a coarser grid, or half of it per axis where the scene's grid is the
+        # only one; on the coarsest grid half that per axis too (the last resort)
         r_p = (n / n0) ** scene.dim if n < n0 else (0.5**scene.dim if len(grids) == 1 else 1.0)
         merged = [r_p] if r_p < 1.0 else []
-        if n < n0 and n == grids[-1]:
+        if merged and n == grids[-1]:
             merged.append(r_p * 0.5**scene.dim)
         for i in integrators:
             prior = n / n0 * (1.0 if i == INTEGRATORS[0] else PROJECTION_PRIOR)
@@ -181,11 +182,13 @@ def charted_rungs(scene: Scene) -> list[Rung]:
     return out
 
 
-def make_ladder(scene: Scene) -> list[Rung]:
+def make_ladder(scene: Scene, integrators: tuple[str, ...] | None = None) -> list[Rung]:
     """The ladder of ``scene``, most accurate first: its :func:`charted_rungs` Pareto-ordered by :func:`pareto`
     where the chart has them all, else by their time priors, costliest first (a finer grid, the explicit step:
-    the more accurate, as a rule)."""
-    rungs = charted_rungs(scene)
+    the more accurate, as a rule). ``integrators``: of the rungs stepped by these only (None: all), e.g. the
+    explicit ones a scene falls back on when another material is poured into its water (a projection rung that
+    dominates an explicit one drops it from the whole ladder, not from this one)."""
+    rungs = [r for r in charted_rungs(scene) if integrators is None or r.integrator in integrators]
     if all(r.error is not None for r in rungs):
         return pareto(rungs)
     return sorted(rungs, key=lambda r: -r.time_ratio)

@@ -135,6 +135,9 @@ class RealtimeSimulator(MpmSimulator):
         self._merge: Merge | None = None
         super().__init__(scene, r_p=r_p, seed=seed, threads=threads, clusters=clusters)
         self.ladder = make_ladder(self.scene)
+        #: the ladder of the explicit rungs: what the mode moves on while the projection cannot step what the
+        #: simulator holds (another material poured into the water)
+        self._explicit_ladder = make_ladder(self.scene, (INTEGRATORS[0],))
         #: the scene's shipped real-time chart (:func:`realtime_chart`; None: a scene of your own)
         self.chart = realtime_chart(self.scene)
         self._clock = clock
@@ -191,7 +194,7 @@ class RealtimeSimulator(MpmSimulator):
     def _bin_size(self, rung: Rung) -> float:
         """The side [m] of the cubes a merged ``rung`` groups the particles in: ``f / (n_grid · particles_per_cell)``,
         the lattice spacing of the scene's density on the rung's grid times ``f = (r_p at that density / r_p)^(1/D)``
-        (1 on a coarser grid at the scene's density, 2 at half of it per axis)."""
+        (1 on a coarser grid at the scene's density, 2 at half of it per axis, 4 at a quarter)."""
         spec = self.scene_full.spec
         ppc = spec.particles_per_cell if spec is not None else 2
         at_density = min(1.0, rung.n_grid / self._n_scene_grid) ** self.particles.dim
@@ -377,7 +380,7 @@ class RealtimeSimulator(MpmSimulator):
             return None
         budget, ratio = self.budget_s(), self._chart_ratios[self._rung]
         projection = self.projection_ok()  # once a decision, not once a rung
-        ladder = [r for r in self.ladder if projection or r.integrator == INTEGRATORS[0]]
+        ladder = self.ladder if projection else self._explicit_ladder
         if self._ema > budget:
             faster = [r for r in ladder if r.time_ratio < ratio]
             for r in faster:
@@ -394,13 +397,15 @@ class RealtimeSimulator(MpmSimulator):
         return None
 
     def _to_explicit(self) -> None:
-        """From a projection rung to the explicit rung on the same grid, at once (a step spanning frames ends
-        where it is); nothing on an explicit rung."""
+        """From a projection rung to the explicit rung on the same grid and particles, at once (a step spanning
+        frames ends where it is); nothing on an explicit rung."""
         if self._rung_params[self._rung].integrator == INTEGRATORS[0]:
             return
         if self.solver.substeps_for(self.dt_frame) == 0:  # mid-step: a particle edit ends it (docs/large-step.md)
             self.solver.set_field("positions", np.asarray(self.solver.positions, np.float32))
-        before, key = self._rung, rung_key(self._rung_params[self._rung].resolved_n_grid(), INTEGRATORS[0])
+        n_grid, r_p = self._rungs[self._rung].n_grid, self._rungs[self._rung].r_p
+        key = rung_key(n_grid, INTEGRATORS[0], r_p)  # the same particles, merged or not, where that rung exists
+        before, key = self._rung, key if key in self._rung_params else rung_key(n_grid, INTEGRATORS[0])
         self._switch(key)
         self.changes.append({"frame": self.frame.frame_index, "from": before, "to": key, "frame_ms": None})
 
