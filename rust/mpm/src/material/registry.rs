@@ -60,6 +60,16 @@ macro_rules! register {
             $($name($params),)*
         }
 
+        impl MaterialParams {
+            /// The default parameter set of `material` (its struct's
+            /// `Default`).
+            pub fn default_for(material: Material) -> Self {
+                match material {
+                    $(Material::$name => MaterialParams::$name(<$params>::default()),)*
+                }
+            }
+        }
+
         /// `$body` with `$p` bound to the params struct inside `$set` (a
         /// [`MaterialParams`]), or `$ty` to its type.
         macro_rules! each_set {

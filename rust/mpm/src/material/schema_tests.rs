@@ -5,17 +5,6 @@
 use super::schema::{Limit, MaterialSchema, Param, ParamValue};
 use super::*;
 
-/// The default parameter set of `material`.
-fn default_set(material: Material) -> MaterialParams {
-    match material {
-        Material::Water => MaterialParams::Water(Default::default()),
-        Material::Sand => MaterialParams::Sand(Default::default()),
-        Material::Elastic => MaterialParams::Elastic(Default::default()),
-        Material::Snow => MaterialParams::Snow(Default::default()),
-        Material::Viscoplastic => MaterialParams::Viscoplastic(Default::default()),
-    }
-}
-
 /// A parameter set of `model` with `name` set to `value` (the rest default).
 fn set_with(model: &str, name: &str, value: f32) -> MaterialParams {
     let json = serde_json::json!({ model: { name: value } });
@@ -25,7 +14,7 @@ fn set_with(model: &str, name: &str, value: f32) -> MaterialParams {
 #[test]
 fn each_table_lists_its_structs_fields_in_order() {
     for (material, params, defaults) in material_schema() {
-        let default = default_set(material);
+        let default = MaterialParams::default_for(material);
         let text = serde_json::to_string(&default).unwrap();
         let set: serde_json::Value = serde_json::from_str(&text).unwrap();
         let mut keys: Vec<&String> = set[material.name()].as_object().unwrap().keys().collect();

@@ -152,7 +152,7 @@ fn reference<const D: usize>(
                 &u * diag(eps.iter().map(|e| 2.0 * mu * e + la * tr).collect()) * u.transpose();
             (fe, j, tau)
         }
-        Model::Water(_) | Model::Sand(_) => unreachable!(),
+        _ => unreachable!("a solid with a reference here"),
     }
 }
 
@@ -183,7 +183,7 @@ fn update_trial<const D: usize>(
             };
             (f, j, tau)
         }
-        Model::Water(_) | Model::Sand(_) => unreachable!(),
+        _ => unreachable!("a solid with a reference here"),
     }
 }
 
