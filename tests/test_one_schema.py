@@ -41,8 +41,11 @@ def test_python_defaults_are_the_rust_defaults(dim):
 
 def test_dataclass_fields_are_the_rust_keys():
     rust = _core.default_params(2)
-    # bodies: written only when there are some; integrator: only when not the default
-    assert fields(MpmParams) == [*rust, "bodies", "integrator"]
+    # bodies: written only when there are some; integrator: only when not the default; a model without a
+    # field of its own has its table in `tables`, written under the model's name
+    further = list(MpmParams().tables)
+    assert [f for f in fields(MpmParams) if f != "tables"] == [*(k for k in rust if k not in further), "bodies", "integrator"]
+    assert fields(MpmParams).index("tables") == fields(MpmParams).index("sets") - 1
     assert "integrator" not in rust and MpmParams().integrator == _core.INTEGRATORS[0]
     assert fields(WaterParams) == list(rust["water"])
     assert fields(SandParams) == list(rust["sand"])

@@ -5,11 +5,12 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "INTEGRATORS", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "body_sdf", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "material_schema", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
+__all__ = ["__version__", "BODY_STATE_LEN", "CONNECTIVITY_RADIUS", "INTEGRATORS", "MATERIAL_CODES", "MAX_BODIES", "MAX_BODY_DENSITY", "MAX_BODY_SPEED", "MAX_HULL_POINTS", "MIN_BODY_DENSITY", "MpmSolver", "PROJECT_DEPTH_CELLS", "SOLID_PROJECT_DEPTH_CELLS", "bodies_overlap", "body_hull", "body_sdf", "check_body", "default_collider", "default_params", "grid_advect", "grid_g2p", "grid_mass", "grid_p2g", "kernel_density", "material_schema", "radius_graph", "relax_density", "relax_then_graph", "surface_p2g"]
 
 __version__: str
 CONNECTIVITY_RADIUS: float
 INTEGRATORS: tuple[str, ...]
+MATERIAL_CODES: dict[str, int]
 MAX_BODIES: int
 MAX_HULL_POINTS: int
 MIN_BODY_DENSITY: float

@@ -4,10 +4,11 @@ Every other module imports these names; none restates the numbers.
 
 Two code tables exist and they are *different*:
 
-* **solver material codes** (:data:`MATERIAL_WATER` 0, :data:`MATERIAL_SAND` 1,
-  :data:`MATERIAL_ELASTIC` 2, :data:`MATERIAL_SNOW` 3,
-  :data:`MATERIAL_VISCOPLASTIC` 4): what the Rust MPM solver stores per
-  particle (``MpmSolver.material``; ``Material`` in ``rust/mpm/src/particles.rs``);
+* **solver material codes** (:data:`MATERIALS`, the core's ``_core.MATERIAL_CODES``:
+  :data:`MATERIAL_WATER` 0, :data:`MATERIAL_SAND` 1, :data:`MATERIAL_ELASTIC` 2,
+  :data:`MATERIAL_SNOW` 3, :data:`MATERIAL_VISCOPLASTIC` 4, and any further model
+  of the core's registry): what the Rust MPM solver stores per particle
+  (``MpmSolver.material``; ``Material`` in ``rust/mpm/src/material/codes.rs``);
 * **GNS particle-type codes** (:data:`GNS_KINEMATIC` 3, :data:`GNS_WATER` 5,
   :data:`GNS_SAND` 6; DeepMind ``learning_to_simulate``): what datasets,
   trajectories and the network see (``particle_type``). Boundary / obstacle
@@ -21,24 +22,21 @@ from __future__ import annotations
 from hybridmpm import _core
 
 # ----------------------------------------------------------------- codes
+#: Solver material codes by name (scene files say ``material = "water"``): the
+#: core's registry, one entry per constitutive model in code order
+#: (``_core.MATERIAL_CODES``, from the ``materials!`` list of
+#: ``rust/mpm/src/material/codes.rs``).
+MATERIALS: dict[str, int] = dict(_core.MATERIAL_CODES)
 #: Solver material code of weakly compressible water.
-MATERIAL_WATER = 0
+MATERIAL_WATER = MATERIALS["water"]
 #: Solver material code of Drucker–Prager sand.
-MATERIAL_SAND = 1
+MATERIAL_SAND = MATERIALS["sand"]
 #: Solver material code of the elastic solid (fixed-corotated or neo-Hookean).
-MATERIAL_ELASTIC = 2
+MATERIAL_ELASTIC = MATERIALS["elastic"]
 #: Solver material code of snow (Stomakhin et al. 2013).
-MATERIAL_SNOW = 3
+MATERIAL_SNOW = MATERIALS["snow"]
 #: Solver material code of the viscoplastic solid (von Mises with viscous relaxation).
-MATERIAL_VISCOPLASTIC = 4
-#: Solver material codes by name (scene files say ``material = "water"``).
-MATERIALS = {
-    "water": MATERIAL_WATER,
-    "sand": MATERIAL_SAND,
-    "elastic": MATERIAL_ELASTIC,
-    "snow": MATERIAL_SNOW,
-    "viscoplastic": MATERIAL_VISCOPLASTIC,
-}
+MATERIAL_VISCOPLASTIC = MATERIALS["viscoplastic"]
 #: The materials the learned simulators and the diffusion controller were
 #: trained on (they refuse a scene holding any other, naming it).
 LEARNED_MATERIALS: tuple[str, ...] = ("water", "sand")
@@ -55,14 +53,27 @@ GNS_GOOP = 7
 GNS_ELASTIC = 8
 #: GNS particle type of snow (past the GNS datasets' codes).
 GNS_SNOW = 9
-#: GNS particle type of each solver material.
-GNS_TYPE_OF_MATERIAL = {
-    MATERIAL_WATER: GNS_WATER,
-    MATERIAL_SAND: GNS_SAND,
-    MATERIAL_ELASTIC: GNS_ELASTIC,
-    MATERIAL_SNOW: GNS_SNOW,
-    MATERIAL_VISCOPLASTIC: GNS_GOOP,
-}
+#: The GNS particle types given by name; a model of the core not named here gets the next free
+#: type past them (:func:`gns_types`).
+_GNS_NAMED = {"water": GNS_WATER, "sand": GNS_SAND, "elastic": GNS_ELASTIC, "snow": GNS_SNOW, "viscoplastic": GNS_GOOP}
+
+
+def gns_types(materials: dict[str, int]) -> dict[int, int]:
+    """The GNS particle type of each solver material code of ``materials`` (``{name: code}``): the
+    named type of :data:`_GNS_NAMED` where it has one, else the types past the largest named one
+    (10, 11, ...), in code order, so that every model of the core has one, the same on every run."""
+    out: dict[int, int] = {}
+    nxt = max(_GNS_NAMED.values()) + 1
+    for name, code in sorted(materials.items(), key=lambda item: item[1]):
+        if name in _GNS_NAMED:
+            out[code] = _GNS_NAMED[name]
+        else:
+            out[code], nxt = nxt, nxt + 1
+    return out
+
+
+#: GNS particle type of each solver material (:func:`gns_types` of :data:`MATERIALS`).
+GNS_TYPE_OF_MATERIAL = gns_types(MATERIALS)
 #: Material name of each fluid GNS particle type (exported meshes and files are named by it).
 NAME_OF_GNS_TYPE = {GNS_TYPE_OF_MATERIAL[code]: name for name, code in MATERIALS.items()}
 
@@ -158,4 +169,5 @@ __all__ = [
     "SPLITS",
     "T_CTR",
     "T_IN",
+    "gns_types",
 ]

@@ -1,11 +1,14 @@
-"""Materials as users pour them: the five constitutive models in the field's
+"""Materials as users pour them: the core's constitutive models in the field's
 standard terms, and presets named as artists know them (docs/materials.md).
 
 Each class is one model with its parameters in SI units, named as a scene
 file's block names them (``E``, ``nu``, ``density``, ...); their ranges,
 defaults and these user keys are the core's one schema
 (:data:`hybridmpm.mpm.schema.SCHEMA`), which each class's fields follow in
-name and order (tests/test_material_schema.py); ``to_params()``
+name and order (tests/test_material_schema.py). Water, sand, the elastic
+solid, snow and the viscoplastic solid have written classes; every other
+model of the core gets one made from its schema (:func:`material_classes`),
+in :data:`MODELS` beside them. ``to_params()``
 gives the solver's parameter set (:mod:`hybridmpm.mpm.params`), ``code`` the
 solver material code (:data:`~hybridmpm.conventions.MATERIALS`). A scene
 file's block takes a material by name or by preset
@@ -27,7 +30,8 @@ file's block takes a material by name or by preset
 from __future__ import annotations
 
 import abc
-from dataclasses import asdict, dataclass, fields, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields, make_dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -43,8 +47,8 @@ from hybridmpm.conventions import (
     MATERIALS,
 )
 from hybridmpm.errors import InvalidInputError
-from hybridmpm.mpm.params import SET_CLASSES
-from hybridmpm.mpm.schema import SCHEMA, check_set
+from hybridmpm.mpm.schema import SCHEMA, Param, check_set
+from hybridmpm.mpm.sets import SET_CLASSES, class_name
 
 #: Each model's defaults by the user's key (``E``, ``nu``, ...): the core's (``_core.material_schema()``).
 _D: dict[str, dict[str, Any]] = {model: {p.key: p.default for p in params} for model, params in SCHEMA.items()}
@@ -52,12 +56,12 @@ _D: dict[str, dict[str, Any]] = {model: {p.key: p.default for p in params} for m
 
 @dataclass(frozen=True)
 class _Material(abc.ABC):
-    """A material of one model. Its fields are the model's parameters by the user's key, in the core's
-    order (:data:`hybridmpm.mpm.schema.SCHEMA`, which gives their ranges and defaults too)."""
+    """A material of one model. Its fields (each subclass's own) are the model's parameters by the user's
+    key, in the core's order (:data:`hybridmpm.mpm.schema.SCHEMA`, which gives their ranges and defaults
+    too); every model has a ``density`` ρ [kg/m³]."""
 
     name: ClassVar[str]
     code: ClassVar[int]
-    density: float
 
     def validate(self, where: str = "") -> None:
         """Check every parameter against the core's range in float64 and in float32; raises
@@ -154,10 +158,48 @@ class Viscoplastic(_Material):
     viscosity: float = _D["viscoplastic"]["viscosity"]
 
 
-#: A material of any model.
-Material = Water | Sand | Elastic | Snow | Viscoplastic
-#: Each model's class by the name a scene file's block gives.
-MODELS: dict[str, type[Material]] = {c.name: c for c in (Water, Sand, Elastic, Snow, Viscoplastic)}
+#: A material of any model of the core: a written class (:class:`Water`, :class:`Sand`, :class:`Elastic`,
+#: :class:`Snow`, :class:`Viscoplastic`) or one made from the schema (:func:`material_classes`).
+Material = _Material
+#: The written material classes, by the model's name.
+WRITTEN: dict[str, type[_Material]] = {c.name: c for c in (Water, Sand, Elastic, Snow, Viscoplastic)}
+
+
+def make_material_class(model: str, code: int, rows: Sequence[Param]) -> type[_Material]:
+    """The material class of ``model`` (``"foam"`` -> ``Foam``) made from its schema ``rows``: a frozen
+    dataclass subclass of the materials' base with ``name`` ``model`` and ``code`` ``code`` (the solver's),
+    one field per row by the user's ``key``, in the rows' order, typed ``str`` for a named parameter and
+    ``float`` for a number, defaulting to the row's ``default``; its docstring gives each row's
+    description, unit and range. Its :meth:`~_Material.validate`, :meth:`~_Material.to_params` and
+    :meth:`~_Material.from_params` read the model's rows of :data:`~hybridmpm.mpm.schema.SCHEMA` and its
+    set class of :data:`~hybridmpm.mpm.sets.SET_CLASSES` (the core's, where ``model`` is one of its models)."""
+    described = "; ".join(f"``{p.key}`` {p.description} [{p.unit}], {p.range}" for p in rows)
+    cls = make_dataclass(
+        class_name(model),
+        [(p.key, str if p.choices else float, field(default=p.default)) for p in rows],
+        bases=(_Material,),
+        frozen=True,
+        namespace={"name": model, "code": code, "__doc__": f"The core's model ``{model}``, made from its schema: {described}."},
+    )
+    cls.__module__ = __name__
+    return cls
+
+
+def material_classes(
+    schema: Mapping[str, Sequence[Param]], codes: Mapping[str, int], written: Mapping[str, type[_Material]] | None = None
+) -> dict[str, type[_Material]]:
+    """Each model's material class by the name a scene file's block gives, in ``schema``'s order: the
+    written class where ``written`` (default :data:`WRITTEN`) has one, else :func:`make_material_class`
+    of its rows and its solver code in ``codes`` (``{name: code}``; a model ``codes`` lacks raises
+    ``KeyError``)."""
+    written = WRITTEN if written is None else written
+    return {model: written[model] if model in written else make_material_class(model, codes[model], rows) for model, rows in schema.items()}
+
+
+#: Each model's class by the name a scene file's block gives: one per model of the core, in code order.
+MODELS: dict[str, type[_Material]] = material_classes(SCHEMA, MATERIALS)
+for _cls in MODELS.values():  # a made class is found by its name here (pickle, repr)
+    globals().setdefault(_cls.__name__, _cls)
 
 #: Presets named as artists know them: each a parameter set of one model,
 #: with its source in :data:`PRESET_SOURCES` (orders of magnitude where the
@@ -187,8 +229,9 @@ def scene_bases(params: Any) -> dict[str, Material]:
     """Each model's base material in a scene whose solver parameters are ``params``
     (:class:`~hybridmpm.mpm.MpmParams`): the scene's own table of the model
     (a scene file's ``[water]`` and ``[sand]``; ``MpmParams.water``, ``.sand``,
-    ``.elastic``, ``.snow``, ``.viscoplastic``), as a block naming the model starts from."""
-    return {name: cls.from_params(getattr(params, name)) for name, cls in MODELS.items()}
+    ``.elastic``, ``.snow``, ``.viscoplastic``, any further model's in ``MpmParams.tables``:
+    :meth:`~hybridmpm.mpm.MpmParams.table`), as a block naming the model starts from."""
+    return {name: cls.from_params(params.table(name)) for name, cls in MODELS.items()}
 
 
 def _base(name: Any, where: str, bases: dict[str, Material] | None) -> Material:
@@ -202,10 +245,11 @@ def _base(name: Any, where: str, bases: dict[str, Material] | None) -> Material:
 
 
 def material_from_block(name: Any, keys: dict[str, Any], where: str, bases: dict[str, Material] | None = None) -> Material:
-    """The material of a scene block: ``name`` a model (``"elastic"``) or a
-    preset (``"jello"``), ``keys`` the block's overrides (``E``, ``nu``,
-    ``density``, ``model``, ``theta_c``, ``theta_s``, ``hardening``,
-    ``yield_stress``, ``viscosity``; those of the model only). ``where`` names
+    """The material of a scene block: ``name`` a model (``"elastic"``, any of
+    :data:`MODELS`) or a preset (``"jello"``), ``keys`` the block's overrides
+    (``E``, ``nu``, ``density``, ``model``, ``theta_c``, ``theta_s``,
+    ``hardening``, ``yield_stress``, ``viscosity``, ...: the user's keys of the
+    model's schema, those of the model only). ``where`` names
     the block (``blocks[2]``).
 
     The rule for scene-level and block-level parameters: a block naming a
@@ -254,6 +298,7 @@ def refuse_untrained(material: Any, who: str, *, gns: bool = False) -> None:
 __all__ = [
     "MODELS",
     "PRESETS",
+    "WRITTEN",
     "PRESET_SOURCES",
     "Elastic",
     "Material",
@@ -262,6 +307,8 @@ __all__ = [
     "Viscoplastic",
     "Water",
     "block_keys",
+    "make_material_class",
+    "material_classes",
     "material_from_block",
     "refuse_untrained",
     "scene_bases",

@@ -1,6 +1,6 @@
-"""The MLS-MPM solver's parameters (:class:`MpmParams` and its parts: water, sand, the elastic solid, snow, the
-viscoplastic solid, the table of further parameter sets, walls, colliders), typed and validated in Python; their
-defaults are the Rust core's (``SolverParams::default()``), defined once there."""
+"""The MLS-MPM solver's parameters (:class:`MpmParams` and its parts: each model's parameter set
+(:mod:`hybridmpm.mpm.sets`), the table of further parameter sets, walls, colliders), typed and validated in
+Python; their defaults are the Rust core's (``SolverParams::default()``), defined once there."""
 
 from __future__ import annotations
 
@@ -17,6 +17,16 @@ from hybridmpm.errors import InvalidInputError
 from hybridmpm.mpm.bodies import Body
 from hybridmpm.mpm.motion import Keyframe
 from hybridmpm.mpm.schema import check_set
+from hybridmpm.mpm.sets import (
+    SET_CLASSES,
+    ElasticParams,
+    MaterialSet,
+    SandParams,
+    SnowParams,
+    ViscoplasticParams,
+    WaterParams,
+    set_name,
+)
 
 Condition = Literal["sticky", "slip", "separate"]
 
@@ -28,94 +38,21 @@ _DEFAULTS: dict[int, dict[str, Any]] = {dim: _core.default_params(dim) for dim i
 #: A collider's defaults (``condition``, ``friction``, ``project``), from the Rust core.
 COLLIDER_DEFAULTS: dict[str, Any] = _core.default_collider()
 _SOLVER = _DEFAULTS[2]  # the fields below are the same in 3D (tests/test_one_schema.py)
-_WATER, _SAND, _WALLS = _SOLVER["water"], _SOLVER["sand"], _SOLVER["walls"]
-_ELASTIC, _SNOW, _VISCO = _SOLVER["elastic"], _SOLVER["snow"], _SOLVER["viscoplastic"]
+_WALLS = _SOLVER["walls"]
 
 #: How the solver advances a frame (the Rust ``Integrator``), the default
 #: first: ``"explicit"`` MLS-MPM substeps at the materials' wave speeds, or
 #: ``"projection"``, incompressible APIC water with a pressure projection at
 #: the flow's pace (docs/large-step.md).
 INTEGRATORS: tuple[str, ...] = tuple(_core.INTEGRATORS)
+#: The models whose scene-level table is a field of :class:`MpmParams` of their own; every other model of
+#: the core has its table in :attr:`MpmParams.tables`.
+FIELD_MODELS: tuple[str, ...] = ("water", "sand", "elastic", "snow", "viscoplastic")
 
 
-@dataclass
-class WaterParams:
-    """Weakly compressible water. ``density`` ρ [kg/m³], ``bulk_modulus`` K [Pa]
-    (sound speed ``sqrt(K/ρ)``, default 20 m/s), ``viscosity`` η [Pa·s].
-    Defaults are the Rust core's (``WaterParams::default()``)."""
-
-    density: float = _WATER["density"]
-    bulk_modulus: float = _WATER["bulk_modulus"]
-    viscosity: float = _WATER["viscosity"]
-
-
-@dataclass
-class SandParams:
-    """Drucker–Prager sand. ``youngs_modulus`` E [Pa], ``poisson_ratio`` ν,
-    ``friction_angle_deg`` φ [°], ``cohesion`` c [Pa] (cone apex at mean
-    stress ``c / tan φ``), ``density`` ρ [kg/m³]. Defaults are the Rust
-    core's (``SandParams::default()``)."""
-
-    density: float = _SAND["density"]
-    youngs_modulus: float = _SAND["youngs_modulus"]
-    poisson_ratio: float = _SAND["poisson_ratio"]
-    friction_angle_deg: float = _SAND["friction_angle_deg"]
-    cohesion: float = _SAND["cohesion"]
-
-
-@dataclass
-class ElasticParams:
-    """Elastic solid. ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa],
-    ``poisson_ratio`` ν in [0, 0.5), ``model``: ``"corotated"`` (fixed-corotated,
-    Stomakhin et al. 2012) or ``"neohookean"``. Defaults are the Rust core's."""
-
-    density: float = _ELASTIC["density"]
-    youngs_modulus: float = _ELASTIC["youngs_modulus"]
-    poisson_ratio: float = _ELASTIC["poisson_ratio"]
-    model: str = _ELASTIC["model"]
-
-
-@dataclass
-class SnowParams:
-    """Snow (Stomakhin et al. 2013). ``density`` ρ [kg/m³], ``youngs_modulus``
-    E₀ [Pa], ``poisson_ratio`` ν, ``theta_c`` critical compression θc and
-    ``theta_s`` critical stretch θs (in (0, 1)), ``hardening`` ξ. Defaults are
-    the Rust core's (the paper's: 400, 1.4e5, 0.2, 2.5e-2, 7.5e-3, 10)."""
-
-    density: float = _SNOW["density"]
-    youngs_modulus: float = _SNOW["youngs_modulus"]
-    poisson_ratio: float = _SNOW["poisson_ratio"]
-    theta_c: float = _SNOW["theta_c"]
-    theta_s: float = _SNOW["theta_s"]
-    hardening: float = _SNOW["hardening"]
-
-
-@dataclass
-class ViscoplasticParams:
-    """Viscoplastic solid: von Mises on the Hencky strain with viscous
-    relaxation (Bingham). ``density`` ρ [kg/m³], ``youngs_modulus`` E [Pa],
-    ``poisson_ratio`` ν, ``yield_stress`` τ_y [Pa] (the Bingham yield stress in
-    simple shear: flow when √J₂ > τ_y), ``viscosity`` η [Pa·s]. Defaults are
-    the Rust core's."""
-
-    density: float = _VISCO["density"]
-    youngs_modulus: float = _VISCO["youngs_modulus"]
-    poisson_ratio: float = _VISCO["poisson_ratio"]
-    yield_stress: float = _VISCO["yield_stress"]
-    viscosity: float = _VISCO["viscosity"]
-
-
-#: A parameter set of any material (an entry of :attr:`MpmParams.sets`).
-MaterialSet = WaterParams | SandParams | ElasticParams | SnowParams | ViscoplasticParams
-#: Each parameter-set class by the material name the parameter dict uses.
-SET_CLASSES: dict[str, type] = {
-    "water": WaterParams,
-    "sand": SandParams,
-    "elastic": ElasticParams,
-    "snow": SnowParams,
-    "viscoplastic": ViscoplasticParams,
-}
-_SET_NAMES = {cls: name for name, cls in SET_CLASSES.items()}
+def _further_tables() -> dict[str, Any]:
+    """The default table of each model of the core without a field of :class:`MpmParams`, by name."""
+    return {name: cls() for name, cls in SET_CLASSES.items() if name not in FIELD_MODELS}
 
 
 #: Wall faces by axis and side: ``x-`` is x = 0, ``x+`` x = 1, ``y-`` the floor
@@ -428,7 +365,10 @@ class MpmParams:
 
     ``water`` ... ``viscoplastic`` are each material's default parameter set
     (entries 0 to 4 of the table particles index, by material code);
-    ``sets`` holds further sets (entries 5, 6, ...), e.g. a second jelly of
+    ``tables`` holds the default set of every further model of the core (one
+    without a field here: :data:`FIELD_MODELS`), by its name, each at its
+    code (:meth:`table` reads any model's); ``sets`` holds further sets
+    (entries ``len(MATERIALS)``, ... after the defaults), e.g. a second jelly of
     another stiffness: a particle's ``material_set`` names its entry.
 
     ``integrator`` is one of :data:`INTEGRATORS`: ``"explicit"`` (MLS-MPM
@@ -452,20 +392,32 @@ class MpmParams:
     elastic: ElasticParams = field(default_factory=ElasticParams)
     snow: SnowParams = field(default_factory=SnowParams)
     viscoplastic: ViscoplasticParams = field(default_factory=ViscoplasticParams)
+    tables: dict[str, Any] = field(default_factory=_further_tables)
     sets: list[MaterialSet] = field(default_factory=list)
     walls: WallParams = field(default_factory=WallParams)
     colliders: list[Collider] = field(default_factory=list)
     bodies: list[Body] = field(default_factory=list)
     integrator: str = INTEGRATORS[0]
 
+    def table(self, name: str) -> Any:
+        """The scene-level table (default parameter set) of model ``name``: its field (``self.water``, ...)
+        or its entry of :attr:`tables` (the model's defaults where that lacks it). Raises ``KeyError`` for
+        a name that is not a model of the core (:data:`~hybridmpm.conventions.MATERIALS`)."""
+        if name in FIELD_MODELS:
+            return getattr(self, name)
+        return self.tables[name] if name in self.tables else SET_CLASSES[name]()
+
     def set_index(self, group: MaterialSet, sets: Sequence[MaterialSet] | None = None) -> int | None:
         """The index in the table of parameter sets (what a particle's ``material_set`` names) of a particle with
         ``group``'s parameters: its material's code where ``group`` is that material's default set (``self.water``,
         ...), ``len(MATERIALS) + k`` where it is ``sets[k]`` (``sets``: ``self.sets`` unless given: a table being
         built), None where the table lacks it (appended, it is ``len(MATERIALS) + len(sets)``). The one rule for
-        scenes' blocks and pours (docs/materials.md)."""
-        name = _SET_NAMES[type(group)]
-        if group == getattr(self, name):
+        scenes' blocks and pours (docs/materials.md). Raises ``KeyError`` when ``group`` is not a parameter set
+        of a model (:data:`~hybridmpm.mpm.sets.SET_CLASSES`)."""
+        name = set_name(type(group))
+        if name is None:
+            raise KeyError(f"not a parameter set of a model of the core: {group!r}")
+        if group == self.table(name):
             return MATERIALS[name]
         table = self.sets if sets is None else sets
         return len(MATERIALS) + list(table).index(group) if group in table else None
@@ -520,17 +472,23 @@ class MpmParams:
                 raise InvalidInputError(f"gravity: must be a list of {self.dim} numbers, got {self.gravity!r}", "gravity")
             for i, g in enumerate(self.gravity):
                 self._check_number(f"gravity[{i}]", g)
-        groups: list[tuple[str, Any, type]] = [(name, getattr(self, name), cls) for name, cls in SET_CLASSES.items()]
+        if not isinstance(self.tables, dict) or any(k in FIELD_MODELS or k not in SET_CLASSES for k in self.tables):
+            raise InvalidInputError(
+                f"tables: must map models without a field of their own ({', '.join(k for k in SET_CLASSES if k not in FIELD_MODELS) or 'none'}) "
+                f"to their parameter sets, got {self.tables!r}",
+                "tables",
+            )
+        groups: list[tuple[str, Any, type]] = [(name, self.table(name), cls) for name, cls in SET_CLASSES.items()]
         if not isinstance(self.sets, (list, tuple)):
             raise InvalidInputError(f"sets: must be a list of parameter sets, got {self.sets!r}", "sets")
         for i, group in enumerate(self.sets):
-            if type(group) not in _SET_NAMES:
+            if set_name(type(group)) is None:
                 raise InvalidInputError(f"sets[{i}]: must be one of {', '.join(c.__name__ for c in SET_CLASSES.values())}, got {group!r}", f"sets[{i}]")
-            groups.append((f"sets[{i}].{_SET_NAMES[type(group)]}", group, type(group)))
+            groups.append((f"sets[{i}].{set_name(type(group))}", group, type(group)))
         for name, group, cls in groups:
             if not isinstance(group, cls):
                 raise InvalidInputError(f"{name}: must be a {cls.__name__}, got {group!r}", name)
-            check_set(f"{name}.", _SET_NAMES[cls], asdict(group), by_key=False)
+            check_set(f"{name}.", str(set_name(cls)), asdict(group), by_key=False)
         if not isinstance(self.walls, WallParams):
             raise InvalidInputError(f"walls: must be a WallParams, got {self.walls!r}", "walls")
         self.walls.validate(self.dim)
@@ -564,12 +522,8 @@ class MpmParams:
             "substeps": None if self.substeps is None else int(self.substeps),
             "max_substeps": int(self.max_substeps),
             "num_threads": int(self.num_threads),
-            "water": asdict(self.water),
-            "sand": asdict(self.sand),
-            "elastic": asdict(self.elastic),
-            "snow": asdict(self.snow),
-            "viscoplastic": asdict(self.viscoplastic),
-            "sets": [{_SET_NAMES[type(g)]: asdict(g)} for g in self.sets],
+            **{name: asdict(self.table(name)) for name in SET_CLASSES},  # every model's table, in code order
+            "sets": [{set_name(type(g)): asdict(g)} for g in self.sets],
             "walls": self.walls.to_dict(self.dim),
             "colliders": [c.to_dict() for c in self.colliders],
         }
@@ -617,6 +571,7 @@ class MpmParams:
             raise InvalidInputError(f"bodies: expected a list, got {raw_bodies!r}", "bodies")
         bodies = [Body.from_dict(b, f"bodies[{i}]", d.get("dim", 2)) for i, b in enumerate(raw_bodies)]
         groups = {name: build(name, c, d.pop(name, {})) for name, c in SET_CLASSES.items()}
+        tables = {name: groups.pop(name) for name in SET_CLASSES if name not in FIELD_MODELS}
         raw_sets = d.pop("sets", []) or []
         if not isinstance(raw_sets, (list, tuple)):
             raise InvalidInputError(f"sets: expected a list, got {raw_sets!r}", "sets")
@@ -627,11 +582,11 @@ class MpmParams:
             ((name, kwargs),) = entry.items()
             sets.append(build(f"sets[{i}].{name}", SET_CLASSES[name], kwargs))
         walls = WallParams.from_dict(d.pop("walls", None) or {}, dim=d.get("dim", 2))
-        top = set(cls.__dataclass_fields__) - {*SET_CLASSES, "sets", "walls", "colliders", "bodies"}
+        top = set(cls.__dataclass_fields__) - {*SET_CLASSES, "tables", "sets", "walls", "colliders", "bodies"}
         unknown = sorted(set(d) - top, key=str)
         if unknown:
             raise InvalidInputError(f"{unknown[0]}: unknown parameter (allowed: {', '.join(sorted(top))})", str(unknown[0]))
-        params = cls(**groups, sets=sets, walls=walls, colliders=cols, bodies=bodies, **d)
+        params = cls(**groups, tables=tables, sets=sets, walls=walls, colliders=cols, bodies=bodies, **d)
         params.validate()
         return params
 

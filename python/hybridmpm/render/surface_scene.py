@@ -30,7 +30,7 @@ def rest_densities(params: Any, particle_type: Any) -> np.ndarray:
     pt = np.asarray(particle_type)
     rho = np.ones(len(pt), np.float64)
     for name, code in MATERIALS.items():
-        group = getattr(params, name)
+        group = params.table(name)  # the model's scene-level table (MpmParams.water, ..., or .tables)
         own = [g for g in params.sets if type(g) is type(group)]
         density = float((own[0] if len(own) == 1 else group).density)
         rho[pt == GNS_TYPE_OF_MATERIAL[code]] = density

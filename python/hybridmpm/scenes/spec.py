@@ -65,12 +65,12 @@ obstacles, is an error. Obstacles become MPM colliders and, for the network,
 static boundary particles (GNS type 3) on a shell one spacing thick inside
 their surface (GNS WaterRamps represents its ramps the same way).
 
-A block's material is a model (``water``, ``sand``, ``elastic``, ``snow``,
-``viscoplastic``) or a preset (``jello``, ``rubber``, ``snow``, ``mud``,
+A block's material is a model of the core (``water``, ``sand``, ``elastic``, ``snow``,
+``viscoplastic``, ...: :data:`hybridmpm.materials.MODELS`) or a preset (``jello``, ``rubber``, ``snow``, ``mud``,
 ``plasticine``, ``honey``, ``soil``: :data:`hybridmpm.materials.PRESETS`),
 with the model's parameters as keys of the block (``E``, ``nu``, ``density``,
 ``model``, ``theta_c``, ``theta_s``, ``hardening``, ``yield_stress``,
-``viscosity``; :mod:`hybridmpm.materials`). A block naming a model starts
+``viscosity``; each model's keys are its schema's, :mod:`hybridmpm.materials`). A block naming a model starts
 from the scene's table of that model (``[water]``, ``[sand]``: the scene-level
 parameters), a block naming a preset from the preset, and the block's own keys
 override either. Blocks whose parameters differ from the scene's table become
@@ -123,7 +123,6 @@ from hybridmpm.scenes.obstacles import (
     sample_boundary,
 )
 
-_MATERIAL_NAMES = {v: k for k, v in MATERIALS.items()}
 #: A block's keys besides its material's parameters.
 _BLOCK_KEYS = frozenset({"material", "lo", "hi", "velocity", "hydrostatic"})
 

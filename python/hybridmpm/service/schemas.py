@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from enum import Enum
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -11,7 +12,7 @@ from pydantic import Strict as StrictType
 from hybridmpm.conventions import R_C, T_CTR
 from hybridmpm.jsonutil import json_safe
 from hybridmpm.mpm import INTEGRATORS
-from hybridmpm.mpm.schema import SCHEMA
+from hybridmpm.mpm.schema import SCHEMA, Param
 from hybridmpm.scenes import DOMAINS
 from hybridmpm.service.capacity import WHEN_FULL
 from hybridmpm.sim import SOLVERS
@@ -199,7 +200,7 @@ class _BlockPlace(Strict):
     """Where a block goes, what it is, and its parameters in ``params``; :data:`BlockPour` adds each
     parameter as a flat key too."""
 
-    material: str = Field(max_length=32, description="a model (water, sand, elastic, snow, viscoplastic) or a preset (jello, mud, ...)")
+    material: str = Field(max_length=32, description=f"a model ({', '.join(SCHEMA)}) or a preset (jello, mud, ...)")
     lo: list[Number] = Field(min_length=2, max_length=3, description="one corner [m], inside the walls' faces")
     hi: list[Number] = Field(min_length=2, max_length=3, description="the opposite corner [m]")
     velocity: list[Number] | None = Field(None, min_length=2, max_length=3, description="initial velocity [m/s] (default at rest)")
@@ -212,20 +213,32 @@ class _BlockPlace(Strict):
     )
 
 
-def _flat_field(key: str) -> Any:
-    """A flat pour key (``E``) as a pydantic field, described from every model's schema row of it."""
+def _flat_field(schema: Mapping[str, Sequence[Param]], key: str) -> Any:
+    """A flat pour key (``E``) as a pydantic field, described from every model's row of it in ``schema``."""
     rows: dict[tuple[str, str, str], list[str]] = {}
-    for model, params in SCHEMA.items():
+    for model, params in schema.items():
         for p in params:
             if p.key == key:
                 rows.setdefault((p.description, p.unit, p.range), []).append(model)
     text = "; ".join(f"{', '.join(models)}: {desc} [{unit}], {rng}" for (desc, unit, rng), models in rows.items())
-    choices = next(p.choices for params in SCHEMA.values() for p in params if p.key == key)
+    choices = next(p.choices for params in schema.values() for p in params if p.key == key)
     kind: Any = Annotated[str, Field(max_length=16)] if choices else Number
     return (kind | None, Field(None, description=text))
 
 
-_FLAT_KEYS = list(dict.fromkeys(p.key for params in SCHEMA.values() for p in params))
+def block_pour_model(schema: Mapping[str, Sequence[Param]]) -> type[_BlockPlace]:
+    """The pour body of ``schema`` (``{model: rows}``, :data:`hybridmpm.mpm.schema.SCHEMA` for
+    :data:`BlockPour`): :class:`_BlockPlace` with every model's parameters by the user's key as flat keys,
+    each an optional number (a string for a named parameter), in the schema's order."""
+    flat = list(dict.fromkeys(p.key for params in schema.values() for p in params))
+    model: type[_BlockPlace] = create_model(
+        "BlockPour",
+        __base__=_BlockPlace,
+        __doc__="A block poured into a session: a scene file's block (docs/materials.md), its parameters in params or flat.",
+        **{k: _flat_field(schema, k) for k in flat},
+    )
+    return model
+
 
 if TYPE_CHECKING:
     BlockPour = _BlockPlace
@@ -233,12 +246,7 @@ else:
     #: A block poured into a session: a scene file's block (docs/materials.md): ``material``, ``lo``, ``hi``,
     #: ``velocity``, and the material's parameters in ``params`` or as flat keys (the page sends the flat
     #: form); the flat keys are every model's parameters by the user's key (:data:`hybridmpm.mpm.schema.SCHEMA`).
-    BlockPour = create_model(
-        "BlockPour",
-        __base__=_BlockPlace,
-        __doc__="A block poured into a session: a scene file's block (docs/materials.md), its parameters in params or flat.",
-        **{k: _flat_field(k) for k in _FLAT_KEYS},
-    )
+    BlockPour = block_pour_model(SCHEMA)
 
 
 class MaterialParam(BaseModel):

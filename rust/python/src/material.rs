@@ -1,5 +1,5 @@
 //! Material codes from Python (`0` water, `1` sand, `2` elastic, `3` snow,
-//! `4` viscoplastic: `Material::from_code`) and parameter-set indices: one
+//! `4` viscoplastic, ...: `Material::from_code`) and parameter-set indices: one
 //! for every particle or one per particle.
 
 use hybridmpm_mpm as core;
@@ -28,14 +28,20 @@ impl Codes {
     }
 }
 
-/// The codes, as error messages list them.
-const CODES: &str = "0 = water, 1 = sand, 2 = elastic, 3 = snow, 4 = viscoplastic";
+/// The codes, as error messages list them (`0 = water, 1 = sand, ...`, from `Material::ALL`).
+fn codes() -> String {
+    let each: Vec<String> = Material::ALL
+        .iter()
+        .map(|m| format!("{} = {}", *m as u8, m.name()))
+        .collect();
+    each.join(", ")
+}
 
 fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
     invalid_input(
         py,
         "material",
-        format!("unknown material code {code} ({CODES})"),
+        format!("unknown material code {code} ({})", codes()),
     )
 }
 
@@ -43,7 +49,7 @@ fn unknown_code(py: Python<'_>, code: &str) -> PyErr {
 /// unknown code is reported as given (`2**64 - 1`, not its int64 wrap).
 pub(crate) fn material_codes(value: &Bound<'_, PyAny>) -> PyResult<Codes> {
     let py = value.py();
-    let expect = format!("expected an integer code or an integer array ({CODES})");
+    let expect = format!("expected an integer code or an integer array ({})", codes());
     if value.is_instance_of::<PyBool>() {
         return Err(invalid_input(
             py,

@@ -1,8 +1,10 @@
 //! `material_schema()`: each model's parameter table (the core's
 //! `material_schema`, beside each model in `rust/mpm/src/material/`) as Python dicts, from which `hybridmpm.materials`
-//! builds its range checks, user aliases and defaults.
+//! builds its range checks, user aliases and defaults; `MATERIAL_CODES`: each model's solver code by
+//! name (the registry's `materials!` list, `Material::ALL`), from which `hybridmpm.conventions` takes
+//! its `MATERIALS`.
 
-use hybridmpm_mpm::{Param, ParamValue};
+use hybridmpm_mpm::{Material, Param, ParamValue};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
@@ -33,7 +35,7 @@ fn param<'py>(py: Python<'py>, p: &Param, default: ParamValue) -> PyResult<Bound
     Ok(d)
 }
 
-/// `{model: [param, ...]}` for water, sand, elastic, snow, viscoplastic, each
+/// `{model: [param, ...]}` for every model of the registry, in code order, each
 /// param `{name, key (the user's name: "E" for youngs_modulus), unit, lower,
 /// lower_inclusive, upper, upper_inclusive (None when unbounded), choices
 /// (names a named parameter takes; [] for a number), range (the words every
@@ -52,6 +54,16 @@ fn material_schema(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     Ok(out)
 }
 
+/// `{name: code}` of every material, in code order (`Material::ALL`: `{"water": 0, "sand": 1, ...}`).
+fn material_codes(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let out = PyDict::new(py);
+    for m in Material::ALL {
+        out.set_item(m.name(), m as u8)?;
+    }
+    Ok(out)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("MATERIAL_CODES", material_codes(m.py())?)?;
     m.add_function(wrap_pyfunction!(material_schema, m)?)
 }
