@@ -313,10 +313,11 @@ _EXTENSION = "hybridmpm._core"
 
 def _bench_modules() -> set[str]:
     """The names under which benchmark files import each other: the top-level
-    scripts by stem and the experiments' modules by dotted path (their scripts
-    put ``benchmarks/`` on ``sys.path``)."""
+    scripts and the paper's reproduction (which puts its folder on ``sys.path``)
+    by stem, and the experiments' modules by dotted path (their scripts put
+    ``benchmarks/`` on ``sys.path``)."""
     bench = ROOT / "benchmarks"
-    names = {p.stem for p in bench.glob("*.py")}
+    names = {p.stem for p in [*bench.glob("*.py"), *(bench / "paper").glob("*.py")]}
     for p in (bench / "experiments").rglob("*.py"):
         parts = list(p.relative_to(bench).with_suffix("").parts)
         names.add(".".join(parts[:-1] if parts[-1] == "__init__" else parts))

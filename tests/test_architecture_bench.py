@@ -37,6 +37,8 @@ BENCH_MODULES = {
     "experiments/learned_correction/forcing.py": "the correction's forcing callables, imported by go_no_go.py and train.py",
     "experiments/learned_correction/model.py": "the correction's numpy network, imported by go_no_go.py and train.py (its save is np.savez)",
     "experiments/learned_correction/teacher.py": "the correction's teacher (a coarse state on the scene's grid), imported by forcing.py",
+    "paper/paper_numbers.py": "the paper's numbers, scenes and methods, imported by reproduce.py and paper_page.py",
+    "paper/paper_page.py": "docs/paper.md's tables and figures from the results file, imported by reproduce.py (it writes through the harness)",
 }
 #: Calls that write a file, by the called attribute's name.
 _WRITING_METHODS = {"write_text", "write_bytes", "savefig"}
