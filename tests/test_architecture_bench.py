@@ -33,6 +33,7 @@ BENCH_NOT_YET: dict[str, str] = {}
 #: Files under benchmarks/ that are not runnable scripts (no ``__main__`` guard), so need not import the harness themselves,
 #: and why; they still write nothing past it. Packages' ``__init__.py`` files (markers, no code) need no entry.
 BENCH_MODULES = {
+    "blender_files.py": "the exported files' figures (PLY, OBJ, run.usd through pxr), imported by blender_import.py (which writes the summary)",
     "experiments/learned_correction/features.py": "the learned correction's features, imported by go_no_go.py (which writes the results)",
     "experiments/learned_correction/forcing.py": "the correction's forcing callables, imported by go_no_go.py and train.py",
     "experiments/learned_correction/model.py": "the correction's numpy network, imported by go_no_go.py and train.py (its save is np.savez)",
