@@ -1,10 +1,12 @@
 """The limits on a file's length (docs/architecture.md): no Python, Rust or
-JavaScript file of the package, the crates or the page is over 700 lines, no
-docs page over 500, no function of the training package over 120."""
+JavaScript file that git tracks is over 700 lines, wherever it lives (the
+package, the crates, the page, the tests, the benchmarks); no docs page is over
+500 lines, no function of the training package over 120."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
 from pathlib import Path
 
 from _arch import PACKAGE, ROOT, STATIC
@@ -18,6 +20,22 @@ def _over(paths: list[Path], limit: int) -> dict[str, int]:
     """The files of ``paths`` over ``limit`` lines, longest first: {path in the repository: lines}."""
     lengths = {str(p.relative_to(ROOT)): len(p.read_text().splitlines()) for p in paths}
     return dict(sorted(((k, n) for k, n in lengths.items() if n > limit), key=lambda kv: (-kv[1], kv[0])))
+
+
+def _tracked(*patterns: str) -> list[Path]:
+    """The files git tracks that match ``patterns`` (at any depth) and are in the working tree."""
+    out = subprocess.run(["git", "ls-files", "-z", "--", *patterns], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, f"git ls-files failed (the check reads the files git tracks): {out.stderr.strip()}"
+    return [ROOT / f for f in out.stdout.split("\0") if f and (ROOT / f).is_file()]
+
+
+def test_no_tracked_source_file_is_over_700_lines():
+    # every Python, Rust and JavaScript file of the repository: the package, the crates, the page, tests/, benchmarks/,
+    # scripts/ and docs/' figure scripts alike
+    files = _tracked("*.py", "*.rs", "*.js")
+    assert len(files) > 400 and {p.suffix for p in files} == {".py", ".rs", ".js"}, "the tracked sources were not found"
+    big = _over(files, SOURCE_LINES)
+    assert not big, f"over {SOURCE_LINES} lines: {big}"
 
 
 def test_no_python_file_of_the_package_is_over_700_lines():
