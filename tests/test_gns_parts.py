@@ -428,7 +428,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
     import json
     from dataclasses import asdict
 
-    from test_neural import _drag_dataset
+    from test_neural_training import _drag_dataset
 
     from hybridmpm.neural import GnsRuntime
     from hybridmpm.train.gns.train import TrainConfig, train

@@ -12,7 +12,6 @@ import json
 import re
 import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -22,15 +21,9 @@ RESULTS = ROOT / "benchmarks" / "results" / "paper" / "results.json"
 CLAIMS = ("latency", "hybrid", "rc_sweep", "scenes", "control")
 NUMBER = re.compile(r"(?<![\w.])[-+−]?\d+\.\d+")
 
-
-def _reproduce() -> ModuleType:
-    if "paper_reproduce" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("paper_reproduce", ROOT / "benchmarks" / "paper" / "reproduce.py")
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["paper_reproduce"] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules["paper_reproduce"]
+sys.path.insert(0, str(ROOT / "benchmarks" / "paper"))  # the reproduction's modules: a script's, not the package's
+import paper_numbers  # noqa: E402
+import paper_page  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -40,8 +33,7 @@ def results() -> dict:
 
 def block_mismatches(page: str, res: dict) -> list[str]:
     """The generated blocks of ``page`` that differ from what ``res`` renders (or are missing)."""
-    mod = _reproduce()
-    want, have = mod.render_blocks(res), mod.page_blocks(page)
+    want, have = paper_page.render_blocks(res), paper_page.page_blocks(page)
     out = [f"{name}: missing from the page" for name in want if name not in have]
     for name in want:
         if name in have and have[name] != want[name]:
@@ -53,21 +45,27 @@ def block_mismatches(page: str, res: dict) -> list[str]:
 def stray_numbers(page: str) -> list[str]:
     """Decimal numbers written outside the generated blocks that no block holds (the arXiv id and the paper's
     section numbers aside)."""
-    mod = _reproduce()
-    blocks = mod.page_blocks(page)
+    blocks = paper_page.page_blocks(page)
     inside = "\n".join(blocks.values())
-    outside = re.sub(r"Sec\. [\d.]+\d", "", mod.BLOCK.sub("", page))
-    return [n for n in NUMBER.findall(outside) if n not in mod.NOT_RESULTS and n.lstrip("+-−") not in inside]
+    outside = re.sub(r"Sec\. [\d.]+\d", "", paper_page.BLOCK.sub("", page))
+    return [n for n in NUMBER.findall(outside) if n not in paper_page.NOT_RESULTS and n.lstrip("+-−") not in inside]
 
 
 def test_every_generated_table_equals_the_results_file(results):
     assert not block_mismatches(PAGE.read_text(), results), "\n".join(block_mismatches(PAGE.read_text(), results))
+    # the script loads, and renders the page with the very functions checked here
+    spec = importlib.util.spec_from_file_location("paper_reproduce", ROOT / "benchmarks" / "paper" / "reproduce.py")
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    sys.modules["paper_reproduce"] = script  # its dataclass looks its module up
+    spec.loader.exec_module(script)
+    assert script.render_blocks is paper_page.render_blocks and script.write_page is paper_page.write_page
 
 
 def test_every_claim_has_its_section_and_verdict(results):
     page = PAGE.read_text()
-    blocks = _reproduce().page_blocks(page)
-    verdicts = _reproduce().VERDICTS
+    blocks = paper_page.page_blocks(page)
+    verdicts = paper_numbers.VERDICTS
     for name in CLAIMS:
         assert name in blocks, f"no generated block for the claim {name!r}"
         found = re.findall(r"\*\*Verdict: ([a-z ]+)\.\*\*", blocks[name])
@@ -87,7 +85,7 @@ def test_numbers_outside_the_tables_come_from_them():
 
 def test_the_check_fails_when_a_number_of_the_page_is_edited(results):
     page = PAGE.read_text()
-    body = _reproduce().page_blocks(page)["latency"]
+    body = paper_page.page_blocks(page)["latency"]
     number = NUMBER.search(body.split("\n\n", 1)[1])  # the first number of the table of configurations
     assert number is not None
     edited_body = body.replace(number.group(), f"{number.group()}1", 1)

@@ -2,7 +2,7 @@
 figures, how it takes repeats, and how it writes its results.
 
 Every script under ``benchmarks/`` writes through this module
-(``tests/test_architecture.py`` holds it); it lives in the package so that
+(``tests/test_architecture_bench.py`` holds it); it lives in the package so that
 ``hybridmpm bench`` can record the same provenance:
 
 * :func:`provenance` — the machine (CPU model, cores, host), the commit
