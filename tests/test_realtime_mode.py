@@ -304,6 +304,7 @@ def test_a_share_of_the_machine_shrinks_the_budget_so_a_session_steps_down_to_wh
 
 def test_a_fast_machine_climbs_to_the_most_accurate_rung_with_hysteresis_and_dwell(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(rt, "DWELL_S", 0.5)  # fewer frames a dwell: the rule is the same
+    monkeypatch.setattr(rt, "DOWN_AFTER_S", 0.1)  # the load's slow spells (0.2 s) last long enough to step down
     scene = make_scene("water2d")
     ladder = make_ladder(scene)
     budget = 2.5e-3 / rt.REALTIME_MARGIN
@@ -339,6 +340,7 @@ def test_a_rung_at_the_edge_of_the_budget_does_not_flap(machine: Any) -> None:
 
 def test_changes_are_at_least_the_dwell_apart_in_wall_time(machine: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(rt, "DWELL_S", 0.5)  # fewer frames a dwell: the rule is the same
+    monkeypatch.setattr(rt, "DOWN_AFTER_S", 0.1)  # the load's slow spells (0.2 s) last long enough to step down
     scene = make_scene("water2d")
     ladder = make_ladder(scene)
     budget = 2.5e-3 / rt.REALTIME_MARGIN
@@ -553,3 +555,25 @@ def test_with_another_material_poured_the_mode_steps_down_the_explicit_rungs_own
     pour_block(sim, {"material": "sand", "lo": [0.6, 0.6], "hi": [0.7, 0.7]})
     seen = _run(sim, 1500)
     assert seen[0] == "g128-explicit" and seen[-1] == "g64-explicit", sim.changes
+
+
+def test_a_burst_of_slow_frames_shorter_than_down_after_s_keeps_the_rung_a_lasting_one_steps_down(machine: Any) -> None:
+    """Beside a page that draws, the frames slow down for a fraction of a second at a time. A rung whose frames
+    fit the budget on average is kept through such bursts (0.4 s of three budgets a frame every 1.5 s, each shorter
+    than DOWN_AFTER_S); a slowdown that lasts steps down."""
+    assert rt.DOWN_AFTER_S > 0.4
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    base = {r.key: 0.6 * budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(dict(base))
+    sim = RealtimeSimulator(scene, clock=m)
+    while m.t < 20.0:
+        load = 5.0 if (m.t % 1.5) < 0.4 else 1.0
+        m.cost = {k: v * load for k, v in base.items()}
+        sim.advance()
+    assert sim.rung == ladder[0].key and sim.changes == [], sim.changes
+    m.cost = {k: 5.0 * v for k, v in base.items()}  # the machine slows and stays slow
+    while m.t < 30.0:
+        sim.advance()
+    assert sim.rung != ladder[0].key and len(sim.changes) >= 1

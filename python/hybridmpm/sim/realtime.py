@@ -10,7 +10,9 @@ frame does not read as a slow machine; on a projection rung, whose step spans fr
 one sample, their mean, so the frame that steps does not either) and, between
 frames, moves to another rung:
 
-* down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``: to the most accurate rung
+* down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``, and has for
+  :data:`DOWN_AFTER_S` seconds of wall time (a burst of slow frames while another program draws is not the
+  machine's pace): to the most accurate rung
   predicted to fit (the current rung's measured time scaled by the chart's time ratios, corrected by the ratios
   measured here as rungs are visited), or the fastest;
 * up when a more accurate rung is predicted to fit the budget divided by :data:`HYSTERESIS`;
@@ -75,6 +77,10 @@ REALTIME_MARGIN = 1.25
 HYSTERESIS = 1.3
 #: The least wall time between two changes of rung [s].
 DWELL_S = 3.0
+#: A rung is left for a faster one only once its average has stayed over the budget this long [s] of wall
+#: time: a burst of slow frames (a browser drawing a frame beside it, a process taking the core for a moment)
+#: is not the machine's pace, and a frame that ran late is not owed, so the wait costs no catch-up.
+DOWN_AFTER_S = 1.0
 #: Frames after a change that are not timed (caches, the first projection step).
 WARMUP_FRAMES = 3
 #: Timed frames a rung needs before a change is considered.
@@ -167,6 +173,8 @@ class RealtimeSimulator(MpmSimulator):
         #: the wall time [s] and the frames of the step under way (a projection step spans frames)
         self._cycle = (0.0, 0)
         self._last_change = clock()
+        #: when the average last went over the budget and has stayed there since [s, the clock's]; None: within it
+        self._over_since: float | None = None
         #: the share of its threads' time this simulator may spend (:meth:`set_share`; 1: alone)
         self._share = 1.0
         self.changes: list[dict[str, Any]] = []
@@ -321,6 +329,7 @@ class RealtimeSimulator(MpmSimulator):
         self._recent.clear()
         self._cycle = (0.0, 0)
         self._last_change = self._clock()
+        self._over_since = None
         return True
 
     def _inside(self, n_grid: int) -> None:
@@ -376,12 +385,20 @@ class RealtimeSimulator(MpmSimulator):
 
     def _choose(self) -> str | None:
         """The rung to move to now, or None to stay (module docstring)."""
-        if not self.adaptive or self._samples < MIN_SAMPLES or self._clock() - self._last_change < DWELL_S or self._ema is None:
+        if self._ema is None:
             return None
-        budget, ratio = self.budget_s(), self._chart_ratios[self._rung]
+        budget, ratio, now = self.budget_s(), self._chart_ratios[self._rung], self._clock()
+        if self._ema <= budget:
+            self._over_since = None
+        elif self._over_since is None:
+            self._over_since = now
+        if not self.adaptive or self._samples < MIN_SAMPLES or now - self._last_change < DWELL_S:
+            return None
         projection = self.projection_ok()  # once a decision, not once a rung
         ladder = self.ladder if projection else self._explicit_ladder
-        if self._ema > budget:
+        if self._over_since is not None:
+            if now - self._over_since < DOWN_AFTER_S:
+                return None  # over the budget, not yet for long enough
             faster = [r for r in ladder if r.time_ratio < ratio]
             for r in faster:
                 p = self.predicted_s(r.key)
@@ -558,9 +575,11 @@ class RealtimeSimulator(MpmSimulator):
         self._since_change = self._samples = 0
         self._recent.clear()
         self._last_change = self._clock()
+        self._over_since = None
 
 
 __all__ = [
+    "DOWN_AFTER_S",
     "DWELL_S",
     "HYSTERESIS",
     "MAX_BACKOFF",
