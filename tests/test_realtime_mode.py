@@ -577,3 +577,20 @@ def test_a_burst_of_slow_frames_shorter_than_down_after_s_keeps_the_rung_a_lasti
     while m.t < 30.0:
         sim.advance()
     assert sim.rung != ladder[0].key and len(sim.changes) >= 1
+
+
+def test_a_rung_slower_than_real_time_on_average_is_left_though_its_average_dips_under_the_budget(machine: Any) -> None:
+    """Frames that alternate, 0.1 s fast (half a budget each) and 0.3 s slow (3.5 budgets), dip under the budget
+    every 0.4 s, so the average is never over it for DOWN_AFTER_S at a stretch; but over any second they take
+    longer than real time (2.8 ms a 2.5 ms frame): the mode steps down."""
+    scene = make_scene("water2d")
+    ladder = make_ladder(scene)
+    budget = 2.5e-3 / rt.REALTIME_MARGIN
+    base = {r.key: budget * r.time_ratio / ladder[0].time_ratio for r in ladder}
+    m = machine(dict(base))
+    sim = RealtimeSimulator(scene, clock=m)
+    while m.t < 10.0 and not sim.changes:
+        load = 0.5 if (m.t % 0.4) < 0.1 else 3.5
+        m.cost = {k: v * load for k, v in base.items()}
+        sim.advance()
+    assert sim.changes and sim.changes[0]["from"] == ladder[0].key, sim.changes

@@ -12,7 +12,8 @@ frames, moves to another rung:
 
 * down when the frame takes longer than the budget ``dt_frame / REALTIME_MARGIN``, and has for
   :data:`DOWN_AFTER_S` seconds of wall time (a burst of slow frames while another program draws is not the
-  machine's pace): to the most accurate rung
+  machine's pace), or when the frames of the last :data:`DOWN_AFTER_S` took longer than real time on average:
+  to the most accurate rung
   predicted to fit (the current rung's measured time scaled by the chart's time ratios, corrected by the ratios
   measured here as rungs are visited), or the fastest;
 * up when a more accurate rung is predicted to fit the budget divided by :data:`HYSTERESIS`;
@@ -175,6 +176,10 @@ class RealtimeSimulator(MpmSimulator):
         self._last_change = clock()
         #: when the average last went over the budget and has stayed there since [s, the clock's]; None: within it
         self._over_since: float | None = None
+        #: the frames timed since the window's start: (its start [s], their wall time [s], their count), and whether
+        #: the last window of DOWN_AFTER_S was slower than real time on average (its mean frame over ``dt_frame``)
+        self._window = (clock(), 0.0, 0)
+        self._slow_window = False
         #: the share of its threads' time this simulator may spend (:meth:`set_share`; 1: alone)
         self._share = 1.0
         self.changes: list[dict[str, Any]] = []
@@ -330,6 +335,7 @@ class RealtimeSimulator(MpmSimulator):
         self._cycle = (0.0, 0)
         self._last_change = self._clock()
         self._over_since = None
+        self._window, self._slow_window = (self._last_change, 0.0, 0), False
         return True
 
     def _inside(self, n_grid: int) -> None:
@@ -396,8 +402,8 @@ class RealtimeSimulator(MpmSimulator):
             return None
         projection = self.projection_ok()  # once a decision, not once a rung
         ladder = self.ladder if projection else self._explicit_ladder
-        if self._over_since is not None:
-            if now - self._over_since < DOWN_AFTER_S:
+        if self._over_since is not None or self._slow_window:
+            if now - (self._over_since or now) < DOWN_AFTER_S and not self._slow_window:
                 return None  # over the budget, not yet for long enough
             faster = [r for r in ladder if r.time_ratio < ratio]
             for r in faster:
@@ -445,6 +451,11 @@ class RealtimeSimulator(MpmSimulator):
         self._since_change += 1
         if self._since_change > WARMUP_FRAMES:
             self._time(wall, stepped=frame.substeps > 0)
+            start, total, frames = self._window
+            self._window = (start, total + wall, frames + 1)
+            if t0 + wall - start >= DOWN_AFTER_S:  # a window's mean slower than real time itself
+                self._slow_window = (total + wall) / (frames + 1) > self.dt_step * self._share
+                self._window = (t0 + wall, 0.0, 0)
         before = self._rung
         target = self._choose()
         if target is not None and target != before:
@@ -576,6 +587,7 @@ class RealtimeSimulator(MpmSimulator):
         self._recent.clear()
         self._last_change = self._clock()
         self._over_since = None
+        self._window, self._slow_window = (self._last_change, 0.0, 0), False
 
 
 __all__ = [
