@@ -433,7 +433,7 @@ def test_a_sand_block_poured_on_a_projection_rung_falls_back_to_the_explicit_ste
 
 def test_a_lone_slow_frame_is_not_a_slow_machine(machine: Any) -> None:
     """A frame now and then takes many budgets (a garbage collection, the OS taking the core): the mode keeps
-    its rung. The same slowness held for a few frames in a row is the machine's pace, and it steps down."""
+    its rung. The same slowness held for longer than DOWN_AFTER_S is the machine's pace, and it steps down."""
     scene = make_scene("water2d")
     ladder = make_ladder(scene)
     budget = 2.5e-3 / rt.REALTIME_MARGIN
