@@ -402,15 +402,16 @@ class RealtimeSimulator(MpmSimulator):
             return None
         projection = self.projection_ok()  # once a decision, not once a rung
         ladder = self.ladder if projection else self._explicit_ladder
-        if self._over_since is not None or self._slow_window:
-            if now - (self._over_since or now) < DOWN_AFTER_S and not self._slow_window:
-                return None  # over the budget, not yet for long enough
+        over_long = self._over_since is not None and now - self._over_since >= DOWN_AFTER_S
+        if over_long or self._slow_window:
             faster = [r for r in ladder if r.time_ratio < ratio]
             for r in faster:
                 p = self.predicted_s(r.key)
                 if p is not None and p <= budget:
                     return r.key
             return faster[-1].key if faster else None
+        if self._over_since is not None:
+            return None  # over the budget, not yet for long enough
         for r in ladder:  # most accurate first
             if r.time_ratio <= ratio:
                 break
