@@ -329,14 +329,18 @@ class RealtimeSimulator(MpmSimulator):
         self._resample(self._rungs[key])
         self._scene_params = target
         self._rung = key
-        self._since_change = 0
-        self._samples = 0
+        self._restart_timing()
+        return True
+
+    def _restart_timing(self) -> None:
+        """Time the rung afresh after a change (a move, a restore): no samples, no step under way, the dwell and
+        the overrun's clocks from now."""
+        self._since_change = self._samples = 0
         self._recent.clear()
         self._cycle = (0.0, 0)
         self._last_change = self._clock()
         self._over_since = None
         self._window, self._slow_window = (self._last_change, 0.0, 0), False
-        return True
 
     def _inside(self, n_grid: int) -> None:
         """Move the particles that a splash put deeper into the wall band than one cell of ``n_grid`` from the
@@ -584,11 +588,7 @@ class RealtimeSimulator(MpmSimulator):
             raise
         if key == keep_rung and merge is None and keep_merge is None:
             return
-        self._since_change = self._samples = 0
-        self._recent.clear()
-        self._last_change = self._clock()
-        self._over_since = None
-        self._window, self._slow_window = (self._last_change, 0.0, 0), False
+        self._restart_timing()
 
 
 __all__ = [
