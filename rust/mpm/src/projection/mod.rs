@@ -120,6 +120,8 @@ pub struct Projection<const D: usize> {
 
 /// Particles a g2p task takes at once.
 const G2P_CHUNK: usize = 1024;
+/// The most particles a drift frame moves on one thread.
+const DRIFT_SERIAL: usize = 16 * G2P_CHUNK;
 /// Faces or cells a task of the p2g's sum takes at once.
 const MERGE_CHUNK: usize = 8192;
 
@@ -631,8 +633,12 @@ impl<const D: usize> Projection<D> {
         cols: &StepColliders<'_, D>,
     ) -> f32 {
         let (bounds, projecting) = (self.grid().inside(), cols.projecting(self.dx));
-        // in parallel on the calling pool: each particle its own, and the fastest speed is the
-        // same whichever way the chunks' maxima combine
+        // in parallel on the calling pool past a few chunks (fewer take longer to hand out than to
+        // move): each particle its own, and the fastest speed is the same whichever way the chunks'
+        // maxima combine
+        if particles.len() <= DRIFT_SERIAL {
+            return transfer::drift_chunk(particles, dt, bounds, &projecting);
+        }
         particles
             .par_chunks_mut(G2P_CHUNK)
             .map(|chunk| transfer::drift_chunk(chunk, dt, bounds, &projecting))
