@@ -120,6 +120,8 @@ pub struct Projection<const D: usize> {
 
 /// Particles a g2p task takes at once.
 const G2P_CHUNK: usize = 1024;
+/// The most particles a drift frame moves on one thread.
+const DRIFT_SERIAL: usize = 16 * G2P_CHUNK;
 /// Faces or cells a task of the p2g's sum takes at once.
 const MERGE_CHUNK: usize = 8192;
 
@@ -630,19 +632,17 @@ impl<const D: usize> Projection<D> {
         dt: f32,
         cols: &StepColliders<'_, D>,
     ) -> f32 {
-        let (lo, hi) = self.grid().inside();
-        let projecting = cols.projecting(self.dx);
-        let mut vmax = 0.0f32;
-        for p in particles.iter_mut() {
-            for d in 0..D {
-                p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-            }
-            if !projecting.is_empty() {
-                obstacles::project(&projecting, p, (lo, hi));
-            }
-            vmax = vmax.max(crate::dim::norm(&p.v));
+        let (bounds, projecting) = (self.grid().inside(), cols.projecting(self.dx));
+        // in parallel on the calling pool past a few chunks (fewer take longer to hand out than to
+        // move): each particle its own, and the fastest speed is the same whichever way the chunks'
+        // maxima combine
+        if particles.len() <= DRIFT_SERIAL {
+            return transfer::drift_chunk(particles, dt, bounds, &projecting);
         }
-        vmax
+        particles
+            .par_chunks_mut(G2P_CHUNK)
+            .map(|chunk| transfer::drift_chunk(chunk, dt, bounds, &projecting))
+            .reduce(|| 0.0, f32::max)
     }
 
     /// g2p (APIC) and the move, per particle, then out of the colliders: in parallel on the calling

@@ -157,6 +157,47 @@ fn the_transfers_compiled_copies_give_the_same_bits() {
 }
 
 #[test]
+fn the_lanes_gather_gives_the_bits_of_one_particle_at_a_time() {
+    use transfer::{Kernel, LANES, gather_lanes, kinds};
+    let (n, dx) = (12, 1.0 / 12.0);
+    let st_f: [[usize; 3]; 3] = std::array::from_fn(|a| strides(&shape::<3>(n, Some(a))));
+    // face values of mixed signs and zeros, and positions across the whole grid, its last rows too
+    let mut seed = 7u32;
+    let mut rand = move || {
+        seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        (seed >> 8) as f32 / (1u32 << 24) as f32
+    };
+    let vel: Vec<Vec<f32>> = (0..3)
+        .map(|a| {
+            let len = shape::<3>(n, Some(a)).iter().product();
+            (0..len)
+                .map(|i| if i % 5 == 0 { 0.0 } else { rand() - 0.5 })
+                .collect()
+        })
+        .collect();
+    for _ in 0..400 {
+        let x: [SVector<f32, 3>; LANES] = std::array::from_fn(|_| {
+            SVector::from_fn(|_, _| match rand() {
+                r if r < 0.3 => 1.0 - 1e-6,
+                r if r < 0.4 => 0.5 * dx,
+                _ => rand(),
+            })
+        });
+        let k = x.map(|x| Kernel::new(&x, dx, n));
+        for a in 0..3 {
+            let (v, c) = gather_lanes(&k, kinds(Some(a)), &st_f[a], &vel[a]);
+            for (l, k) in k.iter().enumerate() {
+                let (v1, c1) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
+                assert_eq!(v.to_array()[l].to_bits(), v1.to_bits());
+                for d in 0..3 {
+                    assert_eq!(c[d].to_array()[l].to_bits(), c1[d].to_bits());
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn the_walls_band_visits_give_what_visiting_every_face_gives() {
     fn check<const D: usize>(n: usize, wall_cells: usize) {
         let mut pr = Projection::<D>::new(n, wall_cells);

@@ -4,10 +4,11 @@
 
 use nalgebra::SVector;
 
-use super::{Grid, shape, strides};
+use super::{Grid, obstacles, shape, strides};
 use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
+use crate::v4::V4;
 
 /// A stencil's rows along its last axis: per row the first node's flat index, the other axes' weight
 /// product and affine sum; the row count; the last axis' weights and affine terms.
@@ -305,13 +306,48 @@ x86_64_v3! {
     }
 }
 
+/// The particles a 3D g2p takes at once, one per lane of a [`V4`].
+pub(super) const LANES: usize = 4;
+
+/// g2p of a chunk: in 3D [`LANES`] particles at once ([`gather_lanes`]), and one at a time the
+/// particles past the last full set and in 2D; the same bits either way.
 #[inline(always)]
 fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g: Grid, dt: f32) {
     let Grid { n, dx, .. } = g;
     let (lo, hi) = g.inside();
     let apic = 4.0 / (dx * dx);
     let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
-    for p in chunk {
+    let mut quads = chunk.chunks_exact_mut(if D == 3 { LANES } else { usize::MAX });
+    for quad in &mut quads {
+        // arrays written out rather than made by `array::from_fn` or `map`, whose closures LLVM may
+        // leave out of line (and out of the x86-64-v3 copy)
+        let x = |l: usize| &quad[l].x;
+        let k = [
+            Kernel::new(x(0), dx, n),
+            Kernel::new(x(1), dx, n),
+            Kernel::new(x(2), dx, n),
+            Kernel::new(x(3), dx, n),
+        ];
+        for a in 0..D {
+            let (v, c) = gather_lanes(&k, kinds(Some(a)), &st_f[a], &vel[a]);
+            let (v, c) = (
+                v.to_array(),
+                [c[0].to_array(), c[1].to_array(), c[2].to_array()],
+            );
+            for (l, p) in quad.iter_mut().enumerate() {
+                p.v[a] = v[l];
+                for d in 0..D {
+                    p.c[(a, d)] = apic * c[d][l];
+                }
+            }
+        }
+        for p in quad.iter_mut() {
+            for d in 0..D {
+                p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
+            }
+        }
+    }
+    for p in quads.into_remainder() {
         let k = Kernel::new(&p.x, dx, n);
         for a in 0..D {
             let (va, ca) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
@@ -324,4 +360,95 @@ fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g
             p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
         }
     }
+}
+
+/// Three values per particle, one vector per value with one lane per particle.
+#[inline(always)]
+fn lanes(v: [[f32; 3]; LANES]) -> [V4; 3] {
+    let p = |[a, b, c]: [f32; 3]| V4::load(&[a, b, c, 0.0]);
+    let t = V4::transpose([p(v[0]), p(v[1]), p(v[2]), p(v[3])]);
+    [t[0], t[1], t[2]]
+}
+
+/// The row `(a, b)` of a particle's stencil (node indices `i` per axis) along the last axis: its
+/// three nodes and an unused fourth float.
+#[inline(always)]
+fn row(grid: &[f32], i: &[[usize; 3]; 3], a: usize, b: usize) -> V4 {
+    let start = i[0][a] + i[1][b] + i[2][0];
+    match grid.get(start..start + 4) {
+        Some(r) => V4::load(r.try_into().unwrap()),
+        // the grid's last row
+        None => V4::load(&[grid[start], grid[start + 1], grid[start + 2], 0.0]),
+    }
+}
+
+/// [`Kernel::gather`] of [`LANES`] particles of a 3D grid at once, one per lane, each lane the same
+/// f32 operations in the same order (the same bits): each row of a particle's stencil along the
+/// last axis is one 4-float load (the fourth float unused), and the particles' rows are transposed
+/// into one vector per node of the row.
+#[inline(always)]
+pub(super) fn gather_lanes<const D: usize>(
+    k: &[Kernel<D>; LANES],
+    kinds: [usize; D],
+    stride: &[usize; D],
+    grid: &[f32],
+) -> (V4, [V4; 3]) {
+    let ax = [
+        k[0].axes(kinds, stride),
+        k[1].axes(kinds, stride),
+        k[2].axes(kinds, stride),
+        k[3].axes(kinds, stride),
+    ];
+    // per axis and node: the particles' weights and offsets, one per lane
+    let w = |d: usize| lanes([ax[0].1[d], ax[1].1[d], ax[2].1[d], ax[3].1[d]]);
+    let o = |d: usize| lanes([ax[0].2[d], ax[1].2[d], ax[2].2[d], ax[3].2[d]]);
+    let (w, o) = ([w(0), w(1), w(2)], [o(0), o(1), o(2)]);
+    let zero = V4::splat(0.0);
+    let (mut v, mut c) = (zero, [zero; 3]);
+    for a in 0..3 {
+        let (mut s, mut s1, mut s2) = (zero, zero, zero);
+        for b in 0..3 {
+            let r = V4::transpose([
+                row(grid, &ax[0].0, a, b),
+                row(grid, &ax[1].0, a, b),
+                row(grid, &ax[2].0, a, b),
+                row(grid, &ax[3].0, a, b),
+            ]);
+            let (mut t, mut t2) = (zero, zero);
+            for j in 0..3 {
+                let wu = w[2][j] * r[j];
+                t = t + wu;
+                t2 = t2 + wu * o[2][j];
+            }
+            s = s + w[1][b] * t;
+            s1 = s1 + w[1][b] * o[1][b] * t;
+            s2 = s2 + w[1][b] * t2;
+        }
+        v = v + w[0][a] * s;
+        c[0] = c[0] + w[0][a] * o[0][a] * s;
+        c[1] = c[1] + w[0][a] * s1;
+        c[2] = c[2] + w[0][a] * s2;
+    }
+    (v, c)
+}
+
+/// The particles of `chunk` move on at their velocity for `dt` [s], kept inside `bounds` and out of
+/// the colliders `projecting` ([`super::Projection::drift`]); returns the fastest one's speed [m/s].
+pub(super) fn drift_chunk<const D: usize>(
+    chunk: &mut [Particle<D>],
+    dt: f32,
+    (lo, hi): (f32, f32),
+    projecting: &[obstacles::Projecting<'_, D>],
+) -> f32 {
+    let mut vmax = 0.0f32;
+    for p in chunk.iter_mut() {
+        for d in 0..D {
+            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
+        }
+        if !projecting.is_empty() {
+            obstacles::project(projecting, p, (lo, hi));
+        }
+        vmax = vmax.max(crate::dim::norm(&p.v));
+    }
+    vmax
 }
