@@ -21,6 +21,11 @@ real time, the most a host gets), ``worst_held`` the same over the worst 5 s, an
 over the wall time spent stepping (what its pace would allow).
 
     python benchmarks/realtime.py --out benchmarks/results/realtime
+
+With ``--n-grid N`` each scene is built on an N-cell grid, e.g. the 3D dam break of 104,742 particles
+on 56³ (docs/large-step.md):
+
+    python benchmarks/realtime.py --scenes dam_break3d --n-grid 56 --repeats 3 --out benchmarks/results/realtime_large
 """
 
 from __future__ import annotations
@@ -96,17 +101,20 @@ def measure_realtime(scene: str, settle_s: float, hold_s: float, tick_hz: float)
     }
 
 
-def measure(scene: str, integrator: str | None, frames: int, warmup: int) -> dict[str, Any] | None:
+def measure(scene: str, integrator: str | None, frames: int, warmup: int, n_grid: int | None = None) -> dict[str, Any] | None:
     """One run's figures: the scene's default (``integrator`` None), or its default's settings stepped by
-    ``integrator``; None where the integrator does not step the scene (refused, naming ``integrator``)."""
+    ``integrator``; None where the integrator does not step the scene (refused, naming ``integrator``). With
+    ``n_grid`` the scene is built on that grid (``make_scene(scene, n_grid=...)``: its blocks seeded at that
+    resolution, so a finer grid has more particles)."""
+    target = make_scene(scene, n_grid=n_grid) if n_grid is not None else make_scene(scene)
     try:
         if integrator is None:
-            sim = make_simulator(scene, "default")
+            sim = make_simulator(target, "default")
         else:
-            settings = default_settings(scene)
-            if settings.get("solver") != "mpm" or (integrator == INTEGRATORS[1] and not projection_allowed(make_scene(scene))):
+            settings = default_settings(target)
+            if settings.get("solver") != "mpm" or (integrator == INTEGRATORS[1] and not projection_allowed(target)):
                 return None  # the projection steps water in free-slip walls and obstacles only (it refuses the rest)
-            sim = make_simulator(scene, **settings, integrator=integrator)
+            sim = make_simulator(target, **settings, integrator=integrator)
     except InvalidInputError as e:
         if e.field == "integrator":
             return None
@@ -120,7 +128,7 @@ def measure(scene: str, integrator: str | None, frames: int, warmup: int) -> dic
     ms = 1e3 * wall / frames
     steps = float(np.asarray(ro.substeps)[1:].sum()) / frames
     return {
-        "scene": scene,
+        "scene": scene if n_grid is None else f"{scene} on {n_grid}",
         "run": "default" if integrator is None else f"default, {integrator}",
         "particles": int(sim.scene.num_particles),
         "steps_per_frame": steps,
@@ -144,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=150, help="frames timed (default 150)")
     ap.add_argument("--warmup", type=int, default=15, help="frames before the timing (default 15)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each scene's configurations, interleaved; the row is their median (default 1)")
+    ap.add_argument("--n-grid", type=int, default=None, help="build each scene on this grid (more particles on a finer one; default: the scene's own)")
     ap.add_argument("--realtime", action="store_true", help="also run real-time mode (docs/realtime.md)")
     ap.add_argument("--settle", type=float, default=10.0, help="with --realtime: seconds of the host loop before the timing (default 10)")
     ap.add_argument("--hold", type=float, default=60.0, help="with --realtime: seconds of the host loop timed (default 60)")
@@ -152,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not 1 <= args.repeats <= 20:
         ap.error(f"--repeats: got {args.repeats}; choose 1 to 20")
+    if args.n_grid is not None and (not 8 <= args.n_grid <= 256 or args.realtime):
+        ap.error(f"--n-grid: got {args.n_grid}; choose 8 to 256, without --realtime (its chart is the scene's own grid's)")
     rows: list[dict[str, Any]] = []
     for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         if scene not in DOMAINS:
@@ -159,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         runs: dict[str | None, list[dict[str, Any]]] = {}
         for _ in range(args.repeats):  # interleaved, so a slow spell of the machine falls on both integrators
             for integrator in (None, "projection"):
-                r = measure(scene, integrator, args.frames, args.warmup)
+                r = measure(scene, integrator, args.frames, args.warmup, args.n_grid)
                 if r is not None:
                     runs.setdefault(integrator, []).append(r)
         for rs in runs.values():

@@ -156,8 +156,8 @@ class MpmSimulator:
     # ------------------------------------------------------------ state
     @property
     def fluid_positions(self) -> np.ndarray:
-        """The solver's particle positions, float32 [N, D] (a copy)."""
-        return np.asarray(self.solver.positions, np.float32).copy()
+        """The solver's particle positions, float32 [N, D] (a copy: the solver's field reads copy them out)."""
+        return np.asarray(self.solver.positions, np.float32)
 
     @property
     def positions(self) -> np.ndarray:
