@@ -637,11 +637,11 @@ impl<const D: usize> Projection<D> {
         // move): each particle its own, and the fastest speed is the same whichever way the chunks'
         // maxima combine
         if particles.len() <= DRIFT_SERIAL {
-            return transfer::drift_chunk(particles, dt, bounds, &projecting);
+            return obstacles::drift_chunk(particles, dt, bounds, &projecting);
         }
         particles
             .par_chunks_mut(G2P_CHUNK)
-            .map(|chunk| transfer::drift_chunk(chunk, dt, bounds, &projecting))
+            .map(|chunk| obstacles::drift_chunk(chunk, dt, bounds, &projecting))
             .reduce(|| 0.0, f32::max)
     }
 

@@ -107,6 +107,27 @@ pub(super) fn project<const D: usize>(
     }
 }
 
+/// The particles of `chunk` move on at their velocity for `dt` [s], kept inside `bounds` and out of
+/// the colliders `projecting` ([`super::Projection::drift`]); returns the fastest one's speed [m/s].
+pub(super) fn drift_chunk<const D: usize>(
+    chunk: &mut [Particle<D>],
+    dt: f32,
+    (lo, hi): (f32, f32),
+    projecting: &[Projecting<'_, D>],
+) -> f32 {
+    let mut vmax = 0.0f32;
+    for p in chunk.iter_mut() {
+        for d in 0..D {
+            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
+        }
+        if !projecting.is_empty() {
+            project(projecting, p, (lo, hi));
+        }
+        vmax = vmax.max(crate::dim::norm(&p.v));
+    }
+    vmax
+}
+
 impl<const D: usize> Projection<D> {
     /// Marks the solid cells of `cols` (a cell is solid where its centre lies inside a collider or a
     /// body; the first that holds it names it, colliders first) inside the walls, and keeps each

@@ -1,10 +1,11 @@
 //! The projection step's particle-grid transfers on the MAC grid: a
 //! particle's quadratic B-spline weights on both grids of each axis, p2g in
-//! two fixed parts of the particles, g2p one axis at a time.
+//! two fixed parts of the particles, g2p one axis at a time (in 3D four
+//! particles at once, one a vector lane).
 
 use nalgebra::SVector;
 
-use super::{Grid, obstacles, shape, strides};
+use super::{Grid, shape, strides};
 use crate::isa::{Isa, x86_64_v3};
 use crate::kernel::quadratic_weights;
 use crate::particles::Particle;
@@ -430,25 +431,4 @@ pub(super) fn gather_lanes<const D: usize>(
         c[2] = c[2] + w[0][a] * s2;
     }
     (v, c)
-}
-
-/// The particles of `chunk` move on at their velocity for `dt` [s], kept inside `bounds` and out of
-/// the colliders `projecting` ([`super::Projection::drift`]); returns the fastest one's speed [m/s].
-pub(super) fn drift_chunk<const D: usize>(
-    chunk: &mut [Particle<D>],
-    dt: f32,
-    (lo, hi): (f32, f32),
-    projecting: &[obstacles::Projecting<'_, D>],
-) -> f32 {
-    let mut vmax = 0.0f32;
-    for p in chunk.iter_mut() {
-        for d in 0..D {
-            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-        }
-        if !projecting.is_empty() {
-            obstacles::project(projecting, p, (lo, hi));
-        }
-        vmax = vmax.max(crate::dim::norm(&p.v));
-    }
-    vmax
 }
