@@ -117,9 +117,7 @@ pub(super) fn drift_chunk<const D: usize>(
 ) -> f32 {
     let mut vmax = 0.0f32;
     for p in chunk.iter_mut() {
-        for d in 0..D {
-            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-        }
+        super::transfer::move_on(p, dt, (lo, hi));
         if !projecting.is_empty() {
             project(projecting, p, (lo, hi));
         }

@@ -343,9 +343,7 @@ fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g
             }
         }
         for p in quad.iter_mut() {
-            for d in 0..D {
-                p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-            }
+            move_on(p, dt, (lo, hi));
         }
     }
     for p in quads.into_remainder() {
@@ -357,9 +355,16 @@ fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g
                 p.c[(a, d)] = apic * ca[d];
             }
         }
-        for d in 0..D {
-            p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
-        }
+        move_on(p, dt, (lo, hi));
+    }
+}
+
+/// A particle moves on at its velocity for `dt` [s], kept within `(lo, hi)` on every axis (g2p's move
+/// and a drift frame's).
+#[inline(always)]
+pub(super) fn move_on<const D: usize>(p: &mut Particle<D>, dt: f32, (lo, hi): (f32, f32)) {
+    for d in 0..D {
+        p.x[d] = (p.x[d] + dt * p.v[d]).clamp(lo, hi);
     }
 }
 
