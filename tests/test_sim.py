@@ -25,6 +25,7 @@ from hybridmpm.sim import (
     reference,
     rollout,
 )
+from hybridmpm.trajectory import all_finite
 
 
 @pytest.fixture(scope="module")
@@ -184,6 +185,44 @@ def test_rollout_breaks_off_and_keeps_what_came_before(water_model):
     with pytest.raises(InvalidInputError) as e:
         rollout(sim, -1)
     assert e.value.field == "frames"
+
+
+def test_a_rollout_keeps_each_frame_as_the_simulator_made_it():
+    sim = MpmSimulator(blob(), threads=1)
+    seen = [sim.positions.copy()]
+    ro = rollout(sim, 6, on_frame=lambda fr: seen.append(sim.positions.copy()))
+    assert ro.positions.shape == (7, *seen[0].shape) and ro.positions.dtype == np.float32
+    assert all(np.array_equal(ro.positions[k], seen[k]) for k in range(7))
+    assert not np.array_equal(ro.positions[1], ro.positions[6])  # each frame its own row, the water falling
+    short = rollout(sim, 50, stop=lambda fr, s: "enough" if fr.frame_index >= 8 else None)
+    assert short.positions.shape[0] == len(short.frame_index) == 3
+
+
+class _Shrinking(MpmSimulator):
+    """Returns a frame with a particle fewer from the second step: a rollout keeps one particle count."""
+
+    def advance(self) -> Frame:
+        fr = super().advance()
+        return Frame(fr.step, fr.frame_index, fr.time, fr.positions[:-1], fr.solver) if fr.step >= 2 else fr
+
+
+def test_a_frame_with_another_particle_count_is_refused_naming_positions():
+    sim = _Shrinking(blob(), threads=1)
+    with pytest.raises(InvalidInputError, match=r"got \[675, 2\]") as e:
+        rollout(sim, 5)
+    assert e.value.field == "positions"
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_all_finite_agrees_with_isfinite_everywhere(dtype):
+    rng = np.random.default_rng(5)
+    assert all_finite(np.zeros((0, 3), dtype))
+    for bad in (np.nan, np.inf, -np.inf, None):
+        for _ in range(20):
+            x = rng.normal(size=(int(rng.integers(1, 50)), 3)).astype(dtype) * 1e30
+            if bad is not None:
+                x.flat[int(rng.integers(x.size))] = bad
+            assert all_finite(x) == bool(np.isfinite(x).all())
 
 
 class _Exploding(GnsRuntime):

@@ -80,6 +80,12 @@ def check_frame_velocities(positions: np.ndarray, dt_frame: float, field: str = 
         )
 
 
+def all_finite(x: np.ndarray) -> bool:
+    """Whether every value of the float array ``x`` is finite: its smallest and largest are (a NaN makes both NaN,
+    an infinity one of them), without a boolean array as large as ``x``. True for an empty array."""
+    return x.size == 0 or bool(np.isfinite(np.min(x)) and np.isfinite(np.max(x)))
+
+
 def load_bytes(h: NpyHeader) -> int:
     """What reading the array of header ``h`` takes at its peak [bytes]: the
     array as read, its validated copy (float32 positions, int64 types, ...)
@@ -160,7 +166,7 @@ class Trajectory:
         if pos.shape[0] < 1 or pos.shape[1] < 1:
             raise InvalidInputError(f"positions: need at least one frame and one particle, got shape {list(pos.shape)}", "positions")
         pos = np.ascontiguousarray(pos, dtype=np.float32)
-        if not np.isfinite(pos).all():
+        if not all_finite(pos):
             t, i = np.argwhere(~np.isfinite(pos).all(axis=2))[0]
             raise InvalidInputError(f"positions: frame {t}, particle {i} has a non-finite coordinate", "positions")
         self.positions = pos

@@ -16,7 +16,7 @@ import math
 import numbers
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -28,7 +28,7 @@ from hybridmpm.scenes.core import Scene
 from hybridmpm.scenes.resolution import full_resolution
 from hybridmpm.sim.base import MPM, NEURAL, Frame, NetworkFailure, Simulator, check_int
 from hybridmpm.sim.mpm import MpmSimulator
-from hybridmpm.trajectory import Trajectory
+from hybridmpm.trajectory import Trajectory, all_finite
 
 #: ``stop(frame, sim)`` → None to go on, or the reason to break off.
 StopRule = Callable[[Frame, Any], "str | None"]
@@ -121,11 +121,15 @@ def rollout(
     frames = check_int("frames", frames, 0)
     steps = math.ceil(frames / sim.r_t)
     p = sim.particles
-    # each kept frame's positions, once in its Frame and once in the stacked array
-    check_allocation("frames", 2.0 * (steps + 1) * p.num_total * p.dim * 4, f"keeping {steps + 1} frames of {p.num_total} particles")
+    # each kept frame's positions, written into one array as the frame comes (and the frame just made)
+    check_allocation("frames", (steps + 2) * p.num_total * p.dim * 4, f"keeping {steps + 1} frames of {p.num_total} particles")
     start = sim.frame
     target = start.frame_index + frames
-    recs: list[Frame] = [start]
+    # one array for every kept frame, allocated once: each frame's positions are copied in and the frame's own
+    # array is let go, so the next frame's reuses its memory (a fresh array per frame, stacked at the end, spent
+    # more than half of a 100k-particle frame on page faults and the copy)
+    kept = np.empty((steps + 1, *np.shape(start.positions)), np.float32)
+    recs: list[Frame] = [keep(start, kept, 0)]
     shapes: list[Any] = [given_bodies(sim)]  # each kept frame's bodies as given (a callback may add or remove one)
     failure: str | None = None
     detail: str | None = None
@@ -140,9 +144,10 @@ def rollout(
             except SimulationError as e:
                 failure, detail = "mpm", str(e)
                 break
-            if not np.isfinite(sim.particles.fluid(fr.positions)).all():
+            if not all_finite(sim.particles.fluid(fr.positions)):
                 failure = "nan"
                 break
+            fr = keep(fr, kept, len(recs))
             recs.append(fr)
             shapes.append(given_bodies(sim))
             bar.update()
@@ -157,7 +162,14 @@ def rollout(
                     break
     finally:
         bar.close()
-    return _collect(sim, recs, shapes, failure, detail)
+    return _collect(sim, recs, kept[: len(recs)], shapes, failure, detail)
+
+
+def keep(fr: Frame, kept: np.ndarray, k: int) -> Frame:
+    """``fr`` with its positions copied into row ``k`` of ``kept`` float32 [K + 1, N + B, D], and that row in
+    their place (the rollout has checked the frame's particle count: :meth:`~hybridmpm.scenes.ParticleSet.fluid`)."""
+    kept[k] = fr.positions
+    return replace(fr, positions=kept[k])
 
 
 def given_bodies(sim: Any) -> list[Any] | None:
@@ -174,7 +186,7 @@ def body_frame(frame: Frame, shapes: Any) -> BodyFrame | None:
     return shapes, frame.body_center, frame.body_rotation, frame.body_mass
 
 
-def _collect(sim: Simulator, recs: list[Frame], shapes: list[Any], failure: str | None, detail: str | None) -> Rollout:
+def _collect(sim: Simulator, recs: list[Frame], positions: np.ndarray, shapes: list[Any], failure: str | None, detail: str | None) -> Rollout:
     p = sim.particles
     solver = np.array([r.solver for r in recs])
     seconds = np.array([0.0] + [r.seconds for r in recs[1:]])
@@ -192,7 +204,7 @@ def _collect(sim: Simulator, recs: list[Frame], shapes: list[Any], failure: str 
         "substeps": substeps,
     }
     return Rollout(
-        positions=np.stack([r.positions for r in recs]),
+        positions=positions,
         obstacle_centers=np.stack(centers) if centers and len(centers) == len(recs) else None,
         body_center=None if track is None else track.center,
         body_rotation=None if track is None else track.rotation,
