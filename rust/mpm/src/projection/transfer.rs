@@ -22,8 +22,9 @@ type Axes = ([[usize; 3]; 3], [[f32; 3]; 3], [[f32; 3]; 3], usize);
 /// kind 0, the cell centres `(i + ½)·dx`; kind 1, the nodes `i·dx` (a
 /// velocity component's own axis on its face grid). Per axis and kind: the
 /// stencil's first node (clamped so the stencil stays on the grid), the
-/// weights, and the offsets `x_i − x_p` [m].
+/// weights, and the offsets `x_i − x_p` [m]; and the cell the particle is in (clamped to the grid).
 pub(super) struct Kernel<const D: usize> {
+    pub(super) cell: [usize; D],
     base: [[usize; 2]; D],
     w: [[[f32; 3]; 2]; D],
     off: [[[f32; 3]; 2]; D],
@@ -33,6 +34,7 @@ impl<const D: usize> Kernel<D> {
     #[inline(always)]
     pub(super) fn new(x: &SVector<f32, D>, dx: f32, n: usize) -> Self {
         let mut k = Kernel {
+            cell: std::array::from_fn(|d| ((x[d] / dx) as usize).min(n - 1)),
             base: [[0; 2]; D],
             w: [[[0.0; 3]; 2]; D],
             off: [[[0.0; 3]; 2]; D],
@@ -51,6 +53,85 @@ impl<const D: usize> Kernel<D> {
             }
         }
         k
+    }
+
+    /// [`Self::new`] with `LANES8` in one 8-float vector ([`Self::new_lanes`], x86-64-v3 only).
+    #[inline(always)]
+    pub(super) fn at<const LANES8: bool>(x: &SVector<f32, D>, dx: f32, n: usize) -> Self {
+        #[cfg(target_arch = "x86_64")]
+        if LANES8 {
+            // SAFETY: `LANES8` is set in the x86-64-v3 copies only, run on a CPU with AVX2
+            return unsafe { Self::new_lanes(x, dx, n) };
+        }
+        Self::new(x, dx, n)
+    }
+
+    /// [`Self::new`] with the axes and both kinds in the lanes of one 8-float vector (AVX2; lane
+    /// `2·d + kind`), each lane the same f32 operations in the same order: the same bits (a test
+    /// compares them).
+    ///
+    /// # Safety
+    /// On a CPU with AVX2 only.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub(super) unsafe fn new_lanes(x: &SVector<f32, D>, dx: f32, n: usize) -> Self {
+        use core::arch::x86_64::{
+            _mm256_cvttps_epi32, _mm256_div_ps, _mm256_floor_ps, _mm256_max_ps, _mm256_min_ps,
+            _mm256_mul_ps, _mm256_set1_ps, _mm256_setr_ps, _mm256_storeu_ps, _mm256_storeu_si256,
+            _mm256_sub_ps,
+        };
+        // SAFETY: the caller runs this on a CPU with AVX2
+        unsafe {
+            let xd = |d: usize| if d < D { x[d] } else { 0.0 };
+            let xv = _mm256_setr_ps(xd(0), xd(0), xd(1), xd(1), xd(2), xd(2), 0.0, 0.0);
+            let shift = _mm256_setr_ps(0.5, 0.0, 0.5, 0.0, 0.5, 0.0, 0.5, 0.0);
+            let (l0, l1) = ((n - 3) as f32, (n - 2) as f32);
+            let lim = _mm256_setr_ps(l0, l1, l0, l1, l0, l1, l0, l1);
+            let s = _mm256_set1_ps;
+            let add = core::arch::x86_64::_mm256_add_ps;
+            let g = _mm256_sub_ps(_mm256_div_ps(xv, s(dx)), shift);
+            let b = _mm256_floor_ps(_mm256_sub_ps(g, s(0.5)));
+            // quadratic_weights(g - b), its operations in its order
+            let f = _mm256_sub_ps(g, b);
+            let (h, t) = (_mm256_sub_ps(s(1.5), f), _mm256_sub_ps(f, s(1.0)));
+            let q = _mm256_sub_ps(f, s(0.5));
+            let w = [
+                _mm256_mul_ps(_mm256_mul_ps(s(0.5), h), h),
+                _mm256_sub_ps(s(0.75), _mm256_mul_ps(t, t)),
+                _mm256_mul_ps(_mm256_mul_ps(s(0.5), q), q),
+            ];
+            // the base clamped to the grid (a NaN to 0, as `max` takes the second operand)
+            let bc = _mm256_min_ps(_mm256_max_ps(b, s(0.0)), lim);
+            let off = |j: f32| _mm256_sub_ps(_mm256_mul_ps(add(add(bc, s(j)), shift), s(dx)), xv);
+            let off = [off(0.0), off(1.0), off(2.0)];
+            let mut lanes = [[0.0f32; 8]; 6];
+            for j in 0..3 {
+                _mm256_storeu_ps(lanes[j].as_mut_ptr(), w[j]);
+                _mm256_storeu_ps(lanes[3 + j].as_mut_ptr(), off[j]);
+            }
+            let mut base = [0i32; 8];
+            _mm256_storeu_si256(base.as_mut_ptr().cast(), _mm256_cvttps_epi32(bc));
+            // the cell from the node grid's lanes (`x/dx − 0` is `x/dx`), clamped as `as usize` and `min` do
+            let last = s((n - 1) as f32);
+            let mut cell = [0i32; 8];
+            let c = _mm256_min_ps(_mm256_max_ps(g, s(0.0)), last);
+            _mm256_storeu_si256(cell.as_mut_ptr().cast(), _mm256_cvttps_epi32(c));
+            let mut k = Kernel {
+                cell: std::array::from_fn(|d| cell[2 * d + 1] as usize),
+                base: [[0; 2]; D],
+                w: [[[0.0; 3]; 2]; D],
+                off: [[[0.0; 3]; 2]; D],
+            };
+            for d in 0..D {
+                for kind in 0..2 {
+                    let l = 2 * d + kind;
+                    k.base[d][kind] = base[l] as usize;
+                    k.w[d][kind] = [lanes[0][l], lanes[1][l], lanes[2][l]];
+                    k.off[d][kind] = [lanes[3][l], lanes[4][l], lanes[5][l]];
+                }
+            }
+            k
+        }
     }
 
     /// Per axis on the grid of `kinds` and `stride`: the 3 nodes' parts of the flat index, their
@@ -233,7 +314,7 @@ impl Part {
             return unsafe { self.scatter_v3(particles, g, dt) };
         }
         let _ = isa;
-        self.scatter_body(particles, g, dt);
+        self.scatter_body::<D, false>(particles, g, dt);
     }
 
     x86_64_v3! {
@@ -242,12 +323,18 @@ impl Part {
         /// # Safety
         /// On a CPU with the x86-64-v3 features only.
         unsafe fn scatter_v3<const D: usize>(&mut self, particles: &[Particle<D>], g: Grid, dt: f32) {
-            self.scatter_body(particles, g, dt);
+            self.scatter_body::<D, true>(particles, g, dt);
         }
     }
 
+    /// The p2g; with `LANES8` each particle's kernel in one vector ([`Kernel::new_lanes`]; x86-64-v3 only).
     #[inline(always)]
-    fn scatter_body<const D: usize>(&mut self, particles: &[Particle<D>], g: Grid, dt: f32) {
+    fn scatter_body<const D: usize, const LANES8: bool>(
+        &mut self,
+        particles: &[Particle<D>],
+        g: Grid,
+        dt: f32,
+    ) {
         let Grid { n, dx, .. } = g;
         let cells = n.pow(D as u32);
         if self.cell.len() != cells {
@@ -263,11 +350,10 @@ impl Part {
         let st_c = strides(&shape::<D>(n, None));
         let st_f: [[usize; D]; D] = std::array::from_fn(|a| strides(&shape::<D>(n, Some(a))));
         for p in particles {
-            let idx: [usize; D] = std::array::from_fn(|d| ((p.x[d] / dx) as usize).min(n - 1));
-            if !g.in_walls(&idx) {
-                self.held[(0..D).map(|d| idx[d] * st_c[d]).sum::<usize>()] = true;
+            let k = Kernel::at::<LANES8>(&p.x, dx, n);
+            if !g.in_walls(&k.cell) {
+                self.held[(0..D).map(|d| k.cell[d] * st_c[d]).sum::<usize>()] = true;
             }
-            let k = Kernel::new(&p.x, dx, n);
             k.scatter_cells(&st_c, p.mass, &mut self.cell);
             for a in 0..D {
                 let u = p.v[a] + dt * p.ext[a];
@@ -294,7 +380,7 @@ pub(super) fn g2p_chunk<const D: usize>(
         return unsafe { g2p_chunk_v3(chunk, vel, g, dt) };
     }
     let _ = isa;
-    g2p_chunk_body(chunk, vel, g, dt);
+    g2p_chunk_body::<D, false>(chunk, vel, g, dt);
 }
 
 x86_64_v3! {
@@ -303,7 +389,7 @@ x86_64_v3! {
     /// # Safety
     /// On a CPU with the x86-64-v3 features only.
     unsafe fn g2p_chunk_v3<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g: Grid, dt: f32) {
-        g2p_chunk_body(chunk, vel, g, dt);
+        g2p_chunk_body::<D, true>(chunk, vel, g, dt);
     }
 }
 
@@ -312,8 +398,14 @@ pub(super) const LANES: usize = 4;
 
 /// g2p of a chunk: in 3D [`LANES`] particles at once ([`gather_lanes`]), and one at a time the
 /// particles past the last full set and in 2D; the same bits either way.
+/// With `LANES8` each particle's kernel is made in one vector ([`Kernel::new_lanes`]; x86-64-v3 only).
 #[inline(always)]
-fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g: Grid, dt: f32) {
+fn g2p_chunk_body<const D: usize, const LANES8: bool>(
+    chunk: &mut [Particle<D>],
+    vel: &[Vec<f32>],
+    g: Grid,
+    dt: f32,
+) {
     let Grid { n, dx, .. } = g;
     let (lo, hi) = g.inside();
     let apic = 4.0 / (dx * dx);
@@ -324,10 +416,10 @@ fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g
         // leave out of line (and out of the x86-64-v3 copy)
         let x = |l: usize| &quad[l].x;
         let k = [
-            Kernel::new(x(0), dx, n),
-            Kernel::new(x(1), dx, n),
-            Kernel::new(x(2), dx, n),
-            Kernel::new(x(3), dx, n),
+            Kernel::at::<LANES8>(x(0), dx, n),
+            Kernel::at::<LANES8>(x(1), dx, n),
+            Kernel::at::<LANES8>(x(2), dx, n),
+            Kernel::at::<LANES8>(x(3), dx, n),
         ];
         for a in 0..D {
             let (v, c) = gather_lanes(&k, kinds(Some(a)), &st_f[a], &vel[a]);
@@ -347,7 +439,7 @@ fn g2p_chunk_body<const D: usize>(chunk: &mut [Particle<D>], vel: &[Vec<f32>], g
         }
     }
     for p in quads.into_remainder() {
-        let k = Kernel::new(&p.x, dx, n);
+        let k = Kernel::at::<LANES8>(&p.x, dx, n);
         for a in 0..D {
             let (va, ca) = k.gather(kinds(Some(a)), &st_f[a], &vel[a]);
             p.v[a] = va;
@@ -436,4 +528,50 @@ pub(super) fn gather_lanes<const D: usize>(
         c[2] = c[2] + w[0][a] * s2;
     }
     (v, c)
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+
+    fn same<const D: usize>(x: SVector<f32, D>, dx: f32, n: usize) {
+        let a = Kernel::new(&x, dx, n);
+        // SAFETY: AVX2 is present (checked by the caller)
+        let b = unsafe { Kernel::new_lanes(&x, dx, n) };
+        let bits = |k: &Kernel<D>| {
+            let w = k.w.iter().flatten().flatten().map(|v| v.to_bits());
+            let o = k.off.iter().flatten().flatten().map(|v| v.to_bits());
+            (k.cell, k.base, w.chain(o).collect::<Vec<u32>>())
+        };
+        assert_eq!(bits(&a), bits(&b), "x = {x:?}, n = {n}");
+    }
+
+    #[test]
+    fn the_kernel_in_one_vector_gives_the_bits_of_the_scalar_one() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return; // nothing to compare: the vector kernel runs on AVX2 CPUs only
+        }
+        let mut seed = 5u32;
+        let mut rand = move || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        for n in [8, 13, 56, 128] {
+            let dx = 1.0 / n as f32;
+            for _ in 0..2000 {
+                // across the grid, on its nodes and cell centres, at and past its ends
+                let mut coord = || match rand() {
+                    r if r < 0.1 => (rand() * n as f32).floor() * dx,
+                    r if r < 0.2 => ((rand() * n as f32).floor() + 0.5) * dx,
+                    r if r < 0.25 => -0.0,
+                    r if r < 0.3 => 1.0 - 1e-6,
+                    r if r < 0.35 => 1.0 + rand(),
+                    r if r < 0.4 => -rand(),
+                    _ => rand(),
+                };
+                same::<2>(SVector::from_fn(|_, _| coord()), dx, n);
+                same::<3>(SVector::from_fn(|_, _| coord()), dx, n);
+            }
+        }
+    }
 }
