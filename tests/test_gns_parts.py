@@ -428,7 +428,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
     import json
     from dataclasses import asdict
 
-    from test_neural_training import _drag_dataset
+    from _datasets import drag_dataset
 
     from hybridmpm.neural import GnsRuntime
     from hybridmpm.train.gns.train import TrainConfig, train
@@ -436,7 +436,7 @@ def test_a_legacy_training_checkpoint_resumes(tmp_path):
     data, out = tmp_path / "drag", tmp_path / "model"
     data.mkdir()
     out.mkdir()
-    _drag_dataset(data, n_traj=4, frames=16, n=30)
+    drag_dataset(data, n_traj=4, frames=16, n=30)
     cfg = TrainConfig(
         scene="drag", data=str(data), out=str(out), latent=8, layers=1, r_t=1, steps=4, batch=1, lr=1e-3, lr_final=1e-4,
         noise_std=1e-5, val_every=2, val_windows=2, rollout_steps=3, threads=1,

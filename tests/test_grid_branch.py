@@ -15,6 +15,8 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the training extra (torch) is not installed")
 
+from _datasets import split_names, write_dataset  # noqa: E402
+
 from hybridmpm.errors import InvalidInputError  # noqa: E402
 from hybridmpm.graph import radius_graph  # noqa: E402
 from hybridmpm.neural import GnsRuntime  # noqa: E402
@@ -131,12 +133,9 @@ def test_a_file_whose_graph_and_metadata_disagree_on_the_branch_is_refused(tmp_p
 def _column_dataset(directory, n_traj=6, frames=30, seed=0):
     """Blocks of particles whose every particle accelerates by an amount set by
     its block's total particle count (a global quantity no radius graph sees)."""
-    from hybridmpm.data import compute_statistics, write_metadata, write_split
-
     rng = np.random.default_rng(seed)
     splits: dict[str, dict] = {"train": {}, "valid": {}, "test": {}}
-    names = ["train"] * (n_traj - 2) + ["valid", "test"]
-    for i, split in enumerate(names):
+    for i, split in enumerate(split_names(n_traj)):
         n = int(rng.integers(30, 90))
         x = np.empty((frames + 1, n, 2))
         x[0] = rng.uniform([0.3, 0.3], [0.7, 0.5], (n, 2))
@@ -146,23 +145,8 @@ def _column_dataset(directory, n_traj=6, frames=30, seed=0):
             v = v + a
             x[t + 1] = x[t] + v
         splits[split][f"simulation_trajectory_{i:05d}"] = (x.astype(np.float32), np.full(n, 5, np.int64))
-    for split, trajs in splits.items():
-        write_split(directory / f"{split}.npz", trajs)
-    stats = compute_statistics(splits["train"])
-    write_metadata(
-        directory / "metadata.json",
-        {
-            "bounds": [[0.02, 0.98]] * 2,
-            "sequence_length": frames,
-            "default_connectivity_radius": 0.03,
-            "dim": 2,
-            "dt": 2.5e-3,
-            "r_t": 1,
-            "r_p": 1.0,
-            "n_grid": 64,
-            **stats,
-        },
-    )
+    meta = {"bounds": [[0.02, 0.98]] * 2, "sequence_length": frames, "default_connectivity_radius": 0.03, "dim": 2, "dt": 2.5e-3}
+    write_dataset(directory, splits, {**meta, "r_t": 1, "r_p": 1.0, "n_grid": 64})
 
 
 def test_training_with_a_grid_branch_runs_resumes_exports_and_simulates(tmp_path):

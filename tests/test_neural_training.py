@@ -14,6 +14,7 @@ import logging
 import numpy as np
 import pytest
 import torch
+from _datasets import drag_dataset
 
 from hybridmpm import radius_graph
 from hybridmpm.conventions import GNS_KINEMATIC
@@ -24,49 +25,12 @@ from hybridmpm.train.gns.model import GnsConfig, GnsModel
 logging.getLogger("torch.onnx").setLevel(logging.ERROR)
 
 
-def _drag_dataset(directory, n_traj=6, frames=40, n=60, k=0.2, seed=0, scene=None):
-    """Particles far apart, each moving under gravity and linear drag:
-    a = g·dt² − k·v (per step); learnable from the velocity history."""
-    from hybridmpm.data import compute_statistics, write_metadata, write_split
-
-    rng = np.random.default_rng(seed)
-    g = np.array([0.0, -2e-5])
-    splits = {"train": {}, "valid": {}, "test": {}}
-    names = ["train"] * (n_traj - 2) + ["valid", "test"]
-    for i, split in enumerate(names):
-        grid = np.stack(np.meshgrid(np.linspace(0.25, 0.75, 8), np.linspace(0.3, 0.8, 8)), -1).reshape(-1, 2)[:n]
-        x = np.empty((frames + 1, n, 2))
-        x[0] = grid
-        v = rng.normal(0, 3e-3, (n, 2))
-        for t in range(frames):
-            v = v + g - k * v
-            x[t + 1] = x[t] + v
-        splits[split][f"simulation_trajectory_{i:05d}"] = (x.astype(np.float32), np.full(n, 5, np.int64))
-    for split, trajs in splits.items():
-        write_split(directory / f"{split}.npz", trajs)
-    stats = compute_statistics(splits["train"])
-    write_metadata(
-        directory / "metadata.json",
-        {
-            "bounds": [[0.02, 0.98]] * 2,
-            "sequence_length": frames,
-            "default_connectivity_radius": 0.02,
-            "dim": 2,
-            "dt": 2.5e-3,
-            "r_t": 1,
-            "n_grid": 128,
-            **({"scene": scene} if scene else {}),
-            **stats,
-        },
-    )
-
-
 def test_short_training_lowers_the_validation_loss(tmp_path):
     from hybridmpm.train.gns.train import TrainConfig, train
 
     data = tmp_path / "drag"
     data.mkdir()
-    _drag_dataset(data)
+    drag_dataset(data)
     cfg = TrainConfig(
         scene="drag", data=str(data), out=str(tmp_path / "model"), latent=16, layers=1, r_t=1, steps=240, batch=2,
         lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=60, rollout_steps=10, threads=1,
@@ -169,7 +133,7 @@ def _option_trains_and_old_runs_resume(tmp_path, tag: str, option: dict, default
 
     data = tmp_path / "drag"
     data.mkdir(exist_ok=True)
-    _drag_dataset(data, n_traj=4, frames=20, n=30)
+    drag_dataset(data, n_traj=4, frames=20, n=30)
     cfg = TrainConfig(
         scene="drag", data=str(data), out=str(tmp_path / tag), latent=8, layers=1, r_t=1, steps=120, batch=2,
         lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=40, val_windows=4, rollout_steps=5, threads=1, **option,
@@ -195,7 +159,7 @@ def _refused_on_short_data(tmp_path, cfg, frames: int, field: str) -> None:
 
     short = tmp_path / "short"
     short.mkdir()
-    _drag_dataset(short, n_traj=4, frames=frames, n=30)
+    drag_dataset(short, n_traj=4, frames=frames, n=30)
     with pytest.raises(InvalidInputError) as e:
         train(TrainConfig(**{**cfg.__dict__, "data": str(short), "out": str(tmp_path / "short_run")}), progress=False)
     assert e.value.field == field
@@ -343,8 +307,8 @@ def test_training_pools_several_datasets_and_refuses_ones_that_disagree(tmp_path
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir()
     b.mkdir()
-    _drag_dataset(a, n_traj=4, frames=16, n=30, k=0.2, seed=0, scene="drag")
-    _drag_dataset(b, n_traj=4, frames=16, n=30, k=0.05, seed=1, scene="slow_drag")  # slower drag: other velocity statistics
+    drag_dataset(a, n_traj=4, frames=16, n=30, k=0.2, seed=0, scene="drag")
+    drag_dataset(b, n_traj=4, frames=16, n=30, k=0.05, seed=1, scene="slow_drag")  # slower drag: other velocity statistics
     cfg = TrainConfig(
         scene="drag", data=[str(a), str(b)], out=str(tmp_path / "pool"), latent=8, layers=1, r_t=1, steps=4, batch=2,
         lr=3e-3, lr_final=3e-4, noise_std=1e-5, val_every=2, val_windows=2, rollout_steps=3, threads=1,
@@ -402,7 +366,7 @@ def test_ema_averages_the_trained_weights_without_changing_training(tmp_path):
 
     data = tmp_path / "drag"
     data.mkdir()
-    _drag_dataset(data, n_traj=4, frames=16, n=30)
+    drag_dataset(data, n_traj=4, frames=16, n=30)
     base = dict(
         scene="drag", data=str(data), latent=8, layers=1, r_t=1, batch=2, lr=3e-2, lr_final=3e-3,
         noise_std=1e-5, val_every=1, val_windows=2, rollout_steps=3, threads=1,

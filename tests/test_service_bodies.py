@@ -19,6 +19,7 @@ pytest.importorskip("httpx")
 from fastapi.testclient import TestClient  # noqa: E402
 
 from hybridmpm.service import ServiceConfig, create_app  # noqa: E402
+from hybridmpm.service.testing import get_checkpoint, new_session  # noqa: E402
 from hybridmpm.sim import make_simulator, rollout  # noqa: E402
 
 #: A 500 kg/m³ box in the air above dam_break2d's water column (its grid: 128², a cell 1/128 m).
@@ -30,18 +31,6 @@ BALL = {"shape": "circle", "center": [0.4, 0.8], "radius": 0.03, "mass": 1.5}
 def client():
     with TestClient(create_app(ServiceConfig(max_sessions=50, max_sessions_per_client=50, idle_ttl_s=600))) as c:
         yield c
-
-
-def _new(client, scene="dam_break2d", solver="mpm"):
-    r = client.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": 0})
-    assert r.status_code == 201, r.text
-    return r.json()
-
-
-def _ckpt(client, sid) -> bytes:
-    r = client.get(f"/v1/sessions/{sid}/checkpoint")
-    assert r.status_code == 200
-    return r.content
 
 
 def _step(client, sid, frames):
@@ -58,7 +47,7 @@ def _event(ws, kind):
 
 
 def test_a_body_joins_the_run_viewers_hear_of_it_and_frames_carry_its_pose(client):
-    sid = _new(client)["id"]
+    sid = new_session(client)["id"]
     assert client.get(f"/v1/sessions/{sid}").json()["bodies"] == []
     assert "bodies" not in _step(client, sid, 2)[-1]  # no bodies: the frames old clients know
     with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
@@ -119,36 +108,36 @@ def test_a_body_joins_the_run_viewers_hear_of_it_and_frames_carry_its_pose(clien
     ],
 )
 def test_refusals_name_the_field_and_change_nothing(client, change, field):
-    sid = _new(client)["id"]
-    before = _ckpt(client, sid)
+    sid = new_session(client)["id"]
+    before = get_checkpoint(client, sid)
     body = {k: v for k, v in {**BOX, **change}.items() if v is not None}
     r = client.post(f"/v1/sessions/{sid}/bodies", json=body)
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"][-1] == field, r.text
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before
 
 
 def test_nan_too_many_a_missing_index_and_the_wrong_session_are_refused(client):
     from hybridmpm.mpm.bodies import MAX_BODIES
 
-    sid = _new(client)["id"]
+    sid = new_session(client)["id"]
     for k in range(MAX_BODIES):  # 8 × 8 apart: a body overlapping another is refused
         assert client.post(f"/v1/sessions/{sid}/bodies", json={**BALL, "center": [0.12 + 0.1 * (k % 8), 0.12 + 0.1 * (k // 8)]}).status_code == 201
-    before = _ckpt(client, sid)
+    before = get_checkpoint(client, sid)
     r = client.post(f"/v1/sessions/{sid}/bodies", json=BALL)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "bodies", r.text
     r = client.post(f"/v1/sessions/{sid}/bodies", content=json.dumps(BOX)[:-1] + ', "mass": NaN}', headers={"Content-Type": "application/json"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "mass", r.text
     r = client.delete(f"/v1/sessions/{sid}/bodies/{MAX_BODIES}")
     assert r.status_code == 404 and r.json()["detail"][0]["loc"] == ["path", "index"], r.text
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before
     # a running control, a learned simulator: 409; a missing or deleted session: 404
     manager = client.app.state.manager
     manager.sessions[sid].controlling = True
     assert client.post(f"/v1/sessions/{sid}/bodies", json=BOX).status_code == 409
     assert client.delete(f"/v1/sessions/{sid}/bodies/0").status_code == 409
     manager.sessions[sid].controlling = False
-    neural = _new(client, scene="water2d", solver="neural")["id"]
+    neural = new_session(client, scene="water2d", solver="neural")["id"]
     assert client.post(f"/v1/sessions/{neural}/bodies", json=BOX).status_code == 409
     assert client.post("/v1/sessions/" + "x" * 32 + "/bodies", json=BOX).status_code == 404
     assert client.delete(f"/v1/sessions/{sid}").status_code == 204
@@ -157,11 +146,11 @@ def test_nan_too_many_a_missing_index_and_the_wrong_session_are_refused(client):
 
 
 def test_a_session_with_bodies_survives_a_checkpoint_round_trip_and_a_reset(client):
-    sid = _new(client)["id"]
-    bare = _ckpt(client, sid)
+    sid = new_session(client)["id"]
+    bare = get_checkpoint(client, sid)
     assert client.post(f"/v1/sessions/{sid}/bodies", json=BOX).status_code == 201
     _step(client, sid, 5)
-    saved = _ckpt(client, sid)
+    saved = get_checkpoint(client, sid)
     ahead = _step(client, sid, 6)
     # back to a state before the body: none, and the viewers hear of it
     with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
@@ -190,7 +179,7 @@ def test_a_session_with_bodies_comes_back_after_a_restart_on_its_store(tmp_path)
     expected = rollout(reference, 5)
     cfg = ServiceConfig(store=str(tmp_path / "store"), max_sessions=10, idle_ttl_s=600)
     with TestClient(create_app(cfg)) as c:
-        sid = _new(c)["id"]
+        sid = new_session(c)["id"]
         _step(c, sid, 3)
         assert c.post(f"/v1/sessions/{sid}/bodies", json=BOX).status_code == 201
         _step(c, sid, 4)
@@ -204,7 +193,7 @@ def test_a_session_with_bodies_comes_back_after_a_restart_on_its_store(tmp_path)
 
 
 def test_a_scene_with_bodies_lists_them_and_takes_more_on_its_default_solver(client):
-    s = _new(client, scene="crates2d", solver="default")  # no shipped model: the default runs MPM
+    s = new_session(client, scene="crates2d", solver="default")  # no shipped model: the default runs MPM
     assert [b["shape"] for b in s["bodies"]] == ["box"] * 4
     r = client.post(f"/v1/sessions/{s['id']}/bodies", json={**BOX, "center": [0.5, 0.8]})
     assert r.status_code == 201 and r.json()["index"] == 4, r.text
@@ -222,7 +211,7 @@ def test_the_trajectory_download_carries_the_bodies_of_the_frames_that_share_the
 
     from hybridmpm.render.bodies import body_surface
 
-    sid = _new(client, "crates2d")["id"]
+    sid = new_session(client, "crates2d")["id"]
     _step(client, sid, 6)
     t = client.get(f"/v1/sessions/{sid}/trajectory?frames=6")
     assert t.status_code == 200

@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from hybridmpm.conventions import GNS_ELASTIC, GNS_WATER  # noqa: E402
 from hybridmpm.scenes import lattice  # noqa: E402
 from hybridmpm.service import ServiceConfig, create_app, decode_frame  # noqa: E402
+from hybridmpm.service.testing import get_checkpoint, new_session  # noqa: E402
 from hybridmpm.sim import pour as pour_module  # noqa: E402
 
 JELLY = {"material": "jello", "lo": [0.6, 0.6], "hi": [0.7, 0.7]}
@@ -29,20 +30,8 @@ def client():
         yield c
 
 
-def _new(client, scene="dam_break2d", solver="mpm"):
-    r = client.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": 0})
-    assert r.status_code == 201, r.text
-    return r.json()
-
-
-def _ckpt(client, sid) -> bytes:
-    r = client.get(f"/v1/sessions/{sid}/checkpoint")
-    assert r.status_code == 200
-    return r.content
-
-
 def test_a_poured_jelly_joins_the_run_and_viewers_get_its_particles(client):
-    s = _new(client)
+    s = new_session(client)
     sid, n0 = s["id"], s["num_particles"]
     with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
         assert json.loads(ws.receive_text())["type"] == "meta"
@@ -111,29 +100,29 @@ def test_a_poured_jelly_joins_the_run_and_viewers_get_its_particles(client):
     ],
 )
 def test_refusals_name_the_field_and_change_nothing(client, change, field):
-    sid = _new(client)["id"]
-    before = _ckpt(client, sid)
-    assert _ckpt(client, sid) == before  # the bytes are the state's alone
+    sid = new_session(client)["id"]
+    before = get_checkpoint(client, sid)
+    assert get_checkpoint(client, sid) == before  # the bytes are the state's alone
     r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, **change})
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"][-1] == field, r.text
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before
 
 
 def test_nan_density_and_the_budget_are_refused(client, monkeypatch):
-    sid = _new(client)["id"]
-    before = _ckpt(client, sid)
+    sid = new_session(client)["id"]
+    before = get_checkpoint(client, sid)
     body = json.dumps(JELLY)[:-1] + ', "density": NaN}'
     r = client.post(f"/v1/sessions/{sid}/blocks", content=body, headers={"Content-Type": "application/json"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "density", r.text
     monkeypatch.setattr(pour_module, "MAX_POURED_TOTAL", 5000)  # the session holds 4608
     r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "hi" and "5000" in r.text, r.text
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before
 
 
 def test_only_mpm_sessions_take_a_pour(client):
-    sid = _new(client, scene="water2d", solver="neural")["id"]
+    sid = new_session(client, scene="water2d", solver="neural")["id"]
     assert client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "material": "water"}).status_code == 409
 
 
@@ -142,18 +131,18 @@ def test_a_pour_is_charged_to_the_memory_budget_until_its_session_goes(client, m
     from hybridmpm.service.sessions import SESSION_STATE_COPIES
 
     base = client.get("/healthz").json()["memory_used"]
-    sid = _new(client)["id"]
+    sid = new_session(client)["id"]
     held = client.get("/healthz").json()["memory_used"]
     r = client.post(f"/v1/sessions/{sid}/blocks", json=JELLY)
     assert r.status_code == 201, r.text
     used = client.get("/healthz").json()["memory_used"]
     assert used - held >= SESSION_STATE_COPIES * BYTES_PER_PARTICLE * r.json()["added"], (base, held, used)  # and its new frames
     # a pour the budget cannot hold at its largest is refused (503, retry later) and changes nothing
-    before = _ckpt(client, sid)
+    before = get_checkpoint(client, sid)
     monkeypatch.setattr(pour_module, "MAX_POUR_PARTICLES", 1 << 40)
     r = client.post(f"/v1/sessions/{sid}/blocks", json={**JELLY, "lo": [0.75, 0.6], "hi": [0.85, 0.7]})
     assert r.status_code == 503 and r.headers["retry-after"], r.text
-    assert _ckpt(client, sid) == before and client.get("/healthz").json()["memory_used"] == used
+    assert get_checkpoint(client, sid) == before and client.get("/healthz").json()["memory_used"] == used
     assert client.delete(f"/v1/sessions/{sid}").status_code == 204
     assert client.get("/healthz").json()["memory_used"] == base
 
@@ -161,14 +150,14 @@ def test_a_pour_is_charged_to_the_memory_budget_until_its_session_goes(client, m
 def test_parameters_in_params_pour_as_the_flat_keys_do_and_a_key_the_model_lacks_is_named(client):
     """``params`` (the schema's keys of the chosen model) and the flat keys pour the same block; a key the
     model lacks, one given both ways, or a place key in ``params`` is a 422 naming it under ``params``."""
-    flat, nested = _new(client)["id"], _new(client)["id"]
+    flat, nested = new_session(client)["id"], new_session(client)["id"]
     r1 = client.post(f"/v1/sessions/{flat}/blocks", json={**JELLY, "E": 5e4, "nu": 0.4})
     r2 = client.post(f"/v1/sessions/{nested}/blocks", json={**JELLY, "params": {"E": 5e4, "nu": 0.4}})
     assert r1.status_code == r2.status_code == 201, (r1.text, r2.text)
     assert r1.json() == r2.json()
-    assert _ckpt(client, flat) == _ckpt(client, nested)
-    sid = _new(client)["id"]
-    before = _ckpt(client, sid)
+    assert get_checkpoint(client, flat) == get_checkpoint(client, nested)
+    sid = new_session(client)["id"]
+    before = get_checkpoint(client, sid)
     for params, extra, key, says in [
         ({"theta_c": 0.1}, {}, "theta_c", "not a parameter of elastic"),  # snow's, not jello's (elastic)
         ({"nu": 0.49999999}, {}, "nu", "got 0.49999999"),  # 0.5 in float32
@@ -181,7 +170,7 @@ def test_parameters_in_params_pour_as_the_flat_keys_do_and_a_key_the_model_lacks
         assert r.status_code == 422, r.text
         assert r.json()["detail"][0]["loc"] == ["body", "params", key], r.text
         assert says in r.json()["detail"][0]["msg"], r.text
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before
 
 
 def test_the_pour_bodys_flat_keys_are_the_schemas():
@@ -208,12 +197,12 @@ def test_get_materials_gives_the_one_schema_and_the_presets_a_pour_takes(client)
     models, presets = r.json()["models"], r.json()["presets"]
     assert models == {m: [{**asdict(p), "choices": list(p.choices)} for p in params] for m, params in SCHEMA.items()}
     assert presets == {name: {"model": m.name, "params": asdict(m), "source": PRESET_SOURCES[name]} for name, m in PRESETS.items()}
-    sid = _new(client)["id"]
+    sid = new_session(client)["id"]
     for i, (model, rows) in enumerate(models.items()):
         block = {"material": model, "lo": [0.30 + 0.12 * i, 0.7], "hi": [0.36 + 0.12 * i, 0.76]}
         r = client.post(f"/v1/sessions/{sid}/blocks", json={**block, "params": {p["key"]: p["default"] for p in rows}})
         assert r.status_code == 201, (model, r.text)
-    before, refused = _ckpt(client, sid), []
+    before, refused = get_checkpoint(client, sid), []
     for model, rows in models.items():
         for p in rows:
             for bound in ("lower", "upper"):
@@ -224,4 +213,4 @@ def test_get_materials_gives_the_one_schema_and_the_presets_a_pour_takes(client)
                     assert p["range"] in r.json()["detail"][0]["msg"], r.text
                     refused.append((model, p["key"], p[bound]))
     assert {(m, 0.5) for m in models if m != "water"} <= {(m, x) for m, k, x in refused if k == "nu"}, refused
-    assert _ckpt(client, sid) == before
+    assert get_checkpoint(client, sid) == before

@@ -24,7 +24,7 @@ from hybridmpm.errors import InvalidInputError  # noqa: E402
 from hybridmpm.service import ServiceConfig, create_app  # noqa: E402
 from hybridmpm.service import checkpoint as ckpt  # noqa: E402
 from hybridmpm.service.store import parse_record, rebuild, record_state  # noqa: E402
-from hybridmpm.service.testing import LiveServer, step_binary, wait_saved  # noqa: E402
+from hybridmpm.service.testing import LiveServer, get_checkpoint, new_session, step_binary, wait_saved  # noqa: E402
 from hybridmpm.sim import make_simulator, rollout  # noqa: E402
 from hybridmpm.sim import pour as pour_module  # noqa: E402
 from hybridmpm.sim.pour import pour_block  # noqa: E402
@@ -98,22 +98,10 @@ def client():
         yield c
 
 
-def _new(client):
-    r = client.post("/v1/sessions", json={"scene": "dam_break2d", "solver": "mpm", "seed": 0})
-    assert r.status_code == 201, r.text
-    return r.json()
-
-
 def _step(client, sid, frames):
     r = client.post(f"/v1/sessions/{sid}/step", json={"frames": frames})
     assert r.status_code == 200, r.text
     return np.asarray(r.json()["frames"][-1]["positions"])
-
-
-def _ckpt(client, sid) -> bytes:
-    r = client.get(f"/v1/sessions/{sid}/checkpoint")
-    assert r.status_code == 200
-    return r.content
 
 
 def _put(client, sid, data):
@@ -121,13 +109,13 @@ def _put(client, sid, data):
 
 
 def test_checkpoints_before_and_after_a_pour_restore_their_own_particles(client):
-    s = _new(client)
+    s = new_session(client)
     sid, n0 = s["id"], s["num_particles"]
     _step(client, sid, 3)
-    before = _ckpt(client, sid)
+    before = get_checkpoint(client, sid)
     assert client.post(f"/v1/sessions/{sid}/blocks", json=JELLY).status_code == 201
     _step(client, sid, 3)
-    after = _ckpt(client, sid)
+    after = get_checkpoint(client, sid)
     with client.websocket_connect(f"/v1/sessions/{sid}/stream") as ws:
         assert json.loads(ws.receive_text())["type"] == "meta"
         r = _put(client, sid, before)
@@ -140,7 +128,7 @@ def test_checkpoints_before_and_after_a_pour_restore_their_own_particles(client)
                 event = json.loads(m["text"])
         assert event["num_particles"] == n0 and event["particle_type"].count(GNS_ELASTIC) == 0
     # the session is the unpoured run again: the same positions as a session never poured into
-    other = _new(client)["id"]
+    other = new_session(client)["id"]
     _step(client, other, 3)
     assert np.array_equal(_step(client, sid, 5), _step(client, other, 5))
     # the checkpoint after the pour brings the block back, and the run on from it
@@ -168,12 +156,12 @@ def _with_state(data: bytes, **changes) -> bytes:
 
 
 def test_a_checkpoint_that_is_not_this_scene_plus_blocks_is_refused(client, monkeypatch):
-    s = _new(client)
+    s = new_session(client)
     sid, n0 = s["id"], s["num_particles"]
     assert client.post(f"/v1/sessions/{sid}/blocks", json=JELLY).status_code == 201
-    poured = _ckpt(client, sid)
+    poured = get_checkpoint(client, sid)
     _step(client, sid, 2)
-    now = _ckpt(client, sid)
+    now = get_checkpoint(client, sid)
     state, _ = ckpt.loads(poured, 1 << 28)
     gravity = json.loads(state["solver"][16 : 16 + struct.unpack("<Q", state["solver"][8:16])[0]])["gravity"]
     bad = {
@@ -187,14 +175,14 @@ def test_a_checkpoint_that_is_not_this_scene_plus_blocks_is_refused(client, monk
         r = _put(client, sid, data)
         assert r.status_code == 422, (why, r.text[:300])
         assert r.json()["detail"][0]["loc"][-1] == "checkpoint", (why, r.text[:300])
-        assert _ckpt(client, sid) == now, f"{why}: the session changed"
+        assert get_checkpoint(client, sid) == now, f"{why}: the session changed"
     # more particles than a session may hold with poured blocks (into a session of the scene's particles)
-    fresh = _new(client)["id"]
-    mine = _ckpt(client, fresh)
+    fresh = new_session(client)["id"]
+    mine = get_checkpoint(client, fresh)
     monkeypatch.setattr(pour_module, "MAX_POURED_TOTAL", n0 + JELLY_N - 1)
     r = _put(client, fresh, poured)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"][-1] == "checkpoint" and str(n0 + JELLY_N) in r.text, r.text[:300]
-    assert _ckpt(client, fresh) == mine
+    assert get_checkpoint(client, fresh) == mine
     # the simulator's own refusal: the scene's particles must come first
     sim = make_simulator("dam_break2d", "mpm", seed=0, threads=1)
     other = make_simulator("water2d", "mpm", seed=0, threads=1)

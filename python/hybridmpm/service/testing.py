@@ -279,6 +279,22 @@ class RayCluster:
         self.stop()
 
 
+def new_session(client: Any, scene: str = "dam_break2d", solver: str = "mpm", seed: int = 0) -> dict[str, Any]:
+    """``POST /v1/sessions`` through ``client`` (an httpx or test client): the new session's description.
+    AssertionError when it does not answer 201."""
+    r = client.post("/v1/sessions", json={"scene": scene, "solver": solver, "seed": seed})
+    assert r.status_code == 201, r.text
+    return dict(r.json())
+
+
+def get_checkpoint(client: Any, sid: str) -> bytes:
+    """``GET /v1/sessions/{sid}/checkpoint`` through ``client``: the checkpoint's bytes. AssertionError when it
+    does not answer 200."""
+    r = client.get(f"/v1/sessions/{sid}/checkpoint")
+    assert r.status_code == 200, r.text
+    return bytes(r.content)
+
+
 def step_binary(client: Any, sid: str, frames: int) -> np.ndarray:
     """``POST /v1/sessions/{sid}/step`` with a binary answer through
     ``client`` (an httpx or test client): the positions, float32
