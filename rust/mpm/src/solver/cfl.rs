@@ -19,6 +19,14 @@ impl<const D: usize> Solver<D>
 where
     Dim<D>: DimOps<D>,
 {
+    /// Whether a pass over every particle goes to the pool: past [`SERIAL_SPEED_SCAN`] particles, with
+    /// more than one thread, and not in a forked child (where the pool's threads do not exist).
+    pub(super) fn scan_in_parallel(&self) -> bool {
+        self.pool_pid == std::process::id()
+            && self.particles.len() > SERIAL_SPEED_SCAN
+            && self.pool.current_num_threads() > 1
+    }
+
     /// Largest wave speed among the parameter sets present [m/s]: water
     /// `sqrt(K/ρ)` (or, if larger, its viscous limit as a speed,
     /// [`crate::material::WaterParams::viscous_speed`]), the others their P-wave speed `sqrt((λ + 2μ)/ρ)`, snow's
@@ -90,10 +98,7 @@ where
             return Ok(s);
         }
         let speed = |p: &crate::particles::Particle<D>| crate::dim::norm(&p.v);
-        let vmax = if self.pool_pid == std::process::id()
-            && self.particles.len() > SERIAL_SPEED_SCAN
-            && self.pool.current_num_threads() > 1
-        {
+        let vmax = if self.scan_in_parallel() {
             self.pool.install(|| {
                 self.particles
                     .par_iter()
