@@ -20,11 +20,27 @@ where
     Dim<D>: DimOps<D>,
 {
     /// Whether a pass over every particle goes to the pool: past [`SERIAL_SPEED_SCAN`] particles, with
-    /// more than one thread, and not in a forked child (where the pool's threads do not exist).
+    /// more than one thread, and not in a forked child (where the pool's threads do not exist). With
+    /// fewer particles a scan on this thread takes less time than waking the pool; a pool of one thread
+    /// is shared (`crate::pool`: the scan would wait for other solvers' scans).
     pub(super) fn scan_in_parallel(&self) -> bool {
         self.pool_pid == std::process::id()
             && self.particles.len() > SERIAL_SPEED_SCAN
             && self.pool.current_num_threads() > 1
+    }
+
+    /// The largest `f(particle)` (0 without particles; a NaN is passed over), on the pool where
+    /// [`Self::scan_in_parallel`]: a maximum, the same in any order.
+    pub(super) fn max_over_particles(
+        &self,
+        f: impl Fn(&crate::particles::Particle<D>) -> f32 + Sync + Send,
+    ) -> f32 {
+        if self.scan_in_parallel() {
+            self.pool
+                .install(|| self.particles.par_iter().map(&f).reduce(|| 0.0, f32::max))
+        } else {
+            self.particles.iter().map(&f).fold(0.0, f32::max)
+        }
     }
 
     /// Largest wave speed among the parameter sets present [m/s]: water
@@ -97,21 +113,7 @@ where
         if let Some(s) = self.params.substeps {
             return Ok(s);
         }
-        let speed = |p: &crate::particles::Particle<D>| crate::dim::norm(&p.v);
-        let vmax = if self.scan_in_parallel() {
-            self.pool.install(|| {
-                self.particles
-                    .par_iter()
-                    .map(speed)
-                    .reduce(|| 0.0f32, f32::max)
-            })
-        } else {
-            // few particles: a scan on this thread takes less time than waking
-            // the pool; a pool of one thread (shared, `crate::pool`: the scan
-            // would wait for other solvers' scans); or a forked child, where
-            // the pool's threads do not exist (max is exact in any order)
-            self.particles.iter().map(speed).fold(0.0f32, f32::max)
-        };
+        let vmax = self.max_over_particles(|p| crate::dim::norm(&p.v));
         // a moving collider gives the fluid its speed: it counts as a particle's
         let vmax = match self.move_speed(dt_frame) {
             Some(u) => vmax.max(u),

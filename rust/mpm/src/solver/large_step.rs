@@ -49,7 +49,7 @@ use crate::dim::{Dim, DimOps};
 use crate::error::{MpmError, Result};
 use crate::material::MaterialParams;
 use crate::params::WallParams;
-use crate::particles::{Material, Particle};
+use crate::particles::Material;
 use crate::projection::{ADVECTIVE_CFL, Projection, StepBody, StepColliders, push_out_of_bodies};
 
 /// Particles a task copies when the rollback copy goes to the pool.
@@ -224,26 +224,15 @@ where
 
     /// The fastest particle's speed [m/s]: infinite where a particle's position or velocity is not
     /// finite (one scan for the step's check and its report).
-    /// On the pool past [`Solver::scan_in_parallel`]'s count (a maximum: the same in any order).
     fn checked_max_speed(&self) -> f32 {
-        let speed = |p: &Particle<D>| {
+        self.max_over_particles(|p| {
             let s = crate::dim::norm(&p.v);
             if s.is_nan() || !p.x.iter().all(|x| x.is_finite()) {
                 f32::INFINITY
             } else {
                 s
             }
-        };
-        if self.scan_in_parallel() {
-            self.pool.install(|| {
-                self.particles
-                    .par_iter()
-                    .map(speed)
-                    .reduce(|| 0.0, f32::max)
-            })
-        } else {
-            self.particles.iter().map(speed).fold(0.0, f32::max)
-        }
+        })
     }
 
     /// The frame's start, to roll back to: a copy of the particles (on the pool past
