@@ -76,9 +76,9 @@ impl<const D: usize> Kernel<D> {
     #[inline(always)]
     pub(super) unsafe fn new_lanes(x: &SVector<f32, D>, dx: f32, n: usize) -> Self {
         use core::arch::x86_64::{
-            _mm256_cvttps_epi32, _mm256_div_ps, _mm256_floor_ps, _mm256_max_ps, _mm256_min_ps,
-            _mm256_mul_ps, _mm256_set1_ps, _mm256_setr_ps, _mm256_storeu_ps, _mm256_storeu_si256,
-            _mm256_sub_ps,
+            _mm256_add_ps, _mm256_cvttps_epi32, _mm256_div_ps, _mm256_floor_ps, _mm256_max_ps,
+            _mm256_min_ps, _mm256_mul_ps, _mm256_set1_ps, _mm256_setr_ps, _mm256_storeu_ps,
+            _mm256_storeu_si256, _mm256_sub_ps,
         };
         // SAFETY: the caller runs this on a CPU with AVX2
         unsafe {
@@ -88,7 +88,6 @@ impl<const D: usize> Kernel<D> {
             let (l0, l1) = ((n - 3) as f32, (n - 2) as f32);
             let lim = _mm256_setr_ps(l0, l1, l0, l1, l0, l1, l0, l1);
             let s = _mm256_set1_ps;
-            let add = core::arch::x86_64::_mm256_add_ps;
             let g = _mm256_sub_ps(_mm256_div_ps(xv, s(dx)), shift);
             let b = _mm256_floor_ps(_mm256_sub_ps(g, s(0.5)));
             // quadratic_weights(g - b), its operations in its order
@@ -102,7 +101,12 @@ impl<const D: usize> Kernel<D> {
             ];
             // the base clamped to the grid (a NaN to 0, as `max` takes the second operand)
             let bc = _mm256_min_ps(_mm256_max_ps(b, s(0.0)), lim);
-            let off = |j: f32| _mm256_sub_ps(_mm256_mul_ps(add(add(bc, s(j)), shift), s(dx)), xv);
+            let off = |j: f32| {
+                _mm256_sub_ps(
+                    _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(bc, s(j)), shift), s(dx)),
+                    xv,
+                )
+            };
             let off = [off(0.0), off(1.0), off(2.0)];
             let mut lanes = [[0.0f32; 8]; 6];
             for j in 0..3 {

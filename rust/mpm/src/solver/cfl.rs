@@ -276,7 +276,8 @@ where
     }
 }
 
-/// Particles up to which [`Solver::substeps_for`] finds the largest speed on
+/// Particles up to which a pass over them ([`Solver::scan_in_parallel`]: the
+/// step count's and the large step's speed scans, its rollback copy) runs on
 /// the calling thread: about 1 ns each, where handing the scan to the pool
 /// (`install`) cost 20–27 µs per frame on a 2-core VM, asleep between
 /// frames (sand2d on a 64² grid, 789 particles: 4% of its frame).
